@@ -1,0 +1,5 @@
+import sys
+
+from hsicam.cli import main
+
+sys.exit(main())

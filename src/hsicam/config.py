@@ -1,0 +1,329 @@
+"""Strict configuration: nested dataclasses loaded from YAML (``yaml.safe_load``).
+
+Unknown keys and wrong types are errors (:class:`ConfigError`); keys carry their units
+(``focal_length_mm``, ``pixel_pitch_um``, ``sigma_height_nm``). Defaults are the paper's camera.
+Dotted overrides (``camera.doe.enabled=false``) are applied before validation, so they are
+checked exactly like the file.
+
+Every section is a dataclass below; to add a setting, add a typed field with a default and,
+where a value can be meaningless, a check in that section's ``__post_init__``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import types
+import typing
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Literal, Optional, Sequence, Union
+
+import yaml
+
+from hsicam.errors import ConfigError
+from hsicam.spectral import Bands
+
+
+def _positive(section: str, **values: float | None) -> None:
+    for name, v in values.items():
+        if v is not None and not (v > 0 and math.isfinite(v)):
+            raise ConfigError(f"{section}.{name} must be a positive length/number, got {v}")
+
+
+# --------------------------------------------------------------------------------------------
+# Sections
+# --------------------------------------------------------------------------------------------
+@dataclass
+class BandsConfig:
+    """Camera band grid: ``start_nm`` to ``stop_nm`` inclusive in steps of ``step_nm``."""
+
+    start_nm: float = 420.0
+    stop_nm: float = 720.0
+    step_nm: float = 10.0
+    fwhm_nm: Optional[float] = None  # None: equal to the step
+
+    def __post_init__(self) -> None:
+        _positive("bands", start_nm=self.start_nm, stop_nm=self.stop_nm, step_nm=self.step_nm, fwhm_nm=self.fwhm_nm)
+        if self.stop_nm < self.start_nm:
+            raise ConfigError(f"bands.stop_nm ({self.stop_nm}) is below bands.start_nm ({self.start_nm})")
+        try:
+            self.to_bands()
+        except Exception as exc:  # noqa: BLE001 - re-raised as a config error with the key named
+            raise ConfigError(f"bands: {exc}") from None
+
+    def to_bands(self) -> Bands:
+        return Bands.uniform(self.start_nm, self.stop_nm, self.step_nm, self.fwhm_nm)
+
+
+@dataclass
+class LensConfig:
+    """Refractive lens. ``achromatic``: f(λ) = focal_length_mm for every band (paper, under eq. 6).
+    ``singlet``: plano-convex, f(λ) = R / (n(λ) - 1) (focal_length_mm is not used)."""
+
+    model: Literal["achromatic", "singlet"] = "achromatic"
+    focal_length_mm: float = 35.0
+    radius_of_curvature_mm: float = 16.0
+    center_thickness_mm: float = 2.0
+    material: str = "fused_silica"
+    design_wavelength_nm: float = 587.6  # the sensor sits at f(design wavelength)
+
+    def __post_init__(self) -> None:
+        _positive(
+            "camera.lens",
+            focal_length_mm=self.focal_length_mm,
+            radius_of_curvature_mm=self.radius_of_curvature_mm,
+            center_thickness_mm=self.center_thickness_mm,
+            design_wavelength_nm=self.design_wavelength_nm,
+        )
+
+
+@dataclass
+class DOEConfig:
+    """Diffractive optical element: a height map on square cells inside the circular aperture."""
+
+    enabled: bool = True  # false: h = 0 (the "no DOE" ablation)
+    cell_size_um: float = 30.0
+    material: str = "fused_silica"
+    design_wavelength_nm: float = 587.6  # h_2π = λ0 / (n(λ0) - 1)
+    init: Literal["random", "zeros"] = "random"  # random: uniform in [0, h_2π]
+    seed: int = 0
+    max_height_nm: Optional[float] = None  # clamp heights to [0, max] (straight-through gradient)
+    wrap: bool = False  # wrap heights modulo h_2π (phase wrapping)
+    quantization_levels: Optional[int] = None  # L levels over [0, h_2π] (straight-through gradient)
+    sigma_height_nm: float = 0.0  # fabrication noise, i.i.d. Gaussian per cell, per forward pass
+
+    def __post_init__(self) -> None:
+        _positive("camera.doe", cell_size_um=self.cell_size_um, design_wavelength_nm=self.design_wavelength_nm,
+                  max_height_nm=self.max_height_nm)
+        if self.quantization_levels is not None and self.quantization_levels < 2:
+            raise ConfigError(f"camera.doe.quantization_levels must be >= 2, got {self.quantization_levels}")
+        if not (self.sigma_height_nm >= 0 and math.isfinite(self.sigma_height_nm)):
+            raise ConfigError(f"camera.doe.sigma_height_nm must be >= 0, got {self.sigma_height_nm}")
+
+
+@dataclass
+class PSFConfig:
+    """PSF sampling (DESIGN.md §1). ``None`` picks the smallest valid value."""
+
+    kernel_px: Optional[int] = None  # odd; at least λ_max·z/Δ in pixels (141 for the paper optics)
+    supersample: Optional[int] = None  # odd s: the FFT pitch is pixel/s, then s×s sum-pooling
+    pupil_oversample: int = 1  # q sub-samples per DOE cell: widens the FFT field, shows higher orders
+
+    def __post_init__(self) -> None:
+        if self.kernel_px is not None and (self.kernel_px < 1 or self.kernel_px % 2 == 0):
+            raise ConfigError(f"camera.psf.kernel_px must be a positive odd number, got {self.kernel_px}")
+        if self.supersample is not None and (self.supersample < 1 or self.supersample % 2 == 0):
+            raise ConfigError(f"camera.psf.supersample must be a positive odd number, got {self.supersample}")
+        if self.pupil_oversample < 1:
+            raise ConfigError(f"camera.psf.pupil_oversample must be >= 1, got {self.pupil_oversample}")
+
+
+@dataclass
+class CFAConfig:
+    """Periodic colour filter array, m×m×C parameters (paper eq. 9). ``enabled: false``: κ = 1."""
+
+    enabled: bool = True
+    period: int = 9
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        if self.period < 1:
+            raise ConfigError(f"camera.cfa.period must be >= 1, got {self.period}")
+
+
+@dataclass
+class SensorConfig:
+    """Monochrome sensor: pixel pitch, noise model and optional bit depth."""
+
+    pixel_pitch_um: float = 6.0
+    noise: Literal["none", "gaussian", "poisson_gaussian"] = "gaussian"
+    sigma: float = 0.0  # gaussian σ_s on the [0, 1]-scaled image
+    full_well_e: float = 10000.0  # poisson_gaussian: electrons at signal 1.0
+    read_noise_e: float = 2.0  # poisson_gaussian: read noise σ in electrons
+    bit_depth: Optional[int] = None  # quantise to 2^bits levels over [0, 1] (clipping)
+
+    def __post_init__(self) -> None:
+        _positive("camera.sensor", pixel_pitch_um=self.pixel_pitch_um, full_well_e=self.full_well_e)
+        if not (self.sigma >= 0 and math.isfinite(self.sigma)):
+            raise ConfigError(f"camera.sensor.sigma must be >= 0, got {self.sigma}")
+        if self.read_noise_e < 0:
+            raise ConfigError(f"camera.sensor.read_noise_e must be >= 0, got {self.read_noise_e}")
+        if self.bit_depth is not None and not (1 <= self.bit_depth <= 32):
+            raise ConfigError(f"camera.sensor.bit_depth must be in 1..32, got {self.bit_depth}")
+
+
+@dataclass
+class CameraConfig:
+    """The DOE camera of the paper: lens + DOE + CFA + sensor."""
+
+    aperture_radius_mm: float = 5.0
+    sensor_distance_mm: Optional[float] = None  # None: the lens focal length at its design wavelength
+    object_distance_m: Optional[float] = None  # None: object at infinity
+    boundary: Literal["valid", "same"] = "valid"  # valid: scene larger than sensor by the kernel margin
+    padding: Literal["zeros", "reflect", "replicate", "circular"] = "zeros"  # for boundary=same
+    lens: LensConfig = field(default_factory=LensConfig)
+    doe: DOEConfig = field(default_factory=DOEConfig)
+    psf: PSFConfig = field(default_factory=PSFConfig)
+    cfa: CFAConfig = field(default_factory=CFAConfig)
+    sensor: SensorConfig = field(default_factory=SensorConfig)
+
+    def __post_init__(self) -> None:
+        _positive("camera", aperture_radius_mm=self.aperture_radius_mm, sensor_distance_mm=self.sensor_distance_mm,
+                  object_distance_m=self.object_distance_m)
+        if self.doe.cell_size_um * 1e-3 > 2 * self.aperture_radius_mm:
+            raise ConfigError(
+                f"camera.doe.cell_size_um ({self.doe.cell_size_um} µm) is larger than the aperture diameter "
+                f"({2 * self.aperture_radius_mm} mm)"
+            )
+
+
+@dataclass
+class DataConfig:
+    """Training/evaluation data (the data issue owns the details)."""
+
+    root: Optional[str] = None  # folder of supported files; None: the embedded synthetic dataset
+
+
+@dataclass
+class Config:
+    """Top-level configuration."""
+
+    bands: BandsConfig = field(default_factory=BandsConfig)
+    camera: CameraConfig = field(default_factory=CameraConfig)
+    data: DataConfig = field(default_factory=DataConfig)
+
+
+# --------------------------------------------------------------------------------------------
+# Loading, overrides, dumping
+# --------------------------------------------------------------------------------------------
+def load_config(path: str | Path | None = None, overrides: Sequence[str] = (), cls: type = Config) -> Any:
+    """Load ``path`` (YAML) over the defaults, apply dotted ``key=value`` overrides, validate."""
+    data: dict[str, Any] = {}
+    if path is not None:
+        path = Path(path)
+        try:
+            text = path.read_text(encoding="utf-8")
+        except OSError as exc:
+            raise ConfigError(f"{path}: cannot read config ({exc.strerror})") from None
+        try:
+            loaded = yaml.safe_load(text)
+        except yaml.YAMLError as exc:
+            raise ConfigError(f"{path}: invalid YAML ({str(exc).splitlines()[0]})") from None
+        if loaded is None:
+            loaded = {}
+        if not isinstance(loaded, dict):
+            raise ConfigError(f"{path}: the top level must be a mapping of sections")
+        data = loaded
+    for item in overrides:
+        apply_override(data, item)
+    return from_dict(cls, data)
+
+
+def apply_override(data: dict[str, Any], item: str) -> None:
+    """Apply one ``a.b.c=value`` override to a nested dict (value parsed as YAML)."""
+    if "=" not in item:
+        raise ConfigError(f"override {item!r} must look like key.sub=value")
+    key, _, raw = item.partition("=")
+    parts = [p for p in key.strip().split(".")]
+    if not all(parts):
+        raise ConfigError(f"override {item!r}: empty key")
+    try:
+        value = yaml.safe_load(raw) if raw.strip() else None
+    except yaml.YAMLError:
+        value = raw
+    node = data
+    for p in parts[:-1]:
+        nxt = node.setdefault(p, {})
+        if not isinstance(nxt, dict):
+            raise ConfigError(f"override {item!r}: {p} is not a section")
+        node = nxt
+    node[parts[-1]] = value
+
+
+def from_dict(cls: type, data: Any, where: str = "") -> Any:
+    """Build dataclass ``cls`` from a mapping, rejecting unknown keys and wrong types."""
+    label = where or "config"
+    if data is None:
+        data = {}
+    if not isinstance(data, dict):
+        raise ConfigError(f"{label} must be a mapping, got {type(data).__name__}")
+    hints = typing.get_type_hints(cls)
+    names = [f.name for f in dataclasses.fields(cls)]
+    for key in data:
+        if key not in names:
+            raise ConfigError(f"unknown config key '{_join(where, str(key))}' (known here: {', '.join(names)})")
+    kwargs = {k: _coerce(hints[k], v, _join(where, k)) for k, v in data.items()}
+    try:
+        return cls(**kwargs)
+    except ConfigError:
+        raise
+    except (TypeError, ValueError) as exc:
+        raise ConfigError(f"{label}: {exc}") from None
+
+
+def to_dict(cfg: Any) -> dict[str, Any]:
+    """Plain nested dict of a config (for YAML/JSON)."""
+    return dataclasses.asdict(cfg)
+
+
+def dump_yaml(cfg: Any) -> str:
+    """The resolved config as YAML text (round-trips through :func:`load_config`)."""
+    return yaml.safe_dump(to_dict(cfg), sort_keys=False)
+
+
+def _join(where: str, key: str) -> str:
+    return f"{where}.{key}" if where else key
+
+
+def _type_name(tp: Any) -> str:
+    return getattr(tp, "__name__", str(tp).replace("typing.", ""))
+
+
+def _coerce(tp: Any, value: Any, key: str) -> Any:
+    origin = typing.get_origin(tp)
+    if origin in (Union, types.UnionType):
+        args = typing.get_args(tp)
+        if value is None and type(None) in args:
+            return None
+        errors = []
+        for a in args:
+            if a is type(None):
+                continue
+            try:
+                return _coerce(a, value, key)
+            except ConfigError as exc:
+                errors.append(str(exc))
+        raise ConfigError(errors[0] if len(errors) == 1 else f"config key '{key}': {value!r} has the wrong type")
+    if origin is Literal:
+        allowed = typing.get_args(tp)
+        if value not in allowed:
+            raise ConfigError(f"config key '{key}' must be one of {', '.join(map(repr, allowed))}, got {value!r}")
+        return value
+    if origin in (list, tuple, Sequence):
+        (inner, *_) = typing.get_args(tp) or (Any,)
+        if not isinstance(value, (list, tuple)):
+            raise ConfigError(f"config key '{key}' must be a list, got {value!r}")
+        items = [_coerce(inner, v, f"{key}[{i}]") for i, v in enumerate(value)]
+        return tuple(items) if origin is tuple else items
+    if dataclasses.is_dataclass(tp):
+        return from_dict(tp, value, key)
+    if tp is Any:
+        return value
+    if tp is bool:
+        if not isinstance(value, bool):
+            raise ConfigError(f"config key '{key}' must be true or false, got {value!r}")
+        return value
+    if tp is int:
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise ConfigError(f"config key '{key}' must be an integer, got {value!r}")
+        return value
+    if tp is float:
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise ConfigError(f"config key '{key}' must be a number, got {value!r}")
+        return float(value)
+    if tp is str:
+        if not isinstance(value, str):
+            raise ConfigError(f"config key '{key}' must be a string, got {value!r}")
+        return value
+    raise ConfigError(f"config key '{key}': unsupported type {_type_name(tp)}")

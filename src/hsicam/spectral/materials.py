@@ -1,0 +1,97 @@
+"""Refractive indices n(λ) of optical materials (DOE substrate, singlet lens).
+
+``FusedSilica`` uses the three-term Sellmeier equation of Malitson (1965), valid 0.21–3.71 µm.
+Any other material comes from a CSV table (``wavelength_nm,n``) and is interpolated linearly.
+"""
+
+from __future__ import annotations
+
+import csv
+from pathlib import Path
+from typing import Protocol
+
+import numpy as np
+
+from hsicam.errors import InputError
+
+
+class Material(Protocol):
+    name: str
+
+    def n(self, wavelength_nm: np.ndarray | float) -> np.ndarray:
+        """Refractive index at the given vacuum wavelengths (nm); float64 array."""
+        ...
+
+
+class FusedSilica:
+    """Fused silica, Sellmeier coefficients of I. H. Malitson, JOSA 55, 1205 (1965)."""
+
+    name = "fused_silica"
+    B = (0.6961663, 0.4079426, 0.8974794)
+    C_um = (0.0684043, 0.1162414, 9.896161)
+
+    def n(self, wavelength_nm: np.ndarray | float) -> np.ndarray:
+        lam_um = np.asarray(wavelength_nm, dtype=np.float64) * 1e-3
+        if np.any(lam_um < 0.21) or np.any(lam_um > 3.71):
+            raise InputError("fused silica Sellmeier formula is valid for 210-3710 nm only")
+        l2 = lam_um**2
+        n2 = 1.0 + sum(b * l2 / (l2 - c**2) for b, c in zip(self.B, self.C_um))
+        return np.sqrt(n2)
+
+    def __repr__(self) -> str:
+        return "FusedSilica()"
+
+
+class TabulatedMaterial:
+    """A material given by a table of (wavelength in nm, refractive index), linearly interpolated."""
+
+    def __init__(self, wavelength_nm: np.ndarray, n: np.ndarray, name: str = "tabulated") -> None:
+        wl = np.asarray(wavelength_nm, dtype=np.float64).reshape(-1)
+        nn = np.asarray(n, dtype=np.float64).reshape(-1)
+        if wl.size < 2 or wl.shape != nn.shape:
+            raise InputError(f"material {name!r}: need at least two (wavelength, n) rows of equal length")
+        if not (np.all(np.isfinite(wl)) and np.all(np.isfinite(nn))):
+            raise InputError(f"material {name!r}: table contains NaN or Inf")
+        if np.any(np.diff(wl) <= 0):
+            raise InputError(f"material {name!r}: wavelengths must be strictly ascending")
+        if np.any(nn < 1.0):
+            raise InputError(f"material {name!r}: refractive index below 1")
+        self.wavelength_nm, self.n_table, self.name = wl, nn, name
+
+    @classmethod
+    def from_csv(cls, path: str | Path) -> "TabulatedMaterial":
+        """Read a CSV with a header row naming ``wavelength_nm`` and ``n`` columns."""
+        path = Path(path)
+        try:
+            with open(path, newline="", encoding="utf-8") as fh:
+                rows = list(csv.DictReader(fh))
+        except OSError as exc:
+            raise InputError(f"{path}: cannot read material table ({exc.strerror})") from None
+        if not rows or "wavelength_nm" not in rows[0] or "n" not in rows[0]:
+            raise InputError(f"{path}: material CSV needs columns 'wavelength_nm' and 'n'")
+        try:
+            wl = [float(r["wavelength_nm"]) for r in rows]
+            n = [float(r["n"]) for r in rows]
+        except (TypeError, ValueError):
+            raise InputError(f"{path}: non-numeric value in material table") from None
+        return cls(np.array(wl), np.array(n), name=path.stem)
+
+    def n(self, wavelength_nm: np.ndarray | float) -> np.ndarray:
+        lam = np.asarray(wavelength_nm, dtype=np.float64)
+        if np.any(lam < self.wavelength_nm[0] - 1e-9) or np.any(lam > self.wavelength_nm[-1] + 1e-9):
+            raise InputError(
+                f"material {self.name!r} is tabulated for {self.wavelength_nm[0]:g}-{self.wavelength_nm[-1]:g} nm only"
+            )
+        return np.interp(lam, self.wavelength_nm, self.n_table)
+
+    def __repr__(self) -> str:
+        return f"TabulatedMaterial({self.name!r}, {self.wavelength_nm[0]:g}-{self.wavelength_nm[-1]:g} nm)"
+
+
+def get_material(spec: str) -> Material:
+    """``"fused_silica"`` or a path to a ``wavelength_nm,n`` CSV file."""
+    if spec == "fused_silica":
+        return FusedSilica()
+    if spec.lower().endswith(".csv"):
+        return TabulatedMaterial.from_csv(spec)
+    raise InputError(f"unknown material {spec!r}: use 'fused_silica' or a path to a CSV file (wavelength_nm,n)")
