@@ -1,0 +1,164 @@
+"""Colour rendering of spectra: CIE 1931 2° observer × D65 → XYZ → linear sRGB → sRGB gamma.
+
+Spectra are treated as **reflectances under D65** (HSI2RGB style): a spectrum ``s`` on the band
+grid ``bands`` is reconstructed piecewise-linearly between band centres (the same model as
+:func:`hsicam.spectral.resample_spectra`), multiplied by D65 and the colour-matching functions and
+integrated on a 1 nm grid over the bands' range. The CMF/D65 table (``resources/
+cie1931_2deg_d65.csv``, 5 nm, 380-780 nm, from colour-science) ships with the package, so rendering
+needs neither colour-science nor a network.
+
+Normalisation: ``spectra_to_xyz`` scales so that a perfect white reflector (all ones) has Y = 1;
+``spectra_to_srgb`` additionally scales each linear sRGB channel so that the perfect white reflector
+maps exactly to (1, 1, 1) (this absorbs the small white-point error of a truncated or coarse grid,
+e.g. 420-720 nm). Values outside [0, 1] are clipped before gamma encoding.
+
+All functions accept numpy arrays or torch tensors (differentiable; computed in the input's dtype
+and device) and return the same kind.
+"""
+
+from __future__ import annotations
+
+import functools
+from importlib import resources
+from typing import Union
+
+import numpy as np
+import torch
+
+from hsicam.errors import InputError
+from hsicam.spectral import Bands, interpolation_matrix
+
+Array = Union[np.ndarray, torch.Tensor]
+
+#: Wavelength range of the shipped CMF/D65 table, nm.
+TABLE_RANGE_NM = (380.0, 780.0)
+
+#: sRGB primaries and white point (IEC 61966-2-1), CIE xy.
+_SRGB_PRIMARIES_XY = np.array([[0.64, 0.33], [0.30, 0.60], [0.15, 0.06]])
+_D65_WHITE_XY = np.array([0.3127, 0.3290])
+
+
+@functools.lru_cache(maxsize=1)
+def cmf_d65_table() -> np.ndarray:
+    """The shipped table as an array (N, 5): wavelength nm, x̄, ȳ, z̄, D65 (relative)."""
+    text = resources.files("hsicam").joinpath("resources/cie1931_2deg_d65.csv").read_text(encoding="utf-8")
+    rows = [ln for ln in text.splitlines() if ln and not ln.startswith("#")]
+    table = np.array([[float(v) for v in ln.split(",")] for ln in rows[1:]], dtype=np.float64)
+    table.setflags(write=False)
+    return table
+
+
+def xyz_to_linear_srgb_matrix() -> np.ndarray:
+    """The 3×3 matrix M with linear sRGB = M @ XYZ, derived from the sRGB primaries and D65 white."""
+    xy = _SRGB_PRIMARIES_XY
+    prim = np.stack([xy[:, 0] / xy[:, 1], np.ones(3), (1 - xy[:, 0] - xy[:, 1]) / xy[:, 1]])  # columns: XYZ of R, G, B (Y=1)
+    wx, wy = _D65_WHITE_XY
+    white = np.array([wx / wy, 1.0, (1 - wx - wy) / wy])
+    scale = np.linalg.solve(prim, white)
+    return np.linalg.inv(prim * scale[None, :])
+
+
+@functools.lru_cache(maxsize=32)
+def _xyz_weights_cached(centers: tuple[float, ...]) -> np.ndarray:
+    c = np.asarray(centers, dtype=np.float64)
+    lo, hi = TABLE_RANGE_NM
+    if c[0] < lo - 1e-9 or c[-1] > hi + 1e-9:
+        raise InputError(
+            f"colour rendering needs bands inside {lo:g}-{hi:g} nm (the CIE table), got {c[0]:g}-{c[-1]:g} nm"
+        )
+    table = cmf_d65_table()
+    if c.size == 1:
+        fine = c.copy()
+        weights_fine = np.ones(1)
+    else:
+        inner = np.arange(np.ceil(c[0]), np.floor(c[-1]) + 1.0, 1.0)
+        fine = np.unique(np.concatenate([[c[0]], inner, [c[-1]]]))
+        weights_fine = np.zeros_like(fine)  # trapezoid weights on the fine grid, nm
+        d = np.diff(fine)
+        weights_fine[:-1] += d / 2
+        weights_fine[1:] += d / 2
+    cmf = np.stack([np.interp(fine, table[:, 0], table[:, k]) for k in (1, 2, 3)])  # (3, F)
+    d65 = np.interp(fine, table[:, 0], table[:, 4])
+    kernel = cmf * d65[None, :] * weights_fine[None, :]  # (3, F)
+    if c.size == 1:
+        w = kernel
+    else:
+        interp = interpolation_matrix(Bands.from_centers(c), Bands.from_centers(fine))  # (F, C)
+        w = kernel @ interp  # (3, C)
+    w = w / w[1].sum()  # perfect white reflector: Y = 1
+    w.setflags(write=False)
+    return w
+
+
+def xyz_weights(bands: Bands) -> np.ndarray:
+    """Weights W (3, C), float64, with XYZ = W @ reflectance (white reflector: Y = 1)."""
+    return _xyz_weights_cached(tuple(float(v) for v in bands.centers_nm))
+
+
+def srgb_weights(bands: Bands) -> np.ndarray:
+    """Weights W (3, C) with linear sRGB = W @ reflectance; all-ones maps exactly to (1, 1, 1)."""
+    w = xyz_to_linear_srgb_matrix() @ xyz_weights(bands)
+    return w / w.sum(axis=1, keepdims=True)
+
+
+def srgb_encode(linear: Array) -> Array:
+    """sRGB transfer function (IEC 61966-2-1) of linear values, clipped to [0, 1] first."""
+    if isinstance(linear, torch.Tensor):
+        x = linear.clamp(0.0, 1.0)
+        hi = 1.055 * x.clamp(min=0.0031308).pow(1.0 / 2.4) - 0.055  # clamp keeps the gradient finite
+        return torch.where(x <= 0.0031308, 12.92 * x, hi)
+    x = np.clip(np.asarray(linear, dtype=np.float64), 0.0, 1.0)
+    return np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.maximum(x, 0.0031308) ** (1.0 / 2.4) - 0.055)
+
+
+def _apply(spectra: Array, w: np.ndarray, what: str, n: int) -> Array:
+    if not isinstance(spectra, torch.Tensor):
+        spectra = np.asarray(spectra)
+    if spectra.ndim == 0 or spectra.shape[-1] != n:
+        raise InputError(f"{what}: the last axis must hold the {n} bands, got shape {tuple(spectra.shape)}")
+    if isinstance(spectra, torch.Tensor):
+        dtype = spectra.dtype if spectra.is_floating_point() else torch.float32
+        wt = torch.as_tensor(w, dtype=dtype, device=spectra.device)
+        return spectra.to(dtype) @ wt.T
+    return np.asarray(spectra, dtype=np.float64) @ w.T
+
+
+def spectra_to_xyz(spectra: Array, bands: Bands) -> Array:
+    """CIE XYZ (..., 3) of reflectance spectra (..., C) under D65; white reflector has Y = 1."""
+    return _apply(spectra, xyz_weights(bands), "spectra_to_xyz", len(bands))
+
+
+def spectra_to_linear_srgb(spectra: Array, bands: Bands) -> Array:
+    """Linear sRGB (..., 3), unclipped, of reflectance spectra (..., C) under D65; white → (1, 1, 1)."""
+    return _apply(spectra, srgb_weights(bands), "spectra_to_linear_srgb", len(bands))
+
+
+def spectra_to_srgb(spectra: Array, bands: Bands) -> Array:
+    """Gamma-encoded sRGB in [0, 1], shape (..., 3), of reflectance spectra (..., C) under D65."""
+    return srgb_encode(spectra_to_linear_srgb(spectra, bands))
+
+
+def cube_to_srgb(cube: Array, bands: Bands) -> Array:
+    """sRGB render of a cube (B, C, H, W) → (B, 3, H, W), or (C, H, W) → (3, H, W); values in [0, 1]."""
+    if cube.ndim not in (3, 4):
+        raise InputError(f"cube_to_srgb expects (C, H, W) or (B, C, H, W), got shape {tuple(cube.shape)}")
+    axis = cube.ndim - 3
+    if isinstance(cube, torch.Tensor):
+        rgb = spectra_to_srgb(cube.movedim(axis, -1), bands)
+        return rgb.movedim(-1, axis)
+    rgb = spectra_to_srgb(np.moveaxis(np.asarray(cube), axis, -1), bands)
+    return np.moveaxis(rgb, -1, axis)
+
+
+__all__ = [
+    "TABLE_RANGE_NM",
+    "cmf_d65_table",
+    "cube_to_srgb",
+    "spectra_to_linear_srgb",
+    "spectra_to_srgb",
+    "spectra_to_xyz",
+    "srgb_encode",
+    "srgb_weights",
+    "xyz_to_linear_srgb_matrix",
+    "xyz_weights",
+]

@@ -1,0 +1,114 @@
+"""Colour rendering against colour-science (an independent implementation of the CIE pipeline)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from hsicam.color import (
+    cmf_d65_table,
+    cube_to_srgb,
+    spectra_to_srgb,
+    spectra_to_xyz,
+    srgb_encode,
+    xyz_to_linear_srgb_matrix,
+)
+from hsicam.errors import InputError
+from hsicam.spectral import Bands
+
+colour = pytest.importorskip("colour")
+pytestmark = pytest.mark.filterwarnings("ignore:Aligning")
+
+CMFS = colour.MSDS_CMFS["CIE 1931 2 Degree Standard Observer"]
+D65 = colour.SDS_ILLUMINANTS["D65"]
+CHECKER = colour.SDS_COLOURCHECKERS["ColorChecker N Ohta"]
+
+
+def reference_srgb(sd) -> np.ndarray:
+    """colour-science: reflectance under D65 → XYZ (CIE 1931 2°) → sRGB (gamma), clipped."""
+    xyz = colour.sd_to_XYZ(sd, CMFS, D65, method="Integration") / 100.0
+    return np.clip(colour.XYZ_to_sRGB(xyz), 0.0, 1.0)
+
+
+def sample(sd, bands: Bands) -> np.ndarray:
+    return sd.copy().align(colour.SpectralShape(380, 780, 1))[bands.centers_nm]
+
+
+def test_table_matches_colour_science():
+    t = cmf_d65_table()
+    assert t[0, 0] == 380 and t[-1, 0] == 780 and np.all(np.diff(t[:, 0]) == 5)
+    np.testing.assert_allclose(t[:, 1:4], CMFS[t[:, 0]], rtol=1e-5, atol=1e-8)
+    np.testing.assert_allclose(t[:, 4], D65[t[:, 0]], rtol=1e-5)
+
+
+def test_srgb_matrix_matches_standard():
+    space = colour.models.RGB_COLOURSPACE_sRGB
+    npm = colour.normalised_primary_matrix(space.primaries, space.whitepoint)
+    np.testing.assert_allclose(xyz_to_linear_srgb_matrix(), np.linalg.inv(npm), atol=1e-9)
+    np.testing.assert_allclose(xyz_to_linear_srgb_matrix(), space.matrix_XYZ_to_RGB, atol=5e-4)  # IEC's 4 digits
+
+
+@pytest.mark.parametrize("bands,tol", [(Bands.uniform(380, 780, 5), 0.005), (Bands.uniform(400, 700, 10), 0.01),
+                                       (Bands.paper(), 0.01)])
+def test_colorchecker_matches_colour_science(bands, tol):
+    ours = spectra_to_srgb(np.stack([sample(sd, bands) for sd in CHECKER.values()]), bands)
+    ref = np.stack([reference_srgb(sd) for sd in CHECKER.values()])
+    assert ours.shape == (24, 3)
+    np.testing.assert_allclose(ours, ref, atol=tol)
+
+
+def test_white_maps_to_one_and_black_to_zero():
+    for bands in (Bands.paper(), Bands.uniform(400, 700, 10), Bands.from_centers([453.3, 500.0, 551.4, 648.1])):
+        np.testing.assert_allclose(spectra_to_srgb(np.ones(len(bands)), bands), [1, 1, 1], atol=1e-12)
+        np.testing.assert_allclose(spectra_to_srgb(np.zeros(len(bands)), bands), [0, 0, 0], atol=1e-12)
+        assert spectra_to_xyz(np.ones(len(bands)), bands)[1] == pytest.approx(1.0)
+
+
+def test_xyz_of_colorchecker_close_to_colour_science():
+    bands = Bands.uniform(380, 780, 5)
+    for sd in list(CHECKER.values())[:6]:
+        ref = colour.sd_to_XYZ(sd, CMFS, D65, method="Integration") / 100.0
+        np.testing.assert_allclose(spectra_to_xyz(sample(sd, bands), bands), ref, atol=2e-3)
+
+
+def test_srgb_encode_matches_standard_curve():
+    x = np.linspace(0, 1, 101)
+    np.testing.assert_allclose(srgb_encode(x), colour.cctf_encoding(x, function="sRGB"), atol=1e-12)
+
+
+def test_cube_shapes_torch_and_numpy_agree():
+    bands = Bands.paper()
+    rng = np.random.default_rng(0)
+    cube = rng.random((2, 31, 4, 5))
+    t = cube_to_srgb(torch.from_numpy(cube), bands)
+    n = cube_to_srgb(cube, bands)
+    assert t.shape == (2, 3, 4, 5) and isinstance(t, torch.Tensor) and t.dtype == torch.float64
+    np.testing.assert_allclose(t.numpy(), n, atol=1e-12)
+    single = cube_to_srgb(cube[0], bands)
+    assert single.shape == (3, 4, 5)
+    np.testing.assert_allclose(single, n[0])
+    # pixel (0, 0) equals spectra_to_srgb of its spectrum
+    np.testing.assert_allclose(n[1, :, 2, 3], spectra_to_srgb(cube[1, :, 2, 3], bands))
+    assert 0.0 <= n.min() and n.max() <= 1.0
+
+
+def test_gradients_flow():
+    bands = Bands.paper()
+    x = (torch.rand(1, 31, 3, 3, dtype=torch.float64) * 0.6 + 0.1).requires_grad_(True)
+    assert torch.autograd.gradcheck(lambda t: cube_to_srgb(t, bands), (x,))
+    s = torch.rand(4, 31, dtype=torch.float32, requires_grad=True)
+    spectra_to_srgb(s, bands).sum().backward()
+    assert s.grad is not None and torch.isfinite(s.grad).all()
+    z = torch.zeros(31, requires_grad=True)  # black: gradient finite (linear segment of the curve)
+    spectra_to_srgb(z, bands).sum().backward()
+    assert torch.isfinite(z.grad).all()
+
+
+def test_errors():
+    with pytest.raises(InputError, match="380-780"):
+        spectra_to_srgb(np.ones(3), Bands.from_centers([350.0, 500.0, 900.0]))
+    with pytest.raises(InputError, match="31 bands"):
+        spectra_to_srgb(np.ones((2, 30)), Bands.paper())
+    with pytest.raises(InputError, match="B, C, H, W"):
+        cube_to_srgb(np.ones((31, 4)), Bands.paper())
