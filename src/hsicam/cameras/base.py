@@ -1,0 +1,60 @@
+"""The interface shared by all cameras, so solvers, training and evaluation treat them alike."""
+
+from __future__ import annotations
+
+import torch
+from torch import nn
+
+from hsicam.errors import InputError
+from hsicam.spectral import Bands
+
+
+class Camera(nn.Module):
+    """Scene cube (B, C, H, W) → sensor image. Subclasses implement ``A`` and ``A_adjoint``.
+
+    Attributes:
+        bands: the band grid the camera expects (C = len(bands)).
+        boundary: "valid" (scene larger than the sensor by ``margin`` pixels per axis) or "same".
+        noise: module applied to A(x) in ``forward``.
+    """
+
+    bands: Bands
+    boundary: str
+    noise: nn.Module
+
+    @property
+    def margin(self) -> int:
+        """Extra scene pixels per axis needed in ``valid`` mode (0 in ``same`` mode)."""
+        raise NotImplementedError
+
+    def A(self, x: torch.Tensor) -> torch.Tensor:  # noqa: N802 - operator notation
+        raise NotImplementedError
+
+    def A_adjoint(self, y: torch.Tensor) -> torch.Tensor:  # noqa: N802
+        raise NotImplementedError
+
+    def forward(self, x: torch.Tensor, generator: torch.Generator | None = None) -> torch.Tensor:
+        return self.noise(self.A(x), generator)
+
+    def sensor_size(self, scene_hw: tuple[int, int]) -> tuple[int, int]:
+        """Sensor (H, W) for a scene of ``scene_hw``."""
+        m = self.margin if self.boundary == "valid" else 0
+        return scene_hw[0] - m, scene_hw[1] - m
+
+    def scene_size(self, sensor_hw: tuple[int, int]) -> tuple[int, int]:
+        """Scene (H, W) a sensor of ``sensor_hw`` needs."""
+        m = self.margin if self.boundary == "valid" else 0
+        return sensor_hw[0] + m, sensor_hw[1] + m
+
+    def check_scene(self, x: torch.Tensor) -> None:
+        """Raise :class:`InputError` unless ``x`` is a (B, C, H, W) cube on this camera's grid."""
+        if x.dim() != 4:
+            raise InputError(f"scene must be a (B, C, H, W) tensor, got shape {tuple(x.shape)}")
+        if x.shape[1] != len(self.bands):
+            raise InputError(f"scene has {x.shape[1]} bands but the camera has {len(self.bands)} ({self.bands!r})")
+        h, w = self.sensor_size(tuple(x.shape[-2:]))
+        if h < 1 or w < 1:
+            raise InputError(
+                f"scene of {x.shape[-2]}×{x.shape[-1]} px is too small for boundary='valid' with a "
+                f"{self.margin + 1}-px kernel: it needs at least {self.margin + 1}×{self.margin + 1}"
+            )

@@ -1,0 +1,111 @@
+"""The paper's camera: lens + learned DOE + learned periodic CFA on a monochrome sensor.
+
+    g = Σ_λ (f_λ ⊛ p_λ) ⊙ κ_λ + e        (paper eq. 2)
+
+``A`` is the noiseless linear map; ``A_adjoint`` its exact adjoint; ``forward`` draws DOE height
+noise (when σ_p > 0) and sensor noise.
+"""
+
+from __future__ import annotations
+
+import torch
+
+from hsicam.cameras.base import Camera
+from hsicam.optics.convolution import coded_conv_valid, conv_valid_adjoint, pad_same, pad_same_adjoint
+from hsicam.optics.doe import DOE
+from hsicam.optics.lens import lens_from_config
+from hsicam.optics.psf import PSFModel, PSFResult
+from hsicam.optics.pupil import cells_across
+from hsicam.sensor import ColorFilterArray, SensorNoise
+from hsicam.spectral import Bands, get_material
+
+
+class DOECamera(Camera):
+    """Differentiable DOE camera. Build it with :meth:`from_config`.
+
+    Args:
+        bands: band grid (C bands).
+        optics: lens + DOE PSF model.
+        cfa: colour filter array.
+        noise: sensor noise.
+        boundary: "valid" or "same".
+        padding: scene padding for "same" ("zeros", "reflect", "replicate", "circular").
+    """
+
+    def __init__(self, bands: Bands, optics: PSFModel, cfa: ColorFilterArray, noise: SensorNoise,
+                 boundary: str = "valid", padding: str = "zeros") -> None:
+        super().__init__()
+        if boundary not in ("valid", "same"):
+            raise ValueError(f"boundary must be 'valid' or 'same', got {boundary!r}")
+        if cfa.n_bands != len(bands):
+            raise ValueError(f"CFA has {cfa.n_bands} bands, the camera {len(bands)}")
+        self.bands, self.optics, self.cfa, self.noise = bands, optics, cfa, noise
+        self.boundary, self.padding = boundary, padding
+
+    @classmethod
+    def from_config(cls, cfg) -> "DOECamera":  # cfg: hsicam.config.Config
+        """Camera from a top-level :class:`~hsicam.config.Config` (uses ``cfg.bands`` and ``cfg.camera``)."""
+        bands = cfg.bands.to_bands()
+        cam = cfg.camera
+        cell_m = cam.doe.cell_size_um * 1e-6
+        n_cells = cells_across(cam.aperture_radius_mm * 1e-3, cell_m)
+        doe = DOE(
+            n_cells, get_material(cam.doe.material), cam.doe.design_wavelength_nm, cam.doe.enabled,
+            cam.doe.init, cam.doe.seed,
+            None if cam.doe.max_height_nm is None else cam.doe.max_height_nm * 1e-9,
+            cam.doe.wrap, cam.doe.quantization_levels, cam.doe.sigma_height_nm * 1e-9,
+        )
+        optics = PSFModel(
+            bands, lens_from_config(cam.lens), doe, cam.aperture_radius_mm * 1e-3, cell_m,
+            cam.sensor.pixel_pitch_um * 1e-6, cam.lens.design_wavelength_nm,
+            None if cam.sensor_distance_mm is None else cam.sensor_distance_mm * 1e-3,
+            cam.object_distance_m, cam.psf.kernel_px, cam.psf.supersample, cam.psf.pupil_oversample,
+        )
+        cfa = ColorFilterArray(len(bands), cam.cfa.period, cam.cfa.enabled, cam.cfa.seed)
+        s = cam.sensor
+        noise = SensorNoise(s.noise, s.sigma, s.full_well_e, s.read_noise_e, s.bit_depth)
+        return cls(bands, optics, cfa, noise, cam.boundary, cam.padding)
+
+    @property
+    def kernel_px(self) -> int:
+        return self.optics.kernel_px
+
+    @property
+    def margin(self) -> int:
+        return self.kernel_px - 1
+
+    def psf_result(self, generator: torch.Generator | None = None) -> PSFResult:
+        """PSF stack (C, K, K) and per-band energy inside the kernel."""
+        return self.optics(generator)
+
+    def psf(self, generator: torch.Generator | None = None) -> torch.Tensor:
+        """PSF stack (C, K, K); draws DOE height noise when σ_p > 0."""
+        return self.optics(generator).psf
+
+    def A(self, x: torch.Tensor, psf: torch.Tensor | None = None) -> torch.Tensor:  # noqa: N802
+        """Noiseless sensor image (B, 1, H, W) of the scene ``x`` (B, C, H', W').
+
+        ``psf`` (C, K, K) may be passed to reuse one PSF computation (e.g. in iterative solvers).
+        """
+        self.check_scene(x)
+        psf = self.psf() if psf is None else psf
+        if self.boundary == "same":
+            x = pad_same(x, self.kernel_px, self.padding)
+        h, w = x.shape[-2] - self.margin, x.shape[-1] - self.margin
+        kappa = self.cfa.pattern(h, w).to(x.dtype)
+        return coded_conv_valid(x, psf.to(x.dtype), kappa)
+
+    def A_adjoint(self, g: torch.Tensor, psf: torch.Tensor | None = None) -> torch.Tensor:  # noqa: N802
+        """Exact adjoint of :meth:`A`: sensor image (B, 1, H, W) → cube (B, C, H', W')."""
+        if g.dim() != 4 or g.shape[1] != 1:
+            raise ValueError(f"sensor image must be (B, 1, H, W), got shape {tuple(g.shape)}")
+        psf = self.psf() if psf is None else psf
+        kappa = self.cfa.pattern(g.shape[-2], g.shape[-1]).to(g.dtype)
+        x = conv_valid_adjoint(g * kappa.unsqueeze(0), psf.to(g.dtype))
+        if self.boundary == "same":
+            x = pad_same_adjoint(x, self.kernel_px, self.padding)
+        return x
+
+    def forward(self, x: torch.Tensor, generator: torch.Generator | None = None) -> torch.Tensor:
+        """Noisy sensor image: DOE height noise (σ_p) and sensor noise drawn from ``generator``."""
+        return self.noise(self.A(x, self.psf(generator)), generator)

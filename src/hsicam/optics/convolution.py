@@ -1,0 +1,199 @@
+"""Linear (not circular) 2-D convolution of band images with band PSFs, by FFT, and its adjoint.
+
+``valid``: the input is larger than the output by K − 1 pixels per axis (the physically right
+mode for training patches). ``same``: the input is first padded by K//2 on each side with an
+explicit mode. Every operator here has an exact adjoint, written out (not left to autograd),
+so solvers can use them and tests can check ⟨Ax, y⟩ = ⟨x, Aᵀy⟩.
+
+Convention: out[i, j] = Σ_kl psf[k, l] · x[i + K−1−k, j + K−1−l] (true convolution). The PSF's
+centre pixel (K//2, K//2) is the optical axis, so output pixel (i, j) sees input pixel
+(i + K//2, j + K//2) through the axis.
+"""
+
+from __future__ import annotations
+
+import functools
+
+import scipy.fft
+import torch
+import torch.nn.functional as F
+
+PAD_MODES = ("zeros", "reflect", "replicate", "circular")
+
+
+@functools.lru_cache(maxsize=256)
+def fast_fft_size(n: int) -> int:
+    """Smallest 5-smooth length ≥ n (fast for every FFT backend)."""
+    return int(scipy.fft.next_fast_len(int(n), real=True))
+
+
+def _check(x: torch.Tensor, psf: torch.Tensor) -> None:
+    if x.dim() != 4:
+        raise ValueError(f"expected a (B, C, H, W) tensor, got shape {tuple(x.shape)}")
+    if psf.dim() != 3 or psf.shape[-1] != psf.shape[-2] or psf.shape[-1] % 2 == 0:
+        raise ValueError(f"expected an odd square PSF stack (C, K, K), got shape {tuple(psf.shape)}")
+    if x.shape[1] != psf.shape[0]:
+        raise ValueError(f"input has {x.shape[1]} bands but the PSF stack has {psf.shape[0]}")
+
+
+def psf_spectrum(psf: torch.Tensor, fft_shape: tuple[int, int]) -> torch.Tensor:
+    """rFFT of the PSF stack (C, K, K) zero-padded to ``fft_shape``: (C, Lh, Lw//2 + 1)."""
+    return torch.fft.rfft2(psf, s=fft_shape)
+
+
+def conv_valid(x: torch.Tensor, psf: torch.Tensor) -> torch.Tensor:
+    """Per-band valid convolution: (B, C, H+K−1, W+K−1) × (C, K, K) → (B, C, H, W).
+
+    FFT length ≥ H+K−1 suffices for the valid part (the circular wrap only touches the first K−1
+    outputs, which are discarded), rounded up to a fast size.
+    """
+    _check(x, psf)
+    k = psf.shape[-1]
+    hx, wx = x.shape[-2:]
+    h, w = hx - k + 1, wx - k + 1
+    if h < 1 or w < 1:
+        raise ValueError(f"valid convolution needs inputs of at least {k}×{k} pixels, got {hx}×{wx}")
+    shape = (fast_fft_size(hx), fast_fft_size(wx))
+    y = torch.fft.irfft2(torch.fft.rfft2(x, s=shape) * psf_spectrum(psf, shape), s=shape)
+    return y[..., k - 1 : k - 1 + h, k - 1 : k - 1 + w]
+
+
+def conv_valid_adjoint(y: torch.Tensor, psf: torch.Tensor) -> torch.Tensor:
+    """Exact adjoint of :func:`conv_valid`: (B, C, H, W) → (B, C, H+K−1, W+K−1) (a correlation)."""
+    _check(y, psf)
+    k = psf.shape[-1]
+    h, w = y.shape[-2:]
+    hx, wx = h + k - 1, w + k - 1
+    shape = (fast_fft_size(hx), fast_fft_size(wx))
+    placed = F.pad(y, (k - 1, shape[1] - (k - 1) - w, k - 1, shape[0] - (k - 1) - h))
+    x = torch.fft.irfft2(torch.fft.rfft2(placed) * psf_spectrum(psf, shape).conj(), s=shape)
+    return x[..., :hx, :wx]
+
+
+def conv_valid_direct(x: torch.Tensor, psf: torch.Tensor) -> torch.Tensor:
+    """Reference (non-FFT) valid convolution with ``F.conv2d`` (slow; for tests and checks)."""
+    _check(x, psf)
+    weight = torch.flip(psf, dims=(-2, -1)).unsqueeze(1)  # conv2d correlates: flip for convolution
+    return F.conv2d(x, weight.to(x.dtype), groups=psf.shape[0])
+
+
+def pad_same(x: torch.Tensor, k: int, mode: str = "zeros") -> torch.Tensor:
+    """Pad (B, C, H, W) by k//2 on every side so that a valid convolution returns H×W."""
+    r = k // 2
+    if mode not in PAD_MODES:
+        raise ValueError(f"unknown padding {mode!r}; use one of {PAD_MODES}")
+    if mode == "reflect" and (x.shape[-1] <= r or x.shape[-2] <= r):
+        raise ValueError(f"reflect padding by {r} px needs images larger than {r} px")
+    if mode == "zeros":
+        return F.pad(x, (r, r, r, r))
+    return F.pad(x, (r, r, r, r), mode=mode)
+
+
+def pad_same_adjoint(y: torch.Tensor, k: int, mode: str = "zeros") -> torch.Tensor:
+    """Exact adjoint of :func:`pad_same`: fold the border back onto the pixels it copied."""
+    r = k // 2
+    if r == 0:
+        return y
+    for dim in (-2, -1):
+        y = _unpad_1d(y, r, mode, dim)
+    return y
+
+
+def _unpad_1d(y: torch.Tensor, r: int, mode: str, dim: int) -> torch.Tensor:
+    n = y.shape[dim] - 2 * r
+    left, core, right = y.narrow(dim, 0, r), y.narrow(dim, r, n).clone(), y.narrow(dim, r + n, r)
+    if mode == "zeros":
+        return core
+    idx = torch.arange(r, device=y.device)
+    if mode == "replicate":
+        core.narrow(dim, 0, 1).add_(left.sum(dim=dim, keepdim=True))
+        core.narrow(dim, n - 1, 1).add_(right.sum(dim=dim, keepdim=True))
+    elif mode == "reflect":  # left[j] copies core[r - j]; right[j] copies core[n - 2 - j]
+        core.index_add_(dim, r - idx, left)
+        core.index_add_(dim, n - 2 - idx, right)
+    elif mode == "circular":  # left[j] copies core[n - r + j]; right[j] copies core[j]
+        core.index_add_(dim, n - r + idx, left)
+        core.index_add_(dim, idx, right)
+    else:
+        raise ValueError(f"unknown padding {mode!r}")
+    return core
+
+
+def _irfft2_rows(spec: torch.Tensor, shape: tuple[int, int], row0: int, rows: int) -> torch.Tensor:
+    """irfft2 of ``spec`` (…, Lh, Lw//2+1) keeping only output rows row0..row0+rows−1 (pruned)."""
+    tmp = torch.fft.ifft(spec, dim=-2).narrow(-2, row0, rows)
+    return torch.fft.irfft(tmp, n=shape[1], dim=-1)
+
+
+def _rfft2_rows(img: torch.Tensor, shape: tuple[int, int], row0: int, col0: int) -> torch.Tensor:
+    """rfft2 of ``img`` (…, h, w) placed at (row0, col0) in a zero ``shape`` canvas (pruned:
+    the row transforms run over the h non-zero rows only)."""
+    h, w = img.shape[-2:]
+    rows = torch.fft.rfft(F.pad(img, (col0, shape[1] - col0 - w)), dim=-1)
+    return torch.fft.fft(F.pad(rows, (0, 0, row0, shape[0] - row0 - h)), dim=-2)
+
+
+class _CodedConvolution(torch.autograd.Function):
+    """g = Σ_c κ_c ⊙ valid_conv(x_c, psf_c): the DOE camera's measurement in one fused op.
+
+    The backward is written out (gradients for x, psf and κ, each only when needed), with the
+    FFTs pruned over the rows that are known to be zero or discarded. It avoids materialising
+    broadcasted complex products that autograd would keep, which makes the camera's
+    forward+backward about twice as fast on CPU.
+    """
+
+    @staticmethod
+    def forward(ctx, x: torch.Tensor, psf: torch.Tensor, kappa: torch.Tensor) -> torch.Tensor:  # type: ignore[override]
+        k = psf.shape[-1]
+        hx, wx = x.shape[-2:]
+        h, w = hx - k + 1, wx - k + 1
+        shape = (fast_fft_size(hx), fast_fft_size(wx))
+        xf = torch.fft.rfft2(x, s=shape)
+        pf = psf_spectrum(psf, shape)
+        y = _irfft2_rows(xf * pf, shape, k - 1, h)[..., k - 1 : k - 1 + w]
+        g = torch.einsum("bchw,chw->bhw", y, kappa).unsqueeze(1)
+        ctx.save_for_backward(
+            xf if ctx.needs_input_grad[1] else None,
+            pf if ctx.needs_input_grad[0] else None,
+            y if ctx.needs_input_grad[2] else None,
+            kappa,
+        )
+        ctx.geometry = (k, shape, hx, wx)
+        return g
+
+    @staticmethod
+    @torch.autograd.function.once_differentiable
+    def backward(ctx, grad: torch.Tensor):  # type: ignore[override]
+        xf, pf, y, kappa = ctx.saved_tensors
+        k, shape, hx, wx = ctx.geometry
+        grad_x = grad_psf = grad_kappa = None
+        if ctx.needs_input_grad[2]:
+            grad_kappa = torch.einsum("bhw,bchw->chw", grad[:, 0], y)
+        if ctx.needs_input_grad[0] or ctx.needs_input_grad[1]:
+            gf = _rfft2_rows(grad * kappa.unsqueeze(0), shape, k - 1, k - 1)
+            if ctx.needs_input_grad[1]:  # correlation of the scene with the coded gradient
+                cross = torch.einsum("bchw,bchw->chw", gf, xf.conj())
+                grad_psf = torch.fft.irfft2(cross, s=shape)[..., :k, :k]
+            if ctx.needs_input_grad[0]:
+                grad_x = torch.fft.irfft2(gf * pf.conj(), s=shape)[..., :hx, :wx]
+        return grad_x, grad_psf, grad_kappa
+
+
+def coded_conv_valid(x: torch.Tensor, psf: torch.Tensor, kappa: torch.Tensor) -> torch.Tensor:
+    """Σ over bands of κ ⊙ (valid convolution of each band with its PSF).
+
+    Args:
+        x: scene (B, C, H+K−1, W+K−1).
+        psf: PSF stack (C, K, K).
+        kappa: per-band weights on the sensor (C, H, W).
+    Returns:
+        Sensor image (B, 1, H, W). Equal to ``(conv_valid(x, psf) * kappa).sum(1, keepdim=True)``.
+    """
+    _check(x, psf)
+    k = psf.shape[-1]
+    h, w = x.shape[-2] - k + 1, x.shape[-1] - k + 1
+    if h < 1 or w < 1:
+        raise ValueError(f"valid convolution needs inputs of at least {k}×{k} pixels, got {tuple(x.shape[-2:])}")
+    if kappa.shape != (psf.shape[0], h, w):
+        raise ValueError(f"kappa must have shape {(psf.shape[0], h, w)}, got {tuple(kappa.shape)}")
+    return _CodedConvolution.apply(x, psf, kappa)

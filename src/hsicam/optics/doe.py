@@ -1,0 +1,109 @@
+"""Diffractive optical element: a learnable height map h (m) on square cells.
+
+Phase (paper eq. 7): φ_λ = 2π (n(λ) − 1) h / λ, with the real dispersion of the DOE material.
+Optional, in this order: phase wrapping (h mod h_2π), height clamp to [0, max], L-level
+quantization (straight-through gradient), fabrication noise σ_p (m of height, i.i.d. Gaussian
+per cell, drawn on every forward pass while σ_p > 0).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+from torch import nn
+
+from hsicam.spectral.materials import Material
+
+
+def height_2pi_m(material: Material, wavelength_nm: float) -> float:
+    """Height (m) that delays the phase by exactly 2π at ``wavelength_nm``: λ / (n(λ) − 1)."""
+    return float(wavelength_nm * 1e-9 / (material.n(wavelength_nm) - 1.0))
+
+
+def phase_per_height(material: Material, wavelength_nm: np.ndarray) -> np.ndarray:
+    """2π (n(λ) − 1) / λ in rad/m, shape (C,): multiply by h (m) for the DOE phase."""
+    lam = np.asarray(wavelength_nm, dtype=np.float64)
+    return 2.0 * np.pi * (material.n(lam) - 1.0) / (lam * 1e-9)
+
+
+def straight_through(x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
+    """Value of ``y`` with the gradient of ``x`` (straight-through estimator)."""
+    return x + (y - x).detach()
+
+
+def quantize_heights(h: torch.Tensor, levels: int, top_m: float) -> torch.Tensor:
+    """Round h to ``levels`` heights k·top/levels, k = 0..levels−1 (straight-through gradient).
+
+    With ``top = h_2π`` these are the levels of an L-level (e.g. binary-weighted lithography) DOE.
+    """
+    step = top_m / levels
+    q = torch.clamp(torch.round(h / step), 0, levels - 1) * step
+    return straight_through(h, q)
+
+
+class DOE(nn.Module):
+    """Height map over ``n_cells``×``n_cells`` cells (m). ``enabled=False`` means h = 0, no parameters.
+
+    Args:
+        n_cells: cells across the pupil grid (odd).
+        material: DOE material (refractive index).
+        design_wavelength_nm: λ0 for h_2π.
+        init: "random" (uniform in [0, h_2π]) or "zeros".
+        max_height_m, wrap, quantization_levels, sigma_height_m: see module docstring.
+    """
+
+    def __init__(
+        self,
+        n_cells: int,
+        material: Material,
+        design_wavelength_nm: float = 587.6,
+        enabled: bool = True,
+        init: str = "random",
+        seed: int = 0,
+        max_height_m: float | None = None,
+        wrap: bool = False,
+        quantization_levels: int | None = None,
+        sigma_height_m: float = 0.0,
+    ) -> None:
+        super().__init__()
+        self.n_cells = int(n_cells)
+        self.material = material
+        self.design_wavelength_nm = float(design_wavelength_nm)
+        self.enabled = bool(enabled)
+        self.max_height_m = max_height_m
+        self.wrap = bool(wrap)
+        self.quantization_levels = quantization_levels
+        self.sigma_height_m = float(sigma_height_m)
+        self.h2pi_m = height_2pi_m(material, design_wavelength_nm)
+        if self.enabled:
+            g = torch.Generator().manual_seed(int(seed))
+            if init == "random":
+                h0 = torch.rand(self.n_cells, self.n_cells, generator=g, dtype=torch.float64) * self.h2pi_m
+            elif init == "zeros":
+                h0 = torch.zeros(self.n_cells, self.n_cells, dtype=torch.float64)
+            else:
+                raise ValueError(f"unknown DOE init {init!r}")
+            self.height_m = nn.Parameter(h0.float())
+        else:
+            self.register_buffer("height_m", torch.zeros(self.n_cells, self.n_cells), persistent=False)
+
+    def heights(self, generator: torch.Generator | None = None) -> torch.Tensor:
+        """Effective heights (m), (n_cells, n_cells): constraints, quantization and noise applied."""
+        h = self.height_m
+        if not self.enabled:
+            return h
+        if self.wrap:
+            h = torch.remainder(h, self.h2pi_m)
+        if self.max_height_m is not None:
+            h = straight_through(h, h.clamp(0.0, self.max_height_m))
+        if self.quantization_levels is not None:
+            top = self.max_height_m if (self.max_height_m is not None and not self.wrap) else self.h2pi_m
+            h = quantize_heights(h, self.quantization_levels, top)
+        if self.sigma_height_m > 0:
+            noise = torch.randn(h.shape, generator=generator, device=h.device, dtype=h.dtype)
+            h = h + self.sigma_height_m * noise
+        return h
+
+    def extra_repr(self) -> str:
+        return (f"n_cells={self.n_cells}, enabled={self.enabled}, material={self.material!r}, "
+                f"h_2pi={self.h2pi_m * 1e9:.1f} nm, sigma={self.sigma_height_m * 1e9:g} nm")

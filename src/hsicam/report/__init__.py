@@ -1,0 +1,1 @@
+"""Figures and reports. Plotting uses matplotlib's non-interactive Agg backend."""

@@ -1,0 +1,92 @@
+"""Pictures of a camera: PSF montage, CFA tile (colour + transmission curves), DOE height map."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+
+from hsicam.io import save_figure  # noqa: E402
+from hsicam.spectral import Bands  # noqa: E402
+
+
+def plot_psf_montage(psf: np.ndarray, bands: Bands, path: str | Path, gamma: float = 0.5, crop_px: int | None = None) -> None:
+    """Grid of band PSFs, each normalised to its own maximum and shown with display gamma.
+
+    Args:
+        psf: (C, K, K) PSF stack.
+        crop_px: show only the central crop_px × crop_px pixels (None: the whole kernel).
+    """
+    psf = np.asarray(psf, dtype=np.float64)
+    c, k, _ = psf.shape
+    if crop_px is not None and crop_px < k:
+        a = (k - crop_px) // 2
+        psf = psf[:, a : a + crop_px, a : a + crop_px]
+    cols = min(8, c)
+    rows = math.ceil(c / cols)
+    fig, axes = plt.subplots(rows, cols, figsize=(1.6 * cols, 1.75 * rows), squeeze=False)
+    for i, ax in enumerate(axes.flat):
+        ax.axis("off")
+        if i >= c:
+            continue
+        img = psf[i] / max(psf[i].max(), 1e-30)
+        ax.imshow(np.clip(img, 0, 1) ** gamma, cmap="inferno", vmin=0, vmax=1, interpolation="nearest")
+        ax.set_title(f"{bands.centers_nm[i]:g} nm", fontsize=8)
+    fig.suptitle(f"PSF per band ({psf.shape[-1]}×{psf.shape[-1]} px, each normalised, display γ={gamma:g})", fontsize=9)
+    save_figure(fig, path)
+
+
+def cfa_tile_rgb(tile: np.ndarray, bands: Bands) -> np.ndarray:
+    """sRGB colour of each filter of a (C, m, m) tile, (m, m, 3) in [0, 1].
+
+    Each filter's transmission is scaled to a peak of 1 before rendering (as a reflectance under
+    D65), so the picture shows hue and saturation; absolute transmission is in the curves.
+    """
+    import torch
+
+    from hsicam.color import spectra_to_srgb
+
+    t = np.asarray(tile, dtype=np.float64)
+    spectra = np.moveaxis(t, 0, -1)
+    spectra = spectra / np.maximum(spectra.max(axis=-1, keepdims=True), 1e-12)
+    return spectra_to_srgb(torch.from_numpy(spectra), bands).numpy()
+
+
+def plot_cfa(tile: np.ndarray, bands: Bands, path: str | Path) -> None:
+    """CFA tile rendered in colour next to the transmission curves of all its filters."""
+    t = np.asarray(tile, dtype=np.float64)
+    rgb = cfa_tile_rgb(t, bands)
+    m = t.shape[-1]
+    fig, (a0, a1) = plt.subplots(1, 2, figsize=(9, 3.6), gridspec_kw={"width_ratios": [1, 1.6]})
+    a0.imshow(rgb, interpolation="nearest")
+    a0.set_title(f"CFA tile {m}×{m} (sRGB, each filter peak-normalised)", fontsize=9)
+    a0.set_xticks([])
+    a0.set_yticks([])
+    curves = t.reshape(t.shape[0], -1).T
+    for i, curve in enumerate(curves):
+        a1.plot(bands.centers_nm, curve, color=np.clip(rgb.reshape(-1, 3)[i], 0, 0.85), lw=0.8)
+    a1.set_xlabel("wavelength (nm)")
+    a1.set_ylabel("transmission κ (Σ over bands = 1)")
+    a1.set_title("filter transmission curves", fontsize=9)
+    a1.grid(alpha=0.3)
+    save_figure(fig, path)
+
+
+def plot_doe_heights(height_m: np.ndarray, aperture: np.ndarray, cell_um: float, path: str | Path) -> None:
+    """DOE height map in nm over the aperture (outside shown blank)."""
+    h = np.asarray(height_m, dtype=np.float64) * 1e9
+    shown = np.where(np.asarray(aperture) > 0, h, np.nan)
+    n = h.shape[0]
+    half = n * cell_um * 1e-3 / 2
+    fig, ax = plt.subplots(figsize=(4.6, 3.8))
+    im = ax.imshow(shown, cmap="viridis", extent=(-half, half, -half, half), interpolation="nearest")
+    ax.set_xlabel("x (mm)")
+    ax.set_ylabel("y (mm)")
+    ax.set_title(f"DOE height map ({n}×{n} cells of {cell_um:g} µm)", fontsize=9)
+    fig.colorbar(im, ax=ax, label="height (nm)")
+    save_figure(fig, path)

@@ -1,0 +1,102 @@
+"""Sensor side of the camera: the periodic colour filter array and the noise models.
+
+CFA (paper eq. 9): κ(x, y, λ) repeats with period m×m. Parameters (C, m, m), initialised uniform
+random; every forward pass applies ReLU then normalises over λ so Σ_λ κ = 1 per pixel.
+"No CFA" means κ = 1 for every band and pixel (the sensor then sums all bands).
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+from torch import nn
+
+from hsicam.optics.doe import straight_through
+
+_EPS = 1e-8
+
+
+def cfa_tile(weights: torch.Tensor) -> torch.Tensor:
+    """Filter transmissions from raw weights (C, m, m): ReLU, then Σ over bands = 1 per pixel."""
+    t = torch.relu(weights)
+    return t / t.sum(dim=0, keepdim=True).clamp_min(_EPS)
+
+
+def tile_pattern(tile: torch.Tensor, height: int, width: int) -> torch.Tensor:
+    """Repeat a (C, m, m) tile periodically over a (C, height, width) sensor, origin at (0, 0)."""
+    m_h, m_w = tile.shape[-2:]
+    reps = (1, math.ceil(height / m_h), math.ceil(width / m_w))
+    return tile.repeat(*reps)[:, :height, :width]
+
+
+class ColorFilterArray(nn.Module):
+    """Learnable periodic CFA. ``enabled=False`` gives κ = 1 (no parameters)."""
+
+    def __init__(self, n_bands: int, period: int = 9, enabled: bool = True, seed: int = 0) -> None:
+        super().__init__()
+        self.n_bands, self.period, self.enabled = int(n_bands), int(period), bool(enabled)
+        if self.enabled:
+            g = torch.Generator().manual_seed(int(seed))
+            self.weights = nn.Parameter(torch.rand(self.n_bands, self.period, self.period, generator=g))
+        else:
+            self.register_buffer("weights", torch.ones(self.n_bands, 1, 1), persistent=False)
+
+    def tile(self) -> torch.Tensor:
+        """Transmission of one period, (C, m, m); ones (C, 1, 1) without a CFA."""
+        return cfa_tile(self.weights) if self.enabled else self.weights
+
+    def pattern(self, height: int, width: int) -> torch.Tensor:
+        """κ over a (C, height, width) sensor."""
+        return tile_pattern(self.tile(), height, width)
+
+    def extra_repr(self) -> str:
+        return f"n_bands={self.n_bands}, period={self.period}, enabled={self.enabled}"
+
+
+def gaussian_noise(g: torch.Tensor, sigma: float, generator: torch.Generator | None = None) -> torch.Tensor:
+    """g + σ·N(0, 1), i.i.d. per pixel."""
+    if sigma <= 0:
+        return g
+    return g + sigma * torch.randn(g.shape, generator=generator, device=g.device, dtype=g.dtype)
+
+
+def poisson_gaussian_noise(
+    g: torch.Tensor, full_well_e: float, read_noise_e: float, generator: torch.Generator | None = None
+) -> torch.Tensor:
+    """Photon shot noise (signal 1.0 = ``full_well_e`` electrons) plus Gaussian read noise (e⁻),
+    returned on the same [0, 1] scale. Straight-through gradient (identity) for training."""
+    electrons = torch.poisson(g.detach().clamp_min(0) * full_well_e, generator=generator)
+    if read_noise_e > 0:
+        electrons = electrons + read_noise_e * torch.randn(g.shape, generator=generator, device=g.device, dtype=g.dtype)
+    return straight_through(g, electrons / full_well_e)
+
+
+def quantize_bits(g: torch.Tensor, bits: int) -> torch.Tensor:
+    """Clip to [0, 1] and round to 2^bits − 1 steps (an ADC); straight-through gradient."""
+    levels = float(2**bits - 1)
+    return straight_through(g, torch.round(g.clamp(0.0, 1.0) * levels) / levels)
+
+
+class SensorNoise(nn.Module):
+    """Noise and quantisation applied to the noiseless sensor image g = A(f)."""
+
+    def __init__(self, model: str = "gaussian", sigma: float = 0.0, full_well_e: float = 1e4,
+                 read_noise_e: float = 2.0, bit_depth: int | None = None) -> None:
+        super().__init__()
+        if model not in ("none", "gaussian", "poisson_gaussian"):
+            raise ValueError(f"unknown noise model {model!r}")
+        self.model, self.sigma = model, float(sigma)
+        self.full_well_e, self.read_noise_e, self.bit_depth = float(full_well_e), float(read_noise_e), bit_depth
+
+    def forward(self, g: torch.Tensor, generator: torch.Generator | None = None) -> torch.Tensor:
+        if self.model == "gaussian":
+            g = gaussian_noise(g, self.sigma, generator)
+        elif self.model == "poisson_gaussian":
+            g = poisson_gaussian_noise(g, self.full_well_e, self.read_noise_e, generator)
+        if self.bit_depth is not None:
+            g = quantize_bits(g, self.bit_depth)
+        return g
+
+    def extra_repr(self) -> str:
+        return f"model={self.model}, sigma={self.sigma}, bit_depth={self.bit_depth}"
