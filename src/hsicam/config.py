@@ -180,9 +180,42 @@ class CameraConfig:
 
 @dataclass
 class DataConfig:
-    """Training/evaluation data (the data issue owns the details)."""
+    """Training/evaluation data (see ``hsicam.data`` and docs/data.md).
+
+    Scenes come from ``root`` (any folder of supported cube files) or, by default, the embedded
+    synthetic dataset generated once into the cache. Patches are ``patch_px`` plus the camera's
+    kernel margin wide (the paper used 256 px patches, which need scenes of at least 396 px).
+    """
 
     root: Optional[str] = None  # folder of supported files; None: the embedded synthetic dataset
+    synthetic_n: int = 32  # scenes in the synthetic dataset
+    synthetic_size: int = 256  # synthetic scene side, px
+    synthetic_seed: int = 0
+    cache_dir: Optional[str] = None  # None: $HSICAM_CACHE, else ~/.cache/hsicam
+    patch_px: int = 64  # sensor-side patch; the scene patch is patch_px + kernel_px - 1
+    patches_per_epoch: int = 1024  # random training patches drawn per epoch
+    val_patches: int = 64  # fixed validation patches (drawn once from the validation scenes)
+    val_fraction: float = 0.125  # fraction of scenes held out for validation (scene-level split)
+    split_seed: int = 0
+    augment_flips: bool = True  # random left-right flips of training patches
+    augment_rot90: bool = True  # random 90° rotations of training patches
+    preload: Optional[bool] = None  # keep all scenes in memory; None: when the files total <= preload_max_mb
+    preload_max_mb: float = 2048.0
+    num_workers: int = 2  # DataLoader worker processes
+
+    def __post_init__(self) -> None:
+        for name in ("synthetic_n", "patch_px", "patches_per_epoch", "val_patches"):
+            if getattr(self, name) < 1:
+                raise ConfigError(f"data.{name} must be >= 1, got {getattr(self, name)}")
+        if self.synthetic_size < 16:
+            raise ConfigError(f"data.synthetic_size must be >= 16 px, got {self.synthetic_size}")
+        if not (0.0 <= self.val_fraction < 1.0):
+            raise ConfigError(f"data.val_fraction must be in [0, 1), got {self.val_fraction}")
+        if self.num_workers < 0:
+            raise ConfigError(f"data.num_workers must be >= 0, got {self.num_workers}")
+        _positive("data", preload_max_mb=self.preload_max_mb)
+        if self.root is not None and not self.root.strip():
+            raise ConfigError("data.root must be a path or null")
 
 
 @dataclass

@@ -1,0 +1,283 @@
+"""Training data: scene lists, scene-level splits, scene and patch datasets.
+
+Any folder of supported files is a dataset (:func:`list_scenes`); the embedded synthetic set is
+the default (:func:`hsicam.data.synthetic.synthetic_dataset`). Every cube is resampled onto the
+camera's :class:`Bands` and normalised by :func:`hsicam.data.cube.normalize_per_cube_max` (the
+single normalisation policy). Tensors are (C, H, W) float32, bands ascending.
+
+:class:`PatchDataset` serves square patches of ``patch_px + margin_px`` pixels: the margin is what
+the camera's ``valid`` convolution consumes (kernel_px − 1 pixels in total per axis), so the
+sensor crop is ``patch_px`` wide. Patch positions and augmentations (flips, 90° rotations) are
+drawn from a generator seeded by ``(seed, epoch, index)``, so a patch does not depend on which
+DataLoader worker serves it and runs are reproducible.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+from collections import OrderedDict
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Sequence
+
+import numpy as np
+import torch
+from torch.utils.data import Dataset
+
+from hsicam.data.cube import normalize_per_cube_max, resample_cube
+from hsicam.data.formats import _CAVE_RE, read_cube, read_window
+from hsicam.errors import InputError
+from hsicam.spectral import Bands
+
+log = logging.getLogger(__name__)
+
+#: File suffixes considered when a folder is listed as a dataset (format is still judged by content).
+SCENE_SUFFIXES = (".h5", ".hdf5", ".mat", ".npy", ".exr", ".hdr")
+
+
+def list_scenes(root: str | os.PathLike) -> list[Path]:
+    """The scenes of a dataset folder, sorted: supported files and CAVE scene folders.
+
+    ``root`` may also be a single file or a single CAVE folder. ENVI pairs are listed by their
+    ``.hdr``. Hidden and temporary files are skipped. Raises :class:`InputError` when none is found.
+    """
+    root = Path(root)
+    if not root.exists():
+        raise InputError(f"{root}: no such dataset file or folder")
+    if root.is_file():
+        return [root]
+    if _is_cave_dir(root):
+        return [root]
+    scenes: list[Path] = []
+    for dirpath, dirnames, filenames in os.walk(root):
+        d = Path(dirpath)
+        dirnames[:] = sorted(n for n in dirnames if not n.startswith("."))
+        if d != root and _is_cave_dir(d):
+            scenes.append(_cave_scene_root(d, root))
+            dirnames[:] = []
+            continue
+        for name in filenames:
+            if name.startswith("."):  # hidden files, including atomic-write temporaries
+                continue
+            if Path(name).suffix.lower() in SCENE_SUFFIXES:
+                scenes.append(d / name)
+    scenes = sorted(set(scenes))
+    if not scenes:
+        raise InputError(f"{root}: no hyperspectral scenes found (supported: {', '.join(SCENE_SUFFIXES)}, CAVE folders)")
+    return scenes
+
+
+def _is_cave_dir(d: Path) -> bool:
+    return any(_CAVE_RE.match(f.name) for f in d.glob("*_ms_01.*"))
+
+
+def _cave_scene_root(d: Path, root: Path) -> Path:
+    # CAVE archives unpack as name_ms/name_ms/name_ms_01.png: list the outer folder once
+    parent = d.parent
+    if parent != root and parent.name == d.name:
+        return parent
+    return d
+
+
+def split_scenes(scenes: Sequence[Path], val_fraction: float, seed: int = 0) -> tuple[list[Path], list[Path]]:
+    """Scene-level train/validation split, deterministic for a seed and the *set* of scenes.
+
+    ``round(val_fraction * n)`` scenes (at least one when ``val_fraction > 0`` and n ≥ 2) go to
+    validation; patches of one scene never appear in both sets.
+    """
+    if not 0.0 <= val_fraction < 1.0:
+        raise InputError(f"val_fraction must be in [0, 1), got {val_fraction}")
+    ordered = sorted(Path(s) for s in scenes)
+    n = len(ordered)
+    n_val = int(round(val_fraction * n))
+    if val_fraction > 0 and n >= 2:
+        n_val = max(n_val, 1)
+    n_val = min(n_val, n - 1) if n > 0 else 0
+    perm = np.random.default_rng([int(seed), 0x5E11]).permutation(n)
+    val_idx = set(perm[:n_val].tolist())
+    train = [s for i, s in enumerate(ordered) if i not in val_idx]
+    val = [s for i, s in enumerate(ordered) if i in val_idx]
+    return train, val
+
+
+@dataclass(frozen=True)
+class SceneInfo:
+    """What a dataset needs to know about a scene before serving patches."""
+
+    path: Path
+    height: int
+    width: int
+    peak: float  # maximum after resampling onto the target bands (the normalisation divisor)
+
+
+def probe_hsicam(path: Path, bands: Bands) -> SceneInfo | None:
+    """SceneInfo of an hsicam HDF5 file on ``bands`` from its header (no pixel read), else None."""
+    import h5py
+
+    from hsicam.data.formats import HSICAM_FORMAT, _HDF5_MAGIC, _head
+
+    if not path.is_file() or not _head(path, 8).startswith(_HDF5_MAGIC):
+        return None
+    try:
+        with h5py.File(path, "r") as f:
+            if f.attrs.get("format") != HSICAM_FORMAT or "cube" not in f or "max_value" not in f.attrs:
+                return None
+            if not Bands.from_centers(f["bands_nm"][()]).matches(bands):
+                return None
+            shape = f["cube"].shape
+            peak = float(f.attrs["max_value"])
+    except (OSError, KeyError, InputError):
+        return None  # the full reader reports the problem properly
+    if len(shape) != 3 or not peak > 0:
+        return None
+    return SceneInfo(path, int(shape[1]), int(shape[2]), peak)
+
+
+class SceneDataset(Dataset):
+    """Whole scenes on ``bands``, normalised: item i is a float32 tensor (C, H, W) in [0, 1].
+
+    ``preload=True`` reads every scene once (at construction) and keeps it in memory — DataLoader
+    workers started by fork share it. Otherwise an LRU cache of ``cache_size`` scenes per process
+    is used, and hsicam HDF5 files on the same band grid are read window by window.
+    ``source_bands`` gives the grid for files that carry none (``.npy``).
+    """
+
+    def __init__(self, scenes: Sequence[str | os.PathLike], bands: Bands, *, preload: bool = False,
+                 cache_size: int = 4, source_bands: Bands | None = None, allow_negative: bool = False) -> None:
+        if len(scenes) == 0:
+            raise InputError("SceneDataset: no scenes")
+        self.paths = [Path(s) for s in scenes]
+        self.bands = bands
+        self.source_bands = source_bands
+        self.allow_negative = allow_negative
+        self.cache_size = max(int(cache_size), 1)
+        self._infos: list[SceneInfo | None] = [None] * len(self.paths)
+        self._cache: OrderedDict[int, np.ndarray] = OrderedDict()
+        self._preloaded: list[np.ndarray] | None = None
+        if preload:
+            self._preloaded = [self._load(i) for i in range(len(self.paths))]
+
+    def __len__(self) -> int:
+        return len(self.paths)
+
+    def __getitem__(self, i: int) -> torch.Tensor:
+        return torch.from_numpy(self.cube(i))
+
+    # -- numpy access --------------------------------------------------------------------------
+    def cube(self, i: int) -> np.ndarray:
+        """Scene ``i`` as a normalised float32 array (C, H, W) on :attr:`bands`."""
+        if self._preloaded is not None:
+            return self._preloaded[i]
+        if i in self._cache:
+            self._cache.move_to_end(i)
+            return self._cache[i]
+        arr = self._load(i)
+        self._cache[i] = arr
+        while len(self._cache) > self.cache_size:
+            self._cache.popitem(last=False)
+        return arr
+
+    def info(self, i: int) -> SceneInfo:
+        """Size and peak of scene ``i`` (reads the file once)."""
+        info = self._infos[i]
+        if info is None:
+            info = probe_hsicam(self.paths[i], self.bands)
+            if info is None:
+                self.cube(i)  # loads the scene and records its info
+                info = self._infos[i]
+            self._infos[i] = info
+        assert info is not None
+        return info
+
+    def window(self, i: int, y: int, x: int, h: int, w: int) -> np.ndarray:
+        """Normalised window [y:y+h, x:x+w] (C, h, w) of scene ``i``, read without loading it all when possible."""
+        if self._preloaded is None and i not in self._cache:
+            info = self.info(i)
+            got = read_window(info.path, y, x, h, w)
+            if got is not None and got[1].matches(self.bands):
+                return got[0] / np.float32(info.peak)
+        return self.cube(i)[:, y:y + h, x:x + w]
+
+    def _load(self, i: int) -> np.ndarray:
+        path = self.paths[i]
+        cube, src_bands, _ = read_cube(path, bands=self.source_bands, allow_negative=self.allow_negative)
+        cube = resample_cube(cube, src_bands, self.bands, source=path)
+        cube, peak = normalize_per_cube_max(cube, source=path)
+        self._infos[i] = SceneInfo(path, cube.shape[1], cube.shape[2], peak)
+        return np.ascontiguousarray(cube)
+
+    def __getstate__(self) -> dict[str, Any]:
+        state = self.__dict__.copy()
+        state["_cache"] = OrderedDict()  # do not ship cached cubes to spawned workers
+        return state
+
+
+class PatchDataset(Dataset):
+    """Random square patches (C, S, S), S = ``patch_px + margin_px``, from a :class:`SceneDataset`.
+
+    ``len`` is ``patches_per_epoch``. Item ``k`` of epoch ``e`` picks a scene (uniformly), a
+    position and, with ``flips``/``rot90``, one of the 8 dihedral transforms, all from
+    ``numpy.random.default_rng((seed, e, k))``. ``fixed=True`` (validation) ignores the epoch, so
+    the same patches are served every time.
+    """
+
+    def __init__(self, scenes: SceneDataset, patch_px: int, margin_px: int = 0, *, patches_per_epoch: int = 1024,
+                 flips: bool = True, rot90: bool = True, seed: int = 0, fixed: bool = False) -> None:
+        if patch_px < 1 or margin_px < 0:
+            raise InputError(f"PatchDataset: need patch_px >= 1 and margin_px >= 0, got {patch_px}, {margin_px}")
+        if patches_per_epoch < 1:
+            raise InputError(f"PatchDataset: patches_per_epoch must be >= 1, got {patches_per_epoch}")
+        self.scenes = scenes
+        self.patch_px = int(patch_px)
+        self.margin_px = int(margin_px)
+        self.size_px = self.patch_px + self.margin_px
+        self.patches_per_epoch = int(patches_per_epoch)
+        self.flips = flips
+        self.rot90 = rot90
+        self.seed = int(seed)
+        self.fixed = fixed
+        self.epoch = 0
+        for i in range(len(scenes)):
+            info = scenes.info(i)
+            if min(info.height, info.width) < self.size_px:
+                raise InputError(
+                    f"{info.path}: scene is {info.height}x{info.width} px, smaller than a patch of {self.patch_px} px "
+                    f"plus the camera margin of {self.margin_px} px ({self.size_px} px)"
+                )
+
+    @property
+    def bands(self) -> Bands:
+        return self.scenes.bands
+
+    def set_epoch(self, epoch: int) -> None:
+        """Draw a new set of patches (call once per epoch, before iterating)."""
+        self.epoch = int(epoch)
+
+    def __len__(self) -> int:
+        return self.patches_per_epoch
+
+    def __getitem__(self, k: int) -> torch.Tensor:
+        if not 0 <= k < self.patches_per_epoch:
+            raise IndexError(k)
+        epoch = 0 if self.fixed else self.epoch
+        rng = np.random.default_rng([self.seed, epoch, int(k)])
+        i = int(rng.integers(len(self.scenes)))
+        info = self.scenes.info(i)
+        s = self.size_px
+        y = int(rng.integers(info.height - s + 1))
+        x = int(rng.integers(info.width - s + 1))
+        patch = self.scenes.window(i, y, x, s, s)
+        turns = int(rng.integers(4)) if self.rot90 else 0
+        flip = bool(rng.integers(2)) if self.flips else False
+        patch = augment(patch, turns, flip)
+        return torch.from_numpy(np.ascontiguousarray(patch, dtype=np.float32))
+
+
+def augment(patch: np.ndarray, turns: int, flip: bool) -> np.ndarray:
+    """Dihedral transform of (C, H, W): ``turns`` × 90° counter-clockwise, then a left-right flip."""
+    out = np.rot90(patch, k=turns, axes=(1, 2)) if turns % 4 else patch
+    return out[:, :, ::-1] if flip else out
+
+
+__all__ = ["PatchDataset", "SCENE_SUFFIXES", "SceneDataset", "SceneInfo", "augment", "list_scenes", "split_scenes"]

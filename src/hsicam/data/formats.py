@@ -1,0 +1,771 @@
+"""Readers and writers for hyperspectral cube files.
+
+:func:`read_cube` detects the format **by content** (magic bytes, MAT header, HDF5/MAT variable
+names), never by file extension alone, and returns ``(cube, bands, metadata)`` with ``cube`` a
+float32 array (C, H, W), bands ascending. Explicit readers exist for each format; every problem
+(truncated or corrupt file, missing key, NaN/Inf, negative values, wrong dimensions, unknown format)
+raises one :class:`~hsicam.errors.InputError` that names the file and the problem.
+
+Formats and their band grids (when the file does not carry wavelengths):
+
+================  ===================================================  ==========================
+format            layout on disk                                       bands
+================  ===================================================  ==========================
+``hsicam``        our HDF5: ``cube`` (C, H, W) float32, ``bands_nm``,   from the file
+                  ``fwhm_nm``, attributes (``format="hsicam-cube"``)
+``icvl``          MAT v7.3 (HDF5), ``rad`` H×W×C in MATLAB order —      ``bands`` (else 400-700/10)
+                  h5py returns it reversed, (C, W, H)
+``arad``          ARAD / NTIRE MAT v7.3, ``cube`` (as ICVL), ``bands``   ``bands`` (else 400-700/10)
+``kaist-mat``     MST-style MAT (v5 or v7.3), ``img`` or               28 bands: MST's 453.3-648.1;
+                  ``img_expand`` H×W×C                                  31 bands: 400-700/10
+``harvard``       MAT v5, ``ref`` H×W×31                                420-720/10
+``kaist-exr``     OpenEXR, one channel per band, wavelength in the      from channel names
+                  channel name (``550nm``, ``w550nm``, ``S0.550,0nm``)
+``cave``          folder of 31 16-bit PNGs ``<name>_ms_01.png`` …       400-700/10
+                  ``_31.png`` (may be one level down)
+``envi``          ``.hdr`` + raw data, bsq/bil/bip, ENVI data types,    ``wavelength``/``fwhm``
+                  byte order, header offset
+``npy``           ``.npy`` (C, H, W)                                    caller's ``bands``, else C
+                                                                        bands evenly over 400-700
+================  ===================================================  ==========================
+
+ICVL, CAVE, KAIST and ARAD cover 400-700 nm; the paper's camera uses 420-720 nm. We
+**interpolate by band centre, never relabel**: bringing a 400-700 nm cube onto 420-720 nm is
+refused (720 nm lies outside the data) — use a camera grid inside the data's range (e.g.
+``bands.start_nm=420, bands.stop_nm=700``) or data that reaches 720 nm (Harvard, or the embedded
+synthetic set). See ``docs/data.md``.
+
+Writers: :func:`write_cube_h5` (our HDF5) and :func:`write_envi`; both write atomically.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import logging
+import os
+import re
+from pathlib import Path
+from typing import Any, Callable, Iterator, Sequence
+
+import numpy as np
+
+from hsicam.data.cube import check_cube
+from hsicam.errors import InputError
+from hsicam.io import atomic_path
+from hsicam.spectral import Bands
+
+log = logging.getLogger(__name__)
+
+HSICAM_FORMAT = "hsicam-cube"
+HSICAM_FORMAT_VERSION = 1
+
+#: MST (Meng et al. / Cai et al.) 28-band KAIST/CAVE grid, nm.
+MST_28_NM = (453.3, 457.6, 462.1, 466.8, 471.6, 476.5, 481.6, 486.9, 492.4, 498.0, 503.9, 509.9, 516.2, 522.7,
+             529.5, 536.5, 543.8, 551.4, 558.6, 567.5, 575.3, 584.3, 594.4, 604.2, 614.4, 625.1, 636.3, 648.1)
+
+FORMATS = ("hsicam", "icvl", "arad", "kaist-mat", "harvard", "kaist-exr", "cave", "envi", "npy")
+
+_HDF5_MAGIC = b"\x89HDF\r\n\x1a\n"
+_NPY_MAGIC = b"\x93NUMPY"
+_EXR_MAGIC = b"v/1\x01"
+_PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
+_CAVE_RE = re.compile(r"^(?P<prefix>.+)_ms_(?P<index>\d{2})\.png$", re.IGNORECASE)
+_ENVI_DATA_SUFFIXES = ("", ".img", ".dat", ".raw", ".bsq", ".bil", ".bip", ".bin", ".IMG", ".DAT", ".RAW")
+_ENVI_DTYPES = {1: "u1", 2: "i2", 3: "i4", 4: "f4", 5: "f8", 12: "u2", 13: "u4", 14: "i8", 15: "u8"}
+
+Cube = tuple[np.ndarray, Bands, dict[str, Any]]
+
+
+def bands_400_700(n: int = 31) -> Bands:
+    """``n`` bands evenly spaced over 400-700 nm (the 10 nm grid for n = 31)."""
+    if n == 1:
+        return Bands.from_centers([550.0])
+    return Bands.from_centers(np.linspace(400.0, 700.0, n))
+
+
+# ------------------------------------------------------------------------------------------------
+# Error handling
+# ------------------------------------------------------------------------------------------------
+@contextlib.contextmanager
+def _reading(path: Path, what: str) -> Iterator[None]:
+    """Turn any failure of a third-party parser into one InputError naming the file."""
+    try:
+        yield
+    except InputError:
+        raise
+    except MemoryError:
+        raise
+    except FileNotFoundError:
+        raise InputError(f"{path}: no such file or folder") from None
+    except Exception as exc:  # noqa: BLE001 - h5py/scipy/imageio/OpenEXR raise many types
+        detail = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        raise InputError(f"{path}: cannot read {what} file (corrupt or truncated?): {detail}") from None
+
+
+def _as_path(path: str | os.PathLike) -> Path:
+    p = Path(path)
+    if not p.exists():
+        raise InputError(f"{p}: no such file or folder")
+    return p
+
+
+# ------------------------------------------------------------------------------------------------
+# Detection
+# ------------------------------------------------------------------------------------------------
+def detect_format(path: str | os.PathLike) -> str:
+    """Return the format name (one of :data:`FORMATS`) of ``path``, judged by its content."""
+    p = _as_path(path)
+    if p.is_dir():
+        if _find_cave_pngs(p) is not None:
+            return "cave"
+        raise InputError(f"{p}: unknown format: a folder that is not a CAVE scene (no '*_ms_01.png' files)")
+    head = _head(p, 128)
+    if not head:
+        raise InputError(f"{p}: empty file")
+    if head.startswith(_HDF5_MAGIC) or head.startswith(b"MATLAB 7.3"):
+        return _detect_hdf5(p, head)
+    if head.startswith(b"MATLAB 5.0"):
+        return _detect_mat5(p)
+    if head.startswith(_NPY_MAGIC):
+        return "npy"
+    if head.startswith(_EXR_MAGIC):
+        return "kaist-exr"
+    if head.lstrip().startswith(b"ENVI"):
+        return "envi"
+    if _envi_header_for(p) is not None:
+        return "envi"
+    if head.startswith(_PNG_MAGIC) and _CAVE_RE.match(p.name):
+        raise InputError(f"{p}: a single CAVE band image; pass the scene folder that holds all 31 PNGs")
+    raise InputError(f"{p}: unknown format (not our HDF5, MAT v5/v7.3, NPY, OpenEXR, ENVI or a CAVE folder)")
+
+
+def _head(p: Path, n: int) -> bytes:
+    try:
+        with open(p, "rb") as fh:
+            return fh.read(n)
+    except OSError as exc:
+        raise InputError(f"{p}: cannot read ({exc.strerror})") from None
+
+
+_HDF5_KEYS = (("rad", "icvl"), ("img", "kaist-mat"), ("img_expand", "kaist-mat"), ("ref", "harvard"))
+
+
+def _detect_hdf5(p: Path, head: bytes) -> str:
+    import h5py
+
+    with _reading(p, "HDF5/MAT v7.3"):
+        with h5py.File(p, "r") as f:
+            keys = set(f.keys())
+            if "cube" in keys and "bands_nm" in keys:
+                return "hsicam"
+            if "cube" in keys and ("bands" in keys or head.startswith(b"MATLAB 7.3")):
+                return "arad"
+            for key, fmt in _HDF5_KEYS:
+                if key in keys:
+                    return fmt
+            if "cube" in keys:
+                raise InputError(f"{p}: HDF5 file with 'cube' but missing key 'bands_nm' (our format) or 'bands' (ARAD)")
+    raise InputError(f"{p}: HDF5/MAT file with no known hyperspectral variable "
+                     f"(expected one of cube, rad, img, img_expand, ref; found {', '.join(sorted(keys)) or 'none'})")
+
+
+_MAT5_KEYS = (("rad", "icvl"), ("cube", "arad"), ("img", "kaist-mat"), ("img_expand", "kaist-mat"), ("ref", "harvard"))
+
+
+def _detect_mat5(p: Path) -> str:
+    import scipy.io
+
+    with _reading(p, "MAT v5"):
+        names = [w[0] for w in scipy.io.whosmat(p)]
+    for key, fmt in _MAT5_KEYS:
+        if key in names:
+            return fmt
+    raise InputError(f"{p}: MAT file with no known hyperspectral variable "
+                     f"(expected one of rad, cube, img, img_expand, ref; found {', '.join(names) or 'none'})")
+
+
+# ------------------------------------------------------------------------------------------------
+# Entry point
+# ------------------------------------------------------------------------------------------------
+def read_cube(path: str | os.PathLike, *, bands: Bands | None = None, allow_negative: bool = False) -> Cube:
+    """Read any supported cube: returns (cube float32 (C, H, W), Bands, metadata dict).
+
+    ``bands`` is used only for formats that do not carry wavelengths (``.npy``). With
+    ``allow_negative=True`` negative values are clipped to 0 instead of being an error.
+    """
+    fmt = detect_format(path)
+    reader = READERS[fmt]
+    if fmt == "npy":
+        return read_npy(path, bands=bands, allow_negative=allow_negative)
+    return reader(path, allow_negative=allow_negative)
+
+
+def _finish(p: Path, cube: np.ndarray, bands: Bands, meta: dict[str, Any], allow_negative: bool) -> Cube:
+    cube = check_cube(cube, p, allow_negative=allow_negative)
+    if cube.shape[0] != len(bands):
+        raise InputError(f"{p}: the cube has {cube.shape[0]} bands but the file lists {len(bands)} wavelengths")
+    meta.setdefault("source", str(p))
+    return cube, bands, meta
+
+
+def _bands_from(p: Path, values: Any, fwhm: Any = None) -> Bands:
+    c = np.asarray(values, dtype=np.float64).reshape(-1)
+    try:
+        if fwhm is None:
+            return Bands.from_centers(c)
+        return Bands(c, np.asarray(fwhm, dtype=np.float64).reshape(-1))
+    except InputError as exc:
+        raise InputError(f"{p}: invalid band list: {exc}") from None
+
+
+# ------------------------------------------------------------------------------------------------
+# Our HDF5
+# ------------------------------------------------------------------------------------------------
+def read_hsicam_h5(path: str | os.PathLike, *, allow_negative: bool = False) -> Cube:
+    """Our HDF5: ``cube`` (C, H, W) float32, ``bands_nm`` (C,), optional ``fwhm_nm``, attributes."""
+    import h5py
+
+    p = _as_path(path)
+    with _reading(p, "HDF5"):
+        with h5py.File(p, "r") as f:
+            for key in ("cube", "bands_nm"):
+                if key not in f:
+                    raise InputError(f"{p}: missing key '{key}' (not an hsicam cube file)")
+            cube = f["cube"][()]
+            bands = _bands_from(p, f["bands_nm"][()], f["fwhm_nm"][()] if "fwhm_nm" in f else None)
+            meta = _read_attrs(f.attrs)
+    meta["format"] = "hsicam"
+    return _finish(p, cube, bands, meta, allow_negative)
+
+
+def _read_attrs(attrs: Any) -> dict[str, Any]:
+    meta: dict[str, Any] = {}
+    if "metadata_json" in attrs:
+        raw = attrs["metadata_json"]
+        raw = raw.decode() if isinstance(raw, bytes) else str(raw)
+        try:
+            loaded = json.loads(raw)
+            if isinstance(loaded, dict):
+                meta.update(loaded)
+        except json.JSONDecodeError:
+            log.warning("ignoring unreadable metadata_json attribute")
+    for key in ("max_value", "version"):
+        if key in attrs:
+            meta.setdefault(f"file_{key}", attrs[key].item() if hasattr(attrs[key], "item") else attrs[key])
+    return meta
+
+
+def write_cube_h5(path: str | os.PathLike, cube: np.ndarray, bands: Bands, metadata: dict[str, Any] | None = None) -> Path:
+    """Write our HDF5 cube file atomically (byte-identical for identical inputs: no timestamps).
+
+    ``cube`` (C, H, W) is stored contiguous float32 (so windows can be read cheaply); ``metadata``
+    must be JSON-serialisable and is stored as the ``metadata_json`` attribute.
+    """
+    import h5py
+
+    p = Path(path)
+    arr = check_cube(cube, p)
+    if arr.shape[0] != len(bands):
+        raise InputError(f"{p}: the cube has {arr.shape[0]} bands but {len(bands)} band centres were given")
+    meta_json = json.dumps(metadata or {}, sort_keys=True, default=_json_default)
+    with atomic_path(p) as tmp:
+        with h5py.File(tmp, "w", libver=("earliest", "v110")) as f:
+            f.create_dataset("cube", data=arr, track_times=False)
+            f.create_dataset("bands_nm", data=np.asarray(bands.centers_nm, dtype=np.float64), track_times=False)
+            f.create_dataset("fwhm_nm", data=np.asarray(bands.fwhm_nm, dtype=np.float64), track_times=False)
+            f.attrs["format"] = HSICAM_FORMAT
+            f.attrs["version"] = HSICAM_FORMAT_VERSION
+            f.attrs["layout"] = "cube (bands, height, width), bands ascending, wavelengths in nm"
+            f.attrs["max_value"] = float(arr.max())
+            f.attrs["metadata_json"] = meta_json
+    return p
+
+
+def _json_default(obj: Any) -> Any:
+    if isinstance(obj, np.generic):
+        return obj.item()
+    if isinstance(obj, np.ndarray):
+        return obj.tolist()
+    if isinstance(obj, Path):
+        return str(obj)
+    raise TypeError(f"metadata value of type {type(obj).__name__} is not JSON serialisable")
+
+
+# ------------------------------------------------------------------------------------------------
+# MATLAB files (v5 via scipy, v7.3 via h5py)
+# ------------------------------------------------------------------------------------------------
+# format -> (data keys in order of preference, bands key or None)
+_MAT_SPECS: dict[str, tuple[tuple[str, ...], str | None]] = {
+    "icvl": (("rad",), "bands"),
+    "arad": (("cube",), "bands"),
+    "kaist-mat": (("img", "img_expand"), "bands"),
+    "harvard": (("ref",), None),
+}
+
+
+def _load_mat(p: Path, keys: Sequence[str], bands_key: str | None) -> tuple[str, np.ndarray, np.ndarray | None, str]:
+    """Return (key, array in MATLAB logical order (H, W, C), bands or None, mat version)."""
+    head = _head(p, 128)
+    if head.startswith(_HDF5_MAGIC) or head.startswith(b"MATLAB 7.3"):
+        import h5py
+
+        with _reading(p, "MAT v7.3"):
+            with h5py.File(p, "r") as f:
+                key = next((k for k in keys if k in f), None)
+                if key is None:
+                    raise InputError(f"{p}: missing key {' or '.join(repr(k) for k in keys)} "
+                                     f"(found: {', '.join(sorted(f.keys())) or 'none'})")
+                if not isinstance(f[key], h5py.Dataset):
+                    raise InputError(f"{p}: '{key}' is not a numeric array")
+                data = np.asarray(f[key][()]).T  # h5py returns MATLAB arrays with axes reversed
+                bands = np.asarray(f[bands_key][()]).reshape(-1) if bands_key and bands_key in f else None
+        return key, data, bands, "7.3"
+    if head.startswith(b"MATLAB 5.0"):
+        import scipy.io
+
+        with _reading(p, "MAT v5"):
+            names = [w[0] for w in scipy.io.whosmat(p)]
+            key = next((k for k in keys if k in names), None)
+            if key is None:
+                raise InputError(f"{p}: missing key {' or '.join(repr(k) for k in keys)} (found: {', '.join(names) or 'none'})")
+            wanted = [key] + ([bands_key] if bands_key and bands_key in names else [])
+            loaded = scipy.io.loadmat(p, variable_names=wanted)
+            data = np.asarray(loaded[key])
+            bands = np.asarray(loaded[bands_key]).reshape(-1) if bands_key and bands_key in loaded else None
+        return key, data, bands, "5"
+    raise InputError(f"{p}: not a MAT file (no MATLAB 5.0 header and not HDF5/MAT v7.3)")
+
+
+def _hwc_to_chw(p: Path, data: np.ndarray, key: str) -> np.ndarray:
+    if data.ndim != 3:
+        raise InputError(f"{p}: '{key}' must be a 3-D array (height, width, bands), got {data.ndim} dimensions {data.shape}")
+    return np.transpose(data, (2, 0, 1))
+
+
+def _read_mat_format(path: str | os.PathLike, fmt: str, allow_negative: bool) -> Cube:
+    p = _as_path(path)
+    keys, bands_key = _MAT_SPECS[fmt]
+    key, data, band_values, version = _load_mat(p, keys, bands_key)
+    cube = _hwc_to_chw(p, data, key)
+    n = cube.shape[0]
+    if band_values is not None:
+        bands = _bands_from(p, band_values)
+    elif fmt == "harvard":
+        if n != 31:
+            raise InputError(f"{p}: Harvard 'ref' must have 31 bands (420-720 nm), got {n}")
+        bands = Bands.uniform(420.0, 720.0, 10.0)
+    elif fmt == "kaist-mat" and n == 28:
+        bands = Bands.from_centers(MST_28_NM)
+    elif n == 31:
+        bands = Bands.uniform(400.0, 700.0, 10.0)
+    else:
+        raise InputError(f"{p}: '{key}' has {n} bands and the file has no 'bands' variable; cannot tell the wavelengths")
+    meta = {"format": fmt, "mat_version": version, "key": key}
+    return _finish(p, cube, bands, meta, allow_negative)
+
+
+def read_icvl(path: str | os.PathLike, *, allow_negative: bool = False) -> Cube:
+    """ICVL ``.mat`` v7.3: ``rad`` (H×W×C in MATLAB, reversed by h5py) and ``bands`` (nm)."""
+    return _read_mat_format(path, "icvl", allow_negative)
+
+
+def read_arad(path: str | os.PathLike, *, allow_negative: bool = False) -> Cube:
+    """ARAD / NTIRE ``.mat`` v7.3: ``cube`` (H×W×C in MATLAB, reversed by h5py) and ``bands`` (nm)."""
+    return _read_mat_format(path, "arad", allow_negative)
+
+
+def read_kaist_mat(path: str | os.PathLike, *, allow_negative: bool = False) -> Cube:
+    """MST-style KAIST/CAVE ``.mat``: ``img`` or ``img_expand`` H×W×C (28 bands: MST's grid)."""
+    return _read_mat_format(path, "kaist-mat", allow_negative)
+
+
+def read_harvard(path: str | os.PathLike, *, allow_negative: bool = False) -> Cube:
+    """Harvard ``.mat``: ``ref`` H×W×31, 420-720 nm in 10 nm steps."""
+    return _read_mat_format(path, "harvard", allow_negative)
+
+
+# ------------------------------------------------------------------------------------------------
+# OpenEXR (KAIST)
+# ------------------------------------------------------------------------------------------------
+_EXR_NUM = re.compile(r"(\d+(?:[.,]\d+)?)\s*(nm|um|µm)?\s*$", re.IGNORECASE)
+
+
+def exr_channel_wavelength(name: str) -> float | None:
+    """Wavelength in nm encoded in an EXR channel name, or None for a non-spectral channel.
+
+    Accepts ``550``, ``550nm``, ``w550nm``, ``550.5nm`` and the spectral-EXR names ``S0.550,000nm``
+    (emissive) / ``T.550nm`` (reflective); polarisation components S1-S3 are not spectral bands.
+    """
+    if re.match(r"^S[123]\.", name):
+        return None
+    stem = re.sub(r"^(S0|T)\.", "", name)
+    m = _EXR_NUM.search(stem)
+    if m is None:
+        return None
+    value = float(m.group(1).replace(",", "."))
+    if (m.group(2) or "").lower() in ("um", "µm"):
+        value *= 1000.0
+    return value if 200.0 <= value <= 2600.0 else None
+
+
+def read_kaist_exr(path: str | os.PathLike, *, allow_negative: bool = False) -> Cube:
+    """KAIST OpenEXR: one channel per band, the wavelength in each channel's name."""
+    p = _as_path(path)
+    try:
+        import OpenEXR
+    except ImportError:
+        raise InputError(f"{p}: reading OpenEXR needs the 'openexr' package (pip install 'hsicam[exr]')") from None
+    if not hasattr(OpenEXR, "File"):
+        raise InputError(f"{p}: reading OpenEXR needs openexr >= 3.3 (the OpenEXR.File API)")
+    with _reading(p, "OpenEXR"):
+        with OpenEXR.File(str(p), separate_channels=True) as f:
+            channels = {name: np.asarray(ch.pixels) for name, ch in f.channels().items()}
+    spectral = [(exr_channel_wavelength(n), n) for n in channels]
+    spectral = sorted((w, n) for w, n in spectral if w is not None)
+    if not spectral:
+        raise InputError(f"{p}: no EXR channel name carries a wavelength (channels: {', '.join(sorted(channels))})")
+    waves = [w for w, _ in spectral]
+    if len(set(waves)) != len(waves):
+        raise InputError(f"{p}: two EXR channels name the same wavelength")
+    shapes = {channels[n].shape for _, n in spectral}
+    if len(shapes) != 1:
+        raise InputError(f"{p}: EXR spectral channels have different sizes {sorted(shapes)}")
+    cube = np.stack([channels[n].astype(np.float32) for _, n in spectral])
+    meta = {"format": "kaist-exr", "channels": [n for _, n in spectral]}
+    return _finish(p, cube, Bands.from_centers(waves), meta, allow_negative)
+
+
+# ------------------------------------------------------------------------------------------------
+# CAVE
+# ------------------------------------------------------------------------------------------------
+def _find_cave_pngs(folder: Path) -> list[Path] | None:
+    """The 31 band PNGs of the CAVE scene in ``folder`` (or one/two levels down), or None."""
+    groups: dict[tuple[Path, str], dict[int, Path]] = {}
+    candidates = list(folder.glob("*")) + list(folder.glob("*/*")) + list(folder.glob("*/*/*"))
+    for f in candidates:
+        m = _CAVE_RE.match(f.name)
+        if m and f.is_file() and not f.name.startswith("."):
+            groups.setdefault((f.parent, m.group("prefix")), {})[int(m.group("index"))] = f
+    if not groups:
+        return None
+    if len(groups) > 1:
+        names = ", ".join(sorted(f"{d.name}/{prefix}" for d, prefix in groups))
+        raise InputError(f"{folder}: holds several CAVE scenes ({names}); pass one scene folder")
+    (_, files), = groups.items()
+    missing = [i for i in range(1, 32) if i not in files]
+    if missing:
+        raise InputError(f"{folder}: CAVE scene is missing band image(s) {', '.join(f'{i:02d}' for i in missing)}")
+    extra = sorted(i for i in files if not 1 <= i <= 31)
+    if extra:
+        raise InputError(f"{folder}: CAVE scene has unexpected band index(es) {extra} (expected 01..31)")
+    return [files[i] for i in range(1, 32)]
+
+
+def read_cave(path: str | os.PathLike, *, allow_negative: bool = False) -> Cube:
+    """CAVE: a folder of 31 PNGs ``<name>_ms_01.png`` … ``_31.png`` (400-700 nm, 10 nm), 16-bit.
+
+    Values are divided by the integer full scale (65535 for 16-bit, 255 for 8-bit images); a PNG
+    stored with colour channels (one CAVE scene has them) contributes its first channel.
+    """
+    import imageio.v3 as iio
+
+    p = _as_path(path)
+    if not p.is_dir():
+        raise InputError(f"{p}: a CAVE scene is a folder of 31 PNGs")
+    files = _find_cave_pngs(p)
+    if files is None:
+        raise InputError(f"{p}: no CAVE band images '*_ms_01.png' … '*_ms_31.png' found")
+    planes = []
+    for f in files:
+        with _reading(f, "PNG"):
+            img = np.asarray(iio.imread(f))
+        if img.ndim == 3:
+            log.warning("%s: colour PNG in a CAVE scene; using its first channel", f)
+            img = img[..., 0]
+        if img.ndim != 2:
+            raise InputError(f"{f}: expected a 2-D band image, got shape {img.shape}")
+        if img.dtype.kind not in "ui":
+            raise InputError(f"{f}: expected an integer PNG, got {img.dtype}")
+        full = float(np.iinfo(img.dtype).max)
+        planes.append(img.astype(np.float32) / np.float32(full))
+    if len({pl.shape for pl in planes}) != 1:
+        raise InputError(f"{p}: CAVE band images have different sizes")
+    cube = np.stack(planes)
+    meta = {"format": "cave", "scene": files[0].name.rsplit("_ms_", 1)[0], "files": [f.name for f in files]}
+    return _finish(p, cube, Bands.uniform(400.0, 700.0, 10.0), meta, allow_negative)
+
+
+# ------------------------------------------------------------------------------------------------
+# ENVI
+# ------------------------------------------------------------------------------------------------
+def parse_envi_header(path: str | os.PathLike) -> dict[str, str]:
+    """Parse an ENVI ``.hdr`` into {lower-case key: raw value string} (braced values joined)."""
+    p = _as_path(path)
+    with _reading(p, "ENVI header"):
+        text = p.read_text(encoding="utf-8", errors="replace")
+    lines = text.splitlines()
+    if not lines or not lines[0].strip().startswith("ENVI"):
+        raise InputError(f"{p}: not an ENVI header (first line must be 'ENVI')")
+    out: dict[str, str] = {}
+    i = 1
+    while i < len(lines):
+        line = lines[i]
+        i += 1
+        if not line.strip() or line.lstrip().startswith(";"):
+            continue
+        if "=" not in line:
+            raise InputError(f"{p}: malformed ENVI header line {i}: {line.strip()!r}")
+        key, _, value = line.partition("=")
+        value = value.strip()
+        if value.startswith("{"):
+            while "}" not in value:
+                if i >= len(lines):
+                    raise InputError(f"{p}: ENVI header value of '{key.strip()}' has no closing brace")
+                value += " " + lines[i].strip()
+                i += 1
+        out[key.strip().lower()] = value
+    return out
+
+
+def _envi_list(value: str) -> list[str]:
+    value = value.strip()
+    if value.startswith("{") and value.endswith("}"):
+        value = value[1:-1]
+    return [v.strip() for v in value.split(",") if v.strip()]
+
+
+def _envi_floats(hdr: Path, h: dict[str, str], key: str) -> np.ndarray:
+    try:
+        return np.array([float(v) for v in _envi_list(h[key])], dtype=np.float64)
+    except ValueError:
+        raise InputError(f"{hdr}: ENVI header key '{key}' must be a list of numbers") from None
+
+
+def _envi_header_for(p: Path) -> Path | None:
+    for cand in (p.with_name(p.name + ".hdr"), p.with_suffix(".hdr"), p.with_suffix(".HDR")):
+        if cand != p and cand.is_file() and _head(cand, 64).lstrip().startswith(b"ENVI"):
+            return cand
+    return None
+
+
+def _envi_data_for(hdr: Path) -> Path | None:
+    base = hdr.with_suffix("")
+    for suffix in _ENVI_DATA_SUFFIXES:
+        cand = base.with_name(base.name + suffix)
+        if cand != hdr and cand.is_file():
+            return cand
+    return None
+
+
+def read_envi(path: str | os.PathLike, *, allow_negative: bool = False) -> Cube:
+    """ENVI: ``path`` is the ``.hdr`` or the raw data file next to it.
+
+    Supports interleave bsq/bil/bip, data types 1-5 and 12-15, byte order, header offset,
+    ``wavelength`` (nm or µm via ``wavelength units``), ``fwhm`` and ``reflectance scale factor``.
+    """
+    p = _as_path(path)
+    if _head(p, 64).lstrip().startswith(b"ENVI"):
+        hdr, data = p, _envi_data_for(p)
+        if data is None:
+            raise InputError(f"{p}: ENVI data file not found next to the header (tried {hdr.with_suffix('').name}"
+                             f"{{{','.join(s for s in _ENVI_DATA_SUFFIXES if s)}}})")
+    else:
+        hdr, data = _envi_header_for(p), p
+        if hdr is None:
+            raise InputError(f"{p}: no ENVI header (.hdr) next to this file")
+    h = parse_envi_header(hdr)
+
+    def need_int(key: str) -> int:
+        if key not in h:
+            raise InputError(f"{hdr}: ENVI header is missing key '{key}'")
+        try:
+            return int(h[key].strip())
+        except ValueError:
+            raise InputError(f"{hdr}: ENVI header key '{key}' is not an integer: {h[key]!r}") from None
+
+    samples, lines, nbands, dtype_code = need_int("samples"), need_int("lines"), need_int("bands"), need_int("data type")
+    offset = need_int("header offset") if "header offset" in h else 0
+    if dtype_code not in _ENVI_DTYPES:
+        raise InputError(f"{hdr}: unsupported ENVI data type {dtype_code} (supported: {sorted(_ENVI_DTYPES)})")
+    order = need_int("byte order") if "byte order" in h else 0
+    if order not in (0, 1):
+        raise InputError(f"{hdr}: ENVI byte order must be 0 or 1, got {order}")
+    dtype = np.dtype(_ENVI_DTYPES[dtype_code]).newbyteorder(">" if order == 1 else "<")
+    interleave = h.get("interleave", "bsq").strip().lower()
+    shapes = {"bsq": (nbands, lines, samples), "bil": (lines, nbands, samples), "bip": (lines, samples, nbands)}
+    if interleave not in shapes:
+        raise InputError(f"{hdr}: unknown ENVI interleave {interleave!r} (expected bsq, bil or bip)")
+    if min(samples, lines, nbands) <= 0:
+        raise InputError(f"{hdr}: ENVI dimensions must be positive (samples={samples}, lines={lines}, bands={nbands})")
+    count = samples * lines * nbands
+    expected = offset + count * dtype.itemsize
+    size = data.stat().st_size
+    if size < expected:
+        raise InputError(f"{data}: truncated ENVI data: {size} bytes, the header needs {expected}")
+    with _reading(data, "ENVI data"):
+        raw = np.fromfile(data, dtype=dtype, count=count, offset=offset).reshape(shapes[interleave])
+    cube = {"bsq": raw, "bil": raw.transpose(1, 0, 2), "bip": raw.transpose(2, 0, 1)}[interleave]
+    cube = cube.astype(np.float32)
+    if "reflectance scale factor" in h:
+        factor = float(_envi_floats(hdr, h, "reflectance scale factor")[0])
+        if factor > 0:
+            cube /= np.float32(factor)
+    if "wavelength" in h:
+        waves = _envi_floats(hdr, h, "wavelength")
+        units = h.get("wavelength units", "").strip().lower()
+        scale = 1.0
+        if units in ("micrometers", "micrometer", "microns", "micron", "um", "µm"):
+            scale = 1000.0
+        elif units in ("", "unknown") and waves.size and waves.max() < 30.0:
+            log.warning("%s: wavelength units not given and values < 30; reading them as micrometres", hdr)
+            scale = 1000.0
+        elif units not in ("", "unknown", "nanometers", "nanometer", "nm"):
+            raise InputError(f"{hdr}: unsupported wavelength units {h['wavelength units']!r} (nm or µm)")
+        waves = waves * scale
+        if waves.size != nbands:
+            raise InputError(f"{hdr}: {waves.size} wavelengths listed for {nbands} bands")
+        fwhm = None
+        if "fwhm" in h:
+            fwhm = _envi_floats(hdr, h, "fwhm")
+            if fwhm.size != nbands:
+                raise InputError(f"{hdr}: {fwhm.size} FWHM values listed for {nbands} bands")
+            fwhm = fwhm * scale
+        order_idx = np.argsort(waves)
+        if np.any(order_idx != np.arange(nbands)):  # store bands ascending
+            cube = cube[order_idx]
+            waves = waves[order_idx]
+            fwhm = fwhm[order_idx] if fwhm is not None else None
+        bands = _bands_from(hdr, waves, fwhm)
+    else:
+        raise InputError(f"{hdr}: ENVI header has no 'wavelength' list; cannot tell the bands")
+    meta = {"format": "envi", "interleave": interleave, "data_type": dtype_code, "byte_order": order,
+            "header": str(hdr), "data_file": str(data), "description": h.get("description", "").strip("{} ")}
+    return _finish(data, cube, bands, meta, allow_negative)
+
+
+def write_envi(path: str | os.PathLike, cube: np.ndarray, bands: Bands, *, interleave: str = "bsq",
+               dtype: str | np.dtype = "float32", byte_order: str = "little", description: str = "hsicam cube") -> tuple[Path, Path]:
+    """Write an ENVI pair ``<name>.hdr`` + ``<name>.img`` atomically; returns (header, data) paths.
+
+    ``path`` may name either file. The data file is written first, the header last, so a reader
+    never finds a header without its data.
+    """
+    p = Path(path)
+    hdr, data = (p, p.with_suffix(".img")) if p.suffix.lower() == ".hdr" else (p.with_suffix(".hdr"), p)
+    arr = check_cube(cube, p)
+    if arr.shape[0] != len(bands):
+        raise InputError(f"{p}: the cube has {arr.shape[0]} bands but {len(bands)} band centres were given")
+    codes = {np.dtype(v): k for k, v in _ENVI_DTYPES.items()}
+    dt = np.dtype(dtype)
+    if dt not in codes:
+        raise InputError(f"write_envi: unsupported data type {dt}")
+    if interleave not in ("bsq", "bil", "bip"):
+        raise InputError(f"write_envi: interleave must be bsq, bil or bip, got {interleave!r}")
+    if byte_order not in ("little", "big"):
+        raise InputError(f"write_envi: byte_order must be 'little' or 'big', got {byte_order!r}")
+    out = {"bsq": arr, "bil": arr.transpose(1, 0, 2), "bip": arr.transpose(1, 2, 0)}[interleave]
+    if dt.kind in "iu":
+        info = np.iinfo(dt)
+        out = np.clip(np.round(out), info.min, info.max)
+    out = np.ascontiguousarray(out, dtype=dt.newbyteorder("<" if byte_order == "little" else ">"))
+    c, h, w = arr.shape
+    fmt = lambda v: ", ".join(f"{x:.6g}" for x in v)  # noqa: E731
+    header = (
+        "ENVI\n"
+        f"description = {{{description}}}\n"
+        f"samples = {w}\nlines = {h}\nbands = {c}\nheader offset = 0\nfile type = ENVI Standard\n"
+        f"data type = {codes[dt]}\ninterleave = {interleave}\nbyte order = {0 if byte_order == 'little' else 1}\n"
+        "wavelength units = Nanometers\n"
+        f"wavelength = {{{fmt(bands.centers_nm)}}}\n"
+        f"fwhm = {{{fmt(bands.fwhm_nm)}}}\n"
+    )
+    with atomic_path(data) as tmp:
+        tmp.write_bytes(out.tobytes())
+    with atomic_path(hdr) as tmp:
+        tmp.write_text(header, encoding="utf-8")
+    return hdr, data
+
+
+# ------------------------------------------------------------------------------------------------
+# NumPy
+# ------------------------------------------------------------------------------------------------
+def read_npy(path: str | os.PathLike, *, bands: Bands | None = None, allow_negative: bool = False) -> Cube:
+    """``.npy`` array (C, H, W). Bands: ``bands`` if given, else C bands evenly over 400-700 nm."""
+    p = _as_path(path)
+    with _reading(p, "NPY"):
+        arr = np.load(p, mmap_mode="r", allow_pickle=False)
+        arr = np.array(arr)
+    if arr.ndim != 3:
+        raise InputError(f"{p}: expected a 3-D array (bands, height, width), got {arr.ndim} dimensions {arr.shape}")
+    if bands is None:
+        bands = bands_400_700(arr.shape[0])
+        log.info("%s: no band list given; assuming %d bands evenly spaced over 400-700 nm", p, arr.shape[0])
+        assumed = True
+    else:
+        assumed = False
+    meta = {"format": "npy", "bands_assumed": assumed}
+    return _finish(p, arr, bands, meta, allow_negative)
+
+
+READERS: dict[str, Callable[..., Cube]] = {
+    "hsicam": read_hsicam_h5,
+    "icvl": read_icvl,
+    "arad": read_arad,
+    "kaist-mat": read_kaist_mat,
+    "harvard": read_harvard,
+    "kaist-exr": read_kaist_exr,
+    "cave": read_cave,
+    "envi": read_envi,
+    "npy": read_npy,
+}
+
+
+# ------------------------------------------------------------------------------------------------
+# Cheap access for datasets: shapes and windows without reading the whole cube
+# ------------------------------------------------------------------------------------------------
+def read_window(path: str | os.PathLike, y: int, x: int, h: int, w: int) -> tuple[np.ndarray, Bands] | None:
+    """Read the window [y:y+h, x:x+w] of an hsicam HDF5 file without loading the rest.
+
+    Returns (cube (C, h, w) float32, bands), or None when the file is not in our format (callers
+    then load the whole cube). Values are not checked here (the whole file was checked on write).
+    """
+    import h5py
+
+    p = Path(path)
+    if not p.is_file() or not _head(p, 8).startswith(_HDF5_MAGIC):
+        return None
+    with _reading(p, "HDF5"):
+        with h5py.File(p, "r") as f:
+            if f.attrs.get("format") != HSICAM_FORMAT or "cube" not in f or "bands_nm" not in f:
+                return None
+            ds = f["cube"]
+            if y < 0 or x < 0 or y + h > ds.shape[1] or x + w > ds.shape[2]:
+                raise InputError(f"{p}: window {h}x{w} at ({y}, {x}) is outside the cube {ds.shape[1]}x{ds.shape[2]}")
+            cube = np.asarray(ds[:, y:y + h, x:x + w], dtype=np.float32)
+            bands = _bands_from(p, f["bands_nm"][()], f["fwhm_nm"][()] if "fwhm_nm" in f else None)
+    return cube, bands
+
+
+__all__ = [
+    "FORMATS",
+    "MST_28_NM",
+    "READERS",
+    "bands_400_700",
+    "detect_format",
+    "exr_channel_wavelength",
+    "parse_envi_header",
+    "read_arad",
+    "read_cave",
+    "read_cube",
+    "read_envi",
+    "read_harvard",
+    "read_hsicam_h5",
+    "read_icvl",
+    "read_kaist_exr",
+    "read_kaist_mat",
+    "read_npy",
+    "read_window",
+    "write_cube_h5",
+    "write_envi",
+]

@@ -1,0 +1,73 @@
+"""From a :class:`~hsicam.config.DataConfig` to training and validation datasets and loaders."""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+
+import torch
+from torch.utils.data import DataLoader, Dataset
+
+from hsicam.config import DataConfig
+from hsicam.data.datasets import PatchDataset, SceneDataset, list_scenes, split_scenes
+from hsicam.spectral import Bands
+
+log = logging.getLogger(__name__)
+
+
+def dataset_root(cfg: DataConfig, bands: Bands, progress: bool | None = None) -> Path:
+    """``cfg.root``, or the cached synthetic dataset on ``bands`` (generated on first use)."""
+    if cfg.root is not None:
+        return Path(cfg.root).expanduser()
+    from hsicam.data.synthetic import synthetic_dataset
+
+    return synthetic_dataset(cfg.synthetic_n, cfg.synthetic_size, cfg.synthetic_seed, bands,
+                             cache_dir=cfg.cache_dir, progress=progress)
+
+
+def _should_preload(cfg: DataConfig, scenes: list[Path]) -> bool:
+    if cfg.preload is not None:
+        return cfg.preload
+    total = 0
+    for s in scenes:
+        total += sum(f.stat().st_size for f in s.rglob("*") if f.is_file()) if s.is_dir() else s.stat().st_size
+    return total <= cfg.preload_max_mb * 2**20
+
+
+def build_datasets(cfg: DataConfig, bands: Bands, margin_px: int, *, progress: bool | None = None
+                   ) -> tuple[PatchDataset, PatchDataset | None]:
+    """Training and validation patch datasets (validation None when ``val_fraction`` is 0).
+
+    ``margin_px`` is the camera's ``valid``-convolution margin (kernel_px − 1). Scenes are split at
+    scene level with ``cfg.split_seed``; validation patches are fixed and not augmented.
+    """
+    root = dataset_root(cfg, bands, progress=progress)
+    scenes = list_scenes(root)
+    train_scenes, val_scenes = split_scenes(scenes, cfg.val_fraction, cfg.split_seed)
+    preload = _should_preload(cfg, scenes)
+    log.info("data: %d training and %d validation scenes from %s (preload=%s)", len(train_scenes), len(val_scenes),
+             root, preload)
+    train = PatchDataset(SceneDataset(train_scenes, bands, preload=preload), cfg.patch_px, margin_px,
+                         patches_per_epoch=cfg.patches_per_epoch, flips=cfg.augment_flips, rot90=cfg.augment_rot90,
+                         seed=cfg.split_seed)
+    val = None
+    if val_scenes:
+        val = PatchDataset(SceneDataset(val_scenes, bands, preload=preload), cfg.patch_px, margin_px,
+                           patches_per_epoch=cfg.val_patches, flips=False, rot90=False, seed=cfg.split_seed + 1,
+                           fixed=True)
+    return train, val
+
+
+def make_loader(dataset: Dataset, batch_size: int, num_workers: int = 2, shuffle: bool = True,
+                drop_last: bool = False, sampler: torch.utils.data.Sampler | None = None) -> DataLoader:
+    """A DataLoader for patch datasets.
+
+    Workers are not persistent, so each epoch's workers see the epoch set by
+    :meth:`PatchDataset.set_epoch` (call it before iterating).
+    """
+    return DataLoader(dataset, batch_size=batch_size, shuffle=shuffle and sampler is None, sampler=sampler,
+                      num_workers=num_workers, drop_last=drop_last, persistent_workers=False,
+                      pin_memory=False)
+
+
+__all__ = ["build_datasets", "dataset_root", "make_loader"]

@@ -1,0 +1,212 @@
+"""Training datasets: scene listing, scene-level split, normalisation policy, patches with margin."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+import scipy.io
+import torch
+
+from hsicam.config import ConfigError, load_config
+from hsicam.data import (
+    PatchDataset,
+    SceneDataset,
+    build_datasets,
+    list_scenes,
+    make_loader,
+    normalize_per_cube_max,
+    split_scenes,
+    write_cube_h5,
+)
+from hsicam.data.datasets import augment
+from hsicam.errors import InputError
+from hsicam.spectral import Bands
+
+PAPER = Bands.paper()
+
+
+def make_scene(path: Path, seed: int, size: tuple[int, int] = (40, 48), bands: Bands = PAPER, scale: float = 3.0) -> np.ndarray:
+    cube = (np.random.default_rng(seed).random((len(bands), *size)) * scale).astype(np.float32)
+    write_cube_h5(path, cube, bands)
+    return cube
+
+
+@pytest.fixture
+def folder(tmp_path):
+    cubes = {f"s{i}.h5": make_scene(tmp_path / f"s{i}.h5", i) for i in range(5)}
+    return tmp_path, cubes
+
+
+def test_list_scenes_mixed_folder(tmp_path):
+    make_scene(tmp_path / "a.h5", 0)
+    np.save(tmp_path / "b.npy", np.ones((31, 4, 4), np.float32))
+    (tmp_path / "sub").mkdir()
+    scipy.io.savemat(tmp_path / "sub" / "c.mat", {"ref": np.ones((4, 4, 31))})
+    cave = tmp_path / "cave" / "flowers_ms" / "flowers_ms"
+    cave.mkdir(parents=True)
+    for i in range(1, 32):
+        (cave / f"flowers_ms_{i:02d}.png").write_bytes(b"")  # listing does not read the files
+    (tmp_path / "e.hdr").write_text("ENVI\n")
+    (tmp_path / "e.img").write_bytes(b"")
+    (tmp_path / "notes.txt").write_text("x")
+    (tmp_path / ".a.tmp.h5").write_bytes(b"")  # atomic-write leftover: hidden
+    (tmp_path / "manifest.json").write_text("{}")
+    found = [p.relative_to(tmp_path).as_posix() for p in list_scenes(tmp_path)]
+    assert found == ["a.h5", "b.npy", "cave/flowers_ms", "e.hdr", "sub/c.mat"]
+
+
+def test_list_scenes_errors(tmp_path):
+    with pytest.raises(InputError, match="no hyperspectral scenes"):
+        list_scenes(tmp_path)
+    with pytest.raises(InputError, match="no such"):
+        list_scenes(tmp_path / "nope")
+
+
+def test_split_is_scene_level_and_deterministic(tmp_path):
+    scenes = [tmp_path / f"s{i:02d}.h5" for i in range(20)]
+    train, val = split_scenes(scenes, 0.25, seed=3)
+    assert len(val) == 5 and len(train) == 15
+    assert set(train).isdisjoint(val) and set(train) | set(val) == set(scenes)
+    assert split_scenes(list(reversed(scenes)), 0.25, seed=3) == (train, val)  # order of listing irrelevant
+    assert split_scenes(scenes, 0.25, seed=4)[1] != val
+    assert split_scenes(scenes[:2], 0.01, seed=0)[1] != []  # at least one validation scene
+    assert split_scenes(scenes, 0.0)[1] == []
+    with pytest.raises(InputError):
+        split_scenes(scenes, 1.0)
+
+
+def test_normalisation_policy():
+    cube = np.array([[[1.0, 2.0]], [[4.0, 0.5]]], np.float32)
+    out, peak = normalize_per_cube_max(cube)
+    assert peak == 4.0
+    np.testing.assert_allclose(out, cube / 4.0)
+    with pytest.raises(InputError, match="all zeros"):
+        normalize_per_cube_max(np.zeros((2, 2, 2), np.float32), source="black.h5")
+
+
+@pytest.mark.parametrize("preload", [True, False])
+def test_scene_dataset_normalises_on_target_bands(folder, preload):
+    root, cubes = folder
+    ds = SceneDataset(list_scenes(root), PAPER, preload=preload, cache_size=2)
+    assert len(ds) == 5
+    for i, name in enumerate(sorted(cubes)):
+        t = ds[i]
+        assert t.dtype == torch.float32 and t.shape == (31, 40, 48)
+        np.testing.assert_allclose(t.numpy(), cubes[name] / cubes[name].max(), rtol=1e-6)
+        assert float(t.max()) == 1.0
+        assert ds.info(i).peak == pytest.approx(float(cubes[name].max()))
+
+
+def test_scene_dataset_resamples_and_refuses_extrapolation(tmp_path):
+    src = Bands.uniform(400, 700, 10)
+    lam = src.centers_nm
+    cube = np.broadcast_to((1.0 + (lam - 400) / 300.0)[:, None, None], (31, 20, 20)).astype(np.float32)
+    write_cube_h5(tmp_path / "lin.h5", cube, src)
+    target = Bands.uniform(420, 700, 5)
+    ds = SceneDataset([tmp_path / "lin.h5"], target)
+    expected = (1.0 + (target.centers_nm - 400) / 300.0) / 2.0  # normalised by the max (700 nm → 2)
+    np.testing.assert_allclose(ds[0][:, 3, 4].numpy(), expected, rtol=1e-6)
+    with pytest.raises(InputError, match=r"lin\.h5.*420-720 nm"):
+        SceneDataset([tmp_path / "lin.h5"], PAPER)[0]
+
+
+def test_patches_have_margin_and_come_from_the_scene(folder):
+    root, cubes = folder
+    scenes = SceneDataset(list_scenes(root), PAPER)
+    patch, margin = 8, 6
+    ds = PatchDataset(scenes, patch, margin, patches_per_epoch=12, flips=False, rot90=False, seed=1)
+    names = sorted(cubes)
+    for k in range(len(ds)):
+        p = ds[k].numpy()
+        assert p.shape == (31, patch + margin, patch + margin) and p.dtype == np.float32
+        assert 0.0 <= p.min() and p.max() <= 1.0
+        # the patch is a crop of one normalised scene: find it by brute force
+        found = False
+        for name in names:
+            scene = cubes[name] / cubes[name].max()
+            hits = np.argwhere(np.isclose(scene[0], p[0, 0, 0], rtol=0, atol=1e-7))
+            for y, x in hits:
+                crop = scene[:, y:y + 14, x:x + 14]
+                if crop.shape == p.shape and np.allclose(crop, p, atol=1e-6):
+                    found = True
+        assert found
+
+
+def test_patches_deterministic_per_epoch_and_fixed_mode(folder):
+    root, _ = folder
+    scenes = SceneDataset(list_scenes(root), PAPER)
+    ds = PatchDataset(scenes, 8, 0, patches_per_epoch=4, seed=7)
+    first = [ds[k] for k in range(4)]
+    assert all(torch.equal(a, ds[k]) for k, a in enumerate(first))
+    ds.set_epoch(1)
+    assert not all(torch.equal(a, ds[k]) for k, a in enumerate(first))
+    other = PatchDataset(SceneDataset(list_scenes(root), PAPER, preload=True), 8, 0, patches_per_epoch=4, seed=7)
+    assert all(torch.equal(a, other[k]) for k, a in enumerate(first))  # h5 windows == preloaded cubes
+    val = PatchDataset(scenes, 8, 0, patches_per_epoch=4, seed=7, fixed=True, flips=False, rot90=False)
+    a = [val[k] for k in range(4)]
+    val.set_epoch(5)
+    assert all(torch.equal(x, val[k]) for k, x in enumerate(a))
+    with pytest.raises(IndexError):
+        ds[4]
+
+
+def test_augment_is_the_dihedral_group():
+    x = np.arange(2 * 3 * 3, dtype=np.float32).reshape(2, 3, 3)
+    t = torch.from_numpy(x)
+    seen = set()
+    for turns in range(4):
+        for flip in (False, True):
+            ours = np.ascontiguousarray(augment(x, turns, flip))
+            ref = torch.rot90(t, turns, dims=(1, 2))
+            ref = torch.flip(ref, dims=(2,)) if flip else ref
+            np.testing.assert_array_equal(ours, ref.numpy())
+            seen.add(ours.tobytes())
+    assert len(seen) == 8
+
+
+def test_augmentations_used_when_enabled(folder):
+    root, _ = folder
+    scenes = SceneDataset(list_scenes(root), PAPER)
+    plain = PatchDataset(scenes, 10, 0, patches_per_epoch=32, flips=False, rot90=False, seed=2)
+    aug = PatchDataset(scenes, 10, 0, patches_per_epoch=32, flips=True, rot90=True, seed=2)
+    differ = sum(not torch.equal(plain[k], aug[k]) for k in range(32))
+    assert differ > 16  # same positions, transformed in most of the 7/8 non-identity cases
+
+
+def test_scene_smaller_than_patch_plus_margin(folder):
+    root, _ = folder
+    with pytest.raises(InputError, match=r"40x48 px.*30 px.*margin of 12 px"):
+        PatchDataset(SceneDataset(list_scenes(root), PAPER), 30, 12)
+
+
+def test_loader_with_two_workers(folder):
+    root, _ = folder
+    ds = PatchDataset(SceneDataset(list_scenes(root), PAPER), 8, 2, patches_per_epoch=16, seed=0)
+    batches = list(make_loader(ds, batch_size=8, num_workers=2, shuffle=False))
+    assert len(batches) == 2 and batches[0].shape == (8, 31, 10, 10)
+    np.testing.assert_array_equal(batches[1][3].numpy(), ds[11].numpy())  # worker-independent
+
+
+def test_build_datasets_from_config_folder(folder):
+    root, _ = folder
+    cfg = load_config(overrides=[f"data.root={root}", "data.patch_px=16", "data.val_fraction=0.2",
+                                 "data.patches_per_epoch=10", "data.val_patches=3"])
+    train, val = build_datasets(cfg.data, cfg.bands.to_bands(), margin_px=4)
+    assert len(train) == 10 and len(val) == 3
+    assert train[0].shape == (31, 20, 20)
+    assert set(train.scenes.paths).isdisjoint(val.scenes.paths)
+    assert len(val.scenes) == 1 and len(train.scenes) == 4
+
+
+@pytest.mark.parametrize("override", ["data.val_fraction=1.0", "data.patch_px=0", "data.synthetic_size=8",
+                                      "data.num_workers=-1", "data.preload_max_mb=0", "data.synthetic_n=yes"])
+def test_data_config_validation(override):
+    with pytest.raises(ConfigError, match="data"):
+        load_config(overrides=[override])
+
+
+def test_data_config_defaults():
+    d = load_config().data
+    assert d.root is None and d.synthetic_size == 256 and 0 < d.val_fraction < 1

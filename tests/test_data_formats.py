@@ -1,0 +1,494 @@
+"""Readers and writers: every format written by the test in its exact on-disk layout, read back.
+
+The fixtures below write files the way the original tools do (MATLAB v7.3 = HDF5 with a 512-byte
+MAT header and column-major arrays that h5py sees reversed; MAT v5 via scipy; CAVE's nested
+folders of 16-bit PNGs; ENVI raw bytes with numpy), never through our own writers.
+"""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+
+import h5py
+import numpy as np
+import pytest
+import scipy.io
+
+from hsicam.data import (
+    detect_format,
+    read_arad,
+    read_cave,
+    read_cube,
+    read_envi,
+    read_harvard,
+    read_hsicam_h5,
+    read_icvl,
+    read_kaist_exr,
+    read_kaist_mat,
+    read_npy,
+    resample_cube,
+    write_cube_h5,
+    write_envi,
+)
+from hsicam.data.formats import MST_28_NM, exr_channel_wavelength, parse_envi_header, read_window
+from hsicam.errors import InputError
+from hsicam.spectral import Bands, resample_spectra
+
+H, W = 5, 7  # deliberately non-square so that any transposition error shows
+
+
+def cube_hwc(c: int, seed: int = 0, dtype=np.float64) -> np.ndarray:
+    """A (H, W, C) cube as MATLAB holds it, with distinct values everywhere."""
+    rng = np.random.default_rng(seed)
+    return (rng.random((H, W, c)) + 0.01).astype(dtype)
+
+
+def write_mat73(path: Path, variables: dict[str, np.ndarray]) -> None:
+    """Write a MATLAB v7.3 MAT-file: HDF5 with a 512-byte MAT header in the user block.
+
+    MATLAB stores arrays column-major; HDF5 records the dimensions in reverse, so an H×W×C
+    MATLAB array is an HDF5 dataset of shape (C, W, H) whose C-order data is the MATLAB data.
+    """
+    with h5py.File(path, "w", userblock_size=512) as f:
+        for name, value in variables.items():
+            value = np.asarray(value)
+            ds = f.create_dataset(name, data=np.ascontiguousarray(value.T))
+            ds.attrs["MATLAB_class"] = np.bytes_("double" if value.dtype == np.float64 else "single")
+    text = b"MATLAB 7.3 MAT-file, Platform: GLNXA64, Created on: Mon Jan  1 00:00:00 2024 HDF5 schema 1.00 ."
+    header = text.ljust(116, b" ") + b"\x00" * 8 + b"\x00\x02" + b"IM"
+    with open(path, "r+b") as fh:
+        fh.write(header.ljust(512, b"\x00"))
+
+
+def assert_one_line_error(exc: pytest.ExceptionInfo, path: Path, *words: str) -> None:
+    msg = str(exc.value)
+    assert "\n" not in msg
+    assert str(path) in msg or path.name in msg, msg
+    for w in words:
+        assert w.lower() in msg.lower(), msg
+
+
+# ------------------------------------------------------------------------------------------------
+# Round trips
+# ------------------------------------------------------------------------------------------------
+def test_icvl_mat73_roundtrip(tmp_path):
+    data = cube_hwc(31)
+    bands = np.arange(400.0, 701.0, 10.0)[None, :]  # MATLAB row vector 1×31
+    path = tmp_path / "BGU_0403-1419-1.mat"
+    write_mat73(path, {"rad": data, "bands": bands, "rgb": data[..., :3]})
+    with h5py.File(path, "r") as f:  # the layout really is reversed in HDF5
+        assert f["rad"].shape == (31, W, H)
+    assert detect_format(path) == "icvl"
+    cube, b, meta = read_cube(path)
+    assert cube.dtype == np.float32 and cube.shape == (31, H, W)
+    np.testing.assert_allclose(cube, np.transpose(data, (2, 0, 1)), rtol=1e-6)
+    np.testing.assert_allclose(b.centers_nm, bands.ravel())
+    assert meta["format"] == "icvl" and meta["mat_version"] == "7.3"
+    cube2, _, _ = read_icvl(path)
+    np.testing.assert_array_equal(cube, cube2)
+
+
+def test_arad_mat73_roundtrip(tmp_path):
+    data = cube_hwc(31, seed=1).astype(np.float32)
+    bands = np.linspace(400, 700, 31)[None, :]
+    path = tmp_path / "ARAD_1K_0001.mat"
+    write_mat73(path, {"cube": data, "bands": bands, "norm_factor": np.array([[4095.0]])})
+    assert detect_format(path) == "arad"
+    cube, b, meta = read_arad(path)
+    np.testing.assert_array_equal(cube, np.transpose(data, (2, 0, 1)))
+    np.testing.assert_allclose(b.centers_nm, bands.ravel())
+    assert meta["key"] == "cube"
+
+
+def test_harvard_mat5_roundtrip(tmp_path):
+    data = cube_hwc(31, seed=2)
+    path = tmp_path / "img1.mat"
+    scipy.io.savemat(path, {"ref": data, "lbl": np.ones((H, W), dtype=np.uint8)})
+    assert detect_format(path) == "harvard"
+    cube, b, meta = read_cube(path)
+    np.testing.assert_allclose(cube, np.transpose(data, (2, 0, 1)), rtol=1e-6)
+    np.testing.assert_allclose(b.centers_nm, np.arange(420, 721, 10))
+    assert meta["mat_version"] == "5"
+    read_harvard(path)
+
+
+@pytest.mark.parametrize("version", ["5", "7.3"])
+def test_kaist_mst_mat_roundtrip(tmp_path, version):
+    data = cube_hwc(28, seed=3)
+    path = tmp_path / "scene01.mat"
+    if version == "5":
+        scipy.io.savemat(path, {"img": data})
+    else:
+        write_mat73(path, {"img": data})
+    assert detect_format(path) == "kaist-mat"
+    cube, b, _ = read_kaist_mat(path)
+    np.testing.assert_allclose(cube, np.transpose(data, (2, 0, 1)), rtol=1e-6)
+    np.testing.assert_allclose(b.centers_nm, MST_28_NM)
+
+
+def test_kaist_mat_img_expand_31_bands(tmp_path):
+    data = cube_hwc(31, seed=4)
+    path = tmp_path / "cave_scene.mat"
+    scipy.io.savemat(path, {"img_expand": data})
+    cube, b, _ = read_cube(path)
+    np.testing.assert_allclose(cube, np.transpose(data, (2, 0, 1)), rtol=1e-6)
+    np.testing.assert_allclose(b.centers_nm, np.arange(400, 701, 10))
+
+
+def write_cave(root: Path, name: str, data16: np.ndarray) -> Path:
+    """CAVE layout: <name>_ms/<name>_ms/<name>_ms_01.png … _31.png (16-bit) plus the RGB bmp."""
+    import imageio.v3 as iio
+
+    inner = root / f"{name}_ms" / f"{name}_ms"
+    inner.mkdir(parents=True)
+    for i in range(31):
+        iio.imwrite(inner / f"{name}_ms_{i + 1:02d}.png", data16[i])
+    iio.imwrite(inner / f"{name}_RGB.bmp", np.zeros((H, W, 3), np.uint8))
+    return root / f"{name}_ms"
+
+
+def test_cave_folder_roundtrip(tmp_path):
+    rng = np.random.default_rng(5)
+    data16 = rng.integers(0, 65536, size=(31, H, W), dtype=np.uint16)
+    folder = write_cave(tmp_path, "balloons", data16)
+    assert detect_format(folder) == "cave"
+    cube, b, meta = read_cube(folder)
+    np.testing.assert_allclose(cube, data16.astype(np.float64) / 65535.0, rtol=1e-6)
+    np.testing.assert_allclose(b.centers_nm, np.arange(400, 701, 10))
+    assert meta["scene"] == "balloons"
+    cube2, _, _ = read_cave(folder / "balloons_ms")  # the inner folder works too
+    np.testing.assert_array_equal(cube, cube2)
+
+
+@pytest.mark.parametrize("naming", ["w{:d}nm", "S0.{:d},000000nm", "{:d}"])
+def test_kaist_exr_roundtrip(tmp_path, naming):
+    OpenEXR = pytest.importorskip("OpenEXR")
+    if not hasattr(OpenEXR, "File"):
+        pytest.skip("openexr < 3.3")
+    rng = np.random.default_rng(6)
+    waves = list(range(400, 701, 10))
+    planes = {naming.format(w): rng.random((H, W)).astype(np.float32) for w in waves}
+    channels = {n: OpenEXR.Channel(p) for n, p in planes.items()}
+    channels["R"] = OpenEXR.Channel(np.zeros((H, W), np.float32))  # non-spectral channels are ignored
+    header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
+    path = tmp_path / "scene01_reflectance.exr"
+    with OpenEXR.File(header, channels) as f:
+        f.write(str(path))
+    assert detect_format(path) == "kaist-exr"
+    cube, b, _ = read_kaist_exr(path)
+    np.testing.assert_array_equal(cube, np.stack([planes[naming.format(w)] for w in waves]))
+    np.testing.assert_allclose(b.centers_nm, waves)
+
+
+def test_exr_channel_names():
+    assert exr_channel_wavelength("w550nm") == 550.0
+    assert exr_channel_wavelength("S0.412,500000nm") == 412.5
+    assert exr_channel_wavelength("T.700nm") == 700.0
+    assert exr_channel_wavelength("0.55um") == pytest.approx(550.0)
+    assert exr_channel_wavelength("S1.550nm") is None  # polarisation, not a band
+    assert exr_channel_wavelength("R") is None
+    assert exr_channel_wavelength("band_03") is None  # 3 nm is not a wavelength
+
+
+def envi_header(samples, lines, bands, dtype_code, interleave, byte_order=0, offset=0, waves="", extra="") -> str:
+    return (f"ENVI\ndescription = {{test\n  cube}}\nsamples = {samples}\nlines   = {lines}\nbands = {bands}\n"
+            f"header offset = {offset}\nfile type = ENVI Standard\ndata type = {dtype_code}\n"
+            f"interleave = {interleave}\nbyte order = {byte_order}\n{waves}{extra}")
+
+
+@pytest.mark.parametrize("interleave", ["bsq", "bil", "bip"])
+@pytest.mark.parametrize("dtype,code,order", [("<f4", 4, 0), (">u2", 12, 1), ("<i2", 2, 0), (">f8", 5, 1)])
+def test_envi_layouts(tmp_path, interleave, dtype, code, order):
+    c = 6
+    rng = np.random.default_rng(7)
+    chw = (rng.random((c, H, W)) * 1000).astype(np.dtype(dtype).newbyteorder("="))
+    disk = {"bsq": chw, "bil": chw.transpose(1, 0, 2), "bip": chw.transpose(1, 2, 0)}[interleave]
+    offset = 32
+    waves = "wavelength units = Nanometers\nwavelength = {\n 450.0, 460.0, 470.0,\n 480.0, 490.0, 500.0}\n"
+    hdr = tmp_path / "scene.hdr"
+    hdr.write_text(envi_header(W, H, c, code, interleave, order, offset, waves, "fwhm = {5,5,5,5,5,5}\n"))
+    (tmp_path / "scene.img").write_bytes(b"\x00" * offset + np.ascontiguousarray(disk).astype(dtype).tobytes())
+    for p in (hdr, tmp_path / "scene.img"):  # either file of the pair can be given
+        assert detect_format(p) == "envi"
+        cube, b, meta = read_envi(p)
+        np.testing.assert_allclose(cube, chw.astype(np.float32), rtol=1e-6)
+        np.testing.assert_allclose(b.centers_nm, [450, 460, 470, 480, 490, 500])
+        np.testing.assert_allclose(b.fwhm_nm, 5.0)
+        assert meta["interleave"] == interleave
+
+
+def test_envi_micrometres_descending_and_scale(tmp_path):
+    chw = np.arange(3 * H * W, dtype=np.float32).reshape(3, H, W)
+    waves = "wavelength units = Micrometers\nwavelength = {0.70, 0.55, 0.40}\nreflectance scale factor = 100\n"
+    hdr = tmp_path / "x.img.hdr"
+    hdr.write_text(envi_header(W, H, 3, 4, "bsq", 0, 0, waves))
+    chw.tofile(tmp_path / "x.img")
+    cube, b, _ = read_cube(hdr)
+    np.testing.assert_allclose(b.centers_nm, [400, 550, 700])
+    np.testing.assert_allclose(cube, chw[::-1] / 100.0, rtol=1e-6)  # stored ascending
+
+
+@pytest.mark.parametrize("interleave", ["bsq", "bil", "bip"])
+def test_envi_writer_roundtrip(tmp_path, interleave):
+    rng = np.random.default_rng(8)
+    chw = rng.random((4, H, W)).astype(np.float32)
+    bands = Bands.from_centers([410.0, 500.5, 600.0, 700.0], [8.0, 9.0, 10.0, 11.0])
+    hdr, data = write_envi(tmp_path / "out.hdr", chw, bands, interleave=interleave, byte_order="big")
+    assert hdr.is_file() and data.is_file() and data.stat().st_size == chw.nbytes
+    h = parse_envi_header(hdr)
+    assert h["interleave"] == interleave and h["byte order"] == "1"
+    cube, b, _ = read_cube(hdr)
+    np.testing.assert_array_equal(cube, chw)
+    np.testing.assert_allclose(b.centers_nm, bands.centers_nm)
+    np.testing.assert_allclose(b.fwhm_nm, bands.fwhm_nm)
+
+
+def test_npy_roundtrip_with_and_without_bands(tmp_path):
+    data = np.random.default_rng(9).random((31, H, W)).astype(np.float32)
+    path = tmp_path / "cube.npy"
+    np.save(path, data)
+    cube, b, meta = read_cube(path)
+    np.testing.assert_array_equal(cube, data)
+    np.testing.assert_allclose(b.centers_nm, np.arange(400, 701, 10))  # documented default grid
+    assert meta["bands_assumed"] is True
+    given = Bands.paper()
+    _, b2, meta2 = read_npy(path, bands=given)
+    assert b2.matches(given) and meta2["bands_assumed"] is False
+
+
+def test_hsicam_h5_layout_written_by_hand(tmp_path):
+    data = np.random.default_rng(10).random((3, H, W)).astype(np.float32)
+    path = tmp_path / "mine.h5"
+    with h5py.File(path, "w") as f:
+        f["cube"] = data
+        f["bands_nm"] = np.array([450.0, 550.0, 650.0])
+        f["fwhm_nm"] = np.array([20.0, 20.0, 20.0])
+        f.attrs["format"] = "hsicam-cube"
+    assert detect_format(path) == "hsicam"
+    cube, b, _ = read_cube(path)
+    np.testing.assert_array_equal(cube, data)
+    np.testing.assert_allclose(b.centers_nm, [450, 550, 650])
+    np.testing.assert_allclose(b.fwhm_nm, 20.0)
+
+
+def test_hsicam_h5_writer_roundtrip_and_determinism(tmp_path):
+    data = np.random.default_rng(11).random((31, H, W)).astype(np.float32)
+    meta = {"scene": "x", "values": [1, 2.5], "nested": {"a": True}}
+    p1 = write_cube_h5(tmp_path / "a.h5", data, Bands.paper(), meta)
+    p2 = write_cube_h5(tmp_path / "b.h5", data, Bands.paper(), meta)
+    assert p1.read_bytes() == p2.read_bytes()  # no timestamps in the file
+    cube, b, m = read_hsicam_h5(p1)
+    np.testing.assert_array_equal(cube, data)
+    assert b.matches(Bands.paper())
+    assert m["scene"] == "x" and m["values"] == [1, 2.5] and m["nested"] == {"a": True}
+    win, wb = read_window(p1, 1, 2, 3, 4)
+    np.testing.assert_array_equal(win, data[:, 1:4, 2:6])
+    assert not list(tmp_path.glob(".*"))  # no temporary files left
+
+
+# ------------------------------------------------------------------------------------------------
+# Resampling
+# ------------------------------------------------------------------------------------------------
+def test_resampling_is_exact_on_linear_spectra():
+    src = Bands.from_centers([400.0, 405.0, 421.0, 450.0, 500.0, 610.0, 700.0, 730.0])
+    dst = Bands.uniform(420.0, 720.0, 10.0)
+    a, slope = 0.2, 0.003
+    spectrum = a + slope * (src.centers_nm - 400.0)
+    cube = np.broadcast_to(spectrum[:, None, None], (len(src), 2, 3)) * np.array([[1.0, 2.0, 3.0], [4.0, 5.0, 6.0]])
+    out = resample_cube(cube, src, dst)
+    expected = (a + slope * (dst.centers_nm - 400.0))[:, None, None] * np.array([[1.0, 2.0, 3.0], [4.0, 5.0, 6.0]])
+    np.testing.assert_allclose(out, expected, rtol=1e-6)
+    assert out.dtype == np.float32
+
+
+def test_resampling_refuses_to_extrapolate():
+    cube = np.ones((31, 2, 2), np.float32)
+    with pytest.raises(InputError, match=r"scene\.mat.*420-720 nm.*400-700 nm"):
+        resample_cube(cube, Bands.uniform(400, 700, 10), Bands.paper(), source="scene.mat")
+    out = resample_cube(cube, Bands.uniform(400, 700, 10), Bands.uniform(420, 700, 10))
+    assert out.shape == (29, 2, 2)
+
+
+def test_resample_spectra_matches_numpy_interp():
+    src = Bands.uniform(400, 700, 10)
+    dst = Bands.from_centers(np.linspace(401.3, 699.1, 17))
+    rng = np.random.default_rng(0)
+    s = rng.random(len(src))
+    np.testing.assert_allclose(resample_spectra(s, src, dst), np.interp(dst.centers_nm, src.centers_nm, s))
+
+
+# ------------------------------------------------------------------------------------------------
+# Bad input: one clear InputError naming the file and the problem
+# ------------------------------------------------------------------------------------------------
+def test_truncated_hdf5(tmp_path):
+    p = write_cube_h5(tmp_path / "t.h5", np.ones((31, 40, 40), np.float32), Bands.paper())
+    p.write_bytes(p.read_bytes()[: p.stat().st_size // 2])
+    with pytest.raises(InputError) as exc:
+        read_cube(p)
+    assert_one_line_error(exc, p, "truncated")
+
+
+def test_truncated_mat73(tmp_path):
+    p = tmp_path / "icvl.mat"
+    write_mat73(p, {"rad": cube_hwc(31), "bands": np.arange(400.0, 701.0, 10.0)[None]})
+    p.write_bytes(p.read_bytes()[:1500])
+    with pytest.raises(InputError) as exc:
+        read_cube(p)
+    assert_one_line_error(exc, p)
+
+
+def test_corrupt_hdf5(tmp_path):
+    p = tmp_path / "c.h5"
+    p.write_bytes(b"\x89HDF\r\n\x1a\n" + bytes(range(256)) * 8)
+    with pytest.raises(InputError) as exc:
+        read_cube(p)
+    assert_one_line_error(exc, p, "corrupt")
+
+
+def test_truncated_mat5(tmp_path):
+    p = tmp_path / "h.mat"
+    scipy.io.savemat(p, {"ref": cube_hwc(31)})
+    p.write_bytes(p.read_bytes()[:400])
+    with pytest.raises(InputError) as exc:
+        read_cube(p)
+    assert_one_line_error(exc, p)
+
+
+def test_truncated_npy(tmp_path):
+    p = tmp_path / "t.npy"
+    np.save(p, np.ones((31, 8, 8), np.float32))
+    p.write_bytes(p.read_bytes()[:300])
+    with pytest.raises(InputError) as exc:
+        read_cube(p)
+    assert_one_line_error(exc, p)
+
+
+def test_truncated_envi(tmp_path):
+    hdr = tmp_path / "e.hdr"
+    hdr.write_text(envi_header(W, H, 3, 4, "bsq", waves="wavelength = {400, 500, 600}\n"))
+    np.ones((2, H, W), np.float32).tofile(tmp_path / "e.img")
+    with pytest.raises(InputError) as exc:
+        read_cube(hdr)
+    assert_one_line_error(exc, tmp_path / "e.img", "truncated")
+
+
+def test_truncated_exr(tmp_path):
+    OpenEXR = pytest.importorskip("OpenEXR")
+    p = tmp_path / "t.exr"
+    with OpenEXR.File({"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage},
+                      {"w500nm": OpenEXR.Channel(np.ones((64, 64), np.float32))}) as f:
+        f.write(str(p))
+    p.write_bytes(p.read_bytes()[:200])
+    with pytest.raises(InputError) as exc:
+        read_cube(p)
+    assert_one_line_error(exc, p)
+
+
+def test_missing_keys(tmp_path):
+    p = tmp_path / "nobands.h5"
+    with h5py.File(p, "w") as f:
+        f["cube"] = np.ones((3, 4, 4), np.float32)
+    with pytest.raises(InputError) as exc:
+        read_cube(p)
+    assert_one_line_error(exc, p, "bands_nm")
+
+    m = tmp_path / "other.mat"
+    scipy.io.savemat(m, {"something": np.ones((3, 3))})
+    with pytest.raises(InputError) as exc:
+        read_cube(m)
+    assert_one_line_error(exc, m, "something")
+
+    i = tmp_path / "icvl.mat"
+    write_mat73(i, {"cube": cube_hwc(31), "bands": np.arange(400.0, 701.0, 10.0)[None]})
+    with pytest.raises(InputError) as exc:
+        read_icvl(i)  # the explicit reader insists on its key
+    assert_one_line_error(exc, i, "missing key 'rad'")
+
+    hdr = tmp_path / "e.hdr"
+    hdr.write_text("ENVI\nlines = 5\nbands = 3\ndata type = 4\n")
+    (tmp_path / "e.img").write_bytes(b"\x00" * 1000)
+    with pytest.raises(InputError) as exc:
+        read_cube(hdr)
+    assert_one_line_error(exc, hdr, "samples")
+
+
+@pytest.mark.parametrize("bad", [np.nan, np.inf, -np.inf])
+def test_nan_inf(tmp_path, bad):
+    data = np.ones((31, 4, 4), np.float32)
+    data[3, 1, 2] = bad
+    p = tmp_path / "bad.npy"
+    np.save(p, data)
+    with pytest.raises(InputError) as exc:
+        read_cube(p)
+    assert_one_line_error(exc, p, "NaN/Inf")
+
+    m = tmp_path / "bad.mat"
+    scipy.io.savemat(m, {"ref": np.moveaxis(data, 0, -1)})
+    with pytest.raises(InputError) as exc:
+        read_cube(m)
+    assert_one_line_error(exc, m, "NaN/Inf")
+
+
+def test_negative_radiance(tmp_path):
+    data = np.ones((31, 4, 4), np.float32)
+    data[0, 0, 0] = -0.5
+    p = tmp_path / "neg.npy"
+    np.save(p, data)
+    with pytest.raises(InputError) as exc:
+        read_cube(p)
+    assert_one_line_error(exc, p, "negative")
+    cube, _, _ = read_cube(p, allow_negative=True)
+    assert cube.min() == 0.0
+
+
+def test_wrong_ndim(tmp_path):
+    p = tmp_path / "flat.npy"
+    np.save(p, np.ones((4, 4), np.float32))
+    with pytest.raises(InputError) as exc:
+        read_cube(p)
+    assert_one_line_error(exc, p, "3-D")
+    m = tmp_path / "flat.mat"
+    scipy.io.savemat(m, {"ref": np.ones((4, 4))})
+    with pytest.raises(InputError) as exc:
+        read_cube(m)
+    assert_one_line_error(exc, m, "3-D")
+
+
+def test_unknown_formats(tmp_path):
+    t = tmp_path / "notes.txt"
+    t.write_text("hello")
+    with pytest.raises(InputError) as exc:
+        read_cube(t)
+    assert_one_line_error(exc, t, "unknown format")
+    e = tmp_path / "empty.h5"
+    e.write_bytes(b"")
+    with pytest.raises(InputError) as exc:
+        read_cube(e)
+    assert_one_line_error(exc, e, "empty")
+    d = tmp_path / "folder"
+    d.mkdir()
+    with pytest.raises(InputError) as exc:
+        read_cube(d)
+    assert_one_line_error(exc, d, "unknown format")
+    with pytest.raises(InputError) as exc:
+        read_cube(tmp_path / "missing.h5")
+    assert_one_line_error(exc, tmp_path / "missing.h5", "no such file")
+
+
+def test_cave_missing_band(tmp_path):
+    data16 = np.ones((31, H, W), np.uint16)
+    folder = write_cave(tmp_path, "flowers", data16)
+    next(folder.rglob("flowers_ms_07.png")).unlink()
+    with pytest.raises(InputError) as exc:
+        read_cube(folder)
+    assert_one_line_error(exc, folder, "07")
+    assert re.search(r"missing band image", str(exc.value))
+
+
+def test_band_count_mismatch(tmp_path):
+    p = tmp_path / "arad.mat"
+    write_mat73(p, {"cube": cube_hwc(31), "bands": np.arange(400.0, 701.0, 20.0)[None]})
+    with pytest.raises(InputError) as exc:
+        read_cube(p)
+    assert_one_line_error(exc, p, "31 bands")
