@@ -1,0 +1,177 @@
+"""The embedded synthetic dataset: determinism, values, bands, spectra checked against colour-science."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from hsicam.color import spectra_to_srgb
+from hsicam.data import read_cube
+from hsicam.data import synthetic as syn
+from hsicam.errors import InputError
+from hsicam.spectral import Bands
+
+colour = pytest.importorskip("colour")
+pytestmark = pytest.mark.filterwarnings("ignore:Aligning")
+
+PAPER = Bands.paper()
+
+
+@pytest.fixture(scope="module")
+def lib():
+    return syn.spectral_library(PAPER)
+
+
+@pytest.fixture(scope="module")
+def dataset(tmp_path_factory):
+    out = tmp_path_factory.mktemp("syn") / "a"
+    manifest = syn.generate_dataset(out, n=8, size=48, seed=3, progress=False)
+    return out, manifest
+
+
+def test_same_seed_identical_bytes(dataset, tmp_path):
+    out, _ = dataset
+    again = tmp_path / "b"
+    syn.generate_dataset(again, n=8, size=48, seed=3, progress=False)
+    names = sorted(p.name for p in out.iterdir())
+    assert names == sorted(p.name for p in again.iterdir())
+    assert names == ["manifest.json"] + [f"scene_{i:04d}.h5" for i in range(8)]
+    for name in names:
+        assert (out / name).read_bytes() == (again / name).read_bytes(), name
+
+
+def test_every_kind_at_the_smallest_size(lib):
+    for i in range(len(syn.SCHEDULE)):
+        cube, info = syn.generate_scene(i, 0, 16, lib)
+        assert cube.shape == (31, 16, 16) and cube.max() == 1.0 and cube.min() >= 0.0
+
+
+def test_other_seed_differs_and_scenes_do_not_depend_on_n(lib):
+    a, _ = syn.generate_scene(1, 3, 48, lib)
+    b, _ = syn.generate_scene(1, 4, 48, lib)
+    assert not np.array_equal(a, b)
+    c, _ = syn.generate_scene(1, 3, 48, lib)
+    np.testing.assert_array_equal(a, c)
+
+
+def test_values_bands_and_shapes(dataset):
+    out, manifest = dataset
+    kinds = set()
+    for s in manifest["scenes"]:
+        cube, bands, meta = read_cube(out / s["file"])
+        assert cube.shape == (31, 48, 48) and cube.dtype == np.float32
+        assert bands.matches(PAPER) and len(bands) == 31
+        assert np.isfinite(cube).all() and cube.min() >= 0.0 and cube.max() == 1.0
+        assert cube.std() > 0.01  # not flat
+        assert meta["kind"] == s["kind"] and meta["seed"] == 3
+        kinds.add(s["kind"])
+        assert hashlib.sha256((out / s["file"]).read_bytes()).hexdigest() == s["sha256"]
+    assert kinds == {"photo", "dead_leaves", "smooth", "texture", "edges"}
+
+
+def test_manifest(dataset):
+    out, manifest = dataset
+    on_disk = json.loads((out / "manifest.json").read_text())
+    assert on_disk == json.loads(json.dumps(manifest))
+    assert on_disk["parameters"] == syn.parameters(8, 48, 3, PAPER)
+    assert on_disk["sources"]["reflectances"]["rawtoaces training data v1 (190 patches)"] == 190
+    assert {"daylight", "fluorescent", "led"} <= set(on_disk["sources"]["illuminants"])
+    assert len(on_disk["statistics"]["mean_spectrum"]) == 31
+    assert on_disk["statistics"]["max"] == 1.0 and on_disk["statistics"]["min"] >= 0.0
+
+
+def test_cache_generates_once(tmp_path, monkeypatch):
+    first = syn.synthetic_dataset(2, 32, 0, PAPER, cache_dir=tmp_path, progress=False)
+    assert (first / "manifest.json").is_file() and first.is_relative_to(tmp_path)
+
+    def boom(*a, **k):
+        raise AssertionError("regenerated")
+
+    monkeypatch.setattr(syn, "generate_dataset", boom)
+    assert syn.synthetic_dataset(2, 32, 0, PAPER, cache_dir=tmp_path) == first
+    monkeypatch.setenv("HSICAM_CACHE", str(tmp_path))
+    assert syn.synthetic_dataset(2, 32, 0, PAPER) == first
+    assert syn.synthetic_dataset(2, 32, 0, PAPER, cache_dir=None) == first
+    assert syn.cache_key(2, 32, 0, PAPER) != syn.cache_key(2, 32, 1, PAPER)
+
+
+def test_refuses_foreign_or_other_output(dataset, tmp_path):
+    out, _ = dataset
+    with pytest.raises(InputError, match="other parameters"):
+        syn.generate_dataset(out, n=2, size=48, seed=3, progress=False)
+    (tmp_path / "mine.h5").write_bytes(b"x")
+    with pytest.raises(InputError, match="other cube files"):
+        syn.generate_dataset(tmp_path, n=1, size=32, progress=False)
+    with pytest.raises(InputError, match="outside the generator"):
+        syn.generate_dataset(tmp_path / "z", n=1, size=32, bands=Bands.uniform(400, 1000, 20), progress=False)
+
+
+def test_otsu_vectorised_matches_colour_science(lib):
+    rng = np.random.default_rng(0)
+    xyz = colour.sRGB_to_XYZ(rng.random((60, 3)))
+    ours = lib.otsu.reflectance(xyz)
+    ref = np.stack([colour.XYZ_to_sd(x, method="Otsu 2018").values for x in xyz])
+    np.testing.assert_allclose(ours, ref, atol=1e-9)
+
+
+def test_rgb_to_spectrum_to_rgb_roundtrip(lib):
+    rng = np.random.default_rng(1)
+    rgb = rng.uniform(0.15, 0.85, (200, 3))
+    spectra = lib.otsu.reflectance(colour.sRGB_to_XYZ(rgb)) @ lib.otsu.to_bands.T
+    back = spectra_to_srgb(spectra, PAPER)
+    assert np.abs(back - rgb).mean() < 0.02 and np.abs(back - rgb).max() < 0.08
+
+
+def test_colorchecker_render_agrees_with_colour_science(lib):
+    cmfs = colour.MSDS_CMFS["CIE 1931 2 Degree Standard Observer"]
+    d65 = colour.SDS_ILLUMINANTS["D65"]
+    checker = colour.SDS_COLOURCHECKERS["ColorChecker N Ohta"]
+    for patch, sd in checker.items():
+        k = lib.reflectance_names.index(f"ColorChecker N Ohta:{patch}")
+        ours = spectra_to_srgb(lib.reflectances[k].astype(np.float64), PAPER)
+        ref = np.clip(colour.XYZ_to_sRGB(colour.sd_to_XYZ(sd, cmfs, d65) / 100.0), 0, 1)
+        np.testing.assert_allclose(ours, ref, atol=0.02, err_msg=patch)
+
+
+def test_band_responses_have_the_requested_fwhm():
+    bands = Bands.from_centers([450.0, 550.0, 650.0], [10.0, 20.0, 6.0])
+    fine = np.arange(380.0, 721.0, 0.25)
+    g = syn.band_matrix(bands, fine)
+    np.testing.assert_allclose(g.sum(axis=1), 1.0)
+    for row, c, f in zip(g, bands.centers_nm, bands.fwhm_nm):
+        above = fine[row >= row.max() / 2]
+        assert above.max() - above.min() == pytest.approx(f, abs=0.5)
+        assert fine[row.argmax()] == pytest.approx(c)
+
+
+def test_light_sources_sharp_where_fluorescent(lib):
+    def sharpness(name: str) -> float:
+        """Largest ratio of a band to the mean of its neighbours 20 nm away."""
+        e = lib.illuminants[lib.illuminant_names.index(name)].astype(np.float64)
+        return float(np.max(e[2:-2] / (0.5 * (e[:-4] + e[4:]))))
+
+    assert sharpness("FL11") > 5.0  # triphosphor lamp: narrow emission lines
+    assert sharpness("FL2") > 1.8  # mercury line at 436 nm on a broad phosphor
+    assert sharpness("D65") < 1.2 and sharpness("A") < 1.05  # daylight and tungsten are smooth
+    assert lib.illuminants.min() >= 0 and np.allclose(lib.illuminants.mean(axis=1), 1.0, atol=1e-5)
+    refl = lib.reflectances  # measured reflectances are smooth: small second differences
+    assert np.median(np.abs(np.diff(refl, 2, axis=1)).max(axis=1)) < 0.05
+
+
+def test_training_on_cached_data_does_not_import_colour(dataset):
+    out, _ = dataset
+    code = (
+        "import sys\n"
+        "from hsicam.data import PatchDataset, SceneDataset, list_scenes\n"
+        "from hsicam.color import cube_to_srgb\n"
+        "from hsicam.spectral import Bands\n"
+        f"ds = PatchDataset(SceneDataset(list_scenes({str(out)!r}), Bands.paper()), 16, 8)\n"
+        "cube_to_srgb(ds[0], Bands.paper())\n"
+        "assert 'colour' not in sys.modules, 'colour-science was imported'\n"
+    )
+    subprocess.run([sys.executable, "-c", code], check=True, timeout=120)
