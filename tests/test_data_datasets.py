@@ -184,7 +184,9 @@ def test_scene_smaller_than_patch_plus_margin(folder):
 def test_loader_with_two_workers(folder):
     root, _ = folder
     ds = PatchDataset(SceneDataset(list_scenes(root), PAPER), 8, 2, patches_per_epoch=16, seed=0)
+    first = ds[0].clone()  # the parent opens HDF5 handles before the workers fork
     batches = list(make_loader(ds, batch_size=8, num_workers=2, shuffle=False))
+    np.testing.assert_array_equal(batches[0][0].numpy(), first.numpy())
     assert len(batches) == 2 and batches[0].shape == (8, 31, 10, 10)
     np.testing.assert_array_equal(batches[1][3].numpy(), ds[11].numpy())  # worker-independent
 

@@ -19,7 +19,7 @@ import numpy as np
 from hsicam.errors import InputError
 from hsicam.spectral import Bands, resample_spectra
 
-PathLike = Union[str, "os.PathLike[str]"]
+PathLike = Union[str, os.PathLike]
 
 
 def check_cube(cube: np.ndarray, source: PathLike | str = "cube", *, allow_negative: bool = False) -> np.ndarray:

@@ -26,7 +26,7 @@ import torch
 from torch.utils.data import Dataset
 
 from hsicam.data.cube import normalize_per_cube_max, resample_cube
-from hsicam.data.formats import _CAVE_RE, read_cube, read_window
+from hsicam.data.formats import _CAVE_RE, read_cube
 from hsicam.errors import InputError
 from hsicam.spectral import Bands
 
@@ -155,6 +155,10 @@ class SceneDataset(Dataset):
         self._infos: list[SceneInfo | None] = [None] * len(self.paths)
         self._cache: OrderedDict[int, np.ndarray] = OrderedDict()
         self._preloaded: list[np.ndarray] | None = None
+        self._windowable = [False] * len(self.paths)  # hsicam HDF5 on our bands: read windows directly
+        self._handles: dict[int, Any] = {}  # open HDF5 files of this process
+        self._handles_pid = os.getpid()
+        self._orphans: list[Any] = []
         if preload:
             self._preloaded = [self._load(i) for i in range(len(self.paths))]
 
@@ -183,6 +187,7 @@ class SceneDataset(Dataset):
         info = self._infos[i]
         if info is None:
             info = probe_hsicam(self.paths[i], self.bands)
+            self._windowable[i] = info is not None
             if info is None:
                 self.cube(i)  # loads the scene and records its info
                 info = self._infos[i]
@@ -194,10 +199,29 @@ class SceneDataset(Dataset):
         """Normalised window [y:y+h, x:x+w] (C, h, w) of scene ``i``, read without loading it all when possible."""
         if self._preloaded is None and i not in self._cache:
             info = self.info(i)
-            got = read_window(info.path, y, x, h, w)
-            if got is not None and got[1].matches(self.bands):
-                return got[0] / np.float32(info.peak)
+            if self._windowable[i]:
+                ds = self._h5(i)["cube"]
+                if y < 0 or x < 0 or y + h > ds.shape[1] or x + w > ds.shape[2]:
+                    raise InputError(f"{info.path}: window {h}x{w} at ({y}, {x}) is outside the cube")
+                return np.asarray(ds[:, y:y + h, x:x + w], dtype=np.float32) / np.float32(info.peak)
         return self.cube(i)[:, y:y + h, x:x + w]
+
+    def _h5(self, i: int) -> Any:
+        """This process's open handle on scene ``i`` (reopened after a fork, never shared)."""
+        import h5py
+
+        if self._handles_pid != os.getpid():
+            # handles inherited through fork belong to the parent: keep them referenced, never use them
+            self._orphans.append(self._handles)
+            self._handles, self._handles_pid = {}, os.getpid()
+        f = self._handles.get(i)
+        if f is None:
+            try:
+                f = h5py.File(self.paths[i], "r")
+            except OSError as exc:
+                raise InputError(f"{self.paths[i]}: cannot open HDF5 file: {exc}") from None
+            self._handles[i] = f
+        return f
 
     def _load(self, i: int) -> np.ndarray:
         path = self.paths[i]
@@ -210,6 +234,7 @@ class SceneDataset(Dataset):
     def __getstate__(self) -> dict[str, Any]:
         state = self.__dict__.copy()
         state["_cache"] = OrderedDict()  # do not ship cached cubes to spawned workers
+        state["_handles"], state["_orphans"], state["_handles_pid"] = {}, [], -1  # file handles cannot travel
         return state
 
 
