@@ -179,6 +179,63 @@ class CameraConfig:
 
 
 @dataclass
+class ModelConfig:
+    """Reconstruction network (paper: tentative 1×1 conv + RDN). See ``hsicam.models.rdn``."""
+
+    name: Literal["rdn"] = "rdn"
+    blocks: int = 8  # D, residual dense blocks
+    features: int = 64  # G0
+    growth: int = 32  # G
+    layers_per_block: int = 4  # C (paper: 4)
+
+    def __post_init__(self) -> None:
+        for k in ("blocks", "features", "growth", "layers_per_block"):
+            if getattr(self, k) < 1:
+                raise ConfigError(f"model.{k} must be >= 1, got {getattr(self, k)}")
+
+
+@dataclass
+class TrainConfig:
+    """Joint training of optics and network (paper: L1, Adam 1e-4, 100 epochs)."""
+
+    epochs: int = 100
+    batch_size: int = 8  # global batch (split over DDP processes)
+    lr: float = 1e-4  # network learning rate (Adam)
+    doe_lr_nm: float = 10.0  # Adam step size for the DOE heights, nm per step
+    cfa_lr: float = 1e-3  # Adam learning rate for the CFA weights
+    lr_schedule: Literal["constant", "cosine", "step"] = "constant"
+    lr_step_epochs: int = 30  # "step": multiply by lr_gamma every lr_step_epochs
+    lr_gamma: float = 0.5
+    warmup_steps: int = 0
+    grad_clip: Optional[float] = 1.0  # max global gradient norm; null: no clipping
+    sigma_height_nm: list[float] = field(default_factory=lambda: [0.0, 0.0])  # [lo, hi]: drawn per step
+    sensor_sigma: list[float] = field(default_factory=lambda: [0.0, 0.0])  # [lo, hi] Gaussian σ_s per step
+    eval_every_epochs: int = 1
+    checkpoint_every_steps: int = 200
+    log_every_steps: int = 20
+    seed: int = 0
+    device: str = "auto"  # auto: cuda when available, else cpu
+    bf16: bool = False  # autocast the network in bfloat16 (CUDA)
+    channels_last: bool = False
+    compile: bool = False  # torch.compile the network
+    deterministic: bool = False
+    tensorboard: bool = False
+
+    def __post_init__(self) -> None:
+        for k in ("epochs", "batch_size", "eval_every_epochs", "checkpoint_every_steps", "log_every_steps", "lr_step_epochs"):
+            if getattr(self, k) < 1:
+                raise ConfigError(f"train.{k} must be >= 1, got {getattr(self, k)}")
+        _positive("train", lr=self.lr, doe_lr_nm=self.doe_lr_nm, cfa_lr=self.cfa_lr, lr_gamma=self.lr_gamma,
+                  grad_clip=self.grad_clip)
+        if self.warmup_steps < 0:
+            raise ConfigError(f"train.warmup_steps must be >= 0, got {self.warmup_steps}")
+        for k in ("sigma_height_nm", "sensor_sigma"):
+            v = getattr(self, k)
+            if len(v) != 2 or not (0 <= v[0] <= v[1]) or not all(math.isfinite(x) for x in v):
+                raise ConfigError(f"train.{k} must be [lo, hi] with 0 <= lo <= hi, got {v}")
+
+
+@dataclass
 class DataConfig:
     """Training/evaluation data (see ``hsicam.data`` and docs/data.md).
 
@@ -225,6 +282,8 @@ class Config:
     bands: BandsConfig = field(default_factory=BandsConfig)
     camera: CameraConfig = field(default_factory=CameraConfig)
     data: DataConfig = field(default_factory=DataConfig)
+    model: ModelConfig = field(default_factory=ModelConfig)
+    train: TrainConfig = field(default_factory=TrainConfig)
 
 
 # --------------------------------------------------------------------------------------------
@@ -234,7 +293,7 @@ def load_config(path: str | Path | None = None, overrides: Sequence[str] = (), c
     """Load ``path`` (YAML) over the defaults, apply dotted ``key=value`` overrides, validate."""
     data: dict[str, Any] = {}
     if path is not None:
-        path = Path(path)
+        path = resolve_preset(path)
         try:
             text = path.read_text(encoding="utf-8")
         except OSError as exc:
@@ -251,6 +310,17 @@ def load_config(path: str | Path | None = None, overrides: Sequence[str] = (), c
     for item in overrides:
         apply_override(data, item)
     return from_dict(cls, data)
+
+
+PRESETS_DIR = Path(__file__).resolve().parent / "configs"
+
+
+def resolve_preset(path: str | Path) -> Path:
+    """A config path, or the name of a shipped preset ("paper", "quick", "tiny")."""
+    p = Path(path)
+    if not p.exists() and p.suffix == "" and (PRESETS_DIR / f"{p.name}.yaml").is_file():
+        return PRESETS_DIR / f"{p.name}.yaml"
+    return p
 
 
 def apply_override(data: dict[str, Any], item: str) -> None:

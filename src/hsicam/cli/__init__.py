@@ -18,6 +18,7 @@ from hsicam.errors import HsicamError
 COMMAND_MODULES = (
     "hsicam.cli.camera",
     "hsicam.cli.data",
+    "hsicam.cli.train",
     "hsicam.cli.demo",
 )
 

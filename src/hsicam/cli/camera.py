@@ -32,6 +32,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--boundary", choices=("same", "valid"), default="same",
                    help="same: sensor as large as the scene (padded); valid: sensor smaller by the kernel margin")
     p.add_argument("--seed", type=int, default=0, help="seed for DOE height noise and sensor noise")
+    p.add_argument("--run", metavar="RUN", help="use the trained optics of this run (its config.yaml; --set still applies)")
     p.set_defaults(func=cmd_simulate)
 
 
@@ -110,7 +111,15 @@ def load_scene(path: str | Path, bands: Bands) -> np.ndarray:
 def cmd_simulate(args: argparse.Namespace) -> int:
     from hsicam.report.camera import plot_cfa, plot_doe_heights
 
-    camera, cfg = build_camera(args, (f"camera.boundary={args.boundary}",))
+    if args.run:
+        from hsicam.engine.checkpoint import load_run
+
+        if args.config:
+            raise InputError("--run uses the run's config.yaml; drop --config")
+        cfg, system = load_run(args.run, overrides=(*args.overrides, f"camera.boundary={args.boundary}"))
+        camera = system.camera
+    else:
+        camera, cfg = build_camera(args, (f"camera.boundary={args.boundary}",))
     out = Path(args.out)
     scene = load_scene(args.scene, camera.bands)
     gen = torch.Generator().manual_seed(args.seed)

@@ -1,0 +1,128 @@
+"""Image-quality metrics for hyperspectral cubes, with named conventions (DESIGN.md §5).
+
+All functions take (B, C, H, W) tensors (or (C, H, W), treated as B = 1) with values on a
+[0, 1] scale (peak 1 after per-cube max normalisation) and return one value per cube, shape (B,).
+
+- ``psnr_per_band``: PSNR of each band with peak 1, then averaged over bands ("psnr_band_mean").
+- ``psnr_cube``: PSNR over the whole cube with peak 1 ("psnr_cube").
+- ``psnr_mst``: MST convention: both cubes rounded to 8 bits, peak 255, whole cube.
+- ``ssim``: per band, Gaussian window 11×11 with σ = 1.5, K = (0.01, 0.03), data range 1,
+  averaged over bands and pixels of the 'valid' window positions (scikit-image's
+  ``structural_similarity(gaussian_weights=True, sigma=1.5, use_sample_covariance=False,
+  data_range=1)`` crops the same border).
+- ``sam_degrees``: mean spectral angle over pixels, in degrees.
+- ``ergas``, ``rmse``.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+import torch.nn.functional as F
+
+CONVENTIONS = {
+    "psnr": "per band, peak 1, mean over bands",
+    "psnr_cube": "whole cube, peak 1",
+    "psnr_mst": "8-bit rounding, peak 255, whole cube (MST convention)",
+    "ssim": "per band, Gaussian 11x11 sigma 1.5, K=(0.01,0.03), data range 1, mean",
+    "sam": "mean spectral angle over pixels, degrees",
+    "ergas": "100 * sqrt(mean_b (RMSE_b / mean_b)^2), resolution ratio 1",
+    "rmse": "whole cube",
+}
+
+
+def _batched(x: torch.Tensor, y: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    if x.shape != y.shape:
+        raise ValueError(f"shapes differ: {tuple(x.shape)} vs {tuple(y.shape)}")
+    if x.dim() == 3:
+        x, y = x[None], y[None]
+    if x.dim() != 4:
+        raise ValueError(f"expected (B, C, H, W) or (C, H, W), got {tuple(x.shape)}")
+    return x.to(torch.float64), y.to(torch.float64)
+
+
+def _psnr_from_mse(mse: torch.Tensor, peak: float) -> torch.Tensor:
+    return 10.0 * torch.log10(peak**2 / mse.clamp_min(1e-30))
+
+
+def psnr_per_band(x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
+    """Mean over bands of each band's PSNR (peak 1), dB, (B,)."""
+    x, y = _batched(x, y)
+    return _psnr_from_mse((x - y).square().mean(dim=(-2, -1)), 1.0).mean(dim=1)
+
+
+def psnr_cube(x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
+    """PSNR of the whole cube (peak 1), dB, (B,)."""
+    x, y = _batched(x, y)
+    return _psnr_from_mse((x - y).square().mean(dim=(1, 2, 3)), 1.0)
+
+
+def psnr_mst(x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
+    """MST convention: round both to 8 bits (after clipping to [0, 1]), PSNR with peak 255, (B,)."""
+    x, y = _batched(x, y)
+    xq = torch.round(x.clamp(0, 1) * 255.0)
+    yq = torch.round(y.clamp(0, 1) * 255.0)
+    return _psnr_from_mse((xq - yq).square().mean(dim=(1, 2, 3)), 255.0)
+
+
+def rmse(x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
+    """Root-mean-square error over the whole cube, (B,)."""
+    x, y = _batched(x, y)
+    return (x - y).square().mean(dim=(1, 2, 3)).sqrt()
+
+
+def _gaussian_window(size: int, sigma: float, dtype: torch.dtype, device: torch.device) -> torch.Tensor:
+    r = torch.arange(size, dtype=dtype, device=device) - (size - 1) / 2
+    g = torch.exp(-(r**2) / (2 * sigma**2))
+    g = g / g.sum()
+    return g[:, None] * g[None, :]
+
+
+def ssim(x: torch.Tensor, y: torch.Tensor, window: int = 11, sigma: float = 1.5, k1: float = 0.01,
+         k2: float = 0.03, data_range: float = 1.0) -> torch.Tensor:
+    """Mean SSIM over bands (each band a grey image), Gaussian window, (B,). ``x`` is the estimate."""
+    x, y = _batched(x, y)
+    b, c, h, w = x.shape
+    if min(h, w) < window:
+        raise ValueError(f"SSIM needs images of at least {window}×{window} px, got {h}×{w}")
+    kern = _gaussian_window(window, sigma, x.dtype, x.device).expand(c, 1, window, window)
+
+    def filt(t: torch.Tensor) -> torch.Tensor:
+        return F.conv2d(t, kern, groups=c)
+
+    mx, my = filt(x), filt(y)
+    vx = filt(x * x) - mx * mx
+    vy = filt(y * y) - my * my
+    cxy = filt(x * y) - mx * my
+    c1, c2 = (k1 * data_range) ** 2, (k2 * data_range) ** 2
+    s = ((2 * mx * my + c1) * (2 * cxy + c2)) / ((mx * mx + my * my + c1) * (vx + vy + c2))
+    return s.mean(dim=(1, 2, 3))
+
+
+def sam_degrees(x: torch.Tensor, y: torch.Tensor, eps: float = 1e-12) -> torch.Tensor:
+    """Mean spectral angle (degrees) between the spectra of corresponding pixels, (B,)."""
+    x, y = _batched(x, y)
+    dot = (x * y).sum(dim=1)
+    norm = x.norm(dim=1) * y.norm(dim=1)
+    cos = (dot / norm.clamp_min(eps)).clamp(-1.0, 1.0)
+    return torch.rad2deg(torch.acos(cos)).mean(dim=(1, 2))
+
+
+def ergas(x: torch.Tensor, y: torch.Tensor, eps: float = 1e-12) -> torch.Tensor:
+    """ERGAS (resolution ratio 1): 100·sqrt(mean over bands of (RMSE_b / mean_b(y))²), (B,)."""
+    x, y = _batched(x, y)
+    rmse_b = (x - y).square().mean(dim=(-2, -1)).sqrt()
+    mean_b = y.mean(dim=(-2, -1)).abs().clamp_min(eps)
+    return 100.0 * (rmse_b / mean_b).square().mean(dim=1).sqrt()
+
+
+def all_metrics(estimate: torch.Tensor, truth: torch.Tensor) -> dict[str, list[float]]:
+    """Every metric above, one list entry per cube."""
+    fns = {"psnr": psnr_per_band, "psnr_cube": psnr_cube, "psnr_mst": psnr_mst, "ssim": ssim,
+           "sam": sam_degrees, "ergas": ergas, "rmse": rmse}
+    out = {}
+    for name, fn in fns.items():
+        vals = fn(estimate, truth).tolist()
+        out[name] = [v if math.isfinite(v) else float("inf") for v in vals]
+    return out

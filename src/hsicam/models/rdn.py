@@ -1,0 +1,64 @@
+"""The paper's reconstruction network: tentative 1×1 reconstruction + residual dense network.
+
+    t = Conv1×1(g)                              sensor (B, 1, H, W) → tentative cube (B, C, H, W)
+    F₋₁ = Conv3×3(t), F₀ = Conv3×3(F₋₁)          shallow features (G0 channels)
+    F_d = RDB_d(F_{d−1}), d = 1..D               residual dense blocks
+    F_GF = Conv3×3(Conv1×1([F_1, …, F_D])) + F₋₁  global fusion, global residual
+    f̂ = Conv3×3(F_GF) + t                        output, plus the tentative reconstruction
+
+Each RDB has ``layers`` (paper: C = 4) densely connected Conv3×3+ReLU layers of ``growth`` (G)
+channels, a 1×1 local fusion back to G0 channels and a local residual. The paper gives no D, G0,
+G; our defaults (D = 8, G0 = 64, G = 32) follow Zhang et al.'s RDN at a size that trains at paper
+scale on one GPU; the CPU preset uses D = 3, G0 = 32, G = 16. Fully convolutional: any band count,
+any image size.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import nn
+
+
+class ResidualDenseBlock(nn.Module):
+    """``layers`` densely connected 3×3 conv + ReLU layers, 1×1 local fusion, local residual."""
+
+    def __init__(self, features: int, growth: int, layers: int = 4) -> None:
+        super().__init__()
+        self.convs = nn.ModuleList(
+            nn.Sequential(nn.Conv2d(features + i * growth, growth, 3, padding=1), nn.ReLU(inplace=True))
+            for i in range(layers)
+        )
+        self.fusion = nn.Conv2d(features + layers * growth, features, 1)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        feats = [x]
+        for conv in self.convs:
+            feats.append(conv(torch.cat(feats, dim=1)))
+        return x + self.fusion(torch.cat(feats, dim=1))
+
+
+class RDN(nn.Module):
+    """Sensor image (B, in_channels, H, W) → cube (B, bands, H, W)."""
+
+    def __init__(self, bands: int, in_channels: int = 1, blocks: int = 8, features: int = 64, growth: int = 32,
+                 layers_per_block: int = 4) -> None:
+        super().__init__()
+        if min(bands, in_channels, blocks, features, growth, layers_per_block) < 1:
+            raise ValueError("RDN sizes must all be >= 1")
+        self.tentative = nn.Conv2d(in_channels, bands, 1)
+        self.sfe1 = nn.Conv2d(bands, features, 3, padding=1)
+        self.sfe2 = nn.Conv2d(features, features, 3, padding=1)
+        self.blocks = nn.ModuleList(ResidualDenseBlock(features, growth, layers_per_block) for _ in range(blocks))
+        self.global_fusion = nn.Sequential(nn.Conv2d(blocks * features, features, 1), nn.Conv2d(features, features, 3, padding=1))
+        self.output = nn.Conv2d(features, bands, 3, padding=1)
+
+    def forward(self, g: torch.Tensor) -> torch.Tensor:
+        t = self.tentative(g)
+        f_1 = self.sfe1(t)
+        f = self.sfe2(f_1)
+        outs = []
+        for block in self.blocks:
+            f = block(f)
+            outs.append(f)
+        f = self.global_fusion(torch.cat(outs, dim=1)) + f_1
+        return self.output(f) + t

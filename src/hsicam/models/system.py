@@ -1,0 +1,52 @@
+"""Camera + reconstruction network as one trainable module (the optics are part of the model)."""
+
+from __future__ import annotations
+
+import torch
+from torch import nn
+
+from hsicam.cameras import DOECamera
+from hsicam.models.rdn import RDN
+
+
+class CameraSystem(nn.Module):
+    """Scene → simulated sensor image → reconstructed cube.
+
+    ``forward(scene)`` returns ``(reconstruction, sensor)``; in ``valid`` mode both are smaller than
+    the scene by ``camera.margin`` and aligned with :meth:`target` (the scene's centre crop).
+    """
+
+    def __init__(self, camera: DOECamera, net: nn.Module) -> None:
+        super().__init__()
+        self.camera, self.net = camera, net
+        self.autocast_dtype: torch.dtype | None = None  # e.g. torch.bfloat16 for the network on CUDA
+
+    @classmethod
+    def from_config(cls, cfg) -> "CameraSystem":  # cfg: hsicam.config.Config
+        camera = DOECamera.from_config(cfg)
+        m = cfg.model
+        net = RDN(len(camera.bands), 1, m.blocks, m.features, m.growth, m.layers_per_block)
+        return cls(camera, net)
+
+    @property
+    def bands(self):
+        return self.camera.bands
+
+    def target(self, scene: torch.Tensor) -> torch.Tensor:
+        """Ground truth aligned with the sensor: the centre crop in ``valid`` mode, else the scene."""
+        if self.camera.boundary != "valid":
+            return scene
+        r = self.camera.margin // 2
+        h, w = scene.shape[-2] - 2 * r, scene.shape[-1] - 2 * r
+        return scene[..., r : r + h, r : r + w]
+
+    def reconstruct(self, sensor: torch.Tensor) -> torch.Tensor:
+        """Network only: sensor image (B, 1, H, W) → cube (B, C, H, W) (float32)."""
+        if self.autocast_dtype is not None and sensor.device.type != "cpu":
+            with torch.autocast(sensor.device.type, dtype=self.autocast_dtype):
+                return self.net(sensor).float()
+        return self.net(sensor)
+
+    def forward(self, scene: torch.Tensor, generator: torch.Generator | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+        sensor = self.camera(scene, generator)
+        return self.reconstruct(sensor), sensor

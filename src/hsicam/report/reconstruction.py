@@ -1,0 +1,75 @@
+"""Pictures of reconstructions: RGB renders with error maps, spectra at pixels, training curves."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+import torch  # noqa: E402
+
+from hsicam.io import save_figure  # noqa: E402
+from hsicam.spectral import Bands  # noqa: E402
+
+
+def cube_rgb(cube: np.ndarray, bands: Bands) -> np.ndarray:
+    """sRGB render (H, W, 3) of a (C, H, W) reflectance-like cube (CIE 1931 2°, D65)."""
+    from hsicam.color import cube_to_srgb
+
+    return np.moveaxis(cube_to_srgb(torch.from_numpy(np.clip(cube, 0, None)), bands).numpy(), 0, -1)
+
+
+def plot_reconstructions(results, bands: Bands, path: str | Path, max_rows: int = 6) -> None:
+    """Rows of [ground truth RGB | reconstruction RGB | mean abs error map | spectra at 3 pixels]."""
+    results = list(results)[:max_rows]
+    fig, axes = plt.subplots(len(results), 4, figsize=(13, 3.1 * len(results)), squeeze=False)
+    for row, r in zip(axes, results):
+        gt, est = r.truth, r.estimate
+        row[0].imshow(np.clip(cube_rgb(gt, bands), 0, 1))
+        row[0].set_title(f"{r.name}: ground truth", fontsize=9)
+        row[1].imshow(np.clip(cube_rgb(est, bands), 0, 1))
+        row[1].set_title(f"reconstruction  {r.metrics['psnr']:.2f} dB / SSIM {r.metrics['ssim']:.3f}", fontsize=9)
+        err = np.abs(est - gt).mean(axis=0)
+        im = row[2].imshow(err, cmap="magma", vmin=0, vmax=max(float(np.percentile(err, 99)), 1e-6))
+        row[2].set_title("mean |error| over bands", fontsize=9)
+        plt.colorbar(im, ax=row[2], fraction=0.046)
+        h, w = gt.shape[1:]
+        pts = [(h // 4, w // 4), (h // 2, w // 2), (3 * h // 4, 3 * w // 4)]
+        for (y, x), col in zip(pts, ("tab:red", "tab:green", "tab:blue")):
+            row[0].plot(x, y, "o", mfc="none", mec=col, ms=8)
+            row[3].plot(bands.centers_nm, gt[:, y, x], color=col, lw=1.5)
+            row[3].plot(bands.centers_nm, est[:, y, x], color=col, lw=1.2, ls="--")
+        row[3].set_title("spectra: truth (solid), reconstruction (dashed)", fontsize=9)
+        row[3].set_xlabel("wavelength (nm)")
+        for ax in row[:3]:
+            ax.set_xticks([])
+            ax.set_yticks([])
+    save_figure(fig, path)
+
+
+def plot_training_curves(metrics_jsonl: str | Path, path: str | Path) -> None:
+    """Training loss and validation PSNR/SSIM versus step, from a run's metrics.jsonl."""
+    recs = [json.loads(x) for x in Path(metrics_jsonl).read_text().splitlines() if x.strip()]
+    tr = [(r["step"], r["train_loss"]) for r in recs if "train_loss" in r]
+    va = [(r["step"], r["val_psnr"], r["val_ssim"]) for r in recs if "val_psnr" in r and not r.get("final")]
+    fig, (a0, a1) = plt.subplots(1, 2, figsize=(10, 3.5))
+    if tr:
+        a0.plot(*zip(*tr), lw=1)
+    a0.set_xlabel("step")
+    a0.set_ylabel("L1 loss (epoch running mean)")
+    a0.set_yscale("log")
+    a0.grid(alpha=0.3)
+    if va:
+        s, p, q = zip(*va)
+        a1.plot(s, p, "o-", color="tab:blue", label="PSNR")
+        a1.set_ylabel("validation PSNR (dB)")
+        b = a1.twinx()
+        b.plot(s, q, "s--", color="tab:orange", label="SSIM")
+        b.set_ylabel("validation SSIM")
+    a1.set_xlabel("step")
+    a1.grid(alpha=0.3)
+    save_figure(fig, path)
