@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -68,7 +69,7 @@ def write_cube_file(path: Path, cube: np.ndarray, bands, metadata: dict) -> None
         write_envi(path, cube, bands)
     else:
         raise InputError(f"{path}: output must end in .h5 (HDF5) or .hdr (ENVI)")
-    rgb = cube_to_srgb(torch.from_numpy(np.clip(cube, 0, None)), bands).numpy()
+    rgb = cube_to_srgb(torch.from_numpy(cube), bands).numpy()
     write_png8(path.with_name(f"{path.stem}_rgb.png"), np.moveaxis(rgb, 0, -1))
 
 
@@ -82,7 +83,9 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
     img = read_sensor_image(args.sensor, args.scale)
     sensor = torch.from_numpy(img)[None, None].to(args.device)
     halo = receptive_radius(model.net)
-    cube = reconstruct_tiled(model.reconstruct, sensor, args.tile, halo, progress=True)[0].float().cpu().numpy()
+    cube = reconstruct_tiled(model.reconstruct, sensor, args.tile, halo, progress=sys.stderr.isatty())[0]
+    # Radiance is non-negative: the network's small negative excursions are clipped at 0.
+    cube = cube.float().clamp_min(0).cpu().numpy()
     out = Path(args.out)
     write_cube_file(out, cube, model.bands, {"source": str(args.sensor), "run": str(args.run)})
     print(f"reconstructed {cube.shape[0]} bands × {cube.shape[1]}×{cube.shape[2]} -> {out}")

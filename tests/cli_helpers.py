@@ -1,0 +1,27 @@
+"""Running the real `hsicam` console script in tests."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+HSICAM = Path(sys.executable).parent / "hsicam"
+
+
+def run_cli(*args: str, timeout: float = 600, env: dict | None = None) -> subprocess.CompletedProcess:
+    """Run ``hsicam ARGS`` through the installed entry point; returns the completed process."""
+    e = {**os.environ, "OMP_NUM_THREADS": os.environ.get("OMP_NUM_THREADS", "1"), **(env or {})}
+    return subprocess.run([str(HSICAM), *args], capture_output=True, text=True, timeout=timeout, env=e)
+
+
+def assert_clean_error(proc: subprocess.CompletedProcess, *fragments: str) -> None:
+    """Exit code 2, one line on stderr starting with 'hsicam: error:', no traceback."""
+    assert proc.returncode == 2, (proc.returncode, proc.stdout, proc.stderr)
+    lines = [x for x in proc.stderr.strip().splitlines() if x.strip() and not x.startswith(("generating", "data:"))]
+    assert len(lines) == 1, proc.stderr
+    assert lines[0].startswith("hsicam: error:"), proc.stderr
+    assert "Traceback" not in proc.stderr
+    for f in fragments:
+        assert f in lines[0], (f, lines[0])

@@ -1,0 +1,114 @@
+"""`hsicam psf` and `hsicam simulate` through the real entry point, including bad input."""
+
+from __future__ import annotations
+
+import json
+
+import imageio.v3 as iio
+import numpy as np
+import pytest
+
+from cli_helpers import assert_clean_error, run_cli
+
+TINY = ["--set", "camera.aperture_radius_mm=0.6", "--set", "camera.lens.focal_length_mm=5",
+        "--set", "bands.step_nm=50", "--set", "camera.cfa.period=3"]
+
+
+def test_psf_command_writes_contract_files(tmp_path):
+    proc = run_cli("psf", "--out", str(tmp_path), *TINY)
+    assert proc.returncode == 0, proc.stderr
+    psf = np.load(tmp_path / "psf.npy")
+    info = json.loads((tmp_path / "psf.json").read_text())
+    assert psf.dtype == np.float32 and psf.ndim == 3
+    assert psf.shape == (len(info["bands_nm"]), info["kernel_px"], info["kernel_px"])
+    assert info["bands_nm"] == [420.0, 470.0, 520.0, 570.0, 620.0, 670.0, 720.0]
+    assert info["pixel_pitch_um"] == pytest.approx(6.0)
+    # kernel ≥ λ_max·z/(Δ·pixel) = 0.72 µm · 5 mm / (30 µm · 6 µm) = 20 → 21 (odd)
+    assert info["kernel_px"] == 21
+    np.testing.assert_allclose(psf.sum(axis=(1, 2)), info["energy_in_kernel"], rtol=1e-5)
+    assert {"model", "focal_length_mm"} <= set(info["lens"]) and "enabled" in info["doe"]
+    img = iio.imread(tmp_path / "psf.png")
+    assert img.ndim == 3 and img.shape[0] > 50
+
+
+def test_psf_paper_defaults_kernel_141(tmp_path):
+    proc = run_cli("psf", "--out", str(tmp_path))
+    assert proc.returncode == 0, proc.stderr
+    info = json.loads((tmp_path / "psf.json").read_text())
+    assert info["kernel_px"] == 141 and len(info["bands_nm"]) == 31
+    assert min(info["energy_in_kernel"]) > 0.999
+
+
+def test_simulate_command_outputs(tmp_path):
+    rng = np.random.default_rng(0)
+    scene = rng.uniform(0, 1, size=(7, 40, 48)).astype(np.float32)
+    np.save(tmp_path / "scene.npy", scene)
+    out = tmp_path / "out"
+    proc = run_cli("simulate", "--scene", str(tmp_path / "scene.npy"), "--out", str(out), *TINY)
+    assert proc.returncode == 0, proc.stderr
+    sensor = np.load(out / "sensor.npy")
+    assert sensor.dtype == np.float32 and sensor.shape == (40, 48)  # 'same' boundary by default
+    png = iio.imread(out / "sensor.png")
+    assert png.dtype == np.uint16 and png.shape == (40, 48)
+    meta = json.loads((out / "simulate.json").read_text())
+    np.testing.assert_allclose(png / 65535.0 * meta["sensor_png_scale"], sensor, atol=1.0 / 65535 * meta["sensor_png_scale"])
+    for name in ("cfa.png", "doe.png"):
+        assert iio.imread(out / name).ndim == 3
+
+
+def test_simulate_valid_boundary_shrinks_sensor(tmp_path):
+    np.save(tmp_path / "scene.npy", np.ones((7, 40, 40), np.float32))
+    out = tmp_path / "out"
+    proc = run_cli("simulate", "--scene", str(tmp_path / "scene.npy"), "--out", str(out), "--boundary", "valid", *TINY)
+    assert proc.returncode == 0, proc.stderr
+    sensor = np.load(out / "sensor.npy")
+    assert sensor.shape == (20, 20)  # 40 - (21 - 1)
+    # a uniform unit scene through normalised CFA and PSFs that hold all light gives ~1 everywhere
+    np.testing.assert_allclose(sensor, 1.0, atol=1e-4)
+
+
+@pytest.mark.parametrize(
+    "override, fragment",
+    [
+        ("camera.not_a_key=1", "unknown config key 'camera.not_a_key'"),
+        ("camera.aperture_radius_mm=-2", "aperture_radius_mm"),
+        ("camera.sensor.pixel_pitch_um=0", "pixel_pitch_um"),
+        ("camera.doe.cell_size_um=20000", "larger than the aperture"),
+        ("camera.psf.kernel_px=101", "at least 141 px"),
+        ("camera.lens.model=zoom", "camera.lens.model"),
+    ],
+)
+def test_psf_bad_config_is_one_clean_line(tmp_path, override, fragment):
+    assert_clean_error(run_cli("psf", "--out", str(tmp_path), "--set", override), fragment)
+
+
+def test_bad_config_file(tmp_path):
+    cfg = tmp_path / "c.yaml"
+    cfg.write_text("camera:\n  doe:\n    sigma_heigth_nm: 3\n")
+    assert_clean_error(run_cli("psf", "--config", str(cfg), "--out", str(tmp_path / "o")), "sigma_heigth_nm")
+
+
+def test_simulate_band_count_mismatch(tmp_path):
+    np.save(tmp_path / "scene.npy", np.ones((5, 30, 30), np.float32))
+    proc = run_cli("simulate", "--scene", str(tmp_path / "scene.npy"), "--out", str(tmp_path / "o"), *TINY)
+    assert_clean_error(proc, "5 bands", "7")
+    assert not (tmp_path / "o" / "sensor.npy").exists()
+
+
+def test_simulate_band_grid_mismatch(tmp_path):
+    from hsicam.data.formats import write_cube_h5
+    from hsicam.spectral import Bands
+
+    write_cube_h5(tmp_path / "scene.h5", np.ones((7, 30, 30), np.float32), Bands.uniform(400, 700, 50))
+    proc = run_cli("simulate", "--scene", str(tmp_path / "scene.h5"), "--out", str(tmp_path / "o"), *TINY)
+    assert_clean_error(proc, "scene.h5")
+
+
+def test_simulate_missing_scene(tmp_path):
+    assert_clean_error(run_cli("simulate", "--scene", str(tmp_path / "nope.npy"), "--out", str(tmp_path)), "nope.npy")
+
+
+def test_simulate_scene_too_small_for_valid(tmp_path):
+    np.save(tmp_path / "scene.npy", np.ones((7, 10, 10), np.float32))
+    proc = run_cli("simulate", "--scene", str(tmp_path / "scene.npy"), "--out", str(tmp_path / "o"), "--boundary", "valid", *TINY)
+    assert_clean_error(proc, "too small")
