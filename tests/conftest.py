@@ -1,0 +1,59 @@
+"""Shared fixtures of the physics test suite.
+
+``tiny_config`` / ``tiny_camera`` build a DOE camera that runs in milliseconds: 3 bands
+(500, 550, 600 nm), an 11×11-cell DOE (R = 0.25 mm, 50 µm cells), f = 5 mm and 10 µm pixels,
+which gives a 7×7 PSF kernel and a 3×3 CFA period. Tests that are about the paper optics or
+need fine sampling build their own configuration.
+"""
+
+from __future__ import annotations
+
+import copy
+
+import pytest
+import torch
+
+from hsicam.cameras import DOECamera
+from hsicam.config import load_config
+
+TINY_CAMERA_OVERRIDES = (
+    "bands.start_nm=500",
+    "bands.stop_nm=600",
+    "bands.step_nm=50",
+    "camera.aperture_radius_mm=0.25",
+    "camera.doe.cell_size_um=50",
+    "camera.lens.focal_length_mm=5",
+    "camera.sensor.pixel_pitch_um=10",
+    "camera.cfa.period=3",
+)
+
+
+@pytest.fixture
+def tiny_config():
+    """Factory: ``tiny_config(*overrides)`` → validated :class:`hsicam.config.Config` of the tiny camera."""
+
+    def make(*overrides: str):
+        return load_config(overrides=[*TINY_CAMERA_OVERRIDES, *overrides])
+
+    return make
+
+
+@pytest.fixture
+def tiny_camera(tiny_config):
+    """Factory: ``tiny_camera(*overrides, dtype=torch.float32)`` → :class:`DOECamera` (tiny optics)."""
+
+    def make(*overrides: str, dtype: torch.dtype = torch.float32) -> DOECamera:
+        cam = DOECamera.from_config(tiny_config(*overrides))
+        return cam.to(dtype)
+
+    return make
+
+
+@pytest.fixture
+def clone_camera():
+    """``clone_camera(cam, dtype)``: an independent copy of a camera converted to ``dtype``."""
+
+    def make(cam: DOECamera, dtype: torch.dtype) -> DOECamera:
+        return copy.deepcopy(cam).to(dtype)
+
+    return make

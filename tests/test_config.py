@@ -1,0 +1,161 @@
+"""Strict configuration: unknown keys, types, physically meaningless values, overrides, YAML."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from hsicam.cameras import DOECamera
+from hsicam.config import Config, dump_yaml, load_config
+from hsicam.errors import ConfigError
+
+
+def test_defaults_are_the_paper_camera():
+    cfg = load_config()
+    assert isinstance(cfg, Config)
+    cam = cfg.camera
+    assert (cfg.bands.start_nm, cfg.bands.stop_nm, cfg.bands.step_nm) == (420.0, 720.0, 10.0)
+    assert len(cfg.bands.to_bands()) == 31
+    assert cam.aperture_radius_mm == 5.0 and cam.doe.cell_size_um == 30.0
+    assert cam.sensor.pixel_pitch_um == 6.0 and cam.cfa.period == 9
+    assert cam.lens.focal_length_mm == 35.0 and cam.lens.design_wavelength_nm == 587.6
+    assert cam.lens.radius_of_curvature_mm == 16.0 and cam.lens.center_thickness_mm == 2.0
+
+
+def test_paper_preset_holds_the_paper_optics():
+    path = Path(__file__).resolve().parents[1] / "configs" / "paper.yaml"
+    if not path.is_file():
+        pytest.skip("configs/paper.yaml is not in this checkout")
+    cfg = load_config(path)
+    default = load_config()
+    assert cfg.bands == default.bands
+    assert cfg.camera == default.camera  # the defaults are the paper camera (test above)
+
+
+@pytest.mark.parametrize("override, key", [
+    ("camera.foo=1", "camera.foo"),
+    ("camera.doe.cell_size=30", "camera.doe.cell_size"),
+    ("nonsense=3", "nonsense"),
+])
+def test_unknown_key_is_named(override, key):
+    with pytest.raises(ConfigError, match=f"unknown config key '{key}'"):
+        load_config(overrides=[override])
+
+
+def test_unknown_key_in_a_file(tmp_path):
+    path = tmp_path / "c.yaml"
+    path.write_text("camera:\n  doe:\n    cell_size_um: 30\n    hieght_nm: 3\n", encoding="utf-8")
+    with pytest.raises(ConfigError, match="camera.doe.hieght_nm"):
+        load_config(path)
+
+
+@pytest.mark.parametrize("override", [
+    "camera.aperture_radius_mm=abc",
+    "camera.doe.enabled=3",
+    "camera.cfa.period=2.5",
+    "camera.cfa.period=true",
+    "camera.lens.model=fisheye",
+    "camera.doe=5",
+    "camera.lens.material=3",
+])
+def test_wrong_type_is_a_config_error(override):
+    with pytest.raises(ConfigError):
+        load_config(overrides=[override])
+
+
+@pytest.mark.parametrize("override", [
+    "camera.aperture_radius_mm=-1",
+    "camera.aperture_radius_mm=0",
+    "camera.doe.cell_size_um=-30",
+    "camera.sensor.pixel_pitch_um=0",
+    "camera.lens.focal_length_mm=-35",
+    "camera.sensor_distance_mm=-1",
+    "camera.doe.sigma_height_nm=-1",
+    "bands.step_nm=-10",
+    "bands.stop_nm=400",  # below start
+    "bands.stop_nm=725",  # not a multiple of the step
+    "camera.aperture_radius_mm=.nan",
+])
+def test_negative_or_zero_lengths_are_config_errors(override):
+    with pytest.raises(ConfigError):
+        load_config(overrides=[override])
+
+
+def test_doe_cell_larger_than_aperture():
+    with pytest.raises(ConfigError, match="larger than the aperture"):
+        load_config(overrides=["camera.aperture_radius_mm=0.01", "camera.doe.cell_size_um=30"])
+    load_config(overrides=["camera.aperture_radius_mm=0.015", "camera.doe.cell_size_um=30"])  # equal: fine
+
+
+@pytest.mark.parametrize("override", ["camera.psf.kernel_px=140", "camera.psf.kernel_px=0",
+                                      "camera.psf.supersample=2", "camera.psf.pupil_oversample=0"])
+def test_even_or_non_positive_kernel_and_sampling(override):
+    with pytest.raises(ConfigError):
+        load_config(overrides=[override])
+
+
+def test_dotted_overrides_are_parsed_and_typed():
+    cfg = load_config(overrides=[
+        "camera.doe.enabled=false",
+        "camera.aperture_radius_mm=2",  # int in YAML → float field
+        "camera.psf.kernel_px=151",
+        "camera.lens.model=singlet",
+        "camera.sensor.bit_depth=12",
+        "camera.sensor.noise=poisson_gaussian",
+        "bands.fwhm_nm=5",
+    ])
+    assert cfg.camera.doe.enabled is False
+    assert cfg.camera.aperture_radius_mm == 2.0 and isinstance(cfg.camera.aperture_radius_mm, float)
+    assert cfg.camera.psf.kernel_px == 151 and cfg.camera.lens.model == "singlet"
+    assert cfg.camera.sensor.bit_depth == 12 and cfg.camera.sensor.noise == "poisson_gaussian"
+    assert cfg.bands.to_bands().fwhm_nm[0] == 5.0
+    # later overrides win; null resets an optional value
+    cfg = load_config(overrides=["camera.psf.kernel_px=151", "camera.psf.kernel_px=null"])
+    assert cfg.camera.psf.kernel_px is None
+    with pytest.raises(ConfigError):
+        load_config(overrides=["camera.psf.kernel_px"])  # no '='
+
+
+def test_overrides_apply_over_a_file(tmp_path):
+    path = tmp_path / "c.yaml"
+    path.write_text("camera:\n  cfa:\n    period: 5\n  doe:\n    enabled: false\n", encoding="utf-8")
+    cfg = load_config(path, overrides=["camera.cfa.period=7"])
+    assert cfg.camera.cfa.period == 7 and cfg.camera.doe.enabled is False
+    assert cfg.camera.aperture_radius_mm == 5.0  # untouched defaults stay
+
+
+def test_yaml_round_trip(tmp_path):
+    cfg = load_config(overrides=[
+        "camera.doe.enabled=false", "camera.psf.kernel_px=151", "camera.lens.model=singlet",
+        "camera.sensor.noise=poisson_gaussian", "camera.doe.quantization_levels=8",
+        "bands.start_nm=450", "bands.stop_nm=650", "bands.step_nm=20", "camera.boundary=same",
+        "camera.padding=reflect", "camera.object_distance_m=2.5",
+    ])
+    path = tmp_path / "resolved.yaml"
+    path.write_text(dump_yaml(cfg), encoding="utf-8")
+    again = load_config(path)
+    assert again == cfg
+    assert dump_yaml(again) == dump_yaml(cfg)
+    assert again != load_config()
+
+
+def test_bad_yaml_and_missing_file(tmp_path):
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("camera: [unclosed\n", encoding="utf-8")
+    with pytest.raises(ConfigError):
+        load_config(bad)
+    top = tmp_path / "list.yaml"
+    top.write_text("- 1\n- 2\n", encoding="utf-8")
+    with pytest.raises(ConfigError):
+        load_config(top)
+    with pytest.raises(ConfigError):
+        load_config(tmp_path / "missing.yaml")
+
+
+def test_config_drives_the_camera():
+    cfg = load_config(overrides=["bands.start_nm=500", "bands.stop_nm=600", "bands.step_nm=50",
+                                 "camera.cfa.period=4", "camera.doe.enabled=false"])
+    cam = DOECamera.from_config(cfg)
+    assert len(cam.bands) == 3 and cam.cfa.period == 4 and not cam.optics.doe.enabled
+    assert cam.optics.doe.n_cells == 333 and cam.optics.pixel_m == pytest.approx(6e-6)

@@ -1,0 +1,192 @@
+"""Colour filter array, sensor noise statistics, ADC quantisation and DOE fabrication effects."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from hsicam.optics.doe import DOE, quantize_heights
+from hsicam.sensor import ColorFilterArray, SensorNoise, cfa_tile, tile_pattern
+from hsicam.spectral import FusedSilica
+
+
+def _h2pi_fused_silica(lam_nm: float) -> float:
+    """λ/(n(λ) − 1) with Malitson's Sellmeier coefficients written out here."""
+    l2 = (lam_nm * 1e-3) ** 2
+    n = math.sqrt(1 + sum(b * l2 / (l2 - c * c) for b, c in
+                          [(0.6961663, 0.0684043), (0.4079426, 0.1162414), (0.8974794, 9.896161)]))
+    return lam_nm * 1e-9 / (n - 1)
+
+
+# --------------------------------------------------------------------------------------------
+# CFA
+# --------------------------------------------------------------------------------------------
+@pytest.mark.parametrize("period", [1, 3, 9])
+def test_cfa_is_periodic_normalised_and_non_negative(period):
+    cfa = ColorFilterArray(n_bands=5, period=period, seed=3)
+    with torch.no_grad():
+        cfa.weights[0, 0, 0] = -0.7  # a negative raw weight: ReLU must block that band there
+        kappa = cfa.pattern(2 * period + 5, 3 * period + 2)
+    assert kappa.shape == (5, 2 * period + 5, 3 * period + 2)
+    m = period
+    torch.testing.assert_close(kappa[:, :-m, :-m], kappa[:, m:, m:], rtol=0, atol=0)  # κ[i, j] = κ[i+m, j+m]
+    torch.testing.assert_close(kappa[:, :-m, :], kappa[:, m:, :], rtol=0, atol=0)
+    torch.testing.assert_close(kappa[:, :, :-m], kappa[:, :, m:], rtol=0, atol=0)
+    assert (kappa >= 0).all()
+    torch.testing.assert_close(kappa.sum(0), torch.ones(kappa.shape[1:]), rtol=0, atol=1e-6)
+    assert kappa[0, 0, 0] == 0 and kappa[0, m, m] == 0  # the ReLU'd band, at every period
+    # the tile is the ReLU of the weights divided by its band sum (independent formula)
+    w = cfa.weights.detach().clamp_min(0)
+    torch.testing.assert_close(kappa[:, :m, :m], w / w.sum(0, keepdim=True))
+    if period > 1:  # a learned CFA is not flat: different pixels filter differently
+        assert not torch.allclose(kappa[:, 0, 0], kappa[:, 0, 1])
+
+
+def test_no_cfa_is_all_ones():
+    cfa = ColorFilterArray(n_bands=4, period=9, enabled=False)
+    assert list(cfa.parameters()) == []
+    torch.testing.assert_close(cfa.pattern(7, 11), torch.ones(4, 7, 11), rtol=0, atol=0)
+
+
+def test_tile_pattern_origin_and_cfa_gradient():
+    w = torch.rand(3, 2, 2, generator=torch.Generator().manual_seed(0), requires_grad=True)
+    t = cfa_tile(w)
+    p = tile_pattern(t, 5, 3)
+    for i in range(5):
+        for j in range(3):
+            torch.testing.assert_close(p[:, i, j], t[:, i % 2, j % 2], rtol=0, atol=0)
+    (p * torch.arange(45.0).reshape(3, 5, 3)).sum().backward()
+    assert torch.isfinite(w.grad).all() and (w.grad != 0).all()
+
+
+# --------------------------------------------------------------------------------------------
+# Noise statistics (bounds: 5 standard deviations of the estimator)
+# --------------------------------------------------------------------------------------------
+N_SAMPLES = 200_000
+
+
+def _assert_mean_var(out: torch.Tensor, mean: float, var: float, kurtosis_excess: float = 0.0):
+    x = out.double().flatten()
+    n = x.numel()
+    assert abs(x.mean().item() - mean) < 5 * math.sqrt(var / n)
+    var_std = var * math.sqrt((2.0 + kurtosis_excess) / (n - 1))  # std of the sample variance
+    assert abs(x.var().item() - var) < 5 * var_std
+
+
+def test_gaussian_noise_statistics():
+    g = torch.full((2, 1, 400, 250), 0.3, dtype=torch.float64)
+    noise = SensorNoise("gaussian", sigma=0.02)
+    out = noise(g, torch.Generator().manual_seed(0))
+    _assert_mean_var(out, 0.3, 0.02**2)
+    # and the noise is white: neighbouring pixels are uncorrelated
+    e = (out - 0.3).flatten(1)
+    corr = (e[:, 1:] * e[:, :-1]).mean() / e.var()
+    assert abs(corr.item()) < 5 / math.sqrt(e.numel())
+
+
+@pytest.mark.parametrize("signal, full_well, read", [(0.3, 1000.0, 5.0), (0.8, 20000.0, 3.0), (0.05, 500.0, 0.0), (0.01, 1000.0, 10.0)])
+def test_poisson_gaussian_noise_statistics(signal, full_well, read):
+    g = torch.full((1, 1, 400, 500), signal, dtype=torch.float64)
+    out = SensorNoise("poisson_gaussian", full_well_e=full_well, read_noise_e=read)(g, torch.Generator().manual_seed(1))
+    var = signal / full_well + (read / full_well) ** 2
+    photons = signal * full_well
+    _assert_mean_var(out, signal, var, kurtosis_excess=2.0 / photons)
+
+
+def test_poisson_noise_counts_whole_electrons():
+    g = torch.full((1, 1, 300, 300), 0.3, dtype=torch.float64)
+    out = SensorNoise("poisson_gaussian", full_well_e=10.0, read_noise_e=0.0)(g, torch.Generator().manual_seed(2))
+    electrons = out * 10.0
+    torch.testing.assert_close(electrons, electrons.round(), rtol=0, atol=1e-9)
+    assert (electrons >= 0).all()
+    # P(k electrons) of a Poisson law with mean 3
+    counts = torch.bincount(electrons.round().long().flatten(), minlength=6)[:6].double() / electrons.numel()
+    expected = torch.tensor([math.exp(-3) * 3**k / math.factorial(k) for k in range(6)], dtype=torch.float64)
+    assert (counts - expected).abs().max() < 5 * math.sqrt(0.25 / electrons.numel())
+
+
+def test_poisson_noise_has_a_straight_through_gradient():
+    g = torch.full((1, 1, 4, 4), 0.5, requires_grad=True)
+    SensorNoise("poisson_gaussian", full_well_e=100.0, read_noise_e=1.0)(g).sum().backward()
+    torch.testing.assert_close(g.grad, torch.ones_like(g))
+
+
+@pytest.mark.parametrize("model", ["gaussian", "poisson_gaussian"])
+def test_noise_is_reproducible_from_a_seeded_generator(model):
+    g = torch.rand(2, 1, 32, 32, generator=torch.Generator().manual_seed(0))
+    noise = SensorNoise(model, sigma=0.05, full_well_e=1000.0, read_noise_e=2.0)
+    a = noise(g, torch.Generator().manual_seed(42))
+    b = noise(g, torch.Generator().manual_seed(42))
+    c = noise(g, torch.Generator().manual_seed(43))
+    torch.testing.assert_close(a, b, rtol=0, atol=0)
+    assert not torch.allclose(a, c) and not torch.allclose(a, g)
+
+
+def test_no_noise_is_identity():
+    g = torch.rand(1, 1, 8, 8)
+    torch.testing.assert_close(SensorNoise("none")(g), g, rtol=0, atol=0)
+    torch.testing.assert_close(SensorNoise("gaussian", sigma=0.0)(g), g, rtol=0, atol=0)
+
+
+@pytest.mark.parametrize("bits", [1, 3, 8])
+def test_bit_depth_quantisation_levels(bits):
+    g = torch.linspace(-0.2, 1.2, 5001, dtype=torch.float64).reshape(1, 1, 1, -1).requires_grad_(True)
+    out = SensorNoise("none", bit_depth=bits)(g)
+    levels = 2**bits
+    vals = torch.unique(out.detach())
+    assert vals.numel() == levels  # every ADC code appears, no other value
+    torch.testing.assert_close(vals, torch.arange(levels, dtype=torch.float64) / (levels - 1))
+    # nearest code of the clipped signal (ties aside)
+    clipped = g.detach().clamp(0, 1)
+    assert ((out.detach() - clipped).abs() <= 0.5 / (levels - 1) + 1e-12).all()
+    out.sum().backward()  # straight-through gradient
+    torch.testing.assert_close(g.grad, torch.ones_like(g))
+
+
+# --------------------------------------------------------------------------------------------
+# DOE fabrication: quantization and height noise
+# --------------------------------------------------------------------------------------------
+@pytest.mark.parametrize("levels", [2, 4, 16])
+def test_doe_quantization_gives_exactly_l_levels(levels):
+    doe = DOE(41, FusedSilica(), 587.6, quantization_levels=levels, seed=1)
+    h = doe.heights()
+    vals = torch.unique(h.detach()).double()
+    assert vals.numel() == levels
+    step = _h2pi_fused_silica(587.6) / levels
+    torch.testing.assert_close(vals, torch.arange(levels, dtype=torch.float64) * step, rtol=1e-6, atol=0)
+    # every height goes to a level at most one step away
+    assert ((h.detach() - doe.height_m.detach()).abs() <= step * (1 + 1e-6)).all()
+    # straight-through: d(heights)/d(parameter) = identity
+    w = torch.rand(41, 41, generator=torch.Generator().manual_seed(0))
+    (h * w).sum().backward()
+    torch.testing.assert_close(doe.height_m.grad, w)
+
+
+def test_quantize_heights_rounds_to_nearest_level():
+    top = 1.0
+    h = torch.tensor([0.0, 0.1, 0.13, 0.3, 0.62, 0.74, 0.99])
+    q = quantize_heights(h, 4, top)  # levels 0, .25, .5, .75
+    torch.testing.assert_close(q, torch.tensor([0.0, 0.0, 0.25, 0.25, 0.5, 0.75, 0.75]))
+
+
+def test_doe_height_noise_sigma_in_nm_and_redrawn(tiny_camera):
+    cam = tiny_camera("camera.doe.sigma_height_nm=20")
+    doe = cam.optics.doe
+    assert doe.sigma_height_m == pytest.approx(20e-9)
+    big = DOE(201, FusedSilica(), 587.6, sigma_height_m=doe.sigma_height_m, seed=2)
+    with torch.no_grad():
+        d1 = (big.heights(torch.Generator().manual_seed(5)) - big.height_m).double()
+        d2 = (big.heights(torch.Generator().manual_seed(6)) - big.height_m).double()
+    n = d1.numel()
+    sigma = 20e-9
+    assert abs(d1.mean().item()) < 5 * sigma / math.sqrt(n)
+    assert abs(d1.std().item() - sigma) < 5 * sigma / math.sqrt(2 * (n - 1)) + 1e-12  # float32 heights
+    corr = (d1 * d2).mean().item() / sigma**2  # independent draws
+    assert abs(corr) < 5 / math.sqrt(n)
+    # every forward pass redraws: two PSFs of the same camera differ, and without noise they do not
+    with torch.no_grad():
+        assert not torch.allclose(cam.psf(), cam.psf())
+        quiet = tiny_camera()
+        torch.testing.assert_close(quiet.psf(), quiet.psf(), rtol=0, atol=0)
