@@ -273,8 +273,6 @@ def test_too_small_or_malformed_scene_is_an_input_error(tiny_camera, shape):
         cam.A(torch.rand(*shape))
 
 
-@pytest.mark.xfail(strict=True, reason="src bug: 'same' + reflect padding on a scene smaller than K//2+1 "
-                   "raises a plain ValueError from pad_same (CLI prints a traceback) instead of InputError")
 def test_too_small_scene_for_reflect_padding_is_an_input_error(tiny_camera):
     cam = tiny_camera("camera.boundary=same", "camera.padding=reflect")
     with pytest.raises(InputError):

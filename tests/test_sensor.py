@@ -156,8 +156,10 @@ def test_doe_quantization_gives_exactly_l_levels(levels):
     assert vals.numel() == levels
     step = _h2pi_fused_silica(587.6) / levels
     torch.testing.assert_close(vals, torch.arange(levels, dtype=torch.float64) * step, rtol=1e-6, atol=0)
-    # every height goes to a level at most one step away
-    assert ((h.detach() - doe.height_m.detach()).abs() <= step * (1 + 1e-6)).all()
+    # every height goes to the nearest level in phase: modular distance (period h_2π) ≤ step/2
+    top = _h2pi_fused_silica(587.6)
+    d = torch.remainder((h.detach() - doe.height_m.detach()).double() + top / 2, top) - top / 2
+    assert (d.abs() <= step / 2 * (1 + 1e-5)).all()
     # straight-through: d(heights)/d(parameter) = identity
     w = torch.rand(41, 41, generator=torch.Generator().manual_seed(0))
     (h * w).sum().backward()
@@ -167,8 +169,8 @@ def test_doe_quantization_gives_exactly_l_levels(levels):
 def test_quantize_heights_rounds_to_nearest_level():
     top = 1.0
     h = torch.tensor([0.0, 0.1, 0.13, 0.3, 0.62, 0.74, 0.99])
-    q = quantize_heights(h, 4, top)  # levels 0, .25, .5, .75
-    torch.testing.assert_close(q, torch.tensor([0.0, 0.0, 0.25, 0.25, 0.5, 0.75, 0.75]))
+    q = quantize_heights(h, 4, top)  # levels 0, .25, .5, .75; 0.99 wraps to 0 (= the phase of 1.0)
+    torch.testing.assert_close(q, torch.tensor([0.0, 0.0, 0.25, 0.25, 0.5, 0.75, 0.0]))
 
 
 def test_doe_height_noise_sigma_in_nm_and_redrawn(tiny_camera):
@@ -190,3 +192,27 @@ def test_doe_height_noise_sigma_in_nm_and_redrawn(tiny_camera):
         assert not torch.allclose(cam.psf(), cam.psf())
         quiet = tiny_camera()
         torch.testing.assert_close(quiet.psf(), quiet.psf(), rtol=0, atol=0)
+
+
+def test_quantization_wraps_top_level_to_zero_phase():
+    """Heights that round up to h_2π are the same phase as 0: they go to level 0, not L−1."""
+    from hsicam.optics.doe import quantize_heights
+
+    top, levels = 1.0, 4
+    h = torch.tensor([0.0, 0.2, 0.3, 0.9, 0.99], dtype=torch.float64)
+    q = quantize_heights(h, levels, top, wrap=True)
+    torch.testing.assert_close(q, torch.tensor([0.0, 0.25, 0.25, 0.0, 0.0], dtype=torch.float64))
+    phase_err = torch.remainder(2 * torch.pi * (q - h) / top + torch.pi, 2 * torch.pi) - torch.pi
+    assert phase_err.abs().max() <= torch.pi / levels + 1e-12
+    clamped = quantize_heights(h, levels, top, wrap=False)
+    assert clamped[-1].item() == pytest.approx(0.75)
+
+
+def test_cfa_pixel_with_no_positive_weight_is_neutral():
+    from hsicam.sensor import cfa_tile
+
+    w = torch.rand(5, 3, 3)
+    w[:, 1, 2] = -1.0
+    k = cfa_tile(w)
+    torch.testing.assert_close(k.sum(0), torch.ones(3, 3))
+    torch.testing.assert_close(k[:, 1, 2], torch.full((5,), 0.2))

@@ -18,9 +18,14 @@ _EPS = 1e-8
 
 
 def cfa_tile(weights: torch.Tensor) -> torch.Tensor:
-    """Filter transmissions from raw weights (C, m, m): ReLU, then Σ over bands = 1 per pixel."""
+    """Filter transmissions from raw weights (C, m, m): ReLU, then Σ over bands = 1 per pixel.
+
+    A pixel whose weights are all ≤ 0 (ReLU gives zeros) becomes a neutral filter, 1/C per band,
+    so Σ κ = 1 holds everywhere.
+    """
     t = torch.relu(weights)
-    return t / t.sum(dim=0, keepdim=True).clamp_min(_EPS)
+    total = t.sum(dim=0, keepdim=True)
+    return torch.where(total > _EPS, t / total.clamp_min(_EPS), torch.full_like(t, 1.0 / t.shape[0]))
 
 
 def tile_pattern(tile: torch.Tensor, height: int, width: int) -> torch.Tensor:

@@ -52,6 +52,11 @@ class Camera(nn.Module):
             raise InputError(f"scene must be a (B, C, H, W) tensor, got shape {tuple(x.shape)}")
         if x.shape[1] != len(self.bands):
             raise InputError(f"scene has {x.shape[1]} bands but the camera has {len(self.bands)} ({self.bands!r})")
+        if self.boundary == "same" and getattr(self, "padding", "zeros") == "reflect" and min(x.shape[-2:]) <= self.margin // 2:
+            raise InputError(
+                f"scene of {x.shape[-2]}×{x.shape[-1]} px is too small for reflect padding by {self.margin // 2} px: "
+                f"it needs more than {self.margin // 2} px per side"
+            )
         h, w = self.sensor_size(tuple(x.shape[-2:]))
         if h < 1 or w < 1:
             raise InputError(

@@ -31,13 +31,18 @@ def straight_through(x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
     return x + (y - x).detach()
 
 
-def quantize_heights(h: torch.Tensor, levels: int, top_m: float) -> torch.Tensor:
+def quantize_heights(h: torch.Tensor, levels: int, top_m: float, wrap: bool = True) -> torch.Tensor:
     """Round h to ``levels`` heights k·top/levels, k = 0..levels−1 (straight-through gradient).
 
-    With ``top = h_2π`` these are the levels of an L-level (e.g. binary-weighted lithography) DOE.
+    With ``top = h_2π`` these are the phase levels of an L-level (e.g. binary-weighted lithography)
+    DOE, and ``wrap`` sends heights that round up to ``top`` back to level 0 (the same phase), so
+    the phase error is at most π/L. Without ``wrap`` (a height range that is not a phase period)
+    heights are clamped to the top level.
     """
     step = top_m / levels
-    q = torch.clamp(torch.round(h / step), 0, levels - 1) * step
+    k = torch.round(h / step)
+    k = torch.remainder(k, levels) if wrap else torch.clamp(k, 0, levels - 1)
+    q = k * step
     return straight_through(h, q)
 
 
@@ -97,8 +102,10 @@ class DOE(nn.Module):
         if self.max_height_m is not None:
             h = straight_through(h, h.clamp(0.0, self.max_height_m))
         if self.quantization_levels is not None:
-            top = self.max_height_m if (self.max_height_m is not None and not self.wrap) else self.h2pi_m
-            h = quantize_heights(h, self.quantization_levels, top)
+            # L phase levels over h_2π (wrapping), unless a clamp range that is not wrapped is set
+            clamp_range = self.max_height_m is not None and not self.wrap
+            top = self.max_height_m if clamp_range else self.h2pi_m
+            h = quantize_heights(h, self.quantization_levels, top, wrap=not clamp_range)
         if self.sigma_height_m > 0:
             noise = torch.randn(h.shape, generator=generator, device=h.device, dtype=h.dtype)
             h = h + self.sigma_height_m * noise
