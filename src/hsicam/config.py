@@ -154,9 +154,23 @@ class SensorConfig:
 
 
 @dataclass
-class CameraConfig:
-    """The DOE camera of the paper: lens + DOE + CFA + sensor."""
+class CASSIConfig:
+    """Coded-aperture cameras (DD-CASSI, SD-CASSI) used as baselines (see hsicam.cameras.cassi)."""
 
+    mask_seed: int = 0  # random binary coded aperture drawn from this seed
+    mask_file: Optional[str] = None  # or a coded aperture from a .npy file (H, W)
+    shift_px: float = 2.0  # dispersion per band in pixels (linear dispersion)
+
+    def __post_init__(self) -> None:
+        _positive("camera.cassi", shift_px=self.shift_px)
+
+
+@dataclass
+class CameraConfig:
+    """The camera: ``kind: doe`` is the paper's lens + DOE + CFA + sensor; the CASSI kinds are the
+    baselines (they use ``cassi`` and ``sensor``; the optics sections are then ignored)."""
+
+    kind: Literal["doe", "dd_cassi", "sd_cassi"] = "doe"
     aperture_radius_mm: float = 5.0
     sensor_distance_mm: Optional[float] = None  # None: the lens focal length at its design wavelength
     object_distance_m: Optional[float] = None  # None: object at infinity
@@ -167,6 +181,7 @@ class CameraConfig:
     psf: PSFConfig = field(default_factory=PSFConfig)
     cfa: CFAConfig = field(default_factory=CFAConfig)
     sensor: SensorConfig = field(default_factory=SensorConfig)
+    cassi: CASSIConfig = field(default_factory=CASSIConfig)
 
     def __post_init__(self) -> None:
         _positive("camera", aperture_radius_mm=self.aperture_radius_mm, sensor_distance_mm=self.sensor_distance_mm,

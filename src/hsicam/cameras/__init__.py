@@ -3,5 +3,14 @@ scene), its exact adjoint ``A_adjoint``, and ``forward(x) = noise(A(x))``."""
 
 from hsicam.cameras.base import Camera
 from hsicam.cameras.doe_camera import DOECamera
+from hsicam.errors import ConfigError
 
-__all__ = ["Camera", "DOECamera"]
+__all__ = ["Camera", "DOECamera", "build_camera"]
+
+
+def build_camera(cfg) -> Camera:  # cfg: hsicam.config.Config
+    """The camera ``cfg.camera.kind`` describes (the one factory every caller uses)."""
+    kind = cfg.camera.kind
+    if kind == "doe":
+        return DOECamera.from_config(cfg)
+    raise ConfigError(f"camera.kind={kind!r} is not available yet")

@@ -78,13 +78,33 @@ def build_optimizer(cfg: Config, model: CameraSystem) -> torch.optim.Optimizer:
     """Adam with three parameter groups: network, DOE heights, CFA weights."""
     groups = [{"params": list(model.net.parameters()), "lr": cfg.train.lr, "name": "net"}]
     cam = model.camera
-    if cam.optics.doe.enabled:
-        groups.append({"params": [cam.optics.doe.height_m], "lr": cfg.train.doe_lr_nm * 1e-9, "name": "doe"})
-    if cam.cfa.enabled:
-        groups.append({"params": [cam.cfa.weights], "lr": cfg.train.cfa_lr, "name": "cfa"})
+    doe, cfa = _doe(cam), getattr(cam, "cfa", None)
+    if doe is not None and doe.enabled:
+        groups.append({"params": [doe.height_m], "lr": cfg.train.doe_lr_nm * 1e-9, "name": "doe"})
+    if cfa is not None and cfa.enabled:
+        groups.append({"params": [cfa.weights], "lr": cfg.train.cfa_lr, "name": "cfa"})
     for g in groups:
         g["base_lr"] = g["lr"]
     return torch.optim.Adam(groups)
+
+
+def _doe(camera):
+    """The camera's DOE module, or None for cameras without one (CASSI)."""
+    optics = getattr(camera, "optics", None)
+    return getattr(optics, "doe", None)
+
+
+def set_noise(camera, sigma_height_m: float | None, sensor_sigma: float) -> None:
+    """Set the DOE height noise (m; ignored without a DOE) and the sensor's Gaussian σ."""
+    doe = _doe(camera)
+    if doe is not None and sigma_height_m is not None:
+        doe.sigma_height_m = sigma_height_m
+    camera.noise.sigma = sensor_sigma
+
+
+def get_noise(camera) -> tuple[float | None, float]:
+    doe = _doe(camera)
+    return (None if doe is None else doe.sigma_height_m), camera.noise.sigma
 
 
 def _device(spec: str, local_rank: int) -> torch.device:
@@ -190,7 +210,7 @@ def train(cfg: Config, run_dir: str | Path, resume: bool = False, progress: bool
         progress: tqdm bar (None: only on a terminal).
         stop_after_steps: stop after this global step (simulates an interruption; for tests).
     """
-    from hsicam.data.pipeline import build_datasets, make_loader
+    from hsicam.data.pipeline import build_datasets, dataset_root, make_loader
 
     run_dir = Path(run_dir)
     rank, world, local_rank = _dist_env()
@@ -229,6 +249,10 @@ def train(cfg: Config, run_dir: str | Path, resume: bool = False, progress: bool
         with atomic_open(run_dir / "config.yaml") as fh:
             fh.write(dump_yaml(cfg))
 
+    if distributed:  # generate/cache the dataset once, on rank 0, before the others read it
+        if is_main:
+            dataset_root(cfg.data, bands)
+        dist.barrier()
     train_ds, val_ds = build_datasets(cfg.data, bands, model.camera.margin)
     steps_per_epoch = len(train_ds) // cfg.train.batch_size
     if steps_per_epoch < 1:
@@ -246,7 +270,7 @@ def train(cfg: Config, run_dir: str | Path, resume: bool = False, progress: bool
     writer = _tensorboard(run_dir) if (cfg.train.tensorboard and is_main) else None
 
     cam = model.camera
-    eval_sigma_h, eval_sigma_s = cam.optics.doe.sigma_height_m, cam.noise.sigma
+    eval_noise = get_noise(cam)
     use_bar = (sys.stderr.isatty() if progress is None else progress) and is_main
     from tqdm.auto import tqdm
 
@@ -263,8 +287,7 @@ def train(cfg: Config, run_dir: str | Path, resume: bool = False, progress: bool
         for scene in loader:
             step = state["global_step"]
             g = _step_generator(cfg.train.seed, step, rank, device)
-            cam.optics.doe.sigma_height_m = _draw(cfg.train.sigma_height_nm, g) * 1e-9
-            cam.noise.sigma = _draw(cfg.train.sensor_sigma, g)
+            set_noise(cam, _draw(cfg.train.sigma_height_nm, g) * 1e-9, _draw(cfg.train.sensor_sigma, g))
             factor = lr_factor(cfg, step, total_steps, steps_per_epoch)
             for group in optimizer.param_groups:
                 group["lr"] = group["base_lr"] * factor
@@ -305,7 +328,7 @@ def train(cfg: Config, run_dir: str | Path, resume: bool = False, progress: bool
         state["epoch"], state["step_in_epoch"] = epoch, 0
         tags = ["last"]
         if is_main and val_loader is not None and (epoch % cfg.train.eval_every_epochs == 0 or epoch == cfg.train.epochs):
-            cam.optics.doe.sigma_height_m, cam.noise.sigma = eval_sigma_h, eval_sigma_s
+            set_noise(cam, *eval_noise)
             val = validate(model, val_loader, device, cfg.train.seed)
             last_val = val["psnr"]
             rec = {"step": state["global_step"], "epoch": epoch, **{f"val_{k}": v for k, v in val.items()}}
@@ -325,7 +348,7 @@ def train(cfg: Config, run_dir: str | Path, resume: bool = False, progress: bool
         if distributed:
             dist.barrier()
     bar.close()
-    cam.optics.doe.sigma_height_m, cam.noise.sigma = eval_sigma_h, eval_sigma_s
+    set_noise(cam, *eval_noise)
     if is_main and not (run_dir / "model.safetensors").exists():
         save_weights(run_dir / "model.safetensors", model, bands)
     elapsed = time.perf_counter() - t_start

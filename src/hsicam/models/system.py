@@ -5,7 +5,7 @@ from __future__ import annotations
 import torch
 from torch import nn
 
-from hsicam.cameras import DOECamera
+from hsicam.cameras import Camera, build_camera
 from hsicam.models.rdn import RDN
 
 
@@ -16,14 +16,14 @@ class CameraSystem(nn.Module):
     the scene by ``camera.margin`` and aligned with :meth:`target` (the scene's centre crop).
     """
 
-    def __init__(self, camera: DOECamera, net: nn.Module) -> None:
+    def __init__(self, camera: Camera, net: nn.Module) -> None:
         super().__init__()
         self.camera, self.net = camera, net
         self.autocast_dtype: torch.dtype | None = None  # e.g. torch.bfloat16 for the network on CUDA
 
     @classmethod
     def from_config(cls, cfg) -> "CameraSystem":  # cfg: hsicam.config.Config
-        camera = DOECamera.from_config(cfg)
+        camera = build_camera(cfg)
         m = cfg.model
         net = RDN(len(camera.bands), 1, m.blocks, m.features, m.growth, m.layers_per_block)
         return cls(camera, net)
