@@ -19,6 +19,7 @@ COMMAND_MODULES = (
     "hsicam.cli.camera",
     "hsicam.cli.data",
     "hsicam.cli.train",
+    "hsicam.cli.reconstruct",
     "hsicam.cli.demo",
 )
 
