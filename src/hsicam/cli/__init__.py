@@ -20,6 +20,7 @@ COMMAND_MODULES = (
     "hsicam.cli.data",
     "hsicam.cli.train",
     "hsicam.cli.reconstruct",
+    "hsicam.cli.evaluate",
     "hsicam.cli.demo",
 )
 

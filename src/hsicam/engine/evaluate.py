@@ -1,62 +1,118 @@
-"""Evaluation of a trained camera on whole scenes.
+"""Evaluation of a camera + reconstruction method on whole scenes.
 
-Each scene is imaged in the camera's ``valid`` mode (the physically right one: the scene border
-is context the sensor does not see), so metrics cover the sensor area: the scene minus the
-kernel margin. Reconstructions are clipped to [0, 1] (scenes are per-cube max normalised).
+Each scene is imaged by the method's camera (the learned DOE camera in ``valid`` mode: the scene
+border is context the sensor does not see, so metrics cover the sensor area, the scene minus the
+kernel margin), optionally with test noise (DOE height σ_p, sensor σ_s) over several seeds, and
+reconstructed (the DOE network tile by tile with an exact halo). Reconstructions are clipped to
+[0, 1] (scenes are per-cube max normalised, see ``hsicam.data.cube``). Every result file states
+the metric conventions (``hsicam.metrics.CONVENTIONS``).
 """
 
 from __future__ import annotations
 
+import csv
+import hashlib
+import io
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Sequence
 
 import numpy as np
 import torch
 
+from hsicam.engine.methods import Method
+from hsicam.engine.train import get_noise, set_noise
+from hsicam.io import atomic_open, write_json
 from hsicam.metrics import CONVENTIONS, all_metrics
-from hsicam.models import CameraSystem
+
+METRIC_KEYS = ("psnr", "ssim", "sam", "ergas", "psnr_cube", "psnr_mst", "rmse")
 
 
 @dataclass
 class SceneResult:
     name: str
-    metrics: dict[str, float]
-    truth: np.ndarray  # (C, H, W), the sensor-aligned ground truth
-    estimate: np.ndarray  # (C, H, W)
-    runtime_s: float  # reconstruction time (network only)
+    metrics: dict[str, float]  # mean over seeds
+    truth: np.ndarray | None  # (C, H, W), the sensor-aligned ground truth (first seed)
+    estimate: np.ndarray | None  # (C, H, W) (first seed)
+    runtime_s: float  # reconstruction time (mean over seeds)
+    metrics_std: dict[str, float] = field(default_factory=dict)  # over seeds
+
+
+@dataclass(frozen=True)
+class TestNoise:
+    """Test-time noise: DOE height σ_p (nm; None keeps the camera's) and sensor Gaussian σ_s."""
+
+    sigma_height_nm: float | None = None
+    sensor_sigma: float | None = None
+    seeds: tuple[int, ...] = (0,)
+
+
+def config_hash(yaml_text: str) -> str:
+    """Short SHA-256 of a resolved config (identifies the run a result came from)."""
+    return hashlib.sha256(yaml_text.encode()).hexdigest()[:12]
 
 
 @torch.no_grad()
-def evaluate_scenes(model: CameraSystem, scenes, names: list[str], seed: int = 0, device: str | torch.device = "cpu",
-                    keep_arrays: bool = True) -> list[SceneResult]:
-    """Simulate, reconstruct and score every scene of ``scenes`` (a SceneDataset-like sequence)."""
-    model.eval()
+def evaluate_method(method: Method, scenes, names: Sequence[str], noise: TestNoise = TestNoise(),
+                    device: str | torch.device = "cpu", keep_arrays: bool = True, tile_px: int = 512) -> list[SceneResult]:
+    """Simulate, reconstruct and score every scene of ``scenes`` (items: (C, H, W) tensors)."""
+    from hsicam.engine.inference import receptive_radius, reconstruct_tiled
+
+    cam = method.camera
+    saved = get_noise(cam)
+    sigma_h = saved[0] if noise.sigma_height_nm is None else noise.sigma_height_nm * 1e-9
+    sigma_s = saved[1] if noise.sensor_sigma is None else noise.sensor_sigma
+    set_noise(cam, sigma_h, sigma_s)
+    net = getattr(method.reconstruct, "__self__", None)
+    halo = receptive_radius(net) if isinstance(net, torch.nn.Module) else None
     out = []
-    g = torch.Generator(device=device).manual_seed(seed)
-    psf = model.camera.psf(g)
-    for i, name in enumerate(names):
-        scene = scenes[i][None].to(device)
-        sensor = model.camera.noise(model.camera.A(scene, psf), g)
-        t0 = time.perf_counter()
-        est = model.reconstruct(sensor).float().clamp(0, 1)
-        runtime = time.perf_counter() - t0
-        truth = model.target(scene)
-        m = {k: v[0] for k, v in all_metrics(est, truth).items()}
-        out.append(SceneResult(name, m, truth[0].cpu().numpy() if keep_arrays else None,
-                               est[0].cpu().numpy() if keep_arrays else None, runtime))
+    try:
+        cam.eval()
+        for i, name in enumerate(names):
+            scene = scenes[i][None].to(device)
+            truth = method.target(scene)
+            per_seed, times, est0 = [], [], None
+            for seed in noise.seeds:
+                g = torch.Generator(device=device).manual_seed(int(seed))
+                sensor = cam(scene, g)
+                t0 = time.perf_counter()
+                if halo is not None:
+                    est = reconstruct_tiled(method.reconstruct, sensor, tile_px, halo)
+                else:
+                    est = method.reconstruct(sensor)
+                times.append(time.perf_counter() - t0)
+                est = est.float().clamp(0, 1)
+                per_seed.append({k: v[0] for k, v in all_metrics(est, truth).items()})
+                if est0 is None:
+                    est0 = est
+            mean = {k: float(np.mean([m[k] for m in per_seed])) for k in per_seed[0]}
+            std = {k: float(np.std([m[k] for m in per_seed])) for k in per_seed[0]} if len(per_seed) > 1 else {}
+            out.append(SceneResult(name, mean, truth[0].cpu().numpy() if keep_arrays else None,
+                                   est0[0].cpu().numpy() if keep_arrays else None, float(np.mean(times)), std))
+    finally:
+        set_noise(cam, *saved)
     return out
 
 
-def summarize(results: list[SceneResult]) -> dict:
+def evaluate_scenes(model, scenes, names: Sequence[str], seed: int = 0, device: str | torch.device = "cpu",
+                    keep_arrays: bool = True) -> list[SceneResult]:
+    """The learned camera (a :class:`~hsicam.models.CameraSystem`) with its configured noise."""
+    method = Method("doe-rdn", model.camera, model.reconstruct, model.target)
+    return evaluate_method(method, scenes, names, TestNoise(seeds=(seed,)), device, keep_arrays)
+
+
+def summarize(results: list[SceneResult], **facts) -> dict:
     """Per-scene rows, means and the metric conventions, as a JSON-ready dict."""
-    rows = [{"name": r.name, **r.metrics, "runtime_s": r.runtime_s} for r in results]
-    keys = list(results[0].metrics) + ["runtime_s"] if results else []
-    means = {k: float(np.mean([row[k] for row in rows])) for k in keys}
-    return {"scenes": rows, "mean": means, "conventions": CONVENTIONS}
+    rows = [{"name": r.name, **r.metrics, "runtime_s": r.runtime_s,
+             **({"std": r.metrics_std} if r.metrics_std else {})} for r in results]
+    keys = [k for k in METRIC_KEYS if results and k in results[0].metrics] + ["runtime_s"]
+    means = {k: float(np.mean([row[k] for row in rows])) for k in keys} if rows else {}
+    return {**facts, "scenes": rows, "mean": means, "conventions": CONVENTIONS}
 
 
 def format_table(summary: dict, keys: tuple[str, ...] = ("psnr", "ssim", "sam")) -> str:
-    """A plain-text table (Markdown-compatible) of the per-scene metrics and their mean."""
+    """A Markdown table of the per-scene metrics and their mean."""
     head = "| scene | " + " | ".join(keys) + " |"
     sep = "|---" * (len(keys) + 1) + "|"
     lines = [head, sep]
@@ -66,4 +122,28 @@ def format_table(summary: dict, keys: tuple[str, ...] = ("psnr", "ssim", "sam"))
 
 
 def _fmt(key: str, v: float) -> str:
-    return f"{v:.4f}" if key == "ssim" else f"{v:.2f}"
+    if key in ("ssim", "rmse", "runtime_s"):
+        return f"{v:.4f}"
+    return f"{v:.2f}"
+
+
+def write_results(out: Path, summary: dict) -> None:
+    """results.json, results.csv and results.md (conventions stated in each)."""
+    write_json(out / "results.json", summary)
+    keys = [k for k in METRIC_KEYS if k in summary["mean"]] + ["runtime_s"]
+    buf = io.StringIO()
+    w = csv.writer(buf)
+    w.writerow(["name", *keys])
+    for row in summary["scenes"]:
+        w.writerow([row["name"], *[f"{row[k]:.6g}" for k in keys]])
+    w.writerow(["mean", *[f"{summary['mean'][k]:.6g}" for k in keys]])
+    with atomic_open(out / "results.csv", "w", encoding="utf-8", newline="") as fh:
+        fh.write(buf.getvalue())
+    conv = summary["conventions"]
+    head = [f"# Results: {summary.get('method', '')}", ""]
+    for k in ("run", "data", "noise", "config_hash"):
+        if k in summary:
+            head.append(f"- {k}: {summary[k]}")
+    head += [f"- PSNR: {conv['psnr']}; SSIM: {conv['ssim']}; SAM: {conv['sam']}", ""]
+    with atomic_open(out / "results.md", "w", encoding="utf-8") as fh:
+        fh.write("\n".join(head) + "\n" + format_table(summary, ("psnr", "ssim", "sam", "ergas", "runtime_s")) + "\n")

@@ -1,0 +1,239 @@
+"""`hsicam report DIR`: a self-contained HTML report (relative image paths) of an evaluation
+folder (``results.json`` [+ ``cubes/``]) or an experiment folder (``experiment.json``)."""
+
+from __future__ import annotations
+
+import html
+import json
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+import torch  # noqa: E402
+
+from hsicam.errors import InputError  # noqa: E402
+from hsicam.io import atomic_open, save_figure  # noqa: E402
+from hsicam.report.reconstruction import cube_rgb, plot_training_curves  # noqa: E402
+from hsicam.spectral import Bands  # noqa: E402
+
+CSS = """body{font-family:system-ui,sans-serif;max-width:1200px;margin:2em auto;padding:0 1em;color:#222}
+table{border-collapse:collapse;margin:1em 0}td,th{border:1px solid #ccc;padding:4px 8px;text-align:right}
+th{background:#f3f3f3}td:first-child,th:first-child{text-align:left}img{max-width:100%;border:1px solid #eee}
+.note{color:#555;font-size:90%}h2{border-bottom:1px solid #ddd;padding-bottom:4px}"""
+
+# Sets document.title to "report-ok N" or "report-missing K" once every image has loaded or failed,
+# so a headless browser (and the tests) can tell a complete report from one with broken images.
+CHECK_IMAGES = """<script>
+window.addEventListener('load', function () {
+  var imgs = Array.prototype.slice.call(document.images);
+  var bad = imgs.filter(function (i) { return !(i.complete && i.naturalWidth > 0); });
+  document.title = bad.length ? 'report-missing ' + bad.length : 'report-ok ' + imgs.length;
+  document.body.setAttribute('data-images', document.title);
+});
+</script>"""
+
+
+def build_report(folder: str | Path) -> Path:
+    """Write ``folder/report/index.html`` and its PNGs; returns the index path."""
+    folder = Path(folder)
+    if not folder.is_dir():
+        raise InputError(f"{folder}: no such folder")
+    out = folder / "report"
+    out.mkdir(exist_ok=True)
+    if (folder / "experiment.json").is_file():
+        body = _experiment_sections(folder, out)
+        title = "hsicam experiment report"
+    elif (folder / "results.json").is_file():
+        body = _evaluation_sections(folder, out)
+        title = "hsicam evaluation report"
+    else:
+        raise InputError(f"{folder}: neither results.json (hsicam evaluate) nor experiment.json (hsicam experiment)")
+    page = (f"<!doctype html><html><head><meta charset='utf-8'><title>{title}</title><style>{CSS}</style></head>"
+            f"<body><h1>{title}</h1><p class='note'>{html.escape(str(folder))}</p>{''.join(body)}{CHECK_IMAGES}</body></html>")
+    index = out / "index.html"
+    with atomic_open(index, "w", encoding="utf-8") as fh:
+        fh.write(page)
+    return index
+
+
+# -- sections ---------------------------------------------------------------------------------
+def _img(name: str, caption: str) -> str:
+    return f"<figure><img src='{html.escape(name)}' alt='{html.escape(caption)}'><figcaption class='note'>{html.escape(caption)}</figcaption></figure>"
+
+
+def _table(rows: list[dict], cols: list[tuple[str, str, str]]) -> str:
+    """cols: (key, header, format)."""
+    head = "".join(f"<th>{html.escape(h)}</th>" for _, h, _ in cols)
+    body = []
+    for r in rows:
+        cells = []
+        for key, _, fmt in cols:
+            v = r.get(key, "")
+            cells.append(f"<td>{html.escape(format(v, fmt) if isinstance(v, (int, float)) and fmt else str(v))}</td>")
+        body.append("<tr>" + "".join(cells) + "</tr>")
+    return f"<table><tr>{head}</tr>{''.join(body)}</table>"
+
+
+def _conventions(conv: dict) -> str:
+    return "<p class='note'>" + "; ".join(f"{html.escape(k)}: {html.escape(v)}" for k, v in conv.items()) + "</p>"
+
+
+def _camera_section(run: Path, out: Path, prefix: str = "") -> str:
+    from hsicam.engine.checkpoint import load_run
+    from hsicam.report.camera import plot_cfa, plot_doe_heights, plot_psf_montage
+
+    try:
+        _, model = load_run(run)
+    except InputError as exc:
+        return f"<p class='note'>camera figures unavailable: {html.escape(str(exc))}</p>"
+    cam = model.camera
+    parts = [f"<h2>Camera ({html.escape(str(run))})</h2>"]
+    with torch.no_grad():
+        if hasattr(cam, "optics"):
+            res = cam.psf_result()
+            plot_psf_montage(res.psf.numpy(), cam.bands, out / f"{prefix}psf.png")
+            parts.append(_img(f"{prefix}psf.png", "PSF per band (each normalised); energy in kernel "
+                              f"{res.energy.min().item():.4f}–{res.energy.max().item():.4f}"))
+            q = cam.optics.pupil_oversample
+            plot_doe_heights(cam.optics.doe.heights().numpy(), cam.optics.amplitude[::q, ::q].numpy(),
+                             cam.optics.cell_m * 1e6, out / f"{prefix}doe.png")
+            parts.append(_img(f"{prefix}doe.png", "DOE height map"))
+        if hasattr(cam, "cfa"):
+            plot_cfa(cam.cfa.tile().numpy(), cam.bands, out / f"{prefix}cfa.png")
+            parts.append(_img(f"{prefix}cfa.png", "colour filter array tile and transmission curves"))
+    if (run / "metrics.jsonl").is_file():
+        plot_training_curves(run / "metrics.jsonl", out / f"{prefix}training.png")
+        parts.append(_img(f"{prefix}training.png", "training loss and validation PSNR / SSIM"))
+    return "".join(parts)
+
+
+def _evaluation_sections(folder: Path, out: Path) -> list[str]:
+    res = json.loads((folder / "results.json").read_text())
+    parts = [f"<h2>Results: {html.escape(str(res.get('method', '')))}</h2>",
+             f"<p class='note'>data: {html.escape(str(res.get('data', '')))}; noise: {html.escape(json.dumps(res.get('noise')))}; "
+             f"config {html.escape(str(res.get('config_hash', '')))}</p>"]
+    cols = [("name", "scene", ""), ("psnr", "PSNR (dB)", ".2f"), ("ssim", "SSIM", ".4f"), ("sam", "SAM (°)", ".2f"),
+            ("ergas", "ERGAS", ".2f"), ("psnr_mst", "PSNR MST (dB)", ".2f"), ("runtime_s", "runtime (s)", ".3f")]
+    parts.append(_table(res["scenes"] + [{"name": "mean", **res["mean"]}], cols))
+    parts.append(_conventions(res["conventions"]))
+    bands = Bands.from_centers(res["bands_nm"]) if "bands_nm" in res else None
+    cubes = folder / "cubes"
+    if cubes.is_dir() and bands is not None:
+        from hsicam.data import read_cube
+
+        parts.append("<h2>Reconstructions</h2>")
+        for est_path in sorted(cubes.glob("*_estimate.h5"))[:6]:
+            name = est_path.name[: -len("_estimate.h5")]
+            truth_path = cubes / f"{name}_truth.h5"
+            if not truth_path.is_file():
+                continue
+            est, b, _ = read_cube(est_path)
+            truth, _, _ = read_cube(truth_path)
+            plot_scene_comparison(truth, est, b, out / f"recon_{name}.png", title=name)
+            plot_band_errors(truth, est, b, out / f"errors_{name}.png")
+            parts.append(_img(f"recon_{name}.png", f"{name}: ground truth vs reconstruction (sRGB, CIE 1931 / D65) with zoomed crops and spectra at marked pixels"))
+            parts.append(_img(f"errors_{name}.png", f"{name}: absolute error per band"))
+    if res.get("run"):
+        parts.append(_camera_section(Path(res["run"]), out))
+    return parts
+
+
+def _experiment_sections(folder: Path, out: Path) -> list[str]:
+    exp = json.loads((folder / "experiment.json").read_text())
+    parts = [f"<h2>Experiment: {html.escape(exp['experiment'])} ({html.escape(exp['scale'])} scale)</h2>",
+             f"<p class='note'>{len(exp['scenes'])} validation scenes, seeds {exp['seeds']}</p>"]
+    rows = [r for r in exp["rows"] if "missing" not in r]
+    if exp["experiment"] == "noise":
+        cols = [("method", "camera", ""), ("psnr", "PSNR clean", ".2f"), ("ssim", "SSIM clean", ".4f"),
+                ("psnr_worst", "worst PSNR", ".2f"), ("ssim_worst", "worst SSIM", ".4f")]
+        parts.append(_table(rows, cols))
+        plot_noise_grid(exp["noise_grid"], out / "noise_grid.png")
+        parts.append(_img("noise_grid.png", "PSNR (solid) and SSIM (dashed) versus sensor noise σ_s, one colour per DOE height noise σ_p"))
+    else:
+        cols = [("method", "method", ""), ("psnr", "PSNR (dB)", ".2f"), ("ssim", "SSIM", ".4f"), ("sam", "SAM (°)", ".2f"),
+                ("runtime_s", "runtime (s/scene)", ".3f")]
+        parts.append(_table(rows, cols))
+        missing = [r["method"] for r in exp["rows"] if "missing" in r]
+        if missing:
+            parts.append(f"<p class='note'>not available in this installation: {html.escape(', '.join(missing))}</p>")
+    parts.append(_conventions(exp["conventions"]))
+    runs = sorted(p for p in (folder / "runs").iterdir() if (p / "model.safetensors").is_file()) if (folder / "runs").is_dir() else []
+    for i, run in enumerate(runs):
+        parts.append(_camera_section(run, out, prefix=f"{i:02d}_"))
+    return parts
+
+
+# -- figures ------------------------------------------------------------------------------------
+def plot_scene_comparison(truth: np.ndarray, est: np.ndarray, bands: Bands, path: Path, title: str = "") -> None:
+    """Ground truth and reconstruction in sRGB with two zoomed crops each, plus spectra at 3 pixels."""
+    gt_rgb, est_rgb = np.clip(cube_rgb(truth, bands), 0, 1), np.clip(cube_rgb(est, bands), 0, 1)
+    h, w = truth.shape[1:]
+    s = max(min(h, w) // 4, 4)
+    crops = [((h - s) // 2, (w - s) // 2, "tab:cyan"), (h // 8, w // 8, "tab:pink")]
+    pts = [(h // 4, 3 * w // 4, "tab:red"), (h // 2, w // 2, "tab:green"), (3 * h // 4, w // 4, "tab:blue")]
+    fig = plt.figure(figsize=(13, 6))
+    gs = fig.add_gridspec(2, 5)
+    for col, (img, name) in enumerate(((gt_rgb, "ground truth"), (est_rgb, "reconstruction"))):
+        ax = fig.add_subplot(gs[:, col])
+        ax.imshow(img)
+        ax.set_title(f"{title} {name}", fontsize=9)
+        for y, x, c in crops:
+            ax.add_patch(plt.Rectangle((x, y), s, s, fill=False, ec=c, lw=1.5))
+        for y, x, c in pts:
+            ax.plot(x, y, "o", mfc="none", mec=c, ms=7)
+        ax.set_xticks([])
+        ax.set_yticks([])
+        for row, (y, x, c) in enumerate(crops):
+            cax = fig.add_subplot(gs[row, 2 + col])
+            cax.imshow(img[y : y + s, x : x + s], interpolation="nearest")
+            cax.set_title(f"{name} crop", fontsize=8, color=c)
+            cax.set_xticks([])
+            cax.set_yticks([])
+    ax = fig.add_subplot(gs[:, 4])
+    for y, x, c in pts:
+        ax.plot(bands.centers_nm, truth[:, y, x], color=c, lw=1.6)
+        ax.plot(bands.centers_nm, est[:, y, x], color=c, lw=1.2, ls="--")
+    ax.set_xlabel("wavelength (nm)")
+    ax.set_title("spectra: truth solid, reconstruction dashed", fontsize=8)
+    save_figure(fig, path)
+
+
+def plot_band_errors(truth: np.ndarray, est: np.ndarray, bands: Bands, path: Path, max_bands: int = 16) -> None:
+    """|estimate − truth| for up to ``max_bands`` evenly chosen bands, one shared colour scale."""
+    idx = np.unique(np.linspace(0, len(bands) - 1, min(max_bands, len(bands))).round().astype(int))
+    err = np.abs(est - truth)
+    vmax = max(float(np.percentile(err[idx], 99.5)), 1e-6)
+    cols = min(8, idx.size)
+    rows = int(np.ceil(idx.size / cols))
+    fig, axes = plt.subplots(rows, cols, figsize=(1.7 * cols, 1.9 * rows), squeeze=False)
+    for ax in axes.flat:
+        ax.axis("off")
+    for ax, i in zip(axes.flat, idx):
+        im = ax.imshow(err[i], cmap="magma", vmin=0, vmax=vmax)
+        ax.set_title(f"{bands.centers_nm[i]:g} nm", fontsize=8)
+    fig.colorbar(im, ax=axes.ravel().tolist(), fraction=0.02, label="|error|")
+    save_figure(fig, path)
+
+
+def plot_noise_grid(grid: dict, path: Path) -> None:
+    """Fig. 7 style: PSNR (solid, left axis) and SSIM (dashed, right axis) versus σ_s per σ_p."""
+    names = list(grid["results"])
+    fig, axes = plt.subplots(1, len(names), figsize=(5.5 * len(names), 4), squeeze=False)
+    colors = plt.cm.viridis(np.linspace(0, 0.9, len(grid["sigma_height_nm"])))
+    for ax, name in zip(axes[0], names):
+        ax2 = ax.twinx()
+        for sp, c in zip(grid["sigma_height_nm"], colors):
+            pts = [g for g in grid["results"][name] if g["sigma_height_nm"] == sp]
+            xs = [g["sensor_sigma"] for g in pts]
+            ax.plot(xs, [g["psnr"] for g in pts], "-o", color=c, label=f"σ_p {sp:g} nm")
+            ax2.plot(xs, [g["ssim"] for g in pts], "--s", color=c, ms=4)
+        ax.set_xlabel("sensor noise σ_s")
+        ax.set_ylabel("PSNR (dB), solid")
+        ax2.set_ylabel("SSIM, dashed")
+        ax.set_title(name)
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=7)
+    save_figure(fig, path)
