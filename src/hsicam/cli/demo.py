@@ -8,7 +8,6 @@ SAM and write figures and tables into ``--out``.
 from __future__ import annotations
 
 import argparse
-import json
 import logging
 import time
 from pathlib import Path
@@ -25,17 +24,6 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=cmd_demo)
 
 
-def _finished(run: Path) -> bool:
-    m = run / "metrics.jsonl"
-    if not (m.is_file() and (run / "model.safetensors").is_file()):
-        return False
-    lines = [x for x in m.read_text().splitlines() if x.strip()]
-    try:
-        return bool(lines) and json.loads(lines[-1]).get("final", False)
-    except json.JSONDecodeError:
-        return False
-
-
 def cmd_demo(args: argparse.Namespace) -> int:
     import torch
 
@@ -45,6 +33,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
     from hsicam.data.pipeline import dataset_root
     from hsicam.engine.checkpoint import load_run
     from hsicam.engine.evaluate import evaluate_scenes, format_table, summarize
+    from hsicam.engine.experiments import is_finished
     from hsicam.engine.train import train
     from hsicam.io import write_json
     from hsicam.report.camera import plot_cfa, plot_doe_heights
@@ -54,7 +43,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
     out = Path(args.out)
     run = out / "run"
     cfg = load_config(args.config or "quick", args.overrides)
-    if _finished(run):
+    if is_finished(run):
         print(f"[demo] reusing the trained run in {run}")
     else:
         resume = (run / "config.yaml").is_file()

@@ -52,7 +52,7 @@ import numpy as np
 
 from hsicam.data.cube import check_cube
 from hsicam.errors import InputError
-from hsicam.io import atomic_path
+from hsicam.io import atomic_path, json_default
 from hsicam.spectral import Bands
 
 log = logging.getLogger(__name__)
@@ -268,7 +268,7 @@ def write_cube_h5(path: str | os.PathLike, cube: np.ndarray, bands: Bands, metad
     arr = check_cube(cube, p)
     if arr.shape[0] != len(bands):
         raise InputError(f"{p}: the cube has {arr.shape[0]} bands but {len(bands)} band centres were given")
-    meta_json = json.dumps(metadata or {}, sort_keys=True, default=_json_default)
+    meta_json = json.dumps(metadata or {}, sort_keys=True, default=json_default)
     with atomic_path(p) as tmp:
         with h5py.File(tmp, "w", libver=("earliest", "v110")) as f:
             f.create_dataset("cube", data=arr, track_times=False)
@@ -280,16 +280,6 @@ def write_cube_h5(path: str | os.PathLike, cube: np.ndarray, bands: Bands, metad
             f.attrs["max_value"] = float(arr.max())
             f.attrs["metadata_json"] = meta_json
     return p
-
-
-def _json_default(obj: Any) -> Any:
-    if isinstance(obj, np.generic):
-        return obj.item()
-    if isinstance(obj, np.ndarray):
-        return obj.tolist()
-    if isinstance(obj, Path):
-        return str(obj)
-    raise TypeError(f"metadata value of type {type(obj).__name__} is not JSON serialisable")
 
 
 # ------------------------------------------------------------------------------------------------

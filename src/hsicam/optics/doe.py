@@ -53,7 +53,7 @@ class DOE(nn.Module):
         n_cells: cells across the pupil grid (odd).
         material: DOE material (refractive index).
         design_wavelength_nm: λ0 for h_2π.
-        init: "random" (uniform in [0, h_2π]) or "zeros".
+        init: "random" (uniform in [0, init_range_m], default [0, h_2π]) or "zeros".
         max_height_m, wrap, quantization_levels, sigma_height_m: see module docstring.
     """
 
@@ -69,6 +69,7 @@ class DOE(nn.Module):
         wrap: bool = False,
         quantization_levels: int | None = None,
         sigma_height_m: float = 0.0,
+        init_range_m: float | None = None,
     ) -> None:
         super().__init__()
         self.n_cells = int(n_cells)
@@ -83,7 +84,8 @@ class DOE(nn.Module):
         if self.enabled:
             g = torch.Generator().manual_seed(int(seed))
             if init == "random":
-                h0 = torch.rand(self.n_cells, self.n_cells, generator=g, dtype=torch.float64) * self.h2pi_m
+                top = self.h2pi_m if init_range_m is None else float(init_range_m)
+                h0 = torch.rand(self.n_cells, self.n_cells, generator=g, dtype=torch.float64) * top
             elif init == "zeros":
                 h0 = torch.zeros(self.n_cells, self.n_cells, dtype=torch.float64)
             else:
