@@ -26,7 +26,8 @@ def cube_rgb(cube: np.ndarray, bands: Bands) -> np.ndarray:
 def plot_reconstructions(results, bands: Bands, path: str | Path, max_rows: int = 6) -> None:
     """Rows of [ground truth RGB | reconstruction RGB | mean abs error map | spectra at 3 pixels]."""
     results = list(results)[:max_rows]
-    fig, axes = plt.subplots(len(results), 4, figsize=(13, 3.1 * len(results)), squeeze=False)
+    fig, axes = plt.subplots(len(results), 4, figsize=(14, 3.2 * len(results)), squeeze=False,
+                             gridspec_kw={"wspace": 0.3})
     for row, r in zip(axes, results):
         gt, est = r.truth, r.estimate
         row[0].imshow(np.clip(cube_rgb(gt, bands), 0, 1))
@@ -36,7 +37,7 @@ def plot_reconstructions(results, bands: Bands, path: str | Path, max_rows: int 
         err = np.abs(est - gt).mean(axis=0)
         im = row[2].imshow(err, cmap="magma", vmin=0, vmax=max(float(np.percentile(err, 99)), 1e-6))
         row[2].set_title("mean |error| over bands", fontsize=9)
-        plt.colorbar(im, ax=row[2], fraction=0.046)
+        fig.colorbar(im, cax=row[2].inset_axes([1.03, 0.0, 0.05, 1.0]))
         h, w = gt.shape[1:]
         pts = [(h // 4, w // 4), (h // 2, w // 2), (3 * h // 4, 3 * w // 4)]
         for (y, x), col in zip(pts, ("tab:red", "tab:green", "tab:blue")):
