@@ -260,9 +260,8 @@ def train(cfg: Config, run_dir: str | Path, resume: bool = False, progress: bool
     workers = cfg.data.num_workers
     val_loader = make_loader(val_ds, cfg.train.batch_size, workers, shuffle=False) if (val_ds is not None and is_main) else None
 
-    net = model.net
     if cfg.train.compile:
-        model.net = torch.compile(model.net)  # type: ignore[assignment]
+        model.net.compile()  # in place: state-dict keys stay those of the plain module
     trainable: torch.nn.Module = model
     if distributed:
         trainable = torch.nn.parallel.DistributedDataParallel(model, device_ids=[device.index] if device.type == "cuda" else None)
@@ -357,7 +356,6 @@ def train(cfg: Config, run_dir: str | Path, resume: bool = False, progress: bool
     metrics.write(summary)
     if writer:
         writer.close()
-    del net
     return summary
 
 

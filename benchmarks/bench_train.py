@@ -1,0 +1,107 @@
+"""Training and inference benchmark (issue 4): prints one JSON object.
+
+- Training throughput (patches/s) of full optimisation steps (PSF from the DOE, camera, RDN,
+  L1, backward, Adam) for the ``quick`` preset on this machine, with the time split between the
+  optics (PSF + camera) and the network, forward and backward.
+- With CUDA: the same for the ``paper`` preset (256 px patches, bf16 autocast, channels_last).
+- Inference time of one 512×512×31 reconstruction (network only) for the quick and paper networks.
+
+Run: `.venv/bin/python benchmarks/bench_train.py [--steps N]`. Timings are medians.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import statistics
+import time
+
+import torch
+import torch.nn.functional as F
+
+from hsicam.config import load_config
+from hsicam.engine.train import build_optimizer
+from hsicam.models import CameraSystem
+
+
+def _sync(device: torch.device) -> None:
+    if device.type == "cuda":
+        torch.cuda.synchronize()
+
+
+def train_steps(preset: str, device: torch.device, steps: int, overrides: list[str]) -> dict:
+    cfg = load_config(preset, overrides)
+    torch.manual_seed(0)
+    model = CameraSystem.from_config(cfg).to(device)
+    if device.type == "cuda" and cfg.train.bf16:
+        model.autocast_dtype = torch.bfloat16
+    if cfg.train.channels_last:
+        model.net.to(memory_format=torch.channels_last)
+    opt = build_optimizer(cfg, model)
+    b, p, m = cfg.train.batch_size, cfg.data.patch_px, model.camera.margin
+    scene = torch.rand(b, len(model.bands), p + m, p + m, device=device)
+    t_optics, t_net, t_step = [], [], []
+    for i in range(steps + 1):
+        _sync(device)
+        t0 = time.perf_counter()
+        sensor = model.camera(scene)
+        _sync(device)
+        t1 = time.perf_counter()
+        recon = model.reconstruct(sensor.detach().requires_grad_())
+        loss = F.l1_loss(recon.float(), model.target(scene))
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        _sync(device)
+        t2 = time.perf_counter()
+        # optics backward, with the gradient the network passed to the sensor image
+        grad = torch.randn_like(sensor)
+        sensor.backward(grad)
+        opt.step()
+        _sync(device)
+        t3 = time.perf_counter()
+        if i:  # first step is warm-up
+            t_optics.append((t1 - t0) + (t3 - t2))
+            t_net.append(t2 - t1)
+            t_step.append(t3 - t0)
+    step = statistics.median(t_step)
+    return {"preset": preset, "device": str(device), "batch": b, "patch_px": p, "kernel_px": m + 1,
+            "step_s": step, "patches_per_s": b / step,
+            "optics_fraction": statistics.median(t_optics) / step, "network_fraction": statistics.median(t_net) / step}
+
+
+@torch.no_grad()
+def inference(preset: str, device: torch.device, repeats: int = 3) -> dict:
+    cfg = load_config(preset)
+    model = CameraSystem.from_config(cfg).to(device).eval()
+    if device.type == "cuda" and cfg.train.bf16:
+        model.autocast_dtype = torch.bfloat16
+    g = torch.rand(1, 1, 512, 512, device=device)
+    model.reconstruct(g)
+    times = []
+    for _ in range(repeats):
+        _sync(device)
+        t0 = time.perf_counter()
+        model.reconstruct(g)
+        _sync(device)
+        times.append(time.perf_counter() - t0)
+    return {"preset": preset, "device": str(device), "size": [31, 512, 512], "seconds": statistics.median(times)}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--steps", type=int, default=5)
+    args = ap.parse_args()
+    cpu = torch.device("cpu")
+    out = {"torch": torch.__version__, "threads": torch.get_num_threads(),
+           "train_quick_cpu": train_steps("quick", cpu, args.steps, []),
+           "inference_cpu": [inference("quick", cpu), inference("paper", cpu, repeats=1)]}
+    if torch.cuda.is_available():
+        gpu = torch.device("cuda")
+        out["gpu"] = torch.cuda.get_device_name(0)
+        out["train_paper_gpu"] = train_steps("paper", gpu, max(args.steps, 10), [])
+        out["inference_gpu"] = [inference("quick", gpu), inference("paper", gpu)]
+    print(json.dumps(out, indent=2))
+
+
+if __name__ == "__main__":
+    main()
