@@ -47,15 +47,14 @@ def train_steps(preset: str, device: torch.device, steps: int, overrides: list[s
         sensor = model.camera(scene)
         _sync(device)
         t1 = time.perf_counter()
-        recon = model.reconstruct(sensor.detach().requires_grad_())
+        sensor_in = sensor.detach().requires_grad_()
+        recon = model.reconstruct(sensor_in)
         loss = F.l1_loss(recon.float(), model.target(scene))
         opt.zero_grad(set_to_none=True)
         loss.backward()
         _sync(device)
         t2 = time.perf_counter()
-        # optics backward, with the gradient the network passed to the sensor image
-        grad = torch.randn_like(sensor)
-        sensor.backward(grad)
+        sensor.backward(sensor_in.grad)  # optics backward, with the network's gradient
         opt.step()
         _sync(device)
         t3 = time.perf_counter()
