@@ -205,3 +205,31 @@ def test_train_and_reconstruct_cli(tmp_path, cache_env):
     text = (other / "config.yaml").read_text().replace("step_nm: 50.0", "step_nm: 60.0")
     (other / "config.yaml").write_text(text)
     assert_clean_error(run_cli("reconstruct", str(tmp_path / "sim" / "sensor.npy"), "--run", str(other), "--out", str(out)), "trained on")
+
+
+def test_metrics_truncation_drops_records_the_checkpoint_never_saw(tmp_path):
+    from hsicam.engine.train import MetricsLog
+
+    log = MetricsLog(tmp_path / "metrics.jsonl", True)
+    for rec in ({"step": 4, "epoch": 0, "train_loss": 1.0}, {"step": 8, "epoch": 1, "train_loss": 0.5},
+                {"step": 8, "epoch": 2, "val_psnr": 20.0}, {"step": 9, "epoch": 2, "train_loss": 0.4}):
+        log.write(rec)
+    with open(tmp_path / "metrics.jsonl", "a") as fh:
+        fh.write('{"step": 10, "epo')  # a record cut by SIGKILL
+    log.truncate_after(8, 1)  # checkpoint at step 8 taken before epoch 2's validation finished
+    recs = [json.loads(x) for x in (tmp_path / "metrics.jsonl").read_text().splitlines()]
+    assert recs == [{"step": 4, "epoch": 0, "train_loss": 1.0}, {"step": 8, "epoch": 1, "train_loss": 0.5}]
+
+
+def test_checkpoint_at_an_existing_step_updates_the_state(tmp_path):
+    from hsicam.engine.checkpoint import CheckpointManager
+
+    cfg = tiny_cfg()
+    model = CameraSystem.from_config(cfg)
+    opt = build_optimizer(cfg, model)
+    mgr = CheckpointManager(tmp_path)
+    mgr.save(model, opt, {"global_step": 8, "epoch": 1, "step_in_epoch": 4}, model.bands)
+    mgr.save(model, opt, {"global_step": 8, "epoch": 2, "step_in_epoch": 0}, model.bands, ("last", "best"))
+    state = mgr.load("last", model, opt, model.bands)
+    assert state["epoch"] == 2 and state["step_in_epoch"] == 0
+    assert mgr.path("best") == mgr.path("last")

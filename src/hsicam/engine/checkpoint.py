@@ -122,7 +122,11 @@ class CheckpointManager:
         self.ckpt_dir.mkdir(parents=True, exist_ok=True)
         name = f"step-{int(state['global_step']):08d}"
         final = self.ckpt_dir / name
-        if not final.exists():
+        if final.exists():
+            # Same step (e.g. the epoch-end save after a periodic one): the weights are the
+            # same; only the training state moves on (epoch counter, best).
+            write_json(final / "state.json", state)
+        else:
             tmp = Path(tempfile.mkdtemp(prefix=f".{name}.", dir=self.ckpt_dir))
             try:
                 save_weights(tmp / "model.safetensors", model, bands)

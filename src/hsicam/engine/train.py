@@ -149,8 +149,12 @@ class MetricsLog:
         finally:
             os.close(fd)
 
-    def truncate_after(self, step: int) -> None:
-        """Keep only complete records up to ``step`` (after resuming from that step)."""
+    def truncate_after(self, step: int, epoch: int) -> None:
+        """Keep only the complete records a checkpoint at (``step``, ``epoch`` epochs done) had seen.
+
+        A validation record at the checkpoint's step belongs to a later epoch when the process
+        died between writing it and saving the epoch-end checkpoint: it is dropped and redone.
+        """
         if not self.path.exists():
             return
         kept = []
@@ -159,7 +163,8 @@ class MetricsLog:
                 rec = json.loads(line)
             except json.JSONDecodeError:
                 continue
-            if rec.get("step", 0) <= step:
+            r_step = rec.get("step", 0)
+            if r_step < step or (r_step == step and rec.get("epoch", 0) <= epoch):
                 kept.append(line)
         with atomic_open(self.path, "w", encoding="utf-8") as fh:
             fh.write("".join(f"{x}\n" for x in kept))
@@ -242,7 +247,7 @@ def train(cfg: Config, run_dir: str | Path, resume: bool = False, progress: bool
     if resume:
         state = ckpt.load("last", model, optimizer, bands) if ckpt.path("last") else state
         if is_main:
-            metrics.truncate_after(state["global_step"])
+            metrics.truncate_after(state["global_step"], state["epoch"])
             log.info("resuming %s at epoch %d, step %d", run_dir, state["epoch"], state["global_step"])
     elif is_main:
         with atomic_open(run_dir / "config.yaml") as fh:
