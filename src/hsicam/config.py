@@ -159,11 +159,24 @@ class CASSIConfig:
     """Coded-aperture cameras (DD-CASSI, SD-CASSI) used as baselines (see hsicam.cameras.cassi)."""
 
     mask_seed: int = 0  # random binary coded aperture drawn from this seed
-    mask_file: Optional[str] = None  # or a coded aperture from a .npy file (H, W)
-    shift_px: float = 2.0  # dispersion per band in pixels (linear dispersion)
+    mask_file: Optional[str] = None  # or a coded aperture from a .npy file (H, W), values in [0, 1]
+    mask_density: float = 0.5  # random aperture: fraction of open (transmitting) pixels
+    shift_px: float = 2.0  # dispersion per band in pixels (linear dispersion; rounded per band)
+    dispersion: Literal["linear", "prism"] = "linear"  # prism: thin-prism shifts from n(λ) of the prism
+    prism_material: str = "fused_silica"  # "fused_silica" or a wavelength_nm,n CSV file
+    prism_apex_deg: float = 30.0  # thin-prism apex angle α: deviation (n(λ) - 1)·α
+    prism_focal_length_mm: float = 50.0  # lens after the prism: shift = f·tan(Δdeviation) / pixel pitch
+    convention: Literal["sum", "mean"] = "mean"  # sum over bands (MST) or mean over bands
 
     def __post_init__(self) -> None:
-        _positive("camera.cassi", shift_px=self.shift_px)
+        _positive("camera.cassi", shift_px=self.shift_px, prism_apex_deg=self.prism_apex_deg,
+                  prism_focal_length_mm=self.prism_focal_length_mm)
+        if not (0.0 < self.mask_density <= 1.0):
+            raise ConfigError(f"camera.cassi.mask_density must be in (0, 1], got {self.mask_density}")
+        if self.prism_apex_deg >= 90.0:
+            raise ConfigError(f"camera.cassi.prism_apex_deg must be below 90, got {self.prism_apex_deg}")
+        if self.mask_file is not None and not self.mask_file.lower().endswith(".npy"):
+            raise ConfigError(f"camera.cassi.mask_file must be a .npy file, got {self.mask_file!r}")
 
 
 @dataclass

@@ -1,0 +1,349 @@
+"""Coded-aperture snapshot spectral imagers (CASSI), the baselines of the paper's Table 1.
+
+Band c (of C) is displaced by an integer dispersion ``d_c`` pixels along the sensor rows
+(``d_0 = 0``, ``D = max_c d_c``); ``P`` is the coded aperture and ``s`` the band convention
+(``sum``: s = 1, the MST convention; ``mean``: s = 1/C, so a white scene gives ≈ the aperture's
+open fraction, comparable with the DOE camera whose CFA sums to 1 over bands):
+
+- **DD-CASSI** (dual disperser; Gehm et al. 2007). The first disperser shears the scene onto the
+  aperture, the second undoes the shear, so the measurement has the scene's size and each band
+  sees the aperture shifted by its dispersion::
+
+      y(i, j) = s · Σ_c P(i, j + d_c) · x_c(i, j)           y: (B, 1, H, W), P: (H, W + D)
+
+- **SD-CASSI** (single disperser; Wagadarikar et al. 2008, MST's simulation): the aperture codes
+  the scene, the disperser shears the coded cube, the sensor sums it::
+
+      y(i, j) = s · Σ_c P(i, j - d_c) · x_c(i, j - d_c)     y: (B, 1, H, W + D), P: (H, W)
+
+Both are linear with exact adjoints, and ΦΦᵀ is diagonal (each scene voxel reaches one sensor
+pixel), which GAP and ADMM use. Dispersion is linear (``d_c = round(shift_px · c)``; MST: 2 px per
+band) or from a thin prism (``d_c`` from the prism glass's n(λ), rounded to whole pixels so that
+ΦΦᵀ stays diagonal). CASSI has no blur kernel: ``margin`` is 0, so ``valid`` and ``same`` give the
+same measurement (the scene is the reconstruction target in both).
+
+The random aperture is a hash of (seed, row, column): the same seed gives the same aperture at
+every size, on every device, and a crop of a larger aperture is the smaller one.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+import torch
+from torch import nn
+
+from hsicam.cameras.base import Camera
+from hsicam.errors import InputError
+from hsicam.sensor import SensorNoise
+from hsicam.spectral import Bands, get_material
+
+log = logging.getLogger(__name__)
+
+_M32 = 0xFFFFFFFF
+
+
+# --------------------------------------------------------------------------------------------
+# Coded aperture
+# --------------------------------------------------------------------------------------------
+def _mix32(h: torch.Tensor) -> torch.Tensor:
+    """32-bit integer finaliser (values kept in int64 below 2^32, products below 2^63)."""
+    h = (((h >> 16) ^ h) * 0x45D9F3B) & _M32
+    h = (((h >> 16) ^ h) * 0x45D9F3B) & _M32
+    return (h >> 16) ^ h
+
+
+def hashed_uniform(h: int, w: int, seed: int, device: torch.device | str | None = None) -> torch.Tensor:
+    """Uniform values in [0, 1) (float64, (h, w)) that depend only on (seed, row, column)."""
+    s = _mix32(torch.tensor((seed * 0x2545F491 + 0x9E3779B9) & _M32, dtype=torch.int64, device=device))
+    rows = torch.arange(h, dtype=torch.int64, device=device)[:, None]
+    cols = torch.arange(w, dtype=torch.int64, device=device)[None, :]
+    v = _mix32(_mix32(s ^ rows) ^ cols)
+    return v.to(torch.float64) / 2.0**32
+
+
+def random_aperture(h: int, w: int, seed: int = 0, density: float = 0.5,
+                    device: torch.device | str | None = None, dtype: torch.dtype = torch.float32) -> torch.Tensor:
+    """Random binary coded aperture (h, w): 1 (open) with probability ``density``, position-hashed."""
+    return (hashed_uniform(h, w, seed, device) < density).to(dtype)
+
+
+def load_aperture(path: str | Path) -> np.ndarray:
+    """Coded aperture (H, W) from a ``.npy`` file; values must be finite and in [0, 1]."""
+    path = Path(path).expanduser()
+    if not path.is_file():
+        raise InputError(f"{path}: no such coded-aperture file")
+    try:
+        arr = np.load(path, allow_pickle=False)
+    except (OSError, ValueError) as exc:
+        raise InputError(f"{path}: not a readable .npy array ({exc})") from None
+    arr = np.squeeze(np.asarray(arr))
+    if arr.ndim != 2 or min(arr.shape) < 1:
+        raise InputError(f"{path}: a coded aperture must be a 2-D (H, W) array, got shape {arr.shape}")
+    if not np.issubdtype(arr.dtype, np.number) or np.issubdtype(arr.dtype, np.complexfloating):
+        raise InputError(f"{path}: a coded aperture must be real numbers, got dtype {arr.dtype}")
+    arr = arr.astype(np.float64)
+    if not np.all(np.isfinite(arr)):
+        raise InputError(f"{path}: coded-aperture values must be finite (the array has NaN or inf)")
+    if arr.min() < 0 or arr.max() > 1:
+        raise InputError(f"{path}: coded-aperture values must be in [0, 1] (got {arr.min():g}..{arr.max():g})")
+    return arr
+
+
+class CodedAperture(nn.Module):
+    """The coded aperture P: a position-hashed random binary pattern, or an array (from a file).
+
+    ``pattern(h, w)`` is the top-left (h, w) window; an array smaller than that is an
+    :class:`InputError`. The array is a non-persistent buffer: checkpoints do not store it.
+    """
+
+    def __init__(self, seed: int = 0, density: float = 0.5, array: np.ndarray | torch.Tensor | None = None,
+                 source: str | None = None) -> None:
+        super().__init__()
+        if not (0.0 < density <= 1.0):
+            raise ValueError(f"aperture density must be in (0, 1], got {density}")
+        self.seed, self.density, self.source = int(seed), float(density), source
+        arr = None if array is None else torch.as_tensor(np.asarray(array, dtype=np.float64))
+        if arr is not None and arr.dim() != 2:
+            raise InputError(f"a coded aperture must be 2-D, got shape {tuple(arr.shape)}")
+        self.register_buffer("array", arr, persistent=False)
+        self._cache: dict[tuple, torch.Tensor] = {}
+
+    @classmethod
+    def from_file(cls, path: str | Path) -> "CodedAperture":
+        return cls(array=load_aperture(path), source=str(path))
+
+    def pattern(self, h: int, w: int, device: torch.device | str | None = None,
+                dtype: torch.dtype = torch.float32) -> torch.Tensor:
+        """Aperture window (h, w) on ``device`` in ``dtype`` (cached for the last few sizes)."""
+        device = torch.device(device) if device is not None else torch.device("cpu")
+        key = (h, w, str(device), dtype)
+        p = self._cache.get(key)
+        if p is not None:
+            return p
+        if self.array is None:
+            p = random_aperture(h, w, self.seed, self.density, device, dtype)
+        else:
+            ah, aw = self.array.shape
+            if ah < h or aw < w:
+                raise InputError(f"coded aperture {self.source or ''} is {ah}×{aw} px but {h}×{w} px are needed "
+                                 f"(rows × columns, including the dispersion span)")
+            p = self.array[:h, :w].to(device=device, dtype=dtype)
+        if len(self._cache) >= 8:
+            self._cache.clear()
+        self._cache[key] = p
+        return p
+
+    def extra_repr(self) -> str:
+        if self.array is not None:
+            return f"array={tuple(self.array.shape)}, source={self.source!r}"
+        return f"seed={self.seed}, density={self.density}"
+
+
+# --------------------------------------------------------------------------------------------
+# Dispersion
+# --------------------------------------------------------------------------------------------
+def linear_dispersion(n_bands: int, shift_px: float) -> list[int]:
+    """d_c = round(shift_px · c), c = 0..C-1 (MST: shift_px = 2)."""
+    if not (shift_px > 0 and math.isfinite(shift_px)):
+        raise ValueError(f"shift_px must be positive, got {shift_px}")
+    return [int(round(shift_px * c)) for c in range(n_bands)]
+
+
+def prism_dispersion(bands: Bands, material: str = "fused_silica", apex_deg: float = 30.0,
+                     focal_length_m: float = 0.05, pixel_pitch_m: float = 6e-6) -> list[int]:
+    """Thin-prism dispersion in whole pixels, d_0 = 0, for bands ascending in wavelength.
+
+    Deviation δ(λ) = (n(λ) − 1)·α; the lens after the prism maps the deviation difference to a
+    sensor shift f·tan(δ(λ_0) − δ(λ)). Normal dispersion (n falls with λ) makes the shifts grow
+    with the band index, faster in the blue than in the red.
+    """
+    n = np.asarray(get_material(material).n(bands.centers_nm), dtype=np.float64)
+    alpha = math.radians(apex_deg)
+    delta = (n - 1.0) * alpha
+    shift = focal_length_m * np.tan(delta[0] - delta) / pixel_pitch_m
+    d = np.round(shift - shift.min()).astype(int)
+    return [int(v) for v in d]
+
+
+def dispersion_from_config(bands: Bands, cassi, pixel_pitch_um: float) -> list[int]:
+    """Per-band shifts (px) of a ``camera.cassi`` config section."""
+    if cassi.dispersion == "linear":
+        return linear_dispersion(len(bands), cassi.shift_px)
+    return prism_dispersion(bands, cassi.prism_material, cassi.prism_apex_deg, cassi.prism_focal_length_mm * 1e-3,
+                            pixel_pitch_um * 1e-6)
+
+
+# --------------------------------------------------------------------------------------------
+# Pure forward models and adjoints
+# --------------------------------------------------------------------------------------------
+def _shift_index(shifts: Sequence[int], w: int, device: torch.device) -> torch.Tensor:
+    """(C, w) column indices j + d_c."""
+    d = torch.as_tensor(list(shifts), dtype=torch.int64, device=device)
+    return torch.arange(w, dtype=torch.int64, device=device)[None, :] + d[:, None]
+
+
+def dd_band_masks(aperture: torch.Tensor, shifts: Sequence[int], w: int) -> torch.Tensor:
+    """Per-band DD-CASSI codes (C, H, w): M_c(i, j) = P(i, j + d_c); ``aperture`` is (H, w + D)."""
+    idx = _shift_index(shifts, w, aperture.device)
+    return aperture[:, idx].permute(1, 0, 2)
+
+
+def dd_cassi_forward(x: torch.Tensor, masks: torch.Tensor, scale: float = 1.0) -> torch.Tensor:
+    """y = s · Σ_c M_c ⊙ x_c: (B, C, H, W), masks (C, H, W) → (B, 1, H, W)."""
+    return (x * masks).sum(dim=1, keepdim=True) * scale
+
+
+def dd_cassi_adjoint(y: torch.Tensor, masks: torch.Tensor, scale: float = 1.0) -> torch.Tensor:
+    """x_c = s · M_c ⊙ y: (B, 1, H, W) → (B, C, H, W)."""
+    return y * masks * scale
+
+
+def sd_cassi_forward(x: torch.Tensor, aperture: torch.Tensor, shifts: Sequence[int], scale: float = 1.0) -> torch.Tensor:
+    """y(i, j) = s · Σ_c (P ⊙ x_c)(i, j − d_c): (B, C, H, W), P (H, W) → (B, 1, H, W + D)."""
+    b, c, h, w = x.shape
+    span = max(shifts)
+    coded = (x * aperture).permute(0, 2, 1, 3).reshape(b, h, c * w)
+    idx = _shift_index(shifts, w, x.device).reshape(-1)
+    y = torch.zeros(b, h, w + span, dtype=coded.dtype, device=x.device).index_add(-1, idx, coded)
+    return y.unsqueeze(1) * scale
+
+
+def sd_cassi_adjoint(y: torch.Tensor, aperture: torch.Tensor, shifts: Sequence[int], scale: float = 1.0) -> torch.Tensor:
+    """x_c(i, j) = s · P(i, j) · y(i, j + d_c): (B, 1, H, W + D) → (B, C, H, W)."""
+    w = y.shape[-1] - max(shifts)
+    idx = _shift_index(shifts, w, y.device)
+    x = y[:, 0][:, :, idx]  # (B, H, C, W)
+    return x.permute(0, 2, 1, 3) * aperture * scale
+
+
+# --------------------------------------------------------------------------------------------
+# Camera modules
+# --------------------------------------------------------------------------------------------
+class _CASSICamera(Camera):
+    """Shared parts of the CASSI cameras (see the module docstring)."""
+
+    kind = "cassi"
+
+    def __init__(self, bands: Bands, aperture: CodedAperture, shifts_px: Sequence[int], noise: SensorNoise | None = None,
+                 convention: str = "mean", boundary: str = "valid") -> None:
+        super().__init__()
+        if boundary not in ("valid", "same"):
+            raise ValueError(f"boundary must be 'valid' or 'same', got {boundary!r}")
+        if convention not in ("sum", "mean"):
+            raise ValueError(f"convention must be 'sum' or 'mean', got {convention!r}")
+        shifts = [int(v) for v in shifts_px]
+        if len(shifts) != len(bands):
+            raise ValueError(f"{len(shifts)} dispersion shifts for {len(bands)} bands")
+        if min(shifts) != 0:
+            raise ValueError(f"dispersion shifts must be >= 0 with the smallest 0, got {shifts}")
+        if len(set(shifts)) < len(shifts):
+            log.warning("CASSI dispersion puts several bands on the same shift (%s): they see the same code", shifts)
+        self.bands, self.aperture, self.shifts = bands, aperture, tuple(shifts)
+        self.noise = noise if noise is not None else SensorNoise("none")
+        self.convention, self.boundary = convention, boundary
+
+    @classmethod
+    def from_config(cls, cfg):  # cfg: hsicam.config.Config
+        """Camera from a top-level config (``cfg.bands``, ``cfg.camera.cassi``, ``cfg.camera.sensor``)."""
+        bands = cfg.bands.to_bands()
+        cam = cfg.camera
+        cassi = cam.cassi
+        if cassi.mask_file is not None:
+            aperture = CodedAperture.from_file(cassi.mask_file)
+        else:
+            aperture = CodedAperture(cassi.mask_seed, cassi.mask_density)
+        shifts = dispersion_from_config(bands, cassi, cam.sensor.pixel_pitch_um)
+        s = cam.sensor
+        noise = SensorNoise(s.noise, s.sigma, s.full_well_e, s.read_noise_e, s.bit_depth)
+        return cls(bands, aperture, shifts, noise, cassi.convention, cam.boundary)
+
+    @property
+    def margin(self) -> int:
+        return 0
+
+    @property
+    def span(self) -> int:
+        """D: the dispersion of the last band relative to the first, in pixels."""
+        return max(self.shifts)
+
+    @property
+    def scale(self) -> float:
+        return 1.0 / len(self.bands) if self.convention == "mean" else 1.0
+
+    def _check_measurement(self, y: torch.Tensor) -> None:
+        if y.dim() != 4 or y.shape[1] != 1:
+            raise InputError(f"measurement must be (B, 1, H, W), got shape {tuple(y.shape)}")
+
+    def extra_repr(self) -> str:
+        return f"bands={len(self.bands)}, shifts={self.shifts[0]}..{self.span} px, convention={self.convention}"
+
+
+class DDCASSICamera(_CASSICamera):
+    """Dual-disperser CASSI: scene (B, C, H, W) → measurement (B, 1, H, W)."""
+
+    kind = "dd_cassi"
+
+    def band_masks(self, h: int, w: int, device: torch.device | str | None = None,
+                   dtype: torch.dtype = torch.float32) -> torch.Tensor:
+        """The code each band sees, (C, h, w)."""
+        return dd_band_masks(self.aperture.pattern(h, w + self.span, device, dtype), self.shifts, w)
+
+    def A(self, x: torch.Tensor) -> torch.Tensor:  # noqa: N802
+        """Noiseless measurement (B, 1, H, W) of the scene ``x`` (B, C, H, W)."""
+        self.check_scene(x)
+        return dd_cassi_forward(x, self.band_masks(x.shape[-2], x.shape[-1], x.device, x.dtype), self.scale)
+
+    def A_adjoint(self, y: torch.Tensor) -> torch.Tensor:  # noqa: N802
+        """Exact adjoint of :meth:`A`: (B, 1, H, W) → (B, C, H, W)."""
+        self._check_measurement(y)
+        return dd_cassi_adjoint(y, self.band_masks(y.shape[-2], y.shape[-1], y.device, y.dtype), self.scale)
+
+
+class SDCASSICamera(_CASSICamera):
+    """Single-disperser CASSI: scene (B, C, H, W) → measurement (B, 1, H, W + D)."""
+
+    kind = "sd_cassi"
+
+    def sensor_size(self, scene_hw: tuple[int, int]) -> tuple[int, int]:
+        return scene_hw[0], scene_hw[1] + self.span
+
+    def scene_size(self, sensor_hw: tuple[int, int]) -> tuple[int, int]:
+        return sensor_hw[0], sensor_hw[1] - self.span
+
+    def A(self, x: torch.Tensor) -> torch.Tensor:  # noqa: N802
+        """Noiseless measurement (B, 1, H, W + D) of the scene ``x`` (B, C, H, W)."""
+        self.check_scene(x)
+        p = self.aperture.pattern(x.shape[-2], x.shape[-1], x.device, x.dtype)
+        return sd_cassi_forward(x, p, self.shifts, self.scale)
+
+    def A_adjoint(self, y: torch.Tensor) -> torch.Tensor:  # noqa: N802
+        """Exact adjoint of :meth:`A`: (B, 1, H, W + D) → (B, C, H, W)."""
+        self._check_measurement(y)
+        w = y.shape[-1] - self.span
+        if w < 1:
+            raise InputError(f"SD-CASSI measurement of width {y.shape[-1]} is not wider than the dispersion span {self.span}")
+        p = self.aperture.pattern(y.shape[-2], w, y.device, y.dtype)
+        return sd_cassi_adjoint(y, p, self.shifts, self.scale)
+
+
+__all__ = [
+    "CodedAperture",
+    "DDCASSICamera",
+    "SDCASSICamera",
+    "dd_band_masks",
+    "dd_cassi_adjoint",
+    "dd_cassi_forward",
+    "dispersion_from_config",
+    "hashed_uniform",
+    "linear_dispersion",
+    "load_aperture",
+    "prism_dispersion",
+    "random_aperture",
+    "sd_cassi_adjoint",
+    "sd_cassi_forward",
+]

@@ -1,0 +1,306 @@
+"""CASSI cameras: adjointness, shapes, loop references of the forward models, apertures, dispersion."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from hsicam.cameras import CodedAperture, DDCASSICamera, SDCASSICamera, build_camera
+from hsicam.cameras.cassi import hashed_uniform, linear_dispersion, prism_dispersion, random_aperture
+from hsicam.config import load_config
+from hsicam.engine.train import get_noise, set_noise
+from hsicam.errors import ConfigError, InputError
+from hsicam.models import CameraSystem
+from hsicam.spectral import Bands
+
+KINDS = ("dd_cassi", "sd_cassi")
+CONVENTIONS = ("sum", "mean")
+
+
+def cfg_of(kind: str, *overrides: str):
+    """Five bands (500..700 nm), tiny everything else."""
+    return load_config(overrides=["bands.start_nm=500", "bands.stop_nm=700", "bands.step_nm=50",
+                                  f"camera.kind={kind}", *overrides])
+
+
+def camera(kind: str, *overrides: str, dtype=torch.float64):
+    return build_camera(cfg_of(kind, *overrides)).to(dtype)
+
+
+# --------------------------------------------------------------------------------------------
+# Independent loop references (written from the definitions, not from the implementation)
+# --------------------------------------------------------------------------------------------
+def dd_reference(x: np.ndarray, aperture: np.ndarray, shifts: list[int], scale: float) -> np.ndarray:
+    """y[b, i, j] = s · Σ_c P[i, j + d_c] · x[b, c, i, j]."""
+    b, c, h, w = x.shape
+    y = np.zeros((b, 1, h, w))
+    for n in range(b):
+        for i in range(h):
+            for j in range(w):
+                y[n, 0, i, j] = scale * sum(aperture[i, j + shifts[k]] * x[n, k, i, j] for k in range(c))
+    return y
+
+
+def sd_reference(x: np.ndarray, aperture: np.ndarray, shifts: list[int], scale: float) -> np.ndarray:
+    """The coded band c lands on sensor columns j + d_c: y[b, i, j + d_c] += s · P[i, j] · x[b, c, i, j]."""
+    b, c, h, w = x.shape
+    y = np.zeros((b, 1, h, w + max(shifts)))
+    for n in range(b):
+        for k in range(c):
+            for i in range(h):
+                for j in range(w):
+                    y[n, 0, i, j + shifts[k]] += scale * aperture[i, j] * x[n, k, i, j]
+    return y
+
+
+# --------------------------------------------------------------------------------------------
+# Adjointness, shapes
+# --------------------------------------------------------------------------------------------
+@pytest.mark.parametrize("kind", KINDS)
+@pytest.mark.parametrize("convention", CONVENTIONS)
+@pytest.mark.parametrize("dispersion", ("linear", "prism"))
+def test_adjoint_identity_float64(kind, convention, dispersion):
+    cam = camera(kind, f"camera.cassi.convention={convention}", f"camera.cassi.dispersion={dispersion}")
+    g = torch.Generator().manual_seed(1)
+    x = torch.randn(2, 5, 13, 17, generator=g, dtype=torch.float64)
+    y = torch.randn(2, 1, *cam.sensor_size((13, 17)), generator=g, dtype=torch.float64)
+    ax = cam.A(x)
+    assert ax.shape == y.shape
+    lhs, rhs = (ax * y).sum(), (x * cam.A_adjoint(y)).sum()
+    assert abs(lhs - rhs) / abs(lhs) < 1e-6
+
+
+@pytest.mark.parametrize("shift", (1.0, 2.0, 3.0))
+@pytest.mark.parametrize("convention", CONVENTIONS)
+def test_sd_cassi_width_and_shapes(shift, convention):
+    cam = camera("sd_cassi", f"camera.cassi.shift_px={shift}", f"camera.cassi.convention={convention}")
+    c, h, w = 5, 9, 20
+    y = cam.A(torch.rand(3, c, h, w, dtype=torch.float64))
+    assert y.shape == (3, 1, h, w + (c - 1) * int(shift))
+    assert cam.sensor_size((h, w)) == (h, w + (c - 1) * int(shift))
+    assert cam.scene_size(cam.sensor_size((h, w))) == (h, w)
+    assert cam.A_adjoint(y).shape == (3, c, h, w)
+    assert cam.margin == 0
+
+
+@pytest.mark.parametrize("boundary", ("valid", "same"))
+def test_dd_cassi_measurement_has_the_scene_size(boundary):
+    cam = camera("dd_cassi", f"camera.boundary={boundary}")
+    x = torch.rand(2, 5, 11, 14, dtype=torch.float64)
+    assert cam.A(x).shape == (2, 1, 11, 14)
+    assert cam.sensor_size((11, 14)) == (11, 14) and cam.margin == 0
+    assert cam.A_adjoint(cam.A(x)).shape == x.shape
+
+
+def test_mst_convention_matches_shift_then_sum():
+    """SD-CASSI with 2 px per band and a sum is MST's `sum(shift(mask3d * x, 2), bands)`."""
+    cam = camera("sd_cassi", "camera.cassi.shift_px=2", "camera.cassi.convention=sum")
+    x = torch.rand(1, 5, 8, 10, dtype=torch.float64)
+    mask = cam.aperture.pattern(8, 10, dtype=torch.float64)
+    coded = (mask * x)[0].numpy()
+    shifted = np.zeros((5, 8, 10 + 2 * 4))
+    for c in range(5):  # MST's shift(): output[:, c, :, 2c : 2c + W] = input[:, c]
+        shifted[c, :, 2 * c : 2 * c + 10] = coded[c]
+    np.testing.assert_allclose(cam.A(x)[0, 0].numpy(), shifted.sum(0), rtol=1e-12, atol=1e-12)
+
+
+# --------------------------------------------------------------------------------------------
+# Forward models against the loop references
+# --------------------------------------------------------------------------------------------
+@pytest.mark.parametrize("convention", CONVENTIONS)
+@pytest.mark.parametrize("shift", (1.0, 2.0))
+def test_dd_cassi_matches_loop_reference(convention, shift):
+    cam = camera("dd_cassi", f"camera.cassi.convention={convention}", f"camera.cassi.shift_px={shift}")
+    x = torch.rand(2, 5, 6, 7, dtype=torch.float64)
+    shifts = [round(shift * c) for c in range(5)]
+    aperture = cam.aperture.pattern(6, 7 + max(shifts), dtype=torch.float64).numpy()
+    scale = 1 / 5 if convention == "mean" else 1.0
+    np.testing.assert_allclose(cam.A(x).numpy(), dd_reference(x.numpy(), aperture, shifts, scale), rtol=1e-12, atol=1e-14)
+
+
+@pytest.mark.parametrize("convention", CONVENTIONS)
+@pytest.mark.parametrize("dispersion", ("linear", "prism"))
+def test_sd_cassi_matches_loop_reference(convention, dispersion):
+    cam = camera("sd_cassi", f"camera.cassi.convention={convention}", f"camera.cassi.dispersion={dispersion}",
+                 "camera.cassi.prism_focal_length_mm=5")
+    x = torch.rand(2, 5, 6, 7, dtype=torch.float64)
+    shifts = list(cam.shifts)
+    aperture = cam.aperture.pattern(6, 7, dtype=torch.float64).numpy()
+    scale = 1 / 5 if convention == "mean" else 1.0
+    np.testing.assert_allclose(cam.A(x).numpy(), sd_reference(x.numpy(), aperture, shifts, scale), rtol=1e-12, atol=1e-14)
+
+
+def test_each_dd_band_sees_the_aperture_shifted_by_its_dispersion():
+    cam = camera("dd_cassi")
+    h, w = 7, 9
+    masks = cam.band_masks(h, w, dtype=torch.float64)
+    big = cam.aperture.pattern(h, w + 8, dtype=torch.float64)
+    for c in range(5):
+        torch.testing.assert_close(masks[c], big[:, 2 * c : 2 * c + w])
+    # a delta in band c at (i, j) shows up at (i, j) weighted by P(i, j + d_c)
+    x = torch.zeros(1, 5, h, w, dtype=torch.float64)
+    x[0, 3, 2, 4] = 1.0
+    y = cam.A(x)
+    assert y[0, 0, 2, 4] == pytest.approx(float(big[2, 4 + 6]) / 5)
+    assert (y != 0).sum() <= 1
+
+
+def test_float32_and_float64_agree():
+    c64, c32 = camera("sd_cassi"), camera("sd_cassi", dtype=torch.float32)
+    x = torch.rand(1, 5, 16, 16, dtype=torch.float64)
+    torch.testing.assert_close(c32.A(x.float()).double(), c64.A(x), rtol=1e-5, atol=1e-6)
+    assert c32.A(x.float()).dtype == torch.float32
+
+
+@pytest.mark.parametrize("kind", KINDS)
+def test_gradcheck(kind):
+    cam = camera(kind)
+    x = torch.rand(1, 5, 4, 5, dtype=torch.float64, requires_grad=True)
+    assert torch.autograd.gradcheck(cam.A, (x,))
+    y = torch.rand(1, 1, *cam.sensor_size((4, 5)), dtype=torch.float64, requires_grad=True)
+    assert torch.autograd.gradcheck(cam.A_adjoint, (y,))
+
+
+# --------------------------------------------------------------------------------------------
+# Coded aperture
+# --------------------------------------------------------------------------------------------
+def test_random_aperture_is_binary_deterministic_and_crop_consistent():
+    a = random_aperture(64, 80, seed=3)
+    assert set(a.unique().tolist()) <= {0.0, 1.0}
+    torch.testing.assert_close(random_aperture(64, 80, seed=3), a)
+    torch.testing.assert_close(random_aperture(200, 300, seed=3)[:64, :80], a)
+    assert not torch.equal(random_aperture(64, 80, seed=4), a)
+
+
+def test_random_aperture_statistics():
+    u = hashed_uniform(256, 256, seed=0)
+    assert 0 <= float(u.min()) and float(u.max()) < 1
+    # uniform: mean 1/2, variance 1/12; neighbours uncorrelated
+    assert abs(float(u.mean()) - 0.5) < 0.005
+    assert abs(float(u.var()) - 1 / 12) < 0.002
+    for du, dv in ((0, 1), (1, 0), (1, 1)):
+        a, b = u[: 256 - du, : 256 - dv], u[du:, dv:]
+        corr = float(((a - a.mean()) * (b - b.mean())).mean() / (a.std() * b.std()))
+        assert abs(corr) < 0.01
+    for density in (0.25, 0.5, 0.9):
+        assert abs(float(random_aperture(256, 256, 1, density).mean()) - density) < 0.01
+
+
+def test_aperture_from_file(tmp_path):
+    arr = (np.random.default_rng(0).random((12, 30)) > 0.5).astype(np.float32)
+    np.save(tmp_path / "mask.npy", arr)
+    cam = camera("dd_cassi", f"camera.cassi.mask_file={tmp_path / 'mask.npy'}")
+    np.testing.assert_array_equal(cam.aperture.pattern(12, 18).numpy(), arr[:, :18])
+    x = torch.rand(1, 5, 12, 10, dtype=torch.float64)
+    np.testing.assert_allclose(cam.A(x).numpy(), dd_reference(x.numpy(), arr.astype(np.float64), [0, 2, 4, 6, 8], 0.2),
+                               rtol=1e-12)
+    with pytest.raises(InputError, match="needed"):
+        cam.A(torch.rand(1, 5, 12, 23, dtype=torch.float64))  # needs 23 + 8 columns
+    with pytest.raises(InputError, match="needed"):
+        cam.A(torch.rand(1, 5, 13, 10, dtype=torch.float64))
+
+
+@pytest.mark.parametrize("content, match", [(np.full((4, 4), 2.0), "in \\[0, 1\\]"), (np.zeros(5), "2-D"),
+                                            (np.full((4, 4), np.nan), "finite")])
+def test_bad_aperture_files(tmp_path, content, match):
+    np.save(tmp_path / "bad.npy", content)
+    with pytest.raises(InputError, match=match):
+        camera("dd_cassi", f"camera.cassi.mask_file={tmp_path / 'bad.npy'}")
+
+
+def test_missing_aperture_file(tmp_path):
+    with pytest.raises(InputError, match="no such"):
+        camera("sd_cassi", f"camera.cassi.mask_file={tmp_path / 'nope.npy'}")
+
+
+# --------------------------------------------------------------------------------------------
+# Dispersion
+# --------------------------------------------------------------------------------------------
+def test_linear_dispersion():
+    assert linear_dispersion(5, 2.0) == [0, 2, 4, 6, 8]
+    assert linear_dispersion(4, 1.5) == [0, 2, 3, 4]  # rounded half to even, as Python's round
+
+
+def _fused_silica_n(lam_nm: np.ndarray) -> np.ndarray:
+    """Malitson 1965, written out here independently of hsicam.spectral."""
+    l2 = (lam_nm * 1e-3) ** 2
+    return np.sqrt(1 + 0.6961663 * l2 / (l2 - 0.0684043**2) + 0.4079426 * l2 / (l2 - 0.1162414**2)
+                   + 0.8974794 * l2 / (l2 - 9.896161**2))
+
+
+def test_prism_dispersion_thin_prism_reference():
+    bands = Bands.uniform(420, 720, 10)
+    d = prism_dispersion(bands, "fused_silica", 30.0, 0.05, 6e-6)
+    n = _fused_silica_n(bands.centers_nm)
+    expected = 0.05 * np.tan((n[0] - n) * math.radians(30.0)) / 6e-6
+    assert d == [int(v) for v in np.round(expected)]
+    assert d[0] == 0 and all(b >= a for a, b in zip(d, d[1:]))
+    steps = np.diff(d)
+    assert steps[:5].sum() > 2 * steps[-5:].sum()  # blue spreads more than red
+    assert 40 < d[-1] < 80
+
+
+def test_prism_config_reaches_the_camera():
+    cam = camera("dd_cassi", "camera.cassi.dispersion=prism", "camera.cassi.prism_focal_length_mm=100",
+                 "camera.sensor.pixel_pitch_um=10")
+    bands = Bands.uniform(500, 700, 50)
+    assert list(cam.shifts) == prism_dispersion(bands, "fused_silica", 30.0, 0.1, 10e-6)
+
+
+# --------------------------------------------------------------------------------------------
+# Config, factory, noise, errors
+# --------------------------------------------------------------------------------------------
+@pytest.mark.parametrize("override, match", [
+    ("camera.cassi.mask_density=0", "mask_density"),
+    ("camera.cassi.mask_density=1.5", "mask_density"),
+    ("camera.cassi.prism_apex_deg=90", "prism_apex_deg"),
+    ("camera.cassi.prism_focal_length_mm=-1", "prism_focal_length_mm"),
+    ("camera.cassi.convention=median", "convention"),
+    ("camera.cassi.dispersion=grating", "dispersion"),
+    ("camera.cassi.mask_file=mask.png", "npy"),
+    ("camera.cassi.shift_px=0", "shift_px"),
+])
+def test_bad_cassi_config(override, match):
+    with pytest.raises(ConfigError, match=match):
+        cfg_of("dd_cassi", override)
+
+
+def test_build_camera_kinds():
+    assert isinstance(camera("dd_cassi"), DDCASSICamera)
+    assert isinstance(camera("sd_cassi"), SDCASSICamera)
+    assert isinstance(camera("dd_cassi").aperture, CodedAperture)
+
+
+def test_sensor_noise_and_set_noise():
+    cam = camera("dd_cassi", "camera.sensor.sigma=0.01")
+    x = torch.rand(1, 5, 32, 32, dtype=torch.float64)
+    g = torch.Generator().manual_seed(0)
+    diff = cam(x, g) - cam.A(x)
+    assert 0.008 < float(diff.std()) < 0.012
+    set_noise(cam, None, 0.0)
+    assert get_noise(cam) == (None, 0.0)
+    torch.testing.assert_close(cam(x), cam.A(x))
+
+
+def test_bad_inputs():
+    cam = camera("dd_cassi")
+    with pytest.raises(InputError, match="bands"):
+        cam.A(torch.rand(1, 4, 8, 8))
+    with pytest.raises(InputError, match="B, C, H, W"):
+        cam.A(torch.rand(5, 8, 8))
+    with pytest.raises(InputError, match="B, 1, H, W"):
+        cam.A_adjoint(torch.rand(1, 2, 8, 8))
+    sd = camera("sd_cassi")
+    with pytest.raises(InputError, match="not wider"):
+        sd.A_adjoint(torch.rand(1, 1, 8, 8))
+
+
+def test_camera_system_with_cassi_has_no_weights_beyond_the_network():
+    model = CameraSystem.from_config(load_config("tiny", ["camera.kind=dd_cassi"]))
+    assert all(k.startswith("net.") for k in model.state_dict())
+    x = torch.rand(2, 7, 20, 20)
+    recon, sensor = model(x)
+    assert sensor.shape == (2, 1, 20, 20) and recon.shape == model.target(x).shape == x.shape
