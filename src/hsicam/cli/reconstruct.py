@@ -1,8 +1,9 @@
-"""`hsicam reconstruct`: a hyperspectral cube from a sensor image, through a trained run."""
+"""`hsicam reconstruct`: a hyperspectral cube from a sensor image (simulated or a raw capture)."""
 
 from __future__ import annotations
 
 import argparse
+import logging
 import sys
 from pathlib import Path
 
@@ -11,15 +12,34 @@ import torch
 
 from hsicam.errors import InputError
 
+log = logging.getLogger(__name__)
+
 
 def register(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("reconstruct", help="reconstruct a hyperspectral cube from a sensor image")
-    p.add_argument("sensor", metavar="SENSOR", help="sensor image: .npy, 16-bit PNG or TIFF")
-    p.add_argument("--run", required=True, metavar="RUN", help="trained run folder")
+    p = sub.add_parser("reconstruct", help="reconstruct a hyperspectral cube from a sensor image or raw capture")
+    p.add_argument("sensor", metavar="SENSOR", help="sensor image / raw capture: .npy, 8/16-bit PNG or TIFF")
+    p.add_argument("--run", required=True, metavar="RUN", help="trained (or fine-tuned) run folder")
     p.add_argument("--out", required=True, metavar="FILE", help="output cube: .h5 (ours) or .hdr (ENVI)")
     p.add_argument("--scale", type=float, default=None, help="multiply the image after normalising to [0, 1]")
     p.add_argument("--tile", type=int, default=512, metavar="PX", help="tile side for large images")
     p.add_argument("--device", default="cpu")
+    raw = p.add_argument_group("raw capture corrections (values in the file's digital numbers, DN)")
+    raw.add_argument("--black-level", type=float, default=None, metavar="DN",
+                     help="sensor black level (default: the dark frame's median, else 0)")
+    raw.add_argument("--white-level", type=float, default=None, metavar="DN",
+                     help="full-scale value (default: the file type's maximum, e.g. 65535; 1 for float files)")
+    raw.add_argument("--dark", metavar="FILE", help="dark frame (same exposure and size), subtracted pixel by pixel")
+    raw.add_argument("--flat", metavar="FILE", help="flat-field frame (same size), normalised to mean 1")
+    raw.add_argument("--flat-mode", choices=("pixel", "cfa"), default="pixel",
+                     help="pixel: divide pixel by pixel (a flat of the bare sensor); cfa: average the flat over the "
+                          "CFA period first (a flat taken through the CFA: corrects vignetting, keeps the CFA pattern)")
+    raw.add_argument("--exposure-s", type=float, default=None, help="exposure time of the capture (s)")
+    raw.add_argument("--reference-exposure-s", type=float, default=None,
+                     help="exposure the network's scale corresponds to (s): the image is multiplied by reference/exposure")
+    raw.add_argument("--auto-level", type=float, default=None, metavar="V",
+                     help="scale so the 99.9th percentile equals V (captures of unknown radiometric scale)")
+    p.add_argument("--psf-dir", metavar="DIR", help="measured PSFs of the camera (checked against the run; see hsicam finetune)")
+    p.add_argument("--psf-pitch-um", type=float, default=None, help="pixel pitch of the measured PSF images (else psf.json)")
     p.set_defaults(func=cmd_reconstruct)
 
 
@@ -30,30 +50,66 @@ def write_cube_file(path: Path, cube: np.ndarray, bands, metadata: dict) -> None
     from hsicam.io import write_png8
 
     suffix = path.suffix.lower()
+    if suffix not in (".h5", ".hdf5", ".hdr", ".img", ".raw"):
+        raise InputError(f"{path}: output must end in .h5 (HDF5) or .hdr (ENVI)")
+    rgb = cube_to_srgb(torch.from_numpy(cube), bands).numpy()  # before any file is written
     if suffix in (".h5", ".hdf5"):
         write_cube_h5(path, cube, bands, metadata)
-    elif suffix in (".hdr", ".img", ".raw"):
-        write_envi(path, cube, bands)
     else:
-        raise InputError(f"{path}: output must end in .h5 (HDF5) or .hdr (ENVI)")
-    rgb = cube_to_srgb(torch.from_numpy(cube), bands).numpy()
+        write_envi(path, cube, bands)
     write_png8(path.with_name(f"{path.stem}_rgb.png"), np.moveaxis(rgb, 0, -1))
+
+
+def corrections_from_args(args: argparse.Namespace, cfa_period: int | None) -> "object":
+    """A :class:`~hsicam.engine.inference.RawCorrection` from the command line."""
+    from hsicam.engine.inference import RawCorrection, read_image_2d
+
+    dark = read_image_2d(args.dark, "dark frame").data if args.dark else None
+    flat = read_image_2d(args.flat, "flat field").data if args.flat else None
+    period = None
+    if args.flat_mode == "cfa":
+        if flat is None:
+            raise InputError("--flat-mode cfa needs --flat")
+        period = cfa_period or 1
+    return RawCorrection(black_level=args.black_level, white_level=args.white_level, dark=dark, flat=flat,
+                         flat_period=period, exposure_s=args.exposure_s, reference_exposure_s=args.reference_exposure_s,
+                         auto_level=args.auto_level, scale=1.0)
 
 
 def cmd_reconstruct(args: argparse.Namespace) -> int:
     from hsicam.engine.checkpoint import load_run
-    from hsicam.engine.inference import read_sensor_image, receptive_radius, reconstruct_tiled
+    from hsicam.engine.inference import read_capture, receptive_radius, reconstruct_tiled
 
     if args.tile < 16:
         raise InputError("--tile must be at least 16 px")
+    if args.scale is not None and not (np.isfinite(args.scale) and args.scale > 0):
+        raise InputError("--scale must be a positive number")
+    out = Path(args.out)
+    if out.suffix.lower() not in (".h5", ".hdf5", ".hdr", ".img", ".raw"):
+        raise InputError(f"{out}: output must end in .h5 (HDF5) or .hdr (ENVI)")
     cfg, model = load_run(args.run, args.device)
-    img = read_sensor_image(args.sensor, args.scale)
+    meta: dict = {"source": str(args.sensor), "run": str(args.run)}
+    if args.psf_dir:
+        from hsicam.engine.calibration import import_for_camera, run_psf_fingerprint
+
+        measured = import_for_camera(args.psf_dir, model.camera, pitch_um=args.psf_pitch_um)
+        tuned = run_psf_fingerprint(args.run)
+        meta["psf_dir"] = str(args.psf_dir)
+        meta["psf_fingerprint"] = measured.fingerprint
+        meta["network_tuned_to_psfs"] = tuned == measured.fingerprint
+        if tuned != measured.fingerprint:
+            log.warning("the network of %s was not fine-tuned on the PSFs of %s; run `hsicam finetune --run %s "
+                        "--psf-dir %s --out RUN2` and reconstruct with RUN2", args.run, args.psf_dir, args.run, args.psf_dir)
+    cfa_period = cfg.camera.cfa.period if cfg.camera.cfa.enabled else None
+    corr = corrections_from_args(args, cfa_period)
+    img, report = read_capture(args.sensor, corr, args.scale)
+    meta["preprocessing"] = report
     sensor = torch.from_numpy(img)[None, None].to(args.device)
     halo = receptive_radius(model.net)
     cube = reconstruct_tiled(model.reconstruct, sensor, args.tile, halo, progress=sys.stderr.isatty())[0]
+    del sensor
     # Radiance is non-negative: the network's small negative excursions are clipped at 0.
-    cube = cube.float().clamp_min(0).cpu().numpy()
-    out = Path(args.out)
-    write_cube_file(out, cube, model.bands, {"source": str(args.sensor), "run": str(args.run)})
+    cube = cube.float().clamp_min_(0).cpu().numpy()
+    write_cube_file(out, cube, model.bands, meta)
     print(f"reconstructed {cube.shape[0]} bands × {cube.shape[1]}×{cube.shape[2]} -> {out}")
     return 0
