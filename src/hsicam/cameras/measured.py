@@ -1,0 +1,51 @@
+"""A DOE camera whose PSFs are fixed: measured (calibration) or perturbed (tolerance studies).
+
+:class:`FixedPSFCamera` is a :class:`~hsicam.cameras.DOECamera` that shares the optics, CFA and
+noise modules of a trained camera but returns a fixed PSF stack (C, K, K) from ``psf()`` instead
+of simulating it. The stack is a *non-persistent* buffer, so the state dict is exactly that of the
+DOE camera: weights saved from a system built on it load into a plain
+:class:`~hsicam.models.CameraSystem` (``hsicam reconstruct`` and ``load_run`` keep working), and the
+PSFs travel separately (``measured_psf.safetensors``, see :mod:`hsicam.engine.calibration`).
+
+DOE height noise (σ_p) does not apply to a fixed PSF; sensor noise does.
+"""
+
+from __future__ import annotations
+
+import torch
+
+from hsicam.cameras.doe_camera import DOECamera
+from hsicam.optics.psf import PSFResult
+
+
+class FixedPSFCamera(DOECamera):
+    """DOE camera with a fixed PSF stack ``psf`` (C, K, K), K = the camera's kernel.
+
+    Build it with :meth:`from_camera`; the optics are kept (geometry, DOE parameters for the
+    state dict) but never evaluated by ``psf()`` / ``A`` / ``forward``.
+    """
+
+    fixed_psf: torch.Tensor
+
+    @classmethod
+    def from_camera(cls, camera: DOECamera, psf: torch.Tensor) -> "FixedPSFCamera":
+        """A camera sharing ``camera``'s modules, imaging with ``psf`` (C, K, K)."""
+        psf = torch.as_tensor(psf).detach()
+        k = camera.kernel_px
+        if psf.shape != (len(camera.bands), k, k):
+            raise ValueError(f"PSF stack must be ({len(camera.bands)}, {k}, {k}) for this camera, got {tuple(psf.shape)}")
+        obj = cls(camera.bands, camera.optics, camera.cfa, camera.noise, camera.boundary, camera.padding)
+        obj.register_buffer("fixed_psf", psf.to(camera.optics.amplitude.device, torch.float32).clone(), persistent=False)
+        return obj
+
+    def set_psf(self, psf: torch.Tensor) -> None:
+        """Replace the PSF stack (same shape)."""
+        if psf.shape != self.fixed_psf.shape:
+            raise ValueError(f"PSF stack must have shape {tuple(self.fixed_psf.shape)}, got {tuple(psf.shape)}")
+        self.fixed_psf = psf.detach().to(self.fixed_psf.device, self.fixed_psf.dtype).clone()
+
+    def psf_result(self, generator: torch.Generator | None = None) -> PSFResult:
+        return PSFResult(self.fixed_psf, self.fixed_psf.sum(dim=(-2, -1)))
+
+    def psf(self, generator: torch.Generator | None = None) -> torch.Tensor:
+        return self.fixed_psf
