@@ -1,0 +1,134 @@
+"""Fabrication export of a trained camera: DOE height map (continuous and L-level, GDSII masks),
+colour filter array (transmission table, picture, parametric fits) and ``spec.json``.
+
+``export_optics(run, out, levels)`` writes into ``out``:
+
+==============================  =========================================================================
+``doe_height_nm.npy|.tif|.csv``   continuous heights (nm) over the aperture (float32; 16-bit TIFF whose
+                                   ImageDescription JSON holds ``scale_nm_per_count``; long-format CSV)
+``doe_aperture.npy``               fraction of each cell inside the circular aperture
+``doe_height_L{L}_nm.*``           L-level heights (nm); ``doe_level_L{L}.npy`` the level indices
+``doe_phase_error_L{L}.csv``       per band: RMS / max phase error of the quantisation (rad, waves)
+``doe_L{L}.gds``                   GDSII etch masks (L = 2^k; needs the ``fab`` extra: gdstk)
+``doe.png``                        continuous, quantised and difference maps
+``cfa_tile.npy``, ``cfa_transmission.csv`` (band × filter), ``cfa_transmission_peak1.csv``,
+``cfa.png``, ``cfa_fit.csv``, ``cfa_fit.png``
+``spec.json``                      focal length, aperture, DOE cell/material/heights, design wavelength,
+                                   pixel pitch, bands, CFA, tolerances studied, conventions, files
+==============================  =========================================================================
+
+Conventions: see :mod:`hsicam.export.doe`, :mod:`hsicam.export.gds`, :mod:`hsicam.export.cfa`.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from hsicam.errors import InputError
+
+log = logging.getLogger(__name__)
+
+SPEC_FORMAT = "hsicam-optics-spec-1"
+
+
+def default_levels(cfg) -> int:
+    """The run's ``camera.doe.quantization_levels`` when it is a power of 2, else 8."""
+    from hsicam.export.doe import is_power_of_two
+
+    lv = cfg.camera.doe.quantization_levels
+    if lv is None:
+        return 8
+    if not is_power_of_two(lv):
+        raise InputError(f"the run was trained with {lv} DOE levels, not a power of 2: binary-weighted lithography "
+                         "needs L = 2^k; pass --levels explicitly")
+    return int(lv)
+
+
+def _tolerances(run_dir: Path, cfg, tolerance: str | Path | None) -> dict[str, Any]:
+    t = cfg.train
+    out: dict[str, Any] = {
+        "trained_with": {"sigma_height_nm": list(t.sigma_height_nm), "sensor_sigma": list(t.sensor_sigma),
+                         "camera_sigma_height_nm": cfg.camera.doe.sigma_height_nm},
+        "studied": None,
+    }
+    cand = Path(tolerance) if tolerance is not None else run_dir / "tolerance"
+    if cand.is_dir():
+        cand = cand / "tolerance.json"
+    if cand.is_file():
+        try:
+            data = json.loads(cand.read_text(encoding="utf-8"))
+        except (UnicodeDecodeError, json.JSONDecodeError):
+            raise InputError(f"{cand}: unreadable tolerance.json") from None
+        out["studied"] = {"source": str(cand), "nominal_psnr_db": data.get("nominal", {}).get("psnr"),
+                          "summary": data.get("summary")}
+    elif tolerance is not None:
+        raise InputError(f"{tolerance}: no tolerance.json (run `hsicam tolerance --run RUN --out DIR` first)")
+    else:
+        out["note"] = "no tolerance study found: run `hsicam tolerance --run RUN --out RUN/tolerance`"
+    return out
+
+
+def export_optics(run_dir: str | Path, out_dir: str | Path, levels: int | None = None,
+                  tolerance: str | Path | None = None) -> dict[str, Any]:
+    """Export the optics of a trained run into ``out_dir``; returns the ``spec.json`` content."""
+    from hsicam.cameras import DOECamera
+    from hsicam.engine.checkpoint import load_run
+    from hsicam.export.cfa import export_cfa
+    from hsicam.export.doe import export_doe
+    from hsicam.io import write_json
+
+    run_dir, out = Path(run_dir), Path(out_dir)
+    cfg, model = load_run(run_dir, "cpu")
+    camera = model.camera
+    if not isinstance(camera, DOECamera):
+        raise InputError(f"{run_dir}: export-optics needs a DOE camera (camera.kind: doe), got {cfg.camera.kind}")
+    if levels is None:
+        levels = default_levels(cfg)
+    if levels < 2 or levels > 256:
+        raise InputError(f"--levels must be in 2..256, got {levels}")
+    if out.exists() and not out.is_dir():
+        raise InputError(f"{out}: exists and is not a folder")
+    out.mkdir(parents=True, exist_ok=True)
+    bands = camera.bands
+    optics = camera.optics
+    doe_info = export_doe(camera, out, levels, bands.centers_nm)
+    cfa_info = export_cfa(camera, out)
+    lens = cfg.camera.lens
+    desc = optics.describe()
+    spec = {
+        "format": SPEC_FORMAT,
+        "run": str(run_dir),
+        "units": "lengths in the key's unit suffix; heights in nm; wavelengths in nm (vacuum)",
+        "lens": {
+            "model": lens.model,
+            "focal_length_mm": float(optics.lens.focal_lengths_m(np.array([lens.design_wavelength_nm]))[0] * 1e3),
+            "design_wavelength_nm": lens.design_wavelength_nm,
+            "focal_length_per_band_mm": desc["lens"]["focal_length_mm"],
+            **({"radius_of_curvature_mm": lens.radius_of_curvature_mm, "center_thickness_mm": lens.center_thickness_mm,
+                "material": lens.material} if lens.model == "singlet" else {}),
+        },
+        "sensor_distance_mm": optics.sensor_distance_m * 1e3,
+        "object_distance_m": optics.object_distance_m,
+        "aperture": {"shape": "circle", "radius_mm": optics.aperture_radius_m * 1e3,
+                     "diameter_mm": 2 * optics.aperture_radius_m * 1e3, "stop": "at the DOE, centred on the lens axis"},
+        "doe": doe_info,
+        "cfa": cfa_info,
+        "sensor": {"pixel_pitch_um": optics.pixel_m * 1e6, "noise": cfg.camera.sensor.noise,
+                   "bit_depth": cfg.camera.sensor.bit_depth},
+        "psf": {"kernel_px": camera.kernel_px, "supersample": optics.sampling.supersample,
+                "pupil_oversample": optics.pupil_oversample},
+        "bands": {"centers_nm": bands.centers_nm.tolist(), "fwhm_nm": bands.fwhm_nm.tolist()},
+        "tolerances": _tolerances(run_dir, cfg, tolerance),
+    }
+    spec["files"] = sorted(p.name for p in out.iterdir() if p.is_file() and not p.name.startswith(".")) + ["spec.json"]
+    spec["files"] = sorted(set(spec["files"]))
+    write_json(out / "spec.json", spec)
+    return spec
+
+
+__all__ = ["export_optics", "default_levels", "SPEC_FORMAT"]
