@@ -1,0 +1,374 @@
+"""Fabrication and assembly tolerances of a trained camera (the network is fixed).
+
+The trained camera is re-imaged with perturbed optics and the *unchanged* network reconstructs;
+PSNR (per band, peak 1; also SSIM and SAM) over validation scenes versus each perturbation:
+
+* **height noise** σ_p (nm): i.i.d. Gaussian height error per cell. A fabricated element carries
+  one fixed error realisation, so each draw is one DOE; results are mean ± std over draws.
+* **quantisation levels** L: the heights of the fabrication export (piston removed, L levels over
+  h_2π, wrapped; :mod:`hsicam.export.doe`), so the study and the exported files agree.
+* **lateral misalignment** of the DOE against the lens and aperture stop by a fraction of a cell,
+  along x and along the diagonal. Method: each pupil sample of the model is split into Q/q
+  sub-samples (Q sub-samples per cell; shift resolution 1/Q cell), the relief is shifted by whole
+  sub-samples (cells entering from outside the design read height 0), and the complex
+  transmission exp(iφ_λ) is **area-averaged** back onto the model's pupil samples — the same
+  area weighting the model uses for the aperture edge. The model's sampling (FFT sizes, kernel)
+  is unchanged and a zero shift reproduces the nominal PSF exactly. (Point-sampling the shifted
+  relief at q = 1 would not change at all for shifts below half a cell; a Fourier sub-cell shift
+  would ring on the stepped relief.)
+* **sensor distance error** Δz (µm): the residual defocus term of every band becomes
+  (π/λ)(1/z_o + 1/(z_i + Δz) − 1/f_λ) with the nominal sampling; the image magnification change
+  Δz/z_i is neglected (reported as ``magnification_change``; e.g. 0.3 % for 100 µm at 35 mm) and
+  so is the PSF scale change. ``defocus_waves`` is the peak residual defocus (R²/2)·Δ(1/z)/λ at
+  the design wavelength.
+
+Outputs (:func:`write_tolerance`): ``tolerance.json`` (every value, the nominal result, the
+1-dB tolerances), ``tolerance.csv`` (one row per evaluated case) and ``tolerance.png``.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import logging
+import math
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any, Sequence
+
+import numpy as np
+import torch
+
+from hsicam.errors import InputError
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class ToleranceSpec:
+    """What to sweep. Lengths in the unit of the field name."""
+
+    sigma_height_nm: tuple[float, ...] = (0.0, 10.0, 20.0, 40.0, 60.0)
+    height_draws: int = 3
+    levels: tuple[int, ...] = (2, 4, 8, 16, 32)
+    shift_cells: tuple[float, ...] = (0.0, 0.125, 0.25, 0.5, 1.0, 2.0)
+    shift_subsamples: int = 8  # Q: sub-samples per cell for the misalignment study
+    sensor_distance_um: tuple[float, ...] = (-100.0, -50.0, -20.0, 0.0, 20.0, 50.0, 100.0)
+    max_scenes: int = 8
+    seed: int = 0
+
+    def check(self) -> None:
+        if self.height_draws < 1 or self.max_scenes < 1 or self.shift_subsamples < 1:
+            raise InputError("height_draws, max_scenes and shift_subsamples must be >= 1")
+        if any(s < 0 or not math.isfinite(s) for s in self.sigma_height_nm):
+            raise InputError("sigma_height_nm values must be >= 0")
+        if any(lv < 2 for lv in self.levels):
+            raise InputError("quantisation levels must be >= 2")
+        if any(not math.isfinite(v) for v in (*self.shift_cells, *self.sensor_distance_um)):
+            raise InputError("shift and sensor distance values must be finite")
+
+
+# ------------------------------------------------------------------------------------------------
+# Perturbed PSF stacks (pure functions of the camera's optics)
+# ------------------------------------------------------------------------------------------------
+def _pupil(optics, h_cells_m: torch.Tensor) -> torch.Tensor:
+    q = optics.pupil_oversample
+    h = h_cells_m.to(optics.amplitude.dtype)
+    if q > 1:
+        h = h.repeat_interleave(q, 0).repeat_interleave(q, 1)
+    return h
+
+
+@torch.no_grad()
+def psf_for_heights(optics, h_cells_m: torch.Tensor, defocus_delta: torch.Tensor | None = None):
+    """:class:`~hsicam.optics.psf.PSFResult` of the camera's optics with cell heights ``h_cells_m``
+    (n, n) (m) and optionally an extra defocus term per band (rad/m², (C,))."""
+    from hsicam.optics.psf import psf_stack
+
+    smp = optics.sampling
+    defocus = optics.defocus_per_m2 if defocus_delta is None else optics.defocus_per_m2 + defocus_delta.to(optics.defocus_per_m2)
+    return psf_stack(_pupil(optics, h_cells_m), optics.amplitude, optics.r2_m2, optics.doe_phase_per_m, defocus,
+                     smp.fft_sizes, smp.supersample, smp.kernel_px)
+
+
+def nominal_heights(camera) -> torch.Tensor:
+    """The trained design heights (m) per cell (n, n) float64, without fabrication noise."""
+    doe = camera.optics.doe
+    saved = doe.sigma_height_m
+    try:
+        doe.sigma_height_m = 0.0
+        with torch.no_grad():
+            return doe.heights().detach().double().cpu()
+    finally:
+        doe.sigma_height_m = saved
+
+
+def defocus_delta_per_m2(optics, dz_m: float) -> torch.Tensor:
+    """(π/λ)(1/(z_i + Δz) − 1/z_i) per band (rad/m²), float64 (C,)."""
+    lam = torch.as_tensor(optics.bands.centers_nm * 1e-9, dtype=torch.float64)
+    z = optics.sensor_distance_m
+    return math.pi / lam * (1.0 / (z + dz_m) - 1.0 / z)
+
+
+def shift_fill(x: torch.Tensor, dy: int, dx: int) -> torch.Tensor:
+    """``x`` (H, W) moved by (dy, dx) samples (out[i, j] = x[i − dy, j − dx]), zeros entering."""
+    out = torch.zeros_like(x)
+    h, w = x.shape
+    if abs(dy) >= h or abs(dx) >= w:
+        return out
+    ys, yd = (slice(0, h - dy), slice(dy, h)) if dy >= 0 else (slice(-dy, h), slice(0, h + dy))
+    xs, xd = (slice(0, w - dx), slice(dx, w)) if dx >= 0 else (slice(-dx, w), slice(0, w + dx))
+    out[yd, xd] = x[ys, xs]
+    return out
+
+
+def shifted_transmission(h_cells_m: torch.Tensor, phase_per_m: float, dy: int, dx: int, sub: int, q: int = 1) -> torch.Tensor:
+    """Complex transmission (n·q, n·q) of the relief ``h_cells_m`` (n, n) moved by (dy, dx) samples of a
+    grid with ``sub``·q samples per cell, area-averaged onto the q-per-cell pupil samples."""
+    big_q = q * sub
+    hf = h_cells_m.double().repeat_interleave(big_q, 0).repeat_interleave(big_q, 1)
+    hf = shift_fill(hf, dy, dx)
+    t = torch.polar(torch.ones_like(hf), phase_per_m * hf)
+    if sub > 1:
+        p = h_cells_m.shape[0] * q
+        t = t.reshape(p, sub, p, sub).mean(dim=(1, 3))
+    return t
+
+
+@torch.no_grad()
+def psf_shifted(optics, h_cells_m: torch.Tensor, dy_cells: float, dx_cells: float, subsamples: int = 8) -> tuple[torch.Tensor, tuple[float, float]]:
+    """PSF stack (C, K, K) with the DOE relief moved laterally by (dy, dx) cells against the
+    aperture and lens (see module docstring). Returns (psf float32, the shift actually applied in
+    cells, a multiple of 1/Q)."""
+    from hsicam.optics.psf import _PooledIntensity
+
+    q = optics.pupil_oversample
+    sub = max(1, math.ceil(subsamples / q))  # fine sub-samples per model pupil sample
+    big_q = q * sub
+    sy, sx = int(round(dy_cells * big_q)), int(round(dx_cells * big_q))
+    amp = optics.amplitude.double().cpu()
+    r2 = optics.r2_m2.double().cpu()
+    k = optics.doe_phase_per_m.double().cpu()
+    dfc = optics.defocus_per_m2.double().cpu()
+    power = float((amp * amp).sum())
+    smp = optics.sampling
+    out = []
+    for c in range(k.shape[0]):
+        t = shifted_transmission(h_cells_m, float(k[c]), sy, sx, sub, q)
+        field = amp * t * torch.polar(torch.ones_like(r2), dfc[c] * r2)
+        nfft = smp.fft_sizes[c]
+        out.append(_PooledIntensity.apply(field, nfft, smp.supersample, smp.kernel_px) / (nfft * nfft) / power)
+    return torch.stack(out).float(), (sy / big_q, sx / big_q)
+
+
+# ------------------------------------------------------------------------------------------------
+# Evaluation
+# ------------------------------------------------------------------------------------------------
+def evaluation_scenes(cfg, bands, max_scenes: int, data: str | Path | None = None):
+    """(SceneDataset, names): the run's validation scenes (all scenes when it has none), or ``data``."""
+    from hsicam.data import SceneDataset, dataset_root, list_scenes, split_scenes
+
+    if data is not None:
+        scenes = list_scenes(data)
+    else:
+        all_scenes = list_scenes(dataset_root(cfg.data, bands))
+        _, val = split_scenes(all_scenes, cfg.data.val_fraction, cfg.data.split_seed)
+        scenes = val or all_scenes
+    scenes = scenes[:max_scenes]
+    return SceneDataset(scenes, bands), [Path(s).stem for s in scenes]
+
+
+def evaluate_psf(model, psf: torch.Tensor, scenes, names: Sequence[str], seed: int = 0) -> dict[str, float]:
+    """Mean PSNR / SSIM / SAM of ``model``'s network on ``scenes`` imaged with the PSF stack ``psf``."""
+    from hsicam.cameras.measured import FixedPSFCamera
+    from hsicam.engine.evaluate import evaluate_scenes
+    from hsicam.models import CameraSystem
+
+    cam = FixedPSFCamera.from_camera(model.camera, psf)
+    system = CameraSystem(cam, model.net).eval()
+    results = evaluate_scenes(system, scenes, list(names), seed=seed, keep_arrays=False)
+    return {k: float(np.mean([r.metrics[k] for r in results])) for k in ("psnr", "ssim", "sam")}
+
+
+def _tolerance_at(values: Sequence[float], psnr: Sequence[float], nominal: float, drop_db: float = 1.0) -> float | None:
+    """Largest |value| (interpolated) before the PSNR falls ``drop_db`` below nominal, scanning
+    outward from 0; None if it never does within the range."""
+    pairs = sorted((abs(v), p) for v, p in zip(values, psnr))
+    prev_v, prev_p = 0.0, nominal
+    for v, p in pairs:
+        if nominal - p > drop_db:
+            if p == prev_p:
+                return v
+            t = (nominal - drop_db - prev_p) / (p - prev_p)
+            return float(prev_v + t * (v - prev_v))
+        prev_v, prev_p = v, p
+    return None
+
+
+def run_tolerance(model, cfg, spec: ToleranceSpec = ToleranceSpec(), data: str | Path | None = None,
+                  progress: bool = False) -> dict[str, Any]:
+    """Evaluate the camera of ``model`` (a :class:`~hsicam.models.CameraSystem` with a DOE camera)
+    under every perturbation of ``spec``; returns the JSON-ready result."""
+    from hsicam.cameras import DOECamera
+    from hsicam.export.doe import design_heights, quantize_levels
+
+    spec.check()
+    cam = model.camera
+    if not isinstance(cam, DOECamera) or not hasattr(cam, "optics"):
+        raise InputError("tolerance analysis needs a DOE camera (camera.kind: doe)")
+    optics = cam.optics
+    t0 = time.perf_counter()
+    scenes, names = evaluation_scenes(cfg, cam.bands, spec.max_scenes, data)
+    h0 = nominal_heights(cam)
+    nominal_psf = psf_for_heights(optics, h0)
+    nominal = evaluate_psf(model, nominal_psf.psf, scenes, names, spec.seed)
+    log.info("tolerance: nominal PSNR %.2f dB on %d scene(s)", nominal["psnr"], len(names))
+    rows: list[dict[str, Any]] = []
+
+    def record(sweep: str, value: float, unit: str, metrics: list[dict[str, float]], energy: torch.Tensor, **extra) -> None:
+        ps = [m["psnr"] for m in metrics]
+        rows.append({"sweep": sweep, "value": value, "unit": unit, "psnr": float(np.mean(ps)),
+                     "psnr_std": float(np.std(ps)) if len(ps) > 1 else 0.0,
+                     "ssim": float(np.mean([m["ssim"] for m in metrics])),
+                     "sam": float(np.mean([m["sam"] for m in metrics])), "n": len(metrics),
+                     "energy_in_kernel_min": float(energy.min()), **extra})
+
+    # height noise: one fixed error realisation per draw (a fabricated element)
+    for sigma in spec.sigma_height_nm:
+        ms, en = [], []
+        for d in range(spec.height_draws if sigma > 0 else 1):
+            g = torch.Generator().manual_seed(spec.seed * 1000 + d)
+            noise = torch.randn(h0.shape, generator=g, dtype=torch.float64) * sigma * 1e-9
+            res = psf_for_heights(optics, h0 + noise)
+            ms.append(evaluate_psf(model, res.psf, scenes, names, spec.seed))
+            en.append(res.energy.min())
+        record("sigma_height_nm", sigma, "nm", ms, torch.stack(en))
+    # quantisation: the exported L-level heights
+    h_design, _, _ = design_heights(cam)
+    for lv in spec.levels:
+        _, hq = quantize_levels(h_design, lv, optics.doe.h2pi_m)
+        res = psf_for_heights(optics, torch.from_numpy(hq))
+        record("levels", lv, "levels", [evaluate_psf(model, res.psf, scenes, names, spec.seed)], res.energy)
+    # lateral misalignment along x and along the diagonal
+    for sweep, direction in (("shift_x_cells", (0.0, 1.0)), ("shift_diag_cells", (1.0, 1.0))):
+        for s in spec.shift_cells:
+            psf, applied = psf_shifted(optics, h0, s * direction[0], s * direction[1], spec.shift_subsamples)
+            record(sweep, s, "cells", [evaluate_psf(model, psf, scenes, names, spec.seed)], psf.sum(dim=(-2, -1)),
+                   applied_cells=list(applied), shift_um=[a * optics.cell_m * 1e6 for a in applied])
+    # sensor distance error
+    lam0 = optics.doe.design_wavelength_nm * 1e-9
+    z = optics.sensor_distance_m
+    for dz_um in spec.sensor_distance_um:
+        dz = dz_um * 1e-6
+        if z + dz <= 0:
+            raise InputError(f"sensor distance error {dz_um} µm puts the sensor behind the lens")
+        res = psf_for_heights(optics, h0, defocus_delta_per_m2(optics, dz))
+        waves = optics.aperture_radius_m**2 / 2 * (1 / (z + dz) - 1 / z) / lam0
+        record("sensor_distance_um", dz_um, "um", [evaluate_psf(model, res.psf, scenes, names, spec.seed)], res.energy,
+               defocus_waves=float(waves), magnification_change=float(dz / z))
+        if progress:
+            log.info("tolerance: Δz %+g µm done", dz_um)
+
+    sweeps: dict[str, Any] = {}
+    for r in rows:
+        s = sweeps.setdefault(r["sweep"], {"unit": r["unit"], "values": [], "psnr": [], "psnr_std": [], "ssim": [], "sam": [],
+                                           "energy_in_kernel_min": []})
+        for k in ("psnr", "psnr_std", "ssim", "sam", "energy_in_kernel_min"):
+            s[k].append(r[k])
+        s["values"].append(r["value"])
+    summary = {}
+    for name in ("sigma_height_nm", "shift_x_cells", "shift_diag_cells"):
+        if name in sweeps:
+            summary[f"{name}_at_1db_loss"] = _tolerance_at(sweeps[name]["values"], sweeps[name]["psnr"], nominal["psnr"])
+    if "sensor_distance_um" in sweeps:
+        sw = sweeps["sensor_distance_um"]
+        neg = [(v, p) for v, p in zip(sw["values"], sw["psnr"]) if v <= 0]
+        pos = [(v, p) for v, p in zip(sw["values"], sw["psnr"]) if v >= 0]
+        summary["sensor_distance_um_at_1db_loss"] = {
+            "minus": _tolerance_at([v for v, _ in neg], [p for _, p in neg], nominal["psnr"]),
+            "plus": _tolerance_at([v for v, _ in pos], [p for _, p in pos], nominal["psnr"]),
+        }
+    if "levels" in sweeps:
+        ok = [lv for lv, p in zip(sweeps["levels"]["values"], sweeps["levels"]["psnr"]) if nominal["psnr"] - p <= 1.0]
+        summary["min_levels_within_1db"] = min(ok) if ok else None
+    return {
+        "format": "hsicam-tolerance-1",
+        "scenes": list(names),
+        "metric": "PSNR per band then averaged, peak 1 (per-cube max normalisation), mean over scenes; network fixed",
+        "sensor_noise": {"model": cam.noise.model, "sigma": cam.noise.sigma, "seed": spec.seed},
+        "spec": asdict(spec),
+        "methods": {
+            "sigma_height_nm": "i.i.d. Gaussian height error per cell; each draw = one fabricated DOE; mean ± std over draws",
+            "levels": "exported L-level heights (piston removed, L levels over h_2pi, wrapped)",
+            "shift": (f"relief shifted by whole sub-samples of a {spec.shift_subsamples}-per-cell grid, complex "
+                      "transmission area-averaged onto the model's pupil samples; aperture and lens fixed"),
+            "sensor_distance_um": "residual defocus with z_i + dz at the nominal sampling (magnification change neglected)",
+        },
+        "nominal": {**nominal, "energy_in_kernel_min": float(nominal_psf.energy.min())},
+        "sweeps": sweeps,
+        "summary": summary,
+        "rows": rows,
+        "elapsed_s": time.perf_counter() - t0,
+    }
+
+
+# ------------------------------------------------------------------------------------------------
+# Files
+# ------------------------------------------------------------------------------------------------
+def write_tolerance(out: str | Path, result: dict[str, Any]) -> None:
+    """``tolerance.json``, ``tolerance.csv`` and ``tolerance.png`` in ``out`` (atomic writes)."""
+    from hsicam.io import atomic_open, write_json
+
+    out = Path(out)
+    write_json(out / "tolerance.json", result)
+    buf = io.StringIO()
+    w = csv.writer(buf, lineterminator="\n")
+    w.writerow(["sweep", "value", "unit", "psnr_db", "psnr_std_db", "ssim", "sam_deg", "n", "energy_in_kernel_min"])
+    nom = result["nominal"]
+    w.writerow(["nominal", 0, "", f"{nom['psnr']:.6g}", 0, f"{nom['ssim']:.6g}", f"{nom['sam']:.6g}", 1,
+                f"{nom['energy_in_kernel_min']:.6g}"])
+    for r in result["rows"]:
+        w.writerow([r["sweep"], r["value"], r["unit"], f"{r['psnr']:.6g}", f"{r['psnr_std']:.6g}", f"{r['ssim']:.6g}",
+                    f"{r['sam']:.6g}", r["n"], f"{r['energy_in_kernel_min']:.6g}"])
+    with atomic_open(out / "tolerance.csv", "w", encoding="utf-8", newline="") as fh:
+        fh.write(buf.getvalue())
+    plot_tolerance(result, out / "tolerance.png")
+
+
+def plot_tolerance(result: dict[str, Any], path: str | Path) -> None:
+    """PSNR versus each perturbation (2×2 panels), nominal as a dashed line."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from hsicam.io import save_figure
+
+    sw = result["sweeps"]
+    nom = result["nominal"]["psnr"]
+    fig, axes = plt.subplots(2, 2, figsize=(9, 6.5))
+    panels = [
+        (axes[0, 0], ["sigma_height_nm"], "height noise σ$_p$ (nm)", False),
+        (axes[0, 1], ["levels"], "quantisation levels L", True),
+        (axes[1, 0], ["shift_x_cells", "shift_diag_cells"], "DOE lateral shift (cells)", False),
+        (axes[1, 1], ["sensor_distance_um"], "sensor distance error Δz (µm)", False),
+    ]
+    for ax, keys, label, logx in panels:
+        for key in keys:
+            if key not in sw:
+                continue
+            s = sw[key]
+            ax.errorbar(s["values"], s["psnr"], yerr=s["psnr_std"], marker="o", ms=3, capsize=2,
+                        label={"shift_x_cells": "along x", "shift_diag_cells": "along the diagonal"}.get(key, None))
+        ax.axhline(nom, ls="--", color="gray", lw=0.8, label="nominal")
+        ax.axhline(nom - 1.0, ls=":", color="gray", lw=0.8, label="−1 dB")
+        if logx:
+            ax.set_xscale("log", base=2)
+        ax.set_xlabel(label)
+        ax.set_ylabel("PSNR (dB)")
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=7)
+    fig.suptitle("Tolerance of the trained camera (network fixed): " + result["metric"].split(",")[0], fontsize=9)
+    fig.tight_layout()
+    save_figure(fig, path)
