@@ -1,0 +1,127 @@
+"""`hsicam export-optics`, `hsicam tolerance`, `hsicam finetune`: from a trained run to hardware."""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+from hsicam.errors import InputError
+
+
+def _floats(text: str) -> tuple[float, ...]:
+    try:
+        return tuple(float(v) for v in text.split(",") if v.strip())
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected comma-separated numbers, got {text!r}") from None
+
+
+def _ints(text: str) -> tuple[int, ...]:
+    try:
+        return tuple(int(v) for v in text.split(",") if v.strip())
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected comma-separated integers, got {text!r}") from None
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("export-optics", help="fabrication files: DOE heights (npy/tiff/csv/gds), CFA spectra and fits, spec.json")
+    p.add_argument("--run", required=True, metavar="RUN", help="trained run folder")
+    p.add_argument("--out", required=True, metavar="DIR", help="output folder")
+    p.add_argument("--levels", type=int, default=None, metavar="L",
+                   help="DOE height levels for lithography, a power of 2 (default: the run's, else 8)")
+    p.add_argument("--tolerance", metavar="PATH", help="tolerance.json (or its folder) to cite in spec.json "
+                                                       "(default: RUN/tolerance/ if present)")
+    p.set_defaults(func=cmd_export)
+
+    p = sub.add_parser("tolerance", help="PSNR of the trained camera under fabrication and assembly errors")
+    p.add_argument("--run", required=True, metavar="RUN", help="trained run folder")
+    p.add_argument("--out", required=True, metavar="DIR", help="output folder (tolerance.json, .csv, .png)")
+    p.add_argument("--data", metavar="PATH", help="scenes to evaluate on (default: the run's validation scenes)")
+    p.add_argument("--max-scenes", type=int, default=8)
+    p.add_argument("--sigma-height-nm", type=_floats, default=None, metavar="LIST", help="e.g. 0,10,20,40,60")
+    p.add_argument("--draws", type=int, default=3, help="fabricated DOEs drawn per height-noise level")
+    p.add_argument("--levels", type=_ints, default=None, metavar="LIST", help="e.g. 2,4,8,16,32")
+    p.add_argument("--shift-cells", type=_floats, default=None, metavar="LIST", help="e.g. 0,0.125,0.25,0.5,1,2")
+    p.add_argument("--shift-subsamples", type=int, default=8, help="sub-samples per cell for the shift (resolution 1/Q cell)")
+    p.add_argument("--sensor-distance-um", type=_floats, default=None, metavar="LIST", help="e.g. -100,-50,0,50,100")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--device", default="cpu")
+    p.set_defaults(func=cmd_tolerance)
+
+    p = sub.add_parser("finetune", help="adapt a run's network to measured PSFs (optics frozen)")
+    p.add_argument("--run", required=True, metavar="RUN", help="trained run folder")
+    p.add_argument("--psf-dir", required=True, metavar="DIR", help="measured PSFs: one image per band (see docs)")
+    p.add_argument("--out", required=True, metavar="RUN2", help="new run folder")
+    p.add_argument("--psf-pitch-um", type=float, default=None, help="pixel pitch of the PSF images (else psf.json)")
+    p.add_argument("--epochs", type=int, default=None, help="fine-tuning epochs (default: the run's train.epochs)")
+    p.add_argument("--lr", type=float, default=None, help="network learning rate (default: 0.1 × the run's train.lr)")
+    p.add_argument("--set", dest="overrides", metavar="KEY=VALUE", action="append", default=[],
+                   help="dotted override of the run's config, e.g. data.patches_per_epoch=256 (repeatable)")
+    p.set_defaults(func=cmd_finetune)
+
+
+def cmd_export(args: argparse.Namespace) -> int:
+    from hsicam.export import export_optics
+
+    spec = export_optics(args.run, args.out, args.levels, args.tolerance)
+    q = spec["doe"]["quantized"]
+    gds = q["gds"].get("file") or f"no GDS ({q['gds'].get('skipped')})"
+    print(f"exported DOE ({spec['doe']['cells_across']}² cells of {spec['doe']['cell_size_um']:g} µm, "
+          f"{q['levels']} levels, phase error at λ0 rms {q['phase_error_design_wavelength_rad']['rms']:.3f} rad, {gds}) "
+          f"and CFA ({spec['cfa']['period']}×{spec['cfa']['period']}, fit rms ≤ {spec['cfa']['fit_rms_error']['max']:.3f}) "
+          f"-> {args.out}")
+    return 0
+
+
+def cmd_tolerance(args: argparse.Namespace) -> int:
+    from hsicam.engine.checkpoint import load_run
+    from hsicam.engine.tolerance import ToleranceSpec, run_tolerance, write_tolerance
+
+    spec = ToleranceSpec(height_draws=args.draws, max_scenes=args.max_scenes, seed=args.seed,
+                         shift_subsamples=args.shift_subsamples)
+    for name in ("sigma_height_nm", "levels", "shift_cells", "sensor_distance_um"):
+        v = getattr(args, name)
+        if v is not None:
+            if not v:
+                raise InputError(f"--{name.replace('_', '-')} needs at least one value")
+            setattr(spec, name, v)
+    cfg, model = load_run(args.run, args.device)
+    result = run_tolerance(model, cfg, spec, args.data)
+    write_tolerance(Path(args.out), result)
+    s = result["summary"]
+    print(f"nominal PSNR {result['nominal']['psnr']:.2f} dB on {len(result['scenes'])} scene(s); 1-dB tolerances: "
+          f"σ_p {_fmt(s.get('sigma_height_nm_at_1db_loss'))} nm, shift {_fmt(s.get('shift_x_cells_at_1db_loss'))} cells (x), "
+          f"Δz {json.dumps(s.get('sensor_distance_um_at_1db_loss'))} µm, levels ≥ {s.get('min_levels_within_1db')} -> {args.out}")
+    return 0
+
+
+def _fmt(v) -> str:
+    return "> range" if v is None else f"{v:.3g}"
+
+
+def cmd_finetune(args: argparse.Namespace) -> int:
+    from hsicam.config import load_config
+    from hsicam.engine.calibration import finetune
+
+    run = Path(args.run)
+    if not (run / "config.yaml").is_file():
+        raise InputError(f"{run}: not a run folder (config.yaml is missing)")
+    overrides = list(args.overrides)
+    if args.epochs is not None:
+        if args.epochs < 1:
+            raise InputError("--epochs must be >= 1")
+        overrides.append(f"train.epochs={args.epochs}")
+    lr = args.lr
+    if lr is None:
+        lr = 0.1 * load_config(run / "config.yaml", args.overrides).train.lr
+    if not lr > 0:
+        raise InputError("--lr must be positive")
+    overrides.append(f"train.lr={lr:.6e}")
+    s = finetune(run, args.psf_dir, args.out, overrides=tuple(overrides), pitch_um=args.psf_pitch_um)
+    before = s["before"].get("psnr")
+    after = s["best_val_psnr"]
+    e = s["energy_in_kernel"]
+    print(f"fine-tuned {s['steps']} steps with the measured PSFs (energy in kernel {min(e):.3f}..{max(e):.3f}): "
+          f"val PSNR {before if before is None else f'{before:.2f}'} -> {after if after is None else f'{after:.2f}'} dB "
+          f"(best epoch {s['best_epoch']}) -> {args.out}")
+    return 0
