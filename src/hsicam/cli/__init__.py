@@ -22,6 +22,8 @@ COMMAND_MODULES = (
     "hsicam.cli.reconstruct",
     "hsicam.cli.evaluate",
     "hsicam.cli.demo",
+    "hsicam.cli.baselines",
+    "hsicam.cli.fabrication",
 )
 
 
