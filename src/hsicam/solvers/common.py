@@ -1,0 +1,82 @@
+"""Pieces shared by the iterative solvers: the GAP projection and total-variation denoising.
+
+Every solver sees the camera only through ``camera.A`` and ``camera.A_adjoint``. For CASSI
+cameras ΦΦᵀ is diagonal; its diagonal is ``A(Aᵀ 1)`` (the row sums of a diagonal matrix), which
+is what :func:`phi_diagonal` computes, so the solvers work for any CASSI geometry and convention.
+"""
+
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+
+
+def phi_diagonal(camera, y: torch.Tensor, eps: float = 1e-12) -> torch.Tensor:
+    """diag(ΦΦᵀ) as an image shaped like ``y`` (B, 1, H, W); entries ≤ eps (uncoded pixels) become 1."""
+    ones = torch.ones_like(y[:1])
+    d = camera.A(camera.A_adjoint(ones))
+    return torch.where(d > eps, d, torch.ones_like(d))
+
+
+def gap_projection(camera, x: torch.Tensor, y: torch.Tensor, phi: torch.Tensor) -> torch.Tensor:
+    """Euclidean projection of ``x`` onto {x : Φx = y} for diagonal ΦΦᵀ: x + Φᵀ((y − Φx) / diag ΦΦᵀ)."""
+    return x + camera.A_adjoint((y - camera.A(x)) / phi)
+
+
+def _grad(u: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Forward differences along H and W (zero on the last row/column): (B, C, H, W) each."""
+    gy = torch.zeros_like(u)
+    gx = torch.zeros_like(u)
+    gy[..., :-1, :] = u[..., 1:, :] - u[..., :-1, :]
+    gx[..., :, :-1] = u[..., :, 1:] - u[..., :, :-1]
+    return gy, gx
+
+
+def _div(py: torch.Tensor, px: torch.Tensor) -> torch.Tensor:
+    """Discrete divergence, the negative adjoint of :func:`_grad`."""
+    dy = torch.zeros_like(py)
+    dy[..., 0, :] = py[..., 0, :]
+    dy[..., 1:-1, :] = py[..., 1:-1, :] - py[..., :-2, :]
+    dy[..., -1, :] = -py[..., -2, :]
+    dx = torch.zeros_like(px)
+    dx[..., :, 0] = px[..., :, 0]
+    dx[..., :, 1:-1] = px[..., :, 1:-1] - px[..., :, :-2]
+    dx[..., :, -1] = -px[..., :, -2]
+    return dy + dx
+
+
+def total_variation(u: torch.Tensor) -> torch.Tensor:
+    """Isotropic spatial TV of each cube, summed over bands and pixels, (B,)."""
+    gy, gx = _grad(u)
+    return torch.sqrt(gy * gy + gx * gx).flatten(1).sum(1)
+
+
+def tv_denoise(f: torch.Tensor, weight: float | torch.Tensor, iterations: int = 5, tau: float = 0.125) -> torch.Tensor:
+    """argmin_u ½‖u − f‖² + weight·TV(u), isotropic spatial TV per band (Chambolle 2004).
+
+    Args:
+        f: (B, C, H, W) cube.
+        weight: λ ≥ 0 (a float or a tensor broadcastable to (B, C, 1, 1)).
+        iterations: dual projection iterations (started from zero).
+        tau: dual step (≤ 1/8 for convergence).
+    """
+    if iterations <= 0 or (not torch.is_tensor(weight) and weight <= 0):
+        return f
+    w = torch.as_tensor(weight, dtype=f.dtype, device=f.device)
+    g = f / w.clamp_min(1e-12)
+    py = torch.zeros_like(f)
+    px = torch.zeros_like(f)
+    for _ in range(iterations):
+        # the dual field's last row (py) / column (px) stay zero, so div p is p minus its shifted self
+        d = _div_fast(py, px) - g
+        gy = F.pad(d[..., 1:, :] - d[..., :-1, :], (0, 0, 0, 1))
+        gx = F.pad(d[..., :, 1:] - d[..., :, :-1], (0, 1))
+        norm = torch.hypot(gy, gx).mul_(tau).add_(1.0)
+        py = py.add_(gy, alpha=tau).div_(norm)
+        px = px.add_(gx, alpha=tau).div_(norm)
+    return f - w * _div_fast(py, px)
+
+
+def _div_fast(py: torch.Tensor, px: torch.Tensor) -> torch.Tensor:
+    """:func:`_div` for fields whose last row (py) and last column (px) are zero."""
+    return py - F.pad(py[..., :-1, :], (0, 0, 1, 0)) + px - F.pad(px[..., :, :-1], (1, 0))

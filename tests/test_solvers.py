@@ -1,0 +1,393 @@
+"""Baseline solvers: GAP projection, TV, GAP-TV, DeSCI (block matching, WNNM), Choi ADMM, methods, CLI."""
+
+from __future__ import annotations
+
+import os
+
+import numpy as np
+import pytest
+import torch
+import torch.nn.functional as F
+
+from cli_helpers import assert_clean_error, run_cli
+from hsicam.cameras import build_camera
+from hsicam.config import load_config
+from hsicam.engine.methods import BASELINE_METHODS, build_method
+from hsicam.errors import ConfigError, InputError
+from hsicam.metrics import psnr_per_band
+from hsicam.solvers.choi import SpectralAutoencoder, admm_prior, is_prior_run, load_prior, train_prior
+from hsicam.solvers.common import gap_projection, phi_diagonal, total_variation, tv_denoise
+from hsicam.solvers.config import BaselinesConfig, ChoiConfig
+from hsicam.solvers.desci import (block_matching, desci, desci_settings, reference_positions, wnnm_denoise,
+                                  wnnm_shrink)
+from hsicam.solvers.gaptv import gap_tv
+from hsicam.solvers.methods import ConfigWithBaselines, ensure_choi_prior, load_baseline_config, plain_config
+
+
+def cassi(kind: str = "dd_cassi", bands: int = 8, *overrides: str, dtype=torch.float64):
+    stop = 500 + 20 * (bands - 1)
+    cfg = load_config(overrides=["bands.start_nm=500", f"bands.stop_nm={stop}", "bands.step_nm=20",
+                                 f"camera.kind={kind}", *overrides])
+    return build_camera(cfg).to(dtype)
+
+
+def piecewise_constant_cube(c: int, h: int, w: int, seed: int = 0) -> torch.Tensor:
+    """Rectangles and discs, each with its own smooth spectrum, on a background: (1, C, H, W)."""
+    g = np.random.default_rng(seed)
+    lam = np.linspace(0, 1, c)
+
+    def spectrum():
+        a, b, m = g.uniform(0.1, 0.9), g.uniform(-0.5, 0.5), g.uniform(0, 1)
+        return np.clip(a + b * (lam - m) + 0.2 * np.sin(3 * lam + g.uniform(0, 6)), 0.02, 1)
+
+    cube = np.tile(spectrum()[:, None, None], (1, h, w))
+    yy, xx = np.mgrid[:h, :w]
+    for _ in range(6):
+        s = spectrum()[:, None, None]
+        if g.random() < 0.5:
+            y0, x0 = g.integers(0, h - 6), g.integers(0, w - 6)
+            mask = (yy >= y0) & (yy < y0 + g.integers(5, h // 2)) & (xx >= x0) & (xx < x0 + g.integers(5, w // 2))
+        else:
+            cy, cx, r = g.uniform(0, h), g.uniform(0, w), g.uniform(3, h / 3)
+            mask = (yy - cy) ** 2 + (xx - cx) ** 2 < r * r
+        cube = np.where(mask[None], s, cube)
+    return torch.from_numpy(cube)[None]
+
+
+def textured_cube(c: int, h: int, w: int, seed: int = 0) -> torch.Tensor:
+    """Repeating texture (gratings and a checkerboard) with smooth spectra: non-local self-similarity."""
+    g = np.random.default_rng(seed)
+    lam = np.linspace(0, 1, c)[:, None, None]
+    yy, xx = np.mgrid[:h, :w].astype(float)
+    a = 0.5 + 0.5 * np.sin(2 * np.pi * (xx * 0.15 + yy * 0.05))
+    b = ((xx // 4 + yy // 4) % 2).astype(float)
+    s1 = 0.3 + 0.6 * lam
+    s2 = 0.8 - 0.5 * lam
+    s3 = 0.5 + 0.3 * np.cos(4 * lam)
+    cube = 0.45 * a[None] * s1 + 0.35 * b[None] * s2 + 0.2 * s3 * (yy[None] < h / 2)
+    return torch.from_numpy(cube + 0.0 * g.random())[None]
+
+
+def dense_matrix(fn, n_in: int, in_shape, dtype=torch.float64) -> torch.Tensor:
+    cols = []
+    for k in range(n_in):
+        e = torch.zeros(n_in, dtype=dtype)
+        e[k] = 1
+        cols.append(fn(e.reshape(in_shape)).reshape(-1))
+    return torch.stack(cols, dim=1)
+
+
+# --------------------------------------------------------------------------------------------
+# GAP pieces
+# --------------------------------------------------------------------------------------------
+@pytest.mark.parametrize("kind", ("dd_cassi", "sd_cassi"))
+@pytest.mark.parametrize("convention", ("sum", "mean"))
+def test_phi_phi_t_is_diagonal_and_phi_diagonal_is_its_diagonal(kind, convention):
+    cam = cassi(kind, 4, f"camera.cassi.convention={convention}")
+    h, w = 4, 5
+    phi = dense_matrix(cam.A, 4 * h * w, (1, 4, h, w))  # (M, N)
+    gram = phi @ phi.T
+    off = gram - torch.diag(torch.diag(gram))
+    assert float(off.abs().max()) == 0.0
+    y = torch.zeros(1, 1, *cam.sensor_size((h, w)), dtype=torch.float64)
+    d = phi_diagonal(cam, y).reshape(-1)
+    expected = torch.diag(gram)
+    expected = torch.where(expected > 1e-12, expected, torch.ones_like(expected))
+    torch.testing.assert_close(d, expected)
+
+
+@pytest.mark.parametrize("kind", ("dd_cassi", "sd_cassi"))
+def test_gap_projection_is_feasible_and_a_projection(kind):
+    cam = cassi(kind, 6)
+    g = torch.Generator().manual_seed(0)
+    truth = torch.rand(1, 6, 10, 12, generator=g, dtype=torch.float64)
+    y = cam.A(truth)
+    phi = phi_diagonal(cam, y)
+    x = torch.rand(1, 6, 10, 12, generator=g, dtype=torch.float64)
+    p = gap_projection(cam, x, y, phi)
+    torch.testing.assert_close(cam.A(p), y)
+    torch.testing.assert_close(gap_projection(cam, p, y, phi), p)  # idempotent
+    # the projection is the closest feasible point: x − p ⟂ (truth − p) (both feasible)
+    assert abs(float(((x - p) * (truth - p)).sum())) < 1e-9
+
+
+def test_tv_denoise_matches_scikit_image_at_convergence():
+    skimage = pytest.importorskip("skimage.restoration")
+    g = np.random.default_rng(0)
+    img = np.kron(g.random((4, 4)), np.ones((8, 8))) + 0.1 * g.standard_normal((32, 32))
+    ref = skimage.denoise_tv_chambolle(img, weight=0.1, eps=1e-10, max_num_iter=5000)
+    ours = tv_denoise(torch.from_numpy(img)[None, None], 0.1, iterations=5000)[0, 0].numpy()
+    np.testing.assert_allclose(ours, ref, atol=2e-3)
+
+
+def test_tv_denoise_lowers_the_tv_objective():
+    f = torch.rand(2, 3, 16, 16, dtype=torch.float64)
+    u = tv_denoise(f, 0.05, 20)
+
+    def obj(v):
+        return 0.5 * (v - f).square().flatten(1).sum(1) + 0.05 * total_variation(v)
+
+    assert torch.all(obj(u) < obj(f))
+    assert torch.equal(tv_denoise(f, 0.0, 5), f)
+
+
+# --------------------------------------------------------------------------------------------
+# GAP-TV
+# --------------------------------------------------------------------------------------------
+@pytest.mark.parametrize("accelerate", (True, False))
+@pytest.mark.parametrize("kind", ("dd_cassi", "sd_cassi"))
+def test_gap_tv_lowers_the_error_on_a_piecewise_constant_cube(accelerate, kind):
+    cam = cassi(kind, 8)
+    truth = piecewise_constant_cube(8, 40, 40, seed=2)
+    y = cam.A(truth)
+    start = cam.A_adjoint(y / phi_diagonal(cam, y))
+    x, info = gap_tv(cam, y, iterations=60, tv_weight=0.01, accelerate=accelerate, return_info=True)
+    assert x.shape == truth.shape
+    p0, p1 = float(psnr_per_band(start, truth)), float(psnr_per_band(x, truth))
+    assert p1 > p0 + 8, (p0, p1)
+    assert info.residual[-1] < 0.05 and info.iterations == 60
+
+
+def test_gap_tv_float32_and_batch():
+    cam = cassi("dd_cassi", 8, dtype=torch.float32)
+    truth = torch.cat([piecewise_constant_cube(8, 24, 24, 0), piecewise_constant_cube(8, 24, 24, 1)]).float()
+    x = gap_tv(cam, cam.A(truth), iterations=20)
+    assert x.dtype == torch.float32 and x.shape == truth.shape
+    single = gap_tv(cam, cam.A(truth[1:]), iterations=20)
+    torch.testing.assert_close(x[1:], single, rtol=1e-4, atol=1e-5)
+
+
+def test_solver_input_errors():
+    cam = cassi("dd_cassi", 8)
+    with pytest.raises(InputError, match="B, 1, H, W"):
+        gap_tv(cam, torch.rand(1, 2, 8, 8, dtype=torch.float64))
+    with pytest.raises(InputError, match="smaller than the patch"):
+        desci(cam, torch.rand(1, 1, 4, 4, dtype=torch.float64), desci_settings("fast", init_iterations=1))
+    with pytest.raises(InputError, match="preset"):
+        desci_settings("slow")
+
+
+# --------------------------------------------------------------------------------------------
+# DeSCI
+# --------------------------------------------------------------------------------------------
+def test_block_matching_agrees_with_brute_force():
+    g = torch.Generator().manual_seed(0)
+    img = torch.rand(3, 20, 22, generator=g, dtype=torch.float64)
+    p, search, k = 4, 3, 6
+    rows, cols = reference_positions(20, p, 5), reference_positions(22, p, 5)
+    got = block_matching(img, p, rows, cols, search, k)
+    hp, wp = 20 - p + 1, 22 - p + 1
+    r = 0
+    for i in rows.tolist():
+        for j in cols.tolist():
+            ref = img[:, i : i + p, j : j + p]
+            d = {}
+            for a in range(max(0, i - search), min(hp, i + search + 1)):
+                for b in range(max(0, j - search), min(wp, j + search + 1)):
+                    d[a * 22 + b] = float((img[:, a : a + p, b : b + p] - ref).square().sum())
+            best = sorted(d.values())[:k]
+            mine = sorted(d[int(q)] for q in got[r])
+            np.testing.assert_allclose(mine, best, rtol=1e-9, atol=1e-12)
+            assert int(got[r, 0]) == i * 22 + j  # the reference itself comes first
+            r += 1
+    assert reference_positions(20, 4, 5).tolist() == [0, 5, 10, 15, 16]
+
+
+def test_wnnm_shrink_is_the_reweighting_fixed_point():
+    s = torch.linspace(0, 5, 101, dtype=torch.float64)
+    w, eps = 1.5, 1e-8
+    x = wnnm_shrink(s, w, eps)
+    big = (s + eps) ** 2 > 4 * w
+    torch.testing.assert_close(x[big], s[big] - w / (x[big] + eps))  # x = s − w / (x + ε)
+    assert torch.all(x[~big] == 0) and torch.all(x <= s)
+
+
+def test_wnnm_denoiser_removes_noise_on_a_texture():
+    clean = textured_cube(6, 32, 32)[0]
+    g = torch.Generator().manual_seed(0)
+    noisy = clean + 0.05 * torch.randn(clean.shape, generator=g, dtype=torch.float64)
+    s = desci_settings("fast", patch=4, step=2, search=8, group=24)
+    den, matches = wnnm_denoise(noisy, 0.05, s)
+    assert matches.shape[1] == 24
+    assert float(psnr_per_band(den[None], clean[None])) > float(psnr_per_band(noisy[None], clean[None])) + 3
+
+
+def test_desci_beats_gap_tv_on_a_textured_scene():
+    cam = cassi("dd_cassi", 8)
+    truth = textured_cube(8, 32, 32)
+    y = cam.A(truth)
+    base = gap_tv(cam, y, iterations=40, tv_weight=0.01)
+    s = desci_settings("fast", patch=4, step=2, search=6, group=16, sigmas=[0.05, 0.03, 0.02], iterations=[5, 5, 5],
+                       match_every=2, init_iterations=40)
+    x, info = desci(cam, y, s, return_info=True)
+    p_tv, p_de = float(psnr_per_band(base, truth)), float(psnr_per_band(x, truth))
+    assert p_de > p_tv + 1.0, (p_tv, p_de)
+    assert info.iterations == 15 and info.runtime_s > 0
+
+
+# --------------------------------------------------------------------------------------------
+# Choi et al.: autoencoder prior + ADMM
+# --------------------------------------------------------------------------------------------
+def _tiny_prior(c: int) -> SpectralAutoencoder:
+    torch.manual_seed(0)
+    ae = SpectralAutoencoder(c, 16, 4).double()
+    opt = torch.optim.Adam(ae.parameters(), lr=3e-3)
+    data = torch.cat([piecewise_constant_cube(c, 16, 16, s) for s in range(8)])
+    for _ in range(60):
+        loss = F.mse_loss(ae(data + 0.03 * torch.randn_like(data)), data)
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+    return ae.requires_grad_(False).eval()
+
+
+def test_admm_with_the_prior_converges():
+    cam = cassi("dd_cassi", 6)
+    prior = _tiny_prior(6)
+    truth = piecewise_constant_cube(6, 24, 24, seed=11)
+    y = cam.A(truth)
+    s = ChoiConfig(iterations=30, rho=1.0, rho_growth=1.05, prior_weight=0.5, tv_weight=0.002, inner_steps=2,
+                   init_iterations=0)
+    x, info = admm_prior(cam, y, prior, s, return_info=True)
+    obj = info.objective
+    assert len(obj) == 31 and obj[-1] < 0.5 * obj[0]
+    # after the first few iterations the objective decreases (up to 1 %) and the splitting closes
+    assert all(b <= a * 1.01 for a, b in zip(obj[5:], obj[6:])), obj
+    primal = info.extra["primal_residual"]
+    assert primal[-1] < 0.1 * primal[0] and primal[-1] < 0.02
+    start = cam.A_adjoint(y / phi_diagonal(cam, y))
+    assert float(psnr_per_band(x, truth)) > float(psnr_per_band(start, truth)) + 3
+
+
+def test_admm_runs_under_no_grad_and_in_float32():
+    cam = cassi("dd_cassi", 6, dtype=torch.float32)
+    prior = _tiny_prior(6)  # float64 prior on float32 data
+    truth = piecewise_constant_cube(6, 16, 16, seed=3).float()
+    with torch.no_grad():
+        x = admm_prior(cam, cam.A(truth), prior, ChoiConfig(iterations=3, init_iterations=2))
+    assert x.dtype == torch.float32 and x.shape == truth.shape
+
+
+# --------------------------------------------------------------------------------------------
+# Config section
+# --------------------------------------------------------------------------------------------
+def test_baselines_config_section():
+    cfg = load_baseline_config("tiny", ["baselines.desci.preset=full", "baselines.gaptv.iterations=7",
+                                        "baselines.desci.sigmas=[0.1, 0.05]", "baselines.desci.iterations=[3, 2]"])
+    assert isinstance(cfg, ConfigWithBaselines) and isinstance(cfg.baselines, BaselinesConfig)
+    assert cfg.baselines.gaptv.iterations == 7
+    assert cfg.baselines.desci.overrides() == {"sigmas": [0.1, 0.05], "iterations": [3, 2]}
+    s = desci_settings(cfg.baselines.desci.preset, **cfg.baselines.desci.overrides())
+    assert s.step == 2 and s.sigmas == [0.1, 0.05]
+    assert type(plain_config(cfg)).__name__ == "Config"
+    for bad, match in (("baselines.gaptv.iterations=-1", "iterations"), ("baselines.desci.sigmas=[-0.1]", "sigmas"),
+                       ("baselines.choi.latent=0", "latent"), ("baselines.choi.nope=1", "unknown config key"),
+                       ("baselines.desci.preset=slow", "preset")):
+        with pytest.raises(ConfigError, match=match):
+            load_baseline_config("tiny", [bad])
+
+
+# --------------------------------------------------------------------------------------------
+# Methods on the tiny dataset (tiny preset: 7 bands, 64 px synthetic scenes)
+# --------------------------------------------------------------------------------------------
+@pytest.fixture(scope="module")
+def tiny_env(tmp_path_factory):
+    """Private cache with the tiny synthetic dataset, a tiny learned-CASSI run and a tiny prior."""
+    from hsicam.engine.train import train
+
+    root = tmp_path_factory.mktemp("baselines")
+    old = os.environ.get("HSICAM_CACHE")
+    os.environ["HSICAM_CACHE"] = str(root / "cache")
+    try:
+        cfg = load_config("tiny")
+        train(load_config("tiny", ["camera.kind=dd_cassi"]), root / "rdn", progress=False)
+        prior = ensure_choi_prior(root / "prior", "tiny")
+        yield {"cfg": cfg, "rdn": root / "rdn", "prior": prior, "root": root}
+    finally:
+        if old is None:
+            os.environ.pop("HSICAM_CACHE", None)
+        else:
+            os.environ["HSICAM_CACHE"] = old
+
+
+def _validation_scenes(cfg):
+    from hsicam.data.datasets import SceneDataset, list_scenes, split_scenes
+    from hsicam.data.pipeline import dataset_root
+
+    bands = cfg.bands.to_bands()
+    _, val = split_scenes(list_scenes(dataset_root(cfg.data, bands)), cfg.data.val_fraction, cfg.data.split_seed)
+    return SceneDataset(val, bands)
+
+
+FAST = ("baselines.desci.iterations=[2, 2, 2, 2]", "baselines.desci.init_iterations=10",
+        "baselines.gaptv.iterations=20", "baselines.choi.iterations=5", "baselines.choi.init_iterations=5")
+
+
+@pytest.mark.parametrize("name", BASELINE_METHODS)
+def test_each_baseline_through_build_method(tiny_env, name):
+    cfg = load_baseline_config("tiny", FAST)
+    run = {"dd-cassi-choi": tiny_env["prior"], "dd-cassi-rdn": tiny_env["rdn"]}.get(name)
+    method = build_method(name, cfg, run)
+    assert method.name == name and method.camera.kind == "dd_cassi"
+    scenes = _validation_scenes(cfg)
+    scene = scenes[0][None]
+    g = torch.Generator().manual_seed(0)
+    with torch.no_grad():
+        y = method.camera(scene, g)
+        est = method.reconstruct(y)
+    truth = method.target(scene)
+    assert y.shape == (1, 1, 64, 64)
+    assert est.shape == truth.shape == scene.shape
+    assert torch.isfinite(est).all()
+    if name in ("dd-cassi-gaptv", "dd-cassi-desci"):
+        assert float(psnr_per_band(est.clamp(0, 1), truth)) > 25
+    evaluate = pytest.importorskip("hsicam.engine.evaluate")
+    if hasattr(evaluate, "evaluate_method"):
+        res = evaluate.evaluate_method(method, scenes, ["a", "b"], keep_arrays=False)
+        assert len(res) == 2 and all(np.isfinite(r.metrics["psnr"]) for r in res)
+
+
+def test_build_baseline_errors(tiny_env):
+    cfg = tiny_env["cfg"]
+    with pytest.raises(InputError, match="needs --run"):
+        build_method("dd-cassi-choi", cfg)
+    with pytest.raises(InputError, match="needs --run"):
+        build_method("dd-cassi-rdn", cfg)
+    with pytest.raises(InputError, match="camera.kind=dd_cassi"):
+        build_method("dd-cassi-rdn", cfg, tiny_env["prior"])  # a prior folder is not a dd_cassi run
+    with pytest.raises(InputError, match="not a spectral-prior"):
+        build_method("dd-cassi-choi", cfg, tiny_env["rdn"])
+    other = load_config("tiny", ["bands.step_nm=100"])
+    with pytest.raises(InputError, match="trained on"):
+        build_method("dd-cassi-choi", other, tiny_env["prior"])
+
+
+def test_prior_folder_and_reuse(tiny_env):
+    prior = tiny_env["prior"]
+    assert is_prior_run(prior)
+    for f in ("config.yaml", "prior.yaml", "prior.safetensors", "metrics.jsonl", "summary.json"):
+        assert (prior / f).is_file()
+    ae, settings = load_prior(prior, tiny_env["cfg"].bands.to_bands())
+    assert settings.features == 8 and settings.latent == 4 and not any(p.requires_grad for p in ae.parameters())
+    before = (prior / "prior.safetensors").stat().st_mtime_ns
+    assert ensure_choi_prior(prior, "tiny") == prior
+    assert (prior / "prior.safetensors").stat().st_mtime_ns == before
+    with pytest.raises(InputError, match="not empty"):
+        train_prior(tiny_env["cfg"], ChoiConfig(train_steps=1), prior)
+
+
+def test_cli_train_prior(tiny_env, capsys):
+    from hsicam.cli import main
+
+    out = tiny_env["root"] / "cli-prior"
+    assert main(["baseline", "train-prior", "--config", "tiny", "--out", str(out), "--set",
+                 "baselines.choi.train_steps=3", "--set", "baselines.choi.features=4"]) == 0
+    assert "spectral prior trained" in capsys.readouterr().out and is_prior_run(out)
+    assert load_prior(out, tiny_env["cfg"].bands.to_bands())[1].features == 4
+    assert main(["baseline", "train-prior", "--config", "tiny", "--out", str(out)]) == 2
+    assert "not empty" in capsys.readouterr().err
+
+
+def test_cli_train_prior_config_error_is_one_line():
+    r = run_cli("baseline", "train-prior", "--config", "tiny", "--out", "unused", "--set", "baselines.choi.lr=-1")
+    assert_clean_error(r, "baselines.choi.lr")
