@@ -1,0 +1,426 @@
+"""Measured PSFs, fine-tuning with frozen optics, raw-capture preprocessing, seamless tiling.
+
+``fab_run`` (shared with test_export / test_tolerance / test_robustness) is a small trained run on
+the 3-band tiny optics (conftest) with a homogeneous dataset (smooth abundance maps of three
+fixed smooth spectra), trained with the optics frozen, so its network actually depends on the
+PSFs (it drops > 2 dB when the band throughput changes) and fine-tuning effects are measurable.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import io
+import json
+import shutil
+import subprocess
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+import torch.nn.functional as F
+
+from cli_helpers import assert_clean_error
+from conftest import TINY_CAMERA_OVERRIDES
+from hsicam.cameras import DOECamera
+from hsicam.cameras.measured import FixedPSFCamera
+from hsicam.config import load_config
+from hsicam.engine.calibration import (
+    centroid, import_for_camera, import_psf_dir, load_calibrated_run, load_measured_psf, overlap_matrix,
+    resample_area, wavelength_from_name,
+)
+from hsicam.engine.inference import RawCorrection, preprocess_raw, read_capture
+from hsicam.errors import InputError
+from hsicam.io import write_json, write_npy
+from hsicam.spectral import Bands
+
+FAB_OVERRIDES = (
+    *TINY_CAMERA_OVERRIDES,
+    "model.features=16", "model.growth=8",
+    "data.val_fraction=0.25", "data.patches_per_epoch=32", "data.val_patches=8", "data.patch_px=16",
+    "train.epochs=20", "train.lr=0.003", "train.doe_lr_nm=0.000001", "train.cfa_lr=0.000001",
+)
+
+
+def run_cli(*args: str) -> subprocess.CompletedProcess:
+    """``hsicam ARGS`` in this process (the console script's ``main``; saves the interpreter start)."""
+    from hsicam.cli import main
+
+    out, err = io.StringIO(), io.StringIO()
+    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+        try:
+            rc = main(list(args))
+        except SystemExit as exc:  # argparse usage errors
+            rc = exc.code
+    return subprocess.CompletedProcess(list(args), rc, out.getvalue(), err.getvalue())
+
+
+def write_homogeneous_scenes(folder: Path, n: int = 8, size: int = 40) -> Path:
+    """n scenes on 500/550/600 nm: smooth random abundances of three fixed smooth spectra."""
+    from hsicam.data import write_cube_h5
+
+    folder.mkdir(parents=True, exist_ok=True)
+    bands = Bands.uniform(500, 600, 50)
+    lam = bands.centers_nm
+    spectra = np.stack([np.exp(-0.5 * ((lam - mu) / 40.0) ** 2) + 0.1 for mu in (480.0, 550.0, 620.0)])
+    for i in range(n):
+        low = torch.rand(1, 3, size // 8 + 1, size // 8 + 1, generator=torch.Generator().manual_seed(i))
+        ab = F.interpolate(low, size=(size, size), mode="bilinear", align_corners=True)[0].numpy() ** 3
+        cube = np.einsum("khw,kc->chw", ab, spectra)
+        write_cube_h5(folder / f"s{i:02d}.h5", (cube / cube.max()).astype(np.float32), bands)
+    return folder
+
+
+def make_fab_run(tmp_path_factory) -> Path:
+    """The shared trained run (built once per pytest session, reused by the other modules)."""
+    from hsicam.engine.train import train
+
+    base = tmp_path_factory.getbasetemp() / "hsicam_fab"
+    run = base / "run"
+    if (run / "model.safetensors").is_file():
+        return run
+    shutil.rmtree(base, ignore_errors=True)
+    data = write_homogeneous_scenes(base / "data")
+    cfg = load_config("tiny", [*FAB_OVERRIDES, f"data.root={data}"])
+    train(cfg, run, progress=False)
+    return run
+
+
+@pytest.fixture(scope="module")
+def fab_run(tmp_path_factory):
+    return make_fab_run(tmp_path_factory)
+
+
+def write_psf_dir(d: Path, psf: np.ndarray, bands: Bands, pitch_um: float, **meta) -> Path:
+    """A measured-PSF folder holding the stack as psf.npy + psf.json (what `hsicam psf` writes)."""
+    shutil.rmtree(d, ignore_errors=True)
+    d.mkdir(parents=True)
+    write_npy(d / "psf.npy", np.asarray(psf, dtype=np.float32))
+    write_json(d / "psf.json", {"pixel_pitch_um": pitch_um, "bands_nm": bands.centers_nm.tolist(), **meta})
+    return d
+
+
+# ------------------------------------------------------------------------------------------------
+# Area resampling against an independent reference
+# ------------------------------------------------------------------------------------------------
+def test_area_resampling_matches_fine_grid_reference():
+    """Input pitch 3, output pitch 2 (units), output window starting at 5: upsample the input ×3 by
+    replication (each unit sample carries 1/3 × 1/3 of its pixel), then sum 2×2 unit blocks."""
+    rng = np.random.default_rng(0)
+    img = rng.random((9, 11))
+    unit = np.kron(img, np.ones((3, 3))) / 9.0  # 27 × 33 unit samples
+    out = np.zeros((7, 7))
+    big = np.zeros((40, 40))
+    big[: unit.shape[0], : unit.shape[1]] = unit
+    for i in range(7):
+        for j in range(7):
+            out[i, j] = big[5 + 2 * i : 7 + 2 * i, 5 + 2 * j : 7 + 2 * j].sum()
+    wy = overlap_matrix(7, 2.0, 5.0, 9, 3.0)
+    wx = overlap_matrix(7, 2.0, 5.0, 11, 3.0)
+    np.testing.assert_allclose(wy @ img @ wx.T, out, rtol=1e-12, atol=1e-12)
+    # centre convention: the output's centre pixel is centred on input point (3.5, 4.5), i.e. at
+    # (3.5 + 0.5)·3 = 12 and 15 units; its window starts 7 units before: at 5 and 8
+    got = resample_area(img, 3.0, 2.0, (3.5, 4.5), 7)
+    ref = np.zeros((7, 7))
+    for i in range(7):
+        for j in range(7):
+            ref[i, j] = big[5 + 2 * i : 7 + 2 * i, 8 + 2 * j : 10 + 2 * j].sum()
+    np.testing.assert_allclose(got, ref, rtol=1e-12, atol=1e-12)
+    # energy: a window covering the whole input keeps every bit of it
+    assert abs(resample_area(img, 3.0, 2.0, (4.0, 5.0), 41).sum() - img.sum()) < 1e-10
+
+
+def test_wavelength_from_file_names():
+    assert wavelength_from_name("psf_450nm") == 450.0
+    assert wavelength_from_name("band03_552.5 nm") == 552.5
+    assert wavelength_from_name("600") == 600.0
+    assert wavelength_from_name("psf") is None
+    assert wavelength_from_name("450nm_500nm") is None
+
+
+# ------------------------------------------------------------------------------------------------
+# Measured-PSF import: another pitch, off-centre, mixed formats
+# ------------------------------------------------------------------------------------------------
+def _fine_camera_pair(tiny_config, *overrides):
+    """The tiny camera and the same optics sampled s× finer with supersample 1: the FFT grids are
+    identical, so s×s sum-pooling of the fine PSF around the axis is exactly the coarse PSF."""
+    cam = DOECamera.from_config(tiny_config(*overrides))
+    s = cam.optics.sampling.supersample
+    pitch = 10.0 / s
+    fine = DOECamera.from_config(tiny_config(*overrides, f"camera.sensor.pixel_pitch_um={pitch}", "camera.psf.supersample=1"))
+    fine.load_state_dict(cam.state_dict())
+    assert fine.optics.sampling.fft_sizes == cam.optics.sampling.fft_sizes
+    with torch.no_grad():
+        return cam.psf().double().numpy(), fine.psf().double().numpy(), pitch, cam
+
+
+def _save_band_images(d: Path, fine: np.ndarray, bands: Bands, offset: tuple[int, int], canvas: tuple[int, int]) -> tuple[int, int]:
+    """One image per band, each in a different format, PSF axis at centre + offset; returns the axis."""
+    import imageio.v3 as iio
+    import tifffile
+
+    shutil.rmtree(d, ignore_errors=True)
+    d.mkdir(parents=True)
+    k = fine.shape[-1]
+    ay, ax = canvas[0] // 2 + offset[0], canvas[1] // 2 + offset[1]
+    for i, lam in enumerate(bands.centers_nm):
+        img = np.zeros(canvas)
+        img[ay - k // 2 : ay + k // 2 + 1, ax - k // 2 : ax + k // 2 + 1] = fine[i]
+        img *= 1234.5  # arbitrary exposure: normalize "sum" removes it
+        if i == 0:
+            tifffile.imwrite(d / f"psf_{lam:g}nm.tif", img.astype(np.float32))
+        elif i == 1:
+            iio.imwrite(d / f"{lam:g}.png", np.round(img / img.max() * 65535).astype(np.uint16))
+        else:
+            np.save(d / f"band_{lam:g}nm.npy", img.astype(np.float64))
+    return ay, ax
+
+
+def test_measured_psf_at_another_pitch_and_off_centre_comes_back(tiny_config, tmp_path):
+    coarse, fine, pitch, cam = _fine_camera_pair(tiny_config)
+    d = tmp_path / "psf"
+    ay, ax = _save_band_images(d, fine, cam.bands, (7, -13), (61, 90))
+    write_json(d / "psf.json", {"pixel_pitch_um": pitch, "centre": "axis", "axis_px": [ay, ax]})
+    m = import_for_camera(d, cam)
+    assert m.psf.shape == coarse.shape
+    peak = coarse.max(axis=(1, 2))
+    err = np.abs(m.psf - coarse).max(axis=(1, 2)) / peak
+    assert err[0] < 1e-5 and err[2] < 1e-5, err  # float TIFF and float64 npy: exact up to float32
+    assert err[1] < 2e-4, err  # 16-bit PNG quantisation
+    np.testing.assert_allclose(m.report["energy_in_kernel"], coarse.sum(axis=(1, 2)), atol=2e-4)
+    # the same images at the camera's own pitch, pre-pooled, come back identically
+    d2 = write_psf_dir(tmp_path / "psf6", coarse, cam.bands, 10.0, centre="axis", axis_px=[coarse.shape[-1] // 2] * 2)
+    np.testing.assert_allclose(import_for_camera(d2, cam).psf, coarse, rtol=0, atol=1e-7)
+
+
+def test_centroid_and_peak_centring(tiny_config, tmp_path):
+    """Centroid (common to all bands) and peak: independent of where the PSF sits in the frame,
+    and the band-summed centroid lands on the kernel centre to within the measurement pixel."""
+    coarse, fine, pitch, cam = _fine_camera_pair(tiny_config, "camera.doe.enabled=false")
+    results = {}
+    for centre in ("centroid", "peak", "centroid_per_band"):
+        outs = []
+        for off in ((0, 0), (9, -17)):
+            d = tmp_path / f"{centre}{off[0]}"
+            _save_band_images(d, fine, cam.bands, off, (70, 95))
+            write_json(d / "psf.json", {"pixel_pitch_um": pitch, "centre": centre})
+            outs.append(import_for_camera(d, cam).psf)
+        np.testing.assert_allclose(outs[0], outs[1], atol=2e-6)
+        results[centre] = outs[0]
+    k = coarse.shape[-1]
+    cy, cx = centroid(results["centroid"].sum(axis=0))
+    s = cam.optics.sampling.supersample
+    assert abs(cy - k // 2) <= 0.5 / s + 0.02 and abs(cx - k // 2) <= 0.5 / s + 0.02
+    # without a DOE the PSF is an Airy pattern: its peak is the axis, so 'peak' is exact
+    np.testing.assert_allclose(results["peak"], coarse, atol=2e-4 * coarse.max())
+
+
+def test_measured_psf_energy_and_errors(tiny_camera, tmp_path):
+    cam = tiny_camera()
+    k = cam.kernel_px
+    bands = cam.bands
+    # a uniform square 3 camera pixels wider than the kernel: the kernel holds (k/(k+3))² of it
+    big = np.ones((3, (k + 3) * 2, (k + 3) * 2))
+    m = import_psf_dir(write_psf_dir(tmp_path / "big", big, bands, 5.0), bands, 10e-6, k)
+    np.testing.assert_allclose(m.report["energy_in_kernel"], (k / (k + 3)) ** 2, rtol=1e-9)
+    np.testing.assert_allclose(m.psf.sum(axis=(1, 2)), (k / (k + 3)) ** 2, rtol=1e-6)
+    # errors, each one InputError naming the problem
+    with pytest.raises(InputError, match="pitch"):
+        import_psf_dir(write_psf_dir(tmp_path / "p", big, bands, 5.0), bands, 10e-6, k, pitch_um=-1.0)
+    d = write_psf_dir(tmp_path / "miss", big[:2], Bands.uniform(500, 550, 50), 5.0)
+    with pytest.raises(InputError, match="600"):
+        import_psf_dir(d, bands, 10e-6, k)
+    nan = big.copy()
+    nan[1, 3, 3] = np.nan
+    with pytest.raises(InputError, match="NaN"):
+        import_psf_dir(write_psf_dir(tmp_path / "nan", nan, bands, 5.0), bands, 10e-6, k)
+    with pytest.raises(InputError, match="no positive signal"):
+        import_psf_dir(write_psf_dir(tmp_path / "zero", np.zeros_like(big), bands, 5.0), bands, 10e-6, k)
+    nameless = tmp_path / "nameless"
+    nameless.mkdir()
+    np.save(nameless / "psf_a.npy", np.ones((5, 5)))
+    write_json(nameless / "psf.json", {"pixel_pitch_um": 5.0})
+    with pytest.raises(InputError, match="wavelength"):
+        import_psf_dir(nameless, bands, 10e-6, k)
+    with pytest.raises(InputError, match="no such PSF folder"):
+        import_psf_dir(tmp_path / "nope", bands, 10e-6, k)
+
+
+def test_fixed_psf_camera_keeps_the_state_dict(tiny_camera):
+    cam = tiny_camera()
+    with torch.no_grad():
+        psf = cam.psf() * 0.5
+    fixed = FixedPSFCamera.from_camera(cam, psf)
+    assert set(fixed.state_dict()) == set(cam.state_dict())
+    x = torch.rand(1, 3, 20, 20)
+    with torch.no_grad():
+        torch.testing.assert_close(fixed.A(x), cam.A(x, psf))
+        torch.testing.assert_close(fixed(x), cam.A(x, psf))  # noise sigma 0
+
+
+# ------------------------------------------------------------------------------------------------
+# Fine-tuning with frozen optics
+# ------------------------------------------------------------------------------------------------
+def test_finetune_improves_psnr_on_perturbed_psfs(fab_run, tmp_path):
+    """Measured PSFs with a band throughput of 0.5..1 (radiometric, normalize: none): the trained
+    network loses > 1.5 dB on data made with them; fine-tuning recovers it, and the tuned network
+    is now specific to them (worse on the nominal PSFs than the original network)."""
+    from hsicam.engine.checkpoint import load_run
+    from hsicam.engine.tolerance import evaluate_psf, evaluation_scenes
+
+    cfg, base = load_run(fab_run)
+    with torch.no_grad():
+        nominal = base.camera.psf().double().numpy()
+    perturbed = nominal * np.linspace(0.5, 1.0, len(base.bands))[:, None, None]
+    k = nominal.shape[-1]
+    d = write_psf_dir(tmp_path / "measured", perturbed, base.bands, 10.0, centre="axis", axis_px=[k // 2, k // 2],
+                      normalize="none")
+    run2 = tmp_path / "run2"
+    res = run_cli("finetune", "--run", str(fab_run), "--psf-dir", str(d), "--out", str(run2), "--epochs", "10", "--lr", "0.001")
+    assert res.returncode == 0, res.stderr
+    assert "fine-tuned" in res.stdout
+    summary = json.loads((run2 / "finetune.json").read_text())
+    assert summary["best_val_psnr"] > summary["before"]["psnr"]
+    # independent check on whole scenes
+    scenes, names = evaluation_scenes(cfg, base.bands, 8)
+    _, tuned, measured = load_calibrated_run(run2)
+    assert isinstance(tuned.camera, FixedPSFCamera) and measured is not None
+    np.testing.assert_allclose(measured.psf, perturbed, atol=1e-7)
+    p_meas = torch.from_numpy(measured.psf)
+    p_nom = torch.from_numpy(nominal.astype(np.float32))
+    base_nom = evaluate_psf(base, p_nom, scenes, names)["psnr"]
+    base_meas = evaluate_psf(base, p_meas, scenes, names)["psnr"]
+    tuned_meas = evaluate_psf(tuned, p_meas, scenes, names)["psnr"]
+    tuned_nom = evaluate_psf(tuned, p_nom, scenes, names)["psnr"]
+    assert base_nom - base_meas > 1.5, (base_nom, base_meas)
+    assert tuned_meas - base_meas > 1.5, (base_meas, tuned_meas)
+    assert tuned_nom < base_nom, (tuned_nom, base_nom)
+    # the tuned run is a normal run: plain load_run works (weights have the standard layout)
+    _, plain = load_run(run2)
+    torch.testing.assert_close(plain.net.state_dict(), tuned.net.state_dict())
+    # reconstruct with --psf-dir knows the network was tuned to these PSFs
+    np.save(tmp_path / "cap.npy", np.random.default_rng(0).random((30, 34)).astype(np.float32))
+    out = tmp_path / "rec.h5"
+    rec = run_cli("reconstruct", str(tmp_path / "cap.npy"), "--run", str(run2), "--out", str(out), "--psf-dir", str(d))
+    assert rec.returncode == 0, rec.stderr
+    import h5py
+
+    with h5py.File(out, "r") as f:
+        meta = json.loads(f.attrs["metadata_json"])
+    assert meta["network_tuned_to_psfs"] is True and meta["psf_fingerprint"] == measured.fingerprint
+    assert load_measured_psf(run2 / "measured_psf.safetensors").fingerprint == measured.fingerprint
+
+
+def test_finetune_cli_errors(fab_run, tmp_path):
+    assert_clean_error(run_cli("finetune", "--run", str(tmp_path / "nope"), "--psf-dir", str(tmp_path), "--out", str(tmp_path / "o")),
+                       "not a run folder")
+    d = tmp_path / "empty"
+    d.mkdir()
+    write_json(d / "psf.json", {"pixel_pitch_um": 10.0})
+    assert_clean_error(run_cli("finetune", "--run", str(fab_run), "--psf-dir", str(d), "--out", str(tmp_path / "o")),
+                       "no PSF images")
+    assert not (tmp_path / "o").exists()
+
+
+# ------------------------------------------------------------------------------------------------
+# Raw captures
+# ------------------------------------------------------------------------------------------------
+def test_raw_preprocessing_reference():
+    """g = (raw − dark)/(white − black)/flat_norm · t_ref/t_exp, against a direct computation."""
+    rng = np.random.default_rng(1)
+    h, w = 12, 18
+    signal = rng.random((h, w))
+    vignette = 0.6 + 0.4 * rng.random((h, w))
+    black, white = 64.0, 4095.0
+    dark = black + rng.random((h, w)) * 5
+    raw = np.round(dark + signal * vignette * (white - black) * 0.5)
+    flat = black + vignette * 2000.0
+    corr = RawCorrection(black_level=black, white_level=white, dark=dark, flat=flat, exposure_s=0.02, reference_exposure_s=0.01)
+    img, rep = preprocess_raw(raw, 65535.0, corr)
+    flat_norm = vignette / vignette.mean()
+    ref = (raw - dark) / (white - black) / flat_norm * 0.5
+    np.testing.assert_allclose(img, ref, rtol=1e-5, atol=1e-6)
+    assert rep["black_level_dn"] == black and rep["saturated_px"] == 0
+    # no black level given: the dark frame's median is used for the scale
+    img2, rep2 = preprocess_raw(raw, 65535.0, RawCorrection(dark=dark, white_level=white))
+    assert rep2["black_level_dn"] == pytest.approx(float(np.median(dark)))
+    np.testing.assert_allclose(img2, (raw - dark) / (white - np.median(dark)), rtol=1e-5)
+    # a flat through a period-3 CFA: averaging over the period removes the CFA pattern, keeps vignetting
+    cfa = np.tile(np.array([[0.5, 1.0, 1.5], [1.0, 1.5, 0.5], [1.5, 0.5, 1.0]]), (4, 6))
+    flat_cfa = black + 2000.0 * cfa
+    img3, _ = preprocess_raw(raw, 65535.0, RawCorrection(black_level=black, white_level=white, flat=flat_cfa, flat_period=3))
+    np.testing.assert_allclose(img3[1:-1, 1:-1], ((raw - black) / (white - black))[1:-1, 1:-1], rtol=1e-4)
+    # bad inputs
+    with pytest.raises(InputError, match="both"):
+        RawCorrection(exposure_s=0.1)
+    with pytest.raises(InputError, match="white level"):
+        preprocess_raw(raw, 65535.0, RawCorrection(black_level=5000.0, white_level=4095.0))
+    with pytest.raises(InputError, match="flat field"):
+        preprocess_raw(raw, 65535.0, RawCorrection(flat=np.zeros((h, w))))
+    with pytest.raises(InputError, match="12×18"):
+        preprocess_raw(raw, 65535.0, RawCorrection(dark=np.zeros((3, 3))))
+
+
+def test_raw_capture_formats_agree(tmp_path):
+    """The same 16-bit capture as PNG, TIFF and .npy reads identically (DN / 65535)."""
+    import imageio.v3 as iio
+    import tifffile
+
+    raw = np.random.default_rng(2).integers(0, 65536, (17, 23)).astype(np.uint16)
+    iio.imwrite(tmp_path / "c.png", raw)
+    tifffile.imwrite(tmp_path / "c.tif", raw)
+    np.save(tmp_path / "c.npy", raw)
+    outs = [read_capture(tmp_path / f"c.{ext}")[0] for ext in ("png", "tif", "npy")]
+    for o in outs:
+        np.testing.assert_allclose(o, raw / 65535.0, rtol=2e-7, atol=0)
+    img, rep = read_capture(tmp_path / "c.tif", RawCorrection(black_level=100.0, white_level=60000.0))
+    np.testing.assert_allclose(img, (raw.astype(np.float64) - 100) / 59900, rtol=1e-5, atol=1e-6)
+    assert rep["saturated_px"] == int(np.count_nonzero(raw >= 60000))
+
+
+def test_reconstruct_raw_capture_cli_tiled_equals_whole(fab_run, tmp_path):
+    """A 16-bit TIFF capture with dark and flat frames: tiled (16 px tiles) and whole-image
+    reconstructions agree; the preprocessing is recorded in the output file."""
+    import h5py
+    import tifffile
+
+    from hsicam.data import read_cube
+
+    rng = np.random.default_rng(3)
+    h, w = 45, 52
+    dark = (100 + rng.integers(0, 8, (h, w))).astype(np.uint16)
+    flat = (100 + 3000 * (0.8 + 0.2 * rng.random((h, w)))).astype(np.uint16)
+    raw = (dark + rng.integers(0, 20000, (h, w))).astype(np.uint16)
+    for name, a in (("raw", raw), ("dark", dark), ("flat", flat)):
+        tifffile.imwrite(tmp_path / f"{name}.tif", a)
+    common = ["--run", str(fab_run), "--dark", str(tmp_path / "dark.tif"), "--flat", str(tmp_path / "flat.tif"),
+              "--black-level", "100", "--white-level", "40000", "--exposure-s", "0.5", "--reference-exposure-s", "0.25"]
+    r1 = run_cli("reconstruct", str(tmp_path / "raw.tif"), "--out", str(tmp_path / "tiled.h5"), "--tile", "16", *common)
+    assert r1.returncode == 0, r1.stderr
+    r2 = run_cli("reconstruct", str(tmp_path / "raw.tif"), "--out", str(tmp_path / "whole.h5"), "--tile", "512", *common)
+    assert r2.returncode == 0, r2.stderr
+    tiled, _, _ = read_cube(tmp_path / "tiled.h5")
+    whole, _, _ = read_cube(tmp_path / "whole.h5")
+    assert tiled.shape == (3, h, w)
+    np.testing.assert_allclose(tiled, whole, rtol=1e-5, atol=1e-5)
+    with h5py.File(tmp_path / "whole.h5", "r") as f:
+        meta = json.loads(f.attrs["metadata_json"])
+    assert meta["preprocessing"]["black_level_dn"] == 100.0 and meta["preprocessing"]["exposure_s"] == 0.5
+    # the CLI preprocessing equals the library's
+    from hsicam.engine.inference import read_image_2d
+
+    corr = RawCorrection(black_level=100.0, white_level=40000.0, dark=read_image_2d(tmp_path / "dark.tif").data,
+                         flat=read_image_2d(tmp_path / "flat.tif").data, exposure_s=0.5, reference_exposure_s=0.25)
+    img, _ = read_capture(tmp_path / "raw.tif", corr)
+    from hsicam.engine.checkpoint import load_run
+
+    _, model = load_run(fab_run)
+    with torch.no_grad():
+        ref = model.reconstruct(torch.from_numpy(img)[None, None])[0].clamp_min(0).numpy()
+    np.testing.assert_allclose(whole, ref, rtol=1e-5, atol=1e-5)
+    # mismatched dark frame size: one-line error, no output file
+    tifffile.imwrite(tmp_path / "small.tif", dark[:10, :10])
+    bad = run_cli("reconstruct", str(tmp_path / "raw.tif"), "--out", str(tmp_path / "bad.h5"), "--run", str(fab_run),
+                  "--dark", str(tmp_path / "small.tif"))
+    assert_clean_error(bad, "dark frame")
+    assert not (tmp_path / "bad.h5").exists() and not (tmp_path / "bad_rgb.png").exists()
