@@ -41,9 +41,11 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--sigma-height-nm", type=_floats, default=None, metavar="LIST", help="e.g. 0,10,20,40,60")
     p.add_argument("--draws", type=int, default=3, help="fabricated DOEs drawn per height-noise level")
     p.add_argument("--levels", type=_ints, default=None, metavar="LIST", help="e.g. 2,4,8,16,32")
-    p.add_argument("--shift-cells", type=_floats, default=None, metavar="LIST", help="e.g. 0,0.125,0.25,0.5,1,2")
-    p.add_argument("--shift-subsamples", type=int, default=8, help="sub-samples per cell for the shift (resolution 1/Q cell)")
-    p.add_argument("--sensor-distance-um", type=_floats, default=None, metavar="LIST", help="e.g. -100,-50,0,50,100")
+    p.add_argument("--shift-cells", type=_floats, default=None, metavar="LIST", help="e.g. 0,0.25,0.5,1,2")
+    p.add_argument("--shift-subsamples", type=int, default=4,
+                   help="pupil samples per cell Q for the misalignment study (shift resolution 1/Q cell)")
+    p.add_argument("--sensor-distance-um", type=_floats, default=None, metavar="LIST",
+                   help="e.g. --sensor-distance-um=-100,-50,0,50,100 (use '=' for lists starting with '-')")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--device", default="cpu")
     p.set_defaults(func=cmd_tolerance)

@@ -249,6 +249,9 @@ def export_doe(camera, out: Path, levels: int, bands_nm: np.ndarray) -> dict[str
                       optics.aperture_radius_m * 1e6)
             gds_info = {"file": f"doe_L{levels}.gds", "layers": gds_layers(levels, top * 1e9 / levels)}
         except ImportError as exc:
+            import logging
+
+            logging.getLogger(__name__).warning("no GDSII written: %s", exc)
             gds_info = {"file": None, "skipped": str(exc)}
     else:
         gds_info = {"file": None, "skipped": f"{levels} levels are not a power of 2 (binary-weighted lithography needs L = 2^k)"}

@@ -1,0 +1,205 @@
+"""Fabrication export: round trips of every file (GDSII via gdstk, CSV exact, TIFF to its scale),
+independent references for quantisation, masks and filter fits, spec.json contents."""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+import sys
+
+import numpy as np
+import pytest
+import torch
+
+from cli_helpers import assert_clean_error
+from test_calibration import fab_run, run_cli  # noqa: F401 - shared fixture
+from hsicam.errors import InputError
+from hsicam.export.cfa import fit_filter
+from hsicam.export.doe import phase_error, quantize_levels
+from hsicam.export.gds import write_gds
+from hsicam.optics.doe import height_2pi_m
+from hsicam.optics.pupil import aperture_amplitude
+from hsicam.spectral import Bands, get_material
+
+gdstk = pytest.importorskip("gdstk")
+
+
+def _read_csv(path):
+    with open(path, newline="", encoding="utf-8") as fh:
+        return list(csv.DictReader(fh))
+
+
+def _rasterise_gds(path, n: int, cell_um: float, layers: int) -> np.ndarray:
+    """Etch count per cell from the GDS rectangles (independent of hsicam's reader): each layer's
+    rectangles are turned back into cell index ranges from their bounding boxes."""
+    lib = gdstk.read_gds(str(path))
+    (cell,) = [c for c in lib.cells if c.name == "DOE"]
+    etch = np.zeros((n, n), dtype=np.int64)
+    c = (n - 1) / 2
+    for poly in cell.polygons:
+        if not 1 <= poly.layer <= layers:
+            continue
+        assert len(poly.points) == 4  # rectangles only
+        (x0, y0), (x1, y1) = poly.bounding_box()
+        j0, j1 = int(round(x0 / cell_um + c + 0.5)), int(round(x1 / cell_um + c + 0.5))
+        i0, i1 = int(round(c - y1 / cell_um + 0.5)), int(round(c - y0 / cell_um + 0.5))
+        etch[i0:i1, j0:j1] += 1 << (poly.layer - 1)
+    return etch
+
+
+def test_export_round_trip(fab_run, tmp_path):
+    from hsicam.engine.checkpoint import load_run
+
+    out = tmp_path / "fab"
+    res = run_cli("export-optics", "--run", str(fab_run), "--out", str(out), "--levels", "8")
+    assert res.returncode == 0, res.stderr
+    assert "doe_L8.gds" in res.stdout
+    cfg, model = load_run(fab_run)
+    n = model.camera.optics.doe.n_cells
+    cell_um = cfg.camera.doe.cell_size_um
+    # independent heights: the raw parameter (no wrap/clamp/quantisation configured), piston removed
+    aperture = aperture_amplitude(n, cell_um * 1e-6, cfg.camera.aperture_radius_mm * 1e-3)
+    inside = aperture > 0
+    h = model.camera.optics.doe.height_m.detach().double().numpy()
+    h_ref = np.where(inside, h - h[inside].min(), 0.0) * 1e9
+    h_npy = np.load(out / "doe_height_nm.npy")
+    assert h_npy.dtype == np.float32 and h_npy.shape == (n, n)
+    np.testing.assert_allclose(h_npy, h_ref, atol=1e-3)
+    np.testing.assert_array_equal(np.load(out / "doe_aperture.npy"), aperture.astype(np.float32))
+    # L-level heights: round to h_2π/8 steps, wrap
+    step = height_2pi_m(get_material("fused_silica"), 587.6) * 1e9 / 8
+    level_ref = np.where(inside, np.mod(np.round(h_npy.astype(np.float64) / step), 8), 0).astype(int)
+    level = np.load(out / "doe_level_L8.npy")
+    np.testing.assert_array_equal(level, level_ref)
+    hq = np.load(out / "doe_height_L8_nm.npy")
+    np.testing.assert_allclose(hq, level_ref * step, rtol=1e-6)
+    # GDSII read back with gdstk: etch count (L − 1 − level) per cell, and the layers' depths
+    spec = json.loads((out / "spec.json").read_text())
+    layers = spec["doe"]["quantized"]["gds"]["layers"]
+    assert [la["etch_depth_nm"] for la in layers] == pytest.approx([step, 2 * step, 4 * step])
+    etch = _rasterise_gds(out / "doe_L8.gds", n, cell_um, 3)
+    np.testing.assert_array_equal(np.where(inside, 7 - etch, 0), level)
+    assert not etch[~inside].any()
+    lib = gdstk.read_gds(str(out / "doe_L8.gds"))
+    assert lib.unit == pytest.approx(1e-6)
+    # CSVs read back exactly
+    rows = _read_csv(out / "doe_height_nm.csv")
+    assert len(rows) == int(inside.sum())
+    for r in rows:
+        i, j = int(r["row"]), int(r["col"])
+        assert np.float32(float(r["height_nm"])) == h_npy[i, j]
+        assert np.float32(float(r["aperture_fraction"])) == np.float32(aperture[i, j])
+        assert float(r["x_um"]) == pytest.approx((j - (n - 1) / 2) * cell_um)
+        assert float(r["y_um"]) == pytest.approx(-(i - (n - 1) / 2) * cell_um)
+    for r in _read_csv(out / "doe_height_L8_nm.csv"):
+        i, j = int(r["row"]), int(r["col"])
+        assert np.float32(float(r["height_nm"])) == hq[i, j] and int(r["level"]) == level[i, j]
+    tile = np.load(out / "cfa_tile.npy")
+    with torch.no_grad():
+        np.testing.assert_array_equal(tile, model.camera.cfa.tile().numpy())
+    rows = _read_csv(out / "cfa_transmission.csv")
+    assert [float(r["wavelength_nm"]) for r in rows] == [500.0, 550.0, 600.0]
+    m = tile.shape[-1]
+    for b, r in enumerate(rows):
+        for i in range(m):
+            for j in range(m):
+                assert np.float32(float(r[f"r{i}c{j}"])) == tile[b, i, j]
+    # 16-bit TIFF: the scale is in the description; values within half a count
+    import tifffile
+
+    with tifffile.TiffFile(out / "doe_height_nm.tif") as tf:
+        page = tf.pages[0]
+        desc = json.loads(page.description)
+        data = page.asarray()
+    assert data.dtype == np.uint16 and desc["unit"] == "nm"
+    np.testing.assert_allclose(data * desc["scale_nm_per_count"], h_npy, atol=desc["scale_nm_per_count"] / 2 + 1e-4)
+    assert page.tags["XResolution"].value[0] / page.tags["XResolution"].value[1] == pytest.approx(1e4 / cell_um)
+    # spec.json
+    assert spec["lens"]["focal_length_mm"] == pytest.approx(5.0)
+    assert spec["aperture"]["radius_mm"] == pytest.approx(0.25)
+    assert spec["doe"]["cell_size_um"] == pytest.approx(cell_um) and spec["doe"]["material"] == "fused_silica"
+    assert spec["doe"]["design_wavelength_nm"] == 587.6 and spec["sensor"]["pixel_pitch_um"] == pytest.approx(10.0)
+    assert spec["bands"]["centers_nm"] == [500.0, 550.0, 600.0]
+    assert "tolerances" in spec and "trained_with" in spec["tolerances"]
+    err0 = spec["doe"]["quantized"]["phase_error_design_wavelength_rad"]
+    assert err0["max"] <= math.pi / 8 + 1e-6
+    for name in ("doe.png", "cfa.png", "cfa_fit.png", "cfa_fit.csv", "doe_phase_error_L8.csv", "doe_height_L8_nm.tif"):
+        assert (out / name).is_file(), name
+    assert set(spec["files"]) == {p.name for p in out.iterdir()}
+
+
+def test_quantisation_and_phase_error_reference():
+    top = 1000.0
+    h = np.array([[0.0, 60.0, 130.0], [990.0, 500.0, 1240.0]])
+    level, hq = quantize_levels(h, 8, top)
+    np.testing.assert_array_equal(level, [[0, 0, 1], [0, 4, 2]])  # 990 rounds up to 8 → wraps to 0; 1240 → 10 → 2
+    np.testing.assert_allclose(hq, level * 125.0)
+    # phase at the design wavelength: k·h_2π = 2π, so the wrapped error is |k·(hq − h)| mod 2π ≤ π/8
+    k0 = 2 * np.pi / top
+    err = phase_error(h, hq, np.array([k0]), np.ones_like(h))
+    d = np.angle(np.exp(1j * k0 * (hq - h)))
+    assert err["max_rad"][0] == pytest.approx(np.abs(d).max())
+    assert err["rms_rad"][0] == pytest.approx(np.sqrt(np.mean(d**2)))
+    assert err["max_rad"][0] <= np.pi / 8 + 1e-12
+    with pytest.raises(InputError):
+        quantize_levels(h, 1, top)
+
+
+def test_gds_masks_are_binary_weighted(tmp_path):
+    level = np.arange(16).reshape(4, 4) % 8
+    aperture = np.ones((4, 4))
+    aperture[0, 0] = 0.0  # outside: never etched
+    write_gds(tmp_path / "m.gds", level, 8, 30.0, aperture, 100.0, 60.0)
+    lib = gdstk.read_gds(str(tmp_path / "m.gds"))
+    (cell,) = lib.cells
+    etch = (7 - level) * (aperture > 0)
+    for j in range(3):
+        area = sum(p.area() for p in cell.polygons if p.layer == j + 1)
+        assert area == pytest.approx(np.count_nonzero((etch >> j) & 1) * 30.0**2)
+    assert any(p.layer == 100 for p in cell.polygons)  # the aperture circle
+    # identical designs give identical files (fixed timestamp)
+    write_gds(tmp_path / "m2.gds", level, 8, 30.0, aperture, 100.0, 60.0)
+    assert (tmp_path / "m.gds").read_bytes() == (tmp_path / "m2.gds").read_bytes()
+    with pytest.raises(InputError, match="2\\^k"):
+        write_gds(tmp_path / "x.gds", level, 6, 30.0, aperture, 100.0, 60.0)
+    assert not (tmp_path / "x.gds").exists()
+
+
+def test_cfa_fit_recovers_gaussian_filters():
+    lam = Bands.paper().centers_nm
+    single = 0.05 + 0.8 * np.exp(-0.5 * ((lam - 553.0) / (62.0 / 2.3548200450309493)) ** 2)
+    f = fit_filter(lam, single)
+    assert f["n_gaussians"] == 1
+    c = f["components"][0]
+    assert c["centre_nm"] == pytest.approx(553.0, abs=0.2) and c["fwhm_nm"] == pytest.approx(62.0, abs=0.3)
+    assert f["rms_error"] < 1e-4 and f["offset"] == pytest.approx(0.05 / single.max(), abs=1e-3)
+    double = np.exp(-0.5 * ((lam - 470.0) / 15.0) ** 2) + 0.6 * np.exp(-0.5 * ((lam - 650.0) / 25.0) ** 2)
+    f2 = fit_filter(lam, double)
+    assert f2["n_gaussians"] == 2
+    centres = [c["centre_nm"] for c in f2["components"]]
+    assert centres == pytest.approx([470.0, 650.0], abs=0.5)
+    assert f2["rms_error"] < 1e-3
+
+
+def test_export_without_gdstk(fab_run, tmp_path, monkeypatch):
+    from hsicam.export import export_optics
+
+    monkeypatch.setitem(sys.modules, "gdstk", None)  # `import gdstk` now raises ImportError
+    with pytest.raises(ImportError, match=r"hsicam\[fab\]"):
+        write_gds(tmp_path / "x.gds", np.zeros((3, 3), int), 4, 30.0, np.ones((3, 3)), 100.0, 40.0)
+    spec = export_optics(fab_run, tmp_path / "out", 4)
+    assert spec["doe"]["quantized"]["gds"]["file"] is None
+    assert "hsicam[fab]" in spec["doe"]["quantized"]["gds"]["skipped"]
+    assert (tmp_path / "out" / "doe_height_L4_nm.npy").is_file()
+    assert not list((tmp_path / "out").glob("*.gds")) and not list((tmp_path / "out").glob(".*"))
+
+
+def test_export_cli_errors_and_non_binary_levels(fab_run, tmp_path):
+    assert_clean_error(run_cli("export-optics", "--run", str(tmp_path / "nope"), "--out", str(tmp_path / "o")), "no such run folder")
+    assert_clean_error(run_cli("export-optics", "--run", str(fab_run), "--out", str(tmp_path / "o"), "--levels", "1"), "levels")
+    res = run_cli("export-optics", "--run", str(fab_run), "--out", str(tmp_path / "six"), "--levels", "6")
+    assert res.returncode == 0, res.stderr
+    spec = json.loads((tmp_path / "six" / "spec.json").read_text())
+    assert spec["doe"]["quantized"]["gds"]["file"] is None and "power of 2" in spec["doe"]["quantized"]["gds"]["skipped"]
+    assert spec["doe"]["quantized"]["phase_error_design_wavelength_rad"]["max"] <= math.pi / 6 + 1e-6

@@ -1,0 +1,119 @@
+"""Tolerance analysis: perturbed PSFs against independent references, and the study's outputs."""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from cli_helpers import assert_clean_error
+from test_calibration import fab_run, run_cli  # noqa: F401 - shared fixture
+from hsicam.cameras import DOECamera
+from hsicam.engine.tolerance import (
+    _tolerance_at, defocus_delta_per_m2, nominal_heights, oversampled_optics, psf_for_heights, psf_shifted, shift_fill,
+)
+
+
+def test_unperturbed_cases_reproduce_the_camera(tiny_camera):
+    cam = tiny_camera()
+    o = cam.optics
+    h0 = nominal_heights(cam)
+    with torch.no_grad():
+        p0 = cam.psf()
+    torch.testing.assert_close(psf_for_heights(o, h0).psf, p0, rtol=0, atol=1e-7)
+    torch.testing.assert_close(psf_for_heights(o, h0, defocus_delta_per_m2(o, 0.0)).psf, p0, rtol=0, atol=1e-7)
+
+
+def test_misalignment_on_the_oversampled_pupil(tiny_config):
+    """Zero shift = the camera built with pupil_oversample Q from its config; a whole-cell shift =
+    the heights moved by whole cells; ±½ cell of a mirror-symmetric DOE = mirrored PSFs."""
+    cam = DOECamera.from_config(tiny_config())
+    ref = DOECamera.from_config(tiny_config("camera.psf.pupil_oversample=4", f"camera.psf.kernel_px={cam.kernel_px}"))
+    ref.load_state_dict(cam.state_dict())
+    fine = oversampled_optics(cam.optics, 4)
+    h0 = nominal_heights(cam)
+    psf, energy, applied = psf_shifted(fine, h0, 0.0, 0.0)
+    with torch.no_grad():
+        res = ref.psf_result()
+    torch.testing.assert_close(psf, res.psf, rtol=0, atol=1e-7)
+    torch.testing.assert_close(energy.float(), res.energy, rtol=0, atol=1e-6)
+    assert float(energy.max()) < 0.999  # light of the higher grid orders leaves the kernel
+    psf, _, applied = psf_shifted(fine, h0, -1.0, 2.0)
+    assert applied == (-1.0, 2.0)
+    torch.testing.assert_close(psf, psf_for_heights(fine, shift_fill(h0, -1, 2)).psf, rtol=0, atol=1e-7)
+    psf, _, applied = psf_shifted(fine, h0, 0.0, 0.3)
+    assert applied == (0.0, 0.25)  # rounded to whole samples
+    sym = (h0 + h0.flip(1)) / 2
+    plus, _, _ = psf_shifted(fine, sym, 0.0, 0.5)
+    minus, _, _ = psf_shifted(fine, sym, 0.0, -0.5)
+    diff = (plus - minus.flip(-1)).abs().max() / plus.max()
+    assert diff < 0.05, diff  # mirror symmetry (up to the even-FFT Nyquist asymmetry)
+    assert (plus - psf_shifted(fine, sym, 0.0, 0.0)[0]).abs().max() / plus.max() > 0.01  # and the shift matters
+
+
+def test_sensor_distance_error_defocus(tiny_camera):
+    cam = tiny_camera("camera.doe.enabled=false")
+    o = cam.optics
+    z, f = o.sensor_distance_m, o.focal_lengths_m
+    lam = cam.bands.centers_nm * 1e-9
+    dz = 150e-6
+    total = o.defocus_per_m2.double() + defocus_delta_per_m2(o, dz)
+    np.testing.assert_allclose(total.numpy(), np.pi / lam * (1 / (z + dz) - 1 / f), rtol=1e-6, atol=1e-3)
+    # without a DOE the in-focus PSF is an Airy pattern: defocus lowers its peak monotonically
+    h0 = nominal_heights(cam)
+    peaks = [float(psf_for_heights(o, h0, defocus_delta_per_m2(o, d)).psf[1].max()) for d in (0.0, 100e-6, 200e-6, 400e-6)]
+    assert all(a > b for a, b in zip(peaks, peaks[1:])), peaks
+
+
+def test_tolerance_at_interpolates_the_1db_point():
+    assert _tolerance_at([0, 10, 20, 40], [30.0, 29.8, 29.4, 28.0], 30.0) == pytest.approx(20 + 20 * (0.4 / 1.4))
+    assert _tolerance_at([0, 10], [30.0, 29.5], 30.0) is None
+    assert _tolerance_at([-50, -20, 0], [27.0, 29.5, 30.0], 30.0) == pytest.approx(20 + 30 * (0.5 / 2.5))
+
+
+def test_tolerance_cli(fab_run, tmp_path):
+    from hsicam.engine.checkpoint import load_run
+    from hsicam.engine.tolerance import evaluate_psf, evaluation_scenes
+
+    out = tmp_path / "tol"
+    res = run_cli("tolerance", "--run", str(fab_run), "--out", str(out), "--max-scenes", "2", "--draws", "2",
+                  "--sigma-height-nm", "0,40,200", "--levels", "2,16", "--shift-cells", "0,0.5",
+                  "--sensor-distance-um=-300,0,300")
+    assert res.returncode == 0, res.stderr
+    assert "nominal PSNR" in res.stdout
+    r = json.loads((out / "tolerance.json").read_text())
+    assert (out / "tolerance.png").is_file()
+    cfg, model = load_run(fab_run)
+    scenes, names = evaluation_scenes(cfg, model.bands, 2)
+    with torch.no_grad():
+        nominal = evaluate_psf(model, model.camera.psf(), scenes, names)
+    assert r["nominal"]["psnr"] == pytest.approx(nominal["psnr"], abs=1e-4)
+    sw = r["sweeps"]
+    assert set(sw) == {"sigma_height_nm", "levels", "shift_x_cells", "shift_diag_cells", "sensor_distance_um"}
+    # zero perturbations give the nominal result
+    for key in ("sigma_height_nm", "sensor_distance_um"):
+        i = sw[key]["values"].index(0.0)
+        assert sw[key]["psnr"][i] == pytest.approx(nominal["psnr"], abs=1e-3), key
+    for key in ("shift_x_cells", "shift_diag_cells"):  # relative to the oversampled model without shift
+        assert sw[key]["psnr"][0] == pytest.approx(r["shift_reference"]["psnr"], abs=1e-6)
+        assert sw[key]["reference_psnr"] == r["shift_reference"]["psnr"]
+    # every height-noise draw is a different DOE; the oversampled (shift) model loses the higher orders
+    assert sw["sigma_height_nm"]["psnr_std"][-1] > 0 and sw["sigma_height_nm"]["psnr_std"][0] == 0
+    assert r["shift_reference"]["energy_in_kernel_min"] < 0.99 < r["nominal"]["energy_in_kernel_min"]
+    i = [row["sweep"] for row in r["rows"]].index("sensor_distance_um")
+    assert r["rows"][i]["defocus_waves"] == pytest.approx(
+        (0.25e-3) ** 2 / 2 * (1 / (5e-3 - 300e-6) - 1 / 5e-3) / 587.6e-9, rel=1e-6)
+    rows = list(csv.DictReader(open(out / "tolerance.csv", encoding="utf-8")))
+    assert len(rows) == 1 + 3 + 2 + 2 + 2 + 3 and rows[0]["sweep"] == "nominal"
+    assert all(math.isfinite(float(row["psnr_db"])) for row in rows)
+    # spec.json of an export cites the study
+    res = run_cli("export-optics", "--run", str(fab_run), "--out", str(tmp_path / "fab"), "--tolerance", str(out))
+    assert res.returncode == 0, res.stderr
+    spec = json.loads((tmp_path / "fab" / "spec.json").read_text())
+    assert spec["tolerances"]["studied"]["nominal_psnr_db"] == pytest.approx(r["nominal"]["psnr"])
+    assert_clean_error(run_cli("tolerance", "--run", str(fab_run), "--out", str(tmp_path / "t2"), "--draws", "0"), "must be >= 1")
+    assert not (tmp_path / "t2").exists()
