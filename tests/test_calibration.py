@@ -424,3 +424,16 @@ def test_reconstruct_raw_capture_cli_tiled_equals_whole(fab_run, tmp_path):
                   "--dark", str(tmp_path / "small.tif"))
     assert_clean_error(bad, "dark frame")
     assert not (tmp_path / "bad.h5").exists() and not (tmp_path / "bad_rgb.png").exists()
+
+
+def test_psf_folder_written_by_hsicam_psf_is_read_exactly(tiny_config, tmp_path):
+    from conftest import TINY_CAMERA_OVERRIDES as tiny
+
+    res = run_cli("psf", *[a for o in (*tiny, "camera.psf.pupil_oversample=3") for a in ("--set", o)], "--out", str(tmp_path / "psf"))
+    assert res.returncode == 0, res.stderr
+    cam = DOECamera.from_config(tiny_config("camera.psf.pupil_oversample=3"))
+    m = import_for_camera(tmp_path / "psf", cam)
+    assert m.report["centre"] == "axis" and m.report["normalize"] == "none"
+    assert max(b["kernel_sum"] for b in m.report["bands"]) < 0.99  # q = 3: higher orders fell outside the kernel
+    with torch.no_grad():
+        np.testing.assert_allclose(m.psf, cam.psf().numpy(), rtol=0, atol=1e-7)

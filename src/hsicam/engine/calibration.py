@@ -9,7 +9,9 @@ pitch of the images is ``pixel_pitch_um`` in ``DIR/psf.json`` (or the ``pitch_um
 Optional ``psf.json`` keys: ``centre`` (below), ``axis_px`` ([row, col] of the optical axis in
 the images, pixel centres at integers; for ``axis``),
 ``background`` (``none`` | ``border`` | a number in the file's units), ``normalize`` (``sum`` |
-``none``), ``wavelength_tolerance_nm`` (1 nm).
+``none``), ``wavelength_tolerance_nm`` (1 nm). A folder written by ``hsicam psf`` (its
+``psf.json`` has ``kernel_px``) is read with ``centre: axis`` at the kernel centre and
+``normalize: none`` (its values are already energy fractions) by default.
 
 Each band image is (1) background-subtracted and clipped at 0, (2) normalised so it sums to 1
 (``normalize: sum``: the image holds all the light of that band; the simulator's PSFs are also
@@ -216,7 +218,8 @@ def import_psf_image(image: np.ndarray, pitch_m: float, camera_pixel_m: float, k
         "background": b,
         "centre_px": [c[0], c[1]],
         "centre_offset_px": [c[0] - (image.shape[0] - 1) / 2, c[1] - (image.shape[1] - 1) / 2],
-        "energy_in_kernel": float(psf.sum() / energy_in) if energy_in > 0 else 0.0,
+        "energy_in_kernel": float(psf.sum() / energy_in) if energy_in > 0 else 0.0,  # of the image's light
+        "kernel_sum": float(psf.sum()),  # the PSF's total (1 for all the light with normalize: sum)
     }
     return psf, report
 
@@ -252,6 +255,11 @@ def options_from_manifest(meta: dict[str, Any], pitch_um: float | None = None, c
                           background: str | float | None = None) -> PSFImportOptions:
     """Import options: arguments first, then ``psf.json`` keys, then defaults."""
     axis = meta.get("axis_px")
+    if axis is None and centre is None and "centre" not in meta and isinstance(meta.get("kernel_px"), int):
+        # written by `hsicam psf`: simulated kernels with the optical axis on the centre pixel
+        k = meta["kernel_px"]
+        axis, centre = [(k - 1) / 2, (k - 1) / 2], "axis"
+        meta = {"normalize": "none", **meta}  # already energy fractions of the whole FFT plane
     if axis is not None:
         if not (isinstance(axis, list) and len(axis) == 2 and all(isinstance(v, (int, float)) for v in axis)):
             raise InputError(f"psf.json: axis_px must be [row, col], got {axis!r}")
@@ -301,6 +309,8 @@ def _list_band_images(d: Path, meta: dict[str, Any]) -> list[tuple[float, Path |
         if f.name.startswith(".") or f.suffix.lower() not in _IMAGE_SUFFIXES or not f.is_file():
             continue
         w = wavelength_from_name(f.stem)
+        if w is None and f.name == "psf.npy":
+            raise InputError(f"{f}: a PSF stack needs its wavelengths: bands_nm in {d / 'psf.json'}")
         if w is None:
             raise InputError(f"{f}: cannot tell the wavelength from the file name (use e.g. psf_450nm{f.suffix})")
         items.append((w, f, None))

@@ -76,7 +76,7 @@ class ToleranceSpec:
 # ------------------------------------------------------------------------------------------------
 def _pupil(optics, h_cells_m: torch.Tensor) -> torch.Tensor:
     q = optics.pupil_oversample
-    h = h_cells_m.to(optics.amplitude.dtype)
+    h = h_cells_m.to(optics.amplitude)
     if q > 1:
         h = h.repeat_interleave(q, 0).repeat_interleave(q, 1)
     return h
@@ -153,7 +153,7 @@ def psf_shifted(fine_optics, h_cells_m: torch.Tensor, dy_cells: float, dx_cells:
 
     big_q = fine_optics.pupil_oversample
     sy, sx = int(round(dy_cells * big_q)), int(round(dx_cells * big_q))
-    h = h_cells_m.to(fine_optics.amplitude.dtype).repeat_interleave(big_q, 0).repeat_interleave(big_q, 1)
+    h = h_cells_m.to(fine_optics.amplitude).repeat_interleave(big_q, 0).repeat_interleave(big_q, 1)
     h = shift_fill(h, sy, sx)
     smp = fine_optics.sampling
     out, energy = [], []
@@ -162,7 +162,7 @@ def psf_shifted(fine_optics, h_cells_m: torch.Tensor, dy_cells: float, dx_cells:
                         fine_optics.defocus_per_m2[c : c + 1], smp.fft_sizes[c : c + 1], smp.supersample, smp.kernel_px)
         out.append(res.psf[0])
         energy.append(res.energy[0])
-    return torch.stack(out).float(), torch.stack(energy), (sy / big_q, sx / big_q)
+    return torch.stack(out).float().cpu(), torch.stack(energy).cpu(), (sy / big_q, sx / big_q)
 
 
 # ------------------------------------------------------------------------------------------------
@@ -190,7 +190,8 @@ def evaluate_psf(model, psf: torch.Tensor, scenes, names: Sequence[str], seed: i
 
     cam = FixedPSFCamera.from_camera(model.camera, psf)
     system = CameraSystem(cam, model.net).eval()
-    results = evaluate_scenes(system, scenes, list(names), seed=seed, keep_arrays=False)
+    device = next(model.net.parameters()).device
+    results = evaluate_scenes(system, scenes, list(names), seed=seed, device=device, keep_arrays=False)
     return {k: float(np.mean([r.metrics[k] for r in results])) for k in ("psnr", "ssim", "sam")}
 
 
