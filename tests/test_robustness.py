@@ -22,7 +22,6 @@ from hypothesis import strategies as st
 
 from cli_helpers import assert_clean_error
 from test_calibration import fab_run, run_cli  # noqa: F401 - shared fixture
-from test_data_formats import write_mat73
 from hsicam.data import read_cube, write_cube_h5, write_envi
 from hsicam.engine.inference import MAX_IMAGE_PIXELS, read_capture, read_image_2d
 from hsicam.errors import HsicamError, InputError
@@ -31,6 +30,17 @@ from hsicam.spectral import Bands
 FUZZ = settings(max_examples=12, deadline=timedelta(seconds=5), derandomize=True, database=None,
                 suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow])
 BANDS = Bands.uniform(450, 650, 50)
+
+def write_mat73(path: Path, variables: dict[str, np.ndarray]) -> None:
+    """MATLAB v7.3 MAT-file: HDF5 with the 512-byte MAT header in the user block; an H×W×C MATLAB
+    array is an HDF5 dataset of shape (C, W, H)."""
+    with h5py.File(path, "w", userblock_size=512) as f:
+        for name, value in variables.items():
+            f.create_dataset(name, data=np.ascontiguousarray(np.asarray(value).T))
+    text = b"MATLAB 7.3 MAT-file, Platform: GLNXA64, Created on: Mon Jan  1 00:00:00 2024 HDF5 schema 1.00 ."
+    with open(path, "r+b") as fh:
+        fh.write((text.ljust(116, b" ") + b"\x00" * 8 + b"\x00\x02" + b"IM").ljust(512, b"\x00"))
+
 
 mutations = st.one_of(
     st.tuples(st.just("truncate"), st.floats(0.0, 1.0)),
