@@ -241,8 +241,6 @@ def test_huge_declared_sizes_are_refused_quickly(tmp_path):
         read_image_2d(tmp_path / "limit.tif")
 
 
-@pytest.mark.xfail(reason="hsicam.data.formats reads HDF5/MAT v7.3 datasets without checking the declared size "
-                          "(MemoryError escapes); needs a size check before reading", strict=False)
 def test_huge_declared_hdf5_dataset(tmp_path):
     with h5py.File(tmp_path / "huge.h5", "w") as f:
         f.create_dataset("cube", shape=(31, 10**6, 10**6), dtype="f4", chunks=(1, 64, 64))

@@ -95,12 +95,25 @@ def _reading(path: Path, what: str) -> Iterator[None]:
     except InputError:
         raise
     except MemoryError:
-        raise
+        raise InputError(f"{path}: the {what} data is too large to load into memory") from None
     except FileNotFoundError:
         raise InputError(f"{path}: no such file or folder") from None
     except Exception as exc:  # noqa: BLE001 - h5py/scipy/imageio/OpenEXR raise many types
         detail = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
         raise InputError(f"{path}: cannot read {what} file (corrupt or truncated?): {detail}") from None
+
+
+MAX_CUBE_BYTES = int(float(os.environ.get("HSICAM_MAX_CUBE_GIB", "8")) * 2**30)
+
+
+def _checked_read(p: Path, ds: Any) -> np.ndarray:
+    """Read a whole h5py dataset after checking its declared size (a corrupt or hostile header
+    can declare terabytes). The limit is $HSICAM_MAX_CUBE_GIB (default 8 GiB)."""
+    nbytes = int(np.prod(ds.shape, dtype=np.float64) * ds.dtype.itemsize)
+    if nbytes > MAX_CUBE_BYTES:
+        raise InputError(f"{p}: dataset '{ds.name}' declares shape {tuple(ds.shape)} ({nbytes / 2**30:.1f} GiB), "
+                         f"over the {MAX_CUBE_BYTES / 2**30:g} GiB limit (HSICAM_MAX_CUBE_GIB)")
+    return ds[()]
 
 
 def _as_path(path: str | os.PathLike) -> Path:
@@ -232,7 +245,7 @@ def read_hsicam_h5(path: str | os.PathLike, *, allow_negative: bool = False) -> 
             for key in ("cube", "bands_nm"):
                 if key not in f:
                     raise InputError(f"{p}: missing key '{key}' (not an hsicam cube file)")
-            cube = f["cube"][()]
+            cube = _checked_read(p, f["cube"])
             bands = _bands_from(p, f["bands_nm"][()], f["fwhm_nm"][()] if "fwhm_nm" in f else None)
             meta = _read_attrs(f.attrs)
     meta["format"] = "hsicam"
@@ -308,7 +321,7 @@ def _load_mat(p: Path, keys: Sequence[str], bands_key: str | None) -> tuple[str,
                                      f"(found: {', '.join(sorted(f.keys())) or 'none'})")
                 if not isinstance(f[key], h5py.Dataset):
                     raise InputError(f"{p}: '{key}' is not a numeric array")
-                data = np.asarray(f[key][()]).T  # h5py returns MATLAB arrays with axes reversed
+                data = np.asarray(_checked_read(p, f[key])).T  # h5py returns MATLAB arrays with axes reversed
                 bands = np.asarray(f[bands_key][()]).reshape(-1) if bands_key and bands_key in f else None
         return key, data, bands, "7.3"
     if head.startswith(b"MATLAB 5.0"):

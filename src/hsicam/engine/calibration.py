@@ -475,10 +475,9 @@ def load_calibrated_run(run_dir: str | Path, device: torch.device | str = "cpu",
     measured = None
     if psf_dir is not None:
         measured = import_for_camera(psf_dir, model.camera, pitch_um=pitch_um)
-    elif (Path(run_dir) / MEASURED_PSF_FILE).is_file():
-        measured = load_measured_psf(Path(run_dir) / MEASURED_PSF_FILE)
-    if measured is not None:
         model = with_measured_psf(model, measured).to(device).eval()
+    elif (Path(run_dir) / MEASURED_PSF_FILE).is_file():  # load_run already images with these
+        measured = load_measured_psf(Path(run_dir) / MEASURED_PSF_FILE)
     return cfg, model, measured
 
 

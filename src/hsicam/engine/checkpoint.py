@@ -170,7 +170,8 @@ class CheckpointManager:
 
 
 def load_run(run_dir: str | Path, device: torch.device | str = "cpu", overrides: tuple[str, ...] = ()):
-    """(config, CameraSystem) of a trained run, weights from ``RUN/model.safetensors``.
+    """(config, CameraSystem) of a trained run, weights from ``RUN/model.safetensors``; a run
+    fine-tuned on measured PSFs (``RUN/measured_psf.safetensors``) images with those PSFs.
 
     Raises :class:`InputError` for a missing folder, missing/corrupt weights or another band grid.
     """
@@ -189,4 +190,8 @@ def load_run(run_dir: str | Path, device: torch.device | str = "cpu", overrides:
         raise InputError(f"{run_dir}: the run has no trained weights (model.safetensors is missing)")
     model = CameraSystem.from_config(cfg)
     load_weights(weights, model, cfg.bands.to_bands())
+    from hsicam.engine.calibration import MEASURED_PSF_FILE, load_measured_psf, with_measured_psf
+
+    if (run_dir / MEASURED_PSF_FILE).is_file():  # a run fine-tuned on measured PSFs images with them
+        model = with_measured_psf(model, load_measured_psf(run_dir / MEASURED_PSF_FILE))
     return cfg, model.to(device).eval()
