@@ -374,6 +374,10 @@ def test_prior_folder_and_reuse(tiny_env):
     assert (prior / "prior.safetensors").stat().st_mtime_ns == before
     with pytest.raises(InputError, match="not empty"):
         train_prior(tiny_env["cfg"], ChoiConfig(train_steps=1), prior)
+    fresh = tiny_env["root"] / "too-big-batch"
+    with pytest.raises(InputError, match="batch_size"):
+        train_prior(tiny_env["cfg"], ChoiConfig(train_steps=1, batch_size=1000), fresh)
+    assert not fresh.exists()  # nothing written: the same --out works after fixing the config
 
 
 def test_cli_train_prior(tiny_env, capsys):

@@ -102,10 +102,12 @@ def is_prior_run(run: str | Path) -> bool:
     return (run / "summary.json").is_file() and (run / PRIOR_WEIGHTS).is_file()
 
 
-def train_prior(cfg, settings: ChoiConfig, out: str | Path, progress: bool | None = None) -> dict:
+def train_prior(cfg, settings: ChoiConfig, out: str | Path, progress: bool | None = None,
+                device: str | torch.device | None = None) -> dict:
     """Train the autoencoder on training-split patches of ``cfg.data`` (bands ``cfg.bands``).
 
-    Writes the run folder ``out`` (see the module docstring); returns the summary.
+    Writes the run folder ``out`` (see the module docstring); returns the summary. ``device``
+    defaults to ``cfg.train.device`` (auto: CUDA when available).
     """
     import sys
 
@@ -118,15 +120,22 @@ def train_prior(cfg, settings: ChoiConfig, out: str | Path, progress: bool | Non
     out = Path(out)
     if out.exists() and any(out.iterdir()):
         raise InputError(f"{out}: prior folder exists and is not empty; choose another --out")
-    out.mkdir(parents=True, exist_ok=True)
     bands = cfg.bands.to_bands()
     torch.manual_seed(settings.seed)
-    model = build_prior(len(bands), settings)
+    if device is None:
+        device = "cuda" if cfg.train.device == "auto" and torch.cuda.is_available() else cfg.train.device
+        device = "cpu" if device == "auto" else device
+    dev = torch.device(device)
+    model = build_prior(len(bands), settings).to(dev)
+    train_ds, val_ds = build_datasets(cfg.data, bands, 0)
+    if len(train_ds) < settings.batch_size:
+        raise InputError(f"data.patches_per_epoch={len(train_ds)} is smaller than baselines.choi.batch_size="
+                         f"{settings.batch_size}")
+    out.mkdir(parents=True, exist_ok=True)
     with atomic_open(out / "config.yaml") as fh:
         fh.write(dump_yaml(cfg))
     with atomic_open(out / PRIOR_SETTINGS) as fh:
         fh.write(yaml.safe_dump(dataclasses.asdict(settings), sort_keys=False))
-    train_ds, val_ds = build_datasets(cfg.data, bands, 0)
     opt = torch.optim.Adam(model.parameters(), lr=settings.lr)
     metrics = MetricsLog(out / "metrics.jsonl", True)
     g = torch.Generator().manual_seed(settings.seed)
@@ -144,7 +153,8 @@ def train_prior(cfg, settings: ChoiConfig, out: str | Path, progress: bool | Non
             for group in opt.param_groups:
                 group["lr"] = lr
             sig = torch.rand(clean.shape[0], 1, 1, 1, generator=g) * settings.train_noise
-            noisy = clean + sig * torch.randn(clean.shape, generator=g)
+            noisy = (clean + sig * torch.randn(clean.shape, generator=g)).to(dev)
+            clean = clean.to(dev)
             loss = F.mse_loss(model(noisy), clean)
             opt.zero_grad(set_to_none=True)
             loss.backward()
@@ -152,7 +162,11 @@ def train_prior(cfg, settings: ChoiConfig, out: str | Path, progress: bool | Non
             loss_sum, loss_n, step = loss_sum + loss.item(), loss_n + 1, step + 1
             bar.update(1)
             if step % 50 == 0 or step == settings.train_steps:
-                metrics.write({"step": step, "train_mse": loss_sum / loss_n, "elapsed_s": time.perf_counter() - t0})
+                elapsed = time.perf_counter() - t0
+                metrics.write({"step": step, "train_mse": loss_sum / loss_n, "elapsed_s": elapsed})
+                if not use_bar:
+                    log.info("prior step %d/%d mse %.5f eta %.0fs", step, settings.train_steps, loss_sum / loss_n,
+                             elapsed / step * (settings.train_steps - step))
                 loss_sum, loss_n = 0.0, 0
             if step >= settings.train_steps:
                 break
@@ -162,9 +176,12 @@ def train_prior(cfg, settings: ChoiConfig, out: str | Path, progress: bool | Non
     summary = {"step": step, "final": True, "elapsed_s": time.perf_counter() - t0}
     if val_ds is not None:
         with torch.no_grad():
-            val = torch.stack([val_ds[i] for i in range(len(val_ds))])
-            rec = model(val)
-            summary["val_psnr_autoencoder"] = float(-10 * torch.log10(F.mse_loss(rec, val).clamp_min(1e-30)))
+            se, n = 0.0, 0
+            for a in range(0, len(val_ds), settings.batch_size):
+                val = torch.stack([val_ds[i] for i in range(a, min(a + settings.batch_size, len(val_ds)))]).to(dev)
+                se += float((model(val) - val).square().sum())
+                n += val.numel()
+            summary["val_psnr_autoencoder"] = -10 * math.log10(max(se / n, 1e-30))
     save_weights(out / PRIOR_WEIGHTS, model, bands, {"kind": "choi-spectral-prior"})
     metrics.write(summary)
     write_json(out / "summary.json", summary)

@@ -96,10 +96,10 @@ class ChoiConfig:
     seed: int = 0
     # ADMM
     iterations: int = 60
-    rho: float = 1.0  # ADMM penalty (data term normalised so that mean diag ΦΦᵀ = 1)
+    rho: float = 0.5  # ADMM penalty (data term normalised so that mean diag ΦΦᵀ = 1)
     rho_growth: float = 1.03  # ρ ← ρ·growth per iteration (1: constant)
-    prior_weight: float = 0.5  # τ1 of (τ1/2)‖z − D(E(z))‖²
-    tv_weight: float = 0.002  # τ2 of τ2·TV(z)
+    prior_weight: float = 0.1  # τ1 of (τ1/2)‖z − D(E(z))‖²
+    tv_weight: float = 0.003  # τ2 of τ2·TV(z)
     inner_steps: int = 2  # proximal-gradient steps of each z-update
     init_iterations: int = 20  # GAP-TV iterations of the start (0: the minimum-norm solution)
 

@@ -2,7 +2,9 @@
 
     dd-cassi-gaptv   DD-CASSI + GAP-TV                 settings: baselines.gaptv
     dd-cassi-desci   DD-CASSI + DeSCI                  settings: baselines.desci (preset fast|full)
-    dd-cassi-choi    DD-CASSI + Choi et al. ADMM       run: a spectral-prior folder (hsicam baseline train-prior)
+    dd-cassi-choi    DD-CASSI + Choi et al. ADMM       run: a spectral-prior folder (hsicam baseline train-prior);
+                                                       ADMM settings: baselines.choi of the evaluation config when
+                                                       it has that section, else the folder's prior.yaml
     dd-cassi-rdn     DD-CASSI + the paper's RDN        run: `hsicam train --set camera.kind=dd_cassi`
 
 The DD-CASSI camera of the iterative methods is built from the evaluation config's band grid,
