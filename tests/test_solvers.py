@@ -367,7 +367,7 @@ def test_prior_folder_and_reuse(tiny_env):
     for f in ("config.yaml", "prior.yaml", "prior.safetensors", "metrics.jsonl", "summary.json"):
         assert (prior / f).is_file()
     ae, settings = load_prior(prior, tiny_env["cfg"].bands.to_bands())
-    assert settings.features == 8 and settings.latent == 4 and not any(p.requires_grad for p in ae.parameters())
+    assert settings.features == 16 and settings.latent == 4 and not any(p.requires_grad for p in ae.parameters())
     before = (prior / "prior.safetensors").stat().st_mtime_ns
     assert ensure_choi_prior(prior, "tiny") == prior
     assert (prior / "prior.safetensors").stat().st_mtime_ns == before

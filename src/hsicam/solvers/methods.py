@@ -36,8 +36,8 @@ BASELINES = ("dd-cassi-gaptv", "dd-cassi-desci", "dd-cassi-choi", "dd-cassi-rdn"
 
 # spectral-prior settings per experiment scale (on top of the scale's preset)
 PRIOR_SCALE_OVERRIDES: dict[str, tuple[str, ...]] = {
-    "tiny": ("baselines.choi.train_steps=20", "baselines.choi.features=8", "baselines.choi.latent=4",
-             "baselines.choi.batch_size=4", "baselines.choi.iterations=10"),
+    "tiny": ("baselines.choi.train_steps=400", "baselines.choi.lr=0.003", "baselines.choi.features=16",
+             "baselines.choi.latent=4", "baselines.choi.batch_size=4", "baselines.choi.iterations=10"),
     "quick": (),
     "paper": ("baselines.choi.train_steps=20000", "baselines.choi.features=64", "baselines.choi.latent=16",
               "baselines.choi.batch_size=16"),
