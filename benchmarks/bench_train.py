@@ -89,7 +89,10 @@ def inference(preset: str, device: torch.device, repeats: int = 3) -> dict:
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--steps", type=int, default=5)
+    ap.add_argument("--threads", type=int, default=None, help="torch CPU threads (default: torch's choice)")
     args = ap.parse_args()
+    if args.threads:
+        torch.set_num_threads(args.threads)
     cpu = torch.device("cpu")
     out = {"torch": torch.__version__, "threads": torch.get_num_threads(),
            "train_quick_cpu": train_steps("quick", cpu, args.steps, []),
