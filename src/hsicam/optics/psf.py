@@ -16,7 +16,6 @@ from typing import Sequence
 
 import numpy as np
 import torch
-import torch.nn.functional as F
 from torch import nn
 
 from hsicam.optics.doe import DOE, phase_per_height
@@ -32,44 +31,72 @@ class PSFResult:
     energy: torch.Tensor  # (C,), fraction of each band's light inside the kernel
 
 
-class _PooledIntensity(torch.autograd.Function):
-    """|FFT_N(field)|² centred on the axis, cut to K·s samples and sum-pooled s×s → (K, K).
+class _BandPSF(torch.autograd.Function):
+    """One band: pupil phase (P, P) → |FFT_N(A·e^{iφ})|² centred on the axis and sum-pooled s×s
+    into a (K, K) kernel.
 
-    Forward and backward both prune the FFT over the zero-padded rows; the backward is the exact
-    adjoint written out (one complex multiply and two pruned inverse FFTs), which is ~2× faster
-    than letting autograd trace the same chain.
+    The FFT is pruned over the zero-padded rows. Centring, cropping or padding to K·s samples and
+    pooling are one index map (FFT sample → kernel pixel), applied with ``index_add_`` forward and
+    gathered backward, so the n×n intensity is never shifted or copied. The backward is the exact
+    adjoint written out, down to the pupil: for u = A·e^{iφ}, ∂L/∂φ = Im(conj(u)·∂L/∂u) and
+    ∂L/∂A = Re(e^{−iφ}·∂L/∂u).
     """
 
     @staticmethod
-    def forward(ctx, field: torch.Tensor, n: int, s: int, k: int) -> torch.Tensor:  # type: ignore[override]
-        p = field.shape[-1]
+    def forward(ctx, phase: torch.Tensor, amplitude: torch.Tensor, n: int, s: int, k: int) -> torch.Tensor:  # type: ignore[override]
+        p = phase.shape[-1]
+        keep, bins = _kernel_bins(n, s, k, phase.device)
+        field = torch.polar(amplitude, phase)
         spec = torch.fft.fft(torch.fft.fft(field, n=n, dim=-1), n=n, dim=-2)
-        inten = torch.fft.fftshift(torch.view_as_real(spec).square().sum(-1))
-        before, after = _centre_pads(n, k * s)
-        pooled = F.pad(inten, (before, after, before, after)).reshape(k, s, k, s).sum(dim=(1, 3))
-        ctx.save_for_backward(spec)
+        inten = spec.real.square() + spec.imag.square()
+        if keep is not None:  # kernel smaller than the FFT plane: drop what falls outside
+            inten = inten.index_select(0, keep).index_select(1, keep)
+        rows = inten.new_zeros(k, inten.shape[1]).index_add_(0, bins, inten)
+        pooled = inten.new_zeros(k, k).index_add_(1, bins, rows)
+        ctx.save_for_backward(phase, field, spec)
         ctx.geometry = (n, s, k, p)
         return pooled
 
     @staticmethod
     @torch.autograd.function.once_differentiable
     def backward(ctx, grad: torch.Tensor):  # type: ignore[override]
-        (spec,) = ctx.saved_tensors
+        phase, field, spec = ctx.saved_tensors
         n, s, k, p = ctx.geometry
-        g = grad[:, None, :, None].expand(k, s, k, s).reshape(k * s, k * s)
-        before, after = _centre_pads(n, k * s)
-        g = torch.fft.ifftshift(F.pad(g, (-before, -after, -before, -after)))  # adjoint of pad + shift
-        gspec = 2.0 * g * spec
-        # adjoint of the zero-padded forward FFT: n·ifft, then keep the first p rows / columns
-        gf = torch.fft.ifft(gspec, dim=-2)[:p] * n
-        gf = torch.fft.ifft(gf, dim=-1)[:, :p] * n
-        return gf, None, None, None
+        keep, bins = _kernel_bins(n, s, k, grad.device)
+        g = grad.index_select(0, bins).index_select(1, bins)  # adjoint of the pooling
+        if keep is not None:
+            g = g.new_zeros(n, n).index_put_((keep[:, None], keep[None, :]), g)
+        # ∂L/∂u = 2·(adjoint of the zero-padded FFT)(g·U) = 2n²·ifft(g·U), first p rows/columns
+        gf = torch.fft.ifft(spec * g, dim=-2)[:p]
+        gf = torch.fft.ifft(gf, dim=-1)[:, :p]
+        gf = gf * (2.0 * n * n)
+        grad_phase = (field.conj() * gf).imag if ctx.needs_input_grad[0] else None
+        grad_amplitude = None
+        if ctx.needs_input_grad[1]:
+            grad_amplitude = (torch.polar(torch.ones_like(phase), -phase) * gf).real
+        return grad_phase, grad_amplitude, None, None, None
 
 
 def _centre_pads(n: int, ks: int) -> tuple[int, int]:
     """Pads (before, after; negative = crop) that put index n//2 of an n-array at index ks//2."""
     centre = ks // 2
     return centre - n // 2, (ks - 1 - centre) - (n - 1 - n // 2)
+
+
+def _kernel_bins(n: int, s: int, k: int, device: torch.device) -> tuple[torch.Tensor | None, torch.Tensor]:
+    """Map from FFT samples (unshifted order, length n) to kernel pixels (0..K−1).
+
+    Returns (keep, bins): ``keep`` are the FFT sample indices inside the K·s window (None when
+    all n are), ``bins`` the kernel pixel of each kept sample. Sample i has frequency index
+    i − n·[i ≥ ⌈n/2⌉]; index 0 (the optical axis) lands on the centre of pixel K//2.
+    """
+    before, _ = _centre_pads(n, k * s)
+    window = (torch.arange(n, device=device) + n // 2) % n + before  # position in the K·s window
+    inside = (window >= 0) & (window < k * s)
+    if bool(inside.all()):
+        return None, window // s
+    keep = torch.nonzero(inside).flatten()
+    return keep, window[keep] // s
 
 
 def psf_stack(
@@ -98,10 +125,9 @@ def psf_stack(
     """
     s, k = int(supersample), int(kernel_px)
     power = (amplitude * amplitude).sum()
-    phase = doe_phase_per_m[:, None, None] * height_m + defocus_per_m2[:, None, None] * r2_m2
-    field = torch.complex(amplitude * torch.cos(phase), amplitude * torch.sin(phase))  # (C, P, P)
-    # unbind (not field[c]): its backward stacks the band gradients once instead of C times.
-    pooled = [_PooledIntensity.apply(f, n, s, k) / (n * n) for f, n in zip(field.unbind(0), fft_sizes)]
+    phase = doe_phase_per_m[:, None, None] * height_m + defocus_per_m2[:, None, None] * r2_m2  # (C, P, P)
+    # unbind (not phase[c]): its backward stacks the band gradients once instead of C times.
+    pooled = [_BandPSF.apply(ph, amplitude, n, s, k) / (n * n) for ph, n in zip(phase.unbind(0), fft_sizes)]
     psf = torch.stack(pooled) / power  # Parseval: the whole FFT plane of each band sums to 1
     return PSFResult(psf, psf.sum(dim=(-2, -1)))
 
