@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 import torch
 
+from hsicam.config import load_config
 from hsicam.engine.inference import read_sensor_image, receptive_radius, reconstruct_tiled
 from hsicam.errors import InputError
 from hsicam.models import RDN
@@ -48,3 +49,56 @@ def test_read_sensor_errors(tmp_path):
         read_sensor_image(tmp_path / "x.jpg")
     with pytest.raises(InputError, match="no such"):
         read_sensor_image(tmp_path / "missing.npy")
+
+
+def test_cfa_pattern_window_matches_the_whole_sensor():
+    from hsicam.sensor import ColorFilterArray
+
+    cfa = ColorFilterArray(5, period=4, seed=3)
+    whole = cfa.pattern(23, 19)
+    for origin in [(0, 0), (1, 2), (5, 7), (12, 3)]:
+        win = cfa.pattern(9, 11, origin)
+        torch.testing.assert_close(win, whole[:, origin[0] : origin[0] + 9, origin[1] : origin[1] + 11], rtol=0, atol=0)
+
+
+def test_code_input_network_sees_the_sensor_through_each_filter(tiny_config):
+    from hsicam.models import CameraSystem
+
+    torch.manual_seed(0)
+    model = CameraSystem.from_config(tiny_config("model.code_input=true", "model.blocks=1", "model.features=8",
+                                                 "model.growth=4")).eval()
+    c = len(model.bands)
+    assert model.net.tentative.in_channels == 1 + c
+    g = torch.rand(2, 1, 13, 17)
+    inp = model.network_input(g, origin=(3, 4))
+    kappa = model.camera.cfa.pattern(20, 25)[:, 3:16, 4:21]
+    assert inp.shape == (2, 1 + c, 13, 17)
+    torch.testing.assert_close(inp[:, :1], g)
+    torch.testing.assert_close(inp[:, 1:], g * kappa[None])
+    # the filters sum to one per pixel, so the coded channels add back up to the sensor image
+    torch.testing.assert_close(inp[:, 1:].sum(1, keepdim=True), g, rtol=1e-5, atol=1e-6)
+
+
+def test_code_input_tiles_are_seamless(tiny_config):
+    """Each tile must see the CFA phase of its own position, or the seams show."""
+    from hsicam.models import CameraSystem
+
+    torch.manual_seed(0)
+    model = CameraSystem.from_config(tiny_config("model.code_input=true", "model.blocks=1", "model.features=8",
+                                                 "model.growth=4")).eval()
+    img = torch.rand(1, 1, 61, 47)
+    with torch.no_grad():
+        whole = model.reconstruct(img)
+    tiled = reconstruct_tiled(model.reconstruct, img, tile_px=16, halo_px=receptive_radius(model.net))
+    torch.testing.assert_close(tiled, whole, rtol=1e-5, atol=1e-5)
+    # a network fed the CFA at the wrong phase per tile differs: the check above can fail
+    wrong = reconstruct_tiled(lambda w: model.reconstruct(w), img, tile_px=16, halo_px=receptive_radius(model.net))
+    assert (wrong - whole).abs().max() > 1e-4
+
+
+def test_code_input_needs_a_camera_with_a_code():
+    from hsicam.errors import ConfigError
+    from hsicam.models import CameraSystem
+
+    with pytest.raises(ConfigError, match="code_input"):
+        CameraSystem.from_config(load_config("dd_cassi_rdn", ["model.code_input=true"]))

@@ -216,6 +216,10 @@ class ModelConfig:
     features: int = 64  # G0
     growth: int = 32  # G
     layers_per_block: int = 4  # C (paper: 4)
+    # Beyond the paper: also feed the network κ_c ⊙ g, the sensor image seen through each band's
+    # filter (C extra channels), so it knows which filter every pixel sat behind. The paper's
+    # network gets g alone and has to infer the CFA's phase from the image. DOE camera only.
+    code_input: bool = False
 
     def __post_init__(self) -> None:
         for k in ("blocks", "features", "growth", "layers_per_block"):

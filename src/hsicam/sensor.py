@@ -51,9 +51,13 @@ class ColorFilterArray(nn.Module):
         """Transmission of one period, (C, m, m); ones (C, 1, 1) without a CFA."""
         return cfa_tile(self.weights) if self.enabled else self.weights
 
-    def pattern(self, height: int, width: int) -> torch.Tensor:
-        """κ over a (C, height, width) sensor."""
-        return tile_pattern(self.tile(), height, width)
+    def pattern(self, height: int, width: int, origin: tuple[int, int] = (0, 0)) -> torch.Tensor:
+        """κ over a (C, height, width) window of the sensor whose top-left pixel is ``origin``."""
+        tile = self.tile()
+        shift = (-(origin[0] % tile.shape[-2]), -(origin[1] % tile.shape[-1]))
+        if shift != (0, 0):
+            tile = torch.roll(tile, shifts=shift, dims=(-2, -1))
+        return tile_pattern(tile, height, width)
 
     def extra_repr(self) -> str:
         return f"n_bands={self.n_bands}, period={self.period}, enabled={self.enabled}"

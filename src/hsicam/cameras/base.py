@@ -36,6 +36,12 @@ class Camera(nn.Module):
     def forward(self, x: torch.Tensor, generator: torch.Generator | None = None) -> torch.Tensor:
         return self.noise(self.A(x), generator)
 
+    def sensor_code(self, height: int, width: int, origin: tuple[int, int] = (0, 0)) -> torch.Tensor:
+        """How much each band counts at each sensor pixel, (C, height, width), for a window of the
+        sensor whose top-left pixel is ``origin``. Cameras without such a code raise
+        ``NotImplementedError``."""
+        raise NotImplementedError(f"{type(self).__name__} has no per-band sensor code")
+
     def sensor_size(self, scene_hw: tuple[int, int]) -> tuple[int, int]:
         """Sensor (H, W) for a scene of ``scene_hw``."""
         m = self.margin if self.boundary == "valid" else 0

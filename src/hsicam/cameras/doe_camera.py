@@ -107,6 +107,10 @@ class DOECamera(Camera):
             x = pad_same_adjoint(x, self.kernel_px, self.padding)
         return x
 
+    def sensor_code(self, height: int, width: int, origin: tuple[int, int] = (0, 0)) -> torch.Tensor:
+        """The CFA transmission κ (C, height, width) of the sensor window at ``origin``."""
+        return self.cfa.pattern(height, width, origin)
+
     def forward(self, x: torch.Tensor, generator: torch.Generator | None = None) -> torch.Tensor:
         """Noisy sensor image: DOE height noise (σ_p) and sensor noise drawn from ``generator``."""
         return self.noise(self.A(x, self.psf(generator)), generator)

@@ -21,6 +21,7 @@ every problem is one :class:`~hsicam.errors.InputError`.
 
 from __future__ import annotations
 
+import inspect
 import json
 import logging
 import math
@@ -60,6 +61,10 @@ def reconstruct_tiled(reconstruct, sensor: torch.Tensor, tile_px: int = 512, hal
                       progress: bool = False) -> torch.Tensor:
     """Apply ``reconstruct`` ((1, 1, h, w) → (1, C, h, w)) to a (1, 1, H, W) image in tiles.
 
+    If ``reconstruct`` takes an ``origin`` argument (e.g. :meth:`CameraSystem.reconstruct`), it
+    is given each window's top-left sensor pixel, so position-dependent inputs (the CFA phase)
+    line up with the whole image.
+
     Args:
         tile_px: side of the kept centre of each tile.
         halo_px: context added around each tile (≥ the receptive radius for an exact result).
@@ -67,6 +72,7 @@ def reconstruct_tiled(reconstruct, sensor: torch.Tensor, tile_px: int = 512, hal
     if sensor.dim() != 4 or sensor.shape[:2] != (1, 1):
         raise InputError(f"sensor image must be (1, 1, H, W), got {tuple(sensor.shape)}")
     _, _, h, w = sensor.shape
+    takes_origin = "origin" in inspect.signature(reconstruct).parameters
     if h <= tile_px and w <= tile_px:
         return reconstruct(sensor)
     out = None
@@ -80,7 +86,8 @@ def reconstruct_tiled(reconstruct, sensor: torch.Tensor, tile_px: int = 512, hal
                 y1, x1 = min(y0 + tile_px, h), min(x0 + tile_px, w)
                 ya, xa = max(y0 - halo_px, 0), max(x0 - halo_px, 0)
                 yb, xb = min(y1 + halo_px, h), min(x1 + halo_px, w)
-                part = reconstruct(sensor[..., ya:yb, xa:xb])
+                window = sensor[..., ya:yb, xa:xb]
+                part = reconstruct(window, origin=(ya, xa)) if takes_origin else reconstruct(window)
                 if out is None:
                     out = torch.empty(1, part.shape[1], h, w, dtype=part.dtype, device=part.device)
                 out[..., y0:y1, x0:x1] = part[..., y0 - ya : y1 - ya, x0 - xa : x1 - xa]
