@@ -11,6 +11,11 @@ channels, a 1×1 local fusion back to G0 channels and a local residual. The pape
 G; our defaults (D = 8, G0 = 64, G = 32) follow Zhang et al.'s RDN at a size that trains at paper
 scale on one GPU; the CPU preset uses D = 3, G0 = 32, G = 16. Fully convolutional: any band count,
 any image size.
+
+Initialisation (the paper gives none): the tentative 1×1 conv starts as t_c = g (the sensor image
+copied into every band; other input channels weigh 0) and the output conv starts at zero, so an
+untrained network already returns the grey image t instead of noise and training starts from a
+sensible reconstruction. Every other layer has PyTorch's default initialisation.
 """
 
 from __future__ import annotations
@@ -51,6 +56,12 @@ class RDN(nn.Module):
         self.blocks = nn.ModuleList(ResidualDenseBlock(features, growth, layers_per_block) for _ in range(blocks))
         self.global_fusion = nn.Sequential(nn.Conv2d(blocks * features, features, 1), nn.Conv2d(features, features, 3, padding=1))
         self.output = nn.Conv2d(features, bands, 3, padding=1)
+        with torch.no_grad():
+            self.tentative.weight.zero_()
+            self.tentative.weight[:, 0] = 1.0
+            self.tentative.bias.zero_()
+            self.output.weight.zero_()
+            self.output.bias.zero_()
 
     def forward(self, g: torch.Tensor) -> torch.Tensor:
         t = self.tentative(g)
