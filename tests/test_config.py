@@ -159,3 +159,16 @@ def test_config_drives_the_camera():
     cam = DOECamera.from_config(cfg)
     assert len(cam.bands) == 3 and cam.cfa.period == 4 and not cam.optics.doe.enabled
     assert cam.optics.doe.n_cells == 333 and cam.optics.pixel_m == pytest.approx(6e-6)
+
+
+def test_exponent_numbers_without_a_dot_are_numbers(tmp_path):
+    # YAML 1.1 (PyYAML) reads 1e-4 as the string "1e-4"; float keys accept it as the number.
+    cfg = load_config(overrides=["train.lr=3e-3", "train.cfa_lr=2E-2", "camera.sensor.sigma=+1e-3"])
+    assert (cfg.train.lr, cfg.train.cfa_lr, cfg.camera.sensor.sigma) == (3e-3, 2e-2, 1e-3)
+    path = tmp_path / "c.yaml"
+    path.write_text("train: {lr: 1e-4}\n")
+    assert load_config(path).train.lr == 1e-4
+    with pytest.raises(ConfigError, match="train.lr"):
+        load_config(overrides=["train.lr=1e-4x"])
+    with pytest.raises(ConfigError, match="model.blocks"):  # integer keys stay strict
+        load_config(overrides=["model.blocks=1e1"])
