@@ -237,3 +237,40 @@ def test_checkpoint_at_an_existing_step_updates_the_state(tmp_path):
     state = mgr.load("last", model, opt, model.bands)
     assert state["epoch"] == 2 and state["step_in_epoch"] == 0
     assert mgr.path("best") == mgr.path("last")
+
+
+def test_grey_reference_is_the_sensor_times_the_mean_training_spectrum():
+    from hsicam.engine.evaluate import grey_reference
+
+    model = CameraSystem.from_config(tiny_cfg())
+    g = torch.Generator().manual_seed(0)
+    train_scenes = [torch.rand(7, 10, 12, generator=g), torch.rand(7, 6, 5, generator=g) * 2]
+    ref = grey_reference(model, train_scenes)
+    pixels = np.concatenate([s.numpy().reshape(7, -1) for s in train_scenes], axis=1)
+    spectrum = pixels.mean(axis=1)
+    sensor = torch.rand(2, 1, 4, 3, generator=g)
+    expected = sensor.numpy() * (spectrum / spectrum.mean())[None, :, None, None]
+    np.testing.assert_allclose(ref.reconstruct(sensor).numpy(), expected, rtol=1e-5)
+    assert ref.camera is model.camera
+
+
+def test_demo_cli_trains_reports_and_draws(tmp_path, cache_env):
+    out = tmp_path / "demo"
+    proc = run_cli("demo", "--config", "tiny", "--out", str(out), "--set", "model.code_input=true",
+                   env={"HSICAM_CACHE": str(cache_env)})
+    assert proc.returncode == 0, proc.stderr
+    summary = json.loads((out / "results.json").read_text())
+    n_val = len(summary["scenes"])
+    assert n_val >= 1 and all(np.isfinite(summary["mean"][k]) for k in ("psnr", "ssim", "sam"))
+    assert set(summary["reference"]["mean"]) >= {"psnr", "ssim", "sam"}
+    assert f"PSNR {summary['mean']['psnr']:.2f} dB" in proc.stdout
+    assert "reference without a network" in proc.stdout
+    import imageio.v3 as iio
+
+    for name in ("reconstructions.png", "psf.png", "cfa.png", "doe.png", "training.png"):
+        img = iio.imread(out / name)
+        assert img.ndim == 3 and min(img.shape[:2]) > 50, name
+    # a second call reuses the finished run instead of training again
+    again = run_cli("demo", "--config", "tiny", "--out", str(out), "--set", "model.code_input=true",
+                    env={"HSICAM_CACHE": str(cache_env)})
+    assert again.returncode == 0 and "reusing the trained run" in again.stdout, again.stderr

@@ -32,7 +32,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
     from hsicam.data.datasets import SceneDataset, list_scenes, split_scenes
     from hsicam.data.pipeline import dataset_root
     from hsicam.engine.checkpoint import load_run
-    from hsicam.engine.evaluate import evaluate_scenes, format_table, summarize
+    from hsicam.engine.evaluate import TestNoise, evaluate_method, evaluate_scenes, format_table, grey_reference, summarize
     from hsicam.engine.experiments import is_finished
     from hsicam.engine.train import train
     from hsicam.io import write_json
@@ -54,16 +54,21 @@ def cmd_demo(args: argparse.Namespace) -> int:
     cfg, model = load_run(run)
     bands = cfg.bands.to_bands()
     root = dataset_root(cfg.data, bands)
-    _, val = split_scenes(list_scenes(root), cfg.data.val_fraction, cfg.data.split_seed)
+    train_list, val = split_scenes(list_scenes(root), cfg.data.val_fraction, cfg.data.split_seed)
     scenes = SceneDataset(val, bands)
     results = evaluate_scenes(model, scenes, [p.stem for p in val], seed=cfg.train.seed)
+    reference = evaluate_method(grey_reference(model, SceneDataset(train_list, bands)), scenes, [p.stem for p in val],
+                                TestNoise(seeds=(cfg.train.seed,)), keep_arrays=False)
     summary = summarize(results)
+    summary["reference"] = {"method": "sensor image x mean training spectrum (no network)",
+                            "mean": summarize(reference)["mean"]}
     summary["run"] = str(run)
     summary["region"] = "sensor area of each scene (scene minus the kernel margin), valid mode"
     write_json(out / "results.json", summary)
     table = format_table(summary)
     (out / "results.md").write_text(f"Validation scenes, {summary['conventions']['psnr']}; SSIM {summary['conventions']['ssim']}; "
-                                    f"SAM in degrees.\n\n{table}\n", encoding="utf-8")
+                                    f"SAM in degrees.\n\n{table}\n\nReference without a network (sensor image x mean "
+                                    f"training spectrum): {_means(summary['reference']['mean'])}.\n", encoding="utf-8")
     write_psf_outputs(model.camera, out)
     with torch.no_grad():
         plot_cfa(model.camera.cfa.tile().numpy(), bands, out / "cfa.png")
@@ -74,7 +79,11 @@ def cmd_demo(args: argparse.Namespace) -> int:
     plot_training_curves(run / "metrics.jsonl", out / "training.png")
     m = summary["mean"]
     print(table)
-    print(f"[demo] validation mean: PSNR {m['psnr']:.2f} dB, SSIM {m['ssim']:.4f}, SAM {m['sam']:.2f}° "
-          f"({len(results)} scenes; {time.perf_counter() - t0:.0f} s)")
+    print(f"[demo] validation mean: {_means(m)} ({len(results)} scenes; {time.perf_counter() - t0:.0f} s)")
+    print(f"[demo] reference without a network (sensor image x mean training spectrum): {_means(summary['reference']['mean'])}")
     print(f"[demo] figures and tables in {out}: reconstructions.png, psf.png, cfa.png, doe.png, training.png, results.md")
     return 0
+
+
+def _means(m: dict) -> str:
+    return f"PSNR {m['psnr']:.2f} dB, SSIM {m['ssim']:.4f}, SAM {m['sam']:.2f}°"

@@ -102,6 +102,30 @@ def evaluate_scenes(model, scenes, names: Sequence[str], seed: int = 0, device: 
     return evaluate_method(method, scenes, names, TestNoise(seeds=(seed,)), device, keep_arrays)
 
 
+def grey_reference(model, train_scenes) -> Method:
+    """A network-free reference: the sensor image times the mean training spectrum.
+
+    x̂_c = g · s̄_c / mean(s̄), where s̄ is the mean spectrum over all pixels of ``train_scenes``
+    (items (C, H, W)). What a reconstruction scores above this is what it recovers beyond the
+    brightness and the average colour of the training data.
+    """
+    total, n = None, 0
+    for i in range(len(train_scenes)):
+        cube = train_scenes[i]
+        s = cube.double().sum(dim=(-2, -1))
+        total, n = (s if total is None else total + s), n + cube.shape[-2] * cube.shape[-1]
+    if total is None:
+        raise ValueError("the grey reference needs at least one training scene")
+    spectrum = (total / n).float()
+    weights = (spectrum / spectrum.mean()).view(1, -1, 1, 1)
+
+    def reconstruct(sensor: torch.Tensor) -> torch.Tensor:
+        return sensor * weights.to(sensor.device, sensor.dtype)
+
+    return Method("grey x mean spectrum", model.camera, reconstruct, model.target,
+                  {"mean_spectrum": spectrum.tolist()})
+
+
 def summarize(results: list[SceneResult], **facts) -> dict:
     """Per-scene rows, means and the metric conventions, as a JSON-ready dict."""
     rows = [{"name": r.name, **r.metrics, "runtime_s": r.runtime_s,
