@@ -12,9 +12,19 @@ from hsicam.errors import InputError
 from hsicam.models import RDN
 
 
+def _untrained_but_spatial(net: RDN) -> None:
+    """An untrained RDN returns its 1×1 tentative image (zero output conv, only the sensor channel
+    weighted): give both convs random weights so the result depends on the neighbourhood and on
+    every input channel, as a trained network's does."""
+    g = torch.Generator().manual_seed(5)
+    torch.nn.init.normal_(net.output.weight, std=0.1, generator=g)
+    torch.nn.init.normal_(net.tentative.weight, std=0.5, generator=g)
+
+
 def test_tiles_are_seamless():
     torch.manual_seed(0)
     net = RDN(bands=4, blocks=2, features=8, growth=4, layers_per_block=2).eval()
+    _untrained_but_spatial(net)
     img = torch.rand(1, 1, 97, 83)
     with torch.no_grad():
         whole = net(img)
@@ -86,6 +96,7 @@ def test_code_input_tiles_are_seamless(tiny_config):
     torch.manual_seed(0)
     model = CameraSystem.from_config(tiny_config("model.code_input=true", "model.blocks=1", "model.features=8",
                                                  "model.growth=4")).eval()
+    _untrained_but_spatial(model.net)
     img = torch.rand(1, 1, 61, 47)
     with torch.no_grad():
         whole = model.reconstruct(img)
@@ -102,3 +113,12 @@ def test_code_input_needs_a_camera_with_a_code():
 
     with pytest.raises(ConfigError, match="code_input"):
         CameraSystem.from_config(load_config("dd_cassi_rdn", ["model.code_input=true"]))
+
+
+def test_untrained_rdn_returns_the_grey_image():
+    """Documented initialisation: tentative t_c = g, zero output conv, so f̂ = g in every band."""
+    net = RDN(bands=5, in_channels=3, blocks=1, features=8, growth=4, layers_per_block=2)
+    x = torch.rand(2, 3, 9, 7)
+    with torch.no_grad():
+        out = net(x)
+    torch.testing.assert_close(out, x[:, :1].expand(2, 5, 9, 7))
