@@ -71,48 +71,70 @@ def test_cfa_pattern_window_matches_the_whole_sensor():
         torch.testing.assert_close(win, whole[:, origin[0] : origin[0] + 9, origin[1] : origin[1] + 11], rtol=0, atol=0)
 
 
-def test_code_input_network_sees_the_sensor_through_each_filter(tiny_config):
+def _demosaic_reference(g: np.ndarray, kappa: np.ndarray, window: int) -> np.ndarray:
+    """x̃_c(p) = Σ_q κ_c(q) g(q) / Σ_q κ_c(q) over the window around p inside the image (loops)."""
+    c, h, w = kappa.shape
+    r = window // 2
+    out = np.zeros((c, h, w))
+    for i in range(h):
+        for j in range(w):
+            sl = (slice(max(i - r, 0), i + r + 1), slice(max(j - r, 0), j + r + 1))
+            out[:, i, j] = (kappa[:, sl[0], sl[1]] * g[sl]).sum((1, 2)) / kappa[:, sl[0], sl[1]].sum((1, 2))
+    return out
+
+
+def _small_system(tiny_config, *overrides: str):
     from hsicam.models import CameraSystem
 
     torch.manual_seed(0)
-    model = CameraSystem.from_config(tiny_config("model.code_input=true", "model.blocks=1", "model.features=8",
-                                                 "model.growth=4")).eval()
+    return CameraSystem.from_config(tiny_config("model.demosaic_input=true", "model.blocks=1", "model.features=8",
+                                                "model.growth=4", *overrides)).eval()
+
+
+@pytest.mark.parametrize("period", [3, 4])
+def test_demosaic_input_is_the_normalised_local_average_per_band(tiny_config, period):
+    model = _small_system(tiny_config, f"camera.cfa.period={period}")
     c = len(model.bands)
     assert model.net.tentative.in_channels == 1 + c
-    g = torch.rand(2, 1, 13, 17)
-    inp = model.network_input(g, origin=(3, 4))
-    kappa = model.camera.cfa.pattern(20, 25)[:, 3:16, 4:21]
+    assert model.demosaic_window == (3 if period == 3 else 5)
+    g = torch.rand(2, 1, 13, 17, dtype=torch.float64)
+    with torch.no_grad():
+        inp = model.double().network_input(g, origin=(3, 4))
+        kappa = model.camera.cfa.pattern(20, 25)[:, 3:16, 4:21].numpy()
     assert inp.shape == (2, 1 + c, 13, 17)
     torch.testing.assert_close(inp[:, :1], g)
-    torch.testing.assert_close(inp[:, 1:], g * kappa[None])
-    # the filters sum to one per pixel, so the coded channels add back up to the sensor image
-    torch.testing.assert_close(inp[:, 1:].sum(1, keepdim=True), g, rtol=1e-5, atol=1e-6)
+    for b in range(2):
+        np.testing.assert_allclose(inp[b, 1:].numpy(), _demosaic_reference(g[b, 0].numpy(), kappa, model.demosaic_window),
+                                   rtol=1e-10)
+    # a flat grey sensor image demosaics to the same grey in every band
+    flat = model.network_input(torch.full((1, 1, 13, 17), 0.3, dtype=torch.float64))
+    torch.testing.assert_close(flat[:, 1:], torch.full((1, c, 13, 17), 0.3, dtype=torch.float64))
+    # untrained, the system returns the demosaic (tentative = x̃, zero output conv)
+    with torch.no_grad():
+        torch.testing.assert_close(model.reconstruct(g, origin=(3, 4)), inp[:, 1:])
 
 
-def test_code_input_tiles_are_seamless(tiny_config):
-    """Each tile must see the CFA phase of its own position, or the seams show."""
-    from hsicam.models import CameraSystem
-
-    torch.manual_seed(0)
-    model = CameraSystem.from_config(tiny_config("model.code_input=true", "model.blocks=1", "model.features=8",
-                                                 "model.growth=4")).eval()
+def test_demosaic_input_tiles_are_seamless(tiny_config):
+    """Each tile must see the CFA phase of its own position and enough context, or seams show."""
+    model = _small_system(tiny_config)
     _untrained_but_spatial(model.net)
     img = torch.rand(1, 1, 61, 47)
     with torch.no_grad():
         whole = model.reconstruct(img)
-    tiled = reconstruct_tiled(model.reconstruct, img, tile_px=16, halo_px=receptive_radius(model.net))
+    assert model.context_px == receptive_radius(model.net) + model.demosaic_window // 2
+    tiled = reconstruct_tiled(model.reconstruct, img, tile_px=16, halo_px=model.context_px)
     torch.testing.assert_close(tiled, whole, rtol=1e-5, atol=1e-5)
-    # a network fed the CFA at the wrong phase per tile differs: the check above can fail
-    wrong = reconstruct_tiled(lambda w: model.reconstruct(w), img, tile_px=16, halo_px=receptive_radius(model.net))
+    # fed the CFA at the wrong phase per tile, it differs: the check above can fail
+    wrong = reconstruct_tiled(lambda w: model.reconstruct(w), img, tile_px=16, halo_px=model.context_px)
     assert (wrong - whole).abs().max() > 1e-4
 
 
-def test_code_input_needs_a_camera_with_a_code():
+def test_demosaic_input_needs_a_camera_with_a_code():
     from hsicam.errors import ConfigError
     from hsicam.models import CameraSystem
 
-    with pytest.raises(ConfigError, match="code_input"):
-        CameraSystem.from_config(load_config("dd_cassi_rdn", ["model.code_input=true"]))
+    with pytest.raises(ConfigError, match="demosaic_input"):
+        CameraSystem.from_config(load_config("dd_cassi_rdn", ["model.demosaic_input=true"]))
 
 
 def test_untrained_rdn_returns_the_grey_image():

@@ -216,3 +216,39 @@ def test_cfa_pixel_with_no_positive_weight_is_neutral():
     k = cfa_tile(w)
     torch.testing.assert_close(k.sum(0), torch.ones(3, 3))
     torch.testing.assert_close(k[:, 1, 2], torch.full((5,), 0.2))
+
+
+def test_bandpass_cfa_init_places_gaussian_filters_over_the_band_range():
+    import numpy as np
+
+    lam = np.arange(420.0, 721.0, 5.0)  # 61 bands, 5 nm apart
+    cfa = ColorFilterArray(len(lam), period=3, seed=1, init="bandpass", centers_nm=lam, bandpass_fwhm_nm=60.0)
+    w = cfa.weights.detach().double().reshape(len(lam), 9).numpy()
+    # the 9 filters peak at 420, 457.5, ..., 720 nm (within half a band), each once
+    peaks = np.sort(lam[w.argmax(axis=0)])
+    np.testing.assert_allclose(peaks, np.linspace(420, 720, 9), atol=2.5 + 1e-9)
+    # Gaussian with the requested FWHM above a floor of 1 % of the peak: half height ±30 nm
+    k = int(np.argmin(np.abs(lam[w.argmax(axis=0)] - 570.0)))
+    col = w[:, k] - 0.01
+    peak = lam[col.argmax()]
+    half = np.interp([peak - 30.0, peak + 30.0], lam, col)
+    np.testing.assert_allclose(half, [0.5, 0.5], atol=0.02)
+    # the layout is a seeded permutation; the filters are normalised like any CFA
+    other = ColorFilterArray(len(lam), period=3, seed=2, init="bandpass", centers_nm=lam).weights
+    assert not torch.equal(other, ColorFilterArray(len(lam), period=3, seed=1, init="bandpass", centers_nm=lam).weights)
+    torch.testing.assert_close(cfa.tile().sum(0), torch.ones(3, 3))
+    with pytest.raises(ValueError, match="centre wavelength"):
+        ColorFilterArray(5, period=3, init="bandpass")
+
+
+def test_bandpass_cfa_from_config(tiny_config):
+    from hsicam.cameras import DOECamera
+    from hsicam.errors import ConfigError
+
+    def selectivity(init: str) -> float:  # mean over pixels of peak / mean transmission
+        tile = DOECamera.from_config(tiny_config(f"camera.cfa.init={init}")).cfa.tile().detach()
+        return float((tile.max(0).values * tile.shape[0]).mean())
+
+    assert selectivity("bandpass") > selectivity("uniform") + 0.5
+    with pytest.raises(ConfigError, match="bandpass_fwhm_nm"):
+        tiny_config("camera.cfa.bandpass_fwhm_nm=0")

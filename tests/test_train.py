@@ -256,7 +256,7 @@ def test_grey_reference_is_the_sensor_times_the_mean_training_spectrum():
 
 def test_demo_cli_trains_reports_and_draws(tmp_path, cache_env):
     out = tmp_path / "demo"
-    proc = run_cli("demo", "--config", "tiny", "--out", str(out), "--set", "model.code_input=true",
+    proc = run_cli("demo", "--config", "tiny", "--out", str(out), "--set", "model.demosaic_input=true",
                    env={"HSICAM_CACHE": str(cache_env)})
     assert proc.returncode == 0, proc.stderr
     summary = json.loads((out / "results.json").read_text())
@@ -271,6 +271,6 @@ def test_demo_cli_trains_reports_and_draws(tmp_path, cache_env):
         img = iio.imread(out / name)
         assert img.ndim == 3 and min(img.shape[:2]) > 50, name
     # a second call reuses the finished run instead of training again
-    again = run_cli("demo", "--config", "tiny", "--out", str(out), "--set", "model.code_input=true",
+    again = run_cli("demo", "--config", "tiny", "--out", str(out), "--set", "model.demosaic_input=true",
                     env={"HSICAM_CACHE": str(cache_env)})
     assert again.returncode == 0 and "reusing the trained run" in again.stdout, again.stderr

@@ -128,10 +128,16 @@ class CFAConfig:
     enabled: bool = True
     period: int = 9
     seed: int = 0
+    # uniform: weights uniform in [0, 1) (paper; nearly flat filters). bandpass (beyond the paper):
+    # m² Gaussian band-pass filters whose centres spread evenly over the band range, in a
+    # seeded random layout, so the sensor carries spectral contrast from the first step.
+    init: Literal["uniform", "bandpass"] = "uniform"
+    bandpass_fwhm_nm: float = 40.0
 
     def __post_init__(self) -> None:
         if self.period < 1:
             raise ConfigError(f"camera.cfa.period must be >= 1, got {self.period}")
+        _positive("camera.cfa", bandpass_fwhm_nm=self.bandpass_fwhm_nm)
 
 
 @dataclass
@@ -217,10 +223,11 @@ class ModelConfig:
     features: int = 64  # G0
     growth: int = 32  # G
     layers_per_block: int = 4  # C (paper: 4)
-    # Beyond the paper: also feed the network κ_c ⊙ g, the sensor image seen through each band's
-    # filter (C extra channels), so it knows which filter every pixel sat behind. The paper's
-    # network gets g alone and has to infer the CFA's phase from the image. DOE camera only.
-    code_input: bool = False
+    # Beyond the paper: also feed the network a per-band demosaic of g (C extra channels: the
+    # average of g over one CFA period weighted by each pixel's transmission of the band), and
+    # start the tentative reconstruction from it. The paper's network gets g alone and has to
+    # infer the CFA's phase from the image. DOE camera only. See hsicam.models.system.demosaic.
+    demosaic_input: bool = False
 
     def __post_init__(self) -> None:
         for k in ("blocks", "features", "growth", "layers_per_block"):

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
 import torch
 from torch import nn
 
@@ -35,15 +36,41 @@ def tile_pattern(tile: torch.Tensor, height: int, width: int) -> torch.Tensor:
     return tile.repeat(*reps)[:, :height, :width]
 
 
-class ColorFilterArray(nn.Module):
-    """Learnable periodic CFA. ``enabled=False`` gives κ = 1 (no parameters)."""
+def bandpass_weights(centers_nm: torch.Tensor, period: int, fwhm_nm: float, seed: int = 0) -> torch.Tensor:
+    """CFA weights (C, m, m) of m² Gaussian band-pass filters (FWHM ``fwhm_nm``) whose centre
+    wavelengths spread evenly from the first to the last band centre, placed in a random
+    (seeded) order over the tile. A small floor (1 % of the peak) keeps every band learnable."""
+    lam = centers_nm.double()
+    n = period * period
+    centres = torch.linspace(float(lam[0]), float(lam[-1]), n, dtype=torch.float64)
+    order = torch.randperm(n, generator=torch.Generator().manual_seed(int(seed)))
+    sigma = fwhm_nm / (2.0 * math.sqrt(2.0 * math.log(2.0)))
+    w = torch.exp(-0.5 * ((lam[:, None] - centres[order][None, :]) / sigma) ** 2)  # (C, m²)
+    return (w + 0.01).float().reshape(len(lam), period, period)
 
-    def __init__(self, n_bands: int, period: int = 9, enabled: bool = True, seed: int = 0) -> None:
+
+class ColorFilterArray(nn.Module):
+    """Learnable periodic CFA. ``enabled=False`` gives κ = 1 (no parameters).
+
+    ``init``: "uniform" (paper: weights uniform in [0, 1)) or "bandpass" (:func:`bandpass_weights`,
+    which needs ``centers_nm``, the band centres in nm).
+    """
+
+    def __init__(self, n_bands: int, period: int = 9, enabled: bool = True, seed: int = 0, init: str = "uniform",
+                 centers_nm=None, bandpass_fwhm_nm: float = 40.0) -> None:
         super().__init__()
         self.n_bands, self.period, self.enabled = int(n_bands), int(period), bool(enabled)
         if self.enabled:
-            g = torch.Generator().manual_seed(int(seed))
-            self.weights = nn.Parameter(torch.rand(self.n_bands, self.period, self.period, generator=g))
+            if init == "uniform":
+                g = torch.Generator().manual_seed(int(seed))
+                w = torch.rand(self.n_bands, self.period, self.period, generator=g)
+            elif init == "bandpass":
+                if centers_nm is None or len(centers_nm) != self.n_bands:
+                    raise ValueError("a band-pass CFA needs the centre wavelength of every band (centers_nm)")
+                w = bandpass_weights(torch.tensor(np.asarray(centers_nm, dtype=np.float64)), self.period, bandpass_fwhm_nm, seed)
+            else:
+                raise ValueError(f"unknown CFA init {init!r}; use 'uniform' or 'bandpass'")
+            self.weights = nn.Parameter(w)
         else:
             self.register_buffer("weights", torch.ones(self.n_bands, 1, 1), persistent=False)
 

@@ -62,7 +62,8 @@ class DOECamera(Camera):
             None if cam.sensor_distance_mm is None else cam.sensor_distance_mm * 1e-3,
             cam.object_distance_m, cam.psf.kernel_px, cam.psf.supersample, cam.psf.pupil_oversample,
         )
-        cfa = ColorFilterArray(len(bands), cam.cfa.period, cam.cfa.enabled, cam.cfa.seed)
+        cfa = ColorFilterArray(len(bands), cam.cfa.period, cam.cfa.enabled, cam.cfa.seed, cam.cfa.init,
+                               bands.centers_nm, cam.cfa.bandpass_fwhm_nm)
         s = cam.sensor
         noise = SensorNoise(s.noise, s.sigma, s.full_well_e, s.read_noise_e, s.bit_depth)
         return cls(bands, optics, cfa, noise, cam.boundary, cam.padding)
@@ -106,6 +107,11 @@ class DOECamera(Camera):
         if self.boundary == "same":
             x = pad_same_adjoint(x, self.kernel_px, self.padding)
         return x
+
+    @property
+    def code_period(self) -> int:
+        """Period of the sensor code in pixels (the CFA's m; 1 without a CFA)."""
+        return self.cfa.period if self.cfa.enabled else 1
 
     def sensor_code(self, height: int, width: int, origin: tuple[int, int] = (0, 0)) -> torch.Tensor:
         """The CFA transmission κ (C, height, width) of the sensor window at ``origin``."""

@@ -78,7 +78,7 @@ def corrections_from_args(args: argparse.Namespace, cfa_period: int | None) -> "
 
 def cmd_reconstruct(args: argparse.Namespace) -> int:
     from hsicam.engine.checkpoint import load_run
-    from hsicam.engine.inference import read_capture, receptive_radius, reconstruct_tiled
+    from hsicam.engine.inference import read_capture, reconstruct_tiled
 
     if args.tile < 16:
         raise InputError("--tile must be at least 16 px")
@@ -105,7 +105,7 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
     img, report = read_capture(args.sensor, corr, args.scale)
     meta["preprocessing"] = report
     sensor = torch.from_numpy(img)[None, None].to(args.device)
-    halo = receptive_radius(model.net)
+    halo = model.context_px
     cube = reconstruct_tiled(model.reconstruct, sensor, args.tile, halo, progress=sys.stderr.isatty())[0]
     del sensor
     # Radiance is non-negative: the network's small negative excursions are clipped at 0.

@@ -459,7 +459,7 @@ def with_measured_psf(model, measured: MeasuredPSF):
     if measured.psf.shape[-1] != cam.kernel_px:
         raise InputError(f"measured PSFs are {measured.psf.shape[-1]} px wide, the camera's kernel {cam.kernel_px} px")
     fixed = FixedPSFCamera.from_camera(cam, torch.from_numpy(measured.psf))
-    out = CameraSystem(fixed, model.net, model.code_input)
+    out = CameraSystem(fixed, model.net, model.demosaic_input)
     out.autocast_dtype = model.autocast_dtype
     return out
 

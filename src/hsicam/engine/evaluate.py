@@ -65,7 +65,10 @@ def evaluate_method(method: Method, scenes, names: Sequence[str], noise: TestNoi
     sigma_s = saved[1] if noise.sensor_sigma is None else noise.sensor_sigma
     set_noise(cam, sigma_h, sigma_s)
     net = getattr(method.reconstruct, "__self__", None)
-    halo = receptive_radius(net) if isinstance(net, torch.nn.Module) else None
+    halo = None
+    if isinstance(net, torch.nn.Module):  # a network: tile large images with enough context
+        halo = getattr(net, "context_px", None)
+        halo = receptive_radius(net) if halo is None else halo
     out = []
     try:
         cam.eval()

@@ -63,6 +63,16 @@ class RDN(nn.Module):
             self.output.weight.zero_()
             self.output.bias.zero_()
 
+    def start_from_input(self, channels: list[int]) -> None:
+        """Initialise the tentative conv to copy input channel ``channels[c]`` into band c."""
+        if len(channels) != self.tentative.out_channels:
+            raise ValueError(f"need one input channel per band ({self.tentative.out_channels}), got {len(channels)}")
+        with torch.no_grad():
+            self.tentative.weight.zero_()
+            self.tentative.bias.zero_()
+            for band, ch in enumerate(channels):
+                self.tentative.weight[band, ch] = 1.0
+
     def forward(self, g: torch.Tensor) -> torch.Tensor:
         t = self.tentative(g)
         f_1 = self.sfe1(t)

@@ -27,7 +27,7 @@ def plot_reconstructions(results, bands: Bands, path: str | Path, max_rows: int 
     """Rows of [ground truth RGB | reconstruction RGB | mean abs error map | spectra at 3 pixels]."""
     results = list(results)[:max_rows]
     fig, axes = plt.subplots(len(results), 4, figsize=(14, 3.2 * len(results)), squeeze=False,
-                             gridspec_kw={"wspace": 0.3})
+                             gridspec_kw={"wspace": 0.55, "hspace": 0.3})
     for row, r in zip(axes, results):
         gt, est = r.truth, r.estimate
         row[0].imshow(np.clip(cube_rgb(gt, bands), 0, 1))
