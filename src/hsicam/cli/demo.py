@@ -32,7 +32,8 @@ def cmd_demo(args: argparse.Namespace) -> int:
     from hsicam.data.datasets import SceneDataset, list_scenes, split_scenes
     from hsicam.data.pipeline import dataset_root
     from hsicam.engine.checkpoint import load_run
-    from hsicam.engine.evaluate import TestNoise, evaluate_method, evaluate_scenes, format_table, grey_reference, summarize
+    from hsicam.engine.evaluate import (TestNoise, demosaic_reference, evaluate_method, evaluate_scenes, format_table,
+                                        grey_reference, summarize)
     from hsicam.engine.experiments import is_finished
     from hsicam.engine.train import train
     from hsicam.io import write_json
@@ -57,18 +58,23 @@ def cmd_demo(args: argparse.Namespace) -> int:
     train_list, val = split_scenes(list_scenes(root), cfg.data.val_fraction, cfg.data.split_seed)
     scenes = SceneDataset(val, bands)
     results = evaluate_scenes(model, scenes, [p.stem for p in val], seed=cfg.train.seed)
-    reference = evaluate_method(grey_reference(model, SceneDataset(train_list, bands)), scenes, [p.stem for p in val],
-                                TestNoise(seeds=(cfg.train.seed,)), keep_arrays=False)
+    references = [grey_reference(model, SceneDataset(train_list, bands))]
+    if model.demosaic_input:
+        references.append(demosaic_reference(model))
     summary = summarize(results)
-    summary["reference"] = {"method": "sensor image x mean training spectrum (no network)",
-                            "mean": summarize(reference)["mean"]}
+    summary["references"] = [
+        {"method": ref.name, "mean": summarize(evaluate_method(ref, scenes, [p.stem for p in val],
+                                                               TestNoise(seeds=(cfg.train.seed,)), keep_arrays=False))["mean"]}
+        for ref in references
+    ]
     summary["run"] = str(run)
     summary["region"] = "sensor area of each scene (scene minus the kernel margin), valid mode"
     write_json(out / "results.json", summary)
     table = format_table(summary)
     (out / "results.md").write_text(f"Validation scenes, {summary['conventions']['psnr']}; SSIM {summary['conventions']['ssim']}; "
-                                    f"SAM in degrees.\n\n{table}\n\nReference without a network (sensor image x mean "
-                                    f"training spectrum): {_means(summary['reference']['mean'])}.\n", encoding="utf-8")
+                                    f"SAM in degrees.\n\n{table}\n\nReferences without a network:\n\n"
+                                    + "".join(f"- {r['method']}: {_means(r['mean'])}\n" for r in summary["references"]),
+                                    encoding="utf-8")
     write_psf_outputs(model.camera, out)
     with torch.no_grad():
         plot_cfa(model.camera.cfa.tile().numpy(), bands, out / "cfa.png")
@@ -80,7 +86,8 @@ def cmd_demo(args: argparse.Namespace) -> int:
     m = summary["mean"]
     print(table)
     print(f"[demo] validation mean: {_means(m)} ({len(results)} scenes; {time.perf_counter() - t0:.0f} s)")
-    print(f"[demo] reference without a network (sensor image x mean training spectrum): {_means(summary['reference']['mean'])}")
+    for r in summary["references"]:
+        print(f"[demo] reference without a network, {r['method']}: {_means(r['mean'])}")
     print(f"[demo] figures and tables in {out}: reconstructions.png, psf.png, cfa.png, doe.png, training.png, results.md")
     return 0
 

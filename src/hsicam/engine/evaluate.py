@@ -125,8 +125,20 @@ def grey_reference(model, train_scenes) -> Method:
     def reconstruct(sensor: torch.Tensor) -> torch.Tensor:
         return sensor * weights.to(sensor.device, sensor.dtype)
 
-    return Method("grey x mean spectrum", model.camera, reconstruct, model.target,
+    return Method("sensor image x mean training spectrum", model.camera, reconstruct, model.target,
                   {"mean_spectrum": spectrum.tolist()})
+
+
+def demosaic_reference(model) -> Method:
+    """The demosaic a ``demosaic_input`` network starts from, x̃ (:func:`hsicam.models.system.demosaic`),
+    as a network-free method: what the network adds is its score minus this one."""
+    if not model.demosaic_input:
+        raise ValueError("the demosaic reference needs a model with demosaic_input")
+
+    def reconstruct(sensor: torch.Tensor) -> torch.Tensor:
+        return model.network_input(sensor)[:, 1:]
+
+    return Method("CFA demosaic (the network's input)", model.camera, reconstruct, model.target, {})
 
 
 def summarize(results: list[SceneResult], **facts) -> dict:
