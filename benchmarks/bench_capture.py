@@ -38,9 +38,7 @@ def make_run(run: Path, overrides: list[str]) -> dict:
     model = CameraSystem.from_config(cfg)
     save_weights(run / "model.safetensors", model, model.bands)
     n_params = sum(p.numel() for p in model.net.parameters())
-    from hsicam.engine.inference import receptive_radius
-
-    return {"bands": len(model.bands), "net_params": n_params, "halo_px": receptive_radius(model.net),
+    return {"bands": len(model.bands), "net_params": n_params, "halo_px": model.context_px,
             "model": {k: getattr(cfg.model, k) for k in ("blocks", "features", "growth", "layers_per_block")}}
 
 
