@@ -39,6 +39,9 @@ def test_evaluate_writes_results_in_all_formats(run, env, tmp_path):
     assert len(summary["config_hash"]) == 12
     names = [r["name"] for r in summary["scenes"]]
     assert len(names) == 2
+    # one progress line per scene on stderr, with that scene's numbers
+    for i, r in enumerate(summary["scenes"]):
+        assert f"[{i + 1}/2] {r['name']}: PSNR {r['psnr']:.2f} dB" in res.stderr, res.stderr
     for r in summary["scenes"]:
         assert {"psnr", "ssim", "sam", "ergas", "runtime_s"} <= set(r) and "std" in r
     np.testing.assert_allclose(summary["mean"]["psnr"], np.mean([r["psnr"] for r in summary["scenes"]]))

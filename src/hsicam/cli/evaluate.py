@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import sys
 from pathlib import Path
 
 from hsicam.cli import add_config_args
@@ -66,7 +67,8 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
         scenes, names = validation_scenes(cfg)
         data = "synthetic validation split"
     noise = TestNoise(args.sigma_height_nm, args.sensor_sigma, tuple(range(args.seeds)))
-    results = evaluate_method(method, scenes, names, noise, args.device, keep_arrays=args.save)
+    results = evaluate_method(method, scenes, names, noise, args.device, keep_arrays=args.save,
+                              progress=lambda line: print(line, file=sys.stderr, flush=True))
     out = Path(args.out)
     summary = summarize(results, method=args.method, run=str(Path(args.run).resolve()) if args.run else None, data=data, config_hash=config_hash(dump_yaml(cfg)),
                         noise={"sigma_height_nm": args.sigma_height_nm, "sensor_sigma": args.sensor_sigma, "seeds": args.seeds},

@@ -16,7 +16,7 @@ import io
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Sequence
+from typing import Callable, Sequence
 
 import numpy as np
 import torch
@@ -55,8 +55,12 @@ def config_hash(yaml_text: str) -> str:
 
 @torch.no_grad()
 def evaluate_method(method: Method, scenes, names: Sequence[str], noise: TestNoise = TestNoise(),
-                    device: str | torch.device = "cpu", keep_arrays: bool = True, tile_px: int = 512) -> list[SceneResult]:
-    """Simulate, reconstruct and score every scene of ``scenes`` (items: (C, H, W) tensors)."""
+                    device: str | torch.device = "cpu", keep_arrays: bool = True, tile_px: int = 512,
+                    progress: Callable[[str], None] | None = None) -> list[SceneResult]:
+    """Simulate, reconstruct and score every scene of ``scenes`` (items: (C, H, W) tensors).
+
+    ``progress``: called with one line per finished scene (e.g. ``print`` to stderr).
+    """
     from hsicam.engine.inference import receptive_radius, reconstruct_tiled
 
     cam = method.camera
@@ -93,6 +97,9 @@ def evaluate_method(method: Method, scenes, names: Sequence[str], noise: TestNoi
             std = {k: float(np.std([m[k] for m in per_seed])) for k in per_seed[0]} if len(per_seed) > 1 else {}
             out.append(SceneResult(name, mean, truth[0].cpu().numpy() if keep_arrays else None,
                                    est0[0].cpu().numpy() if keep_arrays else None, float(np.mean(times)), std))
+            if progress is not None:
+                progress(f"[{i + 1}/{len(names)}] {name}: PSNR {mean['psnr']:.2f} dB, SSIM {mean['ssim']:.4f}, "
+                         f"SAM {mean['sam']:.2f}° ({np.mean(times):.1f} s)")
     finally:
         set_noise(cam, *saved)
     return out
