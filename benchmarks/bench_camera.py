@@ -15,8 +15,6 @@ from __future__ import annotations
 import argparse
 import json
 import platform
-import statistics
-import time
 
 import torch
 import torch.nn.functional as F
@@ -24,17 +22,7 @@ import torch.nn.functional as F
 from hsicam.cameras import DOECamera
 from hsicam.config import load_config
 from hsicam.optics.convolution import conv_valid
-
-
-def median_time(fn, repeats: int, warmup: int = 1) -> float:
-    for _ in range(warmup):
-        fn()
-    times = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - t0)
-    return statistics.median(times)
+from timing import median_time
 
 
 def main() -> None:
@@ -53,13 +41,13 @@ def main() -> None:
     k = cam.kernel_px
     for dtype, name in ((torch.float32, "float32"), (torch.float64, "float64")):
         cam = cam.to(dtype)
-        result[f"psf_forward_s_{name}"] = median_time(lambda: cam.psf(), args.repeats)
+        result[f"psf_forward_s_{name}"] = median_time(lambda: cam.psf(), args.repeats, 1)
 
         def fwd_bwd():
             cam.zero_grad(set_to_none=True)
             cam.psf().sum().backward()
 
-        result[f"psf_forward_backward_s_{name}"] = median_time(fwd_bwd, args.repeats)
+        result[f"psf_forward_backward_s_{name}"] = median_time(fwd_bwd, args.repeats, 1)
     cam = cam.float()
     x = torch.rand(args.batch, len(cam.bands), args.size + k - 1, args.size + k - 1)
     psf_fixed = cam.psf().detach().requires_grad_()
@@ -74,8 +62,8 @@ def main() -> None:
 
     result["batch"] = [args.batch, len(cam.bands), args.size, args.size]
     result["kernel_px"] = k
-    result["convolution_cfa_forward_backward_s"] = median_time(conv_fb, args.repeats)
-    result["camera_forward_backward_s"] = median_time(camera_fb, args.repeats)
+    result["convolution_cfa_forward_backward_s"] = median_time(conv_fb, args.repeats, 1)
+    result["camera_forward_backward_s"] = median_time(camera_fb, args.repeats, 1)
 
     # Direct convolution of the whole batch is ~160 GFLOP; compare on a 1 × 4-band slice
     # (the work per band image is the same, so the ratio carries over).
@@ -83,8 +71,8 @@ def main() -> None:
     xs = x[:1, :4].contiguous()
     weight = torch.flip(psf, dims=(-2, -1)).unsqueeze(1)
     with torch.no_grad():
-        t_fft = median_time(lambda: conv_valid(xs, psf), args.repeats)
-        t_direct = median_time(lambda: F.conv2d(xs, weight, groups=psf.shape[0]), 2)
+        t_fft = median_time(lambda: conv_valid(xs, psf), args.repeats, 1)
+        t_direct = median_time(lambda: F.conv2d(xs, weight, groups=psf.shape[0]), 2, 1)
     result["direct_vs_fft_slice"] = [1, 4, args.size, args.size]
     result["conv_fft_forward_s_slice"] = t_fft
     result["conv_direct_forward_s_slice"] = t_direct
