@@ -20,30 +20,19 @@ from __future__ import annotations
 import argparse
 import json
 import platform
-import statistics
-import time
 
 import torch
 import torch.nn.functional as F
 
 from hsicam.config import load_config
+from hsicam.engine.experiments import CASSI_RDN_OVERRIDES
 from hsicam.models import CameraSystem
 from hsicam.solvers.choi import SpectralAutoencoder, admm_prior
 from hsicam.solvers.config import BaselinesConfig
 from hsicam.solvers.desci import desci, desci_settings
 from hsicam.solvers.gaptv import gap_tv
 from hsicam.solvers.methods import dd_cassi_camera
-
-
-def timed(fn, repeats: int = 1, warmup: int = 0) -> float:
-    for _ in range(warmup):
-        fn()
-    times = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - t0)
-    return statistics.median(times)
+from timing import median_time
 
 
 def smooth_scene(c: int, size: int, seed: int = 0) -> torch.Tensor:
@@ -81,24 +70,24 @@ def main() -> None:
                     "device": str(dev), "scene": [len(bands), args.size, args.size], "seconds_per_scene": {}, "settings": {}}
     sec = result["seconds_per_scene"]
     g = b.gaptv
-    sec["dd-cassi-gaptv"] = timed(run(lambda: gap_tv(cam, y, g.iterations, g.tv_weight, g.tv_iterations, g.accelerate)))
+    sec["dd-cassi-gaptv"] = median_time(run(lambda: gap_tv(cam, y, g.iterations, g.tv_weight, g.tv_iterations, g.accelerate)))
     result["settings"]["dd-cassi-gaptv"] = {"iterations": g.iterations}
     fast = desci_settings("fast")
-    sec["dd-cassi-desci"] = timed(run(lambda: desci(cam, y, fast)))
+    sec["dd-cassi-desci"] = median_time(run(lambda: desci(cam, y, fast)))
     result["settings"]["dd-cassi-desci"] = {"preset": "fast", "iterations": sum(fast.iterations), "step": fast.step,
                                             "group": fast.group}
     if args.full:
         full = desci_settings("full")
-        sec["dd-cassi-desci-full"] = timed(run(lambda: desci(cam, y, full)))
+        sec["dd-cassi-desci-full"] = median_time(run(lambda: desci(cam, y, full)))
     c = b.choi
     prior = SpectralAutoencoder(len(bands), c.features, c.latent).to(dev).requires_grad_(False).eval()
-    sec["dd-cassi-choi"] = timed(run(lambda: admm_prior(cam, y, prior, c)))
+    sec["dd-cassi-choi"] = median_time(run(lambda: admm_prior(cam, y, prior, c)))
     result["settings"]["dd-cassi-choi"] = {"iterations": c.iterations, "inner_steps": c.inner_steps}
-    cassi_net = CameraSystem.from_config(load_config("quick", ["camera.kind=dd_cassi"])).to(dev).eval()
-    sec["dd-cassi-rdn"] = timed(run(lambda: cassi_net.reconstruct(y)), args.repeats, 1)
+    cassi_net = CameraSystem.from_config(load_config("quick", list(CASSI_RDN_OVERRIDES))).to(dev).eval()
+    sec["dd-cassi-rdn"] = median_time(run(lambda: cassi_net.reconstruct(y)), args.repeats, 1)
     doe = CameraSystem.from_config(cfg).to(dev).eval()
     sensor = torch.rand(1, 1, args.size, args.size, device=dev)
-    sec["doe-rdn"] = timed(run(lambda: doe.reconstruct(sensor)), args.repeats, 1)
+    sec["doe-rdn"] = median_time(run(lambda: doe.reconstruct(sensor)), args.repeats, 1)
     result["doe_rdn_speedup"] = {k: v / sec["doe-rdn"] for k, v in sec.items() if k != "doe-rdn"}
     text = json.dumps(result, indent=2)
     print(text)

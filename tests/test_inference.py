@@ -135,6 +135,13 @@ def test_demosaic_input_needs_a_camera_with_a_code():
 
     with pytest.raises(ConfigError, match="demosaic_input"):
         CameraSystem.from_config(load_config("dd_cassi_rdn", ["model.demosaic_input=true"]))
+    # the quick preset (demosaic input on) switched to CASSI the way experiments and benchmarks do it
+    from hsicam.engine.experiments import CASSI_RDN_OVERRIDES
+
+    with pytest.raises(ConfigError, match="demosaic_input=false"):
+        CameraSystem.from_config(load_config("quick", ["camera.kind=dd_cassi"]))
+    cassi = CameraSystem.from_config(load_config("quick", list(CASSI_RDN_OVERRIDES)))
+    assert cassi.camera.kind == "dd_cassi" and cassi.net.tentative.in_channels == 1
 
 
 def test_untrained_rdn_returns_the_grey_image():

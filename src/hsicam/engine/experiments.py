@@ -67,6 +67,11 @@ def is_finished(run: Path) -> bool:
         return False
 
 
+#: A scale preset's network on the DD-CASSI camera: the paper's RDN reading the measurement alone
+#: (the DOE-camera presets may switch on the CFA demosaic input, which CASSI has no CFA for).
+CASSI_RDN_OVERRIDES = ("camera.kind=dd_cassi", "model.demosaic_input=false")
+
+
 def ensure_trained(run: Path, preset: str, overrides: tuple[str, ...]) -> None:
     """Train ``run`` (or resume it, or reuse it when finished)."""
     from hsicam.engine.train import train
@@ -151,7 +156,7 @@ def _baseline_rows(cfg, scale, out, scenes, names, seeds, baselines) -> list[dic
             run = None
             if name == "dd-cassi-rdn":
                 run = out / "runs" / name
-                ensure_trained(run, scale, ("camera.kind=dd_cassi",))
+                ensure_trained(run, scale, CASSI_RDN_OVERRIDES)
             elif name == "dd-cassi-choi":
                 from hsicam.solvers.methods import ensure_choi_prior  # provided by the baselines module
 

@@ -52,7 +52,8 @@ class CameraSystem(nn.Module):
             try:
                 camera.sensor_code(1, 1)
             except NotImplementedError as exc:
-                raise ConfigError(f"model.demosaic_input needs a camera with a per-band sensor code (the DOE camera's CFA): {exc}") from None
+                raise ConfigError(f"model.demosaic_input needs a camera with a per-band sensor code (the DOE camera's CFA): "
+                                  f"{exc}; set model.demosaic_input=false") from None
 
     @classmethod
     def from_config(cls, cfg) -> "CameraSystem":  # cfg: hsicam.config.Config
