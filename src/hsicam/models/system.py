@@ -26,10 +26,16 @@ def demosaic(sensor: torch.Tensor, code: torch.Tensor, window: int) -> torch.Ten
     """
     if window <= 1:
         return sensor * code.unsqueeze(0) / code.clamp_min(1e-6).unsqueeze(0)
-    r = window // 2
-    num = F.avg_pool2d(sensor * code.unsqueeze(0), window, stride=1, padding=r)
-    den = F.avg_pool2d(code.unsqueeze(0), window, stride=1, padding=r)
+    num = _box(sensor * code.unsqueeze(0), window)
+    den = _box(code.unsqueeze(0), window)
     return num / den.clamp_min(1e-6)
+
+
+def _box(x: torch.Tensor, window: int) -> torch.Tensor:
+    """Mean over a ``window``×``window`` box (zeros outside), as two 1-D passes: (B, C, H, W)."""
+    r = window // 2
+    x = F.avg_pool2d(x, (1, window), stride=1, padding=(0, r))
+    return F.avg_pool2d(x, (window, 1), stride=1, padding=(r, 0))
 
 
 class CameraSystem(nn.Module):
