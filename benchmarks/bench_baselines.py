@@ -27,11 +27,12 @@ import torch.nn.functional as F
 from hsicam.config import load_config
 from hsicam.engine.experiments import CASSI_RDN_OVERRIDES
 from hsicam.models import CameraSystem
-from hsicam.solvers.choi import SpectralAutoencoder, admm_prior
-from hsicam.solvers.config import BaselinesConfig
+from hsicam.engine.methods import dd_cassi_camera
+from hsicam.models.priors import SpectralAutoencoder
+from hsicam.solvers.choi import admm_prior
+from hsicam.config import BaselinesConfig, ChoiConfig
 from hsicam.solvers.desci import desci, desci_settings
 from hsicam.solvers.gaptv import gap_tv
-from hsicam.solvers.methods import dd_cassi_camera
 from timing import median_time
 
 
@@ -79,7 +80,7 @@ def main() -> None:
     if args.full:
         full = desci_settings("full")
         sec["dd-cassi-desci-full"] = median_time(run(lambda: desci(cam, y, full)))
-    c = b.choi
+    c = b.choi_or_default
     prior = SpectralAutoencoder(len(bands), c.features, c.latent).to(dev).requires_grad_(False).eval()
     sec["dd-cassi-choi"] = median_time(run(lambda: admm_prior(cam, y, prior, c)))
     result["settings"]["dd-cassi-choi"] = {"iterations": c.iterations, "inner_steps": c.inner_steps}

@@ -29,7 +29,7 @@ TARGET_BYTES = 4 * 2**30
 
 def make_run(run: Path, overrides: list[str]) -> dict:
     from hsicam.config import dump_yaml, load_config
-    from hsicam.engine.checkpoint import save_weights
+    from hsicam.runs.checkpoint import save_weights
     from hsicam.models import CameraSystem
 
     cfg = load_config(None, overrides)

@@ -25,18 +25,19 @@ from conftest import TINY_CAMERA_OVERRIDES
 from hsicam.cameras import DOECamera
 from hsicam.cameras.measured import FixedPSFCamera
 from hsicam.config import load_config
-from hsicam.engine.calibration import (
-    centroid, import_for_camera, import_psf_dir, load_calibrated_run, load_measured_psf, overlap_matrix,
-    resample_area, wavelength_from_name,
+from hsicam.data.measured_psf import (
+    centroid, import_for_camera, import_psf_dir, overlap_matrix, resample_area, wavelength_from_name,
 )
-from hsicam.engine.inference import RawCorrection, preprocess_raw, read_capture
+from hsicam.engine.calibration import load_calibrated_run
+from hsicam.runs.measured_psf import load_measured_psf
+from hsicam.data.images import RawCorrection, preprocess_raw, read_capture
 from hsicam.errors import InputError
 from hsicam.io import write_json, write_npy
 from hsicam.spectral import Bands
 
 FAB_OVERRIDES = (
     *TINY_CAMERA_OVERRIDES,
-    "model.features=16", "model.growth=8",
+    "model.rdn.features=16", "model.rdn.growth=8",
     "data.val_fraction=0.25", "data.patches_per_epoch=32", "data.val_patches=8", "data.patch_px=16",
     "train.epochs=20", "train.lr=0.003", "train.doe_lr_nm=0.000001", "train.cfa_lr=0.000001",
 )
@@ -265,7 +266,7 @@ def test_finetune_improves_psnr_on_perturbed_psfs(fab_run, tmp_path):
     """Measured PSFs with a band throughput of 0.5..1 (radiometric, normalize: none): the trained
     network loses > 1.5 dB on data made with them; fine-tuning recovers it, and the tuned network
     is now specific to them (worse on the nominal PSFs than the original network)."""
-    from hsicam.engine.checkpoint import load_run
+    from hsicam.runs.folder import load_run
     from hsicam.engine.tolerance import evaluate_psf, evaluation_scenes
 
     cfg, base = load_run(fab_run)
@@ -407,12 +408,12 @@ def test_reconstruct_raw_capture_cli_tiled_equals_whole(fab_run, tmp_path):
         meta = json.loads(f.attrs["metadata_json"])
     assert meta["preprocessing"]["black_level_dn"] == 100.0 and meta["preprocessing"]["exposure_s"] == 0.5
     # the CLI preprocessing equals the library's
-    from hsicam.engine.inference import read_image_2d
+    from hsicam.data.images import read_image_2d
 
     corr = RawCorrection(black_level=100.0, white_level=40000.0, dark=read_image_2d(tmp_path / "dark.tif").data,
                          flat=read_image_2d(tmp_path / "flat.tif").data, exposure_s=0.5, reference_exposure_s=0.25)
     img, _ = read_capture(tmp_path / "raw.tif", corr)
-    from hsicam.engine.checkpoint import load_run
+    from hsicam.runs.folder import load_run
 
     _, model = load_run(fab_run)
     with torch.no_grad():

@@ -13,7 +13,6 @@ from hypothesis import strategies as st
 from hsicam.cameras import CodedAperture, DDCASSICamera, SDCASSICamera, build_camera
 from hsicam.cameras.cassi import hashed_uniform, linear_dispersion, prism_dispersion, random_aperture
 from hsicam.config import load_config
-from hsicam.engine.train import get_noise, set_noise
 from hsicam.errors import ConfigError, InputError
 from hsicam.models import CameraSystem
 from hsicam.spectral import Bands
@@ -282,8 +281,8 @@ def test_sensor_noise_and_set_noise():
     g = torch.Generator().manual_seed(0)
     diff = cam(x, g) - cam.A(x)
     assert 0.008 < float(diff.std()) < 0.012
-    set_noise(cam, None, 0.0)
-    assert get_noise(cam) == (None, 0.0)
+    cam.set_noise(sensor_sigma=0.0)
+    assert cam.noise_levels() == {"sensor_sigma": 0.0}
     torch.testing.assert_close(cam(x), cam.A(x))
 
 

@@ -170,5 +170,5 @@ def test_exponent_numbers_without_a_dot_are_numbers(tmp_path):
     assert load_config(path).train.lr == 1e-4
     with pytest.raises(ConfigError, match="train.lr"):
         load_config(overrides=["train.lr=1e-4x"])
-    with pytest.raises(ConfigError, match="model.blocks"):  # integer keys stay strict
-        load_config(overrides=["model.blocks=1e1"])
+    with pytest.raises(ConfigError, match="model.rdn.blocks"):  # integer keys stay strict
+        load_config(overrides=["model.rdn.blocks=1e1"])

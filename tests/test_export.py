@@ -49,7 +49,7 @@ def _rasterise_gds(path, n: int, cell_um: float, layers: int) -> np.ndarray:
 
 
 def test_export_round_trip(fab_run, tmp_path):
-    from hsicam.engine.checkpoint import load_run
+    from hsicam.runs.folder import load_run
 
     out = tmp_path / "fab"
     res = run_cli("export-optics", "--run", str(fab_run), "--out", str(out), "--levels", "8")

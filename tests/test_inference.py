@@ -7,7 +7,9 @@ import pytest
 import torch
 
 from hsicam.config import load_config
-from hsicam.engine.inference import read_sensor_image, receptive_radius, reconstruct_tiled
+from hsicam.data.images import read_sensor_image
+from hsicam.models.context import conv_receptive_radius as receptive_radius
+from hsicam.engine.inference import reconstruct_tiled
 from hsicam.errors import InputError
 from hsicam.models import RDN
 
@@ -87,8 +89,8 @@ def _small_system(tiny_config, *overrides: str):
     from hsicam.models import CameraSystem
 
     torch.manual_seed(0)
-    return CameraSystem.from_config(tiny_config("model.demosaic_input=true", "model.blocks=1", "model.features=8",
-                                                "model.growth=4", *overrides)).eval()
+    return CameraSystem.from_config(tiny_config("model.rdn.demosaic_input=true", "model.rdn.blocks=1", "model.rdn.features=8",
+                                                "model.rdn.growth=4", *overrides)).eval()
 
 
 @pytest.mark.parametrize("period", [3, 4])
@@ -96,18 +98,18 @@ def test_demosaic_input_is_the_normalised_local_average_per_band(tiny_config, pe
     model = _small_system(tiny_config, f"camera.cfa.period={period}")
     c = len(model.bands)
     assert model.net.tentative.in_channels == 1 + c
-    assert model.demosaic_window == (3 if period == 3 else 5)
+    assert model.net.window == (3 if period == 3 else 5)
     g = torch.rand(2, 1, 13, 17, dtype=torch.float64)
     with torch.no_grad():
-        inp = model.double().network_input(g, origin=(3, 4))
+        inp = model.double().net.network_input(g, model.camera, origin=(3, 4))
         kappa = model.camera.cfa.pattern(20, 25)[:, 3:16, 4:21].numpy()
     assert inp.shape == (2, 1 + c, 13, 17)
     torch.testing.assert_close(inp[:, :1], g)
     for b in range(2):
-        np.testing.assert_allclose(inp[b, 1:].numpy(), _demosaic_reference(g[b, 0].numpy(), kappa, model.demosaic_window),
+        np.testing.assert_allclose(inp[b, 1:].numpy(), _demosaic_reference(g[b, 0].numpy(), kappa, model.net.window),
                                    rtol=1e-10)
     # a flat grey sensor image demosaics to the same grey in every band
-    flat = model.network_input(torch.full((1, 1, 13, 17), 0.3, dtype=torch.float64))
+    flat = model.net.network_input(torch.full((1, 1, 13, 17), 0.3, dtype=torch.float64), model.camera)
     torch.testing.assert_close(flat[:, 1:], torch.full((1, c, 13, 17), 0.3, dtype=torch.float64))
     # untrained, the system returns the demosaic (tentative = x̃, zero output conv)
     with torch.no_grad():
@@ -121,7 +123,7 @@ def test_demosaic_input_tiles_are_seamless(tiny_config):
     img = torch.rand(1, 1, 61, 47)
     with torch.no_grad():
         whole = model.reconstruct(img)
-    assert model.context_px == receptive_radius(model.net) + model.demosaic_window // 2
+    assert model.context_px == receptive_radius(model.net) + model.net.window // 2
     tiled = reconstruct_tiled(model.reconstruct, img, tile_px=16, halo_px=model.context_px)
     torch.testing.assert_close(tiled, whole, rtol=1e-5, atol=1e-5)
     # fed the CFA at the wrong phase per tile, it differs: the check above can fail
@@ -134,7 +136,7 @@ def test_demosaic_input_needs_a_camera_with_a_code():
     from hsicam.models import CameraSystem
 
     with pytest.raises(ConfigError, match="demosaic_input"):
-        CameraSystem.from_config(load_config("dd_cassi_rdn", ["model.demosaic_input=true"]))
+        CameraSystem.from_config(load_config("dd_cassi_rdn", ["model.rdn.demosaic_input=true"]))
     # the quick preset (demosaic input on) switched to CASSI the way experiments and benchmarks do it
     from hsicam.engine.experiments import CASSI_RDN_OVERRIDES
 

@@ -23,7 +23,7 @@ from hypothesis import strategies as st
 from cli_helpers import assert_clean_error
 from test_calibration import fab_run, run_cli  # noqa: F401 - shared fixture
 from hsicam.data import read_cube, write_cube_h5, write_envi
-from hsicam.engine.inference import MAX_IMAGE_PIXELS, read_capture, read_image_2d
+from hsicam.data.images import MAX_IMAGE_PIXELS, read_capture, read_image_2d
 from hsicam.errors import HsicamError, InputError
 from hsicam.spectral import Bands
 

@@ -12,16 +12,17 @@ import torch.nn.functional as F
 from cli_helpers import assert_clean_error, run_cli
 from hsicam.cameras import build_camera
 from hsicam.config import load_config
-from hsicam.engine.methods import BASELINE_METHODS, build_method
+from hsicam.engine.methods import baseline_names, build_method
+from hsicam.engine.prior import ensure_choi_prior, is_prior_run, load_prior, train_prior
 from hsicam.errors import ConfigError, InputError
 from hsicam.metrics import psnr_per_band
-from hsicam.solvers.choi import SpectralAutoencoder, admm_prior, is_prior_run, load_prior, train_prior
-from hsicam.solvers.common import gap_projection, phi_diagonal, total_variation, tv_denoise
-from hsicam.solvers.config import BaselinesConfig, ChoiConfig
+from hsicam.models.priors import SpectralAutoencoder
+from hsicam.solvers.choi import admm_prior
+from hsicam.solvers.common import gap_projection, total_variation, tv_denoise
+from hsicam.config import BaselinesConfig, ChoiConfig
 from hsicam.solvers.desci import (block_matching, desci, desci_settings, reference_positions, wnnm_denoise,
                                   wnnm_shrink)
 from hsicam.solvers.gaptv import gap_tv
-from hsicam.solvers.methods import ConfigWithBaselines, ensure_choi_prior, load_baseline_config, plain_config
 
 
 def cassi(kind: str = "dd_cassi", bands: int = 8, *overrides: str, dtype=torch.float64):
@@ -89,7 +90,7 @@ def test_phi_phi_t_is_diagonal_and_phi_diagonal_is_its_diagonal(kind, convention
     off = gram - torch.diag(torch.diag(gram))
     assert float(off.abs().max()) == 0.0
     y = torch.zeros(1, 1, *cam.sensor_size((h, w)), dtype=torch.float64)
-    d = phi_diagonal(cam, y).reshape(-1)
+    d = cam.gram_diagonal(y).reshape(-1)
     expected = torch.diag(gram)
     expected = torch.where(expected > 1e-12, expected, torch.ones_like(expected))
     torch.testing.assert_close(d, expected)
@@ -101,7 +102,7 @@ def test_gap_projection_is_feasible_and_a_projection(kind):
     g = torch.Generator().manual_seed(0)
     truth = torch.rand(1, 6, 10, 12, generator=g, dtype=torch.float64)
     y = cam.A(truth)
-    phi = phi_diagonal(cam, y)
+    phi = cam.gram_diagonal(y)
     x = torch.rand(1, 6, 10, 12, generator=g, dtype=torch.float64)
     p = gap_projection(cam, x, y, phi)
     torch.testing.assert_close(cam.A(p), y)
@@ -139,7 +140,7 @@ def test_gap_tv_lowers_the_error_on_a_piecewise_constant_cube(accelerate, kind):
     cam = cassi(kind, 8)
     truth = piecewise_constant_cube(8, 40, 40, seed=2)
     y = cam.A(truth)
-    start = cam.A_adjoint(y / phi_diagonal(cam, y))
+    start = cam.A_adjoint(y / cam.gram_diagonal(y))
     x, info = gap_tv(cam, y, iterations=60, tv_weight=0.01, accelerate=accelerate, return_info=True)
     assert x.shape == truth.shape
     p0, p1 = float(psnr_per_band(start, truth)), float(psnr_per_band(x, truth))
@@ -254,7 +255,7 @@ def test_admm_with_the_prior_converges():
     assert all(b <= a * 1.01 for a, b in zip(obj[5:], obj[6:])), obj
     primal = info.extra["primal_residual"]
     assert primal[-1] < 0.1 * primal[0] and primal[-1] < 0.02
-    start = cam.A_adjoint(y / phi_diagonal(cam, y))
+    start = cam.A_adjoint(y / cam.gram_diagonal(y))
     assert float(psnr_per_band(x, truth)) > float(psnr_per_band(start, truth)) + 3
 
 
@@ -271,19 +272,18 @@ def test_admm_runs_under_no_grad_and_in_float32():
 # Config section
 # --------------------------------------------------------------------------------------------
 def test_baselines_config_section():
-    cfg = load_baseline_config("tiny", ["baselines.desci.preset=full", "baselines.gaptv.iterations=7",
+    cfg = load_config("tiny", ["baselines.desci.preset=full", "baselines.gaptv.iterations=7",
                                         "baselines.desci.sigmas=[0.1, 0.05]", "baselines.desci.iterations=[3, 2]"])
-    assert isinstance(cfg, ConfigWithBaselines) and isinstance(cfg.baselines, BaselinesConfig)
+    assert isinstance(cfg.baselines, BaselinesConfig) and cfg.baselines.choi is None  # choi: from the prior folder
     assert cfg.baselines.gaptv.iterations == 7
     assert cfg.baselines.desci.overrides() == {"sigmas": [0.1, 0.05], "iterations": [3, 2]}
     s = desci_settings(cfg.baselines.desci.preset, **cfg.baselines.desci.overrides())
     assert s.step == 2 and s.sigmas == [0.1, 0.05]
-    assert type(plain_config(cfg)).__name__ == "Config"
     for bad, match in (("baselines.gaptv.iterations=-1", "iterations"), ("baselines.desci.sigmas=[-0.1]", "sigmas"),
                        ("baselines.choi.latent=0", "latent"), ("baselines.choi.nope=1", "unknown config key"),
                        ("baselines.desci.preset=slow", "preset")):
         with pytest.raises(ConfigError, match=match):
-            load_baseline_config("tiny", [bad])
+            load_config("tiny", [bad])
 
 
 # --------------------------------------------------------------------------------------------
@@ -322,9 +322,9 @@ FAST = ("baselines.desci.iterations=[2, 2, 2, 2]", "baselines.desci.init_iterati
         "baselines.gaptv.iterations=20", "baselines.choi.iterations=5", "baselines.choi.init_iterations=5")
 
 
-@pytest.mark.parametrize("name", BASELINE_METHODS)
+@pytest.mark.parametrize("name", baseline_names())
 def test_each_baseline_through_build_method(tiny_env, name):
-    cfg = load_baseline_config("tiny", FAST)
+    cfg = load_config("tiny", FAST)
     run = {"dd-cassi-choi": tiny_env["prior"], "dd-cassi-rdn": tiny_env["rdn"]}.get(name)
     method = build_method(name, cfg, run)
     assert method.name == name and method.camera.kind == "dd_cassi"

@@ -76,7 +76,7 @@ def test_tolerance_at_interpolates_the_1db_point():
 
 
 def test_tolerance_cli(fab_run, tmp_path):
-    from hsicam.engine.checkpoint import load_run
+    from hsicam.runs.folder import load_run
     from hsicam.engine.tolerance import evaluate_psf, evaluation_scenes
 
     out = tmp_path / "tol"

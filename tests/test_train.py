@@ -18,7 +18,7 @@ import torch.nn.functional as F
 
 from cli_helpers import HSICAM, assert_clean_error, run_cli
 from hsicam.config import load_config
-from hsicam.engine.checkpoint import load_weights, read_weights, save_weights
+from hsicam.runs.checkpoint import load_weights, read_weights, save_weights
 from hsicam.engine.train import build_optimizer, train
 from hsicam.models import CameraSystem
 
@@ -48,7 +48,7 @@ def smooth_cube(b: int, c: int, h: int, w: int, seed: int = 0) -> torch.Tensor:
 
 def test_tiny_model_overfits_one_batch_and_optics_learn():
     torch.manual_seed(0)
-    cfg = tiny_cfg("model.features=16", "model.growth=8", "train.grad_clip=null")
+    cfg = tiny_cfg("model.rdn.features=16", "model.rdn.growth=8", "train.grad_clip=null")
     model = CameraSystem.from_config(cfg)
     opt = build_optimizer(cfg, model)
     for g in opt.param_groups:
@@ -212,7 +212,7 @@ def test_train_and_reconstruct_cli(tmp_path, cache_env):
 
 
 def test_metrics_truncation_drops_records_the_checkpoint_never_saw(tmp_path):
-    from hsicam.engine.train import MetricsLog
+    from hsicam.runs.folder import MetricsLog
 
     log = MetricsLog(tmp_path / "metrics.jsonl", True)
     for rec in ({"step": 4, "epoch": 0, "train_loss": 1.0}, {"step": 8, "epoch": 1, "train_loss": 0.5},
@@ -226,7 +226,7 @@ def test_metrics_truncation_drops_records_the_checkpoint_never_saw(tmp_path):
 
 
 def test_checkpoint_at_an_existing_step_updates_the_state(tmp_path):
-    from hsicam.engine.checkpoint import CheckpointManager
+    from hsicam.runs.checkpoint import CheckpointManager
 
     cfg = tiny_cfg()
     model = CameraSystem.from_config(cfg)
@@ -257,23 +257,28 @@ def test_grey_reference_is_the_sensor_times_the_mean_training_spectrum():
 def test_demosaic_reference_is_the_networks_input(tiny_config):
     from hsicam.engine.evaluate import demosaic_reference
 
-    model = CameraSystem.from_config(tiny_config("model.demosaic_input=true"))
+    model = CameraSystem.from_config(tiny_config("model.rdn.demosaic_input=true"))
     sensor = torch.rand(1, 1, 12, 10)
-    torch.testing.assert_close(demosaic_reference(model).reconstruct(sensor), model.network_input(sensor)[:, 1:])
-    with pytest.raises(ValueError, match="demosaic_input"):
-        demosaic_reference(CameraSystem.from_config(tiny_config()))
+    torch.testing.assert_close(demosaic_reference(model).reconstruct(sensor),
+                               model.net.network_input(sensor, model.camera)[:, 1:])
+    # the reference needs the camera's sensor code, not a particular network
+    plain = CameraSystem.from_config(tiny_config())
+    torch.testing.assert_close(demosaic_reference(plain).reconstruct(sensor),
+                               model.net.network_input(sensor, model.camera)[:, 1:])
+    with pytest.raises(ValueError, match="sensor code"):
+        demosaic_reference(CameraSystem.from_config(load_config("dd_cassi_rdn")))
 
 
 def test_demo_cli_trains_reports_and_draws(tmp_path, cache_env):
     out = tmp_path / "demo"
-    proc = run_cli("demo", "--config", "tiny", "--out", str(out), "--set", "model.demosaic_input=true",
+    proc = run_cli("demo", "--config", "tiny", "--out", str(out), "--set", "model.rdn.demosaic_input=true",
                    env={"HSICAM_CACHE": str(cache_env)})
     assert proc.returncode == 0, proc.stderr
     summary = json.loads((out / "results.json").read_text())
     n_val = len(summary["scenes"])
     assert n_val >= 1 and all(np.isfinite(summary["mean"][k]) for k in ("psnr", "ssim", "sam"))
     refs = {r["method"]: r["mean"] for r in summary["references"]}
-    assert set(refs) == {"sensor image x mean training spectrum", "CFA demosaic (the network's input)"}
+    assert set(refs) == {"sensor image x mean training spectrum", "CFA box demosaic (no network)"}
     assert all(np.isfinite(m[k]) for m in refs.values() for k in ("psnr", "ssim", "sam"))
     assert f"PSNR {summary['mean']['psnr']:.2f} dB" in proc.stdout
     assert proc.stdout.count("reference without a network") == 2
@@ -283,7 +288,7 @@ def test_demo_cli_trains_reports_and_draws(tmp_path, cache_env):
         img = iio.imread(out / name)
         assert img.ndim == 3 and min(img.shape[:2]) > 50, name
     # a second call reuses the finished run instead of training again
-    again = run_cli("demo", "--config", "tiny", "--out", str(out), "--set", "model.demosaic_input=true",
+    again = run_cli("demo", "--config", "tiny", "--out", str(out), "--set", "model.rdn.demosaic_input=true",
                     env={"HSICAM_CACHE": str(cache_env)})
     assert again.returncode == 0 and "reusing the trained run" in again.stdout, again.stderr
     # the demosaic-input run reconstructs a capture in tiles exactly as in one piece (CFA phase per tile)

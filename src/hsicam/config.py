@@ -191,7 +191,7 @@ class CameraConfig:
     """The camera: ``kind: doe`` is the paper's lens + DOE + CFA + sensor; the CASSI kinds are the
     baselines (they use ``cassi`` and ``sensor``; the optics sections are then ignored)."""
 
-    kind: Literal["doe", "dd_cassi", "sd_cassi"] = "doe"
+    kind: str = "doe"  # a registered camera kind (hsicam.cameras.registry): doe, dd_cassi, sd_cassi
     aperture_radius_mm: float = 5.0
     sensor_distance_mm: Optional[float] = None  # None: the lens focal length at its design wavelength
     object_distance_m: Optional[float] = None  # None: object at infinity
@@ -215,10 +215,9 @@ class CameraConfig:
 
 
 @dataclass
-class ModelConfig:
-    """Reconstruction network (paper: tentative 1×1 conv + RDN). See ``hsicam.models.rdn``."""
+class RDNConfig:
+    """The paper's network (``model.kind: rdn``): tentative 1×1 conv + RDN. See ``hsicam.models.rdn``."""
 
-    name: Literal["rdn"] = "rdn"
     blocks: int = 8  # D, residual dense blocks
     features: int = 64  # G0
     growth: int = 32  # G
@@ -226,13 +225,22 @@ class ModelConfig:
     # Beyond the paper: also feed the network a per-band demosaic of g (C extra channels: the
     # average of g over one CFA period weighted by each pixel's transmission of the band), and
     # start the tentative reconstruction from it. The paper's network gets g alone and has to
-    # infer the CFA's phase from the image. DOE camera only. See hsicam.models.system.demosaic.
+    # infer the CFA's phase from the image. DOE camera only. See hsicam.models.demosaic.
     demosaic_input: bool = False
 
     def __post_init__(self) -> None:
         for k in ("blocks", "features", "growth", "layers_per_block"):
             if getattr(self, k) < 1:
-                raise ConfigError(f"model.{k} must be >= 1, got {getattr(self, k)}")
+                raise ConfigError(f"model.rdn.{k} must be >= 1, got {getattr(self, k)}")
+
+
+@dataclass
+class ModelConfig:
+    """Reconstruction network: ``kind`` is a registered network (hsicam.models.registry); its
+    settings are the section of the same name."""
+
+    kind: str = "rdn"
+    rdn: RDNConfig = field(default_factory=RDNConfig)
 
 
 @dataclass
@@ -261,6 +269,9 @@ class TrainConfig:
     compile: bool = False  # torch.compile the network
     deterministic: bool = False
     tensorboard: bool = False
+    # parameter groups kept fixed: "net" (the network), or a group the camera declares
+    # (DOE camera: "doe", "cfa"); e.g. [doe] trains the CFA and the network behind a fixed DOE
+    freeze: list[str] = field(default_factory=list)
 
     def __post_init__(self) -> None:
         for k in ("epochs", "batch_size", "eval_every_epochs", "checkpoint_every_steps", "log_every_steps", "lr_step_epochs"):
@@ -316,6 +327,126 @@ class DataConfig:
             raise ConfigError("data.root must be a path or null")
 
 
+# --------------------------------------------------------------------------------------------
+# Baseline solvers (baselines.gaptv, .desci, .choi)
+# --------------------------------------------------------------------------------------------
+def _check_positive(section: str, **values) -> None:
+    for k, v in values.items():
+        if v is not None and not (v > 0 and math.isfinite(v)):
+            raise ConfigError(f"{section}.{k} must be positive, got {v}")
+
+
+def _check_at_least(section: str, low: int, **values) -> None:
+    for k, v in values.items():
+        if v is not None and v < low:
+            raise ConfigError(f"{section}.{k} must be >= {low}, got {v}")
+
+
+@dataclass
+class GAPTVConfig:
+    """GAP-TV (hsicam.solvers.gaptv): accelerated GAP + spatial TV denoising."""
+
+    iterations: int = 80
+    tv_weight: float = 0.01  # λ of ½‖u − x‖² + λ·TV(u), cube values in [0, 1]
+    tv_iterations: int = 5  # Chambolle iterations per denoising
+    accelerate: bool = True
+
+    def __post_init__(self) -> None:
+        _check_at_least("baselines.gaptv", 0, iterations=self.iterations, tv_iterations=self.tv_iterations)
+        if not (self.tv_weight >= 0 and math.isfinite(self.tv_weight)):
+            raise ConfigError(f"baselines.gaptv.tv_weight must be >= 0, got {self.tv_weight}")
+
+
+@dataclass
+class DeSCIConfig:
+    """DeSCI (hsicam.solvers.desci). ``preset`` fast (minutes per 256×256×31 scene on a CPU) or
+    full (closer to the published setting); any other key set here overrides the preset."""
+
+    preset: Literal["fast", "full"] = "fast"
+    patch: Optional[int] = None
+    step: Optional[int] = None
+    search: Optional[int] = None
+    group: Optional[int] = None
+    sigmas: Optional[list[float]] = None
+    iterations: Optional[list[int]] = None
+    c: Optional[float] = None
+    match_every: Optional[int] = None
+    match_components: Optional[int] = None
+    init_iterations: Optional[int] = None
+    init_tv_weight: Optional[float] = None
+
+    def __post_init__(self) -> None:
+        sec = "baselines.desci"
+        _check_at_least(sec, 1, patch=self.patch, step=self.step, group=self.group, match_every=self.match_every,
+                        match_components=self.match_components)
+        _check_at_least(sec, 0, search=self.search, init_iterations=self.init_iterations)
+        _check_positive(sec, c=self.c)
+        if self.sigmas is not None and (not self.sigmas or not all(s > 0 and math.isfinite(s) for s in self.sigmas)):
+            raise ConfigError(f"{sec}.sigmas must be a non-empty list of positive numbers, got {self.sigmas}")
+        if self.iterations is not None and (not self.iterations or min(self.iterations) < 0):
+            raise ConfigError(f"{sec}.iterations must be a non-empty list of counts >= 0, got {self.iterations}")
+        if self.sigmas is not None and self.iterations is not None and len(self.sigmas) != len(self.iterations):
+            raise ConfigError(f"{sec}: {len(self.sigmas)} sigmas but {len(self.iterations)} iteration counts")
+
+    def overrides(self) -> dict:
+        """The keys set here (not None), without ``preset``."""
+        return {k: v for k, v in self.__dict__.items() if k != "preset" and v is not None}
+
+
+@dataclass
+class ChoiConfig:
+    """Choi et al. 2017 (hsicam.solvers.choi): autoencoder spectral prior + ADMM.
+
+    Prior architecture and training (``hsicam baseline train-prior``) and the ADMM solve.
+    """
+
+    # autoencoder
+    features: int = 48
+    latent: int = 12  # latent channels (the learned spectral representation), < bands
+    # training (a denoising autoencoder on training-split patches)
+    train_steps: int = 1500
+    batch_size: int = 8
+    lr: float = 1e-3
+    train_noise: float = 0.05  # Gaussian σ of the input corruption, drawn in [0, train_noise] per patch
+    seed: int = 0
+    # ADMM
+    iterations: int = 60
+    rho: float = 0.5  # ADMM penalty (data term normalised so that mean diag ΦΦᵀ = 1)
+    rho_growth: float = 1.03  # ρ ← ρ·growth per iteration (1: constant)
+    prior_weight: float = 0.1  # τ1 of (τ1/2)‖z − D(E(z))‖²
+    tv_weight: float = 0.003  # τ2 of τ2·TV(z)
+    inner_steps: int = 2  # proximal-gradient steps of each z-update
+    init_iterations: int = 20  # GAP-TV iterations of the start (0: the minimum-norm solution)
+
+    def __post_init__(self) -> None:
+        sec = "baselines.choi"
+        _check_at_least(sec, 1, features=self.features, latent=self.latent, train_steps=self.train_steps,
+                        batch_size=self.batch_size, inner_steps=self.inner_steps)
+        _check_at_least(sec, 0, iterations=self.iterations, init_iterations=self.init_iterations)
+        _check_positive(sec, lr=self.lr, rho=self.rho, rho_growth=self.rho_growth)
+        for k in ("train_noise", "prior_weight", "tv_weight"):
+            v = getattr(self, k)
+            if not (v >= 0 and math.isfinite(v)):
+                raise ConfigError(f"{sec}.{k} must be >= 0, got {v}")
+
+
+@dataclass
+class BaselinesConfig:
+    """Settings of the CASSI baseline solvers."""
+
+    gaptv: GAPTVConfig = field(default_factory=GAPTVConfig)
+    desci: DeSCIConfig = field(default_factory=DeSCIConfig)
+    # None: ADMM runs with the settings the prior was trained with (its folder's prior.yaml), and
+    # ``hsicam baseline train-prior`` uses the defaults; setting any baselines.choi key makes this a
+    # full section (defaults for the keys not set) that both use.
+    choi: Optional[ChoiConfig] = None
+
+    @property
+    def choi_or_default(self) -> ChoiConfig:
+        """``choi`` when set, else the defaults."""
+        return self.choi if self.choi is not None else ChoiConfig()
+
+
 @dataclass
 class Config:
     """Top-level configuration."""
@@ -325,6 +456,7 @@ class Config:
     data: DataConfig = field(default_factory=DataConfig)
     model: ModelConfig = field(default_factory=ModelConfig)
     train: TrainConfig = field(default_factory=TrainConfig)
+    baselines: BaselinesConfig = field(default_factory=BaselinesConfig)
 
 
 # --------------------------------------------------------------------------------------------
@@ -350,7 +482,27 @@ def load_config(path: str | Path | None = None, overrides: Sequence[str] = (), c
         data = loaded
     for item in overrides:
         apply_override(data, item)
+    _migrate_model_section(data)
     return from_dict(cls, data)
+
+
+_RDN_KEYS = ("blocks", "features", "growth", "layers_per_block", "demosaic_input")
+
+
+def _migrate_model_section(data: dict[str, Any]) -> None:
+    """Configs written before network kinds existed (``model: {name: rdn, blocks: …}``, e.g. the
+    config.yaml of an older run) are read as ``model: {kind: rdn, rdn: {blocks: …}}``."""
+    model = data.get("model")
+    if not isinstance(model, dict) or not any(k in model for k in (*_RDN_KEYS, "name")):
+        return
+    rdn = model.setdefault("rdn", {})
+    if not isinstance(rdn, dict):
+        return
+    for k in _RDN_KEYS:
+        if k in model:
+            rdn.setdefault(k, model.pop(k))
+    if "name" in model:
+        model.setdefault("kind", model.pop("name"))
 
 
 PRESETS_DIR = Path(__file__).resolve().parent / "configs"

@@ -5,19 +5,27 @@ from __future__ import annotations
 import torch
 from torch import nn
 
-from hsicam.errors import InputError
+from hsicam.errors import ConfigError, InputError
 from hsicam.spectral import Bands
 
 
 class Camera(nn.Module):
     """Scene cube (B, C, H, W) → sensor image. Subclasses implement ``A`` and ``A_adjoint``.
 
+    Everything else a solver, a network or the training loop needs is derived here from ``A`` and
+    ``A_adjoint`` (``A_adjoint_A``, :meth:`adjointness_error`, :meth:`sqnorm`), or declared by the
+    camera (:meth:`noise_levels` / :meth:`set_noise`, :meth:`param_groups`, and the capability
+    :attr:`has_diagonal_gram` with :meth:`gram_diagonal` for GAP-type solvers).
+
     Attributes:
+        kind: the registry name (``camera.kind``), set by :func:`~hsicam.cameras.registry.register_camera`.
         bands: the band grid the camera expects (C = len(bands)).
         boundary: "valid" (scene larger than the sensor by ``margin`` pixels per axis) or "same".
         noise: module applied to A(x) in ``forward``.
     """
 
+    kind: str = "camera"
+    has_diagonal_gram: bool = False  # A·Aᵀ is diagonal (CASSI): gram_diagonal() is available
     bands: Bands
     boundary: str
     noise: nn.Module
@@ -35,6 +43,80 @@ class Camera(nn.Module):
 
     def forward(self, x: torch.Tensor, generator: torch.Generator | None = None) -> torch.Tensor:
         return self.noise(self.A(x), generator)
+
+    # -- derived operator quantities (built only from A and A_adjoint) ---------------------------
+    def A_adjoint_A(self, x: torch.Tensor) -> torch.Tensor:  # noqa: N802
+        """Aᵀ A x, (B, C, H, W) → (B, C, H, W) (the normal operator)."""
+        return self.A_adjoint(self.A(x))
+
+    def check_measurement(self, y: torch.Tensor) -> None:
+        """Raise :class:`InputError` unless ``y`` is a (B, 1, H, W) sensor image."""
+        if y.dim() != 4 or y.shape[1] != 1:
+            raise InputError(f"sensor image must be (B, 1, H, W), got shape {tuple(y.shape)}")
+        if not torch.is_floating_point(y):
+            raise InputError(f"sensor image must be a floating-point tensor, got {y.dtype}")
+
+    def relative_residual(self, x: torch.Tensor, y: torch.Tensor) -> float:
+        """‖A x − y‖ / ‖y‖ (data consistency of an estimate ``x``)."""
+        return float((self.A(x) - y).norm() / y.norm().clamp_min(1e-30))
+
+    def adjointness_error(self, scene_hw: tuple[int, int], generator: torch.Generator | None = None,
+                          dtype: torch.dtype = torch.float64) -> float:
+        """|⟨Ax, y⟩ − ⟨x, Aᵀy⟩| / (‖Ax‖‖y‖) for random x, y (0 for an exact adjoint, up to rounding)."""
+        dev = next((p.device for p in self.parameters()), torch.device("cpu"))
+        x = torch.rand((1, len(self.bands), *scene_hw), generator=generator, device=dev, dtype=dtype)
+        ax = self.A(x)
+        y = torch.rand(ax.shape, generator=generator, device=dev, dtype=dtype)
+        lhs, rhs = (ax * y).sum(), (x * self.A_adjoint(y)).sum()
+        return float((lhs - rhs).abs() / (ax.norm() * y.norm()).clamp_min(1e-300))
+
+    @torch.no_grad()
+    def sqnorm(self, scene_hw: tuple[int, int], iterations: int = 50, generator: torch.Generator | None = None,
+               dtype: torch.dtype = torch.float64) -> float:
+        """‖A‖² (largest eigenvalue of AᵀA) on scenes of ``scene_hw`` px, by the power method."""
+        dev = next((p.device for p in self.parameters()), torch.device("cpu"))
+        x = torch.rand((1, len(self.bands), *scene_hw), generator=generator, device=dev, dtype=dtype)
+        x = x / x.norm()
+        value = 0.0
+        for _ in range(iterations):
+            z = self.A_adjoint_A(x)
+            value = float((x * z).sum())
+            x = z / z.norm().clamp_min(1e-300)
+        return value
+
+    def gram_diagonal(self, y: torch.Tensor, eps: float = 1e-12) -> torch.Tensor:
+        """diag(A·Aᵀ) shaped like ``y`` (B, 1, H, W), entries ≤ ``eps`` (unseen pixels) set to 1.
+
+        Only for cameras with :attr:`has_diagonal_gram` (CASSI): there A·Aᵀ is diagonal and its
+        diagonal is A(Aᵀ 1). Others raise ``NotImplementedError``.
+        """
+        if not self.has_diagonal_gram:
+            raise NotImplementedError(f"{type(self).__name__}: A·Aᵀ is not diagonal")
+        ones = torch.ones_like(y[:1])
+        d = self.A(self.A_adjoint(ones))
+        return torch.where(d > eps, d, torch.ones_like(d))
+
+    # -- declared by the camera: noise and trainable parameters ----------------------------------
+    def noise_levels(self) -> dict[str, float]:
+        """The current noise levels by name (``sensor_sigma``: Gaussian σ on the [0, 1] image)."""
+        return {"sensor_sigma": float(self.noise.sigma)}
+
+    def set_noise(self, **levels: float) -> None:
+        """Set noise levels by the names of :meth:`noise_levels`; unknown names are a ConfigError."""
+        known = self.noise_levels()
+        unknown = sorted(set(levels) - set(known))
+        if unknown:
+            raise ConfigError(f"{type(self).__name__} has no noise level {', '.join(unknown)}; "
+                              f"it has {', '.join(sorted(known))}")
+        self._apply_noise(levels)
+
+    def _apply_noise(self, levels: dict[str, float]) -> None:
+        if "sensor_sigma" in levels:
+            self.noise.sigma = float(levels["sensor_sigma"])
+
+    def param_groups(self) -> dict[str, list[nn.Parameter]]:
+        """Trainable optics parameters by group name (e.g. ``doe``, ``cfa``); empty when none."""
+        return {}
 
     def sensor_code(self, height: int, width: int, origin: tuple[int, int] = (0, 0)) -> torch.Tensor:
         """How much each band counts at each sensor pixel, (C, height, width), for a window of the

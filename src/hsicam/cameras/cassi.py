@@ -38,6 +38,7 @@ import torch
 from torch import nn
 
 from hsicam.cameras.base import Camera
+from hsicam.cameras.registry import register_camera
 from hsicam.errors import InputError
 from hsicam.sensor import SensorNoise
 from hsicam.spectral import Bands, get_material
@@ -227,7 +228,7 @@ def sd_cassi_adjoint(y: torch.Tensor, aperture: torch.Tensor, shifts: Sequence[i
 class _CASSICamera(Camera):
     """Shared parts of the CASSI cameras (see the module docstring)."""
 
-    kind = "cassi"
+    has_diagonal_gram = True  # each sensor pixel sees each scene voxel at most once: A·Aᵀ is diagonal
 
     def __init__(self, bands: Bands, aperture: CodedAperture, shifts_px: Sequence[int], noise: SensorNoise | None = None,
                  convention: str = "mean", boundary: str = "valid") -> None:
@@ -275,18 +276,13 @@ class _CASSICamera(Camera):
     def scale(self) -> float:
         return 1.0 / len(self.bands) if self.convention == "mean" else 1.0
 
-    def _check_measurement(self, y: torch.Tensor) -> None:
-        if y.dim() != 4 or y.shape[1] != 1:
-            raise InputError(f"measurement must be (B, 1, H, W), got shape {tuple(y.shape)}")
-
     def extra_repr(self) -> str:
         return f"bands={len(self.bands)}, shifts={self.shifts[0]}..{self.span} px, convention={self.convention}"
 
 
+@register_camera("dd_cassi")
 class DDCASSICamera(_CASSICamera):
     """Dual-disperser CASSI: scene (B, C, H, W) → measurement (B, 1, H, W)."""
-
-    kind = "dd_cassi"
 
     def band_masks(self, h: int, w: int, device: torch.device | str | None = None,
                    dtype: torch.dtype = torch.float32) -> torch.Tensor:
@@ -300,14 +296,13 @@ class DDCASSICamera(_CASSICamera):
 
     def A_adjoint(self, y: torch.Tensor) -> torch.Tensor:  # noqa: N802
         """Exact adjoint of :meth:`A`: (B, 1, H, W) → (B, C, H, W)."""
-        self._check_measurement(y)
+        self.check_measurement(y)
         return dd_cassi_adjoint(y, self.band_masks(y.shape[-2], y.shape[-1], y.device, y.dtype), self.scale)
 
 
+@register_camera("sd_cassi")
 class SDCASSICamera(_CASSICamera):
     """Single-disperser CASSI: scene (B, C, H, W) → measurement (B, 1, H, W + D)."""
-
-    kind = "sd_cassi"
 
     def sensor_size(self, scene_hw: tuple[int, int]) -> tuple[int, int]:
         return scene_hw[0], scene_hw[1] + self.span
@@ -323,7 +318,7 @@ class SDCASSICamera(_CASSICamera):
 
     def A_adjoint(self, y: torch.Tensor) -> torch.Tensor:  # noqa: N802
         """Exact adjoint of :meth:`A`: (B, 1, H, W + D) → (B, C, H, W)."""
-        self._check_measurement(y)
+        self.check_measurement(y)
         w = y.shape[-1] - self.span
         if w < 1:
             raise InputError(f"SD-CASSI measurement of width {y.shape[-1]} is not wider than the dispersion span {self.span}")

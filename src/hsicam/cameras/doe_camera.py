@@ -11,6 +11,7 @@ from __future__ import annotations
 import torch
 
 from hsicam.cameras.base import Camera
+from hsicam.cameras.registry import register_camera
 from hsicam.optics.convolution import coded_conv_valid, conv_valid_adjoint, pad_same, pad_same_adjoint
 from hsicam.optics.doe import DOE
 from hsicam.optics.lens import lens_from_config
@@ -20,6 +21,7 @@ from hsicam.sensor import ColorFilterArray, SensorNoise
 from hsicam.spectral import Bands, get_material
 
 
+@register_camera("doe")
 class DOECamera(Camera):
     """Differentiable DOE camera. Build it with :meth:`from_config`.
 
@@ -68,6 +70,24 @@ class DOECamera(Camera):
         noise = SensorNoise(s.noise, s.sigma, s.full_well_e, s.read_noise_e, s.bit_depth)
         return cls(bands, optics, cfa, noise, cam.boundary, cam.padding)
 
+    def noise_levels(self) -> dict[str, float]:
+        """``sensor_sigma`` and ``sigma_height_nm`` (DOE fabrication noise per cell, nm)."""
+        return {**super().noise_levels(), "sigma_height_nm": float(self.optics.doe.sigma_height_m) * 1e9}
+
+    def _apply_noise(self, levels: dict[str, float]) -> None:
+        super()._apply_noise(levels)
+        if "sigma_height_nm" in levels:
+            self.optics.doe.sigma_height_m = float(levels["sigma_height_nm"]) * 1e-9
+
+    def param_groups(self) -> dict[str, list[torch.nn.Parameter]]:
+        """``doe`` (height map, m) and ``cfa`` (filter weights) when enabled."""
+        groups: dict[str, list[torch.nn.Parameter]] = {}
+        if self.optics.doe.enabled:
+            groups["doe"] = [self.optics.doe.height_m]
+        if self.cfa.enabled:
+            groups["cfa"] = [self.cfa.weights]
+        return groups
+
     @property
     def kernel_px(self) -> int:
         return self.optics.kernel_px
@@ -99,8 +119,7 @@ class DOECamera(Camera):
 
     def A_adjoint(self, g: torch.Tensor, psf: torch.Tensor | None = None) -> torch.Tensor:  # noqa: N802
         """Exact adjoint of :meth:`A`: sensor image (B, 1, H, W) → cube (B, C, H', W')."""
-        if g.dim() != 4 or g.shape[1] != 1:
-            raise ValueError(f"sensor image must be (B, 1, H, W), got shape {tuple(g.shape)}")
+        self.check_measurement(g)
         psf = self.psf() if psf is None else psf
         kappa = self.cfa.pattern(g.shape[-2], g.shape[-1]).to(g.dtype)
         x = conv_valid_adjoint(g * kappa.unsqueeze(0), psf.to(g.dtype))

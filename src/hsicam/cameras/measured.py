@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import torch
 
+from hsicam.cameras.base import Camera
 from hsicam.cameras.doe_camera import DOECamera
 from hsicam.optics.psf import PSFResult
 
@@ -25,6 +26,7 @@ class FixedPSFCamera(DOECamera):
     state dict) but never evaluated by ``psf()`` / ``A`` / ``forward``.
     """
 
+    kind = "measured_psf"  # not in the registry: built from a trained camera and a PSF stack
     fixed_psf: torch.Tensor
 
     @classmethod
@@ -37,6 +39,14 @@ class FixedPSFCamera(DOECamera):
         obj = cls(camera.bands, camera.optics, camera.cfa, camera.noise, camera.boundary, camera.padding)
         obj.register_buffer("fixed_psf", psf.to(camera.optics.amplitude.device, torch.float32).clone(), persistent=False)
         return obj
+
+    def noise_levels(self) -> dict[str, float]:
+        """Sensor noise only: DOE height noise does not apply to a fixed PSF."""
+        return Camera.noise_levels(self)
+
+    def param_groups(self) -> dict[str, list[torch.nn.Parameter]]:
+        """The CFA only (when enabled): the PSFs are fixed, the DOE heights unused."""
+        return {k: v for k, v in super().param_groups().items() if k != "doe"}
 
     def set_psf(self, psf: torch.Tensor) -> None:
         """Replace the PSF stack (same shape)."""

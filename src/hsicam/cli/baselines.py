@@ -26,11 +26,11 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def cmd_train_prior(args: argparse.Namespace) -> int:
-    from hsicam.solvers.choi import train_prior
-    from hsicam.solvers.methods import load_baseline_config, plain_config
+    from hsicam.config import load_config
+    from hsicam.engine.prior import train_prior
 
-    cfg = load_baseline_config(args.config, args.overrides)
-    summary = train_prior(plain_config(cfg), cfg.baselines.choi, Path(args.out))
+    cfg = load_config(args.config, args.overrides)
+    summary = train_prior(cfg, cfg.baselines.choi, Path(args.out))
     extra = f", validation autoencoder PSNR {summary['val_psnr_autoencoder']:.2f} dB" if "val_psnr_autoencoder" in summary else ""
     print(f"spectral prior trained: {summary['step']} steps in {summary['elapsed_s']:.0f} s{extra} -> {args.out}")
     return 0

@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from hsicam.cameras import DOECamera
+from hsicam.cameras import build_camera
 from hsicam.cli import add_config_args
 from hsicam.config import dump_yaml, load_config
 from hsicam.errors import InputError
@@ -36,39 +36,18 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=cmd_simulate)
 
 
-def build_camera(args: argparse.Namespace, extra_overrides: tuple[str, ...] = ()) -> tuple[DOECamera, object]:
-    """Config (file + --set overrides) and the DOE camera it describes."""
+def camera_from_args(args: argparse.Namespace, extra_overrides: tuple[str, ...] = ()):
+    """(camera, config) of the command line's config file and --set overrides (any camera kind)."""
     cfg = load_config(args.config, [*args.overrides, *extra_overrides])
-    return DOECamera.from_config(cfg), cfg
-
-
-def write_psf_outputs(camera: DOECamera, out: Path) -> dict:
-    """psf.npy (C, K, K float32), psf.json (geometry, energy per band), psf.png (montage)."""
-    from hsicam.report.camera import plot_psf_montage
-
-    with torch.no_grad():
-        res = camera.psf_result()
-    psf = res.psf.float().cpu().numpy()
-    desc = camera.optics.describe()
-    info = {
-        "bands_nm": camera.bands.centers_nm.tolist(),
-        "fwhm_nm": camera.bands.fwhm_nm.tolist(),
-        "pixel_pitch_um": camera.optics.pixel_m * 1e6,
-        "kernel_px": camera.kernel_px,
-        "energy_in_kernel": res.energy.double().cpu().numpy().tolist(),
-        "lens": desc["lens"],
-        "doe": desc["doe"],
-        "aperture_radius_mm": desc["aperture_radius_mm"],
-        "sampling": desc["sampling"],
-    }
-    write_npy(out / "psf.npy", psf)
-    write_json(out / "psf.json", info)
-    plot_psf_montage(psf, camera.bands, out / "psf.png")
-    return info
+    return build_camera(cfg), cfg
 
 
 def cmd_psf(args: argparse.Namespace) -> int:
-    camera, cfg = build_camera(args)
+    from hsicam.report.camera import write_psf_outputs
+
+    camera, cfg = camera_from_args(args)
+    if camera.kind != "doe":
+        raise InputError(f"hsicam psf needs a DOE camera (camera.kind=doe), not camera.kind={camera.kind}")
     out = Path(args.out)
     info = write_psf_outputs(camera, out)
     with atomic_open(out / "config.yaml") as fh:
@@ -109,17 +88,17 @@ def load_scene(path: str | Path, bands: Bands) -> np.ndarray:
 
 
 def cmd_simulate(args: argparse.Namespace) -> int:
-    from hsicam.report.camera import plot_cfa, plot_doe_heights
+    from hsicam.report.camera import write_optics_figures
 
     if args.run:
-        from hsicam.engine.checkpoint import load_run
+        from hsicam.runs.folder import load_run
 
         if args.config:
             raise InputError("--run uses the run's config.yaml; drop --config")
         cfg, system = load_run(args.run, overrides=(*args.overrides, f"camera.boundary={args.boundary}"))
         camera = system.camera
     else:
-        camera, cfg = build_camera(args, (f"camera.boundary={args.boundary}",))
+        camera, cfg = camera_from_args(args, (f"camera.boundary={args.boundary}",))
     out = Path(args.out)
     scene = load_scene(args.scene, camera.bands)
     gen = torch.Generator().manual_seed(args.seed)
@@ -129,10 +108,8 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     png_scale = peak if peak > 1.0 else 1.0  # sensor.png holds sensor / png_scale
     write_npy(out / "sensor.npy", sensor.astype(np.float32))
     write_png16(out / "sensor.png", sensor / png_scale)
-    plot_cfa(camera.cfa.tile().detach().numpy(), camera.bands, out / "cfa.png")
-    optics = camera.optics
-    plot_doe_heights(optics.doe.heights().detach().numpy(), optics.amplitude[:: optics.pupil_oversample, :: optics.pupil_oversample].numpy(),
-                     optics.cell_m * 1e6, out / "doe.png")
+    if camera.kind == "doe":
+        write_optics_figures(camera, out)
     write_json(out / "simulate.json", {
         "scene": str(args.scene),
         "scene_shape": list(scene.shape),

@@ -12,12 +12,12 @@ from hsicam.errors import InputError
 
 def register(sub: argparse._SubParsersAction) -> None:
     from hsicam.engine.experiments import EXPERIMENTS, SCALES
-    from hsicam.engine.methods import METHOD_NAMES
+    from hsicam.engine.methods import method_names
 
     p = sub.add_parser("evaluate", help="evaluate a camera + reconstruction method on a dataset")
     add_config_args(p)
     p.add_argument("--run", metavar="RUN", help="trained run folder (needed by learned methods)")
-    p.add_argument("--method", default="doe-rdn", choices=METHOD_NAMES)
+    p.add_argument("--method", default="doe-rdn", choices=method_names())
     p.add_argument("--data", metavar="DIR", help="folder of supported cube files (default: the synthetic validation split)")
     p.add_argument("--out", required=True, metavar="DIR")
     p.add_argument("--sigma-height-nm", type=float, default=None, help="test DOE height noise σ_p (nm)")

@@ -76,7 +76,7 @@ def cmd_export(args: argparse.Namespace) -> int:
 
 
 def cmd_tolerance(args: argparse.Namespace) -> int:
-    from hsicam.engine.checkpoint import load_run
+    from hsicam.runs.folder import load_run
     from hsicam.engine.tolerance import ToleranceSpec, run_tolerance, write_tolerance
 
     spec = ToleranceSpec(height_draws=args.draws, max_scenes=args.max_scenes, seed=args.seed,

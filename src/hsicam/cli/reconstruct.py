@@ -62,7 +62,7 @@ def write_cube_file(path: Path, cube: np.ndarray, bands, metadata: dict) -> None
 
 def corrections_from_args(args: argparse.Namespace, cfa_period: int | None) -> "object":
     """A :class:`~hsicam.engine.inference.RawCorrection` from the command line."""
-    from hsicam.engine.inference import RawCorrection, read_image_2d
+    from hsicam.data.images import RawCorrection, read_image_2d
 
     dark = read_image_2d(args.dark, "dark frame").data if args.dark else None
     flat = read_image_2d(args.flat, "flat field").data if args.flat else None
@@ -77,8 +77,9 @@ def corrections_from_args(args: argparse.Namespace, cfa_period: int | None) -> "
 
 
 def cmd_reconstruct(args: argparse.Namespace) -> int:
-    from hsicam.engine.checkpoint import load_run
-    from hsicam.engine.inference import read_capture, reconstruct_tiled
+    from hsicam.runs.folder import load_run
+    from hsicam.data.images import read_capture
+    from hsicam.engine.inference import reconstruct_tiled
 
     if args.tile < 16:
         raise InputError("--tile must be at least 16 px")
@@ -90,7 +91,8 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
     cfg, model = load_run(args.run, args.device)
     meta: dict = {"source": str(args.sensor), "run": str(args.run)}
     if args.psf_dir:
-        from hsicam.engine.calibration import import_for_camera, run_psf_fingerprint
+        from hsicam.data.measured_psf import import_for_camera
+        from hsicam.engine.calibration import run_psf_fingerprint
 
         measured = import_for_camera(args.psf_dir, model.camera, pitch_um=args.psf_pitch_um)
         tuned = run_psf_fingerprint(args.run)

@@ -21,8 +21,9 @@ from typing import Callable, Sequence
 import numpy as np
 import torch
 
+from hsicam.engine.inference import reconstruct_tiled
 from hsicam.engine.methods import Method
-from hsicam.engine.train import get_noise, set_noise
+from hsicam.models.demosaic import camera_demosaic
 from hsicam.io import atomic_open, write_json
 from hsicam.metrics import CONVENTIONS, all_metrics
 
@@ -61,18 +62,16 @@ def evaluate_method(method: Method, scenes, names: Sequence[str], noise: TestNoi
 
     ``progress``: called with one line per finished scene (e.g. ``print`` to stderr).
     """
-    from hsicam.engine.inference import receptive_radius, reconstruct_tiled
-
     cam = method.camera
-    saved = get_noise(cam)
-    sigma_h = saved[0] if noise.sigma_height_nm is None else noise.sigma_height_nm * 1e-9
-    sigma_s = saved[1] if noise.sensor_sigma is None else noise.sensor_sigma
-    set_noise(cam, sigma_h, sigma_s)
-    net = getattr(method.reconstruct, "__self__", None)
-    halo = None
-    if isinstance(net, torch.nn.Module):  # a network: tile large images with enough context
-        halo = getattr(net, "context_px", None)
-        halo = receptive_radius(net) if halo is None else halo
+    saved = cam.noise_levels()
+    levels = dict(saved)
+    if noise.sigma_height_nm is not None and "sigma_height_nm" in levels:
+        levels["sigma_height_nm"] = noise.sigma_height_nm
+    if noise.sensor_sigma is not None:
+        levels["sensor_sigma"] = noise.sensor_sigma
+    cam.set_noise(**levels)
+    # a network: tile large images with the context it declares
+    halo = method.model.context_px if method.model is not None else None
     out = []
     try:
         cam.eval()
@@ -101,14 +100,14 @@ def evaluate_method(method: Method, scenes, names: Sequence[str], noise: TestNoi
                 progress(f"[{i + 1}/{len(names)}] {name}: PSNR {mean['psnr']:.2f} dB, SSIM {mean['ssim']:.4f}, "
                          f"SAM {mean['sam']:.2f}° ({np.mean(times):.1f} s)")
     finally:
-        set_noise(cam, *saved)
+        cam.set_noise(**saved)
     return out
 
 
 def evaluate_scenes(model, scenes, names: Sequence[str], seed: int = 0, device: str | torch.device = "cpu",
                     keep_arrays: bool = True) -> list[SceneResult]:
     """The learned camera (a :class:`~hsicam.models.CameraSystem`) with its configured noise."""
-    method = Method("doe-rdn", model.camera, model.reconstruct, model.target)
+    method = Method("doe-rdn", model.camera, model.reconstruct, model.target, model=model)
     return evaluate_method(method, scenes, names, TestNoise(seeds=(seed,)), device, keep_arrays)
 
 
@@ -137,15 +136,19 @@ def grey_reference(model, train_scenes) -> Method:
 
 
 def demosaic_reference(model) -> Method:
-    """The demosaic a ``demosaic_input`` network starts from, x̃ (:func:`hsicam.models.system.demosaic`),
-    as a network-free method: what the network adds is its score minus this one."""
-    if not model.demosaic_input:
-        raise ValueError("the demosaic reference needs a model with demosaic_input")
+    """The per-band box demosaic of the sensor image through the model's optics
+    (:func:`hsicam.models.demosaic.camera_demosaic`), as a network-free method: what the network
+    adds is its score minus this one. Needs a camera with a per-band sensor code (the CFA)."""
+    try:
+        model.camera.sensor_code(1, 1)
+    except NotImplementedError:
+        raise ValueError(f"the demosaic reference needs a camera with a per-band sensor code, not "
+                         f"{type(model.camera).__name__}") from None
 
     def reconstruct(sensor: torch.Tensor) -> torch.Tensor:
-        return model.network_input(sensor)[:, 1:]
+        return camera_demosaic(model.camera, sensor)
 
-    return Method("CFA demosaic (the network's input)", model.camera, reconstruct, model.target, {})
+    return Method("CFA box demosaic (no network)", model.camera, reconstruct, model.target, {})
 
 
 def summarize(results: list[SceneResult], **facts) -> dict:

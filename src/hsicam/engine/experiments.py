@@ -19,9 +19,11 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from hsicam.config import load_config
+from hsicam.config import Config, load_config
 from hsicam.engine.evaluate import TestNoise, evaluate_method, summarize
-from hsicam.engine.methods import BASELINE_METHODS, build_method
+from hsicam.engine.methods import baseline_names, build_method
+from hsicam.engine.prior import ensure_choi_prior
+from hsicam.engine.train import train
 from hsicam.errors import InputError
 from hsicam.io import atomic_open, write_json
 
@@ -69,22 +71,26 @@ def is_finished(run: Path) -> bool:
 
 #: A scale preset's network on the DD-CASSI camera: the paper's RDN reading the measurement alone
 #: (the DOE-camera presets may switch on the CFA demosaic input, which CASSI has no CFA for).
-CASSI_RDN_OVERRIDES = ("camera.kind=dd_cassi", "model.demosaic_input=false")
+CASSI_RDN_OVERRIDES = ("camera.kind=dd_cassi", "model.rdn.demosaic_input=false")
 
 
-def ensure_trained(run: Path, preset: str, overrides: tuple[str, ...]) -> None:
-    """Train ``run`` (or resume it, or reuse it when finished)."""
-    from hsicam.engine.train import train
+def ensure_trained(run: Path, preset, overrides: tuple[str, ...] = ()) -> str:
+    """Train ``run`` (or resume it, or reuse it when finished); returns "reused", "resumed" or "trained".
 
+    ``preset``: a preset name or config path, or an already loaded :class:`~hsicam.config.Config`.
+    A resumed run reads its own config.yaml with ``overrides`` applied.
+    """
     if is_finished(run):
         log.info("%s: finished, reused", run)
-        return
+        return "reused"
     if (run / "config.yaml").is_file():
         log.info("%s: resuming", run)
-        train(load_config(run / "config.yaml"), run, resume=True)
-    else:
-        log.info("%s: training (%s scale)", run, preset)
-        train(load_config(preset, list(overrides)), run)
+        train(load_config(run / "config.yaml", list(overrides)), run, resume=True)
+        return "resumed"
+    cfg = preset if isinstance(preset, Config) else load_config(preset, list(overrides))
+    log.info("%s: training (%s)", run, preset if isinstance(preset, str) else "given config")
+    train(cfg, run)
+    return "trained"
 
 
 def validation_scenes(cfg):
@@ -105,7 +111,7 @@ def _row(name: str, summary: dict, **extra: Any) -> dict:
 
 
 def run_experiment(experiment: str, scale: str, out: str | Path, seeds: tuple[int, ...] = (0,),
-                   baselines: tuple[str, ...] = BASELINE_METHODS) -> dict:
+                   baselines: tuple[str, ...] | None = None) -> dict:
     """Run (or resume) one experiment; writes ``experiment.json`` and ``table.md`` into ``out``."""
     if scale not in SCALES:
         raise InputError(f"unknown scale {scale!r}; choose one of {', '.join(SCALES)}")
@@ -136,7 +142,7 @@ def run_experiment(experiment: str, scale: str, out: str | Path, seeds: tuple[in
             s = summarize(evaluate_method(method, scenes, names, TestNoise(seeds=seeds), keep_arrays=False))
             rows.append(_row(spec.name, s, run=str(run), scenes=s["scenes"]))
     if experiment == "compare":
-        rows += _baseline_rows(cfg, scale, out, scenes, names, seeds, baselines)
+        rows += _baseline_rows(cfg, scale, out, scenes, names, seeds, baseline_names() if baselines is None else baselines)
     result = {"experiment": experiment, "scale": scale, "seeds": list(seeds), "scenes": names,
               "conventions": summarize([])["conventions"], "rows": rows}
     if grids:
@@ -149,23 +155,16 @@ def run_experiment(experiment: str, scale: str, out: str | Path, seeds: tuple[in
 
 
 def _baseline_rows(cfg, scale, out, scenes, names, seeds, baselines) -> list[dict]:
-    """Rows for the CASSI baselines that exist in this installation (others are listed as missing)."""
+    """Rows for the CASSI baselines (learned ones are trained, or resumed, first)."""
     rows = []
     for name in baselines:
-        try:
-            run = None
-            if name == "dd-cassi-rdn":
-                run = out / "runs" / name
-                ensure_trained(run, scale, CASSI_RDN_OVERRIDES)
-            elif name == "dd-cassi-choi":
-                from hsicam.solvers.methods import ensure_choi_prior  # provided by the baselines module
-
-                run = ensure_choi_prior(out / "runs" / name, scale)
-            method = build_method(name, cfg, run)
-        except (ImportError, AttributeError) as exc:
-            log.warning("baseline %s is not available (%s); skipped", name, exc)
-            rows.append({"method": name, "missing": str(exc)})
-            continue
+        run = None
+        if name == "dd-cassi-rdn":
+            run = out / "runs" / name
+            ensure_trained(run, scale, CASSI_RDN_OVERRIDES)
+        elif name == "dd-cassi-choi":
+            run = ensure_choi_prior(out / "runs" / name, scale)
+        method = build_method(name, cfg, run)
         s = summarize(evaluate_method(method, scenes, names, TestNoise(seeds=seeds), keep_arrays=False))
         rows.append(_row(name, s, scenes=s["scenes"]))
     return rows

@@ -1,29 +1,44 @@
-"""Reconstruction methods, so evaluation treats the learned DOE camera and the baselines alike.
+"""Reconstruction methods, so evaluation treats the learned camera and the baselines alike.
 
 A method owns a camera (the forward model that makes its measurement) and a reconstruction:
 
     y = method.camera(scene)            # simulated measurement (noise included)
     x̂ = method.reconstruct(y)           # cube aligned with method.camera's sensor area
 
-Names: ``doe-rdn`` (our learned camera, from a run folder) and the CASSI baselines
-``dd-cassi-gaptv``, ``dd-cassi-desci``, ``dd-cassi-choi``, ``dd-cassi-rdn`` (built by
-:func:`hsicam.solvers.methods.build_baseline`).
+Methods are registered by name (:func:`register_method`); :func:`build_method` looks them up.
+
+    doe-rdn          our learned camera (any network kind), from a run folder
+    dd-cassi-gaptv   DD-CASSI + GAP-TV                 settings: baselines.gaptv
+    dd-cassi-desci   DD-CASSI + DeSCI                  settings: baselines.desci (preset fast|full)
+    dd-cassi-choi    DD-CASSI + Choi et al. ADMM       run: a spectral-prior folder (hsicam baseline train-prior);
+                                                       ADMM settings: baselines.choi of the evaluation config when
+                                                       set, else the folder's prior.yaml
+    dd-cassi-rdn     DD-CASSI + a learned network      run: `hsicam train --set camera.kind=dd_cassi`
+
+The DD-CASSI camera of the iterative methods is built from the evaluation config's band grid,
+``camera.cassi`` and ``camera.sensor`` (whatever ``camera.kind`` says); the learned methods use
+their run's own camera. CASSI has no blur, so the ground truth is the whole scene and every
+reconstruction has the scene's size.
 """
 
 from __future__ import annotations
 
+import dataclasses
+import functools
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable
 
 import torch
 
-from hsicam.cameras import Camera
+from hsicam.cameras import Camera, DDCASSICamera
+from hsicam.config import load_config
+from hsicam.engine.prior import load_prior
 from hsicam.errors import InputError
-
-DOE_METHOD = "doe-rdn"
-BASELINE_METHODS = ("dd-cassi-gaptv", "dd-cassi-desci", "dd-cassi-choi", "dd-cassi-rdn")
-METHOD_NAMES = (DOE_METHOD, *BASELINE_METHODS)
+from hsicam.runs.folder import load_run
+from hsicam.solvers.choi import admm_prior
+from hsicam.solvers.desci import desci, desci_settings
+from hsicam.solvers.gaptv import gap_tv
 
 
 @dataclass
@@ -31,12 +46,13 @@ class Method:
     """A named camera + reconstruction pair.
 
     Attributes:
-        name: method name (one of METHOD_NAMES).
+        name: method name (a registered one, or a descriptive name for references).
         camera: forward model; ``camera.boundary`` decides the scene/sensor geometry.
         reconstruct: measurement (B, 1, H', W') → cube (B, C, H, W) on ``camera.bands``,
             aligned with ``target(scene)``.
         target: scene (B, C, H0, W0) → the ground truth the reconstruction is compared with.
         info: facts for result files (run folder, iterations, ...).
+        model: the trained camera + network system of a learned method (None for the others).
     """
 
     name: str
@@ -44,20 +60,109 @@ class Method:
     reconstruct: Callable[[torch.Tensor], torch.Tensor]
     target: Callable[[torch.Tensor], torch.Tensor]
     info: dict[str, Any] = field(default_factory=dict)
+    model: Any = None
+
+
+Builder = Callable[[Any, "str | Path | None", "str | torch.device"], Method]
+METHODS: dict[str, Builder] = {}
+
+
+def register_method(name: str) -> Callable[[Builder], Builder]:
+    """Decorator: register ``builder(cfg, run, device) -> Method`` under ``name``."""
+
+    def deco(builder: Builder) -> Builder:
+        METHODS[name] = builder
+        return builder
+
+    return deco
 
 
 def build_method(name: str, cfg, run: str | Path | None = None, device: str | torch.device = "cpu") -> Method:
-    """Method ``name``. ``cfg`` is the evaluation config (band grid, camera noise, data);
+    """Method ``name``. ``cfg`` is the evaluation config (band grid, camera noise, data, baselines);
     ``run`` is a trained run folder for learned methods."""
-    if name == DOE_METHOD:
-        from hsicam.engine.checkpoint import load_run
+    if name not in METHODS:
+        raise InputError(f"unknown method {name!r}; choose one of {', '.join(method_names())}")
+    return METHODS[name](cfg, run, device)
 
-        if run is None:
-            raise InputError("method doe-rdn needs --run RUN (a trained camera)")
-        run_cfg, model = load_run(run, device)
-        return Method(name, model.camera, model.reconstruct, model.target, {"run": str(run)})
-    if name in BASELINE_METHODS:
-        from hsicam.solvers.methods import build_baseline
 
-        return build_baseline(name, cfg, run, device)
-    raise InputError(f"unknown method {name!r}; choose one of {', '.join(METHOD_NAMES)}")
+def method_names() -> tuple[str, ...]:
+    """The registered method names (ours first, then the baselines)."""
+    return tuple(METHODS)
+
+
+def baseline_names() -> tuple[str, ...]:
+    """The CASSI baselines of Table 1."""
+    return tuple(n for n in METHODS if n.startswith("dd-cassi-"))
+
+
+def learned_method(name: str, model, run: str | Path, **info: Any) -> Method:
+    """A :class:`Method` of a trained camera + network system."""
+    return Method(name, model.camera, model.reconstruct, model.target, {"run": str(run), **info}, model)
+
+
+@register_method("doe-rdn")
+def _doe_method(cfg, run, device) -> Method:
+    if run is None:
+        raise InputError("method doe-rdn needs --run RUN (a trained camera)")
+    _, model = load_run(run, device)
+    return learned_method("doe-rdn", model, run)
+
+
+def dd_cassi_camera(cfg, device: torch.device | str = "cpu") -> DDCASSICamera:
+    """The DD-CASSI camera of a config's bands, ``camera.cassi`` and ``camera.sensor``."""
+    return DDCASSICamera.from_config(dataclasses.replace(cfg, camera=dataclasses.replace(cfg.camera, kind="dd_cassi"))).to(device)
+
+
+def _identity(scene: torch.Tensor) -> torch.Tensor:
+    return scene
+
+
+def _camera_info(cam) -> dict:
+    return {"camera": cam.kind, "convention": cam.convention, "shifts_px": list(cam.shifts),
+            "aperture": cam.aperture.source or f"random seed {cam.aperture.seed}, density {cam.aperture.density}"}
+
+
+@register_method("dd-cassi-gaptv")
+def _gaptv_method(cfg, run, device) -> Method:
+    s = cfg.baselines.gaptv
+    cam = dd_cassi_camera(cfg, device)
+    rec = functools.partial(gap_tv, cam, iterations=s.iterations, tv_weight=s.tv_weight,
+                            tv_iterations=s.tv_iterations, accelerate=s.accelerate)
+    return Method("dd-cassi-gaptv", cam, rec, _identity, {"solver": "gap-tv", **dataclasses.asdict(s), **_camera_info(cam)})
+
+
+@register_method("dd-cassi-desci")
+def _desci_method(cfg, run, device) -> Method:
+    s = cfg.baselines.desci
+    cam = dd_cassi_camera(cfg, device)
+    ds = desci_settings(s.preset, **s.overrides())
+    rec = functools.partial(desci, cam, settings=ds)
+    return Method("dd-cassi-desci", cam, rec, _identity,
+                  {"solver": "desci", "preset": s.preset, **dataclasses.asdict(ds), **_camera_info(cam)})
+
+
+@register_method("dd-cassi-choi")
+def _choi_method(cfg, run, device) -> Method:
+    if run is None:
+        raise InputError("method dd-cassi-choi needs --run PRIOR (a spectral prior from `hsicam baseline train-prior`)")
+    cam = dd_cassi_camera(cfg, device)
+    prior, trained = load_prior(run, cam.bands, device)
+    admm = cfg.baselines.choi if cfg.baselines.choi is not None else trained
+    admm = dataclasses.replace(admm, features=trained.features, latent=trained.latent)
+    rec = functools.partial(admm_prior, cam, prior=prior, settings=admm)
+    return Method("dd-cassi-choi", cam, rec, _identity, {"solver": "choi-admm", "run": str(run), **dataclasses.asdict(admm),
+                                                         **_camera_info(cam)})
+
+
+@register_method("dd-cassi-rdn")
+def _learned_cassi(cfg, run, device) -> Method:
+    if run is None:
+        raise InputError("method dd-cassi-rdn needs --run RUN (trained with `hsicam train --set camera.kind=dd_cassi`)")
+    cfg_path = Path(run) / "config.yaml"
+    if cfg_path.is_file():
+        kind = load_config(cfg_path).camera.kind
+        if kind != "dd_cassi":
+            raise InputError(f"{run}: method dd-cassi-rdn needs a run trained with camera.kind=dd_cassi, "
+                             f"this one has camera.kind={kind}")
+    _, model = load_run(run, device)
+    return learned_method("dd-cassi-rdn", model, run, **_camera_info(model.camera))

@@ -189,7 +189,7 @@ def evaluate_psf(model, psf: torch.Tensor, scenes, names: Sequence[str], seed: i
     from hsicam.models import CameraSystem
 
     cam = FixedPSFCamera.from_camera(model.camera, psf)
-    system = CameraSystem(cam, model.net, model.demosaic_input).eval()
+    system = model.with_camera(cam).eval()
     device = next(model.net.parameters()).device
     results = evaluate_scenes(system, scenes, list(names), seed=seed, device=device, keep_arrays=False)
     return {k: float(np.mean([r.metrics[k] for r in results])) for k in ("psnr", "ssim", "sam")}

@@ -77,7 +77,7 @@ def export_optics(run_dir: str | Path, out_dir: str | Path, levels: int | None =
                   tolerance: str | Path | None = None) -> dict[str, Any]:
     """Export the optics of a trained run into ``out_dir``; returns the ``spec.json`` content."""
     from hsicam.cameras import DOECamera
-    from hsicam.engine.checkpoint import load_run
+    from hsicam.runs.folder import load_run
     from hsicam.export.cfa import export_cfa
     from hsicam.export.doe import export_doe
     from hsicam.io import write_json

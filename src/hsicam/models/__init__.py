@@ -1,6 +1,13 @@
-"""Reconstruction networks and the end-to-end camera + network system."""
+"""Reconstruction networks, their registry, and the end-to-end camera + network system.
 
-from hsicam.models.rdn import RDN, ResidualDenseBlock
+Network kinds register themselves (:mod:`hsicam.models.registry`); importing this package loads
+the shipped ones (one import line per network module below).
+"""
+
+from hsicam.models import rdn  # noqa: F401  (registers "rdn")
+from hsicam.models.rdn import RDN, RDNReconstructor, ResidualDenseBlock
+from hsicam.models.registry import build_network, check_network_kind, network_kinds, register_network
 from hsicam.models.system import CameraSystem
 
-__all__ = ["RDN", "CameraSystem", "ResidualDenseBlock"]
+__all__ = ["RDN", "CameraSystem", "RDNReconstructor", "ResidualDenseBlock", "build_network", "check_network_kind",
+           "network_kinds", "register_network"]

@@ -23,6 +23,11 @@ from __future__ import annotations
 import torch
 from torch import nn
 
+from hsicam.errors import ConfigError
+from hsicam.models.context import conv_receptive_radius
+from hsicam.models.demosaic import camera_demosaic, demosaic_window
+from hsicam.models.registry import register_network
+
 
 class ResidualDenseBlock(nn.Module):
     """``layers`` densely connected 3×3 conv + ReLU layers, 1×1 local fusion, local residual."""
@@ -83,3 +88,53 @@ class RDN(nn.Module):
             outs.append(f)
         f = self.global_fusion(torch.cat(outs, dim=1)) + f_1
         return self.output(f) + t
+
+
+class RDNReconstructor(RDN):
+    """The RDN as a camera network (``model.kind: rdn``): reads the sensor image g, or with
+    ``demosaic_input`` (beyond the paper) ``[g, x̃_1, …, x̃_C]`` where x̃ is the per-band demosaic
+    of g over one CFA period (:mod:`hsicam.models.demosaic`); its tentative reconstruction then
+    starts as x̃.
+
+    Args:
+        bands: C.
+        demosaic_input: also read the demosaic (cameras with a per-band sensor code only).
+        window: odd demosaic box width (px), the camera's CFA period.
+        blocks, features, growth, layers_per_block: D, G0, G, C of the RDN.
+    """
+
+    def __init__(self, bands: int, demosaic_input: bool = False, window: int = 1, blocks: int = 8, features: int = 64,
+                 growth: int = 32, layers_per_block: int = 4) -> None:
+        super().__init__(bands, 1 + bands if demosaic_input else 1, blocks, features, growth, layers_per_block)
+        self.demosaic_input, self.window = bool(demosaic_input), int(window)
+        if self.demosaic_input:
+            self.start_from_input(list(range(1, 1 + bands)))
+
+    @property
+    def context_px(self) -> int:
+        """Receptive radius of the convolutions plus half the demosaic box (px per side)."""
+        return conv_receptive_radius(self) + (self.window // 2 if self.demosaic_input else 0)
+
+    def network_input(self, sensor: torch.Tensor, camera, origin: tuple[int, int] = (0, 0)) -> torch.Tensor:
+        """(B, 1, H, W) sensor → what the RDN reads: itself, or [g, x̃] (B, 1 + C, H, W)."""
+        if not self.demosaic_input:
+            return sensor
+        return torch.cat([sensor, camera_demosaic(camera, sensor, origin)], dim=1)
+
+    def forward(self, sensor: torch.Tensor, camera=None, origin: tuple[int, int] = (0, 0)) -> torch.Tensor:  # type: ignore[override]
+        """Sensor (B, 1, H, W) → cube (B, C, H, W); ``camera`` is needed with ``demosaic_input``."""
+        return super().forward(self.network_input(sensor, camera, origin))
+
+
+@register_network("rdn")
+def build_rdn(cfg, camera) -> RDNReconstructor:
+    """The RDN of ``cfg.model.rdn`` for ``camera``."""
+    m = cfg.model.rdn
+    if m.demosaic_input:
+        try:
+            camera.sensor_code(1, 1)
+        except NotImplementedError as exc:
+            raise ConfigError(f"model.rdn.demosaic_input needs a camera with a per-band sensor code (the DOE camera's "
+                              f"CFA): {exc}; set model.rdn.demosaic_input=false") from None
+    return RDNReconstructor(len(camera.bands), m.demosaic_input, demosaic_window(camera), m.blocks, m.features,
+                            m.growth, m.layers_per_block)

@@ -10,8 +10,9 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
+import torch  # noqa: E402
 
-from hsicam.io import save_figure  # noqa: E402
+from hsicam.io import save_figure, write_json, write_npy  # noqa: E402
 from hsicam.spectral import Bands  # noqa: E402
 
 
@@ -90,3 +91,37 @@ def plot_doe_heights(height_m: np.ndarray, aperture: np.ndarray, cell_um: float,
     ax.set_title(f"DOE height map ({n}×{n} cells of {cell_um:g} µm)", fontsize=9)
     fig.colorbar(im, ax=ax, label="height (nm)")
     save_figure(fig, path)
+
+
+def write_psf_outputs(camera, out: Path) -> dict:
+    """psf.npy (C, K, K float32), psf.json (geometry, energy per band), psf.png (montage)."""
+    with torch.no_grad():
+        res = camera.psf_result()
+    psf = res.psf.float().cpu().numpy()
+    desc = camera.optics.describe()
+    info = {
+        "bands_nm": camera.bands.centers_nm.tolist(),
+        "fwhm_nm": camera.bands.fwhm_nm.tolist(),
+        "pixel_pitch_um": camera.optics.pixel_m * 1e6,
+        "kernel_px": camera.kernel_px,
+        "energy_in_kernel": res.energy.double().cpu().numpy().tolist(),
+        "lens": desc["lens"],
+        "doe": desc["doe"],
+        "aperture_radius_mm": desc["aperture_radius_mm"],
+        "sampling": desc["sampling"],
+    }
+    write_npy(out / "psf.npy", psf)
+    write_json(out / "psf.json", info)
+    plot_psf_montage(psf, camera.bands, out / "psf.png")
+    return info
+
+
+def write_optics_figures(camera, out: Path) -> list[str]:
+    """cfa.png (the CFA tile) and doe.png (height map and aperture) of a DOE camera; the names written."""
+    with torch.no_grad():
+        plot_cfa(camera.cfa.tile().detach().cpu().numpy(), camera.bands, Path(out) / "cfa.png")
+        optics = camera.optics
+        q = optics.pupil_oversample
+        plot_doe_heights(optics.doe.heights().detach().cpu().numpy(), optics.amplitude[::q, ::q].cpu().numpy(),
+                         optics.cell_m * 1e6, Path(out) / "doe.png")
+    return ["cfa.png", "doe.png"]

@@ -82,7 +82,7 @@ def _conventions(conv: dict) -> str:
 
 
 def _camera_section(run: Path, out: Path, prefix: str = "") -> str:
-    from hsicam.engine.checkpoint import load_run
+    from hsicam.runs.folder import load_run
     from hsicam.report.camera import plot_cfa, plot_doe_heights, plot_psf_montage
 
     try:

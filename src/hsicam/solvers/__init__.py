@@ -2,38 +2,18 @@
 
 - :func:`gap_tv` (GAP-TV, accelerated or plain), :mod:`hsicam.solvers.gaptv`
 - :func:`desci` (GAP + WNNM on block-matched groups), :mod:`hsicam.solvers.desci`
-- :func:`admm_prior` with a :class:`SpectralAutoencoder` (Choi et al. 2017), :mod:`hsicam.solvers.choi`
-- :func:`build_baseline`: the ``dd-cassi-*`` methods for evaluation, :mod:`hsicam.solvers.methods`
+- :func:`admm_prior` with a learned prior such as :class:`~hsicam.models.priors.SpectralAutoencoder`
+  (Choi et al. 2017), :mod:`hsicam.solvers.choi`
 
-Solvers see a camera only through ``camera.A`` / ``camera.A_adjoint`` and need ΦΦᵀ diagonal
-(true for every CASSI camera here). Names are imported lazily so that :mod:`hsicam.solvers.config`
-stays importable from :mod:`hsicam.config`.
+Solvers are pure algorithms over a camera: they see it only through ``camera.A`` /
+``camera.A_adjoint`` and ``camera.gram_diagonal`` (ΦΦᵀ diagonal: every CASSI camera). The
+evaluation methods built on them (``dd-cassi-*``) live in :mod:`hsicam.engine.methods`.
 """
 
-from __future__ import annotations
+from hsicam.solvers.choi import admm_prior
+from hsicam.solvers.common import tv_denoise
+from hsicam.solvers.desci import DeSCISettings, desci, desci_settings, wnnm_denoise
+from hsicam.solvers.gaptv import SolverInfo, gap_tv
 
-import importlib
-
-_EXPORTS = {
-    "gap_tv": "hsicam.solvers.gaptv",
-    "SolverInfo": "hsicam.solvers.gaptv",
-    "desci": "hsicam.solvers.desci",
-    "desci_settings": "hsicam.solvers.desci",
-    "DeSCISettings": "hsicam.solvers.desci",
-    "wnnm_denoise": "hsicam.solvers.desci",
-    "admm_prior": "hsicam.solvers.choi",
-    "SpectralAutoencoder": "hsicam.solvers.choi",
-    "train_prior": "hsicam.solvers.choi",
-    "load_prior": "hsicam.solvers.choi",
-    "tv_denoise": "hsicam.solvers.common",
-    "build_baseline": "hsicam.solvers.methods",
-    "BaselinesConfig": "hsicam.solvers.config",
-}
-
-__all__ = sorted(_EXPORTS)
-
-
-def __getattr__(name: str):
-    if name in _EXPORTS:
-        return getattr(importlib.import_module(_EXPORTS[name]), name)
-    raise AttributeError(f"module 'hsicam.solvers' has no attribute {name!r}")
+__all__ = ["DeSCISettings", "SolverInfo", "admm_prior", "desci", "desci_settings", "gap_tv", "tv_denoise",
+           "wnnm_denoise"]

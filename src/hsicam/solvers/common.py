@@ -1,21 +1,13 @@
 """Pieces shared by the iterative solvers: the GAP projection and total-variation denoising.
 
-Every solver sees the camera only through ``camera.A`` and ``camera.A_adjoint``. For CASSI
-cameras ΦΦᵀ is diagonal; its diagonal is ``A(Aᵀ 1)`` (the row sums of a diagonal matrix), which
-is what :func:`phi_diagonal` computes, so the solvers work for any CASSI geometry and convention.
+Every solver sees the camera only through ``camera.A`` and ``camera.A_adjoint`` and, for GAP-type
+steps, ``camera.gram_diagonal(y)`` (diag ΦΦᵀ, declared by cameras whose ΦΦᵀ is diagonal: CASSI).
 """
 
 from __future__ import annotations
 
 import torch
 import torch.nn.functional as F
-
-
-def phi_diagonal(camera, y: torch.Tensor, eps: float = 1e-12) -> torch.Tensor:
-    """diag(ΦΦᵀ) as an image shaped like ``y`` (B, 1, H, W); entries ≤ eps (uncoded pixels) become 1."""
-    ones = torch.ones_like(y[:1])
-    d = camera.A(camera.A_adjoint(ones))
-    return torch.where(d > eps, d, torch.ones_like(d))
 
 
 def gap_projection(camera, x: torch.Tensor, y: torch.Tensor, phi: torch.Tensor) -> torch.Tensor:

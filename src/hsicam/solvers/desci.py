@@ -35,8 +35,7 @@ import torch
 import torch.nn.functional as F
 
 from hsicam.errors import InputError
-from hsicam.solvers.common import phi_diagonal
-from hsicam.solvers.gaptv import SolverInfo, check_measurement, gap_tv, relative_residual
+from hsicam.solvers.gaptv import SolverInfo, gap_tv
 
 log = logging.getLogger(__name__)
 
@@ -218,7 +217,7 @@ def wnnm_denoise(x: torch.Tensor, sigma: float, settings: DeSCISettings, matches
 def desci(camera, y: torch.Tensor, settings: DeSCISettings | None = None, x0: torch.Tensor | None = None,
           return_info: bool = False):
     """DeSCI reconstruction of a measurement (B, 1, H, W') → cube (B, C, H, W) [, SolverInfo]."""
-    check_measurement(camera, y)
+    camera.check_measurement(y)
     s = settings or DeSCISettings()
     t0 = time.perf_counter()
     info = SolverInfo()
@@ -226,7 +225,7 @@ def desci(camera, y: torch.Tensor, settings: DeSCISettings | None = None, x0: to
         x = gap_tv(camera, y, s.init_iterations, s.init_tv_weight, accelerate=s.accelerate)
     else:
         x = x0.clone()
-    phi = phi_diagonal(camera, y)
+    phi = camera.gram_diagonal(y)
     y_acc = y.clone()
     matches: list[torch.Tensor | None] = [None] * x.shape[0]
     it = 0
@@ -247,7 +246,7 @@ def desci(camera, y: torch.Tensor, settings: DeSCISettings | None = None, x0: to
             x = torch.stack(out)
             it += 1
             if return_info:
-                info.residual.append(relative_residual(camera, x, y))
+                info.residual.append(camera.relative_residual(x, y))
     info.iterations = it
     info.runtime_s = time.perf_counter() - t0
     info.extra = {"groups": int(matches[0].shape[0]) if matches and matches[0] is not None else 0}

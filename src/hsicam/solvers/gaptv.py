@@ -20,7 +20,7 @@ from dataclasses import dataclass, field
 import torch
 
 from hsicam.errors import InputError
-from hsicam.solvers.common import phi_diagonal, tv_denoise
+from hsicam.solvers.common import tv_denoise
 
 log = logging.getLogger(__name__)
 
@@ -34,17 +34,6 @@ class SolverInfo:
     residual: list[float] = field(default_factory=list)  # ‖y − Φx‖ / ‖y‖ after each iteration
     objective: list[float] = field(default_factory=list)
     extra: dict = field(default_factory=dict)
-
-
-def check_measurement(camera, y: torch.Tensor) -> None:
-    if y.dim() != 4 or y.shape[1] != 1:
-        raise InputError(f"measurement must be (B, 1, H, W), got shape {tuple(y.shape)}")
-    if not torch.is_floating_point(y):
-        raise InputError(f"measurement must be a floating-point tensor, got {y.dtype}")
-
-
-def relative_residual(camera, x: torch.Tensor, y: torch.Tensor) -> float:
-    return float((camera.A(x) - y).norm() / y.norm().clamp_min(1e-30))
 
 
 @torch.no_grad()
@@ -67,12 +56,12 @@ def gap_tv(camera, y: torch.Tensor, iterations: int = 80, tv_weight: float | lis
     Returns:
         cube (B, C, H, W) [, SolverInfo].
     """
-    check_measurement(camera, y)
+    camera.check_measurement(y)
     if iterations < 0:
         raise InputError(f"iterations must be >= 0, got {iterations}")
     t0 = time.perf_counter()
     info = SolverInfo()
-    phi = phi_diagonal(camera, y)
+    phi = camera.gram_diagonal(y)
     x = camera.A_adjoint(y / phi) if x0 is None else x0.clone()
     weights = tv_weight if isinstance(tv_weight, (list, tuple)) else [tv_weight]
     y_acc = y.clone()
@@ -85,7 +74,7 @@ def gap_tv(camera, y: torch.Tensor, iterations: int = 80, tv_weight: float | lis
             x = x + camera.A_adjoint((y - yb) / phi)
         x = tv_denoise(x, weights[min(k, len(weights) - 1)], tv_iterations)
         if return_info:
-            info.residual.append(relative_residual(camera, x, y))
+            info.residual.append(camera.relative_residual(x, y))
     info.iterations = iterations
     info.runtime_s = time.perf_counter() - t0
     log.debug("GAP-TV: %d iterations in %.2f s", iterations, info.runtime_s)

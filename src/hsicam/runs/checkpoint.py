@@ -1,4 +1,4 @@
-"""Checkpoints in safetensors, written atomically; loading a run for inference.
+"""Checkpoints in safetensors, written atomically (loading a run for inference: :mod:`hsicam.runs.folder`).
 
 Run folder layout::
 
@@ -167,31 +167,3 @@ class CheckpointManager:
         if optimizer is not None:
             load_optimizer(d / "optimizer.safetensors", optimizer)
         return json.loads((d / "state.json").read_text())
-
-
-def load_run(run_dir: str | Path, device: torch.device | str = "cpu", overrides: tuple[str, ...] = ()):
-    """(config, CameraSystem) of a trained run, weights from ``RUN/model.safetensors``; a run
-    fine-tuned on measured PSFs (``RUN/measured_psf.safetensors``) images with those PSFs.
-
-    Raises :class:`InputError` for a missing folder, missing/corrupt weights or another band grid.
-    """
-    from hsicam.config import load_config
-    from hsicam.models import CameraSystem
-
-    run_dir = Path(run_dir)
-    if not run_dir.is_dir():
-        raise InputError(f"{run_dir}: no such run folder")
-    cfg_path = run_dir / "config.yaml"
-    if not cfg_path.is_file():
-        raise InputError(f"{run_dir}: not a run folder (config.yaml is missing)")
-    cfg = load_config(cfg_path, overrides)
-    weights = run_dir / "model.safetensors"
-    if not weights.is_file():
-        raise InputError(f"{run_dir}: the run has no trained weights (model.safetensors is missing)")
-    model = CameraSystem.from_config(cfg)
-    load_weights(weights, model, cfg.bands.to_bands())
-    from hsicam.engine.calibration import MEASURED_PSF_FILE, load_measured_psf, with_measured_psf
-
-    if (run_dir / MEASURED_PSF_FILE).is_file():  # a run fine-tuned on measured PSFs images with them
-        model = with_measured_psf(model, load_measured_psf(run_dir / MEASURED_PSF_FILE))
-    return cfg, model.to(device).eval()

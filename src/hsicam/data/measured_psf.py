@@ -1,0 +1,386 @@
+"""Measured PSFs from a folder of images, onto a camera's band grid, pixel pitch and kernel.
+
+Measured PSFs (``--psf-dir DIR``)
+---------------------------------
+``DIR`` holds one image per camera band (``.npy``, 8/16-bit PNG, integer or float TIFF), its
+wavelength in the file name (``psf_450nm.tif``, ``450.png``, ``band-450.5nm.npy``), or one stack
+``psf.npy`` (C, H, W) with ``bands_nm`` in ``psf.json`` (what ``hsicam psf`` writes). The pixel
+pitch of the images is ``pixel_pitch_um`` in ``DIR/psf.json`` (or the ``pitch_um`` argument).
+Optional ``psf.json`` keys: ``centre`` (below), ``axis_px`` ([row, col] of the optical axis in
+the images, pixel centres at integers; for ``axis``),
+``background`` (``none`` | ``border`` | a number in the file's units), ``normalize`` (``sum`` |
+``none``), ``wavelength_tolerance_nm`` (1 nm). A folder written by ``hsicam psf`` (its
+``psf.json`` has ``kernel_px``) is read with ``centre: axis`` at the kernel centre and
+``normalize: none`` (its values are already energy fractions) by default.
+
+Each band image is (1) background-subtracted and clipped at 0, (2) normalised so it sums to 1
+(``normalize: sum``: the image holds all the light of that band; the simulator's PSFs are also
+normalised to 1 over the whole FFT plane), (3) centred: the centre point becomes the centre of
+the kernel's centre pixel, and (4) resampled onto
+the camera's K×K pixel grid by **exact area integration**: each source pixel spreads its energy
+uniformly over its square and every camera pixel collects the overlap. Centring and resampling
+are one linear map (two 1-D overlap matrices, any pitch ratio, sub-pixel shifts included), so
+energy is preserved; light falling outside the K×K kernel is reported (``energy_in_kernel``),
+never renormalised away.
+
+Centring (``centre``): ``centroid`` (default) — the intensity centroid of the band-summed images,
+**one shift for all bands**, so the bands keep their relative positions (a DOE's PSF centroid is
+not its optical axis, and its band-to-band shifts are physics the network relies on); ``peak`` —
+the brightest pixel of the band sum; ``axis`` — the known axis position ``axis_px`` (exact);
+``centroid_per_band`` / ``peak_per_band`` — each band on its own centre (images of different
+sizes or frames). When the camera pitch is an integer multiple n of the measurement pitch
+(n = 1: PSFs measured with the camera's own sensor), the centre snaps to the nearest position
+whose output pixels cover whole measured pixels, since a fractional shift would only blur.
+
+The stack is a :class:`~hsicam.runs.measured_psf.MeasuredPSF`; a fine-tuned run stores it
+(:mod:`hsicam.runs.measured_psf`).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+import re
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from hsicam.data.images import MAX_IMAGE_PIXELS, read_image_2d
+from hsicam.errors import InputError
+from hsicam.runs.measured_psf import MeasuredPSF, psf_fingerprint
+from hsicam.spectral import Bands
+
+log = logging.getLogger(__name__)
+
+CENTRE_MODES = ("centroid", "peak", "axis", "centroid_per_band", "peak_per_band")
+_WAVE_NM = re.compile(r"(\d+(?:\.\d+)?)\s*nm", re.IGNORECASE)
+_NUMBER = re.compile(r"(?<![\d.])(\d{3,4}(?:\.\d+)?)(?![\d.])")
+_IMAGE_SUFFIXES = (".npy", ".png", ".tif", ".tiff")
+
+
+# ------------------------------------------------------------------------------------------------
+# Pure functions: area resampling, centring
+# ------------------------------------------------------------------------------------------------
+def overlap_matrix(n_out: int, pitch_out: float, first_edge_out: float, n_in: int, pitch_in: float) -> np.ndarray:
+    """Fractions of each input pixel's energy that land in each output pixel, (n_out, n_in).
+
+    Input pixel j covers [j·p_in, (j+1)·p_in); output pixel i covers
+    [e + i·p_out, e + (i+1)·p_out) with e = ``first_edge_out`` (same length unit). Each column
+    sums to the fraction of that input pixel inside the output window (1 when fully inside).
+    """
+    t_lo = first_edge_out + pitch_out * np.arange(n_out, dtype=np.float64)
+    s_lo = pitch_in * np.arange(n_in, dtype=np.float64)
+    lo = np.maximum(t_lo[:, None], s_lo[None, :])
+    hi = np.minimum(t_lo[:, None] + pitch_out, s_lo[None, :] + pitch_in)
+    return np.clip(hi - lo, 0.0, None) / pitch_in
+
+
+def resample_area(image: np.ndarray, pitch_in: float, pitch_out: float, centre_in: tuple[float, float],
+                  size_out: int) -> np.ndarray:
+    """Energy-preserving resampling of ``image`` (H, W) onto a ``size_out``² grid of pitch ``pitch_out``.
+
+    ``centre_in`` (row, col) is the point of the input (in input pixel units, pixel centres at
+    integers) that becomes the centre of the output's centre pixel (size_out odd). Returns
+    float64 (size_out, size_out); its sum equals the input's sum minus what falls outside.
+    """
+    if size_out < 1 or size_out % 2 == 0:
+        raise ValueError(f"size_out must be odd, got {size_out}")
+    h, w = image.shape
+    half = (size_out // 2 + 0.5) * pitch_out
+    # centre in length units: pixel j's centre is at (j + 0.5)·pitch_in
+    cy, cx = (centre_in[0] + 0.5) * pitch_in, (centre_in[1] + 0.5) * pitch_in
+    wy = overlap_matrix(size_out, pitch_out, cy - half, h, pitch_in)
+    wx = overlap_matrix(size_out, pitch_out, cx - half, w, pitch_in)
+    return wy @ np.asarray(image, dtype=np.float64) @ wx.T
+
+
+def centroid(image: np.ndarray) -> tuple[float, float]:
+    """Intensity centroid (row, col) in pixel units (pixel centres at integers)."""
+    img = np.asarray(image, dtype=np.float64)
+    total = img.sum()
+    if not total > 0:
+        raise InputError("PSF image has no positive signal (after background subtraction)")
+    rows = np.arange(img.shape[0], dtype=np.float64)
+    cols = np.arange(img.shape[1], dtype=np.float64)
+    return float(img.sum(axis=1) @ rows / total), float(img.sum(axis=0) @ cols / total)
+
+
+def subtract_background(image: np.ndarray, background: str | float) -> tuple[np.ndarray, float]:
+    """``image − b`` clipped at 0, with b = 0 (``none``), the median of the outer frame (``border``:
+    a frame of max(2, 5 %) of the smaller side), or the given number. Returns (image, b)."""
+    img = np.asarray(image, dtype=np.float64)
+    if background == "none":
+        b = 0.0
+    elif background == "border":
+        t = max(2, int(0.05 * min(img.shape)))
+        if 2 * t >= min(img.shape):
+            raise InputError(f"PSF image of {img.shape[0]}×{img.shape[1]} px is too small for border background estimation")
+        frame = np.concatenate([img[:t].ravel(), img[-t:].ravel(), img[t:-t, :t].ravel(), img[t:-t, -t:].ravel()])
+        b = float(np.median(frame))
+    else:
+        try:
+            b = float(background)
+        except (TypeError, ValueError):
+            raise InputError(f"PSF background must be 'none', 'border' or a number, got {background!r}") from None
+        if not math.isfinite(b):
+            raise InputError(f"PSF background must be finite, got {background!r}")
+    return np.clip(img - b, 0.0, None), b
+
+
+@dataclass
+class PSFImportOptions:
+    """How measured PSF images become camera PSFs (see module docstring)."""
+
+    pitch_um: float | None = None
+    centre: str = "centroid"
+    axis_px: tuple[float, float] | None = None
+    background: str | float = "none"
+    normalize: str = "sum"
+    wavelength_tolerance_nm: float = 1.0
+
+    def check(self) -> None:
+        if self.pitch_um is None:
+            raise InputError("the measured PSFs' pixel pitch is unknown: put pixel_pitch_um in psf.json or pass --psf-pitch-um")
+        if not (isinstance(self.pitch_um, (int, float)) and math.isfinite(self.pitch_um) and self.pitch_um > 0):
+            raise InputError(f"PSF pixel pitch must be a positive number of µm, got {self.pitch_um!r}")
+        if self.centre not in CENTRE_MODES:
+            raise InputError(f"PSF centre must be one of {', '.join(CENTRE_MODES)}, got {self.centre!r}")
+        if self.centre == "axis" and self.axis_px is None:
+            raise InputError("PSF centre 'axis' needs axis_px [row, col] in psf.json")
+        if self.normalize not in ("sum", "none"):
+            raise InputError(f"PSF normalize must be 'sum' or 'none', got {self.normalize!r}")
+        if not self.wavelength_tolerance_nm > 0:
+            raise InputError("wavelength_tolerance_nm must be positive")
+
+
+def snap_centre(c: float, pitch_in: float, pitch_out: float) -> float:
+    """Move centre ``c`` (input pixel units) so the output pixels' edges fall on input pixel edges,
+    when the camera pitch is an integer multiple n of the input pitch (n = 1: the camera's own
+    pitch). A fractional shift would only blur such images; for other ratios ``c`` is returned."""
+    ratio = pitch_out / pitch_in
+    n = round(ratio)
+    if n < 1 or abs(ratio - n) > 1e-6 * ratio:
+        return c
+    off = (n - 1) / 2.0
+    return float(np.floor(c - off + 0.5) + off)
+
+
+def prepare_psf_image(image: np.ndarray, opts: PSFImportOptions) -> tuple[np.ndarray, float, float]:
+    """Background-subtracted (clipped at 0) and, with ``normalize: sum``, unit-sum image; returns
+    (image float64, background, total signal before normalising)."""
+    img, b = subtract_background(image, opts.background)
+    total = float(img.sum())
+    if not total > 0:
+        raise InputError("PSF image has no positive signal (after background subtraction)")
+    if opts.normalize == "sum":
+        img = img / total
+    return img, b, total
+
+
+def find_centre(img: np.ndarray, mode: str, axis_px: tuple[float, float] | None = None) -> tuple[float, float]:
+    """Centre (row, col), pixel centres at integers: intensity centroid, brightest pixel or the given axis."""
+    if mode in ("centroid", "centroid_per_band"):
+        return centroid(img)
+    if mode in ("peak", "peak_per_band"):
+        r, q = np.unravel_index(int(np.argmax(img)), img.shape)
+        return float(r), float(q)
+    if axis_px is None:
+        raise InputError("PSF centre 'axis' needs axis_px [row, col]")
+    return float(axis_px[0]), float(axis_px[1])
+
+
+def import_psf_image(image: np.ndarray, pitch_m: float, camera_pixel_m: float, kernel_px: int,
+                     opts: PSFImportOptions, centre: tuple[float, float] | None = None) -> tuple[np.ndarray, dict[str, Any]]:
+    """One measured PSF image (H, W) → camera PSF (K, K) float64 and a report (see module docstring).
+
+    ``centre`` (row, col; e.g. a centre shared by all bands) overrides ``opts.centre``.
+    """
+    img, b, _ = prepare_psf_image(image, opts)
+    c = centre if centre is not None else find_centre(img, opts.centre, opts.axis_px)
+    c = (snap_centre(c[0], pitch_m, camera_pixel_m), snap_centre(c[1], pitch_m, camera_pixel_m))
+    psf = resample_area(img, pitch_m, camera_pixel_m, c, kernel_px)
+    energy_in = float(img.sum())
+    report = {
+        "source_shape": [int(s) for s in image.shape],
+        "background": b,
+        "centre_px": [c[0], c[1]],
+        "centre_offset_px": [c[0] - (image.shape[0] - 1) / 2, c[1] - (image.shape[1] - 1) / 2],
+        "energy_in_kernel": float(psf.sum() / energy_in) if energy_in > 0 else 0.0,  # of the image's light
+        "kernel_sum": float(psf.sum()),  # the PSF's total (1 for all the light with normalize: sum)
+    }
+    return psf, report
+
+
+# ------------------------------------------------------------------------------------------------
+# A PSF folder → the camera's (C, K, K) stack
+# ------------------------------------------------------------------------------------------------
+def wavelength_from_name(name: str) -> float | None:
+    """Wavelength (nm) in a file stem: ``…450nm…`` / ``…450.5 nm…``, else a lone 3–4 digit number."""
+    m = _WAVE_NM.findall(name)
+    if len(m) == 1:
+        return float(m[0])
+    if len(m) > 1:
+        return None
+    nums = _NUMBER.findall(name)
+    return float(nums[0]) if len(nums) == 1 else None
+
+
+def _read_manifest(d: Path) -> dict[str, Any]:
+    p = d / "psf.json"
+    if not p.is_file():
+        return {}
+    try:
+        meta = json.loads(p.read_text(encoding="utf-8"))
+    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise InputError(f"{p}: not valid JSON ({str(exc).splitlines()[0]})") from None
+    if not isinstance(meta, dict):
+        raise InputError(f"{p}: must be a JSON object")
+    return meta
+
+
+def options_from_manifest(meta: dict[str, Any], pitch_um: float | None = None, centre: str | None = None,
+                          background: str | float | None = None) -> PSFImportOptions:
+    """Import options: arguments first, then ``psf.json`` keys, then defaults."""
+    axis = meta.get("axis_px")
+    if axis is None and centre is None and "centre" not in meta and isinstance(meta.get("kernel_px"), int):
+        # written by `hsicam psf`: simulated kernels with the optical axis on the centre pixel
+        k = meta["kernel_px"]
+        axis, centre = [(k - 1) / 2, (k - 1) / 2], "axis"
+        meta = {"normalize": "none", **meta}  # already energy fractions of the whole FFT plane
+    if axis is not None:
+        if not (isinstance(axis, list) and len(axis) == 2 and all(isinstance(v, (int, float)) for v in axis)):
+            raise InputError(f"psf.json: axis_px must be [row, col], got {axis!r}")
+        axis = (float(axis[0]), float(axis[1]))
+    tol = meta.get("wavelength_tolerance_nm", 1.0)
+    if not isinstance(tol, (int, float)):
+        raise InputError("psf.json: wavelength_tolerance_nm must be a number")
+    opts = PSFImportOptions(
+        pitch_um=pitch_um if pitch_um is not None else meta.get("pixel_pitch_um"),
+        centre=centre or meta.get("centre", "centroid"),
+        axis_px=axis,
+        background=background if background is not None else meta.get("background", "none"),
+        normalize=meta.get("normalize", "sum"),
+        wavelength_tolerance_nm=float(tol),
+    )
+    opts.check()
+    return opts
+
+
+def _list_band_images(d: Path, meta: dict[str, Any]) -> list[tuple[float, Path | None, np.ndarray | None]]:
+    """(wavelength nm, file, preloaded image or None) for every PSF in the folder."""
+    stack = d / "psf.npy"
+    if stack.is_file() and "bands_nm" in meta:
+        bands = meta["bands_nm"]
+        if not (isinstance(bands, list) and all(isinstance(v, (int, float)) for v in bands)):
+            raise InputError(f"{d / 'psf.json'}: bands_nm must be a list of numbers")
+        try:
+            arr = np.load(stack, mmap_mode="r", allow_pickle=False)
+        except Exception as exc:  # noqa: BLE001
+            raise InputError(f"{stack}: not a readable .npy file ({str(exc).splitlines()[0] if str(exc) else type(exc).__name__})") from None
+        if arr.ndim != 3 or arr.shape[0] != len(bands):
+            raise InputError(f"{stack}: expected a (C, H, W) stack with C = {len(bands)} (bands_nm), got shape {arr.shape}")
+        if arr.dtype.kind not in "uif":
+            raise InputError(f"{stack}: unsupported data type {arr.dtype}")
+        if arr.shape[1] * arr.shape[2] > MAX_IMAGE_PIXELS or min(arr.shape) == 0:
+            raise InputError(f"{stack}: unusable PSF stack shape {arr.shape}")
+        data = np.array(arr, dtype=np.float64)
+        if not np.all(np.isfinite(data)):
+            raise InputError(f"{stack}: PSF stack contains NaN or Inf values")
+        return [(float(w), stack, data[i]) for i, w in enumerate(bands)]
+    items = []
+    for f in sorted(d.iterdir()):
+        if f.name.startswith(".") or f.suffix.lower() not in _IMAGE_SUFFIXES or not f.is_file():
+            continue
+        w = wavelength_from_name(f.stem)
+        if w is None and f.name == "psf.npy":
+            raise InputError(f"{f}: a PSF stack needs its wavelengths: bands_nm in {d / 'psf.json'}")
+        if w is None:
+            raise InputError(f"{f}: cannot tell the wavelength from the file name (use e.g. psf_450nm{f.suffix})")
+        items.append((w, f, None))
+    if not items:
+        raise InputError(f"{d}: no PSF images (*.npy, *.png, *.tif named with their wavelength, or psf.npy + psf.json)")
+    waves = [w for w, _, _ in items]
+    if len(set(waves)) != len(waves):
+        raise InputError(f"{d}: two PSF images name the same wavelength")
+    out = []
+    for w, f, _ in items:
+        out.append((w, f, read_image_2d(f, "PSF image").data.astype(np.float64)))
+    return out
+
+
+def import_psf_dir(psf_dir: str | Path, bands: Bands, camera_pixel_m: float, kernel_px: int,
+                   pitch_um: float | None = None, centre: str | None = None,
+                   background: str | float | None = None) -> MeasuredPSF:
+    """Measured PSFs of ``psf_dir`` on the camera's bands, pixel pitch and K×K kernel.
+
+    Every camera band needs a PSF whose wavelength is within ``wavelength_tolerance_nm``; extra
+    wavelengths are ignored. Raises :class:`InputError` for anything unusable.
+    """
+    d = Path(psf_dir)
+    if not d.is_dir():
+        raise InputError(f"{d}: no such PSF folder")
+    meta = _read_manifest(d)
+    opts = options_from_manifest(meta, pitch_um, centre, background)
+    items = _list_band_images(d, meta)
+    waves = np.array([w for w, _, _ in items])
+    chosen, missing = [], []
+    for lam in bands.centers_nm:
+        j = int(np.argmin(np.abs(waves - lam)))
+        if abs(waves[j] - lam) > opts.wavelength_tolerance_nm:
+            missing.append(f"{lam:g}")
+        chosen.append(j)
+    if missing:
+        raise InputError(f"{d}: no measured PSF for band(s) {', '.join(missing)} nm "
+                         f"(found {', '.join(f'{w:g}' for w in sorted(waves))} nm; tolerance {opts.wavelength_tolerance_nm:g} nm)")
+    common = None
+    if opts.centre in ("centroid", "peak"):  # one centre for all bands: keeps their relative positions
+        shapes = {items[j][2].shape for j in chosen}  # type: ignore[union-attr]
+        if len(shapes) != 1:
+            raise InputError(f"{d}: PSF images have different sizes {sorted(shapes)}; a common centre needs one frame "
+                             "(use centre: centroid_per_band or axis in psf.json)")
+        total = None
+        for j in chosen:
+            img, _, _ = prepare_psf_image(items[j][2], opts)  # type: ignore[arg-type]
+            img = img / img.sum()
+            total = img if total is None else total + img
+        common = find_centre(total, opts.centre)
+    stack, per_band = [], []
+    for lam, j in zip(bands.centers_nm, chosen):
+        w, f, img = items[j]
+        assert img is not None
+        try:
+            psf, rep = import_psf_image(img, opts.pitch_um * 1e-6, camera_pixel_m, kernel_px, opts, common)  # type: ignore[operator]
+        except InputError as exc:
+            raise InputError(f"{f} ({w:g} nm): {exc}") from None
+        stack.append(psf)
+        per_band.append({"band_nm": float(lam), "wavelength_nm": w, "file": f.name if f else None, **rep})
+    ratio = opts.pitch_um * 1e-6 / camera_pixel_m  # type: ignore[operator]
+    if ratio > 1.0 + 1e-9:
+        log.warning("measured PSFs are sampled at %.3g µm, coarser than the camera's %.3g µm pixels: "
+                    "they are spread uniformly over each measured pixel", opts.pitch_um, camera_pixel_m * 1e6)
+    psf = np.stack(stack).astype(np.float32)
+    report = {
+        "psf_dir": str(d),
+        "pixel_pitch_um": opts.pitch_um,
+        "camera_pixel_pitch_um": camera_pixel_m * 1e6,
+        "kernel_px": int(kernel_px),
+        "centre": opts.centre,
+        "axis_px": list(opts.axis_px) if opts.axis_px else None,
+        "background": opts.background,
+        "normalize": opts.normalize,
+        "resampling": "exact area integration (piecewise-constant source pixels), energy preserving",
+        "bands": per_band,
+        "energy_in_kernel": [b["energy_in_kernel"] for b in per_band],
+        "fingerprint": psf_fingerprint(psf),
+    }
+    return MeasuredPSF(psf, bands, report)
+
+
+def import_for_camera(psf_dir: str | Path, camera, **kwargs: Any) -> MeasuredPSF:
+    """:func:`import_psf_dir` on a :class:`~hsicam.cameras.DOECamera`'s bands, pixel pitch and kernel."""
+    if not hasattr(camera, "optics"):
+        raise InputError("measured PSFs need a DOE camera (camera.kind: doe)")
+    return import_psf_dir(psf_dir, camera.bands, camera.optics.pixel_m, camera.kernel_px, **kwargs)

@@ -1,0 +1,377 @@
+"""The one training loop: :func:`fit` trains any :class:`Task` (joint camera + network training,
+fine-tuning to measured PSFs, the Choi spectral prior).
+
+The loop owns everything that is not the task's business: device and DDP, the sampler, the
+learning-rate schedule, gradient clipping, the metrics log and progress, the validation cadence,
+checkpoints and resume. A task supplies its modules, parameter groups, data, the per-step noise,
+the loss of a batch and the validation metrics; it never writes a checkpoint.
+
+Determinism and resume: patches depend only on (seed, epoch, index), the random numbers of step n
+only on (seed, n, rank), and the learning rate only on the global step, so a run resumed from its
+last checkpoint continues exactly the same schedule (the :class:`LoopState`, including the
+running train loss of the current epoch, is part of every checkpoint).
+
+Distributed: launched by ``torchrun``, each process takes its share of every global batch
+(``batch_size`` must divide by the number of processes); DDP averages the gradients; validation,
+logging and checkpoints happen on rank 0 only.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import math
+import os
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Iterator
+
+import torch
+import torch.distributed as dist
+from torch import nn
+from torch.utils.data import Sampler
+
+from hsicam.config import TrainConfig
+from hsicam.data.pipeline import make_loader
+from hsicam.errors import InputError
+from hsicam.runs.checkpoint import CheckpointManager, save_weights
+from hsicam.runs.folder import MetricsLog, check_run_dir
+from hsicam.spectral import Bands
+
+log = logging.getLogger(__name__)
+
+
+# ------------------------------------------------------------------------------------------------
+# Loop state, schedule, random numbers
+# ------------------------------------------------------------------------------------------------
+@dataclass
+class LoopState:
+    """Where the loop stands; saved with every checkpoint (``state.json``) and restored on resume."""
+
+    epoch: int = 0  # epochs completed
+    step_in_epoch: int = 0  # steps completed in the current epoch
+    global_step: int = 0
+    best_psnr: float | None = None  # best validation score so far (the task's ``score``)
+    best_step: int | None = None
+    loss_sum: float = 0.0  # running train loss of the current epoch (so a mid-epoch resume continues it)
+    loss_n: int = 0
+
+    def to_dict(self) -> dict[str, Any]:
+        return dataclasses.asdict(self)
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> "LoopState":
+        names = {f.name for f in dataclasses.fields(cls)}
+        return cls(**{k: v for k, v in d.items() if k in names})
+
+
+class ShardedBatches(Sampler[int]):
+    """Indices of this rank's share of global batches ``start_batch..n_batches-1``.
+
+    Global batch b holds items b·B … b·B + B − 1; rank r takes the r-th contiguous slice.
+    """
+
+    def __init__(self, n_batches: int, global_batch: int, rank: int = 0, world: int = 1, start_batch: int = 0) -> None:
+        self.n_batches, self.global_batch, self.rank, self.world = n_batches, global_batch, rank, world
+        self.per_rank = global_batch // world
+        self.start_batch = start_batch
+
+    def __iter__(self) -> Iterator[int]:
+        for b in range(self.start_batch, self.n_batches):
+            base = b * self.global_batch + self.rank * self.per_rank
+            yield from range(base, base + self.per_rank)
+
+    def __len__(self) -> int:
+        return (self.n_batches - self.start_batch) * self.per_rank
+
+
+def lr_factor(t: TrainConfig, step: int, total_steps: int, steps_per_epoch: int) -> float:
+    """Learning-rate multiplier at global ``step`` (warm-up, then the schedule of ``t``)."""
+    if t.warmup_steps and step < t.warmup_steps:
+        return (step + 1) / t.warmup_steps
+    if t.lr_schedule == "cosine":
+        return 0.5 * (1.0 + math.cos(math.pi * min(step / max(total_steps, 1), 1.0)))
+    if t.lr_schedule == "step":
+        return t.lr_gamma ** ((step // steps_per_epoch) // t.lr_step_epochs)
+    return 1.0
+
+
+def step_generator(seed: int, step: int, rank: int, device: torch.device | str) -> torch.Generator:
+    """The random numbers of one training step: a generator seeded from (seed, step, rank)."""
+    g = torch.Generator(device=device)
+    g.manual_seed((seed * 1_000_003 + step * 7919 + rank * 104_729) % (2**63 - 1))
+    return g
+
+
+def draw_uniform(lo_hi: list[float] | tuple[float, float], g: torch.Generator) -> float:
+    """A value uniform in [lo, hi] from ``g`` (``lo`` when the range is empty)."""
+    lo, hi = lo_hi
+    if hi <= lo:
+        return lo
+    return lo + (hi - lo) * float(torch.rand((), generator=g, device=g.device))
+
+
+def resolve_device(spec: str, local_rank: int = 0) -> torch.device:
+    """``auto`` → this rank's CUDA device when there is one, else the CPU; else ``spec``."""
+    if spec == "auto":
+        return torch.device(f"cuda:{local_rank}") if torch.cuda.is_available() else torch.device("cpu")
+    dev = torch.device(spec)
+    if dev.type == "cuda" and not torch.cuda.is_available():
+        raise InputError("train.device=cuda but no CUDA device is available")
+    return dev
+
+
+def dist_env() -> tuple[int, int, int]:
+    """(rank, world size, local rank) from the ``torchrun`` environment (0, 1, 0 without it)."""
+    world = int(os.environ.get("WORLD_SIZE", "1"))
+    return int(os.environ.get("RANK", "0")), world, int(os.environ.get("LOCAL_RANK", "0"))
+
+
+# ------------------------------------------------------------------------------------------------
+# The task interface
+# ------------------------------------------------------------------------------------------------
+class Task:
+    """What :func:`fit` trains. Subclasses override the hooks they need.
+
+    Attributes:
+        bands: band grid stored with the weights.
+        weights_file: name of the root weights file in the run folder.
+        what: a word for log and error messages ("training", "fine-tuning", ...).
+    """
+
+    bands: Bands
+    weights_file: str = "model.safetensors"
+    what: str = "training"
+    batch_size_key: str = "train.batch_size"  # the config key of the batch size, for error messages
+
+    def module(self) -> nn.Module:
+        """Everything the checkpoints hold (network and optics)."""
+        raise NotImplementedError
+
+    def param_groups(self) -> list[dict[str, Any]]:
+        """Optimizer groups ``{"name", "params", "lr"}`` (base learning rates)."""
+        raise NotImplementedError
+
+    def write_run_files(self, run_dir: Path) -> None:
+        """Files written once into a new run folder (e.g. ``config.yaml``), before training."""
+
+    def on_device(self, device: torch.device) -> None:
+        """Called once the module is on ``device`` (memory format, ``torch.compile``, autocast)."""
+
+    def prepare_data(self) -> None:
+        """Generate or cache data (rank 0 runs it before the other ranks read it)."""
+
+    def datasets(self):
+        """(training dataset, validation dataset or None); items are batches' elements."""
+        raise NotImplementedError
+
+    def on_step_start(self, step: int, generator: torch.Generator) -> None:
+        """Per-step settings drawn from the step's generator (e.g. noise levels)."""
+
+    def training_step(self, trainable: nn.Module, batch: torch.Tensor, generator: torch.Generator) -> torch.Tensor:
+        """The loss of one batch (``trainable`` is the module, DDP-wrapped when distributed)."""
+        raise NotImplementedError
+
+    def validate(self, loader, device: torch.device) -> dict[str, float]:
+        """Validation metrics (higher ``psnr`` is better: it selects the best weights)."""
+        raise NotImplementedError
+
+    def weights_metadata(self) -> dict[str, str]:
+        """Extra safetensors metadata for the weights files."""
+        return {}
+
+    def on_fit_end(self, run_dir: Path, summary: dict[str, Any]) -> dict[str, Any]:
+        """Files written last (they mark the run finished); returns the summary to report."""
+        return summary
+
+
+@dataclass
+class FitOptions:
+    """What :func:`fit` needs beyond the task.
+
+    ``loop`` supplies epochs, batch size, learning-rate schedule, clipping, the logging, validation
+    and checkpoint cadence, seed and device. ``max_steps`` ends training early (the spectral prior
+    counts steps, not epochs); ``validate_at_start`` scores the starting weights (fine-tuning)."""
+
+    loop: TrainConfig
+    num_workers: int = 2
+    max_steps: int | None = None
+    validate_at_start: bool = False
+    progress: bool | None = None
+    stop_after_steps: int | None = None  # simulate an interruption (tests)
+
+
+# ------------------------------------------------------------------------------------------------
+# The loop
+# ------------------------------------------------------------------------------------------------
+def fit(task: Task, opts: FitOptions, run_dir: str | Path, resume: bool = False) -> dict[str, Any]:
+    """Train (or resume) ``task`` into ``run_dir``; returns the final summary (also the last line of
+    ``metrics.jsonl``), or ``{"stopped_at_step": n}`` when ``opts.stop_after_steps`` cut it short."""
+    t = opts.loop
+    run_dir = Path(run_dir)
+    rank, world, local_rank = dist_env()
+    distributed = world > 1
+    device = resolve_device(t.device, local_rank)
+    if distributed and not dist.is_initialized():
+        dist.init_process_group("nccl" if device.type == "cuda" else "gloo")
+    is_main = rank == 0
+    if t.batch_size % world:
+        raise InputError(f"train.batch_size={t.batch_size} must be divisible by the {world} processes")
+    if t.deterministic:
+        torch.use_deterministic_algorithms(True, warn_only=True)
+    if is_main:
+        check_run_dir(run_dir, resume)  # before any work; nothing is created until the data are known good
+    if distributed:  # generate/cache the dataset once, on rank 0, before the others read it
+        if is_main:
+            task.prepare_data()
+        dist.barrier()
+    train_ds, val_ds = task.datasets()
+    steps_per_epoch = len(train_ds) // t.batch_size
+    if steps_per_epoch < 1:
+        raise InputError(f"data.patches_per_epoch={len(train_ds)} is smaller than {task.batch_size_key}={t.batch_size}")
+    total_steps = steps_per_epoch * t.epochs
+    if opts.max_steps is not None:
+        total_steps = min(total_steps, opts.max_steps)
+
+    model = task.module().to(device)
+    optimizer = torch.optim.Adam(task.param_groups())
+    for g in optimizer.param_groups:
+        g["base_lr"] = g["lr"]
+    bands, meta = task.bands, task.weights_metadata()
+    ckpt = CheckpointManager(run_dir)
+    metrics = MetricsLog(run_dir / "metrics.jsonl", is_main)
+    state = LoopState()
+    if resume:
+        if ckpt.path("last"):
+            state = LoopState.from_dict(ckpt.load("last", model, optimizer, bands))
+        if is_main:
+            metrics.truncate_after(state.global_step, state.epoch)
+            log.info("resuming %s at epoch %d, step %d", run_dir, state.epoch, state.global_step)
+    elif is_main:
+        run_dir.mkdir(parents=True, exist_ok=True)
+        task.write_run_files(run_dir)
+    if distributed:
+        dist.barrier()
+    val_loader = make_loader(val_ds, t.batch_size, opts.num_workers, shuffle=False) if (val_ds is not None and is_main) else None
+
+    task.on_device(device)
+    trainable: nn.Module = model
+    if distributed:
+        trainable = torch.nn.parallel.DistributedDataParallel(model, device_ids=[device.index] if device.type == "cuda" else None)
+    writer = _tensorboard(run_dir) if (t.tensorboard and is_main) else None
+
+    def validate_now() -> dict[str, float]:
+        model.eval()
+        try:
+            with torch.no_grad():
+                return task.validate(val_loader, device)
+        finally:
+            model.train()
+
+    def log_validation(val: dict[str, float]) -> None:
+        metrics.write({"step": state.global_step, "epoch": state.epoch, **{f"val_{k}": v for k, v in val.items()}})
+        if writer:
+            for k, v in val.items():
+                writer.add_scalar(f"val/{k}", v, state.global_step)
+        log.info("epoch %d: val %s", state.epoch, ", ".join(f"{k} {v:.4g}" for k, v in val.items()))
+
+    summary: dict[str, Any] = {}
+    if opts.validate_at_start and not resume and is_main:
+        if val_loader is not None:
+            summary = validate_now()
+            log_validation(summary)
+            state.best_psnr, state.best_step = summary.get("psnr"), 0
+        save_weights(run_dir / task.weights_file, model, bands, meta)
+
+    use_bar = (sys.stderr.isatty() if opts.progress is None else opts.progress) and is_main
+    from tqdm.auto import tqdm
+
+    bar = tqdm(total=total_steps, initial=state.global_step, disable=not use_bar, unit="step", dynamic_ncols=True)
+    t_start, steps_done, last_val = time.perf_counter(), 0, None
+    model.train()
+    while state.epoch < t.epochs and state.global_step < total_steps:
+        train_ds.set_epoch(state.epoch)
+        sampler = ShardedBatches(steps_per_epoch, t.batch_size, rank, world, state.step_in_epoch)
+        loader = make_loader(train_ds, t.batch_size // world, opts.num_workers, shuffle=False, sampler=sampler)
+        for batch in loader:
+            step = state.global_step
+            g = step_generator(t.seed, step, rank, device)
+            task.on_step_start(step, g)
+            factor = lr_factor(t, step, total_steps, steps_per_epoch)
+            for group in optimizer.param_groups:
+                group["lr"] = group["base_lr"] * factor
+            loss = task.training_step(trainable, batch.to(device, non_blocking=True), g)
+            optimizer.zero_grad(set_to_none=True)
+            loss.backward()
+            if t.grad_clip is not None:
+                torch.nn.utils.clip_grad_norm_(model.parameters(), t.grad_clip)
+            optimizer.step()
+            loss_v = loss.item()
+            if not math.isfinite(loss_v):
+                raise InputError(f"{task.what} diverged at step {step} (loss {loss_v}); lower the learning rates")
+            state.loss_sum, state.loss_n = state.loss_sum + loss_v, state.loss_n + 1
+            state.global_step, state.step_in_epoch = step + 1, state.step_in_epoch + 1
+            steps_done += 1
+            bar.update(1)
+            bar.set_postfix(loss=f"{loss_v:.4f}", psnr="-" if last_val is None else f"{last_val:.2f}", epoch=state.epoch)
+            if is_main and state.global_step % t.log_every_steps == 0:
+                rec = {"step": state.global_step, "epoch": state.epoch, "train_loss": state.loss_sum / state.loss_n,
+                       "lr": optimizer.param_groups[0]["base_lr"] * factor, "elapsed_s": time.perf_counter() - t_start}
+                metrics.write(rec)
+                if writer:
+                    writer.add_scalar("train/loss", rec["train_loss"], rec["step"])
+                if not use_bar:
+                    eta = (time.perf_counter() - t_start) / steps_done * (total_steps - state.global_step)
+                    log.info("step %d/%d epoch %d loss %.4f eta %.0fs", rec["step"], total_steps, state.epoch,
+                             rec["train_loss"], eta)
+            if is_main and state.global_step % t.checkpoint_every_steps == 0:
+                ckpt.save(model, optimizer, state.to_dict(), bands)
+            if opts.stop_after_steps is not None and state.global_step >= opts.stop_after_steps:
+                if is_main:
+                    ckpt.save(model, optimizer, state.to_dict(), bands)
+                bar.close()
+                return {"stopped_at_step": state.global_step}
+            if state.global_step >= total_steps:
+                break
+        # end of an epoch (or of the step budget)
+        state.epoch, state.step_in_epoch, state.loss_sum, state.loss_n = state.epoch + 1, 0, 0.0, 0
+        last_epoch = state.epoch == t.epochs or state.global_step >= total_steps
+        tags = ["last"]
+        if is_main and val_loader is not None and (state.epoch % t.eval_every_epochs == 0 or last_epoch):
+            val = validate_now()
+            last_val = val.get("psnr")
+            log_validation(val)
+            if state.best_psnr is None or (last_val is not None and last_val > state.best_psnr):
+                state.best_psnr, state.best_step = last_val, state.global_step
+                tags.append("best")
+            summary = {**val}
+        if is_main:
+            ckpt.save(model, optimizer, state.to_dict(), bands, tuple(tags))
+            if "best" in tags or val_loader is None:
+                save_weights(run_dir / task.weights_file, model, bands, meta)
+        if distributed:
+            dist.barrier()
+    bar.close()
+    if is_main and not (run_dir / task.weights_file).exists():
+        save_weights(run_dir / task.weights_file, model, bands, meta)
+    elapsed = time.perf_counter() - t_start
+    final = {"step": state.global_step, "epoch": state.epoch, "final": True, "best_psnr": state.best_psnr,
+             **{f"val_{k}": v for k, v in summary.items()}, "elapsed_s": elapsed,
+             "patches_per_s": steps_done * t.batch_size / max(elapsed, 1e-9)}
+    if is_main:
+        final = task.on_fit_end(run_dir, final)
+        metrics.write(final)
+    if writer:
+        writer.close()
+    return final
+
+
+def _tensorboard(run_dir: Path):
+    try:
+        from torch.utils.tensorboard import SummaryWriter
+    except ImportError:
+        log.warning("train.tensorboard=true but tensorboard is not installed; continuing without it")
+        return None
+    return SummaryWriter(str(run_dir / "tensorboard"))

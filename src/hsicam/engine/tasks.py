@@ -1,0 +1,207 @@
+"""The training tasks :func:`hsicam.engine.loop.fit` runs: joint camera + network training
+(:class:`SystemTask`; fine-tuning to measured PSFs is the same task with the optics frozen) and
+the Choi et al. spectral prior (:class:`PriorTask`)."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from pathlib import Path
+from typing import Any
+
+import torch
+import torch.nn.functional as F
+import yaml
+
+from hsicam.config import ChoiConfig, Config, TrainConfig, dump_yaml
+from hsicam.data.pipeline import build_datasets, dataset_root
+from hsicam.engine.loop import Task, draw_uniform, step_generator
+from hsicam.errors import ConfigError
+from hsicam.io import atomic_open, write_json
+from hsicam.metrics import psnr_per_band, sam_degrees, ssim
+from hsicam.models import CameraSystem
+from hsicam.models.priors import SpectralAutoencoder
+
+# Learning rate of each camera parameter group, from the train section (units in the key names).
+CAMERA_GROUP_LR = {
+    "doe": lambda t: t.doe_lr_nm * 1e-9,  # Adam step on the height map, metres
+    "cfa": lambda t: t.cfa_lr,
+}
+
+
+def draw_noise(t: TrainConfig, generator: torch.Generator) -> dict[str, float]:
+    """The noise levels of one training step, drawn uniformly in the ``train`` ranges.
+
+    Both levels are always drawn (in this order), whatever the camera, so a step's random
+    numbers do not depend on the camera kind; each camera uses the levels it has.
+    """
+    return {"sigma_height_nm": draw_uniform(t.sigma_height_nm, generator),
+            "sensor_sigma": draw_uniform(t.sensor_sigma, generator)}
+
+
+def apply_noise(camera, levels: dict[str, float]) -> None:
+    """Set the levels of ``levels`` that ``camera`` has (others do not apply to it)."""
+    known = camera.noise_levels()
+    camera.set_noise(**{k: v for k, v in levels.items() if k in known})
+
+
+@torch.no_grad()
+def validate_system(model: CameraSystem, loader, device: torch.device, seed: int) -> dict[str, float]:
+    """Mean PSNR (per band, peak 1), SSIM and SAM (°) over the validation patches.
+
+    Reconstructions are clipped to [0, 1] before scoring; noise is the camera's current noise,
+    drawn from a fixed seed.
+    """
+    g = step_generator(seed, 0, 0, device)
+    sums = {"psnr": 0.0, "ssim": 0.0, "sam": 0.0}
+    n = 0
+    for scene in loader:
+        scene = scene.to(device)
+        recon, _ = model(scene, g)
+        recon, truth = recon.float().clamp(0, 1), model.target(scene)
+        sums["psnr"] += psnr_per_band(recon, truth).sum().item()
+        sums["ssim"] += ssim(recon, truth).sum().item()
+        sums["sam"] += sam_degrees(recon, truth).sum().item()
+        n += scene.shape[0]
+    return {k: v / max(n, 1) for k, v in sums.items()}
+
+
+class SystemTask(Task):
+    """Camera + network trained end to end: each step simulates sensor images of ground-truth
+    patches through the *current* optics, reconstructs them, loss L1 (paper eq. 10).
+
+    Optimizer groups: ``net`` (``train.lr``) and the camera's declared groups (DOE camera:
+    ``doe`` at ``train.doe_lr_nm``, ``cfa`` at ``train.cfa_lr``), minus ``train.freeze``.
+    Noise: ``train.sigma_height_nm`` / ``train.sensor_sigma`` ranges drawn per step; validation
+    uses the camera's configured noise.
+    """
+
+    def __init__(self, cfg: Config, model: CameraSystem, extra_freeze: tuple[str, ...] = ()) -> None:
+        self.cfg, self.model = cfg, model
+        self.bands = model.bands
+        self.eval_noise = model.camera.noise_levels()
+        self.freeze = set(cfg.train.freeze) | set(extra_freeze)
+        known = {"net", *model.camera.param_groups()}
+        unknown = sorted(set(cfg.train.freeze) - known - set(CAMERA_GROUP_LR))
+        if unknown:
+            raise ConfigError(f"train.freeze: unknown parameter group(s) {', '.join(unknown)}; "
+                              f"this camera has {', '.join(sorted(known))}")
+
+    def module(self) -> CameraSystem:
+        return self.model
+
+    def param_groups(self) -> list[dict[str, Any]]:
+        t = self.cfg.train
+        named = {"net": (list(self.model.net.parameters()), t.lr)}
+        for name, params in self.model.camera.param_groups().items():
+            if name not in CAMERA_GROUP_LR:
+                raise ConfigError(f"camera parameter group {name!r} has no learning rate in the train section")
+            named[name] = (params, CAMERA_GROUP_LR[name](t))
+        groups = []
+        for name, (params, lr) in named.items():
+            if name in self.freeze:
+                for p in params:
+                    p.requires_grad_(False)
+            else:
+                groups.append({"params": params, "lr": lr, "name": name})
+        return groups
+
+    def write_run_files(self, run_dir: Path) -> None:
+        with atomic_open(run_dir / "config.yaml") as fh:
+            fh.write(dump_yaml(self.cfg))
+
+    def on_device(self, device: torch.device) -> None:
+        t = self.cfg.train
+        if t.bf16:
+            self.model.autocast_dtype = torch.bfloat16
+        if t.channels_last:
+            self.model.net.to(memory_format=torch.channels_last)
+        if t.compile:
+            self.model.net.compile()  # in place: state-dict keys stay those of the plain module
+
+    def prepare_data(self) -> None:
+        dataset_root(self.cfg.data, self.bands)
+
+    def datasets(self):
+        return build_datasets(self.cfg.data, self.bands, self.model.camera.margin)
+
+    def on_step_start(self, step: int, generator: torch.Generator) -> None:
+        apply_noise(self.model.camera, draw_noise(self.cfg.train, generator))
+
+    def training_step(self, trainable, scene: torch.Tensor, generator: torch.Generator) -> torch.Tensor:
+        recon, _ = trainable(scene, generator)
+        return F.l1_loss(recon.float(), self.model.target(scene))
+
+    def validate(self, loader, device: torch.device) -> dict[str, float]:
+        self.model.camera.set_noise(**self.eval_noise)
+        return validate_system(self.model, loader, device, self.cfg.train.seed)
+
+    def on_fit_end(self, run_dir: Path, summary: dict[str, Any]) -> dict[str, Any]:
+        self.model.camera.set_noise(**self.eval_noise)
+        return summary
+
+
+class PriorTask(Task):
+    """The Choi et al. spectral prior: a denoising autoencoder on training-split patches of
+    ``cfg.data`` (bands ``cfg.bands``); inputs corrupted by Gaussian noise of σ uniform in
+    [0, ``train_noise``] per patch, loss MSE. Writes ``prior.safetensors`` and, last,
+    ``summary.json`` (the run is finished)."""
+
+    weights_file = "prior.safetensors"
+    what = "prior training"
+    batch_size_key = "baselines.choi.batch_size"
+
+    def __init__(self, cfg: Config, settings: ChoiConfig) -> None:
+        self.cfg, self.settings = cfg, settings
+        self.bands = cfg.bands.to_bands()
+        self.model = SpectralAutoencoder(len(self.bands), settings.features, settings.latent)
+
+    def loop_config(self) -> TrainConfig:
+        """The loop settings: ``train_steps`` steps of cosine-decayed Adam, validation at the end."""
+        s = self.settings
+        return TrainConfig(epochs=s.train_steps, batch_size=s.batch_size, lr=s.lr, lr_schedule="cosine",
+                           grad_clip=None, eval_every_epochs=s.train_steps, checkpoint_every_steps=500,
+                           log_every_steps=50, seed=s.seed, device=self.cfg.train.device)
+
+    def module(self) -> SpectralAutoencoder:
+        return self.model
+
+    def param_groups(self) -> list[dict[str, Any]]:
+        return [{"params": list(self.model.parameters()), "lr": self.settings.lr, "name": "prior"}]
+
+    def write_run_files(self, run_dir: Path) -> None:
+        with atomic_open(run_dir / "config.yaml") as fh:
+            fh.write(dump_yaml(self.cfg))
+        with atomic_open(run_dir / "prior.yaml") as fh:
+            fh.write(yaml.safe_dump(dataclasses.asdict(self.settings), sort_keys=False))
+
+    def prepare_data(self) -> None:
+        dataset_root(self.cfg.data, self.bands)
+
+    def datasets(self):
+        return build_datasets(self.cfg.data, self.bands, 0)
+
+    def training_step(self, trainable, clean: torch.Tensor, generator: torch.Generator) -> torch.Tensor:
+        b = clean.shape[0]
+        sig = torch.rand((b, 1, 1, 1), generator=generator, device=generator.device) * self.settings.train_noise
+        noise = torch.randn(clean.shape, generator=generator, device=generator.device)
+        noisy = clean + sig.to(clean.device) * noise.to(clean.device)
+        return F.mse_loss(trainable(noisy), clean)
+
+    def validate(self, loader, device: torch.device) -> dict[str, float]:
+        se, n = 0.0, 0
+        for clean in loader:
+            clean = clean.to(device)
+            se += float((self.model(clean) - clean).square().sum())
+            n += clean.numel()
+        return {"psnr": -10 * math.log10(max(se / max(n, 1), 1e-30))}
+
+    def weights_metadata(self) -> dict[str, str]:
+        return {"kind": "choi-spectral-prior"}
+
+    def on_fit_end(self, run_dir: Path, summary: dict[str, Any]) -> dict[str, Any]:
+        out = {k: v for k, v in summary.items() if not k.startswith("val_")}
+        if "val_psnr" in summary:
+            out["val_psnr_autoencoder"] = summary["val_psnr"]
+        write_json(run_dir / "summary.json", out)
+        return out

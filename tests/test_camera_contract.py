@@ -1,0 +1,221 @@
+"""The operator contract every camera keeps, run over the camera registry (plus the measured-PSF
+camera, which is built from a trained camera rather than a config).
+
+A camera registered with ``@register_camera`` is covered here without editing this file; its
+config overrides for a small instance go in ``SMALL`` (default: the tiny DOE optics of conftest).
+Each camera's physics references (closed forms) stay in its own test file.
+"""
+
+from __future__ import annotations
+
+import copy
+
+import pytest
+import torch
+
+from conftest import TINY_CAMERA_OVERRIDES
+from hsicam.cameras import FixedPSFCamera, build_camera, camera_kinds
+from hsicam.config import load_config
+from hsicam.errors import ConfigError, InputError
+
+# Per-kind test overrides (small instances) and variants; kinds not named use the defaults.
+SMALL: dict[str, list[tuple[str, ...]]] = {
+    "doe": [(), ("camera.boundary=same",)],
+    "dd_cassi": [("camera.cassi.convention=mean",), ("camera.cassi.convention=sum",)],
+    "sd_cassi": [("camera.cassi.convention=mean",), ("camera.cassi.convention=sum",)],
+}
+SCENE_HW = (12, 13)
+
+
+def _make_measured(overrides: tuple[str, ...]):
+    cam = build_camera(load_config(overrides=[*TINY_CAMERA_OVERRIDES, "camera.kind=doe", *overrides]))
+    g = torch.Generator().manual_seed(3)
+    psf = cam.psf().detach() * (0.5 + torch.rand(cam.psf().shape, generator=g))
+    return FixedPSFCamera.from_camera(cam, psf / psf.sum(dim=(-2, -1), keepdim=True))
+
+
+CASES = [(kind, ov) for kind in camera_kinds() for ov in SMALL.get(kind, [()])] + [("measured_psf", ())]
+
+
+def make_camera(kind: str, overrides: tuple[str, ...], dtype=torch.float64):
+    if kind == "measured_psf":
+        cam = _make_measured(overrides)
+    else:
+        cam = build_camera(load_config(overrides=[*TINY_CAMERA_OVERRIDES, f"camera.kind={kind}", *overrides]))
+    return cam.to(dtype)
+
+
+@pytest.fixture(params=CASES, ids=[f"{k}{'-' + '-'.join(o) if o else ''}" for k, o in CASES])
+def case(request):
+    kind, ov = request.param
+    return kind, ov, make_camera(kind, ov)
+
+
+def _rand(shape, seed, zero_mean=False):
+    g = torch.Generator().manual_seed(seed)
+    x = torch.rand(shape, generator=g, dtype=torch.float64)
+    return x - x.mean() if zero_mean else x
+
+
+def _scene(cam, b=1, seed=0, zero_mean=False):
+    return _rand((b, len(cam.bands), *SCENE_HW), seed, zero_mean)
+
+
+def test_kind_and_shapes(case):
+    kind, _, cam = case
+    assert cam.kind == kind
+    x = _scene(cam, b=2)
+    y = cam.A(x)
+    assert y.shape == (2, 1, *cam.sensor_size(SCENE_HW))
+    assert cam.A_adjoint(y).shape == x.shape
+    assert cam.scene_size(tuple(y.shape[-2:])) == SCENE_HW
+
+
+@pytest.mark.parametrize("zero_mean", [False, True])
+def test_adjointness_float64(case, zero_mean):
+    _, _, cam = case
+    x = _scene(cam, seed=1, zero_mean=zero_mean)
+    y = _rand(cam.A(x).shape, 2, zero_mean)
+    lhs, rhs = (cam.A(x) * y).sum(), (x * cam.A_adjoint(y)).sum()
+    assert abs(float(lhs - rhs)) <= 1e-12 * float(cam.A(x).norm() * y.norm())
+    assert cam.adjointness_error(SCENE_HW, torch.Generator().manual_seed(0)) < 1e-12
+
+
+def test_dense_transpose_and_gram_diagonal(case):
+    _, _, cam = case
+    c, (h, w) = len(cam.bands), SCENE_HW
+    n = c * h * w
+    basis = torch.eye(n, dtype=torch.float64).reshape(n, c, h, w)
+    a = cam.A(basis).reshape(n, -1).T  # (m, n): column j = A e_j
+    m = a.shape[0]
+    ybasis = torch.eye(m, dtype=torch.float64).reshape(m, 1, *cam.sensor_size(SCENE_HW))
+    at = cam.A_adjoint(ybasis).reshape(m, n)  # row i = Aᵀ e_i
+    torch.testing.assert_close(at, a, rtol=0, atol=1e-12)
+    if cam.has_diagonal_gram:
+        gram = a @ a.T
+        off = gram - torch.diag(torch.diag(gram))
+        assert float(off.abs().max()) == 0.0
+        d = torch.diag(gram)
+        expect = torch.where(d > 1e-12, d, torch.ones_like(d))
+        torch.testing.assert_close(cam.gram_diagonal(ybasis[:1]).reshape(-1), expect)
+    else:
+        with pytest.raises(NotImplementedError):
+            cam.gram_diagonal(ybasis[:1])
+
+
+def test_linearity_and_autograd_vjp(case):
+    _, _, cam = case
+    x1, x2 = _scene(cam, seed=4), _scene(cam, seed=5)
+    torch.testing.assert_close(cam.A(2.0 * x1 - 0.5 * x2), 2.0 * cam.A(x1) - 0.5 * cam.A(x2))
+    y = _rand(cam.A(x1).shape, 6)
+    x = x1.clone().requires_grad_(True)
+    (grad,) = torch.autograd.grad((cam.A(x) * y).sum(), x)
+    torch.testing.assert_close(grad, cam.A_adjoint(y))
+
+
+def test_gradients_reach_each_parameter_group(case):
+    """Autograd derivative along a random direction = central finite difference, per group."""
+    _, _, cam = case
+    x = _scene(cam, seed=7)
+    y = _rand(cam.A(x).shape, 8)
+    for name, params in cam.param_groups().items():
+        p = params[0]
+        with torch.no_grad():
+            d = _rand(p.shape, 9) - 0.5
+            d = d * (p.detach().abs().mean().clamp_min(1e-12) / d.abs().mean())
+        loss = (cam.A(x) * y).sum()
+        (grad,) = torch.autograd.grad(loss, p)
+        eps = 1e-4
+        with torch.no_grad():
+            p.add_(eps * d)
+            up = float((cam.A(x) * y).sum())
+            p.sub_(2 * eps * d)
+            down = float((cam.A(x) * y).sum())
+            p.add_(eps * d)
+        fd = (up - down) / (2 * eps)
+        ad = float((grad * d).sum())
+        assert abs(ad) > 0, f"group {name}: no gradient"
+        assert abs(ad - fd) <= 1e-5 * abs(fd) + 1e-12, f"group {name}: autograd {ad} vs finite difference {fd}"
+
+
+def test_float32_matches_float64_and_batch_matches_items(case):
+    _, _, cam = case
+    x = _scene(cam, b=3, seed=10)
+    y64 = cam.A(x)
+    y32 = copy.deepcopy(cam).float().A(x.float())
+    torch.testing.assert_close(y32.double(), y64, rtol=1e-4, atol=1e-6 * float(y64.abs().max()))
+    per_item = torch.cat([cam.A(x[i : i + 1]) for i in range(3)])
+    torch.testing.assert_close(cam.A(x), per_item)
+
+
+def test_noise_off_forward_is_A_and_seeded_noise_is_reproducible(case):
+    _, _, cam = case
+    x = _scene(cam, seed=11)
+    off = {k: 0.0 for k in cam.noise_levels()}
+    cam.set_noise(**off)
+    if cam.noise.model != "none":
+        torch.testing.assert_close(cam(x, torch.Generator().manual_seed(0)), cam.A(x))
+        cam.set_noise(sensor_sigma=0.01)
+        a = cam(x, torch.Generator().manual_seed(5))
+        b = cam(x, torch.Generator().manual_seed(5))
+        torch.testing.assert_close(a, b)
+        assert float((a - cam.A(x)).std()) > 0.005
+
+
+def test_set_noise_round_trip_and_unknown_names(case):
+    _, _, cam = case
+    levels = cam.noise_levels()
+    assert "sensor_sigma" in levels
+    new = {k: 0.5 * (i + 1) * 0.01 for i, k in enumerate(sorted(levels))}
+    cam.set_noise(**new)
+    got = cam.noise_levels()
+    assert got.keys() == new.keys() and all(abs(got[k] - new[k]) < 1e-12 for k in new)
+    with pytest.raises(ConfigError, match="sensor_sigma"):  # the message lists the valid names
+        cam.set_noise(not_a_noise=1.0)
+
+
+def test_state_dict_round_trip(case):
+    kind, ov, cam = case
+    x = _scene(cam, seed=12)
+    with torch.no_grad():
+        for p in cam.parameters():
+            p.mul_(1.1)
+    other = make_camera(kind, ov)
+    if kind == "measured_psf":
+        other.set_psf(cam.fixed_psf)
+    other.load_state_dict(cam.state_dict())
+    torch.testing.assert_close(other.A(x), cam.A(x))
+
+
+def test_bad_shapes_are_input_errors(case):
+    _, _, cam = case
+    x = _scene(cam)
+    with pytest.raises(InputError, match="bands"):
+        cam.A(x[:, :-1])
+    with pytest.raises(InputError):
+        cam.A(x[0])
+    with pytest.raises(InputError, match=r"\(B, 1, H, W\)"):
+        cam.A_adjoint(torch.zeros(1, 2, 6, 6, dtype=torch.float64))
+    with pytest.raises(InputError, match="floating"):
+        cam.A_adjoint(torch.zeros(1, 1, 6, 6, dtype=torch.int64))
+
+
+def test_sqnorm_is_the_largest_gain(case):
+    _, _, cam = case
+    s = cam.sqnorm(SCENE_HW, iterations=60, generator=torch.Generator().manual_seed(0))
+    assert s > 0 and torch.isfinite(torch.tensor(s))
+    for seed in range(3):
+        x = _scene(cam, seed=20 + seed)
+        assert float(cam.A(x).square().sum() / x.square().sum()) <= s * (1 + 1e-6)
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
+def test_cpu_equals_cuda(case):
+    _, _, cam = case
+    x = _scene(cam, seed=13)
+    torch.testing.assert_close(copy.deepcopy(cam).cuda().A(x.cuda()).cpu(), cam.A(x))
+
+
+def test_unknown_kind_is_one_clear_error():
+    with pytest.raises(ConfigError, match="choose one of .*doe"):
+        build_camera(load_config(overrides=["camera.kind=pinhole"]))
