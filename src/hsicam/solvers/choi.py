@@ -29,7 +29,6 @@ Prior run folder (``hsicam baseline train-prior``)::
 from __future__ import annotations
 
 import dataclasses
-import json
 import logging
 import math
 import time
@@ -306,11 +305,3 @@ class _CastPrior(nn.Module):
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         return self.prior(x.to(self.dtype)).to(x.dtype)
 
-
-def prior_summary(run: str | Path) -> dict:
-    """summary.json of a prior folder ({} when missing)."""
-    p = Path(run) / "summary.json"
-    try:
-        return json.loads(p.read_text())
-    except (OSError, json.JSONDecodeError):
-        return {}
