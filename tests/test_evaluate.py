@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import csv
 import json
+import os
 import shutil
 import subprocess
 
@@ -126,6 +127,31 @@ def _chromium() -> str | None:
     return shutil.which("chromium") or shutil.which("chromium-browser") or shutil.which("google-chrome")
 
 
+def _browser_or_skip() -> str:
+    """The headless browser; without one the test is skipped locally but fails under CI=true
+    (.ci/run installs the Debian package chromium where it can, so CI never silently skips it)."""
+    browser = _chromium()
+    if browser is None:
+        if os.environ.get("CI", "").strip().lower() in ("1", "true", "yes"):
+            pytest.fail("CI=true but no Chromium was found (chromium, chromium-browser, google-chrome): the report's "
+                        "browser test must run in CI; install the Debian package chromium (.ci/run does when it can)")
+        pytest.skip("Chromium is not installed (apt-get install chromium) — browser rendering not checked")
+    return browser
+
+
+def test_browser_is_required_in_ci(monkeypatch):
+    monkeypatch.setattr(shutil, "which", lambda name: None)
+    monkeypatch.setenv("CI", "true")
+    with pytest.raises(pytest.fail.Exception, match="CI=true"):
+        _browser_or_skip()
+    monkeypatch.setenv("CI", "")
+    with pytest.raises(pytest.skip.Exception):
+        _browser_or_skip()
+    monkeypatch.setattr(shutil, "which", lambda name: "/usr/bin/chromium" if name == "chromium" else None)
+    monkeypatch.setenv("CI", "true")
+    assert _browser_or_skip() == "/usr/bin/chromium"
+
+
 def test_report_renders_in_headless_chromium(run, env, tmp_path):
     out = tmp_path / "ev"
     assert run_cli("evaluate", "--run", str(run), "--out", str(out), "--save", env=env).returncode == 0
@@ -136,9 +162,7 @@ def test_report_renders_in_headless_chromium(run, env, tmp_path):
     srcs = [s.split("'")[0] for s in page.split("src='")[1:]]
     assert len(srcs) >= 5 and all((index.parent / s).is_file() for s in srcs)  # relative, present
     assert not any(s.startswith(("/", "http")) for s in srcs)
-    browser = _chromium()
-    if browser is None:
-        pytest.skip("Chromium is not installed (apt-get install chromium) — browser rendering not checked")
+    browser = _browser_or_skip()
     flags = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
              "--disable-background-networking", "--disable-component-update", "--disable-sync",
              f"--user-data-dir={tmp_path / 'ud'}", "--virtual-time-budget=10000", "--window-size=1200,2000"]

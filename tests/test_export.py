@@ -203,3 +203,67 @@ def test_export_cli_errors_and_non_binary_levels(fab_run, tmp_path):
     spec = json.loads((tmp_path / "six" / "spec.json").read_text())
     assert spec["doe"]["quantized"]["gds"]["file"] is None and "power of 2" in spec["doe"]["quantized"]["gds"]["skipped"]
     assert spec["doe"]["quantized"]["phase_error_design_wavelength_rad"]["max"] <= math.pi / 6 + 1e-6
+
+
+# ------------------------------------------------------------------------------------------------
+# Read-back helpers (for users who check the files a supplier will get): round trips
+# ------------------------------------------------------------------------------------------------
+def test_transmission_csv_round_trip(tmp_path):
+    from hsicam.export.cfa import filter_names, read_transmission_csv, write_transmission_csv
+
+    rng = np.random.default_rng(1)
+    tile = rng.random((5, 2, 3)).astype(np.float32) * np.float32(0.3)
+    bands = Bands.from_centers([450.0, 487.5, 530.0, 601.25, 700.0])
+    write_transmission_csv(tmp_path / "t.csv", tile, bands)
+    lam, vals, names = read_transmission_csv(tmp_path / "t.csv")
+    np.testing.assert_array_equal(lam, bands.centers_nm)
+    np.testing.assert_array_equal(vals, tile.reshape(5, 6))  # exact float32
+    assert names == filter_names(2, 3) == ["r0c0", "r0c1", "r0c2", "r1c0", "r1c1", "r1c2"]
+    write_transmission_csv(tmp_path / "p.csv", tile, bands, peak_normalised=True)
+    _, peak, _ = read_transmission_csv(tmp_path / "p.csv")
+    np.testing.assert_allclose(peak.max(axis=0), 1.0, rtol=1e-6)
+    np.testing.assert_allclose(peak, tile.reshape(5, 6) / tile.reshape(5, 6).max(axis=0), rtol=1e-6)
+
+
+def test_height_tiff_round_trip(tmp_path):
+    from hsicam.export.doe import read_height_tiff, write_height_tiff
+
+    rng = np.random.default_rng(2)
+    h = rng.random((9, 9)) * 1234.5
+    scale = write_height_tiff(tmp_path / "h.tif", h, 30.0, {"levels": None})
+    back, desc = read_height_tiff(tmp_path / "h.tif")
+    assert desc["scale_nm_per_count"] == scale == 0.02 and desc["cell_size_um"] == 30.0 and desc["levels"] is None
+    assert back.shape == h.shape and np.abs(back - h).max() <= scale / 2 + 1e-9
+
+
+def test_height_csv_round_trip(tmp_path):
+    from hsicam.export.doe import read_height_csv, write_height_csv
+
+    n = 7
+    rng = np.random.default_rng(3)
+    h = (rng.random((n, n)) * 900).astype(np.float32)
+    aperture = aperture_amplitude(n, 30e-6, 90e-6)
+    write_height_csv(tmp_path / "h.csv", h, aperture, 30.0, level=np.arange(n * n).reshape(n, n) % 4)
+    back, ap = read_height_csv(tmp_path / "h.csv", n)
+    inside = aperture > 0
+    assert 0 < inside.sum() < n * n
+    np.testing.assert_array_equal(back, np.where(inside, h, 0))  # exact inside, 0 outside
+    np.testing.assert_array_equal(ap, aperture.astype(np.float32))
+
+
+def test_gds_levels_round_trip(tmp_path):
+    from hsicam.export.gds import read_gds_levels
+
+    n, levels = 12, 8
+    rng = np.random.default_rng(4)
+    level = rng.integers(0, levels, (n, n))
+    aperture = aperture_amplitude(n, 30e-6, 170e-6)
+    inside = aperture > 0
+    write_gds(tmp_path / "d.gds", level, levels, 30.0, aperture, 150.0, 170.0)
+    back = read_gds_levels(tmp_path / "d.gds", n, 30.0, levels, aperture)
+    np.testing.assert_array_equal(back, np.where(inside, level, 0))
+    lib = gdstk.Library()
+    lib.new_cell("OTHER")
+    lib.write_gds(str(tmp_path / "other.gds"))
+    with pytest.raises(InputError, match="no 'DOE' cell"):
+        read_gds_levels(tmp_path / "other.gds", n, 30.0, levels, aperture)

@@ -1,48 +1,245 @@
-"""Atomic file writing: every output is written to a temporary file and renamed into place,
-so a killed process never leaves a half-written file behind."""
+"""Safe outputs: atomic files and folders, completion markers, output-path checks.
+
+Every output is written to a hidden temporary sibling and renamed into place, so a killed process
+never leaves a half-written file (or folder) where a later command would take it for a result:
+
+- :func:`atomic_path` / :func:`atomic_open`: one file (``.NAME.XXXXXXXX.tmp.SUFFIX`` → ``NAME``).
+- :func:`atomic_output`: a file or a whole folder (``.NAME.XXXXXXXX.tmpdir`` → ``NAME``); a
+  folder gets its completion marker (:data:`COMPLETE_MARKER`) before it is renamed into place.
+- :func:`mark_complete` / :func:`is_complete` / :func:`clear_complete`: the marker for folders
+  that are filled in place, file by file (write files, then mark; readers check the marker).
+- :func:`cleanup_stale_temporaries`: removes the hidden temporaries a killed process left behind.
+- :func:`check_output_path`: one-line :class:`~hsicam.errors.InputError` for an output path that
+  cannot work (existing file where a folder is needed and vice versa, inside a file, not
+  writable), to be called before any work starts.
+
+Importing this module has no side effects (the process umask is never touched: temporary files
+are created with mode 0o666 and folders with 0o777, and the kernel applies the umask).
+"""
 
 from __future__ import annotations
 
 import contextlib
 import json
+import logging
 import os
-import tempfile
+import re
+import secrets
+import shutil
+import time
 from pathlib import Path
 from typing import IO, Any, Iterator
 
 import numpy as np
 
+from hsicam.errors import InputError
 
-def _current_umask() -> int:
-    mask = os.umask(0)
-    os.umask(mask)
-    return mask
+log = logging.getLogger(__name__)
+
+#: Name of the completion marker of an output folder.
+COMPLETE_MARKER = ".complete"
+
+# Hidden temporaries written by this module (and by the former mkstemp-based version, whose random
+# part was also 8 characters): ".NAME.XXXXXXXX.tmp[.SUFFIX]", ".NAME.XXXXXXXX.tmpdir", ".NAME.XXXXXXXX.old".
+_TEMP_RE = re.compile(r"^\..*\.[A-Za-z0-9_]{8}\.(?:tmp(?:\..*)?|tmpdir|old)$")
 
 
-_UMASK = _current_umask()
+# ------------------------------------------------------------------------------------------------
+# Output-path check
+# ------------------------------------------------------------------------------------------------
+def _nearest_existing(p: Path) -> Path:
+    """The nearest ancestor of ``p`` (or ``p`` itself) that exists in any form."""
+    for a in (p, *p.parents):
+        try:
+            if a.exists() or a.is_symlink():
+                return a
+        except OSError:
+            continue
+    return Path(p.anchor or ".")
 
 
+def _writable_dir(d: Path) -> bool:
+    return os.access(d, os.W_OK | os.X_OK)
+
+
+def output_path_problem(path: str | os.PathLike, kind: str = "file") -> str | None:
+    """Why ``path`` cannot be written as a ``kind`` ("file" or "dir") output, or None when it can."""
+    if kind not in ("file", "dir"):
+        raise ValueError(f"kind must be 'file' or 'dir', got {kind!r}")
+    if str(path) == "":
+        return "the output path is empty"
+    p = Path(path)
+    full = Path(os.path.abspath(p))
+    try:
+        exists = full.exists() or full.is_symlink()
+        is_dir = full.is_dir()
+    except OSError as exc:
+        return f"cannot be used as an output ({exc.strerror or exc})"
+    if exists:
+        if kind == "file" and is_dir:
+            return "is an existing folder; a file is needed here"
+        if kind == "dir" and not is_dir:
+            return "is an existing file; a folder is needed here"
+        if kind == "dir":
+            return None if _writable_dir(full) else "folder is not writable (permission denied or read-only file system)"
+        parent = full.parent
+        return None if _writable_dir(parent) else f"cannot be replaced: the folder {parent} is not writable"
+    anchor = _nearest_existing(full.parent)
+    if not anchor.is_dir():
+        return f"cannot be created inside {anchor}, which is a file"
+    if not _writable_dir(anchor):
+        return f"cannot be created: the folder {anchor} is not writable (permission denied or read-only file system)"
+    return None
+
+
+def check_output_path(path: str | os.PathLike, kind: str = "file") -> Path:
+    """Check, before any work starts, that ``path`` can receive a ``kind`` ("file" or "dir") output.
+
+    Creates nothing. Raises one-line :class:`InputError` naming the path and the problem when it
+    is an existing folder where a file is needed (or an existing file where a folder is needed),
+    lies inside a file, or cannot be created or written for lack of permission. Returns the path.
+    """
+    problem = output_path_problem(path, kind)
+    if problem is not None:
+        raise InputError(f"{path}: {problem}")
+    return Path(path)
+
+
+def _os_error(path: Path, kind: str, exc: OSError) -> InputError:
+    problem = output_path_problem(path, kind) or f"cannot be written ({exc.strerror or exc})"
+    return InputError(f"{path}: {problem}")
+
+
+# ------------------------------------------------------------------------------------------------
+# Temporaries
+# ------------------------------------------------------------------------------------------------
+def _make_parents(folder: Path) -> list[Path]:
+    """``mkdir -p folder``; returns the folders it created (outermost first)."""
+    missing = []
+    for a in (folder, *folder.parents):
+        if a.exists():
+            break
+        missing.append(a)
+    folder.mkdir(parents=True, exist_ok=True)
+    return missing[::-1]
+
+
+def _remove_created(created: list[Path]) -> None:
+    for d in reversed(created):
+        with contextlib.suppress(OSError):
+            d.rmdir()  # only when still empty
+
+
+def _temp_sibling(path: Path, kind: str) -> Path:
+    token = secrets.token_hex(4)
+    if kind == "tmp":
+        return path.with_name(f".{path.stem}.{token}.tmp{path.suffix}")
+    return path.with_name(f".{path.name}.{token}.{kind}")
+
+
+def _new_temp_file(path: Path) -> Path:
+    for _ in range(100):
+        tmp = _temp_sibling(path, "tmp")
+        try:
+            fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666)  # the umask applies
+        except FileExistsError:
+            continue
+        os.close(fd)
+        return tmp
+    raise FileExistsError(f"no free temporary name next to {path}")
+
+
+def _new_temp_dir(path: Path) -> Path:
+    for _ in range(100):
+        tmp = _temp_sibling(path, "tmpdir")
+        try:
+            os.mkdir(tmp, 0o777)  # the umask applies
+        except FileExistsError:
+            continue
+        return tmp
+    raise FileExistsError(f"no free temporary name next to {path}")
+
+
+def _fsync_file(path: Path) -> None:
+    with open(path, "rb") as fh:
+        os.fsync(fh.fileno())
+
+
+def _fsync_dir(folder: Path) -> None:
+    """Make a rename inside ``folder`` durable (best effort: not every platform can open a folder)."""
+    with contextlib.suppress(OSError):
+        fd = os.open(folder, os.O_RDONLY)
+        try:
+            os.fsync(fd)
+        finally:
+            os.close(fd)
+
+
+def _remove(path: Path) -> None:
+    if path.is_dir() and not path.is_symlink():
+        shutil.rmtree(path, ignore_errors=True)
+    else:
+        path.unlink(missing_ok=True)
+
+
+def is_temporary(name: str) -> bool:
+    """True for the name of a hidden temporary written by this module."""
+    return bool(_TEMP_RE.match(name))
+
+
+def cleanup_stale_temporaries(folder: str | os.PathLike, *, recursive: bool = False, min_age_s: float = 0.0) -> list[Path]:
+    """Remove the hidden temporaries (files and folders) that a killed process left in ``folder``.
+
+    Only names this module creates are touched (:func:`is_temporary`). ``min_age_s`` spares
+    temporaries modified more recently (another process may still be writing them); call it with
+    0 only on a folder that this process owns. Returns the removed paths (a missing folder: []).
+    """
+    root = Path(folder)
+    if not root.is_dir():
+        return []
+    removed = []
+    now = time.time()
+    entries = root.rglob(".*") if recursive else root.glob(".*")
+    for p in sorted(entries):
+        if not is_temporary(p.name) or not p.exists():
+            continue
+        try:
+            if min_age_s > 0 and now - p.lstat().st_mtime < min_age_s:
+                continue
+        except OSError:
+            continue
+        _remove(p)
+        removed.append(p)
+        log.info("removed a stale temporary left by an interrupted run: %s", p)
+    return removed
+
+
+# ------------------------------------------------------------------------------------------------
+# Atomic files and folders
+# ------------------------------------------------------------------------------------------------
 @contextlib.contextmanager
 def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
     """Yield a temporary path next to ``path``; on success it is fsynced and renamed onto ``path``.
 
     The temporary file keeps ``path``'s suffix so that writers choosing a format by extension
-    (imageio, matplotlib) still work. On error the temporary file is removed.
+    (imageio, matplotlib) still work. On error the temporary file (and any parent folder created
+    for it) is removed. A parent that cannot be created or written is one :class:`InputError`.
     """
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=f".tmp{path.suffix}", dir=path.parent)
-    os.close(fd)
-    tmp_path = Path(tmp)
+    try:
+        created = _make_parents(path.parent)
+        tmp_path = _new_temp_file(path)
+    except OSError as exc:
+        raise _os_error(path, "file", exc) from None
     try:
         yield tmp_path
-        with open(tmp_path, "rb") as fh:
-            os.fsync(fh.fileno())
-        os.chmod(tmp_path, 0o666 & ~_UMASK)  # mkstemp creates 0600; give outputs the usual permissions
+        _fsync_file(tmp_path)
         os.replace(tmp_path, path)
     except BaseException:
         tmp_path.unlink(missing_ok=True)
+        _remove_created(created)
         raise
+    _fsync_dir(path.parent)
 
 
 @contextlib.contextmanager
@@ -53,6 +250,102 @@ def atomic_open(path: str | os.PathLike, mode: str = "w", **kwargs: Any) -> Iter
             yield fh
 
 
+@contextlib.contextmanager
+def atomic_output(path: str | os.PathLike, kind: str = "dir", *, overwrite: bool = False,
+                  marker: dict[str, Any] | bool = True) -> Iterator[Path]:
+    """Write a whole output — a folder (``kind="dir"``) or a file — under a temporary sibling and
+    rename it into place only when the ``with`` block succeeds.
+
+    Yields the temporary path (for a folder: an existing empty folder to fill). On success a
+    folder gets its completion marker (``marker``: True, or a dict of extra JSON fields; False for
+    none) and replaces ``path``: an absent or empty folder always, a non-empty one only with
+    ``overwrite=True`` and only when it carries the marker (a folder this toolkit completed; a
+    user's own folder is never deleted). On any error or interruption the temporary is removed and
+    ``path`` is left as it was. Unusable paths raise one-line :class:`InputError` before the block.
+    """
+    if kind == "file":
+        with atomic_path(path) as tmp:
+            yield tmp
+        return
+    if kind != "dir":
+        raise ValueError(f"kind must be 'file' or 'dir', got {kind!r}")
+    path = Path(path)
+    check_output_path(path, "dir")
+    _check_replaceable(path, overwrite)
+    try:
+        created = _make_parents(path.parent)
+        tmp = _new_temp_dir(path)
+    except OSError as exc:
+        raise _os_error(path, "dir", exc) from None
+    try:
+        yield tmp
+        if marker:
+            mark_complete(tmp, marker if isinstance(marker, dict) else None)
+        _check_replaceable(path, overwrite)  # the block may have run for hours
+        _swap_in(tmp, path)
+    except BaseException:
+        _remove(tmp)
+        _remove_created(created)
+        raise
+    _fsync_dir(path.parent)
+
+
+def _check_replaceable(path: Path, overwrite: bool) -> None:
+    if not path.is_dir():
+        if path.exists():
+            raise InputError(f"{path}: is an existing file; a folder is needed here")
+        return
+    if not any(path.iterdir()):
+        return
+    if not is_complete(path):
+        raise InputError(f"{path}: folder exists and is not empty (and is not a completed hsicam output); "
+                         "choose another output folder")
+    if not overwrite:
+        raise InputError(f"{path}: folder already holds a completed output; choose another folder or allow overwriting")
+
+
+def _swap_in(tmp: Path, path: Path) -> None:
+    """Rename the finished temporary folder onto ``path`` (an old folder is set aside, then removed)."""
+    old = None
+    if path.exists():
+        old = _temp_sibling(path, "old")
+        os.rename(path, old)
+    try:
+        os.rename(tmp, path)
+    except BaseException:
+        if old is not None:
+            os.rename(old, path)
+        raise
+    if old is not None:
+        _remove(old)
+
+
+# ------------------------------------------------------------------------------------------------
+# Completion markers
+# ------------------------------------------------------------------------------------------------
+def mark_complete(folder: str | os.PathLike, info: dict[str, Any] | None = None) -> Path:
+    """Write ``folder/.complete`` (atomically, JSON: ``{"complete": true, ...info}``) as the last
+    step of filling ``folder``; returns the marker's path."""
+    p = Path(folder) / COMPLETE_MARKER
+    write_json(p, {"complete": True, **(info or {})})
+    return p
+
+
+def is_complete(folder: str | os.PathLike) -> bool:
+    """True when ``folder`` carries the completion marker written by :func:`mark_complete`."""
+    return (Path(folder) / COMPLETE_MARKER).is_file()
+
+
+def clear_complete(folder: str | os.PathLike) -> None:
+    """Remove the marker before a folder is filled again in place (so it never looks complete half-way)."""
+    p = Path(folder) / COMPLETE_MARKER
+    p.unlink(missing_ok=True)
+    _fsync_dir(p.parent)
+
+
+# ------------------------------------------------------------------------------------------------
+# Writers
+# ------------------------------------------------------------------------------------------------
 def write_json(path: str | os.PathLike, obj: Any) -> None:
     """Write ``obj`` as indented JSON, atomically."""
     with atomic_open(path, "w", encoding="utf-8") as fh:

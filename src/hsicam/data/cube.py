@@ -1,72 +1,243 @@
-"""Cube checks, resampling onto a camera's bands, and the normalisation policy.
+"""Cube checks, the band-grid policy, the memory budget and the normalisation policy.
 
 A cube is a float32 array (C, H, W) with C bands ascending, paired with a :class:`Bands`.
 
-**Normalisation policy** (the one place it is defined): :func:`normalize_per_cube_max` divides a
-cube — after it has been resampled onto the camera's bands — by its own maximum over all bands and
-pixels, so values lie in [0, 1] and the brightest sample of each scene is 1. Training patches are
-cut from the normalised cube (they are *not* re-normalised per patch), so dark regions stay dark.
-PSNR "peak 1" metrics assume this policy.
+**Cube check** (one for every entry point): :func:`check_cube` — a real, finite, non-negative,
+non-empty (C, H, W) array whose band count matches its band grid.
+
+**Band-grid policy** (the one place it is defined): :func:`conform_bands` brings a cube onto the
+camera's bands by linear interpolation in band centre, logs a note when it resamples, and refuses
+only extrapolation (a camera band outside the data's range). It never relabels bands.
+
+**Memory budget**: :func:`check_memory_budget` compares the size a file *declares* (its header)
+with :func:`memory_budget_bytes` before any reader allocates the cube. The budget is, in order of
+precedence: the caller's ``budget_mb``; the environment variable ``HSICAM_MEMORY_BUDGET_MB``; else
+a quarter of the machine's memory (physical RAM, or the cgroup limit when lower), and at most half
+of the address space left under a ``ulimit -v`` / ``prlimit --as`` limit. Sizes are in MiB.
+
+**Normalisation policy**: :func:`normalize_per_cube_max` divides a cube — after it has been
+resampled onto the camera's bands — by its own maximum over all bands and pixels, so values lie in
+[0, 1] and the brightest sample of each scene is 1. Training patches are cut from the normalised
+cube (they are *not* re-normalised per patch), so dark regions stay dark. PSNR "peak 1" metrics
+assume this policy.
 """
 
 from __future__ import annotations
 
+import logging
+import math
 import os
-from typing import Union
+from pathlib import Path
+from typing import Any, Sequence, Union
 
 import numpy as np
 
-from hsicam.errors import InputError
+from hsicam.errors import ConfigError, InputError
 from hsicam.spectral import Bands, resample_spectra
 
 PathLike = Union[str, os.PathLike]
 
+log = logging.getLogger(__name__)
 
-def check_cube(cube: np.ndarray, source: PathLike | str = "cube", *, allow_negative: bool = False) -> np.ndarray:
-    """Validate a (C, H, W) cube and return it as float32 (C-contiguous).
+#: Environment variable overriding the memory budget of the readers, in MiB.
+MEMORY_BUDGET_ENV = "HSICAM_MEMORY_BUDGET_MB"
+#: Fraction of the machine's memory that one cube may take by default.
+DEFAULT_MEMORY_FRACTION = 0.25
+_FALLBACK_MEMORY_BYTES = 8 * 2**30  # when the machine's memory cannot be read
 
-    Raises :class:`InputError` naming ``source`` for a wrong number of dimensions, an empty cube,
-    NaN/Inf values or negative values. With ``allow_negative=True`` negative values (e.g. dark
-    noise after background subtraction) are clipped to 0 instead.
+
+# ------------------------------------------------------------------------------------------------
+# Memory budget
+# ------------------------------------------------------------------------------------------------
+def _physical_memory_bytes() -> int | None:
+    try:
+        n = int(os.sysconf("SC_PHYS_PAGES")) * int(os.sysconf("SC_PAGE_SIZE"))
+    except (AttributeError, ValueError, OSError):
+        return None
+    return n if n > 0 else None
+
+
+def _cgroup_memory_limit_bytes() -> int | None:
+    for f in ("/sys/fs/cgroup/memory.max", "/sys/fs/cgroup/memory/memory.limit_in_bytes"):
+        try:
+            text = Path(f).read_text(encoding="ascii").strip()
+        except (OSError, UnicodeDecodeError):
+            continue
+        if text.isdigit() and 0 < int(text) < 1 << 60:  # cgroup v1 writes a huge number for "no limit"
+            return int(text)
+    return None
+
+
+def _address_space_left_bytes() -> int | None:
+    """Bytes of virtual address space left under RLIMIT_AS (``ulimit -v``), or None when unlimited."""
+    try:
+        import resource
+
+        soft, _ = resource.getrlimit(resource.RLIMIT_AS)
+        if soft == resource.RLIM_INFINITY or soft < 0:
+            return None
+    except (ImportError, ValueError, OSError):
+        return None
+    used = 0
+    try:
+        for line in Path("/proc/self/status").read_text(encoding="ascii", errors="replace").splitlines():
+            if line.startswith("VmSize:"):
+                used = int(line.split()[1]) * 1024
+                break
+    except (OSError, ValueError, IndexError):
+        pass
+    return max(int(soft) - used, 0)
+
+
+def _parse_budget_mb(value: Any, what: str) -> float:
+    try:
+        mb = float(value)
+    except (TypeError, ValueError):
+        raise ConfigError(f"{what} must be a positive number of MiB, got {value!r}") from None
+    if not math.isfinite(mb) or mb <= 0:
+        raise ConfigError(f"{what} must be a positive number of MiB, got {value!r}")
+    return mb
+
+
+def memory_budget_bytes(budget_mb: float | None = None) -> int:
+    """The memory one cube may take, in bytes (see the module docstring for the precedence).
+
+    Raises :class:`ConfigError` for a budget (argument or ``HSICAM_MEMORY_BUDGET_MB``) that is not
+    a positive number.
     """
+    if budget_mb is not None:
+        return int(_parse_budget_mb(budget_mb, "memory_budget_mb") * 2**20)
+    env = os.environ.get(MEMORY_BUDGET_ENV, "").strip()
+    if env:
+        return int(_parse_budget_mb(env, MEMORY_BUDGET_ENV) * 2**20)
+    known = [n for n in (_physical_memory_bytes(), _cgroup_memory_limit_bytes()) if n]
+    budget = int(min(known) * DEFAULT_MEMORY_FRACTION) if known else _FALLBACK_MEMORY_BYTES
+    left = _address_space_left_bytes()
+    if left is not None:
+        budget = min(budget, left // 2)
+    return budget
+
+
+def _human(nbytes: float) -> str:
+    for unit, size in (("TiB", 2**40), ("GiB", 2**30), ("MiB", 2**20), ("KiB", 2**10)):
+        if nbytes >= size:
+            return f"{nbytes / size:.3g} {unit}"
+    return f"{int(nbytes)} B"
+
+
+def check_memory_budget(source: PathLike | str, shape: Sequence[int], dtype: Any, *, what: str = "cube",
+                        budget_mb: float | None = None) -> int:
+    """Refuse, before anything is allocated, a ``what`` whose declared ``shape`` and ``dtype``
+    would take more memory than the budget (:func:`memory_budget_bytes`).
+
+    The estimate is the array as stored plus its float32 copy (what every reader returns). Returns
+    the estimate in bytes; raises one-line :class:`InputError` naming ``source``, the declared
+    shape and size, and the budget.
+    """
+    dims = tuple(int(s) for s in shape)
+    n = math.prod(max(d, 0) for d in dims)  # python ints: no overflow for hostile headers
+    dt = np.dtype(dtype)
+    stored = n * dt.itemsize
+    need = stored + n * 4
+    budget = memory_budget_bytes(budget_mb)
+    if need > budget:
+        raise InputError(
+            f"{source}: the {what} declares shape {dims} of {dt.name} ({_human(stored)}); reading it needs about "
+            f"{_human(need)}, over the memory budget of {_human(budget)} "
+            f"(raise it with {MEMORY_BUDGET_ENV}=<MiB> or memory_budget_mb)"
+        )
+    return need
+
+
+# ------------------------------------------------------------------------------------------------
+# The cube check
+# ------------------------------------------------------------------------------------------------
+def check_cube(cube: Any, source: PathLike | str = "cube", *, bands: Bands | None = None,
+               allow_negative: bool = False) -> np.ndarray:
+    """Validate a (C, H, W) cube and return it as float32 (C-contiguous): the one cube check.
+
+    Raises one-line :class:`InputError` naming ``source`` for: a wrong number of dimensions, an
+    empty cube, complex or non-numeric values, NaN/Inf, negative values, or (when ``bands`` is
+    given) a band count that differs from the band grid. Entry points pass the cube's ``bands``;
+    a cube whose grid is unknown must be given one (or refused) before it is checked. With
+    ``allow_negative=True`` negative values (e.g. dark noise after background subtraction) are
+    clipped to 0 instead. A torch tensor is accepted and returned as a numpy array.
+    """
+    if hasattr(cube, "detach") and hasattr(cube, "cpu"):  # torch.Tensor, without importing torch
+        cube = cube.detach().cpu().numpy()
     arr = np.asarray(cube)
     if arr.ndim != 3:
         raise InputError(f"{source}: expected a 3-D cube (bands, height, width), got {arr.ndim} dimensions {arr.shape}")
     if min(arr.shape) == 0:
         raise InputError(f"{source}: empty cube of shape {arr.shape}")
+    if arr.dtype.kind == "c":
+        raise InputError(f"{source}: complex values ({arr.dtype}); a cube holds real radiance or reflectance "
+                         "(take the magnitude or the real part first)")
     if arr.dtype.kind not in "fiub":
         raise InputError(f"{source}: unsupported data type {arr.dtype} (expected real numbers)")
-    out = np.ascontiguousarray(arr, dtype=np.float32)
+    if bands is not None:
+        if not isinstance(bands, Bands):
+            raise InputError(f"{source}: the band grid must be a Bands object, got {type(bands).__name__}")
+        if arr.shape[0] != len(bands):
+            raise InputError(f"{source}: the cube has {arr.shape[0]} bands but its band grid has {len(bands)} ({bands!r})")
+    with np.errstate(over="ignore"):  # values beyond float32 become Inf, reported just below
+        out = np.ascontiguousarray(arr, dtype=np.float32)
     finite = np.isfinite(out)
     if not finite.all():
         bad = int(out.size - np.count_nonzero(finite))
         raise InputError(f"{source}: {bad} NaN/Inf value(s) in the cube (after conversion to float32)")
+    del finite
     lo = float(out.min())
     if lo < 0:
         if not allow_negative:
             neg = int(np.count_nonzero(out < 0))
             raise InputError(f"{source}: {neg} negative radiance value(s) (minimum {lo:.4g}); "
                              "radiance and reflectance must be >= 0")
+        if out is arr:  # never clip the caller's array in place
+            out = out.copy()
         np.maximum(out, 0.0, out=out)
     return out
 
 
-def resample_cube(cube: np.ndarray, bands: Bands, target: Bands, source: PathLike | str = "cube") -> np.ndarray:
-    """Bring ``cube`` (C, H, W) on ``bands`` onto ``target`` by linear interpolation in band centre.
+# ------------------------------------------------------------------------------------------------
+# The band-grid policy
+# ------------------------------------------------------------------------------------------------
+def conform_bands(cube: Any, cube_bands: Bands, camera_bands: Bands, source: PathLike | str = "cube", *,
+                  axis: int = -3, note: bool = True) -> Any:
+    """Bring ``cube`` (bands on ``axis``: -3 fits (C, H, W) and (B, C, H, W)) from ``cube_bands``
+    onto ``camera_bands``: the one band-grid policy of every command.
 
-    No extrapolation: raises :class:`InputError` (naming ``source``) when the target range reaches
-    outside the cube's range. Returns float32.
+    Same grid: the cube is returned unchanged. Otherwise linear interpolation in band centre
+    (:func:`hsicam.spectral.resample_spectra`), with an INFO log note naming ``source`` unless
+    ``note=False``; numpy input gives float32, a torch tensor keeps its dtype (and gradient).
+    Raises one-line :class:`InputError` when the band count does not match ``cube_bands``, or when
+    a camera band lies outside the data's range (no extrapolation, no relabelling).
     """
-    if cube.shape[0] != len(bands):
-        raise InputError(f"{source}: the cube has {cube.shape[0]} bands but its band list has {len(bands)}")
-    if bands.matches(target):
-        return np.asarray(cube, dtype=np.float32)
-    if not bands.covers(target):
+    n = cube.shape[axis]
+    if n != len(cube_bands):
+        raise InputError(f"{source}: the cube has {n} bands but its band grid has {len(cube_bands)} ({cube_bands!r})")
+    if cube_bands.matches(camera_bands):
+        return cube
+    if not cube_bands.covers(camera_bands):
         raise InputError(
-            f"{source}: the camera's bands {target.min_nm:g}-{target.max_nm:g} nm are not covered by the data's "
-            f"{bands.min_nm:g}-{bands.max_nm:g} nm (no extrapolation)"
+            f"{source}: the camera's bands {camera_bands.min_nm:g}-{camera_bands.max_nm:g} nm are not covered by the "
+            f"data's {cube_bands.min_nm:g}-{cube_bands.max_nm:g} nm (no extrapolation): use a camera band grid "
+            f"inside {cube_bands.min_nm:g}-{cube_bands.max_nm:g} nm or data that covers the camera's range"
         )
-    return np.asarray(resample_spectra(np.asarray(cube, dtype=np.float64), bands, target, axis=0), dtype=np.float32)
+    if note:
+        log.info("%s: resampling %d bands (%g-%g nm) onto the camera's %d bands (%g-%g nm) by band centre",
+                 source, len(cube_bands), cube_bands.min_nm, cube_bands.max_nm,
+                 len(camera_bands), camera_bands.min_nm, camera_bands.max_nm)
+    if hasattr(cube, "detach"):  # torch: differentiable, same dtype and device
+        return resample_spectra(cube, cube_bands, camera_bands, axis=axis)
+    out = resample_spectra(np.asarray(cube, dtype=np.float64), cube_bands, camera_bands, axis=axis)
+    return np.ascontiguousarray(out, dtype=np.float32)
+
+
+def resample_cube(cube: np.ndarray, bands: Bands, target: Bands, source: PathLike | str = "cube") -> np.ndarray:
+    """:func:`conform_bands` for a numpy (C, H, W) cube without the log note; always float32."""
+    return np.ascontiguousarray(conform_bands(np.asarray(cube), bands, target, source, axis=0, note=False),
+                                dtype=np.float32)
 
 
 def normalize_per_cube_max(cube: np.ndarray, source: PathLike | str = "cube") -> tuple[np.ndarray, float]:
@@ -80,4 +251,12 @@ def normalize_per_cube_max(cube: np.ndarray, source: PathLike | str = "cube") ->
     return (np.asarray(cube, dtype=np.float32) / np.float32(peak)).astype(np.float32, copy=False), peak
 
 
-__all__ = ["check_cube", "normalize_per_cube_max", "resample_cube"]
+__all__ = [
+    "MEMORY_BUDGET_ENV",
+    "check_cube",
+    "check_memory_budget",
+    "conform_bands",
+    "memory_budget_bytes",
+    "normalize_per_cube_max",
+    "resample_cube",
+]

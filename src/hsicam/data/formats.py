@@ -35,6 +35,12 @@ refused (720 nm lies outside the data) — use a camera grid inside the data's r
 ``bands.start_nm=420, bands.stop_nm=700``) or data that reaches 720 nm (Harvard, or the embedded
 synthetic set). See ``docs/data.md``.
 
+**Memory budget**: every reader compares the size that the file *declares* (HDF5 dataset shape,
+MAT v5 variable header, NPY header, ENVI header, EXR data window, PNG headers) with the memory
+budget (:func:`hsicam.data.cube.memory_budget_bytes`: the ``memory_budget_mb`` argument, else
+``$HSICAM_MEMORY_BUDGET_MB``, else a quarter of the machine's memory) *before* allocating the cube,
+and refuses a larger one with one :class:`~hsicam.errors.InputError`.
+
 Writers: :func:`write_cube_h5` (our HDF5) and :func:`write_envi`; both write atomically.
 """
 
@@ -50,7 +56,7 @@ from typing import Any, Callable, Iterator, Sequence
 
 import numpy as np
 
-from hsicam.data.cube import check_cube
+from hsicam.data.cube import check_cube, check_memory_budget
 from hsicam.errors import InputError
 from hsicam.io import atomic_path, json_default
 from hsicam.spectral import Bands
@@ -103,16 +109,10 @@ def _reading(path: Path, what: str) -> Iterator[None]:
         raise InputError(f"{path}: cannot read {what} file (corrupt or truncated?): {detail}") from None
 
 
-MAX_CUBE_BYTES = int(float(os.environ.get("HSICAM_MAX_CUBE_GIB", "8")) * 2**30)
-
-
-def _checked_read(p: Path, ds: Any) -> np.ndarray:
-    """Read a whole h5py dataset after checking its declared size (a corrupt or hostile header
-    can declare terabytes). The limit is $HSICAM_MAX_CUBE_GIB (default 8 GiB)."""
-    nbytes = int(np.prod(ds.shape, dtype=np.float64) * ds.dtype.itemsize)
-    if nbytes > MAX_CUBE_BYTES:
-        raise InputError(f"{p}: dataset '{ds.name}' declares shape {tuple(ds.shape)} ({nbytes / 2**30:.1f} GiB), "
-                         f"over the {MAX_CUBE_BYTES / 2**30:g} GiB limit (HSICAM_MAX_CUBE_GIB)")
+def _checked_read(p: Path, ds: Any, budget_mb: float | None) -> np.ndarray:
+    """Read a whole h5py dataset after checking its declared size against the memory budget (a
+    corrupt or hostile header can declare terabytes in a few bytes)."""
+    check_memory_budget(p, ds.shape, ds.dtype, what=f"dataset '{ds.name.lstrip('/')}'", budget_mb=budget_mb)
     return ds[()]
 
 
@@ -201,23 +201,25 @@ def _detect_mat5(p: Path) -> str:
 # ------------------------------------------------------------------------------------------------
 # Entry point
 # ------------------------------------------------------------------------------------------------
-def read_cube(path: str | os.PathLike, *, bands: Bands | None = None, allow_negative: bool = False) -> Cube:
+def read_cube(path: str | os.PathLike, *, bands: Bands | None = None, allow_negative: bool = False,
+              memory_budget_mb: float | None = None) -> Cube:
     """Read any supported cube: returns (cube float32 (C, H, W), Bands, metadata dict).
 
     ``bands`` is used only for formats that do not carry wavelengths (``.npy``). With
     ``allow_negative=True`` negative values are clipped to 0 instead of being an error.
+    ``memory_budget_mb`` overrides the memory budget (see the module docstring).
     """
     fmt = detect_format(path)
     reader = READERS[fmt]
     if fmt == "npy":
-        return read_npy(path, bands=bands, allow_negative=allow_negative)
-    return reader(path, allow_negative=allow_negative)
+        return read_npy(path, bands=bands, allow_negative=allow_negative, memory_budget_mb=memory_budget_mb)
+    return reader(path, allow_negative=allow_negative, memory_budget_mb=memory_budget_mb)
 
 
 def _finish(p: Path, cube: np.ndarray, bands: Bands, meta: dict[str, Any], allow_negative: bool) -> Cube:
-    cube = check_cube(cube, p, allow_negative=allow_negative)
-    if cube.shape[0] != len(bands):
-        raise InputError(f"{p}: the cube has {cube.shape[0]} bands but the file lists {len(bands)} wavelengths")
+    if np.ndim(cube) == 3 and np.shape(cube)[0] != len(bands):
+        raise InputError(f"{p}: the cube has {np.shape(cube)[0]} bands but the file lists {len(bands)} wavelengths")
+    cube = check_cube(cube, p, bands=bands, allow_negative=allow_negative)
     meta.setdefault("source", str(p))
     return cube, bands, meta
 
@@ -235,7 +237,7 @@ def _bands_from(p: Path, values: Any, fwhm: Any = None) -> Bands:
 # ------------------------------------------------------------------------------------------------
 # Our HDF5
 # ------------------------------------------------------------------------------------------------
-def read_hsicam_h5(path: str | os.PathLike, *, allow_negative: bool = False) -> Cube:
+def read_hsicam_h5(path: str | os.PathLike, *, allow_negative: bool = False, memory_budget_mb: float | None = None) -> Cube:
     """Our HDF5: ``cube`` (C, H, W) float32, ``bands_nm`` (C,), optional ``fwhm_nm``, attributes."""
     import h5py
 
@@ -245,7 +247,7 @@ def read_hsicam_h5(path: str | os.PathLike, *, allow_negative: bool = False) -> 
             for key in ("cube", "bands_nm"):
                 if key not in f:
                     raise InputError(f"{p}: missing key '{key}' (not an hsicam cube file)")
-            cube = _checked_read(p, f["cube"])
+            cube = _checked_read(p, f["cube"], memory_budget_mb)
             bands = _bands_from(p, f["bands_nm"][()], f["fwhm_nm"][()] if "fwhm_nm" in f else None)
             meta = _read_attrs(f.attrs)
     meta["format"] = "hsicam"
@@ -307,7 +309,13 @@ _MAT_SPECS: dict[str, tuple[tuple[str, ...], str | None]] = {
 }
 
 
-def _load_mat(p: Path, keys: Sequence[str], bands_key: str | None) -> tuple[str, np.ndarray, np.ndarray | None, str]:
+# MATLAB class (as scipy.io.whosmat reports it) -> numpy dtype; other classes count as 8 bytes per element
+_MAT5_DTYPES = {"double": "f8", "single": "f4", "int8": "i1", "uint8": "u1", "int16": "i2", "uint16": "u2",
+                "int32": "i4", "uint32": "u4", "int64": "i8", "uint64": "u8", "logical": "u1"}
+
+
+def _load_mat(p: Path, keys: Sequence[str], bands_key: str | None,
+              budget_mb: float | None) -> tuple[str, np.ndarray, np.ndarray | None, str]:
     """Return (key, array in MATLAB logical order (H, W, C), bands or None, mat version)."""
     head = _head(p, 128)
     if head.startswith(_HDF5_MAGIC) or head.startswith(b"MATLAB 7.3"):
@@ -321,17 +329,21 @@ def _load_mat(p: Path, keys: Sequence[str], bands_key: str | None) -> tuple[str,
                                      f"(found: {', '.join(sorted(f.keys())) or 'none'})")
                 if not isinstance(f[key], h5py.Dataset):
                     raise InputError(f"{p}: '{key}' is not a numeric array")
-                data = np.asarray(_checked_read(p, f[key])).T  # h5py returns MATLAB arrays with axes reversed
+                data = np.asarray(_checked_read(p, f[key], budget_mb)).T  # h5py returns MATLAB arrays with axes reversed
                 bands = np.asarray(f[bands_key][()]).reshape(-1) if bands_key and bands_key in f else None
         return key, data, bands, "7.3"
     if head.startswith(b"MATLAB 5.0"):
         import scipy.io
 
         with _reading(p, "MAT v5"):
-            names = [w[0] for w in scipy.io.whosmat(p)]
+            info = {name: (shape, cls) for name, shape, cls in scipy.io.whosmat(p)}
+            names = list(info)
             key = next((k for k in keys if k in names), None)
             if key is None:
                 raise InputError(f"{p}: missing key {' or '.join(repr(k) for k in keys)} (found: {', '.join(names) or 'none'})")
+            shape, cls = info[key]
+            check_memory_budget(p, shape, _MAT5_DTYPES.get(cls, "f8"), what=f"variable '{key}' ({cls})",
+                                budget_mb=budget_mb)
             wanted = [key] + ([bands_key] if bands_key and bands_key in names else [])
             loaded = scipy.io.loadmat(p, variable_names=wanted)
             data = np.asarray(loaded[key])
@@ -346,10 +358,10 @@ def _hwc_to_chw(p: Path, data: np.ndarray, key: str) -> np.ndarray:
     return np.transpose(data, (2, 0, 1))
 
 
-def _read_mat_format(path: str | os.PathLike, fmt: str, allow_negative: bool) -> Cube:
+def _read_mat_format(path: str | os.PathLike, fmt: str, allow_negative: bool, budget_mb: float | None) -> Cube:
     p = _as_path(path)
     keys, bands_key = _MAT_SPECS[fmt]
-    key, data, band_values, version = _load_mat(p, keys, bands_key)
+    key, data, band_values, version = _load_mat(p, keys, bands_key, budget_mb)
     cube = _hwc_to_chw(p, data, key)
     n = cube.shape[0]
     if band_values is not None:
@@ -368,24 +380,24 @@ def _read_mat_format(path: str | os.PathLike, fmt: str, allow_negative: bool) ->
     return _finish(p, cube, bands, meta, allow_negative)
 
 
-def read_icvl(path: str | os.PathLike, *, allow_negative: bool = False) -> Cube:
+def read_icvl(path: str | os.PathLike, *, allow_negative: bool = False, memory_budget_mb: float | None = None) -> Cube:
     """ICVL ``.mat`` v7.3: ``rad`` (H×W×C in MATLAB, reversed by h5py) and ``bands`` (nm)."""
-    return _read_mat_format(path, "icvl", allow_negative)
+    return _read_mat_format(path, "icvl", allow_negative, memory_budget_mb)
 
 
-def read_arad(path: str | os.PathLike, *, allow_negative: bool = False) -> Cube:
+def read_arad(path: str | os.PathLike, *, allow_negative: bool = False, memory_budget_mb: float | None = None) -> Cube:
     """ARAD / NTIRE ``.mat`` v7.3: ``cube`` (H×W×C in MATLAB, reversed by h5py) and ``bands`` (nm)."""
-    return _read_mat_format(path, "arad", allow_negative)
+    return _read_mat_format(path, "arad", allow_negative, memory_budget_mb)
 
 
-def read_kaist_mat(path: str | os.PathLike, *, allow_negative: bool = False) -> Cube:
+def read_kaist_mat(path: str | os.PathLike, *, allow_negative: bool = False, memory_budget_mb: float | None = None) -> Cube:
     """MST-style KAIST/CAVE ``.mat``: ``img`` or ``img_expand`` H×W×C (28 bands: MST's grid)."""
-    return _read_mat_format(path, "kaist-mat", allow_negative)
+    return _read_mat_format(path, "kaist-mat", allow_negative, memory_budget_mb)
 
 
-def read_harvard(path: str | os.PathLike, *, allow_negative: bool = False) -> Cube:
+def read_harvard(path: str | os.PathLike, *, allow_negative: bool = False, memory_budget_mb: float | None = None) -> Cube:
     """Harvard ``.mat``: ``ref`` H×W×31, 420-720 nm in 10 nm steps."""
-    return _read_mat_format(path, "harvard", allow_negative)
+    return _read_mat_format(path, "harvard", allow_negative, memory_budget_mb)
 
 
 # ------------------------------------------------------------------------------------------------
@@ -412,7 +424,7 @@ def exr_channel_wavelength(name: str) -> float | None:
     return value if 200.0 <= value <= 2600.0 else None
 
 
-def read_kaist_exr(path: str | os.PathLike, *, allow_negative: bool = False) -> Cube:
+def read_kaist_exr(path: str | os.PathLike, *, allow_negative: bool = False, memory_budget_mb: float | None = None) -> Cube:
     """KAIST OpenEXR: one channel per band, the wavelength in each channel's name."""
     p = _as_path(path)
     try:
@@ -422,6 +434,13 @@ def read_kaist_exr(path: str | os.PathLike, *, allow_negative: bool = False) -> 
     if not hasattr(OpenEXR, "File"):
         raise InputError(f"{p}: reading OpenEXR needs openexr >= 3.3 (the OpenEXR.File API)")
     with _reading(p, "OpenEXR"):
+        with OpenEXR.File(str(p), header_only=True) as f:  # the header dict is only valid while open
+            header = f.header()
+            (x0, y0), (x1, y1) = (np.asarray(v, dtype=np.int64).tolist() for v in header["dataWindow"])
+            n_channels = len(header.get("channels", ())) or 1
+        # every channel is read (4 bytes a sample at most) before the spectral ones are picked
+        check_memory_budget(p, (n_channels, int(y1) - int(y0) + 1, int(x1) - int(x0) + 1), "f4",
+                            what="OpenEXR image", budget_mb=memory_budget_mb)
         with OpenEXR.File(str(p), separate_channels=True) as f:
             channels = {name: np.asarray(ch.pixels) for name, ch in f.channels().items()}
     spectral = [(exr_channel_wavelength(n), n) for n in channels]
@@ -465,7 +484,17 @@ def _find_cave_pngs(folder: Path) -> list[Path] | None:
     return [files[i] for i in range(1, 32)]
 
 
-def read_cave(path: str | os.PathLike, *, allow_negative: bool = False) -> Cube:
+def _png_header(f: Path) -> tuple[int, int, int]:
+    """(height, width, samples per pixel) from a PNG's IHDR chunk, without decoding the image."""
+    head = _head(f, 33)
+    if not head.startswith(_PNG_MAGIC) or head[12:16] != b"IHDR" or len(head) < 26:
+        raise InputError(f"{f}: not a PNG file (no PNG signature and IHDR header)")
+    width, height = int.from_bytes(head[16:20], "big"), int.from_bytes(head[20:24], "big")
+    samples = {0: 1, 2: 3, 3: 1, 4: 2, 6: 4}.get(head[25], 4)
+    return height, width, samples
+
+
+def read_cave(path: str | os.PathLike, *, allow_negative: bool = False, memory_budget_mb: float | None = None) -> Cube:
     """CAVE: a folder of 31 PNGs ``<name>_ms_01.png`` … ``_31.png`` (400-700 nm, 10 nm), 16-bit.
 
     Values are divided by the integer full scale (65535 for 16-bit, 255 for 8-bit images); a PNG
@@ -479,6 +508,10 @@ def read_cave(path: str | os.PathLike, *, allow_negative: bool = False) -> Cube:
     files = _find_cave_pngs(p)
     if files is None:
         raise InputError(f"{p}: no CAVE band images '*_ms_01.png' … '*_ms_31.png' found")
+    sizes = [_png_header(f) for f in files]
+    h_max, w_max = max(s[0] for s in sizes), max(s[1] for s in sizes)
+    check_memory_budget(p, (len(files), h_max, w_max), "f4", what="CAVE scene (31 PNG band images)",
+                        budget_mb=memory_budget_mb)
     planes = []
     for f in files:
         with _reading(f, "PNG"):
@@ -561,7 +594,7 @@ def _envi_data_for(hdr: Path) -> Path | None:
     return None
 
 
-def read_envi(path: str | os.PathLike, *, allow_negative: bool = False) -> Cube:
+def read_envi(path: str | os.PathLike, *, allow_negative: bool = False, memory_budget_mb: float | None = None) -> Cube:
     """ENVI: ``path`` is the ``.hdr`` or the raw data file next to it.
 
     Supports interleave bsq/bil/bip, data types 1-5 and 12-15, byte order, header offset,
@@ -601,6 +634,7 @@ def read_envi(path: str | os.PathLike, *, allow_negative: bool = False) -> Cube:
         raise InputError(f"{hdr}: unknown ENVI interleave {interleave!r} (expected bsq, bil or bip)")
     if min(samples, lines, nbands) <= 0:
         raise InputError(f"{hdr}: ENVI dimensions must be positive (samples={samples}, lines={lines}, bands={nbands})")
+    check_memory_budget(hdr, (nbands, lines, samples), dtype, what="ENVI cube", budget_mb=memory_budget_mb)
     count = samples * lines * nbands
     expected = offset + count * dtype.itemsize
     size = data.stat().st_size
@@ -693,14 +727,34 @@ def write_envi(path: str | os.PathLike, cube: np.ndarray, bands: Bands, *, inter
 # ------------------------------------------------------------------------------------------------
 # NumPy
 # ------------------------------------------------------------------------------------------------
-def read_npy(path: str | os.PathLike, *, bands: Bands | None = None, allow_negative: bool = False) -> Cube:
+def npy_header(path: str | os.PathLike) -> tuple[tuple[int, ...], np.dtype]:
+    """(shape, dtype) declared by a ``.npy`` file's header, without reading its data."""
+    p = Path(path)
+    with _reading(p, "NPY"):
+        with open(p, "rb") as fh:
+            version = np.lib.format.read_magic(fh)
+            if version == (1, 0):
+                shape, _, dtype = np.lib.format.read_array_header_1_0(fh)
+            elif version == (2, 0):
+                shape, _, dtype = np.lib.format.read_array_header_2_0(fh)
+            else:
+                raise InputError(f"{p}: unsupported NPY format version {version[0]}.{version[1]}")
+    return tuple(int(s) for s in shape), np.dtype(dtype)
+
+
+def read_npy(path: str | os.PathLike, *, bands: Bands | None = None, allow_negative: bool = False,
+             memory_budget_mb: float | None = None) -> Cube:
     """``.npy`` array (C, H, W). Bands: ``bands`` if given, else C bands evenly over 400-700 nm."""
     p = _as_path(path)
+    shape, dtype = npy_header(p)
+    if len(shape) != 3:
+        raise InputError(f"{p}: expected a 3-D array (bands, height, width), got {len(shape)} dimensions {shape}")
+    if dtype.hasobject:
+        raise InputError(f"{p}: the array holds Python objects ({dtype}); a cube holds numbers (pickles are never loaded)")
+    check_memory_budget(p, shape, dtype, what="NPY array", budget_mb=memory_budget_mb)
     with _reading(p, "NPY"):
         arr = np.load(p, mmap_mode="r", allow_pickle=False)
         arr = np.array(arr)
-    if arr.ndim != 3:
-        raise InputError(f"{p}: expected a 3-D array (bands, height, width), got {arr.ndim} dimensions {arr.shape}")
     if bands is None:
         bands = bands_400_700(arr.shape[0])
         log.info("%s: no band list given; assuming %d bands evenly spaced over 400-700 nm", p, arr.shape[0])
@@ -757,6 +811,7 @@ __all__ = [
     "bands_400_700",
     "detect_format",
     "exr_channel_wavelength",
+    "npy_header",
     "parse_envi_header",
     "read_arad",
     "read_cave",

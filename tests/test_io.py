@@ -1,0 +1,330 @@
+"""hsicam.io: output-path checks, atomic files and folders, completion markers, stale temporaries."""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import stat
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
+
+import pytest
+
+import hsicam.io as hio
+from hsicam.errors import InputError
+from hsicam.io import (
+    COMPLETE_MARKER,
+    atomic_open,
+    atomic_output,
+    atomic_path,
+    check_output_path,
+    cleanup_stale_temporaries,
+    clear_complete,
+    is_complete,
+    is_temporary,
+    mark_complete,
+    write_json,
+)
+
+SRC = str(Path(hio.__file__).parents[1])
+
+
+def one_line(exc: pytest.ExceptionInfo, *words: str) -> str:
+    msg = str(exc.value)
+    assert "\n" not in msg, msg
+    for w in words:
+        assert w in msg, msg
+    return msg
+
+
+def python(code: str, *args: str, prefix: tuple[str, ...] = ()) -> subprocess.CompletedProcess:
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([SRC, os.environ.get("PYTHONPATH", "")])}
+    return subprocess.run([*prefix, sys.executable, "-c", textwrap.dedent(code), *args],
+                          capture_output=True, text=True, timeout=120, env=env)
+
+
+def hidden(folder: Path) -> list[str]:
+    return sorted(p.name for p in folder.iterdir() if p.name.startswith("."))
+
+
+# ------------------------------------------------------------------------------------------------
+# No import-time side effects; permissions follow the umask
+# ------------------------------------------------------------------------------------------------
+def test_import_does_not_touch_the_umask(tmp_path):
+    res = python("""
+        import os, stat, sys
+        def forbidden(*args):
+            raise AssertionError("os.umask called")
+        os.umask(0o027)
+        real, os.umask = os.umask, forbidden
+        import hsicam.io as hio
+        hio.write_json(sys.argv[1] + "/a.json", {"x": 1})
+        with hio.atomic_output(sys.argv[1] + "/d") as d:
+            (d / "f.txt").write_text("x")
+        print(oct(stat.S_IMODE(os.stat(sys.argv[1] + "/a.json").st_mode)),
+              oct(stat.S_IMODE(os.stat(sys.argv[1] + "/d").st_mode)))
+    """, str(tmp_path))
+    assert res.returncode == 0, res.stderr
+    assert res.stdout.split() == ["0o640", "0o750"]  # 0o666 / 0o777 under umask 027
+
+
+def test_outputs_get_the_usual_permissions(tmp_path):
+    old = os.umask(0o022)
+    try:
+        write_json(tmp_path / "a.json", [1])
+        with atomic_output(tmp_path / "out") as d:
+            (d / "x.txt").write_text("x")
+    finally:
+        os.umask(old)
+    assert stat.S_IMODE((tmp_path / "a.json").stat().st_mode) == 0o644
+    assert stat.S_IMODE((tmp_path / "out").stat().st_mode) == 0o755
+
+
+# ------------------------------------------------------------------------------------------------
+# check_output_path
+# ------------------------------------------------------------------------------------------------
+def test_check_output_path_accepts_usable_paths(tmp_path):
+    (tmp_path / "file.h5").write_bytes(b"x")
+    (tmp_path / "dir").mkdir()
+    assert check_output_path(tmp_path / "file.h5", "file") == tmp_path / "file.h5"  # replaced atomically
+    assert check_output_path(tmp_path / "dir", "dir") == tmp_path / "dir"
+    assert check_output_path(tmp_path / "new" / "deeper" / "x.h5", "file")
+    assert check_output_path(tmp_path / "new" / "deeper", "dir")
+    assert not (tmp_path / "new").exists()  # a check creates nothing
+    with pytest.raises(ValueError):
+        check_output_path(tmp_path, "folder")
+
+
+def test_check_output_path_refuses(tmp_path):
+    f = tmp_path / "results.json"
+    f.write_text("{}")
+    d = tmp_path / "out"
+    d.mkdir()
+    cases = [
+        ((f, "dir"), [str(f), "existing file", "folder is needed"]),
+        ((d, "file"), [str(d), "existing folder", "file is needed"]),
+        ((f / "x.h5", "file"), [str(f / "x.h5"), f"inside {f}", "which is a file"]),
+        ((f / "a" / "b", "dir"), [str(f / "a" / "b"), f"inside {f}"]),
+        (("", "file"), ["empty"]),
+    ]
+    for args, words in cases:
+        with pytest.raises(InputError) as exc:
+            check_output_path(*args)
+        one_line(exc, *words)
+
+
+def test_atomic_writers_turn_os_errors_into_one_line(tmp_path):
+    f = tmp_path / "plain.txt"
+    f.write_text("x")
+    with pytest.raises(InputError) as exc:
+        write_json(f / "a.json", {})
+    one_line(exc, str(f / "a.json"), "which is a file")
+    with pytest.raises(InputError) as exc:
+        with atomic_output(f / "d"):
+            pass
+    one_line(exc, "which is a file")
+    assert f.read_text() == "x"
+
+
+def _permission_prefix() -> tuple[str, ...] | None:
+    """How to run a child in which a chmod 0o500 folder really is unwritable: nothing for a normal
+    user; for root, setpriv dropping the capabilities that bypass file permissions; None if neither."""
+    probe = Path(os.environ.get("TMPDIR", "/tmp"))
+    if os.geteuid() != 0:
+        return ()
+    if shutil.which("setpriv") is None:
+        return None
+    caps = "-dac_override,-dac_read_search,-fowner"
+    prefix = ("setpriv", f"--bounding-set={caps}", f"--inh-caps={caps}")
+    if subprocess.run([*prefix, "true"], capture_output=True, cwd=probe).returncode != 0:
+        return None
+    return prefix
+
+
+def test_unwritable_folders(tmp_path):
+    prefix = _permission_prefix()
+    if prefix is None:
+        pytest.skip("running as root without setpriv: chmod cannot make a folder unwritable here")
+    ro = tmp_path / "ro"
+    ro.mkdir()
+    (ro / "old.json").write_text("{}")
+    ro.chmod(0o500)
+    try:
+        res = python("""
+            import os, sys
+            from pathlib import Path
+            from hsicam.errors import InputError
+            from hsicam.io import atomic_output, check_output_path, write_json
+            ro = Path(sys.argv[1])
+            assert not os.access(ro, os.W_OK), "permissions are not enforced in this process"
+            checks = [lambda: check_output_path(ro, "dir"), lambda: check_output_path(ro / "new", "dir"),
+                      lambda: check_output_path(ro / "a" / "b" / "x.h5", "file"),
+                      lambda: check_output_path(ro / "old.json", "file"),
+                      lambda: write_json(ro / "x.json", {}), lambda: atomic_output(ro / "d").__enter__()]
+            for check in checks:
+                try:
+                    check()
+                    print("accepted")
+                except InputError as exc:
+                    print(exc)
+        """, str(ro), prefix=prefix)
+    finally:
+        ro.chmod(0o700)
+    assert res.returncode == 0, res.stderr
+    lines = res.stdout.strip().splitlines()
+    assert len(lines) == 6, res.stdout
+    assert "not writable" in lines[0] and lines[0].startswith(str(ro))
+    for line in lines[1:]:
+        assert f"the folder {ro} is not writable" in line, line
+    assert sorted(p.name for p in ro.iterdir()) == ["old.json"]
+
+
+# ------------------------------------------------------------------------------------------------
+# Atomic files
+# ------------------------------------------------------------------------------------------------
+def test_atomic_path_success_and_failure(tmp_path):
+    target = tmp_path / "a" / "b" / "x.txt"
+    with pytest.raises(RuntimeError):
+        with atomic_path(target) as tmp:
+            assert is_temporary(tmp.name) and tmp.suffix == ".txt" and tmp.parent == target.parent
+            tmp.write_text("half")
+            raise RuntimeError("writer failed")
+    assert not (tmp_path / "a").exists()  # the temporary and the folders made for it are gone
+    with atomic_open(target) as fh:
+        fh.write("whole")
+    assert target.read_text() == "whole" and hidden(target.parent) == []
+    with pytest.raises(KeyboardInterrupt):
+        with atomic_open(target) as fh:
+            fh.write("new")
+            raise KeyboardInterrupt
+    assert target.read_text() == "whole" and hidden(target.parent) == []
+
+
+# ------------------------------------------------------------------------------------------------
+# Atomic folders and markers
+# ------------------------------------------------------------------------------------------------
+def test_atomic_output_folder(tmp_path):
+    out = tmp_path / "new" / "eval"
+    with atomic_output(out, marker={"command": "evaluate"}) as d:
+        assert d.parent == out.parent and is_temporary(d.name) and not out.exists()
+        (d / "results.json").write_text("{}")
+    assert sorted(p.name for p in out.iterdir()) == [COMPLETE_MARKER, "results.json"]
+    assert is_complete(out)
+    assert json.loads((out / COMPLETE_MARKER).read_text()) == {"complete": True, "command": "evaluate"}
+    assert hidden(out.parent) == []
+    with atomic_output(tmp_path / "plain", marker=False) as d:
+        (d / "x").write_text("x")
+    assert not is_complete(tmp_path / "plain")
+
+
+def test_atomic_output_failure_leaves_nothing(tmp_path):
+    out = tmp_path / "a" / "b" / "eval"
+    for exc_type in (RuntimeError, KeyboardInterrupt):
+        with pytest.raises(exc_type):
+            with atomic_output(out) as d:
+                (d / "results.json").write_text("{}")
+                raise exc_type()
+        assert not (tmp_path / "a").exists()
+
+
+def test_atomic_output_replaces_only_what_it_may(tmp_path):
+    out = tmp_path / "eval"
+    out.mkdir()  # an empty folder is simply replaced
+    with atomic_output(out) as d:
+        (d / "v1.txt").write_text("1")
+    with pytest.raises(InputError) as exc:  # a completed output: only with overwrite=True
+        with atomic_output(out) as d:
+            raise AssertionError("must not run")
+    one_line(exc, str(out), "completed output")
+    with atomic_output(out, overwrite=True) as d:
+        (d / "v2.txt").write_text("2")
+    assert sorted(p.name for p in out.iterdir()) == [COMPLETE_MARKER, "v2.txt"] and hidden(tmp_path) == []
+    mine = tmp_path / "mine"
+    mine.mkdir()
+    (mine / "thesis.tex").write_text("precious")
+    with pytest.raises(InputError) as exc:  # a user's own folder is never deleted
+        with atomic_output(mine, overwrite=True):
+            raise AssertionError("must not run")
+    one_line(exc, str(mine), "not empty")
+    assert (mine / "thesis.tex").read_text() == "precious"
+    f = tmp_path / "file"
+    f.write_text("x")
+    with pytest.raises(InputError, match="existing file"):
+        with atomic_output(f):
+            raise AssertionError("must not run")
+
+
+def test_atomic_output_restores_the_old_folder_if_the_swap_fails(tmp_path, monkeypatch):
+    out = tmp_path / "eval"
+    with atomic_output(out) as d:
+        (d / "v1.txt").write_text("1")
+    real, calls = os.rename, []
+
+    def flaky(src, dst):
+        calls.append((Path(src).name, Path(dst).name))
+        if len(calls) == 2:  # old → aside worked; new → place fails
+            raise OSError(28, "No space left on device")
+        return real(src, dst)
+
+    monkeypatch.setattr(os, "rename", flaky)
+    with pytest.raises(OSError):
+        with atomic_output(out, overwrite=True) as d:
+            (d / "v2.txt").write_text("2")
+    monkeypatch.undo()
+    assert sorted(p.name for p in out.iterdir()) == [COMPLETE_MARKER, "v1.txt"] and hidden(tmp_path) == []
+
+
+def test_atomic_file_output(tmp_path):
+    with atomic_output(tmp_path / "x.h5", "file") as tmp:
+        tmp.write_bytes(b"data")
+    assert (tmp_path / "x.h5").read_bytes() == b"data" and hidden(tmp_path) == []
+
+
+def test_markers(tmp_path):
+    assert not is_complete(tmp_path)
+    p = mark_complete(tmp_path, {"files": 3})
+    assert p == tmp_path / COMPLETE_MARKER and is_complete(tmp_path)
+    assert json.loads(p.read_text()) == {"complete": True, "files": 3}
+    clear_complete(tmp_path)
+    assert not is_complete(tmp_path)
+    clear_complete(tmp_path)  # idempotent
+
+
+# ------------------------------------------------------------------------------------------------
+# A killed writer, then the cleanup
+# ------------------------------------------------------------------------------------------------
+def test_killed_writer_leaves_only_a_hidden_temporary_that_cleanup_removes(tmp_path):
+    res = python("""
+        import os, signal, sys
+        from pathlib import Path
+        from hsicam.io import atomic_output, atomic_open
+        out = Path(sys.argv[1])
+        with atomic_open(out / "model.safetensors", "wb") as fh:
+            fh.write(b"half")
+            with atomic_output(out / "eval") as d:
+                (d / "results.json").write_text("{")
+                os.kill(os.getpid(), signal.SIGKILL)
+    """, str(tmp_path))
+    assert res.returncode == -9
+    assert not (tmp_path / "eval").exists() and not (tmp_path / "model.safetensors").exists()
+    left = hidden(tmp_path)
+    assert len(left) == 2 and all(is_temporary(n) for n in left), left
+    keep = [tmp_path / ".gitignore", tmp_path / COMPLETE_MARKER, tmp_path / ".a.tmp.h5", tmp_path / "x.12345678.tmp"]
+    for k in keep:
+        k.write_text("keep")
+    assert cleanup_stale_temporaries(tmp_path, min_age_s=3600) == []  # too fresh: maybe still being written
+    removed = cleanup_stale_temporaries(tmp_path)
+    assert sorted(p.name for p in removed) == left
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted(k.name for k in keep)
+    assert cleanup_stale_temporaries(tmp_path / "missing") == []
+
+
+def test_cleanup_recursive(tmp_path):
+    (tmp_path / "ckpt" / "step_10").mkdir(parents=True)
+    stale = tmp_path / "ckpt" / "step_10" / ".model.0a1b2c3d.tmp.safetensors"
+    stale.write_bytes(b"")
+    assert cleanup_stale_temporaries(tmp_path) == []
+    assert cleanup_stale_temporaries(tmp_path, recursive=True) == [stale] and not stale.exists()
