@@ -23,9 +23,7 @@ def dataset_root(cfg: DataConfig, bands: Bands, progress: bool | None = None) ->
     """
     if cfg.root is not None:
         return Path(cfg.root).expanduser()
-    from hsicam.data.synthetic import synthetic_dataset
-
-    from hsicam.data.synthetic import DEFAULT_HOLDOUT
+    from hsicam.data.synthetic import DEFAULT_HOLDOUT, synthetic_dataset
 
     return synthetic_dataset(cfg.synthetic_n, cfg.synthetic_size, cfg.synthetic_seed, bands,
                              cache_dir=cfg.cache_dir, progress=progress,

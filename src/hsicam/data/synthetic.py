@@ -25,7 +25,7 @@ Scene kinds (a fixed schedule over the scene index, so every kind appears in sma
 
 Lighting: one light source, two blended across the scene, or sun and sky (cast shadows lit only
 by a second, daylight source); a wide range of shading; specular highlights that carry the local
-light's spectrum; dark scenes (the lit scene dimmed by up to 100×, highlights and emitters left
+light's spectrum; dark scenes (the lit scene dimmed 3-100×, highlights and emitters left
 bright). Spectra are integrated over each band's Gaussian response (FWHM from :class:`Bands`) on
 a 1 nm grid, so lamp lines land in the right bands. Each scene is divided by its maximum (values
 in [0, 1]) and written as our HDF5 (:func:`hsicam.data.formats.write_cube_h5`).
