@@ -40,19 +40,44 @@ def test_synth_then_show(tmp_path):
     again = run("data", "synth", "--n", "3", "--size", "40", "--seed", "11", "--out", "ds", cwd=tmp_path)
     assert again.returncode == 0 and "already" in again.stdout
 
-    r = run("data", "show", "ds", "--out", "preview", cwd=tmp_path)
+    r = run("data", "synth", "--n", "2", "--size", "40", "--seed", "11", "--split", "heldout", "--out", "ho",
+            cwd=tmp_path)
+    assert r.returncode == 0, r.stderr
+    assert "held-out scenes" in r.stdout and "nist-philips, rawtoaces" in r.stdout
+    _, _, meta = read_cube(tmp_path / "ho" / "scene_0000.h5")
+    assert meta["split"] == "heldout" and meta["holdout_sources"] == ["nist-philips", "rawtoaces"]
+
+    r = run("data", "show", "ds", "--out", "preview", "--heldout", "ho", cwd=tmp_path)
     assert r.returncode == 0, r.stderr
     sheet, plot = tmp_path / "preview" / "contact_sheet.png", tmp_path / "preview" / "mean_spectra.png"
-    for png in (sheet, plot):
+    gamut = tmp_path / "preview" / "spectral_gamut.png"
+    assert "preview/spectral_gamut.png" in r.stdout
+    for png in (sheet, plot, gamut):
         img = iio.imread(png)
         assert img.ndim == 3 and img.shape[0] > 100 and img.shape[1] > 100
         assert np.asarray(img[..., :3]).std() > 5  # not blank
     assert not [p for p in (tmp_path / "preview").iterdir() if p.name.startswith(".")]  # atomic: no leftovers
 
 
+def test_synth_holdout_flag_and_sources(tmp_path):
+    r = run("data", "synth", "--n", "1", "--size", "24", "--holdout-sources", "cie-tcs,rawtoaces", "--out", "a",
+            cwd=tmp_path)
+    assert r.returncode == 0, r.stderr
+    _, _, meta = read_cube(tmp_path / "a" / "scene_0000.h5")
+    assert meta["holdout_sources"] == ["cie-tcs", "rawtoaces"] and meta["split"] == "train"
+    r = run("data", "sources", cwd=tmp_path)
+    assert r.returncode == 0, r.stderr
+    ids = [ln.split()[0] for ln in r.stdout.splitlines()]
+    assert {"rawtoaces", "cie-tcs", "nist-philips", "led-model", "otsu2018"} <= set(ids)
+
+
 @pytest.mark.parametrize("args,words", [
     (("data", "show", "missing_dir"), ["missing_dir", "no such"]),
     (("data", "synth", "--n", "0", "--out", "x"), ["--n"]),
+    (("data", "synth", "--n", "1", "--holdout-sources", "rawtoaces,bogus", "--out", "x"),
+     ["bogus", "valid ids", "cie-tcs"]),
+    (("data", "synth", "--n", "1", "--holdout-sources", "none", "--split", "heldout", "--out", "x"),
+     ["held-out source"]),
 ])
 def test_bad_input_is_one_line_exit_2(tmp_path, args, words):
     r = run(*args, cwd=tmp_path)

@@ -71,7 +71,7 @@ def test_values_bands_and_shapes(dataset):
         assert meta["kind"] == s["kind"] and meta["seed"] == 3
         kinds.add(s["kind"])
         assert hashlib.sha256((out / s["file"]).read_bytes()).hexdigest() == s["sha256"]
-    assert kinds == {"photo", "dead_leaves", "smooth", "texture", "edges"}
+    assert kinds == {"photo", "dead_leaves", "smooth", "texture", "edges", "emitters"}
 
 
 def test_manifest(dataset):
@@ -79,8 +79,13 @@ def test_manifest(dataset):
     on_disk = json.loads((out / "manifest.json").read_text())
     assert on_disk == json.loads(json.dumps(manifest))
     assert on_disk["parameters"] == syn.parameters(8, 48, 3, PAPER)
-    assert on_disk["sources"]["reflectances"]["rawtoaces training data v1 (190 patches)"] == 190
-    assert {"daylight", "fluorescent", "led"} <= set(on_disk["sources"]["illuminants"])
+    assert on_disk["parameters"]["holdout_sources"] == sorted(syn.DEFAULT_HOLDOUT)
+    assert on_disk["parameters"]["split"] == "train"
+    counts = on_disk["sources"]["counts"]
+    assert counts["reflectances"]["cie-ces"] == 99 and counts["reflectances"]["colorchecker"] >= 70
+    assert not set(syn.DEFAULT_HOLDOUT) & (set(counts["reflectances"]) | set(counts["illuminants"]))
+    assert {"daylight", "fluorescent", "led"} <= set(on_disk["sources"]["illuminant_groups"])
+    assert set(on_disk["sources"]["descriptions"]) <= set(syn.SOURCES)
     assert len(on_disk["statistics"]["mean_spectrum"]) == 31
     assert on_disk["statistics"]["max"] == 1.0 and on_disk["statistics"]["min"] >= 0.0
 

@@ -1,4 +1,5 @@
-"""`hsicam data ...`: generate the synthetic dataset (`synth`) and preview a dataset (`show`)."""
+"""`hsicam data ...`: generate the synthetic dataset (`synth`), list its spectral sources
+(`sources`) and preview a dataset (`show`)."""
 
 from __future__ import annotations
 
@@ -9,55 +10,104 @@ from pathlib import Path
 def register(sub: argparse._SubParsersAction) -> None:
     from hsicam.cli import add_config_args
 
-    p = sub.add_parser("data", help="hyperspectral datasets: generate, show")
+    p = sub.add_parser("data", help="hyperspectral datasets: generate, list spectral sources, show")
     actions = p.add_subparsers(dest="data_command", metavar="ACTION", parser_class=type(p))
     actions.required = True
 
     s = actions.add_parser("synth", help="generate the embedded synthetic dataset (our HDF5 + manifest.json)")
-    s.add_argument("--n", type=int, default=None, help="number of scenes (default: data.synthetic_n)")
+    s.add_argument("--n", type=int, default=None,
+                   help="number of scenes (default: data.synthetic_n; 8 for --split heldout)")
     s.add_argument("--size", type=int, default=None, help="scene side in px (default: data.synthetic_size)")
     s.add_argument("--seed", type=int, default=None, help="random seed (default: data.synthetic_seed)")
+    s.add_argument("--holdout-sources", metavar="IDS", default=None,
+                   help="comma-separated spectral source ids whose spectra never reach the training scenes "
+                        "(default: nist-philips,rawtoaces; 'none' for none; see `hsicam data sources`)")
+    s.add_argument("--split", choices=("train", "heldout"), default="train",
+                   help="train (default): scenes without the held-out sources; heldout: the held-out "
+                        "validation set, made only of the held-out sources' spectra")
     s.add_argument("--out", metavar="DIR", default=None,
                    help="output folder (default: the cache, $HSICAM_CACHE or ~/.cache/hsicam)")
     s.add_argument("--no-progress", action="store_true", help="no progress bar")
     add_config_args(s)
     s.set_defaults(func=_synth)
 
-    v = actions.add_parser("show", help="contact sheet of sRGB renders and mean spectra of a dataset or cube")
+    c = actions.add_parser("sources", help="list the generator's spectral sources (ids for --holdout-sources)")
+    c.set_defaults(func=_sources)
+
+    v = actions.add_parser("show", help="contact sheet, mean spectra and spectral gamut of a dataset or cube")
     v.add_argument("path", metavar="DIR", help="dataset folder, or one cube file / CAVE folder")
     v.add_argument("--out", metavar="DIR", default=None, help="where to write the PNGs (default: DIR)")
     v.add_argument("--max-scenes", type=int, default=16, help="at most this many scenes (default 16)")
+    v.add_argument("--heldout", metavar="DIR", default=None,
+                   help="held-out dataset to compare in the gamut plot (default: the cached companion of a "
+                        "synthetic set, when present)")
     v.set_defaults(func=_show)
 
 
 def _synth(args: argparse.Namespace) -> int:
     from hsicam.config import load_config
-    from hsicam.data.synthetic import generate_dataset, is_complete, synthetic_dataset
+    from hsicam.data.synthetic import (
+        DEFAULT_HOLDOUT,
+        HELDOUT_N,
+        generate_dataset,
+        is_complete,
+        parse_holdout,
+        synthetic_dataset,
+    )
     from hsicam.errors import InputError
 
     cfg = load_config(args.config, args.overrides)
-    n = cfg.data.synthetic_n if args.n is None else args.n
+    holdout = DEFAULT_HOLDOUT if args.holdout_sources is None else parse_holdout(args.holdout_sources)
+    split = args.split
+    if args.n is not None:
+        n = args.n
+    else:
+        n = HELDOUT_N if split == "heldout" else cfg.data.synthetic_n
     size = cfg.data.synthetic_size if args.size is None else args.size
     seed = cfg.data.synthetic_seed if args.seed is None else args.seed
     if n < 1 or size < 16:
         raise InputError(f"--n must be >= 1 and --size >= 16, got {n} and {size}")
+    if split == "heldout" and not holdout:
+        raise InputError("--split heldout needs at least one held-out source (--holdout-sources)")
     bands = cfg.bands.to_bands()
     progress = False if args.no_progress else None
+    kw = {"holdout_sources": holdout, "split": split}
     if args.out is None:
-        out = synthetic_dataset(n, size, seed, bands, cache_dir=cfg.data.cache_dir, progress=progress)
+        out = synthetic_dataset(n, size, seed, bands, cache_dir=cfg.data.cache_dir, progress=progress, **kw)
     else:
         out = Path(args.out)
-        if is_complete(out, n, size, seed, bands):
-            print(f"{out}: already holds this dataset (n={n}, size={size}, seed={seed})")
+        if is_complete(out, n, size, seed, bands, **kw):
+            print(f"{out}: already holds this dataset (n={n}, size={size}, seed={seed}, split={split})")
             return 0
-        generate_dataset(out, n=n, size=size, seed=seed, bands=bands, progress=progress)
-    print(f"wrote {n} scenes of {size}x{size}x{len(bands)} to {out}")
+        generate_dataset(out, n=n, size=size, seed=seed, bands=bands, progress=progress, **kw)
+    what = "held-out scenes" if split == "heldout" else "scenes"
+    print(f"wrote {n} {what} of {size}x{size}x{len(bands)} to {out} (held-out sources: {', '.join(holdout) or 'none'})")
+    return 0
+
+
+def _sources(args: argparse.Namespace) -> int:
+    from hsicam.data.spectral_sources import DEFAULT_HOLDOUT, SOURCES
+
+    counts: dict[str, int] = {}
+    try:
+        from hsicam.data.spectral_sources import spectral_library
+        from hsicam.spectral import Bands
+
+        for role in spectral_library(Bands.paper()).counts().values():
+            for k, v in role.items():
+                counts[k] = counts.get(k, 0) + v
+    except Exception:  # colour-science missing: list the registry without counts
+        counts = {}
+    for s in SOURCES.values():
+        n = str(counts.get(s.id, "-")) if counts else "?"
+        mark = " (held out by default)" if s.id in DEFAULT_HOLDOUT else ""
+        print(f"{s.id:18s} {s.role:15s} {n:>4s}  {s.origin}{mark}")
     return 0
 
 
 def _show(args: argparse.Namespace) -> int:
     from hsicam.data.preview import write_preview
 
-    for path in write_preview(args.path, args.out, max_scenes=args.max_scenes):
+    for path in write_preview(args.path, args.out, max_scenes=args.max_scenes, heldout=args.heldout):
         print(path)
     return 0

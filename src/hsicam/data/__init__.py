@@ -23,13 +23,14 @@ from hsicam.data.formats import (
     write_cube_h5,
     write_envi,
 )
-from hsicam.data.pipeline import build_datasets, dataset_root, make_loader
+from hsicam.data.pipeline import build_datasets, dataset_root, heldout_root, make_loader
 
 __all__ = [
     "FORMATS",
     "PatchDataset",
     "build_datasets",
     "dataset_root",
+    "heldout_root",
     "make_loader",
     "SceneDataset",
     "check_cube",

@@ -16,13 +16,38 @@ log = logging.getLogger(__name__)
 
 
 def dataset_root(cfg: DataConfig, bands: Bands, progress: bool | None = None) -> Path:
-    """``cfg.root``, or the cached synthetic dataset on ``bands`` (generated on first use)."""
+    """``cfg.root``, or the cached synthetic dataset on ``bands`` (generated on first use).
+
+    The synthetic training set holds out ``cfg.holdout_sources`` when the config has that key, else
+    :data:`hsicam.data.synthetic.DEFAULT_HOLDOUT` (see :func:`heldout_root` for the held-out set).
+    """
     if cfg.root is not None:
         return Path(cfg.root).expanduser()
-    from hsicam.data.synthetic import synthetic_dataset
+    from hsicam.data.synthetic import DEFAULT_HOLDOUT, synthetic_dataset
 
     return synthetic_dataset(cfg.synthetic_n, cfg.synthetic_size, cfg.synthetic_seed, bands,
-                             cache_dir=cfg.cache_dir, progress=progress)
+                             cache_dir=cfg.cache_dir, progress=progress,
+                             holdout_sources=getattr(cfg, "holdout_sources", DEFAULT_HOLDOUT))
+
+
+def heldout_root(cfg: DataConfig, bands: Bands, n: int | None = None, progress: bool | None = None) -> Path | None:
+    """The held-out-sources validation set that goes with :func:`dataset_root`, or None for real data.
+
+    Same size, seed, bands, cache and held-out sources as the synthetic training set
+    (``cfg.holdout_sources`` when the config has that key, else
+    :data:`hsicam.data.synthetic.DEFAULT_HOLDOUT`); ``n`` scenes (default
+    :data:`hsicam.data.synthetic.HELDOUT_N`). Generated on first use and cached. None when
+    ``cfg.root`` is set (a folder of real data has no held-out sources) or no source is held out.
+    """
+    if cfg.root is not None:
+        return None
+    from hsicam.data.synthetic import DEFAULT_HOLDOUT, HELDOUT_N, heldout_dataset, parse_holdout
+
+    holdout = parse_holdout(getattr(cfg, "holdout_sources", DEFAULT_HOLDOUT))
+    if not holdout:
+        return None
+    return heldout_dataset(HELDOUT_N if n is None else n, cfg.synthetic_size, cfg.synthetic_seed, bands,
+                           cache_dir=cfg.cache_dir, progress=progress, holdout_sources=holdout)
 
 
 def _should_preload(cfg: DataConfig, scenes: list[Path]) -> bool:
@@ -70,4 +95,4 @@ def make_loader(dataset: Dataset, batch_size: int, num_workers: int = 2, shuffle
                       pin_memory=False)
 
 
-__all__ = ["build_datasets", "dataset_root", "make_loader"]
+__all__ = ["build_datasets", "dataset_root", "heldout_root", "make_loader"]

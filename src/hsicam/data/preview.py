@@ -1,4 +1,5 @@
-"""Previews of a dataset: a contact sheet of sRGB renders and a plot of mean spectra.
+"""Previews of a dataset: a contact sheet of sRGB renders, a plot of mean spectra and a
+spectral-gamut plot (first two principal components of spectral shapes: training against held-out).
 
 Display rule (previews only, not the data): each cube is normalised by its maximum (the data
 policy), rendered with :func:`hsicam.color.cube_to_srgb` (CIE 1931 2°, D65), after an exposure
@@ -27,6 +28,7 @@ log = logging.getLogger(__name__)
 
 CONTACT_SHEET = "contact_sheet.png"
 MEAN_SPECTRA = "mean_spectra.png"
+SPECTRAL_GAMUT = "spectral_gamut.png"
 
 
 def preview_rgb(cube: np.ndarray, bands: Bands, max_side: int = 192) -> np.ndarray:
@@ -48,11 +50,14 @@ def preview_rgb(cube: np.ndarray, bands: Bands, max_side: int = 192) -> np.ndarr
     return np.moveaxis(cube_to_srgb(c * exposure, sub), 0, -1)
 
 
-def write_preview(path: str | os.PathLike, out_dir: str | os.PathLike | None = None, max_scenes: int = 16) -> list[Path]:
-    """Write ``contact_sheet.png`` and ``mean_spectra.png`` for a dataset folder or one cube file.
+def write_preview(path: str | os.PathLike, out_dir: str | os.PathLike | None = None, max_scenes: int = 16,
+                  heldout: str | os.PathLike | None = None) -> list[Path]:
+    """Write ``contact_sheet.png``, ``mean_spectra.png`` and ``spectral_gamut.png`` for a dataset.
 
-    ``out_dir`` defaults to the dataset folder (the file's folder for a single file). Both PNGs
-    are written atomically. Returns their paths.
+    ``path`` is a dataset folder or one cube file; ``out_dir`` defaults to the dataset folder (the
+    file's folder for a single file). ``heldout``: a held-out dataset folder to compare in the
+    gamut plot (default: for a cached synthetic set, its held-out companion when one exists). All
+    PNGs are written atomically. Returns their paths.
     """
     from matplotlib.figure import Figure
 
@@ -89,8 +94,135 @@ def write_preview(path: str | os.PathLike, out_dir: str | os.PathLike | None = N
         ax.legend(fontsize=6, ncol=2)
     plot = out / MEAN_SPECTRA
     save_figure(fig, plot)
-    log.info("wrote %s and %s", sheet, plot)
-    return [sheet, plot]
+    gamut = write_spectral_gamut(path, out / SPECTRAL_GAMUT, heldout=heldout, max_scenes=max_scenes)
+    log.info("wrote %s, %s and %s", sheet, plot, gamut)
+    return [sheet, plot, gamut]
 
 
-__all__ = ["CONTACT_SHEET", "MEAN_SPECTRA", "preview_rgb", "write_preview"]
+# ------------------------------------------------------------------------------------------------
+# Spectral gamut: PCA of spectral shapes
+# ------------------------------------------------------------------------------------------------
+def _shapes(spectra: np.ndarray) -> np.ndarray:
+    """Spectra (N, C) → unit-norm shapes, dropping (near-)black ones."""
+    x = np.asarray(spectra, dtype=np.float64)
+    norm = np.linalg.norm(x, axis=1)
+    keep = norm > 1e-3 * max(float(norm.max(initial=0.0)), 1e-30)
+    return x[keep] / norm[keep, None]
+
+
+def pixel_spectra(scenes: list[Path], bands: Bands | None = None, per_scene: int = 400, seed: int = 0) -> tuple[np.ndarray, Bands]:
+    """Up to ``per_scene`` random pixel spectra (N, C) from each scene (normalised cubes)."""
+    rng = np.random.default_rng(seed)
+    out = []
+    for s in scenes:
+        cube, b, _ = read_cube(s)
+        if bands is None:
+            bands = b
+        elif not b.matches(bands):
+            continue
+        pix = cube.reshape(cube.shape[0], -1).T
+        idx = rng.choice(pix.shape[0], size=min(per_scene, pix.shape[0]), replace=False)
+        out.append(pix[np.sort(idx)])
+    if bands is None or not out:
+        raise InputError("no scenes to sample spectra from")
+    return np.concatenate(out), bands
+
+
+def _find_heldout(path: Path) -> Path | None:
+    """The held-out companion of a cached synthetic training set (same size, seed, bands, held-out sources)."""
+    import json
+
+    def params(d: Path) -> dict | None:
+        try:
+            return json.loads((d / "manifest.json").read_text(encoding="utf-8")).get("parameters")
+        except (OSError, ValueError):
+            return None
+
+    mine = params(path) if path.is_dir() else None
+    if not mine or mine.get("split", "train") != "train" or not mine.get("holdout_sources"):
+        return None
+    for d in sorted(path.parent.glob("heldout-*")):
+        p = params(d)
+        if p and all(p.get(k) == mine.get(k) for k in ("generator_version", "size", "seed", "bands", "holdout_sources")):
+            return d
+    return None
+
+
+def _library_shapes(path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray, str] | None:
+    """(training measured, training derived, held-out) reflectance shapes for a synthetic set, or None.
+
+    Needs colour-science (the generator's library); returns None without it or for other datasets.
+    """
+    import json
+
+    try:
+        params = json.loads((path / "manifest.json").read_text(encoding="utf-8"))["parameters"]
+        holdout = params["holdout_sources"]
+        bands = Bands.from_dict(params["bands"])
+    except (OSError, ValueError, KeyError, TypeError, InputError):
+        return None
+    if not holdout:
+        return None
+    try:
+        from hsicam.data.synthetic import palette, spectral_library
+
+        train = spectral_library(bands, holdout, "train")
+        held = spectral_library(bands, holdout, "heldout")
+    except (InputError, ImportError):
+        return None
+    derived, _ = palette(np.random.default_rng(0), train, 3000)
+    label = ", ".join(holdout)
+    return _shapes(train.reflectances), _shapes(derived), _shapes(held.reflectances), label
+
+
+def write_spectral_gamut(path: str | os.PathLike, out_png: str | os.PathLike, heldout: str | os.PathLike | None = None,
+                         max_scenes: int = 16) -> Path:
+    """Scatter of the first two principal components of spectral shapes (unit-norm spectra).
+
+    Left (synthetic sets with held-out sources, colour-science installed): the reflectance library
+    — measured training spectra, spectra derived from them (mixtures, layers, basis draws), held-out
+    spectra. Right: pixel spectra of the dataset's scenes against those of the held-out set.
+    """
+    from matplotlib.figure import Figure
+
+    path = Path(path)
+    out_png = Path(out_png)
+    held_dir = Path(heldout) if heldout is not None else _find_heldout(path)
+    scenes = list_scenes(path)[: max(1, int(max_scenes))]
+    pix, bands = pixel_spectra(scenes)
+    groups = [("dataset pixels", _shapes(pix), "tab:blue", "o")]
+    if held_dir is not None:
+        hpix, _ = pixel_spectra(list_scenes(held_dir)[: max(1, int(max_scenes))], bands, seed=1)
+        groups.append((f"held-out pixels ({held_dir.name})", _shapes(hpix), "tab:red", "x"))
+    lib = _library_shapes(path) if path.is_dir() else None
+    panels = [("scene pixel spectra", groups)]
+    if lib is not None:
+        measured, derived, held, label = lib
+        panels.insert(0, ("reflectance library", [
+            ("training: derived (mixtures, layers, basis draws)", derived, "tab:cyan", "."),
+            ("training: measured", measured, "tab:blue", "o"),
+            (f"held out ({label})", held, "tab:red", "x")]))
+    fig = Figure(figsize=(6.2 * len(panels), 5.0))
+    for k, (title, data) in enumerate(panels):
+        allx = np.concatenate([d for _, d, _, _ in data])
+        mean = allx.mean(axis=0)
+        _, sv, vt = np.linalg.svd(allx - mean, full_matrices=False)
+        var = sv ** 2 / max(float((sv ** 2).sum()), 1e-30)
+        ax = fig.add_subplot(1, len(panels), k + 1)
+        for name, d, color, marker in data:
+            pc = (d - mean) @ vt[:2].T
+            ax.scatter(pc[:, 0], pc[:, 1], s=6 if marker != "x" else 14, c=color, marker=marker, alpha=0.5,
+                       linewidths=0.8, label=f"{name} ({len(d)})")
+        ax.set_xlabel(f"PC1 ({100 * var[0]:.0f} % of variance)")
+        ax.set_ylabel(f"PC2 ({100 * var[1]:.0f} % of variance)")
+        ax.set_title(f"{title}: spectral shapes", fontsize=10)
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=7, loc="best", markerscale=2)
+    fig.suptitle(f"{path.name}: spectral gamut (PCA of unit-norm spectra, {bands.min_nm:g}-{bands.max_nm:g} nm)",
+                 fontsize=10)
+    save_figure(fig, out_png)
+    return out_png
+
+
+__all__ = ["CONTACT_SHEET", "MEAN_SPECTRA", "SPECTRAL_GAMUT", "pixel_spectra", "preview_rgb", "write_preview",
+           "write_spectral_gamut"]

@@ -1,33 +1,43 @@
-"""The embedded synthetic hyperspectral dataset (DESIGN.md §4).
+"""The embedded synthetic hyperspectral dataset (DESIGN.md §4, issue #14).
 
-Real datasets cannot be shipped, so the default dataset is generated from material that is:
-spatial structure from scikit-image's bundled photos and textures (those that load offline) and
-procedural region maps; spectra from measurements shipped with colour-science.
+Real datasets cannot be shipped, so the default dataset is generated. Spectra come from the
+sources of :mod:`hsicam.data.spectral_sources` (every measured reflectance set and light-source
+collection that colour-science ships, plus documented physical models), and from spectra derived
+from them per scene: linear mixtures, Kubelka-Munk pigment mixtures, layered glazes (products),
+wet surfaces (powers) and smooth draws in the principal-component space of the measured
+reflectances (clipped to [0, 1]). Spatial structure comes from scikit-image's bundled photos and
+textures and from procedural scenes.
 
 Scene kinds (a fixed schedule over the scene index, so every kind appears in small sets):
 
-- ``photo``: a random crop of a bundled colour photo; sRGB → XYZ → reflectance by Otsu et al.
-  (2018) (colour-science's basis, 380-730 nm), vectorised here; then lit by an illuminant.
-- ``dead_leaves``: occluding discs, ellipses and rotated rectangles with a power-law size
-  distribution, each painted with a measured reflectance (rawtoaces' 190 training patches, the
-  ColorChecker sets, CIE test colour samples), per-leaf shading gradients, some leaves textured,
-  plus a few specular highlights (interface reflection = the illuminant's spectrum).
-- ``smooth``: smooth spatial blends of 2-4 measured reflectances (gradients).
-- ``texture``: a bundled grey-level texture (brick, grass, gravel, …) mixing two reflectances.
+- ``dead_leaves``: occluding discs, ellipses and rotated rectangles at every scale (radii from
+  ~0.5 px to a quarter of the scene, power law), shaded, some textured.
+- ``photo``: a crop of a bundled colour photo; sRGB → reflectance by Otsu et al. (2018), or, when
+  ``otsu2018`` is held out, the photo's RGB as weights of three library spectra.
+- ``texture``: a bundled texture or a procedural one (1/f noise, weaves, speckle) at full
+  resolution, mixing two or three spectra.
 - ``edges``: fine periodic and sharp structure (Siemens stars, bars, zone plates, slanted edges,
-  checkerboards, text) between reflectance pairs.
+  checkerboards, text, thin lines, glyphs) between spectra.
+- ``smooth``: smooth blends of 2-4 spectra, always overlaid with thin lines, glyphs and small
+  occluders (no scene kind is smoothed away by a 9×9 box without loss).
+- ``emitters``: a dark scene with near-monochromatic emitters (LED dots with glow, display
+  subpixels, LED signs) when the library has emitters, else bright highlights.
 
-Every scene is lit by a CIE illuminant or measured light source (daylight of random CCT,
-incandescent, fluorescent with its sharp mercury lines, LEDs, discharge lamps), sometimes by two
-mixed across the scene, and shaded by a smooth field. Spectra are integrated over each band's
-Gaussian response (FWHM from :class:`Bands`) on a 1 nm grid, so fluorescent lines land in the
-right bands instead of being point-sampled. Each scene is divided by its maximum (values in
-[0, 1]) and written as our HDF5 (:func:`hsicam.data.formats.write_cube_h5`).
+Lighting: one light source, two blended across the scene, or sun and sky (cast shadows lit only
+by a second, daylight source); a wide range of shading; specular highlights that carry the local
+light's spectrum; dark scenes (the lit scene dimmed 3-100×, highlights and emitters left
+bright). Spectra are integrated over each band's Gaussian response (FWHM from :class:`Bands`) on
+a 1 nm grid, so lamp lines land in the right bands. Each scene is divided by its maximum (values
+in [0, 1]) and written as our HDF5 (:func:`hsicam.data.formats.write_cube_h5`).
 
-Determinism: scene ``i`` of seed ``s`` is drawn from ``numpy.random.default_rng((s, i))`` and does
-not depend on the number of scenes; the same seed and library versions give identical bytes.
-colour-science is imported only here and only while generating; training on the cached files
-does not need it.
+Held-out protocol: ``holdout_sources`` names sources (:data:`SOURCES`) whose spectra never reach
+the training scenes; ``split="heldout"`` builds scenes from those sources only
+(:func:`heldout_dataset`). The default dataset holds out :data:`DEFAULT_HOLDOUT`.
+
+Determinism: scene ``i`` of seed ``s`` is drawn from ``numpy.random.default_rng((s, i))`` (held-out
+scenes from ``(s, i, HELDOUT_STREAM)``) and does not depend on the number of scenes; the same seed
+and library versions give identical bytes. colour-science is imported only while generating;
+training on the cached files does not need it.
 """
 
 from __future__ import annotations
@@ -38,30 +48,48 @@ import json
 import logging
 import os
 import sys
-from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any, Callable, Iterable
 
 import numpy as np
 
 from hsicam.data.formats import write_cube_h5
+from hsicam.data.spectral_sources import (
+    DEFAULT_HOLDOUT,
+    SOURCES,
+    SUPPORTED_RANGE_NM,
+    OtsuModel,
+    SpectralLibrary,
+    band_matrix,
+    check_bands,
+    parse_holdout,
+    spectral_library,
+    split_library,
+)
 from hsicam.errors import InputError
 from hsicam.io import write_json
 from hsicam.spectral import Bands
 
 log = logging.getLogger(__name__)
 
-GENERATOR_VERSION = 1
+GENERATOR_VERSION = 2
 MANIFEST = "manifest.json"
 SCENE_PATTERN = "scene_{:04d}.h5"
-SCHEDULE = ("photo", "dead_leaves", "photo", "texture", "dead_leaves", "smooth", "photo", "edges")
+SPLITS = ("train", "heldout")
+#: Third element of the random stream of held-out scenes (so they never repeat a training scene).
+HELDOUT_STREAM = 0x4E1D
+#: Default number of scenes in the held-out validation set.
+HELDOUT_N = 8
+SCHEDULE = ("dead_leaves", "photo", "texture", "edges", "dead_leaves", "smooth", "emitters", "texture", "photo",
+            "dead_leaves")
 PHOTOS = ("astronaut", "chelsea", "coffee", "rocket", "motorcycle_left", "motorcycle_right",
           "immunohistochemistry", "colorwheel", "retina", "hubble_deep_field")
 TEXTURES = ("brick", "grass", "gravel", "camera", "moon", "coins", "clock")
-#: Band centres the generator can serve (Otsu 2018 covers 380-730 nm; tails are held constant).
-SUPPORTED_RANGE_NM = (380.0, 730.0)
-_ILLUMINANT_GROUP_WEIGHTS = {"daylight": 0.40, "fluorescent": 0.25, "incandescent": 0.13, "led": 0.15,
-                             "discharge": 0.05, "other": 0.02}
+_ILLUMINANT_GROUP_WEIGHTS = {"daylight": 0.36, "fluorescent": 0.22, "incandescent": 0.16, "led": 0.16,
+                             "discharge": 0.07, "other": 0.03}
+#: How the reflectance of a surface is made: a measured spectrum or one derived from measured ones.
+PALETTE_KINDS = ("measured", "mix", "pigment", "layer", "wet", "basis")
+_PALETTE_P = np.array([0.40, 0.10, 0.15, 0.10, 0.05, 0.20])
 
 
 # ------------------------------------------------------------------------------------------------
@@ -76,37 +104,84 @@ def default_cache_dir() -> Path:
     return (Path(xdg).expanduser() if xdg else Path.home() / ".cache") / "hsicam"
 
 
-def parameters(n: int, size: int, seed: int, bands: Bands) -> dict[str, Any]:
+def _check_split(split: str) -> str:
+    if split not in SPLITS:
+        raise InputError(f"split must be one of {', '.join(SPLITS)}, got {split!r}")
+    return split
+
+
+def parameters(n: int, size: int, seed: int, bands: Bands, *,
+               holdout_sources: str | Iterable[str] | None = DEFAULT_HOLDOUT, split: str = "train") -> dict[str, Any]:
     """The generator parameters that determine the dataset's bytes (the cache key's content)."""
     return {"generator_version": GENERATOR_VERSION, "n": int(n), "size": int(size), "seed": int(seed),
-            "bands": bands.to_dict()}
+            "bands": bands.to_dict(), "holdout_sources": list(parse_holdout(holdout_sources)),
+            "split": _check_split(split)}
 
 
-def cache_key(n: int, size: int, seed: int, bands: Bands) -> str:
+def cache_key(n: int, size: int, seed: int, bands: Bands, *,
+              holdout_sources: str | Iterable[str] | None = DEFAULT_HOLDOUT, split: str = "train") -> str:
     """A short hash of :func:`parameters`."""
-    text = json.dumps(parameters(n, size, seed, bands), sort_keys=True)
+    text = json.dumps(parameters(n, size, seed, bands, holdout_sources=holdout_sources, split=split), sort_keys=True)
     return hashlib.sha256(text.encode()).hexdigest()[:12]
 
 
-def synthetic_dataset(n: int = 32, size: int = 256, seed: int = 0, bands: Bands | None = None,
-                      cache_dir: str | os.PathLike | None = None, progress: bool | None = None) -> Path:
-    """Folder of the synthetic dataset for these parameters, generated on first use and cached."""
-    bands = bands or Bands.paper()
+def dataset_dir(n: int, size: int, seed: int, bands: Bands, *, cache_dir: str | os.PathLike | None = None,
+                holdout_sources: str | Iterable[str] | None = DEFAULT_HOLDOUT, split: str = "train") -> Path:
+    """Where the cached dataset with these parameters lives (whether or not it exists yet).
+
+    ``<cache>/synthetic/n{n}-s{size}-seed{seed}-{key}`` for training sets,
+    ``<cache>/synthetic/heldout-n{n}-s{size}-seed{seed}-{key}`` for held-out sets.
+    """
     root = Path(cache_dir).expanduser() if cache_dir else default_cache_dir()
-    out = root / "synthetic" / f"n{n}-s{size}-seed{seed}-{cache_key(n, size, seed, bands)}"
-    if is_complete(out, n, size, seed, bands):
+    key = cache_key(n, size, seed, bands, holdout_sources=holdout_sources, split=split)
+    prefix = "heldout-" if split == "heldout" else ""
+    return root / "synthetic" / f"{prefix}n{n}-s{size}-seed{seed}-{key}"
+
+
+def synthetic_dataset(n: int = 32, size: int = 256, seed: int = 0, bands: Bands | None = None,
+                      cache_dir: str | os.PathLike | None = None, progress: bool | None = None, *,
+                      holdout_sources: str | Iterable[str] | None = DEFAULT_HOLDOUT, split: str = "train") -> Path:
+    """Folder of the synthetic dataset for these parameters, generated on first use and cached.
+
+    By default the training scenes hold out :data:`DEFAULT_HOLDOUT`; ``holdout_sources=()`` uses
+    every source. ``split="heldout"`` gives the held-out set instead (see :func:`heldout_dataset`).
+    """
+    bands = bands or Bands.paper()
+    holdout = parse_holdout(holdout_sources)
+    out = dataset_dir(n, size, seed, bands, cache_dir=cache_dir, holdout_sources=holdout, split=split)
+    if is_complete(out, n, size, seed, bands, holdout_sources=holdout, split=split):
         log.debug("synthetic dataset cached at %s", out)
         return out
-    log.info("generating the synthetic dataset (%d scenes of %dx%dx%d) in %s", n, size, size, len(bands), out)
-    generate_dataset(out, n=n, size=size, seed=seed, bands=bands, progress=progress)
+    log.info("generating the synthetic %s set (%d scenes of %dx%dx%d, held-out sources: %s) in %s", split, n, size,
+             size, len(bands), ", ".join(holdout) or "none", out)
+    generate_dataset(out, n=n, size=size, seed=seed, bands=bands, progress=progress, holdout_sources=holdout,
+                     split=split)
     return out
 
 
-def is_complete(out: str | os.PathLike, n: int, size: int, seed: int, bands: Bands) -> bool:
+def heldout_dataset(n: int = HELDOUT_N, size: int = 256, seed: int = 0, bands: Bands | None = None,
+                    cache_dir: str | os.PathLike | None = None, progress: bool | None = None, *,
+                    holdout_sources: str | Iterable[str] | None = DEFAULT_HOLDOUT) -> Path:
+    """Folder of the held-out validation set: scenes made only of the held-out sources' spectra.
+
+    Cached like the training set (``<cache>/synthetic/heldout-…``). Use the same ``size``, ``seed``,
+    ``bands`` and ``holdout_sources`` as the training set it validates: then none of its spectra
+    (nor any mixture of them) occurs in those training scenes. Where no source of a role is held
+    out (e.g. only lamps), that role uses the training spectra (see
+    :func:`hsicam.data.spectral_sources.split_library`); the manifest's ``sources.held_out_roles``
+    says which.
+    """
+    return synthetic_dataset(n, size, seed, bands, cache_dir, progress, holdout_sources=holdout_sources,
+                             split="heldout")
+
+
+def is_complete(out: str | os.PathLike, n: int, size: int, seed: int, bands: Bands, *,
+                holdout_sources: str | Iterable[str] | None = DEFAULT_HOLDOUT, split: str = "train") -> bool:
     """True when ``out`` holds a finished dataset with exactly these parameters."""
     out = Path(out)
     man = _read_manifest(out)
-    if man is None or man.get("parameters") != parameters(n, size, seed, bands):
+    if man is None or man.get("parameters") != parameters(n, size, seed, bands, holdout_sources=holdout_sources,
+                                                          split=split):
         return False
     return all((out / s["file"]).is_file() for s in man.get("scenes", []))
 
@@ -119,30 +194,34 @@ def _read_manifest(out: Path) -> dict[str, Any] | None:
 
 
 def generate_dataset(out: str | os.PathLike, n: int, size: int, seed: int = 0, bands: Bands | None = None,
-                     progress: bool | None = None) -> dict[str, Any]:
+                     progress: bool | None = None, *, holdout_sources: str | Iterable[str] | None = DEFAULT_HOLDOUT,
+                     split: str = "train") -> dict[str, Any]:
     """Write ``n`` scenes (``scene_0000.h5`` …) and ``manifest.json`` (last) into ``out``.
 
-    Every file is written atomically; the manifest marks a finished dataset. Refuses a folder
-    holding another dataset's manifest or foreign cube files. ``progress=None`` shows a tqdm bar
-    only on a terminal. Returns the manifest.
+    ``split="train"`` (default): scenes without the held-out sources' spectra; ``"heldout"``: scenes
+    made of them only. Every file is written atomically; the manifest marks a finished dataset.
+    Refuses a folder holding another dataset's manifest or foreign cube files. ``progress=None``
+    shows a tqdm bar only on a terminal. Returns the manifest.
     """
     from tqdm.auto import tqdm
 
     bands = bands or Bands.paper()
+    holdout = parse_holdout(holdout_sources)
+    _check_split(split)
     if n < 1:
         raise InputError(f"synthetic: need at least one scene, got n={n}")
     if size < 16:
         raise InputError(f"synthetic: scenes must be at least 16 px, got size={size}")
     check_bands(bands)
     out = Path(out)
-    _check_output_dir(out, n, size, seed, bands)
+    params = parameters(n, size, seed, bands, holdout_sources=holdout, split=split)
+    lib = spectral_library(bands, holdout, split)
+    _check_output_dir(out, params)
     out.mkdir(parents=True, exist_ok=True)
-    params = parameters(n, size, seed, bands)
-    lib = spectral_library(bands)
     show = sys.stderr.isatty() if progress is None else progress
     scenes = []
     sum_spectrum = np.zeros(len(bands))
-    for i in tqdm(range(n), desc="synthetic scenes", unit="scene", disable=not show):
+    for i in tqdm(range(n), desc=f"synthetic {split} scenes", unit="scene", disable=not show):
         cube, info = generate_scene(i, seed, size, lib)
         name = SCENE_PATTERN.format(i)
         meta = {"dataset": "hsicam-synthetic", "index": i, **params, **info}
@@ -158,10 +237,11 @@ def generate_dataset(out: str | os.PathLike, n: int, size: int, seed: int = 0, b
     manifest = {
         "format": "hsicam-synthetic",
         "parameters": params,
-        "key": cache_key(n, size, seed, bands),
+        "key": cache_key(n, size, seed, bands, holdout_sources=holdout, split=split),
         "normalisation": "each scene is divided by its maximum over bands and pixels (values in [0, 1])",
         "software": _versions(),
-        "sources": lib.sources,
+        "sources": {**lib.sources, "photos": list(PHOTOS), "textures": list(TEXTURES),
+                    "descriptions": {k: SOURCES[k].origin for k in _used_sources(lib)}},
         "statistics": {
             "kinds": kinds,
             "min": min(s["min"] for s in scenes),
@@ -175,13 +255,20 @@ def generate_dataset(out: str | os.PathLike, n: int, size: int, seed: int = 0, b
     return manifest
 
 
-def _check_output_dir(out: Path, n: int, size: int, seed: int, bands: Bands) -> None:
+def _used_sources(lib: SpectralLibrary) -> list[str]:
+    used = set(lib.reflectance_sources) | set(lib.illuminant_sources) | set(lib.emitter_sources)
+    if lib.otsu is not None:
+        used.add("otsu2018")
+    return [k for k in SOURCES if k in used]
+
+
+def _check_output_dir(out: Path, params: dict[str, Any]) -> None:
     if not out.exists():
         return
     if not out.is_dir():
         raise InputError(f"{out}: exists and is not a folder")
     man = _read_manifest(out)
-    if man is not None and man.get("parameters") != parameters(n, size, seed, bands):
+    if man is not None and man.get("parameters") != params:
         raise InputError(f"{out}: holds a synthetic dataset with other parameters; choose another --out or remove it")
     from hsicam.data.datasets import SCENE_SUFFIXES
 
@@ -205,236 +292,6 @@ def _versions() -> dict[str, str]:
         except metadata.PackageNotFoundError:
             out[dist] = "unknown"
     return out
-
-
-def check_bands(bands: Bands) -> None:
-    lo, hi = SUPPORTED_RANGE_NM
-    if bands.min_nm < lo or bands.max_nm > hi:
-        raise InputError(f"synthetic: bands {bands.min_nm:g}-{bands.max_nm:g} nm are outside the generator's "
-                         f"{lo:g}-{hi:g} nm (the range of its measured spectra)")
-
-
-# ------------------------------------------------------------------------------------------------
-# Spectral library (built once per band grid; the only place colour-science is used)
-# ------------------------------------------------------------------------------------------------
-@dataclass
-class SpectralLibrary:
-    """Measured spectra integrated onto a band grid."""
-
-    bands: Bands
-    reflectances: np.ndarray  # (K, C) float32
-    reflectance_names: list[str]
-    illuminants: np.ndarray  # (L, C) float32, mean 1 over the bands
-    illuminant_names: list[str]
-    illuminant_groups: dict[str, list[int]]
-    otsu: "OtsuModel"
-    srgb_to_xyz: Callable[[np.ndarray], np.ndarray]
-    sources: dict[str, Any] = field(default_factory=dict)
-
-
-def band_matrix(bands: Bands, fine_nm: np.ndarray) -> np.ndarray:
-    """G (C, F): band-averaging weights of each band's Gaussian response (FWHM) on the fine grid."""
-    sigma = bands.fwhm_nm / (2.0 * np.sqrt(2.0 * np.log(2.0)))
-    g = np.exp(-0.5 * ((fine_nm[None, :] - bands.centers_nm[:, None]) / sigma[:, None]) ** 2)
-    g[np.abs(fine_nm[None, :] - bands.centers_nm[:, None]) > 3.0 * sigma[:, None]] = 0.0
-    return g / g.sum(axis=1, keepdims=True)
-
-
-def _fine_grid(bands: Bands) -> np.ndarray:
-    sigma_max = float(bands.fwhm_nm.max()) / 2.3548
-    lo = np.floor(bands.min_nm - 3 * sigma_max)
-    hi = np.ceil(bands.max_nm + 3 * sigma_max)
-    return np.arange(lo, hi + 0.5, 1.0)
-
-
-def _illuminant_group(name: str) -> str | None:
-    if name.startswith("ISO 7589") or name == "LPS":
-        return None  # ISO 7589 stops at 690 nm; low-pressure sodium is monochromatic
-    if name.startswith("CIE D ") or name in ("D50", "D55", "D60", "D65", "D75", "ID50", "ID65", "B", "C"):
-        return "daylight"
-    if name in ("A", "SA", "SC", "Incandescent", "60 A/W (Soft White)", "Neodimium Incandescent"):
-        return "incandescent" if name != "SC" else "daylight"
-    if "LED" in name or name.startswith("PHOS") or name.startswith("Luxeon"):
-        return "led"
-    if name.startswith(("FL", "F32", "F34", "F40", "T8", "Philips", "Thorn")) or name.endswith(" FL") or name == "Natural":
-        return "fluorescent"
-    if name.startswith(("HP", "MHC", "H38", "SDW", "C100")) or name in ("HPS", "Super HPS", "Mercury", "Metal Halide"):
-        return "discharge"
-    return "other"
-
-
-@functools.lru_cache(maxsize=4)
-def _library_cached(centers: tuple[float, ...], fwhm: tuple[float, ...]) -> SpectralLibrary:
-    import colour
-    from colour.characterisation import read_training_data_rawtoaces_v1
-    from colour.quality.datasets import SDS_TCS
-
-    bands = Bands(np.array(centers), np.array(fwhm))
-    fine = _fine_grid(bands)
-    G = band_matrix(bands, fine)
-
-    def integrate(wl: np.ndarray, values: np.ndarray) -> np.ndarray:
-        # linear interpolation onto the fine grid (ends held constant), then band averaging
-        return G @ np.interp(fine, wl, values)
-
-    def covers(wl: np.ndarray) -> bool:
-        return wl[0] <= fine[0] + 10.0 and wl[-1] >= fine[-1] - 10.0
-
-    refl, names, counts = [], [], {}
-    td = read_training_data_rawtoaces_v1()
-    for j, label in enumerate(td.labels):
-        refl.append(integrate(td.wavelengths, np.clip(td.values[:, j], 0.0, None)))
-        names.append(f"rawtoaces:{label}")
-    counts["rawtoaces training data v1 (190 patches)"] = len(td.labels)
-    for set_name in ("ColorChecker N Ohta", "BabelColor Average", "ISO 17321-1"):
-        sds = colour.SDS_COLOURCHECKERS[set_name]
-        used = 0
-        for patch, sd in sds.items():
-            if covers(sd.wavelengths):
-                refl.append(integrate(sd.wavelengths, np.clip(sd.values, 0.0, None)))
-                names.append(f"{set_name}:{patch}")
-                used += 1
-        counts[f"ColorChecker: {set_name}"] = used
-    for set_name, sds in SDS_TCS.items():
-        for patch, sd in sds.items():
-            refl.append(integrate(sd.wavelengths, np.clip(sd.values, 0.0, None)))
-            names.append(f"TCS {set_name}:{patch}")
-        counts[f"CIE test colour samples ({set_name})"] = len(sds)
-
-    illum, inames = [], []
-    candidates: list[tuple[str, np.ndarray, np.ndarray]] = []
-    for cct in range(4000, 20001, 1000):
-        xy = colour.temperature.CCT_to_xy_CIE_D(float(cct))
-        sd = colour.sd_CIE_illuminant_D_series(xy)
-        candidates.append((f"CIE D {cct}K", sd.wavelengths, sd.values))
-    for src in (colour.SDS_ILLUMINANTS, colour.SDS_LIGHT_SOURCES):
-        for name, sd in src.items():
-            candidates.append((name, sd.wavelengths, sd.values))
-    groups: dict[str, list[int]] = {}
-    skipped = []
-    for name, wl, values in candidates:
-        group = _illuminant_group(name)
-        if group is None or not covers(wl) or name in inames:
-            skipped.append(name)
-            continue
-        e = integrate(wl, np.clip(values, 0.0, None))
-        if not e.mean() > 0 or e.min() < 0:
-            skipped.append(name)
-            continue
-        groups.setdefault(group, []).append(len(illum))
-        illum.append(e / e.mean())
-        inames.append(name)
-    if skipped:
-        log.debug("synthetic: light sources not used (range/type): %s", ", ".join(skipped))
-
-    otsu = OtsuModel.build(bands, fine, G)
-    srgb_to_xyz = functools.partial(colour.sRGB_to_XYZ)
-    sources = {
-        "reflectances": counts,
-        "illuminants": {g: [inames[i] for i in idx] for g, idx in groups.items()},
-        "rgb_to_spectrum": "Otsu, Yamamoto & Hachisuka (2018), colour-science basis (8 clusters, 380-730 nm)",
-        "photos": list(PHOTOS),
-        "textures": list(TEXTURES),
-        "colour_science_version": colour.__version__,
-    }
-    return SpectralLibrary(bands, np.asarray(refl, dtype=np.float32), names, np.asarray(illum, dtype=np.float32),
-                           inames, groups, otsu, srgb_to_xyz, sources)
-
-
-def spectral_library(bands: Bands) -> SpectralLibrary:
-    """The measured reflectances, light sources and Otsu 2018 model on ``bands`` (cached)."""
-    import warnings
-
-    check_bands(bands)
-    try:
-        with warnings.catch_warnings():  # colour-science reports its (expected) re-samplings as warnings
-            warnings.filterwarnings("ignore", message=r".*(shape could not be honoured|Interpolating|Aligning).*")
-            return _library_cached(tuple(bands.centers_nm.tolist()), tuple(bands.fwhm_nm.tolist()))
-    except ImportError as exc:
-        raise InputError(f"generating the synthetic dataset needs colour-science (pip install 'hsicam[synth]'): {exc}") from None
-
-
-@dataclass
-class OtsuModel:
-    """Otsu et al. (2018) RGB→spectrum recovery, vectorised over pixels.
-
-    Per cluster k (chosen by a kd-tree on CIE xy): reflectance = mean_k + w·basis_k with the three
-    weights solving XYZ(reflectance) = XYZ under D65 and the CIE 1931 2° observer; clipped to
-    [0, 1] on the 380-730 nm, 10 nm grid (as colour-science's ``XYZ_to_sd_Otsu2018``).
-    """
-
-    selector: np.ndarray  # (R, 4): origin, axis, lesser, greater
-    basis: np.ndarray  # (K, 3, S)
-    means: np.ndarray  # (K, S)
-    m_inv: np.ndarray  # (K, 3, 3)
-    xyz_mu: np.ndarray  # (K, 3)
-    wavelengths: np.ndarray  # (S,)
-    to_bands: np.ndarray  # (C, S): Otsu grid → band averages
-
-    @classmethod
-    def build(cls, bands: Bands, fine: np.ndarray, G: np.ndarray) -> "OtsuModel":
-        from colour import SpectralDistribution, sd_to_XYZ
-        from colour.colorimetry import handle_spectral_arguments
-        from colour.recovery import (
-            BASIS_FUNCTIONS_OTSU2018,
-            CLUSTER_MEANS_OTSU2018,
-            SELECTOR_ARRAY_OTSU2018,
-            SPECTRAL_SHAPE_OTSU2018,
-        )
-        from colour.utilities import domain_range_scale
-
-        wl = SPECTRAL_SHAPE_OTSU2018.wavelengths
-        cmfs, illuminant = handle_spectral_arguments(None, None, shape_default=SPECTRAL_SHAPE_OTSU2018)
-        basis = np.asarray(BASIS_FUNCTIONS_OTSU2018, dtype=np.float64)
-        means = np.asarray(CLUSTER_MEANS_OTSU2018, dtype=np.float64)
-
-        def xyz(values: np.ndarray) -> np.ndarray:
-            with domain_range_scale("ignore"):
-                return np.asarray(sd_to_XYZ(SpectralDistribution(values, wl), cmfs, illuminant)) / 100.0
-
-        k = basis.shape[0]
-        m_inv = np.empty((k, 3, 3))
-        xyz_mu = np.empty((k, 3))
-        for c in range(k):
-            m = np.stack([xyz(basis[c, i]) for i in range(3)], axis=1)
-            m_inv[c] = np.linalg.inv(m)
-            xyz_mu[c] = xyz(means[c])
-        interp = np.stack([np.interp(fine, wl, np.eye(len(wl))[j]) for j in range(len(wl))], axis=1)  # (F, S)
-        return cls(np.asarray(SELECTOR_ARRAY_OTSU2018, dtype=np.float64), basis, means, m_inv, xyz_mu,
-                   np.asarray(wl, dtype=np.float64), G @ interp)
-
-    def clusters(self, xy: np.ndarray) -> np.ndarray:
-        """Cluster index (N,) for chromaticities xy (N, 2), walking the selector tree."""
-        n = xy.shape[0]
-        node = np.zeros(n, dtype=np.int64)
-        result = np.full(n, -1, dtype=np.int64)
-        active = np.arange(n)
-        for _ in range(self.selector.shape[0] + 1):
-            if active.size == 0:
-                break
-            row = self.selector[node[active]]
-            coord = xy[active, row[:, 1].astype(np.int64)]
-            nxt = np.where(coord <= row[:, 0], row[:, 2], row[:, 3]).astype(np.int64)
-            leaf = nxt >= 0
-            result[active[leaf]] = nxt[leaf]
-            node[active[~leaf]] = -nxt[~leaf]
-            active = active[~leaf]
-        return result
-
-    def reflectance(self, xyz: np.ndarray) -> np.ndarray:
-        """Recovered reflectance (N, S) on :attr:`wavelengths` for XYZ (N, 3), clipped to [0, 1]."""
-        xyz = np.asarray(xyz, dtype=np.float64)
-        total = xyz.sum(axis=1, keepdims=True)
-        safe = np.where(total > 0, total, 1.0)
-        xy = np.where(total > 0, xyz[:, :2] / safe, np.array([0.3127, 0.3290]))
-        idx = self.clusters(xy)
-        out = np.empty((xyz.shape[0], self.basis.shape[2]))
-        for c in np.unique(idx):
-            sel = idx == c
-            w = (xyz[sel] - self.xyz_mu[c]) @ self.m_inv[c].T
-            out[sel] = w @ self.basis[c] + self.means[c]
-        return np.clip(out, 0.0, 1.0)
-
 
 # ------------------------------------------------------------------------------------------------
 # Images bundled with scikit-image
@@ -537,10 +394,61 @@ def dead_leaves_labels(rng: np.random.Generator, size: int, n_leaves: int, r_min
     return labels, params
 
 
+
+
+def power_law_noise(rng: np.random.Generator, size: int, beta: float) -> np.ndarray:
+    """A random field (size, size) in [0, 1] with power spectrum ∝ 1/f^beta (detail down to 1 px)."""
+    fy = np.fft.fftfreq(size)[:, None]
+    fx = np.fft.rfftfreq(size)[None, :]
+    f = np.sqrt(fx * fx + fy * fy)
+    f[0, 0] = 1.0
+    amp = f ** (-beta / 2.0)
+    amp[0, 0] = 0.0
+    spec = amp * (rng.standard_normal(amp.shape) + 1j * rng.standard_normal(amp.shape))
+    t = np.fft.irfft2(spec, s=(size, size))
+    lo, hi = np.percentile(t, [1, 99])
+    return np.clip((t - lo) / max(hi - lo, 1e-12), 0.0, 1.0).astype(np.float32)
+
+
+def line_coverage(size: int, y0: float, x0: float, y1: float, x1: float, width: float) -> tuple[slice, slice, np.ndarray]:
+    """Anti-aliased coverage in [0, 1] of a line segment of ``width`` px: (rows, cols, window)."""
+    pad = width / 2.0 + 1.5
+    ya, yb = max(int(min(y0, y1) - pad), 0), min(int(max(y0, y1) + pad) + 1, size)
+    xa, xb = max(int(min(x0, x1) - pad), 0), min(int(max(x0, x1) + pad) + 1, size)
+    if ya >= yb or xa >= xb:
+        return slice(0, 0), slice(0, 0), np.zeros((0, 0), dtype=np.float32)
+    yy = np.arange(ya, yb, dtype=np.float32)[:, None] + 0.5
+    xx = np.arange(xa, xb, dtype=np.float32)[None, :] + 0.5
+    dy, dx = y1 - y0, x1 - x0
+    length2 = max(dy * dy + dx * dx, 1e-9)
+    t = np.clip(((yy - y0) * dy + (xx - x0) * dx) / length2, 0.0, 1.0)
+    dist = np.hypot(yy - (y0 + t * dy), xx - (x0 + t * dx))
+    cov = np.clip(width / 2.0 + 0.5 - dist, 0.0, 1.0) * min(width, 1.0)
+    return slice(ya, yb), slice(xa, xb), cov.astype(np.float32)
+
+
+def glyph_text(rng: np.random.Generator, h: int, w: int) -> np.ndarray:
+    """Text-like mask (h, w) in {0, 1}: rows of random 3×5 glyphs at 1-3 px per glyph cell."""
+    s = int(rng.integers(1, 4))
+    gh, gw = 5 * s, 3 * s
+    rows = max(1, (h + 2 * s) // (gh + 2 * s))
+    cols = max(1, (w + s) // (gw + s))
+    bits = rng.random((rows, cols, 5, 3)) < 0.55
+    bits[rng.random((rows, cols)) < 0.18] = False  # word gaps
+    cell = np.zeros((rows, 5 + 2, cols, 3 + 1), dtype=np.float32)
+    cell[:, :5, :, :3] = bits.transpose(0, 2, 1, 3)
+    mask = np.kron(cell.reshape(rows * 7, cols * 4), np.ones((s, s), dtype=np.float32))
+    out = np.zeros((h, w), dtype=np.float32)
+    hh, ww = min(h, mask.shape[0]), min(w, mask.shape[1])
+    out[:hh, :ww] = mask[:hh, :ww]
+    return out
+
+
 def _pattern(rng: np.random.Generator, n: int) -> tuple[np.ndarray, str]:
     """A fine-structure pattern (n, n) in [0, 1] and its name."""
     yy, xx = np.mgrid[0:n, 0:n].astype(np.float32) + 0.5 - n / 2
-    kind = ("siemens_star", "bars", "zone_plate", "slanted_edge", "checkerboard", "text")[int(rng.integers(6))]
+    kinds = ("siemens_star", "bars", "zone_plate", "slanted_edge", "checkerboard", "text", "thin_lines", "glyphs")
+    kind = kinds[int(rng.integers(len(kinds)))]
     if kind == "siemens_star":
         spokes = int(rng.integers(8, 37))
         t = (np.sin(spokes * np.arctan2(yy, xx)) > 0).astype(np.float32)
@@ -555,161 +463,427 @@ def _pattern(rng: np.random.Generator, n: int) -> tuple[np.ndarray, str]:
         theta = np.deg2rad(float(rng.uniform(2.0, 12.0))) + float(rng.integers(4)) * np.pi / 2
         t = (np.cos(theta) * xx + np.sin(theta) * yy > 0).astype(np.float32)
     elif kind == "checkerboard":
-        period = int(rng.integers(2, 17))
+        period = int(rng.integers(1, 17))
         t = (((xx + n) // period + (yy + n) // period) % 2).astype(np.float32)
-    else:
+    elif kind == "text":
         page = _texture(("text", "page")[int(rng.integers(2))])
         t = _random_crop(rng, page, n, max_zoom_out=1.0)
         t = (t > 0.5).astype(np.float32)
+    elif kind == "thin_lines":
+        t = np.zeros((n, n), dtype=np.float32)
+        for _ in range(int(rng.integers(5, 30))):
+            y0, x0, y1, x1 = rng.uniform(-0.2, 1.2, 4) * n
+            ys, xs, cov = line_coverage(n, y0, x0, y1, x1, float(rng.uniform(0.4, 2.5)))
+            t[ys, xs] = np.maximum(t[ys, xs], cov)
+    else:
+        t = glyph_text(rng, n, n)
     return t.astype(np.float32), kind
+
+
+# ------------------------------------------------------------------------------------------------
+# Spectra of a scene (drawn from the library it is given: a training scene never sees held-out ones)
+# ------------------------------------------------------------------------------------------------
+def _km_ks(r: np.ndarray) -> np.ndarray:
+    r = np.clip(r, 1e-3, 1.0)
+    return (1.0 - r) ** 2 / (2.0 * r)
+
+
+def _km_r(ks: np.ndarray) -> np.ndarray:
+    return 1.0 + ks - np.sqrt(ks * ks + 2.0 * ks)
+
+
+def palette(rng: np.random.Generator, lib: SpectralLibrary, k: int) -> tuple[np.ndarray, np.ndarray]:
+    """``k`` reflectances (k, C) float32 in [0, 1] and their kind index into :data:`PALETTE_KINDS`.
+
+    measured: a library spectrum; mix: linear mixture of two (side-by-side fibres, sub-pixel
+    mixing); pigment: Kubelka-Munk mixture of three (K/S additive); layer: a glaze over a base,
+    ``r1 · r2^d``; wet: ``r^γ``, γ ∈ [1.3, 2.5] (darker, more saturated); basis: a draw around a
+    measured spectrum in the space of the library's first 8 principal components, negatives set to 0
+    and scaled into [0, 1]
+    (only when the library has a basis: never in held-out sets).
+    """
+    refl = lib.reflectances.astype(np.float64)
+    n_refl = refl.shape[0]
+    p = _PALETTE_P.copy()
+    if lib.basis is None:
+        p[0] += p[5]
+        p[5] = 0.0
+    kind = rng.choice(len(PALETTE_KINDS), size=k, p=p / p.sum())
+    i1, i2, i3 = rng.integers(n_refl, size=(3, k))
+    t = rng.uniform(0.15, 0.85, (k, 1))
+    w = rng.dirichlet([1.0, 1.0, 1.0], size=k)
+    depth = rng.uniform(0.4, 1.6, (k, 1))
+    gamma = rng.uniform(1.3, 2.5, (k, 1))
+    z = rng.standard_normal((k, 8))
+    r1, r2, r3 = refl[i1], refl[i2], refl[i3]
+    out = r1.copy()
+    m = kind == 1
+    out[m] = t[m] * r1[m] + (1.0 - t[m]) * r2[m]
+    m = kind == 2
+    if m.any():
+        ks = w[m, 0:1] * _km_ks(r1[m]) + w[m, 1:2] * _km_ks(r2[m]) + w[m, 2:3] * _km_ks(r3[m])
+        out[m] = _km_r(ks)
+    m = kind == 3
+    out[m] = r1[m] * r2[m] ** depth[m]
+    m = kind == 4
+    out[m] = r1[m] ** gamma[m]
+    m = kind == 5
+    if m.any() and lib.basis is not None:
+        b = lib.basis
+        q = b.components.shape[0]
+        a = b.coeffs[i1[m]] + 0.5 * z[m, :q] * b.sigma
+        draw = np.maximum(b.mean + a @ b.components, 0.0)
+        # project into [0, 1] by scaling (clipping at 1 would flatten bright draws into a spectrally flat white)
+        out[m] = draw / np.maximum(draw.max(axis=1, keepdims=True), 1.0)
+    return np.clip(out, 0.0, 1.0).astype(np.float32), kind
+
+
+def _pick_illuminant(rng: np.random.Generator, lib: SpectralLibrary, group: str | None = None) -> int:
+    groups = [g for g in _ILLUMINANT_GROUP_WEIGHTS if g in lib.illuminant_groups]
+    p = np.array([_ILLUMINANT_GROUP_WEIGHTS[g] for g in groups])
+    g = groups[int(rng.choice(len(groups), p=p / p.sum()))]
+    if group is not None and group in lib.illuminant_groups:
+        g = group
+    members = lib.illuminant_groups[g]
+    return int(members[int(rng.integers(len(members)))])
+
+
+def _details(rng: np.random.Generator, albedo: np.ndarray, lib: SpectralLibrary) -> dict[str, Any]:
+    """Paint thin lines, a block of glyphs and small occluders onto ``albedo`` (H, W, C) in place."""
+    size = albedo.shape[0]
+    n_lines = int(rng.integers(3, 25))
+    spectra, _ = palette(rng, lib, n_lines + 2)
+    for j in range(n_lines):
+        y0, x0 = rng.uniform(0, size, 2)
+        length = float(rng.uniform(size / 10, size))
+        ang = float(rng.uniform(0, np.pi))
+        ys, xs, cov = line_coverage(size, y0, x0, y0 + length * np.sin(ang), x0 + length * np.cos(ang),
+                                    float(rng.uniform(0.4, 2.5)))
+        if cov.size:
+            a = cov[..., None]
+            albedo[ys, xs] = albedo[ys, xs] * (1.0 - a) + a * spectra[j]
+    text = rng.random() < 0.5
+    if text:
+        h, w = (int(v) for v in rng.integers(size // 8, size // 2 + 1, 2))
+        y, x = int(rng.integers(0, size - h + 1)), int(rng.integers(0, size - w + 1))
+        mask = glyph_text(rng, h, w)[..., None]
+        albedo[y:y + h, x:x + w] = albedo[y:y + h, x:x + w] * (1.0 - mask) + mask * spectra[n_lines]
+    small = rng.random() < 0.5
+    if small:
+        labels, _ = dead_leaves_labels(rng, size, int(rng.integers(50, 300)), 0.5, max(2.0, size / 40.0))
+        spots, _ = palette(rng, lib, int(labels.max()) + 1)
+        hit = labels > 0
+        albedo[hit] = spots[labels[hit]]
+    return {"thin_lines": n_lines, "glyphs": bool(text), "small_occluders": bool(small)}
 
 
 # ------------------------------------------------------------------------------------------------
 # Scenes
 # ------------------------------------------------------------------------------------------------
-def _pick_illuminant(rng: np.random.Generator, lib: SpectralLibrary) -> int:
-    groups = [g for g in _ILLUMINANT_GROUP_WEIGHTS if g in lib.illuminant_groups]
-    p = np.array([_ILLUMINANT_GROUP_WEIGHTS[g] for g in groups])
-    g = groups[int(rng.choice(len(groups), p=p / p.sum()))]
-    members = lib.illuminant_groups[g]
-    return int(members[int(rng.integers(len(members)))])
+Scene = tuple[np.ndarray, dict[str, Any], np.ndarray | None]
 
 
-def _refl(rng: np.random.Generator, lib: SpectralLibrary, k: int | None = None) -> np.ndarray:
-    n = lib.reflectances.shape[0]
-    return rng.integers(n) if k is None else rng.integers(n, size=k)
+def _count(kinds: np.ndarray) -> dict[str, int]:
+    return {PALETTE_KINDS[k]: int(v) for k, v in zip(*np.unique(kinds, return_counts=True))}
 
 
-def _scene_photo(rng: np.random.Generator, size: int, lib: SpectralLibrary) -> tuple[np.ndarray, dict[str, Any]]:
+def _scene_photo(rng: np.random.Generator, size: int, lib: SpectralLibrary) -> Scene:
     name = PHOTOS[int(rng.integers(len(PHOTOS)))]
     rgb = _random_crop(rng, _photo(name), size)
-    xyz = np.asarray(lib.srgb_to_xyz(rgb.reshape(-1, 3).astype(np.float64)))
-    refl = lib.otsu.reflectance(xyz) @ lib.otsu.to_bands.T  # (N, C)
-    return refl.reshape(size, size, -1).astype(np.float32), {"photo": name}
+    if lib.otsu is not None and lib.srgb_to_xyz is not None:
+        xyz = np.asarray(lib.srgb_to_xyz(rgb.reshape(-1, 3).astype(np.float64)))
+        refl = (lib.otsu.reflectance(xyz) @ lib.otsu.to_bands.T).reshape(size, size, -1).astype(np.float32)
+        info: dict[str, Any] = {"photo": name, "spectra": "otsu2018"}
+    else:  # the photo's RGB as weights of three library spectra
+        spectra, kinds = palette(rng, lib, 3)
+        wts = rgb / max(float(rgb.sum(axis=2).max()), 1.0)
+        refl = np.einsum("hwk,kc->hwc", wts, spectra).astype(np.float32)
+        info = {"photo": name, "spectra": "palette", "palette": _count(kinds)}
+    if rng.random() < 0.3:
+        info["details"] = _details(rng, refl, lib)
+    return refl, info, None
 
 
-def _scene_dead_leaves(rng: np.random.Generator, size: int, lib: SpectralLibrary) -> tuple[np.ndarray, dict[str, Any]]:
-    # scale-free sizes: about 2 % of the scene is left to the background
-    labels, prm = dead_leaves_labels(rng, size, n_leaves=int(rng.integers(1500, 2500)),
-                                     r_min=max(1.0, size / 100.0), r_max=size / float(rng.uniform(3.0, 6.0)))
+def _leaves(rng: np.random.Generator, size: int, lib: SpectralLibrary, n_big: int, n_small: int
+            ) -> tuple[np.ndarray, dict[str, Any]]:
+    """Dead leaves at every scale: a covering layer (r ≥ ~1.5 px) and tiny occluders (0.5-3 px) on top."""
+    labels, prm = dead_leaves_labels(rng, size, n_leaves=n_big, r_min=max(1.5, size / 128.0),
+                                     r_max=size / float(rng.uniform(2.5, 6.0)))
+    small, prm2 = dead_leaves_labels(rng, size, n_leaves=n_small, r_min=0.5, r_max=3.0)
+    hit = small > 0
+    labels[hit] = small[hit] + n_big
+    prm = {k: np.concatenate([prm[k], prm2[k][1:]]) for k in prm}
     n = prm["r"].size
-    idx = _refl(rng, lib, n)
-    albedo = lib.reflectances[idx][labels]  # (H, W, C)
-    bright = rng.uniform(0.35, 1.0, n).astype(np.float32)
+    spectra, kinds = palette(rng, lib, n)
+    albedo = spectra[labels]  # (H, W, C)
+    bright = rng.uniform(0.3, 1.0, n).astype(np.float32)
     gy, gx = rng.normal(0, 0.35, n), rng.normal(0, 0.35, n)
     yy, xx = np.mgrid[0:size, 0:size].astype(np.float32) + 0.5
     rr = prm["r"][labels]
     shade = bright[labels] * np.clip(1.0 + ((yy - prm["cy"][labels]) * gy[labels] + (xx - prm["cx"][labels]) * gx[labels])
                                      / np.maximum(rr, 1.0), 0.3, 1.4)
     textured = rng.random(n) < 0.3
-    tex_name = TEXTURES[int(rng.integers(3))]
-    tex = _random_crop(rng, _texture(tex_name), size)
-    depth = float(rng.uniform(0.2, 0.6))
+    if rng.random() < 0.5:
+        tex_name = TEXTURES[int(rng.integers(3))]
+        tex = _random_crop(rng, _texture(tex_name), size)
+    else:
+        beta = float(rng.uniform(0.6, 2.0))
+        tex_name = f"power_law(beta={beta:.2f})"
+        tex = power_law_noise(rng, size, beta)
+    depth = float(rng.uniform(0.2, 0.7))
     shade = np.where(textured[labels], shade * (1.0 - depth + depth * tex), shade)
     albedo *= shade[..., None].astype(np.float32)
-    return albedo, {"leaves": int(n - 1), "texture": tex_name}
+    return albedo, {"leaves": int(n - 1), "texture": tex_name, "palette": _count(kinds)}
 
 
-def _scene_smooth(rng: np.random.Generator, size: int, lib: SpectralLibrary) -> tuple[np.ndarray, dict[str, Any]]:
+def _scene_dead_leaves(rng: np.random.Generator, size: int, lib: SpectralLibrary) -> Scene:
+    albedo, info = _leaves(rng, size, lib, int(rng.integers(1500, 2500)), int(rng.integers(200, 1200)))
+    if rng.random() < 0.5:
+        info["details"] = _details(rng, albedo, lib)
+    return albedo, info, None
+
+
+def _scene_smooth(rng: np.random.Generator, size: int, lib: SpectralLibrary) -> Scene:
     k = int(rng.integers(2, 5))
-    idx = _refl(rng, lib, k)
+    spectra, kinds = palette(rng, lib, k)
     fields = np.stack([smooth_field(rng, size, int(rng.integers(2, 6))) for _ in range(k)])
     sharp = float(rng.uniform(2.0, 10.0))
     w = np.exp(sharp * (fields - fields.max(axis=0, keepdims=True)))
     w /= w.sum(axis=0, keepdims=True)
-    albedo = np.einsum("khw,kc->hwc", w, lib.reflectances[idx]).astype(np.float32)
-    return albedo, {"blend": k}
+    albedo = np.einsum("khw,kc->hwc", w, spectra).astype(np.float32)
+    grain = power_law_noise(rng, size, float(rng.uniform(0.5, 1.5)))
+    depth = float(rng.uniform(0.1, 0.35))
+    albedo *= (1.0 - depth + depth * grain)[..., None]
+    info = {"blend": k, "palette": _count(kinds), "grain_depth": round(depth, 3)}
+    info["details"] = _details(rng, albedo, lib)
+    return albedo, info, None
 
 
-def _scene_texture(rng: np.random.Generator, size: int, lib: SpectralLibrary) -> tuple[np.ndarray, dict[str, Any]]:
-    name = TEXTURES[int(rng.integers(len(TEXTURES)))]
-    t = _random_crop(rng, _texture(name), size)
+def _procedural_texture(rng: np.random.Generator, size: int) -> tuple[np.ndarray, str]:
+    kind = ("power_law", "weave", "speckle")[int(rng.integers(3))]
+    if kind == "power_law":
+        return power_law_noise(rng, size, float(rng.uniform(0.5, 2.2))), kind
+    if kind == "weave":
+        yy, xx = np.mgrid[0:size, 0:size].astype(np.float32)
+        py, px = rng.uniform(2.0, 8.0, 2)
+        theta = float(rng.uniform(0, np.pi))
+        u, v = np.cos(theta) * xx + np.sin(theta) * yy, -np.sin(theta) * xx + np.cos(theta) * yy
+        warp = 0.5 * power_law_noise(rng, size, 2.5)
+        t = 0.5 + 0.25 * np.sin(2 * np.pi * (u / px + warp)) + 0.25 * np.sign(np.sin(2 * np.pi * v / py))
+        return np.clip(t, 0, 1).astype(np.float32), kind
+    t = power_law_noise(rng, size, float(rng.uniform(0.0, 1.0)))
+    return (t > float(rng.uniform(0.3, 0.7))).astype(np.float32), kind
+
+
+def _scene_texture(rng: np.random.Generator, size: int, lib: SpectralLibrary) -> Scene:
+    if rng.random() < 0.5:
+        name = TEXTURES[int(rng.integers(len(TEXTURES)))]
+        t = _random_crop(rng, _texture(name), size, max_zoom_out=1.5)
+    else:
+        t, name = _procedural_texture(rng, size)
     t = t ** float(rng.uniform(0.6, 1.6))
-    r1, r2 = lib.reflectances[_refl(rng, lib, 2)]
-    albedo = (1.0 - t)[..., None] * r1 + t[..., None] * r2
-    return albedo.astype(np.float32), {"texture": name}
+    k = int(rng.integers(2, 4))
+    spectra, kinds = palette(rng, lib, k)
+    if k == 2:
+        albedo = (1.0 - t)[..., None] * spectra[0] + t[..., None] * spectra[1]
+    else:  # soft quantisation of the texture into k materials
+        levels = np.linspace(0.0, 1.0, k)
+        w = np.exp(-((t[None] - levels[:, None, None]) ** 2) / (2 * 0.08 ** 2))
+        w /= w.sum(axis=0, keepdims=True)
+        albedo = np.einsum("khw,kc->hwc", w, spectra)
+    albedo = albedo.astype(np.float32)
+    info: dict[str, Any] = {"texture": name, "materials": k, "palette": _count(kinds)}
+    if rng.random() < 0.3:
+        info["details"] = _details(rng, albedo, lib)
+    return albedo, info, None
 
 
-def _scene_edges(rng: np.random.Generator, size: int, lib: SpectralLibrary) -> tuple[np.ndarray, dict[str, Any]]:
+def _scene_edges(rng: np.random.Generator, size: int, lib: SpectralLibrary) -> Scene:
     tiles = 2 if size < 384 else 3
     bounds = np.linspace(0, size, tiles + 1).astype(int)
     albedo = np.empty((size, size, len(lib.bands)), dtype=np.float32)
-    kinds = []
+    kinds, pk = [], []
     for a in range(tiles):
         for b in range(tiles):
             y0, y1, x0, x1 = bounds[a], bounds[a + 1], bounds[b], bounds[b + 1]
             n = max(y1 - y0, x1 - x0)
             t, kind = _pattern(rng, n)
             t = t[: y1 - y0, : x1 - x0]
-            r1, r2 = lib.reflectances[_refl(rng, lib, 2)]
+            (r1, r2), pkind = palette(rng, lib, 2)
             albedo[y0:y1, x0:x1] = (1.0 - t)[..., None] * r1 + t[..., None] * r2
             kinds.append(kind)
-    return albedo, {"patterns": kinds}
+            pk.append(pkind)
+    info: dict[str, Any] = {"patterns": kinds, "palette": _count(np.concatenate(pk))}
+    if rng.random() < 0.3:
+        info["details"] = _details(rng, albedo, lib)
+    return albedo, info, None
 
 
-_SCENES: dict[str, Callable[..., tuple[np.ndarray, dict[str, Any]]]] = {
+def _scene_emitters(rng: np.random.Generator, size: int, lib: SpectralLibrary) -> Scene:
+    """A dim scene (leaves) with LED dots and their glow, a display showing glyphs, an LED sign."""
+    albedo, info = _leaves(rng, size, lib, int(rng.integers(300, 900)), int(rng.integers(100, 500)))
+    n_em = 0 if lib.emitters is None else lib.emitters.shape[0]
+    if n_em == 0:
+        info["emitters"] = []
+        return albedo, info, None
+    em = lib.emitters
+    emission = np.zeros_like(albedo)
+    yy, xx = np.mgrid[0:size, 0:size].astype(np.float32) + 0.5
+    names = []
+    for _ in range(int(rng.integers(3, 25))):  # LED dots with a faint glow (scatter)
+        j = int(rng.integers(n_em))
+        cy, cx = rng.uniform(0, size, 2)
+        r = float(rng.uniform(0.6, 4.0))
+        level = float(rng.uniform(0.3, 1.0))
+        d2 = (yy - cy) ** 2 + (xx - cx) ** 2
+        dot = np.clip(r + 0.5 - np.sqrt(d2), 0.0, 1.0) * level
+        glow = float(rng.uniform(0.0, 0.08)) * level * np.exp(-d2 / (2 * float(rng.uniform(2.0, 10.0)) ** 2))
+        emission += (dot + glow)[..., None] * em[j]
+        names.append(lib.emitter_names[j])
+    if rng.random() < 0.7:  # a display: vertical subpixel stripes showing glyphs or a texture
+        displays = [i for i, s in enumerate(lib.emitter_sources) if s == "displays"]
+        if len(displays) >= 3 and rng.random() < 0.7:
+            d0 = 3 * int(rng.integers(len(displays) // 3))
+            prim = [displays[d0], displays[d0 + 1], displays[d0 + 2]]
+        else:
+            prim = [int(v) for v in rng.integers(n_em, size=3)]
+        h, w = (int(v) for v in rng.integers(size // 6, size // 2 + 1, 2))
+        y, x = int(rng.integers(0, size - h + 1)), int(rng.integers(0, size - w + 1))
+        content = glyph_text(rng, h, w) if rng.random() < 0.5 else power_law_noise(rng, max(h, w), 1.5)[:h, :w]
+        tint = rng.uniform(0.2, 1.0, 3)
+        level = float(rng.uniform(0.3, 1.0))
+        for c in range(3):
+            stripe = ((np.arange(w) % 3) == c).astype(np.float32)[None, :]
+            amount = level * tint[c] * (0.05 + 0.95 * content) * stripe
+            emission[y:y + h, x:x + w] += amount[..., None] * em[prim[c]]
+        names += [lib.emitter_names[p] for p in prim]
+    if rng.random() < 0.5:  # an LED sign
+        j = int(rng.integers(n_em))
+        h, w = (int(v) for v in rng.integers(size // 10, size // 3 + 1, 2))
+        y, x = int(rng.integers(0, size - h + 1)), int(rng.integers(0, size - w + 1))
+        emission[y:y + h, x:x + w] += glyph_text(rng, h, w)[..., None] * float(rng.uniform(0.3, 1.0)) * em[j]
+        names.append(lib.emitter_names[j])
+    info["emitters"] = sorted(set(names))
+    return albedo, info, emission
+
+
+_SCENES: dict[str, Callable[..., Scene]] = {
     "photo": _scene_photo,
     "dead_leaves": _scene_dead_leaves,
     "smooth": _scene_smooth,
     "texture": _scene_texture,
     "edges": _scene_edges,
+    "emitters": _scene_emitters,
 }
 
 
+def _soft_shadow(rng: np.random.Generator, size: int) -> np.ndarray:
+    """Cast shadows (size, size) in [0, 1]: a few large occluders with a soft penumbra."""
+    from scipy.ndimage import gaussian_filter
+
+    labels, _ = dead_leaves_labels(rng, size, int(rng.integers(2, 7)), size / 8.0, size / 2.0)
+    mask = (labels > 0).astype(np.float32)
+    return np.clip(gaussian_filter(mask, float(rng.uniform(0.5, 6.0))), 0.0, 1.0)
+
+
+def _highlights(rng: np.random.Generator, size: int) -> np.ndarray:
+    """Specular highlight strength (size, size): soft lobes and 1-2 px glints."""
+    yy, xx = np.mgrid[0:size, 0:size].astype(np.float32)
+    spec = np.zeros((size, size), dtype=np.float32)
+    for _ in range(int(rng.integers(1, 5))):
+        cy, cx = rng.uniform(0, size, 2)
+        s = rng.uniform(0.7, max(size / 30.0, 1.5))
+        spec += float(rng.uniform(0.3, 1.0)) * np.exp(-((yy - cy) ** 2 + (xx - cx) ** 2) / (2 * s * s))
+    glints = rng.integers(0, 30)
+    gy, gx = rng.integers(0, size, (2, glints))
+    spec[gy, gx] += rng.uniform(0.5, 1.5, glints).astype(np.float32)
+    return spec
+
+
 def generate_scene(index: int, seed: int, size: int, lib: SpectralLibrary) -> tuple[np.ndarray, dict[str, Any]]:
-    """Scene ``index`` of ``seed``: (cube (C, size, size) float32 with maximum 1, info dict)."""
-    rng = np.random.default_rng([int(seed), int(index)])
+    """Scene ``index`` of ``seed``: (cube (C, size, size) float32 with maximum 1, info dict).
+
+    Uses only the spectra of ``lib`` (a training or held-out library from :func:`spectral_library`).
+    Held-out libraries draw from another random stream, so their scenes never repeat a training scene.
+    """
+    stream = [int(seed), int(index)] + ([HELDOUT_STREAM] if lib.split == "heldout" else [])
+    rng = np.random.default_rng(stream)
     kind = SCHEDULE[index % len(SCHEDULE)]
-    albedo, info = _SCENES[kind](rng, size, lib)  # (H, W, C) reflectance (shaded)
-    # illumination: one light source, or two mixed across the scene (e.g. sun and shade)
+    albedo, info, emission = _SCENES[kind](rng, size, lib)  # (H, W, C) reflectance (shaded)
+    # illumination: one source; two blended across the scene; or sun + sky with cast shadows
     e1 = _pick_illuminant(rng, lib)
     names = [lib.illuminant_names[e1]]
+    mode = ("single", "blend", "sun_sky")[int(rng.choice(3, p=[0.45, 0.2, 0.35]))]
     light = lib.illuminants[e1][None, None, :]
-    if rng.random() < 0.3:
+    if mode == "blend":
         e2 = _pick_illuminant(rng, lib)
-        names.append(lib.illuminant_names[e2])
         if rng.random() < 0.5:
             mix = smooth_field(rng, size, int(rng.integers(2, 5)))
-        else:  # a soft shadow boundary
+        else:  # a soft boundary between two lit areas
             theta = rng.uniform(0, 2 * np.pi)
             yy, xx = np.mgrid[0:size, 0:size].astype(np.float32) / size - 0.5
             mix = 1.0 / (1.0 + np.exp(-(np.cos(theta) * xx + np.sin(theta) * yy) / rng.uniform(0.005, 0.05)))
         mix = mix.astype(np.float32)[..., None]
         light = mix * lib.illuminants[e1] + (1.0 - mix) * lib.illuminants[e2]
-    shading = 0.35 + 0.65 * smooth_field(rng, size, int(rng.integers(2, 5)))
+        names.append(lib.illuminant_names[e2])
+    elif mode == "sun_sky":  # shadows are lit only by the sky (daylight when the library has it)
+        e2 = _pick_illuminant(rng, lib, group="daylight")
+        sky = float(np.exp(rng.uniform(np.log(0.03), np.log(0.4))))
+        shadow = _soft_shadow(rng, size)[..., None]
+        light = (1.0 - shadow) * lib.illuminants[e1] + sky * lib.illuminants[e2]
+        names.append(lib.illuminant_names[e2])
+        info["sky_level"] = round(sky, 4)
+    lo = float(rng.uniform(0.05, 0.6))
+    shading = lo + (1.0 - lo) * smooth_field(rng, size, int(rng.integers(2, 5)))
     radiance = albedo * shading[..., None] * light
-    if kind in ("dead_leaves", "photo") and rng.random() < 0.3:  # specular highlights
-        yy, xx = np.mgrid[0:size, 0:size].astype(np.float32)
-        spec = np.zeros((size, size), dtype=np.float32)
-        for _ in range(int(rng.integers(1, 4))):
-            cy, cx = rng.uniform(0, size, 2)
-            s = rng.uniform(1.0, max(size / 40.0, 1.5))
-            spec += float(rng.uniform(0.3, 1.0)) * np.exp(-((yy - cy) ** 2 + (xx - cx) ** 2) / (2 * s * s))
-        radiance = radiance + spec[..., None] * light
+    dim = 1.0
+    if kind == "emitters":
+        dim = float(np.exp(rng.uniform(np.log(0.01), np.log(0.2))))
+    elif rng.random() < 0.12:
+        dim = float(np.exp(rng.uniform(np.log(0.03), np.log(0.3))))
+    radiance = radiance * np.float32(dim)
+    if rng.random() < 0.35 or (dim < 1.0 and emission is None):  # highlights carry the local light
+        spec = _highlights(rng, size)
+        radiance = radiance + (spec * float(rng.uniform(0.3, 2.0)))[..., None] * light
         info["highlights"] = True
+    if emission is not None:
+        radiance = radiance + emission
     cube = np.ascontiguousarray(np.transpose(radiance, (2, 0, 1)), dtype=np.float32)
     np.maximum(cube, 0.0, out=cube)
     peak = float(cube.max())
     if not peak > 0:
         raise InputError(f"synthetic: scene {index} of seed {seed} came out black")  # pragma: no cover
     cube /= np.float32(peak)
-    return cube, {"kind": kind, "illuminants": names, **info}
+    return cube, {"kind": kind, "illuminants": names, "lighting": mode, "dim": round(dim, 5), **info}
 
 
 __all__ = [
+    "DEFAULT_HOLDOUT",
     "GENERATOR_VERSION",
+    "HELDOUT_N",
     "MANIFEST",
     "OtsuModel",
+    "PALETTE_KINDS",
+    "SOURCES",
+    "SUPPORTED_RANGE_NM",
     "SpectralLibrary",
     "band_matrix",
     "cache_key",
+    "check_bands",
+    "dataset_dir",
     "dead_leaves_labels",
     "default_cache_dir",
     "generate_dataset",
     "generate_scene",
+    "glyph_text",
+    "heldout_dataset",
     "is_complete",
+    "palette",
     "parameters",
+    "parse_holdout",
+    "power_law_noise",
     "smooth_field",
     "spectral_library",
+    "split_library",
     "synthetic_dataset",
 ]
