@@ -311,6 +311,10 @@ class DataConfig:
     preload: Optional[bool] = None  # keep all scenes in memory; None: when the files total <= preload_max_mb
     preload_max_mb: float = 2048.0
     num_workers: int = 2  # DataLoader worker processes
+    # Spectral sources the synthetic training scenes never use (docs/data.md); a separate held-out
+    # validation set of heldout_n scenes uses only them. "none": hold out nothing.
+    holdout_sources: str = "nist-philips,rawtoaces"
+    heldout_n: int = 8
 
     def __post_init__(self) -> None:
         for name in ("synthetic_n", "patch_px", "patches_per_epoch", "val_patches"):
@@ -322,6 +326,8 @@ class DataConfig:
             raise ConfigError(f"data.val_fraction must be in [0, 1), got {self.val_fraction}")
         if self.num_workers < 0:
             raise ConfigError(f"data.num_workers must be >= 0, got {self.num_workers}")
+        if self.heldout_n < 1:
+            raise ConfigError(f"data.heldout_n must be >= 1, got {self.heldout_n}")
         _positive("data", preload_max_mb=self.preload_max_mb)
         if self.root is not None and not self.root.strip():
             raise ConfigError("data.root must be a path or null")

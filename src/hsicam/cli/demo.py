@@ -37,5 +37,10 @@ def cmd_demo(args: argparse.Namespace) -> int:
           f"{time.perf_counter() - t0:.0f} s)")
     for r in summary["references"]:
         print(f"[demo] reference without a network, {r['method']}: {means_line(r['mean'])}")
+    if "heldout" in summary:
+        h = summary["heldout"]
+        print(f"[demo] held-out spectral sources ({len(h['scenes'])} scenes, {h['data']}): {means_line(h['mean'])}")
+        for r in h["references"]:
+            print(f"[demo] held-out reference without a network, {r['method']}: {means_line(r['mean'])}")
     print(f"[demo] figures and tables in {out}: reconstructions.png, psf.png, cfa.png, doe.png, training.png, results.md")
     return 0

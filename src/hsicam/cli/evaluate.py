@@ -44,7 +44,7 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     from hsicam.data.datasets import SceneDataset, list_scenes
     from hsicam.data.formats import write_cube_h5
     from hsicam.engine.evaluate import TestNoise, config_hash, evaluate_method, format_table, summarize, write_results
-    from hsicam.engine.experiments import validation_scenes
+    from hsicam.engine.experiments import heldout_scenes, validation_scenes
     from hsicam.engine.methods import build_method
 
     if args.seeds < 1:
@@ -63,16 +63,23 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     if args.data:
         paths = list_scenes(args.data)
         scenes, names, data = SceneDataset(paths, bands), [p.stem for p in paths], str(Path(args.data).resolve())
+        heldout = None
     else:
         scenes, names = validation_scenes(cfg)
         data = "synthetic validation split"
+        heldout = heldout_scenes(cfg)
     noise = TestNoise(args.sigma_height_nm, args.sensor_sigma, tuple(range(args.seeds)))
-    results = evaluate_method(method, scenes, names, noise, args.device, keep_arrays=args.save,
-                              progress=lambda line: print(line, file=sys.stderr, flush=True))
+    show = lambda line: print(line, file=sys.stderr, flush=True)  # noqa: E731
+    results = evaluate_method(method, scenes, names, noise, args.device, keep_arrays=args.save, progress=show)
     out = Path(args.out)
     summary = summarize(results, method=args.method, run=str(Path(args.run).resolve()) if args.run else None, data=data, config_hash=config_hash(dump_yaml(cfg)),
                         noise={"sigma_height_nm": args.sigma_height_nm, "sensor_sigma": args.sensor_sigma, "seeds": args.seeds},
                         bands_nm=bands.centers_nm.tolist(), region="sensor area (scene minus the camera's kernel margin)")
+    if heldout is not None:
+        held = evaluate_method(method, heldout[0], heldout[1], noise, args.device, keep_arrays=False, progress=show)
+        summary["heldout"] = {"data": f"held-out spectral sources ({cfg.data.holdout_sources}): scenes whose "
+                                      f"reflectances and lights the training scenes never contain",
+                              **summarize(held)}
     write_results(out, summary)
     if args.save:
         for r in results:
@@ -82,6 +89,10 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     m = summary["mean"]
     print(f"{args.method}: mean PSNR {m['psnr']:.2f} dB, SSIM {m['ssim']:.4f}, SAM {m['sam']:.2f}° "
           f"over {len(results)} scenes -> {out}")
+    if "heldout" in summary:
+        h = summary["heldout"]["mean"]
+        print(f"{args.method}, held-out spectral sources: mean PSNR {h['psnr']:.2f} dB, SSIM {h['ssim']:.4f}, "
+              f"SAM {h['sam']:.2f}° over {len(summary['heldout']['scenes'])} scenes")
     return 0
 
 

@@ -46,7 +46,8 @@ def heldout_root(cfg: DataConfig, bands: Bands, n: int | None = None, progress: 
     holdout = parse_holdout(getattr(cfg, "holdout_sources", DEFAULT_HOLDOUT))
     if not holdout:
         return None
-    return heldout_dataset(HELDOUT_N if n is None else n, cfg.synthetic_size, cfg.synthetic_seed, bands,
+    n = (getattr(cfg, "heldout_n", HELDOUT_N) if n is None else n)
+    return heldout_dataset(n, cfg.synthetic_size, cfg.synthetic_seed, bands,
                            cache_dir=cfg.cache_dir, progress=progress, holdout_sources=holdout)
 
 

@@ -13,7 +13,7 @@ from hsicam.data.datasets import SceneDataset, list_scenes, split_scenes
 from hsicam.data.pipeline import dataset_root
 from hsicam.engine.evaluate import (TestNoise, demosaic_reference, evaluate_method, evaluate_scenes, format_table,
                                     grey_reference, summarize)
-from hsicam.engine.experiments import ensure_trained
+from hsicam.engine.experiments import ensure_trained, heldout_scenes
 from hsicam.io import atomic_open, write_json
 from hsicam.report.camera import write_optics_figures, write_psf_outputs
 from hsicam.report.reconstruction import plot_reconstructions, plot_training_curves
@@ -54,6 +54,16 @@ def run_demo(cfg: Config, out: str | Path, overrides: tuple[str, ...] = ()) -> d
          "mean": summarize(evaluate_method(ref, scenes, names, TestNoise(seeds=(cfg.train.seed,)), keep_arrays=False))["mean"]}
         for ref in references
     ]
+    held = heldout_scenes(cfg)
+    if held is not None:  # the same camera on scenes of spectral sources the training never saw
+        h_results = evaluate_scenes(model, held[0], held[1], seed=cfg.train.seed, keep_arrays=False)
+        summary["heldout"] = {
+            "data": f"held-out spectral sources ({cfg.data.holdout_sources})",
+            **summarize(h_results),
+            "references": [{"method": ref.name, "mean": summarize(evaluate_method(
+                ref, held[0], held[1], TestNoise(seeds=(cfg.train.seed,)), keep_arrays=False))["mean"]}
+                for ref in references],
+        }
     summary["run"] = str(run)
     summary["region"] = "sensor area of each scene (scene minus the kernel margin), valid mode"
     write_json(out / "results.json", summary)
@@ -61,7 +71,9 @@ def run_demo(cfg: Config, out: str | Path, overrides: tuple[str, ...] = ()) -> d
     with atomic_open(out / "results.md", "w", encoding="utf-8") as fh:
         fh.write(f"Validation scenes, {summary['conventions']['psnr']}; SSIM {summary['conventions']['ssim']}; "
                  f"SAM in degrees.\n\n{table}\n\nReferences without a network:\n\n"
-                 + "".join(f"- {r['method']}: {means_line(r['mean'])}\n" for r in summary["references"]))
+                 + "".join(f"- {r['method']}: {means_line(r['mean'])}\n" for r in summary["references"])
+                 + (f"\nHeld-out spectral sources ({summary['heldout']['data']}):\n\n{format_table(summary['heldout'])}\n"
+                    if "heldout" in summary else ""))
     if model.camera.kind == "doe":
         write_psf_outputs(model.camera, out)
         write_optics_figures(model.camera, out)

@@ -196,3 +196,6 @@ def write_results(out: Path, summary: dict) -> None:
     head += [f"- PSNR: {conv['psnr']}; SSIM: {conv['ssim']}; SAM: {conv['sam']}", ""]
     with atomic_open(out / "results.md", "w", encoding="utf-8") as fh:
         fh.write("\n".join(head) + "\n" + format_table(summary, ("psnr", "ssim", "sam", "ergas", "runtime_s")) + "\n")
+        if "heldout" in summary:
+            fh.write(f"\n## Held-out spectral sources\n\n{summary['heldout']['data']}\n\n"
+                     + format_table(summary["heldout"], ("psnr", "ssim", "sam", "ergas", "runtime_s")) + "\n")

@@ -105,6 +105,20 @@ def validation_scenes(cfg):
     return SceneDataset(val, bands), [p.stem for p in val]
 
 
+def heldout_scenes(cfg):
+    """The held-out-sources validation scenes (SceneDataset) and their names, or None (real data,
+    or nothing held out): scenes built only from spectral sources the training scenes never use."""
+    from hsicam.data.datasets import SceneDataset, list_scenes
+    from hsicam.data.pipeline import heldout_root
+
+    bands = cfg.bands.to_bands()
+    root = heldout_root(cfg.data, bands)
+    if root is None:
+        return None
+    paths = list_scenes(root)
+    return SceneDataset(paths, bands), [p.stem for p in paths]
+
+
 def _row(name: str, summary: dict, **extra: Any) -> dict:
     m = summary["mean"]
     return {"method": name, "psnr": m["psnr"], "ssim": m["ssim"], "sam": m["sam"], "runtime_s": m["runtime_s"], **extra}
