@@ -1,0 +1,98 @@
+"""The one training loop (hsicam.engine.loop.fit) with each of its tasks: running loss across a
+mid-epoch resume, the spectral prior resumes exactly, frozen parameter groups stay fixed.
+(Resume after SIGKILL and DDP with two processes are in test_train.py: `train` is `fit`.)"""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+
+import pytest
+import torch
+
+from hsicam.config import ChoiConfig, load_config
+from hsicam.engine.loop import FitOptions, LoopState, fit, lr_factor
+from hsicam.engine.tasks import PriorTask, SystemTask
+from hsicam.engine.train import train
+from hsicam.errors import ConfigError
+from hsicam.models import CameraSystem
+from hsicam.runs.checkpoint import read_weights
+
+
+@pytest.fixture(scope="module")
+def cache_env(tmp_path_factory):
+    d = tmp_path_factory.mktemp("cache")
+    old = os.environ.get("HSICAM_CACHE")
+    os.environ["HSICAM_CACHE"] = str(d)
+    yield d
+    if old is None:
+        os.environ.pop("HSICAM_CACHE", None)
+    else:
+        os.environ["HSICAM_CACHE"] = old
+
+
+def _records(run: Path, key: str) -> list[tuple[int, float]]:
+    recs = [json.loads(x) for x in (run / "metrics.jsonl").read_text().splitlines()]
+    return [(r["step"], r[key]) for r in recs if key in r]
+
+
+def test_running_train_loss_survives_a_mid_epoch_resume(tmp_path, cache_env):
+    cfg = load_config("tiny", ["train.epochs=2"])
+    train(cfg, tmp_path / "full", progress=False)
+    assert train(cfg, tmp_path / "part", progress=False, stop_after_steps=3) == {"stopped_at_step": 3}
+    train(cfg, tmp_path / "part", resume=True, progress=False)
+    full, part = _records(tmp_path / "full", "train_loss"), _records(tmp_path / "part", "train_loss")
+    assert [s for s, _ in part] == list(range(1, 9))
+    for (s, a), (_, b) in zip(full, part):
+        assert a == pytest.approx(b, rel=1e-6), f"step {s}: running loss {b} after resume, {a} uninterrupted"
+
+
+def test_prior_task_resumes_to_the_same_weights(tmp_path, cache_env):
+    cfg = load_config("tiny")
+    settings = ChoiConfig(train_steps=6, batch_size=4, features=8, latent=3, lr=3e-3)
+
+    def run(out, **kw):
+        torch.manual_seed(settings.seed)
+        task = PriorTask(cfg, settings)
+        resume = (out / "config.yaml").is_file()
+        return fit(task, FitOptions(task.loop_config(), 0, max_steps=settings.train_steps, progress=False, **kw),
+                   out, resume)
+
+    full = run(tmp_path / "full")
+    assert run(tmp_path / "part", stop_after_steps=4) == {"stopped_at_step": 4}
+    resumed = run(tmp_path / "part")
+    assert resumed["step"] == full["step"] == 6
+    a, _ = read_weights(tmp_path / "full" / "prior.safetensors")
+    b, _ = read_weights(tmp_path / "part" / "prior.safetensors")
+    for k in a:
+        torch.testing.assert_close(a[k], b[k], rtol=0, atol=0, msg=k)
+    assert (tmp_path / "part" / "summary.json").is_file() and "val_psnr_autoencoder" in resumed
+
+
+def test_frozen_groups_stay_fixed_and_unknown_groups_are_errors(tmp_path, cache_env):
+    cfg = load_config("tiny", ["train.epochs=1", "train.freeze=[doe]"])
+    torch.manual_seed(0)
+    start = CameraSystem.from_config(cfg).state_dict()
+    train(cfg, tmp_path / "run", progress=False)
+    end, _ = read_weights(tmp_path / "run" / "model.safetensors")
+    height = "camera.optics.doe.height_m"
+    cfa = "camera.cfa.weights"
+    torch.testing.assert_close(end[height], start[height], rtol=0, atol=0)
+    assert not torch.equal(end[cfa], start[cfa])
+    with pytest.raises(ConfigError, match="unknown parameter group.*lens"):
+        SystemTask(load_config("tiny", ["train.freeze=[lens]"]), CameraSystem.from_config(load_config("tiny")))
+
+
+def test_loop_state_round_trip_and_old_checkpoints():
+    s = LoopState(epoch=2, step_in_epoch=3, global_step=11, best_psnr=30.5, best_step=8, loss_sum=1.5, loss_n=3)
+    assert LoopState.from_dict(json.loads(json.dumps(s.to_dict()))) == s
+    old = {"epoch": 1, "step_in_epoch": 0, "global_step": 4, "best_psnr": None, "best_step": None, "dir": "x"}
+    assert LoopState.from_dict(old) == LoopState(epoch=1, global_step=4)
+
+
+def test_lr_schedule():
+    t = load_config("tiny", ["train.lr_schedule=cosine", "train.warmup_steps=4"]).train
+    assert [lr_factor(t, s, 100, 10) for s in range(4)] == [0.25, 0.5, 0.75, 1.0]
+    assert lr_factor(t, 50, 100, 10) == pytest.approx(0.5)
+    assert lr_factor(t, 100, 100, 10) == pytest.approx(0.0, abs=1e-12)
