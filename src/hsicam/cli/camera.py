@@ -43,13 +43,18 @@ def build_camera(args: argparse.Namespace, extra_overrides: tuple[str, ...] = ()
 
 
 def write_psf_outputs(camera: DOECamera, out: Path) -> dict:
-    """psf.npy (C, K, K float32), psf.json (geometry, energy per band), psf.png (montage)."""
+    """psf.npy (C, K, K float32), psf.json (geometry, model, energy per band), psf.png (montage),
+    and what is needed to recompute the PSFs independently: doe_height_m.npy (heights per DOE
+    cell, m, (n, n) float64, exactly those used, fabrication noise included when enabled) and
+    aperture.npy (transmission per pupil cell, (n·q, n·q) float64, area fraction in the circle)."""
     from hsicam.report.camera import plot_psf_montage
 
+    optics = camera.optics
     with torch.no_grad():
-        res = camera.psf_result()
+        heights = optics.doe.heights()
+        res = optics.psf_from_pupil(optics.expand_cells(heights))
     psf = res.psf.float().cpu().numpy()
-    desc = camera.optics.describe()
+    desc = optics.describe()
     info = {
         "bands_nm": camera.bands.centers_nm.tolist(),
         "fwhm_nm": camera.bands.fwhm_nm.tolist(),
@@ -60,8 +65,17 @@ def write_psf_outputs(camera: DOECamera, out: Path) -> dict:
         "doe": desc["doe"],
         "aperture_radius_mm": desc["aperture_radius_mm"],
         "sampling": desc["sampling"],
+        "model": desc["model"],
+        "files": {
+            "doe_height_m.npy": f"DOE heights (m) per {optics.cell_m * 1e6:g} µm cell, {optics.doe.n_cells}x{optics.doe.n_cells}, "
+                                "row = y, column = x, centre cell on the optical axis",
+            "aperture.npy": f"aperture transmission per {optics.sampling.pupil_pitch_m * 1e6:g} µm pupil cell "
+                            "(area fraction inside the circle)",
+        },
     }
     write_npy(out / "psf.npy", psf)
+    write_npy(out / "doe_height_m.npy", heights.detach().double().cpu().numpy())
+    write_npy(out / "aperture.npy", optics.amplitude.detach().double().cpu().numpy())
     write_json(out / "psf.json", info)
     plot_psf_montage(psf, camera.bands, out / "psf.png")
     return info
