@@ -522,3 +522,39 @@ def test_gradients_reach_doe_heights(tiny_camera):
     # cells outside the circular aperture get no light and no gradient
     amp = cam.optics.amplitude
     assert torch.all(g[amp == 0] == 0) and (g[amp > 0] != 0).float().mean() > 0.9
+
+
+def test_singlet_sensor_distance_from_its_rear_principal_plane():
+    """Convex face first: H' sits t/n(λ) in front of the flat rear vertex. The sensor plane is
+    fixed at f(587.6 nm) behind H'(587.6 nm), so band λ sees z + t/n(λ) − t/n(587.6)."""
+    t = 2e-3
+    lens = SingletLens(SINGLET_R_M, t, FusedSilica())
+    lams = np.array([420.0, 587.6, 720.0])
+    np.testing.assert_allclose(lens.rear_principal_plane_m(lams), -t / sellmeier_fused_silica(lams), rtol=1e-12)
+    model = paper_psf_model(list(lams), lens)
+    z = SINGLET_R_M / (sellmeier_fused_silica(587.6) - 1.0)
+    expected = z + t / sellmeier_fused_silica(lams) - t / sellmeier_fused_silica(587.6)
+    np.testing.assert_allclose(model.line_sensor_distances_m, expected, rtol=1e-12)
+    assert (expected[0] - z) * 1e6 == pytest.approx(-9.0, abs=0.2)  # µm, against a ~1 mm focus shift
+    desc = model.describe()["lens"]
+    assert desc["rear_principal_plane_mm"] == pytest.approx(-t / sellmeier_fused_silica(587.6) * 1e3)
+    assert "rear principal plane" in desc["sensor_distance_from"]
+
+
+def test_band_samples_average_sub_wavelengths_over_the_fwhm(tiny_config):
+    """band_samples = 3: each band is the Gaussian-weighted mean of the PSFs at λ_c + (−1/3, 0, 1/3)·FWHM."""
+    cam = DOECamera.from_config(tiny_config("camera.psf.band_samples=3")).double()
+    with torch.no_grad():
+        banded = cam.psf_result()
+    fwhm = cam.bands.fwhm_nm
+    w = np.exp(-4 * math.log(2) * np.array([1 / 9, 0, 1 / 9]))
+    w = w / w.sum()
+    expected = 0
+    for off, wi in zip((-1 / 3, 0, 1 / 3), w):
+        shifted = [f"bands.start_nm={500 + off * fwhm[0]}", f"bands.stop_nm={600 + off * fwhm[0]}", "bands.step_nm=50"]
+        single = DOECamera.from_config(tiny_config(*shifted, f"camera.psf.kernel_px={cam.kernel_px}")).double()
+        single.load_state_dict(cam.state_dict())
+        with torch.no_grad():
+            expected = expected + wi * single.psf().numpy()
+    np.testing.assert_allclose(banded.psf.numpy(), expected, rtol=1e-6, atol=1e-12)  # buffers built in float32
+    np.testing.assert_allclose(banded.energy.numpy(), expected.sum(axis=(1, 2)), rtol=1e-6)
