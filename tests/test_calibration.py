@@ -143,16 +143,21 @@ def test_wavelength_from_file_names():
 # Measured-PSF import: another pitch, off-centre, mixed formats
 # ------------------------------------------------------------------------------------------------
 def _fine_camera_pair(tiny_config, *overrides):
-    """The tiny camera and the same optics sampled s× finer with supersample 1: the FFT grids are
-    identical, so s×s sum-pooling of the fine PSF around the axis is exactly the coarse PSF."""
-    cam = DOECamera.from_config(tiny_config(*overrides))
+    """The tiny camera with the s×s midpoint rule (supersample 3) and the same optics sampled s×
+    finer with supersample 1 (point values): s×s sum-pooling of the fine PSF around the axis is
+    exactly the coarse PSF."""
+    cam = DOECamera.from_config(tiny_config(*overrides, "camera.psf.supersample=3"))
     s = cam.optics.sampling.supersample
     pitch = 10.0 / s
-    fine = DOECamera.from_config(tiny_config(*overrides, f"camera.sensor.pixel_pitch_um={pitch}", "camera.psf.supersample=1"))
+    fine = DOECamera.from_config(tiny_config(*overrides, f"camera.sensor.pixel_pitch_um={pitch}", "camera.psf.supersample=1",
+                                                  f"camera.psf.kernel_px={s * cam.kernel_px}"))
     fine.load_state_dict(cam.state_dict())
     assert fine.optics.sampling.fft_sizes == cam.optics.sampling.fft_sizes
     with torch.no_grad():
-        return cam.psf().double().numpy(), fine.psf().double().numpy(), pitch, cam
+        coarse, fine = cam.psf().double().numpy(), fine.psf().double().numpy()
+    # the images hold only the light inside the fine kernel (square cells send the rest beyond it,
+    # issue 13), and a "sum"-normalised import scales that to 1: compare with the coarse PSF scaled alike
+    return coarse / fine.sum(axis=(1, 2))[:, None, None], fine, pitch, cam
 
 
 def _save_band_images(d: Path, fine: np.ndarray, bands: Bands, offset: tuple[int, int], canvas: tuple[int, int]) -> tuple[int, int]:

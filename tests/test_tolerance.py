@@ -101,9 +101,11 @@ def test_tolerance_cli(fab_run, tmp_path):
     for key in ("shift_x_cells", "shift_diag_cells"):  # relative to the oversampled model without shift
         assert sw[key]["psnr"][0] == pytest.approx(r["shift_reference"]["psnr"], abs=1e-6)
         assert sw[key]["reference_psnr"] == r["shift_reference"]["psnr"]
-    # every height-noise draw is a different DOE; the oversampled (shift) model loses the higher orders
+    # every height-noise draw is a different DOE; both models lose the higher orders (square cells are
+    # exact at any oversampling since issue 13; they differ only at the aperture edge)
     assert sw["sigma_height_nm"]["psnr_std"][-1] > 0 and sw["sigma_height_nm"]["psnr_std"][0] == 0
-    assert r["shift_reference"]["energy_in_kernel_min"] < 0.99 < r["nominal"]["energy_in_kernel_min"]
+    assert r["nominal"]["energy_in_kernel_min"] < 0.99 and r["shift_reference"]["energy_in_kernel_min"] < 0.99
+    assert r["shift_reference"]["energy_in_kernel_min"] == pytest.approx(r["nominal"]["energy_in_kernel_min"], abs=0.03)
     i = [row["sweep"] for row in r["rows"]].index("sensor_distance_um")
     assert r["rows"][i]["defocus_waves"] == pytest.approx(
         (0.25e-3) ** 2 / 2 * (1 / (5e-3 - 300e-6) - 1 / 5e-3) / 587.6e-9, rel=1e-6)

@@ -106,11 +106,12 @@ class DOEConfig:
 
 @dataclass
 class PSFConfig:
-    """PSF sampling (DESIGN.md §1). ``None`` picks the smallest valid value."""
+    """PSF model (DESIGN.md §1, docs/optics.md): exact for square DOE cells."""
 
-    kernel_px: Optional[int] = None  # odd; at least λ_max·z/Δ in pixels (141 for the paper optics)
-    supersample: Optional[int] = None  # odd s: the FFT pitch is pixel/s, then s×s sum-pooling
-    pupil_oversample: int = 1  # q sub-samples per DOE cell: widens the FFT field, shows higher orders
+    kernel_px: Optional[int] = None  # odd; at least λ_max·z/Δ in pixels (141 for the paper optics); None: that minimum
+    supersample: Optional[int] = None  # None: exact pixel integration; odd s: s×s midpoint rule (1: point values)
+    pupil_oversample: int = 1  # q sub-cells per DOE cell: finer aperture edge and defocus (q² cost)
+    band_samples: int = 1  # wavelengths per band averaged over its FWHM (1: band centre; 3: ~3× cost)
 
     def __post_init__(self) -> None:
         if self.kernel_px is not None and (self.kernel_px < 1 or self.kernel_px % 2 == 0):
@@ -119,6 +120,8 @@ class PSFConfig:
             raise ConfigError(f"camera.psf.supersample must be a positive odd number, got {self.supersample}")
         if self.pupil_oversample < 1:
             raise ConfigError(f"camera.psf.pupil_oversample must be >= 1, got {self.pupil_oversample}")
+        if self.band_samples < 1:
+            raise ConfigError(f"camera.psf.band_samples must be >= 1, got {self.band_samples}")
 
 
 @dataclass

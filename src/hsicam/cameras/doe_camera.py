@@ -63,6 +63,7 @@ class DOECamera(Camera):
             cam.sensor.pixel_pitch_um * 1e-6, cam.lens.design_wavelength_nm,
             None if cam.sensor_distance_mm is None else cam.sensor_distance_mm * 1e-3,
             cam.object_distance_m, cam.psf.kernel_px, cam.psf.supersample, cam.psf.pupil_oversample,
+            cam.psf.band_samples,
         )
         cfa = ColorFilterArray(len(bands), cam.cfa.period, cam.cfa.enabled, cam.cfa.seed, cam.cfa.init,
                                bands.centers_nm, cam.cfa.bandpass_fwhm_nm)

@@ -74,24 +74,11 @@ class ToleranceSpec:
 # ------------------------------------------------------------------------------------------------
 # Perturbed PSF stacks (pure functions of the camera's optics)
 # ------------------------------------------------------------------------------------------------
-def _pupil(optics, h_cells_m: torch.Tensor) -> torch.Tensor:
-    q = optics.pupil_oversample
-    h = h_cells_m.to(optics.amplitude)
-    if q > 1:
-        h = h.repeat_interleave(q, 0).repeat_interleave(q, 1)
-    return h
-
-
 @torch.no_grad()
 def psf_for_heights(optics, h_cells_m: torch.Tensor, defocus_delta: torch.Tensor | None = None):
     """:class:`~hsicam.optics.psf.PSFResult` of the camera's optics with cell heights ``h_cells_m``
     (n, n) (m) and optionally an extra defocus term per band (rad/m², (C,))."""
-    from hsicam.optics.psf import psf_stack
-
-    smp = optics.sampling
-    defocus = optics.defocus_per_m2 if defocus_delta is None else optics.defocus_per_m2 + defocus_delta.to(optics.defocus_per_m2)
-    return psf_stack(_pupil(optics, h_cells_m), optics.amplitude, optics.r2_m2, optics.doe_phase_per_m, defocus,
-                     smp.fft_sizes, smp.supersample, smp.kernel_px)
+    return optics.psf_from_pupil(optics.expand_cells(h_cells_m), defocus_delta)
 
 
 def nominal_heights(camera) -> torch.Tensor:
@@ -132,7 +119,8 @@ def oversampled_optics(optics, q: int):
 
     return PSFModel(optics.bands, optics.lens, optics.doe, optics.aperture_radius_m, optics.cell_m, optics.pixel_m,
                     sensor_distance_m=optics.sensor_distance_m, object_distance_m=optics.object_distance_m,
-                    kernel_px=optics.kernel_px, pupil_oversample=q).to(optics.amplitude.device)
+                    kernel_px=optics.kernel_px, supersample=optics.sampling.supersample, pupil_oversample=q,
+                    band_samples=optics.band_samples).to(optics.amplitude.device)
 
 
 def shift_subsamples_for(optics, subsamples: int) -> int:
@@ -149,17 +137,12 @@ def psf_shifted(fine_optics, h_cells_m: torch.Tensor, dy_cells: float, dx_cells:
     the fixed aperture and lens; relief entering from outside the design reads height 0.
     Returns (psf float32, energy in the kernel (C,), the shift applied in cells). Bands are
     computed one at a time to bound memory."""
-    from hsicam.optics.psf import psf_stack
-
     big_q = fine_optics.pupil_oversample
     sy, sx = int(round(dy_cells * big_q)), int(round(dx_cells * big_q))
-    h = h_cells_m.to(fine_optics.amplitude).repeat_interleave(big_q, 0).repeat_interleave(big_q, 1)
-    h = shift_fill(h, sy, sx)
-    smp = fine_optics.sampling
+    h = shift_fill(fine_optics.expand_cells(h_cells_m), sy, sx)
     out, energy = [], []
     for c in range(len(fine_optics.bands)):
-        res = psf_stack(h, fine_optics.amplitude, fine_optics.r2_m2, fine_optics.doe_phase_per_m[c : c + 1],
-                        fine_optics.defocus_per_m2[c : c + 1], smp.fft_sizes[c : c + 1], smp.supersample, smp.kernel_px)
+        res = fine_optics.psf_from_pupil(h, bands=slice(c, c + 1))
         out.append(res.psf[0])
         energy.append(res.energy[0])
     return torch.stack(out).float().cpu(), torch.stack(energy).cpu(), (sy / big_q, sx / big_q)

@@ -70,13 +70,6 @@ def conv_valid_adjoint(y: torch.Tensor, psf: torch.Tensor) -> torch.Tensor:
     return x[..., :hx, :wx]
 
 
-def conv_valid_direct(x: torch.Tensor, psf: torch.Tensor) -> torch.Tensor:
-    """Reference (non-FFT) valid convolution with ``F.conv2d`` (slow; for tests and checks)."""
-    _check(x, psf)
-    weight = torch.flip(psf, dims=(-2, -1)).unsqueeze(1)  # conv2d correlates: flip for convolution
-    return F.conv2d(x, weight.to(x.dtype), groups=psf.shape[0])
-
-
 def pad_same(x: torch.Tensor, k: int, mode: str = "zeros") -> torch.Tensor:
     """Pad (B, C, H, W) by k//2 on every side so that a valid convolution returns H×W."""
     r = k // 2

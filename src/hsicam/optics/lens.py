@@ -1,7 +1,8 @@
 """Refractive lens models: focal length versus wavelength.
 
 Inside the PSF only the *residual* defocus of each band is simulated (DESIGN.md §1): the Fourier
-transform plays the lens, so a lens model only has to say f(λ).
+transform plays the lens, so a lens model only has to say f(λ) and where its rear principal plane
+H' sits (distances to the sensor are measured from H').
 """
 
 from __future__ import annotations
@@ -24,11 +25,16 @@ class AchromaticLens:
         """f(λ) in metres, float64 array shaped like ``wavelength_nm``."""
         return np.full(np.shape(wavelength_nm), self.focal_length_m, dtype=np.float64)
 
+    def rear_principal_plane_m(self, wavelength_nm: np.ndarray) -> np.ndarray:
+        """H' relative to the lens's rear vertex (m): a thin lens, 0 at every wavelength."""
+        return np.zeros(np.shape(wavelength_nm), dtype=np.float64)
+
 
 @dataclass(frozen=True)
 class SingletLens:
-    """Plano-convex singlet: f(λ) = R / (n(λ) − 1) (exact for a thick plano-convex lens:
-    the flat surface has no power, so the centre thickness moves only the principal plane)."""
+    """Plano-convex singlet, convex face towards the object: f(λ) = R / (n(λ) − 1) (exact for a
+    thick plano-convex lens: the flat face has no power). The thickness t moves the principal
+    planes: H sits on the convex vertex, H' at t/n(λ) in front of the flat rear vertex."""
 
     radius_of_curvature_m: float
     center_thickness_m: float
@@ -37,6 +43,13 @@ class SingletLens:
 
     def focal_lengths_m(self, wavelength_nm: np.ndarray) -> np.ndarray:
         return self.radius_of_curvature_m / (self.material.n(wavelength_nm) - 1.0)
+
+    def rear_principal_plane_m(self, wavelength_nm: np.ndarray) -> np.ndarray:
+        """H' relative to the rear (flat) vertex (m, negative = towards the object): −t/n(λ).
+
+        Thick lens, R1 = R, R2 = ∞: δ' = −f (n−1) t/(n R1) = −t/n.
+        """
+        return -self.center_thickness_m / self.material.n(wavelength_nm)
 
 
 Lens = AchromaticLens | SingletLens

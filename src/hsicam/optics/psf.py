@@ -1,18 +1,22 @@
-"""The PSF stack of the DOE camera (paper eq. 6) with exact per-band sampling.
+"""The PSF stack of the DOE camera (paper eq. 6), exact for square DOE cells.
 
 p_λ(x, y) ∝ | F{ A · exp(i φ_λ^d) · exp(i (π/λ)(1/z_o + 1/z_i − 1/f_λ) r²) } |² at (x, y)/(λ z_i)
 
 The Fourier transform *is* the lens; only the residual defocus is sampled on the pupil grid.
-Each band's FFT is zero-padded to N_λ (see :mod:`hsicam.optics.sampling`), so its output pitch is
-pixel/s; the intensity is centred on the optical axis, cut to K·s samples and sum-pooled s×s.
-Normalisation (Parseval): the energy over the whole FFT plane is 1; what the K×K kernel holds is
-returned as ``energy`` (light outside is reported, never hidden by renormalising).
+The pupil is piecewise constant on square cells (the DOE's own cells, or q×q sub-cells of them
+with pupil oversampling). Its far field is exactly the periodic cell-grid sum times the cells'
+sinc² envelope; one N-point FFT (N ≥ 2P − 1, the same for every band) holds the periodic factor
+exactly, and a per-wavelength matrix W (K, N) integrates envelope × periodic intensity over
+each sensor pixel (see :mod:`hsicam.optics.sampling`): every diffraction order that falls in the
+kernel is kept, at the exact per-band pitch.
+Normalisation (Parseval): the energy over the whole sensor plane is 1; what the K×K kernel holds
+is returned as ``energy`` (light outside is reported, never hidden by renormalising).
+Band integration (optional): each band's PSF is the weighted mean over M sub-wavelengths.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Sequence
 
 import numpy as np
 import torch
@@ -21,7 +25,7 @@ from torch import nn
 from hsicam.optics.doe import DOE, phase_per_height
 from hsicam.optics.lens import Lens
 from hsicam.optics.pupil import aperture_amplitude, cells_across, sample_coordinates_m
-from hsicam.optics.sampling import PSFSampling, plan_psf_sampling
+from hsicam.optics.sampling import PSFSampling, band_sample_wavelengths, pixel_weights, plan_psf_sampling
 from hsicam.spectral import Bands
 
 
@@ -32,40 +36,30 @@ class PSFResult:
 
 
 class _BandPSF(torch.autograd.Function):
-    """One band: pupil phase (P, P) → |FFT_N(A·e^{iφ})|² centred on the axis and sum-pooled s×s
-    into a (K, K) kernel.
+    """One wavelength: pupil phase (P, P) → W·|FFT_N(A·e^{iφ})|²·Wᵀ, the (K, K) kernel.
 
-    The FFT is pruned over the zero-padded rows. Centring, cropping or padding to K·s samples and
-    pooling are one index map (FFT sample → kernel pixel), applied with ``index_add_`` forward and
-    gathered backward, so the n×n intensity is never shifted or copied. The backward is the exact
-    adjoint written out, down to the pupil: for u = A·e^{iφ}, ∂L/∂φ = Im(conj(u)·∂L/∂u) and
+    The FFT is pruned over the zero-padded rows. W (K, N) holds envelope, tiling of the periodic
+    far field over the kernel and pixel integration. The backward is the exact adjoint written
+    out, down to the pupil: for u = A·e^{iφ}, ∂L/∂φ = Im(conj(u)·∂L/∂u) and
     ∂L/∂A = Re(e^{−iφ}·∂L/∂u).
     """
 
     @staticmethod
-    def forward(ctx, phase: torch.Tensor, amplitude: torch.Tensor, n: int, s: int, k: int) -> torch.Tensor:  # type: ignore[override]
-        p = phase.shape[-1]
-        keep, bins = _kernel_bins(n, s, k, phase.device)
+    def forward(ctx, phase: torch.Tensor, amplitude: torch.Tensor, weights: torch.Tensor) -> torch.Tensor:  # type: ignore[override]
+        n = weights.shape[-1]
         field = torch.polar(amplitude, phase)
         spec = torch.fft.fft(torch.fft.fft(field, n=n, dim=-1), n=n, dim=-2)
         inten = spec.real.square() + spec.imag.square()
-        if keep is not None:  # kernel smaller than the FFT plane: drop what falls outside
-            inten = inten.index_select(0, keep).index_select(1, keep)
-        rows = inten.new_zeros(k, inten.shape[1]).index_add_(0, bins, inten)
-        pooled = inten.new_zeros(k, k).index_add_(1, bins, rows)
-        ctx.save_for_backward(phase, field, spec)
-        ctx.geometry = (n, s, k, p)
+        pooled = weights @ (inten @ weights.T)
+        ctx.save_for_backward(phase, field, spec, weights)
         return pooled
 
     @staticmethod
     @torch.autograd.function.once_differentiable
     def backward(ctx, grad: torch.Tensor):  # type: ignore[override]
-        phase, field, spec = ctx.saved_tensors
-        n, s, k, p = ctx.geometry
-        keep, bins = _kernel_bins(n, s, k, grad.device)
-        g = grad.index_select(0, bins).index_select(1, bins)  # adjoint of the pooling
-        if keep is not None:
-            g = g.new_zeros(n, n).index_put_((keep[:, None], keep[None, :]), g)
+        phase, field, spec, weights = ctx.saved_tensors
+        n, p = weights.shape[-1], phase.shape[-1]
+        g = weights.T @ (grad @ weights)  # (N, N): adjoint of W·I·Wᵀ
         # ∂L/∂u = 2·(adjoint of the zero-padded FFT)(g·U) = 2n²·ifft(g·U), first p rows/columns
         gf = torch.fft.ifft(spec * g, dim=-2)[:p]
         gf = torch.fft.ifft(gf, dim=-1)[:, :p]
@@ -74,29 +68,7 @@ class _BandPSF(torch.autograd.Function):
         grad_amplitude = None
         if ctx.needs_input_grad[1]:
             grad_amplitude = (torch.polar(torch.ones_like(phase), -phase) * gf).real
-        return grad_phase, grad_amplitude, None, None, None
-
-
-def _centre_pads(n: int, ks: int) -> tuple[int, int]:
-    """Pads (before, after; negative = crop) that put index n//2 of an n-array at index ks//2."""
-    centre = ks // 2
-    return centre - n // 2, (ks - 1 - centre) - (n - 1 - n // 2)
-
-
-def _kernel_bins(n: int, s: int, k: int, device: torch.device) -> tuple[torch.Tensor | None, torch.Tensor]:
-    """Map from FFT samples (unshifted order, length n) to kernel pixels (0..K−1).
-
-    Returns (keep, bins): ``keep`` are the FFT sample indices inside the K·s window (None when
-    all n are), ``bins`` the kernel pixel of each kept sample. Sample i has frequency index
-    i − n·[i ≥ ⌈n/2⌉]; index 0 (the optical axis) lands on the centre of pixel K//2.
-    """
-    before, _ = _centre_pads(n, k * s)
-    window = (torch.arange(n, device=device) + n // 2) % n + before  # position in the K·s window
-    inside = (window >= 0) & (window < k * s)
-    if bool(inside.all()):
-        return None, window // s
-    keep = torch.nonzero(inside).flatten()
-    return keep, window[keep] // s
+        return grad_phase, grad_amplitude, None
 
 
 def psf_stack(
@@ -105,38 +77,42 @@ def psf_stack(
     r2_m2: torch.Tensor,
     doe_phase_per_m: torch.Tensor,
     defocus_per_m2: torch.Tensor,
-    fft_sizes: Sequence[int],
-    supersample: int,
-    kernel_px: int,
+    weights: torch.Tensor,
+    line_weights: torch.Tensor | None = None,
 ) -> PSFResult:
-    """Pixel-integrated PSFs for every band.
+    """Pixel-integrated PSFs, exact for a pupil of square cells.
 
     Args:
-        height_m: DOE heights on the pupil samples (m), (P, P).
-        amplitude: pupil transmission, (P, P).
-        r2_m2: squared radius of each pupil sample (m²), (P, P).
-        doe_phase_per_m: 2π(n(λ)−1)/λ per band (rad/m), (C,).
-        defocus_per_m2: (π/λ)(1/z_o + 1/z_i − 1/f_λ) per band (rad/m²), (C,).
-        fft_sizes: N_λ per band (≥ P).
-        supersample: odd s; the FFT pitch is pixel/s.
-        kernel_px: odd K.
+        height_m: DOE heights on the pupil cells (m), (P, P).
+        amplitude: pupil transmission per cell, (P, P).
+        r2_m2: squared radius of each cell centre (m²), (P, P).
+        doe_phase_per_m: 2π(n(λ)−1)/λ per wavelength (rad/m), (L,).
+        defocus_per_m2: (π/λ)(1/z_o + 1/z_i − 1/f_λ) per wavelength (rad/m²), (L,).
+        weights: pixel-integration matrices W per wavelength (:func:`~hsicam.optics.sampling.pixel_weights`), (L, K, N), N ≥ 2P − 1.
+        line_weights: (C, M) with L = C·M: each band is the weighted sum of its M wavelengths;
+            None: one wavelength per band.
     Returns:
         :class:`PSFResult` with ``psf`` (C, K, K) and ``energy`` (C,).
     """
-    s, k = int(supersample), int(kernel_px)
     power = (amplitude * amplitude).sum()
-    phase = doe_phase_per_m[:, None, None] * height_m + defocus_per_m2[:, None, None] * r2_m2  # (C, P, P)
-    # unbind (not phase[c]): its backward stacks the band gradients once instead of C times.
-    pooled = [_BandPSF.apply(ph, amplitude, n, s, k) / (n * n) for ph, n in zip(phase.unbind(0), fft_sizes)]
-    psf = torch.stack(pooled) / power  # Parseval: the whole FFT plane of each band sums to 1
+    phase = doe_phase_per_m[:, None, None] * height_m + defocus_per_m2[:, None, None] * r2_m2  # (L, P, P)
+    # unbind (not phase[c]): its backward stacks the band gradients once instead of L times.
+    lines = torch.stack([_BandPSF.apply(ph, amplitude, w) for ph, w in zip(phase.unbind(0), weights.unbind(0))])
+    psf = lines / power  # Parseval: the whole sensor plane of each wavelength sums to 1
+    if line_weights is not None:
+        c, m = line_weights.shape
+        psf = (psf.reshape(c, m, *psf.shape[-2:]) * line_weights[:, :, None, None]).sum(dim=1)
     return PSFResult(psf, psf.sum(dim=(-2, -1)))
 
 
 class PSFModel(nn.Module):
     """Lens + DOE optics of the camera; ``forward()`` returns the :class:`PSFResult` stack.
 
-    All geometry is in metres. ``sensor_distance_m`` defaults to the lens focal length at its
-    design wavelength; ``object_distance_m=None`` puts the object at infinity.
+    All geometry is in metres. ``sensor_distance_m`` is measured from the lens's rear principal
+    plane H' at its design wavelength and defaults to the focal length there; the sensor plane is
+    fixed, so a singlet whose H' moves with λ sees a slightly different distance per band.
+    ``object_distance_m=None`` puts the object at infinity. ``supersample=None`` integrates each
+    pixel exactly; ``band_samples`` M > 1 averages each band over M wavelengths within its FWHM.
     """
 
     def __init__(
@@ -153,6 +129,7 @@ class PSFModel(nn.Module):
         kernel_px: int | None = None,
         supersample: int | None = None,
         pupil_oversample: int = 1,
+        band_samples: int = 1,
     ) -> None:
         super().__init__()
         n_cells = cells_across(aperture_radius_m, cell_m)
@@ -161,23 +138,39 @@ class PSFModel(nn.Module):
         self.bands, self.lens, self.doe = bands, lens, doe
         self.aperture_radius_m, self.cell_m, self.pixel_m = aperture_radius_m, cell_m, pixel_m
         self.pupil_oversample = int(pupil_oversample)
-        lam_nm = bands.centers_nm
-        self.focal_lengths_m = lens.focal_lengths_m(lam_nm)
-        z_i = float(lens.focal_lengths_m(np.array([lens_design_wavelength_nm]))[0]) if sensor_distance_m is None else float(sensor_distance_m)
+        self.band_samples = int(band_samples)
+        self.lens_design_wavelength_nm = float(lens_design_wavelength_nm)
+        lam_nm, line_w = band_sample_wavelengths(bands.centers_nm, bands.fwhm_nm, self.band_samples)  # (C, M)
+        self.line_wavelengths_nm = lam_nm.reshape(-1)
+        lam0 = np.array([self.lens_design_wavelength_nm])
+        self.focal_lengths_m = lens.focal_lengths_m(bands.centers_nm)
+        z_i = float(lens.focal_lengths_m(lam0)[0]) if sensor_distance_m is None else float(sensor_distance_m)
         self.sensor_distance_m = z_i
+        # the sensor plane is fixed: its distance from H'(λ) changes as H' moves with λ
+        h0 = float(lens.rear_principal_plane_m(lam0)[0])
+        z_line = z_i + h0 - lens.rear_principal_plane_m(self.line_wavelengths_nm)
+        self.line_sensor_distances_m = z_line
         self.object_distance_m = object_distance_m
         self.sampling: PSFSampling = plan_psf_sampling(
-            lam_nm * 1e-9, z_i, pixel_m, cell_m, n_cells, pupil_oversample, supersample, kernel_px
+            self.line_wavelengths_nm * 1e-9, float(z_line.max()), pixel_m, cell_m, n_cells, pupil_oversample,
+            supersample, kernel_px, aperture_radius_m,
         )
+        smp = self.sampling
         inv_zo = 0.0 if object_distance_m is None else 1.0 / object_distance_m
-        defocus = np.pi / (lam_nm * 1e-9) * (inv_zo + 1.0 / z_i - 1.0 / self.focal_lengths_m)
+        lam_m = self.line_wavelengths_nm * 1e-9
+        f_line = lens.focal_lengths_m(self.line_wavelengths_nm)
+        defocus = np.pi / lam_m * (inv_zo + 1.0 / z_line - 1.0 / f_line)
+        period_px = lam_m * z_line / (smp.pupil_pitch_m * pixel_m)
+        weights = np.stack([pixel_weights(per, smp.kernel_px, smp.fft_size, smp.supersample) for per in period_px])
         x = sample_coordinates_m(n_cells, cell_m, self.pupil_oversample)
         amp = aperture_amplitude(n_cells, cell_m, aperture_radius_m, self.pupil_oversample)
         # Derived from the config, so not saved in checkpoints (persistent=False).
         self.register_buffer("amplitude", torch.from_numpy(amp).float(), persistent=False)
         self.register_buffer("r2_m2", torch.from_numpy(x[:, None] ** 2 + x[None, :] ** 2).float(), persistent=False)
-        self.register_buffer("doe_phase_per_m", torch.from_numpy(phase_per_height(doe.material, lam_nm)).float(), persistent=False)
+        self.register_buffer("doe_phase_per_m", torch.from_numpy(phase_per_height(doe.material, self.line_wavelengths_nm)).float(), persistent=False)
         self.register_buffer("defocus_per_m2", torch.from_numpy(defocus).float(), persistent=False)
+        self.register_buffer("pixel_weights", torch.from_numpy(weights).float(), persistent=False)
+        self.register_buffer("line_weights", torch.from_numpy(line_w).float(), persistent=False)
 
     @property
     def kernel_px(self) -> int:
@@ -185,28 +178,57 @@ class PSFModel(nn.Module):
 
     def pupil_heights(self, generator: torch.Generator | None = None) -> torch.Tensor:
         """DOE heights on the pupil samples (m), (P, P): each cell repeated q×q."""
-        h = self.doe.heights(generator)
+        return self.expand_cells(self.doe.heights(generator))
+
+    def expand_cells(self, h_cells: torch.Tensor) -> torch.Tensor:
+        """Cell heights (n, n) → pupil samples (n·q, n·q), in the optics' dtype and device."""
         q = self.pupil_oversample
+        h = h_cells.to(self.amplitude)
         if q > 1:
             h = h.repeat_interleave(q, dim=0).repeat_interleave(q, dim=1)
-        return h.to(self.amplitude.dtype)
+        return h
+
+    def psf_from_pupil(self, pupil_heights: torch.Tensor, defocus_delta_per_m2: torch.Tensor | None = None,
+                       bands: slice | None = None) -> PSFResult:
+        """PSF stack for given pupil heights (P, P) (m), optionally with an extra defocus per band
+        (rad/m², (C,)) and only for ``bands`` (a slice of band indices)."""
+        m = self.band_samples
+        sel = slice(None) if bands is None else slice(
+            None if bands.start is None else bands.start * m, None if bands.stop is None else bands.stop * m)
+        defocus = self.defocus_per_m2[sel]
+        if defocus_delta_per_m2 is not None:
+            delta = defocus_delta_per_m2.to(defocus).repeat_interleave(m)
+            defocus = defocus + (delta if bands is None else delta[sel])
+        line_w = None if m == 1 else self.line_weights[bands if bands is not None else slice(None)]
+        return psf_stack(pupil_heights, self.amplitude, self.r2_m2, self.doe_phase_per_m[sel], defocus,
+                         self.pixel_weights[sel], line_w)
 
     def forward(self, generator: torch.Generator | None = None) -> PSFResult:
-        return psf_stack(
-            self.pupil_heights(generator), self.amplitude, self.r2_m2, self.doe_phase_per_m,
-            self.defocus_per_m2, self.sampling.fft_sizes, self.sampling.supersample, self.sampling.kernel_px,
-        )
+        return self.psf_from_pupil(self.pupil_heights(generator))
+
+    def aperture_per_cell(self) -> np.ndarray:
+        """Aperture transmission (area fraction) per DOE cell, (n, n) float64."""
+        n, q = self.doe.n_cells, self.pupil_oversample
+        amp = self.amplitude.detach().double().cpu().numpy()
+        return amp.reshape(n, q, n, q).mean(axis=(1, 3)) if q > 1 else amp
 
     def describe(self) -> dict:
-        """Geometry and sampling facts (for psf.json and reports)."""
+        """Geometry, sampling and model facts (for psf.json and reports)."""
         smp = self.sampling
+        lam0 = np.array([self.lens_design_wavelength_nm])
+        lens = {
+            "model": self.lens.model,
+            "focal_length_mm": (self.focal_lengths_m * 1e3).tolist(),
+            "sensor_distance_mm": self.sensor_distance_m * 1e3,
+            "sensor_distance_from": f"rear principal plane H' at {self.lens_design_wavelength_nm:g} nm",
+            "rear_principal_plane_mm": float(self.lens.rear_principal_plane_m(lam0)[0]) * 1e3,
+            "rear_principal_plane_from": "rear vertex (negative: towards the object)",
+            "sensor_distance_per_band_mm": (self.line_sensor_distances_m.reshape(len(self.bands), -1).mean(axis=1) * 1e3).tolist(),
+            "object_distance_m": self.object_distance_m,
+        }
+        exact = smp.supersample is None
         return {
-            "lens": {
-                "model": self.lens.model,
-                "focal_length_mm": (self.focal_lengths_m * 1e3).tolist(),
-                "sensor_distance_mm": self.sensor_distance_m * 1e3,
-                "object_distance_m": self.object_distance_m,
-            },
+            "lens": lens,
             "doe": {
                 "enabled": self.doe.enabled,
                 "cells_across": self.doe.n_cells,
@@ -218,13 +240,30 @@ class PSFModel(nn.Module):
                 "quantization_levels": self.doe.quantization_levels,
             },
             "aperture_radius_mm": self.aperture_radius_m * 1e3,
+            "model": {
+                "pupil": "square cells, exact far field (cell-grid sum at the exact per-band pitch, "
+                         "all orders inside the kernel, sinc^2 cell envelope)",
+                "cells_exact": True,
+                "pupil_oversample": self.pupil_oversample,
+                "pupil_cell_um": round(smp.pupil_pitch_m * 1e6, 9),
+                "pixel_integration": "exact" if exact else f"midpoint {smp.supersample}x{smp.supersample}",
+                "band_samples": self.band_samples,
+                "band_integration": "band centre only" if self.band_samples == 1 else
+                    f"{self.band_samples} wavelengths over the FWHM, Gaussian weights",
+                "approximations": [
+                    "aperture: each pupil cell transmits uniformly the fraction of its area inside the circle",
+                    "residual defocus phase sampled at each pupil cell's centre (constant over the cell)",
+                    "scalar Fraunhofer diffraction, thin DOE",
+                ],
+                "normalization": "Parseval: each band's energy over the whole sensor plane is 1",
+            },
             "sampling": {
                 "supersample": smp.supersample,
+                "nyquist_supersample": smp.nyquist_supersample,
                 "pupil_oversample": self.pupil_oversample,
                 "pupil_samples": smp.pupil_samples,
-                "fft_sizes": list(smp.fft_sizes),
+                "fft_size": smp.fft_size,
                 "kernel_px": smp.kernel_px,
                 "min_kernel_px": smp.min_kernel_px,
-                "max_pitch_rel_error": float(np.max(np.abs(smp.pitch_rel_error))),
             },
         }

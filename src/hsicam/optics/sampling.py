@@ -1,10 +1,24 @@
-"""PSF sampling plan (DESIGN.md §1, "the classic pitfall").
+"""PSF sampling plan and exact pixel integration (DESIGN.md §1, "Sampling", "Square cells").
 
-A single FFT of a pupil sampled at Δ, zero-padded to N, gives an output pitch λ·z/(N·Δ) that
-changes with λ. Per band we choose N_λ = round(λ·z·s/(pixel·Δ)) so that the output pitch is
-pixel/s for an odd integer s, then sum-pool s×s onto the pixel (area integration). The kernel is
-odd, the optical axis sits on the centre pixel, and it must span the FFT field of view λ_max·z/Δ,
-otherwise light aliases back in.
+The pupil is P×P square cells of pitch d (d = Δ/q with pupil oversampling q) with a constant
+complex transmission u_c each. Its far field at the sensor, in units t = x·d/(λ z) (one period
+L = λz/d of the cell grid per unit of t), is exactly
+
+    I(t_x, t_y) = sinc²(t_x)·sinc²(t_y) · |Σ_c u_c e^{−2πi (t_x c_x + t_y c_y)}|²
+
+(the cells' own transform times the periodic cell-grid sum). The periodic factor is a
+trigonometric polynomial of degree P−1 per axis, so N ≥ 2P−1 samples per period (one N-point
+FFT, N the same for every band) determine it exactly, every diffraction order included. A pixel
+of width h = pixel·d/(λz) then integrates it exactly:
+
+    ∫_pixel sinc²(t)·I_per(t) dt = Σ_a W[j, a] I_a,   W[j, a] = (1/N) ∫_pixel sinc²(t) D_N(t − a/N) dt
+
+with the periodic (Dirichlet) interpolation kernel D_N. ``W`` (K, N) is computed once per
+wavelength (Gauss–Legendre over each pixel, exact to float precision), so the kernel is
+``W I Wᵀ``: every order that falls in the kernel, the cells' envelope, pixel integration and
+the exact per-band pitch, with no rounding of FFT sizes and no supersampling. An explicit
+``supersample`` s replaces the exact pixel integral by the s×s midpoint rule (s = 1: point
+values at pixel centres), for comparisons.
 """
 
 from __future__ import annotations
@@ -19,21 +33,40 @@ from hsicam.errors import ConfigError
 
 @dataclass(frozen=True)
 class PSFSampling:
-    """The per-band FFT sizes and the common supersampling and kernel size."""
+    """Sizes of the PSF computation, common to all bands."""
 
-    pupil_samples: int  # samples across the pupil: cells × q
-    pupil_pitch_m: float  # Δ/q
-    supersample: int  # s (odd): FFT output pitch = pixel / s
-    fft_sizes: tuple[int, ...]  # N_λ per band
+    pupil_samples: int  # P: cells × q across the pupil grid
+    pupil_pitch_m: float  # d = Δ/q
+    fft_size: int  # N (odd, ≥ 2P − 1): exact samples of one period of the intensity
     kernel_px: int  # K (odd)
-    min_kernel_px: int  # smallest K holding the zeroth-order FFT field λ_max·z/Δ
-    pitch_rel_error: tuple[float, ...]  # (actual FFT pitch)/(pixel/s) − 1 per band, from rounding N_λ
+    min_kernel_px: int  # smallest K holding one period λ_max·z/d of the cell grid's far field
+    supersample: int | None  # None: exact pixel integration; s: s×s midpoint rule
+    nyquist_supersample: int  # smallest odd s whose sub-pixel is below λ_min·z/(4a)
+
+    @property
+    def fft_sizes(self) -> tuple[int, ...]:
+        """Kept for callers of the old per-band plan: one size, N, for all bands."""
+        return (self.fft_size,)
 
 
 def odd_ceil(x: float) -> int:
     """Smallest odd integer ≥ x (with a 1e-9 tolerance against round-off)."""
     k = int(math.ceil(x - 1e-9))
     return k if k % 2 == 1 else k + 1
+
+
+def odd_fast_size(n: int) -> int:
+    """Smallest odd 7-smooth integer ≥ n (a fast FFT length)."""
+    m = max(1, int(n))
+    m += 1 - m % 2
+    while True:
+        r = m
+        for f in (3, 5, 7):
+            while r % f == 0:
+                r //= f
+        if r == 1:
+            return m
+        m += 2
 
 
 def plan_psf_sampling(
@@ -45,39 +78,29 @@ def plan_psf_sampling(
     pupil_oversample: int = 1,
     supersample: int | None = None,
     kernel_px: int | None = None,
+    aperture_radius_m: float | None = None,
 ) -> PSFSampling:
-    """Choose s, N_λ and K (see module docstring). Raises :class:`ConfigError` for impossible choices.
+    """Choose N and K (see module docstring). Raises :class:`ConfigError` for impossible choices.
 
     Args:
-        wavelengths_m: band centres (m), shape (C,).
-        sensor_distance_m: z_i, lens-to-sensor distance (m).
+        wavelengths_m: wavelengths that are simulated (m), shape (C,).
+        sensor_distance_m: z_i, rear principal plane to sensor (m).
         pixel_m: sensor pixel pitch (m).
         cell_m: DOE cell size Δ (m).
         n_cells: cells across the pupil grid.
-        pupil_oversample: q samples per cell; the FFT field widens q×, showing higher orders.
-        supersample: odd s, or None for the smallest s with N_λ ≥ pupil samples in every band.
+        pupil_oversample: q samples per cell (finer aperture edge and defocus; same DOE cells).
+        supersample: None for exact pixel integration, or an odd s for the s×s midpoint rule.
         kernel_px: odd K, or None for the smallest K that holds λ_max·z/Δ.
+        aperture_radius_m: a, for the Nyquist supersampling reported (default: half the grid).
     """
     lam = np.asarray(wavelengths_m, dtype=np.float64).reshape(-1)
     for name, v in (("sensor distance", sensor_distance_m), ("pixel pitch", pixel_m), ("DOE cell", cell_m)):
         if not (v > 0 and math.isfinite(v)):
             raise ConfigError(f"{name} must be positive, got {v}")
     q = int(pupil_oversample)
-    pupil_pitch = cell_m / q
     n_pupil = n_cells * q
-    base = lam * sensor_distance_m / (pixel_m * pupil_pitch)  # N_λ for s = 1
-    s_min = odd_ceil(n_pupil / base.min())
-    if supersample is None:
-        s = s_min
-    else:
-        s = int(supersample)
-        if s < s_min:
-            raise ConfigError(
-                f"camera.psf.supersample={s} is too small: the FFT must hold the {n_pupil}-sample pupil at "
-                f"{lam.min() * 1e9:g} nm, which needs supersample >= {s_min}"
-            )
-    sizes = tuple(int(round(b * s)) for b in base)
-    min_k = odd_ceil(max(sizes) / (s * q))
+    n_fft = odd_fast_size(2 * n_pupil - 1)
+    min_k = odd_ceil(lam.max() * sensor_distance_m / (cell_m * pixel_m))
     if kernel_px is None:
         k = min_k
     else:
@@ -90,5 +113,63 @@ def plan_psf_sampling(
                 f"(the FFT field λ_max·z/Δ = {lam.max() * sensor_distance_m / cell_m * 1e3:.3f} mm "
                 f"at {pixel_m * 1e6:g} µm pixels)"
             )
-    err = tuple(float(b * s / n - 1.0) for b, n in zip(base, sizes))
-    return PSFSampling(n_pupil, pupil_pitch, s, sizes, k, min_k, err)
+    if supersample is not None and (int(supersample) < 1 or int(supersample) % 2 == 0):
+        raise ConfigError(f"camera.psf.supersample must be a positive odd number, got {supersample}")
+    a = n_cells * cell_m / 2 if aperture_radius_m is None else aperture_radius_m
+    s_nyq = odd_ceil(4.0 * a * pixel_m / (lam.min() * sensor_distance_m))
+    return PSFSampling(n_pupil, cell_m / q, n_fft, k, min_k, None if supersample is None else int(supersample), s_nyq)
+
+
+def _gauss_legendre(h: float, nodes: int) -> tuple[np.ndarray, np.ndarray]:
+    x, w = np.polynomial.legendre.leggauss(nodes)
+    return 0.5 * h * x, 0.5 * h * w
+
+
+def pixel_weights(period_px: float, kernel_px: int, fft_size: int, supersample: int | None = None,
+                  envelope: bool = True) -> np.ndarray:
+    """Exact pixel-integration matrix W (K, N) float64 of one wavelength and axis.
+
+    Args:
+        period_px: L/pixel = λ·z/(d·pixel), the far-field period of the cell grid in pixels.
+        kernel_px: K (odd); pixel j (0..K−1) is centred at t_j = (j − K//2)/period_px.
+        fft_size: N (odd), the FFT length over one period (sample a sits at t = a/N mod 1).
+        supersample: None: exact integral over the pixel (Gauss–Legendre); s: s-point midpoint rule.
+        envelope: multiply by the cell envelope sinc²(t) (False: point cells, for checks).
+    Returns:
+        W with pixel value = Σ_ab W[i, a] I[a, b] W[j, b] for I = |FFT_N(u)|² / Σ|u|²
+        (the fraction of the pupil's power on that pixel).
+    """
+    k, n = int(kernel_px), int(fft_size)
+    if n % 2 == 0:
+        raise ValueError("fft_size must be odd")
+    h = 1.0 / float(period_px)
+    freqs = np.fft.fftfreq(n, d=1.0 / n)  # integers −(N−1)/2 .. (N−1)/2 in FFT order
+    if supersample is None:
+        # integrand sinc²(t)·e^{2πikt} over a pixel: at most |k|·h cycles; GL is exact far beyond that
+        tau, w = _gauss_legendre(h, int(math.ceil(math.pi * (n / 2) * h)) + 16)
+    else:
+        s = int(supersample)
+        tau, w = ((np.arange(s) + 0.5) / s - 0.5) * h, np.full(s, h / s)
+    centres = (np.arange(k) - k // 2) * h
+    t = centres[:, None] + tau[None, :]  # (K, G)
+    ew = w[None, :] * (np.sinc(t) ** 2 if envelope else np.ones_like(t))  # (K, G)
+    # J[j, k] = Σ_g ew[j, g] e^{2πi k (t_j + τ_g)};  W[j, a] = (1/N) Σ_k J[j, k] e^{−2πi k a/N}
+    j_mat = np.exp(2j * np.pi * np.outer(centres, freqs)) * (ew @ np.exp(2j * np.pi * np.outer(tau, freqs)))
+    return np.fft.fft(j_mat, axis=1).real / n
+
+
+def band_sample_wavelengths(centers_nm: np.ndarray, fwhm_nm: np.ndarray, samples: int) -> tuple[np.ndarray, np.ndarray]:
+    """Sub-wavelengths (nm) and weights, both (C, M), that average each band over its FWHM.
+
+    M = ``samples`` points at the centres of M equal slices of [λ_c − FWHM/2, λ_c + FWHM/2],
+    weighted by a Gaussian band shape of that FWHM (weights sum to 1 per band). M = 1: the centre.
+    """
+    c = np.asarray(centers_nm, dtype=np.float64).reshape(-1, 1)
+    f = np.asarray(fwhm_nm, dtype=np.float64).reshape(-1, 1)
+    m = int(samples)
+    if m < 1:
+        raise ValueError("band samples must be >= 1")
+    off = ((np.arange(m) + 0.5) / m - 0.5)[None, :]  # in FWHM units
+    lam = c + off * f
+    w = np.exp(-4.0 * math.log(2.0) * off**2) * np.ones_like(lam)
+    return lam, w / w.sum(axis=1, keepdims=True)

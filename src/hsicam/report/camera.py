@@ -94,23 +94,38 @@ def plot_doe_heights(height_m: np.ndarray, aperture: np.ndarray, cell_um: float,
 
 
 def write_psf_outputs(camera, out: Path) -> dict:
-    """psf.npy (C, K, K float32), psf.json (geometry, energy per band), psf.png (montage)."""
+    """psf.npy (C, K, K float32), psf.json (geometry, model, energy per band), psf.png (montage),
+    and what is needed to recompute the PSFs independently: doe_height_m.npy (heights per DOE
+    cell, m, (n, n) float64, exactly those used, fabrication noise included when enabled) and
+    aperture.npy (transmission per pupil cell, (n·q, n·q) float64, area fraction in the circle).
+    A measured-PSF camera writes the PSFs it images with."""
+    optics = camera.optics
     with torch.no_grad():
-        res = camera.psf_result()
+        heights = optics.doe.heights()
+        res = camera.psf_result() if camera.kind == "measured_psf" else optics.psf_from_pupil(optics.expand_cells(heights))
     psf = res.psf.float().cpu().numpy()
-    desc = camera.optics.describe()
+    desc = optics.describe()
     info = {
         "bands_nm": camera.bands.centers_nm.tolist(),
         "fwhm_nm": camera.bands.fwhm_nm.tolist(),
-        "pixel_pitch_um": camera.optics.pixel_m * 1e6,
+        "pixel_pitch_um": optics.pixel_m * 1e6,
         "kernel_px": camera.kernel_px,
         "energy_in_kernel": res.energy.double().cpu().numpy().tolist(),
         "lens": desc["lens"],
         "doe": desc["doe"],
         "aperture_radius_mm": desc["aperture_radius_mm"],
         "sampling": desc["sampling"],
+        "model": desc["model"] if camera.kind != "measured_psf" else "measured PSFs (imported, fixed)",
+        "files": {
+            "doe_height_m.npy": f"DOE heights (m) per {optics.cell_m * 1e6:g} µm cell, {optics.doe.n_cells}x{optics.doe.n_cells}, "
+                                "row = y, column = x, centre cell on the optical axis",
+            "aperture.npy": f"aperture transmission per {optics.sampling.pupil_pitch_m * 1e6:g} µm pupil cell "
+                            "(area fraction inside the circle)",
+        },
     }
     write_npy(out / "psf.npy", psf)
+    write_npy(out / "doe_height_m.npy", heights.detach().double().cpu().numpy())
+    write_npy(out / "aperture.npy", optics.amplitude.detach().double().cpu().numpy())
     write_json(out / "psf.json", info)
     plot_psf_montage(psf, camera.bands, out / "psf.png")
     return info
