@@ -13,8 +13,9 @@ import torch
 from cli_helpers import assert_clean_error
 from test_calibration import fab_run, run_cli  # noqa: F401 - shared fixture
 from hsicam.cameras import DOECamera
-from hsicam.engine.tolerance import (
-    _tolerance_at, defocus_delta_per_m2, nominal_heights, oversampled_optics, psf_for_heights, psf_shifted, shift_fill,
+from hsicam.engine.tolerance import _tolerance_at
+from hsicam.optics.perturb import (
+    defocus_delta_per_m2, nominal_heights, oversampled_optics, psf_for_heights, psf_shifted, shift_fill,
 )
 
 

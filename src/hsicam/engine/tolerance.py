@@ -43,6 +43,10 @@ import numpy as np
 import torch
 
 from hsicam.errors import InputError
+from hsicam.optics.perturb import (
+    defocus_delta_per_m2, nominal_heights, oversampled_optics, psf_for_heights, psf_shifted, shift_subsamples_for,
+)
+from hsicam.report.tolerance import plot_tolerance
 
 log = logging.getLogger(__name__)
 
@@ -69,83 +73,6 @@ class ToleranceSpec:
             raise InputError("quantisation levels must be >= 2")
         if any(not math.isfinite(v) for v in (*self.shift_cells, *self.sensor_distance_um)):
             raise InputError("shift and sensor distance values must be finite")
-
-
-# ------------------------------------------------------------------------------------------------
-# Perturbed PSF stacks (pure functions of the camera's optics)
-# ------------------------------------------------------------------------------------------------
-@torch.no_grad()
-def psf_for_heights(optics, h_cells_m: torch.Tensor, defocus_delta: torch.Tensor | None = None):
-    """:class:`~hsicam.optics.psf.PSFResult` of the camera's optics with cell heights ``h_cells_m``
-    (n, n) (m) and optionally an extra defocus term per band (rad/m², (C,))."""
-    return optics.psf_from_pupil(optics.expand_cells(h_cells_m), defocus_delta)
-
-
-def nominal_heights(camera) -> torch.Tensor:
-    """The trained design heights (m) per cell (n, n) float64, without fabrication noise."""
-    doe = camera.optics.doe
-    saved = doe.sigma_height_m
-    try:
-        doe.sigma_height_m = 0.0
-        with torch.no_grad():
-            return doe.heights().detach().double().cpu()
-    finally:
-        doe.sigma_height_m = saved
-
-
-def defocus_delta_per_m2(optics, dz_m: float) -> torch.Tensor:
-    """(π/λ)(1/(z_i + Δz) − 1/z_i) per band (rad/m²), float64 (C,)."""
-    lam = torch.as_tensor(optics.bands.centers_nm * 1e-9, dtype=torch.float64)
-    z = optics.sensor_distance_m
-    return math.pi / lam * (1.0 / (z + dz_m) - 1.0 / z)
-
-
-def shift_fill(x: torch.Tensor, dy: int, dx: int) -> torch.Tensor:
-    """``x`` (H, W) moved by (dy, dx) samples (out[i, j] = x[i − dy, j − dx]), zeros entering."""
-    out = torch.zeros_like(x)
-    h, w = x.shape
-    if abs(dy) >= h or abs(dx) >= w:
-        return out
-    ys, yd = (slice(0, h - dy), slice(dy, h)) if dy >= 0 else (slice(-dy, h), slice(0, h + dy))
-    xs, xd = (slice(0, w - dx), slice(dx, w)) if dx >= 0 else (slice(-dx, w), slice(0, w + dx))
-    out[yd, xd] = x[ys, xs]
-    return out
-
-
-def oversampled_optics(optics, q: int):
-    """The camera's optics (same DOE module, lens, aperture, sensor distance, kernel) with pupil
-    oversampling ``q``: each DOE cell split into q×q samples."""
-    from hsicam.optics.psf import PSFModel
-
-    return PSFModel(optics.bands, optics.lens, optics.doe, optics.aperture_radius_m, optics.cell_m, optics.pixel_m,
-                    sensor_distance_m=optics.sensor_distance_m, object_distance_m=optics.object_distance_m,
-                    kernel_px=optics.kernel_px, supersample=optics.sampling.supersample, pupil_oversample=q,
-                    band_samples=optics.band_samples).to(optics.amplitude.device)
-
-
-def shift_subsamples_for(optics, subsamples: int) -> int:
-    """Sub-samples per cell Q used for the misalignment study: ``subsamples`` rounded up to a
-    multiple of the camera's own pupil oversampling."""
-    q = optics.pupil_oversample
-    return q * max(1, math.ceil(subsamples / q))
-
-
-@torch.no_grad()
-def psf_shifted(fine_optics, h_cells_m: torch.Tensor, dy_cells: float, dx_cells: float) -> tuple[torch.Tensor, torch.Tensor, tuple[float, float]]:
-    """PSF stack (C, K, K) of ``fine_optics`` (pupil oversampling Q, see :func:`oversampled_optics`)
-    with the DOE relief moved by (dy, dx) cells — rounded to whole sub-samples, 1/Q cell — against
-    the fixed aperture and lens; relief entering from outside the design reads height 0.
-    Returns (psf float32, energy in the kernel (C,), the shift applied in cells). Bands are
-    computed one at a time to bound memory."""
-    big_q = fine_optics.pupil_oversample
-    sy, sx = int(round(dy_cells * big_q)), int(round(dx_cells * big_q))
-    h = shift_fill(fine_optics.expand_cells(h_cells_m), sy, sx)
-    out, energy = [], []
-    for c in range(len(fine_optics.bands)):
-        res = fine_optics.psf_from_pupil(h, bands=slice(c, c + 1))
-        out.append(res.psf[0])
-        energy.append(res.energy[0])
-    return torch.stack(out).float().cpu(), torch.stack(energy).cpu(), (sy / big_q, sx / big_q)
 
 
 # ------------------------------------------------------------------------------------------------
@@ -343,48 +270,3 @@ def write_tolerance(out: str | Path, result: dict[str, Any]) -> None:
     with atomic_open(out / "tolerance.csv", "w", encoding="utf-8", newline="") as fh:
         fh.write(buf.getvalue())
     plot_tolerance(result, out / "tolerance.png")
-
-
-def plot_tolerance(result: dict[str, Any], path: str | Path) -> None:
-    """PSNR versus each perturbation (2×2 panels), nominal as a dashed line."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    from hsicam.io import save_figure
-
-    sw = result["sweeps"]
-    nom = result["nominal"]["psnr"]
-    fig, axes = plt.subplots(2, 2, figsize=(9, 6.5))
-    panels = [
-        (axes[0, 0], ["sigma_height_nm"], "height noise σ$_p$ (nm)", False),
-        (axes[0, 1], ["levels"], "quantisation levels L", True),
-        (axes[1, 0], ["shift_x_cells", "shift_diag_cells"], "DOE lateral shift (cells)", False),
-        (axes[1, 1], ["sensor_distance_um"], "sensor distance error Δz (µm)", False),
-    ]
-    for ax, keys, label, logx in panels:
-        for key in keys:
-            if key not in sw:
-                continue
-            s = sw[key]
-            ax.errorbar(s["values"], s["psnr"], yerr=s["psnr_std"], marker="o", ms=3, capsize=2,
-                        label={"shift_x_cells": "along x", "shift_diag_cells": "along the diagonal"}.get(key, None))
-        ref = nom
-        if keys[0].startswith("shift") and "shift_reference" in result:
-            ref = result["shift_reference"]["psnr"]
-            ax.axhline(nom, ls="-.", color="silver", lw=0.8, label="nominal (trained model)")
-            ax.axhline(ref, ls="--", color="gray", lw=0.8,
-                       label=f"no shift, {result['shift_reference']['pupil_oversample']} samples/cell")
-        else:
-            ax.axhline(nom, ls="--", color="gray", lw=0.8, label="nominal")
-        ax.axhline(ref - 1.0, ls=":", color="gray", lw=0.8, label="−1 dB")
-        if logx:
-            ax.set_xscale("log", base=2)
-        ax.set_xlabel(label)
-        ax.set_ylabel("PSNR (dB)")
-        ax.grid(alpha=0.3)
-        ax.legend(fontsize=7)
-    fig.suptitle("Tolerance of the trained camera (network fixed): " + result["metric"].split(",")[0], fontsize=9)
-    fig.tight_layout()
-    save_figure(fig, path)

@@ -1,0 +1,82 @@
+"""Perturbed PSF stacks of a camera's optics: other cell heights, sensor-distance defocus, a DOE
+shifted laterally on an oversampled pupil (pure functions; used by the tolerance sweeps)."""
+
+from __future__ import annotations
+
+import math
+
+import torch
+
+from hsicam.optics.psf import PSFModel
+
+# ------------------------------------------------------------------------------------------------
+@torch.no_grad()
+def psf_for_heights(optics, h_cells_m: torch.Tensor, defocus_delta: torch.Tensor | None = None):
+    """:class:`~hsicam.optics.psf.PSFResult` of the camera's optics with cell heights ``h_cells_m``
+    (n, n) (m) and optionally an extra defocus term per band (rad/m², (C,))."""
+    return optics.psf_from_pupil(optics.expand_cells(h_cells_m), defocus_delta)
+
+
+def nominal_heights(camera) -> torch.Tensor:
+    """The trained design heights (m) per cell (n, n) float64, without fabrication noise."""
+    doe = camera.optics.doe
+    saved = doe.sigma_height_m
+    try:
+        doe.sigma_height_m = 0.0
+        with torch.no_grad():
+            return doe.heights().detach().double().cpu()
+    finally:
+        doe.sigma_height_m = saved
+
+
+def defocus_delta_per_m2(optics, dz_m: float) -> torch.Tensor:
+    """(π/λ)(1/(z_i + Δz) − 1/z_i) per band (rad/m²), float64 (C,)."""
+    lam = torch.as_tensor(optics.bands.centers_nm * 1e-9, dtype=torch.float64)
+    z = optics.sensor_distance_m
+    return math.pi / lam * (1.0 / (z + dz_m) - 1.0 / z)
+
+
+def shift_fill(x: torch.Tensor, dy: int, dx: int) -> torch.Tensor:
+    """``x`` (H, W) moved by (dy, dx) samples (out[i, j] = x[i − dy, j − dx]), zeros entering."""
+    out = torch.zeros_like(x)
+    h, w = x.shape
+    if abs(dy) >= h or abs(dx) >= w:
+        return out
+    ys, yd = (slice(0, h - dy), slice(dy, h)) if dy >= 0 else (slice(-dy, h), slice(0, h + dy))
+    xs, xd = (slice(0, w - dx), slice(dx, w)) if dx >= 0 else (slice(-dx, w), slice(0, w + dx))
+    out[yd, xd] = x[ys, xs]
+    return out
+
+
+def oversampled_optics(optics, q: int):
+    """The camera's optics (same DOE module, lens, aperture, sensor distance, kernel) with pupil
+    oversampling ``q``: each DOE cell split into q×q samples."""
+    return PSFModel(optics.bands, optics.lens, optics.doe, optics.aperture_radius_m, optics.cell_m, optics.pixel_m,
+                    sensor_distance_m=optics.sensor_distance_m, object_distance_m=optics.object_distance_m,
+                    kernel_px=optics.kernel_px, supersample=optics.sampling.supersample, pupil_oversample=q,
+                    band_samples=optics.band_samples).to(optics.amplitude.device)
+
+
+def shift_subsamples_for(optics, subsamples: int) -> int:
+    """Sub-samples per cell Q used for the misalignment study: ``subsamples`` rounded up to a
+    multiple of the camera's own pupil oversampling."""
+    q = optics.pupil_oversample
+    return q * max(1, math.ceil(subsamples / q))
+
+
+@torch.no_grad()
+def psf_shifted(fine_optics, h_cells_m: torch.Tensor, dy_cells: float, dx_cells: float) -> tuple[torch.Tensor, torch.Tensor, tuple[float, float]]:
+    """PSF stack (C, K, K) of ``fine_optics`` (pupil oversampling Q, see :func:`oversampled_optics`)
+    with the DOE relief moved by (dy, dx) cells — rounded to whole sub-samples, 1/Q cell — against
+    the fixed aperture and lens; relief entering from outside the design reads height 0.
+    Returns (psf float32, energy in the kernel (C,), the shift applied in cells). Bands are
+    computed one at a time to bound memory."""
+    big_q = fine_optics.pupil_oversample
+    sy, sx = int(round(dy_cells * big_q)), int(round(dx_cells * big_q))
+    h = shift_fill(fine_optics.expand_cells(h_cells_m), sy, sx)
+    out, energy = [], []
+    for c in range(len(fine_optics.bands)):
+        res = fine_optics.psf_from_pupil(h, bands=slice(c, c + 1))
+        out.append(res.psf[0])
+        energy.append(res.energy[0])
+    return torch.stack(out).float().cpu(), torch.stack(energy).cpu(), (sy / big_q, sx / big_q)

@@ -1,0 +1,50 @@
+"""The tolerance figure (:mod:`hsicam.engine.tolerance` computes the sweeps)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+def plot_tolerance(result: dict[str, Any], path: str | Path) -> None:
+    """PSNR versus each perturbation (2×2 panels), nominal as a dashed line."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from hsicam.io import save_figure
+
+    sw = result["sweeps"]
+    nom = result["nominal"]["psnr"]
+    fig, axes = plt.subplots(2, 2, figsize=(9, 6.5))
+    panels = [
+        (axes[0, 0], ["sigma_height_nm"], "height noise σ$_p$ (nm)", False),
+        (axes[0, 1], ["levels"], "quantisation levels L", True),
+        (axes[1, 0], ["shift_x_cells", "shift_diag_cells"], "DOE lateral shift (cells)", False),
+        (axes[1, 1], ["sensor_distance_um"], "sensor distance error Δz (µm)", False),
+    ]
+    for ax, keys, label, logx in panels:
+        for key in keys:
+            if key not in sw:
+                continue
+            s = sw[key]
+            ax.errorbar(s["values"], s["psnr"], yerr=s["psnr_std"], marker="o", ms=3, capsize=2,
+                        label={"shift_x_cells": "along x", "shift_diag_cells": "along the diagonal"}.get(key, None))
+        ref = nom
+        if keys[0].startswith("shift") and "shift_reference" in result:
+            ref = result["shift_reference"]["psnr"]
+            ax.axhline(nom, ls="-.", color="silver", lw=0.8, label="nominal (trained model)")
+            ax.axhline(ref, ls="--", color="gray", lw=0.8,
+                       label=f"no shift, {result['shift_reference']['pupil_oversample']} samples/cell")
+        else:
+            ax.axhline(nom, ls="--", color="gray", lw=0.8, label="nominal")
+        ax.axhline(ref - 1.0, ls=":", color="gray", lw=0.8, label="−1 dB")
+        if logx:
+            ax.set_xscale("log", base=2)
+        ax.set_xlabel(label)
+        ax.set_ylabel("PSNR (dB)")
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=7)
+    fig.suptitle("Tolerance of the trained camera (network fixed): " + result["metric"].split(",")[0], fontsize=9)
+    fig.tight_layout()
+    save_figure(fig, path)
