@@ -185,3 +185,14 @@ class DOESnapshot:
         kappa = self.sensor_code(y.shape[-2], y.shape[-1], origin).to(y.dtype)
         x = conv_valid_adjoint(y * kappa.unsqueeze(0), self.psf.to(y.dtype))
         return pad_same_adjoint(x, self.kernel_px)
+
+    def cropped(self, kernel_px: int) -> "DOESnapshot":
+        """The same operator with each PSF cut to its central ``kernel_px`` (odd) pixels: cheaper,
+        approximate (the light outside is dropped), still with an exact adjoint."""
+        k = self.kernel_px
+        if kernel_px % 2 == 0 or kernel_px < 1:
+            raise ValueError(f"kernel_px must be odd and >= 1, got {kernel_px}")
+        if kernel_px >= k:
+            return self
+        a = (k - kernel_px) // 2
+        return DOESnapshot(self.bands, self.psf[:, a : a + kernel_px, a : a + kernel_px], self.tile, self.code_period)
