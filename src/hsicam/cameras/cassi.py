@@ -380,6 +380,10 @@ class CASSISnapshot:
             return sd_cassi_adjoint(y, self._aperture(h, w, origin, y), cam.shifts, cam.scale)
         return dd_cassi_adjoint(y, dd_band_masks(self._aperture(h, w + cam.span, origin, y), cam.shifts, w), cam.scale)
 
+    def gram_diagonal(self, y: torch.Tensor, origin: tuple[int, int] = (0, 0)) -> torch.Tensor:
+        """diag(ΦΦᵀ) on the sensor window of ``y`` (1, 1, h, w): ΦΦᵀ is diagonal, so it is A(Aᵀ𝟙)."""
+        return self.A(self.A_adjoint(y.new_ones(1, 1, *y.shape[-2:]), origin), origin)
+
 
 __all__ = [
     "CASSISnapshot",

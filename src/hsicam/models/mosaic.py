@@ -112,10 +112,10 @@ class MosaicNet(nn.Module):
 
     def forward(self, sensor: torch.Tensor, camera, origin: tuple[int, int] = (0, 0)) -> torch.Tensor:
         """``sensor`` (B, 1, H, W) of the window at ``origin``; ``camera`` (or its snapshot) gives
-        the CFA κ via ``sensor_code``. Returns (B, C, H, W) float32."""
+        the CFA κ via ``sensor_code``. Returns (B, C, H, W) in the network's dtype (float32)."""
         if sensor.dim() != 4 or sensor.shape[1] != 1:
             raise ValueError(f"sensor image must be (B, 1, H, W), got shape {tuple(sensor.shape)}")
-        sensor = sensor.float()
+        sensor = sensor.to(self.stem.weight.dtype)  # float32 unless the network was converted
         h, w = sensor.shape[-2:]
         code = camera.sensor_code(h, w, origin).to(sensor)
         if code.shape[0] != self.bands:

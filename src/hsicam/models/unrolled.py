@@ -4,6 +4,7 @@
                                                    or a MosaicNet front end
     for k = 1..K:
         z = x − α_k Aᵀ(A x − y)                      gradient step on ½‖A x − y‖², α_k = softplus(θ_k) / L
+          or x + α_k Aᵀ((y − A x) ⊘ diag(AAᵀ))       GAP step (CASSI: ΦΦᵀ diagonal), α_k = softplus(θ_k)
         x = z + P_k(z)                              learned prior: residual CNN at 1/s resolution
 
 A is the camera's operator frozen for the batch (:meth:`Camera.snapshot`: the DOE camera's PSF
@@ -34,6 +35,7 @@ from hsicam.models.mosaic import MosaicNet, MosaicNetSettings, ResBlock, _odd_wi
 from hsicam.models.system import demosaic
 
 INITS = ("auto", "demosaic", "backprojection", "mosaic")
+STEPS = ("gradient", "gap")
 
 
 @dataclass
@@ -42,6 +44,7 @@ class UnrolledSettings:
 
     stages: int = 2  # K: gradient step + prior, repeated
     init: str = "auto"  # x⁰: auto (demosaic with a CFA, else backprojection), demosaic, backprojection, mosaic
+    step: str = "gradient"  # data step: gradient (any camera) or gap (cameras with a diagonal ΦΦᵀ: CASSI)
     share_weights: bool = False  # one prior for all stages (else one per stage)
     prior_features: int = 64  # channels of each prior CNN
     prior_blocks: int = 2  # residual blocks (two 3×3 convs each) of each prior
@@ -106,9 +109,9 @@ class UnrolledNet(nn.Module):
     def __init__(self, bands: int, op_reach: tuple[int, int], stages: int = 2, init: str = "demosaic",
                  share_weights: bool = False, prior_features: int = 64, prior_blocks: int = 2, prior_scale: int = 4,
                  step_init: float = 1.0, stage_kernel_px: int = 0, demosaic_window: int = 9,
-                 front: MosaicNet | None = None) -> None:
+                 front: MosaicNet | None = None, step: str = "gradient") -> None:
         super().__init__()
-        self.bands, self.stages, self.init = int(bands), int(stages), init
+        self.bands, self.stages, self.init, self.step = int(bands), int(stages), init, step
         self.op_reach, self.stage_kernel_px, self.demosaic_window = tuple(op_reach), int(stage_kernel_px), int(demosaic_window)
         self.front = front
         n_priors = 1 if share_weights else stages
@@ -132,7 +135,9 @@ class UnrolledNet(nn.Module):
         return self.priors[k % len(self.priors)]
 
     def step_sizes(self, lipschitz: float | None) -> torch.Tensor:
-        """α_k (K,) = softplus(θ_k) / L."""
+        """α_k (K,) = softplus(θ_k) / L (gradient steps) or softplus(θ_k) (GAP steps)."""
+        if self.step == "gap":
+            return F.softplus(self.step_logits)
         return F.softplus(self.step_logits) / (lipschitz or 1.0)
 
     def operator(self, camera):
@@ -152,15 +157,19 @@ class UnrolledNet(nn.Module):
 
     def data_step(self, x: torch.Tensor, sensor: torch.Tensor, op, alpha: torch.Tensor,
                   origin: tuple[int, int] = (0, 0)) -> torch.Tensor:
-        """x − α Aᵀ(A x − y)."""
-        return x - alpha * op.A_adjoint(op.A(x, origin) - sensor, origin)
+        """x − α Aᵀ(A x − y), or the GAP step x + α Aᵀ((y − A x) ⊘ diag(AAᵀ))."""
+        r = op.A(x, origin) - sensor
+        if self.step == "gap":
+            d = op.gram_diagonal(sensor, origin)
+            r = r / d.clamp_min(1e-6 * (getattr(op, "lipschitz", None) or 1.0))  # position-independent ε
+        return x - alpha * op.A_adjoint(r, origin)
 
     def forward(self, sensor: torch.Tensor, camera, origin: tuple[int, int] = (0, 0)) -> torch.Tensor:
         """``sensor`` (B, 1, H, W) of the window at ``origin``; ``camera``: a Camera or its snapshot.
-        Returns (B, C, H', W') float32."""
+        Returns (B, C, H', W') in the network's dtype (float32)."""
         if sensor.dim() != 4 or sensor.shape[1] != 1:
             raise ValueError(f"sensor image must be (B, 1, H, W), got shape {tuple(sensor.shape)}")
-        sensor = sensor.float()
+        sensor = sensor.to(self.step_logits.dtype)  # float32 unless the network was converted
         op = self.operator(camera)
         if len(op.bands) != self.bands:
             raise ValueError(f"the camera has {len(op.bands)} bands, the network {self.bands}")
@@ -177,6 +186,8 @@ def build_unrolled(mcfg: UnrolledSettings, camera) -> UnrolledNet:
     for key in ("stages", "prior_features", "prior_blocks", "prior_scale"):
         if getattr(mcfg, key) < 1:
             raise ConfigError(f"model.unrolled.{key} must be >= 1, got {getattr(mcfg, key)}")
+    if mcfg.step not in STEPS:
+        raise ConfigError(f"model.unrolled.step={mcfg.step!r} is not one of {', '.join(STEPS)}")
     if mcfg.init not in INITS:
         raise ConfigError(f"model.unrolled.init={mcfg.init!r} is not one of {', '.join(INITS)}")
     if not (mcfg.step_init > 0 and math.isfinite(mcfg.step_init)):
@@ -198,11 +209,15 @@ def build_unrolled(mcfg: UnrolledSettings, camera) -> UnrolledNet:
         op = camera.snapshot(nominal=True)
         if mcfg.stage_kernel_px and hasattr(op, "cropped"):
             op = op.cropped(mcfg.stage_kernel_px)
+    if mcfg.step == "gap" and not hasattr(op, "gram_diagonal"):
+        raise ConfigError(f"model.unrolled.step=gap needs a camera whose ΦΦᵀ is diagonal (CASSI), not "
+                          f"{type(camera).__name__}; use step=gradient")
     period = int(getattr(camera, "code_period", 1))
     window = mcfg.demosaic_window or _odd_window(period)
     front = build_mosaic(mcfg.mosaic, camera) if init == "mosaic" else None
     return UnrolledNet(len(camera.bands), tuple(op.reach_px), mcfg.stages, init, mcfg.share_weights, mcfg.prior_features,
-                       mcfg.prior_blocks, mcfg.prior_scale, mcfg.step_init, mcfg.stage_kernel_px, window, front)
+                       mcfg.prior_blocks, mcfg.prior_scale, mcfg.step_init, mcfg.stage_kernel_px, window, front,
+                       mcfg.step)
 
 
 __all__ = ["Prior", "UnrolledNet", "UnrolledSettings", "backprojection", "build_unrolled", "camera_operator"]
