@@ -13,7 +13,9 @@ Kinds: ``rdn`` (the quick RDN with the demosaic input), ``mosaic`` (MosaicNetSet
 ``unrolled-mosaic`` (MosaicNet front end without head, 2 stages with the PSF cut to 31 px).
 
 Run: `PYTHONPATH=src .venv/bin/python benchmarks/bench_networks.py [--steps N] [--kinds a,b]`.
-Timings are medians; the machine's load is reported with them (shared CPUs inflate them).
+Timings are medians of wall time (``*_s``) and of this process's CPU time (``*_cpu_s``); on a
+shared machine the wall times swell with the load (reported), the CPU times much less: with
+``--threads 1`` the CPU time is what the wall time would be on an idle core.
 """
 
 from __future__ import annotations
@@ -66,26 +68,31 @@ def train_step(kind: str, cfg, steps: int) -> dict:
     scene = torch.rand(b, len(cam.bands), p + m, p + m)
     r = m // 2
     truth = scene[..., r : r + p, r : r + p]
-    t_optics, t_net, t_step = [], [], []
+    times: dict[str, list[float]] = {}
     for i in range(steps + 1):
-        t0 = time.perf_counter()
+        t0 = _now()
         sensor = cam(scene)
-        t1 = time.perf_counter()
+        t1 = _now()
         sensor_in = sensor.detach().requires_grad_()
         loss = F.l1_loss(recon(sensor_in), truth)
         opt.zero_grad(set_to_none=True)
         loss.backward()
-        t2 = time.perf_counter()
+        t2 = _now()
         sensor.backward(sensor_in.grad)
         opt.step()
-        t3 = time.perf_counter()
+        t3 = _now()
         if i:  # the first step warms up
-            t_optics.append((t1 - t0) + (t3 - t2))
-            t_net.append(t2 - t1)
-            t_step.append(t3 - t0)
-    step = statistics.median(t_step)
-    return {"step_s": step, "optics_s": statistics.median(t_optics), "network_s": statistics.median(t_net),
-            "params_M": sum(q.numel() for q in net.parameters()) / 1e6, "context_px": _context(kind, net, cam)}
+            for j, clock in enumerate(("", "_cpu")):
+                times.setdefault("optics" + clock, []).append((t1[j] - t0[j]) + (t3[j] - t2[j]))
+                times.setdefault("network" + clock, []).append(t2[j] - t1[j])
+                times.setdefault("step" + clock, []).append(t3[j] - t0[j])
+    out = {f"{k}_s": statistics.median(v) for k, v in times.items()}
+    return {**out, "params_M": sum(q.numel() for q in net.parameters()) / 1e6, "context_px": _context(kind, net, cam)}
+
+
+def _now() -> tuple[float, float]:
+    """(wall, process CPU) seconds."""
+    return time.perf_counter(), time.process_time()
 
 
 def _context(kind, net, cam) -> int:
@@ -97,11 +104,17 @@ def _context(kind, net, cam) -> int:
 
 
 @torch.no_grad()
-def inference(kind: str, cfg, repeats: int) -> float:
+def inference(kind: str, cfg, repeats: int) -> dict:
     cam, net, recon = build(kind, cfg)
     net.eval()
     g = torch.rand(1, 1, 512, 512)
-    return median_time(lambda: recon(g), repeats=repeats, warmup=1)
+    wall = median_time(lambda: recon(g), repeats=repeats, warmup=1)
+    cpu = []
+    for _ in range(repeats):
+        c0 = time.process_time()
+        recon(g)
+        cpu.append(time.process_time() - c0)
+    return {"infer_512_s": wall, "infer_512_cpu_s": statistics.median(cpu)}
 
 
 def main() -> None:
@@ -118,7 +131,7 @@ def main() -> None:
            "threads": torch.get_num_threads(), "load_avg_1min_start": os.getloadavg()[0], "kinds": {}}
     for kind in args.kinds.split(","):
         res = train_step(kind, cfg, args.steps)
-        res["infer_512_s"] = inference(kind, cfg, args.repeats)
+        res.update(inference(kind, cfg, args.repeats))
         out["kinds"][kind] = res
     out["load_avg_1min_end"] = os.getloadavg()[0]
     print(json.dumps(out, indent=1))
