@@ -151,3 +151,60 @@ class Camera(nn.Module):
                 f"scene of {x.shape[-2]}×{x.shape[-1]} px is too small for boundary='valid' with a "
                 f"{self.margin + 1}-px kernel: it needs at least {self.margin + 1}×{self.margin + 1}"
             )
+
+    def snapshot(self, generator: torch.Generator | None = None, *, nominal: bool = False) -> "OperatorSnapshot":
+        """This camera's noiseless linear operator, frozen for one batch (see :class:`OperatorSnapshot`).
+
+        ``generator`` draws whatever the operator itself randomises (the DOE height noise);
+        ``nominal=True`` takes the design operator without such noise (what a reconstruction
+        network knows). Gradients still flow to the camera's parameters.
+        """
+        return OperatorSnapshot(self)
+
+
+def _zero_origin(origin: tuple[int, int], who: str) -> None:
+    if tuple(origin) != (0, 0):
+        raise NotImplementedError(f"{who} has no position-dependent operator for a window at origin {tuple(origin)}")
+
+
+class OperatorSnapshot:
+    """A camera's noiseless ``A`` / ``A_adjoint`` frozen as a linear operator on windows of the sensor.
+
+    ``A(x, origin)`` maps a cube (B, C, h', w') to the sensor window (B, 1, h, w) whose top-left
+    sensor pixel is ``origin``; ``A_adjoint`` is its exact adjoint. Cameras override
+    :meth:`Camera.snapshot` with operators that compute their expensive parts (a PSF stack) once.
+    This default calls the camera and supports ``origin=(0, 0)`` only.
+
+    Attributes:
+        lipschitz: an upper bound of ‖A‖² (position-independent), or None when unknown.
+    """
+
+    lipschitz: float | None = None
+    reach_px: tuple[int, int] = (0, 0)  # how far (rows, columns) AᵀA spreads a pixel, in pixels
+
+    def __init__(self, camera: Camera) -> None:
+        self.camera = camera
+
+    @property
+    def bands(self) -> Bands:
+        return self.camera.bands
+
+    def scene_size(self, sensor_hw: tuple[int, int]) -> tuple[int, int]:
+        """Cube (h', w') this operator maps onto a sensor window of ``sensor_hw``."""
+        return self.camera.scene_size(sensor_hw)
+
+    def sensor_code(self, height: int, width: int, origin: tuple[int, int] = (0, 0)) -> torch.Tensor:
+        """Per-band sensor code (C, height, width) at ``origin``; NotImplementedError without one."""
+        return self.camera.sensor_code(height, width, origin)
+
+    @property
+    def code_period(self) -> int:
+        return int(getattr(self.camera, "code_period", 1))
+
+    def A(self, x: torch.Tensor, origin: tuple[int, int] = (0, 0)) -> torch.Tensor:  # noqa: N802
+        _zero_origin(origin, type(self.camera).__name__)
+        return self.camera.A(x)
+
+    def A_adjoint(self, y: torch.Tensor, origin: tuple[int, int] = (0, 0)) -> torch.Tensor:  # noqa: N802
+        _zero_origin(origin, type(self.camera).__name__)
+        return self.camera.A_adjoint(y)

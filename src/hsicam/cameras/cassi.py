@@ -279,6 +279,10 @@ class _CASSICamera(Camera):
     def extra_repr(self) -> str:
         return f"bands={len(self.bands)}, shifts={self.shifts[0]}..{self.span} px, convention={self.convention}"
 
+    def snapshot(self, generator: torch.Generator | None = None, *, nominal: bool = False) -> "CASSISnapshot":
+        """The operator on sensor windows at any origin (nothing random to draw): :class:`CASSISnapshot`."""
+        return CASSISnapshot(self)
+
 
 @register_camera("dd_cassi")
 class DDCASSICamera(_CASSICamera):
@@ -326,7 +330,58 @@ class SDCASSICamera(_CASSICamera):
         return sd_cassi_adjoint(y, p, self.shifts, self.scale)
 
 
+class CASSISnapshot:
+    """A CASSI camera's ``A`` / ``A_adjoint`` on a window of the sensor whose top-left pixel is ``origin``.
+
+    The aperture window is taken at ``origin`` (rows, columns of the scene grid; for SD-CASSI the
+    window's scene columns are those of its first sensor column), so tiles see the code the
+    whole image sees. DD-CASSI: cube (B, C, h, w) ↔ (B, 1, h, w); SD-CASSI: (B, C, h, w − D) ↔
+    (B, 1, h, w). ``lipschitz`` = s²·C ≥ ‖A‖² (ΦΦᵀ is diagonal with entries s² Σ_c P²).
+    """
+
+    def __init__(self, camera: "_CASSICamera") -> None:
+        self.camera, self.bands = camera, camera.bands
+        self.single = isinstance(camera, SDCASSICamera)
+        self.lipschitz = camera.scale**2 * len(camera.bands)
+        self.reach_px = (0, camera.span if self.single else 0)
+        self.code_period = 1
+
+    def scene_size(self, sensor_hw: tuple[int, int]) -> tuple[int, int]:
+        return self.camera.scene_size(sensor_hw)
+
+    def sensor_code(self, height: int, width: int, origin: tuple[int, int] = (0, 0)) -> torch.Tensor:
+        raise NotImplementedError(f"{type(self.camera).__name__} has no per-band sensor code")
+
+    def _aperture(self, h: int, w: int, origin: tuple[int, int], ref: torch.Tensor) -> torch.Tensor:
+        r0, c0 = int(origin[0]), int(origin[1])
+        return self.camera.aperture.pattern(r0 + h, c0 + w, ref.device, ref.dtype)[r0:, c0:]
+
+    def A(self, x: torch.Tensor, origin: tuple[int, int] = (0, 0)) -> torch.Tensor:  # noqa: N802
+        self.camera.check_scene(x)
+        h, w = x.shape[-2:]
+        cam = self.camera
+        if self.single:
+            return sd_cassi_forward(x, self._aperture(h, w, origin, x), cam.shifts, cam.scale)
+        return dd_cassi_forward(x, dd_band_masks(self._aperture(h, w + cam.span, origin, x), cam.shifts, w), cam.scale)
+
+    def A_adjoint(self, y: torch.Tensor, origin: tuple[int, int] = (0, 0)) -> torch.Tensor:  # noqa: N802
+        cam = self.camera
+        cam._check_measurement(y)
+        h, w = y.shape[-2:]
+        if self.single:
+            w -= cam.span
+            if w < 1:
+                raise InputError(f"SD-CASSI measurement of width {y.shape[-1]} is not wider than the dispersion span {cam.span}")
+            return sd_cassi_adjoint(y, self._aperture(h, w, origin, y), cam.shifts, cam.scale)
+        return dd_cassi_adjoint(y, dd_band_masks(self._aperture(h, w + cam.span, origin, y), cam.shifts, w), cam.scale)
+
+    def gram_diagonal(self, y: torch.Tensor, origin: tuple[int, int] = (0, 0)) -> torch.Tensor:
+        """diag(ΦΦᵀ) on the sensor window of ``y`` (1, 1, h, w): ΦΦᵀ is diagonal, so it is A(Aᵀ𝟙)."""
+        return self.A(self.A_adjoint(y.new_ones(1, 1, *y.shape[-2:]), origin), origin)
+
+
 __all__ = [
+    "CASSISnapshot",
     "CodedAperture",
     "DDCASSICamera",
     "SDCASSICamera",

@@ -12,12 +12,13 @@ import torch
 
 from hsicam.cameras.base import Camera
 from hsicam.cameras.registry import register_camera
+from hsicam.errors import InputError
 from hsicam.optics.convolution import coded_conv_valid, conv_valid_adjoint, pad_same, pad_same_adjoint
 from hsicam.optics.doe import DOE
 from hsicam.optics.lens import lens_from_config
 from hsicam.optics.psf import PSFModel, PSFResult
 from hsicam.optics.pupil import cells_across
-from hsicam.sensor import ColorFilterArray, SensorNoise
+from hsicam.sensor import ColorFilterArray, SensorNoise, tile_pattern
 from hsicam.spectral import Bands, get_material
 
 
@@ -140,3 +141,78 @@ class DOECamera(Camera):
     def forward(self, x: torch.Tensor, generator: torch.Generator | None = None) -> torch.Tensor:
         """Noisy sensor image: DOE height noise (σ_p) and sensor noise drawn from ``generator``."""
         return self.noise(self.A(x, self.psf(generator)), generator)
+
+    def snapshot(self, generator: torch.Generator | None = None, *, nominal: bool = False) -> "DOESnapshot":
+        """The operator with one PSF draw (height noise from ``generator``; none if ``nominal``)
+        and the current CFA, in ``same`` geometry with zero padding: see :class:`DOESnapshot`."""
+        if nominal and self.optics.doe.sigma_height_m > 0:
+            saved, self.optics.doe.sigma_height_m = self.optics.doe.sigma_height_m, 0.0
+            try:
+                psf = self.psf(generator)
+            finally:
+                self.optics.doe.sigma_height_m = saved
+        else:
+            psf = self.psf(generator)
+        return DOESnapshot(self.bands, psf, self.cfa.tile(), self.code_period)
+
+
+class DOESnapshot:
+    """The DOE camera's operator frozen for one batch, on sensor-sized cubes (``same``, zero padding):
+
+        A(x)_{origin} = Σ_c κ_c ⊙ (p_c ⊛ pad₀(x_c))     x (B, C, h, w) → (B, 1, h, w)
+        Aᵀ(y)         = crop(p_c ⋆ (κ_c ⊙ y))            (B, 1, h, w) → (B, C, h, w)
+
+    κ is the CFA over the sensor window whose top-left pixel is ``origin`` (the CFA phase). The
+    PSF stack (C, K, K) and the CFA tile (C, m, m) are the tensors captured from the camera, so
+    gradients reach the DOE heights and the CFA weights. Light from outside the window is taken as
+    zero: on a crop of a larger scene (a ``valid`` training patch), A x differs from the
+    measurement within K//2 px of the border.
+    """
+
+    def __init__(self, bands: Bands, psf: torch.Tensor, tile: torch.Tensor, code_period: int) -> None:
+        self.bands, self.psf, self.tile, self.code_period = bands, psf, tile, int(code_period)
+        k = psf.shape[-1]
+        self.reach_px = (k - 1, k - 1)
+        with torch.no_grad():  # ‖A‖² ≤ max_c ‖p_c‖₁² · max_pixel Σ_c κ_c² (Young + Cauchy–Schwarz)
+            self.lipschitz = float(psf.sum(dim=(-2, -1)).max() ** 2 * tile.square().sum(0).max())
+
+    @property
+    def kernel_px(self) -> int:
+        return self.psf.shape[-1]
+
+    def scene_size(self, sensor_hw: tuple[int, int]) -> tuple[int, int]:
+        return tuple(sensor_hw)
+
+    def sensor_code(self, height: int, width: int, origin: tuple[int, int] = (0, 0)) -> torch.Tensor:
+        """κ (C, height, width) of the sensor window at ``origin``."""
+        tile = self.tile
+        shift = (-(origin[0] % tile.shape[-2]), -(origin[1] % tile.shape[-1]))
+        if shift != (0, 0):
+            tile = torch.roll(tile, shifts=shift, dims=(-2, -1))
+        return tile_pattern(tile, height, width)
+
+    def A(self, x: torch.Tensor, origin: tuple[int, int] = (0, 0)) -> torch.Tensor:  # noqa: N802
+        """Sensor window (B, 1, h, w) of the cube ``x`` (B, C, h, w)."""
+        if x.dim() != 4 or x.shape[1] != len(self.bands):
+            raise InputError(f"cube must be (B, {len(self.bands)}, H, W), got shape {tuple(x.shape)}")
+        kappa = self.sensor_code(x.shape[-2], x.shape[-1], origin).to(x.dtype)
+        return coded_conv_valid(pad_same(x, self.kernel_px), self.psf.to(x.dtype), kappa)
+
+    def A_adjoint(self, y: torch.Tensor, origin: tuple[int, int] = (0, 0)) -> torch.Tensor:  # noqa: N802
+        """Exact adjoint of :meth:`A`: (B, 1, h, w) → (B, C, h, w)."""
+        if y.dim() != 4 or y.shape[1] != 1:
+            raise InputError(f"sensor image must be (B, 1, H, W), got shape {tuple(y.shape)}")
+        kappa = self.sensor_code(y.shape[-2], y.shape[-1], origin).to(y.dtype)
+        x = conv_valid_adjoint(y * kappa.unsqueeze(0), self.psf.to(y.dtype))
+        return pad_same_adjoint(x, self.kernel_px)
+
+    def cropped(self, kernel_px: int) -> "DOESnapshot":
+        """The same operator with each PSF cut to its central ``kernel_px`` (odd) pixels: cheaper,
+        approximate (the light outside is dropped), still with an exact adjoint."""
+        k = self.kernel_px
+        if kernel_px % 2 == 0 or kernel_px < 1:
+            raise ValueError(f"kernel_px must be odd and >= 1, got {kernel_px}")
+        if kernel_px >= k:
+            return self
+        a = (k - kernel_px) // 2
+        return DOESnapshot(self.bands, self.psf[:, a : a + kernel_px, a : a + kernel_px], self.tile, self.code_period)

@@ -1,0 +1,141 @@
+"""Reconstruction networks benchmark (issue 17): prints one JSON object.
+
+For each network kind on the ``quick`` camera (joint optics: DOE heights and CFA trainable):
+
+- a full training step (camera forward, network forward + backward, optics backward, Adam) on a
+  batch of ``train.batch_size`` patches of ``data.patch_px``, split into the optics (PSF + camera
+  and their backward) and the network (forward + backward; for the unrolled network this includes
+  its own snapshot of the operator: one more PSF computation and the A/Aᵀ of its stages);
+- one 512×512 reconstruction (31 bands), network only, no gradient.
+
+Kinds: ``rdn`` (the quick RDN with the demosaic input), ``mosaic`` (MosaicNetSettings defaults),
+``unrolled`` (UnrolledSettings defaults: demosaic init, 2 stages, full 141 px kernel) and
+``unrolled-mosaic`` (MosaicNet front end without head, 2 stages with the PSF cut to 31 px).
+
+Run: `PYTHONPATH=src .venv/bin/python benchmarks/bench_networks.py [--steps N] [--kinds a,b]`.
+Timings are medians of wall time (``*_s``) and of this process's CPU time (``*_cpu_s``); on a
+shared machine the wall times swell with the load (reported), the CPU times much less: with
+``--threads 1`` the CPU time is what the wall time would be on an idle core.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import statistics
+import sys
+import time
+from pathlib import Path
+
+import torch
+import torch.nn.functional as F
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from timing import median_time  # noqa: E402
+
+from hsicam.cameras import build_camera  # noqa: E402
+from hsicam.config import load_config  # noqa: E402
+from hsicam.models import CameraSystem  # noqa: E402
+from hsicam.models.mosaic import MosaicNetSettings, build_mosaic  # noqa: E402
+from hsicam.models.unrolled import UnrolledSettings, build_unrolled  # noqa: E402
+
+KINDS = {
+    "mosaic": lambda cam: build_mosaic(MosaicNetSettings(), cam),
+    "unrolled": lambda cam: build_unrolled(UnrolledSettings(), cam),
+    "unrolled-mosaic": lambda cam: build_unrolled(
+        UnrolledSettings(stages=2, init="mosaic", stage_kernel_px=31,
+                         mosaic=MosaicNetSettings(features=96, blocks=8, head_layers=0)), cam),
+}
+
+
+def build(kind: str, cfg):
+    """(camera, network module, reconstruct(sensor) callable)."""
+    torch.manual_seed(0)
+    if kind == "rdn":
+        system = CameraSystem.from_config(cfg)
+        return system.camera, system.net, system.reconstruct
+    cam = build_camera(cfg)
+    net = KINDS[kind](cam)
+    return cam, net, lambda s: net(s, cam)
+
+
+def train_step(kind: str, cfg, steps: int) -> dict:
+    cam, net, recon = build(kind, cfg)
+    params = list(net.parameters()) + [p for p in cam.parameters() if p.requires_grad]
+    opt = torch.optim.Adam(params, lr=1e-4)
+    b, p, m = cfg.train.batch_size, cfg.data.patch_px, cam.margin
+    scene = torch.rand(b, len(cam.bands), p + m, p + m)
+    r = m // 2
+    truth = scene[..., r : r + p, r : r + p]
+    times: dict[str, list[float]] = {}
+    for i in range(steps + 1):
+        t0 = _now()
+        sensor = cam(scene)
+        t1 = _now()
+        sensor_in = sensor.detach().requires_grad_()
+        loss = F.l1_loss(recon(sensor_in), truth)
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        t2 = _now()
+        sensor.backward(sensor_in.grad)
+        opt.step()
+        t3 = _now()
+        if i:  # the first step warms up
+            for j, clock in enumerate(("", "_cpu")):
+                times.setdefault("optics" + clock, []).append((t1[j] - t0[j]) + (t3[j] - t2[j]))
+                times.setdefault("network" + clock, []).append(t2[j] - t1[j])
+                times.setdefault("step" + clock, []).append(t3[j] - t0[j])
+    out = {f"{k}_s": statistics.median(v) for k, v in times.items()}
+    return {**out, "params_M": sum(q.numel() for q in net.parameters()) / 1e6, "context_px": _context(kind, net, cam)}
+
+
+def _now() -> tuple[float, float]:
+    """(wall, process CPU) seconds."""
+    return time.perf_counter(), time.process_time()
+
+
+def _context(kind, net, cam) -> int:
+    if kind == "rdn":
+        from hsicam.engine.inference import receptive_radius
+
+        return receptive_radius(net) + 4
+    return net.context_px
+
+
+@torch.no_grad()
+def inference(kind: str, cfg, repeats: int) -> dict:
+    cam, net, recon = build(kind, cfg)
+    net.eval()
+    g = torch.rand(1, 1, 512, 512)
+    wall = median_time(lambda: recon(g), repeats=repeats, warmup=1)
+    cpu = []
+    for _ in range(repeats):
+        c0 = time.process_time()
+        recon(g)
+        cpu.append(time.process_time() - c0)
+    return {"infer_512_s": wall, "infer_512_cpu_s": statistics.median(cpu)}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--steps", type=int, default=3)
+    ap.add_argument("--repeats", type=int, default=3)
+    ap.add_argument("--kinds", default="rdn,mosaic,unrolled,unrolled-mosaic")
+    ap.add_argument("--threads", type=int, default=0, help="torch threads (0: torch's default)")
+    args = ap.parse_args()
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    cfg = load_config("quick")
+    out = {"preset": "quick", "batch": cfg.train.batch_size, "patch_px": cfg.data.patch_px,
+           "threads": torch.get_num_threads(), "load_avg_1min_start": os.getloadavg()[0], "kinds": {}}
+    for kind in args.kinds.split(","):
+        res = train_step(kind, cfg, args.steps)
+        res.update(inference(kind, cfg, args.repeats))
+        out["kinds"][kind] = res
+    out["load_avg_1min_end"] = os.getloadavg()[0]
+    print(json.dumps(out, indent=1))
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,165 @@
+"""Mosaic-aware reconstruction network: the sensor image seen by CFA phase.
+
+    x̃ = demosaic(g, κ)                                  per-band box demosaic (B, C, H, W), the skip
+    s = [unshuffle_m(pad(g)), avgpool_m(pad(x̃))]          (B, m² + C, H/m, W/m), phase-aligned
+    t = shuffle_m(Conv1×1(ResBlocks(Conv3×3(s))))       low-res trunk → (B, C, H, W)
+    x̂₀ = t + x̃
+    x̂ = x̂₀ + Head([x̂₀, g])                              full-resolution 3×3 refinement
+
+Space-to-depth by the CFA period m puts every filter at its own channel: the trunk learns the
+spatial and spectral demosaicking that the box x̃ only approximates, at 1/m² of the pixels. The
+padding aligns the m×m cells with the CFA on the whole sensor (a window at ``origin`` is padded
+by ``origin mod m`` at the top-left), so a tile's cells are the whole image's cells and tiled
+inference equals a whole-image pass given :attr:`MosaicNet.context_px`. The head's last conv and
+the trunk's output conv start at zero: the untrained network returns x̃.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from hsicam.errors import ConfigError
+from hsicam.models.system import demosaic
+
+
+@dataclass
+class MosaicNetSettings:
+    """Settings of ``model.kind = mosaic`` (sizes in channels / layers; lengths in sensor pixels)."""
+
+    features: int = 128  # channels of the residual blocks at 1/m resolution
+    blocks: int = 10  # residual blocks (two 3×3 convs each) at 1/m resolution
+    factor: int = 0  # space-to-depth factor (px); 0 = the camera's CFA period (3 without a CFA); a multiple of the period
+    head_features: int = 32  # channels of the full-resolution refinement head
+    head_layers: int = 3  # 3×3 convs of the head at full resolution (0: no head)
+    demosaic_window: int = 0  # box width (px, odd) of the demosaic skip; 0 = the CFA period rounded up to odd
+
+
+def phase_pad(x: torch.Tensor, factor: int, origin: tuple[int, int] = (0, 0)) -> tuple[torch.Tensor, tuple[int, int]]:
+    """Zero-pad (B, C, H, W) so that its cells of ``factor`` px line up with the sensor's grid.
+
+    Pads ``origin mod factor`` rows/columns at the top/left and up to a multiple of ``factor`` at
+    the bottom/right. Returns the padded tensor and the (top, left) offset of ``x`` inside it.
+    """
+    top, left = int(origin[0]) % factor, int(origin[1]) % factor
+    h, w = x.shape[-2] + top, x.shape[-1] + left
+    bottom, right = (-h) % factor, (-w) % factor
+    return F.pad(x, (left, right, top, bottom)), (top, left)
+
+
+class ResBlock(nn.Module):
+    """x + Conv3×3(ReLU(Conv3×3(x))): (B, F, H, W) → (B, F, H, W)."""
+
+    def __init__(self, features: int) -> None:
+        super().__init__()
+        self.conv1 = nn.Conv2d(features, features, 3, padding=1)
+        self.conv2 = nn.Conv2d(features, features, 3, padding=1)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return x + self.conv2(F.relu(self.conv1(x), inplace=True))
+
+
+class RefineHead(nn.Module):
+    """Full-resolution residual refinement: [x (C), g (1)] → Δx (C), ``layers`` 3×3 convs, last one zero."""
+
+    def __init__(self, bands: int, features: int, layers: int) -> None:
+        super().__init__()
+        convs: list[nn.Module] = []
+        ch = bands + 1
+        for i in range(layers):
+            out = bands if i == layers - 1 else features
+            convs.append(nn.Conv2d(ch, out, 3, padding=1))
+            if i < layers - 1:
+                convs.append(nn.ReLU(inplace=True))
+            ch = out
+        self.body = nn.Sequential(*convs)
+        nn.init.zeros_(convs[-1].weight)
+        nn.init.zeros_(convs[-1].bias)
+
+    def forward(self, x: torch.Tensor, sensor: torch.Tensor) -> torch.Tensor:
+        return self.body(torch.cat([x, sensor], dim=1))
+
+
+class MosaicNet(nn.Module):
+    """Sensor (B, 1, H, W) + the camera's CFA → cube (B, C, H, W); see the module docstring.
+
+    Args:
+        bands: C.
+        factor: space-to-depth factor m (a multiple of the CFA period).
+        demosaic_window: odd box width of the demosaic skip.
+    """
+
+    def __init__(self, bands: int, factor: int, features: int = 128, blocks: int = 10, head_features: int = 32,
+                 head_layers: int = 3, demosaic_window: int = 9) -> None:
+        super().__init__()
+        self.bands, self.factor, self.demosaic_window = int(bands), int(factor), int(demosaic_window)
+        self.blocks, self.head_layers = int(blocks), int(head_layers)
+        self.stem = nn.Conv2d(factor * factor + bands, features, 3, padding=1)
+        self.body = nn.Sequential(*(ResBlock(features) for _ in range(blocks)))
+        self.tail = nn.Conv2d(features, bands * factor * factor, 1)
+        nn.init.zeros_(self.tail.weight)
+        nn.init.zeros_(self.tail.bias)
+        self.head = RefineHead(bands, head_features, head_layers) if head_layers > 0 else None
+
+    @property
+    def context_px(self) -> int:
+        """Per-side halo (sensor px) for exact tiling: demosaic box + trunk cells + head."""
+        cells = 1 + 2 * self.blocks  # 3×3 stem + two 3×3 convs per block (the tail is 1×1), in cells
+        return self.demosaic_window // 2 + cells * self.factor + self.factor - 1 + self.head_layers
+
+    def forward(self, sensor: torch.Tensor, camera, origin: tuple[int, int] = (0, 0)) -> torch.Tensor:
+        """``sensor`` (B, 1, H, W) of the window at ``origin``; ``camera`` (or its snapshot) gives
+        the CFA κ via ``sensor_code``. Returns (B, C, H, W) in the network's dtype (float32)."""
+        if sensor.dim() != 4 or sensor.shape[1] != 1:
+            raise ValueError(f"sensor image must be (B, 1, H, W), got shape {tuple(sensor.shape)}")
+        sensor = sensor.to(self.stem.weight.dtype)  # float32 unless the network was converted
+        h, w = sensor.shape[-2:]
+        code = camera.sensor_code(h, w, origin).to(sensor)
+        if code.shape[0] != self.bands:
+            raise ValueError(f"the camera has {code.shape[0]} bands, the network {self.bands}")
+        skip = demosaic(sensor, code, self.demosaic_window)
+        m = self.factor
+        g_p, (top, left) = phase_pad(sensor, m, origin)
+        s_p, _ = phase_pad(skip, m, origin)
+        inp = torch.cat([F.pixel_unshuffle(g_p, m), F.avg_pool2d(s_p, m)], dim=1)
+        feat = self.stem(inp)
+        feat = self.body(feat)
+        out = F.pixel_shuffle(self.tail(feat), m)[..., top : top + h, left : left + w] + skip
+        if self.head is not None:
+            out = out + self.head(out, sensor)
+        return out
+
+
+def _odd_window(period: int) -> int:
+    return period if period % 2 else period + 1
+
+
+def build_mosaic(mcfg: MosaicNetSettings, camera) -> MosaicNet:
+    """A :class:`MosaicNet` for ``camera`` (a camera with a periodic CFA: ``code_period`` / ``sensor_code``)."""
+    try:
+        camera.sensor_code(1, 1)
+    except NotImplementedError:
+        raise ConfigError(f"model.kind=mosaic needs a camera with a colour filter array (the DOE camera), not "
+                          f"{type(camera).__name__}; use model.kind=unrolled or rdn") from None
+    for key in ("features", "blocks"):
+        if getattr(mcfg, key) < 1:
+            raise ConfigError(f"model.mosaic.{key} must be >= 1, got {getattr(mcfg, key)}")
+    for key in ("factor", "head_layers", "demosaic_window"):
+        if getattr(mcfg, key) < 0:
+            raise ConfigError(f"model.mosaic.{key} must be >= 0, got {getattr(mcfg, key)}")
+    if mcfg.head_layers > 1 and mcfg.head_features < 1:
+        raise ConfigError(f"model.mosaic.head_features must be >= 1, got {mcfg.head_features}")
+    period = int(getattr(camera, "code_period", 1))
+    factor = mcfg.factor or (period if period > 1 else 3)
+    if factor % period:
+        raise ConfigError(f"model.mosaic.factor={mcfg.factor} must be a multiple of the CFA period {period} (or 0 for the period)")
+    window = mcfg.demosaic_window or _odd_window(period)
+    if window % 2 == 0:
+        raise ConfigError(f"model.mosaic.demosaic_window must be odd (or 0 for the CFA period), got {window}")
+    return MosaicNet(len(camera.bands), factor, mcfg.features, mcfg.blocks, mcfg.head_features, mcfg.head_layers, window)
+
+
+__all__ = ["MosaicNet", "MosaicNetSettings", "ResBlock", "RefineHead", "build_mosaic", "phase_pad"]

@@ -1,0 +1,223 @@
+"""Deep-unfolding reconstruction for any camera with ``A`` / ``A_adjoint`` (DOE camera, CASSI).
+
+    x⁰ = init(y)                                   demosaic (CFA cameras), normalised back-projection,
+                                                   or a MosaicNet front end
+    for k = 1..K:
+        z = x − α_k Aᵀ(A x − y)                      gradient step on ½‖A x − y‖², α_k = softplus(θ_k) / L
+          or x + α_k Aᵀ((y − A x) ⊘ diag(AAᵀ))       GAP step (CASSI: ΦΦᵀ diagonal), α_k = softplus(θ_k)
+        x = z + P_k(z)                              learned prior: residual CNN at 1/s resolution
+
+A is the camera's operator frozen for the batch (:meth:`Camera.snapshot`: the DOE camera's PSF
+stack and CFA, computed once, with gradients to the optics); L is the snapshot's bound of ‖A‖², so
+α_k·L = softplus(θ_k) is a step in units of the largest safe one (< 2 decreases the data term).
+Every stage sees the exact operator that made the measurement, so the same network serves the
+DOE camera and both CASSI cameras. The prior starts at zero (P_k = 0): the untrained network runs
+K plain gradient steps from x⁰.
+
+Tiling: the prior regroups pixels in s×s cells aligned with the sensor grid (``origin``), and each
+gradient step spreads a pixel by the operator's reach (K_psf − 1 px for the DOE camera, the
+dispersion span for SD-CASSI, 0 for DD-CASSI); :attr:`UnrolledNet.context_px` sums these over the
+stages, so tiles with that halo equal the whole image (the ``same``-geometry operator treats
+light from outside the window as zero).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from hsicam.errors import ConfigError
+from hsicam.models.mosaic import MosaicNet, MosaicNetSettings, ResBlock, _odd_window, build_mosaic, phase_pad
+from hsicam.models.system import demosaic
+
+INITS = ("auto", "demosaic", "backprojection", "mosaic")
+STEPS = ("gradient", "gap")
+
+
+@dataclass
+class UnrolledSettings:
+    """Settings of ``model.kind = unrolled`` (sizes in channels / layers; lengths in sensor pixels)."""
+
+    stages: int = 2  # K: gradient step + prior, repeated
+    init: str = "auto"  # x⁰: auto (demosaic with a CFA, else backprojection), demosaic, backprojection, mosaic
+    step: str = "gradient"  # data step: gradient (any camera) or gap (cameras with a diagonal ΦΦᵀ: CASSI)
+    share_weights: bool = False  # one prior for all stages (else one per stage)
+    prior_features: int = 64  # channels of each prior CNN
+    prior_blocks: int = 2  # residual blocks (two 3×3 convs each) of each prior
+    prior_scale: int = 4  # the prior runs at 1/prior_scale resolution (space-to-depth, px)
+    step_init: float = 1.0  # initial α_k·L (L ≥ ‖A‖²; < 2 guarantees a decreasing data term)
+    stage_kernel_px: int = 0  # DOE camera: PSF cut to this many px (odd) in the stages; 0 = the full kernel
+    demosaic_window: int = 0  # box width (px, odd) of the demosaic init; 0 = the CFA period rounded up to odd
+    mosaic: MosaicNetSettings = field(default_factory=MosaicNetSettings)  # the front end of init=mosaic
+
+
+class Prior(nn.Module):
+    """z + P(z) − z: residual CNN at 1/s resolution, (B, C, H, W) → Δ (B, C, H, W); output conv zero."""
+
+    def __init__(self, bands: int, features: int, blocks: int, scale: int) -> None:
+        super().__init__()
+        self.scale, self.blocks = int(scale), int(blocks)
+        ch = bands * scale * scale
+        self.stem = nn.Conv2d(ch, features, 1)
+        self.body = nn.Sequential(*(ResBlock(features) for _ in range(blocks)))
+        self.tail = nn.Conv2d(features, ch, 1)
+        nn.init.zeros_(self.tail.weight)
+        nn.init.zeros_(self.tail.bias)
+
+    @property
+    def reach_px(self) -> int:
+        return 2 * self.blocks * self.scale + self.scale - 1
+
+    def forward(self, z: torch.Tensor, origin: tuple[int, int] = (0, 0)) -> torch.Tensor:
+        h, w = z.shape[-2:]
+        s = self.scale
+        zp, (top, left) = phase_pad(z, s, origin)
+        f = self.body(self.stem(F.pixel_unshuffle(zp, s)))
+        return F.pixel_shuffle(self.tail(f), s)[..., top : top + h, left : left + w]
+
+
+def camera_operator(camera):
+    """The frozen operator a network uses: ``camera.snapshot(nominal=True)``, or ``camera`` itself
+    when it already is one (e.g. the snapshot that made the measurement)."""
+    snap = getattr(camera, "snapshot", None)
+    return snap(nominal=True) if callable(snap) else camera
+
+
+def backprojection(op, y: torch.Tensor, origin: tuple[int, int] = (0, 0)) -> torch.Tensor:
+    """Aᵀy ⊘ AᵀA𝟙: for a pixel-wise (CASSI) operator each coded voxel's share of its measurement."""
+    b, _, h, w = y.shape
+    ones = y.new_ones(1, len(op.bands), *op.scene_size((h, w)))
+    norm = op.A_adjoint(op.A(ones, origin), origin)
+    eps = 1e-6 * (getattr(op, "lipschitz", None) or 1.0)  # position-independent, so tiles = whole
+    return op.A_adjoint(y, origin) / norm.clamp_min(eps)
+
+
+class UnrolledNet(nn.Module):
+    """Sensor (B, 1, H, W) + camera → cube (B, C, H', W') (H', W' = ``scene_size``); module docstring.
+
+    Args:
+        bands: C.
+        op_reach: (rows, columns) a gradient step spreads a pixel (the operator's AᵀA reach, px).
+        init: "demosaic", "backprojection" or "mosaic".
+        front: the MosaicNet of init="mosaic".
+    """
+
+    def __init__(self, bands: int, op_reach: tuple[int, int], stages: int = 2, init: str = "demosaic",
+                 share_weights: bool = False, prior_features: int = 64, prior_blocks: int = 2, prior_scale: int = 4,
+                 step_init: float = 1.0, stage_kernel_px: int = 0, demosaic_window: int = 9,
+                 front: MosaicNet | None = None, step: str = "gradient") -> None:
+        super().__init__()
+        self.bands, self.stages, self.init, self.step = int(bands), int(stages), init, step
+        self.op_reach, self.stage_kernel_px, self.demosaic_window = tuple(op_reach), int(stage_kernel_px), int(demosaic_window)
+        self.front = front
+        n_priors = 1 if share_weights else stages
+        self.priors = nn.ModuleList(Prior(bands, prior_features, prior_blocks, prior_scale) for _ in range(n_priors))
+        theta = math.log(math.expm1(step_init))  # softplus⁻¹
+        self.step_logits = nn.Parameter(torch.full((stages,), theta))
+
+    @property
+    def context_px(self) -> int:
+        """Per-side halo (sensor px) for exact tiling: the init's reach + K × (AᵀA reach + prior reach)."""
+        reach = max(self.op_reach)
+        if self.init == "demosaic":
+            first = self.demosaic_window // 2
+        elif self.init == "mosaic":
+            first = self.front.context_px
+        else:
+            first = reach
+        return first + self.stages * reach + sum(self._prior(k).reach_px for k in range(self.stages))
+
+    def _prior(self, k: int) -> Prior:
+        return self.priors[k % len(self.priors)]
+
+    def step_sizes(self, lipschitz: float | None) -> torch.Tensor:
+        """α_k (K,) = softplus(θ_k) / L (gradient steps) or softplus(θ_k) (GAP steps)."""
+        if self.step == "gap":
+            return F.softplus(self.step_logits)
+        return F.softplus(self.step_logits) / (lipschitz or 1.0)
+
+    def operator(self, camera):
+        op = camera_operator(camera)
+        if self.stage_kernel_px and hasattr(op, "cropped"):
+            op = op.cropped(self.stage_kernel_px)
+        return op
+
+    def initial(self, sensor: torch.Tensor, op, origin: tuple[int, int] = (0, 0)) -> torch.Tensor:
+        """x⁰ (B, C, H', W')."""
+        if self.init == "mosaic":
+            return self.front(sensor, op, origin)
+        if self.init == "demosaic":
+            code = op.sensor_code(sensor.shape[-2], sensor.shape[-1], origin).to(sensor)
+            return demosaic(sensor, code, self.demosaic_window)
+        return backprojection(op, sensor, origin)
+
+    def data_step(self, x: torch.Tensor, sensor: torch.Tensor, op, alpha: torch.Tensor,
+                  origin: tuple[int, int] = (0, 0)) -> torch.Tensor:
+        """x − α Aᵀ(A x − y), or the GAP step x + α Aᵀ((y − A x) ⊘ diag(AAᵀ))."""
+        r = op.A(x, origin) - sensor
+        if self.step == "gap":
+            d = op.gram_diagonal(sensor, origin)
+            r = r / d.clamp_min(1e-6 * (getattr(op, "lipschitz", None) or 1.0))  # position-independent ε
+        return x - alpha * op.A_adjoint(r, origin)
+
+    def forward(self, sensor: torch.Tensor, camera, origin: tuple[int, int] = (0, 0)) -> torch.Tensor:
+        """``sensor`` (B, 1, H, W) of the window at ``origin``; ``camera``: a Camera or its snapshot.
+        Returns (B, C, H', W') in the network's dtype (float32)."""
+        if sensor.dim() != 4 or sensor.shape[1] != 1:
+            raise ValueError(f"sensor image must be (B, 1, H, W), got shape {tuple(sensor.shape)}")
+        sensor = sensor.to(self.step_logits.dtype)  # float32 unless the network was converted
+        op = self.operator(camera)
+        if len(op.bands) != self.bands:
+            raise ValueError(f"the camera has {len(op.bands)} bands, the network {self.bands}")
+        x = self.initial(sensor, op, origin)
+        alphas = self.step_sizes(getattr(op, "lipschitz", None))
+        for k in range(self.stages):
+            x = self.data_step(x, sensor, op, alphas[k], origin)
+            x = x + self._prior(k)(x, origin)
+        return x
+
+
+def build_unrolled(mcfg: UnrolledSettings, camera) -> UnrolledNet:
+    """An :class:`UnrolledNet` for ``camera`` (any camera with ``snapshot``)."""
+    for key in ("stages", "prior_features", "prior_blocks", "prior_scale"):
+        if getattr(mcfg, key) < 1:
+            raise ConfigError(f"model.unrolled.{key} must be >= 1, got {getattr(mcfg, key)}")
+    if mcfg.step not in STEPS:
+        raise ConfigError(f"model.unrolled.step={mcfg.step!r} is not one of {', '.join(STEPS)}")
+    if mcfg.init not in INITS:
+        raise ConfigError(f"model.unrolled.init={mcfg.init!r} is not one of {', '.join(INITS)}")
+    if not (mcfg.step_init > 0 and math.isfinite(mcfg.step_init)):
+        raise ConfigError(f"model.unrolled.step_init must be > 0, got {mcfg.step_init}")
+    if mcfg.stage_kernel_px < 0 or (mcfg.stage_kernel_px and mcfg.stage_kernel_px % 2 == 0):
+        raise ConfigError(f"model.unrolled.stage_kernel_px must be odd (or 0 for the full kernel), got {mcfg.stage_kernel_px}")
+    if mcfg.demosaic_window < 0 or (mcfg.demosaic_window and mcfg.demosaic_window % 2 == 0):
+        raise ConfigError(f"model.unrolled.demosaic_window must be odd (or 0 for the CFA period), got {mcfg.demosaic_window}")
+    try:
+        camera.sensor_code(1, 1)
+        has_code = True
+    except NotImplementedError:
+        has_code = False
+    init = mcfg.init if mcfg.init != "auto" else ("demosaic" if has_code else "backprojection")
+    if init in ("demosaic", "mosaic") and not has_code:
+        raise ConfigError(f"model.unrolled.init={init} needs a camera with a colour filter array (the DOE camera), "
+                          f"not {type(camera).__name__}; use init=backprojection (or auto)")
+    with torch.no_grad():
+        op = camera.snapshot(nominal=True)
+        if mcfg.stage_kernel_px and hasattr(op, "cropped"):
+            op = op.cropped(mcfg.stage_kernel_px)
+    if mcfg.step == "gap" and not hasattr(op, "gram_diagonal"):
+        raise ConfigError(f"model.unrolled.step=gap needs a camera whose ΦΦᵀ is diagonal (CASSI), not "
+                          f"{type(camera).__name__}; use step=gradient")
+    period = int(getattr(camera, "code_period", 1))
+    window = mcfg.demosaic_window or _odd_window(period)
+    front = build_mosaic(mcfg.mosaic, camera) if init == "mosaic" else None
+    return UnrolledNet(len(camera.bands), tuple(op.reach_px), mcfg.stages, init, mcfg.share_weights, mcfg.prior_features,
+                       mcfg.prior_blocks, mcfg.prior_scale, mcfg.step_init, mcfg.stage_kernel_px, window, front,
+                       mcfg.step)
+
+
+__all__ = ["Prior", "UnrolledNet", "UnrolledSettings", "backprojection", "build_unrolled", "camera_operator"]

@@ -1,0 +1,310 @@
+"""Reconstruction networks beyond the RDN (mosaic-aware, unrolled) and the camera snapshots they use.
+
+Contract per network and camera kind: any band count and size, float32 output on the camera's
+scene grid, overfits a batch, tiled = whole with the declared ``context_px``, the unrolled data
+step lowers ‖A x − y‖, gradients reach the optics through the stages, bad settings are one
+ConfigError line. Tiny cameras (``tiny`` preset: 7 bands, 21 px kernel, CFA period 3).
+"""
+
+from __future__ import annotations
+
+import copy
+
+import pytest
+import torch
+
+from hsicam.cameras import build_camera
+from hsicam.config import load_config
+from hsicam.engine.inference import reconstruct_tiled
+from hsicam.errors import ConfigError
+from hsicam.models.mosaic import MosaicNetSettings, build_mosaic, phase_pad
+from hsicam.models.unrolled import UnrolledSettings, build_unrolled
+
+CAMERA_KINDS = ("doe", "dd_cassi", "sd_cassi")
+MOSAIC = MosaicNetSettings(features=8, blocks=1, head_features=4, head_layers=2)
+UNROLLED = UnrolledSettings(stages=2, prior_features=8, prior_blocks=1, prior_scale=2)
+
+
+@pytest.fixture(autouse=True)
+def _one_thread():
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)
+
+
+def camera(kind: str = "doe", *overrides: str):
+    torch.manual_seed(0)
+    return build_camera(load_config("tiny", overrides=[f"camera.kind={kind}", *overrides]))
+
+
+def networks(cam) -> dict:
+    """The small networks that fit ``cam`` (the mosaic net needs a CFA)."""
+    nets = {"unrolled": build_unrolled(UNROLLED, cam)}
+    try:
+        cam.sensor_code(1, 1)
+    except NotImplementedError:
+        return nets
+    nets["mosaic"] = build_mosaic(MOSAIC, cam)
+    nets["unrolled-mosaic"] = build_unrolled(UnrolledSettings(stages=1, init="mosaic", prior_features=8, prior_blocks=1,
+                                                              prior_scale=2, mosaic=MOSAIC), cam)
+    return nets
+
+
+def randomise(net: torch.nn.Module, scale: float = 0.05) -> torch.nn.Module:
+    """Perturb every parameter (the zero-initialised output convs would hide paths)."""
+    g = torch.Generator().manual_seed(1)
+    with torch.no_grad():
+        for p in net.parameters():
+            p.add_(scale * torch.randn(p.shape, generator=g))
+    return net
+
+
+# ------------------------------------------------------------------------------------------------
+# Snapshots: the frozen operators
+# ------------------------------------------------------------------------------------------------
+@pytest.mark.parametrize("kind", CAMERA_KINDS)
+@pytest.mark.parametrize("origin", [(0, 0), (4, 7)])
+def test_snapshot_adjointness_float64(kind, origin):
+    cam = camera(kind).double()
+    op = cam.snapshot()
+    g = torch.Generator().manual_seed(0)
+    h, w = 19, 26
+    x = torch.randn(2, len(cam.bands), *op.scene_size((h, w)), generator=g, dtype=torch.float64)
+    y = torch.randn(2, 1, h, w, generator=g, dtype=torch.float64)
+    ax, aty = op.A(x, origin), op.A_adjoint(y, origin)
+    assert ax.shape == y.shape and aty.shape == x.shape
+    lhs, rhs = (ax * y).sum().detach(), (x * aty).sum().detach()
+    assert abs(float(lhs - rhs)) <= 1e-10 * float(lhs.abs() + rhs.abs())
+
+
+@pytest.mark.parametrize("kind", CAMERA_KINDS)
+def test_snapshot_window_at_origin_is_a_crop(kind):
+    """Pixel-wise structure (CFA phase, aperture) follows the window's origin."""
+    cam = camera(kind, "camera.boundary=same")
+    op = cam.snapshot()
+    h, w = 24, 30
+    x = torch.rand(1, len(cam.bands), *op.scene_size((h, w)))
+    whole = op.A(x)
+    if kind == "doe":  # same geometry, zero padding: the camera's own A in same mode
+        assert torch.allclose(whole, cam.A(x), atol=1e-6)
+        x = torch.zeros_like(x)
+        x[..., 10, 12] = 1.0  # a point far from both windows' borders
+        whole = op.A(x)
+    else:
+        assert torch.allclose(whole, cam.A(x), atol=1e-6)
+    r0, c0 = 4, 5
+    part = op.A(x[..., r0:, c0:], (r0, c0))
+    d = cam.span if kind == "sd_cassi" else 0  # SD-CASSI: sensor columns < c0 + D also see scene columns < c0
+    assert torch.allclose(part[..., d:], whole[..., r0:, c0 + d :], atol=1e-6)
+
+
+def test_snapshot_lipschitz_bounds_the_operator_norm():
+    for kind in CAMERA_KINDS:
+        cam = camera(kind).double()
+        op = cam.snapshot()
+        x = torch.rand(1, len(cam.bands), *op.scene_size((20, 24)), dtype=torch.float64)
+        for _ in range(30):  # power iteration on AᵀA
+            x = op.A_adjoint(op.A(x))
+            x = x / x.norm()
+        sq = float(op.A(x).square().sum().detach())
+        assert 0 < sq <= op.lipschitz * (1 + 1e-9), kind
+
+
+def test_doe_snapshot_draws_height_noise_once_and_nominal_has_none():
+    cam = camera("doe", "camera.doe.sigma_height_nm=20")
+    a = cam.snapshot(torch.Generator().manual_seed(3)).psf
+    b = cam.snapshot(torch.Generator().manual_seed(3)).psf
+    assert torch.equal(a, b)
+    nominal = cam.snapshot(nominal=True).psf
+    cam.optics.doe.sigma_height_m = 0.0
+    assert torch.allclose(nominal, cam.psf())
+    assert not torch.allclose(a, nominal)
+    assert cam.optics.doe.sigma_height_m == 0.0
+
+
+def test_phase_pad_aligns_cells_with_the_sensor_grid():
+    x = torch.arange(1 * 1 * 7 * 8, dtype=torch.float32).reshape(1, 1, 7, 8)
+    p, (top, left) = phase_pad(x, 3, (4, 5))
+    assert (top, left) == (1, 2) and p.shape[-2] % 3 == 0 and p.shape[-1] % 3 == 0
+    assert torch.equal(p[..., top : top + 7, left : left + 8], x)
+
+
+# ------------------------------------------------------------------------------------------------
+# Network contract
+# ------------------------------------------------------------------------------------------------
+@pytest.mark.parametrize("kind", CAMERA_KINDS)
+@pytest.mark.parametrize("bands_step", [50.0, 100.0])  # 7 and 4 bands
+@pytest.mark.parametrize("hw", [(12, 18), (17, 23)])  # 17, 23: not multiples of the CFA period (SD-CASSI: wider than D = 12)
+def test_shape_contract(kind, bands_step, hw):
+    cam = camera(kind, f"bands.step_nm={bands_step}")
+    for name, net in networks(cam).items():
+        y = torch.rand(2, 1, *hw, dtype=torch.float64)  # any input dtype: float32 out
+        out = net(y, cam)
+        assert out.dtype == torch.float32, name
+        assert out.shape == (2, len(cam.bands), *cam.snapshot().scene_size(hw)), name
+        assert torch.isfinite(out).all(), name
+
+
+def test_untrained_mosaic_net_returns_the_demosaic():
+    from hsicam.models.system import demosaic
+
+    cam = camera("doe")
+    net = build_mosaic(MOSAIC, cam)
+    y = torch.rand(1, 1, 15, 20)
+    with torch.no_grad():
+        assert torch.allclose(net(y, cam), demosaic(y, cam.sensor_code(15, 20), 3), atol=1e-6)
+
+
+@pytest.mark.parametrize("name", ["mosaic", "unrolled", "unrolled-mosaic"])
+def test_overfits_one_batch(name):
+    cam = camera("doe", "camera.boundary=same", "camera.cfa.init=bandpass")
+    wide = MosaicNetSettings(features=32, blocks=1, head_features=8, head_layers=2)
+    net = {"mosaic": lambda: build_mosaic(wide, cam),
+           "unrolled": lambda: build_unrolled(UnrolledSettings(stages=2, prior_features=32, prior_blocks=1, prior_scale=2), cam),
+           "unrolled-mosaic": lambda: build_unrolled(UnrolledSettings(stages=1, init="mosaic", prior_features=32, prior_blocks=1,
+                                                                      prior_scale=2, mosaic=wide), cam)}[name]()
+    g = torch.Generator().manual_seed(0)
+    abundance = torch.nn.functional.interpolate(torch.rand(2, 2, 4, 4, generator=g), size=(18, 18), mode="bilinear",
+                                                align_corners=False)
+    truth = torch.einsum("bkhw,kc->bchw", abundance, torch.rand(2, len(cam.bands), generator=g))  # two endmembers
+    with torch.no_grad():
+        op = cam.snapshot(nominal=True)  # frozen optics: compute the PSF once
+        sensor = op.A(truth)
+    opt = torch.optim.Adam(net.parameters(), lr=3e-3)
+    losses = []
+    for _ in range(60):
+        loss = torch.nn.functional.l1_loss(net(sensor, op), truth)
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+        losses.append(loss.item())
+    assert losses[-1] < 0.5 * losses[0], (name, losses[0], losses[-1])
+
+
+@pytest.mark.parametrize("kind", ["doe", "dd_cassi"])
+def test_tiled_equals_whole_with_the_declared_context(kind):
+    cam = camera(kind)
+    small = UnrolledSettings(stages=1, prior_features=8, prior_blocks=1, prior_scale=2)
+    nets = {"unrolled": build_unrolled(small, cam)}
+    if kind == "doe":
+        nets["mosaic"] = build_mosaic(MOSAIC, cam)
+    y = torch.rand(1, 1, 80, 74)
+    op = cam.snapshot(nominal=True)
+    for name, net in nets.items():
+        randomise(net).eval()
+        ctx = net.context_px
+        assert 0 < ctx < 40, (name, ctx)  # the test must cut real tiles
+        with torch.no_grad():
+            whole = net(y, op)
+        run = lambda s, origin=(0, 0): net(s, op, origin)  # noqa: E731
+        tiled = reconstruct_tiled(run, y, tile_px=24, halo_px=ctx)
+        assert torch.allclose(tiled, whole, atol=1e-5), (name, float((tiled - whole).abs().max()))
+        short = reconstruct_tiled(run, y, tile_px=24, halo_px=2)
+        assert not torch.allclose(short, whole, atol=1e-5), name  # the halo matters: the test can fail
+
+
+@pytest.mark.parametrize("kind", CAMERA_KINDS)
+def test_data_step_decreases_the_residual(kind):
+    """Identity prior (the untrained priors are exactly zero): each stage lowers ‖A x − y‖."""
+    cam = camera(kind).double()
+    net = build_unrolled(UnrolledSettings(stages=4, init="backprojection"), cam).double()
+    op = cam.snapshot()
+    g = torch.Generator().manual_seed(0)
+    hw = (20, 24)
+    truth = torch.rand(1, len(cam.bands), *op.scene_size(hw), generator=g, dtype=torch.float64)
+    y = op.A(truth)
+    with torch.no_grad():
+        x = torch.zeros_like(truth)  # (the CASSI back-projection already fits y exactly)
+        alphas = net.step_sizes(op.lipschitz)
+        res = [float((op.A(x) - y).norm())]
+        for k in range(net.stages):
+            x = net.data_step(x, y, op, alphas[k])
+            assert float(net._prior(k)(x).abs().max()) == 0.0
+            res.append(float((op.A(x) - y).norm()))
+    assert all(b < a for a, b in zip(res, res[1:])), res
+
+
+@pytest.mark.parametrize("kind", ["dd_cassi", "sd_cassi"])
+def test_gap_step_makes_cassi_data_consistent(kind):
+    """With α = 1 a GAP step solves A x = y exactly (ΦΦᵀ is diagonal), and tiles still match."""
+    cam = camera(kind).double()
+    net = build_unrolled(UnrolledSettings(stages=1, step="gap", prior_features=8, prior_blocks=1, prior_scale=2), cam).double()
+    op = cam.snapshot()
+    truth = torch.rand(1, len(cam.bands), *op.scene_size((20, 30)), dtype=torch.float64)
+    y = op.A(truth)
+    with torch.no_grad():
+        x = net.data_step(torch.zeros_like(truth), y, op, net.step_sizes(op.lipschitz)[0])
+    covered = op.gram_diagonal(y) > 0
+    assert torch.allclose(op.A(x)[covered], y[covered], atol=1e-10)
+    if kind == "dd_cassi":
+        randomise(net).eval()
+        y = torch.rand(1, 1, 60, 52, dtype=torch.float64)
+        run = lambda s, origin=(0, 0): net(s, op, origin)  # noqa: E731
+        with torch.no_grad():
+            assert torch.allclose(reconstruct_tiled(run, y, tile_px=16, halo_px=net.context_px), net(y, op), atol=1e-5)
+
+
+def test_gradients_reach_the_doe_and_cfa_through_the_stages():
+    cam = camera("doe", "camera.boundary=same")
+    net = randomise(build_unrolled(UnrolledSettings(stages=2, init="demosaic", prior_features=8, prior_blocks=1,
+                                                    prior_scale=2), cam))
+    truth = torch.rand(1, len(cam.bands), 16, 16)
+    with torch.no_grad():
+        sensor = cam.A(truth)  # the measurement carries no gradient: only the stages do
+    loss = torch.nn.functional.l1_loss(net(sensor, cam), truth)
+    loss.backward()
+    h, w = cam.optics.doe.height_m.grad, cam.cfa.weights.grad
+    assert h is not None and torch.isfinite(h).all() and h.abs().sum() > 0
+    assert w is not None and torch.isfinite(w).all() and w.abs().sum() > 0
+    assert net.step_logits.grad is not None and net.step_logits.grad.abs().sum() > 0
+
+
+def test_a_snapshot_passed_in_is_used_as_is():
+    cam = camera("doe", "camera.doe.sigma_height_nm=30")
+    net = randomise(build_unrolled(UNROLLED, cam)).eval()
+    op = cam.snapshot(torch.Generator().manual_seed(0))
+    y = torch.rand(1, 1, 14, 14)
+    with torch.no_grad():
+        assert torch.equal(net(y, op), net(y, op))
+        assert not torch.allclose(net(y, op), net(y, cam))  # the camera: the nominal (noise-free) PSF
+
+
+# ------------------------------------------------------------------------------------------------
+# Settings
+# ------------------------------------------------------------------------------------------------
+BAD = [
+    ("mosaic", MosaicNetSettings(blocks=0), "model.mosaic.blocks"),
+    ("mosaic", MosaicNetSettings(factor=4), "multiple of the CFA period"),
+    ("mosaic", MosaicNetSettings(demosaic_window=4), "odd"),
+    ("unrolled", UnrolledSettings(stages=0), "model.unrolled.stages"),
+    ("unrolled", UnrolledSettings(init="zeros"), "model.unrolled.init"),
+    ("unrolled", UnrolledSettings(step_init=0.0), "step_init"),
+    ("unrolled", UnrolledSettings(stage_kernel_px=8), "stage_kernel_px"),
+    ("unrolled", UnrolledSettings(prior_scale=0), "prior_scale"),
+    ("unrolled", UnrolledSettings(step="admm"), "model.unrolled.step"),
+    ("unrolled", UnrolledSettings(step="gap"), "diagonal"),
+]
+
+
+@pytest.mark.parametrize("kind,settings,needle", BAD)
+def test_bad_settings_are_one_config_error(kind, settings, needle):
+    cam = camera("doe")
+    build = build_mosaic if kind == "mosaic" else build_unrolled
+    with pytest.raises(ConfigError, match=needle) as info:
+        build(settings, cam)
+    assert "\n" not in str(info.value)
+
+
+@pytest.mark.parametrize("settings", [MosaicNetSettings(), UnrolledSettings(init="demosaic")])
+def test_cfa_networks_on_cassi_are_one_config_error(settings):
+    cam = camera("dd_cassi")
+    build = build_mosaic if isinstance(settings, MosaicNetSettings) else build_unrolled
+    with pytest.raises(ConfigError, match="colour filter array") as info:
+        build(settings, cam)
+    assert "\n" not in str(info.value)
+
+
+def test_settings_are_plain_dataclasses_with_defaults():
+    m, u = MosaicNetSettings(), UnrolledSettings()
+    assert copy.deepcopy(u) == u and u.mosaic == m
