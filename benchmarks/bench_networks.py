@@ -8,8 +8,8 @@ For each network kind on the ``quick`` camera (joint optics: DOE heights and CFA
   its own snapshot of the operator: one more PSF computation and the A/Aᵀ of its stages);
 - one 512×512 reconstruction (31 bands), network only, no gradient.
 
-Kinds: ``rdn`` (the quick RDN with the demosaic input), ``mosaic`` (MosaicNetSettings defaults),
-``unrolled`` (UnrolledSettings defaults: demosaic init, 2 stages, full 141 px kernel) and
+Kinds: ``rdn`` (the quick RDN with the demosaic input), ``mosaic`` (MosaicConfig defaults),
+``unrolled`` (UnrolledConfig defaults: demosaic init, 2 stages, full 141 px kernel) and
 ``unrolled-mosaic`` (MosaicNet front end without head, 2 stages with the PSF cut to 31 px).
 
 Run: `PYTHONPATH=src .venv/bin/python benchmarks/bench_networks.py [--steps N] [--kinds a,b]`.
@@ -37,15 +37,16 @@ from timing import median_time  # noqa: E402
 from hsicam.cameras import build_camera  # noqa: E402
 from hsicam.config import load_config  # noqa: E402
 from hsicam.models import CameraSystem  # noqa: E402
-from hsicam.models.mosaic import MosaicNetSettings, build_mosaic  # noqa: E402
-from hsicam.models.unrolled import UnrolledSettings, build_unrolled  # noqa: E402
+from hsicam.config import MosaicConfig, UnrolledConfig  # noqa: E402
+from hsicam.models.mosaic import build_mosaic  # noqa: E402
+from hsicam.models.unrolled import build_unrolled  # noqa: E402
 
 KINDS = {
-    "mosaic": lambda cam: build_mosaic(MosaicNetSettings(), cam),
-    "unrolled": lambda cam: build_unrolled(UnrolledSettings(), cam),
+    "mosaic": lambda cam: build_mosaic(MosaicConfig(), cam),
+    "unrolled": lambda cam: build_unrolled(UnrolledConfig(), cam),
     "unrolled-mosaic": lambda cam: build_unrolled(
-        UnrolledSettings(stages=2, init="mosaic", stage_kernel_px=31,
-                         mosaic=MosaicNetSettings(features=96, blocks=8, head_layers=0)), cam),
+        UnrolledConfig(stages=2, init="mosaic", stage_kernel_px=31,
+                         mosaic=MosaicConfig(features=96, blocks=8, head_layers=0)), cam),
 }
 
 

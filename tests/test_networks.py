@@ -17,12 +17,13 @@ from hsicam.cameras import build_camera
 from hsicam.config import load_config
 from hsicam.engine.inference import reconstruct_tiled
 from hsicam.errors import ConfigError
-from hsicam.models.mosaic import MosaicNetSettings, build_mosaic, phase_pad
-from hsicam.models.unrolled import UnrolledSettings, build_unrolled
+from hsicam.config import MosaicConfig, UnrolledConfig
+from hsicam.models.mosaic import build_mosaic, phase_pad
+from hsicam.models.unrolled import build_unrolled
 
 CAMERA_KINDS = ("doe", "dd_cassi", "sd_cassi")
-MOSAIC = MosaicNetSettings(features=8, blocks=1, head_features=4, head_layers=2)
-UNROLLED = UnrolledSettings(stages=2, prior_features=8, prior_blocks=1, prior_scale=2)
+MOSAIC = MosaicConfig(features=8, blocks=1, head_features=4, head_layers=2)
+UNROLLED = UnrolledConfig(stages=2, prior_features=8, prior_blocks=1, prior_scale=2)
 
 
 @pytest.fixture(autouse=True)
@@ -46,7 +47,7 @@ def networks(cam) -> dict:
     except NotImplementedError:
         return nets
     nets["mosaic"] = build_mosaic(MOSAIC, cam)
-    nets["unrolled-mosaic"] = build_unrolled(UnrolledSettings(stages=1, init="mosaic", prior_features=8, prior_blocks=1,
+    nets["unrolled-mosaic"] = build_unrolled(UnrolledConfig(stages=1, init="mosaic", prior_features=8, prior_blocks=1,
                                                               prior_scale=2, mosaic=MOSAIC), cam)
     return nets
 
@@ -159,10 +160,10 @@ def test_untrained_mosaic_net_returns_the_demosaic():
 @pytest.mark.parametrize("name", ["mosaic", "unrolled", "unrolled-mosaic"])
 def test_overfits_one_batch(name):
     cam = camera("doe", "camera.boundary=same", "camera.cfa.init=bandpass")
-    wide = MosaicNetSettings(features=32, blocks=1, head_features=8, head_layers=2)
+    wide = MosaicConfig(features=32, blocks=1, head_features=8, head_layers=2)
     net = {"mosaic": lambda: build_mosaic(wide, cam),
-           "unrolled": lambda: build_unrolled(UnrolledSettings(stages=2, prior_features=32, prior_blocks=1, prior_scale=2), cam),
-           "unrolled-mosaic": lambda: build_unrolled(UnrolledSettings(stages=1, init="mosaic", prior_features=32, prior_blocks=1,
+           "unrolled": lambda: build_unrolled(UnrolledConfig(stages=2, prior_features=32, prior_blocks=1, prior_scale=2), cam),
+           "unrolled-mosaic": lambda: build_unrolled(UnrolledConfig(stages=1, init="mosaic", prior_features=32, prior_blocks=1,
                                                                       prior_scale=2, mosaic=wide), cam)}[name]()
     g = torch.Generator().manual_seed(0)
     abundance = torch.nn.functional.interpolate(torch.rand(2, 2, 4, 4, generator=g), size=(18, 18), mode="bilinear",
@@ -185,7 +186,7 @@ def test_overfits_one_batch(name):
 @pytest.mark.parametrize("kind", ["doe", "dd_cassi"])
 def test_tiled_equals_whole_with_the_declared_context(kind):
     cam = camera(kind)
-    small = UnrolledSettings(stages=1, prior_features=8, prior_blocks=1, prior_scale=2)
+    small = UnrolledConfig(stages=1, prior_features=8, prior_blocks=1, prior_scale=2)
     nets = {"unrolled": build_unrolled(small, cam)}
     if kind == "doe":
         nets["mosaic"] = build_mosaic(MOSAIC, cam)
@@ -208,7 +209,7 @@ def test_tiled_equals_whole_with_the_declared_context(kind):
 def test_data_step_decreases_the_residual(kind):
     """Identity prior (the untrained priors are exactly zero): each stage lowers ‖A x − y‖."""
     cam = camera(kind).double()
-    net = build_unrolled(UnrolledSettings(stages=4, init="backprojection"), cam).double()
+    net = build_unrolled(UnrolledConfig(stages=4, init="backprojection"), cam).double()
     op = cam.snapshot()
     g = torch.Generator().manual_seed(0)
     hw = (20, 24)
@@ -229,7 +230,7 @@ def test_data_step_decreases_the_residual(kind):
 def test_gap_step_makes_cassi_data_consistent(kind):
     """With α = 1 a GAP step solves A x = y exactly (ΦΦᵀ is diagonal), and tiles still match."""
     cam = camera(kind).double()
-    net = build_unrolled(UnrolledSettings(stages=1, step="gap", prior_features=8, prior_blocks=1, prior_scale=2), cam).double()
+    net = build_unrolled(UnrolledConfig(stages=1, step="gap", prior_features=8, prior_blocks=1, prior_scale=2), cam).double()
     op = cam.snapshot()
     truth = torch.rand(1, len(cam.bands), *op.scene_size((20, 30)), dtype=torch.float64)
     y = op.A(truth)
@@ -247,7 +248,7 @@ def test_gap_step_makes_cassi_data_consistent(kind):
 
 def test_gradients_reach_the_doe_and_cfa_through_the_stages():
     cam = camera("doe", "camera.boundary=same")
-    net = randomise(build_unrolled(UnrolledSettings(stages=2, init="demosaic", prior_features=8, prior_blocks=1,
+    net = randomise(build_unrolled(UnrolledConfig(stages=2, init="demosaic", prior_features=8, prior_blocks=1,
                                                     prior_scale=2), cam))
     truth = torch.rand(1, len(cam.bands), 16, 16)
     with torch.no_grad():
@@ -274,16 +275,16 @@ def test_a_snapshot_passed_in_is_used_as_is():
 # Settings
 # ------------------------------------------------------------------------------------------------
 BAD = [
-    ("mosaic", MosaicNetSettings(blocks=0), "model.mosaic.blocks"),
-    ("mosaic", MosaicNetSettings(factor=4), "multiple of the CFA period"),
-    ("mosaic", MosaicNetSettings(demosaic_window=4), "odd"),
-    ("unrolled", UnrolledSettings(stages=0), "model.unrolled.stages"),
-    ("unrolled", UnrolledSettings(init="zeros"), "model.unrolled.init"),
-    ("unrolled", UnrolledSettings(step_init=0.0), "step_init"),
-    ("unrolled", UnrolledSettings(stage_kernel_px=8), "stage_kernel_px"),
-    ("unrolled", UnrolledSettings(prior_scale=0), "prior_scale"),
-    ("unrolled", UnrolledSettings(step="admm"), "model.unrolled.step"),
-    ("unrolled", UnrolledSettings(step="gap"), "diagonal"),
+    ("mosaic", MosaicConfig(blocks=0), "model.mosaic.blocks"),
+    ("mosaic", MosaicConfig(factor=4), "multiple of the CFA period"),
+    ("mosaic", MosaicConfig(demosaic_window=4), "odd"),
+    ("unrolled", UnrolledConfig(stages=0), "model.unrolled.stages"),
+    ("unrolled", UnrolledConfig(init="zeros"), "model.unrolled.init"),
+    ("unrolled", UnrolledConfig(step_init=0.0), "step_init"),
+    ("unrolled", UnrolledConfig(stage_kernel_px=8), "stage_kernel_px"),
+    ("unrolled", UnrolledConfig(prior_scale=0), "prior_scale"),
+    ("unrolled", UnrolledConfig(step="admm"), "model.unrolled.step"),
+    ("unrolled", UnrolledConfig(step="gap"), "diagonal"),
 ]
 
 
@@ -296,15 +297,40 @@ def test_bad_settings_are_one_config_error(kind, settings, needle):
     assert "\n" not in str(info.value)
 
 
-@pytest.mark.parametrize("settings", [MosaicNetSettings(), UnrolledSettings(init="demosaic")])
+@pytest.mark.parametrize("settings", [MosaicConfig(), UnrolledConfig(init="demosaic")])
 def test_cfa_networks_on_cassi_are_one_config_error(settings):
     cam = camera("dd_cassi")
-    build = build_mosaic if isinstance(settings, MosaicNetSettings) else build_unrolled
+    build = build_mosaic if isinstance(settings, MosaicConfig) else build_unrolled
     with pytest.raises(ConfigError, match="colour filter array") as info:
         build(settings, cam)
     assert "\n" not in str(info.value)
 
 
 def test_settings_are_plain_dataclasses_with_defaults():
-    m, u = MosaicNetSettings(), UnrolledSettings()
+    m, u = MosaicConfig(), UnrolledConfig()
     assert copy.deepcopy(u) == u and u.mosaic == m
+
+
+# --------------------------------------------------------------------------------------------
+# Through the registry: every model.kind builds from a config and keeps the system contract
+# --------------------------------------------------------------------------------------------
+from hsicam.config import load_config  # noqa: E402
+from hsicam.models import CameraSystem, network_kinds  # noqa: E402
+
+
+@pytest.mark.parametrize("kind", network_kinds())
+def test_every_registered_network_through_the_system(kind):
+    torch.manual_seed(0)
+    model = CameraSystem.from_config(load_config("tiny", [f"model.kind={kind}"]))
+    scene = torch.rand(2, len(model.bands), 40, 44)
+    recon, sensor = model(scene, torch.Generator().manual_seed(0))
+    assert recon.shape == model.target(scene).shape == (2, len(model.bands), *sensor.shape[-2:])
+    assert torch.isfinite(recon).all() and model.context_px >= 0
+    # the snapshot the camera passes on (one PSF per step) gives the same result as the camera
+    with torch.no_grad():
+        torch.testing.assert_close(model.reconstruct(sensor), recon.detach(), rtol=1e-5, atol=1e-6)
+
+
+def test_unknown_network_kind_is_one_clear_error():
+    with pytest.raises(ConfigError, match="model.kind='transformer' is unknown; choose one of mosaic, rdn, unrolled"):
+        CameraSystem.from_config(load_config("tiny", ["model.kind=transformer"]))

@@ -238,12 +238,43 @@ class RDNConfig:
 
 
 @dataclass
+class MosaicConfig:
+    """Settings of ``model.kind = mosaic`` (sizes in channels / layers; lengths in sensor pixels)."""
+
+    features: int = 128  # channels of the residual blocks at 1/m resolution
+    blocks: int = 10  # residual blocks (two 3×3 convs each) at 1/m resolution
+    factor: int = 0  # space-to-depth factor (px); 0 = the camera's CFA period (3 without a CFA); a multiple of the period
+    head_features: int = 32  # channels of the full-resolution refinement head
+    head_layers: int = 3  # 3×3 convs of the head at full resolution (0: no head)
+    demosaic_window: int = 0  # box width (px, odd) of the demosaic skip; 0 = the CFA period rounded up to odd
+
+
+@dataclass
+class UnrolledConfig:
+    """Settings of ``model.kind = unrolled`` (sizes in channels / layers; lengths in sensor pixels)."""
+
+    stages: int = 2  # K: gradient step + prior, repeated
+    init: str = "auto"  # x⁰: auto (demosaic with a CFA, else backprojection), demosaic, backprojection, mosaic
+    step: str = "gradient"  # data step: gradient (any camera) or gap (cameras with a diagonal ΦΦᵀ: CASSI)
+    share_weights: bool = False  # one prior for all stages (else one per stage)
+    prior_features: int = 64  # channels of each prior CNN
+    prior_blocks: int = 2  # residual blocks (two 3×3 convs each) of each prior
+    prior_scale: int = 4  # the prior runs at 1/prior_scale resolution (space-to-depth, px)
+    step_init: float = 1.0  # initial α_k·L (L ≥ ‖A‖²; < 2 guarantees a decreasing data term)
+    stage_kernel_px: int = 0  # DOE camera: PSF cut to this many px (odd) in the stages; 0 = the full kernel
+    demosaic_window: int = 0  # box width (px, odd) of the demosaic init; 0 = the CFA period rounded up to odd
+    mosaic: MosaicConfig = field(default_factory=MosaicConfig)  # the front end of init=mosaic
+
+
+@dataclass
 class ModelConfig:
-    """Reconstruction network: ``kind`` is a registered network (hsicam.models.registry); its
-    settings are the section of the same name."""
+    """Reconstruction network: ``kind`` is a registered network (hsicam.models.registry): rdn, mosaic,
+    unrolled; its settings are the section of the same name (docs/networks.md)."""
 
     kind: str = "rdn"
     rdn: RDNConfig = field(default_factory=RDNConfig)
+    mosaic: MosaicConfig = field(default_factory=MosaicConfig)
+    unrolled: UnrolledConfig = field(default_factory=UnrolledConfig)
 
 
 @dataclass

@@ -44,6 +44,12 @@ class Camera(nn.Module):
     def forward(self, x: torch.Tensor, generator: torch.Generator | None = None) -> torch.Tensor:
         return self.noise(self.A(x), generator)
 
+    def measure(self, x: torch.Tensor, generator: torch.Generator | None = None):
+        """(noisy measurement, the operator a network should use for it): here ``(self(x), self)``;
+        a camera whose operator is costly to build (the DOE camera's PSFs) returns the snapshot
+        that made the measurement, so a training step builds it once."""
+        return self(x, generator), self
+
     # -- derived operator quantities (built only from A and A_adjoint) ---------------------------
     def A_adjoint_A(self, x: torch.Tensor) -> torch.Tensor:  # noqa: N802
         """Aᵀ A x, (B, C, H, W) → (B, C, H, W) (the normal operator)."""

@@ -142,6 +142,15 @@ class DOECamera(Camera):
         """Noisy sensor image: DOE height noise (σ_p) and sensor noise drawn from ``generator``."""
         return self.noise(self.A(x, self.psf(generator)), generator)
 
+    def measure(self, x: torch.Tensor, generator: torch.Generator | None = None):
+        """(noisy sensor image, operator for the network). Without height noise the snapshot that
+        made the image is the nominal operator, so it is passed on (one PSF computation per step);
+        with height noise the network gets the camera (it uses the nominal PSF, not the draw)."""
+        if self.optics.doe.sigma_height_m > 0:
+            return self(x, generator), self
+        snap = self.snapshot(generator)
+        return self.noise(self.A(x, snap.psf), generator), snap
+
     def snapshot(self, generator: torch.Generator | None = None, *, nominal: bool = False) -> "DOESnapshot":
         """The operator with one PSF draw (height noise from ``generator``; none if ``nominal``)
         and the current CFA, in ``same`` geometry with zero padding: see :class:`DOESnapshot`."""

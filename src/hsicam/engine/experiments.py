@@ -71,7 +71,14 @@ def is_finished(run: Path) -> bool:
 
 #: A scale preset's network on the DD-CASSI camera: the paper's RDN reading the measurement alone
 #: (the DOE-camera presets may switch on the CFA demosaic input, which CASSI has no CFA for).
-CASSI_RDN_OVERRIDES = ("camera.kind=dd_cassi", "model.rdn.demosaic_input=false")
+CASSI_RDN_OVERRIDES = ("camera.kind=dd_cassi", "model.kind=rdn", "model.rdn.demosaic_input=false")
+#: The scale preset's unrolled network on the DD-CASSI camera: it starts from the back-projection
+#: Aᵀy ⊘ AᵀA1 (no CFA to demosaic) and its data steps are GAP projections (ΦΦᵀ is diagonal).
+CASSI_UNROLLED_OVERRIDES = ("camera.kind=dd_cassi", "model.kind=unrolled", "model.unrolled.init=backprojection",
+                            "model.unrolled.step=gap")
+
+
+LEARNED_CASSI = {"dd-cassi-rdn": CASSI_RDN_OVERRIDES, "dd-cassi-unrolled": CASSI_UNROLLED_OVERRIDES}
 
 
 def ensure_trained(run: Path, preset, overrides: tuple[str, ...] = ()) -> str:
@@ -173,9 +180,9 @@ def _baseline_rows(cfg, scale, out, scenes, names, seeds, baselines) -> list[dic
     rows = []
     for name in baselines:
         run = None
-        if name == "dd-cassi-rdn":
+        if name in LEARNED_CASSI:
             run = out / "runs" / name
-            ensure_trained(run, scale, CASSI_RDN_OVERRIDES)
+            ensure_trained(run, scale, LEARNED_CASSI[name])
         elif name == "dd-cassi-choi":
             run = ensure_choi_prior(out / "runs" / name, scale)
         method = build_method(name, cfg, run)

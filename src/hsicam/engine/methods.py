@@ -7,13 +7,15 @@ A method owns a camera (the forward model that makes its measurement) and a reco
 
 Methods are registered by name (:func:`register_method`); :func:`build_method` looks them up.
 
-    doe-rdn          our learned camera (any network kind), from a run folder
+    doe-rdn          our learned camera (any network kind: rdn, mosaic, unrolled), from a run folder
     dd-cassi-gaptv   DD-CASSI + GAP-TV                 settings: baselines.gaptv
     dd-cassi-desci   DD-CASSI + DeSCI                  settings: baselines.desci (preset fast|full)
     dd-cassi-choi    DD-CASSI + Choi et al. ADMM       run: a spectral-prior folder (hsicam baseline train-prior);
                                                        ADMM settings: baselines.choi of the evaluation config when
                                                        set, else the folder's prior.yaml
-    dd-cassi-rdn     DD-CASSI + a learned network      run: `hsicam train --set camera.kind=dd_cassi`
+    dd-cassi-rdn     DD-CASSI + the paper's RDN        run: `hsicam train --set camera.kind=dd_cassi`
+    dd-cassi-unrolled DD-CASSI + the unrolled network  run: trained with camera.kind=dd_cassi, model.kind=unrolled
+                                                       (GAP data steps with the CASSI operator + learned priors)
 
 The DD-CASSI camera of the iterative methods is built from the evaluation config's band grid,
 ``camera.cassi`` and ``camera.sensor`` (whatever ``camera.kind`` says); the learned methods use
@@ -154,15 +156,27 @@ def _choi_method(cfg, run, device) -> Method:
                                                          **_camera_info(cam)})
 
 
-@register_method("dd-cassi-rdn")
-def _learned_cassi(cfg, run, device) -> Method:
-    if run is None:
-        raise InputError("method dd-cassi-rdn needs --run RUN (trained with `hsicam train --set camera.kind=dd_cassi`)")
-    cfg_path = Path(run) / "config.yaml"
-    if cfg_path.is_file():
-        kind = load_config(cfg_path).camera.kind
-        if kind != "dd_cassi":
-            raise InputError(f"{run}: method dd-cassi-rdn needs a run trained with camera.kind=dd_cassi, "
-                             f"this one has camera.kind={kind}")
-    _, model = load_run(run, device)
-    return learned_method("dd-cassi-rdn", model, run, **_camera_info(model.camera))
+def _learned_cassi(name: str, network: str) -> Builder:
+    """Builder of a learned DD-CASSI method: a run trained with camera.kind=dd_cassi and ``network``."""
+
+    def build(cfg, run, device) -> Method:
+        if run is None:
+            raise InputError(f"method {name} needs --run RUN (trained with `hsicam train --set camera.kind=dd_cassi "
+                             f"--set model.kind={network}`)")
+        cfg_path = Path(run) / "config.yaml"
+        if cfg_path.is_file():
+            run_cfg = load_config(cfg_path)
+            if run_cfg.camera.kind != "dd_cassi":
+                raise InputError(f"{run}: method {name} needs a run trained with camera.kind=dd_cassi, "
+                                 f"this one has camera.kind={run_cfg.camera.kind}")
+            if run_cfg.model.kind != network:
+                raise InputError(f"{run}: method {name} needs a run trained with model.kind={network}, "
+                                 f"this one has model.kind={run_cfg.model.kind}")
+        _, model = load_run(run, device)
+        return learned_method(name, model, run, **_camera_info(model.camera))
+
+    return build
+
+
+register_method("dd-cassi-rdn")(_learned_cassi("dd-cassi-rdn", "rdn"))
+register_method("dd-cassi-unrolled")(_learned_cassi("dd-cassi-unrolled", "unrolled"))

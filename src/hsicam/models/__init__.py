@@ -4,7 +4,7 @@ Network kinds register themselves (:mod:`hsicam.models.registry`); importing thi
 the shipped ones (one import line per network module below).
 """
 
-from hsicam.models import rdn  # noqa: F401  (registers "rdn")
+from hsicam.models import mosaic, rdn, unrolled  # noqa: F401  (each registers its model.kind)
 from hsicam.models.rdn import RDN, RDNReconstructor, ResidualDenseBlock
 from hsicam.models.registry import build_network, check_network_kind, network_kinds, register_network
 from hsicam.models.system import CameraSystem

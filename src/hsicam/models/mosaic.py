@@ -16,26 +16,16 @@ the trunk's output conv start at zero: the untrained network returns x̃.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+
 
 import torch
 import torch.nn.functional as F
 from torch import nn
 
+from hsicam.config import MosaicConfig
 from hsicam.errors import ConfigError
-from hsicam.models.system import demosaic
-
-
-@dataclass
-class MosaicNetSettings:
-    """Settings of ``model.kind = mosaic`` (sizes in channels / layers; lengths in sensor pixels)."""
-
-    features: int = 128  # channels of the residual blocks at 1/m resolution
-    blocks: int = 10  # residual blocks (two 3×3 convs each) at 1/m resolution
-    factor: int = 0  # space-to-depth factor (px); 0 = the camera's CFA period (3 without a CFA); a multiple of the period
-    head_features: int = 32  # channels of the full-resolution refinement head
-    head_layers: int = 3  # 3×3 convs of the head at full resolution (0: no head)
-    demosaic_window: int = 0  # box width (px, odd) of the demosaic skip; 0 = the CFA period rounded up to odd
+from hsicam.models.registry import register_network
+from hsicam.models.demosaic import demosaic
 
 
 def phase_pad(x: torch.Tensor, factor: int, origin: tuple[int, int] = (0, 0)) -> tuple[torch.Tensor, tuple[int, int]]:
@@ -137,7 +127,7 @@ def _odd_window(period: int) -> int:
     return period if period % 2 else period + 1
 
 
-def build_mosaic(mcfg: MosaicNetSettings, camera) -> MosaicNet:
+def build_mosaic(mcfg: MosaicConfig, camera) -> MosaicNet:
     """A :class:`MosaicNet` for ``camera`` (a camera with a periodic CFA: ``code_period`` / ``sensor_code``)."""
     try:
         camera.sensor_code(1, 1)
@@ -162,4 +152,10 @@ def build_mosaic(mcfg: MosaicNetSettings, camera) -> MosaicNet:
     return MosaicNet(len(camera.bands), factor, mcfg.features, mcfg.blocks, mcfg.head_features, mcfg.head_layers, window)
 
 
-__all__ = ["MosaicNet", "MosaicNetSettings", "ResBlock", "RefineHead", "build_mosaic", "phase_pad"]
+__all__ = ["MosaicNet", "MosaicConfig", "ResBlock", "RefineHead", "build_mosaic", "phase_pad"]
+
+
+@register_network("mosaic")
+def _build_registered(cfg, camera):
+    """``model.kind: mosaic`` with the settings ``cfg.model.mosaic``."""
+    return build_mosaic(cfg.model.mosaic, camera)

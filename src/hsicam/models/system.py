@@ -51,16 +51,19 @@ class CameraSystem(nn.Module):
         h, w = scene.shape[-2] - 2 * r, scene.shape[-1] - 2 * r
         return scene[..., r : r + h, r : r + w]
 
-    def reconstruct(self, sensor: torch.Tensor, origin: tuple[int, int] = (0, 0)) -> torch.Tensor:
+    def reconstruct(self, sensor: torch.Tensor, origin: tuple[int, int] = (0, 0), operator=None) -> torch.Tensor:
         """Network only: sensor image (B, 1, H, W) → cube (B, C, H, W) (float32).
 
         ``origin``: the sensor pixel of the window's top-left corner (the CFA phase of a tile).
+        ``operator``: what the network sees of the camera (default the camera; a snapshot from
+        :meth:`Camera.measure` saves rebuilding it).
         """
+        op = self.camera if operator is None else operator
         if self.autocast_dtype is not None and sensor.device.type != "cpu":
             with torch.autocast(sensor.device.type, dtype=self.autocast_dtype):
-                return self.net(sensor, self.camera, origin).float()
-        return self.net(sensor, self.camera, origin)
+                return self.net(sensor, op, origin).float()
+        return self.net(sensor, op, origin)
 
     def forward(self, scene: torch.Tensor, generator: torch.Generator | None = None) -> tuple[torch.Tensor, torch.Tensor]:
-        sensor = self.camera(scene, generator)
-        return self.reconstruct(sensor), sensor
+        sensor, operator = self.camera.measure(scene, generator)
+        return self.reconstruct(sensor, operator=operator), sensor

@@ -24,35 +24,20 @@ light from outside the window as zero).
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+
 
 import torch
 import torch.nn.functional as F
 from torch import nn
 
+from hsicam.config import MosaicConfig, UnrolledConfig
 from hsicam.errors import ConfigError
-from hsicam.models.mosaic import MosaicNet, MosaicNetSettings, ResBlock, _odd_window, build_mosaic, phase_pad
-from hsicam.models.system import demosaic
+from hsicam.models.registry import register_network
+from hsicam.models.mosaic import MosaicNet, ResBlock, _odd_window, build_mosaic, phase_pad
+from hsicam.models.demosaic import demosaic
 
 INITS = ("auto", "demosaic", "backprojection", "mosaic")
 STEPS = ("gradient", "gap")
-
-
-@dataclass
-class UnrolledSettings:
-    """Settings of ``model.kind = unrolled`` (sizes in channels / layers; lengths in sensor pixels)."""
-
-    stages: int = 2  # K: gradient step + prior, repeated
-    init: str = "auto"  # x⁰: auto (demosaic with a CFA, else backprojection), demosaic, backprojection, mosaic
-    step: str = "gradient"  # data step: gradient (any camera) or gap (cameras with a diagonal ΦΦᵀ: CASSI)
-    share_weights: bool = False  # one prior for all stages (else one per stage)
-    prior_features: int = 64  # channels of each prior CNN
-    prior_blocks: int = 2  # residual blocks (two 3×3 convs each) of each prior
-    prior_scale: int = 4  # the prior runs at 1/prior_scale resolution (space-to-depth, px)
-    step_init: float = 1.0  # initial α_k·L (L ≥ ‖A‖²; < 2 guarantees a decreasing data term)
-    stage_kernel_px: int = 0  # DOE camera: PSF cut to this many px (odd) in the stages; 0 = the full kernel
-    demosaic_window: int = 0  # box width (px, odd) of the demosaic init; 0 = the CFA period rounded up to odd
-    mosaic: MosaicNetSettings = field(default_factory=MosaicNetSettings)  # the front end of init=mosaic
 
 
 class Prior(nn.Module):
@@ -181,7 +166,7 @@ class UnrolledNet(nn.Module):
         return x
 
 
-def build_unrolled(mcfg: UnrolledSettings, camera) -> UnrolledNet:
+def build_unrolled(mcfg: UnrolledConfig, camera) -> UnrolledNet:
     """An :class:`UnrolledNet` for ``camera`` (any camera with ``snapshot``)."""
     for key in ("stages", "prior_features", "prior_blocks", "prior_scale"):
         if getattr(mcfg, key) < 1:
@@ -220,4 +205,10 @@ def build_unrolled(mcfg: UnrolledSettings, camera) -> UnrolledNet:
                        mcfg.step)
 
 
-__all__ = ["Prior", "UnrolledNet", "UnrolledSettings", "backprojection", "build_unrolled", "camera_operator"]
+__all__ = ["Prior", "UnrolledNet", "UnrolledConfig", "backprojection", "build_unrolled", "camera_operator"]
+
+
+@register_network("unrolled")
+def _build_registered(cfg, camera):
+    """``model.kind: unrolled`` with the settings ``cfg.model.unrolled``."""
+    return build_unrolled(cfg.model.unrolled, camera)
