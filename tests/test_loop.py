@@ -109,3 +109,22 @@ def test_training_with_poisson_gaussian_sensor_noise(tmp_path, cache_env):
     cam = CameraSystem.from_config(noisy_cfg).camera
     x = torch.rand(1, len(cam.bands), 40, 40)
     assert float((cam(x, torch.Generator().manual_seed(0)) - cam.A(x)).abs().mean()) > 0.01
+
+
+def test_dd_cassi_unrolled_method(tmp_path, cache_env):
+    """The learned CASSI control with the unrolled network (GAP steps with the CASSI operator)."""
+    from hsicam.engine.experiments import CASSI_UNROLLED_OVERRIDES, ensure_trained
+    from hsicam.engine.methods import build_method
+    from hsicam.errors import InputError
+
+    run = tmp_path / "dd-unrolled"
+    assert ensure_trained(run, "tiny", (*CASSI_UNROLLED_OVERRIDES, "train.epochs=1")) == "trained"
+    cfg = load_config("tiny")
+    method = build_method("dd-cassi-unrolled", cfg, run)
+    assert method.camera.kind == "dd_cassi" and method.model.net.__class__.__name__ == "UnrolledNet"
+    scene = torch.rand(1, len(method.camera.bands), 48, 48)
+    with torch.no_grad():
+        est = method.reconstruct(method.camera(scene, torch.Generator().manual_seed(0)))
+    assert est.shape == method.target(scene).shape and torch.isfinite(est).all()
+    with pytest.raises(InputError, match="model.kind=rdn"):
+        build_method("dd-cassi-rdn", cfg, run)

@@ -148,7 +148,7 @@ def test_shape_contract(kind, bands_step, hw):
 
 
 def test_untrained_mosaic_net_returns_the_demosaic():
-    from hsicam.models.system import demosaic
+    from hsicam.models.demosaic import demosaic
 
     cam = camera("doe")
     net = build_mosaic(MOSAIC, cam)

@@ -366,7 +366,7 @@ class CASSISnapshot:
 
     def A_adjoint(self, y: torch.Tensor, origin: tuple[int, int] = (0, 0)) -> torch.Tensor:  # noqa: N802
         cam = self.camera
-        cam._check_measurement(y)
+        cam.check_measurement(y)
         h, w = y.shape[-2:]
         if self.single:
             w -= cam.span
