@@ -88,7 +88,8 @@ def check_run_dir(run_dir: Path, resume: bool) -> None:
     if run_dir.exists() and not run_dir.is_dir():
         raise InputError(f"{run_dir}: exists and is not a folder; choose another --out")
     if run_dir.exists() and any(run_dir.iterdir()):
-        raise InputError(f"{run_dir}: run folder exists and is not empty; use --resume or another --out")
+        raise InputError(f"{run_dir}: run folder exists and is not empty; use --resume, --restart (a run without "
+                         "a checkpoint) or another --out")
 
 
 def remove_run_temporaries(run_dir: Path) -> list[Path]:
