@@ -209,3 +209,167 @@ def test_legacy_pointer_files_are_read(reference, tmp_path):
     res = _result(run)
     for key in ("root", "best", "last"):
         assert all(torch.equal(res[key][k], ref[key][k]) for k in ref[key]), key
+
+
+# ------------------------------------------------------------------------------------------------
+# Commands: killed at each write → nothing a later command accepts; the rerun completes
+# ------------------------------------------------------------------------------------------------
+def _count_writes(fn) -> int:
+    mp = pytest.MonkeyPatch()
+    try:
+        writes = Writes(mp)
+        fn()
+    finally:
+        mp.undo()
+    return writes.n
+
+
+def _cli(*args: str) -> None:
+    from hsicam.cli import main
+
+    assert main(list(args)) == 0
+
+
+def test_data_synth_killed_at_every_write(tmp_path, cache_env):
+    from hsicam.data.synthetic import is_complete
+    from hsicam.spectral import Bands
+
+    args = ("data", "synth", "--config", "tiny", "--n", "2", "--size", "16", "--no-progress")
+    bands = load_config("tiny").bands.to_bands()
+    total = _count_writes(lambda: _cli(*args, "--out", str(tmp_path / "ref")))
+    assert is_complete(tmp_path / "ref", 2, 16, 0, bands)
+    assert total >= 3
+    for n in range(1, total + 1):
+        out = tmp_path / f"d{n}"
+        assert run_killed_at(n, lambda: _cli(*args, "--out", str(out))) == KILLED
+        assert not is_complete(out, 2, 16, 0, bands), n  # nothing a later command accepts
+        _cli(*args, "--out", str(out))
+        assert is_complete(out, 2, 16, 0, bands)
+        for scene in sorted((tmp_path / "ref").glob("*.h5")):
+            assert (out / scene.name).read_bytes() == scene.read_bytes() or scene.name == "manifest.json"
+    assert isinstance(bands, Bands)
+
+
+@pytest.fixture(scope="module")
+def trained(reference, tmp_path_factory):
+    run = tmp_path_factory.mktemp("trained") / "run"
+    _train(run)
+    return run
+
+
+def _accepted_by_report(folder: Path) -> bool:
+    from hsicam.errors import InputError
+    from hsicam.report.html import build_report
+
+    try:
+        build_report(folder)
+    except InputError:
+        return False
+    return True
+
+
+def test_evaluate_save_killed_at_every_write(trained, tmp_path):
+    args = ("evaluate", "--run", str(trained), "--save")
+    _cli(*args, "--out", str(tmp_path / "warm"))  # caches the held-out validation set: not counted
+    total = _count_writes(lambda: _cli(*args, "--out", str(tmp_path / "ref")))
+    ref = json.loads((tmp_path / "ref" / "results.json").read_text())
+    assert total >= 6 and (tmp_path / "ref" / ".complete").is_file()
+    for n in range(1, total + 1):
+        out = tmp_path / f"e{n}"
+        assert run_killed_at(n, lambda: _cli(*args, "--out", str(out))) == KILLED
+        assert not out.exists() or not _accepted_by_report(out), n
+        assert not (out / "report").exists()
+        _cli(*args, "--out", str(out))
+        got = json.loads((out / "results.json").read_text())
+        assert [(r["name"], r["psnr"]) for r in got["scenes"]] == [(r["name"], r["psnr"]) for r in ref["scenes"]]
+        assert sorted(p.name for p in (out / "cubes").iterdir()) == sorted(p.name for p in (tmp_path / "ref" / "cubes").iterdir())
+        assert not list(tmp_path.glob(f".e{n}.*"))
+    assert _accepted_by_report(tmp_path / "ref")
+
+
+@pytest.mark.parametrize("every", [pytest.param(1, marks=pytest.mark.slow), 4])
+def test_export_optics_killed_at_every_write(trained, tmp_path, every):
+    """Killed at every write (slow; the default suite kills at every 4th write, first and last included)."""
+    args = ("export-optics", "--run", str(trained), "--levels", "4")
+    total = _count_writes(lambda: _cli(*args, "--out", str(tmp_path / "ref")))
+    ref = sorted(p.name for p in (tmp_path / "ref").iterdir())
+    assert total >= 10 and ".complete" in ref
+    for n in sorted({*range(1, total + 1, every), total}):
+        out = tmp_path / f"x{n}"
+        assert run_killed_at(n, lambda: _cli(*args, "--out", str(out))) == KILLED
+        assert not out.exists() or not (out / ".complete").is_file(), n
+        assert not (out / "spec.json").exists(), n  # nothing a later command (or a supplier) takes for the export
+        _cli(*args, "--out", str(out))
+        assert sorted(p.name for p in out.iterdir()) == ref
+        assert (out / "doe_height_L4_nm.npy").read_bytes() == (tmp_path / "ref" / "doe_height_L4_nm.npy").read_bytes()
+        assert not list(tmp_path.glob(f".x{n}.*"))
+
+
+# ------------------------------------------------------------------------------------------------
+# Starting, restarting and bad data
+# ------------------------------------------------------------------------------------------------
+def test_train_with_bad_data_root_leaves_nothing(tmp_path, cache_env, capsys):
+    from hsicam.cli import main
+
+    run = tmp_path / "run"
+    empty = tmp_path / "nodata"
+    empty.mkdir()
+    code = main(["train", "--config", "tiny", "--out", str(run), "--set", f"data.root={empty}"])
+    assert code == 2 and "hsicam: error:" in capsys.readouterr().err
+    assert not run.exists() and sorted(p.name for p in tmp_path.iterdir()) == ["nodata"]
+    # the corrected command is not refused
+    assert main(["train", "--config", "tiny", "--out", str(run), "--set", "train.epochs=1"]) == 0
+
+
+def test_resume_without_config_says_how_to_restart_and_restart_works(tmp_path, cache_env, capsys):
+    from hsicam.cli import main
+
+    run = tmp_path / "run"
+    run.mkdir()
+    (run / ".config.abcd1234.tmp.yaml").write_text("half")  # a write killed before config.yaml was placed
+    (run / "metrics.jsonl").write_text("")
+    assert main(["train", "--out", str(run), "--resume"]) == 2
+    err = capsys.readouterr().err
+    assert "nothing to resume" in err and "--restart" in err and len(err.strip().splitlines()) == 1
+    assert main(["train", "--config", "tiny", "--out", str(run), "--set", "train.epochs=1"]) == 2  # not empty
+    assert "--restart" in capsys.readouterr().err
+    assert main(["train", "--config", "tiny", "--out", str(run), "--restart", "--set", "train.epochs=1"]) == 0
+    assert (run / "checkpoints.json").is_file() and not hidden(run)
+    # a folder with a finished checkpoint is never wiped by --restart
+    assert main(["train", "--config", "tiny", "--out", str(run), "--restart"]) == 2
+    assert "finished checkpoint" in capsys.readouterr().err and (run / "checkpoints.json").is_file()
+    # nor a folder holding files a run never writes
+    other = tmp_path / "mine"
+    other.mkdir()
+    (other / "thesis.tex").write_text("x")
+    assert main(["train", "--config", "tiny", "--out", str(other), "--restart"]) == 2
+    assert (other / "thesis.tex").read_text() == "x"
+
+
+def test_simulate_resamples_a_scene_on_another_band_grid(trained, tmp_path, caplog):
+    """One band-grid policy: a 31-band scene (420-720 nm, 10 nm) through the 7-band tiny camera."""
+    import logging
+
+    import numpy as np
+
+    from hsicam.cli import main
+    from hsicam.data.formats import write_cube_h5
+    from hsicam.spectral import Bands
+
+    rng = np.random.default_rng(0)
+    scene = rng.uniform(0.1, 1, (31, 40, 40)).astype(np.float32)
+    write_cube_h5(tmp_path / "s31.h5", scene, Bands.uniform(420, 720, 10))
+    with caplog.at_level(logging.INFO):
+        assert main(["simulate", "--run", str(trained), "--scene", str(tmp_path / "s31.h5"), "--out", str(tmp_path / "sim")]) == 0
+    assert any("resampling 31 bands" in r.getMessage() for r in caplog.records)
+    assert np.load(tmp_path / "sim" / "sensor.npy").shape == (40, 40)
+    # extrapolation is refused with one clear line; a negative or complex .npy scene is refused
+    write_cube_h5(tmp_path / "s400.h5", scene[:28], Bands.uniform(420, 690, 10))
+    assert main(["simulate", "--run", str(trained), "--scene", str(tmp_path / "s400.h5"), "--out", str(tmp_path / "o")]) == 2
+    bad = scene[::5][:7].copy()
+    bad[0, 0, 0] = -1
+    np.save(tmp_path / "neg.npy", bad)
+    np.save(tmp_path / "cplx.npy", scene[:7].astype(np.complex64))
+    for f in ("neg.npy", "cplx.npy"):
+        assert main(["simulate", "--run", str(trained), "--scene", str(tmp_path / f), "--out", str(tmp_path / "o")]) == 2
+    assert not (tmp_path / "o").exists()

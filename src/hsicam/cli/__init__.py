@@ -85,6 +85,24 @@ def config_from_args(path: str | Path | None, overrides: Sequence[str] = ()):
     return load_config(path, list(overrides))
 
 
+def prepare_output(path: str | Path, kind: str = "dir") -> Path:
+    """Before any work: :func:`hsicam.io.check_output_path` (one-line error for an output that cannot
+    work), then remove the hidden temporary siblings (``.NAME.XXXXXXXX.tmpdir`` …) that an earlier,
+    killed run of a command left next to this output."""
+    import shutil
+
+    from hsicam.io import check_output_path, is_temporary
+
+    out = check_output_path(path, kind)
+    parent = Path(out).parent
+    if parent.is_dir():
+        stem = Path(out).stem if kind == "file" else Path(out).name
+        for p in parent.glob(f".{stem}.*"):
+            if is_temporary(p.name):
+                shutil.rmtree(p, ignore_errors=True) if p.is_dir() and not p.is_symlink() else p.unlink(missing_ok=True)
+    return out
+
+
 def error_line(exc: BaseException) -> str | None:
     """The one line a user sees for ``exc``, or None for an exception that is a bug (traceback)."""
     if isinstance(exc, HsicamError):

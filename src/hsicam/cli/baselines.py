@@ -28,9 +28,9 @@ def register(sub: argparse._SubParsersAction) -> None:
 def cmd_train_prior(args: argparse.Namespace) -> int:
     from hsicam.cli import config_from_args
     from hsicam.engine.prior import train_prior
-    from hsicam.io import check_output_path
+    from hsicam.cli import prepare_output
 
-    check_output_path(args.out, "dir")
+    prepare_output(args.out, "dir")
     cfg = config_from_args(args.config, args.overrides)
     summary = train_prior(cfg, cfg.baselines.choi, Path(args.out))
     extra = f", validation autoencoder PSNR {summary['val_psnr_autoencoder']:.2f} dB" if "val_psnr_autoencoder" in summary else ""

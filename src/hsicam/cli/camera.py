@@ -10,10 +10,10 @@ import numpy as np
 import torch
 
 from hsicam.cameras import build_camera
-from hsicam.cli import add_config_args, config_from_args
+from hsicam.cli import add_config_args, config_from_args, prepare_output
 from hsicam.config import dump_yaml
 from hsicam.errors import InputError
-from hsicam.io import atomic_open, atomic_output, check_output_path, write_json, write_npy, write_png16
+from hsicam.io import atomic_open, atomic_output, write_json, write_npy, write_png16
 from hsicam.spectral import Bands
 
 log = logging.getLogger(__name__)
@@ -45,7 +45,7 @@ def camera_from_args(args: argparse.Namespace, extra_overrides: tuple[str, ...] 
 def cmd_psf(args: argparse.Namespace) -> int:
     from hsicam.report.camera import write_psf_outputs
 
-    out = check_output_path(args.out, "dir")
+    out = prepare_output(args.out, "dir")
     camera, cfg = camera_from_args(args)
     if camera.kind != "doe":
         raise InputError(f"hsicam psf needs a DOE camera (camera.kind=doe), not camera.kind={camera.kind}")
@@ -89,7 +89,7 @@ def load_scene(path: str | Path, bands: Bands) -> np.ndarray:
 def cmd_simulate(args: argparse.Namespace) -> int:
     from hsicam.report.camera import write_optics_figures
 
-    out = check_output_path(args.out, "dir")
+    out = prepare_output(args.out, "dir")
     if args.run:
         from hsicam.runs.folder import load_run
 

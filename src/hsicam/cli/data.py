@@ -55,10 +55,10 @@ def _synth(args: argparse.Namespace) -> int:
         synthetic_dataset,
     )
     from hsicam.errors import InputError
-    from hsicam.io import check_output_path
+    from hsicam.cli import prepare_output
 
     if args.out is not None:
-        check_output_path(args.out, "dir")
+        prepare_output(args.out, "dir")
     cfg = config_from_args(args.config, args.overrides)
     holdout = DEFAULT_HOLDOUT if args.holdout_sources is None else parse_holdout(args.holdout_sources)
     split = args.split
@@ -111,12 +111,12 @@ def _sources(args: argparse.Namespace) -> int:
 def _show(args: argparse.Namespace) -> int:
     from hsicam.data.preview import write_preview
     from hsicam.errors import InputError
-    from hsicam.io import check_output_path
+    from hsicam.cli import prepare_output
 
     src = Path(args.path)
     if not src.exists():
         raise InputError(f"{src}: no such dataset folder or cube file")
-    check_output_path(args.out if args.out is not None else (src if src.is_dir() else src.parent), "dir")
+    prepare_output(args.out if args.out is not None else (src if src.is_dir() else src.parent), "dir")
     for path in write_preview(args.path, args.out, max_scenes=args.max_scenes, heldout=args.heldout):
         print(path)
     return 0

@@ -46,9 +46,10 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     from hsicam.engine.evaluate import TestNoise, config_hash, evaluate_method, format_table, summarize, write_results
     from hsicam.engine.experiments import heldout_scenes, validation_scenes
     from hsicam.engine.methods import build_method
-    from hsicam.io import atomic_output, check_output_path
+    from hsicam.cli import prepare_output
+    from hsicam.io import atomic_output
 
-    out = check_output_path(args.out, "dir")
+    out = prepare_output(args.out, "dir")
     if args.seeds < 1:
         raise InputError("--seeds must be >= 1")
     if args.run:
@@ -102,9 +103,10 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
 
 def cmd_experiment(args: argparse.Namespace) -> int:
     from hsicam.engine.experiments import format_experiment_table, run_experiment
-    from hsicam.io import check_output_path, clear_complete, is_complete, mark_complete
+    from hsicam.cli import prepare_output
+    from hsicam.io import clear_complete, is_complete, mark_complete
 
-    out = check_output_path(args.out or f"runs/experiments/{args.name}-{args.scale}", "dir")
+    out = prepare_output(args.out or f"runs/experiments/{args.name}-{args.scale}", "dir")
     if out.is_dir() and any(out.iterdir()) and not (out / "runs").is_dir() and not is_complete(out):
         raise InputError(f"{out}: folder exists and is not an experiment folder; choose another --out")
     # An experiment folder is filled in place (its trained runs resume): the marker comes off first
@@ -118,11 +120,11 @@ def cmd_experiment(args: argparse.Namespace) -> int:
 
 
 def cmd_report(args: argparse.Namespace) -> int:
-    from hsicam.io import check_output_path
+    from hsicam.cli import prepare_output
     from hsicam.report.html import build_report
 
     if Path(args.dir).is_dir():
-        check_output_path(Path(args.dir) / "report", "dir")
+        prepare_output(Path(args.dir) / "report", "dir")
     index = build_report(args.dir)
     print(f"report -> {index}")
     return 0

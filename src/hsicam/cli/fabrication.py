@@ -65,9 +65,9 @@ def register(sub: argparse._SubParsersAction) -> None:
 def cmd_export(args: argparse.Namespace) -> int:
     from hsicam.export import export_optics
     from hsicam.export.doe import is_power_of_two
-    from hsicam.io import check_output_path
+    from hsicam.cli import prepare_output
 
-    check_output_path(args.out, "dir")
+    prepare_output(args.out, "dir")
     if args.levels is not None and not (2 <= args.levels <= 256 and is_power_of_two(args.levels)):
         raise InputError(f"--levels must be a power of 2 in 2..256 (binary-weighted lithography), got {args.levels}")
     spec = export_optics(args.run, args.out, args.levels, args.tolerance)
@@ -83,9 +83,10 @@ def cmd_export(args: argparse.Namespace) -> int:
 def cmd_tolerance(args: argparse.Namespace) -> int:
     from hsicam.runs.folder import load_run
     from hsicam.engine.tolerance import ToleranceSpec, run_tolerance, write_tolerance
-    from hsicam.io import atomic_output, check_output_path
+    from hsicam.cli import prepare_output
+    from hsicam.io import atomic_output
 
-    out = check_output_path(args.out, "dir")
+    out = prepare_output(args.out, "dir")
     spec = ToleranceSpec(height_draws=args.draws, max_scenes=args.max_scenes, seed=args.seed,
                          shift_subsamples=args.shift_subsamples)
     for name in ("sigma_height_nm", "levels", "shift_cells", "sensor_distance_um"):
@@ -112,9 +113,9 @@ def _fmt(v) -> str:
 def cmd_finetune(args: argparse.Namespace) -> int:
     from hsicam.cli import config_from_args
     from hsicam.engine.calibration import finetune
-    from hsicam.io import check_output_path
+    from hsicam.cli import prepare_output
 
-    check_output_path(args.out, "dir")
+    prepare_output(args.out, "dir")
     run = Path(args.run)
     if not (run / "config.yaml").is_file():
         raise InputError(f"{run}: not a run folder (config.yaml is missing)")

@@ -95,13 +95,13 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
         raise InputError("--tile must be at least 16 px")
     if args.scale is not None and not (np.isfinite(args.scale) and args.scale > 0):
         raise InputError("--scale must be a positive number")
-    from hsicam.io import check_output_path
+    from hsicam.cli import prepare_output
 
     out = Path(args.out)
     if out.suffix.lower() not in (".h5", ".hdf5", ".hdr", ".img", ".raw"):
         raise InputError(f"{out}: output must end in .h5 (HDF5) or .hdr (ENVI)")
     for f in output_files(out):  # before any work: an existing folder, a path inside a file, no permission
-        check_output_path(f, "file")
+        prepare_output(f, "file")
     cfg, model = load_run(args.run, args.device)
     meta: dict = {"source": str(args.sensor), "run": str(args.run)}
     if args.psf_dir:

@@ -25,10 +25,10 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 def cmd_train(args: argparse.Namespace) -> int:
     from hsicam.engine.train import train
-    from hsicam.io import check_output_path
+    from hsicam.cli import prepare_output
     from hsicam.runs.folder import check_run_dir, restart_run_dir
 
-    run = check_output_path(args.out, "dir")
+    run = prepare_output(args.out, "dir")
     if args.resume:
         if args.config:
             raise InputError("--resume continues with the run's own config.yaml; drop --config (use --set to change keys)")
