@@ -8,12 +8,19 @@ import sys
 from pathlib import Path
 
 HSICAM = Path(sys.executable).parent / "hsicam"
+#: The source tree under test: subprocesses import it first, whatever the venv has installed.
+SRC = Path(__file__).resolve().parents[1] / "src"
+
+
+def cli_env(env: dict | None = None) -> dict:
+    """The environment of a CLI subprocess: this checkout's ``src`` first on PYTHONPATH, one thread."""
+    path = os.pathsep.join(x for x in (str(SRC), os.environ.get("PYTHONPATH", "")) if x)
+    return {**os.environ, "OMP_NUM_THREADS": os.environ.get("OMP_NUM_THREADS", "1"), **(env or {}), "PYTHONPATH": path}
 
 
 def run_cli(*args: str, timeout: float = 600, env: dict | None = None) -> subprocess.CompletedProcess:
     """Run ``hsicam ARGS`` through the installed entry point; returns the completed process."""
-    e = {**os.environ, "OMP_NUM_THREADS": os.environ.get("OMP_NUM_THREADS", "1"), **(env or {})}
-    return subprocess.run([str(HSICAM), *args], capture_output=True, text=True, timeout=timeout, env=e)
+    return subprocess.run([str(HSICAM), *args], capture_output=True, text=True, timeout=timeout, env=cli_env(env))
 
 
 def assert_clean_error(proc: subprocess.CompletedProcess, *fragments: str) -> None:

@@ -126,7 +126,8 @@ def test_export_round_trip(fab_run, tmp_path):
     assert err0["max"] <= math.pi / 8 + 1e-6
     for name in ("doe.png", "cfa.png", "cfa_fit.png", "cfa_fit.csv", "doe_phase_error_L8.csv", "doe_height_L8_nm.tif"):
         assert (out / name).is_file(), name
-    assert set(spec["files"]) == {p.name for p in out.iterdir()}
+    assert set(spec["files"]) == {p.name for p in out.iterdir()} - {".complete"}  # + the completion marker
+    assert (out / ".complete").is_file()
 
 
 def test_quantisation_and_phase_error_reference():
@@ -192,15 +193,20 @@ def test_export_without_gdstk(fab_run, tmp_path, monkeypatch):
     assert spec["doe"]["quantized"]["gds"]["file"] is None
     assert "hsicam[fab]" in spec["doe"]["quantized"]["gds"]["skipped"]
     assert (tmp_path / "out" / "doe_height_L4_nm.npy").is_file()
-    assert not list((tmp_path / "out").glob("*.gds")) and not list((tmp_path / "out").glob(".*"))
+    assert not list((tmp_path / "out").glob("*.gds")) and [p.name for p in (tmp_path / "out").glob(".*")] == [".complete"]
 
 
 def test_export_cli_errors_and_non_binary_levels(fab_run, tmp_path):
     assert_clean_error(run_cli("export-optics", "--run", str(tmp_path / "nope"), "--out", str(tmp_path / "o")), "no such run folder")
     assert_clean_error(run_cli("export-optics", "--run", str(fab_run), "--out", str(tmp_path / "o"), "--levels", "1"), "levels")
-    res = run_cli("export-optics", "--run", str(fab_run), "--out", str(tmp_path / "six"), "--levels", "6")
-    assert res.returncode == 0, res.stderr
-    spec = json.loads((tmp_path / "six" / "spec.json").read_text())
+    # the command line takes powers of 2 only (its help says so); the library also exports other counts
+    for bad in ("3", "6"):
+        assert_clean_error(run_cli("export-optics", "--run", str(fab_run), "--out", str(tmp_path / "o"), "--levels", bad),
+                           "power of 2")
+    assert not (tmp_path / "o").exists()
+    from hsicam.export import export_optics
+
+    spec = export_optics(fab_run, tmp_path / "six", 6)
     assert spec["doe"]["quantized"]["gds"]["file"] is None and "power of 2" in spec["doe"]["quantized"]["gds"]["skipped"]
     assert spec["doe"]["quantized"]["phase_error_design_wavelength_rad"]["max"] <= math.pi / 6 + 1e-6
 

@@ -331,9 +331,10 @@ def test_cli_on_corrupt_runs_and_scenes(fab_run, originals, tmp_path):
     for what in ("weights", "config", "missing"):
         run = tmp_path / f"run_{what}"
         shutil.copytree(fab_run, run)
-        if what == "weights":
-            data = (run / "model.safetensors").read_bytes()
-            (run / "model.safetensors").write_bytes(data[: len(data) // 3])
+        if what == "weights":  # every copy: a corrupt root file alone is replaced by the manifest's checkpoint
+            for w in run.rglob("model.safetensors"):
+                data = w.read_bytes()
+                w.write_bytes(data[: len(data) // 3])
         elif what == "config":
             (run / "config.yaml").write_text("camera: [unclosed\n")
         else:

@@ -95,7 +95,7 @@ def test_checkpoint_round_trip_reproduces_outputs(tmp_path):
 
 
 def _weights(run: Path) -> dict[str, torch.Tensor]:
-    return read_weights(run / "checkpoints" / json.loads((run / "last.json").read_text())["dir"].split("/")[-1] / "model.safetensors")[0]
+    return read_weights(run / json.loads((run / "checkpoints.json").read_text())["last"]["dir"] / "model.safetensors")[0]
 
 
 def test_resume_matches_uninterrupted_run(tmp_path, cache_env):
@@ -123,7 +123,7 @@ def test_sigkilled_training_resumes(tmp_path, cache_env):
     proc = subprocess.Popen(args, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     try:
         deadline = time.time() + 300
-        while time.time() < deadline and not (run / "last.json").exists():
+        while time.time() < deadline and not (run / "checkpoints.json").exists():
             time.sleep(0.05)
         time.sleep(0.3)
         assert proc.poll() is None, "training finished before it could be killed; make it longer"
@@ -132,9 +132,9 @@ def test_sigkilled_training_resumes(tmp_path, cache_env):
     finally:
         if proc.poll() is None:
             proc.kill()
-    state = json.loads((run / "last.json").read_text())
-    assert 0 < state["global_step"] < 160
-    read_weights(run / state["dir"] / "model.safetensors")  # intact
+    man = json.loads((run / "checkpoints.json").read_text())
+    assert 0 < man["state"]["global_step"] < 160
+    read_weights(run / man["last"]["dir"] / "model.safetensors")  # intact
     res = run_cli("train", "--out", str(run), "--resume", env={"HSICAM_CACHE": str(cache_env)})
     assert res.returncode == 0, res.stderr
     records = [json.loads(x) for x in (run / "metrics.jsonl").read_text().splitlines()]
@@ -176,7 +176,7 @@ def test_train_and_reconstruct_cli(tmp_path, cache_env):
     res = run_cli("train", "--config", "tiny", "--out", str(run), env=env)
     assert res.returncode == 0, res.stderr
     assert "val PSNR" in res.stdout
-    for name in ("config.yaml", "model.safetensors", "metrics.jsonl", "last.json", "best.json"):
+    for name in ("config.yaml", "model.safetensors", "metrics.jsonl", "checkpoints.json"):
         assert (run / name).is_file(), name
     # simulate through the trained optics, then reconstruct the sensor image
     np.save(tmp_path / "scene.npy", smooth_cube(1, 7, 50, 60)[0].numpy())
@@ -201,6 +201,9 @@ def test_train_and_reconstruct_cli(tmp_path, cache_env):
     assert_clean_error(run_cli("train", "--config", "tiny", "--out", str(run), env=env), "not empty")
     broken = tmp_path / "broken"
     shutil.copytree(run, broken)
+    # a root weights file that differs from the manifest is never used: the manifest's checkpoint is
+    shutil.rmtree(broken / "checkpoints")  # so the corrupt root file is all this folder has
+    (broken / "checkpoints.json").unlink()
     data = (broken / "model.safetensors").read_bytes()
     (broken / "model.safetensors").write_bytes(data[: len(data) // 2])
     assert_clean_error(run_cli("reconstruct", str(tmp_path / "sim" / "sensor.npy"), "--run", str(broken), "--out", str(out)), "corrupt")

@@ -1,19 +1,29 @@
 """Command-line interface: a thin shell over the library.
 
 Each sub-command lives in a module of this package that defines ``register(subparsers)``; add a
-module to ``COMMAND_MODULES`` to add commands. Every :class:`HsicamError` (bad config, bad file,
-bad argument) is printed as one line and exits with code 2, without a traceback.
+module to ``COMMAND_MODULES`` to add commands.
+
+**One error boundary** (:func:`main`): every :class:`HsicamError` (bad config, bad file, bad
+argument), every ``OSError`` (an output path that cannot be written, an input that cannot be read)
+and every unreadable JSON/YAML/text input is printed as ONE line ``hsicam: error: <file>:
+<problem>`` and exits with code 2, without a traceback (``-v`` adds the traceback). Commands that
+write check their output paths with :func:`hsicam.io.check_output_path` before any work starts and
+write through :func:`hsicam.io.atomic_output`, so a failed or killed command leaves nothing that a
+later command accepts.
 """
 
 from __future__ import annotations
 
 import argparse
 import importlib
+import json
 import logging
 import sys
+import traceback
+from pathlib import Path
 from typing import Sequence
 
-from hsicam.errors import HsicamError
+from hsicam.errors import ConfigError, HsicamError
 
 COMMAND_MODULES = (
     "hsicam.cli.camera",
@@ -51,18 +61,89 @@ def add_config_args(p: argparse.ArgumentParser) -> None:
                    help="dotted override, e.g. camera.doe.enabled=false (repeatable)")
 
 
+def config_from_args(path: str | Path | None, overrides: Sequence[str] = ()):
+    """``load_config`` for the command line: a config FILE that is empty (or holds only comments)
+    is an error, never silently the built-in defaults (the paper camera)."""
+    from hsicam.config import load_config
+
+    if path is not None:
+        p = Path(path)
+        if p.is_file():
+            import yaml
+
+            try:
+                text = p.read_text(encoding="utf-8")
+            except (OSError, UnicodeDecodeError) as exc:
+                raise ConfigError(f"{p}: cannot read config ({getattr(exc, 'strerror', None) or exc})") from None
+            try:
+                empty = yaml.safe_load(text) is None
+            except yaml.YAMLError as exc:
+                raise ConfigError(f"{p}: invalid YAML ({str(exc).splitlines()[0]})") from None
+            if empty:
+                raise ConfigError(f"{p}: empty config (no settings); give a preset (tiny, quick, paper) or a YAML "
+                                  "file with at least one section")
+    return load_config(path, list(overrides))
+
+
+def prepare_output(path: str | Path, kind: str = "dir") -> Path:
+    """Before any work: :func:`hsicam.io.check_output_path` (one-line error for an output that cannot
+    work), then remove the hidden temporary siblings (``.NAME.XXXXXXXX.tmpdir`` …) that an earlier,
+    killed run of a command left next to this output."""
+    import shutil
+
+    from hsicam.io import check_output_path, is_temporary
+
+    out = check_output_path(path, kind)
+    parent = Path(out).parent
+    if parent.is_dir():
+        stem = Path(out).stem if kind == "file" else Path(out).name
+        for p in parent.glob(f".{stem}.*"):
+            if is_temporary(p.name):
+                shutil.rmtree(p, ignore_errors=True) if p.is_dir() and not p.is_symlink() else p.unlink(missing_ok=True)
+    return out
+
+
+def error_line(exc: BaseException) -> str | None:
+    """The one line a user sees for ``exc``, or None for an exception that is a bug (traceback)."""
+    if isinstance(exc, HsicamError):
+        return str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+    if isinstance(exc, OSError):
+        what = exc.strerror or str(exc) or type(exc).__name__
+        name = exc.filename if exc.filename is not None else None
+        return f"{name}: {what}" if name is not None else what
+    if isinstance(exc, json.JSONDecodeError):
+        return f"unreadable JSON input ({exc.msg} at line {exc.lineno})"
+    if isinstance(exc, UnicodeDecodeError):
+        return f"unreadable input: not UTF-8 text ({exc.reason})"
+    if isinstance(exc, MemoryError):
+        return "out of memory (lower the memory budget HSICAM_MEMORY_BUDGET_MB, the tile size or the batch size)"
+    try:
+        import yaml
+
+        if isinstance(exc, yaml.YAMLError):
+            return f"unreadable YAML input ({str(exc).splitlines()[0]})"
+    except ImportError:  # pragma: no cover
+        pass
+    return None
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.DEBUG if args.verbose else logging.INFO, format="%(message)s")
     try:
         return int(args.func(args) or 0)
-    except HsicamError as exc:
-        print(f"hsicam: error: {exc}", file=sys.stderr)
-        return 2
     except KeyboardInterrupt:
         print("hsicam: interrupted", file=sys.stderr)
         return 130
+    except Exception as exc:  # noqa: BLE001 - the one error boundary
+        line = error_line(exc)
+        if line is None:
+            raise
+        if args.verbose:
+            traceback.print_exc()
+        print(f"hsicam: error: {line}", file=sys.stderr)
+        return 2
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -26,10 +26,12 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def cmd_train_prior(args: argparse.Namespace) -> int:
-    from hsicam.config import load_config
+    from hsicam.cli import config_from_args
     from hsicam.engine.prior import train_prior
+    from hsicam.cli import prepare_output
 
-    cfg = load_config(args.config, args.overrides)
+    prepare_output(args.out, "dir")
+    cfg = config_from_args(args.config, args.overrides)
     summary = train_prior(cfg, cfg.baselines.choi, Path(args.out))
     extra = f", validation autoencoder PSNR {summary['val_psnr_autoencoder']:.2f} dB" if "val_psnr_autoencoder" in summary else ""
     print(f"spectral prior trained: {summary['step']} steps in {summary['elapsed_s']:.0f} s{extra} -> {args.out}")

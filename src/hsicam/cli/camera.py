@@ -10,10 +10,10 @@ import numpy as np
 import torch
 
 from hsicam.cameras import build_camera
-from hsicam.cli import add_config_args
-from hsicam.config import dump_yaml, load_config
+from hsicam.cli import add_config_args, config_from_args, prepare_output
+from hsicam.config import dump_yaml
 from hsicam.errors import InputError
-from hsicam.io import atomic_open, write_json, write_npy, write_png16
+from hsicam.io import atomic_open, atomic_output, write_json, write_npy, write_png16
 from hsicam.spectral import Bands
 
 log = logging.getLogger(__name__)
@@ -38,20 +38,21 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 def camera_from_args(args: argparse.Namespace, extra_overrides: tuple[str, ...] = ()):
     """(camera, config) of the command line's config file and --set overrides (any camera kind)."""
-    cfg = load_config(args.config, [*args.overrides, *extra_overrides])
+    cfg = config_from_args(args.config, [*args.overrides, *extra_overrides])
     return build_camera(cfg), cfg
 
 
 def cmd_psf(args: argparse.Namespace) -> int:
     from hsicam.report.camera import write_psf_outputs
 
+    out = prepare_output(args.out, "dir")
     camera, cfg = camera_from_args(args)
     if camera.kind != "doe":
         raise InputError(f"hsicam psf needs a DOE camera (camera.kind=doe), not camera.kind={camera.kind}")
-    out = Path(args.out)
-    info = write_psf_outputs(camera, out)
-    with atomic_open(out / "config.yaml") as fh:
-        fh.write(dump_yaml(cfg))
+    with atomic_output(out, overwrite=True, marker={"command": "psf"}) as tmp:
+        info = write_psf_outputs(camera, tmp)
+        with atomic_open(tmp / "config.yaml") as fh:
+            fh.write(dump_yaml(cfg))
     e = np.asarray(info["energy_in_kernel"])
     print(f"PSF stack: {len(camera.bands)} bands, {camera.kernel_px}×{camera.kernel_px} px, "
           f"energy in kernel {e.min():.4f}..{e.max():.4f} -> {out}")
@@ -59,37 +60,36 @@ def cmd_psf(args: argparse.Namespace) -> int:
 
 
 def load_scene(path: str | Path, bands: Bands) -> np.ndarray:
-    """A scene cube (C, H, W) float32 on the camera's band grid.
+    """A scene cube (C, H, W) float32 on the camera's band grid ``bands``.
 
-    ``.npy`` files hold (bands, H, W) with no wavelength metadata: their band count must equal the
-    camera's. Other formats carry their band centres and must match the camera's grid exactly.
+    Every format goes through the one cube check (finite, real, non-negative, non-empty, band grid
+    known) and the one band-grid policy (:func:`hsicam.data.cube.conform_bands`: a cube on another
+    grid is resampled by band centre with a logged note; only extrapolation is refused). A ``.npy``
+    file carries no wavelengths: it must have the camera's band count (its grid is then the camera's).
     """
+    from hsicam.data import read_cube
+    from hsicam.data.cube import conform_bands
+    from hsicam.data.formats import npy_header
+
     path = Path(path)
     if not path.exists():
         raise InputError(f"{path}: no such scene file")
     if path.suffix.lower() == ".npy":
-        try:
-            cube = np.load(path, allow_pickle=False)
-        except Exception as exc:  # noqa: BLE001 - any numpy load failure is a bad file
-            raise InputError(f"{path}: not a readable .npy file ({exc})") from None
-        if cube.ndim != 3:
-            raise InputError(f"{path}: scene must be a (bands, H, W) array, got shape {cube.shape}")
-        if cube.shape[0] != len(bands):
-            raise InputError(f"{path}: scene has {cube.shape[0]} bands but the camera has {len(bands)} ({bands!r})")
+        shape, _ = npy_header(path)
+        if len(shape) == 3 and shape[0] != len(bands):
+            raise InputError(f"{path}: a .npy scene carries no wavelengths, and its {shape[0]} bands are not the "
+                             f"camera's {len(bands)} ({bands!r}); save it as .h5 with its band list "
+                             "(hsicam.data.formats.write_cube_h5) to have it resampled")
+        cube, scene_bands, _ = read_cube(path, bands=bands)
     else:
-        from hsicam.data import read_cube
-
         cube, scene_bands, _ = read_cube(path)
-        bands.require_match(scene_bands, what=str(path))
-    cube = np.asarray(cube, dtype=np.float32)
-    if not np.all(np.isfinite(cube)):
-        raise InputError(f"{path}: scene contains NaN or Inf values")
-    return cube
+    return conform_bands(cube, scene_bands, bands, path, axis=0)
 
 
 def cmd_simulate(args: argparse.Namespace) -> int:
     from hsicam.report.camera import write_optics_figures
 
+    out = prepare_output(args.out, "dir")
     if args.run:
         from hsicam.runs.folder import load_run
 
@@ -99,27 +99,27 @@ def cmd_simulate(args: argparse.Namespace) -> int:
         camera = system.camera
     else:
         camera, cfg = camera_from_args(args, (f"camera.boundary={args.boundary}",))
-    out = Path(args.out)
     scene = load_scene(args.scene, camera.bands)
     gen = torch.Generator().manual_seed(args.seed)
     with torch.no_grad():
         sensor = camera(torch.from_numpy(scene)[None], generator=gen)[0, 0].numpy()
     peak = float(sensor.max()) if sensor.size else 0.0
     png_scale = peak if peak > 1.0 else 1.0  # sensor.png holds sensor / png_scale
-    write_npy(out / "sensor.npy", sensor.astype(np.float32))
-    write_png16(out / "sensor.png", sensor / png_scale)
-    if camera.kind == "doe":
-        write_optics_figures(camera, out)
-    write_json(out / "simulate.json", {
-        "scene": str(args.scene),
-        "scene_shape": list(scene.shape),
-        "sensor_shape": list(sensor.shape),
-        "boundary": args.boundary,
-        "sensor_png_scale": png_scale,
-        "bands_nm": camera.bands.centers_nm.tolist(),
-        "seed": args.seed,
-    })
-    with atomic_open(out / "config.yaml") as fh:
-        fh.write(dump_yaml(cfg))
+    with atomic_output(out, overwrite=True, marker={"command": "simulate"}) as tmp:
+        write_npy(tmp / "sensor.npy", sensor.astype(np.float32))
+        write_png16(tmp / "sensor.png", sensor / png_scale)
+        if camera.kind == "doe":
+            write_optics_figures(camera, tmp)
+        write_json(tmp / "simulate.json", {
+            "scene": str(args.scene),
+            "scene_shape": list(scene.shape),
+            "sensor_shape": list(sensor.shape),
+            "boundary": args.boundary,
+            "sensor_png_scale": png_scale,
+            "bands_nm": camera.bands.centers_nm.tolist(),
+            "seed": args.seed,
+        })
+        with atomic_open(tmp / "config.yaml") as fh:
+            fh.write(dump_yaml(cfg))
     print(f"sensor image {sensor.shape[0]}×{sensor.shape[1]} (min {sensor.min():.4g}, max {peak:.4g}) -> {out}")
     return 0

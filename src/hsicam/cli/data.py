@@ -45,7 +45,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def _synth(args: argparse.Namespace) -> int:
-    from hsicam.config import load_config
+    from hsicam.cli import config_from_args
     from hsicam.data.synthetic import (
         DEFAULT_HOLDOUT,
         HELDOUT_N,
@@ -55,8 +55,11 @@ def _synth(args: argparse.Namespace) -> int:
         synthetic_dataset,
     )
     from hsicam.errors import InputError
+    from hsicam.cli import prepare_output
 
-    cfg = load_config(args.config, args.overrides)
+    if args.out is not None:
+        prepare_output(args.out, "dir")
+    cfg = config_from_args(args.config, args.overrides)
     holdout = DEFAULT_HOLDOUT if args.holdout_sources is None else parse_holdout(args.holdout_sources)
     split = args.split
     if args.n is not None:
@@ -107,7 +110,13 @@ def _sources(args: argparse.Namespace) -> int:
 
 def _show(args: argparse.Namespace) -> int:
     from hsicam.data.preview import write_preview
+    from hsicam.errors import InputError
+    from hsicam.cli import prepare_output
 
+    src = Path(args.path)
+    if not src.exists():
+        raise InputError(f"{src}: no such dataset folder or cube file")
+    prepare_output(args.out if args.out is not None else (src if src.is_dir() else src.parent), "dir")
     for path in write_preview(args.path, args.out, max_scenes=args.max_scenes, heldout=args.heldout):
         print(path)
     return 0

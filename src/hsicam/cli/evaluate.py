@@ -6,7 +6,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from hsicam.cli import add_config_args
+from hsicam.cli import add_config_args, config_from_args
 from hsicam.errors import InputError
 
 
@@ -40,13 +40,16 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def cmd_evaluate(args: argparse.Namespace) -> int:
-    from hsicam.config import dump_yaml, load_config
+    from hsicam.config import dump_yaml
     from hsicam.data.datasets import SceneDataset, list_scenes
     from hsicam.data.formats import write_cube_h5
     from hsicam.engine.evaluate import TestNoise, config_hash, evaluate_method, format_table, summarize, write_results
     from hsicam.engine.experiments import heldout_scenes, validation_scenes
     from hsicam.engine.methods import build_method
+    from hsicam.cli import prepare_output
+    from hsicam.io import atomic_output
 
+    out = prepare_output(args.out, "dir")
     if args.seeds < 1:
         raise InputError("--seeds must be >= 1")
     if args.run:
@@ -55,9 +58,9 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
             raise InputError("--run uses the run's config.yaml; drop --config")
         if not (run / "config.yaml").is_file():
             raise InputError(f"{run}: not a run folder (config.yaml is missing)" if run.is_dir() else f"{run}: no such run folder")
-        cfg = load_config(run / "config.yaml", args.overrides)
+        cfg = config_from_args(run / "config.yaml", args.overrides)
     else:
-        cfg = load_config(args.config, args.overrides)
+        cfg = config_from_args(args.config, args.overrides)
     method = build_method(args.method, cfg, args.run, args.device)
     bands = method.camera.bands
     if args.data:
@@ -71,7 +74,6 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     noise = TestNoise(args.sigma_height_nm, args.sensor_sigma, tuple(range(args.seeds)))
     show = lambda line: print(line, file=sys.stderr, flush=True)  # noqa: E731
     results = evaluate_method(method, scenes, names, noise, args.device, keep_arrays=args.save, progress=show)
-    out = Path(args.out)
     summary = summarize(results, method=args.method, run=str(Path(args.run).resolve()) if args.run else None, data=data, config_hash=config_hash(dump_yaml(cfg)),
                         noise={"sigma_height_nm": args.sigma_height_nm, "sensor_sigma": args.sensor_sigma, "seeds": args.seeds},
                         bands_nm=bands.centers_nm.tolist(), region="sensor area (scene minus the camera's kernel margin)")
@@ -80,11 +82,14 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
         summary["heldout"] = {"data": f"held-out spectral sources ({cfg.data.holdout_sources}): scenes whose "
                                       f"reflectances and lights the training scenes never contain",
                               **summarize(held)}
-    write_results(out, summary)
-    if args.save:
-        for r in results:
-            write_cube_h5(out / "cubes" / f"{r.name}_estimate.h5", r.estimate, bands, {"method": args.method})
-            write_cube_h5(out / "cubes" / f"{r.name}_truth.h5", r.truth, bands, {"role": "ground truth"})
+    # One result, several files: written into a temporary folder that gets the completion marker and
+    # is renamed into place at the end (an interrupted evaluation leaves nothing `report` accepts).
+    with atomic_output(out, overwrite=True, marker={"command": "evaluate", "method": args.method}) as tmp:
+        write_results(tmp, summary)
+        if args.save:
+            for r in results:
+                write_cube_h5(tmp / "cubes" / f"{r.name}_estimate.h5", r.estimate, bands, {"method": args.method})
+                write_cube_h5(tmp / "cubes" / f"{r.name}_truth.h5", r.truth, bands, {"role": "ground truth"})
     print(format_table(summary))
     m = summary["mean"]
     print(f"{args.method}: mean PSNR {m['psnr']:.2f} dB, SSIM {m['ssim']:.4f}, SAM {m['sam']:.2f}° "
@@ -98,17 +103,28 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
 
 def cmd_experiment(args: argparse.Namespace) -> int:
     from hsicam.engine.experiments import format_experiment_table, run_experiment
+    from hsicam.cli import prepare_output
+    from hsicam.io import clear_complete, is_complete, mark_complete
 
-    out = Path(args.out or f"runs/experiments/{args.name}-{args.scale}")
+    out = prepare_output(args.out or f"runs/experiments/{args.name}-{args.scale}", "dir")
+    if out.is_dir() and any(out.iterdir()) and not (out / "runs").is_dir() and not is_complete(out):
+        raise InputError(f"{out}: folder exists and is not an experiment folder; choose another --out")
+    # An experiment folder is filled in place (its trained runs resume): the marker comes off first
+    # and goes back on only when experiment.json and table.md are written.
+    clear_complete(out) if out.is_dir() else None
     result = run_experiment(args.name, args.scale, out, tuple(range(max(args.seeds, 1))))
+    mark_complete(out, {"command": "experiment", "experiment": args.name, "scale": args.scale})
     print(format_experiment_table(result))
     print(f"-> {out}/experiment.json, {out}/table.md")
     return 0
 
 
 def cmd_report(args: argparse.Namespace) -> int:
+    from hsicam.cli import prepare_output
     from hsicam.report.html import build_report
 
+    if Path(args.dir).is_dir():
+        prepare_output(Path(args.dir) / "report", "dir")
     index = build_report(args.dir)
     print(f"report -> {index}")
     return 0

@@ -64,7 +64,12 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 def cmd_export(args: argparse.Namespace) -> int:
     from hsicam.export import export_optics
+    from hsicam.export.doe import is_power_of_two
+    from hsicam.cli import prepare_output
 
+    prepare_output(args.out, "dir")
+    if args.levels is not None and not (2 <= args.levels <= 256 and is_power_of_two(args.levels)):
+        raise InputError(f"--levels must be a power of 2 in 2..256 (binary-weighted lithography), got {args.levels}")
     spec = export_optics(args.run, args.out, args.levels, args.tolerance)
     q = spec["doe"]["quantized"]
     gds = q["gds"].get("file") or f"no GDS ({q['gds'].get('skipped')})"
@@ -78,7 +83,10 @@ def cmd_export(args: argparse.Namespace) -> int:
 def cmd_tolerance(args: argparse.Namespace) -> int:
     from hsicam.runs.folder import load_run
     from hsicam.engine.tolerance import ToleranceSpec, run_tolerance, write_tolerance
+    from hsicam.cli import prepare_output
+    from hsicam.io import atomic_output
 
+    out = prepare_output(args.out, "dir")
     spec = ToleranceSpec(height_draws=args.draws, max_scenes=args.max_scenes, seed=args.seed,
                          shift_subsamples=args.shift_subsamples)
     for name in ("sigma_height_nm", "levels", "shift_cells", "sensor_distance_um"):
@@ -89,7 +97,8 @@ def cmd_tolerance(args: argparse.Namespace) -> int:
             setattr(spec, name, v)
     cfg, model = load_run(args.run, args.device)
     result = run_tolerance(model, cfg, spec, args.data)
-    write_tolerance(Path(args.out), result)
+    with atomic_output(out, overwrite=True, marker={"command": "tolerance"}) as tmp:
+        write_tolerance(tmp, result)
     s = result["summary"]
     print(f"nominal PSNR {result['nominal']['psnr']:.2f} dB on {len(result['scenes'])} scene(s); 1-dB tolerances: "
           f"σ_p {_fmt(s.get('sigma_height_nm_at_1db_loss'))} nm, shift {_fmt(s.get('shift_x_cells_at_1db_loss'))} cells (x), "
@@ -102,9 +111,11 @@ def _fmt(v) -> str:
 
 
 def cmd_finetune(args: argparse.Namespace) -> int:
-    from hsicam.config import load_config
+    from hsicam.cli import config_from_args
     from hsicam.engine.calibration import finetune
+    from hsicam.cli import prepare_output
 
+    prepare_output(args.out, "dir")
     run = Path(args.run)
     if not (run / "config.yaml").is_file():
         raise InputError(f"{run}: not a run folder (config.yaml is missing)")
@@ -115,7 +126,7 @@ def cmd_finetune(args: argparse.Namespace) -> int:
         overrides.append(f"train.epochs={args.epochs}")
     lr = args.lr
     if lr is None:
-        lr = 0.1 * load_config(run / "config.yaml", args.overrides).train.lr
+        lr = 0.1 * config_from_args(run / "config.yaml", args.overrides).train.lr
     if not lr > 0:
         raise InputError("--lr must be positive")
     overrides.append(f"train.lr={lr:.6e}")

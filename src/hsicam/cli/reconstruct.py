@@ -43,6 +43,16 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=cmd_reconstruct)
 
 
+def output_files(path: Path) -> list[Path]:
+    """The files a reconstruction writes: the cube (ENVI: header and data), then the preview."""
+    suffix = path.suffix.lower()
+    if suffix in (".h5", ".hdf5"):
+        files = [path]
+    else:  # as hsicam.data.formats.write_envi names the pair
+        files = [path, path.with_suffix(".img")] if suffix == ".hdr" else [path.with_suffix(".hdr"), path]
+    return [*files, path.with_name(f"{path.stem}_rgb.png")]
+
+
 def write_cube_file(path: Path, cube: np.ndarray, bands, metadata: dict) -> None:
     """Our HDF5 (.h5) or ENVI (.hdr) by extension, plus an sRGB preview ``<stem>_rgb.png``."""
     from hsicam.color import cube_to_srgb
@@ -85,9 +95,13 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
         raise InputError("--tile must be at least 16 px")
     if args.scale is not None and not (np.isfinite(args.scale) and args.scale > 0):
         raise InputError("--scale must be a positive number")
+    from hsicam.cli import prepare_output
+
     out = Path(args.out)
     if out.suffix.lower() not in (".h5", ".hdf5", ".hdr", ".img", ".raw"):
         raise InputError(f"{out}: output must end in .h5 (HDF5) or .hdr (ENVI)")
+    for f in output_files(out):  # before any work: an existing folder, a path inside a file, no permission
+        prepare_output(f, "file")
     cfg, model = load_run(args.run, args.device)
     meta: dict = {"source": str(args.sensor), "run": str(args.run)}
     if args.psf_dir:

@@ -4,10 +4,8 @@ from __future__ import annotations
 
 import argparse
 import logging
-from pathlib import Path
 
-
-from hsicam.cli import add_config_args
+from hsicam.cli import add_config_args, config_from_args
 from hsicam.errors import InputError
 
 log = logging.getLogger(__name__)
@@ -17,23 +15,29 @@ def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("train", help="train optics + reconstruction network jointly")
     add_config_args(p)
     p.add_argument("--out", required=True, metavar="RUN", help="run folder")
-    p.add_argument("--resume", action="store_true", help="continue the run from its last checkpoint")
+    mode = p.add_mutually_exclusive_group()
+    mode.add_argument("--resume", action="store_true", help="continue the run from its last checkpoint")
+    mode.add_argument("--restart", action="store_true",
+                      help="start again in a run folder that holds no finished checkpoint (e.g. a run killed before "
+                           "its first checkpoint): its files are removed first; a folder with a checkpoint is refused")
     p.set_defaults(func=cmd_train)
 
 
 def cmd_train(args: argparse.Namespace) -> int:
-    from hsicam.config import load_config
     from hsicam.engine.train import train
+    from hsicam.cli import prepare_output
+    from hsicam.runs.folder import check_run_dir, restart_run_dir
 
-    run = Path(args.out)
+    run = prepare_output(args.out, "dir")
     if args.resume:
         if args.config:
             raise InputError("--resume continues with the run's own config.yaml; drop --config (use --set to change keys)")
-        if not (run / "config.yaml").is_file():
-            raise InputError(f"{run}: nothing to resume (no config.yaml)")
-        cfg = load_config(run / "config.yaml", args.overrides)
+        check_run_dir(run, resume=True)  # says how to start again when there is nothing to resume
+        cfg = config_from_args(run / "config.yaml", args.overrides)
     else:
-        cfg = load_config(args.config, args.overrides)
+        cfg = config_from_args(args.config, args.overrides)  # a bad config wipes nothing
+        if args.restart:
+            restart_run_dir(run)
     summary = train(cfg, run, resume=args.resume)
     if summary.get("best_psnr") is not None:
         print(f"trained {summary['epoch']} epochs ({summary['step']} steps, {summary['patches_per_s']:.1f} patches/s): "

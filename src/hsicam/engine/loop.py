@@ -36,6 +36,7 @@ from torch.utils.data import Sampler
 from hsicam.config import TrainConfig
 from hsicam.data.pipeline import make_loader
 from hsicam.errors import InputError
+from hsicam.io import atomic_output
 from hsicam.runs.checkpoint import CheckpointManager, save_weights
 from hsicam.runs.folder import MetricsLog, check_run_dir
 from hsicam.spectral import Bands
@@ -240,18 +241,22 @@ def fit(task: Task, opts: FitOptions, run_dir: str | Path, resume: bool = False)
     for g in optimizer.param_groups:
         g["base_lr"] = g["lr"]
     bands, meta = task.bands, task.weights_metadata()
-    ckpt = CheckpointManager(run_dir)
+    ckpt = CheckpointManager(run_dir, task.weights_file)
     metrics = MetricsLog(run_dir / "metrics.jsonl", is_main)
     state = LoopState()
     if resume:
+        if is_main:
+            ckpt.cleanup()  # temporaries and step folders the manifest does not name (a killed process)
         if ckpt.path("last"):
             state = LoopState.from_dict(ckpt.load("last", model, optimizer, bands))
         if is_main:
+            ckpt.sync_root()  # a kill between the manifest's commit and the root weights' rewrite
             metrics.truncate_after(state.global_step, state.epoch)
             log.info("resuming %s at epoch %d, step %d", run_dir, state.epoch, state.global_step)
     elif is_main:
-        run_dir.mkdir(parents=True, exist_ok=True)
-        task.write_run_files(run_dir)
+        # The run folder appears at once with all its files (config.yaml, ...) or not at all.
+        with atomic_output(run_dir, marker=False) as tmp:
+            task.write_run_files(tmp)
     if distributed:
         dist.barrier()
     val_loader = make_loader(val_ds, t.batch_size, opts.num_workers, shuffle=False) if (val_ds is not None and is_main) else None
@@ -283,7 +288,7 @@ def fit(task: Task, opts: FitOptions, run_dir: str | Path, resume: bool = False)
             summary = validate_now()
             log_validation(summary)
             state.best_psnr, state.best_step = summary.get("psnr"), 0
-        save_weights(run_dir / task.weights_file, model, bands, meta)
+        ckpt.save(model, optimizer, state.to_dict(), bands, ("last", "best") if val_loader is not None else ("last",), meta)
 
     use_bar = (sys.stderr.isatty() if opts.progress is None else opts.progress) and is_main
     from tqdm.auto import tqdm
@@ -327,10 +332,10 @@ def fit(task: Task, opts: FitOptions, run_dir: str | Path, resume: bool = False)
                     log.info("step %d/%d epoch %d loss %.4f eta %.0fs", rec["step"], total_steps, state.epoch,
                              rec["train_loss"], eta)
             if is_main and state.global_step % t.checkpoint_every_steps == 0:
-                ckpt.save(model, optimizer, state.to_dict(), bands)
+                ckpt.save(model, optimizer, state.to_dict(), bands, ("last",), meta)
             if opts.stop_after_steps is not None and state.global_step >= opts.stop_after_steps:
                 if is_main:
-                    ckpt.save(model, optimizer, state.to_dict(), bands)
+                    ckpt.save(model, optimizer, state.to_dict(), bands, ("last",), meta)
                 bar.close()
                 return {"stopped_at_step": state.global_step}
             if state.global_step >= total_steps:
@@ -347,15 +352,13 @@ def fit(task: Task, opts: FitOptions, run_dir: str | Path, resume: bool = False)
                 state.best_psnr, state.best_step = last_val, state.global_step
                 tags.append("best")
             summary = {**val}
-        if is_main:
-            ckpt.save(model, optimizer, state.to_dict(), bands, tuple(tags))
-            if "best" in tags or val_loader is None:
-                save_weights(run_dir / task.weights_file, model, bands, meta)
+        if is_main:  # one commit: the manifest names this checkpoint last (and best); the root weights follow
+            ckpt.save(model, optimizer, state.to_dict(), bands, tuple(tags), meta)
         if distributed:
             dist.barrier()
     bar.close()
-    if is_main and not (run_dir / task.weights_file).exists():
-        save_weights(run_dir / task.weights_file, model, bands, meta)
+    if is_main and not ckpt.sync_root() and not (run_dir / task.weights_file).exists():
+        save_weights(run_dir / task.weights_file, model, bands, meta)  # no checkpoint at all
     elapsed = time.perf_counter() - t_start
     final = {"step": state.global_step, "epoch": state.epoch, "final": True, "best_psnr": state.best_psnr,
              **{f"val_{k}": v for k, v in summary.items()}, "elapsed_s": elapsed,

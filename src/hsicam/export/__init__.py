@@ -18,6 +18,11 @@ colour filter array (transmission table, picture, parametric fits) and ``spec.js
 ==============================  =========================================================================
 
 Conventions: see :mod:`hsicam.export.doe`, :mod:`hsicam.export.gds`, :mod:`hsicam.export.cfa`.
+
+The folder is one result: it is written under a temporary name, gets its completion marker
+(``.complete``) and is renamed into place at the end. Everything that can be refused (the run, its
+weights — NaN/Inf included —, the levels, the tolerance file) is checked before any file is written,
+so a refused or interrupted export leaves nothing.
 """
 
 from __future__ import annotations
@@ -62,10 +67,12 @@ def _tolerances(run_dir: Path, cfg, tolerance: str | Path | None) -> dict[str, A
     if cand.is_file():
         try:
             data = json.loads(cand.read_text(encoding="utf-8"))
-        except (UnicodeDecodeError, json.JSONDecodeError):
-            raise InputError(f"{cand}: unreadable tolerance.json") from None
+        except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+            raise InputError(f"{cand}: unreadable tolerance.json ({getattr(exc, 'msg', None) or exc})") from None
         out["studied"] = {"source": str(cand), "nominal_psnr_db": data.get("nominal", {}).get("psnr"),
                           "summary": data.get("summary")}
+        if not isinstance(data, dict) or not isinstance(data.get("nominal", {}), dict):
+            raise InputError(f"{cand}: unreadable tolerance.json (not an hsicam tolerance study)")
     elif tolerance is not None:
         raise InputError(f"{tolerance}: no tolerance.json (run `hsicam tolerance --run RUN --out DIR` first)")
     else:
@@ -77,13 +84,18 @@ def export_optics(run_dir: str | Path, out_dir: str | Path, levels: int | None =
                   tolerance: str | Path | None = None) -> dict[str, Any]:
     """Export the optics of a trained run into ``out_dir``; returns the ``spec.json`` content."""
     from hsicam.cameras import DOECamera
+    from hsicam.io import atomic_output, check_output_path
     from hsicam.runs.folder import load_run
-    from hsicam.export.cfa import export_cfa
-    from hsicam.export.doe import export_doe
-    from hsicam.io import write_json
+    from hsicam.runs.checkpoint import root_weights_path
 
     run_dir, out = Path(run_dir), Path(out_dir)
+    check_output_path(out, "dir")
     cfg, model = load_run(run_dir, "cpu")
+    for name, t in model.state_dict().items():
+        if t.is_floating_point() and not bool(t.isfinite().all()):
+            bad = int((~t.isfinite()).sum())
+            raise InputError(f"{root_weights_path(run_dir)}: {bad} NaN/Inf value(s) in {name}: the run's weights are "
+                             "not finite (training diverged?); nothing exported")
     camera = model.camera
     if not isinstance(camera, DOECamera):
         raise InputError(f"{run_dir}: export-optics needs a DOE camera (camera.kind: doe), got {cfg.camera.kind}")
@@ -91,9 +103,17 @@ def export_optics(run_dir: str | Path, out_dir: str | Path, levels: int | None =
         levels = default_levels(cfg)
     if levels < 2 or levels > 256:
         raise InputError(f"--levels must be in 2..256, got {levels}")
-    if out.exists() and not out.is_dir():
-        raise InputError(f"{out}: exists and is not a folder")
-    out.mkdir(parents=True, exist_ok=True)
+    tolerances = _tolerances(run_dir, cfg, tolerance)  # a bad tolerance file: refused before any file is written
+    with atomic_output(out, overwrite=True, marker={"command": "export-optics"}) as tmp:
+        spec = _export_into(tmp, run_dir, cfg, camera, levels, tolerances)
+    return spec
+
+
+def _export_into(out: Path, run_dir: Path, cfg, camera, levels: int, tolerances: dict[str, Any]) -> dict[str, Any]:
+    from hsicam.export.cfa import export_cfa
+    from hsicam.export.doe import export_doe
+    from hsicam.io import write_json
+
     bands = camera.bands
     optics = camera.optics
     doe_info = export_doe(camera, out, levels, bands.centers_nm)
@@ -123,7 +143,7 @@ def export_optics(run_dir: str | Path, out_dir: str | Path, levels: int | None =
         "psf": {"kernel_px": camera.kernel_px, "supersample": optics.sampling.supersample,
                 "pupil_oversample": optics.pupil_oversample},
         "bands": {"centers_nm": bands.centers_nm.tolist(), "fwhm_nm": bands.fwhm_nm.tolist()},
-        "tolerances": _tolerances(run_dir, cfg, tolerance),
+        "tolerances": tolerances,
     }
     spec["files"] = sorted(p.name for p in out.iterdir() if p.is_file() and not p.name.startswith(".")) + ["spec.json"]
     spec["files"] = sorted(set(spec["files"]))

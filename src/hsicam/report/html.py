@@ -1,5 +1,10 @@
 """`hsicam report DIR`: a self-contained HTML report (relative image paths) of an evaluation
-folder (``results.json`` [+ ``cubes/``]) or an experiment folder (``experiment.json``)."""
+folder (``results.json`` [+ ``cubes/``]) or an experiment folder (``experiment.json``).
+
+Only a complete folder is reported: it must carry the completion marker its command writes last
+(:func:`hsicam.io.is_complete`) and hold well-formed JSON; anything else is one
+:class:`~hsicam.errors.InputError` line. ``DIR/report/`` is written under a temporary name and
+renamed into place at the end, so a failed report leaves nothing behind."""
 
 from __future__ import annotations
 
@@ -15,7 +20,7 @@ import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
 from hsicam.errors import InputError  # noqa: E402
-from hsicam.io import atomic_open, save_figure  # noqa: E402
+from hsicam.io import atomic_open, atomic_output, is_complete, save_figure  # noqa: E402
 from hsicam.report.reconstruction import cube_rgb, plot_training_curves  # noqa: E402
 from hsicam.spectral import Bands  # noqa: E402
 
@@ -41,22 +46,55 @@ def build_report(folder: str | Path) -> Path:
     folder = Path(folder)
     if not folder.is_dir():
         raise InputError(f"{folder}: no such folder")
-    out = folder / "report"
-    out.mkdir(exist_ok=True)
     if (folder / "experiment.json").is_file():
-        body = _experiment_sections(folder, out)
-        title = "hsicam experiment report"
+        source, kind = folder / "experiment.json", "experiment"
     elif (folder / "results.json").is_file():
-        body = _evaluation_sections(folder, out)
-        title = "hsicam evaluation report"
+        source, kind = folder / "results.json", "evaluation"
     else:
         raise InputError(f"{folder}: neither results.json (hsicam evaluate) nor experiment.json (hsicam experiment)")
-    page = (f"<!doctype html><html><head><meta charset='utf-8'><title>{title}</title><style>{CSS}</style></head>"
-            f"<body><h1>{title}</h1><p class='note'>{html.escape(str(folder))}</p>{''.join(body)}{CHECK_IMAGES}</body></html>")
-    index = out / "index.html"
-    with atomic_open(index, "w", encoding="utf-8") as fh:
-        fh.write(page)
-    return index
+    if not is_complete(folder):
+        raise InputError(f"{folder}: incomplete {kind} folder (no completion marker: the command that wrote it failed "
+                         f"or was interrupted); run `hsicam {'experiment' if kind == 'experiment' else 'evaluate'}` again")
+    data = _read_json(source)
+    _check_fields(source, data, kind)
+    with atomic_output(folder / "report", overwrite=True, marker={"command": "report"}) as out:
+        try:
+            body = _experiment_sections(folder, out, data) if kind == "experiment" else _evaluation_sections(folder, out, data)
+        except (KeyError, TypeError, IndexError, ValueError) as exc:
+            raise InputError(f"{source}: corrupt {source.name} (malformed entry: {type(exc).__name__} {exc})") from None
+        title = f"hsicam {kind} report"
+        page = (f"<!doctype html><html><head><meta charset='utf-8'><title>{title}</title><style>{CSS}</style></head>"
+                f"<body><h1>{title}</h1><p class='note'>{html.escape(str(folder))}</p>{''.join(body)}{CHECK_IMAGES}</body></html>")
+        with atomic_open(out / "index.html", "w", encoding="utf-8") as fh:
+            fh.write(page)
+    return folder / "report" / "index.html"
+
+
+def _read_json(path: Path) -> dict:
+    try:
+        data = json.loads(path.read_text(encoding="utf-8"))
+    except UnicodeDecodeError:
+        raise InputError(f"{path}: corrupt {path.name} (not UTF-8 text)") from None
+    except json.JSONDecodeError as exc:
+        raise InputError(f"{path}: corrupt {path.name} ({exc.msg} at line {exc.lineno})") from None
+    if not isinstance(data, dict):
+        raise InputError(f"{path}: corrupt {path.name} (not a JSON object)")
+    return data
+
+
+_FIELDS = {"evaluation": {"scenes": list, "mean": dict, "conventions": dict},
+           "experiment": {"experiment": str, "scale": str, "scenes": list, "rows": list, "conventions": dict}}
+
+
+def _check_fields(path: Path, data: dict, kind: str) -> None:
+    for key, typ in _FIELDS[kind].items():
+        if not isinstance(data.get(key), typ):
+            raise InputError(f"{path}: corrupt {path.name} ('{key}' is missing or not a {typ.__name__})")
+    rows = data["scenes"] if kind == "evaluation" else data["rows"]
+    if not all(isinstance(r, dict) for r in rows):
+        raise InputError(f"{path}: corrupt {path.name} (an entry of '{'scenes' if kind == 'evaluation' else 'rows'}' is not an object)")
+    if kind == "experiment" and data["experiment"] == "noise" and not isinstance(data.get("noise_grid"), dict):
+        raise InputError(f"{path}: corrupt {path.name} ('noise_grid' is missing)")
 
 
 # -- sections ---------------------------------------------------------------------------------
@@ -110,8 +148,7 @@ def _camera_section(run: Path, out: Path, prefix: str = "") -> str:
     return "".join(parts)
 
 
-def _evaluation_sections(folder: Path, out: Path) -> list[str]:
-    res = json.loads((folder / "results.json").read_text())
+def _evaluation_sections(folder: Path, out: Path, res: dict) -> list[str]:
     parts = [f"<h2>Results: {html.escape(str(res.get('method', '')))}</h2>",
              f"<p class='note'>data: {html.escape(str(res.get('data', '')))}; noise: {html.escape(json.dumps(res.get('noise')))}; "
              f"config {html.escape(str(res.get('config_hash', '')))}</p>"]
@@ -141,8 +178,7 @@ def _evaluation_sections(folder: Path, out: Path) -> list[str]:
     return parts
 
 
-def _experiment_sections(folder: Path, out: Path) -> list[str]:
-    exp = json.loads((folder / "experiment.json").read_text())
+def _experiment_sections(folder: Path, out: Path, exp: dict) -> list[str]:
     parts = [f"<h2>Experiment: {html.escape(exp['experiment'])} ({html.escape(exp['scale'])} scale)</h2>",
              f"<p class='note'>{len(exp['scenes'])} validation scenes, seeds {exp['seeds']}</p>"]
     rows = [r for r in exp["rows"] if "missing" not in r]

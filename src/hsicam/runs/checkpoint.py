@@ -4,21 +4,35 @@ Run folder layout::
 
     RUN/config.yaml            resolved config
     RUN/metrics.jsonl          one JSON object per log/eval event
-    RUN/model.safetensors      weights (network + optics) of the best (else last) checkpoint
     RUN/checkpoints/step-N/    model.safetensors, optimizer.safetensors, state.json
-    RUN/last.json, best.json   pointers {"dir": "checkpoints/step-N", ...}
+    RUN/checkpoints.json       the manifest: the one commit point of every checkpoint
+    RUN/model.safetensors      weights of the manifest's best (else last) checkpoint, derived from it
 
-A checkpoint directory is written under a temporary name and renamed into place; the pointer
-files are replaced atomically afterwards, so a process killed at any moment leaves the previous
-checkpoint intact and referenced.
+**One commit point.** A checkpoint is written as a step folder under a hidden temporary name and
+renamed into place; then ONE small manifest, ``checkpoints.json``, is replaced atomically::
+
+    {"format": "hsicam-run-manifest-1",
+     "last":  {"dir": "checkpoints/step-00000012", "step": 12, "weights_sha256": "…"},
+     "best":  {"dir": "checkpoints/step-00000008", "step": 8, "psnr": 23.4, "weights_sha256": "…"} | null,
+     "state": {LoopState of the last checkpoint: epoch, step_in_epoch, global_step, best_psnr, …},
+     "weights": {"file": "model.safetensors", "from": "best" | "last", "sha256": "…"}}
+
+Until the manifest is replaced, the previous one names checkpoints that still exist (only folders
+the current manifest does not name are ever pruned, so the best checkpoint is never pruned). The
+root weights file is a copy of the checkpoint the manifest's ``weights`` entry names; it is rewritten
+after every commit, on resume when it is missing or out of date, and :func:`root_weights_path`
+falls back to the checkpoint whenever the root file's hash differs from the manifest's: a reader
+never takes other weights than the manifest's best for the best. Runs written before the manifest
+(``last.json`` / ``best.json`` pointers) are read as before and converted at their next checkpoint.
 """
 
 from __future__ import annotations
 
+import hashlib
 import json
+import logging
 import os
 import shutil
-import tempfile
 from pathlib import Path
 from typing import Any
 
@@ -28,10 +42,24 @@ from safetensors.torch import load_file, save_file
 from torch import nn
 
 from hsicam.errors import InputError
-from hsicam.io import atomic_path, write_json
+from hsicam.io import atomic_path, cleanup_stale_temporaries, write_json
 from hsicam.spectral import Bands
 
 FORMAT = "hsicam-checkpoint-1"
+MANIFEST = "checkpoints.json"
+MANIFEST_FORMAT = "hsicam-run-manifest-1"
+LEGACY_POINTERS = ("last.json", "best.json")
+
+log = logging.getLogger(__name__)
+
+
+def file_sha256(path: str | Path) -> str:
+    """SHA-256 of a file's bytes (hex)."""
+    h = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for chunk in iter(lambda: fh.read(1 << 20), b""):
+            h.update(chunk)
+    return h.hexdigest()
 
 
 def save_weights(path: str | Path, model: nn.Module, bands: Bands, extra: dict[str, str] | None = None) -> None:
@@ -110,60 +138,191 @@ def load_optimizer(path: str | Path, optimizer: torch.optim.Optimizer) -> None:
 
 
 class CheckpointManager:
-    """Writes and finds the checkpoints of one run folder (see module docstring)."""
+    """Writes and finds the checkpoints of one run folder (see the module docstring).
 
-    def __init__(self, run_dir: str | Path) -> None:
+    ``weights_file`` is the name of the root weights file (``model.safetensors``; the spectral
+    prior uses ``prior.safetensors``)."""
+
+    def __init__(self, run_dir: str | Path, weights_file: str = "model.safetensors") -> None:
         self.run_dir = Path(run_dir)
         self.ckpt_dir = self.run_dir / "checkpoints"
+        self.weights_file = weights_file
 
-    def save(self, model: nn.Module, optimizer: torch.optim.Optimizer, state: dict[str, Any], bands: Bands,
-             tags: tuple[str, ...] = ("last",)) -> Path:
-        """Write checkpoint ``step-<global_step>`` and point ``tags`` (last / best) at it."""
-        self.ckpt_dir.mkdir(parents=True, exist_ok=True)
-        name = f"step-{int(state['global_step']):08d}"
-        final = self.ckpt_dir / name
-        if final.exists():
-            # Same step (e.g. the epoch-end save after a periodic one): the weights are the
-            # same; only the training state moves on (epoch counter, best).
-            write_json(final / "state.json", state)
-        else:
-            tmp = Path(tempfile.mkdtemp(prefix=f".{name}.", dir=self.ckpt_dir))
+    # -- the manifest -------------------------------------------------------------------------
+    def manifest(self) -> dict[str, Any] | None:
+        """The run's manifest (``checkpoints.json``; a run of the older layout: built from its
+        ``last.json`` / ``best.json``), or None when the run has no checkpoint yet."""
+        path = self.run_dir / MANIFEST
+        if path.is_file():
             try:
-                save_weights(tmp / "model.safetensors", model, bands)
+                man = json.loads(path.read_text(encoding="utf-8"))
+                if man.get("format") != MANIFEST_FORMAT or not isinstance(man.get("last"), dict):
+                    raise ValueError
+                man["last"]["dir"]  # noqa: B018 - must be present
+            except (OSError, UnicodeDecodeError, ValueError, KeyError, TypeError, AttributeError):
+                raise InputError(f"{path}: corrupt checkpoint manifest") from None
+            return man
+        return self._legacy_manifest()
+
+    def _legacy_manifest(self) -> dict[str, Any] | None:
+        entries: dict[str, Any] = {}
+        for tag in ("last", "best"):
+            ptr = self.run_dir / f"{tag}.json"
+            if not ptr.is_file():
+                continue
+            try:
+                data = json.loads(ptr.read_text(encoding="utf-8"))
+                d = data.pop("dir")
+            except (OSError, UnicodeDecodeError, ValueError, KeyError, TypeError, AttributeError):
+                raise InputError(f"{ptr}: corrupt checkpoint pointer") from None
+            entries[tag] = {"dir": d, "step": data.get("global_step"), "state": data}
+        if "last" not in entries:
+            return None
+        best = entries.get("best")
+        return {"format": MANIFEST_FORMAT, "last": {"dir": entries["last"]["dir"], "step": entries["last"]["step"]},
+                "best": None if best is None else {"dir": best["dir"], "step": best["step"],
+                                                   "psnr": best["state"].get("best_psnr")},
+                "state": entries["last"]["state"], "legacy": True}
+
+    def path(self, tag: str) -> Path | None:
+        """Checkpoint directory that ``tag`` ("last" or "best") names, or None."""
+        man = self.manifest()
+        entry = None if man is None else man.get(tag)
+        if not entry:
+            return None
+        d = self.run_dir / entry["dir"]
+        return d if d.is_dir() else None
+
+    def state(self) -> dict[str, Any] | None:
+        """The training state (LoopState) committed with the last checkpoint, or None."""
+        man = self.manifest()
+        return None if man is None else dict(man["state"])
+
+    # -- writing ------------------------------------------------------------------------------
+    def save(self, model: nn.Module, optimizer: torch.optim.Optimizer, state: dict[str, Any], bands: Bands,
+             tags: tuple[str, ...] = ("last",), meta: dict[str, str] | None = None) -> Path:
+        """Write checkpoint ``step-<global_step>``, then commit it: the manifest names it as last
+        (and as best when ``tags`` holds "best"). Then the root weights follow the manifest and
+        the folders it no longer names are pruned."""
+        self.ckpt_dir.mkdir(parents=True, exist_ok=True)
+        old = self.manifest()
+        step = int(state["global_step"])
+        name = f"step-{step:08d}"
+        final = self.ckpt_dir / name
+        rel = f"checkpoints/{name}"
+        named = {} if old is None else {e["dir"]: e for e in (old.get("last"), old.get("best")) if e}
+        if final.is_dir() and rel in named:
+            # Same step (e.g. the epoch-end save after a periodic one): the weights are the same;
+            # only the training state moves on, and it lives in the manifest.
+            sha = named[rel].get("weights_sha256") or file_sha256(final / "model.safetensors")
+        else:
+            if final.exists():  # a folder no manifest names (left by a killed process): redo it
+                shutil.rmtree(final)
+            tmp = self.ckpt_dir / f".{name}.{os.urandom(4).hex()}.tmpdir"
+            os.mkdir(tmp)
+            try:
+                save_weights(tmp / "model.safetensors", model, bands, meta)
                 save_optimizer(tmp / "optimizer.safetensors", optimizer)
-                write_json(tmp / "state.json", state)
+                write_json(tmp / "state.json", state)  # informational; the manifest holds the state
                 os.rename(tmp, final)
             except BaseException:
                 shutil.rmtree(tmp, ignore_errors=True)
                 raise
-        for tag in tags:
-            write_json(self.run_dir / f"{tag}.json", {"dir": f"checkpoints/{name}", **state})
-        self._prune()
+            sha = file_sha256(final / "model.safetensors")
+        entry = {"dir": rel, "step": step, "weights_sha256": sha}
+        best = None if old is None else old.get("best")
+        if "best" in tags:
+            best = {**entry, "psnr": state.get("best_psnr")}
+        root_from = "best" if best else "last"
+        src = best if best else entry
+        man = {"format": MANIFEST_FORMAT, "last": entry, "best": best, "state": dict(state),
+               "weights": {"file": self.weights_file, "from": root_from, "dir": src["dir"],
+                           "sha256": src.get("weights_sha256")}}
+        write_json(self.run_dir / MANIFEST, man)  # the commit point
+        for legacy in LEGACY_POINTERS:
+            (self.run_dir / legacy).unlink(missing_ok=True)
+        self.sync_root()
+        self._prune(man)
         return final
 
-    def path(self, tag: str) -> Path | None:
-        """Checkpoint directory that ``tag`` points to, or None."""
-        ptr = self.run_dir / f"{tag}.json"
-        if not ptr.is_file():
+    def root_source(self) -> tuple[Path, str | None] | None:
+        """(weights file of the checkpoint the root weights must hold, its SHA-256 when recorded)."""
+        man = self.manifest()
+        if man is None:
             return None
-        try:
-            d = self.run_dir / json.loads(ptr.read_text())["dir"]
-        except (json.JSONDecodeError, KeyError):
-            raise InputError(f"{ptr}: corrupt checkpoint pointer") from None
-        return d if d.is_dir() else None
+        entry = man.get("best") or man["last"]
+        return self.run_dir / entry["dir"] / "model.safetensors", entry.get("weights_sha256")
 
-    def _prune(self) -> None:
-        keep = {p.name for p in (self.path("last"), self.path("best")) if p is not None}
-        for d in self.ckpt_dir.iterdir():
-            if d.name not in keep and (d.name.startswith("step-") or d.name.startswith(".step-")):
+    def sync_root(self) -> bool:
+        """Rewrite the root weights file when it is missing or holds other weights than the
+        manifest's best (else last) checkpoint; returns True when it was rewritten."""
+        src = self.root_source()
+        if src is None:
+            return False
+        path, sha = src
+        if not path.is_file():
+            raise InputError(f"{path}: the checkpoint named by {self.run_dir / MANIFEST} is missing")
+        sha = sha or file_sha256(path)
+        root = self.run_dir / self.weights_file
+        if root.is_file() and file_sha256(root) == sha:
+            return False
+        with atomic_path(root) as tmp:
+            shutil.copyfile(path, tmp)
+        return True
+
+    def cleanup(self) -> list[Path]:
+        """Remove what a killed process may have left: hidden temporaries (in the run folder and
+        its checkpoints) and step folders the manifest does not name. Returns the removed paths."""
+        removed = cleanup_stale_temporaries(self.run_dir, recursive=True)
+        if self.ckpt_dir.is_dir():
+            man = self.manifest()
+            removed += self._prune(man)
+        return removed
+
+    def _prune(self, man: dict[str, Any] | None) -> list[Path]:
+        keep = set() if man is None else {Path(e["dir"]).name for e in (man.get("last"), man.get("best")) if e}
+        removed = []
+        for d in sorted(self.ckpt_dir.iterdir()):
+            if d.name in keep:
+                continue
+            if d.name.startswith(("step-", ".step-")):  # hidden: temporaries of killed writes
                 shutil.rmtree(d, ignore_errors=True)
+                removed.append(d)
+        return removed
 
+    # -- reading ------------------------------------------------------------------------------
     def load(self, tag: str, model: nn.Module, optimizer: torch.optim.Optimizer | None, bands: Bands) -> dict[str, Any]:
-        """Restore model (and optimizer) from ``tag``; returns the saved training state."""
+        """Restore model (and optimizer) from ``tag``; returns the committed training state."""
         d = self.path(tag)
         if d is None:
             raise InputError(f"{self.run_dir}: no '{tag}' checkpoint to resume from")
         load_weights(d / "model.safetensors", model, bands)
         if optimizer is not None:
             load_optimizer(d / "optimizer.safetensors", optimizer)
-        return json.loads((d / "state.json").read_text())
+        if tag == "last":
+            return self.state() or {}
+        try:
+            return json.loads((d / "state.json").read_text())
+        except (OSError, ValueError):
+            raise InputError(f"{d / 'state.json'}: corrupt checkpoint state") from None
+
+
+def root_weights_path(run_dir: str | Path, weights_file: str = "model.safetensors") -> Path:
+    """The weights file that holds a run's best (else last) weights.
+
+    The root file when it matches the manifest (or the run has no manifest); else — a process was
+    killed between the manifest's commit and the root file's rewrite — the checkpoint the manifest
+    names, so the best weights are never taken from another checkpoint."""
+    run_dir = Path(run_dir)
+    root = run_dir / weights_file
+    mgr = CheckpointManager(run_dir, weights_file)
+    src = mgr.root_source()
+    if src is None:
+        return root
+    path, sha = src
+    if not path.is_file():
+        return root
+    if root.is_file() and file_sha256(root) == (sha or file_sha256(path)):
+        return root
+    log.info("%s: out of date with %s; using %s", root, MANIFEST, path)
+    return path

@@ -6,7 +6,7 @@ Layout (written by :func:`hsicam.engine.loop.fit` and its tasks)::
     RUN/metrics.jsonl          one JSON object per log/eval event
     RUN/model.safetensors      weights (network + optics) of the best (else last) checkpoint
     RUN/checkpoints/step-N/    model.safetensors, optimizer.safetensors, state.json
-    RUN/last.json, best.json   pointers {"dir": "checkpoints/step-N", ...}
+    RUN/checkpoints.json       the manifest naming last and best (see :mod:`hsicam.runs.checkpoint`)
     RUN/measured_psf.safetensors  (fine-tuned runs) the measured PSFs the run images with
 
 A run is rebuilt from its config through the registries (camera kind, network kind), so
@@ -16,16 +16,20 @@ A run is rebuilt from its config through the registries (camera kind, network ki
 from __future__ import annotations
 
 import json
+import logging
 import os
+import shutil
 from pathlib import Path
 from typing import Any
 
 import torch
 
 from hsicam.errors import InputError
-from hsicam.io import atomic_open
-from hsicam.runs.checkpoint import load_weights
+from hsicam.io import atomic_open, cleanup_stale_temporaries, is_temporary
+from hsicam.runs.checkpoint import LEGACY_POINTERS, MANIFEST, CheckpointManager, load_weights, root_weights_path
 from hsicam.runs.measured_psf import MEASURED_PSF_FILE, MeasuredPSF, load_measured_psf
+
+log = logging.getLogger(__name__)
 
 
 def with_measured_psf(model, measured: MeasuredPSF):
@@ -60,22 +64,90 @@ def load_run(run_dir: str | Path, device: torch.device | str = "cpu", overrides:
     if not weights.is_file():
         raise InputError(f"{run_dir}: the run has no trained weights (model.safetensors is missing)")
     model = CameraSystem.from_config(cfg)
-    load_weights(weights, model, cfg.bands.to_bands())
+    load_weights(root_weights_path(run_dir), model, cfg.bands.to_bands())
     if (run_dir / MEASURED_PSF_FILE).is_file():  # a run fine-tuned on measured PSFs images with them
         model = with_measured_psf(model, load_measured_psf(run_dir / MEASURED_PSF_FILE))
     return cfg, model.to(device).eval()
 
 
+RESTART_HINT = "start it again with `hsicam train --restart --config CONFIG --out {run}`"
+
+
 def check_run_dir(run_dir: Path, resume: bool) -> None:
-    """A run folder must hold a run to resume, or (a new run) be absent or empty. Creates nothing."""
+    """A run folder must hold a run to resume, or (a new run) be absent or empty.
+
+    Hidden temporaries a killed process left (in the folder, or the folder's own temporary
+    sibling) do not count: they are removed. Creates nothing."""
+    run_dir = Path(run_dir)
+    remove_run_temporaries(run_dir)
     if resume:
         if not (run_dir / "config.yaml").is_file():
-            raise InputError(f"{run_dir}: nothing to resume (no config.yaml)")
+            why = "no such folder" if not run_dir.exists() else "no config.yaml: it was interrupted before it started"
+            raise InputError(f"{run_dir}: nothing to resume ({why}); " + RESTART_HINT.format(run=run_dir))
         return
     if run_dir.exists() and not run_dir.is_dir():
         raise InputError(f"{run_dir}: exists and is not a folder; choose another --out")
     if run_dir.exists() and any(run_dir.iterdir()):
-        raise InputError(f"{run_dir}: run folder exists and is not empty; use --resume or another --out")
+        raise InputError(f"{run_dir}: run folder exists and is not empty; use --resume, --restart (a run without "
+                         "a checkpoint) or another --out")
+
+
+def remove_run_temporaries(run_dir: Path) -> list[Path]:
+    """Remove the hidden temporaries of a killed run: inside ``run_dir`` (recursively) and the
+    temporary siblings ``.NAME.XXXXXXXX.tmpdir`` of the folder itself."""
+    run_dir = Path(run_dir)
+    removed = cleanup_stale_temporaries(run_dir, recursive=True) if run_dir.is_dir() else []
+    parent = run_dir.parent
+    if parent.is_dir():
+        for p in parent.glob(f".{run_dir.name}.*"):
+            if is_temporary(p.name) and p.name[len(run_dir.name) + 2:].count(".") == 1:
+                shutil.rmtree(p, ignore_errors=True) if p.is_dir() else p.unlink(missing_ok=True)
+                removed.append(p)
+    return removed
+
+
+#: What a run folder may hold (anything else means it is not only a run folder: never wiped).
+RUN_ENTRIES = frozenset({"config.yaml", "metrics.jsonl", "checkpoints", "tensorboard", MANIFEST, *LEGACY_POINTERS,
+                         "model.safetensors", "prior.safetensors", "summary.json", "prior.yaml", MEASURED_PSF_FILE,
+                         "measured_psf.json"})
+
+
+def finished_checkpoint_step(run_dir: Path) -> int | None:
+    """Global step of the run's last committed checkpoint, or None when it has none."""
+    try:
+        state = CheckpointManager(run_dir).state()
+    except InputError:
+        return None
+    return None if state is None else int(state.get("global_step", 0))
+
+
+def restart_run_dir(run_dir: Path) -> bool:
+    """Wipe a run folder that has no finished checkpoint, so that a new run can start in it.
+
+    Refuses (one-line :class:`InputError`) a folder that holds a committed checkpoint (resume it,
+    or remove it yourself) and a folder holding files a run never writes. Returns True when
+    something was removed."""
+    run_dir = Path(run_dir)
+    remove_run_temporaries(run_dir)
+    if not run_dir.exists():
+        return False
+    if not run_dir.is_dir():
+        raise InputError(f"{run_dir}: exists and is not a folder; choose another --out")
+    entries = sorted(run_dir.iterdir())
+    if not entries:
+        return False
+    foreign = [p.name for p in entries if p.name not in RUN_ENTRIES and not p.name.startswith(".")]
+    if foreign:
+        raise InputError(f"{run_dir}: not only a run folder (it holds {', '.join(foreign[:3])}); --restart wipes "
+                         "run folders only: choose another --out")
+    step = finished_checkpoint_step(run_dir)
+    if step is not None:
+        raise InputError(f"{run_dir}: holds a finished checkpoint (step {step}); continue it with --resume, or delete "
+                         "the folder yourself to start over")
+    for p in entries:
+        shutil.rmtree(p) if p.is_dir() and not p.is_symlink() else p.unlink()
+    log.info("%s: removed the unfinished run (no checkpoint) to start again", run_dir)
+    return True
 
 
 def prepare_run_dir(run_dir: Path, resume: bool) -> None:

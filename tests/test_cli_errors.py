@@ -1,0 +1,227 @@
+"""One error boundary: every writing command, given an output path that cannot work (an existing
+file, a path inside a file, an unwritable folder) or a corrupt JSON/YAML input, answers one line
+``hsicam: error: …`` with exit code 2, no traceback, and leaves nothing behind.
+
+Most cases call :func:`hsicam.cli.main` in-process (the same boundary the console script runs,
+without a Python start-up per case); the unwritable-folder cases and a sample of the others run
+the real console script in a subprocess.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import subprocess
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from cli_helpers import HSICAM, assert_clean_error, cli_env, run_cli
+from hsicam.cli import main
+from hsicam.data.formats import write_cube_h5
+from hsicam.spectral import Bands
+
+
+@pytest.fixture(scope="module")
+def env(tmp_path_factory):
+    d = str(tmp_path_factory.mktemp("cache"))
+    old = os.environ.get("HSICAM_CACHE")
+    os.environ["HSICAM_CACHE"] = d
+    yield {"HSICAM_CACHE": d}
+    if old is None:
+        os.environ.pop("HSICAM_CACHE", None)
+    else:
+        os.environ["HSICAM_CACHE"] = old
+
+
+@pytest.fixture(scope="module")
+def inputs(tmp_path_factory, env):
+    """A trained tiny run, a scene, a capture and a small dataset folder."""
+    d = tmp_path_factory.mktemp("inputs")
+    res = run_cli("train", "--config", "tiny", "--out", str(d / "run"), "--set", "train.epochs=1", env=env)
+    assert res.returncode == 0, res.stderr
+    rng = np.random.default_rng(0)
+    np.save(d / "scene.npy", rng.uniform(0.1, 1, (7, 40, 40)).astype(np.float32))
+    np.save(d / "cap.npy", rng.uniform(0.1, 1, (24, 24)).astype(np.float32))
+    write_cube_h5(d / "data" / "a.h5", rng.uniform(0.1, 1, (7, 24, 24)).astype(np.float32), Bands.uniform(420, 720, 50))
+    return d
+
+
+def commands(i: Path, out: Path) -> dict[str, list[str]]:
+    """Every writing command, writing to ``out`` (a folder; ``reconstruct``: ``out/r.h5``)."""
+    run = str(i / "run")
+    return {
+        "psf": ["psf", "--config", "tiny", "--out", str(out)],
+        "simulate": ["simulate", "--config", "tiny", "--scene", str(i / "scene.npy"), "--out", str(out)],
+        "evaluate": ["evaluate", "--run", run, "--out", str(out)],
+        "data synth": ["data", "synth", "--config", "tiny", "--n", "1", "--size", "16", "--out", str(out)],
+        "data show": ["data", "show", str(i / "data"), "--out", str(out)],
+        "train": ["train", "--config", "tiny", "--out", str(out)],
+        "reconstruct": ["reconstruct", str(i / "cap.npy"), "--run", run, "--out", str(out / "r.h5")],
+        "export-optics": ["export-optics", "--run", run, "--out", str(out)],
+        "experiment": ["experiment", "ablation", "--scale", "tiny", "--out", str(out)],
+        "tolerance": ["tolerance", "--run", run, "--out", str(out)],
+        "finetune": ["finetune", "--run", run, "--psf-dir", str(i / "nope"), "--out", str(out)],
+        "baseline train-prior": ["baseline", "train-prior", "--config", "tiny", "--out", str(out)],
+    }
+
+
+def call(capsys, args: list[str]) -> tuple[int, str]:
+    code = main(args)
+    err = capsys.readouterr().err
+    return code, err
+
+
+def assert_one_line(code: int, err: str, *fragments: str) -> None:
+    assert code == 2, (code, err)
+    lines = [x for x in err.strip().splitlines() if x.startswith("hsicam:") or "Traceback" in x or "Error" in x]
+    assert len(lines) == 1 and lines[0].startswith("hsicam: error:"), err
+    for f in fragments:
+        assert f in lines[0], (f, lines[0])
+
+
+def snapshot(folder: Path) -> list[str]:
+    return sorted(p.relative_to(folder).as_posix() for p in folder.rglob("*"))
+
+
+@pytest.mark.parametrize("case", ["existing file", "inside a file"])
+def test_every_writing_command_refuses_a_bad_output_path(inputs, tmp_path, capsys, case):
+    inputs_before = snapshot(inputs)
+    f = tmp_path / "taken"
+    f.write_text("user data")
+    out = f if case == "existing file" else f / "sub"
+    for name, args in commands(inputs, out).items():
+        before = snapshot(tmp_path)
+        code, err = call(capsys, args)
+        expected = "which is a file" if (case == "inside a file" or name == "reconstruct") else "existing file"
+        assert_one_line(code, err, str(f), expected)
+        assert snapshot(tmp_path) == before, name  # nothing left behind
+        assert f.read_text() == "user data"
+    assert snapshot(inputs) == inputs_before
+
+
+def test_reconstruct_out_naming_a_folder(inputs, tmp_path, capsys):
+    (tmp_path / "r.h5").mkdir()
+    code, err = call(capsys, ["reconstruct", str(inputs / "cap.npy"), "--run", str(inputs / "run"), "--out", str(tmp_path / "r.h5")])
+    assert_one_line(code, err, "existing folder")
+    assert snapshot(tmp_path) == ["r.h5"]
+
+
+def test_report_output_problems(inputs, tmp_path, capsys, env):
+    ev = tmp_path / "ev"
+    code, err = call(capsys, ["evaluate", "--run", str(inputs / "run"), "--out", str(ev)])
+    assert code == 0, err
+    (ev / "report").write_text("x")  # the report folder's place is taken by a file
+    assert_one_line(*call(capsys, ["report", str(ev)]), "existing file")
+    (ev / "report").unlink()
+    assert snapshot(ev) == sorted([".complete", "results.csv", "results.json", "results.md"])
+
+
+def _permission_prefix() -> tuple[str, ...] | None:
+    """As in test_io: how to make a chmod 0o500 folder really unwritable (root: setpriv)."""
+    if os.geteuid() != 0:
+        return ()
+    if shutil.which("setpriv") is None:
+        return None
+    caps = "-dac_override,-dac_read_search,-fowner"
+    prefix = ("setpriv", f"--bounding-set={caps}", f"--inh-caps={caps}")
+    if subprocess.run([*prefix, "true"], capture_output=True).returncode != 0:
+        return None
+    return prefix
+
+
+def test_every_writing_command_refuses_an_unwritable_folder(inputs, tmp_path, env):
+    prefix = _permission_prefix()
+    if prefix is None:
+        pytest.skip("running as root without setpriv: chmod cannot make a folder unwritable here")
+    ro = tmp_path / "ro"
+    ro.mkdir()
+    ev = ro / "ev"  # for `report`: an evaluation folder in which report/ cannot be created
+    assert run_cli("evaluate", "--run", str(inputs / "run"), "--out", str(ev), env=env).returncode == 0
+    cmds = {**commands(inputs, ro / "out"), "report": ["report", str(ev)]}
+    ro.chmod(0o500)
+    ev.chmod(0o500)
+    try:
+        for name, args in cmds.items():
+            proc = subprocess.run([*prefix, str(HSICAM), *args], capture_output=True, text=True, timeout=300,
+                                  env=cli_env(env))
+            assert_clean_error(proc, "not writable")
+    finally:
+        ev.chmod(0o700)
+        ro.chmod(0o700)
+    assert snapshot(ro) == sorted(["ev", *[f"ev/{n}" for n in (".complete", "results.csv", "results.json", "results.md")]])
+
+
+def test_corrupt_config_and_json_inputs(inputs, tmp_path, capsys, env):
+    bad_yaml = tmp_path / "bad.yaml"
+    bad_yaml.write_text("camera: [unclosed\n")
+    empty = tmp_path / "empty.yaml"
+    empty.write_text("# nothing\n")
+    for cfg, fragment in ((bad_yaml, "invalid YAML"), (empty, "empty config")):
+        for name, args in commands(inputs, tmp_path / "o").items():
+            if "--config" not in args:
+                continue
+            args = [*args]
+            args[args.index("--config") + 1] = str(cfg)
+            code, err = call(capsys, args)
+            assert_one_line(code, err, str(cfg), fragment)
+            assert not (tmp_path / "o").exists(), name
+    # a run whose config.yaml is corrupt: every command reading the run
+    run = tmp_path / "run"
+    shutil.copytree(inputs / "run", run)
+    (run / "config.yaml").write_text("train: {epochs: [\n")
+    for name, args in commands(inputs, tmp_path / "o").items():
+        if "--run" not in args:
+            continue
+        args = [str(run) if a == str(inputs / "run") else a for a in args]
+        code, err = call(capsys, args)
+        assert_one_line(code, err, "config.yaml")
+        assert not (tmp_path / "o").exists(), name
+    assert_one_line(*call(capsys, ["train", "--out", str(run), "--resume"]), "config.yaml")
+    # corrupt results.json / experiment.json given to report: one line, no report/ left
+    for k, (fname, text) in enumerate((("results.json", "{\"scenes\": [1, "), ("results.json", "{\"scenes\": []}"),
+                        ("results.json", "[]"), ("experiment.json", "{\"experiment\": \"noise\"}"),
+                        ("results.json", "\xff\xfe"))):
+        d = tmp_path / f"rep-{k}"
+        d.mkdir()
+        (d / fname).write_bytes(text.encode("latin-1"))
+        (d / ".complete").write_text("{\"complete\": true}")
+        assert_one_line(*call(capsys, ["report", str(d)]), fname, "corrupt")
+        assert not (d / "report").exists() and not [p for p in d.iterdir() if p.name.startswith(".report")]
+    # a tolerance file that is not JSON: export-optics names it and writes nothing
+    tol = tmp_path / "tolerance.json"
+    tol.write_text("{not json")
+    assert_one_line(*call(capsys, ["export-optics", "--run", str(inputs / "run"), "--out", str(tmp_path / "fab"),
+                                   "--tolerance", str(tol)]), str(tol))
+    assert not (tmp_path / "fab").exists()
+    # the real console script, once: no traceback, one line
+    assert_clean_error(run_cli("psf", "--config", str(bad_yaml), "--out", str(tmp_path / "o"), env=env), "invalid YAML")
+
+
+def test_export_refuses_nan_weights_naming_the_file(inputs, tmp_path, capsys):
+    import torch
+    from safetensors.torch import load_file, save_file
+    from safetensors import safe_open
+
+    run = tmp_path / "run"
+    shutil.copytree(inputs / "run", run)
+    for w in run.rglob("model.safetensors"):  # the root file and the checkpoints it is derived from
+        with safe_open(str(w), framework="pt") as fh:
+            meta = fh.metadata()
+        t = load_file(str(w))
+        key = next(k for k in t if k.endswith("height_m"))
+        t[key] = torch.full_like(t[key], float("nan"))
+        save_file(t, str(w), metadata=meta)
+    man = json.loads((run / "checkpoints.json").read_text())
+    from hsicam.runs.checkpoint import file_sha256
+
+    for tag in ("last", "best"):  # keep the manifest consistent with the edited files
+        if man[tag]:
+            man[tag]["weights_sha256"] = file_sha256(run / man[tag]["dir"] / "model.safetensors")
+    man["weights"]["sha256"] = (man["best"] or man["last"])["weights_sha256"]
+    (run / "checkpoints.json").write_text(json.dumps(man))
+    code, err = call(capsys, ["export-optics", "--run", str(run), "--out", str(tmp_path / "fab")])
+    assert_one_line(code, err, "model.safetensors", "NaN", "height_m")
+    assert not (tmp_path / "fab").exists() and not list(tmp_path.glob(".fab*"))
