@@ -283,8 +283,11 @@ def test_demo_cli_trains_reports_and_draws(tmp_path, cache_env):
     refs = {r["method"]: r["mean"] for r in summary["references"]}
     assert set(refs) == {"sensor image x mean training spectrum", "CFA box demosaic (no network)"}
     assert all(np.isfinite(m[k]) for m in refs.values() for k in ("psnr", "ssim", "sam"))
+    held = summary["heldout"]  # the held-out-sources block, named as such
+    assert held["data"].startswith("held-out spectral sources") and len(held["scenes"]) >= 1
+    assert all(np.isfinite(held["mean"][k]) for k in ("psnr", "ssim", "sam"))
     assert f"PSNR {summary['mean']['psnr']:.2f} dB" in proc.stdout
-    assert proc.stdout.count("reference without a network") == 2
+    assert proc.stdout.count("reference without a network") == 4  # validation and held-out sources, 2 each
     import imageio.v3 as iio
 
     for name in ("reconstructions.png", "psf.png", "cfa.png", "doe.png", "training.png"):

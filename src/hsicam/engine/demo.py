@@ -14,7 +14,7 @@ from hsicam.data.pipeline import dataset_root
 from hsicam.engine.evaluate import (TestNoise, demosaic_reference, evaluate_method, evaluate_scenes, format_table,
                                     grey_reference, summarize)
 from hsicam.engine.experiments import ensure_trained, heldout_scenes
-from hsicam.io import atomic_open, write_json
+from hsicam.io import atomic_open, clear_complete, mark_complete, write_json
 from hsicam.report.camera import write_optics_figures, write_psf_outputs
 from hsicam.report.reconstruction import plot_reconstructions, plot_training_curves
 from hsicam.runs.folder import load_run
@@ -37,6 +37,8 @@ def run_demo(cfg: Config, out: str | Path, overrides: tuple[str, ...] = ()) -> d
     """
     out = Path(out)
     run = out / "run"
+    if out.is_dir():
+        clear_complete(out)  # the results below are rewritten; `hsicam report` waits for the marker
     status = ensure_trained(run, cfg, overrides)
     cfg, model = load_run(run)
     bands = cfg.bands.to_bands()
@@ -79,6 +81,7 @@ def run_demo(cfg: Config, out: str | Path, overrides: tuple[str, ...] = ()) -> d
         write_optics_figures(model.camera, out)
     plot_reconstructions(results, bands, out / "reconstructions.png")
     plot_training_curves(run / "metrics.jsonl", out / "training.png")
+    mark_complete(out)
     return {**summary, "status": status, "table": table, "n_scenes": len(results)}
 
 

@@ -35,22 +35,28 @@ class PSFResult:
     energy: torch.Tensor  # (C,), fraction of each band's light inside the kernel
 
 
-class _BandPSF(torch.autograd.Function):
-    """One wavelength: pupil phase (P, P) → W·|FFT_N(A·e^{iφ})|²·Wᵀ, the (K, K) kernel.
+#: Wavelengths per FFT batch: a few at once amortise the per-call overhead (measured: 4 per batch
+#: takes the 31-band paper stack from 0.37 to 0.29 s forward + backward) while each batch's
+#: complex spectra stay small (4 × 675² × 8 B = 15 MB), which avoids fresh memory maps.
+WAVELENGTHS_PER_BATCH = 4
 
-    The FFT is pruned over the zero-padded rows. W (K, N) holds envelope, tiling of the periodic
+
+class _PSFBatch(torch.autograd.Function):
+    """A few wavelengths: pupil phases (L, P, P) → W·|FFT_N(A·e^{iφ})|²·Wᵀ, the (L, K, K) kernels.
+
+    The FFT is pruned over the zero-padded rows. W (L, K, N) holds envelope, tiling of the periodic
     far field over the kernel and pixel integration. The backward is the exact adjoint written
     out, down to the pupil: for u = A·e^{iφ}, ∂L/∂φ = Im(conj(u)·∂L/∂u) and
-    ∂L/∂A = Re(e^{−iφ}·∂L/∂u).
+    ∂L/∂A = Re(e^{−iφ}·∂L/∂u) (summed over the wavelengths, A being shared).
     """
 
     @staticmethod
     def forward(ctx, phase: torch.Tensor, amplitude: torch.Tensor, weights: torch.Tensor) -> torch.Tensor:  # type: ignore[override]
         n = weights.shape[-1]
-        field = torch.polar(amplitude, phase)
+        field = torch.polar(amplitude.expand_as(phase), phase)
         spec = torch.fft.fft(torch.fft.fft(field, n=n, dim=-1), n=n, dim=-2)
         inten = spec.real.square() + spec.imag.square()
-        pooled = weights @ (inten @ weights.T)
+        pooled = weights @ inten @ weights.transpose(-1, -2)
         ctx.save_for_backward(phase, field, spec, weights)
         return pooled
 
@@ -59,15 +65,15 @@ class _BandPSF(torch.autograd.Function):
     def backward(ctx, grad: torch.Tensor):  # type: ignore[override]
         phase, field, spec, weights = ctx.saved_tensors
         n, p = weights.shape[-1], phase.shape[-1]
-        g = weights.T @ (grad @ weights)  # (N, N): adjoint of W·I·Wᵀ
+        g = weights.transpose(-1, -2) @ grad @ weights  # (L, N, N): adjoint of W·I·Wᵀ
         # ∂L/∂u = 2·(adjoint of the zero-padded FFT)(g·U) = 2n²·ifft(g·U), first p rows/columns
-        gf = torch.fft.ifft(spec * g, dim=-2)[:p]
-        gf = torch.fft.ifft(gf, dim=-1)[:, :p]
+        gf = torch.fft.ifft(spec * g, dim=-2)[..., :p, :]
+        gf = torch.fft.ifft(gf, dim=-1)[..., :p]
         gf = gf * (2.0 * n * n)
         grad_phase = (field.conj() * gf).imag if ctx.needs_input_grad[0] else None
         grad_amplitude = None
         if ctx.needs_input_grad[1]:
-            grad_amplitude = (torch.polar(torch.ones_like(phase), -phase) * gf).real
+            grad_amplitude = (torch.polar(torch.ones_like(phase), -phase) * gf).real.sum(0)
         return grad_phase, grad_amplitude, None
 
 
@@ -96,8 +102,8 @@ def psf_stack(
     """
     power = (amplitude * amplitude).sum()
     phase = doe_phase_per_m[:, None, None] * height_m + defocus_per_m2[:, None, None] * r2_m2  # (L, P, P)
-    # unbind (not phase[c]): its backward stacks the band gradients once instead of L times.
-    lines = torch.stack([_BandPSF.apply(ph, amplitude, w) for ph, w in zip(phase.unbind(0), weights.unbind(0))])
+    k = WAVELENGTHS_PER_BATCH
+    lines = torch.cat([_PSFBatch.apply(ph, amplitude, w) for ph, w in zip(phase.split(k), weights.split(k))])
     psf = lines / power  # Parseval: the whole sensor plane of each wavelength sums to 1
     if line_weights is not None:
         c, m = line_weights.shape
