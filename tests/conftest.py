@@ -9,6 +9,7 @@ need fine sampling build their own configuration.
 from __future__ import annotations
 
 import copy
+import os
 
 import pytest
 import torch
@@ -57,3 +58,16 @@ def clone_camera():
         return copy.deepcopy(cam).to(dtype)
 
     return make
+
+
+@pytest.fixture(scope="module")
+def cache_env(tmp_path_factory):
+    """A private synthetic-data cache (``HSICAM_CACHE``) for one test module, generated once."""
+    d = tmp_path_factory.mktemp("cache")
+    old = os.environ.get("HSICAM_CACHE")
+    os.environ["HSICAM_CACHE"] = str(d)
+    yield d
+    if old is None:
+        os.environ.pop("HSICAM_CACHE", None)
+    else:
+        os.environ["HSICAM_CACHE"] = old

@@ -24,18 +24,6 @@ KILLED = 77  # the child's exit code when the injected kill fired
 TIME_KEYS = ("elapsed_s", "patches_per_s")
 
 
-@pytest.fixture(scope="module")
-def cache_env(tmp_path_factory):
-    d = tmp_path_factory.mktemp("cache")
-    old = os.environ.get("HSICAM_CACHE")
-    os.environ["HSICAM_CACHE"] = str(d)
-    yield d
-    if old is None:
-        os.environ.pop("HSICAM_CACHE", None)
-    else:
-        os.environ["HSICAM_CACHE"] = old
-
-
 class Writes:
     """Counts the renames that ``fn`` makes (the parent's reference run)."""
 

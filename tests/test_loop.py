@@ -5,7 +5,6 @@ mid-epoch resume, the spectral prior resumes exactly, frozen parameter groups st
 from __future__ import annotations
 
 import json
-import os
 from pathlib import Path
 
 import pytest
@@ -18,18 +17,6 @@ from hsicam.engine.train import train
 from hsicam.errors import ConfigError
 from hsicam.models import CameraSystem
 from hsicam.runs.checkpoint import read_weights
-
-
-@pytest.fixture(scope="module")
-def cache_env(tmp_path_factory):
-    d = tmp_path_factory.mktemp("cache")
-    old = os.environ.get("HSICAM_CACHE")
-    os.environ["HSICAM_CACHE"] = str(d)
-    yield d
-    if old is None:
-        os.environ.pop("HSICAM_CACHE", None)
-    else:
-        os.environ["HSICAM_CACHE"] = old
 
 
 def _records(run: Path, key: str) -> list[tuple[int, float]]:

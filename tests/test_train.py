@@ -23,19 +23,6 @@ from hsicam.engine.train import build_optimizer, train
 from hsicam.models import CameraSystem
 
 
-@pytest.fixture(scope="module")
-def cache_env(tmp_path_factory):
-    """A private synthetic-data cache for this module (generated once)."""
-    d = tmp_path_factory.mktemp("cache")
-    old = os.environ.get("HSICAM_CACHE")
-    os.environ["HSICAM_CACHE"] = str(d)
-    yield d
-    if old is None:
-        os.environ.pop("HSICAM_CACHE", None)
-    else:
-        os.environ["HSICAM_CACHE"] = old
-
-
 def tiny_cfg(*overrides: str):
     return load_config("tiny", list(overrides))
 

@@ -131,12 +131,25 @@ def write_psf_outputs(camera, out: Path) -> dict:
     return info
 
 
-def write_optics_figures(camera, out: Path) -> list[str]:
-    """cfa.png (the CFA tile) and doe.png (height map and aperture) of a DOE camera; the names written."""
+def write_optics_figures(camera, out: Path, prefix: str = "", psf: bool = False) -> dict[str, str]:
+    """The camera's figures in ``out``: ``{prefix}psf.png`` (with ``psf``), ``{prefix}doe.png``
+    (height map and aperture), ``{prefix}cfa.png`` (tile and transmission curves) — those the
+    camera has. Returns {file name: caption}. The one place camera figures are drawn."""
+    out, written = Path(out), {}
     with torch.no_grad():
-        plot_cfa(camera.cfa.tile().detach().cpu().numpy(), camera.bands, Path(out) / "cfa.png")
-        optics = camera.optics
-        q = optics.pupil_oversample
-        plot_doe_heights(optics.doe.heights().detach().cpu().numpy(), optics.amplitude[::q, ::q].cpu().numpy(),
-                         optics.cell_m * 1e6, Path(out) / "doe.png")
-    return ["cfa.png", "doe.png"]
+        if psf and hasattr(camera, "psf_result"):
+            res = camera.psf_result()
+            plot_psf_montage(res.psf.float().cpu().numpy(), camera.bands, out / f"{prefix}psf.png")
+            written[f"{prefix}psf.png"] = (f"PSF per band (each normalised); energy in kernel "
+                                           f"{res.energy.min().item():.4f}–{res.energy.max().item():.4f}")
+        optics = getattr(camera, "optics", None)
+        if optics is not None:
+            q = optics.pupil_oversample
+            plot_doe_heights(optics.doe.heights().detach().cpu().numpy(), optics.amplitude[::q, ::q].cpu().numpy(),
+                             optics.cell_m * 1e6, out / f"{prefix}doe.png")
+            written[f"{prefix}doe.png"] = "DOE height map"
+        cfa = getattr(camera, "cfa", None)
+        if cfa is not None:
+            plot_cfa(cfa.tile().detach().cpu().numpy(), camera.bands, out / f"{prefix}cfa.png")
+            written[f"{prefix}cfa.png"] = "colour filter array tile and transmission curves"
+    return written

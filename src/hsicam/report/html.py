@@ -17,7 +17,6 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
-import torch  # noqa: E402
 
 from hsicam.errors import InputError  # noqa: E402
 from hsicam.io import atomic_open, atomic_output, is_complete, save_figure  # noqa: E402
@@ -121,7 +120,7 @@ def _conventions(conv: dict) -> str:
 
 def _camera_section(run: Path, out: Path, prefix: str = "") -> str:
     from hsicam.runs.folder import load_run
-    from hsicam.report.camera import plot_cfa, plot_doe_heights, plot_psf_montage
+    from hsicam.report.camera import write_optics_figures
 
     try:
         _, model = load_run(run)
@@ -129,19 +128,8 @@ def _camera_section(run: Path, out: Path, prefix: str = "") -> str:
         return f"<p class='note'>camera figures unavailable: {html.escape(str(exc))}</p>"
     cam = model.camera
     parts = [f"<h2>Camera ({html.escape(str(run))})</h2>"]
-    with torch.no_grad():
-        if hasattr(cam, "optics"):
-            res = cam.psf_result()
-            plot_psf_montage(res.psf.numpy(), cam.bands, out / f"{prefix}psf.png")
-            parts.append(_img(f"{prefix}psf.png", "PSF per band (each normalised); energy in kernel "
-                              f"{res.energy.min().item():.4f}–{res.energy.max().item():.4f}"))
-            q = cam.optics.pupil_oversample
-            plot_doe_heights(cam.optics.doe.heights().numpy(), cam.optics.amplitude[::q, ::q].numpy(),
-                             cam.optics.cell_m * 1e6, out / f"{prefix}doe.png")
-            parts.append(_img(f"{prefix}doe.png", "DOE height map"))
-        if hasattr(cam, "cfa"):
-            plot_cfa(cam.cfa.tile().numpy(), cam.bands, out / f"{prefix}cfa.png")
-            parts.append(_img(f"{prefix}cfa.png", "colour filter array tile and transmission curves"))
+    for name, caption in write_optics_figures(cam, out, prefix, psf=True).items():
+        parts.append(_img(name, caption))
     if (run / "metrics.jsonl").is_file():
         plot_training_curves(run / "metrics.jsonl", out / f"{prefix}training.png")
         parts.append(_img(f"{prefix}training.png", "training loss and validation PSNR / SSIM"))
