@@ -300,8 +300,11 @@ def tiny_env(tmp_path_factory):
     try:
         cfg = load_config("tiny")
         train(load_config("tiny", ["camera.kind=dd_cassi"]), root / "rdn", progress=False)
+        from hsicam.engine.experiments import CASSI_UNROLLED_OVERRIDES
+
+        train(load_config("tiny", [*CASSI_UNROLLED_OVERRIDES, "train.epochs=1"]), root / "unrolled", progress=False)
         prior = ensure_choi_prior(root / "prior", "tiny")
-        yield {"cfg": cfg, "rdn": root / "rdn", "prior": prior, "root": root}
+        yield {"cfg": cfg, "rdn": root / "rdn", "unrolled": root / "unrolled", "prior": prior, "root": root}
     finally:
         if old is None:
             os.environ.pop("HSICAM_CACHE", None)
@@ -325,7 +328,8 @@ FAST = ("baselines.desci.iterations=[2, 2, 2, 2]", "baselines.desci.init_iterati
 @pytest.mark.parametrize("name", baseline_names())
 def test_each_baseline_through_build_method(tiny_env, name):
     cfg = load_config("tiny", FAST)
-    run = {"dd-cassi-choi": tiny_env["prior"], "dd-cassi-rdn": tiny_env["rdn"]}.get(name)
+    run = {"dd-cassi-choi": tiny_env["prior"], "dd-cassi-rdn": tiny_env["rdn"],
+           "dd-cassi-unrolled": tiny_env["unrolled"]}.get(name)
     method = build_method(name, cfg, run)
     assert method.name == name and method.camera.kind == "dd_cassi"
     scenes = _validation_scenes(cfg)
