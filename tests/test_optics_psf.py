@@ -22,7 +22,7 @@ from hsicam.optics.doe import DOE
 from hsicam.optics.lens import AchromaticLens, SingletLens
 from hsicam.optics.psf import PSFModel, psf_stack
 from hsicam.optics.pupil import aperture_amplitude, sample_coordinates_m
-from hsicam.optics.sampling import odd_fast_size, pixel_weights
+from hsicam.optics.sampling import fast_fft_length, pixel_weights
 from hsicam.spectral import Bands, FusedSilica
 
 # --------------------------------------------------------------------------------------------
@@ -354,12 +354,12 @@ def test_paper_sampling_plan():
     z, p, d, a = 35e-3, 6e-6, 30e-6, 5e-3
     cells = 2 * int(a / d) + 1
     assert cells == 333 and smp.pupil_samples == 333
-    # one FFT length for all bands: odd, ≥ 2P − 1 (an exact period of the intensity), 7-smooth
-    assert smp.fft_size == 675 and smp.fft_size >= 2 * cells - 1
+    # one FFT length for all bands: ≥ 2P − 1 (an exact period of the intensity), 7-smooth
+    assert smp.fft_size == 672 and smp.fft_size >= 2 * cells - 1
     assert smp.supersample is None  # exact pixel integration
     assert smp.nyquist_supersample == 9 == _odd_ceil(4 * a * p / (lam[0] * z))
     assert smp.kernel_px == cam.kernel_px == 141 == _odd_ceil(lam[-1] * z / (d * p))
-    assert cam.optics.pixel_weights.shape == (31, 141, 675)
+    assert cam.optics.pixel_weights.shape == (31, 141, 672)
 
 
 def test_kernel_below_the_optics_minimum_is_a_config_error():
@@ -434,7 +434,7 @@ def _sinc2_integral(x):
     return np.where(x == 0, 0.0, val)
 
 
-@pytest.mark.parametrize("period_px, k, n", [(81.6, 141, 675), (3.3, 41, 81), (0.7, 21, 11)])
+@pytest.mark.parametrize("period_px, k, n", [(81.6, 141, 675), (81.6, 141, 672), (3.3, 41, 81), (3.3, 41, 84), (0.7, 21, 11)])
 def test_single_cell_is_the_integrated_sinc2(period_px, k, n):
     """One cell (P = 1): the PSF is ∫∫_pixel sinc²(t_x) sinc²(t_y), t in periods λz/Δ."""
     w = torch.from_numpy(pixel_weights(period_px, k, n))[None]
@@ -448,7 +448,7 @@ def test_single_cell_is_the_integrated_sinc2(period_px, k, n):
 
 
 def _weights(period_px, k, p, s=None, lines=1):
-    n = odd_fast_size(2 * p - 1)
+    n = fast_fft_length(2 * p - 1)
     w = [pixel_weights(period_px * (1 + 0.07 * i), k, n, s) for i in range(lines)]
     return torch.from_numpy(np.stack(w))
 

@@ -37,7 +37,7 @@ class PSFSampling:
 
     pupil_samples: int  # P: cells × q across the pupil grid
     pupil_pitch_m: float  # d = Δ/q
-    fft_size: int  # N (odd, ≥ 2P − 1): exact samples of one period of the intensity
+    fft_size: int  # N ≥ 2P − 1: exact samples of one period of the intensity
     kernel_px: int  # K (odd)
     min_kernel_px: int  # smallest K holding one period λ_max·z/d of the cell grid's far field
     supersample: int | None  # None: exact pixel integration; s: s×s midpoint rule
@@ -55,18 +55,19 @@ def odd_ceil(x: float) -> int:
     return k if k % 2 == 1 else k + 1
 
 
-def odd_fast_size(n: int) -> int:
-    """Smallest odd 7-smooth integer ≥ n (a fast FFT length)."""
+def fast_fft_length(n: int) -> int:
+    """Smallest 7-smooth integer ≥ n (2^a·3^b·5^c·7^d: a fast FFT length). Even lengths are
+    allowed: with N ≥ 2P − 1 the intensity has no harmonic at N/2 (measured: 672 is 1.4× faster
+    than the odd 675 for the paper pupil, P = 333)."""
     m = max(1, int(n))
-    m += 1 - m % 2
     while True:
         r = m
-        for f in (3, 5, 7):
+        for f in (2, 3, 5, 7):
             while r % f == 0:
                 r //= f
         if r == 1:
             return m
-        m += 2
+        m += 1
 
 
 def plan_psf_sampling(
@@ -99,7 +100,7 @@ def plan_psf_sampling(
             raise ConfigError(f"{name} must be positive, got {v}")
     q = int(pupil_oversample)
     n_pupil = n_cells * q
-    n_fft = odd_fast_size(2 * n_pupil - 1)
+    n_fft = fast_fft_length(2 * n_pupil - 1)
     min_k = odd_ceil(lam.max() * sensor_distance_m / (cell_m * pixel_m))
     if kernel_px is None:
         k = min_k
@@ -132,7 +133,8 @@ def pixel_weights(period_px: float, kernel_px: int, fft_size: int, supersample: 
     Args:
         period_px: L/pixel = λ·z/(d·pixel), the far-field period of the cell grid in pixels.
         kernel_px: K (odd); pixel j (0..K−1) is centred at t_j = (j − K//2)/period_px.
-        fft_size: N (odd), the FFT length over one period (sample a sits at t = a/N mod 1).
+        fft_size: N, the FFT length over one period (sample a sits at t = a/N mod 1); the intensity's
+            harmonics are |k| ≤ P − 1 < N/2, so an even N has no Nyquist term (it is left out).
         supersample: None: exact integral over the pixel (Gauss–Legendre); s: s-point midpoint rule.
         envelope: multiply by the cell envelope sinc²(t) (False: point cells, for checks).
     Returns:
@@ -140,10 +142,8 @@ def pixel_weights(period_px: float, kernel_px: int, fft_size: int, supersample: 
         (the fraction of the pupil's power on that pixel).
     """
     k, n = int(kernel_px), int(fft_size)
-    if n % 2 == 0:
-        raise ValueError("fft_size must be odd")
     h = 1.0 / float(period_px)
-    freqs = np.fft.fftfreq(n, d=1.0 / n)  # integers −(N−1)/2 .. (N−1)/2 in FFT order
+    freqs = np.fft.fftfreq(n, d=1.0 / n)  # integers in FFT order: −(N−1)/2 .. (N−1)/2, or −N/2 .. N/2 − 1
     if supersample is None:
         # integrand sinc²(t)·e^{2πikt} over a pixel: at most |k|·h cycles; GL is exact far beyond that
         tau, w = _gauss_legendre(h, int(math.ceil(math.pi * (n / 2) * h)) + 16)
@@ -155,6 +155,8 @@ def pixel_weights(period_px: float, kernel_px: int, fft_size: int, supersample: 
     ew = w[None, :] * (np.sinc(t) ** 2 if envelope else np.ones_like(t))  # (K, G)
     # J[j, k] = Σ_g ew[j, g] e^{2πi k (t_j + τ_g)};  W[j, a] = (1/N) Σ_k J[j, k] e^{−2πi k a/N}
     j_mat = np.exp(2j * np.pi * np.outer(centres, freqs)) * (ew @ np.exp(2j * np.pi * np.outer(tau, freqs)))
+    if n % 2 == 0:
+        j_mat[:, n // 2] = 0.0  # the Nyquist harmonic −N/2: absent from a band-limited intensity
     return np.fft.fft(j_mat, axis=1).real / n
 
 
