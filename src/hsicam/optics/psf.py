@@ -36,8 +36,8 @@ class PSFResult:
 
 
 #: Wavelengths per FFT batch: a few at once amortise the per-call overhead (measured: 4 per batch
-#: takes the 31-band paper stack from 0.37 to 0.29 s forward + backward) while each batch's
-#: complex spectra stay small (4 × 675² × 8 B = 15 MB), which avoids fresh memory maps.
+#: takes the 31-band paper stack from 0.40 to 0.37 s forward + backward at N = 675) while each
+#: batch's complex spectra stay small (4 × 672² × 8 B = 14 MB), which avoids fresh memory maps.
 WAVELENGTHS_PER_BATCH = 4
 
 
