@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -32,3 +33,17 @@ def assert_clean_error(proc: subprocess.CompletedProcess, *fragments: str) -> No
     assert "Traceback" not in proc.stderr
     for f in fragments:
         assert f in lines[0], (f, lines[0])
+
+
+def unprivileged_prefix() -> tuple[str, ...] | None:
+    """How to run a child in which a chmod 0o500 folder really is unwritable: nothing for a normal
+    user; for root, setpriv dropping the capabilities that bypass file permissions; None if neither."""
+    if os.geteuid() != 0:
+        return ()
+    if shutil.which("setpriv") is None:
+        return None
+    caps = "-dac_override,-dac_read_search,-fowner"
+    prefix = ("setpriv", f"--bounding-set={caps}", f"--inh-caps={caps}")
+    if subprocess.run([*prefix, "true"], capture_output=True, cwd=os.environ.get("TMPDIR", "/tmp")).returncode != 0:
+        return None
+    return prefix

@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from cli_helpers import HSICAM, assert_clean_error, cli_env, run_cli
+from cli_helpers import HSICAM, assert_clean_error, cli_env, run_cli, unprivileged_prefix
 from hsicam.cli import main
 from hsicam.data.formats import write_cube_h5
 from hsicam.spectral import Bands
@@ -119,21 +119,8 @@ def test_report_output_problems(inputs, tmp_path, capsys, env):
     assert snapshot(ev) == sorted([".complete", "results.csv", "results.json", "results.md"])
 
 
-def _permission_prefix() -> tuple[str, ...] | None:
-    """As in test_io: how to make a chmod 0o500 folder really unwritable (root: setpriv)."""
-    if os.geteuid() != 0:
-        return ()
-    if shutil.which("setpriv") is None:
-        return None
-    caps = "-dac_override,-dac_read_search,-fowner"
-    prefix = ("setpriv", f"--bounding-set={caps}", f"--inh-caps={caps}")
-    if subprocess.run([*prefix, "true"], capture_output=True).returncode != 0:
-        return None
-    return prefix
-
-
 def test_every_writing_command_refuses_an_unwritable_folder(inputs, tmp_path, env):
-    prefix = _permission_prefix()
+    prefix = unprivileged_prefix()
     if prefix is None:
         pytest.skip("running as root without setpriv: chmod cannot make a folder unwritable here")
     ro = tmp_path / "ro"

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import json
 import os
-import shutil
 import stat
 import subprocess
 import sys
@@ -14,6 +13,7 @@ from pathlib import Path
 import pytest
 
 import hsicam.io as hio
+from cli_helpers import unprivileged_prefix
 from hsicam.errors import InputError
 from hsicam.io import (
     COMPLETE_MARKER,
@@ -129,23 +129,8 @@ def test_atomic_writers_turn_os_errors_into_one_line(tmp_path):
     assert f.read_text() == "x"
 
 
-def _permission_prefix() -> tuple[str, ...] | None:
-    """How to run a child in which a chmod 0o500 folder really is unwritable: nothing for a normal
-    user; for root, setpriv dropping the capabilities that bypass file permissions; None if neither."""
-    probe = Path(os.environ.get("TMPDIR", "/tmp"))
-    if os.geteuid() != 0:
-        return ()
-    if shutil.which("setpriv") is None:
-        return None
-    caps = "-dac_override,-dac_read_search,-fowner"
-    prefix = ("setpriv", f"--bounding-set={caps}", f"--inh-caps={caps}")
-    if subprocess.run([*prefix, "true"], capture_output=True, cwd=probe).returncode != 0:
-        return None
-    return prefix
-
-
 def test_unwritable_folders(tmp_path):
-    prefix = _permission_prefix()
+    prefix = unprivileged_prefix()
     if prefix is None:
         pytest.skip("running as root without setpriv: chmod cannot make a folder unwritable here")
     ro = tmp_path / "ro"
