@@ -9,6 +9,7 @@ ConfigError line. Tiny cameras (``tiny`` preset: 7 bands, 21 px kernel, CFA peri
 from __future__ import annotations
 
 import copy
+import dataclasses
 
 import pytest
 import torch
@@ -184,12 +185,13 @@ def test_overfits_one_batch(name):
 
 
 @pytest.mark.parametrize("kind", ["doe", "dd_cassi"])
-def test_tiled_equals_whole_with_the_declared_context(kind):
+@pytest.mark.parametrize("bright", [0, 5])
+def test_tiled_equals_whole_with_the_declared_context(kind, bright):
     cam = camera(kind)
-    small = UnrolledConfig(stages=1, prior_features=8, prior_blocks=1, prior_scale=2)
+    small = UnrolledConfig(stages=1, prior_features=8, prior_blocks=1, prior_scale=2, brightness_window=bright)
     nets = {"unrolled": build_unrolled(small, cam)}
     if kind == "doe":
-        nets["mosaic"] = build_mosaic(MOSAIC, cam)
+        nets["mosaic"] = build_mosaic(dataclasses.replace(MOSAIC, brightness_window=bright), cam)
     y = torch.rand(1, 1, 80, 74)
     op = cam.snapshot(nominal=True)
     for name, net in nets.items():
@@ -203,6 +205,30 @@ def test_tiled_equals_whole_with_the_declared_context(kind):
         assert torch.allclose(tiled, whole, atol=1e-5), (name, float((tiled - whole).abs().max()))
         short = reconstruct_tiled(run, y, tile_px=24, halo_px=2)
         assert not torch.allclose(short, whole, atol=1e-5), name  # the halo matters: the test can fail
+
+
+@pytest.mark.parametrize("kind", ["doe", "dd_cassi"])
+def test_brightness_normalised_networks_are_scale_equivariant(kind):
+    """With b = box(g) + ε, ε → 0: net(c·y) = c·net(y) for any c > 0; without it the trained
+    (randomised) network is not (the test can fail)."""
+    cam = camera(kind)
+    op = cam.snapshot(nominal=True)
+    y = torch.rand(1, 1, 30, 28) + 0.1
+    for bright in (5, 0):
+        mos = dataclasses.replace(MOSAIC, brightness_window=bright, brightness_eps=1e-12)
+        nets = {"unrolled": build_unrolled(dataclasses.replace(UNROLLED, brightness_window=bright,
+                                                               brightness_eps=1e-12), cam)}
+        if kind == "doe":
+            nets["mosaic"] = build_mosaic(mos, cam)
+            nets["unrolled-mosaic"] = build_unrolled(UnrolledConfig(stages=1, init="mosaic", prior_features=8,
+                                                                    prior_blocks=1, prior_scale=2, mosaic=mos,
+                                                                    brightness_window=bright, brightness_eps=1e-12), cam)
+        for name, net in nets.items():
+            randomise(net, 0.3).eval()
+            with torch.no_grad():
+                a, b = net(0.01 * y, op), 0.01 * net(y, op)
+            same = torch.allclose(a, b, rtol=1e-4, atol=1e-5 * float(b.abs().max()))
+            assert same == bool(bright), (name, bright, float((a - b).abs().max()))
 
 
 @pytest.mark.parametrize("kind", CAMERA_KINDS)
@@ -278,6 +304,9 @@ BAD = [
     ("mosaic", MosaicConfig(blocks=0), "model.mosaic.blocks"),
     ("mosaic", MosaicConfig(factor=4), "multiple of the CFA period"),
     ("mosaic", MosaicConfig(demosaic_window=4), "odd"),
+    ("mosaic", MosaicConfig(brightness_window=6), "model.mosaic.brightness_window"),
+    ("mosaic", MosaicConfig(brightness_window=5, brightness_eps=0.0), "model.mosaic.brightness_eps"),
+    ("unrolled", UnrolledConfig(brightness_window=-3), "model.unrolled.brightness_window"),
     ("unrolled", UnrolledConfig(stages=0), "model.unrolled.stages"),
     ("unrolled", UnrolledConfig(init="zeros"), "model.unrolled.init"),
     ("unrolled", UnrolledConfig(step_init=0.0), "step_init"),
@@ -334,3 +363,24 @@ def test_every_registered_network_through_the_system(kind):
 def test_unknown_network_kind_is_one_clear_error():
     with pytest.raises(ConfigError, match="model.kind='transformer' is unknown; choose one of mosaic, rdn, unrolled"):
         CameraSystem.from_config(load_config("tiny", ["model.kind=transformer"]))
+
+
+def test_relative_l1_loss_weighs_errors_by_the_local_brightness_of_the_truth():
+    """train.relative_l1: L1 + w · mean(|x̂ − x| / (box₉(mean_c x) + ε)), box zero-padded (scipy reference)."""
+    import numpy as np
+    from scipy.ndimage import uniform_filter
+
+    from hsicam.config import TrainConfig
+    from hsicam.engine.tasks import system_loss
+
+    g = torch.Generator().manual_seed(0)
+    truth = torch.rand(2, 5, 14, 17, generator=g, dtype=torch.float64) * torch.linspace(0.001, 1, 17, dtype=torch.float64)
+    recon = truth + 0.01 * torch.randn(truth.shape, generator=g, dtype=torch.float64)
+    plain = system_loss(recon, truth, TrainConfig())
+    assert float(plain) == pytest.approx(float((recon - truth).abs().mean()), rel=1e-12)
+    local = uniform_filter(truth.mean(dim=1).numpy(), size=(1, 9, 9), mode="constant")[:, None] + 0.02
+    expect = float((recon - truth).abs().mean()) + 0.3 * float(np.mean(np.abs((recon - truth).numpy()) / local))
+    got = system_loss(recon, truth, TrainConfig(relative_l1=0.3, relative_eps=0.02))
+    assert float(got) == pytest.approx(expect, rel=1e-9)
+    with pytest.raises(ConfigError, match="relative_l1"):
+        TrainConfig(relative_l1=-1.0)

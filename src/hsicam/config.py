@@ -247,6 +247,8 @@ class MosaicConfig:
     head_features: int = 32  # channels of the full-resolution refinement head
     head_layers: int = 3  # 3×3 convs of the head at full resolution (0: no head)
     demosaic_window: int = 0  # box width (px, odd) of the demosaic skip; 0 = the CFA period rounded up to odd
+    brightness_window: int = 0  # local-brightness normalisation: box width (px, odd) of b = box(g) + ε; 0 = off
+    brightness_eps: float = 1.0e-3  # ε of b (sensor units; full scale 1)
 
 
 @dataclass
@@ -263,6 +265,8 @@ class UnrolledConfig:
     step_init: float = 1.0  # initial α_k·L (L ≥ ‖A‖²; < 2 guarantees a decreasing data term)
     stage_kernel_px: int = 0  # DOE camera: PSF cut to this many px (odd) in the stages; 0 = the full kernel
     demosaic_window: int = 0  # box width (px, odd) of the demosaic init; 0 = the CFA period rounded up to odd
+    brightness_window: int = 0  # priors see z / b, b = box(g) + ε of this width (px, odd); 0 = off
+    brightness_eps: float = 1.0e-3  # ε of b (sensor units; full scale 1)
     mosaic: MosaicConfig = field(default_factory=MosaicConfig)  # the front end of init=mosaic
 
 
@@ -293,6 +297,10 @@ class TrainConfig:
     grad_clip: Optional[float] = 1.0  # max global gradient norm; null: no clipping
     sigma_height_nm: list[float] = field(default_factory=lambda: [0.0, 0.0])  # [lo, hi]: drawn per step
     sensor_sigma: list[float] = field(default_factory=lambda: [0.0, 0.0])  # [lo, hi] Gaussian σ_s per step
+    # loss = L1 + relative_l1 · mean(|x̂ − x| / (box₉(mean_c x) + relative_eps)): weighs errors of dark
+    # regions by their local brightness (spectral angle, dark scenes); 0 = the paper's plain L1
+    relative_l1: float = 0.0
+    relative_eps: float = 0.01
     eval_every_epochs: int = 1
     checkpoint_every_steps: int = 200
     log_every_steps: int = 20
@@ -312,7 +320,9 @@ class TrainConfig:
             if getattr(self, k) < 1:
                 raise ConfigError(f"train.{k} must be >= 1, got {getattr(self, k)}")
         _positive("train", lr=self.lr, doe_lr_nm=self.doe_lr_nm, cfa_lr=self.cfa_lr, lr_gamma=self.lr_gamma,
-                  grad_clip=self.grad_clip)
+                  grad_clip=self.grad_clip, relative_eps=self.relative_eps)
+        if not (self.relative_l1 >= 0 and math.isfinite(self.relative_l1)):
+            raise ConfigError(f"train.relative_l1 must be >= 0, got {self.relative_l1}")
         if self.warmup_steps < 0:
             raise ConfigError(f"train.warmup_steps must be >= 0, got {self.warmup_steps}")
         for k in ("sigma_height_nm", "sensor_sigma"):

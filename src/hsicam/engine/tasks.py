@@ -20,6 +20,7 @@ from hsicam.errors import ConfigError
 from hsicam.io import atomic_open, write_json
 from hsicam.metrics import psnr_per_band, sam_degrees, ssim
 from hsicam.models import CameraSystem
+from hsicam.models.demosaic import box_mean
 from hsicam.models.priors import SpectralAutoencoder
 
 # Learning rate of each camera parameter group, from the train section (units in the key names).
@@ -37,6 +38,16 @@ def draw_noise(t: TrainConfig, generator: torch.Generator) -> dict[str, float]:
     """
     return {"sigma_height_nm": draw_uniform(t.sigma_height_nm, generator),
             "sensor_sigma": draw_uniform(t.sensor_sigma, generator)}
+
+
+def system_loss(recon: torch.Tensor, truth: torch.Tensor, t: TrainConfig) -> torch.Tensor:
+    """L1 (paper eq. 10), plus ``t.relative_l1`` × the L1 relative to the local brightness of the
+    truth, box₉(mean over bands) + ``t.relative_eps``; (B, C, H, W) pairs → scalar."""
+    loss = F.l1_loss(recon, truth)
+    if t.relative_l1 > 0:
+        local = box_mean(truth.mean(dim=1, keepdim=True), 9) + t.relative_eps
+        loss = loss + t.relative_l1 * ((recon - truth).abs() / local).mean()
+    return loss
 
 
 def apply_noise(camera, levels: dict[str, float]) -> None:
@@ -130,7 +141,7 @@ class SystemTask(Task):
 
     def training_step(self, trainable, scene: torch.Tensor, generator: torch.Generator) -> torch.Tensor:
         recon, _ = trainable(scene, generator)
-        return F.l1_loss(recon.float(), self.model.target(scene))
+        return system_loss(recon.float(), self.model.target(scene), self.cfg.train)
 
     def validate(self, loader, device: torch.device) -> dict[str, float]:
         self.model.camera.set_noise(**self.eval_noise)

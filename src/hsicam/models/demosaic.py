@@ -37,6 +37,16 @@ def box_mean(x: torch.Tensor, window: int) -> torch.Tensor:
     return F.avg_pool2d(x, (window, 1), stride=1, padding=(r, 0))
 
 
+def brightness(sensor: torch.Tensor, window: int, eps: float) -> torch.Tensor:
+    """Local brightness b = box_w(g) + ε, (B, 1, H, W) → (B, 1, H, W), in sensor units.
+
+    The networks see g / b and return b × their output, so a scene and the same scene ×c get
+    the same reconstruction ×c (for b ≫ ε): what is learned on bright patches serves dark ones.
+    Since Σ_c κ_c = 1 per pixel, g is a weighted mean over bands and b is on the scale of the cube.
+    """
+    return box_mean(sensor, window) + eps
+
+
 def demosaic_window(camera) -> int:
     """Odd box width for ``camera``: its code period (the CFA's m), rounded up to odd."""
     p = int(getattr(camera, "code_period", 1))

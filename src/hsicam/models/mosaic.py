@@ -12,11 +12,15 @@ padding aligns the m×m cells with the CFA on the whole sensor (a window at ``or
 by ``origin mod m`` at the top-left), so a tile's cells are the whole image's cells and tiled
 inference equals a whole-image pass given :attr:`MosaicNet.context_px`. The head's last conv and
 the trunk's output conv start at zero: the untrained network returns x̃.
+
+Brightness normalisation (``brightness_window`` w > 0): with b = box_w(g) + ε the trunk and head
+see g/b and x̃/b and their outputs are multiplied by b, so the learned correction is the same
+for a scene and a darker copy of it (the synthetic scenes span 300× in mean brightness).
 """
 
 from __future__ import annotations
 
-
+import math
 
 import torch
 import torch.nn.functional as F
@@ -25,7 +29,7 @@ from torch import nn
 from hsicam.config import MosaicConfig
 from hsicam.errors import ConfigError
 from hsicam.models.registry import register_network
-from hsicam.models.demosaic import demosaic
+from hsicam.models.demosaic import brightness, demosaic
 
 
 def phase_pad(x: torch.Tensor, factor: int, origin: tuple[int, int] = (0, 0)) -> tuple[torch.Tensor, tuple[int, int]]:
@@ -83,9 +87,11 @@ class MosaicNet(nn.Module):
     """
 
     def __init__(self, bands: int, factor: int, features: int = 128, blocks: int = 10, head_features: int = 32,
-                 head_layers: int = 3, demosaic_window: int = 9) -> None:
+                 head_layers: int = 3, demosaic_window: int = 9, brightness_window: int = 0,
+                 brightness_eps: float = 1e-3) -> None:
         super().__init__()
         self.bands, self.factor, self.demosaic_window = int(bands), int(factor), int(demosaic_window)
+        self.brightness_window, self.brightness_eps = int(brightness_window), float(brightness_eps)
         self.blocks, self.head_layers = int(blocks), int(head_layers)
         self.stem = nn.Conv2d(factor * factor + bands, features, 3, padding=1)
         self.body = nn.Sequential(*(ResBlock(features) for _ in range(blocks)))
@@ -98,11 +104,15 @@ class MosaicNet(nn.Module):
     def context_px(self) -> int:
         """Per-side halo (sensor px) for exact tiling: demosaic box + trunk cells + head."""
         cells = 1 + 2 * self.blocks  # 3×3 stem + two 3×3 convs per block (the tail is 1×1), in cells
-        return self.demosaic_window // 2 + cells * self.factor + self.factor - 1 + self.head_layers
+        return (max(self.demosaic_window, self.brightness_window) // 2 + cells * self.factor + self.factor - 1
+                + self.head_layers)
 
     def forward(self, sensor: torch.Tensor, camera, origin: tuple[int, int] = (0, 0)) -> torch.Tensor:
         """``sensor`` (B, 1, H, W) of the window at ``origin``; ``camera`` (or its snapshot) gives
-        the CFA κ via ``sensor_code``. Returns (B, C, H, W) in the network's dtype (float32)."""
+        the CFA κ via ``sensor_code``. Returns (B, C, H, W) in the network's dtype (float32).
+
+        Reads its context from ``brightness_window // 2`` px of the window's border too, so b at a
+        tile's edge is computed from the tile (tiling's halo covers it: :attr:`context_px`)."""
         if sensor.dim() != 4 or sensor.shape[1] != 1:
             raise ValueError(f"sensor image must be (B, 1, H, W), got shape {tuple(sensor.shape)}")
         sensor = sensor.to(self.stem.weight.dtype)  # float32 unless the network was converted
@@ -111,16 +121,18 @@ class MosaicNet(nn.Module):
         if code.shape[0] != self.bands:
             raise ValueError(f"the camera has {code.shape[0]} bands, the network {self.bands}")
         skip = demosaic(sensor, code, self.demosaic_window)
+        b = brightness(sensor, self.brightness_window, self.brightness_eps) if self.brightness_window else None
+        g_n, skip_n = (sensor, skip) if b is None else (sensor / b, skip / b)
         m = self.factor
-        g_p, (top, left) = phase_pad(sensor, m, origin)
-        s_p, _ = phase_pad(skip, m, origin)
+        g_p, (top, left) = phase_pad(g_n, m, origin)
+        s_p, _ = phase_pad(skip_n, m, origin)
         inp = torch.cat([F.pixel_unshuffle(g_p, m), F.avg_pool2d(s_p, m)], dim=1)
         feat = self.stem(inp)
         feat = self.body(feat)
-        out = F.pixel_shuffle(self.tail(feat), m)[..., top : top + h, left : left + w] + skip
+        out_n = F.pixel_shuffle(self.tail(feat), m)[..., top : top + h, left : left + w] + skip_n
         if self.head is not None:
-            out = out + self.head(out, sensor)
-        return out
+            out_n = out_n + self.head(out_n, g_n)
+        return out_n if b is None else out_n * b
 
 
 def _odd_window(period: int) -> int:
@@ -149,7 +161,17 @@ def build_mosaic(mcfg: MosaicConfig, camera) -> MosaicNet:
     window = mcfg.demosaic_window or _odd_window(period)
     if window % 2 == 0:
         raise ConfigError(f"model.mosaic.demosaic_window must be odd (or 0 for the CFA period), got {window}")
-    return MosaicNet(len(camera.bands), factor, mcfg.features, mcfg.blocks, mcfg.head_features, mcfg.head_layers, window)
+    check_brightness("model.mosaic", mcfg.brightness_window, mcfg.brightness_eps)
+    return MosaicNet(len(camera.bands), factor, mcfg.features, mcfg.blocks, mcfg.head_features, mcfg.head_layers, window,
+                     mcfg.brightness_window, mcfg.brightness_eps)
+
+
+def check_brightness(section: str, window: int, eps: float) -> None:
+    """ConfigError unless ``window`` is 0 (off) or odd and ``eps`` > 0."""
+    if window < 0 or (window and window % 2 == 0):
+        raise ConfigError(f"{section}.brightness_window must be odd (or 0 for off), got {window}")
+    if not (eps > 0 and math.isfinite(eps)):
+        raise ConfigError(f"{section}.brightness_eps must be > 0, got {eps}")
 
 
 __all__ = ["MosaicNet", "MosaicConfig", "ResBlock", "RefineHead", "build_mosaic", "phase_pad"]

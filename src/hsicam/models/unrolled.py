@@ -7,6 +7,9 @@
           or x + α_k Aᵀ((y − A x) ⊘ diag(AAᵀ))       GAP step (CASSI: ΦΦᵀ diagonal), α_k = softplus(θ_k)
         x = z + P_k(z)                              learned prior: residual CNN at 1/s resolution
 
+With ``brightness_window`` w > 0 each prior works on z/b and returns b·P(z/b), b = box_w(mean_c |z|) + ε,
+so a stage treats a scene and a darker copy alike (the gradient step is linear already).
+
 A is the camera's operator frozen for the batch (:meth:`Camera.snapshot`: the DOE camera's PSF
 stack and CFA, computed once, with gradients to the optics); L is the snapshot's bound of ‖A‖², so
 α_k·L = softplus(θ_k) is a step in units of the largest safe one (< 2 decreases the data term).
@@ -33,8 +36,8 @@ from torch import nn
 from hsicam.config import MosaicConfig, UnrolledConfig
 from hsicam.errors import ConfigError
 from hsicam.models.registry import register_network
-from hsicam.models.mosaic import MosaicNet, ResBlock, _odd_window, build_mosaic, phase_pad
-from hsicam.models.demosaic import demosaic
+from hsicam.models.mosaic import MosaicNet, ResBlock, _odd_window, build_mosaic, check_brightness, phase_pad
+from hsicam.models.demosaic import box_mean, demosaic
 
 INITS = ("auto", "demosaic", "backprojection", "mosaic")
 STEPS = ("gradient", "gap")
@@ -43,9 +46,11 @@ STEPS = ("gradient", "gap")
 class Prior(nn.Module):
     """z + P(z) − z: residual CNN at 1/s resolution, (B, C, H, W) → Δ (B, C, H, W); output conv zero."""
 
-    def __init__(self, bands: int, features: int, blocks: int, scale: int) -> None:
+    def __init__(self, bands: int, features: int, blocks: int, scale: int, brightness_window: int = 0,
+                 brightness_eps: float = 1e-3) -> None:
         super().__init__()
         self.scale, self.blocks = int(scale), int(blocks)
+        self.brightness_window, self.brightness_eps = int(brightness_window), float(brightness_eps)
         ch = bands * scale * scale
         self.stem = nn.Conv2d(ch, features, 1)
         self.body = nn.Sequential(*(ResBlock(features) for _ in range(blocks)))
@@ -55,14 +60,19 @@ class Prior(nn.Module):
 
     @property
     def reach_px(self) -> int:
-        return 2 * self.blocks * self.scale + self.scale - 1
+        return 2 * self.blocks * self.scale + self.scale - 1 + self.brightness_window // 2
 
     def forward(self, z: torch.Tensor, origin: tuple[int, int] = (0, 0)) -> torch.Tensor:
         h, w = z.shape[-2:]
         s = self.scale
+        b = None
+        if self.brightness_window:
+            b = box_mean(z.abs().mean(dim=1, keepdim=True), self.brightness_window) + self.brightness_eps
+            z = z / b
         zp, (top, left) = phase_pad(z, s, origin)
         f = self.body(self.stem(F.pixel_unshuffle(zp, s)))
-        return F.pixel_shuffle(self.tail(f), s)[..., top : top + h, left : left + w]
+        out = F.pixel_shuffle(self.tail(f), s)[..., top : top + h, left : left + w]
+        return out if b is None else out * b
 
 
 def camera_operator(camera):
@@ -94,13 +104,15 @@ class UnrolledNet(nn.Module):
     def __init__(self, bands: int, op_reach: tuple[int, int], stages: int = 2, init: str = "demosaic",
                  share_weights: bool = False, prior_features: int = 64, prior_blocks: int = 2, prior_scale: int = 4,
                  step_init: float = 1.0, stage_kernel_px: int = 0, demosaic_window: int = 9,
-                 front: MosaicNet | None = None, step: str = "gradient") -> None:
+                 front: MosaicNet | None = None, step: str = "gradient", brightness_window: int = 0,
+                 brightness_eps: float = 1e-3) -> None:
         super().__init__()
         self.bands, self.stages, self.init, self.step = int(bands), int(stages), init, step
         self.op_reach, self.stage_kernel_px, self.demosaic_window = tuple(op_reach), int(stage_kernel_px), int(demosaic_window)
         self.front = front
         n_priors = 1 if share_weights else stages
-        self.priors = nn.ModuleList(Prior(bands, prior_features, prior_blocks, prior_scale) for _ in range(n_priors))
+        self.priors = nn.ModuleList(Prior(bands, prior_features, prior_blocks, prior_scale, brightness_window, brightness_eps)
+                                    for _ in range(n_priors))
         theta = math.log(math.expm1(step_init))  # softplus⁻¹
         self.step_logits = nn.Parameter(torch.full((stages,), theta))
 
@@ -199,10 +211,11 @@ def build_unrolled(mcfg: UnrolledConfig, camera) -> UnrolledNet:
                           f"{type(camera).__name__}; use step=gradient")
     period = int(getattr(camera, "code_period", 1))
     window = mcfg.demosaic_window or _odd_window(period)
+    check_brightness("model.unrolled", mcfg.brightness_window, mcfg.brightness_eps)
     front = build_mosaic(mcfg.mosaic, camera) if init == "mosaic" else None
     return UnrolledNet(len(camera.bands), tuple(op.reach_px), mcfg.stages, init, mcfg.share_weights, mcfg.prior_features,
                        mcfg.prior_blocks, mcfg.prior_scale, mcfg.step_init, mcfg.stage_kernel_px, window, front,
-                       mcfg.step)
+                       mcfg.step, mcfg.brightness_window, mcfg.brightness_eps)
 
 
 __all__ = ["Prior", "UnrolledNet", "UnrolledConfig", "backprojection", "build_unrolled", "camera_operator"]
