@@ -34,6 +34,7 @@ COMMAND_MODULES = (
     "hsicam.cli.demo",
     "hsicam.cli.baselines",
     "hsicam.cli.fabrication",
+    "hsicam.cli.pretrained",
 )
 
 
