@@ -59,9 +59,10 @@ def _is_camera(folder: Path) -> bool:
             and all((folder / f).is_file() for f in ("config.yaml", "model.safetensors", CARD_JSON)))
 
 
-def available() -> list[str]:
-    """Sorted names of the shipped cameras (folders holding config.yaml, model.safetensors and card.json)."""
-    r = root()
+def available(root_dir: str | Path | None = None) -> list[str]:
+    """Sorted names of the shipped cameras (folders holding config.yaml, model.safetensors and
+    card.json) in ``root_dir`` (default: :func:`root`)."""
+    r = Path(root_dir) if root_dir is not None else root()
     if not r.is_dir():
         return []
     return sorted(p.name for p in r.iterdir() if _is_camera(p))
