@@ -72,7 +72,7 @@ def test_available_resolve_and_summary(env):
     assert shipped.pretrained_dir(NAME) == root / NAME
     assert shipped.resolve_run(f"pretrained:{NAME}") == root / NAME
     assert shipped.resolve_run("some/run") == Path("some/run")
-    assert shipped.resolve_run(Path("pretrained:x")) == Path("pretrained:x")  # only the string form is a spec
+    assert shipped.resolve_run(Path(f"pretrained:{NAME}")) == root / NAME  # a Path made from a spec too
     assert shipped.summary(NAME) == card(root)["summary"] and "\n" not in shipped.summary(NAME)
     with pytest.raises(InputError, match=rf"no pre-trained camera 'nope' \(available: {NAME}; .*hsicam pretrained"):
         shipped.pretrained_dir("nope")
@@ -220,6 +220,9 @@ def test_simulate_reconstruct_with_a_pretrained_camera_leave_it_unchanged(env, t
     assert bands_a.matches(cfg.bands.to_bands())
     res = run_cli("export-optics", "--run", spec, "--out", str(tmp_path / "fab"))
     assert res.returncode == 0, res.stderr
+    from hsicam.export import export_optics  # the library too: a Path made from the spec
+
+    assert export_optics(Path(spec), tmp_path / "fab2")["doe"]["cells_across"] > 0
     assert tree_digest(root) == before
 
 

@@ -86,8 +86,8 @@ def pretrained_dir(name: str) -> Path:
 
 
 def is_spec(spec: str | Path) -> bool:
-    """True for a run specification ``pretrained:NAME``."""
-    return isinstance(spec, str) and spec.startswith(PREFIX)
+    """True for a run specification ``pretrained:NAME`` (a string, or a Path made from one)."""
+    return str(spec).startswith(PREFIX)
 
 
 def resolve_run(spec: str | Path) -> Path:
