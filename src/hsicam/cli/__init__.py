@@ -34,6 +34,7 @@ COMMAND_MODULES = (
     "hsicam.cli.demo",
     "hsicam.cli.baselines",
     "hsicam.cli.fabrication",
+    "hsicam.cli.pretrained",
 )
 
 
@@ -59,6 +60,24 @@ def add_config_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--config", metavar="FILE", help="YAML config (default: built-in paper camera)")
     p.add_argument("--set", dest="overrides", metavar="KEY=VALUE", action="append", default=[],
                    help="dotted override, e.g. camera.doe.enabled=false (repeatable)")
+
+
+def run_folder(spec: str) -> Path:
+    """argparse ``type`` of every ``--run``: a run folder, or ``pretrained:NAME`` (a camera shipped
+    with the package, :func:`hsicam.runs.pretrained.resolve_run`); a bad name is a usage error
+    listing the shipped names."""
+    from hsicam.runs.pretrained import resolve_run
+
+    try:
+        return resolve_run(spec)
+    except HsicamError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+
+
+def add_run_arg(p: argparse.ArgumentParser, help: str, required: bool = True) -> None:
+    """The ``--run RUN`` option: a run folder or ``pretrained:NAME`` (see :func:`run_folder`)."""
+    p.add_argument("--run", required=required, type=run_folder, metavar="RUN",
+                   help=f"{help}, or pretrained:NAME (a shipped camera, see `hsicam pretrained`)")
 
 
 def config_from_args(path: str | Path | None, overrides: Sequence[str] = ()):
@@ -87,12 +106,15 @@ def config_from_args(path: str | Path | None, overrides: Sequence[str] = ()):
 
 def prepare_output(path: str | Path, kind: str = "dir") -> Path:
     """Before any work: :func:`hsicam.io.check_output_path` (one-line error for an output that cannot
-    work), then remove the hidden temporary siblings (``.NAME.XXXXXXXX.tmpdir`` …) that an earlier,
-    killed run of a command left next to this output."""
+    work; a shipped pre-trained camera, which is read-only), then remove the hidden temporary
+    siblings (``.NAME.XXXXXXXX.tmpdir`` …) that an earlier, killed run of a command left next to
+    this output."""
     import shutil
 
     from hsicam.io import check_output_path, is_temporary
+    from hsicam.runs.pretrained import check_not_pretrained
 
+    check_not_pretrained(path)
     out = check_output_path(path, kind)
     parent = Path(out).parent
     if parent.is_dir():

@@ -10,7 +10,7 @@ import numpy as np
 import torch
 
 from hsicam.cameras import build_camera
-from hsicam.cli import add_config_args, config_from_args, prepare_output
+from hsicam.cli import add_config_args, add_run_arg, config_from_args, prepare_output
 from hsicam.config import dump_yaml
 from hsicam.errors import InputError
 from hsicam.io import atomic_open, atomic_output, write_json, write_npy, write_png16
@@ -32,7 +32,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--boundary", choices=("same", "valid"), default="same",
                    help="same: sensor as large as the scene (padded); valid: sensor smaller by the kernel margin")
     p.add_argument("--seed", type=int, default=0, help="seed for DOE height noise and sensor noise")
-    p.add_argument("--run", metavar="RUN", help="use the trained optics of this run (its config.yaml; --set still applies)")
+    add_run_arg(p, "use the trained optics of this run (its config.yaml; --set still applies)", required=False)
     p.set_defaults(func=cmd_simulate)
 
 

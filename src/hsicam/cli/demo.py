@@ -21,7 +21,10 @@ def cmd_demo(args: argparse.Namespace) -> int:
     from hsicam.engine.demo import demo_config, means_line, run_demo
     from hsicam.engine.experiments import is_finished
 
+    from hsicam.runs.pretrained import check_not_pretrained
+
     t0 = time.perf_counter()
+    check_not_pretrained(args.out)  # the demo trains and writes in place: never into a shipped camera
     out = Path(args.out)
     cfg = demo_config(args.config, tuple(args.overrides))
     run = out / "run"

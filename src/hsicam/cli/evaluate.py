@@ -6,7 +6,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from hsicam.cli import add_config_args, config_from_args
+from hsicam.cli import add_config_args, add_run_arg, config_from_args
 from hsicam.errors import InputError
 
 
@@ -16,7 +16,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 
     p = sub.add_parser("evaluate", help="evaluate a camera + reconstruction method on a dataset")
     add_config_args(p)
-    p.add_argument("--run", metavar="RUN", help="trained run folder (needed by learned methods)")
+    add_run_arg(p, "trained run folder (needed by learned methods)", required=False)
     p.add_argument("--method", default="doe-rdn", choices=method_names())
     p.add_argument("--data", metavar="DIR", help="folder of supported cube files (default: the synthetic validation split)")
     p.add_argument("--out", required=True, metavar="DIR")

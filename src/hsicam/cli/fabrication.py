@@ -24,8 +24,10 @@ def _ints(text: str) -> tuple[int, ...]:
 
 
 def register(sub: argparse._SubParsersAction) -> None:
+    from hsicam.cli import add_run_arg
+
     p = sub.add_parser("export-optics", help="fabrication files: DOE heights (npy/tiff/csv/gds), CFA spectra and fits, spec.json")
-    p.add_argument("--run", required=True, metavar="RUN", help="trained run folder")
+    add_run_arg(p, "trained run folder")
     p.add_argument("--out", required=True, metavar="DIR", help="output folder")
     p.add_argument("--levels", type=int, default=None, metavar="L",
                    help="DOE height levels for lithography, a power of 2 (default: the run's, else 8)")
@@ -34,7 +36,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=cmd_export)
 
     p = sub.add_parser("tolerance", help="PSNR of the trained camera under fabrication and assembly errors")
-    p.add_argument("--run", required=True, metavar="RUN", help="trained run folder")
+    add_run_arg(p, "trained run folder")
     p.add_argument("--out", required=True, metavar="DIR", help="output folder (tolerance.json, .csv, .png)")
     p.add_argument("--data", metavar="PATH", help="scenes to evaluate on (default: the run's validation scenes)")
     p.add_argument("--max-scenes", type=int, default=8)
@@ -51,7 +53,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=cmd_tolerance)
 
     p = sub.add_parser("finetune", help="adapt a run's network to measured PSFs (optics frozen)")
-    p.add_argument("--run", required=True, metavar="RUN", help="trained run folder")
+    add_run_arg(p, "trained run folder")
     p.add_argument("--psf-dir", required=True, metavar="DIR", help="measured PSFs: one image per band (see docs)")
     p.add_argument("--out", required=True, metavar="RUN2", help="new run folder")
     p.add_argument("--psf-pitch-um", type=float, default=None, help="pixel pitch of the PSF images (else psf.json)")

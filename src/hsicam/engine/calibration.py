@@ -28,6 +28,7 @@ from hsicam.errors import InputError
 from hsicam.io import write_json
 from hsicam.runs.folder import load_run, with_measured_psf
 from hsicam.runs.measured_psf import MEASURED_PSF_FILE, MeasuredPSF, load_measured_psf, save_measured_psf
+from hsicam.runs.pretrained import resolve_run
 
 log = logging.getLogger(__name__)
 
@@ -85,7 +86,7 @@ def finetune(run_dir: str | Path, psf_dir: str | Path, out_dir: str | Path, *, o
     ``train.lr=1e-4``); the optics keys must not change. Returns the summary written to
     ``finetune.json``: validation PSNR/SSIM/SAM with the measured PSFs before and after.
     """
-    run_dir, out_dir = Path(run_dir), Path(out_dir)
+    run_dir, out_dir = resolve_run(run_dir), Path(out_dir)  # run_dir may be pretrained:NAME
     if out_dir.resolve() == run_dir.resolve():
         raise InputError("--out must be a new run folder, not the run being fine-tuned")
     cfg, base = load_run(run_dir, "cpu", tuple(overrides))

@@ -38,6 +38,7 @@ from hsicam.config import load_config
 from hsicam.engine.prior import load_prior
 from hsicam.errors import InputError
 from hsicam.runs.folder import load_run
+from hsicam.runs.pretrained import resolve_run
 from hsicam.solvers.choi import admm_prior
 from hsicam.solvers.desci import desci, desci_settings
 from hsicam.solvers.gaptv import gap_tv
@@ -163,7 +164,7 @@ def _learned_cassi(name: str, network: str) -> Builder:
         if run is None:
             raise InputError(f"method {name} needs --run RUN (trained with `hsicam train --set camera.kind=dd_cassi "
                              f"--set model.kind={network}`)")
-        cfg_path = Path(run) / "config.yaml"
+        cfg_path = resolve_run(run) / "config.yaml"
         if cfg_path.is_file():
             run_cfg = load_config(cfg_path)
             if run_cfg.camera.kind != "dd_cassi":

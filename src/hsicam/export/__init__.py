@@ -87,8 +87,9 @@ def export_optics(run_dir: str | Path, out_dir: str | Path, levels: int | None =
     from hsicam.io import atomic_output, check_output_path
     from hsicam.runs.folder import load_run
     from hsicam.runs.checkpoint import root_weights_path
+    from hsicam.runs.pretrained import resolve_run
 
-    run_dir, out = Path(run_dir), Path(out_dir)
+    run_dir, out = resolve_run(run_dir), Path(out_dir)  # run_dir may be pretrained:NAME
     check_output_path(out, "dir")
     cfg, model = load_run(run_dir, "cpu")
     for name, t in model.state_dict().items():

@@ -10,7 +10,8 @@ Layout (written by :func:`hsicam.engine.loop.fit` and its tasks)::
     RUN/measured_psf.safetensors  (fine-tuned runs) the measured PSFs the run images with
 
 A run is rebuilt from its config through the registries (camera kind, network kind), so
-:func:`load_run` works for every camera and network.
+:func:`load_run` works for every camera and network. ``load_run("pretrained:NAME")`` loads a
+camera shipped with the package (:mod:`hsicam.runs.pretrained`).
 """
 
 from __future__ import annotations
@@ -28,6 +29,7 @@ from hsicam.errors import InputError
 from hsicam.io import atomic_open, cleanup_stale_temporaries, is_temporary
 from hsicam.runs.checkpoint import LEGACY_POINTERS, MANIFEST, CheckpointManager, load_weights, root_weights_path
 from hsicam.runs.measured_psf import MEASURED_PSF_FILE, MeasuredPSF, load_measured_psf
+from hsicam.runs.pretrained import resolve_run
 
 log = logging.getLogger(__name__)
 
@@ -47,13 +49,14 @@ def with_measured_psf(model, measured: MeasuredPSF):
 def load_run(run_dir: str | Path, device: torch.device | str = "cpu", overrides: tuple[str, ...] = ()):
     """(config, CameraSystem) of a trained run, weights from ``RUN/model.safetensors``; a run
     fine-tuned on measured PSFs (``RUN/measured_psf.safetensors``) images with those PSFs.
+    ``run_dir`` may be ``pretrained:NAME``, a camera shipped with the package.
 
     Raises :class:`InputError` for a missing folder, missing/corrupt weights or another band grid.
     """
     from hsicam.config import load_config
     from hsicam.models import CameraSystem
 
-    run_dir = Path(run_dir)
+    run_dir = resolve_run(run_dir)
     if not run_dir.is_dir():
         raise InputError(f"{run_dir}: no such run folder")
     cfg_path = run_dir / "config.yaml"

@@ -1,0 +1,339 @@
+"""Packing a finished run as a shipped pre-trained camera, with its model card.
+
+``pack_pretrained(RUN, NAME)`` copies the run's ``config.yaml`` and best weights into
+``ROOT/NAME/`` (ROOT: :func:`hsicam.runs.pretrained.root`) and writes the card: ``card.json``
+(:func:`card_fields`) and ``card.md`` (:func:`card_markdown`, the one place the card's text is
+made). Everything in the card is read from the run (config, ``metrics.jsonl``, weights) and from
+an optional ``results.json`` of ``hsicam demo`` / ``hsicam evaluate``; nothing is typed in.
+"""
+
+from __future__ import annotations
+
+import datetime
+import hashlib
+import json
+import shutil
+from pathlib import Path
+from typing import Any
+
+from hsicam.errors import InputError
+from hsicam.io import atomic_open, atomic_output, write_json
+from hsicam.runs import pretrained as shipped
+from hsicam.runs.checkpoint import root_weights_path
+from hsicam.runs.folder import load_run
+from hsicam.runs.measured_psf import MEASURED_PSF_FILE
+
+CARD_FORMAT = "hsicam-pretrained-card-1"
+METRICS = ("psnr", "ssim", "sam")
+
+
+# ------------------------------------------------------------------------------------------------
+# Reading the run and its results
+# ------------------------------------------------------------------------------------------------
+def final_record(run_dir: Path) -> dict[str, Any]:
+    """The run's final ``metrics.jsonl`` record (written when training finished); InputError otherwise."""
+    path = Path(run_dir) / "metrics.jsonl"
+    if not path.is_file():
+        raise InputError(f"{run_dir}: no metrics.jsonl: not a finished run (train it first)")
+    records = []
+    for line in path.read_text(encoding="utf-8", errors="replace").splitlines():
+        try:
+            records.append(json.loads(line))
+        except json.JSONDecodeError:
+            continue
+    final = [r for r in records if isinstance(r, dict) and r.get("final")]
+    if not final:
+        raise InputError(f"{run_dir}: the run has not finished (no final record in metrics.jsonl); "
+                         "finish it with `hsicam train --resume --out RUN` before packing")
+    return final[-1]
+
+
+def _means(block: Any, source: Path, what: str) -> dict[str, float]:
+    if not isinstance(block, dict) or not all(isinstance(block.get(k), (int, float)) for k in METRICS):
+        raise InputError(f"{source}: {what} has no mean PSNR/SSIM/SAM (not a results.json of `hsicam demo` "
+                         "or `hsicam evaluate`)")
+    return {k: float(block[k]) for k in METRICS}
+
+
+def _references(entries: Any, source: Path) -> list[dict[str, Any]]:
+    if entries is None:
+        return []
+    if not isinstance(entries, list):
+        raise InputError(f"{source}: 'references' is not a list")
+    return [{"method": str(r.get("method")), "mean": _means(r.get("mean"), source, f"reference {r.get('method')!r}")}
+            for r in entries if isinstance(r, dict)]
+
+
+def _read_results(path: str | Path) -> dict[str, Any]:
+    path = Path(path)
+    try:
+        data = json.loads(path.read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        raise InputError(f"{path}: no such results file") from None
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise InputError(f"{path}: unreadable results.json ({getattr(exc, 'msg', None) or exc})") from None
+    if not isinstance(data, dict):
+        raise InputError(f"{path}: unreadable results.json (not a JSON object)")
+    return data
+
+
+def _scene_block(data: dict[str, Any], source: Path, data_label: str) -> dict[str, Any]:
+    return {"source": str(source), "data": str(data.get("data") or data_label),
+            "n_scenes": len(data.get("scenes") or []), "mean": _means(data.get("mean"), source, "'mean'"),
+            "references": _references(data.get("references"), source)}
+
+
+def results_metrics(results: str | Path | None, heldout: str | Path | None = None) -> dict[str, Any]:
+    """Validation and held-out-sources means (and the network-free references) of a results.json.
+
+    ``results``: a results.json of ``hsicam demo`` or ``hsicam evaluate`` (keys ``mean``,
+    ``references``, ``heldout``). ``heldout``: a results.json of an evaluation on held-out data,
+    used instead of ``results``' own ``heldout`` section."""
+    out: dict[str, Any] = {"validation": None, "heldout": None}
+    if results is not None:
+        data = _read_results(results)
+        out["validation"] = _scene_block(data, Path(results), "validation scenes")
+        if isinstance(data.get("heldout"), dict):
+            out["heldout"] = _scene_block(data["heldout"], Path(results), "held-out spectral sources")
+    if heldout is not None:
+        data = _read_results(heldout)
+        out["heldout"] = _scene_block(data.get("heldout") if isinstance(data.get("heldout"), dict) else data,
+                                      Path(heldout), "held-out data")
+    return out
+
+
+def matching_preset(cfg) -> str | None:
+    """The shipped preset whose resolved config equals ``cfg`` (None: a config of its own)."""
+    from hsicam.config import PRESETS_DIR, dump_yaml, load_config
+
+    text = dump_yaml(cfg)
+    for p in sorted(PRESETS_DIR.glob("*.yaml")):
+        try:
+            if dump_yaml(load_config(p)) == text:
+                return p.stem
+        except InputError:  # pragma: no cover - a preset that does not load is another test's failure
+            continue
+    return None
+
+
+def _training_data(cfg) -> dict[str, Any]:
+    d = cfg.data
+    if d.root is not None:
+        return {"kind": "folder", "root": str(d.root), "note": "the maintainer's own scene folder (data.root)"}
+    from hsicam.data.spectral_sources import SOURCES, parse_holdout
+    from hsicam.data.synthetic import GENERATOR_VERSION
+
+    held = list(parse_holdout(d.holdout_sources))
+    return {"kind": "embedded synthetic generator", "generator_version": GENERATOR_VERSION,
+            "scenes": d.synthetic_n, "scene_px": d.synthetic_size, "seed": d.synthetic_seed,
+            "validation_fraction": d.val_fraction, "holdout_sources": held,
+            "sources": [{"id": s.id, "role": s.role, "origin": s.origin}
+                        for s in SOURCES.values() if s.id not in held]}
+
+
+# ------------------------------------------------------------------------------------------------
+# The card
+# ------------------------------------------------------------------------------------------------
+def card_fields(run_dir: str | Path, name: str, results: str | Path | None = None, heldout: str | Path | None = None,
+                *, summary: str | None = None, preset: str | None = None) -> dict[str, Any]:
+    """The machine-readable model card (``card.json``) of the finished run ``run_dir`` packed as ``name``."""
+    import torch
+
+    run_dir = Path(run_dir)
+    final = final_record(run_dir)
+    cfg, model = load_run(run_dir)
+    for key, t in model.state_dict().items():
+        if t.is_floating_point() and not bool(torch.isfinite(t).all()):
+            raise InputError(f"{run_dir}: NaN/Inf in the weights ({key}); nothing packed")
+    bands = model.camera.bands
+    weights = root_weights_path(run_dir)
+    preset = preset or matching_preset(cfg)
+    cam, t = cfg.camera, cfg.train
+    n_net = sum(p.numel() for p in model.net.parameters())
+    n_cam = sum(p.numel() for p in model.camera.parameters())
+    data = _training_data(cfg)
+    cfa = cam.cfa.period if cam.kind == "doe" and cam.cfa.enabled else None
+    if summary is None:
+        on = ("the embedded synthetic data" if cfg.data.root is None else "its own scene folder")
+        summary = (f"{cam.kind.upper()} camera{f' with a {cfa}×{cfa} CFA' if cfa else ''} + {cfg.model.kind} network "
+                   f"({n_net:,} parameters), {len(bands)} bands {bands.centers_nm[0]:g}–{bands.centers_nm[-1]:g} nm, "
+                   f"{final.get('step')} steps on {on}")
+    val_log = {k: final.get(f"val_{k}") for k in METRICS}
+    return {
+        "format": CARD_FORMAT,
+        "name": name,
+        "summary": " ".join(str(summary).split()),
+        "preset": preset,
+        "packed_utc": datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ"),
+        "hsicam_version": _version(),
+        "source_run": str(run_dir),
+        "camera": {"kind": cam.kind, "cfa_period": cfa, "pixel_pitch_um": cam.sensor.pixel_pitch_um,
+                   "aperture_radius_mm": cam.aperture_radius_mm, "focal_length_mm": cam.lens.focal_length_mm,
+                   "kernel_px": getattr(model.camera, "kernel_px", None), "trainable_parameters": n_cam},
+        "network": {"kind": cfg.model.kind, "parameters": n_net, "context_px": model.context_px},
+        "bands": {"start_nm": cfg.bands.start_nm, "stop_nm": cfg.bands.stop_nm, "step_nm": cfg.bands.step_nm,
+                  "count": len(bands), "centers_nm": [float(x) for x in bands.centers_nm]},
+        "noise": {"train_sensor_sigma": list(t.sensor_sigma), "train_sigma_height_nm": list(t.sigma_height_nm),
+                  "sensor_noise_model": cam.sensor.noise, "sensor_sigma": cam.sensor.sigma,
+                  "full_well_e": cam.sensor.full_well_e, "read_noise_e": cam.sensor.read_noise_e,
+                  "doe_sigma_height_nm": cam.doe.sigma_height_nm if cam.kind == "doe" else None},
+        "training": {"data": data, "steps": final.get("step"), "epochs": cfg.train.epochs,
+                     "elapsed_s": final.get("elapsed_s"), "patches_per_s": final.get("patches_per_s"),
+                     "batch_size": t.batch_size, "patch_px": cfg.data.patch_px,
+                     "patches_per_epoch": cfg.data.patches_per_epoch},
+        "metrics": {"training_log": {"what": "validation patches at the end of training (metrics.jsonl)",
+                                     **val_log, "best_psnr": final.get("best_psnr")},
+                    **results_metrics(results, heldout)},
+        "weights": {"file": "model.safetensors", "bytes": weights.stat().st_size, "sha256": _sha256(weights)},
+        "limits": _limits(cfg, name, bands, cfa, data),
+    }
+
+
+def _limits(cfg, name: str, bands, cfa: int | None, data: dict[str, Any]) -> list[str]:
+    t = cfg.train
+    out = []
+    if data["kind"] == "folder":
+        out.append("trained on the maintainer's own scene folder, not on real captures of this camera")
+    else:
+        out.append(f"trained only on synthetic scenes (embedded generator version {data['generator_version']}, "
+                   f"{data['scenes']} scenes of {data['scene_px']} px); real scenes may differ in content and spectra")
+    out.append(f"band grid {bands.centers_nm[0]:g}–{bands.centers_nm[-1]:g} nm in {cfg.bands.step_nm:g} nm steps "
+               f"({len(bands)} bands); cubes on other grids are resampled, outside the range refused")
+    sensor = f"pixel pitch {cfg.camera.sensor.pixel_pitch_um:g} µm"
+    out.append(f"the sensor must match the simulated one: {sensor}" + (f", {cfa}×{cfa} CFA period" if cfa else ""))
+    out.append(f"trained with sensor noise σ_s in [{t.sensor_sigma[0]:g}, {t.sensor_sigma[1]:g}] "
+               f"({cfg.camera.sensor.noise} model) and DOE height noise σ_p in "
+               f"[{t.sigma_height_nm[0]:g}, {t.sigma_height_nm[1]:g}] nm; noisier captures reconstruct worse")
+    out.append("a built camera differs from the simulation: measure its PSFs and adapt the network with "
+               f"`hsicam finetune --run pretrained:{name} --psf-dir PSFS --out RUN2` before reconstructing real captures")
+    return out
+
+
+def _version() -> str | None:
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        return version("hsicam")
+    except PackageNotFoundError:  # pragma: no cover - a source tree that was never installed
+        return None
+
+
+def _sha256(path: Path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for chunk in iter(lambda: fh.read(1 << 20), b""):
+            h.update(chunk)
+    return h.hexdigest()
+
+
+def _duration(seconds: float) -> str:
+    return f"{seconds:.1f} s" if seconds < 120 else f"{seconds / 60:.1f} min"
+
+
+def _fmt_means(m: dict[str, Any] | None) -> tuple[str, str, str]:
+    if not m or any(m.get(k) is None for k in METRICS):
+        return ("–", "–", "–")
+    return (f"{m['psnr']:.2f}", f"{m['ssim']:.4f}", f"{m['sam']:.2f}")
+
+
+def card_markdown(card: dict[str, Any]) -> str:
+    """``card.md``: the model card for people, made only from ``card`` (:func:`card_fields`)."""
+    name, b, tr, m, nz = card["name"], card["bands"], card["training"], card["metrics"], card["noise"]
+    data = tr["data"]
+    lines = [f"# Pre-trained camera `{name}`", "", card["summary"], "",
+             f"Use it with `--run pretrained:{name}` (e.g. `hsicam reconstruct SENSOR --run pretrained:{name} "
+             f"--out cube.h5`); copy it with `hsicam pretrained copy {name} DIR`.", "",
+             "## Camera and network", "",
+             f"- camera: {card['camera']['kind']}" + (f", {card['camera']['cfa_period']}×{card['camera']['cfa_period']} "
+                                                      "CFA" if card['camera']['cfa_period'] else "")
+             + f", pixel pitch {card['camera']['pixel_pitch_um']:g} µm, PSF kernel {card['camera']['kernel_px']} px",
+             f"- network: {card['network']['kind']}, {card['network']['parameters']:,} parameters",
+             f"- bands: {b['count']} bands, {b['centers_nm'][0]:g}–{b['centers_nm'][-1]:g} nm in {b['step_nm']:g} nm steps",
+             f"- preset: {card['preset'] or 'a config of its own (see config.yaml)'}", "",
+             "## Training", ""]
+    if data["kind"] == "folder":
+        lines.append(f"- data: {data['note']} ({data['root']})")
+    else:
+        lines.append(f"- data: the {data['kind']} (version {data['generator_version']}): {data['scenes']} scenes of "
+                     f"{data['scene_px']} px, seed {data['seed']}; spectral sources "
+                     f"{', '.join(s['id'] for s in data['sources'])}; held out of training: "
+                     f"{', '.join(data['holdout_sources']) or 'none'}")
+    elapsed = tr.get("elapsed_s")
+    lines += [f"- {tr['steps']} steps ({tr['epochs']} epochs, batch {tr['batch_size']}, {tr['patch_px']} px patches)"
+              + (f" in {_duration(elapsed)}" if isinstance(elapsed, (int, float)) else ""),
+              f"- noise: sensor σ_s in {nz['train_sensor_sigma']} ({nz['sensor_noise_model']} model), DOE height "
+              f"σ_p in {nz['train_sigma_height_nm']} nm", "",
+              "## Numbers", ""]
+    log = m["training_log"]
+    p, s, a = _fmt_means(log)
+    lines.append(f"Validation patches at the end of training: PSNR {p} dB, SSIM {s}, SAM {a}°.")
+    lines.append("")
+    val, held = m.get("validation"), m.get("heldout")
+    if val or held:
+        lines += ["| method | validation PSNR (dB) | SSIM | SAM (°) | held-out sources PSNR (dB) | SSIM | SAM (°) |",
+                  "|---|---|---|---|---|---|---|"]
+        lines.append(f"| {name} | " + " | ".join((*_fmt_means(val and val["mean"]), *_fmt_means(held and held["mean"])))
+                     + " |")
+        refs = [r["method"] for r in (val or {}).get("references", [])]
+        refs += [r["method"] for r in (held or {}).get("references", []) if r["method"] not in refs]
+        for ref in refs:
+            v = next((r["mean"] for r in (val or {}).get("references", []) if r["method"] == ref), None)
+            h = next((r["mean"] for r in (held or {}).get("references", []) if r["method"] == ref), None)
+            lines.append(f"| {ref} | " + " | ".join((*_fmt_means(v), *_fmt_means(h))) + " |")
+        lines.append("")
+        for what, blk in (("validation", val), ("held-out sources", held)):
+            if blk:
+                lines.append(f"- {what}: {blk['n_scenes']} scenes, {blk['data']} (from {Path(blk['source']).name})")
+        lines.append("")
+    else:
+        lines += ["No results.json was given when packing: no scene-level numbers.", ""]
+    lines += ["## Limits", "", *(f"- {x}" for x in card["limits"]), "",
+              f"Weights: {card['weights']['bytes'] / 1e6:.2f} MB, sha256 {card['weights']['sha256']}; "
+              f"packed {card['packed_utc']} with hsicam {card['hsicam_version']}.", ""]
+    return "\n".join(lines)
+
+
+# ------------------------------------------------------------------------------------------------
+# Packing
+# ------------------------------------------------------------------------------------------------
+def pack_pretrained(run_dir: str | Path, name: str, dest_root: str | Path | None = None,
+                    results: str | Path | None = None, heldout: str | Path | None = None, *,
+                    summary: str | None = None, preset: str | None = None, overwrite: bool = False) -> Path:
+    """Pack the finished run ``run_dir`` as the pre-trained camera ``name`` under ``dest_root``
+    (default: :func:`hsicam.runs.pretrained.root`); returns its folder.
+
+    Refuses (one-line :class:`InputError`, nothing written) a run that has not finished, a
+    fine-tuned run (its measured PSFs are not shipped), weights over
+    :data:`hsicam.runs.pretrained.MAX_WEIGHTS_BYTES` and an existing camera unless ``overwrite``.
+    The folder is written under a temporary name and renamed into place."""
+    run_dir = Path(run_dir)
+    shipped.check_name(name)
+    if shipped.is_spec(str(run_dir)):
+        raise InputError(f"{run_dir}: already a pre-trained camera; pack a run folder")
+    if not (run_dir / "config.yaml").is_file():
+        raise InputError(f"{run_dir}: not a run folder (config.yaml is missing)" if run_dir.is_dir()
+                         else f"{run_dir}: no such run folder")
+    final_record(run_dir)
+    if not (run_dir / "model.safetensors").is_file():
+        raise InputError(f"{run_dir}: the run has no final weights (model.safetensors is missing)")
+    if (run_dir / MEASURED_PSF_FILE).is_file():
+        raise InputError(f"{run_dir}: a fine-tuned run (measured PSFs) cannot be shipped; pack the run trained on "
+                         "simulated optics")
+    weights = root_weights_path(run_dir)
+    size, limit = weights.stat().st_size, shipped.MAX_WEIGHTS_BYTES
+    if size > limit:
+        raise InputError(f"{weights}: {size / 1e6:.1f} MB of weights, more than the {limit / 1e6:g} MB a shipped "
+                         "camera may have; train a smaller network")
+    dest = Path(dest_root) if dest_root is not None else shipped.root()
+    target = dest / name
+    if target.exists() and not overwrite:
+        raise InputError(f"{target}: a pre-trained camera {name!r} exists; pass --force to replace it")
+    card = card_fields(run_dir, name, results, heldout, summary=summary, preset=preset)
+    text = card_markdown(card)
+    with atomic_output(target, "dir", overwrite=True, marker={"command": "pretrained pack"}) as tmp:
+        shutil.copyfile(run_dir / "config.yaml", tmp / "config.yaml")
+        shutil.copyfile(weights, tmp / "model.safetensors")
+        write_json(tmp / shipped.CARD_JSON, card)
+        with atomic_open(tmp / shipped.CARD_MD, "w", encoding="utf-8") as fh:
+            fh.write(text)
+    return target

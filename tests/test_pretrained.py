@@ -1,0 +1,271 @@
+"""Shipped pre-trained cameras (issue 16's machinery): packing, the card, `--run pretrained:NAME`
+everywhere, the read-only guard, `hsicam pretrained` (list, show, copy, pack).
+
+The module fixture trains the tiny preset for one epoch and evaluates it with `hsicam demo`'s
+engine (the real producer of results.json), then packs it into a temporary root that
+``HSICAM_PRETRAINED_DIR`` points at. ``test_shipped_cameras`` checks the package's real folder.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from cli_helpers import assert_clean_error, run_cli
+from hsicam.errors import InputError
+from hsicam.runs import pretrained as shipped
+from hsicam.runs.folder import load_run
+
+NAME = "tinycam"
+CARD_KEYS = {"format", "name", "summary", "preset", "camera", "network", "bands", "noise", "training", "metrics",
+             "weights", "limits"}
+
+
+@pytest.fixture(scope="module")
+def trained(tmp_path_factory, cache_env):
+    """(run folder, demo results.json, pretrained root holding NAME) of a tiny run trained for one epoch."""
+    from hsicam.config import load_config
+    from hsicam.engine.demo import run_demo
+    from hsicam.engine.pretrained import pack_pretrained
+
+    base = tmp_path_factory.mktemp("pretrained")
+    run_demo(load_config("tiny", ["train.epochs=1"]), base / "demo")
+    run, results = base / "demo" / "run", base / "demo" / "results.json"
+    root = base / "root"
+    pack_pretrained(run, NAME, root, results)
+    return run, results, root
+
+
+@pytest.fixture
+def env(trained, monkeypatch):
+    """HSICAM_PRETRAINED_DIR set to the fixture's root (for this process and CLI subprocesses)."""
+    monkeypatch.setenv(shipped.ENV_VAR, str(trained[2]))
+    return trained
+
+
+def tree_digest(folder: Path) -> dict[str, str]:
+    """{relative path: sha256} of every file and folder (folders: 'dir') below ``folder``."""
+    return {str(p.relative_to(folder)): ("dir" if p.is_dir() else hashlib.sha256(p.read_bytes()).hexdigest())
+            for p in sorted(folder.rglob("*"))}
+
+
+def final_record(run: Path) -> dict:
+    return [json.loads(x) for x in (run / "metrics.jsonl").read_text().splitlines() if x.strip()][-1]
+
+
+def card(root: Path) -> dict:
+    return json.loads((root / NAME / "card.json").read_text())
+
+
+# ------------------------------------------------------------------------------------------------
+# Library
+# ------------------------------------------------------------------------------------------------
+def test_available_resolve_and_summary(env):
+    _, _, root = env
+    assert shipped.available() == [NAME]
+    assert shipped.pretrained_dir(NAME) == root / NAME
+    assert shipped.resolve_run(f"pretrained:{NAME}") == root / NAME
+    assert shipped.resolve_run("some/run") == Path("some/run")
+    assert shipped.resolve_run(Path(f"pretrained:{NAME}")) == root / NAME  # a Path made from a spec too
+    assert shipped.summary(NAME) == card(root)["summary"] and "\n" not in shipped.summary(NAME)
+    with pytest.raises(InputError, match=rf"no pre-trained camera 'nope' \(available: {NAME}; .*hsicam pretrained"):
+        shipped.pretrained_dir("nope")
+
+
+def test_no_cameras_in_an_empty_root(tmp_path, monkeypatch):
+    monkeypatch.setenv(shipped.ENV_VAR, str(tmp_path / "absent"))
+    assert shipped.available() == []
+    with pytest.raises(InputError, match="none is shipped"):
+        shipped.resolve_run("pretrained:standard")
+    res = run_cli("pretrained")
+    assert res.returncode == 0, res.stderr
+    assert "no pre-trained cameras" in res.stdout
+
+
+def test_load_run_of_a_pretrained_camera_equals_the_run(env):
+    run, _, _ = env
+    cfg_a, a = load_run(run)
+    cfg_b, b = load_run(f"pretrained:{NAME}")
+    assert b.bands.matches(a.bands) and cfg_b.bands == cfg_a.bands
+    sa, sb = a.state_dict(), b.state_dict()
+    assert sa.keys() == sb.keys()
+    for k in sa:
+        assert sa[k].equal(sb[k]), k
+
+
+def test_card_numbers_come_from_the_run_and_results(env):
+    run, results, root = env
+    c = card(root)
+    assert CARD_KEYS <= set(c)
+    res = json.loads(results.read_text())
+    final = final_record(run)
+    cfg, model = load_run(run)
+    m = c["metrics"]
+    for k in ("psnr", "ssim", "sam"):
+        assert m["validation"]["mean"][k] == res["mean"][k]
+        assert m["heldout"]["mean"][k] == res["heldout"]["mean"][k]
+        assert m["training_log"][k] == final[f"val_{k}"]
+    assert [r["method"] for r in m["validation"]["references"]] == [r["method"] for r in res["references"]]
+    for got, want in zip(m["validation"]["references"], res["references"]):
+        assert got["mean"] == {k: want["mean"][k] for k in ("psnr", "ssim", "sam")}
+    assert m["validation"]["n_scenes"] == len(res["scenes"]) and m["heldout"]["n_scenes"] == len(res["heldout"]["scenes"])
+    assert c["training"]["steps"] == final["step"] and c["training"]["elapsed_s"] == final["elapsed_s"]
+    assert c["bands"]["centers_nm"] == model.bands.centers_nm.tolist() and c["bands"]["count"] == len(model.bands)
+    assert c["network"]["parameters"] == sum(p.numel() for p in model.net.parameters())
+    assert c["network"]["kind"] == cfg.model.kind and c["camera"]["cfa_period"] == cfg.camera.cfa.period
+    assert c["noise"]["train_sensor_sigma"] == list(cfg.train.sensor_sigma)
+    assert c["training"]["data"]["holdout_sources"] == cfg.data.holdout_sources.split(",")
+    assert c["weights"]["bytes"] == (root / NAME / "model.safetensors").stat().st_size
+    limits = " ".join(c["limits"])
+    assert "synthetic" in limits and f"hsicam finetune --run pretrained:{NAME}" in limits
+    assert f"{c['bands']['centers_nm'][0]:g}–{c['bands']['centers_nm'][-1]:g} nm" in limits
+    md = (root / NAME / "card.md").read_text()
+    assert f"| {NAME} | {res['mean']['psnr']:.2f} | {res['mean']['ssim']:.4f} | {res['mean']['sam']:.2f} | " \
+           f"{res['heldout']['mean']['psnr']:.2f} |" in md
+    for r in res["references"]:
+        assert f"| {r['method']} | {r['mean']['psnr']:.2f} |" in md
+    assert f"{final['step']} steps" in md and "## Limits" in md
+
+
+# ------------------------------------------------------------------------------------------------
+# Packing refusals
+# ------------------------------------------------------------------------------------------------
+def test_pack_refuses_weights_over_the_limit(env, tmp_path, monkeypatch):
+    from hsicam.engine.pretrained import pack_pretrained
+
+    run, _, _ = env
+    monkeypatch.setattr(shipped, "MAX_WEIGHTS_BYTES", (run / "model.safetensors").stat().st_size - 1)
+    with pytest.raises(InputError, match="MB a shipped camera may have"):
+        pack_pretrained(run, "big", tmp_path / "root")
+    assert not (tmp_path / "root").exists() or not any((tmp_path / "root").iterdir())
+    monkeypatch.setattr(shipped, "MAX_WEIGHTS_BYTES", (run / "model.safetensors").stat().st_size)
+    assert (pack_pretrained(run, "big", tmp_path / "root") / "model.safetensors").is_file()  # at the limit: packed
+
+
+def test_pack_refuses_an_unfinished_run_and_an_existing_name(env, tmp_path):
+    from hsicam.engine.pretrained import pack_pretrained
+
+    run, _, root = env
+    unfinished = tmp_path / "unfinished"
+    shutil.copytree(run, unfinished)
+    lines = (unfinished / "metrics.jsonl").read_text().splitlines()
+    (unfinished / "metrics.jsonl").write_text("".join(f"{x}\n" for x in lines if not json.loads(x).get("final")))
+    with pytest.raises(InputError, match="has not finished"):
+        pack_pretrained(unfinished, "x", tmp_path / "root")
+    no_weights = tmp_path / "no_weights"
+    shutil.copytree(run, no_weights)
+    (no_weights / "model.safetensors").unlink()
+    with pytest.raises(InputError, match="no final weights"):
+        pack_pretrained(no_weights, "x", tmp_path / "root")
+    assert not (tmp_path / "root").exists()
+    with pytest.raises(InputError, match="exists; pass --force"):
+        pack_pretrained(run, NAME, root)
+    with pytest.raises(InputError, match="letters, digits"):
+        pack_pretrained(run, "../escape", tmp_path / "root")
+
+
+def test_pack_command(env, tmp_path):
+    run, results, _ = env
+    res = run_cli("pretrained", "pack", str(run), "--name", "other", "--results", str(results),
+                  "--dest", str(tmp_path / "r"))
+    assert res.returncode == 0, res.stderr
+    assert shipped.available(tmp_path / "r") == ["other"]
+    assert json.loads((tmp_path / "r" / "other" / "card.json").read_text())["name"] == "other"
+    assert_clean_error(run_cli("pretrained", "pack", str(tmp_path / "nowhere"), "--name", "x", "--dest", str(tmp_path / "r")),
+                       "no such run folder")
+
+
+# ------------------------------------------------------------------------------------------------
+# The command line
+# ------------------------------------------------------------------------------------------------
+def test_list_show_and_bad_names(env):
+    _, results, root = env
+    c, res = card(root), json.loads(results.read_text())
+    out = run_cli("pretrained")
+    assert out.returncode == 0, out.stderr
+    line = next(x for x in out.stdout.splitlines() if x.startswith(f"{NAME}:"))
+    assert c["summary"] in line and f"{c['bands']['count']} bands" in line
+    assert f"PSNR {res['mean']['psnr']:.2f} dB, SSIM {res['mean']['ssim']:.4f}, SAM {res['mean']['sam']:.2f}°" in line
+    show = run_cli("pretrained", "show", NAME)
+    assert show.returncode == 0 and show.stdout == (root / NAME / "card.md").read_text()
+    assert_clean_error(run_cli("pretrained", "show", "nope"), "'nope'", f"available: {NAME}")
+    assert_clean_error(run_cli("reconstruct", "x.npy", "--run", "pretrained:nope", "--out", "c.h5"),
+                       "argument --run", f"available: {NAME}", "hsicam pretrained")
+
+
+def test_simulate_reconstruct_with_a_pretrained_camera_leave_it_unchanged(env, tmp_path):
+    run, _, root = env
+    before = tree_digest(root)
+    cfg, _ = load_run(run)
+    n_bands = len(cfg.bands.to_bands())
+    np.save(tmp_path / "scene.npy", np.random.default_rng(0).uniform(0.1, 1, (n_bands, 40, 40)).astype(np.float32))
+    spec = f"pretrained:{NAME}"
+    res = run_cli("simulate", "--run", spec, "--scene", str(tmp_path / "scene.npy"), "--out", str(tmp_path / "sim"))
+    assert res.returncode == 0, res.stderr
+    res = run_cli("reconstruct", str(tmp_path / "sim" / "sensor.npy"), "--run", spec, "--out", str(tmp_path / "a.h5"))
+    assert res.returncode == 0, res.stderr
+    res = run_cli("reconstruct", str(tmp_path / "sim" / "sensor.npy"), "--run", str(run), "--out", str(tmp_path / "b.h5"))
+    assert res.returncode == 0, res.stderr
+    from hsicam.data import read_cube
+
+    a, bands_a, _ = read_cube(tmp_path / "a.h5")
+    b, _, _ = read_cube(tmp_path / "b.h5")
+    assert a.shape[0] == n_bands and np.array_equal(a, b)
+    assert bands_a.matches(cfg.bands.to_bands())
+    res = run_cli("export-optics", "--run", spec, "--out", str(tmp_path / "fab"))
+    assert res.returncode == 0, res.stderr
+    from hsicam.export import export_optics  # the library too: a Path made from the spec
+
+    assert export_optics(Path(spec), tmp_path / "fab2")["doe"]["cells_across"] > 0
+    assert tree_digest(root) == before
+
+
+def test_outputs_into_a_pretrained_camera_are_refused(env, tmp_path):
+    _, _, root = env
+    before = tree_digest(root)
+    spec = f"pretrained:{NAME}"
+    assert_clean_error(run_cli("train", "--resume", "--out", spec), "read-only", "hsicam pretrained copy")
+    assert_clean_error(run_cli("train", "--resume", "--out", str(root / NAME)), "read-only")
+    assert_clean_error(run_cli("demo", "--out", spec), "read-only")
+    assert_clean_error(run_cli("tolerance", "--run", spec, "--out", str(root / NAME / "tolerance")), "read-only")
+    assert_clean_error(run_cli("pretrained", "copy", NAME, str(root / "copy")), "read-only")
+    assert tree_digest(root) == before
+
+
+def test_copy_gives_a_writable_run(env, tmp_path):
+    run, _, root = env
+    before = tree_digest(root)
+    res = run_cli("pretrained", "copy", NAME, str(tmp_path / "mine"))
+    assert res.returncode == 0, res.stderr
+    mine = tmp_path / "mine"
+    assert all(os.access(p, os.W_OK) for p in [mine, *mine.iterdir()])
+    assert not shipped.is_pretrained_path(mine)
+    _, a = load_run(mine)
+    _, b = load_run(run)
+    assert all(a.state_dict()[k].equal(v) for k, v in b.state_dict().items())
+    assert_clean_error(run_cli("pretrained", "copy", NAME, str(tmp_path / "mine")), "not an empty folder")
+    assert tree_digest(root) == before
+
+
+# ------------------------------------------------------------------------------------------------
+# The cameras really shipped in the package (none yet: `standard` will be)
+# ------------------------------------------------------------------------------------------------
+@pytest.mark.parametrize("name", shipped.available(shipped.package_root()))
+def test_shipped_cameras(name, monkeypatch):
+    monkeypatch.delenv(shipped.ENV_VAR, raising=False)
+    folder = shipped.pretrained_dir(name)
+    assert folder.parent == shipped.package_root()
+    c = shipped.read_card(name)
+    assert CARD_KEYS <= set(c) and c["name"] == name
+    cfg, model = load_run(f"pretrained:{name}")
+    assert model.bands.centers_nm.tolist() == pytest.approx(c["bands"]["centers_nm"])
+    assert cfg.bands.step_nm == c["bands"]["step_nm"] and len(model.bands) == c["bands"]["count"]
+    size = (folder / "model.safetensors").stat().st_size
+    assert size <= shipped.MAX_WEIGHTS_BYTES and size == c["weights"]["bytes"]
+    assert (folder / "card.md").read_text(encoding="utf-8").startswith(f"# Pre-trained camera `{name}`")
