@@ -7,7 +7,7 @@ from pathlib import Path
 import pytest
 
 from hsicam.cameras import DOECamera
-from hsicam.config import Config, dump_yaml, load_config
+from hsicam.config import PRESETS_DIR, Config, dump_yaml, load_config
 from hsicam.errors import ConfigError
 
 
@@ -172,3 +172,18 @@ def test_exponent_numbers_without_a_dot_are_numbers(tmp_path):
         load_config(overrides=["train.lr=1e-4x"])
     with pytest.raises(ConfigError, match="model.rdn.blocks"):  # integer keys stay strict
         load_config(overrides=["model.rdn.blocks=1e1"])
+
+
+@pytest.mark.parametrize("name", sorted(p.stem for p in PRESETS_DIR.glob("*.yaml")))
+def test_every_preset_loads_and_builds_its_camera_system(name):
+    """Each shipped preset is a valid strict config whose camera and network build (e.g. the
+    `standard` preset of the shipped camera, whose keys a typo would otherwise only reveal in
+    a two-hour training)."""
+    import torch
+
+    from hsicam.models import CameraSystem
+
+    cfg = load_config(name)
+    torch.manual_seed(0)
+    model = CameraSystem.from_config(cfg)
+    assert len(model.bands) == len(cfg.bands.to_bands()) and model.context_px > 0
