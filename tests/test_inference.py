@@ -11,7 +11,7 @@ from hsicam.data.images import read_sensor_image
 from hsicam.models.context import conv_receptive_radius as receptive_radius
 from hsicam.engine.inference import reconstruct_tiled
 from hsicam.errors import InputError
-from hsicam.models import RDN
+from hsicam.models import RDN, CameraSystem
 
 
 def _untrained_but_spatial(net: RDN) -> None:
@@ -153,3 +153,29 @@ def test_untrained_rdn_returns_the_grey_image():
     with torch.no_grad():
         out = net(x)
     torch.testing.assert_close(out, x[:, :1].expand(2, 5, 9, 7))
+
+
+def test_reconstructor_builds_the_operator_once_for_all_tiles(tiny_config):
+    """Tiled inference with ``CameraSystem.reconstructor()`` computes the camera's PSF stack once
+    (the network given the camera would snapshot it per tile) and gives the same cube."""
+    torch.manual_seed(0)
+    model = CameraSystem.from_config(tiny_config("model.kind=unrolled", "model.unrolled.stages=1",
+                                                 "model.unrolled.prior_features=8", "model.unrolled.prior_blocks=1",
+                                                 "model.unrolled.prior_scale=2")).eval()
+    calls = []
+    real = model.camera.snapshot
+
+    def counting(*args, **kwargs):
+        calls.append(1)
+        return real(*args, **kwargs)
+
+    model.camera.snapshot = counting
+    sensor = torch.rand(1, 1, 40, 36)
+    halo = model.context_px
+    per_call = reconstruct_tiled(model.reconstruct, sensor, tile_px=16, halo_px=halo)
+    n_tiles = len(calls)
+    assert n_tiles == 9
+    calls.clear()
+    once = reconstruct_tiled(model.reconstructor(), sensor, tile_px=16, halo_px=halo)
+    assert len(calls) == 1
+    torch.testing.assert_close(once, per_call)

@@ -124,7 +124,7 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
     meta["preprocessing"] = report
     sensor = torch.from_numpy(img)[None, None].to(args.device)
     halo = model.context_px
-    cube = reconstruct_tiled(model.reconstruct, sensor, args.tile, halo, progress=sys.stderr.isatty())[0]
+    cube = reconstruct_tiled(model.reconstructor(), sensor, args.tile, halo, progress=sys.stderr.isatty())[0]
     del sensor
     # Radiance is non-negative: the network's small negative excursions are clipped at 0.
     cube = cube.float().clamp_min_(0).cpu().numpy()

@@ -100,7 +100,7 @@ def baseline_names() -> tuple[str, ...]:
 
 def learned_method(name: str, model, run: str | Path, **info: Any) -> Method:
     """A :class:`Method` of a trained camera + network system."""
-    return Method(name, model.camera, model.reconstruct, model.target, {"run": str(run), **info}, model)
+    return Method(name, model.camera, model.reconstructor(), model.target, {"run": str(run), **info}, model)
 
 
 @register_method("doe-rdn")

@@ -64,6 +64,20 @@ class CameraSystem(nn.Module):
                 return self.net(sensor, op, origin).float()
         return self.net(sensor, op, origin)
 
+    def reconstructor(self):
+        """``reconstruct`` with the camera's nominal operator computed once, for inference on many
+        tiles or scenes of one camera: ``fn(sensor, origin=(0, 0)) → cube``. (A network given the
+        camera itself would rebuild its PSF stack on every call.) Take a new one after the optics
+        change."""
+        snap = getattr(self.camera, "snapshot", None)
+        with torch.no_grad():
+            op = snap(nominal=True) if callable(snap) else self.camera
+
+        def fn(sensor: torch.Tensor, origin: tuple[int, int] = (0, 0)) -> torch.Tensor:
+            return self.reconstruct(sensor, origin, operator=op)
+
+        return fn
+
     def forward(self, scene: torch.Tensor, generator: torch.Generator | None = None) -> tuple[torch.Tensor, torch.Tensor]:
         sensor, operator = self.camera.measure(scene, generator)
         return self.reconstruct(sensor, operator=operator), sensor
