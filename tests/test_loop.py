@@ -69,6 +69,9 @@ def test_frozen_groups_stay_fixed_and_unknown_groups_are_errors(tmp_path, cache_
     assert not torch.equal(end[cfa], start[cfa])
     with pytest.raises(ConfigError, match="unknown parameter group.*lens"):
         SystemTask(load_config("tiny", ["train.freeze=[lens]"]), CameraSystem.from_config(load_config("tiny")))
+    cassi = load_config("tiny", ["camera.kind=dd_cassi", "train.freeze=[doe]"])
+    with pytest.raises(ConfigError, match="unknown parameter group.*doe for the dd_cassi camera"):
+        SystemTask(cassi, CameraSystem.from_config(cassi))  # a CASSI camera has no DOE to freeze
 
 
 def test_loop_state_round_trip_and_old_checkpoints():

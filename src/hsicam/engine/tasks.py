@@ -93,10 +93,10 @@ class SystemTask(Task):
         self.eval_noise = model.camera.noise_levels()
         self.freeze = set(cfg.train.freeze) | set(extra_freeze)
         known = {"net", *model.camera.param_groups()}
-        unknown = sorted(set(cfg.train.freeze) - known - set(CAMERA_GROUP_LR))
+        unknown = sorted(set(cfg.train.freeze) - known)  # e.g. `doe` on a CASSI camera: nothing to freeze
         if unknown:
-            raise ConfigError(f"train.freeze: unknown parameter group(s) {', '.join(unknown)}; "
-                              f"this camera has {', '.join(sorted(known))}")
+            raise ConfigError(f"train.freeze: unknown parameter group(s) {', '.join(unknown)} for the "
+                              f"{model.camera.kind} camera; it has {', '.join(sorted(known))}")
 
     def module(self) -> CameraSystem:
         return self.model
