@@ -179,3 +179,18 @@ def test_reconstructor_builds_the_operator_once_for_all_tiles(tiny_config):
     once = reconstruct_tiled(model.reconstructor(), sensor, tile_px=16, halo_px=halo)
     assert len(calls) == 1
     torch.testing.assert_close(once, per_call)
+
+
+def test_tiling_refuses_a_camera_whose_scene_grid_is_not_the_sensors():
+    """SD-CASSI maps an (h, w + span) cube onto an (h, w) sensor: its tiles cannot be stitched on the
+    sensor grid, so tiling is one clear error, and one whole tile still works."""
+    torch.manual_seed(0)
+    cfg = load_config("tiny", ["camera.kind=sd_cassi", "model.kind=unrolled", "model.unrolled.stages=1",
+                               "model.unrolled.prior_features=8", "model.unrolled.prior_blocks=1",
+                               "model.unrolled.prior_scale=2"])
+    model = CameraSystem.from_config(cfg).eval()
+    sensor = torch.rand(1, 1, 30, 40)
+    whole = reconstruct_tiled(model.reconstructor(), sensor, tile_px=64)
+    assert whole.shape[-2:] == model.camera.scene_size((30, 40)) != (30, 40)
+    with pytest.raises(InputError, match="cannot be tiled"):
+        reconstruct_tiled(model.reconstructor(), sensor, tile_px=16, halo_px=4)

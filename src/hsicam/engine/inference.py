@@ -48,6 +48,10 @@ def reconstruct_tiled(reconstruct, sensor: torch.Tensor, tile_px: int = 512, hal
                 yb, xb = min(y1 + halo_px, h), min(x1 + halo_px, w)
                 window = sensor[..., ya:yb, xa:xb]
                 part = reconstruct(window, origin=(ya, xa)) if takes_origin else reconstruct(window)
+                if part.shape[-2:] != window.shape[-2:]:
+                    raise InputError(f"the reconstruction of a {tuple(window.shape[-2:])} px window is "
+                                     f"{tuple(part.shape[-2:])} px (a camera whose scene grid is not the sensor's, "
+                                     f"e.g. SD-CASSI): it cannot be tiled; use a tile of at least {max(h, w)} px")
                 if out is None:
                     out = torch.empty(1, part.shape[1], h, w, dtype=part.dtype, device=part.device)
                 out[..., y0:y1, x0:x1] = part[..., y0 - ya : y1 - ya, x0 - xa : x1 - xa]
