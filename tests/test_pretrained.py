@@ -291,3 +291,22 @@ def test_shipped_camera_beats_the_box_demosaic_on_held_out_sources(name, monkeyp
     box = summarize(evaluate_method(demosaic_reference(model), scenes, names, TestNoise(), keep_arrays=False))["mean"]
     assert ours["psnr"] > box["psnr"] + 0.5, (ours, box)
     assert ours["ssim"] > box["ssim"], (ours, box)
+
+
+def test_box_demosaic_method_through_a_pretrained_cameras_optics(env):
+    """`--method doe-box-demosaic --run pretrained:NAME` scores the validation scenes as the demo's
+    box-demosaic reference did (results.json), and needs a run."""
+    from hsicam.engine.evaluate import TestNoise, evaluate_method, summarize
+    from hsicam.engine.experiments import validation_scenes
+    from hsicam.engine.methods import build_method
+
+    run, results, _ = env
+    cfg, _ = load_run(f"pretrained:{NAME}")
+    method = build_method("doe-box-demosaic", cfg, f"pretrained:{NAME}")
+    scenes, names = validation_scenes(cfg)
+    got = summarize(evaluate_method(method, scenes, names, TestNoise(seeds=(cfg.train.seed,)), keep_arrays=False))
+    ref = next(r for r in json.loads(results.read_text())["references"] if "box demosaic" in r["method"])
+    for key in ("psnr", "ssim", "sam"):
+        assert got["mean"][key] == pytest.approx(ref["mean"][key], rel=1e-6), key
+    with pytest.raises(InputError, match="needs --run"):
+        build_method("doe-box-demosaic", cfg)

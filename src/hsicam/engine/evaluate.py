@@ -22,8 +22,7 @@ import numpy as np
 import torch
 
 from hsicam.engine.inference import reconstruct_tiled
-from hsicam.engine.methods import Method
-from hsicam.models.demosaic import camera_demosaic
+from hsicam.engine.methods import Method, demosaic_reference  # noqa: F401  (re-exported)
 from hsicam.io import atomic_open, write_json
 from hsicam.metrics import CONVENTIONS, all_metrics
 
@@ -133,22 +132,6 @@ def grey_reference(model, train_scenes) -> Method:
 
     return Method("sensor image x mean training spectrum", model.camera, reconstruct, model.target,
                   {"mean_spectrum": spectrum.tolist()})
-
-
-def demosaic_reference(model) -> Method:
-    """The per-band box demosaic of the sensor image through the model's optics
-    (:func:`hsicam.models.demosaic.camera_demosaic`), as a network-free method: what the network
-    adds is its score minus this one. Needs a camera with a per-band sensor code (the CFA)."""
-    try:
-        model.camera.sensor_code(1, 1)
-    except NotImplementedError:
-        raise ValueError(f"the demosaic reference needs a camera with a per-band sensor code, not "
-                         f"{type(model.camera).__name__}") from None
-
-    def reconstruct(sensor: torch.Tensor) -> torch.Tensor:
-        return camera_demosaic(model.camera, sensor)
-
-    return Method("CFA box demosaic (no network)", model.camera, reconstruct, model.target, {})
 
 
 def summarize(results: list[SceneResult], **facts) -> dict:

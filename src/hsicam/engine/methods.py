@@ -8,6 +8,7 @@ A method owns a camera (the forward model that makes its measurement) and a reco
 Methods are registered by name (:func:`register_method`); :func:`build_method` looks them up.
 
     doe-rdn          our learned camera (any network kind: rdn, mosaic, unrolled), from a run folder
+    doe-box-demosaic the network-free per-band box demosaic through a run's optics (the reference)
     dd-cassi-gaptv   DD-CASSI + GAP-TV                 settings: baselines.gaptv
     dd-cassi-desci   DD-CASSI + DeSCI                  settings: baselines.desci (preset fast|full)
     dd-cassi-choi    DD-CASSI + Choi et al. ADMM       run: a spectral-prior folder (hsicam baseline train-prior);
@@ -37,6 +38,7 @@ from hsicam.cameras import Camera, DDCASSICamera
 from hsicam.config import load_config
 from hsicam.engine.prior import load_prior
 from hsicam.errors import InputError
+from hsicam.models.demosaic import camera_demosaic
 from hsicam.runs.folder import load_run
 from hsicam.runs.pretrained import resolve_run
 from hsicam.solvers.choi import admm_prior
@@ -103,12 +105,38 @@ def learned_method(name: str, model, run: str | Path, **info: Any) -> Method:
     return Method(name, model.camera, model.reconstructor(), model.target, {"run": str(run), **info}, model)
 
 
+def demosaic_reference(model) -> Method:
+    """The per-band box demosaic of the sensor image through the model's optics
+    (:func:`hsicam.models.demosaic.camera_demosaic`), as a network-free method: what the network
+    adds is its score minus this one. Needs a camera with a per-band sensor code (the CFA)."""
+    try:
+        model.camera.sensor_code(1, 1)
+    except NotImplementedError:
+        raise ValueError(f"the demosaic reference needs a camera with a per-band sensor code, not "
+                         f"{type(model.camera).__name__}") from None
+
+    def reconstruct(sensor: torch.Tensor) -> torch.Tensor:
+        return camera_demosaic(model.camera, sensor)
+
+    return Method("CFA box demosaic (no network)", model.camera, reconstruct, model.target, {})
+
+
 @register_method("doe-rdn")
 def _doe_method(cfg, run, device) -> Method:
     if run is None:
         raise InputError("method doe-rdn needs --run RUN (a trained camera)")
     _, model = load_run(run, device)
     return learned_method("doe-rdn", model, run)
+
+
+@register_method("doe-box-demosaic")
+def _box_method(cfg, run, device) -> Method:
+    """The network-free reference: the per-band box demosaic through a trained run's optics."""
+    if run is None:
+        raise InputError("method doe-box-demosaic needs --run RUN (the camera whose optics it images through)")
+    _, model = load_run(run, device)
+    method = demosaic_reference(model)
+    return dataclasses.replace(method, info={"run": str(run)})
 
 
 def dd_cassi_camera(cfg, device: torch.device | str = "cpu") -> DDCASSICamera:
