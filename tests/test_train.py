@@ -103,6 +103,20 @@ def test_resume_matches_uninterrupted_run(tmp_path, cache_env):
     assert steps == list(range(1, 13))
 
 
+def test_resume_with_changed_keys_records_them_in_config_yaml(tmp_path, cache_env):
+    """`hsicam train --resume --set train.epochs=2`: the run goes on with the new length and its
+    config.yaml says so (it describes what the run did, e.g. for a shipped camera's card)."""
+    from hsicam.config import load_config
+
+    run = tmp_path / "run"
+    assert train(tiny_cfg("train.epochs=3"), run, progress=False, stop_after_steps=5) == {"stopped_at_step": 5}
+    res = run_cli("train", "--out", str(run), "--resume", "--set", "train.epochs=2", env={"HSICAM_CACHE": str(cache_env)})
+    assert res.returncode == 0, res.stderr
+    assert load_config(run / "config.yaml").train.epochs == 2
+    records = [json.loads(x) for x in (run / "metrics.jsonl").read_text().splitlines()]
+    assert records[-1]["final"] and records[-1]["step"] == 8  # 4 steps per epoch
+
+
 def test_sigkilled_training_resumes(tmp_path, cache_env):
     run = tmp_path / "run"
     env = {**os.environ, "OMP_NUM_THREADS": "1"}

@@ -252,6 +252,7 @@ def fit(task: Task, opts: FitOptions, run_dir: str | Path, resume: bool = False)
         if is_main:
             ckpt.sync_root()  # a kill between the manifest's commit and the root weights' rewrite
             metrics.truncate_after(state.global_step, state.epoch)
+            task.write_run_files(run_dir)  # the config it goes on with (e.g. `--set train.epochs=…`)
             log.info("resuming %s at epoch %d, step %d", run_dir, state.epoch, state.global_step)
     elif is_main:
         # The run folder appears at once with all its files (config.yaml, ...) or not at all.
