@@ -310,3 +310,16 @@ def test_box_demosaic_method_through_a_pretrained_cameras_optics(env):
         assert got["mean"][key] == pytest.approx(ref["mean"][key], rel=1e-6), key
     with pytest.raises(InputError, match="needs --run"):
         build_method("doe-box-demosaic", cfg)
+
+
+def test_training_time_adds_up_the_sessions_of_a_resumed_run(tmp_path):
+    """Each session's elapsed_s counts from its own start: the card's time is their sum."""
+    from hsicam.engine.pretrained import training_seconds
+
+    lines = [{"step": 20, "elapsed_s": 50.0}, {"step": 40, "elapsed_s": 100.0}, {"step": 40, "epoch": 1, "val_psnr": 30.0},
+             {"step": 60, "elapsed_s": 45.0}, {"step": 80, "elapsed_s": 90.0},
+             {"step": 80, "final": True, "elapsed_s": 95.0}]
+    (tmp_path / "metrics.jsonl").write_text("".join(json.dumps(x) + "\n" for x in lines) + "{torn")
+    assert training_seconds(tmp_path) == pytest.approx(195.0)
+    (tmp_path / "metrics.jsonl").write_text(json.dumps({"step": 1}) + "\n")
+    assert training_seconds(tmp_path) is None

@@ -30,8 +30,7 @@ METRICS = ("psnr", "ssim", "sam")
 # ------------------------------------------------------------------------------------------------
 # Reading the run and its results
 # ------------------------------------------------------------------------------------------------
-def final_record(run_dir: Path) -> dict[str, Any]:
-    """The run's final ``metrics.jsonl`` record (written when training finished); InputError otherwise."""
+def _records(run_dir: Path) -> list[dict[str, Any]]:
     path = Path(run_dir) / "metrics.jsonl"
     if not path.is_file():
         raise InputError(f"{run_dir}: no metrics.jsonl: not a finished run (train it first)")
@@ -41,7 +40,27 @@ def final_record(run_dir: Path) -> dict[str, Any]:
             records.append(json.loads(line))
         except json.JSONDecodeError:
             continue
-    final = [r for r in records if isinstance(r, dict) and r.get("final")]
+    return [r for r in records if isinstance(r, dict)]
+
+
+def training_seconds(run_dir: Path) -> float | None:
+    """Wall time the kept steps of a run took, over all its sessions (s): each session's
+    ``elapsed_s`` counts from its own start, so a drop marks a resume and the sessions' last
+    values add up. None when the log has no times."""
+    total, last = 0.0, None
+    for r in _records(run_dir):
+        e = r.get("elapsed_s")
+        if not isinstance(e, (int, float)):
+            continue
+        if last is not None and e < last:
+            total += last
+        last = float(e)
+    return None if last is None else total + last
+
+
+def final_record(run_dir: Path) -> dict[str, Any]:
+    """The run's final ``metrics.jsonl`` record (written when training finished); InputError otherwise."""
+    final = [r for r in _records(run_dir) if r.get("final")]
     if not final:
         raise InputError(f"{run_dir}: the run has not finished (no final record in metrics.jsonl); "
                          "finish it with `hsicam train --resume --out RUN` before packing")
@@ -178,7 +197,7 @@ def card_fields(run_dir: str | Path, name: str, results: str | Path | None = Non
                   "full_well_e": cam.sensor.full_well_e, "read_noise_e": cam.sensor.read_noise_e,
                   "doe_sigma_height_nm": cam.doe.sigma_height_nm if cam.kind == "doe" else None},
         "training": {"data": data, "steps": final.get("step"), "epochs": cfg.train.epochs,
-                     "elapsed_s": final.get("elapsed_s"), "patches_per_s": final.get("patches_per_s"),
+                     "elapsed_s": training_seconds(run_dir), "patches_per_s": final.get("patches_per_s"),
                      "batch_size": t.batch_size, "patch_px": cfg.data.patch_px,
                      "patches_per_epoch": cfg.data.patches_per_epoch},
         "metrics": {"training_log": {"what": "validation patches at the end of training (metrics.jsonl)",
