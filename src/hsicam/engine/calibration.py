@@ -14,7 +14,6 @@ before and after).
 
 from __future__ import annotations
 
-import json
 import logging
 from pathlib import Path
 from typing import Any
@@ -26,7 +25,7 @@ from hsicam.engine.loop import FitOptions, fit
 from hsicam.engine.tasks import SystemTask
 from hsicam.errors import InputError
 from hsicam.io import write_json
-from hsicam.runs.folder import load_run, with_measured_psf
+from hsicam.runs.folder import MetricsLog, load_run, with_measured_psf
 from hsicam.runs.measured_psf import MEASURED_PSF_FILE, MeasuredPSF, load_measured_psf, save_measured_psf
 from hsicam.runs.pretrained import resolve_run
 
@@ -95,7 +94,7 @@ def finetune(run_dir: str | Path, psf_dir: str | Path, out_dir: str | Path, *, o
     task = FinetuneTask(cfg, with_measured_psf(base, measured), measured, run_dir)
     opts = FitOptions(cfg.train, cfg.data.num_workers, validate_at_start=True, progress=progress)
     fitted = fit(task, opts, out_dir, resume)
-    records = [json.loads(x) for x in (out_dir / "metrics.jsonl").read_text(encoding="utf-8").splitlines() if x.strip()]
+    records = MetricsLog(Path(out_dir) / "metrics.jsonl").read()
     vals = [r for r in records if "val_psnr" in r and not r.get("final")]
     strip = lambda r: {k[4:]: v for k, v in r.items() if k.startswith("val_")}  # noqa: E731
     before = strip(vals[0]) if vals and vals[0]["step"] == 0 else {}

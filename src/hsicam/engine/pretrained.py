@@ -20,7 +20,7 @@ from hsicam.errors import InputError
 from hsicam.io import atomic_open, atomic_output, write_json
 from hsicam.runs import pretrained as shipped
 from hsicam.runs.checkpoint import root_weights_path
-from hsicam.runs.folder import load_run
+from hsicam.runs.folder import MetricsLog, load_run
 from hsicam.runs.measured_psf import MEASURED_PSF_FILE
 
 CARD_FORMAT = "hsicam-pretrained-card-1"
@@ -34,13 +34,7 @@ def _records(run_dir: Path) -> list[dict[str, Any]]:
     path = Path(run_dir) / "metrics.jsonl"
     if not path.is_file():
         raise InputError(f"{run_dir}: no metrics.jsonl: not a finished run (train it first)")
-    records = []
-    for line in path.read_text(encoding="utf-8", errors="replace").splitlines():
-        try:
-            records.append(json.loads(line))
-        except json.JSONDecodeError:
-            continue
-    return [r for r in records if isinstance(r, dict)]
+    return MetricsLog(path).read()
 
 
 def training_seconds(run_dir: Path) -> float | None:

@@ -37,7 +37,7 @@ from hsicam.config import MosaicConfig, UnrolledConfig
 from hsicam.errors import ConfigError
 from hsicam.models.registry import register_network
 from hsicam.models.mosaic import MosaicNet, ResBlock, _odd_window, build_mosaic, check_brightness, phase_pad
-from hsicam.models.demosaic import box_mean, demosaic
+from hsicam.models.demosaic import brightness, demosaic
 
 INITS = ("auto", "demosaic", "backprojection", "mosaic")
 STEPS = ("gradient", "gap")
@@ -67,7 +67,7 @@ class Prior(nn.Module):
         s = self.scale
         b = None
         if self.brightness_window:
-            b = box_mean(z.abs().mean(dim=1, keepdim=True), self.brightness_window) + self.brightness_eps
+            b = brightness(z.abs().mean(dim=1, keepdim=True), self.brightness_window, self.brightness_eps)
             z = z / b
         zp, (top, left) = phase_pad(z, s, origin)
         f = self.body(self.stem(F.pixel_unshuffle(zp, s)))

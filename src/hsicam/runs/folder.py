@@ -176,6 +176,21 @@ class MetricsLog:
         finally:
             os.close(fd)
 
+    def read(self) -> list[dict[str, Any]]:
+        """The complete records, in order (a line torn by a kill, or not an object, is skipped);
+        [] when the file does not exist."""
+        if not self.path.exists():
+            return []
+        records = []
+        for line in self.path.read_text(encoding="utf-8", errors="replace").splitlines():
+            try:
+                rec = json.loads(line)
+            except json.JSONDecodeError:
+                continue
+            if isinstance(rec, dict):
+                records.append(rec)
+        return records
+
     def truncate_after(self, step: int, epoch: int) -> None:
         """Keep only the complete records a checkpoint at (``step``, ``epoch`` epochs done) had seen.
 
@@ -184,14 +199,7 @@ class MetricsLog:
         """
         if not self.path.exists():
             return
-        kept = []
-        for line in self.path.read_text(encoding="utf-8", errors="replace").splitlines():
-            try:
-                rec = json.loads(line)
-            except json.JSONDecodeError:
-                continue
-            r_step = rec.get("step", 0)
-            if r_step < step or (r_step == step and rec.get("epoch", 0) <= epoch):
-                kept.append(line)
+        kept = [r for r in self.read()
+                if r.get("step", 0) < step or (r.get("step", 0) == step and r.get("epoch", 0) <= epoch)]
         with atomic_open(self.path, "w", encoding="utf-8") as fh:
-            fh.write("".join(f"{x}\n" for x in kept))
+            fh.write("".join(json.dumps(r) + "\n" for r in kept))
