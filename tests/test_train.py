@@ -45,7 +45,7 @@ def test_tiny_model_overfits_one_batch_and_optics_learn():
     h0 = model.camera.optics.doe.height_m.detach().clone()
     w0 = model.camera.cfa.weights.detach().clone()
     losses = []
-    for step in range(400):
+    for step in range(500):
         recon, _ = model(scene)
         loss = F.l1_loss(recon, model.target(scene))
         opt.zero_grad()
