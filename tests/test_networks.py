@@ -24,6 +24,7 @@ from hsicam.models.unrolled import build_unrolled
 
 CAMERA_KINDS = ("doe", "dd_cassi", "sd_cassi")
 MOSAIC = MosaicConfig(features=8, blocks=1, head_features=4, head_layers=2)
+MOSAIC_DETAIL = dataclasses.replace(MOSAIC, detail_features=3)  # the trunk's features at full resolution in the head
 UNROLLED = UnrolledConfig(stages=2, prior_features=8, prior_blocks=1, prior_scale=2)
 
 
@@ -48,6 +49,7 @@ def networks(cam) -> dict:
     except NotImplementedError:
         return nets
     nets["mosaic"] = build_mosaic(MOSAIC, cam)
+    nets["mosaic-detail"] = build_mosaic(MOSAIC_DETAIL, cam)
     nets["unrolled-mosaic"] = build_unrolled(UnrolledConfig(stages=1, init="mosaic", prior_features=8, prior_blocks=1,
                                                               prior_scale=2, mosaic=MOSAIC), cam)
     return nets
@@ -148,21 +150,23 @@ def test_shape_contract(kind, bands_step, hw):
         assert torch.isfinite(out).all(), name
 
 
-def test_untrained_mosaic_net_returns_the_demosaic():
+@pytest.mark.parametrize("settings", [MOSAIC, MOSAIC_DETAIL])
+def test_untrained_mosaic_net_returns_the_demosaic(settings):
     from hsicam.models.demosaic import demosaic
 
     cam = camera("doe")
-    net = build_mosaic(MOSAIC, cam)
+    net = build_mosaic(settings, cam)
     y = torch.rand(1, 1, 15, 20)
     with torch.no_grad():
         assert torch.allclose(net(y, cam), demosaic(y, cam.sensor_code(15, 20), 3), atol=1e-6)
 
 
-@pytest.mark.parametrize("name", ["mosaic", "unrolled", "unrolled-mosaic"])
+@pytest.mark.parametrize("name", ["mosaic", "mosaic-detail", "unrolled", "unrolled-mosaic"])
 def test_overfits_one_batch(name):
     cam = camera("doe", "camera.boundary=same", "camera.cfa.init=bandpass")
     wide = MosaicConfig(features=32, blocks=1, head_features=8, head_layers=2)
     net = {"mosaic": lambda: build_mosaic(wide, cam),
+           "mosaic-detail": lambda: build_mosaic(dataclasses.replace(wide, detail_features=4), cam),
            "unrolled": lambda: build_unrolled(UnrolledConfig(stages=2, prior_features=32, prior_blocks=1, prior_scale=2), cam),
            "unrolled-mosaic": lambda: build_unrolled(UnrolledConfig(stages=1, init="mosaic", prior_features=32, prior_blocks=1,
                                                                       prior_scale=2, mosaic=wide), cam)}[name]()
@@ -192,6 +196,7 @@ def test_tiled_equals_whole_with_the_declared_context(kind, bright):
     nets = {"unrolled": build_unrolled(small, cam)}
     if kind == "doe":
         nets["mosaic"] = build_mosaic(dataclasses.replace(MOSAIC, brightness_window=bright), cam)
+        nets["mosaic-detail"] = build_mosaic(dataclasses.replace(MOSAIC_DETAIL, brightness_window=bright), cam)
     y = torch.rand(1, 1, 80, 74)
     op = cam.snapshot(nominal=True)
     for name, net in nets.items():
@@ -220,6 +225,7 @@ def test_brightness_normalised_networks_are_scale_equivariant(kind):
                                                                brightness_eps=1e-12), cam)}
         if kind == "doe":
             nets["mosaic"] = build_mosaic(mos, cam)
+            nets["mosaic-detail"] = build_mosaic(dataclasses.replace(mos, detail_features=3), cam)
             nets["unrolled-mosaic"] = build_unrolled(UnrolledConfig(stages=1, init="mosaic", prior_features=8,
                                                                     prior_blocks=1, prior_scale=2, mosaic=mos,
                                                                     brightness_window=bright, brightness_eps=1e-12), cam)
@@ -305,6 +311,8 @@ BAD = [
     ("mosaic", MosaicConfig(factor=4), "multiple of the CFA period"),
     ("mosaic", MosaicConfig(demosaic_window=4), "odd"),
     ("mosaic", MosaicConfig(brightness_window=6), "model.mosaic.brightness_window"),
+    ("mosaic", MosaicConfig(head_layers=0, detail_features=8), "needs a head"),
+    ("mosaic", MosaicConfig(detail_features=-1), "model.mosaic.detail_features"),
     ("mosaic", MosaicConfig(brightness_window=5, brightness_eps=0.0), "model.mosaic.brightness_eps"),
     ("unrolled", UnrolledConfig(brightness_window=-3), "model.unrolled.brightness_window"),
     ("unrolled", UnrolledConfig(stages=0), "model.unrolled.stages"),

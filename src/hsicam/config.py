@@ -246,6 +246,7 @@ class MosaicConfig:
     factor: int = 0  # space-to-depth factor (px); 0 = the camera's CFA period (3 without a CFA); a multiple of the period
     head_features: int = 32  # channels of the full-resolution refinement head
     head_layers: int = 3  # 3×3 convs of the head at full resolution (0: no head)
+    detail_features: int = 0  # trunk features passed per pixel to the head (pixel-shuffled), with g − κ·x̃; 0 = off
     demosaic_window: int = 0  # box width (px, odd) of the demosaic skip; 0 = the CFA period rounded up to odd
     brightness_window: int = 0  # local-brightness normalisation: box width (px, odd) of b = box(g) + ε; 0 = off
     brightness_eps: float = 1.0e-3  # ε of b (sensor units; full scale 1)

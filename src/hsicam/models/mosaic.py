@@ -5,6 +5,7 @@
     t = shuffle_m(Conv1×1(ResBlocks(Conv3×3(s))))       low-res trunk → (B, C, H, W)
     x̂₀ = t + x̃
     x̂ = x̂₀ + Head([x̂₀, g])                              full-resolution 3×3 refinement
+      or x̂₀ + Head([x̂₀, g, g − κ·x̃, u])                 with detail features u = ReLU(shuffle_m(Conv1×1(trunk)))
 
 Space-to-depth by the CFA period m puts every filter at its own channel: the trunk learns the
 spatial and spectral demosaicking that the box x̃ only approximates, at 1/m² of the pixels. The
@@ -12,6 +13,14 @@ padding aligns the m×m cells with the CFA on the whole sensor (a window at ``or
 by ``origin mod m`` at the top-left), so a tile's cells are the whole image's cells and tiled
 inference equals a whole-image pass given :attr:`MosaicNet.context_px`. The head's last conv and
 the trunk's output conv start at zero: the untrained network returns x̃.
+
+Detail features (``detail_features`` U > 0): the trunk also hands U channels per pixel to the head
+(its cell features regrouped to full resolution, a different vector for every CFA phase), and the
+head sees g − κ·x̃, how much each pixel differs from what the box estimate predicts through its own
+filter. The trunk alone returns a rank-F map per m×m cell (F features for m²·C values) and blurs
+detail finer than a cell; the head, at full resolution with the phase-aware features, restores it
+(issue 17: +0.6 dB PSNR and +0.024 SSIM on the demo's scenes at equal training time, at half the
+step time of two unrolled stages).
 
 Brightness normalisation (``brightness_window`` w > 0): with b = box_w(g) + ε the trunk and head
 see g/b and x̃/b and their outputs are multiplied by b, so the learned correction is the same
@@ -57,12 +66,13 @@ class ResBlock(nn.Module):
 
 
 class RefineHead(nn.Module):
-    """Full-resolution residual refinement: [x (C), g (1)] → Δx (C), ``layers`` 3×3 convs, last one zero."""
+    """Full-resolution residual refinement: [x (C), g (1), extra (E)] → Δx (C), ``layers`` 3×3 convs,
+    the last one zero."""
 
-    def __init__(self, bands: int, features: int, layers: int) -> None:
+    def __init__(self, bands: int, features: int, layers: int, extra: int = 0) -> None:
         super().__init__()
         convs: list[nn.Module] = []
-        ch = bands + 1
+        ch = bands + 1 + extra
         for i in range(layers):
             out = bands if i == layers - 1 else features
             convs.append(nn.Conv2d(ch, out, 3, padding=1))
@@ -73,8 +83,8 @@ class RefineHead(nn.Module):
         nn.init.zeros_(convs[-1].weight)
         nn.init.zeros_(convs[-1].bias)
 
-    def forward(self, x: torch.Tensor, sensor: torch.Tensor) -> torch.Tensor:
-        return self.body(torch.cat([x, sensor], dim=1))
+    def forward(self, x: torch.Tensor, sensor: torch.Tensor, *extra: torch.Tensor) -> torch.Tensor:
+        return self.body(torch.cat([x, sensor, *extra], dim=1))
 
 
 class MosaicNet(nn.Module):
@@ -84,21 +94,26 @@ class MosaicNet(nn.Module):
         bands: C.
         factor: space-to-depth factor m (a multiple of the CFA period).
         demosaic_window: odd box width of the demosaic skip.
+        detail_features: U, trunk features handed to the head per pixel (0: off; needs a head).
     """
 
     def __init__(self, bands: int, factor: int, features: int = 128, blocks: int = 10, head_features: int = 32,
                  head_layers: int = 3, demosaic_window: int = 9, brightness_window: int = 0,
-                 brightness_eps: float = 1e-3) -> None:
+                 brightness_eps: float = 1e-3, detail_features: int = 0) -> None:
         super().__init__()
         self.bands, self.factor, self.demosaic_window = int(bands), int(factor), int(demosaic_window)
         self.brightness_window, self.brightness_eps = int(brightness_window), float(brightness_eps)
-        self.blocks, self.head_layers = int(blocks), int(head_layers)
+        self.blocks, self.head_layers, self.detail_features = int(blocks), int(head_layers), int(detail_features)
+        if self.detail_features and not self.head_layers:
+            raise ValueError("detail_features need a head (head_layers >= 1)")
         self.stem = nn.Conv2d(factor * factor + bands, features, 3, padding=1)
         self.body = nn.Sequential(*(ResBlock(features) for _ in range(blocks)))
         self.tail = nn.Conv2d(features, bands * factor * factor, 1)
         nn.init.zeros_(self.tail.weight)
         nn.init.zeros_(self.tail.bias)
-        self.head = RefineHead(bands, head_features, head_layers) if head_layers > 0 else None
+        self.detail = nn.Conv2d(features, self.detail_features * factor * factor, 1) if self.detail_features else None
+        extra = 1 + self.detail_features if self.detail_features else 0
+        self.head = RefineHead(bands, head_features, head_layers, extra) if head_layers > 0 else None
 
     @property
     def context_px(self) -> int:
@@ -130,7 +145,11 @@ class MosaicNet(nn.Module):
         feat = self.stem(inp)
         feat = self.body(feat)
         out_n = F.pixel_shuffle(self.tail(feat), m)[..., top : top + h, left : left + w] + skip_n
-        if self.head is not None:
+        if self.detail is not None:
+            u = F.relu(F.pixel_shuffle(self.detail(feat), m)[..., top : top + h, left : left + w])
+            predicted = (code.unsqueeze(0) * skip_n).sum(dim=1, keepdim=True)  # κ·x̃: g as the box estimate sees it
+            out_n = out_n + self.head(out_n, g_n, g_n - predicted, u)
+        elif self.head is not None:
             out_n = out_n + self.head(out_n, g_n)
         return out_n if b is None else out_n * b
 
@@ -149,11 +168,13 @@ def build_mosaic(mcfg: MosaicConfig, camera) -> MosaicNet:
     for key in ("features", "blocks"):
         if getattr(mcfg, key) < 1:
             raise ConfigError(f"model.mosaic.{key} must be >= 1, got {getattr(mcfg, key)}")
-    for key in ("factor", "head_layers", "demosaic_window"):
+    for key in ("factor", "head_layers", "demosaic_window", "detail_features"):
         if getattr(mcfg, key) < 0:
             raise ConfigError(f"model.mosaic.{key} must be >= 0, got {getattr(mcfg, key)}")
     if mcfg.head_layers > 1 and mcfg.head_features < 1:
         raise ConfigError(f"model.mosaic.head_features must be >= 1, got {mcfg.head_features}")
+    if mcfg.detail_features and not mcfg.head_layers:
+        raise ConfigError(f"model.mosaic.detail_features={mcfg.detail_features} needs a head: set model.mosaic.head_layers >= 1")
     period = int(getattr(camera, "code_period", 1))
     factor = mcfg.factor or (period if period > 1 else 3)
     if factor % period:
@@ -163,7 +184,7 @@ def build_mosaic(mcfg: MosaicConfig, camera) -> MosaicNet:
         raise ConfigError(f"model.mosaic.demosaic_window must be odd (or 0 for the CFA period), got {window}")
     check_brightness("model.mosaic", mcfg.brightness_window, mcfg.brightness_eps)
     return MosaicNet(len(camera.bands), factor, mcfg.features, mcfg.blocks, mcfg.head_features, mcfg.head_layers, window,
-                     mcfg.brightness_window, mcfg.brightness_eps)
+                     mcfg.brightness_window, mcfg.brightness_eps, mcfg.detail_features)
 
 
 def check_brightness(section: str, window: int, eps: float) -> None:
