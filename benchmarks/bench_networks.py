@@ -8,7 +8,8 @@ For each network kind on the ``quick`` camera (joint optics: DOE heights and CFA
   its own snapshot of the operator: one more PSF computation and the A/Aᵀ of its stages);
 - one 512×512 reconstruction (31 bands), network only, no gradient.
 
-Kinds: ``rdn`` (the quick RDN with the demosaic input), ``mosaic`` (MosaicConfig defaults),
+Kinds: ``quick`` (the quick preset's own network, as configured: today the mosaic network with
+detail features), ``rdn`` (the quick RDN section with the demosaic input), ``mosaic`` (MosaicConfig defaults),
 ``unrolled`` (UnrolledConfig defaults: demosaic init, 2 stages, full 141 px kernel) and
 ``unrolled-mosaic`` (MosaicNet front end without head, 2 stages with the PSF cut to 31 px).
 
@@ -53,8 +54,8 @@ KINDS = {
 def build(kind: str, cfg):
     """(camera, network module, reconstruct(sensor) callable)."""
     torch.manual_seed(0)
-    if kind == "rdn":
-        system = CameraSystem.from_config(cfg)
+    if kind in ("quick", "rdn"):
+        system = CameraSystem.from_config(cfg if kind == "quick" else load_config("quick", ["model.kind=rdn"]))
         return system.camera, system.net, system.reconstruct
     cam = build_camera(cfg)
     net = KINDS[kind](cam)
@@ -97,11 +98,11 @@ def _now() -> tuple[float, float]:
 
 
 def _context(kind, net, cam) -> int:
-    if kind == "rdn":
-        from hsicam.engine.inference import receptive_radius
+    if hasattr(net, "context_px"):
+        return net.context_px
+    from hsicam.engine.inference import receptive_radius
 
-        return receptive_radius(net) + 4
-    return net.context_px
+    return receptive_radius(net) + 4
 
 
 @torch.no_grad()
@@ -122,7 +123,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--steps", type=int, default=3)
     ap.add_argument("--repeats", type=int, default=3)
-    ap.add_argument("--kinds", default="rdn,mosaic,unrolled,unrolled-mosaic")
+    ap.add_argument("--kinds", default="quick,rdn,mosaic,unrolled,unrolled-mosaic")
     ap.add_argument("--threads", type=int, default=0, help="torch threads (0: torch's default)")
     args = ap.parse_args()
     if args.threads:
