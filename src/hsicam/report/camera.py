@@ -16,29 +16,94 @@ from hsicam.io import save_figure, write_json, write_npy  # noqa: E402
 from hsicam.spectral import Bands  # noqa: E402
 
 
-def plot_psf_montage(psf: np.ndarray, bands: Bands, path: str | Path, gamma: float = 0.5, crop_px: int | None = None) -> None:
-    """Grid of band PSFs, each normalised to its own maximum and shown with display gamma.
+def encircled_energy(psf: np.ndarray, radii_px: np.ndarray) -> np.ndarray:
+    """Light of each band inside a circle of radius r about the kernel centre (the optical axis).
+
+    Args:
+        psf: (C, K, K) PSF stack (energy fraction per pixel).
+        radii_px: (R,) radii in pixels; a pixel counts when its centre lies within r.
+    Returns:
+        (C, R) energy fractions (of the band's whole light when the stack is physically normalised).
+    """
+    psf = np.asarray(psf, dtype=np.float64)
+    r = np.asarray(radii_px, dtype=np.float64)
+    if psf.ndim != 3 or r.ndim != 1:
+        raise ValueError(f"expected a (C, K, K) stack and (R,) radii, got {psf.shape} and {r.shape}")
+    k = psf.shape[-1]
+    yy, xx = np.mgrid[:k, :k] - k // 2
+    rr = np.hypot(yy, xx)
+    inside = rr[None, :, :] <= r[:, None, None] + 1e-9  # (R, K, K)
+    return np.einsum("ckl,rkl->cr", psf, inside.astype(np.float64))
+
+
+def rms_radius_px(psf: np.ndarray) -> np.ndarray:
+    """RMS radius (px) of each band's PSF about the optical axis, (C,): sqrt(Σ p·r² / Σ p)."""
+    psf = np.asarray(psf, dtype=np.float64)
+    k = psf.shape[-1]
+    yy, xx = np.mgrid[:k, :k] - k // 2
+    total = np.maximum(psf.sum(axis=(-2, -1)), 1e-300)
+    return np.sqrt((psf * (yy**2 + xx**2)).sum(axis=(-2, -1)) / total)
+
+
+def psf_crop_px(psf: np.ndarray, fraction: float = 0.99, minimum: int = 15) -> int:
+    """Smallest odd centred crop that holds ``fraction`` of every band's light in the kernel
+    (at least ``minimum`` px, at most the kernel)."""
+    psf = np.asarray(psf, dtype=np.float64)
+    k = psf.shape[-1]
+    total = psf.sum(axis=(-2, -1))
+    for size in range(min(minimum, k) | 1, k + 1, 2):
+        a = (k - size) // 2
+        if np.all(psf[:, a : a + size, a : a + size].sum(axis=(-2, -1)) >= fraction * total):
+            return size
+    return k
+
+
+def plot_psf_montage(psf: np.ndarray, bands: Bands, path: str | Path, decades: float = 4.0,
+                     crop_px: int | None = None) -> None:
+    """Band PSFs and how they differ: a montage (log scale) and the encircled-energy curves.
+
+    Top: each band's PSF over the central ``crop_px`` pixels (None: the smallest crop holding 99 %
+    of every band's light in the kernel, :func:`psf_crop_px`), normalised to its own peak and shown
+    over ``decades`` decades (log10), so that a diffuse halo is as visible as a sharp core; titles
+    give the band and its RMS radius. Bottom: encircled energy against radius for every band,
+    coloured by wavelength, over the whole kernel.
 
     Args:
         psf: (C, K, K) PSF stack.
-        crop_px: show only the central crop_px × crop_px pixels (None: the whole kernel).
     """
     psf = np.asarray(psf, dtype=np.float64)
     c, k, _ = psf.shape
-    if crop_px is not None and crop_px < k:
-        a = (k - crop_px) // 2
-        psf = psf[:, a : a + crop_px, a : a + crop_px]
+    rms = rms_radius_px(psf)
+    crop = psf_crop_px(psf) if crop_px is None else min(int(crop_px), k)
+    a = (k - crop) // 2
+    shown = psf[:, a : a + crop, a : a + crop]
     cols = min(8, c)
     rows = math.ceil(c / cols)
-    fig, axes = plt.subplots(rows, cols, figsize=(1.6 * cols, 1.75 * rows), squeeze=False)
-    for i, ax in enumerate(axes.flat):
+    fig = plt.figure(figsize=(1.6 * cols, 1.75 * rows + 3.2))
+    grid = fig.add_gridspec(rows + 1, cols, height_ratios=[1.0] * rows + [1.8])
+    for i in range(c):
+        ax = fig.add_subplot(grid[i // cols, i % cols])
         ax.axis("off")
-        if i >= c:
-            continue
-        img = psf[i] / max(psf[i].max(), 1e-30)
-        ax.imshow(np.clip(img, 0, 1) ** gamma, cmap="inferno", vmin=0, vmax=1, interpolation="nearest")
-        ax.set_title(f"{bands.centers_nm[i]:g} nm", fontsize=8)
-    fig.suptitle(f"PSF per band ({psf.shape[-1]}×{psf.shape[-1]} px, each normalised, display γ={gamma:g})", fontsize=9)
+        img = shown[i] / max(shown[i].max(), 1e-300)
+        ax.imshow(np.log10(np.maximum(img, 10.0**-decades)), cmap="inferno", vmin=-decades, vmax=0,
+                  interpolation="nearest")
+        ax.set_title(f"{bands.centers_nm[i]:g} nm, r {rms[i]:.1f}", fontsize=7)
+    ax = fig.add_subplot(grid[rows, :])
+    radii = np.arange(0, k // 2 * math.sqrt(2) + 1.0)
+    ee = encircled_energy(psf, radii)
+    cmap = plt.get_cmap("turbo")
+    lo, hi = float(np.min(bands.centers_nm)), float(np.max(bands.centers_nm))
+    for i in range(c):
+        ax.plot(radii[1:], ee[i, 1:], color=cmap((bands.centers_nm[i] - lo) / max(hi - lo, 1e-9)), lw=1)
+    ax.set_xscale("log")
+    ax.set_xlabel("radius (px)")
+    ax.set_ylabel("encircled energy")
+    ax.set_ylim(0, 1.02)
+    ax.grid(True, alpha=0.3)
+    sm = plt.cm.ScalarMappable(cmap=cmap, norm=plt.Normalize(lo, hi))
+    fig.colorbar(sm, ax=ax, label="band (nm)", pad=0.01)
+    fig.suptitle(f"PSF per band: central {crop}×{crop} of {k}×{k} px, log10 of each band's peak over "
+                 f"{decades:g} decades, r = RMS radius (px); below: light within a radius", fontsize=9)
     save_figure(fig, path)
 
 
@@ -140,7 +205,7 @@ def write_optics_figures(camera, out: Path, prefix: str = "", psf: bool = False)
         if psf and hasattr(camera, "psf_result"):
             res = camera.psf_result()
             plot_psf_montage(res.psf.float().cpu().numpy(), camera.bands, out / f"{prefix}psf.png")
-            written[f"{prefix}psf.png"] = (f"PSF per band (each normalised); energy in kernel "
+            written[f"{prefix}psf.png"] = (f"PSF per band (log scale, central crop) and encircled energy; energy in kernel "
                                            f"{res.energy.min().item():.4f}–{res.energy.max().item():.4f}")
         optics = getattr(camera, "optics", None)
         if optics is not None:
