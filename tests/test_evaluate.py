@@ -178,3 +178,26 @@ def test_report_renders_in_headless_chromium(run, env, tmp_path):
 
 def test_report_bad_folder(tmp_path):
     assert_clean_error(run_cli("report", str(tmp_path)), "results.json")
+
+
+@pytest.mark.parametrize("kind", ["mosaic", "unrolled", "rdn"])
+def test_ablation_without_cfa_keeps_the_network(kind):
+    """The no-CFA run differs from the full camera in its optics only: the same network (a mosaic
+    front end keeps regrouping by the preset's CFA period instead of falling back to 3 × 3)."""
+    from hsicam.config import load_config
+    from hsicam.engine.experiments import run_specs
+    from hsicam.models import CameraSystem
+
+    base = [f"model.kind={kind}", "model.unrolled.init=mosaic"]
+    cfg = load_config("quick", base)
+    spec = {s.name: s for s in run_specs("ablation", cfg)}["no-cfa"]
+    full = CameraSystem.from_config(cfg)
+    ablated = CameraSystem.from_config(load_config("quick", [*base, *spec.overrides]))
+    assert full.camera.code_period == 9 and ablated.camera.code_period == 1  # the CFA is off
+    shapes = lambda m: [tuple(p.shape) for p in m.net.parameters()]  # noqa: E731
+    assert shapes(ablated) == shapes(full)
+    if kind != "rdn":
+        assert any("factor=9" in o for o in spec.overrides)
+        # without the pinned factor the network would be another one (regrouped by 3)
+        other = CameraSystem.from_config(load_config("quick", [*base, "camera.cfa.enabled=false"]))
+        assert shapes(other) != shapes(full)

@@ -42,19 +42,36 @@ class RunSpec:
     overrides: tuple[str, ...] = ()
 
 
-def run_specs(experiment: str) -> list[RunSpec]:
-    """The trained cameras an experiment needs."""
+def run_specs(experiment: str, cfg: Config | None = None) -> list[RunSpec]:
+    """The trained cameras an experiment needs (``cfg``: the scale preset, for the ablation)."""
     if experiment == "compare":
         return [RunSpec("doe-rdn")]
     if experiment == "ablation":
         return [RunSpec("doe+cfa"), RunSpec("no-doe", ("camera.doe.enabled=false",)),
-                RunSpec("no-cfa", ("camera.cfa.enabled=false",))]
+                RunSpec("no-cfa", ("camera.cfa.enabled=false", *same_network_without_cfa(cfg)))]
     if experiment == "noise":
         return [RunSpec("trained-clean"),
                 RunSpec("trained-noisy", ("train.sigma_height_nm=[0, 60]", "train.sensor_sigma=[0, 0.01]"))]
     if experiment == "cfa-period":
         return [RunSpec(f"period-{m}", (f"camera.cfa.period={m}",)) for m in CFA_PERIODS]
     raise InputError(f"unknown experiment {experiment!r}; choose one of {', '.join(EXPERIMENTS)}")
+
+
+def same_network_without_cfa(cfg: Config | None) -> tuple[str, ...]:
+    """Overrides that keep the preset's network unchanged when its CFA is switched off.
+
+    A mosaic front end regroups the sensor by the CFA period; without a CFA it would fall back to
+    3 × 3 (a trunk at 1/3 instead of 1/9 resolution: 9× the cost and another network). The no-CFA
+    run of the ablation pins the factor to the preset's period, so that only the optics differ.
+    """
+    if cfg is None or not cfg.camera.cfa.enabled or cfg.camera.cfa.period <= 1:
+        return ()
+    m, out = cfg.camera.cfa.period, []
+    if cfg.model.kind == "mosaic" and cfg.model.mosaic.factor == 0:
+        out.append(f"model.mosaic.factor={m}")
+    if cfg.model.kind == "unrolled" and cfg.model.unrolled.init == "mosaic" and cfg.model.unrolled.mosaic.factor == 0:
+        out.append(f"model.unrolled.mosaic.factor={m}")
+    return tuple(out)
 
 
 def is_finished(run: Path) -> bool:
@@ -136,7 +153,7 @@ def run_experiment(experiment: str, scale: str, out: str | Path, seeds: tuple[in
     """Run (or resume) one experiment; writes ``experiment.json`` and ``table.md`` into ``out``."""
     if scale not in SCALES:
         raise InputError(f"unknown scale {scale!r}; choose one of {', '.join(SCALES)}")
-    specs = run_specs(experiment)
+    specs = run_specs(experiment, load_config(scale))
     out = Path(out)
     (out / "runs").mkdir(parents=True, exist_ok=True)
     for spec in specs:
