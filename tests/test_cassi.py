@@ -308,6 +308,76 @@ def test_camera_system_with_cassi_has_no_weights_beyond_the_network():
 
 
 # --------------------------------------------------------------------------------------------
+# Training sees the whole aperture, and the RDN sees the code
+# --------------------------------------------------------------------------------------------
+@pytest.mark.parametrize("kind", KINDS)
+def test_training_images_each_patch_through_a_random_window_of_the_aperture(kind):
+    """In training mode the patch lands at a random place on the coded aperture: its measurement is
+    the crop of a larger scene's measurement (the patch pasted at the drawn offset, by the loop
+    reference), and the returned operator reproduces it. In eval mode the window is the top-left one."""
+    cam = camera(kind)
+    x = torch.rand(1, 5, 12, 10, dtype=torch.float64)
+    cam.eval()
+    y0, op0 = cam.measure(x)
+    torch.testing.assert_close(y0, cam.A(x))
+    cam.train()
+    offsets = set()
+    for seed in range(6):
+        y, op = cam.measure(x, torch.Generator().manual_seed(seed))
+        r0, c0 = op.offset
+        offsets.add((r0, c0))
+        torch.testing.assert_close(op.A(x), y)
+        big = np.zeros((1, 5, r0 + 12, c0 + 10))
+        big[..., r0:, c0:] = x.numpy()
+        shifts, scale = list(cam.shifts), cam.scale
+        if kind == "dd_cassi":
+            ref = dd_reference(big, cam.aperture.pattern(r0 + 12, c0 + 10 + cam.span, dtype=torch.float64).numpy(), shifts, scale)
+            ref = ref[..., r0:, c0:]
+        else:
+            ref = sd_reference(big, cam.aperture.pattern(r0 + 12, c0 + 10, dtype=torch.float64).numpy(), shifts, scale)
+            ref = ref[..., r0:, c0:]
+        np.testing.assert_allclose(y.numpy(), ref, rtol=1e-12, atol=1e-14)
+    assert len(offsets) == 6  # six draws, six windows (out of ~500² places)
+    # the adjoint of the shifted operator is exact too
+    v = torch.rand_like(y)
+    lhs, rhs = (op.A(x) * v).sum(), (x * op.A_adjoint(v)).sum()
+    assert abs(float(lhs - rhs)) <= 1e-12 * float(lhs.abs())
+
+
+def test_training_windows_stay_inside_a_file_aperture(tmp_path):
+    arr = (np.arange(20 * 30).reshape(20, 30) % 3 == 0).astype(np.float64)
+    np.save(tmp_path / "mask.npy", arr)
+    cam = camera("dd_cassi", f"camera.cassi.mask_file={tmp_path / 'mask.npy'}").train()
+    x = torch.rand(1, 5, 16, 16, dtype=torch.float64)
+    for seed in range(20):
+        _, op = cam.measure(x, torch.Generator().manual_seed(seed))
+        assert 0 <= op.offset[0] <= 20 - 16 and 0 <= op.offset[1] <= 30 - 16 - cam.span
+
+
+def test_rdn_with_backprojection_input_starts_from_the_code_aware_estimate():
+    """Untrained, the CASSI RDN returns Aᵀy ⊘ AᵀA𝟙: in each band the measurement scaled by C over the
+    number of bands the pixel's code lets through, where the band is let through, else 0."""
+    cfg = load_config("dd_cassi_rdn")
+    model = CameraSystem.from_config(cfg).eval()
+    assert model.net.tentative.in_channels == len(model.bands)
+    x = torch.rand(1, len(model.bands), 24, 20)
+    with torch.no_grad():
+        recon, y = model(x)
+    masks = model.camera.band_masks(24, 20).numpy()  # (C, H, W), binary
+    n_open = masks.sum(axis=0)
+    ref = np.where(masks > 0, y[0].numpy() * len(model.bands) / np.maximum(n_open, 1), 0.0)
+    np.testing.assert_allclose(recon[0].numpy(), ref, rtol=1e-5, atol=1e-6)
+    # an RDN reading the measurement alone cannot know the code (and is still available)
+    blind = CameraSystem.from_config(load_config("dd_cassi_rdn", ["model.rdn.backprojection_input=false"]))
+    assert blind.net.tentative.in_channels == 1
+
+
+def test_rdn_inputs_are_alternatives():
+    with pytest.raises(ConfigError, match="alternatives"):
+        load_config("dd_cassi_rdn", ["model.rdn.demosaic_input=true"])
+
+
+# --------------------------------------------------------------------------------------------
 # Property-based: any geometry
 # --------------------------------------------------------------------------------------------
 @settings(max_examples=25, deadline=None)

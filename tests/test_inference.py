@@ -136,14 +136,15 @@ def test_demosaic_input_needs_a_camera_with_a_code():
     from hsicam.models import CameraSystem
 
     with pytest.raises(ConfigError, match="demosaic_input"):
-        CameraSystem.from_config(load_config("dd_cassi_rdn", ["model.rdn.demosaic_input=true"]))
+        CameraSystem.from_config(load_config("dd_cassi_rdn", ["model.rdn.demosaic_input=true",
+                                                              "model.rdn.backprojection_input=false"]))
     # the quick preset (demosaic input on) switched to CASSI the way experiments and benchmarks do it
     from hsicam.engine.experiments import CASSI_RDN_OVERRIDES
 
     with pytest.raises(ConfigError, match="demosaic_input=false"):
         CameraSystem.from_config(load_config("quick", ["camera.kind=dd_cassi", "model.kind=rdn"]))
     cassi = CameraSystem.from_config(load_config("quick", list(CASSI_RDN_OVERRIDES)))
-    assert cassi.camera.kind == "dd_cassi" and cassi.net.tentative.in_channels == 1
+    assert cassi.camera.kind == "dd_cassi" and cassi.net.tentative.in_channels == len(cassi.bands)  # back-projection
 
 
 def test_untrained_rdn_returns_the_grey_image():

@@ -20,6 +20,7 @@ from hsicam.engine.inference import reconstruct_tiled
 from hsicam.errors import ConfigError
 from hsicam.config import MosaicConfig, UnrolledConfig
 from hsicam.models.mosaic import build_mosaic, phase_pad
+from hsicam.models.rdn import RDNReconstructor
 from hsicam.models.unrolled import build_unrolled
 
 CAMERA_KINDS = ("doe", "dd_cassi", "sd_cassi")
@@ -43,7 +44,7 @@ def camera(kind: str = "doe", *overrides: str):
 
 def networks(cam) -> dict:
     """The small networks that fit ``cam`` (the mosaic net needs a CFA)."""
-    nets = {"unrolled": build_unrolled(UNROLLED, cam)}
+    nets = {"unrolled": build_unrolled(UNROLLED, cam), "rdn-backprojection": rdn_backprojection(cam)}
     try:
         cam.sensor_code(1, 1)
     except NotImplementedError:
@@ -53,6 +54,12 @@ def networks(cam) -> dict:
     nets["unrolled-mosaic"] = build_unrolled(UnrolledConfig(stages=1, init="mosaic", prior_features=8, prior_blocks=1,
                                                               prior_scale=2, mosaic=MOSAIC), cam)
     return nets
+
+
+def rdn_backprojection(cam) -> RDNReconstructor:
+    """A small RDN reading Aᵀy ⊘ AᵀA𝟙 (the CASSI RDN), with the operator's reach as its first context."""
+    return RDNReconstructor(len(cam.bands), blocks=1, features=8, growth=4, layers_per_block=2,
+                            backprojection_input=True, op_reach_px=max(cam.snapshot(nominal=True).reach_px))
 
 
 def randomise(net: torch.nn.Module, scale: float = 0.05) -> torch.nn.Module:
@@ -194,6 +201,8 @@ def test_tiled_equals_whole_with_the_declared_context(kind, bright):
     cam = camera(kind)
     small = UnrolledConfig(stages=1, prior_features=8, prior_blocks=1, prior_scale=2, brightness_window=bright)
     nets = {"unrolled": build_unrolled(small, cam)}
+    if kind == "dd_cassi":
+        nets["rdn-backprojection"] = rdn_backprojection(cam)
     if kind == "doe":
         nets["mosaic"] = build_mosaic(dataclasses.replace(MOSAIC, brightness_window=bright), cam)
         nets["mosaic-detail"] = build_mosaic(dataclasses.replace(MOSAIC_DETAIL, brightness_window=bright), cam)

@@ -230,8 +230,15 @@ class RDNConfig:
     # start the tentative reconstruction from it. The paper's network gets g alone and has to
     # infer the CFA's phase from the image. DOE camera only. See hsicam.models.demosaic.
     demosaic_input: bool = False
+    # Beyond the paper, for cameras without a CFA (CASSI): feed the back-projection Aᵀy ⊘ AᵀA𝟙 (C
+    # channels: the measurement in the bands each pixel's code lets through) instead of g, and start
+    # the tentative reconstruction from it. Without it a network reading g alone cannot know the code
+    # at a pixel, and a CASSI measurement cannot be decoded.
+    backprojection_input: bool = False
 
     def __post_init__(self) -> None:
+        if self.demosaic_input and self.backprojection_input:
+            raise ConfigError("model.rdn: demosaic_input and backprojection_input are alternatives; set one")
         for k in ("blocks", "features", "growth", "layers_per_block"):
             if getattr(self, k) < 1:
                 raise ConfigError(f"model.rdn.{k} must be >= 1, got {getattr(self, k)}")
@@ -537,7 +544,7 @@ def load_config(path: str | Path | None = None, overrides: Sequence[str] = (), c
     return from_dict(cls, data)
 
 
-_RDN_KEYS = ("blocks", "features", "growth", "layers_per_block", "demosaic_input")
+_RDN_KEYS = ("blocks", "features", "growth", "layers_per_block", "demosaic_input", "backprojection_input")
 
 
 def _migrate_model_section(data: dict[str, Any]) -> None:

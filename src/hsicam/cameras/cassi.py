@@ -47,6 +47,10 @@ log = logging.getLogger(__name__)
 
 _M32 = 0xFFFFFFFF
 
+#: Rows and columns of a hashed aperture over which training draws its patches' windows (px): the
+#: code of a 512×512 sensor (see ``_CASSICamera.measure``).
+TRAIN_APERTURE_PX = 512
+
 
 # --------------------------------------------------------------------------------------------
 # Coded aperture
@@ -283,6 +287,25 @@ class _CASSICamera(Camera):
         """The operator on sensor windows at any origin (nothing random to draw): :class:`CASSISnapshot`."""
         return CASSISnapshot(self)
 
+    def measure(self, x: torch.Tensor, generator: torch.Generator | None = None):
+        """(noisy measurement, the operator that made it). In training mode the patch is imaged
+        through a random window of the aperture (offset drawn from ``generator``, uniform over
+        :data:`TRAIN_APERTURE_PX` rows and columns, or over a file aperture), since a patch can lie
+        anywhere on the sensor: a network trained on the top-left window alone learns that one
+        code, not the camera's. In eval mode the window is the top-left one, as in :meth:`A`."""
+        if not self.training:
+            return self(x, generator), self
+        h, w = x.shape[-2:]
+        w_code = w + (self.span if isinstance(self, DDCASSICamera) else 0)
+        arr = self.aperture.array
+        rows, cols = (TRAIN_APERTURE_PX, TRAIN_APERTURE_PX) if arr is None else arr.shape
+        dev = generator.device if generator is not None else torch.device("cpu")
+        r0 = int(torch.randint(max(rows - h, 0) + 1, (1,), generator=generator, device=dev))
+        c0 = int(torch.randint(max(cols - w_code, 0) + 1, (1,), generator=generator, device=dev))
+        snap = CASSISnapshot(self, offset=(r0, c0))
+        self.check_scene(x)
+        return self.noise(snap.A(x), generator), snap
+
 
 @register_camera("dd_cassi")
 class DDCASSICamera(_CASSICamera):
@@ -333,14 +356,18 @@ class SDCASSICamera(_CASSICamera):
 class CASSISnapshot:
     """A CASSI camera's ``A`` / ``A_adjoint`` on a window of the sensor whose top-left pixel is ``origin``.
 
-    The aperture window is taken at ``origin`` (rows, columns of the scene grid; for SD-CASSI the
-    window's scene columns are those of its first sensor column), so tiles see the code the
-    whole image sees. DD-CASSI: cube (B, C, h, w) ↔ (B, 1, h, w); SD-CASSI: (B, C, h, w − D) ↔
+    The aperture window is taken at ``offset + origin`` (rows, columns of the scene grid; for
+    SD-CASSI the window's scene columns are those of its first sensor column), so tiles see the
+    code the whole image sees; ``offset`` (default (0, 0)) places the whole image on the aperture
+    (a training patch at a random place). DD-CASSI: cube (B, C, h, w) ↔ (B, 1, h, w); SD-CASSI: (B, C, h, w − D) ↔
     (B, 1, h, w). ``lipschitz`` = s²·C ≥ ‖A‖² (ΦΦᵀ is diagonal with entries s² Σ_c P²).
     """
 
-    def __init__(self, camera: "_CASSICamera") -> None:
+    def __init__(self, camera: "_CASSICamera", offset: tuple[int, int] = (0, 0)) -> None:
         self.camera, self.bands = camera, camera.bands
+        self.offset = (int(offset[0]), int(offset[1]))
+        if min(self.offset) < 0:
+            raise ValueError(f"aperture offset must be >= 0, got {offset}")
         self.single = isinstance(camera, SDCASSICamera)
         self.lipschitz = camera.scale**2 * len(camera.bands)
         self.reach_px = (0, camera.span if self.single else 0)
@@ -353,7 +380,7 @@ class CASSISnapshot:
         raise NotImplementedError(f"{type(self.camera).__name__} has no per-band sensor code")
 
     def _aperture(self, h: int, w: int, origin: tuple[int, int], ref: torch.Tensor) -> torch.Tensor:
-        r0, c0 = int(origin[0]), int(origin[1])
+        r0, c0 = self.offset[0] + int(origin[0]), self.offset[1] + int(origin[1])
         return self.camera.aperture.pattern(r0 + h, c0 + w, ref.device, ref.dtype)[r0:, c0:]
 
     def A(self, x: torch.Tensor, origin: tuple[int, int] = (0, 0)) -> torch.Tensor:  # noqa: N802
@@ -381,6 +408,7 @@ class CASSISnapshot:
 
 
 __all__ = [
+    "TRAIN_APERTURE_PX",
     "CASSISnapshot",
     "CodedAperture",
     "DDCASSICamera",

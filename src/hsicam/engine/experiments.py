@@ -86,9 +86,10 @@ def is_finished(run: Path) -> bool:
         return False
 
 
-#: A scale preset's network on the DD-CASSI camera: the paper's RDN reading the measurement alone
-#: (the DOE-camera presets may switch on the CFA demosaic input, which CASSI has no CFA for).
-CASSI_RDN_OVERRIDES = ("camera.kind=dd_cassi", "model.kind=rdn", "model.rdn.demosaic_input=false")
+#: A scale preset's RDN on the DD-CASSI camera, reading the back-projection Aᵀy ⊘ AᵀA1 (the code at
+#: each pixel; a network reading the measurement alone cannot know it), not the CFA demosaic.
+CASSI_RDN_OVERRIDES = ("camera.kind=dd_cassi", "model.kind=rdn", "model.rdn.demosaic_input=false",
+                       "model.rdn.backprojection_input=true")
 #: The scale preset's unrolled network on the DD-CASSI camera: it starts from the back-projection
 #: Aᵀy ⊘ AᵀA1 (no CFA to demosaic) and its data steps are GAP projections (ΦΦᵀ is diagonal).
 CASSI_UNROLLED_OVERRIDES = ("camera.kind=dd_cassi", "model.kind=unrolled", "model.unrolled.init=backprojection",

@@ -1,10 +1,15 @@
-"""The network-free per-band demosaic of a coded sensor image (the start of the learned networks).
+"""Network-free per-band estimates of a sensor image (the start of the learned networks).
+
+The demosaic of a CFA camera's image:
 
     x̃_c = box_w(κ_c ⊙ g) / box_w(κ_c)
 
 a ``w``×``w`` box (odd; zero outside the image): the average of g over the neighbourhood, weighted
 by how much each pixel's filter transmits band c. With selective filters it is a crude spectral
 estimate; the demo reports it as the reference a network must beat.
+
+The back-projection Aᵀy ⊘ AᵀA𝟙 of any camera (the CASSI networks' start: which bands each
+pixel's code lets through, on the scale of the cube).
 """
 
 from __future__ import annotations
@@ -60,3 +65,19 @@ def camera_demosaic(camera, sensor: torch.Tensor, origin: tuple[int, int] = (0, 
     """
     code = camera.sensor_code(sensor.shape[-2], sensor.shape[-1], origin).to(sensor.dtype)
     return demosaic(sensor, code, demosaic_window(camera))
+
+
+def camera_operator(camera):
+    """The frozen operator a network uses: ``camera.snapshot(nominal=True)``, or ``camera`` itself
+    when it already is one (e.g. the snapshot that made the measurement)."""
+    snap = getattr(camera, "snapshot", None)
+    return snap(nominal=True) if callable(snap) else camera
+
+
+def backprojection(op, y: torch.Tensor, origin: tuple[int, int] = (0, 0)) -> torch.Tensor:
+    """Aᵀy ⊘ AᵀA𝟙: for a pixel-wise (CASSI) operator each coded voxel's share of its measurement."""
+    b, _, h, w = y.shape
+    ones = y.new_ones(1, len(op.bands), *op.scene_size((h, w)))
+    norm = op.A_adjoint(op.A(ones, origin), origin)
+    eps = 1e-6 * (getattr(op, "lipschitz", None) or 1.0)  # position-independent, so tiles = whole
+    return op.A_adjoint(y, origin) / norm.clamp_min(eps)

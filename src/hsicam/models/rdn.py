@@ -25,7 +25,7 @@ from torch import nn
 
 from hsicam.errors import ConfigError
 from hsicam.models.context import conv_receptive_radius
-from hsicam.models.demosaic import camera_demosaic, demosaic_window
+from hsicam.models.demosaic import backprojection, camera_demosaic, camera_operator, demosaic_window
 from hsicam.models.registry import register_network
 
 
@@ -91,39 +91,57 @@ class RDN(nn.Module):
 
 
 class RDNReconstructor(RDN):
-    """The RDN as a camera network (``model.kind: rdn``): reads the sensor image g, or with
-    ``demosaic_input`` (beyond the paper) ``[g, x̃_1, …, x̃_C]`` where x̃ is the per-band demosaic
-    of g over one CFA period (:mod:`hsicam.models.demosaic`); its tentative reconstruction then
-    starts as x̃.
+    """The RDN as a camera network (``model.kind: rdn``). It reads one of:
+
+    - the sensor image g (the paper);
+    - with ``demosaic_input`` (beyond the paper, CFA cameras): ``[g, x̃_1, …, x̃_C]``, where x̃ is
+      the per-band demosaic of g over one CFA period (:mod:`hsicam.models.demosaic`);
+    - with ``backprojection_input`` (beyond the paper, any camera; CASSI): the back-projection
+      Aᵀy ⊘ AᵀA𝟙 (C channels), which tells the network the code at each pixel.
+
+    With either estimate the tentative reconstruction starts as that estimate.
 
     Args:
         bands: C.
         demosaic_input: also read the demosaic (cameras with a per-band sensor code only).
         window: odd demosaic box width (px), the camera's CFA period.
         blocks, features, growth, layers_per_block: D, G0, G, C of the RDN.
+        backprojection_input: read the back-projection instead of g.
+        op_reach_px: how far the back-projection spreads a pixel (the operator's AᵀA reach, px).
     """
 
     def __init__(self, bands: int, demosaic_input: bool = False, window: int = 1, blocks: int = 8, features: int = 64,
-                 growth: int = 32, layers_per_block: int = 4) -> None:
-        super().__init__(bands, 1 + bands if demosaic_input else 1, blocks, features, growth, layers_per_block)
+                 growth: int = 32, layers_per_block: int = 4, backprojection_input: bool = False,
+                 op_reach_px: int = 0) -> None:
+        if demosaic_input and backprojection_input:
+            raise ValueError("demosaic_input and backprojection_input are alternatives")
+        in_channels = 1 + bands if demosaic_input else bands if backprojection_input else 1
+        super().__init__(bands, in_channels, blocks, features, growth, layers_per_block)
         self.demosaic_input, self.window = bool(demosaic_input), int(window)
+        self.backprojection_input, self.op_reach_px = bool(backprojection_input), int(op_reach_px)
         if self.demosaic_input:
             self.start_from_input(list(range(1, 1 + bands)))
+        elif self.backprojection_input:
+            self.start_from_input(list(range(bands)))
 
     @property
     def context_px(self) -> int:
-        """Receptive radius of the convolutions plus half the demosaic box (px per side)."""
-        return conv_receptive_radius(self) + (self.window // 2 if self.demosaic_input else 0)
+        """Receptive radius of the convolutions plus the reach of the input estimate (px per side)."""
+        first = self.window // 2 if self.demosaic_input else self.op_reach_px if self.backprojection_input else 0
+        return conv_receptive_radius(self) + first
 
     def network_input(self, sensor: torch.Tensor, camera, origin: tuple[int, int] = (0, 0)) -> torch.Tensor:
-        """(B, 1, H, W) sensor → what the RDN reads: itself, or [g, x̃] (B, 1 + C, H, W)."""
-        if not self.demosaic_input:
-            return sensor
-        return torch.cat([sensor, camera_demosaic(camera, sensor, origin)], dim=1)
+        """(B, 1, H, W) sensor → what the RDN reads: g, [g, x̃] (B, 1 + C, H, W) or Aᵀy ⊘ AᵀA𝟙 (B, C, H', W')."""
+        if self.demosaic_input:
+            return torch.cat([sensor, camera_demosaic(camera, sensor, origin)], dim=1)
+        if self.backprojection_input:
+            return backprojection(camera_operator(camera), sensor, origin)
+        return sensor
 
     def forward(self, sensor: torch.Tensor, camera=None, origin: tuple[int, int] = (0, 0)) -> torch.Tensor:  # type: ignore[override]
-        """Sensor (B, 1, H, W) → cube (B, C, H, W); ``camera`` is needed with ``demosaic_input``."""
-        return super().forward(self.network_input(sensor, camera, origin))
+        """Sensor (B, 1, H, W) → cube (B, C, H', W'); ``camera`` (or its snapshot) is needed with
+        either input estimate. Any floating input dtype; the output has the weights' dtype."""
+        return super().forward(self.network_input(sensor, camera, origin).to(self.tentative.weight.dtype))
 
 
 @register_network("rdn")
@@ -136,5 +154,10 @@ def build_rdn(cfg, camera) -> RDNReconstructor:
         except NotImplementedError as exc:
             raise ConfigError(f"model.rdn.demosaic_input needs a camera with a per-band sensor code (the DOE camera's "
                               f"CFA): {exc}; set model.rdn.demosaic_input=false") from None
+    reach = 0
+    if m.backprojection_input:
+        with torch.no_grad():
+            op = camera_operator(camera)
+        reach = max(op.reach_px)  # how far AᵀA spreads a pixel
     return RDNReconstructor(len(camera.bands), m.demosaic_input, demosaic_window(camera), m.blocks, m.features,
-                            m.growth, m.layers_per_block)
+                            m.growth, m.layers_per_block, m.backprojection_input, reach)

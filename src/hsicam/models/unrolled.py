@@ -28,7 +28,6 @@ from __future__ import annotations
 
 import math
 
-
 import torch
 import torch.nn.functional as F
 from torch import nn
@@ -37,7 +36,7 @@ from hsicam.config import MosaicConfig, UnrolledConfig
 from hsicam.errors import ConfigError
 from hsicam.models.registry import register_network
 from hsicam.models.mosaic import MosaicNet, ResBlock, _odd_window, build_mosaic, check_brightness, phase_pad
-from hsicam.models.demosaic import brightness, demosaic
+from hsicam.models.demosaic import backprojection, brightness, camera_operator, demosaic
 
 INITS = ("auto", "demosaic", "backprojection", "mosaic")
 STEPS = ("gradient", "gap")
@@ -73,22 +72,6 @@ class Prior(nn.Module):
         f = self.body(self.stem(F.pixel_unshuffle(zp, s)))
         out = F.pixel_shuffle(self.tail(f), s)[..., top : top + h, left : left + w]
         return out if b is None else out * b
-
-
-def camera_operator(camera):
-    """The frozen operator a network uses: ``camera.snapshot(nominal=True)``, or ``camera`` itself
-    when it already is one (e.g. the snapshot that made the measurement)."""
-    snap = getattr(camera, "snapshot", None)
-    return snap(nominal=True) if callable(snap) else camera
-
-
-def backprojection(op, y: torch.Tensor, origin: tuple[int, int] = (0, 0)) -> torch.Tensor:
-    """Aᵀy ⊘ AᵀA𝟙: for a pixel-wise (CASSI) operator each coded voxel's share of its measurement."""
-    b, _, h, w = y.shape
-    ones = y.new_ones(1, len(op.bands), *op.scene_size((h, w)))
-    norm = op.A_adjoint(op.A(ones, origin), origin)
-    eps = 1e-6 * (getattr(op, "lipschitz", None) or 1.0)  # position-independent, so tiles = whole
-    return op.A_adjoint(y, origin) / norm.clamp_min(eps)
 
 
 class UnrolledNet(nn.Module):
