@@ -357,7 +357,7 @@ def test_training_windows_stay_inside_a_file_aperture(tmp_path):
 def test_rdn_with_backprojection_input_starts_from_the_code_aware_estimate():
     """Untrained, the CASSI RDN returns Aᵀy ⊘ AᵀA𝟙: in each band the measurement scaled by C over the
     number of bands the pixel's code lets through, where the band is let through, else 0."""
-    cfg = load_config("dd_cassi_rdn")
+    cfg = load_config("dd_cassi_rdn", ["model.rdn.backprojection_input=true"])
     model = CameraSystem.from_config(cfg).eval()
     assert model.net.tentative.in_channels == len(model.bands)
     x = torch.rand(1, len(model.bands), 24, 20)
@@ -367,14 +367,14 @@ def test_rdn_with_backprojection_input_starts_from_the_code_aware_estimate():
     n_open = masks.sum(axis=0)
     ref = np.where(masks > 0, y[0].numpy() * len(model.bands) / np.maximum(n_open, 1), 0.0)
     np.testing.assert_allclose(recon[0].numpy(), ref, rtol=1e-5, atol=1e-6)
-    # an RDN reading the measurement alone cannot know the code (and is still available)
-    blind = CameraSystem.from_config(load_config("dd_cassi_rdn", ["model.rdn.backprojection_input=false"]))
+    # the paper's RDN reads the measurement alone (the preset's default)
+    blind = CameraSystem.from_config(load_config("dd_cassi_rdn"))
     assert blind.net.tentative.in_channels == 1
 
 
 def test_rdn_inputs_are_alternatives():
     with pytest.raises(ConfigError, match="alternatives"):
-        load_config("dd_cassi_rdn", ["model.rdn.demosaic_input=true"])
+        load_config("dd_cassi_rdn", ["model.rdn.demosaic_input=true", "model.rdn.backprojection_input=true"])
 
 
 # --------------------------------------------------------------------------------------------

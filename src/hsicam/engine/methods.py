@@ -14,8 +14,8 @@ Methods are registered by name (:func:`register_method`); :func:`build_method` l
     dd-cassi-choi    DD-CASSI + Choi et al. ADMM       run: a spectral-prior folder (hsicam baseline train-prior);
                                                        ADMM settings: baselines.choi of the evaluation config when
                                                        set, else the folder's prior.yaml
-    dd-cassi-rdn     DD-CASSI + the paper's RDN        run: `hsicam train --config dd_cassi_rdn` (the RDN reads
-                                                       the back-projection: model.rdn.backprojection_input)
+    dd-cassi-rdn     DD-CASSI + the paper's RDN        run: `hsicam train --config dd_cassi_rdn` (or with
+                                                       model.rdn.backprojection_input: the code-aware input)
     dd-cassi-unrolled DD-CASSI + the unrolled network  run: trained with camera.kind=dd_cassi, model.kind=unrolled
                                                        (GAP data steps with the CASSI operator + learned priors)
 
