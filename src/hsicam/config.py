@@ -309,6 +309,10 @@ class TrainConfig:
     # regions by their local brightness (spectral angle, dark scenes); 0 = the paper's plain L1
     relative_l1: float = 0.0
     relative_eps: float = 0.01
+    # + ssim_loss · (1 − SSIM) (per band, 11 px Gaussian window, peak 1: the metric itself) and
+    # + sam_loss · mean spectral angle (radians, pixels whose truth is brighter than relative_eps)
+    ssim_loss: float = 0.0
+    sam_loss: float = 0.0
     eval_every_epochs: int = 1
     checkpoint_every_steps: int = 200
     log_every_steps: int = 20
@@ -329,8 +333,10 @@ class TrainConfig:
                 raise ConfigError(f"train.{k} must be >= 1, got {getattr(self, k)}")
         _positive("train", lr=self.lr, doe_lr_nm=self.doe_lr_nm, cfa_lr=self.cfa_lr, lr_gamma=self.lr_gamma,
                   grad_clip=self.grad_clip, relative_eps=self.relative_eps)
-        if not (self.relative_l1 >= 0 and math.isfinite(self.relative_l1)):
-            raise ConfigError(f"train.relative_l1 must be >= 0, got {self.relative_l1}")
+        for k in ("relative_l1", "ssim_loss", "sam_loss"):
+            v = getattr(self, k)
+            if not (v >= 0 and math.isfinite(v)):
+                raise ConfigError(f"train.{k} must be >= 0, got {v}")
         if self.warmup_steps < 0:
             raise ConfigError(f"train.warmup_steps must be >= 0, got {self.warmup_steps}")
         for k in ("sigma_height_nm", "sensor_sigma"):

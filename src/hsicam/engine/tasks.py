@@ -42,12 +42,28 @@ def draw_noise(t: TrainConfig, generator: torch.Generator) -> dict[str, float]:
 
 def system_loss(recon: torch.Tensor, truth: torch.Tensor, t: TrainConfig) -> torch.Tensor:
     """L1 (paper eq. 10), plus ``t.relative_l1`` × the L1 relative to the local brightness of the
-    truth, box₉(mean over bands) + ``t.relative_eps``; (B, C, H, W) pairs → scalar."""
+    truth, box₉(mean over bands) + ``t.relative_eps``, plus ``t.ssim_loss`` × (1 − SSIM) and
+    ``t.sam_loss`` × :func:`spectral_angle_loss`; (B, C, H, W) pairs → scalar."""
     loss = F.l1_loss(recon, truth)
     if t.relative_l1 > 0:
         local = box_mean(truth.mean(dim=1, keepdim=True), 9) + t.relative_eps
         loss = loss + t.relative_l1 * ((recon - truth).abs() / local).mean()
+    if t.ssim_loss > 0:
+        loss = loss + t.ssim_loss * (1.0 - ssim(recon, truth).mean())
+    if t.sam_loss > 0:
+        loss = loss + t.sam_loss * spectral_angle_loss(recon, truth, t.relative_eps)
     return loss
+
+
+def spectral_angle_loss(recon: torch.Tensor, truth: torch.Tensor, min_brightness: float) -> torch.Tensor:
+    """Mean spectral angle (radians) over the pixels whose truth has a mean over bands above
+    ``min_brightness`` (dark pixels fix no spectrum, and acos has no gradient at 1); 0 if none."""
+    keep = truth.mean(dim=1) > min_brightness  # (B, H, W)
+    if not bool(keep.any()):
+        return recon.sum() * 0.0
+    dot = (recon * truth).sum(dim=1)[keep]
+    norm = (recon.norm(dim=1) * truth.norm(dim=1))[keep].clamp_min(1e-12)
+    return torch.acos((dot / norm).clamp(-1.0 + 1e-6, 1.0 - 1e-6)).mean()
 
 
 def apply_noise(camera, levels: dict[str, float]) -> None:
