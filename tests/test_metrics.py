@@ -64,3 +64,15 @@ def test_ergas_closed_form():
     truth = torch.full((1, 2, 4, 4), 0.5, dtype=torch.float64)
     est = truth + 0.05  # RMSE 0.05 per band, mean 0.5 → 100 · 0.1
     assert metrics.ergas(est, truth).item() == pytest.approx(10.0)
+
+
+@pytest.mark.parametrize("matrix_max_px", [512, 8])  # band matrices (patch sizes) and 1-D convolutions (large images)
+def test_ssim_both_filter_paths_match_skimage(monkeypatch, matrix_max_px):
+    monkeypatch.setattr(metrics, "_SSIM_MATRIX_MAX_PX", matrix_max_px)
+    g = torch.Generator().manual_seed(5)
+    truth = torch.rand(2, 3, 23, 31, generator=g, dtype=torch.float64)
+    est = (truth + 0.1 * torch.randn(truth.shape, generator=g, dtype=torch.float64)).clamp(0, 1)
+    for b in range(2):
+        ref = np.mean([structural_similarity(truth[b, c].numpy(), est[b, c].numpy(), gaussian_weights=True, sigma=1.5,
+                                             use_sample_covariance=False, data_range=1.0) for c in range(3)])
+        assert metrics.ssim(est, truth)[b].item() == pytest.approx(ref, abs=1e-10)

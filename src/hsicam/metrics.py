@@ -32,14 +32,14 @@ CONVENTIONS = {
 }
 
 
-def _batched(x: torch.Tensor, y: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+def _batched(x: torch.Tensor, y: torch.Tensor, dtype: torch.dtype = torch.float64) -> tuple[torch.Tensor, torch.Tensor]:
     if x.shape != y.shape:
         raise ValueError(f"shapes differ: {tuple(x.shape)} vs {tuple(y.shape)}")
     if x.dim() == 3:
         x, y = x[None], y[None]
     if x.dim() != 4:
         raise ValueError(f"expected (B, C, H, W) or (C, H, W), got {tuple(x.shape)}")
-    return x.to(torch.float64), y.to(torch.float64)
+    return x.to(dtype), y.to(dtype)
 
 
 def _psnr_from_mse(mse: torch.Tensor, peak: float) -> torch.Tensor:
@@ -72,29 +72,52 @@ def rmse(x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
     return (x - y).square().mean(dim=(1, 2, 3)).sqrt()
 
 
-def _gaussian_window(size: int, sigma: float, dtype: torch.dtype, device: torch.device) -> torch.Tensor:
+def _gaussian_1d(size: int, sigma: float, dtype: torch.dtype, device: torch.device) -> torch.Tensor:
     r = torch.arange(size, dtype=dtype, device=device) - (size - 1) / 2
     g = torch.exp(-(r**2) / (2 * sigma**2))
-    g = g / g.sum()
-    return g[:, None] * g[None, :]
+    return g / g.sum()
+
+
+def _valid_filter_matrix(n: int, g: torch.Tensor) -> torch.Tensor:
+    """(n, n − k + 1) matrix M with (v @ M)[j] = Σ_i g[i] v[j + i]: a 'valid' 1-D correlation."""
+    k = g.numel()
+    idx = torch.arange(n, device=g.device)[:, None] - torch.arange(n - k + 1, device=g.device)[None, :]
+    inside = (idx >= 0) & (idx < k)
+    return torch.where(inside, g[idx.clamp(0, k - 1)], g.new_zeros(()))
+
+
+# Above this side (px) the Gaussian window runs as two 1-D convolutions instead of band matrices
+# (whose cost grows with the side): matrices are ~20× faster at patch sizes, the training loss's case.
+_SSIM_MATRIX_MAX_PX = 512
+
+
+def _gaussian_filter_valid(t: torch.Tensor, g: torch.Tensor) -> torch.Tensor:
+    """Separable Gaussian filter of (..., H, W), 'valid' area (..., H − k + 1, W − k + 1)."""
+    h, w = t.shape[-2:]
+    if max(h, w) <= _SSIM_MATRIX_MAX_PX:
+        return _valid_filter_matrix(h, g).T @ (t @ _valid_filter_matrix(w, g))
+    k, lead = g.numel(), t.shape[:-2]
+    flat = t.reshape(-1, 1, h, w)
+    flat = F.conv2d(F.conv2d(flat, g.view(1, 1, 1, k)), g.view(1, 1, k, 1))
+    return flat.reshape(*lead, h - k + 1, w - k + 1)
 
 
 def ssim(x: torch.Tensor, y: torch.Tensor, window: int = 11, sigma: float = 1.5, k1: float = 0.01,
-         k2: float = 0.03, data_range: float = 1.0) -> torch.Tensor:
-    """Mean SSIM over bands (each band a grey image), Gaussian window, (B,). ``x`` is the estimate."""
-    x, y = _batched(x, y)
+         k2: float = 0.03, data_range: float = 1.0, dtype: torch.dtype = torch.float64) -> torch.Tensor:
+    """Mean SSIM over bands (each band a grey image), Gaussian window, (B,). ``x`` is the estimate.
+
+    The window is separable: two 1-D passes (as band matrices at patch sizes: fast enough to train
+    with, ``train.ssim_loss``, which computes in ``dtype`` float32); the 'valid' area, i.e.
+    scikit-image's value with its default crop."""
+    x, y = _batched(x, y, dtype)
     b, c, h, w = x.shape
     if min(h, w) < window:
         raise ValueError(f"SSIM needs images of at least {window}×{window} px, got {h}×{w}")
-    kern = _gaussian_window(window, sigma, x.dtype, x.device).expand(c, 1, window, window)
-
-    def filt(t: torch.Tensor) -> torch.Tensor:
-        return F.conv2d(t, kern, groups=c)
-
-    mx, my = filt(x), filt(y)
-    vx = filt(x * x) - mx * mx
-    vy = filt(y * y) - my * my
-    cxy = filt(x * y) - mx * my
+    g = _gaussian_1d(window, sigma, x.dtype, x.device)
+    mx, my, xx, yy, xy = _gaussian_filter_valid(torch.stack([x, y, x * x, y * y, x * y]), g)
+    vx = xx - mx * mx
+    vy = yy - my * my
+    cxy = xy - mx * my
     c1, c2 = (k1 * data_range) ** 2, (k2 * data_range) ** 2
     s = ((2 * mx * my + c1) * (2 * cxy + c2)) / ((mx * mx + my * my + c1) * (vx + vy + c2))
     return s.mean(dim=(1, 2, 3))

@@ -49,7 +49,7 @@ def system_loss(recon: torch.Tensor, truth: torch.Tensor, t: TrainConfig) -> tor
         local = box_mean(truth.mean(dim=1, keepdim=True), 9) + t.relative_eps
         loss = loss + t.relative_l1 * ((recon - truth).abs() / local).mean()
     if t.ssim_loss > 0:
-        loss = loss + t.ssim_loss * (1.0 - ssim(recon, truth).mean())
+        loss = loss + t.ssim_loss * (1.0 - ssim(recon, truth, dtype=recon.dtype).mean())
     if t.sam_loss > 0:
         loss = loss + t.sam_loss * spectral_angle_loss(recon, truth, t.relative_eps)
     return loss
