@@ -355,8 +355,9 @@ def test_training_windows_stay_inside_a_file_aperture(tmp_path):
 
 
 def test_rdn_with_backprojection_input_starts_from_the_code_aware_estimate():
-    """Untrained, the CASSI RDN returns Aᵀy ⊘ AᵀA𝟙: in each band the measurement scaled by C over the
-    number of bands the pixel's code lets through, where the band is let through, else 0."""
+    """The CASSI RDN reads Aᵀy ⊘ AᵀA𝟙: in each band the measurement scaled by C over the number of
+    bands the pixel's code lets through, where the band is let through, else 0. Untrained, it
+    returns that estimate's mean over bands in every band."""
     cfg = load_config("dd_cassi_rdn", ["model.rdn.backprojection_input=true"])
     model = CameraSystem.from_config(cfg).eval()
     assert model.net.tentative.in_channels == len(model.bands)
@@ -366,7 +367,11 @@ def test_rdn_with_backprojection_input_starts_from_the_code_aware_estimate():
     masks = model.camera.band_masks(24, 20).numpy()  # (C, H, W), binary
     n_open = masks.sum(axis=0)
     ref = np.where(masks > 0, y[0].numpy() * len(model.bands) / np.maximum(n_open, 1), 0.0)
-    np.testing.assert_allclose(recon[0].numpy(), ref, rtol=1e-5, atol=1e-6)
+    with torch.no_grad():
+        seen = model.net.network_input(y, model.camera)
+    np.testing.assert_allclose(seen[0].numpy(), ref, rtol=1e-5, atol=1e-6)
+    flat = np.broadcast_to(ref.mean(axis=0, keepdims=True), ref.shape)
+    np.testing.assert_allclose(recon[0].numpy(), flat, rtol=1e-5, atol=1e-6)
     # the paper's RDN reads the measurement alone (the preset's default)
     blind = CameraSystem.from_config(load_config("dd_cassi_rdn"))
     assert blind.net.tentative.in_channels == 1

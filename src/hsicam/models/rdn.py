@@ -99,7 +99,8 @@ class RDNReconstructor(RDN):
     - with ``backprojection_input`` (beyond the paper, any camera; CASSI): the back-projection
       Aᵀy ⊘ AᵀA𝟙 (C channels), which tells the network the code at each pixel.
 
-    With either estimate the tentative reconstruction starts as that estimate.
+    With the demosaic the tentative reconstruction starts as x̃; with the back-projection as its
+    mean over bands in every band (a flat spectrum).
 
     Args:
         bands: C.
@@ -122,7 +123,11 @@ class RDNReconstructor(RDN):
         if self.demosaic_input:
             self.start_from_input(list(range(1, 1 + bands)))
         elif self.backprojection_input:
-            self.start_from_input(list(range(bands)))
+            # a flat spectrum at the back-projection's band mean: the spiky back-projection itself (each
+            # band 0 where the code is closed) was a worse start at quick scale (docs/networks.md)
+            with torch.no_grad():
+                self.tentative.weight.fill_(1.0 / bands)
+                self.tentative.bias.zero_()
 
     @property
     def context_px(self) -> int:
