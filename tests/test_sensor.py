@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
 import pytest
 import torch
 
@@ -252,3 +253,38 @@ def test_bandpass_cfa_from_config(tiny_config):
     assert selectivity("bandpass") > selectivity("uniform") + 0.5
     with pytest.raises(ConfigError, match="bandpass_fwhm_nm"):
         tiny_config("camera.cfa.bandpass_fwhm_nm=0")
+
+
+def test_smooth_doe_init_is_a_periodic_gaussian_low_pass_spanning_the_range():
+    """init=smooth: the seed's uniform field filtered by a wrapped Gaussian (scipy.ndimage as the
+    reference), rescaled to [0, range] exactly; i.i.d. cells are uncorrelated, smooth ones are not."""
+    from scipy.ndimage import gaussian_filter
+
+    n, sigma, top = 101, 3.0, 2000e-9
+    doe = DOE(n, FusedSilica(), 587.6, init="smooth", seed=4, init_range_m=top, init_correlation_cells=sigma)
+    white = torch.rand(n, n, generator=torch.Generator().manual_seed(4), dtype=torch.float64).numpy()
+    ref = gaussian_filter(white, sigma, mode="wrap", truncate=8.0)
+    ref = (ref - ref.min()) / (ref.max() - ref.min()) * top
+    h = doe.height_m.detach().double().numpy()
+    assert h.min() == pytest.approx(0.0, abs=1e-15) and h.max() == pytest.approx(top, rel=1e-6)
+    assert abs(h - ref).max() < 1e-6 * top
+
+    def neighbour_correlation(x):
+        x = x - x.mean()
+        return float((x * np.roll(x, 1, axis=1)).mean() / x.var())
+
+    iid = DOE(n, FusedSilica(), 587.6, init="random", seed=4, init_range_m=top).height_m.detach().double().numpy()
+    assert abs(neighbour_correlation(iid)) < 0.05
+    assert neighbour_correlation(h) > 0.9  # exp(−1/(4σ²)) = 0.97 for σ = 3 cells
+
+
+def test_smooth_doe_init_from_config(tiny_config):
+    from hsicam.cameras import DOECamera
+    from hsicam.errors import ConfigError
+
+    cam = DOECamera.from_config(tiny_config("camera.doe.init=smooth", "camera.doe.init_range_nm=500",
+                                            "camera.doe.init_correlation_cells=2"))
+    h = cam.optics.doe.height_m.detach()
+    assert float(h.min()) == pytest.approx(0.0, abs=1e-15) and float(h.max()) == pytest.approx(500e-9, rel=1e-6)
+    with pytest.raises(ConfigError, match="init_correlation_cells"):
+        tiny_config("camera.doe.init=smooth", "camera.doe.init_correlation_cells=0")

@@ -87,8 +87,9 @@ class DOEConfig:
     cell_size_um: float = 30.0
     material: str = "fused_silica"
     design_wavelength_nm: float = 587.6  # h_2π = λ0 / (n(λ0) - 1)
-    init: Literal["random", "zeros"] = "random"  # random: uniform in [0, init_range_nm]
+    init: Literal["random", "smooth", "zeros"] = "random"  # random: i.i.d. uniform in [0, init_range_nm]
     init_range_nm: Optional[float] = None  # None: h_2π(λ0) (a full-phase diffuser)
+    init_correlation_cells: float = 12.0  # init smooth: σ (cells) of the Gaussian low-pass, then [0, range]
     seed: int = 0
     max_height_nm: Optional[float] = None  # clamp heights to [0, max] (straight-through gradient)
     wrap: bool = False  # wrap heights modulo h_2π (phase wrapping)
@@ -97,7 +98,8 @@ class DOEConfig:
 
     def __post_init__(self) -> None:
         _positive("camera.doe", cell_size_um=self.cell_size_um, design_wavelength_nm=self.design_wavelength_nm,
-                  max_height_nm=self.max_height_nm, init_range_nm=self.init_range_nm)
+                  max_height_nm=self.max_height_nm, init_range_nm=self.init_range_nm,
+                  init_correlation_cells=self.init_correlation_cells)
         if self.quantization_levels is not None and self.quantization_levels < 2:
             raise ConfigError(f"camera.doe.quantization_levels must be >= 2, got {self.quantization_levels}")
         if not (self.sigma_height_nm >= 0 and math.isfinite(self.sigma_height_nm)):

@@ -8,6 +8,7 @@ per cell, drawn on every forward pass while σ_p > 0).
 
 from __future__ import annotations
 
+import math
 import numpy as np
 import torch
 from torch import nn
@@ -46,6 +47,15 @@ def quantize_heights(h: torch.Tensor, levels: int, top_m: float, wrap: bool = Tr
     return straight_through(h, q)
 
 
+def gaussian_lowpass_periodic(x: torch.Tensor, sigma_cells: float) -> torch.Tensor:
+    """``x`` (H, W) convolved with a unit-sum Gaussian of std ``sigma_cells`` (cells), periodically
+    (by FFT: the Gaussian's transfer function exp(−2π²σ²f²), f in cycles per cell)."""
+    fy = torch.fft.fftfreq(x.shape[-2], dtype=x.dtype)[:, None]
+    fx = torch.fft.rfftfreq(x.shape[-1], dtype=x.dtype)[None, :]
+    transfer = torch.exp(-2.0 * math.pi**2 * sigma_cells**2 * (fy**2 + fx**2))
+    return torch.fft.irfft2(torch.fft.rfft2(x) * transfer, s=x.shape[-2:])
+
+
 class DOE(nn.Module):
     """Height map over ``n_cells``×``n_cells`` cells (m). ``enabled=False`` means h = 0, no parameters.
 
@@ -53,7 +63,9 @@ class DOE(nn.Module):
         n_cells: cells across the pupil grid (odd).
         material: DOE material (refractive index).
         design_wavelength_nm: λ0 for h_2π.
-        init: "random" (uniform in [0, init_range_m], default [0, h_2π]) or "zeros".
+        init: "random" (i.i.d. uniform in [0, init_range_m], default [0, h_2π]), "smooth" (a random
+            field low-passed by a periodic Gaussian of σ = ``init_correlation_cells`` cells, rescaled
+            to span [0, init_range_m] exactly: a structured, band-dependent diffuser) or "zeros".
         max_height_m, wrap, quantization_levels, sigma_height_m: see module docstring.
     """
 
@@ -70,6 +82,7 @@ class DOE(nn.Module):
         quantization_levels: int | None = None,
         sigma_height_m: float = 0.0,
         init_range_m: float | None = None,
+        init_correlation_cells: float = 12.0,
     ) -> None:
         super().__init__()
         self.n_cells = int(n_cells)
@@ -83,9 +96,13 @@ class DOE(nn.Module):
         self.h2pi_m = height_2pi_m(material, design_wavelength_nm)
         if self.enabled:
             g = torch.Generator().manual_seed(int(seed))
+            top = self.h2pi_m if init_range_m is None else float(init_range_m)
             if init == "random":
-                top = self.h2pi_m if init_range_m is None else float(init_range_m)
                 h0 = torch.rand(self.n_cells, self.n_cells, generator=g, dtype=torch.float64) * top
+            elif init == "smooth":
+                white = torch.rand(self.n_cells, self.n_cells, generator=g, dtype=torch.float64)
+                field = gaussian_lowpass_periodic(white, float(init_correlation_cells))
+                h0 = (field - field.min()) / (field.max() - field.min()) * top
             elif init == "zeros":
                 h0 = torch.zeros(self.n_cells, self.n_cells, dtype=torch.float64)
             else:
