@@ -212,3 +212,14 @@ def test_export_refuses_nan_weights_naming_the_file(inputs, tmp_path, capsys):
     code, err = call(capsys, ["export-optics", "--run", str(run), "--out", str(tmp_path / "fab")])
     assert_one_line(code, err, "model.safetensors", "NaN", "height_m")
     assert not (tmp_path / "fab").exists() and not list(tmp_path.glob(".fab*"))
+
+
+def test_demo_refuses_a_run_trained_with_other_settings(inputs, tmp_path, capsys):
+    """`hsicam demo --out DIR` whose DIR/run was trained with other settings: one line naming the
+    difference; the run is neither reused for the table nor retrained."""
+    out = tmp_path / "demo"
+    shutil.copytree(inputs / "run", out / "run")
+    before = snapshot(out)
+    code, err = call(capsys, ["demo", "--config", "tiny", "--out", str(out), "--set", "train.lr=0.0123"])
+    assert_one_line(code, err, "trained with another config", "→", "delete it")
+    assert snapshot(out) == before and not (out / "results.json").exists()

@@ -119,3 +119,29 @@ def test_dd_cassi_unrolled_method(tmp_path, cache_env):
     assert est.shape == method.target(scene).shape and torch.isfinite(est).all()
     with pytest.raises(InputError, match="model.kind=rdn"):
         build_method("dd-cassi-rdn", cfg, run)
+
+
+def test_ensure_trained_reuses_or_resumes_only_a_run_of_the_same_config(tmp_path, cache_env):
+    """An experiment's run folder is reused (finished) or resumed (partial) only when it was started
+    with the config asked for, up to how it runs; otherwise one clear error, and nothing is touched."""
+    from hsicam.engine.experiments import ensure_trained, is_finished
+    from hsicam.errors import InputError
+
+    run = tmp_path / "run"
+    asked = ("train.epochs=1",)
+    assert ensure_trained(run, "tiny", asked) == "trained"
+    weights = (run / "model.safetensors").read_bytes()
+    # device, logging cadence, evaluation-only settings: the same camera
+    assert ensure_trained(run, "tiny", (*asked, "train.device=cpu", "train.log_every_steps=7",
+                                        "baselines.desci.preset=full")) == "reused"
+    with pytest.raises(InputError, match=r"train\.lr: 0\.001 → 0\.01\): delete it") as err:
+        ensure_trained(run, "tiny", (*asked, "train.lr=0.01", "camera.doe.enabled=false"))
+    assert "camera.doe.enabled: True → False" in str(err.value)
+    assert ensure_trained(run, "tiny", asked) == "reused"
+    # a partial run (no final record) is not resumed with another config either
+    metrics = run / "metrics.jsonl"
+    metrics.write_text("".join(x + "\n" for x in metrics.read_text().splitlines()[:-1]))
+    assert not is_finished(run)
+    with pytest.raises(InputError, match="train.epochs: 1 → 2"):
+        ensure_trained(run, "tiny", ("train.epochs=2",))
+    assert (run / "model.safetensors").read_bytes() == weights

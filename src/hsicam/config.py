@@ -629,6 +629,33 @@ def to_dict(cfg: Any) -> dict[str, Any]:
     return dataclasses.asdict(cfg)
 
 
+#: Keys that say how a run executes or is evaluated, not what it trains: two configs that differ only
+#: here train the same camera (``training_differences``).
+RUNTIME_ONLY_KEYS = (
+    "baselines", "data.cache_dir", "data.preload", "data.preload_max_mb", "data.num_workers", "data.heldout_n",
+    "train.device", "train.log_every_steps", "train.checkpoint_every_steps", "train.eval_every_epochs",
+    "train.tensorboard", "train.compile", "train.channels_last", "train.deterministic",
+)
+
+
+def training_differences(have: Config, want: Config, limit: int = 3) -> list[str]:
+    """The first ``limit`` settings (``"key: have → want"``) in which two configs train different
+    cameras; keys in :data:`RUNTIME_ONLY_KEYS` (and below them) are ignored. Empty: the same."""
+    out: list[str] = []
+
+    def walk(a: Any, b: Any, where: str) -> None:
+        if len(out) >= limit or any(where == k or where.startswith(k + ".") for k in RUNTIME_ONLY_KEYS):
+            return
+        if isinstance(a, dict) and isinstance(b, dict):
+            for key in a.keys() | b.keys():
+                walk(a.get(key), b.get(key), _join(where, key))
+        elif a != b:
+            out.append(f"{where}: {a!r} → {b!r}")
+
+    walk(to_dict(have), to_dict(want), "")
+    return sorted(out)
+
+
 def dump_yaml(cfg: Any) -> str:
     """The resolved config as YAML text (round-trips through :func:`load_config`)."""
     return yaml.safe_dump(to_dict(cfg), sort_keys=False)

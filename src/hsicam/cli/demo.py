@@ -34,7 +34,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
         resume = (run / "config.yaml").is_file()
         print(f"[demo] {'resuming' if resume else 'training'} the camera in {run} "
               f"({cfg.train.epochs} epochs × {cfg.data.patches_per_epoch} patches of {cfg.data.patch_px} px)")
-    summary = run_demo(cfg, out, tuple(args.overrides))
+    summary = run_demo(cfg, out)
     print(summary["table"])
     print(f"[demo] validation mean: {means_line(summary['mean'])} ({summary['n_scenes']} scenes; "
           f"{time.perf_counter() - t0:.0f} s)")

@@ -29,17 +29,18 @@ def means_line(m: dict) -> str:
     return f"PSNR {m['psnr']:.2f} dB, SSIM {m['ssim']:.4f}, SAM {m['sam']:.2f}°"
 
 
-def run_demo(cfg: Config, out: str | Path, overrides: tuple[str, ...] = ()) -> dict[str, Any]:
+def run_demo(cfg: Config, out: str | Path) -> dict[str, Any]:
     """Train (or resume, or reuse) ``out/run`` with ``cfg``, evaluate and write ``out``'s results.
 
     Returns the summary written to ``out/results.json`` plus ``status`` (trained / resumed /
-    reused) and ``table`` (Markdown). ``overrides`` apply to a resumed run's own config.
+    reused) and ``table`` (Markdown). An existing ``out/run`` started with another config is an
+    :class:`InputError` (``ensure_trained``), never silently reused.
     """
     out = Path(out)
     run = out / "run"
+    status = ensure_trained(run, cfg)
     if out.is_dir():
         clear_complete(out)  # the results below are rewritten; `hsicam report` waits for the marker
-    status = ensure_trained(run, cfg, overrides)
     cfg, model = load_run(run)
     bands = cfg.bands.to_bands()
     train_list, val = split_scenes(list_scenes(dataset_root(cfg.data, bands)), cfg.data.val_fraction, cfg.data.split_seed)
