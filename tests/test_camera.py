@@ -277,3 +277,23 @@ def test_too_small_scene_for_reflect_padding_is_an_input_error(tiny_camera):
     cam = tiny_camera("camera.boundary=same", "camera.padding=reflect")
     with pytest.raises(InputError):
         cam.A(torch.rand(1, 3, 2, 2))
+
+
+def test_fixed_measure_computes_the_doe_psf_once_unless_height_noise_is_drawn(tiny_camera):
+    """The DOE camera's ``fixed_measure`` reuses one nominal PSF stack (the optics do not change
+    while it is used); with fabrication noise σ_p > 0 each call draws its own PSF."""
+    cam = _camera(tiny_camera, True, True, "valid", "zeros")
+    calls = []
+    cam.optics.register_forward_hook(lambda *_: calls.append(1))
+    x = _scene(cam)
+    fn = cam.fixed_measure()
+    y1, op1 = fn(x)
+    y2, op2 = fn(0.5 * x)
+    assert len(calls) == 1 and op1 is op2 and op1.psf.grad_fn is None
+    torch.testing.assert_close(y2, 0.5 * y1, rtol=1e-12, atol=1e-15)  # linear, one operator
+    torch.testing.assert_close(y1, cam.A(x).detach(), rtol=1e-12, atol=1e-15)
+    cam.set_noise(sigma_height_nm=30.0)
+    calls.clear()
+    ya, _ = fn(x, torch.Generator().manual_seed(1))
+    yb, _ = fn(x, torch.Generator().manual_seed(2))
+    assert len(calls) == 2 and not torch.equal(ya, yb)

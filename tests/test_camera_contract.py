@@ -76,8 +76,9 @@ def test_adjointness_float64(case, zero_mean):
     _, _, cam = case
     x = _scene(cam, seed=1, zero_mean=zero_mean)
     y = _rand(cam.A(x).shape, 2, zero_mean)
-    lhs, rhs = (cam.A(x) * y).sum(), (x * cam.A_adjoint(y)).sum()
-    assert abs(float(lhs - rhs)) <= 1e-12 * float(cam.A(x).norm() * y.norm())
+    with torch.no_grad():  # values only (the DOE camera's PSF carries the DOE's autograd graph)
+        lhs, rhs = (cam.A(x) * y).sum(), (x * cam.A_adjoint(y)).sum()
+        assert abs(float(lhs - rhs)) <= 1e-12 * float(cam.A(x).norm() * y.norm())
     assert cam.adjointness_error(SCENE_HW, torch.Generator().manual_seed(0)) < 1e-12
 
 
@@ -219,3 +220,19 @@ def test_cpu_equals_cuda(case):
 def test_unknown_kind_is_one_clear_error():
     with pytest.raises(ConfigError, match="choose one of .*doe"):
         build_camera(load_config(overrides=["camera.kind=pinhole"]))
+
+
+def test_fixed_measure_gives_the_measurement_without_autograd(case):
+    """``fixed_measure()`` (training with the optics fixed) images a scene as ``measure`` does, but
+    builds no graph through the camera, even when its parameters require gradients."""
+    _, _, cam = case
+    cam.eval()
+    for p in cam.parameters():
+        p.requires_grad_(True)
+    x = _scene(cam, b=2, seed=4)
+    fn = cam.fixed_measure()
+    for seed in (0, 1):
+        y_ref, _ = cam.measure(x, torch.Generator().manual_seed(seed))
+        y, op = fn(x, torch.Generator().manual_seed(seed))
+        assert not y.requires_grad and y.grad_fn is None
+        torch.testing.assert_close(y, y_ref.detach(), rtol=1e-12, atol=1e-14)

@@ -145,3 +145,34 @@ def test_ensure_trained_reuses_or_resumes_only_a_run_of_the_same_config(tmp_path
     with pytest.raises(InputError, match="train.epochs: 1 → 2"):
         ensure_trained(run, "tiny", ("train.epochs=2",))
     assert (run / "model.safetensors").read_bytes() == weights
+
+
+def test_optics_steps_train_the_optics_first_then_the_network_alone(tmp_path, cache_env):
+    """train.optics_steps=5 of 12: the first 5 steps are plain joint training (same weights as a
+    joint run stopped there), then the optics stay fixed while the network keeps learning; a run
+    resumed in the fixed phase ends where the uninterrupted one does."""
+    ov = ["train.epochs=3", "train.lr_schedule=constant"]
+    fixed_cfg = load_config("tiny", [*ov, "train.optics_steps=5"])
+    train(load_config("tiny", ov), tmp_path / "joint", progress=False, stop_after_steps=5)
+    train(fixed_cfg, tmp_path / "at5", progress=False, stop_after_steps=5)
+    train(fixed_cfg, tmp_path / "full", progress=False)
+    train(fixed_cfg, tmp_path / "part", progress=False, stop_after_steps=7)
+    train(fixed_cfg, tmp_path / "part", resume=True, progress=False)
+
+    def last(run):
+        return read_weights(run / json.loads((run / "checkpoints.json").read_text())["last"]["dir"] / "model.safetensors")[0]
+
+    torch.manual_seed(0)
+    init = CameraSystem.from_config(fixed_cfg).state_dict()
+    joint, at5, full, part = (last(tmp_path / n) for n in ("joint", "at5", "full", "part"))
+    optics = ("camera.optics.doe.height_m", "camera.cfa.weights")
+    for k in optics:
+        assert not torch.equal(at5[k], init[k]), f"{k} did not learn in the optics steps"
+        torch.testing.assert_close(at5[k], joint[k], rtol=0, atol=0, msg=k)
+        torch.testing.assert_close(full[k], at5[k], rtol=0, atol=0, msg=k)  # fixed after step 5
+    net = [k for k in full if k.startswith("net.")]
+    assert max(float((full[k] - at5[k]).abs().max()) for k in net) > 1e-4  # the network went on learning
+    for k in full:
+        torch.testing.assert_close(part[k], full[k], rtol=0, atol=1e-6, msg=k)
+    with pytest.raises(ConfigError, match="optics_steps"):
+        load_config("tiny", ["train.optics_steps=-1"])

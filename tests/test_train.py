@@ -148,19 +148,21 @@ import sys, torch
 from hsicam.config import load_config
 from hsicam.engine.train import train
 torch.set_num_threads(1)
-cfg = load_config("tiny", ["train.epochs=1", "data.val_fraction=0.0"])
+cfg = load_config("tiny", ["train.epochs=1", "data.val_fraction=0.0", *sys.argv[2:]])
 train(cfg, sys.argv[1], progress=False)
 """
 
 
-def test_ddp_two_processes_matches_single_process(tmp_path, cache_env):
+# optics_steps=2 of 4: the fixed-optics steps leave the optics without gradients (DDP must allow it)
+@pytest.mark.parametrize("extra", [(), ("train.optics_steps=2",)], ids=["joint", "optics-then-net"])
+def test_ddp_two_processes_matches_single_process(tmp_path, cache_env, extra):
     script = tmp_path / "ddp_train.py"
     script.write_text(DDP_SCRIPT)
     env = {**os.environ, "OMP_NUM_THREADS": "1", "HSICAM_CACHE": str(cache_env)}
-    single = subprocess.run([sys.executable, str(script), str(tmp_path / "single")], env=env, capture_output=True, text=True, timeout=300)
+    single = subprocess.run([sys.executable, str(script), str(tmp_path / "single"), *extra], env=env, capture_output=True, text=True, timeout=300)
     assert single.returncode == 0, single.stderr
     ddp = subprocess.run([sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node=2",
-                          str(script), str(tmp_path / "ddp")], env=env, capture_output=True, text=True, timeout=300)
+                          str(script), str(tmp_path / "ddp"), *extra], env=env, capture_output=True, text=True, timeout=300)
     assert ddp.returncode == 0, ddp.stderr[-3000:]
     ws, wd = read_weights(tmp_path / "single" / "model.safetensors")[0], read_weights(tmp_path / "ddp" / "model.safetensors")[0]
     init = CameraSystem.from_config(load_config("tiny")).state_dict()

@@ -328,6 +328,10 @@ class TrainConfig:
     # parameter groups kept fixed: "net" (the network), or a group the camera declares
     # (DOE camera: "doe", "cfa"); e.g. [doe] trains the CFA and the network behind a fixed DOE
     freeze: list[str] = field(default_factory=list)
+    # train the camera's groups during the first optics_steps steps only; afterwards the optics are
+    # fixed and the network trains alone, each batch imaged without autograd through the optics (the
+    # DOE camera's PSF stack computed once): ~2.8x faster steps on the quick preset. null: joint throughout
+    optics_steps: Optional[int] = None
 
     def __post_init__(self) -> None:
         for k in ("epochs", "batch_size", "eval_every_epochs", "checkpoint_every_steps", "log_every_steps", "lr_step_epochs"):
@@ -341,6 +345,8 @@ class TrainConfig:
                 raise ConfigError(f"train.{k} must be >= 0, got {v}")
         if self.warmup_steps < 0:
             raise ConfigError(f"train.warmup_steps must be >= 0, got {self.warmup_steps}")
+        if self.optics_steps is not None and self.optics_steps < 0:
+            raise ConfigError(f"train.optics_steps must be >= 0 or null, got {self.optics_steps}")
         for k in ("sigma_height_nm", "sensor_sigma"):
             v = getattr(self, k)
             if len(v) != 2 or not (0 <= v[0] <= v[1]) or not all(math.isfinite(x) for x in v):

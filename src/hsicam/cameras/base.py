@@ -50,6 +50,18 @@ class Camera(nn.Module):
         that made the measurement, so a training step builds it once."""
         return self(x, generator), self
 
+    def fixed_measure(self):
+        """:meth:`measure` for batches imaged while the camera's parameters stay fixed (the network
+        trains alone): ``fn(x, generator) → (measurement, operator)``, without autograd through the
+        camera. Here :meth:`measure` under ``no_grad``; a camera with a costly operator reuses it.
+        Take a new one after the parameters change."""
+
+        def fn(x: torch.Tensor, generator: torch.Generator | None = None):
+            with torch.no_grad():
+                return self.measure(x, generator)
+
+        return fn
+
     # -- derived operator quantities (built only from A and A_adjoint) ---------------------------
     def A_adjoint_A(self, x: torch.Tensor) -> torch.Tensor:  # noqa: N802
         """Aᵀ A x, (B, C, H, W) → (B, C, H, W) (the normal operator)."""

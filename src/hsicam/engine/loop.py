@@ -146,6 +146,8 @@ class Task:
     weights_file: str = "model.safetensors"
     what: str = "training"
     batch_size_key: str = "train.batch_size"  # the config key of the batch size, for error messages
+    # True when some steps leave trainable parameters without a gradient (DDP must then look for them)
+    find_unused_parameters: bool = False
 
     def module(self) -> nn.Module:
         """Everything the checkpoints hold (network and optics)."""
@@ -265,7 +267,9 @@ def fit(task: Task, opts: FitOptions, run_dir: str | Path, resume: bool = False)
     task.on_device(device)
     trainable: nn.Module = model
     if distributed:
-        trainable = torch.nn.parallel.DistributedDataParallel(model, device_ids=[device.index] if device.type == "cuda" else None)
+        trainable = torch.nn.parallel.DistributedDataParallel(
+            model, device_ids=[device.index] if device.type == "cuda" else None,
+            find_unused_parameters=task.find_unused_parameters)
     writer = _tensorboard(run_dir) if (t.tensorboard and is_main) else None
 
     def validate_now() -> dict[str, float]:

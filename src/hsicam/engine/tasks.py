@@ -101,6 +101,10 @@ class SystemTask(Task):
     ``doe`` at ``train.doe_lr_nm``, ``cfa`` at ``train.cfa_lr``), minus ``train.freeze``.
     Noise: ``train.sigma_height_nm`` / ``train.sensor_sigma`` ranges drawn per step; validation
     uses the camera's configured noise.
+
+    ``train.optics_steps`` = N: from step N on, the camera's groups get no gradient and every batch
+    is imaged through ``camera.fixed_measure()`` (no autograd through the optics; the DOE camera's
+    PSFs computed once per run or resume), so only the network learns, at network-only step cost.
     """
 
     def __init__(self, cfg: Config, model: CameraSystem, extra_freeze: tuple[str, ...] = ()) -> None:
@@ -108,6 +112,8 @@ class SystemTask(Task):
         self.bands = model.bands
         self.eval_noise = model.camera.noise_levels()
         self.freeze = set(cfg.train.freeze) | set(extra_freeze)
+        self.find_unused_parameters = cfg.train.optics_steps is not None
+        self._fixed_measure = None  # camera.fixed_measure() once the optics are fixed
         known = {"net", *model.camera.param_groups()}
         unknown = sorted(set(cfg.train.freeze) - known)  # e.g. `doe` on a CASSI camera: nothing to freeze
         if unknown:
@@ -154,9 +160,14 @@ class SystemTask(Task):
 
     def on_step_start(self, step: int, generator: torch.Generator) -> None:
         apply_noise(self.model.camera, draw_noise(self.cfg.train, generator))
+        n = self.cfg.train.optics_steps
+        if n is None or step < n:
+            self._fixed_measure = None
+        elif self._fixed_measure is None:  # the optics have had their last update
+            self._fixed_measure = self.model.camera.fixed_measure()
 
     def training_step(self, trainable, scene: torch.Tensor, generator: torch.Generator) -> torch.Tensor:
-        recon, _ = trainable(scene, generator)
+        recon, _ = trainable(scene, generator, measure=self._fixed_measure)
         return system_loss(recon.float(), self.model.target(scene), self.cfg.train)
 
     def validate(self, loader, device: torch.device) -> dict[str, float]:

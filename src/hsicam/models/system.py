@@ -78,6 +78,10 @@ class CameraSystem(nn.Module):
 
         return fn
 
-    def forward(self, scene: torch.Tensor, generator: torch.Generator | None = None) -> tuple[torch.Tensor, torch.Tensor]:
-        sensor, operator = self.camera.measure(scene, generator)
+    def forward(self, scene: torch.Tensor, generator: torch.Generator | None = None,
+                measure=None) -> tuple[torch.Tensor, torch.Tensor]:
+        """``measure``: how the scene is imaged, ``fn(scene, generator) → (sensor, operator)``;
+        default ``camera.measure`` (gradients reach the optics), e.g. ``camera.fixed_measure()``
+        while the optics are fixed."""
+        sensor, operator = (self.camera.measure if measure is None else measure)(scene, generator)
         return self.reconstruct(sensor, operator=operator), sensor
