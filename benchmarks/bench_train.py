@@ -3,6 +3,7 @@
 - Training throughput (patches/s) of full optimisation steps (PSF from the DOE, camera, RDN,
   L1, backward, Adam) for the ``quick`` preset on this machine, with the time split between the
   optics (PSF + camera) and the network, forward and backward.
+- The same preset's step once the optics are fixed (``train.optics_steps``): network only.
 - With CUDA: the same for the ``paper`` preset (256 px patches, bf16 autocast, channels_last).
 - Inference time of one 512×512×31 reconstruction (network only) for the quick and paper networks.
 
@@ -68,6 +69,32 @@ def train_steps(preset: str, device: torch.device, steps: int, overrides: list[s
             "optics_fraction": statistics.median(t_optics) / step, "network_fraction": statistics.median(t_net) / step}
 
 
+def fixed_optics_steps(preset: str, device: torch.device, steps: int) -> dict:
+    """Steps after ``train.optics_steps``: the batch imaged through ``camera.fixed_measure()`` (PSFs
+    built once, no autograd through the optics), the network trained alone."""
+    cfg = load_config(preset)
+    torch.manual_seed(0)
+    model = CameraSystem.from_config(cfg).to(device)
+    opt = torch.optim.Adam(model.net.parameters(), lr=cfg.train.lr)
+    b, p, m = cfg.train.batch_size, cfg.data.patch_px, model.camera.margin
+    scene = torch.rand(b, len(model.bands), p + m, p + m, device=device)
+    measure = model.camera.fixed_measure()
+    times = []
+    for i in range(steps + 1):
+        _sync(device)
+        t0 = time.perf_counter()
+        recon, _ = model(scene, measure=measure)
+        loss = F.l1_loss(recon.float(), model.target(scene))
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        opt.step()
+        _sync(device)
+        if i:  # the first step builds the PSFs and warms up
+            times.append(time.perf_counter() - t0)
+    step = statistics.median(times)
+    return {"preset": preset, "device": str(device), "batch": b, "step_s": step, "patches_per_s": b / step}
+
+
 @torch.no_grad()
 def inference(preset: str, device: torch.device, repeats: int = 3) -> dict:
     cfg = load_config(preset)
@@ -96,6 +123,7 @@ def main() -> None:
     cpu = torch.device("cpu")
     out = {"torch": torch.__version__, "threads": torch.get_num_threads(),
            "train_quick_cpu": train_steps("quick", cpu, args.steps, []),
+           "train_quick_cpu_fixed_optics": fixed_optics_steps("quick", cpu, args.steps),
            "inference_cpu": [inference("quick", cpu), inference("paper", cpu, repeats=1)]}
     if torch.cuda.is_available():
         gpu = torch.device("cuda")
