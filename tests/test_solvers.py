@@ -3,11 +3,14 @@
 from __future__ import annotations
 
 import os
+import re
+import shutil
 
 import numpy as np
 import pytest
 import torch
 import torch.nn.functional as F
+import yaml
 
 from cli_helpers import assert_clean_error, run_cli
 from hsicam.cameras import build_camera
@@ -381,6 +384,23 @@ def test_prior_folder_and_reuse(tiny_env):
     with pytest.raises(InputError, match="batch_size"):
         train_prior(tiny_env["cfg"], ChoiConfig(train_steps=1, batch_size=1000), fresh)
     assert not fresh.exists()  # nothing written: the same --out works after fixing the config
+
+
+def test_a_prior_trained_with_other_settings_is_not_reused(tiny_env, tmp_path):
+    """ensure_choi_prior (the experiments' Choi row) reuses a prior folder only when it was trained
+    on the scale's bands and data with its prior settings; otherwise one error, nothing touched."""
+    for name, edit, key in (("steps", lambda c, p: p.update(train_steps=p["train_steps"] + 1), "baselines.choi.train_steps"),
+                            ("bands", lambda c, p: c["bands"].update(step_nm=100.0), "bands.step_nm")):
+        run = tmp_path / name
+        shutil.copytree(tiny_env["prior"], run)
+        cfg_yaml, prior_yaml = yaml.safe_load((run / "config.yaml").read_text()), yaml.safe_load((run / "prior.yaml").read_text())
+        edit(cfg_yaml, prior_yaml)
+        (run / "config.yaml").write_text(yaml.safe_dump(cfg_yaml, sort_keys=False))
+        (run / "prior.yaml").write_text(yaml.safe_dump(prior_yaml, sort_keys=False))
+        before = {f.name: f.stat().st_mtime_ns for f in run.iterdir()}
+        with pytest.raises(InputError, match=rf"trained with other settings \({re.escape(key)}: .*delete it"):
+            ensure_choi_prior(run, "tiny")
+        assert {f.name: f.stat().st_mtime_ns for f in run.iterdir()} == before
 
 
 def test_cli_train_prior(tiny_env, capsys):

@@ -19,7 +19,7 @@ from pathlib import Path
 import torch
 import yaml
 
-from hsicam.config import ChoiConfig, Config, from_dict, load_config
+from hsicam.config import ChoiConfig, Config, from_dict, load_config, training_differences
 from hsicam.engine.loop import FitOptions, fit
 from hsicam.engine.tasks import PriorTask
 from hsicam.errors import InputError
@@ -64,19 +64,42 @@ def train_prior(cfg: Config, settings: ChoiConfig | None, out: str | Path, progr
     return summary
 
 
+#: ``baselines.choi`` settings that change the trained autoencoder (the ADMM ones apply at evaluation)
+PRIOR_TRAINING_KEYS = ("features", "latent", "train_steps", "batch_size", "lr", "train_noise", "seed")
+
+
+def prior_differences(run: str | Path, cfg: Config, settings: ChoiConfig, limit: int = 3) -> list[str]:
+    """The first ``limit`` settings (``"key: have → want"``) in which the prior folder ``run`` was
+    trained otherwise than ``settings`` on the bands and data of ``cfg``. Empty: the same prior."""
+    run = Path(run)
+    have_cfg, have = load_config(run / "config.yaml"), load_prior_settings(run)
+    out = [d for d in training_differences(have_cfg, cfg, limit=10**6) if d.split(".")[0] in ("bands", "data")]
+    out += [f"baselines.choi.{k}: {getattr(have, k)!r} → {getattr(settings, k)!r}"
+            for k in PRIOR_TRAINING_KEYS if getattr(have, k) != getattr(settings, k)]
+    return sorted(out)[:limit]
+
+
 def ensure_choi_prior(run: str | Path, scale: str = "quick") -> Path:
     """A trained spectral prior in ``run`` for an experiment ``scale`` (trained when missing; an
-    interrupted training resumes)."""
+    interrupted training resumes; a finished one is reused). A folder trained with other bands,
+    data or prior training settings is an :class:`InputError` naming the first differences, so a
+    table never reports a prior other than the scale's."""
     run = Path(run)
-    if is_prior_run(run):
-        log.info("%s: spectral prior finished, reused", run)
-        return run
     if scale not in PRIOR_SCALE_OVERRIDES:
         raise InputError(f"unknown scale {scale!r}; choose one of {', '.join(PRIOR_SCALE_OVERRIDES)}")
     cfg = load_config(scale, PRIOR_SCALE_OVERRIDES[scale])
+    settings = cfg.baselines.choi if cfg.baselines.choi is not None else ChoiConfig()
     resume = (run / "config.yaml").is_file()
+    if resume:
+        changed = prior_differences(run, cfg, settings)
+        if changed:
+            raise InputError(f"{run} was trained with other settings ({'; '.join(changed)}): "
+                             "delete it to train it again, or choose another output folder")
+    if is_prior_run(run):
+        log.info("%s: spectral prior finished, reused", run)
+        return run
     log.info("%s: %s the spectral prior (%s scale)", run, "resuming" if resume else "training", scale)
-    train_prior(cfg, cfg.baselines.choi, run, resume=resume)
+    train_prior(cfg, settings, run, resume=resume)
     return run
 
 
