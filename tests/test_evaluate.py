@@ -188,16 +188,19 @@ def test_ablation_without_cfa_keeps_the_network(kind):
     from hsicam.engine.experiments import run_specs
     from hsicam.models import CameraSystem
 
-    base = [f"model.kind={kind}", "model.unrolled.init=mosaic"]
+    # factor 0: the front end regroups by the CFA period (4 in quick), which the ablation must pin
+    base = [f"model.kind={kind}", "model.unrolled.init=mosaic", "model.mosaic.factor=0", "model.unrolled.mosaic.factor=0"]
     cfg = load_config("quick", base)
     spec = {s.name: s for s in run_specs("ablation", cfg)}["no-cfa"]
     full = CameraSystem.from_config(cfg)
     ablated = CameraSystem.from_config(load_config("quick", [*base, *spec.overrides]))
-    assert full.camera.code_period == 9 and ablated.camera.code_period == 1  # the CFA is off
+    assert full.camera.code_period == 4 and ablated.camera.code_period == 1  # the CFA is off
     shapes = lambda m: [tuple(p.shape) for p in m.net.parameters()]  # noqa: E731
     assert shapes(ablated) == shapes(full)
+    explicit = load_config("quick", [f"model.kind={kind}", "model.unrolled.init=mosaic"])  # quick's factor 8
+    assert not {s.name: s for s in run_specs("ablation", explicit)}["no-cfa"].overrides[1:]  # nothing to pin
     if kind != "rdn":
-        assert any("factor=9" in o for o in spec.overrides)
+        assert any("factor=4" in o for o in spec.overrides)
         # without the pinned factor the network would be another one (regrouped by 3)
         other = CameraSystem.from_config(load_config("quick", [*base, "camera.cfa.enabled=false"]))
         assert shapes(other) != shapes(full)
