@@ -291,6 +291,9 @@ def test_demo_cli_trains_reports_and_draws(tmp_path, cache_env):
     assert all(np.isfinite(held["mean"][k]) for k in ("psnr", "ssim", "sam"))
     assert f"PSNR {summary['mean']['psnr']:.2f} dB" in proc.stdout
     assert proc.stdout.count("reference without a network") == 4  # validation and held-out sources, 2 each
+    md = (out / "results.md").read_text()  # both tables and both reference lists, each named once
+    assert md.count(held["data"]) == 1 and md.count("CFA box demosaic (no network): PSNR") == 2
+    assert "| scene | psnr | ssim | sam |" in md and md.count("**mean**") == 2
     import imageio.v3 as iio
 
     for name in ("reconstructions.png", "psf.png", "cfa.png", "doe.png", "training.png"):

@@ -42,7 +42,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
         print(f"[demo] reference without a network, {r['method']}: {means_line(r['mean'])}")
     if "heldout" in summary:
         h = summary["heldout"]
-        print(f"[demo] held-out spectral sources ({len(h['scenes'])} scenes, {h['data']}): {means_line(h['mean'])}")
+        print(f"[demo] {h['data']}, {len(h['scenes'])} scenes: {means_line(h['mean'])}")
         for r in h["references"]:
             print(f"[demo] held-out reference without a network, {r['method']}: {means_line(r['mean'])}")
     print(f"[demo] figures and tables in {out}: reconstructions.png, psf.png, cfa.png, doe.png, training.png, results.md")

@@ -75,7 +75,9 @@ def run_demo(cfg: Config, out: str | Path) -> dict[str, Any]:
         fh.write(f"Validation scenes, {summary['conventions']['psnr']}; SSIM {summary['conventions']['ssim']}; "
                  f"SAM in degrees.\n\n{table}\n\nReferences without a network:\n\n"
                  + "".join(f"- {r['method']}: {means_line(r['mean'])}\n" for r in summary["references"])
-                 + (f"\nHeld-out spectral sources ({summary['heldout']['data']}):\n\n{format_table(summary['heldout'])}\n"
+                 + (f"\nOn {summary['heldout']['data']}:\n\n{format_table(summary['heldout'])}\n\n"
+                    "References without a network on these scenes:\n\n"
+                    + "".join(f"- {r['method']}: {means_line(r['mean'])}\n" for r in summary["heldout"]["references"])
                     if "heldout" in summary else ""))
     if model.camera.kind == "doe":
         write_psf_outputs(model.camera, out)
