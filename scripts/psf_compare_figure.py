@@ -1,0 +1,67 @@
+"""Draw trained PSFs of several cameras side by side (docs: the DOE/CFA ablation).
+
+    python scripts/psf_compare_figure.py OUT.png LABEL=DIR/psf.npy [LABEL=DIR/psf.npy ...] [--bands 420,570,720]
+
+Each `psf.npy` is a (bands, K, K) stack as `hsicam psf` and `hsicam demo` write it, on the
+420–720 nm / 10 nm grid. One row per camera, one column per chosen band: the central 9×9 px on a
+linear scale (each panel normalised to its own peak), titled with the light on the central pixel,
+within 3×3 px and the RMS radius (hsicam.report.camera.rms_radius_px).
+"""
+
+from __future__ import annotations
+
+import argparse
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+
+from hsicam.report.camera import rms_radius_px  # noqa: E402
+
+START_NM, STEP_NM, CROP = 420.0, 10.0, 9
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("out")
+    p.add_argument("psfs", nargs="+", help="LABEL=path/to/psf.npy")
+    p.add_argument("--bands", default="420,570,720", help="band centres in nm")
+    args = p.parse_args()
+    waves = [float(w) for w in args.bands.split(",")]
+    rows = []
+    for item in args.psfs:
+        label, sep, path = item.partition("=")
+        if not sep:
+            raise SystemExit(f"expected LABEL=path/to/psf.npy, got {item!r}")
+        stack = np.load(path)
+        if stack.ndim != 3 or stack.shape[1] != stack.shape[2]:
+            raise SystemExit(f"{path}: expected a (bands, K, K) PSF stack, got shape {stack.shape}")
+        rows.append((label, stack))
+    fig, axes = plt.subplots(len(rows), len(waves), figsize=(2.4 * len(waves), 2.5 * len(rows)), squeeze=False)
+    for r, (label, stack) in enumerate(rows):
+        k = stack.shape[1]
+        c, h = k // 2, CROP // 2
+        radii = rms_radius_px(stack)
+        for j, w in enumerate(waves):
+            b = int(round((w - START_NM) / STEP_NM))
+            if not 0 <= b < stack.shape[0]:
+                raise SystemExit(f"{w:g} nm is not a band of {label} ({stack.shape[0]} bands from {START_NM:g} nm)")
+            psf = stack[b] / stack[b].sum()
+            ax = axes[r, j]
+            ax.imshow(psf[c - h:c + h + 1, c - h:c + h + 1], cmap="inferno", vmin=0)
+            ax.set_title(f"{w:g} nm: centre {psf[c, c]:.0%}\n3×3 {psf[c - 1:c + 2, c - 1:c + 2].sum():.0%}, "
+                         f"r {radii[b]:.1f} px", fontsize=8)
+            ax.set_xticks([])
+            ax.set_yticks([])
+            if j == 0:
+                ax.set_ylabel(label, fontsize=9)
+    fig.suptitle(f"PSF, central {CROP}×{CROP} px, linear, each panel to its peak", fontsize=9)
+    fig.tight_layout()
+    fig.savefig(args.out, dpi=110)
+    print(f"wrote {args.out}")
+
+
+if __name__ == "__main__":
+    main()
