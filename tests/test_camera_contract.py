@@ -139,6 +139,7 @@ def test_gradients_reach_each_parameter_group(case):
         assert abs(ad - fd) <= 1e-5 * abs(fd) + 1e-12, f"group {name}: autograd {ad} vs finite difference {fd}"
 
 
+@torch.no_grad()  # values only: no autograd graph, no grad-to-scalar warnings
 def test_float32_matches_float64_and_batch_matches_items(case):
     _, _, cam = case
     x = _scene(cam, b=3, seed=10)
@@ -149,6 +150,7 @@ def test_float32_matches_float64_and_batch_matches_items(case):
     torch.testing.assert_close(cam.A(x), per_item)
 
 
+@torch.no_grad()  # values only: no autograd graph, no grad-to-scalar warnings
 def test_noise_off_forward_is_A_and_seeded_noise_is_reproducible(case):
     _, _, cam = case
     x = _scene(cam, seed=11)
@@ -201,6 +203,7 @@ def test_bad_shapes_are_input_errors(case):
         cam.A_adjoint(torch.zeros(1, 1, 6, 6, dtype=torch.int64))
 
 
+@torch.no_grad()  # values only: no autograd graph, no grad-to-scalar warnings
 def test_sqnorm_is_the_largest_gain(case):
     _, _, cam = case
     s = cam.sqnorm(SCENE_HW, iterations=60, generator=torch.Generator().manual_seed(0))

@@ -74,10 +74,12 @@ class Camera(nn.Module):
         if not torch.is_floating_point(y):
             raise InputError(f"sensor image must be a floating-point tensor, got {y.dtype}")
 
+    @torch.no_grad()
     def relative_residual(self, x: torch.Tensor, y: torch.Tensor) -> float:
         """‖A x − y‖ / ‖y‖ (data consistency of an estimate ``x``)."""
         return float((self.A(x) - y).norm() / y.norm().clamp_min(1e-30))
 
+    @torch.no_grad()
     def adjointness_error(self, scene_hw: tuple[int, int], generator: torch.Generator | None = None,
                           dtype: torch.dtype = torch.float64) -> float:
         """|⟨Ax, y⟩ − ⟨x, Aᵀy⟩| / (‖Ax‖‖y‖) for random x, y (0 for an exact adjoint, up to rounding)."""
