@@ -416,12 +416,12 @@ def test_ssim_and_spectral_angle_loss_terms_against_independent_references():
     g = torch.Generator().manual_seed(3)
     truth = torch.rand(2, 4, 16, 18, generator=g, dtype=torch.float64) * torch.linspace(0.0, 1, 18, dtype=torch.float64)
     recon = (truth + 0.05 * torch.randn(truth.shape, generator=g, dtype=torch.float64)).requires_grad_(True)
-    l1 = float((recon - truth).abs().mean())
+    l1 = float((recon.detach() - truth).abs().mean())
     ref_ssim = np.mean([structural_similarity(truth[b, c].numpy(), recon[b, c].detach().numpy(), gaussian_weights=True,
                                               sigma=1.5, use_sample_covariance=False, data_range=1.0)
                         for b in range(2) for c in range(4)])
     got = system_loss(recon, truth, TrainConfig(ssim_loss=0.5))
-    assert float(got) == pytest.approx(l1 + 0.5 * (1 - ref_ssim), rel=1e-9)
+    assert float(got.detach()) == pytest.approx(l1 + 0.5 * (1 - ref_ssim), rel=1e-9)
 
     r, t = recon.detach().numpy(), truth.numpy()
     angles = [np.arccos(np.clip(np.dot(r[b, :, i, j], t[b, :, i, j]) /
@@ -429,13 +429,13 @@ def test_ssim_and_spectral_angle_loss_terms_against_independent_references():
               for b in range(2) for i in range(16) for j in range(18) if t[b, :, i, j].mean() > 0.2]
     assert 0 < len(angles) < 2 * 16 * 18  # the threshold drops dark pixels
     got = system_loss(recon, truth, TrainConfig(sam_loss=2.0, relative_eps=0.2))
-    assert float(got) == pytest.approx(l1 + 2.0 * np.mean(angles), rel=1e-6)
+    assert float(got.detach()) == pytest.approx(l1 + 2.0 * np.mean(angles), rel=1e-6)
     got.backward()
     assert torch.isfinite(recon.grad).all()
 
     perfect = truth.clone().requires_grad_(True)
     loss = system_loss(perfect, truth, TrainConfig(ssim_loss=1.0, sam_loss=1.0))
-    assert float(loss) == pytest.approx(0.0, abs=2e-3)  # acos is clamped at 1 − 1e-6
+    assert float(loss.detach()) == pytest.approx(0.0, abs=2e-3)  # acos is clamped at 1 − 1e-6
     loss.backward()
     assert torch.isfinite(perfect.grad).all()
     with pytest.raises(ConfigError, match="sam_loss"):
