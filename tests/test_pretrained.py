@@ -170,6 +170,32 @@ def test_pack_refuses_an_unfinished_run_and_an_existing_name(env, tmp_path):
         pack_pretrained(run, "../escape", tmp_path / "root")
 
 
+def test_pack_force_replaces_a_camera_from_a_checkout_but_never_a_foreign_folder(env, tmp_path):
+    """A shipped camera in a git checkout has no completion marker (.gitignore'd): `--force`
+    still replaces it. A folder with anything besides a camera's files is left as it was."""
+    from hsicam.engine.pretrained import pack_pretrained
+    from hsicam.io import COMPLETE_MARKER
+
+    run, results, root = env
+    dest = tmp_path / "root"
+    shutil.copytree(root / NAME, dest / NAME)
+    (dest / NAME / COMPLETE_MARKER).unlink(missing_ok=True)  # as git checks it out
+    (dest / NAME / "card.json").write_text(json.dumps({**json.loads((dest / NAME / "card.json").read_text()),
+                                                      "name": "old"}))
+    pack_pretrained(run, NAME, dest, results, overwrite=True)
+    assert json.loads((dest / NAME / "card.json").read_text())["name"] == NAME
+    assert sorted(p.name for p in (dest / NAME).iterdir() if p.name != COMPLETE_MARKER) == sorted(shipped.FILES)
+
+    foreign = tmp_path / "foreign"
+    shutil.copytree(root / NAME, foreign / NAME)
+    (foreign / NAME / COMPLETE_MARKER).unlink(missing_ok=True)
+    (foreign / NAME / "notes.txt").write_text("mine")
+    before = tree_digest(foreign)
+    with pytest.raises(InputError, match="not a completed hsicam output"):
+        pack_pretrained(run, NAME, foreign, results, overwrite=True)
+    assert tree_digest(foreign) == before
+
+
 def test_pack_command(env, tmp_path):
     run, results, _ = env
     res = run_cli("pretrained", "pack", str(run), "--name", "other", "--results", str(results),

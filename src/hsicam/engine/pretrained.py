@@ -17,7 +17,7 @@ from pathlib import Path
 from typing import Any
 
 from hsicam.errors import InputError
-from hsicam.io import atomic_open, atomic_output, write_json
+from hsicam.io import COMPLETE_MARKER, atomic_open, atomic_output, is_complete, mark_complete, write_json
 from hsicam.runs import pretrained as shipped
 from hsicam.runs.checkpoint import root_weights_path
 from hsicam.runs.folder import MetricsLog, load_run
@@ -309,6 +309,14 @@ def card_markdown(card: dict[str, Any]) -> str:
 # ------------------------------------------------------------------------------------------------
 # Packing
 # ------------------------------------------------------------------------------------------------
+def _is_camera_folder(folder: Path) -> bool:
+    """True when ``folder`` holds a packed camera's files and nothing else."""
+    if not folder.is_dir():
+        return False
+    names = {p.name for p in folder.iterdir()}
+    return {"config.yaml", "model.safetensors", shipped.CARD_JSON} <= names <= {*shipped.FILES, COMPLETE_MARKER}
+
+
 def pack_pretrained(run_dir: str | Path, name: str, dest_root: str | Path | None = None,
                     results: str | Path | None = None, heldout: str | Path | None = None, *,
                     summary: str | None = None, preset: str | None = None, overwrite: bool = False) -> Path:
@@ -341,6 +349,10 @@ def pack_pretrained(run_dir: str | Path, name: str, dest_root: str | Path | None
     target = dest / name
     if target.exists() and not overwrite:
         raise InputError(f"{target}: a pre-trained camera {name!r} exists; pass --force to replace it")
+    if overwrite and _is_camera_folder(target) and not is_complete(target):
+        # A camera from a git checkout has no completion marker (.gitignore'd): it is still ours to
+        # replace. A folder holding anything else keeps the marker rule (a user's folder is never deleted).
+        mark_complete(target, {"command": "pretrained pack"})
     card = card_fields(run_dir, name, results, heldout, summary=summary, preset=preset)
     text = card_markdown(card)
     with atomic_output(target, "dir", overwrite=True, marker={"command": "pretrained pack"}) as tmp:
