@@ -309,12 +309,9 @@ def card_markdown(card: dict[str, Any]) -> str:
 # ------------------------------------------------------------------------------------------------
 # Packing
 # ------------------------------------------------------------------------------------------------
-def _is_camera_folder(folder: Path) -> bool:
-    """True when ``folder`` holds a packed camera's files and nothing else."""
-    if not folder.is_dir():
-        return False
-    names = {p.name for p in folder.iterdir()}
-    return {"config.yaml", "model.safetensors", shipped.CARD_JSON} <= names <= {*shipped.FILES, COMPLETE_MARKER}
+def _only_camera_files(folder: Path) -> bool:
+    """True when ``folder`` is a camera (:func:`hsicam.runs.pretrained.is_camera`) with nothing else in it."""
+    return shipped.is_camera(folder) and {p.name for p in folder.iterdir()} <= {*shipped.FILES, COMPLETE_MARKER}
 
 
 def pack_pretrained(run_dir: str | Path, name: str, dest_root: str | Path | None = None,
@@ -349,12 +346,12 @@ def pack_pretrained(run_dir: str | Path, name: str, dest_root: str | Path | None
     target = dest / name
     if target.exists() and not overwrite:
         raise InputError(f"{target}: a pre-trained camera {name!r} exists; pass --force to replace it")
-    if overwrite and _is_camera_folder(target) and not is_complete(target):
+    card = card_fields(run_dir, name, results, heldout, summary=summary, preset=preset)
+    text = card_markdown(card)
+    if overwrite and not is_complete(target) and _only_camera_files(target):
         # A camera from a git checkout has no completion marker (.gitignore'd): it is still ours to
         # replace. A folder holding anything else keeps the marker rule (a user's folder is never deleted).
         mark_complete(target, {"command": "pretrained pack"})
-    card = card_fields(run_dir, name, results, heldout, summary=summary, preset=preset)
-    text = card_markdown(card)
     with atomic_output(target, "dir", overwrite=True, marker={"command": "pretrained pack"}) as tmp:
         shutil.copyfile(run_dir / "config.yaml", tmp / "config.yaml")
         shutil.copyfile(weights, tmp / "model.safetensors")

@@ -54,7 +54,8 @@ def root() -> Path:
     return Path(env).expanduser() if env else package_root()
 
 
-def _is_camera(folder: Path) -> bool:
+def is_camera(folder: Path) -> bool:
+    """True when ``folder`` holds a camera (config.yaml, model.safetensors and card.json)."""
     return (folder.is_dir() and not folder.name.startswith(".")
             and all((folder / f).is_file() for f in ("config.yaml", "model.safetensors", CARD_JSON)))
 
@@ -65,7 +66,7 @@ def available(root_dir: str | Path | None = None) -> list[str]:
     r = Path(root_dir) if root_dir is not None else root()
     if not r.is_dir():
         return []
-    return sorted(p.name for p in r.iterdir() if _is_camera(p))
+    return sorted(p.name for p in r.iterdir() if is_camera(p))
 
 
 def check_name(name: str) -> str:
