@@ -77,6 +77,30 @@ def test_split_is_scene_level_and_deterministic(tmp_path):
         split_scenes(scenes, 1.0)
 
 
+def test_a_validation_pool_keeps_the_validation_scenes_when_the_dataset_grows(tmp_path):
+    scenes = [tmp_path / f"s{i:03d}.h5" for i in range(60)]
+    train20, val20 = split_scenes(scenes[:20], 0.25, seed=3)
+    train, val = split_scenes(list(reversed(scenes)), 0.25, seed=3, pool=20)
+    assert val == val20  # the split of the first 20, whatever follows
+    assert train == train20 + scenes[20:]  # every later scene trains
+    assert split_scenes(scenes[:20], 0.25, seed=3, pool=20) == (train20, val20)
+    assert split_scenes(scenes[:20], 0.25, seed=3, pool=50) == (train20, val20)  # a pool beyond n: all scenes
+
+
+def test_the_config_split_uses_the_pool(tiny_config, tmp_path):
+    from hsicam.data.pipeline import split_dataset
+    from hsicam.errors import ConfigError
+
+    for i in range(12):
+        (tmp_path / f"s{i:02d}.npy").write_bytes(b"")  # listed by name only
+    cfg = tiny_config(f"data.root={tmp_path}", "data.val_fraction=0.25", "data.val_pool=8")
+    train, val = split_dataset(cfg.data, cfg.bands.to_bands())
+    assert [p.name for p in val] == [p.name for p in split_scenes(sorted(tmp_path.iterdir())[:8], 0.25)[1]]
+    assert len(val) == 2 and len(train) == 10
+    with pytest.raises(ConfigError, match="val_pool"):
+        tiny_config("data.val_pool=1")
+
+
 def test_normalisation_policy():
     cube = np.array([[[1.0, 2.0]], [[4.0, 0.5]]], np.float32)
     out, peak = normalize_per_cube_max(cube)

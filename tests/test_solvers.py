@@ -316,11 +316,11 @@ def tiny_env(tmp_path_factory):
 
 
 def _validation_scenes(cfg):
-    from hsicam.data.datasets import SceneDataset, list_scenes, split_scenes
-    from hsicam.data.pipeline import dataset_root
+    from hsicam.data.datasets import SceneDataset
+    from hsicam.data.pipeline import split_dataset
 
     bands = cfg.bands.to_bands()
-    _, val = split_scenes(list_scenes(dataset_root(cfg.data, bands)), cfg.data.val_fraction, cfg.data.split_seed)
+    _, val = split_dataset(cfg.data, bands)
     return SceneDataset(val, bands)
 
 

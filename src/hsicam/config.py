@@ -372,6 +372,9 @@ class DataConfig:
     val_patches: int = 64  # fixed validation patches (drawn once from the validation scenes)
     val_fraction: float = 0.125  # fraction of scenes held out for validation (scene-level split)
     split_seed: int = 0
+    # validation drawn among the first val_pool scenes (sorted), the rest all train; null: all scenes.
+    # E.g. synthetic_n 192 with val_pool 64 trains on 128 more scenes and validates on those of n = 64
+    val_pool: Optional[int] = None
     augment_flips: bool = True  # random left-right flips of training patches
     augment_rot90: bool = True  # random 90° rotations of training patches
     preload: Optional[bool] = None  # keep all scenes in memory; None: when the files total <= preload_max_mb
@@ -390,6 +393,8 @@ class DataConfig:
             raise ConfigError(f"data.synthetic_size must be >= 16 px, got {self.synthetic_size}")
         if not (0.0 <= self.val_fraction < 1.0):
             raise ConfigError(f"data.val_fraction must be in [0, 1), got {self.val_fraction}")
+        if self.val_pool is not None and self.val_pool < 2:
+            raise ConfigError(f"data.val_pool must be >= 2 scenes or null, got {self.val_pool}")
         if self.num_workers < 0:
             raise ConfigError(f"data.num_workers must be >= 0, got {self.num_workers}")
         if self.heldout_n < 1:

@@ -23,7 +23,7 @@ from hsicam.data.formats import (
     write_cube_h5,
     write_envi,
 )
-from hsicam.data.pipeline import build_datasets, dataset_root, heldout_root, make_loader
+from hsicam.data.pipeline import build_datasets, dataset_root, heldout_root, make_loader, split_dataset
 
 __all__ = [
     "FORMATS",
@@ -32,6 +32,7 @@ __all__ = [
     "dataset_root",
     "heldout_root",
     "make_loader",
+    "split_dataset",
     "SceneDataset",
     "check_cube",
     "detect_format",

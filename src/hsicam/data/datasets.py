@@ -80,15 +80,21 @@ def _cave_scene_root(d: Path, root: Path) -> Path:
     return d
 
 
-def split_scenes(scenes: Sequence[Path], val_fraction: float, seed: int = 0) -> tuple[list[Path], list[Path]]:
+def split_scenes(scenes: Sequence[Path], val_fraction: float, seed: int = 0, pool: int | None = None
+                 ) -> tuple[list[Path], list[Path]]:
     """Scene-level train/validation split, deterministic for a seed and the *set* of scenes.
 
     ``round(val_fraction * n)`` scenes (at least one when ``val_fraction > 0`` and n ≥ 2) go to
-    validation; patches of one scene never appear in both sets.
+    validation; patches of one scene never appear in both sets. ``pool`` k: the split is drawn
+    among the first k scenes (sorted by path, n = k) and every later scene trains, so a dataset
+    grown beyond k scenes keeps its validation set.
     """
     if not 0.0 <= val_fraction < 1.0:
         raise InputError(f"val_fraction must be in [0, 1), got {val_fraction}")
     ordered = sorted(Path(s) for s in scenes)
+    if pool is not None and pool < len(ordered):
+        train, val = split_scenes(ordered[:pool], val_fraction, seed)
+        return train + ordered[pool:], val
     n = len(ordered)
     n_val = int(round(val_fraction * n))
     if val_fraction > 0 and n >= 2:

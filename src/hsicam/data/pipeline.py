@@ -60,6 +60,13 @@ def _should_preload(cfg: DataConfig, scenes: list[Path]) -> bool:
     return total <= cfg.preload_max_mb * 2**20
 
 
+def split_dataset(cfg: DataConfig, bands: Bands, *, progress: bool | None = None) -> tuple[list[Path], list[Path]]:
+    """(training, validation) scene paths of the config's dataset: its scene-level split
+    (``val_fraction``, ``split_seed``, ``val_pool``)."""
+    scenes = list_scenes(dataset_root(cfg, bands, progress=progress))
+    return split_scenes(scenes, cfg.val_fraction, cfg.split_seed, cfg.val_pool)
+
+
 def build_datasets(cfg: DataConfig, bands: Bands, margin_px: int, *, progress: bool | None = None
                    ) -> tuple[PatchDataset, PatchDataset | None]:
     """Training and validation patch datasets (validation None when ``val_fraction`` is 0).
@@ -69,7 +76,7 @@ def build_datasets(cfg: DataConfig, bands: Bands, margin_px: int, *, progress: b
     """
     root = dataset_root(cfg, bands, progress=progress)
     scenes = list_scenes(root)
-    train_scenes, val_scenes = split_scenes(scenes, cfg.val_fraction, cfg.split_seed)
+    train_scenes, val_scenes = split_scenes(scenes, cfg.val_fraction, cfg.split_seed, cfg.val_pool)
     preload = _should_preload(cfg, scenes)
     log.info("data: %d training and %d validation scenes from %s (preload=%s)", len(train_scenes), len(val_scenes),
              root, preload)
@@ -96,4 +103,4 @@ def make_loader(dataset: Dataset, batch_size: int, num_workers: int = 2, shuffle
                       pin_memory=False)
 
 
-__all__ = ["build_datasets", "dataset_root", "heldout_root", "make_loader"]
+__all__ = ["build_datasets", "dataset_root", "heldout_root", "make_loader", "split_dataset"]

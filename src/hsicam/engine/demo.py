@@ -9,8 +9,8 @@ from pathlib import Path
 from typing import Any
 
 from hsicam.config import Config, load_config
-from hsicam.data.datasets import SceneDataset, list_scenes, split_scenes
-from hsicam.data.pipeline import dataset_root
+from hsicam.data.datasets import SceneDataset
+from hsicam.data.pipeline import split_dataset
 from hsicam.engine.evaluate import (TestNoise, demosaic_reference, evaluate_method, evaluate_scenes, format_table,
                                     grey_reference, summarize)
 from hsicam.engine.experiments import ensure_trained, heldout_scenes
@@ -43,7 +43,7 @@ def run_demo(cfg: Config, out: str | Path) -> dict[str, Any]:
         clear_complete(out)  # the results below are rewritten; `hsicam report` waits for the marker
     cfg, model = load_run(run)
     bands = cfg.bands.to_bands()
-    train_list, val = split_scenes(list_scenes(dataset_root(cfg.data, bands)), cfg.data.val_fraction, cfg.data.split_seed)
+    train_list, val = split_dataset(cfg.data, bands)
     scenes, names = SceneDataset(val, bands), [p.stem for p in val]
     results = evaluate_scenes(model, scenes, names, seed=cfg.train.seed)
     references = [grey_reference(model, SceneDataset(train_list, bands))]

@@ -131,11 +131,11 @@ def ensure_trained(run: Path, preset, overrides: tuple[str, ...] = ()) -> str:
 
 def validation_scenes(cfg):
     """The preset's validation scenes (SceneDataset) and their names."""
-    from hsicam.data.datasets import SceneDataset, list_scenes, split_scenes
-    from hsicam.data.pipeline import dataset_root
+    from hsicam.data.datasets import SceneDataset
+    from hsicam.data.pipeline import split_dataset
 
     bands = cfg.bands.to_bands()
-    _, val = split_scenes(list_scenes(dataset_root(cfg.data, bands)), cfg.data.val_fraction, cfg.data.split_seed)
+    _, val = split_dataset(cfg.data, bands)
     if not val:
         raise InputError("the preset has no validation scenes (data.val_fraction is 0)")
     return SceneDataset(val, bands), [p.stem for p in val]

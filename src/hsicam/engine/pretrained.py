@@ -139,7 +139,8 @@ def _training_data(cfg) -> dict[str, Any]:
     held = list(parse_holdout(d.holdout_sources))
     return {"kind": "embedded synthetic generator", "generator_version": GENERATOR_VERSION,
             "scenes": d.synthetic_n, "scene_px": d.synthetic_size, "seed": d.synthetic_seed,
-            "validation_fraction": d.val_fraction, "holdout_sources": held,
+            "validation_fraction": d.val_fraction, **({"validation_pool": d.val_pool} if d.val_pool is not None else {}),
+            "holdout_sources": held,
             "sources": [{"id": s.id, "role": s.role, "origin": s.origin}
                         for s in SOURCES.values() if s.id not in held]}
 

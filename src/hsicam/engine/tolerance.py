@@ -80,14 +80,13 @@ class ToleranceSpec:
 # ------------------------------------------------------------------------------------------------
 def evaluation_scenes(cfg, bands, max_scenes: int, data: str | Path | None = None):
     """(SceneDataset, names): the run's validation scenes (all scenes when it has none), or ``data``."""
-    from hsicam.data import SceneDataset, dataset_root, list_scenes, split_scenes
+    from hsicam.data import SceneDataset, dataset_root, list_scenes, split_dataset
 
     if data is not None:
         scenes = list_scenes(data)
     else:
-        all_scenes = list_scenes(dataset_root(cfg.data, bands))
-        _, val = split_scenes(all_scenes, cfg.data.val_fraction, cfg.data.split_seed)
-        scenes = val or all_scenes
+        _, val = split_dataset(cfg.data, bands)
+        scenes = val or list_scenes(dataset_root(cfg.data, bands))
     scenes = scenes[:max_scenes]
     return SceneDataset(scenes, bands), [Path(s).stem for s in scenes]
 
