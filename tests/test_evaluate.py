@@ -35,7 +35,7 @@ def test_evaluate_writes_results_in_all_formats(run, env, tmp_path):
                   "--sensor-sigma", "0.01", env=env)
     assert res.returncode == 0, res.stderr
     summary = json.loads((out / "results.json").read_text())
-    assert summary["method"] == "doe-rdn" and summary["noise"]["seeds"] == 2
+    assert summary["method"] == "doe-learned" and summary["noise"]["seeds"] == 2
     assert set(summary["conventions"]) >= {"psnr", "ssim", "sam", "ergas"}
     assert len(summary["config_hash"]) == 12
     names = [r["name"] for r in summary["scenes"]]

@@ -338,6 +338,21 @@ def test_box_demosaic_method_through_a_pretrained_cameras_optics(env):
         build_method("doe-box-demosaic", cfg)
 
 
+def test_the_learned_method_by_its_name_and_its_old_name(env):
+    """`doe-learned` (any network kind) and its old name `doe-rdn` build the same method; an
+    unknown name is one clear error."""
+    from hsicam.engine.methods import build_method
+
+    cfg, _ = load_run(f"pretrained:{NAME}")
+    new, old = (build_method(n, cfg, f"pretrained:{NAME}") for n in ("doe-learned", "doe-rdn"))
+    assert new.name == old.name == "doe-learned"
+    assert type(new.model.net) is type(old.model.net)
+    with pytest.raises(InputError, match="needs --run"):
+        build_method("doe-rdn", cfg)
+    with pytest.raises(InputError, match="unknown method 'doe-nope'"):
+        build_method("doe-nope", cfg)
+
+
 def test_training_time_adds_up_the_sessions_of_a_resumed_run(tmp_path):
     """Each session's elapsed_s counts from its own start: the card's time is their sum."""
     from hsicam.engine.pretrained import training_seconds

@@ -12,12 +12,13 @@ from hsicam.errors import InputError
 
 def register(sub: argparse._SubParsersAction) -> None:
     from hsicam.engine.experiments import EXPERIMENTS, SCALES
-    from hsicam.engine.methods import method_names
+    from hsicam.engine.methods import METHOD_ALIASES, method_names
 
     p = sub.add_parser("evaluate", help="evaluate a camera + reconstruction method on a dataset")
     add_config_args(p)
     add_run_arg(p, "trained run folder (needed by learned methods)", required=False)
-    p.add_argument("--method", default="doe-rdn", choices=method_names())
+    p.add_argument("--method", default="doe-learned", choices=(*method_names(), *METHOD_ALIASES),
+                   help="reconstruction method (default: the run's learned camera)")
     p.add_argument("--data", metavar="DIR", help="folder of supported cube files (default: the synthetic validation split)")
     p.add_argument("--out", required=True, metavar="DIR")
     p.add_argument("--sigma-height-nm", type=float, default=None, help="test DOE height noise σ_p (nm)")

@@ -106,7 +106,7 @@ def evaluate_method(method: Method, scenes, names: Sequence[str], noise: TestNoi
 def evaluate_scenes(model, scenes, names: Sequence[str], seed: int = 0, device: str | torch.device = "cpu",
                     keep_arrays: bool = True) -> list[SceneResult]:
     """The learned camera (a :class:`~hsicam.models.CameraSystem`) with its configured noise."""
-    method = Method("doe-rdn", model.camera, model.reconstructor(), model.target, model=model)
+    method = Method("doe-learned", model.camera, model.reconstructor(), model.target, model=model)
     return evaluate_method(method, scenes, names, TestNoise(seeds=(seed,)), device, keep_arrays)
 
 

@@ -45,7 +45,7 @@ class RunSpec:
 def run_specs(experiment: str, cfg: Config | None = None) -> list[RunSpec]:
     """The trained cameras an experiment needs (``cfg``: the scale preset, for the ablation)."""
     if experiment == "compare":
-        return [RunSpec("doe-rdn")]
+        return [RunSpec("doe-learned")]
     if experiment == "ablation":
         return [RunSpec("doe+cfa"), RunSpec("no-doe", ("camera.doe.enabled=false",)),
                 RunSpec("no-cfa", ("camera.cfa.enabled=false", *same_network_without_cfa(cfg)))]
@@ -176,7 +176,7 @@ def run_experiment(experiment: str, scale: str, out: str | Path, seeds: tuple[in
     grids: dict[str, Any] = {}
     for spec in specs:
         run = out / "runs" / spec.name
-        method = build_method("doe-rdn", cfg, run)
+        method = build_method("doe-learned", cfg, run)
         if experiment == "noise":
             grid = []
             for sp in NOISE_SIGMA_HEIGHT_NM:

@@ -5,9 +5,11 @@ A method owns a camera (the forward model that makes its measurement) and a reco
     y = method.camera(scene)            # simulated measurement (noise included)
     x̂ = method.reconstruct(y)           # cube aligned with method.camera's sensor area
 
-Methods are registered by name (:func:`register_method`); :func:`build_method` looks them up.
+Methods are registered by name (:func:`register_method`); :func:`build_method` looks them up
+(and the old names in :data:`METHOD_ALIASES`).
 
-    doe-rdn          our learned camera (any network kind: rdn, mosaic, unrolled), from a run folder
+    doe-learned      our learned camera (any network kind: rdn, mosaic, unrolled), from a run folder
+                     (``doe-rdn``, its name when the RDN was its only network, still works)
     doe-box-demosaic the network-free per-band box demosaic through a run's optics (the reference)
     dd-cassi-gaptv   DD-CASSI + GAP-TV                 settings: baselines.gaptv
     dd-cassi-desci   DD-CASSI + DeSCI                  settings: baselines.desci (preset fast|full)
@@ -71,6 +73,7 @@ class Method:
 
 Builder = Callable[[Any, "str | Path | None", "str | torch.device"], Method]
 METHODS: dict[str, Builder] = {}
+METHOD_ALIASES: dict[str, str] = {"doe-rdn": "doe-learned"}  # old name → registered name
 
 
 def register_method(name: str) -> Callable[[Builder], Builder]:
@@ -86,6 +89,7 @@ def register_method(name: str) -> Callable[[Builder], Builder]:
 def build_method(name: str, cfg, run: str | Path | None = None, device: str | torch.device = "cpu") -> Method:
     """Method ``name``. ``cfg`` is the evaluation config (band grid, camera noise, data, baselines);
     ``run`` is a trained run folder for learned methods."""
+    name = METHOD_ALIASES.get(name, name)
     if name not in METHODS:
         raise InputError(f"unknown method {name!r}; choose one of {', '.join(method_names())}")
     return METHODS[name](cfg, run, device)
@@ -122,12 +126,12 @@ def demosaic_reference(model) -> Method:
     return Method("CFA box demosaic (no network)", model.camera, reconstruct, model.target, {})
 
 
-@register_method("doe-rdn")
+@register_method("doe-learned")
 def _doe_method(cfg, run, device) -> Method:
     if run is None:
-        raise InputError("method doe-rdn needs --run RUN (a trained camera)")
+        raise InputError("method doe-learned needs --run RUN (a trained camera)")
     _, model = load_run(run, device)
-    return learned_method("doe-rdn", model, run)
+    return learned_method("doe-learned", model, run)
 
 
 @register_method("doe-box-demosaic")
