@@ -32,8 +32,9 @@ def run(tmp_path_factory, env):
 def test_evaluate_writes_results_in_all_formats(run, env, tmp_path):
     out = tmp_path / "ev"
     res = run_cli("evaluate", "--run", str(run), "--out", str(out), "--save", "--seeds", "2",
-                  "--sensor-sigma", "0.01", env=env)
+                  "--sensor-sigma", "0.01", "--method", "doe-rdn", env=env)  # the old name of doe-learned
     assert res.returncode == 0, res.stderr
+    assert res.stdout.startswith("doe-learned:") or "\ndoe-learned:" in res.stdout, res.stdout
     summary = json.loads((out / "results.json").read_text())
     assert summary["method"] == "doe-learned" and summary["noise"]["seeds"] == 2
     assert set(summary["conventions"]) >= {"psnr", "ssim", "sam", "ergas"}

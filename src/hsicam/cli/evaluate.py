@@ -46,10 +46,11 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     from hsicam.data.formats import write_cube_h5
     from hsicam.engine.evaluate import TestNoise, config_hash, evaluate_method, format_table, summarize, write_results
     from hsicam.engine.experiments import heldout_scenes, validation_scenes
-    from hsicam.engine.methods import build_method
+    from hsicam.engine.methods import METHOD_ALIASES, build_method
     from hsicam.cli import prepare_output
     from hsicam.io import atomic_output
 
+    args.method = METHOD_ALIASES.get(args.method, args.method)  # results carry the method's current name
     out = prepare_output(args.out, "dir")
     if args.seeds < 1:
         raise InputError("--seeds must be >= 1")
