@@ -205,3 +205,25 @@ def test_ablation_without_cfa_keeps_the_network(kind):
         # without the pinned factor the network would be another one (regrouped by 3)
         other = CameraSystem.from_config(load_config("quick", [*base, "camera.cfa.enabled=false"]))
         assert shapes(other) != shapes(full)
+
+
+def test_sam_breakdown_script_on_a_trained_run(run, env, tmp_path):
+    """scripts/sam_breakdown.py prints one row per validation scene and a mean whose SAM is the
+    evaluation's; a missing run is one clear error."""
+    import sys
+    from pathlib import Path
+
+    script = Path(__file__).resolve().parents[1] / "scripts" / "sam_breakdown.py"
+    full_env = {**os.environ, **env}
+    proc = subprocess.run([sys.executable, str(script), str(run)], capture_output=True, text=True, env=full_env, timeout=300)
+    assert proc.returncode == 0, proc.stderr
+    rows = [line for line in proc.stdout.splitlines() if line.startswith("| ") and not line.startswith("| scene |")]
+    out = tmp_path / "ev"
+    res = run_cli("evaluate", "--run", str(run), "--out", str(out), env=env)
+    assert res.returncode == 0, res.stderr
+    summary = json.loads((out / "results.json").read_text())
+    assert len(rows) == len(summary["scenes"]) + 1
+    mean_sam = float(rows[-1].split("|")[2].strip().rstrip("°"))
+    assert mean_sam == pytest.approx(summary["mean"]["sam"], abs=0.006)
+    bad = subprocess.run([sys.executable, str(script), str(tmp_path / "nope")], capture_output=True, text=True, env=full_env)
+    assert bad.returncode == 2 and "no such run folder" in bad.stderr and "Traceback" not in bad.stderr

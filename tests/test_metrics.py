@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import numpy as np
+import math
+
 import pytest
 import torch
 from skimage.metrics import peak_signal_noise_ratio, structural_similarity
@@ -50,6 +52,29 @@ def test_sam_closed_form():
     b = torch.zeros(1, 2, 1, 1, dtype=torch.float64)
     a[0, 0], b[0, 1] = 1.0, 1.0
     assert metrics.sam_degrees(a, b).item() == pytest.approx(90.0)
+
+
+def test_sam_breakdown_by_brightness_and_edges_against_closed_form_angles():
+    """A 2-band truth whose left half is dark (band mean 0.004) and right half bright with a
+    vertical step in brightness; the estimate is off by known angles per region."""
+    h, w = 8, 12
+    truth = torch.zeros(1, 2, h, w, dtype=torch.float64)
+    truth[0, 0, :, :6] = 0.008                       # dark: spectrum (1, 0), band mean 0.004
+    truth[0, 0, :, 6:9], truth[0, 1, :, 6:9] = 0.2, 0.2  # bright, 45° from band 0
+    truth[0, 0, :, 9:], truth[0, 1, :, 9:] = 0.6, 0.6    # brighter: an edge between columns 8 and 9
+    est = truth.clone()
+    est[0, 1, :, :6] = 0.008                         # dark pixels 45° off
+    est[0, :, :, 6:] = truth[0, :, :, 6:] * torch.tensor([1.0, 0.0], dtype=torch.float64)[:, None, None]  # bright: 45° off
+    est[0, :, :, 8:10] = truth[0, :, :, 8:10]        # the edge columns exact
+    got = metrics.sam_breakdown(est, truth, dark_level=0.01, edge_quantile=0.7)
+    assert got["dark_fraction"][0] == pytest.approx(0.5)
+    assert got["dark"][0] == pytest.approx(45.0)
+    assert got["edges"][0] == pytest.approx(0.0, abs=1e-6)  # central differences: columns 8 and 9 only
+    assert got["flat"][0] == pytest.approx(45.0)
+    assert got["bright"][0] == pytest.approx(45.0 * 4 / 6)
+    assert got["all"][0] == pytest.approx(metrics.sam_degrees(est, truth).item())
+    uniform = metrics.sam_breakdown(est[..., 6:8], truth[..., 6:8])
+    assert math.isnan(uniform["dark"][0]) and uniform["dark_fraction"][0] == 0.0
 
 
 def test_mst_psnr_uses_8bit_rounding():

@@ -123,13 +123,45 @@ def ssim(x: torch.Tensor, y: torch.Tensor, window: int = 11, sigma: float = 1.5,
     return s.mean(dim=(1, 2, 3))
 
 
-def sam_degrees(x: torch.Tensor, y: torch.Tensor, eps: float = 1e-12) -> torch.Tensor:
-    """Mean spectral angle (degrees) between the spectra of corresponding pixels, (B,)."""
+def sam_map(x: torch.Tensor, y: torch.Tensor, eps: float = 1e-12) -> torch.Tensor:
+    """Spectral angle (degrees) between the spectra of corresponding pixels, (B, H, W)."""
     x, y = _batched(x, y)
     dot = (x * y).sum(dim=1)
     norm = x.norm(dim=1) * y.norm(dim=1)
     cos = (dot / norm.clamp_min(eps)).clamp(-1.0, 1.0)
-    return torch.rad2deg(torch.acos(cos)).mean(dim=(1, 2))
+    return torch.rad2deg(torch.acos(cos))
+
+
+def sam_degrees(x: torch.Tensor, y: torch.Tensor, eps: float = 1e-12) -> torch.Tensor:
+    """Mean spectral angle (degrees) between the spectra of corresponding pixels, (B,)."""
+    return sam_map(x, y, eps).mean(dim=(1, 2))
+
+
+def sam_breakdown(x: torch.Tensor, y: torch.Tensor, dark_level: float = 0.01, edge_quantile: float = 0.8
+                  ) -> dict[str, list[float]]:
+    """Where the spectral angle comes from, one entry per cube (``y`` the truth, peak 1):
+
+    ``all`` (= :func:`sam_degrees`), ``dark_fraction`` (pixels whose truth has a band mean below
+    ``dark_level``), mean SAM over the ``dark`` and the ``bright`` pixels, and over the bright
+    pixels on ``edges`` (gradient magnitude of the truth's band mean, central differences, above
+    its ``edge_quantile`` over the image) and off them (``flat``). NaN for an empty region.
+    """
+    angle = sam_map(x, y)
+    _, y = _batched(x, y)
+    level = y.mean(dim=1)  # (B, H, W)
+    out: dict[str, list[float]] = {k: [] for k in ("all", "dark_fraction", "dark", "bright", "edges", "flat")}
+    nan = float("nan")
+    for a, b in zip(angle, level):
+        gy, gx = torch.gradient(b)
+        grad = (gx * gx + gy * gy).sqrt()
+        edge = grad > torch.quantile(grad.flatten(), edge_quantile)
+        dark = b < dark_level
+        regions = {"dark": dark, "bright": ~dark, "edges": edge & ~dark, "flat": ~edge & ~dark}
+        out["all"].append(float(a.mean()))
+        out["dark_fraction"].append(float(dark.double().mean()))
+        for k, mask in regions.items():
+            out[k].append(float(a[mask].mean()) if bool(mask.any()) else nan)
+    return out
 
 
 def ergas(x: torch.Tensor, y: torch.Tensor, eps: float = 1e-12) -> torch.Tensor:
