@@ -211,14 +211,29 @@ class FitOptions:
 # ------------------------------------------------------------------------------------------------
 def fit(task: Task, opts: FitOptions, run_dir: str | Path, resume: bool = False) -> dict[str, Any]:
     """Train (or resume) ``task`` into ``run_dir``; returns the final summary (also the last line of
-    ``metrics.jsonl``), or ``{"stopped_at_step": n}`` when ``opts.stop_after_steps`` cut it short."""
+    ``metrics.jsonl``), or ``{"stopped_at_step": n}`` when ``opts.stop_after_steps`` cut it short.
+
+    Under torchrun (WORLD_SIZE > 1) it joins the process group, or creates it and then destroys it
+    when training ends: a gloo group left to the interpreter's exit can abort the process
+    ("terminate called without an active exception", pytorch/pytorch#190489). After an error the
+    group is left as it is (a peer may still wait in a collective) and the error propagates."""
+    _, world, local_rank = dist_env()
+    own_group = world > 1 and not dist.is_initialized()
+    if own_group:
+        device = resolve_device(opts.loop.device, local_rank)
+        dist.init_process_group("nccl" if device.type == "cuda" else "gloo")
+    result = _fit(task, opts, Path(run_dir), resume)
+    if own_group:
+        dist.barrier()
+        dist.destroy_process_group()
+    return result
+
+
+def _fit(task: Task, opts: FitOptions, run_dir: Path, resume: bool) -> dict[str, Any]:
     t = opts.loop
-    run_dir = Path(run_dir)
     rank, world, local_rank = dist_env()
     distributed = world > 1
     device = resolve_device(t.device, local_rank)
-    if distributed and not dist.is_initialized():
-        dist.init_process_group("nccl" if device.type == "cuda" else "gloo")
     is_main = rank == 0
     if t.batch_size % world:
         raise InputError(f"train.batch_size={t.batch_size} must be divisible by the {world} processes")
