@@ -30,13 +30,13 @@ import time
 from pathlib import Path
 
 import torch
-import torch.nn.functional as F
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from timing import median_time  # noqa: E402
 
 from hsicam.cameras import build_camera  # noqa: E402
 from hsicam.config import load_config  # noqa: E402
+from hsicam.engine.tasks import system_loss  # noqa: E402
 from hsicam.models import CameraSystem  # noqa: E402
 from hsicam.config import MosaicConfig, UnrolledConfig  # noqa: E402
 from hsicam.models.mosaic import build_mosaic  # noqa: E402
@@ -76,7 +76,7 @@ def train_step(kind: str, cfg, steps: int) -> dict:
         sensor = cam(scene)
         t1 = _now()
         sensor_in = sensor.detach().requires_grad_()
-        loss = F.l1_loss(recon(sensor_in), truth)
+        loss = system_loss(recon(sensor_in), truth, cfg.train)  # the preset's loss (quick: L1 + SSIM term)
         opt.zero_grad(set_to_none=True)
         loss.backward()
         t2 = _now()

@@ -1,7 +1,7 @@
 """Training and inference benchmark (issue 4): prints one JSON object.
 
-- Training throughput (patches/s) of full optimisation steps (PSF from the DOE, camera, RDN,
-  L1, backward, Adam) for the ``quick`` preset on this machine, with the time split between the
+- Training throughput (patches/s) of full optimisation steps (PSF from the DOE, camera, network,
+  the preset's loss: L1 and its optional terms, e.g. quick's SSIM term; backward, Adam) for the ``quick`` preset on this machine, with the time split between the
   optics (PSF + camera) and the network, forward and backward.
 - The same preset's step once the optics are fixed (``train.optics_steps``): network only.
 - With CUDA: the same for the ``paper`` preset (256 px patches, bf16 autocast, channels_last).
@@ -18,9 +18,9 @@ import statistics
 import time
 
 import torch
-import torch.nn.functional as F
 
 from hsicam.config import load_config
+from hsicam.engine.tasks import system_loss
 from hsicam.engine.train import build_optimizer
 from hsicam.models import CameraSystem
 
@@ -50,7 +50,7 @@ def train_steps(preset: str, device: torch.device, steps: int, overrides: list[s
         t1 = time.perf_counter()
         sensor_in = sensor.detach().requires_grad_()
         recon = model.reconstruct(sensor_in)
-        loss = F.l1_loss(recon.float(), model.target(scene))
+        loss = system_loss(recon.float(), model.target(scene), cfg.train)
         opt.zero_grad(set_to_none=True)
         loss.backward()
         _sync(device)
@@ -84,7 +84,7 @@ def fixed_optics_steps(preset: str, device: torch.device, steps: int) -> dict:
         _sync(device)
         t0 = time.perf_counter()
         recon, _ = model(scene, measure=measure)
-        loss = F.l1_loss(recon.float(), model.target(scene))
+        loss = system_loss(recon.float(), model.target(scene), cfg.train)
         opt.zero_grad(set_to_none=True)
         loss.backward()
         opt.step()
