@@ -220,6 +220,8 @@ def test_demo_refuses_a_run_trained_with_other_settings(inputs, tmp_path, capsys
     out = tmp_path / "demo"
     shutil.copytree(inputs / "run", out / "run")
     before = snapshot(out)
-    code, err = call(capsys, ["demo", "--config", "tiny", "--out", str(out), "--set", "train.lr=0.0123"])
-    assert_one_line(code, err, "trained with another config", "→", "delete it")
+    code = main(["demo", "--config", "tiny", "--out", str(out), "--set", "train.lr=0.0123"])
+    captured = capsys.readouterr()
+    assert_one_line(code, captured.err, "trained with another config", "→", "delete it")
+    assert "reusing" not in captured.out and "training" not in captured.out, captured.out  # nothing announced
     assert snapshot(out) == before and not (out / "results.json").exists()

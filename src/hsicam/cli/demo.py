@@ -19,7 +19,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
     from pathlib import Path
 
     from hsicam.engine.demo import demo_config, means_line, run_demo
-    from hsicam.engine.experiments import is_finished
+    from hsicam.engine.experiments import check_same_training, is_finished
 
     from hsicam.runs.pretrained import check_not_pretrained
 
@@ -28,6 +28,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
     out = Path(args.out)
     cfg = demo_config(args.config, tuple(args.overrides))
     run = out / "run"
+    check_same_training(run, cfg)  # before saying what it will do with the run
     if is_finished(run):
         print(f"[demo] reusing the trained run in {run}")
     else:

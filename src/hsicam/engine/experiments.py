@@ -102,6 +102,16 @@ CASSI_UNROLLED_OVERRIDES = ("camera.kind=dd_cassi", "model.kind=unrolled", "mode
 LEARNED_CASSI = {"dd-cassi-rdn": CASSI_RDN_OVERRIDES, "dd-cassi-unrolled": CASSI_UNROLLED_OVERRIDES}
 
 
+def check_same_training(run: Path, cfg: Config) -> None:
+    """InputError naming the first differences when the run folder ``run`` exists and was started
+    with another config than ``cfg``, up to how it runs (:func:`~hsicam.config.training_differences`)."""
+    if (run / "config.yaml").is_file():
+        changed = training_differences(load_config(run / "config.yaml"), cfg)
+        if changed:
+            raise InputError(f"{run} was trained with another config ({'; '.join(changed)}): "
+                             "delete it to train it again, or choose another output folder")
+
+
 def ensure_trained(run: Path, preset, overrides: tuple[str, ...] = ()) -> str:
     """Train ``run`` (or resume it, or reuse it when finished); returns "reused", "resumed" or "trained".
 
@@ -112,12 +122,8 @@ def ensure_trained(run: Path, preset, overrides: tuple[str, ...] = ()) -> str:
     differences.
     """
     cfg = preset if isinstance(preset, Config) else load_config(preset, list(overrides))
+    check_same_training(run, cfg)
     if (run / "config.yaml").is_file():
-        have = load_config(run / "config.yaml")
-        changed = training_differences(have, cfg)
-        if changed:
-            raise InputError(f"{run} was trained with another config ({'; '.join(changed)}): "
-                             "delete it to train it again, or choose another output folder")
         if is_finished(run):
             log.info("%s: finished, reused", run)
             return "reused"
