@@ -18,9 +18,7 @@ import sys
 import numpy as np
 import torch
 
-from hsicam.data.datasets import SceneDataset
-from hsicam.data.pipeline import split_dataset
-from hsicam.engine.experiments import heldout_scenes
+from hsicam.engine.experiments import heldout_scenes, validation_scenes
 from hsicam.errors import HsicamError
 from hsicam.metrics import sam_breakdown
 from hsicam.runs.folder import load_run
@@ -36,17 +34,13 @@ def main(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
     try:
         cfg, model = load_run(args.run, overrides=tuple(args.overrides))
-        bands = cfg.bands.to_bands()
         if args.heldout:
             held = heldout_scenes(cfg)
             if held is None:
                 raise HsicamError("the run holds out no spectral sources (data.holdout_sources)")
             scenes, names = held
         else:
-            _, val = split_dataset(cfg.data, bands)
-            if not val:
-                raise HsicamError("the run has no validation scenes (data.val_fraction is 0)")
-            scenes, names = SceneDataset(val, bands), [s.stem for s in val]
+            scenes, names = validation_scenes(cfg)
     except HsicamError as e:
         print(f"error: {e}", file=sys.stderr)
         return 2

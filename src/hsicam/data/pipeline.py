@@ -63,7 +63,10 @@ def _should_preload(cfg: DataConfig, scenes: list[Path]) -> bool:
 def split_dataset(cfg: DataConfig, bands: Bands, *, progress: bool | None = None) -> tuple[list[Path], list[Path]]:
     """(training, validation) scene paths of the config's dataset: its scene-level split
     (``val_fraction``, ``split_seed``, ``val_pool``)."""
-    scenes = list_scenes(dataset_root(cfg, bands, progress=progress))
+    return _split(cfg, list_scenes(dataset_root(cfg, bands, progress=progress)))
+
+
+def _split(cfg: DataConfig, scenes: list[Path]) -> tuple[list[Path], list[Path]]:
     return split_scenes(scenes, cfg.val_fraction, cfg.split_seed, cfg.val_pool)
 
 
@@ -76,7 +79,7 @@ def build_datasets(cfg: DataConfig, bands: Bands, margin_px: int, *, progress: b
     """
     root = dataset_root(cfg, bands, progress=progress)
     scenes = list_scenes(root)
-    train_scenes, val_scenes = split_scenes(scenes, cfg.val_fraction, cfg.split_seed, cfg.val_pool)
+    train_scenes, val_scenes = _split(cfg, scenes)
     preload = _should_preload(cfg, scenes)
     log.info("data: %d training and %d validation scenes from %s (preload=%s)", len(train_scenes), len(val_scenes),
              root, preload)
