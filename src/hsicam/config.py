@@ -281,14 +281,35 @@ class UnrolledConfig:
 
 
 @dataclass
+class ConsistencyConfig:
+    """Measurement consistency after the network, at inference (``hsicam.models.consistency``):
+    x ← x + Aᵀ ((y − A x) ⊘ (A Aᵀ 𝟙 + λ)) with the camera's own operator, λ = damping · ‖A‖².
+    Not applied while the network trains."""
+
+    iterations: int = 0  # steps; 0 = off (the network's output as it is)
+    damping: float = 0.02  # λ relative to ‖A‖² (larger: a smaller step, more robust to sensor noise)
+    psf_energy: float = 0.995  # the step's PSFs are cut to the kernel keeping this share of each band's light (1: whole)
+
+    def __post_init__(self) -> None:
+        if self.iterations < 0:
+            raise ConfigError(f"model.consistency.iterations must be >= 0, got {self.iterations}")
+        if not self.damping > 0:
+            raise ConfigError(f"model.consistency.damping must be > 0, got {self.damping}")
+        if not 0 < self.psf_energy <= 1:
+            raise ConfigError(f"model.consistency.psf_energy must be in (0, 1], got {self.psf_energy}")
+
+
+@dataclass
 class ModelConfig:
     """Reconstruction network: ``kind`` is a registered network (hsicam.models.registry): rdn, mosaic,
-    unrolled; its settings are the section of the same name (docs/networks.md)."""
+    unrolled; its settings are the section of the same name (docs/networks.md). ``consistency``: the
+    measurement-consistency step after any of them."""
 
     kind: str = "rdn"
     rdn: RDNConfig = field(default_factory=RDNConfig)
     mosaic: MosaicConfig = field(default_factory=MosaicConfig)
     unrolled: UnrolledConfig = field(default_factory=UnrolledConfig)
+    consistency: ConsistencyConfig = field(default_factory=ConsistencyConfig)
 
 
 @dataclass
@@ -646,6 +667,7 @@ RUNTIME_ONLY_KEYS = (
     "baselines", "data.cache_dir", "data.preload", "data.preload_max_mb", "data.num_workers", "data.heldout_n",
     "train.device", "train.log_every_steps", "train.checkpoint_every_steps", "train.eval_every_epochs",
     "train.tensorboard", "train.compile", "train.channels_last", "train.deterministic",
+    "model.consistency",  # applied after the network at inference; the training never sees it
 )
 
 

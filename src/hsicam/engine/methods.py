@@ -126,11 +126,23 @@ def demosaic_reference(model) -> Method:
     return Method("CFA box demosaic (no network)", model.camera, reconstruct, model.target, {})
 
 
+def network_alone_reference(model) -> Method:
+    """The system's network without its measurement-consistency step (``model.consistency``): what
+    the step adds is the system's score minus this one."""
+    alone = type(model)(model.camera, model.net)
+    alone.autocast_dtype = model.autocast_dtype
+    alone.eval()
+    return Method("network alone (no consistency step)", model.camera, alone.reconstructor(), model.target, {})
+
+
 @register_method("doe-learned")
 def _doe_method(cfg, run, device) -> Method:
     if run is None:
         raise InputError("method doe-learned needs --run RUN (a trained camera)")
     _, model = load_run(run, device)
+    # the consistency step is an inference setting: the evaluation's config decides it (--set
+    # model.consistency.iterations=0 scores the network alone)
+    model.consistency = cfg.model.consistency
     return learned_method("doe-learned", model, run)
 
 

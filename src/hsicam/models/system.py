@@ -6,6 +6,7 @@ import torch
 from torch import nn
 
 from hsicam.cameras import Camera, build_camera
+from hsicam.models.consistency import consistency_step, reach_px
 from hsicam.models.registry import build_network
 
 
@@ -15,29 +16,43 @@ class CameraSystem(nn.Module):
     ``forward(scene)`` returns ``(reconstruction, sensor)``; in ``valid`` mode both are smaller than
     the scene by ``camera.margin`` and aligned with :meth:`target` (the scene's centre crop).
     The network is any registered kind (:mod:`hsicam.models.registry`); it is called as
-    ``net(sensor, camera, origin)``.
+    ``net(sensor, camera, origin)``. In eval mode, ``consistency`` (``model.consistency``: iterations,
+    damping, psf_energy) moves the network's output towards A x = y (:mod:`hsicam.models.consistency`).
     """
 
-    def __init__(self, camera: Camera, net: nn.Module) -> None:
+    def __init__(self, camera: Camera, net: nn.Module, consistency=None) -> None:
         super().__init__()
         self.camera, self.net = camera, net
+        self.consistency = consistency  # hsicam.config.ConsistencyConfig or None (off)
         self.autocast_dtype: torch.dtype | None = None  # e.g. torch.bfloat16 for the network on CUDA
 
     @classmethod
     def from_config(cls, cfg) -> "CameraSystem":  # cfg: hsicam.config.Config
         camera = build_camera(cfg)
-        return cls(camera, build_network(cfg, camera))
+        return cls(camera, build_network(cfg, camera), cfg.model.consistency)
 
     def with_camera(self, camera: Camera) -> "CameraSystem":
-        """The same network imaging through ``camera`` (e.g. a measured-PSF camera), same autocast."""
-        out = type(self)(camera, self.net)
+        """The same network imaging through ``camera`` (e.g. a measured-PSF camera), same autocast
+        and consistency step."""
+        out = type(self)(camera, self.net, self.consistency)
         out.autocast_dtype = self.autocast_dtype
         return out
 
     @property
+    def consistency_on(self) -> bool:
+        return self.consistency is not None and self.consistency.iterations > 0
+
+    @property
     def context_px(self) -> int:
-        """Pixels of sensor context each output pixel depends on, per side (halo for tiling)."""
-        return int(self.net.context_px)
+        """Pixels of sensor context each output pixel depends on, per side (halo for tiling): the
+        network's, plus the consistency step's reach through the camera's current PSFs."""
+        if not self.consistency_on:
+            return int(self.net.context_px)
+        snap = getattr(self.camera, "snapshot", None)
+        with torch.no_grad():
+            op = snap(nominal=True) if callable(snap) else self.camera
+        c = self.consistency
+        return int(self.net.context_px) + reach_px(op, c.iterations, c.psf_energy)
 
     @property
     def bands(self):
@@ -52,7 +67,8 @@ class CameraSystem(nn.Module):
         return scene[..., r : r + h, r : r + w]
 
     def reconstruct(self, sensor: torch.Tensor, origin: tuple[int, int] = (0, 0), operator=None) -> torch.Tensor:
-        """Network only: sensor image (B, 1, H, W) → cube (B, C, H, W) (float32).
+        """Sensor image (B, 1, H, W) → cube (B, C, H, W) (float32): the network, then (eval mode,
+        ``consistency`` on) the measurement-consistency step.
 
         ``origin``: the sensor pixel of the window's top-left corner (the CFA phase of a tile).
         ``operator``: what the network sees of the camera (default the camera; a snapshot from
@@ -61,8 +77,16 @@ class CameraSystem(nn.Module):
         op = self.camera if operator is None else operator
         if self.autocast_dtype is not None and sensor.device.type != "cpu":
             with torch.autocast(sensor.device.type, dtype=self.autocast_dtype):
-                return self.net(sensor, op, origin).float()
-        return self.net(sensor, op, origin)
+                x = self.net(sensor, op, origin).float()
+        else:
+            x = self.net(sensor, op, origin)
+        if self.training or not self.consistency_on:
+            return x
+        if isinstance(op, Camera):
+            with torch.no_grad():
+                op = op.snapshot(nominal=True)
+        c = self.consistency
+        return consistency_step(op, sensor, x, origin, damping=c.damping, iterations=c.iterations, psf_energy=c.psf_energy)
 
     def reconstructor(self):
         """``reconstruct`` with the camera's nominal operator computed once, for inference on many

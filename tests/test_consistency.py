@@ -1,0 +1,198 @@
+"""The measurement-consistency step after the network (hsicam.models.consistency): a dense-matrix
+reference, the residual and error guarantees, GAP on DD-CASSI, exact tiling, configs."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from hsicam.cameras import build_camera
+from hsicam.cameras.doe_camera import DOESnapshot
+from hsicam.config import load_config
+from hsicam.engine.inference import reconstruct_tiled
+from hsicam.errors import ConfigError, InputError
+from hsicam.models import CameraSystem
+from hsicam.models.consistency import consistency_step, cut_psf, reach_px
+from hsicam.solvers.common import gap_projection
+from hsicam.spectral import Bands
+
+C, K, M = 3, 5, 3  # bands, kernel (px), CFA period
+
+
+def _snapshot(seed: int = 0) -> DOESnapshot:
+    g = torch.Generator().manual_seed(seed)
+    psf = torch.rand(C, K, K, generator=g, dtype=torch.float64)
+    psf = psf / psf.sum(dim=(-2, -1), keepdim=True)
+    tile = torch.rand(C, M, M, generator=g, dtype=torch.float64)
+    return DOESnapshot(Bands.uniform(500, 700, 100), psf, tile, M)
+
+
+def _dense_valid(snap: DOESnapshot, h: int, w: int, origin: tuple[int, int]) -> np.ndarray:
+    """Matrix of the physical (valid) operator from the definitions: the sensor window (h, w) at
+    ``origin`` sees the cube on (h + K − 1, w + K − 1) through y[i, j] = Σ_c κ_c(i, j) Σ_kl
+    p_c[k, l] x_c[i + K − 1 − k, j + K − 1 − l], κ_c(i, j) = tile_c[(origin + (i, j)) mod M]."""
+    psf, tile = snap.psf.numpy(), snap.tile.numpy()
+    H, W = h + K - 1, w + K - 1
+    a = np.zeros((h * w, C * H * W))
+    for i in range(h):
+        for j in range(w):
+            for c in range(C):
+                kap = tile[c, (origin[0] + i) % M, (origin[1] + j) % M]
+                for k in range(K):
+                    for l in range(K):
+                        a[i * w + j, c * H * W + (i + K - 1 - k) * W + (j + K - 1 - l)] += kap * psf[c, k, l]
+    return a
+
+
+def test_step_matches_a_dense_matrix_reference():
+    """One step = x_e + Aᵀ((y − A x_e) ⊘ (A Aᵀ 𝟙 + λ)) with x_e the estimate extended by K//2
+    replicated pixels, written with an explicit matrix of the valid-geometry operator."""
+    snap, h, w, origin = _snapshot(), 6, 7, (1, 2)
+    g = torch.Generator().manual_seed(1)
+    x0 = torch.rand(1, C, h, w, generator=g, dtype=torch.float64)
+    y = torch.rand(1, 1, h, w, generator=g, dtype=torch.float64)
+    damping = 0.05
+    got = consistency_step(snap, y, x0, origin, damping=damping, iterations=1, psf_energy=1.0)
+
+    a = _dense_valid(snap, h, w, origin)
+    r = K // 2
+    xe = np.pad(x0[0].numpy(), ((0, 0), (r, r), (r, r)), mode="edge").reshape(-1)
+    lam = damping * snap.lipschitz
+    d = a @ (a.T @ np.ones(h * w)) + lam
+    x1 = xe + a.T @ ((y.numpy().reshape(-1) - a @ xe) / d)
+    want = x1.reshape(C, h + 2 * r, w + 2 * r)[:, r:-r, r:-r]
+    np.testing.assert_allclose(got[0].numpy(), want, rtol=1e-10, atol=1e-12)
+
+
+def test_steps_reduce_the_residual_and_never_the_accuracy():
+    """A majorise-minimise step: ‖y − A x‖ falls with every step, and for noiseless data the
+    error to the truth (on the extended domain the step solves for) never grows."""
+    snap, h, w = _snapshot(2), 12, 10
+    r = K // 2
+    g = torch.Generator().manual_seed(3)
+    truth = torch.rand(1, C, h, w, generator=g, dtype=torch.float64)
+    truth_e = torch.nn.functional.pad(truth, (r, r, r, r), mode="replicate")
+    a = torch.from_numpy(_dense_valid(snap, h, w, (0, 0)))
+    y = (a @ truth_e.reshape(-1)).reshape(1, 1, h, w)
+    x0 = truth + 0.2 * torch.randn(truth.shape, generator=g, dtype=torch.float64)
+    residuals, errors = [], []
+    for n in range(4):
+        x = consistency_step(snap, y, x0, damping=1e-6, iterations=n, psf_energy=1.0)
+        xe = torch.nn.functional.pad(x, (r, r, r, r), mode="replicate")
+        residuals.append(float((y.reshape(-1) - a @ xe.reshape(-1)).norm()))
+        errors.append(float((x - truth).norm()))
+    assert all(b < a_ for a_, b in zip(residuals, residuals[1:])), residuals
+    assert all(b <= a_ + 1e-12 for a_, b in zip(errors, errors[1:])), errors
+    assert errors[-1] < 0.98 * errors[0]
+
+
+def test_one_undamped_step_on_dd_cassi_is_the_gap_projection():
+    """DD-CASSI's A Aᵀ is diagonal, so the row sums are its diagonal: one step is GAP's projection
+    onto {x : A x = y} (hsicam.solvers.common.gap_projection), and the result explains y."""
+    cam = build_camera(load_config(overrides=["bands.start_nm=500", "bands.stop_nm=700", "bands.step_nm=50",
+                                              "camera.kind=dd_cassi", "camera.boundary=same"])).double()
+    g = torch.Generator().manual_seed(4)
+    x0 = torch.rand(1, len(cam.bands), 20, 24, generator=g, dtype=torch.float64)
+    y = cam.A(torch.rand(x0.shape, generator=g, dtype=torch.float64))
+    got = consistency_step(cam.snapshot(), y, x0, damping=1e-12, iterations=1)
+    want = gap_projection(cam, x0, y, cam.gram_diagonal(y))
+    torch.testing.assert_close(got, want, rtol=1e-8, atol=1e-9)
+    seen = cam.gram_diagonal(y) != 1  # pixels that some band reaches
+    torch.testing.assert_close(cam.A(got)[seen], y[seen], rtol=1e-8, atol=1e-9)
+
+
+def test_cut_psf_keeps_the_requested_light():
+    snap = _snapshot()
+    big = torch.zeros(C, 31, 31, dtype=torch.float64)
+    big[:, 15, 15] = 0.9
+    big[:, 14:17, 14:17] += 0.01  # 9 % of the light in the 3×3 ring (minus the centre's share)
+    big[:, 0, 0] = 0.001  # a far tail
+    snap = DOESnapshot(snap.bands, big, snap.tile, M)
+    total = big.sum(dim=(-2, -1))
+    assert cut_psf(snap, 0.9).kernel_px == 1
+    assert cut_psf(snap, 0.99).kernel_px == 3
+    cut = cut_psf(snap, 0.9995)
+    assert cut.kernel_px == 31 and (cut.psf.sum(dim=(-2, -1)) >= 0.9995 * total).all()
+    assert cut_psf(snap, 1.0) is snap
+
+
+def _system(tiny_config, *overrides):
+    torch.manual_seed(0)
+    model = CameraSystem.from_config(tiny_config("model.consistency.iterations=1", *overrides)).eval()
+    g = torch.Generator().manual_seed(5)  # a network whose output depends on its neighbourhood
+    torch.nn.init.normal_(model.net.output.weight, std=0.1, generator=g)
+    return model
+
+
+def test_tiles_with_the_declared_context_equal_the_whole_image(tiny_config):
+    model = _system(tiny_config)
+    snap = model.camera.snapshot(nominal=True)
+    step = reach_px(snap, 1, model.consistency.psf_energy)
+    assert step > 0 and model.context_px == model.net.context_px + step
+    sensor = torch.rand(1, 1, 53, 47)
+    f = model.reconstructor()
+    with torch.no_grad():
+        whole = f(sensor)
+        plain = model.net(sensor, snap, (0, 0))
+    assert (whole - plain).abs().max() > 1e-3  # the step does something
+    tiled = reconstruct_tiled(f, sensor, tile_px=16, halo_px=model.context_px)
+    torch.testing.assert_close(tiled, whole, rtol=1e-5, atol=1e-5)
+
+
+@pytest.mark.parametrize("iterations", [1, 2])
+def test_step_reach_is_the_halo_it_needs(iterations):
+    """The step alone after a pixel-wise estimate: tiles with ``reach_px`` of halo equal the whole
+    image; with less they do not."""
+    snap = _snapshot(6)
+    reach = reach_px(snap, iterations, psf_energy=1.0)
+    assert reach == (2 * iterations + 1) * (K // 2)
+
+    def f(window, origin=(0, 0)):
+        x0 = window.expand(-1, C, -1, -1) * 0.7
+        return consistency_step(snap, window, x0, origin, iterations=iterations, psf_energy=1.0)
+
+    sensor = torch.rand(1, 1, 41, 38, dtype=torch.float64)
+    whole = f(sensor)
+    torch.testing.assert_close(reconstruct_tiled(f, sensor, tile_px=12, halo_px=reach), whole, rtol=1e-12, atol=1e-12)
+    assert (reconstruct_tiled(f, sensor, tile_px=12, halo_px=reach - 2) - whole).abs().max() > 1e-6
+
+
+def test_step_runs_in_eval_mode_only(tiny_config):
+    model = _system(tiny_config)
+    sensor = torch.rand(1, 1, 20, 20)
+    with torch.no_grad():
+        evaluated = model.reconstruct(sensor)
+        model.train()
+        trained = model.reconstruct(sensor)
+        plain = model.net(sensor, model.camera, (0, 0))
+    torch.testing.assert_close(trained, plain)
+    assert (evaluated - plain).abs().max() > 1e-3
+    off = CameraSystem.from_config(tiny_config()).eval()
+    assert not off.consistency_on and off.context_px == off.net.context_px
+
+
+@pytest.mark.parametrize("override, match", [
+    ("model.consistency.iterations=-1", "iterations"),
+    ("model.consistency.damping=0", "damping"),
+    ("model.consistency.psf_energy=1.5", "psf_energy"),
+])
+def test_bad_settings_are_one_clear_error(tiny_config, override, match):
+    with pytest.raises(ConfigError, match=match):
+        tiny_config(override)
+
+
+def test_a_camera_whose_scene_grid_differs_is_refused():
+    cam = build_camera(load_config(overrides=["bands.start_nm=500", "bands.stop_nm=700", "bands.step_nm=50",
+                                              "camera.kind=sd_cassi"])).double()
+    y = torch.rand(1, 1, 12, 20, dtype=torch.float64)
+    x0 = torch.rand(1, len(cam.bands), 12, 20, dtype=torch.float64)
+    with pytest.raises(InputError, match="scene grid"):
+        consistency_step(cam.snapshot(), y, x0)
+
+
+def test_consistency_is_not_a_training_difference(tiny_config):
+    from hsicam.config import training_differences
+
+    assert training_differences(tiny_config(), tiny_config("model.consistency.iterations=2")) == []
+    assert training_differences(tiny_config(), tiny_config("train.lr=0.5"))
