@@ -6,6 +6,9 @@
 - The same preset's step once the optics are fixed (``train.optics_steps``): network only.
 - With CUDA: the same for the ``paper`` preset (256 px patches, bf16 autocast, channels_last).
 - Inference time of one 512×512×31 reconstruction (network only) for the quick and paper networks.
+- The measurement-consistency step after the network (``model.consistency``, one iteration) on
+  512×512, through the shipped ``standard`` camera's trained PSFs (the untrained quick camera's
+  lens PSFs need a wider kernel than any trained camera measured here).
 
 Run: `.venv/bin/python benchmarks/bench_train.py [--steps N]`. Timings are medians.
 """
@@ -99,6 +102,7 @@ def fixed_optics_steps(preset: str, device: torch.device, steps: int) -> dict:
 def inference(preset: str, device: torch.device, repeats: int = 3) -> dict:
     cfg = load_config(preset)
     model = CameraSystem.from_config(cfg).to(device).eval()
+    model.consistency = None  # the network alone (the step: consistency_step_time)
     if device.type == "cuda" and cfg.train.bf16:
         model.autocast_dtype = torch.bfloat16
     g = torch.rand(1, 1, 512, 512, device=device)
@@ -113,6 +117,25 @@ def inference(preset: str, device: torch.device, repeats: int = 3) -> dict:
     return {"preset": preset, "device": str(device), "size": [31, 512, 512], "seconds": statistics.median(times)}
 
 
+@torch.no_grad()
+def consistency_step_time(run: str = "pretrained:standard", repeats: int = 3) -> dict:
+    from hsicam.models.consistency import consistency_step, cut_psf
+    from hsicam.runs.folder import load_run
+
+    cfg, model = load_run(run)
+    c = cfg.model.consistency if cfg.model.consistency.iterations else type(cfg.model.consistency)(iterations=1)
+    snap = model.camera.snapshot(nominal=True)
+    g = torch.rand(1, 1, 512, 512)
+    x = torch.rand(1, len(model.bands), 512, 512)
+    times = []
+    for _ in range(repeats + 1):
+        t0 = time.perf_counter()
+        consistency_step(snap, g, x, damping=c.damping, iterations=c.iterations, psf_energy=c.psf_energy)
+        times.append(time.perf_counter() - t0)
+    return {"camera": run, "iterations": c.iterations, "kernel_px": cut_psf(snap, c.psf_energy).kernel_px,
+            "size": [31, 512, 512], "seconds": statistics.median(times[1:])}
+
+
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--steps", type=int, default=5)
@@ -124,7 +147,8 @@ def main() -> None:
     out = {"torch": torch.__version__, "threads": torch.get_num_threads(),
            "train_quick_cpu": train_steps("quick", cpu, args.steps, []),
            "train_quick_cpu_fixed_optics": fixed_optics_steps("quick", cpu, args.steps),
-           "inference_cpu": [inference("quick", cpu), inference("paper", cpu, repeats=1)]}
+           "inference_cpu": [inference("quick", cpu), inference("paper", cpu, repeats=1)],
+           "consistency_step_cpu": consistency_step_time()}
     if torch.cuda.is_available():
         gpu = torch.device("cuda")
         out["gpu"] = torch.cuda.get_device_name(0)

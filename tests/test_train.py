@@ -294,7 +294,7 @@ def test_demo_cli_trains_reports_and_draws(tmp_path, cache_env):
     assert held["data"].startswith("held-out spectral sources") and len(held["scenes"]) >= 1
     assert all(np.isfinite(held["mean"][k]) for k in ("psnr", "ssim", "sam"))
     assert f"PSNR {summary['mean']['psnr']:.2f} dB" in proc.stdout
-    assert proc.stdout.count("reference without a network") == 4  # validation and held-out sources, 2 each
+    assert proc.stdout.count("reference, ") == 4  # validation and held-out sources, 2 each
     md = (out / "results.md").read_text()  # both tables and both reference lists, each named once
     assert md.count(held["data"]) == 1 and md.count("CFA box demosaic (no network): PSNR") == 2
     assert "| scene | psnr | ssim | sam |" in md and md.count("**mean**") == 2
@@ -304,9 +304,16 @@ def test_demo_cli_trains_reports_and_draws(tmp_path, cache_env):
         img = iio.imread(out / name)
         assert img.ndim == 3 and min(img.shape[:2]) > 50, name
     # a second call reuses the finished run instead of training again
+    # (the measurement-consistency step is an inference setting: switching it on reuses the run too,
+    # and the network without it becomes a third reference)
     again = run_cli("demo", "--config", "tiny", "--out", str(out), "--set", "model.rdn.demosaic_input=true",
-                    env={"HSICAM_CACHE": str(cache_env)})
+                    "--set", "model.consistency.iterations=1", env={"HSICAM_CACHE": str(cache_env)})
     assert again.returncode == 0 and "reusing the trained run" in again.stdout, again.stderr
+    summary2 = json.loads((out / "results.json").read_text())
+    refs2 = {r["method"]: r["mean"] for r in summary2["references"]}
+    alone = refs2["network alone (no consistency step)"]
+    assert all(alone[k] == pytest.approx(summary["mean"][k], rel=1e-6) for k in ("psnr", "ssim", "sam"))
+    assert abs(summary2["mean"]["psnr"] - summary["mean"]["psnr"]) > 1e-4
     # the demosaic-input run reconstructs a capture in tiles exactly as in one piece (CFA phase per tile)
     env = {"HSICAM_CACHE": str(cache_env)}
     np.save(tmp_path / "scene.npy", smooth_cube(1, 7, 70, 64, seed=3)[0].numpy())

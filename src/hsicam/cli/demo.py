@@ -40,11 +40,11 @@ def cmd_demo(args: argparse.Namespace) -> int:
     print(f"[demo] validation mean: {means_line(summary['mean'])} ({summary['n_scenes']} scenes; "
           f"{time.perf_counter() - t0:.0f} s)")
     for r in summary["references"]:
-        print(f"[demo] reference without a network, {r['method']}: {means_line(r['mean'])}")
+        print(f"[demo] reference, {r['method']}: {means_line(r['mean'])}")
     if "heldout" in summary:
         h = summary["heldout"]
         print(f"[demo] {h['data']}, {len(h['scenes'])} scenes: {means_line(h['mean'])}")
         for r in h["references"]:
-            print(f"[demo] held-out reference without a network, {r['method']}: {means_line(r['mean'])}")
+            print(f"[demo] held-out reference, {r['method']}: {means_line(r['mean'])}")
     print(f"[demo] figures and tables in {out}: reconstructions.png, psf.png, cfa.png, doe.png, training.png, results.md")
     return 0
