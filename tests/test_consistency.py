@@ -65,26 +65,87 @@ def test_step_matches_a_dense_matrix_reference():
     np.testing.assert_allclose(got[0].numpy(), want, rtol=1e-10, atol=1e-12)
 
 
-def test_steps_reduce_the_residual_and_never_the_accuracy():
-    """A majorise-minimise step: ‖y − A x‖ falls with every step, and for noiseless data the
-    error to the truth (on the extended domain the step solves for) never grows."""
-    snap, h, w = _snapshot(2), 12, 10
-    r = K // 2
-    g = torch.Generator().manual_seed(3)
-    truth = torch.rand(1, C, h, w, generator=g, dtype=torch.float64)
-    truth_e = torch.nn.functional.pad(truth, (r, r, r, r), mode="replicate")
-    a = torch.from_numpy(_dense_valid(snap, h, w, (0, 0)))
-    y = (a @ truth_e.reshape(-1)).reshape(1, 1, h, w)
-    x0 = truth + 0.2 * torch.randn(truth.shape, generator=g, dtype=torch.float64)
-    residuals, errors = [], []
-    for n in range(4):
-        x = consistency_step(snap, y, x0, damping=1e-6, iterations=n, psf_energy=1.0)
-        xe = torch.nn.functional.pad(x, (r, r, r, r), mode="replicate")
-        residuals.append(float((y.reshape(-1) - a @ xe.reshape(-1)).norm()))
+@pytest.mark.parametrize("seed", [2, 7, 11])
+def test_steps_never_grow_the_error_nor_the_weighted_residual(seed):
+    """For noiseless data and the exact operator (``same`` geometry, zero light beyond the
+    window, so nothing is extended): x − x* is multiplied by I − Aᵀ D⁻¹ A (eigenvalues in
+    [0, 1]), so the error never grows, and the D⁻¹-weighted residual never grows. A
+    high-contrast CFA (one band nearly dark per pixel) is where a plain gradient step overshoots."""
+    snap = _snapshot(seed)
+    snap = DOESnapshot(snap.bands, snap.psf, torch.where(snap.tile > 0.5, 1.0, 0.01).double(), M)
+    g = torch.Generator().manual_seed(seed + 100)
+    truth = torch.rand(2, C, 14, 11, generator=g, dtype=torch.float64)
+    y = snap.A(truth)
+    x0 = truth + 0.3 * torch.randn(truth.shape, generator=g, dtype=torch.float64)
+    d = snap.A(snap.A_adjoint(torch.ones_like(y[:1]))) + 1e-6 * snap.lipschitz
+    errors, weighted = [], []
+    for n in range(5):
+        x = consistency_step(snap, y, x0, damping=1e-6, iterations=n, psf_energy=1.0, extend=False)
         errors.append(float((x - truth).norm()))
-    assert all(b < a_ for a_, b in zip(residuals, residuals[1:])), residuals
-    assert all(b <= a_ + 1e-12 for a_, b in zip(errors, errors[1:])), errors
-    assert errors[-1] < 0.98 * errors[0]
+        r = y - snap.A(x)
+        weighted.append(float((r * r / d).sum()))
+    assert all(b <= a + 1e-12 for a, b in zip(errors, errors[1:])), errors
+    assert all(b <= a + 1e-12 for a, b in zip(weighted, weighted[1:])), weighted
+    assert errors[-1] < 0.97 * errors[0] and weighted[-1] < 0.5 * weighted[0]
+
+
+class _Oracle(torch.nn.Module):
+    """A "network" that returns a fixed cube (context 0)."""
+
+    context_px = 0
+
+    def __init__(self, cube: torch.Tensor) -> None:
+        super().__init__()
+        self.cube = cube
+
+    def forward(self, sensor, camera, origin=(0, 0)):
+        return self.cube
+
+
+@pytest.mark.parametrize("padding", ["zeros", "replicate"])
+def test_a_perfect_estimate_is_a_fixed_point_for_same_cameras(tiny_camera, padding):
+    """A ``same`` camera pads the scene itself: with zeros the system does not extend the
+    estimate (no light from beyond), with replication it extends it the same way, so in both the
+    true cube explains y exactly and stays put. Extending under zero padding would move it."""
+    cam = tiny_camera("camera.boundary=same", f"camera.padding={padding}", dtype=torch.float64)
+    truth = 0.2 + 0.6 * torch.rand(1, len(cam.bands), 40, 40, generator=torch.Generator().manual_seed(8),
+                                   dtype=torch.float64)
+    consistency = load_config(overrides=["model.consistency.iterations=2", "model.consistency.psf_energy=1"])
+    model = CameraSystem(cam, _Oracle(truth), consistency.model.consistency).eval()
+    y = cam.A(truth)
+    with torch.no_grad():
+        got = model.reconstructor()(y)
+    torch.testing.assert_close(got, truth, rtol=0, atol=1e-10)
+    if padding == "zeros":
+        moved = consistency_step(cam.snapshot(nominal=True), y, truth, iterations=2, psf_energy=1.0, extend=True)
+        assert (moved - truth).abs().max() > 1e-3
+
+
+def test_step_camera_is_the_operator_the_step_uses(tiny_camera):
+    """``step_camera``: the step uses that camera's nominal operator (the tolerance study's
+    design PSF), not the camera the scene was imaged with."""
+    from hsicam.cameras.measured import FixedPSFCamera
+
+    cam = tiny_camera()
+    psf = cam.psf().detach()
+    perturbed = FixedPSFCamera.from_camera(cam, torch.roll(psf, 1, dims=-1))
+    x0 = torch.rand(1, len(cam.bands), 24, 24, generator=torch.Generator().manual_seed(9))
+    c = load_config(overrides=["model.consistency.iterations=1"]).model.consistency
+    model = CameraSystem(perturbed, _Oracle(x0), c).eval()
+    y = torch.rand(1, 1, 24, 24, generator=torch.Generator().manual_seed(10))
+    with torch.no_grad():
+        own = model.reconstructor()(y)
+        model.step_camera = cam
+        nominal = model.reconstructor()(y)
+        want = consistency_step(cam.snapshot(nominal=True), y, x0, damping=c.damping, iterations=1,
+                                psf_energy=c.psf_energy)
+    torch.testing.assert_close(nominal, want)
+    assert (own - nominal).abs().max() > 1e-4
+
+
+def test_sd_cassi_with_the_step_is_a_config_error():
+    with pytest.raises(ConfigError, match="SD-CASSI"):
+        CameraSystem.from_config(load_config("quick", ["camera.kind=sd_cassi", "model.kind=unrolled"]))
 
 
 def test_one_undamped_step_on_dd_cassi_is_the_gap_projection():

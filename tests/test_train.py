@@ -322,10 +322,13 @@ def test_demo_cli_trains_reports_and_draws(tmp_path, cache_env):
     from hsicam.data import read_cube
 
     cubes = []
-    for tile in ("16", "4096"):
-        dst = tmp_path / f"rec{tile}.h5"
+    for tile, steps in (("16", "0"), ("4096", "0"), ("16", "1"), ("4096", "1")):
+        dst = tmp_path / f"rec{tile}-{steps}.h5"
         rec = run_cli("reconstruct", str(tmp_path / "sim" / "sensor.npy"), "--run", str(out / "run"), "--out", str(dst),
-                      "--tile", tile, env=env)
+                      "--tile", tile, "--consistency-steps", steps, env=env)
         assert rec.returncode == 0, rec.stderr
         cubes.append(read_cube(dst)[0])
     np.testing.assert_allclose(cubes[0], cubes[1], atol=1e-5)
+    # with the measurement-consistency step too (its halo is added to the network's), and it acts
+    np.testing.assert_allclose(cubes[2], cubes[3], atol=1e-5)
+    assert np.abs(cubes[2] - cubes[0]).max() > 1e-4

@@ -283,11 +283,11 @@ class UnrolledConfig:
 @dataclass
 class ConsistencyConfig:
     """Measurement consistency after the network, at inference (``hsicam.models.consistency``):
-    x ← x + Aᵀ ((y − A x) ⊘ (A Aᵀ 𝟙 + λ)) with the camera's own operator, λ = damping · ‖A‖².
-    Not applied while the network trains."""
+    x ← x + Aᵀ ((y − A x) ⊘ (A Aᵀ 𝟙 + λ)) with the camera's own operator, λ = damping · L (L ≥ ‖A‖²).
+    Not applied while the network trains nor in its validation."""
 
     iterations: int = 0  # steps; 0 = off (the network's output as it is)
-    damping: float = 0.02  # λ relative to ‖A‖² (larger: a smaller step, more robust to sensor noise)
+    damping: float = 0.02  # λ relative to L, the bound of ‖A‖² (larger: a smaller step, more robust to sensor noise)
     psf_energy: float = 0.995  # the step's PSFs are cut to the kernel keeping this share of each band's light (1: whole)
 
     def __post_init__(self) -> None:

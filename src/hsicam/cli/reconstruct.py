@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import logging
 import sys
 from pathlib import Path
@@ -25,6 +26,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--scale", type=float, default=None, help="multiply the image after normalising to [0, 1]")
     p.add_argument("--tile", type=int, default=512, metavar="PX", help="tile side for large images")
     p.add_argument("--device", default="cpu")
+    p.add_argument("--consistency-steps", type=int, default=None, metavar="N",
+                   help="measurement-consistency steps after the network (default: the run's "
+                        "model.consistency.iterations; 0: the network alone)")
     raw = p.add_argument_group("raw capture corrections (values in the file's digital numbers, DN)")
     raw.add_argument("--black-level", type=float, default=None, metavar="DN",
                      help="sensor black level (default: the dark frame's median, else 0)")
@@ -104,8 +108,13 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
         raise InputError(f"{out}: output must end in .h5 (HDF5) or .hdr (ENVI)")
     for f in output_files(out):  # before any work: an existing folder, a path inside a file, no permission
         prepare_output(f, "file")
+    if args.consistency_steps is not None and args.consistency_steps < 0:
+        raise InputError("--consistency-steps must be >= 0")
     cfg, model = load_run(args.run, args.device)
-    meta: dict = {"source": str(args.sensor), "run": str(args.run)}
+    if args.consistency_steps is not None:
+        model.consistency = dataclasses.replace(cfg.model.consistency, iterations=args.consistency_steps)
+    meta: dict = {"source": str(args.sensor), "run": str(args.run),
+                  "consistency_steps": model.consistency.iterations if model.consistency_on else 0}
     if args.psf_dir:
         from hsicam.data.measured_psf import import_for_camera
         from hsicam.engine.calibration import run_psf_fingerprint

@@ -219,6 +219,7 @@ def _learned_cassi(name: str, network: str) -> Builder:
                 raise InputError(f"{run}: method {name} needs a run trained with model.kind={network}, "
                                  f"this one has model.kind={run_cfg.model.kind}")
         _, model = load_run(run, device)
+        model.consistency = cfg.model.consistency  # an inference setting: the evaluation's config decides
         return learned_method(name, model, run, **_camera_info(model.camera))
 
     return build

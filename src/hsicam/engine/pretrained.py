@@ -184,7 +184,8 @@ def card_fields(run_dir: str | Path, name: str, results: str | Path | None = Non
         "camera": {"kind": cam.kind, "cfa_period": cfa, "pixel_pitch_um": cam.sensor.pixel_pitch_um,
                    "aperture_radius_mm": cam.aperture_radius_mm, "focal_length_mm": cam.lens.focal_length_mm,
                    "kernel_px": getattr(model.camera, "kernel_px", None), "trainable_parameters": n_cam},
-        "network": {"kind": cfg.model.kind, "parameters": n_net, "context_px": model.context_px},
+        "network": {"kind": cfg.model.kind, "parameters": n_net, "context_px": model.context_px,
+                    "consistency_steps": cfg.model.consistency.iterations},
         "bands": {"start_nm": cfg.bands.start_nm, "stop_nm": cfg.bands.stop_nm, "step_nm": cfg.bands.step_nm,
                   "count": len(bands), "centers_nm": [float(x) for x in bands.centers_nm]},
         "noise": {"train_sensor_sigma": list(t.sensor_sigma), "train_sigma_height_nm": list(t.sigma_height_nm),
@@ -261,7 +262,9 @@ def card_markdown(card: dict[str, Any]) -> str:
              f"- camera: {card['camera']['kind']}" + (f", {card['camera']['cfa_period']}×{card['camera']['cfa_period']} "
                                                       "CFA" if card['camera']['cfa_period'] else "")
              + f", pixel pitch {card['camera']['pixel_pitch_um']:g} µm, PSF kernel {card['camera']['kernel_px']} px",
-             f"- network: {card['network']['kind']}, {card['network']['parameters']:,} parameters",
+             f"- network: {card['network']['kind']}, {card['network']['parameters']:,} parameters"
+             + (f", then {card['network']['consistency_steps']} measurement-consistency step(s) at inference "
+                "(`model.consistency`)" if card['network'].get('consistency_steps') else ""),
              f"- bands: {b['count']} bands, {b['centers_nm'][0]:g}–{b['centers_nm'][-1]:g} nm in {b['step_nm']:g} nm steps",
              f"- preset: {card['preset'] or 'a config of its own (see config.yaml)'}", "",
              "## Training", ""]

@@ -99,6 +99,7 @@ def evaluate_psf(model, psf: torch.Tensor, scenes, names: Sequence[str], seed: i
 
     cam = FixedPSFCamera.from_camera(model.camera, psf)
     system = model.with_camera(cam).eval()
+    system.step_camera = model.camera  # the consistency step knows the design, not the fabrication error
     device = next(model.net.parameters()).device
     results = evaluate_scenes(system, scenes, list(names), seed=seed, device=device, keep_arrays=False)
     return {k: float(np.mean([r.metrics[k] for r in results])) for k in ("psnr", "ssim", "sam")}

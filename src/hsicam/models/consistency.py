@@ -6,12 +6,14 @@ A network's estimate x̂ does not reproduce its measurement (the quick camera's:
 
     x ← x + Aᵀ ((y − A x) ⊘ (A Aᵀ 𝟙 + λ))
 
-is a majorise-minimise step on ‖y − A x‖²: A's entries are ≥ 0 (PSFs, filter transmissions), so
-the diagonal of row sums A Aᵀ 𝟙 bounds A Aᵀ from above and every step decreases the residual
-without overshooting. It changes x only along what the camera sees (the range of Aᵀ), so for
-noiseless data it cannot add error there and leaves the rest of the network's estimate alone.
-For a camera whose A Aᵀ is diagonal (DD-CASSI) one step with λ = 0 is the GAP projection.
-λ = ``damping`` · ‖A‖² guards pixels that see little light and sensor noise.
+is a preconditioned Landweber (Cimmino) step with D = diag(A Aᵀ 𝟙) + λ. A's entries are ≥ 0
+(PSFs, filter transmissions), so D bounds A Aᵀ from above, and the step is the majorise-minimise
+step of the dual of min ‖x − x̂‖ s.t. A x = y: the D⁻¹-weighted residual ‖y − A x‖_{D⁻¹} never
+grows (the plain residual may), and x moves only within the range of Aᵀ (what the
+camera sees). For noiseless data and the exact operator the error cannot grow: x − x* is
+multiplied by I − Aᵀ D⁻¹ A, whose eigenvalues lie in [0, 1] (tested). For a camera whose A Aᵀ is
+diagonal (DD-CASSI) one step with λ → 0 is the GAP projection. λ = ``damping`` · L, L the
+operator's upper bound of ‖A‖², guards pixels that see little light and sensor noise.
 
 A sensor window sees light from up to half a PSF beyond its edge, where the estimate has no
 values: the estimate is extended by replicating its border for that margin, and the step updates
@@ -29,15 +31,20 @@ from hsicam.errors import InputError
 
 
 def consistency_step(op, y: torch.Tensor, x0: torch.Tensor, origin: tuple[int, int] = (0, 0),
-                     damping: float = 0.02, iterations: int = 1, psf_energy: float = 0.995) -> torch.Tensor:
+                     damping: float = 0.02, iterations: int = 1, psf_energy: float = 0.995,
+                     extend: bool = True) -> torch.Tensor:
     """x0 (B, C, h, w) moved towards A x = y for the sensor window y (B, 1, h, w) at ``origin``.
 
     ``op`` is an operator snapshot in ``same`` geometry (``A(x, origin)``, ``A_adjoint(y, origin)``,
     ``reach_px``, ``lipschitz``: :meth:`hsicam.cameras.Camera.snapshot`) with non-negative entries.
-    ``damping``: λ relative to ‖A‖²; ``iterations``: steps (0: x0 itself), each one A and one Aᵀ
-    (plus one of each for A Aᵀ 𝟙). ``psf_energy``: a PSF-stack operator is cut to the smallest
+    ``damping``: λ relative to the operator's bound L of ‖A‖²; ``iterations``: steps (0: x0
+    itself), each one A and one Aᵀ (plus one of each for A Aᵀ 𝟙, once per batch). ``psf_energy``: a PSF-stack operator is cut to the smallest
     kernel that keeps this share of every band's light (:func:`cut_psf`; 1: the whole kernel).
-    Differentiable.
+    ``extend``: the sensor sees light from beyond the window (a ``valid`` camera, or a ``same``
+    one that pads the scene by replication), so the estimate is extended by replicating its border
+    and the step solves for that margin too; False: the light beyond is zero (a ``same`` camera
+    with zero padding). Tiles: either way the window's edge moves the output only within
+    :func:`reach_px`. Differentiable.
     """
     if iterations < 0 or not damping > 0 or not 0 < psf_energy <= 1:
         raise ValueError(f"need iterations >= 0, damping > 0 and psf_energy in (0, 1], got {iterations}, "
@@ -48,10 +55,13 @@ def consistency_step(op, y: torch.Tensor, x0: torch.Tensor, origin: tuple[int, i
         raise InputError("measurement consistency needs a camera whose scene grid is the sensor's "
                          f"(not {type(op).__name__})")
     op = cut_psf(op, psf_energy)
-    py, px = _half_reach(op)
+    if getattr(op, "lipschitz", None) is None:
+        raise InputError(f"measurement consistency needs an operator with a bound of ‖A‖² (lipschitz), "
+                         f"not {type(op).__name__}")
+    py, px = _half_reach(op) if extend else (0, 0)
     h, w = y.shape[-2:]
     o = (origin[0] - py, origin[1] - px)
-    lam = damping * float(op.lipschitz if getattr(op, "lipschitz", None) else 1.0)
+    lam = damping * float(op.lipschitz)
 
     def a(x: torch.Tensor) -> torch.Tensor:  # extended cube (h + 2py, w + 2px) → sensor window (h, w)
         return op.A(x, o)[..., py : py + h, px : px + w]
@@ -60,7 +70,7 @@ def consistency_step(op, y: torch.Tensor, x0: torch.Tensor, origin: tuple[int, i
         return op.A_adjoint(F.pad(v, (px, px, py, py)), o)
 
     y = y.to(x0.dtype)
-    row_sums = a(a_t(torch.ones_like(y))) + lam
+    row_sums = a(a_t(torch.ones_like(y[:1]))) + lam  # the same for every image of the batch
     x = F.pad(x0, (px, px, py, py), mode="replicate") if (py or px) else x0
     for _ in range(iterations):
         x = x + a_t((y - a(x)) / row_sums)

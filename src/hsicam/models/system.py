@@ -6,7 +6,8 @@ import torch
 from torch import nn
 
 from hsicam.cameras import Camera, build_camera
-from hsicam.models.consistency import consistency_step, reach_px
+from hsicam.errors import ConfigError
+from hsicam.models.consistency import consistency_step, cut_psf, reach_px
 from hsicam.models.registry import build_network
 
 
@@ -16,24 +17,32 @@ class CameraSystem(nn.Module):
     ``forward(scene)`` returns ``(reconstruction, sensor)``; in ``valid`` mode both are smaller than
     the scene by ``camera.margin`` and aligned with :meth:`target` (the scene's centre crop).
     The network is any registered kind (:mod:`hsicam.models.registry`); it is called as
-    ``net(sensor, camera, origin)``. In eval mode, ``consistency`` (``model.consistency``: iterations,
-    damping, psf_energy) moves the network's output towards A x = y (:mod:`hsicam.models.consistency`).
+    ``net(sensor, camera, origin)``. ``forward`` (training and its validation) is the network
+    alone; :meth:`reconstruct` in eval mode adds ``consistency`` (``model.consistency``:
+    iterations, damping, psf_energy), the measurement-consistency step of
+    :mod:`hsicam.models.consistency`, through ``step_camera`` (default: ``camera``).
     """
 
     def __init__(self, camera: Camera, net: nn.Module, consistency=None) -> None:
         super().__init__()
         self.camera, self.net = camera, net
         self.consistency = consistency  # hsicam.config.ConsistencyConfig or None (off)
+        # the camera whose operator the step uses (None: ``camera``), e.g. the nominal design while
+        # ``camera`` images with fabrication errors the deployed system does not know
+        self.step_camera: Camera | None = None
         self.autocast_dtype: torch.dtype | None = None  # e.g. torch.bfloat16 for the network on CUDA
 
     @classmethod
     def from_config(cls, cfg) -> "CameraSystem":  # cfg: hsicam.config.Config
+        if cfg.model.consistency.iterations and cfg.camera.kind == "sd_cassi":
+            raise ConfigError("model.consistency needs a camera whose scene grid is the sensor's; SD-CASSI's "
+                              "is not: set model.consistency.iterations=0")
         camera = build_camera(cfg)
         return cls(camera, build_network(cfg, camera), cfg.model.consistency)
 
     def with_camera(self, camera: Camera) -> "CameraSystem":
         """The same network imaging through ``camera`` (e.g. a measured-PSF camera), same autocast
-        and consistency step."""
+        and consistency step (through ``camera``)."""
         out = type(self)(camera, self.net, self.consistency)
         out.autocast_dtype = self.autocast_dtype
         return out
@@ -45,14 +54,11 @@ class CameraSystem(nn.Module):
     @property
     def context_px(self) -> int:
         """Pixels of sensor context each output pixel depends on, per side (halo for tiling): the
-        network's, plus the consistency step's reach through the camera's current PSFs."""
+        network's, plus (consistency on) the step's reach through the camera's current PSFs."""
         if not self.consistency_on:
             return int(self.net.context_px)
-        snap = getattr(self.camera, "snapshot", None)
-        with torch.no_grad():
-            op = snap(nominal=True) if callable(snap) else self.camera
         c = self.consistency
-        return int(self.net.context_px) + reach_px(op, c.iterations, c.psf_energy)
+        return int(self.net.context_px) + reach_px(self._step_operator(), c.iterations, c.psf_energy)
 
     @property
     def bands(self):
@@ -66,9 +72,8 @@ class CameraSystem(nn.Module):
         h, w = scene.shape[-2] - 2 * r, scene.shape[-1] - 2 * r
         return scene[..., r : r + h, r : r + w]
 
-    def reconstruct(self, sensor: torch.Tensor, origin: tuple[int, int] = (0, 0), operator=None) -> torch.Tensor:
-        """Sensor image (B, 1, H, W) → cube (B, C, H, W) (float32): the network, then (eval mode,
-        ``consistency`` on) the measurement-consistency step.
+    def network(self, sensor: torch.Tensor, origin: tuple[int, int] = (0, 0), operator=None) -> torch.Tensor:
+        """The network alone: sensor image (B, 1, H, W) → cube (B, C, H, W) (float32).
 
         ``origin``: the sensor pixel of the window's top-left corner (the CFA phase of a tile).
         ``operator``: what the network sees of the camera (default the camera; a snapshot from
@@ -77,16 +82,21 @@ class CameraSystem(nn.Module):
         op = self.camera if operator is None else operator
         if self.autocast_dtype is not None and sensor.device.type != "cpu":
             with torch.autocast(sensor.device.type, dtype=self.autocast_dtype):
-                x = self.net(sensor, op, origin).float()
-        else:
-            x = self.net(sensor, op, origin)
+                return self.net(sensor, op, origin).float()
+        return self.net(sensor, op, origin)
+
+    def reconstruct(self, sensor: torch.Tensor, origin: tuple[int, int] = (0, 0), operator=None,
+                    step_operator=None) -> torch.Tensor:
+        """Sensor image (B, 1, H, W) → cube (B, C, H, W) (float32): :meth:`network`, then, in eval
+        mode with ``consistency`` on, the measurement-consistency step through ``step_operator``
+        (default: the nominal snapshot of ``step_camera`` or ``camera``)."""
+        x = self.network(sensor, origin, operator)
         if self.training or not self.consistency_on:
             return x
-        if isinstance(op, Camera):
-            with torch.no_grad():
-                op = op.snapshot(nominal=True)
+        op = self._step_operator() if step_operator is None else step_operator
         c = self.consistency
-        return consistency_step(op, sensor, x, origin, damping=c.damping, iterations=c.iterations, psf_energy=c.psf_energy)
+        return consistency_step(op, sensor, x, origin, damping=c.damping, iterations=c.iterations,
+                                psf_energy=c.psf_energy, extend=self._light_from_outside())
 
     def reconstructor(self):
         """``reconstruct`` with the camera's nominal operator computed once, for inference on many
@@ -96,9 +106,13 @@ class CameraSystem(nn.Module):
         snap = getattr(self.camera, "snapshot", None)
         with torch.no_grad():
             op = snap(nominal=True) if callable(snap) else self.camera
+            step_op = None
+            if self.consistency_on:
+                step_op = op if self.step_camera is None else self._step_operator()
+                step_op = cut_psf(step_op, self.consistency.psf_energy)
 
         def fn(sensor: torch.Tensor, origin: tuple[int, int] = (0, 0)) -> torch.Tensor:
-            return self.reconstruct(sensor, origin, operator=op)
+            return self.reconstruct(sensor, origin, operator=op, step_operator=step_op)
 
         return fn
 
@@ -106,6 +120,19 @@ class CameraSystem(nn.Module):
                 measure=None) -> tuple[torch.Tensor, torch.Tensor]:
         """``measure``: how the scene is imaged, ``fn(scene, generator) → (sensor, operator)``;
         default ``camera.measure`` (gradients reach the optics), e.g. ``camera.fixed_measure()``
-        while the optics are fixed."""
+        while the optics are fixed. The network alone: the consistency step is for inference, so
+        training and its validation (which picks the best weights) never depend on it."""
         sensor, operator = (self.camera.measure if measure is None else measure)(scene, generator)
-        return self.reconstruct(sensor, operator=operator), sensor
+        return self.network(sensor, operator=operator), sensor
+
+    def _step_operator(self):
+        cam = self.camera if self.step_camera is None else self.step_camera
+        snap = getattr(cam, "snapshot", None)
+        with torch.no_grad():
+            return snap(nominal=True) if callable(snap) else cam
+
+    def _light_from_outside(self) -> bool:
+        """Whether the sensor's border pixels see scene light from beyond the reconstructed area
+        (``valid``, or ``same`` with a padding other than zeros)."""
+        cam = self.camera
+        return getattr(cam, "boundary", "valid") == "valid" or getattr(cam, "padding", "zeros") != "zeros"
