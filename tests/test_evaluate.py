@@ -64,6 +64,20 @@ def test_evaluate_writes_results_in_all_formats(run, env, tmp_path):
     assert abs(p - summary["scenes"][0]["psnr"]) < 1.0
 
 
+def test_evaluate_takes_capture_noise_and_the_step_from_its_config(run, env, tmp_path):
+    """`--set camera.sensor.*` and `--set model.consistency.*` reach the loaded run's camera and
+    system (they were once ignored: the run's own config decided)."""
+    means = {}
+    for name, sets in (("clean", []), ("noisy", ["camera.sensor.noise=poisson_gaussian", "camera.sensor.full_well_e=30"]),
+                       ("step", ["model.consistency.iterations=1"])):
+        args = [a for kv in sets for a in ("--set", kv)]
+        res = run_cli("evaluate", "--run", str(run), "--out", str(tmp_path / name), *args, env=env)
+        assert res.returncode == 0, res.stderr
+        means[name] = json.loads((tmp_path / name / "results.json").read_text())["mean"]
+    assert means["noisy"]["psnr"] < means["clean"]["psnr"] - 1.0
+    assert abs(means["step"]["psnr"] - means["clean"]["psnr"]) > 1e-3
+
+
 def test_evaluate_on_a_folder_of_files(run, env, tmp_path):
     data = tmp_path / "data"
     rng = np.random.default_rng(0)

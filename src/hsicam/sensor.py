@@ -125,6 +125,10 @@ class SensorNoise(nn.Module):
         self.model, self.sigma = model, float(sigma)
         self.full_well_e, self.read_noise_e, self.bit_depth = float(full_well_e), float(read_noise_e), bit_depth
 
+    @classmethod
+    def from_config(cls, s) -> "SensorNoise":  # s: hsicam.config.SensorConfig (camera.sensor)
+        return cls(s.noise, s.sigma, s.full_well_e, s.read_noise_e, s.bit_depth)
+
     def forward(self, g: torch.Tensor, generator: torch.Generator | None = None) -> torch.Tensor:
         if self.model == "gaussian":
             g = gaussian_noise(g, self.sigma, generator)

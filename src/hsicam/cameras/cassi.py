@@ -264,7 +264,7 @@ class _CASSICamera(Camera):
             aperture = CodedAperture(cassi.mask_seed, cassi.mask_density)
         shifts = dispersion_from_config(bands, cassi, cam.sensor.pixel_pitch_um)
         s = cam.sensor
-        noise = SensorNoise(s.noise, s.sigma, s.full_well_e, s.read_noise_e, s.bit_depth)
+        noise = SensorNoise.from_config(s)
         return cls(bands, aperture, shifts, noise, cassi.convention, cam.boundary)
 
     @property

@@ -70,7 +70,7 @@ class DOECamera(Camera):
         cfa = ColorFilterArray(len(bands), cam.cfa.period, cam.cfa.enabled, cam.cfa.seed, cam.cfa.init,
                                bands.centers_nm, cam.cfa.bandpass_fwhm_nm)
         s = cam.sensor
-        noise = SensorNoise(s.noise, s.sigma, s.full_well_e, s.read_noise_e, s.bit_depth)
+        noise = SensorNoise.from_config(s)
         return cls(bands, optics, cfa, noise, cam.boundary, cam.padding)
 
     def noise_levels(self) -> dict[str, float]:

@@ -44,6 +44,7 @@ from hsicam.errors import InputError
 from hsicam.models.demosaic import camera_demosaic
 from hsicam.runs.folder import load_run
 from hsicam.runs.pretrained import resolve_run
+from hsicam.sensor import SensorNoise
 from hsicam.solvers.choi import admm_prior
 from hsicam.solvers.desci import desci, desci_settings
 from hsicam.solvers.gaptv import gap_tv
@@ -126,6 +127,16 @@ def demosaic_reference(model) -> Method:
     return Method("CFA box demosaic (no network)", model.camera, reconstruct, model.target, {})
 
 
+def _evaluation_settings(model, cfg) -> None:
+    """What the evaluation's config (the run's own plus ``--set``) decides for a loaded run: the
+    consistency step after the network (``model.consistency``; iterations=0 scores the network
+    alone) and the capture noise (``camera.sensor.*``, the DOE camera's ``camera.doe.sigma_height_nm``)."""
+    model.consistency = cfg.model.consistency
+    model.camera.noise = SensorNoise.from_config(cfg.camera.sensor).to(next(model.parameters()).device)
+    if "sigma_height_nm" in model.camera.noise_levels() and cfg.camera.kind == "doe":
+        model.camera.set_noise(sigma_height_nm=cfg.camera.doe.sigma_height_nm)
+
+
 def network_alone_reference(model) -> Method:
     """The system's network without its measurement-consistency step (``model.consistency``): what
     the step adds is the system's score minus this one."""
@@ -140,9 +151,7 @@ def _doe_method(cfg, run, device) -> Method:
     if run is None:
         raise InputError("method doe-learned needs --run RUN (a trained camera)")
     _, model = load_run(run, device)
-    # the consistency step is an inference setting: the evaluation's config decides it (--set
-    # model.consistency.iterations=0 scores the network alone)
-    model.consistency = cfg.model.consistency
+    _evaluation_settings(model, cfg)
     return learned_method("doe-learned", model, run)
 
 
@@ -219,7 +228,7 @@ def _learned_cassi(name: str, network: str) -> Builder:
                 raise InputError(f"{run}: method {name} needs a run trained with model.kind={network}, "
                                  f"this one has model.kind={run_cfg.model.kind}")
         _, model = load_run(run, device)
-        model.consistency = cfg.model.consistency  # an inference setting: the evaluation's config decides
+        _evaluation_settings(model, cfg)
         return learned_method(name, model, run, **_camera_info(model.camera))
 
     return build
