@@ -257,3 +257,14 @@ def test_consistency_is_not_a_training_difference(tiny_config):
 
     assert training_differences(tiny_config(), tiny_config("model.consistency.iterations=2")) == []
     assert training_differences(tiny_config(), tiny_config("train.lr=0.5"))
+
+
+def test_learned_cassi_rows_are_scored_without_the_step():
+    """Table 1's learned CASSI controls: the DOE presets' step lowers the blind RDN's per-band PSNR
+    (docs/networks.md), so the experiments' CASSI overrides switch it off; the DOE camera keeps it."""
+    from hsicam.engine.experiments import LEARNED_CASSI
+
+    assert load_config("quick").model.consistency.iterations == 1
+    for name, overrides in LEARNED_CASSI.items():
+        model = CameraSystem.from_config(load_config("quick", list(overrides))).eval()
+        assert model.camera.kind == "dd_cassi" and not model.consistency_on, name
