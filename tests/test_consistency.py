@@ -143,9 +143,27 @@ def test_step_camera_is_the_operator_the_step_uses(tiny_camera):
     assert (own - nominal).abs().max() > 1e-4
 
 
-def test_sd_cassi_with_the_step_is_a_config_error():
-    with pytest.raises(ConfigError, match="SD-CASSI"):
-        CameraSystem.from_config(load_config("quick", ["camera.kind=sd_cassi", "model.kind=unrolled"]))
+def test_sd_cassi_skips_the_step():
+    """SD-CASSI's scene grid is not the sensor's: its system trains and reconstructs without the
+    step (the quick preset switched to SD-CASSI, as a user would)."""
+    cfg = load_config("quick", ["camera.kind=sd_cassi", "model.kind=unrolled", "model.unrolled.init=backprojection",
+                                "model.unrolled.step=gap", "model.unrolled.stages=1"])
+    assert cfg.model.consistency.iterations == 1
+    model = CameraSystem.from_config(cfg).eval()
+    assert not model.consistency_on and model.context_px == model.net.context_px
+    y = torch.rand(1, 1, 24, 160)
+    with torch.no_grad():
+        torch.testing.assert_close(model.reconstructor()(y), model.network(y, operator=model.camera.snapshot()))
+
+
+def test_reconstructor_equals_reconstruct_with_a_cut_psf(tiny_config):
+    """reconstructor() cuts the step's PSFs once, as reconstruct does (not twice)."""
+    model = _system(tiny_config, "model.consistency.psf_energy=0.6")
+    snap = model.camera.snapshot(nominal=True)
+    assert cut_psf(snap, 0.6).kernel_px < snap.kernel_px  # the cut does cut here
+    sensor = torch.rand(1, 1, 30, 26, generator=torch.Generator().manual_seed(12))
+    with torch.no_grad():
+        torch.testing.assert_close(model.reconstructor()(sensor), model.reconstruct(sensor), rtol=1e-5, atol=1e-6)
 
 
 def test_one_undamped_step_on_dd_cassi_is_the_gap_projection():

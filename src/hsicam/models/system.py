@@ -2,13 +2,16 @@
 
 from __future__ import annotations
 
+import logging
+
 import torch
 from torch import nn
 
 from hsicam.cameras import Camera, build_camera
-from hsicam.errors import ConfigError
 from hsicam.models.consistency import consistency_step, cut_psf, reach_px
 from hsicam.models.registry import build_network
+
+log = logging.getLogger(__name__)
 
 
 class CameraSystem(nn.Module):
@@ -34,22 +37,28 @@ class CameraSystem(nn.Module):
 
     @classmethod
     def from_config(cls, cfg) -> "CameraSystem":  # cfg: hsicam.config.Config
-        if cfg.model.consistency.iterations and cfg.camera.kind == "sd_cassi":
-            raise ConfigError("model.consistency needs a camera whose scene grid is the sensor's; SD-CASSI's "
-                              "is not: set model.consistency.iterations=0")
         camera = build_camera(cfg)
         return cls(camera, build_network(cfg, camera), cfg.model.consistency)
 
     def with_camera(self, camera: Camera) -> "CameraSystem":
         """The same network imaging through ``camera`` (e.g. a measured-PSF camera), same autocast
-        and consistency step (through ``camera``)."""
+        and consistency step (through ``camera``: ``step_camera`` is not carried over)."""
         out = type(self)(camera, self.net, self.consistency)
         out.autocast_dtype = self.autocast_dtype
         return out
 
     @property
     def consistency_on(self) -> bool:
-        return self.consistency is not None and self.consistency.iterations > 0
+        """Whether :meth:`reconstruct` takes the step: configured, and a camera whose scene grid is
+        the sensor's (SD-CASSI's is not: its reconstructions skip the step, with a warning once)."""
+        if self.consistency is None or self.consistency.iterations <= 0:
+            return False
+        if getattr(self.camera, "kind", None) == "sd_cassi":
+            if not getattr(self, "_warned_grid", False):
+                log.warning("model.consistency is skipped: SD-CASSI's scene grid is not the sensor's")
+                self._warned_grid = True
+            return False
+        return True
 
     @property
     def context_px(self) -> int:
@@ -88,15 +97,16 @@ class CameraSystem(nn.Module):
     def reconstruct(self, sensor: torch.Tensor, origin: tuple[int, int] = (0, 0), operator=None,
                     step_operator=None) -> torch.Tensor:
         """Sensor image (B, 1, H, W) → cube (B, C, H, W) (float32): :meth:`network`, then, in eval
-        mode with ``consistency`` on, the measurement-consistency step through ``step_operator``
-        (default: the nominal snapshot of ``step_camera`` or ``camera``)."""
+        mode with ``consistency`` on, the measurement-consistency step through the nominal snapshot
+        of ``step_camera`` (default ``camera``), its PSFs cut to ``consistency.psf_energy``, or
+        through ``step_operator`` as given (already cut: :meth:`reconstructor` passes one)."""
         x = self.network(sensor, origin, operator)
         if self.training or not self.consistency_on:
             return x
-        op = self._step_operator() if step_operator is None else step_operator
         c = self.consistency
+        op, energy = (self._step_operator(), c.psf_energy) if step_operator is None else (step_operator, 1.0)
         return consistency_step(op, sensor, x, origin, damping=c.damping, iterations=c.iterations,
-                                psf_energy=c.psf_energy, extend=self._light_from_outside())
+                                psf_energy=energy, extend=self._light_from_outside())
 
     def reconstructor(self):
         """``reconstruct`` with the camera's nominal operator computed once, for inference on many
