@@ -9,6 +9,7 @@ PSFs (it drops > 2 dB when the band throughput changes) and fine-tuning effects 
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import io
 import json
 import shutil
@@ -315,6 +316,24 @@ def test_finetune_improves_psnr_on_perturbed_psfs(fab_run, tmp_path):
         meta = json.loads(f.attrs["metadata_json"])
     assert meta["network_tuned_to_psfs"] is True and meta["psf_fingerprint"] == measured.fingerprint
     assert load_measured_psf(run2 / "measured_psf.safetensors").fingerprint == measured.fingerprint
+    # with a consistency step, --psf-dir makes the step explain the capture with the measured PSFs,
+    # also for a run that was not tuned to them (it images with its design PSFs otherwise)
+    out1 = tmp_path / "rec1.h5"
+    rec = run_cli("reconstruct", str(tmp_path / "cap.npy"), "--run", str(fab_run), "--out", str(out1), "--psf-dir",
+                  str(d), "--consistency-steps", "1")
+    assert rec.returncode == 0, rec.stderr
+    from hsicam.data.formats import read_hsicam_h5
+
+    got = read_hsicam_h5(out1)[0]
+    _, sys1 = load_run(fab_run)
+    sys1.consistency = dataclasses.replace(cfg.model.consistency, iterations=1)
+    cap = torch.from_numpy(np.load(tmp_path / "cap.npy"))[None, None]
+    with torch.no_grad():
+        through_design = sys1.reconstructor()(cap)[0].clamp_min(0).numpy()
+        sys1.step_camera = FixedPSFCamera.from_camera(sys1.camera, p_meas)
+        through_measured = sys1.reconstructor()(cap)[0].clamp_min(0).numpy()
+    assert np.abs(through_measured - through_design).max() > 1e-3  # the two operators differ here
+    np.testing.assert_allclose(got, through_measured, rtol=1e-4, atol=1e-5)
 
 
 def test_finetune_cli_errors(fab_run, tmp_path):

@@ -124,6 +124,10 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
         meta["psf_dir"] = str(args.psf_dir)
         meta["psf_fingerprint"] = measured.fingerprint
         meta["network_tuned_to_psfs"] = tuned == measured.fingerprint
+        from hsicam.cameras.measured import FixedPSFCamera
+
+        # the consistency step explains the capture with the measured PSFs (what this camera does)
+        model.step_camera = FixedPSFCamera.from_camera(model.camera, torch.from_numpy(measured.psf))
         if tuned != measured.fingerprint:
             log.warning("the network of %s was not fine-tuned on the PSFs of %s; run `hsicam finetune --run %s "
                         "--psf-dir %s --out RUN2` and reconstruct with RUN2", args.run, args.psf_dir, args.run, args.psf_dir)
