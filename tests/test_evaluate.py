@@ -78,6 +78,24 @@ def test_evaluate_takes_capture_noise_and_the_step_from_its_config(run, env, tmp
     assert abs(means["step"]["psnr"] - means["clean"]["psnr"]) > 1e-3
 
 
+def test_box_reference_images_with_the_evaluation_noise(run):
+    """The box-demosaic reference is scored on the same captures as the learned method: the
+    evaluation config's sensor noise reaches its camera too (it once imaged noise-free)."""
+    import torch
+
+    from hsicam.config import load_config
+    from hsicam.engine.methods import build_method
+
+    cfg = load_config(run / "config.yaml", ["camera.sensor.noise=poisson_gaussian", "camera.sensor.full_well_e=30"])
+    box, learned = (build_method(m, cfg, run) for m in ("doe-box-demosaic", "doe-learned"))
+    scene = torch.rand(1, len(box.camera.bands), 48, 48, generator=torch.Generator().manual_seed(3))
+    with torch.no_grad():
+        clean = box.camera.A(scene)
+        shots = [m.camera(scene, generator=torch.Generator().manual_seed(5)) for m in (box, learned)]
+    assert (shots[0] - clean).abs().mean() > 1e-3  # noisy, as the learned method's captures
+    torch.testing.assert_close(shots[0], shots[1])
+
+
 def test_evaluate_on_a_folder_of_files(run, env, tmp_path):
     data = tmp_path / "data"
     rng = np.random.default_rng(0)

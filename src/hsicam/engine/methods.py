@@ -132,6 +132,12 @@ def _evaluation_settings(model, cfg) -> None:
     consistency step after the network (``model.consistency``; iterations=0 scores the network
     alone) and the capture noise (``camera.sensor.*``, the DOE camera's ``camera.doe.sigma_height_nm``)."""
     model.consistency = cfg.model.consistency
+    _evaluation_noise(model, cfg)
+
+
+def _evaluation_noise(model, cfg) -> None:
+    """The evaluation config's capture noise on a loaded run's camera (``camera.sensor.*`` and
+    the DOE camera's ``camera.doe.sigma_height_nm``)."""
     model.camera.noise = SensorNoise.from_config(cfg.camera.sensor).to(next(model.parameters()).device)
     if "sigma_height_nm" in model.camera.noise_levels() and cfg.camera.kind == "doe":
         model.camera.set_noise(sigma_height_nm=cfg.camera.doe.sigma_height_nm)
@@ -161,6 +167,7 @@ def _box_method(cfg, run, device) -> Method:
     if run is None:
         raise InputError("method doe-box-demosaic needs --run RUN (the camera whose optics it images through)")
     _, model = load_run(run, device)
+    _evaluation_noise(model, cfg)  # scored on the same captures as the learned method
     method = demosaic_reference(model)
     return dataclasses.replace(method, info={"run": str(run)})
 
