@@ -9,6 +9,7 @@ import torch
 
 from hsicam.cameras import build_camera
 from hsicam.cameras.doe_camera import DOESnapshot
+from hsicam.cameras.measured import FixedPSFCamera
 from hsicam.config import load_config
 from hsicam.engine.inference import reconstruct_tiled
 from hsicam.errors import ConfigError, InputError
@@ -102,11 +103,12 @@ class _Oracle(torch.nn.Module):
         return self.cube
 
 
-@pytest.mark.parametrize("padding", ["zeros", "replicate"])
+@pytest.mark.parametrize("padding", ["zeros", "replicate", "reflect"])
 def test_a_perfect_estimate_is_a_fixed_point_for_same_cameras(tiny_camera, padding):
     """A ``same`` camera pads the scene itself: with zeros the system does not extend the
-    estimate (no light from beyond), with replication it extends it the same way, so in both the
-    true cube explains y exactly and stays put. Extending under zero padding would move it."""
+    estimate (no light from beyond), with replication or reflection it extends it the same way,
+    so in each the true cube explains y exactly and stays put. Extending under zero padding, or
+    replicating under reflection, would move it."""
     cam = tiny_camera("camera.boundary=same", f"camera.padding={padding}", dtype=torch.float64)
     truth = 0.2 + 0.6 * torch.rand(1, len(cam.bands), 40, 40, generator=torch.Generator().manual_seed(8),
                                    dtype=torch.float64)
@@ -116,8 +118,9 @@ def test_a_perfect_estimate_is_a_fixed_point_for_same_cameras(tiny_camera, paddi
     with torch.no_grad():
         got = model.reconstructor()(y)
     torch.testing.assert_close(got, truth, rtol=0, atol=1e-10)
-    if padding == "zeros":
-        moved = consistency_step(cam.snapshot(nominal=True), y, truth, iterations=2, psf_energy=1.0, extend=True)
+    wrong = {"zeros": True, "reflect": "replicate"}.get(padding)
+    if wrong is not None:
+        moved = consistency_step(cam.snapshot(nominal=True), y, truth, iterations=2, psf_energy=1.0, extend=wrong)
         assert (moved - truth).abs().max() > 1e-3
 
 
@@ -157,13 +160,28 @@ def test_sd_cassi_skips_the_step():
 
 
 def test_reconstructor_equals_reconstruct_with_a_cut_psf(tiny_config):
-    """reconstructor() cuts the step's PSFs once, as reconstruct does (not twice)."""
-    model = _system(tiny_config, "model.consistency.psf_energy=0.6")
-    snap = model.camera.snapshot(nominal=True)
-    assert cut_psf(snap, 0.6).kernel_px < snap.kernel_px  # the cut does cut here
+    """reconstructor() cuts the step's PSFs once, as reconstruct does (not twice). A flat 7×7 PSF
+    cut to 30 % of its light keeps 5×5 px, and cutting that again would keep 3×3: so a second cut
+    would change the result here."""
+    model = _system(tiny_config, "model.consistency.psf_energy=0.3")
+    k, c = model.camera.kernel_px, len(model.bands)
+    assert k == 7
+    model.step_camera = FixedPSFCamera.from_camera(model.camera, torch.full((c, k, k), 1.0 / k**2))
+    once = cut_psf(model.step_camera.snapshot(nominal=True), 0.3)
+    assert once.kernel_px == 5 and cut_psf(once, 0.3).kernel_px == 3
     sensor = torch.rand(1, 1, 30, 26, generator=torch.Generator().manual_seed(12))
     with torch.no_grad():
         torch.testing.assert_close(model.reconstructor()(sensor), model.reconstruct(sensor), rtol=1e-5, atol=1e-6)
+
+
+def test_step_camera_is_not_part_of_the_state():
+    """step_camera is a reference, not a submodule: the system's state dict and parameters stay
+    those of camera + network (weights saved from it load into a plain system)."""
+    model = CameraSystem.from_config(load_config("tiny"))
+    keys, n_params = set(model.state_dict()), len(list(model.parameters()))
+    model.step_camera = FixedPSFCamera.from_camera(model.camera, model.camera.psf().detach() * 0.5)
+    assert set(model.state_dict()) == keys and len(list(model.parameters())) == n_params
+    assert model.step_camera is not None and "step_camera" not in dict(model.named_modules())
 
 
 def test_one_undamped_step_on_dd_cassi_is_the_gap_projection():
@@ -286,3 +304,29 @@ def test_learned_cassi_rows_are_scored_without_the_step():
     for name, overrides in LEARNED_CASSI.items():
         model = CameraSystem.from_config(load_config("quick", list(overrides))).eval()
         assert model.camera.kind == "dd_cassi" and not model.consistency_on, name
+
+
+def test_experiment_builds_learned_cassi_methods_from_their_own_overrides(monkeypatch, tmp_path):
+    """_baseline_rows hands build_method the learned CASSI rows' own config (step off), and the
+    evaluation config to the others (GAP-TV)."""
+    from hsicam.engine import experiments
+    from hsicam.engine.experiments import LEARNED_CASSI
+
+    seen = {}
+
+    class Built(Exception):
+        pass
+
+    def fake_build(name, cfg, run=None, device="cpu"):
+        seen[name] = cfg
+        raise Built
+
+    monkeypatch.setattr(experiments, "ensure_trained", lambda *a, **k: None)
+    monkeypatch.setattr(experiments, "build_method", fake_build)
+    cfg = load_config("quick")
+    for name in (*LEARNED_CASSI, "dd-cassi-gaptv"):
+        with pytest.raises(Built):
+            experiments._baseline_rows(cfg, "quick", tmp_path, [], [], 1, [name])
+    for name in LEARNED_CASSI:
+        assert seen[name].camera.kind == "dd_cassi" and seen[name].model.consistency.iterations == 0, name
+    assert seen["dd-cassi-gaptv"] is cfg

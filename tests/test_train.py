@@ -332,3 +332,7 @@ def test_demo_cli_trains_reports_and_draws(tmp_path, cache_env):
     # with the measurement-consistency step too (its halo is added to the network's), and it acts
     np.testing.assert_allclose(cubes[2], cubes[3], atol=1e-5)
     assert np.abs(cubes[2] - cubes[0]).max() > 1e-4
+    bad = run_cli("reconstruct", str(tmp_path / "sim" / "sensor.npy"), "--run", str(out / "run"), "--out",
+                  str(tmp_path / "bad.h5"), "--consistency-steps", "-1", env=env)
+    assert_clean_error(bad, "--consistency-steps must be >= 0")
+    assert not (tmp_path / "bad.h5").exists()

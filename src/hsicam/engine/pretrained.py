@@ -185,7 +185,7 @@ def card_fields(run_dir: str | Path, name: str, results: str | Path | None = Non
                    "aperture_radius_mm": cam.aperture_radius_mm, "focal_length_mm": cam.lens.focal_length_mm,
                    "kernel_px": getattr(model.camera, "kernel_px", None), "trainable_parameters": n_cam},
         "network": {"kind": cfg.model.kind, "parameters": n_net, "context_px": model.context_px,
-                    "consistency_steps": cfg.model.consistency.iterations},
+                    "consistency_steps": cfg.model.consistency.iterations if model.consistency_on else 0},
         "bands": {"start_nm": cfg.bands.start_nm, "stop_nm": cfg.bands.stop_nm, "step_nm": cfg.bands.step_nm,
                   "count": len(bands), "centers_nm": [float(x) for x in bands.centers_nm]},
         "noise": {"train_sensor_sigma": list(t.sensor_sigma), "train_sigma_height_nm": list(t.sigma_height_nm),

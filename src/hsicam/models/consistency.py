@@ -32,7 +32,7 @@ from hsicam.errors import InputError
 
 def consistency_step(op, y: torch.Tensor, x0: torch.Tensor, origin: tuple[int, int] = (0, 0),
                      damping: float = 0.02, iterations: int = 1, psf_energy: float = 0.995,
-                     extend: bool = True) -> torch.Tensor:
+                     extend: bool | str = True) -> torch.Tensor:
     """x0 (B, C, h, w) moved towards A x = y for the sensor window y (B, 1, h, w) at ``origin``.
 
     ``op`` is an operator snapshot in ``same`` geometry (``A(x, origin)``, ``A_adjoint(y, origin)``,
@@ -41,11 +41,15 @@ def consistency_step(op, y: torch.Tensor, x0: torch.Tensor, origin: tuple[int, i
     itself), each one A and one Aᵀ (plus one of each for A Aᵀ 𝟙, once per batch). ``psf_energy``: a PSF-stack operator is cut to the smallest
     kernel that keeps this share of every band's light (:func:`cut_psf`; 1: the whole kernel).
     ``extend``: the sensor sees light from beyond the window (a ``valid`` camera, or a ``same``
-    one that pads the scene by replication), so the estimate is extended by replicating its border
-    and the step solves for that margin too; False: the light beyond is zero (a ``same`` camera
-    with zero padding). Tiles: either way the window's edge moves the output only within
-    :func:`reach_px`. Differentiable.
+    one that pads the scene), so the estimate is extended across its border and the step solves
+    for that margin too: True or ``"replicate"`` replicates the border, ``"reflect"`` mirrors it
+    (a ``same`` camera padding by reflection; replication where the window is too small to
+    mirror); False: the light beyond is zero (a ``same`` camera with zero padding). Tiles: either
+    way the window's edge moves the output only within :func:`reach_px`. Differentiable.
     """
+    mode = "replicate" if extend is True else (extend or None)
+    if mode not in (None, "replicate", "reflect"):
+        raise ValueError(f"extend must be a bool, 'replicate' or 'reflect', got {extend!r}")
     if iterations < 0 or not damping > 0 or not 0 < psf_energy <= 1:
         raise ValueError(f"need iterations >= 0, damping > 0 and psf_energy in (0, 1], got {iterations}, "
                          f"{damping}, {psf_energy}")
@@ -58,8 +62,10 @@ def consistency_step(op, y: torch.Tensor, x0: torch.Tensor, origin: tuple[int, i
     if getattr(op, "lipschitz", None) is None:
         raise InputError(f"measurement consistency needs an operator with a bound of ‖A‖² (lipschitz), "
                          f"not {type(op).__name__}")
-    py, px = _half_reach(op) if extend else (0, 0)
+    py, px = _half_reach(op) if mode else (0, 0)
     h, w = y.shape[-2:]
+    if mode == "reflect" and (py >= h or px >= w):
+        mode = "replicate"
     o = (origin[0] - py, origin[1] - px)
     lam = damping * float(op.lipschitz)
 
@@ -71,7 +77,7 @@ def consistency_step(op, y: torch.Tensor, x0: torch.Tensor, origin: tuple[int, i
 
     y = y.to(x0.dtype)
     row_sums = a(a_t(torch.ones_like(y[:1]))) + lam  # the same for every image of the batch
-    x = F.pad(x0, (px, px, py, py), mode="replicate") if (py or px) else x0
+    x = F.pad(x0, (px, px, py, py), mode=mode) if (py or px) else x0
     for _ in range(iterations):
         x = x + a_t((y - a(x)) / row_sums)
     return x[..., py : py + h, px : px + w]

@@ -32,8 +32,15 @@ class CameraSystem(nn.Module):
         self.consistency = consistency  # hsicam.config.ConsistencyConfig or None (off)
         # the camera whose operator the step uses (None: ``camera``), e.g. the nominal design while
         # ``camera`` images with fabrication errors the deployed system does not know
+        # A reference, not a submodule (see __setattr__): not in the state dict, not moved by .to().
         self.step_camera: Camera | None = None
         self.autocast_dtype: torch.dtype | None = None  # e.g. torch.bfloat16 for the network on CUDA
+
+    def __setattr__(self, name: str, value) -> None:
+        if name == "step_camera":  # nn.Module would register a camera as a submodule (its weights saved twice)
+            object.__setattr__(self, name, value)
+        else:
+            super().__setattr__(name, value)
 
     @classmethod
     def from_config(cls, cfg) -> "CameraSystem":  # cfg: hsicam.config.Config
@@ -106,7 +113,7 @@ class CameraSystem(nn.Module):
         c = self.consistency
         op, energy = (self._step_operator(), c.psf_energy) if step_operator is None else (step_operator, 1.0)
         return consistency_step(op, sensor, x, origin, damping=c.damping, iterations=c.iterations,
-                                psf_energy=energy, extend=self._light_from_outside())
+                                psf_energy=energy, extend=self._extension())
 
     def reconstructor(self):
         """``reconstruct`` with the camera's nominal operator computed once, for inference on many
@@ -141,8 +148,13 @@ class CameraSystem(nn.Module):
         with torch.no_grad():
             return snap(nominal=True) if callable(snap) else cam
 
-    def _light_from_outside(self) -> bool:
-        """Whether the sensor's border pixels see scene light from beyond the reconstructed area
-        (``valid``, or ``same`` with a padding other than zeros)."""
+    def _extension(self) -> str | None:
+        """How the step extends the estimate across the window's border: as the camera makes the
+        light the border pixels see from beyond the reconstructed area. ``valid``: real scene light,
+        guessed by replication; ``same``: the camera's own padding (zeros: none; circular wraps
+        around the whole image, which a tile cannot see: replication)."""
         cam = self.camera
-        return getattr(cam, "boundary", "valid") == "valid" or getattr(cam, "padding", "zeros") != "zeros"
+        if getattr(cam, "boundary", "valid") == "valid":
+            return "replicate"
+        padding = getattr(cam, "padding", "zeros")
+        return None if padding == "zeros" else ("reflect" if padding == "reflect" else "replicate")
