@@ -442,3 +442,28 @@ def test_ssim_and_spectral_angle_loss_terms_against_independent_references():
         TrainConfig(sam_loss=-1.0)
     with pytest.raises(ConfigError, match="ssim_loss"):
         TrainConfig(ssim_loss=float("nan"))
+
+
+def test_spectral_gradient_loss_term_against_a_numpy_reference():
+    """train.spectral_grad_loss: + w · mean |(x̂[c+1] − x̂[c]) − (x[c+1] − x[c])| (a numpy loop over
+    band steps); blind to an offset common to all bands, not to a ripple of the same L1 size."""
+    import numpy as np
+
+    from hsicam.config import TrainConfig
+    from hsicam.engine.tasks import spectral_gradient_loss, system_loss
+
+    g = torch.Generator().manual_seed(5)
+    truth = torch.rand(2, 6, 8, 9, generator=g, dtype=torch.float64)
+    recon = truth + 0.05 * torch.randn(truth.shape, generator=g, dtype=torch.float64)
+    r, t = recon.numpy(), truth.numpy()
+    ref = np.mean([np.abs((r[:, c + 1] - r[:, c]) - (t[:, c + 1] - t[:, c])).mean() for c in range(5)])
+    l1 = float((recon - truth).abs().mean())
+    got = system_loss(recon, truth, TrainConfig(spectral_grad_loss=0.7))
+    assert float(got) == pytest.approx(l1 + 0.7 * ref, rel=1e-9)
+
+    offset = truth + 0.1  # the same spectral shape everywhere
+    ripple = truth + 0.1 * torch.tensor([1.0, -1.0] * 3, dtype=torch.float64)[None, :, None, None]
+    assert float(spectral_gradient_loss(offset, truth)) == pytest.approx(0.0, abs=1e-12)
+    assert float(spectral_gradient_loss(ripple, truth)) == pytest.approx(0.2, rel=1e-9)
+    with pytest.raises(ConfigError, match="spectral_grad_loss"):
+        TrainConfig(spectral_grad_loss=-0.5)

@@ -336,6 +336,9 @@ class TrainConfig:
     # + sam_loss · mean spectral angle (radians, pixels whose truth is brighter than relative_eps)
     ssim_loss: float = 0.0
     sam_loss: float = 0.0
+    # + spectral_grad_loss · L1 between the band-to-band differences x[c+1] − x[c] of estimate and truth
+    # (penalises spectral ripple that the plain L1 lets through where texture aliases into the spectrum)
+    spectral_grad_loss: float = 0.0
     eval_every_epochs: int = 1
     checkpoint_every_steps: int = 200
     log_every_steps: int = 20
@@ -360,7 +363,7 @@ class TrainConfig:
                 raise ConfigError(f"train.{k} must be >= 1, got {getattr(self, k)}")
         _positive("train", lr=self.lr, doe_lr_nm=self.doe_lr_nm, cfa_lr=self.cfa_lr, lr_gamma=self.lr_gamma,
                   grad_clip=self.grad_clip, relative_eps=self.relative_eps)
-        for k in ("relative_l1", "ssim_loss", "sam_loss"):
+        for k in ("relative_l1", "ssim_loss", "sam_loss", "spectral_grad_loss"):
             v = getattr(self, k)
             if not (v >= 0 and math.isfinite(v)):
                 raise ConfigError(f"train.{k} must be >= 0, got {v}")

@@ -43,7 +43,8 @@ def draw_noise(t: TrainConfig, generator: torch.Generator) -> dict[str, float]:
 def system_loss(recon: torch.Tensor, truth: torch.Tensor, t: TrainConfig) -> torch.Tensor:
     """L1 (paper eq. 10), plus ``t.relative_l1`` × the L1 relative to the local brightness of the
     truth, box₉(mean over bands) + ``t.relative_eps``, plus ``t.ssim_loss`` × (1 − SSIM) and
-    ``t.sam_loss`` × :func:`spectral_angle_loss`; (B, C, H, W) pairs → scalar."""
+    ``t.sam_loss`` × :func:`spectral_angle_loss`, plus ``t.spectral_grad_loss`` ×
+    :func:`spectral_gradient_loss`; (B, C, H, W) pairs → scalar."""
     loss = F.l1_loss(recon, truth)
     if t.relative_l1 > 0:
         local = box_mean(truth.mean(dim=1, keepdim=True), 9) + t.relative_eps
@@ -52,7 +53,15 @@ def system_loss(recon: torch.Tensor, truth: torch.Tensor, t: TrainConfig) -> tor
         loss = loss + t.ssim_loss * (1.0 - ssim(recon, truth, dtype=recon.dtype).mean())
     if t.sam_loss > 0:
         loss = loss + t.sam_loss * spectral_angle_loss(recon, truth, t.relative_eps)
+    if t.spectral_grad_loss > 0:
+        loss = loss + t.spectral_grad_loss * spectral_gradient_loss(recon, truth)
     return loss
+
+
+def spectral_gradient_loss(recon: torch.Tensor, truth: torch.Tensor) -> torch.Tensor:
+    """Mean |Δx̂ − Δx| over pixels and the C − 1 band steps, Δx = x[:, 1:] − x[:, :-1] (B, C, H, W)
+    → scalar: L1 on the spectrum's shape, blind to a level offset common to all bands."""
+    return F.l1_loss(recon.diff(dim=1), truth.diff(dim=1))
 
 
 def spectral_angle_loss(recon: torch.Tensor, truth: torch.Tensor, min_brightness: float) -> torch.Tensor:
