@@ -467,3 +467,64 @@ def test_spectral_gradient_loss_term_against_a_numpy_reference():
     assert float(spectral_gradient_loss(ripple, truth)) == pytest.approx(0.2, rel=1e-9)
     with pytest.raises(ConfigError, match="spectral_grad_loss"):
         TrainConfig(spectral_grad_loss=-0.5)
+
+
+def test_tent_demosaic_is_the_weighted_bilinear_msfa_demosaic():
+    """demosaic(kernel="tent") = Σ w(p−q) κ_c(q) g(q) / Σ w(p−q) κ_c(q) with w the outer product of
+    (1, 2, …, m, …, 2, 1) (a numpy loop, zeros outside); with one-hot filters of period m and
+    w = 2m − 1 it interpolates each filter's samples bilinearly, so a cube whose bands are linear
+    in x and y comes back exactly away from the border, where the odd box over an even period
+    does not (the test can fail)."""
+    import numpy as np
+
+    from hsicam.models.demosaic import demosaic
+
+    m, h, w = 4, 17, 19
+    c = m * m
+    code = torch.zeros(c, h, w, dtype=torch.float64)
+    for i in range(h):
+        for j in range(w):
+            code[(i % m) * m + j % m, i, j] = 1.0  # one filter per pixel, period m
+    yy, xx = torch.meshgrid(torch.arange(h, dtype=torch.float64), torch.arange(w, dtype=torch.float64), indexing="ij")
+    g = torch.Generator().manual_seed(0)
+    a, b, d = (torch.rand(c, 1, 1, generator=g, dtype=torch.float64) for _ in range(3))
+    cube = a + 0.05 * b * yy + 0.03 * d * xx  # (C, H, W), each band linear in position
+    sensor = (code * cube).sum(0)[None, None]
+
+    got = demosaic(sensor, code, 2 * m - 1, "tent")
+    tri = np.array([1, 2, 3, 4, 3, 2, 1], dtype=np.float64)
+    wts, r = np.outer(tri, tri), m - 1
+    k, s = code.numpy(), sensor[0, 0].numpy()
+    i, j = 5, 8  # one pixel, by the definition
+    num = sum(wts[u + r, v + r] * k[:, i + u, j + v] * s[i + u, j + v] for u in range(-r, r + 1) for v in range(-r, r + 1))
+    den = sum(wts[u + r, v + r] * k[:, i + u, j + v] for u in range(-r, r + 1) for v in range(-r, r + 1))
+    np.testing.assert_allclose(got[0, :, i, j].numpy(), num / den, rtol=1e-12)
+
+    inner = (slice(None), slice(None), slice(r, h - r), slice(r, w - r))
+    torch.testing.assert_close(got[inner], cube[None][inner], rtol=0, atol=1e-12)
+    box = demosaic(sensor, code, m + 1, "box")
+    assert float((box[inner] - cube[None][inner]).abs().max()) > 1e-3
+    with pytest.raises(ValueError, match="tent"):
+        demosaic(sensor, code, 7, "gauss")
+
+
+def test_mosaic_net_with_the_tent_demosaic():
+    """model.mosaic.demosaic_kernel=tent: the window defaults to 2·period − 1, the untrained
+    network returns the tent demosaic, tiles equal the whole image; a bad kernel is one ConfigError."""
+    from hsicam.models.demosaic import demosaic
+
+    cam = camera("doe")
+    settings = dataclasses.replace(MOSAIC_DETAIL, demosaic_kernel="tent")
+    net = build_mosaic(settings, cam)
+    assert net.demosaic_window == 2 * cam.code_period - 1
+    y = torch.rand(1, 1, 80, 74)
+    with torch.no_grad():
+        torch.testing.assert_close(net(y, cam), demosaic(y, cam.sensor_code(80, 74), 5, "tent"), atol=1e-6, rtol=0)
+    op = cam.snapshot(nominal=True)
+    randomise(net).eval()
+    with torch.no_grad():
+        whole = net(y, op)
+    tiled = reconstruct_tiled(lambda s, origin=(0, 0): net(s, op, origin), y, tile_px=24, halo_px=net.context_px)
+    assert torch.allclose(tiled, whole, atol=1e-5)
+    with pytest.raises(ConfigError, match="demosaic_kernel"):
+        build_mosaic(dataclasses.replace(MOSAIC, demosaic_kernel="gauss"), cam)

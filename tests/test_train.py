@@ -279,6 +279,22 @@ def test_demosaic_reference_is_the_networks_input(tiny_config):
         demosaic_reference(CameraSystem.from_config(load_config("dd_cassi_rdn")))
 
 
+def test_tent_demosaic_reference_is_the_mosaic_networks_start(tiny_config):
+    """demosaic_reference(model, "tent") is what an untrained mosaic network with the tent skip
+    returns (its start), and differs from the box reference."""
+    from hsicam.engine.evaluate import demosaic_reference
+
+    torch.manual_seed(0)
+    model = CameraSystem.from_config(tiny_config("model.kind=mosaic", "model.mosaic.demosaic_kernel=tent",
+                                                 "camera.cfa.init=bandpass")).eval()
+    sensor = torch.rand(1, 1, 16, 14)
+    tent = demosaic_reference(model, "tent")
+    assert tent.name == "CFA tent demosaic, weighted bilinear (no network)"
+    with torch.no_grad():
+        torch.testing.assert_close(tent.reconstruct(sensor), model.net(sensor, model.camera), atol=1e-6, rtol=0)
+        assert not torch.allclose(demosaic_reference(model).reconstruct(sensor), tent.reconstruct(sensor), atol=1e-4)
+
+
 def test_demo_cli_trains_reports_and_draws(tmp_path, cache_env):
     out = tmp_path / "demo"
     proc = run_cli("demo", "--config", "tiny", "--out", str(out), "--set", "model.rdn.demosaic_input=true",

@@ -256,7 +256,9 @@ class MosaicConfig:
     head_features: int = 32  # channels of the full-resolution refinement head
     head_layers: int = 3  # 3×3 convs of the head at full resolution (0: no head)
     detail_features: int = 0  # trunk features passed per pixel to the head (pixel-shuffled), with g − κ·x̃; 0 = off
-    demosaic_window: int = 0  # box width (px, odd) of the demosaic skip; 0 = the CFA period rounded up to odd
+    demosaic_window: int = 0  # width (px, odd) of the demosaic skip; 0 = the CFA period rounded up to odd (box), 2·period − 1 (tent)
+    # weights of the demosaic skip: box (flat) or tent (separable triangle: the weighted-bilinear MSFA demosaic)
+    demosaic_kernel: Literal["box", "tent"] = "box"
     brightness_window: int = 0  # local-brightness normalisation: box width (px, odd) of b = box(g) + ε; 0 = off
     brightness_eps: float = 1.0e-3  # ε of b (sensor units; full scale 1)
 

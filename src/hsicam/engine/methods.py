@@ -111,10 +111,16 @@ def learned_method(name: str, model, run: str | Path, **info: Any) -> Method:
     return Method(name, model.camera, model.reconstructor(), model.target, {"run": str(run), **info}, model)
 
 
-def demosaic_reference(model) -> Method:
-    """The per-band box demosaic of the sensor image through the model's optics
-    (:func:`hsicam.models.demosaic.camera_demosaic`), as a network-free method: what the network
-    adds is its score minus this one. Needs a camera with a per-band sensor code (the CFA)."""
+#: The network-free demosaic references by kernel (:func:`demosaic_reference`).
+DEMOSAIC_REFERENCE_NAMES = {"box": "CFA box demosaic (no network)",
+                            "tent": "CFA tent demosaic, weighted bilinear (no network)"}
+
+
+def demosaic_reference(model, kernel: str = "box") -> Method:
+    """The per-band demosaic of the sensor image through the model's optics
+    (:func:`hsicam.models.demosaic.camera_demosaic`, ``kernel`` "box" or "tent"), as a network-free
+    method: what the network adds is its score minus this one. Needs a camera with a per-band
+    sensor code (the CFA)."""
     try:
         model.camera.sensor_code(1, 1)
     except NotImplementedError:
@@ -122,9 +128,9 @@ def demosaic_reference(model) -> Method:
                          f"{type(model.camera).__name__}") from None
 
     def reconstruct(sensor: torch.Tensor) -> torch.Tensor:
-        return camera_demosaic(model.camera, sensor)
+        return camera_demosaic(model.camera, sensor, kernel=kernel)
 
-    return Method("CFA box demosaic (no network)", model.camera, reconstruct, model.target, {})
+    return Method(DEMOSAIC_REFERENCE_NAMES[kernel], model.camera, reconstruct, model.target, {})
 
 
 def _evaluation_settings(model, cfg) -> None:

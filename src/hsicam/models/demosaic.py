@@ -6,7 +6,12 @@ The demosaic of a CFA camera's image:
 
 a ``w``×``w`` box (odd; zero outside the image): the average of g over the neighbourhood, weighted
 by how much each pixel's filter transmits band c. With selective filters it is a crude spectral
-estimate; the demo reports it as the reference a network must beat.
+estimate; the demo reports it as the reference a network must beat. ``kernel="tent"`` weighs the
+neighbourhood by a separable triangle instead (1, 2, …, r+1, …, 2, 1 for w = 2r + 1): with
+w = 2m − 1 for a CFA of period m it is the weighted-bilinear MSFA demosaic (each filter's samples
+interpolated bilinearly between the lattice points, then mixed by κ_c), which places every
+filter's samples symmetrically about the pixel, where an odd box over an even period counts some
+filters twice.
 
 The back-projection Aᵀy ⊘ AᵀA𝟙 of any camera (the CASSI networks' start: which bands each
 pixel's code lets through, on the scale of the cube).
@@ -18,21 +23,40 @@ import torch
 import torch.nn.functional as F
 
 
-def demosaic(sensor: torch.Tensor, code: torch.Tensor, window: int) -> torch.Tensor:
+#: Neighbourhood weights of :func:`demosaic`.
+DEMOSAIC_KERNELS = ("box", "tent")
+
+
+def demosaic(sensor: torch.Tensor, code: torch.Tensor, window: int, kernel: str = "box") -> torch.Tensor:
     """Per-band normalised local average of the coded sensor image (no learning).
 
     Args:
         sensor: g, (B, 1, H, W).
         code: κ, (C, H, W) (the CFA over the same pixels).
-        window: odd box width in pixels.
+        window: odd width of the neighbourhood in pixels.
+        kernel: "box" (flat weights) or "tent" (separable triangle, see the module docstring).
     Returns:
         (B, C, H, W).
     """
+    if kernel not in DEMOSAIC_KERNELS:
+        raise ValueError(f"demosaic kernel must be one of {', '.join(DEMOSAIC_KERNELS)}, got {kernel!r}")
     if window <= 1:
         return sensor * code.unsqueeze(0) / code.clamp_min(1e-6).unsqueeze(0)
-    num = box_mean(sensor * code.unsqueeze(0), window)
-    den = box_mean(code.unsqueeze(0), window)
+    mean = box_mean if kernel == "box" else tent_mean
+    num = mean(sensor * code.unsqueeze(0), window)
+    den = mean(code.unsqueeze(0), window)
     return num / den.clamp_min(1e-6)
+
+
+def tent_mean(x: torch.Tensor, window: int) -> torch.Tensor:
+    """Weighted mean over a ``window``×``window`` separable triangle (odd ``window`` = 2r + 1,
+    weights 1, 2, …, r + 1, …, 2, 1 per axis, normalised; zeros outside): (B, C, H, W)."""
+    r = window // 2
+    w = (r + 1 - torch.arange(-r, r + 1, device=x.device).abs()).to(x.dtype)
+    w = w / w.sum()
+    c = x.shape[1]
+    x = F.conv2d(x, w.view(1, 1, 1, -1).expand(c, 1, 1, -1), padding=(0, r), groups=c)
+    return F.conv2d(x, w.view(1, 1, -1, 1).expand(c, 1, -1, 1), padding=(r, 0), groups=c)
 
 
 def box_mean(x: torch.Tensor, window: int) -> torch.Tensor:
@@ -58,13 +82,15 @@ def demosaic_window(camera) -> int:
     return p if p % 2 else p + 1
 
 
-def camera_demosaic(camera, sensor: torch.Tensor, origin: tuple[int, int] = (0, 0)) -> torch.Tensor:
-    """:func:`demosaic` of ``sensor`` (B, 1, H, W) with ``camera``'s sensor code at ``origin``.
+def camera_demosaic(camera, sensor: torch.Tensor, origin: tuple[int, int] = (0, 0), kernel: str = "box") -> torch.Tensor:
+    """:func:`demosaic` of ``sensor`` (B, 1, H, W) with ``camera``'s sensor code at ``origin``: a box
+    of :func:`demosaic_window`, or (``kernel="tent"``) the weighted-bilinear tent of 2m − 1 px.
 
     Raises ``NotImplementedError`` for cameras without a per-band sensor code (CASSI).
     """
     code = camera.sensor_code(sensor.shape[-2], sensor.shape[-1], origin).to(sensor.dtype)
-    return demosaic(sensor, code, demosaic_window(camera))
+    window = 2 * int(getattr(camera, "code_period", 1)) - 1 if kernel == "tent" else demosaic_window(camera)
+    return demosaic(sensor, code, window, kernel)
 
 
 def camera_operator(camera):

@@ -1,6 +1,6 @@
 """Mosaic-aware reconstruction network: the sensor image seen by CFA phase.
 
-    x̃ = demosaic(g, κ)                                  per-band box demosaic (B, C, H, W), the skip
+    x̃ = demosaic(g, κ)                                  per-band box or tent demosaic (B, C, H, W), the skip
     s = [unshuffle_m(pad(g)), avgpool_m(pad(x̃))]          (B, m² + C, H/m, W/m), phase-aligned
     t = shuffle_m(Conv1×1(ResBlocks(Conv3×3(s))))       low-res trunk → (B, C, H, W)
     x̂₀ = t + x̃
@@ -38,7 +38,7 @@ from torch import nn
 from hsicam.config import MosaicConfig
 from hsicam.errors import ConfigError
 from hsicam.models.registry import register_network
-from hsicam.models.demosaic import brightness, demosaic
+from hsicam.models.demosaic import DEMOSAIC_KERNELS, brightness, demosaic
 
 
 def phase_pad(x: torch.Tensor, factor: int, origin: tuple[int, int] = (0, 0)) -> tuple[torch.Tensor, tuple[int, int]]:
@@ -93,15 +93,17 @@ class MosaicNet(nn.Module):
     Args:
         bands: C.
         factor: space-to-depth factor m (a multiple of the CFA period).
-        demosaic_window: odd box width of the demosaic skip.
+        demosaic_window: odd width of the demosaic skip's neighbourhood.
+        demosaic_kernel: its weights, "box" or "tent" (:func:`~hsicam.models.demosaic.demosaic`).
         detail_features: U, trunk features handed to the head per pixel (0: off; needs a head).
     """
 
     def __init__(self, bands: int, factor: int, features: int = 128, blocks: int = 10, head_features: int = 32,
                  head_layers: int = 3, demosaic_window: int = 9, brightness_window: int = 0,
-                 brightness_eps: float = 1e-3, detail_features: int = 0) -> None:
+                 brightness_eps: float = 1e-3, detail_features: int = 0, demosaic_kernel: str = "box") -> None:
         super().__init__()
         self.bands, self.factor, self.demosaic_window = int(bands), int(factor), int(demosaic_window)
+        self.demosaic_kernel = str(demosaic_kernel)
         self.brightness_window, self.brightness_eps = int(brightness_window), float(brightness_eps)
         self.blocks, self.head_layers, self.detail_features = int(blocks), int(head_layers), int(detail_features)
         if self.detail_features and not self.head_layers:
@@ -135,7 +137,7 @@ class MosaicNet(nn.Module):
         code = camera.sensor_code(h, w, origin).to(sensor)
         if code.shape[0] != self.bands:
             raise ValueError(f"the camera has {code.shape[0]} bands, the network {self.bands}")
-        skip = demosaic(sensor, code, self.demosaic_window)
+        skip = demosaic(sensor, code, self.demosaic_window, self.demosaic_kernel)
         b = brightness(sensor, self.brightness_window, self.brightness_eps) if self.brightness_window else None
         g_n, skip_n = (sensor, skip) if b is None else (sensor / b, skip / b)
         m = self.factor
@@ -179,12 +181,15 @@ def build_mosaic(mcfg: MosaicConfig, camera) -> MosaicNet:
     factor = mcfg.factor or (period if period > 1 else 3)
     if factor % period:
         raise ConfigError(f"model.mosaic.factor={mcfg.factor} must be a multiple of the CFA period {period} (or 0 for the period)")
-    window = mcfg.demosaic_window or _odd_window(period)
+    if mcfg.demosaic_kernel not in DEMOSAIC_KERNELS:
+        raise ConfigError(f"model.mosaic.demosaic_kernel must be one of {', '.join(DEMOSAIC_KERNELS)}, got {mcfg.demosaic_kernel!r}")
+    default_window = 2 * period - 1 if mcfg.demosaic_kernel == "tent" else _odd_window(period)
+    window = mcfg.demosaic_window or default_window
     if window % 2 == 0:
         raise ConfigError(f"model.mosaic.demosaic_window must be odd (or 0 for the CFA period), got {window}")
     check_brightness("model.mosaic", mcfg.brightness_window, mcfg.brightness_eps)
     return MosaicNet(len(camera.bands), factor, mcfg.features, mcfg.blocks, mcfg.head_features, mcfg.head_layers, window,
-                     mcfg.brightness_window, mcfg.brightness_eps, mcfg.detail_features)
+                     mcfg.brightness_window, mcfg.brightness_eps, mcfg.detail_features, mcfg.demosaic_kernel)
 
 
 def check_brightness(section: str, window: int, eps: float) -> None:
