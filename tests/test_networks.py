@@ -465,6 +465,7 @@ def test_spectral_gradient_loss_term_against_a_numpy_reference():
     ripple = truth + 0.1 * torch.tensor([1.0, -1.0] * 3, dtype=torch.float64)[None, :, None, None]
     assert float(spectral_gradient_loss(offset, truth)) == pytest.approx(0.0, abs=1e-12)
     assert float(spectral_gradient_loss(ripple, truth)) == pytest.approx(0.2, rel=1e-9)
+    assert float(spectral_gradient_loss(truth[:, :1], truth[:, :1] + 0.1)) == 0.0  # no band step, no term (not NaN)
     with pytest.raises(ConfigError, match="spectral_grad_loss"):
         TrainConfig(spectral_grad_loss=-0.5)
 
@@ -494,11 +495,14 @@ def test_tent_demosaic_is_the_weighted_bilinear_msfa_demosaic():
     got = demosaic(sensor, code, 2 * m - 1, "tent")
     tri = np.array([1, 2, 3, 4, 3, 2, 1], dtype=np.float64)
     wts, r = np.outer(tri, tri), m - 1
-    k, s = code.numpy(), sensor[0, 0].numpy()
-    i, j = 5, 8  # one pixel, by the definition
-    num = sum(wts[u + r, v + r] * k[:, i + u, j + v] * s[i + u, j + v] for u in range(-r, r + 1) for v in range(-r, r + 1))
-    den = sum(wts[u + r, v + r] * k[:, i + u, j + v] for u in range(-r, r + 1) for v in range(-r, r + 1))
-    np.testing.assert_allclose(got[0, :, i, j].numpy(), num / den, rtol=1e-12)
+    k = np.pad(code.numpy(), ((0, 0), (r, r), (r, r)))  # zeros outside the image
+    s = np.pad(sensor[0, 0].numpy(), r)
+    ref = np.zeros((c, h, w))
+    for i in range(h):  # every pixel, by the definition
+        for j in range(w):
+            kk, ss = k[:, i : i + 2 * r + 1, j : j + 2 * r + 1], s[i : i + 2 * r + 1, j : j + 2 * r + 1]
+            ref[:, i, j] = (wts * kk * ss).sum(axis=(1, 2)) / (wts * kk).sum(axis=(1, 2))
+    np.testing.assert_allclose(got[0].numpy(), ref, rtol=1e-12)
 
     inner = (slice(None), slice(None), slice(r, h - r), slice(r, w - r))
     torch.testing.assert_close(got[inner], cube[None][inner], rtol=0, atol=1e-12)
@@ -526,5 +530,13 @@ def test_mosaic_net_with_the_tent_demosaic():
         whole = net(y, op)
     tiled = reconstruct_tiled(lambda s, origin=(0, 0): net(s, op, origin), y, tile_px=24, halo_px=net.context_px)
     assert torch.allclose(tiled, whole, atol=1e-5)
+    # untrained, the output is the skip: tiles need exactly its reach, window // 2 (the test can fail)
+    fresh = build_mosaic(dataclasses.replace(settings, brightness_window=0), cam).eval()
+    run = lambda s, origin=(0, 0): fresh(s, op, origin)  # noqa: E731
+    with torch.no_grad():
+        whole = fresh(y, op)
+        reach = fresh.demosaic_window // 2
+        assert torch.allclose(reconstruct_tiled(run, y, tile_px=24, halo_px=reach), whole, atol=1e-6)
+        assert not torch.allclose(reconstruct_tiled(run, y, tile_px=24, halo_px=reach - 1), whole, atol=1e-6)
     with pytest.raises(ConfigError, match="demosaic_kernel"):
         build_mosaic(dataclasses.replace(MOSAIC, demosaic_kernel="gauss"), cam)

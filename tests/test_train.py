@@ -293,6 +293,21 @@ def test_tent_demosaic_reference_is_the_mosaic_networks_start(tiny_config):
     with torch.no_grad():
         torch.testing.assert_close(tent.reconstruct(sensor), model.net(sensor, model.camera), atol=1e-6, rtol=0)
         assert not torch.allclose(demosaic_reference(model).reconstruct(sensor), tent.reconstruct(sensor), atol=1e-4)
+    # an explicit window is the network's too; the unrolled network's mosaic front end is found
+    from hsicam.engine.methods import network_skip
+
+    wide = CameraSystem.from_config(tiny_config("model.kind=mosaic", "model.mosaic.demosaic_kernel=tent",
+                                                "model.mosaic.demosaic_window=9", "camera.cfa.init=bandpass")).eval()
+    skip = network_skip(wide.net)
+    assert skip is wide.net and skip.demosaic_window == 9
+    with torch.no_grad():
+        torch.testing.assert_close(demosaic_reference(wide, "tent", skip.demosaic_window).reconstruct(sensor),
+                                   wide.net(sensor, wide.camera), atol=1e-6, rtol=0)
+    unrolled = CameraSystem.from_config(tiny_config("model.kind=unrolled", "model.unrolled.init=mosaic"))
+    assert network_skip(unrolled.net) is unrolled.net.front
+    assert network_skip(CameraSystem.from_config(tiny_config()).net) is None  # the RDN has no mosaic skip
+    with pytest.raises(ValueError, match="tent"):
+        demosaic_reference(model, "gauss")
 
 
 def test_demo_cli_trains_reports_and_draws(tmp_path, cache_env):

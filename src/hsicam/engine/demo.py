@@ -14,7 +14,7 @@ from hsicam.data.pipeline import split_dataset
 from hsicam.engine.evaluate import (TestNoise, demosaic_reference, evaluate_method, evaluate_scenes, format_table,
                                     grey_reference, summarize)
 from hsicam.engine.experiments import ensure_trained, heldout_scenes
-from hsicam.engine.methods import network_alone_reference
+from hsicam.engine.methods import network_alone_reference, network_skip
 from hsicam.io import atomic_open, clear_complete, mark_complete, write_json
 from hsicam.report.camera import write_optics_figures, write_psf_outputs
 from hsicam.report.reconstruction import plot_reconstructions, plot_training_curves
@@ -54,8 +54,9 @@ def run_demo(cfg: Config, out: str | Path) -> dict[str, Any]:
         references.append(network_alone_reference(model))
     try:
         references.append(demosaic_reference(model))
-        if getattr(model.net, "demosaic_kernel", "box") == "tent":  # the network's own start, network-free
-            references.append(demosaic_reference(model, "tent"))
+        skip = network_skip(model.net)
+        if skip is not None and skip.demosaic_kernel == "tent":  # the network's own start, network-free
+            references.append(demosaic_reference(model, "tent", skip.demosaic_window))
     except ValueError:  # a camera without a per-band sensor code (CASSI)
         pass
     summary = summarize(results)

@@ -116,11 +116,13 @@ DEMOSAIC_REFERENCE_NAMES = {"box": "CFA box demosaic (no network)",
                             "tent": "CFA tent demosaic, weighted bilinear (no network)"}
 
 
-def demosaic_reference(model, kernel: str = "box") -> Method:
+def demosaic_reference(model, kernel: str = "box", window: int | None = None) -> Method:
     """The per-band demosaic of the sensor image through the model's optics
-    (:func:`hsicam.models.demosaic.camera_demosaic`, ``kernel`` "box" or "tent"), as a network-free
-    method: what the network adds is its score minus this one. Needs a camera with a per-band
-    sensor code (the CFA)."""
+    (:func:`hsicam.models.demosaic.camera_demosaic`, ``kernel`` "box" or "tent", ``window`` px or
+    None for the CFA's default), as a network-free method: what the network adds is its score
+    minus this one. Needs a camera with a per-band sensor code (the CFA)."""
+    if kernel not in DEMOSAIC_REFERENCE_NAMES:
+        raise ValueError(f"demosaic kernel must be one of {', '.join(DEMOSAIC_REFERENCE_NAMES)}, got {kernel!r}")
     try:
         model.camera.sensor_code(1, 1)
     except NotImplementedError:
@@ -128,7 +130,7 @@ def demosaic_reference(model, kernel: str = "box") -> Method:
                          f"{type(model.camera).__name__}") from None
 
     def reconstruct(sensor: torch.Tensor) -> torch.Tensor:
-        return camera_demosaic(model.camera, sensor, kernel=kernel)
+        return camera_demosaic(model.camera, sensor, kernel=kernel, window=window)
 
     return Method(DEMOSAIC_REFERENCE_NAMES[kernel], model.camera, reconstruct, model.target, {})
 
@@ -165,6 +167,15 @@ def _doe_method(cfg, run, device) -> Method:
     _, model = load_run(run, device)
     _evaluation_settings(model, cfg)
     return learned_method("doe-learned", model, run)
+
+
+def network_skip(net):
+    """The mosaic network whose demosaic skip starts ``net`` (``net`` itself, or the front end of an
+    unrolled network with ``init: mosaic``), or None."""
+    for candidate in (net, getattr(net, "front", None)):
+        if candidate is not None and hasattr(candidate, "demosaic_kernel"):
+            return candidate
+    return None
 
 
 @register_method("doe-box-demosaic")

@@ -82,14 +82,17 @@ def demosaic_window(camera) -> int:
     return p if p % 2 else p + 1
 
 
-def camera_demosaic(camera, sensor: torch.Tensor, origin: tuple[int, int] = (0, 0), kernel: str = "box") -> torch.Tensor:
-    """:func:`demosaic` of ``sensor`` (B, 1, H, W) with ``camera``'s sensor code at ``origin``: a box
-    of :func:`demosaic_window`, or (``kernel="tent"``) the weighted-bilinear tent of 2m − 1 px.
+def camera_demosaic(camera, sensor: torch.Tensor, origin: tuple[int, int] = (0, 0), kernel: str = "box",
+                    window: int | None = None) -> torch.Tensor:
+    """:func:`demosaic` of ``sensor`` (B, 1, H, W) with ``camera``'s sensor code at ``origin``.
 
-    Raises ``NotImplementedError`` for cameras without a per-band sensor code (CASSI).
+    ``window`` None: a box of :func:`demosaic_window`, or (``kernel="tent"``) the weighted-bilinear
+    tent of 2m − 1 px for a CFA of period m. Raises ``NotImplementedError`` for cameras without a
+    per-band sensor code (CASSI).
     """
     code = camera.sensor_code(sensor.shape[-2], sensor.shape[-1], origin).to(sensor.dtype)
-    window = 2 * int(getattr(camera, "code_period", 1)) - 1 if kernel == "tent" else demosaic_window(camera)
+    if window is None:
+        window = 2 * int(getattr(camera, "code_period", 1)) - 1 if kernel == "tent" else demosaic_window(camera)
     return demosaic(sensor, code, window, kernel)
 
 
