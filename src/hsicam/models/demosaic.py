@@ -76,10 +76,18 @@ def brightness(sensor: torch.Tensor, window: int, eps: float) -> torch.Tensor:
     return box_mean(sensor, window) + eps
 
 
+def skip_window(period: int, kernel: str = "box") -> int:
+    """Default width (px, odd) of :func:`demosaic` for a CFA of ``period`` m: m rounded up to odd
+    (box), 2m − 1 (tent: the weighted-bilinear demosaic)."""
+    period = int(period)
+    if kernel == "tent":
+        return 2 * period - 1
+    return period if period % 2 else period + 1
+
+
 def demosaic_window(camera) -> int:
     """Odd box width for ``camera``: its code period (the CFA's m), rounded up to odd."""
-    p = int(getattr(camera, "code_period", 1))
-    return p if p % 2 else p + 1
+    return skip_window(getattr(camera, "code_period", 1))
 
 
 def camera_demosaic(camera, sensor: torch.Tensor, origin: tuple[int, int] = (0, 0), kernel: str = "box",
@@ -92,7 +100,7 @@ def camera_demosaic(camera, sensor: torch.Tensor, origin: tuple[int, int] = (0, 
     """
     code = camera.sensor_code(sensor.shape[-2], sensor.shape[-1], origin).to(sensor.dtype)
     if window is None:
-        window = 2 * int(getattr(camera, "code_period", 1)) - 1 if kernel == "tent" else demosaic_window(camera)
+        window = skip_window(getattr(camera, "code_period", 1), kernel)
     return demosaic(sensor, code, window, kernel)
 
 

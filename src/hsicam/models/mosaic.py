@@ -38,7 +38,7 @@ from torch import nn
 from hsicam.config import MosaicConfig
 from hsicam.errors import ConfigError
 from hsicam.models.registry import register_network
-from hsicam.models.demosaic import DEMOSAIC_KERNELS, brightness, demosaic
+from hsicam.models.demosaic import DEMOSAIC_KERNELS, brightness, demosaic, skip_window
 
 
 def phase_pad(x: torch.Tensor, factor: int, origin: tuple[int, int] = (0, 0)) -> tuple[torch.Tensor, tuple[int, int]]:
@@ -157,7 +157,7 @@ class MosaicNet(nn.Module):
 
 
 def _odd_window(period: int) -> int:
-    return period if period % 2 else period + 1
+    return skip_window(period)
 
 
 def build_mosaic(mcfg: MosaicConfig, camera) -> MosaicNet:
@@ -183,8 +183,7 @@ def build_mosaic(mcfg: MosaicConfig, camera) -> MosaicNet:
         raise ConfigError(f"model.mosaic.factor={mcfg.factor} must be a multiple of the CFA period {period} (or 0 for the period)")
     if mcfg.demosaic_kernel not in DEMOSAIC_KERNELS:
         raise ConfigError(f"model.mosaic.demosaic_kernel must be one of {', '.join(DEMOSAIC_KERNELS)}, got {mcfg.demosaic_kernel!r}")
-    default_window = 2 * period - 1 if mcfg.demosaic_kernel == "tent" else _odd_window(period)
-    window = mcfg.demosaic_window or default_window
+    window = mcfg.demosaic_window or skip_window(period, mcfg.demosaic_kernel)
     if window % 2 == 0:
         raise ConfigError(f"model.mosaic.demosaic_window must be odd (or 0 for the CFA period), got {window}")
     check_brightness("model.mosaic", mcfg.brightness_window, mcfg.brightness_eps)
