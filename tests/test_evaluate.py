@@ -96,6 +96,29 @@ def test_box_reference_images_with_the_evaluation_noise(run):
     torch.testing.assert_close(shots[0], shots[1])
 
 
+def test_tent_reference_is_the_tent_demosaic_through_the_runs_optics(run):
+    """`--method doe-tent-demosaic` is the weighted-bilinear demosaic of the run's own captures
+    (camera_demosaic with kernel tent), not the box one; like the box it needs a run."""
+    import torch
+
+    from hsicam.config import load_config
+    from hsicam.engine.methods import build_method
+    from hsicam.errors import InputError
+    from hsicam.models.demosaic import camera_demosaic
+
+    cfg = load_config(run / "config.yaml")
+    tent, box = (build_method(m, cfg, run) for m in ("doe-tent-demosaic", "doe-box-demosaic"))
+    assert tent.name.startswith("CFA tent demosaic") and tent.info == {"run": str(run)}
+    scene = torch.rand(1, len(tent.camera.bands), 48, 48, generator=torch.Generator().manual_seed(3))
+    with torch.no_grad():
+        y = tent.camera(scene)
+        got = tent.reconstruct(y)
+        torch.testing.assert_close(got, camera_demosaic(tent.camera, y, kernel="tent"))
+        assert (got - box.reconstruct(y)).abs().max() > 1e-4
+    with pytest.raises(InputError, match="needs --run"):
+        build_method("doe-tent-demosaic", cfg)
+
+
 def test_evaluate_on_a_folder_of_files(run, env, tmp_path):
     data = tmp_path / "data"
     rng = np.random.default_rng(0)

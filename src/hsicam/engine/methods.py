@@ -11,6 +11,7 @@ Methods are registered by name (:func:`register_method`); :func:`build_method` l
     doe-learned      our learned camera (any network kind: rdn, mosaic, unrolled), from a run folder
                      (``doe-rdn``, its name when the RDN was its only network, still works)
     doe-box-demosaic the network-free per-band box demosaic through a run's optics (the reference)
+    doe-tent-demosaic the same with the weighted-bilinear (tent) demosaic: a tent-skip network's start
     dd-cassi-gaptv   DD-CASSI + GAP-TV                 settings: baselines.gaptv
     dd-cassi-desci   DD-CASSI + DeSCI                  settings: baselines.desci (preset fast|full)
     dd-cassi-choi    DD-CASSI + Choi et al. ADMM       run: a spectral-prior folder (hsicam baseline train-prior);
@@ -178,15 +179,31 @@ def network_skip(net):
     return None
 
 
+def _demosaic_method(name: str, kernel: str, cfg, run, device) -> Method:
+    """A network-free demosaic reference through a trained run's optics, scored on the same
+    captures as the learned method (the evaluation config's noise)."""
+    if run is None:
+        raise InputError(f"method {name} needs --run RUN (the camera whose optics it images through)")
+    _, model = load_run(run, device)
+    _evaluation_noise(model, cfg)
+    window = None
+    skip = network_skip(model.net)
+    if kernel == "tent" and skip is not None and skip.demosaic_kernel == "tent":
+        window = skip.demosaic_window  # the network's own start
+    return dataclasses.replace(demosaic_reference(model, kernel, window), info={"run": str(run)})
+
+
 @register_method("doe-box-demosaic")
 def _box_method(cfg, run, device) -> Method:
     """The network-free reference: the per-band box demosaic through a trained run's optics."""
-    if run is None:
-        raise InputError("method doe-box-demosaic needs --run RUN (the camera whose optics it images through)")
-    _, model = load_run(run, device)
-    _evaluation_noise(model, cfg)  # scored on the same captures as the learned method
-    method = demosaic_reference(model)
-    return dataclasses.replace(method, info={"run": str(run)})
+    return _demosaic_method("doe-box-demosaic", "box", cfg, run, device)
+
+
+@register_method("doe-tent-demosaic")
+def _tent_method(cfg, run, device) -> Method:
+    """The weighted-bilinear (tent) demosaic through a trained run's optics: a tent-skip mosaic
+    network's own start (its window), else the CFA's default tent."""
+    return _demosaic_method("doe-tent-demosaic", "tent", cfg, run, device)
 
 
 def dd_cassi_camera(cfg, device: torch.device | str = "cpu") -> DDCASSICamera:
