@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from hsicam.optics.doe import DOE, quantize_heights
-from hsicam.sensor import ColorFilterArray, SensorNoise, cfa_tile, tile_pattern
+from hsicam.sensor import ColorFilterArray, SensorNoise, bandpass_weights, cfa_tile, tile_pattern
 from hsicam.spectral import FusedSilica
 
 
@@ -253,6 +253,69 @@ def test_bandpass_cfa_from_config(tiny_config):
     assert selectivity("bandpass") > selectivity("uniform") + 0.5
     with pytest.raises(ConfigError, match="bandpass_fwhm_nm"):
         tiny_config("camera.cfa.bandpass_fwhm_nm=0")
+
+
+def test_dispersed_order_is_the_recursive_bayer_index_matrix():
+    from hsicam.sensor import dispersed_order
+
+    # the 4x4 ordered-dither matrix as printed in the literature (Bayer 1973)
+    expected = torch.tensor([[0, 8, 2, 10], [12, 4, 14, 6], [3, 11, 1, 9], [15, 7, 13, 5]])
+    assert torch.equal(dispersed_order(4), expected)
+    assert torch.equal(dispersed_order(1), torch.zeros(1, 1, dtype=torch.long))
+    for m in (2, 4, 8):  # a permutation of 0..m²-1, and each aligned 2x2 block holds 4 ranks m²/4 apart
+        b = dispersed_order(m)
+        assert torch.equal(b.reshape(-1).sort().values, torch.arange(m * m))
+        q = b // (m * m // 4) if m > 1 else b
+        for i in range(0, m, 2):
+            for j in range(0, m, 2):
+                assert sorted(q[i:i + 2, j:j + 2].reshape(-1).tolist()) == [0, 1, 2, 3]
+    for m in (3, 6, 0):
+        with pytest.raises(ValueError, match="power-of-two"):
+            dispersed_order(m)
+
+
+def test_dispersed_bandpass_layout_gives_every_2x2_window_each_quarter_of_the_spectrum():
+    """The property the layout is for, checked on the filters themselves: over the periodic 4x4
+    tile, every 2x2 window (aligned or not) holds one filter peaking in each quarter of
+    420-720 nm; the seeded random layout does not (its seed-0 tile has four red filters together)."""
+    import numpy as np
+
+    lam = np.arange(420.0, 721.0, 10.0)
+
+    def quarters_per_window(layout: str) -> list[int]:
+        cfa = ColorFilterArray(len(lam), period=4, seed=0, init="bandpass", centers_nm=lam, bandpass_fwhm_nm=25.0,
+                               layout=layout)
+        peak = torch.from_numpy(lam)[cfa.tile().detach().argmax(0)]  # (4, 4) nm
+        quarter = ((peak - 420.0) / 300.0 * 4).clamp(max=3.999).floor().long()
+        wrapped = quarter.repeat(2, 2)
+        return [len(set(wrapped[i:i + 2, j:j + 2].reshape(-1).tolist())) for i in range(4) for j in range(4)]
+
+    assert quarters_per_window("dispersed") == [4] * 16
+    assert min(quarters_per_window("random")) < 4
+    # the filters themselves are those of the random layout, only placed differently
+    w_d = bandpass_weights(torch.from_numpy(lam), 4, 25.0, layout="dispersed").reshape(len(lam), 16)
+    w_r = bandpass_weights(torch.from_numpy(lam), 4, 25.0, seed=0).reshape(len(lam), 16)
+    assert sorted(w_d.T.tolist()) == sorted(w_r.T.tolist())
+    with pytest.raises(ValueError, match="unknown CFA layout"):
+        bandpass_weights(torch.from_numpy(lam), 4, 25.0, layout="spiral")
+
+
+def test_dispersed_layout_from_config(tiny_config):
+    from hsicam.cameras import DOECamera
+    from hsicam.errors import ConfigError
+    from hsicam.sensor import dispersed_order
+
+    cfg = tiny_config("camera.cfa.init=bandpass", "camera.cfa.period=4", "camera.cfa.layout=dispersed")
+    cam = DOECamera.from_config(cfg)
+    rank = cam.cfa.tile().detach().argmax(0)  # peak band per tile position grows with the Bayer index
+    order = dispersed_order(4).reshape(-1).argsort()
+    assert torch.all(rank.reshape(-1)[order].diff() >= 0)
+    with pytest.raises(ConfigError, match="power-of-two"):
+        tiny_config("camera.cfa.init=bandpass", "camera.cfa.period=3", "camera.cfa.layout=dispersed")
+    with pytest.raises(ConfigError, match="init: bandpass"):
+        tiny_config("camera.cfa.init=uniform", "camera.cfa.period=4", "camera.cfa.layout=dispersed")
+    with pytest.raises(ConfigError):
+        tiny_config("camera.cfa.layout=spiral")
 
 
 def test_smooth_doe_init_is_a_periodic_gaussian_low_pass_spanning_the_range():

@@ -138,11 +138,20 @@ class CFAConfig:
     # seeded random layout, so the sensor carries spectral contrast from the first step.
     init: Literal["uniform", "bandpass"] = "uniform"
     bandpass_fwhm_nm: float = 40.0
+    # Placement of the band-pass filters over the tile: random (seeded) or dispersed (ordered
+    # dither: spectral neighbours spread apart, every 2x2 window of a 4x4 tile sees each quarter of
+    # the spectrum; power-of-two periods only; hsicam.sensor.dispersed_order).
+    layout: Literal["random", "dispersed"] = "random"
 
     def __post_init__(self) -> None:
         if self.period < 1:
             raise ConfigError(f"camera.cfa.period must be >= 1, got {self.period}")
         _positive("camera.cfa", bandpass_fwhm_nm=self.bandpass_fwhm_nm)
+        if self.layout == "dispersed":
+            if self.init != "bandpass":
+                raise ConfigError("camera.cfa.layout: dispersed places band-pass filters; it needs camera.cfa.init: bandpass")
+            if self.period & (self.period - 1):
+                raise ConfigError(f"camera.cfa.layout: dispersed needs a power-of-two camera.cfa.period (2, 4, 8, …), got {self.period}")
 
 
 @dataclass

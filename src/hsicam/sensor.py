@@ -36,14 +36,45 @@ def tile_pattern(tile: torch.Tensor, height: int, width: int) -> torch.Tensor:
     return tile.repeat(*reps)[:, :height, :width]
 
 
-def bandpass_weights(centers_nm: torch.Tensor, period: int, fwhm_nm: float, seed: int = 0) -> torch.Tensor:
+#: How the m² band-pass filters are placed over the tile: "random" (a seeded permutation) or
+#: "dispersed" (:func:`dispersed_order`).
+CFA_LAYOUTS = ("random", "dispersed")
+
+
+def dispersed_order(period: int) -> torch.Tensor:
+    """The ordered-dither (Bayer index) matrix of a power-of-two ``period``: (m, m) ints 0…m²−1.
+
+    Placing the filter of spectral rank k where the matrix holds k spreads spectral neighbours
+    as far apart as the tile allows: for m = 4 every 2×2 window of the periodic tile, aligned or
+    not, holds one filter from each quarter of the spectrum, so each small neighbourhood samples
+    the whole range (a random layout can put four red filters side by side).
+    Recursion: B₁ = [[0]], B₂ₙ = [[4Bₙ, 4Bₙ + 2], [4Bₙ + 3, 4Bₙ + 1]].
+    """
+    m = int(period)
+    if m < 1 or m & (m - 1):
+        raise ValueError(f"a dispersed CFA layout needs a power-of-two period (1, 2, 4, 8, …), got {period}")
+    b = torch.zeros(1, 1, dtype=torch.long)
+    while b.shape[0] < m:
+        b = torch.cat([torch.cat([4 * b, 4 * b + 2], dim=1), torch.cat([4 * b + 3, 4 * b + 1], dim=1)], dim=0)
+    return b
+
+
+def bandpass_weights(centers_nm: torch.Tensor, period: int, fwhm_nm: float, seed: int = 0,
+                     layout: str = "random") -> torch.Tensor:
     """CFA weights (C, m, m) of m² Gaussian band-pass filters (FWHM ``fwhm_nm``) whose centre
-    wavelengths spread evenly from the first to the last band centre, placed in a random
-    (seeded) order over the tile. A small floor (1 % of the peak) keeps every band learnable."""
+    wavelengths spread evenly from the first to the last band centre, placed over the tile in a
+    random (seeded) order, or with ``layout="dispersed"`` by :func:`dispersed_order` (tile
+    position (i, j) gets the filter of spectral rank B[i, j]; ``seed`` is then unused).
+    A small floor (1 % of the peak) keeps every band learnable."""
     lam = centers_nm.double()
     n = period * period
     centres = torch.linspace(float(lam[0]), float(lam[-1]), n, dtype=torch.float64)
-    order = torch.randperm(n, generator=torch.Generator().manual_seed(int(seed)))
+    if layout == "random":
+        order = torch.randperm(n, generator=torch.Generator().manual_seed(int(seed)))
+    elif layout == "dispersed":
+        order = dispersed_order(period).reshape(-1)
+    else:
+        raise ValueError(f"unknown CFA layout {layout!r}; use one of {CFA_LAYOUTS}")
     sigma = fwhm_nm / (2.0 * math.sqrt(2.0 * math.log(2.0)))
     w = torch.exp(-0.5 * ((lam[:, None] - centres[order][None, :]) / sigma) ** 2)  # (C, m²)
     return (w + 0.01).float().reshape(len(lam), period, period)
@@ -53,11 +84,11 @@ class ColorFilterArray(nn.Module):
     """Learnable periodic CFA. ``enabled=False`` gives κ = 1 (no parameters).
 
     ``init``: "uniform" (paper: weights uniform in [0, 1)) or "bandpass" (:func:`bandpass_weights`,
-    which needs ``centers_nm``, the band centres in nm).
+    which needs ``centers_nm``, the band centres in nm, and places the filters by ``layout``).
     """
 
     def __init__(self, n_bands: int, period: int = 9, enabled: bool = True, seed: int = 0, init: str = "uniform",
-                 centers_nm=None, bandpass_fwhm_nm: float = 40.0) -> None:
+                 centers_nm=None, bandpass_fwhm_nm: float = 40.0, layout: str = "random") -> None:
         super().__init__()
         self.n_bands, self.period, self.enabled = int(n_bands), int(period), bool(enabled)
         if self.enabled:
@@ -67,7 +98,8 @@ class ColorFilterArray(nn.Module):
             elif init == "bandpass":
                 if centers_nm is None or len(centers_nm) != self.n_bands:
                     raise ValueError("a band-pass CFA needs the centre wavelength of every band (centers_nm)")
-                w = bandpass_weights(torch.tensor(np.asarray(centers_nm, dtype=np.float64)), self.period, bandpass_fwhm_nm, seed)
+                w = bandpass_weights(torch.tensor(np.asarray(centers_nm, dtype=np.float64)), self.period, bandpass_fwhm_nm, seed,
+                                     layout)
             else:
                 raise ValueError(f"unknown CFA init {init!r}; use 'uniform' or 'bandpass'")
             self.weights = nn.Parameter(w)

@@ -68,7 +68,7 @@ class DOECamera(Camera):
             cam.psf.band_samples,
         )
         cfa = ColorFilterArray(len(bands), cam.cfa.period, cam.cfa.enabled, cam.cfa.seed, cam.cfa.init,
-                               bands.centers_nm, cam.cfa.bandpass_fwhm_nm)
+                               bands.centers_nm, cam.cfa.bandpass_fwhm_nm, cam.cfa.layout)
         s = cam.sensor
         noise = SensorNoise.from_config(s)
         return cls(bands, optics, cfa, noise, cam.boundary, cam.padding)
