@@ -78,6 +78,30 @@ def test_evaluate_takes_capture_noise_and_the_step_from_its_config(run, env, tmp
     assert abs(means["step"]["psnr"] - means["clean"]["psnr"]) > 1e-3
 
 
+def test_small_scenes_are_one_clear_error_and_score_whole_with_boundary_same(run, env, tmp_path):
+    """A scene whose `valid` area (scene minus the kernel margin, 20 px at the tiny preset's 21 px
+    kernel) is below SSIM's 11 px window was a traceback from the metrics; now it is one error
+    that says how large scenes must be and offers `--set camera.boundary=same`, which reaches the
+    loaded run's camera (it was ignored) and scores the whole scene."""
+    bands = Bands.uniform(420, 720, 50)
+    data = tmp_path / "small"
+    data.mkdir()
+    rng = np.random.default_rng(0)
+    write_cube_h5(data / "small.h5", rng.random((len(bands), 26, 40)).astype(np.float32), bands)
+    res = run_cli("evaluate", "--run", str(run), "--data", str(data), "--out", str(tmp_path / "valid"), env=env)
+    assert_clean_error(res, "small", "6×20 px", "at least 31 px", "camera.boundary=same")
+    assert not (tmp_path / "valid" / "results.json").exists()
+    out = tmp_path / "same"
+    res = run_cli("evaluate", "--run", str(run), "--data", str(data), "--out", str(out), "--save",
+                  "--set", "camera.boundary=same", env=env)
+    assert res.returncode == 0, res.stderr
+    from hsicam.data import read_cube
+
+    truth, _, _ = read_cube(out / "cubes" / "small_truth.h5")
+    est, _, _ = read_cube(out / "cubes" / "small_estimate.h5")
+    assert truth.shape == est.shape == (len(bands), 26, 40)  # the whole scene, not its valid centre
+
+
 def test_box_reference_images_with_the_evaluation_noise(run):
     """The box-demosaic reference is scored on the same captures as the learned method: the
     evaluation config's sensor noise reaches its camera too (it once imaged noise-free)."""

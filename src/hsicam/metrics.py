@@ -102,7 +102,11 @@ def _gaussian_filter_valid(t: torch.Tensor, g: torch.Tensor) -> torch.Tensor:
     return flat.reshape(*lead, h - k + 1, w - k + 1)
 
 
-def ssim(x: torch.Tensor, y: torch.Tensor, window: int = 11, sigma: float = 1.5, k1: float = 0.01,
+#: Side of SSIM's Gaussian window (px): images smaller than this have no SSIM.
+SSIM_WINDOW_PX = 11
+
+
+def ssim(x: torch.Tensor, y: torch.Tensor, window: int = SSIM_WINDOW_PX, sigma: float = 1.5, k1: float = 0.01,
          k2: float = 0.03, data_range: float = 1.0, dtype: torch.dtype = torch.float64) -> torch.Tensor:
     """Mean SSIM over bands (each band a grey image), Gaussian window, (B,). ``x`` is the estimate.
 

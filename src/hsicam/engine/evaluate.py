@@ -23,8 +23,9 @@ import torch
 
 from hsicam.engine.inference import reconstruct_tiled
 from hsicam.engine.methods import Method, demosaic_reference  # noqa: F401  (re-exported)
+from hsicam.errors import InputError
 from hsicam.io import atomic_open, write_json
-from hsicam.metrics import CONVENTIONS, all_metrics
+from hsicam.metrics import CONVENTIONS, SSIM_WINDOW_PX, all_metrics
 
 METRIC_KEYS = ("psnr", "ssim", "sam", "ergas", "psnr_cube", "psnr_mst", "rmse")
 
@@ -76,7 +77,17 @@ def evaluate_method(method: Method, scenes, names: Sequence[str], noise: TestNoi
         cam.eval()
         for i, name in enumerate(names):
             scene = scenes[i][None].to(device)
+            cam.check_scene(scene)  # one InputError for a scene the camera cannot image
             truth = method.target(scene)
+            if min(truth.shape[-2:]) < SSIM_WINDOW_PX:
+                crop = cam.boundary == "valid"
+                raise InputError(
+                    f"{name}: the scored area is {truth.shape[-2]}×{truth.shape[-1]} px (scene "
+                    f"{scene.shape[-2]}×{scene.shape[-1]} px, camera boundary {cam.boundary!r}"
+                    + (f", which crops the {cam.margin}-px kernel margin" if crop else "")
+                    + f"); SSIM needs at least {SSIM_WINDOW_PX}×{SSIM_WINDOW_PX}: use scenes of at least "
+                    f"{(cam.margin if crop else 0) + SSIM_WINDOW_PX} px on each side"
+                    + (", or score whole scenes with --set camera.boundary=same" if crop else ""))
             per_seed, times, est0 = [], [], None
             for seed in noise.seeds:
                 g = torch.Generator(device=device).manual_seed(int(seed))

@@ -141,12 +141,17 @@ def _evaluation_settings(model, cfg) -> None:
     consistency step after the network (``model.consistency``; iterations=0 scores the network
     alone) and the capture noise (``camera.sensor.*``, the DOE camera's ``camera.doe.sigma_height_nm``)."""
     model.consistency = cfg.model.consistency
-    _evaluation_noise(model, cfg)
+    _evaluation_capture(model, cfg)
 
 
-def _evaluation_noise(model, cfg) -> None:
-    """The evaluation config's capture noise on a loaded run's camera (``camera.sensor.*`` and
-    the DOE camera's ``camera.doe.sigma_height_nm``)."""
+def _evaluation_capture(model, cfg) -> None:
+    """How the evaluation config (the run's own plus ``--set``) captures scenes with a loaded run's
+    camera: the scene boundary (``camera.boundary``, and the DOE camera's ``camera.padding``: a
+    trained network reads any sensor image, so whole small scenes can be scored with ``same``) and
+    the capture noise (``camera.sensor.*``, the DOE camera's ``camera.doe.sigma_height_nm``)."""
+    model.camera.boundary = cfg.camera.boundary
+    if hasattr(model.camera, "padding"):
+        model.camera.padding = cfg.camera.padding
     model.camera.noise = SensorNoise.from_config(cfg.camera.sensor).to(next(model.parameters()).device)
     if "sigma_height_nm" in model.camera.noise_levels() and cfg.camera.kind == "doe":
         model.camera.set_noise(sigma_height_nm=cfg.camera.doe.sigma_height_nm)
@@ -181,11 +186,11 @@ def network_skip(net):
 
 def _demosaic_method(name: str, kernel: str, cfg, run, device) -> Method:
     """A network-free demosaic reference through a trained run's optics, scored on the same
-    captures as the learned method (the evaluation config's noise)."""
+    captures as the learned method (the evaluation config's boundary and noise)."""
     if run is None:
         raise InputError(f"method {name} needs --run RUN (the camera whose optics it images through)")
     _, model = load_run(run, device)
-    _evaluation_noise(model, cfg)
+    _evaluation_capture(model, cfg)
     window = None
     skip = network_skip(model.net)
     if kernel == "tent" and skip is not None and skip.demosaic_kernel == "tent":
