@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 import torch
 from torch import nn
 
@@ -122,12 +124,17 @@ class Camera(nn.Module):
         return {"sensor_sigma": float(self.noise.sigma)}
 
     def set_noise(self, **levels: float) -> None:
-        """Set noise levels by the names of :meth:`noise_levels`; unknown names are a ConfigError."""
+        """Set noise levels by the names of :meth:`noise_levels`; unknown names are a ConfigError,
+        and so is a level that is negative or not finite (a standard deviation)."""
         known = self.noise_levels()
         unknown = sorted(set(levels) - set(known))
         if unknown:
             raise ConfigError(f"{type(self).__name__} has no noise level {', '.join(unknown)}; "
                               f"it has {', '.join(sorted(known))}")
+        bad = sorted(k for k, v in levels.items() if not (math.isfinite(float(v)) and float(v) >= 0))
+        if bad:
+            raise ConfigError("noise levels must be finite and >= 0, got "
+                              + ", ".join(f"{k}={levels[k]}" for k in bad))
         self._apply_noise(levels)
 
     def _apply_noise(self, levels: dict[str, float]) -> None:
