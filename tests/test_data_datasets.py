@@ -226,6 +226,39 @@ def test_build_datasets_from_config_folder(folder):
     assert len(val.scenes) == 1 and len(train.scenes) == 4
 
 
+def test_npy_cubes_take_the_band_grid_of_the_config(tmp_path):
+    """A .npy cube carries no wavelengths: with ``data.npy_bands`` the training and validation
+    scenes are those of the same cube written as our HDF5 with that grid (resampled, not relabelled);
+    without it 400-700 nm is assumed, which does not cover 420-720 nm: one error naming the key;
+    a grid of the wrong length is one error too."""
+    fine = Bands.uniform(410, 730, 20)  # 17 bands around the camera's 420-720 nm
+    rng = np.random.default_rng(0)
+    for i in range(2):
+        cube = rng.random((len(fine), 30, 34)).astype(np.float32)
+        (tmp_path / "npy").mkdir(exist_ok=True)
+        (tmp_path / "h5").mkdir(exist_ok=True)
+        np.save(tmp_path / "npy" / f"s{i}.npy", cube)
+        write_cube_h5(tmp_path / "h5" / f"s{i}.h5", cube, fine)
+    common = ["data.patch_px=8", "data.val_fraction=0.5", "data.patches_per_epoch=4", "data.val_patches=2"]
+    grid = "data.npy_bands={start_nm: 410, stop_nm: 730, step_nm: 20}"
+    cfg_npy = load_config(overrides=[f"data.root={tmp_path / 'npy'}", grid, *common])
+    cfg_h5 = load_config(overrides=[f"data.root={tmp_path / 'h5'}", *common])
+    assert cfg_npy.data.npy_bands.to_bands() == fine and cfg_h5.data.npy_bands is None
+    bands = cfg_npy.bands.to_bands()
+    got, want = (build_datasets(c.data, bands, margin_px=2) for c in (cfg_npy, cfg_h5))
+    for a, b in zip(got, want):
+        for k in range(len(a)):
+            torch.testing.assert_close(a[k], b[k])
+    plain = load_config(overrides=[f"data.root={tmp_path / 'npy'}", *common])
+    with pytest.raises(InputError, match="data.npy_bands"):  # read at construction (preloaded) or first use
+        build_datasets(plain.data, bands, margin_px=2)[0][0]
+    short = load_config(overrides=[f"data.root={tmp_path / 'npy'}", "data.npy_bands={start_nm: 420, stop_nm: 720, step_nm: 10}", *common])
+    with pytest.raises(InputError, match="17 bands .* has 31"):
+        build_datasets(short.data, bands, margin_px=2)[0][0]
+    with pytest.raises(ConfigError, match="bands"):
+        load_config(overrides=["data.npy_bands={start_nm: 700, stop_nm: 420, step_nm: 10}"])
+
+
 @pytest.mark.parametrize("override", ["data.val_fraction=1.0", "data.patch_px=0", "data.synthetic_size=8",
                                       "data.num_workers=-1", "data.preload_max_mb=0", "data.synthetic_n=yes"])
 def test_data_config_validation(override):

@@ -107,6 +107,31 @@ def test_small_scenes_are_one_clear_error_and_score_whole_with_boundary_same(run
     assert not (tmp_path / "neg" / "results.json").exists()
 
 
+def test_evaluate_scores_npy_cubes_on_the_grid_data_npy_bands_gives(run, env, tmp_path):
+    """`--data` of .npy cubes (no wavelengths in the file) with `--set data.npy_bands=...` scores
+    exactly what the same cube written as our HDF5 with that grid scores; without the key the
+    error names it (400-700 nm assumed cannot cover a 420-720 nm camera)."""
+    bands = Bands.uniform(420, 720, 50)
+    cube = np.random.default_rng(1).random((len(bands), 36, 40)).astype(np.float32)
+    (tmp_path / "npy").mkdir()
+    (tmp_path / "h5").mkdir()
+    np.save(tmp_path / "npy" / "c.npy", cube)
+    write_cube_h5(tmp_path / "h5" / "c.h5", cube, bands)
+    same = ["--set", "camera.boundary=same"]
+    res = run_cli("evaluate", "--run", str(run), "--data", str(tmp_path / "npy"), "--out", str(tmp_path / "e0"), *same, env=env)
+    last = res.stderr.strip().splitlines()[-1]  # after the reader's notice that 400-700 nm is assumed
+    assert res.returncode == 2 and "Traceback" not in res.stderr, res.stderr
+    assert last.startswith("hsicam: error:") and "c.npy" in last and "data.npy_bands" in last, res.stderr
+    means = {}
+    for kind, extra in (("npy", ["--set", "data.npy_bands={start_nm: 420, stop_nm: 720, step_nm: 50}"]), ("h5", [])):
+        res = run_cli("evaluate", "--run", str(run), "--data", str(tmp_path / kind), "--out", str(tmp_path / f"e_{kind}"),
+                      *same, *extra, env=env)
+        assert res.returncode == 0, res.stderr
+        means[kind] = json.loads((tmp_path / f"e_{kind}" / "results.json").read_text())["mean"]
+    for k in ("psnr", "ssim", "sam"):
+        assert means["npy"][k] == pytest.approx(means["h5"][k], rel=1e-6)
+
+
 def test_box_reference_images_with_the_evaluation_noise(run):
     """The box-demosaic reference is scored on the same captures as the learned method: the
     evaluation config's sensor noise reaches its camera too (it once imaged noise-free)."""

@@ -419,6 +419,10 @@ class DataConfig:
     # validation set of heldout_n scenes uses only them. "none": hold out nothing.
     holdout_sources: str = "nist-philips,rawtoaces"
     heldout_n: int = 8
+    # Band grid of .npy cubes, which carry no wavelengths (e.g. {start_nm: 420, stop_nm: 720,
+    # step_nm: 10}); null: C bands evenly over 400-700 nm (docs/data.md). Never a relabelling:
+    # the cube is resampled from this grid onto the camera's.
+    npy_bands: Optional[BandsConfig] = None
 
     def __post_init__(self) -> None:
         for name in ("synthetic_n", "patch_px", "patches_per_epoch", "val_patches"):

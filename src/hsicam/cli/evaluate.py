@@ -43,6 +43,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 def cmd_evaluate(args: argparse.Namespace) -> int:
     from hsicam.config import dump_yaml
     from hsicam.data.datasets import SceneDataset, list_scenes
+    from hsicam.data.pipeline import npy_bands
     from hsicam.data.formats import write_cube_h5
     from hsicam.engine.evaluate import TestNoise, config_hash, evaluate_method, format_table, summarize, write_results
     from hsicam.engine.experiments import heldout_scenes, validation_scenes
@@ -67,7 +68,8 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     bands = method.camera.bands
     if args.data:
         paths = list_scenes(args.data)
-        scenes, names, data = SceneDataset(paths, bands), [p.stem for p in paths], str(Path(args.data).resolve())
+        scenes = SceneDataset(paths, bands, source_bands=npy_bands(cfg.data))
+        names, data = [p.stem for p in paths], str(Path(args.data).resolve())
         heldout = None
     else:
         scenes, names = validation_scenes(cfg)

@@ -231,8 +231,14 @@ class SceneDataset(Dataset):
 
     def _load(self, i: int) -> np.ndarray:
         path = self.paths[i]
-        cube, src_bands, _ = read_cube(path, bands=self.source_bands, allow_negative=self.allow_negative)
-        cube = resample_cube(cube, src_bands, self.bands, source=path)
+        cube, src_bands, meta = read_cube(path, bands=self.source_bands, allow_negative=self.allow_negative)
+        try:
+            cube = resample_cube(cube, src_bands, self.bands, source=path)
+        except InputError as exc:
+            if meta.get("bands_assumed"):  # a file without wavelengths (.npy): say how to give them
+                raise InputError(f"{exc} (the file carries no wavelengths, so 400-700 nm was assumed: give its "
+                                 f"grid with data.npy_bands, e.g. --set data.npy_bands.start_nm=420)") from None
+            raise
         cube, peak = normalize_per_cube_max(cube, source=path)
         self._infos[i] = SceneInfo(path, cube.shape[1], cube.shape[2], peak)
         return np.ascontiguousarray(cube)

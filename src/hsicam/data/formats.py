@@ -25,7 +25,8 @@ format            layout on disk                                       bands
                   ``_31.png`` (may be one level down)
 ``envi``          ``.hdr`` + raw data, bsq/bil/bip, ENVI data types,    ``wavelength``/``fwhm``
                   byte order, header offset
-``npy``           ``.npy`` (C, H, W)                                    caller's ``bands``, else C
+``npy``           ``.npy`` (C, H, W)                                    caller's ``bands`` (config:
+                                                                        ``data.npy_bands``), else C
                                                                         bands evenly over 400-700
 ================  ===================================================  ==========================
 
@@ -760,6 +761,9 @@ def read_npy(path: str | os.PathLike, *, bands: Bands | None = None, allow_negat
         log.info("%s: no band list given; assuming %d bands evenly spaced over 400-700 nm", p, arr.shape[0])
         assumed = True
     else:
+        if len(bands) != arr.shape[0]:
+            raise InputError(f"{p}: the cube has {arr.shape[0]} bands (axis 0 of a (bands, height, width) array) but "
+                             f"the band grid given for .npy files (data.npy_bands) has {len(bands)}")
         assumed = False
     meta = {"format": "npy", "bands_assumed": assumed}
     return _finish(p, arr, bands, meta, allow_negative)

@@ -60,6 +60,11 @@ def _should_preload(cfg: DataConfig, scenes: list[Path]) -> bool:
     return total <= cfg.preload_max_mb * 2**20
 
 
+def npy_bands(cfg: DataConfig) -> Bands | None:
+    """The band grid the config gives ``.npy`` cubes (``data.npy_bands``), or None (400-700 nm)."""
+    return None if cfg.npy_bands is None else cfg.npy_bands.to_bands()
+
+
 def split_dataset(cfg: DataConfig, bands: Bands, *, progress: bool | None = None) -> tuple[list[Path], list[Path]]:
     """(training, validation) scene paths of the config's dataset: its scene-level split
     (``val_fraction``, ``split_seed``, ``val_pool``)."""
@@ -83,12 +88,13 @@ def build_datasets(cfg: DataConfig, bands: Bands, margin_px: int, *, progress: b
     preload = _should_preload(cfg, scenes)
     log.info("data: %d training and %d validation scenes from %s (preload=%s)", len(train_scenes), len(val_scenes),
              root, preload)
-    train = PatchDataset(SceneDataset(train_scenes, bands, preload=preload), cfg.patch_px, margin_px,
+    source = npy_bands(cfg)
+    train = PatchDataset(SceneDataset(train_scenes, bands, preload=preload, source_bands=source), cfg.patch_px, margin_px,
                          patches_per_epoch=cfg.patches_per_epoch, flips=cfg.augment_flips, rot90=cfg.augment_rot90,
                          seed=cfg.split_seed)
     val = None
     if val_scenes:
-        val = PatchDataset(SceneDataset(val_scenes, bands, preload=preload), cfg.patch_px, margin_px,
+        val = PatchDataset(SceneDataset(val_scenes, bands, preload=preload, source_bands=source), cfg.patch_px, margin_px,
                            patches_per_epoch=cfg.val_patches, flips=False, rot90=False, seed=cfg.split_seed + 1,
                            fixed=True)
     return train, val

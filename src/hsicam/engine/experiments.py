@@ -142,13 +142,13 @@ def ensure_trained(run: Path, preset, overrides: tuple[str, ...] = ()) -> str:
 def validation_scenes(cfg):
     """The preset's validation scenes (SceneDataset) and their names."""
     from hsicam.data.datasets import SceneDataset
-    from hsicam.data.pipeline import split_dataset
+    from hsicam.data.pipeline import npy_bands, split_dataset
 
     bands = cfg.bands.to_bands()
     _, val = split_dataset(cfg.data, bands)
     if not val:
         raise InputError("the preset has no validation scenes (data.val_fraction is 0)")
-    return SceneDataset(val, bands), [p.stem for p in val]
+    return SceneDataset(val, bands, source_bands=npy_bands(cfg.data)), [p.stem for p in val]
 
 
 def heldout_scenes(cfg):
