@@ -14,7 +14,8 @@ sampling and the optics' blur, i.e. demosaicking.
     python scripts/spectral_oracle.py RUN [--heldout] [--pixels N] [--ridge L] [--set KEY=VALUE ...]
 
 RUN is a run folder or pretrained:NAME. Prints a Markdown table per scene (per-band PSNR peak 1,
-SSIM, SAM in degrees: hsicam.metrics), whole scenes.
+SSIM, SAM in degrees: hsicam.metrics) over the area the camera's own scores cover (`valid`: the
+scene minus the kernel margin), so the two compare pixel for pixel.
 """
 
 from __future__ import annotations
@@ -54,8 +55,7 @@ def oracle_estimate(filters: torch.Tensor, decoder: torch.Tensor, cube: torch.Te
 def training_pixels(cfg, per_scene: int, seed: int = 0) -> torch.Tensor:
     """``per_scene`` random pixels of every training scene of the run's data config (on the run's
     band grid), (C, N) float64."""
-    from hsicam.data.datasets import SceneDataset
-    from hsicam.data.pipeline import split_dataset
+    from hsicam.data.pipeline import scene_dataset, split_dataset
 
     bands = cfg.bands.to_bands()
     train, _ = split_dataset(cfg.data, bands)
@@ -63,7 +63,7 @@ def training_pixels(cfg, per_scene: int, seed: int = 0) -> torch.Tensor:
         raise HsicamError("the run's data config has no training scenes")
     rng = np.random.default_rng(seed)
     cols = []
-    scenes = SceneDataset(train, bands)
+    scenes = scene_dataset(cfg.data, train, bands)
     for i in range(len(train)):
         flat = scenes[i].double().reshape(len(bands), -1)
         cols.append(flat[:, torch.from_numpy(rng.choice(flat.shape[1], min(per_scene, flat.shape[1]), replace=False))])
@@ -106,7 +106,7 @@ def main(argv: list[str] | None = None) -> int:
     rows = []
     with torch.no_grad():
         for i, name in enumerate(names):
-            truth = scenes[i][None].float()
+            truth = model.target(scenes[i][None].float())  # the camera's scored area (valid: minus the margin)
             est = oracle_estimate(filters, decoder, truth.double()).float()
             rows.append([psnr_per_band(est, truth).item(), ssim(est, truth).item(), sam_degrees(est, truth).item()])
             print(f"| {name} | {rows[-1][0]:.2f} | {rows[-1][1]:.4f} | {rows[-1][2]:.2f} |")

@@ -176,7 +176,7 @@ def test_set_noise_round_trip_and_unknown_names(case):
     with pytest.raises(ConfigError, match="sensor_sigma"):  # the message lists the valid names
         cam.set_noise(not_a_noise=1.0)
     for name in sorted(levels):  # a standard deviation: negative or NaN is an error, and nothing changes
-        for bad in (-0.01, float("nan"), float("inf")):
+        for bad in (-0.01, float("nan"), float("inf"), "abc"):
             with pytest.raises(ConfigError, match=f"{name}="):
                 cam.set_noise(**{name: bad})
             assert cam.noise_levels() == got

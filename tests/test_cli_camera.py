@@ -123,6 +123,23 @@ def test_simulate_band_count_mismatch(tmp_path):
     assert not (tmp_path / "o" / "sensor.npy").exists()
 
 
+def test_simulate_reads_npy_scenes_on_the_grid_data_npy_bands_gives(tmp_path):
+    """With ``data.npy_bands`` a .npy scene of another band count is resampled from that grid, so
+    its sensor image equals the one of the same cube written as our HDF5 with that grid."""
+    from hsicam.data.formats import write_cube_h5
+    from hsicam.spectral import Bands
+
+    fine = Bands.uniform(410, 730, 20)  # 17 bands around the camera's 7 (420-720 nm / 50)
+    cube = np.random.default_rng(2).random((len(fine), 30, 30)).astype(np.float32)
+    np.save(tmp_path / "scene.npy", cube)
+    write_cube_h5(tmp_path / "scene.h5", cube, fine)
+    grid = ["--set", "data.npy_bands={start_nm: 410, stop_nm: 730, step_nm: 20}"]
+    for name, extra in (("scene.npy", grid), ("scene.h5", [])):
+        proc = run_cli("simulate", "--scene", str(tmp_path / name), "--out", str(tmp_path / name[-3:]), *TINY, *extra)
+        assert proc.returncode == 0, proc.stderr
+    np.testing.assert_allclose(np.load(tmp_path / "npy" / "sensor.npy"), np.load(tmp_path / ".h5" / "sensor.npy"), rtol=1e-6)
+
+
 def test_simulate_band_grid_mismatch(tmp_path):
     from hsicam.data.formats import write_cube_h5
     from hsicam.spectral import Bands

@@ -97,6 +97,7 @@ def test_small_scenes_are_one_clear_error_and_score_whole_with_boundary_same(run
     assert res.returncode == 0, res.stderr
     from hsicam.data import read_cube
 
+    assert json.loads((out / "results.json").read_text())["region"].startswith("whole scene")
     truth, _, _ = read_cube(out / "cubes" / "small_truth.h5")
     est, _, _ = read_cube(out / "cubes" / "small_estimate.h5")
     assert truth.shape == est.shape == (len(bands), 26, 40)  # the whole scene, not its valid centre

@@ -18,7 +18,7 @@ import types
 import typing
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Literal, Optional, Sequence, Union
+from typing import Any, ClassVar, Literal, Optional, Sequence, Union
 
 import yaml
 
@@ -44,14 +44,18 @@ class BandsConfig:
     step_nm: float = 10.0
     fwhm_nm: Optional[float] = None  # None: equal to the step
 
+    #: Config section the errors name.
+    section: ClassVar[str] = "bands"
+
     def __post_init__(self) -> None:
-        _positive("bands", start_nm=self.start_nm, stop_nm=self.stop_nm, step_nm=self.step_nm, fwhm_nm=self.fwhm_nm)
+        s = self.section
+        _positive(s, start_nm=self.start_nm, stop_nm=self.stop_nm, step_nm=self.step_nm, fwhm_nm=self.fwhm_nm)
         if self.stop_nm < self.start_nm:
-            raise ConfigError(f"bands.stop_nm ({self.stop_nm}) is below bands.start_nm ({self.start_nm})")
+            raise ConfigError(f"{s}.stop_nm ({self.stop_nm}) is below {s}.start_nm ({self.start_nm})")
         try:
             self.to_bands()
         except Exception as exc:  # noqa: BLE001 - re-raised as a config error with the key named
-            raise ConfigError(f"bands: {exc}") from None
+            raise ConfigError(f"{s}: {exc}") from None
 
     def to_bands(self) -> Bands:
         return Bands.uniform(self.start_nm, self.stop_nm, self.step_nm, self.fwhm_nm)
@@ -389,6 +393,13 @@ class TrainConfig:
 
 
 @dataclass
+class NpyBandsConfig(BandsConfig):
+    """Band grid of ``.npy`` cubes (``data.npy_bands``): the same keys as ``bands``."""
+
+    section: ClassVar[str] = "data.npy_bands"
+
+
+@dataclass
 class DataConfig:
     """Training/evaluation data (see ``hsicam.data`` and docs/data.md).
 
@@ -422,7 +433,7 @@ class DataConfig:
     # Band grid of .npy cubes, which carry no wavelengths (e.g. {start_nm: 420, stop_nm: 720,
     # step_nm: 10}); null: C bands evenly over 400-700 nm (docs/data.md). Never a relabelling:
     # the cube is resampled from this grid onto the camera's.
-    npy_bands: Optional[BandsConfig] = None
+    npy_bands: Optional[NpyBandsConfig] = None
 
     def __post_init__(self) -> None:
         for name in ("synthetic_n", "patch_px", "patches_per_epoch", "val_patches"):

@@ -11,6 +11,15 @@ from hsicam.errors import ConfigError, InputError
 from hsicam.spectral import Bands
 
 
+def _is_level(value) -> bool:
+    """A noise level: a finite number >= 0 (a standard deviation)."""
+    try:
+        v = float(value)
+    except (TypeError, ValueError):
+        return False
+    return math.isfinite(v) and v >= 0
+
+
 class Camera(nn.Module):
     """Scene cube (B, C, H, W) → sensor image. Subclasses implement ``A`` and ``A_adjoint``.
 
@@ -131,7 +140,7 @@ class Camera(nn.Module):
         if unknown:
             raise ConfigError(f"{type(self).__name__} has no noise level {', '.join(unknown)}; "
                               f"it has {', '.join(sorted(known))}")
-        bad = sorted(k for k, v in levels.items() if not (math.isfinite(float(v)) and float(v) >= 0))
+        bad = sorted(k for k, v in levels.items() if not _is_level(v))
         if bad:
             raise ConfigError("noise levels must be finite and >= 0, got "
                               + ", ".join(f"{k}={levels[k]}" for k in bad))

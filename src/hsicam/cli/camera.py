@@ -59,13 +59,14 @@ def cmd_psf(args: argparse.Namespace) -> int:
     return 0
 
 
-def load_scene(path: str | Path, bands: Bands) -> np.ndarray:
+def load_scene(path: str | Path, bands: Bands, npy_bands: Bands | None = None) -> np.ndarray:
     """A scene cube (C, H, W) float32 on the camera's band grid ``bands``.
 
     Every format goes through the one cube check (finite, real, non-negative, non-empty, band grid
     known) and the one band-grid policy (:func:`hsicam.data.cube.conform_bands`: a cube on another
     grid is resampled by band centre with a logged note; only extrapolation is refused). A ``.npy``
-    file carries no wavelengths: it must have the camera's band count (its grid is then the camera's).
+    file carries no wavelengths: its grid is ``npy_bands`` (the config's ``data.npy_bands``) when
+    given, else it must have the camera's band count (its grid is then the camera's).
     """
     from hsicam.data import read_cube
     from hsicam.data.cube import conform_bands
@@ -74,12 +75,14 @@ def load_scene(path: str | Path, bands: Bands) -> np.ndarray:
     path = Path(path)
     if not path.exists():
         raise InputError(f"{path}: no such scene file")
-    if path.suffix.lower() == ".npy":
+    if path.suffix.lower() == ".npy" and npy_bands is not None:
+        cube, scene_bands, _ = read_cube(path, bands=npy_bands)
+    elif path.suffix.lower() == ".npy":
         shape, _ = npy_header(path)
         if len(shape) == 3 and shape[0] != len(bands):
             raise InputError(f"{path}: a .npy scene carries no wavelengths, and its {shape[0]} bands are not the "
                              f"camera's {len(bands)} ({bands!r}); save it as .h5 with its band list "
-                             "(hsicam.data.formats.write_cube_h5) to have it resampled")
+                             "(hsicam.data.formats.write_cube_h5) or give its grid with data.npy_bands to have it resampled")
         cube, scene_bands, _ = read_cube(path, bands=bands)
     else:
         cube, scene_bands, _ = read_cube(path)
@@ -87,6 +90,7 @@ def load_scene(path: str | Path, bands: Bands) -> np.ndarray:
 
 
 def cmd_simulate(args: argparse.Namespace) -> int:
+    from hsicam.data.pipeline import npy_bands
     from hsicam.report.camera import write_optics_figures
 
     out = prepare_output(args.out, "dir")
@@ -99,7 +103,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
         camera = system.camera
     else:
         camera, cfg = camera_from_args(args, (f"camera.boundary={args.boundary}",))
-    scene = load_scene(args.scene, camera.bands)
+    scene = load_scene(args.scene, camera.bands, npy_bands(cfg.data))
     gen = torch.Generator().manual_seed(args.seed)
     with torch.no_grad():
         sensor = camera(torch.from_numpy(scene)[None], generator=gen)[0, 0].numpy()

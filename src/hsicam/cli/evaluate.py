@@ -42,10 +42,11 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 def cmd_evaluate(args: argparse.Namespace) -> int:
     from hsicam.config import dump_yaml
-    from hsicam.data.datasets import SceneDataset, list_scenes
-    from hsicam.data.pipeline import npy_bands
+    from hsicam.data.datasets import list_scenes
+    from hsicam.data.pipeline import scene_dataset
     from hsicam.data.formats import write_cube_h5
-    from hsicam.engine.evaluate import TestNoise, config_hash, evaluate_method, format_table, summarize, write_results
+    from hsicam.engine.evaluate import (TestNoise, config_hash, evaluate_method, format_table, scored_region, summarize,
+                                        write_results)
     from hsicam.engine.experiments import heldout_scenes, validation_scenes
     from hsicam.engine.methods import METHOD_ALIASES, build_method
     from hsicam.cli import prepare_output
@@ -68,7 +69,7 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     bands = method.camera.bands
     if args.data:
         paths = list_scenes(args.data)
-        scenes = SceneDataset(paths, bands, source_bands=npy_bands(cfg.data))
+        scenes = scene_dataset(cfg.data, paths, bands)
         names, data = [p.stem for p in paths], str(Path(args.data).resolve())
         heldout = None
     else:
@@ -80,7 +81,7 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     results = evaluate_method(method, scenes, names, noise, args.device, keep_arrays=args.save, progress=show)
     summary = summarize(results, method=args.method, run=str(Path(args.run).resolve()) if args.run else None, data=data, config_hash=config_hash(dump_yaml(cfg)),
                         noise={"sigma_height_nm": args.sigma_height_nm, "sensor_sigma": args.sensor_sigma, "seeds": args.seeds},
-                        bands_nm=bands.centers_nm.tolist(), region="sensor area (scene minus the camera's kernel margin)")
+                        bands_nm=bands.centers_nm.tolist(), region=scored_region(method.camera))
     if heldout is not None:
         held = evaluate_method(method, heldout[0], heldout[1], noise, args.device, keep_arrays=False, progress=show)
         summary["heldout"] = {"data": f"held-out spectral sources ({cfg.data.holdout_sources}): scenes whose "

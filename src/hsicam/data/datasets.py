@@ -236,8 +236,9 @@ class SceneDataset(Dataset):
             cube = resample_cube(cube, src_bands, self.bands, source=path)
         except InputError as exc:
             if meta.get("bands_assumed"):  # a file without wavelengths (.npy): say how to give them
-                raise InputError(f"{exc} (the file carries no wavelengths, so 400-700 nm was assumed: give its "
-                                 f"grid with data.npy_bands, e.g. --set data.npy_bands.start_nm=420)") from None
+                raise InputError(f"{exc} (the file carries no wavelengths, so its {cube.shape[0]} bands were taken "
+                                 f"as 400-700 nm: give its grid with data.npy_bands, e.g. "
+                                 f"data.npy_bands={{start_nm: ..., stop_nm: ..., step_nm: ...}})") from None
             raise
         cube, peak = normalize_per_cube_max(cube, source=path)
         self._infos[i] = SceneInfo(path, cube.shape[1], cube.shape[2], peak)

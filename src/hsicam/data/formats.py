@@ -752,6 +752,9 @@ def read_npy(path: str | os.PathLike, *, bands: Bands | None = None, allow_negat
         raise InputError(f"{p}: expected a 3-D array (bands, height, width), got {len(shape)} dimensions {shape}")
     if dtype.hasobject:
         raise InputError(f"{p}: the array holds Python objects ({dtype}); a cube holds numbers (pickles are never loaded)")
+    if bands is not None and len(bands) != shape[0]:
+        raise InputError(f"{p}: the cube has {shape[0]} bands (axis 0 of a (bands, height, width) array) but "
+                         f"the band grid given for it has {len(bands)}")
     check_memory_budget(p, shape, dtype, what="NPY array", budget_mb=memory_budget_mb)
     with _reading(p, "NPY"):
         arr = np.load(p, mmap_mode="r", allow_pickle=False)
@@ -761,9 +764,6 @@ def read_npy(path: str | os.PathLike, *, bands: Bands | None = None, allow_negat
         log.info("%s: no band list given; assuming %d bands evenly spaced over 400-700 nm", p, arr.shape[0])
         assumed = True
     else:
-        if len(bands) != arr.shape[0]:
-            raise InputError(f"{p}: the cube has {arr.shape[0]} bands (axis 0 of a (bands, height, width) array) but "
-                             f"the band grid given for .npy files (data.npy_bands) has {len(bands)}")
         assumed = False
     meta = {"format": "npy", "bands_assumed": assumed}
     return _finish(p, arr, bands, meta, allow_negative)

@@ -65,6 +65,12 @@ def npy_bands(cfg: DataConfig) -> Bands | None:
     return None if cfg.npy_bands is None else cfg.npy_bands.to_bands()
 
 
+def scene_dataset(cfg: DataConfig, paths, bands: Bands, **kwargs) -> SceneDataset:
+    """:class:`SceneDataset` of ``paths`` on ``bands`` with the config's grid for ``.npy`` cubes;
+    ``kwargs`` go to it (e.g. ``preload``). Every dataset built from a config goes through here."""
+    return SceneDataset(paths, bands, source_bands=npy_bands(cfg), **kwargs)
+
+
 def split_dataset(cfg: DataConfig, bands: Bands, *, progress: bool | None = None) -> tuple[list[Path], list[Path]]:
     """(training, validation) scene paths of the config's dataset: its scene-level split
     (``val_fraction``, ``split_seed``, ``val_pool``)."""
@@ -88,13 +94,12 @@ def build_datasets(cfg: DataConfig, bands: Bands, margin_px: int, *, progress: b
     preload = _should_preload(cfg, scenes)
     log.info("data: %d training and %d validation scenes from %s (preload=%s)", len(train_scenes), len(val_scenes),
              root, preload)
-    source = npy_bands(cfg)
-    train = PatchDataset(SceneDataset(train_scenes, bands, preload=preload, source_bands=source), cfg.patch_px, margin_px,
+    train = PatchDataset(scene_dataset(cfg, train_scenes, bands, preload=preload), cfg.patch_px, margin_px,
                          patches_per_epoch=cfg.patches_per_epoch, flips=cfg.augment_flips, rot90=cfg.augment_rot90,
                          seed=cfg.split_seed)
     val = None
     if val_scenes:
-        val = PatchDataset(SceneDataset(val_scenes, bands, preload=preload, source_bands=source), cfg.patch_px, margin_px,
+        val = PatchDataset(scene_dataset(cfg, val_scenes, bands, preload=preload), cfg.patch_px, margin_px,
                            patches_per_epoch=cfg.val_patches, flips=False, rot90=False, seed=cfg.split_seed + 1,
                            fixed=True)
     return train, val

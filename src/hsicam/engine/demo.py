@@ -9,8 +9,7 @@ from pathlib import Path
 from typing import Any
 
 from hsicam.config import Config, load_config
-from hsicam.data.datasets import SceneDataset
-from hsicam.data.pipeline import npy_bands, split_dataset
+from hsicam.data.pipeline import scene_dataset, split_dataset
 from hsicam.engine.evaluate import (TestNoise, demosaic_reference, evaluate_method, evaluate_scenes, format_table,
                                     grey_reference, summarize)
 from hsicam.engine.experiments import ensure_trained, heldout_scenes
@@ -47,10 +46,9 @@ def run_demo(cfg: Config, out: str | Path) -> dict[str, Any]:
     model.consistency = asked.model.consistency  # an inference setting: the demo's config decides it
     bands = cfg.bands.to_bands()
     train_list, val = split_dataset(cfg.data, bands)
-    source = npy_bands(cfg.data)
-    scenes, names = SceneDataset(val, bands, source_bands=source), [p.stem for p in val]
+    scenes, names = scene_dataset(cfg.data, val, bands), [p.stem for p in val]
     results = evaluate_scenes(model, scenes, names, seed=cfg.train.seed)
-    references = [grey_reference(model, SceneDataset(train_list, bands, source_bands=source))]
+    references = [grey_reference(model, scene_dataset(cfg.data, train_list, bands))]
     if model.consistency_on:
         references.append(network_alone_reference(model))
     try:

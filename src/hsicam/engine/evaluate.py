@@ -54,6 +54,14 @@ def config_hash(yaml_text: str) -> str:
     return hashlib.sha256(yaml_text.encode()).hexdigest()[:12]
 
 
+def scored_region(camera) -> str:
+    """What a result's scores cover, for ``results.json``: the sensor area of a ``valid`` camera, or
+    the whole scene (``same``, its border imaged with the camera's padding)."""
+    if camera.boundary == "valid":
+        return "sensor area (scene minus the camera's kernel margin)"
+    return f"whole scene (boundary 'same', {getattr(camera, 'padding', 'zeros')} padding: border pixels included)"
+
+
 @torch.no_grad()
 def evaluate_method(method: Method, scenes, names: Sequence[str], noise: TestNoise = TestNoise(),
                     device: str | torch.device = "cpu", keep_arrays: bool = True, tile_px: int = 512,
@@ -77,17 +85,17 @@ def evaluate_method(method: Method, scenes, names: Sequence[str], noise: TestNoi
         cam.eval()
         for i, name in enumerate(names):
             scene = scenes[i][None].to(device)
-            cam.check_scene(scene)  # one InputError for a scene the camera cannot image
-            truth = method.target(scene)
+            truth = method.target(scene)  # empty when a `valid` camera's margin exceeds the scene
             if min(truth.shape[-2:]) < SSIM_WINDOW_PX:
                 crop = cam.boundary == "valid"
                 raise InputError(
-                    f"{name}: the scored area is {truth.shape[-2]}×{truth.shape[-1]} px (scene "
-                    f"{scene.shape[-2]}×{scene.shape[-1]} px, camera boundary {cam.boundary!r}"
-                    + (f", which crops the {cam.margin}-px kernel margin" if crop else "")
-                    + f"); SSIM needs at least {SSIM_WINDOW_PX}×{SSIM_WINDOW_PX}: use scenes of at least "
+                    f"{name}: scene of {scene.shape[-2]}×{scene.shape[-1]} px leaves "
+                    f"{max(truth.shape[-2], 0)}×{max(truth.shape[-1], 0)} px to score"
+                    + (f" (camera boundary 'valid' crops its {cam.margin}-px kernel margin)" if crop else "")
+                    + f"; SSIM needs at least {SSIM_WINDOW_PX}×{SSIM_WINDOW_PX}: scenes of at least "
                     f"{(cam.margin if crop else 0) + SSIM_WINDOW_PX} px on each side"
-                    + (", or score whole scenes with --set camera.boundary=same" if crop else ""))
+                    + (", or camera.boundary=same (the whole scene, border pixels included, is then scored)"
+                       if crop else ""))
             per_seed, times, est0 = [], [], None
             for seed in noise.seeds:
                 g = torch.Generator(device=device).manual_seed(int(seed))

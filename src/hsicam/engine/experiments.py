@@ -141,28 +141,27 @@ def ensure_trained(run: Path, preset, overrides: tuple[str, ...] = ()) -> str:
 
 def validation_scenes(cfg):
     """The preset's validation scenes (SceneDataset) and their names."""
-    from hsicam.data.datasets import SceneDataset
-    from hsicam.data.pipeline import npy_bands, split_dataset
+    from hsicam.data.pipeline import scene_dataset, split_dataset
 
     bands = cfg.bands.to_bands()
     _, val = split_dataset(cfg.data, bands)
     if not val:
         raise InputError("the preset has no validation scenes (data.val_fraction is 0)")
-    return SceneDataset(val, bands, source_bands=npy_bands(cfg.data)), [p.stem for p in val]
+    return scene_dataset(cfg.data, val, bands), [p.stem for p in val]
 
 
 def heldout_scenes(cfg):
     """The held-out-sources validation scenes (SceneDataset) and their names, or None (real data,
     or nothing held out): scenes built only from spectral sources the training scenes never use."""
-    from hsicam.data.datasets import SceneDataset, list_scenes
-    from hsicam.data.pipeline import heldout_root
+    from hsicam.data.datasets import list_scenes
+    from hsicam.data.pipeline import heldout_root, scene_dataset
 
     bands = cfg.bands.to_bands()
     root = heldout_root(cfg.data, bands)
     if root is None:
         return None
     paths = list_scenes(root)
-    return SceneDataset(paths, bands), [p.stem for p in paths]
+    return scene_dataset(cfg.data, paths, bands), [p.stem for p in paths]
 
 
 def _row(name: str, summary: dict, **extra: Any) -> dict:

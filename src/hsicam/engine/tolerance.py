@@ -80,8 +80,8 @@ class ToleranceSpec:
 # ------------------------------------------------------------------------------------------------
 def evaluation_scenes(cfg, bands, max_scenes: int, data: str | Path | None = None):
     """(SceneDataset, names): the run's validation scenes (all scenes when it has none), or ``data``."""
-    from hsicam.data import SceneDataset, dataset_root, list_scenes, split_dataset
-    from hsicam.data.pipeline import npy_bands
+    from hsicam.data import dataset_root, list_scenes, split_dataset
+    from hsicam.data.pipeline import scene_dataset
 
     if data is not None:
         scenes = list_scenes(data)
@@ -89,7 +89,7 @@ def evaluation_scenes(cfg, bands, max_scenes: int, data: str | Path | None = Non
         _, val = split_dataset(cfg.data, bands)
         scenes = val or list_scenes(dataset_root(cfg.data, bands))
     scenes = scenes[:max_scenes]
-    return SceneDataset(scenes, bands, source_bands=npy_bands(cfg.data)), [Path(s).stem for s in scenes]
+    return scene_dataset(cfg.data, scenes, bands), [Path(s).stem for s in scenes]
 
 
 def evaluate_psf(model, psf: torch.Tensor, scenes, names: Sequence[str], seed: int = 0) -> dict[str, float]:
