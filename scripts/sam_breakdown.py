@@ -18,7 +18,7 @@ import sys
 import numpy as np
 import torch
 
-from hsicam.engine.experiments import heldout_scenes, validation_scenes
+from hsicam.engine.experiments import scored_scenes
 from hsicam.errors import HsicamError
 from hsicam.metrics import sam_breakdown
 from hsicam.runs.folder import load_run
@@ -34,13 +34,7 @@ def main(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
     try:
         cfg, model = load_run(args.run, overrides=tuple(args.overrides))
-        if args.heldout:
-            held = heldout_scenes(cfg)
-            if held is None:
-                raise HsicamError("the run holds out no spectral sources (data.holdout_sources)")
-            scenes, names = held
-        else:
-            scenes, names = validation_scenes(cfg)
+        scenes, names = scored_scenes(cfg, args.heldout)
     except HsicamError as e:
         print(f"error: {e}", file=sys.stderr)
         return 2

@@ -78,7 +78,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--ridge", type=float, default=1e-6, help="ridge weight relative to the mean filter energy")
     p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE")
     args = p.parse_args(argv)
-    from hsicam.engine.experiments import heldout_scenes, validation_scenes
+    from hsicam.engine.experiments import scored_scenes
     from hsicam.metrics import psnr_per_band, sam_degrees, ssim
     from hsicam.runs.folder import load_run
 
@@ -90,13 +90,7 @@ def main(argv: list[str] | None = None) -> int:
             raise HsicamError("the spectral oracle needs a camera with a colour filter array")
         filters = filter_matrix(model.camera.cfa.tile().detach().double())
         decoder = fit_linear_decoder(filters, training_pixels(cfg, args.pixels), args.ridge)
-        if args.heldout:
-            held = heldout_scenes(cfg)
-            if held is None:
-                raise HsicamError("the run holds out no spectral sources (data.holdout_sources)")
-            scenes, names = held
-        else:
-            scenes, names = validation_scenes(cfg)
+        scenes, names = scored_scenes(cfg, args.heldout)
     except HsicamError as e:
         print(f"error: {e}", file=sys.stderr)
         return 2

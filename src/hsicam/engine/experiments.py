@@ -150,6 +150,17 @@ def validation_scenes(cfg):
     return scene_dataset(cfg.data, val, bands), [p.stem for p in val]
 
 
+def scored_scenes(cfg, heldout: bool = False):
+    """(SceneDataset, names) of the run config's validation split, or (``heldout``) of its
+    held-out-sources set; :class:`InputError` when the config holds nothing out."""
+    if not heldout:
+        return validation_scenes(cfg)
+    held = heldout_scenes(cfg)
+    if held is None:
+        raise InputError("the run holds out no spectral sources (data.holdout_sources)")
+    return held
+
+
 def heldout_scenes(cfg):
     """The held-out-sources validation scenes (SceneDataset) and their names, or None (real data,
     or nothing held out): scenes built only from spectral sources the training scenes never use."""
