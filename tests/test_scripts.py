@@ -90,6 +90,11 @@ def test_spectral_oracle_scores_a_trained_run_above_its_camera(tmp_path):
     assert rows and "**mean**" in proc.stdout
     psnr = float(proc.stdout.split("**mean** |")[1].split("|")[0])
     assert psnr > 40.0, proc.stdout
+    # the SAM breakdown reads the same run's validation and held-out-sources scenes (engine.experiments.scored_scenes)
+    for extra in ([], ["--heldout"]):
+        sam = subprocess.run([sys.executable, str(SCRIPTS / "sam_breakdown.py"), str(run), *extra],
+                             capture_output=True, text=True, timeout=300, env={**os.environ, **env})
+        assert sam.returncode == 0 and "| **mean** |" in sam.stdout, sam.stderr
     plain = tmp_path / "nocfa"
     assert run_cli("train", "--config", "tiny", "--out", str(plain), "--set", "camera.cfa.enabled=false", env=env).returncode == 0
     nocfa = subprocess.run([sys.executable, str(SCRIPTS / "spectral_oracle.py"), str(plain)],
