@@ -75,15 +75,15 @@ def load_scene(path: str | Path, bands: Bands, npy_bands: Bands | None = None) -
     path = Path(path)
     if not path.exists():
         raise InputError(f"{path}: no such scene file")
-    if path.suffix.lower() == ".npy" and npy_bands is not None:
-        cube, scene_bands, _ = read_cube(path, bands=npy_bands)
-    elif path.suffix.lower() == ".npy":
-        shape, _ = npy_header(path)
-        if len(shape) == 3 and shape[0] != len(bands):
-            raise InputError(f"{path}: a .npy scene carries no wavelengths, and its {shape[0]} bands are not the "
-                             f"camera's {len(bands)} ({bands!r}); save it as .h5 with its band list "
-                             "(hsicam.data.formats.write_cube_h5) or give its grid with data.npy_bands to have it resampled")
-        cube, scene_bands, _ = read_cube(path, bands=bands)
+    if path.suffix.lower() == ".npy":
+        if npy_bands is None:
+            shape, _ = npy_header(path)
+            if len(shape) == 3 and shape[0] != len(bands):
+                raise InputError(f"{path}: a .npy scene carries no wavelengths, and its {shape[0]} bands are not the "
+                                 f"camera's {len(bands)} ({bands!r}); save it as .h5 with its band list "
+                                 "(hsicam.data.formats.write_cube_h5) or give its grid with data.npy_bands to have "
+                                 "it resampled")
+        cube, scene_bands, _ = read_cube(path, bands=bands if npy_bands is None else npy_bands)
     else:
         cube, scene_bands, _ = read_cube(path)
     return conform_bands(cube, scene_bands, bands, path, axis=0)

@@ -43,8 +43,8 @@ def register(sub: argparse._SubParsersAction) -> None:
 def cmd_evaluate(args: argparse.Namespace) -> int:
     from hsicam.config import dump_yaml
     from hsicam.data.datasets import list_scenes
-    from hsicam.data.pipeline import scene_dataset
     from hsicam.data.formats import write_cube_h5
+    from hsicam.data.pipeline import scene_dataset
     from hsicam.engine.evaluate import (TestNoise, config_hash, evaluate_method, format_table, scored_region, summarize,
                                         write_results)
     from hsicam.engine.experiments import heldout_scenes, validation_scenes

@@ -62,6 +62,21 @@ def scored_region(camera) -> str:
     return f"whole scene (boundary 'same', {getattr(camera, 'padding', 'zeros')} padding: border pixels included)"
 
 
+def _check_scored_area(name: str, scene: torch.Tensor, truth: torch.Tensor, camera) -> None:
+    """InputError unless the scored area ``truth`` (empty when a ``valid`` camera's margin exceeds
+    the scene) holds SSIM's window; the message gives the minimum scene size."""
+    if min(truth.shape[-2:]) >= SSIM_WINDOW_PX:
+        return
+    crop = camera.boundary == "valid"
+    margin = camera.margin if crop else 0
+    raise InputError(
+        f"{name}: scene of {scene.shape[-2]}×{scene.shape[-1]} px leaves {truth.shape[-2]}×{truth.shape[-1]} px to score"
+        + (f" (camera boundary 'valid' crops its {margin}-px kernel margin)" if crop else "")
+        + f"; SSIM needs at least {SSIM_WINDOW_PX}×{SSIM_WINDOW_PX}: scenes of at least {margin + SSIM_WINDOW_PX} px "
+        "on each side" + (", or camera.boundary=same (the whole scene, border pixels included, is then scored)"
+                          if crop else ""))
+
+
 @torch.no_grad()
 def evaluate_method(method: Method, scenes, names: Sequence[str], noise: TestNoise = TestNoise(),
                     device: str | torch.device = "cpu", keep_arrays: bool = True, tile_px: int = 512,
@@ -85,17 +100,8 @@ def evaluate_method(method: Method, scenes, names: Sequence[str], noise: TestNoi
         cam.eval()
         for i, name in enumerate(names):
             scene = scenes[i][None].to(device)
-            truth = method.target(scene)  # empty when a `valid` camera's margin exceeds the scene
-            if min(truth.shape[-2:]) < SSIM_WINDOW_PX:
-                crop = cam.boundary == "valid"
-                raise InputError(
-                    f"{name}: scene of {scene.shape[-2]}×{scene.shape[-1]} px leaves "
-                    f"{max(truth.shape[-2], 0)}×{max(truth.shape[-1], 0)} px to score"
-                    + (f" (camera boundary 'valid' crops its {cam.margin}-px kernel margin)" if crop else "")
-                    + f"; SSIM needs at least {SSIM_WINDOW_PX}×{SSIM_WINDOW_PX}: scenes of at least "
-                    f"{(cam.margin if crop else 0) + SSIM_WINDOW_PX} px on each side"
-                    + (", or camera.boundary=same (the whole scene, border pixels included, is then scored)"
-                       if crop else ""))
+            truth = method.target(scene)
+            _check_scored_area(name, scene, truth, cam)
             per_seed, times, est0 = [], [], None
             for seed in noise.seeds:
                 g = torch.Generator(device=device).manual_seed(int(seed))
