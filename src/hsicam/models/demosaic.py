@@ -19,6 +19,8 @@ pixel's code lets through, on the scale of the cube).
 
 from __future__ import annotations
 
+import math
+
 import torch
 import torch.nn.functional as F
 
@@ -118,3 +120,100 @@ def backprojection(op, y: torch.Tensor, origin: tuple[int, int] = (0, 0)) -> tor
     norm = op.A_adjoint(op.A(ones, origin), origin)
     eps = 1e-6 * (getattr(op, "lipschitz", None) or 1.0)  # position-independent, so tiles = whole
     return op.A_adjoint(y, origin) / norm.clamp_min(eps)
+
+
+# ---------------------------------------------------------------------------------------------
+# The best linear reconstruction of a CFA camera: a K×K filter per CFA phase and band
+# ---------------------------------------------------------------------------------------------
+#
+# A periodic CFA makes the sensor image cyclo-stationary: every pixel of CFA phase p = (i mod m,
+# j mod m) sees the same filter, so the best *linear* estimate of the cube from a K×K neighbourhood
+# of g is one K×K filter per phase and band,
+#
+#     x̂_c(i, j) = Σ_{|u|,|v| ≤ K//2} W[p(i, j), c, u, v] · g(i + u, j + v),
+#
+# the linear minimum-mean-square-error (LMMSE) demosaic: fitted by least squares on training
+# scenes imaged through the camera, it undoes the optics' blur and the mosaic's sampling together,
+# as far as a linear map can (the tent demosaic is one such map, fixed). No offset term: a scene
+# ×c gives the estimate ×c.
+
+
+def phase_linear(sensor: torch.Tensor, weight: torch.Tensor, origin: tuple[int, int] = (0, 0)) -> torch.Tensor:
+    """Apply per-phase filters: ``sensor`` (B, 1, H, W) of the window at ``origin``, ``weight``
+    (m², C, K, K) (phase index a·m + b for pixel rows ≡ a, columns ≡ b mod m on the whole sensor;
+    K odd) → (B, C, H, W). The image is extended by replication beyond its border, so a tile with
+    a halo of K // 2 px equals the whole image (each output pixel reads the K×K pixels around it)."""
+    if sensor.dim() != 4 or sensor.shape[1] != 1:
+        raise ValueError(f"sensor image must be (B, 1, H, W), got shape {tuple(sensor.shape)}")
+    phases, bands, k, _ = weight.shape
+    m = math.isqrt(phases)
+    if m * m != phases or k % 2 == 0:
+        raise ValueError(f"weight must be (m², C, K, K) with K odd, got shape {tuple(weight.shape)}")
+    b, _, h, w = sensor.shape
+    r = k // 2
+    padded = F.pad(sensor, (r, r, r, r), mode="replicate") if r else sensor
+    out = sensor.new_empty(b, bands, h, w)
+    weight = weight.to(sensor.dtype)
+    for a in range(m):
+        i0 = (a - origin[0]) % m  # first window row of phase row a
+        for c in range(m):
+            j0 = (c - origin[1]) % m
+            if i0 >= h or j0 >= w:
+                continue
+            rows, cols = len(range(i0, h, m)), len(range(j0, w, m))
+            sub = padded[:, 0, i0 : i0 + (rows - 1) * m + k, j0 : j0 + (cols - 1) * m + k]
+            patches = sub.unfold(1, k, m).unfold(2, k, m).reshape(b, rows * cols, k * k)  # a view, then one copy
+            est = patches @ weight[a * m + c].reshape(bands, k * k).T  # (B, rows·cols, C)
+            out[:, :, i0::m, j0::m] = est.transpose(1, 2).reshape(b, bands, rows, cols)
+    return out
+
+
+class LinearDemosaicFit:
+    """Least-squares fit of :func:`phase_linear`'s filters from (sensor, truth) pairs.
+
+    ``add(sensor, truth)`` accumulates the normal equations per phase (float64; ``sensor``
+    (B, 1, H, W) at ``origin``, ``truth`` (B, C, H, W) on the same pixels); ``solve()`` returns
+    the weights (m², C, K, K) with a ridge of ``ridge`` × the mean diagonal of each phase's Gram
+    matrix (a phase without samples gets zeros)."""
+
+    def __init__(self, period: int, bands: int, window: int, ridge: float = 1e-6) -> None:
+        if period < 1 or window < 1 or window % 2 == 0:
+            raise ValueError(f"period must be >= 1 and window odd, got {period} and {window}")
+        if not (ridge >= 0 and math.isfinite(ridge)):
+            raise ValueError(f"ridge must be >= 0, got {ridge}")
+        self.period, self.bands, self.window, self.ridge = int(period), int(bands), int(window), float(ridge)
+        n = window * window
+        self.gram = torch.zeros(period * period, n, n, dtype=torch.float64)
+        self.cross = torch.zeros(period * period, n, bands, dtype=torch.float64)
+
+    def add(self, sensor: torch.Tensor, truth: torch.Tensor, origin: tuple[int, int] = (0, 0)) -> None:
+        if sensor.dim() != 4 or sensor.shape[1] != 1 or truth.shape != (sensor.shape[0], self.bands, *sensor.shape[-2:]):
+            raise ValueError(f"need sensor (B, 1, H, W) and truth (B, {self.bands}, H, W) on the same pixels, got "
+                             f"{tuple(sensor.shape)} and {tuple(truth.shape)}")
+        r, m = self.window // 2, self.period
+        h, w = sensor.shape[-2:]
+        sensor, truth = sensor.detach().double().cpu(), truth.detach().double().cpu()
+        padded = F.pad(sensor, (r, r, r, r), mode="replicate") if r else sensor
+        k = self.window
+        patches = padded[:, 0].unfold(1, k, 1).unfold(2, k, 1).reshape(-1, k * k)  # (B·H·W, K²)
+        values = truth.permute(0, 2, 3, 1).reshape(-1, self.bands)
+        rows = (torch.arange(h) + origin[0]) % m
+        cols = (torch.arange(w) + origin[1]) % m
+        phase = (rows[:, None] * m + cols[None, :]).reshape(-1).repeat(sensor.shape[0])
+        for p in range(m * m):
+            sel = phase == p
+            x = patches[sel]
+            self.gram[p] += x.T @ x
+            self.cross[p] += x.T @ values[sel]
+
+    def solve(self) -> torch.Tensor:
+        n = self.gram.shape[-1]
+        eye = torch.eye(n, dtype=torch.float64)
+        out = []
+        for gram, cross in zip(self.gram, self.cross):
+            reg = self.ridge * torch.trace(gram) / n
+            if not reg > 0:
+                reg = 1e-12 if torch.trace(gram) > 0 else 1.0
+            out.append(torch.linalg.solve(gram + reg * eye, cross))  # (K², C)
+        k = self.window
+        return torch.stack(out).transpose(1, 2).reshape(len(out), self.bands, k, k).float()

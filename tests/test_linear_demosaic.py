@@ -1,0 +1,184 @@
+"""The least-squares linear demosaic (one filter per CFA phase and band): against a loop reference,
+exact recovery of known filters, the tent as a special case, tiles, optimality on its training
+pairs, and the `doe-linear-demosaic` method through the real entry point."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import torch
+import torch.nn.functional as F
+
+from cli_helpers import assert_clean_error, run_cli
+from hsicam.models.demosaic import LinearDemosaicFit, demosaic, phase_linear
+from hsicam.sensor import tile_pattern
+
+
+def _loop_reference(g: np.ndarray, weight: np.ndarray, origin: tuple[int, int]) -> np.ndarray:
+    """x̂[c, i, j] = Σ_uv W[phase(i, j), c, u, v] · g_ext[i + u − r, j + v − r], g extended by
+    replicating its border, phase(i, j) = ((i + o₀) mod m)·m + (j + o₁) mod m; written from the
+    definition with explicit loops."""
+    phases, bands, k, _ = weight.shape
+    m, r = int(round(phases ** 0.5)), k // 2
+    h, w = g.shape
+    out = np.zeros((bands, h, w))
+    for i in range(h):
+        for j in range(w):
+            p = ((i + origin[0]) % m) * m + (j + origin[1]) % m
+            for u in range(k):
+                for v in range(k):
+                    y = min(max(i + u - r, 0), h - 1)
+                    x = min(max(j + v - r, 0), w - 1)
+                    out[:, i, j] += weight[p, :, u, v] * g[y, x]
+    return out
+
+
+@pytest.mark.parametrize("origin", [(0, 0), (1, 2), (7, 5)])
+def test_phase_linear_matches_the_loop_reference(origin):
+    gen = torch.Generator().manual_seed(1)
+    g = torch.rand(1, 1, 11, 9, generator=gen, dtype=torch.float64)
+    weight = torch.randn(9, 2, 5, 5, generator=gen, dtype=torch.float64)  # period 3, 2 bands, 5×5
+    got = phase_linear(g, weight, origin)
+    np.testing.assert_allclose(got[0].numpy(), _loop_reference(g[0, 0].numpy(), weight.numpy(), origin), atol=1e-12)
+
+
+def test_fit_recovers_known_filters_exactly():
+    """Truth made by known per-phase filters is fitted back exactly (ridge 0, enough samples)."""
+    gen = torch.Generator().manual_seed(2)
+    weight = torch.randn(16, 3, 5, 5, generator=gen, dtype=torch.float64)
+    g = torch.rand(4, 1, 40, 36, generator=gen, dtype=torch.float64)
+    fit = LinearDemosaicFit(4, 3, 5, ridge=0.0)
+    fit.add(g[:2], phase_linear(g[:2], weight))
+    fit.add(g[2:, :, 3:, 1:], phase_linear(g[2:, :, 3:, 1:], weight, (3, 1)), origin=(3, 1))  # windows elsewhere
+    torch.testing.assert_close(fit.solve().double(), weight, atol=2e-5, rtol=0)
+
+
+def test_the_tent_demosaic_is_one_such_linear_map():
+    """The tent (weighted-bilinear) demosaic is linear per CFA phase: fitted on its own output it
+    is reproduced, and the fitted filters match on a new image."""
+    gen = torch.Generator().manual_seed(3)
+    m, bands = 4, 5
+    tile = torch.rand(bands, m, m, generator=gen, dtype=torch.float64) + 0.05
+    tile = tile / tile.sum(0, keepdim=True)
+
+    def tent(g):  # on the image extended by replication (so the border matches phase_linear's)
+        r = 3
+        ext = F.pad(g, (r, r, r, r), mode="replicate")
+        code = tile_pattern(torch.roll(tile, (r, r), (-2, -1)), ext.shape[-2], ext.shape[-1])
+        return demosaic(ext, code, 2 * m - 1, "tent")[..., r:-r, r:-r]
+
+    g = torch.rand(2, 1, 32, 28, generator=gen, dtype=torch.float64)
+    fit = LinearDemosaicFit(m, bands, 7, ridge=0.0)
+    fit.add(g, tent(g))
+    new = torch.rand(1, 1, 20, 24, generator=gen, dtype=torch.float64)
+    torch.testing.assert_close(phase_linear(new, fit.solve().double()), tent(new), atol=1e-5, rtol=0)
+
+
+def test_tiles_with_a_halo_equal_the_whole_image():
+    gen = torch.Generator().manual_seed(4)
+    weight = torch.randn(16, 4, 7, 7, generator=gen)
+    g = torch.rand(1, 1, 50, 45, generator=gen)
+    whole = phase_linear(g, weight)
+    r = 3
+    for top, left in ((0, 0), (9, 13), (30, 21)):
+        win = g[..., max(top - r, 0) : top + 20 + r, max(left - r, 0) : left + 24 + r]
+        origin = (max(top - r, 0), max(left - r, 0))
+        part = phase_linear(win, weight, origin)
+        a, b = top - origin[0], left - origin[1]
+        h, w = min(20, 50 - top), min(24, 45 - left)
+        torch.testing.assert_close(part[..., a : a + h, b : b + w], whole[..., top : top + h, left : left + w])
+
+
+def test_the_fit_is_the_least_squares_optimum_on_its_pairs():
+    """No other filters (the fitted ones perturbed, or the tent's) do better on the training pairs."""
+    gen = torch.Generator().manual_seed(5)
+    g = torch.rand(3, 1, 24, 24, generator=gen, dtype=torch.float64)
+    truth = torch.rand(3, 2, 24, 24, generator=gen, dtype=torch.float64) * g  # related to g, not a linear map of it
+    fit = LinearDemosaicFit(2, 2, 3, ridge=0.0)
+    fit.add(g, truth)
+    best = fit.solve().double()
+    err = ((phase_linear(g, best) - truth) ** 2).sum()
+    for _ in range(5):
+        other = best + 0.01 * torch.randn(best.shape, generator=gen, dtype=torch.float64)
+        assert ((phase_linear(g, other) - truth) ** 2).sum() > err
+
+
+def test_bad_shapes_are_clear_errors():
+    with pytest.raises(ValueError, match="sensor image must be"):
+        phase_linear(torch.rand(1, 2, 8, 8), torch.rand(4, 3, 3, 3))
+    with pytest.raises(ValueError, match="weight must be"):
+        phase_linear(torch.rand(1, 1, 8, 8), torch.rand(3, 3, 3, 3))  # 3 phases: not a square
+    with pytest.raises(ValueError, match="window odd"):
+        LinearDemosaicFit(4, 3, 4)
+    with pytest.raises(ValueError, match="ridge"):
+        LinearDemosaicFit(4, 3, 5, ridge=float("nan"))
+    with pytest.raises(ValueError, match="same pixels"):
+        LinearDemosaicFit(4, 3, 5).add(torch.rand(1, 1, 8, 8), torch.rand(1, 3, 8, 9))
+
+
+@pytest.fixture(scope="module")
+def run(tmp_path_factory):
+    env = {"HSICAM_CACHE": str(tmp_path_factory.mktemp("cache"))}
+    d = tmp_path_factory.mktemp("run") / "run"
+    res = run_cli("train", "--config", "tiny", "--out", str(d), "--set", "camera.cfa.init=bandpass", env=env)
+    assert res.returncode == 0, res.stderr
+    return d, env
+
+
+def test_linear_reference_method_is_fitted_on_the_training_scenes_through_the_runs_optics(run, monkeypatch):
+    """`doe-linear-demosaic` applies the filters that the least-squares fit of the run's own
+    noise-free captures of the training split gives, and on those scenes it beats the tent."""
+    from hsicam.config import load_config
+    from hsicam.data.pipeline import scene_dataset, split_dataset
+    from hsicam.engine.methods import build_method
+    from hsicam.errors import InputError
+    from hsicam.models.demosaic import camera_demosaic
+
+    d, env = run
+    monkeypatch.setenv("HSICAM_CACHE", env["HSICAM_CACHE"])
+    cfg = load_config(d / "config.yaml")
+    method = build_method("doe-linear-demosaic", cfg, d)
+    bands = cfg.bands.to_bands()
+    train, _ = split_dataset(cfg.data, bands)
+    scenes = scene_dataset(cfg.data, train, bands)
+    assert method.info["training_scenes"] == len(train) and method.info["window_px"] == 11
+    cam = method.camera
+    fit = LinearDemosaicFit(cam.code_period, len(cam.bands), 11, 1e-6)
+    se_lin = se_tent = 0.0
+    with torch.no_grad():
+        for i in range(len(train)):
+            s = scenes[i][None]
+            y, t = cam.A(s), method.target(s)
+            fit.add(y, t)
+            se_lin += float(((method.reconstruct(y) - t) ** 2).sum())
+            se_tent += float(((camera_demosaic(cam, y, kernel="tent") - t) ** 2).sum())
+        y = cam.A(scenes[0][None])
+        torch.testing.assert_close(method.reconstruct(y), phase_linear(y, fit.solve()), atol=1e-5, rtol=1e-4)
+    assert se_lin < se_tent
+    with pytest.raises(InputError, match="needs --run"):
+        build_method("doe-linear-demosaic", cfg)
+
+
+def test_linear_reference_through_the_cli_and_its_errors(run, tmp_path):
+    d, env = run
+    out = tmp_path / "ev"
+    res = run_cli("evaluate", "--run", str(d), "--method", "doe-linear-demosaic", "--out", str(out), env=env)
+    assert res.returncode == 0, res.stderr
+    assert "doe-linear-demosaic: mean PSNR" in res.stdout
+    summary = json.loads((out / "results.json").read_text())
+    assert summary["method"] == "doe-linear-demosaic" and np.isfinite(summary["mean"]["psnr"])
+    bad = run_cli("evaluate", "--method", "doe-linear-demosaic", "--out", str(tmp_path / "bad"), env=env)
+    assert_clean_error(bad, "needs --run")
+
+
+def test_linear_reference_needs_a_cfa_camera():
+    from hsicam.config import load_config
+    from hsicam.engine.methods import linear_demosaic_reference
+    from hsicam.models import CameraSystem
+
+    with pytest.raises(ValueError, match="per-band sensor code"):
+        linear_demosaic_reference(CameraSystem.from_config(load_config("dd_cassi_rdn")), [torch.rand(31, 8, 8)])
+    with pytest.raises(ValueError, match="at least one training scene"):
+        linear_demosaic_reference(CameraSystem.from_config(load_config("tiny")), [])
