@@ -319,13 +319,14 @@ def test_demo_cli_trains_reports_and_draws(tmp_path, cache_env):
     n_val = len(summary["scenes"])
     assert n_val >= 1 and all(np.isfinite(summary["mean"][k]) for k in ("psnr", "ssim", "sam"))
     refs = {r["method"]: r["mean"] for r in summary["references"]}
-    assert set(refs) == {"sensor image x mean training spectrum", "CFA box demosaic (no network)"}
+    assert set(refs) == {"sensor image x mean training spectrum", "CFA box demosaic (no network)",
+                         "CFA linear demosaic, least squares on the training scenes (no network)"}
     assert all(np.isfinite(m[k]) for m in refs.values() for k in ("psnr", "ssim", "sam"))
     held = summary["heldout"]  # the held-out-sources block, named as such
     assert held["data"].startswith("held-out spectral sources") and len(held["scenes"]) >= 1
     assert all(np.isfinite(held["mean"][k]) for k in ("psnr", "ssim", "sam"))
     assert f"PSNR {summary['mean']['psnr']:.2f} dB" in proc.stdout
-    assert proc.stdout.count("reference, ") == 4  # validation and held-out sources, 2 each
+    assert proc.stdout.count("reference, ") == 6  # validation and held-out sources, 3 each
     md = (out / "results.md").read_text()  # both tables and both reference lists, each named once
     assert md.count(held["data"]) == 1 and md.count("CFA box demosaic (no network): PSNR") == 2
     assert "| scene | psnr | ssim | sam |" in md and md.count("**mean**") == 2

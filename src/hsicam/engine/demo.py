@@ -13,7 +13,7 @@ from hsicam.data.pipeline import scene_dataset, split_dataset
 from hsicam.engine.evaluate import (TestNoise, demosaic_reference, evaluate_method, evaluate_scenes, format_table,
                                     grey_reference, summarize)
 from hsicam.engine.experiments import ensure_trained, heldout_scenes
-from hsicam.engine.methods import network_alone_reference, network_skip
+from hsicam.engine.methods import linear_demosaic_reference, network_alone_reference, network_skip
 from hsicam.io import atomic_open, clear_complete, mark_complete, write_json
 from hsicam.report.camera import write_optics_figures, write_psf_outputs
 from hsicam.report.reconstruction import plot_reconstructions, plot_training_curves
@@ -48,7 +48,8 @@ def run_demo(cfg: Config, out: str | Path) -> dict[str, Any]:
     train_list, val = split_dataset(cfg.data, bands)
     scenes, names = scene_dataset(cfg.data, val, bands), [p.stem for p in val]
     results = evaluate_scenes(model, scenes, names, seed=cfg.train.seed)
-    references = [grey_reference(model, scene_dataset(cfg.data, train_list, bands))]
+    train_scenes = scene_dataset(cfg.data, train_list, bands)
+    references = [grey_reference(model, train_scenes)]
     if model.consistency_on:
         references.append(network_alone_reference(model))
     try:
@@ -56,6 +57,7 @@ def run_demo(cfg: Config, out: str | Path) -> dict[str, Any]:
         skip = network_skip(model.net)
         if skip is not None and skip.demosaic_kernel == "tent":  # the network's own start, network-free
             references.append(demosaic_reference(model, "tent", skip.demosaic_window))
+        references.append(linear_demosaic_reference(model, train_scenes))  # the best linear map, fitted
     except ValueError:  # a camera without a per-band sensor code (CASSI)
         pass
     summary = summarize(results)
