@@ -271,7 +271,7 @@ def atomic_output(path: str | os.PathLike, kind: str = "dir", *, overwrite: bool
         raise ValueError(f"kind must be 'file' or 'dir', got {kind!r}")
     path = Path(path)
     check_output_path(path, "dir")
-    _check_replaceable(path, overwrite)
+    check_replaceable(path, overwrite)
     try:
         created = _make_parents(path.parent)
         tmp = _new_temp_dir(path)
@@ -281,7 +281,7 @@ def atomic_output(path: str | os.PathLike, kind: str = "dir", *, overwrite: bool
         yield tmp
         if marker:
             mark_complete(tmp, marker if isinstance(marker, dict) else None)
-        _check_replaceable(path, overwrite)  # the block may have run for hours
+        check_replaceable(path, overwrite)  # the block may have run for hours
         _swap_in(tmp, path)
     except BaseException:
         _remove(tmp)
@@ -290,7 +290,11 @@ def atomic_output(path: str | os.PathLike, kind: str = "dir", *, overwrite: bool
     _fsync_dir(path.parent)
 
 
-def _check_replaceable(path: Path, overwrite: bool) -> None:
+def check_replaceable(path: Path, overwrite: bool) -> None:
+    """InputError unless :func:`atomic_output` may put a folder at ``path``: absent, empty, or (with
+    ``overwrite``) a completed hsicam output. Commands call it before their work too
+    (:func:`hsicam.cli.prepare_output` with ``replace=True``), so a user's own folder is refused at
+    once, not after hours of work."""
     if not path.is_dir():
         if path.exists():
             raise InputError(f"{path}: is an existing file; a folder is needed here")

@@ -80,6 +80,29 @@ def add_run_arg(p: argparse.ArgumentParser, help: str, required: bool = True) ->
                    help=f"{help}, or pretrained:NAME (a shipped camera, see `hsicam pretrained`)")
 
 
+def device_arg(spec: str) -> str:
+    """argparse ``type`` of every ``--device``: a torch device this machine has (``cpu``, ``cuda``,
+    ``cuda:N``, ``mps``), else a usage error saying what is available, never a traceback later."""
+    import torch
+
+    try:
+        dev = torch.device(spec)
+    except (RuntimeError, ValueError):
+        raise argparse.ArgumentTypeError(f"unknown device {spec!r}; use cpu, cuda, cuda:N or mps") from None
+    if dev.type == "cuda":
+        n = torch.cuda.device_count() if torch.cuda.is_available() else 0
+        if n == 0:
+            raise argparse.ArgumentTypeError(f"device {spec!r}: no CUDA device is available here (torch "
+                                             f"{torch.__version__}); use --device cpu")
+        if dev.index is not None and dev.index >= n:
+            raise argparse.ArgumentTypeError(f"device {spec!r}: this machine has {n} CUDA device(s), cuda:0 to cuda:{n - 1}")
+    elif dev.type == "mps" and not (hasattr(torch.backends, "mps") and torch.backends.mps.is_available()):
+        raise argparse.ArgumentTypeError(f"device {spec!r}: no MPS device is available here; use --device cpu")
+    elif dev.type not in ("cpu", "cuda", "mps"):
+        raise argparse.ArgumentTypeError(f"device {spec!r}: hsicam runs on cpu, cuda or mps")
+    return spec
+
+
 def config_from_args(path: str | Path | None, overrides: Sequence[str] = ()):
     """``load_config`` for the command line: a config FILE that is empty (or holds only comments)
     is an error, never silently the built-in defaults (the paper camera)."""
@@ -104,18 +127,22 @@ def config_from_args(path: str | Path | None, overrides: Sequence[str] = ()):
     return load_config(path, list(overrides))
 
 
-def prepare_output(path: str | Path, kind: str = "dir") -> Path:
+def prepare_output(path: str | Path, kind: str = "dir", replace: bool = False) -> Path:
     """Before any work: :func:`hsicam.io.check_output_path` (one-line error for an output that cannot
     work; a shipped pre-trained camera, which is read-only), then remove the hidden temporary
     siblings (``.NAME.XXXXXXXX.tmpdir`` …) that an earlier, killed run of a command left next to
-    this output."""
+    this output. ``replace``: the command writes the folder whole through
+    ``atomic_output(..., overwrite=True)``, so a non-empty folder that is not a completed hsicam
+    output (a user's own) is refused now, before the work (:func:`hsicam.io.check_replaceable`)."""
     import shutil
 
-    from hsicam.io import check_output_path, is_temporary
+    from hsicam.io import check_output_path, check_replaceable, is_temporary
     from hsicam.runs.pretrained import check_not_pretrained
 
     check_not_pretrained(path)
     out = check_output_path(path, kind)
+    if replace and kind == "dir":
+        check_replaceable(Path(out), overwrite=True)
     parent = Path(out).parent
     if parent.is_dir():
         stem = Path(out).stem if kind == "file" else Path(out).name

@@ -45,7 +45,7 @@ def camera_from_args(args: argparse.Namespace, extra_overrides: tuple[str, ...] 
 def cmd_psf(args: argparse.Namespace) -> int:
     from hsicam.report.camera import write_psf_outputs
 
-    out = prepare_output(args.out, "dir")
+    out = prepare_output(args.out, "dir", replace=True)
     camera, cfg = camera_from_args(args)
     if camera.kind != "doe":
         raise InputError(f"hsicam psf needs a DOE camera (camera.kind=doe), not camera.kind={camera.kind}")
@@ -93,7 +93,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     from hsicam.data.pipeline import npy_bands
     from hsicam.report.camera import write_optics_figures
 
-    out = prepare_output(args.out, "dir")
+    out = prepare_output(args.out, "dir", replace=True)
     if args.run:
         from hsicam.runs.folder import load_run
 

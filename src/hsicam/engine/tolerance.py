@@ -121,6 +121,23 @@ def _tolerance_at(values: Sequence[float], psnr: Sequence[float], nominal: float
     return None
 
 
+def check_sweeps(spec: ToleranceSpec, optics) -> None:
+    """The sweep values that no camera geometry allows, refused before any evaluation: a sensor
+    distance error that puts the sensor at or behind the lens, and a lateral shift of the DOE by
+    more than the aperture's diameter (the element would leave the aperture: the camera would be
+    the bare lens, not a misaligned DOE camera)."""
+    z = optics.sensor_distance_m
+    for dz_um in spec.sensor_distance_um:
+        if z + dz_um * 1e-6 <= 0:
+            raise InputError(f"sensor distance error {dz_um} µm puts the sensor behind the lens "
+                             f"(the sensor sits {z * 1e6:.0f} µm behind it)")
+    limit = 2 * optics.aperture_radius_m / optics.cell_m
+    for s in spec.shift_cells:
+        if abs(s) > limit:
+            raise InputError(f"DOE shift {s} cells exceeds the aperture's diameter ({limit:.0f} cells of "
+                             f"{optics.cell_m * 1e6:g} µm): the element would leave the aperture")
+
+
 def run_tolerance(model, cfg, spec: ToleranceSpec = ToleranceSpec(), data: str | Path | None = None,
                   progress: bool = False) -> dict[str, Any]:
     """Evaluate the camera of ``model`` (a :class:`~hsicam.models.CameraSystem` with a DOE camera)
@@ -133,6 +150,7 @@ def run_tolerance(model, cfg, spec: ToleranceSpec = ToleranceSpec(), data: str |
     if not isinstance(cam, DOECamera) or not hasattr(cam, "optics"):
         raise InputError("tolerance analysis needs a DOE camera (camera.kind: doe)")
     optics = cam.optics
+    check_sweeps(spec, optics)
     t0 = time.perf_counter()
     scenes, names = evaluation_scenes(cfg, cam.bands, spec.max_scenes, data)
     h0 = nominal_heights(cam)
@@ -191,8 +209,6 @@ def run_tolerance(model, cfg, spec: ToleranceSpec = ToleranceSpec(), data: str |
     z = optics.sensor_distance_m
     for dz_um in spec.sensor_distance_um:
         dz = dz_um * 1e-6
-        if z + dz <= 0:
-            raise InputError(f"sensor distance error {dz_um} µm puts the sensor behind the lens")
         res = psf_for_heights(optics, h0, defocus_delta_per_m2(optics, dz))
         waves = optics.aperture_radius_m**2 / 2 * (1 / (z + dz) - 1 / z) / lam0
         record("sensor_distance_um", dz_um, "um", [evaluate_psf(model, res.psf, scenes, names, spec.seed)], res.energy,
