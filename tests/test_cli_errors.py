@@ -225,3 +225,79 @@ def test_demo_refuses_a_run_trained_with_other_settings(inputs, tmp_path, capsys
     assert_one_line(code, captured.err, "trained with another config", "→", "delete it")
     assert "reusing" not in captured.out and "training" not in captured.out, captured.out  # nothing announced
     assert snapshot(out) == before and not (out / "results.json").exists()
+
+
+def test_a_users_own_folder_is_refused_before_the_work(inputs, tmp_path, capsys, monkeypatch):
+    """psf, simulate, evaluate and tolerance write their folder whole; a non-empty folder that is not
+    a completed hsicam output is refused before any scene is imaged or scored, and stays untouched."""
+    import hsicam.engine.evaluate as ev
+    import hsicam.engine.tolerance as tol
+
+    def no_work(*a, **k):  # any scoring would be work done before the refusal
+        raise AssertionError("work started before the output folder was checked")
+
+    monkeypatch.setattr(ev, "evaluate_method", no_work)
+    monkeypatch.setattr(tol, "evaluation_scenes", no_work)
+    out = tmp_path / "mine"
+    out.mkdir()
+    (out / "notes.txt").write_text("user data")
+    for name in ("psf", "simulate", "evaluate", "tolerance"):
+        code, err = call(capsys, commands(inputs, out)[name])
+        assert_one_line(code, err, str(out), "not empty")
+        assert snapshot(tmp_path) == ["mine", "mine/notes.txt"], name
+    assert (out / "notes.txt").read_text() == "user data"
+
+
+@pytest.mark.parametrize("device, fragment", [("cuda", "no CUDA device"), ("cuda:7", "no CUDA device"),
+                                              ("banana", "unknown device"), ("meta", "cpu, cuda or mps")])
+def test_a_device_this_machine_lacks_is_a_usage_error(inputs, tmp_path, capsys, device, fragment):
+    import torch
+
+    if torch.cuda.is_available() and device.startswith("cuda"):
+        pytest.skip("this machine has CUDA")
+    run = str(inputs / "run")
+    for args in (["evaluate", "--run", run, "--method", "doe-box-demosaic"], ["tolerance", "--run", run],
+                 ["reconstruct", str(inputs / "cap.npy"), "--run", run]):
+        out = tmp_path / "o.h5" if args[0] == "reconstruct" else tmp_path / "o"
+        with pytest.raises(SystemExit) as exc:
+            main([*args, "--out", str(out), "--device", device])
+        err = capsys.readouterr().err
+        assert exc.value.code == 2 and err.count("\n") == 1 and fragment in err and "--device" in err, err
+        assert not out.exists()
+
+
+def test_evaluate_refuses_settings_a_trained_run_would_ignore(inputs, tmp_path, capsys):
+    """camera, band and network keys cannot change a trained run: refused (they used to be recorded
+    in the results' config hash though nothing changed); capture and inference keys still apply."""
+    run = str(inputs / "run")
+    for kv in ("camera.cfa.period=4", "bands.step_nm=100", "model.rdn.features=16", "camera.aperture_radius_mm=0.3"):
+        code, err = call(capsys, ["evaluate", "--run", run, "--out", str(tmp_path / "o"), "--set", kv])
+        assert_one_line(code, err, f"--set {kv.split('=')[0]}", "fixed by its training")
+        assert not (tmp_path / "o").exists()
+    code, err = call(capsys, ["evaluate", "--run", run, "--out", str(tmp_path / "ok"), "--set", "camera.boundary=same",
+                              "--set", "model.consistency.iterations=1", "--set", "camera.sensor.noise=gaussian"])
+    assert code == 0, err
+    hashes = json.loads((tmp_path / "ok" / "results.json").read_text())["config_hash"]
+    code, err = call(capsys, ["evaluate", "--run", run, "--out", str(tmp_path / "ok2"), "--set", "camera.boundary=same"])
+    assert code == 0 and json.loads((tmp_path / "ok2" / "results.json").read_text())["config_hash"] != hashes
+
+
+def test_tolerance_refuses_impossible_sweeps_before_scoring(inputs, tmp_path, capsys, monkeypatch):
+    import hsicam.engine.tolerance as tol
+
+    monkeypatch.setattr(tol, "evaluation_scenes", lambda *a, **k: (_ for _ in ()).throw(AssertionError("scored")))
+    run = str(inputs / "run")
+    code, err = call(capsys, ["tolerance", "--run", run, "--out", str(tmp_path / "t"), "--sensor-distance-um=-1e9"])
+    assert_one_line(code, err, "behind the lens")
+    code, err = call(capsys, ["tolerance", "--run", run, "--out", str(tmp_path / "t"), "--shift-cells", "1e6"])
+    assert_one_line(code, err, "exceeds the aperture")
+    assert not (tmp_path / "t").exists()
+
+
+def test_absurd_doe_cell_sizes_and_consistency_steps_are_one_line_errors(inputs, tmp_path, capsys):
+    code, err = call(capsys, ["psf", "--config", "tiny", "--set", "camera.doe.cell_size_um=1e-9", "--out", str(tmp_path / "p")])
+    assert_one_line(code, err, "cells across", "camera.doe.cell_size_um")
+    code, err = call(capsys, ["reconstruct", str(inputs / "cap.npy"), "--run", str(inputs / "run"), "--out",
+                              str(tmp_path / "r.h5"), "--consistency-steps", "1000000"])
+    assert_one_line(code, err, "--consistency-steps must be")
+    assert not (tmp_path / "p").exists() and not (tmp_path / "r.h5").exists()

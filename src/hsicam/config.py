@@ -295,6 +295,11 @@ class UnrolledConfig:
     mosaic: MosaicConfig = field(default_factory=MosaicConfig)  # the front end of init=mosaic
 
 
+#: Most measurement-consistency steps: each widens the tiling halo by the PSF's reach, and on the demo
+#: camera 2, 4 and 8 steps score within 0.01 dB of one (docs/networks.md).
+MAX_CONSISTENCY_ITERATIONS = 100
+
+
 @dataclass
 class ConsistencyConfig:
     """Measurement consistency after the network, at inference (``hsicam.models.consistency``):
@@ -306,8 +311,9 @@ class ConsistencyConfig:
     psf_energy: float = 0.995  # the step's PSFs are cut to the kernel keeping this share of each band's light (1: whole)
 
     def __post_init__(self) -> None:
-        if self.iterations < 0:
-            raise ConfigError(f"model.consistency.iterations must be >= 0, got {self.iterations}")
+        if not 0 <= self.iterations <= MAX_CONSISTENCY_ITERATIONS:
+            raise ConfigError(f"model.consistency.iterations must be in [0, {MAX_CONSISTENCY_ITERATIONS}], got "
+                              f"{self.iterations} (each step widens the tiles' halo; 2, 4 and 8 steps score as 1)")
         if not self.damping > 0:
             raise ConfigError(f"model.consistency.damping must be > 0, got {self.damping}")
         if not 0 < self.psf_energy <= 1:

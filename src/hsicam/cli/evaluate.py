@@ -6,7 +6,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from hsicam.cli import add_config_args, add_run_arg, config_from_args
+from hsicam.cli import add_config_args, add_run_arg, config_from_args, device_arg
 from hsicam.errors import InputError
 
 
@@ -25,7 +25,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--sensor-sigma", type=float, default=None, help="test sensor noise σ_s")
     p.add_argument("--seeds", type=int, default=1, help="number of noise seeds (0, 1, ...)")
     p.add_argument("--save", action="store_true", help="also write the reconstructed cubes (cubes/*.h5)")
-    p.add_argument("--device", default="cpu")
+    p.add_argument("--device", default="cpu", type=device_arg, help="torch device (default cpu)")
     p.set_defaults(func=cmd_evaluate)
 
     p = sub.add_parser("experiment", help="run one of the paper's experiments (resumable)")
@@ -38,6 +38,24 @@ def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("report", help="HTML report (index.html + PNGs) of an evaluation or experiment folder")
     p.add_argument("dir", metavar="DIR")
     p.set_defaults(func=cmd_report)
+
+
+#: What ``--set`` may change when ``evaluate`` scores a trained run (``--run``): the data, the
+#: inference step after the network, how scenes are captured (boundary, padding, noise) and the
+#: baselines' settings. A run's camera, band grid and network are fixed by its training.
+RUN_EVALUATION_KEYS = ("data", "model.consistency", "camera.boundary", "camera.padding", "camera.sensor",
+                       "camera.doe.sigma_height_nm", "baselines")
+
+
+def check_run_overrides(overrides) -> None:
+    """InputError for a ``--set`` that a trained run would silently ignore (it used to be recorded in
+    the results' config hash all the same)."""
+    for item in overrides:
+        key = str(item).split("=", 1)[0].strip()
+        if not any(key == k or key.startswith(k + ".") for k in RUN_EVALUATION_KEYS):
+            raise InputError(f"--set {key}: a trained run's camera, bands and network are fixed by its training; with "
+                             f"--run, evaluate changes only {', '.join(k + '.*' if k in ('data', 'baselines', 'camera.sensor', 'model.consistency') else k for k in RUN_EVALUATION_KEYS)} "
+                             "(other optics: hsicam tolerance; another design: hsicam train)")
 
 
 def cmd_evaluate(args: argparse.Namespace) -> int:
@@ -53,7 +71,7 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     from hsicam.io import atomic_output
 
     args.method = METHOD_ALIASES.get(args.method, args.method)  # results carry the method's current name
-    out = prepare_output(args.out, "dir")
+    out = prepare_output(args.out, "dir", replace=True)
     if args.seeds < 1:
         raise InputError("--seeds must be >= 1")
     if args.run:
@@ -62,6 +80,7 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
             raise InputError("--run uses the run's config.yaml; drop --config")
         if not (run / "config.yaml").is_file():
             raise InputError(f"{run}: not a run folder (config.yaml is missing)" if run.is_dir() else f"{run}: no such run folder")
+        check_run_overrides(args.overrides)
         cfg = config_from_args(run / "config.yaml", args.overrides)
     else:
         cfg = config_from_args(args.config, args.overrides)

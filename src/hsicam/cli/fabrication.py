@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-import json
 from pathlib import Path
 
 from hsicam.errors import InputError
@@ -24,7 +23,7 @@ def _ints(text: str) -> tuple[int, ...]:
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    from hsicam.cli import add_run_arg
+    from hsicam.cli import add_run_arg, device_arg
 
     p = sub.add_parser("export-optics", help="fabrication files: DOE heights (npy/tiff/csv/gds), CFA spectra and fits, spec.json")
     add_run_arg(p, "trained run folder")
@@ -49,7 +48,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--sensor-distance-um", type=_floats, default=None, metavar="LIST",
                    help="e.g. --sensor-distance-um=-100,-50,0,50,100 (use '=' for lists starting with '-')")
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--device", default="cpu")
+    p.add_argument("--device", default="cpu", type=device_arg, help="torch device (default cpu)")
     p.set_defaults(func=cmd_tolerance)
 
     p = sub.add_parser("finetune", help="adapt a run's network to measured PSFs (optics frozen)")
@@ -88,7 +87,7 @@ def cmd_tolerance(args: argparse.Namespace) -> int:
     from hsicam.cli import prepare_output
     from hsicam.io import atomic_output
 
-    out = prepare_output(args.out, "dir")
+    out = prepare_output(args.out, "dir", replace=True)
     spec = ToleranceSpec(height_draws=args.draws, max_scenes=args.max_scenes, seed=args.seed,
                          shift_subsamples=args.shift_subsamples)
     for name in ("sigma_height_nm", "levels", "shift_cells", "sensor_distance_um"):
@@ -102,14 +101,17 @@ def cmd_tolerance(args: argparse.Namespace) -> int:
     with atomic_output(out, overwrite=True, marker={"command": "tolerance"}) as tmp:
         write_tolerance(tmp, result)
     s = result["summary"]
+    dz = s.get("sensor_distance_um_at_1db_loss") or {}
     print(f"nominal PSNR {result['nominal']['psnr']:.2f} dB on {len(result['scenes'])} scene(s); 1-dB tolerances: "
-          f"σ_p {_fmt(s.get('sigma_height_nm_at_1db_loss'))} nm, shift {_fmt(s.get('shift_x_cells_at_1db_loss'))} cells (x), "
-          f"Δz {json.dumps(s.get('sensor_distance_um_at_1db_loss'))} µm, levels ≥ {s.get('min_levels_within_1db')} -> {args.out}")
+          f"σ_p {_fmt(s.get('sigma_height_nm_at_1db_loss'), 'nm')}, shift {_fmt(s.get('shift_x_cells_at_1db_loss'), 'cells')} (x), "
+          f"Δz toward the lens {_fmt(dz.get('minus'), 'µm')}, away {_fmt(dz.get('plus'), 'µm')}, levels ≥ {s.get('min_levels_within_1db')} "
+          f"-> {args.out}")
     return 0
 
 
-def _fmt(v) -> str:
-    return "> range" if v is None else f"{v:.3g}"
+def _fmt(v, unit: str) -> str:
+    """A 1-dB tolerance with its unit, or the words for one the sweep never reached."""
+    return "beyond the swept range" if v is None else f"{v:.3g} {unit}"
 
 
 def cmd_finetune(args: argparse.Namespace) -> int:

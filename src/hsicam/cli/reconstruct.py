@@ -17,7 +17,7 @@ log = logging.getLogger(__name__)
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    from hsicam.cli import add_run_arg
+    from hsicam.cli import add_run_arg, device_arg
 
     p = sub.add_parser("reconstruct", help="reconstruct a hyperspectral cube from a sensor image or raw capture")
     p.add_argument("sensor", metavar="SENSOR", help="sensor image / raw capture: .npy, 8/16-bit PNG or TIFF")
@@ -25,7 +25,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--out", required=True, metavar="FILE", help="output cube: .h5 (ours) or .hdr (ENVI)")
     p.add_argument("--scale", type=float, default=None, help="multiply the image after normalising to [0, 1]")
     p.add_argument("--tile", type=int, default=512, metavar="PX", help="tile side for large images")
-    p.add_argument("--device", default="cpu")
+    p.add_argument("--device", default="cpu", type=device_arg, help="torch device (default cpu)")
     p.add_argument("--consistency-steps", type=int, default=None, metavar="N",
                    help="measurement-consistency steps after the network (default: the run's "
                         "model.consistency.iterations; 0: the network alone)")
@@ -93,6 +93,7 @@ def corrections_from_args(args: argparse.Namespace, cfa_period: int | None) -> "
 
 
 def cmd_reconstruct(args: argparse.Namespace) -> int:
+    from hsicam.config import MAX_CONSISTENCY_ITERATIONS
     from hsicam.runs.folder import load_run
     from hsicam.data.images import read_capture
     from hsicam.engine.inference import reconstruct_tiled
@@ -108,8 +109,9 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
         raise InputError(f"{out}: output must end in .h5 (HDF5) or .hdr (ENVI)")
     for f in output_files(out):  # before any work: an existing folder, a path inside a file, no permission
         prepare_output(f, "file")
-    if args.consistency_steps is not None and args.consistency_steps < 0:
-        raise InputError("--consistency-steps must be >= 0")
+    if args.consistency_steps is not None and not 0 <= args.consistency_steps <= MAX_CONSISTENCY_ITERATIONS:
+        raise InputError(f"--consistency-steps must be >= 0 and <= {MAX_CONSISTENCY_ITERATIONS} (each step widens "
+                         "the tiles' halo; more than one rarely changes the estimate)")
     cfg, model = load_run(args.run, args.device)
     if args.consistency_steps is not None:
         model.consistency = dataclasses.replace(cfg.model.consistency, iterations=args.consistency_steps)

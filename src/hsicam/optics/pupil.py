@@ -14,13 +14,22 @@ import numpy as np
 from hsicam.errors import InputError
 
 
+#: Most DOE cells across the aperture: a 32769² pupil grid is 4 GiB per float32 map (the paper's is 333²).
+MAX_CELLS_ACROSS = 32769
+
+
 def cells_across(aperture_radius_m: float, cell_m: float) -> int:
     """Number of DOE cells across the aperture (odd): 2·floor(R/Δ) + 1."""
     if not (aperture_radius_m > 0 and cell_m > 0):
         raise InputError("aperture radius and DOE cell size must be positive")
     if cell_m > 2 * aperture_radius_m:
         raise InputError(f"DOE cell ({cell_m * 1e6:g} µm) is larger than the aperture diameter ({2e3 * aperture_radius_m:g} mm)")
-    return 2 * int(math.floor(aperture_radius_m / cell_m + 1e-9)) + 1
+    n = 2 * int(math.floor(min(aperture_radius_m / cell_m, 2.0**40) + 1e-9)) + 1
+    if n > MAX_CELLS_ACROSS:
+        raise InputError(f"DOE cells of {cell_m * 1e6:g} µm give {n} cells across the {2e3 * aperture_radius_m:g} mm "
+                         f"aperture, more than the {MAX_CELLS_ACROSS} a pupil grid can hold in memory "
+                         "(camera.doe.cell_size_um is in µm: the paper's is 30)")
+    return n
 
 
 def sample_coordinates_m(n_cells: int, cell_m: float, oversample: int = 1) -> np.ndarray:
