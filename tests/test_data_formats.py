@@ -373,6 +373,24 @@ def test_truncated_envi(tmp_path):
     assert_one_line_error(exc, tmp_path / "e.img", "truncated")
 
 
+def test_envi_header_mistakes_are_named(tmp_path):
+    """A negative header offset, nanometre values labelled micrometres, and the wrong byte order (which
+    turns floats into NaN/Inf) each get a message saying what to fix in the header."""
+    chw = np.full((3, H, W), np.frombuffer(b"\xff\xff\x80\x3f", "<f4")[0], np.float32)  # NaN read big-endian
+    chw.astype("<f4").tofile(tmp_path / "e.img")
+    nm = "wavelength = {450, 550, 650}\n"
+    cases = [(envi_header(W, H, 3, 4, "bsq", 0, -100, nm), "header offset must be >= 0"),
+             (envi_header(W, H, 3, 4, "bsq", 0, 0, "wavelength units = Micrometers\n" + nm), "are nanometres"),
+             (envi_header(W, H, 3, 4, "bsq", 1, 0, nm), "fix 'byte order'")]
+    for text, fragment in cases:
+        (tmp_path / "e.hdr").write_text(text)
+        with pytest.raises(InputError) as exc:
+            read_cube(tmp_path / "e.hdr")
+        assert_one_line_error(exc, tmp_path / "e", fragment)
+    (tmp_path / "e.hdr").write_text(envi_header(W, H, 3, 4, "bsq", 0, 0, nm))  # the right byte order reads
+    np.testing.assert_allclose(read_cube(tmp_path / "e.hdr")[0], chw)
+
+
 def test_truncated_exr(tmp_path):
     OpenEXR = pytest.importorskip("OpenEXR")
     p = tmp_path / "t.exr"

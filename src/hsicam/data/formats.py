@@ -623,6 +623,8 @@ def read_envi(path: str | os.PathLike, *, allow_negative: bool = False, memory_b
 
     samples, lines, nbands, dtype_code = need_int("samples"), need_int("lines"), need_int("bands"), need_int("data type")
     offset = need_int("header offset") if "header offset" in h else 0
+    if offset < 0:
+        raise InputError(f"{hdr}: ENVI header offset must be >= 0 bytes, got {offset}")
     if dtype_code not in _ENVI_DTYPES:
         raise InputError(f"{hdr}: unsupported ENVI data type {dtype_code} (supported: {sorted(_ENVI_DTYPES)})")
     order = need_int("byte order") if "byte order" in h else 0
@@ -645,6 +647,11 @@ def read_envi(path: str | os.PathLike, *, allow_negative: bool = False, memory_b
         raw = np.fromfile(data, dtype=dtype, count=count, offset=offset).reshape(shapes[interleave])
     cube = {"bsq": raw, "bil": raw.transpose(1, 0, 2), "bip": raw.transpose(2, 0, 1)}[interleave]
     cube = cube.astype(np.float32)
+    if dtype.kind == "f" and dtype.itemsize > 1 and not np.isfinite(cube).all():
+        other = raw.view(raw.dtype.newbyteorder())  # the same bytes read the other way round
+        if np.isfinite(other).all():  # the other byte order reads clean: the header's is wrong
+            raise InputError(f"{data}: {int((~np.isfinite(cube)).sum())} NaN/Inf value(s) with byte order {order}, "
+                             f"none with byte order {1 - order}: fix 'byte order' in {hdr.name}")
     if "reflectance scale factor" in h:
         factor = float(_envi_floats(hdr, h, "reflectance scale factor")[0])
         if factor > 0:
@@ -655,6 +662,9 @@ def read_envi(path: str | os.PathLike, *, allow_negative: bool = False, memory_b
         scale = 1.0
         if units in ("micrometers", "micrometer", "microns", "micron", "um", "µm"):
             scale = 1000.0
+            if waves.size and waves.min() > 30.0:  # 420 "µm" is far infrared: the values are nanometres
+                raise InputError(f"{hdr}: wavelength units say {h['wavelength units'].strip()} but the values "
+                                 f"({waves.min():g}–{waves.max():g}) are nanometres; fix 'wavelength units'")
         elif units in ("", "unknown") and waves.size and waves.max() < 30.0:
             log.warning("%s: wavelength units not given and values < 30; reading them as micrometres", hdr)
             scale = 1000.0

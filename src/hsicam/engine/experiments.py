@@ -146,7 +146,9 @@ def validation_scenes(cfg):
     bands = cfg.bands.to_bands()
     _, val = split_dataset(cfg.data, bands)
     if not val:
-        raise InputError("the preset has no validation scenes (data.val_fraction is 0)")
+        n = len(split_dataset(cfg.data, bands)[0])
+        why = "data.val_fraction is 0" if cfg.data.val_fraction == 0 else f"a split of {n} scene(s) keeps them all for training"
+        raise InputError(f"the config has no validation scenes ({why})")
     return scene_dataset(cfg.data, val, bands), [p.stem for p in val]
 
 
