@@ -462,3 +462,178 @@ def test_psf_folder_written_by_hsicam_psf_is_read_exactly(tiny_config, tmp_path)
     assert max(b["kernel_sum"] for b in m.report["bands"]) < 0.99  # q = 3: higher orders fell outside the kernel
     with torch.no_grad():
         np.testing.assert_allclose(m.psf, cam.psf().numpy(), rtol=0, atol=1e-7)
+
+
+# ------------------------------------------------------------------------------------------------
+# Silent wrong results refused or warned about: white level, dark frame, PSF energy
+# ------------------------------------------------------------------------------------------------
+def _outputs_absent(out: Path) -> None:
+    assert not out.exists() and not out.with_name(f"{out.stem}_rgb.png").exists()
+
+
+def test_integer_capture_white_level(tmp_path, caplog):
+    """32/64-bit integer captures have no natural full scale (their maximum is 2^31 − 1 or 2^63 − 1):
+    refused without a white level; a 12-bit capture in a 16-bit file is warned about (1/16 of full
+    scale), naming the white level to pass; a full-range 16-bit capture is not."""
+    sensor = np.random.default_rng(4).random((20, 24)) * 0.8
+    dn = np.round(sensor * 4095)
+    for dtype in (np.int64, np.int32, np.uint32):
+        p = tmp_path / f"c_{np.dtype(dtype).name}.npy"
+        np.save(p, dn.astype(dtype))
+        with pytest.raises(InputError, match="--white-level") as err:
+            read_capture(p)
+        assert str(p) in str(err.value) and np.dtype(dtype).name in str(err.value)
+        img, rep = read_capture(p, RawCorrection(white_level=4095.0))  # with the white level: exact
+        np.testing.assert_allclose(img, dn / 4095.0, rtol=1e-6)
+        assert rep["white_level_dn"] == 4095.0
+        img, _ = read_capture(p, RawCorrection(auto_level=0.5))  # auto-level does not need it
+        assert float(np.percentile(img, 99.9)) == pytest.approx(0.5, rel=1e-5)
+    # 12 bit in uint16: 16× too dark with the container's 65535 -> a warning naming the cause and the fix
+    np.save(tmp_path / "c12.npy", dn.astype(np.uint16))
+    caplog.clear()
+    with caplog.at_level("WARNING", logger="hsicam.data.images"):
+        img, _ = read_capture(tmp_path / "c12.npy")
+    np.testing.assert_allclose(img, dn / 65535.0, rtol=1e-6)  # still read as asked
+    msgs = [r.getMessage() for r in caplog.records if "c12.npy" in r.getMessage()]
+    assert len(msgs) == 1 and "12 bits" in msgs[0] and "--white-level 4095" in msgs[0], msgs
+    # no warning: a full-range 16-bit capture, or the 12-bit one with its white level
+    np.save(tmp_path / "c16.npy", np.round(sensor * 65535).astype(np.uint16))
+    caplog.clear()
+    with caplog.at_level("WARNING", logger="hsicam.data.images"):
+        read_capture(tmp_path / "c16.npy")
+        img, _ = read_capture(tmp_path / "c12.npy", RawCorrection(white_level=4095.0))
+    assert not [r for r in caplog.records if "dark" in r.getMessage()], [r.getMessage() for r in caplog.records]
+    np.testing.assert_allclose(img, dn / 4095.0, rtol=1e-6)
+
+
+def test_reconstruct_int64_capture_needs_white_level(fab_run, tmp_path):
+    sensor = np.random.default_rng(5).random((30, 34))
+    np.save(tmp_path / "cap.npy", np.round(sensor * 4095).astype(np.int64))
+    out = tmp_path / "x.h5"
+    res = run_cli("reconstruct", str(tmp_path / "cap.npy"), "--run", str(fab_run), "--out", str(out))
+    assert_clean_error(res, "cap.npy", "int64", "--white-level")
+    _outputs_absent(out)
+    ok = run_cli("reconstruct", str(tmp_path / "cap.npy"), "--run", str(fab_run), "--out", str(out), "--white-level", "4095")
+    assert ok.returncode == 0, ok.stderr
+    assert out.is_file()
+
+
+def test_raw_capture_without_signal_after_dark_subtraction(tmp_path, caplog):
+    rng = np.random.default_rng(6)
+    raw = np.round(rng.random((64, 64)) * 50000).astype(np.uint16)
+    # a dark frame brighter than the capture: nothing left -> one InputError naming the dark frame
+    with pytest.raises(InputError, match="dark frame.*nothing to reconstruct"):
+        preprocess_raw(raw, 65535.0, RawCorrection(dark=np.full((64, 64), 60000.0, np.float32)), "cap.tif")
+    with pytest.raises(InputError, match=r"dark frame \(median 60000 DN.*nothing to reconstruct"):  # black level given too
+        preprocess_raw(raw, 65535.0, RawCorrection(black_level=100.0, dark=np.full((64, 64), 60000.0, np.float32)))
+    with pytest.raises(InputError, match="black level 60000 DN.*nothing to reconstruct"):
+        preprocess_raw(raw, 65535.0, RawCorrection(black_level=60000.0), "cap.tif")
+    np.save(tmp_path / "neg.npy", -rng.random((16, 16)).astype(np.float32))
+    with pytest.raises(InputError, match="neg.npy.*nothing to reconstruct"):
+        read_capture(tmp_path / "neg.npy")
+    # half of a float capture below 0: accepted, with a warning
+    half = (rng.random((32, 32)) - 0.5).astype(np.float32)
+    np.save(tmp_path / "half.npy", half)
+    caplog.clear()
+    with caplog.at_level("WARNING", logger="hsicam.data.images"):
+        img, _ = read_capture(tmp_path / "half.npy")
+    np.testing.assert_array_equal(img, half)
+    msgs = [r.getMessage() for r in caplog.records if "below 0" in r.getMessage()]
+    assert len(msgs) == 1 and "half.npy" in msgs[0] and f"{100 * np.mean(half < 0):.0f} %" in msgs[0], msgs
+    # a later error is the only message: the warning is not printed before it
+    caplog.clear()
+    with caplog.at_level("WARNING", logger="hsicam.data.images"), pytest.raises(InputError, match="flat field"):
+        preprocess_raw(half, 1.0, RawCorrection(flat=np.zeros_like(half)), "half.npy")
+    assert not caplog.records, [r.getMessage() for r in caplog.records]
+    # a too-high black level leaving 30 % negative: warned about, naming the black level
+    caplog.clear()
+    with caplog.at_level("WARNING", logger="hsicam.data.images"):
+        preprocess_raw(raw, 65535.0, RawCorrection(black_level=15000.0), "cap.tif")
+    msgs = [r.getMessage() for r in caplog.records if "below 0" in r.getMessage()]
+    assert len(msgs) == 1 and "black level 15000 DN" in msgs[0], msgs
+    # a normal dark-frame subtraction: no warning
+    dark = 100.0 + rng.random((64, 64)) * 5
+    caplog.clear()
+    with caplog.at_level("WARNING", logger="hsicam.data.images"):
+        preprocess_raw(raw + 200, 65535.0, RawCorrection(dark=dark))
+    assert not caplog.records, [r.getMessage() for r in caplog.records]
+
+
+def test_reconstruct_dark_frame_brighter_than_capture_is_an_error(fab_run, tmp_path):
+    import tifffile
+
+    raw = np.round(np.random.default_rng(7).random((64, 64)) * 50000).astype(np.uint16)
+    tifffile.imwrite(tmp_path / "cap.tif", raw)
+    np.save(tmp_path / "dark.npy", np.full((64, 64), 60000, np.uint16))
+    out = tmp_path / "x.h5"
+    res = run_cli("reconstruct", str(tmp_path / "cap.tif"), "--run", str(fab_run), "--out", str(out),
+                  "--dark", str(tmp_path / "dark.npy"))
+    assert_clean_error(res, "cap.tif", "dark frame", "nothing to reconstruct")
+    _outputs_absent(out)
+
+
+def _psf_tifs(d: Path, bands: Bands, size: int = 31, **meta) -> Path:
+    """One float TIFF per band: a 3×3 px spot at the image centre; psf.json from ``meta``."""
+    import tifffile
+
+    shutil.rmtree(d, ignore_errors=True)
+    d.mkdir(parents=True)
+    c = size // 2
+    for lam in bands.centers_nm:
+        img = np.zeros((size, size), np.float32)
+        img[c - 1 : c + 2, c - 1 : c + 2] = 1.0
+        tifffile.imwrite(d / f"psf_{lam:g}nm.tif", img)
+    write_json(d / "psf.json", meta)
+    return d
+
+
+def test_measured_psf_light_outside_the_kernel(tmp_path, caplog):
+    """An axis outside the image, or one whose kernel holds (nearly) none of the light: one
+    InputError naming the file and band (before: all-zero PSFs); some light lost: a warning."""
+    bands = Bands.uniform(500, 600, 50)
+    k, px = 9, 10e-6  # kernel 9 camera pixels of 10 µm = 15 measured pixels of 6 µm
+    d = _psf_tifs(tmp_path / "far", bands, pixel_pitch_um=6, centre="axis", axis_px=[1e9, -5])
+    with pytest.raises(InputError, match=r"psf_500nm\.tif \(500 nm\): axis_px \[1e\+09, -5\].*outside the 31×31 px"):
+        import_psf_dir(d, bands, px, k)
+    # inside the image, but the kernel (±7.5 measured px) misses the spot at 14..16
+    d = _psf_tifs(tmp_path / "edge", bands, pixel_pitch_um=6, centre="axis", axis_px=[15, 29])
+    with pytest.raises(InputError, match=r"psf_500nm\.tif \(500 nm\): only 0 % of the PSF's light.*9×9 px kernel"):
+        import_psf_dir(d, bands, px, k)
+    # axis at column 23: the kernel spans (23 + 0.5)·6 µm ± 45 µm = columns 16 … 31 of the image, so
+    # it keeps one of the spot's three columns (14, 15, 16): 1/3 of the light -> a warning only
+    d = _psf_tifs(tmp_path / "third", bands, pixel_pitch_um=6, centre="axis", axis_px=[15, 23])
+    caplog.clear()
+    with caplog.at_level("WARNING", logger="hsicam.data.measured_psf"):
+        m = import_psf_dir(d, bands, px, k)
+    np.testing.assert_allclose(m.report["energy_in_kernel"], 1 / 3, rtol=1e-9)
+    msgs = [r.getMessage() for r in caplog.records if "outside the camera's" in r.getMessage()]
+    assert len(msgs) == 1 and all(f"psf_{lam:g}nm.tif ({lam:g} nm): 33 %" in msgs[0] for lam in bands.centers_nm), msgs
+    # centred: everything in the kernel, no warning
+    caplog.clear()
+    with caplog.at_level("WARNING", logger="hsicam.data.measured_psf"):
+        m = import_psf_dir(_psf_tifs(tmp_path / "ok", bands, pixel_pitch_um=6, centre="axis", axis_px=[15, 15]), bands, px, k)
+    np.testing.assert_allclose(m.report["energy_in_kernel"], 1.0, rtol=1e-9)
+    assert not caplog.records, [r.getMessage() for r in caplog.records]
+    # an empty band image is named, also when the common centroid is computed first
+    d = _psf_tifs(tmp_path / "dead", bands, pixel_pitch_um=6)
+    import tifffile
+
+    tifffile.imwrite(d / "psf_550nm.tif", np.zeros((31, 31), np.float32))
+    with pytest.raises(InputError, match=r"psf_550nm\.tif \(550 nm\): PSF image has no positive signal"):
+        import_psf_dir(d, bands, px, k)
+
+
+def test_finetune_refuses_psfs_outside_the_kernel(fab_run, tmp_path):
+    from hsicam.runs.folder import load_run
+
+    _, base = load_run(fab_run)
+    d = _psf_tifs(tmp_path / "psf", base.bands, pixel_pitch_um=6, centre="axis", axis_px=[1e9, -5])
+    out = tmp_path / "run2"
+    res = run_cli("finetune", "--run", str(fab_run), "--psf-dir", str(d), "--out", str(out), "--epochs", "1")
+    assert_clean_error(res, f"psf_{base.bands.centers_nm[0]:g}nm.tif", "axis_px", "outside")
+    assert not out.exists()
+    cap = tmp_path / "cap.npy"
+    np.save(cap, np.random.default_rng(8).random((30, 34)).astype(np.float32))
+    rec = run_cli("reconstruct", str(cap), "--run", str(fab_run), "--out", str(tmp_path / "x.h5"), "--psf-dir", str(d))
+    assert_clean_error(rec, "axis_px", "outside")
+    _outputs_absent(tmp_path / "x.h5")

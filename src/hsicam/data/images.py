@@ -12,6 +12,17 @@ the CFA period so the CFA's own pattern (which the forward model contains) is no
 ``t_ref / t_exp`` the exposure normalisation. Files are judged by their content (magic bytes),
 their declared size is checked against :data:`MAX_IMAGE_PIXELS` before any pixel is decoded, and
 every problem is one :class:`~hsicam.errors.InputError`.
+
+Checks on the result (:func:`preprocess_raw`, :func:`read_capture`):
+
+* 32/64-bit integer captures (numpy's default int) need an explicit white level: the type's
+  maximum (2^31 − 1, 2^63 − 1) is never a sensor's full scale (:class:`InputError`).
+* (Nearly) no pixel above 0 after subtracting the dark frame / black level — fewer than
+  :data:`MIN_SIGNAL_SHARE` of them — is an :class:`InputError` (nothing to reconstruct); more than
+  :data:`MAX_NEGATIVE_SHARE` of the pixels below 0 is a warning (dark frame or black level too high?).
+* An integer capture read with the container's full scale whose brightest pixel ends below
+  :data:`DIM_FRACTION` of full scale gets a warning naming the likely cause: a sensor with fewer
+  bits than the container (a 12-bit sensor in a 16-bit file reaches at most 1/16).
 """
 
 from __future__ import annotations
@@ -37,6 +48,21 @@ _PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 _NPY_MAGIC = b"\x93NUMPY"
 _TIFF_MAGICS = (b"II*\x00", b"MM\x00*", b"II+\x00", b"MM\x00+")
 IMAGE_SUFFIXES = (".npy", ".png", ".tif", ".tiff")
+
+#: Fewer pixels than this share above 0 after the dark/black subtraction: nothing to reconstruct.
+#: (A dark scene still has about half its pixels above 0 from noise; exact zeros and negatives
+#: everywhere mean the subtracted dark frame or black level is at least as bright as the capture.)
+MIN_SIGNAL_SHARE = 1e-3
+#: More pixels than this share below 0 after the dark/black subtraction: warn (offset too high?).
+MAX_NEGATIVE_SHARE = 0.10
+#: An integer capture read with its container's full scale whose brightest pixel (after all the
+#: corrections) stays below this fraction of the simulator's full scale is warned about. An n-bit
+#: sensor in a 16-bit container reaches at most 2^(n−16): 1/16 for 12 bit (the commonest raw depth),
+#: 1/64 for 10 bit, 1/256 for 8 bit — 1/8 catches all of them (not 14 bit, 1/4, which looks like an
+#: ordinary exposure). A correct 16-bit capture trips it only when its brightest pixel is three stops
+#: below full scale, far darker than the simulated training images (scenes normalised to max 1 give
+#: sensor maxima of about 0.3–0.75), so the warning is worth reading then too.
+DIM_FRACTION = 1.0 / 8.0
 
 
 # ------------------------------------------------------------------------------------------------
@@ -216,7 +242,7 @@ class RawCorrection:
     Attributes:
         black_level: constant offset (DN). None: the median of ``dark`` if given, else 0.
         white_level: full-scale value (DN). None: the file type's full scale (65535 for 16 bit,
-            1 for float files).
+            1 for float files); :func:`read_capture` refuses None for 32/64-bit integer files.
         dark: dark frame (H, W) in DN (same exposure as the capture); subtracted instead of the
             black level.
         flat: flat-field frame (H, W) in DN; normalised to mean 1 after subtracting the black level.
@@ -286,6 +312,8 @@ def preprocess_raw(raw: np.ndarray, full_scale: float, corr: RawCorrection, sour
         log.warning("%s: %d pixel(s) at or above the white level %g DN (saturated)", source, saturated, white)
     report["saturated_px"] = saturated
     img = raw - (corr.dark.astype(np.float32) if corr.dark is not None else np.float32(black))
+    dark_median = (black if corr.black_level is None else float(np.median(corr.dark))) if corr.dark is not None else None
+    notes = _check_signal(img, raw, black, dark_median, source)
     img *= np.float32(1.0 / (white - black))
     if corr.flat is not None:
         flat = corr.flat.astype(np.float64) - black
@@ -318,7 +346,61 @@ def preprocess_raw(raw: np.ndarray, full_scale: float, corr: RawCorrection, sour
     report["gain"] = factor / (white - black)
     if not np.all(np.isfinite(img)):
         raise InputError(f"{source}: the corrections produced NaN or Inf values")
+    if full_scale > 1 and corr.white_level is None and corr.auto_level is None:
+        notes += _check_dim(img, raw, full_scale, source)
+    for note in notes:  # only once every check passed: an error stays the one line the user sees
+        log.warning("%s", note)
     return img.astype(np.float32, copy=False), report
+
+
+def _subtracted(black: float, dark_median: float | None) -> str:
+    if dark_median is not None:
+        return f"after subtracting the dark frame (median {dark_median:g} DN)"
+    return f"after subtracting the black level {black:g} DN" if black else "(no dark frame or black level subtracted)"
+
+
+def _check_signal(img: np.ndarray, raw: np.ndarray, black: float, dark_median: float | None, source: str) -> list[str]:
+    """InputError if (nearly) no pixel of ``img`` = raw − dark/black is above 0 (fewer than
+    :data:`MIN_SIGNAL_SHARE`); a warning (returned) if more than :data:`MAX_NEGATIVE_SHARE` are below 0."""
+    n = img.size
+    positive = int(np.count_nonzero(img > 0))
+    negative = int(np.count_nonzero(img < 0))
+    brightest = float(raw.max())
+    if positive <= MIN_SIGNAL_SHARE * n:
+        if dark_median is not None:
+            cause = (f"after subtracting the dark frame (median {dark_median:g} DN; the capture's brightest pixel is "
+                     f"{brightest:g} DN): the dark frame is as bright as the capture or brighter (another exposure, "
+                     "gain or file? pass the dark frame taken with this capture's settings)")
+        elif black:
+            cause = (f"after subtracting the black level {black:g} DN (the capture's brightest pixel is {brightest:g} DN): "
+                     "lower the black level (--black-level)")
+        else:
+            cause = f"(brightest pixel {brightest:g}): the capture has no signal"
+        raise InputError(f"{source}: {positive} of {n} pixels are above 0 {cause}; nothing to reconstruct")
+    if negative > MAX_NEGATIVE_SHARE * n:
+        advice = ("is the dark frame / black level too high? (pass the dark frame taken with this capture's settings)"
+                  if dark_median is not None or black else "is it a signed or mean-subtracted image?")
+        share = 100.0 * negative / n
+        return [f"{source}: {share:.0f} % of the pixels are below 0 {_subtracted(black, dark_median)}; the capture should "
+                f"be in sensor units with 0 = black: {advice} (negative values go to the network as they are)"]
+    return []
+
+
+def _check_dim(img: np.ndarray, raw: np.ndarray, full_scale: float, source: str) -> list[str]:
+    """A warning (returned) when an integer capture normalised with its container's full scale stays below
+    :data:`DIM_FRACTION` of full scale at its brightest pixel (see the module docstring)."""
+    peak = float(img.max())
+    if not peak < DIM_FRACTION:
+        return []
+    raw_max = float(raw.max())
+    container = max(1, math.ceil(math.log2(full_scale + 1)))
+    used = math.ceil(math.log2(raw_max + 1)) if raw_max > 0 else 1  # bits the brightest pixel needs
+    bits = next((b for b in (8, 10, 12, 14) if used <= b < container), None)  # the common raw depths
+    hint = (f"if the sensor has {bits} bits (stored in a {container}-bit file), pass --white-level {2 ** bits - 1}"
+            if bits is not None else "pass the sensor's white level (--white-level DN)")
+    return [f"{source}: very dark: the brightest pixel is {peak:.3g} of full scale ({raw_max:g} of {full_scale:g} DN; "
+            f"warned below {DIM_FRACTION:.3g}); likely cause: a sensor bit depth below the file's: {hint}; if the "
+            "capture is just dark, scale it (--exposure-s/--reference-exposure-s, --scale or --auto-level)"]
 
 
 def read_capture(path: str | Path, corr: RawCorrection | None = None, scale: float | None = None) -> tuple[np.ndarray, dict]:
@@ -326,12 +408,21 @@ def read_capture(path: str | Path, corr: RawCorrection | None = None, scale: flo
 
     ``scale`` (if given) overrides ``corr.scale``; by default PNG/TIFF captures with a
     ``simulate.json`` beside them (written by ``hsicam simulate``) use its ``sensor_png_scale``.
+
+    Raises :class:`InputError` for a 32/64-bit integer capture without ``corr.white_level`` (or
+    ``auto_level``, which makes the white level irrelevant): the type's maximum is no full scale.
     """
     path = Path(path)
     if path.suffix.lower() not in IMAGE_SUFFIXES:
         raise InputError(f"{path}: unsupported sensor image format (use .npy, .png, .tif)")
     image = read_image_2d(path, "sensor image")
     corr = corr or RawCorrection()
+    if np.dtype(image.dtype).kind in "ui" and np.dtype(image.dtype).itemsize >= 4 and corr.white_level is None \
+            and corr.auto_level is None:
+        raise InputError(f"{path}: {image.dtype} capture without a white level: the type's maximum "
+                         f"({image.full_scale:.3g}) is no sensor's full scale; pass the sensor's white level, "
+                         f"--white-level DN (4095 for 12 bit, 65535 for 16 bit; the brightest pixel here is "
+                         f"{float(image.data.max()):g} DN)")
     if scale is None and image.format in ("png", "tiff"):
         meta = path.parent / "simulate.json"
         if meta.is_file() and corr.scale == 1.0 and corr.auto_level is None:
@@ -351,7 +442,7 @@ def read_sensor_image(path: str | Path, scale: float | None = None) -> np.ndarra
     """A sensor image as float32 (H, W) on the simulator's [0, 1] scale.
 
     ``.npy`` float arrays are used as is; integer images (PNG, TIFF, integer ``.npy``) are divided
-    by the type's maximum; then multiplied by ``scale`` — by default ``sensor_png_scale`` from a
+    by the type's maximum (32/64-bit integers are refused: see :func:`read_capture`); then multiplied by ``scale`` — by default ``sensor_png_scale`` from a
     ``simulate.json`` beside a PNG/TIFF (written by ``hsicam simulate``), else 1.
     """
     img, _ = read_capture(path, None, scale)

@@ -21,7 +21,9 @@ the camera's K×K pixel grid by **exact area integration**: each source pixel sp
 uniformly over its square and every camera pixel collects the overlap. Centring and resampling
 are one linear map (two 1-D overlap matrices, any pitch ratio, sub-pixel shifts included), so
 energy is preserved; light falling outside the K×K kernel is reported (``energy_in_kernel``),
-never renormalised away.
+never renormalised away. A band keeping less than :data:`MIN_ENERGY_IN_KERNEL` of its image's
+light in the kernel is an :class:`~hsicam.errors.InputError` (its PSF would be (nearly) black: a
+wrong ``axis_px``, centre or pitch), less than :data:`LOW_ENERGY_IN_KERNEL` a warning.
 
 Centring (``centre``): ``centroid`` (default) — the intensity centroid of the band-summed images,
 **one shift for all bands**, so the bands keep their relative positions (a DOE's PSF centroid is
@@ -59,6 +61,12 @@ CENTRE_MODES = ("centroid", "peak", "axis", "centroid_per_band", "peak_per_band"
 _WAVE_NM = re.compile(r"(\d+(?:\.\d+)?)\s*nm", re.IGNORECASE)
 _NUMBER = re.compile(r"(?<![\d.])(\d{3,4}(?:\.\d+)?)(?![\d.])")
 _IMAGE_SUFFIXES = (".npy", ".png", ".tif", ".tiff")
+#: A band whose kernel keeps less than this share of its image's light is refused: its PSF would be
+#: (nearly) black and the camera would image (nearly) nothing in that band.
+MIN_ENERGY_IN_KERNEL = 0.01
+#: Less than this share (most of the light lost outside the kernel) is warned about: the kernel is
+#: too small for these PSFs, or the centre / axis_px / pitch is off.
+LOW_ENERGY_IN_KERNEL = 0.5
 
 
 # ------------------------------------------------------------------------------------------------
@@ -189,7 +197,12 @@ def find_centre(img: np.ndarray, mode: str, axis_px: tuple[float, float] | None 
         return float(r), float(q)
     if axis_px is None:
         raise InputError("PSF centre 'axis' needs axis_px [row, col]")
-    return float(axis_px[0]), float(axis_px[1])
+    r, c = float(axis_px[0]), float(axis_px[1])
+    h, w = img.shape
+    if not (-0.5 <= r <= h - 0.5 and -0.5 <= c <= w - 0.5):  # the image spans -0.5 … n − 0.5 (pixel centres at integers)
+        raise InputError(f"axis_px [{r:g}, {c:g}] (psf.json) lies outside the {h}×{w} px PSF image "
+                         f"(row -0.5…{h - 0.5:g}, col -0.5…{w - 0.5:g}; [row, col] of the optical axis in image pixels)")
+    return r, c
 
 
 def import_psf_image(image: np.ndarray, pitch_m: float, camera_pixel_m: float, kernel_px: int,
@@ -343,11 +356,14 @@ def import_psf_dir(psf_dir: str | Path, bands: Bands, camera_pixel_m: float, ker
                              "(use centre: centroid_per_band or axis in psf.json)")
         total = None
         for j in chosen:
-            img, _, _ = prepare_psf_image(items[j][2], opts)  # type: ignore[arg-type]
+            try:
+                img, _, _ = prepare_psf_image(items[j][2], opts)  # type: ignore[arg-type]
+            except InputError as exc:
+                raise InputError(f"{items[j][1]} ({items[j][0]:g} nm): {exc}") from None
             img = img / img.sum()
             total = img if total is None else total + img
         common = find_centre(total, opts.centre)
-    stack, per_band = [], []
+    stack, per_band, low = [], [], []
     for lam, j in zip(bands.centers_nm, chosen):
         w, f, img = items[j]
         assert img is not None
@@ -355,8 +371,20 @@ def import_psf_dir(psf_dir: str | Path, bands: Bands, camera_pixel_m: float, ker
             psf, rep = import_psf_image(img, opts.pitch_um * 1e-6, camera_pixel_m, kernel_px, opts, common)  # type: ignore[operator]
         except InputError as exc:
             raise InputError(f"{f} ({w:g} nm): {exc}") from None
+        e = rep["energy_in_kernel"]
+        if not e >= MIN_ENERGY_IN_KERNEL:
+            raise InputError(f"{f} ({w:g} nm): only {100 * e:.3g} % of the PSF's light falls in the camera's "
+                             f"{kernel_px}×{kernel_px} px kernel (centred on row {rep['centre_px'][0]:g}, col "
+                             f"{rep['centre_px'][1]:g} of the {img.shape[0]}×{img.shape[1]} px image, centre: "
+                             f"{opts.centre}); check axis_px / centre and pixel_pitch_um in psf.json (or --psf-pitch-um)")
+        if e < LOW_ENERGY_IN_KERNEL:
+            low.append(f"{f.name if f else '?'} ({w:g} nm): {100 * e:.0f} %")
         stack.append(psf)
         per_band.append({"band_nm": float(lam), "wavelength_nm": w, "file": f.name if f else None, **rep})
+    if low:
+        log.warning("%s: most of the measured PSF light falls outside the camera's %d×%d px kernel (energy in kernel: "
+                    "%s); the camera model loses it: check axis_px / centre and pixel_pitch_um in psf.json "
+                    "(or --psf-pitch-um), or use a larger camera.psf.kernel_px", d, kernel_px, kernel_px, ", ".join(low))
     ratio = opts.pitch_um * 1e-6 / camera_pixel_m  # type: ignore[operator]
     if ratio > 1.0 + 1e-9:
         log.warning("measured PSFs are sampled at %.3g µm, coarser than the camera's %.3g µm pixels: "
