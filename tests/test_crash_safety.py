@@ -16,6 +16,7 @@ from pathlib import Path
 
 import pytest
 import torch
+from cli_helpers import run_cli
 
 from hsicam.config import load_config
 from hsicam.runs.checkpoint import read_weights
@@ -197,6 +198,73 @@ def test_legacy_pointer_files_are_read(reference, tmp_path):
     res = _result(run)
     for key in ("root", "best", "last"):
         assert all(torch.equal(res[key][k], ref[key][k]) for k in ref[key]), key
+
+
+def _snapshot(run: Path) -> dict[str, bytes | None]:
+    """Every entry of a run folder: a file's bytes, None for a folder."""
+    return {p.relative_to(run).as_posix(): p.read_bytes() if p.is_file() else None for p in sorted(run.rglob("*"))}
+
+
+def test_resuming_a_finished_run_changes_nothing(reference, tmp_path):
+    """`train --resume` on a finished run: exit 0, says so (and how to train on), every file stays
+    byte-identical, however often it is repeated; the library call returns the run's final record."""
+    run = tmp_path / "run"
+    _train(run)
+    before = _snapshot(run)
+    final = json.loads((run / "metrics.jsonl").read_text().splitlines()[-1])
+    for _ in range(2):
+        proc = run_cli("train", "--out", str(run), "--resume")
+        assert proc.returncode == 0, proc.stderr
+        assert "Traceback" not in proc.stderr
+        assert f"{run}: already finished at step 8 (2 epochs)" in proc.stdout
+        assert "train.epochs" in proc.stdout
+        assert _snapshot(run) == before
+    assert _train(run, resume=True) == {**final, "already_finished": True}
+    assert _snapshot(run) == before
+
+
+def test_resuming_a_finished_run_with_more_epochs_trains_on(reference, tmp_path):
+    """Raising train.epochs continues a finished run; then that longer run is finished in turn."""
+    run = tmp_path / "run"
+    _train(run)
+    proc = run_cli("train", "--out", str(run), "--resume", "--set", "train.epochs=3")
+    assert proc.returncode == 0, proc.stderr
+    assert "trained 3 epochs (12 steps" in proc.stdout and "val PSNR" in proc.stdout
+    man = json.loads((run / "checkpoints.json").read_text())
+    assert man["state"]["global_step"] == 12 and man["state"]["epoch"] == 3
+    last = json.loads((run / "metrics.jsonl").read_text().splitlines()[-1])
+    assert last["final"] and last["step"] == 12 and "val_psnr" in last
+    before = _snapshot(run)
+    proc = run_cli("train", "--out", str(run), "--resume")
+    assert proc.returncode == 0 and "already finished at step 12 (3 epochs)" in proc.stdout, proc.stderr
+    assert _snapshot(run) == before
+
+
+def test_killed_before_the_final_record_resumes_to_the_same_record(reference, tmp_path):
+    """A kill after the last checkpoint's commit but before the final metrics record: the resume
+    writes the final record the uninterrupted run wrote (with the last validation's metrics)."""
+    ref, _ = reference
+    run = tmp_path / "run"
+    _train(run)
+    lines = (run / "metrics.jsonl").read_text().splitlines(keepends=True)
+    (run / "metrics.jsonl").write_text("".join(lines[:-1]))
+    summary = _train(run, resume=True)
+    assert "already_finished" not in summary and summary["val_psnr"] == ref["metrics"][-1]["val_psnr"]
+    _assert_same(_result(run), ref, "killed before the final record")
+
+
+def test_resuming_a_run_without_validation(reference, tmp_path):
+    """A run without validation scenes resumes to its end, then is finished."""
+    from hsicam.engine.train import train
+    run = tmp_path / "run"
+    train(load_config("tiny", ["train.epochs=2", "data.val_fraction=0"]), run, progress=False, stop_after_steps=5)
+    proc = run_cli("train", "--out", str(run), "--resume")
+    assert proc.returncode == 0, proc.stderr
+    assert "trained 2 epochs (8 steps" in proc.stdout and "PSNR" not in proc.stdout
+    before = _snapshot(run)
+    proc = run_cli("train", "--out", str(run), "--resume")
+    assert proc.returncode == 0 and "already finished at step 8 (2 epochs)" in proc.stdout, proc.stderr
+    assert _snapshot(run) == before
 
 
 # ------------------------------------------------------------------------------------------------

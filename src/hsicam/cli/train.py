@@ -39,9 +39,24 @@ def cmd_train(args: argparse.Namespace) -> int:
         if args.restart:
             restart_run_dir(run)
     summary = train(cfg, run, resume=args.resume)
-    if summary.get("best_psnr") is not None:
-        print(f"trained {summary['epoch']} epochs ({summary['step']} steps, {summary['patches_per_s']:.1f} patches/s): "
-              f"val PSNR {summary['val_psnr']:.2f} dB, SSIM {summary['val_ssim']:.4f}, SAM {summary['val_sam']:.2f}° -> {run}")
+    if summary.get("already_finished"):
+        print(f"{run}: already finished at step {summary['step']} ({summary['epoch']} epochs); nothing changed. "
+              f"To train on, raise train.epochs: hsicam train --out {run} --resume --set train.epochs=N "
+              f"(N > {summary['epoch']})")
     else:
-        print(f"trained {summary['epoch']} epochs ({summary['step']} steps) -> {run}")
+        print(summary_line(summary, run))
     return 0
+
+
+def summary_line(summary: dict, run) -> str:
+    """One line on a finished training; the validation part only for the metrics the summary holds."""
+    line = f"trained {summary['epoch']} epochs ({summary['step']} steps"
+    if "patches_per_s" in summary:
+        line += f", {summary['patches_per_s']:.1f} patches/s"
+    line += ")"
+    val = [f"{name} {summary[key]:{fmt}}{unit}" for key, name, fmt, unit in
+           (("val_psnr", "val PSNR", ".2f", " dB"), ("val_ssim", "SSIM", ".4f", ""), ("val_sam", "SAM", ".2f", "°"))
+           if summary.get(key) is not None]
+    if val:
+        line += ": " + ", ".join(val)
+    return f"{line} -> {run}"

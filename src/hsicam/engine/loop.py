@@ -212,6 +212,8 @@ class FitOptions:
 def fit(task: Task, opts: FitOptions, run_dir: str | Path, resume: bool = False) -> dict[str, Any]:
     """Train (or resume) ``task`` into ``run_dir``; returns the final summary (also the last line of
     ``metrics.jsonl``), or ``{"stopped_at_step": n}`` when ``opts.stop_after_steps`` cut it short.
+    Resuming a finished run (nothing left of ``epochs`` / ``max_steps``) writes nothing and returns
+    its final record with ``"already_finished": True``.
 
     Under torchrun (WORLD_SIZE > 1) it joins the process group, or creates it and then destroys it
     when training ends: a gloo group left to the interpreter's exit can abort the process
@@ -227,6 +229,31 @@ def fit(task: Task, opts: FitOptions, run_dir: str | Path, resume: bool = False)
         dist.barrier()
         dist.destroy_process_group()
     return result
+
+
+def finished_record(run_dir: Path, epochs: int, total_steps: int) -> dict[str, Any] | None:
+    """The final ``metrics.jsonl`` record of a run with nothing left to train, else None.
+
+    Finished: the last checkpoint has done ``epochs`` epochs (or ``total_steps`` steps) and the
+    metrics log ends with the final record of that step. Reads only."""
+    state = CheckpointManager(run_dir).state()
+    if state is None:
+        return None
+    last = LoopState.from_dict(state)
+    if last.epoch < epochs and last.global_step < total_steps:
+        return None  # e.g. resumed with more epochs
+    records = MetricsLog(run_dir / "metrics.jsonl", enabled=False).read()
+    if not records or not records[-1].get("final") or records[-1].get("step") != last.global_step:
+        return None  # killed before its final record: the resume writes it
+    return records[-1]
+
+
+def last_validation(records: list[dict[str, Any]]) -> dict[str, float]:
+    """The metrics (``val_`` prefix removed) of the last validation record before any final one; {} when none."""
+    for rec in reversed(records):
+        if not rec.get("final") and any(k.startswith("val_") for k in rec):
+            return {k[4:]: v for k, v in rec.items() if k.startswith("val_")}
+    return {}
 
 
 def _fit(task: Task, opts: FitOptions, run_dir: Path, resume: bool) -> dict[str, Any]:
@@ -252,6 +279,12 @@ def _fit(task: Task, opts: FitOptions, run_dir: Path, resume: bool) -> dict[str,
     total_steps = steps_per_epoch * t.epochs
     if opts.max_steps is not None:
         total_steps = min(total_steps, opts.max_steps)
+    if resume:
+        done = finished_record(run_dir, t.epochs, total_steps)
+        if done is not None:  # nothing left to train: the run stays as it is (no file is written)
+            log.debug("%s: already finished at step %d (%d epochs); nothing to train", run_dir, done["step"],
+                     done["epoch"])
+            return {**done, "already_finished": True}
 
     model = task.module().to(device)
     optimizer = torch.optim.Adam(task.param_groups())
@@ -261,6 +294,7 @@ def _fit(task: Task, opts: FitOptions, run_dir: Path, resume: bool) -> dict[str,
     ckpt = CheckpointManager(run_dir, task.weights_file)
     metrics = MetricsLog(run_dir / "metrics.jsonl", is_main)
     state = LoopState()
+    summary: dict[str, Any] = {}  # the last validation's metrics, reported by the final record
     if resume:
         if is_main:
             ckpt.cleanup()  # temporaries and step folders the manifest does not name (a killed process)
@@ -269,6 +303,7 @@ def _fit(task: Task, opts: FitOptions, run_dir: Path, resume: bool) -> dict[str,
         if is_main:
             ckpt.sync_root()  # a kill between the manifest's commit and the root weights' rewrite
             metrics.truncate_after(state.global_step, state.epoch)
+            summary = last_validation(metrics.read())  # kept when no epoch is left to validate
             task.write_run_files(run_dir)  # the config it goes on with (e.g. `--set train.epochs=…`)
             log.info("resuming %s at epoch %d, step %d", run_dir, state.epoch, state.global_step)
     elif is_main:
@@ -302,7 +337,6 @@ def _fit(task: Task, opts: FitOptions, run_dir: Path, resume: bool) -> dict[str,
                 writer.add_scalar(f"val/{k}", v, state.global_step)
         log.info("epoch %d: val %s", state.epoch, ", ".join(f"{k} {v:.4g}" for k, v in val.items()))
 
-    summary: dict[str, Any] = {}
     if opts.validate_at_start and not resume and is_main:
         if val_loader is not None:
             summary = validate_now()

@@ -26,6 +26,7 @@ def build_optimizer(cfg: Config, model: CameraSystem) -> torch.optim.Optimizer:
 def train(cfg: Config, run_dir: str | Path, resume: bool = False, progress: bool | None = None,
           stop_after_steps: int | None = None) -> dict[str, Any]:
     """Train (or resume) a run; returns the final summary (also the last line of metrics.jsonl).
+    Resuming a finished run changes nothing and returns its final record with ``"already_finished": True``.
 
     Args:
         cfg: the full config.
