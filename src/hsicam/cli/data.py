@@ -37,7 +37,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     v = actions.add_parser("show", help="contact sheet, mean spectra and spectral gamut of a dataset or cube")
     v.add_argument("path", metavar="DIR", help="dataset folder, or one cube file / CAVE folder")
     v.add_argument("--out", metavar="DIR", default=None, help="where to write the PNGs (default: DIR)")
-    v.add_argument("--max-scenes", type=int, default=16, help="at most this many scenes (default 16)")
+    v.add_argument("--max-scenes", type=int, default=16, help="at most this many scenes, >= 1 (default 16)")
     v.add_argument("--heldout", metavar="DIR", default=None,
                    help="held-out dataset to compare in the gamut plot (default: the cached companion of a "
                         "synthetic set, when present)")
@@ -113,10 +113,13 @@ def _show(args: argparse.Namespace) -> int:
     from hsicam.errors import InputError
     from hsicam.cli import prepare_output
 
+    if args.max_scenes < 1:
+        raise InputError(f"--max-scenes must be at least 1, got {args.max_scenes}")
     src = Path(args.path)
     if not src.exists():
         raise InputError(f"{src}: no such dataset folder or cube file")
     prepare_output(args.out if args.out is not None else (src if src.is_dir() else src.parent), "dir")
+    # every input (the held-out set too) is read before the PNGs are written, all together
     for path in write_preview(args.path, args.out, max_scenes=args.max_scenes, heldout=args.heldout):
         print(path)
     return 0

@@ -9,10 +9,13 @@ are still visible.
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import math
+import numbers
 import os
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -21,7 +24,7 @@ from hsicam.data.cube import normalize_per_cube_max
 from hsicam.data.datasets import list_scenes
 from hsicam.data.formats import read_cube
 from hsicam.errors import InputError
-from hsicam.io import save_figure
+from hsicam.io import atomic_path, save_figure
 from hsicam.spectral import Bands
 
 log = logging.getLogger(__name__)
@@ -50,20 +53,50 @@ def preview_rgb(cube: np.ndarray, bands: Bands, max_side: int = 192) -> np.ndarr
     return np.moveaxis(cube_to_srgb(c * exposure, sub), 0, -1)
 
 
+def check_max_scenes(max_scenes: int) -> int:
+    """``max_scenes`` as an int ≥ 1, else :class:`InputError`."""
+    if isinstance(max_scenes, bool) or not isinstance(max_scenes, numbers.Integral) or max_scenes < 1:
+        raise InputError(f"max_scenes must be an integer >= 1, got {max_scenes!r}")
+    return int(max_scenes)
+
+
+def save_figures(figures: dict[str, Any], out_dir: Path, dpi: int = 120) -> list[Path]:
+    """Save matplotlib figures as ``out_dir/NAME``, all or none: each is drawn into a temporary file
+    and the files are renamed into place only when every one was drawn. Returns their paths."""
+    with contextlib.ExitStack() as stack:
+        finals = [out_dir / name for name in figures]
+        for final, fig in zip(finals, figures.values()):
+            fig.savefig(stack.enter_context(atomic_path(final)), dpi=dpi, bbox_inches="tight")
+    return finals
+
+
 def write_preview(path: str | os.PathLike, out_dir: str | os.PathLike | None = None, max_scenes: int = 16,
                   heldout: str | os.PathLike | None = None) -> list[Path]:
     """Write ``contact_sheet.png``, ``mean_spectra.png`` and ``spectral_gamut.png`` for a dataset.
 
     ``path`` is a dataset folder or one cube file; ``out_dir`` defaults to the dataset folder (the
     file's folder for a single file). ``heldout``: a held-out dataset folder to compare in the
-    gamut plot (default: for a cached synthetic set, its held-out companion when one exists). All
-    PNGs are written atomically. Returns their paths.
+    gamut plot (default: for a cached synthetic set, its held-out companion when one exists).
+    ``max_scenes`` (≥ 1) caps the scenes of each set. Every input is read and every figure drawn
+    before the first PNG is written: on an error none is written. Returns their paths.
     """
+    path = Path(path)
+    n = check_max_scenes(max_scenes)
+    scenes = list_scenes(path)[:n]
+    held_dir = Path(heldout) if heldout is not None else _find_heldout(path)
+    held_scenes = list_scenes(held_dir)[:n] if held_dir is not None else []  # a bad held-out set fails before any work
+    out = Path(out_dir) if out_dir is not None else (path if path.is_dir() else path.parent)
+    sheet, plot = _scene_figures(path, scenes)
+    gamut = _gamut_figure(path, scenes, held_dir, held_scenes)
+    written = save_figures({CONTACT_SHEET: sheet, MEAN_SPECTRA: plot, SPECTRAL_GAMUT: gamut}, out)
+    log.info("wrote %s", ", ".join(str(p) for p in written))
+    return written
+
+
+def _scene_figures(path: Path, scenes: list[Path]):
+    """(contact sheet, mean spectra) figures of ``scenes``."""
     from matplotlib.figure import Figure
 
-    path = Path(path)
-    scenes = list_scenes(path)[: max(1, int(max_scenes))]
-    out = Path(out_dir) if out_dir is not None else (path if path.is_dir() else path.parent)
     thumbs, spectra = [], []
     for s in scenes:
         cube, bands, _ = read_cube(s)
@@ -72,18 +105,16 @@ def write_preview(path: str | os.PathLike, out_dir: str | os.PathLike | None = N
         spectra.append((s.name, bands, norm.mean(axis=(1, 2))))
     cols = min(len(thumbs), 4)
     rows = int(math.ceil(len(thumbs) / cols))
-    fig = Figure(figsize=(2.6 * cols, 2.8 * rows))
+    sheet = Figure(figsize=(2.6 * cols, 2.8 * rows))
     for k, (name, rgb) in enumerate(thumbs):
-        ax = fig.add_subplot(rows, cols, k + 1)
+        ax = sheet.add_subplot(rows, cols, k + 1)
         ax.imshow(np.clip(rgb, 0, 1), interpolation="nearest")
         ax.set_title(name, fontsize=8)
         ax.axis("off")
-    fig.suptitle(f"{path.name}: sRGB renders (CIE 1931 2°, D65)", fontsize=10)
-    sheet = out / CONTACT_SHEET
-    save_figure(fig, sheet)
+    sheet.suptitle(f"{path.name}: sRGB renders (CIE 1931 2°, D65)", fontsize=10)
 
-    fig = Figure(figsize=(7, 4.2))
-    ax = fig.add_subplot(1, 1, 1)
+    plot = Figure(figsize=(7, 4.2))
+    ax = plot.add_subplot(1, 1, 1)
     for name, bands, mean in spectra:
         ax.plot(bands.centers_nm, mean, lw=1.2, label=name)
     ax.set_xlabel("wavelength (nm)")
@@ -92,11 +123,7 @@ def write_preview(path: str | os.PathLike, out_dir: str | os.PathLike | None = N
     ax.grid(alpha=0.3)
     if len(spectra) <= 16:
         ax.legend(fontsize=6, ncol=2)
-    plot = out / MEAN_SPECTRA
-    save_figure(fig, plot)
-    gamut = write_spectral_gamut(path, out / SPECTRAL_GAMUT, heldout=heldout, max_scenes=max_scenes)
-    log.info("wrote %s, %s and %s", sheet, plot, gamut)
-    return [sheet, plot, gamut]
+    return sheet, plot
 
 
 # ------------------------------------------------------------------------------------------------
@@ -183,16 +210,22 @@ def write_spectral_gamut(path: str | os.PathLike, out_png: str | os.PathLike, he
     — measured training spectra, spectra derived from them (mixtures, layers, basis draws), held-out
     spectra. Right: pixel spectra of the dataset's scenes against those of the held-out set.
     """
+    path, out_png = Path(path), Path(out_png)
+    n = check_max_scenes(max_scenes)
+    held_dir = Path(heldout) if heldout is not None else _find_heldout(path)
+    held_scenes = list_scenes(held_dir)[:n] if held_dir is not None else []
+    save_figure(_gamut_figure(path, list_scenes(path)[:n], held_dir, held_scenes), out_png)
+    return out_png
+
+
+def _gamut_figure(path: Path, scenes: list[Path], held_dir: Path | None, held_scenes: list[Path]):
+    """The figure of :func:`write_spectral_gamut` for the dataset's ``scenes`` (and the held-out set's)."""
     from matplotlib.figure import Figure
 
-    path = Path(path)
-    out_png = Path(out_png)
-    held_dir = Path(heldout) if heldout is not None else _find_heldout(path)
-    scenes = list_scenes(path)[: max(1, int(max_scenes))]
     pix, bands = pixel_spectra(scenes)
     groups = [("dataset pixels", _shapes(pix), "tab:blue", "o")]
     if held_dir is not None:
-        hpix, _ = pixel_spectra(list_scenes(held_dir)[: max(1, int(max_scenes))], bands, seed=1)
+        hpix, _ = pixel_spectra(held_scenes, bands, seed=1)
         groups.append((f"held-out pixels ({held_dir.name})", _shapes(hpix), "tab:red", "x"))
     lib = _library_shapes(path) if path.is_dir() else None
     panels = [("scene pixel spectra", groups)]
@@ -220,9 +253,8 @@ def write_spectral_gamut(path: str | os.PathLike, out_png: str | os.PathLike, he
         ax.legend(fontsize=7, loc="best", markerscale=2)
     fig.suptitle(f"{path.name}: spectral gamut (PCA of unit-norm spectra, {bands.min_nm:g}-{bands.max_nm:g} nm)",
                  fontsize=10)
-    save_figure(fig, out_png)
-    return out_png
+    return fig
 
 
-__all__ = ["CONTACT_SHEET", "MEAN_SPECTRA", "SPECTRAL_GAMUT", "pixel_spectra", "preview_rgb", "write_preview",
-           "write_spectral_gamut"]
+__all__ = ["CONTACT_SHEET", "MEAN_SPECTRA", "SPECTRAL_GAMUT", "check_max_scenes", "pixel_spectra", "preview_rgb",
+           "save_figures", "write_preview", "write_spectral_gamut"]
