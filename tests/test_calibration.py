@@ -637,3 +637,36 @@ def test_finetune_refuses_psfs_outside_the_kernel(fab_run, tmp_path):
     rec = run_cli("reconstruct", str(cap), "--run", str(fab_run), "--out", str(tmp_path / "x.h5"), "--psf-dir", str(d))
     assert_clean_error(rec, "axis_px", "outside")
     _outputs_absent(tmp_path / "x.h5")
+
+
+def test_float_capture_in_dn_and_simulates_stretched_png(tmp_path, caplog):
+    """A float capture far above full scale (DN stored as floats) is warned about, naming
+    --white-level; a float capture within [0, 1] is not. A PNG that `hsicam simulate` stretched so
+    that its brightest pixel is full scale (simulate.json's sensor_png_scale > 1) is not called
+    saturated; the same PNG without simulate.json is."""
+    import imageio.v3 as iio
+
+    rng = np.random.default_rng(5)
+    np.save(tmp_path / "dn.npy", (rng.random((16, 20)) * 4095).astype(np.float32))
+    np.save(tmp_path / "unit.npy", rng.random((16, 20)).astype(np.float32))
+    with caplog.at_level("WARNING", logger="hsicam.data.images"):
+        read_capture(tmp_path / "dn.npy")
+        read_capture(tmp_path / "unit.npy")
+    msgs = [r.getMessage() for r in caplog.records]
+    assert len([m for m in msgs if "dn.npy" in m and "--white-level" in m]) == 1, msgs
+    assert not [m for m in msgs if "unit.npy" in m], msgs
+    img16 = np.round(rng.random((16, 20)) * 65535).astype(np.uint16)
+    img16[3, 4] = 65535
+    sim = tmp_path / "sim"
+    sim.mkdir()
+    iio.imwrite(sim / "sensor.png", img16)
+    (sim / "simulate.json").write_text(json.dumps({"sensor_png_scale": 3.0}))
+    shutil.copy(sim / "sensor.png", tmp_path / "plain.png")
+    caplog.clear()
+    with caplog.at_level("WARNING", logger="hsicam.data.images"):
+        img, rep = read_capture(sim / "sensor.png")
+        _, rep_plain = read_capture(tmp_path / "plain.png")
+    np.testing.assert_allclose(img, img16 / 65535.0 * 3.0, rtol=1e-6)
+    assert rep["saturated_px"] == 0 and rep_plain["saturated_px"] >= 1
+    assert [m for m in (r.getMessage() for r in caplog.records) if "saturated" in m] == \
+        [m for m in (r.getMessage() for r in caplog.records) if "plain.png" in m and "saturated" in m] != []

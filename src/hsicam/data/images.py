@@ -63,6 +63,9 @@ MAX_NEGATIVE_SHARE = 0.10
 #: below full scale, far darker than the simulated training images (scenes normalised to max 1 give
 #: sensor maxima of about 0.3–0.75), so the warning is worth reading then too.
 DIM_FRACTION = 1.0 / 8.0
+#: A float capture (read on the simulator's scale, full scale 1) brighter than this is warned about:
+#: it probably holds DN (a float image of 12-bit data reaches 4095).
+FLOAT_OVER_SCALE = 4.0
 
 
 # ------------------------------------------------------------------------------------------------
@@ -287,13 +290,16 @@ class RawCorrection:
                 and self.exposure_s is None and self.auto_level is None and self.scale == 1.0)
 
 
-def preprocess_raw(raw: np.ndarray, full_scale: float, corr: RawCorrection, source: str = "capture") -> tuple[np.ndarray, dict]:
+def preprocess_raw(raw: np.ndarray, full_scale: float, corr: RawCorrection, source: str = "capture",
+                   check_saturation: bool = True) -> tuple[np.ndarray, dict]:
     """Raw capture (H, W) in DN → float32 (H, W) on the simulator's scale, plus a report dict.
 
     Args:
         raw: the stored values (DN).
         full_scale: the file type's full scale (used when ``corr.white_level`` is None).
         corr: the corrections.
+        check_saturation: warn about pixels at the white level (off for an image that ``hsicam
+            simulate`` stretched so that its brightest pixel is full scale).
     """
     raw = np.asarray(raw, dtype=np.float32)
     h, w = raw.shape
@@ -307,7 +313,7 @@ def preprocess_raw(raw: np.ndarray, full_scale: float, corr: RawCorrection, sour
     if not white > black:
         raise InputError(f"white level ({white:g} DN) must be above the black level ({black:g} DN)")
     report: dict[str, Any] = {"black_level_dn": black, "white_level_dn": white}
-    saturated = int(np.count_nonzero(raw >= white)) if corr.white_level is not None or full_scale > 1 else 0
+    saturated = int(np.count_nonzero(raw >= white)) if check_saturation and (corr.white_level is not None or full_scale > 1) else 0
     if saturated:
         log.warning("%s: %d pixel(s) at or above the white level %g DN (saturated)", source, saturated, white)
     report["saturated_px"] = saturated
@@ -348,6 +354,10 @@ def preprocess_raw(raw: np.ndarray, full_scale: float, corr: RawCorrection, sour
         raise InputError(f"{source}: the corrections produced NaN or Inf values")
     if full_scale > 1 and corr.white_level is None and corr.auto_level is None:
         notes += _check_dim(img, raw, full_scale, source)
+    if full_scale == 1 and corr.white_level is None and corr.auto_level is None and raw.size and raw.max() > FLOAT_OVER_SCALE:
+        notes.append(f"{source}: a float capture is read on the simulator's scale (0 = black, 1 = full scale), and this "
+                     f"one reaches {float(raw.max()):g}: if it holds DN, pass the sensor's white level (--white-level DN) "
+                     "or --auto-level; the network was trained on images within [0, 1]")
     for note in notes:  # only once every check passed: an error stays the one line the user sees
         log.warning("%s", note)
     return img.astype(np.float32, copy=False), report
@@ -423,6 +433,7 @@ def read_capture(path: str | Path, corr: RawCorrection | None = None, scale: flo
                          f"({image.full_scale:.3g}) is no sensor's full scale; pass the sensor's white level, "
                          f"--white-level DN (4095 for 12 bit, 65535 for 16 bit; the brightest pixel here is "
                          f"{float(image.data.max()):g} DN)")
+    stretched = False  # simulate's PNG of an image brighter than full scale: its peak is full scale by design
     if scale is None and image.format in ("png", "tiff"):
         meta = path.parent / "simulate.json"
         if meta.is_file() and corr.scale == 1.0 and corr.auto_level is None:
@@ -430,9 +441,10 @@ def read_capture(path: str | Path, corr: RawCorrection | None = None, scale: flo
                 scale = float(json.loads(meta.read_text()).get("sensor_png_scale", 1.0))
             except (ValueError, TypeError, AttributeError):
                 raise InputError(f"{meta}: unreadable simulate.json") from None
+            stretched = scale > 1.0
     if scale is not None:
         corr = RawCorrection(**{**corr.__dict__, "scale": float(scale)})
-    img, report = preprocess_raw(image.data, image.full_scale, corr, str(path))
+    img, report = preprocess_raw(image.data, image.full_scale, corr, str(path), check_saturation=not stretched)
     report.update({"source": str(path), "stored_dtype": image.dtype, "format": image.format,
                    "shape": [int(s) for s in img.shape]})
     return img, report
