@@ -301,3 +301,19 @@ def test_absurd_doe_cell_sizes_and_consistency_steps_are_one_line_errors(inputs,
                               str(tmp_path / "r.h5"), "--consistency-steps", "1000000"])
     assert_one_line(code, err, "--consistency-steps must be")
     assert not (tmp_path / "p").exists() and not (tmp_path / "r.h5").exists()
+
+
+def test_a_capture_smaller_than_a_cfa_period_and_an_all_zero_cube_are_named(inputs, tmp_path, capsys):
+    from hsicam.config import load_config
+
+    period = load_config(inputs / "run" / "config.yaml").camera.cfa.period
+    for shape in ((period - 1, 40), (1, 500)):
+        np.save(tmp_path / "small.npy", np.random.default_rng(0).random(shape).astype(np.float32))
+        code, err = call(capsys, ["reconstruct", str(tmp_path / "small.npy"), "--run", str(inputs / "run"), "--out",
+                                  str(tmp_path / "r.h5")])
+        assert_one_line(code, err, str(tmp_path / "small.npy"), "smaller than one CFA period")
+        assert not (tmp_path / "r.h5").exists()
+    write_cube_h5(tmp_path / "zero" / "z.h5", np.zeros((7, 16, 16), np.float32), Bands.uniform(420, 720, 50))
+    code, err = call(capsys, ["data", "show", str(tmp_path / "zero"), "--out", str(tmp_path / "show")])
+    assert_one_line(code, err, str(tmp_path / "zero" / "z.h5"), "all zeros")
+    assert not (tmp_path / "show").exists()

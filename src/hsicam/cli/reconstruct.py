@@ -137,6 +137,11 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
     corr = corrections_from_args(args, cfa_period)
     img, report = read_capture(args.sensor, corr, args.scale)
     meta["preprocessing"] = report
+    period = int(getattr(model.camera, "code_period", 1))
+    if min(img.shape) < max(period, 2):
+        raise InputError(f"{args.sensor}: the capture is {img.shape[0]}×{img.shape[1]} px, smaller than "
+                         f"{'one CFA period' if period > 1 else 'a 2×2 image'} ({max(period, 2)}×{max(period, 2)} px): "
+                         "too small to reconstruct")
     sensor = torch.from_numpy(img)[None, None].to(args.device)
     halo = model.context_px
     cube = reconstruct_tiled(model.reconstructor(), sensor, args.tile, halo, progress=sys.stderr.isatty())[0]

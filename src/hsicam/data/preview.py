@@ -100,8 +100,8 @@ def _scene_figures(path: Path, scenes: list[Path]):
     thumbs, spectra = [], []
     for s in scenes:
         cube, bands, _ = read_cube(s)
+        norm, _ = normalize_per_cube_max(cube, s)  # first: an all-zero cube is refused naming its file
         thumbs.append((s.name, preview_rgb(cube, bands)))
-        norm, _ = normalize_per_cube_max(cube, s)
         spectra.append((s.name, bands, norm.mean(axis=(1, 2))))
     cols = min(len(thumbs), 4)
     rows = int(math.ceil(len(thumbs) / cols))
