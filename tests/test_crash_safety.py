@@ -232,8 +232,10 @@ def test_resuming_a_finished_run_with_more_epochs_trains_on(reference, tmp_path)
     assert "trained 3 epochs (12 steps" in proc.stdout and "val PSNR" in proc.stdout
     man = json.loads((run / "checkpoints.json").read_text())
     assert man["state"]["global_step"] == 12 and man["state"]["epoch"] == 3
-    last = json.loads((run / "metrics.jsonl").read_text().splitlines()[-1])
+    records = [json.loads(x) for x in (run / "metrics.jsonl").read_text().splitlines()]
+    last = records[-1]
     assert last["final"] and last["step"] == 12 and "val_psnr" in last
+    assert [r["step"] for r in records if r.get("final")] == [12]  # the 2-epoch summary is not left in the log
     before = _snapshot(run)
     proc = run_cli("train", "--out", str(run), "--resume")
     assert proc.returncode == 0 and "already finished at step 12 (3 epochs)" in proc.stdout, proc.stderr

@@ -195,11 +195,13 @@ class MetricsLog:
         """Keep only the complete records a checkpoint at (``step``, ``epoch`` epochs done) had seen.
 
         A validation record at the checkpoint's step belongs to a later epoch when the process
-        died between writing it and saving the epoch-end checkpoint: it is dropped and redone.
+        died between writing it and saving the epoch-end checkpoint: it is dropped and redone. A
+        ``final`` record summarises a training that the resume now continues: it is dropped too
+        (the continued training writes its own at its end).
         """
         if not self.path.exists():
             return
-        kept = [r for r in self.read()
-                if r.get("step", 0) < step or (r.get("step", 0) == step and r.get("epoch", 0) <= epoch)]
+        kept = [r for r in self.read() if not r.get("final") and
+                (r.get("step", 0) < step or (r.get("step", 0) == step and r.get("epoch", 0) <= epoch))]
         with atomic_open(self.path, "w", encoding="utf-8") as fh:
             fh.write("".join(json.dumps(r) + "\n" for r in kept))
