@@ -154,16 +154,16 @@ def phase_linear(sensor: torch.Tensor, weight: torch.Tensor, origin: tuple[int, 
     padded = F.pad(sensor, (r, r, r, r), mode="replicate") if r else sensor
     out = sensor.new_empty(b, bands, h, w)
     weight = weight.to(sensor.dtype)
-    for a in range(m):
-        i0 = (a - origin[0]) % m  # first window row of phase row a
-        for c in range(m):
-            j0 = (c - origin[1]) % m
+    for row_phase in range(m):
+        i0 = (row_phase - origin[0]) % m  # the window's first row of this phase
+        for col_phase in range(m):
+            j0 = (col_phase - origin[1]) % m
             if i0 >= h or j0 >= w:
                 continue
             rows, cols = len(range(i0, h, m)), len(range(j0, w, m))
             sub = padded[:, 0, i0 : i0 + (rows - 1) * m + k, j0 : j0 + (cols - 1) * m + k]
             patches = sub.unfold(1, k, m).unfold(2, k, m).reshape(b, rows * cols, k * k)  # a view, then one copy
-            est = patches @ weight[a * m + c].reshape(bands, k * k).T  # (B, rows·cols, C)
+            est = patches @ weight[row_phase * m + col_phase].reshape(bands, k * k).T  # (B, rows·cols, C)
             out[:, :, i0::m, j0::m] = est.transpose(1, 2).reshape(b, bands, rows, cols)
     return out
 
