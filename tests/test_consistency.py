@@ -330,3 +330,95 @@ def test_experiment_builds_learned_cassi_methods_from_their_own_overrides(monkey
     for name in LEARNED_CASSI:
         assert seen[name].camera.kind == "dd_cassi" and seen[name].model.consistency.iterations == 0, name
     assert seen["dd-cassi-gaptv"] is cfg
+
+
+# ------------------------------------------------------------------------------------------------
+# The linear step: x + gain · W(y − A x), W per-phase filters (RUN/linear_step.safetensors)
+# ------------------------------------------------------------------------------------------------
+def test_linear_step_matches_a_dense_matrix_reference():
+    """x0 + gain · W r, r = y − A x_e (x_e: x0 extended by K//2 replicated pixels), with A the
+    explicit matrix of the valid operator and W applied by the loop reference of phase_linear."""
+    from hsicam.models.consistency import linear_consistency_step
+    from test_linear_demosaic import _loop_reference
+
+    snap, h, w, origin = _snapshot(3), 6, 7, (2, 1)
+    g = torch.Generator().manual_seed(4)
+    x0 = torch.rand(1, C, h, w, generator=g, dtype=torch.float64)
+    y = torch.rand(1, 1, h, w, generator=g, dtype=torch.float64)
+    weight = torch.randn(M * M, C, 3, 3, generator=g, dtype=torch.float64)
+    got = linear_consistency_step(snap, y, x0, weight, origin, gain=0.4, psf_energy=1.0)
+    a = _dense_valid(snap, h, w, origin)
+    r = K // 2
+    xe = np.pad(x0[0].numpy(), ((0, 0), (r, r), (r, r)), mode="edge").reshape(-1)
+    res = (y.numpy().reshape(-1) - a @ xe).reshape(h, w)
+    want = x0[0].numpy() + 0.4 * _loop_reference(res, weight.numpy(), origin)
+    np.testing.assert_allclose(got[0].numpy(), want, rtol=1e-10, atol=1e-12)
+    # an estimate that explains its measurement is a fixed point, whatever W
+    x_true = torch.rand(1, C, h + 2 * r, w + 2 * r, generator=g, dtype=torch.float64)
+    x_true[..., :r, :] = x_true[..., r : r + 1, :]  # constant beyond the window: what replication extends
+    x_true[..., -r:, :] = x_true[..., -r - 1 : -r, :]
+    x_true[..., :, :r] = x_true[..., :, r : r + 1]
+    x_true[..., :, -r:] = x_true[..., :, -r - 1 : -r]
+    y_true = torch.from_numpy(a @ x_true[0].numpy().reshape(-1)).reshape(1, 1, h, w)
+    inner = x_true[..., r:-r, r:-r]
+    torch.testing.assert_close(linear_consistency_step(snap, y_true, inner, weight, origin, psf_energy=1.0), inner)
+
+
+def _linear_system(tiny_config):
+    model = CameraSystem.from_config(tiny_config("model.consistency.iterations=1", "model.consistency.kind=linear",
+                                                 "model.consistency.window_px=5")).eval()
+    m, c = model.camera.code_period, len(model.bands)
+    model.linear_step = torch.randn(m * m, c, 5, 5, generator=torch.Generator().manual_seed(9)) * 0.05
+    return model
+
+
+def test_linear_step_tiles_with_the_declared_context_equal_the_whole_image(tiny_config):
+    from hsicam.models.consistency import linear_reach_px
+
+    model = _linear_system(tiny_config)
+    snap = model.camera.snapshot(nominal=True)
+    assert model.context_px == model.net.context_px + linear_reach_px(snap, 5, 1, model.consistency.psf_energy)
+    sensor = torch.rand(1, 1, 53, 47)
+    f = model.reconstructor()
+    with torch.no_grad():
+        whole = f(sensor)
+        plain = model.net(sensor, snap, (0, 0))
+    assert (whole - plain).abs().max() > 1e-3  # the step does something
+    tiled = reconstruct_tiled(f, sensor, tile_px=16, halo_px=model.context_px)
+    torch.testing.assert_close(tiled, whole, rtol=1e-5, atol=1e-5)
+
+
+def test_linear_step_needs_its_filters_and_checks_its_settings(tiny_config):
+    model = _linear_system(tiny_config)
+    model.linear_step = None
+    with pytest.raises(InputError, match="linear_step.safetensors"):
+        model.reconstruct(torch.rand(1, 1, 20, 20))
+    for override, match in (("model.consistency.kind=gap", "kind"), ("model.consistency.gain=0", "gain"),
+                            ("model.consistency.window_px=4", "window_px")):
+        with pytest.raises(ConfigError, match=match):
+            tiny_config(override)
+
+
+def test_training_with_the_linear_step_fits_and_ships_its_filters(tiny_config, tmp_path, cache_env):
+    """A run trained with kind=linear gets RUN/linear_step.safetensors: the least-squares map fitted
+    on its training scenes through its optics; load_run reads it and the step uses it."""
+    from hsicam.engine.linear_step import fit_linear_map
+    from hsicam.engine.train import train
+    from hsicam.data.pipeline import scene_dataset, split_dataset
+    from hsicam.runs.folder import load_run
+    from hsicam.runs.linear_step import LINEAR_STEP_FILE
+
+    cfg = load_config("tiny", ["model.consistency.iterations=1", "model.consistency.kind=linear", "train.epochs=1"])
+    train(cfg, tmp_path / "run")
+    assert (tmp_path / "run" / LINEAR_STEP_FILE).is_file()
+    run_cfg, model = load_run(tmp_path / "run")
+    bands = run_cfg.bands.to_bands()
+    train_list, _ = split_dataset(run_cfg.data, bands)
+    want = fit_linear_map(model, scene_dataset(run_cfg.data, train_list, bands), 11)
+    torch.testing.assert_close(model.linear_step, want)
+    sensor = torch.rand(1, 1, 30, 30)
+    with torch.no_grad():
+        lin = model.reconstructor()(sensor)
+        model.consistency = tiny_config("model.consistency.iterations=1").model.consistency  # Landweber's
+        landweber = model.reconstructor()(sensor)
+    assert (lin - landweber).abs().max() > 1e-4

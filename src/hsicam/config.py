@@ -307,8 +307,14 @@ class ConsistencyConfig:
     Not applied while the network trains nor in its validation."""
 
     iterations: int = 0  # steps; 0 = off (the network's output as it is)
+    # landweber: the step above; linear: x ← x + gain · W(y − A x), W the least-squares linear map from
+    # sensor image to cube (one window_px filter per CFA phase and band) fitted on the run's training
+    # scenes when training ends (RUN/linear_step.safetensors; docs/networks.md)
+    kind: Literal["landweber", "linear"] = "landweber"
     damping: float = 0.02  # λ relative to L, the bound of ‖A‖² (larger: a smaller step, more robust to sensor noise)
     psf_energy: float = 0.995  # the step's PSFs are cut to the kernel keeping this share of each band's light (1: whole)
+    gain: float = 0.5  # kind linear: the share of the linear map's correction taken
+    window_px: int = 11  # kind linear: the filters' width (odd)
 
     def __post_init__(self) -> None:
         if not 0 <= self.iterations <= MAX_CONSISTENCY_ITERATIONS:
@@ -318,6 +324,12 @@ class ConsistencyConfig:
             raise ConfigError(f"model.consistency.damping must be > 0, got {self.damping}")
         if not 0 < self.psf_energy <= 1:
             raise ConfigError(f"model.consistency.psf_energy must be in (0, 1], got {self.psf_energy}")
+        if self.kind not in ("landweber", "linear"):
+            raise ConfigError(f"model.consistency.kind must be landweber or linear, got {self.kind!r}")
+        if not 0 < self.gain <= 1:
+            raise ConfigError(f"model.consistency.gain must be in (0, 1], got {self.gain}")
+        if self.window_px < 1 or self.window_px % 2 == 0:
+            raise ConfigError(f"model.consistency.window_px must be odd and >= 1, got {self.window_px}")
 
 
 @dataclass

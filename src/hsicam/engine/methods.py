@@ -45,7 +45,8 @@ from hsicam.config import load_config
 from hsicam.data.pipeline import scene_dataset, split_dataset
 from hsicam.engine.prior import load_prior
 from hsicam.errors import InputError
-from hsicam.models.demosaic import LinearDemosaicFit, camera_demosaic, phase_linear
+from hsicam.engine.linear_step import fit_linear_map
+from hsicam.models.demosaic import camera_demosaic, phase_linear
 from hsicam.runs.folder import load_run
 from hsicam.runs.pretrained import resolve_run
 from hsicam.sensor import SensorNoise
@@ -151,31 +152,16 @@ def linear_demosaic_reference(model, train_scenes, window: int = LINEAR_REFERENC
     """The best *linear* reconstruction through the model's optics: one ``window``×``window`` filter
     per CFA phase and band (:func:`hsicam.models.demosaic.phase_linear`), fitted by least squares on
     ``train_scenes`` (items (C, H, W), at least the camera's kernel) imaged noise-free through the
-    camera. It undoes the optics' blur and the mosaic together as far as a linear map can, with
-    what the training scenes teach about spectra and texture: what the network adds is its score
-    minus this one. Needs a camera with a per-band sensor code (the CFA)."""
-    cam = model.camera
-    try:
-        cam.sensor_code(1, 1)
-    except NotImplementedError:
-        raise ValueError(f"the linear reference needs a camera with a per-band sensor code, not "
-                         f"{type(cam).__name__}") from None
-    if len(train_scenes) == 0:
-        raise ValueError("the linear reference needs at least one training scene")
-    fit = LinearDemosaicFit(cam.code_period, len(cam.bands), window, ridge)
-    device = next(iter(cam.parameters()), torch.empty(0)).device
-    with torch.no_grad():
-        psf = cam.psf() if hasattr(cam, "psf") else None
-        for i in range(len(train_scenes)):
-            scene = train_scenes[i][None].to(device, torch.float32)
-            sensor = cam.A(scene, psf) if psf is not None else cam.A(scene)
-            fit.add(sensor, model.target(scene))
-    weight = fit.solve()
+    camera (:func:`hsicam.engine.linear_step.fit_linear_map`). It undoes the optics' blur and the
+    mosaic together as far as a linear map can, with what the training scenes teach about spectra
+    and texture: what the network adds is its score minus this one. Needs a camera with a per-band
+    sensor code (the CFA)."""
+    weight = fit_linear_map(model, train_scenes, window, ridge)
 
     def reconstruct(sensor: torch.Tensor) -> torch.Tensor:
         return phase_linear(sensor, weight.to(sensor.device))
 
-    return Method(LINEAR_REFERENCE_NAME, cam, reconstruct, model.target, {"window_px": window, "ridge": ridge})
+    return Method(LINEAR_REFERENCE_NAME, model.camera, reconstruct, model.target, {"window_px": window, "ridge": ridge})
 
 
 def _evaluation_settings(model, cfg) -> None:

@@ -21,6 +21,7 @@ from hsicam.io import COMPLETE_MARKER, atomic_open, atomic_output, is_complete, 
 from hsicam.runs import pretrained as shipped
 from hsicam.runs.checkpoint import root_weights_path
 from hsicam.runs.folder import MetricsLog, load_run
+from hsicam.runs.linear_step import LINEAR_STEP_FILE
 from hsicam.runs.measured_psf import MEASURED_PSF_FILE
 
 CARD_FORMAT = "hsicam-pretrained-card-1"
@@ -359,6 +360,8 @@ def pack_pretrained(run_dir: str | Path, name: str, dest_root: str | Path | None
     with atomic_output(target, "dir", overwrite=True, marker={"command": "pretrained pack"}) as tmp:
         shutil.copyfile(run_dir / "config.yaml", tmp / "config.yaml")
         shutil.copyfile(weights, tmp / "model.safetensors")
+        if (run_dir / LINEAR_STEP_FILE).is_file():  # the linear consistency step's filters travel with the camera
+            shutil.copyfile(run_dir / LINEAR_STEP_FILE, tmp / LINEAR_STEP_FILE)
         write_json(tmp / shipped.CARD_JSON, card)
         with atomic_open(tmp / shipped.CARD_MD, "w", encoding="utf-8") as fh:
             fh.write(text)

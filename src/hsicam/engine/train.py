@@ -10,7 +10,7 @@ from typing import Any
 import torch
 
 from hsicam.config import Config
-from hsicam.engine.loop import FitOptions, fit
+from hsicam.engine.loop import FitOptions, dist_env, fit
 from hsicam.engine.tasks import SystemTask
 from hsicam.models import CameraSystem
 
@@ -38,4 +38,13 @@ def train(cfg: Config, run_dir: str | Path, resume: bool = False, progress: bool
     torch.manual_seed(cfg.train.seed)
     task = SystemTask(cfg, CameraSystem.from_config(cfg))
     opts = FitOptions(cfg.train, cfg.data.num_workers, progress=progress, stop_after_steps=stop_after_steps)
-    return fit(task, opts, run_dir, resume)
+    summary = fit(task, opts, run_dir, resume)
+    if "stopped_at_step" not in summary and cfg.model.consistency.kind == "linear" and dist_env()[0] == 0:
+        # the linear consistency step's filters, through the optics the run keeps (its best weights)
+        from hsicam.engine.linear_step import ensure_linear_step
+        from hsicam.runs.folder import load_run
+
+        run_cfg, model = load_run(run_dir)
+        if ensure_linear_step(run_dir, run_cfg, model, cfg.model.consistency):  # asked for (a finished run: by --set)
+            summary = {**summary, "linear_step_fitted": True}
+    return summary

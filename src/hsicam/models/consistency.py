@@ -28,6 +28,7 @@ import torch
 import torch.nn.functional as F
 
 from hsicam.errors import InputError
+from hsicam.models.demosaic import phase_linear
 
 
 def consistency_step(op, y: torch.Tensor, x0: torch.Tensor, origin: tuple[int, int] = (0, 0),
@@ -81,6 +82,53 @@ def consistency_step(op, y: torch.Tensor, x0: torch.Tensor, origin: tuple[int, i
     for _ in range(iterations):
         x = x + a_t((y - a(x)) / row_sums)
     return x[..., py : py + h, px : px + w]
+
+
+def linear_consistency_step(op, y: torch.Tensor, x0: torch.Tensor, weight: torch.Tensor,
+                            origin: tuple[int, int] = (0, 0), gain: float = 0.5, iterations: int = 1,
+                            psf_energy: float = 0.995, extend: bool | str = True) -> torch.Tensor:
+    """x ← x + gain · W(y − A x), ``iterations`` times, from x0 (B, C, h, w): the measurement's
+    residual mapped back to the cube by ``weight`` (m², C, K, K), the least-squares linear map from
+    sensor image to cube of :func:`hsicam.models.demosaic.phase_linear` fitted on training scenes.
+
+    Where the Landweber step of :func:`consistency_step` puts each pixel's residual back on the
+    bands and pixels that made it (Aᵀ: a correction on the CFA lattice, visible as a faint 4×4
+    trace), W spreads it as the training scenes say a sensor image's detail spreads over pixels and
+    bands. ``op``, ``origin``, ``psf_energy`` and ``extend`` as in :func:`consistency_step` (the
+    estimate is extended across the window's border by replication for A). Differentiable."""
+    mode = "replicate" if extend is True else (extend or None)
+    if mode not in (None, "replicate", "reflect"):
+        raise ValueError(f"extend must be a bool, 'replicate' or 'reflect', got {extend!r}")
+    if iterations < 0 or not 0 < gain <= 1 or not 0 < psf_energy <= 1:
+        raise ValueError(f"need iterations >= 0, gain in (0, 1] and psf_energy in (0, 1], got {iterations}, "
+                         f"{gain}, {psf_energy}")
+    if iterations == 0:
+        return x0
+    if tuple(op.scene_size(tuple(y.shape[-2:]))) != tuple(y.shape[-2:]):
+        raise InputError("measurement consistency needs a camera whose scene grid is the sensor's "
+                         f"(not {type(op).__name__})")
+    op = cut_psf(op, psf_energy)
+    py, px = _half_reach(op) if mode else (0, 0)
+    h, w = y.shape[-2:]
+    if mode == "reflect" and (py >= h or px >= w):
+        mode = "replicate"
+    o = (origin[0] - py, origin[1] - px)
+    y = y.to(x0.dtype)
+    x = x0
+    for _ in range(iterations):
+        ext = F.pad(x, (px, px, py, py), mode=mode) if (py or px) else x
+        residual = y - op.A(ext, o)[..., py : py + h, px : px + w]
+        x = x + gain * phase_linear(residual, weight.to(x.device), origin)
+    return x
+
+
+def linear_reach_px(op, window: int, iterations: int, psf_energy: float = 0.995) -> int:
+    """Halo (px per side) that tiles need for :func:`linear_consistency_step` to match the whole
+    image: per step, the filters' half width plus A's reach (counted twice: the estimate's
+    extension across the window's border reaches back too)."""
+    if iterations <= 0:
+        return 0
+    return iterations * (int(window) // 2 + 2 * max(_half_reach(cut_psf(op, psf_energy))))
 
 
 def reach_px(op, iterations: int, psf_energy: float = 0.995) -> int:

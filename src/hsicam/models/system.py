@@ -8,7 +8,8 @@ import torch
 from torch import nn
 
 from hsicam.cameras import Camera, build_camera
-from hsicam.models.consistency import consistency_step, cut_psf, reach_px
+from hsicam.errors import InputError
+from hsicam.models.consistency import consistency_step, cut_psf, linear_consistency_step, linear_reach_px, reach_px
 from hsicam.models.registry import build_network
 
 log = logging.getLogger(__name__)
@@ -34,10 +35,14 @@ class CameraSystem(nn.Module):
         # ``camera`` images with fabrication errors the deployed system does not know
         # A reference, not a submodule (see __setattr__): not in the state dict, not moved by .to().
         self.step_camera: Camera | None = None
+        # model.consistency.kind linear: the filters (m², C, K, K) of RUN/linear_step.safetensors (not
+        # in the state dict: fitted after training, hsicam.engine.linear_step)
+        self.linear_step: torch.Tensor | None = None
         self.autocast_dtype: torch.dtype | None = None  # e.g. torch.bfloat16 for the network on CUDA
 
     def __setattr__(self, name: str, value) -> None:
-        if name == "step_camera":  # nn.Module would register a camera as a submodule (its weights saved twice)
+        if name in ("step_camera", "linear_step"):  # nn.Module would register a camera as a submodule (its
+            # weights saved twice) and a tensor would not be a plain attribute
             object.__setattr__(self, name, value)
         else:
             super().__setattr__(name, value)
@@ -52,6 +57,7 @@ class CameraSystem(nn.Module):
         and consistency step (through ``camera``: ``step_camera`` is not carried over)."""
         out = type(self)(camera, self.net, self.consistency)
         out.autocast_dtype = self.autocast_dtype
+        out.linear_step = self.linear_step
         return out
 
     @property
@@ -74,6 +80,9 @@ class CameraSystem(nn.Module):
         if not self.consistency_on:
             return int(self.net.context_px)
         c = self.consistency
+        if c.kind == "linear":
+            return int(self.net.context_px) + linear_reach_px(self._step_operator(), c.window_px, c.iterations,
+                                                              c.psf_energy)
         return int(self.net.context_px) + reach_px(self._step_operator(), c.iterations, c.psf_energy)
 
     @property
@@ -112,6 +121,13 @@ class CameraSystem(nn.Module):
             return x
         c = self.consistency
         op, energy = (self._step_operator(), c.psf_energy) if step_operator is None else (step_operator, 1.0)
+        if c.kind == "linear":
+            if self.linear_step is None:
+                raise InputError("model.consistency.kind=linear needs the run's linear_step.safetensors, fitted when "
+                                 "training ends; for a run without it: `hsicam train --out RUN --resume --set "
+                                 "model.consistency.kind=linear` (or use --set model.consistency.kind=landweber)")
+            return linear_consistency_step(op, sensor, x, self.linear_step, origin, gain=c.gain,
+                                           iterations=c.iterations, psf_energy=energy, extend=self._extension())
         return consistency_step(op, sensor, x, origin, damping=c.damping, iterations=c.iterations,
                                 psf_energy=energy, extend=self._extension())
 

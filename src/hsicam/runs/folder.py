@@ -28,6 +28,7 @@ import torch
 from hsicam.errors import InputError
 from hsicam.io import atomic_open, cleanup_stale_temporaries, is_temporary
 from hsicam.runs.checkpoint import LEGACY_POINTERS, MANIFEST, CheckpointManager, load_weights, root_weights_path
+from hsicam.runs.linear_step import LINEAR_STEP_FILE, load_linear_step
 from hsicam.runs.measured_psf import MEASURED_PSF_FILE, MeasuredPSF, load_measured_psf
 from hsicam.runs.pretrained import resolve_run
 
@@ -68,6 +69,9 @@ def load_run(run_dir: str | Path, device: torch.device | str = "cpu", overrides:
         raise InputError(f"{run_dir}: the run has no trained weights (model.safetensors is missing)")
     model = CameraSystem.from_config(cfg)
     load_weights(root_weights_path(run_dir), model, cfg.bands.to_bands())
+    if (run_dir / LINEAR_STEP_FILE).is_file():  # the linear consistency step's filters (fitted after training)
+        model.linear_step = load_linear_step(run_dir / LINEAR_STEP_FILE, len(model.bands),
+                                             int(getattr(model.camera, "code_period", 1)))
     if (run_dir / MEASURED_PSF_FILE).is_file():  # a run fine-tuned on measured PSFs images with them
         model = with_measured_psf(model, load_measured_psf(run_dir / MEASURED_PSF_FILE))
     return cfg, model.to(device).eval()
@@ -111,7 +115,7 @@ def remove_run_temporaries(run_dir: Path) -> list[Path]:
 
 #: What a run folder may hold (anything else means it is not only a run folder: never wiped).
 RUN_ENTRIES = frozenset({"config.yaml", "metrics.jsonl", "checkpoints", "tensorboard", MANIFEST, *LEGACY_POINTERS,
-                         "model.safetensors", "prior.safetensors", "summary.json", "prior.yaml", MEASURED_PSF_FILE,
+                         "model.safetensors", "prior.safetensors", "summary.json", "prior.yaml", MEASURED_PSF_FILE, LINEAR_STEP_FILE,
                          "measured_psf.json"})
 
 

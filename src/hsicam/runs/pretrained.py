@@ -35,8 +35,9 @@ ENV_VAR = "HSICAM_PRETRAINED_DIR"
 PREFIX = "pretrained:"
 CARD_JSON = "card.json"
 CARD_MD = "card.md"
-#: The files of a shipped camera (what pack writes and copy copies).
-FILES = ("config.yaml", "model.safetensors", CARD_JSON, CARD_MD)
+#: The files of a shipped camera (what pack writes and copy copies; the linear consistency step's
+#: filters, ``linear_step.safetensors``, when the camera has them).
+FILES = ("config.yaml", "model.safetensors", "linear_step.safetensors", CARD_JSON, CARD_MD)
 #: Largest weights file a shipped camera may have (bytes; 20 MB).
 MAX_WEIGHTS_BYTES = 20_000_000
 _NAME_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]*$")
