@@ -6,7 +6,8 @@
 - The same preset's step once the optics are fixed (``train.optics_steps``): network only.
 - With CUDA: the same for the ``paper`` preset (256 px patches, bf16 autocast, channels_last).
 - Inference time of one 512×512×31 reconstruction (network only) for the quick and paper networks.
-- The measurement-consistency step after the network (``model.consistency``, one iteration) on
+- The measurement-consistency steps after the network (``model.consistency``, one iteration, the
+  Landweber step and the linear step of the quick preset) on
   512×512, through the shipped ``standard`` camera's trained PSFs (the untrained quick camera's
   lens PSFs need a wider kernel than any trained camera measured here).
 
@@ -136,6 +137,27 @@ def consistency_step_time(run: str = "pretrained:standard", repeats: int = 3) ->
             "size": [31, 512, 512], "seconds": statistics.median(times[1:])}
 
 
+@torch.no_grad()
+def linear_step_time(run: str = "pretrained:standard", window: int = 11, repeats: int = 3) -> dict:
+    """The linear consistency step (``model.consistency.kind: linear``) on 512×512 through the same
+    camera, with random filters of the quick preset's width (the time does not depend on them)."""
+    from hsicam.models.consistency import linear_consistency_step
+    from hsicam.runs.folder import load_run
+
+    _, model = load_run(run)
+    snap = model.camera.snapshot(nominal=True)
+    m, c = model.camera.code_period, len(model.bands)
+    weight = torch.randn(m * m, c, window, window) * 0.01
+    g = torch.rand(1, 1, 512, 512)
+    x = torch.rand(1, c, 512, 512)
+    times = []
+    for _ in range(repeats + 1):
+        t0 = time.perf_counter()
+        linear_consistency_step(snap, g, x, weight, gain=0.5)
+        times.append(time.perf_counter() - t0)
+    return {"camera": run, "window_px": window, "size": [c, 512, 512], "seconds": statistics.median(times[1:])}
+
+
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--steps", type=int, default=5)
@@ -148,7 +170,8 @@ def main() -> None:
            "train_quick_cpu": train_steps("quick", cpu, args.steps, []),
            "train_quick_cpu_fixed_optics": fixed_optics_steps("quick", cpu, args.steps),
            "inference_cpu": [inference("quick", cpu), inference("paper", cpu, repeats=1)],
-           "consistency_step_cpu": consistency_step_time()}
+           "consistency_step_cpu": consistency_step_time(),
+           "linear_step_cpu": linear_step_time()}
     if torch.cuda.is_available():
         gpu = torch.device("cuda")
         out["gpu"] = torch.cuda.get_device_name(0)
