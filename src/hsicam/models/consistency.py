@@ -92,9 +92,8 @@ def linear_consistency_step(op, y: torch.Tensor, x0: torch.Tensor, weight: torch
     sensor image to cube of :func:`hsicam.models.demosaic.phase_linear` fitted on training scenes.
 
     Where the Landweber step of :func:`consistency_step` puts each pixel's residual back on the
-    bands and pixels that made it (Aᵀ: a correction on the CFA lattice, visible as a faint 4×4
-    trace), W spreads it as the training scenes say a sensor image's detail spreads over pixels and
-    bands. ``op``, ``origin``, ``psf_energy`` and ``extend`` as in :func:`consistency_step` (the
+    bands and pixels that made it (Aᵀ: a correction on the CFA lattice), W spreads it as the
+    training scenes say a sensor image's detail spreads over pixels and bands. ``op``, ``origin``, ``psf_energy`` and ``extend`` as in :func:`consistency_step` (the
     estimate is extended across the window's border by replication for A). Differentiable."""
     mode = "replicate" if extend is True else (extend or None)
     if mode not in (None, "replicate", "reflect"):
