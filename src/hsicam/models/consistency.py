@@ -48,25 +48,17 @@ def consistency_step(op, y: torch.Tensor, x0: torch.Tensor, origin: tuple[int, i
     mirror); False: the light beyond is zero (a ``same`` camera with zero padding). Tiles: either
     way the window's edge moves the output only within :func:`reach_px`. Differentiable.
     """
-    mode = "replicate" if extend is True else (extend or None)
-    if mode not in (None, "replicate", "reflect"):
-        raise ValueError(f"extend must be a bool, 'replicate' or 'reflect', got {extend!r}")
+    mode = _extension_mode(extend)
     if iterations < 0 or not damping > 0 or not 0 < psf_energy <= 1:
         raise ValueError(f"need iterations >= 0, damping > 0 and psf_energy in (0, 1], got {iterations}, "
                          f"{damping}, {psf_energy}")
     if iterations == 0:
         return x0
-    if tuple(op.scene_size(tuple(y.shape[-2:]))) != tuple(y.shape[-2:]):
-        raise InputError("measurement consistency needs a camera whose scene grid is the sensor's "
-                         f"(not {type(op).__name__})")
-    op = cut_psf(op, psf_energy)
+    op, mode, py, px = _window_setup(op, y, mode, psf_energy)
     if getattr(op, "lipschitz", None) is None:
         raise InputError(f"measurement consistency needs an operator with a bound of ‖A‖² (lipschitz), "
                          f"not {type(op).__name__}")
-    py, px = _half_reach(op) if mode else (0, 0)
     h, w = y.shape[-2:]
-    if mode == "reflect" and (py >= h or px >= w):
-        mode = "replicate"
     o = (origin[0] - py, origin[1] - px)
     lam = damping * float(op.lipschitz)
 
@@ -93,24 +85,17 @@ def linear_consistency_step(op, y: torch.Tensor, x0: torch.Tensor, weight: torch
 
     Where the Landweber step of :func:`consistency_step` puts each pixel's residual back on the
     bands and pixels that made it (Aᵀ: a correction on the CFA lattice), W spreads it as the
-    training scenes say a sensor image's detail spreads over pixels and bands. ``op``, ``origin``, ``psf_energy`` and ``extend`` as in :func:`consistency_step` (the
-    estimate is extended across the window's border by replication for A). Differentiable."""
-    mode = "replicate" if extend is True else (extend or None)
-    if mode not in (None, "replicate", "reflect"):
-        raise ValueError(f"extend must be a bool, 'replicate' or 'reflect', got {extend!r}")
+    training scenes say a sensor image's detail spreads over pixels and bands. ``op``, ``origin``,
+    ``psf_energy`` and ``extend`` as in :func:`consistency_step` (the estimate is extended across
+    the window's border for A). Differentiable."""
+    mode = _extension_mode(extend)
     if iterations < 0 or not 0 < gain <= 1 or not 0 < psf_energy <= 1:
         raise ValueError(f"need iterations >= 0, gain in (0, 1] and psf_energy in (0, 1], got {iterations}, "
                          f"{gain}, {psf_energy}")
     if iterations == 0:
         return x0
-    if tuple(op.scene_size(tuple(y.shape[-2:]))) != tuple(y.shape[-2:]):
-        raise InputError("measurement consistency needs a camera whose scene grid is the sensor's "
-                         f"(not {type(op).__name__})")
-    op = cut_psf(op, psf_energy)
-    py, px = _half_reach(op) if mode else (0, 0)
+    op, mode, py, px = _window_setup(op, y, mode, psf_energy)
     h, w = y.shape[-2:]
-    if mode == "reflect" and (py >= h or px >= w):
-        mode = "replicate"
     o = (origin[0] - py, origin[1] - px)
     y = y.to(x0.dtype)
     x = x0
@@ -119,6 +104,28 @@ def linear_consistency_step(op, y: torch.Tensor, x0: torch.Tensor, weight: torch
         residual = y - op.A(ext, o)[..., py : py + h, px : px + w]
         x = x + gain * phase_linear(residual, weight.to(x.device), origin)
     return x
+
+
+def _extension_mode(extend: bool | str) -> str | None:
+    """How the estimate is extended across the window's border: "replicate", "reflect" or None."""
+    mode = "replicate" if extend is True else (extend or None)
+    if mode not in (None, "replicate", "reflect"):
+        raise ValueError(f"extend must be a bool, 'replicate' or 'reflect', got {extend!r}")
+    return mode
+
+
+def _window_setup(op, y: torch.Tensor, mode: str | None, psf_energy: float):
+    """The steps' common set-up for the sensor window ``y``: (``op`` with its PSFs cut to
+    ``psf_energy``, the extension mode, the margin (rows, columns) the estimate is extended by).
+    InputError for a camera whose scene grid is not the sensor's."""
+    if tuple(op.scene_size(tuple(y.shape[-2:]))) != tuple(y.shape[-2:]):
+        raise InputError("measurement consistency needs a camera whose scene grid is the sensor's "
+                         f"(not {type(op).__name__})")
+    op = cut_psf(op, psf_energy)
+    py, px = _half_reach(op) if mode else (0, 0)
+    if mode == "reflect" and (py >= y.shape[-2] or px >= y.shape[-1]):
+        mode = "replicate"  # a window too small to mirror
+    return op, mode, py, px
 
 
 def linear_reach_px(op, window: int, iterations: int, psf_energy: float = 0.995) -> int:
