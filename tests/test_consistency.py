@@ -385,6 +385,9 @@ def test_linear_step_tiles_with_the_declared_context_equal_the_whole_image(tiny_
     snap = model.camera.snapshot(nominal=True)
     assert model.context_px == model.net.context_px + linear_reach_px(snap, 5, 1, model.consistency.psf_energy)
     _assert_step_tiles_equal_whole(model, snap)
+    model.linear_step = torch.nn.functional.pad(model.linear_step, (2, 2, 2, 2))  # 9×9 filters under window_px 5:
+    assert model.context_px == model.net.context_px + linear_reach_px(snap, 9, 1, model.consistency.psf_energy)
+    _assert_step_tiles_equal_whole(model, snap)  # the halo follows the filters loaded
 
 
 def test_linear_step_needs_its_filters_and_checks_its_settings(tiny_config):

@@ -80,8 +80,9 @@ class CameraSystem(nn.Module):
         if not self.consistency_on:
             return int(self.net.context_px)
         c = self.consistency
-        if c.kind == "linear":
-            return int(self.net.context_px) + linear_reach_px(self._step_operator(), c.window_px, c.iterations,
+        if c.kind == "linear":  # the filters' own width when loaded (a file fitted with another window_px)
+            window = int(self.linear_step.shape[-1]) if self.linear_step is not None else c.window_px
+            return int(self.net.context_px) + linear_reach_px(self._step_operator(), window, c.iterations,
                                                               c.psf_energy)
         return int(self.net.context_px) + reach_px(self._step_operator(), c.iterations, c.psf_energy)
 
