@@ -83,23 +83,11 @@ def add_run_arg(p: argparse.ArgumentParser, help: str, required: bool = True) ->
 def device_arg(spec: str) -> str:
     """argparse ``type`` of every ``--device``: a torch device this machine has (``cpu``, ``cuda``,
     ``cuda:N``, ``mps``), else a usage error saying what is available, never a traceback later."""
-    import torch
+    from hsicam.engine.loop import device_problem
 
-    try:
-        dev = torch.device(spec)
-    except (RuntimeError, ValueError):
-        raise argparse.ArgumentTypeError(f"unknown device {spec!r}; use cpu, cuda, cuda:N or mps") from None
-    if dev.type == "cuda":
-        n = torch.cuda.device_count() if torch.cuda.is_available() else 0
-        if n == 0:
-            raise argparse.ArgumentTypeError(f"device {spec!r}: no CUDA device is available here (torch "
-                                             f"{torch.__version__}); use --device cpu")
-        if dev.index is not None and dev.index >= n:
-            raise argparse.ArgumentTypeError(f"device {spec!r}: this machine has {n} CUDA device(s), cuda:0 to cuda:{n - 1}")
-    elif dev.type == "mps" and not (hasattr(torch.backends, "mps") and torch.backends.mps.is_available()):
-        raise argparse.ArgumentTypeError(f"device {spec!r}: no MPS device is available here; use --device cpu")
-    elif dev.type not in ("cpu", "cuda", "mps"):
-        raise argparse.ArgumentTypeError(f"device {spec!r}: hsicam runs on cpu, cuda or mps")
+    problem = device_problem(spec)
+    if problem is not None:
+        raise argparse.ArgumentTypeError(f"device {spec!r}: {problem}")
     return spec
 
 

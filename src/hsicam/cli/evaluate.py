@@ -54,7 +54,7 @@ def check_run_overrides(overrides) -> None:
         key = str(item).split("=", 1)[0].strip()
         if not any(key == k or key.startswith(k + ".") for k in RUN_EVALUATION_KEYS):
             raise InputError(f"--set {key}: a trained run's camera, bands and network are fixed by its training; with "
-                             f"--run, evaluate changes only {', '.join(k + '.*' if k in ('data', 'baselines', 'camera.sensor', 'model.consistency') else k for k in RUN_EVALUATION_KEYS)} "
+                             f"--run, evaluate changes only {', '.join(RUN_EVALUATION_KEYS)} (and their keys) "
                              "(other optics: hsicam tolerance; another design: hsicam train)")
 
 

@@ -14,7 +14,8 @@ from hsicam.engine.evaluate import (TestNoise, demosaic_reference, evaluate_meth
                                     grey_reference, summarize)
 from hsicam.engine.experiments import ensure_trained, heldout_scenes
 from hsicam.engine.linear_step import ensure_linear_step
-from hsicam.engine.methods import linear_demosaic_reference, network_alone_reference, network_skip
+from hsicam.engine.methods import (LINEAR_REFERENCE_WINDOW, linear_demosaic_reference, network_alone_reference,
+                                   network_skip)
 from hsicam.io import atomic_open, clear_complete, mark_complete, write_json
 from hsicam.report.camera import write_optics_figures, write_psf_outputs
 from hsicam.report.reconstruction import plot_reconstructions, plot_training_curves
@@ -59,7 +60,10 @@ def run_demo(cfg: Config, out: str | Path) -> dict[str, Any]:
         skip = network_skip(model.net)
         if skip is not None and skip.demosaic_kernel == "tent":  # the network's own start, network-free
             references.append(demosaic_reference(model, "tent", skip.demosaic_window))
-        references.append(linear_demosaic_reference(model, train_scenes))  # the best linear map, fitted
+        # the best linear map: the linear step's own W when the run has one (fitted on these scenes), else fitted now
+        own = model.linear_step
+        own = own if own is not None and own.shape[-1] == LINEAR_REFERENCE_WINDOW else None
+        references.append(linear_demosaic_reference(model, train_scenes, weight=own))
     except ValueError:  # a camera without a per-band sensor code (CASSI)
         pass
     summary = summarize(results)

@@ -53,6 +53,8 @@ def ensure_linear_step(run_dir: str | Path, cfg, model, consistency=None) -> boo
     if c.kind != "linear" or c.iterations <= 0:
         return False
     cam = model.camera
+    if model.linear_step is not None:  # loaded with the run (load_run)
+        return False
     if path.is_file():
         model.linear_step = load_linear_step(path, len(cam.bands), cam.code_period)
         return False

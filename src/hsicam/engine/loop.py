@@ -114,14 +114,34 @@ def draw_uniform(lo_hi: list[float] | tuple[float, float], g: torch.Generator) -
     return lo + (hi - lo) * float(torch.rand((), generator=g, device=g.device))
 
 
+def device_problem(spec: str) -> str | None:
+    """Why ``spec`` is not a torch device this machine has (cpu, cuda, cuda:N, mps), or None."""
+    try:
+        dev = torch.device(spec)
+    except (RuntimeError, ValueError):
+        return "unknown device; use cpu, cuda, cuda:N or mps"
+    if dev.type == "cuda":
+        n = torch.cuda.device_count() if torch.cuda.is_available() else 0
+        if n == 0:
+            return f"no CUDA device is available here (torch {torch.__version__}); use cpu"
+        if dev.index is not None and dev.index >= n:
+            return f"this machine has {n} CUDA device(s), cuda:0 to cuda:{n - 1}"
+    elif dev.type == "mps" and not (hasattr(torch.backends, "mps") and torch.backends.mps.is_available()):
+        return "no MPS device is available here; use cpu"
+    elif dev.type not in ("cpu", "cuda", "mps"):
+        return "hsicam runs on cpu, cuda or mps"
+    return None
+
+
 def resolve_device(spec: str, local_rank: int = 0) -> torch.device:
-    """``auto`` → this rank's CUDA device when there is one, else the CPU; else ``spec``."""
+    """``auto`` → this rank's CUDA device when there is one, else the CPU; else ``spec``
+    (:class:`InputError` for a device this machine lacks, :func:`device_problem`)."""
     if spec == "auto":
         return torch.device(f"cuda:{local_rank}") if torch.cuda.is_available() else torch.device("cpu")
-    dev = torch.device(spec)
-    if dev.type == "cuda" and not torch.cuda.is_available():
-        raise InputError("train.device=cuda but no CUDA device is available")
-    return dev
+    problem = device_problem(spec)
+    if problem is not None:
+        raise InputError(f"train.device={spec}: {problem}")
+    return torch.device(spec)
 
 
 def dist_env() -> tuple[int, int, int]:

@@ -148,15 +148,18 @@ LINEAR_REFERENCE_WINDOW = 11
 
 
 def linear_demosaic_reference(model, train_scenes, window: int = LINEAR_REFERENCE_WINDOW,
-                              ridge: float = 1e-6) -> Method:
+                              ridge: float = 1e-6, weight: torch.Tensor | None = None) -> Method:
     """The best *linear* reconstruction through the model's optics: one ``window``×``window`` filter
     per CFA phase and band (:func:`hsicam.models.demosaic.phase_linear`), fitted by least squares on
     ``train_scenes`` (items (C, H, W), at least the camera's kernel) imaged noise-free through the
     camera (:func:`hsicam.engine.linear_step.fit_linear_map`). It undoes the optics' blur and the
     mosaic together as far as a linear map can, with what the training scenes teach about spectra
     and texture: what the network adds is its score minus this one. Needs a camera with a per-band
-    sensor code (the CFA)."""
-    weight = fit_linear_map(model, train_scenes, window, ridge)
+    sensor code (the CFA). ``weight``: filters already fitted that way on the same scenes (a run's
+    linear consistency step, ``model.linear_step``), used instead of fitting them again."""
+    if weight is None:
+        weight = fit_linear_map(model, train_scenes, window, ridge)
+    window = int(weight.shape[-1])
 
     def reconstruct(sensor: torch.Tensor) -> torch.Tensor:
         return phase_linear(sensor, weight.to(sensor.device))

@@ -1,6 +1,6 @@
 """The filters of a run's linear consistency step (``RUN/linear_step.safetensors``): the least-
 squares linear map from the sensor image to the cube (:class:`hsicam.models.demosaic.LinearDemosaicFit`),
-fitted on the run's training scenes through its trained optics (:func:`hsicam.engine.linear_step.fit_linear_step`)
+fitted on the run's training scenes through its trained optics (:func:`hsicam.engine.linear_step.ensure_linear_step`)
 and used by ``model.consistency.kind: linear`` (:func:`hsicam.models.consistency.linear_consistency_step`)."""
 
 from __future__ import annotations
