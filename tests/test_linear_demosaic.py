@@ -105,6 +105,68 @@ def test_the_fit_is_the_least_squares_optimum_on_its_pairs():
         assert ((phase_linear(g, other) - truth) ** 2).sum() > err
 
 
+def _kkt_reference(fit: LinearDemosaicFit) -> torch.Tensor:
+    """The constrained least-squares filters from one dense KKT system: minimise Σ_q ‖X_q w_q − T_q‖²
+    subject to S_q w_q = S_0 w_0 for every phase q (all phases' responses to an m-periodic image
+    equal), with the tap-to-phase map written here from the definition."""
+    m, k, r = fit.period, fit.window, fit.window // 2
+    q_n, n, c = m * m, k * k, fit.bands
+    select = torch.zeros(q_n, q_n, n, dtype=torch.float64)
+    for q in range(q_n):
+        for u in range(k):
+            for v in range(k):
+                p = ((q // m + u - r) % m) * m + (q % m + v - r) % m
+                select[q, p, u * k + v] = 1.0
+    gram = torch.block_diag(*fit.gram)
+    cons = torch.zeros((q_n - 1) * q_n, q_n * n, dtype=torch.float64)
+    for q in range(1, q_n):
+        cons[(q - 1) * q_n : q * q_n, q * n : (q + 1) * n] = select[q]
+        cons[(q - 1) * q_n : q * q_n, :n] = -select[0]
+    zeros = torch.zeros(cons.shape[0], cons.shape[0], dtype=torch.float64)
+    kkt = torch.cat([torch.cat([gram, cons.T], 1), torch.cat([cons, zeros], 1)])
+    rhs = torch.cat([fit.cross.reshape(q_n * n, c), torch.zeros(cons.shape[0], c, dtype=torch.float64)])
+    sol = torch.linalg.solve(kkt, rhs)[: q_n * n]
+    return sol.reshape(q_n, n, c).transpose(1, 2).reshape(q_n, c, k, k)
+
+
+@pytest.mark.parametrize("period,window", [(3, 5), (2, 3), (4, 5)])
+def test_flat_field_fit_is_the_constrained_least_squares_optimum(period, window):
+    """Under the flat-field constraint the fit equals a dense KKT solve of the same problem, and
+    an m-periodic sensor image (what a uniform scene gives) comes out uniform in every band."""
+    gen = torch.Generator().manual_seed(period * 10 + window)
+    g = torch.rand(2, 1, 30, 27, generator=gen, dtype=torch.float64)
+    truth = torch.rand(2, 3, 30, 27, generator=gen, dtype=torch.float64) * g
+    fit = LinearDemosaicFit(period, 3, window, ridge=0.0, flat_field=True)
+    fit.add(g, truth)
+    got = fit.solve().double()
+    ref = _kkt_reference(fit)
+    torch.testing.assert_close(got, ref, atol=1e-5 * float(ref.abs().max()), rtol=0)
+    free = LinearDemosaicFit(period, 3, window, ridge=0.0)
+    free.gram, free.cross = fit.gram, fit.cross
+    unconstrained = free.solve().double()
+    err = lambda w: float(((phase_linear(g, w) - truth) ** 2).sum())  # noqa: E731
+    assert err(unconstrained) <= err(got) * (1 + 1e-9)  # the constraint costs, never gains, on its own pairs
+    periodic = torch.rand(1, 1, period, period, generator=gen, dtype=torch.float64).repeat(1, 1, 12, 12)
+    for origin in ((0, 0), (1, 2)):
+        flat = phase_linear(periodic, got, origin)[..., window:-window, window:-window]  # away from the border
+        assert float((flat - flat.mean((-2, -1), keepdim=True)).abs().max()) < 1e-5 * float(flat.abs().max())
+        spread = phase_linear(periodic, unconstrained, origin)[..., window:-window, window:-window]
+        assert float((spread - spread.mean((-2, -1), keepdim=True)).abs().max()) > 1e-3 * float(spread.abs().max())
+
+
+def test_flat_field_fit_recovers_filters_that_obey_it():
+    """Truth made by filters that already answer a periodic image uniformly (the KKT projection of
+    random filters) is fitted back exactly under the constraint."""
+    gen = torch.Generator().manual_seed(7)
+    g = torch.rand(3, 1, 36, 33, generator=gen, dtype=torch.float64)
+    make = LinearDemosaicFit(3, 2, 5, ridge=0.0, flat_field=True)
+    make.add(g, torch.rand(3, 2, 36, 33, generator=gen, dtype=torch.float64))
+    weight = _kkt_reference(make)
+    fit = LinearDemosaicFit(3, 2, 5, ridge=0.0, flat_field=True)
+    fit.add(g, phase_linear(g, weight))
+    torch.testing.assert_close(fit.solve().double(), weight, atol=2e-5 * float(weight.abs().max()), rtol=0)
+
+
 def test_bad_shapes_are_clear_errors():
     with pytest.raises(ValueError, match="sensor image must be"):
         phase_linear(torch.rand(1, 2, 8, 8), torch.rand(4, 3, 3, 3))
@@ -114,6 +176,8 @@ def test_bad_shapes_are_clear_errors():
         LinearDemosaicFit(4, 3, 4)
     with pytest.raises(ValueError, match="ridge"):
         LinearDemosaicFit(4, 3, 5, ridge=float("nan"))
+    with pytest.raises(ValueError, match="at least one CFA period"):
+        LinearDemosaicFit(9, 3, 7, flat_field=True)
     with pytest.raises(ValueError, match="same pixels"):
         LinearDemosaicFit(4, 3, 5).add(torch.rand(1, 1, 8, 8), torch.rand(1, 3, 8, 9))
 
@@ -145,7 +209,7 @@ def test_linear_reference_method_is_fitted_on_the_training_scenes_through_the_ru
     scenes = scene_dataset(cfg.data, train, bands)
     assert method.info["training_scenes"] == len(train) and method.info["window_px"] == 11
     cam = method.camera
-    fit = LinearDemosaicFit(cam.code_period, len(cam.bands), 11, 1e-6)
+    fit = LinearDemosaicFit(cam.code_period, len(cam.bands), 11, 1e-6, flat_field=True)
     se_lin = se_tent = 0.0
     with torch.no_grad():
         for i in range(len(train)):
@@ -156,6 +220,10 @@ def test_linear_reference_method_is_fitted_on_the_training_scenes_through_the_ru
             se_tent += float(((camera_demosaic(cam, y, kernel="tent") - t) ** 2).sum())
         y = cam.A(scenes[0][None])
         torch.testing.assert_close(method.reconstruct(y), phase_linear(y, fit.solve()), atol=1e-5, rtol=1e-4)
+        # flat-field constraint: a uniform scene's image through the run's optics comes out uniform
+        uniform = scenes[0][None].mean((-2, -1), keepdim=True).expand_as(scenes[0][None]).contiguous()
+        flat = method.reconstruct(cam.A(uniform))[..., 6:-6, 6:-6]
+        assert float((flat - flat.mean((-2, -1), keepdim=True)).abs().max()) < 1e-4 * float(flat.abs().max())
     assert se_lin < se_tent
     with pytest.raises(InputError, match="needs --run"):
         build_method("doe-linear-demosaic", cfg)

@@ -17,11 +17,13 @@ from hsicam.runs.linear_step import LINEAR_STEP_FILE, save_linear_step
 log = logging.getLogger(__name__)
 
 
-def fit_linear_map(model, scenes, window: int = 11, ridge: float = 1e-6) -> torch.Tensor:
+def fit_linear_map(model, scenes, window: int = 11, ridge: float = 1e-6, flat_field: bool = True) -> torch.Tensor:
     """Least-squares filters (m², C, K, K) of :func:`hsicam.models.demosaic.phase_linear` from the
     noise-free sensor images of ``scenes`` (items (C, H, W), at least the camera's kernel) through
-    ``model.camera`` (nominal PSFs) to their targets. ValueError for a camera without a per-band
-    sensor code (the CFA) or no scenes."""
+    ``model.camera`` (nominal PSFs) to their targets, by default under the flat-field constraint (a
+    uniform scene gives a uniform estimate: no CFA trace; :class:`LinearDemosaicFit`). ValueError for
+    a camera without a per-band sensor code (the CFA), no scenes, or a window narrower than the CFA
+    period under the constraint."""
     cam = model.camera
     try:
         cam.sensor_code(1, 1)
@@ -29,7 +31,7 @@ def fit_linear_map(model, scenes, window: int = 11, ridge: float = 1e-6) -> torc
         raise ValueError(f"the linear map needs a camera with a per-band sensor code, not {type(cam).__name__}") from None
     if len(scenes) == 0:
         raise ValueError("the linear map needs at least one training scene")
-    fit = LinearDemosaicFit(cam.code_period, len(cam.bands), window, ridge)
+    fit = LinearDemosaicFit(cam.code_period, len(cam.bands), window, ridge, flat_field)
     device = next(iter(cam.parameters()), torch.empty(0)).device
     with torch.no_grad():
         psf = cam.snapshot(nominal=True).psf if hasattr(cam, "psf") else None
@@ -62,7 +64,7 @@ def ensure_linear_step(run_dir: str | Path, cfg, model, consistency=None) -> boo
     train, _ = split_dataset(cfg.data, bands)
     t0 = time.perf_counter()
     weight = fit_linear_map(model, scene_dataset(cfg.data, train, bands), c.window_px)
-    save_linear_step(path, weight, {"window_px": c.window_px, "training_scenes": len(train), "ridge": 1e-6})
+    save_linear_step(path, weight, {"window_px": c.window_px, "training_scenes": len(train), "ridge": 1e-6, "flat_field": True})
     log.info("linear consistency step: %d×%d filters per CFA phase and band fitted on %d training scenes (%.0f s) -> %s",
              c.window_px, c.window_px, len(train), time.perf_counter() - t0, path)
     model.linear_step = weight
