@@ -197,6 +197,29 @@ def test_evaluate_bad_input(run, env, tmp_path):
     assert not (tmp_path / "o" / "results.json").exists()
 
 
+def test_data_outside_a_trained_runs_bands_asks_for_other_data_not_another_grid(run, env, tmp_path):
+    """400-700 nm cubes against a run trained on 420-720 nm: with --run the error says the run's
+    bands are fixed (its grid cannot be changed with --set bands.*); training keeps the grid hint."""
+    data = tmp_path / "d400"
+    rng = np.random.default_rng(0)
+    for i in range(2):  # two scenes: the run's split keeps one for validation
+        write_cube_h5(data / f"s{i}.h5", rng.uniform(0.1, 1, (7, 48, 48)).astype(np.float32), Bands.uniform(400, 700, 50))
+    for args in (("--set", f"data.root={data}"), ("--data", str(data))):
+        res = run_cli("evaluate", "--run", str(run), *args, "--out", str(tmp_path / "o"), env=env)
+        assert_clean_error(res, "the run's bands 420-720 nm", "data's 400-700 nm", "fixed by its training",
+                           "data that covers 420-720 nm", "train a new camera on a band grid inside 400-700 nm")
+        assert "use a camera band grid" not in res.stderr
+    assert not (tmp_path / "o" / "results.json").exists()
+    resumed = tmp_path / "resumed"
+    shutil.copytree(run, resumed)
+    res = run_cli("train", "--out", str(resumed), "--resume", "--set", f"data.root={data}", "--set", "train.epochs=9",
+                  env=env)
+    assert_clean_error(res, "the run's bands 420-720 nm", "fixed by its training")
+    res = run_cli("train", "--config", "tiny", "--set", f"data.root={data}", "--out", str(tmp_path / "new"), env=env)
+    assert_clean_error(res, "the camera's bands 420-720 nm", "use a camera band grid inside 400-700 nm")
+    assert not (tmp_path / "new").exists()
+
+
 def test_experiment_ablation_tiny_is_resumable(env, tmp_path):
     out = tmp_path / "abl"
     res = run_cli("experiment", "ablation", "--scale", "tiny", "--out", str(out), env=env)

@@ -221,6 +221,27 @@ def test_train_and_reconstruct_cli(tmp_path, cache_env):
     assert_clean_error(run_cli("reconstruct", str(tmp_path / "sim" / "sensor.npy"), "--run", str(other), "--out", str(out)), "trained on")
 
 
+def test_training_on_one_scene_warns_that_nothing_is_validated(tmp_path, cache_env):
+    """`data.root` = one cube file: the split holds no scene out, so training says at its start that
+    it runs without validation and keeps its last checkpoint, and how to get validation."""
+    from hsicam.data.formats import write_cube_h5
+    from hsicam.spectral import Bands
+
+    cube = tmp_path / "one.h5"
+    write_cube_h5(cube, smooth_cube(1, 7, 64, 64)[0].numpy(), Bands.uniform(420, 720, 50))
+    run = tmp_path / "run"
+    res = run_cli("train", "--config", "tiny", "--set", f"data.root={cube}", "--out", str(run),
+                  env={"HSICAM_CACHE": str(cache_env)})
+    assert res.returncode == 0, res.stderr
+    lines = [x for x in res.stderr.splitlines() if "no validation scenes" in x]
+    assert len(lines) == 1, res.stderr
+    for words in ("a split of 1 scene(s)", "without validation", "last checkpoint, not the best",
+                  "2 or more scenes", "data.val_fraction=0.34"):
+        assert words in lines[0], (words, lines[0])
+    assert res.stderr.index(lines[0]) < res.stderr.index("step 1/")  # said before training starts
+    assert json.loads((run / "checkpoints.json").read_text())["best"] is None
+
+
 def test_metrics_truncation_drops_records_the_checkpoint_never_saw(tmp_path):
     from hsicam.runs.folder import MetricsLog
 

@@ -168,8 +168,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.DEBUG if args.verbose else logging.INFO, format="%(message)s")
+    from hsicam.data.cube import trained_bands
+
     try:
-        return int(args.func(args) or 0)
+        fixed = getattr(args, "run", None) is not None or bool(getattr(args, "resume", False))
+        with trained_bands(fixed):  # --run, or resuming a run: its bands are fixed
+            return int(args.func(args) or 0)
     except KeyboardInterrupt:
         print("hsicam: interrupted", file=sys.stderr)
         return 130

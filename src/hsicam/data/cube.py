@@ -7,7 +7,8 @@ non-empty (C, H, W) array whose band count matches its band grid.
 
 **Band-grid policy** (the one place it is defined): :func:`conform_bands` brings a cube onto the
 camera's bands by linear interpolation in band centre, logs a note when it resamples, and refuses
-only extrapolation (a camera band outside the data's range). It never relabels bands.
+only extrapolation (a camera band outside the data's range). It never relabels bands. Within
+:func:`trained_bands` (a command on a trained run) the refusal says the run's bands are fixed.
 
 **Memory budget**: :func:`check_memory_budget` compares the size a file *declares* (its header)
 with :func:`memory_budget_bytes` before any reader allocates the cube. The budget is, in order of
@@ -27,8 +28,10 @@ from __future__ import annotations
 import logging
 import math
 import os
+from contextlib import contextmanager
+from contextvars import ContextVar
 from pathlib import Path
-from typing import Any, Sequence, Union
+from typing import Any, Iterator, Sequence, Union
 
 import numpy as np
 
@@ -202,6 +205,21 @@ def check_cube(cube: Any, source: PathLike | str = "cube", *, bands: Bands | Non
 # ------------------------------------------------------------------------------------------------
 # The band-grid policy
 # ------------------------------------------------------------------------------------------------
+#: True while the camera bands come from a trained run: its band grid cannot change.
+_TRAINED_BANDS: ContextVar[bool] = ContextVar("hsicam_trained_bands", default=False)
+
+
+@contextmanager
+def trained_bands(active: bool = True) -> Iterator[None]:
+    """Within: the camera's bands are a trained run's (fixed), so a range refusal says to bring
+    data that covers them (or train a new camera), not to change the camera's grid."""
+    token = _TRAINED_BANDS.set(active)
+    try:
+        yield
+    finally:
+        _TRAINED_BANDS.reset(token)
+
+
 def conform_bands(cube: Any, cube_bands: Bands, camera_bands: Bands, source: PathLike | str = "cube", *,
                   axis: int = -3, note: bool = True) -> Any:
     """Bring ``cube`` (bands on ``axis``: -3 fits (C, H, W) and (B, C, H, W)) from ``cube_bands``
@@ -211,7 +229,8 @@ def conform_bands(cube: Any, cube_bands: Bands, camera_bands: Bands, source: Pat
     (:func:`hsicam.spectral.resample_spectra`), with an INFO log note naming ``source`` unless
     ``note=False``; numpy input gives float32, a torch tensor keeps its dtype (and gradient).
     Raises one-line :class:`InputError` when the band count does not match ``cube_bands``, or when
-    a camera band lies outside the data's range (no extrapolation, no relabelling).
+    a camera band lies outside the data's range (no extrapolation, no relabelling; worded for a
+    trained run's fixed bands within :func:`trained_bands`).
     """
     n = cube.shape[axis]
     if n != len(cube_bands):
@@ -219,11 +238,14 @@ def conform_bands(cube: Any, cube_bands: Bands, camera_bands: Bands, source: Pat
     if cube_bands.matches(camera_bands):
         return cube
     if not cube_bands.covers(camera_bands):
-        raise InputError(
-            f"{source}: the camera's bands {camera_bands.min_nm:g}-{camera_bands.max_nm:g} nm are not covered by the "
-            f"data's {cube_bands.min_nm:g}-{cube_bands.max_nm:g} nm (no extrapolation): use a camera band grid "
-            f"inside {cube_bands.min_nm:g}-{cube_bands.max_nm:g} nm or data that covers the camera's range"
-        )
+        cam = f"{camera_bands.min_nm:g}-{camera_bands.max_nm:g} nm"
+        data = f"{cube_bands.min_nm:g}-{cube_bands.max_nm:g} nm"
+        if _TRAINED_BANDS.get():
+            raise InputError(f"{source}: the run's bands {cam} are not covered by the data's {data} (no extrapolation): "
+                             f"a trained run's bands are fixed by its training, so use data that covers {cam} "
+                             f"or train a new camera on a band grid inside {data}")
+        raise InputError(f"{source}: the camera's bands {cam} are not covered by the data's {data} (no extrapolation): "
+                         f"use a camera band grid inside {data} or data that covers the camera's range")
     if note:
         log.info("%s: resampling %d bands (%g-%g nm) onto the camera's %d bands (%g-%g nm) by band centre",
                  source, len(cube_bands), cube_bands.min_nm, cube_bands.max_nm,
@@ -259,4 +281,5 @@ __all__ = [
     "memory_budget_bytes",
     "normalize_per_cube_max",
     "resample_cube",
+    "trained_bands",
 ]

@@ -81,6 +81,13 @@ def _split(cfg: DataConfig, scenes: list[Path]) -> tuple[list[Path], list[Path]]
     return split_scenes(scenes, cfg.val_fraction, cfg.split_seed, cfg.val_pool)
 
 
+def no_validation_reason(cfg: DataConfig, n_scenes: int) -> str:
+    """Why the config's split of ``n_scenes`` scenes holds none out for validation."""
+    if cfg.val_fraction == 0:
+        return "data.val_fraction is 0"
+    return f"a split of {n_scenes} scene(s) keeps them all for training"
+
+
 def build_datasets(cfg: DataConfig, bands: Bands, margin_px: int, *, progress: bool | None = None
                    ) -> tuple[PatchDataset, PatchDataset | None]:
     """Training and validation patch datasets (validation None when ``val_fraction`` is 0).
@@ -94,6 +101,13 @@ def build_datasets(cfg: DataConfig, bands: Bands, margin_px: int, *, progress: b
     preload = _should_preload(cfg, scenes)
     log.info("data: %d training and %d validation scenes from %s (preload=%s)", len(train_scenes), len(val_scenes),
              root, preload)
+    if not val_scenes:  # a warning unless asked for (val_fraction 0)
+        fix = ("set data.val_fraction > 0 to hold scenes out" if cfg.val_fraction == 0 else
+               f"point data.root to a folder of 2 or more scenes "
+               f"(data.val_fraction={cfg.val_fraction:g} sets the share held out)")
+        log.log(logging.WARNING if cfg.val_fraction > 0 else logging.INFO,
+                "data: no validation scenes (%s): training runs without validation and the run keeps its last "
+                "checkpoint, not the best one; %s", no_validation_reason(cfg, len(scenes)), fix)
     train = PatchDataset(scene_dataset(cfg, train_scenes, bands, preload=preload), cfg.patch_px, margin_px,
                          patches_per_epoch=cfg.patches_per_epoch, flips=cfg.augment_flips, rot90=cfg.augment_rot90,
                          seed=cfg.split_seed)
@@ -117,4 +131,4 @@ def make_loader(dataset: Dataset, batch_size: int, num_workers: int = 2, shuffle
                       pin_memory=False)
 
 
-__all__ = ["build_datasets", "dataset_root", "heldout_root", "make_loader", "split_dataset"]
+__all__ = ["build_datasets", "dataset_root", "heldout_root", "make_loader", "no_validation_reason", "split_dataset"]

@@ -141,14 +141,12 @@ def ensure_trained(run: Path, preset, overrides: tuple[str, ...] = ()) -> str:
 
 def validation_scenes(cfg):
     """The preset's validation scenes (SceneDataset) and their names."""
-    from hsicam.data.pipeline import scene_dataset, split_dataset
+    from hsicam.data.pipeline import no_validation_reason, scene_dataset, split_dataset
 
     bands = cfg.bands.to_bands()
-    _, val = split_dataset(cfg.data, bands)
+    train_scenes, val = split_dataset(cfg.data, bands)
     if not val:
-        n = len(split_dataset(cfg.data, bands)[0])
-        why = "data.val_fraction is 0" if cfg.data.val_fraction == 0 else f"a split of {n} scene(s) keeps them all for training"
-        raise InputError(f"the config has no validation scenes ({why})")
+        raise InputError(f"the config has no validation scenes ({no_validation_reason(cfg.data, len(train_scenes))})")
     return scene_dataset(cfg.data, val, bands), [p.stem for p in val]
 
 
