@@ -317,3 +317,39 @@ def test_a_capture_smaller_than_a_cfa_period_and_an_all_zero_cube_are_named(inpu
     code, err = call(capsys, ["data", "show", str(tmp_path / "zero"), "--out", str(tmp_path / "show")])
     assert_one_line(code, err, str(tmp_path / "zero" / "z.h5"), "all zeros")
     assert not (tmp_path / "show").exists()
+
+
+def write_cube_with_a_corrupt_chunk(path: Path, bands: Bands) -> None:
+    """An hsicam cube file whose header is sound (it passes the start-up probe) but whose pixel data
+    (one gzip chunk) is not: the damage shows only when patches are read from it."""
+    import h5py
+
+    from hsicam.data.formats import HSICAM_FORMAT, HSICAM_FORMAT_VERSION
+
+    cube = np.random.default_rng(1).uniform(0.1, 1, (len(bands), 40, 40)).astype(np.float32)
+    with h5py.File(path, "w") as f:
+        f.create_dataset("cube", data=cube, chunks=cube.shape, compression="gzip")
+        f.create_dataset("bands_nm", data=np.asarray(bands.centers_nm, np.float64))
+        f.attrs.update(format=HSICAM_FORMAT, version=HSICAM_FORMAT_VERSION, max_value=float(cube.max()))
+    with h5py.File(path, "r") as f:
+        chunk = f["cube"].id.get_chunk_info(0)
+    raw = bytearray(path.read_bytes())
+    raw[chunk.byte_offset + 8:chunk.byte_offset + chunk.size - 8] = bytes(chunk.size - 16)
+    path.write_bytes(bytes(raw))
+
+
+def test_a_data_error_in_a_dataloader_worker_is_the_workers_one_line(env, tmp_path):
+    """A file that fails only when a DataLoader worker process reads patches from it: torch re-raises
+    the error in the main process wrapped in the worker's traceback; the user sees the worker's own
+    line naming the file (``-v``: the whole text), exit code 2."""
+    data = tmp_path / "data"
+    data.mkdir()
+    write_cube_with_a_corrupt_chunk(data / "b.h5", Bands.uniform(420, 720, 50))
+    args = ["train", "--config", "tiny", "--set", f"data.root={data}", "--set", "data.preload=false",
+            "--set", "data.num_workers=1", "--set", "data.val_fraction=0", "--set", "train.epochs=1"]
+    proc = run_cli(*args, "--out", str(tmp_path / "run"), env=env)
+    assert_clean_error(proc, str(data / "b.h5"), "corrupt")
+    assert "DataLoader worker" not in proc.stderr
+    verbose = run_cli("-v", *args, "--out", str(tmp_path / "run2"), env=env)
+    assert verbose.returncode == 2 and "Original Traceback" in verbose.stderr, verbose.stderr
+    assert verbose.stderr.strip().splitlines()[-1] == proc.stderr.strip().splitlines()[-1], verbose.stderr

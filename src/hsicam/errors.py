@@ -1,5 +1,7 @@
 """Exception types. The CLI turns every :class:`HsicamError` into one line and exit code 2."""
 
+import re
+
 
 class HsicamError(Exception):
     """Base class for errors caused by the user's input (config, files, arguments)."""
@@ -11,3 +13,23 @@ class ConfigError(HsicamError, ValueError):
 
 class InputError(HsicamError, ValueError):
     """An input file or array that cannot be used (format, shape, band grid, values)."""
+
+
+#: How torch's DataLoader re-raises in the main process an exception of a worker process: the same
+#: type, its message replaced by this line and the worker's whole traceback (``ExceptionWrapper``).
+_WORKER_WRAPPED = re.compile(r"Caught \w+ in DataLoader worker process \d+\.\nOriginal Traceback")
+
+
+def original_message(exc: BaseException) -> str:
+    """``str(exc)``, or for an exception that torch's DataLoader re-raised from a worker process, the
+    message that the worker's exception had (the text after ``<Type>: `` that ends the traceback
+    torch puts in its place); the wrapped text when that cannot be found."""
+    text = str(exc)
+    if not _WORKER_WRAPPED.match(text):
+        return text
+    t = type(exc)
+    name = t.__qualname__ if t.__module__ in ("builtins", "__main__") else f"{t.__module__}.{t.__qualname__}"
+    at = text.rfind(f"\n{name}: ")  # the last exception of the traceback is the one raised
+    if at >= 0:
+        return text[at + len(name) + 3:].strip()
+    return "" if text.rstrip().endswith(f"\n{name}") else text  # "" : raised without a message

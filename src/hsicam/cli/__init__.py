@@ -23,7 +23,7 @@ import traceback
 from pathlib import Path
 from typing import Sequence
 
-from hsicam.errors import ConfigError, HsicamError
+from hsicam.errors import ConfigError, HsicamError, original_message
 
 COMMAND_MODULES = (
     "hsicam.cli.camera",
@@ -141,11 +141,13 @@ def prepare_output(path: str | Path, kind: str = "dir", replace: bool = False) -
 
 
 def error_line(exc: BaseException) -> str | None:
-    """The one line a user sees for ``exc``, or None for an exception that is a bug (traceback)."""
+    """The one line a user sees for ``exc``, or None for an exception that is a bug (traceback). An
+    error raised in a DataLoader worker process is told by its own message, not torch's wrapping."""
     if isinstance(exc, HsicamError):
-        return str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+        text = original_message(exc)
+        return text.splitlines()[0] if text else type(exc).__name__
     if isinstance(exc, OSError):
-        what = exc.strerror or str(exc) or type(exc).__name__
+        what = exc.strerror or (original_message(exc).splitlines() or [""])[0] or type(exc).__name__
         name = exc.filename if exc.filename is not None else None
         return f"{name}: {what}" if name is not None else what
     if isinstance(exc, json.JSONDecodeError):

@@ -26,7 +26,7 @@ import torch
 from torch.utils.data import Dataset
 
 from hsicam.data.cube import normalize_per_cube_max, resample_cube
-from hsicam.data.formats import _CAVE_RE, read_cube
+from hsicam.data.formats import _CAVE_RE, _reading, read_cube
 from hsicam.errors import InputError
 from hsicam.spectral import Bands
 
@@ -209,7 +209,9 @@ class SceneDataset(Dataset):
                 ds = self._h5(i)["cube"]
                 if y < 0 or x < 0 or y + h > ds.shape[1] or x + w > ds.shape[2]:
                     raise InputError(f"{info.path}: window {h}x{w} at ({y}, {x}) is outside the cube")
-                return np.asarray(ds[:, y:y + h, x:x + w], dtype=np.float32) / np.float32(info.peak)
+                with _reading(info.path, "HDF5"):  # corrupt pixel data shows only here (the probe reads the header)
+                    win = ds[:, y:y + h, x:x + w]
+                return np.asarray(win, dtype=np.float32) / np.float32(info.peak)
         return self.cube(i)[:, y:y + h, x:x + w]
 
     def _h5(self, i: int) -> Any:
