@@ -639,6 +639,29 @@ def test_finetune_refuses_psfs_outside_the_kernel(fab_run, tmp_path):
     _outputs_absent(tmp_path / "x.h5")
 
 
+def test_reconstructing_simulates_own_dark_png_gives_no_bit_depth_advice(fab_run, tmp_path):
+    """`hsicam simulate` of a dark scene writes sensor.png at the full 16 bits (simulate.json beside
+    it): reconstructing it gives no "very dark ... sensor has N bits, pass --white-level" advice,
+    which the same PNG as a real capture (no simulate.json) still gets."""
+    from cli_helpers import run_cli as run_cli_subprocess  # warnings as the user sees them on stderr
+
+    scene = tmp_path / "scene.npy"
+    np.save(scene, (np.random.default_rng(3).random((3, 40, 40)) * 0.2).astype(np.float32))
+    sim = tmp_path / "sim"
+    res = run_cli("simulate", "--run", str(fab_run), "--scene", str(scene), "--out", str(sim))
+    assert res.returncode == 0, res.stderr
+    sensor = np.load(sim / "sensor.npy")
+    assert sensor.max() < 1 / 8 and json.loads((sim / "simulate.json").read_text())["sensor_png_scale"] == 1.0
+    res = run_cli_subprocess("reconstruct", str(sim / "sensor.png"), "--run", str(fab_run), "--out", str(tmp_path / "a.h5"))
+    assert res.returncode == 0, res.stderr
+    assert "very dark" not in res.stderr and "--white-level" not in res.stderr, res.stderr
+    shutil.copy(sim / "sensor.png", tmp_path / "capture.png")
+    res = run_cli_subprocess("reconstruct", str(tmp_path / "capture.png"), "--run", str(fab_run), "--out",
+                             str(tmp_path / "b.h5"))
+    assert res.returncode == 0, res.stderr
+    assert "capture.png: very dark" in res.stderr and "pass --white-level 16383" in res.stderr, res.stderr
+
+
 def test_float_capture_in_dn_and_simulates_stretched_png(tmp_path, caplog):
     """A float capture far above full scale (DN stored as floats) is warned about, naming
     --white-level; a float capture within [0, 1] is not. A PNG that `hsicam simulate` stretched so

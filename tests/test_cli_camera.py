@@ -110,6 +110,63 @@ def test_psf_bad_config_is_one_clean_line(tmp_path, override, fragment):
     assert_clean_error(run_cli("psf", "--out", str(tmp_path), "--set", override), fragment)
 
 
+@pytest.mark.parametrize(
+    "distance_mm, fragments",
+    [
+        # 5 mm lens: 1 µm would need ~54 000 quadrature nodes per pixel (a 22 GiB matrix: OOM-killed before)
+        ("0.001", ("camera.sensor_distance_mm=0.001 is implausible", "the sensor belongs near 5 mm",
+                   "so the PSF would alias", "pupil_oversample >= 85698", "PiB of memory")),
+        # 100× the focal length: a 2001 px kernel whose report ran out of memory before
+        ("500", ("camera.sensor_distance_mm=500 is implausible", "the sensor belongs near 5 mm",
+                 "blurs a point over 119 mm at 420 nm", "check the value (in mm)")),
+    ],
+)
+def test_psf_refuses_implausible_sensor_distances_before_allocating(tmp_path, distance_mm, fragments):
+    out = tmp_path / "p"
+    proc = run_cli("psf", "--config", "tiny", "--set", f"camera.sensor_distance_mm={distance_mm}", "--out", str(out),
+                   timeout=120, env={"HSICAM_MEMORY_BUDGET_MB": "2000"})
+    assert_clean_error(proc, *fragments)
+    assert not out.exists()
+
+
+def test_psf_deliberate_defocus_needs_the_pupil_sampling_it_implies(tmp_path):
+    """10 % behind the focus of the tiny 5 mm lens the residual defocus aliases on 30 µm cells
+    (blur 0.12 mm > field λz/Δ = 0.077 mm at 420 nm): refused with the oversampling that fixes it,
+    which then runs; a 4 % defocus (blur 0.05 mm) runs as it is."""
+    proc = run_cli("psf", "--config", "tiny", "--set", "camera.sensor_distance_mm=5.5", "--out", str(tmp_path / "a"))
+    assert_clean_error(proc, "camera.sensor_distance_mm=5.5 defocuses the lens more than the pupil sampling can "
+                             "represent", "raise camera.psf.pupil_oversample to at least 2")
+    for overrides in (["camera.sensor_distance_mm=5.5", "camera.psf.pupil_oversample=2"],
+                      ["camera.sensor_distance_mm=5.2"]):
+        out = tmp_path / overrides[-1]
+        proc = run_cli("psf", "--config", "tiny", *[a for o in overrides for a in ("--set", o)], "--out", str(out))
+        assert proc.returncode == 0, proc.stderr
+        assert json.loads((out / "psf.json").read_text())["lens"]["sensor_distance_mm"] == pytest.approx(
+            float(overrides[0].split("=")[1]))
+
+
+@pytest.mark.parametrize(
+    "override, fragments",
+    [
+        # 300 µm pixels span 4.3 far-field periods: 562 Gauss–Legendre nodes per pixel (a 562² matrix)
+        ("camera.sensor.pixel_pitch_um=300", ("562 quadrature nodes", "camera.sensor.pixel_pitch_um",
+                                              "camera.psf.supersample=1")),
+        # 3 mm aperture: 201 cells of 30 µm, 405-point FFTs (18 MiB per batch of 4 wavelengths)
+        ("camera.aperture_radius_mm=3", ("the 201-sample pupil", "FFTs of 405 points per axis",
+                                         "camera.aperture_radius_mm")),
+        ("camera.psf.kernel_px=401", ("the 401×401 px kernel (camera.psf.kernel_px)",)),
+    ],
+)
+def test_psf_sampling_plan_over_the_memory_budget_is_refused(tmp_path, override, fragments):
+    out = tmp_path / "p"
+    proc = run_cli("psf", "--config", "tiny", "--set", override, "--out", str(out), env={"HSICAM_MEMORY_BUDGET_MB": "4"})
+    assert_clean_error(proc, "the PSF sampling plan needs at least", "over the memory budget of 4 MiB", *fragments)
+    assert not out.exists()
+    # the tiny camera itself (81-point FFTs, 21 px kernel) fits that budget
+    proc = run_cli("psf", "--config", "tiny", "--out", str(out), env={"HSICAM_MEMORY_BUDGET_MB": "4"})
+    assert proc.returncode == 0, proc.stderr
+
+
 def test_bad_config_file(tmp_path):
     cfg = tmp_path / "c.yaml"
     cfg.write_text("camera:\n  doe:\n    sigma_heigth_nm: 3\n")

@@ -23,6 +23,7 @@ import scipy.io
 import torch
 
 import hsicam.data.cube as cube_mod
+import hsicam.memory as memory_mod
 from hsicam.data import read_cube, read_envi, read_hsicam_h5, read_npy, write_cube_h5
 from hsicam.data.cube import (
     MEMORY_BUDGET_ENV,
@@ -56,9 +57,9 @@ def no_budget_env(monkeypatch):
 @pytest.fixture
 def machine_16gib(monkeypatch, no_budget_env):
     """A deterministic machine: 16 GiB of RAM, no cgroup limit, no address-space limit."""
-    monkeypatch.setattr(cube_mod, "_physical_memory_bytes", lambda: 16 * GIB)
-    monkeypatch.setattr(cube_mod, "_cgroup_memory_limit_bytes", lambda: None)
-    monkeypatch.setattr(cube_mod, "_address_space_left_bytes", lambda: None)
+    monkeypatch.setattr(memory_mod, "_physical_memory_bytes", lambda: 16 * GIB)
+    monkeypatch.setattr(memory_mod, "_cgroup_memory_limit_bytes", lambda: None)
+    monkeypatch.setattr(memory_mod, "_address_space_left_bytes", lambda: None)
 
 
 # ------------------------------------------------------------------------------------------------
@@ -121,9 +122,9 @@ def test_budget_precedence_argument_env_default(machine_16gib, monkeypatch):
     assert memory_budget_bytes() == 300 * 2**20
     assert memory_budget_bytes(12.5) == int(12.5 * 2**20)  # the argument wins over the environment
     monkeypatch.delenv(MEMORY_BUDGET_ENV)
-    monkeypatch.setattr(cube_mod, "_cgroup_memory_limit_bytes", lambda: 2 * GIB)  # a container limit is lower
+    monkeypatch.setattr(memory_mod, "_cgroup_memory_limit_bytes", lambda: 2 * GIB)  # a container limit is lower
     assert memory_budget_bytes() == GIB // 2
-    monkeypatch.setattr(cube_mod, "_address_space_left_bytes", lambda: 600 * 2**20)  # prlimit --as
+    monkeypatch.setattr(memory_mod, "_address_space_left_bytes", lambda: 600 * 2**20)  # prlimit --as
     assert memory_budget_bytes() == 300 * 2**20
 
 
@@ -149,7 +150,7 @@ def test_check_memory_budget_counts_stored_plus_float32():
         check_memory_budget("scene.h5", (10, 100, 100), "f8", budget_mb=1.1e6 / 2**20)
     one_line(exc, "scene.h5", "(10, 100, 100)", "float64", "memory budget", MEMORY_BUDGET_ENV)
     # a hostile header: python integers, no overflow
-    with pytest.raises(InputError, match="TiB"):
+    with pytest.raises(InputError, match="PiB"):
         check_memory_budget("x", (2**40, 2**40, 31), "f8", budget_mb=1e6)
 
 

@@ -211,6 +211,63 @@ def test_export_cli_errors_and_non_binary_levels(fab_run, tmp_path):
     assert spec["doe"]["quantized"]["phase_error_design_wavelength_rad"]["max"] <= math.pi / 6 + 1e-6
 
 
+def test_export_cites_only_a_tolerance_study_of_this_run(fab_run, tmp_path):
+    """tolerance.json records the studied run (folder, weights file and its sha256, as the pretrained
+    card hashes it); export-optics refuses any other JSON and a study of another run, and cites a
+    study written before the run was recorded with a warning that it cannot be checked."""
+    import shutil
+
+    from hsicam.runs.checkpoint import file_sha256, root_weights_path, save_weights
+    from hsicam.runs.folder import load_run
+
+    tol = tmp_path / "tol"
+    res = run_cli("tolerance", "--run", str(fab_run), "--out", str(tol), "--max-scenes", "1", "--draws", "1",
+                  "--sigma-height-nm", "0", "--levels", "8", "--shift-cells", "0", "--sensor-distance-um", "0")
+    assert res.returncode == 0, res.stderr
+    study = json.loads((tol / "tolerance.json").read_text())
+    assert study["run"] == {"path": str(fab_run.resolve()), "weights": "model.safetensors",
+                            "weights_sha256": file_sha256(root_weights_path(fab_run))}
+
+    def export(run, tolerance, name):
+        return run_cli("export-optics", "--run", str(run), "--out", str(tmp_path / name), "--tolerance", str(tolerance))
+
+    res = export(fab_run, tol, "ok")
+    assert res.returncode == 0, res.stderr
+    studied = json.loads((tmp_path / "ok" / "spec.json").read_text())["tolerances"]["studied"]
+    assert studied["run_checked"] is True and studied["run"] == study["run"]
+    assert studied["nominal_psnr_db"] == pytest.approx(study["nominal"]["psnr"])
+    # an evaluate results.json is JSON but no tolerance study
+    results = tmp_path / "results.json"
+    results.write_text(json.dumps({"method": "doe-rdn", "scenes": [{"name": "s", "psnr": 30.0}], "mean": {"psnr": 30.0}}))
+    assert_clean_error(export(fab_run, results, "r"), "results.json: not an hsicam tolerance study",
+                       "no format, expected 'hsicam-tolerance-1'")
+    broken = tmp_path / "broken" / "tolerance.json"
+    broken.parent.mkdir()
+    broken.write_text(json.dumps({**study, "nominal": {"psnr": None}}))
+    assert_clean_error(export(fab_run, broken.parent, "b"), "no finite nominal PSNR")
+    # the same camera with other weights: another run
+    other = tmp_path / "other"
+    shutil.copytree(fab_run, other, ignore=shutil.ignore_patterns("checkpoints*"))
+    cfg, model = load_run(other)
+    with torch.no_grad():
+        model.camera.optics.doe.height_m.add_(1e-9)
+    save_weights(other / "model.safetensors", model, model.bands)
+    assert_clean_error(export(other, tol, "x"), "a tolerance study of another run", str(fab_run.resolve()),
+                       f"weights sha256 {study['run']['weights_sha256'][:12]}", "hsicam tolerance --run")
+    assert not any((tmp_path / n).exists() for n in ("r", "b", "x"))
+    # a study written before the run was recorded: cited, with a warning that it cannot be checked
+    old = tmp_path / "old" / "tolerance.json"
+    old.parent.mkdir()
+    old.write_text(json.dumps({k: v for k, v in study.items() if k != "run"}))
+    from cli_helpers import run_cli as run_cli_subprocess  # the warning as a user sees it on stderr
+
+    res = run_cli_subprocess("export-optics", "--run", str(other), "--out", str(tmp_path / "old_out"), "--tolerance", str(old))
+    assert res.returncode == 0, res.stderr
+    assert "does not record which run it studied" in res.stderr and "cannot check" in res.stderr
+    studied = json.loads((tmp_path / "old_out" / "spec.json").read_text())["tolerances"]["studied"]
+    assert studied["run_checked"] is False and studied["nominal_psnr_db"] == pytest.approx(study["nominal"]["psnr"])
+
+
 # ------------------------------------------------------------------------------------------------
 # Read-back helpers (for users who check the files a supplier will get): round trips
 # ------------------------------------------------------------------------------------------------

@@ -8,6 +8,7 @@ Sellmeier evaluation of Malitson's coefficients, grating and lens equations).
 from __future__ import annotations
 
 import math
+import os
 
 import numpy as np
 import pytest
@@ -17,7 +18,7 @@ from scipy.special import j1, jn_zeros
 
 from hsicam.cameras import DOECamera
 from hsicam.config import load_config
-from hsicam.errors import ConfigError
+from hsicam.errors import ConfigError, InputError
 from hsicam.optics.doe import DOE
 from hsicam.optics.lens import AchromaticLens, SingletLens
 from hsicam.optics.psf import PSFModel, psf_stack
@@ -360,6 +361,40 @@ def test_paper_sampling_plan():
     assert smp.nyquist_supersample == 9 == _odd_ceil(4 * a * p / (lam[0] * z))
     assert smp.kernel_px == cam.kernel_px == 141 == _odd_ceil(lam[-1] * z / (d * p))
     assert cam.optics.pixel_weights.shape == (31, 141, 672)
+
+
+def test_psf_plan_and_cube_readers_share_one_memory_budget(monkeypatch):
+    """The PSF plan checks against the project's one budget (hsicam.memory), the one the cube readers
+    use: HSICAM_MEMORY_BUDGET_MB moves both, and a bad value is the same one-line error."""
+    from hsicam.data.cube import check_memory_budget
+    from hsicam.memory import MEMORY_BUDGET_ENV, memory_budget_bytes
+    from hsicam.optics import sampling
+
+    assert sampling.memory_budget_bytes is memory_budget_bytes
+    monkeypatch.setenv(MEMORY_BUDGET_ENV, "123.5")
+    assert memory_budget_bytes() == int(123.5 * 2**20)
+    with pytest.raises(InputError, match="memory budget of 124 MiB"):
+        check_memory_budget("x.h5", (31, 4096, 4096), "float32")
+    monkeypatch.setenv(MEMORY_BUDGET_ENV, "abc")
+    with pytest.raises(ConfigError, match=MEMORY_BUDGET_ENV):
+        memory_budget_bytes()
+
+
+def test_sampling_plan_reports_its_memory_and_refuses_over_budget():
+    """The plan's estimate is a lower bound of what the PSF stack takes (the paper plan's pixel
+    weights (31, 141, 672) float32 alone are 11.8 MB); over a budget the plan is refused."""
+    from hsicam.optics.sampling import check_psf_memory, plan_psf_sampling, psf_memory_estimate
+
+    lam = np.arange(420.0, 721.0, 10.0) * 1e-9
+    smp = plan_psf_sampling(lam, 35e-3, 6e-6, 30e-6, 333)
+    assert 31 * 141 * 672 * 4 < smp.memory_bytes < 1 << 30
+    smp2 = plan_psf_sampling(lam, 35e-3, 6e-6, 30e-6, 333, pupil_oversample=2)
+    mem = psf_memory_estimate(smp2, lam, 35e-3, 6e-6)
+    assert mem.total == smp2.memory_bytes > smp.memory_bytes
+    check_psf_memory(mem, smp2, lam, 35e-3, 6e-6, 30e-6, 333, budget_bytes=mem.total)
+    with pytest.raises(ConfigError, match=r"666-sample pupil \(333 DOE cells of 30 µm across, 2× oversampled\) "
+                                          r"needs FFTs of 1344 points per axis"):
+        check_psf_memory(mem, smp2, lam, 35e-3, 6e-6, 30e-6, 333, budget_bytes=mem.total - 1)
 
 
 def test_kernel_below_the_optics_minimum_is_a_config_error():

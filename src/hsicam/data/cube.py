@@ -11,10 +11,8 @@ only extrapolation (a camera band outside the data's range). It never relabels b
 :func:`trained_bands` (a command on a trained run) the refusal says the run's bands are fixed.
 
 **Memory budget**: :func:`check_memory_budget` compares the size a file *declares* (its header)
-with :func:`memory_budget_bytes` before any reader allocates the cube. The budget is, in order of
-precedence: the caller's ``budget_mb``; the environment variable ``HSICAM_MEMORY_BUDGET_MB``; else
-a quarter of the machine's memory (physical RAM, or the cgroup limit when lower), and at most half
-of the address space left under a ``ulimit -v`` / ``prlimit --as`` limit. Sizes are in MiB.
+with :func:`hsicam.memory.memory_budget_bytes` (re-exported here) before any reader allocates the
+cube; :mod:`hsicam.memory` says how the budget is set.
 
 **Normalisation policy**: :func:`normalize_per_cube_max` divides a cube — after it has been
 resampled onto the camera's bands — by its own maximum over all bands and pixels, so values lie in
@@ -35,98 +33,13 @@ from typing import Any, Iterator, Sequence, Union
 
 import numpy as np
 
-from hsicam.errors import ConfigError, InputError
+from hsicam.errors import InputError
+from hsicam.memory import MEMORY_BUDGET_ENV, format_bytes, memory_budget_bytes
 from hsicam.spectral import Bands, resample_spectra
 
 PathLike = Union[str, os.PathLike]
 
 log = logging.getLogger(__name__)
-
-#: Environment variable overriding the memory budget of the readers, in MiB.
-MEMORY_BUDGET_ENV = "HSICAM_MEMORY_BUDGET_MB"
-#: Fraction of the machine's memory that one cube may take by default.
-DEFAULT_MEMORY_FRACTION = 0.25
-_FALLBACK_MEMORY_BYTES = 8 * 2**30  # when the machine's memory cannot be read
-
-
-# ------------------------------------------------------------------------------------------------
-# Memory budget
-# ------------------------------------------------------------------------------------------------
-def _physical_memory_bytes() -> int | None:
-    try:
-        n = int(os.sysconf("SC_PHYS_PAGES")) * int(os.sysconf("SC_PAGE_SIZE"))
-    except (AttributeError, ValueError, OSError):
-        return None
-    return n if n > 0 else None
-
-
-def _cgroup_memory_limit_bytes() -> int | None:
-    for f in ("/sys/fs/cgroup/memory.max", "/sys/fs/cgroup/memory/memory.limit_in_bytes"):
-        try:
-            text = Path(f).read_text(encoding="ascii").strip()
-        except (OSError, UnicodeDecodeError):
-            continue
-        if text.isdigit() and 0 < int(text) < 1 << 60:  # cgroup v1 writes a huge number for "no limit"
-            return int(text)
-    return None
-
-
-def _address_space_left_bytes() -> int | None:
-    """Bytes of virtual address space left under RLIMIT_AS (``ulimit -v``), or None when unlimited."""
-    try:
-        import resource
-
-        soft, _ = resource.getrlimit(resource.RLIMIT_AS)
-        if soft == resource.RLIM_INFINITY or soft < 0:
-            return None
-    except (ImportError, ValueError, OSError):
-        return None
-    used = 0
-    try:
-        for line in Path("/proc/self/status").read_text(encoding="ascii", errors="replace").splitlines():
-            if line.startswith("VmSize:"):
-                used = int(line.split()[1]) * 1024
-                break
-    except (OSError, ValueError, IndexError):
-        pass
-    return max(int(soft) - used, 0)
-
-
-def _parse_budget_mb(value: Any, what: str) -> float:
-    try:
-        mb = float(value)
-    except (TypeError, ValueError):
-        raise ConfigError(f"{what} must be a positive number of MiB, got {value!r}") from None
-    if not math.isfinite(mb) or mb <= 0:
-        raise ConfigError(f"{what} must be a positive number of MiB, got {value!r}")
-    return mb
-
-
-def memory_budget_bytes(budget_mb: float | None = None) -> int:
-    """The memory one cube may take, in bytes (see the module docstring for the precedence).
-
-    Raises :class:`ConfigError` for a budget (argument or ``HSICAM_MEMORY_BUDGET_MB``) that is not
-    a positive number.
-    """
-    if budget_mb is not None:
-        return int(_parse_budget_mb(budget_mb, "memory_budget_mb") * 2**20)
-    env = os.environ.get(MEMORY_BUDGET_ENV, "").strip()
-    if env:
-        return int(_parse_budget_mb(env, MEMORY_BUDGET_ENV) * 2**20)
-    known = [n for n in (_physical_memory_bytes(), _cgroup_memory_limit_bytes()) if n]
-    budget = int(min(known) * DEFAULT_MEMORY_FRACTION) if known else _FALLBACK_MEMORY_BYTES
-    left = _address_space_left_bytes()
-    if left is not None:
-        budget = min(budget, left // 2)
-    return budget
-
-
-def _human(nbytes: float) -> str:
-    for unit, size in (("TiB", 2**40), ("GiB", 2**30), ("MiB", 2**20), ("KiB", 2**10)):
-        if nbytes >= size:
-            return f"{nbytes / size:.3g} {unit}"
-    return f"{int(nbytes)} B"
-
 
 def check_memory_budget(source: PathLike | str, shape: Sequence[int], dtype: Any, *, what: str = "cube",
                         budget_mb: float | None = None) -> int:
@@ -145,8 +58,8 @@ def check_memory_budget(source: PathLike | str, shape: Sequence[int], dtype: Any
     budget = memory_budget_bytes(budget_mb)
     if need > budget:
         raise InputError(
-            f"{source}: the {what} declares shape {dims} of {dt.name} ({_human(stored)}); reading it needs about "
-            f"{_human(need)}, over the memory budget of {_human(budget)} "
+            f"{source}: the {what} declares shape {dims} of {dt.name} ({format_bytes(stored)}); reading it needs about "
+            f"{format_bytes(need)}, over the memory budget of {format_bytes(budget)} "
             f"(raise it with {MEMORY_BUDGET_ENV}=<MiB> or memory_budget_mb)"
         )
     return need

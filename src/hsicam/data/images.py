@@ -22,7 +22,10 @@ Checks on the result (:func:`preprocess_raw`, :func:`read_capture`):
   :data:`MAX_NEGATIVE_SHARE` of the pixels below 0 is a warning (dark frame or black level too high?).
 * An integer capture read with the container's full scale whose brightest pixel ends below
   :data:`DIM_FRACTION` of full scale gets a warning naming the likely cause: a sensor with fewer
-  bits than the container (a 12-bit sensor in a 16-bit file reaches at most 1/16).
+  bits than the container (a 12-bit sensor in a 16-bit file reaches at most 1/16). Not for the
+  sensor image that ``hsicam simulate`` wrote (a PNG/TIFF with ``simulate.json`` beside it,
+  :func:`is_simulated_image`): it holds the simulated values at the file's full 16 bits, so a dark
+  one is a dark scene, never a sensor of fewer bits.
 """
 
 from __future__ import annotations
@@ -291,7 +294,7 @@ class RawCorrection:
 
 
 def preprocess_raw(raw: np.ndarray, full_scale: float, corr: RawCorrection, source: str = "capture",
-                   check_saturation: bool = True) -> tuple[np.ndarray, dict]:
+                   check_saturation: bool = True, check_bit_depth: bool = True) -> tuple[np.ndarray, dict]:
     """Raw capture (H, W) in DN → float32 (H, W) on the simulator's scale, plus a report dict.
 
     Args:
@@ -300,6 +303,8 @@ def preprocess_raw(raw: np.ndarray, full_scale: float, corr: RawCorrection, sour
         corr: the corrections.
         check_saturation: warn about pixels at the white level (off for an image that ``hsicam
             simulate`` stretched so that its brightest pixel is full scale).
+        check_bit_depth: warn about a very dark integer capture, whose likely cause is a sensor of
+            fewer bits than the file (off for ``hsicam simulate``'s own sensor image).
     """
     raw = np.asarray(raw, dtype=np.float32)
     h, w = raw.shape
@@ -352,7 +357,7 @@ def preprocess_raw(raw: np.ndarray, full_scale: float, corr: RawCorrection, sour
     report["gain"] = factor / (white - black)
     if not np.all(np.isfinite(img)):
         raise InputError(f"{source}: the corrections produced NaN or Inf values")
-    if full_scale > 1 and corr.white_level is None and corr.auto_level is None:
+    if check_bit_depth and full_scale > 1 and corr.white_level is None and corr.auto_level is None:
         notes += _check_dim(img, raw, full_scale, source)
     if full_scale == 1 and corr.white_level is None and corr.auto_level is None and raw.size and raw.max() > FLOAT_OVER_SCALE:
         notes.append(f"{source}: a float capture is read on the simulator's scale (0 = black, 1 = full scale), and this "
@@ -413,6 +418,16 @@ def _check_dim(img: np.ndarray, raw: np.ndarray, full_scale: float, source: str)
             "capture is just dark, scale it (--exposure-s/--reference-exposure-s, --scale or --auto-level)"]
 
 
+#: What ``hsicam simulate`` writes beside its sensor image (``sensor_png_scale``: sensor = PNG · scale).
+SIMULATE_JSON = "simulate.json"
+
+
+def is_simulated_image(path: str | Path, fmt: str) -> bool:
+    """Whether ``path`` (read as format ``fmt``) is the sensor image that ``hsicam simulate`` wrote:
+    a PNG/TIFF with ``simulate.json`` beside it (whose ``sensor_png_scale`` then applies)."""
+    return fmt in ("png", "tiff") and (Path(path).parent / SIMULATE_JSON).is_file()
+
+
 def read_capture(path: str | Path, corr: RawCorrection | None = None, scale: float | None = None) -> tuple[np.ndarray, dict]:
     """Read a capture and apply ``corr`` → (float32 (H, W) on the simulator scale, report).
 
@@ -433,18 +448,20 @@ def read_capture(path: str | Path, corr: RawCorrection | None = None, scale: flo
                          f"({image.full_scale:.3g}) is no sensor's full scale; pass the sensor's white level, "
                          f"--white-level DN (4095 for 12 bit, 65535 for 16 bit; the brightest pixel here is "
                          f"{float(image.data.max()):g} DN)")
+    simulated = is_simulated_image(path, image.format)
     stretched = False  # simulate's PNG of an image brighter than full scale: its peak is full scale by design
-    if scale is None and image.format in ("png", "tiff"):
-        meta = path.parent / "simulate.json"
-        if meta.is_file() and corr.scale == 1.0 and corr.auto_level is None:
-            try:
-                scale = float(json.loads(meta.read_text()).get("sensor_png_scale", 1.0))
-            except (ValueError, TypeError, AttributeError):
-                raise InputError(f"{meta}: unreadable simulate.json") from None
-            stretched = scale > 1.0
+    if scale is None and simulated and corr.scale == 1.0 and corr.auto_level is None:
+        meta = path.parent / SIMULATE_JSON
+        try:
+            scale = float(json.loads(meta.read_text()).get("sensor_png_scale", 1.0))
+        except (ValueError, TypeError, AttributeError):
+            raise InputError(f"{meta}: unreadable simulate.json") from None
+        stretched = scale > 1.0
     if scale is not None:
         corr = RawCorrection(**{**corr.__dict__, "scale": float(scale)})
-    img, report = preprocess_raw(image.data, image.full_scale, corr, str(path), check_saturation=not stretched)
+    # simulate's own image is written at the file's full bit depth: a dark one is a dark scene
+    img, report = preprocess_raw(image.data, image.full_scale, corr, str(path), check_saturation=not stretched,
+                                 check_bit_depth=not simulated)
     report.update({"source": str(path), "stored_dtype": image.dtype, "format": image.format,
                    "shape": [int(s) for s in img.shape]})
     return img, report

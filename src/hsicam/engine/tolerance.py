@@ -24,8 +24,9 @@ PSNR (per band, peak 1; also SSIM and SAM) over validation scenes versus each pe
   so is the PSF scale change. ``defocus_waves`` is the peak residual defocus (R²/2)·Δ(1/z)/λ at
   the design wavelength.
 
-Outputs (:func:`write_tolerance`): ``tolerance.json`` (every value, the nominal result, the
-1-dB tolerances), ``tolerance.csv`` (one row per evaluated case) and ``tolerance.png``.
+Outputs (:func:`write_tolerance`): ``tolerance.json`` (the studied run: folder, weights file and
+its SHA-256; every value, the nominal result, the 1-dB tolerances), ``tolerance.csv`` (one row
+per evaluated case) and ``tolerance.png``.
 """
 
 from __future__ import annotations
@@ -139,11 +140,15 @@ def check_sweeps(spec: ToleranceSpec, optics) -> None:
 
 
 def run_tolerance(model, cfg, spec: ToleranceSpec = ToleranceSpec(), data: str | Path | None = None,
-                  progress: bool = False) -> dict[str, Any]:
+                  progress: bool = False, run: str | Path | None = None) -> dict[str, Any]:
     """Evaluate the camera of ``model`` (a :class:`~hsicam.models.CameraSystem` with a DOE camera)
-    under every perturbation of ``spec``; returns the JSON-ready result."""
+    under every perturbation of ``spec``; returns the JSON-ready result. ``run``: the run folder
+    ``model`` was loaded from; its identity (:func:`hsicam.export.tolerance.run_identity`: folder,
+    weights file and its SHA-256) is recorded as ``"run"`` so that ``hsicam export-optics`` cites
+    the study only for that run (None: not recorded)."""
     from hsicam.cameras import DOECamera
     from hsicam.export.doe import design_heights, quantize_levels
+    from hsicam.export.tolerance import TOLERANCE_FORMAT, run_identity
 
     spec.check()
     cam = model.camera
@@ -151,6 +156,7 @@ def run_tolerance(model, cfg, spec: ToleranceSpec = ToleranceSpec(), data: str |
         raise InputError("tolerance analysis needs a DOE camera (camera.kind: doe)")
     optics = cam.optics
     check_sweeps(spec, optics)
+    studied_run = None if run is None else run_identity(run)
     t0 = time.perf_counter()
     scenes, names = evaluation_scenes(cfg, cam.bands, spec.max_scenes, data)
     h0 = nominal_heights(cam)
@@ -244,7 +250,8 @@ def run_tolerance(model, cfg, spec: ToleranceSpec = ToleranceSpec(), data: str |
         ok = [lv for lv, p in zip(sweeps["levels"]["values"], sweeps["levels"]["psnr"]) if nominal["psnr"] - p <= 1.0]
         summary["min_levels_within_1db"] = min(ok) if ok else None
     return {
-        "format": "hsicam-tolerance-1",
+        "format": TOLERANCE_FORMAT,
+        **({} if studied_run is None else {"run": studied_run}),
         "scenes": list(names),
         "metric": "PSNR per band then averaged, peak 1 (per-cube max normalisation), mean over scenes; network fixed",
         "sensor_noise": {"model": cam.noise.model, "sigma": cam.noise.sigma, "seed": spec.seed},

@@ -27,7 +27,6 @@ so a refused or interrupted export leaves nothing.
 
 from __future__ import annotations
 
-import json
 import logging
 from pathlib import Path
 from typing import Any
@@ -35,6 +34,7 @@ from typing import Any
 import numpy as np
 
 from hsicam.errors import InputError
+from hsicam.export.tolerance import read_tolerance_study
 
 log = logging.getLogger(__name__)
 
@@ -65,14 +65,8 @@ def _tolerances(run_dir: Path, cfg, tolerance: str | Path | None) -> dict[str, A
     if cand.is_dir():
         cand = cand / "tolerance.json"
     if cand.is_file():
-        try:
-            data = json.loads(cand.read_text(encoding="utf-8"))
-        except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
-            raise InputError(f"{cand}: unreadable tolerance.json ({getattr(exc, 'msg', None) or exc})") from None
-        out["studied"] = {"source": str(cand), "nominal_psnr_db": data.get("nominal", {}).get("psnr"),
-                          "summary": data.get("summary")}
-        if not isinstance(data, dict) or not isinstance(data.get("nominal", {}), dict):
-            raise InputError(f"{cand}: unreadable tolerance.json (not an hsicam tolerance study)")
+        # a tolerance study (not any JSON), and of this run when it records its run
+        out["studied"] = read_tolerance_study(cand, run_dir)
     elif tolerance is not None:
         raise InputError(f"{tolerance}: no tolerance.json (run `hsicam tolerance --run RUN --out DIR` first)")
     else:

@@ -22,10 +22,21 @@ import numpy as np
 import torch
 from torch import nn
 
+from hsicam.errors import ConfigError
 from hsicam.optics.doe import DOE, phase_per_height
 from hsicam.optics.lens import Lens
 from hsicam.optics.pupil import aperture_amplitude, cells_across, sample_coordinates_m
-from hsicam.optics.sampling import PSFSampling, band_sample_wavelengths, pixel_weights, plan_psf_sampling
+from hsicam.optics.sampling import (
+    WAVELENGTHS_PER_BATCH,
+    PSFSampling,
+    band_sample_wavelengths,
+    defocus_aliasing,
+    format_bytes,
+    memory_budget_bytes,
+    pixel_weights,
+    plan_psf_sampling,
+    psf_memory_estimate,
+)
 from hsicam.spectral import Bands
 
 
@@ -35,10 +46,8 @@ class PSFResult:
     energy: torch.Tensor  # (C,), fraction of each band's light inside the kernel
 
 
-#: Wavelengths per FFT batch: a few at once amortise the per-call overhead (measured: 4 per batch
-#: takes the 31-band paper stack from 0.40 to 0.37 s forward + backward at N = 675) while each
-#: batch's complex spectra stay small (4 × 672² × 8 B = 14 MB), which avoids fresh memory maps.
-WAVELENGTHS_PER_BATCH = 4
+# WAVELENGTHS_PER_BATCH (wavelengths per FFT batch) lives in hsicam.optics.sampling, whose memory
+# estimate of a sampling plan counts one batch of FFT arrays.
 
 
 class _PSFBatch(torch.autograd.Function):
@@ -157,15 +166,17 @@ class PSFModel(nn.Module):
         z_line = z_i + h0 - lens.rear_principal_plane_m(self.line_wavelengths_nm)
         self.line_sensor_distances_m = z_line
         self.object_distance_m = object_distance_m
+        inv_zo = 0.0 if object_distance_m is None else 1.0 / object_distance_m
+        lam_m = self.line_wavelengths_nm * 1e-9
+        f_line = lens.focal_lengths_m(self.line_wavelengths_nm)
+        with np.errstate(divide="ignore"):  # a zero distance is refused by plan_psf_sampling below
+            defocus = np.pi / lam_m * (inv_zo + 1.0 / z_line - 1.0 / f_line)
+        self._check_defocus(defocus, z_line, sensor_distance_m is not None, n_cells)
         self.sampling: PSFSampling = plan_psf_sampling(
             self.line_wavelengths_nm * 1e-9, float(z_line.max()), pixel_m, cell_m, n_cells, pupil_oversample,
             supersample, kernel_px, aperture_radius_m,
         )
         smp = self.sampling
-        inv_zo = 0.0 if object_distance_m is None else 1.0 / object_distance_m
-        lam_m = self.line_wavelengths_nm * 1e-9
-        f_line = lens.focal_lengths_m(self.line_wavelengths_nm)
-        defocus = np.pi / lam_m * (inv_zo + 1.0 / z_line - 1.0 / f_line)
         period_px = lam_m * z_line / (smp.pupil_pitch_m * pixel_m)
         weights = np.stack([pixel_weights(per, smp.kernel_px, smp.fft_size, smp.supersample) for per in period_px])
         x = sample_coordinates_m(n_cells, cell_m, self.pupil_oversample)
@@ -177,6 +188,56 @@ class PSFModel(nn.Module):
         self.register_buffer("defocus_per_m2", torch.from_numpy(defocus).float(), persistent=False)
         self.register_buffer("pixel_weights", torch.from_numpy(weights).float(), persistent=False)
         self.register_buffer("line_weights", torch.from_numpy(line_w).float(), persistent=False)
+
+    def _check_defocus(self, defocus_per_m2: np.ndarray, z_line: np.ndarray, sensor_distance_set: bool,
+                       n_cells: int) -> None:
+        """Refuse, before anything is allocated, a residual defocus that aliases on the pupil grid
+        (:func:`~hsicam.optics.sampling.defocus_aliasing` > 1): its geometric blur is wider than the
+        field λz/d the pupil samples can represent, so the PSF would be that of another lens. The
+        paper singlet's ~20 waves at 420 nm are 0.5 of that limit; a sensor distance far from the
+        focal length (e.g. a value in the wrong unit) is far above it."""
+        if not np.all(np.isfinite(z_line)) or np.any(z_line <= 0):
+            return  # plan_psf_sampling refuses a non-positive distance with its own message
+        q, cell = self.pupil_oversample, self.cell_m
+        ratio = defocus_aliasing(defocus_per_m2, self.aperture_radius_m, cell / q)
+        i = int(np.argmax(ratio))
+        if not ratio[i] > 1.0:
+            return
+        lam_m, z = float(self.line_wavelengths_nm[i]) * 1e-9, float(z_line[i])
+        blur_mm = 2.0 * self.aperture_radius_m * z * abs(float(defocus_per_m2[i])) * lam_m / np.pi * 1e3
+        field_mm = lam_m * z / (cell / q) * 1e3
+        lam0 = np.array([self.lens_design_wavelength_nm])
+        f0 = float(self.lens.focal_lengths_m(lam0)[0])
+        zo = self.object_distance_m
+        z_focus = f0 if zo is None or zo <= f0 else 1.0 / (1.0 / f0 - 1.0 / zo)
+        if sensor_distance_set:
+            what = f"camera.sensor_distance_mm={self.sensor_distance_m * 1e3:g}"
+        elif zo is not None:
+            what = f"camera.object_distance_m={zo:g}"
+        else:
+            what = f"the {self.lens.model} lens's focus shift"
+        obj = "object at infinity" if zo is None else f"object at {zo:g} m"
+        q_need = int(np.ceil(q * ratio[i] - 1e-9))
+        n_need = 2 * n_cells * q_need - 1  # about the FFT length that oversampling needs
+        k_est = int(np.ceil(self.line_wavelengths_nm.max() * 1e-9 * float(z_line.max()) / (cell * self.pixel_m)))
+        mem = psf_memory_estimate(PSFSampling(n_cells * q_need, cell / q_need, n_need, k_est, k_est, None, 1),
+                                  self.line_wavelengths_nm * 1e-9, float(z_line.max()), self.pixel_m)
+        if mem.total <= memory_budget_bytes():
+            deliberate = f"for a deliberate defocus raise camera.psf.pupil_oversample to at least {q_need}"
+        else:
+            deliberate = (f"a deliberate defocus this large would need camera.psf.pupil_oversample >= {q_need}: "
+                          f"an FFT of about {n_need} points per axis, {format_bytes(mem.total)} of memory")
+        lens_facts = (f"focal length {f0 * 1e3:.4g} mm at {self.lens_design_wavelength_nm:g} nm, {obj}: "
+                      f"the sensor belongs near {z_focus * 1e3:.4g} mm")
+        blur = (f"the residual defocus blurs a point over {blur_mm:.3g} mm at {lam_m * 1e9:.4g} nm, wider than the "
+                f"{field_mm:.3g} mm field λz/d that {cell / q * 1e6:.4g} µm pupil samples can represent, so the PSF "
+                "would alias")
+        if sensor_distance_set and not 0.5 * z_focus <= self.sensor_distance_m <= 2.0 * z_focus:
+            # not a focus error but a wrong number (e.g. in another unit)
+            raise ConfigError(f"{what} is implausible for this lens ({lens_facts}): {blur}; check the value "
+                              f"(in mm), or {deliberate}")
+        raise ConfigError(f"{what} defocuses the lens more than the pupil sampling can represent ({lens_facts}): "
+                          f"{blur}; {deliberate}")
 
     @property
     def kernel_px(self) -> int:
