@@ -244,3 +244,34 @@ def test_fixed_measure_gives_the_measurement_without_autograd(case):
         y, op = fn(x, torch.Generator().manual_seed(seed))
         assert not y.requires_grad and y.grad_fn is None
         torch.testing.assert_close(y, y_ref.detach(), rtol=1e-12, atol=1e-14)
+
+
+@torch.no_grad()
+def test_capture_warns_on_an_unnormalised_scene_and_refuses_an_overflowing_image(case, caplog):
+    """Camera.capture (hsicam simulate's imaging): the forward pass itself for a normalised scene; a
+    WARNING naming the source when the scene's peak exceeds SCENE_PEAK_WARN (a scene of 1 fills the
+    sensor's full scale); one InputError naming the source and the peak when the image overflows."""
+    import logging
+
+    from hsicam.cameras.base import SCENE_PEAK_WARN
+
+    _, ov, cam = case
+    x = _scene(cam, seed=4)
+    x[0, 0, 0, 0] = 1.0  # peak 1
+    ones = torch.ones_like(x)
+    if "camera.cassi.convention=sum" not in ov:  # (sum: the sensor adds the bands up)
+        assert float(cam.A(ones).max()) <= 1 + 1e-6  # a scene of 1 fills the sensor's full scale at most
+    with caplog.at_level(logging.WARNING, logger="hsicam.cameras.base"):
+        torch.testing.assert_close(cam.capture(x, torch.Generator().manual_seed(2), source="s.npy"),
+                                   cam(x, torch.Generator().manual_seed(2)))
+        cam.capture(x * SCENE_PEAK_WARN, source="s.npy")  # up to the threshold: no warning
+        assert not caplog.records
+        y = cam.capture(x * 1e6, source="bright.npy")
+    assert torch.isfinite(y).all() and not y.requires_grad
+    [rec] = caplog.records
+    assert rec.levelno == logging.WARNING and rec.getMessage().startswith("bright.npy: the scene's peak value is 1e+06")
+    assert "saturates" in rec.getMessage() and "[0, 1]" in rec.getMessage()
+    caplog.clear()
+    with pytest.raises(InputError, match=r"^huge\.npy: the simulated sensor image is not finite .*peak value is 1e\+308.*\[0, 1\]"):
+        cam.capture(ones * 1e308, source="huge.npy")  # float64: overflows in the sums of every camera
+    assert not caplog.records  # the error alone, no warning line before it

@@ -353,3 +353,116 @@ def test_a_data_error_in_a_dataloader_worker_is_the_workers_one_line(env, tmp_pa
     verbose = run_cli("-v", *args, "--out", str(tmp_path / "run2"), env=env)
     assert verbose.returncode == 2 and "Original Traceback" in verbose.stderr, verbose.stderr
     assert verbose.stderr.strip().splitlines()[-1] == proc.stderr.strip().splitlines()[-1], verbose.stderr
+
+
+def usage_error(capsys, args: list[str]) -> str:
+    """The one line of an argparse usage error (exit code 2) of ``hsicam ARGS``, in-process."""
+    with pytest.raises(SystemExit) as exc:
+        main(args)
+    err = capsys.readouterr().err
+    assert exc.value.code == 2 and err.count("\n") == 1 and err.startswith("hsicam: error: "), err
+    return err
+
+
+def test_a_patch_smaller_than_the_ssim_window_is_refused_before_a_run_folder_exists(env, tmp_path, capsys):
+    """data.patch_px below SSIM's window crashed after the first epoch (the validation SSIM) and left a
+    run folder neither --resume nor --restart recovered: the config refuses it; at the window it trains,
+    train.ssim_loss included (the same SSIM)."""
+    from hsicam.metrics import SSIM_WINDOW_PX
+
+    run = tmp_path / "run"
+    proc = run_cli("train", "--config", "tiny", "--set", "data.patch_px=3", "--out", str(run), env=env)
+    assert_clean_error(proc, f"data.patch_px must be >= {SSIM_WINDOW_PX} px", "SSIM", "got 3")
+    for n in (1, SSIM_WINDOW_PX - 1):
+        code, err = call(capsys, ["train", "--config", "tiny", "--set", f"data.patch_px={n}", "--set",
+                                  "train.ssim_loss=0.5", "--out", str(run)])
+        assert_one_line(code, err, f"data.patch_px must be >= {SSIM_WINDOW_PX} px", f"got {n}")
+    assert not run.exists()
+    code, err = call(capsys, ["train", "--config", "tiny", "--set", f"data.patch_px={SSIM_WINDOW_PX}", "--set",
+                              "train.ssim_loss=0.5", "--set", "train.epochs=1", "--out", str(run)])
+    assert code == 0, err
+    assert any("val_ssim" in json.loads(line) for line in (run / "metrics.jsonl").read_text().splitlines())
+
+
+def test_seeds_outside_what_their_generator_takes_are_one_line_errors(inputs, env, tmp_path, capsys):
+    """Every seed, of the config or of a --seed option, is one clear error outside what its generator
+    takes (numpy's: no negative seed; torch's: [-2^63, 2^64 - 1]; tolerance seeds its height-noise draws
+    with seed·1000 + draw), never a traceback; the negative seeds that worked still work."""
+    from hsicam.cli import build_parser
+
+    out = tmp_path / "o"
+    proc = run_cli("data", "synth", "--n", "1", "--size", "64", "--seed", "-1", "--out", str(out), env=env)
+    assert_clean_error(proc, "argument --seed: must be an integer in [0, 2^64 - 1], got -1")
+    huge = "99999999999999999999"
+    for kv, fragment in (("data.synthetic_seed=-1", "data.synthetic_seed must be an integer in [0, 2^64 - 1], got -1"),
+                         ("data.split_seed=-1", "data.split_seed must be an integer in [0, 2^64 - 1], got -1"),
+                         (f"train.seed={huge}", f"train.seed must be an integer in [-2^63, 2^64 - 1], got {huge}")):
+        assert_one_line(*call(capsys, ["train", "--config", "tiny", "--set", kv, "--out", str(out)]), fragment)
+    scene, run = str(inputs / "scene.npy"), str(inputs / "run")
+    err = usage_error(capsys, ["simulate", "--config", "tiny", "--scene", scene, "--out", str(out), "--seed", huge])
+    assert f"argument --seed: must be an integer in [-2^63, 2^64 - 1], got {huge}" in err
+    err = usage_error(capsys, ["tolerance", "--run", run, "--out", str(out), "--seed", huge])
+    assert f"argument --seed: must be an integer in [-2^53, 2^53], got {huge}" in err
+    err = usage_error(capsys, ["simulate", "--config", "tiny", "--scene", scene, "--out", str(out), "--seed", "1.5"])
+    assert "argument --seed: must be an integer, got '1.5'" in err
+    assert not out.exists()
+    parser = build_parser()
+    assert parser.parse_args(["tolerance", "--run", run, "--out", str(out), "--seed", "-3"]).seed == -3
+    assert parser.parse_args(["data", "synth", "--seed", "0"]).seed == 0
+    code, err = call(capsys, ["simulate", "--config", "tiny", "--scene", scene, "--out", str(out), "--seed", "-1"])
+    assert code == 0 and json.loads((out / "simulate.json").read_text())["seed"] == -1, err
+
+
+def test_finetune_errors_name_its_own_options(inputs, tmp_path, capsys):
+    """finetune has no --resume/--restart: a non-empty --out says to choose another; --lr inf/nan is a
+    usage error of --lr itself (it was reported as config key 'train.lr', "must be a number")."""
+    run = str(inputs / "run")
+    out = tmp_path / "mine"
+    out.mkdir()
+    (out / "notes.txt").write_text("user data")
+    code, err = call(capsys, ["finetune", "--run", run, "--psf-dir", str(inputs / "nope"), "--out", str(out)])
+    assert_one_line(code, err, str(out), "not empty", "fine-tuning writes a new run folder: choose another --out")
+    assert "--resume" not in err and "--restart" not in err
+    assert snapshot(tmp_path) == ["mine", "mine/notes.txt"]
+    new = tmp_path / "new"
+    for bad in ("inf", "nan", "-inf", "0", "-1e-4", "abc"):
+        err = usage_error(capsys, ["finetune", "--run", run, "--psf-dir", str(inputs / "nope"), "--out", str(new),
+                                   f"--lr={bad}"])
+        assert f"argument --lr: must be a finite number > 0, got '{bad}'" in err and "train.lr" not in err
+    code, err = call(capsys, ["finetune", "--run", run, "--psf-dir", str(inputs / "nope"), "--out", str(new),
+                              "--set", "train.lr=inf"])
+    assert_one_line(code, err, "config key 'train.lr' must be a finite number, got 'inf'")
+    assert not new.exists()
+
+
+def test_simulate_refuses_an_overflowing_scene_and_warns_of_an_unnormalised_one(inputs, env, tmp_path):
+    """A scene of huge finite values gave exit 0 and an all-NaN sensor marked complete (with a numpy
+    RuntimeWarning); one of 1e6 gave a sensor far past full scale without a word."""
+    from hsicam.cameras.base import SCENE_PEAK_WARN
+
+    cube = np.load(inputs / "scene.npy")
+    cube[0, 0, 0] = 1.0
+    np.save(tmp_path / "huge.npy", cube * np.float32(1e37))
+    np.save(tmp_path / "bright.npy", cube * np.float32(1e6))
+    out = tmp_path / "o"
+    proc = run_cli("simulate", "--config", "tiny", "--scene", str(tmp_path / "huge.npy"), "--out", str(out), env=env)
+    assert_clean_error(proc, str(tmp_path / "huge.npy"), "not finite", "peak value is 1e+37", "[0, 1]")
+    assert "RuntimeWarning" not in proc.stderr and not out.exists()
+    proc = run_cli("simulate", "--config", "tiny", "--scene", str(tmp_path / "bright.npy"), "--out", str(out), env=env)
+    assert proc.returncode == 0 and f"{tmp_path / 'bright.npy'}: the scene's peak value is 1e+06" in proc.stderr
+    assert "saturates" in proc.stderr and 1e6 > SCENE_PEAK_WARN
+    proc = run_cli("simulate", "--config", "tiny", "--scene", str(inputs / "scene.npy"), "--out", str(out), env=env)
+    assert proc.returncode == 0 and "peak value" not in proc.stderr, proc.stderr
+
+
+def test_train_prior_into_a_non_empty_folder_names_its_own_remedy(tmp_path):
+    """`baseline train-prior` has no --resume/--restart: a non-empty --out says to choose another
+    folder (it used to offer options the command does not have), before any data or training."""
+    out = tmp_path / "mine"
+    out.mkdir()
+    (out / "notes.txt").write_text("mine")
+    res = run_cli("baseline", "train-prior", "--config", "tiny", "--out", str(out),
+                  env={"HSICAM_CACHE": str(tmp_path / "cache")})
+    assert_clean_error(res, "run folder exists and is not empty", "train-prior writes a new prior folder")
+    assert "--resume" not in res.stderr and not (tmp_path / "cache").exists()
+    assert sorted(p.name for p in out.iterdir()) == ["notes.txt"]

@@ -2,12 +2,14 @@
 
 from __future__ import annotations
 
+import math
+import re
 from pathlib import Path
 
 import pytest
 
 from hsicam.cameras import DOECamera
-from hsicam.config import PRESETS_DIR, Config, dump_yaml, load_config
+from hsicam.config import PRESETS_DIR, SEED_MAX, SEED_MIN, Config, dump_yaml, load_config
 from hsicam.errors import ConfigError
 
 
@@ -187,3 +189,78 @@ def test_every_preset_loads_and_builds_its_camera_system(name):
     torch.manual_seed(0)
     model = CameraSystem.from_config(cfg)
     assert len(model.bands) == len(cfg.bands.to_bands()) and model.context_px > 0
+
+
+# Every seed key, with the lowest value its generator takes: torch's generators take [-2^63, 2^64 - 1]
+# (camera, training, prior), numpy's (the synthetic scenes, the split and its patches) no negative one.
+SEED_KEYS = [("camera.doe.seed", SEED_MIN), ("camera.cfa.seed", SEED_MIN), ("camera.cassi.mask_seed", SEED_MIN),
+             ("train.seed", SEED_MIN), ("baselines.choi.seed", SEED_MIN), ("data.synthetic_seed", 0), ("data.split_seed", 0)]
+
+
+def test_the_seed_bounds_are_what_the_generators_take():
+    import numpy as np
+    import torch
+
+    for s in (SEED_MIN, -1, SEED_MAX):
+        torch.Generator().manual_seed(s)
+    for s in (SEED_MIN - 1, SEED_MAX + 1):
+        with pytest.raises((ValueError, RuntimeError)):
+            torch.Generator().manual_seed(s)
+    np.random.default_rng([SEED_MAX + 1, 0, 0])  # numpy: any non-negative integer (split_seed + 1 included)
+    with pytest.raises(ValueError):
+        np.random.default_rng([-1, 0])
+
+
+@pytest.mark.parametrize("key, low", SEED_KEYS)
+def test_every_seed_key_refuses_what_its_generator_cannot_take(key, low):
+    for ok in (low, 0, 12345, SEED_MAX):
+        assert load_config(overrides=[f"{key}={ok}"]) is not None
+    shown = "-2^63" if low else "0"
+    for bad in (low - 1, SEED_MAX + 1, 99999999999999999999):
+        with pytest.raises(ConfigError, match=rf"^{key} must be an integer in \[{re.escape(shown)}, 2\^64 - 1\], got {bad}$"):
+            load_config(overrides=[f"{key}={bad}"])
+    with pytest.raises(ConfigError, match="must be an integer"):
+        load_config(overrides=[f"{key}=1.5"])
+
+
+def test_negative_torch_seeds_keep_working():
+    cfg = load_config(overrides=["train.seed=-1", "camera.doe.seed=-7", "camera.cfa.seed=-2"])
+    assert (cfg.train.seed, cfg.camera.doe.seed, cfg.camera.cfa.seed) == (-1, -7, -2)
+
+
+def test_patch_px_below_the_ssim_window_is_refused():
+    """Validation scores SSIM on every patch (and train.ssim_loss on every training patch), whose
+    window is metrics.SSIM_WINDOW_PX: a smaller patch used to crash after the first epoch."""
+    import torch
+
+    from hsicam.config import MIN_PATCH_PX
+    from hsicam.metrics import SSIM_WINDOW_PX, ssim
+
+    assert MIN_PATCH_PX == SSIM_WINDOW_PX  # config repeats the metric's window (it sits below metrics)
+    for n in (1, 3, SSIM_WINDOW_PX - 1):
+        for extra in ([], ["train.ssim_loss=1"]):
+            with pytest.raises(ConfigError, match=rf"^data.patch_px must be >= {SSIM_WINDOW_PX} px .*SSIM.*, got {n}$"):
+                load_config(overrides=[f"data.patch_px={n}", *extra])
+    assert load_config(overrides=[f"data.patch_px={SSIM_WINDOW_PX}", "train.ssim_loss=1"]).data.patch_px == SSIM_WINDOW_PX
+    x = torch.rand(1, 2, SSIM_WINDOW_PX, SSIM_WINDOW_PX)
+    assert ssim(x, x).shape == (1,)  # the limit is exactly SSIM's
+    with pytest.raises(ValueError):
+        ssim(x[..., 1:, 1:], x[..., 1:, 1:])
+
+
+@pytest.mark.parametrize("override", ["train.lr=inf", "train.lr=-inf", "train.lr=.inf", "train.lr=nan", "train.lr=.NaN",
+                                      "train.lr=Infinity", "train.lr=1e400", f"train.lr={10**400}",
+                                      "camera.sensor.read_noise_e=.inf", "model.mosaic.brightness_eps=.nan",
+                                      "train.sensor_sigma=[0, .inf]"])
+def test_non_finite_numbers_are_refused_as_such(override):
+    key = override.split("=")[0]
+    with pytest.raises(ConfigError, match=rf"^config key '{re.escape(key)}(\[1\])?' must be a finite number, got "):
+        load_config(overrides=[override])
+
+
+def test_a_non_finite_or_non_positive_learning_rate_says_it_must_be_finite():
+    from hsicam.config import TrainConfig
+
+    for bad in (math.inf, math.nan, 0.0, -1e-4):
+        with pytest.raises(ConfigError, match=r"^train.lr must be a finite number > 0, got "):
+            TrainConfig(lr=bad)

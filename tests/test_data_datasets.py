@@ -239,7 +239,7 @@ def test_npy_cubes_take_the_band_grid_of_the_config(tmp_path):
         (tmp_path / "h5").mkdir(exist_ok=True)
         np.save(tmp_path / "npy" / f"s{i}.npy", cube)
         write_cube_h5(tmp_path / "h5" / f"s{i}.h5", cube, fine)
-    common = ["data.patch_px=8", "data.val_fraction=0.5", "data.patches_per_epoch=4", "data.val_patches=2"]
+    common = ["data.patch_px=12", "data.val_fraction=0.5", "data.patches_per_epoch=4", "data.val_patches=2"]
     grid = "data.npy_bands={start_nm: 410, stop_nm: 730, step_nm: 20}"
     cfg_npy = load_config(overrides=[f"data.root={tmp_path / 'npy'}", grid, *common])
     cfg_h5 = load_config(overrides=[f"data.root={tmp_path / 'h5'}", *common])

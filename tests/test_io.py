@@ -198,7 +198,8 @@ def test_atomic_output_folder(tmp_path):
         (d / "results.json").write_text("{}")
     assert sorted(p.name for p in out.iterdir()) == [COMPLETE_MARKER, "results.json"]
     assert is_complete(out)
-    assert json.loads((out / COMPLETE_MARKER).read_text()) == {"complete": True, "command": "evaluate"}
+    assert json.loads((out / COMPLETE_MARKER).read_text()) == {"complete": True, "command": "evaluate",
+                                                               "files": ["results.json"]}
     assert hidden(out.parent) == []
     with atomic_output(tmp_path / "plain", marker=False) as d:
         (d / "x").write_text("x")
@@ -240,6 +241,38 @@ def test_atomic_output_replaces_only_what_it_may(tmp_path):
     with pytest.raises(InputError, match="existing file"):
         with atomic_output(f):
             raise AssertionError("must not run")
+
+
+def test_atomic_output_replaces_only_its_own_command_and_files(tmp_path):
+    """A completed folder is replaced only by the command its marker names, and only while it holds
+    nothing but the entries the marker lists (and a derived report/ or hidden temporaries)."""
+    out = tmp_path / "ev"
+    with atomic_output(out, marker={"command": "evaluate"}) as d:
+        (d / "results.json").write_text("1")
+    with pytest.raises(InputError) as exc:
+        with atomic_output(out, overwrite=True, marker={"command": "psf"}):
+            raise AssertionError("must not run")
+    one_line(exc, str(out), "holds the output of hsicam evaluate, not of hsicam psf")
+    with atomic_output(out / "report", marker={"command": "report"}) as d:  # derived: goes with the folder
+        (d / "index.html").write_text("r")
+    (out / ".results.abcd1234.tmp.json").write_text("")  # a killed writer's temporary
+    with atomic_output(out, overwrite=True, marker={"command": "evaluate"}) as d:
+        (d / "results.json").write_text("2")
+    assert sorted(p.name for p in out.iterdir()) == [COMPLETE_MARKER, "results.json"]
+    (out / "notes.txt").write_text("mine")
+    (out / "myplots").mkdir()
+    with pytest.raises(InputError) as exc:
+        with atomic_output(out, overwrite=True, marker={"command": "evaluate"}):
+            raise AssertionError("must not run")
+    one_line(exc, str(out), "holds myplots, notes.txt, which hsicam evaluate did not write", "move them")
+    assert (out / "notes.txt").read_text() == "mine" and (out / "results.json").read_text() == "2"
+    old = tmp_path / "old"  # an older marker (no command, no files): replaced as before
+    old.mkdir()
+    (old / "a.txt").write_text("a")
+    mark_complete(old)
+    with atomic_output(old, overwrite=True, marker={"command": "psf"}) as d:
+        (d / "b.txt").write_text("b")
+    assert sorted(p.name for p in old.iterdir()) == [COMPLETE_MARKER, "b.txt"]
 
 
 def test_atomic_output_restores_the_old_folder_if_the_swap_fails(tmp_path, monkeypatch):

@@ -25,11 +25,48 @@ import yaml
 from hsicam.errors import ConfigError
 from hsicam.spectral import Bands
 
+#: The smallest ``data.patch_px``: the side of SSIM's window, which validation scores on every patch
+#: (and ``train.ssim_loss`` on every training patch). It is :data:`hsicam.metrics.SSIM_WINDOW_PX`,
+#: repeated because config sits below metrics in the package layers; test_config holds them equal.
+MIN_PATCH_PX = 11
+
 
 def _positive(section: str, **values: float | None) -> None:
     for name, v in values.items():
         if v is not None and not (v > 0 and math.isfinite(v)):
-            raise ConfigError(f"{section}.{name} must be a positive length/number, got {v}")
+            raise ConfigError(f"{section}.{name} must be a finite number > 0, got {v}")
+
+
+#: The seeds torch's generators take (``torch.Generator.manual_seed``): any value in [-2^63, 2^64 - 1].
+#: Seeds of numpy's generators (``data.synthetic_seed``, ``data.split_seed``) take no negative value.
+SEED_MIN, SEED_MAX = -(2**63), 2**64 - 1
+
+
+def _power_text(n: int) -> str:
+    """``n`` as ``2^k``, ``-2^k`` or ``2^k - 1`` when it is one of those (seed bounds), else its digits."""
+    for m, tail in ((abs(n), ""), (n + 1, " - 1")):
+        if m > 1024 and m & (m - 1) == 0:
+            return f"{'-' if n < 0 else ''}2^{m.bit_length() - 1}{tail}"
+    return str(n)
+
+
+def seed_problem(value: Any, low: int = SEED_MIN, high: int = SEED_MAX) -> Optional[str]:
+    """Why ``value`` cannot be a seed in [``low``, ``high``] ("must be …, got …"), or None when it can:
+    the one seed check of the config and of the command line's ``--seed`` options."""
+    if isinstance(value, bool) or not isinstance(value, int):
+        return f"must be an integer, got {value!r}"
+    if not low <= value <= high:
+        shown = str(value) if value.bit_length() <= 128 else f"an integer of {value.bit_length()} bits"
+        return f"must be an integer in [{_power_text(low)}, {_power_text(high)}], got {shown}"
+    return None
+
+
+def _check_seeds(section: str, low: int = SEED_MIN, **values: Any) -> None:
+    """ConfigError naming the first of ``values`` (seed keys of ``section``) outside [low, SEED_MAX]."""
+    for name, v in values.items():
+        problem = seed_problem(v, low)
+        if problem is not None:
+            raise ConfigError(f"{section}.{name} {problem}")
 
 
 # --------------------------------------------------------------------------------------------
@@ -104,6 +141,7 @@ class DOEConfig:
         _positive("camera.doe", cell_size_um=self.cell_size_um, design_wavelength_nm=self.design_wavelength_nm,
                   max_height_nm=self.max_height_nm, init_range_nm=self.init_range_nm,
                   init_correlation_cells=self.init_correlation_cells)
+        _check_seeds("camera.doe", seed=self.seed)
         if self.quantization_levels is not None and self.quantization_levels < 2:
             raise ConfigError(f"camera.doe.quantization_levels must be >= 2, got {self.quantization_levels}")
         if not (self.sigma_height_nm >= 0 and math.isfinite(self.sigma_height_nm)):
@@ -151,6 +189,7 @@ class CFAConfig:
         if self.period < 1:
             raise ConfigError(f"camera.cfa.period must be >= 1, got {self.period}")
         _positive("camera.cfa", bandpass_fwhm_nm=self.bandpass_fwhm_nm)
+        _check_seeds("camera.cfa", seed=self.seed)
         if self.layout == "dispersed":
             if self.init != "bandpass":
                 raise ConfigError("camera.cfa.layout: dispersed places band-pass filters; it needs camera.cfa.init: bandpass")
@@ -196,6 +235,7 @@ class CASSIConfig:
     def __post_init__(self) -> None:
         _positive("camera.cassi", shift_px=self.shift_px, prism_apex_deg=self.prism_apex_deg,
                   prism_focal_length_mm=self.prism_focal_length_mm)
+        _check_seeds("camera.cassi", mask_seed=self.mask_seed)
         if not (0.0 < self.mask_density <= 1.0):
             raise ConfigError(f"camera.cassi.mask_density must be in (0, 1], got {self.mask_density}")
         if self.prism_apex_deg >= 90.0:
@@ -396,6 +436,7 @@ class TrainConfig:
                 raise ConfigError(f"train.{k} must be >= 1, got {getattr(self, k)}")
         _positive("train", lr=self.lr, doe_lr_nm=self.doe_lr_nm, cfa_lr=self.cfa_lr, lr_gamma=self.lr_gamma,
                   grad_clip=self.grad_clip, relative_eps=self.relative_eps)
+        _check_seeds("train", seed=self.seed)
         for k in ("relative_l1", "ssim_loss", "sam_loss", "spectral_grad_loss"):
             v = getattr(self, k)
             if not (v >= 0 and math.isfinite(v)):
@@ -457,6 +498,10 @@ class DataConfig:
         for name in ("synthetic_n", "patch_px", "patches_per_epoch", "val_patches"):
             if getattr(self, name) < 1:
                 raise ConfigError(f"data.{name} must be >= 1, got {getattr(self, name)}")
+        if self.patch_px < MIN_PATCH_PX:
+            raise ConfigError(f"data.patch_px must be >= {MIN_PATCH_PX} px (SSIM, scored on every validation patch and "
+                              f"by train.ssim_loss, uses an {MIN_PATCH_PX}×{MIN_PATCH_PX} px window), got {self.patch_px}")
+        _check_seeds("data", 0, synthetic_seed=self.synthetic_seed, split_seed=self.split_seed)
         if self.synthetic_size < 16:
             raise ConfigError(f"data.synthetic_size must be >= 16 px, got {self.synthetic_size}")
         if not (0.0 <= self.val_fraction < 1.0):
@@ -569,6 +614,7 @@ class ChoiConfig:
                         batch_size=self.batch_size, inner_steps=self.inner_steps)
         _check_at_least(sec, 0, iterations=self.iterations, init_iterations=self.init_iterations)
         _check_positive(sec, lr=self.lr, rho=self.rho, rho_growth=self.rho_growth)
+        _check_seeds(sec, seed=self.seed)
         for k in ("train_noise", "prior_weight", "tv_weight"):
             v = getattr(self, k)
             if not (v >= 0 and math.isfinite(v)):
@@ -750,6 +796,7 @@ def _type_name(tp: Any) -> str:
 
 
 _DECIMAL = re.compile(r"^[+-]?(\d+\.?\d*|\.\d+)([eE][+-]?\d+)?$")
+_NON_FINITE = re.compile(r"^[+-]?\.?(inf|infinity|nan)$", re.IGNORECASE)  # what YAML leaves as text (not .inf/.nan)
 
 
 def _coerce(tp: Any, value: Any, key: str) -> Any:
@@ -793,9 +840,14 @@ def _coerce(tp: Any, value: Any, key: str) -> Any:
     if tp is float:
         if isinstance(value, str) and _DECIMAL.match(value.strip()):
             value = float(value)  # YAML 1.1 reads 1e-4 (no dot in the mantissa) as a string
+        if isinstance(value, str) and _NON_FINITE.match(value.strip()) or isinstance(value, float) and not math.isfinite(value):
+            raise ConfigError(f"config key '{key}' must be a finite number, got {value!r}")  # inf, nan, .inf, .nan
         if isinstance(value, bool) or not isinstance(value, (int, float)):
             raise ConfigError(f"config key '{key}' must be a number, got {value!r}")
-        return float(value)
+        try:
+            return float(value)
+        except OverflowError:  # an integer beyond float range
+            raise ConfigError(f"config key '{key}' must be a finite number, got an integer of {value.bit_length()} bits") from None
     if tp is str:
         if not isinstance(value, str):
             raise ConfigError(f"config key '{key}' must be a string, got {value!r}")

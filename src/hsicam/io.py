@@ -5,9 +5,13 @@ never leaves a half-written file (or folder) where a later command would take it
 
 - :func:`atomic_path` / :func:`atomic_open`: one file (``.NAME.XXXXXXXX.tmp.SUFFIX`` → ``NAME``).
 - :func:`atomic_output`: a file or a whole folder (``.NAME.XXXXXXXX.tmpdir`` → ``NAME``); a
-  folder gets its completion marker (:data:`COMPLETE_MARKER`) before it is renamed into place.
-- :func:`mark_complete` / :func:`is_complete` / :func:`clear_complete`: the marker for folders
-  that are filled in place, file by file (write files, then mark; readers check the marker).
+  folder gets its completion marker (:data:`COMPLETE_MARKER`) before it is renamed into place. The
+  marker names the command that wrote the folder (``"command"``) and the entries it wrote
+  (``"files"``): :func:`check_replaceable` lets a command replace only its own output, and only
+  while the folder holds nothing else (a user's files added to it are never deleted).
+- :func:`mark_complete` / :func:`is_complete` / :func:`read_marker` / :func:`clear_complete`: the
+  marker for folders that are filled in place, file by file (write files, then mark; readers check
+  the marker).
 - :func:`cleanup_stale_temporaries`: removes the hidden temporaries a killed process left behind.
 - :func:`check_output_path`: one-line :class:`~hsicam.errors.InputError` for an output path that
   cannot work (existing file where a folder is needed and vice versa, inside a file, not
@@ -270,8 +274,9 @@ def atomic_output(path: str | os.PathLike, kind: str = "dir", *, overwrite: bool
     if kind != "dir":
         raise ValueError(f"kind must be 'file' or 'dir', got {kind!r}")
     path = Path(path)
+    command = marker.get("command") if isinstance(marker, dict) else None
     check_output_path(path, "dir")
-    check_replaceable(path, overwrite)
+    check_replaceable(path, overwrite, command)
     try:
         created = _make_parents(path.parent)
         tmp = _new_temp_dir(path)
@@ -280,8 +285,9 @@ def atomic_output(path: str | os.PathLike, kind: str = "dir", *, overwrite: bool
     try:
         yield tmp
         if marker:
-            mark_complete(tmp, marker if isinstance(marker, dict) else None)
-        check_replaceable(path, overwrite)  # the block may have run for hours
+            files = sorted(p.name for p in tmp.iterdir() if not is_temporary(p.name))
+            mark_complete(tmp, {**(marker if isinstance(marker, dict) else {}), "files": files})
+        check_replaceable(path, overwrite, command)  # the block may have run for hours
         _swap_in(tmp, path)
     except BaseException:
         _remove(tmp)
@@ -290,11 +296,18 @@ def atomic_output(path: str | os.PathLike, kind: str = "dir", *, overwrite: bool
     _fsync_dir(path.parent)
 
 
-def check_replaceable(path: Path, overwrite: bool) -> None:
+#: Sub-folders that another command writes inside a completed output, from it (``hsicam report``'s
+#: ``report/`` in an evaluation folder), by name → the command in their own marker. They go stale
+#: with the output they were made from, so replacing that output may remove them.
+DERIVED_OUTPUTS = {"report": "report"}
+
+
+def check_replaceable(path: Path, overwrite: bool, command: str | None = None) -> None:
     """InputError unless :func:`atomic_output` may put a folder at ``path``: absent, empty, or (with
-    ``overwrite``) a completed hsicam output. Commands call it before their work too
-    (:func:`hsicam.cli.prepare_output` with ``replace=True``), so a user's own folder is refused at
-    once, not after hours of work."""
+    ``overwrite``) a completed hsicam output written by ``command`` (when given and named in the
+    marker) that holds only the entries its marker lists (when it lists them). Commands call it
+    before their work too (:func:`hsicam.cli.prepare_output` with ``replace=True``), so a user's own
+    folder is refused at once, not after hours of work."""
     if not path.is_dir():
         if path.exists():
             raise InputError(f"{path}: is an existing file; a folder is needed here")
@@ -306,6 +319,27 @@ def check_replaceable(path: Path, overwrite: bool) -> None:
                          "choose another output folder")
     if not overwrite:
         raise InputError(f"{path}: folder already holds a completed output; choose another folder or allow overwriting")
+    info = read_marker(path)
+    written_by = info.get("command") if isinstance(info.get("command"), str) else None
+    if command is not None and written_by is not None and written_by != command:
+        raise InputError(f"{path}: holds the output of hsicam {written_by}, not of hsicam {command}; "
+                         "choose another output folder")
+    files = info.get("files")
+    if isinstance(files, list):
+        extra = sorted(p.name for p in path.iterdir()
+                       if p.name not in files and p.name != COMPLETE_MARKER and not is_temporary(p.name)
+                       and not _is_derived(p))
+        if extra:
+            shown = ", ".join(extra[:5]) + (f" and {len(extra) - 5} more" if len(extra) > 5 else "")
+            writer = f"hsicam {command or written_by}" if (command or written_by) else "the command that wrote it"
+            raise InputError(f"{path}: holds {shown}, which {writer} did not write; choose another folder or "
+                             "move them")
+
+
+def _is_derived(p: Path) -> bool:
+    """True for a completed sub-output named in :data:`DERIVED_OUTPUTS` (e.g. ``report/``)."""
+    want = DERIVED_OUTPUTS.get(p.name)
+    return want is not None and p.is_dir() and not p.is_symlink() and read_marker(p).get("command") == want
 
 
 def _swap_in(tmp: Path, path: Path) -> None:
@@ -338,6 +372,21 @@ def mark_complete(folder: str | os.PathLike, info: dict[str, Any] | None = None)
 def is_complete(folder: str | os.PathLike) -> bool:
     """True when ``folder`` carries the completion marker written by :func:`mark_complete`."""
     return (Path(folder) / COMPLETE_MARKER).is_file()
+
+
+def read_marker(folder: str | os.PathLike) -> dict[str, Any]:
+    """The fields of ``folder``'s completion marker ({} when it has none or it cannot be read)."""
+    try:
+        info = json.loads((Path(folder) / COMPLETE_MARKER).read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError):
+        return {}
+    return info if isinstance(info, dict) else {}
+
+
+def output_description(folder: str | os.PathLike) -> str:
+    """"the output of hsicam CMD" for a folder whose marker names its command, else "a completed hsicam output"."""
+    command = read_marker(folder).get("command")
+    return f"the output of hsicam {command}" if isinstance(command, str) and command else "a completed hsicam output"
 
 
 def clear_complete(folder: str | os.PathLike) -> None:

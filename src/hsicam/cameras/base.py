@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import logging
 import math
 
 import torch
@@ -9,6 +10,16 @@ from torch import nn
 
 from hsicam.errors import ConfigError, InputError
 from hsicam.spectral import Bands
+
+log = logging.getLogger(__name__)
+
+#: A scene's peak above which :meth:`Camera.capture` warns. Scenes are normalised (reflectance-like,
+#: 1 = a white reference), and a scene of 1 everywhere images to at most 1, the sensor's full scale
+#: (DOE cameras: the PSF keeps at most the light it receives and the CFA transmits at most all of
+#: it; CASSI with the ``mean`` convention likewise). Values somewhat above 1 are highlights that
+#: the PSF's spread mostly keeps below full scale; a peak of 4 is two stops over full scale, while
+#: unnormalised data (reflectance in percent, raw counts, radiance units) lie far beyond it.
+SCENE_PEAK_WARN = 4.0
 
 
 def _is_level(value) -> bool:
@@ -54,6 +65,29 @@ class Camera(nn.Module):
 
     def forward(self, x: torch.Tensor, generator: torch.Generator | None = None) -> torch.Tensor:
         return self.noise(self.A(x), generator)
+
+    @torch.no_grad()
+    def capture(self, x: torch.Tensor, generator: torch.Generator | None = None, source: str = "scene") -> torch.Tensor:
+        """The noisy sensor image of a user's scene ``x`` (``hsicam simulate``): ``self(x, generator)``
+        without autograd, with the checks that a training step leaves out. A scene whose peak is above
+        :data:`SCENE_PEAK_WARN` is logged (WARNING, naming ``source``): its image goes far past the
+        sensor's full scale of 1. A sensor image that is not finite (float overflow of a scene with
+        huge values) is an :class:`InputError` naming ``source`` and the scene's peak."""
+        peak = float(x.max()) if x.numel() else 0.0
+        advice = ("normalise the scene first: reflectance-like values in [0, 1] (a white reference at 1; "
+                  "divide raw counts or percent by their full scale, or the cube by its maximum)")
+        with torch.no_grad():
+            y = self(x, generator)
+        if not bool(torch.isfinite(y).all()):
+            if not math.isfinite(peak):
+                raise InputError(f"{source}: the scene holds NaN/Inf values; the simulated sensor image is not finite")
+            raise InputError(f"{source}: the simulated sensor image is not finite (float overflow: the scene's peak "
+                             f"value is {peak:.4g}); {advice}")
+        if peak > SCENE_PEAK_WARN:
+            log.warning("%s: the scene's peak value is %.4g, far above 1 (a scene of 1 fills the sensor's full scale): "
+                        "the sensor image reaches %.4g and a real sensor saturates above 1; %s",
+                        source, peak, float(y.max()), advice)
+        return y
 
     def measure(self, x: torch.Tensor, generator: torch.Generator | None = None):
         """(noisy measurement, the operator a network should use for it): here ``(self(x), self)``;

@@ -80,17 +80,6 @@ def add_run_arg(p: argparse.ArgumentParser, help: str, required: bool = True) ->
                    help=f"{help}, or pretrained:NAME (a shipped camera, see `hsicam pretrained`)")
 
 
-def device_arg(spec: str) -> str:
-    """argparse ``type`` of every ``--device``: a torch device this machine has (``cpu``, ``cuda``,
-    ``cuda:N``, ``mps``), else a usage error saying what is available, never a traceback later."""
-    from hsicam.engine.loop import device_problem
-
-    problem = device_problem(spec)
-    if problem is not None:
-        raise argparse.ArgumentTypeError(f"device {spec!r}: {problem}")
-    return spec
-
-
 def config_from_args(path: str | Path | None, overrides: Sequence[str] = ()):
     """``load_config`` for the command line: a config FILE that is empty (or holds only comments)
     is an error, never silently the built-in defaults (the paper camera)."""
@@ -115,13 +104,15 @@ def config_from_args(path: str | Path | None, overrides: Sequence[str] = ()):
     return load_config(path, list(overrides))
 
 
-def prepare_output(path: str | Path, kind: str = "dir", replace: bool = False) -> Path:
+def prepare_output(path: str | Path, kind: str = "dir", replace: bool = False, command: str | None = None) -> Path:
     """Before any work: :func:`hsicam.io.check_output_path` (one-line error for an output that cannot
     work; a shipped pre-trained camera, which is read-only), then remove the hidden temporary
     siblings (``.NAME.XXXXXXXX.tmpdir`` …) that an earlier, killed run of a command left next to
     this output. ``replace``: the command writes the folder whole through
     ``atomic_output(..., overwrite=True)``, so a non-empty folder that is not a completed hsicam
-    output (a user's own) is refused now, before the work (:func:`hsicam.io.check_replaceable`)."""
+    output (a user's own), another ``command``'s output or a completed folder holding files the
+    command did not write is refused now, before the work (:func:`hsicam.io.check_replaceable`, the
+    check ``atomic_output`` repeats with its marker's command)."""
     import shutil
 
     from hsicam.io import check_output_path, check_replaceable, is_temporary
@@ -130,7 +121,7 @@ def prepare_output(path: str | Path, kind: str = "dir", replace: bool = False) -
     check_not_pretrained(path)
     out = check_output_path(path, kind)
     if replace and kind == "dir":
-        check_replaceable(Path(out), overwrite=True)
+        check_replaceable(Path(out), overwrite=True, command=command)
     parent = Path(out).parent
     if parent.is_dir():
         stem = Path(out).stem if kind == "file" else Path(out).name

@@ -31,7 +31,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--out", required=True, metavar="DIR", help="output folder")
     p.add_argument("--boundary", choices=("same", "valid"), default="same",
                    help="same: sensor as large as the scene (padded); valid: sensor smaller by the kernel margin")
-    p.add_argument("--seed", type=int, default=0, help="seed for DOE height noise and sensor noise")
+    from hsicam.cli.args import seed_arg
+    p.add_argument("--seed", type=seed_arg(), default=0, help="seed for DOE height noise and sensor noise")
     add_run_arg(p, "use the trained optics of this run (its config.yaml; --set still applies)", required=False)
     p.set_defaults(func=cmd_simulate)
 
@@ -45,7 +46,7 @@ def camera_from_args(args: argparse.Namespace, extra_overrides: tuple[str, ...] 
 def cmd_psf(args: argparse.Namespace) -> int:
     from hsicam.report.camera import write_psf_outputs
 
-    out = prepare_output(args.out, "dir", replace=True)
+    out = prepare_output(args.out, "dir", replace=True, command="psf")
     camera, cfg = camera_from_args(args)
     if camera.kind != "doe":
         raise InputError(f"hsicam psf needs a DOE camera (camera.kind=doe), not camera.kind={camera.kind}")
@@ -93,7 +94,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     from hsicam.data.pipeline import npy_bands
     from hsicam.report.camera import write_optics_figures
 
-    out = prepare_output(args.out, "dir", replace=True)
+    out = prepare_output(args.out, "dir", replace=True, command="simulate")
     if args.run:
         from hsicam.runs.folder import load_run
 
@@ -105,8 +106,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
         camera, cfg = camera_from_args(args, (f"camera.boundary={args.boundary}",))
     scene = load_scene(args.scene, camera.bands, npy_bands(cfg.data))
     gen = torch.Generator().manual_seed(args.seed)
-    with torch.no_grad():
-        sensor = camera(torch.from_numpy(scene)[None], generator=gen)[0, 0].numpy()
+    sensor = camera.capture(torch.from_numpy(scene)[None], gen, source=str(args.scene))[0, 0].numpy()
     peak = float(sensor.max()) if sensor.size else 0.0
     png_scale = peak if peak > 1.0 else 1.0  # sensor.png holds sensor / png_scale
     with atomic_output(out, overwrite=True, marker={"command": "simulate"}) as tmp:

@@ -18,7 +18,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     s.add_argument("--n", type=int, default=None,
                    help="number of scenes (default: data.synthetic_n; 8 for --split heldout)")
     s.add_argument("--size", type=int, default=None, help="scene side in px (default: data.synthetic_size)")
-    s.add_argument("--seed", type=int, default=None, help="random seed (default: data.synthetic_seed)")
+    from hsicam.cli.args import seed_arg
+    s.add_argument("--seed", type=seed_arg(0), default=None, help="random seed (default: data.synthetic_seed)")
     s.add_argument("--holdout-sources", metavar="IDS", default=None,
                    help="comma-separated spectral source ids whose spectra never reach the training scenes "
                         "(default: nist-philips,rawtoaces; 'none' for none; see `hsicam data sources`)")
@@ -58,7 +59,7 @@ def _synth(args: argparse.Namespace) -> int:
     from hsicam.cli import prepare_output
 
     if args.out is not None:
-        prepare_output(args.out, "dir")
+        _check_dataset_folder(prepare_output(args.out, "dir"))
     cfg = config_from_args(args.config, args.overrides)
     holdout = DEFAULT_HOLDOUT if args.holdout_sources is None else parse_holdout(args.holdout_sources)
     split = args.split
@@ -86,6 +87,32 @@ def _synth(args: argparse.Namespace) -> int:
     what = "held-out scenes" if split == "heldout" else "scenes"
     print(f"wrote {n} {what} of {size}x{size}x{len(bands)} to {out} (held-out sources: {', '.join(holdout) or 'none'})")
     return 0
+
+
+def _check_dataset_folder(out: Path) -> None:
+    """InputError unless ``out`` is absent, empty or a dataset of ``hsicam data synth``: its
+    ``manifest.json`` (format hsicam-synthetic), or only scene files (a killed generation)."""
+    import json
+    import re
+
+    from hsicam.data.synthetic import MANIFEST
+    from hsicam.errors import InputError
+    from hsicam.io import is_temporary
+
+    if not out.is_dir():
+        return
+    entries = sorted(p.name for p in out.iterdir() if not is_temporary(p.name))
+    try:
+        manifest = json.loads((out / MANIFEST).read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError):
+        manifest = None
+    if isinstance(manifest, dict) and manifest.get("format") == "hsicam-synthetic":
+        return
+    other = [name for name in entries if not re.fullmatch(r"scene_\d{4,}\.h5", name)]
+    if other:
+        shown = ", ".join(other[:3]) + (f" and {len(other) - 3} more" if len(other) > 3 else "")
+        raise InputError(f"{out}: folder is not empty and holds no dataset of hsicam data synth ({shown}); "
+                         "choose an empty or new --out")
 
 
 def _sources(args: argparse.Namespace) -> int:

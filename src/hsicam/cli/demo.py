@@ -16,16 +16,13 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def cmd_demo(args: argparse.Namespace) -> int:
-    from pathlib import Path
-
-    from hsicam.engine.demo import demo_config, means_line, run_demo
+    from hsicam.cli import prepare_output
+    from hsicam.engine.demo import check_demo_folder, demo_config, means_line, run_demo
     from hsicam.engine.experiments import check_same_training, is_finished
 
-    from hsicam.runs.pretrained import check_not_pretrained
-
     t0 = time.perf_counter()
-    check_not_pretrained(args.out)  # the demo trains and writes in place: never into a shipped camera
-    out = Path(args.out)
+    out = prepare_output(args.out, "dir")  # before any work; never a shipped camera (the demo writes in place)
+    check_demo_folder(out)
     cfg = demo_config(args.config, tuple(args.overrides))
     run = out / "run"
     check_same_training(run, cfg)  # before saying what it will do with the run

@@ -6,7 +6,8 @@ import argparse
 import sys
 from pathlib import Path
 
-from hsicam.cli import add_config_args, add_run_arg, config_from_args, device_arg
+from hsicam.cli import add_config_args, add_run_arg, config_from_args
+from hsicam.cli.args import device_arg
 from hsicam.errors import InputError
 
 
@@ -71,7 +72,7 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     from hsicam.io import atomic_output
 
     args.method = METHOD_ALIASES.get(args.method, args.method)  # results carry the method's current name
-    out = prepare_output(args.out, "dir", replace=True)
+    out = prepare_output(args.out, "dir", replace=True, command="evaluate")
     if args.seeds < 1:
         raise InputError("--seeds must be >= 1")
     if args.run:
@@ -128,11 +129,16 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
 def cmd_experiment(args: argparse.Namespace) -> int:
     from hsicam.engine.experiments import format_experiment_table, run_experiment
     from hsicam.cli import prepare_output
-    from hsicam.io import clear_complete, is_complete, mark_complete
+    from hsicam.io import clear_complete, is_complete, mark_complete, output_description, read_marker
 
     out = prepare_output(args.out or f"runs/experiments/{args.name}-{args.scale}", "dir")
-    if out.is_dir() and any(out.iterdir()) and not (out / "runs").is_dir() and not is_complete(out):
-        raise InputError(f"{out}: folder exists and is not an experiment folder; choose another --out")
+    # accepted: absent or empty, an interrupted experiment (runs/, no marker) or a finished one
+    if out.is_dir() and any(out.iterdir()):
+        if is_complete(out):
+            if read_marker(out).get("command") != "experiment":
+                raise InputError(f"{out}: holds {output_description(out)}, not an experiment; choose another --out")
+        elif not (out / "runs").is_dir():
+            raise InputError(f"{out}: folder exists and is not an experiment folder; choose another --out")
     # An experiment folder is filled in place (its trained runs resume): the marker comes off first
     # and goes back on only when experiment.json and table.md are written.
     clear_complete(out) if out.is_dir() else None

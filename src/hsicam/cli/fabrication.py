@@ -23,7 +23,8 @@ def _ints(text: str) -> tuple[int, ...]:
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    from hsicam.cli import add_run_arg, device_arg
+    from hsicam.cli import add_run_arg
+    from hsicam.cli.args import device_arg
 
     p = sub.add_parser("export-optics", help="fabrication files: DOE heights (npy/tiff/csv/gds), CFA spectra and fits, spec.json")
     add_run_arg(p, "trained run folder")
@@ -47,7 +48,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="pupil samples per cell Q for the misalignment study (shift resolution 1/Q cell)")
     p.add_argument("--sensor-distance-um", type=_floats, default=None, metavar="LIST",
                    help="e.g. --sensor-distance-um=-100,-50,0,50,100 (use '=' for lists starting with '-')")
-    p.add_argument("--seed", type=int, default=0)
+    from hsicam.cli.args import positive_number_arg, seed_arg
+    p.add_argument("--seed", type=seed_arg(-(2**53), 2**53), default=0,  # height-noise draw d: torch seed seed·1000 + d
+                   help="seed for the height-noise draws and the sensor noise, in [-2^53, 2^53]")
     p.add_argument("--device", default="cpu", type=device_arg, help="torch device (default cpu)")
     p.set_defaults(func=cmd_tolerance)
 
@@ -57,7 +60,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--out", required=True, metavar="RUN2", help="new run folder")
     p.add_argument("--psf-pitch-um", type=float, default=None, help="pixel pitch of the PSF images (else psf.json)")
     p.add_argument("--epochs", type=int, default=None, help="fine-tuning epochs (default: the run's train.epochs)")
-    p.add_argument("--lr", type=float, default=None, help="network learning rate (default: 0.1 × the run's train.lr)")
+    p.add_argument("--lr", type=positive_number_arg, default=None,
+                   help="network learning rate, a finite number > 0 (default: 0.1 × the run's train.lr)")
     p.add_argument("--set", dest="overrides", metavar="KEY=VALUE", action="append", default=[],
                    help="dotted override of the run's config, e.g. data.patches_per_epoch=256 (repeatable)")
     p.set_defaults(func=cmd_finetune)
@@ -68,7 +72,7 @@ def cmd_export(args: argparse.Namespace) -> int:
     from hsicam.export.doe import is_power_of_two
     from hsicam.cli import prepare_output
 
-    prepare_output(args.out, "dir")
+    prepare_output(args.out, "dir", replace=True, command="export-optics")
     if args.levels is not None and not (2 <= args.levels <= 256 and is_power_of_two(args.levels)):
         raise InputError(f"--levels must be a power of 2 in 2..256 (binary-weighted lithography), got {args.levels}")
     spec = export_optics(args.run, args.out, args.levels, args.tolerance)
@@ -87,7 +91,7 @@ def cmd_tolerance(args: argparse.Namespace) -> int:
     from hsicam.cli import prepare_output
     from hsicam.io import atomic_output
 
-    out = prepare_output(args.out, "dir", replace=True)
+    out = prepare_output(args.out, "dir", replace=True, command="tolerance")
     spec = ToleranceSpec(height_draws=args.draws, max_scenes=args.max_scenes, seed=args.seed,
                          shift_subsamples=args.shift_subsamples)
     for name in ("sigma_height_nm", "levels", "shift_cells", "sensor_distance_um"):
@@ -97,7 +101,7 @@ def cmd_tolerance(args: argparse.Namespace) -> int:
                 raise InputError(f"--{name.replace('_', '-')} needs at least one value")
             setattr(spec, name, v)
     cfg, model = load_run(args.run, args.device)
-    result = run_tolerance(model, cfg, spec, args.data)
+    result = run_tolerance(model, cfg, spec, args.data, run=args.run)
     with atomic_output(out, overwrite=True, marker={"command": "tolerance"}) as tmp:
         write_tolerance(tmp, result)
     s = result["summary"]

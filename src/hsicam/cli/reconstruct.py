@@ -17,7 +17,8 @@ log = logging.getLogger(__name__)
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    from hsicam.cli import add_run_arg, device_arg
+    from hsicam.cli import add_run_arg
+    from hsicam.cli.args import device_arg
 
     p = sub.add_parser("reconstruct", help="reconstruct a hyperspectral cube from a sensor image or raw capture")
     p.add_argument("sensor", metavar="SENSOR", help="sensor image / raw capture: .npy, 8/16-bit PNG or TIFF")

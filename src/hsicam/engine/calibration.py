@@ -25,7 +25,7 @@ from hsicam.engine.loop import FitOptions, fit
 from hsicam.engine.tasks import SystemTask
 from hsicam.errors import InputError
 from hsicam.io import write_json
-from hsicam.runs.folder import MetricsLog, load_run, with_measured_psf
+from hsicam.runs.folder import MetricsLog, check_run_dir, load_run, with_measured_psf
 from hsicam.runs.measured_psf import MEASURED_PSF_FILE, MeasuredPSF, load_measured_psf, save_measured_psf
 from hsicam.runs.pretrained import resolve_run
 
@@ -88,6 +88,9 @@ def finetune(run_dir: str | Path, psf_dir: str | Path, out_dir: str | Path, *, o
     run_dir, out_dir = resolve_run(run_dir), Path(out_dir)  # run_dir may be pretrained:NAME
     if out_dir.resolve() == run_dir.resolve():
         raise InputError("--out must be a new run folder, not the run being fine-tuned")
+    # before any work, in fine-tuning's words (it has no --resume/--restart: the run is always new)
+    if not resume:
+        check_run_dir(out_dir, False, "fine-tuning writes a new run folder: choose another --out")
     cfg, base = load_run(run_dir, "cpu", tuple(overrides))
     measured = import_for_camera(psf_dir, base.camera, pitch_um=pitch_um)
     torch.manual_seed(cfg.train.seed)

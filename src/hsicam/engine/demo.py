@@ -16,7 +16,9 @@ from hsicam.engine.experiments import ensure_trained, heldout_scenes
 from hsicam.engine.linear_step import ensure_linear_step
 from hsicam.engine.methods import (LINEAR_REFERENCE_WINDOW, linear_demosaic_reference, network_alone_reference,
                                    network_skip)
-from hsicam.io import atomic_open, clear_complete, mark_complete, write_json
+from hsicam.errors import InputError
+from hsicam.io import (atomic_open, clear_complete, is_complete, is_temporary, mark_complete, output_description,
+                       read_marker, write_json)
 from hsicam.report.camera import write_optics_figures, write_psf_outputs
 from hsicam.report.reconstruction import plot_reconstructions, plot_training_curves
 from hsicam.runs.folder import load_run
@@ -31,6 +33,21 @@ def means_line(m: dict) -> str:
     return f"PSNR {m['psnr']:.2f} dB, SSIM {m['ssim']:.4f}, SAM {m['sam']:.2f}°"
 
 
+def check_demo_folder(out: str | Path) -> None:
+    """InputError unless ``out`` may receive a demo: absent, empty, a finished demo (its completion
+    marker) or an interrupted one (its ``run/``). Creates nothing; call it before any work."""
+    out = Path(out)
+    if not out.is_dir() or not any(not is_temporary(p.name) for p in out.iterdir()):
+        return
+    if is_complete(out):
+        if read_marker(out).get("command") in (None, "demo"):  # an older demo's marker names no command
+            return
+        raise InputError(f"{out}: holds {output_description(out)}, not a demo; choose another --out")
+    if not (out / "run").is_dir():
+        raise InputError(f"{out}: folder exists and is not empty, and is not a demo folder (no run/ in it); "
+                         "choose another --out")
+
+
 def run_demo(cfg: Config, out: str | Path) -> dict[str, Any]:
     """Train (or resume, or reuse) ``out/run`` with ``cfg``, evaluate and write ``out``'s results.
 
@@ -39,6 +56,7 @@ def run_demo(cfg: Config, out: str | Path) -> dict[str, Any]:
     :class:`InputError` (``ensure_trained``), never silently reused.
     """
     out = Path(out)
+    check_demo_folder(out)
     run = out / "run"
     status = ensure_trained(run, cfg)
     if out.is_dir():
@@ -99,7 +117,7 @@ def run_demo(cfg: Config, out: str | Path) -> dict[str, Any]:
         write_optics_figures(model.camera, out)
     plot_reconstructions(results, bands, out / "reconstructions.png")
     plot_training_curves(run / "metrics.jsonl", out / "training.png")
-    mark_complete(out)
+    mark_complete(out, {"command": "demo"})
     return {**summary, "status": status, "table": table, "n_scenes": len(results)}
 
 

@@ -36,7 +36,7 @@ from torch.utils.data import Sampler
 from hsicam.config import TrainConfig
 from hsicam.data.pipeline import make_loader
 from hsicam.errors import InputError
-from hsicam.io import atomic_output
+from hsicam.io import atomic_output, is_complete, output_description
 from hsicam.runs.checkpoint import CheckpointManager, save_weights
 from hsicam.runs.folder import MetricsLog, check_run_dir
 from hsicam.spectral import Bands
@@ -276,6 +276,14 @@ def last_validation(records: list[dict[str, Any]]) -> dict[str, float]:
     return {}
 
 
+def check_not_an_output(run_dir: Path, action: str = "resume") -> None:
+    """InputError when ``run_dir`` carries a completion marker: a run folder never does, so it is
+    another command's output (``simulate``, ``evaluate`` …), which ``action`` must not train in."""
+    if is_complete(run_dir):
+        raise InputError(f"{run_dir}: holds {output_description(run_dir)}, not a training run; nothing to {action} "
+                         "(choose another --out)")
+
+
 def _fit(task: Task, opts: FitOptions, run_dir: Path, resume: bool) -> dict[str, Any]:
     t = opts.loop
     rank, world, local_rank = dist_env()
@@ -287,6 +295,8 @@ def _fit(task: Task, opts: FitOptions, run_dir: Path, resume: bool) -> dict[str,
     if t.deterministic:
         torch.use_deterministic_algorithms(True, warn_only=True)
     if is_main:
+        if resume:
+            check_not_an_output(run_dir)
         check_run_dir(run_dir, resume)  # before any work; nothing is created until the data are known good
     if distributed:  # generate/cache the dataset once, on rank 0, before the others read it
         if is_main:

@@ -54,6 +54,10 @@ def train_prior(cfg: Config, settings: ChoiConfig | None, out: str | Path, progr
     the folder ``out`` (see the module docstring); returns the summary. ``settings`` None: the
     defaults. The device is ``cfg.train.device`` (auto: CUDA when available)."""
     settings = settings if settings is not None else ChoiConfig()
+    if not resume:  # before any work; this command has no --resume/--restart to offer
+        from hsicam.runs.folder import check_run_dir
+
+        check_run_dir(Path(out), False, "train-prior writes a new prior folder: choose another --out")
     torch.manual_seed(settings.seed)
     task = PriorTask(cfg, settings)
     summary = fit(task, FitOptions(task.loop_config(), cfg.data.num_workers, max_steps=settings.train_steps,

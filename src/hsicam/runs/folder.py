@@ -78,10 +78,14 @@ def load_run(run_dir: str | Path, device: torch.device | str = "cpu", overrides:
 
 
 RESTART_HINT = "start it again with `hsicam train --restart --config CONFIG --out {run}`"
+#: What to do with a new run's folder that is not empty, in `hsicam train` (the default of
+#: :func:`check_run_dir`); a command without --resume/--restart passes its own.
+TRAIN_NOT_EMPTY_HINT = "use --resume, --restart (a run without a checkpoint) or another --out"
 
 
-def check_run_dir(run_dir: Path, resume: bool) -> None:
-    """A run folder must hold a run to resume, or (a new run) be absent or empty.
+def check_run_dir(run_dir: Path, resume: bool, not_empty_hint: str = TRAIN_NOT_EMPTY_HINT) -> None:
+    """A run folder must hold a run to resume, or (a new run) be absent or empty; the error for a
+    new run's folder that is not empty ends in ``not_empty_hint`` (what the command can do instead).
 
     Hidden temporaries a killed process left (in the folder, or the folder's own temporary
     sibling) do not count: they are removed. Creates nothing."""
@@ -95,8 +99,7 @@ def check_run_dir(run_dir: Path, resume: bool) -> None:
     if run_dir.exists() and not run_dir.is_dir():
         raise InputError(f"{run_dir}: exists and is not a folder; choose another --out")
     if run_dir.exists() and any(run_dir.iterdir()):
-        raise InputError(f"{run_dir}: run folder exists and is not empty; use --resume, --restart (a run without "
-                         "a checkpoint) or another --out")
+        raise InputError(f"{run_dir}: run folder exists and is not empty; {not_empty_hint}")
 
 
 def remove_run_temporaries(run_dir: Path) -> list[Path]:

@@ -1,0 +1,56 @@
+"""argparse ``type`` functions of options shared by several commands (``--device``, ``--seed``,
+``--lr``; ``--run`` is :func:`hsicam.cli.run_folder`): a bad value is a usage error naming the
+option (exit code 2, one line), never a traceback later in the work."""
+
+from __future__ import annotations
+
+import argparse
+import math
+from typing import Callable
+
+from hsicam.config import SEED_MAX, SEED_MIN, seed_problem
+
+
+def _shown(text: str) -> str:
+    return repr(text if len(text) <= 40 else text[:40] + "…")
+
+
+def seed_arg(low: int = SEED_MIN, high: int = SEED_MAX) -> Callable[[str], int]:
+    """argparse ``type`` of a ``--seed``: an integer in [``low``, ``high``] (default: every seed torch's
+    generators take; ``low=0`` for seeds of numpy's generators), checked by the config's one seed
+    check (:func:`hsicam.config.seed_problem`)."""
+
+    def seed(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"must be an integer, got {_shown(text)}") from None
+        problem = seed_problem(value, low, high)
+        if problem is not None:
+            raise argparse.ArgumentTypeError(problem)
+        return value
+
+    return seed
+
+
+def device_arg(spec: str) -> str:
+    """argparse ``type`` of every ``--device``: a torch device this machine has (``cpu``, ``cuda``,
+    ``cuda:N``, ``mps``), else a usage error saying what is available, never a traceback later."""
+    from hsicam.engine.loop import device_problem
+
+    problem = device_problem(spec)
+    if problem is not None:
+        raise argparse.ArgumentTypeError(f"device {spec!r}: {problem}")
+    return spec
+
+
+def positive_number_arg(text: str) -> float:
+    """argparse ``type`` of an option that must be a finite number > 0 (``--lr``): ``inf``, ``nan``,
+    0 and negative values are usage errors."""
+    try:
+        value = float(text)
+    except ValueError:
+        value = math.nan
+    if not (math.isfinite(value) and value > 0):
+        raise argparse.ArgumentTypeError(f"must be a finite number > 0, got {_shown(text)}")
+    return value
