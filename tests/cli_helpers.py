@@ -13,6 +13,19 @@ HSICAM = Path(sys.executable).parent / "hsicam"
 SRC = Path(__file__).resolve().parents[1] / "src"
 
 
+def module_cache(tmp_path_factory):
+    """Body of a module-scoped ``env`` fixture (``yield from module_cache(tmp_path_factory)``): a
+    fresh ``HSICAM_CACHE`` for the module's CLI runs and in-process calls, restored afterwards."""
+    d = str(tmp_path_factory.mktemp("cache"))
+    old = os.environ.get("HSICAM_CACHE")
+    os.environ["HSICAM_CACHE"] = d
+    yield {"HSICAM_CACHE": d}
+    if old is None:
+        os.environ.pop("HSICAM_CACHE", None)
+    else:
+        os.environ["HSICAM_CACHE"] = old
+
+
 def cli_env(env: dict | None = None) -> dict:
     """The environment of a CLI subprocess: this checkout's ``src`` first on PYTHONPATH, one thread."""
     path = os.pathsep.join(x for x in (str(SRC), os.environ.get("PYTHONPATH", "")) if x)

@@ -10,7 +10,6 @@ the real console script in a subprocess.
 from __future__ import annotations
 
 import json
-import os
 import shutil
 import subprocess
 from pathlib import Path
@@ -18,7 +17,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from cli_helpers import HSICAM, assert_clean_error, cli_env, run_cli, unprivileged_prefix
+from cli_helpers import HSICAM, assert_clean_error, cli_env, module_cache, run_cli, unprivileged_prefix
 from hsicam.cli import main
 from hsicam.data.formats import write_cube_h5
 from hsicam.spectral import Bands
@@ -26,14 +25,7 @@ from hsicam.spectral import Bands
 
 @pytest.fixture(scope="module")
 def env(tmp_path_factory):
-    d = str(tmp_path_factory.mktemp("cache"))
-    old = os.environ.get("HSICAM_CACHE")
-    os.environ["HSICAM_CACHE"] = d
-    yield {"HSICAM_CACHE": d}
-    if old is None:
-        os.environ.pop("HSICAM_CACHE", None)
-    else:
-        os.environ["HSICAM_CACHE"] = old
+    yield from module_cache(tmp_path_factory)
 
 
 @pytest.fixture(scope="module")

@@ -9,27 +9,19 @@ where the test must see that no work started.
 
 from __future__ import annotations
 
-import os
 import shutil
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-from cli_helpers import assert_clean_error, run_cli
+from cli_helpers import assert_clean_error, module_cache, run_cli
 from hsicam.cli import main
 
 
 @pytest.fixture(scope="module")
 def env(tmp_path_factory):
-    d = str(tmp_path_factory.mktemp("cache"))
-    old = os.environ.get("HSICAM_CACHE")
-    os.environ["HSICAM_CACHE"] = d
-    yield {"HSICAM_CACHE": d}
-    if old is None:
-        os.environ.pop("HSICAM_CACHE", None)
-    else:
-        os.environ["HSICAM_CACHE"] = old
+    yield from module_cache(tmp_path_factory)
 
 
 @pytest.fixture(scope="module")
