@@ -399,6 +399,13 @@ def test_linear_step_needs_its_filters_and_checks_its_settings(tiny_config):
                             ("model.consistency.window_px=4", "window_px")):
         with pytest.raises(ConfigError, match=match):
             tiny_config(override)
+    # the flat-field fit needs every CFA phase in the window: refused when the config is read, not
+    # after training; without the linear step, or with a window as wide as the period, it is fine
+    wide = ("model.consistency.kind=linear", "model.consistency.iterations=1", "camera.cfa.period=13")
+    with pytest.raises(ConfigError, match="narrower than the CFA period 13.*at least 13"):
+        tiny_config(*wide)
+    tiny_config(*wide, "model.consistency.window_px=13")
+    tiny_config(*wide[1:], "model.consistency.kind=landweber")
 
 
 def test_training_with_the_linear_step_fits_and_ships_its_filters(tiny_config, tmp_path, cache_env):

@@ -256,6 +256,8 @@ def test_atomic_output_replaces_only_its_own_command_and_files(tmp_path):
     with atomic_output(out / "report", marker={"command": "report"}) as d:  # derived: goes with the folder
         (d / "index.html").write_text("r")
     (out / ".results.abcd1234.tmp.json").write_text("")  # a killed writer's temporary
+    (out / ".DS_Store").write_bytes(b"\0")  # a file browser's metadata: not the user's work
+    (out / "._results.json").write_bytes(b"\0")
     with atomic_output(out, overwrite=True, marker={"command": "evaluate"}) as d:
         (d / "results.json").write_text("2")
     assert sorted(p.name for p in out.iterdir()) == [COMPLETE_MARKER, "results.json"]

@@ -250,3 +250,19 @@ def test_linear_reference_needs_a_cfa_camera():
         linear_demosaic_reference(CameraSystem.from_config(load_config("dd_cassi_rdn")), [torch.rand(31, 8, 8)])
     with pytest.raises(ValueError, match="at least one training scene"):
         linear_demosaic_reference(CameraSystem.from_config(load_config("tiny")), [])
+
+
+def test_linear_reference_widens_its_window_to_a_wide_cfa_period(tiny_config):
+    """A CFA period wider than the default 11 px window (13 here): the flat-field fit needs every
+    phase in the window, so the reference fits 13×13 filters instead of failing."""
+    from hsicam.engine.methods import linear_demosaic_reference
+    from hsicam.models import CameraSystem
+
+    model = CameraSystem.from_config(tiny_config("camera.cfa.period=13", "camera.cfa.init=bandpass"))
+    k = model.camera.kernel_px
+    scenes = [torch.rand(len(model.bands), k + 40, k + 40, generator=torch.Generator().manual_seed(i)) for i in range(2)]
+    method = linear_demosaic_reference(model, scenes)
+    assert method.info["window_px"] == 13 and method.info["flat_field"]
+    with torch.no_grad():
+        y = model.camera.A(scenes[0][None])
+        assert method.reconstruct(y).shape == (1, len(model.bands), *y.shape[-2:])

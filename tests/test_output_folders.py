@@ -79,14 +79,15 @@ def test_a_commands_own_folder_is_refreshed_but_never_with_a_users_files(outputs
     assert snapshot(ev) == before
 
 
-@pytest.mark.parametrize("mode", ["--resume", "--restart"])
+@pytest.mark.parametrize("mode", ["--resume", "--restart", ""])
 def test_train_does_not_resume_or_restart_in_another_commands_output(outputs, tmp_path, env, mode):
     sim = copy(outputs / "sim", tmp_path / "sim")
     before = snapshot(sim)
-    config = ("--config", "tiny") if mode == "--restart" else ()
-    assert_clean_error(run_cli("train", *config, "--out", str(sim), mode, env=env),
-                       f"{sim}: holds the output of hsicam simulate, not a training run",
-                       f"nothing to {mode[2:]}")
+    config = ("--config", "tiny") if mode != "--resume" else ()
+    res = run_cli("train", *config, "--out", str(sim), *([mode] if mode else []), env=env)
+    assert_clean_error(res, f"{sim}: holds the output of hsicam simulate, not a training run",
+                       f"nothing to {mode[2:]}" if mode else "a run needs its own folder")
+    assert "--resume" not in res.stderr.split("error:")[-1]  # no remedy the folder cannot take
     assert snapshot(sim) == before
 
 

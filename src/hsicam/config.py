@@ -649,6 +649,14 @@ class Config:
     train: TrainConfig = field(default_factory=TrainConfig)
     baselines: BaselinesConfig = field(default_factory=BaselinesConfig)
 
+    def __post_init__(self) -> None:
+        c, cfa = self.model.consistency, self.camera.cfa
+        if (c.kind == "linear" and c.iterations > 0 and self.camera.kind == "doe" and cfa.enabled
+                and c.window_px < cfa.period):
+            raise ConfigError(f"model.consistency.window_px={c.window_px} is narrower than the CFA period "
+                              f"{cfa.period}: the linear step's filters must see every CFA phase (flat-field "
+                              f"constraint); set it to at least {cfa.period | 1}")
+
 
 # --------------------------------------------------------------------------------------------
 # Loading, overrides, dumping

@@ -301,6 +301,10 @@ def atomic_output(path: str | os.PathLike, kind: str = "dir", *, overwrite: bool
 #: with the output they were made from, so replacing that output may remove them.
 DERIVED_OUTPUTS = {"report": "report"}
 
+#: Files that file browsers and notebooks put in any folder they open: never a user's work, so they
+#: do not stop a command from replacing its own output (AppleDouble ``._*`` files too).
+OS_METADATA = frozenset({".DS_Store", "Thumbs.db", "desktop.ini", ".ipynb_checkpoints"})
+
 
 def check_replaceable(path: Path, overwrite: bool, command: str | None = None) -> None:
     """InputError unless :func:`atomic_output` may put a folder at ``path``: absent, empty, or (with
@@ -328,7 +332,7 @@ def check_replaceable(path: Path, overwrite: bool, command: str | None = None) -
     if isinstance(files, list):
         extra = sorted(p.name for p in path.iterdir()
                        if p.name not in files and p.name != COMPLETE_MARKER and not is_temporary(p.name)
-                       and not _is_derived(p))
+                       and p.name not in OS_METADATA and not p.name.startswith("._") and not _is_derived(p))
         if extra:
             shown = ", ".join(extra[:5]) + (f" and {len(extra) - 5} more" if len(extra) > 5 else "")
             writer = f"hsicam {command or written_by}" if (command or written_by) else "the command that wrote it"

@@ -76,8 +76,7 @@ class Camera(nn.Module):
         peak = float(x.max()) if x.numel() else 0.0
         advice = ("normalise the scene first: reflectance-like values in [0, 1] (a white reference at 1; "
                   "divide raw counts or percent by their full scale, or the cube by its maximum)")
-        with torch.no_grad():
-            y = self(x, generator)
+        y = self(x, generator)
         if not bool(torch.isfinite(y).all()):
             if not math.isfinite(peak):
                 raise InputError(f"{source}: the scene holds NaN/Inf values; the simulated sensor image is not finite")

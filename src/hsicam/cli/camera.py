@@ -91,6 +91,7 @@ def load_scene(path: str | Path, bands: Bands, npy_bands: Bands | None = None) -
 
 
 def cmd_simulate(args: argparse.Namespace) -> int:
+    from hsicam.data.images import SIMULATE_JSON
     from hsicam.data.pipeline import npy_bands
     from hsicam.report.camera import write_optics_figures
 
@@ -114,7 +115,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
         write_png16(tmp / "sensor.png", sensor / png_scale)
         if camera.kind == "doe":
             write_optics_figures(camera, tmp)
-        write_json(tmp / "simulate.json", {
+        write_json(tmp / SIMULATE_JSON, {
             "scene": str(args.scene),
             "scene_shape": list(scene.shape),
             "sensor_shape": list(sensor.shape),

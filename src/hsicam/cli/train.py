@@ -30,8 +30,7 @@ def cmd_train(args: argparse.Namespace) -> int:
     from hsicam.runs.folder import check_run_dir, restart_run_dir
 
     run = prepare_output(args.out, "dir")
-    if args.resume or args.restart:
-        check_not_an_output(run, "resume" if args.resume else "restart")
+    check_not_an_output(run, "resume" if args.resume else "restart" if args.restart else "train")
     if args.resume:
         if args.config:
             raise InputError("--resume continues with the run's own config.yaml; drop --config (use --set to change keys)")

@@ -16,8 +16,12 @@ from hsicam.runs.linear_step import LINEAR_STEP_FILE, save_linear_step
 
 log = logging.getLogger(__name__)
 
+#: Ridge of the least-squares fit, relative to the mean diagonal of each phase's Gram matrix.
+LINEAR_MAP_RIDGE = 1e-6
 
-def fit_linear_map(model, scenes, window: int = 11, ridge: float = 1e-6, flat_field: bool = True) -> torch.Tensor:
+
+def fit_linear_map(model, scenes, window: int = 11, ridge: float = LINEAR_MAP_RIDGE,
+                   flat_field: bool = True) -> torch.Tensor:
     """Least-squares filters (m², C, K, K) of :func:`hsicam.models.demosaic.phase_linear` from the
     noise-free sensor images of ``scenes`` (items (C, H, W), at least the camera's kernel) through
     ``model.camera`` (nominal PSFs) to their targets, by default under the flat-field constraint (a
@@ -64,7 +68,8 @@ def ensure_linear_step(run_dir: str | Path, cfg, model, consistency=None) -> boo
     train, _ = split_dataset(cfg.data, bands)
     t0 = time.perf_counter()
     weight = fit_linear_map(model, scene_dataset(cfg.data, train, bands), c.window_px)
-    save_linear_step(path, weight, {"window_px": c.window_px, "training_scenes": len(train), "ridge": 1e-6, "flat_field": True})
+    save_linear_step(path, weight, {"window_px": c.window_px, "training_scenes": len(train), "ridge": LINEAR_MAP_RIDGE,
+                                       "flat_field": True})
     log.info("linear consistency step: %d×%d filters per CFA phase and band fitted on %d training scenes (%.0f s) -> %s",
              c.window_px, c.window_px, len(train), time.perf_counter() - t0, path)
     model.linear_step = weight

@@ -278,9 +278,11 @@ def last_validation(records: list[dict[str, Any]]) -> dict[str, float]:
 
 def check_not_an_output(run_dir: Path, action: str = "resume") -> None:
     """InputError when ``run_dir`` carries a completion marker: a run folder never does, so it is
-    another command's output (``simulate``, ``evaluate`` …), which ``action`` must not train in."""
+    another command's output (``simulate``, ``evaluate`` …), which ``action`` ("resume", "restart"
+    or "train") must not train in."""
     if is_complete(run_dir):
-        raise InputError(f"{run_dir}: holds {output_description(run_dir)}, not a training run; nothing to {action} "
+        what = f"nothing to {action}" if action in ("resume", "restart") else "a run needs its own folder"
+        raise InputError(f"{run_dir}: holds {output_description(run_dir)}, not a training run; {what} "
                          "(choose another --out)")
 
 

@@ -45,7 +45,7 @@ from hsicam.config import load_config
 from hsicam.data.pipeline import scene_dataset, split_dataset
 from hsicam.engine.prior import load_prior
 from hsicam.errors import InputError
-from hsicam.engine.linear_step import fit_linear_map
+from hsicam.engine.linear_step import LINEAR_MAP_RIDGE, fit_linear_map
 from hsicam.models.demosaic import camera_demosaic, phase_linear
 from hsicam.runs.folder import load_run
 from hsicam.runs.pretrained import resolve_run
@@ -148,23 +148,27 @@ LINEAR_REFERENCE_WINDOW = 11
 
 
 def linear_demosaic_reference(model, train_scenes, window: int = LINEAR_REFERENCE_WINDOW,
-                              ridge: float = 1e-6, weight: torch.Tensor | None = None) -> Method:
+                              ridge: float = LINEAR_MAP_RIDGE, weight: torch.Tensor | None = None) -> Method:
     """The best *linear* reconstruction through the model's optics: one ``window``×``window`` filter
     per CFA phase and band (:func:`hsicam.models.demosaic.phase_linear`), fitted by least squares on
     ``train_scenes`` (items (C, H, W), at least the camera's kernel) imaged noise-free through the
-    camera (:func:`hsicam.engine.linear_step.fit_linear_map`). It undoes the optics' blur and the
-    mosaic together as far as a linear map can, with what the training scenes teach about spectra
-    and texture: what the network adds is its score minus this one. Needs a camera with a per-band
+    camera (:func:`hsicam.engine.linear_step.fit_linear_map`, under the flat-field constraint: a
+    uniform scene gives a uniform estimate; the window grows to the CFA period when that is wider).
+    It undoes the optics' blur and the mosaic together as far as a linear map can, with what the
+    training scenes teach about spectra and texture: what the network adds is its score minus this
+    one. Needs a camera with a per-band
     sensor code (the CFA). ``weight``: filters already fitted that way on the same scenes (a run's
     linear consistency step, ``model.linear_step``), used instead of fitting them again."""
     if weight is None:
+        window = max(window, getattr(model.camera, "code_period", 1) | 1)  # the flat-field fit sees every CFA phase
         weight = fit_linear_map(model, train_scenes, window, ridge)
     window = int(weight.shape[-1])
 
     def reconstruct(sensor: torch.Tensor) -> torch.Tensor:
         return phase_linear(sensor, weight.to(sensor.device))
 
-    return Method(LINEAR_REFERENCE_NAME, model.camera, reconstruct, model.target, {"window_px": window, "ridge": ridge})
+    return Method(LINEAR_REFERENCE_NAME, model.camera, reconstruct, model.target,
+                  {"window_px": window, "ridge": ridge, "flat_field": True})
 
 
 def _evaluation_settings(model, cfg) -> None:

@@ -187,7 +187,7 @@ class LinearDemosaicFit:
     ``add(sensor, truth)`` accumulates the normal equations per phase (float64; ``sensor``
     (B, 1, H, W) at ``origin``, ``truth`` (B, C, H, W) on the same pixels); ``solve()`` returns
     the weights (m², C, K, K) with a ridge of ``ridge`` × the mean diagonal of each phase's Gram
-    matrix (a phase without samples gets zeros). ``flat_field``: least squares under the flat-field
+    matrix (a phase without samples gets zeros in the free fit). ``flat_field``: least squares under the flat-field
     constraint above (every phase answers an m-periodic image with the same spectrum; needs a window
     of at least one period)."""
 

@@ -26,13 +26,12 @@ from hsicam.errors import ConfigError
 from hsicam.optics.doe import DOE, phase_per_height
 from hsicam.optics.lens import Lens
 from hsicam.optics.pupil import aperture_amplitude, cells_across, sample_coordinates_m
+from hsicam.memory import format_bytes, memory_budget_bytes
 from hsicam.optics.sampling import (
     WAVELENGTHS_PER_BATCH,
     PSFSampling,
     band_sample_wavelengths,
     defocus_aliasing,
-    format_bytes,
-    memory_budget_bytes,
     pixel_weights,
     plan_psf_sampling,
     psf_memory_estimate,
@@ -44,10 +43,6 @@ from hsicam.spectral import Bands
 class PSFResult:
     psf: torch.Tensor  # (C, K, K), energy fraction per pixel
     energy: torch.Tensor  # (C,), fraction of each band's light inside the kernel
-
-
-# WAVELENGTHS_PER_BATCH (wavelengths per FFT batch) lives in hsicam.optics.sampling, whose memory
-# estimate of a sampling plan counts one batch of FFT arrays.
 
 
 class _PSFBatch(torch.autograd.Function):
@@ -236,8 +231,10 @@ class PSFModel(nn.Module):
             # not a focus error but a wrong number (e.g. in another unit)
             raise ConfigError(f"{what} is implausible for this lens ({lens_facts}): {blur}; check the value "
                               f"(in mm), or {deliberate}")
+        focus = (f"focus on the object (camera.sensor_distance_mm={z_focus * 1e3:.4g}), or "
+                 if zo is not None and not sensor_distance_set else "")
         raise ConfigError(f"{what} defocuses the lens more than the pupil sampling can represent ({lens_facts}): "
-                          f"{blur}; {deliberate}")
+                          f"{blur}; {focus}{deliberate}")
 
     @property
     def kernel_px(self) -> int:
