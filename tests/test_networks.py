@@ -540,3 +540,31 @@ def test_mosaic_net_with_the_tent_demosaic():
         assert not torch.allclose(reconstruct_tiled(run, y, tile_px=24, halo_px=reach - 1), whole, atol=1e-6)
     with pytest.raises(ConfigError, match="demosaic_kernel"):
         build_mosaic(dataclasses.replace(MOSAIC, demosaic_kernel="gauss"), cam)
+
+
+def test_phase_trace_loss_term_against_a_loop_reference():
+    """train.phase_loss: + w · mean over (b, c, p) of |ē_p − ē|, ē_p the error's mean over the pixels
+    of phase p = (i mod m, j mod m) in the top-left m-multiple window (numpy loops); 0 for an error
+    without an m-periodic part, and only the CFA camera's period makes it count."""
+    import numpy as np
+
+    from hsicam.config import TrainConfig
+    from hsicam.engine.tasks import phase_trace_loss, system_loss
+
+    g = torch.Generator().manual_seed(5)
+    truth = torch.rand(2, 3, 13, 10, generator=g, dtype=torch.float64)
+    recon = truth + 0.02 * torch.randn(truth.shape, generator=g, dtype=torch.float64)
+    e, m = (recon - truth).numpy(), 4
+    ref = []
+    for b in range(2):
+        for c in range(3):
+            win = e[b, c, :12, :8]
+            means = np.array([[win[a::m, d::m].mean() for d in range(m)] for a in range(m)])
+            ref.extend(np.abs(means - means.mean()).ravel())
+    l1 = float((recon - truth).abs().mean())
+    got = system_loss(recon, truth, TrainConfig(phase_loss=3.0), period=m)
+    assert float(got) == pytest.approx(l1 + 3.0 * np.mean(ref), rel=1e-9)
+    assert float(system_loss(recon, truth, TrainConfig(phase_loss=3.0))) == pytest.approx(l1, rel=1e-12)  # no CFA
+    assert float(phase_trace_loss(torch.full((1, 2, 12, 8), 0.07, dtype=torch.float64), m)) == pytest.approx(0, abs=1e-15)
+    column = 0.05 * (torch.arange(8) % m == 1).to(torch.float64).expand(1, 2, 12, 8)  # one phase column 0.05 too bright
+    assert float(phase_trace_loss(column, m)) == pytest.approx((4 * 0.0375 + 12 * 0.0125) / 16, rel=1e-12)

@@ -412,6 +412,9 @@ class TrainConfig:
     # + spectral_grad_loss · L1 between the band-to-band differences x[c+1] − x[c] of estimate and truth
     # (penalises spectral ripple that the plain L1 lets through where texture aliases into the spectrum)
     spectral_grad_loss: float = 0.0
+    # + phase_loss · mean |ē_p − ē| over the CFA phases p: the error averaged over each phase of the CFA
+    # period against its mean over all (B, C): the m×m trace a per-phase network leaves on flat areas
+    phase_loss: float = 0.0
     eval_every_epochs: int = 1
     checkpoint_every_steps: int = 200
     log_every_steps: int = 20
@@ -437,7 +440,7 @@ class TrainConfig:
         _positive("train", lr=self.lr, doe_lr_nm=self.doe_lr_nm, cfa_lr=self.cfa_lr, lr_gamma=self.lr_gamma,
                   grad_clip=self.grad_clip, relative_eps=self.relative_eps)
         _check_seeds("train", seed=self.seed)
-        for k in ("relative_l1", "ssim_loss", "sam_loss", "spectral_grad_loss"):
+        for k in ("relative_l1", "ssim_loss", "sam_loss", "spectral_grad_loss", "phase_loss"):
             v = getattr(self, k)
             if not (v >= 0 and math.isfinite(v)):
                 raise ConfigError(f"train.{k} must be >= 0, got {v}")

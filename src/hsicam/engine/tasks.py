@@ -40,7 +40,7 @@ def draw_noise(t: TrainConfig, generator: torch.Generator) -> dict[str, float]:
             "sensor_sigma": draw_uniform(t.sensor_sigma, generator)}
 
 
-def system_loss(recon: torch.Tensor, truth: torch.Tensor, t: TrainConfig) -> torch.Tensor:
+def system_loss(recon: torch.Tensor, truth: torch.Tensor, t: TrainConfig, period: int = 1) -> torch.Tensor:
     """L1 (paper eq. 10), plus ``t.relative_l1`` × the L1 relative to the local brightness of the
     truth, box₉(mean over bands) + ``t.relative_eps``, plus ``t.ssim_loss`` × (1 − SSIM) and
     ``t.sam_loss`` × :func:`spectral_angle_loss`, plus ``t.spectral_grad_loss`` ×
@@ -55,7 +55,22 @@ def system_loss(recon: torch.Tensor, truth: torch.Tensor, t: TrainConfig) -> tor
         loss = loss + t.sam_loss * spectral_angle_loss(recon, truth, t.relative_eps)
     if t.spectral_grad_loss > 0:
         loss = loss + t.spectral_grad_loss * spectral_gradient_loss(recon, truth)
+    if t.phase_loss > 0 and period > 1:
+        loss = loss + t.phase_loss * phase_trace_loss(recon - truth, period)
     return loss
+
+
+def phase_trace_loss(error: torch.Tensor, period: int) -> torch.Tensor:
+    """Mean |ē_p − ē| (B, C, H, W) → scalar: ē_p the error averaged over the pixels of phase p = (i mod
+    m, j mod m) of the window (the top-left m·⌊H/m⌋ × m·⌊W/m⌋ px), ē its mean over the m² phases: the
+    error's m-periodic part, the trace of the CFA period; 0 for an error that does not depend on phase."""
+    m = int(period)
+    b, c, h, w = error.shape
+    hm, wm = h // m * m, w // m * m
+    if hm == 0 or wm == 0:
+        return error.sum() * 0.0
+    per_phase = error[..., :hm, :wm].reshape(b, c, hm // m, m, wm // m, m).mean(dim=(2, 4))  # (B, C, m, m)
+    return (per_phase - per_phase.mean(dim=(-2, -1), keepdim=True)).abs().mean()
 
 
 def spectral_gradient_loss(recon: torch.Tensor, truth: torch.Tensor) -> torch.Tensor:
@@ -179,7 +194,8 @@ class SystemTask(Task):
 
     def training_step(self, trainable, scene: torch.Tensor, generator: torch.Generator) -> torch.Tensor:
         recon, _ = trainable(scene, generator, measure=self._fixed_measure)
-        return system_loss(recon.float(), self.model.target(scene), self.cfg.train)
+        return system_loss(recon.float(), self.model.target(scene), self.cfg.train,
+                           getattr(self.model.camera, "code_period", 1))
 
     def validate(self, loader, device: torch.device) -> dict[str, float]:
         self.model.camera.set_noise(**self.eval_noise)
