@@ -59,7 +59,9 @@ def _synth(args: argparse.Namespace) -> int:
     from hsicam.cli import prepare_output
 
     if args.out is not None:
-        _check_dataset_folder(prepare_output(args.out, "dir"))
+        from hsicam.data.synthetic import check_dataset_folder
+
+        check_dataset_folder(prepare_output(args.out, "dir"))
     cfg = config_from_args(args.config, args.overrides)
     holdout = DEFAULT_HOLDOUT if args.holdout_sources is None else parse_holdout(args.holdout_sources)
     split = args.split
@@ -87,32 +89,6 @@ def _synth(args: argparse.Namespace) -> int:
     what = "held-out scenes" if split == "heldout" else "scenes"
     print(f"wrote {n} {what} of {size}x{size}x{len(bands)} to {out} (held-out sources: {', '.join(holdout) or 'none'})")
     return 0
-
-
-def _check_dataset_folder(out: Path) -> None:
-    """InputError unless ``out`` is absent, empty or a dataset of ``hsicam data synth``: its
-    ``manifest.json`` (format hsicam-synthetic), or only scene files (a killed generation)."""
-    import json
-    import re
-
-    from hsicam.data.synthetic import MANIFEST
-    from hsicam.errors import InputError
-    from hsicam.io import is_temporary
-
-    if not out.is_dir():
-        return
-    entries = sorted(p.name for p in out.iterdir() if not is_temporary(p.name))
-    try:
-        manifest = json.loads((out / MANIFEST).read_text(encoding="utf-8"))
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError):
-        manifest = None
-    if isinstance(manifest, dict) and manifest.get("format") == "hsicam-synthetic":
-        return
-    other = [name for name in entries if not re.fullmatch(r"scene_\d{4,}\.h5", name)]
-    if other:
-        shown = ", ".join(other[:3]) + (f" and {len(other) - 3} more" if len(other) > 3 else "")
-        raise InputError(f"{out}: folder is not empty and holds no dataset of hsicam data synth ({shown}); "
-                         "choose an empty or new --out")
 
 
 def _sources(args: argparse.Namespace) -> int:

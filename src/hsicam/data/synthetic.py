@@ -47,6 +47,7 @@ import hashlib
 import json
 import logging
 import os
+import re
 import sys
 from pathlib import Path
 from typing import Any, Callable, Iterable
@@ -215,8 +216,8 @@ def generate_dataset(out: str | os.PathLike, n: int, size: int, seed: int = 0, b
     check_bands(bands)
     out = Path(out)
     params = parameters(n, size, seed, bands, holdout_sources=holdout, split=split)
+    check_dataset_folder(out, params)
     lib = spectral_library(bands, holdout, split)
-    _check_output_dir(out, params)
     out.mkdir(parents=True, exist_ok=True)
     show = sys.stderr.isatty() if progress is None else progress
     scenes = []
@@ -262,20 +263,32 @@ def _used_sources(lib: SpectralLibrary) -> list[str]:
     return [k for k in SOURCES if k in used]
 
 
-def _check_output_dir(out: Path, params: dict[str, Any]) -> None:
+def check_dataset_folder(out: str | os.PathLike, params: dict[str, Any] | None = None) -> None:
+    """InputError unless ``out`` can take (or already holds) a dataset of :func:`generate_dataset`:
+    absent, empty, a finished dataset (its manifest; with ``params``, of these parameters) without
+    foreign cube files, or only scene files (a generation killed before its manifest). Cheap: the
+    CLI calls it before any work, :func:`generate_dataset` again before writing."""
+    out = Path(out)
     if not out.exists():
         return
     if not out.is_dir():
         raise InputError(f"{out}: exists and is not a folder")
-    man = _read_manifest(out)
-    if man is not None and man.get("parameters") != params:
-        raise InputError(f"{out}: holds a synthetic dataset with other parameters; choose another --out or remove it")
     from hsicam.data.datasets import SCENE_SUFFIXES
 
-    foreign = [f.name for f in out.iterdir()
-               if not f.name.startswith(".") and f.suffix.lower() in SCENE_SUFFIXES and not f.name.startswith("scene_")]
+    names = [f.name for f in out.iterdir() if not f.name.startswith(".")]
+    foreign = [n for n in names if Path(n).suffix.lower() in SCENE_SUFFIXES and not n.startswith("scene_")]
     if foreign:
         raise InputError(f"{out}: holds other cube files ({', '.join(sorted(foreign)[:3])}); choose an empty --out")
+    man = _read_manifest(out)
+    if isinstance(man, dict):
+        if params is not None and man.get("parameters") != params:
+            raise InputError(f"{out}: holds a synthetic dataset with other parameters; choose another --out or remove it")
+        return
+    other = sorted(n for n in names if not re.fullmatch(r"scene_\d{4,}\.h5", n))
+    if other:
+        shown = ", ".join(other[:3]) + (f" and {len(other) - 3} more" if len(other) > 3 else "")
+        raise InputError(f"{out}: folder is not empty and holds no dataset of hsicam data synth ({shown}); "
+                         "choose an empty or new --out")
 
 
 def _round(v: np.ndarray) -> list[float]:
@@ -870,6 +883,7 @@ __all__ = [
     "band_matrix",
     "cache_key",
     "check_bands",
+    "check_dataset_folder",
     "dataset_dir",
     "dead_leaves_labels",
     "default_cache_dir",
