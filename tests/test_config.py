@@ -237,11 +237,16 @@ def test_patch_px_below_the_ssim_window_is_refused():
     from hsicam.metrics import SSIM_WINDOW_PX, ssim
 
     assert MIN_PATCH_PX == SSIM_WINDOW_PX  # config repeats the metric's window (it sits below metrics)
+    from hsicam.data.pipeline import build_datasets
+
     for n in (1, 3, SSIM_WINDOW_PX - 1):
         for extra in ([], ["train.ssim_loss=1"]):
+            cfg = load_config(overrides=[f"data.patch_px={n}", *extra])  # a finished run's config still loads
             with pytest.raises(ConfigError, match=rf"^data.patch_px must be >= {SSIM_WINDOW_PX} px .*SSIM.*, got {n}$"):
-                load_config(overrides=[f"data.patch_px={n}", *extra])
-    assert load_config(overrides=[f"data.patch_px={SSIM_WINDOW_PX}", "train.ssim_loss=1"]).data.patch_px == SSIM_WINDOW_PX
+                cfg.data.check_patches()
+            with pytest.raises(ConfigError, match=rf"^data.patch_px must be >= {SSIM_WINDOW_PX} px"):
+                build_datasets(cfg.data, cfg.bands.to_bands(), 0)  # refused before any data is read
+    load_config(overrides=[f"data.patch_px={SSIM_WINDOW_PX}", "train.ssim_loss=1"]).data.check_patches()
     x = torch.rand(1, 2, SSIM_WINDOW_PX, SSIM_WINDOW_PX)
     assert ssim(x, x).shape == (1,)  # the limit is exactly SSIM's
     with pytest.raises(ValueError):
@@ -264,3 +269,92 @@ def test_a_non_finite_or_non_positive_learning_rate_says_it_must_be_finite():
     for bad in (math.inf, math.nan, 0.0, -1e-4):
         with pytest.raises(ConfigError, match=r"^train.lr must be a finite number > 0, got "):
             TrainConfig(lr=bad)
+
+
+# --------------------------------------------------------------------------------------------
+# Keys given twice, unknown presets, an object inside the focal length
+# --------------------------------------------------------------------------------------------
+@pytest.mark.parametrize("text,key,lines", [
+    ("train:\n  lr: 0.001\ntrain:\n  epochs: 3\n", "train", (1, 3)),  # safe_load dropped the first lr
+    ("bands:\n  step_nm: 10\ntrain:\n  lr: 0.001\n  epochs: 2\n  lr: 0.5\n", "train.lr", (4, 6)),
+    ("train: {sensor_sigma: [0, 0.1]}\ncamera:\n  doe: {seed: 1, seed: 2}\n", "camera.doe.seed", (3, 3)),
+])
+def test_a_key_given_twice_in_a_file_is_named_with_its_lines(tmp_path, text, key, lines):
+    path = tmp_path / "dup.yaml"
+    path.write_text(text, encoding="utf-8")
+    with pytest.raises(ConfigError, match=rf"^{re.escape(str(path))}: key '{re.escape(key)}' is given twice "
+                                          rf"\(lines {lines[0]} and {lines[1]}\); .*remove one$"):
+        load_config(path)
+
+
+def test_a_key_given_twice_in_an_override_value_is_named():
+    with pytest.raises(ConfigError, match=r"^override 'train=\{lr: 1, lr: 2\}': key 'train.lr' is given twice; give it once$"):
+        load_config(overrides=["train={lr: 1, lr: 2}"])
+    assert load_config(overrides=["train={lr: 1, epochs: 2}"]).train.lr == 1.0
+
+
+def test_yaml_merge_keys_and_aliases_are_not_duplicates(tmp_path):
+    """``<<: *anchor`` followed by one of the merged keys overrides it (YAML's merge rule), and an
+    alias used twice is one node: neither is a key given twice."""
+    path = tmp_path / "merge.yaml"
+    path.write_text("bands: &b {start_nm: 500, stop_nm: 600, step_nm: 50}\n"
+                    "data:\n  npy_bands:\n    <<: *b\n    step_nm: 25\n", encoding="utf-8")
+    cfg = load_config(path)
+    assert (cfg.bands.step_nm, cfg.data.npy_bands.start_nm, cfg.data.npy_bands.step_nm) == (50.0, 500.0, 25.0)
+
+
+def test_an_unknown_config_name_lists_the_shipped_presets(tmp_path, monkeypatch):
+    import hsicam.config as config
+
+    names = sorted(p.stem for p in PRESETS_DIR.glob("*.yaml"))
+    assert {"paper", "quick", "tiny"} <= set(names)
+    for spec in ("nonpreset", "nonpreset.yaml", str(tmp_path / "missing.yaml")):
+        with pytest.raises(ConfigError, match=rf"^{re.escape(spec)}: no such config file, nor a shipped preset "
+                                              rf"\(presets: {re.escape(', '.join(names))}\)$"):
+            load_config(spec)
+    # the names come from the presets folder, not from a list in the code
+    (tmp_path / "alpha.yaml").write_text("train: {epochs: 2}\n", encoding="utf-8")
+    (tmp_path / "beta.yaml").write_text("train: {epochs: 3}\n", encoding="utf-8")
+    monkeypatch.setattr(config, "PRESETS_DIR", tmp_path)
+    with pytest.raises(ConfigError, match=r"\(presets: alpha, beta\)$"):
+        load_config("gamma")
+    assert load_config("beta").train.epochs == 3
+
+
+@pytest.mark.parametrize("model", ["achromatic", "singlet"])
+def test_the_configs_focal_length_is_the_lens_models(model):
+    import numpy as np
+
+    from hsicam.config import LensConfig
+    from hsicam.optics.lens import lens_from_config
+
+    lens = LensConfig(model=model, focal_length_mm=42.0, radius_of_curvature_mm=16.0)
+    f_m = lens_from_config(lens).focal_lengths_m(np.array([lens.design_wavelength_nm]))[0]
+    assert lens.design_focal_length_mm() == pytest.approx(f_m * 1e3, rel=1e-12)
+
+
+@pytest.mark.parametrize("distance_m", [0.035, 0.01, 1e-6])
+def test_an_object_at_or_inside_the_focal_length_is_refused(distance_m):
+    with pytest.raises(ConfigError, match=rf"^camera.object_distance_m={distance_m:g} is not beyond the lens's focal "
+                                          r"length \(35 mm at 587.6 nm\): .*no real image; set it above 0.035 m"):
+        load_config(overrides=[f"camera.object_distance_m={distance_m}"])
+
+
+def test_an_object_inside_a_singlets_focal_length_is_refused_at_the_singlets_focal_length():
+    f_mm = load_config(overrides=["camera.lens.model=singlet"]).camera.lens.design_focal_length_mm()
+    assert 30 < f_mm < 40 and f_mm != 35.0  # R / (n − 1), not focal_length_mm
+    with pytest.raises(ConfigError, match=rf"focal length \({f_mm:.4g} mm at 587.6 nm\)"):
+        load_config(overrides=["camera.lens.model=singlet", f"camera.object_distance_m={f_mm * 1e-3}"])
+    assert load_config(overrides=["camera.lens.model=singlet", f"camera.object_distance_m={f_mm * 1.001e-3}"])
+
+
+@pytest.mark.parametrize("distance_m", ["0", "-1"])
+def test_a_non_positive_object_distance_is_refused(distance_m):
+    with pytest.raises(ConfigError, match=rf"^camera.object_distance_m must be a finite number > 0, got {distance_m}"):
+        load_config(overrides=[f"camera.object_distance_m={distance_m}"])
+
+
+def test_objects_beyond_the_focal_length_and_at_infinity_still_load():
+    assert load_config(overrides=["camera.object_distance_m=0.0351"]).camera.object_distance_m == 0.0351
+    assert load_config(overrides=["camera.object_distance_m=2.5"]).camera.object_distance_m == 2.5
+    assert load_config(overrides=["camera.object_distance_m=null"]).camera.object_distance_m is None

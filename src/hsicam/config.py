@@ -119,6 +119,19 @@ class LensConfig:
             design_wavelength_nm=self.design_wavelength_nm,
         )
 
+    def design_focal_length_mm(self) -> float:
+        """f at ``design_wavelength_nm`` (mm): ``focal_length_mm`` (achromatic) or R / (n(λ0) − 1)
+        (singlet), what :func:`hsicam.optics.lens.lens_from_config` builds (test_config holds them equal)."""
+        if self.model == "achromatic":
+            return self.focal_length_mm
+        from hsicam.spectral.materials import get_material
+
+        try:
+            n = float(get_material(self.material).n(self.design_wavelength_nm))
+        except (ValueError, OSError) as exc:  # an unknown material or an unreadable table (InputError)
+            raise ConfigError(f"camera.lens.material: {exc}") from None
+        return self.radius_of_curvature_mm / (n - 1.0)
+
 
 @dataclass
 class DOEConfig:
@@ -265,11 +278,25 @@ class CameraConfig:
     def __post_init__(self) -> None:
         _positive("camera", aperture_radius_mm=self.aperture_radius_mm, sensor_distance_mm=self.sensor_distance_mm,
                   object_distance_m=self.object_distance_m)
+        self._check_object_distance()
         if self.doe.cell_size_um * 1e-3 > 2 * self.aperture_radius_mm:
             raise ConfigError(
                 f"camera.doe.cell_size_um ({self.doe.cell_size_um} µm) is larger than the aperture diameter "
                 f"({2 * self.aperture_radius_mm} mm)"
             )
+
+    def _check_object_distance(self) -> None:
+        """ConfigError for an object at or inside the lens's focal length (at its design wavelength):
+        1/z_i = 1/f − 1/z_o has no positive image distance z_i, so the object forms no real image."""
+        zo_m = self.object_distance_m
+        if zo_m is None:
+            return
+        f_mm = self.lens.design_focal_length_mm()
+        if zo_m * 1e3 <= f_mm:
+            raise ConfigError(
+                f"camera.object_distance_m={zo_m:g} is not beyond the lens's focal length ({f_mm:.4g} mm at "
+                f"{self.lens.design_wavelength_nm:g} nm): an object at or inside it forms no real image; set it above "
+                f"{f_mm * 1e-3:.4g} m (in metres), or null for an object at infinity")
 
 
 @dataclass
@@ -497,13 +524,17 @@ class DataConfig:
     # the cube is resampled from this grid onto the camera's.
     npy_bands: Optional[NpyBandsConfig] = None
 
+    def check_patches(self) -> None:
+        """ConfigError unless the patches can be scored: checked when patches are built (training), not
+        when a finished run's config is read, so a run trained with smaller patches still loads."""
+        if self.patch_px < MIN_PATCH_PX:
+            raise ConfigError(f"data.patch_px must be >= {MIN_PATCH_PX} px (SSIM, scored on every validation patch and "
+                              f"by train.ssim_loss, uses an {MIN_PATCH_PX}×{MIN_PATCH_PX} px window), got {self.patch_px}")
+
     def __post_init__(self) -> None:
         for name in ("synthetic_n", "patch_px", "patches_per_epoch", "val_patches"):
             if getattr(self, name) < 1:
                 raise ConfigError(f"data.{name} must be >= 1, got {getattr(self, name)}")
-        if self.patch_px < MIN_PATCH_PX:
-            raise ConfigError(f"data.patch_px must be >= {MIN_PATCH_PX} px (SSIM, scored on every validation patch and "
-                              f"by train.ssim_loss, uses an {MIN_PATCH_PX}×{MIN_PATCH_PX} px window), got {self.patch_px}")
         _check_seeds("data", 0, synthetic_seed=self.synthetic_seed, split_seed=self.split_seed)
         if self.synthetic_size < 16:
             raise ConfigError(f"data.synthetic_size must be >= 16 px, got {self.synthetic_size}")
@@ -674,7 +705,9 @@ def load_config(path: str | Path | None = None, overrides: Sequence[str] = (), c
         except OSError as exc:
             raise ConfigError(f"{path}: cannot read config ({exc.strerror})") from None
         try:
-            loaded = yaml.safe_load(text)
+            loaded = strict_yaml(text)
+        except DuplicateKeyError as exc:
+            raise ConfigError(f"{path}: {exc}; YAML keeps only the last, so remove one") from None
         except yaml.YAMLError as exc:
             raise ConfigError(f"{path}: invalid YAML ({str(exc).splitlines()[0]})") from None
         if loaded is None:
@@ -710,12 +743,74 @@ def _migrate_model_section(data: dict[str, Any]) -> None:
 PRESETS_DIR = Path(__file__).resolve().parent / "configs"
 
 
+def preset_names() -> list[str]:
+    """The shipped presets (``--config NAME``), sorted: the ``*.yaml`` files of :data:`PRESETS_DIR`."""
+    return sorted(p.stem for p in PRESETS_DIR.glob("*.yaml"))
+
+
 def resolve_preset(path: str | Path) -> Path:
-    """A config path, or the name of a shipped preset ("paper", "quick", "tiny")."""
+    """A config path, or the name of a shipped preset (:func:`preset_names`); ConfigError listing the
+    presets when ``path`` is neither an existing file nor a preset's name."""
     p = Path(path)
     if not p.exists() and p.suffix == "" and (PRESETS_DIR / f"{p.name}.yaml").is_file():
         return PRESETS_DIR / f"{p.name}.yaml"
+    if not p.exists() and not p.is_symlink():
+        raise ConfigError(f"{p}: no such config file, nor a shipped preset (presets: {', '.join(preset_names())})")
     return p
+
+
+class DuplicateKeyError(yaml.YAMLError):
+    """A key given twice in one YAML mapping: ``key`` (dotted from the document's top) and the
+    1-based ``lines`` of its first and its repeated occurrence."""
+
+    def __init__(self, key: str, lines: tuple[int, int]) -> None:
+        super().__init__(f"key '{key}' is given twice (lines {lines[0]} and {lines[1]})")
+        self.key, self.lines = key, lines
+
+
+def strict_yaml(text: str) -> Any:
+    """``yaml.safe_load(text)``, but a key given twice in one mapping (``train:`` twice, or ``lr:``
+    twice in one section) is a :class:`DuplicateKeyError`, where ``safe_load`` silently keeps the last."""
+    loader = yaml.SafeLoader(text)
+    try:
+        node = loader.get_single_node()
+        if node is None:
+            return None
+        found = _duplicate_key(node, "", set())
+        if found is not None:
+            raise DuplicateKeyError(found[0], found[1:])
+        return loader.construct_document(node)
+    finally:
+        loader.dispose()
+
+
+_MERGE_TAG = "tag:yaml.org,2002:merge"
+
+
+def _duplicate_key(node: yaml.Node, where: str, seen: set[int]) -> Optional[tuple[str, int, int]]:
+    """(dotted key, first line, repeated line) of the first key given twice in a mapping of the node
+    tree under ``node``, or None. Keys merged in with ``<<:`` may be overridden (YAML's merge rule)."""
+    if id(node) in seen:  # an alias to a node already walked (or a recursive one)
+        return None
+    seen.add(id(node))
+    children: list[tuple[str, yaml.Node]] = []
+    if isinstance(node, yaml.MappingNode):
+        lines: dict[tuple[str, str], int] = {}
+        for k, v in node.value:
+            name = k.value if isinstance(k, yaml.ScalarNode) else "?"
+            if isinstance(k, yaml.ScalarNode) and k.tag != _MERGE_TAG:
+                line = k.start_mark.line + 1
+                if (k.tag, k.value) in lines:
+                    return _join(where, name), lines[k.tag, k.value], line
+                lines[k.tag, k.value] = line
+            children.append((where if k.tag == _MERGE_TAG else _join(where, name), v))
+    elif isinstance(node, yaml.SequenceNode):
+        children = [(f"{where}[{i}]", v) for i, v in enumerate(node.value)]
+    for child_where, child in children:
+        found = _duplicate_key(child, child_where, seen)
+        if found is not None:
+            return found
+    return None
 
 
 def apply_override(data: dict[str, Any], item: str) -> None:
@@ -727,7 +822,9 @@ def apply_override(data: dict[str, Any], item: str) -> None:
     if not all(parts):
         raise ConfigError(f"override {item!r}: empty key")
     try:
-        value = yaml.safe_load(raw) if raw.strip() else None
+        value = strict_yaml(raw) if raw.strip() else None
+    except DuplicateKeyError as exc:
+        raise ConfigError(f"override {item!r}: key '{_join(key.strip(), exc.key)}' is given twice; give it once") from None
     except yaml.YAMLError:
         value = raw
     node = data

@@ -1,5 +1,5 @@
 """argparse ``type`` functions of options shared by several commands (``--device``, ``--seed``,
-``--lr``; ``--run`` is :func:`hsicam.cli.run_folder`): a bad value is a usage error naming the
+``--lr``, ``--seeds``; ``--run`` is :func:`hsicam.cli.run_folder`): a bad value is a usage error naming the
 option (exit code 2, one line), never a traceback later in the work."""
 
 from __future__ import annotations
@@ -53,4 +53,16 @@ def positive_number_arg(text: str) -> float:
         value = math.nan
     if not (math.isfinite(value) and value > 0):
         raise argparse.ArgumentTypeError(f"must be a finite number > 0, got {_shown(text)}")
+    return value
+
+
+def count_arg(text: str) -> int:
+    """argparse ``type`` of an option that counts something and needs at least one (``--seeds``):
+    an integer >= 1; 0, negative and non-integer values are usage errors."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"must be an integer >= 1, got {_shown(text)}") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be >= 1, got {value}")
     return value

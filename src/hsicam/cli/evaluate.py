@@ -7,7 +7,7 @@ import sys
 from pathlib import Path
 
 from hsicam.cli import add_config_args, add_run_arg, config_from_args
-from hsicam.cli.args import device_arg
+from hsicam.cli.args import count_arg, device_arg
 from hsicam.errors import InputError
 
 
@@ -24,7 +24,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--out", required=True, metavar="DIR")
     p.add_argument("--sigma-height-nm", type=float, default=None, help="test DOE height noise σ_p (nm)")
     p.add_argument("--sensor-sigma", type=float, default=None, help="test sensor noise σ_s")
-    p.add_argument("--seeds", type=int, default=1, help="number of noise seeds (0, 1, ...)")
+    p.add_argument("--seeds", type=count_arg, default=1, help="number of noise seeds (0, 1, ...), >= 1 (default 1)")
     p.add_argument("--save", action="store_true", help="also write the reconstructed cubes (cubes/*.h5)")
     p.add_argument("--device", default="cpu", type=device_arg, help="torch device (default cpu)")
     p.set_defaults(func=cmd_evaluate)
@@ -33,7 +33,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("name", choices=EXPERIMENTS)
     p.add_argument("--scale", choices=SCALES, default="quick")
     p.add_argument("--out", metavar="DIR", help="experiment folder (default: runs/experiments/NAME-SCALE)")
-    p.add_argument("--seeds", type=int, default=1)
+    p.add_argument("--seeds", type=count_arg, default=1, help="number of seeds (0, 1, ...), >= 1 (default 1)")
     p.set_defaults(func=cmd_experiment)
 
     p = sub.add_parser("report", help="HTML report (index.html + PNGs) of an evaluation or experiment folder")
@@ -73,8 +73,6 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
 
     args.method = METHOD_ALIASES.get(args.method, args.method)  # results carry the method's current name
     out = prepare_output(args.out, "dir", replace=True, command="evaluate")
-    if args.seeds < 1:
-        raise InputError("--seeds must be >= 1")
     if args.run:
         run = Path(args.run)
         if args.config:
@@ -142,7 +140,7 @@ def cmd_experiment(args: argparse.Namespace) -> int:
     # An experiment folder is filled in place (its trained runs resume): the marker comes off first
     # and goes back on only when experiment.json and table.md are written.
     clear_complete(out) if out.is_dir() else None
-    result = run_experiment(args.name, args.scale, out, tuple(range(max(args.seeds, 1))))
+    result = run_experiment(args.name, args.scale, out, tuple(range(args.seeds)))
     mark_complete(out, {"command": "experiment", "experiment": args.name, "scale": args.scale})
     print(format_experiment_table(result))
     print(f"-> {out}/experiment.json, {out}/table.md")

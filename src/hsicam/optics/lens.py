@@ -56,7 +56,9 @@ Lens = AchromaticLens | SingletLens
 
 
 def lens_from_config(cfg) -> Lens:  # cfg: hsicam.config.LensConfig
-    """Build the lens described by a :class:`~hsicam.config.LensConfig`."""
+    """Build the lens described by a :class:`~hsicam.config.LensConfig`. Its f at the design wavelength
+    is repeated by :meth:`~hsicam.config.LensConfig.design_focal_length_mm` for the config's checks
+    (config sits below optics); test_config holds the two equal."""
     if cfg.model == "achromatic":
         return AchromaticLens(cfg.focal_length_mm * 1e-3)
     return SingletLens(cfg.radius_of_curvature_mm * 1e-3, cfg.center_thickness_mm * 1e-3, get_material(cfg.material))

@@ -1,0 +1,88 @@
+"""Command-line options and config names with a bad value: one line naming the option (or name) and
+what it takes, exit code 2, before any work and before an output folder exists. In-process through
+:func:`hsicam.cli.main`, the boundary the console script runs."""
+
+from __future__ import annotations
+
+import argparse
+
+import pytest
+
+from hsicam.cli import main
+from hsicam.cli.args import count_arg
+from hsicam.config import PRESETS_DIR
+
+
+def one_line_error(capsys, args: list[str]) -> str:
+    """The one ``hsicam: error:`` line of a call that exits with code 2 (usage or input error)."""
+    try:
+        code = main(args)
+    except SystemExit as exc:  # argparse's usage errors
+        code = exc.code
+    err = capsys.readouterr().err
+    assert code == 2, err
+    lines = err.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("hsicam: error: "), err
+    return lines[0]
+
+
+@pytest.mark.parametrize("text,message", [("1", None), ("3", None), ("0", "must be >= 1, got 0"),
+                                          ("-2", "must be >= 1, got -2"),
+                                          ("two", "must be an integer >= 1, got 'two'"),
+                                          ("1.5", "must be an integer >= 1, got '1.5'")])
+def test_count_arg(text, message):
+    if message is None:
+        assert count_arg(text) == int(text)
+    else:
+        with pytest.raises(argparse.ArgumentTypeError, match=rf"^{message}$"):
+            count_arg(text)
+
+
+@pytest.mark.parametrize("value", ["0", "-1"])
+def test_experiment_seeds_below_one_is_a_usage_error_before_any_work(tmp_path, capsys, monkeypatch, value):
+    """``experiment --seeds 0`` ran as if 1; now it is the same error as ``evaluate --seeds 0``."""
+    import hsicam.engine.experiments as experiments
+
+    def no_work(*a, **k):
+        raise AssertionError("the experiment started with a seed count below one")
+
+    monkeypatch.setattr(experiments, "run_experiment", no_work)
+    out = tmp_path / "exp"
+    line = one_line_error(capsys, ["experiment", "ablation", "--scale", "tiny", "--seeds", value, "--out", str(out)])
+    assert line == f"hsicam: error: argument --seeds: must be >= 1, got {value}"
+    line = one_line_error(capsys, ["evaluate", "--config", "tiny", "--seeds", value, "--out", str(tmp_path / "ev")])
+    assert line == f"hsicam: error: argument --seeds: must be >= 1, got {value}"
+    assert not any(tmp_path.iterdir())
+
+
+def test_experiment_seeds_reach_the_experiment(tmp_path, monkeypatch):
+    import hsicam.engine.experiments as experiments
+
+    seen = {}
+
+    def record(name, scale, out, seeds):
+        seen["seeds"] = seeds
+        raise KeyboardInterrupt  # stop here: nothing to run
+
+    monkeypatch.setattr(experiments, "run_experiment", record)
+    assert main(["experiment", "ablation", "--scale", "tiny", "--seeds", "2", "--out", str(tmp_path / "e")]) == 130
+    assert seen["seeds"] == (0, 1)
+
+
+def test_an_unknown_config_name_lists_the_presets(tmp_path, capsys):
+    names = ", ".join(sorted(p.stem for p in PRESETS_DIR.glob("*.yaml")))
+    line = one_line_error(capsys, ["psf", "--config", "nonpreset", "--out", str(tmp_path / "psf")])
+    assert line == f"hsicam: error: nonpreset: no such config file, nor a shipped preset (presets: {names})"
+    assert not any(tmp_path.iterdir())
+
+
+def test_a_config_file_with_a_key_given_twice_is_refused(tmp_path, capsys):
+    path = tmp_path / "dup.yaml"
+    path.write_text("train:\n  lr: 0.001\ntrain:\n  epochs: 3\n", encoding="utf-8")
+    line = one_line_error(capsys, ["psf", "--config", str(path), "--out", str(tmp_path / "psf")])
+    assert line == (f"hsicam: error: {path}: key 'train' is given twice (lines 1 and 3); YAML keeps only the last, "
+                    "so remove one")
+    line = one_line_error(capsys, ["psf", "--config", "tiny", "--set", "camera.doe={seed: 1, seed: 2}",
+                                   "--out", str(tmp_path / "psf")])
+    assert "key 'camera.doe.seed' is given twice; give it once" in line
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["dup.yaml"]
