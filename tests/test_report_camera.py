@@ -54,3 +54,54 @@ def test_psf_figure_is_written(tmp_path):
         encircled_energy(np.zeros((1, 5, 5)), np.array([[1.0]]))
     with pytest.raises(ValueError, match="stack"):
         encircled_energy(np.zeros((5, 5)), np.array([1.0]))
+
+
+def reference_encircled_energy(psf, radii):
+    """The former implementation: a (R, K, K) mask of the pixels inside each radius."""
+    k = psf.shape[-1]
+    yy, xx = np.mgrid[:k, :k] - k // 2
+    inside = np.hypot(yy, xx)[None] <= np.asarray(radii, dtype=np.float64)[:, None, None] + 1e-9
+    return np.einsum("ckl,rkl->cr", np.asarray(psf, dtype=np.float64), inside.astype(np.float64))
+
+
+def test_encircled_energy_matches_the_mask_method_on_a_small_psf():
+    rng = np.random.default_rng(3)
+    psf = rng.random((3, 15, 15))
+    psf /= psf.sum(axis=(-2, -1), keepdims=True) * 1.25  # a fifth of the light outside the kernel
+    # pixel-centre radii exactly (0, 1, √2, 5 = |(3, 4)|), just below them, between, negative, beyond the corners
+    radii = np.array([-1.0, 0.0, 0.5, 1.0 - 1e-6, 1.0, np.sqrt(2), 2.5, 5.0 - 1e-6, 5.0, 7.0, 7 * np.sqrt(2), 30.0])
+    np.testing.assert_allclose(encircled_energy(psf, radii), reference_encircled_energy(psf, radii), rtol=0, atol=1e-14)
+    np.testing.assert_allclose(encircled_energy(psf, radii)[:, -1], 0.8, rtol=1e-12)
+
+
+def test_encircled_energy_of_a_point_and_of_a_uniform_disc():
+    k = 41
+    point = np.zeros((1, k, k))
+    point[0, k // 2, k // 2] = 1.0
+    np.testing.assert_array_equal(encircled_energy(point, np.array([-0.5, 0.0, 0.3, 20.0]))[0], [0, 1, 1, 1])
+    # a disc of the pixels with centre within 10 px, uniform: EE(r) = (pixels within r) / (pixels within 10)
+    yy, xx = np.mgrid[:k, :k] - k // 2
+    disc = (np.hypot(yy, xx) <= 10.0).astype(np.float64)
+    n = disc.sum()
+    radii = np.array([0.0, 1.0, np.sqrt(2), 2.0, 5.0, 10.0, 15.0])
+    counts = np.array([1, 5, 9, 13, 81, n, n])  # lattice points with x² + y² <= r² (Gauss circle problem)
+    np.testing.assert_allclose(encircled_energy(disc[None] / n, radii)[0], counts / n, rtol=1e-12)
+
+
+def test_encircled_energy_of_a_large_kernel_needs_no_radius_by_kernel_array():
+    """The montage asks for one radius per pixel out to the corner: for a 401 px kernel the former
+    (R, K, K) mask took 284 × 401² × 9 bytes ≈ 0.4 GB; now the memory is that of the PSF stack."""
+    import tracemalloc
+
+    k = 401
+    psf = np.full((2, k, k), 1.0 / k**2)
+    radii = np.arange(0, k // 2 * np.sqrt(2) + 1.0)
+    tracemalloc.start()
+    try:
+        ee = encircled_energy(psf, radii)
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert peak < 8 * psf.nbytes  # 20 MB, against ≈ 0.4 GB for the mask
+    np.testing.assert_allclose(ee[:, -1], 1.0, rtol=1e-9)  # a running sum of 160 801 pixels
+    assert np.all(np.diff(ee, axis=1) >= 0)

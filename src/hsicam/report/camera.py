@@ -24,16 +24,22 @@ def encircled_energy(psf: np.ndarray, radii_px: np.ndarray) -> np.ndarray:
         radii_px: (R,) radii in pixels; a pixel counts when its centre lies within r.
     Returns:
         (C, R) energy fractions (of the band's whole light when the stack is physically normalised).
+
+    Memory O(C·K²), whatever R: the pixels are sorted by radius once, each band's light summed
+    cumulatively in that order, and each radius reads the sum over the pixels up to it.
     """
     psf = np.asarray(psf, dtype=np.float64)
     r = np.asarray(radii_px, dtype=np.float64)
     if psf.ndim != 3 or r.ndim != 1:
         raise ValueError(f"expected a (C, K, K) stack and (R,) radii, got {psf.shape} and {r.shape}")
-    k = psf.shape[-1]
+    c, k = psf.shape[0], psf.shape[-1]
     yy, xx = np.mgrid[:k, :k] - k // 2
-    rr = np.hypot(yy, xx)
-    inside = rr[None, :, :] <= r[:, None, None] + 1e-9  # (R, K, K)
-    return np.einsum("ckl,rkl->cr", psf, inside.astype(np.float64))
+    rr = np.hypot(yy, xx).ravel()  # (K²,) pixel-centre radii, px
+    order = np.argsort(rr, kind="stable")
+    cumulative = np.zeros((c, rr.size + 1))
+    np.cumsum(psf.reshape(c, -1)[:, order], axis=1, out=cumulative[:, 1:])  # light of the n nearest pixels
+    n_inside = np.searchsorted(rr[order], r + 1e-9, side="right")  # (R,) pixels with centre within r
+    return cumulative[:, n_inside]
 
 
 def rms_radius_px(psf: np.ndarray) -> np.ndarray:
