@@ -56,7 +56,8 @@ def test_synth_then_show(tmp_path):
         img = iio.imread(png)
         assert img.ndim == 3 and img.shape[0] > 100 and img.shape[1] > 100
         assert np.asarray(img[..., :3]).std() > 5  # not blank
-    assert not [p for p in (tmp_path / "preview").iterdir() if p.name.startswith(".")]  # atomic: no leftovers
+    hidden = [p.name for p in (tmp_path / "preview").iterdir() if p.name.startswith(".")]
+    assert hidden == [".complete"]  # atomic: no leftovers; the marker of data show's completed output
 
 
 def test_synth_holdout_flag_and_sources(tmp_path):
@@ -145,7 +146,8 @@ def test_show_failure_keeps_the_previous_preview(tmp_path):
     out = tmp_path / "preview"
     r = run_cli("data", "show", str(data), "--out", str(out))
     assert r.returncode == 0, r.stderr
-    assert sorted(p.name for p in out.iterdir()) == ["contact_sheet.png", "mean_spectra.png", "spectral_gamut.png"]
+    assert sorted(p.name for p in out.iterdir()) == [".complete", "contact_sheet.png", "mean_spectra.png",
+                                                     "spectral_gamut.png"]
     before = _tree(tmp_path)
     assert_clean_error(run_cli("data", "show", str(data), "--out", str(out), "--max-scenes", "1",
                                "--heldout", str(tmp_path / "empty")), "no hyperspectral scenes")
@@ -183,3 +185,73 @@ def test_write_preview_rejects_max_scenes_below_one(tmp_path):
         with pytest.raises(InputError, match="max_scenes"):
             write_preview(data, tmp_path / "o", max_scenes=bad)
     assert not (tmp_path / "o").exists()
+
+
+# `data show`: the output-folder rules of every command (hsicam.cli.prepare_output)
+# ------------------------------------------------------------------------------------------------
+def _show(capsys, *args: str) -> tuple[int, str]:
+    """``hsicam data show ARGS`` in-process: (exit code, stderr)."""
+    from hsicam.cli import main
+
+    code = main(["data", "show", *args])
+    return code, capsys.readouterr().err
+
+
+def _evaluation_folder(folder: Path) -> Path:
+    """A completed output of ``hsicam evaluate`` (its marker and files), with a saved cube."""
+    from hsicam.data.formats import write_cube_h5
+    from hsicam.io import mark_complete
+
+    (folder / "cubes").mkdir(parents=True)
+    (folder / "results.json").write_text("{}")
+    write_cube_h5(folder / "cubes" / "a_estimate.h5", np.full((len(Bands.paper()), 32, 32), 0.5, np.float32),
+                  Bands.paper())
+    mark_complete(folder, {"command": "evaluate", "files": ["cubes", "results.json"]})
+    return folder
+
+
+def test_show_never_writes_into_another_commands_output(tmp_path, capsys):
+    """`data show --out` wrote its PNGs into any folder: another command's output (which that command
+    then refused to refresh, holding files it did not write) or a user's own folder."""
+    data = _one_cube_set(tmp_path / "data", Bands.paper())
+    ev = _evaluation_folder(tmp_path / "ev")
+    mine = tmp_path / "mine"
+    mine.mkdir()
+    (mine / "notes.txt").write_text("user data")
+    before = _tree(tmp_path)
+    code, err = _show(capsys, str(data), "--out", str(ev))
+    assert code == 2 and err.strip() == (f"hsicam: error: {ev}: holds the output of hsicam evaluate, not of hsicam "
+                                         "data show; choose another output folder"), err
+    code, err = _show(capsys, str(data), "--out", str(mine))
+    assert code == 2 and err.strip() == (f"hsicam: error: {mine}: folder exists and is not empty (and is not a "
+                                         "completed hsicam output); choose another output folder"), err
+    # without --out the preview goes next to the data, but not into a folder of another command's output
+    for src in (ev / "cubes", ev / "cubes" / "a_estimate.h5"):
+        code, err = _show(capsys, str(src))
+        assert code == 2 and err.strip() == (f"hsicam: error: {ev / 'cubes'} (inside {ev}): holds the output of "
+                                             "hsicam evaluate; give the preview its own folder with --out DIR (a new "
+                                             "or empty folder)"), err
+    assert _tree(tmp_path) == before
+
+
+def test_show_refreshes_its_own_output_and_other_commands_refuse_it(tmp_path, capsys):
+    from hsicam.io import read_marker
+
+    data = _one_cube_set(tmp_path / "data", Bands.paper())
+    out = tmp_path / "preview"
+    pngs = ["contact_sheet.png", "mean_spectra.png", "spectral_gamut.png"]
+    for _ in range(2):  # the second run replaces the first's PNGs
+        code, err = _show(capsys, str(data), "--out", str(out))
+        assert code == 0, err
+    assert read_marker(out) == {"complete": True, "command": "data show", "files": pngs}
+    (out / "notes.txt").write_text("user data")
+    code, err = _show(capsys, str(data), "--out", str(out))
+    assert code == 2 and f"{out}: holds notes.txt, which hsicam data show did not write" in err, err
+    (out / "notes.txt").unlink()
+    from hsicam.cli import main
+
+    assert main(["psf", "--config", "tiny", "--out", str(out)]) == 2
+    assert "holds the output of hsicam data show, not of hsicam psf" in capsys.readouterr().err
+    code, err = _show(capsys, str(data))  # the default, the dataset folder itself, still works
+    assert code == 0, err
+    assert sorted(p.name for p in data.iterdir()) == sorted(["scene_0.h5", *pngs])

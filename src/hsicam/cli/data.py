@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import argparse
+import os
 from pathlib import Path
 
 
@@ -114,15 +115,49 @@ def _sources(args: argparse.Namespace) -> int:
 def _show(args: argparse.Namespace) -> int:
     from hsicam.data.preview import write_preview
     from hsicam.errors import InputError
-    from hsicam.cli import prepare_output
 
     if args.max_scenes < 1:
         raise InputError(f"--max-scenes must be at least 1, got {args.max_scenes}")
     src = Path(args.path)
     if not src.exists():
         raise InputError(f"{src}: no such dataset folder or cube file")
-    prepare_output(args.out if args.out is not None else (src if src.is_dir() else src.parent), "dir")
-    # every input (the held-out set too) is read before the PNGs are written, all together
-    for path in write_preview(args.path, args.out, max_scenes=args.max_scenes, heldout=args.heldout):
+    preview = lambda out: write_preview(args.path, out, max_scenes=args.max_scenes, heldout=args.heldout)  # noqa: E731
+    if args.out is None:
+        written = preview(_default_preview_folder(src))
+    else:
+        written = _show_into(Path(args.out), preview)
+    for path in written:
         print(path)
     return 0
+
+
+def _default_preview_folder(src: Path) -> Path:
+    """Where ``data show`` writes without ``--out``: next to the data (the dataset folder, or a cube
+    file's folder), checked before any work; never inside another command's completed output, whose
+    folder that command replaces whole (and refuses to, once it holds files it did not write)."""
+    from hsicam.cli import prepare_output
+    from hsicam.errors import InputError
+    from hsicam.io import is_complete, output_description
+
+    folder = src if src.is_dir() else src.parent
+    full = Path(os.path.abspath(folder))
+    for a in (full, *full.parents):
+        if is_complete(a):
+            inside = "" if a == full else f" (inside {a})"
+            raise InputError(f"{folder}{inside}: holds {output_description(a)}; give the preview its own folder "
+                             "with --out DIR (a new or empty folder)")
+    return prepare_output(folder, "dir")
+
+
+def _show_into(out: Path, preview) -> list[Path]:
+    """``preview(folder)`` written into ``--out`` under the rules of every command's output folder
+    (:func:`hsicam.cli.prepare_output`): a new or empty folder, or the completed output of an earlier
+    ``data show`` holding only its files. The PNGs are written all or none (``write_preview``), then
+    the completion marker naming this command and them; returns their paths."""
+    from hsicam.cli import prepare_output
+    from hsicam.io import mark_complete
+
+    out = prepare_output(out, "dir", replace=True, command="data show")
+    written = preview(out)
+    mark_complete(out, {"command": "data show", "files": sorted(p.name for p in written)})
+    return written
