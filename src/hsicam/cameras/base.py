@@ -20,6 +20,9 @@ log = logging.getLogger(__name__)
 #: the PSF's spread mostly keeps below full scale; a peak of 4 is two stops over full scale, while
 #: unnormalised data (reflectance in percent, raw counts, radiance units) lie far beyond it.
 SCENE_PEAK_WARN = 4.0
+#: The smallest sensor image (px per side) that :meth:`Camera.capture` makes of a user's scene: 2×2, or
+#: one period of the sensor code (the CFA) when that is larger — what ``hsicam reconstruct`` needs.
+MIN_SENSOR_PX = 2
 
 
 def _is_level(value) -> bool:
@@ -72,7 +75,9 @@ class Camera(nn.Module):
         without autograd, with the checks that a training step leaves out. A scene whose peak is above
         :data:`SCENE_PEAK_WARN` is logged (WARNING, naming ``source``): its image goes far past the
         sensor's full scale of 1. A sensor image that is not finite (float overflow of a scene with
-        huge values) is an :class:`InputError` naming ``source`` and the scene's peak."""
+        huge values) is an :class:`InputError` naming ``source`` and the scene's peak; so is a scene
+        smaller than :meth:`min_scene_size` (:meth:`check_capture_size`)."""
+        self.check_capture_size(tuple(x.shape[-2:]), source)
         peak = float(x.max()) if x.numel() else 0.0
         advice = ("normalise the scene first: reflectance-like values in [0, 1] (a white reference at 1; "
                   "divide raw counts or percent by their full scale, or the cube by its maximum)")
@@ -202,6 +207,32 @@ class Camera(nn.Module):
         """Scene (H, W) a sensor of ``sensor_hw`` needs."""
         m = self.margin if self.boundary == "valid" else 0
         return sensor_hw[0] + m, sensor_hw[1] + m
+
+    def min_sensor_px(self) -> int:
+        """Side (px) of the smallest sensor image :meth:`capture` makes: :data:`MIN_SENSOR_PX`, or the
+        period of the sensor code (the CFA's) when larger."""
+        return max(MIN_SENSOR_PX, int(getattr(self, "code_period", 1)))
+
+    def min_scene_size(self) -> tuple[int, int]:
+        """Smallest scene (H, W) in px whose sensor image is at least ``n``×``n`` px, ``n`` =
+        :meth:`min_sensor_px`: in ``valid`` mode the sensor is smaller than the scene by :attr:`margin`
+        (the PSF kernel's width − 1), so the scene needs ``n + margin``."""
+        n = self.min_sensor_px()
+        h, w = self.scene_size((n, n))
+        return max(h, n), max(w, n)
+
+    def check_capture_size(self, scene_hw: tuple[int, int], source: str = "scene") -> None:
+        """InputError naming ``source``, the scene's size and :meth:`min_scene_size` when the scene is smaller."""
+        (h, w), (mh, mw) = scene_hw, self.min_scene_size()
+        if h >= mh and w >= mw:
+            return
+        n = self.min_sensor_px()
+        why = f"a sensor image of at least {n}×{n} px" + (" (one CFA period)" if n > MIN_SENSOR_PX else "")
+        fix = "use a larger scene"
+        if self.boundary == "valid" and self.margin:
+            why += f", plus the {self.margin} px per axis that boundary=valid loses to the {self.margin + 1}-px PSF kernel"
+            fix += " or boundary=same" if min(h, w) >= n else ""
+        raise InputError(f"{source}: the scene is {h}×{w} px, smaller than the {mh}×{mw} px this camera needs: {why}; {fix}")
 
     def check_scene(self, x: torch.Tensor) -> None:
         """Raise :class:`InputError` unless ``x`` is a (B, C, H, W) cube on this camera's grid."""

@@ -23,7 +23,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("reconstruct", help="reconstruct a hyperspectral cube from a sensor image or raw capture")
     p.add_argument("sensor", metavar="SENSOR", help="sensor image / raw capture: .npy, 8/16-bit PNG or TIFF")
     add_run_arg(p, "trained (or fine-tuned) run folder")
-    p.add_argument("--out", required=True, metavar="FILE", help="output cube: .h5 (ours) or .hdr (ENVI)")
+    p.add_argument("--out", required=True, metavar="FILE",
+                   help="output cube: .h5 (ours) or .hdr (ENVI), plus its sRGB preview STEM_rgb.png; a folder holds "
+                        "one cube per name (c.h5 and c.hdr would share c_rgb.png: the second is refused)")
     p.add_argument("--scale", type=float, default=None, help="multiply the image after normalising to [0, 1]")
     p.add_argument("--tile", type=int, default=512, metavar="PX", help="tile side for large images")
     p.add_argument("--device", default="cpu", type=device_arg, help="torch device (default cpu)")
@@ -46,8 +48,13 @@ def register(sub: argparse._SubParsersAction) -> None:
     raw.add_argument("--auto-level", type=float, default=None, metavar="V",
                      help="scale so the 99.9th percentile equals V (captures of unknown radiometric scale)")
     p.add_argument("--psf-dir", metavar="DIR", help="measured PSFs of the camera (checked against the run; see hsicam finetune)")
-    p.add_argument("--psf-pitch-um", type=float, default=None, help="pixel pitch of the measured PSF images (else psf.json)")
+    p.add_argument("--psf-pitch-um", type=float, default=None,
+                   help="pixel pitch of the measured PSF images of --psf-dir (else psf.json); needs --psf-dir")
     p.set_defaults(func=cmd_reconstruct)
+
+
+#: The suffixes of a cube file that reconstruct writes: our HDF5, an ENVI header or its data file.
+CUBE_SUFFIXES = (".h5", ".hdf5", ".hdr", ".img", ".raw")
 
 
 def output_files(path: Path) -> list[Path]:
@@ -60,6 +67,19 @@ def output_files(path: Path) -> list[Path]:
     return [*files, path.with_name(f"{path.stem}_rgb.png")]
 
 
+def check_one_cube_per_name(path: Path) -> None:
+    """InputError when another cube of the same name lies beside ``path`` (``c.h5`` beside ``c.hdr``):
+    both have the preview ``c_rgb.png`` (ENVI pairs also the header ``c.hdr``), so writing this one
+    would replace the other's without a word. Writing the same cube again replaces its own files."""
+    own = set(output_files(path))
+    others = [q for q in (path.with_suffix(s) for s in CUBE_SUFFIXES) if q not in own and q.exists()]
+    if others:
+        preview = output_files(path)[-1].name
+        raise InputError(f"{path}: {others[0].name} beside it is another cube named {path.stem}; both would have the "
+                         f"preview {preview}, and this one would replace it: choose another --out name (a folder "
+                         f"holds one cube per name) or remove {others[0].name}")
+
+
 def write_cube_file(path: Path, cube: np.ndarray, bands, metadata: dict) -> None:
     """Our HDF5 (.h5) or ENVI (.hdr) by extension, plus an sRGB preview ``<stem>_rgb.png``."""
     from hsicam.color import cube_to_srgb
@@ -67,7 +87,7 @@ def write_cube_file(path: Path, cube: np.ndarray, bands, metadata: dict) -> None
     from hsicam.io import write_png8
 
     suffix = path.suffix.lower()
-    if suffix not in (".h5", ".hdf5", ".hdr", ".img", ".raw"):
+    if suffix not in CUBE_SUFFIXES:
         raise InputError(f"{path}: output must end in .h5 (HDF5) or .hdr (ENVI)")
     rgb = cube_to_srgb(torch.from_numpy(cube), bands).numpy()  # before any file is written
     if suffix in (".h5", ".hdf5"):
@@ -103,13 +123,17 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
         raise InputError("--tile must be at least 16 px")
     if args.scale is not None and not (np.isfinite(args.scale) and args.scale > 0):
         raise InputError("--scale must be a positive number")
+    if args.psf_pitch_um is not None and not args.psf_dir:
+        raise InputError("--psf-pitch-um is the pixel pitch of the measured PSFs of --psf-dir: give --psf-dir DIR "
+                         "too, or drop --psf-pitch-um")
     from hsicam.cli import prepare_output
 
     out = Path(args.out)
-    if out.suffix.lower() not in (".h5", ".hdf5", ".hdr", ".img", ".raw"):
+    if out.suffix.lower() not in CUBE_SUFFIXES:
         raise InputError(f"{out}: output must end in .h5 (HDF5) or .hdr (ENVI)")
     for f in output_files(out):  # before any work: an existing folder, a path inside a file, no permission
         prepare_output(f, "file")
+    check_one_cube_per_name(out)
     if args.consistency_steps is not None and not 0 <= args.consistency_steps <= MAX_CONSISTENCY_ITERATIONS:
         raise InputError(f"--consistency-steps must be >= 0 and <= {MAX_CONSISTENCY_ITERATIONS} (each step widens "
                          "the tiles' halo; more than one rarely changes the estimate)")

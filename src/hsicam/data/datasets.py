@@ -121,7 +121,7 @@ def probe_hsicam(path: Path, bands: Bands) -> SceneInfo | None:
     """SceneInfo of an hsicam HDF5 file on ``bands`` from its header (no pixel read), else None."""
     import h5py
 
-    from hsicam.data.formats import HSICAM_FORMAT, _HDF5_MAGIC, _head
+    from hsicam.data.formats import HSICAM_FORMAT, _HDF5_MAGIC, _head, check_format_version
 
     if not path.is_file() or not _head(path, 8).startswith(_HDF5_MAGIC):
         return None
@@ -129,6 +129,7 @@ def probe_hsicam(path: Path, bands: Bands) -> SceneInfo | None:
         with h5py.File(path, "r") as f:
             if f.attrs.get("format") != HSICAM_FORMAT or "cube" not in f or "max_value" not in f.attrs:
                 return None
+            check_format_version(path, f.attrs)  # a newer file: no windowed reads; the full reader refuses it
             if not Bands.from_centers(f["bands_nm"][()]).matches(bands):
                 return None
             shape = f["cube"].shape

@@ -12,7 +12,9 @@ Formats and their band grids (when the file does not carry wavelengths):
 format            layout on disk                                       bands
 ================  ===================================================  ==========================
 ``hsicam``        our HDF5: ``cube`` (C, H, W) float32, ``bands_nm``,   from the file
-                  ``fwhm_nm``, attributes (``format="hsicam-cube"``)
+                  ``fwhm_nm``, attributes (``format="hsicam-cube"``,
+                  ``version``: a newer one than this code writes is
+                  refused, :func:`check_format_version`)
 ``icvl``          MAT v7.3 (HDF5), ``rad`` H×W×C in MATLAB order —      ``bands`` (else 400-700/10)
                   h5py returns it reversed, (C, W, H)
 ``arad``          ARAD / NTIRE MAT v7.3, ``cube`` (as ICVL), ``bands``   ``bands`` (else 400-700/10)
@@ -248,11 +250,27 @@ def read_hsicam_h5(path: str | os.PathLike, *, allow_negative: bool = False, mem
             for key in ("cube", "bands_nm"):
                 if key not in f:
                     raise InputError(f"{p}: missing key '{key}' (not an hsicam cube file)")
+            check_format_version(p, f.attrs)
             cube = _checked_read(p, f["cube"], memory_budget_mb)
             bands = _bands_from(p, f["bands_nm"][()], f["fwhm_nm"][()] if "fwhm_nm" in f else None)
             meta = _read_attrs(f.attrs)
     meta["format"] = "hsicam"
     return _finish(p, cube, bands, meta, allow_negative)
+
+
+def check_format_version(p: Path, attrs: Any) -> None:
+    """InputError unless our HDF5 file's ``version`` attribute is one this code reads (at most
+    :data:`HSICAM_FORMAT_VERSION`; a file without it predates the attribute and is read). Files of
+    another tool's ``format`` attribute are not judged by their ``version``."""
+    if "version" not in attrs or attrs.get("format", HSICAM_FORMAT) != HSICAM_FORMAT:
+        return
+    value = attrs["version"]
+    value = value.item() if isinstance(value, np.generic) else value
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not float(value).is_integer():
+        raise InputError(f"{p}: unreadable hsicam cube format version {value!r} (expected an integer)")
+    if int(value) > HSICAM_FORMAT_VERSION:
+        raise InputError(f"{p}: hsicam cube format version {int(value)}, newer than this hsicam reads (version "
+                         f"{HSICAM_FORMAT_VERSION} and older): upgrade hsicam to read it")
 
 
 def _read_attrs(attrs: Any) -> dict[str, Any]:
@@ -810,6 +828,7 @@ def read_window(path: str | os.PathLike, y: int, x: int, h: int, w: int) -> tupl
         with h5py.File(p, "r") as f:
             if f.attrs.get("format") != HSICAM_FORMAT or "cube" not in f or "bands_nm" not in f:
                 return None
+            check_format_version(p, f.attrs)
             ds = f["cube"]
             if y < 0 or x < 0 or y + h > ds.shape[1] or x + w > ds.shape[2]:
                 raise InputError(f"{p}: window {h}x{w} at ({y}, {x}) is outside the cube {ds.shape[1]}x{ds.shape[2]}")

@@ -20,6 +20,10 @@ Checks on the result (:func:`preprocess_raw`, :func:`read_capture`):
 * (Nearly) no pixel above 0 after subtracting the dark frame / black level — fewer than
   :data:`MIN_SIGNAL_SHARE` of them — is an :class:`InputError` (nothing to reconstruct); more than
   :data:`MAX_NEGATIVE_SHARE` of the pixels below 0 is a warning (dark frame or black level too high?).
+* A gain the user asked for (``scale``, ``auto_level``, the exposure ratio) that puts the image's
+  99.9th percentile above :data:`MAX_LEVEL` × full scale is an :class:`InputError` naming the
+  option(s) and the resulting level; one that puts more than :data:`CLIP_SHARE` of the pixels above
+  full scale is a warning (not for the scale restoring ``hsicam simulate``'s stretched image).
 * An integer capture read with the container's full scale whose brightest pixel ends below
   :data:`DIM_FRACTION` of full scale gets a warning naming the likely cause: a sensor with fewer
   bits than the container (a 12-bit sensor in a 16-bit file reaches at most 1/16). Not for the
@@ -69,6 +73,14 @@ DIM_FRACTION = 1.0 / 8.0
 #: A float capture (read on the simulator's scale, full scale 1) brighter than this is warned about:
 #: it probably holds DN (a float image of 12-bit data reaches 4095).
 FLOAT_OVER_SCALE = 4.0
+#: A gain the user asked for (``scale``, ``auto_level``, the exposure ratio) that puts the image's
+#: 99.9th percentile above this multiple of full scale (1) is refused: two stops over, beyond any
+#: highlight a real sensor records (it clips at 1); the network was trained on images within [0, 1].
+#: The percentile, as ``auto_level`` uses, so that a few hot pixels do not decide.
+MAX_LEVEL = 4.0
+#: More than this share of the pixels above full scale after such a gain: a warning (clipped highlights
+#: a real sensor would not have recorded). ``auto_level`` 1 leaves 0.1 % above: no warning.
+CLIP_SHARE = 0.01
 
 
 # ------------------------------------------------------------------------------------------------
@@ -185,6 +197,7 @@ def _read_tiff(path: Path, what: str) -> tuple[np.ndarray, np.dtype]:
             with tifffile.TiffFile(path) as tf:
                 if len(tf.pages) < 1:
                     raise InputError(f"{path}: TIFF without images")
+                _check_single_page(path, tf, what)
                 page = tf.pages[0]
                 if not hasattr(page, "shape"):
                     raise InputError(f"{path}: unreadable first TIFF page")
@@ -203,6 +216,15 @@ def _read_tiff(path: Path, what: str) -> tuple[np.ndarray, np.dtype]:
     return np.asarray(arr), dtype
 
 
+def _check_single_page(path: Path, tf, what: str) -> None:
+    """InputError for a multi-page TIFF (a stack or burst): which page is the image is not ours to
+    guess. Reduced-resolution pages (thumbnails, pyramid levels) do not count."""
+    pages = sum(1 for page in tf.pages if not getattr(page, "is_reduced", False))
+    if pages > 1:
+        raise InputError(f"{path}: multi-page TIFF ({pages} pages); expected one {what} on a single page: save the "
+                         "page to use as its own TIFF or .npy (e.g. tifffile.imwrite(OUT, tifffile.imread(FILE, key=N)))")
+
+
 def _first_line(exc: BaseException) -> str:
     text = str(exc).strip()
     return text.splitlines()[0] if text else type(exc).__name__
@@ -210,10 +232,10 @@ def _first_line(exc: BaseException) -> str:
 
 def read_image_2d(path: str | Path, what: str = "image") -> RawImage:
     """A single-channel image from ``.npy`` (H, W) / (1, H, W), PNG (8/16-bit grey) or TIFF
-    (integer or float, first page), judged by content. Values are returned as stored.
+    (integer or float, a single page), judged by content. Values are returned as stored.
 
-    Raises :class:`InputError` for a missing, empty, truncated, corrupt, colour, non-2-D, oversized
-    (> :data:`MAX_IMAGE_PIXELS`) or non-finite image.
+    Raises :class:`InputError` for a missing, empty, truncated, corrupt, colour, non-2-D, multi-page
+    (TIFF), oversized (> :data:`MAX_IMAGE_PIXELS`) or non-finite image.
     """
     path = Path(path)
     if not path.exists():
@@ -294,7 +316,8 @@ class RawCorrection:
 
 
 def preprocess_raw(raw: np.ndarray, full_scale: float, corr: RawCorrection, source: str = "capture",
-                   check_saturation: bool = True, check_bit_depth: bool = True) -> tuple[np.ndarray, dict]:
+                   check_saturation: bool = True, check_bit_depth: bool = True,
+                   check_level: bool = True) -> tuple[np.ndarray, dict]:
     """Raw capture (H, W) in DN → float32 (H, W) on the simulator's scale, plus a report dict.
 
     Args:
@@ -305,6 +328,9 @@ def preprocess_raw(raw: np.ndarray, full_scale: float, corr: RawCorrection, sour
             simulate`` stretched so that its brightest pixel is full scale).
         check_bit_depth: warn about a very dark integer capture, whose likely cause is a sensor of
             fewer bits than the file (off for ``hsicam simulate``'s own sensor image).
+        check_level: refuse / warn about a gain (``scale``, ``auto_level``, exposure ratio) that
+            pushes the image past full scale (:func:`_check_level`; off for the scale that restores
+            ``hsicam simulate``'s stretched image, above full scale by design).
     """
     raw = np.asarray(raw, dtype=np.float32)
     h, w = raw.shape
@@ -357,6 +383,8 @@ def preprocess_raw(raw: np.ndarray, full_scale: float, corr: RawCorrection, sour
     report["gain"] = factor / (white - black)
     if not np.all(np.isfinite(img)):
         raise InputError(f"{source}: the corrections produced NaN or Inf values")
+    if check_level:
+        notes += _check_level(img, corr, source)
     if check_bit_depth and full_scale > 1 and corr.white_level is None and corr.auto_level is None:
         notes += _check_dim(img, raw, full_scale, source)
     if full_scale == 1 and corr.white_level is None and corr.auto_level is None and raw.size and raw.max() > FLOAT_OVER_SCALE:
@@ -366,6 +394,43 @@ def preprocess_raw(raw: np.ndarray, full_scale: float, corr: RawCorrection, sour
     for note in notes:  # only once every check passed: an error stays the one line the user sees
         log.warning("%s", note)
     return img.astype(np.float32, copy=False), report
+
+
+def _gain_options(corr: RawCorrection) -> list[str]:
+    """The options of ``corr`` that multiply the image (CLI spelling, with their values)."""
+    opts = []
+    if corr.exposure_s is not None:
+        ratio = corr.reference_exposure_s / corr.exposure_s
+        opts.append(f"--reference-exposure-s {corr.reference_exposure_s:g} / --exposure-s {corr.exposure_s:g} "
+                    f"(×{ratio:.3g})")
+    if corr.auto_level is not None:
+        opts.append(f"--auto-level {corr.auto_level:g}")
+    if corr.scale != 1.0:
+        opts.append(f"--scale {corr.scale:g}")
+    return opts
+
+
+def _check_level(img: np.ndarray, corr: RawCorrection, source: str) -> list[str]:
+    """After a gain the user asked for (``scale``, ``auto_level``, the exposure ratio): InputError
+    when the image's 99.9th percentile exceeds :data:`MAX_LEVEL` × full scale (1); a warning
+    (returned) when more than :data:`CLIP_SHARE` of the pixels are above full scale."""
+    opts = _gain_options(corr)
+    if not opts or not img.size:
+        return []
+    used = " and ".join(opts)
+    level, peak = float(np.percentile(img, 99.9)), float(img.max())
+    if level > MAX_LEVEL:
+        fix = (f"--scale {corr.scale / level:.3g} puts it at 1" if corr.scale != 1.0 and corr.auto_level is None
+               else "--auto-level 1 or lower puts it there" if corr.auto_level is not None
+               else "check --exposure-s and --reference-exposure-s")
+        raise InputError(f"{source}: {used} puts the image far past the sensor's full scale (1): its 99.9th percentile "
+                         f"is {level:.3g} and its brightest pixel {peak:.3g} (refused above {MAX_LEVEL:g}); the network "
+                         f"was trained on images within [0, 1]: {fix}")
+    share = float(np.count_nonzero(img > 1.0)) / img.size
+    if share > CLIP_SHARE:
+        return [f"{source}: {used} puts {100 * share:.1f} % of the pixels above the sensor's full scale (1; brightest "
+                f"pixel {peak:.3g}): a real sensor clips there, and the network was trained on images within [0, 1]"]
+    return []
 
 
 def _subtracted(black: float, dark_median: float | None) -> str:
@@ -461,7 +526,7 @@ def read_capture(path: str | Path, corr: RawCorrection | None = None, scale: flo
         corr = RawCorrection(**{**corr.__dict__, "scale": float(scale)})
     # simulate's own image is written at the file's full bit depth: a dark one is a dark scene
     img, report = preprocess_raw(image.data, image.full_scale, corr, str(path), check_saturation=not stretched,
-                                 check_bit_depth=not simulated)
+                                 check_bit_depth=not simulated, check_level=not stretched)
     report.update({"source": str(path), "stored_dtype": image.dtype, "format": image.format,
                    "shape": [int(s) for s in img.shape]})
     return img, report

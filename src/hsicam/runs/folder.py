@@ -74,7 +74,37 @@ def load_run(run_dir: str | Path, device: torch.device | str = "cpu", overrides:
                                              int(getattr(model.camera, "code_period", 1)))
     if (run_dir / MEASURED_PSF_FILE).is_file():  # a run fine-tuned on measured PSFs images with them
         model = with_measured_psf(model, load_measured_psf(run_dir / MEASURED_PSF_FILE))
+    unfinished = unfinished_training(run_dir, cfg)
+    if unfinished:
+        log.warning("%s", unfinished)
     return cfg, model.to(device).eval()
+
+
+def unfinished_training(run_dir: Path, cfg) -> str | None:
+    """A one-line note when the training of ``run_dir`` did not finish (crashed or killed), else None.
+
+    Finished: ``metrics.jsonl`` ends with the ``final`` record of the last checkpoint's step, which
+    the training loop writes last. A folder without checkpoints (a shipped camera, weights written
+    by hand) records no training: None; nor does one killed after its last checkpoint, which holds
+    all its epochs (only the summary record is missing). The note names the last checkpoint's step
+    and epoch out of the totals of the run's config (steps = data.patches_per_epoch //
+    train.batch_size · train.epochs, as the training loop counts them)."""
+    state = CheckpointManager(run_dir).state()
+    if state is None:
+        return None
+    step, epoch = int(state.get("global_step", 0)), int(state.get("epoch", 0))
+    records = MetricsLog(run_dir / "metrics.jsonl", enabled=False).read()
+    if records and records[-1].get("final") and records[-1].get("step") == step:
+        return None
+    epochs = cfg.train.epochs
+    total = cfg.data.patches_per_epoch // cfg.train.batch_size * epochs
+    if epoch >= epochs or step >= total:
+        return None
+    again = ("fine-tune it again (hsicam finetune)" if (run_dir / MEASURED_PSF_FILE).is_file()
+             else f"continue it with `hsicam train --resume --out {run_dir}`")
+    return (f"{run_dir}: its training did not finish: the last checkpoint is at step {step} of {total} ({epoch} of "
+            f"{epochs} epochs done) and metrics.jsonl has no final record; the weights are of a partly trained "
+            f"network: {again}")
 
 
 RESTART_HINT = "start it again with `hsicam train --restart --config CONFIG --out {run}`"

@@ -1,0 +1,246 @@
+"""Bad paths of the command line that used to pass without a word: a gain far past full scale, a
+multi-page TIFF capture, a half-trained run, two cubes sharing a preview, a cube file of a newer
+format version, a scene too small for the camera, ``--psf-pitch-um`` without ``--psf-dir``.
+
+The runs are real (``hsicam.engine.train`` on four small scenes, the tiny optics of conftest): one
+stopped after 2 of its 12 steps like a killed training, one finished; captures and files are written
+in their real formats (``.npy``, multi-page TIFF, our HDF5)."""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+
+import h5py
+import numpy as np
+import pytest
+import tifffile
+
+from conftest import TINY_CAMERA_OVERRIDES
+from test_calibration import run_cli, write_homogeneous_scenes
+from hsicam.config import load_config
+from hsicam.data.formats import HSICAM_FORMAT_VERSION, read_cube, read_window, write_cube_h5
+from hsicam.data.images import read_image_2d
+from hsicam.errors import InputError
+from hsicam.spectral import Bands
+
+
+def _error(res) -> str:
+    """The one line of a refused command (exit code 2, no traceback)."""
+    assert res.returncode == 2, (res.returncode, res.stdout, res.stderr)
+    lines = [x for x in res.stderr.strip().splitlines() if x.strip()]
+    assert len(lines) == 1 and lines[0].startswith("hsicam: error: "), res.stderr
+    return lines[0]
+
+
+def _ok(res) -> None:
+    assert res.returncode == 0, (res.returncode, res.stdout, res.stderr)
+
+
+@pytest.fixture(scope="module")
+def runs(tmp_path_factory, cache_env) -> dict[str, Path]:
+    """{"half": a run stopped at step 2 of 12 (3 epochs of 4 steps), "done": a finished 1-epoch run}."""
+    from hsicam.engine.train import train
+
+    base = tmp_path_factory.mktemp("runs")
+    data = write_homogeneous_scenes(base / "data", n=4, size=32)
+    cfg = lambda epochs: load_config("tiny", [*TINY_CAMERA_OVERRIDES, f"data.root={data}",  # noqa: E731
+                                              f"train.epochs={epochs}"])
+    assert train(cfg(3), base / "half", progress=False, stop_after_steps=2) == {"stopped_at_step": 2}
+    assert train(cfg(1), base / "done", progress=False)["step"] == 4
+    return {"half": base / "half", "done": base / "done"}
+
+
+@pytest.fixture
+def capture(tmp_path) -> Path:
+    """A float capture on the simulator's scale, 48×48, values in [0, 0.5)."""
+    path = tmp_path / "cap.npy"
+    np.save(path, (np.random.default_rng(0).random((48, 48)) * 0.5).astype(np.float32))
+    return path
+
+
+def _reconstruct(capture: Path, run: Path, out: Path, *extra: str):
+    return run_cli("reconstruct", str(capture), "--run", str(run), "--out", str(out), "--tile", "16", *extra)
+
+
+# ------------------------------------------------------------------------------------------------
+# 1. A gain that pushes the capture far past full scale
+# ------------------------------------------------------------------------------------------------
+@pytest.mark.parametrize("option, named, fix", [
+    (("--scale", "1e6"), "--scale 1e+06", "--scale 2"),  # the capture's 99.9th percentile is ~0.5
+    (("--auto-level", "1e10"), "--auto-level 1e+10", "--auto-level 1 or lower"),
+    (("--exposure-s", "0.001", "--reference-exposure-s", "1"), "--exposure-s 0.001 (×1e+03)", "check --exposure-s"),
+])
+def test_a_gain_far_past_full_scale_is_refused(runs, capture, tmp_path, option, named, fix):
+    line = _error(_reconstruct(capture, runs["done"], tmp_path / "rec.h5", *option))
+    assert capture.name in line and named in line and "far past the sensor's full scale (1)" in line
+    gain = {"--scale": 1e6, "--auto-level": None, "--exposure-s": 1e3}[option[0]]
+    level = 1e10 if gain is None else float(np.percentile(np.load(capture) * np.float32(gain), 99.9))
+    assert f"99.9th percentile is {level:.3g}" in line, line
+    assert fix in line, line
+    assert not list(tmp_path.glob("rec*")), "nothing is written"
+
+
+def test_a_gain_that_clips_some_pixels_warns_and_one_within_full_scale_does_not(runs, capture, tmp_path, caplog):
+    share = 100 * float(np.mean(np.load(capture) * np.float32(3) > 1))  # ~33 % above full scale
+    with caplog.at_level(logging.WARNING):
+        _ok(_reconstruct(capture, runs["done"], tmp_path / "c.h5", "--scale", "3"))
+    [msg] = [r.getMessage() for r in caplog.records if "full scale" in r.getMessage()]
+    assert msg.startswith(f"{capture}: --scale 3 puts {share:.1f} % of the pixels above the sensor's full scale (1;")
+    assert read_cube(tmp_path / "c.h5")[0].shape == (3, 48, 48)
+    caplog.clear()
+    with caplog.at_level(logging.WARNING):
+        _ok(_reconstruct(capture, runs["done"], tmp_path / "d.h5", "--scale", "1.9"))  # peak 0.95
+        _ok(_reconstruct(capture, runs["done"], tmp_path / "e.h5", "--auto-level", "1"))  # 0.1 % above 1
+    assert not [r for r in caplog.records if r.levelno >= logging.WARNING], caplog.text
+
+
+# ------------------------------------------------------------------------------------------------
+# 2. A multi-page TIFF capture
+# ------------------------------------------------------------------------------------------------
+def _pages(n: int, seed: int = 0) -> list[np.ndarray]:
+    rng = np.random.default_rng(seed)
+    return [(rng.random((20, 24)) * 60000).astype(np.uint16) for _ in range(n)]
+
+
+def test_a_multi_page_tiff_capture_is_refused(runs, tmp_path):
+    path = tmp_path / "burst.tif"
+    with tifffile.TiffWriter(path) as tw:
+        for page in _pages(3):
+            tw.write(page, photometric="minisblack")
+    with tifffile.TiffFile(path) as tf:
+        assert len(tf.pages) == 3  # a real multi-page file
+    with pytest.raises(InputError, match=r"burst\.tif: multi-page TIFF \(3 pages\); expected one sensor image"):
+        read_image_2d(path, "sensor image")
+    line = _error(_reconstruct(path, runs["done"], tmp_path / "c.h5"))
+    assert "multi-page TIFF (3 pages)" in line and "tifffile.imread(FILE, key=N)" in line
+    assert not (tmp_path / "c.h5").exists()
+
+
+def test_a_single_page_tiff_and_one_with_a_thumbnail_are_read(tmp_path):
+    image, thumb = _pages(1)[0], _pages(1, seed=1)[0][::4, ::4]
+    tifffile.imwrite(tmp_path / "one.tif", image, photometric="minisblack")
+    with tifffile.TiffWriter(tmp_path / "thumb.tif") as tw:
+        tw.write(image, photometric="minisblack")
+        tw.write(thumb, photometric="minisblack", subfiletype=1)  # a reduced-resolution page
+    for name in ("one.tif", "thumb.tif"):
+        got = read_image_2d(tmp_path / name, "sensor image")
+        np.testing.assert_array_equal(got.data, image.astype(np.float32))
+        assert got.full_scale == 65535.0
+
+
+# ------------------------------------------------------------------------------------------------
+# 3. A half-trained run
+# ------------------------------------------------------------------------------------------------
+def _unfinished(caplog) -> list[str]:
+    return [r.getMessage() for r in caplog.records if "did not finish" in r.getMessage()]
+
+
+def test_a_half_trained_run_warns_once_on_reconstruct_and_evaluate(runs, capture, tmp_path, caplog):
+    half = runs["half"]
+    for args in (("reconstruct", str(capture), "--run", str(half), "--out", str(tmp_path / "c.h5")),
+                 ("evaluate", "--run", str(half), "--out", str(tmp_path / "ev"))):
+        caplog.clear()
+        with caplog.at_level(logging.WARNING):
+            _ok(run_cli(*args))
+        [msg] = _unfinished(caplog)  # once
+        assert msg.startswith(f"{half}: its training did not finish: the last checkpoint is at step 2 of 12 "
+                              "(0 of 3 epochs done)"), msg
+        assert f"hsicam train --resume --out {half}" in msg
+    assert read_cube(tmp_path / "c.h5")[0].shape == (3, 48, 48)
+
+
+def test_a_finished_run_does_not_warn(runs, capture, tmp_path, caplog):
+    """Nor does one killed after its last checkpoint, which holds all its epochs, before the final record."""
+    import shutil
+
+    late = shutil.copytree(runs["done"], tmp_path / "late")
+    lines = (late / "metrics.jsonl").read_text().splitlines(keepends=True)
+    assert '"final": true' in lines[-1]
+    (late / "metrics.jsonl").write_text("".join(lines[:-1]))
+    with caplog.at_level(logging.WARNING):
+        _ok(_reconstruct(capture, runs["done"], tmp_path / "c.h5"))
+        _ok(_reconstruct(capture, late, tmp_path / "d.h5"))
+    assert not _unfinished(caplog)
+
+
+# ------------------------------------------------------------------------------------------------
+# 4. Two cubes of one name share the preview
+# ------------------------------------------------------------------------------------------------
+def test_a_second_cube_of_the_same_name_is_refused(runs, capture, tmp_path):
+    from PIL import Image
+
+    _ok(_reconstruct(capture, runs["done"], tmp_path / "c.h5"))
+    preview = (tmp_path / "c_rgb.png").read_bytes()
+    assert Image.open(tmp_path / "c_rgb.png").size == (48, 48)
+    line = _error(_reconstruct(capture, runs["done"], tmp_path / "c.hdr", "--scale", "1.5"))
+    assert "c.hdr: c.h5 beside it is another cube named c" in line and "preview c_rgb.png" in line
+    assert "choose another --out name" in line
+    assert (tmp_path / "c_rgb.png").read_bytes() == preview, "the first cube's preview is kept"
+    assert not (tmp_path / "c.hdr").exists() and not (tmp_path / "c.img").exists()
+    _ok(_reconstruct(capture, runs["done"], tmp_path / "c.h5"))  # the same cube again: its own files
+    _ok(_reconstruct(capture, runs["done"], tmp_path / "e.hdr"))  # ENVI first, then HDF5 of that name
+    assert read_cube(tmp_path / "e.hdr")[0].shape == (3, 48, 48)
+    assert "e.h5: e.hdr beside it" in _error(_reconstruct(capture, runs["done"], tmp_path / "e.h5"))
+
+
+# ------------------------------------------------------------------------------------------------
+# 5. Our HDF5 cube of a newer format version
+# ------------------------------------------------------------------------------------------------
+def _cube_file(path: Path, version=None) -> Path:
+    cube = np.random.default_rng(1).random((3, 12, 12)).astype(np.float32)
+    write_cube_h5(path, cube, Bands.uniform(500, 600, 50))
+    if version is not None:
+        with h5py.File(path, "a") as f:
+            f.attrs["version"] = version
+    return path
+
+
+def test_a_cube_file_of_a_newer_format_version_is_refused(runs, tmp_path):
+    newer = _cube_file(tmp_path / "v99.h5", 99)
+    expected = (rf"v99\.h5: hsicam cube format version 99, newer than this hsicam reads \(version "
+                rf"{HSICAM_FORMAT_VERSION} and older\): upgrade hsicam")
+    with pytest.raises(InputError, match=expected):
+        read_cube(newer)
+    with pytest.raises(InputError, match=expected):
+        read_window(newer, 0, 0, 4, 4)
+    line = _error(run_cli("simulate", "--run", str(runs["done"]), "--scene", str(newer), "--out", str(tmp_path / "sim")))
+    assert "format version 99" in line and "upgrade hsicam" in line
+    with pytest.raises(InputError, match=r"unreadable hsicam cube format version 'x'"):
+        read_cube(_cube_file(tmp_path / "vx.h5", "x"))
+    assert read_cube(_cube_file(tmp_path / "v1.h5"))[2]["file_version"] == HSICAM_FORMAT_VERSION
+    with h5py.File(tmp_path / "v1.h5", "a") as f:
+        del f.attrs["version"]  # files from before the attribute are read
+    assert read_cube(tmp_path / "v1.h5")[0].shape == (3, 12, 12)
+
+
+# ------------------------------------------------------------------------------------------------
+# 6. A scene smaller than the camera needs
+# ------------------------------------------------------------------------------------------------
+@pytest.mark.parametrize("boundary, side, minimum", [("same", 1, 3), ("same", 2, 3), ("valid", 1, 9), ("valid", 8, 9)])
+def test_simulate_refuses_a_scene_smaller_than_the_camera_needs(runs, tmp_path, boundary, side, minimum):
+    """The tiny optics: a 3×3 CFA period and a 7-px PSF kernel (valid: the sensor is 6 px smaller)."""
+    scene = tmp_path / "scene.npy"
+    np.save(scene, np.full((3, side, side), 0.5, np.float32))
+    line = _error(run_cli("simulate", "--run", str(runs["done"]), "--scene", str(scene), "--boundary", boundary,
+                          "--out", str(tmp_path / "sim")))
+    assert f"scene.npy: the scene is {side}×{side} px, smaller than the {minimum}×{minimum} px this camera needs" in line
+    assert "a sensor image of at least 3×3 px (one CFA period)" in line
+    assert ("plus the 6 px per axis that boundary=valid loses to the 7-px PSF kernel" in line) == (boundary == "valid")
+    assert not (tmp_path / "sim").exists()
+    np.save(scene, np.full((3, minimum, minimum), 0.5, np.float32))  # the minimum itself is imaged
+    _ok(run_cli("simulate", "--run", str(runs["done"]), "--scene", str(scene), "--boundary", boundary,
+                "--out", str(tmp_path / "sim")))
+    assert np.load(tmp_path / "sim" / "sensor.npy").shape == (3, 3)
+
+
+# ------------------------------------------------------------------------------------------------
+# 7. --psf-pitch-um without --psf-dir
+# ------------------------------------------------------------------------------------------------
+def test_psf_pitch_without_psf_dir_is_refused(runs, capture, tmp_path):
+    line = _error(_reconstruct(capture, runs["done"], tmp_path / "rec.h5", "--psf-pitch-um", "3.45"))
+    assert "--psf-pitch-um" in line and "--psf-dir" in line
+    assert not list(tmp_path.glob("rec*"))
+    # finetune: --psf-dir is required, so its --psf-pitch-um is never ignored
+    line = _error(run_cli("finetune", "--run", str(runs["done"]), "--out", str(tmp_path / "ft"), "--psf-pitch-um", "3.45"))
+    assert "--psf-dir" in line
