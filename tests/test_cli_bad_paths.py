@@ -224,7 +224,7 @@ def test_simulate_refuses_a_scene_smaller_than_the_camera_needs(runs, tmp_path, 
     np.save(scene, np.full((3, side, side), 0.5, np.float32))
     line = _error(run_cli("simulate", "--run", str(runs["done"]), "--scene", str(scene), "--boundary", boundary,
                           "--out", str(tmp_path / "sim")))
-    assert f"scene.npy: the scene is {side}×{side} px, smaller than the {minimum}×{minimum} px this camera needs" in line
+    assert f"scene.npy: the scene is {side}×{side} px, too small: this camera needs {minimum}×{minimum} px" in line
     assert "a sensor image of at least 3×3 px (one CFA period)" in line
     assert ("plus the 6 px per axis that boundary=valid loses to the 7-px PSF kernel" in line) == (boundary == "valid")
     assert not (tmp_path / "sim").exists()

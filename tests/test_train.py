@@ -197,10 +197,11 @@ def test_train_and_reconstruct_cli(tmp_path, cache_env):
     cube, bands, _ = read_cube(out)
     assert cube.shape == (7, 50, 60) and len(bands) == 7
     assert (tmp_path / "rec_rgb.png").is_file()
-    # ENVI by extension
-    rec2 = run_cli("reconstruct", str(tmp_path / "sim" / "sensor.npy"), "--run", str(run), "--out", str(tmp_path / "rec.hdr"), env=env)
+    # ENVI by extension (under its own name: a folder holds one cube per name, tests/test_cli_bad_paths.py)
+    rec2 = run_cli("reconstruct", str(tmp_path / "sim" / "sensor.npy"), "--run", str(run), "--out", str(tmp_path / "rec_envi.hdr"), env=env)
     assert rec2.returncode == 0, rec2.stderr
-    cube2, _, _ = read_cube(tmp_path / "rec.hdr")
+    assert (tmp_path / "rec_envi_rgb.png").is_file()
+    cube2, _, _ = read_cube(tmp_path / "rec_envi.hdr")
     np.testing.assert_allclose(cube2, cube, atol=2e-4)  # PNG quantisation only
 
     # bad input: missing run, corrupt weights, another band grid, existing run folder

@@ -232,7 +232,7 @@ class Camera(nn.Module):
         if self.boundary == "valid" and self.margin:
             why += f", plus the {self.margin} px per axis that boundary=valid loses to the {self.margin + 1}-px PSF kernel"
             fix += " or boundary=same" if min(h, w) >= n else ""
-        raise InputError(f"{source}: the scene is {h}×{w} px, smaller than the {mh}×{mw} px this camera needs: {why}; {fix}")
+        raise InputError(f"{source}: the scene is {h}×{w} px, too small: this camera needs {mh}×{mw} px, {why}; {fix}")
 
     def check_scene(self, x: torch.Tensor) -> None:
         """Raise :class:`InputError` unless ``x`` is a (B, C, H, W) cube on this camera's grid."""
