@@ -20,7 +20,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     add_run_arg(p, "trained run folder (needed by learned methods)", required=False)
     p.add_argument("--method", default="doe-learned", choices=(*method_names(), *METHOD_ALIASES),
                    help="reconstruction method (default: the run's learned camera)")
-    p.add_argument("--data", metavar="DIR", help="folder of supported cube files (default: the synthetic validation split)")
+    p.add_argument("--data", metavar="DIR",
+                   help="folder of supported cube files (default: the synthetic validation split); its sub-folders "
+                        "holding hsicam outputs are skipped; --out must not be it or hold it")
     p.add_argument("--out", required=True, metavar="DIR")
     p.add_argument("--sigma-height-nm", type=float, default=None, help="test DOE height noise σ_p (nm)")
     p.add_argument("--sensor-sigma", type=float, default=None, help="test sensor noise σ_s")
@@ -59,6 +61,22 @@ def check_run_overrides(overrides) -> None:
                              "(other optics: hsicam tolerance; another design: hsicam train)")
 
 
+def check_out_apart_from_data(out: str | Path, data: str | Path) -> None:
+    """InputError when ``--out`` is the ``--data`` folder or holds it: evaluate replaces its ``--out``
+    folder whole at the end, which would delete the scenes it has just read (the cubes of a ``--save``
+    evaluation read back as data). An ``--out`` inside ``--data`` is allowed: the scene scan skips
+    sub-folders holding hsicam outputs (:func:`hsicam.data.datasets.list_scenes`). Paths are compared
+    resolved (links followed)."""
+    import os
+
+    o, d = Path(os.path.realpath(out)), Path(os.path.realpath(data))
+    same = o == d or (o.exists() and d.exists() and os.path.samefile(o, d))
+    if same or o in d.parents:
+        what = "is the --data folder" if same else f"holds the --data {data}"
+        raise InputError(f"{out}: {what}; evaluate replaces its --out folder whole, which would delete the scenes it "
+                         f"reads: give --out a folder outside {data}")
+
+
 def cmd_evaluate(args: argparse.Namespace) -> int:
     from hsicam.config import dump_yaml
     from hsicam.data.datasets import list_scenes
@@ -72,7 +90,10 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     from hsicam.io import atomic_output
 
     args.method = METHOD_ALIASES.get(args.method, args.method)  # results carry the method's current name
+    if args.data:
+        check_out_apart_from_data(args.out, args.data)
     out = prepare_output(args.out, "dir", replace=True, command="evaluate")
+    paths = list_scenes(args.data) if args.data else None  # before the method is built: a bad --data fails at once
     if args.run:
         run = Path(args.run)
         if args.config:
@@ -85,8 +106,7 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
         cfg = config_from_args(args.config, args.overrides)
     method = build_method(args.method, cfg, args.run, args.device)
     bands = method.camera.bands
-    if args.data:
-        paths = list_scenes(args.data)
+    if paths is not None:
         scenes = scene_dataset(cfg.data, paths, bands)
         names, data = [p.stem for p in paths], str(Path(args.data).resolve())
         heldout = None

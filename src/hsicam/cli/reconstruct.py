@@ -25,7 +25,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     add_run_arg(p, "trained (or fine-tuned) run folder")
     p.add_argument("--out", required=True, metavar="FILE",
                    help="output cube: .h5 (ours) or .hdr (ENVI), plus its sRGB preview STEM_rgb.png; a folder holds "
-                        "one cube per name (c.h5 and c.hdr would share c_rgb.png: the second is refused)")
+                        "one cube per name (c.h5 and c.hdr would share c_rgb.png: the second is refused); existing "
+                        "files are replaced only when they are an earlier reconstruct's output, never an input")
     p.add_argument("--scale", type=float, default=None, help="multiply the image after normalising to [0, 1]")
     p.add_argument("--tile", type=int, default=512, metavar="PX", help="tile side for large images")
     p.add_argument("--device", default="cpu", type=device_arg, help="torch device (default cpu)")
@@ -70,7 +71,8 @@ def output_files(path: Path) -> list[Path]:
 def check_one_cube_per_name(path: Path) -> None:
     """InputError when another cube of the same name lies beside ``path`` (``c.h5`` beside ``c.hdr``):
     both have the preview ``c_rgb.png`` (ENVI pairs also the header ``c.hdr``), so writing this one
-    would replace the other's without a word. Writing the same cube again replaces its own files."""
+    would replace the other's without a word. This cube's own files (:func:`output_files`) are
+    judged by :func:`check_replaceable_outputs`: replaced only when they are its earlier output."""
     own = set(output_files(path))
     others = [q for q in (path.with_suffix(s) for s in CUBE_SUFFIXES) if q not in own and q.exists()]
     if others:
@@ -78,6 +80,141 @@ def check_one_cube_per_name(path: Path) -> None:
         raise InputError(f"{path}: {others[0].name} beside it is another cube named {path.stem}; both would have the "
                          f"preview {preview}, and this one would replace it: choose another --out name (a folder "
                          f"holds one cube per name) or remove {others[0].name}")
+
+
+def _same_file(a: Path, b: Path) -> bool:
+    """True when ``a`` and ``b`` name one file (through links too); False when either is missing."""
+    import os
+
+    try:
+        return os.path.samefile(a, b)
+    except OSError:
+        return False
+
+
+def check_outputs_are_not_inputs(path: Path, inputs: dict[str, str | None]) -> None:
+    """InputError when a file that reconstructing to ``path`` writes (the cube, ENVI's pair, the
+    preview ``STEM_rgb.png``) is one of the files it reads: ``inputs`` maps how each input is named
+    ("the capture SENSOR", "the --dark frame" …) to its path (None: not given)."""
+    files = output_files(path)
+    for f in files:
+        role = "preview" if f == files[-1] else "cube"
+        for what, given in inputs.items():
+            if given is not None and _same_file(f, Path(given)):
+                shown = what if Path(given) == f else f"{what} {given} (the same file)"
+                raise InputError(f"{f}: is {shown}, which reconstruct reads; the {role} of --out {path} would be "
+                                 f"written over it: choose another --out name")
+
+
+#: Descriptions of the ENVI headers that reconstruct writes (``hsicam cube``: before it named itself).
+ENVI_DESCRIPTIONS = ("hsicam reconstruct", "hsicam cube")
+
+_PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
+
+
+def _head(path: Path, n: int) -> bytes:
+    try:
+        with open(path, "rb") as fh:
+            return fh.read(n)
+    except OSError:
+        return b""
+
+
+def _our_h5(path: Path) -> bool:
+    """True for our HDF5 cube file written by reconstruct (its metadata names the capture and run)."""
+    import json
+
+    import h5py
+
+    from hsicam.data.formats import HSICAM_FORMAT
+
+    if not _head(path, 8).startswith(b"\x89HDF\r\n\x1a\n"):
+        return False
+    try:
+        with h5py.File(path, "r") as f:
+            if f.attrs.get("format") != HSICAM_FORMAT or "cube" not in f:
+                return False
+            meta = json.loads(f.attrs.get("metadata_json", "{}"))
+    except (OSError, ValueError, TypeError, KeyError):
+        return False
+    return isinstance(meta, dict) and (meta.get("command") == "reconstruct" or {"source", "run"} <= meta.keys())
+
+
+def _our_envi_header(path: Path) -> dict[str, str] | None:
+    """The fields of an ENVI header that reconstruct wrote, else None."""
+    from hsicam.data.formats import parse_envi_header
+
+    if not _head(path, 64).lstrip().startswith(b"ENVI") or path.stat().st_size > 1 << 20:
+        return None
+    try:
+        h = parse_envi_header(path)
+    except InputError:
+        return None
+    return h if h.get("description", "").strip("{} ") in ENVI_DESCRIPTIONS else None
+
+
+def _envi_data_size(h: dict[str, str]) -> int | None:
+    """Bytes of the data file that the ENVI header ``h`` (float32, as reconstruct writes) describes."""
+    try:
+        return int(h["samples"]) * int(h["lines"]) * int(h["bands"]) * 4 if h.get("data type") == "4" else None
+    except (KeyError, ValueError):
+        return None
+
+
+def check_replaceable_outputs(path: Path) -> None:
+    """InputError unless every existing file that reconstructing to ``path`` writes is the earlier
+    output of a reconstruction to ``path``: our HDF5 cube whose metadata names a capture and a run;
+    an ENVI header that reconstruct wrote and the data file it describes (its size); the preview
+    (an 8-bit RGB PNG) only beside such a cube. A user's file at any of these paths is never replaced."""
+    files = output_files(path)
+    cube = files[0]
+    suffix = path.suffix.lower()
+    ours_cube = False
+    if suffix in (".h5", ".hdf5"):
+        if cube.exists():
+            if not _our_h5(cube):
+                raise InputError(f"{cube}: exists and is not a cube that hsicam reconstruct wrote; reconstruct replaces "
+                                 f"only its own earlier output: choose another --out name or move {cube.name} away")
+            ours_cube = True
+    else:
+        hdr, data = files[0], files[1]
+        header = None
+        if hdr.exists():
+            header = _our_envi_header(hdr)
+            if header is None:
+                raise InputError(f"{hdr}: exists and is not an ENVI header that hsicam reconstruct wrote; reconstruct "
+                                 f"replaces only its own earlier output: choose another --out name or move {hdr.name} away")
+            ours_cube = True
+        if data.exists():
+            size = _envi_data_size(header) if header is not None else None
+            try:
+                actual = data.stat().st_size
+            except OSError:
+                actual = -1
+            if header is None or size != actual:
+                why = (f"its header {hdr.name} is missing" if header is None else
+                       f"its size ({actual} bytes) is not the {size} bytes that {hdr.name} describes")
+                raise InputError(f"{data}: exists and is not the ENVI data of a cube that hsicam reconstruct wrote "
+                                 f"({why}); reconstruct replaces only its own earlier output: choose another --out name "
+                                 f"or move {data.name} away")
+    preview = files[-1]
+    if preview.exists():
+        if not ours_cube:
+            raise InputError(f"{preview}: exists, but no cube {cube.name} that hsicam reconstruct wrote lies beside it, "
+                             f"so it is not the preview of an earlier reconstruction to {path.name}; choose another "
+                             f"--out name or move {preview.name} away")
+        head = _head(preview, 26)
+        if not (head.startswith(_PNG_MAGIC) and head[12:16] == b"IHDR" and head[24:26] == b"\x08\x02"):
+            raise InputError(f"{preview}: exists and is not an sRGB preview (an 8-bit RGB PNG) that hsicam reconstruct "
+                             f"wrote; choose another --out name or move {preview.name} away")
+
+
+def check_outputs(path: Path, inputs: dict[str, str | None]) -> None:
+    """Every check of reconstruct's output files (before the work, and again just before writing):
+    none is an input, one cube per name, and existing ones are its own earlier output."""
+    check_outputs_are_not_inputs(path, inputs)
+    check_one_cube_per_name(path)
+    check_replaceable_outputs(path)
 
 
 def write_cube_file(path: Path, cube: np.ndarray, bands, metadata: dict) -> None:
@@ -91,9 +228,9 @@ def write_cube_file(path: Path, cube: np.ndarray, bands, metadata: dict) -> None
         raise InputError(f"{path}: output must end in .h5 (HDF5) or .hdr (ENVI)")
     rgb = cube_to_srgb(torch.from_numpy(cube), bands).numpy()  # before any file is written
     if suffix in (".h5", ".hdf5"):
-        write_cube_h5(path, cube, bands, metadata)
+        write_cube_h5(path, cube, bands, {"command": "reconstruct", **metadata})
     else:
-        write_envi(path, cube, bands)
+        write_envi(path, cube, bands, description=ENVI_DESCRIPTIONS[0])
     write_png8(path.with_name(f"{path.stem}_rgb.png"), np.moveaxis(rgb, 0, -1))
 
 
@@ -133,7 +270,8 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
         raise InputError(f"{out}: output must end in .h5 (HDF5) or .hdr (ENVI)")
     for f in output_files(out):  # before any work: an existing folder, a path inside a file, no permission
         prepare_output(f, "file")
-    check_one_cube_per_name(out)
+    inputs = {"the capture SENSOR": args.sensor, "the --dark frame": args.dark, "the --flat frame": args.flat}
+    check_outputs(out, inputs)
     if args.consistency_steps is not None and not 0 <= args.consistency_steps <= MAX_CONSISTENCY_ITERATIONS:
         raise InputError(f"--consistency-steps must be >= 0 and <= {MAX_CONSISTENCY_ITERATIONS} (each step widens "
                          "the tiles' halo; more than one rarely changes the estimate)")
@@ -173,6 +311,7 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
     del sensor
     # Radiance is non-negative: the network's small negative excursions are clipped at 0.
     cube = cube.float().clamp_min_(0).cpu().numpy()
+    check_outputs(out, inputs)  # again: the reconstruction may have taken a while
     write_cube_file(out, cube, model.bands, meta)
     print(f"reconstructed {cube.shape[0]} bands × {cube.shape[1]}×{cube.shape[2]} -> {out}")
     return 0

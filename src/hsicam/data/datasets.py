@@ -40,19 +40,35 @@ def list_scenes(root: str | os.PathLike) -> list[Path]:
     """The scenes of a dataset folder, sorted: supported files and CAVE scene folders.
 
     ``root`` may also be a single file or a single CAVE folder. ENVI pairs are listed by their
-    ``.hdr``. Hidden and temporary files are skipped. Raises :class:`InputError` when none is found.
+    ``.hdr``. Hidden and temporary files are skipped, and so are sub-folders that hold another
+    hsicam command's completed output (a completion marker, :func:`hsicam.io.is_complete`: an
+    evaluation saved next to the data, a simulated sensor image …), said once in the log. A root
+    that is (or lies inside) an ``evaluate`` output, or is any other command's output, is refused
+    (:func:`check_not_an_output`). Raises :class:`InputError` when no scene is found.
     """
     root = Path(root)
     if not root.exists():
         raise InputError(f"{root}: no such dataset file or folder")
+    check_not_an_output(root)
     if root.is_file():
         return [root]
     if _is_cave_dir(root):
         return [root]
+    from hsicam.io import is_complete
+
     scenes: list[Path] = []
+    skipped: list[Path] = []
     for dirpath, dirnames, filenames in os.walk(root):
         d = Path(dirpath)
-        dirnames[:] = sorted(n for n in dirnames if not n.startswith("."))
+        kept = []
+        for n in sorted(dirnames):
+            if n.startswith("."):
+                continue
+            if is_complete(d / n):  # an hsicam output, not scenes
+                skipped.append(d / n)
+                continue
+            kept.append(n)
+        dirnames[:] = kept
         if d != root and _is_cave_dir(d):
             scenes.append(_cave_scene_root(d, root))
             dirnames[:] = []
@@ -63,9 +79,83 @@ def list_scenes(root: str | os.PathLike) -> list[Path]:
             if Path(name).suffix.lower() in SCENE_SUFFIXES:
                 scenes.append(d / name)
     scenes = sorted(set(scenes))
+    if skipped:
+        _log_skipped(root, skipped)
     if not scenes:
-        raise InputError(f"{root}: no hyperspectral scenes found (supported: {', '.join(SCENE_SUFFIXES)}, CAVE folders)")
+        also = f" (skipped {_skipped_text(root, skipped)})" if skipped else ""
+        raise InputError(f"{root}: no hyperspectral scenes found (supported: {', '.join(SCENE_SUFFIXES)}, CAVE "
+                         f"folders){also}")
     return scenes
+
+
+def _skipped_text(root: Path, skipped: list[Path]) -> str:
+    from hsicam.io import read_marker
+
+    def one(p: Path) -> str:
+        command = read_marker(p).get("command")
+        return f"{p.relative_to(root)} ({command})" if isinstance(command, str) and command else str(p.relative_to(root))
+
+    shown = ", ".join(one(p) for p in skipped[:5]) + (f" and {len(skipped) - 5} more" if len(skipped) > 5 else "")
+    return f"{len(skipped)} sub-folder(s) holding hsicam outputs, not scenes: {shown}"
+
+
+#: (root, skipped sub-folders) already logged by :func:`list_scenes` in this process.
+_SKIPPED_LOGGED: set[tuple[str, tuple[str, ...]]] = set()
+
+
+def _log_skipped(root: Path, skipped: list[Path]) -> None:
+    key = (os.path.abspath(root), tuple(str(p) for p in skipped))
+    if key in _SKIPPED_LOGGED:
+        return
+    _SKIPPED_LOGGED.add(key)
+    log.info("data: %s: skipped %s", root, _skipped_text(root, skipped))
+
+
+def check_not_an_output(root: str | os.PathLike) -> None:
+    """InputError when the dataset ``root`` is not data but an hsicam output: the folder (or a file
+    or folder inside it) of an ``evaluate``, whose ``cubes/`` hold a method's reconstructions
+    (``*_estimate.h5``) beside the ground truths (``*_truth.h5``), not scenes to score — one
+    ``*_truth.h5`` file named alone is accepted —, or a folder that carries the completion marker
+    of any other command (a simulated sensor image, PSFs, a report …)."""
+    from hsicam.io import is_complete, output_description, read_marker
+
+    root = Path(root)
+    full = Path(os.path.abspath(root))
+    for a in (full, *full.parents):
+        if not is_complete(a):
+            continue
+        if read_marker(a).get("command") == "evaluate":
+            if root.is_file() and root.name.endswith("_truth.h5"):
+                return  # one saved ground truth, named on purpose
+            where = "is" if a == full else f"lies inside {_as_given(root, full, a)}, which is"
+            raise InputError(f"{root}: {where} the output of hsicam evaluate{_evaluated_data(a)}; its "
+                             "cubes/*_estimate.h5 are a method's reconstructions, not scenes: use the scenes it scored "
+                             "as the data, or copy its *_truth.h5 files into a folder of their own")
+        if a == full and root.is_dir():
+            raise InputError(f"{root}: is {output_description(a)}, not a folder of scenes; use a folder of cube files "
+                             "as the data")
+        return
+
+
+def _as_given(root: Path, full: Path, ancestor: Path) -> Path:
+    """``ancestor`` of ``full`` (= abspath(root)) written as the user wrote ``root`` when it can be."""
+    p = root
+    for _ in range(len(full.parts) - len(ancestor.parts)):
+        p = p.parent
+    return p if Path(os.path.abspath(p)) == ancestor else ancestor
+
+
+def _evaluated_data(folder: Path) -> str:
+    """`` (which scored DATA)``: the data an evaluation folder's results.json names, or ""."""
+    import json
+
+    try:
+        data = json.loads((folder / "results.json").read_text(encoding="utf-8")).get("data")
+    except (OSError, ValueError, AttributeError):
+        return ""
+    if not isinstance(data, str) or not data:
+        return ""
+    return f" (which scored {'the ' if data.startswith('synthetic') else ''}{data})"
 
 
 def _is_cave_dir(d: Path) -> bool:
@@ -321,4 +411,4 @@ def augment(patch: np.ndarray, turns: int, flip: bool) -> np.ndarray:
     return out[:, :, ::-1] if flip else out
 
 
-__all__ = ["PatchDataset", "SCENE_SUFFIXES", "SceneDataset", "SceneInfo", "augment", "list_scenes", "split_scenes"]
+__all__ = ["PatchDataset", "SCENE_SUFFIXES", "SceneDataset", "SceneInfo", "augment", "check_not_an_output", "list_scenes", "split_scenes"]
