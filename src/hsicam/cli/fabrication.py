@@ -41,11 +41,11 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--data", metavar="PATH", help="scenes to evaluate on (default: the run's validation scenes)")
     p.add_argument("--max-scenes", type=int, default=8)
     p.add_argument("--sigma-height-nm", type=_floats, default=None, metavar="LIST", help="e.g. 0,10,20,40,60")
-    p.add_argument("--draws", type=int, default=3, help="fabricated DOEs drawn per height-noise level")
+    p.add_argument("--draws", type=int, default=None, help="fabricated DOEs drawn per height-noise level (default 3)")
     p.add_argument("--levels", type=_ints, default=None, metavar="LIST", help="e.g. 2,4,8,16,32")
     p.add_argument("--shift-cells", type=_floats, default=None, metavar="LIST", help="e.g. 0,0.25,0.5,1,2")
-    p.add_argument("--shift-subsamples", type=int, default=4,
-                   help="pupil samples per cell Q for the misalignment study (shift resolution 1/Q cell)")
+    p.add_argument("--shift-subsamples", type=int, default=None,
+                   help="pupil samples per cell Q for the misalignment study (shift resolution 1/Q cell; default 4)")
     p.add_argument("--sensor-distance-um", type=_floats, default=None, metavar="LIST",
                    help="e.g. --sensor-distance-um=-100,-50,0,50,100 (use '=' for lists starting with '-')")
     from hsicam.cli.args import positive_number_arg, seed_arg
@@ -76,24 +76,34 @@ def cmd_export(args: argparse.Namespace) -> int:
     if args.levels is not None and not (2 <= args.levels <= 256 and is_power_of_two(args.levels)):
         raise InputError(f"--levels must be a power of 2 in 2..256 (binary-weighted lithography), got {args.levels}")
     spec = export_optics(args.run, args.out, args.levels, args.tolerance)
-    q = spec["doe"]["quantized"]
-    gds = q["gds"].get("file") or f"no GDS ({q['gds'].get('skipped')})"
-    print(f"exported DOE ({spec['doe']['cells_across']}² cells of {spec['doe']['cell_size_um']:g} µm, "
-          f"{q['levels']} levels, phase error at λ0 rms {q['phase_error_design_wavelength_rad']['rms']:.3f} rad, {gds}) "
-          f"and CFA ({spec['cfa']['period']}×{spec['cfa']['period']}, fit rms ≤ {spec['cfa']['fit_rms_error']['max']:.3f}) "
-          f"-> {args.out}")
+    doe, cfa = spec["doe"], spec["cfa"]
+    if doe["enabled"]:
+        q = doe["quantized"]
+        gds = q["gds"].get("file") or f"no GDS ({q['gds'].get('skipped')})"
+        doe_text = (f"DOE ({doe['cells_across']}² cells of {doe['cell_size_um']:g} µm, {q['levels']} levels, "
+                    f"phase error at λ0 rms {q['phase_error_design_wavelength_rad']['rms']:.3f} rad, {gds})")
+    else:
+        doe_text = "no DOE (camera.doe.enabled: false: no DOE files)"
+    if cfa["enabled"]:
+        cfa_text = f"CFA ({cfa['period']}×{cfa['period']}, fit rms ≤ {cfa['fit_rms_error']['max']:.3f})"
+    else:
+        cfa_text = "no CFA (camera.cfa.enabled: false: no CFA files)"
+    print(f"exported {doe_text} and {cfa_text}, spec.json -> {args.out}")
     return 0
 
 
 def cmd_tolerance(args: argparse.Namespace) -> int:
     from hsicam.runs.folder import load_run
-    from hsicam.engine.tolerance import ToleranceSpec, run_tolerance, write_tolerance
+    from hsicam.engine.tolerance import ToleranceSpec, refuse_finetuned_run, run_tolerance, write_tolerance
     from hsicam.cli import prepare_output
     from hsicam.io import atomic_output
 
     out = prepare_output(args.out, "dir", replace=True, command="tolerance")
-    spec = ToleranceSpec(height_draws=args.draws, max_scenes=args.max_scenes, seed=args.seed,
-                         shift_subsamples=args.shift_subsamples)
+    refuse_finetuned_run(args.run)  # before loading: its measured PSFs are not what the study perturbs
+    defaults = ToleranceSpec()
+    spec = ToleranceSpec(height_draws=defaults.height_draws if args.draws is None else args.draws,
+                         max_scenes=args.max_scenes, seed=args.seed,
+                         shift_subsamples=defaults.shift_subsamples if args.shift_subsamples is None else args.shift_subsamples)
     for name in ("sigma_height_nm", "levels", "shift_cells", "sensor_distance_um"):
         v = getattr(args, name)
         if v is not None:
@@ -101,14 +111,32 @@ def cmd_tolerance(args: argparse.Namespace) -> int:
                 raise InputError(f"--{name.replace('_', '-')} needs at least one value")
             setattr(spec, name, v)
     cfg, model = load_run(args.run, args.device)
+    if not cfg.camera.doe.enabled:
+        # without a DOE the DOE sweeps are skipped (noted in tolerance.json); asking for them is refused
+        given = [opt for opt, v in (("--sigma-height-nm", args.sigma_height_nm), ("--draws", args.draws),
+                                    ("--levels", args.levels), ("--shift-cells", args.shift_cells),
+                                    ("--shift-subsamples", args.shift_subsamples)) if v is not None]
+        if given:
+            raise InputError(f"{' '.join(given)}: {args.run} has no DOE (camera.doe.enabled: false), so there is no "
+                             "element whose heights, levels or position could be in error; leave out "
+                             f"{', '.join(given)} (the study then sweeps the sensor distance only)")
     result = run_tolerance(model, cfg, spec, args.data, run=args.run)
     with atomic_output(out, overwrite=True, marker={"command": "tolerance"}) as tmp:
         write_tolerance(tmp, result)
     s = result["summary"]
     dz = s.get("sensor_distance_um_at_1db_loss") or {}
-    print(f"nominal PSNR {result['nominal']['psnr']:.2f} dB on {len(result['scenes'])} scene(s); 1-dB tolerances: "
-          f"σ_p {_fmt(s.get('sigma_height_nm_at_1db_loss'), 'nm')}, shift {_fmt(s.get('shift_x_cells_at_1db_loss'), 'cells')} (x), "
-          f"Δz toward the lens {_fmt(dz.get('minus'), 'µm')}, away {_fmt(dz.get('plus'), 'µm')}, levels ≥ {s.get('min_levels_within_1db')} "
+    if result.get("skipped"):
+        doe = "no DOE (camera.doe.enabled: false): DOE sweeps skipped; 1-dB tolerances: "
+        doe_tol = ""
+    else:
+        doe = "1-dB tolerances: "
+        doe_tol = (f"σ_p {_fmt(s.get('sigma_height_nm_at_1db_loss'), 'nm')}, "
+                   f"shift {_fmt(s.get('shift_x_cells_at_1db_loss'), 'cells')} (x), ")
+    min_lv = s.get("min_levels_within_1db")
+    levels = "" if result.get("skipped") else (f", levels ≥ {min_lv}" if min_lv is not None
+                                                else ", no swept level count within 1 dB")
+    print(f"nominal PSNR {result['nominal']['psnr']:.2f} dB on {len(result['scenes'])} scene(s); {doe}{doe_tol}"
+          f"Δz toward the lens {_fmt(dz.get('minus'), 'µm')}, away {_fmt(dz.get('plus'), 'µm')}{levels} "
           f"-> {args.out}")
     return 0
 

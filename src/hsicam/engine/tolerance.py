@@ -22,7 +22,19 @@ PSNR (per band, peak 1; also SSIM and SAM) over validation scenes versus each pe
   (π/λ)(1/z_o + 1/(z_i + Δz) − 1/f_λ) with the nominal sampling; the image magnification change
   Δz/z_i is neglected (reported as ``magnification_change``; e.g. 0.3 % for 100 µm at 35 mm) and
   so is the PSF scale change. ``defocus_waves`` is the peak residual defocus (R²/2)·Δ(1/z)/λ at
-  the design wavelength.
+  the design wavelength. The PSFs are computed on the run's own pupil grid, so a Δz whose defocus
+  aliases there (:func:`~hsicam.optics.sampling.defocus_aliasing` > 1, the criterion with which
+  :class:`~hsicam.optics.psf.PSFModel` refuses a sensor distance) is refused up front, naming the
+  representable range (``sensor_distance_um_representable``): an aliased PSF looks nearly in focus
+  at any Δz and would report no tolerance at all.
+
+A camera without a DOE (``camera.doe.enabled: false``, the no-DOE ablation) has no heights,
+levels or position to be in error: the DOE sweeps are skipped (logged, and recorded under
+``skipped`` in tolerance.json) and only the sensor distance is swept; the CLI refuses the DOE sweep
+options for it. A run fine-tuned on measured PSFs is refused (:func:`refuse_finetuned_run`): it
+images with the measured PSFs of a camera already built, while every perturbation here is of the
+simulated design optics; its design run is the one to study. tolerance.json records
+``optics_studied``: the design.
 
 Outputs (:func:`write_tolerance`): ``tolerance.json`` (the studied run: folder, weights file and
 its SHA-256; every value, the nominal result, the 1-dB tolerances), ``tolerance.csv`` (one row
@@ -45,7 +57,8 @@ import torch
 
 from hsicam.errors import InputError
 from hsicam.optics.perturb import (
-    defocus_delta_per_m2, nominal_heights, oversampled_optics, psf_for_heights, psf_shifted, shift_subsamples_for,
+    defocus_delta_per_m2, nominal_heights, oversampled_optics, psf_for_heights, psf_shifted, sensor_distance_aliasing,
+    sensor_distance_limits_m, shift_subsamples_for,
 )
 from hsicam.report.tolerance import plot_tolerance
 
@@ -132,11 +145,60 @@ def check_sweeps(spec: ToleranceSpec, optics) -> None:
         if z + dz_um * 1e-6 <= 0:
             raise InputError(f"sensor distance error {dz_um} µm puts the sensor behind the lens "
                              f"(the sensor sits {z * 1e6:.0f} µm behind it)")
+    check_defocus_sweep(spec.sensor_distance_um, optics)
     limit = 2 * optics.aperture_radius_m / optics.cell_m
     for s in spec.shift_cells:
         if abs(s) > limit:
             raise InputError(f"DOE shift {s} cells exceeds the aperture's diameter ({limit:.0f} cells of "
                              f"{optics.cell_m * 1e6:g} µm): the element would leave the aperture")
+
+
+def _um_toward_zero(v_m: float) -> float:
+    """``v_m`` in µm, cut toward zero to 0.1 µm (a printed limit that is itself representable)."""
+    return math.copysign(math.floor(abs(v_m) * 1e7) / 10.0, v_m)
+
+
+def check_defocus_sweep(values_um: Sequence[float], optics) -> None:
+    """Refuse the sensor distance errors whose defocus the optics' pupil grid cannot represent:
+    the criterion :class:`~hsicam.optics.psf.PSFModel` refuses a config with
+    (:func:`~hsicam.optics.perturb.sensor_distance_aliasing` > 1), so the sweep never evaluates an
+    aliased PSF (one that looks nearly in focus at any Δz). The message names the refused values,
+    the range this camera represents (:func:`~hsicam.optics.perturb.sensor_distance_limits_m`) and
+    the pupil oversampling the largest refused value would need."""
+    ratios = {v: float(sensor_distance_aliasing(optics, v * 1e-6).max()) for v in values_um}
+    bad = [v for v, r in ratios.items() if r > 1.0]
+    if not bad:
+        return
+    q, d_um = optics.pupil_oversample, optics.cell_m / optics.pupil_oversample * 1e6
+    lo, hi = sensor_distance_limits_m(optics)
+    away = "any distance away from it" if math.isinf(hi) else f"+{_um_toward_zero(hi):g} µm away from it"
+    worst = max(ratios[v] for v in bad)
+    q_need = int(math.ceil(q * worst - 1e-9))
+    raise InputError(
+        f"--sensor-distance-um: Δz = {', '.join(f'{v:g}' for v in bad)} µm defocus the lens more than the pupil "
+        f"sampling can represent (the residual defocus would alias on the {d_um:.4g} µm pupil samples, up to "
+        f"{worst:.3g}× the limit; `hsicam psf` refuses such a sensor distance too), so the PSFs would be those of "
+        f"another lens; this camera's PSFs represent Δz from {_um_toward_zero(lo):g} µm toward the lens to {away}: "
+        f"sweep within that range (these values would need camera.psf.pupil_oversample >= {q_need}; the run's is {q})"
+    )
+
+
+def refuse_finetuned_run(run_dir: str | Path) -> None:
+    """A run fine-tuned on measured PSFs is refused: it images with the measured PSFs of a camera
+    already fabricated, while the study perturbs the simulated design optics (heights, shift,
+    defocus of the design PSF), so its numbers would be of a camera the run does not image with."""
+    from hsicam.export.tolerance import finetuned_from
+
+    source = finetuned_from(run_dir)
+    if source is None:
+        return
+    design = f"the design run it was fine-tuned from ({source}, finetune.json)" if source else \
+        "the design run it was fine-tuned from"
+    raise InputError(
+        f"{run_dir}: a run fine-tuned on measured PSFs (measured_psf.safetensors): its camera is already fabricated "
+        f"and measured, and a tolerance study perturbs the simulated design optics, not the measured PSFs this run "
+        f"images with; study {design}: hsicam tolerance --run {source or 'DESIGN_RUN'} --out DIR"
+    )
 
 
 def run_tolerance(model, cfg, spec: ToleranceSpec = ToleranceSpec(), data: str | Path | None = None,
@@ -147,6 +209,7 @@ def run_tolerance(model, cfg, spec: ToleranceSpec = ToleranceSpec(), data: str |
     weights file and its SHA-256) is recorded as ``"run"`` so that ``hsicam export-optics`` cites
     the study only for that run (None: not recorded)."""
     from hsicam.cameras import DOECamera
+    from hsicam.cameras.measured import FixedPSFCamera
     from hsicam.export.doe import design_heights, quantize_levels
     from hsicam.export.tolerance import TOLERANCE_FORMAT, run_identity
 
@@ -154,8 +217,21 @@ def run_tolerance(model, cfg, spec: ToleranceSpec = ToleranceSpec(), data: str |
     cam = model.camera
     if not isinstance(cam, DOECamera) or not hasattr(cam, "optics"):
         raise InputError("tolerance analysis needs a DOE camera (camera.kind: doe)")
+    if run is not None:
+        refuse_finetuned_run(run)
+    if isinstance(cam, FixedPSFCamera):  # a model imaging with measured PSFs (fine-tuned run)
+        raise InputError("the model images with measured PSFs (a run fine-tuned on them): a tolerance study perturbs "
+                         "the simulated design optics; study the design run it was fine-tuned from")
     optics = cam.optics
     check_sweeps(spec, optics)
+    has_doe = bool(optics.doe.enabled)
+    skipped: dict[str, str] = {}
+    if not has_doe:
+        why = ("the camera has no DOE (camera.doe.enabled: false): there is no element whose heights, "
+               "quantisation or position could be in error")
+        skipped = {"sigma_height_nm": why, "levels": why, "shift": why}
+        log.info("tolerance: the camera has no DOE (camera.doe.enabled: false): the DOE sweeps (height noise, "
+                 "quantisation levels, lateral shift) are skipped; the sensor distance sweep is run")
     studied_run = None if run is None else run_identity(run)
     t0 = time.perf_counter()
     scenes, names = evaluation_scenes(cfg, cam.bands, spec.max_scenes, data)
@@ -174,7 +250,7 @@ def run_tolerance(model, cfg, spec: ToleranceSpec = ToleranceSpec(), data: str |
                      "energy_in_kernel_min": float(energy.min()), **extra})
 
     # height noise: one fixed error realisation per draw (a fabricated element)
-    for sigma in spec.sigma_height_nm:
+    for sigma in spec.sigma_height_nm if has_doe else ():
         ms, en = [], []
         for d in range(spec.height_draws if sigma > 0 else 1):
             g = torch.Generator().manual_seed(spec.seed * 1000 + d)
@@ -184,8 +260,9 @@ def run_tolerance(model, cfg, spec: ToleranceSpec = ToleranceSpec(), data: str |
             en.append(res.energy.min())
         record("sigma_height_nm", sigma, "nm", ms, torch.stack(en))
     # quantisation: the exported L-level heights
-    h_design, _, _ = design_heights(cam)
-    for lv in spec.levels:
+    if has_doe:
+        h_design, _, _ = design_heights(cam)
+    for lv in spec.levels if has_doe else ():
         _, hq = quantize_levels(h_design, lv, optics.doe.h2pi_m)
         res = psf_for_heights(optics, torch.from_numpy(hq))
         record("levels", lv, "levels", [evaluate_psf(model, res.psf, scenes, names, spec.seed)], res.energy)
@@ -193,23 +270,24 @@ def run_tolerance(model, cfg, spec: ToleranceSpec = ToleranceSpec(), data: str |
     # reference is the same model without shift (its PSFs differ from the trained q-model's:
     # higher orders of the cell grid leave the kernel instead of folding back in)
     big_q = shift_subsamples_for(optics, spec.shift_subsamples)
-    fine = oversampled_optics(optics, big_q)
     shift_ref = None
-    for sweep, direction in (("shift_x_cells", (0.0, 1.0)), ("shift_diag_cells", (1.0, 1.0))):
-        for s in spec.shift_cells:
-            if s == 0 and shift_ref is not None:
-                psf, energy, applied, m0 = shift_ref
-            else:
-                psf, energy, applied = psf_shifted(fine, h0, s * direction[0], s * direction[1])
-                m0 = evaluate_psf(model, psf, scenes, names, spec.seed)
-                if s == 0:
-                    shift_ref = (psf, energy, applied, m0)
-            record(sweep, s, "cells", [m0], energy, applied_cells=list(applied),
-                   shift_um=[a * optics.cell_m * 1e6 for a in applied], pupil_oversample=big_q)
-    if shift_ref is None:
-        psf, energy, _ = psf_shifted(fine, h0, 0.0, 0.0)
-        shift_ref = (psf, energy, (0.0, 0.0), evaluate_psf(model, psf, scenes, names, spec.seed))
-    del fine
+    if has_doe:
+        fine = oversampled_optics(optics, big_q)
+        for sweep, direction in (("shift_x_cells", (0.0, 1.0)), ("shift_diag_cells", (1.0, 1.0))):
+            for s in spec.shift_cells:
+                if s == 0 and shift_ref is not None:
+                    psf, energy, applied, m0 = shift_ref
+                else:
+                    psf, energy, applied = psf_shifted(fine, h0, s * direction[0], s * direction[1])
+                    m0 = evaluate_psf(model, psf, scenes, names, spec.seed)
+                    if s == 0:
+                        shift_ref = (psf, energy, applied, m0)
+                record(sweep, s, "cells", [m0], energy, applied_cells=list(applied),
+                       shift_um=[a * optics.cell_m * 1e6 for a in applied], pupil_oversample=big_q)
+        if shift_ref is None:
+            psf, energy, _ = psf_shifted(fine, h0, 0.0, 0.0)
+            shift_ref = (psf, energy, (0.0, 0.0), evaluate_psf(model, psf, scenes, names, spec.seed))
+        del fine
     # sensor distance error
     lam0 = optics.doe.design_wavelength_nm * 1e-9
     z = optics.sensor_distance_m
@@ -233,9 +311,9 @@ def run_tolerance(model, cfg, spec: ToleranceSpec = ToleranceSpec(), data: str |
     if "sigma_height_nm" in sweeps:
         sw = sweeps["sigma_height_nm"]
         summary["sigma_height_nm_at_1db_loss"] = _tolerance_at(sw["values"], sw["psnr"], nominal["psnr"])
-    shift_psnr0 = shift_ref[3]["psnr"]
+    shift_psnr0 = None if shift_ref is None else shift_ref[3]["psnr"]
     for name in ("shift_x_cells", "shift_diag_cells"):
-        if name in sweeps:
+        if name in sweeps and shift_psnr0 is not None:
             sweeps[name]["reference_psnr"] = shift_psnr0
             summary[f"{name}_at_1db_loss"] = _tolerance_at(sweeps[name]["values"], sweeps[name]["psnr"], shift_psnr0)
     if "sensor_distance_um" in sweeps:
@@ -256,16 +334,23 @@ def run_tolerance(model, cfg, spec: ToleranceSpec = ToleranceSpec(), data: str |
         "metric": "PSNR per band then averaged, peak 1 (per-cube max normalisation), mean over scenes; network fixed",
         "sensor_noise": {"model": cam.noise.model, "sigma": cam.noise.sigma, "seed": spec.seed},
         "spec": asdict(spec),
-        "methods": {
+        "optics_studied": "design (the simulated optics of the run's config and weights)",
+        "doe_enabled": has_doe,
+        "methods": {k: v for k, v in {
             "sigma_height_nm": "i.i.d. Gaussian height error per cell; each draw = one fabricated DOE; mean ± std over draws",
             "levels": "exported L-level heights (piston removed, L levels over h_2pi, wrapped)",
             "shift": (f"pupil oversampled to Q = {big_q} samples per cell, relief shifted by whole samples against the "
                       "fixed aperture and lens; PSNR and its 1-dB tolerance relative to the same Q model without "
                       "shift (reference_psnr)"),
-            "sensor_distance_um": "residual defocus with z_i + dz at the nominal sampling (magnification change neglected)",
-        },
+            "sensor_distance_um": ("residual defocus with z_i + dz at the nominal sampling (magnification change "
+                                   "neglected); values whose defocus would alias on the pupil grid are refused"),
+        }.items() if k not in skipped},
+        "sensor_distance_um_representable": [_um_toward_zero(v) if math.isfinite(v) else None
+                                             for v in sensor_distance_limits_m(optics)],
+        "skipped": skipped,
         "nominal": {**nominal, "energy_in_kernel_min": float(nominal_psf.energy.min())},
-        "shift_reference": {**shift_ref[3], "pupil_oversample": big_q, "energy_in_kernel_min": float(shift_ref[1].min())},
+        "shift_reference": None if shift_ref is None else {
+            **shift_ref[3], "pupil_oversample": big_q, "energy_in_kernel_min": float(shift_ref[1].min())},
         "sweeps": sweeps,
         "summary": summary,
         "rows": rows,

@@ -17,6 +17,11 @@ colour filter array (transmission table, picture, parametric fits) and ``spec.js
                                    pixel pitch, bands, CFA, tolerances studied, conventions, files
 ==============================  =========================================================================
 
+Only what the camera has: without a DOE (``camera.doe.enabled: false``, the no-DOE ablation) no
+``doe_*`` file is written and ``spec.json`` says ``"doe": {"enabled": false}``; without a CFA
+(``camera.cfa.enabled: false``) no ``cfa_*`` file and ``"cfa": {"enabled": false}``. A tolerance
+study of a run fine-tuned on measured PSFs is not cited (it perturbed the design optics).
+
 Conventions: see :mod:`hsicam.export.doe`, :mod:`hsicam.export.gds`, :mod:`hsicam.export.cfa`.
 
 The folder is one result: it is written under a temporary name, gets its completion marker
@@ -34,7 +39,7 @@ from typing import Any
 import numpy as np
 
 from hsicam.errors import InputError
-from hsicam.export.tolerance import read_tolerance_study
+from hsicam.export.tolerance import finetuned_from, read_tolerance_study
 
 log = logging.getLogger(__name__)
 
@@ -64,6 +69,18 @@ def _tolerances(run_dir: Path, cfg, tolerance: str | Path | None) -> dict[str, A
     cand = Path(tolerance) if tolerance is not None else run_dir / "tolerance"
     if cand.is_dir():
         cand = cand / "tolerance.json"
+    source = finetuned_from(run_dir)
+    if source is not None and cand.is_file():
+        # a study of a fine-tuned run perturbed the design optics, not the measured PSFs it images
+        # with (`hsicam tolerance` refuses such a run now; an older study may exist)
+        design = f"the design run it was fine-tuned from ({source})" if source else "the design run it was fine-tuned from"
+        why = (f"{run_dir} is a run fine-tuned on measured PSFs: a tolerance study of it perturbed the simulated design "
+               "optics, not the measured PSFs it images with")
+        if tolerance is not None:
+            raise InputError(f"{cand}: {why}; export without --tolerance, or export {design} and cite its study")
+        log.warning("%s: not cited: %s", cand, why)
+        out["note"] = f"{cand} not cited: {why}; the study of {design} applies to these optics"
+        return out
     if cand.is_file():
         # a tolerance study (not any JSON), and of this run when it records its run
         out["studied"] = read_tolerance_study(cand, run_dir)
@@ -76,7 +93,12 @@ def _tolerances(run_dir: Path, cfg, tolerance: str | Path | None) -> dict[str, A
 
 def export_optics(run_dir: str | Path, out_dir: str | Path, levels: int | None = None,
                   tolerance: str | Path | None = None) -> dict[str, Any]:
-    """Export the optics of a trained run into ``out_dir``; returns the ``spec.json`` content."""
+    """Export the optics of a trained run into ``out_dir``; returns the ``spec.json`` content.
+
+    Only what the camera has is exported: a camera without a DOE (``camera.doe.enabled: false``)
+    gets ``spec.json`` ``doe: {"enabled": false, ...}`` and no DOE file (``levels`` is then refused);
+    one without a CFA (``camera.cfa.enabled: false``) gets ``cfa: {"enabled": false, ...}`` and no
+    CFA file."""
     from hsicam.cameras import DOECamera
     from hsicam.io import atomic_output, check_output_path
     from hsicam.runs.folder import load_run
@@ -94,25 +116,42 @@ def export_optics(run_dir: str | Path, out_dir: str | Path, levels: int | None =
     camera = model.camera
     if not isinstance(camera, DOECamera):
         raise InputError(f"{run_dir}: export-optics needs a DOE camera (camera.kind: doe), got {cfg.camera.kind}")
-    if levels is None:
-        levels = default_levels(cfg)
-    if levels < 2 or levels > 256:
-        raise InputError(f"--levels must be in 2..256, got {levels}")
+    if not camera.optics.doe.enabled:
+        if levels is not None:
+            raise InputError(f"--levels {levels}: {run_dir} has no DOE (camera.doe.enabled: false), so there are no "
+                             "heights to quantise; leave out --levels (the export then holds "
+                             f"{'the CFA files and ' if camera.cfa.enabled else ''}spec.json)")
+    else:
+        if levels is None:
+            levels = default_levels(cfg)
+        if levels < 2 or levels > 256:
+            raise InputError(f"--levels must be in 2..256, got {levels}")
     tolerances = _tolerances(run_dir, cfg, tolerance)  # a bad tolerance file: refused before any file is written
     with atomic_output(out, overwrite=True, marker={"command": "export-optics"}) as tmp:
         spec = _export_into(tmp, run_dir, cfg, camera, levels, tolerances)
     return spec
 
 
-def _export_into(out: Path, run_dir: Path, cfg, camera, levels: int, tolerances: dict[str, Any]) -> dict[str, Any]:
+def _export_into(out: Path, run_dir: Path, cfg, camera, levels: int | None, tolerances: dict[str, Any]) -> dict[str, Any]:
     from hsicam.export.cfa import export_cfa
     from hsicam.export.doe import export_doe
     from hsicam.io import write_json
 
     bands = camera.bands
     optics = camera.optics
-    doe_info = export_doe(camera, out, levels, bands.centers_nm)
-    cfa_info = export_cfa(camera, out)
+    has_doe = bool(optics.doe.enabled)
+    if has_doe:
+        doe_info = {"enabled": True, **export_doe(camera, out, levels, bands.centers_nm)}
+    else:
+        doe_info = {"enabled": False,
+                    "note": "the camera has no DOE (camera.doe.enabled: false): the lens and the aperture alone form "
+                            "the PSF; no DOE files are written (nothing to fabricate)"}
+    if camera.cfa.enabled:
+        cfa_info = export_cfa(camera, out)
+    else:
+        cfa_info = {"enabled": False,
+                    "note": "the camera has no colour filter array (camera.cfa.enabled: false): every pixel sees every "
+                            "band (kappa = 1), a bare monochrome sensor; no CFA files are written"}
     lens = cfg.camera.lens
     desc = optics.describe()
     spec = {
@@ -130,7 +169,9 @@ def _export_into(out: Path, run_dir: Path, cfg, camera, levels: int, tolerances:
         "sensor_distance_mm": optics.sensor_distance_m * 1e3,
         "object_distance_m": optics.object_distance_m,
         "aperture": {"shape": "circle", "radius_mm": optics.aperture_radius_m * 1e3,
-                     "diameter_mm": 2 * optics.aperture_radius_m * 1e3, "stop": "at the DOE, centred on the lens axis"},
+                     "diameter_mm": 2 * optics.aperture_radius_m * 1e3,
+                     "stop": ("at the DOE, centred on the lens axis" if has_doe else
+                              "at the lens (its pupil plane), centred on the lens axis")},
         "doe": doe_info,
         "cfa": cfa_info,
         "sensor": {"pixel_pitch_um": optics.pixel_m * 1e6, "noise": cfg.camera.sensor.noise,

@@ -40,6 +40,23 @@ def run_identity(run_dir: str | Path) -> dict[str, str]:
     return {"path": str(run.resolve()), "weights": rel, "weights_sha256": file_sha256(weights)}
 
 
+def finetuned_from(run_dir: str | Path) -> str | None:
+    """The design run that ``run_dir`` was fine-tuned from, as ``finetune.json`` records it ("" when
+    that file is missing or unreadable), or None when ``run_dir`` is not a run fine-tuned on measured
+    PSFs (it has no ``measured_psf.safetensors``)."""
+    from hsicam.runs.measured_psf import MEASURED_PSF_FILE
+    from hsicam.runs.pretrained import resolve_run
+
+    run = resolve_run(run_dir)
+    if not (run / MEASURED_PSF_FILE).is_file():
+        return None
+    try:
+        source = json.loads((run / "finetune.json").read_text(encoding="utf-8")).get("source_run")
+    except (OSError, UnicodeDecodeError, ValueError, AttributeError):
+        source = None
+    return source if isinstance(source, str) else ""
+
+
 def read_tolerance_study(path: str | Path, run_dir: str | Path) -> dict[str, Any]:
     """The ``studied`` entry of ``spec.json`` for the tolerance.json at ``path``, cited for the run
     ``run_dir``.

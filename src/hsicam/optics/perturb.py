@@ -5,9 +5,11 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
 import torch
 
 from hsicam.optics.psf import PSFModel
+from hsicam.optics.sampling import defocus_aliasing
 
 # ------------------------------------------------------------------------------------------------
 @torch.no_grad()
@@ -34,6 +36,32 @@ def defocus_delta_per_m2(optics, dz_m: float) -> torch.Tensor:
     lam = torch.as_tensor(optics.bands.centers_nm * 1e-9, dtype=torch.float64)
     z = optics.sensor_distance_m
     return math.pi / lam * (1.0 / (z + dz_m) - 1.0 / z)
+
+
+def sensor_distance_aliasing(optics, dz_m: float) -> np.ndarray:
+    """:func:`~hsicam.optics.sampling.defocus_aliasing` per simulated wavelength of the optics'
+    residual defocus with the sensor moved by ``dz_m`` (the defocus that :func:`psf_for_heights`
+    computes with :func:`defocus_delta_per_m2`), on the optics' own pupil grid (cell / q). Above 1
+    the PSF aliases: the criterion :class:`~hsicam.optics.psf.PSFModel` refuses a config with."""
+    total = optics.defocus_per_m2.detach().double().cpu().numpy() + np.repeat(
+        defocus_delta_per_m2(optics, dz_m).numpy(), optics.band_samples)
+    return defocus_aliasing(total, optics.aperture_radius_m, optics.cell_m / optics.pupil_oversample)
+
+
+def sensor_distance_limits_m(optics) -> tuple[float, float]:
+    """(Δz_min ≤ 0, Δz_max ≥ 0) (m): the sensor distance errors whose residual defocus the optics'
+    pupil grid represents (:func:`sensor_distance_aliasing` ≤ 1 at every wavelength); ``inf`` where
+    no error on that side aliases (as far as the sensor can go). Closed form: with u = 1/(z + Δz) −
+    1/z, wavelength ℓ of band b needs |c_ℓ + π u/λ_b| ≤ π/(2 a d) (``defocus_aliasing``)."""
+    c0 = optics.defocus_per_m2.detach().double().cpu().numpy()
+    lam = np.repeat(np.asarray(optics.bands.centers_nm, dtype=np.float64) * 1e-9, optics.band_samples)
+    limit = math.pi / (2.0 * optics.aperture_radius_m * optics.cell_m / optics.pupil_oversample)
+    u_lo = float(np.max((-limit - c0) * lam / math.pi))
+    u_hi = float(np.min((limit - c0) * lam / math.pi))
+    z = optics.sensor_distance_m
+    dz_min = 1.0 / (1.0 / z + u_hi) - z if u_hi > 0 else 0.0  # u > 0: the sensor nearer the lens
+    dz_max = math.inf if 1.0 / z + u_lo <= 0 else (1.0 / (1.0 / z + u_lo) - z if u_lo < 0 else 0.0)
+    return dz_min, dz_max
 
 
 def shift_fill(x: torch.Tensor, dy: int, dx: int) -> torch.Tensor:

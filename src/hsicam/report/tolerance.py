@@ -2,11 +2,13 @@
 
 from __future__ import annotations
 
+import textwrap
 from pathlib import Path
 from typing import Any
 
 def plot_tolerance(result: dict[str, Any], path: str | Path) -> None:
-    """PSNR versus each perturbation (2×2 panels), nominal as a dashed line."""
+    """PSNR versus each perturbation (2×2 panels), nominal as a dashed line; a sweep recorded in
+    ``result["skipped"]`` (e.g. the DOE sweeps of a camera without a DOE) gets its reason instead."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -23,7 +25,16 @@ def plot_tolerance(result: dict[str, Any], path: str | Path) -> None:
         (axes[1, 0], ["shift_x_cells", "shift_diag_cells"], "DOE lateral shift (cells)", False),
         (axes[1, 1], ["sensor_distance_um"], "sensor distance error Δz (µm)", False),
     ]
+    skipped = result.get("skipped") or {}
     for ax, keys, label, logx in panels:
+        why = next((skipped[k] for k in (keys[0], keys[0].split("_")[0]) if k in skipped), None)
+        if why is not None:  # a sweep that does not apply to this camera (e.g. no DOE)
+            ax.text(0.5, 0.5, "not studied:\n" + textwrap.fill(why, 42), ha="center", va="center", fontsize=8,
+                    transform=ax.transAxes)
+            ax.set_xlabel(label)
+            ax.set_xticks([])
+            ax.set_yticks([])
+            continue
         for key in keys:
             if key not in sw:
                 continue
@@ -31,7 +42,7 @@ def plot_tolerance(result: dict[str, Any], path: str | Path) -> None:
             ax.errorbar(s["values"], s["psnr"], yerr=s["psnr_std"], marker="o", ms=3, capsize=2,
                         label={"shift_x_cells": "along x", "shift_diag_cells": "along the diagonal"}.get(key, None))
         ref = nom
-        if keys[0].startswith("shift") and "shift_reference" in result:
+        if keys[0].startswith("shift") and result.get("shift_reference"):
             ref = result["shift_reference"]["psnr"]
             ax.axhline(nom, ls="-.", color="silver", lw=0.8, label="nominal (trained model)")
             ax.axhline(ref, ls="--", color="gray", lw=0.8,

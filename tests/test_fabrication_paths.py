@@ -1,0 +1,298 @@
+"""Bad paths of `hsicam tolerance` and `hsicam export-optics` (probe 21: F1, F14, F15).
+
+* F1: a sensor distance error whose defocus the pupil grid cannot represent is refused up front,
+  by the same criterion as the PSF plan (`hsicam psf` / ``PSFModel`` refuse that sensor distance).
+* F14: a camera without a DOE (or without a CFA) exports only what it has, and its tolerance study
+  skips the DOE sweeps (recorded) and refuses the DOE sweep options.
+* F15: a run fine-tuned on measured PSFs is refused by `tolerance` (it would study the design
+  optics), and `export-optics` does not cite such a study.
+
+Runs: the shared ``fab_run`` (tiny optics, trained) and two 1-epoch runs of the same config
+without a DOE / without a CFA, trained on ``fab_run``'s scenes.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+import shutil
+
+import numpy as np
+import pytest
+import torch
+
+from cli_helpers import assert_clean_error
+from test_calibration import FAB_OVERRIDES, fab_run, run_cli, write_psf_dir  # noqa: F401 - shared fixture
+from hsicam.cameras import DOECamera
+from hsicam.config import load_config
+from hsicam.errors import ConfigError, InputError
+
+
+def _train_variant(fab_run, tmp_path_factory, name: str, *overrides: str):
+    from hsicam.engine.train import train
+
+    run = tmp_path_factory.mktemp(name) / "run"
+    cfg = load_config("tiny", [*FAB_OVERRIDES, f"data.root={fab_run.parent / 'data'}", "train.epochs=1", *overrides])
+    train(cfg, run, progress=False)
+    return run
+
+
+@pytest.fixture(scope="module")
+def no_doe_run(fab_run, tmp_path_factory):
+    return _train_variant(fab_run, tmp_path_factory, "nodoe", "camera.doe.enabled=false")
+
+
+@pytest.fixture(scope="module")
+def no_cfa_run(fab_run, tmp_path_factory):
+    return _train_variant(fab_run, tmp_path_factory, "nocfa", "camera.cfa.enabled=false")
+
+
+@pytest.fixture(scope="module")
+def finetuned_run(fab_run, tmp_path_factory):
+    """fab_run fine-tuned 1 epoch on 'measured' PSFs (its design PSFs with a band throughput 0.6..1)."""
+    from hsicam.runs.folder import load_run
+
+    _, model = load_run(fab_run)
+    with torch.no_grad():
+        psf = model.camera.psf().double().numpy() * np.linspace(0.6, 1.0, len(model.bands))[:, None, None]
+    k = psf.shape[-1]
+    base = tmp_path_factory.mktemp("ft")
+    d = write_psf_dir(base / "measured", psf, model.bands, 10.0, centre="axis", axis_px=[k // 2, k // 2],
+                      normalize="none")
+    run = base / "ft"
+    res = run_cli("finetune", "--run", str(fab_run), "--psf-dir", str(d), "--out", str(run), "--epochs", "1")
+    assert res.returncode == 0, res.stderr
+    return run
+
+
+# ------------------------------------------------------------------------------------------------
+# F1: aliased sensor-distance sweeps
+# ------------------------------------------------------------------------------------------------
+def test_sensor_distance_limits_are_the_psf_plans_own(tiny_config):
+    """The representable range of Δz is where the PSF plan's criterion reaches 1, and a camera
+    built with the sensor just inside it is accepted by ``PSFModel``, just outside refused."""
+    from hsicam.optics.perturb import sensor_distance_aliasing, sensor_distance_limits_m
+
+    cfg = tiny_config()
+    cam = DOECamera.from_config(cfg)
+    o = cam.optics
+    lo, hi = sensor_distance_limits_m(o)
+    assert -o.sensor_distance_m < lo < 0 < hi < math.inf
+    for dz in (lo, hi):
+        assert float(sensor_distance_aliasing(o, dz).max()) == pytest.approx(1.0, abs=1e-9)
+    assert float(sensor_distance_aliasing(o, 0.0).max()) < 1
+    z_mm = o.sensor_distance_m * 1e3
+    for dz in (lo, hi):
+        inside, outside = dz * (1 - 1e-4), dz * (1 + 1e-4)
+        assert float(sensor_distance_aliasing(o, outside).max()) > 1 > float(sensor_distance_aliasing(o, inside).max())
+        DOECamera.from_config(tiny_config(f"camera.sensor_distance_mm={z_mm + inside * 1e3!r}"))
+        with pytest.raises(ConfigError, match="pupil sampling can represent"):
+            DOECamera.from_config(tiny_config(f"camera.sensor_distance_mm={z_mm + outside * 1e3!r}"))
+
+
+def test_sensor_distance_limits_with_band_samples_and_a_singlet(tiny_config):
+    """Every simulated wavelength counts (band_samples > 1, a singlet's per-band focus)."""
+    from hsicam.optics.perturb import sensor_distance_aliasing, sensor_distance_limits_m
+
+    cam = DOECamera.from_config(tiny_config("camera.psf.band_samples=3", "camera.lens.model=singlet",
+                                            "camera.lens.radius_of_curvature_mm=2.3",
+                                            "camera.lens.center_thickness_mm=0.5"))
+    o = cam.optics
+    lo, hi = sensor_distance_limits_m(o)
+    for dz in (lo, hi):
+        r = sensor_distance_aliasing(o, dz)
+        assert r.shape == (3 * len(cam.bands),) and float(r.max()) == pytest.approx(1.0, abs=1e-9)
+    grid = np.linspace(lo * 1.5, hi * 1.5, 301)
+    ok = np.array([float(sensor_distance_aliasing(o, dz).max()) <= 1 for dz in grid])
+    np.testing.assert_array_equal(ok, (grid >= lo * (1 + 1e-12)) & (grid <= hi * (1 + 1e-12)))
+
+
+def test_tolerance_refuses_aliased_sensor_distances(fab_run, tmp_path, monkeypatch):
+    import hsicam.engine.tolerance as tol
+
+    out = tmp_path / "tol"
+    with monkeypatch.context() as m:  # refused before any scene is loaded or scored
+        m.setattr(tol, "evaluation_scenes", lambda *a, **k: (_ for _ in ()).throw(AssertionError("scored")))
+        res = run_cli("tolerance", "--run", str(fab_run), "--out", str(out), "--max-scenes", "1", "--draws", "1",
+                      "--sensor-distance-um=-4000,-1000,0,1000,1e6,1e9")
+    assert_clean_error(res, "--sensor-distance-um: Δz = -4000, -1000, 1000, 1e+06, 1e+09 µm",
+                       "pupil sampling can represent", "sweep within that range", "camera.psf.pupil_oversample >=")
+    assert not out.exists()
+    from hsicam.optics.perturb import sensor_distance_limits_m
+    from hsicam.runs.folder import load_run
+
+    _, model = load_run(fab_run)
+    lo, hi = sensor_distance_limits_m(model.camera.optics)
+    lo_um, hi_um = math.ceil(lo * 1e7) / 10, math.floor(hi * 1e7) / 10  # as printed: cut toward zero
+    assert f"represent Δz from {lo_um:g} µm toward the lens to +{hi_um:g} µm away" in res.stderr, res.stderr
+    # the printed limits themselves are accepted: the study runs and records the range
+    res = run_cli("tolerance", "--run", str(fab_run), "--out", str(out), "--max-scenes", "1", "--draws", "1",
+                  "--sigma-height-nm", "0", "--levels", "8", "--shift-cells", "0",
+                  f"--sensor-distance-um={lo_um:g},0,{hi_um:g}")
+    assert res.returncode == 0, res.stderr
+    r = json.loads((out / "tolerance.json").read_text())
+    assert r["sensor_distance_um_representable"] == [lo_um, hi_um]
+    assert r["sweeps"]["sensor_distance_um"]["values"] == [lo_um, 0.0, hi_um]
+    # one value just past the limit is refused on its own
+    past = f"{hi_um + 1:g}"
+    assert_clean_error(run_cli("tolerance", "--run", str(fab_run), "--out", str(tmp_path / "t2"),
+                               f"--sensor-distance-um=0,{past}"), f"Δz = {past} µm")
+    assert not (tmp_path / "t2").exists()
+
+
+# ------------------------------------------------------------------------------------------------
+# F14: cameras without a DOE / without a CFA
+# ------------------------------------------------------------------------------------------------
+def test_export_without_doe_writes_no_doe_files(no_doe_run, tmp_path):
+    from hsicam.export.cfa import read_transmission_csv
+    from hsicam.runs.folder import load_run
+
+    out = tmp_path / "fab"
+    res = run_cli("export-optics", "--run", str(no_doe_run), "--out", str(out))
+    assert res.returncode == 0, res.stderr
+    assert "no DOE (camera.doe.enabled: false: no DOE files)" in res.stdout and "CFA (3×3" in res.stdout
+    files = sorted(p.name for p in out.iterdir() if not p.name.startswith("."))
+    assert not [f for f in files if f.startswith("doe")], files
+    assert {"cfa_tile.npy", "cfa_transmission.csv", "cfa_fit.csv", "spec.json"} <= set(files)
+    spec = json.loads((out / "spec.json").read_text())
+    assert spec["doe"]["enabled"] is False and set(spec["doe"]) == {"enabled", "note"}
+    assert "no DOE files" in spec["doe"]["note"] and spec["cfa"]["enabled"] is True
+    assert spec["files"] == files and "at the lens" in spec["aperture"]["stop"]
+    _, model = load_run(no_doe_run)
+    lam, t, names = read_transmission_csv(out / "cfa_transmission.csv")
+    np.testing.assert_array_equal(t, model.camera.cfa.tile().detach().numpy().reshape(len(lam), -1))
+    # nothing to quantise: --levels is refused, naming the way out
+    assert_clean_error(run_cli("export-optics", "--run", str(no_doe_run), "--out", str(tmp_path / "o"), "--levels", "8"),
+                       "--levels 8", "has no DOE (camera.doe.enabled: false)", "leave out --levels")
+    assert not (tmp_path / "o").exists()
+
+
+def test_export_without_cfa_writes_no_cfa_files(no_cfa_run, tmp_path):
+    out = tmp_path / "fab"
+    res = run_cli("export-optics", "--run", str(no_cfa_run), "--out", str(out))
+    assert res.returncode == 0, res.stderr
+    assert "no CFA (camera.cfa.enabled: false: no CFA files)" in res.stdout and "DOE (" in res.stdout
+    files = sorted(p.name for p in out.iterdir() if not p.name.startswith("."))
+    assert not [f for f in files if f.startswith("cfa")], files
+    assert {"doe_height_nm.npy", "doe_height_L8_nm.tif", "doe_L8.gds", "spec.json"} <= set(files)
+    spec = json.loads((out / "spec.json").read_text())
+    assert spec["cfa"]["enabled"] is False and set(spec["cfa"]) == {"enabled", "note"}
+    assert spec["doe"]["enabled"] is True and spec["doe"]["quantized"]["levels"] == 8
+
+
+def test_export_with_neither_doe_nor_cfa_is_the_spec_alone(fab_run, tmp_path):
+    from hsicam.export import export_optics
+    from hsicam.runs.checkpoint import save_weights
+    from hsicam.runs.folder import load_run
+
+    # an untrained camera of that config: the export reads weights and config only
+    run = tmp_path / "bare"
+    run.mkdir()
+    cfg = load_config("tiny", [*FAB_OVERRIDES, "camera.doe.enabled=false", "camera.cfa.enabled=false"])
+    from hsicam.config import dump_yaml
+    from hsicam.models import CameraSystem
+
+    (run / "config.yaml").write_text(dump_yaml(cfg), encoding="utf-8")
+    model = CameraSystem.from_config(cfg)
+    save_weights(run / "model.safetensors", model, model.bands)
+    load_run(run)
+    spec = export_optics(run, tmp_path / "fab")
+    assert spec["doe"]["enabled"] is False and spec["cfa"]["enabled"] is False
+    assert sorted(p.name for p in (tmp_path / "fab").iterdir() if not p.name.startswith(".")) == ["spec.json"]
+    res = run_cli("export-optics", "--run", str(run), "--out", str(tmp_path / "fab2"))
+    assert res.returncode == 0, res.stderr
+    assert "exported no DOE" in res.stdout and "no CFA" in res.stdout
+
+
+def test_tolerance_without_doe_skips_the_doe_sweeps(no_doe_run, tmp_path):
+    out = tmp_path / "tol"
+    res = run_cli("tolerance", "--run", str(no_doe_run), "--out", str(out), "--max-scenes", "1",
+                  "--sensor-distance-um=-50,0,50")
+    assert res.returncode == 0, res.stderr
+    assert "no DOE (camera.doe.enabled: false): DOE sweeps skipped" in res.stdout
+    assert "σ_p" not in res.stdout and "levels ≥" not in res.stdout and "Δz toward the lens" in res.stdout
+    r = json.loads((out / "tolerance.json").read_text())
+    assert r["doe_enabled"] is False
+    assert set(r["skipped"]) == {"sigma_height_nm", "levels", "shift"}
+    assert all("camera.doe.enabled: false" in v for v in r["skipped"].values())
+    assert set(r["sweeps"]) == {"sensor_distance_um"} and set(r["summary"]) == {"sensor_distance_um_at_1db_loss"}
+    assert set(r["methods"]) == {"sensor_distance_um"} and r["shift_reference"] is None
+    assert {row["sweep"] for row in r["rows"]} == {"sensor_distance_um"}
+    rows = list(csv.DictReader(open(out / "tolerance.csv", encoding="utf-8")))
+    assert [row["sweep"] for row in rows] == ["nominal"] + ["sensor_distance_um"] * 3
+    i = r["sweeps"]["sensor_distance_um"]["values"].index(0.0)
+    assert r["sweeps"]["sensor_distance_um"]["psnr"][i] == pytest.approx(r["nominal"]["psnr"], abs=1e-3)
+    from PIL import Image
+
+    assert Image.open(out / "tolerance.png").size[0] > 100
+    # asking for a DOE sweep of a camera without a DOE is refused, naming the options and the way out
+    for opts in (("--levels", "2,4"), ("--sigma-height-nm", "0,20", "--draws", "2"), ("--shift-cells", "0,1")):
+        assert_clean_error(run_cli("tolerance", "--run", str(no_doe_run), "--out", str(tmp_path / "t2"), *opts),
+                           f"{opts[0]}", "has no DOE (camera.doe.enabled: false)", "leave out", "sensor distance only")
+    assert not (tmp_path / "t2").exists()
+
+
+def test_tolerance_without_doe_logs_the_skip(no_doe_run, tmp_path, caplog):
+    from hsicam.engine.tolerance import ToleranceSpec, run_tolerance
+    from hsicam.runs.folder import load_run
+
+    cfg, model = load_run(no_doe_run)
+    with caplog.at_level("INFO", logger="hsicam.engine.tolerance"):
+        r = run_tolerance(model, cfg, ToleranceSpec(max_scenes=1, sensor_distance_um=(0.0,)))
+    assert any("DOE sweeps" in m and "skipped" in m for m in caplog.messages), caplog.messages
+    assert set(r["sweeps"]) == {"sensor_distance_um"}
+
+
+# ------------------------------------------------------------------------------------------------
+# F15: runs fine-tuned on measured PSFs
+# ------------------------------------------------------------------------------------------------
+def test_tolerance_refuses_a_finetuned_run(fab_run, finetuned_run, tmp_path):
+    from hsicam.engine.tolerance import ToleranceSpec, run_tolerance
+    from hsicam.runs.folder import load_run
+
+    out = tmp_path / "tol"
+    res = run_cli("tolerance", "--run", str(finetuned_run), "--out", str(out), "--max-scenes", "1")
+    assert_clean_error(res, f"{finetuned_run}: a run fine-tuned on measured PSFs", "already fabricated and measured",
+                       "not the measured PSFs this run images with",
+                       f"the design run it was fine-tuned from ({fab_run}, finetune.json)",
+                       f"hsicam tolerance --run {fab_run} --out DIR")
+    assert not out.exists()
+    # the library refuses it too: with the run named, and for a model imaging with measured PSFs
+    cfg, model = load_run(finetuned_run)
+    with pytest.raises(InputError, match="fine-tuned on measured PSFs"):
+        run_tolerance(model, cfg, ToleranceSpec(max_scenes=1), run=finetuned_run)
+    with pytest.raises(InputError, match="images with measured PSFs"):
+        run_tolerance(model, cfg, ToleranceSpec(max_scenes=1))
+    # without finetune.json the advice still names the way out
+    bare = tmp_path / "bare"
+    shutil.copytree(finetuned_run, bare, ignore=shutil.ignore_patterns("checkpoints*"))
+    (bare / "finetune.json").unlink()
+    assert_clean_error(run_cli("tolerance", "--run", str(bare), "--out", str(out)),
+                       "study the design run it was fine-tuned from: hsicam tolerance --run DESIGN_RUN")
+    # a design run's study records that the design optics were studied
+    res = run_cli("tolerance", "--run", str(fab_run), "--out", str(out), "--max-scenes", "1", "--draws", "1",
+                  "--sigma-height-nm", "0", "--levels", "8", "--shift-cells", "0", "--sensor-distance-um", "0")
+    assert res.returncode == 0, res.stderr
+    assert json.loads((out / "tolerance.json").read_text())["optics_studied"].startswith("design")
+
+
+def test_export_does_not_cite_a_study_of_a_finetuned_run(fab_run, finetuned_run, tmp_path):
+    """A study of a fine-tuned run (written before `tolerance` refused them) studied the design
+    optics: export-optics refuses it with --tolerance, and leaves it uncited (noted) in RUN/tolerance."""
+    from hsicam.export.tolerance import TOLERANCE_FORMAT, run_identity
+
+    ft = tmp_path / "ft"
+    shutil.copytree(finetuned_run, ft)
+    study = ft / "tolerance" / "tolerance.json"
+    study.parent.mkdir()
+    study.write_text(json.dumps({"format": TOLERANCE_FORMAT, "run": run_identity(ft), "nominal": {"psnr": 25.0},
+                                 "summary": {}}))
+    assert_clean_error(run_cli("export-optics", "--run", str(ft), "--out", str(tmp_path / "o"), "--tolerance", str(study)),
+                       f"{ft} is a run fine-tuned on measured PSFs", "perturbed the simulated design optics",
+                       "export without --tolerance", f"export the design run it was fine-tuned from ({fab_run})")
+    assert not (tmp_path / "o").exists()
+    res = run_cli("export-optics", "--run", str(ft), "--out", str(tmp_path / "o"))
+    assert res.returncode == 0, res.stderr
+    tol = json.loads((tmp_path / "o" / "spec.json").read_text())["tolerances"]
+    assert tol["studied"] is None and "not cited" in tol["note"] and "fine-tuned on measured PSFs" in tol["note"]
