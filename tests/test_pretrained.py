@@ -171,6 +171,23 @@ def test_pack_refuses_an_unfinished_run_and_an_existing_name(env, tmp_path):
         pack_pretrained(run, "../escape", tmp_path / "root")
 
 
+def test_pack_refuses_the_demo_results_of_another_run(env, tmp_path):
+    """A demo's results.json records its run folder but no config hash: the weights of the folder it
+    names are compared with those of the run being packed (probe 21, F2)."""
+    from hsicam.config import load_config
+    from hsicam.engine.pretrained import pack_pretrained
+    from hsicam.engine.train import train
+
+    run, results, _ = env
+    other = tmp_path / "other"
+    train(load_config("tiny", ["train.epochs=1", "train.seed=5"]), other, progress=False)
+    with pytest.raises(InputError, match=rf"{results}: results of another run \({run}, weights sha256 [0-9a-f]{{12}}…\), "
+                                         rf"not of {other} \(weights sha256 [0-9a-f]{{12}}…\); evaluate this run "
+                                         rf"\(`hsicam evaluate --run {other} --out DIR`\)"):
+        pack_pretrained(other, "other", tmp_path / "root", results)
+    assert not (tmp_path / "root").exists()
+
+
 def test_pack_force_replaces_a_camera_from_a_checkout_but_never_a_foreign_folder(env, tmp_path):
     """A shipped camera in a git checkout has no completion marker (.gitignore'd): `--force`
     still replaces it. A folder with anything besides a camera's files is left as it was."""

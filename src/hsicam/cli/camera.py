@@ -1,4 +1,10 @@
-"""`hsicam psf` and `hsicam simulate`: look at a camera's PSFs and simulate a capture."""
+"""`hsicam psf` and `hsicam simulate`: look at a camera's PSFs and simulate a capture.
+
+Both take the camera from ``--config`` (a preset or YAML file: the design, its DOE as initialised,
+never trained) or from ``--run RUN`` (a trained run or ``pretrained:NAME``: the trained DOE heights
+and CFA of its weights; a fine-tuned run's measured PSFs). A run folder's own config.yaml given as
+``--config`` is refused (:func:`check_not_run_config`): it would silently give the untrained camera.
+"""
 
 from __future__ import annotations
 
@@ -23,6 +29,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("psf", help="compute the camera's PSF stack: psf.npy, psf.json, psf.png")
     add_config_args(p)
     p.add_argument("--out", required=True, metavar="DIR", help="output folder")
+    add_run_arg(p, "the PSFs of this trained run's camera (its trained DOE; a fine-tuned run's measured PSFs) "
+                   "instead of --config's untrained design", required=False)
     p.set_defaults(func=cmd_psf)
 
     p = sub.add_parser("simulate", help="simulate the sensor image of a scene through the camera")
@@ -37,8 +45,27 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=cmd_simulate)
 
 
-def camera_from_args(args: argparse.Namespace, extra_overrides: tuple[str, ...] = ()):
+_REST = {"psf": "--out DIR", "simulate": "--scene FILE --out DIR"}
+
+
+def check_not_run_config(config: str | Path | None, command: str) -> None:
+    """One-line :class:`InputError` when ``--config`` is a trained run's own config.yaml (a file
+    beside ``model.safetensors``): the config describes the camera before training, its trained DOE
+    heights are in the weights, so ``--config`` would silently give another camera than the run's."""
+    if config is None:
+        return
+    path = Path(config)
+    run = path.parent
+    if path.is_file() and (run / "model.safetensors").is_file():
+        raise InputError(f"--config {path}: the config.yaml of the trained run {run}, whose DOE heights are in "
+                         f"{run / 'model.safetensors'}; --config gives the untrained design's camera: use "
+                         f"`hsicam {command} --run {run} {_REST[command]}` for the trained camera (the design before training: "
+                         "copy the config.yaml out of the run folder first)")
+
+
+def camera_from_args(args: argparse.Namespace, extra_overrides: tuple[str, ...] = (), command: str = "psf"):
     """(camera, config) of the command line's config file and --set overrides (any camera kind)."""
+    check_not_run_config(args.config, command)
     cfg = config_from_args(args.config, [*args.overrides, *extra_overrides])
     return build_camera(cfg), cfg
 
@@ -47,15 +74,31 @@ def cmd_psf(args: argparse.Namespace) -> int:
     from hsicam.report.camera import write_psf_outputs
 
     out = prepare_output(args.out, "dir", replace=True, command="psf")
-    camera, cfg = camera_from_args(args)
-    if camera.kind != "doe":
+    if args.run:
+        from hsicam.runs.folder import load_run
+
+        if args.config:
+            raise InputError("--run uses the run's config.yaml; drop --config")
+        cfg, system = load_run(args.run, overrides=tuple(args.overrides))
+        camera = system.camera
+        source = {"run": str(Path(args.run).resolve()),
+                  "optics": ("the run's measured PSFs (fine-tuned run)" if camera.kind == "measured_psf"
+                             else "the run's trained DOE (model.safetensors)")}
+    else:
+        camera, cfg = camera_from_args(args, command="psf")
+        source = {"config": str(args.config) if args.config else "paper (default)",
+                  "optics": "the config's DOE as initialised (untrained; a trained camera: --run RUN)"}
+    if camera.kind not in ("doe", "measured_psf"):
         raise InputError(f"hsicam psf needs a DOE camera (camera.kind=doe), not camera.kind={camera.kind}")
     with atomic_output(out, overwrite=True, marker={"command": "psf"}) as tmp:
         info = write_psf_outputs(camera, tmp)
+        write_json(tmp / "psf.json", {**info, "source": source})
         with atomic_open(tmp / "config.yaml") as fh:
             fh.write(dump_yaml(cfg))
     e = np.asarray(info["energy_in_kernel"])
-    print(f"PSF stack: {len(camera.bands)} bands, {camera.kernel_px}×{camera.kernel_px} px, "
+    what = (f"{args.run}'s {'measured PSFs' if camera.kind == 'measured_psf' else 'trained camera'}" if args.run
+            else "the config's camera, DOE as initialised")
+    print(f"PSF stack ({what}): {len(camera.bands)} bands, {camera.kernel_px}×{camera.kernel_px} px, "
           f"energy in kernel {e.min():.4f}..{e.max():.4f} -> {out}")
     return 0
 
@@ -104,7 +147,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
         cfg, system = load_run(args.run, overrides=(*args.overrides, f"camera.boundary={args.boundary}"))
         camera = system.camera
     else:
-        camera, cfg = camera_from_args(args, (f"camera.boundary={args.boundary}",))
+        camera, cfg = camera_from_args(args, (f"camera.boundary={args.boundary}",), command="simulate")
     scene = load_scene(args.scene, camera.bands, npy_bands(cfg.data))
     gen = torch.Generator().manual_seed(args.seed)
     sensor = camera.capture(torch.from_numpy(scene)[None], gen, source=str(args.scene))[0, 0].numpy()

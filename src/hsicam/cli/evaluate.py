@@ -120,6 +120,12 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     summary = summarize(results, method=args.method, run=str(Path(args.run).resolve()) if args.run else None, data=data, config_hash=config_hash(dump_yaml(cfg)),
                         noise={"sigma_height_nm": args.sigma_height_nm, "sensor_sigma": args.sensor_sigma, "seeds": args.seeds},
                         bands_nm=bands.centers_nm.tolist(), region=scored_region(method.camera))
+    if args.run:  # which weights were scored (hsicam pretrained pack checks its --results by it)
+        from hsicam.runs.checkpoint import file_sha256, root_weights_path
+
+        weights = root_weights_path(args.run)
+        if weights.is_file():
+            summary["weights_sha256"] = file_sha256(weights)
     if heldout is not None:
         held = evaluate_method(method, heldout[0], heldout[1], noise, args.device, keep_arrays=False, progress=show)
         summary["heldout"] = {"data": f"held-out spectral sources ({cfg.data.holdout_sources}): scenes whose "

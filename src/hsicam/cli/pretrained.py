@@ -29,11 +29,13 @@ def register(sub: argparse._SubParsersAction) -> None:
     q = psub.add_parser("pack", help="(maintainers) pack a finished run as a shipped camera, with its card")
     q.add_argument("run", metavar="RUN", help="finished run folder")
     q.add_argument("--name", required=True, help="camera name (e.g. standard)")
-    q.add_argument("--results", metavar="FILE", help="results.json of `hsicam demo` or `hsicam evaluate` on this run")
-    q.add_argument("--heldout", metavar="FILE", help="results.json of an evaluation on held-out data "
+    q.add_argument("--results", metavar="FILE", help="results.json of `hsicam demo` or `hsicam evaluate` on this run "
+                                                     "(an evaluation of another run is refused)")
+    q.add_argument("--heldout", metavar="FILE", help="results.json of an evaluation of this run on held-out data "
                                                      "(instead of --results' own held-out section)")
     q.add_argument("--summary", help="one-line summary (default: made from the run)")
-    q.add_argument("--preset", help="preset the run was trained from (default: the preset its config equals, if any)")
+    q.add_argument("--preset", help="shipped preset the run was trained from (default: the preset its config equals, "
+                                    "if any; a camera that differs from it is warned about)")
     q.add_argument("--dest", metavar="DIR", help="root of the shipped cameras (default: $HSICAM_PRETRAINED_DIR, "
                                                  "else the package's resources/pretrained)")
     q.add_argument("--force", action="store_true", help="replace an existing camera of that name")

@@ -25,6 +25,22 @@ never renormalised away. A band keeping less than :data:`MIN_ENERGY_IN_KERNEL` o
 light in the kernel is an :class:`~hsicam.errors.InputError` (its PSF would be (nearly) black: a
 wrong ``axis_px``, centre or pitch), less than :data:`LOW_ENERGY_IN_KERNEL` a warning.
 
+Checks on each band image (one line naming the file and what to do):
+
+* **Pixel pitch in the wrong unit** (:func:`implausible_pitch`, an :class:`InputError`): at
+  ``pixel_pitch_um`` the image spans less than one camera pixel (``0.006`` for 6 µm, a pitch
+  written in mm), or half of its light lies within a radius smaller than half the diffraction limit
+  of the camera's aperture (:data:`AIRY_EE50` λ·N, N = sensor distance / aperture diameter; no
+  PSF of that camera can be that small). Either way the camera's PSF would collapse to (nearly) a
+  single pixel, and fine-tuning on it would remove the DOE's blur from the model.
+* **Saturation** (:func:`saturated_pixels`): pixels of an integer image at the type's maximum (255,
+  65535; in a 16-bit file also 1023, 4095 or 16383, the maximum of a 10-, 12- or 14-bit sensor, when
+  that is the image's maximum) are clipped. :data:`SATURATED_MIN_PX` or more are a warning (once
+  per file; one or two pixels at full scale are what an image scaled to its own maximum has);
+  clipped pixels holding more than :data:`MAX_SATURATED_SHARE` of the image's light (after the
+  background) are an :class:`InputError`: the PSF's core is then mostly a flat plateau and, once
+  normalised, its tails are over-weighted. Float images carry no clip level and are not checked.
+
 Centring (``centre``): ``centroid`` (default) — the intensity centroid of the band-summed images,
 **one shift for all bands**, so the bands keep their relative positions (a DOE's PSF centroid is
 not its optical axis, and its band-to-band shifts are physics the network relies on); ``peak`` —
@@ -67,6 +83,19 @@ MIN_ENERGY_IN_KERNEL = 0.01
 #: Less than this share (most of the light lost outside the kernel) is warned about: the kernel is
 #: too small for these PSFs, or the centre / axis_px / pitch is off.
 LOW_ENERGY_IN_KERNEL = 0.5
+#: Radius holding half the light of an aberration-free (Airy) PSF, in units of λ·N (N: f-number):
+#: 1 − J0(v)² − J1(v)² = 1/2 at v = 1.680 = π r / (λ N). No PSF of a circular aperture of that
+#: f-number concentrates half its light in a much smaller disc; a DOE or aberrations only widen it.
+AIRY_EE50 = 0.5348
+#: A measured image whose half-light radius is below this fraction of the Airy one is refused (its
+#: pitch is in the wrong unit): a margin for an aperture a little larger than the config's.
+MIN_DIFFRACTION_FRACTION = 0.5
+#: This many pixels (or more) at an integer image's clip level are warned about (a clipped PSF).
+SATURATED_MIN_PX = 3
+#: Clipped pixels holding more than this share of an image's light (after the background) are refused.
+MAX_SATURATED_SHARE = 0.5
+#: Maxima of 10-, 12- and 14-bit sensors: where a 16-bit file of such a sensor clips.
+_SENSOR_MAXIMA = (1023.0, 4095.0, 16383.0)
 
 
 # ------------------------------------------------------------------------------------------------
@@ -188,6 +217,62 @@ def prepare_psf_image(image: np.ndarray, opts: PSFImportOptions) -> tuple[np.nda
     return img, b, total
 
 
+def saturated_pixels(image: np.ndarray, type_max: float | None) -> tuple[int, float, str]:
+    """(count, level, what) of the pixels at which an integer image is clipped: those at the type's
+    maximum ``type_max`` (255, 65535); for a 16-bit image without any, those at its own maximum when
+    that is a 10/12/14-bit sensor's (1023, 4095, 16383). ``type_max`` None (a float image): (0, nan, "")."""
+    if type_max is None:
+        return 0, float("nan"), ""
+    img = np.asarray(image)
+    n = int(np.count_nonzero(img == type_max))
+    if n:
+        return n, float(type_max), "the file type's maximum"
+    top = float(img.max()) if img.size else 0.0
+    if type_max == 65535.0 and top in _SENSOR_MAXIMA:
+        bits = {1023.0: 10, 4095.0: 12, 16383.0: 14}[top]
+        return int(np.count_nonzero(img == top)), top, f"a {bits}-bit sensor's maximum"
+    return 0, float(type_max), "the file type's maximum"
+
+
+def half_light_radius_px(img: np.ndarray) -> float:
+    """Radius (pixels) of the disc whose area is that of the fewest pixels holding half of the
+    (non-negative) image's light: √(n/π). At least √(1/π) ≈ 0.56 (one pixel)."""
+    v = np.sort(np.asarray(img, dtype=np.float64).ravel())[::-1]
+    cum = np.cumsum(v)
+    n = int(np.searchsorted(cum, 0.5 * cum[-1])) + 1
+    return math.sqrt(n / math.pi)
+
+
+def implausible_pitch(img: np.ndarray, pitch_um: float, camera_pixel_m: float, wavelength_nm: float,
+                      f_number: float | None, psf: np.ndarray, pitch_from: str) -> str | None:
+    """Why ``pitch_um`` cannot be the pixel pitch of the measured image ``img`` (background-subtracted,
+    non-negative) — it spans less than one camera pixel, or its light is more concentrated than the
+    camera's aperture (f-number ``f_number``; None: not checked) can focus it at ``wavelength_nm`` —
+    else None. ``psf``: the image resampled onto the camera's kernel (its largest pixel is quoted);
+    ``pitch_from``: where the pitch came from (named in the message)."""
+    pitch_m = pitch_um * 1e-6
+    span_um = max(img.shape) * pitch_um
+    span_px = span_um * 1e-6 / camera_pixel_m
+    total = float(psf.sum())
+    one = f"{float(psf.max()) / total:.0%}" if total > 0 else "all"
+    unit = (f"the pitch looks like it is in the wrong unit ({pitch_um:g} mm would be {pitch_um * 1e3:g} µm): give "
+            f"the images' pixel pitch in µm ({pitch_from})")
+    if span_px < 1.0:
+        return (f"at pixel_pitch_um {pitch_um:g} the {img.shape[0]}×{img.shape[1]} px image spans {span_um:.3g} µm, "
+                f"{span_px:.3g} of one {camera_pixel_m * 1e6:g} µm camera pixel, so the camera's PSF would be a single "
+                f"pixel ({one} of its light in one pixel); {unit}")
+    if f_number is None or not f_number > 0:
+        return None
+    r50 = half_light_radius_px(img) * pitch_m
+    airy = AIRY_EE50 * wavelength_nm * 1e-9 * f_number
+    if r50 >= MIN_DIFFRACTION_FRACTION * airy:
+        return None
+    return (f"at pixel_pitch_um {pitch_um:g} half of the image's light lies within {r50 * 1e6:.3g} µm of its centre, "
+            f"{airy / r50:.3g}× less than the smallest spot the camera's f/{f_number:.3g} aperture can form at "
+            f"{wavelength_nm:g} nm ({airy * 1e6:.3g} µm, the diffraction limit); the {img.shape[0]}×{img.shape[1]} px "
+            f"image spans {span_px:.3g} camera pixels and its PSF would put {one} of its light in one pixel; {unit}")
+
+
 def find_centre(img: np.ndarray, mode: str, axis_px: tuple[float, float] | None = None) -> tuple[float, float]:
     """Centre (row, col), pixel centres at integers: intensity centroid, brightest pixel or the given axis."""
     if mode in ("centroid", "centroid_per_band"):
@@ -282,8 +367,9 @@ def options_from_manifest(meta: dict[str, Any], pitch_um: float | None = None, c
     return opts
 
 
-def _list_band_images(d: Path, meta: dict[str, Any]) -> list[tuple[float, Path | None, np.ndarray | None]]:
-    """(wavelength nm, file, preloaded image or None) for every PSF in the folder."""
+def _list_band_images(d: Path, meta: dict[str, Any]) -> list[tuple[float, Path, np.ndarray, float | None]]:
+    """(wavelength nm, file, image as stored (float64), the integer type's maximum or None for a
+    float image) for every PSF in the folder."""
     stack = d / "psf.npy"
     if stack.is_file() and "bands_nm" in meta:
         bands = meta["bands_nm"]
@@ -302,7 +388,8 @@ def _list_band_images(d: Path, meta: dict[str, Any]) -> list[tuple[float, Path |
         data = np.array(arr, dtype=np.float64)
         if not np.all(np.isfinite(data)):
             raise InputError(f"{stack}: PSF stack contains NaN or Inf values")
-        return [(float(w), stack, data[i]) for i, w in enumerate(bands)]
+        type_max = float(np.iinfo(arr.dtype).max) if arr.dtype.kind in "ui" else None
+        return [(float(w), stack, data[i], type_max) for i, w in enumerate(bands)]
     items = []
     for f in sorted(d.iterdir()):
         if f.name.startswith(".") or f.suffix.lower() not in _IMAGE_SUFFIXES or not f.is_file():
@@ -312,25 +399,60 @@ def _list_band_images(d: Path, meta: dict[str, Any]) -> list[tuple[float, Path |
             raise InputError(f"{f}: a PSF stack needs its wavelengths: bands_nm in {d / 'psf.json'}")
         if w is None:
             raise InputError(f"{f}: cannot tell the wavelength from the file name (use e.g. psf_450nm{f.suffix})")
-        items.append((w, f, None))
+        items.append((w, f))
     if not items:
         raise InputError(f"{d}: no PSF images (*.npy, *.png, *.tif named with their wavelength, or psf.npy + psf.json)")
-    waves = [w for w, _, _ in items]
+    waves = [w for w, _ in items]
     if len(set(waves)) != len(waves):
         raise InputError(f"{d}: two PSF images name the same wavelength")
     out = []
-    for w, f, _ in items:
-        out.append((w, f, read_image_2d(f, "PSF image").data.astype(np.float64)))
+    for w, f in items:
+        raw = read_image_2d(f, "PSF image")
+        type_max = raw.full_scale if np.dtype(raw.dtype).kind in "ui" else None
+        out.append((w, f, raw.data.astype(np.float64), type_max))
+    return out
+
+
+def _check_saturation(items: list[tuple[float, Path, np.ndarray, float | None]], chosen: list[int],
+                      opts: PSFImportOptions) -> dict[int, int]:
+    """{item index: clipped pixels} of the images the bands use (:func:`saturated_pixels`): a warning
+    per file with :data:`SATURATED_MIN_PX` or more, an :class:`InputError` when they hold more than
+    :data:`MAX_SATURATED_SHARE` of its light (after the background)."""
+    out: dict[int, int] = {}
+    for j in dict.fromkeys(chosen):  # once per file, in band order
+        w, f, img, type_max = items[j]
+        n, level, what = saturated_pixels(img, type_max)
+        out[j] = n
+        if n < SATURATED_MIN_PX:
+            continue
+        try:
+            bs, _, total = prepare_psf_image(img, PSFImportOptions(pitch_um=opts.pitch_um, background=opts.background,
+                                                                  normalize="none"))
+        except InputError:
+            continue  # an image without signal is refused, with its name, below
+        share = float(bs[img == level].sum()) / total
+        where = f"{n} of its {img.size} pixels are at {level:g} ({what}), holding {share:.0%} of its light"
+        if share > MAX_SATURATED_SHARE:
+            raise InputError(f"{f} ({w:g} nm): a clipped (over-exposed) PSF image: {where}, more than the "
+                             f"{MAX_SATURATED_SHARE:.0%} allowed; its core would be a flat plateau and its tails "
+                             "over-weighted: measure it again with a shorter exposure (brightest pixel below "
+                             f"{level:g})")
+        log.warning("%s (%g nm): a clipped (over-exposed) PSF image: %s; its core is flattened and, normalised, its "
+                    "tails over-weighted: measure it again with a shorter exposure (brightest pixel below %g)",
+                    f, w, where, level)
     return out
 
 
 def import_psf_dir(psf_dir: str | Path, bands: Bands, camera_pixel_m: float, kernel_px: int,
                    pitch_um: float | None = None, centre: str | None = None,
-                   background: str | float | None = None) -> MeasuredPSF:
+                   background: str | float | None = None, f_number: float | None = None) -> MeasuredPSF:
     """Measured PSFs of ``psf_dir`` on the camera's bands, pixel pitch and K×K kernel.
 
     Every camera band needs a PSF whose wavelength is within ``wavelength_tolerance_nm``; extra
-    wavelengths are ignored. Raises :class:`InputError` for anything unusable.
+    wavelengths are ignored. Raises :class:`InputError` for anything unusable, including a pitch in
+    the wrong unit (:func:`implausible_pitch`; the diffraction test needs the camera's ``f_number``)
+    and images clipped over more than :data:`MAX_SATURATED_SHARE` of their light; warns (once per
+    file) about :data:`SATURATED_MIN_PX` or more clipped pixels.
     """
     d = Path(psf_dir)
     if not d.is_dir():
@@ -338,7 +460,7 @@ def import_psf_dir(psf_dir: str | Path, bands: Bands, camera_pixel_m: float, ker
     meta = _read_manifest(d)
     opts = options_from_manifest(meta, pitch_um, centre, background)
     items = _list_band_images(d, meta)
-    waves = np.array([w for w, _, _ in items])
+    waves = np.array([w for w, _, _, _ in items])
     chosen, missing = [], []
     for lam in bands.centers_nm:
         j = int(np.argmin(np.abs(waves - lam)))
@@ -348,6 +470,8 @@ def import_psf_dir(psf_dir: str | Path, bands: Bands, camera_pixel_m: float, ker
     if missing:
         raise InputError(f"{d}: no measured PSF for band(s) {', '.join(missing)} nm "
                          f"(found {', '.join(f'{w:g}' for w in sorted(waves))} nm; tolerance {opts.wavelength_tolerance_nm:g} nm)")
+    saturated = _check_saturation(items, chosen, opts)
+    pitch_from = "--psf-pitch-um" if pitch_um is not None else f"pixel_pitch_um in {d / 'psf.json'}"
     common = None
     if opts.centre in ("centroid", "peak"):  # one centre for all bands: keeps their relative positions
         shapes = {items[j][2].shape for j in chosen}  # type: ignore[union-attr]
@@ -365,12 +489,15 @@ def import_psf_dir(psf_dir: str | Path, bands: Bands, camera_pixel_m: float, ker
         common = find_centre(total, opts.centre)
     stack, per_band, low = [], [], []
     for lam, j in zip(bands.centers_nm, chosen):
-        w, f, img = items[j]
-        assert img is not None
+        w, f, img, _ = items[j]
         try:
             psf, rep = import_psf_image(img, opts.pitch_um * 1e-6, camera_pixel_m, kernel_px, opts, common)  # type: ignore[operator]
         except InputError as exc:
             raise InputError(f"{f} ({w:g} nm): {exc}") from None
+        bs = prepare_psf_image(img, opts)[0]
+        why = implausible_pitch(bs, opts.pitch_um, camera_pixel_m, w, f_number, psf, pitch_from)  # type: ignore[arg-type]
+        if why:
+            raise InputError(f"{f} ({w:g} nm): {why}")
         e = rep["energy_in_kernel"]
         if not e >= MIN_ENERGY_IN_KERNEL:
             raise InputError(f"{f} ({w:g} nm): only {100 * e:.3g} % of the PSF's light falls in the camera's "
@@ -380,7 +507,8 @@ def import_psf_dir(psf_dir: str | Path, bands: Bands, camera_pixel_m: float, ker
         if e < LOW_ENERGY_IN_KERNEL:
             low.append(f"{f.name if f else '?'} ({w:g} nm): {100 * e:.0f} %")
         stack.append(psf)
-        per_band.append({"band_nm": float(lam), "wavelength_nm": w, "file": f.name if f else None, **rep})
+        per_band.append({"band_nm": float(lam), "wavelength_nm": w, "file": f.name if f else None, **rep,
+                         "saturated_px": saturated[j]})
     if low:
         log.warning("%s: most of the measured PSF light falls outside the camera's %d×%d px kernel (energy in kernel: "
                     "%s); the camera model loses it: check axis_px / centre and pixel_pitch_um in psf.json "
@@ -408,7 +536,10 @@ def import_psf_dir(psf_dir: str | Path, bands: Bands, camera_pixel_m: float, ker
 
 
 def import_for_camera(psf_dir: str | Path, camera, **kwargs: Any) -> MeasuredPSF:
-    """:func:`import_psf_dir` on a :class:`~hsicam.cameras.DOECamera`'s bands, pixel pitch and kernel."""
+    """:func:`import_psf_dir` on a :class:`~hsicam.cameras.DOECamera`'s bands, pixel pitch and kernel
+    (and its f-number, sensor distance / aperture diameter, for the diffraction test of the pitch)."""
     if not hasattr(camera, "optics"):
         raise InputError("measured PSFs need a DOE camera (camera.kind: doe)")
-    return import_psf_dir(psf_dir, camera.bands, camera.optics.pixel_m, camera.kernel_px, **kwargs)
+    optics = camera.optics
+    kwargs.setdefault("f_number", optics.sensor_distance_m / (2.0 * optics.aperture_radius_m))
+    return import_psf_dir(psf_dir, camera.bands, optics.pixel_m, camera.kernel_px, **kwargs)

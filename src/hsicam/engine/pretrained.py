@@ -5,13 +5,19 @@
 (:func:`card_fields`) and ``card.md`` (:func:`card_markdown`, the one place the card's text is
 made). Everything in the card is read from the run (config, ``metrics.jsonl``, weights) and from
 an optional ``results.json`` of ``hsicam demo`` / ``hsicam evaluate``; nothing is typed in.
+
+A results.json must be an evaluation of the run being packed (:func:`check_results_of_run`: the
+weights' sha256 when it records one, else its config hash and the run folder it names), and a
+``preset`` given by hand must be a shipped preset's name (:func:`check_preset`, which warns when the
+run's camera differs from that preset's).
 """
 
 from __future__ import annotations
 
 import datetime
-import hashlib
 import json
+import logging
+import os
 import shutil
 from pathlib import Path
 from typing import Any
@@ -19,13 +25,18 @@ from typing import Any
 from hsicam.errors import InputError
 from hsicam.io import COMPLETE_MARKER, atomic_open, atomic_output, is_complete, mark_complete, write_json
 from hsicam.runs import pretrained as shipped
-from hsicam.runs.checkpoint import root_weights_path
+from hsicam.runs.checkpoint import file_sha256, root_weights_path
 from hsicam.runs.folder import MetricsLog, load_run
 from hsicam.runs.linear_step import LINEAR_STEP_FILE
 from hsicam.runs.measured_psf import MEASURED_PSF_FILE
 
+log = logging.getLogger(__name__)
+
 CARD_FORMAT = "hsicam-pretrained-card-1"
 METRICS = ("psnr", "ssim", "sam")
+#: The evaluation method of a run's own network (``hsicam evaluate --method``); results of another
+#: method (a network-free reference through the run's optics, a baseline) are not the camera's numbers.
+LEARNED_METHOD = "doe-learned"
 
 
 # ------------------------------------------------------------------------------------------------
@@ -97,23 +108,125 @@ def _scene_block(data: dict[str, Any], source: Path, data_label: str) -> dict[st
             "references": _references(data.get("references"), source)}
 
 
-def results_metrics(results: str | Path | None, heldout: str | Path | None = None) -> dict[str, Any]:
+def results_metrics(results: str | Path | None, heldout: str | Path | None = None,
+                    run_dir: str | Path | None = None) -> dict[str, Any]:
     """Validation and held-out-sources means (and the network-free references) of a results.json.
 
     ``results``: a results.json of ``hsicam demo`` or ``hsicam evaluate`` (keys ``mean``,
     ``references``, ``heldout``). ``heldout``: a results.json of an evaluation on held-out data,
-    used instead of ``results``' own ``heldout`` section."""
+    used instead of ``results``' own ``heldout`` section. With ``run_dir``, each file must be an
+    evaluation of that run (:func:`check_results_of_run`)."""
     out: dict[str, Any] = {"validation": None, "heldout": None}
     if results is not None:
         data = _read_results(results)
+        if run_dir is not None:
+            check_results_of_run(data, Path(results), Path(run_dir), "--results")
         out["validation"] = _scene_block(data, Path(results), "validation scenes")
         if isinstance(data.get("heldout"), dict):
             out["heldout"] = _scene_block(data["heldout"], Path(results), "held-out spectral sources")
     if heldout is not None:
         data = _read_results(heldout)
+        if run_dir is not None:
+            check_results_of_run(data, Path(heldout), Path(run_dir), "--heldout")
         out["heldout"] = _scene_block(data.get("heldout") if isinstance(data.get("heldout"), dict) else data,
                                       Path(heldout), "held-out data")
     return out
+
+
+def run_config_hash(run_dir: Path) -> str:
+    """The config hash ``hsicam evaluate --run RUN`` records for ``run_dir`` (its config.yaml, no --set)."""
+    from hsicam.config import dump_yaml, load_config
+    from hsicam.engine.evaluate import config_hash
+
+    return config_hash(dump_yaml(load_config(Path(run_dir) / "config.yaml")))
+
+
+def _evaluated_folder(recorded: str, source: Path) -> Path | None:
+    """The run folder a results.json names, if it is still there. ``hsicam evaluate`` records it
+    resolved; ``hsicam demo`` as given (``OUT/run``, relative to where the demo ran, beside its
+    results.json)."""
+    p = Path(recorded).expanduser()
+    for c in ([p] if p.is_absolute() else [Path.cwd() / p, source.parent / p.name]):
+        if (c / "config.yaml").is_file():
+            return c
+    return None
+
+
+def check_results_of_run(data: dict[str, Any], source: Path, run_dir: Path, option: str = "--results") -> None:
+    """One-line :class:`InputError` unless the results.json ``data`` (read from ``source``) is an
+    evaluation of the run ``run_dir`` by its own network.
+
+    Compared: the weights' sha256 when the file records one (``weights_sha256``, as ``hsicam
+    evaluate`` writes it, or ``run: {weights_sha256}``) must be ``run_dir``'s; the config hash
+    (``hsicam evaluate`` records the hash of the config it evaluated: another run, a run trained on
+    since, or ``--set`` overrides give another one) must equal that of ``run_dir``'s config.yaml;
+    without a recorded sha256, the run folder it names must be ``run_dir`` or hold the same weights
+    (a copy). A file that names no run, or a run
+    that is no longer on disk, is used with a logged warning (nothing left to compare)."""
+    from hsicam.engine.methods import METHOD_ALIASES
+
+    again = (f"evaluate this run (`hsicam evaluate --run {run_dir} --out DIR`) and pass DIR/results.json as {option}")
+    method = data.get("method")
+    if isinstance(method, str) and METHOD_ALIASES.get(method, method) != LEARNED_METHOD:
+        raise InputError(f"{source}: results of method {method!r}, not of the run's own network ({LEARNED_METHOD}); "
+                         f"{again}")
+    recorded = data.get("run")
+    rec_path = recorded.get("path") if isinstance(recorded, dict) else recorded
+    rec_path = rec_path if isinstance(rec_path, str) and rec_path else None
+    sha = data.get("weights_sha256") or (recorded.get("weights_sha256") if isinstance(recorded, dict) else None)
+    this_sha = file_sha256(root_weights_path(run_dir))
+    same_weights = isinstance(sha, str) and bool(sha)
+    if same_weights and sha != this_sha:
+        raise InputError(f"{source}: results of another run ({rec_path or '?'}, weights sha256 {sha[:12]}…), not of "
+                         f"{run_dir} (weights sha256 {this_sha[:12]}…); {again}")
+    folder = _evaluated_folder(rec_path, source) if rec_path and not same_weights else None
+    same = same_weights or (folder is not None and os.path.samefile(folder, run_dir))
+    recorded_hash, this_hash = data.get("config_hash"), run_config_hash(run_dir)
+    if isinstance(recorded_hash, str) and recorded_hash != this_hash:
+        if same:
+            raise InputError(f"{source}: an evaluation of {run_dir} with another config (config hash {recorded_hash}; its "
+                             f"config.yaml hashes to {this_hash}): evaluated with --set overrides, or the run was "
+                             f"trained on since; {again} (no --set)")
+        raise InputError(f"{source}: results of another run ({rec_path or '?'}, config hash {recorded_hash}), not of "
+                         f"{run_dir} (config hash {this_hash}); {again}")
+    if same_weights:
+        return
+    if rec_path is None:
+        log.warning("%s: the results do not record which run they evaluated: cannot check that they are of %s; "
+                    "cited as given", source, run_dir)
+        return
+    if folder is None:
+        log.warning("%s: the run it evaluated (%s) is no longer there, so its weights cannot be compared with %s's%s; "
+                    "cited as given", source, rec_path, run_dir,
+                    " (the config hashes match)" if isinstance(recorded_hash, str) else "")
+        return
+    if same:
+        return
+    other = root_weights_path(folder)
+    other_sha = file_sha256(other) if other.is_file() else None
+    if other_sha != this_sha:
+        raise InputError(f"{source}: results of another run ({folder}, weights sha256 "
+                         f"{other_sha[:12] + '…' if other_sha else 'missing'}), not of {run_dir} (weights sha256 "
+                         f"{this_sha[:12]}…); {again}")
+
+
+def check_preset(preset: str, cfg, run_dir: Path) -> str:
+    """``preset`` when it names a shipped preset (:func:`hsicam.config.preset_names`), else a
+    one-line :class:`InputError` listing them. Logs a warning when the run's camera (``camera.*``,
+    ``bands.*``) differs from that preset's: the card would name a preset the camera was not made from."""
+    from hsicam.config import load_config, preset_names, training_differences
+
+    names = preset_names()
+    if preset not in names:
+        raise InputError(f"--preset {preset!r}: not a shipped preset (presets: {', '.join(names)}); give the preset "
+                         f"{run_dir} was trained from, or leave --preset out (the card then names the preset its "
+                         "config equals, if any)")
+    diffs = [d for d in training_differences(cfg, load_config(preset), limit=10**6) if d.startswith(("camera.", "bands."))]
+    if diffs:
+        log.warning("%s: its camera differs from preset %r in %d setting(s) (run → preset: %s%s); the card names %r "
+                    "as the preset it was trained from: leave --preset out unless it was", run_dir, preset, len(diffs),
+                    "; ".join(diffs[:4]), "; …" if len(diffs) > 4 else "", preset)
+    return preset
 
 
 def matching_preset(cfg) -> str | None:
@@ -162,7 +275,8 @@ def card_fields(run_dir: str | Path, name: str, results: str | Path | None = Non
             raise InputError(f"{run_dir}: NaN/Inf in the weights ({key}); nothing packed")
     bands = model.camera.bands
     weights = root_weights_path(run_dir)
-    preset = preset or matching_preset(cfg)
+    preset = check_preset(preset, cfg, run_dir) if preset else matching_preset(cfg)
+    scene_metrics = results_metrics(results, heldout, run_dir)
     cam, t = cfg.camera, cfg.train
     n_net = sum(p.numel() for p in model.net.parameters())
     n_cam = sum(p.numel() for p in model.camera.parameters())
@@ -199,8 +313,8 @@ def card_fields(run_dir: str | Path, name: str, results: str | Path | None = Non
                      "patches_per_epoch": cfg.data.patches_per_epoch},
         "metrics": {"training_log": {"what": "validation patches at the end of training (metrics.jsonl)",
                                      **val_log, "best_psnr": final.get("best_psnr")},
-                    **results_metrics(results, heldout)},
-        "weights": {"file": "model.safetensors", "bytes": weights.stat().st_size, "sha256": _sha256(weights)},
+                    **scene_metrics},
+        "weights": {"file": "model.safetensors", "bytes": weights.stat().st_size, "sha256": file_sha256(weights)},
         "limits": _limits(cfg, name, bands, cfa, data),
     }
 
@@ -234,12 +348,6 @@ def _version() -> str | None:
         return None
 
 
-def _sha256(path: Path) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as fh:
-        for chunk in iter(lambda: fh.read(1 << 20), b""):
-            h.update(chunk)
-    return h.hexdigest()
 
 
 def _duration(seconds: float) -> str:
@@ -326,7 +434,8 @@ def pack_pretrained(run_dir: str | Path, name: str, dest_root: str | Path | None
     (default: :func:`hsicam.runs.pretrained.root`); returns its folder.
 
     Refuses (one-line :class:`InputError`, nothing written) a run that has not finished, a
-    fine-tuned run (its measured PSFs are not shipped), weights over
+    fine-tuned run (its measured PSFs are not shipped), results of another run
+    (:func:`check_results_of_run`), a ``preset`` that is not a shipped preset, weights over
     :data:`hsicam.runs.pretrained.MAX_WEIGHTS_BYTES` and an existing camera unless ``overwrite``.
     The folder is written under a temporary name and renamed into place."""
     run_dir = Path(run_dir)

@@ -1,0 +1,250 @@
+"""Measured-PSF and `hsicam psf` bad paths (probe 21, F3–F5).
+
+* F3: a measured PSF folder whose ``pixel_pitch_um`` is in mm (0.006 for 6 µm) used to collapse to
+  a single-pixel PSF, and `finetune` / `reconstruct --psf-dir` went on with it.
+* F4: clipped (over-exposed) PSF images were accepted without a word.
+* F5: `hsicam psf --config RUN/config.yaml` gave the untrained DOE's PSFs; `psf` had no `--run`.
+
+The "measured" PSFs are the trained tiny camera's own simulated kernels (21×21 px at its 6 µm
+pitch), written as images the way a lab would (npy, 8- and 16-bit PNG).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import io
+import json
+import logging
+import subprocess
+from pathlib import Path
+
+import imageio.v3 as iio
+import numpy as np
+import pytest
+import torch
+
+from cli_helpers import assert_clean_error
+from hsicam.data.measured_psf import import_for_camera
+from hsicam.errors import InputError
+from hsicam.io import write_json
+
+LOGGER = "hsicam.data.measured_psf"
+
+
+def run_cli(*args: str) -> subprocess.CompletedProcess:
+    """``hsicam ARGS`` in this process (the console script's ``main``; saves the interpreter start)."""
+    from hsicam.cli import main
+
+    out, err = io.StringIO(), io.StringIO()
+    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+        try:
+            rc = main(list(args))
+        except SystemExit as exc:  # argparse usage errors
+            rc = exc.code
+    return subprocess.CompletedProcess(list(args), rc, out.getvalue(), err.getvalue())
+
+
+@pytest.fixture(scope="module")
+def trained(tmp_path_factory, cache_env):
+    """(run folder, its camera, the camera's PSFs (C, K, K) float64) of the tiny preset trained one epoch."""
+    from hsicam.config import load_config
+    from hsicam.engine.train import train
+    from hsicam.runs.folder import load_run
+
+    run = tmp_path_factory.mktemp("psf_paths") / "run"
+    train(load_config("tiny", ["train.epochs=1"]), run, progress=False)
+    _, model = load_run(run)
+    with torch.no_grad():
+        psf = model.camera.psf().double().numpy()
+    return run, model.camera, psf
+
+
+def band_images(d: Path, images, bands, pitch_um: float, suffix: str = ".npy") -> Path:
+    """One image per band (``psf_<nm>nm<suffix>``: .npy as given, .png with the array's integer type)."""
+    d.mkdir(parents=True)
+    for img, lam in zip(images, bands.centers_nm):
+        f = d / f"psf_{lam:g}nm{suffix}"
+        np.save(f, img) if suffix == ".npy" else iio.imwrite(f, img)
+    write_json(d / "psf.json", {"pixel_pitch_um": pitch_um})
+    return d
+
+
+def exposed(psf: np.ndarray, level: float, factor: float, dtype) -> np.ndarray:
+    """The PSFs as integer images exposed so each band's peak would reach ``factor`` × ``level``,
+    clipped at ``level`` (a sensor's maximum)."""
+    img = np.round(psf / psf.max(axis=(1, 2), keepdims=True) * level * factor)
+    return np.clip(img, 0, level).astype(dtype)
+
+
+# ------------------------------------------------------------------------------------------------
+# F3: a pitch in the wrong unit
+# ------------------------------------------------------------------------------------------------
+def test_a_pitch_written_in_mm_is_refused(trained, tmp_path):
+    run, cam, psf = trained
+    d = band_images(tmp_path / "mm", psf, cam.bands, 0.006)
+    with pytest.raises(InputError) as exc:
+        import_for_camera(d, cam)
+    msg = str(exc.value)
+    assert msg.startswith(f"{d}/psf_420nm.npy (420 nm): at pixel_pitch_um 0.006 the 21×21 px image spans 0.126 µm, "
+                          "0.021 of one 6 µm camera pixel, so the camera's PSF would be a single pixel"), msg
+    assert "wrong unit (0.006 mm would be 6 µm)" in msg and f"(pixel_pitch_um in {d}/psf.json)" in msg, msg
+    with pytest.raises(InputError, match=r"0\.006 mm would be 6 µm\): give the images' pixel pitch in µm \(--psf-pitch-um\)"):
+        import_for_camera(d, cam, pitch_um=0.006)
+    # the same images with the pitch in µm are the camera's PSFs again
+    m = import_for_camera(d, cam, pitch_um=6.0)
+    np.testing.assert_allclose(m.psf, psf / psf.sum(axis=(1, 2), keepdims=True), atol=1e-6)
+
+
+def test_a_large_frame_with_a_pitch_in_mm_is_refused_by_the_diffraction_limit(trained, tmp_path):
+    """A 1100 px frame at 0.006 spans 1.1 camera pixels (more than one): the light of the PSF then
+    lies within far less than the aperture's diffraction limit, which no PSF of it can do."""
+    run, cam, psf = trained
+    d = tmp_path / "big"
+    d.mkdir()
+    k, n = psf.shape[-1], 1100
+    stack = np.zeros((len(cam.bands), n, n), np.float32)
+    stack[:, n // 2 - k // 2: n // 2 + k // 2 + 1, n // 2 - k // 2: n // 2 + k // 2 + 1] = psf
+    np.save(d / "psf.npy", stack)
+    write_json(d / "psf.json", {"pixel_pitch_um": 0.006, "bands_nm": cam.bands.centers_nm.tolist()})
+    f_number = cam.optics.sensor_distance_m / (2 * cam.optics.aperture_radius_m)
+    with pytest.raises(InputError, match=rf"psf\.npy \(420 nm\): at pixel_pitch_um 0\.006 half of the image's light lies "
+                                         rf"within .* µm of its centre, .*× less than the smallest spot the camera's "
+                                         rf"f/{f_number:.3g} aperture can form at 420 nm .*the diffraction limit\); the "
+                                         r"1100×1100 px image spans 1\.1 camera pixels and its PSF would put 100% of its "
+                                         r"light in one pixel; the pitch looks like it is in the wrong unit"):
+        import_for_camera(d, cam)
+    write_json(d / "psf.json", {"pixel_pitch_um": 6.0, "bands_nm": cam.bands.centers_nm.tolist()})
+    assert import_for_camera(d, cam).psf.shape == psf.shape  # in µm: accepted
+
+
+def test_finetune_and_reconstruct_refuse_a_pitch_in_mm(trained, tmp_path):
+    run, cam, psf = trained
+    d = band_images(tmp_path / "mm", psf, cam.bands, 0.006)
+    out = tmp_path / "ft"
+    res = run_cli("finetune", "--run", str(run), "--psf-dir", str(d), "--out", str(out), "--epochs", "1")
+    assert_clean_error(res, "psf_420nm.npy (420 nm): at pixel_pitch_um 0.006", "0.021 of one 6 µm camera pixel",
+                       "0.006 mm would be 6 µm")
+    assert not out.exists()
+    cap = tmp_path / "cap.npy"
+    np.save(cap, np.random.default_rng(3).random((64, 64)).astype(np.float32))
+    res = run_cli("reconstruct", str(cap), "--run", str(run), "--psf-dir", str(d), "--out", str(tmp_path / "c.h5"))
+    assert_clean_error(res, "psf_420nm.npy (420 nm): at pixel_pitch_um 0.006", "0.006 mm would be 6 µm")
+    assert not (tmp_path / "c.h5").exists()
+
+
+# ------------------------------------------------------------------------------------------------
+# F4: clipped PSF images
+# ------------------------------------------------------------------------------------------------
+def test_clipped_psf_images_are_warned_about_once_per_file(trained, tmp_path, caplog):
+    from hsicam.data.measured_psf import SATURATED_MIN_PX
+
+    run, cam, psf = trained
+    img = exposed(psf, 255, 2.0, np.uint8)  # each peak exposed to twice the 8-bit maximum
+    counts = (img == 255).sum(axis=(1, 2))
+    clipped = [f"psf_{lam:g}nm.png" for lam, n in zip(cam.bands.centers_nm, counts) if n >= SATURATED_MIN_PX]
+    assert 0 < len(clipped) < len(counts), counts  # some bands clipped, others only touch full scale
+    d = band_images(tmp_path / "sat8", img, cam.bands, 6.0, ".png")
+    with caplog.at_level(logging.WARNING, logger=LOGGER):
+        m = import_for_camera(d, cam)
+    msgs = [r.getMessage() for r in caplog.records if "clipped" in r.getMessage()]
+    assert len(msgs) == len(clipped), msgs
+    for name, msg in zip(clipped, msgs):
+        n = int(counts[[f"psf_{lam:g}nm.png" for lam in cam.bands.centers_nm].index(name)])
+        assert msg.startswith(f"{d / name} ("), msg
+        assert f"a clipped (over-exposed) PSF image: {n} of its 441 pixels are at 255 (the file type's maximum)" in msg
+        assert "measure it again with a shorter exposure" in msg
+    assert [b["saturated_px"] for b in m.report["bands"]] == counts.tolist()
+
+    # a 12-bit sensor in a 16-bit file clips at 4095
+    d12 = band_images(tmp_path / "sat12", exposed(psf, 4095, 2.0, np.uint16), cam.bands, 6.0, ".png")
+    caplog.clear()
+    with caplog.at_level(logging.WARNING, logger=LOGGER):
+        import_for_camera(d12, cam)
+    msgs = [r.getMessage() for r in caplog.records if "clipped" in r.getMessage()]
+    assert len(msgs) == len(clipped) and all("are at 4095 (a 12-bit sensor's maximum)" in x for x in msgs), msgs
+
+    # an image scaled to its own maximum has one pixel at full scale: not a clipped PSF
+    caplog.clear()
+    with caplog.at_level(logging.WARNING, logger=LOGGER):
+        import_for_camera(band_images(tmp_path / "scaled", exposed(psf, 255, 1.0, np.uint8), cam.bands, 6.0, ".png"), cam)
+    assert not caplog.records, [r.getMessage() for r in caplog.records]
+
+
+def test_heavily_clipped_psf_images_are_refused(trained, tmp_path):
+    from hsicam.data.measured_psf import MAX_SATURATED_SHARE
+
+    run, cam, psf = trained
+    img = exposed(psf, 255, 8.0, np.uint8)  # the probe's over-exposure: peaks at 8× the 8-bit maximum
+    share = np.array([float(im[im == 255].sum()) / im.sum() for im in img.astype(np.float64)])
+    first = int(np.argmax(share > MAX_SATURATED_SHARE))
+    assert share[first] > MAX_SATURATED_SHARE, share
+    lam, n = cam.bands.centers_nm[first], int((img[first] == 255).sum())
+    d = band_images(tmp_path / "sat", img, cam.bands, 6.0, ".png")
+    with pytest.raises(InputError, match=rf"psf_{lam:g}nm\.png \({lam:g} nm\): a clipped \(over-exposed\) PSF image: {n} of "
+                                         rf"its 441 pixels are at 255 \(the file type's maximum\), holding "
+                                         rf"{share[first]:.0%} of its light, more than the 50% allowed; .*measure it "
+                                         r"again with a shorter exposure \(brightest pixel below 255\)"):
+        import_for_camera(d, cam)
+    out = tmp_path / "ft"
+    res = run_cli("finetune", "--run", str(run), "--psf-dir", str(d), "--out", str(out), "--epochs", "1")
+    assert_clean_error(res, f"psf_{lam:g}nm.png ({lam:g} nm): a clipped (over-exposed) PSF image: {n} of its 441 pixels")
+    assert not out.exists()
+
+
+# ------------------------------------------------------------------------------------------------
+# F5: `hsicam psf --run`
+# ------------------------------------------------------------------------------------------------
+def test_psf_of_a_trained_run_and_of_a_pretrained_camera(trained, tmp_path, monkeypatch):
+    from hsicam.engine.pretrained import pack_pretrained
+    from hsicam.runs import pretrained as shipped
+
+    run, cam, psf = trained
+    res = run_cli("psf", "--run", str(run), "--out", str(tmp_path / "trained"))
+    assert res.returncode == 0, res.stderr
+    assert f"PSF stack ({run}'s trained camera): 7 bands, 21×21 px" in res.stdout
+    got = np.load(tmp_path / "trained" / "psf.npy")
+    np.testing.assert_allclose(got, psf, rtol=0, atol=1e-7)
+    meta = json.loads((tmp_path / "trained" / "psf.json").read_text())
+    assert meta["source"] == {"run": str(run.resolve()), "optics": "the run's trained DOE (model.safetensors)"}
+    res = run_cli("psf", "--config", "tiny", "--out", str(tmp_path / "design"))
+    assert res.returncode == 0 and "(the config's camera, DOE as initialised)" in res.stdout, res.stderr
+    assert np.abs(np.load(tmp_path / "design" / "psf.npy") - got).max() > 1e-3  # training moved the DOE
+    assert json.loads((tmp_path / "design" / "psf.json").read_text())["source"]["config"] == "tiny"
+
+    root = tmp_path / "root"
+    pack_pretrained(run, "cam", root)
+    monkeypatch.setenv(shipped.ENV_VAR, str(root))
+    res = run_cli("psf", "--run", "pretrained:cam", "--out", str(tmp_path / "pre"))
+    assert res.returncode == 0, res.stderr
+    np.testing.assert_array_equal(np.load(tmp_path / "pre" / "psf.npy"), got)
+
+
+def test_psf_and_simulate_refuse_a_runs_config_yaml(trained, tmp_path):
+    run, cam, psf = trained
+    out = tmp_path / "p"
+    res = run_cli("psf", "--config", str(run / "config.yaml"), "--out", str(out))
+    assert_clean_error(res, f"--config {run}/config.yaml: the config.yaml of the trained run {run}, whose DOE heights are in "
+                            f"{run}/model.safetensors", f"use `hsicam psf --run {run} --out DIR` for the trained camera")
+    scene = tmp_path / "scene.npy"
+    np.save(scene, np.random.default_rng(0).random((len(cam.bands), 48, 48)).astype(np.float32))
+    res = run_cli("simulate", "--config", str(run / "config.yaml"), "--scene", str(scene), "--out", str(out))
+    assert_clean_error(res, f"use `hsicam simulate --run {run} --scene FILE --out DIR`")
+    assert_clean_error(run_cli("psf", "--run", str(run), "--config", "tiny", "--out", str(out)), "drop --config")
+    assert not out.exists()
+
+
+def test_psf_of_a_finetuned_run_is_its_measured_psfs(trained, tmp_path):
+    from hsicam.engine.calibration import finetune
+    from hsicam.runs.measured_psf import MEASURED_PSF_FILE, load_measured_psf
+
+    run, cam, psf = trained
+    measured = np.roll(psf, 1, axis=-1)  # a built camera whose PSFs sit one pixel off the design
+    d = band_images(tmp_path / "m", measured, cam.bands, 6.0)
+    ft = tmp_path / "ft"
+    finetune(run, d, ft, overrides=("train.epochs=1",), progress=False)
+    res = run_cli("psf", "--run", str(ft), "--out", str(tmp_path / "p"))
+    assert res.returncode == 0, res.stderr
+    assert f"PSF stack ({ft}'s measured PSFs)" in res.stdout
+    np.testing.assert_array_equal(np.load(tmp_path / "p" / "psf.npy"), load_measured_psf(ft / MEASURED_PSF_FILE).psf)
+    assert json.loads((tmp_path / "p" / "psf.json").read_text())["source"]["optics"] == \
+        "the run's measured PSFs (fine-tuned run)"
