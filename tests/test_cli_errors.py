@@ -448,8 +448,9 @@ def test_simulate_refuses_an_overflowing_scene_and_warns_of_an_unnormalised_one(
 
 
 def test_train_prior_into_a_non_empty_folder_names_its_own_remedy(tmp_path):
-    """`baseline train-prior` has no --resume/--restart: a non-empty --out says to choose another
-    folder (it used to offer options the command does not have), before any data or training."""
+    """`baseline train-prior` into a non-empty folder that holds no prior says to choose another
+    folder (it used to offer options the command does not have; its --resume only continues a prior
+    folder), before any data or training."""
     out = tmp_path / "mine"
     out.mkdir()
     (out / "notes.txt").write_text("mine")

@@ -27,7 +27,7 @@ def cmd_train(args: argparse.Namespace) -> int:
     from hsicam.engine.loop import check_not_an_output
     from hsicam.engine.train import train
     from hsicam.cli import prepare_output
-    from hsicam.runs.folder import check_run_dir, restart_run_dir
+    from hsicam.runs.folder import check_run_dir, check_train_can_resume, restart_run_dir
 
     run = prepare_output(args.out, "dir")
     check_not_an_output(run, "resume" if args.resume else "restart" if args.restart else "train")
@@ -35,6 +35,7 @@ def cmd_train(args: argparse.Namespace) -> int:
         if args.config:
             raise InputError("--resume continues with the run's own config.yaml; drop --config (use --set to change keys)")
         check_run_dir(run, resume=True)  # says how to start again when there is nothing to resume
+        check_train_can_resume(run)  # a fine-tuned run or a spectral prior: named, with the command that continues it
         cfg = config_from_args(run / "config.yaml", args.overrides)
     else:
         cfg = config_from_args(args.config, args.overrides)  # a bad config wipes nothing

@@ -8,7 +8,8 @@
 Scales: ``tiny`` (tests), ``quick`` (this CPU) and ``paper`` (GPU): the preset of that name plus
 each experiment's overrides. Every trained camera lives in ``OUT/runs/<name>``; a finished run
 is reused, an interrupted one resumed. All cameras are evaluated on the same validation scenes
-(the preset's scene-level split), with the same seeds.
+(the preset's scene-level split), with the same seeds. One folder holds one experiment at one
+scale: a folder of another is refused before any change (:func:`check_experiment_folder`).
 """
 
 from __future__ import annotations
@@ -24,7 +25,7 @@ from hsicam.engine.evaluate import TestNoise, evaluate_method, summarize
 from hsicam.engine.methods import baseline_names, build_method
 from hsicam.engine.prior import ensure_choi_prior
 from hsicam.engine.train import train
-from hsicam.errors import InputError
+from hsicam.errors import HsicamError, InputError
 from hsicam.io import atomic_open, write_json
 
 log = logging.getLogger(__name__)
@@ -38,8 +39,13 @@ CFA_PERIODS = (3, 6, 9, 12, 15)
 
 @dataclass(frozen=True)
 class RunSpec:
+    """One trained camera of an experiment: its name under ``OUT/runs``, the overrides of the scale
+    preset it is trained with, and ``note``: why the experiment sets keys beyond the swept one
+    (recorded in experiment.json and table.md)."""
+
     name: str
     overrides: tuple[str, ...] = ()
+    note: str = ""
 
 
 def run_specs(experiment: str, cfg: Config | None = None) -> list[RunSpec]:
@@ -53,7 +59,7 @@ def run_specs(experiment: str, cfg: Config | None = None) -> list[RunSpec]:
         return [RunSpec("trained-clean"),
                 RunSpec("trained-noisy", ("train.sigma_height_nm=[0, 60]", "train.sensor_sigma=[0, 0.01]"))]
     if experiment == "cfa-period":
-        return [RunSpec(f"period-{m}", (f"camera.cfa.period={m}",)) for m in CFA_PERIODS]
+        return cfa_period_specs(cfg)
     raise InputError(f"unknown experiment {experiment!r}; choose one of {', '.join(EXPERIMENTS)}")
 
 
@@ -72,6 +78,55 @@ def same_network_without_cfa(cfg: Config | None) -> tuple[str, ...]:
     if cfg.model.kind == "unrolled" and cfg.model.unrolled.init == "mosaic" and cfg.model.unrolled.mosaic.factor == 0:
         out.append(f"model.unrolled.mosaic.factor={m}")
     return tuple(out)
+
+
+def _power_of_two(m: int) -> bool:
+    return m >= 1 and not m & (m - 1)
+
+
+def cfa_period_specs(cfg: Config | None, periods: tuple[int, ...] = CFA_PERIODS) -> list[RunSpec]:
+    """The cameras of the CFA-period sweep on the scale preset ``cfg``: ``camera.cfa.period=m``,
+    plus what the preset needs to build a camera at every period of the sweep.
+
+    - The dispersed filter layout (quick, paper presets may set it) is an ordered-dither matrix
+      that exists for power-of-two periods only: when a period of the sweep is not one, every run
+      of the sweep uses the random layout (one layout across the sweep, so the periods are
+      compared, not the layouts).
+    - The linear consistency step's filters (``model.consistency.window_px``) must be at least as
+      wide as the CFA period: when the sweep's largest period is wider, every run uses the
+      smallest odd width that covers it.
+    - A mosaic front end regroups the sensor by a multiple of the CFA period: a preset factor that
+      is not a multiple of ``m`` becomes the multiple of ``m`` nearest to it (at least ``m``), so the
+      trunk works at about the preset's resolution.
+    """
+    if cfg is None:
+        return [RunSpec(f"period-{m}", (f"camera.cfa.period={m}",)) for m in periods]
+    random_layout = cfg.camera.cfa.layout == "dispersed" and not all(_power_of_two(m) for m in periods)
+    factors = []  # (config key, preset factor) of the network's mosaic front end, if any
+    if cfg.model.kind == "mosaic" and cfg.model.mosaic.factor:
+        factors.append(("model.mosaic.factor", cfg.model.mosaic.factor))
+    if cfg.model.kind == "unrolled" and cfg.model.unrolled.init == "mosaic" and cfg.model.unrolled.mosaic.factor:
+        factors.append(("model.unrolled.mosaic.factor", cfg.model.unrolled.mosaic.factor))
+    c = cfg.model.consistency  # the linear consistency step's filters must see every CFA phase
+    window = (max(c.window_px, *(m | 1 for m in periods))
+              if c.kind == "linear" and c.iterations > 0 and cfg.camera.kind == "doe" else c.window_px)
+    specs = []
+    for m in periods:
+        overrides, notes = [f"camera.cfa.period={m}"], []
+        if random_layout:
+            overrides.append("camera.cfa.layout=random")
+            notes.append("camera.cfa.layout=random (the preset's dispersed layout needs a power-of-two period)")
+        if window != c.window_px:
+            overrides.append(f"model.consistency.window_px={window}")
+            notes.append(f"model.consistency.window_px={window} (the linear consistency step's filters must be as "
+                         "wide as the largest period of the sweep)")
+        for key, f in factors:
+            if f % m:
+                new = m * max(1, round(f / m))
+                overrides.append(f"{key}={new}")
+                notes.append(f"{key}={new} (a multiple of the period near the preset's {f})")
+        specs.append(RunSpec(f"period-{m}", tuple(overrides), "; ".join(notes)))
+    return specs
 
 
 def is_finished(run: Path) -> bool:
@@ -185,12 +240,18 @@ def run_experiment(experiment: str, scale: str, out: str | Path, seeds: tuple[in
     """Run (or resume) one experiment; writes ``experiment.json`` and ``table.md`` into ``out``."""
     if scale not in SCALES:
         raise InputError(f"unknown scale {scale!r}; choose one of {', '.join(SCALES)}")
-    specs = run_specs(experiment, load_config(scale))
     out = Path(out)
+    try:  # every check before any change (the configs of all its cameras too)
+        cfg = load_config(scale)
+        specs = run_specs(experiment, cfg)
+        run_cfgs = run_configs(experiment, scale)
+        check_experiment_folder(out, experiment, scale, run_cfgs)
+    except HsicamError:
+        keep_finished_marker(out)
+        raise
     (out / "runs").mkdir(parents=True, exist_ok=True)
     for spec in specs:
-        ensure_trained(out / "runs" / spec.name, scale, spec.overrides)
-    cfg = load_config(scale)
+        ensure_trained(out / "runs" / spec.name, run_cfgs[spec.name])
     scenes, names = validation_scenes(cfg)
     rows: list[dict] = []
     grids: dict[str, Any] = {}
@@ -211,10 +272,15 @@ def run_experiment(experiment: str, scale: str, out: str | Path, seeds: tuple[in
         else:
             s = summarize(evaluate_method(method, scenes, names, TestNoise(seeds=seeds), keep_arrays=False))
             rows.append(_row(spec.name, s, run=str(run), scenes=s["scenes"]))
+        if spec.note:
+            rows[-1]["overrides"], rows[-1]["note"] = list(spec.overrides), spec.note
     if experiment == "compare":
         rows += _baseline_rows(cfg, scale, out, scenes, names, seeds, baseline_names() if baselines is None else baselines)
     result = {"experiment": experiment, "scale": scale, "seeds": list(seeds), "scenes": names,
               "conventions": summarize([])["conventions"], "rows": rows}
+    notes = [f"{spec.name}: {spec.note}" for spec in specs if spec.note]
+    if notes:
+        result["notes"] = notes
     if grids:
         result["noise_grid"] = {"sigma_height_nm": list(NOISE_SIGMA_HEIGHT_NM), "sensor_sigma": list(NOISE_SIGMA_SENSOR),
                                 "results": grids}
@@ -222,6 +288,84 @@ def run_experiment(experiment: str, scale: str, out: str | Path, seeds: tuple[in
     with atomic_open(out / "table.md", "w", encoding="utf-8") as fh:
         fh.write(format_experiment_table(result) + "\n")
     return result
+
+
+def run_configs(experiment: str, scale: str) -> dict[str, Config]:
+    """The config of every camera ``experiment`` trains at ``scale``, by run name (compare: its
+    learned CASSI baselines too); building them checks them all before any training."""
+    specs = run_specs(experiment, load_config(scale))
+    cfgs = {spec.name: load_config(scale, list(spec.overrides)) for spec in specs}
+    if experiment == "compare":
+        cfgs.update({name: load_config(scale, list(o)) for name, o in LEARNED_CASSI.items()})
+    return cfgs
+
+
+def recorded_experiment(out: Path) -> tuple[str, str] | None:
+    """(experiment, scale) that the folder ``out`` holds the results of: from its completion marker,
+    else from its experiment.json (the marker comes off while an experiment is re-run); None when
+    it records none."""
+    from hsicam.io import read_marker
+
+    for info in (read_marker(out), _read_json(out / "experiment.json")):
+        name, scale = info.get("experiment"), info.get("scale")
+        if isinstance(name, str) and isinstance(scale, str):
+            return name, scale
+    return None
+
+
+def _read_json(path: Path) -> dict:
+    try:
+        data = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError):
+        return {}
+    return data if isinstance(data, dict) else {}
+
+
+def check_experiment_folder(out: Path, experiment: str, scale: str, run_cfgs: dict[str, Config]) -> None:
+    """InputError, before any change, when the folder ``out`` holds another experiment than
+    ``experiment`` at ``scale``: the experiment (or scale) its marker or experiment.json records,
+    run folders this experiment does not write (another experiment's, interrupted), or a run that
+    was trained with another config than ``run_cfgs`` (:func:`run_configs`) gives it. Reads only."""
+    default = f"runs/experiments/{experiment}-{scale}"
+    recorded = recorded_experiment(out)
+    if recorded is not None and recorded != (experiment, scale):
+        raise InputError(f"{out}: holds the results of experiment {recorded[0]} at {recorded[1]} scale; experiment "
+                         f"{experiment} --scale {scale} would replace them and mix its runs with theirs: choose "
+                         f"another --out (e.g. {default})")
+    runs = out / "runs"
+    if not runs.is_dir():
+        return
+    names = {*run_cfgs, *(("dd-cassi-choi",) if experiment == "compare" else ())}  # compare: its prior too
+    other = sorted(p.name for p in runs.iterdir() if p.name not in names and not p.name.startswith("."))
+    if other:
+        shown = ", ".join(other[:3]) + (f" and {len(other) - 3} more" if len(other) > 3 else "")
+        raise InputError(f"{runs}: holds {shown}, which experiment {experiment} does not train (another experiment's "
+                         f"runs); choose another --out (e.g. {default})")
+    for name, cfg in run_cfgs.items():
+        run = runs / name
+        if not (run / "config.yaml").is_file():
+            continue
+        have = load_config(run / "config.yaml")
+        if not training_differences(have, cfg):
+            continue
+        for other_scale in SCALES:
+            if other_scale != scale and not training_differences(have, run_configs(experiment, other_scale)[name]):
+                raise InputError(f"{run} was trained at {other_scale} scale: {out} holds experiment {experiment} at "
+                                 f"{other_scale} scale, not {scale}; choose another --out (e.g. {default})")
+        check_same_training(run, cfg)
+
+
+def keep_finished_marker(out: Path) -> None:
+    """Put back the completion marker of a finished experiment folder (experiment.json and table.md
+    written) that a refused re-run found without one: ``hsicam experiment`` takes the marker off
+    before the run, and a refusal changes nothing else."""
+    from hsicam.io import is_complete, mark_complete
+
+    info = _read_json(out / "experiment.json")
+    name, scale = info.get("experiment"), info.get("scale")
+    if (isinstance(name, str) and isinstance(scale, str) and (out / "table.md").is_file()
+            and not is_complete(out)):
+        mark_complete(out, {"command": "experiment", "experiment": name, "scale": scale})
 
 
 def _baseline_rows(cfg, scale, out, scenes, names, seeds, baselines) -> list[dict]:
@@ -266,4 +410,6 @@ def format_experiment_table(result: dict) -> str:
             lines.append(f"| {r['method']} | – | – | – | not available |")
         else:
             lines.append(f"| {r['method']} | {r['psnr']:.2f} | {r['ssim']:.4f} | {r['sam']:.2f} | {r['runtime_s']:.3f} |")
+    if result.get("notes"):
+        lines += ["", "Set by the experiment beyond the swept key:", "", *(f"- {n}" for n in result["notes"])]
     return "\n".join(lines)

@@ -7,12 +7,15 @@ Prior run folder (``hsicam baseline train-prior``)::
     RUN/prior.yaml         the ``baselines.choi`` settings (architecture, training, ADMM)
     RUN/prior.safetensors  autoencoder weights (bands in the metadata)
     RUN/metrics.jsonl      training loss
-    RUN/checkpoints/ ...   checkpoints (an interrupted training resumes from them)
-    RUN/summary.json       written last: the run is finished
+    RUN/checkpoints/ ...   checkpoints (an interrupted training resumes from them:
+                           ``hsicam baseline train-prior --out RUN --resume``)
+    RUN/summary.json       written last: the run is finished (a prior without it warns when loaded)
 """
 
 from __future__ import annotations
 
+import dataclasses
+import json
 import logging
 from pathlib import Path
 
@@ -22,9 +25,9 @@ import yaml
 from hsicam.config import ChoiConfig, Config, from_dict, load_config, training_differences
 from hsicam.engine.loop import FitOptions, fit
 from hsicam.engine.tasks import PriorTask
-from hsicam.errors import InputError
+from hsicam.errors import HsicamError, InputError
 from hsicam.models.priors import SpectralAutoencoder
-from hsicam.runs.checkpoint import load_weights
+from hsicam.runs.checkpoint import CheckpointManager, load_weights
 from hsicam.spectral import Bands
 
 log = logging.getLogger(__name__)
@@ -48,20 +51,108 @@ def is_prior_run(run: str | Path) -> bool:
     return (run / "summary.json").is_file() and (run / PRIOR_WEIGHTS).is_file()
 
 
+#: What `hsicam baseline train-prior` says about a folder with nothing to resume.
+PRIOR_RESTART_HINT = "train a new prior with `hsicam baseline train-prior --config CONFIG --out {run}` (without --resume)"
+
+
+def prior_progress(run: str | Path, settings: ChoiConfig) -> tuple[int, int] | None:
+    """(steps done, steps in all) of a prior folder whose training did not finish (no summary.json;
+    its last checkpoint short of ``settings.train_steps``), else None: finished, or no checkpoint
+    (weights from elsewhere record no training)."""
+    run = Path(run)
+    if (run / "summary.json").is_file():
+        return None
+    try:
+        state = CheckpointManager(run, PRIOR_WEIGHTS).state()
+    except InputError:
+        return None
+    if state is None:
+        return None
+    step = int(state.get("global_step", 0))
+    return None if step >= settings.train_steps else (step, settings.train_steps)
+
+
+def unfinished_prior(run: str | Path, settings: ChoiConfig) -> str | None:
+    """A one-line note when the training of the prior folder ``run`` did not finish (crashed or
+    killed: :func:`prior_progress`), naming the steps done and how to continue; else None."""
+    progress = prior_progress(run, settings)
+    if progress is None:
+        return None
+    return (f"{run}: its training did not finish: the last checkpoint is at step {progress[0]} of {progress[1]} and it "
+            f"has no summary.json; the weights are of a partly trained spectral prior: continue it with "
+            f"`hsicam baseline train-prior --resume --out {run}`")
+
+
+def check_prior_out(out: Path) -> None:
+    """Before any work, for a new prior (no --resume): ``out`` must be absent or empty; a folder
+    that holds a prior is named with its state and what to do (resume an interrupted one)."""
+    from hsicam.runs.folder import check_run_dir
+
+    if (out / PRIOR_SETTINGS).is_file() and (out / "config.yaml").is_file():
+        try:
+            settings = load_prior_settings(out)
+        except HsicamError:
+            settings = None
+        progress = None if settings is None else prior_progress(out, settings)
+        if progress is not None:
+            raise InputError(f"{out}: prior folder exists and is not empty: its training stopped at step {progress[0]} "
+                             f"of {progress[1]}; continue it with `hsicam baseline train-prior --resume --out {out}`, "
+                             "or choose another --out")
+        if is_prior_run(out):
+            raise InputError(f"{out}: prior folder exists and is not empty: it holds a trained spectral prior (use it: "
+                             f"--run {out}); choose another --out")
+        raise InputError(f"{out}: prior folder exists and is not empty: its training did not finish; continue it with "
+                         f"`hsicam baseline train-prior --resume --out {out}`, or choose another --out")
+    check_run_dir(out, False, "train-prior writes a new prior folder: choose another --out")
+
+
+def resume_config(out: Path, overrides: tuple[str, ...] | list[str] = ()) -> tuple[Config, ChoiConfig]:
+    """(config, prior settings) a resume of the prior folder ``out`` goes on with: its config.yaml
+    and prior.yaml with the ``--set`` overrides (``baselines.choi.*`` apply to the folder's prior
+    settings). Only ``baselines.choi.train_steps`` and the ADMM settings may differ from the
+    folder's training: an :class:`InputError` names any other difference (another prior: train it
+    into another --out)."""
+    out = Path(out)
+    have = load_prior_settings(out)
+    pre = []
+    sets_choi = any(str(o).strip().startswith("baselines.choi.") for o in overrides)
+    if sets_choi and load_config(out / "config.yaml").baselines.choi is None:  # trained with the defaults
+        pre.append(f"baselines.choi={json.dumps(dataclasses.asdict(have))}")  # the folder's settings, then the --set
+    cfg = load_config(out / "config.yaml", [*pre, *overrides])
+    settings = cfg.baselines.choi if cfg.baselines.choi is not None else have
+    changed = [d for d in prior_differences(out, cfg, settings, limit=10**6)
+               if not d.startswith("baselines.choi.train_steps:")]
+    if changed:
+        raise InputError(f"{out}: --resume continues the prior trained in it; {'; '.join(changed[:3])} would make "
+                         "another prior: train it into another --out (only baselines.choi.train_steps may change)")
+    return cfg, settings
+
+
 def train_prior(cfg: Config, settings: ChoiConfig | None, out: str | Path, progress: bool | None = None,
                 resume: bool = False) -> dict:
     """Train the autoencoder on training-split patches of ``cfg.data`` (bands ``cfg.bands``) into
-    the folder ``out`` (see the module docstring); returns the summary. ``settings`` None: the
-    defaults. The device is ``cfg.train.device`` (auto: CUDA when available)."""
-    settings = settings if settings is not None else ChoiConfig()
-    if not resume:  # before any work; this command has no --resume/--restart to offer
-        from hsicam.runs.folder import check_run_dir
+    the folder ``out`` (see the module docstring); returns the summary (a resumed prior with nothing
+    left to train: its summary with ``"already_finished": True``, nothing written). ``settings``
+    None: the defaults. The device is ``cfg.train.device`` (auto: CUDA when available)."""
+    from hsicam.runs.folder import check_run_dir
 
-        check_run_dir(Path(out), False, "train-prior writes a new prior folder: choose another --out")
+    settings = settings if settings is not None else ChoiConfig()
+    out = Path(out)
+    if not resume:  # before any work
+        check_prior_out(out)
+    else:
+        check_run_dir(out, True, restart_hint=PRIOR_RESTART_HINT)
+        state = CheckpointManager(out, PRIOR_WEIGHTS).state() if (out / "summary.json").is_file() else None
+        if state is not None and int(state.get("global_step", 0)) < settings.train_steps:
+            # a finished prior trained longer (more train_steps): its summary describes the shorter
+            # training, and would mark it finished while it goes on; the new one is written at the end
+            (out / "summary.json").unlink()
     torch.manual_seed(settings.seed)
     task = PriorTask(cfg, settings)
     summary = fit(task, FitOptions(task.loop_config(), cfg.data.num_workers, max_steps=settings.train_steps,
                                    progress=progress), out, resume)
+    if summary.get("already_finished"):
+        return summary
     log.info("spectral prior: %d steps in %.0f s%s -> %s", summary["step"], summary["elapsed_s"],
              f", validation autoencoder PSNR {summary['val_psnr_autoencoder']:.2f} dB"
              if "val_psnr_autoencoder" in summary else "", out)
@@ -130,4 +221,7 @@ def load_prior(run: str | Path, bands: Bands, device: torch.device | str = "cpu"
     model = SpectralAutoencoder(len(bands), settings.features, settings.latent)
     load_weights(run / PRIOR_WEIGHTS, model, bands)
     model.requires_grad_(False)
+    unfinished = unfinished_prior(run, settings)
+    if unfinished:
+        log.warning("%s", unfinished)
     return model.to(device).eval(), settings

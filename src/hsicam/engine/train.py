@@ -35,6 +35,10 @@ def train(cfg: Config, run_dir: str | Path, resume: bool = False, progress: bool
         progress: tqdm bar (None: only on a terminal).
         stop_after_steps: stop after this global step (simulates an interruption; for tests).
     """
+    if resume:  # a fine-tuned run or a spectral prior holds checkpoints that this task cannot continue
+        from hsicam.runs.folder import check_train_can_resume
+
+        check_train_can_resume(Path(run_dir))
     torch.manual_seed(cfg.train.seed)
     task = SystemTask(cfg, CameraSystem.from_config(cfg))
     opts = FitOptions(cfg.train, cfg.data.num_workers, progress=progress, stop_after_steps=stop_after_steps)

@@ -113,23 +113,90 @@ RESTART_HINT = "start it again with `hsicam train --restart --config CONFIG --ou
 TRAIN_NOT_EMPTY_HINT = "use --resume, --restart (a run without a checkpoint) or another --out"
 
 
-def check_run_dir(run_dir: Path, resume: bool, not_empty_hint: str = TRAIN_NOT_EMPTY_HINT) -> None:
-    """A run folder must hold a run to resume, or (a new run) be absent or empty; the error for a
-    new run's folder that is not empty ends in ``not_empty_hint`` (what the command can do instead).
+#: Root weights files of the run folders the training loop writes (camera runs, spectral priors).
+WEIGHTS_FILES = ("model.safetensors", "prior.safetensors")
 
-    Hidden temporaries a killed process left (in the folder, or the folder's own temporary
-    sibling) do not count: they are removed. Creates nothing."""
+
+def weights_without_checkpoint(run_dir: Path) -> str | None:
+    """The name of the weights file of a folder that holds trained weights but no checkpoint (a
+    camera copied by ``hsicam pretrained copy`` or shipped, weights put there by hand), else None.
+    A resume has nothing to continue there: it would train from a random start over the weights."""
+    run_dir = Path(run_dir)
+    if CheckpointManager(run_dir).state() is not None:
+        return None
+    return next((name for name in WEIGHTS_FILES if (run_dir / name).is_file()), None)
+
+
+def check_run_dir(run_dir: Path, resume: bool, not_empty_hint: str = TRAIN_NOT_EMPTY_HINT,
+                  restart_hint: str = RESTART_HINT) -> None:
+    """A run folder must hold a run to resume, or (a new run) be absent or empty; the error for a
+    new run's folder that is not empty ends in ``not_empty_hint`` (what the command can do instead),
+    the error for a folder with nothing to resume in ``restart_hint`` (``{run}``: the folder).
+
+    A folder with trained weights but no checkpoint (a copied camera) is never resumed: the resume
+    would start from random weights and write over them. Hidden temporaries a killed process left
+    (in the folder, or the folder's own temporary sibling) do not count: they are removed. Creates
+    nothing."""
     run_dir = Path(run_dir)
     remove_run_temporaries(run_dir)
     if resume:
         if not (run_dir / "config.yaml").is_file():
             why = "no such folder" if not run_dir.exists() else "no config.yaml: it was interrupted before it started"
-            raise InputError(f"{run_dir}: nothing to resume ({why}); " + RESTART_HINT.format(run=run_dir))
+            raise InputError(f"{run_dir}: nothing to resume ({why}); " + restart_hint.format(run=run_dir))
+        weights = weights_without_checkpoint(run_dir)
+        if weights == "model.safetensors":
+            raise InputError(f"{run_dir}: holds trained weights ({weights}) but no checkpoint to resume (a copied or "
+                             "shipped camera, e.g. from `hsicam pretrained copy`); training cannot go on from weights "
+                             "alone and nothing was changed: train a new run with another --out, or adapt this camera "
+                             f"to measured PSFs with `hsicam finetune --run {run_dir} --psf-dir DIR --out NEW`")
+        if weights is not None:
+            raise InputError(f"{run_dir}: holds trained weights ({weights}) but no checkpoint to resume; training "
+                             "cannot go on from weights alone and nothing was changed: train a new one with another "
+                             "--out")
         return
     if run_dir.exists() and not run_dir.is_dir():
         raise InputError(f"{run_dir}: exists and is not a folder; choose another --out")
     if run_dir.exists() and any(run_dir.iterdir()):
         raise InputError(f"{run_dir}: run folder exists and is not empty; {not_empty_hint}")
+
+
+def check_train_can_resume(run_dir: Path) -> None:
+    """InputError for a folder that ``hsicam train --resume`` must not continue although it holds
+    checkpoints: a run made by ``hsicam finetune`` (its optics are frozen to measured PSFs, its
+    optimizer has other parameter groups) and a spectral prior (``hsicam baseline train-prior``).
+    Reads only; the message names the command that can continue or redo it."""
+    run_dir = Path(run_dir)
+    if any((run_dir / name).is_file() for name in (MEASURED_PSF_FILE, "measured_psf.json", "finetune.json")):
+        source, psf_dir = finetune_source(run_dir)
+        raise InputError(f"{run_dir}: a fine-tuned run (made by `hsicam finetune`{f' from {source}' if source else ''}"
+                         "): `hsicam train` cannot continue it (its optics are frozen to the measured PSFs); nothing "
+                         f"was changed: fine-tune again into a new folder: hsicam finetune --run {source or 'ORIGINAL'} "
+                         f"--psf-dir {psf_dir or 'DIR'} --out NEW (--epochs N for more epochs)")
+    if (run_dir / "prior.yaml").is_file():
+        raise InputError(f"{run_dir}: holds a spectral prior (hsicam baseline train-prior), not a camera run; continue "
+                         f"it with `hsicam baseline train-prior --resume --out {run_dir}`")
+
+
+def finetune_source(run_dir: Path) -> tuple[str | None, str | None]:
+    """(the run, the measured-PSF folder) a fine-tuned run was made from: from its finetune.json
+    (written when the fine-tuning ends), else the run from its weights' metadata; None when unknown."""
+    try:
+        info = json.loads((Path(run_dir) / "finetune.json").read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError):
+        info = {}
+    info = info if isinstance(info, dict) else {}
+    source, psf_dir = info.get("source_run"), info.get("psf_dir")
+    if not isinstance(source, str):
+        from safetensors import SafetensorError, safe_open
+
+        try:
+            last = CheckpointManager(run_dir).path("last")
+            weights = last / "model.safetensors" if last is not None else Path(run_dir) / "model.safetensors"
+            with safe_open(str(weights), framework="pt") as fh:
+                source = (fh.metadata() or {}).get("finetuned_from")
+        except (InputError, SafetensorError, OSError, ValueError, RuntimeError):  # only a hint for the message
+            source = None
+    return source, psf_dir if isinstance(psf_dir, str) else None
 
 
 def remove_run_temporaries(run_dir: Path) -> list[Path]:
@@ -184,6 +251,10 @@ def restart_run_dir(run_dir: Path) -> bool:
     if step is not None:
         raise InputError(f"{run_dir}: holds a finished checkpoint (step {step}); continue it with --resume, or delete "
                          "the folder yourself to start over")
+    weights = next((name for name in WEIGHTS_FILES if (run_dir / name).is_file()), None)
+    if weights is not None:  # no checkpoint, yet trained weights: a copied camera, not a killed run
+        raise InputError(f"{run_dir}: holds trained weights ({weights}) but no checkpoint (a copied or shipped camera); "
+                         "--restart would delete them: choose another --out, or delete the folder yourself to start over")
     for p in entries:
         shutil.rmtree(p) if p.is_dir() and not p.is_symlink() else p.unlink()
     log.info("%s: removed the unfinished run (no checkpoint) to start again", run_dir)

@@ -1,0 +1,312 @@
+"""Resuming and re-running into folders that hold something else: each refusal names the folder,
+what it holds and the way out, and changes nothing in it.
+
+- ``train --resume`` on a copied camera (weights, no checkpoint) used to train from random weights
+  over the copied ones; on a fine-tuned run it printed a hint whose command then failed with an
+  optimizer error.
+- an interrupted ``baseline train-prior`` was used without a word and could not be continued.
+- ``experiment B --out DIR`` on experiment A's folder replaced A's results (and a refused re-run
+  took A's completion marker off); ``experiment cfa-period --scale quick`` could never start.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from hsicam.cli import main
+from hsicam.config import ChoiConfig, load_config
+
+
+def snapshot(folder: Path) -> dict[str, bytes | None]:
+    """Every entry under ``folder`` (hidden ones too) with its bytes (None for a folder)."""
+    return {p.relative_to(folder).as_posix(): (None if p.is_dir() else p.read_bytes()) for p in sorted(folder.rglob("*"))}
+
+
+def error_line(capsys, argv: list[str]) -> str:
+    """Run ``hsicam ARGV`` in-process: exit code 2 and one error line (returned), no traceback."""
+    code = main(argv)
+    err = capsys.readouterr().err
+    assert code == 2, err
+    lines = [x for x in err.strip().splitlines() if x.startswith("hsicam: error:")]
+    assert len(lines) == 1 and "Traceback" not in err, err
+    return lines[0]
+
+
+@pytest.fixture(scope="module")
+def run(tmp_path_factory, cache_env):
+    """A finished tiny run (1 epoch)."""
+    d = tmp_path_factory.mktemp("run") / "run"
+    assert main(["train", "--config", "tiny", "--out", str(d), "--set", "train.epochs=1"]) == 0
+    return d
+
+
+# ------------------------------------------------------------------------------------------------
+# train --resume on a copied camera (weights, no checkpoint)
+# ------------------------------------------------------------------------------------------------
+def test_resume_refuses_a_copied_camera_and_changes_nothing(run, tmp_path, capsys, monkeypatch):
+    monkeypatch.setenv("HSICAM_PRETRAINED_DIR", str(tmp_path / "pre"))
+    assert main(["pretrained", "pack", "--name", "tinyA", str(run), "--dest", str(tmp_path / "pre")]) == 0
+    copy = tmp_path / "copy"
+    assert main(["pretrained", "copy", "tinyA", str(copy)]) == 0
+    capsys.readouterr()
+    assert (copy / "model.safetensors").is_file() and not (copy / "checkpoints.json").exists()
+    before = snapshot(copy)
+    for extra in ([], ["--set", "train.epochs=3"]):
+        line = error_line(capsys, ["train", "--out", str(copy), "--resume", *extra])
+        assert line == (f"hsicam: error: {copy}: holds trained weights (model.safetensors) but no checkpoint to resume "
+                        "(a copied or shipped camera, e.g. from `hsicam pretrained copy`); training cannot go on from "
+                        "weights alone and nothing was changed: train a new run with another --out, or adapt this "
+                        f"camera to measured PSFs with `hsicam finetune --run {copy} --psf-dir DIR --out NEW`")
+        assert snapshot(copy) == before  # config.yaml is not rewritten, the weights are kept
+    # the same weights without the card files: --restart does not delete them either
+    bare = tmp_path / "bare"
+    bare.mkdir()
+    for name in ("config.yaml", "model.safetensors"):
+        shutil.copy(copy / name, bare / name)
+    before = snapshot(bare)
+    line = error_line(capsys, ["train", "--config", "tiny", "--out", str(bare), "--restart"])
+    assert f"{bare}: holds trained weights (model.safetensors) but no checkpoint" in line
+    assert "--restart would delete them" in line
+    line = error_line(capsys, ["train", "--out", str(bare), "--resume"])
+    assert "no checkpoint to resume" in line and snapshot(bare) == before
+
+
+def test_resume_of_a_run_killed_before_its_first_checkpoint_still_starts(tmp_path, cache_env, capsys):
+    """Only trained weights stop a resume: a folder with a config and nothing else resumes at step 0."""
+    from hsicam.config import dump_yaml
+
+    run = tmp_path / "run"
+    run.mkdir()
+    (run / "config.yaml").write_text(dump_yaml(load_config("tiny")))
+    assert main(["train", "--out", str(run), "--resume", "--set", "train.epochs=1"]) == 0
+    assert (run / "checkpoints.json").is_file()
+
+
+# ------------------------------------------------------------------------------------------------
+# train --resume on a fine-tuned run
+# ------------------------------------------------------------------------------------------------
+@pytest.fixture(scope="module")
+def finetuned(run, tmp_path_factory):
+    """(a run fine-tuned 1 epoch by `hsicam finetune` from ``run``, its measured-PSF folder)."""
+    from hsicam.io import write_json, write_npy
+    from hsicam.runs.folder import load_run
+
+    _, model = load_run(run)
+    with torch.no_grad():
+        psf = model.camera.psf().double().numpy()
+    base = tmp_path_factory.mktemp("ft")
+    psf_dir = base / "measured"
+    psf_dir.mkdir()
+    write_npy(psf_dir / "psf.npy", psf.astype(np.float32))
+    write_json(psf_dir / "psf.json", {"pixel_pitch_um": load_config(run / "config.yaml").camera.sensor.pixel_pitch_um,
+                                      "bands_nm": model.bands.centers_nm.tolist()})
+    out = base / "ft"
+    assert main(["finetune", "--run", str(run), "--psf-dir", str(psf_dir), "--out", str(out), "--epochs", "1"]) == 0
+    return out, psf_dir
+
+
+def test_train_resume_refuses_a_finetuned_run(finetuned, run, tmp_path, capsys):
+    ft, psf_dir = finetuned
+    capsys.readouterr()
+    before = snapshot(ft)
+    for extra in ([], ["--set", "train.epochs=3"]):
+        code = main(["train", "--out", str(ft), "--resume", *extra])
+        out, err = capsys.readouterr()
+        assert code == 2 and "To train on" not in out, (out, err)  # the hint whose command failed
+        assert "optimizer" not in err
+        assert err.strip() == (f"hsicam: error: {ft}: a fine-tuned run (made by `hsicam finetune` from {run}): `hsicam "
+                               "train` cannot continue it (its optics are frozen to the measured PSFs); nothing was "
+                               f"changed: fine-tune again into a new folder: hsicam finetune --run {run} --psf-dir "
+                               f"{psf_dir} --out NEW (--epochs N for more epochs)")
+        assert snapshot(ft) == before
+    # an interrupted fine-tune (no finetune.json yet): the source run comes from its weights
+    killed = tmp_path / "killed"
+    shutil.copytree(ft, killed)
+    (killed / "finetune.json").unlink()
+    line = error_line(capsys, ["train", "--out", str(killed), "--resume"])
+    assert f"made by `hsicam finetune` from {run})" in line
+    assert f"hsicam finetune --run {run} --psf-dir DIR --out NEW" in line
+
+
+# ------------------------------------------------------------------------------------------------
+# the spectral prior: an interrupted training warns when used, and --resume continues it
+# ------------------------------------------------------------------------------------------------
+def interrupted_prior(out: Path, steps: int, stop: int, settings: ChoiConfig | None = None) -> Path:
+    """A prior folder whose training (``steps`` steps) was stopped at step ``stop``, as a kill leaves it."""
+    from hsicam.engine.loop import FitOptions, fit
+    from hsicam.engine.tasks import PriorTask
+
+    cfg = load_config("tiny")
+    settings = settings or ChoiConfig(train_steps=steps, features=4, latent=2, batch_size=4)
+    torch.manual_seed(settings.seed)  # as train_prior
+    task = PriorTask(cfg, settings)
+    res = fit(task, FitOptions(task.loop_config(), 0, max_steps=steps, progress=False, stop_after_steps=stop), out)
+    assert res == {"stopped_at_step": stop}
+    assert not (out / "summary.json").exists() and (out / "prior.safetensors").is_file()
+    return out
+
+
+def test_an_interrupted_prior_warns_when_used_and_names_its_remedy(tmp_path, cache_env, capsys, caplog):
+    from hsicam.engine.methods import build_method
+    from hsicam.engine.prior import load_prior
+
+    prior = interrupted_prior(tmp_path / "prior", steps=8, stop=4)
+    note = (f"{prior}: its training did not finish: the last checkpoint is at step 4 of 8 and it has no summary.json; "
+            "the weights are of a partly trained spectral prior: continue it with "
+            f"`hsicam baseline train-prior --resume --out {prior}`")
+    cfg = load_config("tiny")
+    with caplog.at_level(logging.WARNING):
+        load_prior(prior, cfg.bands.to_bands())
+        build_method("dd-cassi-choi", cfg, prior)  # what `evaluate --method dd-cassi-choi --run PRIOR` loads
+    assert [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING] == [note, note]
+    before = snapshot(prior)
+    line = error_line(capsys, ["baseline", "train-prior", "--config", "tiny", "--out", str(prior)])
+    assert line == (f"hsicam: error: {prior}: prior folder exists and is not empty: its training stopped at step 4 of 8; "
+                    f"continue it with `hsicam baseline train-prior --resume --out {prior}`, or choose another --out")
+    line = error_line(capsys, ["train", "--out", str(prior), "--resume"])
+    assert line == (f"hsicam: error: {prior}: holds a spectral prior (hsicam baseline train-prior), not a camera run; "
+                    f"continue it with `hsicam baseline train-prior --resume --out {prior}`")
+    line = error_line(capsys, ["baseline", "train-prior", "--out", str(prior), "--resume", "--set",
+                               "baselines.choi.features=8"])
+    assert "baselines.choi.features: 4 → 8 would make another prior" in line
+    line = error_line(capsys, ["baseline", "train-prior", "--out", str(prior), "--resume", "--config", "tiny"])
+    assert "drop --config" in line
+    assert snapshot(prior) == before
+
+
+def test_train_prior_resume_finishes_an_interrupted_prior(tmp_path, cache_env, capsys, caplog):
+    from hsicam.engine.prior import is_prior_run, load_prior
+    from hsicam.runs.checkpoint import read_weights
+
+    steps = 8
+    settings = ChoiConfig(train_steps=steps, features=4, latent=2, batch_size=4)
+    whole = tmp_path / "whole"
+    from hsicam.engine.prior import train_prior
+
+    train_prior(load_config("tiny"), settings, whole, progress=False)
+    prior = interrupted_prior(tmp_path / "prior", steps=steps, stop=4, settings=settings)
+    assert main(["baseline", "train-prior", "--out", str(prior), "--resume"]) == 0
+    out = capsys.readouterr().out
+    assert out.startswith(f"spectral prior trained: {steps} steps") and is_prior_run(prior)
+    a, _ = read_weights(prior / "prior.safetensors")  # resumed exactly: the uninterrupted prior's weights
+    b, _ = read_weights(whole / "prior.safetensors")
+    assert all(torch.equal(a[k], b[k]) for k in b)
+    caplog.clear()
+    with caplog.at_level(logging.WARNING):
+        load_prior(prior, load_config("tiny").bands.to_bands())
+    assert not [r for r in caplog.records if r.levelno == logging.WARNING]
+    before = snapshot(prior)
+    assert main(["baseline", "train-prior", "--out", str(prior), "--resume"]) == 0
+    assert f"{prior}: spectral prior already finished at step {steps}" in capsys.readouterr().out
+    assert snapshot(prior) == before
+    line = error_line(capsys, ["baseline", "train-prior", "--config", "tiny", "--out", str(prior)])
+    assert line == (f"hsicam: error: {prior}: prior folder exists and is not empty: it holds a trained spectral prior "
+                    f"(use it: --run {prior}); choose another --out")
+    line = error_line(capsys, ["baseline", "train-prior", "--out", str(tmp_path / "none"), "--resume"])
+    assert "nothing to resume (no such folder)" in line and "hsicam baseline train-prior --config CONFIG" in line
+    assert not (tmp_path / "none").exists()
+
+
+def test_train_prior_resume_trains_a_default_prior_longer(tmp_path, cache_env, capsys):
+    """A prior trained with the defaults (config.yaml: ``choi: null``) takes --set baselines.choi.* on resume."""
+    prior = interrupted_prior(tmp_path / "prior", steps=ChoiConfig().train_steps, stop=2,
+                              settings=ChoiConfig())
+    assert main(["baseline", "train-prior", "--out", str(prior), "--resume", "--set", "baselines.choi.train_steps=4"]) == 0
+    assert "spectral prior trained: 4 steps" in capsys.readouterr().out
+    summary = json.loads((prior / "summary.json").read_text())
+    assert summary["step"] == 4
+
+
+# ------------------------------------------------------------------------------------------------
+# experiments: one folder, one experiment
+# ------------------------------------------------------------------------------------------------
+@pytest.fixture(scope="module")
+def ablation(tmp_path_factory, cache_env):
+    out = tmp_path_factory.mktemp("exp") / "abl"
+    assert main(["experiment", "ablation", "--scale", "tiny", "--out", str(out)]) == 0
+    return out
+
+
+def test_experiment_refuses_another_experiments_folder_and_keeps_its_marker(ablation, tmp_path, capsys):
+    out = tmp_path / "abl"
+    shutil.copytree(ablation, out)
+    before = snapshot(out)
+    assert json.loads((out / ".complete").read_text())["experiment"] == "ablation"
+    for name, scale in (("cfa-period", "tiny"), ("noise", "tiny"), ("ablation", "quick")):
+        line = error_line(capsys, ["experiment", name, "--scale", scale, "--out", str(out)])
+        assert line == (f"hsicam: error: {out}: holds the results of experiment ablation at tiny scale; experiment "
+                        f"{name} --scale {scale} would replace them and mix its runs with theirs: choose another --out "
+                        f"(e.g. runs/experiments/{name}-{scale})")
+        assert snapshot(out) == before  # the marker too: the finished experiment stays finished
+
+
+def test_experiment_refuses_an_interrupted_folder_of_another_experiment(ablation, tmp_path, capsys):
+    out = tmp_path / "abl"
+    shutil.copytree(ablation, out)
+    for name in (".complete", "experiment.json", "table.md"):  # as an interrupted first run leaves it
+        (out / name).unlink()
+    before = snapshot(out)
+    line = error_line(capsys, ["experiment", "cfa-period", "--scale", "tiny", "--out", str(out)])
+    assert line == (f"hsicam: error: {out / 'runs'}: holds doe+cfa, no-cfa, no-doe, which experiment cfa-period does "
+                    "not train (another experiment's runs); choose another --out (e.g. runs/experiments/cfa-period-tiny)")
+    line = error_line(capsys, ["experiment", "ablation", "--scale", "quick", "--out", str(out)])
+    assert line == (f"hsicam: error: {out / 'runs' / 'doe+cfa'} was trained at tiny scale: {out} holds experiment "
+                    "ablation at tiny scale, not quick; choose another --out (e.g. runs/experiments/ablation-quick)")
+    assert snapshot(out) == before
+
+
+# ------------------------------------------------------------------------------------------------
+# experiment cfa-period at every scale
+# ------------------------------------------------------------------------------------------------
+def test_cfa_period_runs_build_at_quick_scale():
+    """The quick preset's dispersed layout needs a power-of-two period, its mosaic network a factor
+    that is a multiple of the period and its linear step filters as wide as the period: every run
+    of the sweep is built (and images and reconstructs a patch) with the experiment's overrides."""
+    from hsicam.engine.experiments import CFA_PERIODS, run_configs, run_specs
+    from hsicam.models import CameraSystem
+
+    preset = load_config("quick")
+    assert preset.camera.cfa.layout == "dispersed" and preset.model.mosaic.factor == 8
+    cfgs = run_configs("cfa-period", "quick")
+    specs = run_specs("cfa-period", preset)
+    assert [s.name for s in specs] == [f"period-{m}" for m in CFA_PERIODS] == list(cfgs)
+    for spec, m in zip(specs, CFA_PERIODS):
+        cfg = cfgs[spec.name]
+        assert cfg == load_config("quick", list(spec.overrides))
+        assert cfg.camera.cfa.period == m and cfg.camera.cfa.layout == "random"  # one layout across the sweep
+        assert cfg.camera.cfa.init == preset.camera.cfa.init and cfg.model.kind == preset.model.kind
+        assert cfg.model.mosaic.factor % m == 0 and abs(cfg.model.mosaic.factor - 8) <= m / 2 + 1e-9
+        assert cfg.model.consistency.window_px == 15  # the same filters for every period
+        assert "camera.cfa.layout=random" in spec.note and "model.consistency.window_px=15" in spec.note
+        model = CameraSystem.from_config(cfg)
+        assert model.camera.code_period == m
+        k = model.camera.kernel_px
+        with torch.no_grad():
+            est, sensor = model(torch.rand(1, len(model.bands), 64 + k - 1, 64 + k - 1))
+        assert sensor.shape[-2:] == (64, 64) and est.shape == (1, len(model.bands), 64, 64)
+        assert torch.isfinite(est).all()
+    # tiny and paper: the period alone, as before
+    for scale in ("tiny", "paper"):
+        assert [s.overrides for s in run_specs("cfa-period", load_config(scale))] == [
+            (f"camera.cfa.period={m}",) for m in CFA_PERIODS]
+        run_configs("cfa-period", scale)
+
+
+def test_experiment_table_states_what_the_experiment_set():
+    from hsicam.engine.evaluate import summarize
+    from hsicam.engine.experiments import format_experiment_table
+
+    result = {"experiment": "cfa-period", "scale": "quick", "seeds": [0], "scenes": ["a"],
+              "conventions": summarize([])["conventions"],
+              "rows": [{"method": "period-3", "psnr": 30.0, "ssim": 0.8, "sam": 5.0, "runtime_s": 0.1}],
+              "notes": ["period-3: camera.cfa.layout=random (the preset's dispersed layout needs a power-of-two period)"]}
+    table = format_experiment_table(result)
+    assert table.endswith("Set by the experiment beyond the swept key:\n\n- period-3: camera.cfa.layout=random (the "
+                          "preset's dispersed layout needs a power-of-two period)")
