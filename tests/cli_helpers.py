@@ -37,6 +37,23 @@ def run_cli(*args: str, timeout: float = 600, env: dict | None = None) -> subpro
     return subprocess.run([str(HSICAM), *args], capture_output=True, text=True, timeout=timeout, env=cli_env(env))
 
 
+def run_cli_in_process(*args: str) -> subprocess.CompletedProcess:
+    """``hsicam ARGS`` in this process (the console script's ``main``; saves the interpreter start),
+    as a completed process like :func:`run_cli`'s."""
+    import contextlib
+    import io
+
+    from hsicam.cli import main
+
+    out, err = io.StringIO(), io.StringIO()
+    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+        try:
+            rc = main(list(args))
+        except SystemExit as exc:  # argparse usage errors
+            rc = exc.code
+    return subprocess.CompletedProcess(list(args), rc, out.getvalue(), err.getvalue())
+
+
 def assert_clean_error(proc: subprocess.CompletedProcess, *fragments: str) -> None:
     """Exit code 2, one line on stderr starting with 'hsicam: error:', no traceback."""
     assert proc.returncode == 2, (proc.returncode, proc.stdout, proc.stderr)

@@ -8,12 +8,9 @@ PSFs (it drops > 2 dB when the band throughput changes) and fine-tuning effects 
 
 from __future__ import annotations
 
-import contextlib
 import dataclasses
-import io
 import json
 import shutil
-import subprocess
 from pathlib import Path
 
 import numpy as np
@@ -21,7 +18,7 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from cli_helpers import assert_clean_error
+from cli_helpers import assert_clean_error, run_cli_in_process
 from conftest import TINY_CAMERA_OVERRIDES
 from hsicam.cameras import DOECamera
 from hsicam.cameras.measured import FixedPSFCamera
@@ -44,17 +41,7 @@ FAB_OVERRIDES = (
 )
 
 
-def run_cli(*args: str) -> subprocess.CompletedProcess:
-    """``hsicam ARGS`` in this process (the console script's ``main``; saves the interpreter start)."""
-    from hsicam.cli import main
-
-    out, err = io.StringIO(), io.StringIO()
-    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
-        try:
-            rc = main(list(args))
-        except SystemExit as exc:  # argparse usage errors
-            rc = exc.code
-    return subprocess.CompletedProcess(list(args), rc, out.getvalue(), err.getvalue())
+run_cli = run_cli_in_process
 
 
 def write_homogeneous_scenes(folder: Path, n: int = 8, size: int = 40) -> Path:

@@ -11,11 +11,8 @@ pitch), written as images the way a lab would (npy, 8- and 16-bit PNG).
 
 from __future__ import annotations
 
-import contextlib
-import io
 import json
 import logging
-import subprocess
 from pathlib import Path
 
 import imageio.v3 as iio
@@ -23,7 +20,7 @@ import numpy as np
 import pytest
 import torch
 
-from cli_helpers import assert_clean_error
+from cli_helpers import assert_clean_error, run_cli_in_process
 from hsicam.data.measured_psf import import_for_camera
 from hsicam.errors import InputError
 from hsicam.io import write_json
@@ -31,17 +28,7 @@ from hsicam.io import write_json
 LOGGER = "hsicam.data.measured_psf"
 
 
-def run_cli(*args: str) -> subprocess.CompletedProcess:
-    """``hsicam ARGS`` in this process (the console script's ``main``; saves the interpreter start)."""
-    from hsicam.cli import main
-
-    out, err = io.StringIO(), io.StringIO()
-    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
-        try:
-            rc = main(list(args))
-        except SystemExit as exc:  # argparse usage errors
-            rc = exc.code
-    return subprocess.CompletedProcess(list(args), rc, out.getvalue(), err.getvalue())
+run_cli = run_cli_in_process
 
 
 @pytest.fixture(scope="module")
