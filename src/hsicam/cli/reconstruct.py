@@ -250,6 +250,53 @@ def corrections_from_args(args: argparse.Namespace, cfa_period: int | None) -> "
                          auto_level=args.auto_level, scale=1.0)
 
 
+def check_one_level_setting(args: argparse.Namespace) -> None:
+    """InputError for ``--auto-level`` together with ``--exposure-s``/``--reference-exposure-s`` or
+    ``--scale``: auto-level sets the radiometric scale from the image itself, so the other gains would
+    be dropped (the exposures) or stacked on top of it (the scale); the level has one source."""
+    if args.auto_level is None:
+        return
+    given = [f"--{name.replace('_', '-')} {getattr(args, name):g}"
+             for name in ("exposure_s", "reference_exposure_s", "scale") if getattr(args, name) is not None]
+    if given:
+        raise InputError(f"--auto-level {args.auto_level:g} sets the level from the image itself and cannot be combined "
+                         f"with {' and '.join(given)}: choose one way of setting the level: --auto-level alone, or "
+                         "--exposure-s/--reference-exposure-s and/or --scale")
+
+
+def psf_mismatch_message(args: argparse.Namespace, measured, fine_tuned: bool) -> str:
+    """The warning for ``--psf-dir`` PSFs other than those the network of ``--run`` was fine-tuned on:
+    when the run was fine-tuned on the same folder, what differs (the pixel pitch, naming both, …)."""
+    from hsicam.runs.folder import finetune_source
+    from hsicam.runs.measured_psf import MEASURED_PSF_FILE, load_measured_psf, psf_difference
+
+    diff = None
+    source = None
+    if fine_tuned:
+        try:
+            diff = psf_difference(load_measured_psf(Path(args.run) / MEASURED_PSF_FILE), measured, args.psf_dir)
+        except InputError:  # only a better message: an unreadable file keeps the plain one
+            diff = None
+        source = finetune_source(Path(args.run))[0]
+    if diff is None:
+        return (f"the network of {args.run} was not fine-tuned on the PSFs of {args.psf_dir}; run `hsicam finetune "
+                f"--run {args.run} --psf-dir {args.psf_dir} --out RUN2` and reconstruct with RUN2")
+    what, why = diff
+    base = source or "ORIGINAL_RUN"
+    if what == "pixel_pitch_um":
+        tuned_pitch = load_measured_psf(Path(args.run) / MEASURED_PSF_FILE).report["pixel_pitch_um"]
+        now = "--psf-pitch-um" if args.psf_pitch_um is not None else f"pixel_pitch_um in {Path(args.psf_dir) / 'psf.json'}"
+        pitch = measured.report["pixel_pitch_um"]
+        return (f"the PSFs of {args.psf_dir} differ from the ones the network of {args.run} was fine-tuned on: the same "
+                f"folder, but read at pixel pitch {pitch:g} µm ({now}) instead of the {tuned_pitch:g} µm it was "
+                f"fine-tuned with; reconstruct with --psf-pitch-um {tuned_pitch:g} if that is the images' pitch, or "
+                f"fine-tune for this one: `hsicam finetune --run {base} --psf-dir {args.psf_dir} --psf-pitch-um "
+                f"{pitch:g} --out RUN2` and reconstruct with RUN2")
+    return (f"the PSFs of {args.psf_dir} differ from the ones the network of {args.run} was fine-tuned on (the same "
+            f"folder): {why}; fine-tune again: `hsicam finetune --run {base} --psf-dir {args.psf_dir} --out RUN2` and "
+            "reconstruct with RUN2")
+
+
 def cmd_reconstruct(args: argparse.Namespace) -> int:
     from hsicam.config import MAX_CONSISTENCY_ITERATIONS
     from hsicam.runs.folder import load_run
@@ -260,6 +307,7 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
         raise InputError("--tile must be at least 16 px")
     if args.scale is not None and not (np.isfinite(args.scale) and args.scale > 0):
         raise InputError("--scale must be a positive number")
+    check_one_level_setting(args)
     if args.psf_pitch_um is not None and not args.psf_dir:
         raise InputError("--psf-pitch-um is the pixel pitch of the measured PSFs of --psf-dir: give --psf-dir DIR "
                          "too, or drop --psf-pitch-um")
@@ -294,8 +342,7 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
         # the consistency step explains the capture with the measured PSFs (what this camera does)
         model.step_camera = FixedPSFCamera.from_camera(model.camera, torch.from_numpy(measured.psf))
         if tuned != measured.fingerprint:
-            log.warning("the network of %s was not fine-tuned on the PSFs of %s; run `hsicam finetune --run %s "
-                        "--psf-dir %s --out RUN2` and reconstruct with RUN2", args.run, args.psf_dir, args.run, args.psf_dir)
+            log.warning("%s", psf_mismatch_message(args, measured, tuned is not None))
     cfa_period = cfg.camera.cfa.period if cfg.camera.cfa.enabled else None
     corr = corrections_from_args(args, cfa_period)
     img, report = read_capture(args.sensor, corr, args.scale)

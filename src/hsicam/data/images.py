@@ -16,7 +16,16 @@ every problem is one :class:`~hsicam.errors.InputError`.
 Checks on the result (:func:`preprocess_raw`, :func:`read_capture`):
 
 * 32/64-bit integer captures (numpy's default int) need an explicit white level: the type's
-  maximum (2^31 − 1, 2^63 − 1) is never a sensor's full scale (:class:`InputError`).
+  maximum (2^31 − 1, 2^63 − 1) is never a sensor's full scale (:class:`InputError`). A white level
+  above the integer type's maximum (4095 for an 8-bit file) is an :class:`InputError` too.
+* ``auto_level`` sets the level from the image itself: with an exposure normalisation or a
+  ``scale`` it is an :class:`InputError` (one source for the level); the report records only the
+  gains applied.
+* More than :data:`MAX_SATURATED_SHARE` of the pixels at or above the white level is an
+  :class:`InputError` (a wrong white level or an over-exposed capture); any fewer, a warning.
+* With an explicit white level, a 99.9th percentile below :data:`DARK_WHITE_FRACTION` of full scale
+  (after every correction) is a warning, and an :class:`InputError` for a float capture whose values
+  lie within [0, 1] (on the simulator's scale already: a DN white level divides it down).
 * (Nearly) no pixel above 0 after subtracting the dark frame / black level — fewer than
   :data:`MIN_SIGNAL_SHARE` of them — is an :class:`InputError` (nothing to reconstruct); more than
   :data:`MAX_NEGATIVE_SHARE` of the pixels below 0 is a warning (dark frame or black level too high?).
@@ -81,6 +90,14 @@ MAX_LEVEL = 4.0
 #: More than this share of the pixels above full scale after such a gain: a warning (clipped highlights
 #: a real sensor would not have recorded). ``auto_level`` 1 leaves 0.1 % above: no warning.
 CLIP_SHARE = 0.01
+#: More than this share of the capture's pixels at or above the white level: refused (the image is
+#: a flat white plateau, or the white level is wrong); a smaller share (but any pixel) is a warning.
+MAX_SATURATED_SHARE = 0.5
+#: A capture read with an explicit white level whose 99.9th percentile (after all the corrections)
+#: stays below this fraction of full scale: the white level is far above the data (a DN white level for
+#: a float image already on the [0, 1] scale, 65535 for a 12-bit sensor): a warning, refused for a
+#: float capture whose values all lie within [0, 1] (it is on the simulator's scale already).
+DARK_WHITE_FRACTION = 1.0 / 16.0
 
 
 # ------------------------------------------------------------------------------------------------
@@ -304,6 +321,11 @@ class RawCorrection:
                 raise InputError(f"{name} must be positive, got {v}")
         if (self.exposure_s is None) != (self.reference_exposure_s is None):
             raise InputError("exposure normalisation needs both the capture's exposure and the reference exposure")
+        if self.auto_level is not None and (self.exposure_s is not None or self.scale != 1.0):
+            given = " and ".join(o for o in _gain_options(self) if not o.startswith("--auto-level"))
+            raise InputError(f"--auto-level {self.auto_level:g} sets the level from the image itself and cannot be "
+                             f"combined with {given}: choose one way of setting the level: --auto-level alone, or "
+                             "--exposure-s/--reference-exposure-s and/or --scale")
         if self.flat_period is not None and self.flat_period < 1:
             raise InputError(f"flat period must be >= 1, got {self.flat_period}")
         if self.black_level is not None and self.black_level < 0:
@@ -345,12 +367,11 @@ def preprocess_raw(raw: np.ndarray, full_scale: float, corr: RawCorrection, sour
         raise InputError(f"white level ({white:g} DN) must be above the black level ({black:g} DN)")
     report: dict[str, Any] = {"black_level_dn": black, "white_level_dn": white}
     saturated = int(np.count_nonzero(raw >= white)) if check_saturation and (corr.white_level is not None or full_scale > 1) else 0
-    if saturated:
-        log.warning("%s: %d pixel(s) at or above the white level %g DN (saturated)", source, saturated, white)
     report["saturated_px"] = saturated
+    notes = _check_saturated(raw, saturated, white, corr.white_level is not None, source)
     img = raw - (corr.dark.astype(np.float32) if corr.dark is not None else np.float32(black))
     dark_median = (black if corr.black_level is None else float(np.median(corr.dark))) if corr.dark is not None else None
-    notes = _check_signal(img, raw, black, dark_median, source)
+    notes += _check_signal(img, raw, black, dark_median, source)
     img *= np.float32(1.0 / (white - black))
     if corr.flat is not None:
         flat = corr.flat.astype(np.float64) - black
@@ -378,6 +399,8 @@ def preprocess_raw(raw: np.ndarray, full_scale: float, corr: RawCorrection, sour
             raise InputError(f"{source}: no signal above the black level; cannot auto-level")
         factor = corr.auto_level / p
         report["auto_level"] = corr.auto_level
+    if corr.scale != 1.0:
+        report["scale"] = corr.scale
     factor *= corr.scale
     img *= np.float32(factor)
     report["gain"] = factor / (white - black)
@@ -387,6 +410,8 @@ def preprocess_raw(raw: np.ndarray, full_scale: float, corr: RawCorrection, sour
         notes += _check_level(img, corr, source)
     if check_bit_depth and full_scale > 1 and corr.white_level is None and corr.auto_level is None:
         notes += _check_dim(img, raw, full_scale, source)
+    if corr.white_level is not None and corr.auto_level is None:
+        notes += _check_white_level(img, raw, full_scale, white, source)
     if full_scale == 1 and corr.white_level is None and corr.auto_level is None and raw.size and raw.max() > FLOAT_OVER_SCALE:
         notes.append(f"{source}: a float capture is read on the simulator's scale (0 = black, 1 = full scale), and this "
                      f"one reaches {float(raw.max()):g}: if it holds DN, pass the sensor's white level (--white-level DN) "
@@ -466,6 +491,46 @@ def _check_signal(img: np.ndarray, raw: np.ndarray, black: float, dark_median: f
     return []
 
 
+def _check_saturated(raw: np.ndarray, saturated: int, white: float, explicit: bool, source: str) -> list[str]:
+    """InputError when more than :data:`MAX_SATURATED_SHARE` of the pixels are at or above the white
+    level ``white`` (``explicit``: given by the user); a warning (returned) for any fewer."""
+    if not saturated:
+        return []
+    n = raw.size
+    share = saturated / n
+    if share > MAX_SATURATED_SHARE:
+        brightest, median = float(raw.max()), float(np.median(raw))
+        fix = (f"is --white-level {white:g} the sensor's full scale? (the capture's median is {median:g} DN, its "
+               f"brightest pixel {brightest:g} DN); or the capture is over-exposed: take it again with a shorter exposure"
+               if explicit else "the capture is over-exposed: take it again with a shorter exposure")
+        raise InputError(f"{source}: {saturated} of {n} pixels ({100 * share:.0f} %) are at or above the white level "
+                         f"{white:g} DN (saturated; refused above {100 * MAX_SATURATED_SHARE:.0f} %): there is nothing "
+                         f"but a flat white image to reconstruct: {fix}")
+    return [f"{source}: {saturated} pixel(s) at or above the white level {white:g} DN (saturated; {100 * share:.2g} % of "
+            f"the pixels, refused above {100 * MAX_SATURATED_SHARE:.0f} %)"]
+
+
+def _check_white_level(img: np.ndarray, raw: np.ndarray, full_scale: float, white: float, source: str) -> list[str]:
+    """With an explicit white level: InputError for a float capture whose values all lie within [0, 1]
+    (the simulator's scale already) and whose 99.9th percentile (after every correction) ends below
+    :data:`DARK_WHITE_FRACTION` of full scale; a warning (returned) for any other such capture."""
+    if not img.size:
+        return []
+    level = float(np.percentile(img, 99.9))
+    if not level < DARK_WHITE_FRACTION:
+        return []
+    brightest = float(raw.max())
+    if full_scale == 1 and brightest <= 1.0:
+        raise InputError(f"{source}: --white-level {white:g} is far above this float capture's values, which lie "
+                         f"within [0, 1] (brightest {brightest:g}): it is on the simulator's scale (1 = full scale) "
+                         f"already, and the white level divides it down to a 99.9th percentile of {level:.3g} of full "
+                         f"scale (refused below 1/{round(1 / DARK_WHITE_FRACTION)}): leave --white-level out")
+    return [f"{source}: very dark: with --white-level {white:g} the image's 99.9th percentile is {level:.3g} of full "
+            f"scale (brightest pixel {brightest:g}; warned below 1/{round(1 / DARK_WHITE_FRACTION)}): is {white:g} this "
+            "sensor's full scale (4095 for 12 bit, 65535 for 16 bit)? if the capture is just dark, scale it "
+            "(--exposure-s/--reference-exposure-s, --scale or --auto-level)"]
+
+
 def _check_dim(img: np.ndarray, raw: np.ndarray, full_scale: float, source: str) -> list[str]:
     """A warning (returned) when an integer capture normalised with its container's full scale stays below
     :data:`DIM_FRACTION` of full scale at its brightest pixel (see the module docstring)."""
@@ -513,6 +578,12 @@ def read_capture(path: str | Path, corr: RawCorrection | None = None, scale: flo
                          f"({image.full_scale:.3g}) is no sensor's full scale; pass the sensor's white level, "
                          f"--white-level DN (4095 for 12 bit, 65535 for 16 bit; the brightest pixel here is "
                          f"{float(image.data.max()):g} DN)")
+    if np.dtype(image.dtype).kind in "ui" and corr.white_level is not None and corr.white_level > image.full_scale:
+        raise InputError(f"{path}: --white-level {corr.white_level:g} DN is above the largest value its "
+                         f"{image.dtype} pixels can hold ({image.full_scale:g}): no pixel can reach it, and the image "
+                         f"would stay below {image.full_scale / corr.white_level:.3g} of full scale: pass the sensor's "
+                         f"white level, at most {image.full_scale:g} (the brightest pixel here is "
+                         f"{float(image.data.max()):g} DN), or leave --white-level out for the type's maximum")
     simulated = is_simulated_image(path, image.format)
     stretched = False  # simulate's PNG of an image brighter than full scale: its peak is full scale by design
     if scale is None and simulated and corr.scale == 1.0 and corr.auto_level is None:

@@ -455,11 +455,14 @@ def import_psf_dir(psf_dir: str | Path, bands: Bands, camera_pixel_m: float, ker
     file) about :data:`SATURATED_MIN_PX` or more clipped pixels.
     """
     d = Path(psf_dir)
+    if d.exists() and not d.is_dir():
+        raise InputError(f"{d}: is a file, not a folder: --psf-dir takes the folder that holds the measured PSF images "
+                         "(one per band, named with their wavelength, e.g. psf_450nm.tif, or psf.npy + psf.json)")
     if not d.is_dir():
         raise InputError(f"{d}: no such PSF folder")
     meta = _read_manifest(d)
+    items = _list_band_images(d, meta)  # first: a folder without images needs no pitch to be refused
     opts = options_from_manifest(meta, pitch_um, centre, background)
-    items = _list_band_images(d, meta)
     waves = np.array([w for w, _, _, _ in items])
     chosen, missing = [], []
     for lam in bands.centers_nm:

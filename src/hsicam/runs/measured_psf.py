@@ -60,3 +60,37 @@ def load_measured_psf(path: str | Path) -> MeasuredPSF:
     except (json.JSONDecodeError, KeyError, TypeError):
         raise InputError(f"{path}: corrupt measured-PSF metadata") from None
     return MeasuredPSF(tensors["psf"].numpy(), bands, report)
+
+
+def _same_folder(a: str | Path, b: str | Path) -> bool:
+    """Whether ``a`` and ``b`` name one folder (through links; by resolved path when either is gone)."""
+    import os
+
+    try:
+        return os.path.samefile(a, b)
+    except OSError:
+        return Path(a).resolve() == Path(b).resolve()
+
+
+def psf_difference(tuned: MeasuredPSF, measured: MeasuredPSF, psf_dir: str | Path) -> tuple[str, str] | None:
+    """Why the PSFs ``measured`` (imported from ``psf_dir``) differ from ``tuned`` (those a run was
+    fine-tuned on, with their import report) when both come from the same folder: the pixel pitch
+    they were imported at, the kernel, the other import options, else the images (or ``psf.json``)
+    changed since: (what differs: "pixel_pitch_um", "kernel_px", "options" or "images", the reason in
+    words). None when ``tuned`` came from another folder (or does not say which) or they are the same
+    PSFs."""
+    if tuned.fingerprint == measured.fingerprint:
+        return None
+    before, now = tuned.report, measured.report
+    src = before.get("psf_dir")
+    if not isinstance(src, str) or not _same_folder(src, psf_dir):
+        return None
+    p0, p1 = before.get("pixel_pitch_um"), now.get("pixel_pitch_um")
+    if isinstance(p0, (int, float)) and isinstance(p1, (int, float)) and abs(p0 - p1) > 1e-9 * max(abs(p0), abs(p1)):
+        return "pixel_pitch_um", f"the pixel pitch differs: {p1:g} µm now, {p0:g} µm when it was fine-tuned"
+    if before.get("kernel_px") != now.get("kernel_px"):
+        return "kernel_px", f"the kernel differs: {now.get('kernel_px')} px now, {before.get('kernel_px')} px when it was fine-tuned"
+    changed = [k for k in ("centre", "axis_px", "background", "normalize") if before.get(k) != now.get(k)]
+    if changed:
+        return "options", "the import options differ: " + ", ".join(f"{k} {now.get(k)!r} now, {before.get(k)!r} then" for k in changed)
+    return "images", "the PSF images (or psf.json) of the folder changed since it was fine-tuned"
