@@ -82,8 +82,8 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     from hsicam.data.datasets import list_scenes
     from hsicam.data.formats import write_cube_h5
     from hsicam.data.pipeline import scene_dataset
-    from hsicam.engine.evaluate import (TestNoise, config_hash, evaluate_method, format_table, scored_region, summarize,
-                                        write_results)
+    from hsicam.engine.evaluate import (TestNoise, check_test_noise, config_hash, evaluate_method, format_table,
+                                        scored_region, summarize, write_results)
     from hsicam.engine.experiments import heldout_scenes, validation_scenes
     from hsicam.engine.methods import METHOD_ALIASES, build_method
     from hsicam.cli import prepare_output
@@ -115,6 +115,7 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
         data = "synthetic validation split"
         heldout = heldout_scenes(cfg)
     noise = TestNoise(args.sigma_height_nm, args.sensor_sigma, tuple(range(args.seeds)))
+    check_test_noise(method, noise, f"run {args.run}" if args.run else f"--config {args.config or 'default'}")
     show = lambda line: print(line, file=sys.stderr, flush=True)  # noqa: E731
     results = evaluate_method(method, scenes, names, noise, args.device, keep_arrays=args.save, progress=show)
     summary = summarize(results, method=args.method, run=str(Path(args.run).resolve()) if args.run else None, data=data, config_hash=config_hash(dump_yaml(cfg)),
@@ -151,7 +152,7 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
 
 
 def cmd_experiment(args: argparse.Namespace) -> int:
-    from hsicam.engine.experiments import format_experiment_table, run_experiment
+    from hsicam.engine.experiments import check_experiment_folder, format_experiment_table, run_configs, run_experiment
     from hsicam.cli import prepare_output
     from hsicam.io import clear_complete, is_complete, mark_complete, output_description, read_marker
 
@@ -164,8 +165,11 @@ def cmd_experiment(args: argparse.Namespace) -> int:
         elif not (out / "runs").is_dir():
             raise InputError(f"{out}: folder exists and is not an experiment folder; choose another --out")
     # An experiment folder is filled in place (its trained runs resume): the marker comes off first
-    # and goes back on only when experiment.json and table.md are written.
-    clear_complete(out) if out.is_dir() else None
+    # (after the folder is checked to hold this experiment, at this scale) and goes back on only when
+    # experiment.json and table.md are written.
+    if out.is_dir():
+        check_experiment_folder(out, args.name, args.scale, run_configs(args.name, args.scale))
+        clear_complete(out)
     result = run_experiment(args.name, args.scale, out, tuple(range(args.seeds)))
     mark_complete(out, {"command": "experiment", "experiment": args.name, "scale": args.scale})
     print(format_experiment_table(result))

@@ -77,6 +77,33 @@ def _check_scored_area(name: str, scene: torch.Tensor, truth: torch.Tensor, came
                           if crop else ""))
 
 
+def no_doe_reason(camera) -> str | None:
+    """Why test DOE height noise cannot reach ``camera`` (None when it can): a camera kind without a
+    DOE (CASSI), a camera imaging with fixed (measured) PSFs, or a DOE camera whose DOE is disabled
+    (``camera.doe.enabled: false``, the no-DOE ablation)."""
+    if getattr(camera, "kind", None) == "measured_psf":
+        return "its camera images with fixed (measured) PSFs, which DOE height noise does not change"
+    if "sigma_height_nm" not in camera.noise_levels():
+        return f"its camera (camera.kind {getattr(camera, 'kind', type(camera).__name__)}) has no DOE"
+    optics = getattr(camera, "optics", None)
+    if optics is not None and not optics.doe.enabled:
+        return "its camera has no DOE (camera.doe.enabled: false)"
+    return None
+
+
+def check_test_noise(method: Method, noise: TestNoise, source: str | None = None) -> None:
+    """InputError for test DOE height noise (``sigma_height_nm`` > 0) on a camera without a DOE: no
+    noise would reach it, yet the results would record the σ as applied. ``source`` names where the
+    method's camera comes from (e.g. ``run xab/runs/no-doe``) in the message."""
+    if not noise.sigma_height_nm:
+        return
+    why = no_doe_reason(method.camera)
+    if why is not None:
+        of = f"{method.name} ({source})" if source else method.name
+        raise InputError(f"--sigma-height-nm {noise.sigma_height_nm:g}: {of}: {why}, so no height noise would be "
+                         "applied; drop --sigma-height-nm (it applies only to a camera with a DOE)")
+
+
 @torch.no_grad()
 def evaluate_method(method: Method, scenes, names: Sequence[str], noise: TestNoise = TestNoise(),
                     device: str | torch.device = "cpu", keep_arrays: bool = True, tile_px: int = 512,
@@ -86,6 +113,7 @@ def evaluate_method(method: Method, scenes, names: Sequence[str], noise: TestNoi
     ``progress``: called with one line per finished scene (e.g. ``print`` to stderr).
     """
     cam = method.camera
+    check_test_noise(method, noise)
     saved = cam.noise_levels()
     levels = dict(saved)
     if noise.sigma_height_nm is not None and "sigma_height_nm" in levels:

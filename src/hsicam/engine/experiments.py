@@ -25,7 +25,7 @@ from hsicam.engine.evaluate import TestNoise, evaluate_method, summarize
 from hsicam.engine.methods import baseline_names, build_method
 from hsicam.engine.prior import ensure_choi_prior
 from hsicam.engine.train import train
-from hsicam.errors import HsicamError, InputError
+from hsicam.errors import InputError
 from hsicam.io import atomic_open, write_json
 
 log = logging.getLogger(__name__)
@@ -241,14 +241,10 @@ def run_experiment(experiment: str, scale: str, out: str | Path, seeds: tuple[in
     if scale not in SCALES:
         raise InputError(f"unknown scale {scale!r}; choose one of {', '.join(SCALES)}")
     out = Path(out)
-    try:  # every check before any change (the configs of all its cameras too)
-        cfg = load_config(scale)
-        specs = run_specs(experiment, cfg)
-        run_cfgs = run_configs(experiment, scale)
-        check_experiment_folder(out, experiment, scale, run_cfgs)
-    except HsicamError:
-        keep_finished_marker(out)
-        raise
+    cfg = load_config(scale)  # every check before any change (the configs of all its cameras too)
+    specs = run_specs(experiment, cfg)
+    run_cfgs = run_configs(experiment, scale)
+    check_experiment_folder(out, experiment, scale, run_cfgs)
     (out / "runs").mkdir(parents=True, exist_ok=True)
     for spec in specs:
         ensure_trained(out / "runs" / spec.name, run_cfgs[spec.name])
@@ -353,19 +349,6 @@ def check_experiment_folder(out: Path, experiment: str, scale: str, run_cfgs: di
                 raise InputError(f"{run} was trained at {other_scale} scale: {out} holds experiment {experiment} at "
                                  f"{other_scale} scale, not {scale}; choose another --out (e.g. {default})")
         check_same_training(run, cfg)
-
-
-def keep_finished_marker(out: Path) -> None:
-    """Put back the completion marker of a finished experiment folder (experiment.json and table.md
-    written) that a refused re-run found without one: ``hsicam experiment`` takes the marker off
-    before the run, and a refusal changes nothing else."""
-    from hsicam.io import is_complete, mark_complete
-
-    info = _read_json(out / "experiment.json")
-    name, scale = info.get("experiment"), info.get("scale")
-    if (isinstance(name, str) and isinstance(scale, str) and (out / "table.md").is_file()
-            and not is_complete(out)):
-        mark_complete(out, {"command": "experiment", "experiment": name, "scale": scale})
 
 
 def _baseline_rows(cfg, scale, out, scenes, names, seeds, baselines) -> list[dict]:
