@@ -132,9 +132,10 @@ def cmd_tolerance(args: argparse.Namespace) -> int:
         doe = "1-dB tolerances: "
         doe_tol = (f"σ_p {_fmt(s.get('sigma_height_nm_at_1db_loss'), 'nm')}, "
                    f"shift {_fmt(s.get('shift_x_cells_at_1db_loss'), 'cells')} (x), ")
-    min_lv = s.get("min_levels_within_1db")
-    levels = "" if result.get("skipped") else (f", levels ≥ {min_lv}" if min_lv is not None
-                                                else ", no swept level count within 1 dB")
+    from hsicam.report.tolerance import levels_text
+
+    lv = "" if result.get("skipped") else levels_text(result)  # "levels ≥ L" only when the sweep brackets L
+    levels = f", {lv}" if lv else ""
     print(f"nominal PSNR {result['nominal']['psnr']:.2f} dB on {len(result['scenes'])} scene(s); {doe}{doe_tol}"
           f"Δz toward the lens {_fmt(dz.get('minus'), 'µm')}, away {_fmt(dz.get('plus'), 'µm')}{levels} "
           f"-> {args.out}")

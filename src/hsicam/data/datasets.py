@@ -231,6 +231,11 @@ def probe_hsicam(path: Path, bands: Bands) -> SceneInfo | None:
     return SceneInfo(path, int(shape[1]), int(shape[2]), peak)
 
 
+#: How to give a ``.npy`` cube's band grid (the file carries none), ending the refusal of a grid
+#: that does not fit the camera's; a command without ``--set`` passes its own (``npy_bands_advice``).
+NPY_BANDS_ADVICE = "give its grid with data.npy_bands, e.g. data.npy_bands={start_nm: ..., stop_nm: ..., step_nm: ...}"
+
+
 class SceneDataset(Dataset):
     """Whole scenes on ``bands``, normalised: item i is a float32 tensor (C, H, W) in [0, 1].
 
@@ -241,12 +246,14 @@ class SceneDataset(Dataset):
     """
 
     def __init__(self, scenes: Sequence[str | os.PathLike], bands: Bands, *, preload: bool = False,
-                 cache_size: int = 4, source_bands: Bands | None = None, allow_negative: bool = False) -> None:
+                 cache_size: int = 4, source_bands: Bands | None = None, allow_negative: bool = False,
+                 npy_bands_advice: str = NPY_BANDS_ADVICE) -> None:
         if len(scenes) == 0:
             raise InputError("SceneDataset: no scenes")
         self.paths = [Path(s) for s in scenes]
         self.bands = bands
         self.source_bands = source_bands
+        self.npy_bands_advice = npy_bands_advice  # how the caller's user gives a .npy cube's grid
         self.allow_negative = allow_negative
         self.cache_size = max(int(cache_size), 1)
         self._infos: list[SceneInfo | None] = [None] * len(self.paths)
@@ -330,8 +337,7 @@ class SceneDataset(Dataset):
         except InputError as exc:
             if meta.get("bands_assumed"):  # a file without wavelengths (.npy): say how to give them
                 raise InputError(f"{exc} (the file carries no wavelengths, so its {cube.shape[0]} bands were taken "
-                                 f"as 400-700 nm: give its grid with data.npy_bands, e.g. "
-                                 f"data.npy_bands={{start_nm: ..., stop_nm: ..., step_nm: ...}})") from None
+                                 f"as 400-700 nm: {self.npy_bands_advice})") from None
             raise
         cube, peak = normalize_per_cube_max(cube, source=path)
         self._infos[i] = SceneInfo(path, cube.shape[1], cube.shape[2], peak)

@@ -92,6 +92,11 @@ class ToleranceSpec:
 # ------------------------------------------------------------------------------------------------
 # Evaluation
 # ------------------------------------------------------------------------------------------------
+#: ``tolerance`` has no ``--set``: a ``.npy`` cube's grid can only come from a file that records it.
+NPY_BANDS_ADVICE = ("tolerance reads the wavelengths from the file only, so save it as .h5 with its band list "
+                    "(hsicam.data.formats.write_cube_h5) and pass that to --data")
+
+
 def evaluation_scenes(cfg, bands, max_scenes: int, data: str | Path | None = None):
     """(SceneDataset, names): the run's validation scenes (all scenes when it has none), or ``data``."""
     from hsicam.data import dataset_root, list_scenes, split_dataset
@@ -103,7 +108,8 @@ def evaluation_scenes(cfg, bands, max_scenes: int, data: str | Path | None = Non
         _, val = split_dataset(cfg.data, bands)
         scenes = val or list_scenes(dataset_root(cfg.data, bands))
     scenes = scenes[:max_scenes]
-    return scene_dataset(cfg.data, scenes, bands), [Path(s).stem for s in scenes]
+    advice = {} if data is None else {"npy_bands_advice": NPY_BANDS_ADVICE}  # its own data: no --set to give a grid
+    return scene_dataset(cfg.data, scenes, bands, **advice), [Path(s).stem for s in scenes]
 
 
 def evaluate_psf(model, psf: torch.Tensor, scenes, names: Sequence[str], seed: int = 0) -> dict[str, float]:
@@ -137,20 +143,60 @@ def _tolerance_at(values: Sequence[float], psnr: Sequence[float], nominal: float
 
 def check_sweeps(spec: ToleranceSpec, optics) -> None:
     """The sweep values that no camera geometry allows, refused before any evaluation: a sensor
-    distance error that puts the sensor at or behind the lens, and a lateral shift of the DOE by
+    distance error that puts the sensor onto or past the lens, a lateral shift of the DOE by
     more than the aperture's diameter (the element would leave the aperture: the camera would be
-    the bare lens, not a misaligned DOE camera)."""
+    the bare lens, not a misaligned DOE camera), and a level count export-optics refuses
+    (:func:`check_levels`)."""
     z = optics.sensor_distance_m
     for dz_um in spec.sensor_distance_um:
         if z + dz_um * 1e-6 <= 0:
-            raise InputError(f"sensor distance error {dz_um} µm puts the sensor behind the lens "
-                             f"(the sensor sits {z * 1e6:.0f} µm behind it)")
+            z_um = z * 1e6
+            where = ("onto the lens" if math.isclose(z_um + dz_um, 0.0, abs_tol=1e-6 * max(1.0, z_um)) else
+                     f"past the lens, {-(z_um + dz_um):.6g} µm in front of it")
+            raise InputError(f"--sensor-distance-um: Δz = {dz_um:g} µm moves the sensor {where} (the sensor sits "
+                             f"{z_um:.6g} µm behind the lens); Δz toward the lens must stay above -{z_um:.6g} µm")
+    for lv in spec.levels if optics.doe.enabled else ():
+        check_levels(lv)
     check_defocus_sweep(spec.sensor_distance_um, optics)
     limit = 2 * optics.aperture_radius_m / optics.cell_m
     for s in spec.shift_cells:
         if abs(s) > limit:
             raise InputError(f"DOE shift {s} cells exceeds the aperture's diameter ({limit:.0f} cells of "
                              f"{optics.cell_m * 1e6:g} µm): the element would leave the aperture")
+
+
+#: The level counts ``hsicam export-optics --levels`` accepts (binary-weighted lithography).
+LEVELS_RANGE = (2, 256)
+
+
+def check_levels(levels: int) -> None:
+    """InputError for a level count ``hsicam export-optics`` refuses (not a power of 2 in
+    :data:`LEVELS_RANGE`): a tolerance for it would be of a DOE that cannot be exported."""
+    from hsicam.export.doe import is_power_of_two
+
+    lo, hi = LEVELS_RANGE
+    if not (lo <= levels <= hi and is_power_of_two(levels)):
+        raise InputError(f"--levels {levels}: hsicam export-optics exports only a power of 2 in {lo}..{hi} levels "
+                         f"(binary-weighted lithography), so a DOE of {levels} levels cannot be made from this run; "
+                         "sweep powers of 2, e.g. --levels 2,4,8,16,32")
+
+
+def levels_requirement(values: Sequence[int], psnr: Sequence[float], nominal: float,
+                       drop_db: float = 1.0) -> dict[str, Any]:
+    """The level count the camera needs (``min_levels_within_1db``: the fewest swept levels within
+    ``drop_db`` of nominal) and whether the sweep brackets it (``bracketed``: a swept count below it
+    loses more than ``drop_db``). Unbracketed, it is no requirement: fewer levels were not tried
+    (``reason``)."""
+    ok = sorted(lv for lv, p in zip(values, psnr) if nominal - p <= drop_db)
+    if not ok:
+        swept = ", ".join(str(v) for v in sorted(set(values)))
+        return {"min_levels_within_1db": None, "bracketed": False,
+                "reason": f"no swept level count ({swept}) within {drop_db:g} dB"}
+    lower = [lv for lv in values if lv < ok[0]]
+    if lower:
+        return {"min_levels_within_1db": ok[0], "bracketed": True, "reason": None}
+    why = ("only one value tried" if len(set(values)) == 1 else f"no fewer levels than {ok[0]} tried")
+    return {"min_levels_within_1db": ok[0], "bracketed": False, "reason": f"not bracketed: {why}"}
 
 
 def _um_toward_zero(v_m: float) -> float:
@@ -325,8 +371,11 @@ def run_tolerance(model, cfg, spec: ToleranceSpec = ToleranceSpec(), data: str |
             "plus": _tolerance_at([v for v, _ in pos], [p for _, p in pos], nominal["psnr"]),
         }
     if "levels" in sweeps:
-        ok = [lv for lv, p in zip(sweeps["levels"]["values"], sweeps["levels"]["psnr"]) if nominal["psnr"] - p <= 1.0]
-        summary["min_levels_within_1db"] = min(ok) if ok else None
+        req = levels_requirement(sweeps["levels"]["values"], sweeps["levels"]["psnr"], nominal["psnr"])
+        summary["min_levels_within_1db"] = req["min_levels_within_1db"]
+        summary["levels_bracketed"] = req["bracketed"]
+        if req["reason"]:
+            summary["levels_note"] = req["reason"]
     return {
         "format": TOLERANCE_FORMAT,
         **({} if studied_run is None else {"run": studied_run}),

@@ -6,6 +6,21 @@ import textwrap
 from pathlib import Path
 from typing import Any
 
+def levels_text(result: dict[str, Any]) -> str:
+    """The level-count part of the one-line tolerance summary: "levels ≥ L" only when the sweep
+    brackets L (a swept count below it loses more than 1 dB); else what was found and why it is no
+    requirement (e.g. "not bracketed: only one value tried"). "" when the levels were not swept."""
+    s = result.get("summary") or {}
+    if "levels" not in (result.get("sweeps") or {}):
+        return ""
+    lv = s.get("min_levels_within_1db")
+    if lv is None:
+        return f"levels: {s.get('levels_note') or 'no swept level count within 1 dB'}"
+    if s.get("levels_bracketed", True):
+        return f"levels ≥ {lv}"
+    return f"levels: {lv} within 1 dB, {s.get('levels_note') or 'not bracketed'}"
+
+
 def plot_tolerance(result: dict[str, Any], path: str | Path) -> None:
     """PSNR versus each perturbation (2×2 panels), nominal as a dashed line; a sweep recorded in
     ``result["skipped"]`` (e.g. the DOE sweeps of a camera without a DOE) gets its reason instead."""
