@@ -59,11 +59,15 @@ def _synth(args: argparse.Namespace) -> int:
     from hsicam.errors import InputError
     from hsicam.cli import prepare_output
 
+    cfg = config_from_args(args.config, args.overrides)
+    if args.size is not None:  # before any folder is made (synthetic_size of a config: checked by the generator)
+        from hsicam.data.synthetic import check_scene_memory
+
+        check_scene_memory(args.size, len(cfg.bands.to_bands()), "--size")
     if args.out is not None:
         from hsicam.data.synthetic import check_dataset_folder
 
         check_dataset_folder(prepare_output(args.out, "dir"))
-    cfg = config_from_args(args.config, args.overrides)
     holdout = DEFAULT_HOLDOUT if args.holdout_sources is None else parse_holdout(args.holdout_sources)
     split = args.split
     if args.n is not None:

@@ -11,6 +11,9 @@ from hsicam.cli import add_config_args
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("demo", help="train the quick preset on the embedded data and report its numbers")
     add_config_args(p)
+    for action in p._actions:  # the demo's default config is the quick preset (engine.demo.demo_config)
+        if "--config" in action.option_strings:
+            action.help = "YAML config or preset name (default: the quick preset)"
     p.add_argument("--out", default="runs/demo", metavar="DIR")
     p.set_defaults(func=cmd_demo)
 

@@ -51,11 +51,21 @@ def _metrics(card: dict) -> str:
 
 
 def cmd_list(args: argparse.Namespace) -> int:
-    from hsicam.runs.pretrained import ENV_VAR, available, read_card, root
+    import os
+
+    from hsicam.runs.pretrained import ENV_VAR, available, env_root_problem, package_root, read_card, root
 
     names = available()
     if not names:
-        print(f"no pre-trained cameras are shipped in {root()} (set {ENV_VAR} to use another folder)")
+        problem = env_root_problem()
+        if problem:
+            print(f"no pre-trained cameras: {problem}")
+        elif os.environ.get(ENV_VAR):
+            shipped = available(package_root())
+            print(f"no pre-trained cameras in {root()} ({ENV_VAR}); unset {ENV_VAR} for the cameras shipped with "
+                  f"hsicam ({', '.join(shipped) if shipped else 'none'})")
+        else:
+            print(f"no pre-trained cameras are shipped in {root()} (set {ENV_VAR} to use another folder)")
         return 0
     for name in names:
         card = read_card(name)

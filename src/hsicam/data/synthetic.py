@@ -194,6 +194,34 @@ def _read_manifest(out: Path) -> dict[str, Any] | None:
         return None
 
 
+#: Peak memory while one scene is generated and written, in multiples of its float32 cube
+#: (measured: ~4.3× at 1024 px, 31 bands, over the interpreter's own; rounded up).
+SCENE_MEMORY_FACTOR = 5
+
+
+def scene_memory_bytes(size: int, n_bands: int) -> int:
+    """Estimated peak memory (bytes) of generating one ``size``×``size`` scene of ``n_bands`` bands."""
+    return SCENE_MEMORY_FACTOR * 4 * int(size) ** 2 * int(n_bands)
+
+
+def check_scene_memory(size: int, n_bands: int, option: str = "data.synthetic_size",
+                       budget_mb: float | None = None) -> None:
+    """InputError when one scene of ``size`` px and ``n_bands`` bands needs more memory than the
+    budget (:func:`hsicam.memory.memory_budget_bytes`), naming ``option`` (what set the size), the
+    estimate, the budget and the largest size that fits; checked before any folder is made or scene
+    generated."""
+    from hsicam.memory import MEMORY_BUDGET_ENV, format_bytes, memory_budget_bytes
+
+    need, budget = scene_memory_bytes(size, n_bands), memory_budget_bytes(budget_mb)
+    if need <= budget:
+        return
+    largest = int((budget / (SCENE_MEMORY_FACTOR * 4 * n_bands)) ** 0.5)
+    raise InputError(f"{option} {size}: one {size}×{size}-px scene of {n_bands} bands needs about "
+                     f"{format_bytes(need)} of memory while it is generated, more than the memory budget of {format_bytes(budget)} "
+                     f"({MEMORY_BUDGET_ENV}, default a quarter of the machine's memory); give {option} {largest} or "
+                     f"less, or raise {MEMORY_BUDGET_ENV} if the machine has the memory")
+
+
 def generate_dataset(out: str | os.PathLike, n: int, size: int, seed: int = 0, bands: Bands | None = None,
                      progress: bool | None = None, *, holdout_sources: str | Iterable[str] | None = DEFAULT_HOLDOUT,
                      split: str = "train") -> dict[str, Any]:
@@ -217,8 +245,26 @@ def generate_dataset(out: str | os.PathLike, n: int, size: int, seed: int = 0, b
     out = Path(out)
     params = parameters(n, size, seed, bands, holdout_sources=holdout, split=split)
     check_dataset_folder(out, params)
+    check_scene_memory(size, len(bands))
     lib = spectral_library(bands, holdout, split)
+    made = [p for p in (out, *out.parents) if not p.exists()]  # the folders this call creates
     out.mkdir(parents=True, exist_ok=True)
+    try:
+        return _generate_into(out, n, size, seed, bands, lib, params, holdout, split, progress)
+    except BaseException:
+        for p in made:  # a failure leaves no empty folder behind (written scenes stay: a rerun resumes)
+            try:
+                p.rmdir()
+            except OSError:
+                break
+        raise
+
+
+def _generate_into(out: Path, n: int, size: int, seed: int, bands: Bands, lib: SpectralLibrary,
+                   params: dict[str, Any], holdout: Any, split: str, progress: bool | None) -> dict[str, Any]:
+    """The scenes and the manifest of :func:`generate_dataset`, written into the existing ``out``."""
+    from tqdm.auto import tqdm
+
     show = sys.stderr.isatty() if progress is None else progress
     scenes = []
     sum_spectrum = np.zeros(len(bands))

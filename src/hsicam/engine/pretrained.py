@@ -7,7 +7,8 @@ made). Everything in the card is read from the run (config, ``metrics.jsonl``, w
 an optional ``results.json`` of ``hsicam demo`` / ``hsicam evaluate``; nothing is typed in.
 
 A results.json must be an evaluation of the run being packed (:func:`check_results_of_run`: the
-weights' sha256 when it records one, else its config hash and the run folder it names), and a
+weights' sha256 when it records one, else its config hash and the run folder it names) with no test
+noise beyond the run's own (:func:`check_results_noise`), and a
 ``preset`` given by hand must be a shipped preset's name (:func:`check_preset`, which warns when the
 run's camera differs from that preset's).
 """
@@ -152,6 +153,34 @@ def _evaluated_folder(recorded: str, source: Path) -> Path | None:
     return None
 
 
+#: results.json ``noise`` keys (as ``hsicam evaluate`` writes them) → the evaluate option and the
+#: run config's own level of that noise.
+_TEST_NOISE = {"sigma_height_nm": ("--sigma-height-nm", lambda cfg: cfg.camera.doe.sigma_height_nm, "nm"),
+               "sensor_sigma": ("--sensor-sigma", lambda cfg: cfg.camera.sensor.sigma, "")}
+
+
+def check_results_noise(data: dict[str, Any], source: Path, run_dir: Path, option: str = "--results") -> None:
+    """One-line :class:`InputError` when the results.json ``data`` was measured under test noise
+    (``hsicam evaluate --sigma-height-nm/--sensor-sigma``, recorded in its ``noise``) other than the
+    noise ``run_dir``'s config gives its camera: a card's numbers are those of the camera as
+    configured, and it does not say that they were measured under extra noise."""
+    from hsicam.config import load_config
+
+    noise = data.get("noise")
+    if not isinstance(noise, dict):
+        return
+    cfg = load_config(Path(run_dir) / "config.yaml")
+    extra = []
+    for key, (opt, own, unit) in _TEST_NOISE.items():
+        value = noise.get(key)
+        if isinstance(value, (int, float)) and not isinstance(value, bool) and float(value) != float(own(cfg)):
+            extra.append(f"{opt} {value:g}{' ' + unit if unit else ''} (the camera's own: {own(cfg):g})")
+    if extra:
+        raise InputError(f"{source}: measured under test noise {', '.join(extra)}; a card's numbers are those of "
+                         f"the camera with its own noise: evaluate without it (`hsicam evaluate --run {run_dir} --out "
+                         f"DIR`, no {' / '.join(e.split(' ', 1)[0] for e in extra)}) and pass DIR/results.json as {option}")
+
+
 def check_results_of_run(data: dict[str, Any], source: Path, run_dir: Path, option: str = "--results") -> None:
     """One-line :class:`InputError` unless the results.json ``data`` (read from ``source``) is an
     evaluation of the run ``run_dir`` by its own network.
@@ -162,7 +191,8 @@ def check_results_of_run(data: dict[str, Any], source: Path, run_dir: Path, opti
     since, or ``--set`` overrides give another one) must equal that of ``run_dir``'s config.yaml;
     without a recorded sha256, the run folder it names must be ``run_dir`` or hold the same weights
     (a copy). A file that names no run, or a run
-    that is no longer on disk, is used with a logged warning (nothing left to compare)."""
+    that is no longer on disk, is used with a logged warning (nothing left to compare). Results
+    measured under test noise other than the run's own are refused (:func:`check_results_noise`)."""
     from hsicam.engine.methods import METHOD_ALIASES
 
     again = (f"evaluate this run (`hsicam evaluate --run {run_dir} --out DIR`) and pass DIR/results.json as {option}")
@@ -170,6 +200,7 @@ def check_results_of_run(data: dict[str, Any], source: Path, run_dir: Path, opti
     if isinstance(method, str) and METHOD_ALIASES.get(method, method) != LEARNED_METHOD:
         raise InputError(f"{source}: results of method {method!r}, not of the run's own network ({LEARNED_METHOD}); "
                          f"{again}")
+    check_results_noise(data, source, run_dir, option)
     recorded = data.get("run")
     rec_path = recorded.get("path") if isinstance(recorded, dict) else recorded
     rec_path = rec_path if isinstance(rec_path, str) and rec_path else None
@@ -427,6 +458,32 @@ def _only_camera_files(folder: Path) -> bool:
     return shipped.is_camera(folder) and {p.name for p in folder.iterdir()} <= {*shipped.FILES, COMPLETE_MARKER}
 
 
+def check_pack_target(target: Path, name: str, overwrite: bool) -> None:
+    """One-line :class:`InputError` unless ``target`` (DEST/NAME) may receive the packed camera:
+    absent, an empty folder, or a packed camera (replaced only with ``overwrite``). Anything else
+    (a training run, another command's output, a user's folder or file) is never replaced, so
+    --force is not offered for it."""
+    from hsicam.io import output_description, read_marker
+
+    if not target.exists() or (target.is_dir() and not any(target.iterdir())):
+        return
+    command = read_marker(target).get("command")
+    if shipped.is_camera(target) and (command == "pretrained pack" or _only_camera_files(target)):
+        if not overwrite:
+            raise InputError(f"{target}: a pre-trained camera {name!r} exists; pass --force to replace it")
+        return
+    if not target.is_dir():
+        what = "a file"
+    elif command:
+        what = output_description(target)
+    else:
+        kind = ("a camera's files with others besides" if shipped.is_camera(target) else
+                "a run folder" if (target / "config.yaml").is_file() else "a folder of other files")
+        what = f"{kind}, not a completed hsicam output"
+    raise InputError(f"{target}: not a packed camera ({what}), and pack never replaces it, even with --force; "
+                     "choose another --name or --dest")
+
+
 def pack_pretrained(run_dir: str | Path, name: str, dest_root: str | Path | None = None,
                     results: str | Path | None = None, heldout: str | Path | None = None, *,
                     summary: str | None = None, preset: str | None = None, overwrite: bool = False) -> Path:
@@ -436,7 +493,8 @@ def pack_pretrained(run_dir: str | Path, name: str, dest_root: str | Path | None
     Refuses (one-line :class:`InputError`, nothing written) a run that has not finished, a
     fine-tuned run (its measured PSFs are not shipped), results of another run
     (:func:`check_results_of_run`), a ``preset`` that is not a shipped preset, weights over
-    :data:`hsicam.runs.pretrained.MAX_WEIGHTS_BYTES` and an existing camera unless ``overwrite``.
+    :data:`hsicam.runs.pretrained.MAX_WEIGHTS_BYTES`, an existing camera unless ``overwrite``, and
+    a ``dest_root/name`` that is not a packed camera (:func:`check_pack_target`).
     The folder is written under a temporary name and renamed into place."""
     run_dir = Path(run_dir)
     shipped.check_name(name)
@@ -458,8 +516,7 @@ def pack_pretrained(run_dir: str | Path, name: str, dest_root: str | Path | None
                          "camera may have; train a smaller network")
     dest = Path(dest_root) if dest_root is not None else shipped.root()
     target = dest / name
-    if target.exists() and not overwrite:
-        raise InputError(f"{target}: a pre-trained camera {name!r} exists; pass --force to replace it")
+    check_pack_target(target, name, overwrite)
     card = card_fields(run_dir, name, results, heldout, summary=summary, preset=preset)
     text = card_markdown(card)
     if overwrite and not is_complete(target) and _only_camera_files(target):

@@ -55,6 +55,20 @@ def root() -> Path:
     return Path(env).expanduser() if env else package_root()
 
 
+def env_root_problem() -> str | None:
+    """What is wrong with ``$HSICAM_PRETRAINED_DIR`` when it is set to something that is not a
+    folder (it would otherwise read as "no camera is shipped", hiding the package's own cameras):
+    the variable, what it names, and that unsetting it gives the shipped cameras; None when unset
+    or a folder."""
+    env = os.environ.get(ENV_VAR)
+    if not env or Path(env).expanduser().is_dir():
+        return None
+    shipped = available(package_root())
+    what = "a folder that does not exist" if not Path(env).expanduser().exists() else "not a folder"
+    return (f"{ENV_VAR}={env}, {what}; unset {ENV_VAR} for the cameras shipped with hsicam "
+            f"({', '.join(shipped) if shipped else 'none'}), or set it to a folder of packed cameras")
+
+
 def is_camera(folder: Path) -> bool:
     """True when ``folder`` holds a camera (config.yaml, model.safetensors and card.json)."""
     return (folder.is_dir() and not folder.name.startswith(".")
@@ -82,7 +96,8 @@ def pretrained_dir(name: str) -> Path:
     """The folder of the shipped camera ``name``; one-line :class:`InputError` listing the names otherwise."""
     names = available()
     if name not in names:
-        have = ", ".join(names) if names else "none is shipped"
+        problem = env_root_problem()
+        have = ", ".join(names) if names else ("none is shipped" + (f" in {problem}" if problem else ""))
         raise InputError(f"no pre-trained camera {name!r} (available: {have}; list them with `hsicam pretrained`)")
     return root() / name
 
