@@ -54,6 +54,19 @@ def run_cli_in_process(*args: str) -> subprocess.CompletedProcess:
     return subprocess.CompletedProcess(list(args), rc, out.getvalue(), err.getvalue())
 
 
+def error_line(res: subprocess.CompletedProcess) -> str:
+    """The one line of a refused command (exit code 2, no traceback), ``hsicam: error: …``."""
+    assert res.returncode == 2, (res.returncode, res.stdout, res.stderr)
+    lines = [x for x in res.stderr.strip().splitlines() if x.strip()]
+    assert len(lines) == 1 and lines[0].startswith("hsicam: error: "), res.stderr
+    return lines[0]
+
+
+def assert_ok(res: subprocess.CompletedProcess) -> None:
+    """Exit code 0 (stdout and stderr shown otherwise)."""
+    assert res.returncode == 0, (res.returncode, res.stdout, res.stderr)
+
+
 def assert_clean_error(proc: subprocess.CompletedProcess, *fragments: str) -> None:
     """Exit code 2, one line on stderr starting with 'hsicam: error:', no traceback."""
     assert proc.returncode == 2, (proc.returncode, proc.stdout, proc.stderr)

@@ -17,6 +17,7 @@ import pytest
 import tifffile
 
 from conftest import TINY_CAMERA_OVERRIDES
+from cli_helpers import assert_ok, error_line
 from test_calibration import run_cli, write_homogeneous_scenes
 from hsicam.config import load_config
 from hsicam.data.formats import HSICAM_FORMAT_VERSION, read_cube, read_window, write_cube_h5
@@ -25,16 +26,7 @@ from hsicam.errors import InputError
 from hsicam.spectral import Bands
 
 
-def _error(res) -> str:
-    """The one line of a refused command (exit code 2, no traceback)."""
-    assert res.returncode == 2, (res.returncode, res.stdout, res.stderr)
-    lines = [x for x in res.stderr.strip().splitlines() if x.strip()]
-    assert len(lines) == 1 and lines[0].startswith("hsicam: error: "), res.stderr
-    return lines[0]
-
-
-def _ok(res) -> None:
-    assert res.returncode == 0, (res.returncode, res.stdout, res.stderr)
+_error, _ok = error_line, assert_ok
 
 
 @pytest.fixture(scope="module")

@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from cli_helpers import assert_clean_error, run_cli as run_script
+from cli_helpers import assert_clean_error, assert_ok, error_line, run_cli as run_script
 from conftest import TINY_CAMERA_OVERRIDES
 from test_calibration import run_cli, write_homogeneous_scenes
 from hsicam.config import load_config
@@ -31,15 +31,11 @@ from hsicam.spectral import Bands
 
 
 def _error(res) -> str:
-    """The one line of a refused command (exit code 2, no traceback)."""
-    assert res.returncode == 2, (res.returncode, res.stdout, res.stderr)
-    lines = [x for x in res.stderr.strip().splitlines() if x.strip()]
-    assert len(lines) == 1 and lines[0].startswith("hsicam: error: "), res.stderr
-    return lines[0][len("hsicam: error: "):]
+    """The one line of a refused command, without its ``hsicam: error: `` prefix."""
+    return error_line(res)[len("hsicam: error: "):]
 
 
-def _ok(res) -> None:
-    assert res.returncode == 0, (res.returncode, res.stdout, res.stderr)
+_ok = assert_ok
 
 
 def _md5(path: Path) -> str:

@@ -20,7 +20,7 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from cli_helpers import run_cli_in_process as run_cli
+from cli_helpers import assert_ok, error_line, run_cli_in_process as run_cli
 from conftest import TINY_CAMERA_OVERRIDES
 from test_calibration import write_homogeneous_scenes, write_psf_dir
 from hsicam.config import load_config
@@ -31,16 +31,7 @@ from hsicam.io import write_json
 from hsicam.spectral import Bands
 
 
-def _error(res) -> str:
-    """The one line of a refused command (exit code 2, no traceback)."""
-    assert res.returncode == 2, (res.returncode, res.stdout, res.stderr)
-    lines = [x for x in res.stderr.strip().splitlines() if x.strip()]
-    assert len(lines) == 1 and lines[0].startswith("hsicam: error: "), res.stderr
-    return lines[0]
-
-
-def _ok(res) -> None:
-    assert res.returncode == 0, (res.returncode, res.stdout, res.stderr)
+_error, _ok = error_line, assert_ok
 
 
 @pytest.fixture(scope="module")
