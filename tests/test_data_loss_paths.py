@@ -114,7 +114,10 @@ def _user_files(d: Path) -> dict[str, tuple[str, ...]]:
     (d / "c.img").write_text("MY IMPORTANT IMAGE\n")  # ENVI data path of --out c.hdr, no header
     write_envi(d / "v.hdr", cube, bands, description="my own ENVI cube")
     write_png8(d / "p_rgb.png", np.zeros((48, 48, 3)))  # a preview-looking PNG with no cube beside it
-    return {"e.h5": ("e.h5",), "s.h5": ("s.h5",), "c.hdr": ("c.img",), "v.hdr": ("v.hdr", "v.img"), "p.h5": ("p_rgb.png",)}
+    write_envi(d / "w.hdr", cube, bands)  # write_envi's default description, "hsicam cube": no preview beside it
+    write_cube_h5(d / "r.h5", cube, bands, {"source": "cap.npy", "run": "a run"})  # reconstruct-like metadata, no preview
+    return {"e.h5": ("e.h5",), "s.h5": ("s.h5",), "c.hdr": ("c.img",), "v.hdr": ("v.hdr", "v.img"), "p.h5": ("p_rgb.png",),
+            "w.hdr": ("w.hdr", "w.img"), "r.h5": ("r.h5",)}
 
 
 @pytest.mark.parametrize("name, refused, why", [
@@ -123,6 +126,8 @@ def _user_files(d: Path) -> dict[str, tuple[str, ...]]:
     ("c.hdr", "c.img", "exists and is not the ENVI data of a cube that hsicam reconstruct wrote (its header c.hdr is missing)"),
     ("v.hdr", "v.hdr", "exists and is not an ENVI header that hsicam reconstruct wrote"),
     ("p.h5", "p_rgb.png", "exists, but no cube p.h5 that hsicam reconstruct wrote lies beside it"),
+    ("w.hdr", "w.hdr", "exists and is not an ENVI header that hsicam reconstruct wrote"),
+    ("r.h5", "r.h5", "exists and is not a cube that hsicam reconstruct wrote"),
 ])
 def test_reconstruct_never_replaces_a_file_it_did_not_write(setup, tmp_path, name, refused, why):
     files = _user_files(tmp_path)[name]
@@ -133,7 +138,7 @@ def test_reconstruct_never_replaces_a_file_it_did_not_write(setup, tmp_path, nam
     assert line.endswith(f"choose another --out name or move {refused} away"), line
     assert {f: _md5(tmp_path / f) for f in files} == before
     written = {p.name for p in tmp_path.iterdir()} - set(files) - {"cap.npy"}
-    assert written <= {n for n in ("e.h5", "s.h5", "c.img", "v.hdr", "v.img", "p_rgb.png")}, written
+    assert written <= {"e.h5", "s.h5", "c.img", "v.hdr", "v.img", "p_rgb.png", "w.hdr", "w.img", "r.h5"}, written
 
 
 def test_reconstruct_replaces_its_own_earlier_output_only(setup, tmp_path):

@@ -174,8 +174,8 @@ def test_synth_refuses_a_scene_over_the_memory_budget_before_any_folder(tmp_path
     out = tmp_path / "big"
     res = run_cli("data", "synth", "--n", "2", "--size", "100000", "--out", str(out),
                   env={"HSICAM_MEMORY_BUDGET_MB": "1024", "HSICAM_CACHE": str(tmp_path / "cache")})
-    assert_clean_error(res, "--size 100000: one 100000×100000-px scene of 31 bands needs about",
-                       "more than the memory budget of 1 GiB (HSICAM_MEMORY_BUDGET_MB", "give --size ",
+    assert_clean_error(res, "--size 100000: one 100000×100000-px scene of 31 bands is a cube of 1.13 TiB",
+                       "more than the memory budget of 1 GiB for one cube (HSICAM_MEMORY_BUDGET_MB", "give --size ",
                        "or raise HSICAM_MEMORY_BUDGET_MB")
     assert "tile size" not in res.stderr and "batch size" not in res.stderr
     assert not out.exists()

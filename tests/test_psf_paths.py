@@ -158,13 +158,13 @@ def test_clipped_psf_images_are_warned_about_once_per_file(trained, tmp_path, ca
 
 
 def test_heavily_clipped_psf_images_are_refused(trained, tmp_path):
-    from hsicam.data.measured_psf import MAX_SATURATED_SHARE
+    from hsicam.data.measured_psf import MAX_CLIPPED_LIGHT_SHARE
 
     run, cam, psf = trained
     img = exposed(psf, 255, 8.0, np.uint8)  # the probe's over-exposure: peaks at 8× the 8-bit maximum
     share = np.array([float(im[im == 255].sum()) / im.sum() for im in img.astype(np.float64)])
-    first = int(np.argmax(share > MAX_SATURATED_SHARE))
-    assert share[first] > MAX_SATURATED_SHARE, share
+    first = int(np.argmax(share > MAX_CLIPPED_LIGHT_SHARE))
+    assert share[first] > MAX_CLIPPED_LIGHT_SHARE, share
     lam, n = cam.bands.centers_nm[first], int((img[first] == 255).sum())
     d = band_images(tmp_path / "sat", img, cam.bands, 6.0, ".png")
     with pytest.raises(InputError, match=rf"psf_{lam:g}nm\.png \({lam:g} nm\): a clipped \(over-exposed\) PSF image: {n} of "

@@ -128,6 +128,11 @@ def test_a_dn_white_level_on_a_float_capture(run, tmp_path, caplog):
     assert line.endswith(f"divides it down to a 99.9th percentile of {level:.3g} of full scale (refused below 1/16): "
                          "leave --white-level out"), line
     assert not (tmp_path / "c.h5").exists()
+    dark = tmp_path / "dark.npy"  # a dark float capture with its own level, 1: read as without the option
+    np.save(dark, (rng.random((48, 48)) * 0.03).astype(np.float32))
+    with caplog.at_level(logging.WARNING, logger="hsicam.data.images"):
+        img, _ = read_capture(dark, RawCorrection(white_level=1.0))
+    assert not caplog.records and float(img.max()) < 0.03
     dn = tmp_path / "dn.npy"
     np.save(dn, np.round(rng.random((48, 48)) * 4000).astype(np.float32))
     with caplog.at_level(logging.WARNING, logger="hsicam.data.images"):

@@ -137,7 +137,15 @@ def _our_h5(path: Path) -> bool:
             meta = json.loads(f.attrs.get("metadata_json", "{}"))
     except (OSError, ValueError, TypeError, KeyError):
         return False
-    return isinstance(meta, dict) and (meta.get("command") == "reconstruct" or {"source", "run"} <= meta.keys())
+    if not isinstance(meta, dict):
+        return False
+    # before it named itself, reconstruct recorded the capture and run; such a file is its own only as part
+    # of a reconstruction's set (its preview beside it), not any cube whose metadata happens to hold both
+    return meta.get("command") == "reconstruct" or ({"source", "run"} <= meta.keys() and _preview_beside(path))
+
+
+def _preview_beside(cube: Path) -> bool:
+    return cube.with_name(f"{cube.stem}_rgb.png").is_file()
 
 
 def _our_envi_header(path: Path) -> dict[str, str] | None:
@@ -150,7 +158,11 @@ def _our_envi_header(path: Path) -> dict[str, str] | None:
         h = parse_envi_header(path)
     except InputError:
         return None
-    return h if h.get("description", "").strip("{} ") in ENVI_DESCRIPTIONS else None
+    description = h.get("description", "").strip("{} ")
+    if description == ENVI_DESCRIPTIONS[0]:
+        return h
+    # "hsicam cube" is also write_envi's default: reconstruct's only with its preview beside it
+    return h if description in ENVI_DESCRIPTIONS[1:] and _preview_beside(path) else None
 
 
 def _envi_data_size(h: dict[str, str]) -> int | None:
@@ -251,17 +263,13 @@ def corrections_from_args(args: argparse.Namespace, cfa_period: int | None) -> "
 
 
 def check_one_level_setting(args: argparse.Namespace) -> None:
-    """InputError for ``--auto-level`` together with ``--exposure-s``/``--reference-exposure-s`` or
-    ``--scale``: auto-level sets the radiometric scale from the image itself, so the other gains would
-    be dropped (the exposures) or stacked on top of it (the scale); the level has one source."""
-    if args.auto_level is None:
-        return
-    given = [f"--{name.replace('_', '-')} {getattr(args, name):g}"
-             for name in ("exposure_s", "reference_exposure_s", "scale") if getattr(args, name) is not None]
-    if given:
-        raise InputError(f"--auto-level {args.auto_level:g} sets the level from the image itself and cannot be combined "
-                         f"with {' and '.join(given)}: choose one way of setting the level: --auto-level alone, or "
-                         "--exposure-s/--reference-exposure-s and/or --scale")
+    """Before any work: the library's rule (:class:`~hsicam.data.images.RawCorrection`) that
+    ``--auto-level`` is the level's only source, neither exposures nor ``--scale`` beside it."""
+    from hsicam.data.images import RawCorrection
+
+    if args.auto_level is not None:
+        RawCorrection(auto_level=args.auto_level, exposure_s=args.exposure_s,
+                      reference_exposure_s=args.reference_exposure_s, scale=1.0 if args.scale is None else args.scale)
 
 
 def psf_mismatch_message(args: argparse.Namespace, measured, fine_tuned: bool) -> str:
@@ -278,11 +286,11 @@ def psf_mismatch_message(args: argparse.Namespace, measured, fine_tuned: bool) -
         except InputError:  # only a better message: an unreadable file keeps the plain one
             diff = None
         source = finetune_source(Path(args.run))[0]
+    base = (source or "ORIGINAL_RUN") if fine_tuned else args.run  # fine-tuning starts from the design run
     if diff is None:
         return (f"the network of {args.run} was not fine-tuned on the PSFs of {args.psf_dir}; run `hsicam finetune "
-                f"--run {args.run} --psf-dir {args.psf_dir} --out RUN2` and reconstruct with RUN2")
+                f"--run {base} --psf-dir {args.psf_dir} --out RUN2` and reconstruct with RUN2")
     what, why = diff
-    base = source or "ORIGINAL_RUN"
     if what == "pixel_pitch_um":
         tuned_pitch = load_measured_psf(Path(args.run) / MEASURED_PSF_FILE).report["pixel_pitch_um"]
         now = "--psf-pitch-um" if args.psf_pitch_um is not None else f"pixel_pitch_um in {Path(args.psf_dir) / 'psf.json'}"

@@ -322,7 +322,9 @@ class RawCorrection:
         if (self.exposure_s is None) != (self.reference_exposure_s is None):
             raise InputError("exposure normalisation needs both the capture's exposure and the reference exposure")
         if self.auto_level is not None and (self.exposure_s is not None or self.scale != 1.0):
-            given = " and ".join(o for o in _gain_options(self) if not o.startswith("--auto-level"))
+            given = [f"--exposure-s {self.exposure_s:g} and --reference-exposure-s {self.reference_exposure_s:g}"
+                     ] if self.exposure_s is not None else []
+            given = " and ".join(given + ([f"--scale {self.scale:g}"] if self.scale != 1.0 else []))
             raise InputError(f"--auto-level {self.auto_level:g} sets the level from the image itself and cannot be "
                              f"combined with {given}: choose one way of setting the level: --auto-level alone, or "
                              "--exposure-s/--reference-exposure-s and/or --scale")
@@ -521,6 +523,8 @@ def _check_white_level(img: np.ndarray, raw: np.ndarray, full_scale: float, whit
         return []
     brightest = float(raw.max())
     if full_scale == 1 and brightest <= 1.0:
+        if white <= 1.0:  # a float capture's own level (or below): a dark scene, judged as without the option
+            return []
         raise InputError(f"{source}: --white-level {white:g} is far above this float capture's values, which lie "
                          f"within [0, 1] (brightest {brightest:g}): it is on the simulator's scale (1 = full scale) "
                          f"already, and the white level divides it down to a 99.9th percentile of {level:.3g} of full "

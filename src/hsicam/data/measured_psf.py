@@ -37,7 +37,7 @@ Checks on each band image (one line naming the file and what to do):
   65535; in a 16-bit file also 1023, 4095 or 16383, the maximum of a 10-, 12- or 14-bit sensor, when
   that is the image's maximum) are clipped. :data:`SATURATED_MIN_PX` or more are a warning (once
   per file; one or two pixels at full scale are what an image scaled to its own maximum has);
-  clipped pixels holding more than :data:`MAX_SATURATED_SHARE` of the image's light (after the
+  clipped pixels holding more than :data:`MAX_CLIPPED_LIGHT_SHARE` of the image's light (after the
   background) are an :class:`InputError`: the PSF's core is then mostly a flat plateau and, once
   normalised, its tails are over-weighted. Float images carry no clip level and are not checked.
 
@@ -93,7 +93,7 @@ MIN_DIFFRACTION_FRACTION = 0.5
 #: This many pixels (or more) at an integer image's clip level are warned about (a clipped PSF).
 SATURATED_MIN_PX = 3
 #: Clipped pixels holding more than this share of an image's light (after the background) are refused.
-MAX_SATURATED_SHARE = 0.5
+MAX_CLIPPED_LIGHT_SHARE = 0.5
 #: Maxima of 10-, 12- and 14-bit sensors: where a 16-bit file of such a sensor clips.
 _SENSOR_MAXIMA = (1023.0, 4095.0, 16383.0)
 
@@ -417,7 +417,7 @@ def _check_saturation(items: list[tuple[float, Path, np.ndarray, float | None]],
                       opts: PSFImportOptions) -> dict[int, int]:
     """{item index: clipped pixels} of the images the bands use (:func:`saturated_pixels`): a warning
     per file with :data:`SATURATED_MIN_PX` or more, an :class:`InputError` when they hold more than
-    :data:`MAX_SATURATED_SHARE` of its light (after the background)."""
+    :data:`MAX_CLIPPED_LIGHT_SHARE` of its light (after the background)."""
     out: dict[int, int] = {}
     for j in dict.fromkeys(chosen):  # once per file, in band order
         w, f, img, type_max = items[j]
@@ -432,9 +432,9 @@ def _check_saturation(items: list[tuple[float, Path, np.ndarray, float | None]],
             continue  # an image without signal is refused, with its name, below
         share = float(bs[img == level].sum()) / total
         where = f"{n} of its {img.size} pixels are at {level:g} ({what}), holding {share:.0%} of its light"
-        if share > MAX_SATURATED_SHARE:
+        if share > MAX_CLIPPED_LIGHT_SHARE:
             raise InputError(f"{f} ({w:g} nm): a clipped (over-exposed) PSF image: {where}, more than the "
-                             f"{MAX_SATURATED_SHARE:.0%} allowed; its core would be a flat plateau and its tails "
+                             f"{MAX_CLIPPED_LIGHT_SHARE:.0%} allowed; its core would be a flat plateau and its tails "
                              "over-weighted: measure it again with a shorter exposure (brightest pixel below "
                              f"{level:g})")
         log.warning("%s (%g nm): a clipped (over-exposed) PSF image: %s; its core is flattened and, normalised, its "
@@ -451,7 +451,7 @@ def import_psf_dir(psf_dir: str | Path, bands: Bands, camera_pixel_m: float, ker
     Every camera band needs a PSF whose wavelength is within ``wavelength_tolerance_nm``; extra
     wavelengths are ignored. Raises :class:`InputError` for anything unusable, including a pitch in
     the wrong unit (:func:`implausible_pitch`; the diffraction test needs the camera's ``f_number``)
-    and images clipped over more than :data:`MAX_SATURATED_SHARE` of their light; warns (once per
+    and images clipped over more than :data:`MAX_CLIPPED_LIGHT_SHARE` of their light; warns (once per
     file) about :data:`SATURATED_MIN_PX` or more clipped pixels.
     """
     d = Path(psf_dir)

@@ -206,20 +206,22 @@ def scene_memory_bytes(size: int, n_bands: int) -> int:
 
 def check_scene_memory(size: int, n_bands: int, option: str = "data.synthetic_size",
                        budget_mb: float | None = None) -> None:
-    """InputError when one scene of ``size`` px and ``n_bands`` bands needs more memory than the
-    budget (:func:`hsicam.memory.memory_budget_bytes`), naming ``option`` (what set the size), the
-    estimate, the budget and the largest size that fits; checked before any folder is made or scene
-    generated."""
+    """InputError when the float32 cube of one scene of ``size`` px and ``n_bands`` bands exceeds the
+    memory budget of one cube (:func:`hsicam.memory.memory_budget_bytes`, the rule every reader of
+    the scene applies), naming ``option`` (what set the size), the cube, the generation's peak
+    (:func:`scene_memory_bytes`), the budget and the largest size that fits; checked before any
+    folder is made or scene generated."""
     from hsicam.memory import MEMORY_BUDGET_ENV, format_bytes, memory_budget_bytes
 
-    need, budget = scene_memory_bytes(size, n_bands), memory_budget_bytes(budget_mb)
-    if need <= budget:
+    cube, budget = 4 * int(size) ** 2 * int(n_bands), memory_budget_bytes(budget_mb)
+    if cube <= budget:
         return
-    largest = int((budget / (SCENE_MEMORY_FACTOR * 4 * n_bands)) ** 0.5)
-    raise InputError(f"{option} {size}: one {size}×{size}-px scene of {n_bands} bands needs about "
-                     f"{format_bytes(need)} of memory while it is generated, more than the memory budget of {format_bytes(budget)} "
-                     f"({MEMORY_BUDGET_ENV}, default a quarter of the machine's memory); give {option} {largest} or "
-                     f"less, or raise {MEMORY_BUDGET_ENV} if the machine has the memory")
+    largest = int((budget / (4 * n_bands)) ** 0.5)
+    raise InputError(f"{option} {size}: one {size}×{size}-px scene of {n_bands} bands is a cube of {format_bytes(cube)} "
+                     f"(about {format_bytes(scene_memory_bytes(size, n_bands))} of memory while it is generated), more "
+                     f"than the memory budget of {format_bytes(budget)} for one cube ({MEMORY_BUDGET_ENV}, default a "
+                     f"quarter of the machine's memory); give {option} {largest} or less, or raise {MEMORY_BUDGET_ENV} "
+                     "if the machine has the memory")
 
 
 def generate_dataset(out: str | os.PathLike, n: int, size: int, seed: int = 0, bands: Bands | None = None,
