@@ -257,3 +257,22 @@ def test_tolerance_npy_without_wavelengths_gives_advice_tolerance_can_follow(run
                          "(hsicam.data.formats.write_cube_h5) and pass that to --data)"), last
     assert "data.npy_bands" not in res.stderr
     assert not out.exists()
+
+
+# ------------------------------------------------------------------------------------------------
+# 20 d: the DOE camera's method on a learned CASSI run
+# ------------------------------------------------------------------------------------------------
+def test_doe_learned_on_a_cassi_run_names_the_runs_own_method(tmp_path, cache_env):
+    """It was accepted and its results labelled doe-learned; the reverse was already refused."""
+    from hsicam.config import load_config
+    from hsicam.engine.experiments import CASSI_RDN_OVERRIDES
+    from hsicam.engine.train import train
+
+    run = tmp_path / "cassi"
+    train(load_config("tiny", ["train.epochs=1", *CASSI_RDN_OVERRIDES]), run, progress=False)
+    res = run_cli("evaluate", "--method", "doe-learned", "--run", str(run), "--out", str(tmp_path / "ev"))
+    assert_clean_error(res, f"{run}: method doe-learned evaluates a DOE camera; this run was trained with "
+                            "camera.kind=dd_cassi (model.kind=rdn): use --method dd-cassi-rdn")
+    assert not (tmp_path / "ev").exists()
+    res = run_cli("evaluate", "--method", "dd-cassi-rdn", "--run", str(run), "--out", str(tmp_path / "ev"))
+    assert res.returncode == 0, res.stderr

@@ -205,6 +205,14 @@ def network_alone_reference(model) -> Method:
 def _doe_method(cfg, run, device) -> Method:
     if run is None:
         raise InputError("method doe-learned needs --run RUN (a trained camera)")
+    cfg_path = resolve_run(run) / "config.yaml"
+    if cfg_path.is_file():
+        run_cfg = load_config(cfg_path)
+        if run_cfg.camera.kind != "doe":  # a learned CASSI run: its own method names it in the results
+            own = f"dd-cassi-{run_cfg.model.kind}" if run_cfg.camera.kind == "dd_cassi" else None
+            use = f"--method {own}" if own in METHODS else "the learned method of its camera"
+            raise InputError(f"{run}: method doe-learned evaluates a DOE camera; this run was trained with "
+                             f"camera.kind={run_cfg.camera.kind} (model.kind={run_cfg.model.kind}): use {use}")
     _, model = load_run(run, device)
     _evaluation_settings(model, cfg)
     return learned_method("doe-learned", model, run)
