@@ -348,3 +348,14 @@ def test_cleanup_recursive(tmp_path):
     stale.write_bytes(b"")
     assert cleanup_stale_temporaries(tmp_path) == []
     assert cleanup_stale_temporaries(tmp_path, recursive=True) == [stale] and not stale.exists()
+
+
+def test_same_path_follows_links_and_compares_missing_paths_resolved(tmp_path):
+    from hsicam.io import same_path
+
+    (tmp_path / "a").write_text("x")
+    (tmp_path / "b").write_text("x")  # equal bytes, another file
+    (tmp_path / "link").symlink_to(tmp_path / "a")
+    assert same_path(tmp_path / "a", tmp_path / "link") and not same_path(tmp_path / "a", tmp_path / "b")
+    assert same_path(tmp_path / "gone", tmp_path / "sub" / ".." / "gone")  # neither exists: by resolved path
+    assert not same_path(tmp_path / "gone", tmp_path / "a")

@@ -373,6 +373,15 @@ def mark_complete(folder: str | os.PathLike, info: dict[str, Any] | None = None)
     return p
 
 
+def same_path(a: str | os.PathLike, b: str | os.PathLike) -> bool:
+    """Whether ``a`` and ``b`` name one file or folder: through links (``os.path.samefile``), or by
+    their resolved paths when either does not exist."""
+    try:
+        return os.path.samefile(a, b)
+    except OSError:
+        return Path(a).resolve() == Path(b).resolve()
+
+
 def is_complete(folder: str | os.PathLike) -> bool:
     """True when ``folder`` carries the completion marker written by :func:`mark_complete`."""
     return (Path(folder) / COMPLETE_MARKER).is_file()

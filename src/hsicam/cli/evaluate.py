@@ -67,10 +67,10 @@ def check_out_apart_from_data(out: str | Path, data: str | Path) -> None:
     evaluation read back as data). An ``--out`` inside ``--data`` is allowed: the scene scan skips
     sub-folders holding hsicam outputs (:func:`hsicam.data.datasets.list_scenes`). Paths are compared
     resolved (links followed)."""
-    import os
+    from hsicam.io import same_path
 
-    o, d = Path(os.path.realpath(out)), Path(os.path.realpath(data))
-    same = o == d or (o.exists() and d.exists() and os.path.samefile(o, d))
+    o, d = Path(out).resolve(), Path(data).resolve()
+    same = same_path(o, d)
     if same or o in d.parents:
         what = "is the --data folder" if same else f"holds the --data {data}"
         raise InputError(f"{out}: {what}; evaluate replaces its --out folder whole, which would delete the scenes it "
@@ -152,9 +152,9 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
 
 
 def cmd_experiment(args: argparse.Namespace) -> int:
-    from hsicam.engine.experiments import check_experiment_folder, format_experiment_table, run_configs, run_experiment
+    from hsicam.engine.experiments import format_experiment_table, run_experiment
     from hsicam.cli import prepare_output
-    from hsicam.io import clear_complete, is_complete, mark_complete, output_description, read_marker
+    from hsicam.io import is_complete, mark_complete, output_description, read_marker
 
     out = prepare_output(args.out or f"runs/experiments/{args.name}-{args.scale}", "dir")
     # accepted: absent or empty, an interrupted experiment (runs/, no marker) or a finished one
@@ -164,12 +164,7 @@ def cmd_experiment(args: argparse.Namespace) -> int:
                 raise InputError(f"{out}: holds {output_description(out)}, not an experiment; choose another --out")
         elif not (out / "runs").is_dir():
             raise InputError(f"{out}: folder exists and is not an experiment folder; choose another --out")
-    # An experiment folder is filled in place (its trained runs resume): the marker comes off first
-    # (after the folder is checked to hold this experiment, at this scale) and goes back on only when
-    # experiment.json and table.md are written.
-    if out.is_dir():
-        check_experiment_folder(out, args.name, args.scale, run_configs(args.name, args.scale))
-        clear_complete(out)
+    # run_experiment checks the folder holds this experiment at this scale, then takes its marker off
     result = run_experiment(args.name, args.scale, out, tuple(range(args.seeds)))
     mark_complete(out, {"command": "experiment", "experiment": args.name, "scale": args.scale})
     print(format_experiment_table(result))

@@ -82,25 +82,17 @@ def check_one_cube_per_name(path: Path) -> None:
                          f"holds one cube per name) or remove {others[0].name}")
 
 
-def _same_file(a: Path, b: Path) -> bool:
-    """True when ``a`` and ``b`` name one file (through links too); False when either is missing."""
-    import os
-
-    try:
-        return os.path.samefile(a, b)
-    except OSError:
-        return False
-
-
 def check_outputs_are_not_inputs(path: Path, inputs: dict[str, str | None]) -> None:
     """InputError when a file that reconstructing to ``path`` writes (the cube, ENVI's pair, the
     preview ``STEM_rgb.png``) is one of the files it reads: ``inputs`` maps how each input is named
     ("the capture SENSOR", "the --dark frame" …) to its path (None: not given)."""
+    from hsicam.io import same_path
+
     files = output_files(path)
     for f in files:
         role = "preview" if f == files[-1] else "cube"
         for what, given in inputs.items():
-            if given is not None and _same_file(f, Path(given)):
+            if given is not None and f.exists() and same_path(f, given):
                 shown = what if Path(given) == f else f"{what} {given} (the same file)"
                 raise InputError(f"{f}: is {shown}, which reconstruct reads; the {role} of --out {path} would be "
                                  f"written over it: choose another --out name")

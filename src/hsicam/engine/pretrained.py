@@ -18,13 +18,12 @@ from __future__ import annotations
 import datetime
 import json
 import logging
-import os
 import shutil
 from pathlib import Path
 from typing import Any
 
 from hsicam.errors import InputError
-from hsicam.io import COMPLETE_MARKER, atomic_open, atomic_output, is_complete, mark_complete, write_json
+from hsicam.io import COMPLETE_MARKER, atomic_open, atomic_output, is_complete, mark_complete, same_path, write_json
 from hsicam.runs import pretrained as shipped
 from hsicam.runs.checkpoint import file_sha256, root_weights_path
 from hsicam.runs.folder import MetricsLog, load_run
@@ -211,7 +210,7 @@ def check_results_of_run(data: dict[str, Any], source: Path, run_dir: Path, opti
         raise InputError(f"{source}: results of another run ({rec_path or '?'}, weights sha256 {sha[:12]}…), not of "
                          f"{run_dir} (weights sha256 {this_sha[:12]}…); {again}")
     folder = _evaluated_folder(rec_path, source) if rec_path and not same_weights else None
-    same = same_weights or (folder is not None and os.path.samefile(folder, run_dir))
+    same = same_weights or (folder is not None and same_path(folder, run_dir))
     recorded_hash, this_hash = data.get("config_hash"), run_config_hash(run_dir)
     if isinstance(recorded_hash, str) and recorded_hash != this_hash:
         if same:

@@ -13,6 +13,7 @@ import numpy as np
 import torch
 
 from hsicam.errors import InputError
+from hsicam.io import same_path
 from hsicam.runs.checkpoint import read_weights
 from hsicam.spectral import Bands
 
@@ -62,16 +63,6 @@ def load_measured_psf(path: str | Path) -> MeasuredPSF:
     return MeasuredPSF(tensors["psf"].numpy(), bands, report)
 
 
-def _same_folder(a: str | Path, b: str | Path) -> bool:
-    """Whether ``a`` and ``b`` name one folder (through links; by resolved path when either is gone)."""
-    import os
-
-    try:
-        return os.path.samefile(a, b)
-    except OSError:
-        return Path(a).resolve() == Path(b).resolve()
-
-
 def psf_difference(tuned: MeasuredPSF, measured: MeasuredPSF, psf_dir: str | Path) -> tuple[str, str] | None:
     """Why the PSFs ``measured`` (imported from ``psf_dir``) differ from ``tuned`` (those a run was
     fine-tuned on, with their import report) when both come from the same folder: the pixel pitch
@@ -83,7 +74,7 @@ def psf_difference(tuned: MeasuredPSF, measured: MeasuredPSF, psf_dir: str | Pat
         return None
     before, now = tuned.report, measured.report
     src = before.get("psf_dir")
-    if not isinstance(src, str) or not _same_folder(src, psf_dir):
+    if not isinstance(src, str) or not same_path(src, psf_dir):
         return None
     p0, p1 = before.get("pixel_pitch_um"), now.get("pixel_pitch_um")
     if isinstance(p0, (int, float)) and isinstance(p1, (int, float)) and abs(p0 - p1) > 1e-9 * max(abs(p0), abs(p1)):
