@@ -274,5 +274,10 @@ def test_doe_learned_on_a_cassi_run_names_the_runs_own_method(tmp_path, cache_en
     assert_clean_error(res, f"{run}: method doe-learned evaluates a DOE camera; this run was trained with "
                             "camera.kind=dd_cassi (model.kind=rdn): use --method dd-cassi-rdn")
     assert not (tmp_path / "ev").exists()
+    # the old name doe-rdn: the refusal names doe-learned, and says that it is the method asked for
+    res = run_cli("evaluate", "--method", "doe-rdn", "--run", str(run), "--out", str(tmp_path / "ev"))
+    assert_clean_error(res, "method doe-learned evaluates a DOE camera",
+                       "use --method dd-cassi-rdn (--method doe-rdn is the old name of doe-learned)")
+    assert not (tmp_path / "ev").exists()
     res = run_cli("evaluate", "--method", "dd-cassi-rdn", "--run", str(run), "--out", str(tmp_path / "ev"))
     assert res.returncode == 0, res.stderr

@@ -89,6 +89,7 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     from hsicam.cli import prepare_output
     from hsicam.io import atomic_output
 
+    alias = args.method if args.method in METHOD_ALIASES else None
     args.method = METHOD_ALIASES.get(args.method, args.method)  # results carry the method's current name
     if args.data:
         check_out_apart_from_data(args.out, args.data)
@@ -104,7 +105,13 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
         cfg = config_from_args(run / "config.yaml", args.overrides)
     else:
         cfg = config_from_args(args.config, args.overrides)
-    method = build_method(args.method, cfg, args.run, args.device)
+    try:
+        method = build_method(args.method, cfg, args.run, args.device)
+    except InputError as exc:
+        if alias is None:
+            raise
+        # the refusal names the method's current name: say it is the one the user asked for
+        raise InputError(f"{exc} (--method {alias} is the old name of {args.method})") from None
     bands = method.camera.bands
     if paths is not None:
         scenes = scene_dataset(cfg.data, paths, bands)
