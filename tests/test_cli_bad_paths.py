@@ -142,6 +142,23 @@ def test_a_half_trained_run_warns_once_on_reconstruct_and_evaluate(runs, capture
     assert read_cube(tmp_path / "c.h5")[0].shape == (3, 48, 48)
 
 
+def test_a_half_trained_run_of_an_older_checkpoint_names_its_epochs(runs, tmp_path):
+    """Checkpoints written before the loop saved its planned steps: the note names the epochs only."""
+    import json
+    import shutil
+
+    from hsicam.config import load_config
+    from hsicam.runs.folder import unfinished_training
+
+    half = shutil.copytree(runs["half"], tmp_path / "old")
+    manifest = json.loads((half / "checkpoints.json").read_text())
+    assert manifest["state"].pop("total_steps") == 12  # what the loop planned: 3 epochs of 4 steps
+    (half / "checkpoints.json").write_text(json.dumps(manifest))
+    msg = unfinished_training(half, load_config(half / "config.yaml"))
+    assert msg.startswith(f"{half}: its training did not finish: the last checkpoint is at step 2 (0 of 3 epochs "
+                          "done)"), msg
+
+
 def test_a_finished_run_does_not_warn(runs, capture, tmp_path, caplog):
     """Nor does one killed after its last checkpoint, which holds all its epochs, before the final record."""
     import shutil

@@ -58,6 +58,7 @@ class LoopState:
     best_step: int | None = None
     loss_sum: float = 0.0  # running train loss of the current epoch (so a mid-epoch resume continues it)
     loss_n: int = 0
+    total_steps: int = 0  # the run's planned steps (epochs × steps per epoch, capped by max_steps); 0 = unknown
 
     def to_dict(self) -> dict[str, Any]:
         return dataclasses.asdict(self)
@@ -342,6 +343,7 @@ def _fit(task: Task, opts: FitOptions, run_dir: Path, resume: bool) -> dict[str,
         # The run folder appears at once with all its files (config.yaml, ...) or not at all.
         with atomic_output(run_dir, marker=False) as tmp:
             task.write_run_files(tmp)
+    state.total_steps = total_steps  # saved with each checkpoint: what a half-trained run is measured against
     if distributed:
         dist.barrier()
     val_loader = make_loader(val_ds, t.batch_size, opts.num_workers, shuffle=False) if (val_ds is not None and is_main) else None

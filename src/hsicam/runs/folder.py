@@ -87,8 +87,8 @@ def unfinished_training(run_dir: Path, cfg) -> str | None:
     the training loop writes last. A folder without checkpoints (a shipped camera, weights written
     by hand) records no training: None; nor does one killed after its last checkpoint, which holds
     all its epochs (only the summary record is missing). The note names the last checkpoint's step
-    and epoch out of the totals of the run's config (steps = data.patches_per_epoch //
-    train.batch_size · train.epochs, as the training loop counts them)."""
+    and epoch out of the run's totals: the epochs of its config and the steps the loop planned (saved
+    with each checkpoint; older checkpoints name the epochs only)."""
     state = CheckpointManager(run_dir).state()
     if state is None:
         return None
@@ -96,13 +96,13 @@ def unfinished_training(run_dir: Path, cfg) -> str | None:
     records = MetricsLog(run_dir / "metrics.jsonl", enabled=False).read()
     if records and records[-1].get("final") and records[-1].get("step") == step:
         return None
-    epochs = cfg.train.epochs
-    total = cfg.data.patches_per_epoch // cfg.train.batch_size * epochs
-    if epoch >= epochs or step >= total:
+    epochs, total = cfg.train.epochs, int(state.get("total_steps") or 0)
+    if epoch >= epochs or (total and step >= total):
         return None
+    of_total = f" of {total}" if total else ""
     again = ("fine-tune it again (hsicam finetune)" if (run_dir / MEASURED_PSF_FILE).is_file()
              else f"continue it with `hsicam train --resume --out {run_dir}`")
-    return (f"{run_dir}: its training did not finish: the last checkpoint is at step {step} of {total} ({epoch} of "
+    return (f"{run_dir}: its training did not finish: the last checkpoint is at step {step}{of_total} ({epoch} of "
             f"{epochs} epochs done) and metrics.jsonl has no final record; the weights are of a partly trained "
             f"network: {again}")
 
