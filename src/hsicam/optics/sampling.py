@@ -146,8 +146,10 @@ class PSFMemory:
     nodes, whose count grows with the pixel size in far-field periods, and their (K, G), (G, N)
     tables); ``weights``: the (L, K, N) pixel-weight matrices (float64 while built, float32 kept);
     ``fft``: one batch of :data:`WAVELENGTHS_PER_BATCH` wavelengths' N×N FFT arrays, forward and
-    backward (arrays that autograd keeps across batches are not counted); ``kernels``: the
-    (L, K, K) output stack.
+    backward; ``kernels``: the (L, K, K) output stack; ``saved``: what the DOE's gradient keeps of
+    every wavelength until the backward pass (its (N, N) complex spectrum, (P, P) complex field and
+    phase; training is the plan's largest use, so it is counted whether or not a caller trains),
+    and the phase stack's two products while it is built.
     """
 
     quadrature: int
@@ -156,10 +158,11 @@ class PSFMemory:
     kernels: int
     quadrature_nodes: int
     batch: int
+    saved: int = 0
 
     @property
     def total(self) -> int:
-        return self.quadrature + self.weights + self.fft + self.kernels
+        return self.quadrature + self.weights + self.fft + self.kernels + self.saved
 
 
 def quadrature_nodes(period_px: float, fft_size: int, supersample: int | None = None) -> int:
@@ -189,7 +192,10 @@ def psf_memory_estimate(sampling: PSFSampling, wavelengths_m: np.ndarray, sensor
     # backward: the gradient f32, the product and its inverse FFT c64; (K, N) and (K, K) f32
     fft = b * (8 * p * p + 8 * p * n + 28 * n * n + 4 * k * n + 4 * k * k)
     kernels = 12 * n_lines * k * k
-    return PSFMemory(quad, weights, fft, kernels, g, b)
+    # kept for the backward pass, per wavelength: spectrum (N, N) c64, field (P, P) c64, phase (P, P) f32;
+    # and two (P, P) f32 products per wavelength while the phase stack is formed
+    saved = n_lines * (8 * n * n + 8 * p * p + 4 * p * p + 8 * p * p)
+    return PSFMemory(quad, weights, fft, kernels, g, b, saved)
 
 
 def check_psf_memory(mem: PSFMemory, sampling: PSFSampling, wavelengths_m: np.ndarray, sensor_distance_m: float,
@@ -205,7 +211,7 @@ def check_psf_memory(mem: PSFMemory, sampling: PSFSampling, wavelengths_m: np.nd
     z_mm, pix_um, cell_um = sensor_distance_m * 1e3, pixel_m * 1e6, cell_m * 1e6
     p, n, k = sampling.pupil_samples, sampling.fft_size, sampling.kernel_px
     q = max(1, round(cell_m / sampling.pupil_pitch_m))
-    parts = {"quadrature": mem.quadrature, "fft": mem.fft, "kernel": mem.weights + mem.kernels}
+    parts = {"quadrature": mem.quadrature, "fft": mem.fft, "kernel": mem.weights + mem.kernels, "saved": mem.saved}
     worst = max(parts, key=parts.get)
     if worst == "quadrature":
         field_um = lam.min() * sensor_distance_m / sampling.pupil_pitch_m * 1e6
@@ -219,6 +225,10 @@ def check_psf_memory(mem: PSFMemory, sampling: PSFSampling, wavelengths_m: np.nd
                  f"{f', {q}× oversampled' if q > 1 else ''}) needs FFTs of {n} points per axis "
                  f"({format_bytes(mem.fft)} per batch of {mem.batch} wavelengths)")
         check = "camera.aperture_radius_mm, camera.doe.cell_size_um and camera.psf.pupil_oversample"
+    elif worst == "saved":
+        cause = (f"each of its {lam.size} wavelengths (bands × camera.psf.band_samples) keeps its {n}×{n} spectrum and "
+                 f"{p}×{p} pupil field for the DOE's gradient ({format_bytes(mem.saved)} in all)")
+        check = "camera.psf.band_samples, camera.aperture_radius_mm, camera.doe.cell_size_um and camera.psf.pupil_oversample"
     else:
         why = ("camera.psf.kernel_px" if k > sampling.min_kernel_px else
                f"λ_max·z/Δ = {lam.max() * sensor_distance_m / cell_m * 1e3:.4g} mm at z = {z_mm:.4g} mm "
