@@ -123,8 +123,8 @@ def test_train_resume_refuses_a_finetuned_run(finetuned, run, tmp_path, capsys):
         assert "optimizer" not in err
         assert err.strip() == (f"hsicam: error: {ft}: a fine-tuned run (made by `hsicam finetune` from {run}): `hsicam "
                                "train` cannot continue it (its optics are frozen to the measured PSFs); nothing was "
-                               f"changed: fine-tune again into a new folder: hsicam finetune --run {run} --psf-dir "
-                               f"{psf_dir} --out NEW (--epochs N for more epochs)")
+                               f"changed: continue it with hsicam finetune --resume --run {run} --psf-dir "
+                               f"{psf_dir} --out {ft} (--epochs N for more epochs)")
         assert snapshot(ft) == before
     # an interrupted fine-tune (no finetune.json yet): the source run comes from its weights
     killed = tmp_path / "killed"
@@ -132,7 +132,58 @@ def test_train_resume_refuses_a_finetuned_run(finetuned, run, tmp_path, capsys):
     (killed / "finetune.json").unlink()
     line = error_line(capsys, ["train", "--out", str(killed), "--resume"])
     assert f"made by `hsicam finetune` from {run})" in line
-    assert f"hsicam finetune --run {run} --psf-dir DIR --out NEW" in line
+    assert f"hsicam finetune --resume --run {run} --psf-dir {psf_dir} --out {killed}" in line  # from its weights
+
+
+def test_finetune_resume_finishes_an_interrupted_finetuning_as_if_never_stopped(finetuned, run, tmp_path, capsys):
+    """It could not be continued at all; now `finetune --resume` ends with the weights of an
+    uninterrupted fine-tuning (same run, same measured PSFs), after a warning-worthy half-run."""
+    from safetensors.torch import load_file
+
+    from hsicam.engine.calibration import finetune
+    from hsicam.runs.folder import unfinished_training
+
+    ft, psf_dir = finetuned
+    half = tmp_path / "half"
+    args = dict(overrides=("train.epochs=1",), progress=False)
+    assert finetune(run, psf_dir, half, stop_after_steps=1, **args) == {"stopped_at_step": 1}
+    note = unfinished_training(half, load_config(half / "config.yaml"))
+    assert note is not None and note.endswith(f"continue it with `hsicam finetune --resume --run {run} --psf-dir "
+                                              f"{psf_dir} --out {half}`"), note
+    # the same, started fresh again, is refused with the way to continue
+    line = error_line(capsys, ["finetune", "--run", str(run), "--psf-dir", str(psf_dir), "--out", str(half)])
+    assert "continue an interrupted fine-tuning there with --resume" in line, line
+    summary = finetune(run, psf_dir, half, resume=True, **args)
+    whole = tmp_path / "whole"
+    finetune(run, psf_dir, whole, **args)
+    assert summary["steps"] == json.loads((whole / "finetune.json").read_text())["steps"] > 1
+    a, b = load_file(half / "model.safetensors"), load_file(whole / "model.safetensors")
+    assert a.keys() == b.keys() and all(torch.equal(a[k], b[k]) for k in a)
+    assert unfinished_training(half, load_config(half / "config.yaml")) is None
+
+
+def test_finetune_resume_refuses_other_psfs_another_run_and_nothing_to_resume(finetuned, run, tmp_path, capsys):
+    ft, psf_dir = finetuned
+    before = snapshot(ft)
+    other = shutil.copytree(psf_dir, tmp_path / "other")
+    psf = np.load(other / "psf.npy")
+    psf[:, psf.shape[1] // 2, psf.shape[2] // 2] *= 1.5  # another calibration of the same camera
+    np.save(other / "psf.npy", psf)
+    line = error_line(capsys, ["finetune", "--resume", "--run", str(run), "--psf-dir", str(other), "--out", str(ft)])
+    assert line.startswith(f"hsicam: error: {ft}: was fine-tuned on other measured PSFs (those of {psf_dir}) than "
+                           f"{other}"), line
+    assert snapshot(ft) == before
+    elsewhere = shutil.copytree(run, tmp_path / "elsewhere")
+    line = error_line(capsys, ["finetune", "--resume", "--run", str(elsewhere), "--psf-dir", str(psf_dir),
+                               "--out", str(ft)])
+    assert line == f"hsicam: error: {ft}: was fine-tuned from {run}, not {elsewhere}; resume it with --run {run}"
+    assert snapshot(ft) == before
+    for out, why in ((tmp_path / "none", "no such folder"),
+                     (run, "not a fine-tuned run (no config.yaml and measured PSFs)")):
+        line = error_line(capsys, ["finetune", "--resume", "--run", str(ft), "--psf-dir", str(psf_dir),
+                                   "--out", str(out)])
+        assert line == (f"hsicam: error: {out}: nothing to resume ({why}); start the fine-tuning without --resume"), line
+    assert not (tmp_path / "none").exists()
 
 
 # ------------------------------------------------------------------------------------------------

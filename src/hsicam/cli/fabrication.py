@@ -58,6 +58,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     add_run_arg(p, "trained run folder")
     p.add_argument("--psf-dir", required=True, metavar="DIR", help="measured PSFs: one image per band (see docs)")
     p.add_argument("--out", required=True, metavar="RUN2", help="new run folder")
+    p.add_argument("--resume", action="store_true",
+                   help="continue the interrupted fine-tuning in --out (or extend a finished one with --epochs), "
+                        "made from the same --run and --psf-dir")
     p.add_argument("--psf-pitch-um", type=float, default=None, help="pixel pitch of the PSF images (else psf.json)")
     p.add_argument("--epochs", type=int, default=None, help="fine-tuning epochs (default: the run's train.epochs)")
     p.add_argument("--lr", type=positive_number_arg, default=None,
@@ -167,7 +170,8 @@ def cmd_finetune(args: argparse.Namespace) -> int:
     if not lr > 0:
         raise InputError("--lr must be positive")
     overrides.append(f"train.lr={lr:.6e}")
-    s = finetune(run, args.psf_dir, args.out, overrides=tuple(overrides), pitch_um=args.psf_pitch_um)
+    s = finetune(run, args.psf_dir, args.out, overrides=tuple(overrides), pitch_um=args.psf_pitch_um,
+                 resume=args.resume)
     before = s["before"].get("psnr")
     after = s["best_val_psnr"]
     e = s["energy_in_kernel"]

@@ -58,15 +58,45 @@ def run_psf_fingerprint(run_dir: str | Path) -> str | None:
 # ------------------------------------------------------------------------------------------------
 # Fine-tuning the network with the optics frozen
 # ------------------------------------------------------------------------------------------------
+def check_finetune_resume(out_dir: Path) -> None:
+    """InputError unless ``out_dir`` holds a fine-tuning to continue (its measured PSFs and a
+    checkpoint). Reads only."""
+    from hsicam.runs.checkpoint import CheckpointManager
+
+    if not (out_dir / "config.yaml").is_file() or not (out_dir / MEASURED_PSF_FILE).is_file():
+        why = "no such folder" if not out_dir.exists() else "not a fine-tuned run (no config.yaml and measured PSFs)"
+        raise InputError(f"{out_dir}: nothing to resume ({why}); start the fine-tuning without --resume")
+    if CheckpointManager(out_dir).state() is None:
+        raise InputError(f"{out_dir}: a fine-tuned run without a checkpoint: nothing to resume; fine-tune again into a "
+                         "new folder (without --resume)")
+
+
+def check_same_finetune(out_dir: Path, run_dir: Path, psf_dir: str | Path, measured: MeasuredPSF) -> None:
+    """InputError when the fine-tuning in ``out_dir`` was made from another run or other measured
+    PSFs than ``run_dir`` and ``measured`` (imported from ``psf_dir``): continuing it would mix two
+    calibrations. Reads only."""
+    from hsicam.runs.folder import finetune_source
+
+    source, made_from = finetune_source(out_dir)
+    if source is not None and Path(source).resolve() != Path(run_dir).resolve():
+        raise InputError(f"{out_dir}: was fine-tuned from {source}, not {run_dir}; resume it with --run {source}")
+    have = run_psf_fingerprint(out_dir)
+    if have != measured.fingerprint:
+        were = f" (those of {made_from})" if made_from else ""
+        raise InputError(f"{out_dir}: was fine-tuned on other measured PSFs{were} than {psf_dir} (fingerprint "
+                         f"{str(have)[:12]} against {measured.fingerprint[:12]}); resume it with the PSFs it started "
+                         "with, or fine-tune on these into a new folder (without --resume)")
+
+
 class FinetuneTask(SystemTask):
     """:class:`SystemTask` on a measured-PSF camera with the camera's groups frozen (network only);
     the new run folder also stores the measured PSFs it was tuned to."""
 
     what = "fine-tuning"
 
-    def __init__(self, cfg, model, measured: MeasuredPSF, source_run: Path) -> None:
+    def __init__(self, cfg, model, measured: MeasuredPSF, source_run: Path, psf_dir: str | Path = "") -> None:
         super().__init__(cfg, model, extra_freeze=tuple(model.camera.param_groups()))
-        self.measured, self.source_run = measured, source_run
+        self.measured, self.source_run, self.psf_dir = measured, source_run, psf_dir
 
     def write_run_files(self, run_dir: Path) -> None:
         super().write_run_files(run_dir)
@@ -74,29 +104,41 @@ class FinetuneTask(SystemTask):
         write_json(run_dir / "measured_psf.json", self.measured.report)
 
     def weights_metadata(self) -> dict[str, str]:
-        return {"finetuned_from": str(self.source_run), "psf_fingerprint": self.measured.fingerprint}
+        return {"finetuned_from": str(self.source_run), "psf_fingerprint": self.measured.fingerprint,
+                "psf_dir": str(self.psf_dir)}
 
 
 def finetune(run_dir: str | Path, psf_dir: str | Path, out_dir: str | Path, *, overrides: tuple[str, ...] = (),
-             pitch_um: float | None = None, progress: bool | None = None, resume: bool = False) -> dict[str, Any]:
+             pitch_um: float | None = None, progress: bool | None = None, resume: bool = False,
+             stop_after_steps: int | None = None) -> dict[str, Any]:
     """Adapt the network of ``run_dir`` to the measured PSFs of ``psf_dir``; write run ``out_dir``.
 
     ``overrides`` are dotted config keys applied to the run's config (e.g. ``train.epochs=5``,
-    ``train.lr=1e-4``); the optics keys must not change. Returns the summary written to
-    ``finetune.json``: validation PSNR/SSIM/SAM with the measured PSFs before and after.
+    ``train.lr=1e-4``); the optics keys must not change. ``resume``: continue the interrupted (or
+    extend the finished) fine-tuning in ``out_dir``, made from the same run and the same measured
+    PSFs (both checked first). Returns the summary written to ``finetune.json``: validation
+    PSNR/SSIM/SAM with the measured PSFs before and after.
     """
     run_dir, out_dir = resolve_run(run_dir), Path(out_dir)  # run_dir may be pretrained:NAME
     if out_dir.resolve() == run_dir.resolve():
         raise InputError("--out must be a new run folder, not the run being fine-tuned")
-    # before any work, in fine-tuning's words (it has no --resume/--restart: the run is always new)
-    if not resume:
-        check_run_dir(out_dir, False, "fine-tuning writes a new run folder: choose another --out")
+    # before any work, in fine-tuning's words
+    if resume:
+        check_finetune_resume(out_dir)
+    else:
+        check_run_dir(out_dir, False, "fine-tuning writes a new run folder: choose another --out, or continue an "
+                      "interrupted fine-tuning there with --resume")
     cfg, base = load_run(run_dir, "cpu", tuple(overrides))
     measured = import_for_camera(psf_dir, base.camera, pitch_um=pitch_um)
+    if resume:
+        check_same_finetune(out_dir, run_dir, psf_dir, measured)
     torch.manual_seed(cfg.train.seed)
-    task = FinetuneTask(cfg, with_measured_psf(base, measured), measured, run_dir)
-    opts = FitOptions(cfg.train, cfg.data.num_workers, validate_at_start=True, progress=progress)
+    task = FinetuneTask(cfg, with_measured_psf(base, measured), measured, run_dir, psf_dir)
+    opts = FitOptions(cfg.train, cfg.data.num_workers, validate_at_start=True, progress=progress,
+                      stop_after_steps=stop_after_steps)
     fitted = fit(task, opts, out_dir, resume)
+    if "stopped_at_step" in fitted:  # an interruption simulated by a test: no summary yet
+        return fitted
     records = MetricsLog(Path(out_dir) / "metrics.jsonl").read()
     vals = [r for r in records if "val_psnr" in r and not r.get("final")]
     strip = lambda r: {k[4:]: v for k, v in r.items() if k.startswith("val_")}  # noqa: E731

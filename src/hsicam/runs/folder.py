@@ -100,8 +100,11 @@ def unfinished_training(run_dir: Path, cfg) -> str | None:
     if epoch >= epochs or (total and step >= total):
         return None
     of_total = f" of {total}" if total else ""
-    again = ("fine-tune it again (hsicam finetune)" if (run_dir / MEASURED_PSF_FILE).is_file()
-             else f"continue it with `hsicam train --resume --out {run_dir}`")
+    again = f"continue it with `hsicam train --resume --out {run_dir}`"
+    if (run_dir / MEASURED_PSF_FILE).is_file():
+        source, psf_dir = finetune_source(run_dir)
+        again = (f"continue it with `hsicam finetune --resume --run {source or 'RUN'} --psf-dir {psf_dir or 'DIR'} "
+                 f"--out {run_dir}`")
     return (f"{run_dir}: its training did not finish: the last checkpoint is at step {step}{of_total} ({epoch} of "
             f"{epochs} epochs done) and metrics.jsonl has no final record; the weights are of a partly trained "
             f"network: {again}")
@@ -170,8 +173,8 @@ def check_train_can_resume(run_dir: Path) -> None:
         source, psf_dir = finetune_source(run_dir)
         raise InputError(f"{run_dir}: a fine-tuned run (made by `hsicam finetune`{f' from {source}' if source else ''}"
                          "): `hsicam train` cannot continue it (its optics are frozen to the measured PSFs); nothing "
-                         f"was changed: fine-tune again into a new folder: hsicam finetune --run {source or 'ORIGINAL'} "
-                         f"--psf-dir {psf_dir or 'DIR'} --out NEW (--epochs N for more epochs)")
+                         f"was changed: continue it with hsicam finetune --resume --run {source or 'ORIGINAL'} "
+                         f"--psf-dir {psf_dir or 'DIR'} --out {run_dir} (--epochs N for more epochs)")
     if (run_dir / "prior.yaml").is_file():
         raise InputError(f"{run_dir}: holds a spectral prior (hsicam baseline train-prior), not a camera run; continue "
                          f"it with `hsicam baseline train-prior --resume --out {run_dir}`")
@@ -186,16 +189,18 @@ def finetune_source(run_dir: Path) -> tuple[str | None, str | None]:
         info = {}
     info = info if isinstance(info, dict) else {}
     source, psf_dir = info.get("source_run"), info.get("psf_dir")
-    if not isinstance(source, str):
+    if not isinstance(source, str) or not isinstance(psf_dir, str):  # unfinished: the weights' metadata
         from safetensors import SafetensorError, safe_open
 
         try:
             last = CheckpointManager(run_dir).path("last")
             weights = last / "model.safetensors" if last is not None else Path(run_dir) / "model.safetensors"
             with safe_open(str(weights), framework="pt") as fh:
-                source = (fh.metadata() or {}).get("finetuned_from")
+                meta = fh.metadata() or {}
         except (InputError, SafetensorError, OSError, ValueError, RuntimeError):  # only a hint for the message
-            source = None
+            meta = {}
+        source = source if isinstance(source, str) else meta.get("finetuned_from")
+        psf_dir = psf_dir if isinstance(psf_dir, str) else meta.get("psf_dir") or None  # older runs: none
     return source, psf_dir if isinstance(psf_dir, str) else None
 
 
