@@ -406,7 +406,7 @@ def test_seeds_outside_what_their_generator_takes_are_one_line_errors(inputs, en
 
 
 def test_finetune_errors_name_its_own_options(inputs, tmp_path, capsys):
-    """finetune has no --resume/--restart: a non-empty --out says to choose another; --lr inf/nan is a
+    """A non-empty --out that is no fine-tuned run says to choose another (no --resume there); --lr inf/nan is a
     usage error of --lr itself (it was reported as config key 'train.lr', "must be a number")."""
     run = str(inputs / "run")
     out = tmp_path / "mine"

@@ -152,7 +152,8 @@ def test_finetune_resume_finishes_an_interrupted_finetuning_as_if_never_stopped(
                                               f"{psf_dir} --out {half}`"), note
     # the same, started fresh again, is refused with the way to continue
     line = error_line(capsys, ["finetune", "--run", str(run), "--psf-dir", str(psf_dir), "--out", str(half)])
-    assert "continue an interrupted fine-tuning there with --resume" in line, line
+    assert line.endswith("fine-tuning writes a new run folder: choose another --out, or continue the fine-tuning "
+                         "there with --resume"), line
     summary = finetune(run, psf_dir, half, resume=True, **args)
     whole = tmp_path / "whole"
     finetune(run, psf_dir, whole, **args)

@@ -126,8 +126,8 @@ def finetune(run_dir: str | Path, psf_dir: str | Path, out_dir: str | Path, *, o
     if resume:
         check_finetune_resume(out_dir)
     else:
-        check_run_dir(out_dir, False, "fine-tuning writes a new run folder: choose another --out, or continue an "
-                      "interrupted fine-tuning there with --resume")
+        again = (", or continue the fine-tuning there with --resume" if (out_dir / MEASURED_PSF_FILE).is_file() else "")
+        check_run_dir(out_dir, False, f"fine-tuning writes a new run folder: choose another --out{again}")
     cfg, base = load_run(run_dir, "cpu", tuple(overrides))
     measured = import_for_camera(psf_dir, base.camera, pitch_um=pitch_um)
     if resume:
