@@ -64,7 +64,7 @@ def test_simulate_command_outputs(tmp_path):
     proc = run_cli("simulate", "--scene", str(tmp_path / "scene.npy"), "--out", str(out), *TINY)
     assert proc.returncode == 0, proc.stderr
     # the grid it assumed is said (evaluate --data takes a .npy as 400-700 nm, and would refuse this one)
-    assert "its 7 bands are taken as the camera's (420-720 nm): give data.npy_bands if they are not" in proc.stderr
+    assert "its 7 bands were taken as the camera's (420-720 nm): give data.npy_bands if they are not" in proc.stderr
     sensor = np.load(out / "sensor.npy")
     assert sensor.dtype == np.float32 and sensor.shape == (40, 48)  # 'same' boundary by default
     png = iio.imread(out / "sensor.png")

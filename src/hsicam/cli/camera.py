@@ -127,10 +127,6 @@ def load_scene(path: str | Path, bands: Bands, npy_bands: Bands | None = None) -
                                  f"camera's {len(bands)} ({bands!r}); save it as .h5 with its band list "
                                  "(hsicam.data.formats.write_cube_h5) or give its grid with data.npy_bands to have "
                                  "it resampled")
-            # a scene made for this camera; the data readers (train, evaluate --data) take a .npy as
-            # 400-700 nm instead, so say which grid it was given
-            log.info("%s: a .npy scene carries no wavelengths; its %d bands are taken as the camera's (%g-%g nm): give "
-                     "data.npy_bands if they are not", path, len(bands), bands.min_nm, bands.max_nm)
         cube, scene_bands, _ = read_cube(path, bands=bands if npy_bands is None else npy_bands)
     else:
         cube, scene_bands, _ = read_cube(path)
@@ -173,5 +169,11 @@ def cmd_simulate(args: argparse.Namespace) -> int:
         })
         with atomic_open(tmp / "config.yaml") as fh:
             fh.write(dump_yaml(cfg))
+    if Path(args.scene).suffix.lower() == ".npy" and npy_bands(cfg.data) is None:
+        # a scene made for this camera; the data readers (train, evaluate --data) take a .npy as
+        # 400-700 nm instead, so say which grid it was given (after the work: an error stays one line)
+        b = camera.bands
+        log.info("%s: a .npy scene carries no wavelengths; its %d bands were taken as the camera's (%g-%g nm): give "
+                 "data.npy_bands if they are not", args.scene, len(b), b.min_nm, b.max_nm)
     print(f"sensor image {sensor.shape[0]}×{sensor.shape[1]} (min {sensor.min():.4g}, max {peak:.4g}) -> {out}")
     return 0
