@@ -262,13 +262,18 @@ def test_evaluate_refuses_settings_a_trained_run_would_ignore(inputs, tmp_path, 
     """camera, band and network keys cannot change a trained run: refused (they used to be recorded
     in the results' config hash though nothing changed); capture and inference keys still apply."""
     run = str(inputs / "run")
-    for kv in ("camera.cfa.period=4", "bands.step_nm=100", "model.rdn.features=16", "camera.aperture_radius_mm=0.3"):
+    # the pixel pitch too (probe 22: it was accepted and hashed, but the run's camera kept its own)
+    for kv in ("camera.cfa.period=4", "bands.step_nm=100", "model.rdn.features=16", "camera.aperture_radius_mm=0.3",
+               "camera.sensor.pixel_pitch_um=3"):
         code, err = call(capsys, ["evaluate", "--run", run, "--out", str(tmp_path / "o"), "--set", kv])
         assert_one_line(code, err, f"--set {kv.split('=')[0]}", "fixed by its training")
         assert not (tmp_path / "o").exists()
     code, err = call(capsys, ["evaluate", "--run", run, "--out", str(tmp_path / "ok"), "--set", "camera.boundary=same",
                               "--set", "model.consistency.iterations=1", "--set", "camera.sensor.noise=gaussian"])
     assert code == 0, err
+    # the capture noise it was scored with is recorded beside the test noise
+    assert json.loads((tmp_path / "ok" / "results.json").read_text())["noise"]["camera_sensor"] == {
+        "noise": "gaussian", "sigma": 0.0, "full_well_e": 10000.0, "read_noise_e": 2.0, "bit_depth": None}
     hashes = json.loads((tmp_path / "ok" / "results.json").read_text())["config_hash"]
     code, err = call(capsys, ["evaluate", "--run", run, "--out", str(tmp_path / "ok2"), "--set", "camera.boundary=same"])
     assert code == 0 and json.loads((tmp_path / "ok2" / "results.json").read_text())["config_hash"] != hashes

@@ -43,11 +43,14 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=cmd_report)
 
 
+#: The sensor's capture-noise keys (``camera.sensor``; its pixel pitch is optics: the PSF sampling).
+SENSOR_NOISE_KEYS = ("noise", "sigma", "full_well_e", "read_noise_e", "bit_depth")
 #: What ``--set`` may change when ``evaluate`` scores a trained run (``--run``): the data, the
 #: inference step after the network, how scenes are captured (boundary, padding, noise) and the
-#: baselines' settings. A run's camera, band grid and network are fixed by its training.
-RUN_EVALUATION_KEYS = ("data", "model.consistency", "camera.boundary", "camera.padding", "camera.sensor",
-                       "camera.doe.sigma_height_nm", "baselines")
+#: baselines' settings. A run's camera (the pixel pitch too), band grid and network are fixed by its
+#: training.
+RUN_EVALUATION_KEYS = ("data", "model.consistency", "camera.boundary", "camera.padding",
+                       *(f"camera.sensor.{k}" for k in SENSOR_NOISE_KEYS), "camera.doe.sigma_height_nm", "baselines")
 
 
 def check_run_overrides(overrides) -> None:
@@ -126,7 +129,9 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     show = lambda line: print(line, file=sys.stderr, flush=True)  # noqa: E731
     results = evaluate_method(method, scenes, names, noise, args.device, keep_arrays=args.save, progress=show)
     summary = summarize(results, method=args.method, run=str(Path(args.run).resolve()) if args.run else None, data=data, config_hash=config_hash(dump_yaml(cfg)),
-                        noise={"sigma_height_nm": args.sigma_height_nm, "sensor_sigma": args.sensor_sigma, "seeds": args.seeds},
+                        noise={"sigma_height_nm": args.sigma_height_nm, "sensor_sigma": args.sensor_sigma, "seeds": args.seeds,
+                               # the capture noise of the evaluation's config (the camera's own, or --set)
+                               "camera_sensor": {k: getattr(cfg.camera.sensor, k) for k in SENSOR_NOISE_KEYS}},
                         bands_nm=bands.centers_nm.tolist(), region=scored_region(method.camera))
     if args.run:  # which weights were scored (hsicam pretrained pack checks its --results by it)
         from hsicam.runs.checkpoint import file_sha256, root_weights_path
