@@ -60,6 +60,21 @@ def test_uniform_grid_rejects_bad_steps(start, stop, step):
         Bands.uniform(start, stop, step)
 
 
+def test_uniform_grid_refuses_a_band_count_no_camera_has_before_building_it():
+    """A mistyped step (1e-6 nm: 3e8 bands) built the grid, then gigabytes of band arrays, and was
+    killed by the kernel before the memory plan could refuse it (probe 22); 10 000 bands still work."""
+    from hsicam.config import load_config
+    from hsicam.errors import ConfigError
+    from hsicam.spectral.bands import MAX_UNIFORM_BANDS
+
+    assert len(Bands.uniform(1.0, float(MAX_UNIFORM_BANDS), 1.0)) == MAX_UNIFORM_BANDS
+    with pytest.raises(InputError, match=r"^Bands.uniform: 420..720 nm in steps of 1e-06 nm gives 300,000,001 bands, "
+                                         r"more than 10000; check the step \(in nm\)$"):
+        Bands.uniform(420, 720, 1e-6)
+    with pytest.raises(ConfigError, match=r"^bands: .* gives 30,000,001 bands"):
+        load_config("tiny", ["bands.step_nm=1e-5"])
+
+
 def test_bands_dict_round_trip_and_matching():
     b = Bands.uniform(450, 650, 25, fwhm_nm=12.0)
     assert Bands.from_dict(b.to_dict()) == b

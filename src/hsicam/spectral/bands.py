@@ -12,6 +12,9 @@ import torch
 from hsicam.errors import InputError
 
 _TOL_NM = 1e-6
+#: Most bands a uniform grid may have (a hyperspectral camera has tens to hundreds; a mistyped step
+#: would otherwise build arrays of billions before any memory check could refuse it).
+MAX_UNIFORM_BANDS = 10_000
 
 
 @dataclass(frozen=True, eq=False)
@@ -26,7 +29,9 @@ class Bands:
         if c.size == 0:
             raise InputError("Bands: at least one band is required")
         if not np.all(np.isfinite(c)) or np.any(c <= 0):
-            raise InputError(f"Bands: band centres must be finite and positive, got {c.tolist()}")
+            bad = c[~(np.isfinite(c) & (c > 0))]
+            raise InputError(f"Bands: band centres must be finite and positive, got {bad.size} that are not "
+                             f"(e.g. {bad[:3].tolist()}) among {c.size}")
         if c.size > 1 and np.any(np.diff(c) <= 0):
             raise InputError("Bands: band centres must be strictly ascending")
         f = np.asarray(self.fwhm_nm, dtype=np.float64).reshape(-1).copy()
@@ -47,7 +52,10 @@ class Bands:
         """Evenly spaced bands from ``start_nm`` to ``stop_nm`` inclusive (FWHM defaults to the step)."""
         if step_nm <= 0 or stop_nm < start_nm:
             raise InputError(f"Bands.uniform: need step > 0 and stop >= start, got {start_nm}..{stop_nm} step {step_nm}")
-        n = int(round((stop_nm - start_nm) / step_nm)) + 1
+        n = round((stop_nm - start_nm) / step_nm) + 1
+        if n > MAX_UNIFORM_BANDS:  # checked before any array is made (a step of 1e-6 nm is 3e8 bands)
+            raise InputError(f"Bands.uniform: {start_nm:g}..{stop_nm:g} nm in steps of {step_nm:g} nm gives {n:,} bands, "
+                             f"more than {MAX_UNIFORM_BANDS}; check the step (in nm)")
         centers = start_nm + step_nm * np.arange(n, dtype=np.float64)
         if abs(centers[-1] - stop_nm) > 1e-6 * max(1.0, step_nm):
             raise InputError(f"Bands.uniform: ({stop_nm} - {start_nm}) is not a multiple of the step {step_nm}")
