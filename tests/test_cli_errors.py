@@ -464,3 +464,24 @@ def test_train_prior_into_a_non_empty_folder_names_its_own_remedy(tmp_path):
     assert_clean_error(res, "run folder exists and is not empty", "train-prior writes a new prior folder")
     assert "--resume" not in res.stderr and not (tmp_path / "cache").exists()
     assert sorted(p.name for p in out.iterdir()) == ["notes.txt"]
+
+
+def test_an_interruption_during_start_up_is_one_line(capsys, monkeypatch):
+    """Ctrl-C while the commands' modules load (about a second) printed a KeyboardInterrupt
+    traceback (probe 22); importing the command line no longer loads numpy or torch, and an
+    interruption in build_parser is reported like one during a command."""
+    import subprocess
+    import sys
+
+    import hsicam.cli as cli
+
+    loaded = subprocess.run([sys.executable, "-c", "import sys, hsicam.cli; print(sorted({'numpy', 'torch'} & set(sys.modules)))"],
+                            capture_output=True, text=True, check=True).stdout.strip()
+    assert loaded == "[]"
+
+    def interrupted(name):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(cli.importlib, "import_module", interrupted)
+    assert cli.main(["psf", "--out", "x"]) == 130
+    assert capsys.readouterr().err == "hsicam: interrupted\n"

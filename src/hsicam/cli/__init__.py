@@ -158,7 +158,11 @@ def error_line(exc: BaseException) -> str | None:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    parser = build_parser()
+    try:
+        parser = build_parser()  # imports the commands' modules (torch, scipy): about a second
+    except KeyboardInterrupt:
+        print("hsicam: interrupted", file=sys.stderr)
+        return 130
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.DEBUG if args.verbose else logging.INFO, format="%(message)s")
     from hsicam.data.cube import trained_bands
