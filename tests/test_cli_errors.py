@@ -109,6 +109,9 @@ def test_report_output_problems(inputs, tmp_path, capsys, env):
     assert_one_line(*call(capsys, ["report", str(ev)]), "existing file")
     (ev / "report").unlink()
     assert snapshot(ev) == sorted([".complete", "results.csv", "results.json", "results.md"])
+    # a file given for the folder is named as a file (it was "no such folder"), with the folder to give
+    code, err = call(capsys, ["report", str(ev / "results.json")])
+    assert_one_line(code, err, f"{ev / 'results.json'}: a file, not a folder", f"e.g. {ev})")
 
 
 def test_every_writing_command_refuses_an_unwritable_folder(inputs, tmp_path, env):

@@ -44,6 +44,9 @@ def build_report(folder: str | Path) -> Path:
     """Write ``folder/report/index.html`` and its PNGs; returns the index path."""
     folder = Path(folder)
     if not folder.is_dir():
+        if folder.exists():
+            raise InputError(f"{folder}: a file, not a folder: give the folder of an evaluation or an experiment (the "
+                             f"one holding results.json or experiment.json{', e.g. ' + str(folder.parent) if folder.name in ('results.json', 'experiment.json') else ''})")
         raise InputError(f"{folder}: no such folder")
     if (folder / "experiment.json").is_file():
         source, kind = folder / "experiment.json", "experiment"
