@@ -242,8 +242,9 @@ def corrections_from_args(args: argparse.Namespace, cfa_period: int | None) -> "
     """A :class:`~hsicam.engine.inference.RawCorrection` from the command line."""
     from hsicam.data.images import RawCorrection, read_image_2d
 
-    dark = read_image_2d(args.dark, "dark frame").data if args.dark else None
-    flat = read_image_2d(args.flat, "flat field").data if args.flat else None
+    # the frames as read (RawImage): their stored type is checked against the capture's
+    dark = read_image_2d(args.dark, "dark frame") if args.dark else None
+    flat = read_image_2d(args.flat, "flat field") if args.flat else None
     period = None
     if args.flat_mode == "cfa":
         if flat is None:

@@ -32,6 +32,10 @@ format            layout on disk                                       bands
                                                                         bands evenly over 400-700
 ================  ===================================================  ==========================
 
+A band list stored without a unit (MAT ``bands``, ENVI ``wavelength`` without ``wavelength units``)
+whose values all lie below :data:`MICROMETRE_BELOW` (30) is read as micrometres, with a logged note;
+one that is not numbers (text, a struct or cell array) is an :class:`~hsicam.errors.InputError`.
+
 ICVL, CAVE, KAIST and ARAD cover 400-700 nm; the paper's camera uses 420-720 nm. We
 **interpolate by band centre, never relabel**: bringing a 400-700 nm cube onto 420-720 nm is
 refused (720 nm lies outside the data) — use a camera grid inside the data's range (e.g.
@@ -52,6 +56,7 @@ from __future__ import annotations
 import contextlib
 import json
 import logging
+import math
 import os
 import re
 from pathlib import Path
@@ -227,12 +232,43 @@ def _finish(p: Path, cube: np.ndarray, bands: Bands, meta: dict[str, Any], allow
     return cube, bands, meta
 
 
-def _bands_from(p: Path, values: Any, fwhm: Any = None) -> Bands:
-    c = np.asarray(values, dtype=np.float64).reshape(-1)
+#: Band centres stored without a unit that all lie below this are micrometres, else nanometres
+#: (30 µm is far infrared, 30 nm extreme ultraviolet: no hyperspectral camera's band is either).
+MICROMETRE_BELOW = 30.0
+
+
+def _unitless_scale(p: Path, centres: np.ndarray, key: str) -> tuple[float, str | None]:
+    """(factor to nm, note to log or None) for band centres ``centres`` that the file stores without
+    a unit: 1000 when all lie below :data:`MICROMETRE_BELOW` (micrometres), else 1."""
+    if centres.size and float(np.max(centres)) < MICROMETRE_BELOW:
+        return 1000.0, f"{p}: {key} units not given and values < {MICROMETRE_BELOW:g}; reading them as micrometres"
+    return 1.0, None
+
+
+def _band_numbers(p: Path, values: Any, key: str) -> np.ndarray:
+    """The values of the file's band list ``key`` as float64 (flattened); InputError unless numbers."""
+    arr = np.asarray(values)
+    if arr.dtype.kind not in "iuf":
+        raise InputError(f"{p}: '{key}' must be a list of numbers (nm), got {_describe_values(arr)}")
+    return arr.astype(np.float64).reshape(-1)
+
+
+def _describe_values(arr: np.ndarray) -> str:
+    """A few words on a band list that holds no numbers (text, a cell array or struct, booleans …)."""
+    items = arr.reshape(-1).tolist() if arr.dtype.kind in "SUO" else []
+    if items and all(isinstance(x, (str, bytes)) for x in items):
+        text = " ".join(x.decode("utf-8", "replace") if isinstance(x, bytes) else x for x in items)
+        return f"the text {text[:40] + ('…' if len(text) > 40 else '')!r}"
+    kinds = {"O": "a cell array or struct", "V": "a struct", "b": "true/false values", "c": "complex numbers"}
+    return kinds.get(arr.dtype.kind, f"values of type {arr.dtype}")
+
+
+def _bands_from(p: Path, values: Any, fwhm: Any = None, key: str = "bands") -> Bands:
+    """Bands from the file's band centres ``values`` (and FWHM) in nm; InputError naming ``p``."""
+    c = _band_numbers(p, values, key)
+    widths = None if fwhm is None else _band_numbers(p, fwhm, key.replace("bands", "fwhm"))
     try:
-        if fwhm is None:
-            return Bands.from_centers(c)
-        return Bands(c, np.asarray(fwhm, dtype=np.float64).reshape(-1))
+        return Bands.from_centers(c) if widths is None else Bands(c, widths)
     except InputError as exc:
         raise InputError(f"{p}: invalid band list: {exc}") from None
 
@@ -252,7 +288,7 @@ def read_hsicam_h5(path: str | os.PathLike, *, allow_negative: bool = False, mem
                     raise InputError(f"{p}: missing key '{key}' (not an hsicam cube file)")
             check_format_version(p, f.attrs)
             cube = _checked_read(p, f["cube"], memory_budget_mb)
-            bands = _bands_from(p, f["bands_nm"][()], f["fwhm_nm"][()] if "fwhm_nm" in f else None)
+            bands = _bands_from(p, f["bands_nm"][()], f["fwhm_nm"][()] if "fwhm_nm" in f else None, "bands_nm")
             meta = _read_attrs(f.attrs)
     meta["format"] = "hsicam"
     return _finish(p, cube, bands, meta, allow_negative)
@@ -349,7 +385,7 @@ def _load_mat(p: Path, keys: Sequence[str], bands_key: str | None,
                 if not isinstance(f[key], h5py.Dataset):
                     raise InputError(f"{p}: '{key}' is not a numeric array")
                 data = np.asarray(_checked_read(p, f[key], budget_mb)).T  # h5py returns MATLAB arrays with axes reversed
-                bands = np.asarray(f[bands_key][()]).reshape(-1) if bands_key and bands_key in f else None
+                bands = _h5_band_values(f[bands_key]) if bands_key and bands_key in f else None
         return key, data, bands, "7.3"
     if head.startswith(b"MATLAB 5.0"):
         import scipy.io
@@ -366,9 +402,22 @@ def _load_mat(p: Path, keys: Sequence[str], bands_key: str | None,
             wanted = [key] + ([bands_key] if bands_key and bands_key in names else [])
             loaded = scipy.io.loadmat(p, variable_names=wanted)
             data = np.asarray(loaded[key])
-            bands = np.asarray(loaded[bands_key]).reshape(-1) if bands_key and bands_key in loaded else None
+            bands = np.asarray(loaded[bands_key]) if bands_key and bands_key in loaded else None
         return key, data, bands, "5"
     raise InputError(f"{p}: not a MAT file (no MATLAB 5.0 header and not HDF5/MAT v7.3)")
+
+
+def _h5_band_values(obj: Any) -> np.ndarray:
+    """The stored band list of a MAT v7.3 variable, as is (MATLAB text, uint16 character codes
+    marked ``MATLAB_class = char``, comes back as that text; a struct or cell array as objects)."""
+    import h5py
+
+    if not isinstance(obj, h5py.Dataset):
+        return np.array([None], dtype=object)
+    values = np.asarray(obj[()])
+    if obj.attrs.get("MATLAB_class") in (b"char", "char") and values.dtype.kind in "iu":
+        return np.array("".join(map(chr, values.reshape(-1).tolist())))
+    return values
 
 
 def _hwc_to_chw(p: Path, data: np.ndarray, key: str) -> np.ndarray:
@@ -383,8 +432,11 @@ def _read_mat_format(path: str | os.PathLike, fmt: str, allow_negative: bool, bu
     key, data, band_values, version = _load_mat(p, keys, bands_key, budget_mb)
     cube = _hwc_to_chw(p, data, key)
     n = cube.shape[0]
+    note = None
     if band_values is not None:
-        bands = _bands_from(p, band_values)
+        centres = _band_numbers(p, band_values, bands_key)
+        scale, note = _unitless_scale(p, centres, f"'{bands_key}'")
+        bands = _bands_from(p, centres * scale, key=bands_key)
     elif fmt == "harvard":
         if n != 31:
             raise InputError(f"{p}: Harvard 'ref' must have 31 bands (420-720 nm), got {n}")
@@ -396,7 +448,15 @@ def _read_mat_format(path: str | os.PathLike, fmt: str, allow_negative: bool, bu
     else:
         raise InputError(f"{p}: '{key}' has {n} bands and the file has no 'bands' variable; cannot tell the wavelengths")
     meta = {"format": fmt, "mat_version": version, "key": key}
-    return _finish(p, cube, bands, meta, allow_negative)
+    return _finished_noting(note, _finish(p, cube, bands, meta, allow_negative))
+
+
+def _finished_noting(note: str | None, result: Cube) -> Cube:
+    """``result``, after logging ``note`` (once the file was read without error: an error stays the
+    one line the user sees)."""
+    if note:
+        log.warning("%s", note)
+    return result
 
 
 def read_icvl(path: str | os.PathLike, *, allow_negative: bool = False, memory_budget_mb: float | None = None) -> Cube:
@@ -597,6 +657,18 @@ def _envi_floats(hdr: Path, h: dict[str, str], key: str) -> np.ndarray:
         raise InputError(f"{hdr}: ENVI header key '{key}' must be a list of numbers") from None
 
 
+def _envi_scale_factor(hdr: Path, h: dict[str, str]) -> float:
+    """The header's ``reflectance scale factor`` (the first value): InputError unless a positive number."""
+    values = _envi_floats(hdr, h, "reflectance scale factor")
+    if not values.size:
+        raise InputError(f"{hdr}: ENVI header key 'reflectance scale factor' is empty (give the number the data "
+                         "were multiplied by, or remove the key)")
+    if not (math.isfinite(values[0]) and values[0] > 0):
+        raise InputError(f"{hdr}: ENVI header key 'reflectance scale factor' must be a positive number, got "
+                         f"{values[0]:g} (the data are divided by it)")
+    return float(values[0])
+
+
 def _envi_header_for(p: Path) -> Path | None:
     for cand in (p.with_name(p.name + ".hdr"), p.with_suffix(".hdr"), p.with_suffix(".HDR")):
         if cand != p and cand.is_file() and _head(cand, 64).lstrip().startswith(b"ENVI"):
@@ -671,21 +743,19 @@ def read_envi(path: str | os.PathLike, *, allow_negative: bool = False, memory_b
             raise InputError(f"{data}: {int((~np.isfinite(cube)).sum())} NaN/Inf value(s) with byte order {order}, "
                              f"none with byte order {1 - order}: fix 'byte order' in {hdr.name}")
     if "reflectance scale factor" in h:
-        factor = float(_envi_floats(hdr, h, "reflectance scale factor")[0])
-        if factor > 0:
-            cube /= np.float32(factor)
+        cube /= np.float32(_envi_scale_factor(hdr, h))
+    note = None
     if "wavelength" in h:
         waves = _envi_floats(hdr, h, "wavelength")
         units = h.get("wavelength units", "").strip().lower()
         scale = 1.0
         if units in ("micrometers", "micrometer", "microns", "micron", "um", "µm"):
             scale = 1000.0
-            if waves.size and waves.min() > 30.0:  # 420 "µm" is far infrared: the values are nanometres
+            if waves.size and waves.min() > MICROMETRE_BELOW:  # 420 "µm" is far infrared: the values are nanometres
                 raise InputError(f"{hdr}: wavelength units say {h['wavelength units'].strip()} but the values "
                                  f"({waves.min():g}–{waves.max():g}) are nanometres; fix 'wavelength units'")
-        elif units in ("", "unknown") and waves.size and waves.max() < 30.0:
-            log.warning("%s: wavelength units not given and values < 30; reading them as micrometres", hdr)
-            scale = 1000.0
+        elif units in ("", "unknown"):
+            scale, note = _unitless_scale(hdr, waves, "wavelength")
         elif units not in ("", "unknown", "nanometers", "nanometer", "nm"):
             raise InputError(f"{hdr}: unsupported wavelength units {h['wavelength units']!r} (nm or µm)")
         waves = waves * scale
@@ -707,7 +777,7 @@ def read_envi(path: str | os.PathLike, *, allow_negative: bool = False, memory_b
         raise InputError(f"{hdr}: ENVI header has no 'wavelength' list; cannot tell the bands")
     meta = {"format": "envi", "interleave": interleave, "data_type": dtype_code, "byte_order": order,
             "header": str(hdr), "data_file": str(data), "description": h.get("description", "").strip("{} ")}
-    return _finish(data, cube, bands, meta, allow_negative)
+    return _finished_noting(note, _finish(data, cube, bands, meta, allow_negative))
 
 
 def write_envi(path: str | os.PathLike, cube: np.ndarray, bands: Bands, *, interleave: str = "bsq",
@@ -833,7 +903,7 @@ def read_window(path: str | os.PathLike, y: int, x: int, h: int, w: int) -> tupl
             if y < 0 or x < 0 or y + h > ds.shape[1] or x + w > ds.shape[2]:
                 raise InputError(f"{p}: window {h}x{w} at ({y}, {x}) is outside the cube {ds.shape[1]}x{ds.shape[2]}")
             cube = np.asarray(ds[:, y:y + h, x:x + w], dtype=np.float32)
-            bands = _bands_from(p, f["bands_nm"][()], f["fwhm_nm"][()] if "fwhm_nm" in f else None)
+            bands = _bands_from(p, f["bands_nm"][()], f["fwhm_nm"][()] if "fwhm_nm" in f else None, "bands_nm")
     return cube, bands
 
 

@@ -26,6 +26,13 @@ Checks on the result (:func:`preprocess_raw`, :func:`read_capture`):
 * With an explicit white level, a 99.9th percentile below :data:`DARK_WHITE_FRACTION` of full scale
   (after every correction) is a warning, and an :class:`InputError` for a float capture whose values
   lie within [0, 1] (on the simulator's scale already: a DN white level divides it down).
+* A dark frame stored in other units than the capture — another full scale: a float frame (0-1)
+  for an integer capture, 8 bit for 16 bit — is an :class:`InputError` (it is subtracted from the
+  capture's DN as it is; no conversion is guessed: a float dark may hold DN, an 8-bit one may hold
+  small DN values), and so is such a flat field when a black level is subtracted from it (without
+  one, the flat's normalisation to mean 1 makes its units irrelevant). Only frames given as the
+  :class:`RawImage` that :func:`read_image_2d` returns know their stored type; a bare array is taken
+  to be in the capture's DN.
 * (Nearly) no pixel above 0 after subtracting the dark frame / black level — fewer than
   :data:`MIN_SIGNAL_SHARE` of them — is an :class:`InputError` (nothing to reconstruct); more than
   :data:`MAX_NEGATIVE_SHARE` of the pixels below 0 is a warning (dark frame or black level too high?).
@@ -112,12 +119,14 @@ class RawImage:
         full_scale: the file type's full scale: the integer maximum (65535 for 16 bit), 1 for floats.
         dtype: the stored data type.
         format: "npy", "png" or "tiff".
+        path: the file it was read from.
     """
 
     data: np.ndarray
     full_scale: float
     dtype: str
     format: str
+    path: str = ""
 
 
 def _sniff(path: Path) -> str:
@@ -274,7 +283,7 @@ def read_image_2d(path: str | Path, what: str = "image") -> RawImage:
     if not np.all(np.isfinite(data)):
         bad = int(data.size - np.count_nonzero(np.isfinite(data)))
         raise InputError(f"{path}: {what} contains {bad} NaN or Inf value(s)")
-    return RawImage(data, full, str(dtype), fmt)
+    return RawImage(data, full, str(dtype), fmt, str(path))
 
 
 # ------------------------------------------------------------------------------------------------
@@ -289,8 +298,10 @@ class RawCorrection:
         white_level: full-scale value (DN). None: the file type's full scale (65535 for 16 bit,
             1 for float files); :func:`read_capture` refuses None for 32/64-bit integer files.
         dark: dark frame (H, W) in DN (same exposure as the capture); subtracted instead of the
-            black level.
-        flat: flat-field frame (H, W) in DN; normalised to mean 1 after subtracting the black level.
+            black level. A :class:`RawImage` (as read by :func:`read_image_2d`) must have the
+            capture's full scale; a bare array is taken to be in the capture's DN.
+        flat: flat-field frame (H, W) in DN; normalised to mean 1 after subtracting the black level
+            (with a black level, a :class:`RawImage` must have the capture's full scale).
         flat_period: average the flat over this period (the CFA period) before normalising, so a
             flat taken through the CFA corrects vignetting and not the CFA pattern; None: pixel-wise.
         exposure_s, reference_exposure_s: multiply by reference/exposure (both or neither).
@@ -301,8 +312,8 @@ class RawCorrection:
 
     black_level: float | None = None
     white_level: float | None = None
-    dark: np.ndarray | None = None
-    flat: np.ndarray | None = None
+    dark: "np.ndarray | RawImage | None" = None
+    flat: "np.ndarray | RawImage | None" = None
     flat_period: int | None = None
     exposure_s: float | None = None
     reference_exposure_s: float | None = None
@@ -341,7 +352,7 @@ class RawCorrection:
 
 def preprocess_raw(raw: np.ndarray, full_scale: float, corr: RawCorrection, source: str = "capture",
                    check_saturation: bool = True, check_bit_depth: bool = True,
-                   check_level: bool = True) -> tuple[np.ndarray, dict]:
+                   check_level: bool = True, stored_dtype: str | None = None) -> tuple[np.ndarray, dict]:
     """Raw capture (H, W) in DN → float32 (H, W) on the simulator's scale, plus a report dict.
 
     Args:
@@ -355,15 +366,22 @@ def preprocess_raw(raw: np.ndarray, full_scale: float, corr: RawCorrection, sour
         check_level: refuse / warn about a gain (``scale``, ``auto_level``, exposure ratio) that
             pushes the image past full scale (:func:`_check_level`; off for the scale that restores
             ``hsicam simulate``'s stretched image, above full scale by design).
+        stored_dtype: the capture file's data type (for the messages about frames of other units).
     """
     raw = np.asarray(raw, dtype=np.float32)
     h, w = raw.shape
-    for name, frame in (("dark frame", corr.dark), ("flat field", corr.flat)):
+    _check_frame_type("dark frame", corr.dark, stored_dtype, full_scale, source,
+                      "it would be subtracted from the capture's DN as it is")
+    dark, flat_dn = _frame_data(corr.dark), _frame_data(corr.flat)
+    for name, frame in (("dark frame", dark), ("flat field", flat_dn)):
         if frame is not None and frame.shape != raw.shape:
             raise InputError(f"{name} is {frame.shape[0]}×{frame.shape[1]} px but the capture is {h}×{w}")
     black = corr.black_level
     if black is None:
-        black = float(np.median(corr.dark)) if corr.dark is not None else 0.0
+        black = float(np.median(dark)) if dark is not None else 0.0
+    if black:
+        _check_frame_type("flat field", corr.flat, stored_dtype, full_scale, source,
+                          f"the black level {black:g} DN would be subtracted from it as it is")
     white = float(full_scale if corr.white_level is None else corr.white_level)
     if not white > black:
         raise InputError(f"white level ({white:g} DN) must be above the black level ({black:g} DN)")
@@ -371,12 +389,12 @@ def preprocess_raw(raw: np.ndarray, full_scale: float, corr: RawCorrection, sour
     saturated = int(np.count_nonzero(raw >= white)) if check_saturation and (corr.white_level is not None or full_scale > 1) else 0
     report["saturated_px"] = saturated
     notes = _check_saturated(raw, saturated, white, corr.white_level is not None, source)
-    img = raw - (corr.dark.astype(np.float32) if corr.dark is not None else np.float32(black))
-    dark_median = (black if corr.black_level is None else float(np.median(corr.dark))) if corr.dark is not None else None
+    img = raw - (dark.astype(np.float32) if dark is not None else np.float32(black))
+    dark_median = (black if corr.black_level is None else float(np.median(dark))) if dark is not None else None
     notes += _check_signal(img, raw, black, dark_median, source)
     img *= np.float32(1.0 / (white - black))
-    if corr.flat is not None:
-        flat = corr.flat.astype(np.float64) - black
+    if flat_dn is not None:
+        flat = flat_dn.astype(np.float64) - black
         if corr.flat_period and corr.flat_period > 1:
             from scipy.ndimage import uniform_filter
 
@@ -421,6 +439,27 @@ def preprocess_raw(raw: np.ndarray, full_scale: float, corr: RawCorrection, sour
     for note in notes:  # only once every check passed: an error stays the one line the user sees
         log.warning("%s", note)
     return img.astype(np.float32, copy=False), report
+
+
+def _frame_data(frame: "np.ndarray | RawImage | None") -> np.ndarray | None:
+    """The values (DN) of a dark or flat frame given as an array or as the :class:`RawImage` read."""
+    return frame.data if isinstance(frame, RawImage) else frame
+
+
+def _check_frame_type(name: str, frame: "np.ndarray | RawImage | None", capture_dtype: str | None,
+                      full_scale: float, source: str, why: str) -> None:
+    """InputError when ``frame``, a :class:`RawImage`, was stored with another full scale than the
+    capture's ``full_scale`` (float 0-1 against integer DN, 8 against 16 bit): other units."""
+    if not isinstance(frame, RawImage) or frame.full_scale == full_scale:
+        return
+    dtype, frame_scale, path = frame.dtype, frame.full_scale, frame.path
+    capture = (f"is stored as {capture_dtype} (full scale {full_scale:g})" if capture_dtype
+               else f"has full scale {full_scale:g}")
+    target = capture_dtype or "the capture's type"
+    who = "the capture" if source == "capture" else f"the capture {source}"
+    raise InputError(f"{path}: the {name} is stored as {dtype} (full scale {frame_scale:g}) but {who} "
+                     f"{capture}: its values are in other units, and {why}: save the {name} as {target}, in the "
+                     "capture's DN")
 
 
 def _gain_options(corr: RawCorrection) -> list[str]:
@@ -601,7 +640,7 @@ def read_capture(path: str | Path, corr: RawCorrection | None = None, scale: flo
         corr = RawCorrection(**{**corr.__dict__, "scale": float(scale)})
     # simulate's own image is written at the file's full bit depth: a dark one is a dark scene
     img, report = preprocess_raw(image.data, image.full_scale, corr, str(path), check_saturation=not stretched,
-                                 check_bit_depth=not simulated, check_level=not stretched)
+                                 check_bit_depth=not simulated, check_level=not stretched, stored_dtype=image.dtype)
     report.update({"source": str(path), "stored_dtype": image.dtype, "format": image.format,
                    "shape": [int(s) for s in img.shape]})
     return img, report
