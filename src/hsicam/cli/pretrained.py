@@ -42,43 +42,73 @@ def register(sub: argparse._SubParsersAction) -> None:
     q.set_defaults(func=cmd_pack)
 
 
+def _dict(value) -> dict:
+    return value if isinstance(value, dict) else {}
+
+
 def _metrics(card: dict) -> str:
-    m = card.get("metrics", {})
-    val = (m.get("validation") or {}).get("mean") or m.get("training_log") or {}
+    m = _dict(card.get("metrics"))
+    val = _dict(_dict(m.get("validation")).get("mean") or m.get("training_log"))
     if not all(isinstance(val.get(k), (int, float)) for k in ("psnr", "ssim", "sam")):
         return "val –"
     return f"val PSNR {val['psnr']:.2f} dB, SSIM {val['ssim']:.4f}, SAM {val['sam']:.2f}°"
 
 
-def cmd_list(args: argparse.Namespace) -> int:
+def _no_cameras() -> str:
+    """The line of `hsicam pretrained` when the root holds no camera."""
     import os
 
-    from hsicam.runs.pretrained import ENV_VAR, available, env_root_problem, package_root, read_card, root
+    from hsicam.runs.pretrained import ENV_VAR, available, env_root_problem, package_root, root
 
-    names = available()
+    problem = env_root_problem()
+    if problem:
+        return f"no pre-trained cameras: {problem}"
+    if os.environ.get(ENV_VAR):
+        shipped = available(package_root())
+        return (f"no pre-trained cameras in {root()} ({ENV_VAR}); unset {ENV_VAR} for the cameras shipped with "
+                f"hsicam ({', '.join(shipped) if shipped else 'none'})")
+    return f"no pre-trained cameras are shipped in {root()} (set {ENV_VAR} to use another folder)"
+
+
+def _list_line(name: str) -> tuple[str, bool]:
+    """(the line of camera ``name`` in `hsicam pretrained`, whether it is usable): its summary, bands
+    and numbers, or what is wrong with its folder."""
+    from hsicam.runs.pretrained import parse_card, root
+
+    card, why = parse_card(root() / name)
+    if card is None:
+        return f"{name}: {why}: not usable", False
+    count = _dict(card.get("bands")).get("count", "?")
+    return f"{name}: {card.get('summary', '')} | {count} bands | {_metrics(card)}", True
+
+
+def cmd_list(args: argparse.Namespace) -> int:
+    """One line per camera folder; a broken one (files missing, card unreadable) is reported on its
+    own line and the others are still listed (exit status 0: the listing itself succeeded)."""
+    from hsicam.runs.pretrained import camera_folders
+
+    names = camera_folders()
     if not names:
-        problem = env_root_problem()
-        if problem:
-            print(f"no pre-trained cameras: {problem}")
-        elif os.environ.get(ENV_VAR):
-            shipped = available(package_root())
-            print(f"no pre-trained cameras in {root()} ({ENV_VAR}); unset {ENV_VAR} for the cameras shipped with "
-                  f"hsicam ({', '.join(shipped) if shipped else 'none'})")
-        else:
-            print(f"no pre-trained cameras are shipped in {root()} (set {ENV_VAR} to use another folder)")
+        print(_no_cameras())
         return 0
-    for name in names:
-        card = read_card(name)
-        b = card.get("bands", {})
-        print(f"{name}: {card.get('summary', '')} | {b.get('count', '?')} bands | {_metrics(card)}")
-    print("use one with --run pretrained:NAME; `hsicam pretrained show NAME` prints its card")
+    lines = [_list_line(name) for name in names]
+    for line, _ in lines:
+        print(line)
+    if any(ok for _, ok in lines):
+        print("use one with --run pretrained:NAME; `hsicam pretrained show NAME` prints its card")
     return 0
 
 
 def cmd_show(args: argparse.Namespace) -> int:
-    from hsicam.runs.pretrained import CARD_MD, pretrained_dir
+    """The camera's card.md; weights that are not the card's are said after it (the card is shown)."""
+    from hsicam.runs.pretrained import CARD_MD, pretrained_dir, weights_problem
 
-    print((pretrained_dir(args.name) / CARD_MD).read_text(encoding="utf-8"), end="")
+    folder = pretrained_dir(args.name)
+    print((folder / CARD_MD).read_text(encoding="utf-8"), end="")
+    problem = weights_problem(folder)
+    if problem:
+        print(f"\nWARNING: {problem}; until then `--run pretrained:{args.name}` and `hsicam pretrained copy "
+              f"{args.name}` refuse this camera")
     return 0
 
 

@@ -66,7 +66,7 @@ def load_run(run_dir: str | Path, device: torch.device | str = "cpu", overrides:
     cfg = load_config(cfg_path, overrides)
     weights = run_dir / "model.safetensors"
     if not weights.is_file():
-        raise InputError(f"{run_dir}: the run has no trained weights (model.safetensors is missing)")
+        raise InputError(no_weights_message(run_dir))
     model = CameraSystem.from_config(cfg)
     load_weights(root_weights_path(run_dir), model, cfg.bands.to_bands())
     if (run_dir / LINEAR_STEP_FILE).is_file():  # the linear consistency step's filters (fitted after training)
@@ -78,6 +78,16 @@ def load_run(run_dir: str | Path, device: torch.device | str = "cpu", overrides:
     if unfinished:
         log.warning("%s", unfinished)
     return cfg, model.to(device).eval()
+
+
+def no_weights_message(run_dir: Path) -> str:
+    """Why :func:`load_run` cannot load ``run_dir`` (no model.safetensors): a spectral prior (``hsicam
+    baseline train-prior``: prior.yaml / prior.safetensors) is told apart from a run with no weights."""
+    if any((run_dir / name).is_file() for name in ("prior.yaml", "prior.safetensors")):
+        return (f"{run_dir}: a spectral prior (hsicam baseline train-prior), not a camera run: use it with `hsicam "
+                f"evaluate --method dd-cassi-choi --run {run_dir} --out DIR`; this command needs a camera run "
+                "(hsicam train, or --run pretrained:NAME)")
+    return f"{run_dir}: the run has no trained weights (model.safetensors is missing)"
 
 
 def unfinished_training(run_dir: Path, cfg) -> str | None:

@@ -15,6 +15,11 @@ read-only, and :func:`check_not_pretrained` refuses them as outputs. Maintainers
 
 ``HSICAM_PRETRAINED_DIR`` replaces the package's folder as the root of the shipped cameras (tests,
 or a site's own collection).
+
+A camera is used (:func:`resolve_run`) or copied (:func:`copy_pretrained`) only when its weights'
+sha256 is the one its card records (:func:`check_weights`): the card's numbers are those of these
+weights. A folder missing a camera's files, or whose card.json does not parse, is not available
+(:func:`folder_problem`); ``hsicam pretrained list`` reports it on its own line.
 """
 
 from __future__ import annotations
@@ -38,6 +43,8 @@ CARD_MD = "card.md"
 #: The files of a shipped camera (what pack writes and copy copies; the linear consistency step's
 #: filters, ``linear_step.safetensors``, when the camera has them).
 FILES = ("config.yaml", "model.safetensors", "linear_step.safetensors", CARD_JSON, CARD_MD)
+#: The files a folder must hold to be a camera.
+REQUIRED = ("config.yaml", "model.safetensors", CARD_JSON)
 #: Largest weights file a shipped camera may have (bytes; 20 MB).
 MAX_WEIGHTS_BYTES = 20_000_000
 _NAME_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]*$")
@@ -69,19 +76,55 @@ def env_root_problem() -> str | None:
             f"({', '.join(shipped) if shipped else 'none'}), or set it to a folder of packed cameras")
 
 
+def missing_files(folder: Path) -> list[str]:
+    """The camera files (:data:`REQUIRED`) that ``folder`` lacks."""
+    return [f for f in REQUIRED if not (folder / f).is_file()]
+
+
 def is_camera(folder: Path) -> bool:
-    """True when ``folder`` holds a camera (config.yaml, model.safetensors and card.json)."""
-    return (folder.is_dir() and not folder.name.startswith(".")
-            and all((folder / f).is_file() for f in ("config.yaml", "model.safetensors", CARD_JSON)))
+    """True when ``folder`` holds a camera's files (config.yaml, model.safetensors and card.json)."""
+    return folder.is_dir() and not folder.name.startswith(".") and not missing_files(folder)
 
 
-def available(root_dir: str | Path | None = None) -> list[str]:
-    """Sorted names of the shipped cameras (folders holding config.yaml, model.safetensors and
-    card.json) in ``root_dir`` (default: :func:`root`)."""
+def camera_folders(root_dir: str | Path | None = None) -> list[str]:
+    """Sorted names of the folders in ``root_dir`` (default: :func:`root`) holding any of a camera's
+    files (:data:`REQUIRED`): the cameras, usable or broken."""
     r = Path(root_dir) if root_dir is not None else root()
     if not r.is_dir():
         return []
-    return sorted(p.name for p in r.iterdir() if is_camera(p))
+    return sorted(p.name for p in r.iterdir()
+                  if p.is_dir() and not p.name.startswith(".") and len(missing_files(p)) < len(REQUIRED))
+
+
+def parse_card(folder: Path) -> tuple[dict[str, Any] | None, str | None]:
+    """(card, None) for the camera ``folder`` whose card.json parses to an object, else (None, why)
+    with why "not a packed camera (… missing)" or "unreadable model card (…)"."""
+    missing = missing_files(folder)
+    if missing:
+        return None, f"not a packed camera ({', '.join(missing)} missing)"
+    try:
+        card = json.loads((folder / CARD_JSON).read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        return None, f"unreadable model card ({getattr(exc, 'msg', None) or getattr(exc, 'strerror', None) or exc})"
+    return (card, None) if isinstance(card, dict) else (None, "unreadable model card (not a JSON object)")
+
+
+def folder_problem(folder: Path) -> str | None:
+    """Why ``folder`` is not a usable camera (:func:`parse_card`), None when it is."""
+    return parse_card(folder)[1]
+
+
+def available(root_dir: str | Path | None = None) -> list[str]:
+    """Sorted names of the usable cameras in ``root_dir`` (default: :func:`root`): their files are
+    there and their card.json parses (:func:`folder_problem`)."""
+    r = Path(root_dir) if root_dir is not None else root()
+    return [n for n in camera_folders(r) if folder_problem(r / n) is None]
+
+
+def broken(root_dir: str | Path | None = None) -> dict[str, str]:
+    """{name: why} of the cameras in ``root_dir`` (default: :func:`root`) that are not usable."""
+    r = Path(root_dir) if root_dir is not None else root()
+    return {n: why for n in camera_folders(r) if (why := folder_problem(r / n)) is not None}
 
 
 def check_name(name: str) -> str:
@@ -93,13 +136,22 @@ def check_name(name: str) -> str:
 
 
 def pretrained_dir(name: str) -> Path:
-    """The folder of the shipped camera ``name``; one-line :class:`InputError` listing the names otherwise."""
-    names = available()
-    if name not in names:
-        problem = env_root_problem()
-        have = ", ".join(names) if names else ("none is shipped" + (f" in {problem}" if problem else ""))
-        raise InputError(f"no pre-trained camera {name!r} (available: {have}; list them with `hsicam pretrained`)")
-    return root() / name
+    """The folder of the camera ``name`` when it holds a camera's files (its card and weights are
+    not checked: :func:`check_weights`). One-line :class:`InputError` otherwise: a folder of that
+    name that is not a packed camera says what it lacks; no folder lists the usable cameras (and
+    names the broken ones apart: `hsicam pretrained list` says what is wrong with each)."""
+    folder = root() / name
+    if _NAME_RE.match(name or "") and folder.is_dir():
+        missing = missing_files(folder)
+        if not missing:
+            return folder
+        raise InputError(f"{folder}: not a packed camera ({', '.join(missing)} missing)")
+    names, bad = available(), broken()
+    problem = env_root_problem()
+    have = ", ".join(names) if names else ("none is shipped" + (f" in {problem}" if problem else ""))
+    if bad:
+        have += f"; broken: {', '.join(bad)}"
+    raise InputError(f"no pre-trained camera {name!r} (available: {have}; list them with `hsicam pretrained`)")
 
 
 def is_spec(spec: str | Path) -> bool:
@@ -108,22 +160,77 @@ def is_spec(spec: str | Path) -> bool:
 
 
 def resolve_run(spec: str | Path) -> Path:
-    """``pretrained:NAME`` → that camera's folder; anything else → ``Path(spec)`` unchanged."""
+    """``pretrained:NAME`` → that camera's folder, its weights checked against its card
+    (:func:`check_weights`); anything else → ``Path(spec)`` unchanged."""
     if is_spec(spec):
-        return pretrained_dir(str(spec)[len(PREFIX):])
+        return check_weights(pretrained_dir(str(spec)[len(PREFIX):]))
     return Path(spec)
+
+
+def load_card(folder: Path) -> dict[str, Any]:
+    """The parsed ``card.json`` of the camera ``folder``; one-line :class:`InputError` when it does not parse."""
+    card, why = parse_card(folder)
+    if card is None:
+        raise InputError(f"{folder if missing_files(folder) else folder / CARD_JSON}: {why}")
+    return card
 
 
 def read_card(name: str) -> dict[str, Any]:
     """The parsed ``card.json`` of the shipped camera ``name``."""
-    path = pretrained_dir(name) / CARD_JSON
+    return load_card(pretrained_dir(name))
+
+
+#: sha256 of weights files already hashed in this process, by (path, inode, size, mtime).
+_HASHES: dict[tuple[str, int, int, int], str] = {}
+
+
+def weights_sha256(path: Path) -> str:
+    """sha256 of ``path`` (:func:`hsicam.runs.checkpoint.file_sha256`), hashed once per process
+    while its path, inode, size and modification time stay the same."""
+    from hsicam.runs.checkpoint import file_sha256
+
+    st = path.stat()
+    key = (str(path.resolve()), st.st_ino, st.st_size, st.st_mtime_ns)
+    if key not in _HASHES:
+        _HASHES[key] = file_sha256(path)
+    return _HASHES[key]
+
+
+def _remedy(folder: Path) -> str:
+    """What to do about a damaged camera ``folder``: re-install it (hsicam, for the package's own
+    cameras) or re-pack it in place."""
+    if folder.parent.resolve() == package_root().resolve():
+        return f"re-install hsicam, or re-pack it (`hsicam pretrained pack RUN --name {folder.name} --force`)"
+    return (f"re-pack it (`hsicam pretrained pack RUN --name {folder.name} --dest {folder.parent} --force`) or "
+            "re-install it from where it came")
+
+
+def weights_problem(folder: Path) -> str | None:
+    """Why the weights of the camera ``folder`` cannot be used with its card: the card does not
+    parse or records no sha256, or model.safetensors has another sha256; None when they match."""
     try:
-        card = json.loads(path.read_text(encoding="utf-8"))
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
-        raise InputError(f"{path}: unreadable model card ({getattr(exc, 'msg', None) or exc})") from None
-    if not isinstance(card, dict):
-        raise InputError(f"{path}: unreadable model card (not a JSON object)")
-    return card
+        card = load_card(folder)
+    except InputError as exc:
+        return f"{exc}; {_remedy(folder)}"
+    recorded = card.get("weights")
+    want = recorded.get("sha256") if isinstance(recorded, dict) else None
+    weights = folder / "model.safetensors"
+    if not isinstance(want, str) or not want:
+        return f"{folder / CARD_JSON}: records no sha256 of the weights, so {weights} cannot be checked; {_remedy(folder)}"
+    got = weights_sha256(weights)
+    if got == want:
+        return None
+    return (f"{weights}: does not match its card (sha256 {got[:12]}…, {CARD_JSON} records {want[:12]}…): the card "
+            f"describes other weights; {_remedy(folder)}")
+
+
+def check_weights(folder: Path) -> Path:
+    """``folder`` when its weights are the ones its card records (:func:`weights_problem`), else a
+    one-line :class:`InputError`."""
+    problem = weights_problem(folder)
+    if problem:
+        raise InputError(problem)
+    return folder
 
 
 def summary(name: str) -> str:
@@ -156,7 +263,8 @@ def check_not_pretrained(path: str | Path, what: str = "output folder") -> None:
 
 
 def copy_pretrained(name: str, dest: str | Path) -> Path:
-    """Copy the shipped camera ``name`` into the new run folder ``dest`` (absent or empty).
+    """Copy the shipped camera ``name`` into the new run folder ``dest`` (absent or empty); weights
+    that are not its card's are refused (:func:`check_weights`), nothing written.
 
     The copy is an ordinary, writable run folder (mode bits of the package files are not kept);
     it is written under a temporary name and renamed into place."""
@@ -167,6 +275,7 @@ def copy_pretrained(name: str, dest: str | Path) -> Path:
     check_not_pretrained(dest)
     if dest.exists() and (not dest.is_dir() or any(dest.iterdir())):
         raise InputError(f"{dest}: exists and is not an empty folder; choose another DIR")
+    check_weights(src)
     with atomic_output(dest, "dir", marker=False) as tmp:
         for f in FILES:
             if (src / f).is_file():
