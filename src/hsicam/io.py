@@ -7,8 +7,9 @@ never leaves a half-written file (or folder) where a later command would take it
 - :func:`atomic_output`: a file or a whole folder (``.NAME.XXXXXXXX.tmpdir`` → ``NAME``); a
   folder gets its completion marker (:data:`COMPLETE_MARKER`) before it is renamed into place. The
   marker names the command that wrote the folder (``"command"``) and the entries it wrote
-  (``"files"``): :func:`check_replaceable` lets a command replace only its own output, and only
-  while the folder holds nothing else (a user's files added to it are never deleted).
+  (``"files"``: every file and sub-folder, as paths relative to it, a folder's ending in ``/``):
+  :func:`check_replaceable` lets a command replace only its own output, and only while the folder
+  holds nothing else, at any depth (a user's files added to it are never deleted).
 - :func:`mark_complete` / :func:`is_complete` / :func:`read_marker` / :func:`clear_complete`: the
   marker for folders that are filled in place, file by file (write files, then mark; readers check
   the marker).
@@ -285,8 +286,7 @@ def atomic_output(path: str | os.PathLike, kind: str = "dir", *, overwrite: bool
     try:
         yield tmp
         if marker:
-            files = sorted(p.name for p in tmp.iterdir() if not is_temporary(p.name))
-            mark_complete(tmp, {**(marker if isinstance(marker, dict) else {}), "files": files})
+            mark_complete(tmp, {**(marker if isinstance(marker, dict) else {}), "files": written_entries(tmp)})
         check_replaceable(path, overwrite, command)  # the block may have run for hours
         _swap_in(tmp, path)
     except BaseException:
@@ -298,7 +298,8 @@ def atomic_output(path: str | os.PathLike, kind: str = "dir", *, overwrite: bool
 
 #: Sub-folders that another command writes inside a completed output, from it (``hsicam report``'s
 #: ``report/`` in an evaluation folder), by name → the command in their own marker. They go stale
-#: with the output they were made from, so replacing that output may remove them.
+#: with the output they were made from, so replacing that output may remove them (while they hold
+#: only what their own marker lists).
 DERIVED_OUTPUTS = {"report": "report"}
 
 #: Files that file browsers and notebooks put in any folder they open: never a user's work, so they
@@ -309,9 +310,10 @@ OS_METADATA = frozenset({".DS_Store", "Thumbs.db", "desktop.ini", ".ipynb_checkp
 def check_replaceable(path: Path, overwrite: bool, command: str | None = None) -> None:
     """InputError unless :func:`atomic_output` may put a folder at ``path``: absent, empty, or (with
     ``overwrite``) a completed hsicam output written by ``command`` (when given and named in the
-    marker) that holds only the entries its marker lists (when it lists them). Commands call it
-    before their work too (:func:`hsicam.cli.prepare_output` with ``replace=True``), so a user's own
-    folder is refused at once, not after hours of work."""
+    marker) that holds only the entries its marker lists (when it lists them), at any depth (a
+    derived ``report/``: those its own marker lists), named relative to ``path`` when it does not.
+    Commands call it before their work too (:func:`hsicam.cli.prepare_output` with
+    ``replace=True``), so a user's own folder is refused at once, not after hours of work."""
     if not path.is_dir():
         if path.exists():
             raise InputError(f"{path}: is an existing file; a folder is needed here")
@@ -330,14 +332,71 @@ def check_replaceable(path: Path, overwrite: bool, command: str | None = None) -
                          "choose another output folder")
     files = info.get("files")
     if isinstance(files, list):
-        extra = sorted(p.name for p in path.iterdir()
-                       if p.name not in files and p.name != COMPLETE_MARKER and not is_temporary(p.name)
-                       and p.name not in OS_METADATA and not p.name.startswith("._") and not _is_derived(p))
+        writer = f"hsicam {command or written_by}" if (command or written_by) else "the command that wrote it"
+        extra, unlisted_dirs = _unlisted(path, {str(f) for f in files})
+        if unlisted_dirs:
+            d = unlisted_dirs[0]
+            raise InputError(f"{path}: cannot tell which files in {d}/ {writer} wrote (its marker is from an older "
+                             f"hsicam and lists the folder only); move your files out of {path / d} and delete it, "
+                             "or choose another folder")
         if extra:
             shown = ", ".join(extra[:5]) + (f" and {len(extra) - 5} more" if len(extra) > 5 else "")
-            writer = f"hsicam {command or written_by}" if (command or written_by) else "the command that wrote it"
             raise InputError(f"{path}: holds {shown}, which {writer} did not write; choose another folder or "
                              "move them")
+
+
+def written_entries(folder: Path) -> list[str]:
+    """Every file and sub-folder in ``folder`` as a sorted POSIX path relative to it (a folder's ends
+    in ``/``; links are not followed), hidden temporaries left out: a marker's ``"files"``."""
+    out = []
+    for dirpath, dirnames, filenames in os.walk(folder):
+        rel = Path(dirpath).relative_to(folder)
+        dirnames[:] = [d for d in dirnames if not is_temporary(d)]
+        out += [(rel / d).as_posix() + "/" for d in dirnames]
+        out += [(rel / f).as_posix() for f in filenames if not is_temporary(f)]
+    return sorted(out)
+
+
+def _ignorable(name: str) -> bool:
+    """A hidden temporary or a file browser's metadata: never a user's work."""
+    return is_temporary(name) or name in OS_METADATA or name.startswith("._")
+
+
+def _unlisted(base: Path, listed: set[str], rel: str = "") -> tuple[list[str], list[str]]:
+    """(entries under ``base/rel`` that a marker's ``files`` ``listed`` does not name, sub-folders it
+    names without their contents (an older marker) that are not empty), as sorted paths relative to
+    ``base``. Listed sub-folders are checked entry by entry; a derived output (:func:`_is_derived`)
+    at the top against its own marker, as the command that writes it checks it."""
+    extra: list[str] = []
+    unknown: list[str] = []
+    for p in sorted((base / rel).iterdir()):
+        name = f"{rel}{p.name}"
+        if _ignorable(p.name) or name == COMPLETE_MARKER:
+            continue
+        if not (p.is_dir() and not p.is_symlink()):
+            if name not in listed:
+                extra.append(name)
+        elif f"{name}/" in listed:
+            more, old = _unlisted(base, listed, f"{name}/")
+            extra, unknown = extra + more, unknown + old
+        elif name in listed:
+            if any(not _ignorable(q.name) for q in p.iterdir()):
+                unknown.append(name)
+        elif not rel and _is_derived(p):
+            more = _derived_unlisted(p)
+            extra += [f"{name}/{x}" for x in more]
+        else:
+            extra.append(name)
+    return sorted(extra), sorted(unknown)
+
+
+def _derived_unlisted(folder: Path) -> list[str]:
+    """Entries of a derived output that its own marker's ``files`` do not name (none when it lists none)."""
+    files = read_marker(folder).get("files")
+    if not isinstance(files, list):
+        return []
+    extra, unknown = _unlisted(folder, {str(f) for f in files})
+    return sorted(extra + unknown)
 
 
 def _is_derived(p: Path) -> bool:

@@ -125,9 +125,10 @@ def _show(args: argparse.Namespace) -> int:
     src = Path(args.path)
     if not src.exists():
         raise InputError(f"{src}: no such dataset folder or cube file")
-    preview = lambda out: write_preview(args.path, out, max_scenes=args.max_scenes, heldout=args.heldout)  # noqa: E731
+    preview = lambda out, check=None: write_preview(args.path, out, max_scenes=args.max_scenes,  # noqa: E731
+                                                    heldout=args.heldout, before_save=check)
     if args.out is None:
-        written = preview(_default_preview_folder(src))
+        written = preview(_default_preview_folder(src), _check_own_previews)
     else:
         written = _show_into(Path(args.out), preview)
     for path in written:
@@ -138,7 +139,8 @@ def _show(args: argparse.Namespace) -> int:
 def _default_preview_folder(src: Path) -> Path:
     """Where ``data show`` writes without ``--out``: next to the data (the dataset folder, or a cube
     file's folder), checked before any work; never inside another command's completed output, whose
-    folder that command replaces whole (and refuses to, once it holds files it did not write)."""
+    folder that command replaces whole (and refuses to, once it holds files it did not write), nor
+    over a file of a preview's name that ``data show`` did not write (:func:`_check_own_previews`)."""
     from hsicam.cli import prepare_output
     from hsicam.errors import InputError
     from hsicam.io import is_complete, output_description
@@ -150,7 +152,22 @@ def _default_preview_folder(src: Path) -> Path:
             inside = "" if a == full else f" (inside {a})"
             raise InputError(f"{folder}{inside}: holds {output_description(a)}; give the preview its own folder "
                              "with --out DIR (a new or empty folder)")
-    return prepare_output(folder, "dir")
+    out = prepare_output(folder, "dir")
+    _check_own_previews(out)
+    return out
+
+
+def _check_own_previews(folder: Path) -> None:
+    """InputError naming the files of ``folder`` that have a preview's name but were not written by
+    ``data show`` (or were changed since): the PNGs carry its mark (:func:`hsicam.data.preview.is_own_preview`),
+    which travels with the file, so a user's own file of that name is never replaced."""
+    from hsicam.data.preview import foreign_previews
+    from hsicam.errors import InputError
+
+    foreign = foreign_previews(folder)
+    if foreign:
+        raise InputError(f"{folder}: holds {', '.join(foreign)}, which hsicam data show did not write; give the "
+                         f"preview its own folder with --out DIR, or move {'it' if len(foreign) == 1 else 'them'}")
 
 
 def _show_into(out: Path, preview) -> list[Path]:

@@ -10,17 +10,19 @@ are still visible.
 from __future__ import annotations
 
 import contextlib
+import hashlib
+import io
 import logging
 import math
 import numbers
 import os
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
 import numpy as np
 
 from hsicam.color import TABLE_RANGE_NM, cube_to_srgb, spectra_to_xyz
-from hsicam.data.cube import normalize_per_cube_max
+from hsicam.data.cube import conform_bands, normalize_per_cube_max
 from hsicam.data.datasets import list_scenes
 from hsicam.data.formats import read_cube
 from hsicam.errors import InputError
@@ -62,23 +64,70 @@ def check_max_scenes(max_scenes: int) -> int:
 
 def save_figures(figures: dict[str, Any], out_dir: Path, dpi: int = 120) -> list[Path]:
     """Save matplotlib figures as ``out_dir/NAME``, all or none: each is drawn into a temporary file
-    and the files are renamed into place only when every one was drawn. Returns their paths."""
+    (PNGs marked by :func:`_mark_preview`) and the files are renamed into place only when every one
+    was drawn. Returns their paths."""
     with contextlib.ExitStack() as stack:
         finals = [out_dir / name for name in figures]
         for final, fig in zip(finals, figures.values()):
-            fig.savefig(stack.enter_context(atomic_path(final)), dpi=dpi, bbox_inches="tight")
+            tmp = stack.enter_context(atomic_path(final))
+            fig.savefig(tmp, dpi=dpi, bbox_inches="tight")
+            if final.suffix.lower() == ".png":
+                _mark_preview(tmp)
     return finals
 
 
+#: PNG text key of the previews this module writes: "data show SHA256" of the image's pixels.
+PREVIEW_KEY = "hsicam-preview"
+
+
+def _pixels_sha256(im: Any) -> str:
+    return hashlib.sha256(f"{im.mode} {im.size}".encode() + im.tobytes()).hexdigest()
+
+
+def _mark_preview(png: Path) -> None:
+    """Re-save ``png`` (same pixels, same text) with a :data:`PREVIEW_KEY` text chunk holding the
+    sha256 of its pixels: the mark by which :func:`is_own_preview` knows the file, in the file itself."""
+    from PIL import Image, PngImagePlugin
+
+    im = Image.open(io.BytesIO(png.read_bytes()))
+    info = PngImagePlugin.PngInfo()
+    for key, value in im.text.items():
+        info.add_text(key, value)
+    info.add_text(PREVIEW_KEY, f"data show {_pixels_sha256(im)}")
+    im.save(png, format="PNG", pnginfo=info)
+
+
+def is_own_preview(png: Path) -> bool:
+    """True when ``png`` is a plain file that this module wrote and nobody changed since (its
+    :data:`PREVIEW_KEY` matches its pixels); False for any other file, a link or an unreadable one."""
+    from PIL import Image
+
+    if png.is_symlink() or not png.is_file():
+        return False
+    try:
+        with Image.open(png) as im:
+            return getattr(im, "text", {}).get(PREVIEW_KEY) == f"data show {_pixels_sha256(im)}"
+    except (OSError, ValueError, SyntaxError, Image.DecompressionBombError):
+        return False
+
+
+def foreign_previews(folder: Path) -> list[str]:
+    """The preview names in ``folder`` taken by something :func:`is_own_preview` does not accept."""
+    paths = [folder / n for n in (CONTACT_SHEET, MEAN_SPECTRA, SPECTRAL_GAMUT)]
+    return [p.name for p in paths if (p.exists() or p.is_symlink()) and not is_own_preview(p)]
+
+
 def write_preview(path: str | os.PathLike, out_dir: str | os.PathLike | None = None, max_scenes: int = 16,
-                  heldout: str | os.PathLike | None = None) -> list[Path]:
+                  heldout: str | os.PathLike | None = None,
+                  before_save: Callable[[Path], None] | None = None) -> list[Path]:
     """Write ``contact_sheet.png``, ``mean_spectra.png`` and ``spectral_gamut.png`` for a dataset.
 
     ``path`` is a dataset folder or one cube file; ``out_dir`` defaults to the dataset folder (the
     file's folder for a single file). ``heldout``: a held-out dataset folder to compare in the
     gamut plot (default: for a cached synthetic set, its held-out companion when one exists).
     ``max_scenes`` (≥ 1) caps the scenes of each set. Every input is read and every figure drawn
-    before the first PNG is written: on an error none is written. Returns their paths.
+    before the first PNG is written: on an error none is written. ``before_save(out_dir)`` is called
+    then (a last check of the output folder). Returns their paths.
     """
     path = Path(path)
     n = check_max_scenes(max_scenes)
@@ -88,6 +137,8 @@ def write_preview(path: str | os.PathLike, out_dir: str | os.PathLike | None = N
     out = Path(out_dir) if out_dir is not None else (path if path.is_dir() else path.parent)
     sheet, plot = _scene_figures(path, scenes)
     gamut = _gamut_figure(path, scenes, held_dir, held_scenes)
+    if before_save is not None:
+        before_save(out)
     written = save_figures({CONTACT_SHEET: sheet, MEAN_SPECTRA: plot, SPECTRAL_GAMUT: gamut}, out)
     log.info("wrote %s", ", ".join(str(p) for p in written))
     return written
@@ -137,22 +188,60 @@ def _shapes(spectra: np.ndarray) -> np.ndarray:
     return x[keep] / norm[keep, None]
 
 
-def pixel_spectra(scenes: list[Path], bands: Bands | None = None, per_scene: int = 400, seed: int = 0) -> tuple[np.ndarray, Bands]:
-    """Up to ``per_scene`` random pixel spectra (N, C) from each scene (normalised cubes)."""
+def pixel_spectra(scenes: list[Path], bands: Bands | None = None, per_scene: int = 400, seed: int = 0,
+                  source: str | os.PathLike | None = None) -> tuple[np.ndarray, Bands]:
+    """Up to ``per_scene`` random pixel spectra (N, C) from each scene, all on one band grid: ``bands``,
+    or :func:`common_grid` of the scenes'. A scene on another grid is resampled onto it as training
+    data are (:func:`hsicam.data.cube.conform_bands`); one whose bands do not cover it is left out,
+    said in one log line. ``source`` (the folder) names the set in messages; InputError when no
+    scene is left."""
     rng = np.random.default_rng(seed)
-    out = []
+    samples = []
     for s in scenes:
         cube, b, _ = read_cube(s)
-        if bands is None:
-            bands = b
-        elif not b.matches(bands):
-            continue
         pix = cube.reshape(cube.shape[0], -1).T
         idx = rng.choice(pix.shape[0], size=min(per_scene, pix.shape[0]), replace=False)
-        out.append(pix[np.sort(idx)])
-    if bands is None or not out:
-        raise InputError("no scenes to sample spectra from")
-    return np.concatenate(out), bands
+        samples.append((s, b, pix[np.sort(idx)]))
+    where = f"{source}: " if source is not None else ""
+    if not samples:
+        raise InputError(f"{where}no scenes to sample spectra from")
+    grid = bands if bands is not None else common_grid([b for _, b, _ in samples])
+    kept = [(s, b, pix) for s, b, pix in samples if b.covers(grid)]
+    left = [(s, b) for s, b, _ in samples if not b.covers(grid)]
+    if not kept:
+        raise InputError(f"{where}no scenes to sample spectra from: their bands ({_left_text(left)}) do not cover "
+                         f"the plot's grid ({_grid_text(grid)}) and are not extrapolated")
+    if left:
+        log.warning("%sspectral gamut: left out %d of %d scenes, whose bands do not cover the plot's grid (%s; no "
+                    "extrapolation): %s", where, len(left), len(samples), _grid_text(grid), _left_text(left))
+    out = [conform_bands(pix, b, grid, s, axis=-1, note=False) for s, b, pix in kept]
+    return np.concatenate(out), grid
+
+
+def common_grid(grids: list[Bands], min_bands: int = 3) -> Bands:
+    """The first grid's bands within the range that the most grids cover (each can be resampled onto
+    it), keeping at least ``min_bands`` of them; among equals, the most bands. Ranges tried: from
+    one grid's first band to one grid's last. The whole first grid when none keeps enough."""
+    first, best, score = grids[0], grids[0], (-1, -1)
+    for lo in sorted({b.min_nm for b in grids}):
+        for hi in sorted({b.max_nm for b in grids}):
+            keep = (first.centers_nm >= lo - 1e-6) & (first.centers_nm <= hi + 1e-6)
+            if keep.sum() < min_bands:
+                continue
+            cand = Bands(first.centers_nm[keep], first.fwhm_nm[keep])
+            cand_score = (sum(b.covers(cand) for b in grids), len(cand))
+            if cand_score > score:
+                best, score = cand, cand_score
+    return best
+
+
+def _grid_text(b: Bands) -> str:
+    return f"{len(b)} bands, {b.min_nm:g}-{b.max_nm:g} nm"
+
+
+def _left_text(left: list[tuple[Path, Bands]]) -> str:
+    shown = ", ".join(f"{s.name}: {_grid_text(b)}" for s, b in left[:5])
+    return shown + (f" and {len(left) - 5} more" if len(left) > 5 else "")
 
 
 def _find_heldout(path: Path) -> Path | None:
@@ -222,10 +311,10 @@ def _gamut_figure(path: Path, scenes: list[Path], held_dir: Path | None, held_sc
     """The figure of :func:`write_spectral_gamut` for the dataset's ``scenes`` (and the held-out set's)."""
     from matplotlib.figure import Figure
 
-    pix, bands = pixel_spectra(scenes)
+    pix, bands = pixel_spectra(scenes, source=path)
     groups = [("dataset pixels", _shapes(pix), "tab:blue", "o")]
     if held_dir is not None:
-        hpix, _ = pixel_spectra(held_scenes, bands, seed=1)
+        hpix, _ = pixel_spectra(held_scenes, bands, seed=1, source=held_dir)
         groups.append((f"held-out pixels ({held_dir.name})", _shapes(hpix), "tab:red", "x"))
     lib = _library_shapes(path) if path.is_dir() else None
     panels = [("scene pixel spectra", groups)]
@@ -256,5 +345,6 @@ def _gamut_figure(path: Path, scenes: list[Path], held_dir: Path | None, held_sc
     return fig
 
 
-__all__ = ["CONTACT_SHEET", "MEAN_SPECTRA", "SPECTRAL_GAMUT", "check_max_scenes", "pixel_spectra", "preview_rgb",
-           "save_figures", "write_preview", "write_spectral_gamut"]
+__all__ = ["CONTACT_SHEET", "MEAN_SPECTRA", "PREVIEW_KEY", "SPECTRAL_GAMUT", "check_max_scenes", "common_grid",
+           "foreign_previews", "is_own_preview", "pixel_spectra", "preview_rgb", "save_figures", "write_preview",
+           "write_spectral_gamut"]
