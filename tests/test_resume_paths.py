@@ -12,6 +12,7 @@ what it holds and the way out, and changes nothing in it.
 from __future__ import annotations
 
 import json
+import re
 import logging
 import shutil
 from pathlib import Path
@@ -145,7 +146,7 @@ def test_finetune_resume_finishes_an_interrupted_finetuning_as_if_never_stopped(
 
     ft, psf_dir = finetuned
     half = tmp_path / "half"
-    args = dict(overrides=("train.epochs=1",), progress=False)
+    args = dict(overrides=("train.epochs=2", "train.lr=3e-4"), progress=False)  # the source run trained 1 epoch
     assert finetune(run, psf_dir, half, stop_after_steps=1, **args) == {"stopped_at_step": 1}
     note = unfinished_training(half, load_config(half / "config.yaml"))
     assert note is not None and note.endswith(f"continue it with `hsicam finetune --resume --run {run} --psf-dir "
@@ -154,7 +155,9 @@ def test_finetune_resume_finishes_an_interrupted_finetuning_as_if_never_stopped(
     line = error_line(capsys, ["finetune", "--run", str(run), "--psf-dir", str(psf_dir), "--out", str(half)])
     assert line.endswith("fine-tuning writes a new run folder: choose another --out, or continue the fine-tuning "
                          "there with --resume"), line
-    summary = finetune(run, psf_dir, half, resume=True, **args)
+    # it goes on with the epochs and rate it was started with (probe 23: it took the source run's)
+    summary = finetune(run, psf_dir, half, resume=True, progress=False)
+    assert load_config(half / "config.yaml").train.epochs == 2 and load_config(half / "config.yaml").train.lr == 3e-4
     whole = tmp_path / "whole"
     finetune(run, psf_dir, whole, **args)
     assert summary["steps"] == json.loads((whole / "finetune.json").read_text())["steps"] > 1
@@ -174,6 +177,11 @@ def test_finetune_resume_refuses_other_psfs_another_run_and_nothing_to_resume(fi
     assert line.startswith(f"hsicam: error: {ft}: was fine-tuned on other measured PSFs (those of {psf_dir}) than "
                            f"{other}"), line
     assert snapshot(ft) == before
+    # the same folder at another pitch: named as such (it said "other PSFs (those of DIR) than DIR")
+    line = error_line(capsys, ["finetune", "--resume", "--run", str(run), "--psf-dir", str(psf_dir), "--out", str(ft),
+                               "--psf-pitch-um", "5"])
+    assert line.startswith(f"hsicam: error: {ft}: the PSFs of {psf_dir} as imported now differ from those it was "
+                           "fine-tuned on (another --psf-pitch-um, or files changed since)"), line
     elsewhere = shutil.copytree(run, tmp_path / "elsewhere")
     line = error_line(capsys, ["finetune", "--resume", "--run", str(elsewhere), "--psf-dir", str(psf_dir),
                                "--out", str(ft)])
@@ -362,3 +370,60 @@ def test_experiment_table_states_what_the_experiment_set():
     table = format_experiment_table(result)
     assert table.endswith("Set by the experiment beyond the swept key:\n\n- period-3: camera.cfa.layout=random (the "
                           "preset's dispersed layout needs a power-of-two period)")
+
+
+# ------------------------------------------------------------------------------------------------
+# probe 23: what a resume goes on with
+# ------------------------------------------------------------------------------------------------
+def test_a_resume_trains_with_the_learning_rate_it_is_given(cache_env, tmp_path):
+    """`train --resume --set train.lr=X` wrote X to config.yaml but went on with the checkpoint's
+    rate (weights bit-identical to a resume without it)."""
+    from safetensors.torch import load_file
+
+    from hsicam.engine.train import train
+
+    cfg = lambda *o: load_config("tiny", ["train.epochs=2", *o])  # noqa: E731
+    assert train(cfg(), tmp_path / "a", progress=False, stop_after_steps=2) == {"stopped_at_step": 2}
+    shutil.copytree(tmp_path / "a", tmp_path / "b")
+    train(cfg(), tmp_path / "a", resume=True, progress=False)
+    train(cfg("train.lr=0.01"), tmp_path / "b", resume=True, progress=False)
+    lrs = [[r["lr"] for r in map(json.loads, (tmp_path / n / "metrics.jsonl").read_text().splitlines()) if "lr" in r]
+           for n in "ab"]
+    base = load_config("tiny").train.lr
+    assert lrs[1][-1] > 0 and lrs[0][-1] == pytest.approx(lrs[1][-1] * base / 0.01)  # the schedule, from the new rate
+    a, b = load_file(tmp_path / "a" / "model.safetensors"), load_file(tmp_path / "b" / "model.safetensors")
+    assert any(not torch.equal(a[k], b[k]) for k in a)
+
+
+def test_a_resume_asking_for_fewer_steps_than_were_trained_is_refused(cache_env, tmp_path):
+    """It ended the run where it stood and rewrote config.yaml with the lower length (3 epochs for
+    a run that had trained 31); the same for a spectral prior's train_steps (one loop)."""
+    from hsicam.engine.train import train
+    from hsicam.errors import InputError
+
+    run = tmp_path / "r"
+    assert train(load_config("tiny", ["train.epochs=3"]), run, progress=False, stop_after_steps=6) == {"stopped_at_step": 6}
+    before = snapshot(run)
+    with pytest.raises(InputError, match=r"has trained 6 steps \(1 epochs\), more than the 4 its config now asks for; "
+                                         r"a resume cannot take training back"):
+        train(load_config("tiny", ["train.epochs=1"]), run, resume=True, progress=False)
+    assert snapshot(run) == before
+    assert train(load_config("tiny", ["train.epochs=3"]), run, resume=True, progress=False)["step"] == 12
+
+
+@pytest.mark.parametrize("sets, fragment", [
+    (["train.freeze=[net,doe,cfa]"], "train.freeze=[cfa, doe, net] leaves nothing to train"),
+    (["train.freeze=[net]", "camera.doe.enabled=false", "camera.cfa.enabled=false"],
+     "train.freeze=[net] leaves nothing to train (this doe camera's groups with parameters: net)"),
+    (["train.freeze=[net]", "train.optics_steps=4"],
+     "train.freeze=[net] with train.optics_steps=4: after step 4 only the network trains, and it is frozen"),
+])
+def test_a_freeze_that_leaves_nothing_to_train_is_refused_before_any_work(cache_env, tmp_path, sets, fragment):
+    """It was a traceback from the optimizer, or (with optics_steps) a RuntimeError mid-training that
+    left a run no resume could finish."""
+    from hsicam.engine.train import train
+    from hsicam.errors import ConfigError
+
+    with pytest.raises(ConfigError, match=re.escape(fragment)):
+        train(load_config("tiny", sets), tmp_path / "r", progress=False)
+    assert not (tmp_path / "r").exists()

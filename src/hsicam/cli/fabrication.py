@@ -165,11 +165,12 @@ def cmd_finetune(args: argparse.Namespace) -> int:
             raise InputError("--epochs must be >= 1")
         overrides.append(f"train.epochs={args.epochs}")
     lr = args.lr
-    if lr is None:
+    if lr is None and not args.resume:  # a resume goes on with the rate it was started with
         lr = 0.1 * config_from_args(run / "config.yaml", args.overrides).train.lr
-    if not lr > 0:
-        raise InputError("--lr must be positive")
-    overrides.append(f"train.lr={lr:.6e}")
+    if lr is not None:
+        if not lr > 0:
+            raise InputError("--lr must be positive")
+        overrides.append(f"train.lr={lr:.6e}")
     s = finetune(run, args.psf_dir, args.out, overrides=tuple(overrides), pitch_um=args.psf_pitch_um,
                  resume=args.resume)
     before = s["before"].get("psnr")

@@ -71,6 +71,26 @@ def check_finetune_resume(out_dir: Path) -> None:
                          "new folder (without --resume)")
 
 
+def continued_settings(out_dir: Path, run_dir: Path) -> list[str]:
+    """The ``train.*`` and ``data.*`` overrides that turn the source run's config into the one the
+    fine-tuning in ``out_dir`` was started with (its config.yaml): what a resume goes on with."""
+    import dataclasses
+    import json
+
+    from hsicam.config import load_config
+
+    started, source = load_config(out_dir / "config.yaml"), load_config(Path(run_dir) / "config.yaml")
+    out = []
+    for section in ("train", "data"):
+        a, b = getattr(started, section), getattr(source, section)
+        for f in dataclasses.fields(a):
+            value = getattr(a, f.name)
+            if value != getattr(b, f.name):
+                plain = dataclasses.asdict(value) if dataclasses.is_dataclass(value) else value
+                out.append(f"{section}.{f.name}={json.dumps(plain)}")
+    return out
+
+
 def check_same_finetune(out_dir: Path, run_dir: Path, psf_dir: str | Path, measured: MeasuredPSF) -> None:
     """InputError when the fine-tuning in ``out_dir`` was made from another run or other measured
     PSFs than ``run_dir`` and ``measured`` (imported from ``psf_dir``): continuing it would mix two
@@ -82,10 +102,13 @@ def check_same_finetune(out_dir: Path, run_dir: Path, psf_dir: str | Path, measu
         raise InputError(f"{out_dir}: was fine-tuned from {source}, not {run_dir}; resume it with --run {source}")
     have = run_psf_fingerprint(out_dir)
     if have != measured.fingerprint:
-        were = f" (those of {made_from})" if made_from else ""
-        raise InputError(f"{out_dir}: was fine-tuned on other measured PSFs{were} than {psf_dir} (fingerprint "
-                         f"{str(have)[:12]} against {measured.fingerprint[:12]}); resume it with the PSFs it started "
-                         "with, or fine-tune on these into a new folder (without --resume)")
+        same = made_from is not None and Path(made_from).resolve() == Path(psf_dir).resolve()
+        what = (f"the PSFs of {psf_dir} as imported now differ from those it was fine-tuned on (another "
+                "--psf-pitch-um, or files changed since)" if same else
+                f"was fine-tuned on other measured PSFs{f' (those of {made_from})' if made_from else ''} than {psf_dir}")
+        raise InputError(f"{out_dir}: {what} (fingerprint {str(have)[:12]} against {measured.fingerprint[:12]}); "
+                         "resume it with the PSFs and pitch it started with, or fine-tune on these into a new folder "
+                         "(without --resume)")
 
 
 class FinetuneTask(SystemTask):
@@ -128,6 +151,8 @@ def finetune(run_dir: str | Path, psf_dir: str | Path, out_dir: str | Path, *, o
     else:
         again = (", or continue the fine-tuning there with --resume" if (out_dir / MEASURED_PSF_FILE).is_file() else "")
         check_run_dir(out_dir, False, f"fine-tuning writes a new run folder: choose another --out{again}")
+    if resume:  # it goes on with the settings it was started with (--epochs, --lr, --set), then these
+        overrides = (*continued_settings(out_dir, run_dir), *overrides)
     cfg, base = load_run(run_dir, "cpu", tuple(overrides))
     measured = import_for_camera(psf_dir, base.camera, pitch_um=pitch_um)
     if resume:

@@ -332,7 +332,16 @@ def _fit(task: Task, opts: FitOptions, run_dir: Path, resume: bool) -> dict[str,
         if is_main:
             ckpt.cleanup()  # temporaries and step folders the manifest does not name (a killed process)
         if ckpt.path("last"):
+            base_lrs = [g["base_lr"] for g in optimizer.param_groups]
             state = LoopState.from_dict(ckpt.load("last", model, optimizer, bands))
+            # the learning rates of the config it goes on with (e.g. `--set train.lr=…`), not the
+            # checkpoint's: the optimizer's moments continue, its schedule starts from these
+            for g, lr in zip(optimizer.param_groups, base_lrs):
+                g["base_lr"] = lr
+            if state.global_step > total_steps:  # before the config is rewritten: nothing changes
+                raise InputError(f"{run_dir}: has trained {state.global_step} steps ({state.epoch} epochs), more than the "
+                                 f"{total_steps} its config now asks for; a resume cannot take training back: ask for at "
+                                 "least as many, or leave the length as it was; nothing was changed")
         if is_main:
             ckpt.sync_root()  # a kill between the manifest's commit and the root weights' rewrite
             metrics.truncate_after(state.global_step, state.epoch)

@@ -145,6 +145,21 @@ class SystemTask(Task):
         if unknown:
             raise ConfigError(f"train.freeze: unknown parameter group(s) {', '.join(unknown)} for the "
                               f"{model.camera.kind} camera; it has {', '.join(sorted(known))}")
+        self._check_something_trains(known)
+
+    def _check_something_trains(self, known: set[str]) -> None:
+        """ConfigError, before any work, when ``train.freeze`` leaves no group to train, or freezes the
+        network while ``train.optics_steps`` leaves only the network to train after that step."""
+        t = self.cfg.train
+        groups = {"net": list(self.model.net.parameters()), **self.model.camera.param_groups()}
+        trained = sorted(n for n, params in groups.items() if n not in self.freeze and len(list(params)) > 0)
+        frozen = f"train.freeze=[{', '.join(sorted(self.cfg.train.freeze))}]"
+        if not trained:
+            raise ConfigError(f"{frozen} leaves nothing to train (this {self.model.camera.kind} camera's groups with "
+                              f"parameters: {', '.join(sorted(n for n, p in groups.items() if len(list(p)) > 0))})")
+        if t.optics_steps is not None and "net" in self.freeze:
+            raise ConfigError(f"{frozen} with train.optics_steps={t.optics_steps}: after step {t.optics_steps} only the "
+                              "network trains, and it is frozen; drop one of the two")
 
     def module(self) -> CameraSystem:
         return self.model
