@@ -168,6 +168,10 @@ def test_solver_input_errors():
         desci(cam, torch.rand(1, 1, 4, 4, dtype=torch.float64), desci_settings("fast", init_iterations=1))
     with pytest.raises(InputError, match="preset"):
         desci_settings("slow")
+    # reference patches every 20 px of 4 px left 68 % of the cube at exactly 0 (probe 23)
+    with pytest.raises(InputError, match=r"step 20 is larger than patch 4: the pixels between reference patches"):
+        desci_settings("fast", patch=4, step=20)
+    assert desci_settings("fast", patch=4, step=4).step == 4
 
 
 # --------------------------------------------------------------------------------------------

@@ -80,6 +80,9 @@ def desci_settings(preset: str = "fast", **overrides) -> DeSCISettings:
         raise InputError(f"DeSCI: {len(s.sigmas)} sigmas but {len(s.iterations)} iteration counts")
     if min(s.patch, s.step, s.group, s.match_every, s.chunk) < 1 or s.search < 0:
         raise InputError("DeSCI: patch, step, group, match_every and chunk must be >= 1, search >= 0")
+    if s.step > s.patch:  # reference patches every `step` px cover every pixel only when step <= patch
+        raise InputError(f"DeSCI: step {s.step} is larger than patch {s.patch}: the pixels between reference patches "
+                         "would get no estimate (0); use baselines.desci.step <= baselines.desci.patch")
     return s
 
 
