@@ -92,6 +92,28 @@ def test_a_derived_report_holding_a_users_file_is_refused(tmp_path):
     assert not (ev / "report").exists()
 
 
+def test_a_folder_filled_in_place_again_loses_its_out_of_date_report_but_never_a_users_file(tmp_path):
+    """An experiment (or demo) run again kept the report/ of its old results beside the new table
+    (probe 23: seeds [0] in the report, [0, 1, 2] in table.md)."""
+    from hsicam.io import clear_derived
+
+    folder = tmp_path / "xp"
+    folder.mkdir()
+    (folder / "table.md").write_text("old")
+    mark_complete(folder, {"command": "experiment"})
+    with atomic_output(folder / "report", marker={"command": "report"}) as d:
+        (d / "index.html").write_text("r")
+    (folder / "report" / "notes.txt").write_text("my notes")
+    before = snapshot(tmp_path)
+    with pytest.raises(InputError, match=r"report: holds notes.txt, which hsicam report did not write; it is made "
+                                         r"from .* results and would be removed as out of date: move them"):
+        clear_derived(folder)
+    assert snapshot(tmp_path) == before
+    (folder / "report" / "notes.txt").unlink()
+    assert clear_derived(folder) == [folder / "report"]
+    assert not (folder / "report").exists() and (folder / "table.md").read_text() == "old"
+
+
 def test_an_older_marker_listing_a_subfolder_only_is_refused_unless_it_is_empty(tmp_path):
     ev = tmp_path / "ev"
     (ev / "cubes").mkdir(parents=True)

@@ -461,6 +461,25 @@ def output_description(folder: str | os.PathLike) -> str:
     return f"the output of hsicam {command}" if isinstance(command, str) and command else "a completed hsicam output"
 
 
+def clear_derived(folder: str | os.PathLike) -> list[Path]:
+    """Before a folder filled in place (a demo, an experiment) is filled again: remove the derived
+    outputs made from its old results (``report/``, :data:`DERIVED_OUTPUTS`), which would stand beside
+    the new ones out of date; InputError, with nothing removed, when one holds files its own marker
+    does not list (a user's). Returns the removed folders."""
+    import shutil
+
+    folder = Path(folder)
+    derived = [folder / name for name in DERIVED_OUTPUTS if _is_derived(folder / name)]
+    for d in derived:
+        extra = _derived_unlisted(d)
+        if extra:
+            raise InputError(f"{d}: holds {', '.join(extra[:5])}, which hsicam {DERIVED_OUTPUTS[d.name]} did not write; "
+                             f"it is made from {folder}'s results and would be removed as out of date: move them")
+    for d in derived:
+        shutil.rmtree(d)
+    return derived
+
+
 def clear_complete(folder: str | os.PathLike) -> None:
     """Remove the marker before a folder is filled again in place (so it never looks complete half-way)."""
     p = Path(folder) / COMPLETE_MARKER

@@ -17,8 +17,8 @@ from hsicam.engine.linear_step import ensure_linear_step
 from hsicam.engine.methods import (LINEAR_REFERENCE_WINDOW, linear_demosaic_reference, network_alone_reference,
                                    network_skip)
 from hsicam.errors import InputError
-from hsicam.io import (atomic_open, clear_complete, is_complete, is_temporary, mark_complete, output_description,
-                       read_marker, write_json)
+from hsicam.io import (atomic_open, clear_complete, clear_derived, is_complete, is_temporary, mark_complete,
+                       output_description, read_marker, write_json)
 from hsicam.report.camera import write_optics_figures, write_psf_outputs
 from hsicam.report.reconstruction import plot_reconstructions, plot_training_curves
 from hsicam.runs.folder import load_run
@@ -57,6 +57,8 @@ def run_demo(cfg: Config, out: str | Path) -> dict[str, Any]:
     """
     out = Path(out)
     check_demo_folder(out)
+    if out.is_dir():
+        clear_derived(out)  # a report/ of its old results would stand beside the new ones
     run = out / "run"
     status = ensure_trained(run, cfg)
     if out.is_dir():

@@ -26,7 +26,7 @@ from hsicam.engine.methods import baseline_names, build_method
 from hsicam.engine.prior import ensure_choi_prior
 from hsicam.engine.train import train
 from hsicam.errors import InputError
-from hsicam.io import atomic_open, clear_complete, write_json
+from hsicam.io import atomic_open, clear_complete, clear_derived, write_json
 
 log = logging.getLogger(__name__)
 
@@ -248,6 +248,7 @@ def run_experiment(experiment: str, scale: str, out: str | Path, seeds: tuple[in
     # filled in place (its trained runs resume): a finished folder's marker comes off until
     # experiment.json and table.md are written again (``hsicam experiment`` marks it then)
     if out.is_dir():
+        clear_derived(out)  # its report/ would describe the old results
         clear_complete(out)
     (out / "runs").mkdir(parents=True, exist_ok=True)
     for spec in specs:
