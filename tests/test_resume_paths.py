@@ -427,3 +427,17 @@ def test_a_freeze_that_leaves_nothing_to_train_is_refused_before_any_work(cache_
     with pytest.raises(ConfigError, match=re.escape(fragment)):
         train(load_config("tiny", sets), tmp_path / "r", progress=False)
     assert not (tmp_path / "r").exists()
+
+
+def test_a_resume_with_other_frozen_groups_names_them(cache_env, tmp_path):
+    """It said torch's "loaded state dict has a different number of parameter groups"."""
+    from hsicam.engine.train import train
+    from hsicam.errors import InputError
+
+    run = tmp_path / "r"
+    train(load_config("tiny", ["train.epochs=2"]), run, progress=False, stop_after_steps=2)
+    before = snapshot(run)
+    with pytest.raises(InputError, match=r"the run trained the parameter groups net, doe, cfa, this config trains "
+                                         r"net, cfa \(train.freeze, or a camera part switched on or off"):
+        train(load_config("tiny", ["train.epochs=2", "train.freeze=[doe]"]), run, resume=True, progress=False)
+    assert snapshot(run) == before

@@ -131,6 +131,12 @@ def load_optimizer(path: str | Path, optimizer: torch.optim.Optimizer) -> None:
     for key, val in [*tensors.items(), *scalars.items()]:
         idx, name = key.split(".", 1)
         state.setdefault(int(idx), {})[name] = val
+    saved = [g.get("name") for g in groups if isinstance(g, dict)]
+    current = [g.get("name") for g in optimizer.param_groups]
+    if None not in saved and saved != current:  # e.g. train.freeze changed: say which groups, not torch's words
+        raise InputError(f"{path}: the run trained the parameter groups {', '.join(map(str, saved))}, this config trains "
+                         f"{', '.join(map(str, current)) or 'none'} (train.freeze, or a camera part switched on or off, "
+                         "differs from the run's config.yaml); resume with the run's own settings, or start a new run")
     try:
         optimizer.load_state_dict({"state": state, "param_groups": groups})
     except (ValueError, KeyError) as exc:
