@@ -291,6 +291,11 @@ def test_tolerance_refuses_impossible_sweeps_before_scoring(inputs, tmp_path, ca
     assert_one_line(code, err, "behind the lens")
     code, err = call(capsys, ["tolerance", "--run", run, "--out", str(tmp_path / "t"), "--shift-cells", "1e6"])
     assert_one_line(code, err, "exceeds the aperture")
+    # a shift between the study's sub-samples was rounded while the table showed it as asked (probe 23)
+    code, err = call(capsys, ["tolerance", "--run", run, "--out", str(tmp_path / "t"), "--shift-cells", "0.1",
+                              "--shift-subsamples", "4"])
+    assert_one_line(code, err, "--shift-cells 0.1: the misalignment study moves the relief by whole sub-samples of "
+                               "1/4 cell, so 0.1 would be applied as 0; give multiples of 0.25")
     assert not (tmp_path / "t").exists()
 
 

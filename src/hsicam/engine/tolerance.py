@@ -159,10 +159,16 @@ def check_sweeps(spec: ToleranceSpec, optics) -> None:
         check_levels(lv)
     check_defocus_sweep(spec.sensor_distance_um, optics)
     limit = 2 * optics.aperture_radius_m / optics.cell_m
+    q = shift_subsamples_for(optics, spec.shift_subsamples)
     for s in spec.shift_cells:
         if abs(s) > limit:
             raise InputError(f"DOE shift {s} cells exceeds the aperture's diameter ({limit:.0f} cells of "
                              f"{optics.cell_m * 1e6:g} µm): the element would leave the aperture")
+        if optics.doe.enabled and not math.isclose(s * q, round(s * q), abs_tol=1e-6):
+            # the relief moves by whole pupil sub-samples: the CSV, plot and summary would show a shift not applied
+            raise InputError(f"--shift-cells {s:g}: the misalignment study moves the relief by whole sub-samples of "
+                             f"1/{q} cell, so {s:g} would be applied as {round(s * q) / q:g}; give multiples of "
+                             f"{1 / q:g} (or raise --shift-subsamples)")
 
 
 #: The level counts ``hsicam export-optics --levels`` accepts (binary-weighted lithography).
