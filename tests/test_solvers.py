@@ -370,6 +370,14 @@ def test_build_baseline_errors(tiny_env):
     other = load_config("tiny", ["bands.step_nm=100"])
     with pytest.raises(InputError, match="trained on"):
         build_method("dd-cassi-choi", other, tiny_env["prior"])
+    # a key of the prior's architecture or training was accepted and ignored (probe 23); ADMM keys apply
+    latent = load_prior(tiny_env["prior"], cfg.bands.to_bands())[1].latent
+    asked = load_config("tiny", [f"baselines.choi.latent={latent - 1}", "baselines.choi.rho=0.7"])
+    with pytest.raises(InputError, match=rf"baselines.choi.latent={latent - 1} \(the prior's: {latent}\): the prior's "
+                                         r"architecture and training are fixed"):
+        build_method("dd-cassi-choi", asked, tiny_env["prior"])
+    assert build_method("dd-cassi-choi", load_config("tiny", ["baselines.choi.rho=0.7"]),
+                        tiny_env["prior"]).info["rho"] == 0.7
 
 
 def test_prior_folder_and_reuse(tiny_env):

@@ -301,6 +301,22 @@ def _desci_method(cfg, run, device) -> Method:
                   {"solver": "desci", "preset": s.preset, **dataclasses.asdict(ds), **_camera_info(cam)})
 
 
+def _check_prior_keys(asked, trained, run) -> None:
+    """InputError when the evaluation's ``baselines.choi`` sets a key of the prior's architecture or
+    training to a value the prior in ``run`` was not trained with (it was accepted, hashed and
+    ignored). A key at its default is taken as not set (a ``--set`` of ADMM keys alone fills the
+    others with defaults)."""
+    from hsicam.config import ChoiConfig
+    from hsicam.engine.prior import PRIOR_TRAINING_KEYS
+
+    default = ChoiConfig()
+    differ = [f"baselines.choi.{k}={getattr(asked, k)!r} (the prior's: {getattr(trained, k)!r})"
+              for k in PRIOR_TRAINING_KEYS if getattr(asked, k) not in (getattr(trained, k), getattr(default, k))]
+    if differ:
+        raise InputError(f"{run}: {', '.join(differ)}: the prior's architecture and training are fixed by `hsicam "
+                         "baseline train-prior`; an evaluation sets only the ADMM keys (train another prior for these)")
+
+
 @register_method("dd-cassi-choi")
 def _choi_method(cfg, run, device) -> Method:
     if run is None:
@@ -308,6 +324,7 @@ def _choi_method(cfg, run, device) -> Method:
     cam = dd_cassi_camera(cfg, device)
     prior, trained = load_prior(run, cam.bands, device)
     admm = cfg.baselines.choi if cfg.baselines.choi is not None else trained
+    _check_prior_keys(admm, trained, run)
     admm = dataclasses.replace(admm, features=trained.features, latent=trained.latent)
     rec = functools.partial(admm_prior, cam, prior=prior, settings=admm)
     return Method("dd-cassi-choi", cam, rec, _identity, {"solver": "choi-admm", "run": str(run), **dataclasses.asdict(admm),
