@@ -145,9 +145,9 @@ class SystemTask(Task):
         if unknown:
             raise ConfigError(f"train.freeze: unknown parameter group(s) {', '.join(unknown)} for the "
                               f"{model.camera.kind} camera; it has {', '.join(sorted(known))}")
-        self._check_something_trains(known)
+        self._check_something_trains()
 
-    def _check_something_trains(self, known: set[str]) -> None:
+    def _check_something_trains(self) -> None:
         """ConfigError, before any work, when ``train.freeze`` leaves no group to train, or freezes the
         network while ``train.optics_steps`` leaves only the network to train after that step."""
         t = self.cfg.train
