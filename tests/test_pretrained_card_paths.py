@@ -121,16 +121,20 @@ def test_a_cameras_weights_are_hashed_once_per_file_version(root, tmp_path, monk
     cam = tmp_path / "pre" / "camE"
     shutil.copytree(root / "camC", cam)
     monkeypatch.setenv(shipped.ENV_VAR, str(cam.parent))
-    hashed = []
-    real = checkpoint.file_sha256
-    monkeypatch.setattr(checkpoint, "file_sha256", lambda p: hashed.append(Path(p)) or real(p))
+    reads = []
+    real_open = open
+    monkeypatch.setattr("builtins.open", lambda f, *a, **k: (reads.append(Path(f)) if str(f).endswith(
+        "model.safetensors") else None) or real_open(f, *a, **k))
+    weights = cam / "model.safetensors"
     for _ in range(3):
         assert shipped.resolve_run("pretrained:camE") == cam
-    assert hashed == [cam / "model.safetensors"]
-    other_weights(cam / "model.safetensors")
+    assert reads == [weights]
+    other_weights(weights)
+    reads.clear()
     with pytest.raises(InputError, match="does not match its card"):
         shipped.resolve_run("pretrained:camE")
-    assert len(hashed) == 2
+    assert reads == [weights]
+    assert checkpoint.file_sha256(weights) == hashlib.sha256(weights.read_bytes()).hexdigest()
 
 
 # ------------------------------------------------------------------------------------------------

@@ -53,13 +53,22 @@ LEGACY_POINTERS = ("last.json", "best.json")
 log = logging.getLogger(__name__)
 
 
+#: SHA-256 of the files already hashed in this process, by (path, inode, size, mtime).
+_HASHES: dict[tuple[str, int, int, int], str] = {}
+
+
 def file_sha256(path: str | Path) -> str:
-    """SHA-256 of a file's bytes (hex)."""
-    h = hashlib.sha256()
-    with open(path, "rb") as fh:
-        for chunk in iter(lambda: fh.read(1 << 20), b""):
-            h.update(chunk)
-    return h.hexdigest()
+    """SHA-256 of a file's bytes (hex), read once per process while the file's path, inode, size and
+    modification time stay the same (e.g. a shipped camera's weights, checked and then recorded)."""
+    st = os.stat(path)
+    key = (str(Path(path).resolve()), st.st_ino, st.st_size, st.st_mtime_ns)
+    if key not in _HASHES:
+        h = hashlib.sha256()
+        with open(path, "rb") as fh:
+            for chunk in iter(lambda: fh.read(1 << 20), b""):
+                h.update(chunk)
+        _HASHES[key] = h.hexdigest()
+    return _HASHES[key]
 
 
 def save_weights(path: str | Path, model: nn.Module, bands: Bands, extra: dict[str, str] | None = None) -> None:

@@ -80,10 +80,16 @@ def load_run(run_dir: str | Path, device: torch.device | str = "cpu", overrides:
     return cfg, model.to(device).eval()
 
 
+def holds_prior(run_dir: Path) -> bool:
+    """True for a spectral-prior folder (``hsicam baseline train-prior``: prior.yaml or its weights),
+    finished or not."""
+    return any((Path(run_dir) / name).is_file() for name in ("prior.yaml", "prior.safetensors"))
+
+
 def no_weights_message(run_dir: Path) -> str:
     """Why :func:`load_run` cannot load ``run_dir`` (no model.safetensors): a spectral prior (``hsicam
     baseline train-prior``: prior.yaml / prior.safetensors) is told apart from a run with no weights."""
-    if any((run_dir / name).is_file() for name in ("prior.yaml", "prior.safetensors")):
+    if holds_prior(run_dir):
         return (f"{run_dir}: a spectral prior (hsicam baseline train-prior), not a camera run: use it with `hsicam "
                 f"evaluate --method dd-cassi-choi --run {run_dir} --out DIR`; this command needs a camera run "
                 "(hsicam train, or --run pretrained:NAME)")
@@ -185,7 +191,7 @@ def check_train_can_resume(run_dir: Path) -> None:
                          "): `hsicam train` cannot continue it (its optics are frozen to the measured PSFs); nothing "
                          f"was changed: continue it with hsicam finetune --resume --run {source or 'ORIGINAL'} "
                          f"--psf-dir {psf_dir or 'DIR'} --out {run_dir} (--epochs N for more epochs)")
-    if (run_dir / "prior.yaml").is_file():
+    if holds_prior(run_dir):
         raise InputError(f"{run_dir}: holds a spectral prior (hsicam baseline train-prior), not a camera run; continue "
                          f"it with `hsicam baseline train-prior --resume --out {run_dir}`")
 

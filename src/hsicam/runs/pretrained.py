@@ -180,22 +180,6 @@ def read_card(name: str) -> dict[str, Any]:
     return load_card(pretrained_dir(name))
 
 
-#: sha256 of weights files already hashed in this process, by (path, inode, size, mtime).
-_HASHES: dict[tuple[str, int, int, int], str] = {}
-
-
-def weights_sha256(path: Path) -> str:
-    """sha256 of ``path`` (:func:`hsicam.runs.checkpoint.file_sha256`), hashed once per process
-    while its path, inode, size and modification time stay the same."""
-    from hsicam.runs.checkpoint import file_sha256
-
-    st = path.stat()
-    key = (str(path.resolve()), st.st_ino, st.st_size, st.st_mtime_ns)
-    if key not in _HASHES:
-        _HASHES[key] = file_sha256(path)
-    return _HASHES[key]
-
-
 def _remedy(folder: Path) -> str:
     """What to do about a damaged camera ``folder``: re-install it (hsicam, for the package's own
     cameras) or re-pack it in place."""
@@ -217,7 +201,9 @@ def weights_problem(folder: Path) -> str | None:
     weights = folder / "model.safetensors"
     if not isinstance(want, str) or not want:
         return f"{folder / CARD_JSON}: records no sha256 of the weights, so {weights} cannot be checked; {_remedy(folder)}"
-    got = weights_sha256(weights)
+    from hsicam.runs.checkpoint import file_sha256
+
+    got = file_sha256(weights)  # read once per process
     if got == want:
         return None
     return (f"{weights}: does not match its card (sha256 {got[:12]}…, {CARD_JSON} records {want[:12]}…): the card "
