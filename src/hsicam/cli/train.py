@@ -43,8 +43,8 @@ def cmd_train(args: argparse.Namespace) -> int:
             restart_run_dir(run)
     summary = train(cfg, run, resume=args.resume)
     if summary.get("already_finished"):
-        changed = ("its linear consistency step fitted (linear_step.safetensors), nothing else changed"
-                   if summary.get("linear_step_fitted") else "nothing changed")
+        changed = ("; ".join(summary["changed"]) + ", nothing else changed" if summary.get("changed")
+                   else "nothing changed")
         print(f"{run}: already finished at step {summary['step']} ({summary['epoch']} epochs); {changed}. "
               f"To train on, raise train.epochs: hsicam train --out {run} --resume --set train.epochs=N "
               f"(N > {summary['epoch']})")

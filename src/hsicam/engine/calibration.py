@@ -21,6 +21,7 @@ from typing import Any
 import torch
 
 from hsicam.data.measured_psf import import_for_camera
+from hsicam.engine.linear_step import refresh_linear_step
 from hsicam.engine.loop import FitOptions, fit
 from hsicam.engine.tasks import SystemTask
 from hsicam.errors import InputError
@@ -164,6 +165,9 @@ def finetune(run_dir: str | Path, psf_dir: str | Path, out_dir: str | Path, *, o
     fitted = fit(task, opts, out_dir, resume)
     if "stopped_at_step" in fitted:  # an interruption simulated by a test: no summary yet
         return fitted
+    # the linear consistency step's filters through the measured PSFs (those of the source run were
+    # fitted through its simulated optics)
+    refresh_linear_step(out_dir, cfg.model.consistency)
     records = MetricsLog(Path(out_dir) / "metrics.jsonl").read()
     vals = [r for r in records if "val_psnr" in r and not r.get("final")]
     strip = lambda r: {k[4:]: v for k, v in r.items() if k.startswith("val_")}  # noqa: E731

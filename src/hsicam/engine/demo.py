@@ -13,7 +13,6 @@ from hsicam.data.pipeline import scene_dataset, split_dataset
 from hsicam.engine.evaluate import (TestNoise, demosaic_reference, evaluate_method, evaluate_scenes, format_table,
                                     grey_reference, summarize)
 from hsicam.engine.experiments import ensure_trained, heldout_scenes
-from hsicam.engine.linear_step import ensure_linear_step
 from hsicam.engine.methods import (LINEAR_REFERENCE_WINDOW, linear_demosaic_reference, network_alone_reference,
                                    network_skip)
 from hsicam.errors import InputError
@@ -63,10 +62,7 @@ def run_demo(cfg: Config, out: str | Path) -> dict[str, Any]:
     status = ensure_trained(run, cfg)
     if out.is_dir():
         clear_complete(out)  # the results below are rewritten; `hsicam report` waits for the marker
-    asked = cfg
-    cfg, model = load_run(run)
-    model.consistency = asked.model.consistency  # an inference setting: the demo's config decides it
-    ensure_linear_step(run, cfg, model, asked.model.consistency)  # a reused older run: fitted now
+    cfg, model = load_run(run)  # its model.consistency is the demo's (ensure_trained)
     bands = cfg.bands.to_bands()
     train_list, val = split_dataset(cfg.data, bands)
     scenes, names = scene_dataset(cfg.data, val, bands), [p.stem for p in val]

@@ -22,6 +22,7 @@ from typing import Any
 
 from hsicam.config import Config, load_config, training_differences
 from hsicam.engine.evaluate import TestNoise, evaluate_method, summarize
+from hsicam.engine.linear_step import refresh_linear_step
 from hsicam.engine.methods import baseline_names, build_method
 from hsicam.engine.prior import ensure_choi_prior
 from hsicam.engine.train import train
@@ -178,13 +179,15 @@ def ensure_trained(run: Path, preset, overrides: tuple[str, ...] = ()) -> str:
     :class:`~hsicam.config.Config`. A run folder that exists must have been started with the same
     config, up to how it runs (:func:`~hsicam.config.training_differences`), so that a table never
     reports a camera trained with other settings: otherwise :class:`InputError` names the first
-    differences.
+    differences. The run's ``model.consistency`` (an inference setting) becomes ``cfg``'s, its linear
+    step's filters fitted to match (:func:`~hsicam.engine.linear_step.refresh_linear_step`).
     """
     cfg = preset if isinstance(preset, Config) else load_config(preset, list(overrides))
     check_same_training(run, cfg)
     if (run / "config.yaml").is_file():
         if is_finished(run):
             log.info("%s: finished, reused", run)
+            refresh_linear_step(run, cfg.model.consistency)  # (training and resuming do it when they end)
             return "reused"
         log.info("%s: resuming", run)
         train(cfg, run, resume=True)

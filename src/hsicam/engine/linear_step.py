@@ -1,7 +1,7 @@
 """Fitting the least-squares linear map from sensor image to cube through a trained camera: the
 ``doe-linear-demosaic`` reference (:func:`hsicam.engine.methods.linear_demosaic_reference`) and the
 filters of the linear consistency step (``model.consistency.kind: linear``), which a run gets when
-its training ends (:func:`ensure_linear_step`, ``RUN/linear_step.safetensors``)."""
+its training ends (:func:`refresh_linear_step`, ``RUN/linear_step.safetensors``)."""
 
 from __future__ import annotations
 
@@ -46,31 +46,64 @@ def fit_linear_map(model, scenes, window: int = 11, ridge: float = LINEAR_MAP_RI
     return fit.solve()
 
 
-def ensure_linear_step(run_dir: str | Path, cfg, model, consistency=None) -> bool:
-    """Fit and write ``RUN/linear_step.safetensors`` on the run's training scenes (``cfg``: the run's
-    config) when the linear consistency step is asked for (``consistency``, default the run's own
-    ``model.consistency``) and the file is missing (training just ended, or an older run); sets
-    ``model.linear_step``. Returns whether it wrote the file."""
-    from hsicam.data.pipeline import scene_dataset, split_dataset
-    from hsicam.runs.linear_step import load_linear_step
+def refresh_linear_step(run_dir: str | Path, consistency) -> list[str]:
+    """Make a finished run's linear consistency step the one ``consistency`` (a
+    :class:`~hsicam.config.ConsistencyConfig`) asks for, when training (or fine-tuning) ends or a
+    finished run is resumed with other ``model.consistency`` keys:
 
-    c = cfg.model.consistency if consistency is None else consistency
-    path = Path(run_dir) / LINEAR_STEP_FILE
-    if c.kind != "linear" or c.iterations <= 0:
-        return False
-    cam = model.camera
-    if model.linear_step is not None:  # loaded with the run (load_run)
-        return False
-    if path.is_file():
-        model.linear_step = load_linear_step(path, len(cam.bands), cam.code_period)
-        return False
+    - the run's config.yaml gets ``consistency`` as its ``model.consistency`` (an inference setting:
+      the training never sees it, so nothing else is touched);
+    - with ``kind: linear``, ``RUN/linear_step.safetensors`` is fitted on the run's training scenes
+      through the run's weights (its best), when it is missing or no longer fits them
+      (:func:`~hsicam.runs.linear_step.stale_reason`: the run trained on, or another filter width).
+
+    Returns what changed, in words (empty: nothing)."""
+    from hsicam.config import dump_yaml, load_config
+    from hsicam.io import atomic_open
+    from hsicam.runs.checkpoint import root_weights_path
+    from hsicam.runs.folder import load_run
+    from hsicam.runs.linear_step import stale_reason
+
+    run_dir = Path(run_dir)
+    changed = []
+    run_cfg = load_config(run_dir / "config.yaml")
+    if run_cfg.model.consistency != consistency:
+        before = run_cfg.model.consistency
+        diff = ", ".join(f"{k} {getattr(before, k)} → {getattr(consistency, k)}" for k in vars(consistency)
+                         if getattr(before, k) != getattr(consistency, k))
+        run_cfg.model.consistency = consistency
+        with atomic_open(run_dir / "config.yaml") as fh:
+            fh.write(dump_yaml(run_cfg))
+        changed.append(f"model.consistency in config.yaml ({diff})")
+    if consistency.kind != "linear" or consistency.iterations <= 0:
+        return changed
+    path = run_dir / LINEAR_STEP_FILE
+    refit = path.is_file()
+    if refit:
+        why = stale_reason(path, root_weights_path(run_dir), consistency.window_px)
+        if why is None:
+            return changed
+        log.info("refitting the linear consistency step: %s", why)
+        path.unlink()
+    run_cfg, model = load_run(run_dir)
+    _fit_linear_step(run_dir, run_cfg, model, consistency.window_px)
+    changed.append(f"its linear consistency step {'refitted' if refit else 'fitted'} ({LINEAR_STEP_FILE})")
+    return changed
+
+
+def _fit_linear_step(run_dir: Path, cfg, model, window_px: int) -> None:
+    """Fit the linear step's filters on the run's training scenes through ``model`` (the run's
+    weights, loaded), write them with the weights' sha256 and set ``model.linear_step``."""
+    from hsicam.data.pipeline import scene_dataset, split_dataset
+    from hsicam.runs.checkpoint import file_sha256, root_weights_path
+
     bands = cfg.bands.to_bands()
     train, _ = split_dataset(cfg.data, bands)
     t0 = time.perf_counter()
-    weight = fit_linear_map(model, scene_dataset(cfg.data, train, bands), c.window_px)
-    save_linear_step(path, weight, {"window_px": c.window_px, "training_scenes": len(train), "ridge": LINEAR_MAP_RIDGE,
-                                       "flat_field": True})
+    weight = fit_linear_map(model, scene_dataset(cfg.data, train, bands), window_px)
+    path = Path(run_dir) / LINEAR_STEP_FILE
+    save_linear_step(path, weight, {"window_px": window_px, "training_scenes": len(train), "ridge": LINEAR_MAP_RIDGE,
+                                    "flat_field": True, "weights_sha256": file_sha256(root_weights_path(run_dir))})
     log.info("linear consistency step: %d×%d filters per CFA phase and band fitted on %d training scenes (%.0f s) -> %s",
-             c.window_px, c.window_px, len(train), time.perf_counter() - t0, path)
+             window_px, window_px, len(train), time.perf_counter() - t0, path)
     model.linear_step = weight
-    return True

@@ -345,6 +345,8 @@ def card_fields(run_dir: str | Path, name: str, results: str | Path | None = Non
                                      **val_log, "best_psnr": final.get("best_psnr")},
                     **scene_metrics},
         "weights": {"file": "model.safetensors", "bytes": weights.stat().st_size, "sha256": file_sha256(weights)},
+        **({"linear_step": {"file": LINEAR_STEP_FILE, "bytes": step.stat().st_size, "sha256": file_sha256(step)}}
+           if (step := Path(run_dir) / LINEAR_STEP_FILE).is_file() else {}),
         "limits": _limits(cfg, name, bands, cfa, data),
     }
 

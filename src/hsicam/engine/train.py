@@ -43,12 +43,13 @@ def train(cfg: Config, run_dir: str | Path, resume: bool = False, progress: bool
     task = SystemTask(cfg, CameraSystem.from_config(cfg))
     opts = FitOptions(cfg.train, cfg.data.num_workers, progress=progress, stop_after_steps=stop_after_steps)
     summary = fit(task, opts, run_dir, resume)
-    if "stopped_at_step" not in summary and cfg.model.consistency.kind == "linear" and dist_env()[0] == 0:
-        # the linear consistency step's filters, through the optics the run keeps (its best weights)
-        from hsicam.engine.linear_step import ensure_linear_step
-        from hsicam.runs.folder import load_run
+    if "stopped_at_step" not in summary and dist_env()[0] == 0:
+        # the run's inference settings and its linear consistency step's filters, through the weights
+        # the run keeps (its best): fitted when training ends, refitted when the run trained on or the
+        # filter width changed, config.yaml's model.consistency when a finished run got other keys
+        from hsicam.engine.linear_step import refresh_linear_step
 
-        run_cfg, model = load_run(run_dir)
-        if ensure_linear_step(run_dir, run_cfg, model, cfg.model.consistency):  # asked for (a finished run: by --set)
-            summary = {**summary, "linear_step_fitted": True}
+        changed = refresh_linear_step(run_dir, cfg.model.consistency)
+        if changed:
+            summary = {**summary, "changed": changed}
     return summary

@@ -28,7 +28,7 @@ import torch
 from hsicam.errors import InputError
 from hsicam.io import atomic_open, cleanup_stale_temporaries, is_temporary
 from hsicam.runs.checkpoint import LEGACY_POINTERS, MANIFEST, CheckpointManager, load_weights, root_weights_path
-from hsicam.runs.linear_step import LINEAR_STEP_FILE, load_linear_step
+from hsicam.runs.linear_step import LINEAR_STEP_FILE, load_linear_step, stale_reason
 from hsicam.runs.measured_psf import MEASURED_PSF_FILE, MeasuredPSF, load_measured_psf
 from hsicam.runs.pretrained import resolve_run
 
@@ -72,12 +72,31 @@ def load_run(run_dir: str | Path, device: torch.device | str = "cpu", overrides:
     if (run_dir / LINEAR_STEP_FILE).is_file():  # the linear consistency step's filters (fitted after training)
         model.linear_step = load_linear_step(run_dir / LINEAR_STEP_FILE, len(model.bands),
                                              int(getattr(model.camera, "code_period", 1)))
+        stale = stale_reason(run_dir / LINEAR_STEP_FILE, root_weights_path(run_dir))
+        c = cfg.model.consistency
+        if stale and c.kind == "linear" and c.iterations > 0:
+            raise InputError(f"{stale}; refit it: {refit_command(run_dir)}")
+        if stale:  # not used (e.g. --set model.consistency.kind=landweber): never the step of other weights
+            model.linear_step = None
     if (run_dir / MEASURED_PSF_FILE).is_file():  # a run fine-tuned on measured PSFs images with them
         model = with_measured_psf(model, load_measured_psf(run_dir / MEASURED_PSF_FILE))
     unfinished = unfinished_training(run_dir, cfg)
     if unfinished:
         log.warning("%s", unfinished)
     return cfg, model.to(device).eval()
+
+
+def refit_command(run_dir: Path) -> str:
+    """The command that brings a finished run's derived files (its linear step) up to date: resuming
+    its training, or its fine-tuning (with the source run and PSFs its finetune.json names)."""
+    if not (run_dir / MEASURED_PSF_FILE).is_file():
+        return f"hsicam train --out {run_dir} --resume"
+    try:
+        info = json.loads((run_dir / "finetune.json").read_text(encoding="utf-8"))
+        source, psfs = info["source_run"], info["psf_dir"]
+    except (OSError, ValueError, KeyError, TypeError):
+        source, psfs = "SOURCE_RUN", "PSF_DIR"
+    return f"hsicam finetune --run {source} --psf-dir {psfs} --out {run_dir} --resume"
 
 
 def holds_prior(run_dir: Path) -> bool:

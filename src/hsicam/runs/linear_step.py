@@ -1,6 +1,6 @@
 """The filters of a run's linear consistency step (``RUN/linear_step.safetensors``): the least-
 squares linear map from the sensor image to the cube (:class:`hsicam.models.demosaic.LinearDemosaicFit`),
-fitted on the run's training scenes through its trained optics (:func:`hsicam.engine.linear_step.ensure_linear_step`)
+fitted on the run's training scenes through its trained optics (:func:`hsicam.engine.linear_step.refresh_linear_step`)
 and used by ``model.consistency.kind: linear`` (:func:`hsicam.models.consistency.linear_consistency_step`)."""
 
 from __future__ import annotations
@@ -18,7 +18,8 @@ LINEAR_STEP_FILE = "linear_step.safetensors"
 
 
 def save_linear_step(path: str | Path, weight: torch.Tensor, info: dict[str, Any]) -> None:
-    """``linear_step.safetensors`` (atomic): ``weight`` (m², C, K, K) and ``info`` as metadata."""
+    """``linear_step.safetensors`` (atomic): ``weight`` (m², C, K, K) and ``info`` as metadata
+    (``weights_sha256``: the run's weights it was fitted through, see :func:`stale_reason`)."""
     from safetensors.torch import save_file
 
     from hsicam.io import atomic_path
@@ -39,3 +40,36 @@ def load_linear_step(path: str | Path, bands: int, period: int) -> torch.Tensor:
         raise InputError(f"{path}: filters of shape {tuple(w.shape)} do not fit a camera of {bands} bands and CFA "
                          f"period {period} (expected ({period * period}, {bands}, K, K), K odd)")
     return w
+
+
+def linear_step_info(path: str | Path) -> dict[str, Any]:
+    """The metadata :func:`save_linear_step` recorded (``weights_sha256`` …), with ``filter_px`` the
+    filters' width as stored; {} when the file cannot be read as a linear-step file."""
+    from safetensors import safe_open
+
+    try:
+        with safe_open(str(path), "pt") as fh:
+            meta = fh.metadata() or {}
+            shape = fh.get_slice("weight").get_shape() if "weight" in fh.keys() else None
+        info = json.loads(meta.get("info") or "{}")
+    except (OSError, ValueError, RuntimeError):
+        return {}
+    info = info if isinstance(info, dict) else {}
+    return {**info, "filter_px": int(shape[-1])} if shape else info
+
+
+def stale_reason(path: str | Path, weights: str | Path, window_px: int | None = None) -> str | None:
+    """Why the filters in ``path`` no longer fit the run: fitted through other weights than
+    ``weights`` (the run trained on after the fit; files written before the sha256 was recorded are
+    not checked), or (``window_px`` given) of another filter width than the config asks for. None
+    when they fit."""
+    from hsicam.runs.checkpoint import file_sha256
+
+    info = linear_step_info(path)
+    fitted_through = info.get("weights_sha256")
+    if isinstance(fitted_through, str) and fitted_through != file_sha256(weights):
+        return (f"{path} was fitted through other weights (sha256 {fitted_through[:12]}…) than {Path(weights).name} "
+                f"(sha256 {file_sha256(weights)[:12]}…): the run trained on after it was fitted")
+    if window_px is not None and info.get("filter_px") is not None and info["filter_px"] != int(window_px):
+        return f"{path} holds {info['filter_px']} px filters; model.consistency.window_px asks for {int(window_px)}"
+    return None

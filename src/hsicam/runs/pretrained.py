@@ -191,23 +191,30 @@ def _remedy(folder: Path) -> str:
 
 def weights_problem(folder: Path) -> str | None:
     """Why the weights of the camera ``folder`` cannot be used with its card: the card does not
-    parse or records no sha256, or model.safetensors has another sha256; None when they match."""
+    parse or records no sha256 of model.safetensors, or a file the card records (model.safetensors,
+    and linear_step.safetensors when the card names it) is missing or has another sha256; None when
+    they match."""
     try:
         card = load_card(folder)
     except InputError as exc:
         return f"{exc}; {_remedy(folder)}"
-    recorded = card.get("weights")
-    want = recorded.get("sha256") if isinstance(recorded, dict) else None
-    weights = folder / "model.safetensors"
-    if not isinstance(want, str) or not want:
-        return f"{folder / CARD_JSON}: records no sha256 of the weights, so {weights} cannot be checked; {_remedy(folder)}"
     from hsicam.runs.checkpoint import file_sha256
 
-    got = file_sha256(weights)  # read once per process
-    if got == want:
-        return None
-    return (f"{weights}: does not match its card (sha256 {got[:12]}…, {CARD_JSON} records {want[:12]}…): the card "
-            f"describes other weights; {_remedy(folder)}")
+    for key, name, required in (("weights", "model.safetensors", True), ("linear_step", "linear_step.safetensors", False)):
+        recorded = card.get(key)
+        want = recorded.get("sha256") if isinstance(recorded, dict) else None
+        path = folder / name
+        if not isinstance(want, str) or not want:
+            if required or recorded is not None:
+                return f"{folder / CARD_JSON}: records no sha256 of {name}, so {path} cannot be checked; {_remedy(folder)}"
+            continue
+        if not path.is_file():
+            return f"{path}: missing (its card records it); {_remedy(folder)}"
+        got = file_sha256(path)  # read once per process
+        if got != want:
+            return (f"{path}: does not match its card (sha256 {got[:12]}…, {CARD_JSON} records {want[:12]}…): the "
+                    f"card describes other weights; {_remedy(folder)}")
+    return None
 
 
 def check_weights(folder: Path) -> Path:
