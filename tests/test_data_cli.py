@@ -255,3 +255,23 @@ def test_show_refreshes_its_own_output_and_other_commands_refuse_it(tmp_path, ca
     code, err = _show(capsys, str(data))  # the default, the dataset folder itself, still works
     assert code == 0, err
     assert sorted(p.name for p in data.iterdir()) == sorted(["scene_0.h5", *pngs])
+
+
+def test_show_of_near_infrared_scenes_draws_them_grey(tmp_path):
+    """Scenes with fewer than 2 bands in 380-780 nm have no colour to render: `data show` stopped at
+    the first one ("cannot render bands"); it now draws them grey (the mean over bands), named so."""
+    from hsicam.data.formats import write_cube_h5
+    from hsicam.data.preview import preview_grey
+
+    rng = np.random.default_rng(4)
+    nir = rng.random((11, 32, 32)).astype(np.float32)
+    (tmp_path / "d").mkdir()
+    write_cube_h5(tmp_path / "d" / "nir.h5", nir, Bands.uniform(800, 1000, 20))
+    write_cube_h5(tmp_path / "d" / "vis.h5", rng.random((31, 32, 32)).astype(np.float32), Bands.paper())
+    r = run("data", "show", "d", "--out", "p", cwd=tmp_path)
+    assert r.returncode == 0, r.stderr
+    assert iio.imread(tmp_path / "p" / "contact_sheet.png").shape[0] > 100
+    grey = preview_grey(nir)
+    mean = nir.astype(np.float64).mean(axis=0)
+    np.testing.assert_allclose(grey[..., 0], np.clip(mean * 0.8 / np.percentile(mean, 99), 0, 1))
+    assert (grey[..., 0] == grey[..., 1]).all() and (grey[..., 1] == grey[..., 2]).all()

@@ -31,7 +31,7 @@ from hsicam.data import (
     write_cube_h5,
     write_envi,
 )
-from hsicam.data.formats import MST_28_NM, exr_channel_wavelength, parse_envi_header, read_window
+from hsicam.data.formats import MST_28_NM, exr_bare_micrometres, exr_channel_wavelength, parse_envi_header, read_window
 from hsicam.errors import InputError
 from hsicam.spectral import Bands, resample_spectra
 
@@ -161,14 +161,16 @@ def test_cave_folder_roundtrip(tmp_path):
     np.testing.assert_array_equal(cube, cube2)
 
 
-@pytest.mark.parametrize("naming", ["w{:d}nm", "S0.{:d},000000nm", "{:d}"])
+@pytest.mark.parametrize("naming", ["w{:d}nm", "S0.{:d},000000nm", "{:d}",
+                                    "{:.2f}"])  # µm without a unit (dropped as < 200 nm before session 23)
 def test_kaist_exr_roundtrip(tmp_path, naming):
     OpenEXR = pytest.importorskip("OpenEXR")
     if not hasattr(OpenEXR, "File"):
         pytest.skip("openexr < 3.3")
     rng = np.random.default_rng(6)
     waves = list(range(400, 701, 10))
-    planes = {naming.format(w): rng.random((H, W)).astype(np.float32) for w in waves}
+    name = (lambda w: naming.format(w / 1000)) if naming.endswith("f}") else naming.format
+    planes = {name(w): rng.random((H, W)).astype(np.float32) for w in waves}
     channels = {n: OpenEXR.Channel(p) for n, p in planes.items()}
     channels["R"] = OpenEXR.Channel(np.zeros((H, W), np.float32))  # non-spectral channels are ignored
     header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
@@ -177,7 +179,7 @@ def test_kaist_exr_roundtrip(tmp_path, naming):
         f.write(str(path))
     assert detect_format(path) == "kaist-exr"
     cube, b, _ = read_kaist_exr(path)
-    np.testing.assert_array_equal(cube, np.stack([planes[naming.format(w)] for w in waves]))
+    np.testing.assert_array_equal(cube, np.stack([planes[name(w)] for w in waves]))
     np.testing.assert_allclose(b.centers_nm, waves)
 
 
@@ -189,6 +191,10 @@ def test_exr_channel_names():
     assert exr_channel_wavelength("S1.550nm") is None  # polarisation, not a band
     assert exr_channel_wavelength("R") is None
     assert exr_channel_wavelength("band_03") is None  # 3 nm is not a wavelength
+    assert exr_channel_wavelength("0.55") is None and exr_channel_wavelength("0.55", True) == pytest.approx(550.0)
+    assert exr_bare_micrometres(["0.40", "0.55", "R", "0.7nm"]) and not exr_bare_micrometres(["0.4", "550"])
+    assert not exr_bare_micrometres([str(i) for i in range(31)])  # band numbers: not a wavelength in µm
+    assert not exr_bare_micrometres(["R", "G", "B"])
 
 
 def envi_header(samples, lines, bands, dtype_code, interleave, byte_order=0, offset=0, waves="", extra="") -> str:

@@ -121,6 +121,17 @@ def test_envi_reflectance_scale_factor_must_be_positive(tmp_path, value, shown):
         read_envi(_envi(tmp_path, f"reflectance scale factor = {value}\n"))
 
 
+def test_envi_reflectance_scale_factor_list_one_value_or_refused(tmp_path):
+    """ENVI defines one factor per file: a list of equal values is that value; unequal values were
+    read as the first one for every band (session 23), now refused."""
+    data = (np.random.default_rng(2).random((3, 8, 8)) * 10000).astype("<f4")
+    arr, _, _ = read_envi(_envi(tmp_path, "reflectance scale factor = {10000, 10000, 10000}\n"))
+    np.testing.assert_allclose(arr, data / 10000, rtol=1e-6)
+    with pytest.raises(InputError, match=r"e.hdr: ENVI header key 'reflectance scale factor' holds 3 different values "
+                                         r"\(100 to 10000\); ENVI defines one factor for the whole file"):
+        read_envi(_envi(tmp_path, "reflectance scale factor = {10000, 100, 1000}\n"))
+
+
 # ------------------------------------------------------------------------------------------------
 # 9. MAT 'bands' that is not a list of numbers
 # ------------------------------------------------------------------------------------------------

@@ -485,11 +485,13 @@ def read_harvard(path: str | os.PathLike, *, allow_negative: bool = False, memor
 _EXR_NUM = re.compile(r"(\d+(?:[.,]\d+)?)\s*(nm|um|µm)?\s*$", re.IGNORECASE)
 
 
-def exr_channel_wavelength(name: str) -> float | None:
+def exr_channel_wavelength(name: str, bare_micrometres: bool = False) -> float | None:
     """Wavelength in nm encoded in an EXR channel name, or None for a non-spectral channel.
 
-    Accepts ``550``, ``550nm``, ``w550nm``, ``550.5nm`` and the spectral-EXR names ``S0.550,000nm``
-    (emissive) / ``T.550nm`` (reflective); polarisation components S1-S3 are not spectral bands.
+    Accepts ``550``, ``550nm``, ``w550nm``, ``550.5nm``, ``0.55um`` and the spectral-EXR names
+    ``S0.550,000nm`` (emissive) / ``T.550nm`` (reflective); polarisation components S1-S3 are not
+    spectral bands. A number without a unit is in nm, or in µm with ``bare_micrometres``
+    (:func:`exr_bare_micrometres` decides it for a whole file).
     """
     if re.match(r"^S[123]\.", name):
         return None
@@ -498,9 +500,19 @@ def exr_channel_wavelength(name: str) -> float | None:
     if m is None:
         return None
     value = float(m.group(1).replace(",", "."))
-    if (m.group(2) or "").lower() in ("um", "µm"):
+    unit = (m.group(2) or "").lower()
+    if unit in ("um", "µm") or (not unit and bare_micrometres):
         value *= 1000.0
     return value if 200.0 <= value <= 2600.0 else None
+
+
+def exr_bare_micrometres(names) -> bool:
+    """True when the channels named by a number alone (no unit, e.g. ``0.55``) are all wavelengths
+    in µm (0.2-2.6): as nm they would all be dropped as below 200 nm. Band numbers (``0`` … ``30``)
+    are not all in that range, so they stay non-spectral."""
+    bare = [float(m.group(1).replace(",", ".")) for n in names
+            if not re.match(r"^S[123]\.", n) and (m := re.fullmatch(r"\s*(\d+(?:[.,]\d+)?)\s*", re.sub(r"^(S0|T)\.", "", n)))]
+    return bool(bare) and all(0.2 <= v <= 2.6 for v in bare)
 
 
 def read_kaist_exr(path: str | os.PathLike, *, allow_negative: bool = False, memory_budget_mb: float | None = None) -> Cube:
@@ -522,7 +534,10 @@ def read_kaist_exr(path: str | os.PathLike, *, allow_negative: bool = False, mem
                             what="OpenEXR image", budget_mb=memory_budget_mb)
         with OpenEXR.File(str(p), separate_channels=True) as f:
             channels = {name: np.asarray(ch.pixels) for name, ch in f.channels().items()}
-    spectral = [(exr_channel_wavelength(n), n) for n in channels]
+    micrometres = exr_bare_micrometres(channels)
+    if micrometres:
+        log.info("%s: EXR channel names carry no unit and lie within 0.2-2.6; reading them as micrometres", p)
+    spectral = [(exr_channel_wavelength(n, micrometres), n) for n in channels]
     spectral = sorted((w, n) for w, n in spectral if w is not None)
     if not spectral:
         raise InputError(f"{p}: no EXR channel name carries a wavelength (channels: {', '.join(sorted(channels))})")
@@ -658,11 +673,17 @@ def _envi_floats(hdr: Path, h: dict[str, str], key: str) -> np.ndarray:
 
 
 def _envi_scale_factor(hdr: Path, h: dict[str, str]) -> float:
-    """The header's ``reflectance scale factor`` (the first value): InputError unless a positive number."""
+    """The header's ``reflectance scale factor``: InputError unless one positive number (ENVI defines
+    one for the whole file; a list of equal values is taken as that value, unequal ones are refused
+    rather than applying the first to every band)."""
     values = _envi_floats(hdr, h, "reflectance scale factor")
     if not values.size:
         raise InputError(f"{hdr}: ENVI header key 'reflectance scale factor' is empty (give the number the data "
                          "were multiplied by, or remove the key)")
+    if values.size > 1 and not np.all(values == values[0]):
+        raise InputError(f"{hdr}: ENVI header key 'reflectance scale factor' holds {values.size} different values "
+                         f"({values.min():g} to {values.max():g}); ENVI defines one factor for the whole file: give "
+                         "one, or divide each band by its own factor before reading")
     if not (math.isfinite(values[0]) and values[0] > 0):
         raise InputError(f"{hdr}: ENVI header key 'reflectance scale factor' must be a positive number, got "
                          f"{values[0]:g} (the data are divided by it)")

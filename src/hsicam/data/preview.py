@@ -36,18 +36,39 @@ MEAN_SPECTRA = "mean_spectra.png"
 SPECTRAL_GAMUT = "spectral_gamut.png"
 
 
-def preview_rgb(cube: np.ndarray, bands: Bands, max_side: int = 192) -> np.ndarray:
-    """Display sRGB (h, w, 3) in [0, 1] of a cube (C, H, W), downsampled to at most ``max_side``."""
+def renderable(bands: Bands) -> bool:
+    """True when ``bands`` has at least 2 bands inside the colour-matching table (380-780 nm)."""
     lo, hi = TABLE_RANGE_NM
-    keep = (bands.centers_nm >= lo) & (bands.centers_nm <= hi)
-    if keep.sum() < 2:
-        raise InputError(f"cannot render bands {bands.min_nm:g}-{bands.max_nm:g} nm: fewer than 2 bands in {lo:g}-{hi:g} nm")
-    sub = Bands(bands.centers_nm[keep], bands.fwhm_nm[keep])
-    c = cube[keep]
+    return int(((bands.centers_nm >= lo) & (bands.centers_nm <= hi)).sum()) >= 2
+
+
+def _downsample(c: np.ndarray, max_side: int) -> np.ndarray:
+    """(C, H, W) area-averaged over step×step blocks so that its longer side is at most ``max_side``."""
     step = max(1, int(math.ceil(max(c.shape[1:]) / max_side)))
-    if step > 1:  # area average over step×step blocks
+    if step > 1:
         h, w = (c.shape[1] // step) * step, (c.shape[2] // step) * step
         c = c[:, :h, :w].reshape(c.shape[0], h // step, step, w // step, step).mean(axis=(2, 4))
+    return c
+
+
+def preview_grey(cube: np.ndarray, max_side: int = 192) -> np.ndarray:
+    """Grey display image (h, w, 3) in [0, 1] of a cube (C, H, W): its mean over bands, exposed like
+    :func:`preview_rgb` (99th percentile at 0.8), for cubes with no visible bands to render."""
+    m = _downsample(np.asarray(cube, dtype=np.float64), max_side).mean(axis=0)
+    p99 = float(np.percentile(m, 99))
+    m = np.clip(m * (0.8 / p99 if p99 > 0 else 1.0), 0.0, 1.0)
+    return np.repeat(m[..., None], 3, axis=-1)
+
+
+def preview_rgb(cube: np.ndarray, bands: Bands, max_side: int = 192) -> np.ndarray:
+    """Display sRGB (h, w, 3) in [0, 1] of a cube (C, H, W), downsampled to at most ``max_side``;
+    InputError when fewer than 2 bands lie in 380-780 nm (:func:`renderable`)."""
+    lo, hi = TABLE_RANGE_NM
+    keep = (bands.centers_nm >= lo) & (bands.centers_nm <= hi)
+    if not renderable(bands):
+        raise InputError(f"cannot render bands {bands.min_nm:g}-{bands.max_nm:g} nm: fewer than 2 bands in {lo:g}-{hi:g} nm")
+    sub = Bands(bands.centers_nm[keep], bands.fwhm_nm[keep])
+    c = _downsample(cube[keep], max_side)
     c, _ = normalize_per_cube_max(c)
     y = spectra_to_xyz(np.moveaxis(c, 0, -1), sub)[..., 1]
     p99 = float(np.percentile(y, 99))
@@ -148,11 +169,15 @@ def _scene_figures(path: Path, scenes: list[Path]):
     """(contact sheet, mean spectra) figures of ``scenes``."""
     from matplotlib.figure import Figure
 
-    thumbs, spectra = [], []
+    thumbs, spectra, grey = [], [], 0
     for s in scenes:
         cube, bands, _ = read_cube(s)
         norm, _ = normalize_per_cube_max(cube, s)  # first: an all-zero cube is refused naming its file
-        thumbs.append((s.name, preview_rgb(cube, bands)))
+        if renderable(bands):
+            thumbs.append((s.name, preview_rgb(cube, bands)))
+        else:  # e.g. a near-infrared cube: nothing to render in colour
+            thumbs.append((f"{s.name} (grey)", preview_grey(cube)))
+            grey += 1
         spectra.append((s.name, bands, norm.mean(axis=(1, 2))))
     cols = min(len(thumbs), 4)
     rows = int(math.ceil(len(thumbs) / cols))
@@ -162,7 +187,9 @@ def _scene_figures(path: Path, scenes: list[Path]):
         ax.imshow(np.clip(rgb, 0, 1), interpolation="nearest")
         ax.set_title(name, fontsize=8)
         ax.axis("off")
-    sheet.suptitle(f"{path.name}: sRGB renders (CIE 1931 2°, D65)", fontsize=10)
+    lo, hi = TABLE_RANGE_NM
+    sheet.suptitle(f"{path.name}: sRGB renders (CIE 1931 2°, D65)" + (
+        f"; (grey): mean over bands, fewer than 2 bands in {lo:g}-{hi:g} nm" if grey else ""), fontsize=10)
 
     plot = Figure(figsize=(7, 4.2))
     ax = plot.add_subplot(1, 1, 1)
