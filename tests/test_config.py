@@ -358,3 +358,14 @@ def test_objects_beyond_the_focal_length_and_at_infinity_still_load():
     assert load_config(overrides=["camera.object_distance_m=0.0351"]).camera.object_distance_m == 0.0351
     assert load_config(overrides=["camera.object_distance_m=2.5"]).camera.object_distance_m == 2.5
     assert load_config(overrides=["camera.object_distance_m=null"]).camera.object_distance_m is None
+
+
+def test_the_linear_step_on_a_cassi_camera_is_refused_when_the_config_is_read():
+    """Its filters are fitted per CFA phase: a CASSI camera has none; before session 23 this was found
+    only when training ended, as a ValueError traceback."""
+    with pytest.raises(ConfigError, match=r"model.consistency.kind=linear needs the DOE camera's per-band sensor "
+                                          r"code \(camera.kind=doe\), not camera.kind=dd_cassi"):
+        load_config("quick", ["camera.kind=dd_cassi"])
+    assert load_config("quick", ["camera.kind=dd_cassi", "model.consistency.iterations=0"]).camera.kind == "dd_cassi"
+    assert load_config("quick", ["camera.kind=dd_cassi", "model.consistency.kind=landweber"]).camera.kind == "dd_cassi"
+    assert load_config("quick", ["camera.kind=sd_cassi"]).camera.kind == "sd_cassi"  # it skips the step (test_consistency)

@@ -142,7 +142,8 @@ def test_demosaic_input_needs_a_camera_with_a_code():
     from hsicam.engine.experiments import CASSI_RDN_OVERRIDES
 
     with pytest.raises(ConfigError, match="demosaic_input=false"):
-        CameraSystem.from_config(load_config("quick", ["camera.kind=dd_cassi", "model.kind=rdn"]))
+        CameraSystem.from_config(load_config("quick", ["camera.kind=dd_cassi", "model.kind=rdn",
+                                                       "model.consistency.iterations=0"]))
     cassi = CameraSystem.from_config(load_config("quick", list(CASSI_RDN_OVERRIDES)))
     assert cassi.camera.kind == "dd_cassi" and cassi.net.tentative.in_channels == 1
 

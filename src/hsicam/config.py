@@ -685,6 +685,13 @@ class Config:
 
     def __post_init__(self) -> None:
         c, cfa = self.model.consistency, self.camera.cfa
+        if c.kind == "linear" and c.iterations > 0 and self.camera.kind not in ("doe", "sd_cassi"):
+            # the step's filters are fitted per CFA phase: a CASSI camera has no such code (found
+            # only after training, as a traceback, before session 23); SD-CASSI skips the step anyway
+            # (its scene grid is not the sensor's: CameraSystem.consistency_on)
+            raise ConfigError(f"model.consistency.kind=linear needs the DOE camera's per-band sensor code "
+                              f"(camera.kind=doe), not camera.kind={self.camera.kind}; use "
+                              "model.consistency.kind=landweber, or model.consistency.iterations=0")
         if (c.kind == "linear" and c.iterations > 0 and self.camera.kind == "doe" and cfa.enabled
                 and c.window_px < cfa.period):
             raise ConfigError(f"model.consistency.window_px={c.window_px} is narrower than the CFA period "

@@ -75,8 +75,8 @@ def refresh_linear_step(run_dir: str | Path, consistency) -> list[str]:
         with atomic_open(run_dir / "config.yaml") as fh:
             fh.write(dump_yaml(run_cfg))
         changed.append(f"model.consistency in config.yaml ({diff})")
-    if consistency.kind != "linear" or consistency.iterations <= 0:
-        return changed
+    if consistency.kind != "linear" or consistency.iterations <= 0 or run_cfg.camera.kind != "doe":
+        return changed  # (SD-CASSI skips the step; the config refuses it for DD-CASSI)
     path = run_dir / LINEAR_STEP_FILE
     refit = path.is_file()
     if refit:
