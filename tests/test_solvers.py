@@ -380,6 +380,25 @@ def test_build_baseline_errors(tiny_env):
                         tiny_env["prior"]).info["rho"] == 0.7
 
 
+def test_evaluate_refuses_a_prior_key_set_to_its_default(tiny_env, tmp_path):
+    """`--set baselines.choi.latent=12` (the default) on a prior trained with latent 4 was taken as
+    "not set" and ignored (session 22's rule); given by --set, it is now refused like any other value."""
+    from hsicam.engine.methods import check_prior_overrides
+    from cli_helpers import run_cli_in_process
+
+    prior, default = tiny_env["prior"], ChoiConfig()
+    trained = load_prior(prior, tiny_env["cfg"].bands.to_bands())[1]
+    assert trained.latent != default.latent
+    out = tmp_path / "ev"
+    assert_clean_error(run_cli_in_process("evaluate", "--method", "dd-cassi-choi", "--run", str(prior), "--out", str(out),
+                                          "--set", f"baselines.choi.latent={default.latent}"),
+                       f"baselines.choi.latent={default.latent} (the prior's: {trained.latent})",
+                       "the prior's architecture and training are fixed")
+    assert not out.exists()
+    own = [f"baselines.choi.latent={trained.latent}", "baselines.choi.rho=0.7"]  # the prior's own value: accepted
+    check_prior_overrides(prior, load_config(prior / "config.yaml", own), own)
+
+
 def test_prior_folder_and_reuse(tiny_env):
     prior = tiny_env["prior"]
     assert is_prior_run(prior)

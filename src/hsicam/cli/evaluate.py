@@ -106,6 +106,10 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
             raise InputError(f"{run}: not a run folder (config.yaml is missing)" if run.is_dir() else f"{run}: no such run folder")
         check_run_overrides(args.overrides)
         cfg = config_from_args(run / "config.yaml", args.overrides)
+        if args.method == "dd-cassi-choi":  # a prior key given by --set, even at its default value
+            from hsicam.engine.methods import check_prior_overrides
+
+            check_prior_overrides(run, cfg, args.overrides)
     else:
         cfg = config_from_args(args.config, args.overrides)
     try:

@@ -301,20 +301,34 @@ def _desci_method(cfg, run, device) -> Method:
                   {"solver": "desci", "preset": s.preset, **dataclasses.asdict(ds), **_camera_info(cam)})
 
 
-def _check_prior_keys(asked, trained, run) -> None:
+def _check_prior_keys(asked, trained, run, explicit: tuple[str, ...] = ()) -> None:
     """InputError when the evaluation's ``baselines.choi`` sets a key of the prior's architecture or
     training to a value the prior in ``run`` was not trained with (it was accepted, hashed and
-    ignored). A key at its default is taken as not set (a ``--set`` of ADMM keys alone fills the
-    others with defaults)."""
+    ignored). A key at its default is taken as not set (a config without the prior's section fills
+    the others with defaults), unless it is in ``explicit`` (given by ``--set``:
+    :func:`check_prior_overrides`)."""
     from hsicam.config import ChoiConfig
     from hsicam.engine.prior import PRIOR_TRAINING_KEYS
 
     default = ChoiConfig()
     differ = [f"baselines.choi.{k}={getattr(asked, k)!r} (the prior's: {getattr(trained, k)!r})"
-              for k in PRIOR_TRAINING_KEYS if getattr(asked, k) not in (getattr(trained, k), getattr(default, k))]
+              for k in PRIOR_TRAINING_KEYS if getattr(asked, k) != getattr(trained, k)
+              and (k in explicit or getattr(asked, k) != getattr(default, k))]
     if differ:
         raise InputError(f"{run}: {', '.join(differ)}: the prior's architecture and training are fixed by `hsicam "
                          "baseline train-prior`; an evaluation sets only the ADMM keys (train another prior for these)")
+
+
+def check_prior_overrides(run: str | Path, cfg, overrides) -> None:
+    """:func:`_check_prior_keys` for ``hsicam evaluate --method dd-cassi-choi --run PRIOR``: the prior
+    keys named in ``overrides`` (``baselines.choi.K=…``) are checked even when their value is the
+    default."""
+    from hsicam.engine.prior import PRIOR_TRAINING_KEYS, load_prior_settings
+
+    named = {str(o).split("=", 1)[0].strip() for o in overrides}
+    explicit = tuple(k for k in PRIOR_TRAINING_KEYS if f"baselines.choi.{k}" in named)
+    if explicit and cfg.baselines.choi is not None:
+        _check_prior_keys(cfg.baselines.choi, load_prior_settings(run), run, explicit)
 
 
 @register_method("dd-cassi-choi")
