@@ -126,7 +126,8 @@ class CameraSystem(nn.Module):
             if self.linear_step is None:
                 raise InputError("model.consistency.kind=linear needs the run's linear_step.safetensors, fitted when "
                                  "training ends; for a run without it: `hsicam train --out RUN --resume --set "
-                                 "model.consistency.kind=linear` (or use --set model.consistency.kind=landweber)")
+                                 "model.consistency.kind=linear --set model.consistency.iterations=1` (a fine-tuned run: "
+                                 "`hsicam finetune … --resume`), or use --set model.consistency.kind=landweber")
             return linear_consistency_step(op, sensor, x, self.linear_step, origin, gain=c.gain,
                                            iterations=c.iterations, psf_energy=energy, extend=self._extension())
         return consistency_step(op, sensor, x, origin, damping=c.damping, iterations=c.iterations,
