@@ -11,6 +11,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from hsicam.data.estimates import ENVI_DESCRIPTIONS, head, is_reconstruct_h5, reconstruct_envi_header
 from hsicam.errors import InputError
 
 log = logging.getLogger(__name__)
@@ -98,63 +99,7 @@ def check_outputs_are_not_inputs(path: Path, inputs: dict[str, str | None]) -> N
                                  f"written over it: choose another --out name")
 
 
-#: Descriptions of the ENVI headers that reconstruct writes (``hsicam cube``: before it named itself).
-ENVI_DESCRIPTIONS = ("hsicam reconstruct", "hsicam cube")
-
 _PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
-
-
-def _head(path: Path, n: int) -> bytes:
-    try:
-        with open(path, "rb") as fh:
-            return fh.read(n)
-    except OSError:
-        return b""
-
-
-def _our_h5(path: Path) -> bool:
-    """True for our HDF5 cube file written by reconstruct (its metadata names the capture and run)."""
-    import json
-
-    import h5py
-
-    from hsicam.data.formats import HSICAM_FORMAT
-
-    if not _head(path, 8).startswith(b"\x89HDF\r\n\x1a\n"):
-        return False
-    try:
-        with h5py.File(path, "r") as f:
-            if f.attrs.get("format") != HSICAM_FORMAT or "cube" not in f:
-                return False
-            meta = json.loads(f.attrs.get("metadata_json", "{}"))
-    except (OSError, ValueError, TypeError, KeyError):
-        return False
-    if not isinstance(meta, dict):
-        return False
-    # before it named itself, reconstruct recorded the capture and run; such a file is its own only as part
-    # of a reconstruction's set (its preview beside it), not any cube whose metadata happens to hold both
-    return meta.get("command") == "reconstruct" or ({"source", "run"} <= meta.keys() and _preview_beside(path))
-
-
-def _preview_beside(cube: Path) -> bool:
-    return cube.with_name(f"{cube.stem}_rgb.png").is_file()
-
-
-def _our_envi_header(path: Path) -> dict[str, str] | None:
-    """The fields of an ENVI header that reconstruct wrote, else None."""
-    from hsicam.data.formats import parse_envi_header
-
-    if not _head(path, 64).lstrip().startswith(b"ENVI") or path.stat().st_size > 1 << 20:
-        return None
-    try:
-        h = parse_envi_header(path)
-    except InputError:
-        return None
-    description = h.get("description", "").strip("{} ")
-    if description == ENVI_DESCRIPTIONS[0]:
-        return h
-    # "hsicam cube" is also write_envi's default: reconstruct's only with its preview beside it
-    return h if description in ENVI_DESCRIPTIONS[1:] and _preview_beside(path) else None
 
 
 def _envi_data_size(h: dict[str, str]) -> int | None:
@@ -168,15 +113,18 @@ def _envi_data_size(h: dict[str, str]) -> int | None:
 def check_replaceable_outputs(path: Path) -> None:
     """InputError unless every existing file that reconstructing to ``path`` writes is the earlier
     output of a reconstruction to ``path``: our HDF5 cube whose metadata names a capture and a run;
-    an ENVI header that reconstruct wrote and the data file it describes (its size); the preview
-    (an 8-bit RGB PNG) only beside such a cube. A user's file at any of these paths is never replaced."""
+    an ENVI header that reconstruct wrote and the data file it describes (its size, or any data file
+    when the header records the data's CRC-32: the pair is ours); the preview (an 8-bit RGB PNG) only
+    beside such a cube. A user's file at any of these paths is never replaced."""
+    from hsicam.data.formats import ENVI_CRC_KEY
+
     files = output_files(path)
     cube = files[0]
     suffix = path.suffix.lower()
     ours_cube = False
     if suffix in (".h5", ".hdf5"):
         if cube.exists():
-            if not _our_h5(cube):
+            if not is_reconstruct_h5(cube):
                 raise InputError(f"{cube}: exists and is not a cube that hsicam reconstruct wrote; reconstruct replaces "
                                  f"only its own earlier output: choose another --out name or move {cube.name} away")
             ours_cube = True
@@ -184,12 +132,14 @@ def check_replaceable_outputs(path: Path) -> None:
         hdr, data = files[0], files[1]
         header = None
         if hdr.exists():
-            header = _our_envi_header(hdr)
+            header = reconstruct_envi_header(hdr)
             if header is None:
                 raise InputError(f"{hdr}: exists and is not an ENVI header that hsicam reconstruct wrote; reconstruct "
                                  f"replaces only its own earlier output: choose another --out name or move {hdr.name} away")
             ours_cube = True
-        if data.exists():
+        if data.exists() and not (header is not None and ENVI_CRC_KEY in header):
+            # (a header that records its data's CRC-32 claims the pair: its data file is ours even when an
+            # interrupted write left a new one of another size beside it, which read_envi refuses to read)
             size = _envi_data_size(header) if header is not None else None
             try:
                 actual = data.stat().st_size
@@ -207,8 +157,8 @@ def check_replaceable_outputs(path: Path) -> None:
             raise InputError(f"{preview}: exists, but no cube {cube.name} that hsicam reconstruct wrote lies beside it, "
                              f"so it is not the preview of an earlier reconstruction to {path.name}; choose another "
                              f"--out name or move {preview.name} away")
-        head = _head(preview, 26)
-        if not (head.startswith(_PNG_MAGIC) and head[12:16] == b"IHDR" and head[24:26] == b"\x08\x02"):
+        png_head = head(preview, 26)
+        if not (png_head.startswith(_PNG_MAGIC) and png_head[12:16] == b"IHDR" and png_head[24:26] == b"\x08\x02"):
             raise InputError(f"{preview}: exists and is not an sRGB preview (an 8-bit RGB PNG) that hsicam reconstruct "
                              f"wrote; choose another --out name or move {preview.name} away")
 
@@ -231,11 +181,13 @@ def write_cube_file(path: Path, cube: np.ndarray, bands, metadata: dict) -> None
     if suffix not in CUBE_SUFFIXES:
         raise InputError(f"{path}: output must end in .h5 (HDF5) or .hdr (ENVI)")
     rgb = cube_to_srgb(torch.from_numpy(cube), bands).numpy()  # before any file is written
+    preview = path.with_name(f"{path.stem}_rgb.png")
+    preview.unlink(missing_ok=True)  # an earlier reconstruction's (checked): never beside a newer cube
     if suffix in (".h5", ".hdf5"):
         write_cube_h5(path, cube, bands, {"command": "reconstruct", **metadata})
     else:
         write_envi(path, cube, bands, description=ENVI_DESCRIPTIONS[0])
-    write_png8(path.with_name(f"{path.stem}_rgb.png"), np.moveaxis(rgb, 0, -1))
+    write_png8(preview, np.moveaxis(rgb, 0, -1))
 
 
 def corrections_from_args(args: argparse.Namespace, cfa_period: int | None) -> "object":

@@ -42,9 +42,11 @@ def list_scenes(root: str | os.PathLike) -> list[Path]:
     ``root`` may also be a single file or a single CAVE folder. ENVI pairs are listed by their
     ``.hdr``. Hidden and temporary files are skipped, and so are sub-folders that hold another
     hsicam command's completed output (a completion marker, :func:`hsicam.io.is_complete`: an
-    evaluation saved next to the data, a simulated sensor image …), said once in the log. A root
-    that is (or lies inside) an ``evaluate`` output, or is any other command's output, is refused
-    (:func:`check_not_an_output`). Raises :class:`InputError` when no scene is found.
+    evaluation saved next to the data, a simulated sensor image …) and cube files that ``hsicam
+    reconstruct`` wrote (estimates, :func:`hsicam.data.estimates.is_estimate`), said once in the log.
+    A dataset hsicam generated (its ``manifest.json``) lists exactly the scenes of its manifest. A
+    root that is (or lies inside) an ``evaluate`` output, or is any other command's output, is
+    refused (:func:`check_not_an_output`). Raises :class:`InputError` when no scene is found.
     """
     root = Path(root)
     if not root.exists():
@@ -54,10 +56,15 @@ def list_scenes(root: str | os.PathLike) -> list[Path]:
         return [root]
     if _is_cave_dir(root):
         return [root]
+    from hsicam.data.estimates import is_estimate
     from hsicam.io import is_complete
 
+    listed = _manifest_scenes(root)
+    if listed is not None:
+        return listed
     scenes: list[Path] = []
     skipped: list[Path] = []
+    estimates: list[Path] = []
     for dirpath, dirnames, filenames in os.walk(root):
         d = Path(dirpath)
         kept = []
@@ -77,14 +84,54 @@ def list_scenes(root: str | os.PathLike) -> list[Path]:
             if name.startswith("."):  # hidden files, including atomic-write temporaries
                 continue
             if Path(name).suffix.lower() in SCENE_SUFFIXES:
-                scenes.append(d / name)
+                (estimates if is_estimate(d / name) else scenes).append(d / name)
     scenes = sorted(set(scenes))
     if skipped:
         _log_skipped(root, skipped)
+    if estimates:
+        log.warning("%s: skipped %s", root, _estimates_text(root, estimates))
     if not scenes:
-        also = f" (skipped {_skipped_text(root, skipped)})" if skipped else ""
+        also = "; ".join(t for t in (_skipped_text(root, skipped) if skipped else "",
+                                      _estimates_text(root, estimates) if estimates else "") if t)
+        also = f" (skipped {also})" if also else ""
         raise InputError(f"{root}: no hyperspectral scenes found (supported: {', '.join(SCENE_SUFFIXES)}, CAVE "
                          f"folders){also}")
+    return scenes
+
+
+def _estimates_text(root: Path, estimates: list[Path]) -> str:
+    shown = ", ".join(str(p.relative_to(root)) for p in sorted(estimates)[:5])
+    more = f" and {len(estimates) - 5} more" if len(estimates) > 5 else ""
+    return f"{len(estimates)} cube file(s) that hsicam reconstruct wrote (estimates, not scenes): {shown}{more}"
+
+
+def _manifest_scenes(root: Path) -> list[Path] | None:
+    """The scenes a dataset that hsicam generated lists in its ``manifest.json`` (sorted), or None
+    for another folder. Files beside them that it does not list are not its scenes (said in the
+    log); a listed scene that is missing is an :class:`InputError`."""
+    import json
+
+    path = root / "manifest.json"
+    if not path.is_file():
+        return None
+    try:
+        manifest = json.loads(path.read_text(encoding="utf-8"))
+        files = [str(s["file"]) for s in manifest["scenes"]] if manifest.get("format") == "hsicam-synthetic" else None
+    except (OSError, ValueError, KeyError, TypeError):
+        return None  # not ours (or unreadable): the folder is scanned as any other
+    if not files:
+        return None
+    scenes = sorted(root / f for f in files)
+    missing = [p.name for p in scenes if not p.is_file()]
+    if missing:
+        raise InputError(f"{root}: {len(missing)} scene(s) its manifest.json lists are missing ({', '.join(missing[:5])}"
+                         f"{' …' if len(missing) > 5 else ''}); generate the dataset again (delete the folder, or "
+                         "`hsicam data synth` with its parameters)")
+    extra = sorted(p.name for p in root.iterdir() if p.suffix.lower() in SCENE_SUFFIXES and p not in set(scenes)
+                   and not p.name.startswith("."))
+    if extra:
+        log.warning("%s: a generated dataset: its %d scenes are those its manifest.json lists; not %s",
+                    root, len(scenes), ", ".join(extra[:5]) + (" …" if len(extra) > 5 else ""))
     return scenes
 
 

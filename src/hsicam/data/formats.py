@@ -59,6 +59,7 @@ import logging
 import math
 import os
 import re
+import zlib
 from pathlib import Path
 from typing import Any, Callable, Iterator, Sequence
 
@@ -86,6 +87,9 @@ _EXR_MAGIC = b"v/1\x01"
 _PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 _CAVE_RE = re.compile(r"^(?P<prefix>.+)_ms_(?P<index>\d{2})\.png$", re.IGNORECASE)
 _ENVI_DATA_SUFFIXES = ("", ".img", ".dat", ".raw", ".bsq", ".bil", ".bip", ".bin", ".IMG", ".DAT", ".RAW")
+#: Key of the CRC-32 (hex) of the data file in the ENVI headers hsicam writes (:func:`write_envi`);
+#: other ENVI software ignores unknown keys.
+ENVI_CRC_KEY = "hsicam data crc32"
 _ENVI_DTYPES = {1: "u1", 2: "i2", 3: "i4", 4: "f4", 5: "f8", 12: "u2", 13: "u4", 14: "i8", 15: "u8"}
 
 Cube = tuple[np.ndarray, Bands, dict[str, Any]]
@@ -754,8 +758,16 @@ def read_envi(path: str | os.PathLike, *, allow_negative: bool = False, memory_b
     size = data.stat().st_size
     if size < expected:
         raise InputError(f"{data}: truncated ENVI data: {size} bytes, the header needs {expected}")
+    if size > expected:  # e.g. the data of another (larger) cube beside this header
+        raise InputError(f"{data}: {size} bytes of ENVI data, but {hdr.name} describes {expected} ({lines}×{samples}×"
+                         f"{nbands} {dtype.name}): the header and the data do not belong together")
     with _reading(data, "ENVI data"):
         raw = np.fromfile(data, dtype=dtype, count=count, offset=offset).reshape(shapes[interleave])
+    if ENVI_CRC_KEY in h:  # written by hsicam: the data must be the one the header was written for
+        want, got = h[ENVI_CRC_KEY].strip().lower(), f"{zlib.crc32(memoryview(raw).cast('B')):08x}"
+        if want != got:
+            raise InputError(f"{data}: not the data {hdr.name} was written for (CRC-32 {got}, the header records {want}): "
+                             "an interrupted write left a new data file beside an old header; write the cube again")
     cube = {"bsq": raw, "bil": raw.transpose(1, 0, 2), "bip": raw.transpose(2, 0, 1)}[interleave]
     cube = cube.astype(np.float32)
     if dtype.kind == "f" and dtype.itemsize > 1 and not np.isfinite(cube).all():
@@ -806,7 +818,9 @@ def write_envi(path: str | os.PathLike, cube: np.ndarray, bands: Bands, *, inter
     """Write an ENVI pair ``<name>.hdr`` + ``<name>.img`` atomically; returns (header, data) paths.
 
     ``path`` may name either file. The data file is written first, the header last, so a reader
-    never finds a header without its data.
+    never finds a header without its data; the header records the data's CRC-32
+    (:data:`ENVI_CRC_KEY`), so a pair left half-replaced by an interruption between the two renames
+    (new data, old header) is refused by :func:`read_envi` instead of read as another shape.
     """
     p = Path(path)
     hdr, data = (p, p.with_suffix(".img")) if p.suffix.lower() == ".hdr" else (p.with_suffix(".hdr"), p)
@@ -836,6 +850,7 @@ def write_envi(path: str | os.PathLike, cube: np.ndarray, bands: Bands, *, inter
         "wavelength units = Nanometers\n"
         f"wavelength = {{{fmt(bands.centers_nm)}}}\n"
         f"fwhm = {{{fmt(bands.fwhm_nm)}}}\n"
+        f"{ENVI_CRC_KEY} = {zlib.crc32(memoryview(out).cast('B')):08x}\n"
     )
     with atomic_path(data) as tmp:
         tmp.write_bytes(out.tobytes())

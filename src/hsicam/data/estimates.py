@@ -1,0 +1,83 @@
+"""Cube files that ``hsicam reconstruct`` wrote: estimates, not scenes.
+
+Reconstruct writes our HDF5 (metadata ``"command": "reconstruct"``) or an ENVI pair (description
+:data:`ENVI_DESCRIPTIONS`), with an sRGB preview ``<stem>_rgb.png`` beside it. Reconstruct
+recognises its own earlier output here (it replaces only that), and the dataset scan
+(:func:`hsicam.data.datasets.list_scenes`) skips such files: an estimate saved into a data folder
+must not become a training, validation or test scene.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+from hsicam.errors import InputError
+
+#: Descriptions of the ENVI headers that reconstruct writes (``hsicam cube``: before it named itself,
+#: also write_envi's default, so reconstruct's only with its preview beside it).
+ENVI_DESCRIPTIONS = ("hsicam reconstruct", "hsicam cube")
+
+_HDF5_MAGIC = b"\x89HDF\r\n\x1a\n"
+
+
+def head(path: Path, n: int) -> bytes:
+    """The first ``n`` bytes of ``path`` (b"" when it cannot be read)."""
+    try:
+        with open(path, "rb") as fh:
+            return fh.read(n)
+    except OSError:
+        return b""
+
+
+def preview_beside(cube: Path) -> bool:
+    """True when the preview reconstruct writes beside ``cube`` (``<stem>_rgb.png``) exists."""
+    return cube.with_name(f"{cube.stem}_rgb.png").is_file()
+
+
+def is_reconstruct_h5(path: Path) -> bool:
+    """True for our HDF5 cube file written by reconstruct (its metadata names the command; before
+    it named itself, the capture and run, with its preview beside it)."""
+    import h5py
+
+    from hsicam.data.formats import HSICAM_FORMAT
+
+    if not head(path, 8).startswith(_HDF5_MAGIC):
+        return False
+    try:
+        with h5py.File(path, "r") as f:
+            if f.attrs.get("format") != HSICAM_FORMAT or "cube" not in f:
+                return False
+            meta = json.loads(f.attrs.get("metadata_json", "{}"))
+    except (OSError, ValueError, TypeError, KeyError):
+        return False
+    if not isinstance(meta, dict):
+        return False
+    return meta.get("command") == "reconstruct" or ({"source", "run"} <= meta.keys() and preview_beside(path))
+
+
+def reconstruct_envi_header(path: Path) -> dict[str, str] | None:
+    """The fields of an ENVI header that reconstruct wrote, else None."""
+    from hsicam.data.formats import parse_envi_header
+
+    if not head(path, 64).lstrip().startswith(b"ENVI") or path.stat().st_size > 1 << 20:
+        return None
+    try:
+        h = parse_envi_header(path)
+    except InputError:
+        return None
+    description = h.get("description", "").strip("{} ")
+    if description == ENVI_DESCRIPTIONS[0]:
+        return h
+    return h if description in ENVI_DESCRIPTIONS[1:] and preview_beside(path) else None
+
+
+def is_estimate(path: Path) -> bool:
+    """True when the cube file ``path`` (an .h5, or an ENVI pair listed by its .hdr) is a
+    reconstruction that hsicam reconstruct wrote."""
+    suffix = path.suffix.lower()
+    if suffix in (".h5", ".hdf5"):
+        return is_reconstruct_h5(path)
+    if suffix == ".hdr":
+        return reconstruct_envi_header(path) is not None
+    return False

@@ -1,0 +1,152 @@
+"""Reconstructions never pass for scenes, and a half-replaced output is never read (probe 24,
+findings 1, 2 and 15).
+
+- An ENVI pair is two renames: an interruption between them left the new ``.img`` beside the old
+  ``.hdr``; readers took the first bytes of the larger cube as the old shape, and a re-run of
+  reconstruct refused to repair it.
+- A cube that reconstruct wrote into a data folder became a training/validation/test scene (and
+  reshuffled the split); in a generated dataset, any file beside the manifest's scenes did too.
+- An interrupted reconstruction kept the older preview beside the newer cube.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from cli_helpers import run_cli_in_process
+from hsicam.data import read_cube
+from hsicam.data.datasets import list_scenes
+from hsicam.data.formats import ENVI_CRC_KEY, read_envi, write_cube_h5, write_envi
+from hsicam.errors import InputError
+from hsicam.spectral import Bands
+
+BANDS = Bands.uniform(420, 720, 50)  # the tiny preset's 7 bands
+
+
+def cube(h: int, w: int, seed: int) -> np.ndarray:
+    return np.random.default_rng(seed).random((len(BANDS), h, w)).astype(np.float32)
+
+
+@pytest.fixture(scope="module")
+def run(tmp_path_factory, cache_env):
+    d = tmp_path_factory.mktemp("est") / "run"
+    res = run_cli_in_process("train", "--config", "tiny", "--out", str(d), "--set", "train.epochs=1")
+    assert res.returncode == 0, res.stderr
+    return d
+
+
+# ------------------------------------------------------------------------------------------------
+# 1. ENVI pairs
+# ------------------------------------------------------------------------------------------------
+@pytest.mark.parametrize("byte_order", ["little", "big"])
+def test_a_pair_records_its_datas_crc_and_reads_back(tmp_path, byte_order):
+    import zlib
+
+    a = cube(16, 12, 0)
+    hdr, data = write_envi(tmp_path / "e.hdr", a, BANDS, byte_order=byte_order)
+    line = [x for x in hdr.read_text().splitlines() if x.startswith(ENVI_CRC_KEY)]
+    assert line == [f"{ENVI_CRC_KEY} = {zlib.crc32(data.read_bytes()):08x}"]
+    np.testing.assert_array_equal(read_envi(hdr)[0], a)
+
+
+def test_new_data_beside_an_old_header_is_refused(tmp_path):
+    """The state an interruption between the two renames leaves: new data, old header."""
+    hdr, data = write_envi(tmp_path / "e.hdr", cube(16, 16, 0), BANDS)
+    other = tmp_path / "other"
+    other.mkdir()
+    shutil.copyfile(write_envi(other / "big.hdr", cube(40, 40, 1), BANDS)[1], data)  # a larger cube's data
+    with pytest.raises(InputError, match=rf"{data}: {40 * 40 * 7 * 4} bytes of ENVI data, but e.hdr describes "
+                                         rf"{16 * 16 * 7 * 4} \(16×16×7 float32\): the header and the data do not belong"):
+        read_cube(hdr)
+    shutil.copyfile(write_envi(other / "same.hdr", cube(16, 16, 2), BANDS)[1], data)  # same size, other data
+    with pytest.raises(InputError, match=rf"{data}: not the data e.hdr was written for \(CRC-32 [0-9a-f]{{8}}, the "
+                                         r"header records [0-9a-f]{8}\): an interrupted write"):
+        read_cube(hdr)
+
+
+def test_a_user_envi_file_without_the_crc_still_reads(tmp_path):
+    hdr, _ = write_envi(tmp_path / "e.hdr", cube(8, 8, 0), BANDS)
+    hdr.write_text("".join(x for x in hdr.read_text().splitlines(keepends=True) if not x.startswith(ENVI_CRC_KEY)))
+    assert read_cube(hdr)[0].shape == (7, 8, 8)
+
+
+def test_reconstruct_repairs_a_half_replaced_pair_of_its_own(run, tmp_path):
+    np.save(tmp_path / "small.npy", np.full((48, 48), 0.2, np.float32))
+    np.save(tmp_path / "big.npy", np.random.default_rng(3).random((64, 64)).astype(np.float32) * 0.3)
+    out = tmp_path / "e.hdr"
+    assert run_cli_in_process("reconstruct", str(tmp_path / "small.npy"), "--run", str(run), "--out", str(out)).returncode == 0
+    ref = tmp_path / "ref"
+    ref.mkdir()
+    res = run_cli_in_process("reconstruct", str(tmp_path / "big.npy"), "--run", str(run), "--out", str(ref / "e.hdr"))
+    assert res.returncode == 0, res.stderr
+    shutil.copyfile(ref / "e.img", tmp_path / "e.img")  # interrupted before the header's rename
+    with pytest.raises(InputError, match="do not belong together"):
+        read_cube(out)
+    res = run_cli_in_process("reconstruct", str(tmp_path / "big.npy"), "--run", str(run), "--out", str(out))
+    assert res.returncode == 0, res.stderr  # refused before: "is not the ENVI data of a cube that reconstruct wrote"
+    np.testing.assert_array_equal(read_cube(out)[0], read_cube(ref / "e.hdr")[0])
+
+
+# ------------------------------------------------------------------------------------------------
+# 15. the preview never stands beside a newer cube
+# ------------------------------------------------------------------------------------------------
+def test_an_interrupted_reconstruction_leaves_no_older_preview(tmp_path, monkeypatch):
+    from hsicam.cli.reconstruct import write_cube_file
+    from hsicam.data import formats
+
+    path = tmp_path / "c.h5"
+    write_cube_file(path, cube(16, 16, 0), BANDS, {"source": "x", "run": "y"})
+    preview = tmp_path / "c_rgb.png"
+    assert preview.is_file()
+
+    def killed(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(formats, "write_cube_h5", killed)
+    with pytest.raises(KeyboardInterrupt):
+        write_cube_file(path, cube(16, 16, 1), BANDS, {"source": "x", "run": "y"})
+    assert not preview.exists() and path.is_file()
+
+
+# ------------------------------------------------------------------------------------------------
+# 2. estimates are not scenes
+# ------------------------------------------------------------------------------------------------
+def test_a_reconstruction_in_a_data_folder_is_not_a_scene(run, tmp_path, caplog):
+    data = tmp_path / "data"
+    data.mkdir()
+    for i in range(2):
+        write_cube_h5(data / f"s{i}.h5", cube(32, 32, i), BANDS)
+    np.save(tmp_path / "cap.npy", np.full((48, 48), 0.2, np.float32))
+    for name in ("estimate.h5", "estimate_envi.hdr"):
+        res = run_cli_in_process("reconstruct", str(tmp_path / "cap.npy"), "--run", str(run), "--out", str(data / name))
+        assert res.returncode == 0, res.stderr
+    with caplog.at_level("WARNING"):
+        assert list_scenes(data) == [data / "s0.h5", data / "s1.h5"]
+    assert ("skipped 2 cube file(s) that hsicam reconstruct wrote (estimates, not scenes): estimate.h5, "
+            "estimate_envi.hdr") in caplog.text
+    only = tmp_path / "only"
+    only.mkdir()
+    shutil.move(data / "estimate.h5", only / "estimate.h5")
+    with pytest.raises(InputError, match="no hyperspectral scenes found .* \\(skipped 1 cube file\\(s\\) that hsicam "
+                                         "reconstruct wrote"):
+        list_scenes(only)
+
+
+def test_a_generated_dataset_lists_the_scenes_of_its_manifest(tmp_path, caplog):
+    from hsicam.data.synthetic import generate_dataset
+
+    ds = tmp_path / "ds"
+    generate_dataset(ds, n=3, size=32, seed=5, progress=False)
+    listed = [ds / s["file"] for s in json.loads((ds / "manifest.json").read_text())["scenes"]]
+    write_cube_h5(ds / "scene_0099.h5", cube(32, 32, 0), BANDS)  # a file put there by hand
+    with caplog.at_level("WARNING"):
+        assert list_scenes(ds) == sorted(listed)
+    assert "its 3 scenes are those its manifest.json lists; not scene_0099.h5" in caplog.text
+    listed[1].unlink()
+    with pytest.raises(InputError, match=rf"{ds}: 1 scene\(s\) its manifest.json lists are missing \({listed[1].name}\)"):
+        list_scenes(ds)
