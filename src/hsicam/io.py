@@ -16,7 +16,11 @@ never leaves a half-written file (or folder) where a later command would take it
 - :func:`cleanup_stale_temporaries`: removes the hidden temporaries a killed process left behind.
 - :func:`check_output_path`: one-line :class:`~hsicam.errors.InputError` for an output path that
   cannot work (existing file where a folder is needed and vice versa, inside a file, not
-  writable), to be called before any work starts.
+  writable, a symbolic link that points nowhere or loops), to be called before any work starts.
+
+An output given as a symbolic link is written in what the link leads to (:func:`follow_link`): the
+link is kept, never replaced by a file or folder. An ``OSError`` raised while a file is written
+(disk full, quota, read-only file system …) names the file it was to become, never the temporary.
 
 Importing this module has no side effects (the process umask is never touched: temporary files
 are created with mode 0o666 and folders with 0o777, and the kernel applies the umask).
@@ -25,6 +29,7 @@ are created with mode 0o666 and folders with 0o777, and the kernel applies the u
 from __future__ import annotations
 
 import contextlib
+import errno
 import json
 import logging
 import os
@@ -67,14 +72,48 @@ def _writable_dir(d: Path) -> bool:
     return os.access(d, os.W_OK | os.X_OK)
 
 
+def broken_link_problem(path: str | os.PathLike) -> str | None:
+    """Why the symbolic link ``path`` cannot be followed (it points nowhere, or round a loop), or None
+    (a link that works, or no link)."""
+    try:
+        target = os.readlink(path)
+    except OSError:
+        return None
+    try:
+        os.stat(path)
+    except OSError as exc:
+        if exc.errno == errno.ENOENT:
+            return f"is a symbolic link to {target}, which does not exist"
+        if exc.errno == errno.ELOOP:
+            return f"is a symbolic link to {target}, which leads back to itself (a symbolic link loop)"
+        return f"is a symbolic link to {target}, which cannot be followed ({exc.strerror or exc})"
+    return None
+
+
+def follow_link(path: str | os.PathLike) -> Path:
+    """``path``, or for a symbolic link the path it leads to (through a chain of links), so that an
+    output given as a link is written in its target and the link is kept. One-line
+    :class:`InputError` for a link that points nowhere or loops."""
+    p = Path(path)
+    problem = broken_link_problem(p)
+    if problem is not None:
+        raise InputError(f"{p}: {problem}")
+    while p.is_symlink():  # it can be followed (os.stat worked), so the chain ends
+        p = p.parent / os.readlink(p)
+    return p
+
+
 def output_path_problem(path: str | os.PathLike, kind: str = "file") -> str | None:
     """Why ``path`` cannot be written as a ``kind`` ("file" or "dir") output, or None when it can."""
     if kind not in ("file", "dir"):
         raise ValueError(f"kind must be 'file' or 'dir', got {kind!r}")
     if str(path) == "":
         return "the output path is empty"
-    p = Path(path)
-    full = Path(os.path.abspath(p))
+    full = Path(os.path.abspath(Path(path)))
+    link = broken_link_problem(full)
+    if link is not None:
+        return link
+    full = follow_link(full)
     try:
         exists = full.exists() or full.is_symlink()
         is_dir = full.is_dir()
@@ -90,6 +129,9 @@ def output_path_problem(path: str | os.PathLike, kind: str = "file") -> str | No
         parent = full.parent
         return None if _writable_dir(parent) else f"cannot be replaced: the folder {parent} is not writable"
     anchor = _nearest_existing(full.parent)
+    link = broken_link_problem(anchor)
+    if link is not None:
+        return f"cannot be created inside {anchor}: it {link}"
     if not anchor.is_dir():
         return f"cannot be created inside {anchor}, which is a file"
     if not _writable_dir(anchor):
@@ -113,6 +155,32 @@ def check_output_path(path: str | os.PathLike, kind: str = "file") -> Path:
 def _os_error(path: Path, kind: str, exc: OSError) -> InputError:
     problem = output_path_problem(path, kind) or f"cannot be written ({exc.strerror or exc})"
     return InputError(f"{path}: {problem}")
+
+
+#: errno values of a write that the disk refused whatever the file: a folder's writer names the
+#: folder when the error names no file.
+DISK_ERRNOS = frozenset({errno.ENOSPC, errno.EDQUOT, errno.EFBIG, errno.EROFS})
+
+
+def _naming_output(exc: OSError, final: Path, tmp: Path, kind: str) -> OSError:
+    """``exc``, raised while ``final`` was written through its temporary ``tmp``, naming the path the
+    failed file was to have: ``final`` for an error naming no file (a file's writer; a folder's,
+    for :data:`DISK_ERRNOS`) or naming the temporary, ``final/REL`` for ``tmp/REL``. ``exc`` itself
+    when it names another file."""
+    name = None
+    if exc.filename is None:
+        if kind == "file" or exc.errno in DISK_ERRNOS:
+            name = final
+    else:
+        try:
+            rel = Path(os.path.abspath(os.fsdecode(exc.filename))).relative_to(os.path.abspath(tmp))
+        except (TypeError, ValueError):
+            return exc
+        name = final / rel if rel.parts else final
+    if name is None:
+        return exc
+    what = exc.strerror or (str(exc).splitlines() or [type(exc).__name__])[0]
+    return OSError(exc.errno, what, str(name))
 
 
 # ------------------------------------------------------------------------------------------------
@@ -228,9 +296,11 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
 
     The temporary file keeps ``path``'s suffix so that writers choosing a format by extension
     (imageio, matplotlib) still work. On error the temporary file (and any parent folder created
-    for it) is removed. A parent that cannot be created or written is one :class:`InputError`.
+    for it) is removed; an ``OSError`` of the write names ``path``. A parent that cannot be
+    created or written is one :class:`InputError`. A symbolic link ``path`` is written through
+    (:func:`follow_link`).
     """
-    path = Path(path)
+    path = follow_link(path)
     try:
         created = _make_parents(path.parent)
         tmp_path = _new_temp_file(path)
@@ -240,9 +310,12 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
         yield tmp_path
         _fsync_file(tmp_path)
         os.replace(tmp_path, path)
-    except BaseException:
+    except BaseException as exc:
         tmp_path.unlink(missing_ok=True)
         _remove_created(created)
+        named = _naming_output(exc, path, tmp_path, "file") if isinstance(exc, OSError) else exc
+        if named is not exc:
+            raise named from exc
         raise
     _fsync_dir(path.parent)
 
@@ -267,6 +340,8 @@ def atomic_output(path: str | os.PathLike, kind: str = "dir", *, overwrite: bool
     ``overwrite=True`` and only when it carries the marker (a folder this toolkit completed; a
     user's own folder is never deleted). On any error or interruption the temporary is removed and
     ``path`` is left as it was. Unusable paths raise one-line :class:`InputError` before the block.
+    A symbolic link ``path`` leads to the folder that is replaced (:func:`follow_link`); the link is
+    kept. An ``OSError`` naming a file in the temporary names it under ``path``.
     """
     if kind == "file":
         with atomic_path(path) as tmp:
@@ -274,7 +349,7 @@ def atomic_output(path: str | os.PathLike, kind: str = "dir", *, overwrite: bool
         return
     if kind != "dir":
         raise ValueError(f"kind must be 'file' or 'dir', got {kind!r}")
-    path = Path(path)
+    path = follow_link(path)
     command = marker.get("command") if isinstance(marker, dict) else None
     check_output_path(path, "dir")
     check_replaceable(path, overwrite, command)
@@ -289,9 +364,12 @@ def atomic_output(path: str | os.PathLike, kind: str = "dir", *, overwrite: bool
             mark_complete(tmp, {**(marker if isinstance(marker, dict) else {}), "files": written_entries(tmp)})
         check_replaceable(path, overwrite, command)  # the block may have run for hours
         _swap_in(tmp, path)
-    except BaseException:
+    except BaseException as exc:
         _remove(tmp)
         _remove_created(created)
+        named = _naming_output(exc, path, tmp, "dir") if isinstance(exc, OSError) else exc
+        if named is not exc:
+            raise named from exc
         raise
     _fsync_dir(path.parent)
 
@@ -511,8 +589,8 @@ def write_png16(path: str | os.PathLike, image01: np.ndarray) -> None:
     if img.ndim != 2:
         raise ValueError(f"write_png16 expects a 2-D image, got shape {img.shape}")
     data = np.round(np.clip(img, 0.0, 1.0) * 65535.0).astype(np.uint16)
-    with atomic_path(path) as tmp:
-        iio.imwrite(tmp, data, extension=".png")
+    with atomic_path(path) as tmp:  # encoded in memory: imageio never sees (nor expands "~" in) the path
+        tmp.write_bytes(iio.imwrite("<bytes>", data, extension=".png"))
 
 
 def write_png8(path: str | os.PathLike, rgb01: np.ndarray) -> None:
@@ -520,8 +598,8 @@ def write_png8(path: str | os.PathLike, rgb01: np.ndarray) -> None:
     import imageio.v3 as iio
 
     data = np.round(np.clip(np.asarray(rgb01, dtype=np.float64), 0.0, 1.0) * 255.0).astype(np.uint8)
-    with atomic_path(path) as tmp:
-        iio.imwrite(tmp, data, extension=".png")
+    with atomic_path(path) as tmp:  # encoded in memory, as in write_png16
+        tmp.write_bytes(iio.imwrite("<bytes>", data, extension=".png"))
 
 
 def save_figure(fig: Any, path: str | os.PathLike, dpi: int = 120) -> None:

@@ -4,26 +4,32 @@ Each sub-command lives in a module of this package that defines ``register(subpa
 module to ``COMMAND_MODULES`` to add commands.
 
 **One error boundary** (:func:`main`): every :class:`HsicamError` (bad config, bad file, bad
-argument), every ``OSError`` (an output path that cannot be written, an input that cannot be read)
-and every unreadable JSON/YAML/text input is printed as ONE line ``hsicam: error: <file>:
-<problem>`` and exits with code 2, without a traceback (``-v`` adds the traceback). Commands that
-write check their output paths with :func:`hsicam.io.check_output_path` before any work starts and
-write through :func:`hsicam.io.atomic_output`, so a failed or killed command leaves nothing that a
-later command accepts.
+argument), every ``OSError`` (an output path that cannot be written, a full disk, an input that
+cannot be read) and every unreadable JSON/YAML/text input is printed as ONE line ``hsicam: error:
+<file>: <problem>`` and exits with code 2, without a traceback (``-v`` adds the traceback). Commands
+that write check their output paths with :func:`prepare_output` before any work starts and write
+through :func:`hsicam.io.atomic_output`, so a failed or killed command leaves nothing that a later
+command accepts.
+
+Paths: a leading ``~`` in a path argument is expanded (:data:`PATH_METAVARS`); an output that is a
+symbolic link is written in what it leads to, the link kept (:func:`hsicam.io.follow_link`).
 """
 
 from __future__ import annotations
 
 import argparse
+import errno
 import importlib
 import json
 import logging
+import os
+import re
 import sys
 import traceback
 from pathlib import Path
 from typing import Sequence
 
-from hsicam.errors import ConfigError, HsicamError, original_message
+from hsicam.errors import ConfigError, HsicamError, InputError, original_message
 
 COMMAND_MODULES = (
     "hsicam.cli.camera",
@@ -38,11 +44,22 @@ COMMAND_MODULES = (
 )
 
 
+#: Metavars of the options and positionals that take a path: a leading ``~`` in their values (and
+#: string defaults) is expanded as a shell does, also when it reached hsicam quoted (a script, a
+#: Makefile), so every reader and writer (hsicam's, imageio's) takes the same file.
+PATH_METAVARS = frozenset({"DIR", "FILE", "PATH", "RUN", "RUN2", "SENSOR"})
+
+
 class _Parser(argparse.ArgumentParser):
-    """argparse with usage errors reported as one line, exit code 2."""
+    """argparse with usage errors reported as one line, exit code 2, and ``~`` expanded in paths."""
 
     def error(self, message: str) -> None:  # type: ignore[override]
         self.exit(2, f"hsicam: error: {message}\n")
+
+    def _get_value(self, action: argparse.Action, arg_string: str):  # argparse converts every value here
+        if action.metavar in PATH_METAVARS:
+            arg_string = os.path.expanduser(arg_string)
+        return super()._get_value(action, arg_string)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -104,31 +121,55 @@ def config_from_args(path: str | Path | None, overrides: Sequence[str] = ()):
     return load_config(path, list(overrides))
 
 
-def prepare_output(path: str | Path, kind: str = "dir", replace: bool = False, command: str | None = None) -> Path:
+def prepare_output(path: str | Path, kind: str = "dir", replace: bool = False, command: str | None = None,
+                   run: str | Path | None = None) -> Path:
     """Before any work: :func:`hsicam.io.check_output_path` (one-line error for an output that cannot
-    work; a shipped pre-trained camera, which is read-only), then remove the hidden temporary
-    siblings (``.NAME.XXXXXXXX.tmpdir`` …) that an earlier, killed run of a command left next to
-    this output. ``replace``: the command writes the folder whole through
-    ``atomic_output(..., overwrite=True)``, so a non-empty folder that is not a completed hsicam
-    output (a user's own), another ``command``'s output or a completed folder holding files the
-    command did not write is refused now, before the work (:func:`hsicam.io.check_replaceable`, the
-    check ``atomic_output`` repeats with its marker's command)."""
+    work, a symbolic link that points nowhere; a shipped pre-trained camera, which is read-only),
+    then remove the hidden temporary siblings (``.NAME.XXXXXXXX.tmpdir`` …) that an earlier, killed
+    run of a command left next to this output (next to a link's target: the writers follow links).
+    ``replace``: the command writes the folder whole through ``atomic_output(..., overwrite=True)``,
+    so a training run (named as the input ``run`` when it is), a non-empty folder that is not a
+    completed hsicam output (a user's own), another ``command``'s output or a completed folder
+    holding files the command did not write is refused now, before the work
+    (:func:`hsicam.io.check_replaceable`, the check ``atomic_output`` repeats with its marker's command)."""
     import shutil
 
-    from hsicam.io import check_output_path, check_replaceable, is_temporary
+    from hsicam.io import check_output_path, check_replaceable, follow_link, is_temporary
     from hsicam.runs.pretrained import check_not_pretrained
 
     check_not_pretrained(path)
     out = check_output_path(path, kind)
     if replace and kind == "dir":
+        _refuse_run_folder(out, command, run)
         check_replaceable(Path(out), overwrite=True, command=command)
-    parent = Path(out).parent
-    if parent.is_dir():
-        stem = Path(out).stem if kind == "file" else Path(out).name
-        for p in parent.glob(f".{stem}.*"):
+    target = follow_link(out)
+    if target.parent.is_dir():
+        stem = target.stem if kind == "file" else target.name
+        for p in target.parent.glob(f".{stem}.*"):
             if is_temporary(p.name):
                 shutil.rmtree(p, ignore_errors=True) if p.is_dir() and not p.is_symlink() else p.unlink(missing_ok=True)
     return out
+
+
+def _refuse_run_folder(out: Path, command: str | None, run: str | Path | None) -> None:
+    """InputError for a training run (or a spectral prior) as the folder that ``command`` would
+    replace whole, named as what it is (the input ``run`` when it is that one)."""
+    from hsicam.io import is_complete, same_path
+    from hsicam.runs.folder import WEIGHTS_FILES, holds_prior
+
+    if not out.is_dir() or is_complete(out) or not (out / "config.yaml").is_file():
+        return
+    what = None
+    if holds_prior(out):
+        what = "a spectral prior"
+    elif (out / "checkpoints").is_dir() or any((out / w).is_file() for w in WEIGHTS_FILES):
+        what = "a training run"
+    writer = f"hsicam {command}" if command else "this command"
+    if run is not None and same_path(out, run):
+        raise InputError(f"{out}: is the input run (--run, {what or 'a run folder'}); {writer} writes its output "
+                         "into a folder of its own: choose another --out")
+    if what is not None:
+        raise InputError(f"{out}: holds {what}, which {writer} never replaces; choose another --out")
 
 
 def error_line(exc: BaseException) -> str | None:
@@ -138,9 +179,7 @@ def error_line(exc: BaseException) -> str | None:
         text = original_message(exc)
         return text.splitlines()[0] if text else type(exc).__name__
     if isinstance(exc, OSError):
-        what = exc.strerror or (original_message(exc).splitlines() or [""])[0] or type(exc).__name__
-        name = exc.filename if exc.filename is not None else None
-        return f"{name}: {what}" if name is not None else what
+        return _os_error_line(exc)
     if isinstance(exc, json.JSONDecodeError):
         return f"unreadable JSON input ({exc.msg} at line {exc.lineno})"
     if isinstance(exc, UnicodeDecodeError):
@@ -157,6 +196,36 @@ def error_line(exc: BaseException) -> str | None:
     return None
 
 
+#: What to do about an OSError, by errno: a write the disk refused (full, quota, read-only …) or a
+#: file without permission. Its text is then the system's own (not a library's multi-line one).
+OS_ERROR_HINTS = {
+    errno.ENOSPC: "the disk is full: free some space, or write to another disk",
+    errno.EDQUOT: "the disk quota is used up: free some space, or write elsewhere",
+    errno.EFBIG: "over the file-size limit of the file system or of the shell, ulimit -f: write elsewhere",
+    errno.EROFS: "write to a writable file system",
+    errno.EIO: "the disk or its connection failed",
+    errno.EACCES: "check its permissions and its folder's",
+    errno.EPERM: "check its permissions and its folder's",
+}
+
+#: numpy's message for a file write cut short (no errno): a full disk, most often.
+_SHORT_WRITE = re.compile(r"^(\d+) requested and (\d+) written$")
+
+
+def _os_error_line(exc: OSError) -> str:
+    """``<file>: <what happened> (<what to do>)`` for an OSError (the file when it names one)."""
+    text = exc.strerror or (original_message(exc).splitlines() or [""])[0] or type(exc).__name__
+    what, hint = text.splitlines()[0], OS_ERROR_HINTS.get(exc.errno) if exc.errno is not None else None
+    if hint is not None:
+        what = os.strerror(exc.errno)
+    short = _SHORT_WRITE.match(what) if exc.errno is None else None
+    if short is not None:
+        what = f"the write stopped after {short[2]} of {short[1]} bytes"
+        hint = "is the disk full? free some space, or write to another disk"
+    line = f"{exc.filename}: {what}" if exc.filename is not None else what
+    return f"{line} ({hint})" if hint else line
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     try:
         parser = build_parser()  # imports the commands' modules (torch, scipy): about a second
@@ -164,7 +233,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         print("hsicam: interrupted", file=sys.stderr)
         return 130
     args = parser.parse_args(argv)
-    logging.basicConfig(level=logging.DEBUG if args.verbose else logging.INFO, format="%(message)s")
+    logging.basicConfig(level=logging.INFO, format="%(message)s")
+    # -v: hsicam's own debug lines only (matplotlib's font search, PIL's and h5py's chatter stay out)
+    logging.getLogger("hsicam").setLevel(logging.DEBUG if args.verbose else logging.NOTSET)
     from hsicam.data.cube import trained_bands
 
     try:

@@ -73,7 +73,7 @@ def camera_from_args(args: argparse.Namespace, extra_overrides: tuple[str, ...] 
 def cmd_psf(args: argparse.Namespace) -> int:
     from hsicam.report.camera import write_psf_outputs
 
-    out = prepare_output(args.out, "dir", replace=True, command="psf")
+    out = prepare_output(args.out, "dir", replace=True, command="psf", run=args.run)
     if args.run:
         from hsicam.runs.folder import load_run
 
@@ -138,7 +138,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     from hsicam.data.pipeline import npy_bands
     from hsicam.report.camera import write_optics_figures
 
-    out = prepare_output(args.out, "dir", replace=True, command="simulate")
+    out = prepare_output(args.out, "dir", replace=True, command="simulate", run=args.run)
     if args.run:
         from hsicam.runs.folder import load_run
 

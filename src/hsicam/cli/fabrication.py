@@ -75,7 +75,7 @@ def cmd_export(args: argparse.Namespace) -> int:
     from hsicam.export.doe import is_power_of_two
     from hsicam.cli import prepare_output
 
-    prepare_output(args.out, "dir", replace=True, command="export-optics")
+    prepare_output(args.out, "dir", replace=True, command="export-optics", run=args.run)
     if args.levels is not None and not (2 <= args.levels <= 256 and is_power_of_two(args.levels)):
         raise InputError(f"--levels must be a power of 2 in 2..256 (binary-weighted lithography), got {args.levels}")
     spec = export_optics(args.run, args.out, args.levels, args.tolerance)
@@ -101,7 +101,7 @@ def cmd_tolerance(args: argparse.Namespace) -> int:
     from hsicam.cli import prepare_output
     from hsicam.io import atomic_output
 
-    out = prepare_output(args.out, "dir", replace=True, command="tolerance")
+    out = prepare_output(args.out, "dir", replace=True, command="tolerance", run=args.run)
     refuse_finetuned_run(args.run)  # before loading: its measured PSFs are not what the study perturbs
     defaults = ToleranceSpec()
     spec = ToleranceSpec(height_draws=defaults.height_draws if args.draws is None else args.draws,

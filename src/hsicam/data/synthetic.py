@@ -68,7 +68,7 @@ from hsicam.data.spectral_sources import (
     split_library,
 )
 from hsicam.errors import InputError
-from hsicam.io import write_json
+from hsicam.io import output_path_problem, write_json
 from hsicam.spectral import Bands
 
 log = logging.getLogger(__name__)
@@ -103,6 +103,25 @@ def default_cache_dir() -> Path:
         return Path(env).expanduser()
     xdg = os.environ.get("XDG_CACHE_HOME")
     return (Path(xdg).expanduser() if xdg else Path.home() / ".cache") / "hsicam"
+
+
+def _check_cache(out: Path, cache_dir: str | os.PathLike | None = None) -> None:
+    """One-line InputError when the dataset folder ``out`` cannot be made in the cache root, naming
+    what set that root (``data.cache_dir``, ``$HSICAM_CACHE``, ``$XDG_CACHE_HOME`` or the default)
+    with its value and what to set instead."""
+    problem = output_path_problem(out, "dir")
+    if problem is None:
+        return
+    fix = "set HSICAM_CACHE to a writable folder"
+    if cache_dir:
+        setting, fix = f"data.cache_dir={cache_dir}", "set data.cache_dir (--set data.cache_dir=DIR) to a writable folder"
+    elif os.environ.get("HSICAM_CACHE"):
+        setting, fix = f"HSICAM_CACHE={os.environ['HSICAM_CACHE']}", f"{fix}, or unset it"
+    elif os.environ.get("XDG_CACHE_HOME"):
+        setting = f"XDG_CACHE_HOME={os.environ['XDG_CACHE_HOME']}"
+    else:
+        setting = f"the default cache {default_cache_dir()}"
+    raise InputError(f"{setting} (the dataset cache): {out}: {problem}; {fix}")
 
 
 def _check_split(split: str) -> str:
@@ -153,6 +172,7 @@ def synthetic_dataset(n: int = 32, size: int = 256, seed: int = 0, bands: Bands 
     if is_complete(out, n, size, seed, bands, holdout_sources=holdout, split=split):
         log.debug("synthetic dataset cached at %s", out)
         return out
+    _check_cache(out, cache_dir)
     log.info("generating the synthetic %s set (%d scenes of %dx%dx%d, held-out sources: %s) in %s", split, n, size,
              size, len(bands), ", ".join(holdout) or "none", out)
     generate_dataset(out, n=n, size=size, seed=seed, bands=bands, progress=progress, holdout_sources=holdout,
