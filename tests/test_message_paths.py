@@ -281,3 +281,16 @@ def test_doe_learned_on_a_cassi_run_names_the_runs_own_method(tmp_path, cache_en
     assert not (tmp_path / "ev").exists()
     res = run_cli("evaluate", "--method", "dd-cassi-rdn", "--run", str(run), "--out", str(tmp_path / "ev"))
     assert res.returncode == 0, res.stderr
+
+
+@pytest.mark.parametrize("override, cause", [
+    ("camera.doe.enabled=false", "weights do not fit this model"),
+    ("bands.step_nm=10", "checkpoint was trained on Bands(7 bands"),
+])
+def test_a_set_that_a_trained_run_cannot_take_is_named(runs, tmp_path, override, cause):
+    """`psf --run R --set camera.doe.enabled=false` said only "weights do not fit" (probe 24, finding 12)."""
+    out = tmp_path / "p"
+    assert_clean_error(run_cli("psf", "--run", str(runs / "run"), "--set", override, "--out", str(out)),
+                       f"--set {override}: changes what {runs / 'run'} was trained with, so its weights do not load",
+                       cause, "fixed by its training")
+    assert not out.exists()

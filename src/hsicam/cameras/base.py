@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import itertools
 import logging
 import math
 
@@ -23,6 +24,37 @@ SCENE_PEAK_WARN = 4.0
 #: The smallest sensor image (px per side) that :meth:`Camera.capture` makes of a user's scene: 2×2, or
 #: one period of the sensor code (the CFA) when that is larger — what ``hsicam reconstruct`` needs.
 MIN_SENSOR_PX = 2
+
+
+def check_finite(t: torch.Tensor, what: str) -> None:
+    """:class:`InputError` naming ``what`` and the count when ``t`` holds NaN or Inf values. Screened by
+    one sum (a tenth of an ``isfinite`` pass); only a sum that is not finite counts the values."""
+    if t.numel() and t.device.type != "meta" and not bool(torch.isfinite(t.sum())):
+        bad = int((~torch.isfinite(t)).sum())
+        if bad:  # else a sum that overflowed: large values, but finite
+            raise InputError(f"{what} contains {bad} NaN or Inf value(s) of {t.numel()}")
+
+
+def check_device(t: torch.Tensor, module: nn.Module, what: str) -> None:
+    """:class:`InputError` naming ``what`` when ``t`` is not on the device of ``module``'s first parameter
+    or buffer (a module with neither takes any device)."""
+    ref = next(itertools.chain(module.parameters(), module.buffers()), None)
+    if ref is not None and t.device != ref.device:
+        raise InputError(f"{what} is on {t.device}, the {type(module).__name__} on {ref.device}: move one of them "
+                         f"(.to({str(ref.device)!r}))")
+
+
+def check_sensor_image(y: torch.Tensor, what: str = "sensor image") -> None:
+    """:class:`InputError` unless ``y`` is a floating (B, 1, H, W) tensor with B, H, W >= 1 (values: [0, 1],
+    1 = full scale)."""
+    if not isinstance(y, torch.Tensor):
+        raise InputError(f"{what} must be a torch.Tensor (B, 1, H, W), got {type(y).__name__}")
+    if y.dim() != 4 or y.shape[1] != 1:
+        raise InputError(f"{what} must be (B, 1, H, W), got shape {tuple(y.shape)}")
+    if not torch.is_floating_point(y):
+        raise InputError(f"{what} must be a floating-point tensor with values in [0, 1] (1 = full scale), got {y.dtype}")
+    if min(y.shape[0], y.shape[2], y.shape[3]) < 1:
+        raise InputError(f"{what} of shape {tuple(y.shape)} is empty: it needs B, H, W >= 1")
 
 
 def _is_level(value) -> bool:
@@ -74,17 +106,17 @@ class Camera(nn.Module):
         """The noisy sensor image of a user's scene ``x`` (``hsicam simulate``): ``self(x, generator)``
         without autograd, with the checks that a training step leaves out. A scene whose peak is above
         :data:`SCENE_PEAK_WARN` is logged (WARNING, naming ``source``): its image goes far past the
-        sensor's full scale of 1. A sensor image that is not finite (float overflow of a scene with
-        huge values) is an :class:`InputError` naming ``source`` and the scene's peak; so is a scene
-        smaller than :meth:`min_scene_size` (:meth:`check_capture_size`)."""
+        sensor's full scale of 1. A scene holding NaN/Inf values is an :class:`InputError` naming ``source``
+        and their count; so is a sensor image that is not finite (float overflow of a scene with huge
+        values: naming the scene's peak), and a scene smaller than :meth:`min_scene_size`
+        (:meth:`check_capture_size`)."""
         self.check_capture_size(tuple(x.shape[-2:]), source)
+        check_finite(x, source)
         peak = float(x.max()) if x.numel() else 0.0
         advice = ("normalise the scene first: reflectance-like values in [0, 1] (a white reference at 1; "
                   "divide raw counts or percent by their full scale, or the cube by its maximum)")
         y = self(x, generator)
         if not bool(torch.isfinite(y).all()):
-            if not math.isfinite(peak):
-                raise InputError(f"{source}: the scene holds NaN/Inf values; the simulated sensor image is not finite")
             raise InputError(f"{source}: the simulated sensor image is not finite (float overflow: the scene's peak "
                              f"value is {peak:.4g}); {advice}")
         if peak > SCENE_PEAK_WARN:
@@ -117,11 +149,8 @@ class Camera(nn.Module):
         return self.A_adjoint(self.A(x))
 
     def check_measurement(self, y: torch.Tensor) -> None:
-        """Raise :class:`InputError` unless ``y`` is a (B, 1, H, W) sensor image."""
-        if y.dim() != 4 or y.shape[1] != 1:
-            raise InputError(f"sensor image must be (B, 1, H, W), got shape {tuple(y.shape)}")
-        if not torch.is_floating_point(y):
-            raise InputError(f"sensor image must be a floating-point tensor, got {y.dtype}")
+        """Raise :class:`InputError` unless ``y`` is a (B, 1, H, W) sensor image (:func:`check_sensor_image`)."""
+        check_sensor_image(y)
 
     @torch.no_grad()
     def relative_residual(self, x: torch.Tensor, y: torch.Tensor) -> float:
@@ -235,11 +264,23 @@ class Camera(nn.Module):
         raise InputError(f"{source}: the scene is {h}×{w} px, too small: this camera needs {mh}×{mw} px, {why}; {fix}")
 
     def check_scene(self, x: torch.Tensor) -> None:
-        """Raise :class:`InputError` unless ``x`` is a (B, C, H, W) cube on this camera's grid."""
+        """Raise :class:`InputError` unless ``x`` is a (B, C, H, W) cube on this camera's grid: floating
+        (float32/float64 on the CPU, whose FFTs have no half precision), B >= 1, on the camera's device;
+        in eval mode also finite (:func:`check_finite`; a training step skips that check)."""
+        if not isinstance(x, torch.Tensor):
+            raise InputError(f"scene must be a torch.Tensor (B, C, H, W), got {type(x).__name__}")
         if x.dim() != 4:
             raise InputError(f"scene must be a (B, C, H, W) tensor, got shape {tuple(x.shape)}")
         if x.shape[1] != len(self.bands):
             raise InputError(f"scene has {x.shape[1]} bands but the camera has {len(self.bands)} ({self.bands!r})")
+        if not torch.is_floating_point(x):
+            raise InputError(f"scene must be a floating-point tensor with values in [0, 1] (reflectance-like), "
+                             f"got {x.dtype}")
+        if x.device.type == "cpu" and x.dtype in (torch.float16, torch.bfloat16):
+            raise InputError(f"scene is {x.dtype} on the CPU: the camera needs float32 or float64 there (x.float())")
+        if x.shape[0] < 1:
+            raise InputError(f"scene of shape {tuple(x.shape)} is an empty batch: it needs B >= 1")
+        check_device(x, self, "scene")
         if self.boundary == "same" and getattr(self, "padding", "zeros") == "reflect" and min(x.shape[-2:]) <= self.margin // 2:
             raise InputError(
                 f"scene of {x.shape[-2]}×{x.shape[-1]} px is too small for reflect padding by {self.margin // 2} px: "
@@ -251,6 +292,8 @@ class Camera(nn.Module):
                 f"scene of {x.shape[-2]}×{x.shape[-1]} px is too small for boundary='valid' with a "
                 f"{self.margin + 1}-px kernel: it needs at least {self.margin + 1}×{self.margin + 1}"
             )
+        if not self.training:
+            check_finite(x, "scene")
 
     def snapshot(self, generator: torch.Generator | None = None, *, nominal: bool = False) -> "OperatorSnapshot":
         """This camera's noiseless linear operator, frozen for one batch (see :class:`OperatorSnapshot`).

@@ -36,7 +36,7 @@ def seed_arg(low: int = SEED_MIN, high: int = SEED_MAX) -> Callable[[str], int]:
 def device_arg(spec: str) -> str:
     """argparse ``type`` of every ``--device``: a torch device this machine has (``cpu``, ``cuda``,
     ``cuda:N``, ``mps``), else a usage error saying what is available, never a traceback later."""
-    from hsicam.engine.loop import device_problem
+    from hsicam.devices import device_problem
 
     problem = device_problem(spec)
     if problem is not None:

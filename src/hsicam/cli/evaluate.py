@@ -85,8 +85,8 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     from hsicam.data.datasets import list_scenes
     from hsicam.data.formats import write_cube_h5
     from hsicam.data.pipeline import scene_dataset
-    from hsicam.engine.evaluate import (TestNoise, check_test_noise, config_hash, evaluate_method, format_table,
-                                        scored_region, summarize, write_results)
+    from hsicam.engine.evaluate import (TestNoise, check_room_for_cubes, check_test_noise, config_hash,
+                                        evaluate_method, format_table, scored_region, summarize, write_results)
     from hsicam.engine.experiments import heldout_scenes, validation_scenes
     from hsicam.engine.methods import METHOD_ALIASES, build_method
     from hsicam.cli import prepare_output
@@ -96,7 +96,7 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     args.method = METHOD_ALIASES.get(args.method, args.method)  # results carry the method's current name
     if args.data:
         check_out_apart_from_data(args.out, args.data)
-    out = prepare_output(args.out, "dir", replace=True, command="evaluate")
+    out = prepare_output(args.out, "dir", replace=True, command="evaluate", run=args.run)
     paths = list_scenes(args.data) if args.data else None  # before the method is built: a bad --data fails at once
     if args.run:
         run = Path(args.run)
@@ -130,6 +130,8 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
         heldout = heldout_scenes(cfg)
     noise = TestNoise(args.sigma_height_nm, args.sensor_sigma, tuple(range(args.seeds)))
     check_test_noise(method, noise, f"run {args.run}" if args.run else f"--config {args.config or 'default'}")
+    if args.save:
+        check_room_for_cubes(out, scenes, len(bands))
     show = lambda line: print(line, file=sys.stderr, flush=True)  # noqa: E731
     results = evaluate_method(method, scenes, names, noise, args.device, keep_arrays=args.save, progress=show)
     summary = summarize(results, method=args.method, run=str(Path(args.run).resolve()) if args.run else None, data=data, config_hash=config_hash(dump_yaml(cfg)),

@@ -334,7 +334,9 @@ def write_cube_h5(path: str | os.PathLike, cube: np.ndarray, bands: Bands, metad
     """Write our HDF5 cube file atomically (byte-identical for identical inputs: no timestamps).
 
     ``cube`` (C, H, W) is stored contiguous float32 (so windows can be read cheaply); ``metadata``
-    must be JSON-serialisable and is stored as the ``metadata_json`` attribute.
+    must be JSON-serialisable and is stored as the ``metadata_json`` attribute. HDF5 writes through
+    a Python file object, so a failed write (a full disk …) is a plain OSError: with HDF5's own file
+    driver, a file it could not flush stayed open in the library and crashed the interpreter at exit.
     """
     import h5py
 
@@ -343,16 +345,15 @@ def write_cube_h5(path: str | os.PathLike, cube: np.ndarray, bands: Bands, metad
     if arr.shape[0] != len(bands):
         raise InputError(f"{p}: the cube has {arr.shape[0]} bands but {len(bands)} band centres were given")
     meta_json = json.dumps(metadata or {}, sort_keys=True, default=json_default)
-    with atomic_path(p) as tmp:
-        with h5py.File(tmp, "w", libver=("earliest", "v110")) as f:
-            f.create_dataset("cube", data=arr, track_times=False)
-            f.create_dataset("bands_nm", data=np.asarray(bands.centers_nm, dtype=np.float64), track_times=False)
-            f.create_dataset("fwhm_nm", data=np.asarray(bands.fwhm_nm, dtype=np.float64), track_times=False)
-            f.attrs["format"] = HSICAM_FORMAT
-            f.attrs["version"] = HSICAM_FORMAT_VERSION
-            f.attrs["layout"] = "cube (bands, height, width), bands ascending, wavelengths in nm"
-            f.attrs["max_value"] = float(arr.max())
-            f.attrs["metadata_json"] = meta_json
+    with atomic_path(p) as tmp, open(tmp, "w+b") as fh, h5py.File(fh, "w", libver=("earliest", "v110")) as f:
+        f.create_dataset("cube", data=arr, track_times=False)
+        f.create_dataset("bands_nm", data=np.asarray(bands.centers_nm, dtype=np.float64), track_times=False)
+        f.create_dataset("fwhm_nm", data=np.asarray(bands.fwhm_nm, dtype=np.float64), track_times=False)
+        f.attrs["format"] = HSICAM_FORMAT
+        f.attrs["version"] = HSICAM_FORMAT_VERSION
+        f.attrs["layout"] = "cube (bands, height, width), bands ascending, wavelengths in nm"
+        f.attrs["max_value"] = float(arr.max())
+        f.attrs["metadata_json"] = meta_json
     return p
 
 

@@ -13,6 +13,7 @@ from __future__ import annotations
 import csv
 import hashlib
 import io
+import shutil
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -210,6 +211,23 @@ def _fmt(key: str, v: float) -> str:
     if key in ("ssim", "rmse", "runtime_s"):
         return f"{v:.4f}"
     return f"{v:.2f}"
+
+
+#: Bytes an HDF5 cube file holds besides its pixels (headers, band centres, attributes), at most.
+H5_OVERHEAD_BYTES = 16 * 1024
+
+
+def check_room_for_cubes(out: Path, scenes, n_bands: int) -> None:
+    """Before ``evaluate --save`` starts: InputError when the file system of ``out`` has less free
+    space than the cubes it will write (an estimate and a ground truth per scene of ``scenes``, a
+    :class:`~hsicam.data.datasets.SceneDataset`, float32 at most the scene's size) and a margin."""
+    infos = [scenes.info(i) for i in range(len(scenes))]
+    need = sum(2 * (n_bands * info.height * info.width * 4 + H5_OVERHEAD_BYTES) for info in infos)
+    where = next(p for p in (Path(out).absolute(), *Path(out).absolute().parents) if p.exists())
+    free = shutil.disk_usage(where).free
+    if free < need + max(need // 10, 1 << 20):
+        raise InputError(f"{out}: --save writes up to {need / 1e6:.1f} MB of cubes ({len(scenes)} scenes), but its file "
+                         f"system has only {free / 1e6:.1f} MB free; free some space, choose another --out, or drop --save")
 
 
 def write_results(out: Path, summary: dict) -> None:

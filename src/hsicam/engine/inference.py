@@ -10,14 +10,16 @@ from __future__ import annotations
 
 import inspect
 import math
+import numbers
 
 import torch
 
+from hsicam.cameras.base import check_finite, check_sensor_image
 from hsicam.errors import InputError
 
 
 @torch.no_grad()
-def reconstruct_tiled(reconstruct, sensor: torch.Tensor, tile_px: int = 512, halo_px: int = 0,
+def reconstruct_tiled(reconstruct, sensor: torch.Tensor, tile_px: int = 512, halo_px: int | None = None,
                       progress: bool = False) -> torch.Tensor:
     """Apply ``reconstruct`` ((1, 1, h, w) → (1, C, h, w)) to a (1, 1, H, W) image in tiles.
 
@@ -26,12 +28,28 @@ def reconstruct_tiled(reconstruct, sensor: torch.Tensor, tile_px: int = 512, hal
     line up with the whole image.
 
     Args:
-        tile_px: side of the kept centre of each tile.
-        halo_px: context added around each tile (≥ the receptive radius for an exact result).
+        sensor: (1, 1, H, W) floating, finite (values in [0, 1]).
+        tile_px: side of the kept centre of each tile (an int >= 1).
+        halo_px: context added around each tile (an int >= 0; ≥ the receptive radius for an exact
+            result). Default: the ``context_px`` that ``reconstruct`` (or the object of a bound method,
+            e.g. a :class:`CameraSystem`) declares, as :meth:`CameraSystem.reconstructor`'s does; an
+            image larger than one tile needs it given otherwise (a halo of 0 leaves seams).
     """
-    if sensor.dim() != 4 or sensor.shape[:2] != (1, 1):
+    for name, value, low in (("tile_px", tile_px, 1), ("halo_px", 0 if halo_px is None else halo_px, 0)):
+        if isinstance(value, bool) or not isinstance(value, numbers.Integral) or value < low:
+            raise InputError(f"{name} must be an int >= {low}, got {value!r}")
+    if isinstance(sensor, torch.Tensor) and (sensor.dim() != 4 or sensor.shape[:2] != (1, 1)):
         raise InputError(f"sensor image must be (1, 1, H, W), got {tuple(sensor.shape)}")
+    check_sensor_image(sensor, "sensor")
+    check_finite(sensor, "sensor")
     _, _, h, w = sensor.shape
+    if halo_px is None:
+        declared = (getattr(x, "context_px", None) for x in (reconstruct, getattr(reconstruct, "__self__", None)))
+        halo_px = next((int(c) for c in declared if c is not None), None)
+        if halo_px is None and (h > tile_px or w > tile_px):
+            raise InputError(f"halo_px is needed: {type(reconstruct).__name__} declares no context_px, and the "
+                             f"{h}×{w} px image is cut into {tile_px} px tiles (pass the reconstruction's context "
+                             "per side, e.g. model.context_px; a halo of 0 leaves seams)")
     takes_origin = "origin" in inspect.signature(reconstruct).parameters
     if h <= tile_px and w <= tile_px:
         return reconstruct(sensor)

@@ -57,14 +57,22 @@ def refresh_linear_step(run_dir: str | Path, consistency) -> list[str]:
       through the run's weights (its best), when it is missing or no longer fits them
       (:func:`~hsicam.runs.linear_step.stale_reason`: the run trained on, or another filter width).
 
-    Returns what changed, in words (empty: nothing)."""
+    It holds the run folder's lock (:mod:`hsicam.runs.lock`) while it writes: the training's is
+    released when the loop ends. Returns what changed, in words (empty: nothing)."""
+    from hsicam.runs.lock import RunLock
+
+    with RunLock(run_dir) as lock:
+        lock.acquire()
+        return _refresh_linear_step(Path(run_dir), consistency)
+
+
+def _refresh_linear_step(run_dir: Path, consistency) -> list[str]:
     from hsicam.config import dump_yaml, load_config
     from hsicam.io import atomic_open
     from hsicam.runs.checkpoint import root_weights_path
     from hsicam.runs.folder import load_run
     from hsicam.runs.linear_step import stale_reason
 
-    run_dir = Path(run_dir)
     changed = []
     run_cfg = load_config(run_dir / "config.yaml")
     if run_cfg.model.consistency != consistency:

@@ -35,10 +35,12 @@ from torch.utils.data import Sampler
 
 from hsicam.config import TrainConfig
 from hsicam.data.pipeline import make_loader
+from hsicam.devices import device_problem
 from hsicam.errors import InputError
 from hsicam.io import atomic_output, is_complete, output_description
 from hsicam.runs.checkpoint import CheckpointManager, save_weights
 from hsicam.runs.folder import MetricsLog, check_run_dir
+from hsicam.runs.lock import RunLock, check_not_locked
 from hsicam.spectral import Bands
 
 log = logging.getLogger(__name__)
@@ -113,25 +115,6 @@ def draw_uniform(lo_hi: list[float] | tuple[float, float], g: torch.Generator) -
     if hi <= lo:
         return lo
     return lo + (hi - lo) * float(torch.rand((), generator=g, device=g.device))
-
-
-def device_problem(spec: str) -> str | None:
-    """Why ``spec`` is not a torch device this machine has (cpu, cuda, cuda:N, mps), or None."""
-    try:
-        dev = torch.device(spec)
-    except (RuntimeError, ValueError):
-        return "unknown device; use cpu, cuda, cuda:N or mps"
-    if dev.type == "cuda":
-        n = torch.cuda.device_count() if torch.cuda.is_available() else 0
-        if n == 0:
-            return f"no CUDA device is available here (torch {torch.__version__}); use cpu"
-        if dev.index is not None and dev.index >= n:
-            return f"this machine has {n} CUDA device(s), cuda:0 to cuda:{n - 1}"
-    elif dev.type == "mps" and not (hasattr(torch.backends, "mps") and torch.backends.mps.is_available()):
-        return "no MPS device is available here; use cpu"
-    elif dev.type not in ("cpu", "cuda", "mps"):
-        return "hsicam runs on cpu, cuda or mps"
-    return None
 
 
 def resolve_device(spec: str, local_rank: int = 0) -> torch.device:
@@ -239,13 +222,17 @@ def fit(task: Task, opts: FitOptions, run_dir: str | Path, resume: bool = False)
     Under torchrun (WORLD_SIZE > 1) it joins the process group, or creates it and then destroys it
     when training ends: a gloo group left to the interpreter's exit can abort the process
     ("terminate called without an active exception", pytorch/pytorch#190489). After an error the
-    group is left as it is (a peer may still wait in a collective) and the error propagates."""
-    _, world, local_rank = dist_env()
+    group is left as it is (a peer may still wait in a collective) and the error propagates.
+
+    Rank 0 holds the run folder's lock (:mod:`hsicam.runs.lock`) for as long as it writes into it,
+    and lets go however it ends: another process training there is refused before anything is touched."""
+    rank, world, local_rank = dist_env()
     own_group = world > 1 and not dist.is_initialized()
     if own_group:
         device = resolve_device(opts.loop.device, local_rank)
         dist.init_process_group("nccl" if device.type == "cuda" else "gloo")
-    result = _fit(task, opts, Path(run_dir), resume)
+    with RunLock(run_dir, enabled=rank == 0) as lock:
+        result = _fit(task, opts, Path(run_dir), resume, lock)
     if own_group:
         dist.barrier()
         dist.destroy_process_group()
@@ -280,14 +267,16 @@ def last_validation(records: list[dict[str, Any]]) -> dict[str, float]:
 def check_not_an_output(run_dir: Path, action: str = "resume") -> None:
     """InputError when ``run_dir`` carries a completion marker: a run folder never does, so it is
     another command's output (``simulate``, ``evaluate`` …), which ``action`` ("resume", "restart"
-    or "train") must not train in."""
+    or "train") must not train in; and when another process is training in it (its lock: the
+    commands call this first, before their checks remove a killed run's temporaries)."""
+    check_not_locked(run_dir)
     if is_complete(run_dir):
         what = f"nothing to {action}" if action in ("resume", "restart") else "a run needs its own folder"
         raise InputError(f"{run_dir}: holds {output_description(run_dir)}, not a training run; {what} "
                          "(choose another --out)")
 
 
-def _fit(task: Task, opts: FitOptions, run_dir: Path, resume: bool) -> dict[str, Any]:
+def _fit(task: Task, opts: FitOptions, run_dir: Path, resume: bool, lock: RunLock) -> dict[str, Any]:
     t = opts.loop
     rank, world, local_rank = dist_env()
     distributed = world > 1
@@ -299,7 +288,10 @@ def _fit(task: Task, opts: FitOptions, run_dir: Path, resume: bool) -> dict[str,
         torch.use_deterministic_algorithms(True, warn_only=True)
     if is_main:
         if resume:
+            lock.acquire()  # before anything in the run is read or removed
             check_not_an_output(run_dir)
+        else:
+            check_not_locked(run_dir)  # a new run's folder: locked in its temporary folder below
         check_run_dir(run_dir, resume)  # before any work; nothing is created until the data are known good
     if distributed:  # generate/cache the dataset once, on rank 0, before the others read it
         if is_main:
@@ -351,7 +343,9 @@ def _fit(task: Task, opts: FitOptions, run_dir: Path, resume: bool) -> dict[str,
     elif is_main:
         # The run folder appears at once with all its files (config.yaml, ...) or not at all.
         with atomic_output(run_dir, marker=False) as tmp:
+            lock.acquire(tmp)  # held across the rename: the run is never in place unlocked
             task.write_run_files(tmp)
+        lock.moved()
     state.total_steps = total_steps  # saved with each checkpoint: what a half-trained run is measured against
     if distributed:
         dist.barrier()

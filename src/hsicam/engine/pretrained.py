@@ -18,7 +18,6 @@ from __future__ import annotations
 import datetime
 import json
 import logging
-import shutil
 from pathlib import Path
 from typing import Any
 
@@ -525,10 +524,10 @@ def pack_pretrained(run_dir: str | Path, name: str, dest_root: str | Path | None
         # replace. A folder holding anything else keeps the marker rule (a user's folder is never deleted).
         mark_complete(target, {"command": "pretrained pack"})
     with atomic_output(target, "dir", overwrite=True, marker={"command": "pretrained pack"}) as tmp:
-        shutil.copyfile(run_dir / "config.yaml", tmp / "config.yaml")
-        shutil.copyfile(weights, tmp / "model.safetensors")
+        shipped.copy_file(run_dir / "config.yaml", tmp / "config.yaml")
+        shipped.copy_file(weights, tmp / "model.safetensors")
         if (run_dir / LINEAR_STEP_FILE).is_file():  # the linear consistency step's filters travel with the camera
-            shutil.copyfile(run_dir / LINEAR_STEP_FILE, tmp / LINEAR_STEP_FILE)
+            shipped.copy_file(run_dir / LINEAR_STEP_FILE, tmp / LINEAR_STEP_FILE)
         write_json(tmp / shipped.CARD_JSON, card)
         with atomic_open(tmp / shipped.CARD_MD, "w", encoding="utf-8") as fh:
             fh.write(text)

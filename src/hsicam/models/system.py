@@ -8,6 +8,7 @@ import torch
 from torch import nn
 
 from hsicam.cameras import Camera, build_camera
+from hsicam.cameras.base import check_device, check_finite, check_sensor_image
 from hsicam.errors import InputError
 from hsicam.models.consistency import consistency_step, cut_psf, linear_consistency_step, linear_reach_px, reach_px
 from hsicam.models.registry import build_network
@@ -79,12 +80,15 @@ class CameraSystem(nn.Module):
         network's, plus (consistency on) the step's reach through the camera's current PSFs."""
         if not self.consistency_on:
             return int(self.net.context_px)
+        return self._context_px(self._step_operator(), self.consistency.psf_energy)
+
+    def _context_px(self, step_op, psf_energy: float) -> int:
+        """:attr:`context_px` with the step through ``step_op``, its PSFs cut to ``psf_energy``."""
         c = self.consistency
         if c.kind == "linear":  # the filters' own width when loaded (a file fitted with another window_px)
             window = int(self.linear_step.shape[-1]) if self.linear_step is not None else c.window_px
-            return int(self.net.context_px) + linear_reach_px(self._step_operator(), window, c.iterations,
-                                                              c.psf_energy)
-        return int(self.net.context_px) + reach_px(self._step_operator(), c.iterations, c.psf_energy)
+            return int(self.net.context_px) + linear_reach_px(step_op, window, c.iterations, psf_energy)
+        return int(self.net.context_px) + reach_px(step_op, c.iterations, psf_energy)
 
     @property
     def bands(self):
@@ -116,7 +120,11 @@ class CameraSystem(nn.Module):
         """Sensor image (B, 1, H, W) → cube (B, C, H, W) (float32): :meth:`network`, then, in eval
         mode with ``consistency`` on, the measurement-consistency step through the nominal snapshot
         of ``step_camera`` (default ``camera``), its PSFs cut to ``consistency.psf_energy``, or
-        through ``step_operator`` as given (already cut: :meth:`reconstructor` passes one)."""
+        through ``step_operator`` as given (already cut: :meth:`reconstructor` passes one).
+
+        ``sensor``: floating (any precision), values in [0, 1] (1 = full scale), finite, on the model's
+        device; else an :class:`InputError` naming what is wrong (:meth:`check_input`)."""
+        self.check_input(sensor)
         x = self.network(sensor, origin, operator)
         if self.training or not self.consistency_on:
             return x
@@ -133,11 +141,19 @@ class CameraSystem(nn.Module):
         return consistency_step(op, sensor, x, origin, damping=c.damping, iterations=c.iterations,
                                 psf_energy=energy, extend=self._extension())
 
+    def check_input(self, sensor: torch.Tensor) -> None:
+        """:class:`InputError` unless ``sensor`` is a finite floating (B, 1, H, W) image, B, H, W >= 1, on
+        the model's device (shape and dtype: :func:`~hsicam.cameras.base.check_sensor_image`)."""
+        check_sensor_image(sensor, "sensor")
+        check_device(sensor, self, "sensor")
+        check_finite(sensor, "sensor")
+
     def reconstructor(self):
         """``reconstruct`` with the camera's nominal operator computed once, for inference on many
-        tiles or scenes of one camera: ``fn(sensor, origin=(0, 0)) → cube``. (A network given the
-        camera itself would rebuild its PSF stack on every call.) Take a new one after the optics
-        change."""
+        tiles or scenes of one camera: ``fn(sensor, origin=(0, 0)) → cube``; ``fn.context_px`` is
+        :attr:`context_px` (the halo :func:`~hsicam.engine.inference.reconstruct_tiled` takes by
+        default). (A network given the camera itself would rebuild its PSF stack on every call.)
+        Take a new one after the optics change."""
         snap = getattr(self.camera, "snapshot", None)
         with torch.no_grad():
             op = snap(nominal=True) if callable(snap) else self.camera
@@ -149,6 +165,7 @@ class CameraSystem(nn.Module):
         def fn(sensor: torch.Tensor, origin: tuple[int, int] = (0, 0)) -> torch.Tensor:
             return self.reconstruct(sensor, origin, operator=op, step_operator=step_op)
 
+        fn.context_px = int(self.net.context_px) if step_op is None else self._context_px(step_op, 1.0)
         return fn
 
     def forward(self, scene: torch.Tensor, generator: torch.Generator | None = None,

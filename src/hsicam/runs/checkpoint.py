@@ -7,6 +7,7 @@ Run folder layout::
     RUN/checkpoints/step-N/    model.safetensors, optimizer.safetensors, state.json
     RUN/checkpoints.json       the manifest: the one commit point of every checkpoint
     RUN/model.safetensors      weights of the manifest's best (else last) checkpoint, derived from it
+    RUN/.hsicam-lock           while a process trains in the run (:mod:`hsicam.runs.lock`)
 
 **One commit point.** A checkpoint is written as a step folder under a hidden temporary name and
 renamed into place; then ONE small manifest, ``checkpoints.json``, is replaced atomically::
@@ -28,10 +29,12 @@ never takes other weights than the manifest's best for the best. Runs written be
 
 from __future__ import annotations
 
+import errno
 import hashlib
 import json
 import logging
 import os
+import re
 import shutil
 from pathlib import Path
 from typing import Any
@@ -71,12 +74,41 @@ def file_sha256(path: str | Path) -> str:
     return _HASHES[key]
 
 
+#: The OS error number in a safetensors I/O error's text ("… No space left on device (os error 28)").
+_OS_ERROR = re.compile(r"\(os error (\d+)\)")
+
+
+def _reason(exc: OSError) -> str:
+    """What went wrong in ``exc``, without the file name."""
+    if exc.errno is not None:
+        return os.strerror(exc.errno)
+    return exc.strerror or (str(exc).splitlines() or [type(exc).__name__])[0]
+
+
+def _resume_hint(exc: OSError) -> str:
+    full = exc.errno in (errno.ENOSPC, errno.EDQUOT)
+    return "free some space, then resume the run" if full else "resume the run once it can be written"
+
+
+def save_safetensors(path: str | Path, tensors: dict[str, torch.Tensor], meta: dict[str, str]) -> None:
+    """``tensors`` → safetensors file ``path`` (atomic). A failed write (a full disk …) is an
+    OSError naming ``path`` (safetensors' own error names no file), ``path`` left as it was."""
+    try:
+        with atomic_path(path) as tmp:
+            save_file(tensors, str(tmp), metadata=meta)
+    except SafetensorError as exc:
+        found = _OS_ERROR.search(str(exc))
+        if found is None:
+            raise
+        code = int(found.group(1))
+        raise OSError(code, os.strerror(code), str(path)) from None
+
+
 def save_weights(path: str | Path, model: nn.Module, bands: Bands, extra: dict[str, str] | None = None) -> None:
     """Model state dict → safetensors (atomic), with the band grid in the metadata."""
     tensors = {k: v.detach().cpu().contiguous() for k, v in model.state_dict().items()}
     meta = {"format": FORMAT, "bands": json.dumps(bands.to_dict()), **(extra or {})}
-    with atomic_path(path) as tmp:
-        save_file(tensors, str(tmp), metadata=meta)
+    save_safetensors(path, tensors, meta)
 
 
 def read_weights(path: str | Path) -> tuple[dict[str, torch.Tensor], dict[str, str]]:
@@ -125,8 +157,7 @@ def save_optimizer(path: str | Path, optimizer: torch.optim.Optimizer) -> None:
             else:
                 scalars[f"{idx}.{name}"] = val
     meta = {"format": FORMAT, "param_groups": json.dumps(sd["param_groups"]), "scalars": json.dumps(scalars)}
-    with atomic_path(path) as tmp:
-        save_file(tensors, str(tmp), metadata=meta)
+    save_safetensors(path, tensors, meta)
 
 
 def load_optimizer(path: str | Path, optimizer: torch.optim.Optimizer) -> None:
@@ -218,8 +249,11 @@ class CheckpointManager:
              tags: tuple[str, ...] = ("last",), meta: dict[str, str] | None = None) -> Path:
         """Write checkpoint ``step-<global_step>``, then commit it: the manifest names it as last
         (and as best when ``tags`` holds "best"). Then the root weights follow the manifest and
-        the folders it no longer names are pruned."""
-        self.ckpt_dir.mkdir(parents=True, exist_ok=True)
+        the folders it no longer names are pruned.
+
+        A failed write (a full disk …) is one :class:`InputError` naming the file and what the run
+        keeps: before the manifest is replaced nothing is committed, and a resume continues from
+        the previous checkpoint."""
         old = self.manifest()
         step = int(state["global_step"])
         name = f"step-{step:08d}"
@@ -234,14 +268,21 @@ class CheckpointManager:
             if final.exists():  # a folder no manifest names (left by a killed process): redo it
                 shutil.rmtree(final)
             tmp = self.ckpt_dir / f".{name}.{os.urandom(4).hex()}.tmpdir"
-            os.mkdir(tmp)
+            writing = final  # what a failed write is named by
             try:
-                save_weights(tmp / "model.safetensors", model, bands, meta)
-                save_optimizer(tmp / "optimizer.safetensors", optimizer)
-                write_json(tmp / "state.json", state)  # informational; the manifest holds the state
+                self.ckpt_dir.mkdir(parents=True, exist_ok=True)
+                os.mkdir(tmp)
+                for file, write in (("model.safetensors", lambda p: save_weights(p, model, bands, meta)),
+                                    ("optimizer.safetensors", lambda p: save_optimizer(p, optimizer)),
+                                    ("state.json", lambda p: write_json(p, state))):  # state.json: informational
+                    writing = final / file
+                    write(tmp / file)
+                writing = final
                 os.rename(tmp, final)
-            except BaseException:
+            except BaseException as exc:
                 shutil.rmtree(tmp, ignore_errors=True)
+                if isinstance(exc, OSError):
+                    raise self._uncommitted(exc, writing, old) from None
                 raise
             sha = file_sha256(final / "model.safetensors")
         entry = {"dir": rel, "step": step, "weights_sha256": sha}
@@ -253,12 +294,28 @@ class CheckpointManager:
         man = {"format": MANIFEST_FORMAT, "last": entry, "best": best, "state": dict(state),
                "weights": {"file": self.weights_file, "from": root_from, "dir": src["dir"],
                            "sha256": src.get("weights_sha256")}}
-        write_json(self.run_dir / MANIFEST, man)  # the commit point
+        try:
+            write_json(self.run_dir / MANIFEST, man)  # the commit point
+        except OSError as exc:
+            if rel not in named:
+                shutil.rmtree(final, ignore_errors=True)  # named by no manifest
+            raise self._uncommitted(exc, self.run_dir / MANIFEST, old) from None
         for legacy in LEGACY_POINTERS:
             (self.run_dir / legacy).unlink(missing_ok=True)
-        self.sync_root()
+        try:
+            self.sync_root()
+        except OSError as exc:
+            raise InputError(f"{self.run_dir / self.weights_file}: {_reason(exc)}; checkpoint step {step} was committed, "
+                             f"but {self.weights_file} still holds earlier weights (readers take the checkpoint's; "
+                             f"a resume rewrites it): {_resume_hint(exc)}") from None
         self._prune(man)
         return final
+
+    def _uncommitted(self, exc: OSError, path: Path, old: dict[str, Any] | None) -> InputError:
+        """The failed write of a checkpoint's ``path`` before its commit, saying what the run keeps."""
+        kept = (f"the last checkpoint (step {old['last'].get('step')}) is unchanged" if old is not None
+                else "the run has no checkpoint yet")
+        return InputError(f"{path}: {_reason(exc)}; nothing was committed: {kept}; {_resume_hint(exc)}")
 
     def root_source(self) -> tuple[Path, str | None] | None:
         """(weights file of the checkpoint the root weights must hold, its SHA-256 when recorded)."""

@@ -29,6 +29,7 @@ from hsicam.errors import InputError
 from hsicam.io import atomic_open, cleanup_stale_temporaries, is_temporary
 from hsicam.runs.checkpoint import LEGACY_POINTERS, MANIFEST, CheckpointManager, load_weights, root_weights_path
 from hsicam.runs.linear_step import LINEAR_STEP_FILE, load_linear_step, stale_reason
+from hsicam.runs.lock import LOCK_FILE
 from hsicam.runs.measured_psf import MEASURED_PSF_FILE, MeasuredPSF, load_measured_psf
 from hsicam.runs.pretrained import resolve_run
 
@@ -52,11 +53,17 @@ def load_run(run_dir: str | Path, device: torch.device | str = "cpu", overrides:
     fine-tuned on measured PSFs (``RUN/measured_psf.safetensors``) images with those PSFs.
     ``run_dir`` may be ``pretrained:NAME``, a camera shipped with the package.
 
-    Raises :class:`InputError` for a missing folder, missing/corrupt weights or another band grid.
+    ``device``: cpu, cuda, cuda:N or mps, one this machine has (:func:`hsicam.devices.device_problem`,
+    as ``--device``). Raises :class:`InputError` for another device, a missing folder,
+    missing/corrupt weights or another band grid.
     """
     from hsicam.config import load_config
+    from hsicam.devices import device_problem
     from hsicam.models import CameraSystem
 
+    problem = device_problem(str(device))
+    if problem is not None:
+        raise InputError(f"load_run: device {str(device)!r}: {problem}")
     run_dir = resolve_run(run_dir)
     if not run_dir.is_dir():
         raise InputError(f"{run_dir}: no such run folder")
@@ -68,7 +75,15 @@ def load_run(run_dir: str | Path, device: torch.device | str = "cpu", overrides:
     if not weights.is_file():
         raise InputError(no_weights_message(run_dir))
     model = CameraSystem.from_config(cfg)
-    load_weights(root_weights_path(run_dir), model, cfg.bands.to_bands())
+    try:
+        load_weights(root_weights_path(run_dir), model, cfg.bands.to_bands())
+    except InputError as exc:
+        if not overrides:
+            raise
+        # the weights fitted the run's own config: the --set keys changed what it trained
+        raise InputError(f"--set {' '.join(map(str, overrides))}: changes what {run_dir} was trained with, so its "
+                         f"weights do not load ({exc}); a trained run's camera, bands and network are fixed by its "
+                         "training (another design: hsicam train)") from None
     if (run_dir / LINEAR_STEP_FILE).is_file():  # the linear consistency step's filters (fitted after training)
         model.linear_step = load_linear_step(run_dir / LINEAR_STEP_FILE, len(model.bands),
                                              int(getattr(model.camera, "code_period", 1)))
@@ -256,7 +271,7 @@ def remove_run_temporaries(run_dir: Path) -> list[Path]:
 #: What a run folder may hold (anything else means it is not only a run folder: never wiped).
 RUN_ENTRIES = frozenset({"config.yaml", "metrics.jsonl", "checkpoints", "tensorboard", MANIFEST, *LEGACY_POINTERS,
                          "model.safetensors", "prior.safetensors", "summary.json", "prior.yaml", MEASURED_PSF_FILE, LINEAR_STEP_FILE,
-                         "measured_psf.json"})
+                         "measured_psf.json", LOCK_FILE})
 
 
 def finished_checkpoint_step(run_dir: Path) -> int | None:

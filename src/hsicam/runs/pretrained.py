@@ -27,7 +27,6 @@ from __future__ import annotations
 import json
 import os
 import re
-import shutil
 from importlib import resources
 from pathlib import Path
 from typing import Any
@@ -255,6 +254,17 @@ def check_not_pretrained(path: str | Path, what: str = "output folder") -> None:
         raise InputError(f"{path}: pretrained cameras are read-only; use another {what}, or {READ_ONLY_HINT}")
 
 
+def copy_file(src: Path, dst: Path) -> None:
+    """Copy ``src`` (a camera's file: at most MAX_WEIGHTS_BYTES) to ``dst``: read whole, then written,
+    so that a failed write (a full disk …) names ``dst`` (``shutil.copyfile`` names the source)."""
+    data = src.read_bytes()
+    try:
+        with open(dst, "wb") as fh:
+            fh.write(data)
+    except OSError as exc:
+        raise OSError(exc.errno, exc.strerror or str(exc), str(dst)) from None
+
+
 def copy_pretrained(name: str, dest: str | Path) -> Path:
     """Copy the shipped camera ``name`` into the new run folder ``dest`` (absent or empty); weights
     that are not its card's are refused (:func:`check_weights`), nothing written.
@@ -272,5 +282,5 @@ def copy_pretrained(name: str, dest: str | Path) -> Path:
     with atomic_output(dest, "dir", marker=False) as tmp:
         for f in FILES:
             if (src / f).is_file():
-                shutil.copyfile(src / f, tmp / f)
+                copy_file(src / f, tmp / f)
     return dest

@@ -1,0 +1,126 @@
+"""One process at a time trains in a run folder (:mod:`hsicam.runs.lock`): a second one is refused
+with one line before it touches anything; the lock goes with its holder however it ends."""
+
+from __future__ import annotations
+
+import fcntl
+import hashlib
+import json
+import os
+import re
+from pathlib import Path
+
+import pytest
+from cli_helpers import error_line, module_cache, run_cli
+
+from hsicam.config import load_config
+from hsicam.engine.train import train
+from hsicam.runs.checkpoint import CheckpointManager
+from hsicam.runs.folder import RUN_ENTRIES
+from hsicam.runs.lock import LOCK_FILE, RunLock, check_not_locked
+
+
+@pytest.fixture(scope="module")
+def env(tmp_path_factory):
+    yield from module_cache(tmp_path_factory)
+
+
+def _cfg():
+    return load_config("tiny", ["train.epochs=2", "train.checkpoint_every_steps=3"])
+
+
+def _snapshot(folder: Path) -> dict[str, tuple[str, int]]:
+    """Every entry under ``folder`` (hidden ones too): content hash (files) and modification time."""
+    out = {}
+    for p in sorted(folder.rglob("*")):
+        digest = hashlib.sha256(p.read_bytes()).hexdigest() if p.is_file() else "dir"
+        out[p.relative_to(folder).as_posix()] = (digest, p.stat().st_mtime_ns)
+    return out
+
+
+def _held_elsewhere(run: Path) -> bool:
+    """True when a lock on ``run``'s lock file is held (tried through a new open file: flock locks
+    of two open files conflict even within one process)."""
+    fd = os.open(run / LOCK_FILE, os.O_RDONLY)
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        return True
+    finally:
+        os.close(fd)
+    return False
+
+
+@pytest.fixture(scope="module")
+def stopped(env, tmp_path_factory):
+    """A run stopped at step 5 of 8 (a resume would train on and write)."""
+    run = tmp_path_factory.mktemp("runs") / "run"
+    train(_cfg(), run, progress=False, stop_after_steps=5)
+    return run
+
+
+def test_a_second_process_is_refused_before_it_touches_anything(stopped, env):
+    run = stopped
+    # the in-flight checkpoint of the process that holds the lock: a second process used to delete it
+    inflight = run / "checkpoints" / ".step-00000006.abcd1234.tmpdir"
+    inflight.mkdir()
+    (inflight / "model.safetensors").write_bytes(b"being written")
+    try:
+        with RunLock(run) as lock:
+            lock.acquire()
+            info = json.loads((run / LOCK_FILE).read_text())
+            assert info["pid"] == os.getpid()
+            before = _snapshot(run)
+            want = re.compile(rf"hsicam: error: {re.escape(str(run))}: being trained by another process \(pid "
+                              rf"{os.getpid()}, since {re.escape(info['since'])}\); wait for it or stop it")
+            for args in (("--resume",), ("--restart", "--config", "tiny"), ("--config", "tiny")):
+                res = run_cli("train", "--out", str(run), *args, env=env)
+                assert want.fullmatch(error_line(res)), (args, res.stderr)
+                assert _snapshot(run) == before, args
+        assert not (run / LOCK_FILE).exists()  # removed on release
+    finally:
+        (inflight / "model.safetensors").unlink()
+        inflight.rmdir()
+
+
+def test_training_holds_the_lock_and_lets_go(env, tmp_path, monkeypatch):
+    run = tmp_path / "run"
+    seen = []
+    real = CheckpointManager.save
+
+    def save(self, *a, **k):
+        seen.append(_held_elsewhere(self.run_dir))
+        check_not_locked(self.run_dir)  # this process's own lock: no refusal
+        return real(self, *a, **k)
+
+    monkeypatch.setattr(CheckpointManager, "save", save)
+    train(_cfg(), run, progress=False)  # a new run: locked in its temporary folder, then in place
+    assert seen and all(seen)
+    assert not (run / LOCK_FILE).exists()
+    n = len(seen)
+    train(_cfg(), run, resume=True, progress=False)  # finished: nothing to write, the lock comes and goes
+    train(load_config(run / "config.yaml", ["train.epochs=3"]), run, resume=True, progress=False)
+    assert len(seen) > n and all(seen)
+    assert not (run / LOCK_FILE).exists()
+
+
+def test_an_interrupted_training_lets_go_and_a_stale_lock_file_is_taken_over(env, tmp_path, monkeypatch):
+    run = tmp_path / "run"
+    train(_cfg(), run, progress=False, stop_after_steps=3)
+    real = CheckpointManager.save
+
+    def interrupted(self, *a, **k):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(CheckpointManager, "save", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        train(_cfg(), run, resume=True, progress=False)
+    assert not (run / LOCK_FILE).exists()
+    monkeypatch.setattr(CheckpointManager, "save", real)
+    # a lock file left by a killed process (kill -9) holds no lock: neither a refusal nor a user's file
+    (run / LOCK_FILE).write_text(json.dumps({"pid": 999999, "since": "2000-01-01 00:00:00"}))
+    check_not_locked(run)
+    assert LOCK_FILE in RUN_ENTRIES and LOCK_FILE.startswith(".")
+    summary = train(_cfg(), run, resume=True, progress=False)
+    assert summary["step"] == 8
+    assert not (run / LOCK_FILE).exists()
