@@ -93,9 +93,10 @@ def test_scene_checks_of_the_camera(system):
         cases = [
             ((scene * 100).long(), "scene must be a floating-point tensor with values in [0, 1] (reflectance-like), "
                                    "got torch.int64"),
-            (scene.half(), "scene is torch.float16 on the CPU: the camera needs float32 or float64 there (x.float())"),
-            (scene.bfloat16(), "scene is torch.bfloat16 on the CPU: the camera needs float32 or float64 there "
-                               "(x.float())"),
+            (scene.half(), "scene is torch.float16 on the CPU: the DOECamera's FFT convolution needs float32 or "
+                           "float64 there (x.float())"),
+            (scene.bfloat16(), "scene is torch.bfloat16 on the CPU: the DOECamera's FFT convolution needs float32 or "
+                               "float64 there (x.float())"),
             (scene[:0], "scene of shape (0, 7, 44, 44) is an empty batch: it needs B >= 1"),
             (scene.to("meta"), "scene is on meta, the DOECamera on cpu: move one of them (.to('cpu'))"),
         ]
@@ -172,3 +173,15 @@ def test_load_run_names_a_missing_cuda_device(tmp_path):
 
     with pytest.raises(InputError, match=re.escape("load_run: device 'cuda': no CUDA device is available here")):
         load_run(tmp_path / "no-run", device="cuda")
+
+
+def test_a_cassi_camera_images_half_precision_scenes_on_the_cpu():
+    """No FFT in CASSI's forward model: float16/bfloat16 scenes image as before (probe 25, F5: the
+    DOE camera's rule had been applied to every camera)."""
+    for kind in ("dd_cassi", "sd_cassi"):
+        cam = CameraSystem.from_config(load_config("tiny", [f"camera.kind={kind}"])).eval().camera
+        scene = torch.rand(1, 7, 32, 32, generator=torch.Generator().manual_seed(3))
+        with torch.no_grad():
+            want = cam.A(scene)
+            for dtype, tol in ((torch.float16, 2e-3), (torch.bfloat16, 2e-2)):
+                torch.testing.assert_close(cam.A(scene.to(dtype)).float(), want, rtol=tol, atol=tol)

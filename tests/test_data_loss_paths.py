@@ -114,7 +114,7 @@ def _user_files(d: Path) -> dict[str, tuple[str, ...]]:
     (d / "c.img").write_text("MY IMPORTANT IMAGE\n")  # ENVI data path of --out c.hdr, no header
     write_envi(d / "v.hdr", cube, bands, description="my own ENVI cube")
     write_png8(d / "p_rgb.png", np.zeros((48, 48, 3)))  # a preview-looking PNG with no cube beside it
-    write_envi(d / "w.hdr", cube, bands)  # write_envi's default description, "hsicam cube": no preview beside it
+    write_envi(d / "w.hdr", cube, bands, description="hsicam cube")  # write_envi's old default: no preview beside it
     write_cube_h5(d / "r.h5", cube, bands, {"source": "cap.npy", "run": "a run"})  # reconstruct-like metadata, no preview
     return {"e.h5": ("e.h5",), "s.h5": ("s.h5",), "c.hdr": ("c.img",), "v.hdr": ("v.hdr", "v.img"), "p.h5": ("p_rgb.png",),
             "w.hdr": ("w.hdr", "w.img"), "r.h5": ("r.h5",)}

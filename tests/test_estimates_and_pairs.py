@@ -65,7 +65,8 @@ def test_new_data_beside_an_old_header_is_refused(tmp_path):
         read_cube(hdr)
     shutil.copyfile(write_envi(other / "same.hdr", cube(16, 16, 2), BANDS)[1], data)  # same size, other data
     with pytest.raises(InputError, match=rf"{data}: not the data e.hdr was written for \(CRC-32 [0-9a-f]{{8}}, the "
-                                         r"header records [0-9a-f]{8}\): an interrupted write"):
+                                         r"header records [0-9a-f]{8}\): an interrupted write .*, or the data were edited "
+                                         rf"since \(to keep them, remove the '{ENVI_CRC_KEY}' line from e.hdr\)"):
         read_cube(hdr)
 
 
@@ -150,3 +151,32 @@ def test_a_generated_dataset_lists_the_scenes_of_its_manifest(tmp_path, caplog):
     listed[1].unlink()
     with pytest.raises(InputError, match=rf"{ds}: 1 scene\(s\) its manifest.json lists are missing \({listed[1].name}\)"):
         list_scenes(ds)
+
+
+def test_a_users_write_envi_scene_with_a_quick_look_is_a_scene(tmp_path):
+    """write_envi's default description was reconstruct's older one: with a <stem>_rgb.png beside it,
+    a user's scene was skipped as an estimate (probe 25, F2). Only what reconstruct alone writes
+    counts now, and write_envi's default is its own."""
+    from hsicam.data.estimates import ENVI_DESCRIPTIONS, is_estimate
+    from hsicam.io import write_png8
+
+    data = tmp_path / "d"
+    data.mkdir()
+    for i, description in enumerate((None, "hsicam cube")):  # today's default, and the old one
+        kwargs = {} if description is None else {"description": description}
+        hdr, _ = write_envi(data / f"s{i}.hdr", cube(16, 16, i), BANDS, **kwargs)
+        write_png8(data / f"s{i}_rgb.png", np.zeros((16, 16, 3)))
+        assert not is_estimate(hdr)
+    assert "hsicam write_envi" in (data / "s0.hdr").read_text() and ENVI_DESCRIPTIONS[0] != "hsicam write_envi"
+    write_cube_h5(data / "s2.h5", cube(16, 16, 2), BANDS, {"source": "cap.npy", "run": "a run"})  # reconstruct-like
+    write_png8(data / "s2_rgb.png", np.zeros((16, 16, 3)))
+    assert list_scenes(data) == [data / "s0.hdr", data / "s1.hdr", data / "s2.h5"]
+
+
+@pytest.mark.parametrize("text", ['[{"file": "s0.h5"}]', '"notes"', '{"format": "mine", "scenes": 3}', "{"])
+def test_a_manifest_that_is_not_hsicams_is_scanned_past(tmp_path, text):
+    """A manifest.json that is a list or a string gave an AttributeError traceback (probe 25, F3)."""
+    for i in range(2):
+        write_cube_h5(tmp_path / f"s{i}.h5", cube(16, 16, i), BANDS)
+    (tmp_path / "manifest.json").write_text(text)
+    assert list_scenes(tmp_path) == [tmp_path / "s0.h5", tmp_path / "s1.h5"]

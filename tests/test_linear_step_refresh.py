@@ -193,3 +193,26 @@ def test_stale_filters_do_not_block_a_run_evaluated_without_them(linear_run, tmp
     shutil.copyfile(linear_run / LINEAR_STEP_FILE, run / LINEAR_STEP_FILE)
     _, model = load_run(run, overrides=("model.consistency.kind=landweber",))
     assert model.linear_step is None
+
+
+def test_evaluate_with_another_filter_width_or_stale_filters_names_the_refit(linear_run, tmp_path, capsys):
+    """evaluate --set model.consistency.window_px=5 used the run's 11 px filters and recorded a config
+    of its own (probe 25, F4); stale filters asked for by --set kind=linear were called missing (F6)."""
+    from cli_helpers import assert_clean_error, run_cli_in_process
+
+    out = tmp_path / "ev"
+    assert_clean_error(run_cli_in_process("evaluate", "--run", str(linear_run), "--out", str(out), "--set",
+                                          "model.consistency.window_px=5"),
+                       f"{linear_run / LINEAR_STEP_FILE} holds 11 px filters; model.consistency.window_px asks for 5; "
+                       f"refit it: hsicam train --out {linear_run} --resume --set model.consistency.window_px=5")
+    run = shutil.copytree(linear_run, tmp_path / "run")
+    assert main(["train", "--out", str(run), "--resume", "--set", "train.epochs=4", "--set",
+                 "model.consistency.kind=landweber"]) == 0  # trained on: the filters (not refitted) are stale
+    assert "landweber" in (run / "config.yaml").read_text()
+    assert_clean_error(run_cli_in_process("evaluate", "--run", str(run), "--out", str(out), "--set",
+                                          "model.consistency.kind=linear"),
+                       f"{run / LINEAR_STEP_FILE} was fitted through other weights",
+                       f"refit it: hsicam train --out {run} --resume --set model.consistency.kind=linear")
+    assert not out.exists()
+    assert main(["train", "--out", str(run), "--resume", "--set", "model.consistency.kind=linear"]) == 0
+    assert run_cli_in_process("evaluate", "--run", str(run), "--out", str(out)).returncode == 0

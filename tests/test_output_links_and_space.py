@@ -280,3 +280,19 @@ def test_the_input_run_as_out_is_named(run, scene):
     res = run_cli_in_process("psf", "--config", "tiny", "--out", str(run))  # another command's input: still a run
     assert_clean_error(res, f"{run}: holds a training run, which hsicam psf never replaces; choose another --out")
     assert entries(run) == before
+
+
+def test_a_replaced_folder_holding_a_link_names_where_it_leads(tmp_path):
+    """`hsicam report EV` written through a link EV/report, then `evaluate --out EV`: the refusal named
+    `report` as a user's file without saying it is a link, nor that removing it keeps the report
+    (probe 25, F8)."""
+    from hsicam.io import check_replaceable
+
+    ev = tmp_path / "ev"
+    with atomic_output(ev, marker={"command": "evaluate"}) as tmp:
+        (tmp / "results.json").write_text("{}")
+    (tmp_path / "site").mkdir()
+    (ev / "report").symlink_to("../site")
+    with pytest.raises(InputError, match=r"holds report \(a symbolic link to \.\./site: remove the link, its target is "
+                                         r"kept\), which hsicam evaluate did not write"):
+        check_replaceable(ev, overwrite=True, command="evaluate")

@@ -397,6 +397,11 @@ def test_evaluate_refuses_a_prior_key_set_to_its_default(tiny_env, tmp_path):
     assert not out.exists()
     own = [f"baselines.choi.latent={trained.latent}", "baselines.choi.rho=0.7"]  # the prior's own value: accepted
     check_prior_overrides(prior, load_config(prior / "config.yaml", own), own)
+    # the section given as a mapping names its keys too (probe 25, F1: it got past the check)
+    for mapping in (f"baselines.choi={{latent: {default.latent}, rho: 0.7}}",
+                    f"baselines={{choi: {{latent: {default.latent}}}}}"):
+        with pytest.raises(InputError, match=rf"baselines.choi.latent={default.latent} \(the prior's: {trained.latent}\)"):
+            check_prior_overrides(prior, load_config(prior / "config.yaml", [mapping]), [mapping])
 
 
 def test_prior_folder_and_reuse(tiny_env):

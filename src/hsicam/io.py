@@ -418,9 +418,18 @@ def check_replaceable(path: Path, overwrite: bool, command: str | None = None) -
                              f"hsicam and lists the folder only); move your files out of {path / d} and delete it, "
                              "or choose another folder")
         if extra:
-            shown = ", ".join(extra[:5]) + (f" and {len(extra) - 5} more" if len(extra) > 5 else "")
+            shown = ", ".join(_entry_text(path, e) for e in extra[:5]) + (f" and {len(extra) - 5} more" if len(extra) > 5 else "")
             raise InputError(f"{path}: holds {shown}, which {writer} did not write; choose another folder or "
                              "move them")
+
+
+def _entry_text(folder: Path, entry: str) -> str:
+    """``entry`` of ``folder`` as a refusal names it: a symbolic link says where it leads (e.g. a
+    report written through it) and that removing it keeps its target."""
+    p = folder / entry.rstrip("/")
+    if not p.is_symlink():
+        return entry
+    return f"{entry} (a symbolic link to {os.readlink(p)}: remove the link, its target is kept)"
 
 
 def written_entries(folder: Path) -> list[str]:

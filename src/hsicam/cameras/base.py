@@ -83,6 +83,7 @@ class Camera(nn.Module):
 
     kind: str = "camera"
     has_diagonal_gram: bool = False  # A·Aᵀ is diagonal (CASSI): gram_diagonal() is available
+    half_precision_on_cpu: bool = True  # False where the forward model needs float32/64 on the CPU (FFTs)
     bands: Bands
     boundary: str
     noise: nn.Module
@@ -265,7 +266,8 @@ class Camera(nn.Module):
 
     def check_scene(self, x: torch.Tensor) -> None:
         """Raise :class:`InputError` unless ``x`` is a (B, C, H, W) cube on this camera's grid: floating
-        (float32/float64 on the CPU, whose FFTs have no half precision), B >= 1, on the camera's device;
+        (float32/float64 on the CPU for a camera whose FFTs have no half precision there:
+        :attr:`half_precision_on_cpu`), B >= 1, on the camera's device;
         in eval mode also finite (:func:`check_finite`; a training step skips that check)."""
         if not isinstance(x, torch.Tensor):
             raise InputError(f"scene must be a torch.Tensor (B, C, H, W), got {type(x).__name__}")
@@ -276,8 +278,9 @@ class Camera(nn.Module):
         if not torch.is_floating_point(x):
             raise InputError(f"scene must be a floating-point tensor with values in [0, 1] (reflectance-like), "
                              f"got {x.dtype}")
-        if x.device.type == "cpu" and x.dtype in (torch.float16, torch.bfloat16):
-            raise InputError(f"scene is {x.dtype} on the CPU: the camera needs float32 or float64 there (x.float())")
+        if x.device.type == "cpu" and x.dtype in (torch.float16, torch.bfloat16) and not self.half_precision_on_cpu:
+            raise InputError(f"scene is {x.dtype} on the CPU: the {type(self).__name__}'s FFT convolution needs float32 "
+                             "or float64 there (x.float())")
         if x.shape[0] < 1:
             raise InputError(f"scene of shape {tuple(x.shape)} is an empty batch: it needs B >= 1")
         check_device(x, self, "scene")

@@ -35,6 +35,8 @@ class DOECamera(Camera):
         padding: scene padding for "same" ("zeros", "reflect", "replicate", "circular").
     """
 
+    half_precision_on_cpu = False  # torch's CPU FFTs have no float16/bfloat16
+
     def __init__(self, bands: Bands, optics: PSFModel, cfa: ColorFilterArray, noise: SensorNoise,
                  boundary: str = "valid", padding: str = "zeros") -> None:
         super().__init__()

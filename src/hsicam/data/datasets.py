@@ -116,7 +116,8 @@ def _manifest_scenes(root: Path) -> list[Path] | None:
         return None
     try:
         manifest = json.loads(path.read_text(encoding="utf-8"))
-        files = [str(s["file"]) for s in manifest["scenes"]] if manifest.get("format") == "hsicam-synthetic" else None
+        ours = isinstance(manifest, dict) and manifest.get("format") == "hsicam-synthetic"
+        files = [str(s["file"]) for s in manifest["scenes"]] if ours else None
     except (OSError, ValueError, KeyError, TypeError):
         return None  # not ours (or unreadable): the folder is scanned as any other
     if not files:

@@ -15,7 +15,7 @@ from pathlib import Path
 from hsicam.errors import InputError
 
 #: Descriptions of the ENVI headers that reconstruct writes (``hsicam cube``: before it named itself,
-#: also write_envi's default, so reconstruct's only with its preview beside it).
+#: also write_envi's default until session 23, so reconstruct's only with its preview beside it).
 ENVI_DESCRIPTIONS = ("hsicam reconstruct", "hsicam cube")
 
 _HDF5_MAGIC = b"\x89HDF\r\n\x1a\n"
@@ -35,9 +35,9 @@ def preview_beside(cube: Path) -> bool:
     return cube.with_name(f"{cube.stem}_rgb.png").is_file()
 
 
-def is_reconstruct_h5(path: Path) -> bool:
-    """True for our HDF5 cube file written by reconstruct (its metadata names the command; before
-    it named itself, the capture and run, with its preview beside it)."""
+def is_reconstruct_h5(path: Path, legacy: bool = True) -> bool:
+    """True for our HDF5 cube file written by reconstruct (its metadata names the command; with
+    ``legacy``, also one from before it named itself: the capture and run, its preview beside it)."""
     import h5py
 
     from hsicam.data.formats import HSICAM_FORMAT
@@ -53,7 +53,7 @@ def is_reconstruct_h5(path: Path) -> bool:
         return False
     if not isinstance(meta, dict):
         return False
-    return meta.get("command") == "reconstruct" or ({"source", "run"} <= meta.keys() and preview_beside(path))
+    return meta.get("command") == "reconstruct" or (legacy and {"source", "run"} <= meta.keys() and preview_beside(path))
 
 
 def reconstruct_envi_header(path: Path) -> dict[str, str] | None:
@@ -74,10 +74,13 @@ def reconstruct_envi_header(path: Path) -> dict[str, str] | None:
 
 def is_estimate(path: Path) -> bool:
     """True when the cube file ``path`` (an .h5, or an ENVI pair listed by its .hdr) is a
-    reconstruction that hsicam reconstruct wrote."""
+    reconstruction that hsicam reconstruct wrote, by what only reconstruct writes (its metadata's
+    command, its header's description ``hsicam reconstruct``): the older forms, which a user's own
+    ``write_cube_h5``/``write_envi`` file with a quick-look beside it also has, count as scenes."""
     suffix = path.suffix.lower()
     if suffix in (".h5", ".hdf5"):
-        return is_reconstruct_h5(path)
+        return is_reconstruct_h5(path, legacy=False)
     if suffix == ".hdr":
-        return reconstruct_envi_header(path) is not None
+        h = reconstruct_envi_header(path)
+        return h is not None and h.get("description", "").strip("{} ") == ENVI_DESCRIPTIONS[0]
     return False

@@ -768,7 +768,9 @@ def read_envi(path: str | os.PathLike, *, allow_negative: bool = False, memory_b
         want, got = h[ENVI_CRC_KEY].strip().lower(), f"{zlib.crc32(memoryview(raw).cast('B')):08x}"
         if want != got:
             raise InputError(f"{data}: not the data {hdr.name} was written for (CRC-32 {got}, the header records {want}): "
-                             "an interrupted write left a new data file beside an old header; write the cube again")
+                             "an interrupted write left a new data file beside an old header (write the cube again), "
+                             f"or the data were edited since (to keep them, remove the '{ENVI_CRC_KEY}' line from "
+                             f"{hdr.name})")
     cube = {"bsq": raw, "bil": raw.transpose(1, 0, 2), "bip": raw.transpose(2, 0, 1)}[interleave]
     cube = cube.astype(np.float32)
     if dtype.kind == "f" and dtype.itemsize > 1 and not np.isfinite(cube).all():
@@ -815,7 +817,7 @@ def read_envi(path: str | os.PathLike, *, allow_negative: bool = False, memory_b
 
 
 def write_envi(path: str | os.PathLike, cube: np.ndarray, bands: Bands, *, interleave: str = "bsq",
-               dtype: str | np.dtype = "float32", byte_order: str = "little", description: str = "hsicam cube") -> tuple[Path, Path]:
+               dtype: str | np.dtype = "float32", byte_order: str = "little", description: str = "hsicam write_envi") -> tuple[Path, Path]:
     """Write an ENVI pair ``<name>.hdr`` + ``<name>.img`` atomically; returns (header, data) paths.
 
     ``path`` may name either file. The data file is written first, the header last, so a reader

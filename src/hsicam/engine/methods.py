@@ -39,6 +39,7 @@ from pathlib import Path
 from typing import Any, Callable
 
 import torch
+import yaml
 
 from hsicam.cameras import Camera, DDCASSICamera
 from hsicam.config import load_config
@@ -47,7 +48,7 @@ from hsicam.engine.prior import load_prior
 from hsicam.errors import InputError
 from hsicam.engine.linear_step import LINEAR_MAP_RIDGE, fit_linear_map
 from hsicam.models.demosaic import camera_demosaic, phase_linear
-from hsicam.runs.folder import load_run
+from hsicam.runs.folder import linear_step_problem, load_run
 from hsicam.runs.pretrained import resolve_run
 from hsicam.sensor import SensorNoise
 from hsicam.solvers.choi import admm_prior
@@ -171,10 +172,15 @@ def linear_demosaic_reference(model, train_scenes, window: int = LINEAR_REFERENC
                   {"window_px": window, "ridge": ridge, "flat_field": True})
 
 
-def _evaluation_settings(model, cfg) -> None:
+def _evaluation_settings(model, cfg, run) -> None:
     """What the evaluation's config (the run's own plus ``--set``) decides for a loaded run: the
     consistency step after the network (``model.consistency``; iterations=0 scores the network
-    alone) and the capture noise (``camera.sensor.*``, the DOE camera's ``camera.doe.sigma_height_nm``)."""
+    alone; a linear step whose filters in ``run`` do not fit it, e.g. another ``window_px``, is one
+    :class:`InputError` naming the command that refits them) and the capture noise
+    (``camera.sensor.*``, the DOE camera's ``camera.doe.sigma_height_nm``)."""
+    problem = linear_step_problem(resolve_run(run), cfg.model.consistency)
+    if problem:
+        raise InputError(problem)
     model.consistency = cfg.model.consistency
     _evaluation_capture(model, cfg)
 
@@ -214,7 +220,7 @@ def _doe_method(cfg, run, device) -> Method:
             raise InputError(f"{run}: method doe-learned evaluates a DOE camera; this run was trained with "
                              f"camera.kind={run_cfg.camera.kind} (model.kind={run_cfg.model.kind}): use {use}")
     _, model = load_run(run, device)
-    _evaluation_settings(model, cfg)
+    _evaluation_settings(model, cfg, run)
     return learned_method("doe-learned", model, run)
 
 
@@ -325,7 +331,19 @@ def check_prior_overrides(run: str | Path, cfg, overrides) -> None:
     default."""
     from hsicam.engine.prior import PRIOR_TRAINING_KEYS, load_prior_settings
 
-    named = {str(o).split("=", 1)[0].strip() for o in overrides}
+    named: set[str] = set()
+    for item in overrides:
+        key, _, value = str(item).partition("=")
+        key = key.strip()
+        named.add(key)
+        if key in ("baselines", "baselines.choi"):  # a whole section as a mapping: its keys are given too
+            try:
+                section = yaml.safe_load(value)
+            except yaml.YAMLError:
+                continue
+            section = section.get("choi") if key == "baselines" and isinstance(section, dict) else section
+            if isinstance(section, dict):
+                named |= {f"baselines.choi.{k}" for k in section}
     explicit = tuple(k for k in PRIOR_TRAINING_KEYS if f"baselines.choi.{k}" in named)
     if explicit and cfg.baselines.choi is not None:
         _check_prior_keys(cfg.baselines.choi, load_prior_settings(run), run, explicit)
@@ -362,7 +380,7 @@ def _learned_cassi(name: str, network: str) -> Builder:
                 raise InputError(f"{run}: method {name} needs a run trained with model.kind={network}, "
                                  f"this one has model.kind={run_cfg.model.kind}")
         _, model = load_run(run, device)
-        _evaluation_settings(model, cfg)
+        _evaluation_settings(model, cfg, run)
         return learned_method(name, model, run, **_camera_info(model.camera))
 
     return build

@@ -25,7 +25,7 @@ from typing import Any
 
 import torch
 
-from hsicam.errors import InputError
+from hsicam.errors import HsicamError, InputError
 from hsicam.io import atomic_open, cleanup_stale_temporaries, is_temporary
 from hsicam.runs.checkpoint import LEGACY_POINTERS, MANIFEST, CheckpointManager, load_weights, root_weights_path
 from hsicam.runs.linear_step import LINEAR_STEP_FILE, load_linear_step, stale_reason
@@ -87,12 +87,11 @@ def load_run(run_dir: str | Path, device: torch.device | str = "cpu", overrides:
     if (run_dir / LINEAR_STEP_FILE).is_file():  # the linear consistency step's filters (fitted after training)
         model.linear_step = load_linear_step(run_dir / LINEAR_STEP_FILE, len(model.bands),
                                              int(getattr(model.camera, "code_period", 1)))
-        stale = stale_reason(run_dir / LINEAR_STEP_FILE, root_weights_path(run_dir))
-        c = cfg.model.consistency
-        if stale and c.kind == "linear" and c.iterations > 0:
-            raise InputError(f"{stale}; refit it: {refit_command(run_dir)}")
-        if stale:  # not used (e.g. --set model.consistency.kind=landweber): never the step of other weights
-            model.linear_step = None
+        problem = linear_step_problem(run_dir, cfg.model.consistency)
+        if problem:
+            raise InputError(problem)
+        if stale_reason(run_dir / LINEAR_STEP_FILE, root_weights_path(run_dir)):
+            model.linear_step = None  # not used (e.g. kind landweber): never the step of other weights
     if (run_dir / MEASURED_PSF_FILE).is_file():  # a run fine-tuned on measured PSFs images with them
         model = with_measured_psf(model, load_measured_psf(run_dir / MEASURED_PSF_FILE))
     unfinished = unfinished_training(run_dir, cfg)
@@ -101,17 +100,42 @@ def load_run(run_dir: str | Path, device: torch.device | str = "cpu", overrides:
     return cfg, model.to(device).eval()
 
 
-def refit_command(run_dir: Path) -> str:
-    """The command that brings a finished run's derived files (its linear step) up to date: resuming
-    its training, or its fine-tuning (with the source run and PSFs its finetune.json names)."""
+def linear_step_problem(run_dir: Path, consistency) -> str | None:
+    """Why ``consistency`` (a :class:`~hsicam.config.ConsistencyConfig`: the run's own, or an
+    evaluation's) cannot use the run's ``linear_step.safetensors``: fitted through other weights,
+    or of another width than ``window_px`` (the step would use the file's). The message names the
+    command that refits it with those settings. None when the step is not asked for, the file is
+    missing (the step says so when it runs), or it fits."""
+    path = run_dir / LINEAR_STEP_FILE
+    if consistency.kind != "linear" or consistency.iterations <= 0 or not path.is_file():
+        return None
+    why = stale_reason(path, root_weights_path(run_dir), consistency.window_px)
+    if why is None:
+        return None
+    try:
+        from hsicam.config import load_config
+
+        own = load_config(run_dir / "config.yaml").model.consistency
+    except HsicamError:
+        own = None
+    sets = [f"model.consistency.{k}={getattr(consistency, k)}" for k in ("kind", "iterations", "window_px")
+            if own is None or getattr(own, k) != getattr(consistency, k)]
+    return f"{why}; refit it: {refit_command(run_dir, sets)}"
+
+
+def refit_command(run_dir: Path, sets: list[str] | tuple[str, ...] = ()) -> str:
+    """The command that brings a finished run's derived files (its linear step) up to date, with
+    ``sets`` (``key=value``): resuming its training, or its fine-tuning (with the source run and
+    PSFs its finetune.json names)."""
+    extra = "".join(f" --set {s}" for s in sets)
     if not (run_dir / MEASURED_PSF_FILE).is_file():
-        return f"hsicam train --out {run_dir} --resume"
+        return f"hsicam train --out {run_dir} --resume{extra}"
     try:
         info = json.loads((run_dir / "finetune.json").read_text(encoding="utf-8"))
         source, psfs = info["source_run"], info["psf_dir"]
     except (OSError, ValueError, KeyError, TypeError):
         source, psfs = "SOURCE_RUN", "PSF_DIR"
-    return f"hsicam finetune --run {source} --psf-dir {psfs} --out {run_dir} --resume"
+    return f"hsicam finetune --run {source} --psf-dir {psfs} --out {run_dir} --resume{extra}"
 
 
 def holds_prior(run_dir: Path) -> bool:
