@@ -180,3 +180,14 @@ def test_a_manifest_that_is_not_hsicams_is_scanned_past(tmp_path, text):
         write_cube_h5(tmp_path / f"s{i}.h5", cube(16, 16, i), BANDS)
     (tmp_path / "manifest.json").write_text(text)
     assert list_scenes(tmp_path) == [tmp_path / "s0.h5", tmp_path / "s1.h5"]
+
+
+def test_another_writers_envi_data_with_trailing_bytes_is_read_with_a_warning(tmp_path, caplog):
+    """Only a pair hsicam wrote (its CRC line) must be exactly its header's size (review, session 23)."""
+    a = cube(8, 8, 0)
+    hdr, data = write_envi(tmp_path / "e.hdr", a, BANDS)
+    hdr.write_text("".join(x for x in hdr.read_text().splitlines(keepends=True) if not x.startswith(ENVI_CRC_KEY)))
+    data.write_bytes(data.read_bytes() + b"\0" * 512)
+    with caplog.at_level("WARNING"):
+        np.testing.assert_array_equal(read_envi(hdr)[0], a)
+    assert f"{data}: {a.nbytes + 512} bytes of ENVI data, but e.hdr describes {a.nbytes}" in caplog.text

@@ -216,3 +216,23 @@ def test_evaluate_with_another_filter_width_or_stale_filters_names_the_refit(lin
     assert not out.exists()
     assert main(["train", "--out", str(run), "--resume", "--set", "model.consistency.kind=linear"]) == 0
     assert run_cli_in_process("evaluate", "--run", str(run), "--out", str(out)).returncode == 0
+
+
+@pytest.mark.parametrize("name", shipped.available(shipped.package_root()))
+def test_a_shipped_camera_with_another_width_is_told_its_filters_are_fixed(name, monkeypatch):
+    """A shipped camera is read-only and a copy has no checkpoint to resume: no refit command."""
+    import dataclasses
+
+    from hsicam.runs.folder import linear_step_problem
+
+    monkeypatch.delenv(shipped.ENV_VAR, raising=False)
+    folder = shipped.pretrained_dir(name)
+    if not (folder / LINEAR_STEP_FILE).is_file():
+        pytest.skip("no linear step")
+    own = load_config(folder / "config.yaml").model.consistency
+    width = linear_step_info(folder / LINEAR_STEP_FILE)["filter_px"]
+    assert linear_step_problem(folder, own) is None
+    other = dataclasses.replace(own, window_px=width + 2)
+    assert linear_step_problem(folder, other) == (
+        f"{folder / LINEAR_STEP_FILE} holds {width} px filters; model.consistency.window_px asks for {width + 2}; "
+        "a shipped camera's filters are fixed: evaluate it with its own model.consistency settings")

@@ -3,7 +3,6 @@ with one line before it touches anything; the lock goes with its holder however 
 
 from __future__ import annotations
 
-import fcntl
 import hashlib
 import json
 import os
@@ -12,6 +11,8 @@ from pathlib import Path
 
 import pytest
 from cli_helpers import error_line, module_cache, run_cli
+
+fcntl = pytest.importorskip("fcntl")  # POSIX: where it is missing, nothing is locked
 
 from hsicam.config import load_config
 from hsicam.engine.train import train
@@ -123,4 +124,23 @@ def test_an_interrupted_training_lets_go_and_a_stale_lock_file_is_taken_over(env
     assert LOCK_FILE in RUN_ENTRIES and LOCK_FILE.startswith(".")
     summary = train(_cfg(), run, resume=True, progress=False)
     assert summary["step"] == 8
+    assert not (run / LOCK_FILE).exists()
+
+
+def test_the_lock_is_re_entrant_within_a_process(tmp_path):
+    """The training loop holds it, then the linear step's refit acquires it again (session 23 review):
+    an inner acquire does nothing and its release keeps the outer lock."""
+    run = tmp_path / "run"
+    run.mkdir()
+    with RunLock(run) as outer:
+        outer.acquire()
+        with RunLock(run) as inner:
+            inner.acquire()
+        assert (run / LOCK_FILE).is_file()
+        fd = os.open(run / LOCK_FILE, os.O_RDONLY)
+        try:
+            with pytest.raises(BlockingIOError):  # still held: another open file description cannot take it
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        finally:
+            os.close(fd)
     assert not (run / LOCK_FILE).exists()

@@ -267,8 +267,9 @@ class Camera(nn.Module):
     def check_scene(self, x: torch.Tensor) -> None:
         """Raise :class:`InputError` unless ``x`` is a (B, C, H, W) cube on this camera's grid: floating
         (float32/float64 on the CPU for a camera whose FFTs have no half precision there:
-        :attr:`half_precision_on_cpu`), B >= 1, on the camera's device;
-        in eval mode also finite (:func:`check_finite`; a training step skips that check)."""
+        :attr:`half_precision_on_cpu`), B >= 1, on the camera's device. Values are not scanned here (a
+        solver calls ``A`` every iteration): :meth:`capture` refuses NaN/Inf scenes, and
+        :meth:`hsicam.models.CameraSystem.reconstruct` NaN/Inf sensor images."""
         if not isinstance(x, torch.Tensor):
             raise InputError(f"scene must be a torch.Tensor (B, C, H, W), got {type(x).__name__}")
         if x.dim() != 4:
@@ -295,8 +296,6 @@ class Camera(nn.Module):
                 f"scene of {x.shape[-2]}×{x.shape[-1]} px is too small for boundary='valid' with a "
                 f"{self.margin + 1}-px kernel: it needs at least {self.margin + 1}×{self.margin + 1}"
             )
-        if not self.training:
-            check_finite(x, "scene")
 
     def snapshot(self, generator: torch.Generator | None = None, *, nominal: bool = False) -> "OperatorSnapshot":
         """This camera's noiseless linear operator, frozen for one batch (see :class:`OperatorSnapshot`).

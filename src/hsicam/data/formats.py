@@ -760,8 +760,11 @@ def read_envi(path: str | os.PathLike, *, allow_negative: bool = False, memory_b
     if size < expected:
         raise InputError(f"{data}: truncated ENVI data: {size} bytes, the header needs {expected}")
     if size > expected:  # e.g. the data of another (larger) cube beside this header
-        raise InputError(f"{data}: {size} bytes of ENVI data, but {hdr.name} describes {expected} ({lines}×{samples}×"
-                         f"{nbands} {dtype.name}): the header and the data do not belong together")
+        text = (f"{data}: {size} bytes of ENVI data, but {hdr.name} describes {expected} ({lines}×{samples}×"
+                f"{nbands} {dtype.name})")
+        if ENVI_CRC_KEY in h:  # a pair hsicam wrote: its data file is exactly what the header describes
+            raise InputError(f"{text}: the header and the data do not belong together")
+        log.warning("%s; reading the first %d (other software may pad its files)", text, expected)
     with _reading(data, "ENVI data"):
         raw = np.fromfile(data, dtype=dtype, count=count, offset=offset).reshape(shapes[interleave])
     if ENVI_CRC_KEY in h:  # written by hsicam: the data must be the one the header was written for

@@ -156,7 +156,7 @@ def finetune(run_dir: str | Path, psf_dir: str | Path, out_dir: str | Path, *, o
         check_run_dir(out_dir, False, f"fine-tuning writes a new run folder: choose another --out{again}")
     if resume:  # it goes on with the settings it was started with (--epochs, --lr, --set), then these
         overrides = (*continued_settings(out_dir, run_dir), *overrides)
-    cfg, base = load_run(run_dir, "cpu", tuple(overrides))
+    cfg, base = load_run(run_dir, "cpu", tuple(overrides), linear_step=False)  # the fine-tuned run fits its own
     measured = import_for_camera(psf_dir, base.camera, pitch_um=pitch_um)
     if resume:
         check_same_finetune(out_dir, run_dir, psf_dir, measured)
@@ -164,12 +164,16 @@ def finetune(run_dir: str | Path, psf_dir: str | Path, out_dir: str | Path, *, o
     task = FinetuneTask(cfg, with_measured_psf(base, measured), measured, run_dir, psf_dir)
     opts = FitOptions(cfg.train, cfg.data.num_workers, validate_at_start=True, progress=progress,
                       stop_after_steps=stop_after_steps)
-    fitted = fit(task, opts, out_dir, resume)
+
+    def then(summary: dict[str, Any]) -> dict[str, Any]:
+        # under the run's lock: the linear consistency step's filters through the measured PSFs
+        # (those of the source run were fitted through its simulated optics)
+        refresh_linear_step(out_dir, cfg.model.consistency)
+        return summary
+
+    fitted = fit(task, opts, out_dir, resume, then=then)
     if "stopped_at_step" in fitted:  # an interruption simulated by a test: no summary yet
         return fitted
-    # the linear consistency step's filters through the measured PSFs (those of the source run were
-    # fitted through its simulated optics)
-    refresh_linear_step(out_dir, cfg.model.consistency)
     records = MetricsLog(Path(out_dir) / "metrics.jsonl").read()
     vals = [r for r in records if "val_psnr" in r and not r.get("final")]
     strip = lambda r: {k[4:]: v for k, v in r.items() if k.startswith("val_")}  # noqa: E731

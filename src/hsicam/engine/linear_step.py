@@ -57,8 +57,8 @@ def refresh_linear_step(run_dir: str | Path, consistency) -> list[str]:
       through the run's weights (its best), when it is missing or no longer fits them
       (:func:`~hsicam.runs.linear_step.stale_reason`: the run trained on, or another filter width).
 
-    It holds the run folder's lock (:mod:`hsicam.runs.lock`) while it writes: the training's is
-    released when the loop ends. Returns what changed, in words (empty: nothing)."""
+    It holds the run folder's lock (:mod:`hsicam.runs.lock`) while it writes (after training, the
+    loop's own: the lock is re-entrant). Returns what changed, in words (empty: nothing)."""
     from hsicam.runs.lock import RunLock
 
     with RunLock(run_dir) as lock:
@@ -67,6 +67,8 @@ def refresh_linear_step(run_dir: str | Path, consistency) -> list[str]:
 
 
 def _refresh_linear_step(run_dir: Path, consistency) -> list[str]:
+    """:func:`refresh_linear_step` under the lock. The filters are fitted first and replace the old
+    file atomically; config.yaml is rewritten last, so an interruption leaves a working run."""
     from hsicam.config import dump_yaml, load_config
     from hsicam.io import atomic_open
     from hsicam.runs.checkpoint import root_weights_path
@@ -75,6 +77,17 @@ def _refresh_linear_step(run_dir: Path, consistency) -> list[str]:
 
     changed = []
     run_cfg = load_config(run_dir / "config.yaml")
+    if consistency.kind == "linear" and consistency.iterations > 0 and run_cfg.camera.kind == "doe":
+        # (SD-CASSI skips the step; the config refuses it for DD-CASSI)
+        path = run_dir / LINEAR_STEP_FILE
+        why = stale_reason(path, root_weights_path(run_dir), consistency.window_px) if path.is_file() else "missing"
+        if why is not None:
+            if why != "missing":
+                log.info("refitting the linear consistency step: %s", why)
+            _, model = load_run(run_dir, linear_step=False)
+            _fit_linear_step(run_dir, run_cfg, model, consistency.window_px)
+            changed.append(f"its linear consistency step {'fitted' if why == 'missing' else 'refitted'} "
+                           f"({LINEAR_STEP_FILE})")
     if run_cfg.model.consistency != consistency:
         before = run_cfg.model.consistency
         diff = ", ".join(f"{k} {getattr(before, k)} → {getattr(consistency, k)}" for k in vars(consistency)
@@ -82,20 +95,7 @@ def _refresh_linear_step(run_dir: Path, consistency) -> list[str]:
         run_cfg.model.consistency = consistency
         with atomic_open(run_dir / "config.yaml") as fh:
             fh.write(dump_yaml(run_cfg))
-        changed.append(f"model.consistency in config.yaml ({diff})")
-    if consistency.kind != "linear" or consistency.iterations <= 0 or run_cfg.camera.kind != "doe":
-        return changed  # (SD-CASSI skips the step; the config refuses it for DD-CASSI)
-    path = run_dir / LINEAR_STEP_FILE
-    refit = path.is_file()
-    if refit:
-        why = stale_reason(path, root_weights_path(run_dir), consistency.window_px)
-        if why is None:
-            return changed
-        log.info("refitting the linear consistency step: %s", why)
-        path.unlink()
-    run_cfg, model = load_run(run_dir)
-    _fit_linear_step(run_dir, run_cfg, model, consistency.window_px)
-    changed.append(f"its linear consistency step {'refitted' if refit else 'fitted'} ({LINEAR_STEP_FILE})")
+        changed.insert(0, f"model.consistency in config.yaml ({diff})")
     return changed
 
 

@@ -26,7 +26,7 @@ import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Iterator
+from typing import Any, Callable, Iterator
 
 import torch
 import torch.distributed as dist
@@ -213,7 +213,8 @@ class FitOptions:
 # ------------------------------------------------------------------------------------------------
 # The loop
 # ------------------------------------------------------------------------------------------------
-def fit(task: Task, opts: FitOptions, run_dir: str | Path, resume: bool = False) -> dict[str, Any]:
+def fit(task: Task, opts: FitOptions, run_dir: str | Path, resume: bool = False,
+        then: Callable[[dict[str, Any]], dict[str, Any]] | None = None) -> dict[str, Any]:
     """Train (or resume) ``task`` into ``run_dir``; returns the final summary (also the last line of
     ``metrics.jsonl``), or ``{"stopped_at_step": n}`` when ``opts.stop_after_steps`` cut it short.
     Resuming a finished run (nothing left of ``epochs`` / ``max_steps``) writes nothing and returns
@@ -225,7 +226,9 @@ def fit(task: Task, opts: FitOptions, run_dir: str | Path, resume: bool = False)
     group is left as it is (a peer may still wait in a collective) and the error propagates.
 
     Rank 0 holds the run folder's lock (:mod:`hsicam.runs.lock`) for as long as it writes into it,
-    and lets go however it ends: another process training there is refused before anything is touched."""
+    and lets go however it ends: another process training there is refused before anything is touched.
+    ``then(summary) -> summary`` runs on rank 0 under that lock after a training that was not cut
+    short (files derived from the final weights, e.g. the linear step's filters)."""
     rank, world, local_rank = dist_env()
     own_group = world > 1 and not dist.is_initialized()
     if own_group:
@@ -233,6 +236,8 @@ def fit(task: Task, opts: FitOptions, run_dir: str | Path, resume: bool = False)
         dist.init_process_group("nccl" if device.type == "cuda" else "gloo")
     with RunLock(run_dir, enabled=rank == 0) as lock:
         result = _fit(task, opts, Path(run_dir), resume, lock)
+        if then is not None and rank == 0 and "stopped_at_step" not in result:
+            result = then(result)
     if own_group:
         dist.barrier()
         dist.destroy_process_group()

@@ -10,7 +10,7 @@ from typing import Any
 import torch
 
 from hsicam.config import Config
-from hsicam.engine.loop import FitOptions, dist_env, fit
+from hsicam.engine.loop import FitOptions, fit
 from hsicam.engine.tasks import SystemTask
 from hsicam.models import CameraSystem
 
@@ -42,14 +42,15 @@ def train(cfg: Config, run_dir: str | Path, resume: bool = False, progress: bool
     torch.manual_seed(cfg.train.seed)
     task = SystemTask(cfg, CameraSystem.from_config(cfg))
     opts = FitOptions(cfg.train, cfg.data.num_workers, progress=progress, stop_after_steps=stop_after_steps)
-    summary = fit(task, opts, run_dir, resume)
-    if "stopped_at_step" not in summary and dist_env()[0] == 0:
-        # the run's inference settings and its linear consistency step's filters, through the weights
-        # the run keeps (its best): fitted when training ends, refitted when the run trained on or the
-        # filter width changed, config.yaml's model.consistency when a finished run got other keys
-        from hsicam.engine.linear_step import refresh_linear_step
+    return fit(task, opts, run_dir, resume, then=lambda summary: _refresh(run_dir, cfg, summary))
 
-        changed = refresh_linear_step(run_dir, cfg.model.consistency)
-        if changed:
-            summary = {**summary, "changed": changed}
-    return summary
+
+def _refresh(run_dir: str | Path, cfg: Config, summary: dict[str, Any]) -> dict[str, Any]:
+    """After training (under the run's lock): the run's inference settings and its linear
+    consistency step's filters, through the weights the run keeps (its best): fitted when training
+    ends, refitted when the run trained on or the filter width changed, config.yaml's
+    model.consistency when a finished run got other keys."""
+    from hsicam.engine.linear_step import refresh_linear_step
+
+    changed = refresh_linear_step(run_dir, cfg.model.consistency)
+    return {**summary, "changed": changed} if changed else summary

@@ -48,13 +48,15 @@ def with_measured_psf(model, measured: MeasuredPSF):
     return model.with_camera(FixedPSFCamera.from_camera(cam, torch.from_numpy(measured.psf)))
 
 
-def load_run(run_dir: str | Path, device: torch.device | str = "cpu", overrides: tuple[str, ...] = ()):
+def load_run(run_dir: str | Path, device: torch.device | str = "cpu", overrides: tuple[str, ...] = (),
+             linear_step: bool = True):
     """(config, CameraSystem) of a trained run, weights from ``RUN/model.safetensors``; a run
     fine-tuned on measured PSFs (``RUN/measured_psf.safetensors``) images with those PSFs.
     ``run_dir`` may be ``pretrained:NAME``, a camera shipped with the package.
 
     ``device``: cpu, cuda, cuda:N or mps, one this machine has (:func:`hsicam.devices.device_problem`,
-    as ``--device``). Raises :class:`InputError` for another device, a missing folder,
+    as ``--device``). ``linear_step=False``: without the linear step's filters (fine-tuning and the
+    refit itself, which make their own: no stale-filter check). Raises :class:`InputError` for another device, a missing folder,
     missing/corrupt weights or another band grid.
     """
     from hsicam.config import load_config
@@ -84,7 +86,7 @@ def load_run(run_dir: str | Path, device: torch.device | str = "cpu", overrides:
         raise InputError(f"--set {' '.join(map(str, overrides))}: changes what {run_dir} was trained with, so its "
                          f"weights do not load ({exc}); a trained run's camera, bands and network are fixed by its "
                          "training (another design: hsicam train)") from None
-    if (run_dir / LINEAR_STEP_FILE).is_file():  # the linear consistency step's filters (fitted after training)
+    if linear_step and (run_dir / LINEAR_STEP_FILE).is_file():  # the linear step's filters (fitted after training)
         model.linear_step = load_linear_step(run_dir / LINEAR_STEP_FILE, len(model.bands),
                                              int(getattr(model.camera, "code_period", 1)))
         problem = linear_step_problem(run_dir, cfg.model.consistency)
@@ -118,6 +120,10 @@ def linear_step_problem(run_dir: Path, consistency) -> str | None:
         own = load_config(run_dir / "config.yaml").model.consistency
     except HsicamError:
         own = None
+    from hsicam.runs.pretrained import is_pretrained_path
+
+    if is_pretrained_path(run_dir):  # read-only, and a copy has no checkpoint to resume
+        return f"{why}; a shipped camera's filters are fixed: evaluate it with its own model.consistency settings"
     sets = [f"model.consistency.{k}={getattr(consistency, k)}" for k in ("kind", "iterations", "window_px")
             if own is None or getattr(own, k) != getattr(consistency, k)]
     return f"{why}; refit it: {refit_command(run_dir, sets)}"

@@ -20,13 +20,10 @@ LINEAR_STEP_FILE = "linear_step.safetensors"
 def save_linear_step(path: str | Path, weight: torch.Tensor, info: dict[str, Any]) -> None:
     """``linear_step.safetensors`` (atomic): ``weight`` (m², C, K, K) and ``info`` as metadata
     (``weights_sha256``: the run's weights it was fitted through, see :func:`stale_reason`)."""
-    from safetensors.torch import save_file
-
-    from hsicam.io import atomic_path
+    from hsicam.runs.checkpoint import save_safetensors
 
     meta = {"format": "hsicam-linear-step-1", "info": json.dumps(info, default=float)}
-    with atomic_path(path) as tmp:
-        save_file({"weight": weight.detach().float().cpu().contiguous()}, str(tmp), metadata=meta)
+    save_safetensors(path, {"weight": weight.detach().float().cpu().contiguous()}, meta)
 
 
 def load_linear_step(path: str | Path, bands: int, period: int) -> torch.Tensor:
@@ -45,14 +42,14 @@ def load_linear_step(path: str | Path, bands: int, period: int) -> torch.Tensor:
 def linear_step_info(path: str | Path) -> dict[str, Any]:
     """The metadata :func:`save_linear_step` recorded (``weights_sha256`` …), with ``filter_px`` the
     filters' width as stored; {} when the file cannot be read as a linear-step file."""
-    from safetensors import safe_open
+    from safetensors import SafetensorError, safe_open
 
     try:
         with safe_open(str(path), "pt") as fh:
             meta = fh.metadata() or {}
             shape = fh.get_slice("weight").get_shape() if "weight" in fh.keys() else None
         info = json.loads(meta.get("info") or "{}")
-    except (OSError, ValueError, RuntimeError):
+    except (OSError, ValueError, RuntimeError, SafetensorError):
         return {}
     info = info if isinstance(info, dict) else {}
     return {**info, "filter_px": int(shape[-1])} if shape else info

@@ -79,24 +79,33 @@ def check_not_locked(run_dir: str | Path) -> None:
 
 class RunLock:
     """This process's lock of the run folder ``run_dir``: a context manager that releases it on
-    exit; ``enabled=False`` (DDP ranks but 0) locks nothing."""
+    exit; ``enabled=False`` (DDP ranks but 0) locks nothing. Re-entrant: acquiring a lock this
+    process already holds does nothing, and releasing that inner one keeps the outer."""
 
     def __init__(self, run_dir: str | Path, enabled: bool = True) -> None:
         self.run_dir = Path(run_dir)
         self.enabled = enabled
         self._fd: int | None = None
         self._path: Path | None = None
+        self._nested = False  # this process already held the lock when acquire was called
 
     def acquire(self, folder: str | Path | None = None) -> None:
         """Take the lock in ``folder`` (default: the run folder; a new run: the temporary folder
         that becomes it, then :meth:`moved`). InputError when another process holds it; no lock
         (a debug log) where the file cannot be created or locked."""
-        if not self.enabled or self._fd is not None:
+        if not self.enabled or self._fd is not None or self._nested:
             return
         if fcntl is None:
             log.debug("%s: no file locking on this platform; the run folder is not locked", self.run_dir)
             return
         path = Path(folder if folder is not None else self.run_dir) / LOCK_FILE
+        try:
+            st = os.stat(path)
+            if (st.st_dev, st.st_ino) in _HELD:  # held by this process (e.g. the loop, then the linear step's refit)
+                self._nested = True
+                return
+        except OSError:
+            pass
         for _ in range(10):  # a few tries: another process's check_not_locked lets go at once
             try:
                 fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
@@ -132,7 +141,8 @@ class RunLock:
             self._path = self.run_dir / LOCK_FILE
 
     def release(self) -> None:
-        """Remove the lock file (while it is still this lock's) and let go."""
+        """Remove the lock file (while it is still this lock's) and let go (a nested lock: nothing)."""
+        self._nested = False
         fd, self._fd = self._fd, None
         if fd is None:
             return

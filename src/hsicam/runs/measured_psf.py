@@ -40,14 +40,11 @@ def psf_fingerprint(psf: np.ndarray) -> str:
 
 def save_measured_psf(path: str | Path, m: MeasuredPSF) -> None:
     """``measured_psf.safetensors`` (atomic) with the band grid and the import report as metadata."""
-    from safetensors.torch import save_file
-
-    from hsicam.io import atomic_path
+    from hsicam.runs.checkpoint import save_safetensors
 
     meta = {"format": "hsicam-measured-psf-1", "bands": json.dumps(m.bands.to_dict()),
             "report": json.dumps(m.report, default=float), "fingerprint": m.fingerprint}
-    with atomic_path(path) as tmp:
-        save_file({"psf": torch.from_numpy(np.ascontiguousarray(m.psf, dtype=np.float32))}, str(tmp), metadata=meta)
+    save_safetensors(path, {"psf": torch.from_numpy(np.ascontiguousarray(m.psf, dtype=np.float32))}, meta)
 
 
 def load_measured_psf(path: str | Path) -> MeasuredPSF:
