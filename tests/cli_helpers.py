@@ -90,3 +90,24 @@ def unprivileged_prefix() -> tuple[str, ...] | None:
     if subprocess.run([*prefix, "true"], capture_output=True, cwd=os.environ.get("TMPDIR", "/tmp")).returncode != 0:
         return None
     return prefix
+
+
+def write_measured_psfs(run: Path, folder: Path, shift_px: int = 0) -> Path:
+    """A measured-PSF folder (``psf.npy`` + ``psf.json``) for ``hsicam finetune --psf-dir``: the run's
+    own simulated PSFs, shifted by ``shift_px`` along x (so that they differ from the design's)."""
+    import numpy as np
+    import torch
+
+    from hsicam.config import load_config
+    from hsicam.io import write_json, write_npy
+    from hsicam.runs.folder import load_run
+
+    _, model = load_run(run)
+    with torch.no_grad():
+        psf = model.camera.psf().double().numpy()
+    psf = np.roll(psf, shift_px, axis=-1)
+    folder.mkdir(parents=True)
+    write_npy(folder / "psf.npy", psf.astype(np.float32))
+    write_json(folder / "psf.json", {"pixel_pitch_um": load_config(run / "config.yaml").camera.sensor.pixel_pitch_um,
+                                     "bands_nm": model.bands.centers_nm.tolist()})
+    return folder

@@ -19,7 +19,6 @@ import json
 import shutil
 from pathlib import Path
 
-import numpy as np
 import pytest
 import torch
 
@@ -125,18 +124,11 @@ def test_a_finished_run_resumed_with_another_filter_width_records_and_refits_it(
 
 
 def test_a_finetuned_run_gets_filters_through_its_measured_psfs(linear_run, tmp_path, capsys):
-    from hsicam.io import write_json, write_npy
+    from cli_helpers import write_measured_psfs
     from hsicam.runs.folder import load_run
 
-    _, model = load_run(linear_run)
-    with torch.no_grad():
-        psf = model.camera.psf().numpy()
-    psf = np.stack([np.roll(p, 1, axis=-1) for p in psf])  # "measured": shifted by a pixel, so the fit must differ
-    psf_dir = tmp_path / "measured"
-    psf_dir.mkdir()
-    write_npy(psf_dir / "psf.npy", psf.astype(np.float32))
-    write_json(psf_dir / "psf.json", {"pixel_pitch_um": load_config(linear_run / "config.yaml").camera.sensor.pixel_pitch_um,
-                                      "bands_nm": model.bands.centers_nm.tolist()})
+    # "measured": shifted by a pixel, so the fit must differ
+    psf_dir = write_measured_psfs(linear_run, tmp_path / "measured", shift_px=1)
     ft = tmp_path / "ft"
     assert main(["finetune", "--run", str(linear_run), "--psf-dir", str(psf_dir), "--out", str(ft), "--epochs", "1"]) == 0
     assert linear_step_info(ft / LINEAR_STEP_FILE)["weights_sha256"] == sha256(ft / "model.safetensors")

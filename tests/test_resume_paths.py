@@ -96,18 +96,10 @@ def test_resume_of_a_run_killed_before_its_first_checkpoint_still_starts(tmp_pat
 @pytest.fixture(scope="module")
 def finetuned(run, tmp_path_factory):
     """(a run fine-tuned 1 epoch by `hsicam finetune` from ``run``, its measured-PSF folder)."""
-    from hsicam.io import write_json, write_npy
-    from hsicam.runs.folder import load_run
+    from cli_helpers import write_measured_psfs
 
-    _, model = load_run(run)
-    with torch.no_grad():
-        psf = model.camera.psf().double().numpy()
     base = tmp_path_factory.mktemp("ft")
-    psf_dir = base / "measured"
-    psf_dir.mkdir()
-    write_npy(psf_dir / "psf.npy", psf.astype(np.float32))
-    write_json(psf_dir / "psf.json", {"pixel_pitch_um": load_config(run / "config.yaml").camera.sensor.pixel_pitch_um,
-                                      "bands_nm": model.bands.centers_nm.tolist()})
+    psf_dir = write_measured_psfs(run, base / "measured")
     out = base / "ft"
     assert main(["finetune", "--run", str(run), "--psf-dir", str(psf_dir), "--out", str(out), "--epochs", "1"]) == 0
     return out, psf_dir
