@@ -144,3 +144,30 @@ def test_the_lock_is_re_entrant_within_a_process(tmp_path):
         finally:
             os.close(fd)
     assert not (run / LOCK_FILE).exists()
+
+
+def test_a_resume_and_a_restart_hold_the_lock_from_their_first_change(stopped, tmp_path, monkeypatch):
+    """`train --resume` removes a killed run's temporaries and `--restart` the run's files before the
+    loop starts: the command holds the lock from then on (review of session 23), not only the loop."""
+    import shutil
+
+    from hsicam.cli import main
+    from hsicam.runs import folder
+
+    seen = []
+    for name in ("check_run_dir", "restart_run_dir"):
+        real = getattr(folder, name)
+
+        def spy(run_dir, *args, _real=real, _name=name, **kwargs):
+            seen.append((_name, (Path(run_dir) / LOCK_FILE).is_file() and _held_elsewhere(Path(run_dir))))
+            return _real(run_dir, *args, **kwargs)
+
+        monkeypatch.setattr(folder, name, spy)
+    run = shutil.copytree(stopped, tmp_path / "run")
+    assert main(["train", "--out", str(run), "--resume"]) == 0
+    killed = tmp_path / "killed"  # a run killed before its first checkpoint: --restart starts it again
+    killed.mkdir()
+    shutil.copyfile(stopped / "config.yaml", killed / "config.yaml")
+    assert main(["train", "--config", "tiny", "--out", str(killed), "--restart", "--set", "train.epochs=1"]) == 0
+    assert {name for name, _ in seen} == {"check_run_dir", "restart_run_dir"} and all(held for _, held in seen), seen
+    assert not (run / LOCK_FILE).exists() and not (killed / LOCK_FILE).exists()

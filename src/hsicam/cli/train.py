@@ -24,13 +24,32 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def cmd_train(args: argparse.Namespace) -> int:
-    from hsicam.engine.loop import check_not_an_output
-    from hsicam.engine.train import train
     from hsicam.cli import prepare_output
-    from hsicam.runs.folder import check_run_dir, check_train_can_resume, restart_run_dir
+    from hsicam.engine.loop import check_not_an_output
+    from hsicam.runs.lock import RunLock
 
     run = prepare_output(args.out, "dir")
     check_not_an_output(run, "resume" if args.resume else "restart" if args.restart else "train")
+    with RunLock(run) as lock:
+        if (args.resume or args.restart) and (run / "config.yaml").is_file():
+            lock.acquire()  # held from the first change (a restart's removal) to the last (re-entrant in fit)
+        summary = _train(args, run)
+    if summary.get("already_finished"):
+        changed = ("; ".join(summary["changed"]) + ", nothing else changed" if summary.get("changed")
+                   else "nothing changed")
+        print(f"{run}: already finished at step {summary['step']} ({summary['epoch']} epochs); {changed}. "
+              f"To train on, raise train.epochs: hsicam train --out {run} --resume --set train.epochs=N "
+              f"(N > {summary['epoch']})")
+    else:
+        print(summary_line(summary, run))
+    return 0
+
+
+def _train(args: argparse.Namespace, run) -> dict:
+    """The config of ``hsicam train`` (the run's own on --resume), a --restart's removal, the training."""
+    from hsicam.engine.train import train
+    from hsicam.runs.folder import check_run_dir, check_train_can_resume, restart_run_dir
+
     if args.resume:
         if args.config:
             raise InputError("--resume continues with the run's own config.yaml; drop --config (use --set to change keys)")
@@ -41,16 +60,7 @@ def cmd_train(args: argparse.Namespace) -> int:
         cfg = config_from_args(args.config, args.overrides)  # a bad config wipes nothing
         if args.restart:
             restart_run_dir(run)
-    summary = train(cfg, run, resume=args.resume)
-    if summary.get("already_finished"):
-        changed = ("; ".join(summary["changed"]) + ", nothing else changed" if summary.get("changed")
-                   else "nothing changed")
-        print(f"{run}: already finished at step {summary['step']} ({summary['epoch']} epochs); {changed}. "
-              f"To train on, raise train.epochs: hsicam train --out {run} --resume --set train.epochs=N "
-              f"(N > {summary['epoch']})")
-    else:
-        print(summary_line(summary, run))
-    return 0
+    return train(cfg, run, resume=args.resume)
 
 
 def summary_line(summary: dict, run) -> str:

@@ -27,7 +27,7 @@ from hsicam.engine.tasks import SystemTask
 from hsicam.errors import InputError
 from hsicam.io import write_json
 from hsicam.runs.folder import MetricsLog, check_run_dir, load_run, with_measured_psf
-from hsicam.runs.lock import check_not_locked
+from hsicam.runs.lock import RunLock, check_not_locked
 from hsicam.runs.measured_psf import MEASURED_PSF_FILE, MeasuredPSF, load_measured_psf, save_measured_psf
 from hsicam.runs.pretrained import resolve_run
 
@@ -147,8 +147,15 @@ def finetune(run_dir: str | Path, psf_dir: str | Path, out_dir: str | Path, *, o
     run_dir, out_dir = resolve_run(run_dir), Path(out_dir)  # run_dir may be pretrained:NAME
     if out_dir.resolve() == run_dir.resolve():
         raise InputError("--out must be a new run folder, not the run being fine-tuned")
-    # before any work, in fine-tuning's words
     check_not_locked(out_dir)  # another process trains there: refused before check_run_dir removes its temporaries
+    with RunLock(out_dir) as lock:
+        if resume and (out_dir / "config.yaml").is_file():
+            lock.acquire()  # held from its first change to the last (re-entrant in fit)
+        return _finetune(run_dir, psf_dir, out_dir, overrides, pitch_um, progress, resume, stop_after_steps)
+
+
+def _finetune(run_dir: Path, psf_dir, out_dir: Path, overrides, pitch_um, progress, resume, stop_after_steps):
+    # before any work, in fine-tuning's words
     if resume:
         check_finetune_resume(out_dir)
     else:

@@ -134,10 +134,19 @@ def train_prior(cfg: Config, settings: ChoiConfig | None, out: str | Path, progr
     the folder ``out`` (see the module docstring); returns the summary (a resumed prior with nothing
     left to train: its summary with ``"already_finished": True``, nothing written). ``settings``
     None: the defaults. The device is ``cfg.train.device`` (auto: CUDA when available)."""
+    from hsicam.runs.lock import RunLock
+
+    out = Path(out)
+    with RunLock(out) as lock:
+        if resume and out.is_dir():
+            lock.acquire()  # held from its first change (a summary.json removed) to the end (re-entrant in fit)
+        return _train_prior(cfg, settings, out, progress, resume)
+
+
+def _train_prior(cfg: Config, settings: ChoiConfig | None, out: Path, progress: bool | None, resume: bool) -> dict:
     from hsicam.runs.folder import check_run_dir
 
     settings = settings if settings is not None else ChoiConfig()
-    out = Path(out)
     if not resume:  # before any work
         check_prior_out(out)
     else:
