@@ -369,3 +369,12 @@ def test_the_linear_step_on_a_cassi_camera_is_refused_when_the_config_is_read():
     assert load_config("quick", ["camera.kind=dd_cassi", "model.consistency.iterations=0"]).camera.kind == "dd_cassi"
     assert load_config("quick", ["camera.kind=dd_cassi", "model.consistency.kind=landweber"]).camera.kind == "dd_cassi"
     assert load_config("quick", ["camera.kind=sd_cassi"]).camera.kind == "sd_cassi"  # it skips the step (test_consistency)
+
+
+def test_override_keys_names_the_keys_inside_a_mapping():
+    from hsicam.config import override_keys
+
+    assert override_keys(["train.epochs=3", "baselines.choi={latent: 4, rho: 0.7}", "baselines={choi: {seed: 1}}",
+                          "data.root=", "model.kind=[not, yaml"]) == {
+        "train.epochs", "baselines.choi", "baselines.choi.latent", "baselines.choi.rho", "baselines",
+        "baselines.choi.seed", "data.root", "model.kind"}

@@ -820,6 +820,27 @@ def _duplicate_key(node: yaml.Node, where: str, seen: set[int]) -> Optional[tupl
     return None
 
 
+def override_keys(overrides: Sequence[str]) -> set[str]:
+    """Every dotted key that ``overrides`` (``a.b=value`` items) set, with the keys inside a value
+    given as a mapping (``a={b: 1, c: {d: 2}}`` sets a, a.b, a.c and a.c.d)."""
+    out: set[str] = set()
+
+    def walk(key: str, value: Any) -> None:
+        out.add(key)
+        if isinstance(value, dict):
+            for k, v in value.items():
+                walk(_join(key, str(k)), v)
+
+    for item in overrides:
+        key, _, raw = str(item).partition("=")
+        try:
+            value = yaml.safe_load(raw) if raw.strip() else None
+        except yaml.YAMLError:
+            value = None
+        walk(key.strip(), value)
+    return out
+
+
 def apply_override(data: dict[str, Any], item: str) -> None:
     """Apply one ``a.b.c=value`` override to a nested dict (value parsed as YAML)."""
     if "=" not in item:

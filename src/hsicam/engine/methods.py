@@ -39,10 +39,9 @@ from pathlib import Path
 from typing import Any, Callable
 
 import torch
-import yaml
 
 from hsicam.cameras import Camera, DDCASSICamera
-from hsicam.config import load_config
+from hsicam.config import load_config, override_keys
 from hsicam.data.pipeline import scene_dataset, split_dataset
 from hsicam.engine.prior import load_prior
 from hsicam.errors import InputError
@@ -331,19 +330,7 @@ def check_prior_overrides(run: str | Path, cfg, overrides) -> None:
     default."""
     from hsicam.engine.prior import PRIOR_TRAINING_KEYS, load_prior_settings
 
-    named: set[str] = set()
-    for item in overrides:
-        key, _, value = str(item).partition("=")
-        key = key.strip()
-        named.add(key)
-        if key in ("baselines", "baselines.choi"):  # a whole section as a mapping: its keys are given too
-            try:
-                section = yaml.safe_load(value)
-            except yaml.YAMLError:
-                continue
-            section = section.get("choi") if key == "baselines" and isinstance(section, dict) else section
-            if isinstance(section, dict):
-                named |= {f"baselines.choi.{k}" for k in section}
+    named = override_keys(overrides)  # a section given as a mapping names its keys too
     explicit = tuple(k for k in PRIOR_TRAINING_KEYS if f"baselines.choi.{k}" in named)
     if explicit and cfg.baselines.choi is not None:
         _check_prior_keys(cfg.baselines.choi, load_prior_settings(run), run, explicit)
