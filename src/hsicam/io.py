@@ -590,6 +590,18 @@ def write_npy(path: str | os.PathLike, array: np.ndarray) -> None:
         np.save(fh, np.asarray(array), allow_pickle=False)
 
 
+def copy_file(src: str | os.PathLike, dst: str | os.PathLike) -> None:
+    """Copy the (small) file ``src`` to ``dst``, read whole and then written, so that a failed write
+    (a full disk …) names ``dst`` (``shutil.copyfile``'s error names the source). Inside
+    :func:`atomic_output`, ``dst`` is then named under the final folder."""
+    data = Path(src).read_bytes()
+    try:
+        with open(dst, "wb") as fh:
+            fh.write(data)
+    except OSError as exc:
+        raise OSError(exc.errno, exc.strerror or str(exc), str(dst)) from None
+
+
 def write_png16(path: str | os.PathLike, image01: np.ndarray) -> None:
     """Write a single-channel image in [0, 1] as a 16-bit grayscale PNG (values are clipped)."""
     import imageio.v3 as iio

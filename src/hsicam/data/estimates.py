@@ -18,9 +18,6 @@ from hsicam.errors import InputError
 #: also write_envi's default until session 23, so reconstruct's only with its preview beside it).
 ENVI_DESCRIPTIONS = ("hsicam reconstruct", "hsicam cube")
 
-_HDF5_MAGIC = b"\x89HDF\r\n\x1a\n"
-
-
 def head(path: Path, n: int) -> bytes:
     """The first ``n`` bytes of ``path`` (b"" when it cannot be read)."""
     try:
@@ -40,7 +37,7 @@ def is_reconstruct_h5(path: Path, legacy: bool = True) -> bool:
     ``legacy``, also one from before it named itself: the capture and run, its preview beside it)."""
     import h5py
 
-    from hsicam.data.formats import HSICAM_FORMAT
+    from hsicam.data.formats import _HDF5_MAGIC, HSICAM_FORMAT
 
     if not head(path, 8).startswith(_HDF5_MAGIC):
         return False

@@ -22,7 +22,8 @@ from pathlib import Path
 from typing import Any
 
 from hsicam.errors import InputError
-from hsicam.io import COMPLETE_MARKER, atomic_open, atomic_output, is_complete, mark_complete, same_path, write_json
+from hsicam.io import (COMPLETE_MARKER, atomic_open, atomic_output, copy_file, is_complete, mark_complete, same_path,
+                       write_json)
 from hsicam.runs import pretrained as shipped
 from hsicam.runs.checkpoint import file_sha256, root_weights_path
 from hsicam.runs.folder import MetricsLog, load_run
@@ -524,10 +525,10 @@ def pack_pretrained(run_dir: str | Path, name: str, dest_root: str | Path | None
         # replace. A folder holding anything else keeps the marker rule (a user's folder is never deleted).
         mark_complete(target, {"command": "pretrained pack"})
     with atomic_output(target, "dir", overwrite=True, marker={"command": "pretrained pack"}) as tmp:
-        shipped.copy_file(run_dir / "config.yaml", tmp / "config.yaml")
-        shipped.copy_file(weights, tmp / "model.safetensors")
+        copy_file(run_dir / "config.yaml", tmp / "config.yaml")
+        copy_file(weights, tmp / "model.safetensors")
         if (run_dir / LINEAR_STEP_FILE).is_file():  # the linear consistency step's filters travel with the camera
-            shipped.copy_file(run_dir / LINEAR_STEP_FILE, tmp / LINEAR_STEP_FILE)
+            copy_file(run_dir / LINEAR_STEP_FILE, tmp / LINEAR_STEP_FILE)
         write_json(tmp / shipped.CARD_JSON, card)
         with atomic_open(tmp / shipped.CARD_MD, "w", encoding="utf-8") as fh:
             fh.write(text)

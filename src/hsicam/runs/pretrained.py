@@ -254,24 +254,13 @@ def check_not_pretrained(path: str | Path, what: str = "output folder") -> None:
         raise InputError(f"{path}: pretrained cameras are read-only; use another {what}, or {READ_ONLY_HINT}")
 
 
-def copy_file(src: Path, dst: Path) -> None:
-    """Copy ``src`` (a camera's file: at most MAX_WEIGHTS_BYTES) to ``dst``: read whole, then written,
-    so that a failed write (a full disk …) names ``dst`` (``shutil.copyfile`` names the source)."""
-    data = src.read_bytes()
-    try:
-        with open(dst, "wb") as fh:
-            fh.write(data)
-    except OSError as exc:
-        raise OSError(exc.errno, exc.strerror or str(exc), str(dst)) from None
-
-
 def copy_pretrained(name: str, dest: str | Path) -> Path:
     """Copy the shipped camera ``name`` into the new run folder ``dest`` (absent or empty); weights
     that are not its card's are refused (:func:`check_weights`), nothing written.
 
     The copy is an ordinary, writable run folder (mode bits of the package files are not kept);
     it is written under a temporary name and renamed into place."""
-    from hsicam.io import atomic_output
+    from hsicam.io import atomic_output, copy_file
 
     src = pretrained_dir(name)
     dest = Path(dest)
