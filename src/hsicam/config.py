@@ -459,13 +459,17 @@ class TrainConfig:
     # fixed and the network trains alone, each batch imaged without autograd through the optics (the
     # DOE camera's PSF stack computed once): ~2.8x faster steps on the quick preset. null: joint throughout
     optics_steps: Optional[int] = None
+    # wall-clock budget of one invocation, minutes: the loop stops before a step would end past it,
+    # saves that step's checkpoint and exits with code 75; `--resume` goes on (a job's time limit).
+    # null: no budget. SIGTERM and Ctrl-C stop the same way (hsicam.engine.stopping)
+    max_minutes: Optional[float] = None
 
     def __post_init__(self) -> None:
         for k in ("epochs", "batch_size", "eval_every_epochs", "checkpoint_every_steps", "log_every_steps", "lr_step_epochs"):
             if getattr(self, k) < 1:
                 raise ConfigError(f"train.{k} must be >= 1, got {getattr(self, k)}")
         _positive("train", lr=self.lr, doe_lr_nm=self.doe_lr_nm, cfa_lr=self.cfa_lr, lr_gamma=self.lr_gamma,
-                  grad_clip=self.grad_clip, relative_eps=self.relative_eps)
+                  grad_clip=self.grad_clip, relative_eps=self.relative_eps, max_minutes=self.max_minutes)
         _check_seeds("train", seed=self.seed)
         for k in ("relative_l1", "ssim_loss", "sam_loss", "spectral_grad_loss", "phase_loss"):
             v = getattr(self, k)
@@ -895,7 +899,7 @@ def to_dict(cfg: Any) -> dict[str, Any]:
 RUNTIME_ONLY_KEYS = (
     "baselines", "data.cache_dir", "data.preload", "data.preload_max_mb", "data.num_workers", "data.heldout_n",
     "train.device", "train.log_every_steps", "train.checkpoint_every_steps", "train.eval_every_epochs",
-    "train.tensorboard", "train.compile", "train.channels_last", "train.deterministic",
+    "train.tensorboard", "train.compile", "train.channels_last", "train.deterministic", "train.max_minutes",
     "model.consistency",  # applied after the network at inference; the training never sees it
 )
 

@@ -15,6 +15,19 @@ class InputError(HsicamError, ValueError):
     """An input file or array that cannot be used (format, shape, band grid, values)."""
 
 
+class TrainingStopped(Exception):
+    """A training stopped before its end when asked to (a signal such as SIGTERM or Ctrl-C, or the
+    time budget ``train.max_minutes``), after saving the checkpoint of the step it stopped at: the
+    run resumes from there. The CLI prints it as one line and exits with :attr:`exit_code`
+    (128 + the signal's number, as a shell reports a process that a signal ended; 75, EX_TEMPFAIL
+    of sysexits.h, "try again", for the budget)."""
+
+    def __init__(self, run_dir, step: int, total_steps: int, reason: str, exit_code: int) -> None:
+        self.run_dir, self.step, self.total_steps, self.reason, self.exit_code = run_dir, step, total_steps, reason, exit_code
+        super().__init__(f"{run_dir}: training stopped at step {step} of {total_steps} ({reason}); "
+                         f"the checkpoint of step {step} is saved")
+
+
 #: How torch's DataLoader re-raises in the main process an exception of a worker process: the same
 #: type, its message replaced by this line and the worker's whole traceback (``ExceptionWrapper``).
 _WORKER_WRAPPED = re.compile(r"Caught \w+ in DataLoader worker process \d+\.\nOriginal Traceback")

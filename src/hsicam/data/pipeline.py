@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import logging
+import signal
 from pathlib import Path
 
 import torch
@@ -120,6 +121,14 @@ def build_datasets(cfg: DataConfig, bands: Bands, margin_px: int, *, progress: b
     return train, val
 
 
+def ignore_stop_signals(_worker_id: int = 0) -> None:
+    """A DataLoader worker's ``worker_init_fn``: SIGTERM and SIGINT are left to the main process,
+    which stops a training cleanly and then ends its workers (:mod:`hsicam.engine.stopping`); a
+    worker ended by a scheduler's SIGTERM to the whole process group would abort it at once."""
+    for s in (signal.SIGTERM, signal.SIGINT):
+        signal.signal(s, signal.SIG_IGN)
+
+
 def make_loader(dataset: Dataset, batch_size: int, num_workers: int = 2, shuffle: bool = True,
                 drop_last: bool = False, sampler: torch.utils.data.Sampler | None = None) -> DataLoader:
     """A DataLoader for patch datasets.
@@ -129,7 +138,7 @@ def make_loader(dataset: Dataset, batch_size: int, num_workers: int = 2, shuffle
     """
     return DataLoader(dataset, batch_size=batch_size, shuffle=shuffle and sampler is None, sampler=sampler,
                       num_workers=num_workers, drop_last=drop_last, persistent_workers=False,
-                      pin_memory=False)
+                      pin_memory=False, worker_init_fn=ignore_stop_signals if num_workers > 0 else None)
 
 
 __all__ = ["build_datasets", "dataset_root", "heldout_root", "make_loader", "no_validation_reason", "split_dataset"]

@@ -36,7 +36,8 @@ from torch.utils.data import Sampler
 from hsicam.config import TrainConfig
 from hsicam.data.pipeline import make_loader
 from hsicam.devices import device_problem
-from hsicam.errors import InputError
+from hsicam.engine.stopping import StopRequests
+from hsicam.errors import InputError, TrainingStopped
 from hsicam.io import atomic_output, is_complete, output_description
 from hsicam.runs.checkpoint import CheckpointManager, save_weights
 from hsicam.runs.folder import MetricsLog, check_run_dir
@@ -228,16 +229,26 @@ def fit(task: Task, opts: FitOptions, run_dir: str | Path, resume: bool = False,
     Rank 0 holds the run folder's lock (:mod:`hsicam.runs.lock`) for as long as it writes into it,
     and lets go however it ends: another process training there is refused before anything is touched.
     ``then(summary) -> summary`` runs on rank 0 under that lock after a training that was not cut
-    short (files derived from the final weights, e.g. the linear step's filters)."""
+    short (files derived from the final weights, e.g. the linear step's filters).
+
+    SIGTERM, Ctrl-C and the budget ``train.max_minutes`` stop the loop at the end of a step: that
+    step's checkpoint is saved and :class:`~hsicam.errors.TrainingStopped` raised (every rank at the
+    same step), so a resume goes on exactly (:mod:`hsicam.engine.stopping`)."""
     rank, world, local_rank = dist_env()
     own_group = world > 1 and not dist.is_initialized()
     if own_group:
         device = resolve_device(opts.loop.device, local_rank)
         dist.init_process_group("nccl" if device.type == "cuda" else "gloo")
-    with RunLock(run_dir, enabled=rank == 0) as lock:
-        result = _fit(task, opts, Path(run_dir), resume, lock)
-        if then is not None and rank == 0 and "stopped_at_step" not in result:
-            result = then(result)
+    try:
+        with RunLock(run_dir, enabled=rank == 0) as lock, StopRequests(opts.loop.max_minutes) as stop:
+            result = _fit(task, opts, Path(run_dir), resume, lock, stop)
+            if then is not None and rank == 0 and "stopped_at_step" not in result:
+                result = then(result)
+    except TrainingStopped:  # every rank stopped at the same step (_agreed_stop): the group ends cleanly
+        if own_group:
+            dist.barrier()
+            dist.destroy_process_group()
+        raise
     if own_group:
         dist.barrier()
         dist.destroy_process_group()
@@ -281,7 +292,19 @@ def check_not_an_output(run_dir: Path, action: str = "resume") -> None:
                          "(choose another --out)")
 
 
-def _fit(task: Task, opts: FitOptions, run_dir: Path, resume: bool, lock: RunLock) -> dict[str, Any]:
+def _agreed_stop(stop: StopRequests, next_step_s: float, distributed: bool, device: torch.device) -> tuple[str, int] | None:
+    """(reason, exit code) when the training is to stop now (:class:`StopRequests`), else None; in a
+    DDP group every rank gets the same answer (the strongest code any rank has: a signal over the budget)."""
+    why = stop.reason(next_step_s)
+    code = 0 if why is None else stop.exit_code()
+    if distributed:
+        flag = torch.tensor([code], device=device)
+        dist.all_reduce(flag, op=dist.ReduceOp.MAX)
+        code = int(flag.item())
+    return None if code == 0 else (stop.describe(code), code)
+
+
+def _fit(task: Task, opts: FitOptions, run_dir: Path, resume: bool, lock: RunLock, stop: StopRequests) -> dict[str, Any]:
     t = opts.loop
     rank, world, local_rank = dist_env()
     distributed = world > 1
@@ -391,6 +414,15 @@ def _fit(task: Task, opts: FitOptions, run_dir: Path, resume: bool, lock: RunLoc
 
     bar = tqdm(total=total_steps, initial=state.global_step, disable=not use_bar, unit="step", dynamic_ncols=True)
     t_start, steps_done, last_val = time.perf_counter(), 0, None
+
+    def stop_here(why: str, code: int, saved: bool) -> None:
+        """Save the checkpoint of this step (unless ``saved``) and raise :class:`TrainingStopped`."""
+        if is_main and not saved:
+            ckpt.save(model, optimizer, state.to_dict(), bands, ("last",), meta)
+        bar.close()
+        raise TrainingStopped(run_dir, state.global_step, total_steps, why, code)
+
+    stop.armed = True  # from here a signal stops the loop at the next step's end (hsicam.engine.stopping)
     model.train()
     while state.epoch < t.epochs and state.global_step < total_steps:
         train_ds.set_epoch(state.epoch)
@@ -436,6 +468,11 @@ def _fit(task: Task, opts: FitOptions, run_dir: Path, resume: bool, lock: RunLoc
                 return {"stopped_at_step": state.global_step}
             if state.global_step >= total_steps:
                 break
+            if state.step_in_epoch < steps_per_epoch:  # (at an epoch's end: after its checkpoint, below)
+                asked = _agreed_stop(stop, (time.perf_counter() - t_start) / max(steps_done, 1), distributed,
+                                      device)
+                if asked is not None:
+                    stop_here(*asked, saved=False)
         # end of an epoch (or of the step budget)
         state.epoch, state.step_in_epoch, state.loss_sum, state.loss_n = state.epoch + 1, 0, 0.0, 0
         last_epoch = state.epoch == t.epochs or state.global_step >= total_steps
@@ -452,6 +489,11 @@ def _fit(task: Task, opts: FitOptions, run_dir: Path, resume: bool, lock: RunLoc
             ckpt.save(model, optimizer, state.to_dict(), bands, tuple(tags), meta)
         if distributed:
             dist.barrier()
+        if state.epoch < t.epochs and state.global_step < total_steps:
+            asked = _agreed_stop(stop, (time.perf_counter() - t_start) / max(steps_done, 1), distributed, device)
+            if asked is not None:
+                stop_here(*asked, saved=True)  # rank 0 saved it just above
+    stop.armed = False  # the end: a signal now acts as usual
     bar.close()
     if is_main and not ckpt.sync_root() and not (run_dir / task.weights_file).exists():
         save_weights(run_dir / task.weights_file, model, bands, meta)  # no checkpoint at all

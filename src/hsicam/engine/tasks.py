@@ -241,7 +241,8 @@ class PriorTask(Task):
         s = self.settings
         return TrainConfig(epochs=s.train_steps, batch_size=s.batch_size, lr=s.lr, lr_schedule="cosine",
                            grad_clip=None, eval_every_epochs=s.train_steps, checkpoint_every_steps=500,
-                           log_every_steps=50, seed=s.seed, device=self.cfg.train.device)
+                           log_every_steps=50, seed=s.seed, device=self.cfg.train.device,
+                           max_minutes=self.cfg.train.max_minutes)
 
     def module(self) -> SpectralAutoencoder:
         return self.model
