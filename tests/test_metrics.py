@@ -77,12 +77,27 @@ def test_sam_breakdown_by_brightness_and_edges_against_closed_form_angles():
     assert math.isnan(uniform["dark"][0]) and uniform["dark_fraction"][0] == 0.0
 
 
-def test_mst_psnr_uses_8bit_rounding():
-    truth = torch.full((1, 1, 4, 4), 0.5, dtype=torch.float64)
-    est = truth + 0.001  # below half an 8-bit step: identical after rounding
+def test_mst_psnr_is_msts_torch_psnr():
+    """Against MST's torch_psnr written out as in its code (×256, round, per band, peak 255, mean)."""
+    truth = torch.full((1, 2, 4, 4), 0.5, dtype=torch.float64)
+    est = truth + 0.001  # below half a step of 1/256: identical after rounding
     assert torch.isinf(metrics.psnr_mst(est, truth)) or metrics.psnr_mst(est, truth).item() > 250
-    est2 = truth + 10 / 255
-    assert metrics.psnr_mst(est2, truth).item() == pytest.approx(20 * np.log10(255 / 10), rel=1e-6)
+    est2 = truth.clone()
+    est2[0, 0] += 10 / 256  # band 0 off by 10 steps, band 1 by 5
+    est2[0, 1] += 5 / 256
+    want = (20 * np.log10(255 / 10) + 20 * np.log10(255 / 5)) / 2  # per band, then the mean
+    assert metrics.psnr_mst(est2, truth).item() == pytest.approx(want, rel=1e-9)
+
+    def mst_torch_psnr(img, ref):  # MST simulation/train_code/utils.py, input [C, H, W]
+        img, ref = (img * 256).round(), (ref * 256).round()
+        return sum(10 * torch.log10((255 * 255) / torch.mean((img[i] - ref[i]) ** 2)) for i in range(img.shape[0])) / img.shape[0]
+
+    g = torch.Generator().manual_seed(0)
+    a = torch.rand(3, 5, 16, 16, generator=g, dtype=torch.float64)
+    b = (a + 0.05 * torch.randn(3, 5, 16, 16, generator=g, dtype=torch.float64)).clamp(0, 1)
+    got = metrics.psnr_mst(b, a)
+    for i in range(3):
+        assert got[i].item() == pytest.approx(mst_torch_psnr(b[i], a[i]).item(), rel=1e-12)
 
 
 def test_ergas_closed_form():

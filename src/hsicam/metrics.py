@@ -5,7 +5,8 @@ All functions take (B, C, H, W) tensors (or (C, H, W), treated as B = 1) with va
 
 - ``psnr_per_band``: PSNR of each band with peak 1, then averaged over bands ("psnr_band_mean").
 - ``psnr_cube``: PSNR over the whole cube with peak 1 ("psnr_cube").
-- ``psnr_mst``: MST convention: both cubes rounded to 8 bits, peak 255, whole cube.
+- ``psnr_mst``: MST's ``torch_psnr`` recipe: both cubes times 256 and rounded, PSNR of each band with
+  peak 255, averaged over bands.
 - ``ssim``: per band, Gaussian window 11×11 with σ = 1.5, K = (0.01, 0.03), data range 1,
   averaged over bands and pixels of the 'valid' window positions (scikit-image's
   ``structural_similarity(gaussian_weights=True, sigma=1.5, use_sample_covariance=False,
@@ -24,7 +25,7 @@ import torch.nn.functional as F
 CONVENTIONS = {
     "psnr": "per band, peak 1, mean over bands",
     "psnr_cube": "whole cube, peak 1",
-    "psnr_mst": "8-bit rounding, peak 255, whole cube (MST convention)",
+    "psnr_mst": "MST's torch_psnr: x*256 rounded, per band, peak 255, mean over bands",
     "ssim": "per band, Gaussian 11x11 sigma 1.5, K=(0.01,0.03), data range 1, mean",
     "sam": "mean spectral angle over pixels, degrees",
     "ergas": "100 * sqrt(mean_b (RMSE_b / mean_b)^2), resolution ratio 1",
@@ -59,11 +60,12 @@ def psnr_cube(x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
 
 
 def psnr_mst(x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
-    """MST convention: round both to 8 bits (after clipping to [0, 1]), PSNR with peak 255, (B,)."""
+    """MST's ``torch_psnr`` (caiyuanhao1998/MST, simulation/train_code/utils.py), the convention of the
+    CASSI papers that report MST-style numbers: both cubes multiplied by 256 (not 255) and rounded,
+    each band's PSNR with peak 255, averaged over bands; no clipping. dB, (B,)."""
     x, y = _batched(x, y)
-    xq = torch.round(x.clamp(0, 1) * 255.0)
-    yq = torch.round(y.clamp(0, 1) * 255.0)
-    return _psnr_from_mse((xq - yq).square().mean(dim=(1, 2, 3)), 255.0)
+    xq, yq = torch.round(x * 256.0), torch.round(y * 256.0)
+    return _psnr_from_mse((xq - yq).square().mean(dim=(-2, -1)), 255.0).mean(dim=1)
 
 
 def rmse(x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
