@@ -360,3 +360,22 @@ def test_sam_breakdown_script_on_a_trained_run(run, env, tmp_path):
     assert mean_sam == pytest.approx(summary["mean"]["sam"], abs=0.006)
     bad = subprocess.run([sys.executable, str(script), str(tmp_path / "nope")], capture_output=True, text=True, env=full_env)
     assert bad.returncode == 2 and "no such run folder" in bad.stderr and "Traceback" not in bad.stderr
+
+
+def test_report_shows_the_heldout_sources_results(run, env, tmp_path):
+    """Probe 26 #1: results.json and results.md held the held-out-sources scores, the HTML report
+    only the validation table."""
+    out = tmp_path / "ev"
+    assert run_cli("evaluate", "--run", str(run), "--out", str(out), env=env).returncode == 0
+    res = json.loads((out / "results.json").read_text())
+    held = res["heldout"]
+    assert held["scenes"]
+    rep = run_cli("report", str(out), env=env)
+    assert rep.returncode == 0, rep.stderr
+    page = (out / "report" / "index.html").read_text()
+    head, _, tail = page.partition("<h2>Held-out spectral sources</h2>")
+    assert tail, "no held-out section"
+    for scene in held["scenes"]:
+        assert f"<td>{scene['name']}</td>" in tail and f"<td>{scene['psnr']:.2f}</td>" in tail
+    assert f"<td>{held['mean']['psnr']:.2f}</td>" in tail
+    assert f"<td>{res['mean']['psnr']:.2f}</td>" in head  # the validation mean stays in its own table

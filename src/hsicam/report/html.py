@@ -147,6 +147,11 @@ def _evaluation_sections(folder: Path, out: Path, res: dict) -> list[str]:
             ("ergas", "ERGAS", ".2f"), ("psnr_mst", "PSNR MST (dB)", ".2f"), ("runtime_s", "runtime (s)", ".3f")]
     parts.append(_table(res["scenes"] + [{"name": "mean", **res["mean"]}], cols))
     parts.append(_conventions(res["conventions"]))
+    held = res.get("heldout")
+    if isinstance(held, dict) and held.get("scenes"):  # scored beside the validation scenes (evaluate on synthetic data)
+        parts.append("<h2>Held-out spectral sources</h2>")
+        parts.append(f"<p class='note'>{html.escape(str(held.get('data', '')))}</p>")
+        parts.append(_table(held["scenes"] + [{"name": "mean", **held["mean"]}], cols))
     bands = Bands.from_centers(res["bands_nm"]) if "bands_nm" in res else None
     cubes = folder / "cubes"
     if cubes.is_dir() and bands is not None:
