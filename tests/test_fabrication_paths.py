@@ -296,3 +296,31 @@ def test_export_does_not_cite_a_study_of_a_finetuned_run(fab_run, finetuned_run,
     assert res.returncode == 0, res.stderr
     tol = json.loads((tmp_path / "o" / "spec.json").read_text())["tolerances"]
     assert tol["studied"] is None and "not cited" in tol["note"] and "fine-tuned on measured PSFs" in tol["note"]
+
+
+def test_export_of_a_finetuned_run_says_so_and_points_at_the_design_runs_study(fab_run, finetuned_run, tmp_path):
+    """Probe 26 #2: the export of a fine-tuned run (no study) advised `hsicam tolerance --run RUN`,
+    which tolerance refuses, and spec.json never said the run was fine-tuned."""
+    from hsicam.export import export_optics
+
+    spec = export_optics(finetuned_run, tmp_path / "o")
+    assert spec["finetuned"]["on_measured_psfs"] is True and spec["finetuned"]["from_run"] == str(fab_run)
+    assert spec["tolerances"]["studied"] is None
+    assert spec["tolerances"]["note"].endswith(f"`hsicam tolerance --run {fab_run} --out DIR`")
+    assert json.loads((tmp_path / "o" / "spec.json").read_text()) == spec
+    # the note's command is one tolerance accepts (the design run), unlike the fine-tuned run itself
+    assert_clean_error(run_cli("tolerance", "--run", str(finetuned_run), "--out", str(tmp_path / "t")),
+                       "fine-tuned on measured PSFs")
+    # the design run's own export: no "finetuned" entry, and its study's place named by the run's path
+    design = export_optics(fab_run, tmp_path / "d")
+    assert "finetuned" not in design and design["run"] == str(fab_run)
+    assert design["tolerances"]["note"].endswith(f"`hsicam tolerance --run {fab_run} --out {fab_run / 'tolerance'}`")
+
+
+def test_export_of_a_shipped_camera_names_it_not_its_package_folder(tmp_path):
+    from hsicam.export import export_optics
+
+    spec = export_optics("pretrained:standard", tmp_path / "o")
+    assert spec["run"] == "pretrained:standard" and "finetuned" not in spec
+    assert spec["tolerances"]["note"] == ("no tolerance study found: run `hsicam tolerance --run pretrained:standard "
+                                          "--out DIR`")

@@ -40,6 +40,7 @@ import numpy as np
 
 from hsicam.errors import InputError
 from hsicam.export.tolerance import finetuned_from, read_tolerance_study
+from hsicam.runs.pretrained import is_pretrained_path
 
 log = logging.getLogger(__name__)
 
@@ -66,14 +67,15 @@ def _tolerances(run_dir: Path, cfg, tolerance: str | Path | None) -> dict[str, A
                          "camera_sigma_height_nm": cfg.camera.doe.sigma_height_nm},
         "studied": None,
     }
+    shipped = is_pretrained_path(run_dir)
     cand = Path(tolerance) if tolerance is not None else run_dir / "tolerance"
     if cand.is_dir():
         cand = cand / "tolerance.json"
     source = finetuned_from(run_dir)
+    design = f"the design run it was fine-tuned from ({source})" if source else "the design run it was fine-tuned from"
     if source is not None and cand.is_file():
         # a study of a fine-tuned run perturbed the design optics, not the measured PSFs it images
         # with (`hsicam tolerance` refuses such a run now; an older study may exist)
-        design = f"the design run it was fine-tuned from ({source})" if source else "the design run it was fine-tuned from"
         why = (f"{run_dir} is a run fine-tuned on measured PSFs: a tolerance study of it perturbed the simulated design "
                "optics, not the measured PSFs it images with")
         if tolerance is not None:
@@ -86,8 +88,13 @@ def _tolerances(run_dir: Path, cfg, tolerance: str | Path | None) -> dict[str, A
         out["studied"] = read_tolerance_study(cand, run_dir)
     elif tolerance is not None:
         raise InputError(f"{tolerance}: no tolerance.json (run `hsicam tolerance --run RUN --out DIR` first)")
+    elif source is not None:  # `hsicam tolerance` refuses a fine-tuned run: its optics are the design run's
+        out["note"] = (f"no tolerance study: {run_dir} was fine-tuned on measured PSFs, so a study of {design} applies "
+                       f"to these optics: `hsicam tolerance --run {source or 'DESIGN_RUN'} --out DIR`")
+    elif shipped:  # its folder lies inside the installed package: a study goes elsewhere
+        out["note"] = f"no tolerance study found: run `hsicam tolerance --run pretrained:{run_dir.name} --out DIR`"
     else:
-        out["note"] = "no tolerance study found: run `hsicam tolerance --run RUN --out RUN/tolerance`"
+        out["note"] = f"no tolerance study found: run `hsicam tolerance --run {run_dir} --out {run_dir / 'tolerance'}`"
     return out
 
 
@@ -127,12 +134,20 @@ def export_optics(run_dir: str | Path, out_dir: str | Path, levels: int | None =
         if levels < 2 or levels > 256:
             raise InputError(f"--levels must be in 2..256, got {levels}")
     tolerances = _tolerances(run_dir, cfg, tolerance)  # a bad tolerance file: refused before any file is written
+    source = finetuned_from(run_dir)
+    facts: dict[str, Any] = {"run": f"pretrained:{run_dir.name}" if is_pretrained_path(run_dir) else str(run_dir)}
+    if source is not None:
+        facts["finetuned"] = {"on_measured_psfs": True, "from_run": source or None,
+                              "note": "fine-tuning on measured PSFs changed only the network: the DOE and CFA "
+                                      "exported here are the design's"}
     with atomic_output(out, overwrite=True, marker={"command": "export-optics"}) as tmp:
-        spec = _export_into(tmp, run_dir, cfg, camera, levels, tolerances)
+        spec = _export_into(tmp, facts, cfg, camera, levels, tolerances)
     return spec
 
 
-def _export_into(out: Path, run_dir: Path, cfg, camera, levels: int | None, tolerances: dict[str, Any]) -> dict[str, Any]:
+def _export_into(out: Path, facts: dict[str, Any], cfg, camera, levels: int | None, tolerances: dict[str, Any]) -> dict[str, Any]:
+    """Write the optics' files into ``out`` and ``spec.json`` (``facts``: its ``run`` and, for a
+    fine-tuned run, ``finetuned``); returns the spec."""
     from hsicam.export.cfa import export_cfa
     from hsicam.export.doe import export_doe
     from hsicam.io import write_json
@@ -156,7 +171,7 @@ def _export_into(out: Path, run_dir: Path, cfg, camera, levels: int | None, tole
     desc = optics.describe()
     spec = {
         "format": SPEC_FORMAT,
-        "run": str(run_dir),
+        **facts,
         "units": "lengths in the key's unit suffix; heights in nm; wavelengths in nm (vacuum)",
         "lens": {
             "model": lens.model,
