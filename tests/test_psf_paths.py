@@ -235,3 +235,30 @@ def test_psf_of_a_finetuned_run_is_its_measured_psfs(trained, tmp_path):
     np.testing.assert_array_equal(np.load(tmp_path / "p" / "psf.npy"), load_measured_psf(ft / MEASURED_PSF_FILE).psf)
     assert json.loads((tmp_path / "p" / "psf.json").read_text())["source"]["optics"] == \
         "the run's measured PSFs (fine-tuned run)"
+
+
+# ------------------------------------------------------------------------------------------------
+# Probe 26 #3: a stack's bands_nm that are not wavelengths
+# ------------------------------------------------------------------------------------------------
+@pytest.mark.parametrize("bad, said", [
+    (float("nan"), "bands_nm must hold finite wavelengths > 0 nm, got nan"),
+    (-470.0, "bands_nm must hold finite wavelengths > 0 nm, got -470.0"),
+    ("twice", "bands_nm names 420 nm more than once (one PSF per wavelength)"),
+])
+def test_a_stack_whose_bands_are_not_wavelengths_is_named_as_such(trained, tmp_path, bad, said):
+    """A NaN wavelength used to be reported as a pixel pitch in the wrong unit, a repeated one as a
+    missing band."""
+    run, cam, psf = trained
+    d = tmp_path / "stack"
+    d.mkdir()
+    np.save(d / "psf.npy", psf.astype(np.float32))
+    bands = [float(v) for v in cam.bands.centers_nm]
+    bands[1] = bands[0] if bad == "twice" else bad
+    (d / "psf.json").write_text(json.dumps({"bands_nm": bands, "pixel_pitch_um": 6.0}))  # NaN as JSON's NaN
+    with pytest.raises(InputError) as exc:
+        import_for_camera(d, cam)
+    assert str(exc.value) == f"{d / 'psf.json'}: {said}"
+    bands[1] = float(cam.bands.centers_nm[1])  # the same stack with its wavelengths is the camera's PSFs
+    (d / "psf.json").write_text(json.dumps({"bands_nm": bands, "pixel_pitch_um": 6.0}))
+    m = import_for_camera(d, cam)
+    np.testing.assert_allclose(m.psf, psf / psf.sum(axis=(1, 2), keepdims=True), atol=1e-6)
