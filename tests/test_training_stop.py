@@ -20,7 +20,7 @@ from cli_helpers import HSICAM, run_cli
 from hsicam.config import load_config
 from hsicam.engine.stopping import BUDGET_EXIT_CODE, StopRequests
 from hsicam.engine.train import train
-from hsicam.errors import ConfigError, TrainingStopped
+from hsicam.errors import ConfigError, TrainingInterrupted, TrainingStopped
 from hsicam.runs.checkpoint import read_weights
 
 
@@ -89,6 +89,16 @@ def test_second_sigterm_ends_the_process():
     res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
     assert res.stdout.split() == ["SIGTERM", "143"]
     assert res.returncode == -signal.SIGTERM
+
+
+def test_a_signal_stop_is_not_swallowed_by_except_exception():
+    """A notebook sweep's `except Exception: continue` must not eat a Ctrl-C (probe 27 F02); the
+    budget's stop is an ordinary error."""
+    assert issubclass(TrainingInterrupted, KeyboardInterrupt) and not issubclass(TrainingInterrupted, Exception)
+    assert issubclass(TrainingStopped, Exception)
+    stop = TrainingInterrupted("RUN", 3, 8, "SIGINT", 130)
+    assert (str(stop), stop.exit_code, stop.finished) == (
+        "RUN: training stopped at step 3 of 8 (SIGINT); the checkpoint of step 3 is saved", 130, False)
 
 
 @pytest.mark.parametrize("value", ["0", "-1", ".inf", ".nan"])
@@ -182,13 +192,101 @@ open(sys.argv[1] + ".rank" + os.environ.get("RANK", "0"), "w").write(f"{stopped}
 """
 
 
-def test_ddp_ranks_stop_at_the_same_step(tmp_path, cache_env):
+def test_ddp_ranks_stop_at_the_same_step_and_resume_under_torchrun(tmp_path, cache_env):
     script = tmp_path / "ddp_budget.py"
     script.write_text(DDP_BUDGET_SCRIPT)
     env = {**os.environ, "OMP_NUM_THREADS": "1", "HSICAM_CACHE": str(cache_env)}
-    res = subprocess.run([sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node=2",
-                          str(script), str(tmp_path / "ddp")], env=env, capture_output=True, text=True, timeout=300)
+    torchrun = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node=2"]
+    run = tmp_path / "ddp"
+    res = subprocess.run([*torchrun, str(script), str(run)], env=env, capture_output=True, text=True, timeout=300)
     assert res.returncode == 0, res.stderr[-3000:]
     # both ranks stopped after step 1, and the group fit created was destroyed
     assert [(tmp_path / f"ddp.rank{r}").read_text() for r in (0, 1)] == ["1 False", "1 False"]
-    assert _manifest(tmp_path / "ddp")["last"]["step"] == 1
+    assert _manifest(run)["last"]["step"] == 1
+    # the documented resume: the same torchrun with `hsicam train --resume` (rank 1 used to be refused
+    # as "another process" holding rank 0's lock, probe 27 F03)
+    res = subprocess.run([*torchrun, "-m", "hsicam", "train", "--out", str(run), "--resume", "--set",
+                          "train.max_minutes=null"], env=env, capture_output=True, text=True, timeout=300)
+    assert res.returncode == 0, res.stderr[-3000:]
+    records = [json.loads(x) for x in (run / "metrics.jsonl").read_text().splitlines()]
+    assert records[-1]["final"] and records[-1]["step"] == 8
+    assert not (run / ".hsicam-lock").exists()
+
+
+FINISH_THEN_SIGNAL = """
+import os, signal, sys
+from hsicam.cli import main
+from hsicam.engine.tasks import SystemTask
+ends = SystemTask.on_fit_end
+def on_fit_end(self, run_dir, summary):  # a SIGTERM while the training's last files are written
+    os.kill(os.getpid(), signal.SIGTERM)
+    return ends(self, run_dir, summary)
+SystemTask.on_fit_end = on_fit_end
+sys.exit(main(sys.argv[1:]))
+"""
+
+
+def test_a_signal_after_the_last_step_lets_the_run_finish_then_says_so(tmp_path, cache_env):
+    """Probe 27 F05/F06: a signal during the last step or the files after it (the final record, the
+    linear step's filters) was dropped (exit 0) or killed the process with no line."""
+    run = tmp_path / "run"
+    script = tmp_path / "finish.py"
+    script.write_text(FINISH_THEN_SIGNAL)
+    env = {**os.environ, "OMP_NUM_THREADS": "1", "HSICAM_CACHE": str(cache_env)}
+    res = subprocess.run([sys.executable, str(script), "train", "--config", "tiny", "--out", str(run),
+                          "--set", "model.consistency.kind=linear", "--set", "model.consistency.iterations=1"],
+                         env=env, capture_output=True, text=True, timeout=300)
+    assert res.returncode == 143, res.stderr
+    assert res.stderr.strip().splitlines()[-1] == f"hsicam: {run}: training finished (step 8 of 8) before stopping on SIGTERM"
+    records = [json.loads(x) for x in (run / "metrics.jsonl").read_text().splitlines()]
+    assert records[-1]["final"] and records[-1]["step"] == 8
+    assert (run / "linear_step.safetensors").is_file()  # the files after the last step were written
+
+
+def test_finetune_stopped_during_its_start_validation_resumes(tmp_path, cache_env):
+    """Probe 27 F01: a stop while fine-tuning validated its starting weights left a folder that neither
+    the command nor --resume accepted; now the step-0 checkpoint is saved and --resume goes on."""
+    env = {"HSICAM_CACHE": str(cache_env)}
+    run, psf, ft = tmp_path / "run", tmp_path / "psf", tmp_path / "ft"
+    assert run_cli("train", "--config", "tiny", "--out", str(run), "--set", "train.epochs=1", env=env).returncode == 0
+    assert run_cli("psf", "--run", str(run), "--out", str(psf), env=env).returncode == 0
+    args = ["finetune", "--run", str(run), "--psf-dir", str(psf), "--out", str(ft), "--epochs", "2"]
+    res = run_cli(*args, "--set", "train.max_minutes=1e-9", env=env)  # spent before the start validation ends
+    assert res.returncode == BUDGET_EXIT_CODE, res.stderr
+    assert "training stopped at step 0 of 8" in res.stderr and "--resume" in res.stderr.splitlines()[-1]
+    assert _manifest(ft)["last"]["step"] == 0
+    res = run_cli(*args, "--resume", "--set", "train.max_minutes=null", env=env)
+    assert res.returncode == 0, res.stderr
+    records = [json.loads(x) for x in (ft / "metrics.jsonl").read_text().splitlines()]
+    assert records[-1]["final"] and records[-1]["step"] == 8
+
+
+def test_sigterm_to_the_process_group_with_dataloader_workers(tmp_path, cache_env):
+    """A scheduler's SIGTERM reaches every process of the job, the DataLoader workers too: they end
+    quietly (status 0), the main process stops cleanly at the step's end, and nothing hangs; a
+    worker's own crash still ends the command (tests/test_cli_errors.py)."""
+    run = tmp_path / "run"
+    env = {**os.environ, "OMP_NUM_THREADS": "1", "HSICAM_CACHE": str(cache_env)}
+    args = [str(HSICAM), "train", "--config", "tiny", "--out", str(run), "--set", "train.epochs=40",
+            "--set", "data.num_workers=2", "--set", "data.preload=false"]
+    proc = subprocess.Popen(args, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
+                            start_new_session=True)  # its own process group, as a batch job's
+    try:
+        deadline = time.time() + 300
+        while time.time() < deadline and not (run / "metrics.jsonl").exists():
+            time.sleep(0.05)
+        time.sleep(1.0)
+        assert proc.poll() is None, "training finished before it could be stopped; make it longer"
+        os.killpg(proc.pid, signal.SIGTERM)
+        _, err = proc.communicate(timeout=120)
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+    assert proc.returncode == 143, err
+    assert "(SIGTERM); the checkpoint of step" in err.strip().splitlines()[-1], err
+    assert "Traceback" not in err and "exited unexpectedly" not in err
+    step = _manifest(run)["last"]["step"]
+    res = run_cli("train", "--out", str(run), "--resume", env={"HSICAM_CACHE": str(cache_env)})
+    assert res.returncode == 0, res.stderr
+    records = [json.loads(x) for x in (run / "metrics.jsonl").read_text().splitlines()]
+    assert records[-1]["final"] and records[-1]["step"] == 160 > step

@@ -15,17 +15,31 @@ class InputError(HsicamError, ValueError):
     """An input file or array that cannot be used (format, shape, band grid, values)."""
 
 
-class TrainingStopped(Exception):
-    """A training stopped before its end when asked to (a signal such as SIGTERM or Ctrl-C, or the
-    time budget ``train.max_minutes``), after saving the checkpoint of the step it stopped at: the
-    run resumes from there. The CLI prints it as one line and exits with :attr:`exit_code`
-    (128 + the signal's number, as a shell reports a process that a signal ended; 75, EX_TEMPFAIL
-    of sysexits.h, "try again", for the budget)."""
+class _Stop:
+    """What a training that stopped on request says: the run, the step, why, the exit code, and
+    whether the training had already ended (its last files written; then there is nothing to resume)."""
 
-    def __init__(self, run_dir, step: int, total_steps: int, reason: str, exit_code: int) -> None:
-        self.run_dir, self.step, self.total_steps, self.reason, self.exit_code = run_dir, step, total_steps, reason, exit_code
-        super().__init__(f"{run_dir}: training stopped at step {step} of {total_steps} ({reason}); "
-                         f"the checkpoint of step {step} is saved")
+    def __init__(self, run_dir, step: int, total_steps: int, reason: str, exit_code: int, finished: bool = False) -> None:
+        self.run_dir, self.step, self.total_steps, self.reason = run_dir, step, total_steps, reason
+        self.exit_code, self.finished = exit_code, finished
+        if finished:
+            text = f"{run_dir}: training finished (step {step} of {total_steps}) before stopping on {reason}"
+        else:
+            text = (f"{run_dir}: training stopped at step {step} of {total_steps} ({reason}); the checkpoint of "
+                    f"step {step} is saved")
+        super().__init__(text)
+
+
+class TrainingStopped(_Stop, Exception):
+    """A training stopped at its time budget ``train.max_minutes``, after saving the checkpoint of
+    the step it stopped at: the run resumes from there. The CLI prints it as one line and exits with
+    :attr:`exit_code` 75 (EX_TEMPFAIL of sysexits.h, "try again")."""
+
+
+class TrainingInterrupted(_Stop, KeyboardInterrupt):
+    """A training stopped by a signal (SIGTERM, Ctrl-C) at the end of a step, after saving that
+    step's checkpoint. A ``KeyboardInterrupt``, so that ``except Exception`` (a sweep in a notebook)
+    does not swallow it; the CLI prints it as one line and exits with 128 + the signal's number."""
 
 
 #: How torch's DataLoader re-raises in the main process an exception of a worker process: the same

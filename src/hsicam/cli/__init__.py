@@ -29,7 +29,7 @@ import traceback
 from pathlib import Path
 from typing import Sequence
 
-from hsicam.errors import ConfigError, HsicamError, InputError, TrainingStopped, original_message
+from hsicam.errors import ConfigError, HsicamError, InputError, TrainingInterrupted, TrainingStopped, original_message
 
 COMMAND_MODULES = (
     "hsicam.cli.camera",
@@ -242,13 +242,14 @@ def main(argv: Sequence[str] | None = None) -> int:
         fixed = getattr(args, "run", None) is not None or bool(getattr(args, "resume", False))
         with trained_bands(fixed):  # --run, or resuming a run: its bands are fixed
             return int(args.func(args) or 0)
+    except (TrainingStopped, TrainingInterrupted) as exc:  # a signal or train.max_minutes: the run was saved at that step
+        if os.environ.get("RANK", "0") == "0":  # under torchrun: the line once, from rank 0
+            hint = getattr(args, "resume_hint", None) or "run the same command with --resume to go on"
+            print(f"hsicam: {exc}" + ("" if exc.finished else f"; {hint.format(run=exc.run_dir)}"), file=sys.stderr)
+        return exc.exit_code
     except KeyboardInterrupt:
         print("hsicam: interrupted", file=sys.stderr)
         return 130
-    except TrainingStopped as exc:  # a signal or train.max_minutes: the run was saved at that step
-        hint = getattr(args, "resume_hint", None) or "run the same command with --resume to go on"
-        print(f"hsicam: {exc}; {hint.format(run=exc.run_dir)}", file=sys.stderr)
-        return exc.exit_code
     except Exception as exc:  # noqa: BLE001 - the one error boundary
         line = error_line(exc)
         if line is None:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import logging
+import os
 import signal
 from pathlib import Path
 
@@ -121,12 +122,18 @@ def build_datasets(cfg: DataConfig, bands: Bands, margin_px: int, *, progress: b
     return train, val
 
 
-def ignore_stop_signals(_worker_id: int = 0) -> None:
-    """A DataLoader worker's ``worker_init_fn``: SIGTERM and SIGINT are left to the main process,
-    which stops a training cleanly and then ends its workers (:mod:`hsicam.engine.stopping`); a
-    worker ended by a scheduler's SIGTERM to the whole process group would abort it at once."""
-    for s in (signal.SIGTERM, signal.SIGINT):
-        signal.signal(s, signal.SIG_IGN)
+def _end_worker(signum, frame) -> None:
+    os._exit(0)  # exit status 0: the parent's DataLoader does not report it as a crash
+
+
+def leave_stop_signals_to_main(_worker_id: int = 0) -> None:
+    """A DataLoader worker's ``worker_init_fn``: Ctrl-C (SIGINT, sent to the terminal's whole process
+    group) is ignored, and SIGTERM ends the worker at once with exit status 0. So a scheduler's SIGTERM
+    to the whole group, or a Ctrl-C, reaches the main process, which stops the training cleanly
+    (:mod:`hsicam.engine.stopping`) and fetches no more batches, instead of aborting on "worker exited
+    unexpectedly"; and the parent's own shutdown, which ends workers with SIGTERM, still works."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, _end_worker)
 
 
 def make_loader(dataset: Dataset, batch_size: int, num_workers: int = 2, shuffle: bool = True,
@@ -138,7 +145,7 @@ def make_loader(dataset: Dataset, batch_size: int, num_workers: int = 2, shuffle
     """
     return DataLoader(dataset, batch_size=batch_size, shuffle=shuffle and sampler is None, sampler=sampler,
                       num_workers=num_workers, drop_last=drop_last, persistent_workers=False,
-                      pin_memory=False, worker_init_fn=ignore_stop_signals if num_workers > 0 else None)
+                      pin_memory=False, worker_init_fn=leave_stop_signals_to_main if num_workers > 0 else None)
 
 
 __all__ = ["build_datasets", "dataset_root", "heldout_root", "make_loader", "no_validation_reason", "split_dataset"]

@@ -36,8 +36,8 @@ from torch.utils.data import Sampler
 from hsicam.config import TrainConfig
 from hsicam.data.pipeline import make_loader
 from hsicam.devices import device_problem
-from hsicam.engine.stopping import StopRequests
-from hsicam.errors import InputError, TrainingStopped
+from hsicam.engine.stopping import BUDGET_EXIT_CODE, StopRequests
+from hsicam.errors import InputError, TrainingInterrupted, TrainingStopped
 from hsicam.io import atomic_output, is_complete, output_description
 from hsicam.runs.checkpoint import CheckpointManager, save_weights
 from hsicam.runs.folder import MetricsLog, check_run_dir
@@ -232,8 +232,10 @@ def fit(task: Task, opts: FitOptions, run_dir: str | Path, resume: bool = False,
     short (files derived from the final weights, e.g. the linear step's filters).
 
     SIGTERM, Ctrl-C and the budget ``train.max_minutes`` stop the loop at the end of a step: that
-    step's checkpoint is saved and :class:`~hsicam.errors.TrainingStopped` raised (every rank at the
-    same step), so a resume goes on exactly (:mod:`hsicam.engine.stopping`)."""
+    step's checkpoint is saved and :class:`~hsicam.errors.TrainingStopped` (the budget) or
+    :class:`~hsicam.errors.TrainingInterrupted` (a signal) raised, every rank at the same step, so a
+    resume goes on exactly (:mod:`hsicam.engine.stopping`). A signal during the last step or the
+    files written after it lets them finish, then raises ``TrainingInterrupted(finished=True)``."""
     rank, world, local_rank = dist_env()
     own_group = world > 1 and not dist.is_initialized()
     if own_group:
@@ -244,7 +246,10 @@ def fit(task: Task, opts: FitOptions, run_dir: str | Path, resume: bool = False,
             result = _fit(task, opts, Path(run_dir), resume, lock, stop)
             if then is not None and rank == 0 and "stopped_at_step" not in result:
                 result = then(result)
-    except TrainingStopped:  # every rank stopped at the same step (_agreed_stop): the group ends cleanly
+            if stop.received is not None and "step" in result:  # asked during the last step or the files after it
+                raise TrainingInterrupted(run_dir, result["step"], result["step"], stop.received, stop.exit_code(),
+                                          finished=True)
+    except (TrainingStopped, TrainingInterrupted):  # every rank stopped at the same step (_agreed_stop): the group ends cleanly
         if own_group:
             dist.barrier()
             dist.destroy_process_group()
@@ -402,13 +407,6 @@ def _fit(task: Task, opts: FitOptions, run_dir: Path, resume: bool, lock: RunLoc
                 writer.add_scalar(f"val/{k}", v, state.global_step)
         log.info("epoch %d: val %s", state.epoch, ", ".join(f"{k} {v:.4g}" for k, v in val.items()))
 
-    if opts.validate_at_start and not resume and is_main:
-        if val_loader is not None:
-            summary = validate_now()
-            log_validation(summary)
-            state.best_psnr, state.best_step = summary.get("psnr"), 0
-        ckpt.save(model, optimizer, state.to_dict(), bands, ("last", "best") if val_loader is not None else ("last",), meta)
-
     use_bar = (sys.stderr.isatty() if opts.progress is None else opts.progress) and is_main
     from tqdm.auto import tqdm
 
@@ -416,13 +414,26 @@ def _fit(task: Task, opts: FitOptions, run_dir: Path, resume: bool, lock: RunLoc
     t_start, steps_done, last_val = time.perf_counter(), 0, None
 
     def stop_here(why: str, code: int, saved: bool) -> None:
-        """Save the checkpoint of this step (unless ``saved``) and raise :class:`TrainingStopped`."""
+        """Save the checkpoint of this step (unless ``saved``) and raise :class:`TrainingStopped`
+        (the budget) or :class:`TrainingInterrupted` (a signal)."""
         if is_main and not saved:
             ckpt.save(model, optimizer, state.to_dict(), bands, ("last",), meta)
         bar.close()
-        raise TrainingStopped(run_dir, state.global_step, total_steps, why, code)
+        kind = TrainingStopped if code == BUDGET_EXIT_CODE else TrainingInterrupted
+        raise kind(run_dir, state.global_step, total_steps, why, code)
 
     stop.armed = True  # from here a signal stops the loop at the next step's end (hsicam.engine.stopping)
+    if opts.validate_at_start and not resume:
+        if is_main:
+            if val_loader is not None:
+                summary = validate_now()
+                log_validation(summary)
+                state.best_psnr, state.best_step = summary.get("psnr"), 0
+            ckpt.save(model, optimizer, state.to_dict(), bands,
+                      ("last", "best") if val_loader is not None else ("last",), meta)
+        asked = _agreed_stop(stop, 0.0, distributed, device)  # (a full validation pass can take minutes)
+        if asked is not None:
+            stop_here(*asked, saved=True)  # the step-0 checkpoint just written: a resume starts from it
     model.train()
     while state.epoch < t.epochs and state.global_step < total_steps:
         train_ds.set_epoch(state.epoch)
@@ -493,14 +504,14 @@ def _fit(task: Task, opts: FitOptions, run_dir: Path, resume: bool, lock: RunLoc
             asked = _agreed_stop(stop, (time.perf_counter() - t_start) / max(steps_done, 1), distributed, device)
             if asked is not None:
                 stop_here(*asked, saved=True)  # rank 0 saved it just above
-    stop.armed = False  # the end: a signal now acts as usual
-    bar.close()
+    bar.close()  # (a signal from here on is honoured once the training's last files are written: fit)
     if is_main and not ckpt.sync_root() and not (run_dir / task.weights_file).exists():
         save_weights(run_dir / task.weights_file, model, bands, meta)  # no checkpoint at all
     elapsed = time.perf_counter() - t_start
     final = {"step": state.global_step, "epoch": state.epoch, "final": True, "best_psnr": state.best_psnr,
-             **{f"val_{k}": v for k, v in summary.items()}, "elapsed_s": elapsed,
-             "patches_per_s": steps_done * t.batch_size / max(elapsed, 1e-9)}
+             **{f"val_{k}": v for k, v in summary.items()}, "elapsed_s": elapsed}
+    if steps_done:  # (a resume that only writes the final record trained nothing to time)
+        final["patches_per_s"] = steps_done * t.batch_size / max(elapsed, 1e-9)
     if is_main:
         final = task.on_fit_end(run_dir, final)
         metrics.write(final)

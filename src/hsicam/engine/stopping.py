@@ -1,9 +1,12 @@
 """Stopping a training cleanly before its end: on SIGTERM or SIGINT (a job scheduler's notice before
 its time limit, ``kill``, Ctrl-C) or at a wall-clock budget (``train.max_minutes``).
 
-The loop (:func:`hsicam.engine.loop.fit`) asks :meth:`StopRequests.reason` after every step. A stop
-saves the ``last`` checkpoint of that step and raises :class:`hsicam.errors.TrainingStopped`, so the
-same command with ``--resume`` goes on from that step exactly (the loop's determinism). A second
+The loop (:func:`hsicam.engine.loop.fit`) asks :meth:`StopRequests.reason` after every step (and
+after fine-tuning's validation of its starting weights). A stop saves the ``last`` checkpoint of that
+step and raises :class:`hsicam.errors.TrainingStopped` (the budget) or
+:class:`hsicam.errors.TrainingInterrupted` (a signal; a ``KeyboardInterrupt``), so the same command
+with ``--resume`` goes on from that step exactly (the loop's determinism). A signal during the last
+step or the files written after it (final record, linear step) lets them finish first. A second
 signal acts as it would without this module: Ctrl-C raises ``KeyboardInterrupt`` at once, a second
 SIGTERM ends the process. Handlers are installed only in the main thread, for the loop's duration, and
 only for signals not ignored (a job started with ``&`` ignores SIGINT, and keeps ignoring it).

@@ -31,6 +31,12 @@ LOCK_FILE = ".hsicam-lock"
 _HELD: dict[tuple[int, int], "RunLock"] = {}
 
 
+def _other_rank() -> bool:
+    """True in a process of a ``torchrun`` group other than rank 0: rank 0 locks for the group, and
+    its lock is its peers' own, not another training's."""
+    return os.environ.get("RANK", "0").strip() not in ("", "0")
+
+
 def _key(fd: int) -> tuple[int, int]:
     st = os.fstat(fd)
     return st.st_dev, st.st_ino
@@ -55,8 +61,9 @@ def _refusal(run_dir: Path, path: Path) -> InputError:
 
 
 def check_not_locked(run_dir: str | Path) -> None:
-    """InputError when another process holds the lock of ``run_dir``. Creates nothing."""
-    if fcntl is None:
+    """InputError when another process holds the lock of ``run_dir``. Creates nothing. In a DDP
+    group only rank 0 checks (its peers see its own lock)."""
+    if fcntl is None or _other_rank():
         return
     path = Path(run_dir) / LOCK_FILE
     try:
@@ -79,12 +86,13 @@ def check_not_locked(run_dir: str | Path) -> None:
 
 class RunLock:
     """This process's lock of the run folder ``run_dir``: a context manager that releases it on
-    exit; ``enabled=False`` (DDP ranks but 0) locks nothing. Re-entrant: acquiring a lock this
-    process already holds does nothing, and releasing that inner one keeps the outer."""
+    exit; ``enabled=False`` locks nothing, nor does a DDP rank other than 0 (rank 0 locks for its
+    group). Re-entrant: acquiring a lock this process already holds does nothing, and releasing that
+    inner one keeps the outer."""
 
     def __init__(self, run_dir: str | Path, enabled: bool = True) -> None:
         self.run_dir = Path(run_dir)
-        self.enabled = enabled
+        self.enabled = enabled and not _other_rank()
         self._fd: int | None = None
         self._path: Path | None = None
         self._nested = False  # this process already held the lock when acquire was called
