@@ -241,8 +241,9 @@ def test_psf_of_a_finetuned_run_is_its_measured_psfs(trained, tmp_path):
 # Probe 26 #3: a stack's bands_nm that are not wavelengths
 # ------------------------------------------------------------------------------------------------
 @pytest.mark.parametrize("bad, said", [
-    (float("nan"), "bands_nm must hold finite wavelengths > 0 nm, got nan"),
-    (-470.0, "bands_nm must hold finite wavelengths > 0 nm, got -470.0"),
+    (float("nan"), "bands_nm must hold wavelengths in nm (finite, > 0), got nan"),
+    (-470.0, "bands_nm must hold wavelengths in nm (finite, > 0), got -470.0"),
+    (10**400, f"bands_nm must hold wavelengths in nm (finite, > 0), got {10**400!r}"),  # no float holds it
     ("twice", "bands_nm names 420 nm more than once (one PSF per wavelength)"),
 ])
 def test_a_stack_whose_bands_are_not_wavelengths_is_named_as_such(trained, tmp_path, bad, said):

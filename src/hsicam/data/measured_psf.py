@@ -375,9 +375,9 @@ def _list_band_images(d: Path, meta: dict[str, Any]) -> list[tuple[float, Path, 
         bands = meta["bands_nm"]
         if not (isinstance(bands, list) and all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in bands)):
             raise InputError(f"{d / 'psf.json'}: bands_nm must be a list of numbers")
-        bad = [v for v in bands if not (math.isfinite(v) and v > 0)]
+        bad = [v for v in bands if not (math.isfinite(v if isinstance(v, float) else 1.0) and 0 < v < 1e6)]
         if bad:
-            raise InputError(f"{d / 'psf.json'}: bands_nm must hold finite wavelengths > 0 nm, got {bad[0]!r}")
+            raise InputError(f"{d / 'psf.json'}: bands_nm must hold wavelengths in nm (finite, > 0), got {bad[0]!r}")
         twice = sorted({float(v) for v in bands if bands.count(v) > 1})
         if twice:
             raise InputError(f"{d / 'psf.json'}: bands_nm names {twice[0]:g} nm more than once (one PSF per wavelength)")
