@@ -100,3 +100,23 @@ def test_spectral_oracle_scores_a_trained_run_above_its_camera(tmp_path):
     nocfa = subprocess.run([sys.executable, str(SCRIPTS / "spectral_oracle.py"), str(plain)],
                            capture_output=True, text=True, timeout=300, env={**os.environ, **env})
     assert nocfa.returncode == 2 and "colour filter array" in nocfa.stderr
+
+
+def test_tune_gaptv_sweeps_training_scenes_and_parses_schedules(tmp_path, cache_env):
+    import importlib.util
+    import json
+
+    spec = importlib.util.spec_from_file_location("tune_gaptv", SCRIPTS / "tune_gaptv.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    assert mod.weight_values("0.02", 5) == 0.02
+    np.testing.assert_allclose(mod.weight_values("0.1>0.001", 3), [0.1, 0.01, 0.001])
+    env = {**os.environ, "HSICAM_CACHE": str(cache_env), "OMP_NUM_THREADS": "1"}
+    proc = subprocess.run([sys.executable, str(SCRIPTS / "tune_gaptv.py"), "--config", "tiny", "--scenes", "1",
+                           "--iterations", "1,20", "--weights", "0.01,0.1>0.01"],
+                          capture_output=True, text=True, timeout=300, env=env)
+    assert proc.returncode == 0, proc.stderr
+    rows = [json.loads(x) for x in proc.stdout.splitlines() if x.startswith("{")]
+    assert [(r["iterations"], r["tv_weight"]) for r in rows] == [(1, "0.01"), (1, "0.1>0.01"), (20, "0.01"), (20, "0.1>0.01")]
+    assert rows[2]["psnr"] > rows[0]["psnr"]  # more GAP iterations fit the measurement better
+    assert "DD-CASSI + GAP-TV on 1 training scenes" in proc.stdout and "| 20 | 0.01 |" in proc.stdout

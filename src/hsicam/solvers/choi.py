@@ -14,8 +14,10 @@ which makes the iteration converge with an inexact prior step.
 
 Differences from the paper, stated so results can be read correctly: the paper's prior term acts
 on the latent code and is minimised with its own inner solver; here the "fidelity to the learned
-representation" ‖x − D(E(x))‖² and TV act on the cube. The autoencoder's size (``features``,
-``latent``) is ours, as the data are.
+representation" ‖x − D(E(x))‖² and TV act on the cube. The autoencoder is smaller: the published
+one (KAIST-VCLAB/deepcassi) has 6 + 6 convolutions, all 3×3, of 64 channels and a 64-channel latent
+at full resolution, solved for the code with an ℓ1 penalty (15 ADMM iterations × 100 Adam steps);
+ours (``features``, ``latent``: 48, 12) has 3 + 3, mostly 1×1. Tables call it "Choi-style".
 
 The prior is any module R (:class:`hsicam.models.priors.SpectralAutoencoder`, trained and loaded by
 :mod:`hsicam.engine.prior`).
@@ -32,7 +34,7 @@ from torch import nn
 
 from hsicam.errors import InputError
 from hsicam.solvers.common import total_variation, tv_denoise
-from hsicam.config import ChoiConfig
+from hsicam.config import ChoiConfig, GAPTVConfig
 from hsicam.solvers.gaptv import SolverInfo, gap_tv
 
 log = logging.getLogger(__name__)
@@ -83,7 +85,7 @@ def admm_prior(camera, y: torch.Tensor, prior: nn.Module, settings: ChoiConfig |
     if x0 is not None:
         x = x0.clone()
     elif s.init_iterations > 0:
-        x = gap_tv(camera, y, s.init_iterations, 0.01)
+        x = gap_tv(camera, y, s.init_iterations, GAPTVConfig.tv_weight)
     else:
         x = camera.A_adjoint(y / phi)
     z, u = x.clone(), torch.zeros_like(x)

@@ -16,12 +16,16 @@ The WNNM denoiser (Gu et al., CVPR 2014), vectorised in torch:
    s'_i = (s_i − ε + √((s_i + ε)² − 4w)) / 2 where the discriminant is positive, else 0;
 4. denoised patches are put back with ``index_add`` and averaged where they overlap.
 
-Deviations from the published implementation (stated so results can be read correctly): the
-spectral patch p×p×C is grouped as one vector (the published CASSI code groups per-band patches
-across neighbouring bands); the WNNM constant w = c·σ²(√d + √K)²/4 (d = p²C) is scaled with the
+Deviations from the published implementation (liuyang12/DeSCI; stated so results can be read
+correctly): the spectral patch p×p×C is grouped and matched as one vector, whereas the published CASSI
+code (``test_desci_cassi.m`` → ``gapwnnm_int_fwise.m``) matches and denoises each band on its own, as
+2-D patches; the WNNM constant w = c·σ²(√d + √K)²/4 (d = p²C) is scaled with the
 group's dimensions so that pure-noise singular values (≈ σ(√d + √K)) are removed for any patch
 size and band count (WNNM's 2c√K·σ² assumes d ≈ K); and block matching runs every
-``match_every`` iterations rather than every iteration.
+``match_every`` iterations rather than every iteration. The published CASSI settings are patch 6,
+reference step 2, K = 70 patches per group, search ±30 px, one σ = 12/255 and 60 GAP-WNNM iterations
+after 40 of GAP-TV; ``fast`` keeps the patch size but takes step 4, K = 24, ±10 px and 24 iterations
+over a falling σ (minutes per scene on a CPU), ``full`` comes closer (:data:`DESCI_PRESETS`).
 """
 
 from __future__ import annotations
@@ -34,6 +38,7 @@ from dataclasses import dataclass, field
 import torch
 import torch.nn.functional as F
 
+from hsicam.config import GAPTVConfig
 from hsicam.errors import InputError
 from hsicam.solvers.gaptv import SolverInfo, gap_tv
 
@@ -54,7 +59,7 @@ class DeSCISettings:
     match_every: int = 3  # redo block matching every n iterations
     match_components: int | None = 6  # spectral PCA components for block matching (None: all bands)
     init_iterations: int = 60  # GAP-TV iterations of the start
-    init_tv_weight: float = 0.01
+    init_tv_weight: float = GAPTVConfig.tv_weight
     accelerate: bool = True
     chunk: int = 512  # groups processed at once (memory)
 

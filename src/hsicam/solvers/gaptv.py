@@ -19,6 +19,7 @@ from dataclasses import dataclass, field
 
 import torch
 
+from hsicam.config import GAPTVConfig
 from hsicam.errors import InputError
 from hsicam.solvers.common import tv_denoise
 
@@ -37,7 +38,8 @@ class SolverInfo:
 
 
 @torch.no_grad()
-def gap_tv(camera, y: torch.Tensor, iterations: int = 80, tv_weight: float | list[float] = 0.02,
+def gap_tv(camera, y: torch.Tensor, iterations: int = GAPTVConfig.iterations,
+           tv_weight: float | list[float] = GAPTVConfig.tv_weight,
            tv_iterations: int = 5, accelerate: bool = True, x0: torch.Tensor | None = None,
            return_info: bool = False):
     """GAP-TV reconstruction of a measurement.
@@ -45,12 +47,13 @@ def gap_tv(camera, y: torch.Tensor, iterations: int = 80, tv_weight: float | lis
     Args:
         camera: any camera with ``A``/``A_adjoint`` and diagonal ΦΦᵀ (CASSI).
         y: measurement (B, 1, H, W').
-        iterations: GAP iterations.
+        iterations: GAP iterations (default: the config's, tuned on training scenes).
         tv_weight: TV weight λ (cube values in [0, 1]); a list gives one weight per iteration
             (the last one repeats).
         tv_iterations: Chambolle iterations of each TV denoising.
         accelerate: accelerated GAP (residual accumulation).
-        x0: start (B, C, H, W); default Φᵀ(y / diag ΦΦᵀ), the minimum-norm solution.
+        x0: start (B, C, H, W); default Φᵀ(y / diag ΦΦᵀ), the minimum-norm solution (the published
+            codes start from Φᵀy; with the accumulation below this start equals theirs from x = 0).
         return_info: also return a :class:`SolverInfo`.
 
     Returns:
