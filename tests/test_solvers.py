@@ -454,3 +454,16 @@ def test_cli_train_prior(tiny_env, capsys):
 def test_cli_train_prior_config_error_is_one_line():
     r = run_cli("baseline", "train-prior", "--config", "tiny", "--out", "unused", "--set", "baselines.choi.lr=-1")
     assert_clean_error(r, "baselines.choi.lr")
+
+
+@pytest.mark.parametrize("name", ["dd-cassi-gaptv", "dd-cassi-desci"])
+def test_classical_cassi_methods_take_a_doe_preset(name):
+    """`hsicam evaluate --config quick --method dd-cassi-gaptv` (docs/training.md's command) failed:
+    the quick preset's linear consistency step is a config error on a DD-CASSI camera, though a
+    classical solver has no network to follow it."""
+    cfg = load_config("quick")
+    assert cfg.model.consistency.kind == "linear" and cfg.model.consistency.iterations > 0
+    method = build_method(name, cfg)
+    assert method.camera.kind == "dd_cassi" and len(method.camera.bands) == 31
+    if name == "dd-cassi-gaptv":
+        assert method.info["iterations"] == 400 and method.reconstruct.keywords["iterations"] == 400

@@ -274,8 +274,12 @@ def _tent_method(cfg, run, device) -> Method:
 
 
 def dd_cassi_camera(cfg, device: torch.device | str = "cpu") -> DDCASSICamera:
-    """The DD-CASSI camera of a config's bands, ``camera.cassi`` and ``camera.sensor``."""
-    return DDCASSICamera.from_config(dataclasses.replace(cfg, camera=dataclasses.replace(cfg.camera, kind="dd_cassi"))).to(device)
+    """The DD-CASSI camera of a config's bands, ``camera.cassi`` and ``camera.sensor``. The config's
+    network settings are not this camera's: a DOE preset's linear consistency step (which the DD-CASSI
+    camera cannot take, a config error) is switched off for it, so `--config quick` works."""
+    model = dataclasses.replace(cfg.model, consistency=dataclasses.replace(cfg.model.consistency, iterations=0))
+    cassi_cfg = dataclasses.replace(cfg, camera=dataclasses.replace(cfg.camera, kind="dd_cassi"), model=model)
+    return DDCASSICamera.from_config(cassi_cfg).to(device)
 
 
 def _identity(scene: torch.Tensor) -> torch.Tensor:
