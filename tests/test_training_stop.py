@@ -45,6 +45,15 @@ def test_budget_counts_the_next_step():
 
 
 def test_sigint_armed_stops_once_then_interrupts_and_handlers_are_restored():
+    # as in a terminal: Python's Ctrl-C handler (a test run started with `&`, e.g. by a CI runner, ignores SIGINT)
+    outer = signal.signal(signal.SIGINT, signal.default_int_handler)
+    try:
+        _sigint_armed_stops_once_then_interrupts()
+    finally:
+        signal.signal(signal.SIGINT, outer)
+
+
+def _sigint_armed_stops_once_then_interrupts():
     before = signal.getsignal(signal.SIGINT)
     with StopRequests() as stop:
         with pytest.raises(KeyboardInterrupt):  # not armed (data preparation): Ctrl-C interrupts at once
@@ -142,6 +151,12 @@ def test_budget_stop_on_the_command_line(tmp_path, cache_env):
     assert "Traceback" not in res.stderr
 
 
+def _as_in_a_terminal() -> None:
+    """In the child before exec: SIGINT as a terminal's job has it (a test run started with `&`, as a CI
+    runner may start it, ignores SIGINT, and an ignored signal stays ignored: hsicam.engine.stopping)."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 @pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGINT], ids=["SIGTERM", "SIGINT"])
 def test_signal_saves_the_step_it_stops_at(tmp_path, cache_env, sig):
     """A scheduler's SIGTERM (or Ctrl-C) mid-training: the process ends with 128 + the signal's
@@ -151,7 +166,8 @@ def test_signal_saves_the_step_it_stops_at(tmp_path, cache_env, sig):
     env = {**os.environ, "OMP_NUM_THREADS": "1", "HSICAM_CACHE": str(cache_env)}
     args = [str(HSICAM), "train", "--config", "tiny", "--out", str(run), "--set", "train.epochs=40",
             "--set", "train.checkpoint_every_steps=1000"]
-    proc = subprocess.Popen(args, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    proc = subprocess.Popen(args, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
+                            preexec_fn=_as_in_a_terminal)
     try:
         deadline = time.time() + 300
         while time.time() < deadline and not (run / "metrics.jsonl").exists():
