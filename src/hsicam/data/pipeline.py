@@ -5,6 +5,7 @@ from __future__ import annotations
 import logging
 import os
 import signal
+import threading
 from pathlib import Path
 
 import torch
@@ -122,15 +123,22 @@ def build_datasets(cfg: DataConfig, bands: Bands, margin_px: int, *, progress: b
     return train, val
 
 
+#: Seconds a DataLoader worker goes on serving after SIGTERM: the batch the main process is waiting
+#: for still arrives, and the main process stops at the end of its step (it fetches no more).
+WORKER_GRACE_S = 3.0
+
+
 def _end_worker(signum, frame) -> None:
-    os._exit(0)  # exit status 0: the parent's DataLoader does not report it as a crash
+    # exit status 0, so that the parent's DataLoader does not report it as a crash
+    threading.Timer(WORKER_GRACE_S, os._exit, (0,)).start()
 
 
 def leave_stop_signals_to_main(_worker_id: int = 0) -> None:
     """A DataLoader worker's ``worker_init_fn``: Ctrl-C (SIGINT, sent to the terminal's whole process
-    group) is ignored, and SIGTERM ends the worker at once with exit status 0. So a scheduler's SIGTERM
-    to the whole group, or a Ctrl-C, reaches the main process, which stops the training cleanly
-    (:mod:`hsicam.engine.stopping`) and fetches no more batches, instead of aborting on "worker exited
+    group) is ignored, and SIGTERM ends the worker :data:`WORKER_GRACE_S` later with exit status 0.
+    So a scheduler's SIGTERM to the whole group, or a Ctrl-C, reaches the main process, which gets the
+    batch it is waiting for, stops the training cleanly at the end of that step
+    (:mod:`hsicam.engine.stopping`) and fetches no more, instead of aborting on "worker exited
     unexpectedly"; and the parent's own shutdown, which ends workers with SIGTERM, still works."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, _end_worker)

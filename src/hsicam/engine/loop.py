@@ -392,11 +392,19 @@ def _fit(task: Task, opts: FitOptions, run_dir: Path, resume: bool, lock: RunLoc
             find_unused_parameters=task.find_unused_parameters)
     writer = _tensorboard(run_dir) if (t.tensorboard and is_main) else None
 
-    def validate_now() -> dict[str, float]:
+    def validate_now() -> dict[str, float] | None:
+        """The validation metrics; None when a stop signal ended the loader's workers meanwhile (a
+        SIGTERM to the whole process group reaches them too): that validation is not recorded."""
         model.eval()
         try:
             with torch.no_grad():
                 return task.validate(val_loader, device)
+        except RuntimeError:
+            if stop.received is None:
+                raise
+            log.warning("%s: the validation at step %d was cut short by %s (its data workers ended); not recorded",
+                        run_dir, state.global_step, stop.received)
+            return None
         finally:
             model.train()
 
@@ -425,12 +433,12 @@ def _fit(task: Task, opts: FitOptions, run_dir: Path, resume: bool, lock: RunLoc
     stop.armed = True  # from here a signal stops the loop at the next step's end (hsicam.engine.stopping)
     if opts.validate_at_start and not resume:
         if is_main:
-            if val_loader is not None:
-                summary = validate_now()
+            val = validate_now() if val_loader is not None else None
+            if val is not None:
+                summary = val
                 log_validation(summary)
                 state.best_psnr, state.best_step = summary.get("psnr"), 0
-            ckpt.save(model, optimizer, state.to_dict(), bands,
-                      ("last", "best") if val_loader is not None else ("last",), meta)
+            ckpt.save(model, optimizer, state.to_dict(), bands, ("last", "best") if val is not None else ("last",), meta)
         asked = _agreed_stop(stop, 0.0, distributed, device)  # (a full validation pass can take minutes)
         if asked is not None:
             stop_here(*asked, saved=True)  # the step-0 checkpoint just written: a resume starts from it
@@ -439,7 +447,16 @@ def _fit(task: Task, opts: FitOptions, run_dir: Path, resume: bool, lock: RunLoc
         train_ds.set_epoch(state.epoch)
         sampler = ShardedBatches(steps_per_epoch, t.batch_size, rank, world, state.step_in_epoch)
         loader = make_loader(train_ds, t.batch_size // world, opts.num_workers, shuffle=False, sampler=sampler)
-        for batch in loader:
+        batches = iter(loader)
+        while True:
+            try:
+                batch = next(batches)
+            except StopIteration:
+                break
+            except RuntimeError:  # a stop signal to the whole process group ended the loader's workers too
+                if stop.received is None:
+                    raise
+                stop_here(stop.describe(stop.exit_code()), stop.exit_code(), saved=False)
             step = state.global_step
             g = step_generator(t.seed, step, rank, device)
             task.on_step_start(step, g)
@@ -490,12 +507,13 @@ def _fit(task: Task, opts: FitOptions, run_dir: Path, resume: bool, lock: RunLoc
         tags = ["last"]
         if is_main and val_loader is not None and (state.epoch % t.eval_every_epochs == 0 or last_epoch):
             val = validate_now()
-            last_val = val.get("psnr")
-            log_validation(val)
-            if state.best_psnr is None or (last_val is not None and last_val > state.best_psnr):
-                state.best_psnr, state.best_step = last_val, state.global_step
-                tags.append("best")
-            summary = {**val}
+            if val is not None:
+                last_val = val.get("psnr")
+                log_validation(val)
+                if state.best_psnr is None or (last_val is not None and last_val > state.best_psnr):
+                    state.best_psnr, state.best_step = last_val, state.global_step
+                    tags.append("best")
+                summary = {**val}
         if is_main:  # one commit: the manifest names this checkpoint last (and best); the root weights follow
             ckpt.save(model, optimizer, state.to_dict(), bands, tuple(tags), meta)
         if distributed:
