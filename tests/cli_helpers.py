@@ -4,8 +4,10 @@ from __future__ import annotations
 
 import os
 import shutil
+import signal
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 HSICAM = Path(sys.executable).parent / "hsicam"
@@ -111,3 +113,30 @@ def write_measured_psfs(run: Path, folder: Path, shift_px: int = 0) -> Path:
     write_json(folder / "psf.json", {"pixel_pitch_um": load_config(run / "config.yaml").camera.sensor.pixel_pitch_um,
                                      "bands_nm": model.bands.centers_nm.tolist()})
     return folder
+
+
+def _as_in_a_terminal() -> None:
+    """In the child before exec: SIGINT as a terminal's job has it (a test run started with `&`, as a CI
+    runner may start it, ignores SIGINT, and an ignored signal stays ignored: hsicam.engine.stopping)."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
+def signal_a_training(run: Path, cache_env, send, *extra: str, ready: str = "metrics.jsonl") -> tuple[int, str]:
+    """(exit code, stderr) of `hsicam train --config tiny` (40 epochs, ``extra`` keys) in its own
+    process group, Ctrl-C as in a terminal, after ``send(proc)`` once it is training (``RUN/ready`` exists)."""
+    env = {**os.environ, "OMP_NUM_THREADS": "1", "HSICAM_CACHE": str(cache_env)}
+    args = [str(HSICAM), "train", "--config", "tiny", "--out", str(run), "--set", "train.epochs=40", *extra]
+    proc = subprocess.Popen(args, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
+                            preexec_fn=_as_in_a_terminal, start_new_session=True)  # a batch job's own group
+    try:
+        deadline = time.time() + 300
+        while time.time() < deadline and not (run / ready).exists():
+            time.sleep(0.05)
+        time.sleep(0.5)
+        assert proc.poll() is None, "training finished before it could be stopped; make it longer"
+        send(proc)
+        _, err = proc.communicate(timeout=120)
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+    return proc.returncode, err

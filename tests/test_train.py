@@ -8,7 +8,6 @@ import shutil
 import signal
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
@@ -16,7 +15,7 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from cli_helpers import HSICAM, assert_clean_error, run_cli
+from cli_helpers import assert_clean_error, run_cli, signal_a_training
 from hsicam.config import load_config
 from hsicam.runs.checkpoint import load_weights, read_weights, save_weights
 from hsicam.engine.train import build_optimizer, train
@@ -119,20 +118,8 @@ def test_resume_with_changed_keys_records_them_in_config_yaml(tmp_path, cache_en
 
 def test_sigkilled_training_resumes(tmp_path, cache_env):
     run = tmp_path / "run"
-    env = {**os.environ, "OMP_NUM_THREADS": "1"}
-    args = [str(HSICAM), "train", "--config", "tiny", "--out", str(run), "--set", "train.epochs=40"]
-    proc = subprocess.Popen(args, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-    try:
-        deadline = time.time() + 300
-        while time.time() < deadline and not (run / "checkpoints.json").exists():
-            time.sleep(0.05)
-        time.sleep(0.3)
-        assert proc.poll() is None, "training finished before it could be killed; make it longer"
-        proc.send_signal(signal.SIGKILL)
-        proc.wait(timeout=30)
-    finally:
-        if proc.poll() is None:
-            proc.kill()
+    code, _ = signal_a_training(run, cache_env, lambda proc: proc.send_signal(signal.SIGKILL), ready="checkpoints.json")
+    assert code == -signal.SIGKILL
     man = json.loads((run / "checkpoints.json").read_text())
     assert 0 < man["state"]["global_step"] < 160
     read_weights(run / man["last"]["dir"] / "model.safetensors")  # intact

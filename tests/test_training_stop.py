@@ -16,7 +16,7 @@ from pathlib import Path
 import pytest
 import torch
 
-from cli_helpers import HSICAM, run_cli
+from cli_helpers import run_cli, signal_a_training
 from hsicam.config import load_config
 from hsicam.engine.stopping import BUDGET_EXIT_CODE, StopRequests
 from hsicam.engine.train import train
@@ -151,40 +151,13 @@ def test_budget_stop_on_the_command_line(tmp_path, cache_env):
     assert "Traceback" not in res.stderr
 
 
-def _as_in_a_terminal() -> None:
-    """In the child before exec: SIGINT as a terminal's job has it (a test run started with `&`, as a CI
-    runner may start it, ignores SIGINT, and an ignored signal stays ignored: hsicam.engine.stopping)."""
-    signal.signal(signal.SIGINT, signal.SIG_DFL)
-
-
-def _signal_a_training(run: Path, cache_env, send, *extra: str) -> tuple[int, str]:
-    """(exit code, stderr) of `hsicam train --config tiny` (40 epochs, ``extra`` keys) in its own
-    process group, Ctrl-C as in a terminal, after ``send(proc)`` once it is training."""
-    env = {**os.environ, "OMP_NUM_THREADS": "1", "HSICAM_CACHE": str(cache_env)}
-    args = [str(HSICAM), "train", "--config", "tiny", "--out", str(run), "--set", "train.epochs=40", *extra]
-    proc = subprocess.Popen(args, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
-                            preexec_fn=_as_in_a_terminal, start_new_session=True)  # a batch job's own group
-    try:
-        deadline = time.time() + 300
-        while time.time() < deadline and not (run / "metrics.jsonl").exists():
-            time.sleep(0.05)
-        time.sleep(0.5)
-        assert proc.poll() is None, "training finished before it could be stopped; make it longer"
-        send(proc)
-        _, err = proc.communicate(timeout=120)
-    finally:
-        if proc.poll() is None:
-            os.killpg(proc.pid, signal.SIGKILL)
-    return proc.returncode, err
-
-
 @pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGINT], ids=["SIGTERM", "SIGINT"])
 def test_signal_saves_the_step_it_stops_at(tmp_path, cache_env, sig):
     """A scheduler's SIGTERM (or Ctrl-C) mid-training: the process ends with 128 + the signal's
     number after saving the checkpoint of the step it stopped at (not the last periodic one), and
     the resume finishes the run."""
     run = tmp_path / "run"
-    code, err = _signal_a_training(run, cache_env, lambda proc: proc.send_signal(sig),
+    code, err = signal_a_training(run, cache_env, lambda proc: proc.send_signal(sig),
                                    "--set", "train.checkpoint_every_steps=1000")
     assert code == 128 + sig, err
     found = re.search(rf"training stopped at step (\d+) of 160 \({sig.name}\); the checkpoint of step \1 is saved; "
@@ -289,7 +262,7 @@ def test_sigterm_to_the_process_group_with_dataloader_workers(tmp_path, cache_en
     quietly (status 0), the main process stops cleanly at the step's end, and nothing hangs; a
     worker's own crash still ends the command (tests/test_cli_errors.py)."""
     run = tmp_path / "run"
-    code, err = _signal_a_training(run, cache_env, lambda proc: os.killpg(proc.pid, signal.SIGTERM),
+    code, err = signal_a_training(run, cache_env, lambda proc: os.killpg(proc.pid, signal.SIGTERM),
                                    "--set", "data.num_workers=2", "--set", "data.preload=false")
     assert code == 143, err
     assert "(SIGTERM); the checkpoint of step" in err.strip().splitlines()[-1], err

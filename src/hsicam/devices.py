@@ -1,9 +1,17 @@
 """Torch devices by name: which ones this machine has (``--device``, ``train.device``,
-:func:`hsicam.runs.folder.load_run`'s ``device``)."""
+:func:`hsicam.runs.folder.load_run`'s ``device``); and this process's place in a ``torchrun`` group."""
 
 from __future__ import annotations
 
+import os
+
 import torch
+
+
+def dist_env() -> tuple[int, int, int]:
+    """(rank, world size, local rank) from the ``torchrun`` environment (0, 1, 0 without it)."""
+    world = int(os.environ.get("WORLD_SIZE", "1"))
+    return int(os.environ.get("RANK", "0")), world, int(os.environ.get("LOCAL_RANK", "0"))
 
 
 def device_problem(spec: str) -> str | None:

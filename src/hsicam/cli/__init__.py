@@ -243,7 +243,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         with trained_bands(fixed):  # --run, or resuming a run: its bands are fixed
             return int(args.func(args) or 0)
     except (TrainingStopped, TrainingInterrupted) as exc:  # a signal or train.max_minutes: the run was saved at that step
-        if os.environ.get("RANK", "0") == "0":  # under torchrun: the line once, from rank 0
+        from hsicam.devices import dist_env
+
+        if dist_env()[0] == 0:  # under torchrun: the line once, from rank 0
             hint = getattr(args, "resume_hint", None) or "run the same command with --resume to go on"
             print(f"hsicam: {exc}" + ("" if exc.finished else f"; {hint.format(run=exc.run_dir)}"), file=sys.stderr)
         return exc.exit_code

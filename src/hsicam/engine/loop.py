@@ -21,7 +21,6 @@ from __future__ import annotations
 import dataclasses
 import logging
 import math
-import os
 import sys
 import time
 from dataclasses import dataclass
@@ -35,7 +34,7 @@ from torch.utils.data import Sampler
 
 from hsicam.config import TrainConfig
 from hsicam.data.pipeline import make_loader
-from hsicam.devices import device_problem
+from hsicam.devices import device_problem, dist_env
 from hsicam.engine.stopping import BUDGET_EXIT_CODE, StopRequests
 from hsicam.errors import InputError, TrainingInterrupted, TrainingStopped
 from hsicam.io import atomic_output, is_complete, output_description
@@ -127,12 +126,6 @@ def resolve_device(spec: str, local_rank: int = 0) -> torch.device:
     if problem is not None:
         raise InputError(f"train.device={spec}: {problem}")
     return torch.device(spec)
-
-
-def dist_env() -> tuple[int, int, int]:
-    """(rank, world size, local rank) from the ``torchrun`` environment (0, 1, 0 without it)."""
-    world = int(os.environ.get("WORLD_SIZE", "1"))
-    return int(os.environ.get("RANK", "0")), world, int(os.environ.get("LOCAL_RANK", "0"))
 
 
 # ------------------------------------------------------------------------------------------------

@@ -15,6 +15,7 @@ import os
 import time
 from pathlib import Path
 
+from hsicam.devices import dist_env
 from hsicam.errors import InputError
 
 try:
@@ -34,7 +35,7 @@ _HELD: dict[tuple[int, int], "RunLock"] = {}
 def _other_rank() -> bool:
     """True in a process of a ``torchrun`` group other than rank 0: rank 0 locks for the group, and
     its lock is its peers' own, not another training's."""
-    return os.environ.get("RANK", "0").strip() not in ("", "0")
+    return dist_env()[0] != 0
 
 
 def _key(fd: int) -> tuple[int, int]:
