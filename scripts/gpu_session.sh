@@ -1,0 +1,117 @@
+#!/usr/bin/env bash
+# One call on a lent GPU machine (the device tool's `run`, from the repo root): the CUDA tests, then a
+# time-boxed demo of a preset trained on the GPU (its schedule sized to the time box, so a cosine
+# schedule ends where it should), then its evaluation; what the team needs comes back under $OUT.
+#
+#   bash scripts/gpu_session.sh                          # quick preset, 6 minutes of training
+#   PRESET=paper-unrolled MINUTES=7 TESTS=0 bash scripts/gpu_session.sh
+#   SETS="data.synthetic_n=256 data.val_pool=64" bash scripts/gpu_session.sh   # more scenes, same validation
+#
+# Environment: PRESET (default quick), MINUTES of training (default 6; the calibration, data generation
+# and evaluation come on top: keep MINUTES + 3 within the call's limit), SETS (extra KEY=VALUE
+# overrides, space-separated), TESTS (1: run the `cuda`-marked tests first), DEVICE (default cuda;
+# `DEVICE=cpu PRESET=tiny MINUTES=0.3` tries the script here), OUT (the device tool's $OUT; elsewhere default a temporary folder, printed),
+# WORKERS (DataLoader workers, default 8 on CUDA, 0 on CPU).
+# The device image has python3 with a CUDA torch and most dependencies; colour-science (to generate the
+# synthetic data) and openexr / gdstk (some tests) travel as wheels in .whl: fetch them here first with
+# `bash scripts/gpu_session.sh --fetch-wheels`, and name .whl in the run's carry.
+set -euo pipefail
+
+WHEELS="colour-science==0.4.7 openexr==3.5.3 gdstk==1.0.2"
+if [[ "${1:-}" == "--fetch-wheels" ]]; then
+    mkdir -p .git/info && { grep -qx "/.whl/" .git/info/exclude 2>/dev/null || echo "/.whl/" >> .git/info/exclude; }
+    PY=${PYTHON:-.venv/bin/python}
+    # shellcheck disable=SC2086
+    "$PY" -m pip download -q --no-deps --only-binary=:all: --python-version 3.12 --implementation cp \
+        --platform manylinux_2_28_x86_64 --platform manylinux_2_24_x86_64 --platform manylinux_2_17_x86_64 \
+        --platform manylinux2014_x86_64 -d .whl $WHEELS
+    ls -la .whl
+    exit 0
+fi
+
+PRESET=${PRESET:-quick}
+MINUTES=${MINUTES:-6}
+SETS=${SETS:-}
+TESTS=${TESTS:-1}
+DEVICE=${DEVICE:-cuda}
+if [[ "$DEVICE" == cpu ]]; then WORKERS=${WORKERS:-0}; else WORKERS=${WORKERS:-8}; fi
+PY=${PYTHON:-python3}
+WORK=$(mktemp -d "${TMPDIR:-/tmp}/hsicam-gpu.XXXXXX")
+OUT=${OUT:-$WORK/out}
+echo "work folder $WORK, results in $OUT"
+mkdir -p "$OUT"
+export PYTHONUNBUFFERED=1 HSICAM_CACHE="$WORK/cache"
+
+if compgen -G ".whl/*.whl" > /dev/null && ! "$PY" -c "import colour, gdstk, OpenEXR" 2>/dev/null; then
+    "$PY" -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target "$WORK/site" .whl/*.whl
+    export PYTHONPATH="$PWD/src:$WORK/site${PYTHONPATH:+:$PYTHONPATH}"
+else
+    export PYTHONPATH="$PWD/src${PYTHONPATH:+:$PYTHONPATH}"
+fi
+
+{
+    date -u
+    nvidia-smi 2>/dev/null || echo "no nvidia-smi"
+    "$PY" -c "import torch, sys; print('python', sys.version.split()[0], 'torch', torch.__version__, 'cuda', torch.cuda.is_available(), torch.cuda.get_device_name(0) if torch.cuda.is_available() else '')"
+    echo "PRESET=$PRESET MINUTES=$MINUTES DEVICE=$DEVICE WORKERS=$WORKERS SETS=$SETS"
+    git log -1 --format='commit %H %s' 2>/dev/null || true
+} > "$OUT/env.txt" 2>&1
+cat "$OUT/env.txt"
+
+if [[ "$TESTS" == 1 ]]; then
+    echo "== cuda tests"
+    # the tests marked cuda (and nothing slow); their log comes back whatever they say
+    timeout 240 "$PY" -m pytest -q -p no:cacheprovider -m "cuda and not slow" tests > "$OUT/cuda_tests.log" 2>&1 \
+        || echo "cuda tests: exit $? (see cuda_tests.log)"
+    tail -n 3 "$OUT/cuda_tests.log"
+fi
+
+overrides=(--set "train.device=$DEVICE" --set "data.num_workers=$WORKERS")
+for kv in $SETS; do overrides+=(--set "$kv"); done
+
+echo "== calibration: 2 epochs of $PRESET (also generates the data)"
+"$PY" -m hsicam train --config "$PRESET" --out "$WORK/calib" "${overrides[@]}" --set train.epochs=2 \
+    > "$WORK/calib.log" 2>&1 || { tail -n 20 "$WORK/calib.log"; cp "$WORK/calib.log" "$OUT/"; exit 1; }
+EPOCHS=$("$PY" - "$WORK/calib/metrics.jsonl" "$MINUTES" <<'EOF'
+import json, math, sys
+recs = [json.loads(line) for line in open(sys.argv[1]) if line.strip()]
+final = [r for r in recs if r.get("final")][-1]
+steps = [r for r in recs if "train_loss" in r]
+# seconds per epoch from the second epoch on (the first also pays for start-up), validation included
+first = next(r for r in steps if r["epoch"] >= 1)
+per_step = (final["elapsed_s"] - first["elapsed_s"]) / max(final["step"] - first["step"], 1)
+steps_per_epoch = final["step"] / max(final["epoch"], 1)
+epochs = max(2, int(float(sys.argv[2]) * 60 / (per_step * steps_per_epoch)))
+print(epochs)
+print(f"calibration: {per_step:.4f} s per step (validation included), {steps_per_epoch:.0f} steps per epoch "
+      f"-> {epochs} epochs in {sys.argv[2]} min", file=sys.stderr)
+EOF
+)
+echo "epochs: $EPOCHS"
+
+echo "== demo: $PRESET, $EPOCHS epochs (budget $MINUTES min + 50 %)"
+budget=$("$PY" -c "print(round(float('$MINUTES') * 1.5, 2))")
+status=0
+"$PY" -m hsicam demo --config "$PRESET" --out "$WORK/demo" "${overrides[@]}" --set "train.epochs=$EPOCHS" \
+    --set "train.max_minutes=$budget" > "$OUT/demo.log" 2>&1 || status=$?
+tail -n 30 "$OUT/demo.log"
+if [[ $status == 75 && -d "$WORK/demo/run" ]]; then
+    # the time budget stopped it (the calibration was optimistic): score the partly trained run anyway
+    echo "demo: stopped by the time budget; evaluating the partly trained run into eval-partial/"
+    "$PY" -m hsicam evaluate --run "$WORK/demo/run" --out "$WORK/demo/eval-partial" > "$OUT/eval-partial.log" 2>&1 \
+        || echo "evaluate: exit $? (see eval-partial.log)"
+    tail -n 5 "$OUT/eval-partial.log"
+elif [[ $status != 0 ]]; then
+    echo "demo: exit $status"
+fi
+
+# at most 8 files come back: the figures and tables in one archive, the weights beside it when small enough
+if [[ -d "$WORK/demo" ]]; then
+    tar -czf "$OUT/demo.tar.gz" -C "$WORK/demo" --exclude='run/checkpoints' .
+    if (( $(stat -c %s "$OUT/demo.tar.gz") > 15 * 1024 * 1024 )); then  # over what comes back: the weights stay
+        tar -czf "$OUT/demo.tar.gz" -C "$WORK/demo" --exclude='run/checkpoints' --exclude='*.safetensors' .
+        echo "the weights are over 15 MiB compressed and stay on the device machine"
+    fi
+    ls -la "$OUT"
+fi
+exit $status
