@@ -331,7 +331,8 @@ def test_killed_writer_leaves_only_a_hidden_temporary_that_cleanup_removes(tmp_p
     assert res.returncode == -9
     assert not (tmp_path / "eval").exists() and not (tmp_path / "model.safetensors").exists()
     left = hidden(tmp_path)
-    assert len(left) == 2 and all(is_temporary(n) for n in left), left
+    # the file's temporary, the folder's and the folder's lock file (.eval.hsicam-lock), all hidden temporaries
+    assert len(left) == 3 and all(is_temporary(n) for n in left), left
     keep = [tmp_path / ".gitignore", tmp_path / COMPLETE_MARKER, tmp_path / ".a.tmp.h5", tmp_path / "x.12345678.tmp"]
     for k in keep:
         k.write_text("keep")
@@ -359,3 +360,26 @@ def test_same_path_follows_links_and_compares_missing_paths_resolved(tmp_path):
     assert same_path(tmp_path / "a", tmp_path / "link") and not same_path(tmp_path / "a", tmp_path / "b")
     assert same_path(tmp_path / "gone", tmp_path / "sub" / ".." / "gone")  # neither exists: by resolved path
     assert not same_path(tmp_path / "gone", tmp_path / "a")
+
+
+# ------------------------------------------------------------------------------------------------
+# Disk errors: one table (hsicam.io), read by the command line's line and a checkpoint's failure
+# ------------------------------------------------------------------------------------------------
+def test_the_disk_errors_have_one_table_that_the_cli_and_checkpoints_read(monkeypatch):
+    import errno
+
+    from hsicam.cli import error_line
+    from hsicam.io import DISK_ERRNOS, DISK_HINTS, NO_SPACE_ERRNOS, OS_ERROR_HINTS
+    from hsicam.runs.checkpoint import _resume_hint
+
+    assert DISK_ERRNOS == set(DISK_HINTS) == {errno.ENOSPC, errno.EDQUOT, errno.EFBIG, errno.EROFS}
+    assert NO_SPACE_ERRNOS < DISK_ERRNOS and DISK_HINTS.items() <= OS_ERROR_HINTS.items()
+    for code, hint in OS_ERROR_HINTS.items():
+        exc = OSError(code, os.strerror(code), "/d/x.npy")
+        assert error_line(exc) == f"/d/x.npy: {os.strerror(code)} ({hint})"
+        frees = "free some space" in hint  # the advice of the line and of a checkpoint's failure agree
+        assert frees == (code in NO_SPACE_ERRNOS)
+        assert _resume_hint(exc) == ("free some space, then resume the run" if frees else
+                                     "resume the run once it can be written")
+    monkeypatch.setitem(OS_ERROR_HINTS, errno.ENOSPC, "one place")  # the CLI has no copy of its own
+    assert error_line(OSError(errno.ENOSPC, "x", "/d/x.npy")) == f"/d/x.npy: {os.strerror(errno.ENOSPC)} (one place)"

@@ -13,7 +13,11 @@ never leaves a half-written file (or folder) where a later command would take it
 - :func:`mark_complete` / :func:`is_complete` / :func:`read_marker` / :func:`clear_complete`: the
   marker for folders that are filled in place, file by file (write files, then mark; readers check
   the marker).
-- :func:`cleanup_stale_temporaries`: removes the hidden temporaries a killed process left behind.
+- :func:`cleanup_stale_temporaries` / :func:`remove_stale_siblings` / :func:`remove_if_stale`: remove
+  the hidden temporaries a killed process left behind, never those a process is writing now (below).
+- :class:`OutputLock`: one process at a time writes a folder output; :func:`lock_file` /
+  :func:`unlock_file` / :func:`lock_refusal`: the ``fcntl.flock`` lock files it (and
+  :class:`hsicam.runs.lock.RunLock`) is made of.
 - :func:`check_output_path`: one-line :class:`~hsicam.errors.InputError` for an output path that
   cannot work (existing file where a folder is needed and vice versa, inside a file, not
   writable, a symbolic link that points nowhere or loops), to be called before any work starts.
@@ -21,6 +25,15 @@ never leaves a half-written file (or folder) where a later command would take it
 An output given as a symbolic link is written in what the link leads to (:func:`follow_link`): the
 link is kept, never replaced by a file or folder. An ``OSError`` raised while a file is written
 (disk full, quota, read-only file system …) names the file it was to become, never the temporary.
+
+**Temporaries in use.** A process writing a temporary holds an ``fcntl.flock`` lock that tells
+it from the leftover of a killed process (the kernel lets go of a lock when its holder exits,
+``kill -9`` too): a temporary file is locked itself while it is written; a folder output's
+temporaries (``.tmpdir``, ``.old``) are covered by its lock file ``.NAME.hsicam-lock``
+(:class:`OutputLock`), held from before the temporary folder is made until it is in place, so a
+second writer of the folder is refused with one line naming the first. A cleanup locks what it
+removes, so a writer never starts in a temporary that is being removed. Where ``fcntl`` is missing
+(Windows) or the file system cannot lock, nothing is locked and a cleanup removes every temporary.
 
 Importing this module has no side effects (the process umask is never touched: temporary files
 are created with mode 0o666 and folders with 0o777, and the kernel applies the umask).
@@ -30,6 +43,7 @@ from __future__ import annotations
 
 import contextlib
 import errno
+import glob
 import json
 import logging
 import os
@@ -46,12 +60,23 @@ from hsicam.errors import InputError
 
 log = logging.getLogger(__name__)
 
+try:
+    import fcntl
+except ImportError:  # pragma: no cover - not POSIX: nothing is locked
+    fcntl = None  # type: ignore[assignment]
+
 #: Name of the completion marker of an output folder.
 COMPLETE_MARKER = ".complete"
 
+#: The end of the lock file ``.NAME.hsicam-lock`` next to a folder output being written (:class:`OutputLock`).
+OUTPUT_LOCK_SUFFIX = ".hsicam-lock"
+
 # Hidden temporaries written by this module (and by the former mkstemp-based version, whose random
-# part was also 8 characters): ".NAME.XXXXXXXX.tmp[.SUFFIX]", ".NAME.XXXXXXXX.tmpdir", ".NAME.XXXXXXXX.old".
-_TEMP_RE = re.compile(r"^\..*\.[A-Za-z0-9_]{8}\.(?:tmp(?:\..*)?|tmpdir|old)$")
+# part was also 8 characters): ".NAME.XXXXXXXX.tmp[.SUFFIX]", ".NAME.XXXXXXXX.tmpdir", ".NAME.XXXXXXXX.old",
+# and the lock files of folder outputs ".NAME.hsicam-lock" (a run folder's own ".hsicam-lock" is none).
+_TEMP_RE = re.compile(r"^\..*\.[A-Za-z0-9_]{8}\.(?:tmp(?:\..*)?|tmpdir|old)$|^\..+\.hsicam-lock$")
+# The parts of a temporary's name: the output's stem, a file's suffix, "tmpdir" or "old" for a folder's.
+_TEMP_PARTS = re.compile(r"^\.(?P<stem>.*)\.[A-Za-z0-9_]{8}\.(?:tmp(?P<suffix>\..*)?|(?P<folder>tmpdir|old))$")
 
 
 # ------------------------------------------------------------------------------------------------
@@ -157,9 +182,35 @@ def _os_error(path: Path, kind: str, exc: OSError) -> InputError:
     return InputError(f"{path}: {problem}")
 
 
-#: errno values of a write that the disk refused whatever the file: a folder's writer names the
-#: folder when the error names no file.
-DISK_ERRNOS = frozenset({errno.ENOSPC, errno.EDQUOT, errno.EFBIG, errno.EROFS})
+# ------------------------------------------------------------------------------------------------
+# Disk errors: the one table of them
+# ------------------------------------------------------------------------------------------------
+#: A write that the disk refused whatever the file, by errno: what to do about it. A folder's writer
+#: names the folder when such an error names no file (:func:`atomic_output`); the command line adds
+#: the advice to its one line (:data:`OS_ERROR_HINTS`).
+DISK_HINTS: dict[int, str] = {
+    errno.ENOSPC: "the disk is full: free some space, or write to another disk",
+    errno.EDQUOT: "the disk quota is used up: free some space, or write elsewhere",
+    errno.EFBIG: "over the file-size limit of the file system or of the shell, ulimit -f: write elsewhere",
+    errno.EROFS: "write to a writable file system",
+}
+
+#: The errno values of :data:`DISK_HINTS`.
+DISK_ERRNOS = frozenset(DISK_HINTS)
+
+#: Of :data:`DISK_ERRNOS`, those that freeing space cures (a full disk, a used-up quota): e.g. a
+#: checkpoint's failure says "free some space, then resume the run".
+NO_SPACE_ERRNOS = frozenset({errno.ENOSPC, errno.EDQUOT})
+
+#: What to do about an OSError, by errno: a write the disk refused (:data:`DISK_HINTS`), a failed
+#: disk, or a file without permission. The command line's one line gives it, with the system's own
+#: text of the error (not a library's multi-line one).
+OS_ERROR_HINTS: dict[int, str] = {
+    **DISK_HINTS,
+    errno.EIO: "the disk or its connection failed",
+    errno.EACCES: "check its permissions and its folder's",
+    errno.EPERM: "check its permissions and its folder's",
+}
 
 
 def _naming_output(exc: OSError, final: Path, tmp: Path, kind: str) -> OSError:
@@ -181,6 +232,198 @@ def _naming_output(exc: OSError, final: Path, tmp: Path, kind: str) -> OSError:
         return exc
     what = exc.strerror or (str(exc).splitlines() or [type(exc).__name__])[0]
     return OSError(exc.errno, what, str(name))
+
+
+# ------------------------------------------------------------------------------------------------
+# Lock files
+# ------------------------------------------------------------------------------------------------
+#: The lock files this process holds (:class:`OutputLock`, :class:`hsicam.runs.lock.RunLock`), by
+#: (device, inode): this process's own lock is never a refusal.
+_HELD: dict[tuple[int, int], Path] = {}
+
+#: How long a writer waits for a cleanup that holds its lock file while it removes a killed
+#: process's temporaries (they may be large); another writer is a refusal at once.
+_CLEANUP_WAIT_S = 60.0
+
+
+class LockHeld(Exception):
+    """Another process holds the lock file (:func:`lock_file`)."""
+
+
+def _file_key(fd: int) -> tuple[int, int]:
+    st = os.fstat(fd)
+    return st.st_dev, st.st_ino
+
+
+def names_open_file(path: str | os.PathLike, fd: int) -> bool:
+    """True while ``path`` still names the file open as ``fd`` (a released lock's file is removed)."""
+    try:
+        st = os.stat(path)
+    except OSError:
+        return False
+    return (st.st_dev, st.st_ino) == _file_key(fd)
+
+
+def held_here(path: str | os.PathLike) -> bool:
+    """True when this process holds the lock file ``path``."""
+    try:
+        st = os.stat(path)
+    except OSError:
+        return False
+    return (st.st_dev, st.st_ino) in _HELD
+
+
+def held_elsewhere(path: str | os.PathLike) -> bool:
+    """True when another process holds the lock file ``path`` (tried with a shared lock, let go at
+    once). Creates nothing; False where nothing can be locked."""
+    if fcntl is None:
+        return False
+    try:
+        fd = os.open(path, os.O_RDONLY)
+    except OSError:
+        return False  # no lock file: nobody holds it
+    try:
+        if _file_key(fd) in _HELD:
+            return False  # this process's own
+        try:
+            fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
+        except BlockingIOError:
+            return True
+        except OSError:
+            return False  # a file system without locks
+        fcntl.flock(fd, fcntl.LOCK_UN)
+        return False
+    finally:
+        os.close(fd)
+
+
+def _lock_info(path: str | os.PathLike) -> dict[str, Any]:
+    try:
+        info = json.loads(Path(path).read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, ValueError):
+        return {}
+    return info if isinstance(info, dict) else {}
+
+
+def lock_file(path: str | os.PathLike, info: dict[str, Any] | None = None, tries: int = 10) -> int | None:
+    """Take the exclusive ``fcntl.flock`` lock of the file ``path`` (created when missing) and write
+    ``{"pid", "since", **info}`` in it; returns its descriptor, for :func:`unlock_file`.
+
+    :class:`LockHeld` when another process holds it (``tries`` tries 20 ms apart; while the holder is
+    a cleanup, up to a minute). None, nothing locked (a debug log), where this platform or file system
+    cannot lock or the file cannot be created. A file that its holder removed meanwhile is not taken:
+    the new one is."""
+    if fcntl is None:
+        log.debug("%s: no file locking on this platform; not locked", path)
+        return None
+    start = time.monotonic()
+    for n in range(1, 1 << 30):
+        try:
+            fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
+        except OSError as exc:
+            log.debug("%s: not locked (%s)", path, exc)
+            return None
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            os.close(fd)
+            if n >= tries and not (_lock_info(path).get("cleaning") and time.monotonic() - start < _CLEANUP_WAIT_S):
+                raise LockHeld(str(path)) from None
+            time.sleep(0.02)
+            continue
+        except OSError as exc:
+            os.close(fd)
+            log.debug("%s: not locked (%s)", path, exc)
+            return None
+        if names_open_file(path, fd):
+            break
+        os.close(fd)  # released and removed by its holder meanwhile: lock the new file
+        if n >= tries:
+            raise LockHeld(str(path))
+    _HELD[_file_key(fd)] = Path(path)
+    try:
+        os.ftruncate(fd, 0)
+        os.write(fd, json.dumps({"pid": os.getpid(), "since": time.strftime("%Y-%m-%d %H:%M:%S"),
+                                 **(info or {})}).encode())
+    except OSError:  # only a refusal's details (e.g. a full disk)
+        pass
+    return fd
+
+
+def unlock_file(fd: int, path: str | os.PathLike | None) -> None:
+    """Remove the lock file ``path`` (while it is still the one open as ``fd``) and let go of it."""
+    _HELD.pop(_file_key(fd), None)
+    try:
+        if path is not None and names_open_file(path, fd):
+            os.unlink(path)
+    except OSError:
+        pass
+    finally:
+        os.close(fd)
+
+
+def lock_refusal(what: str | os.PathLike, path: str | os.PathLike, command: str | None = None) -> InputError:
+    """The one line for ``what``, whose lock file ``path`` another process holds: "being trained by
+    another process (pid N, since T)" when the holder trains (its file or ``command`` says "train"),
+    else "being written by another process (hsicam CMD, pid N, since T)"; "wait for it or stop it"."""
+    info = _lock_info(path)
+    try:
+        holder = f"pid {int(info['pid'])}, since {info['since']}"
+    except (KeyError, TypeError, ValueError):
+        holder = "pid unknown"
+    command = info.get("command") if isinstance(info.get("command"), str) else command
+    if command == "train":
+        return InputError(f"{what}: being trained by another process ({holder}); wait for it or stop it")
+    by = f"hsicam {command}, " if command else ""
+    return InputError(f"{what}: being written by another process ({by}{holder}); wait for it or stop it")
+
+
+def output_lock_path(path: str | os.PathLike) -> Path:
+    """The lock file ``.NAME.hsicam-lock`` of the folder output ``path``, next to it."""
+    p = Path(path)
+    return p.parent / f".{p.name}{OUTPUT_LOCK_SUFFIX}"
+
+
+class OutputLock:
+    """This process's lock of the folder output ``path`` (through a symbolic link: of what it leads
+    to): held while the folder is written under a temporary name and renamed into place
+    (:func:`atomic_output`), or from earlier to keep a new output for this process (a training holds
+    its new run's from before its data are prepared). Another process that would write the folder is
+    refused with one line (:func:`lock_refusal`, ``command`` naming this one), and cleanups leave its
+    temporaries. A context manager that lets go on exit; re-entrant (an inner acquire does nothing,
+    its release keeps the outer lock); ``enabled=False`` (a DDP rank other than 0) locks nothing."""
+
+    def __init__(self, path: str | os.PathLike, command: str | None = None, enabled: bool = True) -> None:
+        try:
+            target = follow_link(path)
+        except InputError:  # a broken link: its own error comes from the output check
+            target = Path(path)
+        self.path = Path(path)
+        self.lock_path = output_lock_path(target)
+        self.command = command
+        self.enabled = enabled
+        self._fd: int | None = None
+
+    def acquire(self) -> None:
+        """Take the lock; InputError when another process holds it, nothing where nothing can be locked."""
+        if not self.enabled or self._fd is not None or held_here(self.lock_path):
+            return
+        try:
+            self._fd = lock_file(self.lock_path, {"command": self.command} if self.command else None)
+        except LockHeld:
+            raise lock_refusal(self.path, self.lock_path) from None
+
+    def release(self) -> None:
+        """Let go (removing the lock file); an inner (re-entrant) lock: nothing."""
+        fd, self._fd = self._fd, None
+        if fd is not None:
+            unlock_file(fd, self.lock_path)
+
+    def __enter__(self) -> "OutputLock":
+        return self
+
+    def __exit__(self, *exc: Any) -> None:
+        self.release()
 
 
 # ------------------------------------------------------------------------------------------------
@@ -210,15 +453,28 @@ def _temp_sibling(path: Path, kind: str) -> Path:
     return path.with_name(f".{path.name}.{token}.{kind}")
 
 
-def _new_temp_file(path: Path) -> Path:
+def _new_temp_file(path: Path) -> tuple[Path, int | None]:
+    """A new empty temporary file next to ``path`` and the descriptor holding its lock while it is
+    written (None where nothing can be locked): a cleanup leaves a locked temporary."""
     for _ in range(100):
         tmp = _temp_sibling(path, "tmp")
         try:
-            fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666)  # the umask applies
+            fd = os.open(tmp, os.O_RDWR | os.O_CREAT | os.O_EXCL, 0o666)  # the umask applies
         except FileExistsError:
             continue
-        os.close(fd)
-        return tmp
+        if fcntl is None:
+            os.close(fd)  # (Windows cannot rename a file that is open)
+            return tmp, None
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:  # a cleanup took it first, to remove it: another name
+            os.close(fd)
+            continue
+        except OSError:  # a file system without locks
+            return tmp, fd
+        if names_open_file(tmp, fd):
+            return tmp, fd
+        os.close(fd)  # removed by a cleanup before it was locked: another name
     raise FileExistsError(f"no free temporary name next to {path}")
 
 
@@ -263,28 +519,137 @@ def is_temporary(name: str) -> bool:
 def cleanup_stale_temporaries(folder: str | os.PathLike, *, recursive: bool = False, min_age_s: float = 0.0) -> list[Path]:
     """Remove the hidden temporaries (files and folders) that a killed process left in ``folder``.
 
-    Only names this module creates are touched (:func:`is_temporary`). ``min_age_s`` spares
-    temporaries modified more recently (another process may still be writing them); call it with
-    0 only on a folder that this process owns. Returns the removed paths (a missing folder: []).
-    """
+    Only names this module creates are touched (:func:`is_temporary`), and never one that a process
+    (this one included) is writing now: a temporary file that is locked, a folder output's
+    temporary while its :class:`OutputLock` is held. ``min_age_s`` spares temporaries modified more
+    recently too. ``recursive``: in sub-folders as well (never inside a temporary folder). Returns
+    the removed paths (a missing folder: [])."""
     root = Path(folder)
     if not root.is_dir():
         return []
     removed = []
     now = time.time()
-    entries = root.rglob(".*") if recursive else root.glob(".*")
-    for p in sorted(entries):
-        if not is_temporary(p.name) or not p.exists():
-            continue
+    for p in _temporaries(root, recursive):
         try:
             if min_age_s > 0 and now - p.lstat().st_mtime < min_age_s:
                 continue
         except OSError:
             continue
-        _remove(p)
-        removed.append(p)
-        log.info("removed a stale temporary left by an interrupted run: %s", p)
+        if remove_if_stale(p):
+            removed.append(p)
+            log.info("removed a stale temporary left by an interrupted run: %s", p)
     return removed
+
+
+def remove_stale_siblings(path: str | os.PathLike, kind: str = "dir") -> list[Path]:
+    """Before a command writes the output ``path`` (``kind`` "file" or "dir"): remove the hidden
+    temporaries a killed process left next to it (for a file, every ``.STEM.*`` one).
+
+    One-line :class:`InputError` (:func:`lock_refusal`) when another process is writing the folder
+    ``path`` now (its :class:`OutputLock`); a folder's temporaries are removed under that lock. A
+    temporary file that another process is writing is left (two writers of one file each rename a
+    whole file into place), and so is whatever this process is writing. Returns the removed paths."""
+    path = Path(path)
+    if not path.parent.is_dir():
+        return []
+    lock, fd = output_lock_path(path), None
+    if kind == "dir" and not held_here(lock):
+        try:
+            fd = lock_file(lock, {"cleaning": True})  # waits for another cleanup, not for a writer
+        except LockHeld:
+            raise lock_refusal(path, lock) from None
+    stem = path.stem if kind == "file" else path.name
+    removed = []
+    try:
+        for p in sorted(path.parent.glob(f".{glob.escape(stem)}.*")):
+            if not is_temporary(p.name) or p == lock:
+                continue
+            parts = _TEMP_PARTS.match(p.name)
+            if fd is not None and parts is not None and parts["folder"] and parts["stem"] == path.name:
+                _remove(p)  # the folder's own: its lock is held here
+            elif not remove_if_stale(p):
+                continue
+            removed.append(p)
+            log.debug("removed a stale temporary left by an interrupted run: %s", p)
+    finally:
+        if fd is not None:
+            unlock_file(fd, lock)  # a killed writer's lock file too
+    return removed
+
+
+def _temporaries(folder: Path, recursive: bool) -> list[Path]:
+    """The hidden temporaries in ``folder``, sorted; ``recursive``: in its sub-folders too (links not
+    followed), never inside a temporary."""
+    try:
+        entries = sorted(folder.iterdir())
+    except OSError:
+        return []
+    found = []
+    for p in entries:
+        if is_temporary(p.name):
+            found.append(p)
+        elif recursive and p.is_dir() and not p.is_symlink():
+            found += _temporaries(p, True)
+    return found
+
+
+def remove_if_stale(p: Path) -> bool:
+    """Remove the hidden temporary ``p`` unless a process is writing it now; True when removed. A
+    folder output's temporary (and its lock file) is removed under its :class:`OutputLock`, so that
+    no writer starts in it meanwhile; a temporary file under its own lock. Any other name: False."""
+    if not is_temporary(p.name):
+        return False
+    parts = _TEMP_PARTS.match(p.name)
+    if parts is not None and not parts["folder"]:
+        return _remove_file_if_stale(p)
+    lock = p if parts is None else output_lock_path(p.with_name(parts["stem"]))
+    if held_here(lock):
+        return False
+    try:
+        fd = lock_file(lock, {"cleaning": True}, tries=1)
+    except LockHeld:
+        return False
+    try:
+        if lock != p:
+            _remove(p)
+    finally:
+        if fd is not None:
+            unlock_file(fd, lock)  # removes the lock file too
+        elif lock == p:
+            p.unlink(missing_ok=True)  # nothing can be locked here: a leftover
+    return True
+
+
+def _remove_file_if_stale(p: Path) -> bool:
+    """Remove the temporary file ``p`` unless its writer holds its lock (:func:`_new_temp_file`)."""
+    if fcntl is None:
+        _remove(p)
+        return True
+    fd = None
+    for flags in (os.O_RDWR, os.O_RDONLY):
+        try:
+            fd = os.open(p, flags | getattr(os, "O_NOFOLLOW", 0))
+            break
+        except OSError:
+            continue
+    if fd is None:  # gone meanwhile, or not a file that opens (a link …): as it is
+        if not (p.exists() or p.is_symlink()):
+            return False
+        _remove(p)
+        return True
+    try:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            return False  # being written
+        except OSError:
+            pass  # a file system without locks
+        if not names_open_file(p, fd):
+            return False  # renamed into place or removed meanwhile
+        _remove(p)
+        return True
+    finally:
+        os.close(fd)
 
 
 # ------------------------------------------------------------------------------------------------
@@ -303,7 +668,7 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
     path = follow_link(path)
     try:
         created = _make_parents(path.parent)
-        tmp_path = _new_temp_file(path)
+        tmp_path, fd = _new_temp_file(path)
     except OSError as exc:
         raise _os_error(path, "file", exc) from None
     try:
@@ -317,6 +682,9 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
         if named is not exc:
             raise named from exc
         raise
+    finally:
+        if fd is not None:
+            os.close(fd)  # lets go of the temporary's lock
     _fsync_dir(path.parent)
 
 
@@ -339,7 +707,9 @@ def atomic_output(path: str | os.PathLike, kind: str = "dir", *, overwrite: bool
     none) and replaces ``path``: an absent or empty folder always, a non-empty one only with
     ``overwrite=True`` and only when it carries the marker (a folder this toolkit completed; a
     user's own folder is never deleted). On any error or interruption the temporary is removed and
-    ``path`` is left as it was. Unusable paths raise one-line :class:`InputError` before the block.
+    ``path`` is left as it was. Unusable paths raise one-line :class:`InputError` before the block,
+    and so does a folder that another process is writing now: the block runs under the folder's
+    :class:`OutputLock` (its temporaries are in use, no cleanup removes them).
     A symbolic link ``path`` leads to the folder that is replaced (:func:`follow_link`); the link is
     kept. An ``OSError`` naming a file in the temporary names it under ``path``.
     """
@@ -353,11 +723,20 @@ def atomic_output(path: str | os.PathLike, kind: str = "dir", *, overwrite: bool
     command = marker.get("command") if isinstance(marker, dict) else None
     check_output_path(path, "dir")
     check_replaceable(path, overwrite, command)
+    lock = OutputLock(path, command)
     try:
         created = _make_parents(path.parent)
-        tmp = _new_temp_dir(path)
     except OSError as exc:
         raise _os_error(path, "dir", exc) from None
+    try:
+        lock.acquire()  # another process writing this folder: refused, before any temporary
+        tmp = _new_temp_dir(path)
+    except BaseException as exc:
+        lock.release()
+        _remove_created(created)
+        if isinstance(exc, OSError):
+            raise _os_error(path, "dir", exc) from None
+        raise
     try:
         yield tmp
         if marker:
@@ -366,11 +745,13 @@ def atomic_output(path: str | os.PathLike, kind: str = "dir", *, overwrite: bool
         _swap_in(tmp, path)
     except BaseException as exc:
         _remove(tmp)
+        lock.release()
         _remove_created(created)
         named = _naming_output(exc, path, tmp, "dir") if isinstance(exc, OSError) else exc
         if named is not exc:
             raise named from exc
         raise
+    lock.release()
     _fsync_dir(path.parent)
 
 

@@ -9,7 +9,8 @@ cannot be read) and every unreadable JSON/YAML/text input is printed as ONE line
 <file>: <problem>`` and exits with code 2, without a traceback (``-v`` adds the traceback). Commands
 that write check their output paths with :func:`prepare_output` before any work starts and write
 through :func:`hsicam.io.atomic_output`, so a failed or killed command leaves nothing that a later
-command accepts.
+command accepts. A command never removes what another process is writing now: a folder output that
+another process is writing (a new training run included) is refused in one line naming it.
 
 Paths: a leading ``~`` in a path argument is expanded (:data:`PATH_METAVARS`); an output that is a
 symbolic link is written in what it leads to, the link kept (:func:`hsicam.io.follow_link`).
@@ -18,7 +19,6 @@ symbolic link is written in what it leads to, the link kept (:func:`hsicam.io.fo
 from __future__ import annotations
 
 import argparse
-import errno
 import importlib
 import json
 import logging
@@ -46,20 +46,48 @@ COMMAND_MODULES = (
 
 #: Metavars of the options and positionals that take a path: a leading ``~`` in their values (and
 #: string defaults) is expanded as a shell does, also when it reached hsicam quoted (a script, a
-#: Makefile), so every reader and writer (hsicam's, imageio's) takes the same file.
+#: Makefile), so every reader and writer (hsicam's, imageio's) takes the same file. The parser gives
+#: them the ``type`` :func:`hsicam.cli.args.path_arg` (around their own). ``--set KEY=VALUE`` is no
+#: path: its value goes into the config as written (a path key, e.g. ``data.root``, is expanded
+#: where it is read).
 PATH_METAVARS = frozenset({"DIR", "FILE", "PATH", "RUN", "RUN2", "SENSOR"})
 
 
+def _path_kwargs(kwargs: dict) -> dict:
+    """``add_argument``'s keyword arguments, with ``type`` expanding ``~`` for a path argument."""
+    metavar = kwargs.get("metavar")
+    if isinstance(metavar, str) and metavar in PATH_METAVARS:
+        from hsicam.cli.args import path_arg
+
+        kwargs = {**kwargs, "type": path_arg(kwargs.get("type"))}
+    return kwargs
+
+
+def _expanding(group):
+    """An argument group of a :class:`_Parser` whose path arguments expand ``~`` too."""
+    add_argument, add_group, add_exclusive = (group.add_argument, group.add_argument_group,
+                                              group.add_mutually_exclusive_group)
+    group.add_argument = lambda *args, **kwargs: add_argument(*args, **_path_kwargs(kwargs))
+    group.add_argument_group = lambda *args, **kwargs: _expanding(add_group(*args, **kwargs))
+    group.add_mutually_exclusive_group = lambda **kwargs: _expanding(add_exclusive(**kwargs))
+    return group
+
+
 class _Parser(argparse.ArgumentParser):
-    """argparse with usage errors reported as one line, exit code 2, and ``~`` expanded in paths."""
+    """argparse with usage errors reported as one line, exit code 2, and ``~`` expanded in paths
+    (:data:`PATH_METAVARS`, in argument groups too)."""
 
     def error(self, message: str) -> None:  # type: ignore[override]
         self.exit(2, f"hsicam: error: {message}\n")
 
-    def _get_value(self, action: argparse.Action, arg_string: str):  # argparse converts every value here
-        if action.metavar in PATH_METAVARS:
-            arg_string = os.path.expanduser(arg_string)
-        return super()._get_value(action, arg_string)
+    def add_argument(self, *args, **kwargs):  # type: ignore[override]
+        return super().add_argument(*args, **_path_kwargs(kwargs))
+
+    def add_argument_group(self, *args, **kwargs):  # type: ignore[override]
+        return _expanding(super().add_argument_group(*args, **kwargs))
+
+    def add_mutually_exclusive_group(self, **kwargs):  # type: ignore[override]
+        return _expanding(super().add_mutually_exclusive_group(**kwargs))
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -126,15 +154,17 @@ def prepare_output(path: str | Path, kind: str = "dir", replace: bool = False, c
     """Before any work: :func:`hsicam.io.check_output_path` (one-line error for an output that cannot
     work, a symbolic link that points nowhere; a shipped pre-trained camera, which is read-only),
     then remove the hidden temporary siblings (``.NAME.XXXXXXXX.tmpdir`` …) that an earlier, killed
-    run of a command left next to this output (next to a link's target: the writers follow links).
-    ``replace``: the command writes the folder whole through ``atomic_output(..., overwrite=True)``,
-    so a training run (named as the input ``run`` when it is), a non-empty folder that is not a
-    completed hsicam output (a user's own), another ``command``'s output or a completed folder
-    holding files the command did not write is refused now, before the work
-    (:func:`hsicam.io.check_replaceable`, the check ``atomic_output`` repeats with its marker's command)."""
-    import shutil
-
-    from hsicam.io import check_output_path, check_replaceable, follow_link, is_temporary
+    run of a command left next to this output (next to a link's target: the writers follow links),
+    never those another process is writing now (:func:`hsicam.io.remove_stale_siblings`): a folder
+    that another process is writing (``atomic_output``, a new training run) is refused, naming it.
+    In a ``torchrun`` group rank 0 does this for the group. ``replace``: the command writes the folder
+    whole through ``atomic_output(..., overwrite=True)``, so a training run (named as the input
+    ``run`` when it is), a non-empty folder that is not a completed hsicam output (a user's own),
+    another ``command``'s output or a completed folder holding files the command did not write is
+    refused now, before the work (:func:`hsicam.io.check_replaceable`, the check ``atomic_output``
+    repeats with its marker's command)."""
+    from hsicam.devices import dist_env
+    from hsicam.io import check_output_path, check_replaceable, follow_link, remove_stale_siblings
     from hsicam.runs.pretrained import check_not_pretrained
 
     check_not_pretrained(path)
@@ -142,12 +172,8 @@ def prepare_output(path: str | Path, kind: str = "dir", replace: bool = False, c
     if replace and kind == "dir":
         _refuse_run_folder(out, command, run)
         check_replaceable(Path(out), overwrite=True, command=command)
-    target = follow_link(out)
-    if target.parent.is_dir():
-        stem = target.stem if kind == "file" else target.name
-        for p in target.parent.glob(f".{stem}.*"):
-            if is_temporary(p.name):
-                shutil.rmtree(p, ignore_errors=True) if p.is_dir() and not p.is_symlink() else p.unlink(missing_ok=True)
+    if dist_env()[0] == 0:  # another rank's temporaries are rank 0's own
+        remove_stale_siblings(follow_link(out), kind)
     return out
 
 
@@ -196,24 +222,15 @@ def error_line(exc: BaseException) -> str | None:
     return None
 
 
-#: What to do about an OSError, by errno: a write the disk refused (full, quota, read-only …) or a
-#: file without permission. Its text is then the system's own (not a library's multi-line one).
-OS_ERROR_HINTS = {
-    errno.ENOSPC: "the disk is full: free some space, or write to another disk",
-    errno.EDQUOT: "the disk quota is used up: free some space, or write elsewhere",
-    errno.EFBIG: "over the file-size limit of the file system or of the shell, ulimit -f: write elsewhere",
-    errno.EROFS: "write to a writable file system",
-    errno.EIO: "the disk or its connection failed",
-    errno.EACCES: "check its permissions and its folder's",
-    errno.EPERM: "check its permissions and its folder's",
-}
-
 #: numpy's message for a file write cut short (no errno): a full disk, most often.
 _SHORT_WRITE = re.compile(r"^(\d+) requested and (\d+) written$")
 
 
 def _os_error_line(exc: OSError) -> str:
-    """``<file>: <what happened> (<what to do>)`` for an OSError (the file when it names one)."""
+    """``<file>: <what happened> (<what to do>)`` for an OSError (the file when it names one; what to
+    do: :data:`hsicam.io.OS_ERROR_HINTS`, the one table of disk errors)."""
+    from hsicam.io import OS_ERROR_HINTS
+
     text = exc.strerror or (original_message(exc).splitlines() or [""])[0] or type(exc).__name__
     what, hint = text.splitlines()[0], OS_ERROR_HINTS.get(exc.errno) if exc.errno is not None else None
     if hint is not None:

@@ -1,12 +1,15 @@
 """argparse ``type`` functions of options shared by several commands (``--device``, ``--seed``,
 ``--lr``, ``--seeds``; ``--run`` is :func:`hsicam.cli.run_folder`): a bad value is a usage error naming the
-option (exit code 2, one line), never a traceback later in the work."""
+option (exit code 2, one line), never a traceback later in the work. :func:`path_arg`: the ``~`` of
+every path argument (the parser adds it to them, :data:`hsicam.cli.PATH_METAVARS`)."""
 
 from __future__ import annotations
 
 import argparse
+import functools
 import math
-from typing import Callable
+import os
+from typing import Any, Callable
 
 from hsicam.config import SEED_MAX, SEED_MIN, seed_problem
 
@@ -66,3 +69,15 @@ def count_arg(text: str) -> int:
     if value < 1:
         raise argparse.ArgumentTypeError(f"must be >= 1, got {value}")
     return value
+
+
+def path_arg(convert: Callable[[str], Any] | None = None) -> Callable[[str], Any]:
+    """argparse ``type`` of a path argument: a leading ``~`` expanded as a shell does
+    (``os.path.expanduser``, also when it reached hsicam quoted, from a script or a Makefile), then
+    ``convert`` (e.g. :func:`hsicam.cli.run_folder`), whose name argparse's errors keep."""
+
+    def path(text: str) -> Any:
+        text = os.path.expanduser(text)
+        return text if convert is None else convert(text)
+
+    return path if convert is None else functools.update_wrapper(path, convert)

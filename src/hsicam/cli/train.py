@@ -25,15 +25,19 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 def cmd_train(args: argparse.Namespace) -> int:
     from hsicam.cli import prepare_output
+    from hsicam.devices import dist_env
     from hsicam.engine.loop import check_not_an_output
+    from hsicam.io import OutputLock
     from hsicam.runs.lock import RunLock
 
-    run = prepare_output(args.out, "dir")
+    run = prepare_output(args.out, "dir")  # refused while another training makes this new run
     check_not_an_output(run, "resume" if args.resume else "restart" if args.restart else "train")
-    with RunLock(run) as lock:
+    with RunLock(run) as lock, OutputLock(run, "train", enabled=dist_env()[0] == 0) as new_run:
+        if not args.resume:
+            new_run.acquire()  # a new run's folder: this process's until the loop takes it over
         if (args.resume or args.restart) and (run / "config.yaml").is_file():
             lock.acquire()  # held from the first change (a restart's removal) to the last (re-entrant in fit)
-        summary = _train(args, run)
+        summary = _train(args, run, new_run)
     if summary.get("already_finished"):
         changed = ("; ".join(summary["changed"]) + ", nothing else changed" if summary.get("changed")
                    else "nothing changed")
@@ -45,8 +49,10 @@ def cmd_train(args: argparse.Namespace) -> int:
     return 0
 
 
-def _train(args: argparse.Namespace, run) -> dict:
-    """The config of ``hsicam train`` (the run's own on --resume), a --restart's removal, the training."""
+def _train(args: argparse.Namespace, run, new_run) -> dict:
+    """The config of ``hsicam train`` (the run's own on --resume), a --restart's removal, the training
+    (``new_run``, the new run's :class:`~hsicam.io.OutputLock`, is handed over to it: the loop holds
+    its own until the run is in place, not for the whole training)."""
     from hsicam.engine.train import train
     from hsicam.runs.folder import check_run_dir, check_train_can_resume, restart_run_dir
 
@@ -60,6 +66,7 @@ def _train(args: argparse.Namespace, run) -> dict:
         cfg = config_from_args(args.config, args.overrides)  # a bad config wipes nothing
         if args.restart:
             restart_run_dir(run)
+    new_run.release()
     return train(cfg, run, resume=args.resume)
 
 

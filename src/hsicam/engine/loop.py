@@ -37,7 +37,7 @@ from hsicam.data.pipeline import make_loader
 from hsicam.devices import device_problem, dist_env
 from hsicam.engine.stopping import BUDGET_EXIT_CODE, StopRequests
 from hsicam.errors import InputError, TrainingInterrupted, TrainingStopped
-from hsicam.io import atomic_output, is_complete, output_description
+from hsicam.io import OutputLock, atomic_output, is_complete, output_description
 from hsicam.runs.checkpoint import CheckpointManager, save_weights
 from hsicam.runs.folder import MetricsLog, check_run_dir
 from hsicam.runs.lock import RunLock, check_not_locked
@@ -221,6 +221,8 @@ def fit(task: Task, opts: FitOptions, run_dir: str | Path, resume: bool = False,
 
     Rank 0 holds the run folder's lock (:mod:`hsicam.runs.lock`) for as long as it writes into it,
     and lets go however it ends: another process training there is refused before anything is touched.
+    A new run's folder is this process's from before its data are prepared until it is in place (its
+    :class:`~hsicam.io.OutputLock`): another training into it is refused the same way meanwhile.
     ``then(summary) -> summary`` runs on rank 0 under that lock after a training that was not cut
     short (files derived from the final weights, e.g. the linear step's filters).
 
@@ -235,8 +237,9 @@ def fit(task: Task, opts: FitOptions, run_dir: str | Path, resume: bool = False,
         device = resolve_device(opts.loop.device, local_rank)
         dist.init_process_group("nccl" if device.type == "cuda" else "gloo")
     try:
-        with RunLock(run_dir, enabled=rank == 0) as lock, StopRequests(opts.loop.max_minutes) as stop:
-            result = _fit(task, opts, Path(run_dir), resume, lock, stop)
+        with RunLock(run_dir, enabled=rank == 0) as lock, OutputLock(run_dir, "train", enabled=rank == 0) as new_run, \
+                StopRequests(opts.loop.max_minutes) as stop:
+            result = _fit(task, opts, Path(run_dir), resume, lock, new_run, stop)
             if then is not None and rank == 0 and "stopped_at_step" not in result:
                 result = then(result)
             if stop.received is not None and "step" in result:  # asked during the last step or the files after it
@@ -302,7 +305,8 @@ def _agreed_stop(stop: StopRequests, next_step_s: float, distributed: bool, devi
     return None if code == 0 else (stop.describe(code), code)
 
 
-def _fit(task: Task, opts: FitOptions, run_dir: Path, resume: bool, lock: RunLock, stop: StopRequests) -> dict[str, Any]:
+def _fit(task: Task, opts: FitOptions, run_dir: Path, resume: bool, lock: RunLock, new_run: OutputLock,
+         stop: StopRequests) -> dict[str, Any]:
     t = opts.loop
     rank, world, local_rank = dist_env()
     distributed = world > 1
@@ -318,6 +322,7 @@ def _fit(task: Task, opts: FitOptions, run_dir: Path, resume: bool, lock: RunLoc
             check_not_an_output(run_dir)
         else:
             check_not_locked(run_dir)  # a new run's folder: locked in its temporary folder below
+            new_run.acquire()  # until then its output lock: taken before check_run_dir removes a killed run's temporaries
         check_run_dir(run_dir, resume)  # before any work; nothing is created until the data are known good
     if distributed:  # generate/cache the dataset once, on rank 0, before the others read it
         if is_main:
@@ -372,6 +377,7 @@ def _fit(task: Task, opts: FitOptions, run_dir: Path, resume: bool, lock: RunLoc
             lock.acquire(tmp)  # held across the rename: the run is never in place unlocked
             task.write_run_files(tmp)
         lock.moved()
+        new_run.release()  # in place: the run's own lock keeps it
     state.total_steps = total_steps  # saved with each checkpoint: what a half-trained run is measured against
     if distributed:
         dist.barrier()

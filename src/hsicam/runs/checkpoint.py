@@ -29,7 +29,6 @@ never takes other weights than the manifest's best for the best. Runs written be
 
 from __future__ import annotations
 
-import errno
 import hashlib
 import json
 import logging
@@ -45,7 +44,7 @@ from safetensors.torch import load_file, save_file
 from torch import nn
 
 from hsicam.errors import InputError
-from hsicam.io import atomic_path, cleanup_stale_temporaries, write_json
+from hsicam.io import NO_SPACE_ERRNOS, atomic_path, cleanup_stale_temporaries, write_json
 from hsicam.spectral import Bands
 
 FORMAT = "hsicam-checkpoint-1"
@@ -86,7 +85,7 @@ def _reason(exc: OSError) -> str:
 
 
 def _resume_hint(exc: OSError) -> str:
-    full = exc.errno in (errno.ENOSPC, errno.EDQUOT)
+    full = exc.errno in NO_SPACE_ERRNOS
     return "free some space, then resume the run" if full else "resume the run once it can be written"
 
 

@@ -1,0 +1,284 @@
+"""Two processes and one output: a second command never deletes the temporaries of a process that is
+writing them now (:mod:`hsicam.io`: a temporary file is locked while it is written, a folder output by
+its :class:`~hsicam.io.OutputLock`), while a killed process's temporaries are still removed (the kernel
+lets go of its locks). A second writer of a folder is refused with one line naming the first; a second
+training into a new run that the first is still making gets the line of a locked run.
+
+Each test starts a real writer process that stops at a point of its work until the test tells it to go
+on (marker files: ``ready`` holds what it is writing, ``go`` lets it finish).
+"""
+
+from __future__ import annotations
+
+import os
+import re
+import signal
+import subprocess
+import sys
+import textwrap
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from cli_helpers import assert_ok, cli_env, error_line, module_cache, run_cli_in_process
+
+fcntl = pytest.importorskip("fcntl")  # POSIX: where it is missing nothing is locked (last test)
+
+import hsicam.io as hio  # noqa: E402
+from hsicam.cli import prepare_output  # noqa: E402
+from hsicam.io import atomic_output, atomic_path, cleanup_stale_temporaries, is_temporary, read_marker  # noqa: E402
+
+# The child's pause: "ready" says what it is writing, then it waits for "go".
+PAUSE = """
+import sys, time
+from pathlib import Path
+
+def pause(what):
+    Path(sys.argv[1]).write_text(str(what))
+    deadline = time.time() + 60
+    while not Path(sys.argv[2]).exists():
+        if time.time() > deadline:
+            sys.exit("never told to go on")
+        time.sleep(0.01)
+"""
+
+WRITE_FOLDER = """
+from hsicam.io import atomic_output
+
+with atomic_output(sys.argv[3], overwrite=True, marker={"command": "simulate"}) as tmp:
+    (tmp / "first.txt").write_text("first")
+    pause(tmp)
+    (tmp / "second.txt").write_text("second")
+"""
+
+WRITE_FILE = """
+from hsicam.io import atomic_open
+
+with atomic_open(sys.argv[3], "w") as fh:
+    fh.write("first")
+    fh.flush()
+    pause(fh.name)
+    fh.write(" second")
+"""
+
+# `hsicam train` stopped while its new run is a hidden temporary folder, or before its data are made
+TRAIN = """
+import hsicam.engine.loop as loop
+from hsicam.cli import main
+from hsicam.runs.lock import RunLock
+
+if sys.argv[3] == "temporary":
+    acquire = RunLock.acquire
+
+    def paused_acquire(self, folder=None):
+        acquire(self, folder)
+        if folder is not None:  # the run's temporary folder, locked
+            pause(folder)
+
+    RunLock.acquire = paused_acquire
+else:
+    check_run_dir = loop.check_run_dir
+
+    def paused_check(run_dir, *args, **kwargs):
+        pause(run_dir)
+        return check_run_dir(run_dir, *args, **kwargs)
+
+    loop.check_run_dir = paused_check
+sys.exit(main(["train", "--config", "tiny", "--out", sys.argv[4], "--set", "train.epochs=1"]))
+"""
+
+
+class Writer:
+    """A child process running ``PAUSE + code`` that stops in ``pause(what)``."""
+
+    def __init__(self, sync: Path, code: str, *args: str) -> None:
+        sync.mkdir(parents=True)
+        self.ready, self.go_file = sync / "ready", sync / "go"
+        script = PAUSE + textwrap.dedent(code)
+        self.proc = subprocess.Popen([sys.executable, "-c", script, str(self.ready), str(self.go_file), *args],
+                                     env=cli_env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        self.pid = self.proc.pid
+        deadline = time.time() + 120
+        while not self.ready.exists():
+            assert self.proc.poll() is None, self.proc.communicate()
+            assert time.time() < deadline, "the writer never got to its pause"
+            time.sleep(0.01)
+        self.what = Path(self.ready.read_text())
+
+    def go(self) -> subprocess.CompletedProcess:
+        """Let it finish; its completed process."""
+        self.go_file.write_text("")
+        out, err = self.proc.communicate(timeout=120)
+        return subprocess.CompletedProcess(self.proc.args, self.proc.returncode, out, err)
+
+    def kill(self) -> None:
+        """``kill -9`` while it pauses."""
+        self.proc.send_signal(signal.SIGKILL)
+        self.proc.communicate(timeout=60)
+        assert self.proc.returncode == -signal.SIGKILL
+
+
+@pytest.fixture
+def start(tmp_path):
+    """``start(code, *args)``: a :class:`Writer` at its pause (killed at the end if still running)."""
+    writers: list[Writer] = []
+
+    def make(code: str, *args: str | Path) -> Writer:
+        w = Writer(tmp_path / "sync" / str(len(writers)), code, *map(str, args))
+        writers.append(w)
+        return w
+
+    yield make
+    for w in writers:
+        if w.proc.poll() is None:
+            w.proc.kill()
+            w.proc.communicate()
+
+
+@pytest.fixture(scope="module")
+def env(tmp_path_factory):
+    yield from module_cache(tmp_path_factory)
+
+
+@pytest.fixture(scope="module")
+def scene(tmp_path_factory) -> Path:
+    """A 7-band .npy scene of the tiny preset's camera."""
+    p = tmp_path_factory.mktemp("scene") / "scene.npy"
+    np.save(p, np.random.default_rng(0).uniform(0.1, 1, (7, 40, 40)).astype(np.float32))
+    return p
+
+
+def simulate(scene: Path, out: Path) -> subprocess.CompletedProcess:
+    return run_cli_in_process("simulate", "--config", "tiny", "--scene", str(scene), "--out", str(out))
+
+
+def hidden(folder: Path) -> list[str]:
+    return sorted(p.name for p in folder.iterdir() if p.name.startswith("."))
+
+
+# ------------------------------------------------------------------------------------------------
+# A folder output
+# ------------------------------------------------------------------------------------------------
+def test_a_folder_being_written_is_kept_and_a_second_writer_refused(tmp_path, start, env, scene):
+    out = tmp_path / "out" / "sim"
+    out.parent.mkdir()
+    w = start(WRITE_FOLDER, out)
+    tmp = w.what
+    assert is_temporary(tmp.name) and tmp.parent == out.parent
+    line = error_line(simulate(scene, out))  # used to delete the first one's temporary folder
+    assert re.fullmatch(rf"hsicam: error: {re.escape(str(out))}: being written by another process \(hsicam simulate, "
+                        rf"pid {w.pid}, since [0-9-]+ [0-9:]+\); wait for it or stop it", line), line
+    with pytest.raises(hio.InputError, match=rf"being written by another process \(hsicam simulate, pid {w.pid}"):
+        with atomic_output(out, overwrite=True, marker={"command": "simulate"}):
+            pass
+    old = out.parent / ".sim.0a1b2c3d.old"  # what a swap sets aside while it renames the new folder in
+    old.mkdir()
+    assert cleanup_stale_temporaries(out.parent, recursive=True) == []
+    assert (tmp / "first.txt").read_text() == "first" and old.is_dir()
+    old.rmdir()
+    assert_ok(w.go())
+    assert sorted(p.name for p in out.iterdir()) == [".complete", "first.txt", "second.txt"]
+    assert read_marker(out)["command"] == "simulate" and hidden(out.parent) == []
+
+
+def test_a_killed_writers_temporaries_are_removed_by_the_next_command(tmp_path, start, env, scene):
+    out = tmp_path / "out" / "sim"
+    out.parent.mkdir()
+    w = start(WRITE_FOLDER, out)
+    w.kill()
+    assert hidden(out.parent) == sorted([w.what.name, ".sim.hsicam-lock"])  # its lock file: no longer locked
+    assert_ok(simulate(scene, out))
+    assert read_marker(out)["command"] == "simulate" and hidden(out.parent) == []
+    w = start(WRITE_FOLDER, out)  # and by a cleanup
+    w.kill()
+    assert sorted(p.name for p in cleanup_stale_temporaries(out.parent)) == sorted([w.what.name, ".sim.hsicam-lock"])
+    assert hidden(out.parent) == []
+
+
+# ------------------------------------------------------------------------------------------------
+# A file output
+# ------------------------------------------------------------------------------------------------
+def test_a_file_being_written_keeps_its_temporary_and_a_killed_ones_is_removed(tmp_path, start):
+    out = tmp_path / "out" / "recon.txt"
+    out.parent.mkdir()
+    w = start(WRITE_FILE, out)
+    tmp = w.what
+    assert is_temporary(tmp.name) and tmp.parent == out.parent
+    assert cleanup_stale_temporaries(out.parent, recursive=True) == []
+    assert prepare_output(out, "file") == out  # no refusal: two writers of a file each rename a whole file in
+    assert tmp.read_text() == "first"
+    assert_ok(w.go())
+    assert out.read_text() == "first second" and hidden(out.parent) == []
+    w = start(WRITE_FILE, out)
+    w.kill()
+    assert hidden(out.parent) == [w.what.name]
+    prepare_output(out, "file")
+    assert hidden(out.parent) == [] and out.read_text() == "first second"
+
+
+def test_this_processs_own_temporaries_are_in_use_too(tmp_path):
+    with atomic_output(tmp_path / "out") as tmp:
+        with atomic_path(tmp_path / "f.json") as ftmp:
+            assert cleanup_stale_temporaries(tmp_path) == []
+            assert tmp.is_dir() and ftmp.is_file()
+            prepare_output(tmp_path / "out", "dir")  # its own folder: no refusal, nothing removed
+            prepare_output(tmp_path / "f.json", "file")
+            assert tmp.is_dir() and ftmp.is_file()
+            ftmp.write_text("{}")
+    assert hidden(tmp_path) == [] and (tmp_path / "out").is_dir() and (tmp_path / "f.json").is_file()
+
+
+# ------------------------------------------------------------------------------------------------
+# A new training run
+# ------------------------------------------------------------------------------------------------
+@pytest.mark.parametrize("where", ["temporary", "before its data"])
+def test_a_second_training_into_a_new_run_being_made_is_refused(tmp_path, start, env, where):
+    run = tmp_path / "runs" / "run"
+    run.parent.mkdir()
+    w = start(TRAIN, "temporary" if where == "temporary" else "data", run)
+    second = ("train", "--config", "tiny", "--out", str(run), "--set", "train.epochs=1")
+    line = error_line(run_cli_in_process(*second))  # used to delete the first one's temporary and train itself
+    assert re.fullmatch(rf"hsicam: error: {re.escape(str(run))}: being trained by another process \(pid {w.pid}, "
+                        rf"since [0-9-]+ [0-9:]+\); wait for it or stop it", line), line
+    if where == "temporary":
+        assert w.what.is_dir() and (w.what / ".hsicam-lock").is_file()
+        assert_ok(w.go())  # used to fail: "folder exists and is not empty"
+    else:
+        assert not run.exists()
+        w.kill()
+        assert hidden(run.parent) == [".run.hsicam-lock"]  # a killed process's: taken over
+        assert_ok(run_cli_in_process(*second))
+    assert (run / "config.yaml").is_file() and (run / "model.safetensors").is_file()
+    assert not (run / ".hsicam-lock").exists() and hidden(run.parent) == []
+
+
+# ------------------------------------------------------------------------------------------------
+# torchrun; no fcntl
+# ------------------------------------------------------------------------------------------------
+def test_in_a_torchrun_group_rank_0_removes_the_temporaries(tmp_path, monkeypatch):
+    stale = tmp_path / ".sim.0a1b2c3d.tmpdir"
+    stale.mkdir()
+    monkeypatch.setenv("WORLD_SIZE", "2")
+    monkeypatch.setenv("RANK", "1")
+    prepare_output(tmp_path / "sim", "dir")
+    assert stale.is_dir()  # rank 0's, maybe being written
+    monkeypatch.setenv("RANK", "0")
+    prepare_output(tmp_path / "sim", "dir")
+    assert hidden(tmp_path) == []
+
+
+def test_without_fcntl_nothing_is_locked_and_every_temporary_is_removed(tmp_path, monkeypatch):
+    monkeypatch.setattr(hio, "fcntl", None)  # Windows
+    with atomic_output(tmp_path / "out") as tmp, atomic_path(tmp_path / "f.json") as ftmp:
+        ftmp.write_text("{}")
+        assert hidden(tmp_path) == sorted([tmp.name, ftmp.name])  # no lock file
+    assert hidden(tmp_path) == [] and (tmp_path / "out").is_dir() and (tmp_path / "f.json").is_file()
+    stale = [tmp_path / ".out.0a1b2c3d.tmpdir", tmp_path / ".f.0a1b2c3d.tmp.json"]
+    stale[0].mkdir()
+    stale[1].write_text("{")
+    assert cleanup_stale_temporaries(tmp_path) == sorted(stale)
+    stale[0].mkdir()
+    prepare_output(tmp_path / "out", "dir")
+    assert hidden(tmp_path) == []
