@@ -343,6 +343,40 @@ def test_killed_writer_leaves_only_a_hidden_temporary_that_cleanup_removes(tmp_p
     assert cleanup_stale_temporaries(tmp_path / "missing") == []
 
 
+@pytest.mark.parametrize("next_command", ["prepare_output", "cleanup"])
+def test_a_kill_between_the_two_renames_of_a_replacement_keeps_the_previous_output(tmp_path, next_command):
+    """A replacement sets the old folder aside (.NAME.X.old), then renames the new one into place: a
+    kill between the two renames used to leave no output, and the next command deleted the old one."""
+    out = tmp_path / "ev"
+    with atomic_output(out, marker={"command": "evaluate"}) as d:
+        (d / "results.json").write_text('{"psnr": 40}')
+    res = python("""
+        import os, signal, sys
+        from pathlib import Path
+        from hsicam.io import atomic_output
+        renames = []
+        real = os.rename
+        def rename(a, b):
+            renames.append((a, b))
+            if len(renames) == 2:  # the new folder onto the output: killed first
+                os.kill(os.getpid(), signal.SIGKILL)
+            real(a, b)
+        os.rename = rename
+        with atomic_output(Path(sys.argv[1]), overwrite=True, marker={"command": "evaluate"}) as d:
+            (d / "results.json").write_text('{"psnr": 41}')
+    """, str(out))
+    assert res.returncode == -9, res.stderr
+    assert not out.exists() and any(n.endswith(".old") for n in hidden(tmp_path))
+    if next_command == "prepare_output":
+        from hsicam.cli import prepare_output
+
+        prepare_output(out, "dir", replace=True, command="evaluate")
+    else:
+        cleanup_stale_temporaries(tmp_path)
+    assert json.loads((out / "results.json").read_text()) == {"psnr": 40}  # the previous output, restored
+    assert is_complete(out) and hidden(tmp_path) == []  # the killed command's new folder is gone
+
+
 def test_cleanup_recursive(tmp_path):
     (tmp_path / "ckpt" / "step_10").mkdir(parents=True)
     stale = tmp_path / "ckpt" / "step_10" / ".model.0a1b2c3d.tmp.safetensors"

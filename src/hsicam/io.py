@@ -566,7 +566,8 @@ def remove_stale_siblings(path: str | os.PathLike, kind: str = "dir") -> list[Pa
                 continue
             parts = _TEMP_PARTS.match(p.name)
             if fd is not None and parts is not None and parts["folder"] and parts["stem"] == path.name:
-                _remove(p)  # the folder's own: its lock is held here
+                if not _restore_set_aside(p):  # the folder's own: its lock is held here
+                    _remove(p)
             elif not remove_if_stale(p):
                 continue
             removed.append(p)
@@ -575,6 +576,25 @@ def remove_stale_siblings(path: str | os.PathLike, kind: str = "dir") -> list[Pa
         if fd is not None:
             unlock_file(fd, lock)  # a killed writer's lock file too
     return removed
+
+
+def _restore_set_aside(p: Path) -> bool:
+    """Rename ``p`` back into place when it is a finished output that a replacement set aside
+    (``.NAME.XXXXXXXX.old``) and a kill between :func:`_swap_in`'s two renames left without its
+    successor: ``NAME`` is missing. True when restored (a warning names it); call under the
+    output's lock."""
+    parts = _TEMP_PARTS.match(p.name)
+    if parts is None or parts["folder"] != "old" or not p.is_dir() or p.is_symlink():
+        return False
+    final = p.with_name(parts["stem"])
+    if final.exists() or final.is_symlink():
+        return False
+    try:
+        os.rename(p, final)
+    except OSError:
+        return False
+    log.warning("%s: restored the previous output, which a killed command had set aside while replacing it", final)
+    return True
 
 
 def _temporaries(folder: Path, recursive: bool) -> list[Path]:
@@ -610,7 +630,7 @@ def remove_if_stale(p: Path) -> bool:
     except LockHeld:
         return False
     try:
-        if lock != p:
+        if lock != p and not _restore_set_aside(p):
             _remove(p)
     finally:
         if fd is not None:
