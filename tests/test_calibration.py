@@ -628,8 +628,8 @@ def test_finetune_refuses_psfs_outside_the_kernel(fab_run, tmp_path):
 
 def test_reconstructing_simulates_own_dark_png_gives_no_bit_depth_advice(fab_run, tmp_path):
     """`hsicam simulate` of a dark scene writes sensor.png at the full 16 bits (simulate.json beside
-    it): reconstructing it gives no "very dark ... sensor has N bits, pass --white-level" advice,
-    which the same PNG as a real capture (no simulate.json) still gets."""
+    it and its scale inside it): reconstructing it gives no "very dark ... sensor has N bits, pass
+    --white-level" advice, which the same pixels as a real capture (no simulate.json, no text chunk) still get."""
     from cli_helpers import run_cli as run_cli_subprocess  # warnings as the user sees them on stderr
 
     scene = tmp_path / "scene.npy"
@@ -642,7 +642,10 @@ def test_reconstructing_simulates_own_dark_png_gives_no_bit_depth_advice(fab_run
     res = run_cli_subprocess("reconstruct", str(sim / "sensor.png"), "--run", str(fab_run), "--out", str(tmp_path / "a.h5"))
     assert res.returncode == 0, res.stderr
     assert "very dark" not in res.stderr and "--white-level" not in res.stderr, res.stderr
-    shutil.copy(sim / "sensor.png", tmp_path / "capture.png")
+    from PIL import Image
+
+    with Image.open(sim / "sensor.png") as im:  # the same pixels as a real capture: no hsicam text chunk
+        Image.fromarray(np.array(im)).save(tmp_path / "capture.png")
     res = run_cli_subprocess("reconstruct", str(tmp_path / "capture.png"), "--run", str(fab_run), "--out",
                              str(tmp_path / "b.h5"))
     assert res.returncode == 0, res.stderr

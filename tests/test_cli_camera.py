@@ -75,6 +75,33 @@ def test_simulate_command_outputs(tmp_path):
         assert iio.imread(out / name).ndim == 3
 
 
+def test_simulate_png_keeps_its_scale_when_copied_elsewhere(tmp_path):
+    """A sensor brighter than full scale is stored stretched (PNG = sensor / peak): the scale travels
+    inside the PNG, so a copy away from simulate.json reads back at the simulated level."""
+    from PIL import Image
+
+    from hsicam.data.images import SENSOR_SCALE_KEY, read_sensor_image
+
+    np.save(tmp_path / "scene.npy", np.full((7, 40, 48), 3.0, np.float32))  # a scene 3× full scale
+    out = tmp_path / "out"
+    proc = run_cli("simulate", "--scene", str(tmp_path / "scene.npy"), "--out", str(out), *TINY)
+    assert proc.returncode == 0, proc.stderr
+    sensor = np.load(out / "sensor.npy")
+    scale = json.loads((out / "simulate.json").read_text())["sensor_png_scale"]
+    assert scale == pytest.approx(float(sensor.max())) and scale > 1.5
+    with Image.open(out / "sensor.png") as im:
+        assert float(im.text[SENSOR_SCALE_KEY]) == scale
+    (tmp_path / "elsewhere").mkdir()
+    copy = tmp_path / "elsewhere" / "capture.png"
+    copy.write_bytes((out / "sensor.png").read_bytes())
+    tol = scale / 65535
+    np.testing.assert_allclose(read_sensor_image(copy), sensor, atol=tol)  # was sensor / scale
+    np.testing.assert_allclose(read_sensor_image(out / "sensor.png"), sensor, atol=tol)
+    plain = np.arange(16, dtype=np.uint16).reshape(4, 4) * 4000
+    Image.fromarray(plain).save(tmp_path / "plain.png")  # any other PNG: as stored
+    np.testing.assert_allclose(read_sensor_image(tmp_path / "plain.png"), plain / 65535.0, atol=1e-7)
+
+
 def test_simulate_valid_boundary_shrinks_sensor(tmp_path):
     np.save(tmp_path / "scene.npy", np.ones((7, 40, 40), np.float32))
     out = tmp_path / "out"

@@ -1003,16 +1003,30 @@ def copy_file(src: str | os.PathLike, dst: str | os.PathLike) -> None:
         raise OSError(exc.errno, exc.strerror or str(exc), str(dst)) from None
 
 
-def write_png16(path: str | os.PathLike, image01: np.ndarray) -> None:
-    """Write a single-channel image in [0, 1] as a 16-bit grayscale PNG (values are clipped)."""
+def write_png16(path: str | os.PathLike, image01: np.ndarray, text: dict[str, str] | None = None) -> None:
+    """Write a single-channel image in [0, 1] as a 16-bit grayscale PNG (values are clipped);
+    ``text``: PNG text chunks (key → value) that travel with the file."""
     import imageio.v3 as iio
 
     img = np.asarray(image01, dtype=np.float64)
     if img.ndim != 2:
         raise ValueError(f"write_png16 expects a 2-D image, got shape {img.shape}")
     data = np.round(np.clip(img, 0.0, 1.0) * 65535.0).astype(np.uint16)
+    if text:
+        import io as _io
+
+        from PIL import Image, PngImagePlugin
+
+        info = PngImagePlugin.PngInfo()
+        for key, value in text.items():
+            info.add_text(key, value)
+        buf = _io.BytesIO()
+        Image.fromarray(data).save(buf, format="PNG", pnginfo=info)
+        encoded = buf.getvalue()
+    else:
+        encoded = iio.imwrite("<bytes>", data, extension=".png")
     with atomic_path(path) as tmp:  # encoded in memory: imageio never sees (nor expands "~" in) the path
-        tmp.write_bytes(iio.imwrite("<bytes>", data, extension=".png"))
+        tmp.write_bytes(encoded)
 
 
 def write_png8(path: str | os.PathLike, rgb01: np.ndarray) -> None:

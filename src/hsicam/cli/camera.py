@@ -134,7 +134,7 @@ def load_scene(path: str | Path, bands: Bands, npy_bands: Bands | None = None) -
 
 
 def cmd_simulate(args: argparse.Namespace) -> int:
-    from hsicam.data.images import SIMULATE_JSON
+    from hsicam.data.images import SENSOR_SCALE_KEY, SIMULATE_JSON
     from hsicam.data.pipeline import npy_bands
     from hsicam.report.camera import write_optics_figures
 
@@ -155,7 +155,8 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     png_scale = peak if peak > 1.0 else 1.0  # sensor.png holds sensor / png_scale
     with atomic_output(out, overwrite=True, marker={"command": "simulate"}) as tmp:
         write_npy(tmp / "sensor.npy", sensor.astype(np.float32))
-        write_png16(tmp / "sensor.png", sensor / png_scale)
+        # the scale travels inside the PNG too: a copy taken away from simulate.json keeps its level
+        write_png16(tmp / "sensor.png", sensor / png_scale, text={SENSOR_SCALE_KEY: repr(png_scale)})
         if camera.kind == "doe":
             write_optics_figures(camera, tmp)
         write_json(tmp / SIMULATE_JSON, {

@@ -594,18 +594,47 @@ def _check_dim(img: np.ndarray, raw: np.ndarray, full_scale: float, source: str)
 #: What ``hsicam simulate`` writes beside its sensor image (``sensor_png_scale``: sensor = PNG · scale).
 SIMULATE_JSON = "simulate.json"
 
+#: The PNG text chunk of ``hsicam simulate``'s ``sensor.png`` holding the same scale (sensor = PNG · scale),
+#: so that a copy taken away from its simulate.json reconstructs at the right level.
+SENSOR_SCALE_KEY = "hsicam-sensor-scale"
+
+
+def png_sensor_scale(path: str | Path) -> float | None:
+    """The scale that ``hsicam simulate`` wrote into a ``sensor.png`` (:data:`SENSOR_SCALE_KEY`), else
+    None (another PNG, or not a PNG). :class:`InputError` for a chunk that is no positive finite number."""
+    from PIL import Image
+
+    try:
+        with Image.open(path) as im:
+            value = getattr(im, "text", {}).get(SENSOR_SCALE_KEY) if im.format == "PNG" else None
+    except Exception:  # noqa: BLE001 - unreadable: the reader says so
+        return None
+    if value is None:
+        return None
+    try:
+        scale = float(value)
+    except ValueError:
+        scale = float("nan")
+    if not (math.isfinite(scale) and scale > 0):
+        raise InputError(f"{path}: its {SENSOR_SCALE_KEY} text chunk is {value!r}, not a positive scale")
+    return scale
+
 
 def is_simulated_image(path: str | Path, fmt: str) -> bool:
     """Whether ``path`` (read as format ``fmt``) is the sensor image that ``hsicam simulate`` wrote:
-    a PNG/TIFF with ``simulate.json`` beside it (whose ``sensor_png_scale`` then applies)."""
+    a PNG carrying its scale (:data:`SENSOR_SCALE_KEY`), or a PNG/TIFF with ``simulate.json`` beside it
+    (whose ``sensor_png_scale`` then applies)."""
+    if fmt == "png" and png_sensor_scale(path) is not None:
+        return True
     return fmt in ("png", "tiff") and (Path(path).parent / SIMULATE_JSON).is_file()
 
 
 def read_capture(path: str | Path, corr: RawCorrection | None = None, scale: float | None = None) -> tuple[np.ndarray, dict]:
     """Read a capture and apply ``corr`` → (float32 (H, W) on the simulator scale, report).
 
-    ``scale`` (if given) overrides ``corr.scale``; by default PNG/TIFF captures with a
-    ``simulate.json`` beside them (written by ``hsicam simulate``) use its ``sensor_png_scale``.
+    ``scale`` (if given) overrides ``corr.scale``; by default the ``sensor.png`` of ``hsicam simulate``
+    uses the scale written inside it (:data:`SENSOR_SCALE_KEY`), and PNG/TIFF captures with a
+    ``simulate.json`` beside them (older simulations) its ``sensor_png_scale``.
 
     Raises :class:`InputError` for a 32/64-bit integer capture without ``corr.white_level`` (or
     ``auto_level``, which makes the white level irrelevant): the type's maximum is no full scale.
@@ -630,11 +659,13 @@ def read_capture(path: str | Path, corr: RawCorrection | None = None, scale: flo
     simulated = is_simulated_image(path, image.format)
     stretched = False  # simulate's PNG of an image brighter than full scale: its peak is full scale by design
     if scale is None and simulated and corr.scale == 1.0 and corr.auto_level is None:
-        meta = path.parent / SIMULATE_JSON
-        try:
-            scale = float(json.loads(meta.read_text()).get("sensor_png_scale", 1.0))
-        except (ValueError, TypeError, AttributeError):
-            raise InputError(f"{meta}: unreadable simulate.json") from None
+        scale = png_sensor_scale(path) if image.format == "png" else None  # the PNG's own, wherever it was copied
+        if scale is None:
+            meta = path.parent / SIMULATE_JSON
+            try:
+                scale = float(json.loads(meta.read_text()).get("sensor_png_scale", 1.0))
+            except (ValueError, TypeError, AttributeError):
+                raise InputError(f"{meta}: unreadable simulate.json") from None
         stretched = scale > 1.0
     if scale is not None:
         corr = RawCorrection(**{**corr.__dict__, "scale": float(scale)})
@@ -650,8 +681,8 @@ def read_sensor_image(path: str | Path, scale: float | None = None) -> np.ndarra
     """A sensor image as float32 (H, W) on the simulator's [0, 1] scale.
 
     ``.npy`` float arrays are used as is; integer images (PNG, TIFF, integer ``.npy``) are divided
-    by the type's maximum (32/64-bit integers are refused: see :func:`read_capture`); then multiplied by ``scale`` — by default ``sensor_png_scale`` from a
-    ``simulate.json`` beside a PNG/TIFF (written by ``hsicam simulate``), else 1.
+    by the type's maximum (32/64-bit integers are refused: see :func:`read_capture`); then multiplied by ``scale`` — by default the scale
+    ``hsicam simulate`` wrote into its PNG, or ``sensor_png_scale`` from a ``simulate.json`` beside a PNG/TIFF, else 1.
     """
     img, _ = read_capture(path, None, scale)
     return img
