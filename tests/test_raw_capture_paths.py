@@ -238,3 +238,44 @@ def test_the_same_psf_folder_at_another_pitch_names_both_pitches(run, tuned, tmp
         _ok(_reconstruct(cap, ft, tmp_path / "c.h5", "--psf-dir", str(other)))
     [msg] = [r.getMessage() for r in caplog.records if "fine-tuned" in r.getMessage()]
     assert msg.startswith(f"the network of {ft} was not fine-tuned on the PSFs of {other}; run `hsicam finetune"), msg
+
+
+# ------------------------------------------------------------------------------------------------
+# A capture cropped off the CFA grid: --cfa-offset gives its first pixel's place on the sensor
+# ------------------------------------------------------------------------------------------------
+@pytest.fixture(scope="module")
+def mosaic_run(tmp_path_factory, cache_env) -> Path:
+    """The run of ``run`` with the mosaic-aware network, which sees each pixel's CFA phase."""
+    from hsicam.engine.train import train
+
+    base = tmp_path_factory.mktemp("mosaic")
+    data = write_homogeneous_scenes(base / "data", n=4, size=32)
+    cfg = load_config("tiny", [*TINY_CAMERA_OVERRIDES, f"data.root={data}", "train.epochs=1", "model.kind=mosaic",
+                               "model.mosaic.features=8", "model.mosaic.blocks=1"])
+    train(cfg, base / "run", progress=False)
+    return base / "run"
+
+
+def test_a_crop_off_the_cfa_grid_reconstructs_as_the_whole_capture_given_its_offset(mosaic_run, tmp_path):
+    from hsicam.runs.folder import load_run
+
+    run = mosaic_run
+    _, model = load_run(run)
+    c = int(model.context_px)
+    period = int(model.camera.code_period)
+    assert period > 1
+    whole = (np.random.default_rng(5).random((64 + 2 * c, 64 + 2 * c)) * 0.5).astype(np.float32)
+    np.save(tmp_path / "whole.npy", whole)
+    dy, dx = 1, period + 2  # off the period in both directions
+    np.save(tmp_path / "crop.npy", whole[dy:, dx:])
+    _ok(_reconstruct(tmp_path / "whole.npy", run, tmp_path / "whole.h5", "--tile", "512"))
+    _ok(_reconstruct(tmp_path / "crop.npy", run, tmp_path / "crop.h5", "--tile", "512", "--cfa-offset", f"{dy},{dx}"))
+    _ok(_reconstruct(tmp_path / "crop.npy", run, tmp_path / "crop0.h5", "--tile", "512"))
+    read = lambda p: h5py.File(p, "r")["cube"][()]  # noqa: E731
+    ref = read(tmp_path / "whole.h5")[:, c + dy : -c, c + dx : -c]  # pixels whose whole context lies in both
+    np.testing.assert_allclose(read(tmp_path / "crop.h5")[:, c:-c, c:-c], ref, atol=1e-5)
+    assert np.abs(read(tmp_path / "crop0.h5")[:, c:-c, c:-c] - ref).max() > 1e-2  # the phase matters
+    with h5py.File(tmp_path / "crop.h5", "r") as f:
+        assert json.loads(f.attrs["metadata_json"])["cfa_offset"] == [dy, dx]
+    res = _reconstruct(tmp_path / "crop.npy", run, tmp_path / "bad.h5", "--cfa-offset", "1")
+    assert res.returncode == 2 and "--cfa-offset" in _error(res), _error(res)

@@ -30,6 +30,11 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "files are replaced only when they are an earlier reconstruct's output, never an input")
     p.add_argument("--scale", type=float, default=None, help="multiply the image after normalising to [0, 1]")
     p.add_argument("--tile", type=int, default=512, metavar="PX", help="tile side for large images")
+    p.add_argument("--cfa-offset", type=cfa_offset_arg, default=(0, 0), metavar="Y,X",
+                   help="the sensor row and column of the capture's first pixel (a crop or a region-of-interest "
+                        "readout of the camera's sensor): the CFA phase of every pixel follows from it (default 0,0: "
+                        "the capture starts where the sensor does; a crop off the CFA period otherwise reconstructs "
+                        "wrong spectra)")
     p.add_argument("--device", default="cpu", type=device_arg, help="torch device (default cpu)")
     p.add_argument("--consistency-steps", type=int, default=None, metavar="N",
                    help="measurement-consistency steps after the network (default: the run's "
@@ -53,6 +58,33 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--psf-pitch-um", type=float, default=None,
                    help="pixel pitch of the measured PSF images of --psf-dir (else psf.json); needs --psf-dir")
     p.set_defaults(func=cmd_reconstruct)
+
+
+def cfa_offset_arg(text: str) -> tuple[int, int]:
+    """argparse ``type`` of ``--cfa-offset Y,X``: two integers >= 0."""
+    parts = text.replace(" ", "").split(",")
+    try:
+        y, x = (int(v) for v in parts)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected Y,X (two integers >= 0, the sensor row and column of the "
+                                         f"capture's first pixel), got {text!r}") from None
+    if y < 0 or x < 0:
+        raise argparse.ArgumentTypeError(f"Y and X must be >= 0, got {text!r}")
+    return y, x
+
+
+def offset_reconstructor(fn, offset: tuple[int, int]):
+    """``fn(sensor, origin)`` of a capture whose first pixel is the sensor pixel ``offset`` (row,
+    column): every window's origin is shifted by it, so the CFA phase of each pixel is the sensor's."""
+    if tuple(offset) == (0, 0):
+        return fn
+    oy, ox = int(offset[0]), int(offset[1])
+
+    def shifted(sensor: torch.Tensor, origin: tuple[int, int] = (0, 0)) -> torch.Tensor:
+        return fn(sensor, (origin[0] + oy, origin[1] + ox))
+
+    shifted.context_px = fn.context_px
+    return shifted
 
 
 #: The suffixes of a cube file that reconstruct writes: our HDF5, an ENVI header or its data file.
@@ -307,7 +339,16 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
                          "too small to reconstruct")
     sensor = torch.from_numpy(img)[None, None].to(args.device)
     halo = model.context_px
-    cube = reconstruct_tiled(model.reconstructor(), sensor, args.tile, halo, progress=sys.stderr.isatty())[0]
+    if args.tile < halo and max(img.shape) > args.tile:
+        log.warning("--tile %d is smaller than the reconstruction's context (%d px per side): each tile computes "
+                    "about %.0f× its own pixels; a tile of %d px or more is faster", args.tile, halo,
+                    ((args.tile + 2 * halo) / args.tile) ** 2, 2 * halo)
+    if period > 1:
+        meta["cfa_offset"] = list(args.cfa_offset)
+    elif tuple(args.cfa_offset) != (0, 0):
+        log.warning("--cfa-offset is ignored: the camera has no colour filter array")
+    fn = offset_reconstructor(model.reconstructor(), args.cfa_offset)
+    cube = reconstruct_tiled(fn, sensor, args.tile, halo, progress=sys.stderr.isatty())[0]
     del sensor
     # Radiance is non-negative: the network's small negative excursions are clipped at 0.
     cube = cube.float().clamp_min_(0).cpu().numpy()
