@@ -325,7 +325,7 @@ def test_finetune_improves_psnr_on_perturbed_psfs(fab_run, tmp_path):
 
 def test_finetune_cli_errors(fab_run, tmp_path):
     assert_clean_error(run_cli("finetune", "--run", str(tmp_path / "nope"), "--psf-dir", str(tmp_path), "--out", str(tmp_path / "o")),
-                       "not a run folder")
+                       "nope: no such run folder")
     d = tmp_path / "empty"
     d.mkdir()
     write_json(d / "psf.json", {"pixel_pitch_um": 10.0})

@@ -493,3 +493,27 @@ def test_an_interruption_during_start_up_is_one_line(capsys, monkeypatch):
     monkeypatch.setattr(cli.importlib, "import_module", interrupted)
     assert cli.main(["psf", "--out", "x"]) == 130
     assert capsys.readouterr().err == "hsicam: interrupted\n"
+
+
+@pytest.mark.parametrize("command", ["reconstruct", "export-optics", "tolerance", "finetune", "pretrained pack"])
+def test_a_demo_folder_as_the_run_names_the_run_inside_it(inputs, tmp_path, capsys, command):
+    """`--run runs/demo` (the README's demo output, not a run): the one line names its run/ folder."""
+    demo = tmp_path / "demo"
+    demo.mkdir()
+    shutil.copytree(inputs / "run", demo / "run")
+    (demo / "results.json").write_text("{}")
+    out = tmp_path / "out"
+    if command == "pretrained pack":
+        args = ["pretrained", "pack", str(demo), "--name", "mine", "--dest", str(out)]
+    else:
+        args = [a if a != str(inputs / "run") else str(demo) for a in commands(inputs, out)[command]]
+    code, err = call(capsys, args)
+    assert_one_line(code, err, f"{demo}: not a run folder (config.yaml is missing); it holds the run folder "
+                               f"{demo / 'run'}: give that as the run")
+    experiment = tmp_path / "exp"  # an experiment's folder: its runs are named
+    for name in ("full", "no-doe"):
+        shutil.copytree(inputs / "run", experiment / "runs" / name)
+    args = [a if a != str(demo) else str(experiment) for a in args]
+    code, err = call(capsys, args)
+    assert_one_line(code, err, f"it holds the run folders {experiment / 'runs' / 'full'}, "
+                               f"{experiment / 'runs' / 'no-doe'}: give one as the run")

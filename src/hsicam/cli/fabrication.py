@@ -154,11 +154,11 @@ def cmd_finetune(args: argparse.Namespace) -> int:
     from hsicam.cli import config_from_args
     from hsicam.engine.calibration import finetune
     from hsicam.cli import prepare_output
+    from hsicam.runs.folder import check_is_run
 
     prepare_output(args.out, "dir")
     run = Path(args.run)
-    if not (run / "config.yaml").is_file():
-        raise InputError(f"{run}: not a run folder (config.yaml is missing)")
+    check_is_run(run)
     overrides = list(args.overrides)
     if args.epochs is not None:
         if args.epochs < 1:

@@ -26,7 +26,7 @@ from hsicam.io import (COMPLETE_MARKER, atomic_open, atomic_output, copy_file, i
                        write_json)
 from hsicam.runs import pretrained as shipped
 from hsicam.runs.checkpoint import file_sha256, root_weights_path
-from hsicam.runs.folder import MetricsLog, load_run
+from hsicam.runs.folder import MetricsLog, check_is_run, load_run
 from hsicam.runs.linear_step import LINEAR_STEP_FILE
 from hsicam.runs.measured_psf import MEASURED_PSF_FILE
 
@@ -501,9 +501,7 @@ def pack_pretrained(run_dir: str | Path, name: str, dest_root: str | Path | None
     shipped.check_name(name)
     if shipped.is_spec(str(run_dir)):
         raise InputError(f"{run_dir}: already a pre-trained camera; pack a run folder")
-    if not (run_dir / "config.yaml").is_file():
-        raise InputError(f"{run_dir}: not a run folder (config.yaml is missing)" if run_dir.is_dir()
-                         else f"{run_dir}: no such run folder")
+    check_is_run(run_dir)
     final_record(run_dir)
     if not (run_dir / "model.safetensors").is_file():
         raise InputError(f"{run_dir}: the run has no final weights (model.safetensors is missing)")

@@ -67,11 +67,8 @@ def load_run(run_dir: str | Path, device: torch.device | str = "cpu", overrides:
     if problem is not None:
         raise InputError(f"load_run: device {str(device)!r}: {problem}")
     run_dir = resolve_run(run_dir)
-    if not run_dir.is_dir():
-        raise InputError(f"{run_dir}: no such run folder")
+    check_is_run(run_dir)
     cfg_path = run_dir / "config.yaml"
-    if not cfg_path.is_file():
-        raise InputError(f"{run_dir}: not a run folder (config.yaml is missing)")
     cfg = load_config(cfg_path, overrides)
     weights = run_dir / "model.safetensors"
     if not weights.is_file():
@@ -100,6 +97,30 @@ def load_run(run_dir: str | Path, device: torch.device | str = "cpu", overrides:
     if unfinished:
         log.warning("%s", unfinished)
     return cfg, model.to(device).eval()
+
+
+def not_a_run_message(path: str | Path) -> str | None:
+    """The one line for ``path`` given as a run folder when it is none (no ``config.yaml``), else None.
+    A demo's folder (its run in ``run/``) or an experiment's (``runs/NAME``) is named with the run(s)
+    it holds, so the fix is in the message."""
+    path = Path(path)
+    if (path / "config.yaml").is_file():
+        return None
+    if not path.is_dir():
+        return f"{path}: no such run folder"
+    inner = [p for p in (path / "run", *sorted((path / "runs").glob("*"))) if (p / "config.yaml").is_file()]
+    if inner:
+        names = ", ".join(str(p) for p in inner[:4]) + (", …" if len(inner) > 4 else "")
+        return (f"{path}: not a run folder (config.yaml is missing); it holds the run folder{'s' if len(inner) > 1 else ''} "
+                f"{names}: give {'that' if len(inner) == 1 else 'one'} as the run")
+    return f"{path}: not a run folder (config.yaml is missing)"
+
+
+def check_is_run(path: str | Path) -> None:
+    """:class:`InputError` (:func:`not_a_run_message`) unless ``path`` holds a run's ``config.yaml``."""
+    message = not_a_run_message(path)
+    if message is not None:
+        raise InputError(message)
 
 
 def linear_step_problem(run_dir: Path, consistency) -> str | None:
