@@ -243,3 +243,16 @@ def test_simulate_scene_too_small_for_valid(tmp_path):
     np.save(tmp_path / "scene.npy", np.ones((7, 10, 10), np.float32))
     proc = run_cli("simulate", "--scene", str(tmp_path / "scene.npy"), "--out", str(tmp_path / "o"), "--boundary", "valid", *TINY)
     assert_clean_error(proc, "too small")
+
+
+def test_simulate_refusal_says_a_mat_files_grid_was_assumed(tmp_path):
+    """A MAT cube without a band list is read on its format's assumed grid (ICVL: 400-700 nm); when that
+    does not cover the camera, the one line says the grid was assumed and how to give the real one."""
+    import scipy.io
+
+    scipy.io.savemat(tmp_path / "icvl.mat", {"rad": np.ones((40, 40, 31), np.float32)})
+    proc = run_cli("simulate", "--scene", str(tmp_path / "icvl.mat"), "--out", str(tmp_path / "o"), *TINY)
+    assert proc.returncode == 2
+    assert ("not covered by the data's 400-700 nm" in proc.stderr and "the file lists no wavelengths, so its bands "
+            "were assumed to be 31 bands, 400-700 nm in 10 nm steps; add its band list as a variable 'bands'"
+            in proc.stderr), proc.stderr

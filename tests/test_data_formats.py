@@ -7,6 +7,7 @@ folders of 16-bit PNGs; ENVI raw bytes with numpy), never through our own writer
 
 from __future__ import annotations
 
+import logging
 import re
 from pathlib import Path
 
@@ -516,3 +517,250 @@ def test_band_count_mismatch(tmp_path):
     with pytest.raises(InputError) as exc:
         read_cube(p)
     assert_one_line_error(exc, p, "31 bands")
+
+
+# ------------------------------------------------------------------------------------------------
+# Band lists and axis order of MAT / HDF5 files (probe 28): files written with scipy.io.savemat,
+# h5py and numpy in the real layouts, holding an analytic scene whose value depends on the
+# wavelength, the row and the column, so a relabelled band, a flip or a transpose shows.
+# ------------------------------------------------------------------------------------------------
+NM_400_700 = np.arange(400.0, 701.0, 10.0)
+
+
+def scene(lam_nm, h: int = H, w: int = W) -> np.ndarray:
+    """(len(lam), h, w): lam/1000 + row/100 + col/10 (every value distinct, all positive)."""
+    lam = np.asarray(lam_nm, dtype=np.float64)
+    return lam[:, None, None] / 1000 + np.arange(h)[None, :, None] / 100 + np.arange(w)[None, None, :] / 10
+
+
+def write_mat(path: Path, version: str, variables: dict[str, np.ndarray]) -> Path:
+    """A MAT file: v5 through scipy.io.savemat, v7.3 through :func:`write_mat73` (MATLAB's layout)."""
+    if version == "5":
+        scipy.io.savemat(path, variables)
+    else:
+        write_mat73(path, variables)
+    return path
+
+
+def check_scene(cube: np.ndarray, b: Bands, h: int = H, w: int = W) -> None:
+    assert cube.shape == (len(b), h, w)
+    np.testing.assert_allclose(cube, scene(b.centers_nm, h, w), rtol=1e-6, atol=1e-7)
+
+
+@pytest.mark.parametrize("key, name, version", [
+    ("ref", "bands", "5"),  # Harvard's key with the file's own 400-700 nm: not relabelled 420-720
+    ("ref", "wavelength", "7.3"),
+    ("cube", "wavelength", "5"),
+    ("rad", "lambda", "7.3"),
+    ("img", "wl", "5"),
+    ("cube", "Wavelengths", "7.3"),
+])
+def test_mat_band_list_is_used_whatever_the_cube_key_and_name(tmp_path, key, name, version):
+    grid = NM_400_700 if key == "ref" else NM_400_700 + 20.0  # never the grid the key would assume
+    path = write_mat(tmp_path / "s.mat", version, {key: np.transpose(scene(grid), (1, 2, 0)), name: grid[None, :]})
+    cube, b, meta = read_cube(path)
+    np.testing.assert_array_equal(b.centers_nm, grid)
+    check_scene(cube, b)
+    assert meta["bands_key"] == name and meta["assumed_grid"] is None and meta["mat_version"] == version
+
+
+@pytest.mark.parametrize("variables, grid, said", [
+    ({"ref": scene(np.arange(420.0, 721.0, 10.0)), "lbl": np.ones((H, W), np.uint8)}, np.arange(420.0, 721.0, 10.0),
+     "Harvard's 31 bands, 420-720 nm in 10 nm steps"),
+    ({"rad": scene(NM_400_700)}, NM_400_700, "31 bands, 400-700 nm in 10 nm steps"),
+    ({"img": scene(MST_28_NM)}, np.array(MST_28_NM), "MST's 28 KAIST bands, 453.3-648.1 nm"),
+], ids=["harvard", "icvl", "kaist-28"])
+def test_mat_without_band_list_assumes_the_grid_and_says_so(tmp_path, caplog, variables, grid, said):
+    key = next(iter(variables))
+    variables = {k: np.transpose(v, (1, 2, 0)) if k == key else v for k, v in variables.items()}
+    path = write_mat(tmp_path / "s.mat", "5", variables)
+    with caplog.at_level(logging.INFO, logger="hsicam.data.formats"):
+        cube, b, meta = read_cube(path)
+    np.testing.assert_allclose(b.centers_nm, grid)
+    check_scene(cube, b)
+    assert meta["assumed_grid"] == said and meta["bands_key"] is None
+    notes = [r.getMessage() for r in caplog.records]
+    assert len(notes) == 1 and str(path) in notes[0] and f"assuming {said}" in notes[0], notes
+    assert caplog.records[0].levelno == logging.INFO
+
+
+def test_assumed_grid_note_for_a_range_refusal(tmp_path):
+    """The words a coverage refusal appends (datasets, simulate): the grid was assumed, and which."""
+    from hsicam.data.formats import assumed_bands_note
+
+    rad = write_mat(tmp_path / "r.mat", "5", {"rad": np.transpose(scene(NM_400_700), (1, 2, 0))})
+    cube, b, meta = read_cube(rad)
+    with pytest.raises(InputError) as exc:
+        resample_cube(cube, b, Bands.paper(), source=rad)
+    text = f"{exc.value} ({assumed_bands_note(meta)})"
+    assert "not covered by the data's 400-700 nm" in text
+    assert text.endswith("(the file lists no wavelengths, so its bands were assumed to be 31 bands, 400-700 nm in 10 nm "
+                         "steps; add its band list as a variable 'bands' (nm))")
+    listed = write_mat(tmp_path / "l.mat", "5", {"rad": np.transpose(scene(NM_400_700), (1, 2, 0)), "bands": NM_400_700})
+    assert assumed_bands_note(read_cube(listed)[2]) is None
+    np.save(tmp_path / "c.npy", scene(NM_400_700).astype(np.float32))
+    assert assumed_bands_note(read_cube(tmp_path / "c.npy")[2]) == ("the file carries no wavelengths, so its bands "
+                                                                   "were taken as 31 bands evenly spaced over 400-700 nm")
+
+
+def test_an_unknown_vector_of_the_band_count_is_pointed_at(tmp_path, caplog):
+    path = write_mat(tmp_path / "s.mat", "5", {"rad": np.transpose(scene(NM_400_700), (1, 2, 0)),
+                                              "lam_nm": NM_400_700 + 20})
+    with caplog.at_level(logging.INFO, logger="hsicam.data.formats"):
+        read_cube(path)
+    assert [r.levelno for r in caplog.records] == [logging.WARNING]
+    assert "assuming 31 bands, 400-700 nm" in caplog.text and "if 'lam_nm' holds the wavelengths, name it 'bands'" in caplog.text
+
+
+def test_two_different_band_lists_are_refused(tmp_path):
+    path = write_mat(tmp_path / "s.mat", "5", {"cube": np.transpose(scene(NM_400_700), (1, 2, 0)),
+                                              "bands": NM_400_700, "wavelength": NM_400_700 + 20})
+    with pytest.raises(InputError) as exc:
+        read_cube(path)
+    assert_one_line_error(exc, path, "two different band lists", "'bands' (31 values, 400-700 nm)",
+                          "'wavelength' (31 values, 420-720 nm)")
+    same = write_mat(tmp_path / "t.mat", "5", {"cube": np.transpose(scene(NM_400_700), (1, 2, 0)),
+                                              "bands": NM_400_700, "wavelength": NM_400_700 / 1000})  # µm, equal
+    np.testing.assert_array_equal(read_cube(same)[1].centers_nm, NM_400_700)
+
+
+def write_plain_h5(path: Path, variables: dict[str, np.ndarray]) -> Path:
+    """A Python user's HDF5 file: h5py, C order, no MATLAB user block or attributes."""
+    with h5py.File(path, "w") as f:
+        for name, value in variables.items():
+            f[name] = value
+    return path
+
+
+@pytest.mark.parametrize("key", ["cube", "rad", "img", "ref"])
+@pytest.mark.parametrize("order", ["chw", "hwc"])
+def test_plain_hdf5_is_read_in_c_order(tmp_path, caplog, key, order):
+    grid = NM_400_700 + 20.0
+    chw = scene(grid)
+    stored = chw if order == "chw" else np.transpose(chw, (1, 2, 0))
+    path = write_plain_h5(tmp_path / "plain.h5", {key: stored, "bands": grid})
+    with caplog.at_level(logging.INFO, logger="hsicam.data.formats"):
+        cube, b, meta = read_cube(path)
+    np.testing.assert_array_equal(b.centers_nm, grid)
+    check_scene(cube, b)
+    assert "mat_version" not in meta and meta["container"] == "HDF5"
+    said = "(C, H, W)" if order == "chw" else "(H, W, C)"
+    assert f"read in C order (as h5py and NumPy write it) as {said}" in caplog.text
+
+
+def test_plain_hdf5_without_band_list_uses_the_axis_with_the_grid_count(tmp_path):
+    path = write_plain_h5(tmp_path / "h.h5", {"ref": np.transpose(scene(np.arange(420.0, 721.0, 10.0)), (1, 2, 0))})
+    cube, b, meta = read_cube(path)
+    np.testing.assert_array_equal(b.centers_nm, np.arange(420.0, 721.0, 10.0))
+    check_scene(cube, b)
+    assert meta["assumed_grid"].startswith("Harvard's")
+
+
+def test_hdf5_with_matlab_marks_is_read_column_major(tmp_path):
+    """A MATLAB v7.3 file is H×W×C whether it is told by its user block or only by the datasets'
+    MATLAB_class attributes (a copy that lost the user block)."""
+    grid = NM_400_700
+    hwc = np.transpose(scene(grid), (1, 2, 0))
+    path = tmp_path / "m.mat"
+    write_mat73(path, {"cube": hwc, "bands": grid[None, :]})
+    stripped = tmp_path / "stripped.h5"
+    with h5py.File(path, "r") as src, h5py.File(stripped, "w") as dst:
+        for name in src:
+            src.copy(name, dst)
+    assert not stripped.read_bytes().startswith(b"MATLAB")
+    for p in (path, stripped):
+        cube, b, meta = read_cube(p)
+        check_scene(cube, b)
+        assert meta["mat_version"] == "7.3"
+
+
+def test_plain_hdf5_with_an_ambiguous_axis_order_is_refused(tmp_path):
+    data = np.ones((31, 6, 31))
+    path = write_plain_h5(tmp_path / "amb.h5", {"cube": data, "bands": NM_400_700})
+    with pytest.raises(InputError) as exc:
+        read_cube(path)
+    assert_one_line_error(exc, path, "without a MATLAB 7.3 header", "cannot tell whether it is stored (C, H, W) or (H, W, C)")
+    odd = write_plain_h5(tmp_path / "odd.h5", {"cube": np.ones((5, 31, 6)), "bands": NM_400_700})
+    with pytest.raises(InputError) as exc:
+        read_cube(odd)
+    assert_one_line_error(exc, odd, "5×31×6", "neither its first nor its last axis")
+
+
+def test_micrometre_band_lists_in_float32_land_on_whole_nanometres(tmp_path):
+    """float32 0.70 µm × 1000 is 699.99998 nm: a 420-700 nm camera refused the file (probe 28)."""
+    um32 = (NM_400_700 / 1000).astype(np.float32)
+    assert float(um32[-1]) * 1000 < 700 - 1e-6  # the trap
+    path = tmp_path / "icvl.mat"
+    write_mat73(path, {"rad": np.transpose(scene(NM_400_700), (1, 2, 0)), "bands": um32[None, :]})
+    cube, b, _ = read_cube(path)
+    np.testing.assert_array_equal(b.centers_nm, NM_400_700)
+    camera = Bands.uniform(420.0, 700.0, 10.0)
+    np.testing.assert_allclose(resample_cube(cube, b, camera), scene(camera.centers_nm), rtol=1e-6)
+    # float32 in nm: the decimal written, not its float32 neighbour (MST's grid matches exactly)
+    mst = tmp_path / "mst.mat"
+    scipy.io.savemat(mst, {"img": np.transpose(scene(MST_28_NM), (1, 2, 0)), "bands": np.float32(MST_28_NM)})
+    np.testing.assert_array_equal(read_cube(mst)[1].centers_nm, MST_28_NM)
+    # ENVI text in µm and EXR names in µm are rounded the same way
+    hdr = tmp_path / "e.hdr"
+    hdr.write_text(envi_header(W, H, 3, 5, "bsq", waves="wavelength units = Micrometers\nwavelength = {0.4201, 0.55, 0.7}\n"))
+    scene([420.1, 550, 700]).astype("<f8").tofile(tmp_path / "e.img")
+    assert 0.4201 * 1000 != 420.1  # the float64 trap of a text list
+    np.testing.assert_array_equal(read_cube(hdr)[1].centers_nm, [420.1, 550.0, 700.0])
+    assert exr_channel_wavelength("0.4201um") == 420.1 and exr_channel_wavelength("0.4201", True) == 420.1
+
+
+def write_hsicam_by_hand(path: Path, cube: np.ndarray, centres, fwhm) -> Path:
+    with h5py.File(path, "w") as f:
+        f["cube"] = cube.astype(np.float32)
+        f["bands_nm"] = np.asarray(centres, dtype=np.float64)
+        f["fwhm_nm"] = np.asarray(fwhm, dtype=np.float64)
+        f.attrs["format"] = "hsicam-cube"
+        f.attrs["max_value"] = float(cube.max())
+    return path
+
+
+@pytest.mark.parametrize("fmt", ["mat5", "mat73", "plain-h5", "hsicam"])
+def test_descending_band_lists_are_read_ascending_with_the_cube(tmp_path, fmt):
+    desc = NM_400_700[::-1] + 30.0  # 730 … 430
+    chw = scene(desc)  # plane k holds wavelength desc[k]
+    hwc = np.transpose(chw, (1, 2, 0))
+    path = {"mat5": lambda p: write_mat(p, "5", {"cube": hwc, "bands": desc}),
+            "mat73": lambda p: write_mat(p, "7.3", {"cube": hwc, "bands": desc[None, :]}),
+            "plain-h5": lambda p: write_plain_h5(p, {"cube": chw, "bands": desc}),
+            "hsicam": lambda p: write_hsicam_by_hand(p, chw, desc, np.linspace(5, 8, desc.size)),
+            }[fmt](tmp_path / ("desc.mat" if fmt.startswith("mat") else "desc.h5"))
+    cube, b, _ = read_cube(path)
+    np.testing.assert_array_equal(b.centers_nm, desc[::-1])
+    check_scene(cube, b)
+    if fmt == "hsicam":
+        np.testing.assert_array_equal(b.fwhm_nm, np.linspace(5, 8, desc.size)[::-1])  # each width with its band
+        win, wb = read_window(path, 1, 2, 3, 4)
+        assert wb.matches(b)
+        np.testing.assert_allclose(win, scene(wb.centers_nm)[:, 1:4, 2:6], rtol=1e-6)
+
+
+@pytest.mark.parametrize("centres, words", [
+    ([400.0, 420.0, 410.0, 430.0], ("neither ascending nor descending", "band 3 of 4: 420, 410, … nm")),
+    ([400.0, 410.0, 410.0, 430.0], ("names 410 nm twice",)),
+])
+def test_band_lists_in_no_order_are_refused(tmp_path, centres, words):
+    chw = np.ones((4, H, W))
+    for path in (write_mat(tmp_path / "s.mat", "5", {"cube": np.transpose(chw, (1, 2, 0)), "bands": centres}),
+                 write_hsicam_by_hand(tmp_path / "s.h5", chw, centres, 10.0 * np.ones(4))):
+        with pytest.raises(InputError) as exc:
+            read_cube(path)
+        assert_one_line_error(exc, path, *words)
+
+
+@pytest.mark.parametrize("variables, words", [
+    ({"cube": scene(NM_400_700, 6, 8), "bands": NM_400_700}, ("'cube' is 31×6×8", "31 wavelengths of 'bands'")),
+    ({"ref": scene(np.arange(420.0, 721.0, 10.0), 6, 8)}, ("'ref' is 31×6×8", "Harvard's 31 bands")),
+], ids=["cube-bands", "ref"])
+def test_mat_cube_saved_as_chw_names_the_axis_order(tmp_path, variables, words):
+    """scipy.io.savemat of NumPy's (C, H, W): refused (a MAT file is H×W×C by definition, and which
+    spatial order such a file holds cannot be checked), with the order and the fix in the message."""
+    path = write_mat(tmp_path / "chw.mat", "5", variables)
+    with pytest.raises(InputError) as exc:
+        read_cube(path)
+    assert_one_line_error(exc, path, *words, "look like (C, H, W)", "a MATLAB file holds H×W×C",
+                          "np.transpose(cube, (1, 2, 0))")

@@ -129,7 +129,16 @@ def load_scene(path: str | Path, bands: Bands, npy_bands: Bands | None = None) -
                                  "it resampled")
         cube, scene_bands, _ = read_cube(path, bands=bands if npy_bands is None else npy_bands)
     else:
-        cube, scene_bands, _ = read_cube(path)
+        from hsicam.data.formats import assumed_bands_note
+
+        cube, scene_bands, meta = read_cube(path)
+        try:
+            return conform_bands(cube, scene_bands, bands, path, axis=0)
+        except InputError as exc:
+            note = assumed_bands_note(meta)  # a MAT/HDF5 file without a band list: say the grid was assumed
+            if note:
+                raise InputError(f"{exc} ({note})") from None
+            raise
     return conform_bands(cube, scene_bands, bands, path, axis=0)
 
 

@@ -35,7 +35,7 @@ import numpy as np
 
 from hsicam.errors import InputError
 from hsicam.memory import MEMORY_BUDGET_ENV, format_bytes, memory_budget_bytes
-from hsicam.spectral import Bands, resample_spectra
+from hsicam.spectral import Bands, nm_text, resample_spectra
 
 PathLike = Union[str, os.PathLike]
 
@@ -151,8 +151,8 @@ def conform_bands(cube: Any, cube_bands: Bands, camera_bands: Bands, source: Pat
     if cube_bands.matches(camera_bands):
         return cube
     if not cube_bands.covers(camera_bands):
-        cam = f"{camera_bands.min_nm:g}-{camera_bands.max_nm:g} nm"
-        data = f"{cube_bands.min_nm:g}-{cube_bands.max_nm:g} nm"
+        cam = f"{nm_text(camera_bands.min_nm)}-{nm_text(camera_bands.max_nm)} nm"
+        data = f"{nm_text(cube_bands.min_nm)}-{nm_text(cube_bands.max_nm)} nm"
         if _TRAINED_BANDS.get():
             raise InputError(f"{source}: the run's bands {cam} are not covered by the data's {data} (no extrapolation): "
                              f"a trained run's bands are fixed by its training, so use data that covers {cam} "

@@ -15,12 +15,13 @@ format            layout on disk                                       bands
                   ``fwhm_nm``, attributes (``format="hsicam-cube"``,
                   ``version``: a newer one than this code writes is
                   refused, :func:`check_format_version`)
-``icvl``          MAT v7.3 (HDF5), ``rad`` H×W×C in MATLAB order —      ``bands`` (else 400-700/10)
+``icvl``          MAT v7.3 (HDF5), ``rad`` H×W×C in MATLAB order —      band list (else 400-700/10)
                   h5py returns it reversed, (C, W, H)
-``arad``          ARAD / NTIRE MAT v7.3, ``cube`` (as ICVL), ``bands``   ``bands`` (else 400-700/10)
-``kaist-mat``     MST-style MAT (v5 or v7.3), ``img`` or               28 bands: MST's 453.3-648.1;
-                  ``img_expand`` H×W×C                                  31 bands: 400-700/10
-``harvard``       MAT v5, ``ref`` H×W×31                                420-720/10
+``arad``          ARAD / NTIRE MAT v7.3, ``cube`` (as ICVL), ``bands``;  band list (else 400-700/10)
+                  also a plain HDF5 ``cube`` with a band list
+``kaist-mat``     MST-style MAT (v5 or v7.3), ``img`` or               band list (else 28 bands: MST's
+                  ``img_expand`` H×W×C                                  453.3-648.1; 31: 400-700/10)
+``harvard``       MAT v5, ``ref`` H×W×31                                band list (else 420-720/10)
 ``kaist-exr``     OpenEXR, one channel per band, wavelength in the      from channel names
                   channel name (``550nm``, ``w550nm``, ``S0.550,0nm``)
 ``cave``          folder of 31 16-bit PNGs ``<name>_ms_01.png`` …       400-700/10
@@ -32,9 +33,23 @@ format            layout on disk                                       bands
                                                                         bands evenly over 400-700
 ================  ===================================================  ==========================
 
+MAT and HDF5 files: the file's own band list is used whenever it has one, whatever the cube's key:
+a variable named ``bands`` or another of :data:`BAND_LIST_NAMES` (``wavelength``, ``wavelengths``,
+``lambda``, ``wl`` …, in any case; two that differ are refused), its length checked against the
+cube's band axis. The grid in the last column is assumed only for a file without one, said in one
+log line and recorded as the metadata's ``assumed_grid``. A MAT file (v5, or v7.3: HDF5 with the
+512-byte "MATLAB 7.3 MAT-file" user block or ``MATLAB_class`` attributes) holds H×W×C; an HDF5 file
+without either (h5py's) is read in C order, as (C, H, W) or (H, W, C) by which of its first and last
+axes has the band count (both: refused as ambiguous). A MAT cube whose *first* axis has the band
+count is refused with a note on the (C, H, W) order, not guessed.
+
 A band list stored without a unit (MAT ``bands``, ENVI ``wavelength`` without ``wavelength units``)
 whose values all lie below :data:`MICROMETRE_BELOW` (30) is read as micrometres, with a logged note;
 one that is not numbers (text, a struct or cell array) is an :class:`~hsicam.errors.InputError`.
+Centres converted from micrometres are rounded to :data:`NM_DECIMALS` (3) decimals of a nm, and a
+float32 list is read at its shortest decimal (float32 0.7 µm is 700 nm, not 699.99998). A strictly
+descending list (MAT, HDF5, ours) is reversed together with the cube's band axis (ENVI sorts any
+order, each band carrying its own wavelength); a list in neither order is refused.
 
 ICVL, CAVE, KAIST and ARAD cover 400-700 nm; the paper's camera uses 420-720 nm. We
 **interpolate by band centre, never relabel**: bringing a 400-700 nm cube onto 420-720 nm is
@@ -61,7 +76,7 @@ import os
 import re
 import zlib
 from pathlib import Path
-from typing import Any, Callable, Iterator, Sequence
+from typing import Any, Callable, Iterator, NamedTuple, Sequence
 
 import numpy as np
 
@@ -184,13 +199,14 @@ def _detect_hdf5(p: Path, head: bytes) -> str:
             keys = set(f.keys())
             if "cube" in keys and "bands_nm" in keys:
                 return "hsicam"
-            if "cube" in keys and ("bands" in keys or head.startswith(b"MATLAB 7.3")):
-                return "arad"
+            if "cube" in keys and (_band_list_names(sorted(keys)) or _is_matlab_h5(head, f)):
+                return "arad"  # MATLAB v7.3, or a plain HDF5 cube with its band list (read in C order)
             for key, fmt in _HDF5_KEYS:
                 if key in keys:
                     return fmt
             if "cube" in keys:
-                raise InputError(f"{p}: HDF5 file with 'cube' but missing key 'bands_nm' (our format) or 'bands' (ARAD)")
+                raise InputError(f"{p}: HDF5 file with 'cube' but missing key 'bands_nm' (our format) or a band list "
+                                 f"'bands' (ARAD; also read under the names {', '.join(BAND_LIST_NAMES[1:])})")
     raise InputError(f"{p}: HDF5/MAT file with no known hyperspectral variable "
                      f"(expected one of cube, rad, img, img_expand, ref; found {', '.join(sorted(keys)) or 'none'})")
 
@@ -250,11 +266,48 @@ def _unitless_scale(p: Path, centres: np.ndarray, key: str) -> tuple[float, str 
 
 
 def _band_numbers(p: Path, values: Any, key: str) -> np.ndarray:
-    """The values of the file's band list ``key`` as float64 (flattened); InputError unless numbers."""
+    """The values of the file's band list ``key`` as float64 (flattened); InputError unless numbers.
+
+    A list stored in float32 (or float16) is taken at the decimal its writer meant, the shortest one
+    that the stored number rounds to: float32 453.3 is 453.29998779… as float64, and 453.3 here."""
     arr = np.asarray(values)
     if arr.dtype.kind not in "iuf":
         raise InputError(f"{p}: '{key}' must be a list of numbers (nm), got {_describe_values(arr)}")
+    if arr.dtype.kind == "f" and arr.dtype.itemsize < 8:
+        return arr.reshape(-1).astype(str).astype(np.float64)  # numpy prints each at its own precision
     return arr.astype(np.float64).reshape(-1)
+
+
+#: Decimals (of a nanometre) kept when band centres are converted from micrometres: float32 0.7 µm is
+#: 699.99998 nm after the multiplication, which would not cover a camera band at 700 nm.
+NM_DECIMALS = 3
+
+
+def _um_to_nm(values: np.ndarray | float, scale: float = 1000.0) -> Any:
+    """``values`` × ``scale`` (1000 for micrometres, 1 for nanometres) in nm, a conversion rounded to
+    :data:`NM_DECIMALS` decimals."""
+    return values if scale == 1.0 else np.round(np.asarray(values, dtype=np.float64) * scale, NM_DECIMALS)
+
+
+def _ascending(p: Path, cube: np.ndarray, centres: np.ndarray, fwhm: np.ndarray | None, key: str,
+               axis: int = 0) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+    """(cube, centres, fwhm) with the bands ascending: a strictly descending list is reversed, and the
+    cube's band ``axis`` with it; a list in neither order is an InputError saying so."""
+    if centres.size < 2 or not np.all(np.isfinite(centres)):
+        return cube, centres, fwhm  # one band, or non-finite values (the Bands check names them)
+    step = np.diff(centres)
+    if np.all(step > 0):
+        return cube, centres, fwhm
+    if np.all(step < 0):
+        flipped = np.ascontiguousarray(np.flip(cube, axis)) if cube.shape[axis] == centres.size else cube
+        return flipped, centres[::-1].copy(), None if fwhm is None else np.asarray(fwhm)[::-1].copy()
+    if np.any(step == 0):
+        same = centres[1:][step == 0][0]
+        raise InputError(f"{p}: the band list '{key}' names {same:g} nm twice; each band needs its own wavelength")
+    i = int(np.argmax(np.sign(step) != np.sign(step[0]))) + 1  # first centre that turns back
+    raise InputError(f"{p}: the band list '{key}' is neither ascending nor descending (it turns at band {i + 1} of "
+                     f"{centres.size}: {centres[i - 1]:g}, {centres[i]:g}{', …' if i + 1 < centres.size else ''} nm); "
+                     "bands are read in either order, not shuffled")
 
 
 def _describe_values(arr: np.ndarray) -> str:
@@ -268,7 +321,8 @@ def _describe_values(arr: np.ndarray) -> str:
 
 
 def _bands_from(p: Path, values: Any, fwhm: Any = None, key: str = "bands") -> Bands:
-    """Bands from the file's band centres ``values`` (and FWHM) in nm; InputError naming ``p``."""
+    """Bands from the file's band centres ``values`` (and FWHM) in nm, already ascending (:func:`_ascending`);
+    InputError naming ``p``."""
     c = _band_numbers(p, values, key)
     widths = None if fwhm is None else _band_numbers(p, fwhm, key.replace("bands", "fwhm"))
     try:
@@ -292,10 +346,19 @@ def read_hsicam_h5(path: str | os.PathLike, *, allow_negative: bool = False, mem
                     raise InputError(f"{p}: missing key '{key}' (not an hsicam cube file)")
             check_format_version(p, f.attrs)
             cube = _checked_read(p, f["cube"], memory_budget_mb)
-            bands = _bands_from(p, f["bands_nm"][()], f["fwhm_nm"][()] if "fwhm_nm" in f else None, "bands_nm")
+            cube, bands = _h5_bands(p, f, cube)
             meta = _read_attrs(f.attrs)
     meta["format"] = "hsicam"
     return _finish(p, cube, bands, meta, allow_negative)
+
+
+def _h5_bands(p: Path, f: Any, cube: np.ndarray) -> tuple[np.ndarray, Bands]:
+    """(cube, Bands) of our HDF5 file ``f``: ``bands_nm`` (and ``fwhm_nm``), a descending list reversed
+    together with the cube's band axis (axis 0)."""
+    centres = _band_numbers(p, f["bands_nm"][()], "bands_nm")
+    fwhm = _band_numbers(p, f["fwhm_nm"][()], "fwhm_nm") if "fwhm_nm" in f else None
+    cube, centres, fwhm = _ascending(p, cube, centres, fwhm, "bands_nm")
+    return cube, _bands_from(p, centres, fwhm, "bands_nm")
 
 
 def check_format_version(p: Path, attrs: Any) -> None:
@@ -360,13 +423,31 @@ def write_cube_h5(path: str | os.PathLike, cube: np.ndarray, bands: Bands, metad
 # ------------------------------------------------------------------------------------------------
 # MATLAB files (v5 via scipy, v7.3 via h5py)
 # ------------------------------------------------------------------------------------------------
-# format -> (data keys in order of preference, bands key or None)
-_MAT_SPECS: dict[str, tuple[tuple[str, ...], str | None]] = {
-    "icvl": (("rad",), "bands"),
-    "arad": (("cube",), "bands"),
-    "kaist-mat": (("img", "img_expand"), "bands"),
-    "harvard": (("ref",), None),
+#: Variable names under which MAT and HDF5 files keep their band centres, in order of preference
+#: (matched regardless of case). A file that holds one is read on it, whatever the cube's key.
+BAND_LIST_NAMES = ("bands", "bands_nm", "wavelength", "wavelengths", "wavelength_nm", "wavelengths_nm",
+                   "lambda", "lambdas", "wl", "wls", "wave", "waves", "wvl", "wvls")
+
+# format -> cube keys, in order of preference
+_MAT_KEYS: dict[str, tuple[str, ...]] = {
+    "icvl": ("rad",),
+    "arad": ("cube",),
+    "kaist-mat": ("img", "img_expand"),
+    "harvard": ("ref",),
 }
+
+# format -> band counts of the grids assumed for a file without a band list (:func:`_assumed_grid`)
+_ASSUMED_COUNTS: dict[str, tuple[int, ...]] = {"icvl": (31,), "arad": (31,), "kaist-mat": (28, 31), "harvard": (31,)}
+
+
+def _assumed_grid(fmt: str, n: int) -> tuple[Bands, str]:
+    """The grid that a ``fmt`` file of ``n`` bands (one of ``_ASSUMED_COUNTS[fmt]``) without a band
+    list is read on, and its description."""
+    if fmt == "harvard":
+        return Bands.uniform(420.0, 720.0, 10.0), "Harvard's 31 bands, 420-720 nm in 10 nm steps"
+    if fmt == "kaist-mat" and n == 28:
+        return Bands.from_centers(MST_28_NM), "MST's 28 KAIST bands, 453.3-648.1 nm"
+    return Bands.uniform(400.0, 700.0, 10.0), "31 bands, 400-700 nm in 10 nm steps"
 
 
 # MATLAB class (as scipy.io.whosmat reports it) -> numpy dtype; other classes count as 8 bytes per element
@@ -374,24 +455,63 @@ _MAT5_DTYPES = {"double": "f8", "single": "f4", "int8": "i1", "uint8": "u1", "in
                 "int32": "i4", "uint32": "u4", "int64": "i8", "uint64": "u8", "logical": "u1"}
 
 
-def _load_mat(p: Path, keys: Sequence[str], bands_key: str | None,
-              budget_mb: float | None) -> tuple[str, np.ndarray, np.ndarray | None, str]:
-    """Return (key, array in MATLAB logical order (H, W, C), bands or None, mat version)."""
+class _MatFile(NamedTuple):
+    """What :func:`_load_mat` found in a MAT or HDF5 file."""
+
+    key: str  # the cube's variable
+    data: np.ndarray  # MATLAB's order (H, W, C) for a MAT file; as stored, C order, for a plain HDF5 file
+    band_lists: dict[str, Any]  # band-list variables (:data:`BAND_LIST_NAMES`) as stored, in order of preference
+    vectors: dict[str, int]  # the other variables that are vectors: name -> length
+    version: str | None  # MAT version "5" or "7.3"; None for an HDF5 file that is not MATLAB's
+
+
+def _band_list_names(names: Sequence[str]) -> list[str]:
+    """The variables among ``names`` that are band lists, in the order of :data:`BAND_LIST_NAMES`."""
+    return [n for want in BAND_LIST_NAMES for n in names if n.lower() == want]
+
+
+def _vector_length(shape: Sequence[int]) -> int:
+    """Length of a vector (one axis longer than 1, as MATLAB's 1×N), else 0."""
+    long = [int(s) for s in shape if int(s) > 1]
+    return long[0] if len(long) == 1 else 0
+
+
+def _is_matlab_h5(head: bytes, f: Any) -> bool:
+    """True for a MATLAB v7.3 MAT-file: its 512-byte user block starts with "MATLAB 7.3 MAT-file", or (a
+    copy that lost it) a top-level variable carries MATLAB's ``MATLAB_class`` attribute. Other HDF5
+    files (h5py's, NumPy order) are not MATLAB's column-major arrays."""
+    return head.startswith(b"MATLAB 7.3") or any("MATLAB_class" in f[k].attrs for k in f.keys())
+
+
+def _load_mat(p: Path, keys: Sequence[str], budget_mb: float | None) -> _MatFile:
+    """The cube variable (the first of ``keys`` present), the band lists and the vector lengths of a
+    MAT v5, MAT v7.3 or plain HDF5 file."""
     head = _head(p, 128)
     if head.startswith(_HDF5_MAGIC) or head.startswith(b"MATLAB 7.3"):
         import h5py
 
-        with _reading(p, "MAT v7.3"):
+        with _reading(p, "MAT v7.3/HDF5"):
             with h5py.File(p, "r") as f:
+                names = list(f.keys())
                 key = next((k for k in keys if k in f), None)
                 if key is None:
                     raise InputError(f"{p}: missing key {' or '.join(repr(k) for k in keys)} "
-                                     f"(found: {', '.join(sorted(f.keys())) or 'none'})")
+                                     f"(found: {', '.join(sorted(names)) or 'none'})")
                 if not isinstance(f[key], h5py.Dataset):
                     raise InputError(f"{p}: '{key}' is not a numeric array")
-                data = np.asarray(_checked_read(p, f[key], budget_mb)).T  # h5py returns MATLAB arrays with axes reversed
-                bands = _h5_band_values(f[bands_key]) if bands_key and bands_key in f else None
-        return key, data, bands, "7.3"
+                matlab = _is_matlab_h5(head, f)
+                data = np.asarray(_checked_read(p, f[key], budget_mb))
+                if matlab:
+                    data = data.T  # h5py returns MATLAB arrays with axes reversed
+                band_lists = {}
+                for name in _band_list_names(names):
+                    if isinstance(f[name], h5py.Dataset):
+                        check_memory_budget(p, f[name].shape, f[name].dtype, what=f"dataset '{name}'",
+                                            budget_mb=budget_mb)
+                    band_lists[name] = _h5_band_values(f[name])
+                vectors = {n: _vector_length(f[n].shape) for n in names
+                           if n != key and n not in band_lists and isinstance(f[n], h5py.Dataset)}
+        return _MatFile(key, data, band_lists, {n: v for n, v in vectors.items() if v}, "7.3" if matlab else None)
     if head.startswith(b"MATLAB 5.0"):
         import scipy.io
 
@@ -401,14 +521,16 @@ def _load_mat(p: Path, keys: Sequence[str], bands_key: str | None,
             key = next((k for k in keys if k in names), None)
             if key is None:
                 raise InputError(f"{p}: missing key {' or '.join(repr(k) for k in keys)} (found: {', '.join(names) or 'none'})")
-            shape, cls = info[key]
-            check_memory_budget(p, shape, _MAT5_DTYPES.get(cls, "f8"), what=f"variable '{key}' ({cls})",
-                                budget_mb=budget_mb)
-            wanted = [key] + ([bands_key] if bands_key and bands_key in names else [])
-            loaded = scipy.io.loadmat(p, variable_names=wanted)
+            lists = _band_list_names(names)
+            for name in [key] + lists:
+                shape, cls = info[name]
+                check_memory_budget(p, shape, _MAT5_DTYPES.get(cls, "f8"), what=f"variable '{name}' ({cls})",
+                                    budget_mb=budget_mb)
+            loaded = scipy.io.loadmat(p, variable_names=[key] + lists)
             data = np.asarray(loaded[key])
-            bands = np.asarray(loaded[bands_key]) if bands_key and bands_key in loaded else None
-        return key, data, bands, "5"
+            band_lists = {n: np.asarray(loaded[n]) for n in lists if n in loaded}
+            vectors = {n: _vector_length(info[n][0]) for n in names if n != key and n not in lists}
+        return _MatFile(key, data, band_lists, {n: v for n, v in vectors.items() if v}, "5")
     raise InputError(f"{p}: not a MAT file (no MATLAB 5.0 header and not HDF5/MAT v7.3)")
 
 
@@ -425,42 +547,126 @@ def _h5_band_values(obj: Any) -> np.ndarray:
     return values
 
 
-def _hwc_to_chw(p: Path, data: np.ndarray, key: str) -> np.ndarray:
+def _grid_text(centres: np.ndarray) -> str:
+    return f"{centres.size} values, {centres.min():g}-{centres.max():g} nm" if centres.size else "no values"
+
+
+def _file_band_list(p: Path, band_lists: dict[str, Any]) -> tuple[np.ndarray | None, str | None, str | None]:
+    """(band centres in nm as stored, their variable, a note on micrometres or None) from the file's
+    band lists, or (None, None, None) without one. Several lists must agree."""
+    parsed = []
+    for name, values in band_lists.items():
+        centres = _band_numbers(p, values, name)
+        scale, note = _unitless_scale(p, centres, f"'{name}'")
+        parsed.append((name, _um_to_nm(centres, scale), note))
+    if not parsed:
+        return None, None, None
+    name, centres, note = parsed[0]
+    for other, values, _ in parsed[1:]:
+        if values.shape != centres.shape or not np.allclose(values, centres, rtol=0.0, atol=10.0 ** -NM_DECIMALS):
+            raise InputError(f"{p}: the file holds two different band lists, '{name}' ({_grid_text(centres)}) and "
+                             f"'{other}' ({_grid_text(values)}); keep the one that belongs to the cube")
+    return centres, name, note
+
+
+def _band_axis_first(p: Path, m: _MatFile, counts: Sequence[int], matched: str,
+                     unmatched: str) -> tuple[np.ndarray, str | None]:
+    """``m.data`` as (C, H, W), C one of ``counts`` (the band list's length, or the assumed grids'),
+    and a note on the axis order of a plain HDF5 file. A MAT file holds H×W×C; a plain HDF5 file
+    (C order) holds (C, H, W) or (H, W, C), told by which of its first and last axes has C.
+    ``matched`` names what the count comes from, ``unmatched`` ends the refusal of a cube without it."""
+    data, key = m.data, m.key
     if data.ndim != 3:
-        raise InputError(f"{p}: '{key}' must be a 3-D array (height, width, bands), got {data.ndim} dimensions {data.shape}")
-    return np.transpose(data, (2, 0, 1))
+        axes = "height, width, bands" if m.version else "bands, height, width"
+        raise InputError(f"{p}: '{key}' must be a 3-D array ({axes}), got {data.ndim} dimensions {data.shape}")
+    dims = "×".join(str(s) for s in data.shape)
+    first, last = data.shape[0] in counts, data.shape[2] in counts
+    if m.version is not None:  # MATLAB: H×W×C
+        if last:
+            return np.transpose(data, (2, 0, 1)), None
+        if first:
+            raise InputError(f"{p}: '{key}' is {dims}, its first axis matching {matched}: its axes look like (C, H, W), "
+                             "as NumPy's (bands, height, width) array saved by scipy.io.savemat, but a MATLAB file holds "
+                             "H×W×C (bands last): save np.transpose(cube, (1, 2, 0)), or write the cube with "
+                             "hsicam.data.formats.write_cube_h5")
+        raise InputError(f"{p}: the cube has {data.shape[2]} bands (the last axis of '{key}', {dims}, MATLAB's H×W×C) "
+                         f"{unmatched}")
+    if first and last:
+        raise InputError(f"{p}: HDF5 file without a MATLAB 7.3 header, read in C order, but '{key}' ({dims}) has "
+                         f"{data.shape[0]} on both its first and last axes, matching {matched}: cannot tell whether "
+                         "it is stored (C, H, W) or (H, W, C); write it with hsicam.data.formats.write_cube_h5 "
+                         "(bands, height, width) or as a MATLAB v7.3 file (H×W×C)")
+    if first or last:
+        order = "(C, H, W)" if first else "(H, W, C)"
+        note = (f"{p}: HDF5 file without a MATLAB 7.3 header: '{key}' ({dims}) read in C order (as h5py and NumPy "
+                f"write it) as {order}, its {'first' if first else 'last'} axis matching {matched}")
+        return (data if first else np.transpose(data, (2, 0, 1))), note
+    raise InputError(f"{p}: '{key}' is {dims} (an HDF5 file without a MATLAB 7.3 header: (C, H, W) or (H, W, C) in "
+                     f"C order), and neither its first nor its last axis has the bands {unmatched}")
 
 
 def _read_mat_format(path: str | os.PathLike, fmt: str, allow_negative: bool, budget_mb: float | None) -> Cube:
     p = _as_path(path)
-    keys, bands_key = _MAT_SPECS[fmt]
-    key, data, band_values, version = _load_mat(p, keys, bands_key, budget_mb)
-    cube = _hwc_to_chw(p, data, key)
-    n = cube.shape[0]
-    note = None
-    if band_values is not None:
-        centres = _band_numbers(p, band_values, bands_key)
-        scale, note = _unitless_scale(p, centres, f"'{bands_key}'")
-        bands = _bands_from(p, centres * scale, key=bands_key)
-    elif fmt == "harvard":
-        if n != 31:
-            raise InputError(f"{p}: Harvard 'ref' must have 31 bands (420-720 nm), got {n}")
-        bands = Bands.uniform(420.0, 720.0, 10.0)
-    elif fmt == "kaist-mat" and n == 28:
-        bands = Bands.from_centers(MST_28_NM)
-    elif n == 31:
-        bands = Bands.uniform(400.0, 700.0, 10.0)
+    m = _load_mat(p, _MAT_KEYS[fmt], budget_mb)
+    centres, list_key, um_note = _file_band_list(p, m.band_lists)
+    notes: list[tuple[int, str]] = [(logging.WARNING, um_note)] if um_note else []
+    assumed = None
+    if centres is not None:  # the file's own band list, whatever the cube's key
+        n = centres.size
+        cube, order = _band_axis_first(p, m, (n,), f"the {n} wavelengths of '{list_key}'",
+                                       f"but the file lists {n} wavelengths ('{list_key}')")
+        cube, centres, _ = _ascending(p, cube, centres, None, list_key)
+        bands = _bands_from(p, centres, key=list_key)
     else:
-        raise InputError(f"{p}: '{key}' has {n} bands and the file has no 'bands' variable; cannot tell the wavelengths")
-    meta = {"format": fmt, "mat_version": version, "key": key}
-    return _finished_noting(note, _finish(p, cube, bands, meta, allow_negative))
+        names = ", ".join(BAND_LIST_NAMES[:3]) + " …"
+        counts = _ASSUMED_COUNTS[fmt]
+        grids = "; ".join(_assumed_grid(fmt, c)[1] for c in counts)
+        matched = f"the grid assumed without a band list ({grids})"
+        unmatched = (f"and the file lists no wavelengths (no variable {names}), so it is read only on {grids}: "
+                     "add its wavelengths as a variable 'bands' (nm)")
+        cube, order = _band_axis_first(p, m, counts, matched, unmatched)
+        bands, assumed = _assumed_grid(fmt, cube.shape[0])
+        text = f"{p}: the file lists no wavelengths (no variable {names}); assuming {assumed}"
+        hints = [n for n, length in m.vectors.items() if length == cube.shape[0] and "fwhm" not in n.lower()]
+        level = logging.INFO
+        if hints:  # a vector of the band count under another name may be the wavelengths
+            level, text = logging.WARNING, f"{text}; if '{hints[0]}' holds the wavelengths, name it 'bands'"
+        notes.append((level, text))
+    if order:
+        notes.append((logging.INFO, order))
+    meta: dict[str, Any] = {"format": fmt, "key": m.key, "bands_key": list_key, "assumed_grid": assumed}
+    if m.version is None:
+        meta["container"] = "HDF5"
+    else:
+        meta["mat_version"] = m.version
+    return _finished_noting(notes, _finish(p, cube, bands, meta, allow_negative))
 
 
-def _finished_noting(note: str | None, result: Cube) -> Cube:
-    """``result``, after logging ``note`` (once the file was read without error: an error stays the
-    one line the user sees)."""
-    if note:
-        log.warning("%s", note)
+def assumed_bands_note(meta: dict[str, Any]) -> str | None:
+    """Words for a refusal of a cube's band range saying that its grid was assumed (the file lists no
+    wavelengths: metadata ``assumed_grid``), or None when the file gave its bands."""
+    grid = meta.get("assumed_grid")
+    if not grid:
+        return None
+    if meta.get("format") == "npy":
+        return f"the file carries no wavelengths, so its bands were taken as {grid}"
+    return (f"the file lists no wavelengths, so its bands were assumed to be {grid}; add its band list as a "
+            "variable 'bands' (nm)")
+
+
+#: INFO notes already logged by this process (one line per file, not one per re-read of a cached scene).
+_NOTED: set[str] = set()
+
+
+def _finished_noting(notes: str | None | Sequence[tuple[int, str]], result: Cube) -> Cube:
+    """``result``, after logging ``notes`` (a warning, or (level, text) pairs; an INFO text once per
+    process) once the file was read without error: an error stays the one line the user sees."""
+    for level, text in ([(logging.WARNING, notes)] if isinstance(notes, str) else notes or ()):
+        if level <= logging.INFO:
+            if text in _NOTED:
+                continue
+            _NOTED.add(text)
+        log.log(level, "%s", text)
     return result
 
 
@@ -470,7 +676,8 @@ def read_icvl(path: str | os.PathLike, *, allow_negative: bool = False, memory_b
 
 
 def read_arad(path: str | os.PathLike, *, allow_negative: bool = False, memory_budget_mb: float | None = None) -> Cube:
-    """ARAD / NTIRE ``.mat`` v7.3: ``cube`` (H×W×C in MATLAB, reversed by h5py) and ``bands`` (nm)."""
+    """ARAD / NTIRE ``.mat`` v7.3: ``cube`` (H×W×C in MATLAB, reversed by h5py) and ``bands`` (nm); also
+    a plain HDF5 file (h5py's) with ``cube`` (C, H, W) or (H, W, C) and a band list."""
     return _read_mat_format(path, "arad", allow_negative, memory_budget_mb)
 
 
@@ -480,7 +687,7 @@ def read_kaist_mat(path: str | os.PathLike, *, allow_negative: bool = False, mem
 
 
 def read_harvard(path: str | os.PathLike, *, allow_negative: bool = False, memory_budget_mb: float | None = None) -> Cube:
-    """Harvard ``.mat``: ``ref`` H×W×31, 420-720 nm in 10 nm steps."""
+    """Harvard ``.mat``: ``ref`` H×W×31, 420-720 nm in 10 nm steps (the file's band list if it has one)."""
     return _read_mat_format(path, "harvard", allow_negative, memory_budget_mb)
 
 
@@ -507,7 +714,7 @@ def exr_channel_wavelength(name: str, bare_micrometres: bool = False) -> float |
     value = float(m.group(1).replace(",", "."))
     unit = (m.group(2) or "").lower()
     if unit in ("um", "µm") or (not unit and bare_micrometres):
-        value *= 1000.0
+        value = float(_um_to_nm(value))
     return value if 200.0 <= value <= 2600.0 else None
 
 
@@ -797,7 +1004,7 @@ def read_envi(path: str | os.PathLike, *, allow_negative: bool = False, memory_b
             scale, note = _unitless_scale(hdr, waves, "wavelength")
         elif units not in ("", "unknown", "nanometers", "nanometer", "nm"):
             raise InputError(f"{hdr}: unsupported wavelength units {h['wavelength units']!r} (nm or µm)")
-        waves = waves * scale
+        waves = _um_to_nm(waves, scale)
         if waves.size != nbands:
             raise InputError(f"{hdr}: {waves.size} wavelengths listed for {nbands} bands")
         fwhm = None
@@ -805,7 +1012,7 @@ def read_envi(path: str | os.PathLike, *, allow_negative: bool = False, memory_b
             fwhm = _envi_floats(hdr, h, "fwhm")
             if fwhm.size != nbands:
                 raise InputError(f"{hdr}: {fwhm.size} FWHM values listed for {nbands} bands")
-            fwhm = fwhm * scale
+            fwhm = _um_to_nm(fwhm, scale)
         order_idx = np.argsort(waves)
         if np.any(order_idx != np.arange(nbands)):  # store bands ascending
             cube = cube[order_idx]
@@ -905,7 +1112,8 @@ def read_npy(path: str | os.PathLike, *, bands: Bands | None = None, allow_negat
         assumed = True
     else:
         assumed = False
-    meta = {"format": "npy", "bands_assumed": assumed}
+    meta = {"format": "npy", "bands_assumed": assumed,
+            "assumed_grid": f"{arr.shape[0]} bands evenly spaced over 400-700 nm" if assumed else None}
     return _finish(p, arr, bands, meta, allow_negative)
 
 
@@ -944,15 +1152,16 @@ def read_window(path: str | os.PathLike, y: int, x: int, h: int, w: int) -> tupl
             ds = f["cube"]
             if y < 0 or x < 0 or y + h > ds.shape[1] or x + w > ds.shape[2]:
                 raise InputError(f"{p}: window {h}x{w} at ({y}, {x}) is outside the cube {ds.shape[1]}x{ds.shape[2]}")
-            cube = np.asarray(ds[:, y:y + h, x:x + w], dtype=np.float32)
-            bands = _bands_from(p, f["bands_nm"][()], f["fwhm_nm"][()] if "fwhm_nm" in f else None, "bands_nm")
+            cube, bands = _h5_bands(p, f, np.asarray(ds[:, y:y + h, x:x + w], dtype=np.float32))
     return cube, bands
 
 
 __all__ = [
+    "BAND_LIST_NAMES",
     "FORMATS",
     "MST_28_NM",
     "READERS",
+    "assumed_bands_note",
     "bands_400_700",
     "detect_format",
     "exr_channel_wavelength",

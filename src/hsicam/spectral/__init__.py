@@ -1,6 +1,6 @@
 """Spectral grids and optical materials."""
 
-from hsicam.spectral.bands import Bands, interpolation_matrix, resample_spectra
+from hsicam.spectral.bands import Bands, interpolation_matrix, nm_text, resample_spectra
 from hsicam.spectral.materials import (
     FusedSilica,
     Material,
@@ -15,5 +15,6 @@ __all__ = [
     "TabulatedMaterial",
     "get_material",
     "interpolation_matrix",
+    "nm_text",
     "resample_spectra",
 ]

@@ -17,6 +17,12 @@ _TOL_NM = 1e-6
 MAX_UNIFORM_BANDS = 10_000
 
 
+def nm_text(nm: float) -> str:
+    """A wavelength in nm as text, to 6 decimals without trailing zeros (a coverage refusal never
+    prints two different ends alike: 699.99998 is not "700")."""
+    return f"{float(nm):.6f}".rstrip("0").rstrip(".")
+
+
 @dataclass(frozen=True, eq=False)
 class Bands:
     """Spectral bands: strictly ascending centres and positive FWHM, both in nanometres."""
@@ -142,7 +148,7 @@ def interpolation_matrix(src: Bands, dst: Bands) -> np.ndarray:
     if not src.covers(dst):
         raise InputError(
             f"cannot resample {src!r} onto {dst!r}: the target range "
-            f"{dst.min_nm:g}-{dst.max_nm:g} nm is not covered by {src.min_nm:g}-{src.max_nm:g} nm"
+            f"{nm_text(dst.min_nm)}-{nm_text(dst.max_nm)} nm is not covered by {nm_text(src.min_nm)}-{nm_text(src.max_nm)} nm"
         )
     s = src.centers_nm
     w = np.zeros((len(dst), len(src)), dtype=np.float64)
