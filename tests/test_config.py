@@ -378,3 +378,19 @@ def test_override_keys_names_the_keys_inside_a_mapping():
                           "data.root=", "model.kind=[not, yaml"]) == {
         "train.epochs", "baselines.choi", "baselines.choi.latent", "baselines.choi.rho", "baselines",
         "baselines.choi.seed", "data.root", "model.kind"}
+
+
+def test_an_override_fills_an_optional_section_a_config_left_null(tmp_path):
+    """A run's config.yaml holds `npy_bands: null`: `--set data.npy_bands.start_nm=420` (docs/data.md)
+    fills the section as it does on a preset without the key (was: "npy_bands is not a section")."""
+    from hsicam.config import dump_yaml
+
+    saved = tmp_path / "config.yaml"
+    saved.write_text(dump_yaml(load_config("tiny")), encoding="utf-8")
+    assert "npy_bands: null" in saved.read_text(encoding="utf-8")
+    for source in ("tiny", saved):
+        cfg = load_config(source, ["data.npy_bands.start_nm=420"])
+        assert cfg.data.npy_bands.start_nm == 420.0
+        assert (cfg.data.npy_bands.stop_nm, cfg.data.npy_bands.step_nm) == (720.0, 10.0)
+    with pytest.raises(ConfigError, match="not a section"):  # a value is still no section
+        load_config("tiny", ["train.epochs.x=1"])

@@ -864,6 +864,8 @@ def apply_override(data: dict[str, Any], item: str) -> None:
     node = data
     for p in parts[:-1]:
         nxt = node.setdefault(p, {})
+        if nxt is None:  # an optional section left empty (e.g. a run's `npy_bands: null`): filled from here
+            nxt = node[p] = {}
         if not isinstance(nxt, dict):
             raise ConfigError(f"override {item!r}: {p} is not a section")
         node = nxt
