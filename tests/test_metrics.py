@@ -116,3 +116,71 @@ def test_ssim_both_filter_paths_match_skimage(monkeypatch, matrix_max_px):
         ref = np.mean([structural_similarity(truth[b, c].numpy(), est[b, c].numpy(), gaussian_weights=True, sigma=1.5,
                                              use_sample_covariance=False, data_range=1.0) for c in range(3)])
         assert metrics.ssim(est, truth)[b].item() == pytest.approx(ref, abs=1e-10)
+
+
+def _sam_reference(est: np.ndarray, truth: np.ndarray) -> tuple[float, np.ndarray]:
+    """Independent SAM of (C, H, W) arrays: arccos of the normalised dot product at the pixels whose
+    truth is not all zero (an all-zero estimate there: 90°), mean in degrees; and the angle map (NaN
+    where the truth is all zero)."""
+    e, t = est.reshape(est.shape[0], -1).T, truth.reshape(truth.shape[0], -1).T  # (pixels, bands)
+    ne, nt = np.linalg.norm(e, axis=1), np.linalg.norm(t, axis=1)
+    defined = nt > 0
+    angle = np.full(len(t), np.nan)
+    cos = np.zeros(len(t))
+    both = defined & (ne > 0)
+    cos[both] = np.einsum("pc,pc->p", e[both], t[both]) / (ne[both] * nt[both])
+    angle[defined] = np.degrees(np.arccos(np.clip(cos[defined], -1, 1)))
+    return float(angle[defined].mean()) if defined.any() else float("nan"), angle.reshape(truth.shape[1:])
+
+
+def test_sam_leaves_out_pixels_whose_truth_is_zero_and_counts_zero_estimates_as_90_degrees():
+    """Probe 28 #3: a zero spectrum was clamped to an angle of 90° (a perfect estimate of an image
+    with 1 black pixel in 16 scored 5.6°, a scene with a black rectangle 46° for a true 5°). Now the
+    pixels whose truth is all zero have no angle and are left out; an all-zero estimate where the
+    truth is not stays 90°; checked against an independent numpy computation."""
+    rng = np.random.default_rng(7)
+    truth = rng.uniform(0.05, 1, (2, 6, 9, 11))
+    est = np.clip(truth + rng.normal(0, 0.05, truth.shape), 0, 1)
+    truth[0, :, 2:5, 3:7] = 0.0          # a black rectangle in the truth (12 px) ...
+    est[0, :, 2:4, 3:7] = 0.0            # ... estimated zero on 8 of them, non-zero on the others
+    est[0, :, 7, 1:4] = 0.0              # an estimate without spectrum where the truth has one: 90°
+    truth[1, :, 0, 0] = 0.0              # one black truth pixel in the second cube
+    e_t, t_t = torch.from_numpy(est), torch.from_numpy(truth)
+    got, amap = metrics.sam_degrees(e_t, t_t), metrics.sam_map(e_t, t_t)
+    for b in range(2):
+        want, want_map = _sam_reference(est[b], truth[b])
+        assert got[b].item() == pytest.approx(want, abs=1e-9)
+        np.testing.assert_allclose(amap[b].numpy(), want_map, atol=1e-9)  # NaN exactly where the truth is zero
+    assert torch.all(amap[0, 7, 1:4] == 90.0)
+    assert metrics.sam_undefined_pixels(t_t).tolist() == [12, 1]
+    # the probe's cases: a perfect estimate with one black pixel in 16 scores 0°, not 5.6°; zero vs zero has no angle
+    y = torch.rand(1, 31, 4, 4, generator=torch.Generator().manual_seed(0), dtype=torch.float64)
+    y[..., 0, 0] = 0
+    assert metrics.sam_degrees(y.clone(), y).item() < 1e-5
+    zero = torch.zeros(1, 31, 12, 12, dtype=torch.float64)
+    assert math.isnan(metrics.sam_degrees(zero, zero).item())
+    assert metrics.all_metrics(zero + 0.5, zero + 0.5)["sam"][0] < 1e-5
+    assert math.isnan(metrics.all_metrics(zero, zero)["sam"][0])  # undefined: NaN (other non-finite values stay inf)
+    # the angle is scale-invariant down to tiny spectra (no clamp of the norms)
+    tiny = torch.from_numpy(truth[1:] * 1e-200)
+    assert metrics.sam_degrees(torch.from_numpy(est[1:]) * 1e-200, tiny).item() == pytest.approx(got[1].item(), abs=1e-9)
+    # the other metrics did not change: PSNR against scikit-image, ERGAS closed form, on the cube with zeros
+    ref_psnr = np.mean([peak_signal_noise_ratio(truth[0, c], est[0, c], data_range=1.0) for c in range(6)])
+    assert metrics.psnr_per_band(e_t, t_t)[0].item() == pytest.approx(ref_psnr, rel=1e-12)
+    rmse_b = np.sqrt(((est[0] - truth[0]) ** 2).mean(axis=(1, 2)))
+    want_ergas = 100 * np.sqrt(np.mean((rmse_b / truth[0].mean(axis=(1, 2))) ** 2))
+    assert metrics.ergas(e_t, t_t)[0].item() == pytest.approx(want_ergas, rel=1e-12)
+
+
+def test_sam_breakdown_leaves_out_pixels_without_an_angle():
+    """The breakdown's regions average the defined angles only; ``all`` equals sam_degrees."""
+    rng = np.random.default_rng(3)
+    truth = rng.uniform(0.1, 1, (1, 4, 10, 10))
+    truth[0, :, :, :3] = 0.0  # 30 black pixels: dark, no angle
+    est = np.clip(truth + rng.normal(0, 0.05, truth.shape), 0, 1)
+    got = metrics.sam_breakdown(torch.from_numpy(est), torch.from_numpy(truth), dark_level=0.01)
+    want, amap = _sam_reference(est[0], truth[0])
+    assert got["all"][0] == pytest.approx(want, abs=1e-9)
+    assert got["dark_fraction"][0] == pytest.approx(0.3)
+    assert math.isnan(got["dark"][0])  # the dark pixels are exactly those without an angle
+    assert got["bright"][0] == pytest.approx(np.nanmean(amap[:, 3:]), abs=1e-9)

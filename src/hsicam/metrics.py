@@ -11,7 +11,10 @@ All functions take (B, C, H, W) tensors (or (C, H, W), treated as B = 1) with va
   averaged over bands and pixels of the 'valid' window positions (scikit-image's
   ``structural_similarity(gaussian_weights=True, sigma=1.5, use_sample_covariance=False,
   data_range=1)`` crops the same border).
-- ``sam_degrees``: mean spectral angle over pixels, in degrees.
+- ``sam_degrees``: mean spectral angle in degrees over the pixels where it is defined: a pixel whose
+  truth spectrum is all zero has no angle and is left out (:func:`sam_undefined_pixels` counts them);
+  an estimate spectrum that is all zero where the truth is not counts as 90° (leaving it out would
+  reward returning zeros); NaN for a cube whose truth is zero at every pixel.
 - ``ergas``, ``rmse``.
 """
 
@@ -27,7 +30,9 @@ CONVENTIONS = {
     "psnr_cube": "whole cube, peak 1",
     "psnr_mst": "MST's torch_psnr: x*256 rounded, per band, peak 255, mean over bands",
     "ssim": "per band, Gaussian 11x11 sigma 1.5, K=(0.01,0.03), data range 1, mean",
-    "sam": "mean spectral angle over pixels, degrees",
+    "sam": ("mean spectral angle over pixels, degrees; pixels whose truth spectrum is all zero have no angle "
+            "and are left out (sam_excluded_px counts them); an all-zero estimate spectrum where the truth is "
+            "not counts as 90 degrees; NaN when the truth is zero at every pixel"),
     "ergas": "100 * sqrt(mean_b (RMSE_b / mean_b)^2), resolution ratio 1",
     "rmse": "whole cube",
 }
@@ -129,18 +134,46 @@ def ssim(x: torch.Tensor, y: torch.Tensor, window: int = SSIM_WINDOW_PX, sigma: 
     return s.mean(dim=(1, 2, 3))
 
 
-def sam_map(x: torch.Tensor, y: torch.Tensor, eps: float = 1e-12) -> torch.Tensor:
-    """Spectral angle (degrees) between the spectra of corresponding pixels, (B, H, W)."""
+def _spectra_scaled(t: torch.Tensor) -> torch.Tensor:
+    """Each pixel's spectrum (dim 1) divided by its largest magnitude (all-zero spectra kept zero):
+    the angle is scale-invariant, and the squared norms of the scaled spectra lie in [1, C], so they
+    can neither underflow nor overflow."""
+    peak = t.abs().amax(dim=1, keepdim=True)
+    return t / torch.where(peak > 0, peak, torch.ones_like(peak))
+
+
+def sam_map(x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
+    """Spectral angle (degrees) between the spectra of corresponding pixels, (B, H, W); ``x`` is the
+    estimate, ``y`` the truth.
+
+    NaN where the truth spectrum is all zero (the angle is undefined); 90° where the estimate is
+    all zero and the truth is not (no spectrum at all is as far as any from the truth's)."""
     x, y = _batched(x, y)
-    dot = (x * y).sum(dim=1)
-    norm = x.norm(dim=1) * y.norm(dim=1)
-    cos = (dot / norm.clamp_min(eps)).clamp(-1.0, 1.0)
-    return torch.rad2deg(torch.acos(cos))
+    xs, ys = _spectra_scaled(x), _spectra_scaled(y)
+    norm = ((xs * xs).sum(dim=1) * (ys * ys).sum(dim=1)).sqrt()  # one root: exactly the dot product for x = y
+    cos = ((xs * ys).sum(dim=1) / torch.where(norm > 0, norm, torch.ones_like(norm))).clamp(-1.0, 1.0)
+    angle = torch.rad2deg(torch.acos(cos))  # a zero estimate: cos 0, 90°
+    return torch.where(_sam_defined(y), angle, torch.full_like(angle, math.nan))
 
 
-def sam_degrees(x: torch.Tensor, y: torch.Tensor, eps: float = 1e-12) -> torch.Tensor:
-    """Mean spectral angle (degrees) between the spectra of corresponding pixels, (B,)."""
-    return sam_map(x, y, eps).mean(dim=(1, 2))
+def _sam_defined(y: torch.Tensor) -> torch.Tensor:
+    """(B, H, W) True where the truth spectrum is not all zero (the spectral angle is defined)."""
+    return (y[None] if y.dim() == 3 else y).ne(0).any(dim=1)
+
+
+def sam_undefined_pixels(y: torch.Tensor) -> torch.Tensor:
+    """Pixels whose truth spectrum is all zero (no spectral angle: :func:`sam_degrees` leaves them
+    out), per cube, (B,) int64."""
+    return (~_sam_defined(y)).sum(dim=(-2, -1))
+
+
+def sam_degrees(x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
+    """Mean spectral angle (degrees) over the pixels where it is defined (:func:`sam_map`: not those
+    whose truth spectrum is all zero), (B,); NaN for a cube whose truth is zero everywhere (and, as
+    before, where the estimate holds a NaN at a scored pixel)."""
+    angle, defined = sam_map(x, y), _sam_defined(y)
+    total = torch.where(defined, angle, torch.zeros_like(angle)).sum(dim=(1, 2))
+    return total / defined.sum(dim=(1, 2))  # 0/0: NaN where no pixel has an angle
 
 
 def sam_breakdown(x: torch.Tensor, y: torch.Tensor, dark_level: float = 0.01, edge_quantile: float = 0.8
@@ -150,22 +183,26 @@ def sam_breakdown(x: torch.Tensor, y: torch.Tensor, dark_level: float = 0.01, ed
     ``all`` (= :func:`sam_degrees`), ``dark_fraction`` (pixels whose truth has a band mean below
     ``dark_level``), mean SAM over the ``dark`` and the ``bright`` pixels, and over the bright
     pixels on ``edges`` (gradient magnitude of the truth's band mean, central differences, above
-    its ``edge_quantile`` over the image) and off them (``flat``). NaN for an empty region.
+    its ``edge_quantile`` over the image) and off them (``flat``). As in :func:`sam_degrees`,
+    pixels whose truth is all zero have no angle and count in no region's mean (they do count in
+    ``dark_fraction``). NaN for a region without an angle.
     """
     angle = sam_map(x, y)
     _, y = _batched(x, y)
     level = y.mean(dim=1)  # (B, H, W)
     out: dict[str, list[float]] = {k: [] for k in ("all", "dark_fraction", "dark", "bright", "edges", "flat")}
     nan = float("nan")
-    for a, b in zip(angle, level):
+    for a, b, t in zip(angle, level, y):
         gy, gx = torch.gradient(b)
         grad = (gx * gx + gy * gy).sqrt()
         edge = grad > torch.quantile(grad.flatten(), edge_quantile)
         dark = b < dark_level
         regions = {"dark": dark, "bright": ~dark, "edges": edge & ~dark, "flat": ~edge & ~dark}
-        out["all"].append(float(a.mean()))
         out["dark_fraction"].append(float(dark.double().mean()))
+        defined = (t != 0).any(dim=0)  # the angle is undefined where the truth is all zero
+        out["all"].append(float(a[defined].mean()) if bool(defined.any()) else nan)
         for k, mask in regions.items():
+            mask = mask & defined
             out[k].append(float(a[mask].mean()) if bool(mask.any()) else nan)
     return out
 
@@ -179,11 +216,12 @@ def ergas(x: torch.Tensor, y: torch.Tensor, eps: float = 1e-12) -> torch.Tensor:
 
 
 def all_metrics(estimate: torch.Tensor, truth: torch.Tensor) -> dict[str, list[float]]:
-    """Every metric above, one list entry per cube."""
+    """Every metric above, one list entry per cube (SAM NaN where :func:`sam_degrees` is)."""
     fns = {"psnr": psnr_per_band, "psnr_cube": psnr_cube, "psnr_mst": psnr_mst, "ssim": ssim,
            "sam": sam_degrees, "ergas": ergas, "rmse": rmse}
     out = {}
     for name, fn in fns.items():
         vals = fn(estimate, truth).tolist()
-        out[name] = [v if math.isfinite(v) else float("inf") for v in vals]
+        # SAM is NaN, undefined, for a truth that is zero everywhere (no angle anywhere)
+        out[name] = [v if math.isfinite(v) or (name == "sam" and math.isnan(v)) else float("inf") for v in vals]
     return out

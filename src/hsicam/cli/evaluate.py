@@ -27,7 +27,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--sigma-height-nm", type=float, default=None, help="test DOE height noise σ_p (nm)")
     p.add_argument("--sensor-sigma", type=float, default=None, help="test sensor noise σ_s")
     p.add_argument("--seeds", type=count_arg, default=1, help="number of noise seeds (0, 1, ...), >= 1 (default 1)")
-    p.add_argument("--save", action="store_true", help="also write the reconstructed cubes (cubes/*.h5)")
+    p.add_argument("--save", action="store_true",
+                   help="also write each scene's reconstruction and ground truth (cubes/NAME_estimate.h5, NAME_truth.h5; "
+                        "with --seeds N > 1 the estimate of seed 0, its metadata says so)")
     p.add_argument("--device", default="cpu", type=device_arg, help="torch device (default cpu)")
     p.set_defaults(func=cmd_evaluate)
 
@@ -82,10 +84,10 @@ def check_out_apart_from_data(out: str | Path, data: str | Path) -> None:
 
 def cmd_evaluate(args: argparse.Namespace) -> int:
     from hsicam.config import dump_yaml
-    from hsicam.data.datasets import list_scenes
+    from hsicam.data.datasets import list_scenes, scene_names, scene_path
     from hsicam.data.formats import write_cube_h5
     from hsicam.data.pipeline import scene_dataset
-    from hsicam.engine.evaluate import (TestNoise, check_room_for_cubes, check_test_noise, config_hash,
+    from hsicam.engine.evaluate import (TestNoise, check_room_for_cubes, check_scenes, check_test_noise, config_hash,
                                         evaluate_method, format_table, scored_region, summarize, write_results)
     from hsicam.engine.experiments import heldout_scenes, validation_scenes
     from hsicam.engine.methods import METHOD_ALIASES, build_method
@@ -122,23 +124,33 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     bands = method.camera.bands
     if paths is not None:
         scenes = scene_dataset(cfg.data, paths, bands)
-        names, data = [p.stem for p in paths], str(Path(args.data).resolve())
+        # unique names (stems; the scenes whose stems collide by their paths), each row with its path
+        names, rel = scene_names(paths, args.data), [scene_path(p, args.data) for p in paths]
+        data = str(Path(args.data).resolve())
         heldout = None
     else:
         scenes, names = validation_scenes(cfg)
+        rel = _relative_to_common_folder(scenes.paths)
         data = "synthetic validation split"
         heldout = heldout_scenes(cfg)
     noise = TestNoise(args.sigma_height_nm, args.sensor_sigma, tuple(range(args.seeds)))
     check_test_noise(method, noise, f"run {args.run}" if args.run else f"--config {args.config or 'default'}")
+    # every scene is read (or its header) before any is scored: a bad one fails now, not after hours of scoring
+    check_scenes(method, scenes, names)
+    if heldout is not None:
+        check_scenes(method, *heldout)
     if args.save:
         check_room_for_cubes(out, scenes, len(bands))
     show = lambda line: print(line, file=sys.stderr, flush=True)  # noqa: E731
-    results = evaluate_method(method, scenes, names, noise, args.device, keep_arrays=args.save, progress=show)
+    results = evaluate_method(method, scenes, names, noise, args.device, keep_arrays=args.save, progress=show,
+                              paths=rel)
+    camera_sensor = {k: getattr(cfg.camera.sensor, k) for k in SENSOR_NOISE_KEYS}
+    saved = {"saved_cubes": _saved_cubes_text(noise.seeds)} if args.save else {}
     summary = summarize(results, method=args.method, run=str(Path(args.run).resolve()) if args.run else None, data=data, config_hash=config_hash(dump_yaml(cfg)),
                         noise={"sigma_height_nm": args.sigma_height_nm, "sensor_sigma": args.sensor_sigma, "seeds": args.seeds,
                                # the capture noise of the evaluation's config (the camera's own, or --set)
-                               "camera_sensor": {k: getattr(cfg.camera.sensor, k) for k in SENSOR_NOISE_KEYS}},
-                        bands_nm=bands.centers_nm.tolist(), region=scored_region(method.camera))
+                               "camera_sensor": camera_sensor},
+                        bands_nm=bands.centers_nm.tolist(), region=scored_region(method.camera), **saved)
     if args.run:  # which weights were scored (hsicam pretrained pack checks its --results by it)
         from hsicam.runs.checkpoint import file_sha256, root_weights_path
 
@@ -146,7 +158,8 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
         if weights.is_file():
             summary["weights_sha256"] = file_sha256(weights)
     if heldout is not None:
-        held = evaluate_method(method, heldout[0], heldout[1], noise, args.device, keep_arrays=False, progress=show)
+        held = evaluate_method(method, heldout[0], heldout[1], noise, args.device, keep_arrays=False, progress=show,
+                               paths=_relative_to_common_folder(heldout[0].paths))
         summary["heldout"] = {"data": f"held-out spectral sources ({cfg.data.holdout_sources}): scenes whose "
                                       f"reflectances and lights the training scenes never contain",
                               **summarize(held)}
@@ -155,9 +168,20 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     with atomic_output(out, overwrite=True, marker={"command": "evaluate", "method": args.method}) as tmp:
         write_results(tmp, summary)
         if args.save:
-            for r in results:
-                write_cube_h5(tmp / "cubes" / f"{r.name}_estimate.h5", r.estimate, bands, {"method": args.method})
-                write_cube_h5(tmp / "cubes" / f"{r.name}_truth.h5", r.truth, bands, {"role": "ground truth"})
+            for i, r in enumerate(results):
+                scene = {"scene": r.name, "scene_path": r.path, "source": str(Path(scenes.paths[i]).resolve()),
+                         "normalization_peak": scenes.info(i).peak}
+                estimate = {"method": args.method, **scene, "run": summary["run"], "seed": r.seed, "seeds_scored": len(noise.seeds),
+                            "noise": {**r.noise, "camera_sensor": camera_sensor}}
+                if len(noise.seeds) > 1:
+                    estimate["note"] = (f"the estimate of seed {r.seed}, the first of the {len(noise.seeds)} seeds scored: "
+                                        "results.json holds means over the seeds, this scene's per_seed the metrics "
+                                        "of each (this cube's first)")
+                for role, cube, meta in (("estimate", r.estimate, estimate), ("truth", r.truth, {"role": "ground truth", **scene})):
+                    path = tmp / "cubes" / f"{r.name}_{role}.h5"
+                    if path.exists():  # scene names are unique (ignoring case): never overwrite a saved cube
+                        raise RuntimeError(f"{path.name}: written twice (scene names must be unique)")
+                    write_cube_h5(path, cube, bands, meta)
     print(format_table(summary))
     m = summary["mean"]
     print(f"{args.method}: mean PSNR {m['psnr']:.2f} dB, SSIM {m['ssim']:.4f}, SAM {m['sam']:.2f}° "
@@ -167,6 +191,25 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
         print(f"{args.method}, held-out spectral sources: mean PSNR {h['psnr']:.2f} dB, SSIM {h['ssim']:.4f}, "
               f"SAM {h['sam']:.2f}° over {len(summary['heldout']['scenes'])} scenes")
     return 0
+
+
+def _relative_to_common_folder(paths) -> list[str]:
+    """Scene paths relative to the folder that holds them all (the synthetic dataset's)."""
+    import os
+
+    from hsicam.data.datasets import scene_path
+
+    root = os.path.commonpath([os.path.abspath(Path(p).parent) for p in paths]) if len(paths) else "."
+    return [scene_path(p, root) for p in paths]
+
+
+def _saved_cubes_text(seeds) -> str:
+    """What the cubes ``--save`` writes hold, for results.json/md and the estimates' metadata."""
+    first = f"seed {seeds[0]}'s estimate"
+    if len(seeds) > 1:
+        first += (f" (the first of the {len(seeds)} seeds scored: the results are means over the seeds; each row's "
+                  f"per_seed in results.json has seed {seeds[0]}'s metrics, those of the saved cube)")
+    return f"cubes/NAME_estimate.h5: {first}; cubes/NAME_truth.h5: the ground truth (the scored area)"
 
 
 def cmd_experiment(args: argparse.Namespace) -> int:

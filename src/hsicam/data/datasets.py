@@ -99,6 +99,67 @@ def list_scenes(root: str | os.PathLike) -> list[Path]:
     return scenes
 
 
+def scene_path(scene: str | os.PathLike, root: str | os.PathLike) -> str:
+    """``scene`` relative to the dataset ``root`` it was listed from (:func:`list_scenes`), with ``/``
+    separators (``day1/scene.h5``); its name when ``root`` is the scene itself (a file or a CAVE
+    folder given alone) or does not hold it."""
+    scene, root = Path(scene), Path(root)
+    try:
+        rel = Path(os.path.abspath(scene)).relative_to(os.path.abspath(root))
+    except ValueError:
+        return scene.name
+    return rel.as_posix() if rel.parts else scene.name
+
+
+#: What joins the folders of a scene's relative path in its name (``day1/scene.h5`` → ``day1__scene``).
+SCENE_NAME_SEPARATOR = "__"
+
+
+def scene_names(scenes: Sequence[str | os.PathLike], root: str | os.PathLike | None = None) -> list[str]:
+    """One name per scene, all different, for results rows and saved cube files (``NAME_estimate.h5``).
+
+    A scene is named by its stem (``scene_0010``; a CAVE folder ``balloons_ms``) unless another
+    scene of the list has the same one (compared ignoring case, as a case-insensitive file system
+    would when the cubes are saved): those scenes are named by their path relative to ``root``
+    (default: their common folder; :func:`scene_path`), the suffix dropped and the folders joined by
+    :data:`SCENE_NAME_SEPARATOR` (``day1/scene.h5`` → ``day1__scene``). Scenes that still share a name
+    (``scene.h5`` beside ``scene.mat``) keep their suffix (``scene.h5``), and any left then get
+    ``-2``, ``-3`` … in list order."""
+    paths = [Path(p) for p in scenes]
+    if root is None:
+        root = os.path.commonpath([os.path.abspath(p.parent) for p in paths]) if paths else "."
+
+    def relative(p: Path, suffix: bool) -> str:
+        rel = scene_path(p, root)
+        if not suffix and not p.is_dir():
+            rel = rel[: len(rel) - len(p.suffix)] if p.suffix else rel
+        return rel.replace("/", SCENE_NAME_SEPARATOR)
+
+    names = [p.stem for p in paths]
+    for rename in (lambda p: relative(p, False), lambda p: relative(p, True)):
+        clash = _clashing(names)
+        if not clash:
+            return names
+        names = [rename(p) if i in clash else n for i, (p, n) in enumerate(zip(paths, names))]
+    taken: set[str] = set()
+    for i, n in enumerate(names):  # last resort: number the ones left in list order
+        name, k = n, 1
+        while name.casefold() in taken:
+            k += 1
+            name = f"{n}-{k}"
+        taken.add(name.casefold())
+        names[i] = name
+    return names
+
+
+def _clashing(names: list[str]) -> set[int]:
+    """Indices of the names that another name equals, ignoring case."""
+    seen: dict[str, list[int]] = {}
+    for i, n in enumerate(names):
+        seen.setdefault(n.casefold(), []).append(i)
+    return {i for group in seen.values() if len(group) > 1 for i in group}
+
+
 def _estimates_text(root: Path, estimates: list[Path]) -> str:
     shown = ", ".join(str(p.relative_to(root)) for p in sorted(estimates)[:5])
     more = f" and {len(estimates) - 5} more" if len(estimates) > 5 else ""
@@ -465,4 +526,5 @@ def augment(patch: np.ndarray, turns: int, flip: bool) -> np.ndarray:
     return out[:, :, ::-1] if flip else out
 
 
-__all__ = ["PatchDataset", "SCENE_SUFFIXES", "SceneDataset", "SceneInfo", "augment", "check_not_an_output", "list_scenes", "split_scenes"]
+__all__ = ["PatchDataset", "SCENE_SUFFIXES", "SceneDataset", "SceneInfo", "augment", "check_not_an_output", "list_scenes",
+           "scene_names", "scene_path", "split_scenes"]

@@ -26,7 +26,7 @@ from hsicam.engine.inference import reconstruct_tiled
 from hsicam.engine.methods import Method, demosaic_reference  # noqa: F401  (re-exported)
 from hsicam.errors import InputError
 from hsicam.io import atomic_open, write_json
-from hsicam.metrics import CONVENTIONS, SSIM_WINDOW_PX, all_metrics
+from hsicam.metrics import CONVENTIONS, SSIM_WINDOW_PX, all_metrics, sam_undefined_pixels
 
 METRIC_KEYS = ("psnr", "ssim", "sam", "ergas", "psnr_cube", "psnr_mst", "rmse")
 
@@ -39,6 +39,11 @@ class SceneResult:
     estimate: np.ndarray | None  # (C, H, W) (first seed)
     runtime_s: float  # reconstruction time (mean over seeds)
     metrics_std: dict[str, float] = field(default_factory=dict)  # over seeds
+    path: str | None = None  # the scene's file, as the results name it (relative to the data folder)
+    seed: int = 0  # the noise seed of ``estimate`` (the first of the seeds scored)
+    metrics_per_seed: list[dict[str, float]] = field(default_factory=list)  # one dict per seed, with its "seed"
+    noise: dict[str, float] = field(default_factory=dict)  # the camera's noise levels while it was scored
+    sam_excluded_px: int = 0  # scored pixels whose truth spectrum is all zero (no spectral angle)
 
 
 @dataclass(frozen=True)
@@ -63,19 +68,58 @@ def scored_region(camera) -> str:
     return f"whole scene (boundary 'same', {getattr(camera, 'padding', 'zeros')} padding: border pixels included)"
 
 
-def _check_scored_area(name: str, scene: torch.Tensor, truth: torch.Tensor, camera) -> None:
-    """InputError unless the scored area ``truth`` (empty when a ``valid`` camera's margin exceeds
-    the scene) holds SSIM's window; the message gives the minimum scene size."""
-    if min(truth.shape[-2:]) >= SSIM_WINDOW_PX:
+def _check_scored_area(name: str, scene_hw: tuple[int, int], truth_hw: tuple[int, int], camera) -> None:
+    """InputError unless the scored area ``truth_hw`` (empty when a ``valid`` camera's margin exceeds
+    the scene) holds SSIM's window; the message names the scene by ``name`` (its path when it has
+    one) and gives the minimum scene size."""
+    if min(truth_hw) >= SSIM_WINDOW_PX:
         return
     crop = camera.boundary == "valid"
     margin = camera.margin if crop else 0
     raise InputError(
-        f"{name}: scene of {scene.shape[-2]}×{scene.shape[-1]} px leaves {truth.shape[-2]}×{truth.shape[-1]} px to score"
+        f"{name}: scene of {scene_hw[0]}×{scene_hw[1]} px leaves {max(truth_hw[0], 0)}×{max(truth_hw[1], 0)} px to score"
         + (f" (camera boundary 'valid' crops its {margin}-px kernel margin)" if crop else "")
         + f"; SSIM needs at least {SSIM_WINDOW_PX}×{SSIM_WINDOW_PX}: scenes of at least {margin + SSIM_WINDOW_PX} px "
         "on each side" + (", or camera.boundary=same (the whole scene, border pixels included, is then scored)"
                           if crop else ""))
+
+
+def _scored_hw(method: Method, n_bands: int, scene_hw: tuple[int, int]) -> tuple[int, int]:
+    """(H, W) of ``method.target`` for a scene of ``scene_hw``, computed on a tensor without data
+    (the ``meta`` device: no memory, no pixels read)."""
+    try:
+        t = method.target(torch.empty((1, n_bands, *scene_hw), device="meta"))
+        return int(t.shape[-2]), int(t.shape[-1])
+    except (RuntimeError, NotImplementedError, TypeError):  # a target that needs data: the scene's own size
+        return scene_hw
+
+
+def scene_label(scenes, i: int, name: str) -> str:
+    """How messages name scene ``i``: its file as the dataset lists it (the path the user gave,
+    e.g. ``data/day1/scene.h5``), else ``name``."""
+    paths = getattr(scenes, "paths", None)
+    return str(paths[i]) if paths is not None and i < len(paths) else name
+
+
+def check_scenes(method: Method, scenes, names: Sequence[str]) -> None:
+    """Before any scoring: InputError for the first scene of ``scenes`` that cannot be scored, with
+    the one-line message its scoring would end with: a file that cannot be read, whose bands do not
+    cover the camera's, or whose scored area is too small for SSIM's window (named by its path).
+
+    A :class:`~hsicam.data.datasets.SceneDataset` is asked for each scene's size
+    (:meth:`~hsicam.data.datasets.SceneDataset.info`): an hsicam HDF5 file on the camera's bands by
+    its header alone; any other file is read, resampled and normalised once (what its scoring
+    does), and only the dataset's few cached cubes stay in memory. Other sequences are checked by
+    their tensors' shapes."""
+    info = getattr(scenes, "info", None)
+    n_bands = len(method.camera.bands)
+    for i, name in enumerate(names):
+        if info is not None:
+            got = info(i)
+            hw = (got.height, got.width)
+        else:
+            hw = tuple(int(v) for v in scenes[i].shape[-2:])
+        _check_scored_area(scene_label(scenes, i, name), hw, _scored_hw(method, n_bands, hw), method.camera)
 
 
 def no_doe_reason(camera) -> str | None:
@@ -108,13 +152,20 @@ def check_test_noise(method: Method, noise: TestNoise, source: str | None = None
 @torch.no_grad()
 def evaluate_method(method: Method, scenes, names: Sequence[str], noise: TestNoise = TestNoise(),
                     device: str | torch.device = "cpu", keep_arrays: bool = True, tile_px: int = 512,
-                    progress: Callable[[str], None] | None = None) -> list[SceneResult]:
+                    progress: Callable[[str], None] | None = None, paths: Sequence[str] | None = None
+                    ) -> list[SceneResult]:
     """Simulate, reconstruct and score every scene of ``scenes`` (items: (C, H, W) tensors).
 
-    ``progress``: called with one line per finished scene (e.g. ``print`` to stderr).
+    Every scene is checked first (:func:`check_scenes`): a scene that cannot be scored fails before
+    any work. ``progress``: called with one line per finished scene (e.g. ``print`` to stderr).
+    ``paths``: each scene's file as the results name it (:attr:`SceneResult.path`). The arrays kept
+    (``keep_arrays``) are those of the first seed, :attr:`SceneResult.seed`.
     """
+    if len(names) != len(scenes) or (paths is not None and len(paths) != len(names)):
+        raise ValueError(f"{len(scenes)} scenes, {len(names)} names" + (f", {len(paths)} paths" if paths is not None else ""))
     cam = method.camera
     check_test_noise(method, noise)
+    check_scenes(method, scenes, names)
     saved = cam.noise_levels()
     levels = dict(saved)
     if noise.sigma_height_nm is not None and "sigma_height_nm" in levels:
@@ -122,6 +173,7 @@ def evaluate_method(method: Method, scenes, names: Sequence[str], noise: TestNoi
     if noise.sensor_sigma is not None:
         levels["sensor_sigma"] = noise.sensor_sigma
     cam.set_noise(**levels)
+    applied = cam.noise_levels()
     # a network: tile large images with the context it declares
     halo = method.model.context_px if method.model is not None else None
     out = []
@@ -130,7 +182,7 @@ def evaluate_method(method: Method, scenes, names: Sequence[str], noise: TestNoi
         for i, name in enumerate(names):
             scene = scenes[i][None].to(device)
             truth = method.target(scene)
-            _check_scored_area(name, scene, truth, cam)
+            _check_scored_area(scene_label(scenes, i, name), scene.shape[-2:], truth.shape[-2:], cam)
             per_seed, times, est0 = [], [], None
             for seed in noise.seeds:
                 g = torch.Generator(device=device).manual_seed(int(seed))
@@ -148,13 +200,20 @@ def evaluate_method(method: Method, scenes, names: Sequence[str], noise: TestNoi
             mean = {k: float(np.mean([m[k] for m in per_seed])) for k in per_seed[0]}
             std = {k: float(np.std([m[k] for m in per_seed])) for k in per_seed[0]} if len(per_seed) > 1 else {}
             out.append(SceneResult(name, mean, truth[0].cpu().numpy() if keep_arrays else None,
-                                   est0[0].cpu().numpy() if keep_arrays else None, float(np.mean(times)), std))
+                                   est0[0].cpu().numpy() if keep_arrays else None, float(np.mean(times)), std,
+                                   path=None if paths is None else str(paths[i]), seed=int(noise.seeds[0]),
+                                   metrics_per_seed=[{"seed": int(s), **m} for s, m in zip(noise.seeds, per_seed)],
+                                   noise=dict(applied), sam_excluded_px=int(sam_undefined_pixels(truth)[0])))
             if progress is not None:
                 progress(f"[{i + 1}/{len(names)}] {name}: PSNR {mean['psnr']:.2f} dB, SSIM {mean['ssim']:.4f}, "
-                         f"SAM {mean['sam']:.2f}° ({np.mean(times):.1f} s)")
+                         f"SAM {_sam_text(mean['sam'])} ({np.mean(times):.1f} s)")
     finally:
         cam.set_noise(**saved)
     return out
+
+
+def _sam_text(sam: float) -> str:
+    return f"{sam:.2f}°" if np.isfinite(sam) else "undefined (the truth is zero at every scored pixel)"
 
 
 def evaluate_scenes(model, scenes, names: Sequence[str], seed: int = 0, device: str | torch.device = "cpu",
@@ -189,12 +248,27 @@ def grey_reference(model, train_scenes) -> Method:
 
 
 def summarize(results: list[SceneResult], **facts) -> dict:
-    """Per-scene rows, means and the metric conventions, as a JSON-ready dict."""
-    rows = [{"name": r.name, **r.metrics, "runtime_s": r.runtime_s,
-             **({"std": r.metrics_std} if r.metrics_std else {})} for r in results]
+    """Per-scene rows, means and the metric conventions, as a JSON-ready dict.
+
+    A row has the scene's ``path`` (when known), its metrics (means over the seeds), ``std`` and
+    ``per_seed`` (several seeds), and ``sam_excluded_px``. A scene whose SAM is undefined (NaN:
+    its truth is zero at every scored pixel) is listed in ``sam_undefined``, and the mean SAM is
+    over the other scenes."""
+    rows = [{"name": r.name, **({"path": r.path} if r.path is not None else {}), **r.metrics,
+             "runtime_s": r.runtime_s, "sam_excluded_px": r.sam_excluded_px,
+             **({"std": r.metrics_std} if r.metrics_std else {}),
+             **({"per_seed": r.metrics_per_seed} if len(r.metrics_per_seed) > 1 else {})} for r in results]
     keys = [k for k in METRIC_KEYS if results and k in results[0].metrics] + ["runtime_s"]
-    means = {k: float(np.mean([row[k] for row in rows])) for k in keys} if rows else {}
-    return {**facts, "scenes": rows, "mean": means, "conventions": CONVENTIONS}
+    means = {k: _mean([row[k] for row in rows]) for k in keys} if rows else {}
+    undefined = [row["name"] for row in rows if "sam" in row and np.isnan(row["sam"])]
+    return {**facts, "scenes": rows, "mean": means, **({"sam_undefined": undefined} if undefined else {}),
+            "conventions": CONVENTIONS}
+
+
+def _mean(values: list[float]) -> float:
+    """Mean over the values that are not NaN (an undefined SAM), NaN when none is."""
+    kept = [v for v in values if not np.isnan(v)]
+    return float(np.mean(kept)) if kept else float("nan")
 
 
 def format_table(summary: dict, keys: tuple[str, ...] = ("psnr", "ssim", "sam")) -> str:
@@ -236,18 +310,25 @@ def write_results(out: Path, summary: dict) -> None:
     keys = [k for k in METRIC_KEYS if k in summary["mean"]] + ["runtime_s"]
     buf = io.StringIO()
     w = csv.writer(buf)
-    w.writerow(["name", *keys])
+    w.writerow(["name", "path", *keys, "sam_excluded_px"])
     for row in summary["scenes"]:
-        w.writerow([row["name"], *[f"{row[k]:.6g}" for k in keys]])
-    w.writerow(["mean", *[f"{summary['mean'][k]:.6g}" for k in keys]])
+        w.writerow([row["name"], row.get("path", ""), *[f"{row[k]:.6g}" for k in keys], row.get("sam_excluded_px", "")])
+    w.writerow(["mean", "", *[f"{summary['mean'][k]:.6g}" for k in keys], ""])
     with atomic_open(out / "results.csv", "w", encoding="utf-8", newline="") as fh:
         fh.write(buf.getvalue())
     conv = summary["conventions"]
     head = [f"# Results: {summary.get('method', '')}", ""]
-    for k in ("run", "data", "noise", "config_hash"):
+    for k in ("run", "data", "noise", "config_hash", "saved_cubes"):
         if k in summary:
             head.append(f"- {k}: {summary[k]}")
-    head += [f"- PSNR: {conv['psnr']}; SSIM: {conv['ssim']}; SAM: {conv['sam']}", ""]
+    head.append(f"- PSNR: {conv['psnr']}; SSIM: {conv['ssim']}; SAM: {conv['sam']}")
+    if summary.get("sam_undefined"):
+        head.append(f"- SAM undefined (the truth is zero at every scored pixel) for {', '.join(summary['sam_undefined'])}; "
+                    "the mean SAM is over the other scenes")
+    excluded = [f"{row['name']} ({row['sam_excluded_px']} px)" for row in summary["scenes"] if row.get("sam_excluded_px")]
+    if excluded:
+        head.append(f"- pixels without a spectral angle (truth all zero), left out of SAM: {', '.join(excluded)}")
+    head.append("")
     with atomic_open(out / "results.md", "w", encoding="utf-8") as fh:
         fh.write("\n".join(head) + "\n" + format_table(summary, ("psnr", "ssim", "sam", "ergas", "runtime_s")) + "\n")
         if "heldout" in summary:

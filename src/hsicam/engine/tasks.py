@@ -107,16 +107,20 @@ def validate_system(model: CameraSystem, loader, device: torch.device, seed: int
     """
     g = step_generator(seed, 0, 0, device)
     sums = {"psnr": 0.0, "ssim": 0.0, "sam": 0.0}
-    n = 0
+    n = n_sam = 0
     for scene in loader:
         scene = scene.to(device)
         recon, _ = model(scene, g)
         recon, truth = recon.float().clamp(0, 1), model.target(scene)
         sums["psnr"] += psnr_per_band(recon, truth).sum().item()
         sums["ssim"] += ssim(recon, truth).sum().item()
-        sums["sam"] += sam_degrees(recon, truth).sum().item()
+        sam = sam_degrees(recon, truth)  # NaN for a patch whose truth is black everywhere: it has no angle
+        sums["sam"] += sam.nan_to_num(0.0).sum().item()
+        n_sam += int((~sam.isnan()).sum())
         n += scene.shape[0]
-    return {k: v / max(n, 1) for k, v in sums.items()}
+    out = {k: v / max(n, 1) for k, v in sums.items()}
+    out["sam"] = sums["sam"] / n_sam if n_sam else float("nan")
+    return out
 
 
 class SystemTask(Task):

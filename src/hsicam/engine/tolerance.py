@@ -100,6 +100,7 @@ NPY_BANDS_ADVICE = ("tolerance reads the wavelengths from the file only, so save
 def evaluation_scenes(cfg, bands, max_scenes: int, data: str | Path | None = None):
     """(SceneDataset, names): the run's validation scenes (all scenes when it has none), or ``data``."""
     from hsicam.data import dataset_root, list_scenes, split_dataset
+    from hsicam.data.datasets import scene_names
     from hsicam.data.pipeline import scene_dataset
 
     if data is not None:
@@ -109,7 +110,7 @@ def evaluation_scenes(cfg, bands, max_scenes: int, data: str | Path | None = Non
         scenes = val or list_scenes(dataset_root(cfg.data, bands))
     scenes = scenes[:max_scenes]
     advice = {} if data is None else {"npy_bands_advice": NPY_BANDS_ADVICE}  # its own data: no --set to give a grid
-    return scene_dataset(cfg.data, scenes, bands, **advice), [Path(s).stem for s in scenes]
+    return scene_dataset(cfg.data, scenes, bands, **advice), scene_names(scenes, data)
 
 
 def evaluate_psf(model, psf: torch.Tensor, scenes, names: Sequence[str], seed: int = 0) -> dict[str, float]:
