@@ -495,7 +495,7 @@ def test_an_interruption_during_start_up_is_one_line(capsys, monkeypatch):
     assert capsys.readouterr().err == "hsicam: interrupted\n"
 
 
-@pytest.mark.parametrize("command", ["reconstruct", "export-optics", "tolerance", "finetune", "pretrained pack"])
+@pytest.mark.parametrize("command", ["evaluate", "reconstruct", "export-optics", "tolerance", "finetune", "pretrained pack"])
 def test_a_demo_folder_as_the_run_names_the_run_inside_it(inputs, tmp_path, capsys, command):
     """`--run runs/demo` (the README's demo output, not a run): the one line names its run/ folder."""
     demo = tmp_path / "demo"

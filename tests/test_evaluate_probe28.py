@@ -225,3 +225,16 @@ def test_a_bad_scene_fails_before_any_scene_is_scored(run, env, tmp_path, bad, s
     assert_clean_error(res, f"{data / 'zz.h5'}: ", fragment)  # named by its path, not its stem
     assert "[1/3]" not in res.stderr  # nothing was scored
     assert not (out / "results.json").exists()
+
+
+def test_a_mat_scene_on_an_assumed_grid_says_so_when_refused(run, env, tmp_path):
+    """A MAT cube without a band list is read on its format's assumed grid (ICVL `rad`: 400-700 nm):
+    refused on the 420-720 run, the one line says the grid was assumed and how to give the real one."""
+    import scipy.io
+
+    data = tmp_path / "data"
+    data.mkdir()
+    scipy.io.savemat(data / "icvl.mat", {"rad": np.ones((48, 48, 31), np.float32)})
+    res = run_cli_in_process("evaluate", "--run", str(run), "--data", str(data), "--out", str(tmp_path / "ev"))
+    assert_clean_error(res, "not covered by the data's 400-700 nm", "the file lists no wavelengths, so its bands "
+                       "were assumed to be 31 bands, 400-700 nm in 10 nm steps; add its band list as a variable 'bands'")

@@ -93,6 +93,7 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     from hsicam.engine.methods import METHOD_ALIASES, build_method
     from hsicam.cli import prepare_output
     from hsicam.io import atomic_output
+    from hsicam.runs.folder import check_is_run
 
     alias = args.method if args.method in METHOD_ALIASES else None
     args.method = METHOD_ALIASES.get(args.method, args.method)  # results carry the method's current name
@@ -104,8 +105,7 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
         run = Path(args.run)
         if args.config:
             raise InputError("--run uses the run's config.yaml; drop --config")
-        if not (run / "config.yaml").is_file():
-            raise InputError(f"{run}: not a run folder (config.yaml is missing)" if run.is_dir() else f"{run}: no such run folder")
+        check_is_run(run)
         check_run_overrides(args.overrides)
         cfg = config_from_args(run / "config.yaml", args.overrides)
         if args.method == "dd-cassi-choi":  # a prior key given by --set, even at its default value

@@ -447,6 +447,11 @@ class SceneDataset(Dataset):
             if meta.get("bands_assumed"):  # a file without wavelengths (.npy): say how to give them
                 raise InputError(f"{exc} (the file carries no wavelengths, so its {cube.shape[0]} bands were taken "
                                  f"as 400-700 nm: {self.npy_bands_advice})") from None
+            from hsicam.data.formats import assumed_bands_note
+
+            note = assumed_bands_note(meta)
+            if note:  # a MAT/HDF5 file without a band list: its grid was assumed
+                raise InputError(f"{exc} ({note})") from None
             raise
         cube, peak = normalize_per_cube_max(cube, source=path)
         self._infos[i] = SceneInfo(path, cube.shape[1], cube.shape[2], peak)
