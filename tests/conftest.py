@@ -10,7 +10,9 @@ from __future__ import annotations
 
 import copy
 import os
+from pathlib import Path
 
+import numpy as np
 import pytest
 import torch
 
@@ -71,3 +73,11 @@ def cache_env(tmp_path_factory):
         os.environ.pop("HSICAM_CACHE", None)
     else:
         os.environ["HSICAM_CACHE"] = old
+
+
+@pytest.fixture(scope="module")
+def scene(tmp_path_factory) -> Path:
+    """A 7-band .npy scene of the tiny preset's camera (a module that needs another defines its own)."""
+    p = tmp_path_factory.mktemp("scene") / "scene.npy"
+    np.save(p, np.random.default_rng(0).uniform(0.1, 1, (7, 40, 40)).astype(np.float32))
+    return p

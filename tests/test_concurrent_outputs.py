@@ -19,7 +19,6 @@ import textwrap
 import time
 from pathlib import Path
 
-import numpy as np
 import pytest
 
 from cli_helpers import assert_ok, cli_env, error_line, module_cache, run_cli_in_process
@@ -140,14 +139,6 @@ def start(tmp_path):
 @pytest.fixture(scope="module")
 def env(tmp_path_factory):
     yield from module_cache(tmp_path_factory)
-
-
-@pytest.fixture(scope="module")
-def scene(tmp_path_factory) -> Path:
-    """A 7-band .npy scene of the tiny preset's camera."""
-    p = tmp_path_factory.mktemp("scene") / "scene.npy"
-    np.save(p, np.random.default_rng(0).uniform(0.1, 1, (7, 40, 40)).astype(np.float32))
-    return p
 
 
 def simulate(scene: Path, out: Path) -> subprocess.CompletedProcess:

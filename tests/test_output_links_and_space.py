@@ -35,14 +35,6 @@ def env(tmp_path_factory):
 
 
 @pytest.fixture(scope="module")
-def scene(tmp_path_factory) -> Path:
-    """A 7-band .npy scene of the tiny preset's camera."""
-    p = tmp_path_factory.mktemp("scene") / "scene.npy"
-    np.save(p, np.random.default_rng(0).uniform(0.1, 1, (7, 40, 40)).astype(np.float32))
-    return p
-
-
-@pytest.fixture(scope="module")
 def run(tmp_path_factory, env) -> Path:
     """A trained tiny run (one epoch)."""
     d = tmp_path_factory.mktemp("trained") / "run1"
