@@ -1,23 +1,29 @@
 """Choi et al. 2017, "High-quality hyperspectral reconstruction using a spectral prior" (ACM TOG 36(6)).
 
-A convolutional autoencoder R = D∘E learns a low-dimensional spatial–spectral representation of
-hyperspectral patches (trained as a denoising autoencoder on the training split of our data);
+A convolutional autoencoder (encoder E, decoder D) learns a spatial–spectral representation of
+hyperspectral patches (trained as a denoising autoencoder on the training split of our data; the
+published layer stack, 6 + 6 3×3 convolutions and a full-resolution code with no spectral
+bottleneck, plus a skip, so that R(x) = x + D(E(x)): :class:`hsicam.models.priors.SpectralAutoencoder`);
 the reconstruction then solves, by ADMM with the splitting x = z,
 
     min_x ½‖ỹ − Φ̃x‖² + (τ1/2)‖x − R(x)‖² + τ2·TV(x)
 
 where Φ̃ = Φ/√m and ỹ = y/√m with m the mean of diag ΦΦᵀ (so that ρ, τ1, τ2 do not depend on
-the camera's band convention). The x-update is exact (ΦΦᵀ is diagonal for CASSI); the z-update
-takes a few proximal-gradient steps on the prior term (gradient through the autoencoder by
-autograd) with an exact TV proximal step; the dual update is standard. ρ grows geometrically,
-which makes the iteration converge with an inexact prior step.
+the camera's band convention). It starts from GAP-TV (``init_iterations``, the GAP-TV baseline's
+TV weight); the x-update is exact (ΦΦᵀ is diagonal for CASSI); the z-update takes a few
+proximal-gradient steps on the prior term (gradient through the autoencoder by autograd) with an
+exact TV proximal step; the dual update is standard. ρ grows geometrically, which makes the
+iteration converge with an inexact prior step.
 
-Differences from the paper, stated so results can be read correctly: the paper's prior term acts
-on the latent code and is minimised with its own inner solver; here the "fidelity to the learned
-representation" ‖x − D(E(x))‖² and TV act on the cube. The autoencoder is smaller: the published
-one (KAIST-VCLAB/deepcassi) has 6 + 6 convolutions, all 3×3, of 64 channels and a 64-channel latent
-at full resolution, solved for the code with an ℓ1 penalty (15 ADMM iterations × 100 Adam steps);
-ours (``features``, ``latent``: 48, 12) has 3 + 3, mostly 1×1. Tables call it "Choi-style".
+Differences from the paper, stated so results can be read correctly (tables call it
+"Choi-style"): the paper's prior term acts on the code α (15 ADMM iterations × 100 Adam steps on
+α through the decoder, TV split on the image gradients); here the prior term ‖x − D(E(x))‖² and
+TV act on the cube, which costs one autoencoder gradient per inner step instead of a hundred
+Adam steps. Measured (session 25, docs/training.md): the earlier 3 + 3 mostly-1×1 autoencoder
+with a 12-channel code reconstructed *clean* cubes at SAM ≈ 23°, so the ADMM pulled spectra away
+from the truth (SAM worse than GAP-TV); the published plain 6 + 6 stack did not train within the
+CPU scales' step budgets (after 800 of 1500 steps its loss was still 3× the identity's), hence the skip. A "RED" z-update
+(z pulled towards R(z) without the Jacobian) degraded SAM on training scenes and was not kept.
 
 The prior is any module R (:class:`hsicam.models.priors.SpectralAutoencoder`, trained and loaded by
 :mod:`hsicam.engine.prior`).
