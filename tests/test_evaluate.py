@@ -379,3 +379,28 @@ def test_report_shows_the_heldout_sources_results(run, env, tmp_path):
         assert f"<td>{scene['name']}</td>" in tail and f"<td>{scene['psnr']:.2f}</td>" in tail
     assert f"<td>{held['mean']['psnr']:.2f}</td>" in tail
     assert f"<td>{res['mean']['psnr']:.2f}</td>" in head  # the validation mean stays in its own table
+
+
+def test_a_reconstruction_with_nan_is_refused_not_scored(run):
+    """A method whose reconstruction holds NaN (a broken solver or network) is one clear error: scored,
+    clipping kept the NaN and the metrics read it as an infinite PSNR, the best score there is."""
+    import dataclasses
+
+    import torch
+
+    from hsicam.config import load_config
+    from hsicam.engine.evaluate import evaluate_method
+    from hsicam.engine.methods import build_method
+    from hsicam.errors import InputError
+
+    box = build_method("doe-box-demosaic", load_config(run / "config.yaml"), run)
+
+    def broken(sensor):
+        out = box.reconstruct(sensor)
+        out[..., 0, 0] = float("nan")
+        return out
+
+    scene = torch.rand(len(box.camera.bands), 48, 48, generator=torch.Generator().manual_seed(3))
+    with pytest.raises(InputError, match=r"s0: the CFA box demosaic \(no network\) reconstruction holds 7 non-finite"):
+        evaluate_method(dataclasses.replace(box, reconstruct=broken), [scene], ["s0"])
+    assert evaluate_method(box, [scene], ["s0"])[0].metrics["psnr"] < 100  # the method itself scores

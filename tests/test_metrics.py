@@ -184,3 +184,20 @@ def test_sam_breakdown_leaves_out_pixels_without_an_angle():
     assert got["dark_fraction"][0] == pytest.approx(0.3)
     assert math.isnan(got["dark"][0])  # the dark pixels are exactly those without an angle
     assert got["bright"][0] == pytest.approx(np.nanmean(amap[:, 3:]), abs=1e-9)
+
+
+def test_all_metrics_sam_is_undefined_only_for_a_black_truth_and_infinite_for_a_broken_estimate():
+    """NaN SAM means "no angle anywhere" (a truth zero at every pixel: the scene is left out of the mean
+    SAM); an estimate with NaN pixels is a broken reconstruction and scores an infinite error, as
+    every other metric does, never a NaN that a mean would skip."""
+    import math
+
+    from hsicam.metrics import all_metrics
+
+    truth = torch.rand(2, 5, 16, 16, generator=torch.Generator().manual_seed(0))
+    truth[1] = 0
+    est = truth.clone()
+    est[0, :, 3, 3] = float("nan")
+    m = all_metrics(est, truth)
+    assert m["sam"][0] == math.inf and math.isnan(m["sam"][1])
+    assert m["psnr"][0] == math.inf

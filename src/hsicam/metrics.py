@@ -220,8 +220,11 @@ def all_metrics(estimate: torch.Tensor, truth: torch.Tensor) -> dict[str, list[f
     fns = {"psnr": psnr_per_band, "psnr_cube": psnr_cube, "psnr_mst": psnr_mst, "ssim": ssim,
            "sam": sam_degrees, "ergas": ergas, "rmse": rmse}
     out = {}
+    undefined = (sam_undefined_pixels(truth) == truth.shape[-2] * truth.shape[-1]).tolist()  # per cube
     for name, fn in fns.items():
         vals = fn(estimate, truth).tolist()
-        # SAM is NaN, undefined, for a truth that is zero everywhere (no angle anywhere)
-        out[name] = [v if math.isfinite(v) or (name == "sam" and math.isnan(v)) else float("inf") for v in vals]
+        # SAM is NaN, undefined, only for a truth that is zero everywhere (no angle anywhere); a NaN
+        # that a broken estimate (NaN pixels) gives is an infinite error, as for every other metric
+        out[name] = [v if math.isfinite(v) or (name == "sam" and math.isnan(v) and u) else float("inf")
+                     for v, u in zip(vals, undefined)]
     return out

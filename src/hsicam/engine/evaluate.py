@@ -193,6 +193,10 @@ def evaluate_method(method: Method, scenes, names: Sequence[str], noise: TestNoi
                 else:
                     est = method.reconstruct(sensor)
                 times.append(time.perf_counter() - t0)
+                bad = int((~torch.isfinite(est)).sum())
+                if bad:  # clipping would hide inf and metrics would score NaN as infinitely good: refuse
+                    raise InputError(f"{scene_label(scenes, i, name)}: the {method.name} reconstruction holds {bad} "
+                                     "non-finite values (NaN or inf): a broken reconstruction is not scored")
                 est = est.float().clamp(0, 1)
                 per_seed.append({k: v[0] for k, v in all_metrics(est, truth).items()})
                 if est0 is None:
