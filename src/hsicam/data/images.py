@@ -620,11 +620,11 @@ def png_sensor_scale(path: str | Path) -> float | None:
     return scale
 
 
-def is_simulated_image(path: str | Path, fmt: str) -> bool:
+def is_simulated_image(path: str | Path, fmt: str, png_scale: float | None = None) -> bool:
     """Whether ``path`` (read as format ``fmt``) is the sensor image that ``hsicam simulate`` wrote:
-    a PNG carrying its scale (:data:`SENSOR_SCALE_KEY`), or a PNG/TIFF with ``simulate.json`` beside it
-    (whose ``sensor_png_scale`` then applies)."""
-    if fmt == "png" and png_sensor_scale(path) is not None:
+    a PNG carrying its scale (``png_scale``, its :func:`png_sensor_scale`), or a PNG/TIFF with
+    ``simulate.json`` beside it (whose ``sensor_png_scale`` then applies)."""
+    if png_scale is not None:
         return True
     return fmt in ("png", "tiff") and (Path(path).parent / SIMULATE_JSON).is_file()
 
@@ -656,10 +656,11 @@ def read_capture(path: str | Path, corr: RawCorrection | None = None, scale: flo
                          f"would stay below {image.full_scale / corr.white_level:.3g} of full scale: pass the sensor's "
                          f"white level, at most {image.full_scale:g} (the brightest pixel here is "
                          f"{float(image.data.max()):g} DN), or leave --white-level out for the type's maximum")
-    simulated = is_simulated_image(path, image.format)
+    png_scale = png_sensor_scale(path) if image.format == "png" else None  # the PNG's own, wherever it was copied
+    simulated = is_simulated_image(path, image.format, png_scale)
     stretched = False  # simulate's PNG of an image brighter than full scale: its peak is full scale by design
     if scale is None and simulated and corr.scale == 1.0 and corr.auto_level is None:
-        scale = png_sensor_scale(path) if image.format == "png" else None  # the PNG's own, wherever it was copied
+        scale = png_scale
         if scale is None:
             meta = path.parent / SIMULATE_JSON
             try:
