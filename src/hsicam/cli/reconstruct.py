@@ -30,11 +30,12 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "files are replaced only when they are an earlier reconstruct's output, never an input")
     p.add_argument("--scale", type=float, default=None, help="multiply the image after normalising to [0, 1]")
     p.add_argument("--tile", type=int, default=512, metavar="PX", help="tile side for large images")
-    p.add_argument("--cfa-offset", type=cfa_offset_arg, default=(0, 0), metavar="Y,X",
+    p.add_argument("--cfa-offset", type=cfa_offset_arg, default=(0, 0), metavar="Y,X|auto",
                    help="the sensor row and column of the capture's first pixel (a crop or a region-of-interest "
                         "readout of the camera's sensor): the CFA phase of every pixel follows from it (default 0,0: "
                         "the capture starts where the sensor does; a crop off the CFA period otherwise reconstructs "
-                        "wrong spectra)")
+                        "wrong spectra); auto: estimated from the capture (the phase whose reconstruction the camera "
+                        "images back closest to it), logged and recorded in the cube's metadata")
     p.add_argument("--device", default="cpu", type=device_arg, help="torch device (default cpu)")
     p.add_argument("--consistency-steps", type=int, default=None, metavar="N",
                    help="measurement-consistency steps after the network (default: the run's "
@@ -60,17 +61,37 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=cmd_reconstruct)
 
 
-def cfa_offset_arg(text: str) -> tuple[int, int]:
-    """argparse ``type`` of ``--cfa-offset Y,X``: two integers >= 0."""
+def cfa_offset_arg(text: str) -> tuple[int, int] | str:
+    """argparse ``type`` of ``--cfa-offset Y,X``: two integers >= 0, or ``"auto"``."""
+    if text.strip().lower() == "auto":
+        return "auto"
     parts = text.replace(" ", "").split(",")
     try:
         y, x = (int(v) for v in parts)
     except ValueError:
         raise argparse.ArgumentTypeError(f"expected Y,X (two integers >= 0, the sensor row and column of the "
-                                         f"capture's first pixel), got {text!r}") from None
+                                         f"capture's first pixel) or auto, got {text!r}") from None
     if y < 0 or x < 0:
         raise argparse.ArgumentTypeError(f"Y and X must be >= 0, got {text!r}")
     return y, x
+
+
+def estimated_cfa_offset(model, sensor: torch.Tensor) -> tuple[tuple[int, int], dict]:
+    """``--cfa-offset auto``: (Y, X) estimated from the capture, logged (a warning when ambiguous),
+    and the estimate's record for the cube's metadata."""
+    from hsicam.engine.cfa_offset import estimate_cfa_offset
+
+    est = estimate_cfa_offset(model, sensor)
+    (oy, ox), best = est.offset, est.residuals[f"{est.offset[0]},{est.offset[1]}"]
+    second, r2 = est.runner_up
+    log.info("--cfa-offset auto: %d,%d (relative residual %.3g; next best %s: %.3g; scored on the central %d×%d px)",
+             oy, ox, best, second, r2, est.window[2], est.window[3])
+    if est.ambiguous:
+        log.warning("--cfa-offset auto: %d,%d is barely better than the other phases (residual %.4g; the median "
+                    "candidate's is only %.0f%% higher): the capture may be too dark, noisy or featureless to tell; if "
+                    "its spectra look wrong, measure the offset (e.g. on a capture of a textured, colourful target) and "
+                    "give it with --cfa-offset Y,X", oy, ox, best, 100 * min(est.contrast, 99.0))
+    return est.offset, est.as_dict()
 
 
 def offset_reconstructor(fn, offset: tuple[int, int]):
@@ -343,11 +364,15 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
         log.warning("--tile %d is smaller than the reconstruction's context (%d px per side): each tile computes "
                     "about %.0f× its own pixels; a tile of %d px or more is faster", args.tile, halo,
                     ((args.tile + 2 * halo) / args.tile) ** 2, 2 * halo)
+    offset = args.cfa_offset
     if period > 1:
-        meta["cfa_offset"] = list(args.cfa_offset)
-    elif tuple(args.cfa_offset) != (0, 0):
+        if offset == "auto":
+            offset, meta["cfa_offset_estimate"] = estimated_cfa_offset(model, sensor)
+        meta["cfa_offset"] = list(offset)
+    elif offset != (0, 0):
         log.warning("--cfa-offset is ignored: the camera has no colour filter array")
-    fn = offset_reconstructor(model.reconstructor(), args.cfa_offset)
+        offset = (0, 0)
+    fn = offset_reconstructor(model.reconstructor(), offset)
     cube = reconstruct_tiled(fn, sensor, args.tile, halo, progress=sys.stderr.isatty())[0]
     del sensor
     # Radiance is non-negative: the network's small negative excursions are clipped at 0.
