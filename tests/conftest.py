@@ -81,3 +81,11 @@ def scene(tmp_path_factory) -> Path:
     p = tmp_path_factory.mktemp("scene") / "scene.npy"
     np.save(p, np.random.default_rng(0).uniform(0.1, 1, (7, 40, 40)).astype(np.float32))
     return p
+
+
+def torchrun_tmp(tmp_path: Path) -> Path:
+    """A TMPDIR for a ``torch.distributed.run`` subprocess: torchelastic leaves a ``torchelastic_*``
+    folder in the temporary directory of every launch, which belongs under the test's own folder."""
+    d = tmp_path / "tmp"
+    d.mkdir(exist_ok=True)
+    return d

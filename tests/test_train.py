@@ -15,6 +15,7 @@ import pytest
 import torch
 import torch.nn.functional as F
 
+from conftest import torchrun_tmp
 from cli_helpers import assert_clean_error, run_cli, signal_a_training
 from hsicam.config import load_config
 from hsicam.runs.checkpoint import load_weights, read_weights, save_weights
@@ -147,7 +148,8 @@ pathlib.Path(sys.argv[1] + ".rank" + os.environ.get("RANK", "0")).write_text(str
 def test_ddp_two_processes_matches_single_process(tmp_path, cache_env, extra):
     script = tmp_path / "ddp_train.py"
     script.write_text(DDP_SCRIPT)
-    env = {**os.environ, "OMP_NUM_THREADS": "1", "HSICAM_CACHE": str(cache_env)}
+    env = {**os.environ, "OMP_NUM_THREADS": "1", "HSICAM_CACHE": str(cache_env),
+           "TMPDIR": str(torchrun_tmp(tmp_path))}
     single = subprocess.run([sys.executable, str(script), str(tmp_path / "single"), *extra], env=env, capture_output=True, text=True, timeout=300)
     assert single.returncode == 0, single.stderr
     ddp = subprocess.run([sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node=2",

@@ -16,6 +16,7 @@ from pathlib import Path
 import pytest
 import torch
 
+from conftest import torchrun_tmp
 from cli_helpers import run_cli, signal_a_training
 from hsicam.config import load_config
 from hsicam.engine.stopping import BUDGET_EXIT_CODE, StopRequests
@@ -191,7 +192,8 @@ open(sys.argv[1] + ".rank" + os.environ.get("RANK", "0"), "w").write(f"{stopped}
 def test_ddp_ranks_stop_at_the_same_step_and_resume_under_torchrun(tmp_path, cache_env):
     script = tmp_path / "ddp_budget.py"
     script.write_text(DDP_BUDGET_SCRIPT)
-    env = {**os.environ, "OMP_NUM_THREADS": "1", "HSICAM_CACHE": str(cache_env)}
+    env = {**os.environ, "OMP_NUM_THREADS": "1", "HSICAM_CACHE": str(cache_env),
+           "TMPDIR": str(torchrun_tmp(tmp_path))}
     torchrun = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node=2"]
     run = tmp_path / "ddp"
     res = subprocess.run([*torchrun, str(script), str(run)], env=env, capture_output=True, text=True, timeout=300)
