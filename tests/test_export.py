@@ -330,3 +330,66 @@ def test_gds_levels_round_trip(tmp_path):
     lib.write_gds(str(tmp_path / "other.gds"))
     with pytest.raises(InputError, match="no 'DOE' cell"):
         read_gds_levels(tmp_path / "other.gds", n, 30.0, levels, aperture)
+
+
+def _doe_camera(tiny_config, *overrides):
+    from hsicam.cameras import DOECamera
+
+    return DOECamera.from_config(tiny_config(*overrides))
+
+
+def test_an_element_trained_with_a_clamp_range_and_l_levels_is_exported_as_trained(tiny_config, tmp_path):
+    """max_height 1000 nm, 4 levels, no wrap: the DOE simulates heights k·250 nm, k = 0..3 (its
+    level_grid); the export used to re-quantise them onto k·h_2π/4 = k·320 nm, wrapped, and
+    fabricate another element (1163 of 1329 cells changed, PSFs 35–42 % L1 apart: probe 29 F1)."""
+    from hsicam.export.doe import design_heights, export_doe
+
+    cam = _doe_camera(tiny_config, "camera.doe.max_height_nm=1000", "camera.doe.quantization_levels=4",
+                      "camera.doe.wrap=false")
+    doe = cam.optics.doe
+    assert doe.level_grid() == (pytest.approx(1e-6), False)
+    with torch.no_grad():
+        trained_nm = doe.heights().double().numpy() * 1e9
+    assert set(np.unique(np.round(trained_nm, 3))) <= {0.0, 250.0, 500.0, 750.0}  # the simulated element
+    out = tmp_path / "fab"
+    out.mkdir()
+    facts = export_doe(cam, out, 4, cam.bands.centers_nm)
+    h_m, aperture, piston = design_heights(cam)
+    inside = aperture > 0
+    exported = np.load(out / "doe_height_L4_nm.npy").astype(np.float64)
+    np.testing.assert_allclose(exported[inside], (trained_nm - piston * 1e9)[inside], atol=1e-3)  # cell for cell
+    levels = np.load(out / "doe_level_L4.npy")
+    np.testing.assert_array_equal(levels[inside], np.round(exported[inside] / 250.0))
+    q = facts["quantized"]
+    assert q["step_nm"] == pytest.approx(250.0) and "clamp range" in q["grid"]
+    assert q["phase_error_design_wavelength_rad"]["max"] < 1e-5 and q["phase_error_design_wavelength_rad"]["bound_pi_over_L"] is None
+    assert facts["height_2pi_nm"] == pytest.approx(doe.h2pi_m * 1e9)
+    # the phase-level default keeps its grid: a wrapped 4-level element comes out unchanged too
+    cam = _doe_camera(tiny_config, "camera.doe.quantization_levels=4")
+    with torch.no_grad():
+        trained_nm = cam.optics.doe.heights().double().numpy() * 1e9
+    out2 = tmp_path / "fab2"
+    out2.mkdir()
+    export_doe(cam, out2, 4, cam.bands.centers_nm)
+    h_m, aperture, piston = design_heights(cam)
+    inside = aperture > 0
+    np.testing.assert_allclose(np.load(out2 / "doe_height_L4_nm.npy")[inside], (trained_nm - piston * 1e9)[inside],
+                               atol=1e-3)
+
+
+def test_heights_above_h2pi_are_warned_about_when_the_export_wraps_them(tiny_config, tmp_path, caplog):
+    import logging
+
+    from hsicam.export.doe import export_doe
+
+    cam = _doe_camera(tiny_config, "camera.doe.init_range_nm=2000")  # a multi-order start, not quantised
+    out = tmp_path / "fab"
+    out.mkdir()
+    with caplog.at_level(logging.WARNING, logger="hsicam.export.doe"):
+        export_doe(cam, out, 8, cam.bands.centers_nm)
+    assert any("above h_2π" in r.getMessage() and "wraps them" in r.getMessage() for r in caplog.records), caplog.text
+    caplog.clear()
+    cam = _doe_camera(tiny_config)  # heights within [0, h_2π]: no warning
+    with caplog.at_level(logging.WARNING, logger="hsicam.export.doe"):
+        export_doe(cam, tmp_path, 8, cam.bands.centers_nm)
+    assert not [r for r in caplog.records if "above h_2π" in r.getMessage()], caplog.text

@@ -351,3 +351,16 @@ def test_smooth_doe_init_from_config(tiny_config):
     assert float(h.min()) == pytest.approx(0.0, abs=1e-15) and float(h.max()) == pytest.approx(500e-9, rel=1e-6)
     with pytest.raises(ConfigError, match="init_correlation_cells"):
         tiny_config("camera.doe.init=smooth", "camera.doe.init_correlation_cells=0")
+
+
+def test_a_smooth_doe_init_wider_than_its_grid_is_a_config_error_not_nan_heights():
+    """σ ≳ 1.35 × the grid leaves a constant field (exp(−2π²σ²/n²) below float64 precision): the
+    rescale to [0, range] would divide 0 by 0 and give NaN heights and PSFs (probe 29 F2)."""
+    from hsicam.errors import ConfigError
+    from hsicam.optics.doe import DOE
+    from hsicam.spectral.materials import FusedSilica
+
+    with pytest.raises(ConfigError, match=r"init_correlation_cells=12 is too wide for a DOE of 9 cells across.*at most 4"):
+        DOE(9, FusedSilica(), 587.6, init="smooth", init_correlation_cells=12.0)
+    h = DOE(9, FusedSilica(), 587.6, init="smooth", init_correlation_cells=4.0, init_range_m=1e-6).height_m.detach()
+    assert torch.isfinite(h).all() and float(h.max() - h.min()) == pytest.approx(1e-6, rel=1e-6)

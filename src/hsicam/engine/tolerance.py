@@ -316,7 +316,7 @@ def run_tolerance(model, cfg, spec: ToleranceSpec = ToleranceSpec(), data: str |
     if has_doe:
         h_design, _, _ = design_heights(cam)
     for lv in spec.levels if has_doe else ():
-        _, hq = quantize_levels(h_design, lv, optics.doe.h2pi_m)
+        _, hq = quantize_levels(h_design, lv, *optics.doe.level_grid())
         res = psf_for_heights(optics, torch.from_numpy(hq))
         record("levels", lv, "levels", [evaluate_psf(model, res.psf, scenes, names, spec.seed)], res.energy)
     # lateral misalignment along x and along the diagonal, on the Q-oversampled pupil; the

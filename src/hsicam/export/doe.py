@@ -11,10 +11,13 @@ Conventions (also written into ``spec.json``):
   the cell inside the circle); the other cells are written as 0 (no relief; light does not pass).
 * The piston (the minimum height over the aperture) is removed: a constant height adds the same
   phase everywhere and leaves every PSF unchanged, so the relief starts at 0.
-* L-level quantisation (binary-weighted lithography, L = 2^k): heights k·h_2π/L, k = 0..L−1,
-  rounded and wrapped modulo h_2π (phase-equivalent at the design wavelength λ0: the phase error
-  there is at most π/L; at other wavelengths the 2π step is not exactly 2π, which the per-band
-  phase error reports).
+* L-level quantisation (binary-weighted lithography, L = 2^k) by the DOE's own rule
+  (:meth:`hsicam.optics.doe.DOE.level_grid`), so an element trained with L levels is exported as
+  trained: heights k·h_2π/L, k = 0..L−1, rounded and wrapped modulo h_2π (phase-equivalent at the
+  design wavelength λ0: the phase error there is at most π/L; at other wavelengths the 2π step is
+  not exactly 2π, which the per-band phase error reports; heights above h_2π are warned about); or,
+  for a clamp range (``camera.doe.max_height_nm`` with ``wrap`` false), heights k·max/L clamped to
+  k ≤ L−1, which keeps a multi-order design's heights.
 """
 
 from __future__ import annotations
@@ -22,6 +25,7 @@ from __future__ import annotations
 import csv
 import io
 import json
+import logging
 import math
 from pathlib import Path
 from typing import Any
@@ -31,6 +35,8 @@ import torch
 
 from hsicam.errors import InputError
 from hsicam.io import atomic_open, atomic_path, save_figure, write_npy
+
+log = logging.getLogger(__name__)
 
 
 def design_heights(camera) -> tuple[np.ndarray, np.ndarray, float]:
@@ -63,12 +69,15 @@ def is_power_of_two(n: int) -> bool:
     return n >= 2 and (n & (n - 1)) == 0
 
 
-def quantize_levels(height_m: np.ndarray, levels: int, top_m: float) -> tuple[np.ndarray, np.ndarray]:
-    """(level index k (n, n) int, quantised heights k·top/L m) with k = round(h/step) mod L."""
+def quantize_levels(height_m: np.ndarray, levels: int, top_m: float, wrap: bool = True) -> tuple[np.ndarray, np.ndarray]:
+    """(level index k (n, n) int, quantised heights k·top/L m) with k = round(h/step) mod L (``wrap``,
+    phase levels over top = h_2π) or clamped to [0, L−1] (a clamp range): the rule of
+    :func:`hsicam.optics.doe.quantize_heights`, in float64."""
     if levels < 2:
         raise InputError(f"quantisation needs at least 2 levels, got {levels}")
     step = top_m / levels
-    k = np.mod(np.round(np.asarray(height_m, dtype=np.float64) / step), levels).astype(np.int64)
+    k = np.round(np.asarray(height_m, dtype=np.float64) / step)
+    k = (np.mod(k, levels) if wrap else np.clip(k, 0, levels - 1)).astype(np.int64)
     return k, k * step
 
 
@@ -217,8 +226,15 @@ def export_doe(camera, out: Path, levels: int, bands_nm: np.ndarray) -> dict[str
     doe = optics.doe
     cell_um = round(optics.cell_m * 1e6, 9)
     h_m, aperture, piston = design_heights(camera)
-    top = doe.h2pi_m
-    level, hq_m = quantize_levels(h_m, levels, top)
+    # the rule the DOE quantises by in training: with the run's own L the trained element comes out
+    # unchanged (a clamp range keeps its k·max/L grid instead of moving onto h_2π's)
+    top, wrap = doe.level_grid()
+    level, hq_m = quantize_levels(h_m, levels, top, wrap)
+    if wrap and float(h_m.max(initial=0.0)) > doe.h2pi_m * (1 + 0.5 / levels):  # beyond what rounds to h_2π
+        log.warning("the DOE's heights reach %.0f nm, above h_2π = %.0f nm: its %d-level version wraps them modulo "
+                    "h_2π, the same element at the design wavelength only (phase error per band in "
+                    "doe_phase_error_L%d.csv); for a multi-order design train with camera.doe.max_height_nm and "
+                    "wrap false, which the export keeps", h_m.max() * 1e9, doe.h2pi_m * 1e9, levels, levels)
     inside = aperture > 0
     hq_m = np.where(inside, hq_m, 0.0)
     level = np.where(inside, level, 0)
@@ -249,9 +265,7 @@ def export_doe(camera, out: Path, levels: int, bands_nm: np.ndarray) -> dict[str
                       optics.aperture_radius_m * 1e6)
             gds_info = {"file": f"doe_L{levels}.gds", "layers": gds_layers(levels, top * 1e9 / levels)}
         except ImportError as exc:
-            import logging
-
-            logging.getLogger(__name__).warning("no GDSII written: %s", exc)
+            log.warning("no GDSII written: %s", exc)
             gds_info = {"file": None, "skipped": str(exc)}
     else:
         gds_info = {"file": None, "skipped": f"{levels} levels are not a power of 2 (binary-weighted lithography needs L = 2^k)"}
@@ -262,7 +276,7 @@ def export_doe(camera, out: Path, levels: int, bands_nm: np.ndarray) -> dict[str
         "material": getattr(doe.material, "name", str(doe.material)),
         "refractive_index_design": float(doe.material.n(doe.design_wavelength_nm)),
         "design_wavelength_nm": doe.design_wavelength_nm,
-        "height_2pi_nm": top * 1e9,
+        "height_2pi_nm": doe.h2pi_m * 1e9,
         "height_range_nm": [float(h_nm[inside].min()), float(h_nm[inside].max())] if inside.any() else [0.0, 0.0],
         "piston_removed_nm": piston * 1e9,
         "tiff_scale_nm_per_count": scale,
@@ -271,9 +285,11 @@ def export_doe(camera, out: Path, levels: int, bands_nm: np.ndarray) -> dict[str
         "quantized": {
             "levels": levels,
             "step_nm": top * 1e9 / levels,
+            "grid": ("phase levels k·h_2π/L, wrapped modulo h_2π" if wrap else
+                     f"clamp range k·{top * 1e9:g} nm/L, k = 0..L−1 (camera.doe.max_height_nm, wrap false)"),
             "tiff_scale_nm_per_count": scale_q,
             "phase_error_design_wavelength_rad": {"rms": err0["rms_rad"][0], "max": err0["max_rad"][0],
-                                                  "bound_pi_over_L": math.pi / levels},
+                                                  "bound_pi_over_L": math.pi / levels if wrap else None},
             "phase_error_per_band_rad": err,
             "first_order_efficiency_sinc2": float(np.sinc(1.0 / levels) ** 2),
             "gds": gds_info,

@@ -13,6 +13,7 @@ import numpy as np
 import torch
 from torch import nn
 
+from hsicam.errors import ConfigError
 from hsicam.spectral.materials import Material
 
 
@@ -36,9 +37,11 @@ def quantize_heights(h: torch.Tensor, levels: int, top_m: float, wrap: bool = Tr
     """Round h to ``levels`` heights k·top/levels, k = 0..levels−1 (straight-through gradient).
 
     With ``top = h_2π`` these are the phase levels of an L-level (e.g. binary-weighted lithography)
-    DOE, and ``wrap`` sends heights that round up to ``top`` back to level 0 (the same phase), so
-    the phase error is at most π/L. Without ``wrap`` (a height range that is not a phase period)
-    heights are clamped to the top level.
+    DOE, and ``wrap`` sends heights that round up to ``top`` (or lie above it) back modulo L (the
+    same phase at the design wavelength), so the phase error there is at most π/L; at other
+    wavelengths a wrapped height above h_2π is another element (dispersion). Without ``wrap`` (a
+    height range that is not a phase period) heights are clamped to the top level (L−1)·top/L, so
+    the error reaches a whole step just below ``top``.
     """
     step = top_m / levels
     k = torch.round(h / step)
@@ -102,7 +105,13 @@ class DOE(nn.Module):
             elif init == "smooth":
                 white = torch.rand(self.n_cells, self.n_cells, generator=g, dtype=torch.float64)
                 field = gaussian_lowpass_periodic(white, float(init_correlation_cells))
-                h0 = (field - field.min()) / (field.max() - field.min()) * top
+                span = float(field.max() - field.min())
+                if not span > 1e-9 * float(field.abs().mean()):  # the low-pass left a constant: 0/0 below
+                    raise ConfigError(f"camera.doe.init_correlation_cells={init_correlation_cells:g} is too wide for a "
+                                      f"DOE of {self.n_cells} cells across: the smoothed field is constant (no "
+                                      f"structure survives a Gaussian of σ ≳ 1.35 × the grid); use at most "
+                                      f"{max(self.n_cells // 2, 1)} cells")
+                h0 = (field - field.min()) / span * top
             elif init == "zeros":
                 h0 = torch.zeros(self.n_cells, self.n_cells, dtype=torch.float64)
             else:
@@ -121,14 +130,21 @@ class DOE(nn.Module):
         if self.max_height_m is not None:
             h = straight_through(h, h.clamp(0.0, self.max_height_m))
         if self.quantization_levels is not None:
-            # L phase levels over h_2π (wrapping), unless a clamp range that is not wrapped is set
-            clamp_range = self.max_height_m is not None and not self.wrap
-            top = self.max_height_m if clamp_range else self.h2pi_m
-            h = quantize_heights(h, self.quantization_levels, top, wrap=not clamp_range)
+            top, wrap = self.level_grid()
+            h = quantize_heights(h, self.quantization_levels, top, wrap=wrap)
         if self.sigma_height_m > 0:
             noise = torch.randn(h.shape, generator=generator, device=h.device, dtype=h.dtype)
             h = h + self.sigma_height_m * noise
         return h
+
+    def level_grid(self) -> tuple[float, bool]:
+        """(top m, wrap) of the L-level quantisation (:func:`quantize_heights`): L phase levels over
+        h_2π, wrapping (a height above h_2π becomes its phase modulo 2π: exact at the design
+        wavelength only), unless a clamp range that is not wrapped is set (``max_height_m`` with
+        ``wrap`` false): L levels k·max/L, k = 0..L−1, clamped. Export (``hsicam export-optics``)
+        quantises by the same rule, so an L-level trained element is exported unchanged."""
+        clamp_range = self.max_height_m is not None and not self.wrap
+        return (float(self.max_height_m), False) if clamp_range else (float(self.h2pi_m), True)
 
     def extra_repr(self) -> str:
         return (f"n_cells={self.n_cells}, enabled={self.enabled}, material={self.material!r}, "
