@@ -222,7 +222,9 @@ def test_missing_aperture_file(tmp_path):
 # --------------------------------------------------------------------------------------------
 def test_linear_dispersion():
     assert linear_dispersion(5, 2.0) == [0, 2, 4, 6, 8]
-    assert linear_dispersion(4, 1.5) == [0, 2, 3, 4]  # rounded half to even, as Python's round
+    # halves round up, so the steps stay even (Python's round, half to even, gave [0, 2, 3, 4, 6])
+    assert linear_dispersion(5, 1.5) == [0, 2, 3, 5, 6]
+    assert linear_dispersion(4, 0.5) == [0, 1, 1, 2]
 
 
 def _fused_silica_n(lam_nm: np.ndarray) -> np.ndarray:

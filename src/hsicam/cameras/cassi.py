@@ -153,10 +153,11 @@ class CodedAperture(nn.Module):
 # Dispersion
 # --------------------------------------------------------------------------------------------
 def linear_dispersion(n_bands: int, shift_px: float) -> list[int]:
-    """d_c = round(shift_px · c), c = 0..C-1 (MST: shift_px = 2)."""
+    """d_c = ⌊shift_px · c + ½⌋, c = 0..C-1 (MST: shift_px = 2): halves round up, so the steps stay
+    even (Python's round would send 1.5·3 = 4.5 to 4: [0, 2, 3, 4, 6])."""
     if not (shift_px > 0 and math.isfinite(shift_px)):
         raise ValueError(f"shift_px must be positive, got {shift_px}")
-    return [int(round(shift_px * c)) for c in range(n_bands)]
+    return [int(math.floor(shift_px * c + 0.5)) for c in range(n_bands)]
 
 
 def prism_dispersion(bands: Bands, material: str = "fused_silica", apex_deg: float = 30.0,

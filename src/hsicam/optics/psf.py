@@ -189,7 +189,7 @@ class PSFModel(nn.Module):
         """Refuse, before anything is allocated, a residual defocus that aliases on the pupil grid
         (:func:`~hsicam.optics.sampling.defocus_aliasing` > 1): its geometric blur is wider than the
         field λz/d the pupil samples can represent, so the PSF would be that of another lens. The
-        paper singlet's ~20 waves at 420 nm are 0.5 of that limit; a sensor distance far from the
+        paper singlet's 17.7 waves at 420 nm are 0.43 of that limit; a sensor distance far from the
         focal length (e.g. a value in the wrong unit) is far above it."""
         if not np.all(np.isfinite(z_line)) or np.any(z_line <= 0):
             return  # plan_psf_sampling refuses a non-positive distance with its own message
