@@ -474,6 +474,19 @@ def test_train_prior_into_a_non_empty_folder_names_its_own_remedy(tmp_path):
     assert sorted(p.name for p in out.iterdir()) == ["notes.txt"]
 
 
+def test_train_into_a_folder_of_other_files_offers_only_another_out(tmp_path):
+    """A folder of the user's own files holds no run to --resume and nothing --restart may wipe: the
+    refusal used to offer both (each then refused in turn); it names the files and another --out."""
+    out = tmp_path / "mine"
+    out.mkdir()
+    (out / "notes.txt").write_text("mine")
+    res = run_cli("train", "--config", "tiny", "--out", str(out), env={"HSICAM_CACHE": str(tmp_path / "cache")})
+    assert_clean_error(res, f"{out}: run folder exists and is not empty: it holds other files than a run's (notes.txt); "
+                            "nothing there is resumed or wiped: choose another --out")
+    assert "--resume" not in res.stderr and "--restart" not in res.stderr
+    assert sorted(p.name for p in out.iterdir()) == ["notes.txt"]
+
+
 def test_an_interruption_during_start_up_is_one_line(capsys, monkeypatch):
     """Ctrl-C while the commands' modules load (about a second) printed a KeyboardInterrupt
     traceback (probe 22); importing the command line no longer loads numpy or torch, and an

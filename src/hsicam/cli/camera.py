@@ -38,7 +38,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--scene", required=True, metavar="FILE", help="scene cube: .npy (bands, H, W) or a supported cube file")
     p.add_argument("--out", required=True, metavar="DIR", help="output folder")
     p.add_argument("--boundary", choices=("same", "valid"), default="same",
-                   help="same: sensor as large as the scene (padded); valid: sensor smaller by the kernel margin")
+                   help="same (default): sensor as large as the scene (padded); valid: sensor smaller by the kernel margin "
+                        "(what training sees: the presets' camera.boundary)")
     from hsicam.cli.args import seed_arg
     p.add_argument("--seed", type=seed_arg(), default=0, help="seed for DOE height noise and sensor noise")
     add_run_arg(p, "use the trained optics of this run (its config.yaml; --set still applies)", required=False)

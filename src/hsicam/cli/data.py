@@ -28,7 +28,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="train (default): scenes without the held-out sources; heldout: the held-out "
                         "validation set, made only of the held-out sources' spectra")
     s.add_argument("--out", metavar="DIR", default=None,
-                   help="output folder (default: the cache, $HSICAM_CACHE or ~/.cache/hsicam)")
+                   help="output folder (default: the cache: data.cache_dir, else $HSICAM_CACHE, else "
+                        "$XDG_CACHE_HOME/hsicam, else ~/.cache/hsicam)")
     s.add_argument("--no-progress", action="store_true", help="no progress bar")
     add_config_args(s)
     s.set_defaults(func=_synth)

@@ -261,6 +261,12 @@ def check_run_dir(run_dir: Path, resume: bool, not_empty_hint: str = TRAIN_NOT_E
     if run_dir.exists() and not run_dir.is_dir():
         raise InputError(f"{run_dir}: exists and is not a folder; choose another --out")
     if run_dir.exists() and any(run_dir.iterdir()):
+        foreign = sorted(p.name for p in run_dir.iterdir() if p.name not in RUN_ENTRIES and not p.name.startswith("."))
+        if foreign and not (run_dir / "config.yaml").is_file():  # no run to resume, nothing --restart may wipe
+            remedy = ("nothing there is resumed or wiped: choose another --out" if not_empty_hint == TRAIN_NOT_EMPTY_HINT
+                      else not_empty_hint)
+            raise InputError(f"{run_dir}: run folder exists and is not empty: it holds other files than a run's "
+                             f"({', '.join(foreign[:3])}{', …' if len(foreign) > 3 else ''}); {remedy}")
         raise InputError(f"{run_dir}: run folder exists and is not empty; {not_empty_hint}")
 
 
