@@ -15,11 +15,12 @@ DataLoader worker serves it and runs are reproducible.
 from __future__ import annotations
 
 import logging
+import math
 import os
 from collections import OrderedDict
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any, Iterator, Sequence
 
 import numpy as np
 import torch
@@ -40,7 +41,10 @@ def list_scenes(root: str | os.PathLike) -> list[Path]:
     """The scenes of a dataset folder, sorted: supported files and CAVE scene folders.
 
     ``root`` may also be a single file or a single CAVE folder. ENVI pairs are listed by their
-    ``.hdr``. Hidden and temporary files are skipped, and so are sub-folders that hold another
+    ``.hdr``. Linked sub-folders are followed (after the real ones; each folder is walked once, so a
+    link loop ends), and a scene reached by several paths (a linked file or folder) is listed once,
+    by its path without links when it has one; the aliases dropped are said in one log line.
+    Hidden and temporary files are skipped, and so are sub-folders that hold another
     hsicam command's completed output (a completion marker, :func:`hsicam.io.is_complete`: an
     evaluation saved next to the data, a simulated sensor image …) and cube files that ``hsicam
     reconstruct`` wrote (estimates, :func:`hsicam.data.estimates.is_estimate`), said once in the log.
@@ -65,27 +69,50 @@ def list_scenes(root: str | os.PathLike) -> list[Path]:
     scenes: list[Path] = []
     skipped: list[Path] = []
     estimates: list[Path] = []
-    for dirpath, dirnames, filenames in os.walk(root):
-        d = Path(dirpath)
-        kept = []
-        for n in sorted(dirnames):
-            if n.startswith("."):
-                continue
-            if is_complete(d / n):  # an hsicam output, not scenes
-                skipped.append(d / n)
-                continue
-            kept.append(n)
-        dirnames[:] = kept
-        if d != root and _is_cave_dir(d):
-            scenes.append(_cave_scene_root(d, root))
-            dirnames[:] = []
+    aliases: list[tuple[Path, Path]] = []  # (a link to what was listed already, that)
+    visited: dict[tuple[int, int], Path] = {}  # (st_dev, st_ino) of every folder walked
+    links: list[Path] = []  # linked sub-folders, walked after the folders themselves
+    starts = [root]
+    while starts:
+        start = starts.pop(0)
+        key = _dir_key(start)
+        if key is None:
             continue
-        for name in filenames:
-            if name.startswith("."):  # hidden files, including atomic-write temporaries
+        if key in visited:  # a link to a folder listed already (or a link loop)
+            aliases.append((start, visited[key]))
+            continue
+        visited[key] = start
+        for dirpath, dirnames, filenames in os.walk(start):  # links are not followed here: queued below
+            d = Path(dirpath)
+            kept = []
+            for n in sorted(dirnames):
+                if n.startswith("."):
+                    continue
+                if is_complete(d / n):  # an hsicam output, not scenes
+                    skipped.append(d / n)
+                    continue
+                if (d / n).is_symlink():
+                    links.append(d / n)
+                    continue
+                sub = _dir_key(d / n)
+                if sub is None or sub in visited:  # unreadable, or a folder mounted twice
+                    continue
+                visited[sub] = d / n
+                kept.append(n)
+            dirnames[:] = kept
+            if d != root and _is_cave_dir(d):
+                scenes.append(_cave_scene_root(d, root))
+                dirnames[:] = []
                 continue
-            if Path(name).suffix.lower() in SCENE_SUFFIXES:
-                (estimates if is_estimate(d / name) else scenes).append(d / name)
+            for name in filenames:
+                if name.startswith("."):  # hidden files, including atomic-write temporaries
+                    continue
+                if Path(name).suffix.lower() in SCENE_SUFFIXES:
+                    (estimates if is_estimate(d / name) else scenes).append(d / name)
+        if not starts:
+            starts, links = links, []
     scenes = sorted(set(scenes))
+    scenes = _one_path_per_scene(root, scenes, aliases)
     if skipped:
         _log_skipped(root, skipped)
     if estimates:
@@ -97,6 +124,58 @@ def list_scenes(root: str | os.PathLike) -> list[Path]:
         raise InputError(f"{root}: no hyperspectral scenes found (supported: {', '.join(SCENE_SUFFIXES)}, CAVE "
                          f"folders){also}")
     return scenes
+
+
+def _dir_key(d: Path) -> tuple[int, int] | None:
+    """(st_dev, st_ino) of folder ``d`` (links followed), or None when it cannot be read."""
+    try:
+        st = os.stat(d)
+    except OSError:
+        return None
+    return st.st_dev, st.st_ino
+
+
+def _one_path_per_scene(root: Path, scenes: list[Path], aliases: list[tuple[Path, Path]]) -> list[Path]:
+    """``scenes`` (sorted) with one path per real file or folder: of the paths that lead to the same
+    one, the one without links below ``root`` is kept, else the first. The dropped ones, and the
+    linked folders in ``aliases`` (already listed), are said in one log line."""
+    real_root = os.path.realpath(root)
+    by_real: dict[str, list[Path]] = {}
+    for p in scenes:
+        by_real.setdefault(os.path.realpath(p), []).append(p)
+    if all(len(group) == 1 for group in by_real.values()) and not aliases:
+        return scenes
+
+    def linked(p: Path) -> bool:  # reached through a link below root
+        return os.path.realpath(p) != os.path.join(real_root, os.path.relpath(p, root))
+
+    dropped = list(aliases)
+    kept: set[Path] = set()
+    for group in by_real.values():
+        keep = min(group, key=lambda p: (linked(p), p))
+        kept.add(keep)
+        dropped += [(p, keep) for p in group if p != keep]
+    if dropped:
+        _log_aliases(root, dropped)
+    return [p for p in scenes if p in kept]
+
+
+#: (root, aliases) already logged by :func:`list_scenes` in this process.
+_ALIASES_LOGGED: set[tuple[str, tuple[str, ...]]] = set()
+
+
+def _log_aliases(root: Path, dropped: list[tuple[Path, Path]]) -> None:
+    def rel(p: Path) -> str:
+        return scene_path(p, root) if p != root else "."
+
+    texts = sorted(f"{rel(a)} (= {rel(b)})" for a, b in dropped)
+    key = (os.path.abspath(root), tuple(texts))
+    if key in _ALIASES_LOGGED:
+        return
+    _ALIASES_LOGGED.add(key)
+    shown = ", ".join(texts[:5]) + (f" and {len(texts) - 5} more" if len(texts) > 5 else "")
+    log.warning("data: %s: %d link(s) lead to scenes listed already, each scene counted once: %s", root, len(texts),
+                shown)
 
 
 def scene_path(scene: str | os.PathLike, root: str | os.PathLike) -> str:
@@ -316,8 +395,11 @@ class SceneInfo:
     peak: float  # maximum after resampling onto the target bands (the normalisation divisor)
 
 
-def probe_hsicam(path: Path, bands: Bands) -> SceneInfo | None:
-    """SceneInfo of an hsicam HDF5 file on ``bands`` from its header (no pixel read), else None."""
+def probe_hsicam(path: Path, bands: Bands, *, allow_negative: bool = False) -> SceneInfo | None:
+    """SceneInfo of an hsicam HDF5 file on ``bands`` that can be read window by window, else None.
+
+    The header decides (no pixel read) whether the file qualifies; one that does has every pixel
+    checked once per process (:func:`check_windowed_pixels`), and its ``peak`` is the checked maximum."""
     import h5py
 
     from hsicam.data.formats import HSICAM_FORMAT, _HDF5_MAGIC, _head, check_format_version
@@ -331,13 +413,158 @@ def probe_hsicam(path: Path, bands: Bands) -> SceneInfo | None:
             check_format_version(path, f.attrs)  # a newer file: no windowed reads; the full reader refuses it
             if not Bands.from_centers(f["bands_nm"][()]).matches(bands):
                 return None
-            shape = f["cube"].shape
+            shape, kind = f["cube"].shape, f["cube"].dtype.kind
             peak = float(f.attrs["max_value"])
-    except (OSError, KeyError, InputError):
+    except (OSError, KeyError, TypeError, ValueError, InputError):
         return None  # the full reader reports the problem properly
-    if len(shape) != 3 or not peak > 0:
-        return None
+    if len(shape) != 3 or min(shape) == 0 or kind not in "fiub" or not peak > 0:
+        return None  # likewise (a wrong shape or type, a header that says all zeros)
+    peak = check_windowed_pixels(path, allow_negative=allow_negative)
     return SceneInfo(path, int(shape[1]), int(shape[2]), peak)
+
+
+#: Bytes of pixels read at a time by :func:`check_windowed_pixels` (whole bands, or rows of one band).
+CHECK_CHUNK_BYTES = 64 * 2**20
+
+#: (real path, size, mtime, allow_negative) → maximum of the files :func:`check_windowed_pixels` passed.
+_PIXELS_CHECKED: dict[tuple[str, int, int, bool], float] = {}
+
+
+def check_windowed_pixels(path: str | os.PathLike, *, allow_negative: bool = False,
+                          chunk_bytes: int = CHECK_CHUNK_BYTES) -> float:
+    """Check every pixel of an hsicam HDF5 file that is read window by window; returns its maximum
+    (negative values clipped to 0 with ``allow_negative``), the normalisation divisor.
+
+    The checks and one-line :class:`InputError` messages are a preloaded read's
+    (:func:`hsicam.data.cube.check_cube`, :func:`hsicam.data.cube.normalize_per_cube_max`): NaN/Inf,
+    negative values (refused, or clipped with ``allow_negative``), an all-zero cube. A ``max_value``
+    attribute other than the maximum (beyond float32 rounding) is a warning and the maximum is used,
+    as a preloaded read does. A scene whose 99.9th percentile is below 1 % of its maximum is warned
+    about (:func:`warn_if_near_black`). Reads ``chunk_bytes`` at a time; a file passes once per
+    process (until it changes)."""
+    import h5py
+
+    path = Path(path)
+    st = path.stat()
+    key = (os.path.realpath(path), st.st_size, st.st_mtime_ns, bool(allow_negative))
+    if key in _PIXELS_CHECKED:
+        return _PIXELS_CHECKED[key]
+    bad = neg = 0
+    lo, hi = math.inf, -math.inf
+    with _reading(path, "HDF5"), h5py.File(path, "r") as f:
+        ds = f["cube"]
+        header = float(f.attrs["max_value"])
+        top = _TopValues(math.prod(ds.shape))
+        for chunk in _chunks(ds, chunk_bytes):
+            with np.errstate(over="ignore"):  # values beyond float32 become Inf, as in a preloaded read
+                chunk = np.asarray(chunk, dtype=np.float32)
+            finite = np.isfinite(chunk)
+            if not finite.all():
+                bad += int(chunk.size - np.count_nonzero(finite))
+            if bad:
+                continue  # the count is all that is reported now
+            lo = min(lo, float(chunk.min()))
+            if lo < 0:
+                neg += int(np.count_nonzero(chunk < 0))
+                np.maximum(chunk, 0.0, out=chunk)
+            hi = max(hi, float(chunk.max()))
+            top.add(chunk)
+    if bad:
+        raise InputError(f"{path}: {bad} NaN/Inf value(s) in the cube (after conversion to float32)")
+    if neg and not allow_negative:
+        raise InputError(f"{path}: {neg} negative radiance value(s) (minimum {lo:.4g}); "
+                         "radiance and reflectance must be >= 0")
+    if not hi > 0:
+        raise InputError(f"{path}: the cube is all zeros; cannot normalise by its maximum")
+    if not math.isclose(header, hi, rel_tol=2.0 ** -22):  # float32 rounding of a maximum written as float64
+        log.warning("%s: its max_value attribute %.6g is not the cube's maximum %.6g; normalising by the maximum",
+                    path, header, hi)
+    warn_if_near_black(path, top.percentile(), hi)
+    _PIXELS_CHECKED[key] = hi
+    return hi
+
+
+def _chunks(ds: Any, chunk_bytes: int) -> Iterator[np.ndarray]:
+    """The (C, H, W) dataset ``ds`` in pieces of about ``chunk_bytes``: whole bands, else rows of a band."""
+    c, h, w = ds.shape
+    band = h * w * max(ds.dtype.itemsize, 4)
+    if band <= chunk_bytes:
+        step = max(chunk_bytes // band, 1)
+        for c0 in range(0, c, step):
+            yield ds[c0:c0 + step]
+        return
+    rows = max(chunk_bytes // (w * max(ds.dtype.itemsize, 4)), 1)
+    for ci in range(c):
+        for r0 in range(0, h, rows):
+            yield ds[ci, r0:r0 + rows]
+
+
+#: A scene is near-black after normalisation when this percentile of its values …
+NEAR_BLACK_PERCENTILE = 99.9
+#: … is below this fraction of its maximum (one hot or saturated pixel sets the maximum).
+NEAR_BLACK_FRACTION = 0.01
+
+
+class _TopValues:
+    """The largest values of ``n`` seen chunk by chunk, enough for :data:`NEAR_BLACK_PERCENTILE`
+    exactly as ``numpy.percentile`` (linear) computes it."""
+
+    def __init__(self, n: int) -> None:
+        self.index = NEAR_BLACK_PERCENTILE / 100.0 * max(n - 1, 0)
+        self.keep = max(n - int(math.floor(self.index)), 1)  # the values at and above the lower rank
+        self.values = np.empty(0, np.float32)
+
+    def add(self, chunk: np.ndarray) -> None:
+        v = chunk.ravel()
+        if self.values.size >= self.keep:
+            v = v[v > self.values[0]]  # values[0]: the smallest kept (kept partitioned)
+        if v.size > self.keep:
+            v = np.partition(v, v.size - self.keep)[v.size - self.keep:]
+        v = np.concatenate([self.values, v])
+        if v.size > self.keep:
+            v = np.partition(v, v.size - self.keep)[v.size - self.keep:]
+        else:
+            v = np.partition(v, 0) if v.size else v
+        self.values = v
+
+    def percentile(self) -> float:
+        v = np.sort(self.values)
+        if not v.size:
+            return 0.0
+        frac = self.index - math.floor(self.index)
+        return float(v[0]) + frac * (float(v[min(1, v.size - 1)]) - float(v[0]))
+
+
+#: Real paths of the scenes :func:`warn_if_near_black` warned about in this process.
+_NEAR_BLACK_WARNED: set[str] = set()
+
+
+def near_black_percentile(cube: np.ndarray) -> float | None:
+    """The :data:`NEAR_BLACK_PERCENTILE` of ``cube``'s values when it is below
+    :data:`NEAR_BLACK_FRACTION` of its maximum (after normalisation: of 1), else None."""
+    peak = float(cube.max())
+    if not peak > 0:
+        return None
+    top = _TopValues(cube.size)
+    if np.count_nonzero(cube >= NEAR_BLACK_FRACTION * peak) >= top.keep:
+        return None  # the percentile's lower rank is at or above the threshold already
+    top.add(cube)
+    p = top.percentile()
+    return p if p < NEAR_BLACK_FRACTION * peak else None
+
+
+def warn_if_near_black(path: str | os.PathLike, percentile: float | None, peak: float) -> None:
+    """Warn once per scene when its :data:`NEAR_BLACK_PERCENTILE` (``percentile``, in the units of
+    ``peak``, its maximum) is below :data:`NEAR_BLACK_FRACTION` of the maximum."""
+    if percentile is None or not peak > 0 or percentile >= NEAR_BLACK_FRACTION * peak:
+        return
+    key = os.path.realpath(path)
+    if key in _NEAR_BLACK_WARNED:
+        return
+    _NEAR_BLACK_WARNED.add(key)
+    log.warning("%s: its %gth percentile %.4g is %.2g%% of its maximum %.4g: normalised by that maximum (a hot or "
+                "saturated pixel?) the scene is nearly black; clip or remove such pixels", path,
+                NEAR_BLACK_PERCENTILE, percentile, 100.0 * percentile / peak, peak)
 
 
 #: How to give a ``.npy`` cube's band grid (the file carries none), ending the refusal of a grid
@@ -399,7 +626,7 @@ class SceneDataset(Dataset):
         """Size and peak of scene ``i`` (reads the file once)."""
         info = self._infos[i]
         if info is None:
-            info = probe_hsicam(self.paths[i], self.bands)
+            info = probe_hsicam(self.paths[i], self.bands, allow_negative=self.allow_negative)
             self._windowable[i] = info is not None
             if info is None:
                 self.cube(i)  # loads the scene and records its info
@@ -416,9 +643,11 @@ class SceneDataset(Dataset):
                 ds = self._h5(i)["cube"]
                 if y < 0 or x < 0 or y + h > ds.shape[1] or x + w > ds.shape[2]:
                     raise InputError(f"{info.path}: window {h}x{w} at ({y}, {x}) is outside the cube")
-                with _reading(info.path, "HDF5"):  # corrupt pixel data shows only here (the probe reads the header)
-                    win = ds[:, y:y + h, x:x + w]
-                return np.asarray(win, dtype=np.float32) / np.float32(info.peak)
+                with _reading(info.path, "HDF5"):  # corrupt pixel data shows here (or in the probe's check)
+                    win = np.asarray(ds[:, y:y + h, x:x + w], dtype=np.float32)
+                if self.allow_negative:  # as a preloaded read clips them (the probe checked the rest)
+                    np.maximum(win, 0.0, out=win)
+                return win / np.float32(info.peak)
         return self.cube(i)[:, y:y + h, x:x + w]
 
     def _h5(self, i: int) -> Any:
@@ -454,6 +683,8 @@ class SceneDataset(Dataset):
                 raise InputError(f"{exc} ({note})") from None
             raise
         cube, peak = normalize_per_cube_max(cube, source=path)
+        p = near_black_percentile(cube)
+        warn_if_near_black(path, None if p is None else p * peak, peak)
         self._infos[i] = SceneInfo(path, cube.shape[1], cube.shape[2], peak)
         return np.ascontiguousarray(cube)
 
@@ -531,5 +762,6 @@ def augment(patch: np.ndarray, turns: int, flip: bool) -> np.ndarray:
     return out[:, :, ::-1] if flip else out
 
 
-__all__ = ["PatchDataset", "SCENE_SUFFIXES", "SceneDataset", "SceneInfo", "augment", "check_not_an_output", "list_scenes",
-           "scene_names", "scene_path", "split_scenes"]
+__all__ = ["PatchDataset", "SCENE_SUFFIXES", "SceneDataset", "SceneInfo", "augment", "check_not_an_output",
+           "check_windowed_pixels", "list_scenes", "probe_hsicam", "scene_names", "scene_path", "split_scenes",
+           "warn_if_near_black"]

@@ -27,7 +27,8 @@ format            layout on disk                                       bands
 ``cave``          folder of 31 16-bit PNGs ``<name>_ms_01.png`` …       400-700/10
                   ``_31.png`` (may be one level down)
 ``envi``          ``.hdr`` + raw data, bsq/bil/bip, ENVI data types,    ``wavelength``/``fwhm``
-                  byte order, header offset
+                  byte order, header offset; ``bbl`` bands dropped,
+                  ``data ignore value`` pixels set to 0 (:func:`read_envi`)
 ``npy``           ``.npy`` (C, H, W)                                    caller's ``bands`` (config:
                                                                         ``data.npy_bands``), else C
                                                                         bands evenly over 400-700
@@ -923,6 +924,12 @@ def read_envi(path: str | os.PathLike, *, allow_negative: bool = False, memory_b
 
     Supports interleave bsq/bil/bip, data types 1-5 and 12-15, byte order, header offset,
     ``wavelength`` (nm or µm via ``wavelength units``), ``fwhm`` and ``reflectance scale factor``.
+    ``bbl`` (bad band list): bands marked 0 are dropped with their wavelengths, so resampling
+    interpolates across them (fewer than 2 good bands left: refused). ``data ignore value``
+    (no-data, in the file's units): every value that holds it is set to 0 (a value, not its whole
+    pixel: with an ignore value of 0, common, a dark band of a real pixel must not blank the others;
+    every value no-data: refused). Both are said in one log line and recorded in the metadata
+    (``bad_bands_nm``; ``data_ignore_value``, ``ignored_pixels``).
     """
     p = _as_path(path)
     if _head(p, 64).lstrip().startswith(b"ENVI"):
@@ -982,9 +989,30 @@ def read_envi(path: str | os.PathLike, *, allow_negative: bool = False, memory_b
                              f"or the data were edited since (to keep them, remove the '{ENVI_CRC_KEY}' line from "
                              f"{hdr.name})")
     cube = {"bsq": raw, "bil": raw.transpose(1, 0, 2), "bip": raw.transpose(2, 0, 1)}[interleave]
+    good = _envi_good_bands(hdr, h, nbands)
+    if good is not None:
+        cube = cube[good]  # the bad bands' values are never looked at
+    ignore = _envi_ignore_value(hdr, h)
+    nodata = _envi_nodata(cube, ignore) if ignore is not None else None
     cube = cube.astype(np.float32)
+    notes: list[tuple[int, str]] = []
+    if nodata is not None:
+        n_values = int(np.count_nonzero(nodata))
+        n_nodata = int(np.count_nonzero(nodata.any(axis=0)))  # pixels with at least one no-data value
+        if n_values == nodata.size:
+            raise InputError(f"{data}: every value ({n_values}) is the data ignore value {ignore:g} of {hdr.name}: "
+                             "no data to read")
+        if n_values:
+            cube[nodata] = 0.0
+            notes.append((logging.INFO, f"{data}: {n_nodata} of {nodata[0].size} pixels hold the data ignore value "
+                                        f"{ignore:g} of {hdr.name} (no data; {n_values} values): those values set "
+                                        "to 0"))
     if dtype.kind == "f" and dtype.itemsize > 1 and not np.isfinite(cube).all():
         other = raw.view(raw.dtype.newbyteorder())  # the same bytes read the other way round
+        other = {"bsq": other, "bil": other.transpose(1, 0, 2), "bip": other.transpose(2, 0, 1)}[interleave]
+        other = other[good] if good is not None else other
+        if nodata is not None:
+            other = other[~nodata]
         if np.isfinite(other).all():  # the other byte order reads clean: the header's is wrong
             raise InputError(f"{data}: {int((~np.isfinite(cube)).sum())} NaN/Inf value(s) with byte order {order}, "
                              f"none with byte order {1 - order}: fix 'byte order' in {hdr.name}")
@@ -1013,8 +1041,15 @@ def read_envi(path: str | os.PathLike, *, allow_negative: bool = False, memory_b
             if fwhm.size != nbands:
                 raise InputError(f"{hdr}: {fwhm.size} FWHM values listed for {nbands} bands")
             fwhm = _um_to_nm(fwhm, scale)
+        if good is not None:
+            dropped = waves[~good]
+            waves = waves[good]
+            fwhm = fwhm[good] if fwhm is not None else None
+            notes.append((logging.INFO, f"{data}: dropped {dropped.size} band(s) that the bbl of {hdr.name} marks bad "
+                                        f"({', '.join(f'{w:g}' for w in np.sort(dropped))} nm); resampling "
+                                        "interpolates across them"))
         order_idx = np.argsort(waves)
-        if np.any(order_idx != np.arange(nbands)):  # store bands ascending
+        if np.any(order_idx != np.arange(waves.size)):  # store bands ascending
             cube = cube[order_idx]
             waves = waves[order_idx]
             fwhm = fwhm[order_idx] if fwhm is not None else None
@@ -1023,7 +1058,56 @@ def read_envi(path: str | os.PathLike, *, allow_negative: bool = False, memory_b
         raise InputError(f"{hdr}: ENVI header has no 'wavelength' list; cannot tell the bands")
     meta = {"format": "envi", "interleave": interleave, "data_type": dtype_code, "byte_order": order,
             "header": str(hdr), "data_file": str(data), "description": h.get("description", "").strip("{} ")}
-    return _finished_noting(note, _finish(data, cube, bands, meta, allow_negative))
+    if good is not None:
+        meta["bad_bands_nm"] = [float(w) for w in np.sort(dropped)]
+    if ignore is not None:
+        meta["data_ignore_value"] = ignore
+        meta["ignored_pixels"] = n_nodata
+    if note:
+        notes.insert(0, (logging.WARNING, note))
+    return _finished_noting(notes, _finish(data, cube, bands, meta, allow_negative))
+
+
+def _envi_good_bands(hdr: Path, h: dict[str, str], nbands: int) -> np.ndarray | None:
+    """The header's ``bbl`` (bad band list: 1 good, 0 bad) as a boolean mask of the good bands, or
+    None when it has none or marks every band good. InputError for a list of the wrong length or
+    other values, or when fewer than 2 good bands would remain."""
+    if "bbl" not in h:
+        return None
+    bbl = _envi_floats(hdr, h, "bbl")
+    if bbl.size != nbands:
+        raise InputError(f"{hdr}: ENVI header key 'bbl' lists {bbl.size} values for {nbands} bands")
+    if not np.all((bbl == 0) | (bbl == 1)):
+        raise InputError(f"{hdr}: ENVI header key 'bbl' must hold 1 (good band) or 0 (bad band) per band")
+    good = bbl == 1
+    if good.all():
+        return None
+    if np.count_nonzero(good) < 2:
+        raise InputError(f"{hdr}: the bad band list (bbl) leaves {np.count_nonzero(good)} of {nbands} bands good; "
+                         "at least 2 are needed")
+    return good
+
+
+def _envi_ignore_value(hdr: Path, h: dict[str, str]) -> float | None:
+    """The header's ``data ignore value`` (one number, in the file's units; may be NaN), or None."""
+    if "data ignore value" not in h:
+        return None
+    values = _envi_floats(hdr, h, "data ignore value")
+    if values.size != 1:
+        raise InputError(f"{hdr}: ENVI header key 'data ignore value' must be one number, got {values.size}")
+    return float(values[0])
+
+
+def _envi_nodata(cube: np.ndarray, value: float) -> np.ndarray:
+    """(C, H, W) mask of the values of ``cube`` (C, H, W, as stored) that are ``value``."""
+    dt = cube.dtype
+    if math.isnan(value):
+        return np.isnan(cube) if dt.kind == "f" else np.zeros(cube.shape, dtype=bool)
+    if dt.kind in "iu":  # an integer file holds only integers of its type's range
+        info = np.iinfo(dt)
+        if not value.is_integer() or not info.min <= value <= info.max:
+            return np.zeros(cube.shape, dtype=bool)
+    return cube == dt.type(value)
 
 
 def write_envi(path: str | os.PathLike, cube: np.ndarray, bands: Bands, *, interleave: str = "bsq",
