@@ -16,6 +16,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import torch
 
 from cli_helpers import HSICAM, assert_clean_error, cli_env, module_cache, run_cli, unprivileged_prefix
 from hsicam.cli import main
@@ -343,10 +344,10 @@ def write_cube_with_a_corrupt_chunk(path: Path, bands: Bands) -> None:
     path.write_bytes(bytes(raw))
 
 
-def test_a_data_error_in_a_dataloader_worker_is_the_workers_one_line(env, tmp_path):
-    """A file that fails only when a DataLoader worker process reads patches from it: torch re-raises
-    the error in the main process wrapped in the worker's traceback; the user sees the worker's own
-    line naming the file (``-v``: the whole text), exit code 2."""
+def test_a_corrupt_chunk_is_one_line_before_training_starts(env, tmp_path):
+    """A file whose header is sound but one of whose pixel chunks is damaged: read window by window
+    (``data.preload=false``), it is now checked whole when first probed (probe 31 #05), so the error
+    comes from the main process before any step, one line naming the file (``-v``: the traceback)."""
     data = tmp_path / "data"
     data.mkdir()
     write_cube_with_a_corrupt_chunk(data / "b.h5", Bands.uniform(420, 720, 50))
@@ -356,8 +357,32 @@ def test_a_data_error_in_a_dataloader_worker_is_the_workers_one_line(env, tmp_pa
     assert_clean_error(proc, str(data / "b.h5"), "corrupt")
     assert "DataLoader worker" not in proc.stderr
     verbose = run_cli("-v", *args, "--out", str(tmp_path / "run2"), env=env)
-    assert verbose.returncode == 2 and "Original Traceback" in verbose.stderr, verbose.stderr
+    assert verbose.returncode == 2 and "Traceback" in verbose.stderr, verbose.stderr
     assert verbose.stderr.strip().splitlines()[-1] == proc.stderr.strip().splitlines()[-1], verbose.stderr
+
+
+class _FailingInWorker(torch.utils.data.Dataset):
+    """Raises an InputError naming a file in whatever process reads item 0."""
+
+    def __len__(self) -> int:
+        return 2
+
+    def __getitem__(self, i: int):
+        from hsicam.errors import InputError
+
+        raise InputError("/data/b.h5: the file's pixel data are corrupt (HDF5 could not read them)")
+
+
+def test_an_error_in_a_dataloader_worker_is_the_workers_one_line():
+    """torch re-raises a worker's exception in the main process with its message replaced by the
+    worker's traceback; the user sees the worker's own line (the real DataLoader, one worker)."""
+    from hsicam.cli import error_line
+
+    loader = torch.utils.data.DataLoader(_FailingInWorker(), batch_size=1, num_workers=1)
+    with pytest.raises(Exception) as exc:
+        next(iter(loader))
+    assert "Original Traceback" in str(exc.value)  # torch's wrapping
+    assert error_line(exc.value) == "/data/b.h5: the file's pixel data are corrupt (HDF5 could not read them)"
 
 
 def usage_error(capsys, args: list[str]) -> str:

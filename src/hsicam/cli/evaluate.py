@@ -3,12 +3,16 @@
 from __future__ import annotations
 
 import argparse
+import logging
+import os
 import sys
 from pathlib import Path
 
 from hsicam.cli import add_config_args, add_run_arg, config_from_args
 from hsicam.cli.args import count_arg, device_arg
 from hsicam.errors import InputError
+
+log = logging.getLogger(__name__)
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -21,8 +25,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--method", default="doe-learned", choices=(*method_names(), *METHOD_ALIASES),
                    help="reconstruction method (default: the run's learned camera)")
     p.add_argument("--data", metavar="DIR",
-                   help="folder of supported cube files (default: the synthetic validation split); its sub-folders "
-                        "holding hsicam outputs are skipped; --out must not be it or hold it")
+                   help="folder of supported cube files (default: the validation split of the run's data: data.root, "
+                        "else the synthetic data); its sub-folders holding hsicam outputs are skipped; --out must not "
+                        "be it or hold it; with --run, each row says whether the run trained on the scene (split)")
     p.add_argument("--out", required=True, metavar="DIR")
     p.add_argument("--sigma-height-nm", type=float, default=None, help="test DOE height noise σ_p (nm)")
     p.add_argument("--sensor-sigma", type=float, default=None, help="test sensor noise σ_s")
@@ -91,6 +96,7 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
                                         evaluate_method, format_table, scored_region, summarize, write_results)
     from hsicam.engine.experiments import heldout_scenes, validation_scenes
     from hsicam.engine.methods import METHOD_ALIASES, build_method
+    from hsicam.engine.provenance import read_data_record, scene_roles, training_scenes_warning
     from hsicam.cli import prepare_output
     from hsicam.io import atomic_output
     from hsicam.runs.folder import check_is_run
@@ -131,8 +137,15 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     else:
         scenes, names = validation_scenes(cfg)
         rel = _relative_to_common_folder(scenes.paths)
-        data = "synthetic validation split"
+        data = ("synthetic validation split" if cfg.data.root is None else
+                f"validation split of {os.path.abspath(os.path.expanduser(cfg.data.root))}")
         heldout = heldout_scenes(cfg)
+    # which scenes the run trained on (its data.json; none for the synthetic data or an older run)
+    recorded = read_data_record(args.run) if args.run else None
+    roles = scene_roles(recorded, scenes.paths) if recorded is not None else None
+    warning = training_scenes_warning(roles, args.run) if roles else None
+    if warning:
+        log.warning(warning)
     noise = TestNoise(args.sigma_height_nm, args.sensor_sigma, tuple(range(args.seeds)))
     check_test_noise(method, noise, f"run {args.run}" if args.run else f"--config {args.config or 'default'}")
     # every scene is read (or its header) before any is scored: a bad one fails now, not after hours of scoring
@@ -151,6 +164,11 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
                                # the capture noise of the evaluation's config (the camera's own, or --set)
                                "camera_sensor": camera_sensor},
                         bands_nm=bands.centers_nm.tolist(), region=scored_region(method.camera), **saved)
+    if roles is not None:
+        for row, role in zip(summary["scenes"], roles):
+            row["split"] = role
+        if warning:
+            summary["warning"] = warning
     if args.run:  # which weights were scored (hsicam pretrained pack checks its --results by it)
         from hsicam.runs.checkpoint import file_sha256, root_weights_path
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import os
 import signal
@@ -33,6 +34,49 @@ def dataset_root(cfg: DataConfig, bands: Bands, progress: bool | None = None) ->
                              holdout_sources=getattr(cfg, "holdout_sources", DEFAULT_HOLDOUT))
 
 
+def absolute_data_paths(cfg):
+    """``cfg`` (a :class:`~hsicam.config.Config`) with ``data.root`` and ``data.cache_dir`` made absolute
+    (a leading ``~`` expanded first, then against the current folder), so that a run's config.yaml
+    names the same folder from wherever it is read; ``cfg`` itself when there is nothing to change
+    (both null: the synthetic default keeps its config and its hash)."""
+    d = cfg.data
+    root, cache = (None if v is None else os.path.abspath(os.path.expanduser(v)) for v in (d.root, d.cache_dir))
+    if (root, cache) == (d.root, d.cache_dir):
+        return cfg
+    return dataclasses.replace(cfg, data=dataclasses.replace(d, root=root, cache_dir=cache))
+
+
+def scene_files(scene: str | os.PathLike) -> list[Path]:
+    """The files a scene of :func:`~hsicam.data.datasets.list_scenes` is read from: the file; an
+    ENVI header and its data file; every file of a CAVE folder."""
+    p = Path(scene)
+    if p.is_dir():
+        return sorted(f for f in p.rglob("*") if f.is_file())
+    if p.suffix.lower() == ".hdr":
+        from hsicam.data.formats import _envi_data_for
+
+        data = _envi_data_for(p)
+        return [p] if data is None else [p, data]
+    return [p]
+
+
+def scene_stat(scene: str | os.PathLike) -> tuple[int, int]:
+    """(bytes, newest modification time in ns) of the files of ``scene`` (:func:`scene_files`)."""
+    stats = [f.stat() for f in scene_files(scene)]
+    return sum(s.st_size for s in stats), max((s.st_mtime_ns for s in stats), default=0)
+
+
+def patch_source(ds, k: int) -> Path | None:
+    """The scene file item ``k`` of a :class:`PatchDataset` (current epoch) is cut from; None for
+    another dataset. Mirrors the draw of :meth:`PatchDataset.__getitem__` (its first number)."""
+    if not isinstance(ds, PatchDataset) or not 0 <= k < len(ds):
+        return None
+    import numpy as np
+
+    rng = np.random.default_rng([ds.seed, 0 if ds.fixed else ds.epoch, int(k)])
+    return ds.scenes.paths[int(rng.integers(len(ds.scenes)))]
+
+
 def heldout_root(cfg: DataConfig, bands: Bands, n: int | None = None, progress: bool | None = None) -> Path | None:
     """The held-out-sources validation set that goes with :func:`dataset_root`, or None for real data.
 
@@ -57,10 +101,7 @@ def heldout_root(cfg: DataConfig, bands: Bands, n: int | None = None, progress: 
 def _should_preload(cfg: DataConfig, scenes: list[Path]) -> bool:
     if cfg.preload is not None:
         return cfg.preload
-    total = 0
-    for s in scenes:
-        total += sum(f.stat().st_size for f in s.rglob("*") if f.is_file()) if s.is_dir() else s.stat().st_size
-    return total <= cfg.preload_max_mb * 2**20
+    return sum(scene_stat(s)[0] for s in scenes) <= cfg.preload_max_mb * 2**20
 
 
 def npy_bands(cfg: DataConfig) -> Bands | None:
@@ -156,4 +197,5 @@ def make_loader(dataset: Dataset, batch_size: int, num_workers: int = 2, shuffle
                       pin_memory=False, worker_init_fn=leave_stop_signals_to_main if num_workers > 0 else None)
 
 
-__all__ = ["build_datasets", "dataset_root", "heldout_root", "make_loader", "no_validation_reason", "split_dataset"]
+__all__ = ["absolute_data_paths", "build_datasets", "dataset_root", "heldout_root", "make_loader",
+           "no_validation_reason", "patch_source", "scene_files", "scene_stat", "split_dataset"]

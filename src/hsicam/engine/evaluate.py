@@ -276,12 +276,15 @@ def _mean(values: list[float]) -> float:
 
 
 def format_table(summary: dict, keys: tuple[str, ...] = ("psnr", "ssim", "sam")) -> str:
-    """A Markdown table of the per-scene metrics and their mean."""
-    head = "| scene | " + " | ".join(keys) + " |"
-    sep = "|---" * (len(keys) + 1) + "|"
+    """A Markdown table of the per-scene metrics and their mean (and each row's ``split`` when the
+    rows have one)."""
+    split = any("split" in row for row in summary["scenes"])
+    head = "| scene | " + " | ".join(keys) + " |" + (" split |" if split else "")
+    sep = "|---" * (len(keys) + 1 + split) + "|"
     lines = [head, sep]
     for row in summary["scenes"] + [{"name": "**mean**", **summary["mean"]}]:
-        lines.append(f"| {row['name']} | " + " | ".join(_fmt(k, row[k]) for k in keys) + " |")
+        lines.append(f"| {row['name']} | " + " | ".join(_fmt(k, row[k]) for k in keys) + " |"
+                     + (f" {row.get('split', '')} |" if split else ""))
     return "\n".join(lines)
 
 
@@ -309,20 +312,23 @@ def check_room_for_cubes(out: Path, scenes, n_bands: int) -> None:
 
 
 def write_results(out: Path, summary: dict) -> None:
-    """results.json, results.csv and results.md (conventions stated in each)."""
+    """results.json, results.csv and results.md (conventions stated in each). Rows with a ``split``
+    (train / validation / unseen by the run's data record) get a ``split`` column."""
     write_json(out / "results.json", summary)
     keys = [k for k in METRIC_KEYS if k in summary["mean"]] + ["runtime_s"]
+    split = ["split"] if any("split" in row for row in summary["scenes"]) else []
     buf = io.StringIO()
     w = csv.writer(buf)
-    w.writerow(["name", "path", *keys, "sam_excluded_px"])
+    w.writerow(["name", "path", *keys, "sam_excluded_px", *split])
     for row in summary["scenes"]:
-        w.writerow([row["name"], row.get("path", ""), *[f"{row[k]:.6g}" for k in keys], row.get("sam_excluded_px", "")])
-    w.writerow(["mean", "", *[f"{summary['mean'][k]:.6g}" for k in keys], ""])
+        w.writerow([row["name"], row.get("path", ""), *[f"{row[k]:.6g}" for k in keys], row.get("sam_excluded_px", ""),
+                    *([row.get("split", "")] if split else [])])
+    w.writerow(["mean", "", *[f"{summary['mean'][k]:.6g}" for k in keys], "", *([""] if split else [])])
     with atomic_open(out / "results.csv", "w", encoding="utf-8", newline="") as fh:
         fh.write(buf.getvalue())
     conv = summary["conventions"]
     head = [f"# Results: {summary.get('method', '')}", ""]
-    for k in ("run", "data", "noise", "config_hash", "saved_cubes"):
+    for k in ("run", "data", "warning", "noise", "config_hash", "saved_cubes"):
         if k in summary:
             head.append(f"- {k}: {summary[k]}")
     head.append(f"- PSNR: {conv['psnr']}; SSIM: {conv['ssim']}; SAM: {conv['sam']}")

@@ -21,6 +21,7 @@ from pathlib import Path
 from typing import Any
 
 from hsicam.config import Config, load_config, training_differences
+from hsicam.data.pipeline import absolute_data_paths
 from hsicam.engine.evaluate import TestNoise, evaluate_method, summarize
 from hsicam.engine.linear_step import refresh_linear_step
 from hsicam.engine.methods import baseline_names, build_method
@@ -166,7 +167,8 @@ def check_same_training(run: Path, cfg: Config) -> None:
     """InputError naming the first differences when the run folder ``run`` exists and was started
     with another config than ``cfg``, up to how it runs (:func:`~hsicam.config.training_differences`)."""
     if (run / "config.yaml").is_file():
-        changed = training_differences(load_config(run / "config.yaml"), cfg)
+        # a data.root as given here against the run's, recorded absolute (a relative one as read from here)
+        changed = training_differences(absolute_data_paths(load_config(run / "config.yaml")), absolute_data_paths(cfg))
         if changed:
             raise InputError(f"{run} was trained with another config ({'; '.join(changed)}): "
                              "delete it to train it again, or choose another output folder")

@@ -33,8 +33,9 @@ from torch import nn
 from torch.utils.data import Sampler
 
 from hsicam.config import TrainConfig
-from hsicam.data.pipeline import make_loader
+from hsicam.data.pipeline import make_loader, patch_source
 from hsicam.devices import device_problem, dist_env
+from hsicam.engine.provenance import check_same_data, read_data_record, write_data_record
 from hsicam.engine.stopping import BUDGET_EXIT_CODE, StopRequests
 from hsicam.errors import InputError, TrainingInterrupted, TrainingStopped
 from hsicam.io import OutputLock, atomic_output, is_complete, output_description
@@ -156,7 +157,13 @@ class Task:
         raise NotImplementedError
 
     def write_run_files(self, run_dir: Path) -> None:
-        """Files written once into a new run folder (e.g. ``config.yaml``), before training."""
+        """Files written into a new run folder (e.g. ``config.yaml``) before training, and again on
+        resume (the config it goes on with)."""
+
+    def data_record(self) -> dict[str, Any] | None:
+        """What ``RUN/data.json`` records of the task's scenes (:mod:`hsicam.engine.provenance`);
+        None: nothing (e.g. the synthetic data)."""
+        return None
 
     def on_device(self, device: torch.device) -> None:
         """Called once the module is on ``device`` (memory format, ``torch.compile``, autocast)."""
@@ -293,6 +300,22 @@ def check_not_an_output(run_dir: Path, action: str = "resume") -> None:
                          "(choose another --out)")
 
 
+def not_finite_error(what: str, step: int, loss: float, batch: torch.Tensor,
+                     source: Callable[[int], Any] = lambda j: None) -> InputError:
+    """The error for a loss that is not finite at ``step``: the batch's data when it holds NaN/Inf
+    values (naming up to 3 scene files, ``source(row)``), else a divergence (the learning rates)."""
+    bad = ~torch.isfinite(batch.detach())
+    if not bool(bad.any()):
+        return InputError(f"{what} diverged at step {step} (loss {loss}); lower the learning rates")
+    rows = bad.reshape(bad.shape[0], -1).any(dim=1).nonzero().flatten().tolist() if bad.ndim > 1 else []
+    files = sorted({str(f) for f in (source(j) for j in rows) if f is not None})
+    more = f" and {len(files) - 3} more" if len(files) > 3 else ""
+    where = f" (patches of {', '.join(files[:3])}{more})" if files else ""
+    return InputError(f"{what} stopped at step {step}: the loss is {loss} because the training batch holds "
+                      f"{int(bad.sum())} NaN/Inf value(s){where}; the data, not the learning rate: fix or remove "
+                      "those scene files, then train again")
+
+
 def _agreed_stop(stop: StopRequests, next_step_s: float, distributed: bool, device: torch.device) -> tuple[str, int] | None:
     """(reason, exit code) when the training is to stop now (:class:`StopRequests`), else None; in a
     DDP group every rank gets the same answer (the strongest code any rank has: a signal over the budget)."""
@@ -324,6 +347,9 @@ def _fit(task: Task, opts: FitOptions, run_dir: Path, resume: bool, lock: RunLoc
             check_not_locked(run_dir)  # a new run's folder: locked in its temporary folder below
             new_run.acquire()  # until then its output lock: taken before check_run_dir removes a killed run's temporaries
         check_run_dir(run_dir, resume)  # before any work; nothing is created until the data are known good
+    record = task.data_record() if is_main else None  # the scenes, before any is read
+    if is_main and resume:  # a run goes on with the scenes and the split it started with
+        check_same_data(run_dir, read_data_record(run_dir), record)
     if distributed:  # generate/cache the dataset once, on rank 0, before the others read it
         if is_main:
             task.prepare_data()
@@ -376,6 +402,8 @@ def _fit(task: Task, opts: FitOptions, run_dir: Path, resume: bool, lock: RunLoc
         with atomic_output(run_dir, marker=False) as tmp:
             lock.acquire(tmp)  # held across the rename: the run is never in place unlocked
             task.write_run_files(tmp)
+            if record is not None:
+                write_data_record(tmp, record)
         lock.moved()
         new_run.release()  # in place: the run's own lock keeps it
     state.total_steps = total_steps  # saved with each checkpoint: what a half-trained run is measured against
@@ -470,7 +498,9 @@ def _fit(task: Task, opts: FitOptions, run_dir: Path, resume: bool, lock: RunLoc
             optimizer.step()
             loss_v = loss.item()
             if not math.isfinite(loss_v):
-                raise InputError(f"{task.what} diverged at step {step} (loss {loss_v}); lower the learning rates")
+                first = state.step_in_epoch * t.batch_size + rank * (t.batch_size // world)  # this rank's first item
+                raise not_finite_error(task.what, step, loss_v, batch,
+                                       lambda j: patch_source(train_ds, first + j))
             state.loss_sum, state.loss_n = state.loss_sum + loss_v, state.loss_n + 1
             state.global_step, state.step_in_epoch = step + 1, state.step_in_epoch + 1
             steps_done += 1

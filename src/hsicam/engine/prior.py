@@ -23,6 +23,7 @@ import torch
 import yaml
 
 from hsicam.config import ChoiConfig, Config, from_dict, load_config, training_differences
+from hsicam.data.pipeline import absolute_data_paths
 from hsicam.engine.loop import FitOptions, fit
 from hsicam.engine.tasks import PriorTask
 from hsicam.errors import HsicamError, InputError
@@ -178,7 +179,8 @@ def prior_differences(run: str | Path, cfg: Config, settings: ChoiConfig, limit:
     trained otherwise than ``settings`` on the bands and data of ``cfg``. Empty: the same prior."""
     run = Path(run)
     have_cfg, have = load_config(run / "config.yaml"), load_prior_settings(run)
-    out = [d for d in training_differences(have_cfg, cfg, limit=10**6) if d.split(".")[0] in ("bands", "data")]
+    out = [d for d in training_differences(absolute_data_paths(have_cfg), absolute_data_paths(cfg), limit=10**6)
+           if d.split(".")[0] in ("bands", "data")]
     out += [f"baselines.choi.{k}: {getattr(have, k)!r} → {getattr(settings, k)!r}"
             for k in PRIOR_TRAINING_KEYS if getattr(have, k) != getattr(settings, k)]
     return sorted(out)[:limit]

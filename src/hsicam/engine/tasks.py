@@ -14,8 +14,9 @@ import torch.nn.functional as F
 import yaml
 
 from hsicam.config import ChoiConfig, Config, TrainConfig, dump_yaml
-from hsicam.data.pipeline import build_datasets, dataset_root
+from hsicam.data.pipeline import absolute_data_paths, build_datasets, dataset_root
 from hsicam.engine.loop import Task, draw_uniform, step_generator
+from hsicam.engine.provenance import data_record
 from hsicam.errors import ConfigError
 from hsicam.io import atomic_open, write_json
 from hsicam.metrics import psnr_per_band, sam_degrees, ssim
@@ -138,7 +139,7 @@ class SystemTask(Task):
     """
 
     def __init__(self, cfg: Config, model: CameraSystem, extra_freeze: tuple[str, ...] = ()) -> None:
-        self.cfg, self.model = cfg, model
+        self.cfg, self.model = absolute_data_paths(cfg), model  # config.yaml names the data from anywhere
         self.bands = model.bands
         self.eval_noise = model.camera.noise_levels()
         self.freeze = set(cfg.train.freeze) | set(extra_freeze)
@@ -200,6 +201,9 @@ class SystemTask(Task):
     def prepare_data(self) -> None:
         dataset_root(self.cfg.data, self.bands)
 
+    def data_record(self) -> dict[str, Any] | None:
+        return data_record(self.cfg.data, self.bands)
+
     def datasets(self):
         return build_datasets(self.cfg.data, self.bands, self.model.camera.margin)
 
@@ -236,7 +240,7 @@ class PriorTask(Task):
     batch_size_key = "baselines.choi.batch_size"
 
     def __init__(self, cfg: Config, settings: ChoiConfig) -> None:
-        self.cfg, self.settings = cfg, settings
+        self.cfg, self.settings = absolute_data_paths(cfg), settings  # config.yaml names the data from anywhere
         self.bands = cfg.bands.to_bands()
         self.model = SpectralAutoencoder(len(self.bands), settings.features, settings.latent)
 
@@ -262,6 +266,9 @@ class PriorTask(Task):
 
     def prepare_data(self) -> None:
         dataset_root(self.cfg.data, self.bands)
+
+    def data_record(self) -> dict[str, Any] | None:
+        return data_record(self.cfg.data, self.bands)
 
     def datasets(self):
         return build_datasets(self.cfg.data, self.bands, 0)

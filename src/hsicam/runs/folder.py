@@ -8,6 +8,7 @@ Layout (written by :func:`hsicam.engine.loop.fit` and its tasks)::
     RUN/checkpoints/step-N/    model.safetensors, optimizer.safetensors, state.json
     RUN/checkpoints.json       the manifest naming last and best (see :mod:`hsicam.runs.checkpoint`)
     RUN/measured_psf.safetensors  (fine-tuned runs) the measured PSFs the run images with
+    RUN/data.json              (runs on a data.root folder) the scenes, their sizes and times, the split
 
 A run is rebuilt from its config through the registries (camera kind, network kind), so
 :func:`load_run` works for every camera and network. ``load_run("pretrained:NAME")`` loads a
@@ -325,10 +326,14 @@ def remove_run_temporaries(run_dir: Path) -> list[Path]:
     return removed
 
 
+#: The record of the scenes a run on a ``data.root`` folder trained and validated on
+#: (:mod:`hsicam.engine.provenance`).
+DATA_RECORD = "data.json"
+
 #: What a run folder may hold (anything else means it is not only a run folder: never wiped).
 RUN_ENTRIES = frozenset({"config.yaml", "metrics.jsonl", "checkpoints", "tensorboard", MANIFEST, *LEGACY_POINTERS,
                          "model.safetensors", "prior.safetensors", "summary.json", "prior.yaml", MEASURED_PSF_FILE, LINEAR_STEP_FILE,
-                         "measured_psf.json", LOCK_FILE})
+                         "measured_psf.json", DATA_RECORD, LOCK_FILE})
 
 
 def finished_checkpoint_step(run_dir: Path) -> int | None:

@@ -1,0 +1,159 @@
+"""Which scenes a run on a ``data.root`` folder trained and validated on: ``RUN/data.json``.
+
+Written once, atomically, into a new run (:func:`hsicam.engine.loop.fit`), before training::
+
+    {"root": "/abs/data/root",
+     "split": {"val_fraction": 0.125, "split_seed": 0, "val_pool": null},
+     "scenes": [{"path": "day1/a.h5", "size": 123456, "mtime_ns": 1700000000000000000}, ...],
+     "train": ["day1/a.h5", ...], "validation": ["day2/b.mat", ...]}
+
+Scene paths are relative to ``root`` (``/`` separators); size and modification time cover every
+file a scene is read from (:func:`hsicam.data.pipeline.scene_stat`). A resume compares the folder
+with it and refuses another split (:func:`check_same_data`); ``evaluate --run`` tells training,
+validation and unseen scenes apart by it (:func:`scene_roles`). Runs on the synthetic data (its
+cache is deterministic) and runs from before this record have none: nothing is checked.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+from pathlib import Path
+from typing import Any, Sequence
+
+from hsicam.config import DataConfig
+from hsicam.data.datasets import scene_path
+from hsicam.data.pipeline import dataset_root, scene_stat, split_dataset
+from hsicam.errors import InputError
+from hsicam.io import write_json
+from hsicam.runs.folder import DATA_RECORD
+from hsicam.spectral import Bands
+
+log = logging.getLogger(__name__)
+
+#: How many scene names a message shows of each kind.
+SHOWN = 3
+
+
+def data_record(cfg: DataConfig, bands: Bands) -> dict[str, Any] | None:
+    """The record of the scenes ``cfg`` trains and validates on now; None for the synthetic data."""
+    if cfg.root is None:
+        return None
+    root = Path(os.path.abspath(dataset_root(cfg, bands)))
+    train, val = split_dataset(cfg, bands)
+    rel = lambda p: scene_path(p, root)  # noqa: E731
+    scenes = []
+    for p in sorted([*train, *val]):
+        size, mtime_ns = scene_stat(p)
+        scenes.append({"path": rel(p), "size": size, "mtime_ns": mtime_ns})
+    return {"root": str(root), "split": {"val_fraction": cfg.val_fraction, "split_seed": cfg.split_seed,
+                                         "val_pool": cfg.val_pool},
+            "scenes": scenes, "train": [rel(p) for p in train], "validation": [rel(p) for p in val]}
+
+
+def write_data_record(run_dir: str | Path, record: dict[str, Any]) -> None:
+    """``RUN/data.json``, atomically."""
+    write_json(Path(run_dir) / DATA_RECORD, record)
+
+
+def read_data_record(run_dir: str | Path) -> dict[str, Any] | None:
+    """The run's data record; None when it has none (synthetic data, or a run from before it);
+    :class:`InputError` when it cannot be read."""
+    path = Path(run_dir) / DATA_RECORD
+    if not path.is_file():
+        return None
+    try:
+        record = json.loads(path.read_text(encoding="utf-8"))
+        if not (isinstance(record, dict) and isinstance(record.get("root"), str)
+                and all(isinstance(record.get(k), list) for k in ("scenes", "train", "validation"))):
+            raise ValueError("not a data record")
+    except (OSError, UnicodeDecodeError, ValueError) as exc:
+        raise InputError(f"{path}: unreadable ({getattr(exc, 'msg', None) or exc}); restore it from a copy of the "
+                         "run, or delete it to go on without checking the data") from None
+    return record
+
+
+def data_changes(recorded: dict[str, Any], current: dict[str, Any]) -> dict[str, list[str]]:
+    """Scenes ``added``, ``removed``, ``changed`` (size or modification time) and ``moved`` (between
+    training and validation) from ``recorded`` to ``current``; empty lists: the same data and split."""
+    have = {e["path"]: e for e in recorded["scenes"]}
+    now = {e["path"]: e for e in current["scenes"]}
+    role = lambda r, p: "train" if p in r["train"] else "validation"  # noqa: E731
+    common = sorted(have.keys() & now.keys())
+    return {"added": sorted(now.keys() - have.keys()), "removed": sorted(have.keys() - now.keys()),
+            "changed": [p for p in common if (have[p].get("size"), have[p].get("mtime_ns"))
+                        != (now[p]["size"], now[p]["mtime_ns"])],
+            "moved": [p for p in common if role(recorded, p) != role(current, p)]}
+
+
+def shown(names: Sequence[str], n: int = SHOWN) -> str:
+    """Up to ``n`` names, then how many more."""
+    more = len(names) - n
+    return ", ".join(names[:n]) + (f" and {more} more" if more > 0 else "")
+
+
+def check_same_data(run_dir: str | Path, recorded: dict[str, Any] | None, current: dict[str, Any] | None) -> None:
+    """Before a resume: :class:`InputError` in one line when the scenes are not those the run
+    started with (``recorded``, its data.json; None: nothing to check): added, removed, or moved
+    between training and validation, naming up to :data:`SHOWN` of each kind and the remedy. The
+    same scenes with another size or time (edited, or a folder copied without its file times) keep
+    the split: a warning. A folder moved whole goes on."""
+    if recorded is None:
+        return
+    if current is None:
+        raise InputError(f"{run_dir}: trained on the scenes of {recorded['root']} (its {DATA_RECORD}), but data.root "
+                         "is now null (the synthetic data); resume with the run's own data.root, or start a new run "
+                         "with another --out")
+    changes = data_changes(recorded, current)
+    words = {"added": "added", "removed": "removed", "moved": "moved between training and validation"}
+    parts = [f"{words[k]}: {shown(v)}" for k, v in changes.items() if v and k in words]
+    if changes["changed"] and not parts:  # the same scenes and split: a copy without its file times, or edits
+        log.warning("data: %d scene(s) of %s changed size or time since the run started (%s): the resume trains "
+                    "and validates on them as they are now", len(changes["changed"]), current["root"],
+                    shown(changes["changed"]))
+    if parts:
+        raise InputError(f"{run_dir}: the scenes of {current['root']} are not those the run started with (its "
+                         f"{DATA_RECORD}; {'; '.join(parts)}): a resume would train and validate on another split; "
+                         "restore the folder as it was, or start a new run with another --out")
+    if current["root"] != recorded["root"]:
+        log.info("data: the run's scenes, now in %s (they were in %s)", current["root"], recorded["root"])
+
+
+def scene_roles(recorded: dict[str, Any], paths: Sequence[str | os.PathLike]) -> list[str]:
+    """``"train"``, ``"validation"`` or ``"unseen"`` for each scene of ``paths`` by the run's record:
+    a scene under the recorded root by its relative path; one elsewhere (a copy of the folder) when
+    its path ends with a recorded one and its size and modification time are the recorded ones."""
+    role = {**{p: "validation" for p in recorded["validation"]}, **{p: "train" for p in recorded["train"]}}
+    stats = {e["path"]: (e.get("size"), e.get("mtime_ns")) for e in recorded["scenes"]}
+    roots = {Path(os.path.abspath(recorded["root"])), Path(os.path.realpath(recorded["root"]))}
+    by_name: dict[str, list[str]] = {}
+    for r in role:
+        by_name.setdefault(r.rsplit("/", 1)[-1], []).append(r)
+    out = []
+    for p in paths:
+        found = None
+        for a in {Path(os.path.abspath(p)), Path(os.path.realpath(p))}:
+            for root in roots:
+                if a == root or root in a.parents:
+                    found = found or role.get(scene_path(a, root))
+        if found is None:
+            posix = Path(os.path.abspath(p)).as_posix()
+            matches = [r for r in by_name.get(Path(p).name, []) if posix.endswith("/" + r)]
+            if matches:
+                st = scene_stat(p)
+                found = next((role[r] for r in matches if stats.get(r) == st), None)
+        out.append(found or "unseen")
+    return out
+
+
+def training_scenes_warning(roles: Sequence[str], run: str | Path) -> str | None:
+    """The one warning line when some scored scenes were training scenes of ``run``, else None."""
+    n = sum(r == "train" for r in roles)
+    if not n:
+        return None
+    return f"{n} of {len(roles)} scenes were training scenes of {run}: their scores are not a validation"
+
+
+__all__ = ["check_same_data", "data_changes", "data_record", "read_data_record", "scene_roles",
+           "training_scenes_warning", "write_data_record"]

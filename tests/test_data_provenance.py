@@ -1,0 +1,245 @@
+"""A run on the user's own folder (``data.root``) can be traced to its data (probe 31, findings 01,
+02, 05, 06): config.yaml names the folder absolutely, RUN/data.json records the scenes and the
+split, a resume refuses a folder that changed, evaluate labels what it scored and flags training
+scenes, and a loss made NaN by the data says so."""
+
+from __future__ import annotations
+
+import contextlib
+import csv
+import json
+import logging
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+import yaml
+
+from cli_helpers import assert_clean_error, assert_ok, run_cli_in_process as run_cli
+from conftest import TINY_CAMERA_OVERRIDES
+from hsicam.config import dump_yaml, load_config
+from hsicam.data.formats import write_cube_h5, write_envi
+from hsicam.data.pipeline import absolute_data_paths, split_dataset
+from hsicam.engine.evaluate import config_hash
+from hsicam.engine.provenance import data_record, scene_roles
+from hsicam.errors import InputError
+from hsicam.spectral import Bands
+
+BANDS = Bands.uniform(500, 600, 50)  # the tiny camera's (TINY_CAMERA_OVERRIDES)
+SETS = [x for o in (*TINY_CAMERA_OVERRIDES, "train.epochs=1") for x in ("--set", o)]
+
+
+def _cube(seed: int, size: int = 40) -> np.ndarray:
+    return np.random.default_rng(seed).uniform(0.1, 1.0, (3, size, size)).astype(np.float32)
+
+
+def write_scenes(folder: Path, seed: int = 0) -> Path:
+    """6 scenes in real formats: hsicam .h5 files, an ENVI pair, one in a sub-folder."""
+    for i in range(4):
+        write_cube_h5(folder / f"s{i}.h5", _cube(seed + i), BANDS)
+    write_envi(folder / "e4.hdr", _cube(seed + 4), BANDS)
+    write_cube_h5(folder / "day1" / "s5.h5", _cube(seed + 5), BANDS)
+    return folder
+
+
+def _config(run: Path):
+    return yaml.safe_load((run / "config.yaml").read_text())
+
+
+@pytest.fixture(scope="module")
+def proj(tmp_path_factory, cache_env):
+    """projA/data (6 scenes) and ../run trained from projA with the relative data.root=data."""
+    base = tmp_path_factory.mktemp("prov")
+    write_scenes(base / "projA" / "data")
+    with contextlib.chdir(base / "projA"):
+        assert_ok(run_cli("train", "--config", "tiny", *SETS, "--set", "data.root=data",
+                          "--set", "data.cache_dir=cache", "--out", "../run"))
+    return base
+
+
+def _copy(proj: Path, tmp_path: Path) -> tuple[Path, Path]:
+    """A copy of the run and of its data folder (times kept), the run pointed at the copy."""
+    data, run = tmp_path / "data", tmp_path / "run"
+    shutil.copytree(proj / "projA" / "data", data)
+    shutil.copytree(proj / "run", run)
+    return run, data
+
+
+def _resume(run: Path, data: Path, *extra: str):
+    return run_cli("train", "--out", str(run), "--resume", "--set", f"data.root={data}", "--set", "train.epochs=2",
+                   *extra)
+
+
+def test_a_new_run_stores_absolute_paths_and_its_scenes(proj):
+    data = proj / "projA" / "data"
+    cfg = _config(proj / "run")["data"]
+    assert cfg["root"] == str(data) and cfg["cache_dir"] == str(proj / "projA" / "cache")
+    rec = json.loads((proj / "run" / "data.json").read_text())
+    assert rec["root"] == str(data)
+    assert [e["path"] for e in rec["scenes"]] == ["day1/s5.h5", "e4.hdr", "s0.h5", "s1.h5", "s2.h5", "s3.h5"]
+    envi = next(e for e in rec["scenes"] if e["path"] == "e4.hdr")  # the header and its data file
+    assert envi["size"] == (data / "e4.hdr").stat().st_size + (data / "e4.img").stat().st_size
+    s0 = next(e for e in rec["scenes"] if e["path"] == "s0.h5")
+    assert (s0["size"], s0["mtime_ns"]) == ((data / "s0.h5").stat().st_size, (data / "s0.h5").stat().st_mtime_ns)
+    train, val = split_dataset(load_config("tiny", [*TINY_CAMERA_OVERRIDES, f"data.root={data}"]).data, BANDS)
+    assert rec["train"] == [p.relative_to(data).as_posix() for p in train]
+    assert rec["validation"] == [p.relative_to(data).as_posix() for p in val] and len(val) == 2
+
+
+def test_synthetic_default_keeps_its_config_and_hash(tmp_path, monkeypatch):
+    """data.root and data.cache_dir null (the demo): nothing changes, nothing is recorded; `~` expands."""
+    cfg = load_config("quick")
+    assert absolute_data_paths(cfg) is cfg
+    assert config_hash(dump_yaml(absolute_data_paths(cfg))) == config_hash(dump_yaml(cfg))
+    assert data_record(cfg.data, BANDS) is None
+    monkeypatch.setenv("HOME", str(tmp_path))
+    monkeypatch.chdir(tmp_path)
+    got = absolute_data_paths(load_config("tiny", ["data.root=~/scenes", "data.cache_dir=c"])).data
+    assert (got.root, got.cache_dir) == (str(tmp_path / "scenes"), str(tmp_path / "c"))
+
+
+def test_evaluate_from_another_folder_scores_the_runs_own_validation_scenes(proj, tmp_path, monkeypatch):
+    """02 + 06: from projB (its own data/), `evaluate --run` scores projA's validation split and says so."""
+    write_scenes(tmp_path / "projB" / "data", seed=50)
+    monkeypatch.chdir(tmp_path / "projB")
+    assert_ok(run_cli("evaluate", "--run", str(proj / "run"), "--out", "ev"))
+    res = json.loads(Path("ev/results.json").read_text())
+    rec = json.loads((proj / "run" / "data.json").read_text())
+    assert res["data"] == f"validation split of {proj / 'projA' / 'data'}"
+    assert sorted(Path(r["path"]).name for r in res["scenes"]) == sorted(Path(p).name for p in rec["validation"])
+    assert {r["split"] for r in res["scenes"]} == {"validation"} and "warning" not in res
+
+
+def test_evaluate_on_the_training_folder_flags_training_scenes(proj, tmp_path, caplog):
+    """06: --data at the run's folder: each row's split, one warning line, in results.csv/md too; a
+    copy of the folder elsewhere (times kept) is recognised; another folder's scenes are unseen."""
+    run, data = proj / "run", proj / "projA" / "data"
+    with caplog.at_level(logging.WARNING, logger="hsicam"):
+        assert_ok(run_cli("evaluate", "--run", str(run), "--data", str(data), "--out", str(tmp_path / "ev")))
+    res = json.loads((tmp_path / "ev" / "results.json").read_text())
+    rec = json.loads((run / "data.json").read_text())
+    assert {r["path"]: r["split"] for r in res["scenes"]} == {
+        **{p: "train" for p in rec["train"]}, **{p: "validation" for p in rec["validation"]}}
+    line = f"4 of 6 scenes were training scenes of {run}: their scores are not a validation"
+    assert res["warning"] == line and line in (tmp_path / "ev" / "results.md").read_text()
+    assert [r.getMessage() for r in caplog.records if "training scenes" in r.getMessage()] == [line]
+    rows = list(csv.DictReader((tmp_path / "ev" / "results.csv").open()))
+    in_csv = {r["path"]: r["split"] for r in rows if r["name"] != "mean"}
+    assert in_csv == {r["path"]: r["split"] for r in res["scenes"]}
+    copy = tmp_path / "copy"
+    shutil.copytree(data / "day1", copy / "day1")  # part of the folder, copied elsewhere
+    shutil.copy2(data / "s0.h5", copy / "s0.h5")
+    write_cube_h5(copy / "new.h5", _cube(99), BANDS)
+    roles = scene_roles(rec, [copy / "day1" / "s5.h5", copy / "s0.h5", copy / "new.h5"])
+    assert roles[2] == "unseen" and roles[:2] == [
+        "train" if p in rec["train"] else "validation" for p in ("day1/s5.h5", "s0.h5")]
+    other = write_scenes(tmp_path / "other", seed=70)
+    assert_ok(run_cli("evaluate", "--run", str(run), "--data", str(other), "--out", str(tmp_path / "ev2")))
+    res2 = json.loads((tmp_path / "ev2" / "results.json").read_text())
+    assert {r["split"] for r in res2["scenes"]} == {"unseen"} and "warning" not in res2
+
+
+@pytest.mark.parametrize("change, named", [
+    ("add", "added: a_new.h5"), ("remove", "removed: s1.h5"), ("split", "moved between training and validation")])
+def test_resume_refuses_a_changed_folder(proj, tmp_path, change, named):
+    """01: scenes added or removed, or another split: one line, the run untouched."""
+    run, data = _copy(proj, tmp_path)
+    extra = ()
+    if change == "add":
+        write_cube_h5(data / "a_new.h5", _cube(40), BANDS)
+    elif change == "remove":
+        (data / "s1.h5").unlink()
+    else:
+        extra = ("--set", "data.val_fraction=0.5")
+    def files():
+        return {p.name: p.read_bytes() for p in run.iterdir() if p.is_file() and not p.name.startswith(".")}
+
+    before = files()
+    res = _resume(run, data, *extra)
+    assert_clean_error(res, f"{run}: the scenes of {data} are not those the run started with", named,
+                       "restore the folder as it was, or start a new run with another --out")
+    assert files() == before
+
+
+def test_resume_warns_about_an_edited_scene_and_keeps_the_split(proj, tmp_path, caplog):
+    """The same scenes, one rewritten (or the folder copied without its file times): the split does
+    not move, so the resume goes on, with a warning naming the scene."""
+    import logging
+
+    run, data = _copy(proj, tmp_path)
+    write_envi(data / "e4.hdr", _cube(41, size=44), BANDS)
+    with caplog.at_level(logging.WARNING, logger="hsicam.engine.provenance"):
+        assert_ok(_resume(run, data))
+    said = [r.getMessage() for r in caplog.records if "changed size or time" in r.getMessage()]
+    assert len(said) == 1 and "e4.hdr" in said[0] and "as they are now" in said[0], caplog.text
+
+
+def test_resume_goes_on_with_the_same_scenes_and_older_runs_as_before(proj, tmp_path):
+    """The folder moved whole (times kept) resumes; a run without data.json (older) resumes as before."""
+    run, data = _copy(proj, tmp_path)
+    assert_ok(_resume(run, data))
+    assert _config(run)["data"]["root"] == str(data) and _config(run)["train"]["epochs"] == 2
+    old, _ = _copy(proj, tmp_path / "old")
+    (old / "data.json").unlink()
+    write_cube_h5(data / "a_new.h5", _cube(40), BANDS)
+    assert_ok(_resume(old, data))
+    assert not (old / "data.json").exists()
+
+
+def test_finetune_resume_refuses_a_changed_folder(proj, tmp_path):
+    from hsicam.io import write_json, write_npy
+    from hsicam.runs.folder import load_run
+
+    run, data = _copy(proj, tmp_path)
+    text = (run / "config.yaml").read_text()
+    (run / "config.yaml").write_text(text.replace(f"root: {proj / 'projA' / 'data'}", f"root: {data}"))
+    _, base = load_run(run)
+    with torch.no_grad():
+        psf = base.camera.psf().double().numpy()
+    k = psf.shape[-1]
+    d = tmp_path / "psf"
+    d.mkdir()
+    write_npy(d / "psf.npy", psf.astype(np.float32))
+    write_json(d / "psf.json", {"pixel_pitch_um": 10.0, "bands_nm": BANDS.centers_nm.tolist(), "centre": "axis",
+                                "axis_px": [k // 2, k // 2], "normalize": "none"})
+    ft = tmp_path / "ft"
+    args = ("--run", str(run), "--psf-dir", str(d), "--out", str(ft))
+    assert_ok(run_cli("finetune", *args, "--epochs", "1"))
+    assert json.loads((ft / "data.json").read_text())["root"] == str(data)
+    (data / "s2.h5").unlink()
+    assert_clean_error(run_cli("finetune", *args, "--resume", "--epochs", "2"), "removed: s2.h5")
+
+
+def test_a_nan_batch_names_the_data_not_the_learning_rate(proj, tmp_path):
+    """05: a loss made NaN by NaN values in the batch (a reader that let them through) names the
+    scene files of those patches; a finite batch keeps the divergence message."""
+    from hsicam.data.datasets import PatchDataset
+    from hsicam.engine.loop import FitOptions, fit, not_finite_error
+    from hsicam.engine.tasks import SystemTask
+    from hsicam.models import CameraSystem
+
+    class LeakyPatches(PatchDataset):  # as if s3.h5 had been read with its NaN pixels
+        def __getitem__(self, k):
+            patch = super().__getitem__(k)
+            return patch.fill_(float("nan")) if "s3" in str(self.scenes.paths[self._scene(k)]) else patch
+
+        def _scene(self, k):
+            return int(np.random.default_rng([self.seed, self.epoch, int(k)]).integers(len(self.scenes)))
+
+    class Task(SystemTask):
+        def datasets(self):
+            train, val = super().datasets()
+            train.__class__ = LeakyPatches
+            return train, val
+
+    cfg = load_config("tiny", [*TINY_CAMERA_OVERRIDES, f"data.root={proj / 'projA' / 'data'}",
+                               "data.val_fraction=0", "data.patches_per_epoch=32"])
+    with pytest.raises(InputError) as err:
+        fit(Task(cfg, CameraSystem.from_config(cfg)), FitOptions(cfg.train, 0, progress=False), tmp_path / "run")
+    msg = str(err.value)
+    assert "NaN/Inf value(s) (patches of " in msg and "s3.h5" in msg and "not the learning rate" in msg, msg
+    assert "s0.h5" not in msg and "lower the learning rates" not in msg
+    assert str(not_finite_error("training", 7, float("nan"), torch.ones(2, 3, 4, 4))) == \
+        "training diverged at step 7 (loss nan); lower the learning rates"
