@@ -618,3 +618,21 @@ def test_band_samples_average_sub_wavelengths_over_the_fwhm(tiny_config):
             expected = expected + wi * single.psf().numpy()
     np.testing.assert_allclose(banded.psf.numpy(), expected, rtol=1e-6, atol=1e-12)  # buffers built in float32
     np.testing.assert_allclose(banded.energy.numpy(), expected.sum(axis=(1, 2)), rtol=1e-6)
+
+
+def test_an_explicit_supersample_below_nyquist_is_warned_about_once(caplog):
+    """The paper optics need s = 9 sub-pixels per pixel (λ_min·z/(4a) = 4.4 µm under 6 µm pixels: 4·5 mm·6 µm /
+    (420 nm·35 mm) = 8.2 → odd 9); s = 1 (point values) aliases: said once, in one line; s = 9 and the
+    exact integral (None) say nothing (probe 29 F7)."""
+    import logging
+
+    from hsicam.optics import sampling
+
+    lam = np.arange(420.0, 721.0, 10.0) * 1e-9
+    sampling._BELOW_NYQUIST_WARNED.clear()
+    with caplog.at_level(logging.WARNING, logger="hsicam.optics.sampling"):
+        for s in (None, 9, 1, 1):
+            smp = sampling.plan_psf_sampling(lam, 35e-3, 6e-6, 30e-6, 333, supersample=s, aperture_radius_m=5e-3)
+            assert smp.nyquist_supersample == 9
+    said = [r.getMessage() for r in caplog.records]
+    assert len(said) == 1 and said[0].startswith("camera.psf.supersample=1 is below these optics' Nyquist rate (9"), said

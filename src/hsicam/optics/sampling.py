@@ -23,6 +23,7 @@ values at pixel centres), for comparisons.
 
 from __future__ import annotations
 
+import logging
 import math
 from dataclasses import dataclass, replace
 
@@ -30,6 +31,11 @@ import numpy as np
 
 from hsicam.errors import ConfigError
 from hsicam.memory import MEMORY_BUDGET_ENV, format_bytes, memory_budget_bytes
+
+log = logging.getLogger(__name__)
+
+#: (supersample, Nyquist supersample) pairs already warned about in this process.
+_BELOW_NYQUIST_WARNED: set[tuple[int, int]] = set()
 
 #: Wavelengths per FFT batch of the PSF stack (:func:`hsicam.optics.psf.psf_stack`): a few at once
 #: amortise the per-call overhead (measured: 4 per batch takes the 31-band paper stack from 0.40 to
@@ -128,6 +134,12 @@ def plan_psf_sampling(
         raise ConfigError(f"camera.psf.supersample must be a positive odd number, got {supersample}")
     a = n_cells * cell_m / 2 if aperture_radius_m is None else aperture_radius_m
     s_nyq = odd_ceil(4.0 * a * pixel_m / (lam.min() * sensor_distance_m))
+    if supersample is not None and int(supersample) < s_nyq and (int(supersample), s_nyq) not in _BELOW_NYQUIST_WARNED:
+        _BELOW_NYQUIST_WARNED.add((int(supersample), s_nyq))
+        log.warning("camera.psf.supersample=%d is below these optics' Nyquist rate (%d: sub-pixels finer than "
+                    "λ_min·z/(4a)): the %d×%d midpoint rule aliases the PSF's finest fringes (a comparison mode); "
+                    "leave it unset for the exact pixel integral", int(supersample), s_nyq, int(supersample),
+                    int(supersample))
     smp = PSFSampling(n_pupil, cell_m / q, n_fft, k, min_k, None if supersample is None else int(supersample), s_nyq)
     mem = psf_memory_estimate(smp, lam, sensor_distance_m, pixel_m)
     smp = replace(smp, memory_bytes=mem.total)
