@@ -96,6 +96,7 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
                                         evaluate_method, format_table, scored_region, summarize, write_results)
     from hsicam.engine.experiments import heldout_scenes, validation_scenes
     from hsicam.engine.methods import METHOD_ALIASES, build_method
+    from hsicam.data.pipeline import absolute_data_paths
     from hsicam.engine.provenance import read_data_record, scene_roles, training_scenes_warning
     from hsicam.cli import prepare_output
     from hsicam.io import atomic_output
@@ -138,7 +139,7 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
         scenes, names = validation_scenes(cfg)
         rel = _relative_to_common_folder(scenes.paths)
         data = ("synthetic validation split" if cfg.data.root is None else
-                f"validation split of {os.path.abspath(os.path.expanduser(cfg.data.root))}")
+                f"validation split of {absolute_data_paths(cfg).data.root}")
         heldout = heldout_scenes(cfg)
     # which scenes the run trained on (its data.json; none for the synthetic data or an older run)
     recorded = read_data_record(args.run) if args.run else None

@@ -739,12 +739,19 @@ class PatchDataset(Dataset):
     def __len__(self) -> int:
         return self.patches_per_epoch
 
-    def __getitem__(self, k: int) -> torch.Tensor:
+    def _draw(self, k: int) -> tuple[np.random.Generator, int]:
+        """(the generator of patch ``k`` this epoch, the scene index it drew first)."""
         if not 0 <= k < self.patches_per_epoch:
             raise IndexError(k)
-        epoch = 0 if self.fixed else self.epoch
-        rng = np.random.default_rng([self.seed, epoch, int(k)])
-        i = int(rng.integers(len(self.scenes)))
+        rng = np.random.default_rng([self.seed, 0 if self.fixed else self.epoch, int(k)])
+        return rng, int(rng.integers(len(self.scenes)))
+
+    def scene_of(self, k: int) -> Path:
+        """The scene file patch ``k`` of this epoch is cut from (no pixel read)."""
+        return self.scenes.paths[self._draw(k)[1]]
+
+    def __getitem__(self, k: int) -> torch.Tensor:
+        rng, i = self._draw(k)
         info = self.scenes.info(i)
         s = self.size_px
         y = int(rng.integers(info.height - s + 1))

@@ -68,13 +68,10 @@ def scene_stat(scene: str | os.PathLike) -> tuple[int, int]:
 
 def patch_source(ds, k: int) -> Path | None:
     """The scene file item ``k`` of a :class:`PatchDataset` (current epoch) is cut from; None for
-    another dataset. Mirrors the draw of :meth:`PatchDataset.__getitem__` (its first number)."""
+    another dataset or an index outside it."""
     if not isinstance(ds, PatchDataset) or not 0 <= k < len(ds):
         return None
-    import numpy as np
-
-    rng = np.random.default_rng([ds.seed, 0 if ds.fixed else ds.epoch, int(k)])
-    return ds.scenes.paths[int(rng.integers(len(ds.scenes)))]
+    return ds.scene_of(int(k))
 
 
 def heldout_root(cfg: DataConfig, bands: Bands, n: int | None = None, progress: bool | None = None) -> Path | None:

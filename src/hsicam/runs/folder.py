@@ -262,7 +262,7 @@ def check_run_dir(run_dir: Path, resume: bool, not_empty_hint: str = TRAIN_NOT_E
     if run_dir.exists() and not run_dir.is_dir():
         raise InputError(f"{run_dir}: exists and is not a folder; choose another --out")
     if run_dir.exists() and any(run_dir.iterdir()):
-        foreign = sorted(p.name for p in run_dir.iterdir() if p.name not in RUN_ENTRIES and not p.name.startswith("."))
+        foreign = foreign_entries(run_dir)
         if foreign and not (run_dir / "config.yaml").is_file():  # no run to resume, nothing --restart may wipe
             remedy = ("nothing there is resumed or wiped: choose another --out" if not_empty_hint == TRAIN_NOT_EMPTY_HINT
                       else not_empty_hint)
@@ -336,6 +336,12 @@ RUN_ENTRIES = frozenset({"config.yaml", "metrics.jsonl", "checkpoints", "tensorb
                          "measured_psf.json", DATA_RECORD, LOCK_FILE})
 
 
+def foreign_entries(run_dir: Path) -> list[str]:
+    """Names (sorted) of what ``run_dir`` holds that a run never writes (:data:`RUN_ENTRIES`;
+    hidden temporaries aside): a folder with any is not only a run folder."""
+    return sorted(p.name for p in run_dir.iterdir() if p.name not in RUN_ENTRIES and not p.name.startswith("."))
+
+
 def finished_checkpoint_step(run_dir: Path) -> int | None:
     """Global step of the run's last committed checkpoint, or None when it has none."""
     try:
@@ -360,7 +366,7 @@ def restart_run_dir(run_dir: Path) -> bool:
     entries = sorted(run_dir.iterdir())
     if not entries:
         return False
-    foreign = [p.name for p in entries if p.name not in RUN_ENTRIES and not p.name.startswith(".")]
+    foreign = foreign_entries(run_dir)
     if foreign:
         raise InputError(f"{run_dir}: not only a run folder (it holds {', '.join(foreign[:3])}); --restart wipes "
                          "run folders only: choose another --out")
