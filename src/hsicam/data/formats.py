@@ -13,8 +13,8 @@ format            layout on disk                                       bands
 ================  ===================================================  ==========================
 ``hsicam``        our HDF5: ``cube`` (C, H, W) float32, ``bands_nm``,   from the file
                   ``fwhm_nm``, attributes (``format="hsicam-cube"``,
-                  ``version``: a newer one than this code writes is
-                  refused, :func:`check_format_version`)
+                  ``version``: a newer one than this code writes, or
+                  one below 1, is refused, :func:`check_format_version`)
 ``icvl``          MAT v7.3 (HDF5), ``rad`` H×W×C in MATLAB order —      band list (else 400-700/10)
                   h5py returns it reversed, (C, W, H)
 ``arad``          ARAD / NTIRE MAT v7.3, ``cube`` (as ICVL), ``bands``;  band list (else 400-700/10)
@@ -363,9 +363,10 @@ def _h5_bands(p: Path, f: Any, cube: np.ndarray) -> tuple[np.ndarray, Bands]:
 
 
 def check_format_version(p: Path, attrs: Any) -> None:
-    """InputError unless our HDF5 file's ``version`` attribute is one this code reads (at most
-    :data:`HSICAM_FORMAT_VERSION`; a file without it predates the attribute and is read). Files of
-    another tool's ``format`` attribute are not judged by their ``version``."""
+    """InputError unless our HDF5 file's ``version`` attribute is one this code reads (1 to
+    :data:`HSICAM_FORMAT_VERSION`: a newer one, or one below 1, which no hsicam wrote; a file without
+    it predates the attribute and is read). Files of another tool's ``format`` attribute are not
+    judged by their ``version``."""
     if "version" not in attrs or attrs.get("format", HSICAM_FORMAT) != HSICAM_FORMAT:
         return
     value = attrs["version"]
@@ -375,6 +376,10 @@ def check_format_version(p: Path, attrs: Any) -> None:
     if int(value) > HSICAM_FORMAT_VERSION:
         raise InputError(f"{p}: hsicam cube format version {int(value)}, newer than this hsicam reads (version "
                          f"{HSICAM_FORMAT_VERSION} and older): upgrade hsicam to read it")
+    if int(value) < 1:
+        known = "1" if HSICAM_FORMAT_VERSION == 1 else f"1 to {HSICAM_FORMAT_VERSION}"
+        raise InputError(f"{p}: unknown hsicam cube format version {int(value)} (versions start at 1; this hsicam "
+                         f"reads version {known}): not a file that hsicam wrote, or a damaged one")
 
 
 def _read_attrs(attrs: Any) -> dict[str, Any]:
