@@ -26,6 +26,8 @@ from hsicam.models.unrolled import build_unrolled
 CAMERA_KINDS = ("doe", "dd_cassi", "sd_cassi")
 MOSAIC = MosaicConfig(features=8, blocks=1, head_features=4, head_layers=2)
 MOSAIC_DETAIL = dataclasses.replace(MOSAIC, detail_features=3)  # the trunk's features at full resolution in the head
+# + the half-resolution stage (needs an even factor: 6 = two periods of the tiny camera's 3×3 CFA)
+MOSAIC_MID = dataclasses.replace(MOSAIC_DETAIL, factor=6, mid_features=4, mid_blocks=1)
 UNROLLED = UnrolledConfig(stages=2, prior_features=8, prior_blocks=1, prior_scale=2)
 
 
@@ -51,6 +53,7 @@ def networks(cam) -> dict:
         return nets
     nets["mosaic"] = build_mosaic(MOSAIC, cam)
     nets["mosaic-detail"] = build_mosaic(MOSAIC_DETAIL, cam)
+    nets["mosaic-mid"] = build_mosaic(MOSAIC_MID, cam)
     nets["unrolled-mosaic"] = build_unrolled(UnrolledConfig(stages=1, init="mosaic", prior_features=8, prior_blocks=1,
                                                               prior_scale=2, mosaic=MOSAIC), cam)
     return nets
@@ -157,7 +160,8 @@ def test_shape_contract(kind, bands_step, hw):
         assert torch.isfinite(out).all(), name
 
 
-@pytest.mark.parametrize("settings", [MOSAIC, MOSAIC_DETAIL])
+@pytest.mark.parametrize("settings", [MOSAIC, MOSAIC_DETAIL, MOSAIC_MID,
+                                      dataclasses.replace(MOSAIC, factor=6, mid_features=4)])
 def test_untrained_mosaic_net_returns_the_demosaic(settings):
     from hsicam.models.demosaic import demosaic
 
@@ -168,12 +172,14 @@ def test_untrained_mosaic_net_returns_the_demosaic(settings):
         assert torch.allclose(net(y, cam), demosaic(y, cam.sensor_code(15, 20), 3), atol=1e-6)
 
 
-@pytest.mark.parametrize("name", ["mosaic", "mosaic-detail", "unrolled", "unrolled-mosaic"])
+@pytest.mark.parametrize("name", ["mosaic", "mosaic-detail", "mosaic-mid", "unrolled", "unrolled-mosaic"])
 def test_overfits_one_batch(name):
     cam = camera("doe", "camera.boundary=same", "camera.cfa.init=bandpass")
     wide = MosaicConfig(features=32, blocks=1, head_features=8, head_layers=2)
     net = {"mosaic": lambda: build_mosaic(wide, cam),
            "mosaic-detail": lambda: build_mosaic(dataclasses.replace(wide, detail_features=4), cam),
+           "mosaic-mid": lambda: build_mosaic(dataclasses.replace(wide, detail_features=4, factor=6, mid_features=8,
+                                                                  mid_blocks=1), cam),
            "unrolled": lambda: build_unrolled(UnrolledConfig(stages=2, prior_features=32, prior_blocks=1, prior_scale=2), cam),
            "unrolled-mosaic": lambda: build_unrolled(UnrolledConfig(stages=1, init="mosaic", prior_features=32, prior_blocks=1,
                                                                       prior_scale=2, mosaic=wide), cam)}[name]()
@@ -206,6 +212,7 @@ def test_tiled_equals_whole_with_the_declared_context(kind, bright):
     if kind == "doe":
         nets["mosaic"] = build_mosaic(dataclasses.replace(MOSAIC, brightness_window=bright), cam)
         nets["mosaic-detail"] = build_mosaic(dataclasses.replace(MOSAIC_DETAIL, brightness_window=bright), cam)
+        nets["mosaic-mid"] = build_mosaic(dataclasses.replace(MOSAIC_MID, brightness_window=bright), cam)
     y = torch.rand(1, 1, 80, 74)
     op = cam.snapshot(nominal=True)
     for name, net in nets.items():
@@ -219,6 +226,28 @@ def test_tiled_equals_whole_with_the_declared_context(kind, bright):
         assert torch.allclose(tiled, whole, atol=1e-5), (name, float((tiled - whole).abs().max()))
         short = reconstruct_tiled(run, y, tile_px=24, halo_px=2)
         assert not torch.allclose(short, whole, atol=1e-5), name  # the halo matters: the test can fail
+
+
+@pytest.mark.parametrize("mid_blocks", [0, 1, 2])
+def test_the_half_resolution_stage_reach_is_in_the_declared_context(mid_blocks):
+    """The gradient of the output over one cell reaches exactly as far into the sensor image as
+    ``context_px`` says, and further than the same net's context without the stage's term, so
+    tiles cut with a halo that left the stage out would differ from the whole image."""
+    cam = camera("doe")
+    net = randomise(build_mosaic(dataclasses.replace(MOSAIC_MID, mid_blocks=mid_blocks), cam), 0.3).double().eval()
+    ctx, size = net.context_px, 2 * net.context_px + 18
+    y = torch.rand(1, 1, size, size, dtype=torch.float64, requires_grad=True)
+    op = cam.snapshot(nominal=True)
+    reach = 0
+    rows = cols = torch.arange(size)
+    for i in range(ctx + 6, ctx + 12):  # every pixel of one 6 px cell
+        for j in range(ctx + 6, ctx + 12):
+            (grad,) = torch.autograd.grad(net(y, op)[0, :, i, j].sum(), y)
+            hit = grad[0, 0].abs() > 0
+            dist = torch.maximum((rows[:, None] - i).abs(), (cols[None, :] - j).abs())
+            reach = max(reach, int(dist[hit].max()))
+    stage = 2 * (1 + 2 * mid_blocks)
+    assert ctx - stage < reach <= ctx, (reach, ctx, stage)
 
 
 @pytest.mark.parametrize("kind", ["doe", "dd_cassi"])
@@ -235,6 +264,7 @@ def test_brightness_normalised_networks_are_scale_equivariant(kind):
         if kind == "doe":
             nets["mosaic"] = build_mosaic(mos, cam)
             nets["mosaic-detail"] = build_mosaic(dataclasses.replace(mos, detail_features=3), cam)
+            nets["mosaic-mid"] = build_mosaic(dataclasses.replace(mos, detail_features=3, factor=6, mid_features=4), cam)
             nets["unrolled-mosaic"] = build_unrolled(UnrolledConfig(stages=1, init="mosaic", prior_features=8,
                                                                     prior_blocks=1, prior_scale=2, mosaic=mos,
                                                                     brightness_window=bright, brightness_eps=1e-12), cam)
@@ -322,6 +352,9 @@ BAD = [
     ("mosaic", MosaicConfig(brightness_window=6), "model.mosaic.brightness_window"),
     ("mosaic", MosaicConfig(head_layers=0, detail_features=8), "needs a head"),
     ("mosaic", MosaicConfig(detail_features=-1), "model.mosaic.detail_features"),
+    ("mosaic", MosaicConfig(mid_features=8), "needs an even model.mosaic.factor"),  # the tiny CFA's period 3
+    ("mosaic", MosaicConfig(factor=6, mid_features=-2), "model.mosaic.mid_features"),
+    ("mosaic", MosaicConfig(factor=6, mid_features=8, mid_blocks=-1), "model.mosaic.mid_blocks"),
     ("mosaic", MosaicConfig(brightness_window=5, brightness_eps=0.0), "model.mosaic.brightness_eps"),
     ("unrolled", UnrolledConfig(brightness_window=-3), "model.unrolled.brightness_window"),
     ("unrolled", UnrolledConfig(stages=0), "model.unrolled.stages"),

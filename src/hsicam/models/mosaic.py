@@ -7,6 +7,10 @@
     x̂ = x̂₀ + Head([x̂₀, g])                              full-resolution 3×3 refinement
       or x̂₀ + Head([x̂₀, g, g − κ·x̃, u])                 with detail features u = ReLU(shuffle_m(Conv1×1(trunk)))
 
+    optional half-resolution stage between trunk and head (``mid_features`` > 0, m even):
+    z = ResBlocks(Conv3×3([unshuffle_2(g), unshuffle_2(g − κ·x̃), avgpool_2(x̂₀)]) + shuffle_{m/2}(Conv1×1(trunk)))
+    x̂₀ ← x̂₀ + shuffle_2(Conv1×1(z));  u ← ReLU(shuffle_m(…) + shuffle_2(Conv1×1(z)))
+
 Space-to-depth by the CFA period m puts every filter at its own channel: the trunk learns the
 spatial and spectral demosaicking that the box x̃ only approximates, at 1/m² of the pixels. The
 padding aligns the m×m cells with the CFA on the whole sensor (a window at ``origin`` is padded
@@ -21,6 +25,12 @@ filter. The trunk alone returns a rank-F map per m×m cell (F features for m²·
 detail finer than a cell; the head, at full resolution with the phase-aware features, restores it
 (issue 17: +0.6 dB PSNR and +0.024 SSIM on the demo's scenes at equal training time, at half the
 step time of two unrolled stages).
+
+Half-resolution stage (``mid_features`` > 0): the trunk's cells are m px wide and the head sees
+only a 7 px neighbourhood, so nothing between the two scales follows an edge across a few CFA
+periods. With a 4×4 CFA in the dispersed layout every 2×2 block holds one filter from each
+quarter of the spectrum, so at 1/2 resolution each position sees the whole spectrum once (a
+Bayer quad's role). Its output convs start at zero: untrained, the stage changes nothing.
 
 Brightness normalisation (``brightness_window`` w > 0): with b = box_w(g) + ε the trunk and head
 see g/b and x̃/b and their outputs are multiplied by b, so the learned correction is the same
@@ -100,7 +110,8 @@ class MosaicNet(nn.Module):
 
     def __init__(self, bands: int, factor: int, features: int = 128, blocks: int = 10, head_features: int = 32,
                  head_layers: int = 3, demosaic_window: int = 9, brightness_window: int = 0,
-                 brightness_eps: float = 1e-3, detail_features: int = 0, demosaic_kernel: str = "box") -> None:
+                 brightness_eps: float = 1e-3, detail_features: int = 0, demosaic_kernel: str = "box",
+                 mid_features: int = 0, mid_blocks: int = 2) -> None:
         super().__init__()
         self.bands, self.factor, self.demosaic_window = int(bands), int(factor), int(demosaic_window)
         self.demosaic_kernel = str(demosaic_kernel)
@@ -116,13 +127,28 @@ class MosaicNet(nn.Module):
         self.detail = nn.Conv2d(features, self.detail_features * factor * factor, 1) if self.detail_features else None
         extra = 1 + self.detail_features if self.detail_features else 0
         self.head = RefineHead(bands, head_features, head_layers, extra) if head_layers > 0 else None
+        self.mid_features, self.mid_blocks = int(mid_features), int(mid_blocks)
+        if self.mid_features:
+            if factor % 2:
+                raise ValueError(f"a half-resolution stage needs an even factor, got {factor}")
+            self.mid_lift = nn.Conv2d(features, self.mid_features * (factor // 2) ** 2, 1)
+            self.mid_stem = nn.Conv2d(4 + 4 + bands, self.mid_features, 3, padding=1)
+            self.mid_body = nn.Sequential(*(ResBlock(self.mid_features) for _ in range(self.mid_blocks)))
+            self.mid_tail = nn.Conv2d(self.mid_features, bands * 4, 1)
+            nn.init.zeros_(self.mid_tail.weight)
+            nn.init.zeros_(self.mid_tail.bias)
+            self.mid_detail = nn.Conv2d(self.mid_features, self.detail_features * 4, 1) if self.detail_features else None
+            if self.mid_detail is not None:
+                nn.init.zeros_(self.mid_detail.weight)
+                nn.init.zeros_(self.mid_detail.bias)
 
     @property
     def context_px(self) -> int:
-        """Per-side halo (sensor px) for exact tiling: demosaic box + trunk cells + head."""
+        """Per-side halo (sensor px) for exact tiling: demosaic box + trunk cells + half-resolution stage + head."""
         cells = 1 + 2 * self.blocks  # 3×3 stem + two 3×3 convs per block (the tail is 1×1), in cells
+        mid = 2 * (1 + 2 * self.mid_blocks) if self.mid_features else 0  # 3×3 convs at 1/2 resolution: 2 px each
         return (max(self.demosaic_window, self.brightness_window) // 2 + cells * self.factor + self.factor - 1
-                + self.head_layers)
+                + mid + self.head_layers)
 
     def forward(self, sensor: torch.Tensor, camera, origin: tuple[int, int] = (0, 0)) -> torch.Tensor:
         """``sensor`` (B, 1, H, W) of the window at ``origin``; ``camera`` (or its snapshot) gives
@@ -146,10 +172,20 @@ class MosaicNet(nn.Module):
         inp = torch.cat([F.pixel_unshuffle(g_p, m), F.avg_pool2d(s_p, m)], dim=1)
         feat = self.stem(inp)
         feat = self.body(feat)
-        out_n = F.pixel_shuffle(self.tail(feat), m)[..., top : top + h, left : left + w] + skip_n
-        if self.detail is not None:
-            u = F.relu(F.pixel_shuffle(self.detail(feat), m)[..., top : top + h, left : left + w])
+        out_p = F.pixel_shuffle(self.tail(feat), m) + s_p  # on the padded, cell-aligned grid
+        u_p = F.pixel_shuffle(self.detail(feat), m) if self.detail is not None else None
+        if self.detail is not None or self.mid_features:
             predicted = (code.unsqueeze(0) * skip_n).sum(dim=1, keepdim=True)  # κ·x̃: g as the box estimate sees it
+        if self.mid_features:
+            r_p, _ = phase_pad(g_n - predicted, m, origin)
+            mid_in = torch.cat([F.pixel_unshuffle(g_p, 2), F.pixel_unshuffle(r_p, 2), F.avg_pool2d(out_p, 2)], dim=1)
+            z = self.mid_body(self.mid_stem(mid_in) + F.pixel_shuffle(self.mid_lift(feat), m // 2))
+            out_p = out_p + F.pixel_shuffle(self.mid_tail(z), 2)
+            if u_p is not None:
+                u_p = u_p + F.pixel_shuffle(self.mid_detail(z), 2)
+        out_n = out_p[..., top : top + h, left : left + w]
+        if self.detail is not None:
+            u = F.relu(u_p[..., top : top + h, left : left + w])
             out_n = out_n + self.head(out_n, g_n, g_n - predicted, u)
         elif self.head is not None:
             out_n = out_n + self.head(out_n, g_n)
@@ -170,7 +206,7 @@ def build_mosaic(mcfg: MosaicConfig, camera) -> MosaicNet:
     for key in ("features", "blocks"):
         if getattr(mcfg, key) < 1:
             raise ConfigError(f"model.mosaic.{key} must be >= 1, got {getattr(mcfg, key)}")
-    for key in ("factor", "head_layers", "demosaic_window", "detail_features"):
+    for key in ("factor", "head_layers", "demosaic_window", "detail_features", "mid_features", "mid_blocks"):
         if getattr(mcfg, key) < 0:
             raise ConfigError(f"model.mosaic.{key} must be >= 0, got {getattr(mcfg, key)}")
     if mcfg.head_layers > 1 and mcfg.head_features < 1:
@@ -181,6 +217,10 @@ def build_mosaic(mcfg: MosaicConfig, camera) -> MosaicNet:
     factor = mcfg.factor or (period if period > 1 else 3)
     if factor % period:
         raise ConfigError(f"model.mosaic.factor={mcfg.factor} must be a multiple of the CFA period {period} (or 0 for the period)")
+    if mcfg.mid_features and factor % 2:
+        raise ConfigError(f"model.mosaic.mid_features={mcfg.mid_features} (a half-resolution stage) needs an even "
+                          f"model.mosaic.factor, got {factor}; set model.mosaic.factor to an even multiple of the "
+                          f"CFA period or mid_features=0")
     if mcfg.demosaic_kernel not in DEMOSAIC_KERNELS:
         raise ConfigError(f"model.mosaic.demosaic_kernel must be one of {', '.join(DEMOSAIC_KERNELS)}, got {mcfg.demosaic_kernel!r}")
     window = mcfg.demosaic_window or skip_window(period, mcfg.demosaic_kernel)
@@ -188,7 +228,8 @@ def build_mosaic(mcfg: MosaicConfig, camera) -> MosaicNet:
         raise ConfigError(f"model.mosaic.demosaic_window must be odd (or 0 for the CFA period), got {window}")
     check_brightness("model.mosaic", mcfg.brightness_window, mcfg.brightness_eps)
     return MosaicNet(len(camera.bands), factor, mcfg.features, mcfg.blocks, mcfg.head_features, mcfg.head_layers, window,
-                     mcfg.brightness_window, mcfg.brightness_eps, mcfg.detail_features, mcfg.demosaic_kernel)
+                     mcfg.brightness_window, mcfg.brightness_eps, mcfg.detail_features, mcfg.demosaic_kernel,
+                     mcfg.mid_features, mcfg.mid_blocks)
 
 
 def check_brightness(section: str, window: int, eps: float) -> None:
