@@ -17,6 +17,7 @@ import h5py
 import numpy as np
 import pytest
 
+from envi_files import write_envi_pair
 from hsicam.data import PatchDataset, SceneDataset, list_scenes, read_cube, read_envi, split_scenes, write_cube_h5
 from hsicam.data import datasets as ds_mod
 from hsicam.data.datasets import check_windowed_pixels, near_black_percentile, _TopValues
@@ -93,15 +94,7 @@ WAVES = np.arange(420.0, 721.0, 50.0)
 
 
 def envi_pair(folder: Path, chw: np.ndarray, dtype: str, code: int, extra: str, interleave: str = "bil") -> Path:
-    """An ENVI pair written as ENVI software does: a text header and raw bytes."""
-    c, h, w = chw.shape
-    hdr = folder / "scene.hdr"
-    hdr.write_text(f"ENVI\nsamples = {w}\nlines = {h}\nbands = {c}\nheader offset = 0\nfile type = ENVI Standard\n"
-                   f"data type = {code}\ninterleave = {interleave}\nbyte order = 0\nwavelength units = Nanometers\n"
-                   f"wavelength = {{{', '.join(f'{v:g}' for v in WAVES[:c])}}}\n{extra}")
-    disk = {"bsq": chw, "bil": chw.transpose(1, 0, 2), "bip": chw.transpose(1, 2, 0)}[interleave]
-    (folder / "scene.img").write_bytes(np.ascontiguousarray(disk).astype(dtype).tobytes())
-    return hdr
+    return write_envi_pair(folder, chw, extra, WAVES, dtype, code, interleave)
 
 
 def counts(seed=0, h=20, w=16) -> np.ndarray:

@@ -1,8 +1,8 @@
 """Colour rendering of spectra: CIE 1931 2° observer × D65 → XYZ → linear sRGB → sRGB gamma.
 
 Spectra are treated as **reflectances under D65** (HSI2RGB style): a spectrum ``s`` on the band
-grid ``bands`` is reconstructed piecewise-linearly between band centres (the same model as
-:func:`hsicam.spectral.resample_spectra`), multiplied by D65 and the colour-matching functions and
+grid ``bands`` is reconstructed piecewise-linearly between band centres (the interpolant that
+:func:`hsicam.spectral.resample_spectra` also integrates for bands wider than the data's), multiplied by D65 and the colour-matching functions and
 integrated on a 1 nm grid over the bands' range. The CMF/D65 table (``resources/
 cie1931_2deg_d65.csv``, 5 nm, 380-780 nm, from colour-science) ships with the package, so rendering
 needs neither colour-science nor a network.

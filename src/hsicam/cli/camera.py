@@ -109,7 +109,7 @@ def load_scene(path: str | Path, bands: Bands, npy_bands: Bands | None = None) -
 
     Every format goes through the one cube check (finite, real, non-negative, non-empty, band grid
     known) and the one band-grid policy (:func:`hsicam.data.cube.conform_bands`: a cube on another
-    grid is resampled by band centre with a logged note; only extrapolation is refused). A ``.npy``
+    grid is resampled onto the camera's with a logged note; only extrapolation is refused). A ``.npy``
     file carries no wavelengths: its grid is ``npy_bands`` (the config's ``data.npy_bands``) when
     given, else it must have the camera's band count (its grid is then the camera's).
     """

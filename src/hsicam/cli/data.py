@@ -37,13 +37,17 @@ def register(sub: argparse._SubParsersAction) -> None:
     c = actions.add_parser("sources", help="list the generator's spectral sources (ids for --holdout-sources)")
     c.set_defaults(func=_sources)
 
-    v = actions.add_parser("show", help="contact sheet, mean spectra and spectral gamut of a dataset or cube")
+    v = actions.add_parser("show", help="contact sheet, mean spectra and spectral gamut of a dataset or cube",
+                           epilog="A .npy cube carries no wavelengths: give its grid as the other commands take it, "
+                                  "e.g. --set 'data.npy_bands={start_nm: 420, stop_nm: 720, step_nm: 10}' (default: "
+                                  "its bands evenly over 400-700 nm). Other config keys are not used here.")
     v.add_argument("path", metavar="DIR", help="dataset folder, or one cube file / CAVE folder")
     v.add_argument("--out", metavar="DIR", default=None, help="where to write the PNGs (default: DIR)")
     v.add_argument("--max-scenes", type=int, default=16, help="at most this many scenes, >= 1 (default 16)")
     v.add_argument("--heldout", metavar="DIR", default=None,
                    help="held-out dataset to compare in the gamut plot (default: the cached companion of a "
                         "synthetic set, when present)")
+    add_config_args(v)  # for data.npy_bands: the band grid of .npy cubes, as train and evaluate take it
     v.set_defaults(func=_show)
 
 
@@ -118,16 +122,19 @@ def _sources(args: argparse.Namespace) -> int:
 
 
 def _show(args: argparse.Namespace) -> int:
+    from hsicam.cli import config_from_args
+    from hsicam.data.pipeline import npy_bands
     from hsicam.data.preview import write_preview
     from hsicam.errors import InputError
 
+    grid = npy_bands(config_from_args(args.config, args.overrides).data)  # before any work: a bad --set fails first
     if args.max_scenes < 1:
         raise InputError(f"--max-scenes must be at least 1, got {args.max_scenes}")
     src = Path(args.path)
     if not src.exists():
         raise InputError(f"{src}: no such dataset folder or cube file")
     preview = lambda out, check=None: write_preview(args.path, out, max_scenes=args.max_scenes,  # noqa: E731
-                                                    heldout=args.heldout, before_save=check)
+                                                    heldout=args.heldout, before_save=check, npy_bands=grid)
     if args.out is None:
         written = preview(_default_preview_folder(src), _check_own_previews)
     else:

@@ -6,9 +6,11 @@ A cube is a float32 array (C, H, W) with C bands ascending, paired with a :class
 non-empty (C, H, W) array whose band count matches its band grid.
 
 **Band-grid policy** (the one place it is defined): :func:`conform_bands` brings a cube onto the
-camera's bands by linear interpolation in band centre, logs a note when it resamples, and refuses
-only extrapolation (a camera band outside the data's range). It never relabels bands. Within
-:func:`trained_bands` (a command on a trained run) the refusal says the run's bands are fixed.
+camera's bands (:func:`hsicam.spectral.resample_spectra`: a camera band wider than the data's own
+bands integrates the data over a Gaussian of the width they lack; otherwise linear interpolation in
+band centre), logs a note when it resamples, and refuses only extrapolation (a camera band outside the
+data's range). It never relabels bands. Within :func:`trained_bands` (a command on a trained run)
+the refusal says the run's bands are fixed.
 
 **Memory budget**: :func:`check_memory_budget` compares the size a file *declares* (its header)
 with :func:`hsicam.memory.memory_budget_bytes` (re-exported here) before any reader allocates the
@@ -35,7 +37,7 @@ import numpy as np
 
 from hsicam.errors import InputError
 from hsicam.memory import MEMORY_BUDGET_ENV, format_bytes, memory_budget_bytes
-from hsicam.spectral import Bands, nm_text, resample_spectra
+from hsicam.spectral import Bands, nm_text, resample_spectra, resolved_bands
 
 PathLike = Union[str, os.PathLike]
 
@@ -138,9 +140,10 @@ def conform_bands(cube: Any, cube_bands: Bands, camera_bands: Bands, source: Pat
     """Bring ``cube`` (bands on ``axis``: -3 fits (C, H, W) and (B, C, H, W)) from ``cube_bands``
     onto ``camera_bands``: the one band-grid policy of every command.
 
-    Same grid: the cube is returned unchanged. Otherwise linear interpolation in band centre
-    (:func:`hsicam.spectral.resample_spectra`), with an INFO log note naming ``source`` unless
-    ``note=False``; numpy input gives float32, a torch tensor keeps its dtype (and gradient).
+    Same grid: the cube is returned unchanged. Otherwise :func:`hsicam.spectral.resample_spectra`
+    (a camera band wider than the data's own bands: the data's interpolant integrated over a Gaussian
+    of the width they lack; any other: linear interpolation in band centre), with an INFO log note
+    naming ``source`` and the rule unless ``note=False``; numpy input gives float32, a torch tensor keeps its dtype (and gradient).
     Raises one-line :class:`InputError` when the band count does not match ``cube_bands``, or when
     a camera band lies outside the data's range (no extrapolation, no relabelling; worded for a
     trained run's fixed bands within :func:`trained_bands`).
@@ -160,9 +163,13 @@ def conform_bands(cube: Any, cube_bands: Bands, camera_bands: Bands, source: Pat
         raise InputError(f"{source}: the camera's bands {cam} are not covered by the data's {data} (no extrapolation): "
                          f"use a camera band grid inside {data} or data that covers the camera's range")
     if note:
-        log.info("%s: resampling %d bands (%g-%g nm) onto the camera's %d bands (%g-%g nm) by band centre",
+        n_fine = int(resolved_bands(cube_bands, camera_bands).sum())
+        how = ("by band centre" if n_fine == 0 else "over each band's FWHM (the camera's bands are wider than the data's)"
+               if n_fine == len(camera_bands) else
+               f"over the FWHM of the {n_fine} bands wider than the data's, by band centre for the others")
+        log.info("%s: resampling %d bands (%g-%g nm) onto the camera's %d bands (%g-%g nm) %s",
                  source, len(cube_bands), cube_bands.min_nm, cube_bands.max_nm,
-                 len(camera_bands), camera_bands.min_nm, camera_bands.max_nm)
+                 len(camera_bands), camera_bands.min_nm, camera_bands.max_nm, how)
     if hasattr(cube, "detach"):  # torch: differentiable, same dtype and device
         return resample_spectra(cube, cube_bands, camera_bands, axis=axis)
     out = resample_spectra(np.asarray(cube, dtype=np.float64), cube_bands, camera_bands, axis=axis)

@@ -28,7 +28,9 @@ format            layout on disk                                       bands
                   ``_31.png`` (may be one level down)
 ``envi``          ``.hdr`` + raw data, bsq/bil/bip, ENVI data types,    ``wavelength``/``fwhm``
                   byte order, header offset; ``bbl`` bands dropped,
-                  ``data ignore value`` pixels set to 0 (:func:`read_envi`)
+                  ``data ignore value`` pixels set to 0, ``data gain
+                  values`` / ``data offset values`` applied
+                  (:func:`read_envi`)
 ``npy``           ``.npy`` (C, H, W)                                    caller's ``bands`` (config:
                                                                         ``data.npy_bands``), else C
                                                                         bands evenly over 400-700
@@ -53,7 +55,8 @@ descending list (MAT, HDF5, ours) is reversed together with the cube's band axis
 order, each band carrying its own wavelength); a list in neither order is refused.
 
 ICVL, CAVE, KAIST and ARAD cover 400-700 nm; the paper's camera uses 420-720 nm. We
-**interpolate by band centre, never relabel**: bringing a 400-700 nm cube onto 420-720 nm is
+**resample, never relabel** (:func:`hsicam.spectral.resample_spectra`: interpolation by band centre,
+or integration over a band's FWHM where the data are finer): bringing a 400-700 nm cube onto 420-720 nm is
 refused (720 nm lies outside the data) — use a camera grid inside the data's range (e.g.
 ``bands.start_nm=420, bands.stop_nm=700``) or data that reaches 720 nm (Harvard, or the embedded
 synthetic set). See ``docs/data.md``.
@@ -928,9 +931,13 @@ def read_envi(path: str | os.PathLike, *, allow_negative: bool = False, memory_b
     """ENVI: ``path`` is the ``.hdr`` or the raw data file next to it.
 
     Supports interleave bsq/bil/bip, data types 1-5 and 12-15, byte order, header offset,
-    ``wavelength`` (nm or µm via ``wavelength units``), ``fwhm`` and ``reflectance scale factor``.
+    ``wavelength`` (nm or µm via ``wavelength units``), ``fwhm``, ``data gain values`` and
+    ``data offset values`` (one per band: value = gain · stored value + offset, applied after the
+    no-data mask, said in one log line and recorded in the metadata: ``data_gain_offset_applied``,
+    ``data_gain_values``, ``data_offset_values`` per band returned; a list of another length is
+    refused) and ``reflectance scale factor`` (divides the values, after gains and offsets).
     ``bbl`` (bad band list): bands marked 0 are dropped with their wavelengths, so resampling
-    interpolates across them (fewer than 2 good bands left: refused). ``data ignore value``
+    bridges them with the linear interpolant (fewer than 2 good bands left: refused). ``data ignore value``
     (no-data, in the file's units): every value that holds it is set to 0 (a value, not its whole
     pixel: with an ignore value of 0, common, a dark band of a real pixel must not blank the others;
     every value no-data: refused). Both are said in one log line and recorded in the metadata
@@ -972,6 +979,8 @@ def read_envi(path: str | os.PathLike, *, allow_negative: bool = False, memory_b
         raise InputError(f"{hdr}: unknown ENVI interleave {interleave!r} (expected bsq, bil or bip)")
     if min(samples, lines, nbands) <= 0:
         raise InputError(f"{hdr}: ENVI dimensions must be positive (samples={samples}, lines={lines}, bands={nbands})")
+    gains = _envi_per_band(hdr, h, "data gain values", nbands)
+    offsets = _envi_per_band(hdr, h, "data offset values", nbands)
     check_memory_budget(hdr, (nbands, lines, samples), dtype, what="ENVI cube", budget_mb=memory_budget_mb)
     count = samples * lines * nbands
     expected = offset + count * dtype.itemsize
@@ -1021,6 +1030,21 @@ def read_envi(path: str | os.PathLike, *, allow_negative: bool = False, memory_b
         if np.isfinite(other).all():  # the other byte order reads clean: the header's is wrong
             raise InputError(f"{data}: {int((~np.isfinite(cube)).sum())} NaN/Inf value(s) with byte order {order}, "
                              f"none with byte order {1 - order}: fix 'byte order' in {hdr.name}")
+    scaling = None
+    if gains is not None or offsets is not None:  # physical = gain · stored + offset, per band
+        gain = np.ones(nbands) if gains is None else gains
+        off = np.zeros(nbands) if offsets is None else offsets
+        if good is not None:
+            gain, off = gain[good], off[good]
+        cube *= gain.astype(np.float32)[:, None, None]
+        cube += off.astype(np.float32)[:, None, None]
+        if nodata is not None and n_values:  # flagged by their stored value: they stay 0 (no data)
+            cube[nodata] = 0.0
+        scaling = (gain, off)
+        keys = " and ".join(k for k, v in (("data gain values", gains), ("data offset values", offsets))
+                            if v is not None)
+        notes.append((logging.INFO, f"{data}: applied the {keys} of {hdr.name} (value = gain × stored value + offset, "
+                                    "per band)"))
     if "reflectance scale factor" in h:
         cube /= np.float32(_envi_scale_factor(hdr, h))
     note = None
@@ -1052,12 +1076,13 @@ def read_envi(path: str | os.PathLike, *, allow_negative: bool = False, memory_b
             fwhm = fwhm[good] if fwhm is not None else None
             notes.append((logging.INFO, f"{data}: dropped {dropped.size} band(s) that the bbl of {hdr.name} marks bad "
                                         f"({', '.join(f'{w:g}' for w in np.sort(dropped))} nm); resampling "
-                                        "interpolates across them"))
+                                        "bridges them with the linear interpolant"))
         order_idx = np.argsort(waves)
         if np.any(order_idx != np.arange(waves.size)):  # store bands ascending
             cube = cube[order_idx]
             waves = waves[order_idx]
             fwhm = fwhm[order_idx] if fwhm is not None else None
+            scaling = None if scaling is None else (scaling[0][order_idx], scaling[1][order_idx])
         bands = _bands_from(hdr, waves, fwhm)
     else:
         raise InputError(f"{hdr}: ENVI header has no 'wavelength' list; cannot tell the bands")
@@ -1068,6 +1093,10 @@ def read_envi(path: str | os.PathLike, *, allow_negative: bool = False, memory_b
     if ignore is not None:
         meta["data_ignore_value"] = ignore
         meta["ignored_pixels"] = n_nodata
+    if scaling is not None:  # per band of the cube returned (ascending, bad bands dropped)
+        meta["data_gain_offset_applied"] = True
+        meta["data_gain_values"] = [float(v) for v in scaling[0]]
+        meta["data_offset_values"] = [float(v) for v in scaling[1]]
     if note:
         notes.insert(0, (logging.WARNING, note))
     return _finished_noting(notes, _finish(data, cube, bands, meta, allow_negative))
@@ -1091,6 +1120,21 @@ def _envi_good_bands(hdr: Path, h: dict[str, str], nbands: int) -> np.ndarray | 
         raise InputError(f"{hdr}: the bad band list (bbl) leaves {np.count_nonzero(good)} of {nbands} bands good; "
                          "at least 2 are needed")
     return good
+
+
+def _envi_per_band(hdr: Path, h: dict[str, str], key: str, nbands: int) -> np.ndarray | None:
+    """The header's per-band list ``key`` (``data gain values``, ``data offset values``: one finite
+    number per band of the file, in the file's band order), or None when it has none."""
+    if key not in h:
+        return None
+    values = _envi_floats(hdr, h, key)
+    if values.size != nbands:
+        raise InputError(f"{hdr}: ENVI header key '{key}' lists {values.size} values for {nbands} bands "
+                         "(one per band)")
+    if not np.all(np.isfinite(values)):
+        raise InputError(f"{hdr}: ENVI header key '{key}' holds {int((~np.isfinite(values)).sum())} value(s) that "
+                         "are not finite numbers")
+    return values
 
 
 def _envi_ignore_value(hdr: Path, h: dict[str, str]) -> float | None:

@@ -140,7 +140,7 @@ def foreign_previews(folder: Path) -> list[str]:
 
 def write_preview(path: str | os.PathLike, out_dir: str | os.PathLike | None = None, max_scenes: int = 16,
                   heldout: str | os.PathLike | None = None,
-                  before_save: Callable[[Path], None] | None = None) -> list[Path]:
+                  before_save: Callable[[Path], None] | None = None, npy_bands: Bands | None = None) -> list[Path]:
     """Write ``contact_sheet.png``, ``mean_spectra.png`` and ``spectral_gamut.png`` for a dataset.
 
     ``path`` is a dataset folder or one cube file; ``out_dir`` defaults to the dataset folder (the
@@ -148,7 +148,9 @@ def write_preview(path: str | os.PathLike, out_dir: str | os.PathLike | None = N
     gamut plot (default: for a cached synthetic set, its held-out companion when one exists).
     ``max_scenes`` (≥ 1) caps the scenes of each set. Every input is read and every figure drawn
     before the first PNG is written: on an error none is written. ``before_save(out_dir)`` is called
-    then (a last check of the output folder). Returns their paths.
+    then (a last check of the output folder). ``npy_bands``: the band grid of ``.npy`` cubes, which
+    carry none (the config's ``data.npy_bands``, :func:`hsicam.data.pipeline.npy_bands`; None: C bands
+    evenly over 400-700 nm). Returns their paths.
     """
     path = Path(path)
     n = check_max_scenes(max_scenes)
@@ -156,8 +158,8 @@ def write_preview(path: str | os.PathLike, out_dir: str | os.PathLike | None = N
     held_dir = Path(heldout) if heldout is not None else _find_heldout(path)
     held_scenes = list_scenes(held_dir)[:n] if held_dir is not None else []  # a bad held-out set fails before any work
     out = Path(out_dir) if out_dir is not None else (path if path.is_dir() else path.parent)
-    sheet, plot = _scene_figures(path, scenes)
-    gamut = _gamut_figure(path, scenes, held_dir, held_scenes)
+    sheet, plot = _scene_figures(path, scenes, npy_bands)
+    gamut = _gamut_figure(path, scenes, held_dir, held_scenes, npy_bands)
     if before_save is not None:
         before_save(out)
     written = save_figures({CONTACT_SHEET: sheet, MEAN_SPECTRA: plot, SPECTRAL_GAMUT: gamut}, out)
@@ -165,13 +167,13 @@ def write_preview(path: str | os.PathLike, out_dir: str | os.PathLike | None = N
     return written
 
 
-def _scene_figures(path: Path, scenes: list[Path]):
-    """(contact sheet, mean spectra) figures of ``scenes``."""
+def _scene_figures(path: Path, scenes: list[Path], npy_bands: Bands | None = None):
+    """(contact sheet, mean spectra) figures of ``scenes`` (``.npy`` cubes on ``npy_bands``)."""
     from matplotlib.figure import Figure
 
     thumbs, spectra, grey = [], [], 0
     for s in scenes:
-        cube, bands, _ = read_cube(s)
+        cube, bands, _ = read_cube(s, bands=npy_bands)
         norm, _ = normalize_per_cube_max(cube, s)  # first: an all-zero cube is refused naming its file
         if renderable(bands):
             thumbs.append((s.name, preview_rgb(cube, bands)))
@@ -216,16 +218,16 @@ def _shapes(spectra: np.ndarray) -> np.ndarray:
 
 
 def pixel_spectra(scenes: list[Path], bands: Bands | None = None, per_scene: int = 400, seed: int = 0,
-                  source: str | os.PathLike | None = None) -> tuple[np.ndarray, Bands]:
+                  source: str | os.PathLike | None = None, npy_bands: Bands | None = None) -> tuple[np.ndarray, Bands]:
     """Up to ``per_scene`` random pixel spectra (N, C) from each scene, all on one band grid: ``bands``,
     or :func:`common_grid` of the scenes'. A scene on another grid is resampled onto it as training
     data are (:func:`hsicam.data.cube.conform_bands`); one whose bands do not cover it is left out,
     said in one log line. ``source`` (the folder) names the set in messages; InputError when no
-    scene is left."""
+    scene is left. ``npy_bands``: the grid of ``.npy`` cubes (see :func:`write_preview`)."""
     rng = np.random.default_rng(seed)
     samples = []
     for s in scenes:
-        cube, b, _ = read_cube(s)
+        cube, b, _ = read_cube(s, bands=npy_bands)
         pix = cube.reshape(cube.shape[0], -1).T
         idx = rng.choice(pix.shape[0], size=min(per_scene, pix.shape[0]), replace=False)
         samples.append((s, b, pix[np.sort(idx)]))
@@ -319,7 +321,7 @@ def _library_shapes(path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray, str
 
 
 def write_spectral_gamut(path: str | os.PathLike, out_png: str | os.PathLike, heldout: str | os.PathLike | None = None,
-                         max_scenes: int = 16) -> Path:
+                         max_scenes: int = 16, npy_bands: Bands | None = None) -> Path:
     """Scatter of the first two principal components of spectral shapes (unit-norm spectra).
 
     Left (synthetic sets with held-out sources, colour-science installed): the reflectance library
@@ -330,18 +332,19 @@ def write_spectral_gamut(path: str | os.PathLike, out_png: str | os.PathLike, he
     n = check_max_scenes(max_scenes)
     held_dir = Path(heldout) if heldout is not None else _find_heldout(path)
     held_scenes = list_scenes(held_dir)[:n] if held_dir is not None else []
-    save_figure(_gamut_figure(path, list_scenes(path)[:n], held_dir, held_scenes), out_png)
+    save_figure(_gamut_figure(path, list_scenes(path)[:n], held_dir, held_scenes, npy_bands), out_png)
     return out_png
 
 
-def _gamut_figure(path: Path, scenes: list[Path], held_dir: Path | None, held_scenes: list[Path]):
+def _gamut_figure(path: Path, scenes: list[Path], held_dir: Path | None, held_scenes: list[Path],
+                  npy_bands: Bands | None = None):
     """The figure of :func:`write_spectral_gamut` for the dataset's ``scenes`` (and the held-out set's)."""
     from matplotlib.figure import Figure
 
-    pix, bands = pixel_spectra(scenes, source=path)
+    pix, bands = pixel_spectra(scenes, source=path, npy_bands=npy_bands)
     groups = [("dataset pixels", _shapes(pix), "tab:blue", "o")]
     if held_dir is not None:
-        hpix, _ = pixel_spectra(held_scenes, bands, seed=1, source=held_dir)
+        hpix, _ = pixel_spectra(held_scenes, bands, seed=1, source=held_dir, npy_bands=npy_bands)
         groups.append((f"held-out pixels ({held_dir.name})", _shapes(hpix), "tab:red", "x"))
     lib = _library_shapes(path) if path.is_dir() else None
     panels = [("scene pixel spectra", groups)]

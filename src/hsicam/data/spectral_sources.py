@@ -23,6 +23,7 @@ import numpy as np
 
 from hsicam.errors import InputError
 from hsicam.spectral import Bands
+from hsicam.spectral.bands import band_matrix  # the band model (re-exported)
 
 log = logging.getLogger(__name__)
 
@@ -178,14 +179,6 @@ class SpectralLibrary:
         if self.otsu is not None:
             out["rgb_upsampling"] = {"otsu2018": int(self.otsu.basis.shape[0])}
         return out
-
-
-def band_matrix(bands: Bands, fine_nm: np.ndarray) -> np.ndarray:
-    """G (C, F): band-averaging weights of each band's Gaussian response (FWHM) on the fine grid."""
-    sigma = bands.fwhm_nm / (2.0 * np.sqrt(2.0 * np.log(2.0)))
-    g = np.exp(-0.5 * ((fine_nm[None, :] - bands.centers_nm[:, None]) / sigma[:, None]) ** 2)
-    g[np.abs(fine_nm[None, :] - bands.centers_nm[:, None]) > 3.0 * sigma[:, None]] = 0.0
-    return g / g.sum(axis=1, keepdims=True)
 
 
 def _fine_grid(bands: Bands) -> np.ndarray:

@@ -1,6 +1,14 @@
 """Spectral grids and optical materials."""
 
-from hsicam.spectral.bands import Bands, interpolation_matrix, nm_text, resample_spectra
+from hsicam.spectral.bands import (
+    Bands,
+    band_matrix,
+    interpolation_matrix,
+    nm_text,
+    resample_spectra,
+    resampling_matrix,
+    resolved_bands,
+)
 from hsicam.spectral.materials import (
     FusedSilica,
     Material,
@@ -10,6 +18,7 @@ from hsicam.spectral.materials import (
 
 __all__ = [
     "Bands",
+    "band_matrix",
     "FusedSilica",
     "Material",
     "TabulatedMaterial",
@@ -17,4 +26,6 @@ __all__ = [
     "interpolation_matrix",
     "nm_text",
     "resample_spectra",
+    "resampling_matrix",
+    "resolved_bands",
 ]
