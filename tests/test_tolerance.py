@@ -120,3 +120,24 @@ def test_tolerance_cli(fab_run, tmp_path):
     assert spec["tolerances"]["studied"]["nominal_psnr_db"] == pytest.approx(r["nominal"]["psnr"])
     assert_clean_error(run_cli("tolerance", "--run", str(fab_run), "--out", str(tmp_path / "t2"), "--draws", "0"), "must be >= 1")
     assert not (tmp_path / "t2").exists()
+
+
+def test_sensor_defocus_is_added_at_every_simulated_wavelength(tiny_camera):
+    """With each band averaged over 3 wavelengths, moving the sensor by Δz adds (π/λ)·u, u = 1/(z+Δz) −
+    1/z, at each of those wavelengths: the same PSFs as the camera whose object sits at 1/u (the
+    object distance enters only that term, 1/z_o + 1/z_i − 1/f). Band centres for all three (the old
+    rule) miss by the sub-wavelengths' spread."""
+    cam = tiny_camera("camera.psf.band_samples=3")
+    o = cam.optics
+    z, dz = o.sensor_distance_m, -40e-6
+    u = 1.0 / (z + dz) - 1.0 / z
+    ref = tiny_camera("camera.psf.band_samples=3", f"camera.object_distance_m={1.0 / u!r}")
+    ref.load_state_dict(cam.state_dict())
+    h0 = nominal_heights(cam)
+    with torch.no_grad():
+        want = ref.psf()
+    got = psf_for_heights(o, h0, defocus_delta_per_m2(o, dz)).psf
+    torch.testing.assert_close(got, want, rtol=0, atol=1e-7)
+    centres = torch.as_tensor(np.repeat(o.bands.centers_nm, 3) * 1e-9, dtype=torch.float64)
+    old = psf_for_heights(o, h0, math.pi / centres * u).psf  # the band centre's defocus at every wavelength
+    assert float((old - want).abs().max()) > 1e-5

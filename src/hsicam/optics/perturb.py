@@ -15,7 +15,8 @@ from hsicam.optics.sampling import defocus_aliasing
 @torch.no_grad()
 def psf_for_heights(optics, h_cells_m: torch.Tensor, defocus_delta: torch.Tensor | None = None):
     """:class:`~hsicam.optics.psf.PSFResult` of the camera's optics with cell heights ``h_cells_m``
-    (n, n) (m) and optionally an extra defocus term per band (rad/m², (C,))."""
+    (n, n) (m) and optionally an extra defocus term per simulated wavelength (rad/m², (C·M,), M =
+    ``optics.band_samples``; :func:`defocus_delta_per_m2`)."""
     return optics.psf_from_pupil(optics.expand_cells(h_cells_m), defocus_delta)
 
 
@@ -32,8 +33,11 @@ def nominal_heights(camera) -> torch.Tensor:
 
 
 def defocus_delta_per_m2(optics, dz_m: float) -> torch.Tensor:
-    """(π/λ)(1/(z_i + Δz) − 1/z_i) per band (rad/m²), float64 (C,)."""
-    lam = torch.as_tensor(optics.bands.centers_nm * 1e-9, dtype=torch.float64)
+    """(π/λ)(1/(z_i + Δz) − 1/z_i) per simulated wavelength λ (rad/m²), float64 (C·M,): the band
+    centres, or with ``band_samples`` M > 1 the M wavelengths over each band's FWHM at which the
+    optics compute the PSF (``optics.line_wavelengths_nm``), so the added defocus matches the
+    design defocus wavelength by wavelength."""
+    lam = torch.as_tensor(np.asarray(optics.line_wavelengths_nm, dtype=np.float64) * 1e-9, dtype=torch.float64)
     z = optics.sensor_distance_m
     return math.pi / lam * (1.0 / (z + dz_m) - 1.0 / z)
 
@@ -43,8 +47,7 @@ def sensor_distance_aliasing(optics, dz_m: float) -> np.ndarray:
     residual defocus with the sensor moved by ``dz_m`` (the defocus that :func:`psf_for_heights`
     computes with :func:`defocus_delta_per_m2`), on the optics' own pupil grid (cell / q). Above 1
     the PSF aliases: the criterion :class:`~hsicam.optics.psf.PSFModel` refuses a config with."""
-    total = optics.defocus_per_m2.detach().double().cpu().numpy() + np.repeat(
-        defocus_delta_per_m2(optics, dz_m).numpy(), optics.band_samples)
+    total = optics.defocus_per_m2.detach().double().cpu().numpy() + defocus_delta_per_m2(optics, dz_m).numpy()
     return defocus_aliasing(total, optics.aperture_radius_m, optics.cell_m / optics.pupil_oversample)
 
 
@@ -52,9 +55,9 @@ def sensor_distance_limits_m(optics) -> tuple[float, float]:
     """(Δz_min ≤ 0, Δz_max ≥ 0) (m): the sensor distance errors whose residual defocus the optics'
     pupil grid represents (:func:`sensor_distance_aliasing` ≤ 1 at every wavelength); ``inf`` where
     no error on that side aliases (as far as the sensor can go). Closed form: with u = 1/(z + Δz) −
-    1/z, wavelength ℓ of band b needs |c_ℓ + π u/λ_b| ≤ π/(2 a d) (``defocus_aliasing``)."""
+    1/z, simulated wavelength ℓ needs |c_ℓ + π u/λ_ℓ| ≤ π/(2 a d) (``defocus_aliasing``)."""
     c0 = optics.defocus_per_m2.detach().double().cpu().numpy()
-    lam = np.repeat(np.asarray(optics.bands.centers_nm, dtype=np.float64) * 1e-9, optics.band_samples)
+    lam = np.asarray(optics.line_wavelengths_nm, dtype=np.float64) * 1e-9
     limit = math.pi / (2.0 * optics.aperture_radius_m * optics.cell_m / optics.pupil_oversample)
     u_lo = float(np.max((-limit - c0) * lam / math.pi))
     u_hi = float(np.min((limit - c0) * lam / math.pi))

@@ -254,15 +254,19 @@ class PSFModel(nn.Module):
 
     def psf_from_pupil(self, pupil_heights: torch.Tensor, defocus_delta_per_m2: torch.Tensor | None = None,
                        bands: slice | None = None) -> PSFResult:
-        """PSF stack for given pupil heights (P, P) (m), optionally with an extra defocus per band
-        (rad/m², (C,)) and only for ``bands`` (a slice of band indices)."""
+        """PSF stack for given pupil heights (P, P) (m), optionally with an extra defocus per simulated
+        wavelength (rad/m², (C·M,) for M = ``band_samples``, in ``line_wavelengths_nm`` order) and
+        only for ``bands`` (a slice of band indices)."""
         m = self.band_samples
         sel = slice(None) if bands is None else slice(
             None if bands.start is None else bands.start * m, None if bands.stop is None else bands.stop * m)
         defocus = self.defocus_per_m2[sel]
         if defocus_delta_per_m2 is not None:
-            delta = defocus_delta_per_m2.to(defocus).repeat_interleave(m)
-            defocus = defocus + (delta if bands is None else delta[sel])
+            delta = defocus_delta_per_m2.to(defocus)
+            if delta.shape != self.defocus_per_m2.shape:
+                raise ValueError(f"extra defocus must have one value per simulated wavelength "
+                                 f"{tuple(self.defocus_per_m2.shape)}, got {tuple(delta.shape)}")
+            defocus = defocus + delta[sel]
         line_w = None if m == 1 else self.line_weights[bands if bands is not None else slice(None)]
         return psf_stack(pupil_heights, self.amplitude, self.r2_m2, self.doe_phase_per_m[sel], defocus,
                          self.pixel_weights[sel], line_w)
