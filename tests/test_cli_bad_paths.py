@@ -17,7 +17,7 @@ import pytest
 import tifffile
 
 from conftest import TINY_CAMERA_OVERRIDES
-from cli_helpers import assert_ok, error_line
+from cli_helpers import assert_clean_error, assert_ok, error_line, run_cli_in_process
 from test_calibration import run_cli, write_homogeneous_scenes
 from hsicam.config import load_config
 from hsicam.data.formats import HSICAM_FORMAT_VERSION, read_cube, read_window, write_cube_h5
@@ -194,7 +194,7 @@ def test_a_second_cube_of_the_same_name_is_refused(runs, capture, tmp_path):
 
 
 # ------------------------------------------------------------------------------------------------
-# 5. Our HDF5 cube of a newer format version
+# 5. Our HDF5 cube of a newer (or impossible, below 1) format version
 # ------------------------------------------------------------------------------------------------
 def _cube_file(path: Path, version=None) -> Path:
     cube = np.random.default_rng(1).random((3, 12, 12)).astype(np.float32)
@@ -205,14 +205,18 @@ def _cube_file(path: Path, version=None) -> Path:
     return path
 
 
+def _both_readers_refuse(path: Path, expected: str) -> None:
+    """read_cube and read_window raise InputError matching the regular expression ``expected``."""
+    with pytest.raises(InputError, match=expected):
+        read_cube(path)
+    with pytest.raises(InputError, match=expected):
+        read_window(path, 0, 0, 4, 4)
+
+
 def test_a_cube_file_of_a_newer_format_version_is_refused(runs, tmp_path):
     newer = _cube_file(tmp_path / "v99.h5", 99)
-    expected = (rf"v99\.h5: hsicam cube format version 99, newer than this hsicam reads \(version "
-                rf"{HSICAM_FORMAT_VERSION} and older\): upgrade hsicam")
-    with pytest.raises(InputError, match=expected):
-        read_cube(newer)
-    with pytest.raises(InputError, match=expected):
-        read_window(newer, 0, 0, 4, 4)
+    _both_readers_refuse(newer, rf"v99\.h5: hsicam cube format version 99, newer than this hsicam reads \(version "
+                                rf"{HSICAM_FORMAT_VERSION} and older\): upgrade hsicam")
     line = _error(run_cli("simulate", "--run", str(runs["done"]), "--scene", str(newer), "--out", str(tmp_path / "sim")))
     assert "format version 99" in line and "upgrade hsicam" in line
     with pytest.raises(InputError, match=r"unreadable hsicam cube format version 'x'"):
@@ -221,6 +225,27 @@ def test_a_cube_file_of_a_newer_format_version_is_refused(runs, tmp_path):
     with h5py.File(tmp_path / "v1.h5", "a") as f:
         del f.attrs["version"]  # files from before the attribute are read
     assert read_cube(tmp_path / "v1.h5")[0].shape == (3, 12, 12)
+
+
+@pytest.mark.parametrize("version", [0, -3])
+def test_a_cube_file_of_a_version_below_one_is_refused(tmp_path, version):
+    """No hsicam ever wrote a version below 1 (files from before the attribute have none): refused
+    naming the version, by the readers and the command line alike, as a newer version is."""
+    path = _cube_file(tmp_path / "old.h5", version)
+    _both_readers_refuse(path, rf"^{path}: unknown hsicam cube format version {version} \(versions start at 1; "
+                               r"this hsicam reads version 1\): not a file that hsicam wrote, or a damaged one$")
+    out = tmp_path / "show"
+    res = run_cli_in_process("data", "show", str(path), "--out", str(out))
+    assert_clean_error(res, f"{path}: unknown hsicam cube format version {version}")
+    assert not out.exists()
+
+
+def test_a_cube_file_of_version_one_is_still_read_whole_and_windowed(tmp_path):
+    cube, bands, meta = read_cube(_cube_file(tmp_path / "v1.h5", 1))
+    assert cube.shape == (3, 12, 12) and meta["file_version"] == 1
+    assert bands.centers_nm.tolist() == [500.0, 550.0, 600.0]
+    window, _ = read_window(tmp_path / "v1.h5", 0, 0, 4, 4)
+    np.testing.assert_array_equal(window, cube[:, :4, :4])
 
 
 # ------------------------------------------------------------------------------------------------
