@@ -92,13 +92,16 @@ def test_sensor_distance_limits_are_the_psf_plans_own(tiny_config):
 
 
 def test_sensor_distance_limits_with_band_samples_and_a_singlet(tiny_config):
-    """Every simulated wavelength counts (band_samples > 1, a singlet's per-band focus)."""
+    """Every simulated wavelength counts (band_samples > 1, a singlet's per-band focus and its
+    rear principal plane moving with λ): the limits are where the camera built with the sensor
+    there is accepted by ``PSFModel``, just beyond refused."""
     from hsicam.optics.perturb import sensor_distance_aliasing, sensor_distance_limits_m
 
-    cam = DOECamera.from_config(tiny_config("camera.psf.band_samples=3", "camera.lens.model=singlet",
-                                            "camera.lens.radius_of_curvature_mm=2.3",
-                                            "camera.lens.center_thickness_mm=0.5"))
+    singlet = ("camera.psf.band_samples=3", "camera.lens.model=singlet", "camera.lens.radius_of_curvature_mm=2.3",
+               "camera.lens.center_thickness_mm=0.5")
+    cam = DOECamera.from_config(tiny_config(*singlet))
     o = cam.optics
+    assert np.ptp(o.line_sensor_distances_m) > 0  # the case this test is for
     lo, hi = sensor_distance_limits_m(o)
     for dz in (lo, hi):
         r = sensor_distance_aliasing(o, dz)
@@ -106,6 +109,12 @@ def test_sensor_distance_limits_with_band_samples_and_a_singlet(tiny_config):
     grid = np.linspace(lo * 1.5, hi * 1.5, 301)
     ok = np.array([float(sensor_distance_aliasing(o, dz).max()) <= 1 for dz in grid])
     np.testing.assert_array_equal(ok, (grid >= lo * (1 + 1e-12)) & (grid <= hi * (1 + 1e-12)))
+    z_mm = o.sensor_distance_m * 1e3
+    for dz in (lo, hi):
+        inside, outside = dz * (1 - 1e-4), dz * (1 + 1e-4)
+        DOECamera.from_config(tiny_config(*singlet, f"camera.sensor_distance_mm={z_mm + inside * 1e3!r}"))
+        with pytest.raises(ConfigError, match="pupil sampling can represent"):
+            DOECamera.from_config(tiny_config(*singlet, f"camera.sensor_distance_mm={z_mm + outside * 1e3!r}"))
 
 
 def test_tolerance_refuses_aliased_sensor_distances(fab_run, tmp_path, monkeypatch):

@@ -33,13 +33,16 @@ def nominal_heights(camera) -> torch.Tensor:
 
 
 def defocus_delta_per_m2(optics, dz_m: float) -> torch.Tensor:
-    """(π/λ)(1/(z_i + Δz) − 1/z_i) per simulated wavelength λ (rad/m²), float64 (C·M,): the band
+    """(π/λ)(1/(z_λ + Δz) − 1/z_λ) per simulated wavelength λ (rad/m²), float64 (C·M,): the band
     centres, or with ``band_samples`` M > 1 the M wavelengths over each band's FWHM at which the
     optics compute the PSF (``optics.line_wavelengths_nm``), so the added defocus matches the
-    design defocus wavelength by wavelength."""
-    lam = torch.as_tensor(np.asarray(optics.line_wavelengths_nm, dtype=np.float64) * 1e-9, dtype=torch.float64)
-    z = optics.sensor_distance_m
-    return math.pi / lam * (1.0 / (z + dz_m) - 1.0 / z)
+    design defocus wavelength by wavelength. z_λ is the sensor's distance from the lens's rear
+    principal plane at λ (``optics.line_sensor_distances_m``: a singlet's plane moves with λ), so
+    the sum with ``optics.defocus_per_m2`` is the defocus of the optics built with the sensor Δz
+    farther away (the PSF's scale, λ z_λ / pitch, is kept: a 1e-2 relative change at most)."""
+    lam = np.asarray(optics.line_wavelengths_nm, dtype=np.float64) * 1e-9
+    z = np.asarray(optics.line_sensor_distances_m, dtype=np.float64)
+    return torch.as_tensor(math.pi / lam * (1.0 / (z + dz_m) - 1.0 / z), dtype=torch.float64)
 
 
 def sensor_distance_aliasing(optics, dz_m: float) -> np.ndarray:
@@ -54,17 +57,21 @@ def sensor_distance_aliasing(optics, dz_m: float) -> np.ndarray:
 def sensor_distance_limits_m(optics) -> tuple[float, float]:
     """(Δz_min ≤ 0, Δz_max ≥ 0) (m): the sensor distance errors whose residual defocus the optics'
     pupil grid represents (:func:`sensor_distance_aliasing` ≤ 1 at every wavelength); ``inf`` where
-    no error on that side aliases (as far as the sensor can go). Closed form: with u = 1/(z + Δz) −
-    1/z, simulated wavelength ℓ needs |c_ℓ + π u/λ_ℓ| ≤ π/(2 a d) (``defocus_aliasing``)."""
+    no error on that side aliases (as far as the sensor can go). Closed form: with u_ℓ = 1/(z_ℓ + Δz)
+    − 1/z_ℓ (z_ℓ: ``optics.line_sensor_distances_m``), simulated wavelength ℓ needs
+    |c_ℓ + π u_ℓ/λ_ℓ| ≤ π/(2 a d) (``defocus_aliasing``); Δz falls as u_ℓ rises, so each wavelength
+    bounds Δz on both sides and the range is the intersection."""
     c0 = optics.defocus_per_m2.detach().double().cpu().numpy()
     lam = np.asarray(optics.line_wavelengths_nm, dtype=np.float64) * 1e-9
+    z = np.asarray(optics.line_sensor_distances_m, dtype=np.float64)
     limit = math.pi / (2.0 * optics.aperture_radius_m * optics.cell_m / optics.pupil_oversample)
-    u_lo = float(np.max((-limit - c0) * lam / math.pi))
-    u_hi = float(np.min((limit - c0) * lam / math.pi))
-    z = optics.sensor_distance_m
-    dz_min = 1.0 / (1.0 / z + u_hi) - z if u_hi > 0 else 0.0  # u > 0: the sensor nearer the lens
-    dz_max = math.inf if 1.0 / z + u_lo <= 0 else (1.0 / (1.0 / z + u_lo) - z if u_lo < 0 else 0.0)
-    return dz_min, dz_max
+    u_lo = (-limit - c0) * lam / math.pi  # (C·M,) the u_ℓ range each wavelength represents
+    u_hi = (limit - c0) * lam / math.pi
+    with np.errstate(divide="ignore"):
+        # u > 0: the sensor nearer the lens; 1/z + u_lo <= 0: no distance on that side aliases
+        dz_min = np.where(u_hi > 0, 1.0 / (1.0 / z + u_hi) - z, 0.0)
+        dz_max = np.where(1.0 / z + u_lo <= 0, math.inf, np.where(u_lo < 0, 1.0 / (1.0 / z + u_lo) - z, 0.0))
+    return float(dz_min.max()), float(dz_max.min())
 
 
 def shift_fill(x: torch.Tensor, dy: int, dx: int) -> torch.Tensor:
