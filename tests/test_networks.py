@@ -19,7 +19,7 @@ from hsicam.config import load_config
 from hsicam.engine.inference import reconstruct_tiled
 from hsicam.errors import ConfigError
 from hsicam.config import MosaicConfig, UnrolledConfig
-from hsicam.models.mosaic import build_mosaic, phase_pad
+from hsicam.models.mosaic import MosaicNet, build_mosaic, phase_pad
 from hsicam.models.rdn import RDNReconstructor
 from hsicam.models.unrolled import build_unrolled
 
@@ -228,6 +228,31 @@ def test_tiled_equals_whole_with_the_declared_context(kind, bright):
         assert not torch.allclose(short, whole, atol=1e-5), name  # the halo matters: the test can fail
 
 
+@pytest.mark.parametrize("detail", [0, 3])
+def test_an_untrained_half_resolution_stage_adds_nothing_to_a_trained_net(detail):
+    """The stage starts at zero (its tail and its detail output): added to a trained net (every
+    other parameter random), the output is that net's, bit for bit in float64."""
+    cam = camera("doe")
+    plain = dataclasses.replace(MOSAIC, factor=6, detail_features=detail)
+    base = randomise(build_mosaic(plain, cam), 0.3).double().eval()
+    staged = build_mosaic(dataclasses.replace(plain, mid_features=4, mid_blocks=1), cam).double().eval()
+    missing, unexpected = staged.load_state_dict(base.state_dict(), strict=False)
+    assert not unexpected and missing and all(k.startswith("mid_") for k in missing)
+    y, op = torch.rand(1, 1, 25, 31, dtype=torch.float64), cam.snapshot(nominal=True)
+    with torch.no_grad():
+        torch.testing.assert_close(staged(y, op), base(y, op), rtol=0, atol=0)
+        for name, p in staged.named_parameters():  # a stage that starts non-zero changes it: the test can fail
+            if name.startswith(("mid_tail", "mid_detail")):
+                p.add_(0.1)
+        assert not torch.allclose(staged(y, op), base(y, op))
+
+
+@pytest.mark.parametrize("mid", [dict(mid_features=-4), dict(mid_features=4, mid_blocks=-1)])
+def test_mosaic_net_built_directly_refuses_negative_stage_sizes(mid):
+    with pytest.raises(ValueError, match="mid_features and mid_blocks must be >= 0"):
+        MosaicNet(3, 6, features=8, blocks=1, **mid)
+
+
 @pytest.mark.parametrize("mid_blocks", [0, 1, 2])
 def test_the_half_resolution_stage_reach_is_in_the_declared_context(mid_blocks):
     """The gradient of the output over one cell reaches exactly as far into the sensor image as
@@ -240,7 +265,7 @@ def test_the_half_resolution_stage_reach_is_in_the_declared_context(mid_blocks):
     op = cam.snapshot(nominal=True)
     reach = 0
     rows = cols = torch.arange(size)
-    for i in range(ctx + 6, ctx + 12):  # every pixel of one 6 px cell
+    for i in range(ctx + 6, ctx + 12):  # six consecutive rows and columns: every phase of the factor 6
         for j in range(ctx + 6, ctx + 12):
             (grad,) = torch.autograd.grad(net(y, op)[0, :, i, j].sum(), y)
             hit = grad[0, 0].abs() > 0

@@ -337,7 +337,7 @@ class MosaicConfig:
     head_layers: int = 3  # 3×3 convs of the head at full resolution (0: no head)
     detail_features: int = 0  # trunk features passed per pixel to the head (pixel-shuffled), with g − κ·x̃; 0 = off
     mid_features: int = 0  # channels of a half-resolution stage between the trunk and the head; 0 = off (factor must be even)
-    mid_blocks: int = 2  # residual blocks (two 3×3 convs each) of the half-resolution stage
+    mid_blocks: int = 2  # residual blocks (two 3×3 convs each) of the half-resolution stage; unused while mid_features is 0
     demosaic_window: int = 0  # width (px, odd) of the demosaic skip; 0 = the CFA period rounded up to odd (box), 2·period − 1 (tent)
     # weights of the demosaic skip: box (flat) or tent (separable triangle: the weighted-bilinear MSFA demosaic)
     demosaic_kernel: Literal["box", "tent"] = "box"

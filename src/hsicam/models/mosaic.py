@@ -128,6 +128,8 @@ class MosaicNet(nn.Module):
         extra = 1 + self.detail_features if self.detail_features else 0
         self.head = RefineHead(bands, head_features, head_layers, extra) if head_layers > 0 else None
         self.mid_features, self.mid_blocks = int(mid_features), int(mid_blocks)
+        if self.mid_features < 0 or self.mid_blocks < 0:
+            raise ValueError(f"mid_features and mid_blocks must be >= 0, got {mid_features} and {mid_blocks}")
         if self.mid_features:
             if factor % 2:
                 raise ValueError(f"a half-resolution stage needs an even factor, got {factor}")
