@@ -177,9 +177,10 @@ class MosaicNet(nn.Module):
         out_p = F.pixel_shuffle(self.tail(feat), m) + s_p  # on the padded, cell-aligned grid
         u_p = F.pixel_shuffle(self.detail(feat), m) if self.detail is not None else None
         if self.detail is not None or self.mid_features:
-            predicted = (code.unsqueeze(0) * skip_n).sum(dim=1, keepdim=True)  # κ·x̃: g as the box estimate sees it
+            # g − κ·x̃: what the sensor holds beyond the skip's estimate seen through each pixel's filter
+            residual = g_n - (code.unsqueeze(0) * skip_n).sum(dim=1, keepdim=True)
         if self.mid_features:
-            r_p, _ = phase_pad(g_n - predicted, m, origin)
+            r_p, _ = phase_pad(residual, m, origin)
             mid_in = torch.cat([F.pixel_unshuffle(g_p, 2), F.pixel_unshuffle(r_p, 2), F.avg_pool2d(out_p, 2)], dim=1)
             z = self.mid_body(self.mid_stem(mid_in) + F.pixel_shuffle(self.mid_lift(feat), m // 2))
             out_p = out_p + F.pixel_shuffle(self.mid_tail(z), 2)
@@ -188,7 +189,7 @@ class MosaicNet(nn.Module):
         out_n = out_p[..., top : top + h, left : left + w]
         if self.detail is not None:
             u = F.relu(u_p[..., top : top + h, left : left + w])
-            out_n = out_n + self.head(out_n, g_n, g_n - predicted, u)
+            out_n = out_n + self.head(out_n, g_n, residual, u)
         elif self.head is not None:
             out_n = out_n + self.head(out_n, g_n)
         return out_n if b is None else out_n * b

@@ -215,7 +215,7 @@ def resampling_matrix(src: Bands, dst: Bands) -> np.ndarray:
 
 def _interpolation_rows(s: np.ndarray, x: np.ndarray) -> np.ndarray:
     """(len(x), len(s)): linear-interpolation weights of the points ``x`` (inside [s₀, s₋₁]) on the
-    ascending grid ``s``; vectorised :func:`interpolation_matrix` without its checks."""
+    ascending grid ``s`` (≥ 2 points); the arithmetic of :func:`interpolation_matrix`, without its checks."""
     x = np.clip(x, s[0], s[-1])
     j = np.clip(np.searchsorted(s, x, side="right") - 1, 0, len(s) - 2)
     t = (x - s[j]) / (s[j + 1] - s[j])
@@ -236,19 +236,9 @@ def interpolation_matrix(src: Bands, dst: Bands) -> np.ndarray:
             f"cannot resample {src!r} onto {dst!r}: the target range "
             f"{nm_text(dst.min_nm)}-{nm_text(dst.max_nm)} nm is not covered by {nm_text(src.min_nm)}-{nm_text(src.max_nm)} nm"
         )
-    s = src.centers_nm
-    w = np.zeros((len(dst), len(src)), dtype=np.float64)
-    for i, lam in enumerate(dst.centers_nm):
-        if len(src) == 1:
-            w[i, 0] = 1.0
-            continue
-        lam = float(np.clip(lam, s[0], s[-1]))
-        j = int(np.searchsorted(s, lam, side="right")) - 1
-        j = min(max(j, 0), len(s) - 2)
-        t = (lam - s[j]) / (s[j + 1] - s[j])
-        w[i, j] = 1.0 - t
-        w[i, j + 1] = t
-    return w
+    if len(src) == 1:
+        return np.ones((len(dst), 1), dtype=np.float64)
+    return _interpolation_rows(src.centers_nm, dst.centers_nm)
 
 
 def resample_spectra(values: np.ndarray | torch.Tensor, src: Bands, dst: Bands, axis: int = 0) -> np.ndarray | torch.Tensor:
