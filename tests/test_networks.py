@@ -496,6 +496,12 @@ def test_ssim_and_spectral_angle_loss_terms_against_independent_references():
     assert float(loss.detach()) == pytest.approx(0.0, abs=2e-3)  # acos is clamped at 1 − 1e-6
     loss.backward()
     assert torch.isfinite(perfect.grad).all()
+    black = truth.clone()
+    black[0, :, 3, 4] = 0.0  # a bright pixel reconstructed as a zero spectrum: an angle of 90°, a finite gradient
+    black.requires_grad_(True)
+    loss = system_loss(black, truth, TrainConfig(sam_loss=1.0, relative_eps=0.2))
+    loss.backward()
+    assert torch.isfinite(black.grad).all()
     with pytest.raises(ConfigError, match="sam_loss"):
         TrainConfig(sam_loss=-1.0)
     with pytest.raises(ConfigError, match="ssim_loss"):
