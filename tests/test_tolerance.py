@@ -161,3 +161,48 @@ def test_sensor_defocus_of_a_singlet_is_the_camera_built_with_the_sensor_moved(t
         z = o.sensor_distance_m
         nominal_z = math.pi / lam * (1.0 / (z + dz) - 1.0 / z)
         assert float(((nominal_z - delta) / delta).abs().max()) > 1e-5  # the per-wavelength z matters here
+
+
+def test_sensor_moved_psf_is_the_camera_built_with_the_sensor_moved(tiny_camera):
+    """The tolerance study's sensor-distance PSFs are those of the camera whose sensor sits Δz farther,
+    defocus and far-field scale both (a singlet, 3 wavelengths per band, a trained-like relief), in the
+    camera's own kernel: the central K×K of the moved camera built from its config with a wider kernel.
+    At Δz = 0 it is the camera's PSF; the defocus alone (the study's old model) misses the scale."""
+    from hsicam.optics.perturb import psf_sensor_moved
+
+    singlet = ("camera.psf.band_samples=3", "camera.lens.model=singlet", "camera.lens.radius_of_curvature_mm=2.3",
+               "camera.lens.center_thickness_mm=0.5")
+    cam = tiny_camera(*singlet)
+    with torch.no_grad():
+        cam.optics.doe.height_m.uniform_(0.0, 600e-9, generator=torch.Generator().manual_seed(5))
+        p0 = cam.psf()
+    o, h0 = cam.optics, nominal_heights(cam)
+    k = o.kernel_px
+    torch.testing.assert_close(psf_sensor_moved(o, h0, 0.0).psf, p0, rtol=0, atol=1e-7)
+    for dz in (-30e-6, 40e-6):
+        wide = k + 8
+        ref = tiny_camera(*singlet, f"camera.sensor_distance_mm={(o.sensor_distance_m + dz) * 1e3!r}",
+                          f"camera.psf.kernel_px={wide}")
+        ref.load_state_dict(cam.state_dict())
+        with torch.no_grad():
+            want = ref.psf()[..., 4:4 + k, 4:4 + k]
+        got = psf_sensor_moved(o, h0, dz)
+        torch.testing.assert_close(got.psf, want, rtol=0, atol=1e-7)
+        torch.testing.assert_close(got.energy, want.sum(dim=(-2, -1)), rtol=1e-6, atol=1e-7)
+        defocus_only = psf_for_heights(o, h0, defocus_delta_per_m2(o, dz)).psf
+        assert float((defocus_only - want).abs().sum() / want.sum()) > 1e-3  # the scale Δz/z moves light
+
+
+def test_rebuilt_optics_keep_the_lens_design_wavelength(tiny_camera):
+    """The misalignment study's oversampled optics (and the moved-sensor ones) are rebuilt from the
+    camera's: a singlet focused at 500 nm (not the default 587.6 nm, whose rear principal plane sits
+    elsewhere) rebuilt at its own pupil sampling gives the camera's PSFs."""
+    cam = tiny_camera("camera.lens.model=singlet", "camera.lens.radius_of_curvature_mm=2.3",
+                      "camera.lens.center_thickness_mm=0.5", "camera.lens.design_wavelength_nm=500")
+    o = cam.optics
+    with torch.no_grad():
+        p0 = cam.psf()
+    same = oversampled_optics(o, o.pupil_oversample)
+    assert same.lens_design_wavelength_nm == 500
+    np.testing.assert_array_equal(same.line_sensor_distances_m, o.line_sensor_distances_m)
+    torch.testing.assert_close(psf_for_heights(same, nominal_heights(cam)).psf, p0, rtol=0, atol=1e-7)

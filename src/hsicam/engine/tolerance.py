@@ -18,10 +18,14 @@ PSNR (per band, peak 1; also SSIM and SAM) over validation scenes versus each pe
   back in — so comparing with the nominal PSNR would mix that modelling change into the shift
   effect. (A Fourier sub-cell shift would ring on the stepped relief; area-averaging the shifted
   transmission at q = 1 would report the aliased light as lost.)
-* **sensor distance error** Δz (µm): the residual defocus term of every band becomes
-  (π/λ)(1/z_o + 1/(z_i + Δz) − 1/f_λ) with the nominal sampling; the image magnification change
-  Δz/z_i is neglected (reported as ``magnification_change``; e.g. 0.3 % for 100 µm at 35 mm) and
-  so is the PSF scale change. ``defocus_waves`` is the peak residual defocus (R²/2)·Δ(1/z)/λ at
+* **sensor distance error** Δz (µm): the optics are rebuilt with the sensor Δz farther
+  (:func:`~hsicam.optics.perturb.psf_sensor_moved`), so every simulated wavelength gets its residual
+  defocus (π/λ)(1/z_o + 1/(z_λ + Δz) − 1/f_λ) and its PSF grows by Δz/z_λ (the far field's scale
+  λ(z_λ + Δz)/d; at +1 mm on the quick camera the scale alone moves 14 % of the PSF's light against
+  the defocus alone), in the camera's K×K kernel (light that leaves it lowers ``energy``). The
+  scene's own magnification change Δz/z_i is not applied to the images (reported as
+  ``magnification_change``; e.g. 0.3 % for 100 µm at 35 mm): the network sees the same field a
+  hair wider or narrower. ``defocus_waves`` is the peak residual defocus (R²/2)·Δ(1/z)/λ at
   the design wavelength. The PSFs are computed on the run's own pupil grid, so a Δz whose defocus
   aliases there (:func:`~hsicam.optics.sampling.defocus_aliasing` > 1, the criterion with which
   :class:`~hsicam.optics.psf.PSFModel` refuses a sensor distance) is refused up front, naming the
@@ -57,7 +61,7 @@ import torch
 
 from hsicam.errors import InputError
 from hsicam.optics.perturb import (
-    defocus_delta_per_m2, nominal_heights, oversampled_optics, psf_for_heights, psf_shifted, sensor_distance_aliasing,
+    nominal_heights, oversampled_optics, psf_for_heights, psf_sensor_moved, psf_shifted, sensor_distance_aliasing,
     sensor_distance_limits_m, shift_subsamples_for,
 )
 from hsicam.report.tolerance import plot_tolerance
@@ -346,7 +350,7 @@ def run_tolerance(model, cfg, spec: ToleranceSpec = ToleranceSpec(), data: str |
     z = optics.sensor_distance_m
     for dz_um in spec.sensor_distance_um:
         dz = dz_um * 1e-6
-        res = psf_for_heights(optics, h0, defocus_delta_per_m2(optics, dz))
+        res = psf_sensor_moved(optics, h0, dz)
         waves = optics.aperture_radius_m**2 / 2 * (1 / (z + dz) - 1 / z) / lam0
         record("sensor_distance_um", dz_um, "um", [evaluate_psf(model, res.psf, scenes, names, spec.seed)], res.energy,
                defocus_waves=float(waves), magnification_change=float(dz / z))

@@ -9,7 +9,7 @@ import numpy as np
 import torch
 
 from hsicam.optics.psf import PSFModel
-from hsicam.optics.sampling import defocus_aliasing
+from hsicam.optics.sampling import defocus_aliasing, odd_ceil
 
 # ------------------------------------------------------------------------------------------------
 @torch.no_grad()
@@ -86,13 +86,47 @@ def shift_fill(x: torch.Tensor, dy: int, dx: int) -> torch.Tensor:
     return out
 
 
-def oversampled_optics(optics, q: int):
+def rebuilt_optics(optics, **changes) -> PSFModel:
+    """A :class:`~hsicam.optics.psf.PSFModel` like ``optics`` (the same DOE module, lens and its design
+    wavelength, aperture, cells, pixels, distances, kernel, sampling, band samples) with the keyword
+    arguments in ``changes`` replaced, on the same device."""
+    kwargs = dict(lens_design_wavelength_nm=optics.lens_design_wavelength_nm, sensor_distance_m=optics.sensor_distance_m,
+                  object_distance_m=optics.object_distance_m, kernel_px=optics.kernel_px,
+                  supersample=optics.sampling.supersample, pupil_oversample=optics.pupil_oversample,
+                  band_samples=optics.band_samples)
+    unknown = set(changes) - set(kwargs)
+    if unknown:
+        raise TypeError(f"rebuilt_optics: unknown changes {sorted(unknown)}")
+    kwargs.update(changes)
+    return PSFModel(optics.bands, optics.lens, optics.doe, optics.aperture_radius_m, optics.cell_m, optics.pixel_m,
+                    **kwargs).to(optics.amplitude.device)
+
+
+def oversampled_optics(optics, q: int) -> PSFModel:
     """The camera's optics (same DOE module, lens, aperture, sensor distance, kernel) with pupil
     oversampling ``q``: each DOE cell split into q×q samples."""
-    return PSFModel(optics.bands, optics.lens, optics.doe, optics.aperture_radius_m, optics.cell_m, optics.pixel_m,
-                    sensor_distance_m=optics.sensor_distance_m, object_distance_m=optics.object_distance_m,
-                    kernel_px=optics.kernel_px, supersample=optics.sampling.supersample, pupil_oversample=q,
-                    band_samples=optics.band_samples).to(optics.amplitude.device)
+    return rebuilt_optics(optics, pupil_oversample=q)
+
+
+@torch.no_grad()
+def psf_sensor_moved(optics, h_cells_m: torch.Tensor, dz_m: float):
+    """:class:`~hsicam.optics.psf.PSFResult` of the camera's optics with cell heights ``h_cells_m``
+    (n, n) (m) and the sensor ``dz_m`` farther from the lens (negative: nearer), exactly: the optics
+    rebuilt at sensor distance z + Δz, so every simulated wavelength gets its residual defocus
+    (π/λ)(1/z_o + 1/(z_λ + Δz) − 1/f_λ) *and* its far-field scale λ(z_λ + Δz)/d (the PSF grows by
+    Δz/z_λ; :func:`defocus_delta_per_m2` adds the defocus alone). The kernel stays the camera's K×K:
+    where the moved sensor's far-field period needs a wider kernel, the PSF is computed on that one
+    and its central K×K is kept, so ``energy`` reports the light that falls outside."""
+    k = optics.kernel_px
+    z = optics.sensor_distance_m + float(dz_m)
+    lam_max = float(np.max(optics.line_wavelengths_nm)) * 1e-9
+    z_far = float(np.max(optics.line_sensor_distances_m)) + float(dz_m)
+    need = odd_ceil(lam_max * z_far / (optics.cell_m * optics.pixel_m))  # PSFModel's smallest kernel there
+    moved = rebuilt_optics(optics, sensor_distance_m=z, kernel_px=max(k, need))
+    res = psf_for_heights(moved, h_cells_m)
+    r = (moved.kernel_px - k) // 2
+    psf = res.psf[..., r:r + k, r:r + k] if r else res.psf
+    return type(res)(psf, psf.sum(dim=(-2, -1)))
 
 
 def shift_subsamples_for(optics, subsamples: int) -> int:
