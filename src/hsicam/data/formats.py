@@ -918,7 +918,10 @@ def _envi_header_for(p: Path) -> Path | None:
     return None
 
 
-def _envi_data_for(hdr: Path) -> Path | None:
+def envi_data_file(hdr: str | os.PathLike) -> Path | None:
+    """The raw data file next to the ENVI header ``hdr`` (same name without ``.hdr``, or with one of
+    the usual data suffixes: ``.img``, ``.dat``, ``.raw``, …), or None when there is none."""
+    hdr = Path(hdr)
     base = hdr.with_suffix("")
     for suffix in _ENVI_DATA_SUFFIXES:
         cand = base.with_name(base.name + suffix)
@@ -945,7 +948,7 @@ def read_envi(path: str | os.PathLike, *, allow_negative: bool = False, memory_b
     """
     p = _as_path(path)
     if _head(p, 64).lstrip().startswith(b"ENVI"):
-        hdr, data = p, _envi_data_for(p)
+        hdr, data = p, envi_data_file(p)
         if data is None:
             raise InputError(f"{p}: ENVI data file not found next to the header (tried {hdr.with_suffix('').name}"
                              f"{{{','.join(s for s in _ENVI_DATA_SUFFIXES if s)}}})")
@@ -1297,6 +1300,7 @@ __all__ = [
     "assumed_bands_note",
     "bands_400_700",
     "detect_format",
+    "envi_data_file",
     "exr_channel_wavelength",
     "npy_header",
     "parse_envi_header",

@@ -53,9 +53,9 @@ def scene_files(scene: str | os.PathLike) -> list[Path]:
     if p.is_dir():
         return sorted(f for f in p.rglob("*") if f.is_file())
     if p.suffix.lower() == ".hdr":
-        from hsicam.data.formats import _envi_data_for
+        from hsicam.data.formats import envi_data_file
 
-        data = _envi_data_for(p)
+        data = envi_data_file(p)
         return [p] if data is None else [p, data]
     return [p]
 
