@@ -273,3 +273,20 @@ def test_without_fcntl_nothing_is_locked_and_every_temporary_is_removed(tmp_path
     stale[0].mkdir()
     prepare_output(tmp_path / "out", "dir")
     assert hidden(tmp_path) == []
+
+
+def test_a_run_folders_temporary_in_use_is_not_removed_by_a_run_check(tmp_path):
+    """check_run_dir / restart_run_dir clear the temporaries a killed process left around a run folder,
+    never the temporary of a folder being written now (here by this process, under its OutputLock);
+    once its writer is gone, a leftover of the same name is removed."""
+    from hsicam.runs.folder import remove_run_temporaries
+
+    run = tmp_path / "run"
+    with atomic_output(run) as tmp:
+        (tmp / "config.yaml").write_text("x: 1\n")
+        assert remove_run_temporaries(run) == []
+        assert (tmp / "config.yaml").is_file()
+    assert (run / "config.yaml").is_file() and hidden(tmp_path) == []
+    stale = tmp_path / ".run.0a1b2c3d.tmpdir"
+    stale.mkdir()
+    assert remove_run_temporaries(run) == [stale] and hidden(tmp_path) == []
