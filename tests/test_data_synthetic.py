@@ -180,3 +180,27 @@ def test_training_on_cached_data_does_not_import_colour(dataset):
         "assert 'colour' not in sys.modules, 'colour-science was imported'\n"
     )
     subprocess.run([sys.executable, "-c", code], check=True, timeout=120)
+
+
+def test_unseen_layout_scenes(lib):
+    """Scenes of scikit-image images that no generated scene uses (UNSEEN_LAYOUTS, all bundled offline):
+    deterministic, (C, size, size) float32 in [0, 1] with maximum 1, their layout recorded, drawn
+    from their own stream (not the generator's scene of the same index), lit as generated scenes."""
+    assert not set(syn.UNSEEN_LAYOUTS) & set(syn.PHOTOS + syn.TEXTURES)
+    assert len(set(syn.UNSEEN_LAYOUTS)) == 8
+    seen = set()
+    for i in range(len(syn.UNSEEN_LAYOUTS)):
+        cube, info = syn.unseen_layout_scene(i, 0, 40, lib)
+        assert cube.dtype == np.float32 and cube.shape == (len(PAPER), 40, 40)
+        assert cube.min() >= 0 and cube.max() == pytest.approx(1.0)
+        assert info["kind"] == "unseen_layout" and info["layout"] == syn.UNSEEN_LAYOUTS[i]
+        assert info["materials"] in (2, 3) and info["lighting"] in ("single", "blend", "sun_sky")
+        seen.add(info["layout"])
+        again, _ = syn.unseen_layout_scene(i, 0, 40, lib)
+        np.testing.assert_array_equal(cube, again)
+        other, _ = syn.generate_scene(i, 0, 40, lib)
+        assert not np.array_equal(cube, other)
+    assert seen == set(syn.UNSEEN_LAYOUTS)
+    a, _ = syn.unseen_layout_scene(0, 0, 40, lib)
+    b, _ = syn.unseen_layout_scene(0, 1, 40, lib)
+    assert not np.array_equal(a, b)  # another seed, another crop and palette

@@ -120,3 +120,25 @@ def test_tune_gaptv_sweeps_training_scenes_and_parses_schedules(tmp_path, cache_
     assert [(r["iterations"], r["tv_weight"]) for r in rows] == [(1, "0.01"), (1, "0.1>0.01"), (20, "0.01"), (20, "0.1>0.01")]
     assert rows[2]["psnr"] > rows[0]["psnr"]  # more GAP iterations fit the measurement better
     assert "DD-CASSI + GAP-TV on 1 training scenes" in proc.stdout and "| 20 | 0.01 |" in proc.stdout
+
+
+def test_unseen_layouts_script_writes_readable_scenes_whole_or_not_at_all(tmp_path):
+    from hsicam.data import read_cube
+    from hsicam.data.datasets import list_scenes
+    from hsicam.data.synthetic import UNSEEN_LAYOUTS
+    from hsicam.spectral import Bands
+
+    out = tmp_path / "unseen"
+    proc = _run("unseen_layouts.py", str(out), "--n", "2", "--size", "32")
+    assert proc.returncode == 0, proc.stderr
+    files = sorted(out.glob("*.h5"))
+    assert [f.name for f in files] == [f"scene_{i:04d}_{UNSEEN_LAYOUTS[i]}.h5" for i in range(2)]
+    assert list_scenes(out) == files  # a data folder `evaluate --data` takes (no command-output marker)
+    data, bands, meta = read_cube(files[1])
+    np.testing.assert_allclose(bands.centers_nm, Bands.paper().centers_nm)
+    assert data.shape == (31, 32, 32) and float(data.max()) == 1.0
+    assert meta["layout"] == UNSEEN_LAYOUTS[1] and meta["split"] == "heldout"
+    again = _run("unseen_layouts.py", str(out), "--n", "1")
+    assert again.returncode == 2 and "exists" in again.stderr
+    bad = _run("unseen_layouts.py", str(tmp_path / "bad"), "--n", "0")
+    assert bad.returncode == 2 and "--n must be >= 1" in bad.stderr and not (tmp_path / "bad").exists()

@@ -86,6 +86,10 @@ SCHEDULE = ("dead_leaves", "photo", "texture", "edges", "dead_leaves", "smooth",
 PHOTOS = ("astronaut", "chelsea", "coffee", "rocket", "motorcycle_left", "motorcycle_right",
           "immunohistochemistry", "colorwheel", "retina", "hubble_deep_field")
 TEXTURES = ("brick", "grass", "gravel", "camera", "moon", "coins", "clock")
+#: scikit-image images that no generated scene uses (:func:`unseen_layout_scene`).
+UNSEEN_LAYOUTS = ("page", "text", "horse", "cell", "shepp_logan_phantom", "logo", "microaneurysms", "checkerboard")
+#: Third element of the random stream of unseen-layout scenes.
+UNSEEN_LAYOUT_STREAM = 0x1A70
 _ILLUMINANT_GROUP_WEIGHTS = {"daylight": 0.36, "fluorescent": 0.22, "incandescent": 0.16, "led": 0.16,
                              "discharge": 0.07, "other": 0.03}
 #: How the reflectance of a surface is made: a measured spectrum or one derived from measured ones.
@@ -763,6 +767,17 @@ def _scene_texture(rng: np.random.Generator, size: int, lib: SpectralLibrary) ->
     else:
         t, name = _procedural_texture(rng, size)
     t = t ** float(rng.uniform(0.6, 1.6))
+    albedo, k, kinds = _materials(rng, t, lib)
+    info: dict[str, Any] = {"texture": name, "materials": k, "palette": _count(kinds)}
+    if rng.random() < 0.3:
+        info["details"] = _details(rng, albedo, lib)
+    return albedo, info, None
+
+
+def _materials(rng: np.random.Generator, t: np.ndarray, lib: SpectralLibrary) -> tuple[np.ndarray, int, np.ndarray]:
+    """A grey layout ``t`` (H, W) in [0, 1] painted with 2 or 3 palette spectra: (reflectance (H, W, C)
+    float32, the number of materials, their palette kinds). Two blend linearly along ``t``; three
+    softly quantise it."""
     k = int(rng.integers(2, 4))
     spectra, kinds = palette(rng, lib, k)
     if k == 2:
@@ -772,11 +787,7 @@ def _scene_texture(rng: np.random.Generator, size: int, lib: SpectralLibrary) ->
         w = np.exp(-((t[None] - levels[:, None, None]) ** 2) / (2 * 0.08 ** 2))
         w /= w.sum(axis=0, keepdims=True)
         albedo = np.einsum("khw,kc->hwc", w, spectra)
-    albedo = albedo.astype(np.float32)
-    info: dict[str, Any] = {"texture": name, "materials": k, "palette": _count(kinds)}
-    if rng.random() < 0.3:
-        info["details"] = _details(rng, albedo, lib)
-    return albedo, info, None
+    return albedo.astype(np.float32), k, kinds
 
 
 def _scene_edges(rng: np.random.Generator, size: int, lib: SpectralLibrary) -> Scene:
@@ -891,6 +902,30 @@ def generate_scene(index: int, seed: int, size: int, lib: SpectralLibrary) -> tu
     rng = np.random.default_rng(stream)
     kind = SCHEDULE[index % len(SCHEDULE)]
     albedo, info, emission = _SCENES[kind](rng, size, lib)  # (H, W, C) reflectance (shaded)
+    return _lit(rng, size, lib, kind, albedo, info, emission, f"scene {index} of seed {seed}")
+
+
+def unseen_layout_scene(index: int, seed: int, size: int, lib: SpectralLibrary) -> tuple[np.ndarray, dict[str, Any]]:
+    """A scene whose spatial layout no generated scene uses: scikit-image image
+    ``UNSEEN_LAYOUTS[index % 8]`` (document text, a silhouette, microscopy, a phantom, a logo, a
+    retina's vessels, a checkerboard; a random crop, zoomed out by at most 1.5×, flipped at random), painted with 2 or
+    3 spectra of ``lib`` and lit as :func:`generate_scene` lights its scenes. (cube (C, size, size)
+    float32 with maximum 1, info). With the held-out library (``split="heldout"``) neither its
+    layout nor its spectra occur in the training scenes: a test of both kinds of generalisation
+    (``scripts/unseen_layouts.py`` writes a folder of them). Drawn from its own random stream."""
+    rng = np.random.default_rng([int(seed), int(index), UNSEEN_LAYOUT_STREAM])
+    name = UNSEEN_LAYOUTS[index % len(UNSEEN_LAYOUTS)]
+    t = _random_crop(rng, _texture(name), size, max_zoom_out=1.5)
+    albedo, k, kinds = _materials(rng, t, lib)
+    info = {"layout": name, "materials": k, "palette": _count(kinds)}
+    return _lit(rng, size, lib, "unseen_layout", albedo, info, None, f"unseen-layout scene {index} of seed {seed}")
+
+
+def _lit(rng: np.random.Generator, size: int, lib: SpectralLibrary, kind: str, albedo: np.ndarray,
+         info: dict[str, Any], emission: np.ndarray | None, label: str) -> tuple[np.ndarray, dict[str, Any]]:
+    """Light a scene's reflectance ``albedo`` (H, W, C) as every generated scene is lit (one source,
+    two blended, or sun and sky; shading, dimming, highlights; ``emission`` added), divided by its
+    maximum: (cube (C, H, W) float32, info). ``label`` names the scene in the error for a black one."""
     # illumination: one source; two blended across the scene; or sun + sky with cast shadows
     e1 = _pick_illuminant(rng, lib)
     names = [lib.illuminant_names[e1]]
@@ -933,7 +968,7 @@ def generate_scene(index: int, seed: int, size: int, lib: SpectralLibrary) -> tu
     np.maximum(cube, 0.0, out=cube)
     peak = float(cube.max())
     if not peak > 0:
-        raise InputError(f"synthetic: scene {index} of seed {seed} came out black")  # pragma: no cover
+        raise InputError(f"synthetic: {label} came out black")  # pragma: no cover
     cube /= np.float32(peak)
     return cube, {"kind": kind, "illuminants": names, "lighting": mode, "dim": round(dim, 5), **info}
 
@@ -947,6 +982,7 @@ __all__ = [
     "PALETTE_KINDS",
     "SOURCES",
     "SUPPORTED_RANGE_NM",
+    "UNSEEN_LAYOUTS",
     "SpectralLibrary",
     "band_matrix",
     "cache_key",
@@ -968,4 +1004,5 @@ __all__ = [
     "spectral_library",
     "split_library",
     "synthetic_dataset",
+    "unseen_layout_scene",
 ]
