@@ -275,18 +275,26 @@ def test_without_fcntl_nothing_is_locked_and_every_temporary_is_removed(tmp_path
     assert hidden(tmp_path) == []
 
 
-def test_a_run_folders_temporary_in_use_is_not_removed_by_a_run_check(tmp_path):
+def test_a_run_folders_temporary_in_use_is_not_removed_by_a_run_check(tmp_path, start):
     """check_run_dir / restart_run_dir clear the temporaries a killed process left around a run folder,
-    never the temporary of a folder being written now (here by this process, under its OutputLock);
-    once its writer is gone, a leftover of the same name is removed."""
+    never the temporary of a folder that another process is writing now (under its OutputLock); where
+    this process holds that lock (a training making its new run), a killed writer's go."""
+    from hsicam.io import OutputLock
     from hsicam.runs.folder import remove_run_temporaries
 
     run = tmp_path / "run"
-    with atomic_output(run) as tmp:
-        (tmp / "config.yaml").write_text("x: 1\n")
-        assert remove_run_temporaries(run) == []
-        assert (tmp / "config.yaml").is_file()
-    assert (run / "config.yaml").is_file() and hidden(tmp_path) == []
+    w = start(WRITE_FOLDER, run)
+    assert remove_run_temporaries(run) == []  # used to delete the writer's temporary folder
+    assert (w.what / "first.txt").read_text() == "first"
+    assert_ok(w.go())
+    assert sorted(p.name for p in run.iterdir()) == [".complete", "first.txt", "second.txt"]
     stale = tmp_path / ".run.0a1b2c3d.tmpdir"
     stale.mkdir()
     assert remove_run_temporaries(run) == [stale] and hidden(tmp_path) == []
+    new = tmp_path / "new"
+    w = start(WRITE_FOLDER, new)
+    w.kill()
+    with OutputLock(new, "train") as lock:
+        lock.acquire()
+        assert remove_run_temporaries(new) == [w.what]
+    assert hidden(tmp_path) == []

@@ -27,7 +27,7 @@ from typing import Any
 import torch
 
 from hsicam.errors import HsicamError, InputError
-from hsicam.io import atomic_open, cleanup_stale_temporaries, is_temporary, remove_if_stale
+from hsicam.io import atomic_open, cleanup_stale_temporaries, held_here, is_temporary, output_lock_path, remove_if_stale
 from hsicam.runs.checkpoint import LEGACY_POINTERS, MANIFEST, CheckpointManager, load_weights, root_weights_path
 from hsicam.runs.linear_step import LINEAR_STEP_FILE, load_linear_step, stale_reason
 from hsicam.runs.lock import LOCK_FILE
@@ -314,15 +314,24 @@ def finetune_source(run_dir: Path) -> tuple[str | None, str | None]:
 
 def remove_run_temporaries(run_dir: Path) -> list[Path]:
     """Remove the hidden temporaries of a killed run: inside ``run_dir`` (recursively) and the
-    temporary siblings ``.NAME.XXXXXXXX.tmpdir`` of the folder itself; never one that a process is
-    writing now (:func:`~hsicam.io.remove_if_stale`: a folder output's temporary under its lock)."""
+    temporary siblings ``.NAME.XXXXXXXX.tmpdir`` of the folder itself. Never one that another process
+    is writing now (it holds the folder's :class:`~hsicam.io.OutputLock`:
+    :func:`~hsicam.io.remove_if_stale` leaves it). Where this process holds that lock (a new run:
+    the training takes it before it checks the folder, and makes its own temporary only later), the
+    siblings are a killed run's, and go."""
     run_dir = Path(run_dir)
     removed = cleanup_stale_temporaries(run_dir, recursive=True) if run_dir.is_dir() else []
     parent = run_dir.parent
     if parent.is_dir():
+        ours = held_here(output_lock_path(run_dir))
         for p in sorted(parent.glob(f".{run_dir.name}.*")):
-            if is_temporary(p.name) and p.name[len(run_dir.name) + 2:].count(".") == 1 and remove_if_stale(p):
-                removed.append(p)
+            if not (is_temporary(p.name) and p.name[len(run_dir.name) + 2:].count(".") == 1):
+                continue
+            if ours:
+                shutil.rmtree(p, ignore_errors=True) if p.is_dir() else p.unlink(missing_ok=True)
+            elif not remove_if_stale(p):
+                continue
+            removed.append(p)
     return removed
 
 
