@@ -1,10 +1,10 @@
 """A folder of scenes whose spatial layouts no generated scene uses, for a generalisation test:
-scikit-image's document page and text, a horse silhouette, microscopy cells, the Shepp-Logan
-phantom, a logo, a retina's micro-aneurysms and a checkerboard (hsicam.data.synthetic.UNSEEN_LAYOUTS),
-each painted with 2 or 3 spectra and lit as the generator lights its scenes
-(hsicam.data.synthetic.unseen_layout_scene).
+scikit-image's horse silhouette, microscopy cells, the Shepp-Logan phantom, a logo, a retina's
+micro-aneurysms, binary blobs and a mosaic of faces (hsicam.data.synthetic.UNSEEN_LAYOUTS: none is a
+photo, texture or pattern of the generator), each painted with 2 or 3 spectra and lit as the
+generator lights its scenes (hsicam.data.synthetic.unseen_layout_scene).
 
-    python scripts/unseen_layouts.py OUT [--n 8] [--seed 0] [--size 256] [--split heldout|train]
+    python scripts/unseen_layouts.py OUT [--n 7] [--seed 0] [--size 256] [--split heldout|train]
 
 ``--split heldout`` (default): the spectra come from the held-out sources only (data.holdout_sources'
 default), so neither layout nor spectra occur in a training scene; ``train``: the training library
@@ -35,7 +35,7 @@ from hsicam.spectral import Bands
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("out", help="folder to write (must not exist)")
-    p.add_argument("--n", type=int, default=len(UNSEEN_LAYOUTS), help="number of scenes (layouts repeat after 8)")
+    p.add_argument("--n", type=int, default=len(UNSEEN_LAYOUTS), help=f"number of scenes (layouts repeat after {len(UNSEEN_LAYOUTS)})")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--size", type=int, default=256, help="scene size in pixels")
     p.add_argument("--split", choices=("heldout", "train"), default="heldout", help="spectral library")

@@ -193,6 +193,29 @@ def test_sensor_moved_psf_is_the_camera_built_with_the_sensor_moved(tiny_camera)
         assert float((defocus_only - want).abs().sum() / want.sum()) > 1e-3  # the scale Δz/z moves light
 
 
+def test_sensor_moved_psf_needing_a_wider_kernel_is_cut_to_the_cameras(tiny_camera):
+    """Where the moved sensor's far-field period needs a wider kernel than the camera's K (here 9 > 7 px at
+    +1 mm with a 4× oversampled pupil), the PSF is computed on that one and its central K×K kept: the
+    same values as the moved camera built with a still wider kernel, and less energy than on the
+    wider one (the light that falls outside K is reported, not renormalised)."""
+    from hsicam.optics.perturb import psf_sensor_moved
+
+    cam = tiny_camera("camera.psf.pupil_oversample=4")
+    o, h0 = cam.optics, nominal_heights(cam)
+    k, dz = o.kernel_px, 1e-3
+    ref = tiny_camera("camera.psf.pupil_oversample=4", f"camera.sensor_distance_mm={(o.sensor_distance_m + dz) * 1e3!r}",
+                      f"camera.psf.kernel_px={k + 8}")
+    assert ref.optics.sampling.min_kernel_px > k  # the branch that computes wider and cuts
+    ref.load_state_dict(cam.state_dict())
+    with torch.no_grad():
+        wide = ref.psf()
+    got = psf_sensor_moved(o, h0, dz)
+    assert got.psf.shape[-1] == k
+    torch.testing.assert_close(got.psf, wide[..., 4:4 + k, 4:4 + k], rtol=0, atol=1e-7)
+    assert bool((got.energy < wide.sum(dim=(-2, -1)) - 1e-4).all())
+    assert psf_sensor_moved(cam.double().optics, h0, dz).psf.dtype == torch.float64  # the camera's precision
+
+
 def test_rebuilt_optics_keep_the_lens_design_wavelength(tiny_camera):
     """The misalignment study's oversampled optics (and the moved-sensor ones) are rebuilt from the
     camera's: a singlet focused at 500 nm (not the default 587.6 nm, whose rear principal plane sits

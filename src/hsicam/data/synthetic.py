@@ -86,8 +86,12 @@ SCHEDULE = ("dead_leaves", "photo", "texture", "edges", "dead_leaves", "smooth",
 PHOTOS = ("astronaut", "chelsea", "coffee", "rocket", "motorcycle_left", "motorcycle_right",
           "immunohistochemistry", "colorwheel", "retina", "hubble_deep_field")
 TEXTURES = ("brick", "grass", "gravel", "camera", "moon", "coins", "clock")
-#: scikit-image images that no generated scene uses (:func:`unseen_layout_scene`).
-UNSEEN_LAYOUTS = ("page", "text", "horse", "cell", "shepp_logan_phantom", "logo", "microaneurysms", "checkerboard")
+#: scikit-image text scans the ``edges`` scenes tile (their ``text`` pattern).
+PATTERN_IMAGES = ("text", "page")
+#: scikit-image images that no generated scene uses (:func:`unseen_layout_scene`): not a photo, texture or
+#: pattern image above, nor a pattern the ``edges`` scenes draw (checkerboards, text, bars …).
+#: ``binary_blobs`` is drawn with a fixed seed; ``lfw_faces`` tiles the first 64 faces of ``lfw_subset``.
+UNSEEN_LAYOUTS = ("horse", "cell", "shepp_logan_phantom", "logo", "microaneurysms", "binary_blobs", "lfw_faces")
 #: Third element of the random stream of unseen-layout scenes.
 UNSEEN_LAYOUT_STREAM = 0x1A70
 _ILLUMINANT_GROUP_WEIGHTS = {"daylight": 0.36, "fluorescent": 0.22, "incandescent": 0.16, "led": 0.16,
@@ -399,7 +403,24 @@ def _photo(name: str) -> np.ndarray:
 def _texture(name: str) -> np.ndarray:
     import skimage.data as skd
 
-    img = np.asarray(getattr(skd, name)(), dtype=np.float32)
+    return _grey01(getattr(skd, name)())
+
+
+@functools.lru_cache(maxsize=None)
+def _unseen_layout(name: str) -> np.ndarray:
+    """Grey image (H, W) in [0, 1] of :data:`UNSEEN_LAYOUTS` ``name``, the same on every call."""
+    import skimage.data as skd
+
+    if name == "binary_blobs":  # random per call unless seeded
+        return _grey01(skd.binary_blobs(length=512, rng=0))
+    if name == "lfw_faces":  # 64 faces of 25 px, 8 × 8
+        return _grey01(np.asarray(skd.lfw_subset()[:64]).reshape(8, 8, 25, 25).transpose(0, 2, 1, 3).reshape(200, 200))
+    return _texture(name)
+
+
+def _grey01(img) -> np.ndarray:
+    """An image (H, W) or (H, W, ≥3) as grey float32 stretched to [0, 1] between its 1st and 99th percentiles."""
+    img = np.asarray(img, dtype=np.float32)
     if img.ndim == 3:
         img = img[..., :3].mean(axis=2)
     lo, hi = np.percentile(img, [1, 99])
@@ -551,7 +572,7 @@ def _pattern(rng: np.random.Generator, n: int) -> tuple[np.ndarray, str]:
         period = int(rng.integers(1, 17))
         t = (((xx + n) // period + (yy + n) // period) % 2).astype(np.float32)
     elif kind == "text":
-        page = _texture(("text", "page")[int(rng.integers(2))])
+        page = _texture(PATTERN_IMAGES[int(rng.integers(2))])
         t = _random_crop(rng, page, n, max_zoom_out=1.0)
         t = (t > 0.5).astype(np.float32)
     elif kind == "thin_lines":
@@ -907,15 +928,16 @@ def generate_scene(index: int, seed: int, size: int, lib: SpectralLibrary) -> tu
 
 def unseen_layout_scene(index: int, seed: int, size: int, lib: SpectralLibrary) -> tuple[np.ndarray, dict[str, Any]]:
     """A scene whose spatial layout no generated scene uses: scikit-image image
-    ``UNSEEN_LAYOUTS[index % 8]`` (document text, a silhouette, microscopy, a phantom, a logo, a
-    retina's vessels, a checkerboard; a random crop, zoomed out by at most 1.5×, flipped at random), painted with 2 or
+    ``UNSEEN_LAYOUTS[index % 7]`` (a silhouette, microscopy cells, a phantom, a logo, a retina's
+    micro-aneurysms, binary blobs, a mosaic of faces; a random crop, zoomed out by at most 1.5×, or enlarged
+    bilinearly where the image is smaller than ``size``; flipped at random), painted with 2 or
     3 spectra of ``lib`` and lit as :func:`generate_scene` lights its scenes. (cube (C, size, size)
     float32 with maximum 1, info). With the held-out library (``split="heldout"``) neither its
     layout nor its spectra occur in the training scenes: a test of both kinds of generalisation
     (``scripts/unseen_layouts.py`` writes a folder of them). Drawn from its own random stream."""
     rng = np.random.default_rng([int(seed), int(index), UNSEEN_LAYOUT_STREAM])
     name = UNSEEN_LAYOUTS[index % len(UNSEEN_LAYOUTS)]
-    t = _random_crop(rng, _texture(name), size, max_zoom_out=1.5)
+    t = _random_crop(rng, _unseen_layout(name), size, max_zoom_out=1.5)
     albedo, k, kinds = _materials(rng, t, lib)
     info = {"layout": name, "materials": k, "palette": _count(kinds)}
     return _lit(rng, size, lib, "unseen_layout", albedo, info, None, f"unseen-layout scene {index} of seed {seed}")
@@ -980,9 +1002,11 @@ __all__ = [
     "MANIFEST",
     "OtsuModel",
     "PALETTE_KINDS",
+    "PATTERN_IMAGES",
     "SOURCES",
     "SUPPORTED_RANGE_NM",
     "UNSEEN_LAYOUTS",
+    "UNSEEN_LAYOUT_STREAM",
     "SpectralLibrary",
     "band_matrix",
     "cache_key",

@@ -402,8 +402,10 @@ def run_tolerance(model, cfg, spec: ToleranceSpec = ToleranceSpec(), data: str |
             "shift": (f"pupil oversampled to Q = {big_q} samples per cell, relief shifted by whole samples against the "
                       "fixed aperture and lens; PSNR and its 1-dB tolerance relative to the same Q model without "
                       "shift (reference_psnr)"),
-            "sensor_distance_um": ("residual defocus with z_i + dz at the nominal sampling (magnification change "
-                                   "neglected); values whose defocus would alias on the pupil grid are refused"),
+            "sensor_distance_um": ("optics rebuilt with the sensor dz farther: residual defocus and PSF scale "
+                                   "lambda*(z_lambda + dz)/d at every simulated wavelength, in the camera's kernel (the "
+                                   "scene's own magnification dz/z is not applied); values whose defocus would alias "
+                                   "on the pupil grid are refused"),
         }.items() if k not in skipped},
         "sensor_distance_um_representable": [_um_toward_zero(v) if math.isfinite(v) else None
                                              for v in sensor_distance_limits_m(optics)],

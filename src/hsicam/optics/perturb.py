@@ -8,7 +8,7 @@ import math
 import numpy as np
 import torch
 
-from hsicam.optics.psf import PSFModel
+from hsicam.optics.psf import PSFModel, PSFResult
 from hsicam.optics.sampling import defocus_aliasing, odd_ceil
 
 # ------------------------------------------------------------------------------------------------
@@ -99,7 +99,7 @@ def rebuilt_optics(optics, **changes) -> PSFModel:
         raise TypeError(f"rebuilt_optics: unknown changes {sorted(unknown)}")
     kwargs.update(changes)
     return PSFModel(optics.bands, optics.lens, optics.doe, optics.aperture_radius_m, optics.cell_m, optics.pixel_m,
-                    **kwargs).to(optics.amplitude.device)
+                    **kwargs).to(device=optics.amplitude.device, dtype=optics.amplitude.dtype)
 
 
 def oversampled_optics(optics, q: int) -> PSFModel:
@@ -109,7 +109,7 @@ def oversampled_optics(optics, q: int) -> PSFModel:
 
 
 @torch.no_grad()
-def psf_sensor_moved(optics, h_cells_m: torch.Tensor, dz_m: float):
+def psf_sensor_moved(optics, h_cells_m: torch.Tensor, dz_m: float) -> PSFResult:
     """:class:`~hsicam.optics.psf.PSFResult` of the camera's optics with cell heights ``h_cells_m``
     (n, n) (m) and the sensor ``dz_m`` farther from the lens (negative: nearer), exactly: the optics
     rebuilt at sensor distance z + Δz, so every simulated wavelength gets its residual defocus
@@ -126,7 +126,7 @@ def psf_sensor_moved(optics, h_cells_m: torch.Tensor, dz_m: float):
     res = psf_for_heights(moved, h_cells_m)
     r = (moved.kernel_px - k) // 2
     psf = res.psf[..., r:r + k, r:r + k] if r else res.psf
-    return type(res)(psf, psf.sum(dim=(-2, -1)))
+    return PSFResult(psf, psf.sum(dim=(-2, -1)))
 
 
 def shift_subsamples_for(optics, subsamples: int) -> int:
