@@ -9,7 +9,7 @@ import numpy as np
 import torch
 
 from hsicam.optics.psf import PSFModel, PSFResult
-from hsicam.optics.sampling import defocus_aliasing, odd_ceil
+from hsicam.optics.sampling import defocus_aliasing, smallest_kernel_px
 
 # ------------------------------------------------------------------------------------------------
 @torch.no_grad()
@@ -121,7 +121,7 @@ def psf_sensor_moved(optics, h_cells_m: torch.Tensor, dz_m: float) -> PSFResult:
     z = optics.sensor_distance_m + float(dz_m)
     lam_max = float(np.max(optics.line_wavelengths_nm)) * 1e-9
     z_far = float(np.max(optics.line_sensor_distances_m)) + float(dz_m)
-    need = odd_ceil(lam_max * z_far / (optics.cell_m * optics.pixel_m))  # PSFModel's smallest kernel there
+    need = smallest_kernel_px(lam_max, z_far, optics.cell_m, optics.pixel_m)
     moved = rebuilt_optics(optics, sensor_distance_m=z, kernel_px=max(k, need))
     res = psf_for_heights(moved, h_cells_m)
     r = (moved.kernel_px - k) // 2

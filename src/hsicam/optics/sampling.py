@@ -69,6 +69,11 @@ def odd_ceil(x: float) -> int:
     return k if k % 2 == 1 else k + 1
 
 
+def smallest_kernel_px(max_wavelength_m: float, sensor_distance_m: float, cell_m: float, pixel_m: float) -> int:
+    """Smallest odd kernel (px) holding one period λ_max·z/Δ of the DOE cell grid's far field."""
+    return odd_ceil(max_wavelength_m * sensor_distance_m / (cell_m * pixel_m))
+
+
 def fast_fft_length(n: int) -> int:
     """Smallest 7-smooth integer ≥ n (2^a·3^b·5^c·7^d: a fast FFT length). Even lengths are
     allowed: with N ≥ 2P − 1 the intensity has no harmonic at N/2 (measured: 672 is 1.4× faster
@@ -117,7 +122,7 @@ def plan_psf_sampling(
     q = int(pupil_oversample)
     n_pupil = n_cells * q
     n_fft = fast_fft_length(2 * n_pupil - 1)
-    min_k = odd_ceil(lam.max() * sensor_distance_m / (cell_m * pixel_m))
+    min_k = smallest_kernel_px(float(lam.max()), sensor_distance_m, cell_m, pixel_m)
     if kernel_px is None:
         k = min_k
     else:
