@@ -298,3 +298,33 @@ def test_a_run_folders_temporary_in_use_is_not_removed_by_a_run_check(tmp_path, 
         lock.acquire()
         assert remove_run_temporaries(new) == [w.what]
     assert hidden(tmp_path) == []
+
+
+def test_a_run_check_under_its_own_lock_restores_an_output_a_killed_replacement_set_aside(tmp_path):
+    """A replacement of the folder RUN sets the finished one aside (.RUN.X.old) and renames its
+    successor in; killed between the two, RUN is missing and the set-aside folder is the only copy.
+    The training's check of RUN (under RUN's lock, held by this process) puts it back instead of
+    deleting it, and the check then refuses the folder as not empty: nothing is lost."""
+    from hsicam.errors import InputError
+    from hsicam.io import OutputLock
+    from hsicam.runs.folder import check_run_dir, remove_run_temporaries
+
+    run = tmp_path / "run"
+    aside = tmp_path / ".run.0a1b2c3d.old"
+    aside.mkdir()
+    (aside / "config.yaml").write_text("seed: 3\n")
+    killed_tmp = tmp_path / ".run.0a1b2c3d.tmpdir"  # the successor, half written
+    killed_tmp.mkdir()
+    with OutputLock(run, "train") as lock:
+        lock.acquire()
+        assert remove_run_temporaries(run) == [killed_tmp]
+        assert (run / "config.yaml").read_text() == "seed: 3\n" and not aside.exists()
+        with pytest.raises(InputError, match="not empty|holds"):
+            check_run_dir(run, resume=False)
+    assert (run / "config.yaml").read_text() == "seed: 3\n"
+    # RUN present: a set-aside copy is a leftover of a finished replacement, and goes
+    aside.mkdir()
+    with OutputLock(run, "train") as lock:
+        lock.acquire()
+        assert remove_run_temporaries(run) == [aside]
+    assert hidden(tmp_path) == [] and (run / "config.yaml").is_file()

@@ -566,7 +566,7 @@ def remove_stale_siblings(path: str | os.PathLike, kind: str = "dir") -> list[Pa
                 continue
             parts = _TEMP_PARTS.match(p.name)
             if fd is not None and parts is not None and parts["folder"] and parts["stem"] == path.name:
-                if not _restore_set_aside(p):  # the folder's own: its lock is held here
+                if not restore_set_aside(p):  # the folder's own: its lock is held here
                     _remove(p)
             elif not remove_if_stale(p):
                 continue
@@ -578,7 +578,7 @@ def remove_stale_siblings(path: str | os.PathLike, kind: str = "dir") -> list[Pa
     return removed
 
 
-def _restore_set_aside(p: Path) -> bool:
+def restore_set_aside(p: Path) -> bool:
     """Rename ``p`` back into place when it is a finished output that a replacement set aside
     (``.NAME.XXXXXXXX.old``) and a kill between :func:`_swap_in`'s two renames left without its
     successor: ``NAME`` is missing. True when restored (a warning names it); call under the
@@ -630,7 +630,7 @@ def remove_if_stale(p: Path) -> bool:
     except LockHeld:
         return False
     try:
-        if lock != p and not _restore_set_aside(p):
+        if lock != p and not restore_set_aside(p):
             _remove(p)
     finally:
         if fd is not None:

@@ -27,7 +27,8 @@ from typing import Any
 import torch
 
 from hsicam.errors import HsicamError, InputError
-from hsicam.io import atomic_open, cleanup_stale_temporaries, held_here, is_temporary, output_lock_path, remove_if_stale
+from hsicam.io import (atomic_open, cleanup_stale_temporaries, held_here, is_temporary, output_lock_path, remove_if_stale,
+                       restore_set_aside)
 from hsicam.runs.checkpoint import LEGACY_POINTERS, MANIFEST, CheckpointManager, load_weights, root_weights_path
 from hsicam.runs.linear_step import LINEAR_STEP_FILE, load_linear_step, stale_reason
 from hsicam.runs.lock import LOCK_FILE
@@ -318,7 +319,9 @@ def remove_run_temporaries(run_dir: Path) -> list[Path]:
     is writing now (it holds the folder's :class:`~hsicam.io.OutputLock`:
     :func:`~hsicam.io.remove_if_stale` leaves it). Where this process holds that lock (a new run:
     the training takes it before it checks the folder, and makes its own temporary only later), the
-    siblings are a killed run's, and go."""
+    siblings are a killed run's, and go, except a finished output that a killed replacement set aside
+    (``.NAME.XXXXXXXX.old`` with ``NAME`` missing): it is renamed back (:func:`~hsicam.io.restore_set_aside`),
+    so the check that follows finds the folder as it was."""
     run_dir = Path(run_dir)
     removed = cleanup_stale_temporaries(run_dir, recursive=True) if run_dir.is_dir() else []
     parent = run_dir.parent
@@ -328,6 +331,8 @@ def remove_run_temporaries(run_dir: Path) -> list[Path]:
             if not (is_temporary(p.name) and p.name[len(run_dir.name) + 2:].count(".") == 1):
                 continue
             if ours:
+                if restore_set_aside(p):  # a replacement killed between its renames: the previous output comes back
+                    continue
                 shutil.rmtree(p, ignore_errors=True) if p.is_dir() else p.unlink(missing_ok=True)
             elif not remove_if_stale(p):
                 continue
