@@ -20,7 +20,7 @@ from hsicam.data import (
     split_scenes,
     write_cube_h5,
 )
-from hsicam.data.datasets import augment
+from hsicam.data.datasets import RELIGHT_ORDER, augment, relight, relighting_factor
 from hsicam.errors import InputError
 from hsicam.spectral import Bands
 
@@ -199,6 +199,66 @@ def test_augmentations_used_when_enabled(folder):
     assert differ > 16  # same positions, transformed in most of the 7/8 non-identity cases
 
 
+def test_relighting_factor_is_the_legendre_series():
+    """s_c = exp(Σ a_k P_k(x_c)) with P1 = x, P2 = (3x² − 1)/2, P3 = (5x³ − 3x)/2 written out."""
+    x = np.linspace(-1, 1, 31)
+    a = np.array([0.4, -0.3, 0.2])
+    want = np.exp(a[0] * x + a[1] * (3 * x**2 - 1) / 2 + a[2] * (5 * x**3 - 3 * x) / 2)
+    np.testing.assert_allclose(relighting_factor(31, a), want, rtol=1e-12)
+    np.testing.assert_array_equal(relighting_factor(31, np.zeros(3)), np.ones(31))
+    assert relighting_factor(1, a).shape == (1,)
+
+
+def test_relight_multiplies_every_spectrum_by_one_factor_and_keeps_the_peak():
+    rng = np.random.default_rng(0)
+    patch = rng.random((31, 6, 7)).astype(np.float32)
+    a = np.array([0.5, 0.2, -0.1])
+    out = relight(patch, a)
+    assert out.dtype == np.float32 and out.shape == patch.shape
+    assert np.isclose(out.max(), patch.max(), rtol=1e-6)
+    ratio = out / patch  # the same spectral factor at every pixel, up to one exposure
+    np.testing.assert_allclose(ratio, ratio[:, :1, :1] * np.ones_like(ratio), rtol=1e-5)
+    s = relighting_factor(31, a)
+    np.testing.assert_allclose(ratio[:, 0, 0] / ratio[0, 0, 0], s / s[0], rtol=1e-5)
+    np.testing.assert_array_equal(relight(np.zeros_like(patch), a), np.zeros_like(patch))  # black stays black
+
+
+def test_relit_patches_keep_their_geometry_and_are_deterministic(folder):
+    """With relighting on, item k is the plain item k (same scene, place and dihedral turn) under a
+    spectral factor in about relight_prob of the items; the same item twice is the same patch;
+    relight_prob 0 is the plain dataset, bit for bit."""
+    root, _ = folder
+    scenes = SceneDataset(list_scenes(root), PAPER)
+    plain = PatchDataset(scenes, 10, 2, patches_per_epoch=64, seed=3)
+    lit = PatchDataset(scenes, 10, 2, patches_per_epoch=64, seed=3, relight_sigma=0.4, relight_prob=0.5)
+    never = PatchDataset(scenes, 10, 2, patches_per_epoch=64, seed=3, relight_sigma=0.4, relight_prob=0.0)
+    relit = 0
+    for k in range(64):
+        p, q = plain[k].numpy().astype(np.float64), lit[k].numpy().astype(np.float64)
+        np.testing.assert_array_equal(never[k].numpy(), p)
+        torch.testing.assert_close(lit[k], torch.from_numpy(q.astype(np.float32)), rtol=0, atol=0)
+        ratio = q / p
+        np.testing.assert_allclose(ratio, ratio[:, :1, :1] * np.ones_like(ratio), rtol=1e-4)  # one factor per band
+        assert np.isclose(q.max(), p.max(), rtol=1e-6)
+        relit += not np.allclose(ratio, 1.0, rtol=1e-6)
+    assert 20 <= relit <= 44  # Binomial(64, 0.5): 32 ± 12
+    always = PatchDataset(scenes, 10, 2, patches_per_epoch=64, seed=3, relight_sigma=0.4, relight_prob=1.0)
+    assert all(not torch.equal(always[k], plain[k]) for k in range(64))
+    assert RELIGHT_ORDER == 3
+    with pytest.raises(InputError, match="relight"):
+        PatchDataset(scenes, 10, 2, relight_sigma=-0.1)
+
+
+def test_only_training_patches_are_relit(folder):
+    root, _ = folder
+    cfg = load_config(overrides=[f"data.root={root}", "data.patch_px=16", "data.val_fraction=0.2",
+                                 "data.patches_per_epoch=10", "data.val_patches=3", "data.augment_relight=0.5",
+                                 "data.augment_relight_prob=0.7"])
+    train, val = build_datasets(cfg.data, cfg.bands.to_bands(), margin_px=4)
+    assert (train.relight_sigma, train.relight_prob) == (0.5, 0.7) and val.relight_sigma == 0.0
+    assert load_config().data.augment_relight == 0.0  # off unless a preset or --set asks
+
+
 def test_scene_smaller_than_patch_plus_margin(folder):
     root, _ = folder
     with pytest.raises(InputError, match=r"40x48 px.*30 px.*margin of 12 px"):
@@ -260,7 +320,8 @@ def test_npy_cubes_take_the_band_grid_of_the_config(tmp_path):
 
 
 @pytest.mark.parametrize("override", ["data.val_fraction=1.0", "data.patch_px=0", "data.synthetic_size=8",
-                                      "data.num_workers=-1", "data.preload_max_mb=0", "data.synthetic_n=yes"])
+                                      "data.num_workers=-1", "data.preload_max_mb=0", "data.synthetic_n=yes",
+                                      "data.augment_relight=-0.1", "data.augment_relight_prob=1.5"])
 def test_data_config_validation(override):
     with pytest.raises(ConfigError, match="data"):
         load_config(overrides=[override])

@@ -518,6 +518,12 @@ class DataConfig:
     val_pool: Optional[int] = None
     augment_flips: bool = True  # random left-right flips of training patches
     augment_rot90: bool = True  # random 90° rotations of training patches
+    # Random relighting of training patches (hsicam.data.datasets.relight; docs/training.md): with probability
+    # augment_relight_prob a patch's spectra are multiplied by exp(a1·P1 + a2·P2 + a3·P3) over the bands
+    # (Legendre polynomials: a tilt, a bow, an S-curve; a_k ~ N(0, augment_relight²)), its peak kept: spectra
+    # the scenes never held. 0: off. Validation patches are never relit.
+    augment_relight: float = 0.0
+    augment_relight_prob: float = 0.5
     preload: Optional[bool] = None  # keep all scenes in memory; None: when the files total <= preload_max_mb
     preload_max_mb: float = 2048.0
     num_workers: int = 2  # DataLoader worker processes
@@ -553,6 +559,10 @@ class DataConfig:
         if self.heldout_n < 1:
             raise ConfigError(f"data.heldout_n must be >= 1, got {self.heldout_n}")
         _positive("data", preload_max_mb=self.preload_max_mb)
+        if not (math.isfinite(self.augment_relight) and self.augment_relight >= 0):
+            raise ConfigError(f"data.augment_relight must be a finite number >= 0 (0: off), got {self.augment_relight}")
+        if not (0.0 <= self.augment_relight_prob <= 1.0):
+            raise ConfigError(f"data.augment_relight_prob must be in [0, 1], got {self.augment_relight_prob}")
         if self.root is not None and not self.root.strip():
             raise ConfigError("data.root must be a path or null")
 

@@ -701,11 +701,14 @@ class PatchDataset(Dataset):
     ``len`` is ``patches_per_epoch``. Item ``k`` of epoch ``e`` picks a scene (uniformly), a
     position and, with ``flips``/``rot90``, one of the 8 dihedral transforms, all from
     ``numpy.random.default_rng((seed, e, k))``. ``fixed=True`` (validation) ignores the epoch, so
-    the same patches are served every time.
+    the same patches are served every time. ``relight_sigma`` > 0: with probability
+    ``relight_prob`` the patch is also relit (:func:`relight`, Legendre coefficients drawn N(0, σ²)
+    from the same generator, after the rest).
     """
 
     def __init__(self, scenes: SceneDataset, patch_px: int, margin_px: int = 0, *, patches_per_epoch: int = 1024,
-                 flips: bool = True, rot90: bool = True, seed: int = 0, fixed: bool = False) -> None:
+                 flips: bool = True, rot90: bool = True, seed: int = 0, fixed: bool = False,
+                 relight_sigma: float = 0.0, relight_prob: float = 0.5) -> None:
         if patch_px < 1 or margin_px < 0:
             raise InputError(f"PatchDataset: need patch_px >= 1 and margin_px >= 0, got {patch_px}, {margin_px}")
         if patches_per_epoch < 1:
@@ -717,6 +720,11 @@ class PatchDataset(Dataset):
         self.patches_per_epoch = int(patches_per_epoch)
         self.flips = flips
         self.rot90 = rot90
+        if not (math.isfinite(relight_sigma) and relight_sigma >= 0 and 0 <= relight_prob <= 1):
+            raise InputError(f"PatchDataset: need relight_sigma >= 0 and relight_prob in [0, 1], got {relight_sigma}, "
+                             f"{relight_prob}")
+        self.relight_sigma = float(relight_sigma)
+        self.relight_prob = float(relight_prob)
         self.seed = int(seed)
         self.fixed = fixed
         self.epoch = 0
@@ -760,7 +768,34 @@ class PatchDataset(Dataset):
         turns = int(rng.integers(4)) if self.rot90 else 0
         flip = bool(rng.integers(2)) if self.flips else False
         patch = augment(patch, turns, flip)
+        if self.relight_sigma > 0:  # drawn after the rest: the same scenes, places and turns as without it
+            apply, coeffs = rng.random() < self.relight_prob, rng.normal(0.0, self.relight_sigma, RELIGHT_ORDER)
+            if apply:
+                patch = relight(patch, coeffs)
         return torch.from_numpy(np.ascontiguousarray(patch, dtype=np.float32))
+
+
+#: Legendre orders 1..RELIGHT_ORDER of the band axis in a relighting factor (:func:`relight`).
+RELIGHT_ORDER = 3
+
+
+def relighting_factor(n_bands: int, coeffs: np.ndarray) -> np.ndarray:
+    """The smooth spectral factor s_c = exp(Σ_k a_k P_k(x_c)) (N,), x_c the band index mapped onto
+    [-1, 1], P_k the Legendre polynomial of order k = 1, 2, …, len(coeffs): a tilt, a bow and an
+    S-curve across the bands, positive everywhere; coeffs all 0: ones."""
+    x = np.linspace(-1.0, 1.0, n_bands) if n_bands > 1 else np.zeros(1)
+    return np.exp(np.polynomial.legendre.legval(x, np.concatenate([[0.0], np.asarray(coeffs, dtype=np.float64)])))
+
+
+def relight(patch: np.ndarray, coeffs: np.ndarray) -> np.ndarray:
+    """A scene patch (C, H, W) under another light: every spectrum multiplied by
+    :func:`relighting_factor` (the same at every pixel, as a change of illuminant or of a global
+    reflectance tint would be), then the patch rescaled to keep its peak value (an exposure), so it
+    stays in the data's range. Spectra the data never held, with the same geometry."""
+    s = relighting_factor(patch.shape[0], coeffs)[:, None, None]
+    out = patch * s
+    peak, new = float(np.max(patch)), float(np.max(out))
+    return (out * (peak / new)).astype(patch.dtype, copy=False) if new > 0 else patch
 
 
 def augment(patch: np.ndarray, turns: int, flip: bool) -> np.ndarray:
@@ -769,6 +804,6 @@ def augment(patch: np.ndarray, turns: int, flip: bool) -> np.ndarray:
     return out[:, :, ::-1] if flip else out
 
 
-__all__ = ["PatchDataset", "SCENE_SUFFIXES", "SceneDataset", "SceneInfo", "augment", "check_not_an_output",
-           "check_windowed_pixels", "list_scenes", "probe_hsicam", "scene_names", "scene_path", "split_scenes",
-           "warn_if_near_black"]
+__all__ = ["PatchDataset", "RELIGHT_ORDER", "SCENE_SUFFIXES", "SceneDataset", "SceneInfo", "augment", "check_not_an_output",
+           "check_windowed_pixels", "list_scenes", "probe_hsicam", "relight", "relighting_factor", "scene_names",
+           "scene_path", "split_scenes", "warn_if_near_black"]

@@ -152,7 +152,7 @@ def build_datasets(cfg: DataConfig, bands: Bands, margin_px: int, *, progress: b
                 "checkpoint, not the best one; %s", no_validation_reason(cfg, len(scenes)), fix)
     train = PatchDataset(scene_dataset(cfg, train_scenes, bands, preload=preload), cfg.patch_px, margin_px,
                          patches_per_epoch=cfg.patches_per_epoch, flips=cfg.augment_flips, rot90=cfg.augment_rot90,
-                         seed=cfg.split_seed)
+                         seed=cfg.split_seed, relight_sigma=cfg.augment_relight, relight_prob=cfg.augment_relight_prob)
     val = None
     if val_scenes:
         val = PatchDataset(scene_dataset(cfg, val_scenes, bands, preload=preload), cfg.patch_px, margin_px,
