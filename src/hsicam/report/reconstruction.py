@@ -23,11 +23,18 @@ def cube_rgb(cube: np.ndarray, bands: Bands) -> np.ndarray:
     return np.moveaxis(cube_to_srgb(torch.from_numpy(np.clip(cube, 0, None)), bands).numpy(), 0, -1)
 
 
+def spectra_exponent(spectra) -> int:
+    """The power of ten by which spectra peaking below 0.01 are divided for plotting (their peak
+    then in [1, 10)), so that tick labels stay short; 0 for brighter (or all-zero) spectra."""
+    peak = max((float(np.max(np.abs(s))) for s in spectra), default=0.0)
+    return int(np.floor(np.log10(peak))) if 0 < peak < 0.01 else 0
+
+
 def plot_reconstructions(results, bands: Bands, path: str | Path, max_rows: int = 6) -> None:
     """Rows of [ground truth RGB | reconstruction RGB | mean abs error map | spectra at 3 pixels]."""
     results = list(results)[:max_rows]
     fig, axes = plt.subplots(len(results), 4, figsize=(14, 3.2 * len(results)), squeeze=False,
-                             gridspec_kw={"wspace": 0.55, "hspace": 0.3})
+                             gridspec_kw={"wspace": 0.55, "hspace": 0.45})
     for row, r in zip(axes, results):
         gt, est = r.truth, r.estimate
         row[0].imshow(np.clip(cube_rgb(gt, bands), 0, 1))
@@ -40,11 +47,16 @@ def plot_reconstructions(results, bands: Bands, path: str | Path, max_rows: int 
         fig.colorbar(im, cax=row[2].inset_axes([1.03, 0.0, 0.05, 1.0]))
         h, w = gt.shape[1:]
         pts = [(h // 4, w // 4), (h // 2, w // 2), (3 * h // 4, 3 * w // 4)]
+        exp = spectra_exponent([a[:, y, x] for y, x in pts for a in (gt, est)])
         for (y, x), col in zip(pts, ("tab:red", "tab:green", "tab:blue")):
             row[0].plot(x, y, "o", mfc="none", mec=col, ms=8)
-            row[3].plot(bands.centers_nm, gt[:, y, x], color=col, lw=1.5)
-            row[3].plot(bands.centers_nm, est[:, y, x], color=col, lw=1.2, ls="--")
+            row[3].plot(bands.centers_nm, gt[:, y, x] / 10.0**exp, color=col, lw=1.5)
+            row[3].plot(bands.centers_nm, est[:, y, x] / 10.0**exp, color=col, lw=1.2, ls="--")
         row[3].set_title("spectra: truth (solid), reconstruction (dashed)", fontsize=9)
+        row[3].yaxis.tick_right()  # clear of the error map's colour bar on the left
+        row[3].yaxis.set_label_position("right")
+        if exp:  # short tick labels (1.25 rather than 0.00125)
+            row[3].set_ylabel(f"× 1e{exp}", fontsize=8)
         row[3].set_xlabel("wavelength (nm)")
         for ax in row[:3]:
             ax.set_xticks([])
