@@ -221,6 +221,9 @@ def test_relight_multiplies_every_spectrum_by_one_factor_and_keeps_the_peak():
     s = relighting_factor(31, a)
     np.testing.assert_allclose(ratio[:, 0, 0] / ratio[0, 0, 0], s / s[0], rtol=1e-5)
     np.testing.assert_array_equal(relight(np.zeros_like(patch), a), np.zeros_like(patch))  # black stays black
+    steep = relight(patch, np.array([800.0, 0.0, 0.0]))  # exp(±800) overflows float64: computed in the exponent
+    assert np.isfinite(steep).all() and np.isclose(steep.max(), patch.max(), rtol=1e-6)
+    assert steep[-1].max() == steep.max() and steep[0].max() == 0.0  # all the light in the last band
 
 
 def test_relit_patches_keep_their_geometry_and_are_deterministic(folder):

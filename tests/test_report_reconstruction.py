@@ -21,7 +21,14 @@ def test_spectra_exponent_puts_dim_peaks_in_one_to_ten():
         assert 1 <= peak / 10.0 ** spectra_exponent([np.array([peak])]) < 10
 
 
-def test_the_figure_is_written_for_bright_and_dim_scenes(tmp_path):
+def test_the_figure_is_written_for_bright_and_dim_scenes(tmp_path, monkeypatch):
+    """Spectra ticks sit on the right (clear of the error map's colour bar); a dim scene's spectra are
+    plotted scaled into [1, 10) with the scale as the axis label, a bright one's as they are."""
+    from hsicam.report import reconstruction
+
+    figures = []
+    real_save = reconstruction.save_figure
+    monkeypatch.setattr(reconstruction, "save_figure", lambda fig, path: (figures.append(fig), real_save(fig, path)))
     bands = Bands.paper()
     rng = np.random.default_rng(0)
     rows = []
@@ -33,3 +40,9 @@ def test_the_figure_is_written_for_bright_and_dim_scenes(tmp_path):
     plot_reconstructions(rows, bands, path)
     with Image.open(path) as im:
         assert im.format == "PNG" and im.size[0] > im.size[1] > 300
+    spectra = [ax for ax in figures[0].axes if ax.get_title().startswith("spectra")]
+    assert len(spectra) == 2
+    for ax, label, peak in zip(spectra, ("", "× 1e-3"), (0.5 * 1.1, 0.001 * 1.1 * 1e3)):
+        assert ax.yaxis.get_ticks_position() == "right" and ax.get_ylabel() == label
+        top = max(float(np.max(line.get_ydata())) for line in ax.get_lines())
+        assert 0.8 * peak < top <= peak  # three pixels' spectra of uniform noise in [0, level)

@@ -483,6 +483,27 @@ def test_a_prior_trained_with_other_settings_is_not_reused(tiny_env, tmp_path):
         assert {f.name: f.stat().st_mtime_ns for f in run.iterdir()} == before
 
 
+def test_the_prior_never_relights_and_a_prior_from_before_relighting_is_reused(tiny_env, tmp_path):
+    """Relit training patches (data.augment_relight) are the camera's recipe, not the published
+    prior's: PriorTask serves plain patches whatever the config says, and a prior folder whose
+    config has other relighting settings is the same prior (reused, not refused)."""
+    from hsicam.engine.tasks import PriorTask
+
+    cfg = load_config("tiny", ["data.augment_relight=0.8", "data.augment_relight_prob=1.0"])
+    train, _ = PriorTask(cfg, ChoiConfig(train_steps=1, features=4, latent=2)).datasets()
+    assert train.relight_sigma == 0.0
+    run = tmp_path / "relit"
+    shutil.copytree(tiny_env["prior"], run)
+    cfg_yaml = yaml.safe_load((run / "config.yaml").read_text())
+    cfg_yaml["data"].update(augment_relight=0.8, augment_relight_prob=1.0)
+    (run / "config.yaml").write_text(yaml.safe_dump(cfg_yaml, sort_keys=False))
+    assert ensure_choi_prior(run, "tiny") == run  # reused as it is
+    cfg_yaml["data"].update(augment_flips=False)  # a data setting it does read: refused
+    (run / "config.yaml").write_text(yaml.safe_dump(cfg_yaml, sort_keys=False))
+    with pytest.raises(InputError, match=r"trained with other settings \(data.augment_flips: False → True"):
+        ensure_choi_prior(run, "tiny")
+
+
 def test_cli_train_prior(tiny_env, capsys):
     from hsicam.cli import main
 

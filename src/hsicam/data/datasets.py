@@ -779,12 +779,17 @@ class PatchDataset(Dataset):
 RELIGHT_ORDER = 3
 
 
-def relighting_factor(n_bands: int, coeffs: np.ndarray) -> np.ndarray:
-    """The smooth spectral factor s_c = exp(Σ_k a_k P_k(x_c)) (N,), x_c the band index mapped onto
-    [-1, 1], P_k the Legendre polynomial of order k = 1, 2, …, len(coeffs): a tilt, a bow and an
-    S-curve across the bands, positive everywhere; coeffs all 0: ones."""
+def relighting_exponent(n_bands: int, coeffs: np.ndarray) -> np.ndarray:
+    """Σ_k a_k P_k(x_c) (N,), x_c the band index mapped onto [-1, 1], P_k the Legendre polynomial of
+    order k = 1, 2, …, len(coeffs); the log of :func:`relighting_factor`."""
     x = np.linspace(-1.0, 1.0, n_bands) if n_bands > 1 else np.zeros(1)
-    return np.exp(np.polynomial.legendre.legval(x, np.concatenate([[0.0], np.asarray(coeffs, dtype=np.float64)])))
+    return np.polynomial.legendre.legval(x, np.concatenate([[0.0], np.asarray(coeffs, dtype=np.float64)]))
+
+
+def relighting_factor(n_bands: int, coeffs: np.ndarray) -> np.ndarray:
+    """The smooth spectral factor s_c = exp(Σ_k a_k P_k(x_c)) (N,) (:func:`relighting_exponent`): a
+    tilt, a bow and an S-curve across the bands, positive everywhere; coeffs all 0: ones."""
+    return np.exp(relighting_exponent(n_bands, coeffs))
 
 
 def relight(patch: np.ndarray, coeffs: np.ndarray) -> np.ndarray:
@@ -792,7 +797,8 @@ def relight(patch: np.ndarray, coeffs: np.ndarray) -> np.ndarray:
     :func:`relighting_factor` (the same at every pixel, as a change of illuminant or of a global
     reflectance tint would be), then the patch rescaled to keep its peak value (an exposure), so it
     stays in the data's range. Spectra the data never held, with the same geometry."""
-    s = relighting_factor(patch.shape[0], coeffs)[:, None, None]
+    e = relighting_exponent(patch.shape[0], coeffs)
+    s = np.exp(e - e.max())[:, None, None]  # the factor over its maximum: no σ overflows, the peak is kept below
     out = patch * s
     peak, new = float(np.max(patch)), float(np.max(out))
     return (out * (peak / new)).astype(patch.dtype, copy=False) if new > 0 else patch
@@ -805,5 +811,5 @@ def augment(patch: np.ndarray, turns: int, flip: bool) -> np.ndarray:
 
 
 __all__ = ["PatchDataset", "RELIGHT_ORDER", "SCENE_SUFFIXES", "SceneDataset", "SceneInfo", "augment", "check_not_an_output",
-           "check_windowed_pixels", "list_scenes", "probe_hsicam", "relight", "relighting_factor", "scene_names",
-           "scene_path", "split_scenes", "warn_if_near_black"]
+           "check_windowed_pixels", "list_scenes", "probe_hsicam", "relight", "relighting_exponent", "relighting_factor",
+           "scene_names", "scene_path", "split_scenes", "warn_if_near_black"]

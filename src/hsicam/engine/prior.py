@@ -47,6 +47,11 @@ PRIOR_SCALE_OVERRIDES: dict[str, tuple[str, ...]] = {
 }
 
 
+#: Data settings a prior's training does not read (:meth:`hsicam.engine.tasks.PriorTask.datasets`):
+#: a folder trained with other values is the same prior.
+PRIOR_UNREAD_DATA_KEYS = ("data.augment_relight", "data.augment_relight_prob")
+
+
 def is_prior_run(run: str | Path) -> bool:
     """A finished prior run folder (summary.json and weights present)."""
     run = Path(run)
@@ -180,7 +185,7 @@ def prior_differences(run: str | Path, cfg: Config, settings: ChoiConfig, limit:
     run = Path(run)
     have_cfg, have = load_config(run / "config.yaml"), load_prior_settings(run)
     out = [d for d in training_differences(absolute_data_paths(have_cfg), absolute_data_paths(cfg), limit=10**6)
-           if d.split(".")[0] in ("bands", "data")]
+           if d.split(".")[0] in ("bands", "data") and d.split(":")[0] not in PRIOR_UNREAD_DATA_KEYS]
     out += [f"baselines.choi.{k}: {getattr(have, k)!r} → {getattr(settings, k)!r}"
             for k in PRIOR_TRAINING_KEYS if getattr(have, k) != getattr(settings, k)]
     return sorted(out)[:limit]

@@ -273,7 +273,9 @@ class PriorTask(Task):
         return data_record(self.cfg.data, self.bands)
 
     def datasets(self):
-        return build_datasets(self.cfg.data, self.bands, 0)
+        """The published prior's training data: clean patches, never relit (``data.augment_relight`` is
+        a setting of the camera's own training; :data:`hsicam.engine.prior.PRIOR_UNREAD_DATA_KEYS`)."""
+        return build_datasets(dataclasses.replace(self.cfg.data, augment_relight=0.0), self.bands, 0)
 
     def training_step(self, trainable, clean: torch.Tensor, generator: torch.Generator) -> torch.Tensor:
         b = clean.shape[0]

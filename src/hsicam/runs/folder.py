@@ -321,11 +321,13 @@ def remove_run_temporaries(run_dir: Path) -> list[Path]:
     the training takes it before it checks the folder, and makes its own temporary only later), the
     siblings are a killed run's, and go, except a finished output that a killed replacement set aside
     (``.NAME.XXXXXXXX.old`` with ``NAME`` missing): it is renamed back (:func:`~hsicam.io.restore_set_aside`),
-    so the check that follows finds the folder as it was."""
+    so the check that follows finds the folder as it was. Returns the removed paths (a restored folder
+    is not among them; :func:`~hsicam.io.remove_if_stale`, where another process held the lock, restores
+    the same way and lists it)."""
     run_dir = Path(run_dir)
-    removed = cleanup_stale_temporaries(run_dir, recursive=True) if run_dir.is_dir() else []
+    removed = []
     parent = run_dir.parent
-    if parent.is_dir():
+    if parent.is_dir():  # first: a folder restored here is cleaned inside as well, below
         ours = held_here(output_lock_path(run_dir))
         for p in sorted(parent.glob(f".{run_dir.name}.*")):
             if not (is_temporary(p.name) and p.name[len(run_dir.name) + 2:].count(".") == 1):
@@ -337,6 +339,8 @@ def remove_run_temporaries(run_dir: Path) -> list[Path]:
             elif not remove_if_stale(p):
                 continue
             removed.append(p)
+    if run_dir.is_dir():
+        removed += cleanup_stale_temporaries(run_dir, recursive=True)
     return removed
 
 
