@@ -20,7 +20,7 @@ from hsicam.data import (
     split_scenes,
     write_cube_h5,
 )
-from hsicam.data.datasets import RELIGHT_ORDER, augment, relight, relighting_factor
+from hsicam.data.datasets import RELIGHT_ORDER, augment, relight, relighting_exponent
 from hsicam.errors import InputError
 from hsicam.spectral import Bands
 
@@ -199,14 +199,14 @@ def test_augmentations_used_when_enabled(folder):
     assert differ > 16  # same positions, transformed in most of the 7/8 non-identity cases
 
 
-def test_relighting_factor_is_the_legendre_series():
+def test_the_relighting_exponent_is_the_legendre_series():
     """s_c = exp(Σ a_k P_k(x_c)) with P1 = x, P2 = (3x² − 1)/2, P3 = (5x³ − 3x)/2 written out."""
     x = np.linspace(-1, 1, 31)
     a = np.array([0.4, -0.3, 0.2])
     want = np.exp(a[0] * x + a[1] * (3 * x**2 - 1) / 2 + a[2] * (5 * x**3 - 3 * x) / 2)
-    np.testing.assert_allclose(relighting_factor(31, a), want, rtol=1e-12)
-    np.testing.assert_array_equal(relighting_factor(31, np.zeros(3)), np.ones(31))
-    assert relighting_factor(1, a).shape == (1,)
+    np.testing.assert_allclose(np.exp(relighting_exponent(31, a)), want, rtol=1e-12)
+    np.testing.assert_array_equal(relighting_exponent(31, np.zeros(3)), np.zeros(31))
+    assert relighting_exponent(1, a).shape == (1,)
 
 
 def test_relight_multiplies_every_spectrum_by_one_factor_and_keeps_the_peak():
@@ -218,7 +218,7 @@ def test_relight_multiplies_every_spectrum_by_one_factor_and_keeps_the_peak():
     assert np.isclose(out.max(), patch.max(), rtol=1e-6)
     ratio = out / patch  # the same spectral factor at every pixel, up to one exposure
     np.testing.assert_allclose(ratio, ratio[:, :1, :1] * np.ones_like(ratio), rtol=1e-5)
-    s = relighting_factor(31, a)
+    s = np.exp(relighting_exponent(31, a))
     np.testing.assert_allclose(ratio[:, 0, 0] / ratio[0, 0, 0], s / s[0], rtol=1e-5)
     np.testing.assert_array_equal(relight(np.zeros_like(patch), a), np.zeros_like(patch))  # black stays black
     steep = relight(patch, np.array([800.0, 0.0, 0.0]))  # exp(±800) overflows float64: computed in the exponent

@@ -781,20 +781,15 @@ RELIGHT_ORDER = 3
 
 def relighting_exponent(n_bands: int, coeffs: np.ndarray) -> np.ndarray:
     """Σ_k a_k P_k(x_c) (N,), x_c the band index mapped onto [-1, 1], P_k the Legendre polynomial of
-    order k = 1, 2, …, len(coeffs); the log of :func:`relighting_factor`."""
+    order k = 1, 2, …, len(coeffs): the log of the smooth spectral factor :func:`relight` applies (a
+    tilt, a bow and an S-curve across the bands); coeffs all 0: zeros."""
     x = np.linspace(-1.0, 1.0, n_bands) if n_bands > 1 else np.zeros(1)
     return np.polynomial.legendre.legval(x, np.concatenate([[0.0], np.asarray(coeffs, dtype=np.float64)]))
 
 
-def relighting_factor(n_bands: int, coeffs: np.ndarray) -> np.ndarray:
-    """The smooth spectral factor s_c = exp(Σ_k a_k P_k(x_c)) (N,) (:func:`relighting_exponent`): a
-    tilt, a bow and an S-curve across the bands, positive everywhere; coeffs all 0: ones."""
-    return np.exp(relighting_exponent(n_bands, coeffs))
-
-
 def relight(patch: np.ndarray, coeffs: np.ndarray) -> np.ndarray:
     """A scene patch (C, H, W) under another light: every spectrum multiplied by
-    :func:`relighting_factor` (the same at every pixel, as a change of illuminant or of a global
+    exp(:func:`relighting_exponent`) (the same at every pixel, as a change of illuminant or of a global
     reflectance tint would be), then the patch rescaled to keep its peak value (an exposure), so it
     stays in the data's range. Spectra the data never held, with the same geometry."""
     e = relighting_exponent(patch.shape[0], coeffs)
@@ -811,5 +806,5 @@ def augment(patch: np.ndarray, turns: int, flip: bool) -> np.ndarray:
 
 
 __all__ = ["PatchDataset", "RELIGHT_ORDER", "SCENE_SUFFIXES", "SceneDataset", "SceneInfo", "augment", "check_not_an_output",
-           "check_windowed_pixels", "list_scenes", "probe_hsicam", "relight", "relighting_exponent", "relighting_factor",
-           "scene_names", "scene_path", "split_scenes", "warn_if_near_black"]
+           "check_windowed_pixels", "list_scenes", "probe_hsicam", "relight", "relighting_exponent", "scene_names",
+           "scene_path", "split_scenes", "warn_if_near_black"]
