@@ -446,6 +446,11 @@ class TrainConfig:
     phase_loss: float = 0.0
     eval_every_epochs: int = 1
     checkpoint_every_steps: int = 200
+    # the checkpoint whose weights the run keeps (RUN/model.safetensors: what evaluate, reconstruct and
+    # export read): "best", the highest validation PSNR (the paper's practice; chosen on patches of the
+    # validation scenes, so metrics reported on those scenes are of a selected model), or "last", the
+    # last step (no selection; with a cosine schedule to zero the last is the best within the spread)
+    keep_weights: Literal["best", "last"] = "best"
     log_every_steps: int = 20
     seed: int = 0
     device: str = "auto"  # auto: cuda when available, else cpu

@@ -20,7 +20,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 def cmd_demo(args: argparse.Namespace) -> int:
     from hsicam.cli import prepare_output
-    from hsicam.engine.demo import check_demo_folder, demo_config, means_line, run_demo
+    from hsicam.engine.demo import check_demo_folder, demo_config, means_line, run_demo, weights_text
     from hsicam.engine.experiments import check_same_training, is_finished
 
     t0 = time.perf_counter()
@@ -39,6 +39,8 @@ def cmd_demo(args: argparse.Namespace) -> int:
     print(summary["table"])
     print(f"[demo] validation mean: {means_line(summary['mean'])} ({summary['n_scenes']} scenes; "
           f"{time.perf_counter() - t0:.0f} s)")
+    if summary.get("weights"):
+        print(f"[demo]{weights_text(summary['weights'])}")
     for r in summary["references"]:
         print(f"[demo] reference, {r['method']}: {means_line(r['mean'])}")
     if "heldout" in summary:

@@ -171,11 +171,14 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
         if warning:
             summary["warning"] = warning
     if args.run:  # which weights were scored (hsicam pretrained pack checks its --results by it)
-        from hsicam.runs.checkpoint import file_sha256, root_weights_path
+        from hsicam.runs.checkpoint import file_sha256, kept_checkpoint, root_weights_path
 
         weights = root_weights_path(args.run)
         if weights.is_file():
             summary["weights_sha256"] = file_sha256(weights)
+        kept = kept_checkpoint(args.run)
+        if kept is not None:  # the last step's weights, or the best validation's (a selection on its scenes)
+            summary["weights"] = kept
     if heldout is not None:
         held = evaluate_method(method, heldout[0], heldout[1], noise, args.device, keep_arrays=False, progress=show,
                                paths=_relative_to_common_folder(heldout[0].paths))

@@ -20,6 +20,7 @@ from hsicam.io import (atomic_open, clear_complete, clear_derived, is_complete, 
                        output_description, read_marker, write_json)
 from hsicam.report.camera import write_optics_figures, write_psf_outputs
 from hsicam.report.reconstruction import plot_reconstructions, plot_training_curves
+from hsicam.runs.checkpoint import kept_checkpoint
 from hsicam.runs.folder import load_run
 
 log = logging.getLogger(__name__)
@@ -30,6 +31,16 @@ FIGURES = ("reconstructions.png", "psf.png", "cfa.png", "doe.png", "training.png
 def means_line(m: dict) -> str:
     """"PSNR … dB, SSIM …, SAM …°" of a mean-metrics dict."""
     return f"PSNR {m['psnr']:.2f} dB, SSIM {m['ssim']:.4f}, SAM {m['sam']:.2f}°"
+
+
+def weights_text(kept: dict | None) -> str:
+    """" Weights: …" sentence saying which checkpoint was scored (:func:`~hsicam.runs.checkpoint.kept_checkpoint`)."""
+    if kept is None:
+        return ""
+    if kept["checkpoint"] == "last":
+        return f" Weights: the last step's ({kept['step']}), no checkpoint selection."
+    return (f" Weights: the best validation's (step {kept['step']} of {kept['of_steps']}), selected on patches of "
+            "these scenes (train.keep_weights: best), so these figures are mildly optimistic.")
 
 
 def check_demo_folder(out: str | Path) -> None:
@@ -99,12 +110,15 @@ def run_demo(cfg: Config, out: str | Path) -> dict[str, Any]:
                 for ref in references],
         }
     summary["run"] = str(run)
+    kept = kept_checkpoint(run)
+    if kept is not None:  # which weights were scored: the last step's, or the best validation's (a selection)
+        summary["weights"] = kept
     summary["region"] = "sensor area of each scene (scene minus the kernel margin), valid mode"
     write_json(out / "results.json", summary)
     table = format_table(summary)
     with atomic_open(out / "results.md", "w", encoding="utf-8") as fh:
         fh.write(f"Validation scenes, {summary['conventions']['psnr']}; SSIM {summary['conventions']['ssim']}; "
-                 f"SAM in degrees.\n\n{table}\n\nReferences:\n\n"
+                 f"SAM in degrees.{weights_text(kept)}\n\n{table}\n\nReferences:\n\n"
                  + "".join(f"- {r['method']}: {means_line(r['mean'])}\n" for r in summary["references"])
                  + (f"\nOn {summary['heldout']['data']}:\n\n{format_table(summary['heldout'])}\n\n"
                     "References on these scenes:\n\n"

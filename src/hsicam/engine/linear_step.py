@@ -54,7 +54,7 @@ def refresh_linear_step(run_dir: str | Path, consistency) -> list[str]:
     - the run's config.yaml gets ``consistency`` as its ``model.consistency`` (an inference setting:
       the training never sees it, so nothing else is touched);
     - with ``kind: linear``, ``RUN/linear_step.safetensors`` is fitted on the run's training scenes
-      through the run's weights (its best), when it is missing or no longer fits them
+      through the run's kept weights (train.keep_weights), when it is missing or no longer fits them
       (:func:`~hsicam.runs.linear_step.stale_reason`: the run trained on, or another filter width).
 
     It holds the run folder's lock (:mod:`hsicam.runs.lock`) while it writes (after training, the

@@ -373,7 +373,7 @@ def _fit(task: Task, opts: FitOptions, run_dir: Path, resume: bool, lock: RunLoc
     for g in optimizer.param_groups:
         g["base_lr"] = g["lr"]
     bands, meta = task.bands, task.weights_metadata()
-    ckpt = CheckpointManager(run_dir, task.weights_file)
+    ckpt = CheckpointManager(run_dir, task.weights_file, keep=t.keep_weights)
     metrics = MetricsLog(run_dir / "metrics.jsonl", is_main)
     state = LoopState()
     summary: dict[str, Any] = {}  # the last validation's metrics, reported by the final record

@@ -1,6 +1,6 @@
 """Packing a finished run as a shipped pre-trained camera, with its model card.
 
-``pack_pretrained(RUN, NAME)`` copies the run's ``config.yaml`` and best weights into
+``pack_pretrained(RUN, NAME)`` copies the run's ``config.yaml`` and kept weights into
 ``ROOT/NAME/`` (ROOT: :func:`hsicam.runs.pretrained.root`) and writes the card: ``card.json``
 (:func:`card_fields`) and ``card.md`` (:func:`card_markdown`, the one place the card's text is
 made). Everything in the card is read from the run (config, ``metrics.jsonl``, weights) and from

@@ -47,7 +47,7 @@ def train(cfg: Config, run_dir: str | Path, resume: bool = False, progress: bool
 
 def _refresh(run_dir: str | Path, cfg: Config, summary: dict[str, Any]) -> dict[str, Any]:
     """After training (under the run's lock): the run's inference settings and its linear
-    consistency step's filters, through the weights the run keeps (its best): fitted when training
+    consistency step's filters, through the weights the run keeps (train.keep_weights): fitted when training
     ends, refitted when the run trained on or the filter width changed, config.yaml's
     model.consistency when a finished run got other keys."""
     from hsicam.engine.linear_step import refresh_linear_step

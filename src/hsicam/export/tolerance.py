@@ -26,7 +26,7 @@ TOLERANCE_FORMAT = "hsicam-tolerance-1"
 
 def run_identity(run_dir: str | Path) -> dict[str, str]:
     """``{"path", "weights", "weights_sha256"}`` of a run: its folder (``pretrained:NAME`` resolved),
-    the weights file its best (else last) weights are read from, relative to the folder, and that
+    the weights file its kept weights are read from, relative to the folder, and that
     file's SHA-256 (hex)."""
     from hsicam.runs.checkpoint import file_sha256, root_weights_path
     from hsicam.runs.pretrained import resolve_run

@@ -6,7 +6,8 @@ Run folder layout::
     RUN/metrics.jsonl          one JSON object per log/eval event
     RUN/checkpoints/step-N/    model.safetensors, optimizer.safetensors, state.json
     RUN/checkpoints.json       the manifest: the one commit point of every checkpoint
-    RUN/model.safetensors      weights of the manifest's best (else last) checkpoint, derived from it
+    RUN/model.safetensors      weights of the checkpoint the run keeps (``train.keep_weights``: its best,
+                               else last; or its last), derived from the manifest
     RUN/.hsicam-lock           while a process trains in the run (:mod:`hsicam.runs.lock`)
 
 **One commit point.** A checkpoint is written as a step folder under a hidden temporary name and
@@ -23,7 +24,10 @@ the current manifest does not name are ever pruned, so the best checkpoint is ne
 root weights file is a copy of the checkpoint the manifest's ``weights`` entry names; it is rewritten
 after every commit, on resume when it is missing or out of date, and :func:`root_weights_path`
 falls back to the checkpoint whenever the root file's hash differs from the manifest's: a reader
-never takes other weights than the manifest's best for the best. Runs written before the manifest
+never takes other weights than the ones the manifest's ``weights`` entry names. Which checkpoint
+that is, the training decides (``train.keep_weights``, :class:`CheckpointManager`'s ``keep``):
+"best" (the highest validation PSNR so far, else the last) or "last" (the last step: no selection
+on the validation scenes, whose metrics are then those of an unselected model). Runs written before the manifest
 (``last.json`` / ``best.json`` pointers) are read as before and converted at their next checkpoint.
 """
 
@@ -51,6 +55,8 @@ FORMAT = "hsicam-checkpoint-1"
 MANIFEST = "checkpoints.json"
 MANIFEST_FORMAT = "hsicam-run-manifest-1"
 LEGACY_POINTERS = ("last.json", "best.json")
+#: Which checkpoint a run's root weights hold (``train.keep_weights``).
+KEEP_WEIGHTS = ("best", "last")
 
 log = logging.getLogger(__name__)
 
@@ -186,12 +192,17 @@ class CheckpointManager:
     """Writes and finds the checkpoints of one run folder (see the module docstring).
 
     ``weights_file`` is the name of the root weights file (``model.safetensors``; the spectral
-    prior uses ``prior.safetensors``)."""
+    prior uses ``prior.safetensors``). ``keep`` is the checkpoint a commit makes the root weights
+    hold: "best" (else last) or "last" (``train.keep_weights``); readers follow what the manifest
+    records, whatever this manager's ``keep``."""
 
-    def __init__(self, run_dir: str | Path, weights_file: str = "model.safetensors") -> None:
+    def __init__(self, run_dir: str | Path, weights_file: str = "model.safetensors", keep: str = "best") -> None:
+        if keep not in KEEP_WEIGHTS:
+            raise ValueError(f"keep must be one of {KEEP_WEIGHTS}, got {keep!r}")
         self.run_dir = Path(run_dir)
         self.ckpt_dir = self.run_dir / "checkpoints"
         self.weights_file = weights_file
+        self.keep = keep
 
     # -- the manifest -------------------------------------------------------------------------
     def manifest(self) -> dict[str, Any] | None:
@@ -288,8 +299,8 @@ class CheckpointManager:
         best = None if old is None else old.get("best")
         if "best" in tags:
             best = {**entry, "psnr": state.get("best_psnr")}
-        root_from = "best" if best else "last"
-        src = best if best else entry
+        root_from = "best" if best and self.keep == "best" else "last"
+        src = best if root_from == "best" else entry
         man = {"format": MANIFEST_FORMAT, "last": entry, "best": best, "state": dict(state),
                "weights": {"file": self.weights_file, "from": root_from, "dir": src["dir"],
                            "sha256": src.get("weights_sha256")}}
@@ -317,16 +328,17 @@ class CheckpointManager:
         return InputError(f"{path}: {_reason(exc)}; nothing was committed: {kept}; {_resume_hint(exc)}")
 
     def root_source(self) -> tuple[Path, str | None] | None:
-        """(weights file of the checkpoint the root weights must hold, its SHA-256 when recorded)."""
+        """(weights file of the checkpoint the root weights must hold, its SHA-256 when recorded): the
+        one the manifest's ``weights`` entry names (manifests without one: the best, else the last)."""
         man = self.manifest()
         if man is None:
             return None
-        entry = man.get("best") or man["last"]
+        _, entry = kept_entry(man)
         return self.run_dir / entry["dir"] / "model.safetensors", entry.get("weights_sha256")
 
     def sync_root(self) -> bool:
         """Rewrite the root weights file when it is missing or holds other weights than the
-        manifest's best (else last) checkpoint; returns True when it was rewritten."""
+        checkpoint the manifest keeps (:meth:`root_source`); returns True when it was rewritten."""
         src = self.root_source()
         if src is None:
             return False
@@ -378,12 +390,36 @@ class CheckpointManager:
             raise InputError(f"{d / 'state.json'}: corrupt checkpoint state") from None
 
 
+def kept_entry(man: dict[str, Any]) -> tuple[str, dict[str, Any]]:
+    """("best" | "last", the manifest's entry ``{"dir", "step", …}``) of the checkpoint the run keeps:
+    the one its ``weights`` entry names, else (older manifests) the best, else the last."""
+    weights = man.get("weights")
+    tag = weights.get("from") if isinstance(weights, dict) else None
+    if tag in KEEP_WEIGHTS and man.get(tag):
+        return tag, man[tag]
+    return ("best", man["best"]) if man.get("best") else ("last", man["last"])
+
+
+def kept_checkpoint(run_dir: str | Path, weights_file: str = "model.safetensors") -> dict[str, Any] | None:
+    """Which checkpoint a run's root weights come from, for a results file: ``{"checkpoint": "best" |
+    "last", "step": N, "of_steps": M}``, with ``"selected_on"`` for the best (the validations chose
+    it); None for a folder without a manifest (e.g. a shipped camera)."""
+    man = CheckpointManager(run_dir, weights_file).manifest()
+    if man is None:
+        return None
+    tag, entry = kept_entry(man)
+    out: dict[str, Any] = {"checkpoint": tag, "step": entry.get("step"), "of_steps": man["last"].get("step")}
+    if tag == "best":
+        out["selected_on"] = "validation PSNR (patches of the validation scenes): the highest of the run's validations"
+    return out
+
+
 def root_weights_path(run_dir: str | Path, weights_file: str = "model.safetensors") -> Path:
-    """The weights file that holds a run's best (else last) weights.
+    """The weights file that holds the weights a run keeps (:func:`kept_entry`).
 
     The root file when it matches the manifest (or the run has no manifest); else — a process was
     killed between the manifest's commit and the root file's rewrite — the checkpoint the manifest
-    names, so the best weights are never taken from another checkpoint."""
+    names, so the kept weights are never taken from another checkpoint."""
     run_dir = Path(run_dir)
     root = run_dir / weights_file
     mgr = CheckpointManager(run_dir, weights_file)

@@ -1,0 +1,136 @@
+"""``train.keep_weights``: which checkpoint a run's root weights hold (the best validation's, a
+selection on the validation scenes, or the last step's), and that readers, results files and the
+demo say which one was scored."""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+import pytest
+import torch
+from cli_helpers import run_cli_in_process
+
+from hsicam.config import load_config
+from hsicam.errors import ConfigError
+from hsicam.runs.checkpoint import (MANIFEST, CheckpointManager, kept_checkpoint, kept_entry, read_weights,
+                                    root_weights_path)
+
+
+def _train(run: Path, *sets: str) -> None:
+    from hsicam.engine.train import train
+
+    train(load_config("tiny", ["train.epochs=2", "train.checkpoint_every_steps=3", *sets]), run, progress=False)
+
+
+def _weights(path: Path) -> dict[str, torch.Tensor]:
+    return read_weights(path)[0]
+
+
+def _equal(a: dict[str, torch.Tensor], b: dict[str, torch.Tensor]) -> bool:
+    return a.keys() == b.keys() and all(torch.equal(a[k], b[k]) for k in a)
+
+
+@pytest.fixture(scope="module")
+def runs(cache_env, tmp_path_factory):
+    """Two tiny runs, identical but for ``train.keep_weights`` (best: the default; last)."""
+    torch.set_num_threads(1)
+    root = tmp_path_factory.mktemp("keep")
+    _train(root / "best")
+    _train(root / "last", "train.keep_weights=last")
+    return root / "best", root / "last"
+
+
+def test_keep_last_holds_the_last_step_and_trains_the_same(runs):
+    best_run, last_run = runs
+    man_b = json.loads((best_run / MANIFEST).read_text())
+    man_l = json.loads((last_run / MANIFEST).read_text())
+    # the choice changes nothing in training: the same checkpoints, the same best
+    assert man_b["last"]["weights_sha256"] == man_l["last"]["weights_sha256"]
+    assert man_b["best"] == man_l["best"]
+    assert man_b["best"]["dir"] != man_b["last"]["dir"], "the tiny run's best must not be its last step"
+    # the root weights: the best validation's, or the last step's
+    assert man_b["weights"]["from"] == "best" and man_l["weights"]["from"] == "last"
+    assert _equal(_weights(best_run / "model.safetensors"), _weights(best_run / man_b["best"]["dir"] / "model.safetensors"))
+    assert _equal(_weights(last_run / "model.safetensors"), _weights(last_run / man_l["last"]["dir"] / "model.safetensors"))
+    assert not _equal(_weights(last_run / "model.safetensors"), _weights(best_run / "model.safetensors"))
+    # the best checkpoint is still kept (and named) in a run that keeps its last
+    assert (last_run / man_l["best"]["dir"] / "model.safetensors").is_file()
+    assert kept_entry(man_l) == ("last", man_l["last"])
+    assert kept_entry(man_b) == ("best", man_b["best"])
+
+
+def test_readers_follow_the_manifest_not_their_own_default(runs, tmp_path):
+    """A kill between the manifest's commit and the root file's rewrite left other weights in the
+    root file: readers take the checkpoint the manifest keeps (here the last), and a manager made
+    with the default keep ("best") rewrites the root file to that same checkpoint."""
+    _, last_run = runs
+    run = tmp_path / "run"
+    shutil.copytree(last_run, run)
+    man = json.loads((run / MANIFEST).read_text())
+    shutil.copyfile(run / man["best"]["dir"] / "model.safetensors", run / "model.safetensors")
+    assert root_weights_path(run) == run / man["last"]["dir"] / "model.safetensors"
+    assert CheckpointManager(run).sync_root() is True
+    assert root_weights_path(run) == run / "model.safetensors"
+    assert _equal(_weights(run / "model.safetensors"), _weights(run / man["last"]["dir"] / "model.safetensors"))
+
+
+def test_manifest_without_a_weights_entry_keeps_the_best(runs, tmp_path):
+    best_run, _ = runs
+    run = tmp_path / "run"
+    shutil.copytree(best_run, run)
+    man = json.loads((run / MANIFEST).read_text())
+    del man["weights"]
+    (run / MANIFEST).write_text(json.dumps(man))
+    assert kept_entry(man) == ("best", man["best"])
+    assert kept_checkpoint(run)["checkpoint"] == "best"
+    man["best"] = None  # a run without validation: its last
+    assert kept_entry(man) == ("last", man["last"])
+
+
+def test_kept_checkpoint_says_which_weights(runs, tmp_path):
+    best_run, last_run = runs
+    man = json.loads((best_run / MANIFEST).read_text())
+    b, la = kept_checkpoint(best_run), kept_checkpoint(last_run)
+    assert b["checkpoint"] == "best" and b["step"] == man["best"]["step"] and b["of_steps"] == man["last"]["step"]
+    assert "validation" in b["selected_on"]
+    assert la == {"checkpoint": "last", "step": man["last"]["step"], "of_steps": man["last"]["step"]}
+    assert kept_checkpoint(tmp_path) is None  # no manifest (e.g. a shipped camera's folder)
+
+
+def test_evaluate_records_the_scored_checkpoint(runs, tmp_path):
+    best_run, last_run = runs
+    for run, tag in ((best_run, "best"), (last_run, "last")):
+        out = tmp_path / tag
+        res = run_cli_in_process("evaluate", "--run", str(run), "--out", str(out))
+        assert res.returncode == 0, res.stderr
+        data = json.loads((out / "results.json").read_text())
+        assert data["weights"]["checkpoint"] == tag
+        assert data["weights"] == kept_checkpoint(run)
+        # and the recorded hash is that checkpoint's weights
+        man = json.loads((run / MANIFEST).read_text())
+        assert data["weights_sha256"] == man[tag]["weights_sha256"]
+
+
+def test_demo_sentence_names_the_selection():
+    from hsicam.engine.demo import weights_text
+
+    assert weights_text(None) == ""
+    last = weights_text({"checkpoint": "last", "step": 640, "of_steps": 640})
+    assert "last" in last and "640" in last and "no checkpoint selection" in last
+    best = weights_text({"checkpoint": "best", "step": 448, "of_steps": 640, "selected_on": "…"})
+    assert "448 of 640" in best and "optimistic" in best
+
+
+def test_bad_keep_weights_is_one_clear_error():
+    with pytest.raises(ConfigError, match="train.keep_weights.*'best', 'last'"):
+        load_config("tiny", ["train.keep_weights=final"])
+    with pytest.raises(ValueError, match="keep must be one of"):
+        CheckpointManager(".", keep="final")
+
+
+def test_quick_preset_scores_its_last_step():
+    """The demo's preset keeps the last step: its validation figures carry no checkpoint selection."""
+    assert load_config("quick").train.keep_weights == "last"
+    assert load_config("paper").train.keep_weights == "best"  # the paper's protocol
