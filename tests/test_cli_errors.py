@@ -208,6 +208,57 @@ def test_export_refuses_nan_weights_naming_the_file(inputs, tmp_path, capsys):
     code, err = call(capsys, ["export-optics", "--run", str(run), "--out", str(tmp_path / "fab")])
     assert_one_line(code, err, "model.safetensors", "NaN", "height_m")
     assert not (tmp_path / "fab").exists() and not list(tmp_path.glob(".fab*"))
+    # every reader of the run refuses the same way, naming the weights, not its output (psf wrote an
+    # all-NaN PSF stack with exit 0; reconstruct blamed the cube it was about to write)
+    for args in (["psf", "--run", str(run), "--out", str(tmp_path / "psf")],
+                 ["reconstruct", str(inputs / "cap.npy"), "--run", str(run), "--out", str(tmp_path / "r.h5")],
+                 ["evaluate", "--run", str(run), "--out", str(tmp_path / "ev")]):
+        code, err = call(capsys, args)
+        assert_one_line(code, err, "model.safetensors", "NaN", "height_m", "diverged")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["run"]
+
+
+def test_readers_refuse_an_empty_run_config(inputs, tmp_path, capsys):
+    """A run whose config.yaml lost its settings: one line naming the file, never the built-in paper
+    camera (whose band grid the weights then did not fit: the error named the weights instead)."""
+    run = tmp_path / "run"
+    shutil.copytree(inputs / "run", run)
+    (run / "config.yaml").write_text("# nothing\n")
+    for args in (["psf", "--run", str(run), "--out", str(tmp_path / "psf")],
+                 ["reconstruct", str(inputs / "cap.npy"), "--run", str(run), "--out", str(tmp_path / "r.h5")],
+                 ["export-optics", "--run", str(run), "--out", str(tmp_path / "fab")],
+                 ["evaluate", "--run", str(run), "--out", str(tmp_path / "ev")]):
+        code, err = call(capsys, args)
+        assert_one_line(code, err, str(run / "config.yaml"), "empty config")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["run"]
+
+
+def test_evaluate_data_through_a_symlink_loop(inputs, tmp_path, capsys):
+    (tmp_path / "loop2").symlink_to("loop1")
+    (tmp_path / "loop1").symlink_to("loop2")
+    for data in (tmp_path / "loop1", tmp_path / "loop1" / "scenes"):
+        code, err = call(capsys, ["evaluate", "--run", str(inputs / "run"), "--out", str(tmp_path / "ev"),
+                                  "--data", str(data)])
+        assert_one_line(code, err, str(tmp_path / "loop1"), "symbolic link loop")
+    assert not (tmp_path / "ev").exists()
+
+
+def test_restart_names_the_entry_it_cannot_remove(inputs, tmp_path, env):
+    prefix = unprivileged_prefix()
+    if prefix is None:
+        pytest.skip("running as root without setpriv: chmod cannot make a folder unwritable here")
+    run = tmp_path / "run"
+    (run / "checkpoints" / "sub").mkdir(parents=True)
+    (run / "checkpoints" / "sub" / "f").write_text("x")
+    (run / "config.yaml").write_text((inputs / "run" / "config.yaml").read_text())
+    (run / "checkpoints" / "sub").chmod(0o500)
+    try:
+        proc = subprocess.run([*prefix, str(HSICAM), "train", "--config", "tiny", "--out", "run", "--restart"],
+                              capture_output=True, text=True, timeout=300, env=cli_env(env), cwd=tmp_path)
+    finally:
+        (run / "checkpoints" / "sub").chmod(0o700)
+    assert_clean_error(proc, "run/checkpoints/sub/f: cannot be removed for --restart", "Permission denied",
+                       "check its permissions")
 
 
 def test_demo_refuses_a_run_trained_with_other_settings(inputs, tmp_path, capsys):
@@ -555,3 +606,26 @@ def test_a_demo_folder_as_the_run_names_the_run_inside_it(inputs, tmp_path, caps
     code, err = call(capsys, args)
     assert_one_line(code, err, f"it holds the run folders {experiment / 'runs' / 'full'}, "
                                f"{experiment / 'runs' / 'no-doe'}: give one as the run")
+
+
+def test_bad_inputs_found_by_session_31s_audit(inputs, tmp_path, capsys, recwarn):
+    """A gain that overflows float32 is the one line without numpy's overflow warning before it; an
+    HDF5 scene whose 'cube' is a group, and a scene path round a symbolic-link loop, are named as such."""
+    import h5py
+
+    code, err = call(capsys, ["reconstruct", str(inputs / "cap.npy"), "--run", str(inputs / "run"), "--out",
+                              str(tmp_path / "r.h5"), "--scale", "1e39"])
+    assert_one_line(code, err, "NaN or Inf", "gain 1e+39: beyond float32")
+    assert not [w for w in recwarn if issubclass(w.category, RuntimeWarning)], [str(w.message) for w in recwarn]
+    scene = tmp_path / "group.h5"
+    with h5py.File(scene, "w") as f:
+        f.create_group("cube")
+        f["bands_nm"] = np.linspace(420, 720, 7)
+    code, err = call(capsys, ["simulate", "--config", "tiny", "--scene", str(scene), "--out", str(tmp_path / "sim")])
+    assert_one_line(code, err, str(scene), "'cube' is a group, not an array")
+    (tmp_path / "loop2").symlink_to("loop1")
+    (tmp_path / "loop1").symlink_to("loop2")
+    code, err = call(capsys, ["simulate", "--config", "tiny", "--scene", str(tmp_path / "loop1"), "--out",
+                              str(tmp_path / "sim")])
+    assert_one_line(code, err, str(tmp_path / "loop1"), "symbolic link loop")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["group.h5", "loop1", "loop2"]

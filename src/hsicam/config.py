@@ -728,8 +728,12 @@ class Config:
 # --------------------------------------------------------------------------------------------
 # Loading, overrides, dumping
 # --------------------------------------------------------------------------------------------
-def load_config(path: str | Path | None = None, overrides: Sequence[str] = (), cls: type = Config) -> Any:
-    """Load ``path`` (YAML) over the defaults, apply dotted ``key=value`` overrides, validate."""
+def load_config(path: str | Path | None = None, overrides: Sequence[str] = (), cls: type = Config,
+                empty: str | None = None) -> Any:
+    """Load ``path`` (YAML) over the defaults, apply dotted ``key=value`` overrides, validate.
+    ``empty``: a file without settings (empty, or only comments) is a :class:`ConfigError` saying
+    ``"PATH: empty config (no settings); " + empty`` instead of the built-in defaults (e.g. a run's
+    config.yaml, which training always writes in full)."""
     data: dict[str, Any] = {}
     if path is not None:
         path = resolve_preset(path)
@@ -744,6 +748,8 @@ def load_config(path: str | Path | None = None, overrides: Sequence[str] = (), c
         except yaml.YAMLError as exc:
             raise ConfigError(f"{path}: invalid YAML ({str(exc).splitlines()[0]})") from None
         if loaded is None:
+            if empty is not None:
+                raise ConfigError(f"{path}: empty config (no settings); {empty}")
             loaded = {}
         if not isinstance(loaded, dict):
             raise ConfigError(f"{path}: the top level must be a mapping of sections")

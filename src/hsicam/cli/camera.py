@@ -119,7 +119,9 @@ def load_scene(path: str | Path, bands: Bands, npy_bands: Bands | None = None) -
 
     path = Path(path)
     if not path.exists():
-        raise InputError(f"{path}: no such scene file")
+        from hsicam.io import broken_link_problem
+
+        raise InputError(f"{path}: {broken_link_problem(path) or 'no such scene file'}")
     if path.suffix.lower() == ".npy":
         if npy_bands is None:
             shape, _ = npy_header(path)

@@ -348,6 +348,9 @@ def read_hsicam_h5(path: str | os.PathLike, *, allow_negative: bool = False, mem
             for key in ("cube", "bands_nm"):
                 if key not in f:
                     raise InputError(f"{p}: missing key '{key}' (not an hsicam cube file)")
+                if not isinstance(f[key], h5py.Dataset):  # e.g. a group of that name
+                    raise InputError(f"{p}: '{key}' is a {type(f[key]).__name__.lower()}, not an array "
+                                     "(not an hsicam cube file)")
             check_format_version(p, f.attrs)
             cube = _checked_read(p, f["cube"], memory_budget_mb)
             cube, bands = _h5_bands(p, f, cube)

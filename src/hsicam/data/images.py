@@ -422,10 +422,12 @@ def preprocess_raw(raw: np.ndarray, full_scale: float, corr: RawCorrection, sour
     if corr.scale != 1.0:
         report["scale"] = corr.scale
     factor *= corr.scale
-    img *= np.float32(factor)
+    with np.errstate(over="ignore", invalid="ignore"):  # an overflow is the one-line error below, no warning
+        img *= np.float32(factor)
     report["gain"] = factor / (white - black)
     if not np.all(np.isfinite(img)):
-        raise InputError(f"{source}: the corrections produced NaN or Inf values")
+        raise InputError(f"{source}: the corrections produced NaN or Inf values (gain {factor:g}"
+                         f"{': beyond float32' if factor > float(np.finfo(np.float32).max) else ''})")
     if check_level:
         notes += _check_level(img, corr, source)
     if check_bit_depth and full_scale > 1 and corr.white_level is None and corr.auto_level is None:

@@ -109,17 +109,11 @@ def export_optics(run_dir: str | Path, out_dir: str | Path, levels: int | None =
     from hsicam.cameras import DOECamera
     from hsicam.io import atomic_output, check_output_path
     from hsicam.runs.folder import load_run
-    from hsicam.runs.checkpoint import root_weights_path
     from hsicam.runs.pretrained import resolve_run
 
     run_dir, out = resolve_run(run_dir), Path(out_dir)  # run_dir may be pretrained:NAME
     check_output_path(out, "dir")
-    cfg, model = load_run(run_dir, "cpu")
-    for name, t in model.state_dict().items():
-        if t.is_floating_point() and not bool(t.isfinite().all()):
-            bad = int((~t.isfinite()).sum())
-            raise InputError(f"{root_weights_path(run_dir)}: {bad} NaN/Inf value(s) in {name}: the run's weights are "
-                             "not finite (training diverged?); nothing exported")
+    cfg, model = load_run(run_dir, "cpu")  # (refuses weights with NaN/Inf: runs.folder.check_finite_weights)
     camera = model.camera
     if not isinstance(camera, DOECamera):
         raise InputError(f"{run_dir}: export-optics needs a DOE camera (camera.kind: doe), got {cfg.camera.kind}")

@@ -21,14 +21,15 @@ import json
 import logging
 import os
 import shutil
+import sys
 from pathlib import Path
 from typing import Any
 
 import torch
 
 from hsicam.errors import HsicamError, InputError
-from hsicam.io import (atomic_open, cleanup_stale_temporaries, held_here, is_temporary, output_lock_path, remove_if_stale,
-                       restore_set_aside)
+from hsicam.io import (OS_ERROR_HINTS, atomic_open, cleanup_stale_temporaries, held_here, is_temporary, output_lock_path,
+                       remove_if_stale, restore_set_aside)
 from hsicam.runs.checkpoint import LEGACY_POINTERS, MANIFEST, CheckpointManager, load_weights, root_weights_path
 from hsicam.runs.linear_step import LINEAR_STEP_FILE, load_linear_step, stale_reason
 from hsicam.runs.lock import LOCK_FILE
@@ -48,6 +49,11 @@ def with_measured_psf(model, measured: MeasuredPSF):
     if measured.psf.shape[-1] != cam.kernel_px:
         raise InputError(f"measured PSFs are {measured.psf.shape[-1]} px wide, the camera's kernel {cam.kernel_px} px")
     return model.with_camera(FixedPSFCamera.from_camera(cam, torch.from_numpy(measured.psf)))
+
+
+#: What to do about a run whose config.yaml holds no settings (training always writes it in full).
+EMPTY_RUN_CONFIG = ("the run's config.yaml is damaged (training writes it in full, and the weights need the camera "
+                    "and network it describes): restore it from a copy of the run")
 
 
 def load_run(run_dir: str | Path, device: torch.device | str = "cpu", overrides: tuple[str, ...] = (),
@@ -71,7 +77,7 @@ def load_run(run_dir: str | Path, device: torch.device | str = "cpu", overrides:
     run_dir = resolve_run(run_dir)
     check_is_run(run_dir)
     cfg_path = run_dir / "config.yaml"
-    cfg = load_config(cfg_path, overrides)
+    cfg = load_config(cfg_path, overrides, empty=EMPTY_RUN_CONFIG)
     weights = run_dir / "model.safetensors"
     if not weights.is_file():
         raise InputError(no_weights_message(run_dir))
@@ -85,6 +91,7 @@ def load_run(run_dir: str | Path, device: torch.device | str = "cpu", overrides:
         raise InputError(f"--set {' '.join(map(str, overrides))}: changes what {run_dir} was trained with, so its "
                          f"weights do not load ({exc}); a trained run's camera, bands and network are fixed by its "
                          "training (another design: hsicam train)") from None
+    check_finite_weights(model, root_weights_path(run_dir))
     if linear_step and (run_dir / LINEAR_STEP_FILE).is_file():  # the linear step's filters (fitted after training)
         model.linear_step = load_linear_step(run_dir / LINEAR_STEP_FILE, len(model.bands),
                                              int(getattr(model.camera, "code_period", 1)))
@@ -99,6 +106,17 @@ def load_run(run_dir: str | Path, device: torch.device | str = "cpu", overrides:
     if unfinished:
         log.warning("%s", unfinished)
     return cfg, model.to(device).eval()
+
+
+def check_finite_weights(model: torch.nn.Module, weights: str | Path) -> None:
+    """One-line :class:`InputError` naming ``weights`` (the file they came from) and the first tensor
+    of ``model`` that holds NaN or Inf: no reader (reconstruct, psf, evaluate, export) works through
+    weights of a diverged training (a reconstruction would only blame its output)."""
+    for name, t in model.state_dict().items():
+        if t.is_floating_point() and not bool(t.isfinite().all()):
+            bad = int((~t.isfinite()).sum())
+            raise InputError(f"{weights}: {bad} NaN/Inf value(s) in {name}: the run's weights are not finite "
+                             "(training diverged?); nothing was done with them")
 
 
 def not_a_run_message(path: str | Path) -> str | None:
@@ -396,8 +414,26 @@ def restart_run_dir(run_dir: Path) -> bool:
     if weights is not None:  # no checkpoint, yet trained weights: a copied camera, not a killed run
         raise InputError(f"{run_dir}: holds trained weights ({weights}) but no checkpoint (a copied or shipped camera); "
                          "--restart would delete them: choose another --out, or delete the folder yourself to start over")
+    def refused(path: str | os.PathLike, exc: OSError) -> InputError:
+        hint = OS_ERROR_HINTS.get(exc.errno, "")
+        return InputError(f"{path}: cannot be removed for --restart ({exc.strerror or exc}"
+                          f"{'; ' + hint if hint else ''}); the rest of the unfinished run may be gone already: "
+                          "fix that, then run the same command again")
+
+    def on_exc(_func, path, exc) -> None:  # rmtree's: names the entry it could not remove
+        raise refused(path, exc) if isinstance(exc, OSError) else exc
+
     for p in entries:
-        shutil.rmtree(p) if p.is_dir() and not p.is_symlink() else p.unlink()
+        if p.is_dir() and not p.is_symlink():
+            if sys.version_info >= (3, 12):
+                shutil.rmtree(p, onexc=on_exc)
+            else:
+                shutil.rmtree(p, onerror=lambda f, path, info: on_exc(f, path, info[1]))
+        else:
+            try:
+                p.unlink()
+            except OSError as exc:
+                raise refused(p, exc) from None
     log.info("%s: removed the unfinished run (no checkpoint) to start again", run_dir)
     return True
 
