@@ -13,7 +13,7 @@ import torch
 from cli_helpers import run_cli_in_process
 
 from hsicam.config import load_config
-from hsicam.errors import ConfigError
+from hsicam.errors import ConfigError, InputError
 from hsicam.runs.checkpoint import (MANIFEST, CheckpointManager, kept_checkpoint, kept_entry, read_weights,
                                     root_weights_path)
 
@@ -47,8 +47,11 @@ def test_keep_last_holds_the_last_step_and_trains_the_same(runs):
     man_b = json.loads((best_run / MANIFEST).read_text())
     man_l = json.loads((last_run / MANIFEST).read_text())
     # the choice changes nothing in training: the same checkpoints, the same best
-    assert man_b["last"]["weights_sha256"] == man_l["last"]["weights_sha256"]
-    assert man_b["best"] == man_l["best"]
+    for tag in ("last", "best"):
+        assert man_b[tag]["step"] == man_l[tag]["step"]
+        assert _equal(_weights(best_run / man_b[tag]["dir"] / "model.safetensors"),
+                      _weights(last_run / man_l[tag]["dir"] / "model.safetensors"))
+    assert man_b["best"]["psnr"] == man_l["best"]["psnr"]
     assert man_b["best"]["dir"] != man_b["last"]["dir"], "the tiny run's best must not be its last step"
     # the root weights: the best validation's, or the last step's
     assert man_b["weights"]["from"] == "best" and man_l["weights"]["from"] == "last"
@@ -76,26 +79,57 @@ def test_readers_follow_the_manifest_not_their_own_default(runs, tmp_path):
     assert _equal(_weights(run / "model.safetensors"), _weights(run / man["last"]["dir"] / "model.safetensors"))
 
 
-def test_manifest_without_a_weights_entry_keeps_the_best(runs, tmp_path):
+def _to_legacy(run: Path) -> dict:
+    """Turn ``run`` into the layout before the manifest (last.json / best.json pointers); its manifest."""
+    man = json.loads((run / MANIFEST).read_text())
+    (run / MANIFEST).unlink()
+    (run / "last.json").write_text(json.dumps({"dir": man["last"]["dir"], **man["state"]}))
+    (run / "best.json").write_text(json.dumps({"dir": man["best"]["dir"], **man["state"]}))
+    return man
+
+
+def test_a_run_of_the_older_layout_keeps_its_best_until_told(runs, tmp_path):
+    """Pointer-file runs (no manifest, no ``weights`` entry) keep their best; reused with keep "last"
+    they get their manifest, the pointers go, and the root weights are the last step's."""
+    from hsicam.engine.experiments import ensure_trained
+
+    best_run, _ = runs
+    run = tmp_path / "run"
+    shutil.copytree(best_run, run)
+    man = _to_legacy(run)
+    assert kept_checkpoint(run)["checkpoint"] == "best"
+    assert root_weights_path(run) == run / "model.safetensors"  # it holds the best: no manifest to contradict it
+    entry = {"dir": "d", "step": 1}
+    assert kept_entry({"last": entry, "best": None}) == ("last", entry)  # no validation: the last
+    cfg = load_config("tiny", ["train.epochs=2", "train.checkpoint_every_steps=3", "train.keep_weights=last"])
+    assert ensure_trained(run, cfg) == "reused"
+    assert not (run / "last.json").exists() and not (run / "best.json").exists()
+    after = json.loads((run / MANIFEST).read_text())
+    assert after["weights"]["from"] == "last" and "legacy" not in after
+    assert after["best"]["dir"] == man["best"]["dir"] and after["last"]["dir"] == man["last"]["dir"]
+    assert _equal(_weights(run / "model.safetensors"), _weights(run / man["last"]["dir"] / "model.safetensors"))
+    assert load_config(run / "config.yaml").train.keep_weights == "last"
+
+
+def test_apply_keep_refuses_a_missing_checkpoint(runs, tmp_path):
     best_run, _ = runs
     run = tmp_path / "run"
     shutil.copytree(best_run, run)
     man = json.loads((run / MANIFEST).read_text())
-    del man["weights"]
-    (run / MANIFEST).write_text(json.dumps(man))
-    assert kept_entry(man) == ("best", man["best"])
-    assert kept_checkpoint(run)["checkpoint"] == "best"
-    man["best"] = None  # a run without validation: its last
-    assert kept_entry(man) == ("last", man["last"])
+    shutil.rmtree(run / man["last"]["dir"])
+    before = (run / MANIFEST).read_bytes()
+    with pytest.raises(InputError, match="the last checkpoint named by .* is missing"):
+        CheckpointManager(run, keep="last").apply_keep()
+    assert (run / MANIFEST).read_bytes() == before
 
 
 def test_kept_checkpoint_says_which_weights(runs, tmp_path):
     best_run, last_run = runs
     man = json.loads((best_run / MANIFEST).read_text())
     b, la = kept_checkpoint(best_run), kept_checkpoint(last_run)
-    assert b["checkpoint"] == "best" and b["step"] == man["best"]["step"] and b["of_steps"] == man["last"]["step"]
+    assert b["checkpoint"] == "best" and b["step"] == man["best"]["step"] and b["last_step"] == man["last"]["step"]
     assert "validation" in b["selected_on"]
-    assert la == {"checkpoint": "last", "step": man["last"]["step"], "of_steps": man["last"]["step"]}
+    assert la == {"checkpoint": "last", "step": man["last"]["step"], "last_step": man["last"]["step"]}
     assert kept_checkpoint(tmp_path) is None  # no manifest (e.g. a shipped camera's folder)
 
 
@@ -117,10 +151,12 @@ def test_demo_sentence_names_the_selection():
     from hsicam.engine.demo import weights_text
 
     assert weights_text(None) == ""
-    last = weights_text({"checkpoint": "last", "step": 640, "of_steps": 640})
+    last = weights_text({"checkpoint": "last", "step": 640, "last_step": 640})
     assert "last" in last and "640" in last and "no checkpoint selection" in last
-    best = weights_text({"checkpoint": "best", "step": 448, "of_steps": 640, "selected_on": "…"})
+    best = weights_text({"checkpoint": "best", "step": 448, "last_step": 640, "selected_on": "…"})
     assert "448 of 640" in best and "optimistic" in best
+    at_end = weights_text({"checkpoint": "best", "step": 640, "last_step": 640, "selected_on": "…"})
+    assert "changed nothing" in at_end and "optimistic" not in at_end
 
 
 def test_bad_keep_weights_is_one_clear_error():
@@ -134,3 +170,57 @@ def test_quick_preset_scores_its_last_step():
     """The demo's preset keeps the last step: its validation figures carry no checkpoint selection."""
     assert load_config("quick").train.keep_weights == "last"
     assert load_config("paper").train.keep_weights == "best"  # the paper's protocol
+
+
+def test_a_finished_run_reused_with_the_other_choice_switches_its_weights(runs, tmp_path):
+    """train.keep_weights is no training difference: a demo or experiment reusing a finished run trained
+    with "best" under a config asking for "last" keeps the run and switches its root weights (and
+    config.yaml); and back."""
+    from hsicam.engine.experiments import ensure_trained
+
+    best_run, _ = runs
+    run = tmp_path / "run"
+    shutil.copytree(best_run, run)
+    man = json.loads((run / MANIFEST).read_text())
+    last_w = _weights(run / man["last"]["dir"] / "model.safetensors")
+    best_w = _weights(run / man["best"]["dir"] / "model.safetensors")
+    cfg = load_config("tiny", ["train.epochs=2", "train.checkpoint_every_steps=3", "train.keep_weights=last"])
+    assert ensure_trained(run, cfg) == "reused"
+    assert json.loads((run / MANIFEST).read_text())["weights"]["from"] == "last"
+    assert _equal(_weights(run / "model.safetensors"), last_w)
+    assert load_config(run / "config.yaml").train.keep_weights == "last"
+    assert kept_checkpoint(run)["checkpoint"] == "last"
+    # the manifest's other entries are untouched: the best is still named and on disk
+    after = json.loads((run / MANIFEST).read_text())
+    assert after["best"] == man["best"] and after["last"] == man["last"] and after["state"] == man["state"]
+    cfg_best = load_config("tiny", ["train.epochs=2", "train.checkpoint_every_steps=3"])
+    assert ensure_trained(run, cfg_best) == "reused"
+    assert _equal(_weights(run / "model.safetensors"), best_w)
+    assert load_config(run / "config.yaml").train.keep_weights == "best"
+
+
+def test_resume_of_a_finished_run_with_another_keep_says_so(runs, tmp_path):
+    _, last_run = runs
+    run = tmp_path / "run"
+    shutil.copytree(last_run, run)
+    res = run_cli_in_process("train", "--out", str(run), "--resume", "--set", "train.keep_weights=best")
+    assert res.returncode == 0, res.stderr
+    man = json.loads((run / MANIFEST).read_text())
+    assert man["weights"]["from"] == "best"
+    assert _equal(_weights(run / "model.safetensors"), _weights(run / man["best"]["dir"] / "model.safetensors"))
+    assert "kept weights: the best checkpoint's" in res.stdout + res.stderr
+
+
+def test_apply_keep(runs, tmp_path):
+    best_run, _ = runs
+    run = tmp_path / "run"
+    shutil.copytree(best_run, run)
+    assert CheckpointManager(run, keep="best").apply_keep() is False  # already so: nothing written
+    assert CheckpointManager(run, keep="last").apply_keep() is True
+    assert CheckpointManager(run, keep="last").apply_keep() is False
+    man = json.loads((run / MANIFEST).read_text())
+    man["best"] = None  # a run without validation keeps its last whatever it asks for
+    (run / MANIFEST).write_text(json.dumps(man))
+    assert CheckpointManager(run, keep="best").apply_keep() is False
+    assert kept_checkpoint(run)["checkpoint"] == "last"
+    assert CheckpointManager(tmp_path / "nothing", keep="last").apply_keep() is False

@@ -379,3 +379,30 @@ def test_demo_cli_trains_reports_and_draws(tmp_path, cache_env):
                   str(tmp_path / "bad.h5"), "--consistency-steps", "-1", env=env)
     assert_clean_error(bad, "--consistency-steps must be >= 0")
     assert not (tmp_path / "bad.h5").exists()
+
+
+def test_weights_files_are_byte_identical_for_the_same_weights(tmp_path):
+    """The safetensors writer orders metadata at random (a Rust hash map): the same weights gave files
+    of other bytes and SHA-256s. Written through save_safetensors, they are the same bytes every time,
+    and read back as written."""
+    import hashlib
+
+    from safetensors import safe_open
+
+    from hsicam.runs.checkpoint import read_weights, save_safetensors
+
+    tensors = {"b.weight": torch.arange(12, dtype=torch.float32).reshape(3, 4), "a": torch.ones(5)}
+    meta = {"format": "hsicam-checkpoint-1", "bands": '{"centers_nm": [420.0, 720.0]}', "kind": "x", "run": "r/ü"}
+    digests = set()
+    for i in range(12):
+        save_safetensors(tmp_path / f"w{i}.safetensors", tensors, meta)
+        digests.add(hashlib.sha256((tmp_path / f"w{i}.safetensors").read_bytes()).hexdigest())
+    assert len(digests) == 1
+    got, got_meta = read_weights(tmp_path / "w0.safetensors")
+    assert got_meta == meta and got.keys() == tensors.keys()
+    assert all(torch.equal(got[k], tensors[k]) for k in tensors)
+    raw = (tmp_path / "w0.safetensors").read_bytes()
+    header = json.loads(raw[8:8 + int.from_bytes(raw[:8], "little")])
+    assert list(header["__metadata__"]) == sorted(meta)
+    with safe_open(str(tmp_path / "w0.safetensors"), framework="pt") as fh:  # the reader itself accepts it
+        assert fh.metadata() == meta

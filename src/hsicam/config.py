@@ -739,8 +739,8 @@ def load_config(path: str | Path | None = None, overrides: Sequence[str] = (), c
         path = resolve_preset(path)
         try:
             text = path.read_text(encoding="utf-8")
-        except OSError as exc:
-            raise ConfigError(f"{path}: cannot read config ({exc.strerror})") from None
+        except (OSError, UnicodeDecodeError) as exc:
+            raise ConfigError(f"{path}: cannot read config ({getattr(exc, 'strerror', None) or exc})") from None
         try:
             loaded = strict_yaml(text)
         except DuplicateKeyError as exc:
@@ -931,6 +931,7 @@ RUNTIME_ONLY_KEYS = (
     "train.device", "train.log_every_steps", "train.checkpoint_every_steps", "train.eval_every_epochs",
     "train.tensorboard", "train.compile", "train.channels_last", "train.deterministic", "train.max_minutes",
     "model.consistency",  # applied after the network at inference; the training never sees it
+    "train.keep_weights",  # which of its checkpoints a run keeps: the same training either way
 )
 
 

@@ -130,23 +130,8 @@ def config_from_args(path: str | Path | None, overrides: Sequence[str] = ()):
     is an error, never silently the built-in defaults (the paper camera)."""
     from hsicam.config import load_config
 
-    if path is not None:
-        p = Path(path)
-        if p.is_file():
-            import yaml
-
-            try:
-                text = p.read_text(encoding="utf-8")
-            except (OSError, UnicodeDecodeError) as exc:
-                raise ConfigError(f"{p}: cannot read config ({getattr(exc, 'strerror', None) or exc})") from None
-            try:
-                empty = yaml.safe_load(text) is None
-            except yaml.YAMLError as exc:
-                raise ConfigError(f"{p}: invalid YAML ({str(exc).splitlines()[0]})") from None
-            if empty:
-                raise ConfigError(f"{p}: empty config (no settings); give a preset (tiny, quick, paper) or a YAML "
-                                  "file with at least one section")
-    return load_config(path, list(overrides))
+    return load_config(path, list(overrides), empty="give a preset (tiny, quick, paper) or a YAML file with at "
+                                                     "least one section")
 
 
 def prepare_output(path: str | Path, kind: str = "dir", replace: bool = False, command: str | None = None,

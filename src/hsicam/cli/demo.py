@@ -40,7 +40,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
     print(f"[demo] validation mean: {means_line(summary['mean'])} ({summary['n_scenes']} scenes; "
           f"{time.perf_counter() - t0:.0f} s)")
     if summary.get("weights"):
-        print(f"[demo]{weights_text(summary['weights'])}")
+        print(f"[demo] {weights_text(summary['weights'])}")
     for r in summary["references"]:
         print(f"[demo] reference, {r['method']}: {means_line(r['mean'])}")
     if "heldout" in summary:

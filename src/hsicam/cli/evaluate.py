@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import errno
 import logging
 import os
 import sys
@@ -77,17 +78,24 @@ def check_out_apart_from_data(out: str | Path, data: str | Path) -> None:
     evaluation read back as data). An ``--out`` inside ``--data`` is allowed: the scene scan skips
     sub-folders holding hsicam outputs (:func:`hsicam.data.datasets.list_scenes`). Paths are compared
     resolved (links followed)."""
-    from hsicam.io import broken_link_problem, same_path
+    from hsicam.io import same_path
 
-    for path in (data, out):  # a link round a loop cannot be resolved: say so (the data's own check comes later)
-        for part in (Path(path), *Path(path).parents):
-            problem = broken_link_problem(part)
-            if problem is not None and "loop" in problem:
-                raise InputError(f"{part}: {problem}")
-    try:
-        o, d = Path(out).resolve(), Path(data).resolve()
-    except (OSError, RuntimeError) as exc:  # RuntimeError: Python < 3.13's symlink loop
-        raise InputError(f"{data}: cannot be resolved ({exc})") from None
+    def resolved(path: str | Path) -> Path:
+        try:
+            return Path(path).resolve()
+        except (OSError, RuntimeError):  # RuntimeError: Python < 3.13's symbolic link loop
+            for part in reversed((Path(path), *Path(path).parents)):  # name the first link that loops
+                if not part.is_symlink():
+                    continue
+                try:
+                    os.stat(part)
+                except OSError as exc:
+                    if exc.errno == errno.ELOOP:
+                        raise InputError(f"{part}: is a symbolic link to {os.readlink(part)}, which leads back "
+                                         "to itself (a symbolic link loop)") from None
+            raise InputError(f"{path}: cannot be resolved (a symbolic link loop?)") from None
+
+    o, d = resolved(out), resolved(data)
     same = same_path(o, d)
     if same or o in d.parents:
         what = "is the --data folder" if same else f"holds the --data {data}"

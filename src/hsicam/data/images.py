@@ -426,8 +426,10 @@ def preprocess_raw(raw: np.ndarray, full_scale: float, corr: RawCorrection, sour
         img *= np.float32(factor)
     report["gain"] = factor / (white - black)
     if not np.all(np.isfinite(img)):
-        raise InputError(f"{source}: the corrections produced NaN or Inf values (gain {factor:g}"
-                         f"{': beyond float32' if factor > float(np.finfo(np.float32).max) else ''})")
+        if factor > float(np.finfo(np.float32).max):
+            raise InputError(f"{source}: the exposure × auto-level × --scale factor {factor:g} exceeds float32; "
+                             "lower --scale")
+        raise InputError(f"{source}: the corrections produced NaN or Inf values")
     if check_level:
         notes += _check_level(img, corr, source)
     if check_bit_depth and full_scale > 1 and corr.white_level is None and corr.auto_level is None:

@@ -175,7 +175,7 @@ def _finetune(run_dir: Path, psf_dir, out_dir: Path, overrides, pitch_um, progre
     def then(summary: dict[str, Any]) -> dict[str, Any]:
         # under the run's lock: the linear consistency step's filters through the measured PSFs
         # (those of the source run were fitted through its simulated optics)
-        refresh_linear_step(out_dir, cfg.model.consistency)
+        refresh_linear_step(out_dir, cfg.model.consistency, cfg.train.keep_weights)
         return summary
 
     fitted = fit(task, opts, out_dir, resume, then=then)

@@ -34,12 +34,16 @@ def means_line(m: dict) -> str:
 
 
 def weights_text(kept: dict | None) -> str:
-    """" Weights: …" sentence saying which checkpoint was scored (:func:`~hsicam.runs.checkpoint.kept_checkpoint`)."""
+    """The sentence saying which checkpoint was scored (:func:`~hsicam.runs.checkpoint.kept_checkpoint`),
+    or "" when unknown."""
     if kept is None:
         return ""
     if kept["checkpoint"] == "last":
-        return f" Weights: the last step's ({kept['step']}), no checkpoint selection."
-    return (f" Weights: the best validation's (step {kept['step']} of {kept['of_steps']}), selected on patches of "
+        return f"Weights: the last step's ({kept['step']}), no checkpoint selection."
+    if kept["step"] == kept["last_step"]:
+        return (f"Weights: the best validation's, which is the last step ({kept['step']}): the selection on these "
+                "scenes changed nothing.")
+    return (f"Weights: the best validation's (step {kept['step']} of {kept['last_step']}), selected on patches of "
             "these scenes (train.keep_weights: best), so these figures are mildly optimistic.")
 
 
@@ -118,7 +122,7 @@ def run_demo(cfg: Config, out: str | Path) -> dict[str, Any]:
     table = format_table(summary)
     with atomic_open(out / "results.md", "w", encoding="utf-8") as fh:
         fh.write(f"Validation scenes, {summary['conventions']['psnr']}; SSIM {summary['conventions']['ssim']}; "
-                 f"SAM in degrees.{weights_text(kept)}\n\n{table}\n\nReferences:\n\n"
+                 f"SAM in degrees.{' ' + weights_text(kept) if kept else ''}\n\n{table}\n\nReferences:\n\n"
                  + "".join(f"- {r['method']}: {means_line(r['mean'])}\n" for r in summary["references"])
                  + (f"\nOn {summary['heldout']['data']}:\n\n{format_table(summary['heldout'])}\n\n"
                     "References on these scenes:\n\n"

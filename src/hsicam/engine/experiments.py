@@ -29,6 +29,7 @@ from hsicam.engine.prior import ensure_choi_prior
 from hsicam.engine.train import train
 from hsicam.errors import InputError
 from hsicam.io import atomic_open, clear_complete, clear_derived, write_json
+from hsicam.runs.checkpoint import kept_checkpoint
 
 log = logging.getLogger(__name__)
 
@@ -168,7 +169,10 @@ def check_same_training(run: Path, cfg: Config) -> None:
     with another config than ``cfg``, up to how it runs (:func:`~hsicam.config.training_differences`)."""
     if (run / "config.yaml").is_file():
         # a data.root as given here against the run's, recorded absolute (a relative one as read from here)
-        changed = training_differences(absolute_data_paths(load_config(run / "config.yaml")), absolute_data_paths(cfg))
+        from hsicam.runs.folder import EMPTY_RUN_CONFIG
+
+        have = load_config(run / "config.yaml", empty=EMPTY_RUN_CONFIG)
+        changed = training_differences(absolute_data_paths(have), absolute_data_paths(cfg))
         if changed:
             raise InputError(f"{run} was trained with another config ({'; '.join(changed)}): "
                              "delete it to train it again, or choose another output folder")
@@ -181,15 +185,18 @@ def ensure_trained(run: Path, preset, overrides: tuple[str, ...] = ()) -> str:
     :class:`~hsicam.config.Config`. A run folder that exists must have been started with the same
     config, up to how it runs (:func:`~hsicam.config.training_differences`), so that a table never
     reports a camera trained with other settings: otherwise :class:`InputError` names the first
-    differences. The run's ``model.consistency`` (an inference setting) becomes ``cfg``'s, its linear
-    step's filters fitted to match (:func:`~hsicam.engine.linear_step.refresh_linear_step`).
+    differences. The run's ``model.consistency`` and ``train.keep_weights`` (inference settings)
+    become ``cfg``'s, its kept weights and linear step's filters made to match
+    (:func:`~hsicam.engine.linear_step.refresh_linear_step`).
     """
     cfg = preset if isinstance(preset, Config) else load_config(preset, list(overrides))
     check_same_training(run, cfg)
     if (run / "config.yaml").is_file():
         if is_finished(run):
             log.info("%s: finished, reused", run)
-            refresh_linear_step(run, cfg.model.consistency)  # (training and resuming do it when they end)
+            changed = refresh_linear_step(run, cfg.model.consistency, cfg.train.keep_weights)  # (training: when it ends)
+            if changed:
+                log.info("%s: %s", run, "; ".join(changed))
             return "reused"
         log.info("%s: resuming", run)
         train(cfg, run, resume=True)
@@ -278,6 +285,9 @@ def run_experiment(experiment: str, scale: str, out: str | Path, seeds: tuple[in
         else:
             s = summarize(evaluate_method(method, scenes, names, TestNoise(seeds=seeds), keep_arrays=False))
             rows.append(_row(spec.name, s, run=str(run), scenes=s["scenes"]))
+        kept = kept_checkpoint(run)
+        if kept is not None:  # which weights were scored (the best validation's is a selection on these scenes)
+            rows[-1]["weights"] = kept
         if spec.note:
             rows[-1]["overrides"], rows[-1]["note"] = list(spec.overrides), spec.note
     if experiment == "compare":
@@ -376,6 +386,9 @@ def _baseline_rows(cfg, scale, out, scenes, names, seeds, baselines) -> list[dic
         method = build_method(name, method_cfg, run)
         s = summarize(evaluate_method(method, scenes, names, TestNoise(seeds=seeds), keep_arrays=False))
         rows.append(_row(name, s, scenes=s["scenes"]))
+        kept = kept_checkpoint(run) if name in LEARNED_CASSI else None
+        if kept is not None:
+            rows[-1]["weights"] = kept
     return rows
 
 

@@ -46,13 +46,16 @@ def fit_linear_map(model, scenes, window: int = 11, ridge: float = LINEAR_MAP_RI
     return fit.solve()
 
 
-def refresh_linear_step(run_dir: str | Path, consistency) -> list[str]:
+def refresh_linear_step(run_dir: str | Path, consistency, keep_weights: str | None = None) -> list[str]:
     """Make a finished run's linear consistency step the one ``consistency`` (a
     :class:`~hsicam.config.ConsistencyConfig`) asks for, when training (or fine-tuning) ends or a
     finished run is resumed with other ``model.consistency`` keys:
 
+    - ``keep_weights`` (``train.keep_weights``; None: as the run has it): the checkpoint the run
+      keeps, its root weights switched to it when it differs (a finished run reused by a demo or an
+      experiment whose config asks for the other: :meth:`~hsicam.runs.checkpoint.CheckpointManager.apply_keep`);
     - the run's config.yaml gets ``consistency`` as its ``model.consistency`` (an inference setting:
-      the training never sees it, so nothing else is touched);
+      the training never sees it, so nothing else is touched), and ``keep_weights``;
     - with ``kind: linear``, ``RUN/linear_step.safetensors`` is fitted on the run's training scenes
       through the run's kept weights (train.keep_weights), when it is missing or no longer fits them
       (:func:`~hsicam.runs.linear_step.stale_reason`: the run trained on, or another filter width).
@@ -63,20 +66,27 @@ def refresh_linear_step(run_dir: str | Path, consistency) -> list[str]:
 
     with RunLock(run_dir) as lock:
         lock.acquire()
-        return _refresh_linear_step(Path(run_dir), consistency)
+        return _refresh_linear_step(Path(run_dir), consistency, keep_weights)
 
 
-def _refresh_linear_step(run_dir: Path, consistency) -> list[str]:
+def _refresh_linear_step(run_dir: Path, consistency, keep_weights: str | None = None) -> list[str]:
     """:func:`refresh_linear_step` under the lock. The filters are fitted first and replace the old
     file atomically; config.yaml is rewritten last, so an interruption leaves a working run."""
     from hsicam.config import dump_yaml, load_config
     from hsicam.io import atomic_open
-    from hsicam.runs.checkpoint import root_weights_path
-    from hsicam.runs.folder import load_run
+    from hsicam.runs.checkpoint import CheckpointManager, kept_checkpoint, root_weights_path
+    from hsicam.runs.folder import EMPTY_RUN_CONFIG, load_run
     from hsicam.runs.linear_step import stale_reason
 
     changed = []
-    run_cfg = load_config(run_dir / "config.yaml")
+    run_cfg = load_config(run_dir / "config.yaml", empty=EMPTY_RUN_CONFIG)
+    keep_before = run_cfg.train.keep_weights
+    kept_before = kept_checkpoint(run_dir)
+    if keep_weights is not None and CheckpointManager(run_dir, keep=keep_weights).apply_keep():
+        kept = kept_checkpoint(run_dir)
+        was = f"{kept_before['checkpoint']} checkpoint's, step {kept_before['step']}" if kept_before else "none"
+        changed.append(f"its kept weights: the {kept['checkpoint']} checkpoint's (step {kept['step']}; were the "
+                       f"{was}; train.keep_weights {keep_weights})")
     if consistency.kind == "linear" and consistency.iterations > 0 and run_cfg.camera.kind == "doe":
         # (SD-CASSI skips the step; the config refuses it for DD-CASSI)
         path = run_dir / LINEAR_STEP_FILE
@@ -88,14 +98,20 @@ def _refresh_linear_step(run_dir: Path, consistency) -> list[str]:
             _fit_linear_step(run_dir, run_cfg, model, consistency.window_px)
             changed.append(f"its linear consistency step {'fitted' if why == 'missing' else 'refitted'} "
                            f"({LINEAR_STEP_FILE})")
+    rewrite = False
     if run_cfg.model.consistency != consistency:
         before = run_cfg.model.consistency
         diff = ", ".join(f"{k} {getattr(before, k)} → {getattr(consistency, k)}" for k in vars(consistency)
                          if getattr(before, k) != getattr(consistency, k))
         run_cfg.model.consistency = consistency
+        rewrite = True
+        changed.insert(0, f"model.consistency in config.yaml ({diff})")
+    if keep_weights is not None and keep_before != keep_weights:
+        run_cfg.train.keep_weights = keep_weights
+        rewrite = True
+    if rewrite:
         with atomic_open(run_dir / "config.yaml") as fh:
             fh.write(dump_yaml(run_cfg))
-        changed.insert(0, f"model.consistency in config.yaml ({diff})")
     return changed
 
 

@@ -52,5 +52,5 @@ def _refresh(run_dir: str | Path, cfg: Config, summary: dict[str, Any]) -> dict[
     model.consistency when a finished run got other keys."""
     from hsicam.engine.linear_step import refresh_linear_step
 
-    changed = refresh_linear_step(run_dir, cfg.model.consistency)
+    changed = refresh_linear_step(run_dir, cfg.model.consistency, cfg.train.keep_weights)
     return {**summary, "changed": changed} if changed else summary

@@ -101,12 +101,37 @@ def save_safetensors(path: str | Path, tensors: dict[str, torch.Tensor], meta: d
     try:
         with atomic_path(path) as tmp:
             save_file(tensors, str(tmp), metadata=meta)
+            _sort_metadata(tmp)
     except SafetensorError as exc:
         found = _OS_ERROR.search(str(exc))
         if found is None:
             raise
         code = int(found.group(1))
         raise OSError(code, os.strerror(code), str(path)) from None
+
+
+def _sort_metadata(path: Path) -> None:
+    """Rewrite the safetensors header of ``path`` in place with its ``__metadata__`` keys sorted.
+
+    The writer (Rust) keeps the metadata in a hash map whose order is random per call, so the same
+    tensors and metadata gave files of different bytes, hence different SHA-256 (the runs' manifests,
+    results.json's ``weights_sha256`` and the linear step's record of the weights it was fitted
+    through). Only the order of keys changes: the header keeps its length, the tensors their bytes."""
+    with open(path, "r+b") as fh:
+        n = int.from_bytes(fh.read(8), "little")
+        raw = fh.read(n)
+        header = json.loads(raw)
+        meta = header.get("__metadata__")
+        if not isinstance(meta, dict) or len(meta) < 2:
+            return
+        ordered = {"__metadata__": dict(sorted(meta.items())), **{k: v for k, v in header.items() if k != "__metadata__"}}
+        if list(header) != list(ordered):  # the metadata written first, as the writer does
+            return
+        text = json.dumps(ordered, separators=(",", ":"), ensure_ascii=False).encode("utf-8")
+        if len(text) > n or json.loads(text) != header:  # another serialisation than expected: leave it
+            return
+        fh.seek(8)
+        fh.write(text + b" " * (n - len(text)))  # safetensors pads its header with spaces
 
 
 def save_weights(path: str | Path, model: nn.Module, bands: Bands, extra: dict[str, str] | None = None) -> None:
@@ -321,6 +346,32 @@ class CheckpointManager:
         self._prune(man)
         return final
 
+    def apply_keep(self) -> bool:
+        """Make the manifest's ``weights`` entry name the checkpoint this manager keeps (``keep``; "best"
+        in a run without one: its last) and the root weights follow (:meth:`sync_root`): a finished
+        run given another ``train.keep_weights``. A run of the older layout (``last.json`` /
+        ``best.json``) gets its manifest now, as at its next checkpoint. Returns True when the
+        manifest changed; a run without any checkpoint is left as it is. The checkpoint it would
+        keep must exist (one-line :class:`InputError` otherwise, nothing changed)."""
+        man = self.manifest()
+        if man is None:
+            return False
+        legacy = bool(man.pop("legacy", False))
+        tag = "best" if self.keep == "best" and man.get("best") else "last"
+        if not legacy and kept_entry(man)[0] == tag and isinstance(man.get("weights"), dict):
+            return False
+        src = man[tag]
+        weights = self.run_dir / src["dir"] / "model.safetensors"
+        if not weights.is_file():
+            raise InputError(f"{weights}: the {tag} checkpoint named by {self.run_dir / MANIFEST if not legacy else tag + '.json'} "
+                             f"is missing, so the run cannot keep it (train.keep_weights: {self.keep}); nothing was changed")
+        man["weights"] = {"file": self.weights_file, "from": tag, "dir": src["dir"], "sha256": src.get("weights_sha256")}
+        write_json(self.run_dir / MANIFEST, man)  # the commit point; the root weights follow
+        for pointer in LEGACY_POINTERS:
+            (self.run_dir / pointer).unlink(missing_ok=True)
+        self.sync_root()
+        return True
+
     def _uncommitted(self, exc: OSError, path: Path, old: dict[str, Any] | None) -> InputError:
         """The failed write of a checkpoint's ``path`` before its commit, saying what the run keeps."""
         kept = (f"the last checkpoint (step {old['last'].get('step')}) is unchanged" if old is not None
@@ -402,13 +453,14 @@ def kept_entry(man: dict[str, Any]) -> tuple[str, dict[str, Any]]:
 
 def kept_checkpoint(run_dir: str | Path, weights_file: str = "model.safetensors") -> dict[str, Any] | None:
     """Which checkpoint a run's root weights come from, for a results file: ``{"checkpoint": "best" |
-    "last", "step": N, "of_steps": M}``, with ``"selected_on"`` for the best (the validations chose
-    it); None for a folder without a manifest (e.g. a shipped camera)."""
+    "last", "step": N, "last_step": M}`` (M: the step of the run's last checkpoint), with
+    ``"selected_on"`` for the best (the validations chose it); None for a folder without any
+    checkpoint (e.g. a shipped camera)."""
     man = CheckpointManager(run_dir, weights_file).manifest()
     if man is None:
         return None
     tag, entry = kept_entry(man)
-    out: dict[str, Any] = {"checkpoint": tag, "step": entry.get("step"), "of_steps": man["last"].get("step")}
+    out: dict[str, Any] = {"checkpoint": tag, "step": entry.get("step"), "last_step": man["last"].get("step")}
     if tag == "best":
         out["selected_on"] = "validation PSNR (patches of the validation scenes): the highest of the run's validations"
     return out

@@ -414,6 +414,7 @@ def restart_run_dir(run_dir: Path) -> bool:
     if weights is not None:  # no checkpoint, yet trained weights: a copied camera, not a killed run
         raise InputError(f"{run_dir}: holds trained weights ({weights}) but no checkpoint (a copied or shipped camera); "
                          "--restart would delete them: choose another --out, or delete the folder yourself to start over")
+
     def refused(path: str | os.PathLike, exc: OSError) -> InputError:
         hint = OS_ERROR_HINTS.get(exc.errno, "")
         return InputError(f"{path}: cannot be removed for --restart ({exc.strerror or exc}"

@@ -36,6 +36,9 @@ def load_linear_step(path: str | Path, bands: int, period: int) -> torch.Tensor:
     if tuple(w.shape[:2]) != (period * period, bands) or w.shape[-1] != w.shape[-2] or w.shape[-1] % 2 == 0:
         raise InputError(f"{path}: filters of shape {tuple(w.shape)} do not fit a camera of {bands} bands and CFA "
                          f"period {period} (expected ({period * period}, {bands}, K, K), K odd)")
+    if not bool(w.isfinite().all()):
+        raise InputError(f"{path}: {int((~w.isfinite()).sum())} NaN/Inf value(s) in the linear step's filters; delete "
+                         "the file and resume the run (hsicam train --out RUN --resume) to fit it again")
     return w
 
 
@@ -66,7 +69,8 @@ def stale_reason(path: str | Path, weights: str | Path, window_px: int | None = 
     fitted_through = info.get("weights_sha256")
     if isinstance(fitted_through, str) and fitted_through != file_sha256(weights):
         return (f"{path} was fitted through other weights (sha256 {fitted_through[:12]}…) than {Path(weights).name} "
-                f"(sha256 {file_sha256(weights)[:12]}…): the run trained on after it was fitted")
+                f"(sha256 {file_sha256(weights)[:12]}…): the run trained on after it was fitted, or now keeps another of its "
+                f"checkpoints (train.keep_weights)")
     if window_px is not None and info.get("filter_px") is not None and info["filter_px"] != int(window_px):
         return f"{path} holds {info['filter_px']} px filters; model.consistency.window_px asks for {int(window_px)}"
     return None
