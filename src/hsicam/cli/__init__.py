@@ -29,7 +29,7 @@ import traceback
 from pathlib import Path
 from typing import Sequence
 
-from hsicam.errors import ConfigError, HsicamError, InputError, TrainingInterrupted, TrainingStopped, original_message
+from hsicam.errors import HsicamError, InputError, TrainingInterrupted, TrainingStopped, original_message
 
 COMMAND_MODULES = (
     "hsicam.cli.camera",

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-import errno
 import logging
 import os
 import sys
@@ -78,21 +77,16 @@ def check_out_apart_from_data(out: str | Path, data: str | Path) -> None:
     evaluation read back as data). An ``--out`` inside ``--data`` is allowed: the scene scan skips
     sub-folders holding hsicam outputs (:func:`hsicam.data.datasets.list_scenes`). Paths are compared
     resolved (links followed)."""
-    from hsicam.io import same_path
+    from hsicam.io import broken_link_problem, same_path
 
     def resolved(path: str | Path) -> Path:
         try:
             return Path(path).resolve()
         except (OSError, RuntimeError):  # RuntimeError: Python < 3.13's symbolic link loop
-            for part in reversed((Path(path), *Path(path).parents)):  # name the first link that loops
-                if not part.is_symlink():
-                    continue
-                try:
-                    os.stat(part)
-                except OSError as exc:
-                    if exc.errno == errno.ELOOP:
-                        raise InputError(f"{part}: is a symbolic link to {os.readlink(part)}, which leads back "
-                                         "to itself (a symbolic link loop)") from None
+            for part in reversed((Path(path), *Path(path).parents)):  # name the first link that cannot be followed
+                problem = broken_link_problem(part) if part.is_symlink() else None
+                if problem is not None:
+                    raise InputError(f"{part}: {problem}") from None
             raise InputError(f"{path}: cannot be resolved (a symbolic link loop?)") from None
 
     o, d = resolved(out), resolved(data)

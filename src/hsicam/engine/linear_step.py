@@ -80,13 +80,11 @@ def _refresh_linear_step(run_dir: Path, consistency, keep_weights: str | None = 
 
     changed = []
     run_cfg = load_config(run_dir / "config.yaml", empty=EMPTY_RUN_CONFIG)
-    keep_before = run_cfg.train.keep_weights
-    kept_before = kept_checkpoint(run_dir)
+    was = kept_checkpoint(run_dir)  # (None: no checkpoint, and then nothing to switch)
     if keep_weights is not None and CheckpointManager(run_dir, keep=keep_weights).apply_keep():
-        kept = kept_checkpoint(run_dir)
-        was = f"{kept_before['checkpoint']} checkpoint's, step {kept_before['step']}" if kept_before else "none"
-        changed.append(f"its kept weights: the {kept['checkpoint']} checkpoint's (step {kept['step']}; were the "
-                       f"{was}; train.keep_weights {keep_weights})")
+        now = kept_checkpoint(run_dir)
+        changed.append(f"its kept weights: the {now['checkpoint']} checkpoint's (step {now['step']}; were the "
+                       f"{was['checkpoint']} checkpoint's, step {was['step']}; train.keep_weights {keep_weights})")
     if consistency.kind == "linear" and consistency.iterations > 0 and run_cfg.camera.kind == "doe":
         # (SD-CASSI skips the step; the config refuses it for DD-CASSI)
         path = run_dir / LINEAR_STEP_FILE
@@ -106,7 +104,7 @@ def _refresh_linear_step(run_dir: Path, consistency, keep_weights: str | None = 
         run_cfg.model.consistency = consistency
         rewrite = True
         changed.insert(0, f"model.consistency in config.yaml ({diff})")
-    if keep_weights is not None and keep_before != keep_weights:
+    if keep_weights is not None and run_cfg.train.keep_weights != keep_weights:
         run_cfg.train.keep_weights = keep_weights
         rewrite = True
     if rewrite:

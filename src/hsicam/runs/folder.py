@@ -83,7 +83,7 @@ def load_run(run_dir: str | Path, device: torch.device | str = "cpu", overrides:
         raise InputError(no_weights_message(run_dir))
     model = CameraSystem.from_config(cfg)
     try:
-        load_weights(root_weights_path(run_dir), model, cfg.bands.to_bands())
+        load_weights(kept := root_weights_path(run_dir), model, cfg.bands.to_bands())
     except InputError as exc:
         if not overrides:
             raise
@@ -91,14 +91,14 @@ def load_run(run_dir: str | Path, device: torch.device | str = "cpu", overrides:
         raise InputError(f"--set {' '.join(map(str, overrides))}: changes what {run_dir} was trained with, so its "
                          f"weights do not load ({exc}); a trained run's camera, bands and network are fixed by its "
                          "training (another design: hsicam train)") from None
-    check_finite_weights(model, root_weights_path(run_dir))
+    check_finite_weights(model, kept)
     if linear_step and (run_dir / LINEAR_STEP_FILE).is_file():  # the linear step's filters (fitted after training)
         model.linear_step = load_linear_step(run_dir / LINEAR_STEP_FILE, len(model.bands),
                                              int(getattr(model.camera, "code_period", 1)))
         problem = linear_step_problem(run_dir, cfg.model.consistency)
         if problem:
             raise InputError(problem)
-        if stale_reason(run_dir / LINEAR_STEP_FILE, root_weights_path(run_dir)):
+        if stale_reason(run_dir / LINEAR_STEP_FILE, kept):
             model.linear_step = None  # not used (e.g. kind landweber): never the step of other weights
     if (run_dir / MEASURED_PSF_FILE).is_file():  # a run fine-tuned on measured PSFs images with them
         model = with_measured_psf(model, load_measured_psf(run_dir / MEASURED_PSF_FILE))
