@@ -35,7 +35,9 @@ import sys, time
 from pathlib import Path
 
 def pause(what):
-    Path(sys.argv[1]).write_text(str(what))
+    ready = Path(sys.argv[1])
+    ready.with_name("ready.part").write_text(str(what))
+    ready.with_name("ready.part").replace(ready)  # atomic: the test never reads a half-written "ready"
     deadline = time.time() + 60
     while not Path(sys.argv[2]).exists():
         if time.time() > deadline:
