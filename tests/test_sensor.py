@@ -364,3 +364,64 @@ def test_a_smooth_doe_init_wider_than_its_grid_is_a_config_error_not_nan_heights
         DOE(9, FusedSilica(), 587.6, init="smooth", init_correlation_cells=12.0)
     h = DOE(9, FusedSilica(), 587.6, init="smooth", init_correlation_cells=4.0, init_range_m=1e-6).height_m.detach()
     assert torch.isfinite(h).all() and float(h.max() - h.min()) == pytest.approx(1e-6, rel=1e-6)
+
+
+def test_grating_doe_init_is_a_crossed_sinusoid_with_bessel_orders():
+    """init=grating: a crossed sinusoidal phase grating whose default depth puts equal light in the 0th and
+    each ±1st order at λ0. Reference: Jacobi–Anger, exp(i m sin θ) = Σ Jₙ(m) e^{inθ}, so the 2-D DFT of
+    the element's transmission over whole periods holds J_p(m)·J_q(m) at order (p, q) (scipy's Bessel)."""
+    from scipy.special import jv
+
+    from hsicam.optics.doe import EQUAL_ORDERS_DEPTH_RAD
+
+    assert jv(0, EQUAL_ORDERS_DEPTH_RAD) == pytest.approx(jv(1, EQUAL_ORDERS_DEPTH_RAD), abs=1e-12)
+    period, n = 11, 110  # ten whole periods across
+    doe = DOE(n, FusedSilica(), 587.6, init="grating", init_grating_period_cells=period)
+    h = doe.height_m.detach().double()
+    top = 2 * EQUAL_ORDERS_DEPTH_RAD * doe.h2pi_m / math.pi
+    assert float(h.min()) >= 0 and float(h.max()) <= top * (1 + 1e-6)
+    t = torch.exp(2j * math.pi * h / doe.h2pi_m)  # transmission at λ0: phase 2π h / h_2π
+    amp = (torch.fft.fft2(t).abs() / n**2).numpy()
+    k = n // period  # order p sits in DFT bin p·k
+    for p, q in ((0, 0), (1, 0), (0, -1), (1, 1), (2, 0), (2, -1)):
+        assert amp[p * k % n, q * k % n] == pytest.approx(abs(jv(p, EQUAL_ORDERS_DEPTH_RAD) * jv(q, EQUAL_ORDERS_DEPTH_RAD)),
+                                                         abs=1e-6)
+    assert (amp**2).sum() == pytest.approx(1.0)
+    shallow = DOE(n, FusedSilica(), 587.6, init="grating", init_grating_period_cells=period, init_range_m=top / 2)
+    assert float(shallow.height_m.detach().max()) == pytest.approx(float(h.max()) / 2, rel=1e-6)
+
+
+def test_grating_doe_psf_puts_its_orders_where_diffraction_sends_them(tiny_config):
+    """The camera's PSF (exact square cells) behind a grating start: the first orders sit z·λ/(Λ·cell) from
+    the centre, farther in red than in blue (a dispersive code), and the first-to-zeroth order energy
+    ratio is (J1(m)/J0(m))²·sinc²(1/Λ) (the sinc: the cells' square aperture), m the band's phase depth."""
+    from scipy.special import jv
+
+    from hsicam.cameras import DOECamera
+    from hsicam.errors import ConfigError
+    from hsicam.optics.doe import EQUAL_ORDERS_DEPTH_RAD
+
+    period, cell_m = 8, 15e-6
+    cfg = tiny_config("bands.start_nm=480", "bands.stop_nm=720", "bands.step_nm=120", "camera.aperture_radius_mm=0.6",
+                      "camera.lens.focal_length_mm=10", "camera.doe.cell_size_um=15", "camera.doe.init=grating",
+                      f"camera.doe.init_grating_period_cells={period}")
+    cam = DOECamera.from_config(cfg).double()
+    optics = cam.optics
+    with torch.no_grad():
+        psf = optics().psf.numpy()
+    c = psf.shape[-1] // 2
+    top = 2 * EQUAL_ORDERS_DEPTH_RAD * optics.doe.h2pi_m / math.pi
+    for b, lam in enumerate(cam.bands.centers_nm):
+        shift = optics.sensor_distance_m * lam * 1e-9 / (period * cell_m) / optics.pixel_m
+        s = int(round(shift))
+        assert shift == pytest.approx(4 + b, abs=1e-6)  # 480, 600, 720 nm: 4, 5, 6 px
+        first = psf[b, c - 2:c + 3, c + s - 2:c + s + 3]
+        centroid = float((first.sum(0) * np.arange(s - 2, s + 3)).sum() / first.sum())
+        assert centroid == pytest.approx(shift, abs=0.05)
+        if lam < 590:
+            continue  # far below λ0 the 0th order is faint (J0 → 0) and the ±1st orders' rings bias its window
+        m = 2 * math.pi * (optics.doe.material.n(lam) - 1) / (lam * 1e-9) * top / 4
+        ratio = first.sum() / psf[b, c - 2:c + 3, c - 2:c + 3].sum()
+        assert ratio == pytest.approx((jv(1, m) / jv(0, m)) ** 2 * np.sinc(1 / period) ** 2, rel=0.03)
+    with pytest.raises(ConfigError, match="init_grating_period_cells"):
+        tiny_config("camera.doe.init=grating", "camera.doe.init_grating_period_cells=0")

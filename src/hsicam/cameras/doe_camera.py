@@ -60,7 +60,7 @@ class DOECamera(Camera):
             None if cam.doe.max_height_nm is None else cam.doe.max_height_nm * 1e-9,
             cam.doe.wrap, cam.doe.quantization_levels, cam.doe.sigma_height_nm * 1e-9,
             None if cam.doe.init_range_nm is None else cam.doe.init_range_nm * 1e-9,
-            cam.doe.init_correlation_cells,
+            cam.doe.init_correlation_cells, cam.doe.init_grating_period_cells,
         )
         optics = PSFModel(
             bands, lens_from_config(cam.lens), doe, cam.aperture_radius_mm * 1e-3, cell_m,

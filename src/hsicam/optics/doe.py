@@ -59,6 +59,26 @@ def gaussian_lowpass_periodic(x: torch.Tensor, sigma_cells: float) -> torch.Tens
     return torch.fft.irfft2(torch.fft.rfft2(x) * transfer, s=x.shape[-2:])
 
 
+# Per-axis phase depth m (rad) at which a sinusoidal phase grating puts equal light into its 0th and
+# each ±1st order: J0(m) = J1(m) (Jacobi–Anger: exp(i m sin θ) = Σₙ Jₙ(m) e^{inθ}), 30.0 % each.
+EQUAL_ORDERS_DEPTH_RAD = 1.4346956508195650
+
+
+def crossed_grating_heights_m(n_cells: int, period_cells: float, range_m: float) -> torch.Tensor:
+    """Heights (m), (n_cells, n_cells) float64, of a crossed sinusoidal phase grating spanning [0, range_m]:
+    h = range/4 · (2 + sin(2π x/Λ) + sin(2π y/Λ)), x, y the cell centres (cells) from the grid centre.
+
+    At a wavelength whose full phase period is h_2π the per-axis phase depth is m = π·range/(2 h_2π), and the
+    far field is a 3×3 (and fainter) array of orders (p, q) carrying J_p(m)² J_q(m)² of the light, the first
+    orders shifted on the sensor by z·λ/(Λ·cell) (z the sensor distance): a spread whose size grows with λ,
+    i.e. a dispersive spectral code, not only a blur."""
+    if not period_cells > 0 or not math.isfinite(period_cells):
+        raise ConfigError(f"camera.doe.init_grating_period_cells must be a positive number, got {period_cells}")
+    x = torch.arange(n_cells, dtype=torch.float64) - (n_cells - 1) / 2
+    s = torch.sin(2.0 * math.pi * x / float(period_cells))
+    return float(range_m) / 4.0 * (2.0 + s[:, None] + s[None, :])
+
+
 class DOE(nn.Module):
     """Height map over ``n_cells``×``n_cells`` cells (m). ``enabled=False`` means h = 0, no parameters.
 
@@ -68,7 +88,10 @@ class DOE(nn.Module):
         design_wavelength_nm: λ0 for h_2π.
         init: "random" (i.i.d. uniform in [0, init_range_m], default [0, h_2π]), "smooth" (a random
             field low-passed by a periodic Gaussian of σ = ``init_correlation_cells`` cells, rescaled
-            to span [0, init_range_m] exactly: a structured, band-dependent diffuser) or "zeros".
+            to span [0, init_range_m] exactly: a structured, band-dependent diffuser), "grating" (a crossed
+            sinusoidal phase grating of period ``init_grating_period_cells`` spanning [0, init_range_m],
+            :func:`crossed_grating_heights_m`; default range: the depth of equal 0th and ±1st orders at λ0,
+            2·m·h_2π/π with m = :data:`EQUAL_ORDERS_DEPTH_RAD`) or "zeros".
         max_height_m, wrap, quantization_levels, sigma_height_m: see module docstring.
     """
 
@@ -86,6 +109,7 @@ class DOE(nn.Module):
         sigma_height_m: float = 0.0,
         init_range_m: float | None = None,
         init_correlation_cells: float = 12.0,
+        init_grating_period_cells: float = 55.0,
     ) -> None:
         super().__init__()
         self.n_cells = int(n_cells)
@@ -112,6 +136,10 @@ class DOE(nn.Module):
                                       f"structure survives a Gaussian of σ ≳ 1.35 × the grid); use at most "
                                       f"{max(self.n_cells // 2, 1)} cells")
                 h0 = (field - field.min()) / span * top
+            elif init == "grating":
+                if init_range_m is None:
+                    top = 2.0 * EQUAL_ORDERS_DEPTH_RAD * self.h2pi_m / math.pi
+                h0 = crossed_grating_heights_m(self.n_cells, init_grating_period_cells, top)
             elif init == "zeros":
                 h0 = torch.zeros(self.n_cells, self.n_cells, dtype=torch.float64)
             else:
