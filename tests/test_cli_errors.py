@@ -12,6 +12,7 @@ from __future__ import annotations
 import json
 import shutil
 import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -115,6 +116,23 @@ def test_report_output_problems(inputs, tmp_path, capsys, env):
     assert_one_line(code, err, f"{ev / 'results.json'}: a file, not a folder", f"e.g. {ev})")
 
 
+# In the child: {name: [args]} -> {name: [exit code, stderr]} of hsicam.cli.main, one command after another.
+EACH_IN_PROCESS = """
+import contextlib, io, json, sys
+from hsicam.cli import main
+out = {}
+for name, args in json.loads(sys.argv[1]).items():
+    err = io.StringIO()
+    with contextlib.redirect_stderr(err), contextlib.redirect_stdout(io.StringIO()):
+        try:
+            code = main(args)
+        except SystemExit as exc:
+            code = exc.code
+    out[name] = [code, err.getvalue()]
+print(json.dumps(out))
+"""
+
+
 def test_every_writing_command_refuses_an_unwritable_folder(inputs, tmp_path, env):
     prefix = unprivileged_prefix()
     if prefix is None:
@@ -127,10 +145,18 @@ def test_every_writing_command_refuses_an_unwritable_folder(inputs, tmp_path, en
     ro.chmod(0o500)
     ev.chmod(0o500)
     try:
-        for name, args in cmds.items():
-            proc = subprocess.run([*prefix, str(HSICAM), *args], capture_output=True, text=True, timeout=300,
-                                  env=cli_env(env))
-            assert_clean_error(proc, "not writable")
+        # the console script itself for one command; the others in one unprivileged child calling
+        # hsicam.cli.main per command (the same boundary, one interpreter start instead of one each)
+        proc = subprocess.run([*prefix, str(HSICAM), *cmds.pop("psf")], capture_output=True, text=True, timeout=300,
+                              env=cli_env(env))
+        assert_clean_error(proc, "not writable")
+        child = subprocess.run([*prefix, sys.executable, "-c", EACH_IN_PROCESS, json.dumps(cmds)], capture_output=True,
+                               text=True, timeout=600, env=cli_env(env))
+        assert child.returncode == 0, child.stderr
+        results = json.loads(child.stdout.strip().splitlines()[-1])
+        assert sorted(results) == sorted(cmds)
+        for name, (code, err) in results.items():
+            assert_clean_error(subprocess.CompletedProcess(cmds[name], code, "", err), "not writable")
     finally:
         ev.chmod(0o700)
         ro.chmod(0o700)
