@@ -118,10 +118,11 @@ def test_report_output_problems(inputs, tmp_path, capsys, env):
 
 # In the child: {name: [args]} -> {name: [exit code, stderr]} of hsicam.cli.main, one command after another.
 EACH_IN_PROCESS = """
-import contextlib, io, json, sys
+import contextlib, io, json, logging, sys
 from hsicam.cli import main
 out = {}
 for name, args in json.loads(sys.argv[1]).items():
+    logging.root.handlers.clear()  # main's logging.basicConfig then writes log lines to this command's stderr
     err = io.StringIO()
     with contextlib.redirect_stderr(err), contextlib.redirect_stdout(io.StringIO()):
         try:

@@ -386,7 +386,6 @@ def test_grating_doe_init_is_a_crossed_sinusoid_with_bessel_orders():
     for p, q in ((0, 0), (1, 0), (0, -1), (1, 1), (2, 0), (2, -1)):
         assert amp[p * k % n, q * k % n] == pytest.approx(abs(jv(p, EQUAL_ORDERS_DEPTH_RAD) * jv(q, EQUAL_ORDERS_DEPTH_RAD)),
                                                          abs=1e-6)
-    assert (amp**2).sum() == pytest.approx(1.0)
     shallow = DOE(n, FusedSilica(), 587.6, init="grating", init_grating_period_cells=period, init_range_m=top / 2)
     assert float(shallow.height_m.detach().max()) == pytest.approx(float(h.max()) / 2, rel=1e-6)
 
@@ -415,13 +414,14 @@ def test_grating_doe_psf_puts_its_orders_where_diffraction_sends_them(tiny_confi
         shift = optics.sensor_distance_m * lam * 1e-9 / (period * cell_m) / optics.pixel_m
         s = int(round(shift))
         assert shift == pytest.approx(4 + b, abs=1e-6)  # 480, 600, 720 nm: 4, 5, 6 px
-        first = psf[b, c - 2:c + 3, c + s - 2:c + s + 3]
-        centroid = float((first.sum(0) * np.arange(s - 2, s + 3)).sum() / first.sum())
+        first = psf[b, c - 1:c + 2, c + s - 1:c + s + 2]  # 3×3 px windows: disjoint for shifts ≥ 3 px
+        centroid = float((first.sum(0) * np.arange(s - 1, s + 2)).sum() / first.sum())
         assert centroid == pytest.approx(shift, abs=0.05)
-        if lam < 590:
-            continue  # far below λ0 the 0th order is faint (J0 → 0) and the ±1st orders' rings bias its window
         m = 2 * math.pi * (optics.doe.material.n(lam) - 1) / (lam * 1e-9) * top / 4
-        ratio = first.sum() / psf[b, c - 2:c + 3, c - 2:c + 3].sum()
-        assert ratio == pytest.approx((jv(1, m) / jv(0, m)) ** 2 * np.sinc(1 / period) ** 2, rel=0.03)
-    with pytest.raises(ConfigError, match="init_grating_period_cells"):
-        tiny_config("camera.doe.init=grating", "camera.doe.init_grating_period_cells=0")
+        ratio = first.sum() / psf[b, c - 1:c + 2, c - 1:c + 2].sum()
+        # measured −2.6 / −0.9 / −1.0 % (the orders' rings spill into each other's windows); without the cells'
+        # sinc² it would be −8 / −6 / −6 %
+        assert ratio == pytest.approx((jv(1, m) / jv(0, m)) ** 2 * np.sinc(1 / period) ** 2, rel=0.04)
+    for bad in ("0", "2", "nan"):
+        with pytest.raises(ConfigError, match="init_grating_period_cells"):
+            tiny_config("camera.doe.init=grating", f"camera.doe.init_grating_period_cells={bad}")

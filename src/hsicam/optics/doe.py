@@ -72,8 +72,9 @@ def crossed_grating_heights_m(n_cells: int, period_cells: float, range_m: float)
     far field is a 3×3 (and fainter) array of orders (p, q) carrying J_p(m)² J_q(m)² of the light, the first
     orders shifted on the sensor by z·λ/(Λ·cell) (z the sensor distance): a spread whose size grows with λ,
     i.e. a dispersive spectral code, not only a blur."""
-    if not period_cells > 0 or not math.isfinite(period_cells):
-        raise ConfigError(f"camera.doe.init_grating_period_cells must be a positive number, got {period_cells}")
+    if not (period_cells > 2 and math.isfinite(period_cells)):
+        raise ValueError(f"a grating period must be a finite number of cells above 2 (2 or fewer per period "
+                         f"sample a flat element), got {period_cells}")
     x = torch.arange(n_cells, dtype=torch.float64) - (n_cells - 1) / 2
     s = torch.sin(2.0 * math.pi * x / float(period_cells))
     return float(range_m) / 4.0 * (2.0 + s[:, None] + s[None, :])
