@@ -156,12 +156,12 @@ class DOEConfig:
     def __post_init__(self) -> None:
         _positive("camera.doe", cell_size_um=self.cell_size_um, design_wavelength_nm=self.design_wavelength_nm,
                   max_height_nm=self.max_height_nm, init_range_nm=self.init_range_nm,
-                  init_correlation_cells=self.init_correlation_cells,
-                  init_grating_period_cells=self.init_grating_period_cells)
+                  init_correlation_cells=self.init_correlation_cells)
         _check_seeds("camera.doe", seed=self.seed)
-        if not self.init_grating_period_cells > 2:  # (finite and > 0 checked above) 2 cells or fewer: a flat element
-            raise ConfigError(f"camera.doe.init_grating_period_cells must be more than 2 cells (a sinusoid sampled "
-                              f"at 2 cells or fewer per period leaves the DOE flat), got {self.init_grating_period_cells:g}")
+        if not (self.init_grating_period_cells > 2 and math.isfinite(self.init_grating_period_cells)):
+            raise ConfigError(f"camera.doe.init_grating_period_cells must be a finite number of cells above 2 (a "
+                              f"sinusoid sampled at 2 cells or fewer per period leaves the DOE flat), got "
+                              f"{self.init_grating_period_cells:g}")
         if self.quantization_levels is not None and self.quantization_levels < 2:
             raise ConfigError(f"camera.doe.quantization_levels must be >= 2, got {self.quantization_levels}")
         if not (self.sigma_height_nm >= 0 and math.isfinite(self.sigma_height_nm)):

@@ -65,7 +65,7 @@ EQUAL_ORDERS_DEPTH_RAD = 1.4346956508195650
 
 
 def crossed_grating_heights_m(n_cells: int, period_cells: float, range_m: float) -> torch.Tensor:
-    """Heights (m), (n_cells, n_cells) float64, of a crossed sinusoidal phase grating spanning [0, range_m]:
+    """Heights (m), (n_cells, n_cells) float64, of a crossed sinusoidal phase grating within [0, range_m]:
     h = range/4 · (2 + sin(2π x/Λ) + sin(2π y/Λ)), x, y the cell centres (cells) from the grid centre.
 
     At a wavelength whose full phase period is h_2π the per-axis phase depth is m = π·range/(2 h_2π), and the
