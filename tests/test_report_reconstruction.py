@@ -46,3 +46,53 @@ def test_the_figure_is_written_for_bright_and_dim_scenes(tmp_path, monkeypatch):
         assert ax.yaxis.get_ticks_position() == "right" and ax.get_ylabel() == label
         top = max(float(np.max(line.get_ydata())) for line in ax.get_lines())
         assert 0.8 * peak < top <= peak  # three pixels' spectra of uniform noise in [0, level)
+
+
+def test_the_loss_formula_names_exactly_the_terms_the_training_loss_adds():
+    """Each weight alone changes system_loss away from the plain L1 and appears in the formula with
+    its weight; all at 0 the loss is the paper's L1 and so is the formula; the quick preset's reads as
+    its four terms."""
+    import torch
+    import torch.nn.functional as F
+
+    from hsicam.config import TrainConfig, load_config
+    from hsicam.engine.tasks import system_loss
+
+    g = torch.Generator().manual_seed(0)
+    truth = torch.rand(2, 31, 24, 24, generator=g)
+    recon = truth + 0.05 * torch.randn(2, 31, 24, 24, generator=g)
+    plain = TrainConfig()
+    assert plain.loss_formula() == "L1"
+    assert float(system_loss(recon, truth, plain, period=4)) == float(F.l1_loss(recon, truth))
+    names = {"relative_l1": "0.5·relative L1", "ssim_loss": "0.5·(1 − SSIM)", "sam_loss": "0.5·spectral angle",
+             "spectral_grad_loss": "0.5·spectral-gradient L1", "phase_loss": "0.5·CFA-phase trace"}
+    for key, term in names.items():
+        t = TrainConfig(**{key: 0.5})
+        assert t.loss_formula() == f"L1 + {term}", key
+        assert abs(float(system_loss(recon, truth, t, period=4)) - float(F.l1_loss(recon, truth))) > 1e-6, key
+    assert load_config("quick").train.loss_formula() == (
+        "L1 + 0.1·(1 − SSIM) + 0.05·spectral angle + 1·spectral-gradient L1")
+
+
+def test_the_training_figure_names_the_runs_loss(tmp_path, monkeypatch):
+    """The loss panel is labelled as the whole training loss, titled with the formula when given; the
+    validation panel says it is measured on patches."""
+    import json
+
+    from hsicam.report import reconstruction
+
+    figures = []
+    real_save = reconstruction.save_figure
+    monkeypatch.setattr(reconstruction, "save_figure", lambda fig, path: (figures.append(fig), real_save(fig, path)))
+    metrics = tmp_path / "metrics.jsonl"
+    metrics.write_text("".join(json.dumps(r) + "\n" for r in (
+        {"step": 20, "epoch": 0, "train_loss": 0.05}, {"step": 32, "epoch": 1, "val_psnr": 40.0, "val_ssim": 0.9},
+        {"step": 40, "epoch": 1, "train_loss": 0.04})))
+    reconstruction.plot_training_curves(metrics, tmp_path / "a.png", "L1 + 0.1·(1 − SSIM)")
+    reconstruction.plot_training_curves(metrics, tmp_path / "b.png")
+    with_formula, without = (fig.axes[0] for fig in figures)
+    assert with_formula.get_ylabel() == without.get_ylabel() == "training loss (epoch running mean)"
+    assert with_formula.get_title() == "L1 + 0.1·(1 − SSIM)" and without.get_title() == ""
+    assert list(with_formula.lines[0].get_ydata()) == [0.05, 0.04]
+    assert figures[0].axes[1].get_ylabel() == "PSNR on validation patches (dB)"  # not the whole scenes' figure
+    assert Image.open(tmp_path / "a.png").size[0] > 100

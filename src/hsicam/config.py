@@ -498,6 +498,15 @@ class TrainConfig:
             if len(v) != 2 or not (0 <= v[0] <= v[1]) or not all(math.isfinite(x) for x in v):
                 raise ConfigError(f"train.{k} must be [lo, hi] with 0 <= lo <= hi, got {v}")
 
+    def loss_formula(self) -> str:
+        """The training loss these settings make (:func:`hsicam.engine.tasks.system_loss`, the same terms
+        in the same order), for a figure: ``L1`` alone (the paper), or e.g. ``L1 + 0.1·(1 − SSIM) +
+        0.05·spectral angle + 1·spectral-gradient L1`` (the quick preset). The CFA-phase term counts only
+        behind a CFA; it is named whenever its weight is set."""
+        terms = [(self.relative_l1, "relative L1"), (self.ssim_loss, "(1 − SSIM)"), (self.sam_loss, "spectral angle"),
+                 (self.spectral_grad_loss, "spectral-gradient L1"), (self.phase_loss, "CFA-phase trace")]
+        return " + ".join(["L1", *(f"{w:g}·{name}" for w, name in terms if w > 0)])
+
 
 @dataclass
 class NpyBandsConfig(BandsConfig):

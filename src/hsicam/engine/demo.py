@@ -132,7 +132,7 @@ def run_demo(cfg: Config, out: str | Path) -> dict[str, Any]:
         write_psf_outputs(model.camera, out)
         write_optics_figures(model.camera, out)
     plot_reconstructions(results, bands, out / "reconstructions.png")
-    plot_training_curves(run / "metrics.jsonl", out / "training.png")
+    plot_training_curves(run / "metrics.jsonl", out / "training.png", cfg.train.loss_formula())
     mark_complete(out, {"command": "demo"})
     return {**summary, "status": status, "table": table, "n_scenes": len(results)}
 

@@ -126,7 +126,7 @@ def _camera_section(run: Path, out: Path, prefix: str = "") -> str:
     from hsicam.report.camera import write_optics_figures
 
     try:
-        _, model = load_run(run)
+        cfg, model = load_run(run)
     except InputError as exc:
         return f"<p class='note'>camera figures unavailable: {html.escape(str(exc))}</p>"
     cam = model.camera
@@ -134,7 +134,7 @@ def _camera_section(run: Path, out: Path, prefix: str = "") -> str:
     for name, caption in write_optics_figures(cam, out, prefix, psf=True).items():
         parts.append(_img(name, caption))
     if (run / "metrics.jsonl").is_file():
-        plot_training_curves(run / "metrics.jsonl", out / f"{prefix}training.png")
+        plot_training_curves(run / "metrics.jsonl", out / f"{prefix}training.png", cfg.train.loss_formula())
         parts.append(_img(f"{prefix}training.png", "training loss and validation PSNR / SSIM"))
     return "".join(parts)
 

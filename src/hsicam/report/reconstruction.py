@@ -64,8 +64,12 @@ def plot_reconstructions(results, bands: Bands, path: str | Path, max_rows: int 
     save_figure(fig, path)
 
 
-def plot_training_curves(metrics_jsonl: str | Path, path: str | Path) -> None:
-    """Training loss and validation PSNR/SSIM versus step, from a run's metrics.jsonl."""
+def plot_training_curves(metrics_jsonl: str | Path, path: str | Path, loss_formula: str | None = None) -> None:
+    """Training loss and the validation PSNR/SSIM versus step, from a run's metrics.jsonl (the validation
+    runs on the fixed patches of the validation scenes, ``data.val_patches``, not on whole scenes as the
+    evaluation does, so its figures differ from the evaluation's). ``loss_formula``
+    (the run's :meth:`hsicam.config.TrainConfig.loss_formula`) titles the loss panel; the logged loss is
+    the whole training loss, whatever its terms."""
     recs = [json.loads(x) for x in Path(metrics_jsonl).read_text().splitlines() if x.strip()]
     tr = [(r["step"], r["train_loss"]) for r in recs if "train_loss" in r]
     va = [(r["step"], r["val_psnr"], r["val_ssim"]) for r in recs if "val_psnr" in r and not r.get("final")]
@@ -73,16 +77,18 @@ def plot_training_curves(metrics_jsonl: str | Path, path: str | Path) -> None:
     if tr:
         a0.plot(*zip(*tr), lw=1)
     a0.set_xlabel("step")
-    a0.set_ylabel("L1 loss (epoch running mean)")
+    a0.set_ylabel("training loss (epoch running mean)")
+    if loss_formula:
+        a0.set_title(loss_formula, fontsize=8)
     a0.set_yscale("log")
     a0.grid(alpha=0.3)
     if va:
         s, p, q = zip(*va)
         a1.plot(s, p, "o-", color="tab:blue", label="PSNR")
-        a1.set_ylabel("validation PSNR (dB)")
+        a1.set_ylabel("PSNR on validation patches (dB)")
         b = a1.twinx()
         b.plot(s, q, "s--", color="tab:orange", label="SSIM")
-        b.set_ylabel("validation SSIM")
+        b.set_ylabel("SSIM on validation patches")
     a1.set_xlabel("step")
     a1.grid(alpha=0.3)
     save_figure(fig, path)
