@@ -135,7 +135,7 @@ def _camera_section(run: Path, out: Path, prefix: str = "") -> str:
         parts.append(_img(name, caption))
     if (run / "metrics.jsonl").is_file():
         plot_training_curves(run / "metrics.jsonl", out / f"{prefix}training.png", cfg.train.loss_formula())
-        parts.append(_img(f"{prefix}training.png", "training loss and validation PSNR / SSIM"))
+        parts.append(_img(f"{prefix}training.png", "training loss and the PSNR / SSIM on validation patches"))
     return "".join(parts)
 
 
