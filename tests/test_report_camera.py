@@ -4,7 +4,13 @@ import imageio.v3 as iio
 import numpy as np
 import pytest
 
-from hsicam.report.camera import encircled_energy, plot_psf_montage, psf_crop_px, rms_radius_px
+from hsicam.report.camera import (
+    encircled_energy,
+    encircled_fraction_in_square,
+    plot_psf_montage,
+    psf_crop_px,
+    rms_radius_px,
+)
 from hsicam.spectral import Bands
 
 
@@ -54,6 +60,35 @@ def test_psf_figure_is_written(tmp_path):
         encircled_energy(np.zeros((1, 5, 5)), np.array([[1.0]]))
     with pytest.raises(ValueError, match="stack"):
         encircled_energy(np.zeros((5, 5)), np.array([1.0]))
+
+
+def test_montage_crops_a_sharp_core_with_a_faint_wide_halo_to_the_core(tmp_path):
+    # a trained quick DOE: ~88 % of the light in a 3x3 core, ~10 % spread thinly to the kernel's edge; a crop
+    # holding 99 % of it would show a dot in a 103 px square
+    k = 141
+    yy, xx = np.mgrid[:k, :k] - k // 2
+    halo = np.exp(-np.hypot(yy, xx) / 40.0)
+    halo *= 0.10 / halo.sum()
+    psf = np.repeat(halo[None], 3, axis=0)
+    psf[:, k // 2 - 1 : k // 2 + 2, k // 2 - 1 : k // 2 + 2] += 0.88 / 9
+    assert psf_crop_px(psf, fraction=0.99) > 100
+    crop = plot_psf_montage(psf, Bands.uniform(420, 720, 150, 10), tmp_path / "psf.png")
+    assert crop == psf_crop_px(psf, fraction=0.9) and crop < 41
+    assert np.all(encircled_fraction_in_square(psf, crop) >= 0.9)
+    assert np.all(encircled_fraction_in_square(psf, crop - 2) < 0.9) or crop == 15
+    # a diffuser keeps a crop wide enough for 90 % of its light, and an explicit crop is honoured
+    wide = gaussian_stack([15.0, 20.0], k=141)
+    assert plot_psf_montage(wide, Bands.uniform(420, 720, 300, 10), tmp_path / "wide.png") == psf_crop_px(wide, 0.9)
+    assert psf_crop_px(wide, 0.9) > 60
+    assert plot_psf_montage(wide, Bands.uniform(420, 720, 300, 10), tmp_path / "w2.png", crop_px=21) == 21
+
+
+def test_encircled_fraction_in_square_against_direct_sums():
+    rng = np.random.default_rng(1)
+    psf = rng.random((2, 21, 21))
+    np.testing.assert_allclose(encircled_fraction_in_square(psf, 21), 1.0)
+    np.testing.assert_allclose(encircled_fraction_in_square(psf, 5), psf[:, 8:13, 8:13].sum((1, 2)) / psf.sum((1, 2)))
+    np.testing.assert_allclose(encircled_fraction_in_square(psf, 1), psf[:, 10, 10] / psf.sum((1, 2)))
 
 
 def reference_encircled_energy(psf, radii):
