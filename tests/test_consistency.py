@@ -3,6 +3,8 @@ reference, the residual and error guarantees, GAP on DD-CASSI, exact tiling, con
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 import torch
@@ -14,7 +16,7 @@ from hsicam.config import load_config
 from hsicam.engine.inference import reconstruct_tiled
 from hsicam.errors import ConfigError, InputError
 from hsicam.models import CameraSystem
-from hsicam.models.consistency import consistency_step, cut_psf, reach_px
+from hsicam.models.consistency import consistency_step, cut_psf, reach_px, spectral_preconditioner
 from hsicam.solvers.common import gap_projection
 from hsicam.spectral import Bands
 
@@ -431,3 +433,130 @@ def test_training_with_the_linear_step_fits_and_ships_its_filters(tiny_config, t
         model.consistency = tiny_config("model.consistency.iterations=1").model.consistency  # Landweber's
         landweber = model.reconstructor()(sensor)
     assert (lin - landweber).abs().max() > 1e-4
+
+
+def _dense_spectral_prior(xe: np.ndarray, alpha: float) -> np.ndarray:
+    """S = α ŝŝᵀ + I for every pixel of the extended estimate xe (C, H, W), as one matrix on the
+    (band-major) flattened cube: ŝ = xe⁺ / |xe⁺| per pixel."""
+    c, hh, ww = xe.shape
+    s = np.clip(xe, 0, None).reshape(c, -1)
+    s = s / np.maximum(np.linalg.norm(s, axis=0, keepdims=True), 1e-300)
+    n = hh * ww
+    big = np.eye(c * n)
+    for p in range(n):
+        idx = np.arange(c) * n + p
+        big[np.ix_(idx, idx)] += alpha * np.outer(s[:, p], s[:, p])
+    return big
+
+
+@pytest.mark.parametrize("alpha", [0.0, 3.0])
+def test_spectral_prior_step_matches_a_dense_matrix_reference(alpha):
+    """x_e + S Aᵀ((y − A x_e) ⊘ (A S Aᵀ 𝟙 + λ)), S = α ŝŝᵀ + I per pixel from x_e itself, written with
+    explicit matrices; α = 0 is the plain step."""
+    snap, h, w, origin = _snapshot(4), 5, 6, (2, 0)
+    g = torch.Generator().manual_seed(8)
+    x0 = torch.rand(1, C, h, w, generator=g, dtype=torch.float64) - 0.1  # a few negative values: clipped in ŝ
+    y = torch.rand(1, 1, h, w, generator=g, dtype=torch.float64)
+    got = consistency_step(snap, y, x0, origin, damping=0.05, iterations=1, psf_energy=1.0, spectral_prior=alpha)
+    a = _dense_valid(snap, h, w, origin)
+    r = K // 2
+    xe3 = np.pad(x0[0].numpy(), ((0, 0), (r, r), (r, r)), mode="edge")
+    xe = xe3.reshape(-1)
+    s = _dense_spectral_prior(xe3, alpha)
+    d = a @ (s @ (a.T @ np.ones(h * w))) + 0.05 * snap.lipschitz
+    x1 = xe + s @ (a.T @ ((y.numpy().reshape(-1) - a @ xe) / d))
+    want = x1.reshape(C, h + 2 * r, w + 2 * r)[:, r:-r, r:-r]
+    np.testing.assert_allclose(got[0].numpy(), want, rtol=1e-10, atol=1e-12)
+    if alpha == 0:
+        torch.testing.assert_close(got, consistency_step(snap, y, x0, origin, damping=0.05, psf_energy=1.0))
+
+
+@pytest.mark.parametrize("seed", [3, 9])
+def test_spectral_prior_steps_never_grow_the_error_in_the_priors_metric(seed):
+    """Noiseless data, the exact operator (``same`` geometry, nothing extended): x − x* is multiplied
+    by I − S Aᵀ D⁻¹ A with D = A S Aᵀ 𝟙 + λ ≥ A S Aᵀ, so ‖x − x*‖ in the S⁻¹-norm never grows, for a
+    strong prior and a high-contrast CFA. And the prior moves bands that a pixel's filter hardly
+    passes: a grey stroke missing from the estimate is restored on every band."""
+    snap = _snapshot(seed)
+    snap = DOESnapshot(snap.bands, snap.psf, torch.where(snap.tile > 0.5, 1.0, 0.01).double(), M)
+    g = torch.Generator().manual_seed(seed + 50)
+    truth = torch.rand(1, C, 13, 12, generator=g, dtype=torch.float64)
+    y = snap.A(truth)
+    x0 = truth + 0.3 * torch.randn(truth.shape, generator=g, dtype=torch.float64)
+    alpha = 20.0
+    xe = x0[0].numpy()
+    s_inv = np.linalg.inv(_dense_spectral_prior(xe, alpha))
+    prior = spectral_preconditioner(x0, alpha)
+    d = snap.A(prior(snap.A_adjoint(torch.ones_like(y)))) + 1e-6 * snap.lipschitz
+    errors, weighted = [], []
+    for n in range(5):
+        x = consistency_step(snap, y, x0, damping=1e-6, iterations=n, psf_energy=1.0, extend=False, spectral_prior=alpha)
+        e = (x - truth)[0].numpy().reshape(-1)
+        errors.append(float(e @ s_inv @ e))
+        r = y - snap.A(x)
+        weighted.append(float((r * r / d).sum()))
+    assert all(b <= a * (1 + 1e-12) for a, b in zip(errors, errors[1:])), errors
+    assert all(b <= a * (1 + 1e-12) for a, b in zip(weighted, weighted[1:])), weighted
+    # one measurement per pixel for C bands: most of the error lies where A cannot see it
+    assert errors[-1] < 0.99 * errors[0] and weighted[-1] < 0.6 * weighted[0]
+    # a grey cube whose estimate lacks a one-pixel stroke: the prior's step restores more of it on the
+    # bands the stroke's pixels barely see than the plain step does
+    delta = torch.zeros(C, K, K, dtype=torch.float64)
+    delta[:, K // 2, K // 2] = 1.0  # a sharp lens: each pixel sees its own point through its filter
+    snap = DOESnapshot(snap.bands, delta, snap.tile, M)
+    spectrum = torch.tensor([0.5, 0.6, 0.7], dtype=torch.float64).view(1, C, 1, 1)
+    grey = spectrum * torch.ones(1, 1, 13, 12, dtype=torch.float64)
+    stroke = grey.clone()
+    stroke[..., 6, :] *= 3.0
+    y = snap.A(stroke)
+
+    def stroke_error(alpha_):
+        x = consistency_step(snap, y, grey, damping=1e-6, iterations=2, psf_energy=1.0, extend=False,
+                             spectral_prior=alpha_)
+        return float((x - stroke)[..., 4:9, 2:10].norm())
+
+    assert stroke_error(alpha) < 0.3 * stroke_error(0.0)
+
+
+def test_linear_step_then_landweber_tiles_with_the_declared_context_equal_the_whole_image(tiny_config):
+    """kind linear + landweber_after: the linear map's step, then Landweber steps with the spectral
+    prior; the halo is the sum of both steps' reaches, and tiles with it equal the whole image."""
+    from hsicam.models.consistency import linear_reach_px
+
+    model = _linear_system(tiny_config)
+    snap = model.camera.snapshot(nominal=True)
+    sensor = torch.rand(1, 1, 30, 30)
+    with torch.no_grad():
+        linear_only = model.reconstructor()(sensor)
+    model.consistency = dataclasses.replace(model.consistency, landweber_after=2, spectral_prior=4.0)
+    e = model.consistency.psf_energy
+    assert model.context_px == (model.net.context_px + linear_reach_px(snap, 5, 1, e) + reach_px(snap, 2, e))
+    _assert_step_tiles_equal_whole(model, snap)
+    with torch.no_grad():
+        both = model.reconstructor()(sensor)
+        net = model.net(sensor, snap, (0, 0))
+        want = consistency_step(cut_psf(snap, e), sensor, linear_only, damping=model.consistency.damping,
+                                iterations=2, psf_energy=1.0, spectral_prior=4.0)
+    assert (both - linear_only).abs().max() > 1e-4 and (linear_only - net).abs().max() > 1e-4
+    torch.testing.assert_close(both, want)
+
+
+@pytest.mark.parametrize("overrides, match", [
+    (("model.consistency.kind=linear", "model.consistency.landweber_after=-1"), "landweber_after"),
+    (("model.consistency.spectral_prior=-1",), "spectral_prior"),
+    (("model.consistency.spectral_prior=inf",), "spectral_prior"),
+])
+def test_bad_refinement_settings_are_one_clear_error(tiny_config, overrides, match):
+    with pytest.raises(ConfigError, match=match):
+        tiny_config("model.consistency.iterations=1", *overrides)
+
+
+def test_kind_landweber_takes_its_own_steps_and_ignores_landweber_after(tiny_config):
+    """`--set model.consistency.kind=landweber` on a preset with landweber_after (quick) is the plain
+    (or spectral-prior) Landweber step, `iterations` times: landweber_after belongs to kind linear."""
+    a = _system(tiny_config, "model.consistency.kind=landweber", "model.consistency.landweber_after=3")
+    b = _system(tiny_config, "model.consistency.kind=landweber")
+    sensor = torch.rand(1, 1, 20, 20)
+    assert a.context_px == b.context_px
+    with torch.no_grad():
+        torch.testing.assert_close(a.reconstruct(sensor), b.reconstruct(sensor))

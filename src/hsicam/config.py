@@ -391,6 +391,12 @@ class ConsistencyConfig:
     psf_energy: float = 0.995  # the step's PSFs are cut to the kernel keeping this share of each band's light (1: whole)
     gain: float = 0.5  # kind linear: the share of the linear map's correction taken
     window_px: int = 11  # kind linear: the filters' width (odd)
+    # kind linear: Landweber steps (damping above) after the linear map's, which take what the map's fixed filters left
+    # in the residual; 0 = none (kind landweber: unused, its steps are `iterations`)
+    landweber_after: int = 0
+    # Landweber steps: α of the preconditioner S = α ŝŝᵀ + I per pixel, ŝ the estimate's unit spectrum there, so a
+    # pixel's residual moves every band along the local spectrum, not only its filter's (0: the plain step)
+    spectral_prior: float = 0.0
 
     def __post_init__(self) -> None:
         if not 0 <= self.iterations <= MAX_CONSISTENCY_ITERATIONS:
@@ -406,6 +412,12 @@ class ConsistencyConfig:
             raise ConfigError(f"model.consistency.gain must be in (0, 1], got {self.gain}")
         if self.window_px < 1 or self.window_px % 2 == 0:
             raise ConfigError(f"model.consistency.window_px must be odd and >= 1, got {self.window_px}")
+        if not 0 <= self.landweber_after <= MAX_CONSISTENCY_ITERATIONS:
+            raise ConfigError(f"model.consistency.landweber_after must be in [0, {MAX_CONSISTENCY_ITERATIONS}], got "
+                              f"{self.landweber_after}")
+        if not (math.isfinite(self.spectral_prior) and self.spectral_prior >= 0):
+            raise ConfigError(f"model.consistency.spectral_prior must be a finite number >= 0 (0: the plain step), got "
+                              f"{self.spectral_prior}")
 
 
 @dataclass

@@ -334,6 +334,9 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
         model.consistency = dataclasses.replace(cfg.model.consistency, iterations=args.consistency_steps)
     meta: dict = {"source": str(args.sensor), "run": str(args.run),
                   "consistency_steps": model.consistency.iterations if model.consistency_on else 0}
+    if model.consistency_on and model.consistency.landweber_after:
+        meta["consistency_landweber_after"] = model.consistency.landweber_after
+        meta["consistency_spectral_prior"] = model.consistency.spectral_prior
     if args.psf_dir:
         from hsicam.data.measured_psf import import_for_camera
         from hsicam.engine.calibration import run_psf_fingerprint

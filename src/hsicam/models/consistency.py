@@ -6,7 +6,8 @@ A network's estimate x̂ does not reproduce its measurement (the quick camera's:
 
     x ← x + Aᵀ ((y − A x) ⊘ (A Aᵀ 𝟙 + λ))
 
-is a preconditioned Landweber (Cimmino) step with D = diag(A Aᵀ 𝟙) + λ. A's entries are ≥ 0
+is a preconditioned Landweber (Cimmino) step with D = diag(A Aᵀ 𝟙) + λ (optionally with a
+spectral prior S: x ← x + S Aᵀ ((y − A x) ⊘ (A S Aᵀ 𝟙 + λ)), :func:`spectral_preconditioner`). A's entries are ≥ 0
 (PSFs, filter transmissions), so D bounds A Aᵀ from above, and the step is the majorise-minimise
 step of the dual of min ‖x − x̂‖ s.t. A x = y: the D⁻¹-weighted residual ‖y − A x‖_{D⁻¹} never
 grows (the plain residual may), and x moves only within the range of Aᵀ (what the
@@ -33,7 +34,7 @@ from hsicam.models.demosaic import phase_linear
 
 def consistency_step(op, y: torch.Tensor, x0: torch.Tensor, origin: tuple[int, int] = (0, 0),
                      damping: float = 0.02, iterations: int = 1, psf_energy: float = 0.995,
-                     extend: bool | str = True) -> torch.Tensor:
+                     extend: bool | str = True, spectral_prior: float = 0.0) -> torch.Tensor:
     """x0 (B, C, h, w) moved towards A x = y for the sensor window y (B, 1, h, w) at ``origin``.
 
     ``op`` is an operator snapshot in ``same`` geometry (``A(x, origin)``, ``A_adjoint(y, origin)``,
@@ -46,12 +47,16 @@ def consistency_step(op, y: torch.Tensor, x0: torch.Tensor, origin: tuple[int, i
     for that margin too: True or ``"replicate"`` replicates the border, ``"reflect"`` mirrors it
     (a ``same`` camera padding by reflection; replication where the window is too small to
     mirror); False: the light beyond is zero (a ``same`` camera with zero padding). Tiles: either
-    way the window's edge moves the output only within :func:`reach_px`. Differentiable.
+    way the window's edge moves the output only within :func:`reach_px`. ``spectral_prior`` α ≥ 0: the
+    step is preconditioned by S = α ŝŝᵀ + I at every pixel, ŝ the unit spectrum of x0 there (its
+    negative values clipped), so a residual also moves the bands the pixel's filter does not pass, in
+    the proportions of the estimate's own spectrum (:func:`spectral_preconditioner`; 0: the plain step).
+    Differentiable.
     """
     mode = _extension_mode(extend)
-    if iterations < 0 or not damping > 0 or not 0 < psf_energy <= 1:
-        raise ValueError(f"need iterations >= 0, damping > 0 and psf_energy in (0, 1], got {iterations}, "
-                         f"{damping}, {psf_energy}")
+    if iterations < 0 or not damping > 0 or not 0 < psf_energy <= 1 or not 0 <= spectral_prior < float("inf"):
+        raise ValueError(f"need iterations >= 0, damping > 0, psf_energy in (0, 1] and a finite spectral_prior >= 0, "
+                         f"got {iterations}, {damping}, {psf_energy}, {spectral_prior}")
     if iterations == 0:
         return x0
     op, mode, py, px = _window_setup(op, y, mode, psf_energy)
@@ -69,11 +74,36 @@ def consistency_step(op, y: torch.Tensor, x0: torch.Tensor, origin: tuple[int, i
         return op.A_adjoint(F.pad(v, (px, px, py, py)), o)
 
     y = y.to(x0.dtype)
-    row_sums = a(a_t(torch.ones_like(y[:1]))) + lam  # the same for every image of the batch
     x = F.pad(x0, (px, px, py, py), mode=mode) if (py or px) else x0
+    if spectral_prior > 0:
+        precondition = spectral_preconditioner(x, spectral_prior)
+        row_sums = a(precondition(a_t(torch.ones_like(y)))) + lam  # per image: S follows each estimate
+    else:
+        precondition = None
+        row_sums = a(a_t(torch.ones_like(y[:1]))) + lam  # the same for every image of the batch
     for _ in range(iterations):
-        x = x + a_t((y - a(x)) / row_sums)
+        g = a_t((y - a(x)) / row_sums)
+        x = x + (g if precondition is None else precondition(g))
     return x[..., py : py + h, px : px + w]
+
+
+def spectral_preconditioner(x: torch.Tensor, alpha: float):
+    """v ↦ S v with S = α ŝŝᵀ + I at every pixel of (B, C, H, W) ``v``: ŝ the unit vector along the
+    spectrum of ``x`` (same shape; negative values clipped to 0; ŝ = 0 where x is 0).
+
+    The Landweber step preconditioned by S stays non-expansive: S is symmetric positive definite
+    with non-negative entries, so A S Aᵀ has non-negative entries and the row sums D = A S Aᵀ 𝟙 + λ
+    bound it; the error contracts in the S⁻¹-norm, as the plain step's does in the Euclidean one
+    (tested). A pixel's residual, seen through its filter, then also moves the bands that filter
+    does not pass, along the estimate's spectrum there: where a grey edge or a line of text is in
+    the sensor image, every band gets it, not only the pixel's own filter's bands."""
+    s = x.clamp_min(0)
+    s = s / (s * s).sum(dim=1, keepdim=True).sqrt().clamp_min(torch.finfo(s.dtype).tiny)
+
+    def apply(v: torch.Tensor) -> torch.Tensor:
+        return v + alpha * s * (s * v).sum(dim=1, keepdim=True)
+
+    return apply
 
 
 def linear_consistency_step(op, y: torch.Tensor, x0: torch.Tensor, weight: torch.Tensor,

@@ -87,7 +87,8 @@ class CameraSystem(nn.Module):
         c = self.consistency
         if c.kind == "linear":  # the filters' own width when loaded (a file fitted with another window_px)
             window = int(self.linear_step.shape[-1]) if self.linear_step is not None else c.window_px
-            return int(self.net.context_px) + linear_reach_px(step_op, window, c.iterations, psf_energy)
+            return (int(self.net.context_px) + linear_reach_px(step_op, window, c.iterations, psf_energy)
+                    + reach_px(step_op, c.landweber_after, psf_energy))
         return int(self.net.context_px) + reach_px(step_op, c.iterations, psf_energy)
 
     @property
@@ -136,10 +137,13 @@ class CameraSystem(nn.Module):
                                  "training ends; for a run without it: `hsicam train --out RUN --resume --set "
                                  "model.consistency.kind=linear --set model.consistency.iterations=1` (a fine-tuned run: "
                                  "`hsicam finetune … --resume`), or use --set model.consistency.kind=landweber")
-            return linear_consistency_step(op, sensor, x, self.linear_step, origin, gain=c.gain,
-                                           iterations=c.iterations, psf_energy=energy, extend=self._extension())
-        return consistency_step(op, sensor, x, origin, damping=c.damping, iterations=c.iterations,
-                                psf_energy=energy, extend=self._extension())
+            x = linear_consistency_step(op, sensor, x, self.linear_step, origin, gain=c.gain,
+                                        iterations=c.iterations, psf_energy=energy, extend=self._extension())
+            if not c.landweber_after:
+                return x
+        iterations = c.landweber_after if c.kind == "linear" else c.iterations
+        return consistency_step(op, sensor, x, origin, damping=c.damping, iterations=iterations,
+                                psf_energy=energy, extend=self._extension(), spectral_prior=c.spectral_prior)
 
     def check_input(self, sensor: torch.Tensor) -> None:
         """:class:`InputError` unless ``sensor`` is a finite floating (B, 1, H, W) image, B, H, W >= 1, on
