@@ -6,7 +6,10 @@ For each network kind on the ``quick`` camera (joint optics: DOE heights and CFA
   batch of ``train.batch_size`` patches of ``data.patch_px``, split into the optics (PSF + camera
   and their backward) and the network (forward + backward; for the unrolled network this includes
   its own snapshot of the operator: one more PSF computation and the A/Aᵀ of its stages);
-- one 512×512 reconstruction (31 bands), network only, no gradient.
+- one 512×512 reconstruction (31 bands), network only, no gradient;
+- for ``quick``, also the whole inference the demo runs (``infer_512_with_steps_s``): the network, then the
+  preset's measurement-consistency steps (the linear step, with zero filters of the fitted shape, which
+  cost the same as fitted ones, and the spectral-prior Landweber steps of ``landweber_after``).
 
 Kinds: ``quick`` (the quick preset's own network, as configured: today the mosaic network with
 detail features), ``rdn`` (the quick RDN section with the demosaic input), ``mosaic`` (MosaicConfig defaults),
@@ -116,7 +119,19 @@ def inference(kind: str, cfg, repeats: int) -> dict:
         c0 = time.process_time()
         recon(g)
         cpu.append(time.process_time() - c0)
-    return {"infer_512_s": wall, "infer_512_cpu_s": statistics.median(cpu)}
+    out = {"infer_512_s": wall, "infer_512_cpu_s": statistics.median(cpu)}
+    if kind == "quick" and cfg.model.consistency.iterations > 0:
+        torch.manual_seed(0)
+        system = CameraSystem.from_config(cfg).eval()
+        if cfg.model.consistency.kind == "linear":
+            m, w = system.camera.code_period, cfg.model.consistency.window_px
+            system.linear_step = torch.zeros(m * m, len(system.bands), w, w)
+        fn = system.reconstructor()
+        out["infer_512_with_steps_s"] = median_time(lambda: fn(g), repeats=repeats, warmup=1)
+        out["consistency"] = {"kind": cfg.model.consistency.kind, "iterations": cfg.model.consistency.iterations,
+                              "landweber_after": cfg.model.consistency.landweber_after,
+                              "spectral_prior": cfg.model.consistency.spectral_prior}
+    return out
 
 
 def main() -> None:

@@ -12,7 +12,7 @@ import torch
 from torch.func import functional_call
 
 from hsicam.errors import InputError
-from hsicam.optics.convolution import coded_conv_valid
+from hsicam.optics.convolution import coded_conv_valid, coded_conv_valid_adjoint, conv_valid_adjoint
 
 BOUNDARIES = [("valid", "zeros"), ("same", "zeros"), ("same", "reflect"), ("same", "replicate"), ("same", "circular")]
 SWITCHES = list(itertools.product([True, False], [True, False]))  # (DOE enabled, CFA enabled)
@@ -146,7 +146,9 @@ def test_point_source_images_the_psf_unflipped(tiny_camera):
 
 
 def test_adjoint_agrees_with_autograd(tiny_camera):
-    """Two independently written adjoints: A_adjoint (FFT correlation) and the custom backward of A."""
+    """A_adjoint and the custom backward of A (since session 34 both run the same chunked correlation,
+    A_adjoint without autograd: the dense transpose test above and the coded adjoint's tests below
+    check it against independent references)."""
     cam = _camera(tiny_camera, True, True, "same", "replicate")
     x = _scene(cam, seed=4).requires_grad_(True)
     y = torch.randn(2, 1, *SENSOR_HW, generator=torch.Generator().manual_seed(5), dtype=torch.float64)
@@ -179,6 +181,43 @@ def test_coded_conv_valid_gradcheck():
     # and it is the band sum of κ-weighted valid convolutions (direct reference)
     direct = (direct_valid_conv(_np(x), _np(psf)) * _np(kappa)[None]).sum(axis=1, keepdims=True)
     np.testing.assert_allclose(_np(coded_conv_valid(x, psf, kappa)), direct, rtol=1e-10, atol=1e-12)
+
+
+def test_coded_adjoint_is_the_transpose_of_the_coded_convolution(monkeypatch):
+    """coded_conv_valid_adjoint against the dense transpose of coded_conv_valid's matrix, and against the
+    plain correlation of κ ⊙ g, with the work split into many chunks (CHUNK_BYTES shrunk) and whole."""
+    import hsicam.optics.convolution as conv
+
+    g = torch.Generator().manual_seed(8)
+    c, k, h, w = 3, 5, 4, 6
+    psf = torch.rand(c, k, k, generator=g, dtype=torch.float64)
+    kappa = torch.rand(c, h, w, generator=g, dtype=torch.float64)
+    n, m = c * (h + k - 1) * (w + k - 1), h * w
+    a = coded_conv_valid(torch.eye(n, dtype=torch.float64).reshape(n, c, h + k - 1, w + k - 1), psf, kappa).reshape(n, m).T
+    for chunk_bytes in (conv.CHUNK_BYTES, 1):
+        monkeypatch.setattr(conv, "CHUNK_BYTES", chunk_bytes)
+        at = coded_conv_valid_adjoint(torch.eye(m, dtype=torch.float64).reshape(m, 1, h, w), psf, kappa).reshape(m, n).T
+        torch.testing.assert_close(at, a.T, rtol=0, atol=1e-12)
+        y = torch.rand(2, 1, 9, 11, generator=g, dtype=torch.float64)
+        kap = torch.rand(c, 9, 11, generator=g, dtype=torch.float64)
+        torch.testing.assert_close(coded_conv_valid_adjoint(y, psf, kap), conv_valid_adjoint(y * kap, psf), rtol=1e-12,
+                                   atol=1e-13)
+    with pytest.raises(ValueError, match="sensor image"):
+        coded_conv_valid_adjoint(torch.rand(1, 3, 4, 6), psf, kappa)
+
+
+def test_coded_adjoint_keeps_gradients_to_the_psf():
+    """With gradients required (an unrolled network's stages train the optics through Aᵀ) the coded
+    adjoint gives the plain correlation's value and gradients."""
+    g = torch.Generator().manual_seed(9)
+    y = torch.rand(1, 1, 7, 8, generator=g, dtype=torch.float64)
+    kappa = torch.rand(3, 7, 8, generator=g, dtype=torch.float64)
+    psf = torch.rand(3, 5, 5, generator=g, dtype=torch.float64, requires_grad=True)
+    weights = torch.rand(1, 3, 11, 12, generator=g, dtype=torch.float64)
+    (grad_coded,) = torch.autograd.grad((coded_conv_valid_adjoint(y, psf, kappa) * weights).sum(), psf)
+    (grad_plain,) = torch.autograd.grad((conv_valid_adjoint(y * kappa, psf) * weights).sum(), psf)
+    torch.testing.assert_close(grad_coded, grad_plain, rtol=1e-12, atol=1e-13)
+    assert grad_coded.abs().max() > 0
 
 
 @pytest.mark.parametrize("boundary, padding", [("valid", "zeros"), ("same", "circular")])

@@ -13,7 +13,7 @@ import torch
 from hsicam.cameras.base import Camera
 from hsicam.cameras.registry import register_camera
 from hsicam.errors import InputError
-from hsicam.optics.convolution import coded_conv_valid, conv_valid_adjoint, pad_same, pad_same_adjoint
+from hsicam.optics.convolution import coded_conv_valid, coded_conv_valid_adjoint, pad_same, pad_same_adjoint
 from hsicam.optics.doe import DOE
 from hsicam.optics.lens import lens_from_config
 from hsicam.optics.psf import PSFModel, PSFResult
@@ -127,7 +127,7 @@ class DOECamera(Camera):
         self.check_measurement(g)
         psf = self.psf() if psf is None else psf
         kappa = self.cfa.pattern(g.shape[-2], g.shape[-1]).to(g.dtype)
-        x = conv_valid_adjoint(g * kappa.unsqueeze(0), psf.to(g.dtype))
+        x = coded_conv_valid_adjoint(g, psf.to(g.dtype), kappa)
         if self.boundary == "same":
             x = pad_same_adjoint(x, self.kernel_px, self.padding)
         return x
@@ -232,7 +232,7 @@ class DOESnapshot:
         if y.dim() != 4 or y.shape[1] != 1:
             raise InputError(f"sensor image must be (B, 1, H, W), got shape {tuple(y.shape)}")
         kappa = self.sensor_code(y.shape[-2], y.shape[-1], origin).to(y.dtype)
-        x = conv_valid_adjoint(y * kappa.unsqueeze(0), self.psf.to(y.dtype))
+        x = coded_conv_valid_adjoint(y, self.psf.to(y.dtype), kappa)
         return pad_same_adjoint(x, self.kernel_px)
 
     def cropped(self, kernel_px: int) -> "DOESnapshot":
