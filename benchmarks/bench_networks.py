@@ -9,7 +9,9 @@ For each network kind on the ``quick`` camera (joint optics: DOE heights and CFA
 - one 512×512 reconstruction (31 bands), network only, no gradient;
 - for ``quick``, also the whole inference the demo runs (``infer_512_with_steps_s``): the network, then the
   preset's measurement-consistency steps (the linear step, with zero filters of the fitted shape, which
-  cost the same as fitted ones, and the spectral-prior Landweber steps of ``landweber_after``).
+  cost the same as fitted ones, and the spectral-prior Landweber steps of ``landweber_after``), through
+  the untrained camera's PSFs cut to ``psf_energy`` (``consistency.psf_kernel_px``; a trained quick camera's
+  are far narrower, so its steps cost less: docs/networks.md).
 
 Kinds: ``quick`` (the quick preset's own network, as configured: today the mosaic network with
 detail features), ``rdn`` (the quick RDN section with the demosaic input), ``mosaic`` (MosaicConfig defaults),
@@ -128,9 +130,15 @@ def inference(kind: str, cfg, repeats: int) -> dict:
             system.linear_step = torch.zeros(m * m, len(system.bands), w, w)
         fn = system.reconstructor()
         out["infer_512_with_steps_s"] = median_time(lambda: fn(g), repeats=repeats, warmup=1)
+        from hsicam.models.consistency import cut_psf
+
+        # the steps' cost grows with the PSF they keep: this untrained camera's lens PSF needs a far wider kernel
+        # for psf_energy than a trained quick camera's (21 px)
+        kept = cut_psf(system.camera.snapshot(nominal=True), cfg.model.consistency.psf_energy)
         out["consistency"] = {"kind": cfg.model.consistency.kind, "iterations": cfg.model.consistency.iterations,
                               "landweber_after": cfg.model.consistency.landweber_after,
-                              "spectral_prior": cfg.model.consistency.spectral_prior}
+                              "spectral_prior": cfg.model.consistency.spectral_prior,
+                              "psf_kernel_px": int(kept.kernel_px)}
     return out
 
 
