@@ -44,6 +44,7 @@ from hsicam.config import load_config  # noqa: E402
 from hsicam.engine.tasks import system_loss  # noqa: E402
 from hsicam.models import CameraSystem  # noqa: E402
 from hsicam.config import MosaicConfig, UnrolledConfig  # noqa: E402
+from hsicam.models.consistency import cut_psf  # noqa: E402
 from hsicam.models.mosaic import build_mosaic  # noqa: E402
 from hsicam.models.unrolled import build_unrolled  # noqa: E402
 
@@ -130,8 +131,6 @@ def inference(kind: str, cfg, repeats: int) -> dict:
             system.linear_step = torch.zeros(m * m, len(system.bands), w, w)
         fn = system.reconstructor()
         out["infer_512_with_steps_s"] = median_time(lambda: fn(g), repeats=repeats, warmup=1)
-        from hsicam.models.consistency import cut_psf
-
         # the steps' cost grows with the PSF they keep: this untrained camera's lens PSF needs a far wider kernel
         # for psf_energy than a trained quick camera's (21 px)
         kept = cut_psf(system.camera.snapshot(nominal=True), cfg.model.consistency.psf_energy)

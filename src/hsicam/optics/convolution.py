@@ -216,8 +216,8 @@ def coded_conv_valid_adjoint(g: torch.Tensor, psf: torch.Tensor, kappa: torch.Te
     """Exact adjoint of :func:`coded_conv_valid` in the scene: (B, 1, H, W) → (B, C, H+K−1, W+K−1),
     x_c = psf_c ⋆ (κ_c ⊙ g), equal to ``conv_valid_adjoint(g * kappa, psf)``.
 
-    Run chunk by chunk with the row transforms pruned, as the fused op's backward: about 2.5× faster
-    on CPU for 31 bands at 512² (0.36 → 0.14 s, session 34), which the consistency steps take at
+    Run chunk by chunk with the row transforms pruned, as the fused op's backward: about 3× faster
+    on CPU for 31 bands at 512² with a 21 px kernel (0.33 → 0.10 s, session 34), which the consistency steps take at
     inference. Without autograd only (its chunks are written in place); with gradients required
     it falls back to :func:`conv_valid_adjoint`."""
     if g.dim() != 4 or g.shape[1] != 1:

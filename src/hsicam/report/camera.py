@@ -63,7 +63,8 @@ def encircled_fraction_in_square(psf: np.ndarray, size: int) -> np.ndarray:
 def psf_crop_px(psf: np.ndarray, fraction: float = 0.99, minimum: int = 15) -> int:
     """Smallest odd centred crop that holds ``fraction`` of every band's light in the kernel
     (at least ``minimum`` px, at most the kernel)."""
-    k = np.shape(psf)[-1]
+    psf = np.asarray(psf, dtype=np.float64)  # once, not in every trial below
+    k = psf.shape[-1]
     for size in range(min(minimum, k) | 1, k + 1, 2):
         if np.all(encircled_fraction_in_square(psf, size) >= fraction):
             return size
