@@ -397,6 +397,10 @@ class ConsistencyConfig:
     # Landweber steps: α of the preconditioner S = α ŝŝᵀ + I per pixel, ŝ the estimate's unit spectrum there, so a
     # pixel's residual moves every band along the local spectrum, not only its filter's (0: the plain step)
     spectral_prior: float = 0.0
+    # weigh each step's residual by a local Wiener gain against the capture's noise variance from the camera's noise
+    # model (camera.sensor: noise, sigma, full_well_e, read_noise_e, bit_depth): residuals at the noise's level move
+    # the estimate little. A noise-free model (the default) leaves the steps exactly as without it.
+    noise_aware: bool = True
 
     def __post_init__(self) -> None:
         if not 0 <= self.iterations <= MAX_CONSISTENCY_ITERATIONS:

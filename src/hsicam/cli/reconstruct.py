@@ -55,6 +55,14 @@ def register(sub: argparse._SubParsersAction) -> None:
                      help="exposure the network's scale corresponds to (s): the image is multiplied by reference/exposure")
     raw.add_argument("--auto-level", type=float, default=None, metavar="V",
                      help="scale so the 99.9th percentile equals V (captures of unknown radiometric scale)")
+    noise = p.add_argument_group(
+        "capture noise (the measurement-consistency steps weigh each residual against it; default: the run's "
+        "camera.sensor model, noise-free for the presets)")
+    noise.add_argument("--full-well-e", type=float, default=None, metavar="E",
+                       help="electrons at the white level (the capture's photon level): shot noise g/E plus read noise "
+                            "on the image as reconstructed, after any --scale, exposure or --auto-level gain")
+    noise.add_argument("--read-noise-e", type=float, default=None, metavar="E",
+                       help="read noise, electrons rms (needs --full-well-e; default 0)")
     p.add_argument("--psf-dir", metavar="DIR", help="measured PSFs of the camera (checked against the run; see hsicam finetune)")
     p.add_argument("--psf-pitch-um", type=float, default=None,
                    help="pixel pitch of the measured PSF images of --psf-dir (else psf.json); needs --psf-dir")
@@ -270,6 +278,37 @@ def check_one_level_setting(args: argparse.Namespace) -> None:
                       reference_exposure_s=args.reference_exposure_s, scale=1.0 if args.scale is None else args.scale)
 
 
+def check_noise_args(args: argparse.Namespace) -> None:
+    """Before any work: --full-well-e a positive number, --read-noise-e one >= 0 and only beside it."""
+    if args.read_noise_e is not None and args.full_well_e is None:
+        raise InputError("--read-noise-e needs --full-well-e (the electrons at the white level), which sets the "
+                         "capture's noise model")
+    if args.full_well_e is not None and not (np.isfinite(args.full_well_e) and args.full_well_e > 0):
+        raise InputError(f"--full-well-e must be a positive number of electrons, got {args.full_well_e:g}")
+    if args.read_noise_e is not None and not (np.isfinite(args.read_noise_e) and args.read_noise_e >= 0):
+        raise InputError(f"--read-noise-e must be a number of electrons >= 0, got {args.read_noise_e:g}")
+
+
+def capture_noise(model, report: dict, full_well_e: float, read_noise_e: float) -> dict:
+    """Give ``model``'s camera the Poisson–Gaussian noise of a capture with ``full_well_e`` electrons at the
+    white level and ``read_noise_e`` of read noise, on the image as :func:`~hsicam.data.images.read_capture`
+    returned it (``report``): the gain it applied after normalising to [0, 1] (exposure ratio ×
+    auto-level × --scale) divides the full well, since an image g = f·e/E has variance f·g/E + (f·r/E)².
+    The measurement-consistency steps weigh their residuals by that variance (a flat field's per-pixel
+    gain is not counted). Returns the cube metadata that records it."""
+    from hsicam.sensor import SensorNoise
+
+    factor = float(report["gain"]) * (float(report["white_level_dn"]) - float(report["black_level_dn"]))
+    model.camera.noise = SensorNoise("poisson_gaussian", full_well_e=full_well_e / factor, read_noise_e=read_noise_e)
+    if not model.consistency_on:
+        log.warning("--full-well-e only weighs the measurement-consistency steps, which are off here: it changes "
+                    "nothing")
+    elif not model.consistency.noise_aware:
+        log.warning("--full-well-e changes nothing: the run's model.consistency.noise_aware is off")
+    return {"noise_full_well_e": full_well_e, "noise_read_noise_e": read_noise_e,
+            "noise_full_well_e_at_image_scale": full_well_e / factor}
+
+
 def psf_mismatch_message(args: argparse.Namespace, measured, fine_tuned: bool) -> str:
     """The warning for ``--psf-dir`` PSFs other than those the network of ``--run`` was fine-tuned on:
     when the run was fine-tuned on the same folder, what differs (the pixel pitch, naming both, …)."""
@@ -314,6 +353,7 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
     if args.scale is not None and not (np.isfinite(args.scale) and args.scale > 0):
         raise InputError("--scale must be a positive number")
     check_one_level_setting(args)
+    check_noise_args(args)
     if args.psf_pitch_um is not None and not args.psf_dir:
         raise InputError("--psf-pitch-um is the pixel pitch of the measured PSFs of --psf-dir: give --psf-dir DIR "
                          "too, or drop --psf-pitch-um")
@@ -356,6 +396,8 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
     corr = corrections_from_args(args, cfa_period)
     img, report = read_capture(args.sensor, corr, args.scale)
     meta["preprocessing"] = report
+    if args.full_well_e is not None:
+        meta.update(capture_noise(model, report, args.full_well_e, args.read_noise_e or 0.0))
     period = int(getattr(model.camera, "code_period", 1))
     if min(img.shape) < max(period, 2):
         raise InputError(f"{args.sensor}: the capture is {img.shape[0]}×{img.shape[1]} px, smaller than "

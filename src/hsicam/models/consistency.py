@@ -34,7 +34,8 @@ from hsicam.models.demosaic import phase_linear
 
 def consistency_step(op, y: torch.Tensor, x0: torch.Tensor, origin: tuple[int, int] = (0, 0),
                      damping: float = 0.02, iterations: int = 1, psf_energy: float = 0.995,
-                     extend: bool | str = True, spectral_prior: float = 0.0) -> torch.Tensor:
+                     extend: bool | str = True, spectral_prior: float = 0.0,
+                     noise_variance: torch.Tensor | None = None) -> torch.Tensor:
     """x0 (B, C, h, w) moved towards A x = y for the sensor window y (B, 1, h, w) at ``origin``.
 
     ``op`` is an operator snapshot in ``same`` geometry (``A(x, origin)``, ``A_adjoint(y, origin)``,
@@ -51,6 +52,8 @@ def consistency_step(op, y: torch.Tensor, x0: torch.Tensor, origin: tuple[int, i
     step is preconditioned by S = α ŝŝᵀ + I at every pixel, ŝ the unit spectrum of x0 there (its
     negative values clipped), so a residual also moves the bands the pixel's filter does not pass, in
     the proportions of the estimate's own spectrum (:func:`spectral_preconditioner`; 0: the plain step).
+    ``noise_variance`` (broadcastable to y; None: a noise-free capture): each step's residual is first
+    passed through :func:`wiener_residual`, so residuals at the noise's level move the estimate little.
     Differentiable.
     """
     mode = _extension_mode(extend)
@@ -82,7 +85,7 @@ def consistency_step(op, y: torch.Tensor, x0: torch.Tensor, origin: tuple[int, i
         precondition = None
         row_sums = a(a_t(torch.ones_like(y[:1]))) + lam  # the same for every image of the batch
     for _ in range(iterations):
-        g = a_t((y - a(x)) / row_sums)
+        g = a_t(wiener_residual(y - a(x), noise_variance) / row_sums)
         x = x + (g if precondition is None else precondition(g))
     return x[..., py : py + h, px : px + w]
 
@@ -108,7 +111,8 @@ def spectral_preconditioner(x: torch.Tensor, alpha: float):
 
 def linear_consistency_step(op, y: torch.Tensor, x0: torch.Tensor, weight: torch.Tensor,
                             origin: tuple[int, int] = (0, 0), gain: float = 0.5, iterations: int = 1,
-                            psf_energy: float = 0.995, extend: bool | str = True) -> torch.Tensor:
+                            psf_energy: float = 0.995, extend: bool | str = True,
+                            noise_variance: torch.Tensor | None = None) -> torch.Tensor:
     """x ← x + gain · W(y − A x), ``iterations`` times, from x0 (B, C, h, w): the measurement's
     residual mapped back to the cube by ``weight`` (m², C, K, K), the least-squares linear map from
     sensor image to cube of :func:`hsicam.models.demosaic.phase_linear` fitted on training scenes.
@@ -117,7 +121,7 @@ def linear_consistency_step(op, y: torch.Tensor, x0: torch.Tensor, weight: torch
     bands and pixels that made it (Aᵀ: a correction on the CFA lattice), W spreads it as the
     training scenes say a sensor image's detail spreads over pixels and bands. ``op``, ``origin``,
     ``psf_energy`` and ``extend`` as in :func:`consistency_step` (the estimate is extended across
-    the window's border for A). Differentiable."""
+    the window's border for A); ``noise_variance`` as there (:func:`wiener_residual`). Differentiable."""
     mode = _extension_mode(extend)
     if iterations < 0 or not 0 < gain <= 1 or not 0 < psf_energy <= 1:
         raise ValueError(f"need iterations >= 0, gain in (0, 1] and psf_energy in (0, 1], got {iterations}, "
@@ -132,8 +136,29 @@ def linear_consistency_step(op, y: torch.Tensor, x0: torch.Tensor, weight: torch
     for _ in range(iterations):
         ext = F.pad(x, (px, px, py, py), mode=mode) if (py or px) else x
         residual = y - op.A(ext, o)[..., py : py + h, px : px + w]
-        x = x + gain * phase_linear(residual, weight.to(x.device), origin)
+        x = x + gain * phase_linear(wiener_residual(residual, noise_variance), weight.to(x.device), origin)
     return x
+
+
+WIENER_WINDOW_PX = 5  # the local window over which wiener_residual measures the residual's power
+
+
+def wiener_residual(r: torch.Tensor, noise_variance: torch.Tensor | None,
+                    window: int = WIENER_WINDOW_PX) -> torch.Tensor:
+    """The residual r = y − A x (B, 1, h, w) with its noise shrunk by a local Wiener gain:
+    r · P / (P + v), P = max(mean_w(r²) − mean_w(v), 0) the power above the noise's over the
+    ``window`` px square around each pixel (the window cut at the image's edge), v the capture's
+    noise variance there (``noise_variance``, broadcastable to r; from
+    :meth:`hsicam.sensor.SensorNoise.variance`). r itself where v is 0 or None: a noise-free capture
+    is trusted whole. Local, so a tile reproduces the whole image ``window // 2`` px inside its
+    edge (:func:`reach_px`, :func:`linear_reach_px` add it)."""
+    if noise_variance is None:
+        return r
+    v = noise_variance.to(r.dtype).expand_as(r)
+    pool = lambda t: F.avg_pool2d(t, window, stride=1, padding=window // 2, count_include_pad=False)  # noqa: E731
+    power = (pool(r * r) - pool(v)).clamp_min(0)
+    gain = torch.where(v > 0, power / (power + v).clamp_min(torch.finfo(r.dtype).tiny), torch.ones_like(v))
+    return r * gain
 
 
 def _extension_mode(extend: bool | str) -> str | None:

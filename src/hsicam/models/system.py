@@ -10,7 +10,8 @@ from torch import nn
 from hsicam.cameras import Camera, build_camera
 from hsicam.cameras.base import check_device, check_finite, check_sensor_image
 from hsicam.errors import InputError
-from hsicam.models.consistency import consistency_step, cut_psf, linear_consistency_step, linear_reach_px, reach_px
+from hsicam.models.consistency import (WIENER_WINDOW_PX, consistency_step, cut_psf, linear_consistency_step,
+                                       linear_reach_px, reach_px)
 from hsicam.models.registry import build_network
 
 log = logging.getLogger(__name__)
@@ -85,11 +86,22 @@ class CameraSystem(nn.Module):
     def _context_px(self, step_op, psf_energy: float) -> int:
         """:attr:`context_px` with the step through ``step_op``, its PSFs cut to ``psf_energy``."""
         c = self.consistency
+        # each step's Wiener gain on a noisy capture's residual looks WIENER_WINDOW_PX // 2 further
+        wiener = WIENER_WINDOW_PX // 2 if self._noise_variance(torch.zeros(1, 1, 1, 1)) is not None else 0
         if c.kind == "linear":  # the filters' own width when loaded (a file fitted with another window_px)
             window = int(self.linear_step.shape[-1]) if self.linear_step is not None else c.window_px
             return (int(self.net.context_px) + linear_reach_px(step_op, window, c.iterations, psf_energy)
-                    + reach_px(step_op, c.landweber_after, psf_energy))
-        return int(self.net.context_px) + reach_px(step_op, c.iterations, psf_energy)
+                    + reach_px(step_op, c.landweber_after, psf_energy) + wiener * (c.iterations + c.landweber_after))
+        return int(self.net.context_px) + reach_px(step_op, c.iterations, psf_energy) + wiener * c.iterations
+
+    def _noise_variance(self, sensor: torch.Tensor) -> torch.Tensor | None:
+        """The capture's per-pixel noise variance by the camera's noise model (``camera.sensor``;
+        :meth:`hsicam.sensor.SensorNoise.variance`), which the consistency steps weigh residuals by;
+        None for a noise-free model or with ``model.consistency.noise_aware`` off."""
+        noise = getattr(self.camera, "noise", None)
+        if not self.consistency.noise_aware or not hasattr(noise, "variance"):
+            return None
+        return noise.variance(sensor)
 
     @property
     def bands(self):
@@ -137,13 +149,17 @@ class CameraSystem(nn.Module):
                                  "training ends; for a run without it: `hsicam train --out RUN --resume --set "
                                  "model.consistency.kind=linear --set model.consistency.iterations=1` (a fine-tuned run: "
                                  "`hsicam finetune … --resume`), or use --set model.consistency.kind=landweber")
+        var = self._noise_variance(sensor)
+        if c.kind == "linear":
             x = linear_consistency_step(op, sensor, x, self.linear_step, origin, gain=c.gain,
-                                        iterations=c.iterations, psf_energy=energy, extend=self._extension())
+                                        iterations=c.iterations, psf_energy=energy, extend=self._extension(),
+                                        noise_variance=var)
             if not c.landweber_after:
                 return x
         iterations = c.landweber_after if c.kind == "linear" else c.iterations
         return consistency_step(op, sensor, x, origin, damping=c.damping, iterations=iterations,
-                                psf_energy=energy, extend=self._extension(), spectral_prior=c.spectral_prior)
+                                psf_energy=energy, extend=self._extension(), spectral_prior=c.spectral_prior,
+                                noise_variance=var)
 
     def check_input(self, sensor: torch.Tensor) -> None:
         """:class:`InputError` unless ``sensor`` is a finite floating (B, 1, H, W) image, B, H, W >= 1, on

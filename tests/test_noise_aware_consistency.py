@@ -1,0 +1,222 @@
+"""Noise-aware measurement consistency: the sensor noise model's variance (hsicam.sensor.SensorNoise.variance)
+against the empirical variance of the noise it adds, the local Wiener gain on the steps' residual
+(hsicam.models.consistency.wiener_residual), and the steps on noisy captures: they fit less noise, a
+noise-free model leaves them exactly as they were, and tiles still equal the whole image."""
+
+from __future__ import annotations
+
+import json
+
+import h5py
+import numpy as np
+import pytest
+import torch
+
+from hsicam.config import load_config
+from hsicam.engine.inference import reconstruct_tiled
+from hsicam.errors import ConfigError
+from hsicam.models.consistency import WIENER_WINDOW_PX, consistency_step, linear_consistency_step, wiener_residual
+from hsicam.sensor import SensorNoise
+from cli_helpers import assert_ok, error_line, run_cli_in_process as run_cli
+from test_consistency import _high_contrast_problem, _system
+
+C = 3
+
+
+@pytest.mark.parametrize("model, kw", [
+    ("gaussian", {"sigma": 0.02}),
+    ("poisson_gaussian", {"full_well_e": 1000.0, "read_noise_e": 3.0}),
+    ("poisson_gaussian", {"full_well_e": 200.0, "read_noise_e": 0.0}),
+    ("gaussian", {"sigma": 0.02, "bit_depth": 8}),
+])
+def test_variance_is_the_empirical_variance_of_the_noise(model, kw):
+    """The variance the model declares at each signal level equals the sample variance of 400 000
+    draws of the noise it adds there (Poisson: mean/N; read noise: (r/N)²; quantiser: Δ²/12, for a
+    noise much wider than the step; levels 5σ inside [0, 1], where the quantiser clips nothing)."""
+    noise = SensorNoise(model, **kw)
+    levels = torch.tensor([0.1, 0.3, 0.6, 0.85], dtype=torch.float64).view(1, 1, 4, 1)
+    g = levels.expand(1, 1, 4, 100_000).contiguous()
+    gen = torch.Generator().manual_seed(0)
+    sample = noise(g, gen)
+    empirical = sample.var(dim=-1)
+    declared = noise.variance(g)[..., 0]
+    torch.testing.assert_close(declared, empirical, rtol=0.03, atol=0)
+
+
+def test_noise_free_models_declare_no_variance():
+    g = torch.rand(1, 1, 8, 8)
+    assert SensorNoise("none").variance(g) is None
+    assert SensorNoise("gaussian", sigma=0.0).variance(g) is None
+    q = SensorNoise("none", bit_depth=10).variance(g)  # the quantiser alone: Δ²/12
+    torch.testing.assert_close(q, torch.full_like(g, (1 / 1023) ** 2 / 12))
+
+
+def _piecewise_residual(seed: int) -> torch.Tensor:
+    """A residual with the structure a network leaves: a few constant blocks (edges), zero elsewhere."""
+    g = torch.Generator().manual_seed(seed)
+    r = torch.zeros(1, 1, 64, 64, dtype=torch.float64)
+    for _ in range(6):
+        i, j = torch.randint(0, 48, (2,), generator=g).tolist()
+        r[..., i : i + 12, j : j + 12] += 0.05 * (2 * torch.rand(1, generator=g, dtype=torch.float64) - 1)
+    return r
+
+
+def test_a_noise_free_capture_keeps_its_residual_exactly():
+    r = torch.randn(2, 1, 20, 17)
+    assert wiener_residual(r, None) is r
+    assert torch.equal(wiener_residual(r, torch.zeros_like(r)), r)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_wiener_gain_removes_most_of_the_noise_and_keeps_the_structure(seed):
+    truth = _piecewise_residual(seed)
+    sigma = 0.01
+    noisy = truth + sigma * torch.randn(truth.shape, generator=torch.Generator().manual_seed(seed + 10),
+                                        dtype=torch.float64)
+    out = wiener_residual(noisy, torch.full_like(noisy, sigma**2))
+    assert float(((out - truth) ** 2).mean()) < 0.3 * float(((noisy - truth) ** 2).mean())
+    assert bool((out.abs() <= noisy.abs() + 1e-15).all())  # a gain in [0, 1], never an amplification
+    assert bool((torch.sign(out) * torch.sign(noisy) >= 0).all())
+    # pure noise: most of it goes
+    pure = sigma * torch.randn(truth.shape, generator=torch.Generator().manual_seed(seed), dtype=torch.float64)
+    assert float(wiener_residual(pure, torch.full_like(pure, sigma**2)).square().mean()) < 0.2 * sigma**2
+
+
+def test_wiener_gain_is_local():
+    """A crop of the residual gives the whole image's result WIENER_WINDOW_PX // 2 px inside its edge."""
+    g = torch.Generator().manual_seed(3)
+    r = torch.randn(1, 1, 40, 40, generator=g, dtype=torch.float64)
+    v = 0.5 + torch.rand(1, 1, 40, 40, generator=g, dtype=torch.float64)
+    whole = wiener_residual(r, v)
+    h = WIENER_WINDOW_PX // 2
+    crop = wiener_residual(r[..., 10:30, 5:35], v[..., 10:30, 5:35])
+    torch.testing.assert_close(crop[..., h:-h, h:-h], whole[..., 10 + h : 30 - h, 5 + h : 35 - h])
+    assert not torch.allclose(crop[..., 0, :], whole[..., 10, 5:35])  # the edge does differ
+
+
+@pytest.mark.parametrize("seed", [2, 7])
+def test_steps_on_a_noisy_capture_fit_less_noise(seed):
+    """A good estimate (off by 0.01) of a capture with much more noise (σ = 0.05): plain steps pull it
+    towards the noise and the error grows; with the noise's variance they keep nearly all of the
+    estimate. A poor estimate (off by 0.3) of a mildly noisy capture: the noise-aware steps still
+    correct it as far as the plain ones."""
+    snap, truth, clean, rough = _high_contrast_problem(seed, seed + 100, (1, C, 24, 24))
+    gen = torch.Generator().manual_seed(seed + 7)
+
+    def errors(x0, sigma):
+        y = clean + sigma * torch.randn(clean.shape, generator=gen, dtype=torch.float64)
+        var = torch.full_like(y, sigma**2)
+        kw = dict(damping=1e-3, iterations=3, psf_energy=1.0, extend=False)
+        plain = consistency_step(snap, y, x0, **kw)
+        aware = consistency_step(snap, y, x0, noise_variance=var, **kw)
+        return [float((x - truth).norm()) for x in (x0, plain, aware)]
+
+    good = truth + 0.01 * torch.randn(truth.shape, generator=gen, dtype=torch.float64)
+    start, plain, aware = errors(good, 0.05)
+    assert plain > 2 * start and aware < 0.5 * plain, (start, plain, aware)
+    start, plain, aware = errors(rough, 0.002)
+    assert plain < 0.97 * start and aware < 1.01 * plain, (start, plain, aware)
+
+
+def test_a_noise_free_camera_reconstructs_as_without_the_option(tiny_config):
+    """The presets' noise-free camera: noise_aware on (the default) and off give the same bits."""
+    on = _system(tiny_config, "model.consistency.landweber_after=1")
+    off = _system(tiny_config, "model.consistency.landweber_after=1", "model.consistency.noise_aware=false")
+    assert on.consistency.noise_aware and not off.consistency.noise_aware
+    sensor = torch.rand(1, 1, 30, 30)
+    assert on.context_px == off.context_px
+    with torch.no_grad():
+        assert torch.equal(on.reconstruct(sensor), off.reconstruct(sensor))
+
+
+def test_a_noisy_camera_weighs_the_residual_and_tiles_still_equal_the_whole_image(tiny_config):
+    noisy = ("camera.sensor.noise=poisson_gaussian", "camera.sensor.full_well_e=300")
+    on = _system(tiny_config, *noisy)
+    off = _system(tiny_config, *noisy, "model.consistency.noise_aware=false")
+    assert on.context_px == off.context_px + WIENER_WINDOW_PX // 2 * on.consistency.iterations
+    sensor = torch.rand(1, 1, 53, 47)
+    f = on.reconstructor()
+    with torch.no_grad():
+        whole = f(sensor)
+        assert (whole - off.reconstructor()(sensor)).abs().max() > 1e-4
+        tiled = reconstruct_tiled(f, sensor, tile_px=16, halo_px=on.context_px)
+    torch.testing.assert_close(tiled, whole, rtol=1e-5, atol=1e-5)
+
+
+def test_the_linear_step_weighs_its_residual_too():
+    """No variance: the step as before; a variance far above the residual's power: the estimate stays."""
+    snap, truth, y, x0 = _high_contrast_problem(4, 104, (1, C, 20, 20))
+    weight = 0.1 * torch.rand(snap.code_period**2, C, 3, 3, generator=torch.Generator().manual_seed(1), dtype=torch.float64)
+    kw = dict(gain=0.7, psf_energy=1.0, extend=False)
+    plain = linear_consistency_step(snap, y, x0, weight, **kw)
+    assert (plain - x0).abs().max() > 1e-2
+    torch.testing.assert_close(linear_consistency_step(snap, y, x0, weight, noise_variance=torch.zeros_like(y), **kw),
+                               plain, rtol=0, atol=0)
+    drowned = linear_consistency_step(snap, y, x0, weight, noise_variance=torch.full_like(y, 1e4), **kw)
+    assert (drowned - x0).abs().max() < 1e-3 * (plain - x0).abs().max()
+
+
+def test_noise_aware_must_be_a_boolean(tiny_config):
+    with pytest.raises(ConfigError, match="noise_aware"):
+        tiny_config("model.consistency.noise_aware=sometimes")
+    assert load_config("quick").model.consistency.noise_aware is True
+
+
+# ------------------------------------------------------------------------------------------------
+# `hsicam reconstruct --full-well-e E [--read-noise-e R]`: a real capture's photon level
+# ------------------------------------------------------------------------------------------------
+@pytest.fixture(scope="module")
+def noisy_capture(tmp_path_factory):
+    """(folder, truth (C, h, w) aligned with the sensor, full well) of a photon-limited capture (300 e⁻ at full
+    scale, 2 e⁻ read noise) of the procedural scene through the shipped standard camera."""
+    from hsicam.runs.folder import load_run
+    from hsicam.sensor import poisson_gaussian_noise
+    from test_cfa_offset import procedural_scene
+
+    _, system = load_run("pretrained:standard")
+    scene = torch.from_numpy(procedural_scene(system.camera.bands.centers_nm, size=220))[None]
+    with torch.no_grad():
+        clean = system.camera.A(scene)
+    full_well = 300.0
+    sensor = poisson_gaussian_noise(clean, full_well, 2.0, torch.Generator().manual_seed(0)).clamp(0, 1)
+    folder = tmp_path_factory.mktemp("noisy")
+    np.save(folder / "capture.npy", sensor[0, 0].numpy())
+    np.save(folder / "half.npy", sensor[0, 0].numpy() / 2)  # the same electrons, stored at half the scale
+    return folder, system.target(scene)[0].numpy(), full_well
+
+
+def test_reconstruct_weighs_a_noisy_capture_by_its_photon_level(noisy_capture):
+    folder, truth, full_well = noisy_capture
+    cap, run = str(folder / "capture.npy"), "pretrained:standard"
+    assert_ok(run_cli("reconstruct", cap, "--run", run, "--out", str(folder / "plain.h5")))
+    assert_ok(run_cli("reconstruct", cap, "--run", run, "--out", str(folder / "aware.h5"),
+                      "--full-well-e", f"{full_well:g}", "--read-noise-e", "2"))
+    # the same electrons stored at half the scale: twice the electrons at its white level, --scale 2
+    assert_ok(run_cli("reconstruct", str(folder / "half.npy"), "--run", run, "--out", str(folder / "half.h5"),
+                      "--scale", "2", "--full-well-e", f"{2 * full_well:g}", "--read-noise-e", "2"))
+
+    def read(name):
+        with h5py.File(folder / name, "r") as f:
+            return f["cube"][()], json.loads(f.attrs["metadata_json"])
+
+    (plain, meta_plain), (aware, meta), (half, meta_half) = read("plain.h5"), read("aware.h5"), read("half.h5")
+    mse = lambda x: float(np.mean((x - truth) ** 2))  # noqa: E731
+    assert mse(aware) < 0.9 * mse(plain), (mse(aware), mse(plain))  # 0.85 when written
+    np.testing.assert_allclose(half, aware, rtol=0, atol=1e-5)
+    assert meta["noise_full_well_e"] == full_well and meta["noise_read_noise_e"] == 2.0
+    assert meta_half["noise_full_well_e_at_image_scale"] == pytest.approx(full_well)
+    assert "noise_full_well_e" not in meta_plain
+
+
+@pytest.mark.parametrize("args, match", [
+    (("--read-noise-e", "2"), "--read-noise-e needs --full-well-e"),
+    (("--full-well-e", "0"), "--full-well-e must be a positive number"),
+    (("--full-well-e", "nan"), "--full-well-e must be a positive number"),
+    (("--full-well-e", "100", "--read-noise-e", "-1"), "--read-noise-e must be a number of electrons >= 0"),
+])
+def test_bad_noise_settings_are_one_clear_error(noisy_capture, args, match):
+    folder, _, _ = noisy_capture
+    line = error_line(run_cli("reconstruct", str(folder / "capture.npy"), "--run", "pretrained:standard",
+                              "--out", str(folder / "bad.h5"), *args))
+    assert match in line
+    assert not (folder / "bad.h5").exists()
