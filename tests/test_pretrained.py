@@ -383,3 +383,19 @@ def test_training_time_adds_up_the_sessions_of_a_resumed_run(tmp_path):
     assert training_seconds(tmp_path) == pytest.approx(195.0)
     (tmp_path / "metrics.jsonl").write_text(json.dumps({"step": 1}) + "\n")
     assert training_seconds(tmp_path) is None
+
+
+def test_the_card_says_what_the_consistency_steps_are():
+    """The card names each kind of step and its settings (quick's: the linear step, then two spectral-prior
+    Landweber steps), not a bare count."""
+    from hsicam.config import load_config
+    from hsicam.engine.pretrained import card_markdown, consistency_summary
+
+    quick = load_config("quick").model.consistency
+    assert consistency_summary(quick) == ("1 linear measurement-consistency step (gain 0.7, 11 px filters), then 2 "
+                                          "Landweber steps with a spectral prior (α = 4)")
+    plain = load_config("tiny", ["model.consistency.iterations=2"]).model.consistency
+    assert consistency_summary(plain) == "2 Landweber steps of measurement consistency"
+    shipped_card = shipped.read_card("standard")
+    md = card_markdown(shipped_card)
+    assert f"then {shipped_card['network']['consistency']} at inference" in md

@@ -292,6 +292,20 @@ def _training_data(cfg) -> dict[str, Any]:
 # ------------------------------------------------------------------------------------------------
 # The card
 # ------------------------------------------------------------------------------------------------
+def consistency_summary(c) -> str:
+    """What the measurement-consistency steps of ``c`` (:class:`hsicam.config.ConsistencyConfig`, on) do,
+    in words for the model card."""
+    def landweber(n: int) -> str:
+        prior = f" with a spectral prior (α = {c.spectral_prior:g})" if c.spectral_prior else ""
+        return f"{n} Landweber step{'s' if n != 1 else ''}{prior}"
+
+    if c.kind == "linear":
+        text = (f"{c.iterations} linear measurement-consistency step{'s' if c.iterations != 1 else ''} "
+                f"(gain {c.gain:g}, {c.window_px} px filters)")
+        return text + (f", then {landweber(c.landweber_after)}" if c.landweber_after else "")
+    return f"{landweber(c.iterations)} of measurement consistency"
+
+
 def card_fields(run_dir: str | Path, name: str, results: str | Path | None = None, heldout: str | Path | None = None,
                 *, summary: str | None = None, preset: str | None = None) -> dict[str, Any]:
     """The machine-readable model card (``card.json``) of the finished run ``run_dir`` packed as ``name``."""
@@ -330,7 +344,8 @@ def card_fields(run_dir: str | Path, name: str, results: str | Path | None = Non
                    "aperture_radius_mm": cam.aperture_radius_mm, "focal_length_mm": cam.lens.focal_length_mm,
                    "kernel_px": getattr(model.camera, "kernel_px", None), "trainable_parameters": n_cam},
         "network": {"kind": cfg.model.kind, "parameters": n_net, "context_px": model.context_px,
-                    "consistency_steps": cfg.model.consistency.iterations if model.consistency_on else 0},
+                    "consistency_steps": cfg.model.consistency.iterations if model.consistency_on else 0,
+                    "consistency": consistency_summary(cfg.model.consistency) if model.consistency_on else None},
         "bands": {"start_nm": cfg.bands.start_nm, "stop_nm": cfg.bands.stop_nm, "step_nm": cfg.bands.step_nm,
                   "count": len(bands), "centers_nm": [float(x) for x in bands.centers_nm]},
         "noise": {"train_sensor_sigma": list(t.sensor_sigma), "train_sigma_height_nm": list(t.sigma_height_nm),
@@ -404,7 +419,9 @@ def card_markdown(card: dict[str, Any]) -> str:
                                                       "CFA" if card['camera']['cfa_period'] else "")
              + f", pixel pitch {card['camera']['pixel_pitch_um']:g} µm, PSF kernel {card['camera']['kernel_px']} px",
              f"- network: {card['network']['kind']}, {card['network']['parameters']:,} parameters"
-             + (f", then {card['network']['consistency_steps']} measurement-consistency step(s) at inference "
+             + (f", then {card['network']['consistency']} at inference (`model.consistency`)"
+                if card['network'].get('consistency') else
+                f", then {card['network']['consistency_steps']} measurement-consistency step(s) at inference "
                 "(`model.consistency`)" if card['network'].get('consistency_steps') else ""),
              f"- bands: {b['count']} bands, {b['centers_nm'][0]:g}–{b['centers_nm'][-1]:g} nm in {b['step_nm']:g} nm steps",
              f"- preset: {card['preset'] or 'a config of its own (see config.yaml)'}", "",
