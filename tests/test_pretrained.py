@@ -399,3 +399,10 @@ def test_the_card_says_what_the_consistency_steps_are():
     shipped_card = shipped.read_card("standard")
     md = card_markdown(shipped_card)
     assert f"then {shipped_card['network']['consistency']} at inference" in md
+    # its limits say how to give a noisy capture's photon level; a camera without steps has nothing to weigh
+    from hsicam.engine.pretrained import _limits
+
+    assert any("--full-well-e" in x for x in shipped_card["limits"])
+    cfg = load_config("quick", ["model.consistency.iterations=0"])
+    data = shipped_card["training"]["data"]
+    assert not any("--full-well-e" in x for x in _limits(cfg, "x", cfg.bands.to_bands(), 4, data))

@@ -380,7 +380,10 @@ def _limits(cfg, name: str, bands, cfa: int | None, data: dict[str, Any]) -> lis
     out.append(f"the sensor must match the simulated one: {sensor}" + (f", {cfa}×{cfa} CFA period" if cfa else ""))
     out.append(f"trained with sensor noise σ_s in [{t.sensor_sigma[0]:g}, {t.sensor_sigma[1]:g}] "
                f"({cfg.camera.sensor.noise} model) and DOE height noise σ_p in "
-               f"[{t.sigma_height_nm[0]:g}, {t.sigma_height_nm[1]:g}] nm; noisier captures reconstruct worse")
+               f"[{t.sigma_height_nm[0]:g}, {t.sigma_height_nm[1]:g}] nm; noisier captures reconstruct worse"
+               + ("; give a capture's photon level (`hsicam reconstruct --full-well-e E --read-noise-e R`) so that "
+                  "the consistency steps do not fit its noise"
+                  if cfg.model.consistency.iterations > 0 and cfg.model.consistency.noise_aware else ""))
     out.append("a built camera differs from the simulation: measure its PSFs and adapt the network with "
                f"`hsicam finetune --run pretrained:{name} --psf-dir PSFS --out RUN2` before reconstructing real captures")
     return out
