@@ -196,3 +196,34 @@ def test_tiling_refuses_a_camera_whose_scene_grid_is_not_the_sensors():
     assert whole.shape[-2:] == model.camera.scene_size((30, 40)) != (30, 40)
     with pytest.raises(InputError, match="cannot be tiled"):
         reconstruct_tiled(model.reconstructor(), sensor, tile_px=16, halo_px=4)
+
+
+def test_default_tile_is_four_halos_within_512_and_1024():
+    """The tiles' halos cost at most (1 + 2·¼)² of their own pixels by default, where the window stays small."""
+    from hsicam.engine.inference import default_tile_px
+
+    assert default_tile_px(0) == 512 and default_tile_px(128) == 512
+    assert default_tile_px(230) == 920  # the quick demo camera's context with its steps
+    assert default_tile_px(566) == 1024  # an untrained quick camera's: windows stay near 2000 px
+
+
+def test_evaluate_and_reconstruct_tile_by_the_default_unless_told(tiny_config, monkeypatch, tmp_path):
+    """`evaluate` and `reconstruct` cut a network's image into default_tile_px tiles unless given a size."""
+    import hsicam.engine.evaluate as ev
+    import hsicam.engine.inference as inf
+    from hsicam.engine.evaluate import Method, evaluate_method
+
+    seen = []
+    real = inf.reconstruct_tiled
+
+    def spy(fn, sensor, tile_px=512, halo_px=None, progress=False):
+        seen.append(tile_px)
+        return real(fn, sensor, tile_px, halo_px, progress)
+
+    monkeypatch.setattr(ev, "reconstruct_tiled", spy)
+    model = CameraSystem.from_config(tiny_config()).eval()
+    method = Method("net", model.camera, model.reconstructor(), model.target, model=model)
+    scene = torch.rand(1, len(model.bands), 60, 60)
+    evaluate_method(method, scene, ["a"], keep_arrays=False)
+    evaluate_method(method, scene, ["a"], keep_arrays=False, tile_px=16)
+    assert seen == [inf.default_tile_px(model.context_px), 16]

@@ -106,9 +106,11 @@ def test_ergas_closed_form():
     assert metrics.ergas(est, truth).item() == pytest.approx(10.0)
 
 
-@pytest.mark.parametrize("matrix_max_px", [512, 8])  # band matrices (patch sizes) and 1-D convolutions (large images)
-def test_ssim_both_filter_paths_match_skimage(monkeypatch, matrix_max_px):
+# band matrices (patch sizes); shifted multiply-adds (large images), all bands at once or one at a time
+@pytest.mark.parametrize("matrix_max_px, chunk_bytes", [(512, 2**28), (8, 2**28), (8, 1)])
+def test_ssim_both_filter_paths_match_skimage(monkeypatch, matrix_max_px, chunk_bytes):
     monkeypatch.setattr(metrics, "_SSIM_MATRIX_MAX_PX", matrix_max_px)
+    monkeypatch.setattr(metrics, "_SSIM_CHUNK_BYTES", chunk_bytes)
     g = torch.Generator().manual_seed(5)
     truth = torch.rand(2, 3, 23, 31, generator=g, dtype=torch.float64)
     est = (truth + 0.1 * torch.randn(truth.shape, generator=g, dtype=torch.float64)).clamp(0, 1)

@@ -23,7 +23,6 @@ from __future__ import annotations
 import math
 
 import torch
-import torch.nn.functional as F
 
 CONVENTIONS = {
     "psnr": "per band, peak 1, mean over bands",
@@ -98,15 +97,27 @@ def _valid_filter_matrix(n: int, g: torch.Tensor) -> torch.Tensor:
 _SSIM_MATRIX_MAX_PX = 512
 
 
+#: Large images: SSIM's five filtered images are made for as many bands at a time as fit in this many bytes.
+_SSIM_CHUNK_BYTES = 2**28
+
+
 def _gaussian_filter_valid(t: torch.Tensor, g: torch.Tensor) -> torch.Tensor:
-    """Separable Gaussian filter of (..., H, W), 'valid' area (..., H − k + 1, W − k + 1)."""
+    """Separable Gaussian filter of (..., H, W), 'valid' area (..., H − k + 1, W − k + 1).
+
+    Large images: k shifted multiply-adds per axis, in place (a convolution's im2col would unfold
+    k copies of the image: 10 GB for 31 bands at 884² in float64)."""
     h, w = t.shape[-2:]
     if max(h, w) <= _SSIM_MATRIX_MAX_PX:
         return _valid_filter_matrix(h, g).T @ (t @ _valid_filter_matrix(w, g))
-    k, lead = g.numel(), t.shape[:-2]
-    flat = t.reshape(-1, 1, h, w)
-    flat = F.conv2d(F.conv2d(flat, g.view(1, 1, 1, k)), g.view(1, 1, k, 1))
-    return flat.reshape(*lead, h - k + 1, w - k + 1)
+    k = g.numel()
+    hh, ww = h - k + 1, w - k + 1
+    rows = t[..., 0:hh, :] * g[0]
+    for i in range(1, k):
+        rows.add_(t[..., i : i + hh, :], alpha=float(g[i]))
+    out = rows[..., :, 0:ww] * g[0]
+    for i in range(1, k):
+        out.add_(rows[..., :, i : i + ww], alpha=float(g[i]))
+    return out
 
 
 #: Side of SSIM's Gaussian window (px): images smaller than this have no SSIM.
@@ -125,13 +136,23 @@ def ssim(x: torch.Tensor, y: torch.Tensor, window: int = SSIM_WINDOW_PX, sigma: 
     if min(h, w) < window:
         raise ValueError(f"SSIM needs images of at least {window}×{window} px, got {h}×{w}")
     g = _gaussian_1d(window, sigma, x.dtype, x.device)
+    c1, c2 = (k1 * data_range) ** 2, (k2 * data_range) ** 2
+    if max(h, w) <= _SSIM_MATRIX_MAX_PX:
+        return _ssim_map(x, y, g, c1, c2).mean(dim=(1, 2, 3))
+    # large images: a few bands at a time, so that memory stays near a few copies of the image
+    step = max(1, _SSIM_CHUNK_BYTES // (5 * b * h * w * x.element_size()))
+    total = sum(_ssim_map(x[:, i : i + step], y[:, i : i + step], g, c1, c2).sum(dim=(1, 2, 3))
+                for i in range(0, c, step))
+    return total / (c * (h - window + 1) * (w - window + 1))
+
+
+def _ssim_map(x: torch.Tensor, y: torch.Tensor, g: torch.Tensor, c1: float, c2: float) -> torch.Tensor:
+    """SSIM at every pixel of the 'valid' area of (B, C, H, W) ``x`` and ``y``, Gaussian window ``g``."""
     mx, my, xx, yy, xy = _gaussian_filter_valid(torch.stack([x, y, x * x, y * y, x * y]), g)
     vx = xx - mx * mx
     vy = yy - my * my
     cxy = xy - mx * my
-    c1, c2 = (k1 * data_range) ** 2, (k2 * data_range) ** 2
-    s = ((2 * mx * my + c1) * (2 * cxy + c2)) / ((mx * mx + my * my + c1) * (vx + vy + c2))
-    return s.mean(dim=(1, 2, 3))
+    return ((2 * mx * my + c1) * (2 * cxy + c2)) / ((mx * mx + my * my + c1) * (vx + vy + c2))
 
 
 def _spectra_scaled(t: torch.Tensor) -> torch.Tensor:

@@ -29,7 +29,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "one cube per name (c.h5 and c.hdr would share c_rgb.png: the second is refused); existing "
                         "files are replaced only when they are an earlier reconstruct's output, never an input")
     p.add_argument("--scale", type=float, default=None, help="multiply the image after normalising to [0, 1]")
-    p.add_argument("--tile", type=int, default=512, metavar="PX", help="tile side for large images")
+    p.add_argument("--tile", type=int, default=None, metavar="PX",
+                   help="tile side for large images (default: 4× the reconstruction's context, within 512-1024 px, "
+                        "so that the tiles' halos cost at most 2.25× their own pixels where that fits)")
     p.add_argument("--cfa-offset", type=cfa_offset_arg, default=(0, 0), metavar="Y,X|auto",
                    help="the sensor row and column of the capture's first pixel (a crop or a region-of-interest "
                         "readout of the camera's sensor): the CFA phase of every pixel follows from it (default 0,0: "
@@ -299,7 +301,9 @@ def capture_noise(model, report: dict, full_well_e: float, read_noise_e: float) 
     from hsicam.sensor import SensorNoise
 
     factor = float(report["gain"]) * (float(report["white_level_dn"]) - float(report["black_level_dn"]))
-    model.camera.noise = SensorNoise("poisson_gaussian", full_well_e=full_well_e / factor, read_noise_e=read_noise_e)
+    bits = getattr(getattr(model.camera, "noise", None), "bit_depth", None)  # the run's quantiser, if it has one, stays
+    model.camera.noise = SensorNoise("poisson_gaussian", full_well_e=full_well_e / factor, read_noise_e=read_noise_e,
+                                     bit_depth=bits)
     if not model.consistency_on:
         log.warning("--full-well-e only weighs the measurement-consistency steps, which are off here: it changes "
                     "nothing")
@@ -346,9 +350,9 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
     from hsicam.config import MAX_CONSISTENCY_ITERATIONS
     from hsicam.runs.folder import load_run
     from hsicam.data.images import read_capture
-    from hsicam.engine.inference import reconstruct_tiled
+    from hsicam.engine.inference import default_tile_px, reconstruct_tiled
 
-    if args.tile < 16:
+    if args.tile is not None and args.tile < 16:
         raise InputError("--tile must be at least 16 px")
     if args.scale is not None and not (np.isfinite(args.scale) and args.scale > 0):
         raise InputError("--scale must be a positive number")
@@ -405,10 +409,11 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
                          "too small to reconstruct")
     sensor = torch.from_numpy(img)[None, None].to(args.device)
     halo = model.context_px
-    if args.tile < halo and max(img.shape) > args.tile:
+    tile = default_tile_px(halo) if args.tile is None else args.tile
+    if tile < halo and max(img.shape) > tile:
         log.warning("--tile %d is smaller than the reconstruction's context (%d px per side): each tile computes "
-                    "about %.0f× its own pixels; a tile of %d px or more is faster", args.tile, halo,
-                    ((args.tile + 2 * halo) / args.tile) ** 2, 2 * halo)
+                    "about %.0f× its own pixels; a tile of %d px or more is faster", tile, halo,
+                    ((tile + 2 * halo) / tile) ** 2, 2 * halo)
     offset = args.cfa_offset
     if period > 1:
         if offset == "auto":
@@ -418,7 +423,7 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
         log.warning("--cfa-offset is ignored: the camera has no colour filter array")
         offset = (0, 0)
     fn = offset_reconstructor(model.reconstructor(), offset)
-    cube = reconstruct_tiled(fn, sensor, args.tile, halo, progress=sys.stderr.isatty())[0]
+    cube = reconstruct_tiled(fn, sensor, tile, halo, progress=sys.stderr.isatty())[0]
     del sensor
     # Radiance is non-negative: the network's small negative excursions are clipped at 0.
     cube = cube.float().clamp_min_(0).cpu().numpy()

@@ -22,7 +22,7 @@ from typing import Callable, Sequence
 import numpy as np
 import torch
 
-from hsicam.engine.inference import reconstruct_tiled
+from hsicam.engine.inference import default_tile_px, reconstruct_tiled
 from hsicam.engine.methods import Method, demosaic_reference  # noqa: F401  (re-exported)
 from hsicam.errors import InputError
 from hsicam.io import atomic_open, write_json
@@ -151,7 +151,7 @@ def check_test_noise(method: Method, noise: TestNoise, source: str | None = None
 
 @torch.no_grad()
 def evaluate_method(method: Method, scenes, names: Sequence[str], noise: TestNoise = TestNoise(),
-                    device: str | torch.device = "cpu", keep_arrays: bool = True, tile_px: int = 512,
+                    device: str | torch.device = "cpu", keep_arrays: bool = True, tile_px: int | None = None,
                     progress: Callable[[str], None] | None = None, paths: Sequence[str] | None = None
                     ) -> list[SceneResult]:
     """Simulate, reconstruct and score every scene of ``scenes`` (items: (C, H, W) tensors).
@@ -159,7 +159,8 @@ def evaluate_method(method: Method, scenes, names: Sequence[str], noise: TestNoi
     Every scene is checked first (:func:`check_scenes`): a scene that cannot be scored fails before
     any work. ``progress``: called with one line per finished scene (e.g. ``print`` to stderr).
     ``paths``: each scene's file as the results name it (:attr:`SceneResult.path`). The arrays kept
-    (``keep_arrays``) are those of the first seed, :attr:`SceneResult.seed`.
+    (``keep_arrays``) are those of the first seed, :attr:`SceneResult.seed`. ``tile_px``: the tile side
+    for a network's large images (default :func:`~hsicam.engine.inference.default_tile_px` of its context).
     """
     if len(names) != len(scenes) or (paths is not None and len(paths) != len(names)):
         raise ValueError(f"{len(scenes)} scenes, {len(names)} names" + (f", {len(paths)} paths" if paths is not None else ""))
@@ -174,8 +175,10 @@ def evaluate_method(method: Method, scenes, names: Sequence[str], noise: TestNoi
         levels["sensor_sigma"] = noise.sensor_sigma
     cam.set_noise(**levels)
     applied = cam.noise_levels()
-    # a network: tile large images with the context it declares
+    # a network: tile large images with the context it declares (tiles of default_tile_px unless given)
     halo = method.model.context_px if method.model is not None else None
+    if halo is not None and tile_px is None:
+        tile_px = default_tile_px(halo)
     out = []
     try:
         cam.eval()
