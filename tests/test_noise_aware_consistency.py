@@ -5,6 +5,7 @@ noise-free model leaves them exactly as they were, and tiles still equal the who
 
 from __future__ import annotations
 
+import dataclasses
 import json
 
 import h5py
@@ -15,10 +16,11 @@ import torch
 from hsicam.config import load_config
 from hsicam.engine.inference import reconstruct_tiled
 from hsicam.errors import ConfigError
-from hsicam.models.consistency import WIENER_WINDOW_PX, consistency_step, linear_consistency_step, wiener_residual
+from hsicam.models.consistency import (WIENER_WINDOW_PX, consistency_step, linear_consistency_step, reach_px,
+                                       wiener_residual)
 from hsicam.sensor import SensorNoise
 from cli_helpers import assert_ok, error_line, run_cli_in_process as run_cli
-from test_consistency import _high_contrast_problem, _system
+from test_consistency import _assert_step_tiles_equal_whole, _high_contrast_problem, _linear_system, _snapshot, _system
 
 C = 3
 
@@ -27,10 +29,10 @@ C = 3
     ("gaussian", {"sigma": 0.02}),
     ("poisson_gaussian", {"full_well_e": 1000.0, "read_noise_e": 3.0}),
     ("poisson_gaussian", {"full_well_e": 200.0, "read_noise_e": 0.0}),
-    ("gaussian", {"sigma": 0.02, "bit_depth": 8}),
+    ("gaussian", {"sigma": 0.02, "bit_depth": 5}),  # Δ²/12 is 18 % of this variance
 ])
 def test_variance_is_the_empirical_variance_of_the_noise(model, kw):
-    """The variance the model declares at each signal level equals the sample variance of 400 000
+    """The variance the model declares at each signal level equals the sample variance of 100 000
     draws of the noise it adds there (Poisson: mean/N; read noise: (r/N)²; quantiser: Δ²/12, for a
     noise much wider than the step; levels 5σ inside [0, 1], where the quantiser clips nothing)."""
     noise = SensorNoise(model, **kw)
@@ -118,15 +120,80 @@ def test_steps_on_a_noisy_capture_fit_less_noise(seed):
     assert plain < 0.97 * start and aware < 1.01 * plain, (start, plain, aware)
 
 
-def test_a_noise_free_camera_reconstructs_as_without_the_option(tiny_config):
-    """The presets' noise-free camera: noise_aware on (the default) and off give the same bits."""
-    on = _system(tiny_config, "model.consistency.landweber_after=1")
-    off = _system(tiny_config, "model.consistency.landweber_after=1", "model.consistency.noise_aware=false")
+@pytest.mark.parametrize("kind", ["landweber", "linear"])
+def test_a_noise_free_camera_reconstructs_as_without_the_option(tiny_config, kind):
+    """The presets' noise-free camera: noise_aware on (the default) and off give the same bits, with the
+    Landweber step and with the linear step followed by spectral-prior Landweber steps."""
+    models = []
+    for aware in ("true", "false"):
+        if kind == "landweber":
+            m = _system(tiny_config, f"model.consistency.noise_aware={aware}")
+        else:
+            m = _linear_system(tiny_config)
+            m.consistency = dataclasses.replace(m.consistency, landweber_after=2, spectral_prior=4.0,
+                                                noise_aware=aware == "true")
+        models.append(m)
+    on, off = models
     assert on.consistency.noise_aware and not off.consistency.noise_aware
+    assert not on.camera.noise.declares_noise
     sensor = torch.rand(1, 1, 30, 30)
     assert on.context_px == off.context_px
     with torch.no_grad():
-        assert torch.equal(on.reconstruct(sensor), off.reconstruct(sensor))
+        assert torch.equal(on.reconstructor()(sensor), off.reconstructor()(sensor))
+
+
+def test_noise_aware_steps_reach_further_than_plain_ones():
+    """Two Landweber steps alone after a pixel-wise estimate of a noisy capture: tiles with reach_px + 2 px per
+    step of halo (what CameraSystem declares) equal the whole image; with the plain steps' reach_px they do not
+    (the least that works here is reach_px + 2: the declared halo is a bound, 2 px to spare)."""
+    snap = _snapshot(6)
+    iterations = 2
+    plain = reach_px(snap, iterations, psf_energy=1.0)
+    reach = plain + WIENER_WINDOW_PX // 2 * iterations
+    noise = SensorNoise("poisson_gaussian", full_well_e=50.0, read_noise_e=1.0)
+
+    def f(window, origin=(0, 0)):
+        x0 = window.expand(-1, C, -1, -1) * 0.7
+        return consistency_step(snap, window, x0, origin, iterations=iterations, psf_energy=1.0,
+                                noise_variance=noise.variance(window))
+
+    sensor = torch.rand(1, 1, 61, 58, dtype=torch.float64)
+    whole = f(sensor)
+    torch.testing.assert_close(reconstruct_tiled(f, sensor, tile_px=12, halo_px=reach), whole, rtol=1e-12, atol=1e-12)
+    assert (reconstruct_tiled(f, sensor, tile_px=12, halo_px=plain) - whole).abs().max() > 1e-6
+
+
+def test_the_linear_step_and_its_landweber_steps_on_a_noisy_camera_tile_with_their_halo(tiny_config):
+    """kind linear + landweber_after on a camera that declares noise: the halo adds 2 px for each of the
+    1 + landweber_after steps, and tiles with it equal the whole image."""
+    def system(aware: bool):
+        m = _linear_system(tiny_config)
+        m.consistency = dataclasses.replace(m.consistency, landweber_after=2, spectral_prior=4.0, noise_aware=aware)
+        m.camera.noise = SensorNoise("poisson_gaussian", full_well_e=200.0, read_noise_e=2.0)
+        return m
+
+    on, off = system(True), system(False)
+    assert on.context_px == off.context_px + WIENER_WINDOW_PX // 2 * 3
+    snap = on.camera.snapshot(nominal=True)
+    _assert_step_tiles_equal_whole(on, snap)
+    sensor = torch.rand(1, 1, 40, 40)
+    with torch.no_grad():
+        assert (on.reconstructor()(sensor) - off.reconstructor()(sensor)).abs().max() > 1e-4
+
+
+def test_wiener_gain_gradient_is_its_derivative():
+    g = torch.Generator().manual_seed(2)
+    r = torch.randn(1, 1, 9, 8, generator=g, dtype=torch.float64, requires_grad=True)
+    v = (0.5 + torch.rand(1, 1, 9, 8, generator=g, dtype=torch.float64)).requires_grad_(False)
+    assert torch.autograd.gradcheck(lambda t: wiener_residual(t, v), (r,))
+
+
+def test_variance_is_computed_in_float32_for_half_precision_images():
+    g = torch.full((1, 1, 4, 4), 0.25, dtype=torch.float16)
+    var = SensorNoise("poisson_gaussian", full_well_e=1e4, read_noise_e=2.0).variance(g)
+    assert var.dtype == torch.float32
+    torch.testing.assert_close(var, torch.full((1, 1, 4, 4), 0.25 / 1e4 + (2 / 1e4) ** 2))
+    assert SensorNoise("none", bit_depth=12).variance(g).min() > 0
 
 
 def test_a_noisy_camera_weighs_the_residual_and_tiles_still_equal_the_whole_image(tiny_config):
@@ -220,3 +287,24 @@ def test_bad_noise_settings_are_one_clear_error(noisy_capture, args, match):
                               "--out", str(folder / "bad.h5"), *args))
     assert match in line
     assert not (folder / "bad.h5").exists()
+
+
+def test_the_full_well_is_counted_from_the_black_to_the_white_level(noisy_capture, caplog):
+    """A 12-bit integer capture with a black level: E electrons at the white level are E on the image's [0, 1]
+    scale, whatever black and white are; with the steps off the option says it changes nothing."""
+    import logging
+
+    folder, _, _ = noisy_capture
+    g = np.load(folder / "capture.npy")
+    black, white = 64, 4095
+    np.save(folder / "raw12.npy", np.round(black + g * (white - black)).astype(np.uint16))
+    out = folder / "raw12.h5"
+    assert_ok(run_cli("reconstruct", str(folder / "raw12.npy"), "--run", "pretrained:standard", "--out", str(out),
+                      "--black-level", str(black), "--white-level", str(white), "--full-well-e", "300"))
+    with h5py.File(out, "r") as f:
+        meta = json.loads(f.attrs["metadata_json"])
+    assert meta["noise_full_well_e_at_image_scale"] == pytest.approx(300.0)
+    with caplog.at_level(logging.WARNING):
+        assert_ok(run_cli("reconstruct", str(folder / "capture.npy"), "--run", "pretrained:standard",
+                          "--out", str(folder / "off.h5"), "--consistency-steps", "0", "--full-well-e", "300"))
+    assert any("--full-well-e only weighs the measurement-consistency steps" in r.getMessage() for r in caplog.records)

@@ -313,6 +313,7 @@ def test_shipped_cameras(name, monkeypatch):
     assert cfg.bands.step_nm == c["bands"]["step_nm"] and len(model.bands) == c["bands"]["count"]
     size = (folder / "model.safetensors").stat().st_size
     assert size <= shipped.MAX_WEIGHTS_BYTES and size == c["weights"]["bytes"]
+    assert c["network"]["context_px"] == model.context_px  # the tiling halo of the settings it ships with
     assert (folder / "card.md").read_text(encoding="utf-8").startswith(f"# Pre-trained camera `{name}`")
 
 

@@ -170,17 +170,28 @@ class SensorNoise(nn.Module):
             g = quantize_bits(g, self.bit_depth)
         return g
 
+    @property
+    def declares_noise(self) -> bool:
+        """Whether :meth:`variance` gives a variance (False: a noise-free model, None)."""
+        return ((self.model == "gaussian" and self.sigma > 0) or self.model == "poisson_gaussian"
+                or self.bit_depth is not None)
+
     def variance(self, g: torch.Tensor) -> torch.Tensor | None:
         """Per-pixel variance of the noise this model adds to the noiseless image ``g`` (B, 1, H, W;
         1 = full scale), estimated from ``g`` itself (a noisy capture serves: its photon count is the
         mean's estimate): gaussian σ², Poisson–Gaussian g / N + (r / N)² for N = ``full_well_e`` and
         r = ``read_noise_e``, plus Δ²/12 of the quantiser's step Δ = 1 / (2^bits − 1). None for a
-        noise-free model (what the measurement-consistency steps take as "trust every residual")."""
+        noise-free model (what the measurement-consistency steps take as "trust every residual").
+        Computed in float32 at least (half precision would round (2 / 10⁴)² and a 12-bit step's Δ²/12)."""
+        if not self.declares_noise:
+            return None
+        g = g.detach()
+        g = g.float() if g.element_size() < 4 else g
         var = None
         if self.model == "gaussian" and self.sigma > 0:
             var = torch.full_like(g, self.sigma**2)
         elif self.model == "poisson_gaussian":
-            var = g.detach().clamp_min(0) / self.full_well_e + (self.read_noise_e / self.full_well_e) ** 2
+            var = g.clamp_min(0) / self.full_well_e + (self.read_noise_e / self.full_well_e) ** 2
         if self.bit_depth is not None:
             q = torch.full_like(g, (1.0 / (2**self.bit_depth - 1)) ** 2 / 12.0)
             var = q if var is None else var + q

@@ -151,7 +151,8 @@ def wiener_residual(r: torch.Tensor, noise_variance: torch.Tensor | None,
     noise variance there (``noise_variance``, broadcastable to r; from
     :meth:`hsicam.sensor.SensorNoise.variance`). r itself where v is 0 or None: a noise-free capture
     is trusted whole. Local, so a tile reproduces the whole image ``window // 2`` px inside its
-    edge (:func:`reach_px`, :func:`linear_reach_px` add it)."""
+    edge: each noise-aware step reaches that much further than :func:`reach_px` and
+    :func:`linear_reach_px` say (:attr:`hsicam.models.CameraSystem.context_px` adds it). Differentiable."""
     if noise_variance is None:
         return r
     v = noise_variance.to(r.dtype).expand_as(r)

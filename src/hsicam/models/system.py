@@ -87,7 +87,8 @@ class CameraSystem(nn.Module):
         """:attr:`context_px` with the step through ``step_op``, its PSFs cut to ``psf_energy``."""
         c = self.consistency
         # each step's Wiener gain on a noisy capture's residual looks WIENER_WINDOW_PX // 2 further
-        wiener = WIENER_WINDOW_PX // 2 if self._noise_variance(torch.zeros(1, 1, 1, 1)) is not None else 0
+        noise = getattr(self.camera, "noise", None)
+        wiener = WIENER_WINDOW_PX // 2 if c.noise_aware and getattr(noise, "declares_noise", False) else 0
         if c.kind == "linear":  # the filters' own width when loaded (a file fitted with another window_px)
             window = int(self.linear_step.shape[-1]) if self.linear_step is not None else c.window_px
             return (int(self.net.context_px) + linear_reach_px(step_op, window, c.iterations, psf_energy)
@@ -99,7 +100,7 @@ class CameraSystem(nn.Module):
         :meth:`hsicam.sensor.SensorNoise.variance`), which the consistency steps weigh residuals by;
         None for a noise-free model or with ``model.consistency.noise_aware`` off."""
         noise = getattr(self.camera, "noise", None)
-        if not self.consistency.noise_aware or not hasattr(noise, "variance"):
+        if not self.consistency.noise_aware or not getattr(noise, "declares_noise", False):
             return None
         return noise.variance(sensor)
 
