@@ -156,8 +156,11 @@ def wiener_residual(r: torch.Tensor, noise_variance: torch.Tensor | None,
     if noise_variance is None:
         return r
     v = noise_variance.to(r.dtype).expand_as(r)
-    pool = lambda t: F.avg_pool2d(t, window, stride=1, padding=window // 2, count_include_pad=False)  # noqa: E731
-    power = (pool(r * r) - pool(v)).clamp_min(0)
+
+    def local_mean(t: torch.Tensor) -> torch.Tensor:
+        return F.avg_pool2d(t, window, stride=1, padding=window // 2, count_include_pad=False)
+
+    power = (local_mean(r * r) - local_mean(v)).clamp_min(0)
     gain = torch.where(v > 0, power / (power + v).clamp_min(torch.finfo(r.dtype).tiny), torch.ones_like(v))
     return r * gain
 
