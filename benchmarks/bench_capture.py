@@ -75,7 +75,7 @@ def run_child(cmd: list[str], env: dict) -> tuple[float, int, int, str]:
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--size", type=int, default=2048, help="capture side (px)")
-    ap.add_argument("--tile", type=int, default=512, help="tile side (px)")
+    ap.add_argument("--tile", type=int, default=None, help="tile side (px; default: reconstruct's own default)")
     ap.add_argument("--threads", type=int, default=None, help="OMP/torch threads of the child (default: inherited)")
     ap.add_argument("--set", dest="overrides", action="append", default=[], help="config override for the run")
     args = ap.parse_args()
@@ -89,7 +89,8 @@ def main() -> None:
         hsicam = Path(sys.executable).parent / "hsicam"
         cmd = [str(hsicam), "reconstruct", str(d / "capture.tif"), "--run", str(d / "run"), "--out", str(d / "cube.h5"),
                "--black-level", "64", "--white-level", "4095", "--dark", str(d / "dark.tif"), "--flat", str(d / "flat.tif"),
-               "--flat-mode", "cfa", "--exposure-s", "0.02", "--reference-exposure-s", "0.02", "--tile", str(args.tile)]
+               "--flat-mode", "cfa", "--exposure-s", "0.02", "--reference-exposure-s", "0.02",
+               *(["--tile", str(args.tile)] if args.tile else [])]
         wall, rss, rc, tail = run_child(cmd, env)
         # the same child doing nothing but start up and load the run: the fixed part of the memory
         base_wall, base_rss, _, _ = run_child([sys.executable, "-c", "import torch, hsicam.cli, hsicam.models"], env)
@@ -97,7 +98,7 @@ def main() -> None:
     result = {
         "benchmark": "reconstruct a raw capture in tiles (hsicam reconstruct, CPU)",
         "capture_px": [args.size, args.size],
-        "tile_px": args.tile,
+        "tile_px": args.tile or "reconstruct's default (hsicam.engine.inference.default_tile_px)",
         **facts,
         "exit_code": rc,
         "wall_s": round(wall, 2),

@@ -207,16 +207,38 @@ def test_default_tile_is_four_halos_within_512_and_1024():
     assert default_tile_px(566) == 1024  # an untrained quick camera's: windows stay near 2000 px
 
 
-def test_evaluate_and_reconstruct_tile_by_the_default_unless_told(tiny_config, monkeypatch, tmp_path):
-    """`evaluate` and `reconstruct` cut a network's image into default_tile_px tiles unless given a size."""
+def test_tiles_are_default_tile_px_of_the_declared_context_unless_told():
+    """reconstruct_tiled (under `reconstruct` and `evaluate`) cuts 4-halo tiles by default: a 1700 px wide
+    image with a 200 px context is 3 tiles of 800 px across, 4 of 512 when told."""
+    from hsicam.engine.inference import default_tile_px
+
+    calls = []
+
+    def fn(window, origin=(0, 0)):
+        calls.append(origin)
+        return window.expand(-1, 2, -1, -1)
+
+    fn.context_px = 200
+    sensor = torch.rand(1, 1, 10, 1700)
+    out = reconstruct_tiled(fn, sensor)
+    assert default_tile_px(200) == 800 and len(calls) == 3
+    torch.testing.assert_close(out, sensor.expand(-1, 2, -1, -1))
+    calls.clear()
+    reconstruct_tiled(fn, sensor, tile_px=512)
+    assert len(calls) == 4
+
+
+def test_evaluate_passes_its_tile_on(tiny_config, monkeypatch):
+    """`evaluate_method` hands its tile_px (None: reconstruct_tiled's default) to the tiling; `hsicam evaluate
+    --tile` below 16 px is one clear error."""
     import hsicam.engine.evaluate as ev
-    import hsicam.engine.inference as inf
+    from cli_helpers import error_line, run_cli_in_process
     from hsicam.engine.evaluate import Method, evaluate_method
 
     seen = []
-    real = inf.reconstruct_tiled
+    real = ev.reconstruct_tiled
 
-    def spy(fn, sensor, tile_px=512, halo_px=None, progress=False):
+    def spy(fn, sensor, tile_px=None, halo_px=None, progress=False):
         seen.append(tile_px)
         return real(fn, sensor, tile_px, halo_px, progress)
 
@@ -226,4 +248,6 @@ def test_evaluate_and_reconstruct_tile_by_the_default_unless_told(tiny_config, m
     scene = torch.rand(1, len(model.bands), 60, 60)
     evaluate_method(method, scene, ["a"], keep_arrays=False)
     evaluate_method(method, scene, ["a"], keep_arrays=False, tile_px=16)
-    assert seen == [inf.default_tile_px(model.context_px), 16]
+    assert seen == [None, 16]
+    line = error_line(run_cli_in_process("evaluate", "--config", "tiny", "--out", "never", "--tile", "8"))
+    assert "--tile must be at least 16 px" in line

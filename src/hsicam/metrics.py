@@ -92,7 +92,7 @@ def _valid_filter_matrix(n: int, g: torch.Tensor) -> torch.Tensor:
     return torch.where(inside, g[idx.clamp(0, k - 1)], g.new_zeros(()))
 
 
-# Above this side (px) the Gaussian window runs as two 1-D convolutions instead of band matrices
+# Above this side (px) the Gaussian window runs as shifted multiply-adds instead of band matrices
 # (whose cost grows with the side): matrices are ~20× faster at patch sizes, the training loss's case.
 _SSIM_MATRIX_MAX_PX = 512
 
@@ -109,14 +109,15 @@ def _gaussian_filter_valid(t: torch.Tensor, g: torch.Tensor) -> torch.Tensor:
     h, w = t.shape[-2:]
     if max(h, w) <= _SSIM_MATRIX_MAX_PX:
         return _valid_filter_matrix(h, g).T @ (t @ _valid_filter_matrix(w, g))
-    k = g.numel()
+    weights = g.tolist()  # once (each float() of a CUDA tensor would wait for the device)
+    k = len(weights)
     hh, ww = h - k + 1, w - k + 1
-    rows = t[..., 0:hh, :] * g[0]
+    rows = t[..., 0:hh, :] * weights[0]
     for i in range(1, k):
-        rows.add_(t[..., i : i + hh, :], alpha=float(g[i]))
-    out = rows[..., :, 0:ww] * g[0]
+        rows.add_(t[..., i : i + hh, :], alpha=weights[i])
+    out = rows[..., :, 0:ww] * weights[0]
     for i in range(1, k):
-        out.add_(rows[..., :, i : i + ww], alpha=float(g[i]))
+        out.add_(rows[..., :, i : i + ww], alpha=weights[i])
     return out
 
 

@@ -36,6 +36,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="also write each scene's reconstruction and ground truth (cubes/NAME_estimate.h5, NAME_truth.h5; "
                         "with --seeds N > 1 the estimate of seed 0, its metadata says so)")
     p.add_argument("--device", default="cpu", type=device_arg, help="torch device (default cpu)")
+    p.add_argument("--tile", type=int, default=None, metavar="PX",
+                   help="tile side for a network's large scenes (default: 4× its context, within 512-1024 px; "
+                        "smaller tiles take less memory and more time)")
     p.set_defaults(func=cmd_evaluate)
 
     p = sub.add_parser("experiment", help="run one of the paper's experiments (resumable)")
@@ -110,6 +113,9 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     from hsicam.engine.provenance import read_data_record, scene_roles, training_scenes_warning
     from hsicam.cli import prepare_output
     from hsicam.io import atomic_output
+
+    if args.tile is not None and args.tile < 16:
+        raise InputError("--tile must be at least 16 px")
     from hsicam.runs.folder import check_is_run
 
     alias = args.method if args.method in METHOD_ALIASES else None
@@ -167,7 +173,7 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
         check_room_for_cubes(out, scenes, len(bands))
     show = lambda line: print(line, file=sys.stderr, flush=True)  # noqa: E731
     results = evaluate_method(method, scenes, names, noise, args.device, keep_arrays=args.save, progress=show,
-                              paths=rel)
+                              paths=rel, tile_px=args.tile)
     camera_sensor = {k: getattr(cfg.camera.sensor, k) for k in SENSOR_NOISE_KEYS}
     saved = {"saved_cubes": _saved_cubes_text(noise.seeds)} if args.save else {}
     summary = summarize(results, method=args.method, run=str(Path(args.run).resolve()) if args.run else None, data=data, config_hash=config_hash(dump_yaml(cfg)),
@@ -191,7 +197,7 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
             summary["weights"] = kept
     if heldout is not None:
         held = evaluate_method(method, heldout[0], heldout[1], noise, args.device, keep_arrays=False, progress=show,
-                               paths=_relative_to_common_folder(heldout[0].paths))
+                               paths=_relative_to_common_folder(heldout[0].paths), tile_px=args.tile)
         summary["heldout"] = {"data": f"held-out spectral sources ({cfg.data.holdout_sources}): scenes whose "
                                       f"reflectances and lights the training scenes never contain",
                               **summarize(held)}

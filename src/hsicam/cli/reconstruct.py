@@ -301,9 +301,8 @@ def capture_noise(model, report: dict, full_well_e: float, read_noise_e: float) 
     from hsicam.sensor import SensorNoise
 
     factor = float(report["gain"]) * (float(report["white_level_dn"]) - float(report["black_level_dn"]))
-    bits = getattr(getattr(model.camera, "noise", None), "bit_depth", None)  # the run's quantiser, if it has one, stays
-    model.camera.noise = SensorNoise("poisson_gaussian", full_well_e=full_well_e / factor, read_noise_e=read_noise_e,
-                                     bit_depth=bits)
+    # quantisation is not modelled: a DN step's Δ²/12 is far below the read noise of a 12-bit or deeper capture
+    model.camera.noise = SensorNoise("poisson_gaussian", full_well_e=full_well_e / factor, read_noise_e=read_noise_e)
     if not model.consistency_on:
         log.warning("--full-well-e only weighs the measurement-consistency steps, which are off here: it changes "
                     "nothing")

@@ -22,7 +22,7 @@ from typing import Callable, Sequence
 import numpy as np
 import torch
 
-from hsicam.engine.inference import default_tile_px, reconstruct_tiled
+from hsicam.engine.inference import reconstruct_tiled
 from hsicam.engine.methods import Method, demosaic_reference  # noqa: F401  (re-exported)
 from hsicam.errors import InputError
 from hsicam.io import atomic_open, write_json
@@ -177,8 +177,6 @@ def evaluate_method(method: Method, scenes, names: Sequence[str], noise: TestNoi
     applied = cam.noise_levels()
     # a network: tile large images with the context it declares (tiles of default_tile_px unless given)
     halo = method.model.context_px if method.model is not None else None
-    if halo is not None and tile_px is None:
-        tile_px = default_tile_px(halo)
     out = []
     try:
         cam.eval()

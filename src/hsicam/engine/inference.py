@@ -23,15 +23,16 @@ MIN_DEFAULT_TILE_PX, MAX_DEFAULT_TILE_PX = 512, 1024
 
 
 def default_tile_px(halo_px: int) -> int:
-    """The tile side (px) that ``reconstruct`` and ``evaluate`` use unless told: 4 halos, within [512, 1024],
-    so that each tile's window holds at most (1 + 2·¼)² = 2.25× its own pixels up to a 256 px halo (512 px
-    tiles with the quick demo camera's 230 px halo: 3.6×; its 884² image took 66 s in 512 px tiles, 26 s
-    whole, 1.4 GB, session 35), and a window stays under ~2000² px (memory) for wider halos."""
+    """The tile side (px) that :func:`reconstruct_tiled` (and so ``reconstruct`` and ``evaluate``) uses unless
+    told: 4 halos, within [512, 1024], so that each tile's window holds at most (1 + 2·¼)² = 2.25× its own
+    pixels up to a 256 px halo (512 px tiles with the quick demo camera's 230 px halo: 3.6×; its 884² image
+    took 66 s in 512 px tiles, 26 s whole, 1.4 GB, session 35). The tile, not its window (tile + 2 halos), is
+    capped: memory grows with the halo beyond 256 px."""
     return min(max(MIN_DEFAULT_TILE_PX, 4 * int(halo_px)), MAX_DEFAULT_TILE_PX)
 
 
 @torch.no_grad()
-def reconstruct_tiled(reconstruct, sensor: torch.Tensor, tile_px: int = 512, halo_px: int | None = None,
+def reconstruct_tiled(reconstruct, sensor: torch.Tensor, tile_px: int | None = None, halo_px: int | None = None,
                       progress: bool = False) -> torch.Tensor:
     """Apply ``reconstruct`` ((1, 1, h, w) → (1, C, h, w)) to a (1, 1, H, W) image in tiles.
 
@@ -41,13 +42,14 @@ def reconstruct_tiled(reconstruct, sensor: torch.Tensor, tile_px: int = 512, hal
 
     Args:
         sensor: (1, 1, H, W) floating, finite (values in [0, 1]).
-        tile_px: side of the kept centre of each tile (an int >= 1).
+        tile_px: side of the kept centre of each tile (an int >= 1; default :func:`default_tile_px` of the halo).
         halo_px: context added around each tile (an int >= 0; ≥ the receptive radius for an exact
             result). Default: the ``context_px`` that ``reconstruct`` (or the object of a bound method,
             e.g. a :class:`CameraSystem`) declares, as :meth:`CameraSystem.reconstructor`'s does; an
             image larger than one tile needs it given otherwise (a halo of 0 leaves seams).
     """
-    for name, value, low in (("tile_px", tile_px, 1), ("halo_px", 0 if halo_px is None else halo_px, 0)):
+    for name, value, low in (("tile_px", 1 if tile_px is None else tile_px, 1),
+                             ("halo_px", 0 if halo_px is None else halo_px, 0)):
         if isinstance(value, bool) or not isinstance(value, numbers.Integral) or value < low:
             raise InputError(f"{name} must be an int >= {low}, got {value!r}")
     if isinstance(sensor, torch.Tensor) and (sensor.dim() != 4 or sensor.shape[:2] != (1, 1)):
@@ -58,10 +60,14 @@ def reconstruct_tiled(reconstruct, sensor: torch.Tensor, tile_px: int = 512, hal
     if halo_px is None:
         declared = (getattr(x, "context_px", None) for x in (reconstruct, getattr(reconstruct, "__self__", None)))
         halo_px = next((int(c) for c in declared if c is not None), None)
+        if tile_px is None:
+            tile_px = default_tile_px(halo_px or 0)
         if halo_px is None and (h > tile_px or w > tile_px):
             raise InputError(f"halo_px is needed: {type(reconstruct).__name__} declares no context_px, and the "
                              f"{h}×{w} px image is cut into {tile_px} px tiles (pass the reconstruction's context "
                              "per side, e.g. model.context_px; a halo of 0 leaves seams)")
+    if tile_px is None:
+        tile_px = default_tile_px(halo_px)
     takes_origin = "origin" in inspect.signature(reconstruct).parameters
     if h <= tile_px and w <= tile_px:
         return reconstruct(sensor)
