@@ -349,7 +349,7 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
     from hsicam.config import MAX_CONSISTENCY_ITERATIONS
     from hsicam.runs.folder import load_run
     from hsicam.data.images import read_capture
-    from hsicam.engine.inference import default_tile_px, reconstruct_tiled
+    from hsicam.engine.inference import reconstruct_tiled
 
     if args.tile is not None and args.tile < 16:
         raise InputError("--tile must be at least 16 px")
@@ -408,8 +408,8 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
                          "too small to reconstruct")
     sensor = torch.from_numpy(img)[None, None].to(args.device)
     halo = model.context_px
-    tile = default_tile_px(halo) if args.tile is None else args.tile
-    if tile < halo and max(img.shape) > tile:
+    tile = args.tile  # None: reconstruct_tiled's default (default_tile_px), never below the halo
+    if tile is not None and tile < halo and max(img.shape) > tile:
         log.warning("--tile %d is smaller than the reconstruction's context (%d px per side): each tile computes "
                     "about %.0f× its own pixels; a tile of %d px or more is faster", tile, halo,
                     ((tile + 2 * halo) / tile) ** 2, 2 * halo)

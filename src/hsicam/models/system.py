@@ -87,22 +87,24 @@ class CameraSystem(nn.Module):
         """:attr:`context_px` with the step through ``step_op``, its PSFs cut to ``psf_energy``."""
         c = self.consistency
         # each step's Wiener gain on a noisy capture's residual looks WIENER_WINDOW_PX // 2 further
-        noise = getattr(self.camera, "noise", None)
-        wiener = WIENER_WINDOW_PX // 2 if c.noise_aware and getattr(noise, "declares_noise", False) else 0
+        wiener = WIENER_WINDOW_PX // 2 if self._weighs_noise else 0
         if c.kind == "linear":  # the filters' own width when loaded (a file fitted with another window_px)
             window = int(self.linear_step.shape[-1]) if self.linear_step is not None else c.window_px
             return (int(self.net.context_px) + linear_reach_px(step_op, window, c.iterations, psf_energy)
                     + reach_px(step_op, c.landweber_after, psf_energy) + wiener * (c.iterations + c.landweber_after))
         return int(self.net.context_px) + reach_px(step_op, c.iterations, psf_energy) + wiener * c.iterations
 
+    @property
+    def _weighs_noise(self) -> bool:
+        """Whether the consistency steps weigh residuals against noise: ``model.consistency.noise_aware`` and a
+        camera noise model (``camera.sensor``) that declares some."""
+        return self.consistency.noise_aware and getattr(getattr(self.camera, "noise", None), "declares_noise", False)
+
     def _noise_variance(self, sensor: torch.Tensor) -> torch.Tensor | None:
-        """The capture's per-pixel noise variance by the camera's noise model (``camera.sensor``;
-        :meth:`hsicam.sensor.SensorNoise.variance`), which the consistency steps weigh residuals by;
-        None for a noise-free model or with ``model.consistency.noise_aware`` off."""
-        noise = getattr(self.camera, "noise", None)
-        if not self.consistency.noise_aware or not getattr(noise, "declares_noise", False):
-            return None
-        return noise.variance(sensor)
+        """The capture's per-pixel noise variance by the camera's noise model
+        (:meth:`hsicam.sensor.SensorNoise.variance`), which the consistency steps weigh residuals by; None
+        unless :attr:`_weighs_noise`."""
+        return self.camera.noise.variance(sensor) if self._weighs_noise else None
 
     @property
     def bands(self):
