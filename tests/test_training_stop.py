@@ -274,3 +274,32 @@ def test_sigterm_to_the_process_group_with_dataloader_workers(tmp_path, cache_en
     assert res.returncode == 0, res.stderr
     records = [json.loads(x) for x in (run / "metrics.jsonl").read_text().splitlines()]
     assert records[-1]["final"] and records[-1]["step"] == 160 > step
+
+
+def _signalled_during_start(worker_id: int) -> None:
+    """A worker_init_fn: SIGTERM reaches the worker before its handlers exist (a scheduler's signal to the
+    process group while an epoch's workers start), then the usual set-up."""
+    from hsicam.data.pipeline import leave_stop_signals_to_main
+
+    os.kill(os.getpid(), signal.SIGTERM)
+    leave_stop_signals_to_main(worker_id)
+
+
+class _Numbers(torch.utils.data.Dataset):
+    def __len__(self):
+        return 4
+
+    def __getitem__(self, i):
+        return torch.tensor(i)
+
+
+def test_a_stop_signal_while_workers_start_does_not_kill_them():
+    """The loader's workers start with the stop signals blocked: a SIGTERM sent before their handlers are
+    installed waits for them (the worker then serves its batches and ends quietly), where the default action
+    would kill it and abort the training on "worker exited unexpectedly". The main process's mask is as before."""
+    from hsicam.data.pipeline import _StopSafeLoader
+
+    before = signal.pthread_sigmask(signal.SIG_BLOCK, [])
+    loader = _StopSafeLoader(_Numbers(), batch_size=2, num_workers=1, worker_init_fn=_signalled_during_start)
+    assert [b.tolist() for b in loader] == [[0, 1], [2, 3]]
+    assert signal.pthread_sigmask(signal.SIG_BLOCK, []) == before

@@ -180,6 +180,31 @@ def leave_stop_signals_to_main(_worker_id: int = 0) -> None:
     unexpectedly"; and the parent's own shutdown, which ends workers with SIGTERM, still works."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, _end_worker)
+    # the worker was forked with the stop signals blocked (_StopSafeLoader): one sent while it started is
+    # pending and reaches the handler above now, instead of killing the worker before it had one
+    if _CAN_MASK:
+        signal.pthread_sigmask(signal.SIG_UNBLOCK, _STOP_SIGNALS)
+
+
+_STOP_SIGNALS = {signal.SIGTERM, signal.SIGINT}
+_CAN_MASK = hasattr(signal, "pthread_sigmask")  # POSIX; elsewhere the workers start as before
+
+
+class _StopSafeLoader(DataLoader):
+    """A DataLoader whose worker processes start with SIGTERM and SIGINT blocked (inherited across the
+    fork) until :func:`leave_stop_signals_to_main` has installed their handlers: a scheduler's SIGTERM to
+    the process group while an epoch's workers start no longer kills one with the default action (the
+    main process would abort on "worker exited unexpectedly"). The main process's own signal arrives when
+    the workers have started."""
+
+    def __iter__(self):
+        if self.num_workers == 0 or not _CAN_MASK:
+            return super().__iter__()
+        previous = signal.pthread_sigmask(signal.SIG_BLOCK, _STOP_SIGNALS)
+        try:
+            return super().__iter__()
+        finally:
+            signal.pthread_sigmask(signal.SIG_SETMASK, previous)
 
 
 def make_loader(dataset: Dataset, batch_size: int, num_workers: int = 2, shuffle: bool = True,
@@ -189,7 +214,7 @@ def make_loader(dataset: Dataset, batch_size: int, num_workers: int = 2, shuffle
     Workers are not persistent, so each epoch's workers see the epoch set by
     :meth:`PatchDataset.set_epoch` (call it before iterating).
     """
-    return DataLoader(dataset, batch_size=batch_size, shuffle=shuffle and sampler is None, sampler=sampler,
+    return _StopSafeLoader(dataset, batch_size=batch_size, shuffle=shuffle and sampler is None, sampler=sampler,
                       num_workers=num_workers, drop_last=drop_last, persistent_workers=False,
                       pin_memory=False, worker_init_fn=leave_stop_signals_to_main if num_workers > 0 else None)
 
