@@ -240,13 +240,13 @@ def fit(task: Task, opts: FitOptions, run_dir: str | Path, resume: bool = False,
     files written after it lets them finish, then raises ``TrainingInterrupted(finished=True)``."""
     rank, world, local_rank = dist_env()
     own_group = world > 1 and not dist.is_initialized()
-    if opts.loop.deterministic:
-        # before the group exists: torch's first use_deterministic_algorithms call takes references to a live
-        # process group that destroy_process_group does not drop (10 with torch 2.13), so the group was only
-        # destroyed at the interpreter's exit, where its gloo threads abort a finished rank now and then
-        # ("terminate called without an active exception", exit -6; a torchrun resume in CI)
-        torch.use_deterministic_algorithms(True, warn_only=True)
     if own_group:
+        # before the group exists: torch._dynamo, which torch imports lazily later on (the optimizer's
+        # add_param_group, use_deterministic_algorithms, torch.compile), takes references to a live process group as it is imported (10 with torch 2.13) that
+        # destroy_process_group does not drop; the group then lived on to the interpreter's exit, where its gloo
+        # threads aborted a finished rank now and then ("terminate called without an active exception", exit -6;
+        # a torchrun resume in CI)
+        import torch._dynamo  # noqa: F401
         device = resolve_device(opts.loop.device, local_rank)
         dist.init_process_group("nccl" if device.type == "cuda" else "gloo")
     try:
@@ -343,6 +343,8 @@ def _fit(task: Task, opts: FitOptions, run_dir: Path, resume: bool, lock: RunLoc
     is_main = rank == 0
     if t.batch_size % world:
         raise InputError(f"train.batch_size={t.batch_size} must be divisible by the {world} processes")
+    if t.deterministic:
+        torch.use_deterministic_algorithms(True, warn_only=True)
     if is_main:
         if resume:
             lock.acquire()  # before anything in the run is read or removed
