@@ -83,6 +83,24 @@ def scene(tmp_path_factory) -> Path:
     return p
 
 
+#: Lines for a script launched by torchrun: they keep the process group that ``fit`` creates, and
+#: ``group_references()`` counts what else still refers to it once training has ended. A group still
+#: referenced lives on to the interpreter's exit, where gloo's threads can abort the finished process.
+KEEP_THE_GROUP = """
+import sys
+import torch.distributed as dist
+_groups = []
+_init_process_group = dist.init_process_group
+def _keep_the_group(*args, **kwargs):
+    _init_process_group(*args, **kwargs)
+    _groups.append(dist.distributed_c10d._get_default_group())
+dist.init_process_group = _keep_the_group
+def group_references():
+    # all references but the list's and getrefcount's own argument; 0 when no group was created
+    return sys.getrefcount(_groups[0]) - 2 if _groups else 0
+"""
+
+
 def torchrun_tmp(tmp_path: Path) -> Path:
     """A TMPDIR for a ``torch.distributed.run`` subprocess: torchelastic leaves a ``torchelastic_*``
     folder in the temporary directory of every launch, which belongs under the test's own folder."""

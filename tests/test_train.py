@@ -15,7 +15,7 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from conftest import torchrun_tmp
+from conftest import KEEP_THE_GROUP, torchrun_tmp
 from cli_helpers import assert_clean_error, run_cli, signal_a_training
 from hsicam.config import load_config
 from hsicam.runs.checkpoint import load_weights, read_weights, save_weights
@@ -131,23 +131,16 @@ def test_sigkilled_training_resumes(tmp_path, cache_env):
     assert not list((run / "checkpoints").glob(".step-*")), "temporary checkpoint left behind"
 
 
-DDP_SCRIPT = """
+DDP_SCRIPT = KEEP_THE_GROUP + """
 import sys, torch
-import torch.distributed as dist
 from hsicam.config import load_config
 from hsicam.engine.train import train
 torch.set_num_threads(1)
-groups = []
-init = dist.init_process_group
-def keep_the_group(*args, **kwargs):
-    init(*args, **kwargs)
-    groups.append(dist.distributed_c10d._get_default_group())
-dist.init_process_group = keep_the_group
 cfg = load_config("tiny", ["train.epochs=1", "data.val_fraction=0.0", *sys.argv[2:]])
 train(cfg, sys.argv[1], progress=False)
 import os, pathlib
-others = sys.getrefcount(groups[0]) - 2 if groups else 0  # references to the group but this list's and getrefcount's
-pathlib.Path(sys.argv[1] + ".rank" + os.environ.get("RANK", "0")).write_text(f"{torch.distributed.is_initialized()} {others}")
+pathlib.Path(sys.argv[1] + ".rank" + os.environ.get("RANK", "0")).write_text(
+    f"{torch.distributed.is_initialized()} {group_references()}")
 """
 
 

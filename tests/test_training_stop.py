@@ -16,7 +16,7 @@ from pathlib import Path
 import pytest
 import torch
 
-from conftest import torchrun_tmp
+from conftest import KEEP_THE_GROUP, torchrun_tmp
 from cli_helpers import run_cli, signal_a_training
 from hsicam.config import load_config
 from hsicam.engine.stopping import BUDGET_EXIT_CODE, StopRequests
@@ -173,30 +173,20 @@ def test_signal_saves_the_step_it_stops_at(tmp_path, cache_env, sig):
     assert records[-1]["final"] and records[-1]["step"] == 160
 
 
-DDP_BUDGET_SCRIPT = """
+DDP_BUDGET_SCRIPT = KEEP_THE_GROUP + """
 import os, sys, torch
-import torch.distributed as dist
 from hsicam.config import load_config
 from hsicam.engine.train import train
 from hsicam.errors import TrainingStopped
 torch.set_num_threads(1)
-groups = []
-init = dist.init_process_group
-def keep_the_group(*args, **kwargs):
-    init(*args, **kwargs)
-    groups.append(dist.distributed_c10d._get_default_group())
-dist.init_process_group = keep_the_group
 cfg = load_config("tiny", ["train.epochs=2", "data.val_fraction=0.0", "train.max_minutes=1e-9"])
 try:
     train(cfg, sys.argv[1], progress=False)
     stopped = "finished"
 except TrainingStopped as exc:
     stopped = str(exc.step)
-# references to the group besides this list's (and getrefcount's own): a group still referenced is destroyed
-# only at the interpreter's exit, where gloo's threads can abort the finished process
-others = sys.getrefcount(groups[0]) - 2
 open(sys.argv[1] + ".rank" + os.environ.get("RANK", "0"), "w").write(
-    f"{stopped} {torch.distributed.is_initialized()} {others}")
+    f"{stopped} {torch.distributed.is_initialized()} {group_references()}")
 """
 
 
