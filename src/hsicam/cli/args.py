@@ -12,6 +12,10 @@ import os
 from typing import Any, Callable
 
 from hsicam.config import SEED_MAX, SEED_MIN, seed_problem
+from hsicam.errors import InputError
+
+#: The smallest ``--tile`` (px) of ``reconstruct`` and ``evaluate``.
+MIN_TILE_PX = 16
 
 
 def _shown(text: str) -> str:
@@ -69,6 +73,13 @@ def count_arg(text: str) -> int:
     if value < 1:
         raise argparse.ArgumentTypeError(f"must be >= 1, got {value}")
     return value
+
+
+def check_tile(tile: int | None) -> None:
+    """``--tile`` of ``reconstruct`` and ``evaluate``, before any work: None (reconstruct_tiled's default) or at
+    least :data:`MIN_TILE_PX`."""
+    if tile is not None and tile < MIN_TILE_PX:
+        raise InputError(f"--tile must be at least {MIN_TILE_PX} px")
 
 
 def path_arg(convert: Callable[[str], Any] | None = None) -> Callable[[str], Any]:

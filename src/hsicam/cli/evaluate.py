@@ -9,7 +9,7 @@ import sys
 from pathlib import Path
 
 from hsicam.cli import add_config_args, add_run_arg, config_from_args
-from hsicam.cli.args import count_arg, device_arg
+from hsicam.cli.args import check_tile, count_arg, device_arg
 from hsicam.errors import InputError
 
 log = logging.getLogger(__name__)
@@ -113,10 +113,9 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     from hsicam.engine.provenance import read_data_record, scene_roles, training_scenes_warning
     from hsicam.cli import prepare_output
     from hsicam.io import atomic_output
-
-    if args.tile is not None and args.tile < 16:
-        raise InputError("--tile must be at least 16 px")
     from hsicam.runs.folder import check_is_run
+
+    check_tile(args.tile)
 
     alias = args.method if args.method in METHOD_ALIASES else None
     args.method = METHOD_ALIASES.get(args.method, args.method)  # results carry the method's current name

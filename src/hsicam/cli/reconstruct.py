@@ -349,10 +349,10 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
     from hsicam.config import MAX_CONSISTENCY_ITERATIONS
     from hsicam.runs.folder import load_run
     from hsicam.data.images import read_capture
+    from hsicam.cli.args import check_tile
     from hsicam.engine.inference import reconstruct_tiled
 
-    if args.tile is not None and args.tile < 16:
-        raise InputError("--tile must be at least 16 px")
+    check_tile(args.tile)
     if args.scale is not None and not (np.isfinite(args.scale) and args.scale > 0):
         raise InputError("--scale must be a positive number")
     check_one_level_setting(args)

@@ -215,8 +215,8 @@ def make_loader(dataset: Dataset, batch_size: int, num_workers: int = 2, shuffle
     :meth:`PatchDataset.set_epoch` (call it before iterating).
     """
     return _StopSafeLoader(dataset, batch_size=batch_size, shuffle=shuffle and sampler is None, sampler=sampler,
-                      num_workers=num_workers, drop_last=drop_last, persistent_workers=False,
-                      pin_memory=False, worker_init_fn=leave_stop_signals_to_main if num_workers > 0 else None)
+                           num_workers=num_workers, drop_last=drop_last, persistent_workers=False,
+                           pin_memory=False, worker_init_fn=leave_stop_signals_to_main if num_workers > 0 else None)
 
 
 __all__ = ["absolute_data_paths", "build_datasets", "dataset_root", "heldout_root", "make_loader",
