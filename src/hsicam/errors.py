@@ -42,6 +42,12 @@ class TrainingInterrupted(_Stop, KeyboardInterrupt):
     does not swallow it; the CLI prints it as one line and exits with 128 + the signal's number."""
 
 
+class Terminated(KeyboardInterrupt):
+    """SIGTERM (``kill``, a job scheduler) received by a command that does not train
+    (:func:`hsicam.cli.sigterm_as_interrupt`): raised where Ctrl-C's ``KeyboardInterrupt`` would be, so the same
+    clean-up runs (temporaries removed, no output left half-written); the CLI exits with 143 (128 + 15)."""
+
+
 #: How torch's DataLoader re-raises in the main process an exception of a worker process: the same
 #: type, its message replaced by this line and the worker's whole traceback (``ExceptionWrapper``).
 _WORKER_WRAPPED = re.compile(r"Caught \w+ in DataLoader worker process \d+\.\nOriginal Traceback")

@@ -19,17 +19,20 @@ symbolic link is written in what it leads to, the link kept (:func:`hsicam.io.fo
 from __future__ import annotations
 
 import argparse
+import contextlib
 import importlib
 import json
 import logging
 import os
 import re
+import signal
 import sys
+import threading
 import traceback
 from pathlib import Path
 from typing import Sequence
 
-from hsicam.errors import HsicamError, InputError, TrainingInterrupted, TrainingStopped, original_message
+from hsicam.errors import HsicamError, InputError, Terminated, TrainingInterrupted, TrainingStopped, original_message
 
 COMMAND_MODULES = (
     "hsicam.cli.camera",
@@ -228,6 +231,28 @@ def _os_error_line(exc: OSError) -> str:
     return f"{line} ({hint})" if hint else line
 
 
+@contextlib.contextmanager
+def sigterm_as_interrupt(enabled: bool = True):
+    """Inside the block, SIGTERM raises :class:`~hsicam.errors.Terminated` (a ``KeyboardInterrupt``) instead of
+    ending the process at once, so a killed command cleans up as after Ctrl-C: the temporaries of its outputs
+    are removed and no output is left half-written. Only where SIGTERM has its default action and in the main
+    thread; the previous handler is restored on exit. The commands that train keep the default
+    (``enabled=False``): their loop stops cleanly on SIGTERM by itself (:mod:`hsicam.engine.stopping`)."""
+    if not enabled or threading.current_thread() is not threading.main_thread() \
+            or signal.getsignal(signal.SIGTERM) is not signal.SIG_DFL:
+        yield
+        return
+
+    def terminate(signum, frame):
+        raise Terminated()
+
+    previous = signal.signal(signal.SIGTERM, terminate)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     try:
         parser = build_parser()  # imports the commands' modules (torch, scipy): about a second
@@ -242,7 +267,7 @@ def main(argv: Sequence[str] | None = None) -> int:
 
     try:
         fixed = getattr(args, "run", None) is not None or bool(getattr(args, "resume", False))
-        with trained_bands(fixed):  # --run, or resuming a run: its bands are fixed
+        with trained_bands(fixed), sigterm_as_interrupt(not getattr(args, "trains", False)):
             return int(args.func(args) or 0)
     except (TrainingStopped, TrainingInterrupted) as exc:  # a signal or train.max_minutes: the run was saved at that step
         from hsicam.devices import dist_env
@@ -251,6 +276,9 @@ def main(argv: Sequence[str] | None = None) -> int:
             hint = getattr(args, "resume_hint", None) or "run the same command with --resume to go on"
             print(f"hsicam: {exc}" + ("" if exc.finished else f"; {hint.format(run=exc.run_dir)}"), file=sys.stderr)
         return exc.exit_code
+    except Terminated:
+        print("hsicam: terminated (SIGTERM); nothing half-written was left", file=sys.stderr)
+        return 128 + signal.SIGTERM
     except KeyboardInterrupt:
         print("hsicam: interrupted", file=sys.stderr)
         return 130

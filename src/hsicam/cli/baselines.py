@@ -26,7 +26,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     q.add_argument("--resume", action="store_true",
                    help="continue the prior in --out from its last checkpoint (with its own config.yaml and prior.yaml; "
                         "--set baselines.choi.train_steps=N trains a finished one longer)")
-    q.set_defaults(func=cmd_train_prior, resume_hint="go on with: hsicam baseline train-prior --out {run} --resume")
+    q.set_defaults(func=cmd_train_prior, trains=True, resume_hint="go on with: hsicam baseline train-prior --out {run} --resume")
 
 
 def cmd_train_prior(args: argparse.Namespace) -> int:

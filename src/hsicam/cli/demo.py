@@ -15,7 +15,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         if "--config" in action.option_strings:
             action.help = "YAML config or preset name (default: the quick preset)"
     p.add_argument("--out", default="runs/demo", metavar="DIR")
-    p.set_defaults(func=cmd_demo, resume_hint="run the same hsicam demo command again: it resumes the run")
+    p.set_defaults(func=cmd_demo, trains=True, resume_hint="run the same hsicam demo command again: it resumes the run")
 
 
 def cmd_demo(args: argparse.Namespace) -> int:

@@ -46,7 +46,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--scale", choices=SCALES, default="quick")
     p.add_argument("--out", metavar="DIR", help="experiment folder (default: runs/experiments/NAME-SCALE)")
     p.add_argument("--seeds", type=count_arg, default=1, help="number of seeds (0, 1, ...), >= 1 (default 1)")
-    p.set_defaults(func=cmd_experiment, resume_hint="run the same hsicam experiment command again: it resumes the run")
+    p.set_defaults(func=cmd_experiment, trains=True, resume_hint="run the same hsicam experiment command again: it resumes the run")
 
     p = sub.add_parser("report", help="HTML report (index.html + PNGs) of an evaluation or experiment folder")
     p.add_argument("dir", metavar="DIR")

@@ -250,7 +250,12 @@ def write_cube_file(path: Path, cube: np.ndarray, bands, metadata: dict) -> None
         write_cube_h5(path, cube, bands, {"command": "reconstruct", **metadata})
     else:
         write_envi(path, cube, bands, description=ENVI_DESCRIPTIONS[0])
-    write_png8(preview, np.moveaxis(rgb, 0, -1))
+    try:
+        write_png8(preview, np.moveaxis(rgb, 0, -1))
+    except BaseException:  # Ctrl-C, SIGTERM, a full disk: the cube just written is not left without its preview
+        for f in output_files(path)[:-1]:
+            f.unlink(missing_ok=True)
+        raise
 
 
 def corrections_from_args(args: argparse.Namespace, cfa_period: int | None) -> "object":

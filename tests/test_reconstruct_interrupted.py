@@ -1,0 +1,108 @@
+"""A reconstruction stopped by SIGTERM (``kill``, a job scheduler) or Ctrl-C leaves nothing half-written: no
+temporary file, and no cube without its preview (session 37: SIGTERM used to end the process at once, leaving
+the cube's hidden temporary behind, and a stop between the cube and its preview left the cube alone)."""
+
+from __future__ import annotations
+
+import signal
+import subprocess
+import sys
+import textwrap
+
+import numpy as np
+import pytest
+
+from cli_helpers import cli_env
+
+# A subprocess that reconstructs a small capture through the shipped camera and is stopped at one point
+# (the patched function sends the signal to its own process, as `kill` would, then waits for it to act).
+SCRIPT = textwrap.dedent("""
+    import os, signal, sys, time
+    import hsicam.cli.reconstruct as rec
+    import hsicam.io
+    where, how, sensor, out = sys.argv[1:5]
+    sig = {"term": signal.SIGTERM, "int": signal.SIGINT}[how]
+
+    def stop(*args, **kwargs):
+        os.kill(os.getpid(), sig)
+        time.sleep(10)  # the handler acts at once; this line is never finished
+        raise AssertionError("the signal did not stop the command")
+
+    if where == "reconstruction":
+        rec.reconstruct_tiled = stop  # imported inside cmd_reconstruct from hsicam.engine.inference
+        import hsicam.engine.inference
+        hsicam.engine.inference.reconstruct_tiled = stop
+    else:  # the preview, after the cube was written
+        hsicam.io.write_png8 = stop
+    from hsicam.cli import main
+    sys.exit(main(["reconstruct", sensor, "--run", "pretrained:standard", "--out", out]))
+""")
+
+
+@pytest.fixture(scope="module")
+def capture(tmp_path_factory):
+    folder = tmp_path_factory.mktemp("capture")
+    sensor = folder / "sensor.npy"
+    np.save(sensor, np.random.default_rng(0).uniform(0.2, 0.8, (48, 48)).astype(np.float32))
+    return sensor
+
+
+def stopped(capture, tmp_path, where: str, how: str, name: str = "cube.h5") -> tuple[subprocess.CompletedProcess, list[str]]:
+    out_dir = tmp_path / "out"
+    out_dir.mkdir()
+    res = subprocess.run([sys.executable, "-c", SCRIPT, where, how, str(capture), str(out_dir / name)],
+                         capture_output=True, text=True, timeout=300, env=cli_env())
+    return res, sorted(p.name for p in out_dir.iterdir())
+
+
+@pytest.mark.parametrize("where", ["reconstruction", "preview"])
+def test_sigterm_stops_a_reconstruction_cleanly(capture, tmp_path, where):
+    res, left = stopped(capture, tmp_path, where, "term")
+    assert res.returncode == 128 + signal.SIGTERM, (res.returncode, res.stderr)
+    assert res.stderr.strip().splitlines()[-1] == "hsicam: terminated (SIGTERM); nothing half-written was left"
+    assert "Traceback" not in res.stderr
+    assert left == [], left  # neither the cube nor a temporary (".cube.XXXXXXXX.tmp.h5")
+
+
+@pytest.mark.parametrize("name", ["cube.h5", "cube.hdr"])
+def test_ctrl_c_before_the_preview_leaves_no_cube_without_it(capture, tmp_path, name):
+    res, left = stopped(capture, tmp_path, "preview", "int", name)
+    assert res.returncode == 130, (res.returncode, res.stderr)
+    assert res.stderr.strip().splitlines()[-1] == "hsicam: interrupted"
+    assert left == [], left  # the cube (ENVI: header and data) went with the preview it lacked
+
+
+def test_sigterm_keeps_its_default_where_a_command_trains_or_a_handler_is_set():
+    """The training commands stop on SIGTERM by themselves (hsicam.engine.stopping), and an embedding program's
+    own handler is left alone: the context changes nothing there, and restores the default on exit."""
+    from hsicam.cli import sigterm_as_interrupt
+    from hsicam.errors import Terminated
+
+    assert signal.getsignal(signal.SIGTERM) is signal.SIG_DFL
+    with sigterm_as_interrupt(enabled=False):
+        assert signal.getsignal(signal.SIGTERM) is signal.SIG_DFL
+    with sigterm_as_interrupt():
+        handler = signal.getsignal(signal.SIGTERM)
+        with pytest.raises(Terminated):
+            handler(signal.SIGTERM, None)
+    assert signal.getsignal(signal.SIGTERM) is signal.SIG_DFL
+    mine = lambda signum, frame: None  # noqa: E731
+    previous = signal.signal(signal.SIGTERM, mine)
+    try:
+        with sigterm_as_interrupt():
+            assert signal.getsignal(signal.SIGTERM) is mine
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
+
+def test_the_training_commands_are_marked_as_such():
+    from hsicam.cli import build_parser
+
+    parser = build_parser()
+    trains = {cmd: bool(getattr(parser.parse_args(argv), "trains", False)) for cmd, argv in {
+        "train": ["train", "--out", "x"], "demo": ["demo"], "finetune": ["finetune", "--run", "r", "--psf-dir", "p", "--out", "x"],
+        "experiment": ["experiment", "ablation", "--out", "x"], "train-prior": ["baseline", "train-prior", "--out", "x"],
+        "reconstruct": ["reconstruct", "s.npy", "--run", "r", "--out", "x.h5"], "evaluate": ["evaluate", "--out", "x"],
+        "psf": ["psf", "--out", "x"]}.items()}
+    assert trains == {"train": True, "demo": True, "finetune": True, "experiment": True, "train-prior": True,
+                      "reconstruct": False, "evaluate": False, "psf": False}
