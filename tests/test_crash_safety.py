@@ -178,6 +178,80 @@ def test_root_weights_follow_the_manifest(reference, tmp_path, cache_env):
     assert all(torch.equal(read_weights(run / "model.safetensors")[0][k], ref["best"][k]) for k in ref["best"])
 
 
+def _flip_a_byte(path: Path) -> None:
+    """Damage a weights file as a disk error would: one byte of its tensor data changed (it still loads)."""
+    data = bytearray(path.read_bytes())
+    data[-100] ^= 0xFF
+    path.write_bytes(bytes(data))
+
+
+def test_damaged_weights_are_named_not_used(reference, tmp_path, caplog):
+    """Weights that differ from the sha256 the manifest records (session 37's hunt): a damaged root file is
+    read from the checkpoint that holds the recorded weights, said once; with that checkpoint damaged too,
+    every reader and --resume refuse in one line naming both, instead of using (and refitting onto) them."""
+    import logging
+
+    from hsicam.errors import InputError
+    from hsicam.runs.checkpoint import MANIFEST, CheckpointManager, root_weights_path
+    from hsicam.runs.folder import load_run
+
+    run = tmp_path / "run"
+    _train(run)
+    man = json.loads((run / MANIFEST).read_text())
+    kept = run / man["best"]["dir"] / "model.safetensors"
+    _flip_a_byte(run / "model.safetensors")
+    with caplog.at_level(logging.INFO, logger="hsicam.runs.checkpoint"):
+        for _ in range(3):
+            assert root_weights_path(run) == kept
+    said = [r.getMessage() for r in caplog.records if "does not hold the weights" in r.getMessage()]
+    assert said == [f"{run / 'model.safetensors'} does not hold the weights {MANIFEST} records (out of date, or "
+                    f"damaged); using {kept}, which does"]
+    load_run(run)  # the recorded weights, from the checkpoint
+    _flip_a_byte(kept)
+    with pytest.raises(InputError, match="both differ from the weights .* records .*the run's weights are damaged"):
+        load_run(run)
+    res = run_cli("psf", "--run", str(run), "--out", str(tmp_path / "psf"))
+    assert res.returncode == 2 and "the run's weights are damaged" in res.stderr.strip().splitlines()[-1], res.stderr
+    assert not (tmp_path / "psf").exists()
+    # resuming trains on from the last checkpoint: refused when it is not the file the manifest records
+    last = run / man["last"]["dir"] / "model.safetensors"
+    if last != kept:
+        _flip_a_byte(last)
+    shutil.copyfile(kept, run / "model.safetensors")
+    with pytest.raises(InputError, match="the checkpoint is damaged"):
+        CheckpointManager(run).load("last", _model(run), None, load_config(run / "config.yaml").bands.to_bands())
+
+
+def _model(run: Path):
+    from hsicam.models import CameraSystem
+
+    return CameraSystem.from_config(load_config(run / "config.yaml"))
+
+
+def test_a_linear_step_fitted_through_other_weights_of_a_run_without_checkpoints(reference, tmp_path):
+    """A run folder without its checkpoints (a copy of the root files only) whose weights changed after the
+    linear step's fit: `--resume` cannot refit it, so the line does not send the user there."""
+    from hsicam.errors import InputError
+    from hsicam.runs.folder import load_run
+
+    from hsicam.engine.train import train
+
+    run = tmp_path / "run"
+    cfg = load_config("tiny", ["train.epochs=1", "model.consistency.kind=linear", "model.consistency.iterations=1"])
+    train(cfg, run, progress=False)
+    assert (run / "linear_step.safetensors").is_file()
+    shutil.rmtree(run / "checkpoints")
+    (run / "checkpoints.json").unlink()
+    _flip_a_byte(run / "model.safetensors")
+    with pytest.raises(InputError) as err:
+        load_run(run)
+    line = str(err.value)
+    assert "was fitted through other weights" in line and "changed or damaged" in line
+    assert line.endswith("the run has no checkpoint to refit the filters from: copy the run folder again from its "
+                         "source, or train it again"), line
+    assert "--resume" not in line
+
+
 def test_legacy_pointer_files_are_read(reference, tmp_path):
     """Runs written before the manifest (last.json / best.json) still load and resume."""
     from hsicam.runs.checkpoint import MANIFEST, CheckpointManager

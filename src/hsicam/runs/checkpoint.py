@@ -430,6 +430,11 @@ class CheckpointManager:
         d = self.path(tag)
         if d is None:
             raise InputError(f"{self.run_dir}: no '{tag}' checkpoint to resume from")
+        sha = ((self.manifest() or {}).get(tag) or {}).get("weights_sha256")
+        if sha is not None and file_sha256(d / "model.safetensors") != sha:  # never train on from damaged weights
+            raise InputError(f"{d / 'model.safetensors'} differs from the weights {self.run_dir / MANIFEST} records "
+                             f"(sha256 {sha[:12]}…): the checkpoint is damaged (a copy cut short, a disk error, an edit); "
+                             "copy the run folder again from its source, or train it again")
         load_weights(d / "model.safetensors", model, bands)
         if optimizer is not None:
             load_optimizer(d / "optimizer.safetensors", optimizer)
@@ -483,5 +488,15 @@ def root_weights_path(run_dir: str | Path, weights_file: str = "model.safetensor
         return root
     if root.is_file() and file_sha256(root) == (sha or file_sha256(path)):
         return root
-    log.info("%s: out of date with %s; using %s", root, MANIFEST, path)
+    if sha is not None and file_sha256(path) != sha:
+        raise InputError(f"{root} and {path} both differ from the weights {run_dir / MANIFEST} records (sha256 "
+                         f"{sha[:12]}…): the run's weights are damaged (a copy cut short, a disk error, an edit); copy "
+                         "the run folder again from its source, or train it again")
+    if (root, path) not in _FALLBACKS_SAID:  # readers ask more than once per command: one line
+        _FALLBACKS_SAID.add((root, path))
+        log.info("%s does not hold the weights %s records (out of date, or damaged); using %s, which does",
+                 root, MANIFEST, path)
     return path
+
+
+_FALLBACKS_SAID: set[tuple[Path, Path]] = set()  # the (root, checkpoint) pairs root_weights_path has said it falls back for

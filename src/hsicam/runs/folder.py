@@ -165,6 +165,11 @@ def linear_step_problem(run_dir: Path, consistency) -> str | None:
 
     if is_pretrained_path(run_dir):  # read-only, and a copy has no checkpoint to resume
         return f"{why}; a shipped camera's filters are fixed: evaluate it with its own model.consistency settings"
+    from hsicam.runs.checkpoint import CheckpointManager
+
+    if CheckpointManager(run_dir).manifest() is None and stale_reason(path, root_weights_path(run_dir)):
+        return (f"{why}; the run has no checkpoint to refit the filters from: copy the run folder again from its "
+                "source, or train it again")
     sets = [f"model.consistency.{k}={getattr(consistency, k)}" for k in ("kind", "iterations", "window_px")
             if own is None or getattr(own, k) != getattr(consistency, k)]
     return f"{why}; refit it: {refit_command(run_dir, sets)}"

@@ -70,7 +70,8 @@ def stale_reason(path: str | Path, weights: str | Path, window_px: int | None = 
     if isinstance(fitted_through, str) and fitted_through != file_sha256(weights):
         return (f"{path} was fitted through other weights (sha256 {fitted_through[:12]}…) than {Path(weights).name} "
                 f"(sha256 {file_sha256(weights)[:12]}…): the run trained on after it was fitted, or now keeps another of its "
-                f"checkpoints (train.keep_weights)")
+                f"checkpoints (train.keep_weights), or {Path(weights).name} was changed or damaged since (an edit, a copy "
+                f"cut short, a disk error)")
     if window_px is not None and info.get("filter_px") is not None and info["filter_px"] != int(window_px):
         return f"{path} holds {info['filter_px']} px filters; model.consistency.window_px asks for {int(window_px)}"
     return None
