@@ -87,6 +87,25 @@ def test_a_gain_that_clips_some_pixels_warns_and_one_within_full_scale_does_not(
     assert not [r for r in caplog.records if r.levelno >= logging.WARNING], caplog.text
 
 
+def test_a_gain_that_leaves_the_image_very_dark_warns(runs, capture, tmp_path, caplog):
+    """A tiny --scale or --auto-level (a typo: 1e-4 for 1) was taken silently (session 37's hunt); it warns
+    below one 8-bit step of full scale, with the value that would put the image at half scale."""
+    level = float(np.percentile(np.load(capture) * np.float32(1e-4), 99.9))
+    with caplog.at_level(logging.WARNING):
+        _ok(_reconstruct(capture, runs["done"], tmp_path / "a.h5", "--scale", "1e-4"))
+        _ok(_reconstruct(capture, runs["done"], tmp_path / "b.h5", "--auto-level", "1e-6"))
+    msgs = [r.getMessage() for r in caplog.records if "very dark" in r.getMessage()]
+    assert len(msgs) == 2, caplog.text
+    assert msgs[0].startswith(f"{capture}: --scale 0.0001 leaves the image very dark: its 99.9th percentile is "
+                              f"{level:.3g} of the sensor's full scale (1; warned below 1/256)"), msgs[0]
+    assert msgs[0].endswith(f"--scale {1e-4 * 0.5 / level:.3g} puts it at 0.5"), msgs[0]
+    assert "--auto-level 1e-06 leaves the image very dark" in msgs[1] and msgs[1].endswith("--auto-level 0.5 to 1 is usual")
+    caplog.clear()
+    with caplog.at_level(logging.WARNING):
+        _ok(_reconstruct(capture, runs["done"], tmp_path / "c.h5", "--scale", "0.02"))  # 99.9th percentile ~0.01
+    assert not [r for r in caplog.records if r.levelno >= logging.WARNING], caplog.text
+
+
 # ------------------------------------------------------------------------------------------------
 # 2. A multi-page TIFF capture
 # ------------------------------------------------------------------------------------------------

@@ -97,6 +97,9 @@ MAX_LEVEL = 4.0
 #: More than this share of the pixels above full scale after such a gain: a warning (clipped highlights
 #: a real sensor would not have recorded). ``auto_level`` 1 leaves 0.1 % above: no warning.
 CLIP_SHARE = 0.01
+#: A gain the user asked for that leaves the image's 99.9th percentile below this share of full scale (one step of
+#: an 8-bit sensor) is warned about: likely a typo (``--auto-level 0.0001``, ``--scale 1e-6``).
+DIM_AFTER_GAIN = 1.0 / 256.0
 #: More than this share of the capture's pixels at or above the white level: refused (the image is
 #: a flat white plateau, or the white level is wrong); a smaller share (but any pixel) is a warning.
 MAX_SATURATED_SHARE = 0.5
@@ -496,6 +499,12 @@ def _check_level(img: np.ndarray, corr: RawCorrection, source: str) -> list[str]
         raise InputError(f"{source}: {used} puts the image far past the sensor's full scale (1): its 99.9th percentile "
                          f"is {level:.3g} and its brightest pixel {peak:.3g} (refused above {MAX_LEVEL:g}); the network "
                          f"was trained on images within [0, 1]: {fix}")
+    if level < DIM_AFTER_GAIN:
+        fix = ("--auto-level 0.5 to 1 is usual" if corr.auto_level is not None
+               else f"--scale {corr.scale * 0.5 / max(level, 1e-30):.3g} puts it at 0.5" if corr.scale != 1.0
+               else "check --exposure-s and --reference-exposure-s")
+        return [f"{source}: {used} leaves the image very dark: its 99.9th percentile is {level:.3g} of the sensor's full "
+                f"scale (1; warned below 1/{round(1 / DIM_AFTER_GAIN)}), far below the levels the network was trained on: {fix}"]
     share = float(np.count_nonzero(img > 1.0)) / img.size
     if share > CLIP_SHARE:
         return [f"{source}: {used} puts {100 * share:.1f} % of the pixels above the sensor's full scale (1; brightest "
