@@ -656,3 +656,63 @@ def test_bad_inputs_found_by_session_31s_audit(inputs, tmp_path, capsys, recwarn
                               str(tmp_path / "sim")])
     assert_one_line(code, err, str(tmp_path / "loop1"), "symbolic link loop")
     assert sorted(p.name for p in tmp_path.iterdir()) == ["group.h5", "loop1", "loop2"]
+
+
+# ------------------------------------------------------------------------------------------------
+# Session 37's hunt: lines that named the wrong thing
+# ------------------------------------------------------------------------------------------------
+@pytest.fixture
+def small_capture(tmp_path) -> Path:
+    path = tmp_path / "cap.npy"
+    np.save(path, np.random.default_rng(0).uniform(0.1, 0.6, (48, 48)).astype(np.float32))
+    return path
+
+
+def test_a_run_given_as_a_file_and_a_folder_given_as_the_sensor_are_named_so(small_capture, tmp_path):
+    from cli_helpers import run_cli_in_process
+
+    from hsicam.runs.pretrained import root
+
+    card = root() / "standard" / "config.yaml"
+    res = run_cli_in_process("reconstruct", str(small_capture), "--run", str(card), "--out", str(tmp_path / "a.h5"))
+    assert_one_line(res.returncode, res.stderr, f"{card}: a file, not a run folder (give the folder that holds "
+                                                "config.yaml and model.safetensors)")
+    res = run_cli_in_process("reconstruct", str(tmp_path), "--run", "pretrained:standard", "--out", str(tmp_path / "b.h5"))
+    assert_one_line(res.returncode, res.stderr, f"{tmp_path}: a folder, not a sensor image (give one .npy, .png or .tif file)")
+    assert not list(tmp_path.glob("[ab]*"))
+
+
+@pytest.mark.parametrize("option, value, line", [
+    ("--black-level", "nan", "black_level (--black-level) must be a finite number, got nan"),
+    ("--auto-level", "-1", "auto_level (--auto-level) must be positive, got -1.0"),
+])
+def test_a_bad_correction_names_its_option(small_capture, tmp_path, option, value, line):
+    from cli_helpers import run_cli_in_process
+
+    res = run_cli_in_process("reconstruct", str(small_capture), "--run", "pretrained:standard", "--out",
+                             str(tmp_path / "c.h5"), option, value)
+    assert_one_line(res.returncode, res.stderr, line)
+
+
+def test_pretrained_show_and_copy_take_the_name_as_run_does(tmp_path, capsys):
+    """`--run pretrained:standard` works everywhere; `pretrained show/copy pretrained:standard` was refused."""
+    assert main(["pretrained", "show", "pretrained:standard"]) == 0
+    assert capsys.readouterr().out.startswith("# Pre-trained camera `standard`")
+    assert main(["pretrained", "copy", "pretrained:standard", str(tmp_path / "mine")]) == 0
+    assert "copied pre-trained camera standard ->" in capsys.readouterr().out
+    assert (tmp_path / "mine" / "model.safetensors").is_file()
+
+
+def test_a_cube_stored_band_last_is_told_to_move_its_band_axis(tmp_path):
+    import h5py
+
+    from hsicam.data.formats import read_cube
+    from hsicam.errors import InputError
+
+    path = tmp_path / "hwb.h5"
+    with h5py.File(path, "w") as f:
+        f["cube"] = np.random.default_rng(0).random((40, 40, 31)).astype(np.float32)
+        f["bands_nm"] = np.arange(420.0, 730.0, 10.0)
+    with pytest.raises(InputError, match=r"the cube has 40 bands but the file lists 31 wavelengths \(its last axis has "
+                                         r"31: the band axis must come first, \(bands, height, width\); transpose"):
+        read_cube(path)

@@ -42,6 +42,11 @@ def register(sub: argparse._SubParsersAction) -> None:
     q.set_defaults(func=cmd_pack)
 
 
+def _bare(name: str) -> str:
+    """A camera's name as `show` and `copy` take it: ``pretrained:NAME`` (what ``--run`` takes) is ``NAME``."""
+    return name.removeprefix("pretrained:")
+
+
 def _dict(value) -> dict:
     return value if isinstance(value, dict) else {}
 
@@ -103,12 +108,13 @@ def cmd_show(args: argparse.Namespace) -> int:
     """The camera's card.md; weights that are not the card's are said after it (the card is shown)."""
     from hsicam.runs.pretrained import CARD_MD, pretrained_dir, weights_problem
 
-    folder = pretrained_dir(args.name)
+    name = _bare(args.name)
+    folder = pretrained_dir(name)
     print((folder / CARD_MD).read_text(encoding="utf-8"), end="")
     problem = weights_problem(folder)
     if problem:
-        print(f"\nWARNING: {problem}; until then `--run pretrained:{args.name}` and `hsicam pretrained copy "
-              f"{args.name}` refuse this camera")
+        print(f"\nWARNING: {problem}; until then `--run pretrained:{name}` and `hsicam pretrained copy "
+              f"{name}` refuse this camera")
     return 0
 
 
@@ -117,8 +123,9 @@ def cmd_copy(args: argparse.Namespace) -> int:
     from hsicam.runs.pretrained import copy_pretrained
 
     prepare_output(args.dir, "dir")
-    dest = copy_pretrained(args.name, args.dir)
-    print(f"copied pre-trained camera {args.name} -> {dest} (a normal run folder: --run {dest})")
+    name = _bare(args.name)
+    dest = copy_pretrained(name, args.dir)
+    print(f"copied pre-trained camera {name} -> {dest} (a normal run folder: --run {dest})")
     return 0
 
 

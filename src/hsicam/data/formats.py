@@ -250,7 +250,9 @@ def read_cube(path: str | os.PathLike, *, bands: Bands | None = None, allow_nega
 
 def _finish(p: Path, cube: np.ndarray, bands: Bands, meta: dict[str, Any], allow_negative: bool) -> Cube:
     if np.ndim(cube) == 3 and np.shape(cube)[0] != len(bands):
-        raise InputError(f"{p}: the cube has {np.shape(cube)[0]} bands but the file lists {len(bands)} wavelengths")
+        hint = (f" (its last axis has {np.shape(cube)[-1]}: the band axis must come first, (bands, height, width); "
+                "transpose the array)") if np.shape(cube)[-1] == len(bands) else ""
+        raise InputError(f"{p}: the cube has {np.shape(cube)[0]} bands but the file lists {len(bands)} wavelengths{hint}")
     cube = check_cube(cube, p, bands=bands, allow_negative=allow_negative)
     meta.setdefault("source", str(p))
     return cube, bands, meta

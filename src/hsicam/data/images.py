@@ -328,11 +328,11 @@ class RawCorrection:
         for name in ("black_level", "white_level", "exposure_s", "reference_exposure_s", "auto_level", "scale"):
             v = getattr(self, name)
             if v is not None and not math.isfinite(v):
-                raise InputError(f"{name} must be a finite number, got {v}")
+                raise InputError(f"{name} (--{name.replace('_', '-')}) must be a finite number, got {v}")
         for name in ("exposure_s", "reference_exposure_s", "auto_level", "scale"):
             v = getattr(self, name)
             if v is not None and v <= 0:
-                raise InputError(f"{name} must be positive, got {v}")
+                raise InputError(f"{name} (--{name.replace('_', '-')}) must be positive, got {v}")
         if (self.exposure_s is None) != (self.reference_exposure_s is None):
             raise InputError("exposure normalisation needs both the capture's exposure and the reference exposure")
         if self.auto_level is not None and (self.exposure_s is not None or self.scale != 1.0):
@@ -653,6 +653,8 @@ def read_capture(path: str | Path, corr: RawCorrection | None = None, scale: flo
     ``auto_level``, which makes the white level irrelevant): the type's maximum is no full scale.
     """
     path = Path(path)
+    if path.is_dir():
+        raise InputError(f"{path}: a folder, not a sensor image (give one .npy, .png or .tif file)")
     if path.suffix.lower() not in IMAGE_SUFFIXES:
         raise InputError(f"{path}: unsupported sensor image format (use .npy, .png, .tif)")
     image = read_image_2d(path, "sensor image")

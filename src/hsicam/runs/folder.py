@@ -126,6 +126,8 @@ def not_a_run_message(path: str | Path) -> str | None:
     path = Path(path)
     if (path / "config.yaml").is_file():
         return None
+    if path.is_file():
+        return f"{path}: a file, not a run folder (give the folder that holds config.yaml and model.safetensors)"
     if not path.is_dir():
         return f"{path}: no such run folder"
     inner = [p for p in (path / "run", *sorted((path / "runs").glob("*"))) if (p / "config.yaml").is_file()]
