@@ -716,3 +716,24 @@ def test_a_cube_stored_band_last_is_told_to_move_its_band_axis(tmp_path):
     with pytest.raises(InputError, match=r"the cube has 40 bands but the file lists 31 wavelengths \(its last axis has "
                                          r"31: the band axis must come first, \(bands, height, width\); transpose"):
         read_cube(path)
+
+
+@pytest.mark.parametrize("kind", ["png", "npy", "tif"])
+def test_a_two_level_image_is_no_capture(tmp_path, kind):
+    """A 1-bit PNG was read as 0 and 1 of 255 DN and reconstructed behind a misleading "very dark" warning; a
+    bool .npy was taken as it was (session 37's hunt)."""
+    import tifffile
+    from PIL import Image
+    from cli_helpers import run_cli_in_process
+
+    mask = np.random.default_rng(0).random((48, 48)) > 0.5
+    path = tmp_path / f"mask.{kind}"
+    if kind == "png":
+        Image.fromarray(mask).convert("1").save(path)
+    elif kind == "npy":
+        np.save(path, mask)
+    else:
+        tifffile.imwrite(path, mask)
+    res = run_cli_in_process("reconstruct", str(path), "--run", "pretrained:standard", "--out", str(tmp_path / "m.h5"))
+    assert_one_line(res.returncode, res.stderr, f"{path}: a ", "holds two levels, not the values of a sensor image")
+    assert not (tmp_path / "m.h5").exists()

@@ -193,6 +193,14 @@ def test_tabulated_material_rejects_bad_tables(tmp_path, text):
         TabulatedMaterial.from_csv(path)
 
 
+def test_a_material_table_with_a_header_only_says_so(tmp_path):
+    """It was told it lacked the columns its header names (session 37's hunt)."""
+    path = tmp_path / "empty.csv"
+    path.write_text("wavelength_nm,n\n", encoding="utf-8")
+    with pytest.raises(InputError, match=r"empty.csv: the material table has 0 row\(s\) under its header; it needs two"):
+        TabulatedMaterial.from_csv(path)
+
+
 def test_unknown_material_and_missing_file(tmp_path):
     with pytest.raises(InputError):
         get_material("unobtainium")

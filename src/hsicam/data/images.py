@@ -183,7 +183,9 @@ def _read_npy(path: Path, what: str) -> tuple[np.ndarray, np.dtype]:
         raise InputError(f"{path}: not a plain .npy array")
     _check_pixels(path, mm.shape, what)
     _squeeze_2d(path, mm.shape, what)
-    if mm.dtype.kind not in "uifb":
+    if mm.dtype.kind == "b":
+        raise InputError(_binary_image(path, what, "a bool array"))
+    if mm.dtype.kind not in "uif":
         raise InputError(f"{path}: unsupported data type {mm.dtype} (expected integers or floats)")
     try:
         arr = np.array(mm)
@@ -201,7 +203,9 @@ def _read_png(path: Path, what: str) -> tuple[np.ndarray, np.dtype]:
             with Image.open(path) as im:
                 w, h = im.size
                 _check_pixels(path, (h, w), what)
-                if im.mode not in ("L", "I;16", "I;16B", "I;16L", "I", "F", "1"):
+                if im.mode == "1":
+                    raise InputError(_binary_image(path, what, "a 1-bit (black and white) PNG"))
+                if im.mode not in ("L", "I;16", "I;16B", "I;16L", "I", "F"):
                     raise InputError(f"{path}: expected a single-channel (monochrome) {what}, got PNG mode {im.mode}")
                 if getattr(im, "n_frames", 1) > 1:
                     raise InputError(f"{path}: animated PNG; expected one {what}")
@@ -212,9 +216,13 @@ def _read_png(path: Path, what: str) -> tuple[np.ndarray, np.dtype]:
         raise InputError(f"{path}: {what} too large to decode") from None
     except Exception as exc:  # noqa: BLE001 - PIL raises OSError, SyntaxError, ValueError, zlib.error...
         raise InputError(f"{path}: cannot read PNG (corrupt or truncated?): {_first_line(exc)}") from None
-    if arr.dtype == bool:
-        arr = arr.astype(np.uint8)
     return arr, arr.dtype
+
+
+def _binary_image(path: Path, what: str, kind: str) -> str:
+    """The refusal of a two-level image: a mask, not sensor values (it was read as 0 and 1 of 255 DN)."""
+    return (f"{path}: {kind} holds two levels, not the values of a {what}; save the capture at its sensor's bit depth "
+            "(8- or 16-bit integers, or floats with 1 = full scale)")
 
 
 def _read_tiff(path: Path, what: str) -> tuple[np.ndarray, np.dtype]:
@@ -233,7 +241,9 @@ def _read_tiff(path: Path, what: str) -> tuple[np.ndarray, np.dtype]:
                 _check_pixels(path, page.shape, what)
                 _squeeze_2d(path, page.shape, what)
                 dtype = np.dtype(page.dtype)
-                if dtype.kind not in "uifb":
+                if dtype.kind == "b":
+                    raise InputError(_binary_image(path, what, "a 1-bit TIFF"))
+                if dtype.kind not in "uif":
                     raise InputError(f"{path}: unsupported TIFF data type {dtype}")
                 arr = page.asarray()
     except InputError:

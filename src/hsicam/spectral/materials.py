@@ -64,11 +64,16 @@ class TabulatedMaterial:
         path = Path(path)
         try:
             with open(path, newline="", encoding="utf-8") as fh:
-                rows = list(csv.DictReader(fh))
+                reader = csv.DictReader(fh)
+                rows = list(reader)
+                header = reader.fieldnames or []
         except OSError as exc:
             raise InputError(f"{path}: cannot read material table ({exc.strerror})") from None
-        if not rows or "wavelength_nm" not in rows[0] or "n" not in rows[0]:
+        if "wavelength_nm" not in header or "n" not in header:
             raise InputError(f"{path}: material CSV needs columns 'wavelength_nm' and 'n'")
+        if len(rows) < 2:
+            raise InputError(f"{path}: the material table has {len(rows)} row(s) under its header; it needs two or more "
+                             "(wavelength_nm, n) rows to interpolate between")
         try:
             wl = [float(r["wavelength_nm"]) for r in rows]
             n = [float(r["n"]) for r in rows]
