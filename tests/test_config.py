@@ -84,6 +84,14 @@ def test_negative_or_zero_lengths_are_config_errors(override):
         load_config(overrides=[override])
 
 
+def test_an_unknown_lens_material_is_refused_whatever_the_lens_model():
+    """It was accepted while lens.model achromatic ignores it (session 37's hunt); the DOE's was refused."""
+    for model in ("achromatic", "singlet"):
+        with pytest.raises(ConfigError, match="camera.lens.material: unknown material 'unobtainium'"):
+            load_config(overrides=[f"camera.lens.model={model}", "camera.lens.material=unobtainium"])
+    load_config(overrides=["camera.lens.material=glass.csv"])  # a table: read when the singlet needs it
+
+
 def test_doe_cell_larger_than_aperture():
     with pytest.raises(ConfigError, match="larger than the aperture"):
         load_config(overrides=["camera.aperture_radius_mm=0.01", "camera.doe.cell_size_um=30"])

@@ -118,6 +118,10 @@ class LensConfig:
             center_thickness_mm=self.center_thickness_mm,
             design_wavelength_nm=self.design_wavelength_nm,
         )
+        # the name is checked whatever the model (a typo is caught before the day it matters); the singlet reads it
+        if not (self.material == "fused_silica" or str(self.material).lower().endswith(".csv")):
+            raise ConfigError(f"camera.lens.material: unknown material {self.material!r}: use 'fused_silica' or a path to "
+                              "a CSV file (wavelength_nm,n)")
 
     def design_focal_length_mm(self) -> float:
         """f at ``design_wavelength_nm`` (mm): ``focal_length_mm`` (achromatic) or R / (n(λ0) − 1)
