@@ -22,6 +22,9 @@ SCRIPT = textwrap.dedent("""
     import hsicam.io
     where, how, sensor, out = sys.argv[1:5]
     sig = {"term": signal.SIGTERM, "int": signal.SIGINT}[how]
+    # as in a terminal: a test runner's worker (pytest-xdist, make) may hand its children SIGINT ignored
+    signal.signal(signal.SIGINT, signal.default_int_handler)
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)
 
     def stop(*args, **kwargs):
         os.kill(os.getpid(), sig)
