@@ -19,7 +19,8 @@ import numpy as np
 import pytest
 import torch
 
-from cli_helpers import HSICAM, assert_clean_error, cli_env, module_cache, run_cli, unprivileged_prefix
+from cli_helpers import (HSICAM, assert_clean_error, cli_env, module_cache, run_cli, run_cli_in_process,
+                         unprivileged_prefix)
 from hsicam.cli import main
 from hsicam.data.formats import write_cube_h5
 from hsicam.spectral import Bands
@@ -669,8 +670,6 @@ def small_capture(tmp_path) -> Path:
 
 
 def test_a_run_given_as_a_file_and_a_folder_given_as_the_sensor_are_named_so(small_capture, tmp_path):
-    from cli_helpers import run_cli_in_process
-
     from hsicam.runs.pretrained import root
 
     card = root() / "standard" / "config.yaml"
@@ -687,8 +686,6 @@ def test_a_run_given_as_a_file_and_a_folder_given_as_the_sensor_are_named_so(sma
     ("--auto-level", "-1", "auto_level (--auto-level) must be positive, got -1.0"),
 ])
 def test_a_bad_correction_names_its_option(small_capture, tmp_path, option, value, line):
-    from cli_helpers import run_cli_in_process
-
     res = run_cli_in_process("reconstruct", str(small_capture), "--run", "pretrained:standard", "--out",
                              str(tmp_path / "c.h5"), option, value)
     assert_one_line(res.returncode, res.stderr, line)
@@ -724,7 +721,6 @@ def test_a_two_level_image_is_no_capture(tmp_path, kind):
     bool .npy was taken as it was (session 37's hunt)."""
     import tifffile
     from PIL import Image
-    from cli_helpers import run_cli_in_process
 
     mask = np.random.default_rng(0).random((48, 48)) > 0.5
     path = tmp_path / f"mask.{kind}"

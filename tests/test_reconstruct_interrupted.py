@@ -18,7 +18,6 @@ from cli_helpers import cli_env
 # (the patched function sends the signal to its own process, as `kill` would, then waits for it to act).
 SCRIPT = textwrap.dedent("""
     import os, signal, sys, time
-    import hsicam.cli.reconstruct as rec
     import hsicam.io
     where, how, sensor, out = sys.argv[1:5]
     sig = {"term": signal.SIGTERM, "int": signal.SIGINT}[how]
@@ -31,8 +30,7 @@ SCRIPT = textwrap.dedent("""
         time.sleep(10)  # the handler acts at once; this line is never finished
         raise AssertionError("the signal did not stop the command")
 
-    if where == "reconstruction":
-        rec.reconstruct_tiled = stop  # imported inside cmd_reconstruct from hsicam.engine.inference
+    if where == "reconstruction":  # cmd_reconstruct imports it from hsicam.engine.inference when it runs
         import hsicam.engine.inference
         hsicam.engine.inference.reconstruct_tiled = stop
     else:  # the preview, after the cube was written
