@@ -9,7 +9,7 @@ import argparse
 import pytest
 
 from hsicam.cli import main
-from hsicam.cli.args import count_arg
+from hsicam.cli.args import count_arg, non_negative_number_arg
 from hsicam.config import PRESETS_DIR
 
 
@@ -36,6 +36,39 @@ def test_count_arg(text, message):
     else:
         with pytest.raises(argparse.ArgumentTypeError, match=rf"^{message}$"):
             count_arg(text)
+
+
+@pytest.mark.parametrize("text,message", [("0", None), ("0.002", None), ("1e-3", None),
+                                          ("-1", "must be a finite number >= 0, got '-1'"),
+                                          ("-0.001", "must be a finite number >= 0, got '-0.001'"),
+                                          ("nan", "must be a finite number >= 0, got 'nan'"),
+                                          ("inf", "must be a finite number >= 0, got 'inf'"),
+                                          ("high", "must be a finite number >= 0, got 'high'")])
+def test_non_negative_number_arg(text, message):
+    if message is None:
+        assert non_negative_number_arg(text) == float(text)
+    else:
+        with pytest.raises(argparse.ArgumentTypeError, match=rf"^{message}$"):
+            non_negative_number_arg(text)
+
+
+@pytest.mark.parametrize("option", ["--sensor-sigma", "--sigma-height-nm"])
+def test_a_negative_test_noise_level_is_a_usage_error_before_the_data_is_read(tmp_path, capsys, monkeypatch, option):
+    """``evaluate --sensor-sigma -1`` was refused only after the --data folder had been scanned and
+    the method built (a negative σ once scored NaN as "inf dB"); now it is a usage error of the
+    option, before any scene is listed and before --out exists."""
+    import hsicam.data.datasets as datasets
+
+    def no_scan(*a, **k):
+        raise AssertionError("the data folder was scanned before the noise level was checked")
+
+    monkeypatch.setattr(datasets, "list_scenes", no_scan)
+    data, out = tmp_path / "data", tmp_path / "ev"
+    data.mkdir()
+    line = one_line_error(capsys, ["evaluate", "--config", "tiny", "--data", str(data), "--out", str(out),
+                                   option, "-1"])
+    assert line == f"hsicam: error: argument {option}: must be a finite number >= 0, got '-1'"
+    assert not out.exists()
 
 
 @pytest.mark.parametrize("value", ["0", "-1"])

@@ -261,6 +261,29 @@ def test_patch_px_below_the_ssim_window_is_refused():
         ssim(x[..., 1:, 1:], x[..., 1:, 1:])
 
 
+def test_a_patch_larger_than_the_synthetic_scenes_is_refused_before_they_are_generated(tmp_path, monkeypatch):
+    """``data.patch_px=100000`` was refused only after the whole synthetic dataset had been generated
+    (by the first scene's size check); now the config's sizes are compared first, the camera's margin
+    counted, and nothing is written to the cache."""
+    import hsicam.data.pipeline as pipeline
+
+    def no_generation(*a, **k):
+        raise AssertionError("the synthetic dataset was generated before the patch size was checked")
+
+    monkeypatch.setattr(pipeline, "dataset_root", no_generation)
+    cfg = load_config(overrides=["data.synthetic_size=64", "data.patch_px=60", f"data.cache_dir={tmp_path}"])
+    with pytest.raises(ConfigError, match=r"^data.patch_px 60 plus the camera margin of 5 px needs scenes of 65 px, "
+                                          r"but the synthetic scenes are data.synthetic_size=64 px: lower "
+                                          r"data.patch_px to <= 59 or raise data.synthetic_size$"):
+        pipeline.build_datasets(cfg.data, cfg.bands.to_bands(), 5)
+    cfg.data.check_patches(4)  # 60 + 4 = 64 fits exactly
+    with pytest.raises(AssertionError, match="generated"):  # so the data would be built next
+        pipeline.build_datasets(cfg.data, cfg.bands.to_bands(), 4)
+    # a folder of scenes is checked as it is read (its scenes' sizes are not in the config)
+    load_config(overrides=["data.synthetic_size=64", "data.patch_px=60", f"data.root={tmp_path}"]).data.check_patches(5)
+    assert not any(tmp_path.iterdir())
+
+
 @pytest.mark.parametrize("override", ["train.lr=inf", "train.lr=-inf", "train.lr=.inf", "train.lr=nan", "train.lr=.NaN",
                                       "train.lr=Infinity", "train.lr=1e400", f"train.lr={10**400}",
                                       "camera.sensor.read_noise_e=.inf", "model.mosaic.brightness_eps=.nan",

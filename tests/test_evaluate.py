@@ -101,11 +101,6 @@ def test_small_scenes_are_one_clear_error_and_score_whole_with_boundary_same(run
     truth, _, _ = read_cube(out / "cubes" / "small_truth.h5")
     est, _, _ = read_cube(out / "cubes" / "small_estimate.h5")
     assert truth.shape == est.shape == (len(bands), 26, 40)  # the whole scene, not its valid centre
-    # a negative test noise level was taken as given (NaN scored "inf dB"): one clear error, nothing written
-    res = run_cli("evaluate", "--run", str(run), "--data", str(data), "--out", str(tmp_path / "neg"),
-                  "--sensor-sigma", "-1", "--set", "camera.boundary=same", env=env)
-    assert_clean_error(res, "sensor_sigma=-1.0")
-    assert not (tmp_path / "neg" / "results.json").exists()
 
 
 def test_evaluate_scores_npy_cubes_on_the_grid_data_npy_bands_gives(run, env, tmp_path):

@@ -577,12 +577,20 @@ class DataConfig:
     # the cube is resampled from this grid onto the camera's.
     npy_bands: Optional[NpyBandsConfig] = None
 
-    def check_patches(self) -> None:
-        """ConfigError unless the patches can be scored: checked when patches are built (training), not
-        when a finished run's config is read, so a run trained with smaller patches still loads."""
+    def check_patches(self, margin_px: int = 0) -> None:
+        """ConfigError unless the patches can be scored and, for the synthetic data (``root`` null), fit
+        its scenes with the camera's ``margin_px`` (kernel_px − 1): checked when patches are built
+        (training), before the synthetic dataset is generated, not when a finished run's config is read,
+        so a run trained with smaller patches still loads. (Scenes of ``root`` are checked as they are
+        read: :class:`hsicam.data.datasets.PatchDataset`.)"""
         if self.patch_px < MIN_PATCH_PX:
             raise ConfigError(f"data.patch_px must be >= {MIN_PATCH_PX} px (SSIM, scored on every validation patch and "
                               f"by train.ssim_loss, uses an {MIN_PATCH_PX}×{MIN_PATCH_PX} px window), got {self.patch_px}")
+        if self.root is None and self.patch_px + margin_px > self.synthetic_size:
+            raise ConfigError(f"data.patch_px {self.patch_px} plus the camera margin of {margin_px} px needs scenes of "
+                              f"{self.patch_px + margin_px} px, but the synthetic scenes are data.synthetic_size="
+                              f"{self.synthetic_size} px: lower data.patch_px to <= {self.synthetic_size - margin_px} "
+                              f"or raise data.synthetic_size")
 
     def __post_init__(self) -> None:
         for name in ("synthetic_n", "patch_px", "patches_per_epoch", "val_patches"):

@@ -63,6 +63,19 @@ def positive_number_arg(text: str) -> float:
     return value
 
 
+def non_negative_number_arg(text: str) -> float:
+    """argparse ``type`` of an option that must be a finite number >= 0 (a noise level: ``evaluate
+    --sensor-sigma``, ``--sigma-height-nm``): ``inf``, ``nan`` and negative values are usage errors,
+    before any data is read."""
+    try:
+        value = float(text)
+    except ValueError:
+        value = math.nan
+    if not (math.isfinite(value) and value >= 0):
+        raise argparse.ArgumentTypeError(f"must be a finite number >= 0, got {_shown(text)}")
+    return value
+
+
 def count_arg(text: str) -> int:
     """argparse ``type`` of an option that counts something and needs at least one (``--seeds``):
     an integer >= 1; 0, negative and non-integer values are usage errors."""

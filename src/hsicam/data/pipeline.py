@@ -136,7 +136,7 @@ def build_datasets(cfg: DataConfig, bands: Bands, margin_px: int, *, progress: b
     ``margin_px`` is the camera's ``valid``-convolution margin (kernel_px − 1). Scenes are split at
     scene level with ``cfg.split_seed``; validation patches are fixed and not augmented.
     """
-    cfg.check_patches()
+    cfg.check_patches(margin_px)  # before the synthetic data is generated
     root = dataset_root(cfg, bands, progress=progress)
     scenes = list_scenes(root)
     train_scenes, val_scenes = _split(cfg, scenes)
