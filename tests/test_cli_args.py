@@ -119,3 +119,51 @@ def test_a_config_file_with_a_key_given_twice_is_refused(tmp_path, capsys):
                                    "--out", str(tmp_path / "psf")])
     assert "key 'camera.doe.seed' is given twice; give it once" in line
     assert sorted(p.name for p in tmp_path.iterdir()) == ["dup.yaml"]
+
+
+@pytest.mark.parametrize("option,value,message", [
+    ("--max-scenes", "0", "must be >= 1, got 0"),
+    ("--draws", "-1", "must be >= 1, got -1"),
+    ("--shift-subsamples", "0", "must be >= 1, got 0"),
+    ("--sigma-height-nm", "0,10,-5", "every value must be a finite number >= 0, got -5"),
+    ("--sigma-height-nm", "nan", "every value must be a finite number >= 0, got nan"),
+    ("--levels", "2,1", "every value must be >= 2 (height levels), got 1"),
+    ("--levels", "2.5", "expected comma-separated integers, got '2.5'"),
+    ("--shift-cells", "0,inf", "every value must be finite, got inf"),
+    ("--sensor-distance-um", "nan", "every value must be finite, got nan"),
+])
+def test_tolerance_options_out_of_range_are_usage_errors_naming_the_option(tmp_path, capsys, monkeypatch, option,
+                                                                            value, message):
+    """``tolerance --max-scenes 0`` (or ``--draws``, ``--shift-subsamples``, a negative σ_p, a level
+    below 2) used to load the run and then say "height_draws, max_scenes and shift_subsamples must be
+    >= 1", naming none of the options; now each is a usage error of its option before any work."""
+    import hsicam.runs.folder as folder
+
+    def no_load(*a, **k):
+        raise AssertionError("the run was loaded before the options were checked")
+
+    monkeypatch.setattr(folder, "load_run", no_load)
+    out = tmp_path / "tol"
+    line = one_line_error(capsys, ["tolerance", "--run", "pretrained:standard", "--out", str(out), f"{option}={value}"])
+    assert line == f"hsicam: error: argument {option}: {message}"
+    assert not out.exists()
+
+
+@pytest.mark.parametrize("field,value,message", [
+    ("max_scenes", 0, "ToleranceSpec.max_scenes must be >= 1, got 0"),
+    ("height_draws", -2, "ToleranceSpec.height_draws must be >= 1, got -2"),
+    ("shift_subsamples", 0, "ToleranceSpec.shift_subsamples must be >= 1, got 0"),
+    ("sigma_height_nm", (0.0, -1.0), "ToleranceSpec.sigma_height_nm values must be finite and >= 0, got -1"),
+    ("levels", (4, 1), r"ToleranceSpec.levels \(height levels\) must be >= 2, got 1"),
+    ("shift_cells", (0.0, float("nan")), "ToleranceSpec.shift_cells values must be finite, got nan"),
+    ("sensor_distance_um", (float("-inf"),), "ToleranceSpec.sensor_distance_um values must be finite, got -inf"),
+])
+def test_tolerance_spec_names_the_field_it_refuses(field, value, message):
+    from dataclasses import replace
+
+    from hsicam.engine.tolerance import ToleranceSpec
+    from hsicam.errors import InputError
+
+    ToleranceSpec().check()  # the defaults pass
+    with pytest.raises(InputError, match=rf"^{message}$"):
+        replace(ToleranceSpec(), **{field: value}).check()
