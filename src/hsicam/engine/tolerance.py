@@ -83,14 +83,21 @@ class ToleranceSpec:
     seed: int = 0
 
     def check(self) -> None:
-        if self.height_draws < 1 or self.max_scenes < 1 or self.shift_subsamples < 1:
-            raise InputError("height_draws, max_scenes and shift_subsamples must be >= 1")
-        if any(s < 0 or not math.isfinite(s) for s in self.sigma_height_nm):
-            raise InputError("sigma_height_nm values must be >= 0")
-        if any(lv < 2 for lv in self.levels):
-            raise InputError("quantisation levels must be >= 2")
-        if any(not math.isfinite(v) for v in (*self.shift_cells, *self.sensor_distance_um)):
-            raise InputError("shift and sensor distance values must be finite")
+        """InputError naming the first field (and its value) that cannot be swept. The command line
+        refuses the same values as usage errors of their options before the run is loaded."""
+        for name in ("height_draws", "max_scenes", "shift_subsamples"):
+            if getattr(self, name) < 1:
+                raise InputError(f"ToleranceSpec.{name} must be >= 1, got {getattr(self, name)}")
+        bad = [s for s in self.sigma_height_nm if not (math.isfinite(s) and s >= 0)]
+        if bad:
+            raise InputError(f"ToleranceSpec.sigma_height_nm values must be finite and >= 0, got {bad[0]:g}")
+        bad = [lv for lv in self.levels if lv < 2]
+        if bad:
+            raise InputError(f"ToleranceSpec.levels (height levels) must be >= 2, got {bad[0]}")
+        for name in ("shift_cells", "sensor_distance_um"):
+            bad = [v for v in getattr(self, name) if not math.isfinite(v)]
+            if bad:
+                raise InputError(f"ToleranceSpec.{name} values must be finite, got {bad[0]:g}")
 
 
 # ------------------------------------------------------------------------------------------------
