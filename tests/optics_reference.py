@@ -61,3 +61,50 @@ def square_cell_psf(u: np.ndarray, cell_m: float, lam_m: float, z_m: float, pixe
 
 def relative_l1(a: np.ndarray, ref: np.ndarray) -> float:
     return float(np.abs(a - ref).sum() / np.abs(ref).sum())
+
+
+# --------------------------------------------------------------------------------------------
+# The camera model written out: direct shift-and-add, no FFT, no code of the package
+# (tests/test_camera.py's operator tests and the command-line tests)
+# --------------------------------------------------------------------------------------------
+NP_PAD = {"zeros": "constant", "reflect": "reflect", "replicate": "edge", "circular": "wrap"}
+
+
+def direct_valid_conv(x: np.ndarray, psf: np.ndarray) -> np.ndarray:
+    """Per-band valid convolution by explicit shift-and-add (numpy float64), from the physics.
+
+    PSF (C, K, K) with the optical axis on pixel (K//2, K//2); output pixel (i, j) is on the axis
+    of scene pixel (i + K//2, j + K//2): out[i, j] = Σ_d p[d] · f[axis(i, j) − d]. Scene (B, C, H', W').
+    """
+    r = psf.shape[-1] // 2
+    h, w = x.shape[-2] - 2 * r, x.shape[-1] - 2 * r
+    out = np.zeros((x.shape[0], x.shape[1], h, w))
+    for dy in range(-r, r + 1):  # displacement d = (dy, dx) of the light from the axis
+        for dx in range(-r, r + 1):
+            shifted = x[:, :, r - dy : r - dy + h, r - dx : r - dx + w]  # f[axis − d]
+            out += psf[None, :, r + dy, r + dx, None, None] * shifted
+    return out
+
+
+def reference_measurement(x: np.ndarray, psf: np.ndarray, weights: np.ndarray | None, boundary: str,
+                          padding: str) -> np.ndarray:
+    """Direct (non-FFT) camera model: g = Σ_c κ_c ⊙ (f_c ⊛ p_c), (B, 1, H, W) float64.
+
+    Scene x (B, C, H', W'); raw CFA weights (C, m, m) (ReLU, normalised over bands, tiled from
+    sensor pixel (0, 0); every pixel needs a positive weight) or None for κ = 1. 'same' pads the
+    scene by K//2 with numpy's modes (``padding``: zeros, reflect, replicate, circular).
+    """
+    r = psf.shape[-1] // 2
+    x = np.asarray(x, dtype=np.float64)
+    if boundary == "same":
+        x = np.pad(x, ((0, 0), (0, 0), (r, r), (r, r)), mode=NP_PAD[padding])
+    out = direct_valid_conv(x, np.asarray(psf, dtype=np.float64))
+    h, w = out.shape[-2:]
+    if weights is None:
+        kappa = np.ones((x.shape[1], h, w))
+    else:
+        t = np.maximum(np.asarray(weights, dtype=np.float64), 0.0)
+        t = t / t.sum(axis=0, keepdims=True)
+        m = t.shape[-1]
+        kappa = np.tile(t, (1, -(-h // m), -(-w // m)))[:, :h, :w]
+    return (out * kappa[None]).sum(axis=1, keepdims=True)

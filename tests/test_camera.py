@@ -4,7 +4,6 @@
 from __future__ import annotations
 
 import itertools
-import math
 
 import numpy as np
 import pytest
@@ -12,11 +11,11 @@ import torch
 from torch.func import functional_call
 
 from hsicam.errors import InputError
+from optics_reference import direct_valid_conv, reference_measurement
 from hsicam.optics.convolution import coded_conv_valid, coded_conv_valid_adjoint, conv_valid_adjoint
 
 BOUNDARIES = [("valid", "zeros"), ("same", "zeros"), ("same", "reflect"), ("same", "replicate"), ("same", "circular")]
 SWITCHES = list(itertools.product([True, False], [True, False]))  # (DOE enabled, CFA enabled)
-NP_PAD = {"zeros": "constant", "reflect": "reflect", "replicate": "edge", "circular": "wrap"}
 SENSOR_HW = (8, 10)  # not a multiple of the 3×3 CFA period, not square
 
 
@@ -32,43 +31,6 @@ def _scene(cam, batch: int = 2, seed: int = 0, dtype=torch.float64, positive: bo
     g = torch.Generator().manual_seed(seed)
     x = torch.rand(batch, len(cam.bands), h, w, generator=g, dtype=dtype)
     return x if positive else x - 0.5
-
-
-def direct_valid_conv(x: np.ndarray, psf: np.ndarray) -> np.ndarray:
-    """Per-band valid convolution by explicit shift-and-add (numpy float64), from the physics.
-
-    PSF (C, K, K) with the optical axis on pixel (K//2, K//2); output pixel (i, j) is on the axis
-    of scene pixel (i + K//2, j + K//2): out[i, j] = Σ_d p[d] · f[axis(i, j) − d].
-    """
-    r = psf.shape[-1] // 2
-    h, w = x.shape[-2] - 2 * r, x.shape[-1] - 2 * r
-    out = np.zeros((x.shape[0], x.shape[1], h, w))
-    for dy in range(-r, r + 1):  # displacement d = (dy, dx) of the light from the axis
-        for dx in range(-r, r + 1):
-            shifted = x[:, :, r - dy : r - dy + h, r - dx : r - dx + w]  # f[axis − d]
-            out += psf[None, :, r + dy, r + dx, None, None] * shifted
-    return out
-
-
-def reference_measurement(x: np.ndarray, psf: np.ndarray, weights: np.ndarray | None, boundary: str, padding: str) -> np.ndarray:
-    """Direct (non-FFT) camera model: g = Σ_c κ_c ⊙ (f_c ⊛ p_c).
-
-    Scene x (B, C, H', W'); raw CFA weights (C, m, m) (ReLU, normalised over bands, tiled from
-    sensor pixel (0, 0)) or None for κ = 1. 'same' pads the scene by K//2 with numpy's modes.
-    """
-    r = psf.shape[-1] // 2
-    if boundary == "same":
-        x = np.pad(x, ((0, 0), (0, 0), (r, r), (r, r)), mode=NP_PAD[padding])
-    out = direct_valid_conv(x, psf)
-    h, w = out.shape[-2:]
-    if weights is None:
-        kappa = np.ones((x.shape[1], h, w))
-    else:
-        t = np.maximum(weights, 0.0)
-        t = t / t.sum(axis=0, keepdims=True)
-        m = t.shape[-1]
-        kappa = np.tile(t, (1, math.ceil(h / m), math.ceil(w / m)))[:, :h, :w]
-    return (out * kappa[None]).sum(axis=1, keepdims=True)
 
 
 def _np(t: torch.Tensor) -> np.ndarray:

@@ -82,12 +82,20 @@ def test_adjointness_float64(case, zero_mean):
     assert cam.adjointness_error(SCENE_HW, torch.Generator().manual_seed(0)) < 1e-12
 
 
+def _dense(cam) -> torch.Tensor:
+    """The matrix of ``cam.A`` on scenes of SCENE_HW, (m, n): column j = A e_j (unit-vector scenes)."""
+    c, (h, w) = len(cam.bands), SCENE_HW
+    n = c * h * w
+    basis = torch.eye(n, dtype=torch.float64).reshape(n, c, h, w)
+    with torch.no_grad():
+        return cam.A(basis).reshape(n, -1).T
+
+
 def test_dense_transpose_and_gram_diagonal(case):
     _, _, cam = case
     c, (h, w) = len(cam.bands), SCENE_HW
     n = c * h * w
-    basis = torch.eye(n, dtype=torch.float64).reshape(n, c, h, w)
-    a = cam.A(basis).reshape(n, -1).T  # (m, n): column j = A e_j
+    a = _dense(cam)  # (m, n): column j = A e_j
     m = a.shape[0]
     ybasis = torch.eye(m, dtype=torch.float64).reshape(m, 1, *cam.sensor_size(SCENE_HW))
     at = cam.A_adjoint(ybasis).reshape(m, n)  # row i = Aᵀ e_i
@@ -210,9 +218,14 @@ def test_bad_shapes_are_input_errors(case):
 
 @torch.no_grad()  # values only: no autograd graph, no grad-to-scalar warnings
 def test_sqnorm_is_the_largest_gain(case):
+    """``sqnorm`` is ‖A‖² itself (its docstring: the largest eigenvalue of AᵀA, by the power method),
+    not a bound: it equals the squared spectral norm of the dense matrix built from unit vectors,
+    and no scene has a larger gain."""
     _, _, cam = case
     s = cam.sqnorm(SCENE_HW, iterations=60, generator=torch.Generator().manual_seed(0))
     assert s > 0 and torch.isfinite(torch.tensor(s))
+    exact = float(torch.linalg.matrix_norm(_dense(cam), 2) ** 2)
+    assert s == pytest.approx(exact, rel=1e-5)
     for seed in range(3):
         x = _scene(cam, seed=20 + seed)
         assert float(cam.A(x).square().sum() / x.square().sum()) <= s * (1 + 1e-6)

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from cli_helpers import assert_clean_error, run_cli
-from optics_reference import doe_field, relative_l1, square_cell_psf
+from optics_reference import doe_field, reference_measurement, relative_l1, square_cell_psf
 
 TINY = ["--set", "camera.aperture_radius_mm=0.6", "--set", "camera.lens.focal_length_mm=5",
         "--set", "bands.step_nm=50", "--set", "camera.cfa.period=3"]
@@ -57,11 +57,15 @@ def test_psf_paper_defaults_kernel_141(tmp_path):
 
 
 def test_simulate_command_outputs(tmp_path):
+    """sensor.npy is the camera model's image of the scene: the direct shift-and-add reference
+    g = Σ_c κ_c ⊙ (f_c ⊛ p_c) ('same' boundary, the config's padding) with the PSFs and CFA weights
+    of the camera built from the same settings, noise off, within float32 rounding."""
     rng = np.random.default_rng(0)
     scene = rng.uniform(0, 1, size=(7, 40, 48)).astype(np.float32)
     np.save(tmp_path / "scene.npy", scene)
     out = tmp_path / "out"
-    proc = run_cli("simulate", "--scene", str(tmp_path / "scene.npy"), "--out", str(out), *TINY)
+    noise_off = ["--set", "camera.sensor.sigma=0", "--set", "camera.doe.sigma_height_nm=0"]
+    proc = run_cli("simulate", "--scene", str(tmp_path / "scene.npy"), "--out", str(out), *TINY, *noise_off)
     assert proc.returncode == 0, proc.stderr
     # the grid it assumed is said (evaluate --data takes a .npy as 400-700 nm, and would refuse this one)
     assert "its 7 bands were taken as the camera's (420-720 nm): give data.npy_bands if they are not" in proc.stderr
@@ -73,6 +77,21 @@ def test_simulate_command_outputs(tmp_path):
     np.testing.assert_allclose(png / 65535.0 * meta["sensor_png_scale"], sensor, atol=1.0 / 65535 * meta["sensor_png_scale"])
     for name in ("cfa.png", "doe.png"):
         assert iio.imread(out / name).ndim == 3
+
+    import torch
+
+    from hsicam.cameras import DOECamera
+    from hsicam.config import load_config
+
+    cfg = load_config(overrides=[*TINY[1::2], *noise_off[1::2], "camera.boundary=same"])
+    cam = DOECamera.from_config(cfg)
+    with torch.no_grad():
+        psf = cam.psf().double().numpy()
+        weights = cam.cfa.weights.detach().double().numpy()
+    assert weights.shape == (7, 3, 3) and weights.max() > 0
+    want = reference_measurement(scene[None], psf, weights, "same", cfg.camera.padding)[0, 0]
+    assert float(np.abs(want).max()) > 0.1
+    np.testing.assert_allclose(sensor, want, rtol=0, atol=2e-6 * float(np.abs(want).max()))
 
 
 def test_simulate_png_keeps_its_scale_when_copied_elsewhere(tmp_path):

@@ -31,6 +31,35 @@ def _snapshot(seed: int = 0) -> DOESnapshot:
     return DOESnapshot(Bands.uniform(500, 700, 100), psf, tile, M)
 
 
+def _lipschitz_bound(psf: np.ndarray, tile: np.ndarray) -> float:
+    """L = max_c (Σ_kl p_c[k, l])² · max_pixel Σ_c κ_c² (Young's inequality per band, Cauchy–Schwarz
+    over the bands), by loops over the test's own PSF stack (C, K, K) and CFA tile (C, M, M)."""
+    psf_sum = max(float(sum(psf[c, k, l] for k in range(psf.shape[1]) for l in range(psf.shape[2])))
+                  for c in range(psf.shape[0]))
+    code = max(float(sum(tile[c, i, j] ** 2 for c in range(tile.shape[0])))
+               for i in range(tile.shape[1]) for j in range(tile.shape[2]))
+    return psf_sum**2 * code
+
+
+def _snapshot_lipschitz(snap: DOESnapshot) -> float:
+    return _lipschitz_bound(snap.psf.numpy(), snap.tile.numpy())
+
+
+def test_snapshot_lipschitz_is_the_bound_from_its_psf_and_cfa():
+    """DOESnapshot.lipschitz = max_c ‖p_c‖₁² · max_pixel Σ_c κ_c², computed here from the PSF and tile
+    handed to it (PSFs of different energies, so the band maximum matters), and it bounds ‖A‖² of
+    the dense matrix (largest singular value squared)."""
+    g = torch.Generator().manual_seed(21)
+    psf = torch.rand(C, K, K, generator=g, dtype=torch.float64)
+    psf = psf / psf.sum(dim=(-2, -1), keepdim=True) * torch.tensor([0.5, 1.3, 0.8], dtype=torch.float64)[:, None, None]
+    tile = torch.rand(C, M, M, generator=g, dtype=torch.float64)
+    snap = DOESnapshot(Bands.uniform(500, 700, 100), psf, tile, M)
+    want = _lipschitz_bound(psf.numpy(), tile.numpy())
+    assert snap.lipschitz == pytest.approx(want, rel=1e-12)
+    norm2 = np.linalg.norm(_dense_valid(snap, 7, 8, (0, 0)), 2) ** 2
+    assert 0 < norm2 <= want * (1 + 1e-12)
+
+
 def _dense_valid(snap: DOESnapshot, h: int, w: int, origin: tuple[int, int]) -> np.ndarray:
     """Matrix of the physical (valid) operator from the definitions: the sensor window (h, w) at
     ``origin`` sees the cube on (h + K − 1, w + K − 1) through y[i, j] = Σ_c κ_c(i, j) Σ_kl
@@ -61,7 +90,7 @@ def test_step_matches_a_dense_matrix_reference():
     a = _dense_valid(snap, h, w, origin)
     r = K // 2
     xe = np.pad(x0[0].numpy(), ((0, 0), (r, r), (r, r)), mode="edge").reshape(-1)
-    lam = damping * snap.lipschitz
+    lam = damping * _snapshot_lipschitz(snap)
     d = a @ (a.T @ np.ones(h * w)) + lam
     x1 = xe + a.T @ ((y.numpy().reshape(-1) - a @ xe) / d)
     want = x1.reshape(C, h + 2 * r, w + 2 * r)[:, r:-r, r:-r]
@@ -85,7 +114,7 @@ def test_steps_never_grow_the_error_nor_the_weighted_residual(seed):
     [0, 1]), so the error never grows, and the D⁻¹-weighted residual never grows. A
     high-contrast CFA (one band nearly dark per pixel) is where a plain gradient step overshoots."""
     snap, truth, y, x0 = _high_contrast_problem(seed, seed + 100, (2, C, 14, 11))
-    d = snap.A(snap.A_adjoint(torch.ones_like(y[:1]))) + 1e-6 * snap.lipschitz
+    d = snap.A(snap.A_adjoint(torch.ones_like(y[:1]))) + 1e-6 * _snapshot_lipschitz(snap)
     errors, weighted = [], []
     for n in range(5):
         x = consistency_step(snap, y, x0, damping=1e-6, iterations=n, psf_energy=1.0, extend=False)
@@ -468,7 +497,7 @@ def test_spectral_prior_step_matches_a_dense_matrix_reference(alpha):
     xe3 = np.pad(x0[0].numpy(), ((0, 0), (r, r), (r, r)), mode="edge")
     xe = xe3.reshape(-1)
     s = _dense_spectral_prior(xe3, alpha)
-    d = a @ (s @ (a.T @ np.ones(h * w))) + 0.05 * snap.lipschitz
+    d = a @ (s @ (a.T @ np.ones(h * w))) + 0.05 * _snapshot_lipschitz(snap)
     x1 = xe + s @ (a.T @ ((y.numpy().reshape(-1) - a @ xe) / d))
     want = x1.reshape(C, h + 2 * r, w + 2 * r)[:, r:-r, r:-r]
     np.testing.assert_allclose(got[0].numpy(), want, rtol=1e-10, atol=1e-12)
@@ -487,7 +516,7 @@ def test_spectral_prior_steps_never_grow_the_error_in_the_priors_metric(seed):
     xe = x0[0].numpy()
     s_inv = np.linalg.inv(_dense_spectral_prior(xe, alpha))
     prior = spectral_preconditioner(x0, alpha)
-    d = snap.A(prior(snap.A_adjoint(torch.ones_like(y)))) + 1e-6 * snap.lipschitz
+    d = snap.A(prior(snap.A_adjoint(torch.ones_like(y)))) + 1e-6 * _snapshot_lipschitz(snap)
     errors, weighted = [], []
     for n in range(5):
         x = consistency_step(snap, y, x0, damping=1e-6, iterations=n, psf_energy=1.0, extend=False, spectral_prior=alpha)

@@ -7,7 +7,7 @@ import math
 
 import pytest
 import torch
-from skimage.metrics import peak_signal_noise_ratio, structural_similarity
+from skimage.metrics import mean_squared_error, peak_signal_noise_ratio, structural_similarity
 
 from hsicam import metrics
 
@@ -104,6 +104,21 @@ def test_ergas_closed_form():
     truth = torch.full((1, 2, 4, 4), 0.5, dtype=torch.float64)
     est = truth + 0.05  # RMSE 0.05 per band, mean 0.5 → 100 · 0.1
     assert metrics.ergas(est, truth).item() == pytest.approx(10.0)
+
+
+def test_rmse_matches_skimage_per_cube_and_closed_form():
+    """RMSE of each cube of a batch is √(scikit-image's mean squared error over the whole cube);
+    a constant offset of 0.05 gives 0.05 (3-D input is one cube)."""
+    rng = np.random.default_rng(7)
+    truth = rng.uniform(0, 1, (3, 4, 17, 13))
+    est = np.clip(truth + rng.normal(0, 0.1, truth.shape), 0, 1)
+    got = metrics.rmse(torch.from_numpy(est), torch.from_numpy(truth))
+    assert got.shape == (3,)
+    for b in range(3):
+        ref = np.sqrt(mean_squared_error(truth[b], est[b]))
+        assert got[b].item() == pytest.approx(ref, rel=1e-12)
+    cube = torch.full((2, 5, 6), 0.5, dtype=torch.float64)
+    assert metrics.rmse(cube + 0.05, cube).tolist() == pytest.approx([0.05], rel=1e-12)
 
 
 # band matrices (patch sizes); shifted multiply-adds (large images), all bands at once or one at a time

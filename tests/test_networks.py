@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import copy
 import dataclasses
+import math
 
 import pytest
 import torch
@@ -114,6 +115,10 @@ def test_snapshot_window_at_origin_is_a_crop(kind):
 
 
 def test_snapshot_lipschitz_bounds_the_operator_norm():
+    """L ≥ ‖A‖² (power iteration on AᵀA) for every snapshot. DOE: L is max_c ‖p_c‖₁² · max_pixel
+    Σ_c κ_c², recomputed here from the snapshot's PSF stack and CFA tile. DD-CASSI: ΦΦᵀ is diagonal
+    with entries s² Σ_c P(shifted)², and a 20×24 window of the random binary aperture has pixels
+    whose C shifted code entries are all open, so L = s²·C is reached (power iteration ≥ 0.99 L)."""
     for kind in CAMERA_KINDS:
         cam = camera(kind).double()
         op = cam.snapshot()
@@ -123,6 +128,15 @@ def test_snapshot_lipschitz_bounds_the_operator_norm():
             x = x / x.norm()
         sq = float(op.A(x).square().sum().detach())
         assert 0 < sq <= op.lipschitz * (1 + 1e-9), kind
+        if kind == "doe":
+            psf, tile = op.psf.detach().double(), op.tile.detach().double()
+            psf_sum = max(float(psf[c].sum()) for c in range(psf.shape[0]))
+            code = max(float(sum(tile[c, i, j] ** 2 for c in range(tile.shape[0])))
+                       for i in range(tile.shape[1]) for j in range(tile.shape[2]))
+            assert op.lipschitz == pytest.approx(psf_sum**2 * code, rel=1e-9)
+        if kind == "dd_cassi":
+            assert op.lipschitz == pytest.approx(cam.scale**2 * len(cam.bands), rel=1e-12)
+            assert sq >= 0.99 * op.lipschitz
 
 
 def test_doe_snapshot_draws_height_noise_once_and_nominal_has_none():
@@ -320,6 +334,61 @@ def test_data_step_decreases_the_residual(kind):
             assert float(net._prior(k)(x).abs().max()) == 0.0
             res.append(float((op.A(x) - y).norm()))
     assert all(b < a for a, b in zip(res, res[1:])), res
+
+
+def _dense_operator(op, hw: tuple[int, int]) -> torch.Tensor:
+    """Matrix (h·w, C·H'·W') of the snapshot's A on sensor windows of ``hw`` at origin (0, 0), one
+    column per unit-vector cube (float64)."""
+    c = len(op.bands)
+    sh, sw = op.scene_size(hw)
+    n = c * sh * sw
+    eye = torch.eye(n, dtype=torch.float64).reshape(n, c, sh, sw)
+    with torch.no_grad():
+        return op.A(eye).reshape(n, -1).T.contiguous()
+
+
+def _softplus(t: float) -> float:
+    return math.log1p(math.exp(t))
+
+
+@pytest.mark.parametrize("kind", CAMERA_KINDS)
+def test_gradient_step_size_is_softplus_theta_over_l_and_one_step_is_the_dense_gradient_step(kind):
+    """α_k = softplus(θ_k) / L (α_k = model.unrolled.step_init / L before training), and a data step
+    is x − α Aᵀ(A x − y) with A a dense matrix built from unit vectors (Aᵀ its transpose); the
+    untrained one-stage network (zero prior, back-projection init Aᵀy ⊘ AᵀA𝟙) is exactly that step."""
+    cam = camera(kind).double()
+    step_init = 0.7
+    net = build_unrolled(UnrolledConfig(stages=2, init="backprojection", step_init=step_init, prior_features=4,
+                                        prior_blocks=1, prior_scale=1), cam).double()
+    lip = 3.25
+    torch.testing.assert_close(net.step_sizes(lip).detach(), torch.full((2,), step_init / lip, dtype=torch.float64),
+                               rtol=1e-6, atol=0)  # θ was set in float32
+    with torch.no_grad():
+        net.step_logits.copy_(torch.tensor([-0.4, 1.3], dtype=torch.float64))
+    want = torch.tensor([_softplus(-0.4) / lip, _softplus(1.3) / lip], dtype=torch.float64)
+    torch.testing.assert_close(net.step_sizes(lip).detach(), want, rtol=1e-12, atol=0)
+
+    op = cam.snapshot(nominal=True)
+    hw = (6, 18) if kind == "sd_cassi" else (6, 7)  # SD-CASSI: the scene is D = 12 px narrower
+    a = _dense_operator(op, hw)
+    g = torch.Generator().manual_seed(2)
+    scene_hw = op.scene_size(hw)
+    x = torch.rand(1, len(cam.bands), *scene_hw, generator=g, dtype=torch.float64)
+    y = torch.rand(1, 1, *hw, generator=g, dtype=torch.float64)
+    alpha = 0.3 / op.lipschitz
+    with torch.no_grad():
+        got = net.data_step(x, y, op, torch.tensor(alpha, dtype=torch.float64))
+    xv, yv = x.reshape(-1), y.reshape(-1)
+    torch.testing.assert_close(got.reshape(-1), xv - alpha * (a.T @ (a @ xv - yv)), rtol=1e-10, atol=1e-12)
+
+    one = build_unrolled(UnrolledConfig(stages=1, init="backprojection", step_init=step_init, prior_features=4,
+                                        prior_blocks=1, prior_scale=1), cam).double()
+    lip = op.lipschitz
+    x0 = (a.T @ yv) / (a.T @ (a @ torch.ones(a.shape[1], dtype=torch.float64))).clamp_min(1e-6 * lip)
+    x1 = x0 - (step_init / lip) * (a.T @ (a @ x0 - yv))
+    with torch.no_grad():
+        out = one(y, op)
+    torch.testing.assert_close(out.reshape(-1), x1, rtol=1e-9, atol=1e-12)
 
 
 @pytest.mark.parametrize("kind", ["dd_cassi", "sd_cassi"])
@@ -574,6 +643,45 @@ def test_tent_demosaic_is_the_weighted_bilinear_msfa_demosaic():
     assert float((box[inner] - cube[None][inner]).abs().max()) > 1e-3
     with pytest.raises(ValueError, match="tent"):
         demosaic(sensor, code, 7, "gauss")
+
+
+@pytest.mark.parametrize("origin", [(0, 0), (1, 2)])
+def test_box_demosaic_of_an_even_cfa_period_is_the_5px_box_average(origin):
+    """demosaic(kernel="box") = Σ_box κ_c g / Σ_box κ_c over a w×w box (zeros outside the image), by
+    a numpy loop with κ_c = ReLU(weights) normalised over bands, tiled from the sensor's pixel (0, 0).
+    The default box of a CFA of even period m is m + 1 px (odd: centred), of odd period m itself:
+    the period-4 tiny camera's box demosaic and the unrolled network's demosaic start use 5×5."""
+    import numpy as np
+
+    from hsicam.models.demosaic import demosaic, demosaic_window, skip_window
+
+    assert (skip_window(4), skip_window(9), skip_window(3), skip_window(2), skip_window(1)) == (5, 9, 3, 3, 1)
+    cam = camera("doe", "camera.cfa.period=4").double()
+    assert cam.code_period == 4 and demosaic_window(cam) == 5
+    net = build_unrolled(UnrolledConfig(stages=1, init="demosaic", prior_features=4, prior_blocks=1, prior_scale=2),
+                         cam).double()
+    assert net.demosaic_window == 5
+
+    h, w, win = 13, 15, 5
+    t = np.maximum(cam.cfa.weights.detach().double().numpy(), 0.0)
+    t = t / t.sum(axis=0, keepdims=True)
+    kappa = np.stack([[[t[c, (origin[0] + i) % 4, (origin[1] + j) % 4] for j in range(w)] for i in range(h)]
+                      for c in range(t.shape[0])])
+    g = torch.rand(1, 1, h, w, generator=torch.Generator().manual_seed(3), dtype=torch.float64)
+    r = win // 2
+    k = np.pad(kappa, ((0, 0), (r, r), (r, r)))  # zeros outside the image
+    s = np.pad(g[0, 0].numpy(), r)
+    ref = np.zeros(kappa.shape)
+    for i in range(h):
+        for j in range(w):
+            kk, ss = k[:, i : i + win, j : j + win], s[i : i + win, j : j + win]
+            ref[:, i, j] = (kk * ss).sum(axis=(1, 2)) / kk.sum(axis=(1, 2))
+
+    got = demosaic(g, torch.from_numpy(kappa), demosaic_window(cam), "box")
+    np.testing.assert_allclose(got[0].numpy(), ref, rtol=1e-12, atol=1e-14)
+    with torch.no_grad():
+        start = net.initial(g, net.operator(cam), origin)
+    np.testing.assert_allclose(start[0].numpy(), ref, rtol=1e-10, atol=1e-12)
 
 
 def test_mosaic_net_with_the_tent_demosaic():
