@@ -38,6 +38,21 @@ def test_ssim_matches_skimage_gaussian(pair):
     assert metrics.ssim(est, truth).item() == pytest.approx(ref, abs=1e-8)
 
 
+@pytest.mark.parametrize("data_range, k1, k2", [(2.0, 0.01, 0.03), (0.25, 0.05, 0.1)])
+def test_ssim_constants_and_data_range_match_skimage(pair, data_range, k1, k2):
+    """The stabilising constants C1 = (k1·L)², C2 = (k2·L)² follow ``data_range`` L and k1, k2 as in
+    scikit-image (dark, low-contrast images, where the constants matter)."""
+    est, truth = (0.1 * t for t in pair)
+    ref = np.mean([
+        structural_similarity(truth[c].numpy(), est[c].numpy(), gaussian_weights=True, sigma=1.5,
+                              use_sample_covariance=False, data_range=data_range, K1=k1, K2=k2)
+        for c in range(5)
+    ])
+    got = metrics.ssim(est, truth, data_range=data_range, k1=k1, k2=k2).item()
+    assert got == pytest.approx(ref, abs=1e-8)
+    assert abs(got - metrics.ssim(est, truth).item()) > 1e-3  # the constants change the value here
+
+
 def test_identical_inputs():
     x = torch.rand(2, 4, 20, 20, dtype=torch.float64)
     assert torch.all(metrics.ssim(x, x) > 1 - 1e-12)
