@@ -684,6 +684,7 @@ def test_a_run_given_as_a_file_and_a_folder_given_as_the_sensor_are_named_so(sma
 @pytest.mark.parametrize("option, value, line", [
     ("--black-level", "nan", "black_level (--black-level) must be a finite number, got nan"),
     ("--auto-level", "-1", "auto_level (--auto-level) must be positive, got -1.0"),
+    ("--black-level", "-3", "black_level (--black-level) must be >= 0, got -3.0"),
 ])
 def test_a_bad_correction_names_its_option(small_capture, tmp_path, option, value, line):
     res = run_cli_in_process("reconstruct", str(small_capture), "--run", "pretrained:standard", "--out",

@@ -355,7 +355,7 @@ class RawCorrection:
         if self.flat_period is not None and self.flat_period < 1:
             raise InputError(f"flat period must be >= 1, got {self.flat_period}")
         if self.black_level is not None and self.black_level < 0:
-            raise InputError(f"black level must be >= 0, got {self.black_level}")
+            raise InputError(f"black_level (--black-level) must be >= 0, got {self.black_level}")
 
     @property
     def is_identity(self) -> bool:
