@@ -10,7 +10,7 @@
 # Environment: PRESET (default quick), MINUTES of training (default 6; the calibration, data generation
 # and evaluation come on top: keep MINUTES + 3 within the call's limit), SETS (extra KEY=VALUE
 # overrides, space-separated), TESTS (1: run the `cuda`-marked tests first), DEVICE (default cuda;
-# `DEVICE=cpu PRESET=tiny MINUTES=0.3` tries the script here), OUT (the device tool's $OUT; elsewhere default a temporary folder, printed),
+# `DEVICE=cpu PRESET=tiny MINUTES=0.2` tries the script here), OUT (the device tool's $OUT; elsewhere default a temporary folder, printed),
 # WORKERS (DataLoader workers, default 8 on CUDA, 0 on CPU).
 # The device image has python3 with a CUDA torch and most dependencies; colour-science (to generate the
 # synthetic data) and openexr / gdstk (some tests) travel as wheels in .whl: fetch them here first with

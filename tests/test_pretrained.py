@@ -259,9 +259,11 @@ def test_simulate_reconstruct_with_a_pretrained_camera_leave_it_unchanged(env, t
     assert res.returncode == 0, res.stderr
     from hsicam.data import read_cube
 
-    a, bands_a, _ = read_cube(tmp_path / "a.h5")
-    b, _, _ = read_cube(tmp_path / "b.h5")
+    a, bands_a, meta_a = read_cube(tmp_path / "a.h5")
+    b, _, meta_b = read_cube(tmp_path / "b.h5")
     assert a.shape[0] == n_bands and np.array_equal(a, b)
+    # the cube names a shipped camera as pretrained:NAME (its package folder means nothing elsewhere), a run by its path
+    assert meta_a["run"] == spec and meta_b["run"] == str(run.resolve())
     assert bands_a.matches(cfg.bands.to_bands())
     res = run_cli("export-optics", "--run", spec, "--out", str(tmp_path / "fab"))
     assert res.returncode == 0, res.stderr

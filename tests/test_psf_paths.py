@@ -204,6 +204,8 @@ def test_psf_of_a_trained_run_and_of_a_pretrained_camera(trained, tmp_path, monk
     res = run_cli("psf", "--run", "pretrained:cam", "--out", str(tmp_path / "pre"))
     assert res.returncode == 0, res.stderr
     np.testing.assert_array_equal(np.load(tmp_path / "pre" / "psf.npy"), got)
+    # a shipped camera is named as the user gave it, not by its package folder (export-optics' spec.json does the same)
+    assert json.loads((tmp_path / "pre" / "psf.json").read_text())["source"]["run"] == "pretrained:cam"
 
 
 def test_psf_and_simulate_refuse_a_runs_config_yaml(trained, tmp_path):

@@ -82,7 +82,9 @@ def cmd_psf(args: argparse.Namespace) -> int:
             raise InputError("--run uses the run's config.yaml; drop --config")
         cfg, system = load_run(args.run, overrides=tuple(args.overrides))
         camera = system.camera
-        source = {"run": str(Path(args.run).resolve()),
+        from hsicam.runs.pretrained import run_label
+
+        source = {"run": run_label(args.run),
                   "optics": ("the run's measured PSFs (fine-tuned run)" if camera.kind == "measured_psf"
                              else "the run's trained DOE (model.safetensors)")}
     else:

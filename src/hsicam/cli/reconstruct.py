@@ -380,7 +380,9 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
     cfg, model = load_run(args.run, args.device)
     if args.consistency_steps is not None:
         model.consistency = dataclasses.replace(cfg.model.consistency, iterations=args.consistency_steps)
-    meta: dict = {"source": str(args.sensor), "run": str(args.run),
+    from hsicam.runs.pretrained import run_label
+
+    meta: dict = {"source": str(args.sensor), "run": run_label(args.run),
                   "consistency_steps": model.consistency.iterations if model.consistency_on else 0}
     if model.consistency_on and model.consistency.landweber_after:
         meta["consistency_landweber_after"] = model.consistency.landweber_after

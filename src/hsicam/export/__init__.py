@@ -40,7 +40,7 @@ import numpy as np
 
 from hsicam.errors import InputError
 from hsicam.export.tolerance import finetuned_from, read_tolerance_study
-from hsicam.runs.pretrained import is_pretrained_path
+from hsicam.runs.pretrained import is_pretrained_path, run_label
 
 log = logging.getLogger(__name__)
 
@@ -129,7 +129,7 @@ def export_optics(run_dir: str | Path, out_dir: str | Path, levels: int | None =
             raise InputError(f"--levels must be in 2..256, got {levels}")
     tolerances = _tolerances(run_dir, cfg, tolerance)  # a bad tolerance file: refused before any file is written
     source = finetuned_from(run_dir)
-    facts: dict[str, Any] = {"run": f"pretrained:{run_dir.name}" if is_pretrained_path(run_dir) else str(run_dir)}
+    facts: dict[str, Any] = {"run": run_label(run_dir) if is_pretrained_path(run_dir) else str(run_dir)}
     if source is not None:
         facts["finetuned"] = {"on_measured_psfs": True, "from_run": source or None,
                               "note": "fine-tuning on measured PSFs changed only the network: the DOE and CFA "

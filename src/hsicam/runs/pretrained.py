@@ -247,6 +247,17 @@ def is_pretrained_path(path: str | Path) -> bool:
     return False
 
 
+def run_label(path: str | Path) -> str:
+    """How output files name the run they came from: ``pretrained:NAME`` for a shipped camera (its
+    folder, which may lie in site-packages, means nothing on another machine), else the run folder's
+    absolute path."""
+    if is_spec(path):
+        return str(path)
+    if is_pretrained_path(path):
+        return f"{PREFIX}{Path(path).resolve().name}"
+    return str(Path(path).resolve())
+
+
 def check_not_pretrained(path: str | Path, what: str = "output folder") -> None:
     """Refuse (one-line :class:`InputError`) an output that is a shipped camera: ``pretrained:NAME``,
     or a path inside a root of shipped cameras. They are read-only (they may sit in site-packages)."""
