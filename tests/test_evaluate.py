@@ -46,11 +46,26 @@ def test_evaluate_writes_results_in_all_formats(run, env, tmp_path):
         assert f"[{i + 1}/2] {r['name']}: PSNR {r['psnr']:.2f} dB" in res.stderr, res.stderr
     for r in summary["scenes"]:
         assert {"psnr", "ssim", "sam", "ergas", "runtime_s"} <= set(r) and "std" in r
-    np.testing.assert_allclose(summary["mean"]["psnr"], np.mean([r["psnr"] for r in summary["scenes"]]))
+        # each row is the mean of its seeds, and its std their population standard deviation (numpy's)
+        assert [s["seed"] for s in r["per_seed"]] == [0, 1]
+        for k in ("psnr", "ssim", "sam"):
+            values = [s[k] for s in r["per_seed"]]
+            assert r[k] == pytest.approx(np.mean(values), abs=1e-12)
+            assert r["std"][k] == pytest.approx(np.std(values), abs=1e-12)
+        assert r["std"]["psnr"] > 0  # two noise seeds give two different scores
+    for k in ("psnr", "ssim", "sam"):
+        np.testing.assert_allclose(summary["mean"][k], np.mean([r[k] for r in summary["scenes"]]))
     rows = list(csv.DictReader((out / "results.csv").open()))
     assert [r["name"] for r in rows] == [*names, "mean"]
-    assert float(rows[0]["psnr"]) == pytest.approx(summary["scenes"][0]["psnr"], rel=1e-5)
-    assert "| mean |" in (out / "results.md").read_text().replace("**mean**", "mean")
+    for k in ("psnr", "ssim", "sam"):  # the scene rows and their mean row, as written (6 significant digits)
+        for row, r in zip(rows, summary["scenes"]):
+            assert float(row[k]) == pytest.approx(r[k], rel=1e-5)
+        assert float(rows[-1][k]) == pytest.approx(np.mean([float(row[k]) for row in rows[:-1]]), rel=1e-5)
+    md = (out / "results.md").read_text()
+    mean_row = next(line for line in md.splitlines() if line.startswith("| **mean** |"))
+    cells = [c.strip() for c in mean_row.strip("|").split("|")]
+    assert cells[1:4] == [f"{summary['mean']['psnr']:.2f}", f"{summary['mean']['ssim']:.4f}",
+                          f"{summary['mean']['sam']:.2f}"]
     from hsicam.data import read_cube
 
     est, bands, _ = read_cube(out / "cubes" / f"{names[0]}_estimate.h5")

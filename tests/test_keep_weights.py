@@ -224,3 +224,38 @@ def test_apply_keep(runs, tmp_path):
     assert CheckpointManager(run, keep="best").apply_keep() is False
     assert kept_checkpoint(run)["checkpoint"] == "last"
     assert CheckpointManager(tmp_path / "nothing", keep="last").apply_keep() is False
+
+
+@pytest.mark.parametrize("scores, best_at", [((20.0, 25.0, 22.0), 1), ((25.0, 20.0, 22.0), 0), ((20.0, 22.0, 25.0), 2)])
+def test_the_best_checkpoint_is_the_validation_with_the_highest_score(cache_env, tmp_path, monkeypatch, scores,
+                                                                      best_at):
+    """The run keeps the checkpoint of its highest validation score, wherever it falls: a scripted
+    validation (the argmax of ``scores`` is the independent reference) over three epochs. (The tiny
+    run's real scores peak at its first validation, so a loop that never replaced its first "best"
+    passed every other test.)"""
+    from hsicam.engine.tasks import SystemTask
+
+    scripted = iter(scores)
+    real_validate = SystemTask.validate
+
+    def validate(self, loader, device):
+        val = real_validate(self, loader, device)
+        return {**val, "psnr": next(scripted)}
+
+    monkeypatch.setattr(SystemTask, "validate", validate)
+    run = tmp_path / "run"
+    _train(run, "train.epochs=3")
+    vals = [json.loads(line) for line in (run / "metrics.jsonl").read_text().splitlines()]
+    vals = [r for r in vals if "val_psnr" in r and not r.get("final")]
+    assert [r["val_psnr"] for r in vals] == list(scores)
+    man = json.loads((run / MANIFEST).read_text())
+    assert man["best"]["psnr"] == max(scores) and man["best"]["step"] == vals[best_at]["step"]
+    assert man["last"]["step"] == vals[-1]["step"]
+    assert man["weights"]["from"] == "best"
+    best = _weights(run / man["best"]["dir"] / "model.safetensors")
+    assert _equal(_weights(run / "model.safetensors"), best)
+    if best_at != len(scores) - 1:  # training moved the weights after the best validation
+        assert man["best"]["dir"] != man["last"]["dir"]
+        assert not _equal(best, _weights(run / man["last"]["dir"] / "model.safetensors"))
+    else:
+        assert man["best"]["step"] == man["last"]["step"]

@@ -5,6 +5,7 @@ mid-epoch resume, the spectral prior resumes exactly, frozen parameter groups st
 from __future__ import annotations
 
 import json
+import math
 from pathlib import Path
 
 import pytest
@@ -86,6 +87,13 @@ def test_lr_schedule():
     assert [lr_factor(t, s, 100, 10) for s in range(4)] == [0.25, 0.5, 0.75, 1.0]
     assert lr_factor(t, 50, 100, 10) == pytest.approx(0.5)
     assert lr_factor(t, 100, 100, 10) == pytest.approx(0.0, abs=1e-12)
+    # the cosine's shape, not only its ends and middle (a linear decay also gives 0.5 there): cos²(π s / 2T)
+    for s in (25, 75, 90):
+        assert lr_factor(t, s, 100, 10) == pytest.approx(math.cos(math.pi * s / 200) ** 2, abs=1e-12)
+    # step decay: γ^(epoch // lr_step_epochs), after the warm-up
+    t = load_config("tiny", ["train.lr_schedule=step", "train.warmup_steps=0", "train.lr_gamma=0.5",
+                             "train.lr_step_epochs=2"]).train
+    assert [lr_factor(t, s, 100, 10) for s in (0, 19, 20, 39, 40, 99)] == [1.0, 1.0, 0.5, 0.5, 0.25, 0.0625]
 
 
 def test_training_with_poisson_gaussian_sensor_noise(tmp_path, cache_env):
