@@ -24,15 +24,21 @@ def _untrained_but_spatial(net: RDN) -> None:
 
 
 def test_tiles_are_seamless():
+    """In float64 the tiled pass with the declared halo is the whole-image pass to rounding, and one
+    pixel less of halo shows (a float32 tolerance of 1e-5 let a halo one or two pixels short pass)."""
     torch.manual_seed(0)
-    net = RDN(bands=4, blocks=2, features=8, growth=4, layers_per_block=2).eval()
+    net = RDN(bands=4, blocks=2, features=8, growth=4, layers_per_block=2).eval().double()
     _untrained_but_spatial(net)
-    img = torch.rand(1, 1, 97, 83)
+    img = torch.rand(1, 1, 97, 83, dtype=torch.float64)
     with torch.no_grad():
         whole = net(img)
-    tiled = reconstruct_tiled(net, img, tile_px=32, halo_px=receptive_radius(net))
-    torch.testing.assert_close(tiled, whole, rtol=1e-5, atol=1e-5)
-    # without enough context the seams show: the test above can fail
+    halo = receptive_radius(net)
+    tiled = reconstruct_tiled(net, img, tile_px=32, halo_px=halo)
+    assert tiled.dtype == torch.float64
+    torch.testing.assert_close(tiled, whole, rtol=0, atol=1e-12)
+    # without enough context the seams show, by a pixel of halo: the test above can fail
+    short = reconstruct_tiled(net, img, tile_px=32, halo_px=halo - 1)
+    assert (short - whole).abs().max() > 1e-9
     bad = reconstruct_tiled(net, img, tile_px=32, halo_px=0)
     assert (bad - whole).abs().max() > 1e-3
 
@@ -118,14 +124,17 @@ def test_demosaic_input_is_the_normalised_local_average_per_band(tiny_config, pe
 
 def test_demosaic_input_tiles_are_seamless(tiny_config):
     """Each tile must see the CFA phase of its own position and enough context, or seams show."""
-    model = _small_system(tiny_config)
+    model = _small_system(tiny_config).double()
     _untrained_but_spatial(model.net)
-    img = torch.rand(1, 1, 61, 47)
+    img = torch.rand(1, 1, 61, 47, dtype=torch.float64)
     with torch.no_grad():
         whole = model.reconstruct(img)
     assert model.context_px == receptive_radius(model.net) + model.net.window // 2
     tiled = reconstruct_tiled(model.reconstruct, img, tile_px=16, halo_px=model.context_px)
-    torch.testing.assert_close(tiled, whole, rtol=1e-5, atol=1e-5)
+    torch.testing.assert_close(tiled, whole, rtol=0, atol=1e-12)  # float64: equal to rounding
+    # one pixel less of context shows: the declared halo is the least that works
+    short = reconstruct_tiled(model.reconstruct, img, tile_px=16, halo_px=model.context_px - 1)
+    assert (short - whole).abs().max() > 1e-9
     # fed the CFA at the wrong phase per tile, it differs: the check above can fail
     wrong = reconstruct_tiled(lambda w: model.reconstruct(w), img, tile_px=16, halo_px=model.context_px)
     assert (wrong - whole).abs().max() > 1e-4
