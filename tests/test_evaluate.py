@@ -11,7 +11,7 @@ import subprocess
 import numpy as np
 import pytest
 
-from cli_helpers import assert_clean_error, run_cli
+from cli_helpers import assert_clean_error, run_cli, run_cli_in_process
 from hsicam.data.formats import write_cube_h5
 from hsicam.spectral import Bands
 
@@ -230,13 +230,31 @@ def test_data_outside_a_trained_runs_bands_asks_for_other_data_not_another_grid(
     assert not (tmp_path / "new").exists()
 
 
-def test_experiment_ablation_tiny_is_resumable(env, tmp_path):
+def evaluate_mean(monkeypatch, env, run, out, *options) -> dict:
+    """``hsicam evaluate --run RUN --out OUT OPTIONS`` (in this process, with the module's data cache):
+    the mean row of its results.json."""
+    for k, v in env.items():
+        monkeypatch.setenv(k, v)
+    res = run_cli_in_process("evaluate", "--run", str(run), "--out", str(out), *options)
+    assert res.returncode == 0, res.stderr
+    return json.loads((out / "results.json").read_text())["mean"]
+
+
+def test_experiment_ablation_tiny_is_resumable(env, tmp_path, monkeypatch):
     out = tmp_path / "abl"
     res = run_cli("experiment", "ablation", "--scale", "tiny", "--out", str(out), env=env)
     assert res.returncode == 0, res.stderr
     exp = json.loads((out / "experiment.json").read_text())
     assert [r["method"] for r in exp["rows"]] == ["doe+cfa", "no-doe", "no-cfa"]
     assert all(np.isfinite(r["psnr"]) for r in exp["rows"])
+    # each row is its own camera: `hsicam evaluate` of that run (same validation scenes, the run's noise, seed 0)
+    for r in exp["rows"]:
+        run = out / "runs" / r["method"]
+        mean = evaluate_mean(monkeypatch, env, run, tmp_path / f"ev-{r['method']}")
+        for k in ("psnr", "ssim", "sam"):
+            assert r[k] == pytest.approx(mean[k], rel=1e-6), (r["method"], k)
+        assert r["run"] == str(run)
+    assert len({round(r["psnr"], 6) for r in exp["rows"]}) == 3  # three different cameras
     assert "| no-doe |" in (out / "table.md").read_text()
     from hsicam.config import load_config
 
@@ -248,7 +266,7 @@ def test_experiment_ablation_tiny_is_resumable(env, tmp_path):
     assert json.loads((out / "experiment.json").read_text())["rows"][0]["psnr"] == pytest.approx(exp["rows"][0]["psnr"])
 
 
-def test_experiment_noise_grid_and_report(env, tmp_path):
+def test_experiment_noise_grid_and_report(env, tmp_path, monkeypatch):
     out = tmp_path / "noise"
     res = run_cli("experiment", "noise", "--scale", "tiny", "--out", str(out), env=env)
     assert res.returncode == 0, res.stderr
@@ -261,6 +279,13 @@ def test_experiment_noise_grid_and_report(env, tmp_path):
         clean = next(x for x in g if x["sigma_height_nm"] == 0 and x["sensor_sigma"] == 0)
         worst = next(x for x in g if x["sigma_height_nm"] == 60 and x["sensor_sigma"] == 0.01)
         assert worst["psnr"] < clean["psnr"]  # noise at test time costs quality
+        # an off-axis cell is `hsicam evaluate` of that camera with that test noise and seed count
+        cell = next(x for x in g if x["sigma_height_nm"] == 60 and x["sensor_sigma"] == 0)
+        mean = evaluate_mean(monkeypatch, env, out / "runs" / name, tmp_path / f"ev-{name}", "--sigma-height-nm", "60",
+                             "--sensor-sigma", "0", "--seeds", str(len(exp["seeds"])))
+        assert cell["psnr"] == pytest.approx(mean["psnr"], rel=1e-6), name
+        assert cell["ssim"] == pytest.approx(mean["ssim"], rel=1e-6), name
+        assert abs(cell["psnr"] - clean["psnr"]) > 1e-3, name
     rep = run_cli("report", str(out), env=env)
     assert rep.returncode == 0, rep.stderr
     page = (out / "report" / "index.html").read_text()

@@ -118,8 +118,79 @@ def test_tolerance_cli(fab_run, tmp_path):
     assert res.returncode == 0, res.stderr
     spec = json.loads((tmp_path / "fab" / "spec.json").read_text())
     assert spec["tolerances"]["studied"]["nominal_psnr_db"] == pytest.approx(r["nominal"]["psnr"])
+    check_sweep_rows(r, fab_run, model, scenes, names, tmp_path / "fab")
     assert_clean_error(run_cli("tolerance", "--run", str(fab_run), "--out", str(tmp_path / "t2"), "--draws", "0"), "must be >= 1")
     assert not (tmp_path / "t2").exists()
+
+
+def check_sweep_rows(r, run, model, scenes, names, export):
+    """The non-zero rows of test_tolerance_cli's study (draws 2, seed 0, σ_p 40 and 200 nm, levels 2 and 16,
+    shift 0.5 cell, Δz ±300 µm), each against the same scoring of a PSF obtained another way."""
+    from hsicam.config import load_config
+    from hsicam.engine.tolerance import evaluate_psf
+
+    def score(psf):
+        with torch.no_grad():
+            return evaluate_psf(model, psf, scenes, names)
+
+    def row(sweep, value):
+        hits = [x for x in r["rows"] if x["sweep"] == sweep and x["value"] == value]
+        assert len(hits) == 1, (sweep, value)
+        return hits[0]
+
+    cam = model.camera
+    o, k, h0 = cam.optics, cam.optics.kernel_px, nominal_heights(cam)
+    # Δz: the camera rebuilt from the run's config with the sensor Δz farther (kernel K + 8, central K×K kept)
+    for dz_um in (-300.0, 300.0):
+        moved = DOECamera.from_config(load_config(run / "config.yaml", [
+            f"camera.sensor_distance_mm={(o.sensor_distance_m + dz_um * 1e-6) * 1e3!r}", f"camera.psf.kernel_px={k + 8}"]))
+        moved.load_state_dict(cam.state_dict())
+        with torch.no_grad():
+            want = score(moved.psf()[..., 4:4 + k, 4:4 + k])
+        got = row("sensor_distance_um", dz_um)
+        for m in ("psnr", "ssim", "sam"):
+            assert got[m] == pytest.approx(want[m], rel=1e-6), (dz_um, m)
+    assert abs(row("sensor_distance_um", -300.0)["psnr"] - row("sensor_distance_um", 300.0)["psnr"]) > 0.02
+    # height noise: draw d adds torch.randn (seeded seed·1000 + d, the CLI's --seed help) × σ to every cell
+    for sigma in (40.0, 200.0):
+        ps = []
+        for d in range(2):
+            g = torch.Generator().manual_seed(0 * 1000 + d)  # --seed 0
+            noise = torch.randn(h0.shape, generator=g, dtype=torch.float64) * sigma * 1e-9
+            ps.append(score(psf_for_heights(o, h0 + noise).psf)["psnr"])
+        got = row("sigma_height_nm", sigma)
+        assert got["n"] == 2 and got["psnr"] == pytest.approx(np.mean(ps), rel=1e-6), sigma
+        assert got["psnr_std"] == pytest.approx(np.std(ps), rel=1e-3, abs=1e-6), sigma
+    # levels: the design heights (piston removed inside the aperture, 0 outside: export-optics' doe_height_nm)
+    # quantised in numpy by the documented rule k = round(h / (h_2π/L)) mod L, height k·h_2π/L
+    aperture = np.load(export / "doe_aperture.npy")
+    inside = aperture > 0
+    h = h0.numpy()
+    design = np.where(inside, h - h[inside].min(), 0.0)
+    np.testing.assert_allclose(design * 1e9, np.load(export / "doe_height_nm.npy"), rtol=0, atol=1e-3)
+    h2pi = json.loads((export / "spec.json").read_text())["doe"]["height_2pi_nm"] * 1e-9
+    for lv in (2, 16):
+        step = h2pi / lv
+        hq = np.mod(np.round(design / step), lv) * step
+        want = score(psf_for_heights(o, torch.from_numpy(hq)).psf)
+        assert row("levels", lv)["psnr"] == pytest.approx(want["psnr"], rel=1e-6), lv
+    assert abs(row("levels", 2)["psnr"] - row("levels", 16)["psnr"]) > 0.01
+    # the diagonal shift by ½ cell: the relief repeated 4×4 per cell (the study's Q = 4) and moved by 2
+    # samples down and right in numpy (zeros entering), imaged by the camera built with pupil_oversample 4
+    q = r["shift_reference"]["pupil_oversample"]
+    assert q == 4
+    fine_cam = DOECamera.from_config(load_config(run / "config.yaml", [f"camera.psf.pupil_oversample={q}",
+                                                                       f"camera.psf.kernel_px={k}"]))
+    fine_cam.load_state_dict(cam.state_dict())
+    fine = np.kron(h, np.ones((q, q)))
+    shifted = np.zeros_like(fine)
+    shifted[2:, 2:] = fine[:-2, :-2]
+    with torch.no_grad():
+        want = score(fine_cam.optics.psf_from_pupil(torch.from_numpy(shifted).float()).psf.float())
+    diag, along_x = row("shift_diag_cells", 0.5), row("shift_x_cells", 0.5)
+    assert diag["psnr"] == pytest.approx(want["psnr"], rel=1e-6)
+    assert abs(diag["psnr"] - along_x["psnr"]) > 0.01
+    assert diag["applied_cells"] == [0.5, 0.5] and along_x["applied_cells"] == [0.0, 0.5]
 
 
 def test_sensor_defocus_is_added_at_every_simulated_wavelength(tiny_camera):
