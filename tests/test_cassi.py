@@ -408,3 +408,22 @@ def test_any_geometry_matches_the_reference_and_is_adjoint(kind, convention, c, 
     y = torch.rand(ax.shape, generator=g, dtype=torch.float64)
     lhs, rhs = float((ax * y).sum()), float((x * cam.A_adjoint(y)).sum())
     assert abs(lhs - rhs) <= 1e-9 * max(abs(lhs), 1e-12) + 1e-12
+
+
+def test_an_rdn_reading_the_wider_sd_cassi_sensor_is_refused_and_its_back_projection_trains():
+    """SD-CASSI's sensor is wider than its scene: an RDN reading g returned a sensor-sized cube and
+    training failed at its first loss with a tensor-size traceback; now the config is refused, naming
+    the setting that works, and that setting (the back-projection input) builds a scene-sized cube."""
+    with pytest.raises(ConfigError, match=r"model.kind=rdn reading the sensor image returns a cube of the sensor's "
+                                          r"size, but SDCASSICamera's sensor is larger than its scene .*set "
+                                          r"model.rdn.backprojection_input=true"):
+        CameraSystem.from_config(load_config("tiny", ["camera.kind=sd_cassi"]))
+    system = CameraSystem.from_config(load_config("tiny", ["camera.kind=sd_cassi", "model.rdn.backprojection_input=true",
+                                                           "model.consistency.iterations=0"]))
+    scene = torch.rand(1, len(system.bands), 20, 24)
+    with torch.no_grad():
+        sensor = system.camera.A(scene)
+        cube = system.reconstruct(sensor)
+    assert sensor.shape[-1] > scene.shape[-1] and cube.shape == scene.shape
+    # the DD-CASSI camera (sensor on the scene's grid) still takes the RDN reading g
+    CameraSystem.from_config(load_config("tiny", ["camera.kind=dd_cassi"]))

@@ -159,6 +159,14 @@ def build_rdn(cfg, camera) -> RDNReconstructor:
         except NotImplementedError as exc:
             raise ConfigError(f"model.rdn.demosaic_input needs a camera with a per-band sensor code (the DOE camera's "
                               f"CFA): {exc}; set model.rdn.demosaic_input=false") from None
+    probe = (64, 64)
+    scene_hw = tuple(camera.scene_size(probe))
+    if not m.backprojection_input and any(s < p for s, p in zip(scene_hw, probe)):
+        # (SD-CASSI: the dispersion widens the sensor) the RDN reading g returns a cube of the sensor's size
+        raise ConfigError(f"model.kind=rdn reading the sensor image returns a cube of the sensor's size, but "
+                          f"{type(camera).__name__}'s sensor is larger than its scene (a {probe[0]}×{probe[1]} px "
+                          f"sensor image holds a {scene_hw[0]}×{scene_hw[1]} px scene); set model.rdn.backprojection_input=true (the network reads Aᵀy on the scene's grid), or use "
+                          "model.kind=unrolled with model.unrolled.init=backprojection")
     reach = 0
     if m.backprojection_input:
         with torch.no_grad():
