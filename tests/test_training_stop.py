@@ -305,3 +305,42 @@ def test_a_stop_signal_while_workers_start_does_not_kill_them():
     loader = _StopSafeLoader(_Numbers(), batch_size=2, num_workers=1, worker_init_fn=_signalled_during_start)
     assert [b.tolist() for b in loader] == [[0, 1], [2, 3]]
     assert signal.pthread_sigmask(signal.SIG_BLOCK, []) == before
+
+
+def test_a_signal_during_a_long_validation_stops_it_at_its_next_batch(tmp_path, cache_env, monkeypatch):
+    """A validation of many patches used to run to its end after a scheduler's SIGTERM (its notice
+    lost); now it ends at its next batch, unrecorded, the step's checkpoint is saved, and the resume
+    goes on from that step to the weights and last validation of a run never stopped."""
+    from hsicam.engine.tasks import SystemTask
+
+    keys = ["train.epochs=2", "data.val_patches=40", "train.batch_size=4"]  # 10 validation batches
+    full = train(load_config("tiny", keys), tmp_path / "full", progress=False)
+    real_validate, seen = SystemTask.validate, []
+
+    def validate(self, loader, device):
+        def batches():
+            for batch in loader:
+                seen.append(len(batch))
+                if len(seen) == 2:  # mid-way through the first validation
+                    os.kill(os.getpid(), signal.SIGTERM)
+                yield batch
+
+        return real_validate(self, batches(), device)
+
+    monkeypatch.setattr(SystemTask, "validate", validate)
+    run = tmp_path / "run"
+    with pytest.raises(TrainingInterrupted) as info:
+        train(load_config("tiny", keys), run, progress=False)
+    assert info.value.exit_code == 128 + signal.SIGTERM
+    assert len(seen) == 2  # it did not score the 8 batches left
+    step = info.value.step
+    assert step == full["step"] // 2  # the end of epoch 1, where it validated
+    records = [json.loads(x) for x in (run / "metrics.jsonl").read_text().splitlines()]
+    assert not any("val_psnr" in r for r in records)  # the cut validation is not recorded
+    assert _manifest(run)["last"]["step"] == step and _manifest(run)["best"] is None
+    monkeypatch.setattr(SystemTask, "validate", real_validate)
+    resumed = train(load_config("tiny", keys), run, resume=True, progress=False)
+    assert resumed["step"] == full["step"] and resumed["val_psnr"] == pytest.approx(full["val_psnr"], abs=1e-4)
+    wa, wb = _last_weights(tmp_path / "full"), _last_weights(run)
+    for k in wa:
+        torch.testing.assert_close(wb[k], wa[k], rtol=0, atol=1e-6, msg=k)

@@ -425,18 +425,28 @@ def _fit(task: Task, opts: FitOptions, run_dir: Path, resume: bool, lock: RunLoc
             find_unused_parameters=task.find_unused_parameters)
     writer = _tensorboard(run_dir) if (t.tensorboard and is_main) else None
 
+    def stoppable(loader):
+        """``loader``'s batches until a stop signal arrives: a long validation (many or large
+        patches) ends at its next batch, so that a scheduler's notice is honoured in time."""
+        for batch in loader:
+            if stop.received is not None:
+                raise _ValidationCut
+            yield batch
+
     def validate_now() -> dict[str, float] | None:
-        """The validation metrics; None when a stop signal ended the loader's workers meanwhile (a
-        SIGTERM to the whole process group reaches them too): that validation is not recorded."""
+        """The validation metrics; None when a stop signal arrived meanwhile (the validation ends at
+        its next batch) or ended the loader's workers (a SIGTERM to the whole process group reaches
+        them too): that validation is not recorded."""
         model.eval()
         try:
             with torch.no_grad():
-                return task.validate(val_loader, device)
-        except RuntimeError:
+                return task.validate(stoppable(val_loader), device)
+        except (RuntimeError, _ValidationCut) as exc:
             if stop.received is None:
                 raise
-            log.warning("%s: the validation at step %d was cut short by %s (its data workers ended); not recorded",
-                        run_dir, state.global_step, stop.received)
+            why = "its data workers ended" if isinstance(exc, RuntimeError) else "it stopped at its next batch"
+            log.warning("%s: the validation at step %d was cut short by %s (%s); not recorded",
+                        run_dir, state.global_step, stop.received, why)
             return None
         finally:
             model.train()
@@ -571,6 +581,10 @@ def _fit(task: Task, opts: FitOptions, run_dir: Path, resume: bool, lock: RunLoc
     if writer:
         writer.close()
     return final
+
+
+class _ValidationCut(Exception):
+    """A stop signal arrived during a validation: it ends at its next batch, unrecorded."""
 
 
 def _tensorboard(run_dir: Path):
