@@ -6,6 +6,7 @@ import math
 import re
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from hsicam.cameras import DOECamera
@@ -90,6 +91,42 @@ def test_an_unknown_lens_material_is_refused_whatever_the_lens_model():
         with pytest.raises(ConfigError, match="camera.lens.material: unknown material 'unobtainium'"):
             load_config(overrides=[f"camera.lens.model={model}", "camera.lens.material=unobtainium"])
     load_config(overrides=["camera.lens.material=glass.csv"])  # a table: read when the singlet needs it
+
+
+@pytest.mark.parametrize("overrides, message", [
+    (["camera.doe.material=unobtainium"], "camera.doe.material: unknown material 'unobtainium'"),
+    (["bands.start_nm=10", "bands.stop_nm=60"],
+     r"camera.doe.material: fused silica's Sellmeier formula holds for 210-3710 nm, but the bands with half their "
+     r"FWHM \(bands.start_nm, bands.stop_nm, bands.fwhm_nm\) is 5-65 nm"),
+    (["bands.stop_nm=4000"], r"camera.doe.material: .* is 415-4005 nm"),
+    (["camera.doe.design_wavelength_nm=1e30"], r"camera.doe.material: .*camera.doe.design_wavelength_nm is 1e\+30 nm"),
+    (["camera.doe.enabled=false", "camera.lens.model=singlet", "camera.lens.design_wavelength_nm=5000"],
+     r"camera.lens.material: .*camera.lens.design_wavelength_nm is 5000 nm"),
+    (["camera.kind=dd_cassi", "camera.cassi.dispersion=prism", "bands.start_nm=100"],
+     r"camera.cassi.prism_material: .* is 95-725 nm"),
+    (["camera.doe.quantization_levels=70000"], r"camera.doe.quantization_levels must be in \[2, 65536\]"),
+    (["bands.step_nm=1e30"], r"^bands: \(720.0 - 420.0\) is not a multiple of the step 1e\+30$"),
+    (["bands.fwhm_nm=4000"], r"bands.fwhm_nm \(4000 nm\) is more than 10 times the range its bands cover \(310 nm\)"),
+])
+def test_settings_the_camera_cannot_be_built_with_are_refused_naming_their_key(overrides, message):
+    """Found by fuzzing every key (session 38): these failed only as the camera was built (naming no
+    key: "fused silica Sellmeier formula is valid for 210-3710 nm only"), overflowed, or were taken
+    silently (a step of 1e30 nm dropped stop_nm and left one band; a CFA period wider than a patch)."""
+    with pytest.raises(ConfigError, match=message):
+        load_config(overrides=overrides)
+
+
+def test_the_material_and_band_checks_leave_what_the_formula_covers():
+    from hsicam.spectral.materials import FusedSilica
+
+    lo, hi = FusedSilica.RANGE_NM
+    FusedSilica().n(np.array([lo, hi]))  # the edges are inside
+    load_config(overrides=[f"bands.start_nm={lo + 5}", f"bands.stop_nm={lo + 105}", "bands.step_nm=10"])  # 210-320 nm
+    load_config(overrides=["camera.doe.enabled=false", "bands.start_nm=100", "bands.stop_nm=200"])  # no DOE: no glass
+    load_config(overrides=["camera.doe.quantization_levels=65536"])
+    load_config(overrides=["camera.doe.enabled=false", "bands.fwhm_nm=3100"])  # 10 × the 310 nm the bands cover
+    with pytest.raises(ConfigError, match="210-3710 nm, but the bands"):
+        load_config(overrides=[f"bands.start_nm={lo + 4}", f"bands.stop_nm={lo + 104}", "bands.step_nm=10"])  # 204 nm
 
 
 def test_doe_cell_larger_than_aperture():
@@ -277,6 +314,10 @@ def test_a_patch_larger_than_the_synthetic_scenes_is_refused_before_they_are_gen
                                           r"data.patch_px to <= 59 or raise data.synthetic_size$"):
         pipeline.build_datasets(cfg.data, cfg.bands.to_bands(), 5)
     cfg.data.check_patches(4)  # 60 + 4 = 64 fits exactly
+    with pytest.raises(ConfigError, match=r"^camera.cfa.period \(61\) is larger than data.patch_px \(60\): a training "
+                                          r"patch must hold a whole CFA period"):
+        pipeline.build_datasets(cfg.data, cfg.bands.to_bands(), 4, code_period=61)
+    cfg.data.check_patches(4, code_period=60)
     with pytest.raises(AssertionError, match="generated"):  # so the data would be built next
         pipeline.build_datasets(cfg.data, cfg.bands.to_bands(), 4)
     # a folder of scenes is checked as it is read (its scenes' sizes are not in the config)

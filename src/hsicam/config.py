@@ -89,13 +89,44 @@ class BandsConfig:
         _positive(s, start_nm=self.start_nm, stop_nm=self.stop_nm, step_nm=self.step_nm, fwhm_nm=self.fwhm_nm)
         if self.stop_nm < self.start_nm:
             raise ConfigError(f"{s}.stop_nm ({self.stop_nm}) is below {s}.start_nm ({self.start_nm})")
+        span = self.stop_nm - self.start_nm + self.step_nm
+        if self.fwhm_nm is not None and self.fwhm_nm > 10 * span:
+            raise ConfigError(f"{s}.fwhm_nm ({self.fwhm_nm:g} nm) is more than 10 times the range its bands cover "
+                              f"({span:g} nm): every band would see every wavelength alike; check the value (in nm)")
         try:
             self.to_bands()
         except Exception as exc:  # noqa: BLE001 - re-raised as a config error with the key named
-            raise ConfigError(f"{s}: {exc}") from None
+            raise ConfigError(f"{s}: {str(exc).removeprefix('Bands.uniform: ')}") from None
 
     def to_bands(self) -> Bands:
         return Bands.uniform(self.start_nm, self.stop_nm, self.step_nm, self.fwhm_nm)
+
+
+#: The most height levels ``camera.doe.quantization_levels`` takes (16 bits; lithography uses 2-256).
+MAX_HEIGHT_LEVELS = 2**16
+
+
+def _check_material_name(key: str, material: str) -> None:
+    """ConfigError unless ``material`` names a material :func:`hsicam.spectral.materials.get_material`
+    reads: ``fused_silica`` or a ``wavelength_nm,n`` CSV file."""
+    if not (material == "fused_silica" or str(material).lower().endswith(".csv")):
+        raise ConfigError(f"{key}: unknown material {material!r}: use 'fused_silica' or a path to a CSV file "
+                          "(wavelength_nm,n)")
+
+
+def _check_material_range(key: str, material: str, what: str, low_nm: float, high_nm: float) -> None:
+    """ConfigError naming ``key`` when the built-in ``material`` has no refractive index over
+    [``low_nm``, ``high_nm``] (``what`` says which wavelengths those are). A CSV table's range is
+    checked when it is read (its file is not opened here)."""
+    if material != "fused_silica":
+        return
+    from hsicam.spectral.materials import FusedSilica
+
+    lo, hi = FusedSilica.RANGE_NM
+    if low_nm < lo or high_nm > hi:
+        shown = f"{low_nm:g} nm" if low_nm == high_nm else f"{low_nm:g}-{high_nm:g} nm"
+        raise ConfigError(f"{key}: fused silica's Sellmeier formula holds for {lo:g}-{hi:g} nm, but {what} is "
+                          f"{shown}")
 
 
 @dataclass
@@ -119,9 +150,7 @@ class LensConfig:
             design_wavelength_nm=self.design_wavelength_nm,
         )
         # the name is checked whatever the model (a typo is caught before the day it matters); the singlet reads it
-        if not (self.material == "fused_silica" or str(self.material).lower().endswith(".csv")):
-            raise ConfigError(f"camera.lens.material: unknown material {self.material!r}: use 'fused_silica' or a path to "
-                              "a CSV file (wavelength_nm,n)")
+        _check_material_name("camera.lens.material", self.material)
 
     def design_focal_length_mm(self) -> float:
         """f at ``design_wavelength_nm`` (mm): ``focal_length_mm`` (achromatic) or R / (n(λ0) − 1)
@@ -166,8 +195,10 @@ class DOEConfig:
             raise ConfigError(f"camera.doe.init_grating_period_cells must be a finite number of cells above 2 (a "
                               f"sinusoid sampled at 2 cells or fewer per period leaves the DOE flat), got "
                               f"{self.init_grating_period_cells:g}")
-        if self.quantization_levels is not None and self.quantization_levels < 2:
-            raise ConfigError(f"camera.doe.quantization_levels must be >= 2, got {self.quantization_levels}")
+        if self.quantization_levels is not None and not 2 <= self.quantization_levels <= MAX_HEIGHT_LEVELS:
+            raise ConfigError(f"camera.doe.quantization_levels must be in [2, {MAX_HEIGHT_LEVELS}] (height levels of "
+                              f"the lithography), got {self.quantization_levels}")
+        _check_material_name("camera.doe.material", self.material)
         if not (self.sigma_height_nm >= 0 and math.isfinite(self.sigma_height_nm)):
             raise ConfigError(f"camera.doe.sigma_height_nm must be >= 0, got {self.sigma_height_nm}")
 
@@ -577,15 +608,19 @@ class DataConfig:
     # the cube is resampled from this grid onto the camera's.
     npy_bands: Optional[NpyBandsConfig] = None
 
-    def check_patches(self, margin_px: int = 0) -> None:
+    def check_patches(self, margin_px: int = 0, code_period: int = 1) -> None:
         """ConfigError unless the patches can be scored and, for the synthetic data (``root`` null), fit
         its scenes with the camera's ``margin_px`` (kernel_px − 1): checked when patches are built
         (training), before the synthetic dataset is generated, not when a finished run's config is read,
         so a run trained with smaller patches still loads. (Scenes of ``root`` are checked as they are
-        read: :class:`hsicam.data.datasets.PatchDataset`.)"""
+        read: :class:`hsicam.data.datasets.PatchDataset`.) ``code_period``: the camera's CFA period,
+        which a patch must hold whole."""
         if self.patch_px < MIN_PATCH_PX:
             raise ConfigError(f"data.patch_px must be >= {MIN_PATCH_PX} px (SSIM, scored on every validation patch and "
                               f"by train.ssim_loss, uses an {MIN_PATCH_PX}×{MIN_PATCH_PX} px window), got {self.patch_px}")
+        if code_period > self.patch_px:
+            raise ConfigError(f"camera.cfa.period ({code_period}) is larger than data.patch_px ({self.patch_px}): a "
+                              "training patch must hold a whole CFA period; lower the period or raise the patch")
         if self.root is None and self.patch_px + margin_px > self.synthetic_size:
             raise ConfigError(f"data.patch_px {self.patch_px} plus the camera margin of {margin_px} px needs scenes of "
                               f"{self.patch_px + margin_px} px, but the synthetic scenes are data.synthetic_size="
@@ -755,6 +790,7 @@ class Config:
 
     def __post_init__(self) -> None:
         c, cfa = self.model.consistency, self.camera.cfa
+        self._check_material_ranges()
         if c.kind == "linear" and c.iterations > 0 and self.camera.kind not in ("doe", "sd_cassi"):
             # the step's filters are fitted per CFA phase: a CASSI camera has no such code (found
             # only after training, as a traceback, before session 23); SD-CASSI skips the step anyway
@@ -767,6 +803,27 @@ class Config:
             raise ConfigError(f"model.consistency.window_px={c.window_px} is narrower than the CFA period "
                               f"{cfa.period}: the linear step's filters must see every CFA phase (flat-field "
                               f"constraint); set it to at least {cfa.period | 1}")
+
+
+    def _check_material_ranges(self) -> None:
+        """Each material the camera uses has a refractive index over the bands (centres ± FWHM / 2:
+        ``camera.psf.band_samples`` spreads over the FWHM) and at its design wavelength; a wavelength
+        outside the formula's range used to fail as the camera was built, naming no key."""
+        b, cam = self.bands, self.camera
+        half = (b.step_nm if b.fwhm_nm is None else b.fwhm_nm) / 2
+        low, high = max(b.start_nm - half, 0.0), b.stop_nm + half
+        bands = "the bands with half their FWHM (bands.start_nm, bands.stop_nm, bands.fwhm_nm)"
+        if cam.kind == "doe":
+            if cam.doe.enabled:
+                _check_material_range("camera.doe.material", cam.doe.material, bands, low, high)
+                _check_material_range("camera.doe.material", cam.doe.material, "camera.doe.design_wavelength_nm",
+                                      cam.doe.design_wavelength_nm, cam.doe.design_wavelength_nm)
+            if cam.lens.model == "singlet":
+                _check_material_range("camera.lens.material", cam.lens.material, bands, low, high)
+                _check_material_range("camera.lens.material", cam.lens.material, "camera.lens.design_wavelength_nm",
+                                      cam.lens.design_wavelength_nm, cam.lens.design_wavelength_nm)
+        elif cam.cassi.dispersion == "prism":
+            _check_material_range("camera.cassi.prism_material", cam.cassi.prism_material, bands, low, high)
 
 
 # --------------------------------------------------------------------------------------------

@@ -129,14 +129,15 @@ def no_validation_reason(cfg: DataConfig, n_scenes: int) -> str:
     return f"a split of {n_scenes} scene(s) keeps them all for training"
 
 
-def build_datasets(cfg: DataConfig, bands: Bands, margin_px: int, *, progress: bool | None = None
-                   ) -> tuple[PatchDataset, PatchDataset | None]:
+def build_datasets(cfg: DataConfig, bands: Bands, margin_px: int, *, progress: bool | None = None,
+                   code_period: int = 1) -> tuple[PatchDataset, PatchDataset | None]:
     """Training and validation patch datasets (validation None when ``val_fraction`` is 0).
 
-    ``margin_px`` is the camera's ``valid``-convolution margin (kernel_px − 1). Scenes are split at
+    ``margin_px`` is the camera's ``valid``-convolution margin (kernel_px − 1); ``code_period`` its CFA
+    period (1: none), which a patch must hold whole (:meth:`DataConfig.check_patches`). Scenes are split at
     scene level with ``cfg.split_seed``; validation patches are fixed and not augmented.
     """
-    cfg.check_patches(margin_px)  # before the synthetic data is generated
+    cfg.check_patches(margin_px, code_period)  # before the synthetic data is generated
     root = dataset_root(cfg, bands, progress=progress)
     scenes = list_scenes(root)
     train_scenes, val_scenes = _split(cfg, scenes)

@@ -207,7 +207,8 @@ class SystemTask(Task):
         return data_record(self.cfg.data, self.bands)
 
     def datasets(self):
-        return build_datasets(self.cfg.data, self.bands, self.model.camera.margin)
+        return build_datasets(self.cfg.data, self.bands, self.model.camera.margin,
+                              code_period=getattr(self.model.camera, "code_period", 1))
 
     def on_step_start(self, step: int, generator: torch.Generator) -> None:
         apply_noise(self.model.camera, draw_noise(self.cfg.train, generator))

@@ -81,7 +81,9 @@ class Bands:
             raise InputError(f"Bands.uniform: {start_nm:g}..{stop_nm:g} nm in steps of {step_nm:g} nm gives {n:,} bands, "
                              f"more than {MAX_UNIFORM_BANDS}; check the step (in nm)")
         centers = start_nm + step_nm * np.arange(n, dtype=np.float64)
-        if abs(centers[-1] - stop_nm) > 1e-6 * max(1.0, step_nm):
+        # relative to the smaller of step and stop: a step far beyond the range (1e30 nm) is one band at
+        # start_nm, which is not stop_nm (a tolerance of the step's size let it drop stop_nm silently)
+        if abs(centers[-1] - stop_nm) > 1e-6 * max(1.0, min(step_nm, abs(stop_nm))):
             raise InputError(f"Bands.uniform: ({stop_nm} - {start_nm}) is not a multiple of the step {step_nm}")
         return cls(centers, np.full(n, step_nm if fwhm_nm is None else fwhm_nm))
 

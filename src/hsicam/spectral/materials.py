@@ -27,13 +27,15 @@ class FusedSilica:
     """Fused silica, Sellmeier coefficients of I. H. Malitson, JOSA 55, 1205 (1965)."""
 
     name = "fused_silica"
+    RANGE_NM = (210.0, 3710.0)  # where Malitson's fit holds
     B = (0.6961663, 0.4079426, 0.8974794)
     C_um = (0.0684043, 0.1162414, 9.896161)
 
     def n(self, wavelength_nm: np.ndarray | float) -> np.ndarray:
         lam_um = np.asarray(wavelength_nm, dtype=np.float64) * 1e-3
-        if np.any(lam_um < 0.21) or np.any(lam_um > 3.71):
-            raise InputError("fused silica Sellmeier formula is valid for 210-3710 nm only")
+        lo, hi = self.RANGE_NM
+        if np.any(lam_um < lo * 1e-3) or np.any(lam_um > hi * 1e-3):
+            raise InputError(f"fused silica Sellmeier formula is valid for {lo:g}-{hi:g} nm only")
         l2 = lam_um**2
         n2 = 1.0 + sum(b * l2 / (l2 - c**2) for b, c in zip(self.B, self.C_um))
         return np.sqrt(n2)
