@@ -466,3 +466,17 @@ def test_an_override_fills_an_optional_section_a_config_left_null(tmp_path):
         assert (cfg.data.npy_bands.stop_nm, cfg.data.npy_bands.step_nm) == (720.0, 10.0)
     with pytest.raises(ConfigError, match="not a section"):  # a value is still no section
         load_config("tiny", ["train.epochs.x=1"])
+
+
+@pytest.mark.parametrize("text, message", [
+    ("train:\n\tepochs: 3\n", r"invalid YAML at line 2, column 1: found character '\\t' that cannot start any token; "
+                             r"YAML indents with spaces, not tabs$"),
+    ("train:\n  epochs: [1, 2\n  lr: 3\n", r"invalid YAML at line 3, column 5: expected ',' or '\]', but got ':'$"),
+])
+def test_invalid_yaml_says_where_and_a_tab_indent_says_so(tmp_path, text, message):
+    """A config file that is not YAML said only the parser's first line ("while scanning for the next
+    token"), with no line: now the line and column, and for a tab-indented line, why."""
+    path = tmp_path / "c.yaml"
+    path.write_text(text)
+    with pytest.raises(ConfigError, match=rf"^{re.escape(str(path))}: {message}"):
+        load_config(path)

@@ -324,7 +324,7 @@ class CameraConfig:
         if self.doe.cell_size_um * 1e-3 > 2 * self.aperture_radius_mm:
             raise ConfigError(
                 f"camera.doe.cell_size_um ({self.doe.cell_size_um} µm) is larger than the aperture diameter "
-                f"({2 * self.aperture_radius_mm} mm)"
+                f"({2 * self.aperture_radius_mm} mm, 2 × camera.aperture_radius_mm)"
             )
 
     def _check_object_distance(self) -> None:
@@ -847,7 +847,7 @@ def load_config(path: str | Path | None = None, overrides: Sequence[str] = (), c
         except DuplicateKeyError as exc:
             raise ConfigError(f"{path}: {exc}; YAML keeps only the last, so remove one") from None
         except yaml.YAMLError as exc:
-            raise ConfigError(f"{path}: invalid YAML ({str(exc).splitlines()[0]})") from None
+            raise ConfigError(yaml_error_text(path, text, exc)) from None
         if loaded is None:
             if empty is not None:
                 raise ConfigError(f"{path}: empty config (no settings); {empty}")
@@ -906,6 +906,19 @@ class DuplicateKeyError(yaml.YAMLError):
     def __init__(self, key: str, lines: tuple[int, int]) -> None:
         super().__init__(f"key '{key}' is given twice (lines {lines[0]} and {lines[1]})")
         self.key, self.lines = key, lines
+
+
+def yaml_error_text(path: str | Path, text: str, exc: yaml.YAMLError) -> str:
+    """One line for a file that is not valid YAML: where (line:column, when the parser says) and what,
+    and for a line indented with a tab, that YAML indents with spaces only."""
+    mark = getattr(exc, "problem_mark", None)
+    problem = getattr(exc, "problem", None) or str(exc).splitlines()[0]
+    if mark is None:
+        return f"{path}: invalid YAML ({problem})"
+    lines = text.splitlines()
+    line = lines[mark.line] if mark.line < len(lines) else ""
+    tab = "; YAML indents with spaces, not tabs" if line[: len(line) - len(line.lstrip())].count("\t") else ""
+    return f"{path}: invalid YAML at line {mark.line + 1}, column {mark.column + 1}: {problem}{tab}"
 
 
 def strict_yaml(text: str) -> Any:
