@@ -206,3 +206,28 @@ def test_unseen_layout_scenes(lib):
     a, _ = syn.unseen_layout_scene(0, 0, 40, lib)
     b, _ = syn.unseen_layout_scene(0, 1, 40, lib)
     assert not np.array_equal(a, b)  # another seed, another crop and palette
+
+
+def test_a_dataset_larger_than_the_free_disk_is_refused_before_any_scene(tmp_path, monkeypatch):
+    """``data.synthetic_n=1000000000`` used to write scene after scene until the disk filled (115 TB
+    asked); now the room the scenes still to write need (float32 pixels and a header each) is
+    compared with the disk's free space first, nothing is made, and the message says what to change."""
+    import shutil
+    from collections import namedtuple
+
+    from hsicam.data.synthetic import SCENE_FILE_OVERHEAD_BYTES, synthetic_dataset
+
+    usage = namedtuple("usage", "total used free")
+    bands = Bands.uniform(420, 720, 50)
+    per_scene = 4 * 32 * 32 * len(bands) + SCENE_FILE_OVERHEAD_BYTES
+    free = 1000 * per_scene  # room for 1000 scenes less the margin (64 MiB at least)
+    monkeypatch.setattr(shutil, "disk_usage", lambda path: usage(10 * free, 9 * free, free))
+    cache = tmp_path / "cache"
+    with pytest.raises(InputError, match=r"the synthetic dataset of 2,000 scenes of 32×32 px and 7 bands needs about "
+                                         r".* but that disk has .* free; lower data.synthetic_n"):
+        synthetic_dataset(2000, 32, 0, bands, cache_dir=cache, progress=False)
+    assert not cache.exists()
+    # what fits is generated (the margin: a tenth of the need, at least 64 MiB)
+    monkeypatch.setattr(shutil, "disk_usage", lambda path: usage(10**12, 0, 3 * per_scene + (1 << 26)))
+    out = synthetic_dataset(3, 32, 0, bands, cache_dir=cache, progress=False)
+    assert len(list(out.glob("scene_*.h5"))) == 3

@@ -252,6 +252,29 @@ def check_scene_memory(size: int, n_bands: int, option: str = "data.synthetic_si
                      "if the machine has the memory")
 
 
+#: Bytes a scene file holds besides its float32 pixels (HDF5 headers, bands, metadata), at most.
+SCENE_FILE_OVERHEAD_BYTES = 64 * 1024
+
+
+def check_room_for_scenes(out: Path, n: int, size: int, n_bands: int) -> None:
+    """InputError, before any scene is generated, when the file system of ``out`` lacks the room for
+    the scenes still to write (``n`` minus those already there: a rerun resumes) and a margin: a
+    count of scenes far beyond the disk used to fill it scene by scene."""
+    import shutil
+
+    from hsicam.memory import format_bytes
+
+    written = sum((out / SCENE_PATTERN.format(i)).is_file() for i in range(min(n, 100_000))) if out.is_dir() else 0
+    need = (n - written) * (4 * int(size) ** 2 * int(n_bands) + SCENE_FILE_OVERHEAD_BYTES)
+    where = next(p for p in (out.absolute(), *out.absolute().parents) if p.exists())
+    free = shutil.disk_usage(where).free
+    if free < need + max(need // 10, 1 << 26):
+        raise InputError(f"the synthetic dataset of {n:,} scenes of {size}×{size} px and {n_bands} bands needs about "
+                         f"{format_bytes(need)} in {out}, but that disk has {format_bytes(free)} free; lower "
+                         "data.synthetic_n or data.synthetic_size, or point data.cache_dir (or HSICAM_CACHE) to a "
+                         "larger disk")
+
+
 def generate_dataset(out: str | os.PathLike, n: int, size: int, seed: int = 0, bands: Bands | None = None,
                      progress: bool | None = None, *, holdout_sources: str | Iterable[str] | None = DEFAULT_HOLDOUT,
                      split: str = "train") -> dict[str, Any]:
@@ -276,6 +299,7 @@ def generate_dataset(out: str | os.PathLike, n: int, size: int, seed: int = 0, b
     params = parameters(n, size, seed, bands, holdout_sources=holdout, split=split)
     check_dataset_folder(out, params)
     check_scene_memory(size, len(bands))
+    check_room_for_scenes(out, n, size, len(bands))
     lib = spectral_library(bands, holdout, split)
     made = [p for p in (out, *out.parents) if not p.exists()]  # the folders this call creates
     out.mkdir(parents=True, exist_ok=True)
