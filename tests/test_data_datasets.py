@@ -333,3 +333,25 @@ def test_data_config_validation(override):
 def test_data_config_defaults():
     d = load_config().data
     assert d.root is None and d.synthetic_size == 256 and 0 < d.val_fraction < 1
+
+
+def test_a_worker_count_beyond_the_machine_is_capped_once_with_a_warning(monkeypatch, caplog):
+    """``data.num_workers=1000000000`` went to the DataLoader as given (a process per worker: a fork
+    bomb on the first epoch); it is capped at twice the CPUs this process may use (at least 4), said once."""
+    import logging
+
+    import hsicam.data.pipeline as pipeline
+
+    monkeypatch.setattr(pipeline.os, "sched_getaffinity", lambda pid: {0, 1, 2}, raising=False)
+    monkeypatch.setattr(pipeline, "_CAPPED_SAID", set())
+    assert pipeline.max_workers() == 6
+    monkeypatch.setattr(pipeline.os, "sched_getaffinity", lambda pid: {0}, raising=False)
+    assert pipeline.max_workers() == 4  # the default of 2 is never capped
+    monkeypatch.setattr(pipeline.os, "sched_getaffinity", lambda pid: {0, 1, 2}, raising=False)
+    data = torch.utils.data.TensorDataset(torch.arange(8.0))
+    with caplog.at_level(logging.WARNING, logger="hsicam.data.pipeline"):
+        loaders = [pipeline.make_loader(data, 2, num_workers=10**9, shuffle=False) for _ in range(2)]
+        kept = pipeline.make_loader(data, 2, num_workers=6, shuffle=False)
+    assert [loader.num_workers for loader in loaders] == [6, 6] and kept.num_workers == 6
+    said = [r.getMessage() for r in caplog.records if "num_workers" in r.getMessage()]
+    assert said == ["data.num_workers=1000000000 is more processes than this machine's CPUs can keep busy; using 6"]

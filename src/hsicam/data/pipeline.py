@@ -208,13 +208,35 @@ class _StopSafeLoader(DataLoader):
             signal.pthread_sigmask(signal.SIG_SETMASK, previous)
 
 
+_CAPPED_SAID: set[int] = set()
+
+
+def max_workers() -> int:
+    """The most DataLoader workers hsicam starts: twice the CPUs this process may use, at least 4 (a
+    guard against a count no machine can run, not a tuning: PyTorch itself warns above the CPUs)."""
+    try:
+        cpus = len(os.sched_getaffinity(0))
+    except (AttributeError, OSError):  # not on Linux
+        cpus = os.cpu_count() or 1
+    return max(2 * cpus, 4)
+
+
 def make_loader(dataset: Dataset, batch_size: int, num_workers: int = 2, shuffle: bool = True,
                 drop_last: bool = False, sampler: torch.utils.data.Sampler | None = None) -> DataLoader:
     """A DataLoader for patch datasets.
 
     Workers are not persistent, so each epoch's workers see the epoch set by
-    :meth:`PatchDataset.set_epoch` (call it before iterating).
+    :meth:`PatchDataset.set_epoch` (call it before iterating). ``num_workers`` is capped at
+    :func:`max_workers` (with a warning): each worker is a process, and the batches are the same
+    whatever their number.
     """
+    cap = max_workers()
+    if num_workers > cap:
+        if num_workers not in _CAPPED_SAID:  # once, not at every epoch's loader
+            _CAPPED_SAID.add(num_workers)
+            log.warning("data.num_workers=%d is more processes than this machine's CPUs can keep busy; using %d",
+                        num_workers, cap)
+        num_workers = cap
     return _StopSafeLoader(dataset, batch_size=batch_size, shuffle=shuffle and sampler is None, sampler=sampler,
                            num_workers=num_workers, drop_last=drop_last, persistent_workers=False,
                            pin_memory=False, worker_init_fn=leave_stop_signals_to_main if num_workers > 0 else None)
