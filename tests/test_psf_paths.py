@@ -265,3 +265,32 @@ def test_a_stack_whose_bands_are_not_wavelengths_is_named_as_such(trained, tmp_p
     (d / "psf.json").write_text(json.dumps({"bands_nm": bands, "pixel_pitch_um": 6.0}))
     m = import_for_camera(d, cam)
     np.testing.assert_allclose(m.psf, psf / psf.sum(axis=(1, 2), keepdims=True), atol=1e-6)
+
+
+def test_a_doe_of_more_cells_than_the_memory_holds_is_refused_before_its_heights_are_drawn(monkeypatch):
+    """A cell size in the wrong unit (0.05 µm across the tiny 1.2 mm aperture: 24 001 cells a side)
+    drew a 4.6 GB height map before any memory check, and ended in an allocator traceback; now the
+    cell count is checked first (24 bytes a cell against the budget), naming both keys."""
+    import hsicam.cameras.doe_camera as doe_camera
+    from hsicam.cameras import build_camera
+    from hsicam.config import load_config
+    from hsicam.errors import ConfigError
+
+    def no_draw(*a, **k):
+        raise AssertionError("the DOE's heights were allocated before the memory check")
+
+    monkeypatch.setattr(doe_camera, "DOE", no_draw)
+    monkeypatch.setenv("HSICAM_MEMORY_BUDGET_MB", "1024")
+    cfg = load_config("tiny", ["camera.doe.cell_size_um=0.05"])
+    with pytest.raises(ConfigError, match=r"^camera.doe.cell_size_um=0.05 across the 1.2 mm aperture \(2 × "
+                                          r"camera.aperture_radius_mm\) is a DOE of 24,001×24,001 cells, whose heights "
+                                          r"alone need 12.9 GiB, more than the memory budget of 1 GiB"):
+        build_camera(cfg)
+    # 24 bytes a cell: 6 700 cells a side (1.0035 GiB) is over a 1 GiB budget, 6 600 (0.97 GiB) within it
+    for n, over in ((6700, True), (6600, False)):
+        if over:
+            with pytest.raises(ConfigError, match=f"{n:,}×{n:,} cells"):
+                doe_camera.check_doe_memory(n, 1.0, 3.3)
+        else:
+            doe_camera.check_doe_memory(n, 1.0, 3.3)
+    doe_camera.check_doe_memory(24001, 0.05, 0.6, enabled=False)  # no DOE: no heights

@@ -22,6 +22,27 @@ from hsicam.sensor import ColorFilterArray, SensorNoise, tile_pattern
 from hsicam.spectral import Bands, get_material
 
 
+#: Bytes per DOE cell while the element is made and trained: the float64 draw of its heights, the
+#: float32 parameter, its gradient and Adam's two moments; the PSF's pupil needs more again
+#: (:func:`hsicam.optics.sampling.check_psf_memory`, checked next).
+DOE_BYTES_PER_CELL = 8 + 4 * 4
+
+
+def check_doe_memory(n_cells: int, cell_size_um: float, aperture_radius_mm: float, enabled: bool = True) -> None:
+    """ConfigError, before the height map is allocated, for a DOE of more cells than the memory
+    budget holds (a cell size in the wrong unit: 0.05 µm across a 1.2 mm aperture is 24 000 cells a
+    side, 4.6 GB for the first draw alone), naming the two keys that set the count."""
+    from hsicam.errors import ConfigError
+    from hsicam.memory import MEMORY_BUDGET_ENV, format_bytes, memory_budget_bytes
+
+    need, budget = DOE_BYTES_PER_CELL * n_cells**2, memory_budget_bytes()
+    if enabled and need > budget:
+        raise ConfigError(f"camera.doe.cell_size_um={cell_size_um:g} across the {2 * aperture_radius_mm:g} mm aperture "
+                          f"(2 × camera.aperture_radius_mm) is a DOE of {n_cells:,}×{n_cells:,} cells, whose heights "
+                          f"alone need {format_bytes(need)}, more than the memory budget of {format_bytes(budget)} "
+                          f"({MEMORY_BUDGET_ENV}); check the cell size (in µm) or the aperture (in mm)")
+
+
 @register_camera("doe")
 class DOECamera(Camera):
     """Differentiable DOE camera. Build it with :meth:`from_config`.
@@ -54,6 +75,7 @@ class DOECamera(Camera):
         cam = cfg.camera
         cell_m = cam.doe.cell_size_um * 1e-6
         n_cells = cells_across(cam.aperture_radius_mm * 1e-3, cell_m)
+        check_doe_memory(n_cells, cam.doe.cell_size_um, cam.aperture_radius_mm, cam.doe.enabled)
         doe = DOE(
             n_cells, get_material(cam.doe.material), cam.doe.design_wavelength_nm, cam.doe.enabled,
             cam.doe.init, cam.doe.seed,
