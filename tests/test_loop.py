@@ -184,3 +184,19 @@ def test_optics_steps_train_the_optics_first_then_the_network_alone(tmp_path, ca
         torch.testing.assert_close(part[k], full[k], rtol=0, atol=1e-6, msg=k)
     with pytest.raises(ConfigError, match="optics_steps"):
         load_config("tiny", ["train.optics_steps=-1"])
+
+
+def test_a_warm_up_as_long_as_the_run_is_said(tmp_path, cache_env, caplog):
+    """``train.warmup_steps`` at or beyond the run's steps kept the learning rate below train.lr for
+    the whole run, silently (the fuzzed 2^70 never left the first step's lr); now a warning says so."""
+    import logging
+
+    with caplog.at_level(logging.WARNING, logger="hsicam.engine.loop"):
+        train(load_config("tiny", ["train.epochs=1", "train.warmup_steps=8"]), tmp_path / "long", progress=False)
+    said = [r.getMessage() for r in caplog.records if "warmup_steps" in r.getMessage()]
+    assert said == ["train.warmup_steps=8 is not below the run's 4 steps: the learning rate never reaches train.lr "
+                    "(it climbs to 0.5 of it)"]
+    caplog.clear()
+    with caplog.at_level(logging.WARNING, logger="hsicam.engine.loop"):
+        train(load_config("tiny", ["train.epochs=1", "train.warmup_steps=3"]), tmp_path / "short", progress=False)
+    assert not [r for r in caplog.records if "warmup_steps" in r.getMessage()]

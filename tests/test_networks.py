@@ -740,3 +740,16 @@ def test_phase_trace_loss_term_against_a_loop_reference():
     assert float(phase_trace_loss(torch.full((1, 2, 12, 8), 0.07, dtype=torch.float64), m)) == pytest.approx(0, abs=1e-15)
     column = 0.05 * (torch.arange(8) % m == 1).to(torch.float64).expand(1, 2, 12, 8)  # one phase column 0.05 too bright
     assert float(phase_trace_loss(column, m)) == pytest.approx((4 * 0.0375 + 12 * 0.0125) / 16, rel=1e-12)
+
+
+def test_the_unrolled_front_ends_bad_setting_names_its_own_section(tiny_config):
+    """``model.unrolled.mosaic.features=-3`` was refused as ``model.mosaic.features must be >= 1``, a key
+    the user had not set; the front end's checks now name the section they read."""
+    from hsicam.errors import ConfigError
+    from hsicam.models import CameraSystem
+
+    with pytest.raises(ConfigError, match=r"^model.unrolled.mosaic.features must be >= 1, got -3$"):
+        CameraSystem.from_config(tiny_config("model.kind=unrolled", "model.unrolled.init=mosaic",
+                                             "model.unrolled.mosaic.features=-3"))
+    with pytest.raises(ConfigError, match=r"^model.mosaic.features must be >= 1, got -3$"):
+        CameraSystem.from_config(tiny_config("model.kind=mosaic", "model.mosaic.features=-3"))

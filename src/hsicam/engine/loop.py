@@ -367,6 +367,9 @@ def _fit(task: Task, opts: FitOptions, run_dir: Path, resume: bool, lock: RunLoc
     total_steps = steps_per_epoch * t.epochs
     if opts.max_steps is not None:
         total_steps = min(total_steps, opts.max_steps)
+    if t.warmup_steps and t.warmup_steps >= total_steps and is_main:  # a warm-up meant for a longer run, or a typo
+        log.warning("train.warmup_steps=%d is not below the run's %d steps: the learning rate never reaches train.lr "
+                    "(it climbs to %.3g of it)", t.warmup_steps, total_steps, total_steps / t.warmup_steps)
     if resume:
         done = finished_record(run_dir, t.epochs, total_steps)
         if done is not None:  # nothing left to train: the run stays as it is (no file is written)

@@ -199,8 +199,10 @@ def _odd_window(period: int) -> int:
     return skip_window(period)
 
 
-def build_mosaic(mcfg: MosaicConfig, camera) -> MosaicNet:
-    """A :class:`MosaicNet` for ``camera`` (a camera with a periodic CFA: ``code_period`` / ``sensor_code``)."""
+def build_mosaic(mcfg: MosaicConfig, camera, section: str = "model.mosaic") -> MosaicNet:
+    """A :class:`MosaicNet` for ``camera`` (a camera with a periodic CFA: ``code_period`` / ``sensor_code``);
+    ``section``: the config section of ``mcfg`` that errors name (``model.unrolled.mosaic`` for the
+    unrolled network's front end)."""
     try:
         camera.sensor_code(1, 1)
     except NotImplementedError:
@@ -208,28 +210,28 @@ def build_mosaic(mcfg: MosaicConfig, camera) -> MosaicNet:
                           f"{type(camera).__name__}; use model.kind=unrolled or rdn") from None
     for key in ("features", "blocks"):
         if getattr(mcfg, key) < 1:
-            raise ConfigError(f"model.mosaic.{key} must be >= 1, got {getattr(mcfg, key)}")
+            raise ConfigError(f"{section}.{key} must be >= 1, got {getattr(mcfg, key)}")
     for key in ("factor", "head_layers", "demosaic_window", "detail_features", "mid_features", "mid_blocks"):
         if getattr(mcfg, key) < 0:
-            raise ConfigError(f"model.mosaic.{key} must be >= 0, got {getattr(mcfg, key)}")
+            raise ConfigError(f"{section}.{key} must be >= 0, got {getattr(mcfg, key)}")
     if mcfg.head_layers > 1 and mcfg.head_features < 1:
-        raise ConfigError(f"model.mosaic.head_features must be >= 1, got {mcfg.head_features}")
+        raise ConfigError(f"{section}.head_features must be >= 1, got {mcfg.head_features}")
     if mcfg.detail_features and not mcfg.head_layers:
-        raise ConfigError(f"model.mosaic.detail_features={mcfg.detail_features} needs a head: set model.mosaic.head_layers >= 1")
+        raise ConfigError(f"{section}.detail_features={mcfg.detail_features} needs a head: set {section}.head_layers >= 1")
     period = int(getattr(camera, "code_period", 1))
     factor = mcfg.factor or (period if period > 1 else 3)
     if factor % period:
-        raise ConfigError(f"model.mosaic.factor={mcfg.factor} must be a multiple of the CFA period {period} (or 0 for the period)")
+        raise ConfigError(f"{section}.factor={mcfg.factor} must be a multiple of the CFA period {period} (or 0 for the period)")
     if mcfg.mid_features and factor % 2:
-        raise ConfigError(f"model.mosaic.mid_features={mcfg.mid_features} (a half-resolution stage) needs an even "
-                          f"model.mosaic.factor, got {factor}; set model.mosaic.factor to an even multiple of the "
+        raise ConfigError(f"{section}.mid_features={mcfg.mid_features} (a half-resolution stage) needs an even "
+                          f"{section}.factor, got {factor}; set {section}.factor to an even multiple of the "
                           f"CFA period or mid_features=0")
     if mcfg.demosaic_kernel not in DEMOSAIC_KERNELS:
-        raise ConfigError(f"model.mosaic.demosaic_kernel must be one of {', '.join(DEMOSAIC_KERNELS)}, got {mcfg.demosaic_kernel!r}")
+        raise ConfigError(f"{section}.demosaic_kernel must be one of {', '.join(DEMOSAIC_KERNELS)}, got {mcfg.demosaic_kernel!r}")
     window = mcfg.demosaic_window or skip_window(period, mcfg.demosaic_kernel)
     if window % 2 == 0:
-        raise ConfigError(f"model.mosaic.demosaic_window must be odd (or 0 for the CFA period), got {window}")
-    check_brightness("model.mosaic", mcfg.brightness_window, mcfg.brightness_eps)
+        raise ConfigError(f"{section}.demosaic_window must be odd (or 0 for the CFA period), got {window}")
+    check_brightness(section, mcfg.brightness_window, mcfg.brightness_eps)
     return MosaicNet(len(camera.bands), factor, mcfg.features, mcfg.blocks, mcfg.head_features, mcfg.head_layers, window,
                      mcfg.brightness_window, mcfg.brightness_eps, mcfg.detail_features, mcfg.demosaic_kernel,
                      mcfg.mid_features, mcfg.mid_blocks)

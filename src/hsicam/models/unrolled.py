@@ -195,7 +195,7 @@ def build_unrolled(mcfg: UnrolledConfig, camera) -> UnrolledNet:
     period = int(getattr(camera, "code_period", 1))
     window = mcfg.demosaic_window or _odd_window(period)
     check_brightness("model.unrolled", mcfg.brightness_window, mcfg.brightness_eps)
-    front = build_mosaic(mcfg.mosaic, camera) if init == "mosaic" else None
+    front = build_mosaic(mcfg.mosaic, camera, "model.unrolled.mosaic") if init == "mosaic" else None
     return UnrolledNet(len(camera.bands), tuple(op.reach_px), mcfg.stages, init, mcfg.share_weights, mcfg.prior_features,
                        mcfg.prior_blocks, mcfg.prior_scale, mcfg.step_init, mcfg.stage_kernel_px, window, front,
                        mcfg.step, mcfg.brightness_window, mcfg.brightness_eps)
