@@ -186,17 +186,17 @@ def test_optics_steps_train_the_optics_first_then_the_network_alone(tmp_path, ca
         load_config("tiny", ["train.optics_steps=-1"])
 
 
-def test_a_warm_up_as_long_as_the_run_is_said(tmp_path, cache_env, caplog):
-    """``train.warmup_steps`` at or beyond the run's steps kept the learning rate below train.lr for
+def test_a_warm_up_longer_than_the_run_is_said(tmp_path, cache_env, caplog):
+    """``train.warmup_steps`` beyond the run's steps kept the learning rate below train.lr for
     the whole run, silently (the fuzzed 2^70 never left the first step's lr); now a warning says so."""
     import logging
 
     with caplog.at_level(logging.WARNING, logger="hsicam.engine.loop"):
         train(load_config("tiny", ["train.epochs=1", "train.warmup_steps=8"]), tmp_path / "long", progress=False)
     said = [r.getMessage() for r in caplog.records if "warmup_steps" in r.getMessage()]
-    assert said == ["train.warmup_steps=8 is not below the run's 4 steps: the learning rate never reaches train.lr "
+    assert said == ["train.warmup_steps=8 is more than the run's 4 steps: the learning rate never reaches train.lr "
                     "(it climbs to 0.5 of it)"]
     caplog.clear()
-    with caplog.at_level(logging.WARNING, logger="hsicam.engine.loop"):
-        train(load_config("tiny", ["train.epochs=1", "train.warmup_steps=3"]), tmp_path / "short", progress=False)
+    with caplog.at_level(logging.WARNING, logger="hsicam.engine.loop"):  # 4 of 4: its last step is at train.lr
+        train(load_config("tiny", ["train.epochs=1", "train.warmup_steps=4"]), tmp_path / "short", progress=False)
     assert not [r for r in caplog.records if "warmup_steps" in r.getMessage()]

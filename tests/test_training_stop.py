@@ -344,3 +344,27 @@ def test_a_signal_during_a_long_validation_stops_it_at_its_next_batch(tmp_path, 
     wa, wb = _last_weights(tmp_path / "full"), _last_weights(run)
     for k in wa:
         torch.testing.assert_close(wb[k], wa[k], rtol=0, atol=1e-6, msg=k)
+
+    # in the last epoch's validation a signal lets the training finish, that validation whole: the
+    # final record holds its scores, not the previous epoch's (a cut there recorded a finished run
+    # with stale scores, which a resume never validated again)
+    seen.clear()
+
+    def validate_last(self, loader, device):
+        def batches():
+            for batch in loader:
+                seen.append(len(batch))
+                if len(seen) == 10 + 2:  # the second (last) validation, mid-way
+                    os.kill(os.getpid(), signal.SIGTERM)
+                yield batch
+
+        return real_validate(self, batches(), device)
+
+    monkeypatch.setattr(SystemTask, "validate", validate_last)
+    last = tmp_path / "last"
+    with pytest.raises(TrainingInterrupted) as info:
+        train(load_config("tiny", keys), last, progress=False)
+    assert info.value.finished and len(seen) == 20  # both validations scored every batch
+    final = [json.loads(x) for x in (last / "metrics.jsonl").read_text().splitlines()][-1]
+    assert final["final"] and final["step"] == full["step"]
+    assert final["val_psnr"] == pytest.approx(full["val_psnr"], abs=1e-6)

@@ -367,8 +367,8 @@ def _fit(task: Task, opts: FitOptions, run_dir: Path, resume: bool, lock: RunLoc
     total_steps = steps_per_epoch * t.epochs
     if opts.max_steps is not None:
         total_steps = min(total_steps, opts.max_steps)
-    if t.warmup_steps and t.warmup_steps >= total_steps and is_main:  # a warm-up meant for a longer run, or a typo
-        log.warning("train.warmup_steps=%d is not below the run's %d steps: the learning rate never reaches train.lr "
+    if t.warmup_steps > total_steps and is_main:  # a warm-up meant for a longer run, or a typo (equal: its last step)
+        log.warning("train.warmup_steps=%d is more than the run's %d steps: the learning rate never reaches train.lr "
                     "(it climbs to %.3g of it)", t.warmup_steps, total_steps, total_steps / t.warmup_steps)
     if resume:
         done = finished_record(run_dir, t.epochs, total_steps)
@@ -436,14 +436,15 @@ def _fit(task: Task, opts: FitOptions, run_dir: Path, resume: bool, lock: RunLoc
                 raise _ValidationCut
             yield batch
 
-    def validate_now() -> dict[str, float] | None:
-        """The validation metrics; None when a stop signal arrived meanwhile (the validation ends at
-        its next batch) or ended the loader's workers (a SIGTERM to the whole process group reaches
-        them too): that validation is not recorded."""
+    def validate_now(cut: bool = True) -> dict[str, float] | None:
+        """The validation metrics; None when a stop signal arrived meanwhile (with ``cut``, the
+        validation ends at its next batch) or ended the loader's workers (a SIGTERM to the whole
+        process group reaches them too): that validation is not recorded. The last epoch's is not
+        ``cut``: a signal then lets the training finish, its final validation included."""
         model.eval()
         try:
             with torch.no_grad():
-                return task.validate(stoppable(val_loader), device)
+                return task.validate(stoppable(val_loader) if cut else val_loader, device)
         except (RuntimeError, _ValidationCut) as exc:
             if stop.received is None:
                 raise
@@ -554,7 +555,7 @@ def _fit(task: Task, opts: FitOptions, run_dir: Path, resume: bool, lock: RunLoc
         last_epoch = state.epoch == t.epochs or state.global_step >= total_steps
         tags = ["last"]
         if is_main and val_loader is not None and (state.epoch % t.eval_every_epochs == 0 or last_epoch):
-            val = validate_now()
+            val = validate_now(cut=not last_epoch)
             if val is not None:
                 last_val = val.get("psnr")
                 log_validation(val)
