@@ -96,14 +96,16 @@ def test_an_unknown_lens_material_is_refused_whatever_the_lens_model():
 @pytest.mark.parametrize("overrides, message", [
     (["camera.doe.material=unobtainium"], "camera.doe.material: unknown material 'unobtainium'"),
     (["bands.start_nm=10", "bands.stop_nm=60"],
-     r"camera.doe.material: fused silica's Sellmeier formula holds for 210-3710 nm, but the bands with half their "
-     r"FWHM \(bands.start_nm, bands.stop_nm, bands.fwhm_nm\) is 5-65 nm"),
-    (["bands.stop_nm=4000"], r"camera.doe.material: .* is 415-4005 nm"),
+     r"camera.doe.material: fused silica's Sellmeier formula holds for 210-3710 nm, but the wavelengths the PSF is "
+     r"computed at \(bands.start_nm .. bands.stop_nm\) span 10-60 nm"),
+    (["bands.stop_nm=4000"], r"camera.doe.material: .* span 420-4000 nm"),
+    (["camera.psf.band_samples=3", "bands.start_nm=215", "bands.stop_nm=715", "bands.step_nm=25"],
+     r"camera.doe.material: .*camera.psf.band_samples over bands.fwhm_nm\) span 206.667-723.333 nm"),
     (["camera.doe.design_wavelength_nm=1e30"], r"camera.doe.material: .*camera.doe.design_wavelength_nm is 1e\+30 nm"),
     (["camera.doe.enabled=false", "camera.lens.model=singlet", "camera.lens.design_wavelength_nm=5000"],
      r"camera.lens.material: .*camera.lens.design_wavelength_nm is 5000 nm"),
     (["camera.kind=dd_cassi", "camera.cassi.dispersion=prism", "bands.start_nm=100"],
-     r"camera.cassi.prism_material: .* is 95-725 nm"),
+     r"camera.cassi.prism_material: .* the band centres \(bands.start_nm .. bands.stop_nm\) span 100-720 nm"),
     (["camera.doe.quantization_levels=70000"], r"camera.doe.quantization_levels must be in \[2, 65536\]"),
     (["bands.step_nm=1e30"], r"^bands: \(720.0 - 420.0\) is not a multiple of the step 1e\+30$"),
     (["bands.fwhm_nm=4000"], r"bands.fwhm_nm \(4000 nm\) is more than 10 times the range its bands cover \(310 nm\)"),
@@ -121,12 +123,17 @@ def test_the_material_and_band_checks_leave_what_the_formula_covers():
 
     lo, hi = FusedSilica.RANGE_NM
     FusedSilica().n(np.array([lo, hi]))  # the edges are inside
-    load_config(overrides=[f"bands.start_nm={lo + 5}", f"bands.stop_nm={lo + 105}", "bands.step_nm=10"])  # 210-320 nm
+    load_config(overrides=[f"bands.start_nm={lo}", f"bands.stop_nm={lo + 100}", "bands.step_nm=10"])  # 210-310 nm
     load_config(overrides=["camera.doe.enabled=false", "bands.start_nm=100", "bands.stop_nm=200"])  # no DOE: no glass
     load_config(overrides=["camera.doe.quantization_levels=65536"])
     load_config(overrides=["camera.doe.enabled=false", "bands.fwhm_nm=3100"])  # 10 × the 310 nm the bands cover
-    with pytest.raises(ConfigError, match="210-3710 nm, but the bands"):
-        load_config(overrides=[f"bands.start_nm={lo + 4}", f"bands.stop_nm={lo + 104}", "bands.step_nm=10"])  # 204 nm
+    with pytest.raises(ConfigError, match="210-3710 nm, but the wavelengths the PSF is computed at"):
+        load_config(overrides=[f"bands.start_nm={lo - 1}", f"bands.stop_nm={lo + 99}", "bands.step_nm=10"])  # 209 nm
+    # only the wavelengths evaluated count: the centres (one sample a band), whatever the FWHM; the
+    # prism's centres; one band of any FWHM
+    load_config(overrides=["bands.start_nm=220", "bands.step_nm=25"])  # 220 ± 12.5 nm reaches 207.5 nm
+    load_config(overrides=["camera.kind=sd_cassi", "camera.cassi.dispersion=prism", "bands.fwhm_nm=1000"])
+    load_config(overrides=["bands.start_nm=550", "bands.stop_nm=550", "bands.step_nm=1", "bands.fwhm_nm=30"])
 
 
 def test_doe_cell_larger_than_aperture():
@@ -471,7 +478,10 @@ def test_an_override_fills_an_optional_section_a_config_left_null(tmp_path):
 @pytest.mark.parametrize("text, message", [
     ("train:\n\tepochs: 3\n", r"invalid YAML at line 2, column 1: found character '\\t' that cannot start any token; "
                              r"YAML indents with spaces, not tabs$"),
-    ("train:\n  epochs: [1, 2\n  lr: 3\n", r"invalid YAML at line 3, column 5: expected ',' or '\]', but got ':'$"),
+    ("train:\n  epochs: [1, 2\n  lr: 3\n", r"invalid YAML at line 3, column 5: expected ',' or '\]', but got ':' "
+                                         r"\(while parsing a flow sequence at line 2, column 11\)$"),
+    ("train:\n  lr: 'x\n", r"invalid YAML at line 3, column 1: found unexpected end of stream \(while scanning a "
+                          r"quoted scalar at line 2, column 7\)$"),
 ])
 def test_invalid_yaml_says_where_and_a_tab_indent_says_so(tmp_path, text, message):
     """A config file that is not YAML said only the parser's first line ("while scanning for the next

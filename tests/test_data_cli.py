@@ -275,3 +275,26 @@ def test_show_of_near_infrared_scenes_draws_them_grey(tmp_path):
     mean = nir.astype(np.float64).mean(axis=0)
     np.testing.assert_allclose(grey[..., 0], np.clip(mean * 0.8 / np.percentile(mean, 99), 0, 1))
     assert (grey[..., 0] == grey[..., 1]).all() and (grey[..., 1] == grey[..., 2]).all()
+
+
+@pytest.mark.parametrize("where", ["out", "cache"])
+def test_data_synth_beyond_the_disk_names_its_own_options(tmp_path, monkeypatch, capsys, where):
+    """`data synth --n HUGE` is refused before any scene, naming --n/--size and where to write instead
+    (the training path names data.synthetic_n; the command line has options)."""
+    import shutil
+    from collections import namedtuple
+
+    from hsicam.cli import main
+
+    usage = namedtuple("usage", "total used free")
+    monkeypatch.setattr(shutil, "disk_usage", lambda path: usage(2**40, 2**40 - 2**30, 2**30))
+    monkeypatch.setenv("HSICAM_CACHE", str(tmp_path / "cache"))
+    args = ["data", "synth", "--n", "100000", "--size", "64"] + (["--out", str(tmp_path / "d")] if where == "out" else [])
+    assert main(args) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("hsicam: error: the synthetic dataset of 100,000 scenes of 64×64 px and "
+                                                "31 bands needs about "), err
+    fix = ("give --out a folder on a larger disk" if where == "out" else
+           "write to a larger disk (--out, or data.cache_dir / HSICAM_CACHE)")
+    assert err[0].endswith(f"but that disk has 1 GiB free; lower --n or --size, or {fix}"), err
+    assert not any(tmp_path.iterdir())

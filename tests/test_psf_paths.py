@@ -293,4 +293,7 @@ def test_a_doe_of_more_cells_than_the_memory_holds_is_refused_before_its_heights
                 doe_camera.check_doe_memory(n, 1.0, 3.3)
         else:
             doe_camera.check_doe_memory(n, 1.0, 3.3)
-    doe_camera.check_doe_memory(24001, 0.05, 0.6, enabled=False)  # no DOE: no heights
+    # a DOE switched off keeps a float32 grid of zeros: 4 bytes a cell (24 001² is 2.1 GiB)
+    with pytest.raises(ConfigError, match="24,001×24,001 cells, whose heights alone need 2.15 GiB"):
+        doe_camera.check_doe_memory(24001, 0.05, 0.6, enabled=False)
+    doe_camera.check_doe_memory(16000, 0.05, 0.4, enabled=False)  # 0.95 GiB

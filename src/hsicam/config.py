@@ -90,7 +90,7 @@ class BandsConfig:
         if self.stop_nm < self.start_nm:
             raise ConfigError(f"{s}.stop_nm ({self.stop_nm}) is below {s}.start_nm ({self.start_nm})")
         span = self.stop_nm - self.start_nm + self.step_nm
-        if self.fwhm_nm is not None and self.fwhm_nm > 10 * span:
+        if self.fwhm_nm is not None and self.stop_nm > self.start_nm and self.fwhm_nm > 10 * span:
             raise ConfigError(f"{s}.fwhm_nm ({self.fwhm_nm:g} nm) is more than 10 times the range its bands cover "
                               f"({span:g} nm): every band would see every wavelength alike; check the value (in nm)")
         try:
@@ -125,8 +125,8 @@ def _check_material_range(key: str, material: str, what: str, low_nm: float, hig
     lo, hi = FusedSilica.RANGE_NM
     if low_nm < lo or high_nm > hi:
         shown = f"{low_nm:g} nm" if low_nm == high_nm else f"{low_nm:g}-{high_nm:g} nm"
-        raise ConfigError(f"{key}: fused silica's Sellmeier formula holds for {lo:g}-{hi:g} nm, but {what} is "
-                          f"{shown}")
+        raise ConfigError(f"{key}: fused silica's Sellmeier formula holds for {lo:g}-{hi:g} nm, but {what} "
+                          f"{'span' if low_nm != high_nm else 'is'} {shown}")
 
 
 @dataclass
@@ -806,24 +806,29 @@ class Config:
 
 
     def _check_material_ranges(self) -> None:
-        """Each material the camera uses has a refractive index over the bands (centres ± FWHM / 2:
-        ``camera.psf.band_samples`` spreads over the FWHM) and at its design wavelength; a wavelength
-        outside the formula's range used to fail as the camera was built, naming no key."""
-        b, cam = self.bands, self.camera
-        half = (b.step_nm if b.fwhm_nm is None else b.fwhm_nm) / 2
-        low, high = max(b.start_nm - half, 0.0), b.stop_nm + half
-        bands = "the bands with half their FWHM (bands.start_nm, bands.stop_nm, bands.fwhm_nm)"
+        """Each material the camera uses has a refractive index at the wavelengths it is evaluated at
+        (the PSF's: the band centres, or ``camera.psf.band_samples`` points within each FWHM; the
+        prism's: the centres) and at its design wavelength; a wavelength outside the formula's range
+        used to fail as the camera was built, naming no key."""
+        from hsicam.optics.sampling import band_sample_wavelengths
+
+        b, cam = self.bands.to_bands(), self.camera
+        psf_nm, _ = band_sample_wavelengths(b.centers_nm, b.fwhm_nm, cam.psf.band_samples)
+        what = ("the wavelengths the PSF is computed at (bands.start_nm .. bands.stop_nm"
+                + (", camera.psf.band_samples over bands.fwhm_nm)" if cam.psf.band_samples > 1 else ")"))
         if cam.kind == "doe":
             if cam.doe.enabled:
-                _check_material_range("camera.doe.material", cam.doe.material, bands, low, high)
+                _check_material_range("camera.doe.material", cam.doe.material, what, psf_nm.min(), psf_nm.max())
                 _check_material_range("camera.doe.material", cam.doe.material, "camera.doe.design_wavelength_nm",
                                       cam.doe.design_wavelength_nm, cam.doe.design_wavelength_nm)
             if cam.lens.model == "singlet":
-                _check_material_range("camera.lens.material", cam.lens.material, bands, low, high)
+                _check_material_range("camera.lens.material", cam.lens.material, what, psf_nm.min(), psf_nm.max())
                 _check_material_range("camera.lens.material", cam.lens.material, "camera.lens.design_wavelength_nm",
                                       cam.lens.design_wavelength_nm, cam.lens.design_wavelength_nm)
         elif cam.cassi.dispersion == "prism":
-            _check_material_range("camera.cassi.prism_material", cam.cassi.prism_material, bands, low, high)
+            _check_material_range("camera.cassi.prism_material", cam.cassi.prism_material,
+                                  "the band centres (bands.start_nm .. bands.stop_nm)", b.centers_nm.min(),
+                                  b.centers_nm.max())
 
 
 # --------------------------------------------------------------------------------------------
@@ -918,7 +923,9 @@ def yaml_error_text(path: str | Path, text: str, exc: yaml.YAMLError) -> str:
     lines = text.splitlines()
     line = lines[mark.line] if mark.line < len(lines) else ""
     tab = "; YAML indents with spaces, not tabs" if line[: len(line) - len(line.lstrip())].count("\t") else ""
-    return f"{path}: invalid YAML at line {mark.line + 1}, column {mark.column + 1}: {problem}{tab}"
+    context, where = getattr(exc, "context", None), getattr(exc, "context_mark", None)
+    opened = f" ({context} at line {where.line + 1}, column {where.column + 1})" if context and where else ""
+    return f"{path}: invalid YAML at line {mark.line + 1}, column {mark.column + 1}: {problem}{opened}{tab}"
 
 
 def strict_yaml(text: str) -> Any:

@@ -23,8 +23,8 @@ from hsicam.spectral import Bands, get_material
 
 
 #: Bytes per DOE cell while the element is made and trained: the float64 draw of its heights, the
-#: float32 parameter, its gradient and Adam's two moments; the PSF's pupil needs more again
-#: (:func:`hsicam.optics.sampling.check_psf_memory`, checked next).
+#: float32 parameter, its gradient and Adam's two moments (a DOE switched off keeps a float32 grid of
+#: zeros: 4); the PSF's pupil needs more again (:func:`hsicam.optics.sampling.check_psf_memory`, next).
 DOE_BYTES_PER_CELL = 8 + 4 * 4
 
 
@@ -35,8 +35,8 @@ def check_doe_memory(n_cells: int, cell_size_um: float, aperture_radius_mm: floa
     from hsicam.errors import ConfigError
     from hsicam.memory import MEMORY_BUDGET_ENV, format_bytes, memory_budget_bytes
 
-    need, budget = DOE_BYTES_PER_CELL * n_cells**2, memory_budget_bytes()
-    if enabled and need > budget:
+    need, budget = (DOE_BYTES_PER_CELL if enabled else 4) * n_cells**2, memory_budget_bytes()
+    if need > budget:
         raise ConfigError(f"camera.doe.cell_size_um={cell_size_um:g} across the {2 * aperture_radius_mm:g} mm aperture "
                           f"(2 × camera.aperture_radius_mm) is a DOE of {n_cells:,}×{n_cells:,} cells, whose heights "
                           f"alone need {format_bytes(need)}, more than the memory budget of {format_bytes(budget)} "

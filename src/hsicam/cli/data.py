@@ -88,6 +88,13 @@ def _synth(args: argparse.Namespace) -> int:
     bands = cfg.bands.to_bands()
     progress = False if args.no_progress else None
     kw = {"holdout_sources": holdout, "split": split}
+    from hsicam.data.synthetic import check_room_for_scenes, dataset_dir
+
+    target = (Path(args.out) if args.out is not None else
+              dataset_dir(n, size, seed, bands, cache_dir=cfg.data.cache_dir, **kw))
+    check_room_for_scenes(target, n, size, len(bands), "lower --n or --size, or " + (
+        "give --out a folder on a larger disk" if args.out is not None else
+        "write to a larger disk (--out, or data.cache_dir / HSICAM_CACHE)"))
     if args.out is None:
         out = synthetic_dataset(n, size, seed, bands, cache_dir=cfg.data.cache_dir, progress=progress, **kw)
     else:

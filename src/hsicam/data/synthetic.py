@@ -181,6 +181,7 @@ def synthetic_dataset(n: int = 32, size: int = 256, seed: int = 0, bands: Bands 
         log.debug("synthetic dataset cached at %s", out)
         return out
     _check_cache(out, cache_dir)
+    check_room_for_scenes(out, n, size, len(bands))  # before the line that says it is generating
     log.info("generating the synthetic %s set (%d scenes of %dx%dx%d, held-out sources: %s) in %s", split, n, size,
              size, len(bands), ", ".join(holdout) or "none", out)
     generate_dataset(out, n=n, size=size, seed=seed, bands=bands, progress=progress, holdout_sources=holdout,
@@ -256,10 +257,16 @@ def check_scene_memory(size: int, n_bands: int, option: str = "data.synthetic_si
 SCENE_FILE_OVERHEAD_BYTES = 64 * 1024
 
 
-def check_room_for_scenes(out: Path, n: int, size: int, n_bands: int) -> None:
+#: What a refusal of :func:`check_room_for_scenes` tells a training config to change.
+ROOM_FIX = ("lower data.synthetic_n or data.synthetic_size, or point data.cache_dir (or HSICAM_CACHE) to a larger "
+            "disk")
+
+
+def check_room_for_scenes(out: Path, n: int, size: int, n_bands: int, fix: str = ROOM_FIX) -> None:
     """InputError, before any scene is generated, when the file system of ``out`` lacks the room for
-    the scenes still to write (``n`` minus those already there: a rerun resumes) and a margin: a
-    count of scenes far beyond the disk used to fill it scene by scene."""
+    the scenes still to write (``n`` minus those already there: a rerun resumes) and a margin (a
+    tenth, at least 64 MiB): a count of scenes far beyond the disk used to fill it scene by scene.
+    ``fix``: what to change, in the caller's terms (the config's keys, or ``data synth``'s options)."""
     import shutil
 
     from hsicam.memory import format_bytes
@@ -270,9 +277,7 @@ def check_room_for_scenes(out: Path, n: int, size: int, n_bands: int) -> None:
     free = shutil.disk_usage(where).free
     if free < need + max(need // 10, 1 << 26):
         raise InputError(f"the synthetic dataset of {n:,} scenes of {size}×{size} px and {n_bands} bands needs about "
-                         f"{format_bytes(need)} in {out}, but that disk has {format_bytes(free)} free; lower "
-                         "data.synthetic_n or data.synthetic_size, or point data.cache_dir (or HSICAM_CACHE) to a "
-                         "larger disk")
+                         f"{format_bytes(need)} in {out}, but that disk has {format_bytes(free)} free; {fix}")
 
 
 def generate_dataset(out: str | os.PathLike, n: int, size: int, seed: int = 0, bands: Bands | None = None,

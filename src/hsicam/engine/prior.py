@@ -22,7 +22,7 @@ from pathlib import Path
 import torch
 import yaml
 
-from hsicam.config import ChoiConfig, Config, from_dict, load_config, training_differences
+from hsicam.config import ChoiConfig, Config, from_dict, load_config, training_differences, yaml_error_text
 from hsicam.data.pipeline import absolute_data_paths
 from hsicam.engine.loop import FitOptions, fit
 from hsicam.engine.tasks import PriorTask
@@ -220,10 +220,11 @@ def load_prior_settings(run: str | Path) -> ChoiConfig:
     if not path.is_file():
         raise InputError(f"{run}: not a spectral-prior folder ({PRIOR_SETTINGS} is missing); "
                          f"train one with `hsicam baseline train-prior`")
+    text = path.read_text(encoding="utf-8")
     try:
-        data = yaml.safe_load(path.read_text(encoding="utf-8"))
+        data = yaml.safe_load(text)
     except yaml.YAMLError as exc:
-        raise InputError(f"{path}: invalid YAML ({str(exc).splitlines()[0]})") from None
+        raise InputError(yaml_error_text(path, text, exc)) from None
     return from_dict(ChoiConfig, data, "baselines.choi")
 
 
