@@ -173,7 +173,9 @@ def test_a_cassi_camera_images_half_precision_scenes_on_the_cpu():
     """No FFT in CASSI's forward model: float16/bfloat16 scenes image as before (probe 25, F5: the
     DOE camera's rule had been applied to every camera)."""
     for kind in ("dd_cassi", "sd_cassi"):
-        cam = CameraSystem.from_config(load_config("tiny", [f"camera.kind={kind}"])).eval().camera
+        from hsicam.cameras import build_camera
+
+        cam = build_camera(load_config("tiny", [f"camera.kind={kind}"])).eval()  # the camera alone (no network)
         scene = torch.rand(1, 7, 32, 32, generator=torch.Generator().manual_seed(3))
         with torch.no_grad():
             want = cam.A(scene)
