@@ -317,17 +317,21 @@ def test_a_signal_during_a_long_validation_stops_it_at_its_next_batch(tmp_path, 
     full = train(load_config("tiny", keys), tmp_path / "full", progress=False)
     real_validate, seen = SystemTask.validate, []
 
-    def validate(self, loader, device):
-        def batches():
-            for batch in loader:
-                seen.append(len(batch))
-                if len(seen) == 2:  # mid-way through the first validation
-                    os.kill(os.getpid(), signal.SIGTERM)
-                yield batch
+    def sigterm_at_validation_batch(n: int):
+        """SystemTask.validate that sends SIGTERM as it hands out the n-th validation batch of the run."""
+        def validate(self, loader, device):
+            def batches():
+                for batch in loader:
+                    seen.append(len(batch))
+                    if len(seen) == n:
+                        os.kill(os.getpid(), signal.SIGTERM)
+                    yield batch
 
-        return real_validate(self, batches(), device)
+            return real_validate(self, batches(), device)
 
-    monkeypatch.setattr(SystemTask, "validate", validate)
+        return validate
+
+    monkeypatch.setattr(SystemTask, "validate", sigterm_at_validation_batch(2))  # mid-way through the first
     run = tmp_path / "run"
     with pytest.raises(TrainingInterrupted) as info:
         train(load_config("tiny", keys), run, progress=False)
@@ -349,18 +353,7 @@ def test_a_signal_during_a_long_validation_stops_it_at_its_next_batch(tmp_path, 
     # final record holds its scores, not the previous epoch's (a cut there recorded a finished run
     # with stale scores, which a resume never validated again)
     seen.clear()
-
-    def validate_last(self, loader, device):
-        def batches():
-            for batch in loader:
-                seen.append(len(batch))
-                if len(seen) == 10 + 2:  # the second (last) validation, mid-way
-                    os.kill(os.getpid(), signal.SIGTERM)
-                yield batch
-
-        return real_validate(self, batches(), device)
-
-    monkeypatch.setattr(SystemTask, "validate", validate_last)
+    monkeypatch.setattr(SystemTask, "validate", sigterm_at_validation_batch(10 + 2))  # the second (last), mid-way
     last = tmp_path / "last"
     with pytest.raises(TrainingInterrupted) as info:
         train(load_config("tiny", keys), last, progress=False)

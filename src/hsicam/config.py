@@ -810,7 +810,7 @@ class Config:
         (the PSF's: the band centres, or ``camera.psf.band_samples`` points within each FWHM; the
         prism's: the centres) and at its design wavelength; a wavelength outside the formula's range
         used to fail as the camera was built, naming no key."""
-        from hsicam.optics.sampling import band_sample_wavelengths
+        from hsicam.spectral.bands import band_sample_wavelengths
 
         b, cam = self.bands.to_bands(), self.camera
         psf_nm, _ = band_sample_wavelengths(b.centers_nm, b.fwhm_nm, cam.psf.band_samples)

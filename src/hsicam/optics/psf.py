@@ -30,13 +30,13 @@ from hsicam.memory import format_bytes, memory_budget_bytes
 from hsicam.optics.sampling import (
     WAVELENGTHS_PER_BATCH,
     PSFSampling,
-    band_sample_wavelengths,
     defocus_aliasing,
     pixel_weights,
     plan_psf_sampling,
     psf_memory_estimate,
 )
 from hsicam.spectral import Bands
+from hsicam.spectral.bands import band_sample_wavelengths
 
 
 @dataclass

@@ -310,20 +310,3 @@ def pixel_weights(period_px: float, kernel_px: int, fft_size: int, supersample: 
     if n % 2 == 0:
         j_mat[:, n // 2] = 0.0  # the Nyquist harmonic −N/2: absent from a band-limited intensity
     return np.fft.fft(j_mat, axis=1).real / n
-
-
-def band_sample_wavelengths(centers_nm: np.ndarray, fwhm_nm: np.ndarray, samples: int) -> tuple[np.ndarray, np.ndarray]:
-    """Sub-wavelengths (nm) and weights, both (C, M), that average each band over its FWHM.
-
-    M = ``samples`` points at the centres of M equal slices of [λ_c − FWHM/2, λ_c + FWHM/2],
-    weighted by a Gaussian band shape of that FWHM (weights sum to 1 per band). M = 1: the centre.
-    """
-    c = np.asarray(centers_nm, dtype=np.float64).reshape(-1, 1)
-    f = np.asarray(fwhm_nm, dtype=np.float64).reshape(-1, 1)
-    m = int(samples)
-    if m < 1:
-        raise ValueError("band samples must be >= 1")
-    off = ((np.arange(m) + 0.5) / m - 0.5)[None, :]  # in FWHM units
-    lam = c + off * f
-    w = np.exp(-4.0 * math.log(2.0) * off**2) * np.ones_like(lam)
-    return lam, w / w.sum(axis=1, keepdims=True)
