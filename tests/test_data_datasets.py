@@ -335,6 +335,7 @@ def test_data_config_defaults():
     assert d.root is None and d.synthetic_size == 256 and 0 < d.val_fraction < 1
 
 
+@pytest.mark.filterwarnings("ignore:This DataLoader will create:UserWarning")  # torch's own, above the CPUs
 def test_a_worker_count_beyond_the_machine_is_capped_once_with_a_warning(monkeypatch, caplog):
     """``data.num_workers=1000000000`` went to the DataLoader as given (a process per worker: a fork
     bomb on the first epoch); it is capped at twice the CPUs this process may use (at least 4), said once."""
