@@ -88,21 +88,18 @@ def _synth(args: argparse.Namespace) -> int:
     bands = cfg.bands.to_bands()
     progress = False if args.no_progress else None
     kw = {"holdout_sources": holdout, "split": split}
-    from hsicam.data.synthetic import check_room_for_scenes, dataset_dir
-
-    target = (Path(args.out) if args.out is not None else
-              dataset_dir(n, size, seed, bands, cache_dir=cfg.data.cache_dir, **kw))
-    check_room_for_scenes(target, n, size, len(bands), "lower --n or --size, or " + (
+    room_fix = "lower --n or --size, or " + (  # a refusal for want of disk space names the options
         "give --out a folder on a larger disk" if args.out is not None else
-        "write to a larger disk (--out, or data.cache_dir / HSICAM_CACHE)"))
+        "write to a larger disk (--out, or data.cache_dir / HSICAM_CACHE)")
     if args.out is None:
-        out = synthetic_dataset(n, size, seed, bands, cache_dir=cfg.data.cache_dir, progress=progress, **kw)
+        out = synthetic_dataset(n, size, seed, bands, cache_dir=cfg.data.cache_dir, progress=progress,
+                                room_fix=room_fix, **kw)
     else:
         out = Path(args.out)
         if is_complete(out, n, size, seed, bands, **kw):
             print(f"{out}: already holds this dataset (n={n}, size={size}, seed={seed}, split={split})")
             return 0
-        generate_dataset(out, n=n, size=size, seed=seed, bands=bands, progress=progress, **kw)
+        generate_dataset(out, n=n, size=size, seed=seed, bands=bands, progress=progress, room_fix=room_fix, **kw)
     what = "held-out scenes" if split == "heldout" else "scenes"
     print(f"wrote {n} {what} of {size}x{size}x{len(bands)} to {out} (held-out sources: {', '.join(holdout) or 'none'})")
     return 0

@@ -168,11 +168,13 @@ def dataset_dir(n: int, size: int, seed: int, bands: Bands, *, cache_dir: str | 
 
 def synthetic_dataset(n: int = 32, size: int = 256, seed: int = 0, bands: Bands | None = None,
                       cache_dir: str | os.PathLike | None = None, progress: bool | None = None, *,
-                      holdout_sources: str | Iterable[str] | None = DEFAULT_HOLDOUT, split: str = "train") -> Path:
+                      holdout_sources: str | Iterable[str] | None = DEFAULT_HOLDOUT, split: str = "train",
+                      room_fix: str = "") -> Path:
     """Folder of the synthetic dataset for these parameters, generated on first use and cached.
 
     By default the training scenes hold out :data:`DEFAULT_HOLDOUT`; ``holdout_sources=()`` uses
     every source. ``split="heldout"`` gives the held-out set instead (see :func:`heldout_dataset`).
+    ``room_fix``: see :func:`generate_dataset`.
     """
     bands = bands or Bands.paper()
     holdout = parse_holdout(holdout_sources)
@@ -181,11 +183,8 @@ def synthetic_dataset(n: int = 32, size: int = 256, seed: int = 0, bands: Bands 
         log.debug("synthetic dataset cached at %s", out)
         return out
     _check_cache(out, cache_dir)
-    check_room_for_scenes(out, n, size, len(bands))  # before the line that says it is generating
-    log.info("generating the synthetic %s set (%d scenes of %dx%dx%d, held-out sources: %s) in %s", split, n, size,
-             size, len(bands), ", ".join(holdout) or "none", out)
     generate_dataset(out, n=n, size=size, seed=seed, bands=bands, progress=progress, holdout_sources=holdout,
-                     split=split)
+                     split=split, room_fix=room_fix)
     return out
 
 
@@ -282,13 +281,14 @@ def check_room_for_scenes(out: Path, n: int, size: int, n_bands: int, fix: str =
 
 def generate_dataset(out: str | os.PathLike, n: int, size: int, seed: int = 0, bands: Bands | None = None,
                      progress: bool | None = None, *, holdout_sources: str | Iterable[str] | None = DEFAULT_HOLDOUT,
-                     split: str = "train") -> dict[str, Any]:
+                     split: str = "train", room_fix: str = "") -> dict[str, Any]:
     """Write ``n`` scenes (``scene_0000.h5`` …) and ``manifest.json`` (last) into ``out``.
 
     ``split="train"`` (default): scenes without the held-out sources' spectra; ``"heldout"``: scenes
     made of them only. Every file is written atomically; the manifest marks a finished dataset.
     Refuses a folder holding another dataset's manifest or foreign cube files. ``progress=None``
-    shows a tqdm bar only on a terminal. Returns the manifest.
+    shows a tqdm bar only on a terminal. Returns the manifest. ``room_fix``: what a refusal for want
+    of disk space tells the caller to change (default: the config's keys, :data:`ROOM_FIX`).
     """
     from tqdm.auto import tqdm
 
@@ -304,7 +304,9 @@ def generate_dataset(out: str | os.PathLike, n: int, size: int, seed: int = 0, b
     params = parameters(n, size, seed, bands, holdout_sources=holdout, split=split)
     check_dataset_folder(out, params)
     check_scene_memory(size, len(bands))
-    check_room_for_scenes(out, n, size, len(bands))
+    check_room_for_scenes(out, n, size, len(bands), room_fix or ROOM_FIX)
+    log.info("generating the synthetic %s set (%d scenes of %dx%dx%d, held-out sources: %s) in %s", split, n, size,
+             size, len(bands), ", ".join(holdout) or "none", out)
     lib = spectral_library(bands, holdout, split)
     made = [p for p in (out, *out.parents) if not p.exists()]  # the folders this call creates
     out.mkdir(parents=True, exist_ok=True)
