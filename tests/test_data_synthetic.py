@@ -13,7 +13,8 @@ import pytest
 from hsicam.color import spectra_to_srgb
 from hsicam.data import read_cube
 from hsicam.data import synthetic as syn
-from hsicam.errors import InputError
+from hsicam.config import load_config
+from hsicam.errors import ConfigError, InputError
 from hsicam.spectral import Bands
 
 colour = pytest.importorskip("colour")
@@ -103,6 +104,14 @@ def test_cache_generates_once(tmp_path, monkeypatch):
     assert syn.synthetic_dataset(2, 32, 0, PAPER) == first
     assert syn.synthetic_dataset(2, 32, 0, PAPER, cache_dir=None) == first
     assert syn.cache_key(2, 32, 0, PAPER) != syn.cache_key(2, 32, 1, PAPER)
+
+
+def test_an_empty_cache_dir_is_refused_at_load_not_taken_as_the_current_folder():
+    """``data.cache_dir=''`` resolved to the current folder: the dataset was written wherever the command ran."""
+    for value in ("''", "'  '"):
+        with pytest.raises(ConfigError, match=r"data\.cache_dir must be a folder or null .*empty path"):
+            load_config("tiny", [f"data.cache_dir={value}"])
+    assert load_config("tiny", ["data.cache_dir=null"]).data.cache_dir is None
 
 
 def test_refuses_foreign_or_other_output(dataset, tmp_path):

@@ -200,3 +200,41 @@ def test_a_warm_up_longer_than_the_run_is_said(tmp_path, cache_env, caplog):
     with caplog.at_level(logging.WARNING, logger="hsicam.engine.loop"):  # 4 of 4: its last step is at train.lr
         train(load_config("tiny", ["train.epochs=1", "train.warmup_steps=4"]), tmp_path / "short", progress=False)
     assert not [r for r in caplog.records if "warmup_steps" in r.getMessage()]
+
+
+def _fused_silica_h2pi_nm(wavelength_nm: float) -> float:
+    """λ / (n(λ) − 1) from Malitson's (1965) Sellmeier coefficients for fused silica, written out here."""
+    l2 = (wavelength_nm * 1e-3) ** 2
+    n2 = 1 + sum(b * l2 / (l2 - c * c) for b, c in ((0.6961663, 0.0684043), (0.4079426, 0.1162414),
+                                                      (0.8974794, 9.896161)))
+    return wavelength_nm / (n2**0.5 - 1)
+
+
+def test_camera_learning_rates_as_large_as_the_parameters_span_are_refused():
+    """A DOE rate of a whole phase period per step (or a CFA rate of the weights' whole range) throws the
+    parameters across their span at every step; it trained on silently before (e.g. doe_lr_nm=1e30)."""
+    h2pi = _fused_silica_h2pi_nm(587.6)  # the tiny preset's DOE: fused silica, designed at 587.6 nm
+    for rate, ok in ((0.99 * h2pi, True), (1.01 * h2pi, False), (1e30, False)):
+        cfg = load_config("tiny", [f"train.doe_lr_nm={rate!r}"])
+        if ok:
+            SystemTask(cfg, CameraSystem.from_config(cfg))
+        else:
+            with pytest.raises(ConfigError, match=r"train\.doe_lr_nm=.*whole phase period.*h_2π = 12\d\d nm.*"
+                                                  r"freeze=\[doe\]"):
+                SystemTask(cfg, CameraSystem.from_config(cfg))
+    for rate, ok in ((0.5, True), (1.0, False), (5.0, False)):
+        cfg = load_config("tiny", [f"train.cfa_lr={rate}"])
+        if ok:
+            SystemTask(cfg, CameraSystem.from_config(cfg))
+        else:
+            with pytest.raises(ConfigError, match=r"train\.cfa_lr=.*range \[0, 1\]"):
+                SystemTask(cfg, CameraSystem.from_config(cfg))
+    # a frozen group's rate is not used, so it is not checked
+    frozen = load_config("tiny", ["train.doe_lr_nm=1e30", "train.cfa_lr=5", "train.freeze=[doe, cfa]"])
+    SystemTask(frozen, CameraSystem.from_config(frozen))
+
+
+def test_freeze_listing_a_group_twice_is_refused_at_load():
+    with pytest.raises(ConfigError, match=r"train\.freeze names doe more than once"):
+        load_config("tiny", ["train.freeze=[doe, cfa, doe]"])
+    assert load_config("tiny", ["train.freeze=[doe, cfa]"]).train.freeze == ["doe", "cfa"]

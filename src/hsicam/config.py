@@ -548,6 +548,10 @@ class TrainConfig:
             v = getattr(self, k)
             if len(v) != 2 or not (0 <= v[0] <= v[1]) or not all(math.isfinite(x) for x in v):
                 raise ConfigError(f"train.{k} must be [lo, hi] with 0 <= lo <= hi, got {v}")
+        repeated = sorted({g for g in self.freeze if self.freeze.count(g) > 1})
+        if repeated:
+            raise ConfigError(f"train.freeze names {', '.join(repeated)} more than once ({self.freeze}); list each "
+                              "parameter group once")
 
     def loss_formula(self) -> str:
         """The training loss these settings make (:func:`hsicam.engine.tasks.system_loss`, the same terms
@@ -649,6 +653,10 @@ class DataConfig:
             raise ConfigError(f"data.augment_relight_prob must be in [0, 1], got {self.augment_relight_prob}")
         if self.root is not None and not self.root.strip():
             raise ConfigError("data.root must be a path or null")
+        if self.cache_dir is not None and not self.cache_dir.strip():
+            # an empty path is the current folder: the dataset cache would be written wherever the command runs
+            raise ConfigError("data.cache_dir must be a folder or null (null: $HSICAM_CACHE, else ~/.cache/hsicam), "
+                              "got an empty path")
 
 
 # --------------------------------------------------------------------------------------------

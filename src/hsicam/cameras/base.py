@@ -222,6 +222,12 @@ class Camera(nn.Module):
         """Trainable optics parameters by group name (e.g. ``doe``, ``cfa``); empty when none."""
         return {}
 
+    def param_group_spans(self) -> dict[str, tuple[float, str]]:
+        """For each group of :meth:`param_groups`, the span of values its parameters meaningfully take (in
+        their own units) and what that span is, in words: an optimiser step as large moves them across it
+        at once (training refuses such a learning rate). Empty: no bound declared."""
+        return {}
+
     def sensor_code(self, height: int, width: int, origin: tuple[int, int] = (0, 0)) -> torch.Tensor:
         """How much each band counts at each sensor pixel, (C, height, width), for a window of the
         sensor whose top-left pixel is ``origin``. Cameras without such a code raise

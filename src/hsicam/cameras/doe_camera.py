@@ -115,6 +115,15 @@ class DOECamera(Camera):
             groups["cfa"] = [self.cfa.weights]
         return groups
 
+    def param_group_spans(self) -> dict[str, tuple[float, str]]:
+        """``doe``: the 2π height h_2π at the design wavelength (m; heights a whole phase period apart give
+        the same phase there); ``cfa``: 1, the range of the weights, which start in [0, 1] and pass a ReLU
+        and a per-pixel normalisation (:func:`hsicam.sensor.cfa_tile`)."""
+        doe = self.optics.doe
+        return {"doe": (doe.h2pi_m, f"the DOE's whole phase period, h_2π = {doe.h2pi_m * 1e9:.4g} nm at its design "
+                                    f"wavelength {doe.design_wavelength_nm:g} nm"),
+                "cfa": (1.0, "the CFA weights' whole range [0, 1]")}
+
     @property
     def kernel_px(self) -> int:
         return self.optics.kernel_px

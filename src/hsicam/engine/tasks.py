@@ -29,6 +29,11 @@ CAMERA_GROUP_LR = {
     "doe": lambda t: t.doe_lr_nm * 1e-9,  # Adam step on the height map, metres
     "cfa": lambda t: t.cfa_lr,
 }
+# The train key that sets each group's rate (for messages), and how to print a rate in the key's units.
+CAMERA_GROUP_LR_KEY = {
+    "doe": ("train.doe_lr_nm", lambda lr: f"{lr * 1e9:g} nm"),
+    "cfa": ("train.cfa_lr", lambda lr: f"{lr:g}"),
+}
 
 
 def draw_noise(t: TrainConfig, generator: torch.Generator) -> dict[str, float]:
@@ -153,6 +158,24 @@ class SystemTask(Task):
             raise ConfigError(f"train.freeze: unknown parameter group(s) {', '.join(unknown)} for the "
                               f"{model.camera.kind} camera; it has {', '.join(sorted(known))}")
         self._check_something_trains()
+        self._check_camera_rates()
+
+    def _check_camera_rates(self) -> None:
+        """ConfigError, before any work, for a camera group trained at a rate as large as the span its
+        parameters take (:meth:`~hsicam.cameras.base.Camera.param_group_spans`): Adam moves every
+        parameter by about its rate per step, so each step would throw it across that span (e.g.
+        ``train.doe_lr_nm=1e30`` trained on without an error, its heights noise)."""
+        t, spans = self.cfg.train, self.model.camera.param_group_spans()
+        for name in self.model.camera.param_groups():
+            if name in self.freeze or name not in spans or name not in CAMERA_GROUP_LR:
+                continue
+            lr, (span, what) = CAMERA_GROUP_LR[name](t), spans[name]
+            if lr >= span:
+                key, show = CAMERA_GROUP_LR_KEY.get(name, (f"the {name} group's rate", lambda v: f"{v:g}"))
+                raise ConfigError(f"{key}={show(lr)}: Adam moves each parameter by about that much per step, no less "
+                                  f"than {what}; use a rate well below {show(span)} (default "
+                                  f"{show(CAMERA_GROUP_LR[name](TrainConfig()))}), or freeze the group "
+                                  f"(train.freeze=[{name}])")
 
     def _check_something_trains(self) -> None:
         """ConfigError, before any work, when ``train.freeze`` leaves no group to train, or freezes the
