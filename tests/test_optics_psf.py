@@ -636,3 +636,31 @@ def test_an_explicit_supersample_below_nyquist_is_warned_about_once(caplog):
             assert smp.nyquist_supersample == 9
     said = [r.getMessage() for r in caplog.records]
     assert len(said) == 1 and said[0].startswith("camera.psf.supersample=1 is below these optics' Nyquist rate (9"), said
+
+
+def test_a_supersample_finer_than_the_exact_integral_is_refused_before_any_weights(monkeypatch):
+    """supersample=1000001 computed a midpoint rule of 10¹² points per pixel for minutes (session 38's fuzz): a
+    midpoint rule with more points per axis than the exact integral's Gauss–Legendre nodes costs more and is
+    still approximate. The largest value the message offers is taken; the next odd one is refused."""
+    import re
+
+    from hsicam.optics import sampling
+
+    def no_weights(*a, **k):
+        raise AssertionError("pixel weights computed before the refusal")
+
+    lam = np.arange(420.0, 721.0, 10.0) * 1e-9
+    plan = dict(wavelengths_m=lam, sensor_distance_m=35e-3, pixel_m=6e-6, cell_m=30e-6, n_cells=333,
+                aperture_radius_m=5e-3)
+    monkeypatch.setattr(sampling, "pixel_weights", no_weights)
+    with pytest.raises(ConfigError, match=r"camera\.psf\.supersample=1000001 takes more points .* leave "
+                                          r"camera\.psf\.supersample unset") as err:
+        sampling.plan_psf_sampling(**plan, supersample=1000001)
+    top = int(re.search(r"odd value up to (\d+)", str(err.value)).group(1))
+    assert top % 2 == 1 and top >= 9  # at least the Nyquist rate of these optics (the warning's test above)
+    assert sampling.plan_psf_sampling(**plan, supersample=top).supersample == top
+    with pytest.raises(ConfigError, match=rf"camera\.psf\.supersample={top + 2} "):
+        sampling.plan_psf_sampling(**plan, supersample=top + 2)
+    monkeypatch.undo()
+    with pytest.raises(ConfigError, match=r"camera\.psf\.supersample=1000001"):  # through the config as well
+        DOECamera.from_config(load_config("tiny", ["camera.psf.supersample=1000001"]))

@@ -139,6 +139,16 @@ def plan_psf_sampling(
         raise ConfigError(f"camera.psf.supersample must be a positive odd number, got {supersample}")
     a = n_cells * cell_m / 2 if aperture_radius_m is None else aperture_radius_m
     s_nyq = odd_ceil(4.0 * a * pixel_m / (lam.min() * sensor_distance_m))
+    if supersample is not None:
+        # the exact integral's Gauss–Legendre nodes per pixel (per axis): a midpoint rule with more costs more and
+        # is still only approximate (e.g. supersample=1000001 computed for minutes instead of refusing)
+        min_period = float(lam.min()) * sensor_distance_m / (cell_m / q * pixel_m)
+        g_exact = quadrature_nodes(min_period, n_fft)
+        if int(supersample) > max(g_exact, s_nyq):
+            raise ConfigError(f"camera.psf.supersample={int(supersample)} takes more points per pixel and axis than "
+                              f"the exact pixel integral of these optics ({g_exact} Gauss–Legendre nodes), which is "
+                              f"cheaper and exact: leave camera.psf.supersample unset (null), or use an odd value up to "
+                              f"{max(g_exact, s_nyq) - (1 - max(g_exact, s_nyq) % 2)} for the midpoint rule")
     if supersample is not None and int(supersample) < s_nyq and (int(supersample), s_nyq) not in _BELOW_NYQUIST_WARNED:
         _BELOW_NYQUIST_WARNED.add((int(supersample), s_nyq))
         log.warning("camera.psf.supersample=%d is below these optics' Nyquist rate (%d: sub-pixels finer than "
