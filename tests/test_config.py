@@ -342,6 +342,18 @@ def test_non_finite_numbers_are_refused_as_such(override):
         load_config(overrides=[override])
 
 
+@pytest.mark.parametrize("override, message", [
+    ("camera.sensor.sigma=1e30", r"camera\.sensor\.sigma must be in \[0, 1\] .*got 1e\+30"),
+    ("camera.sensor.sigma=1.5", r"camera\.sensor\.sigma must be in \[0, 1\]"),
+    ("train.sensor_sigma=[0, 1e30]", r"train\.sensor_sigma=\[0\.0, 1e\+30\]: σ above 1 .* buries any signal"),
+])
+def test_sensor_noise_above_the_full_scale_is_refused(override, message):
+    """σ = 1e30 on an image of full scale 1 trained a flat network without an error (session 38's fuzz)."""
+    with pytest.raises(ConfigError, match=message):
+        load_config(overrides=[override])
+    assert load_config(overrides=["camera.sensor.sigma=1", "train.sensor_sigma=[0, 1]"]).camera.sensor.sigma == 1.0
+
+
 def test_a_non_finite_or_non_positive_learning_rate_says_it_must_be_finite():
     from hsicam.config import TrainConfig
 

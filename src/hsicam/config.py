@@ -252,6 +252,11 @@ class CFAConfig:
                 raise ConfigError(f"camera.cfa.layout: dispersed needs a power-of-two camera.cfa.period (2, 4, 8, …), got {self.period}")
 
 
+#: The largest Gaussian σ of the sensor noise, on the image scaled to full scale 1 (``camera.sensor.sigma``,
+#: ``train.sensor_sigma``): noise above the full scale buries any signal (σ = 1e30 trained a flat network silently).
+MAX_SENSOR_SIGMA = 1.0
+
+
 @dataclass
 class SensorConfig:
     """Monochrome sensor: pixel pitch, noise model and optional bit depth."""
@@ -265,8 +270,9 @@ class SensorConfig:
 
     def __post_init__(self) -> None:
         _positive("camera.sensor", pixel_pitch_um=self.pixel_pitch_um, full_well_e=self.full_well_e)
-        if not (self.sigma >= 0 and math.isfinite(self.sigma)):
-            raise ConfigError(f"camera.sensor.sigma must be >= 0, got {self.sigma}")
+        if not (0 <= self.sigma <= MAX_SENSOR_SIGMA):
+            raise ConfigError(f"camera.sensor.sigma must be in [0, {MAX_SENSOR_SIGMA:g}] (σ of the image scaled to full "
+                              f"scale 1; more buries any signal), got {self.sigma}")
         if self.read_noise_e < 0:
             raise ConfigError(f"camera.sensor.read_noise_e must be >= 0, got {self.read_noise_e}")
         if self.bit_depth is not None and not (1 <= self.bit_depth <= 32):
@@ -548,6 +554,9 @@ class TrainConfig:
             v = getattr(self, k)
             if len(v) != 2 or not (0 <= v[0] <= v[1]) or not all(math.isfinite(x) for x in v):
                 raise ConfigError(f"train.{k} must be [lo, hi] with 0 <= lo <= hi, got {v}")
+        if self.sensor_sigma[1] > MAX_SENSOR_SIGMA:
+            raise ConfigError(f"train.sensor_sigma={self.sensor_sigma}: σ above {MAX_SENSOR_SIGMA:g} (the full scale of "
+                              "the image) buries any signal; use [lo, hi] with hi <= 1 (e.g. [0, 0.02])")
         repeated = sorted({g for g in self.freeze if self.freeze.count(g) > 1})
         if repeated:
             raise ConfigError(f"train.freeze names {', '.join(repeated)} more than once ({self.freeze}); list each "
