@@ -15,7 +15,7 @@ from hsicam.config import ChoiConfig, load_config
 from hsicam.engine.loop import FitOptions, LoopState, fit, lr_factor
 from hsicam.engine.tasks import PriorTask, SystemTask
 from hsicam.engine.train import train
-from hsicam.errors import ConfigError
+from hsicam.errors import ConfigError, InputError
 from hsicam.models import CameraSystem
 from hsicam.runs.checkpoint import read_weights
 
@@ -238,3 +238,11 @@ def test_freeze_listing_a_group_twice_is_refused_at_load():
     with pytest.raises(ConfigError, match=r"train\.freeze names doe more than once"):
         load_config("tiny", ["train.freeze=[doe, cfa, doe]"])
     assert load_config("tiny", ["train.freeze=[doe, cfa]"]).train.freeze == ["doe", "cfa"]
+
+
+def test_a_gradient_that_overflows_is_a_divergence_not_a_flat_run(tmp_path, cache_env):
+    """A loss weight of 1e30 keeps the loss finite (8e29) but its gradient's norm overflows float32: clipping by an
+    infinite norm multiplied every gradient by 0, and the run trained on, flat, without an error (session 38)."""
+    cfg = load_config("tiny", ["train.epochs=1", "train.ssim_loss=1e30"])
+    with pytest.raises(InputError, match=r"diverged at step 0: the loss is .*e\+29 but its gradient's norm is inf"):
+        train(cfg, tmp_path / "run", progress=False)

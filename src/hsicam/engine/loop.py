@@ -513,14 +513,22 @@ def _fit(task: Task, opts: FitOptions, run_dir: Path, resume: bool, lock: RunLoc
             loss = task.training_step(trainable, batch.to(device, non_blocking=True), g)
             optimizer.zero_grad(set_to_none=True)
             loss.backward()
+            grad_norm = None
             if t.grad_clip is not None:
-                torch.nn.utils.clip_grad_norm_(model.parameters(), t.grad_clip)
+                grad_norm = torch.nn.utils.clip_grad_norm_(model.parameters(), t.grad_clip)
             optimizer.step()
             loss_v = loss.item()
             if not math.isfinite(loss_v):
                 first = state.step_in_epoch * t.batch_size + rank * (t.batch_size // world)  # this rank's first item
                 raise not_finite_error(task.what, step, loss_v, batch,
                                        lambda j: patch_source(train_ds, first + j))
+            if grad_norm is not None and not math.isfinite(grad_norm.item()):
+                # a finite loss whose gradient overflows: clipping by an infinite norm zeroes every gradient, and the
+                # run trained on, flat, without an error (e.g. train.ssim_loss=1e30)
+                raise InputError(f"{task.what} diverged at step {step}: the loss is {loss_v:.4g} but its gradient's norm "
+                                 f"is {grad_norm.item()} (it overflows float32), so clipping would zero every gradient; "
+                                 "lower the loss weights (train.ssim_loss, sam_loss, relative_l1, spectral_grad_loss, "
+                                 "phase_loss) or the learning rates")
             state.loss_sum, state.loss_n = state.loss_sum + loss_v, state.loss_n + 1
             state.global_step, state.step_in_epoch = step + 1, state.step_in_epoch + 1
             steps_done += 1
