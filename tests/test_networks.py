@@ -450,13 +450,6 @@ BAD = [
     ("mosaic", MosaicConfig(factor=6, mid_features=-2), "model.mosaic.mid_features"),
     ("mosaic", MosaicConfig(factor=6, mid_features=8, mid_blocks=-1), "model.mosaic.mid_blocks"),
     ("mosaic", MosaicConfig(brightness_window=5, brightness_eps=0.0), "model.mosaic.brightness_eps"),
-    ("unrolled", UnrolledConfig(brightness_window=-3), "model.unrolled.brightness_window"),
-    ("unrolled", UnrolledConfig(stages=0), "model.unrolled.stages"),
-    ("unrolled", UnrolledConfig(init="zeros"), "model.unrolled.init"),
-    ("unrolled", UnrolledConfig(step_init=0.0), "step_init"),
-    ("unrolled", UnrolledConfig(stage_kernel_px=8), "stage_kernel_px"),
-    ("unrolled", UnrolledConfig(prior_scale=0), "prior_scale"),
-    ("unrolled", UnrolledConfig(step="admm"), "model.unrolled.step"),
     ("unrolled", UnrolledConfig(step="gap"), "diagonal"),
 ]
 
@@ -468,6 +461,60 @@ def test_bad_settings_are_one_config_error(kind, settings, needle):
     with pytest.raises(ConfigError, match=needle) as info:
         build(settings, cam)
     assert "\n" not in str(info.value)
+
+
+#: Settings meaningless on any camera: refused as the section is made (at load), whichever model.kind is selected.
+UNROLLED_BAD = [
+    ({"brightness_window": -3}, r"^model.unrolled.brightness_window must be odd \(or 0 for off\), got -3$"),
+    ({"stages": 0}, r"^model.unrolled.stages must be >= 1, got 0$"),
+    ({"init": "zeros"}, r"^model.unrolled.init='zeros' is not one of auto, demosaic, backprojection, mosaic$"),
+    ({"step_init": 0.0}, r"^model.unrolled.step_init must be > 0, got 0.0$"),
+    ({"stage_kernel_px": 8}, r"^model.unrolled.stage_kernel_px must be odd \(or 0 for the full kernel\), got 8$"),
+    ({"demosaic_window": 4}, r"^model.unrolled.demosaic_window must be odd \(or 0 for the CFA period\), got 4$"),
+    ({"prior_scale": 0}, r"^model.unrolled.prior_scale must be >= 1, got 0$"),
+    ({"step": "admm"}, r"^model.unrolled.step='admm' is not one of gradient, gap$"),
+]
+
+
+@pytest.mark.parametrize("settings,message", UNROLLED_BAD)
+def test_bad_unrolled_settings_are_refused_as_the_section_is_made(settings, message):
+    with pytest.raises(ConfigError, match=message):
+        UnrolledConfig(**settings)
+    (key, value), = settings.items()
+    for kind in ("rdn", "mosaic"):  # not the selected network: still refused at load (was accepted silently)
+        with pytest.raises(ConfigError, match=message):
+            load_config("tiny", [f"model.kind={kind}", f"model.unrolled.{key}={value}"])
+
+
+@pytest.mark.parametrize("section", ["model.mosaic", "model.unrolled.mosaic"])
+@pytest.mark.parametrize("setting,message", [
+    ("blocks=0", r"blocks must be >= 1, got 0"),
+    ("features=-3", r"features must be >= 1, got -3"),
+    ("demosaic_window=4", r"demosaic_window must be odd \(or 0 for the CFA period\), got 4"),
+    ("brightness_window=6", r"brightness_window must be odd \(or 0 for off\), got 6"),
+    ("brightness_eps=0", r"brightness_eps must be > 0, got 0.0"),
+    ("mid_blocks=-1", r"mid_blocks must be >= 0, got -1"),
+    ("detail_features=-1", r"detail_features must be >= 0, got -1"),
+])
+def test_bad_mosaic_settings_in_an_unselected_section_name_that_section(section, setting, message):
+    """Both mosaic sections are checked at load whatever model.kind is, each error naming its own section
+    (model.unrolled.mosaic is a MosaicConfig too: a message naming model.mosaic there would be wrong)."""
+    for kind in ("rdn", "unrolled", "mosaic"):
+        with pytest.raises(ConfigError, match="^" + section.replace(".", r"\.") + r"\." + message + "$"):
+            load_config("tiny", [f"model.kind={kind}", f"{section}.{setting}"])
+
+
+def test_mosaic_checks_that_need_no_camera_come_at_load():
+    with pytest.raises(ConfigError, match=r"^model.unrolled.mosaic.mid_features=4 \(a half-resolution stage\) needs an "
+                                          r"even model.unrolled.mosaic.factor, got 3;"):
+        load_config("tiny", ["model.unrolled.mosaic.mid_features=4", "model.unrolled.mosaic.factor=3"])
+    with pytest.raises(ConfigError, match=r"^model.mosaic.detail_features=2 needs a head: set model.mosaic.head_layers >= 1"):
+        load_config("tiny", ["model.mosaic.detail_features=2", "model.mosaic.head_layers=0"])
+    with pytest.raises(ConfigError, match=r"^model.mosaic.head_features must be >= 1"):
+        load_config("tiny", ["model.mosaic.head_features=0"])
+    cfg = load_config("tiny", ["model.mosaic.mid_features=4"])  # factor 0: the CFA period, known only with the camera
+    with pytest.raises(ConfigError, match=r"^model.mosaic.mid_features=4 .*model.mosaic.factor=0 gives 3 on this camera"):
+        build_mosaic(cfg.model.mosaic, camera("doe"))
 
 
 @pytest.mark.parametrize("settings", [MosaicConfig(), UnrolledConfig(init="demosaic")])

@@ -392,6 +392,45 @@ class MosaicConfig:
     brightness_window: int = 0  # local-brightness normalisation: box width (px, odd) of b = box(g) + ε; 0 = off
     brightness_eps: float = 1.0e-3  # ε of b (sensor units; full scale 1)
 
+    # No __post_init__: this section sits at two places (model.mosaic, model.unrolled.mosaic), and an
+    # error must name the one the user set. Its owner (ModelConfig, UnrolledConfig) runs check() with
+    # the section's name as the config loads; build_mosaic runs it again for a hand-made MosaicConfig.
+    def check(self, section: str) -> None:
+        """ConfigError naming ``section``.KEY for a value meaningless on any camera; the checks that
+        need the camera (factor a multiple of the CFA period, an even factor for mid_features=0's
+        default) are build_mosaic's."""
+        for key in ("features", "blocks"):
+            if getattr(self, key) < 1:
+                raise ConfigError(f"{section}.{key} must be >= 1, got {getattr(self, key)}")
+        for key in ("factor", "head_layers", "detail_features", "mid_features", "mid_blocks"):
+            if getattr(self, key) < 0:
+                raise ConfigError(f"{section}.{key} must be >= 0, got {getattr(self, key)}")
+        if self.head_layers > 1 and self.head_features < 1:
+            raise ConfigError(f"{section}.head_features must be >= 1 with {section}.head_layers={self.head_layers}, "
+                              f"got {self.head_features}")
+        if self.detail_features and not self.head_layers:
+            raise ConfigError(f"{section}.detail_features={self.detail_features} needs a head: set "
+                              f"{section}.head_layers >= 1 (or detail_features=0)")
+        if self.mid_features and self.factor % 2:
+            raise ConfigError(f"{section}.mid_features={self.mid_features} (a half-resolution stage) needs an even "
+                              f"{section}.factor, got {self.factor}; set {section}.factor to an even multiple of the "
+                              f"CFA period or mid_features=0")
+        MosaicConfig.check_window(section, "demosaic_window", self.demosaic_window, "0 for the CFA period")
+        MosaicConfig.check_brightness(section, self.brightness_window, self.brightness_eps)
+
+    @staticmethod
+    def check_window(section: str, key: str, value: int, zero: str) -> None:
+        """ConfigError unless ``value`` (``section``.``key``, px) is odd, or 0 (meaning ``zero``)."""
+        if value < 0 or (value and value % 2 == 0):
+            raise ConfigError(f"{section}.{key} must be odd (or {zero}), got {value}")
+
+    @staticmethod
+    def check_brightness(section: str, window: int, eps: float) -> None:
+        """ConfigError unless ``section``.brightness_window is 0 (off) or odd and brightness_eps > 0."""
+        MosaicConfig.check_window(section, "brightness_window", window, "0 for off")
+        if not (eps > 0 and math.isfinite(eps)):
+            raise ConfigError(f"{section}.brightness_eps must be > 0, got {eps}")
+
 
 @dataclass
 class UnrolledConfig:
@@ -410,6 +449,25 @@ class UnrolledConfig:
     brightness_window: int = 0  # priors see z / b, b = box(g) + ε of this width (px, odd); 0 = off
     brightness_eps: float = 1.0e-3  # ε of b (sensor units; full scale 1)
     mosaic: MosaicConfig = field(default_factory=MosaicConfig)  # the front end of init=mosaic
+
+    INITS: ClassVar[tuple[str, ...]] = ("auto", "demosaic", "backprojection", "mosaic")
+    STEPS: ClassVar[tuple[str, ...]] = ("gradient", "gap")
+
+    def __post_init__(self) -> None:
+        """The checks that need no camera (init=demosaic needing a CFA, step=gap a diagonal ΦΦᵀ: build_unrolled)."""
+        for key in ("stages", "prior_features", "prior_blocks", "prior_scale"):
+            if getattr(self, key) < 1:
+                raise ConfigError(f"model.unrolled.{key} must be >= 1, got {getattr(self, key)}")
+        if self.step not in self.STEPS:
+            raise ConfigError(f"model.unrolled.step={self.step!r} is not one of {', '.join(self.STEPS)}")
+        if self.init not in self.INITS:
+            raise ConfigError(f"model.unrolled.init={self.init!r} is not one of {', '.join(self.INITS)}")
+        if not (self.step_init > 0 and math.isfinite(self.step_init)):
+            raise ConfigError(f"model.unrolled.step_init must be > 0, got {self.step_init}")
+        MosaicConfig.check_window("model.unrolled", "stage_kernel_px", self.stage_kernel_px, "0 for the full kernel")
+        MosaicConfig.check_window("model.unrolled", "demosaic_window", self.demosaic_window, "0 for the CFA period")
+        MosaicConfig.check_brightness("model.unrolled", self.brightness_window, self.brightness_eps)
+        self.mosaic.check("model.unrolled.mosaic")
 
 
 #: Most measurement-consistency steps: each widens the tiling halo by the PSF's reach, and on the demo
@@ -476,6 +534,9 @@ class ModelConfig:
     mosaic: MosaicConfig = field(default_factory=MosaicConfig)
     unrolled: UnrolledConfig = field(default_factory=UnrolledConfig)
     consistency: ConsistencyConfig = field(default_factory=ConsistencyConfig)
+
+    def __post_init__(self) -> None:
+        self.mosaic.check("model.mosaic")  # its own section's name (MosaicConfig has no __post_init__)
 
 
 @dataclass

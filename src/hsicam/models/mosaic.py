@@ -39,8 +39,6 @@ for a scene and a darker copy of it (the synthetic scenes span 300× in mean bri
 
 from __future__ import annotations
 
-import math
-
 import torch
 import torch.nn.functional as F
 from torch import nn
@@ -208,41 +206,21 @@ def build_mosaic(mcfg: MosaicConfig, camera, section: str = "model.mosaic") -> M
     except NotImplementedError:
         raise ConfigError(f"model.kind=mosaic needs a camera with a colour filter array (the DOE camera), not "
                           f"{type(camera).__name__}; use model.kind=unrolled or rdn") from None
-    for key in ("features", "blocks"):
-        if getattr(mcfg, key) < 1:
-            raise ConfigError(f"{section}.{key} must be >= 1, got {getattr(mcfg, key)}")
-    for key in ("factor", "head_layers", "demosaic_window", "detail_features", "mid_features", "mid_blocks"):
-        if getattr(mcfg, key) < 0:
-            raise ConfigError(f"{section}.{key} must be >= 0, got {getattr(mcfg, key)}")
-    if mcfg.head_layers > 1 and mcfg.head_features < 1:
-        raise ConfigError(f"{section}.head_features must be >= 1, got {mcfg.head_features}")
-    if mcfg.detail_features and not mcfg.head_layers:
-        raise ConfigError(f"{section}.detail_features={mcfg.detail_features} needs a head: set {section}.head_layers >= 1")
+    mcfg.check(section)  # the camera-independent checks (already run at load for a loaded config)
     period = int(getattr(camera, "code_period", 1))
     factor = mcfg.factor or (period if period > 1 else 3)
     if factor % period:
         raise ConfigError(f"{section}.factor={mcfg.factor} must be a multiple of the CFA period {period} (or 0 for the period)")
-    if mcfg.mid_features and factor % 2:
+    if mcfg.mid_features and factor % 2:  # factor 0: the CFA period (an odd factor set is refused at load)
         raise ConfigError(f"{section}.mid_features={mcfg.mid_features} (a half-resolution stage) needs an even "
-                          f"{section}.factor, got {factor}; set {section}.factor to an even multiple of the "
-                          f"CFA period or mid_features=0")
+                          f"{section}.factor, but {section}.factor=0 gives {factor} on this camera (CFA period {period}); set "
+                          f"{section}.factor to an even multiple of the CFA period or mid_features=0")
     if mcfg.demosaic_kernel not in DEMOSAIC_KERNELS:
         raise ConfigError(f"{section}.demosaic_kernel must be one of {', '.join(DEMOSAIC_KERNELS)}, got {mcfg.demosaic_kernel!r}")
     window = mcfg.demosaic_window or skip_window(period, mcfg.demosaic_kernel)
-    if window % 2 == 0:
-        raise ConfigError(f"{section}.demosaic_window must be odd (or 0 for the CFA period), got {window}")
-    check_brightness(section, mcfg.brightness_window, mcfg.brightness_eps)
     return MosaicNet(len(camera.bands), factor, mcfg.features, mcfg.blocks, mcfg.head_features, mcfg.head_layers, window,
                      mcfg.brightness_window, mcfg.brightness_eps, mcfg.detail_features, mcfg.demosaic_kernel,
                      mcfg.mid_features, mcfg.mid_blocks)
-
-
-def check_brightness(section: str, window: int, eps: float) -> None:
-    """ConfigError unless ``window`` is 0 (off) or odd and ``eps`` > 0."""
-    if window < 0 or (window and window % 2 == 0):
-        raise ConfigError(f"{section}.brightness_window must be odd (or 0 for off), got {window}")
-    if not (eps > 0 and math.isfinite(eps)):
-        raise ConfigError(f"{section}.brightness_eps must be > 0, got {eps}")
 
 
 __all__ = ["MosaicNet", "MosaicConfig", "ResBlock", "RefineHead", "build_mosaic", "phase_pad"]

@@ -35,11 +35,11 @@ from torch import nn
 from hsicam.config import MosaicConfig, UnrolledConfig
 from hsicam.errors import ConfigError
 from hsicam.models.registry import register_network
-from hsicam.models.mosaic import MosaicNet, ResBlock, _odd_window, build_mosaic, check_brightness, phase_pad
+from hsicam.models.mosaic import MosaicNet, ResBlock, _odd_window, build_mosaic, phase_pad
 from hsicam.models.demosaic import backprojection, brightness, camera_operator, demosaic
 
-INITS = ("auto", "demosaic", "backprojection", "mosaic")
-STEPS = ("gradient", "gap")
+INITS = UnrolledConfig.INITS
+STEPS = UnrolledConfig.STEPS
 
 
 class Prior(nn.Module):
@@ -163,19 +163,6 @@ class UnrolledNet(nn.Module):
 
 def build_unrolled(mcfg: UnrolledConfig, camera) -> UnrolledNet:
     """An :class:`UnrolledNet` for ``camera`` (any camera with ``snapshot``)."""
-    for key in ("stages", "prior_features", "prior_blocks", "prior_scale"):
-        if getattr(mcfg, key) < 1:
-            raise ConfigError(f"model.unrolled.{key} must be >= 1, got {getattr(mcfg, key)}")
-    if mcfg.step not in STEPS:
-        raise ConfigError(f"model.unrolled.step={mcfg.step!r} is not one of {', '.join(STEPS)}")
-    if mcfg.init not in INITS:
-        raise ConfigError(f"model.unrolled.init={mcfg.init!r} is not one of {', '.join(INITS)}")
-    if not (mcfg.step_init > 0 and math.isfinite(mcfg.step_init)):
-        raise ConfigError(f"model.unrolled.step_init must be > 0, got {mcfg.step_init}")
-    if mcfg.stage_kernel_px < 0 or (mcfg.stage_kernel_px and mcfg.stage_kernel_px % 2 == 0):
-        raise ConfigError(f"model.unrolled.stage_kernel_px must be odd (or 0 for the full kernel), got {mcfg.stage_kernel_px}")
-    if mcfg.demosaic_window < 0 or (mcfg.demosaic_window and mcfg.demosaic_window % 2 == 0):
-        raise ConfigError(f"model.unrolled.demosaic_window must be odd (or 0 for the CFA period), got {mcfg.demosaic_window}")
     try:
         camera.sensor_code(1, 1)
         has_code = True
@@ -194,7 +181,6 @@ def build_unrolled(mcfg: UnrolledConfig, camera) -> UnrolledNet:
                           f"{type(camera).__name__}; use step=gradient")
     period = int(getattr(camera, "code_period", 1))
     window = mcfg.demosaic_window or _odd_window(period)
-    check_brightness("model.unrolled", mcfg.brightness_window, mcfg.brightness_eps)
     front = build_mosaic(mcfg.mosaic, camera, "model.unrolled.mosaic") if init == "mosaic" else None
     return UnrolledNet(len(camera.bands), tuple(op.reach_px), mcfg.stages, init, mcfg.share_weights, mcfg.prior_features,
                        mcfg.prior_blocks, mcfg.prior_scale, mcfg.step_init, mcfg.stage_kernel_px, window, front,
