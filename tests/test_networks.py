@@ -800,3 +800,148 @@ def test_the_unrolled_front_ends_bad_setting_names_its_own_section(tiny_config):
                                              "model.unrolled.mosaic.features=-3"))
     with pytest.raises(ConfigError, match=r"^model.mosaic.features must be >= 1, got -3$"):
         CameraSystem.from_config(tiny_config("model.kind=mosaic", "model.mosaic.features=-3"))
+
+
+# --------------------------------------------------------------------------------------------
+# Parameter counts: each kind's closed form (registered with its builder) is the built network's,
+# and a network whose training does not fit the memory budget is refused before it is built
+# --------------------------------------------------------------------------------------------
+from hsicam.models import build_network  # noqa: E402
+from hsicam.models import registry  # noqa: E402
+from hsicam.models.registry import TRAINING_BYTES_PER_PARAMETER, network_parameters  # noqa: E402
+
+#: The CFA of each preset's camera (its mosaic factors are multiples of the period), on the tiny optics.
+PRESET_CFA = {"tiny": ("camera.cfa.period=3",), "paper": ("camera.cfa.period=9",),
+              "paper-unrolled": ("camera.cfa.period=9",), "dd_cassi_rdn": ("camera.cfa.period=3",),
+              "quick": ("camera.cfa.period=4", "camera.cfa.init=bandpass", "camera.cfa.layout=dispersed"),
+              "standard": ("camera.cfa.period=4", "camera.cfa.init=bandpass", "camera.cfa.layout=dispersed")}
+
+
+def _with_model(cfg, model):
+    return dataclasses.replace(cfg, model=model)
+
+
+def _count(net) -> int:
+    return sum(p.numel() for p in net.parameters())
+
+
+@pytest.mark.parametrize("kind", network_kinds())
+@pytest.mark.parametrize("preset", sorted(PRESET_CFA))
+def test_parameter_count_of_every_presets_model_section_is_the_built_networks(preset, kind):
+    """The model sections of the shipped presets (each kind of each preset), on the tiny optics with the
+    preset's CFA period: the registered closed form equals the built network's parameter count."""
+    torch.manual_seed(0)
+    cfg = load_config("tiny", list(PRESET_CFA[preset]))
+    cfg = _with_model(cfg, dataclasses.replace(load_config(preset).model, kind=kind))
+    cam = build_camera(cfg)
+    net = build_network(cfg, cam)
+    assert network_parameters(cfg, cam) == _count(net) > 0
+
+
+VARIANTS = [
+    ("doe", ["model.kind=rdn", "model.rdn.blocks=2", "model.rdn.layers_per_block=3", "model.rdn.growth=5"]),
+    ("doe", ["model.kind=rdn", "model.rdn.demosaic_input=true", "model.rdn.features=6"]),
+    ("sd_cassi", ["model.kind=rdn", "model.rdn.backprojection_input=true"]),
+    ("dd_cassi", ["model.kind=rdn", "model.rdn.backprojection_input=true", "model.rdn.layers_per_block=1"]),
+    ("doe", ["model.kind=mosaic", "model.mosaic.features=8", "model.mosaic.blocks=2",
+             "model.mosaic.head_layers=1"]),
+    ("doe", ["model.kind=mosaic", "model.mosaic.features=8", "model.mosaic.blocks=1", "model.mosaic.head_layers=0"]),
+    ("doe", ["model.kind=mosaic", "model.mosaic.features=8", "model.mosaic.blocks=1", "model.mosaic.head_layers=4",
+             "model.mosaic.head_features=5", "model.mosaic.detail_features=3", "model.mosaic.factor=6",
+             "model.mosaic.mid_features=4", "model.mosaic.mid_blocks=3"]),
+    ("doe", ["model.kind=mosaic", "model.mosaic.features=8", "model.mosaic.blocks=1", "model.mosaic.factor=6",
+             "model.mosaic.mid_features=4", "model.mosaic.mid_blocks=0"]),
+    ("doe", ["model.kind=unrolled", "model.unrolled.stages=3", "model.unrolled.prior_features=8",
+             "model.unrolled.prior_blocks=1", "model.unrolled.prior_scale=2"]),
+    ("doe", ["model.kind=unrolled", "model.unrolled.stages=3", "model.unrolled.share_weights=true",
+             "model.unrolled.prior_features=8", "model.unrolled.prior_blocks=2"]),
+    ("doe", ["model.kind=unrolled", "model.unrolled.init=mosaic", "model.unrolled.stages=1",
+             "model.unrolled.mosaic.features=8", "model.unrolled.mosaic.blocks=1", "model.unrolled.mosaic.detail_features=2"]),
+    ("sd_cassi", ["model.kind=unrolled", "model.unrolled.init=backprojection", "model.unrolled.step=gap",
+                  "model.unrolled.prior_scale=3"]),
+]
+
+
+@pytest.mark.parametrize("camera_kind,overrides", VARIANTS)
+def test_parameter_count_of_variants_is_the_built_networks(camera_kind, overrides):
+    """Every branch of the closed forms (inputs, head sizes, detail and half-resolution stages, shared
+    priors, the unrolled front end), on the DOE camera and the CASSI cameras."""
+    torch.manual_seed(0)
+    cfg = load_config("tiny", [f"camera.kind={camera_kind}", *overrides])
+    cam = build_camera(cfg)
+    assert network_parameters(cfg, cam) == _count(build_network(cfg, cam))
+
+
+def _budget_mb(nbytes: int) -> str:
+    return repr(nbytes / 2**20)  # exact: a whole number of bytes over 2^20 is a float with 20 fraction bits
+
+
+def test_a_network_is_refused_exactly_when_its_training_exceeds_the_budget(monkeypatch, tiny_config):
+    cfg = tiny_config("model.kind=rdn", "model.rdn.blocks=1", "model.rdn.features=8", "model.rdn.growth=4")
+    cam = build_camera(cfg)
+    need = TRAINING_BYTES_PER_PARAMETER * network_parameters(cfg, cam)
+    monkeypatch.setenv("HSICAM_MEMORY_BUDGET_MB", _budget_mb(need))
+    assert _count(build_network(cfg, cam)) * TRAINING_BYTES_PER_PARAMETER == need  # fits exactly
+    monkeypatch.setenv("HSICAM_MEMORY_BUDGET_MB", _budget_mb(need - 1))
+    with pytest.raises(ConfigError, match=r"more than the memory budget .*HSICAM_MEMORY_BUDGET_MB"):
+        build_network(cfg, cam)
+
+
+ABSURD = [
+    ("doe", ["model.kind=rdn", "model.rdn.features=1000000000"], "model.rdn (",
+     ["blocks=1", "features=1000000000", "growth=4", "layers_per_block=2"]),
+    ("doe", ["model.kind=rdn", "model.rdn.blocks=1000000000"], "model.rdn (", ["blocks=1000000000", "features=8"]),
+    ("doe", ["model.kind=rdn", "model.rdn.layers_per_block=1000000000"], "model.rdn (", ["layers_per_block=1000000000"]),
+    ("doe", ["model.kind=rdn", "model.rdn.growth=1000000000"], "model.rdn (", ["growth=1000000000"]),
+    ("doe", ["model.kind=unrolled", "model.unrolled.stages=1000000000"], "model.unrolled (",
+     ["stages=1000000000", "share_weights=false", "prior_features=64", "prior_blocks=2", "prior_scale=4"]),
+    ("doe", ["model.kind=unrolled", "model.unrolled.stages=1000000000", "model.unrolled.share_weights=true"],
+     "model.unrolled (", ["stages=1000000000", "share_weights=true"]),  # one prior, but a billion step sizes
+    ("sd_cassi", ["model.kind=unrolled", "model.unrolled.prior_scale=1000000"], "model.unrolled (", ["prior_scale=1000000"]),
+    ("doe", ["model.kind=unrolled", "model.unrolled.init=mosaic", "model.unrolled.mosaic.blocks=1000000000"],
+     "model.unrolled (", ["mosaic.blocks=1000000000", "mosaic.features=128"]),
+    ("doe", ["model.kind=mosaic", "model.mosaic.features=1000000000"], "model.mosaic (",
+     ["features=1000000000", "blocks=10", "head_features=32"]),
+    ("doe", ["model.kind=mosaic", "model.mosaic.blocks=1000000000"], "model.mosaic (", ["blocks=1000000000"]),
+    ("doe", ["model.kind=mosaic", "model.mosaic.head_layers=1000000000"], "model.mosaic (", ["head_layers=1000000000"]),
+    ("doe", ["model.kind=mosaic", "model.mosaic.factor=300000"], "model.mosaic (", ["factor=300000"]),
+]
+
+
+@pytest.mark.parametrize("camera_kind,overrides,section,settings", ABSURD)
+def test_absurd_network_sizes_are_one_config_error_before_anything_is_built(monkeypatch, camera_kind, overrides,
+                                                                            section, settings):
+    """The fuzz's sizes allocated gigabytes (or looped for minutes) before failing: now the closed form
+    refuses them and the builder never runs. The message names the section and the values of the keys
+    that size the network, the estimate against the budget, and the override."""
+    monkeypatch.setenv("HSICAM_MEMORY_BUDGET_MB", "1024")
+    cfg = load_config("tiny", [f"camera.kind={camera_kind}", *overrides])
+    cam = build_camera(cfg)
+
+    def never(cfg, camera):
+        raise AssertionError("the builder ran")
+
+    entry = registry.NETWORKS[cfg.model.kind]
+    monkeypatch.setitem(registry.NETWORKS, cfg.model.kind, dataclasses.replace(entry, build=never))
+    with pytest.raises(ConfigError) as info:
+        build_network(cfg, cam)
+    msg = str(info.value)
+    assert "\n" not in msg
+    assert msg.startswith(f"model.kind={cfg.model.kind}: {section}")
+    assert all(f"{k}, " in msg or f"{k})" in msg for k in settings), msg
+    assert "more than the memory budget of 1 GiB; " in msg and "raise HSICAM_MEMORY_BUDGET_MB" in msg
+    assert network_parameters(cfg, cam) * TRAINING_BYTES_PER_PARAMETER > 2**30
+
+
+def test_every_network_kind_registers_its_parameter_count():
+    assert all(registry.NETWORKS[k].parameters is not None and registry.NETWORKS[k].sizes for k in network_kinds())
+
+
+def test_the_unrolled_refusal_names_its_front_end_only_with_init_mosaic(monkeypatch):
+    cam = build_camera(load_config("tiny"))
+    monkeypatch.setenv("HSICAM_MEMORY_BUDGET_MB", "1")  # after the camera (its PSF plan needs more)
+    for init, named in (("mosaic", True), ("demosaic", False)):
+        cfg = load_config("tiny", ["model.kind=unrolled", f"model.unrolled.init={init}"])
+        with pytest.raises(ConfigError, match=r"^model.kind=unrolled: model.unrolled \(stages=2, ") as info:
+            build_network(cfg, cam)
+        assert ("mosaic.features=128" in str(info.value)) is named

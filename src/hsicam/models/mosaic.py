@@ -197,6 +197,51 @@ def _odd_window(period: int) -> int:
     return skip_window(period)
 
 
+def mosaic_factor(mcfg: MosaicConfig, camera) -> int:
+    """The space-to-depth factor m: ``factor``, or 0 for the camera's CFA period (3 without a CFA)."""
+    period = int(getattr(camera, "code_period", 1))
+    return mcfg.factor or (period if period > 1 else 3)
+
+
+def mosaic_parameters(bands: int, factor: int, features: int = 128, blocks: int = 10, head_features: int = 32,
+                      head_layers: int = 3, detail_features: int = 0, mid_features: int = 0, mid_blocks: int = 2) -> int:
+    """The parameters (weights and biases) of the :class:`MosaicNet` of these sizes, in closed form
+    (no loop over blocks or layers: any size is O(1))."""
+    c, m2, f, u = bands, factor * factor, features, detail_features
+
+    def conv(cin: int, cout: int, k: int = 1) -> int:
+        return cin * cout * k * k + cout
+
+    n = conv(m2 + c, f, 3) + blocks * 2 * conv(f, f, 3) + conv(f, c * m2)  # stem, residual blocks, tail
+    if u:
+        n += conv(f, u * m2)  # detail
+    if head_layers > 0:
+        first = c + 1 + (1 + u if u else 0)  # the head reads [x, g] (+ g − κ·x̃ and the detail features)
+        if head_layers == 1:
+            n += conv(first, c, 3)
+        else:
+            n += conv(first, head_features, 3) + (head_layers - 2) * conv(head_features, head_features, 3)
+            n += conv(head_features, c, 3)
+    if mid_features:
+        n += conv(f, mid_features * (factor // 2) ** 2) + conv(4 + 4 + c, mid_features, 3)  # lift, stem
+        n += mid_blocks * 2 * conv(mid_features, mid_features, 3) + conv(mid_features, 4 * c)  # body, tail
+        if u:
+            n += conv(mid_features, 4 * u)  # mid_detail
+    return n
+
+
+def mosaic_parameter_count(mcfg: MosaicConfig, camera) -> int:
+    """The parameters :func:`build_mosaic` makes for ``mcfg`` and ``camera`` (its bands and CFA period)."""
+    return mosaic_parameters(len(camera.bands), mosaic_factor(mcfg, camera), mcfg.features, mcfg.blocks,
+                             mcfg.head_features, mcfg.head_layers, mcfg.detail_features, mcfg.mid_features,
+                             mcfg.mid_blocks)
+
+
+#: The keys of a mosaic section that set its parameter count.
+MOSAIC_SIZES = ("features", "blocks", "factor", "head_features", "head_layers", "detail_features", "mid_features",
+                "mid_blocks")
+
+
 def build_mosaic(mcfg: MosaicConfig, camera, section: str = "model.mosaic") -> MosaicNet:
     """A :class:`MosaicNet` for ``camera`` (a camera with a periodic CFA: ``code_period`` / ``sensor_code``);
     ``section``: the config section of ``mcfg`` that errors name (``model.unrolled.mosaic`` for the
@@ -208,7 +253,7 @@ def build_mosaic(mcfg: MosaicConfig, camera, section: str = "model.mosaic") -> M
                           f"{type(camera).__name__}; use model.kind=unrolled or rdn") from None
     mcfg.check(section)  # the camera-independent checks (already run at load for a loaded config)
     period = int(getattr(camera, "code_period", 1))
-    factor = mcfg.factor or (period if period > 1 else 3)
+    factor = mosaic_factor(mcfg, camera)
     if factor % period:
         raise ConfigError(f"{section}.factor={mcfg.factor} must be a multiple of the CFA period {period} (or 0 for the period)")
     if mcfg.mid_features and factor % 2:  # factor 0: the CFA period (an odd factor set is refused at load)
@@ -223,10 +268,12 @@ def build_mosaic(mcfg: MosaicConfig, camera, section: str = "model.mosaic") -> M
                      mcfg.mid_features, mcfg.mid_blocks)
 
 
-__all__ = ["MosaicNet", "MosaicConfig", "ResBlock", "RefineHead", "build_mosaic", "phase_pad"]
+__all__ = ["MosaicNet", "MosaicConfig", "ResBlock", "RefineHead", "build_mosaic", "mosaic_factor", "mosaic_parameter_count",
+           "mosaic_parameters", "phase_pad"]
 
 
-@register_network("mosaic")
+@register_network("mosaic", parameters=lambda cfg, camera: mosaic_parameter_count(cfg.model.mosaic, camera),
+                  sizes=MOSAIC_SIZES)
 def _build_registered(cfg, camera):
     """``model.kind: mosaic`` with the settings ``cfg.model.mosaic``."""
     return build_mosaic(cfg.model.mosaic, camera)

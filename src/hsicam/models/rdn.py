@@ -116,7 +116,7 @@ class RDNReconstructor(RDN):
                  op_reach_px: int = 0) -> None:
         if demosaic_input and backprojection_input:
             raise ValueError("demosaic_input and backprojection_input are alternatives")
-        in_channels = 1 + bands if demosaic_input else bands if backprojection_input else 1
+        in_channels = rdn_input_channels(bands, demosaic_input, backprojection_input)
         super().__init__(bands, in_channels, blocks, features, growth, layers_per_block)
         self.demosaic_input, self.window = bool(demosaic_input), int(window)
         self.backprojection_input, self.op_reach_px = bool(backprojection_input), int(op_reach_px)
@@ -149,7 +149,31 @@ class RDNReconstructor(RDN):
         return super().forward(self.network_input(sensor, camera, origin).to(self.tentative.weight.dtype))
 
 
-@register_network("rdn")
+def rdn_parameters(bands: int, in_channels: int = 1, blocks: int = 8, features: int = 64, growth: int = 32,
+                   layers_per_block: int = 4) -> int:
+    """The parameters (weights and biases) of ``RDN(bands, in_channels, blocks, features, growth,
+    layers_per_block)``, in closed form (no loop over blocks or layers: any size is O(1))."""
+    c, i, d, f, g, n = bands, in_channels, blocks, features, growth, layers_per_block
+    # layer k of a block: 3×3 conv (f + k·g → g); summed over k = 0..n−1; then the 1×1 fusion (f + n·g → f)
+    block = 9 * g * (n * f + g * n * (n - 1) // 2) + n * g + (f + n * g) * f + f
+    return ((i * c + c) + (9 * c * f + f) + (9 * f * f + f)  # tentative 1×1, shallow features
+            + d * block + (d * f * f + f) + (9 * f * f + f)  # blocks, global fusion 1×1 + 3×3
+            + (9 * f * c + c))  # output 3×3
+
+
+def rdn_input_channels(bands: int, demosaic_input: bool = False, backprojection_input: bool = False) -> int:
+    """Channels of what :class:`RDNReconstructor` reads: g (1), [g, x̃] (1 + C) or Aᵀy ⊘ AᵀA𝟙 (C)."""
+    return 1 + bands if demosaic_input else bands if backprojection_input else 1
+
+
+def rdn_parameter_count(cfg, camera) -> int:
+    """The parameters :func:`build_rdn` makes for ``cfg`` and ``camera`` (its band count)."""
+    m, bands = cfg.model.rdn, len(camera.bands)
+    in_channels = rdn_input_channels(bands, m.demosaic_input, m.backprojection_input)
+    return rdn_parameters(bands, in_channels, m.blocks, m.features, m.growth, m.layers_per_block)
+
+
+@register_network("rdn", parameters=rdn_parameter_count, sizes=("blocks", "features", "growth", "layers_per_block"))
 def build_rdn(cfg, camera) -> RDNReconstructor:
     """The RDN of ``cfg.model.rdn`` for ``camera``."""
     m = cfg.model.rdn

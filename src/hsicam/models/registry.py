@@ -2,11 +2,15 @@
 
 A network module registers its builder with one decorator line::
 
-    @register_network("rdn")
+    @register_network("rdn", parameters=rdn_parameter_count, sizes=("blocks", "features", ...))
     def build_rdn(cfg, camera): ...
 
 The builder gets the whole config (its settings are the section ``cfg.model.<kind>``) and the
-camera, so physics-aware networks can use the camera's operator and sensor code.
+camera, so physics-aware networks can use the camera's operator and sensor code. ``parameters``
+(same arguments) is the closed-form count of the network's parameters, declared next to the
+builder (tests hold it equal to the built network's); ``sizes`` are the keys of the section that
+set it. :func:`build_network` refuses a network whose training does not fit the memory budget
+before the builder allocates anything (``model.rdn.features=1000000000`` asked for 250 GB).
 
 Every network is an ``nn.Module`` with
 
@@ -19,23 +23,46 @@ Every network is an ``nn.Module`` with
 
 from __future__ import annotations
 
-from typing import Callable
+from dataclasses import dataclass
+from typing import Any, Callable, Sequence, Union
 
 from torch import nn
 
 from hsicam.errors import ConfigError
+from hsicam.memory import MEMORY_BUDGET_ENV, format_bytes, memory_budget_bytes
 
 Builder = Callable[..., nn.Module]
-NETWORKS: dict[str, Builder] = {}
+#: ``parameters(cfg, camera) -> int``: how many parameters the builder's network has.
+ParameterCount = Callable[..., int]
+#: The keys of ``model.<kind>`` that set the size, or ``(settings) -> keys`` when they depend on them.
+SizeKeys = Union[Sequence[str], Callable[[Any], Sequence[str]]]
+
+#: Bytes per float32 parameter while it trains: the weight, its gradient and Adam's two moments.
+TRAINING_BYTES_PER_PARAMETER = 4 * 4
 
 
-def register_network(kind: str) -> Callable[[Builder], Builder]:
-    """Decorator: register ``builder(cfg, camera) -> nn.Module`` under ``model.kind = kind``."""
+@dataclass(frozen=True)
+class NetworkKind:
+    """A registered ``model.kind``: its builder, its parameter count and the keys that size it."""
+
+    build: Builder
+    parameters: ParameterCount | None = None
+    sizes: SizeKeys = ()
+
+
+NETWORKS: dict[str, NetworkKind] = {}
+
+
+def register_network(kind: str, *, parameters: ParameterCount | None = None,
+                     sizes: SizeKeys = ()) -> Callable[[Builder], Builder]:
+    """Decorator: register ``builder(cfg, camera) -> nn.Module`` under ``model.kind = kind``, with
+    ``parameters(cfg, camera) -> int``, its exact parameter count, and ``sizes``, the keys of
+    ``model.<kind>`` that set it (named when the network is too large); see the module docstring."""
 
     def deco(builder: Builder) -> Builder:
         if kind in NETWORKS:
             raise ValueError(f"network kind {kind!r} is registered twice")
-        NETWORKS[kind] = builder
+        NETWORKS[kind] = NetworkKind(builder, parameters, sizes)
         return builder
 
     return deco
@@ -52,7 +79,46 @@ def check_network_kind(kind: str) -> None:
         raise ConfigError(f"model.kind={kind!r} is unknown; choose one of {', '.join(network_kinds())}")
 
 
-def build_network(cfg, camera) -> nn.Module:
-    """The network ``cfg.model.kind`` describes, for ``camera``."""
+def network_parameters(cfg, camera) -> int | None:
+    """The parameter count of the network ``cfg.model.kind`` describes for ``camera`` (computed, not
+    built), or None for a kind registered without a count."""
     check_network_kind(cfg.model.kind)
-    return NETWORKS[cfg.model.kind](cfg, camera)
+    count = NETWORKS[cfg.model.kind].parameters
+    return None if count is None else int(count(cfg, camera))
+
+
+def check_network_memory(cfg, camera) -> None:
+    """ConfigError, before anything is allocated, for a network whose training (weights, gradients
+    and Adam's two moments: :data:`TRAINING_BYTES_PER_PARAMETER` bytes a parameter) needs more than
+    the memory budget (:func:`hsicam.memory.memory_budget_bytes`), naming the keys that size it."""
+    n = network_parameters(cfg, camera)
+    if n is None:
+        return
+    need, budget = TRAINING_BYTES_PER_PARAMETER * n, memory_budget_bytes()
+    if need <= budget:
+        return
+    kind = cfg.model.kind
+    section, settings = f"model.{kind}", getattr(cfg.model, kind)
+    sizes = NETWORKS[kind].sizes
+    keys = list(sizes(settings) if callable(sizes) else sizes)
+    values = ", ".join(f"{k}={_setting(settings, k)}" for k in keys)
+    count = f"{n:,}" if n < 10**12 else f"{n:.3g}"
+    raise ConfigError(f"model.kind={kind}: {section} ({values}) is a network of {count} parameters for "
+                      f"{len(camera.bands)} bands, whose training needs {format_bytes(need)} "
+                      f"({TRAINING_BYTES_PER_PARAMETER} bytes a parameter: weight, gradient, Adam's two moments), more "
+                      f"than the memory budget of {format_bytes(budget)}; make these sizes smaller, or raise "
+                      f"{MEMORY_BUDGET_ENV} (MiB)")
+
+
+def _setting(settings: Any, key: str) -> str:
+    """The value of ``key`` (dotted, below ``settings``) as the config writes it."""
+    for part in key.split("."):
+        settings = getattr(settings, part)
+    return str(settings).lower() if isinstance(settings, bool) else str(settings)
+
+
+def build_network(cfg, camera) -> nn.Module:
+    """The network ``cfg.model.kind`` describes, for ``camera``; one that does not fit the memory
+    budget is refused before it is built (:func:`check_network_memory`)."""
+    check_network_memory(cfg, camera)
+    return NETWORKS[cfg.model.kind].build(cfg, camera)

@@ -35,7 +35,8 @@ from torch import nn
 from hsicam.config import MosaicConfig, UnrolledConfig
 from hsicam.errors import ConfigError
 from hsicam.models.registry import register_network
-from hsicam.models.mosaic import MosaicNet, ResBlock, _odd_window, build_mosaic, phase_pad
+from hsicam.models.mosaic import (MOSAIC_SIZES, MosaicNet, ResBlock, _odd_window, build_mosaic,
+                                  mosaic_parameter_count, phase_pad)
 from hsicam.models.demosaic import backprojection, brightness, camera_operator, demosaic
 
 INITS = UnrolledConfig.INITS
@@ -187,10 +188,34 @@ def build_unrolled(mcfg: UnrolledConfig, camera) -> UnrolledNet:
                        mcfg.step, mcfg.brightness_window, mcfg.brightness_eps)
 
 
-__all__ = ["Prior", "UnrolledNet", "UnrolledConfig", "backprojection", "build_unrolled", "camera_operator"]
+def unrolled_parameters(bands: int, stages: int = 2, share_weights: bool = False, prior_features: int = 64,
+                        prior_blocks: int = 2, prior_scale: int = 4) -> int:
+    """The parameters of an :class:`UnrolledNet` of these sizes without its front end, in closed form:
+    one step logit per stage and one :class:`Prior` per stage (or one shared)."""
+    ch, f = bands * prior_scale * prior_scale, prior_features
+    prior = (ch * f + f) + prior_blocks * 2 * (9 * f * f + f) + (f * ch + ch)  # stem 1×1, residual blocks, tail 1×1
+    return stages + (1 if share_weights else stages) * prior
 
 
-@register_network("unrolled")
+def unrolled_parameter_count(mcfg: UnrolledConfig, camera) -> int:
+    """The parameters :func:`build_unrolled` makes for ``mcfg`` and ``camera`` (with init=mosaic, its front end's)."""
+    n = unrolled_parameters(len(camera.bands), mcfg.stages, mcfg.share_weights, mcfg.prior_features, mcfg.prior_blocks,
+                            mcfg.prior_scale)
+    return n + (mosaic_parameter_count(mcfg.mosaic, camera) if mcfg.init == "mosaic" else 0)  # auto is never mosaic
+
+
+def unrolled_sizes(mcfg: UnrolledConfig) -> tuple[str, ...]:
+    """The keys of ``model.unrolled`` that set its parameter count (the front end's with init=mosaic)."""
+    own = ("stages", "share_weights", "prior_features", "prior_blocks", "prior_scale")
+    return own + tuple(f"mosaic.{k}" for k in MOSAIC_SIZES) if mcfg.init == "mosaic" else own
+
+
+__all__ = ["Prior", "UnrolledNet", "UnrolledConfig", "backprojection", "build_unrolled", "camera_operator",
+           "unrolled_parameter_count", "unrolled_parameters"]
+
+
+@register_network("unrolled", parameters=lambda cfg, camera: unrolled_parameter_count(cfg.model.unrolled, camera),
+                  sizes=unrolled_sizes)
 def _build_registered(cfg, camera):
     """``model.kind: unrolled`` with the settings ``cfg.model.unrolled``."""
     return build_unrolled(cfg.model.unrolled, camera)
