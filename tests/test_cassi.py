@@ -253,6 +253,42 @@ def test_prism_config_reaches_the_camera():
     assert list(cam.shifts) == prism_dispersion(bands, "fused_silica", 30.0, 0.1, 10e-6)
 
 
+@pytest.mark.parametrize("kind", KINDS)
+@pytest.mark.parametrize("overrides, key, span", [
+    (("camera.cassi.shift_px=1e30",), "camera.cassi.shift_px=1e+30", "over 4e+30 px"),
+    (("camera.cassi.dispersion=prism", "camera.cassi.prism_focal_length_mm=1e30"),
+     "camera.cassi.prism_focal_length_mm=1e+30", "prism"),
+    (("camera.cassi.shift_px=1e308",), "camera.cassi.shift_px=1e+308", "over an infinite span"),
+])
+def test_an_absurd_dispersion_span_is_one_config_error_naming_its_key(kind, overrides, key, span):
+    """The fuzz's shift_px=1e30 and prism_focal_length_mm=1e30 made the sensor 10^30 px wide: the shifts
+    overflowed int64 (or the prism's rounding wrapped) as the camera was built. Now refused first."""
+    with pytest.raises(ConfigError) as info:
+        build_camera(cfg_of(kind, *overrides))
+    msg = str(info.value)
+    if span == "prism":  # f·tan((n(500 nm) − n(700 nm))·α) / pitch, f = 10^27 m, α = 30°, 6 µm pixels
+        n = _fused_silica_n(np.array([500.0, 700.0]))
+        span = f"over {1e27 * math.tan((n[0] - n[1]) * math.radians(30.0)) / 6e-6:.3g} px"
+    assert "\n" not in msg and msg.startswith("camera.cassi.") and key in msg and span in msg, msg
+
+
+@pytest.mark.parametrize("kind", KINDS)
+def test_the_dispersion_bound_is_the_sensor_of_the_runs_scenes_in_the_budget(kind, monkeypatch):
+    """S × (S + D) px at CASSI_BYTES_PER_SENSOR_PX bytes must fit the budget, S = data.synthetic_size
+    (256 by default, the largest of it and data.patch_px): at 2 MiB D = 36 px fits and 37 does not; with
+    128 px scenes 37 fits."""
+    from hsicam.cameras.cassi import CASSI_BYTES_PER_SENSOR_PX
+
+    monkeypatch.setenv("HSICAM_MEMORY_BUDGET_MB", "2")
+    assert CASSI_BYTES_PER_SENSOR_PX * 256 * (256 + 36) <= 2 * 2**20 < CASSI_BYTES_PER_SENSOR_PX * 256 * (256 + 37)
+    assert build_camera(cfg_of(kind, "camera.cassi.shift_px=9")).span == 36  # 5 bands: D = 4 · shift_px
+    with pytest.raises(ConfigError, match=r"^camera.cassi.shift_px=9.25 px per band over 5 bands disperses the bands "
+                                          r"over 37 px: the sensor of a 256 px scene .* more than the memory budget "
+                                          r"of 2 MiB \(HSICAM_MEMORY_BUDGET_MB\); set camera.cassi.shift_px"):
+        build_camera(cfg_of(kind, "camera.cassi.shift_px=9.25"))
+    assert build_camera(cfg_of(kind, "camera.cassi.shift_px=9.25", "data.synthetic_size=128")).span == 37
+
+
 # --------------------------------------------------------------------------------------------
 # Config, factory, noise, errors
 # --------------------------------------------------------------------------------------------

@@ -39,7 +39,8 @@ from torch import nn
 
 from hsicam.cameras.base import Camera
 from hsicam.cameras.registry import register_camera
-from hsicam.errors import InputError
+from hsicam.errors import ConfigError, InputError
+from hsicam.memory import MEMORY_BUDGET_ENV, format_bytes, memory_budget_bytes
 from hsicam.sensor import SensorNoise
 from hsicam.spectral import Bands, get_material
 
@@ -160,19 +161,27 @@ def linear_dispersion(n_bands: int, shift_px: float) -> list[int]:
     return [int(math.floor(shift_px * c + 0.5)) for c in range(n_bands)]
 
 
-def prism_dispersion(bands: Bands, material: str = "fused_silica", apex_deg: float = 30.0,
-                     focal_length_m: float = 0.05, pixel_pitch_m: float = 6e-6) -> list[int]:
-    """Thin-prism dispersion in whole pixels, d_0 = 0, for bands ascending in wavelength.
+def prism_shifts_px(bands: Bands, material: str = "fused_silica", apex_deg: float = 30.0,
+                    focal_length_m: float = 0.05, pixel_pitch_m: float = 6e-6) -> np.ndarray:
+    """Thin-prism dispersion (px, float64, not rounded), 0 for the least dispersed band.
 
     Deviation δ(λ) = (n(λ) − 1)·α; the lens after the prism maps the deviation difference to a
     sensor shift f·tan(δ(λ_0) − δ(λ)). Normal dispersion (n falls with λ) makes the shifts grow
-    with the band index, faster in the blue than in the red.
+    with the band index, faster in the blue than in the red. An absurd focal length gives inf.
     """
     n = np.asarray(get_material(material).n(bands.centers_nm), dtype=np.float64)
     alpha = math.radians(apex_deg)
     delta = (n - 1.0) * alpha
-    shift = focal_length_m * np.tan(delta[0] - delta) / pixel_pitch_m
-    d = np.round(shift - shift.min()).astype(int)
+    with np.errstate(over="ignore", invalid="ignore"):
+        shift = focal_length_m * np.tan(delta[0] - delta) / pixel_pitch_m
+        return shift - shift.min()
+
+
+def prism_dispersion(bands: Bands, material: str = "fused_silica", apex_deg: float = 30.0,
+                     focal_length_m: float = 0.05, pixel_pitch_m: float = 6e-6) -> list[int]:
+    """Thin-prism dispersion in whole pixels, d_0 = 0, for bands ascending in wavelength
+    (:func:`prism_shifts_px` rounded)."""
+    d = np.round(prism_shifts_px(bands, material, apex_deg, focal_length_m, pixel_pitch_m)).astype(int)
     return [int(v) for v in d]
 
 
@@ -182,6 +191,49 @@ def dispersion_from_config(bands: Bands, cassi, pixel_pitch_um: float) -> list[i
         return linear_dispersion(len(bands), cassi.shift_px)
     return prism_dispersion(bands, cassi.prism_material, cassi.prism_apex_deg, cassi.prism_focal_length_mm * 1e-3,
                             pixel_pitch_um * 1e-6)
+
+
+#: Bytes per pixel of a CASSI sensor window while a scene is imaged: the float32 measurement, and the
+#: int64 temporaries of hashing its coded-aperture window (:func:`hashed_uniform`: three live at once).
+CASSI_BYTES_PER_SENSOR_PX = 4 + 3 * 8
+
+
+def check_dispersion_span(cfg, bands: Bands) -> None:
+    """ConfigError, before any shift is rounded or code is drawn, for a dispersion span D (the
+    sensor's extra width across the bands, px) that is not finite or that widens the sensor beyond
+    the memory budget (``camera.cassi.shift_px=1e30`` made the sensor 10^31 px wide).
+
+    The bound: the sensor of one of the run's scenes, S × (S + D) px with S = data.synthetic_size (or
+    data.patch_px when larger; the side this run's scenes are generated and cut at), must fit the memory
+    budget (:func:`hsicam.memory.memory_budget_bytes`) at :data:`CASSI_BYTES_PER_SENSOR_PX` bytes a
+    pixel. Both cameras pay it: SD-CASSI's measurement is W + D wide, DD-CASSI hashes a code window
+    W + D wide. Any real disperser (MST: 2 px per band over 28 bands, D = 54 px) is orders of
+    magnitude below it; the span reaches it only when a key is orders of magnitude off.
+    """
+    cam = cfg.camera
+    cassi = cam.cassi
+    if cassi.dispersion == "linear":
+        span = cassi.shift_px * (len(bands) - 1)
+        what = f"camera.cassi.shift_px={cassi.shift_px:g} px per band over {len(bands)} bands"
+        fix = "set camera.cassi.shift_px to a few px (MST's CASSI: 2)"
+    else:
+        span = float(np.max(prism_shifts_px(bands, cassi.prism_material, cassi.prism_apex_deg,
+                                            cassi.prism_focal_length_mm * 1e-3, cam.sensor.pixel_pitch_um * 1e-6)))
+        what = (f"camera.cassi.dispersion=prism with camera.cassi.prism_focal_length_mm={cassi.prism_focal_length_mm:g}, "
+                f"prism_apex_deg={cassi.prism_apex_deg:g} and prism_material={cassi.prism_material} over "
+                f"{len(bands)} bands and {cam.sensor.pixel_pitch_um:g} µm pixels (camera.sensor.pixel_pitch_um)")
+        fix = ("check camera.cassi.prism_focal_length_mm (in mm) and camera.cassi.prism_apex_deg (in degrees), "
+               "or use camera.cassi.dispersion=linear")
+    side = max(cfg.data.synthetic_size, cfg.data.patch_px)
+    budget = memory_budget_bytes()
+    if not math.isfinite(span):
+        raise ConfigError(f"{what} disperses the bands over an infinite span (the sensor's extra width); {fix}")
+    need = CASSI_BYTES_PER_SENSOR_PX * side * (side + span)
+    if need > budget:
+        raise ConfigError(f"{what} disperses the bands over {span:.3g} px: the sensor of a {side} px scene "
+                          f"(data.synthetic_size / data.patch_px) would be {side + span:.3g} px wide and need "
+                          f"{format_bytes(need)}, more than the memory budget of {format_bytes(budget)} "
+                          f"({MEMORY_BUDGET_ENV}); {fix}")
 
 
 # --------------------------------------------------------------------------------------------
@@ -263,6 +315,7 @@ class _CASSICamera(Camera):
             aperture = CodedAperture.from_file(cassi.mask_file)
         else:
             aperture = CodedAperture(cassi.mask_seed, cassi.mask_density)
+        check_dispersion_span(cfg, bands)
         shifts = dispersion_from_config(bands, cassi, cam.sensor.pixel_pitch_um)
         s = cam.sensor
         noise = SensorNoise.from_config(s)
@@ -409,6 +462,7 @@ class CASSISnapshot:
 
 
 __all__ = [
+    "CASSI_BYTES_PER_SENSOR_PX",
     "TRAIN_APERTURE_PX",
     "CASSISnapshot",
     "CodedAperture",
@@ -416,12 +470,14 @@ __all__ = [
     "SDCASSICamera",
     "dd_band_masks",
     "dd_cassi_adjoint",
+    "check_dispersion_span",
     "dd_cassi_forward",
     "dispersion_from_config",
     "hashed_uniform",
     "linear_dispersion",
     "load_aperture",
     "prism_dispersion",
+    "prism_shifts_px",
     "random_aperture",
     "sd_cassi_adjoint",
     "sd_cassi_forward",
