@@ -161,7 +161,7 @@ def load_weights(path: str | Path, model: nn.Module, bands: Bands) -> None:
     """Load weights into ``model`` after checking the band grid and the tensor names and shapes."""
     tensors, meta = read_weights(path)
     if "bands" in meta:
-        saved = Bands.from_dict(json.loads(meta["bands"]))
+        saved = _saved_bands(path, meta["bands"])
         if not saved.matches(bands):
             raise InputError(f"{path}: checkpoint was trained on {saved!r}, but the model has {bands!r}")
     expected = model.state_dict()
@@ -172,7 +172,22 @@ def load_weights(path: str | Path, model: nn.Module, bands: Bands) -> None:
     for k, v in tensors.items():
         if v.shape != expected[k].shape:
             raise InputError(f"{path}: tensor {k} has shape {tuple(v.shape)}, the model expects {tuple(expected[k].shape)}")
+        if expected[k].is_floating_point() and not v.is_floating_point():  # load_state_dict would cast it silently
+            raise InputError(f"{path}: tensor {k} holds {str(v.dtype).removeprefix('torch.')} values, the model expects "
+                             f"floating-point ({str(expected[k].dtype).removeprefix('torch.')}): not weights this "
+                             "program wrote")
     model.load_state_dict(tensors)
+
+
+def _saved_bands(path: str | Path, text: str) -> Bands:
+    """The band grid a weights file's metadata records (``bands``: JSON of :meth:`Bands.to_dict`);
+    :class:`InputError` naming the file when it is not one."""
+    try:
+        return Bands.from_dict(json.loads(text))
+    except (ValueError, KeyError, TypeError, AttributeError) as exc:  # JSONDecodeError is a ValueError
+        reason = (str(exc).splitlines() or [type(exc).__name__])[0]
+        raise InputError(f"{path}: corrupt band grid in the file's metadata ({reason}); copy the run folder "
+                         "again from its source, or train it again") from None
 
 
 def save_optimizer(path: str | Path, optimizer: torch.optim.Optimizer) -> None:
@@ -197,9 +212,14 @@ def load_optimizer(path: str | Path, optimizer: torch.optim.Optimizer) -> None:
         scalars = json.loads(meta["scalars"])
     except (KeyError, json.JSONDecodeError):
         raise InputError(f"{path}: not an hsicam optimizer state") from None
+    if not isinstance(groups, list) or not isinstance(scalars, dict):
+        raise InputError(f"{path}: not an hsicam optimizer state (its param_groups are no list, or its scalars "
+                         "no mapping)")
     state: dict[int, dict[str, Any]] = {}
     for key, val in [*tensors.items(), *scalars.items()]:
-        idx, name = key.split(".", 1)
+        idx, _, name = key.partition(".")
+        if not idx.isdigit() or not name:
+            raise InputError(f"{path}: not an hsicam optimizer state (entry {key!r} is not PARAM_INDEX.NAME)")
         state.setdefault(int(idx), {})[name] = val
     saved = [g.get("name") for g in groups if isinstance(g, dict)]
     current = [g.get("name") for g in optimizer.param_groups]
@@ -209,8 +229,15 @@ def load_optimizer(path: str | Path, optimizer: torch.optim.Optimizer) -> None:
                          "differs from the run's config.yaml); resume with the run's own settings, or start a new run")
     try:
         optimizer.load_state_dict({"state": state, "param_groups": groups})
-    except (ValueError, KeyError) as exc:
+    except (ValueError, KeyError, TypeError, AttributeError) as exc:
         raise InputError(f"{path}: optimizer state does not fit ({exc})") from None
+    for param, st in optimizer.state.items():  # torch checks none of this; the first step would fail on it
+        for name, val in st.items():
+            if isinstance(val, torch.Tensor) and val.dim() > 0 and val.shape != param.shape:
+                optimizer.state.clear()
+                raise InputError(f"{path}: optimizer state {name} has shape {tuple(val.shape)}, its parameter "
+                                 f"{tuple(param.shape)}: the file belongs to another model; copy the run folder "
+                                 "again from its source, or train it again")
 
 
 class CheckpointManager:
@@ -242,6 +269,10 @@ class CheckpointManager:
                 man["last"]["dir"]  # noqa: B018 - must be present
             except (OSError, UnicodeDecodeError, ValueError, KeyError, TypeError, AttributeError):
                 raise InputError(f"{path}: corrupt checkpoint manifest") from None
+            problem = _manifest_problem(man)
+            if problem is not None:
+                raise InputError(f"{path}: corrupt checkpoint manifest ({problem}); copy the run folder again from "
+                                 "its source, or train it again")
             return man
         return self._legacy_manifest()
 
@@ -444,6 +475,43 @@ class CheckpointManager:
             return json.loads((d / "state.json").read_text())
         except (OSError, ValueError):
             raise InputError(f"{d / 'state.json'}: corrupt checkpoint state") from None
+
+
+def _entry_problem(key: str, entry: Any) -> str | None:
+    """What is wrong with the manifest's checkpoint entry ``key`` ("last", "best"), or None."""
+    if not isinstance(entry, dict):
+        return f"'{key}' is not an entry {{dir, step, …}}"
+    d = entry.get("dir")
+    if not isinstance(d, str) or not d or Path(d).is_absolute() or ".." in Path(d).parts:
+        return f"'{key}.dir' is not a checkpoint folder inside the run: {d!r}"
+    step = entry.get("step")
+    if step is not None and (not isinstance(step, int) or isinstance(step, bool) or step < 0):
+        return f"'{key}.step' is not a step number: {step!r}"
+    sha = entry.get("weights_sha256")
+    if sha is not None and not isinstance(sha, str):
+        return f"'{key}.weights_sha256' is not a hash: {sha!r}"
+    return None
+
+
+def _manifest_problem(man: dict[str, Any]) -> str | None:
+    """What is wrong with a manifest's structure beyond its format and 'last' entry (an edit, another
+    program's file), or None: the readers index its entries without checking them again."""
+    for key in ("last", "best"):
+        if key == "best" and man.get(key) is None:
+            continue
+        problem = _entry_problem(key, man.get(key))
+        if problem is not None:
+            return problem
+    if not isinstance(man.get("state"), dict):
+        return f"'state' is not a mapping of the training state: {man.get('state')!r}"[:200]
+    weights = man.get("weights")
+    if weights is not None:
+        if not isinstance(weights, dict):
+            return f"'weights' is not an entry {{file, from, sha256}}: {weights!r}"[:200]
+        sha = weights.get("sha256")
+        if sha is not None and not isinstance(sha, str):
+            return f"'weights.sha256' is not a hash: {sha!r}"
+    return None
 
 
 def kept_entry(man: dict[str, Any]) -> tuple[str, dict[str, Any]]:

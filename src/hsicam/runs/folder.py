@@ -46,7 +46,7 @@ def with_measured_psf(model, measured: MeasuredPSF):
     cam = model.camera
     if not measured.bands.matches(cam.bands):
         raise InputError(f"measured PSFs are on {measured.bands!r}, the camera on {cam.bands!r}")
-    if measured.psf.shape[-1] != cam.kernel_px:
+    if measured.psf.shape[-1] != cam.kernel_px or measured.psf.shape != (len(cam.bands), cam.kernel_px, cam.kernel_px):
         raise InputError(f"measured PSFs are {measured.psf.shape[-1]} px wide, the camera's kernel {cam.kernel_px} px")
     return model.with_camera(FixedPSFCamera.from_camera(cam, torch.from_numpy(measured.psf)))
 
@@ -85,8 +85,8 @@ def load_run(run_dir: str | Path, device: torch.device | str = "cpu", overrides:
     try:
         load_weights(kept := root_weights_path(run_dir), model, cfg.bands.to_bands())
     except InputError as exc:
-        if not overrides:
-            raise
+        if not overrides or not _loads_without(run_dir, cfg_path):
+            raise  # a damaged file (weights, manifest) fails whatever the --set keys are: say that, not them
         # the weights fitted the run's own config: the --set keys changed what it trained
         raise InputError(f"--set {' '.join(map(str, overrides))}: changes what {run_dir} was trained with, so its "
                          f"weights do not load ({exc}); a trained run's camera, bands and network are fixed by its "
@@ -106,6 +106,19 @@ def load_run(run_dir: str | Path, device: torch.device | str = "cpu", overrides:
     if unfinished:
         log.warning("%s", unfinished)
     return cfg, model.to(device).eval()
+
+
+def _loads_without(run_dir: Path, cfg_path: Path) -> bool:
+    """Whether the run's weights load into the model of its own config.yaml (no ``--set``)."""
+    from hsicam.config import load_config
+    from hsicam.models import CameraSystem
+
+    try:
+        cfg = load_config(cfg_path, (), empty=EMPTY_RUN_CONFIG)
+        load_weights(root_weights_path(run_dir), CameraSystem.from_config(cfg), cfg.bands.to_bands())
+    except HsicamError:
+        return False
+    return True
 
 
 def check_finite_weights(model: torch.nn.Module, weights: str | Path) -> None:

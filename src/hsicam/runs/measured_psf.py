@@ -55,9 +55,28 @@ def load_measured_psf(path: str | Path) -> MeasuredPSF:
     try:
         bands = Bands.from_dict(json.loads(meta["bands"]))
         report = json.loads(meta.get("report", "{}"))
-    except (json.JSONDecodeError, KeyError, TypeError):
+    except (ValueError, KeyError, TypeError, AttributeError):  # JSONDecodeError is a ValueError
         raise InputError(f"{path}: corrupt measured-PSF metadata") from None
-    return MeasuredPSF(tensors["psf"].numpy(), bands, report)
+    psf = tensors["psf"]
+    problem = _psf_problem(psf, len(bands))
+    if problem is not None:
+        raise InputError(f"{path}: {problem}: the file is damaged; copy the run folder again from its source, or "
+                         "fine-tune it again (hsicam finetune)")
+    return MeasuredPSF(psf.float().numpy(), bands, report)
+
+
+def _psf_problem(psf: torch.Tensor, n_bands: int) -> str | None:
+    """What makes ``psf`` no PSF stack of ``n_bands`` bands as the import writes one ((C, K, K) floats,
+    K odd, finite), or None."""
+    shape = tuple(psf.shape)
+    if psf.dim() != 3 or shape[1] != shape[2] or shape[1] % 2 == 0 or shape[0] != n_bands:
+        return f"the PSF stack is {shape}, not ({n_bands} bands, K, K) with K odd"
+    if not psf.is_floating_point():
+        return f"the PSF stack holds {str(psf.dtype).removeprefix('torch.')} values, not floats"
+    bad = int((~psf.isfinite()).sum())
+    if bad:
+        return f"{bad} NaN/Inf value(s) in the PSF stack"
+    return None
 
 
 def psf_difference(tuned: MeasuredPSF, measured: MeasuredPSF, psf_dir: str | Path) -> tuple[str, str] | None:
