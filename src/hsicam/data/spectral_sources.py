@@ -323,6 +323,13 @@ def _library_cached(centers: tuple[float, ...], fwhm: tuple[float, ...]) -> Spec
         for j, label in enumerate(msd.labels):
             add_light("displays", f"{display}:{label}", msd.wavelengths, msd.values[:, j], emitter=True)
 
+    if not refl or not illum:
+        # each band weighs wavelengths up to 3σ of its FWHM beyond its centre; a spectrum must reach that far
+        raise InputError(f"synthetic: bands {bands.min_nm:g}-{bands.max_nm:g} nm of FWHM up to "
+                         f"{float(bands.fwhm_nm.max()):g} nm weigh light from {fine[0]:g} to {fine[-1]:g} nm, and no "
+                         f"measured {'reflectance' if not refl else 'illuminant'} spectrum spans that range: the "
+                         "generator has nothing to draw scenes from; narrow the bands (bands.fwhm_nm, or a smaller "
+                         "bands.step_nm), keep them further inside 380-730 nm, or train on your own data (data.root)")
     otsu = OtsuModel.build(bands, fine, G)
     groups: dict[str, list[int]] = {}
     for i, name in enumerate(inames):
