@@ -211,6 +211,67 @@ def test_export_cli_errors_and_non_binary_levels(fab_run, tmp_path):
     assert spec["doe"]["quantized"]["phase_error_design_wavelength_rad"]["max"] <= math.pi / 6 + 1e-6
 
 
+def test_a_run_trained_with_more_than_256_levels_is_exported_with_its_levels(fab_run, tmp_path):
+    """Training takes camera.doe.quantization_levels up to 2^16; the export used to refuse such a run
+    ("--levels must be in 2..256", an option the user never passed). 512 levels: 16-bit level
+    indices, 9 GDS masks, the quantised TIFF resolving every level."""
+    import shutil
+
+    from hsicam.config import MAX_HEIGHT_LEVELS
+    from hsicam.export.doe import read_height_tiff
+    from hsicam.runs.folder import load_run
+
+    run = tmp_path / "run512"
+    shutil.copytree(fab_run, run, ignore=shutil.ignore_patterns("checkpoints*"))
+    text = (run / "config.yaml").read_text()
+    assert text.count("quantization_levels: null") == 1
+    (run / "config.yaml").write_text(text.replace("quantization_levels: null", "quantization_levels: 512"))
+    out = tmp_path / "fab"
+    res = run_cli("export-optics", "--run", str(run), "--out", str(out))  # the run's own levels
+    assert res.returncode == 0, res.stderr
+    assert "512 levels" in res.stdout and "doe_L512.gds" in res.stdout
+    cfg, model = load_run(run)
+    n, cell_um = model.camera.optics.doe.n_cells, cfg.camera.doe.cell_size_um
+    inside = aperture_amplitude(n, cell_um * 1e-6, cfg.camera.aperture_radius_mm * 1e-3) > 0
+    step = height_2pi_m(get_material("fused_silica"), 587.6) * 1e9 / 512
+    h_npy = np.load(out / "doe_height_nm.npy").astype(np.float64)
+    level_ref = np.where(inside, np.mod(np.round(h_npy / step), 512), 0).astype(int)
+    level = np.load(out / "doe_level_L512.npy")
+    assert level.dtype == np.uint16 and level.max() > 255  # the levels above 8 bits are kept
+    np.testing.assert_array_equal(level, level_ref)
+    etch = _rasterise_gds(out / "doe_L512.gds", n, cell_um, 9)
+    np.testing.assert_array_equal(np.where(inside, 511 - etch, 0), level)
+    tif, desc = read_height_tiff(out / "doe_height_L512_nm.tif")
+    assert desc["levels"] == 512
+    np.testing.assert_array_equal(np.where(inside, np.mod(np.round(tif / step), 512), 0), level)
+    spec = json.loads((out / "spec.json").read_text())
+    assert spec["doe"]["quantized"]["levels"] == 512 and len(spec["doe"]["quantized"]["gds"]["layers"]) == 9
+    # --levels takes the same range as the config; beyond it the refusal names the option and the value
+    res = run_cli("export-optics", "--run", str(fab_run), "--out", str(tmp_path / "o"), "--levels", str(2 * MAX_HEIGHT_LEVELS))
+    assert_clean_error(res, f"--levels must be a power of 2 in 2..{MAX_HEIGHT_LEVELS}", f"got {2 * MAX_HEIGHT_LEVELS}")
+    assert not (tmp_path / "o").exists()
+
+
+def test_the_quantised_tiff_resolves_every_level_up_to_2_16(tiny_config, tmp_path):
+    """With 2^16 levels no nice nm-per-count scale resolves the level step within 16 bits: the
+    quantised TIFF then counts in steps (count = level index), so it reads back level for level."""
+    from hsicam.export.doe import export_doe, nice_scale, read_height_tiff, tiff_scale
+
+    assert tiff_scale(1000.0, 100.0) == nice_scale(1000.0)  # a few levels: the nice scale, as before
+    assert tiff_scale(1000.0, 1000.0 / 65536) == 1000.0 / 65536
+    cam = _doe_camera(tiny_config, "camera.doe.quantization_levels=65536")
+    out = tmp_path / "fab"
+    out.mkdir()
+    facts = export_doe(cam, out, 65536, cam.bands.centers_nm)
+    level = np.load(out / "doe_level_L65536.npy")
+    assert level.dtype == np.uint16
+    tif, desc = read_height_tiff(out / "doe_height_L65536_nm.tif")
+    step = facts["quantized"]["step_nm"]
+    assert desc["scale_nm_per_count"] == pytest.approx(step)
+    np.testing.assert_array_equal(np.round(tif / step).astype(np.int64), level.astype(np.int64))
+    assert len(facts["quantized"]["gds"]["layers"]) == 16
+
+
 def test_export_cites_only_a_tolerance_study_of_this_run(fab_run, tmp_path):
     """tolerance.json records the studied run (folder, weights file and its sha256, as the pretrained
     card hashes it); export-optics refuses any other JSON and a study of another run, and cites a

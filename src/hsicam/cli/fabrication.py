@@ -7,6 +7,7 @@ import math
 from pathlib import Path
 from typing import Any, Callable
 
+from hsicam.config import MAX_HEIGHT_LEVELS
 from hsicam.errors import InputError
 
 
@@ -42,7 +43,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     add_run_arg(p, "trained run folder")
     p.add_argument("--out", required=True, metavar="DIR", help="output folder")
     p.add_argument("--levels", type=int, default=None, metavar="L",
-                   help="DOE height levels for lithography, a power of 2 (default: the run's, else 8)")
+                   help=f"DOE height levels for lithography, a power of 2 in 2..{MAX_HEIGHT_LEVELS} "
+                        "(default: the run's camera.doe.quantization_levels, else 8)")
     p.add_argument("--tolerance", metavar="PATH", help="tolerance.json (or its folder) to cite in spec.json "
                                                        "(default: RUN/tolerance/ if present)")
     p.set_defaults(func=cmd_export)
@@ -90,8 +92,9 @@ def cmd_export(args: argparse.Namespace) -> int:
     from hsicam.cli import prepare_output
 
     prepare_output(args.out, "dir", replace=True, command="export-optics", run=args.run)
-    if args.levels is not None and not (2 <= args.levels <= 256 and is_power_of_two(args.levels)):
-        raise InputError(f"--levels must be a power of 2 in 2..256 (binary-weighted lithography), got {args.levels}")
+    if args.levels is not None and not (2 <= args.levels <= MAX_HEIGHT_LEVELS and is_power_of_two(args.levels)):
+        raise InputError(f"--levels must be a power of 2 in 2..{MAX_HEIGHT_LEVELS} (binary-weighted lithography), "
+                         f"got {args.levels}")
     spec = export_optics(args.run, args.out, args.levels, args.tolerance)
     doe, cfa = spec["doe"], spec["cfa"]
     if doe["enabled"]:

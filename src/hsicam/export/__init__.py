@@ -7,7 +7,8 @@ colour filter array (transmission table, picture, parametric fits) and ``spec.js
 ``doe_height_nm.npy|.tif|.csv``   continuous heights (nm) over the aperture (float32; 16-bit TIFF whose
                                    ImageDescription JSON holds ``scale_nm_per_count``; long-format CSV)
 ``doe_aperture.npy``               fraction of each cell inside the circular aperture
-``doe_height_L{L}_nm.*``           L-level heights (nm); ``doe_level_L{L}.npy`` the level indices
+``doe_height_L{L}_nm.*``           L-level heights (nm; L up to 2^16, as ``camera.doe.quantization_levels``);
+                                   ``doe_level_L{L}.npy`` the level indices (uint8, uint16 above 256)
 ``doe_phase_error_L{L}.csv``       per band: RMS / max phase error of the quantisation (rad, waves)
 ``doe_L{L}.gds``                   GDSII etch masks (L = 2^k; needs the ``fab`` extra: gdstk)
 ``doe.png``                        continuous, quantised and difference maps
@@ -38,6 +39,7 @@ from typing import Any
 
 import numpy as np
 
+from hsicam.config import MAX_HEIGHT_LEVELS
 from hsicam.errors import InputError
 from hsicam.export.tolerance import finetuned_from, read_tolerance_study
 from hsicam.runs.pretrained import is_pretrained_path, run_label
@@ -124,9 +126,10 @@ def export_optics(run_dir: str | Path, out_dir: str | Path, levels: int | None =
                              f"{'the CFA files and ' if camera.cfa.enabled else ''}spec.json)")
     else:
         if levels is None:
-            levels = default_levels(cfg)
-        if levels < 2 or levels > 256:
-            raise InputError(f"--levels must be in 2..256, got {levels}")
+            levels = default_levels(cfg)  # within the config's range (camera.doe.quantization_levels)
+        elif not 2 <= levels <= MAX_HEIGHT_LEVELS:
+            raise InputError(f"--levels must be in 2..{MAX_HEIGHT_LEVELS} (the range of camera.doe.quantization_levels), "
+                             f"got {levels}")
     tolerances = _tolerances(run_dir, cfg, tolerance)  # a bad tolerance file: refused before any file is written
     source = finetuned_from(run_dir)
     facts: dict[str, Any] = {"run": run_label(run_dir) if is_pretrained_path(run_dir) else str(run_dir)}

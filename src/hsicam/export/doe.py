@@ -108,16 +108,29 @@ def nice_scale(max_value: float, counts: int = 65535) -> float:
     return float(10.0 ** (e + 1))
 
 
-def write_height_tiff(path: str | Path, height_nm: np.ndarray, cell_um: float, info: dict[str, Any]) -> float:
+def tiff_scale(max_nm: float, step_nm: float | None = None) -> float:
+    """nm per count of a 16-bit height TIFF: :func:`nice_scale` of the largest height; for an L-level
+    map (``step_nm`` = its level step) at most half a step, so every level reads back as itself, else
+    (more levels than a nice scale resolves within 65535 counts: L up to 2^16) the step itself (count
+    = level index)."""
+    scale = nice_scale(max_nm)
+    if step_nm is not None and scale > step_nm / 2:
+        return float(step_nm)
+    return scale
+
+
+def write_height_tiff(path: str | Path, height_nm: np.ndarray, cell_um: float, info: dict[str, Any],
+                      step_nm: float | None = None) -> float:
     """16-bit TIFF of a height map: value × ``scale_nm_per_count`` = height (nm). The scale, units,
     cell size and ``info`` are in the ImageDescription (JSON); the resolution tags give the cell
-    size (pixels per cm). Returns the scale."""
+    size (pixels per cm). ``step_nm``: the level step of an L-level map (:func:`tiff_scale`).
+    Returns the scale."""
     import tifffile
 
     h = np.asarray(height_nm, dtype=np.float64)
     if h.size and float(h.min()) < 0:
         raise InputError("heights must be >= 0 for the 16-bit TIFF")
-    scale = nice_scale(float(h.max()) if h.size else 0.0)
+    scale = tiff_scale(float(h.max()) if h.size else 0.0, step_nm)
     data = np.round(h / scale).astype(np.uint16)
     desc = {"hsicam": "doe-height-map", "scale_nm_per_count": scale, "offset_nm": 0.0, "unit": "nm",
             "cell_size_um": cell_um, "rows": "row 0 = top (+y)", **info}
@@ -247,7 +260,8 @@ def export_doe(camera, out: Path, levels: int, bands_nm: np.ndarray) -> dict[str
     info = {"cells_across": int(doe.n_cells), "piston_removed_nm": piston * 1e9}
     scale = write_height_tiff(out / "doe_height_nm.tif", h_nm, cell_um, {**info, "quantized": False})
     scale_q = write_height_tiff(out / f"doe_height_L{levels}_nm.tif", hq_nm, cell_um,
-                                {**info, "quantized": True, "levels": levels, "step_nm": top * 1e9 / levels})
+                                {**info, "quantized": True, "levels": levels, "step_nm": top * 1e9 / levels},
+                                step_nm=top * 1e9 / levels)
     write_height_csv(out / "doe_height_nm.csv", h_nm, aperture, cell_um)
     write_height_csv(out / f"doe_height_L{levels}_nm.csv", hq_nm, aperture, cell_um, level)
     from hsicam.optics.doe import phase_per_height
