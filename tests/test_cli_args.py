@@ -149,6 +149,28 @@ def test_tolerance_options_out_of_range_are_usage_errors_naming_the_option(tmp_p
     assert not out.exists()
 
 
+def test_list_types_live_with_the_other_argument_types():
+    """The comma-separated list types are cli.args' (they were private to cli/fabrication.py), and the
+    tolerance options take them from there."""
+    import math
+
+    from hsicam.cli import build_parser
+    from hsicam.cli.args import finite_numbers_arg, levels_list_arg, list_arg, non_negative_numbers_arg
+
+    odd = list_arg(int, "integers", lambda v: v % 2 == 1, "odd")
+    assert odd("1, 3,,5") == (1, 3, 5) and odd("") == ()
+    with pytest.raises(argparse.ArgumentTypeError, match=r"^every value must be odd, got 4$"):
+        odd("1,4")
+    with pytest.raises(argparse.ArgumentTypeError, match=r"^expected comma-separated integers, got 'x'$"):
+        odd("x")
+    assert finite_numbers_arg("-1,0.5") == (-1.0, 0.5) and non_negative_numbers_arg("0,2") == (0.0, 2.0)
+    assert levels_list_arg("2,512") == (2, 512) and math.isinf(list_arg(float, "numbers")("inf")[0])
+    sub = next(a for a in build_parser()._actions if isinstance(a, argparse._SubParsersAction))
+    types = {a.dest: a.type for a in sub.choices["tolerance"]._actions}
+    assert types["sigma_height_nm"] is non_negative_numbers_arg and types["levels"] is levels_list_arg
+    assert types["shift_cells"] is finite_numbers_arg and types["sensor_distance_um"] is finite_numbers_arg
+
+
 @pytest.mark.parametrize("field,value,message", [
     ("max_scenes", 0, "ToleranceSpec.max_scenes must be >= 1, got 0"),
     ("height_draws", -2, "ToleranceSpec.height_draws must be >= 1, got -2"),

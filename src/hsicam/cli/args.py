@@ -1,7 +1,8 @@
-"""argparse ``type`` functions of options shared by several commands (``--device``, ``--seed``,
-``--lr``, ``--seeds``; ``--run`` is :func:`hsicam.cli.run_folder`): a bad value is a usage error naming the
-option (exit code 2, one line), never a traceback later in the work. :func:`path_arg`: the ``~`` of
-every path argument (the parser adds it to them, :data:`hsicam.cli.PATH_METAVARS`)."""
+"""argparse ``type`` functions of the command line's options (``--device``, ``--seed``, ``--lr``,
+``--seeds``, comma-separated lists: :func:`list_arg`; ``--run`` is :func:`hsicam.cli.run_folder`): a
+bad value is a usage error naming the option (exit code 2, one line), never a traceback later in the
+work. :func:`path_arg`: the ``~`` of every path argument (the parser adds it to them,
+:data:`hsicam.cli.PATH_METAVARS`)."""
 
 from __future__ import annotations
 
@@ -86,6 +87,33 @@ def count_arg(text: str) -> int:
     if value < 1:
         raise argparse.ArgumentTypeError(f"must be >= 1, got {value}")
     return value
+
+
+def list_arg(convert: type, what: str, ok: Callable[[Any], bool] = lambda v: True, need: str = ""
+             ) -> Callable[[str], tuple]:
+    """argparse ``type`` of a comma-separated list of ``convert`` values (``what``: "numbers",
+    "integers"), each of which must pass ``ok`` (``need`` says how): a usage error naming the option,
+    before the run is loaded."""
+
+    def parse(text: str) -> tuple:
+        try:
+            values = tuple(convert(v) for v in text.split(",") if v.strip())
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected comma-separated {what}, got {text!r}") from None
+        bad = [v for v in values if not ok(v)]
+        if bad:
+            raise argparse.ArgumentTypeError(f"every value must be {need}, got {bad[0]:g}")
+        return values
+
+    return parse
+
+
+#: A list of finite numbers (``tolerance --shift-cells``, ``--sensor-distance-um``).
+finite_numbers_arg = list_arg(float, "numbers", math.isfinite, "finite")
+#: A list of finite numbers >= 0 (``tolerance --sigma-height-nm``: noise levels).
+non_negative_numbers_arg = list_arg(float, "numbers", lambda v: math.isfinite(v) and v >= 0, "a finite number >= 0")
+#: A list of DOE height level counts, each >= 2 (``tolerance --levels``).
+levels_list_arg = list_arg(int, "integers", lambda v: v >= 2, ">= 2 (height levels)")
 
 
 def check_tile(tile: int | None) -> None:

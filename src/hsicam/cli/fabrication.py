@@ -3,41 +3,16 @@
 from __future__ import annotations
 
 import argparse
-import math
 from pathlib import Path
-from typing import Any, Callable
 
 from hsicam.config import MAX_HEIGHT_LEVELS
 from hsicam.errors import InputError
 
 
-def _list_arg(convert: type, what: str, ok: Callable[[Any], bool] = lambda v: True, need: str = ""
-              ) -> Callable[[str], tuple]:
-    """argparse ``type`` of a comma-separated list of ``convert`` values (``what``: "numbers",
-    "integers"), each of which must pass ``ok`` (``need`` says how): a usage error naming the option,
-    before the run is loaded."""
-
-    def parse(text: str) -> tuple:
-        try:
-            values = tuple(convert(v) for v in text.split(",") if v.strip())
-        except ValueError:
-            raise argparse.ArgumentTypeError(f"expected comma-separated {what}, got {text!r}") from None
-        bad = [v for v in values if not ok(v)]
-        if bad:
-            raise argparse.ArgumentTypeError(f"every value must be {need}, got {bad[0]:g}")
-        return values
-
-    return parse
-
-
-_floats = _list_arg(float, "numbers", math.isfinite, "finite")
-_non_negative_floats = _list_arg(float, "numbers", lambda v: math.isfinite(v) and v >= 0, "a finite number >= 0")
-_levels = _list_arg(int, "integers", lambda v: v >= 2, ">= 2 (height levels)")
-
-
 def register(sub: argparse._SubParsersAction) -> None:
     from hsicam.cli import add_run_arg
-    from hsicam.cli.args import count_arg, device_arg
+    from hsicam.cli.args import (count_arg, device_arg, finite_numbers_arg, levels_list_arg, non_negative_numbers_arg,
+                                 positive_number_arg, seed_arg)
 
     p = sub.add_parser("export-optics", help="fabrication files: DOE heights (npy/tiff/csv/gds), CFA spectra and fits, spec.json")
     add_run_arg(p, "trained run folder")
@@ -54,17 +29,16 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--out", required=True, metavar="DIR", help="output folder (tolerance.json, .csv, .png)")
     p.add_argument("--data", metavar="PATH", help="scenes to evaluate on (default: the run's validation scenes)")
     p.add_argument("--max-scenes", type=count_arg, default=8, help="scenes scored at most, >= 1 (default 8)")
-    p.add_argument("--sigma-height-nm", type=_non_negative_floats, default=None, metavar="LIST",
+    p.add_argument("--sigma-height-nm", type=non_negative_numbers_arg, default=None, metavar="LIST",
                    help="DOE height noise levels σ_p (nm), each >= 0, e.g. 0,10,20,40,60")
     p.add_argument("--draws", type=count_arg, default=None,
                    help="fabricated DOEs drawn per height-noise level, >= 1 (default 3)")
-    p.add_argument("--levels", type=_levels, default=None, metavar="LIST", help="height levels, each >= 2, e.g. 2,4,8,16,32")
-    p.add_argument("--shift-cells", type=_floats, default=None, metavar="LIST", help="e.g. 0,0.25,0.5,1,2")
+    p.add_argument("--levels", type=levels_list_arg, default=None, metavar="LIST", help="height levels, each >= 2, e.g. 2,4,8,16,32")
+    p.add_argument("--shift-cells", type=finite_numbers_arg, default=None, metavar="LIST", help="e.g. 0,0.25,0.5,1,2")
     p.add_argument("--shift-subsamples", type=count_arg, default=None,
                    help="pupil samples per cell Q for the misalignment study (shift resolution 1/Q cell), >= 1 (default 4)")
-    p.add_argument("--sensor-distance-um", type=_floats, default=None, metavar="LIST",
+    p.add_argument("--sensor-distance-um", type=finite_numbers_arg, default=None, metavar="LIST",
                    help="e.g. --sensor-distance-um=-100,-50,0,50,100 (use '=' for lists starting with '-')")
-    from hsicam.cli.args import positive_number_arg, seed_arg
     p.add_argument("--seed", type=seed_arg(-(2**53), 2**53), default=0,  # height-noise draw d: torch seed seed·1000 + d
                    help="seed for the height-noise draws and the sensor noise, in [-2^53, 2^53]")
     p.add_argument("--device", default="cpu", type=device_arg, help="torch device (default cpu)")
