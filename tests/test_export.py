@@ -272,6 +272,17 @@ def test_the_quantised_tiff_resolves_every_level_up_to_2_16(tiny_config, tmp_pat
     assert len(facts["quantized"]["gds"]["layers"]) == 16
 
 
+def test_spec_names_the_run_by_its_label(fab_run, tmp_path, monkeypatch):
+    """spec.json's run is run_label's, as every other output's: a run folder given relative to the
+    working folder is named by its absolute path (it was recorded as typed, meaningless elsewhere)."""
+    from hsicam.export import export_optics
+    from hsicam.runs.pretrained import run_label
+
+    monkeypatch.chdir(fab_run.parent)
+    spec = export_optics(fab_run.name, tmp_path / "o", 4)
+    assert spec["run"] == run_label(fab_run) == str(fab_run.resolve())
+
+
 def test_export_cites_only_a_tolerance_study_of_this_run(fab_run, tmp_path):
     """tolerance.json records the studied run (folder, weights file and its sha256, as the pretrained
     card hashes it); export-optics refuses any other JSON and a study of another run, and cites a

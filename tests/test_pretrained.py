@@ -273,6 +273,46 @@ def test_simulate_reconstruct_with_a_pretrained_camera_leave_it_unchanged(env, t
     assert tree_digest(root) == before
 
 
+def test_evaluate_names_a_shipped_camera_and_the_report_still_finds_it(env, tmp_path, monkeypatch):
+    """evaluate --run pretrained:NAME recorded the camera's package folder as results.json's run (a
+    path meaningless on another machine); now run is pretrained:NAME, as in the other outputs, and
+    run_path the folder read, where the report finds the camera's figures."""
+    from cli_helpers import run_cli_in_process
+    from hsicam.data import read_cube, write_cube_h5
+
+    run, _, root = env
+    before = tree_digest(root)
+    cfg, _ = load_run(run)
+    bands = cfg.bands.to_bands()
+    scene = tmp_path / "data" / "scene.h5"
+    scene.parent.mkdir()
+    write_cube_h5(scene, np.random.default_rng(0).uniform(0.1, 1, (len(bands), 48, 48)).astype(np.float32), bands)
+    spec, ev = f"pretrained:{NAME}", tmp_path / "ev"
+    res = run_cli_in_process("evaluate", "--run", spec, "--data", str(scene.parent), "--out", str(ev), "--save")
+    assert res.returncode == 0, res.stderr
+    results = json.loads((ev / "results.json").read_text())
+    assert results["run"] == spec and results["run_path"] == str((root / NAME).resolve())
+    assert f"- run: {spec}" in (ev / "results.md").read_text()
+    assert read_cube(ev / "cubes" / "scene_estimate.h5")[2]["run"] == spec
+    res = run_cli_in_process("report", str(ev))
+    assert res.returncode == 0, res.stderr
+    page = (ev / "report" / "index.html").read_text()
+    assert f"<h2>Camera ({spec})</h2>" in page and "camera figures unavailable" not in page
+    assert str(root) not in page.split("<h1>")[1].split("</p>", 1)[1]  # the package folder: not named
+    # the report opens run_path, the folder evaluate read, even where pretrained:NAME names no camera
+    monkeypatch.delenv(shipped.ENV_VAR)
+    res = run_cli_in_process("report", str(ev))
+    assert res.returncode == 0, res.stderr
+    page = (ev / "report" / "index.html").read_text()
+    assert f"<h2>Camera ({spec})</h2>" in page and "camera figures unavailable" not in page
+    # a run folder: its label is its path (run_path the same)
+    res = run_cli_in_process("evaluate", "--run", str(run), "--data", str(scene.parent), "--out", str(tmp_path / "ev2"))
+    assert res.returncode == 0, res.stderr
+    results = json.loads((tmp_path / "ev2" / "results.json").read_text())
+    assert results["run"] == results["run_path"] == str(run.resolve())
+    assert tree_digest(root) == before
+
+
 def test_outputs_into_a_pretrained_camera_are_refused(env, tmp_path):
     _, _, root = env
     before = tree_digest(root)

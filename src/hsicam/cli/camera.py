@@ -73,6 +73,7 @@ def camera_from_args(args: argparse.Namespace, extra_overrides: tuple[str, ...] 
 
 def cmd_psf(args: argparse.Namespace) -> int:
     from hsicam.report.camera import write_psf_outputs
+    from hsicam.runs.pretrained import run_label
 
     out = prepare_output(args.out, "dir", replace=True, command="psf", run=args.run)
     if args.run:
@@ -82,8 +83,6 @@ def cmd_psf(args: argparse.Namespace) -> int:
             raise InputError("--run uses the run's config.yaml; drop --config")
         cfg, system = load_run(args.run, overrides=tuple(args.overrides))
         camera = system.camera
-        from hsicam.runs.pretrained import run_label
-
         source = {"run": run_label(args.run),
                   "optics": ("the run's measured PSFs (fine-tuned run)" if camera.kind == "measured_psf"
                              else "the run's trained DOE (model.safetensors)")}
@@ -99,7 +98,7 @@ def cmd_psf(args: argparse.Namespace) -> int:
         with atomic_open(tmp / "config.yaml") as fh:
             fh.write(dump_yaml(cfg))
     e = np.asarray(info["energy_in_kernel"])
-    what = (f"{args.run}'s {'measured PSFs' if camera.kind == 'measured_psf' else 'trained camera'}" if args.run
+    what = (f"{run_label(args.run)}'s {'measured PSFs' if camera.kind == 'measured_psf' else 'trained camera'}" if args.run
             else "the config's camera, DOE as initialised")
     print(f"PSF stack ({what}): {len(camera.bands)} bands, {camera.kernel_px}×{camera.kernel_px} px, "
           f"energy in kernel {e.min():.4f}..{e.max():.4f} -> {out}")

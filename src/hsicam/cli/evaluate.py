@@ -116,6 +116,7 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     from hsicam.cli import prepare_output
     from hsicam.io import atomic_output
     from hsicam.runs.folder import check_is_run
+    from hsicam.runs.pretrained import run_label
 
     check_tile(args.tile)
 
@@ -177,7 +178,10 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
                               paths=rel, tile_px=args.tile)
     camera_sensor = {k: getattr(cfg.camera.sensor, k) for k in SENSOR_NOISE_KEYS}
     saved = {"saved_cubes": _saved_cubes_text(noise.seeds)} if args.save else {}
-    summary = summarize(results, method=args.method, run=str(Path(args.run).resolve()) if args.run else None, data=data, config_hash=config_hash(dump_yaml(cfg)),
+    # the run by its label (pretrained:NAME for a shipped camera: its package folder means nothing elsewhere),
+    # and the folder it was read from as run_path (where `hsicam report` finds the camera)
+    where = {"run": run_label(args.run), "run_path": str(Path(args.run).resolve())} if args.run else {"run": None}
+    summary = summarize(results, method=args.method, **where, data=data, config_hash=config_hash(dump_yaml(cfg)),
                         noise={"sigma_height_nm": args.sigma_height_nm, "sensor_sigma": args.sensor_sigma, "seeds": args.seeds,
                                # the capture noise of the evaluation's config (the camera's own, or --set)
                                "camera_sensor": camera_sensor},

@@ -94,7 +94,7 @@ def _tolerances(run_dir: Path, cfg, tolerance: str | Path | None) -> dict[str, A
         out["note"] = (f"no tolerance study: {run_dir} was fine-tuned on measured PSFs, so a study of {design} applies "
                        f"to these optics: `hsicam tolerance --run {source or 'DESIGN_RUN'} --out DIR`")
     elif shipped:  # its folder lies inside the installed package: a study goes elsewhere
-        out["note"] = f"no tolerance study found: run `hsicam tolerance --run pretrained:{run_dir.name} --out DIR`"
+        out["note"] = f"no tolerance study found: run `hsicam tolerance --run {run_label(run_dir)} --out DIR`"
     else:
         out["note"] = f"no tolerance study found: run `hsicam tolerance --run {run_dir} --out {run_dir / 'tolerance'}`"
     return out
@@ -132,7 +132,7 @@ def export_optics(run_dir: str | Path, out_dir: str | Path, levels: int | None =
                              f"got {levels}")
     tolerances = _tolerances(run_dir, cfg, tolerance)  # a bad tolerance file: refused before any file is written
     source = finetuned_from(run_dir)
-    facts: dict[str, Any] = {"run": run_label(run_dir) if is_pretrained_path(run_dir) else str(run_dir)}
+    facts: dict[str, Any] = {"run": run_label(run_dir)}  # pretrained:NAME for a shipped camera, else the folder
     if source is not None:
         facts["finetuned"] = {"on_measured_psfs": True, "from_run": source or None,
                               "note": "fine-tuning on measured PSFs changed only the network: the DOE and CFA "

@@ -121,16 +121,21 @@ def _conventions(conv: dict) -> str:
     return "<p class='note'>" + "; ".join(f"{html.escape(k)}: {html.escape(v)}" for k, v in conv.items()) + "</p>"
 
 
-def _camera_section(run: Path, out: Path, prefix: str = "") -> str:
+def _camera_section(run: Path, out: Path, prefix: str = "", label: str | None = None) -> str:
+    """The camera figures of the run folder ``run`` (or ``pretrained:NAME``), headed by ``label``, by
+    default its :func:`hsicam.runs.pretrained.run_label` (a shipped camera by its name, not its
+    package folder)."""
     from hsicam.runs.folder import load_run
+    from hsicam.runs.pretrained import resolve_run, run_label
     from hsicam.report.camera import write_optics_figures
 
     try:
         cfg, model = load_run(run)
+        run = resolve_run(run)
     except InputError as exc:
         return f"<p class='note'>camera figures unavailable: {html.escape(str(exc))}</p>"
     cam = model.camera
-    parts = [f"<h2>Camera ({html.escape(str(run))})</h2>"]
+    parts = [f"<h2>Camera ({html.escape(label or run_label(run))})</h2>"]
     for name, caption in write_optics_figures(cam, out, prefix, psf=True).items():
         parts.append(_img(name, caption))
     if (run / "metrics.jsonl").is_file():
@@ -170,8 +175,19 @@ def _evaluation_sections(folder: Path, out: Path, res: dict) -> list[str]:
             parts.append(_img(f"recon_{name}.png", f"{name}: ground truth vs reconstruction (sRGB, CIE 1931 / D65) with zoomed crops and spectra at marked pixels"))
             parts.append(_img(f"errors_{name}.png", f"{name}: absolute error per band"))
     if res.get("run"):
-        parts.append(_camera_section(Path(res["run"]), out))
+        parts.append(_camera_section(_evaluated_run(res), out, label=str(res["run"])))
     return parts
+
+
+def _evaluated_run(res: dict) -> Path:
+    """Where the run an evaluation scored is read from: ``run_path``, the folder ``hsicam evaluate``
+    read (``run`` is its label: ``pretrained:NAME`` for a shipped camera), when it is still there; else
+    ``run`` (a results.json from before run_path, or from another machine: a run folder, or
+    ``pretrained:NAME``, which :func:`hsicam.runs.folder.load_run` finds among this installation's cameras)."""
+    path = res.get("run_path")
+    if isinstance(path, str) and path and Path(path).is_dir():
+        return Path(path)
+    return Path(str(res["run"]))
 
 
 def _experiment_sections(folder: Path, out: Path, exp: dict) -> list[str]:

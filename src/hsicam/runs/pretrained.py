@@ -248,9 +248,11 @@ def is_pretrained_path(path: str | Path) -> bool:
 
 
 def run_label(path: str | Path) -> str:
-    """How output files name the run they came from: ``pretrained:NAME`` for a shipped camera (its
-    folder, which may lie in site-packages, means nothing on another machine), else the run folder's
-    absolute path."""
+    """How output files name the run they came from, the one label of a run (``run`` in evaluate's
+    results.json and saved cubes, reconstruct's cubes, psf.json, export-optics' spec.json, the
+    report's camera heading): ``pretrained:NAME`` for a shipped camera, given as the spec or as its
+    folder (which may lie in site-packages and means nothing on another machine), else the run
+    folder's absolute path."""
     if is_spec(path):
         return str(path)
     if is_pretrained_path(path):
