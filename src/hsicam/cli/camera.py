@@ -41,7 +41,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="same (default): sensor as large as the scene (padded); valid: sensor smaller by the kernel margin "
                         "(what training sees: the presets' camera.boundary)")
     from hsicam.cli.args import seed_arg
-    p.add_argument("--seed", type=seed_arg(), default=0, help="seed for DOE height noise and sensor noise")
+    p.add_argument("--seed", type=seed_arg(), default=0,
+                   help="seed of torch's generator for DOE height noise and sensor noise, an integer in [-2^63, 2^64 - 1] "
+                        "as camera.doe.seed and train.seed (negative seeds too; numpy's, e.g. data synth --seed, take none)")
     add_run_arg(p, "use the trained optics of this run (its config.yaml; --set still applies)", required=False)
     p.set_defaults(func=cmd_simulate)
 
