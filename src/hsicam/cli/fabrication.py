@@ -5,7 +5,6 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from hsicam.config import MAX_HEIGHT_LEVELS
 from hsicam.errors import InputError
 
 
@@ -13,6 +12,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     from hsicam.cli import add_run_arg
     from hsicam.cli.args import (count_arg, device_arg, finite_numbers_arg, levels_list_arg, non_negative_numbers_arg,
                                  positive_number_arg, seed_arg)
+
+    from hsicam.config import MAX_HEIGHT_LEVELS  # export.doe.LEVELS_RANGE's top, without importing torch here
 
     p = sub.add_parser("export-optics", help="fabrication files: DOE heights (npy/tiff/csv/gds), CFA spectra and fits, spec.json")
     add_run_arg(p, "trained run folder")
@@ -62,13 +63,13 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 def cmd_export(args: argparse.Namespace) -> int:
     from hsicam.export import export_optics
-    from hsicam.export.doe import is_power_of_two
+    from hsicam.export.doe import LEVELS_RANGE, is_power_of_two
     from hsicam.cli import prepare_output
 
     prepare_output(args.out, "dir", replace=True, command="export-optics", run=args.run)
-    if args.levels is not None and not (2 <= args.levels <= MAX_HEIGHT_LEVELS and is_power_of_two(args.levels)):
-        raise InputError(f"--levels must be a power of 2 in 2..{MAX_HEIGHT_LEVELS} (binary-weighted lithography), "
-                         f"got {args.levels}")
+    lo, hi = LEVELS_RANGE
+    if args.levels is not None and not (lo <= args.levels <= hi and is_power_of_two(args.levels)):
+        raise InputError(f"--levels must be a power of 2 in {lo}..{hi} (binary-weighted lithography), got {args.levels}")
     spec = export_optics(args.run, args.out, args.levels, args.tolerance)
     doe, cfa = spec["doe"], spec["cfa"]
     if doe["enabled"]:

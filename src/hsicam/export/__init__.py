@@ -39,8 +39,8 @@ from typing import Any
 
 import numpy as np
 
-from hsicam.config import MAX_HEIGHT_LEVELS
 from hsicam.errors import InputError
+from hsicam.export.doe import LEVELS_RANGE
 from hsicam.export.tolerance import finetuned_from, read_tolerance_study
 from hsicam.runs.pretrained import is_pretrained_path, run_label
 
@@ -127,9 +127,9 @@ def export_optics(run_dir: str | Path, out_dir: str | Path, levels: int | None =
     else:
         if levels is None:
             levels = default_levels(cfg)  # within the config's range (camera.doe.quantization_levels)
-        elif not 2 <= levels <= MAX_HEIGHT_LEVELS:
-            raise InputError(f"--levels must be in 2..{MAX_HEIGHT_LEVELS} (the range of camera.doe.quantization_levels), "
-                             f"got {levels}")
+        elif not LEVELS_RANGE[0] <= levels <= LEVELS_RANGE[1]:
+            raise InputError(f"--levels must be in {LEVELS_RANGE[0]}..{LEVELS_RANGE[1]} (the range of "
+                             f"camera.doe.quantization_levels), got {levels}")
     tolerances = _tolerances(run_dir, cfg, tolerance)  # a bad tolerance file: refused before any file is written
     source = finetuned_from(run_dir)
     facts: dict[str, Any] = {"run": run_label(run_dir)}  # pretrained:NAME for a shipped camera, else the folder

@@ -33,6 +33,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from hsicam.config import MAX_HEIGHT_LEVELS
 from hsicam.errors import InputError
 from hsicam.io import atomic_open, atomic_path, save_figure, write_npy
 
@@ -63,6 +64,11 @@ def design_heights(camera) -> tuple[np.ndarray, np.ndarray, float]:
     piston = float(h[inside].min()) if inside.any() else 0.0
     h = np.where(inside, h - piston, 0.0)
     return h, aperture, piston
+
+
+#: The level counts the export writes (``hsicam export-optics --levels``): those training takes
+#: (``camera.doe.quantization_levels``): level indices in 16 bits, one GDS mask per bit.
+LEVELS_RANGE = (2, MAX_HEIGHT_LEVELS)
 
 
 def is_power_of_two(n: int) -> bool:
