@@ -132,11 +132,11 @@ def test_tolerance_says_where_the_sensor_goes_and_refuses_unexportable_levels(ru
         check_sweeps(ToleranceSpec(sensor_distance_um=(-z,)), optics)
     with pytest.raises(InputError, match=rf"moves the sensor past the lens, 1000 µm in front of it"):
         check_sweeps(ToleranceSpec(sensor_distance_um=(-z - 1000,)), optics)
-    for lv in (3, 1024):
+    for lv in (3, 131072):  # the export's range is the config's: 2..2^16 (camera.doe.quantization_levels)
         with pytest.raises(InputError, match=rf"--levels {lv}: hsicam export-optics exports only a power of 2 in "
-                                             r"2..256 levels.*e.g. --levels 2,4,8"):
+                                             r"2..65536 levels.*e.g. --levels 2,4,8"):
             check_sweeps(ToleranceSpec(levels=(2, lv), sensor_distance_um=(0.0,)), optics)
-    check_sweeps(ToleranceSpec(levels=(2, 256), sensor_distance_um=(0.0,)), optics)
+    check_sweeps(ToleranceSpec(levels=(2, 1024), sensor_distance_um=(0.0,)), optics)
 
 
 def test_levels_requirement_only_when_bracketed():

@@ -102,7 +102,8 @@ class BandsConfig:
         return Bands.uniform(self.start_nm, self.stop_nm, self.step_nm, self.fwhm_nm)
 
 
-#: The most height levels ``camera.doe.quantization_levels`` takes (16 bits; lithography uses 2-256).
+#: The most height levels ``camera.doe.quantization_levels`` takes (16 bits; binary-weighted lithography usually
+#: makes 2-256; ``hsicam export-optics`` writes the same range: hsicam.export.doe.LEVELS_RANGE).
 MAX_HEIGHT_LEVELS = 2**16
 
 

@@ -183,14 +183,10 @@ def check_sweeps(spec: ToleranceSpec, optics) -> None:
                              f"{1 / q:g} (or raise --shift-subsamples)")
 
 
-#: The level counts ``hsicam export-optics --levels`` accepts (binary-weighted lithography).
-LEVELS_RANGE = (2, 256)
-
-
 def check_levels(levels: int) -> None:
     """InputError for a level count ``hsicam export-optics`` refuses (not a power of 2 in
-    :data:`LEVELS_RANGE`): a tolerance for it would be of a DOE that cannot be exported."""
-    from hsicam.export.doe import is_power_of_two
+    :data:`hsicam.export.doe.LEVELS_RANGE`): a tolerance for it would be of a DOE that cannot be exported."""
+    from hsicam.export.doe import LEVELS_RANGE, is_power_of_two
 
     lo, hi = LEVELS_RANGE
     if not (lo <= levels <= hi and is_power_of_two(levels)):
