@@ -11,11 +11,13 @@ from __future__ import annotations
 import hashlib
 import json
 import os
+import re
 import shutil
 from pathlib import Path
 
 import numpy as np
 import pytest
+import torch
 
 from cli_helpers import assert_clean_error, run_cli
 from hsicam.errors import InputError
@@ -449,3 +451,30 @@ def test_the_card_says_what_the_consistency_steps_are():
     cfg = load_config("quick", ["model.consistency.iterations=0"])
     data = shipped_card["training"]["data"]
     assert not any("--full-well-e" in x for x in _limits(cfg, "x", cfg.bands.to_bands(), 4, data))
+
+
+def test_finetuning_a_shipped_camera_records_it_by_name_and_resumes_from_it(env, tmp_path):
+    """finetune.json's source_run and the weights' finetuned_from named the package folder (site-packages: it means
+    nothing on another machine); they now say pretrained:NAME, which the resume command they print takes, and a resume
+    from the same camera is accepted while one from another run is refused."""
+    from hsicam.engine.calibration import finetune
+    from hsicam.io import write_json, write_npy
+    from hsicam.runs.checkpoint import read_weights
+
+    run, _, _ = env
+    cfg, base = load_run(f"pretrained:{NAME}")
+    with torch.no_grad():
+        psf = base.camera.psf().double().numpy()
+    d = tmp_path / "psfs"
+    d.mkdir()
+    write_npy(d / "psf.npy", psf.astype(np.float32))
+    write_json(d / "psf.json", {"pixel_pitch_um": cfg.camera.sensor.pixel_pitch_um,
+                                "bands_nm": base.bands.centers_nm.tolist(), "centre": "axis",
+                                "axis_px": [psf.shape[-1] // 2] * 2})
+    out = tmp_path / "tuned"
+    finetune(f"pretrained:{NAME}", d, out, overrides=("train.epochs=1",), progress=False, stop_after_steps=1)
+    finetune(f"pretrained:{NAME}", d, out, overrides=("train.epochs=1",), progress=False, resume=True)
+    assert json.loads((out / "finetune.json").read_text())["source_run"] == f"pretrained:{NAME}"
+    assert read_weights(out / "model.safetensors")[1]["finetuned_from"] == f"pretrained:{NAME}"
+    with pytest.raises(InputError, match=rf"was fine-tuned from pretrained:{NAME}, not {re.escape(str(run))}"):
+        finetune(run, d, out, overrides=("train.epochs=2",), progress=False, resume=True)

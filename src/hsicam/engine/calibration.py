@@ -29,7 +29,7 @@ from hsicam.io import write_json
 from hsicam.runs.folder import MetricsLog, check_run_dir, load_run, with_measured_psf
 from hsicam.runs.lock import RunLock, check_not_locked
 from hsicam.runs.measured_psf import MEASURED_PSF_FILE, MeasuredPSF, load_measured_psf, save_measured_psf
-from hsicam.runs.pretrained import resolve_run
+from hsicam.runs.pretrained import resolve_run, run_label
 
 log = logging.getLogger(__name__)
 
@@ -93,6 +93,14 @@ def continued_settings(out_dir: Path, run_dir: Path) -> list[str]:
     return out
 
 
+def _same_run(recorded: str, run_dir: Path) -> bool:
+    """Whether ``recorded`` (a run's label: a folder, or ``pretrained:NAME``) names the run folder ``run_dir``."""
+    try:
+        return resolve_run(recorded).resolve() == Path(run_dir).resolve()
+    except InputError:  # a shipped camera no longer installed, or a malformed name: not this run
+        return False
+
+
 def check_same_finetune(out_dir: Path, run_dir: Path, psf_dir: str | Path, measured: MeasuredPSF) -> None:
     """InputError when the fine-tuning in ``out_dir`` was made from another run or other measured
     PSFs than ``run_dir`` and ``measured`` (imported from ``psf_dir``): continuing it would mix two
@@ -100,7 +108,7 @@ def check_same_finetune(out_dir: Path, run_dir: Path, psf_dir: str | Path, measu
     from hsicam.runs.folder import finetune_source
 
     source, made_from = finetune_source(out_dir)
-    if source is not None and Path(source).resolve() != Path(run_dir).resolve():
+    if source is not None and not _same_run(source, run_dir):
         raise InputError(f"{out_dir}: was fine-tuned from {source}, not {run_dir}; resume it with --run {source}")
     have = run_psf_fingerprint(out_dir)
     if have != measured.fingerprint:
@@ -129,7 +137,7 @@ class FinetuneTask(SystemTask):
         write_json(run_dir / "measured_psf.json", self.measured.report)
 
     def weights_metadata(self) -> dict[str, str]:
-        return {"finetuned_from": str(self.source_run), "psf_fingerprint": self.measured.fingerprint,
+        return {"finetuned_from": run_label(self.source_run), "psf_fingerprint": self.measured.fingerprint,
                 "psf_dir": str(self.psf_dir)}
 
 
@@ -188,7 +196,7 @@ def _finetune(run_dir: Path, psf_dir, out_dir: Path, overrides, pitch_um, progre
     last = strip(vals[-1]) if vals else {}
     best = max(vals, key=lambda r: r["val_psnr"]) if vals else None
     summary = {
-        "source_run": str(run_dir),
+        "source_run": run_label(run_dir),  # pretrained:NAME for a shipped camera, not its package folder
         "psf_dir": str(psf_dir),
         "psf_fingerprint": measured.fingerprint,
         "frozen": ["camera.optics (DOE)", "camera.cfa"],
