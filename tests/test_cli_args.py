@@ -203,3 +203,18 @@ def test_simulates_seed_help_says_its_range_and_why_it_differs_from_data_synths(
     sub = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
     (seed,) = [a for a in sub.choices["simulate"]._actions if a.dest == "seed"]
     assert "[-2^63, 2^64 - 1]" in seed.help and "camera.doe.seed" in seed.help and "data synth" in seed.help
+
+
+def test_a_test_sensor_noise_above_the_full_scale_is_a_usage_error(tmp_path, capsys):
+    """``evaluate --sensor-sigma`` takes camera.sensor.sigma's range [0, 1]: the config refuses σ above the full
+    scale (it buries any signal), and the option took any σ."""
+    data, out = tmp_path / "data", tmp_path / "ev"
+    data.mkdir()
+    line = one_line_error(capsys, ["evaluate", "--config", "tiny", "--data", str(data), "--out", str(out),
+                                   "--sensor-sigma", "1e30"])
+    assert line == ("hsicam: error: argument --sensor-sigma: must be at most 1 (σ as a fraction of full scale, as "
+                    "camera.sensor.sigma), got '1e30'")
+    assert not out.exists()
+    from hsicam.cli.args import sensor_sigma_arg
+
+    assert sensor_sigma_arg("1") == 1.0 and sensor_sigma_arg("0.01") == 0.01

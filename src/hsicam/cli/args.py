@@ -77,6 +77,19 @@ def non_negative_number_arg(text: str) -> float:
     return value
 
 
+def sensor_sigma_arg(text: str) -> float:
+    """argparse ``type`` of a Gaussian sensor-noise σ on the image scaled to full scale 1 (``evaluate
+    --sensor-sigma``): a finite number in [0, 1], the range of ``camera.sensor.sigma`` (above the full scale the
+    noise buries any signal)."""
+    from hsicam.config import MAX_SENSOR_SIGMA
+
+    value = non_negative_number_arg(text)
+    if value > MAX_SENSOR_SIGMA:
+        raise argparse.ArgumentTypeError(f"must be at most {MAX_SENSOR_SIGMA:g} (σ as a fraction of full scale, as "
+                                         f"camera.sensor.sigma), got {_shown(text)}")
+    return value
+
+
 def count_arg(text: str) -> int:
     """argparse ``type`` of an option that counts something and needs at least one (``--seeds``):
     an integer >= 1; 0, negative and non-integer values are usage errors."""

@@ -9,7 +9,7 @@ import sys
 from pathlib import Path
 
 from hsicam.cli import add_config_args, add_run_arg, config_from_args
-from hsicam.cli.args import check_tile, count_arg, device_arg, non_negative_number_arg
+from hsicam.cli.args import check_tile, count_arg, device_arg, non_negative_number_arg, sensor_sigma_arg
 from hsicam.errors import InputError
 
 log = logging.getLogger(__name__)
@@ -31,8 +31,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--out", required=True, metavar="DIR")
     p.add_argument("--sigma-height-nm", type=non_negative_number_arg, default=None,
                    help="test DOE height noise σ_p (nm), >= 0")
-    p.add_argument("--sensor-sigma", type=non_negative_number_arg, default=None,
-                   help="test sensor noise σ_s (fraction of full scale), >= 0")
+    p.add_argument("--sensor-sigma", type=sensor_sigma_arg, default=None,
+                   help="test sensor noise σ_s (fraction of full scale), in [0, 1]")
     p.add_argument("--seeds", type=count_arg, default=1, help="number of noise seeds (0, 1, ...), >= 1 (default 1)")
     p.add_argument("--save", action="store_true",
                    help="also write each scene's reconstruction and ground truth (cubes/NAME_estimate.h5, NAME_truth.h5; "
