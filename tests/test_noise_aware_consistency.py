@@ -339,3 +339,69 @@ def test_the_full_well_is_counted_from_the_black_to_the_white_level(noisy_captur
         assert_ok(run_cli("reconstruct", str(folder / "capture.npy"), "--run", "pretrained:standard",
                           "--out", str(folder / "off.h5"), "--consistency-steps", "0", "--full-well-e", "300"))
     assert any("--full-well-e only weighs the measurement-consistency steps" in r.getMessage() for r in caplog.records)
+
+
+def test_a_flat_field_gain_map_scales_the_variance_as_the_corrected_noise():
+    """A capture divided by its flat field F (vignetting) is a·n(g/a) with a = 1/F: its variance is a²·v(g/a)
+    (Poisson–Gaussian: a·g/N + (a·r/N)²), checked against the sample variance of 100 000 draws at each of four
+    (gain, level) pairs; a window's variance at its origin is the whole image's there (what tiles see)."""
+    gains = torch.tensor([0.8, 1.0, 1.6, 2.5], dtype=torch.float64)
+    levels = torch.tensor([0.1, 0.3, 0.6, 0.85], dtype=torch.float64)
+    n = 100_000
+    noise = SensorNoise("poisson_gaussian", full_well_e=500.0, read_noise_e=3.0,
+                        gain=gains.view(4, 1).expand(4, n).float())
+    g = levels.view(1, 1, 4, 1).expand(1, 1, 4, n).contiguous()
+    sample = noise(g, torch.Generator().manual_seed(0))
+    expected = gains * levels / 500.0 + (gains * 3.0 / 500.0) ** 2  # written out, not the model's code
+    torch.testing.assert_close(sample.var(dim=-1)[0, 0], expected, rtol=0.03, atol=0)
+    torch.testing.assert_close(noise.variance(g)[0, 0, :, 0], expected, rtol=1e-6, atol=0)
+    # a window of a larger map, the map placed at sensor pixel (2, 3) (a capture's CFA offset)
+    rng = torch.Generator().manual_seed(1)
+    gain = 0.5 + torch.rand(20, 30, generator=rng)
+    image = torch.rand(1, 1, 20, 30, generator=rng)
+    placed = SensorNoise("poisson_gaussian", full_well_e=200.0, read_noise_e=2.0, gain=gain, gain_origin=(2, 3))
+    whole = placed.variance(image, origin=(2, 3))
+    torch.testing.assert_close(whole, (gain * image / 200.0 + (gain * 2.0 / 200.0) ** 2).float())
+    window = image[..., 5:12, 7:19]
+    torch.testing.assert_close(placed.variance(window, origin=(7, 10)), whole[..., 5:12, 7:19])
+    with pytest.raises(ValueError, match="not within the noise gain map"):
+        placed.variance(window, origin=(0, 0))
+    with pytest.raises(ValueError, match="finite and positive"):
+        SensorNoise("poisson_gaussian", gain=torch.zeros(4, 4))
+
+
+def test_reconstruct_counts_the_flat_fields_gain_in_the_capture_noise(noisy_capture, tmp_path):
+    """``--flat F --full-well-e E``: the capture was divided by the normalised flat, so each pixel's noise is
+    scaled by 1/F; the camera's noise model gets that gain map, placed at the capture's CFA offset (before, the
+    flat's gain was not counted). Checked in-process against the variance written out with 1/F, and end to end."""
+    from hsicam.cli.reconstruct import capture_noise
+    from hsicam.config import load_config
+    from hsicam.data.images import RawCorrection, read_capture
+    from hsicam.models import CameraSystem
+
+    folder, _, _ = noisy_capture
+    g = np.load(folder / "capture.npy")
+    h, w = g.shape
+    yy, xx = np.meshgrid(np.linspace(-1, 1, h), np.linspace(-1, 1, w), indexing="ij")
+    flat_dn = 1000.0 * (1 - 0.35 * (yy**2 + xx**2)) + 64.0  # vignetting, in DN above a black level of 64
+    np.save(tmp_path / "flat.npy", np.round(flat_dn).astype(np.uint16))  # in the capture's DN, as the CLI asks
+    raw = np.round(64 + g * (4095 - 64)).astype(np.uint16)
+    np.save(tmp_path / "raw.npy", raw)
+    flat_dn = np.round(flat_dn)
+    corr = RawCorrection(black_level=64, white_level=4095, flat=flat_dn.astype(np.float32))
+    img, report = read_capture(tmp_path / "raw.npy", corr)
+    model = CameraSystem.from_config(load_config("tiny"))
+    meta = capture_noise(model, report, 300.0, 2.0, corr, offset=(1, 2))
+    a = (flat_dn - 64.0).mean() / (flat_dn - 64.0)  # 1 / the flat normalised to mean 1
+    window = torch.from_numpy(img[10:40, 20:70])[None, None]
+    expected = a[10:40, 20:70] * img[10:40, 20:70] / 300.0 + (a[10:40, 20:70] * 2.0 / 300.0) ** 2
+    got = model.camera.noise.variance(window, origin=(11, 22))[0, 0].numpy()
+    np.testing.assert_allclose(got, expected, rtol=1e-5)
+    assert meta["noise_flat_field_gain"] is True
+    out = tmp_path / "cube.h5"
+    assert_ok(run_cli("reconstruct", str(tmp_path / "raw.npy"), "--run", "pretrained:standard", "--out", str(out),
+                      "--black-level", "64", "--white-level", "4095", "--flat", str(tmp_path / "flat.npy"),
+                      "--full-well-e", "300", "--read-noise-e", "2", "--cfa-offset", "1,2"))
+    with h5py.File(out, "r") as f:
+        written = json.loads(f.attrs["metadata_json"])
+    assert written["noise_flat_field_gain"] is True and written["cfa_offset"] == [1, 2]

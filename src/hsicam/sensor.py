@@ -147,21 +147,55 @@ def quantize_bits(g: torch.Tensor, bits: int) -> torch.Tensor:
 
 
 class SensorNoise(nn.Module):
-    """Noise and quantisation applied to the noiseless sensor image g = A(f)."""
+    """Noise and quantisation applied to the noiseless sensor image g = A(f).
+
+    ``gain`` (H, W), optional: a per-pixel factor applied after the noise, as a flat-field correction
+    multiplies a capture by 1/flat (vignetting); the image is then a·n(g/a), whose variance is
+    a²·v(g/a) for the variance v of the uncorrected image (a Poisson–Gaussian capture: a·g/N + (a·r/N)²).
+    ``gain_origin`` is the sensor pixel (row, column) of the map's top-left corner; a window's
+    ``origin`` selects its part of the map. None: a = 1 everywhere.
+    """
 
     def __init__(self, model: str = "gaussian", sigma: float = 0.0, full_well_e: float = 1e4,
-                 read_noise_e: float = 2.0, bit_depth: int | None = None) -> None:
+                 read_noise_e: float = 2.0, bit_depth: int | None = None, gain: torch.Tensor | None = None,
+                 gain_origin: tuple[int, int] = (0, 0)) -> None:
         super().__init__()
         if model not in ("none", "gaussian", "poisson_gaussian"):
             raise ValueError(f"unknown noise model {model!r}")
         self.model, self.sigma = model, float(sigma)
         self.full_well_e, self.read_noise_e, self.bit_depth = float(full_well_e), float(read_noise_e), bit_depth
+        if gain is not None:
+            gain = torch.as_tensor(gain, dtype=torch.float32)
+            if gain.dim() != 2 or not bool(torch.isfinite(gain).all()) or not bool((gain > 0).all()):
+                raise ValueError(f"the noise gain map must be (H, W), finite and positive, got {tuple(gain.shape)}")
+        self.gain, self.gain_origin = gain, (int(gain_origin[0]), int(gain_origin[1]))
+
+    def gain_window(self, g: torch.Tensor, origin: tuple[int, int] = (0, 0)) -> torch.Tensor | None:
+        """The part of :attr:`gain` under the window ``g`` (..., H, W) whose top-left sensor pixel is
+        ``origin``, as (H, W) on g's device; None without a gain map. ValueError for a window the map
+        does not cover."""
+        if self.gain is None:
+            return None
+        y, x = origin[0] - self.gain_origin[0], origin[1] - self.gain_origin[1]
+        h, w = g.shape[-2:]
+        if y < 0 or x < 0 or y + h > self.gain.shape[0] or x + w > self.gain.shape[1]:
+            raise ValueError(f"the {h}×{w} px window at sensor pixel {tuple(origin)} is not within the noise gain map "
+                             f"({self.gain.shape[0]}×{self.gain.shape[1]} px at {self.gain_origin})")
+        return self.gain[y : y + h, x : x + w].to(device=g.device)
 
     @classmethod
     def from_config(cls, s) -> "SensorNoise":  # s: hsicam.config.SensorConfig (camera.sensor)
         return cls(s.noise, s.sigma, s.full_well_e, s.read_noise_e, s.bit_depth)
 
     def forward(self, g: torch.Tensor, generator: torch.Generator | None = None) -> torch.Tensor:
+        """The noisy image of ``g`` (B, 1, H, W), whose top-left pixel is the gain map's origin when
+        there is one: a·n(g/a)."""
+        a = self.gain_window(g, self.gain_origin)
+        if a is not None:
+            return a.to(g.dtype) * self._noisy(g / a.to(g.dtype), generator)
+        return self._noisy(g, generator)
+
+    def _noisy(self, g: torch.Tensor, generator: torch.Generator | None) -> torch.Tensor:
         if self.model == "gaussian":
             g = gaussian_noise(g, self.sigma, generator)
         elif self.model == "poisson_gaussian":
@@ -176,17 +210,26 @@ class SensorNoise(nn.Module):
         return ((self.model == "gaussian" and self.sigma > 0) or self.model == "poisson_gaussian"
                 or self.bit_depth is not None)
 
-    def variance(self, g: torch.Tensor) -> torch.Tensor | None:
+    def variance(self, g: torch.Tensor, origin: tuple[int, int] = (0, 0)) -> torch.Tensor | None:
         """Per-pixel variance of the noise this model adds to the noiseless image ``g`` (B, 1, H, W;
         1 = full scale), estimated from ``g`` itself (a noisy capture serves: its photon count is the
         mean's estimate): gaussian σ², Poisson–Gaussian g / N + (r / N)² for N = ``full_well_e`` and
-        r = ``read_noise_e``, plus Δ²/12 of the quantiser's step Δ = 1 / (2^bits − 1). None for a
-        noise-free model (what the measurement-consistency steps take as "trust every residual").
-        Computed in float32 at least (half precision would round (2 / 10⁴)² and a 12-bit step's Δ²/12)."""
+        r = ``read_noise_e``, plus Δ²/12 of the quantiser's step Δ = 1 / (2^bits − 1); with a gain map
+        a (the window at ``origin``), a²·v(g/a). None for a noise-free model (what the
+        measurement-consistency steps take as "trust every residual"). Computed in float32 at least
+        (half precision would round (2 / 10⁴)² and a 12-bit step's Δ²/12)."""
         if not self.declares_noise:
             return None
         g = g.detach()
         g = g.float() if g.element_size() < 4 else g
+        a = self.gain_window(g, origin)
+        if a is not None:
+            a = a.to(g.dtype)
+            return a * a * self._variance(g / a)
+        return self._variance(g)
+
+    def _variance(self, g: torch.Tensor) -> torch.Tensor:
+        """:meth:`variance` of an image without a gain map (``declares_noise`` holds)."""
         var = None
         if self.model == "gaussian" and self.sigma > 0:
             var = torch.full_like(g, self.sigma**2)
@@ -198,4 +241,5 @@ class SensorNoise(nn.Module):
         return var
 
     def extra_repr(self) -> str:
-        return f"model={self.model}, sigma={self.sigma}, bit_depth={self.bit_depth}"
+        gain = "" if self.gain is None else f", gain={tuple(self.gain.shape)} at {self.gain_origin}"
+        return f"model={self.model}, sigma={self.sigma}, bit_depth={self.bit_depth}{gain}"

@@ -296,25 +296,35 @@ def check_noise_args(args: argparse.Namespace) -> None:
         raise InputError(f"--read-noise-e must be a number of electrons >= 0, got {args.read_noise_e:g}")
 
 
-def capture_noise(model, report: dict, full_well_e: float, read_noise_e: float) -> dict:
+def capture_noise(model, report: dict, full_well_e: float, read_noise_e: float, corr=None,
+                  offset: tuple[int, int] = (0, 0)) -> dict:
     """Give ``model``'s camera the Poisson–Gaussian noise of a capture with ``full_well_e`` electrons at the
     white level and ``read_noise_e`` of read noise, on the image as :func:`~hsicam.data.images.read_capture`
     returned it (``report``): the gain it applied after normalising to [0, 1] (exposure ratio ×
     auto-level × --scale) divides the full well, since an image g = f·e/E has variance f·g/E + (f·r/E)².
-    The measurement-consistency steps weigh their residuals by that variance (a flat field's per-pixel
-    gain is not counted). Returns the cube metadata that records it."""
+    A flat field of ``corr`` (the :class:`~hsicam.data.images.RawCorrection` the image was read with)
+    divided each pixel by its flat value F, so there f = 1/F per pixel: the camera's noise gets that gain
+    map, placed at the capture's first sensor pixel ``offset`` (its CFA offset). The
+    measurement-consistency steps weigh their residuals by that variance. Returns the cube metadata that
+    records it."""
+    from hsicam.data.images import RawImage, normalised_flat
     from hsicam.sensor import SensorNoise
 
     factor = float(report["gain"]) * (float(report["white_level_dn"]) - float(report["black_level_dn"]))
+    gain = None
+    if corr is not None and corr.flat is not None:
+        flat_dn = corr.flat.data if isinstance(corr.flat, RawImage) else corr.flat
+        gain = torch.from_numpy(1.0 / normalised_flat(flat_dn, float(report["black_level_dn"]), corr.flat_period))
     # quantisation is not modelled: a DN step's Δ²/12 is far below the read noise of a 12-bit or deeper capture
-    model.camera.noise = SensorNoise("poisson_gaussian", full_well_e=full_well_e / factor, read_noise_e=read_noise_e)
+    model.camera.noise = SensorNoise("poisson_gaussian", full_well_e=full_well_e / factor, read_noise_e=read_noise_e,
+                                     gain=gain, gain_origin=tuple(offset))
     if not model.consistency_on:
         log.warning("--full-well-e only weighs the measurement-consistency steps, which are off here: it changes "
                     "nothing")
     elif not model.consistency.noise_aware:
         log.warning("--full-well-e changes nothing: the run's model.consistency.noise_aware is off")
     return {"noise_full_well_e": full_well_e, "noise_read_noise_e": read_noise_e,
-            "noise_full_well_e_at_image_scale": full_well_e / factor}
+            "noise_full_well_e_at_image_scale": full_well_e / factor, "noise_flat_field_gain": gain is not None}
 
 
 def psf_mismatch_message(args: argparse.Namespace, measured, fine_tuned: bool) -> str:
@@ -406,8 +416,6 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
     corr = corrections_from_args(args, cfa_period)
     img, report = read_capture(args.sensor, corr, args.scale)
     meta["preprocessing"] = report
-    if args.full_well_e is not None:
-        meta.update(capture_noise(model, report, args.full_well_e, args.read_noise_e or 0.0))
     period = int(getattr(model.camera, "code_period", 1))
     if min(img.shape) < max(period, 2):
         raise InputError(f"{args.sensor}: the capture is {img.shape[0]}×{img.shape[1]} px, smaller than "
@@ -428,6 +436,8 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
     elif offset != (0, 0):
         log.warning("--cfa-offset is ignored: the camera has no colour filter array")
         offset = (0, 0)
+    if args.full_well_e is not None:  # after the offset: a flat field's gain map sits at the capture's first pixel
+        meta.update(capture_noise(model, report, args.full_well_e, args.read_noise_e or 0.0, corr, offset))
     fn = offset_reconstructor(model.reconstructor(), offset)
     cube = reconstruct_tiled(fn, sensor, tile, halo, progress=sys.stderr.isatty())[0]
     del sensor

@@ -407,18 +407,7 @@ def preprocess_raw(raw: np.ndarray, full_scale: float, corr: RawCorrection, sour
     notes += _check_signal(img, raw, black, dark_median, source)
     img *= np.float32(1.0 / (white - black))
     if flat_dn is not None:
-        flat = flat_dn.astype(np.float64) - black
-        if corr.flat_period and corr.flat_period > 1:
-            from scipy.ndimage import uniform_filter
-
-            flat = uniform_filter(flat, size=corr.flat_period, mode="nearest")
-        mean = float(flat.mean())
-        if not mean > 0:
-            raise InputError(f"flat field has no signal above the black level ({black:g} DN)")
-        flat /= mean
-        low = int(np.count_nonzero(flat < 0.05))
-        if low:
-            raise InputError(f"flat field has {low} pixel(s) below 5 % of its mean (dead pixels or a wrong black level)")
+        flat = normalised_flat(flat_dn, black, corr.flat_period)
         img /= flat.astype(np.float32)
         report["flat_min_rel"] = float(flat.min())
         report["flat_period_px"] = corr.flat_period
@@ -456,6 +445,25 @@ def preprocess_raw(raw: np.ndarray, full_scale: float, corr: RawCorrection, sour
     for note in notes:  # only once every check passed: an error stays the one line the user sees
         log.warning("%s", note)
     return img.astype(np.float32, copy=False), report
+
+
+def normalised_flat(flat_dn: np.ndarray, black: float, period: int | None = None) -> np.ndarray:
+    """The flat-field frame (H, W, DN) as the capture is divided by it: minus the black level, averaged
+    over ``period`` (the CFA period; None or 1: pixel-wise), normalised to mean 1 (float64). InputError
+    for a flat without signal, or with pixels below 5 % of its mean."""
+    flat = np.asarray(flat_dn, dtype=np.float64) - black
+    if period and period > 1:
+        from scipy.ndimage import uniform_filter
+
+        flat = uniform_filter(flat, size=period, mode="nearest")
+    mean = float(flat.mean())
+    if not mean > 0:
+        raise InputError(f"flat field has no signal above the black level ({black:g} DN)")
+    flat /= mean
+    low = int(np.count_nonzero(flat < 0.05))
+    if low:
+        raise InputError(f"flat field has {low} pixel(s) below 5 % of its mean (dead pixels or a wrong black level)")
+    return flat
 
 
 def _frame_data(frame: "np.ndarray | RawImage | None") -> np.ndarray | None:

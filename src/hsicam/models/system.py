@@ -100,11 +100,12 @@ class CameraSystem(nn.Module):
         camera noise model (``camera.sensor``) that declares some."""
         return self.consistency.noise_aware and getattr(getattr(self.camera, "noise", None), "declares_noise", False)
 
-    def _noise_variance(self, sensor: torch.Tensor) -> torch.Tensor | None:
+    def _noise_variance(self, sensor: torch.Tensor, origin: tuple[int, int] = (0, 0)) -> torch.Tensor | None:
         """The capture's per-pixel noise variance by the camera's noise model
-        (:meth:`hsicam.sensor.SensorNoise.variance`), which the consistency steps weigh residuals by; None
+        (:meth:`hsicam.sensor.SensorNoise.variance`; ``origin``: the window's top-left sensor pixel, which
+        picks its part of a flat field's gain map), which the consistency steps weigh residuals by; None
         unless :attr:`_weighs_noise`."""
-        return self.camera.noise.variance(sensor) if self._weighs_noise else None
+        return self.camera.noise.variance(sensor, origin) if self._weighs_noise else None
 
     @property
     def bands(self):
@@ -152,7 +153,7 @@ class CameraSystem(nn.Module):
                                  "training ends; for a run without it: `hsicam train --out RUN --resume --set "
                                  "model.consistency.kind=linear --set model.consistency.iterations=1` (a fine-tuned run: "
                                  "`hsicam finetune … --resume`), or use --set model.consistency.kind=landweber")
-        var = self._noise_variance(sensor)
+        var = self._noise_variance(sensor, origin)
         if c.kind == "linear":
             x = linear_consistency_step(op, sensor, x, self.linear_step, origin, gain=c.gain,
                                         iterations=c.iterations, psf_energy=energy, extend=self._extension(),
