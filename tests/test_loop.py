@@ -234,10 +234,17 @@ def test_camera_learning_rates_as_large_as_the_parameters_span_are_refused():
     SystemTask(frozen, CameraSystem.from_config(frozen))
 
 
-def test_freeze_listing_a_group_twice_is_refused_at_load():
-    with pytest.raises(ConfigError, match=r"train\.freeze names doe more than once"):
-        load_config("tiny", ["train.freeze=[doe, cfa, doe]"])
-    assert load_config("tiny", ["train.freeze=[doe, cfa]"]).train.freeze == ["doe", "cfa"]
+def test_freeze_lists_each_group_once_and_a_repeat_counts_once(tmp_path):
+    """``train.freeze`` is a set of group names: a repeat is dropped at load (the config a run writes names each once),
+    and a run folder whose config.yaml repeats one still loads (refusing it made such a run unreadable)."""
+    from hsicam.config import dump_yaml
+
+    cfg = load_config("tiny", ["train.freeze=[doe, cfa, doe]"])
+    assert cfg.train.freeze == ["doe", "cfa"]
+    text = dump_yaml(cfg).replace("- cfa", "- cfa\n  - doe")
+    assert text.count("- doe") == 2
+    (tmp_path / "config.yaml").write_text(text)
+    assert load_config(tmp_path / "config.yaml").train.freeze == ["doe", "cfa"]
 
 
 def test_a_gradient_that_overflows_is_a_divergence_not_a_flat_run(tmp_path, cache_env):
@@ -246,3 +253,16 @@ def test_a_gradient_that_overflows_is_a_divergence_not_a_flat_run(tmp_path, cach
     cfg = load_config("tiny", ["train.epochs=1", "train.ssim_loss=1e30"])
     with pytest.raises(InputError, match=r"diverged at step 0: the loss is .*e\+29 but its gradient's norm is inf"):
         train(cfg, tmp_path / "run", progress=False)
+
+
+def test_a_clamped_doe_is_checked_against_its_clamp_range():
+    """Heights clamped (not wrapped) to [0, max] span max, not h_2π: a DOE rate of 1000 nm on a 300 nm clamp range
+    throws them across it at every step; a multi-order DOE clamped at 5 periods takes rates above one period."""
+    h2pi = _fused_silica_h2pi_nm(587.6)
+    clamped = load_config("tiny", ["camera.doe.max_height_nm=300", "train.doe_lr_nm=1000"])
+    with pytest.raises(ConfigError, match=r"train\.doe_lr_nm=1000 nm: .*clamp range camera\.doe\.max_height_nm = 300 nm"):
+        SystemTask(clamped, CameraSystem.from_config(clamped))
+    deep = load_config("tiny", [f"camera.doe.max_height_nm={5 * h2pi}", f"train.doe_lr_nm={1.5 * h2pi}"])
+    SystemTask(deep, CameraSystem.from_config(deep))
+    wrapped = load_config("tiny", ["camera.doe.max_height_nm=300", "camera.doe.wrap=true", "train.doe_lr_nm=1000"])
+    SystemTask(wrapped, CameraSystem.from_config(wrapped))  # wrapped heights span a phase period (h_2π ≈ 1282 nm)

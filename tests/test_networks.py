@@ -876,15 +876,33 @@ def _budget_mb(nbytes: int) -> str:
     return repr(nbytes / 2**20)  # exact: a whole number of bytes over 2^20 is a float with 20 fraction bits
 
 
-def test_a_network_is_refused_exactly_when_its_training_exceeds_the_budget(monkeypatch, tiny_config):
+def test_a_network_is_refused_exactly_when_its_weights_or_its_training_exceed_the_budget(monkeypatch, tiny_config):
+    """Building (what evaluate, reconstruct and export do) needs the weights, 4 bytes a parameter; training needs 16
+    (weight, gradient, Adam's two moments), checked when the training task is made: a trained run stays readable on
+    a machine that could not train it."""
+    from hsicam.engine.tasks import SystemTask
+    from hsicam.models import CameraSystem
+
     cfg = tiny_config("model.kind=rdn", "model.rdn.blocks=1", "model.rdn.features=8", "model.rdn.growth=4")
     cam = build_camera(cfg)
-    need = TRAINING_BYTES_PER_PARAMETER * network_parameters(cfg, cam)
-    monkeypatch.setenv("HSICAM_MEMORY_BUDGET_MB", _budget_mb(need))
-    assert _count(build_network(cfg, cam)) * TRAINING_BYTES_PER_PARAMETER == need  # fits exactly
-    monkeypatch.setenv("HSICAM_MEMORY_BUDGET_MB", _budget_mb(need - 1))
-    with pytest.raises(ConfigError, match=r"more than the memory budget .*HSICAM_MEMORY_BUDGET_MB"):
+    n = network_parameters(cfg, cam)
+    monkeypatch.setenv("HSICAM_MEMORY_BUDGET_MB", _budget_mb(4 * n))
+    assert _count(build_network(cfg, cam)) == n  # the weights fit exactly
+    monkeypatch.setenv("HSICAM_MEMORY_BUDGET_MB", _budget_mb(4 * n - 1))
+    with pytest.raises(ConfigError, match=r"whose weights need .* \(4 bytes a parameter\), more than the memory budget "
+                                          r".*HSICAM_MEMORY_BUDGET_MB"):
         build_network(cfg, cam)
+    monkeypatch.delenv("HSICAM_MEMORY_BUDGET_MB")
+    system = CameraSystem.from_config(cfg)
+    monkeypatch.setenv("HSICAM_MEMORY_BUDGET_MB", _budget_mb(TRAINING_BYTES_PER_PARAMETER * n))
+    SystemTask(cfg, system)  # training fits exactly
+    monkeypatch.setenv("HSICAM_MEMORY_BUDGET_MB", _budget_mb(TRAINING_BYTES_PER_PARAMETER * n - 1))
+    with pytest.raises(ConfigError, match=r"whose training needs .* \(16 bytes a parameter: weight, gradient, Adam's two "
+                                          r"moments\)"):
+        SystemTask(cfg, system)
+    frozen = tiny_config("model.kind=rdn", "model.rdn.blocks=1", "model.rdn.features=8", "model.rdn.growth=4",
+                         "train.freeze=[net]")
+    SystemTask(frozen, system)  # a frozen network does not train
 
 
 ABSURD = [
@@ -930,7 +948,7 @@ def test_absurd_network_sizes_are_one_config_error_before_anything_is_built(monk
     assert msg.startswith(f"model.kind={cfg.model.kind}: {section}")
     assert all(f"{k}, " in msg or f"{k})" in msg for k in settings), msg
     assert "more than the memory budget of 1 GiB; " in msg and "raise HSICAM_MEMORY_BUDGET_MB" in msg
-    assert network_parameters(cfg, cam) * TRAINING_BYTES_PER_PARAMETER > 2**30
+    assert network_parameters(cfg, cam) * 4 > 2**30  # the weights alone: what building needs
 
 
 def test_every_network_kind_registers_its_parameter_count():

@@ -405,3 +405,35 @@ def test_reconstruct_counts_the_flat_fields_gain_in_the_capture_noise(noisy_capt
     with h5py.File(out, "r") as f:
         written = json.loads(f.attrs["metadata_json"])
     assert written["noise_flat_field_gain"] is True and written["cfa_offset"] == [1, 2]
+
+
+def test_tiles_see_their_part_of_the_flat_field_gain_map():
+    """reconstruct_tiled through offset_reconstructor (a capture at CFA offset (1, 2)): each tile's consistency
+    step weighs residuals by the gain map's window under it, so the tiled cube equals the whole image's, and the
+    gain map changes that cube (it reaches the step)."""
+    from hsicam.cli.reconstruct import offset_reconstructor
+    from hsicam.config import load_config
+    from hsicam.engine.inference import reconstruct_tiled
+    from hsicam.models import CameraSystem
+
+    torch.manual_seed(0)
+    cfg = load_config("tiny", ["model.consistency.iterations=1", "model.consistency.kind=landweber",
+                               "model.consistency.psf_energy=0.9", "camera.boundary=same"])
+    system = CameraSystem.from_config(cfg).eval()
+    h, w, tile = 170, 150, 40
+    assert tile + 2 * system.reconstructor().context_px < min(h, w)  # real tiles, not the whole image each time
+    g = torch.Generator().manual_seed(3)
+    sensor = 0.2 + 0.6 * torch.rand(1, 1, h, w, generator=g)
+    yy, xx = torch.meshgrid(torch.linspace(-1, 1, h), torch.linspace(-1, 1, w), indexing="ij")
+    gain = 1.0 / (1.0 - 0.45 * (yy**2 + xx**2))
+
+    def cube(gain_map, tile_px):
+        system.camera.noise = SensorNoise("poisson_gaussian", full_well_e=50.0, read_noise_e=2.0, gain=gain_map,
+                                          gain_origin=(1, 2))
+        fn = offset_reconstructor(system.reconstructor(), (1, 2))
+        with torch.no_grad():
+            return reconstruct_tiled(fn, sensor, tile_px, fn.context_px)
+
+    whole = cube(gain, max(h, w))
+    torch.testing.assert_close(cube(gain, tile), whole, rtol=0, atol=2e-5)
+    assert (cube(None, max(h, w)) - whole).abs().max() > 1e-3

@@ -638,29 +638,23 @@ def test_an_explicit_supersample_below_nyquist_is_warned_about_once(caplog):
     assert len(said) == 1 and said[0].startswith("camera.psf.supersample=1 is below these optics' Nyquist rate (9"), said
 
 
-def test_a_supersample_finer_than_the_exact_integral_is_refused_before_any_weights(monkeypatch):
-    """supersample=1000001 computed a midpoint rule of 10¹² points per pixel for minutes (session 38's fuzz): a
-    midpoint rule with more points per axis than the exact integral's Gauss–Legendre nodes costs more and is
-    still approximate. The largest value the message offers is taken; the next odd one is refused."""
-    import re
-
+def test_a_supersample_far_finer_than_the_exact_integral_is_refused():
+    """supersample=1000001 computed a midpoint rule of 10¹² points per pixel for minutes (session 38's fuzz). The exact
+    integral of the paper optics uses G = ⌈π·(N/2)/P⌉ + 16 Gauss–Legendre nodes per pixel and axis, P = λ_min·z/(Δ·p)
+    = 420 nm · 35 mm / (30 µm · 6 µm) = 81.7 px the far field's period and N = 672 the FFT length: G = 29. Up to 4·G
+    (odd: 115) stays allowed, for convergence comparisons; above, refused before anything is computed."""
     from hsicam.optics import sampling
-
-    def no_weights(*a, **k):
-        raise AssertionError("pixel weights computed before the refusal")
 
     lam = np.arange(420.0, 721.0, 10.0) * 1e-9
     plan = dict(wavelengths_m=lam, sensor_distance_m=35e-3, pixel_m=6e-6, cell_m=30e-6, n_cells=333,
                 aperture_radius_m=5e-3)
-    monkeypatch.setattr(sampling, "pixel_weights", no_weights)
-    with pytest.raises(ConfigError, match=r"camera\.psf\.supersample=1000001 takes more points .* leave "
-                                          r"camera\.psf\.supersample unset") as err:
-        sampling.plan_psf_sampling(**plan, supersample=1000001)
-    top = int(re.search(r"odd value up to (\d+)", str(err.value)).group(1))
-    assert top % 2 == 1 and top >= 9  # at least the Nyquist rate of these optics (the warning's test above)
-    assert sampling.plan_psf_sampling(**plan, supersample=top).supersample == top
-    with pytest.raises(ConfigError, match=rf"camera\.psf\.supersample={top + 2} "):
-        sampling.plan_psf_sampling(**plan, supersample=top + 2)
-    monkeypatch.undo()
+    assert sampling.plan_psf_sampling(**plan).fft_size == 672
+    g = math.ceil(math.pi * 336 / (420e-9 * 35e-3 / (30e-6 * 6e-6))) + 16
+    assert g == 29
+    assert sampling.plan_psf_sampling(**plan, supersample=115).supersample == 115  # the old presets' 5, 31, 45 too
+    for s in (117, 1000001):
+        with pytest.raises(ConfigError, match=rf"camera\.psf\.supersample={s} takes over 4× the points .* \(29 "
+                                              r"Gauss–Legendre nodes\).* odd value up to 115 "):
+            sampling.plan_psf_sampling(**plan, supersample=s)
     with pytest.raises(ConfigError, match=r"camera\.psf\.supersample=1000001"):  # through the config as well
         DOECamera.from_config(load_config("tiny", ["camera.psf.supersample=1000001"]))

@@ -619,10 +619,9 @@ class TrainConfig:
         if self.sensor_sigma[1] > MAX_SENSOR_SIGMA:
             raise ConfigError(f"train.sensor_sigma={self.sensor_sigma}: σ above {MAX_SENSOR_SIGMA:g} (the full scale of "
                               "the image) buries any signal; use [lo, hi] with hi <= 1 (e.g. [0, 0.02])")
-        repeated = sorted({g for g in self.freeze if self.freeze.count(g) > 1})
-        if repeated:
-            raise ConfigError(f"train.freeze names {', '.join(repeated)} more than once ({self.freeze}); list each "
-                              "parameter group once")
+        # a set of group names: a name given twice counts once (refusing it would make the config.yaml of a run
+        # that trained with the repeat unreadable)
+        self.freeze = list(dict.fromkeys(self.freeze))
 
     def loss_formula(self) -> str:
         """The training loss these settings make (:func:`hsicam.engine.tasks.system_loss`, the same terms

@@ -4,8 +4,12 @@ In order of precedence: the caller's ``budget_mb``; the environment variable
 ``HSICAM_MEMORY_BUDGET_MB``; else a quarter of the machine's memory (physical RAM, or the cgroup
 limit when lower), and at most half of the address space left under a ``ulimit -v`` /
 ``prlimit --as`` limit. Sizes are in MiB. One home for every layer: the cube readers
-(:func:`hsicam.data.cube.check_memory_budget`) and the PSF sampling plan
-(:func:`hsicam.optics.sampling.check_psf_memory`) both use :func:`memory_budget_bytes`.
+(:func:`hsicam.data.cube.check_memory_budget`), the PSF sampling plan
+(:func:`hsicam.optics.sampling.check_psf_memory`), the DOE's cell grid
+(:func:`hsicam.cameras.doe_camera.check_doe_memory`), a CASSI sensor's dispersed width
+(:func:`hsicam.cameras.cassi.check_dispersion_span`) and a network's weights or training
+(:func:`hsicam.models.registry.check_network_memory`) all use :func:`memory_budget_bytes`, so
+``HSICAM_MEMORY_BUDGET_MB`` governs them all.
 """
 
 from __future__ import annotations
@@ -75,7 +79,8 @@ def _parse_budget_mb(value: Any, what: str) -> float:
 
 
 def memory_budget_bytes(budget_mb: float | None = None) -> int:
-    """The memory one cube may take, in bytes (see the module docstring for the precedence).
+    """The memory one allocation of the program (a cube, a PSF plan, a network's training…) may take, in
+    bytes (see the module docstring for the precedence and its users).
 
     Raises :class:`ConfigError` for a budget (argument or ``HSICAM_MEMORY_BUDGET_MB``) that is not
     a positive number.

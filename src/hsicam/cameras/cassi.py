@@ -167,7 +167,8 @@ def prism_shifts_px(bands: Bands, material: str = "fused_silica", apex_deg: floa
 
     Deviation δ(λ) = (n(λ) − 1)·α; the lens after the prism maps the deviation difference to a
     sensor shift f·tan(δ(λ_0) − δ(λ)). Normal dispersion (n falls with λ) makes the shifts grow
-    with the band index, faster in the blue than in the red. An absurd focal length gives inf.
+    with the band index, faster in the blue than in the red. An absurd focal length gives huge (or, past
+    float64, infinite) shifts, which :func:`check_dispersion_span` refuses.
     """
     n = np.asarray(get_material(material).n(bands.centers_nm), dtype=np.float64)
     alpha = math.radians(apex_deg)
@@ -198,19 +199,20 @@ def dispersion_from_config(bands: Bands, cassi, pixel_pitch_um: float) -> list[i
 CASSI_BYTES_PER_SENSOR_PX = 4 + 3 * 8
 
 
-def check_dispersion_span(cfg, bands: Bands) -> None:
+def check_dispersion_span(cam, bands: Bands, scene_px: int,
+                          scene_keys: str = "data.synthetic_size / data.patch_px") -> None:
     """ConfigError, before any shift is rounded or code is drawn, for a dispersion span D (the
     sensor's extra width across the bands, px) that is not finite or that widens the sensor beyond
     the memory budget (``camera.cassi.shift_px=1e30`` made the sensor 10^31 px wide).
 
-    The bound: the sensor of one of the run's scenes, S × (S + D) px with S = data.synthetic_size (or
-    data.patch_px when larger; the side this run's scenes are generated and cut at), must fit the memory
+    ``cam``: the camera section (:class:`hsicam.config.CameraConfig`). The bound: the sensor of one of
+    the run's scenes, S × (S + D) px with S = ``scene_px`` (the side the run's scenes are generated and
+    cut at, which the caller's ``scene_keys`` set), must fit the memory
     budget (:func:`hsicam.memory.memory_budget_bytes`) at :data:`CASSI_BYTES_PER_SENSOR_PX` bytes a
     pixel. Both cameras pay it: SD-CASSI's measurement is W + D wide, DD-CASSI hashes a code window
     W + D wide. Any real disperser (MST: 2 px per band over 28 bands, D = 54 px) is orders of
     magnitude below it; the span reaches it only when a key is orders of magnitude off.
     """
-    cam = cfg.camera
     cassi = cam.cassi
     if cassi.dispersion == "linear":
         span = cassi.shift_px * (len(bands) - 1)
@@ -224,14 +226,14 @@ def check_dispersion_span(cfg, bands: Bands) -> None:
                 f"{len(bands)} bands and {cam.sensor.pixel_pitch_um:g} µm pixels (camera.sensor.pixel_pitch_um)")
         fix = ("check camera.cassi.prism_focal_length_mm (in mm) and camera.cassi.prism_apex_deg (in degrees), "
                "or use camera.cassi.dispersion=linear")
-    side = max(cfg.data.synthetic_size, cfg.data.patch_px)
+    side = int(scene_px)
     budget = memory_budget_bytes()
     if not math.isfinite(span):
         raise ConfigError(f"{what} disperses the bands over an infinite span (the sensor's extra width); {fix}")
     need = CASSI_BYTES_PER_SENSOR_PX * side * (side + span)
     if need > budget:
         raise ConfigError(f"{what} disperses the bands over {span:.3g} px: the sensor of a {side} px scene "
-                          f"(data.synthetic_size / data.patch_px) would be {side + span:.3g} px wide and need "
+                          f"({scene_keys}) would be {side + span:.3g} px wide and need "
                           f"{format_bytes(need)}, more than the memory budget of {format_bytes(budget)} "
                           f"({MEMORY_BUDGET_ENV}); {fix}")
 
@@ -315,7 +317,7 @@ class _CASSICamera(Camera):
             aperture = CodedAperture.from_file(cassi.mask_file)
         else:
             aperture = CodedAperture(cassi.mask_seed, cassi.mask_density)
-        check_dispersion_span(cfg, bands)
+        check_dispersion_span(cam, bands, max(cfg.data.synthetic_size, cfg.data.patch_px))
         shifts = dispersion_from_config(bands, cassi, cam.sensor.pixel_pitch_um)
         s = cam.sensor
         noise = SensorNoise.from_config(s)

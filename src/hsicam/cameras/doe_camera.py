@@ -116,13 +116,16 @@ class DOECamera(Camera):
         return groups
 
     def param_group_spans(self) -> dict[str, tuple[float, str]]:
-        """``doe``: the 2π height h_2π at the design wavelength (m; heights a whole phase period apart give
-        the same phase there); ``cfa``: 1, the range of the weights, which start in [0, 1] and pass a ReLU
-        and a per-pixel normalisation (:func:`hsicam.sensor.cfa_tile`)."""
+        """``doe``: the span of the heights (m), the top of :meth:`~hsicam.optics.doe.DOE.level_grid`: the
+        clamp range ``max_height`` when heights are clamped without wrapping, else h_2π at the design
+        wavelength (a whole phase period); ``cfa``: 1, the range of the weights, which start in [0, 1]
+        and pass a ReLU and a per-pixel normalisation (:func:`hsicam.sensor.cfa_tile`)."""
         doe = self.optics.doe
-        return {"doe": (doe.h2pi_m, f"the DOE's whole phase period, h_2π = {doe.h2pi_m * 1e9:.4g} nm at its design "
-                                    f"wavelength {doe.design_wavelength_nm:g} nm"),
-                "cfa": (1.0, "the CFA weights' whole range [0, 1]")}
+        top, wraps = doe.level_grid()
+        what = (f"the DOE's whole phase period, h_2π = {top * 1e9:.4g} nm at its design wavelength "
+                f"{doe.design_wavelength_nm:g} nm" if wraps else
+                f"the DOE heights' whole clamp range camera.doe.max_height_nm = {top * 1e9:.4g} nm")
+        return {"doe": (top, what), "cfa": (1.0, "the CFA weights' whole range [0, 1]")}
 
     @property
     def kernel_px(self) -> int:

@@ -12,7 +12,7 @@ import math
 import os
 from typing import Any, Callable
 
-from hsicam.config import SEED_MAX, SEED_MIN, seed_problem
+from hsicam.config import MAX_SENSOR_SIGMA, SEED_MAX, SEED_MIN, seed_problem
 from hsicam.errors import InputError
 
 #: The smallest ``--tile`` (px) of ``reconstruct`` and ``evaluate``.
@@ -81,8 +81,6 @@ def sensor_sigma_arg(text: str) -> float:
     """argparse ``type`` of a Gaussian sensor-noise σ on the image scaled to full scale 1 (``evaluate
     --sensor-sigma``): a finite number in [0, 1], the range of ``camera.sensor.sigma`` (above the full scale the
     noise buries any signal)."""
-    from hsicam.config import MAX_SENSOR_SIGMA
-
     value = non_negative_number_arg(text)
     if value > MAX_SENSOR_SIGMA:
         raise argparse.ArgumentTypeError(f"must be at most {MAX_SENSOR_SIGMA:g} (σ as a fraction of full scale, as "

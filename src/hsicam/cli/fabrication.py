@@ -13,7 +13,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     from hsicam.cli.args import (count_arg, device_arg, finite_numbers_arg, levels_list_arg, non_negative_numbers_arg,
                                  positive_number_arg, seed_arg)
 
-    from hsicam.config import MAX_HEIGHT_LEVELS  # export.doe.LEVELS_RANGE's top, without importing torch here
+    from hsicam.config import MAX_HEIGHT_LEVELS  # export.doe.LEVELS_RANGE's top (that module imports the optics)
 
     p = sub.add_parser("export-optics", help="fabrication files: DOE heights (npy/tiff/csv/gds), CFA spectra and fits, spec.json")
     add_run_arg(p, "trained run folder")

@@ -307,14 +307,14 @@ def capture_noise(model, report: dict, full_well_e: float, read_noise_e: float, 
     map, placed at the capture's first sensor pixel ``offset`` (its CFA offset). The
     measurement-consistency steps weigh their residuals by that variance. Returns the cube metadata that
     records it."""
-    from hsicam.data.images import RawImage, normalised_flat
+    from hsicam.data.images import frame_data, normalised_flat
     from hsicam.sensor import SensorNoise
 
     factor = float(report["gain"]) * (float(report["white_level_dn"]) - float(report["black_level_dn"]))
     gain = None
     if corr is not None and corr.flat is not None:
-        flat_dn = corr.flat.data if isinstance(corr.flat, RawImage) else corr.flat
-        gain = torch.from_numpy(1.0 / normalised_flat(flat_dn, float(report["black_level_dn"]), corr.flat_period))
+        flat = normalised_flat(frame_data(corr.flat), float(report["black_level_dn"]), corr.flat_period)
+        gain = torch.from_numpy(1.0 / flat)
     # quantisation is not modelled: a DN step's Δ²/12 is far below the read noise of a 12-bit or deeper capture
     model.camera.noise = SensorNoise("poisson_gaussian", full_well_e=full_well_e / factor, read_noise_e=read_noise_e,
                                      gain=gain, gain_origin=tuple(offset))

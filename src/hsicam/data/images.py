@@ -385,7 +385,7 @@ def preprocess_raw(raw: np.ndarray, full_scale: float, corr: RawCorrection, sour
     h, w = raw.shape
     _check_frame_type("dark frame", corr.dark, stored_dtype, full_scale, source,
                       "it would be subtracted from the capture's DN as it is")
-    dark, flat_dn = _frame_data(corr.dark), _frame_data(corr.flat)
+    dark, flat_dn = frame_data(corr.dark), frame_data(corr.flat)
     for name, frame in (("dark frame", dark), ("flat field", flat_dn)):
         if frame is not None and frame.shape != raw.shape:
             raise InputError(f"{name} is {frame.shape[0]}×{frame.shape[1]} px but the capture is {h}×{w}")
@@ -466,7 +466,7 @@ def normalised_flat(flat_dn: np.ndarray, black: float, period: int | None = None
     return flat
 
 
-def _frame_data(frame: "np.ndarray | RawImage | None") -> np.ndarray | None:
+def frame_data(frame: "np.ndarray | RawImage | None") -> np.ndarray | None:
     """The values (DN) of a dark or flat frame given as an array or as the :class:`RawImage` read."""
     return frame.data if isinstance(frame, RawImage) else frame
 

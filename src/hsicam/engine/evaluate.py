@@ -330,7 +330,8 @@ def write_results(out: Path, summary: dict) -> None:
     conv = summary["conventions"]
     head = [f"# Results: {summary.get('method', '')}", ""]
     for k in ("run", "run_path", "data", "warning", "noise", "config_hash", "saved_cubes"):
-        if k in summary and not (k == "run_path" and summary[k] == summary.get("run")):  # a shipped camera's folder
+        # run_path (the folder read) only where it differs from run: a shipped camera's package folder
+        if k in summary and not (k == "run_path" and summary[k] == summary.get("run")):
             head.append(f"- {k}: {summary[k]}")
     head.append(f"- PSNR: {conv['psnr']}; SSIM: {conv['ssim']}; SAM: {conv['sam']}")
     if summary.get("sam_undefined"):

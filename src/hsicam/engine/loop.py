@@ -516,19 +516,21 @@ def _fit(task: Task, opts: FitOptions, run_dir: Path, resume: bool, lock: RunLoc
             grad_norm = None
             if t.grad_clip is not None:
                 grad_norm = torch.nn.utils.clip_grad_norm_(model.parameters(), t.grad_clip)
-            optimizer.step()
             loss_v = loss.item()
-            if not math.isfinite(loss_v):
+            if not math.isfinite(loss_v):  # before the step: the weights stay those of the last good step
                 first = state.step_in_epoch * t.batch_size + rank * (t.batch_size // world)  # this rank's first item
                 raise not_finite_error(task.what, step, loss_v, batch,
                                        lambda j: patch_source(train_ds, first + j))
-            if grad_norm is not None and not math.isfinite(grad_norm.item()):
-                # a finite loss whose gradient overflows: clipping by an infinite norm zeroes every gradient, and the
-                # run trained on, flat, without an error (e.g. train.ssim_loss=1e30)
+            if grad_norm is not None and not math.isfinite(norm_v := grad_norm.item()):
+                # a finite loss whose gradient is not: clipping by an infinite norm zeroed every gradient, and the run
+                # trained on, flat, without an error (e.g. train.ssim_loss=1e30)
+                why = ("it overflows float32" if math.isinf(norm_v) else
+                       "a NaN in the backward pass of a finite loss, e.g. a square root or division at 0")
                 raise InputError(f"{task.what} diverged at step {step}: the loss is {loss_v:.4g} but its gradient's norm "
-                                 f"is {grad_norm.item()} (it overflows float32), so clipping would zero every gradient; "
-                                 "lower the loss weights (train.ssim_loss, sam_loss, relative_l1, spectral_grad_loss, "
-                                 "phase_loss) or the learning rates")
+                                 f"is {norm_v} ({why}), so clipping would zero every gradient; lower the loss weights "
+                                 "(train.ssim_loss, sam_loss, relative_l1, spectral_grad_loss, phase_loss) or the "
+                                 "learning rates")
+            optimizer.step()
             state.loss_sum, state.loss_n = state.loss_sum + loss_v, state.loss_n + 1
             state.global_step, state.step_in_epoch = step + 1, state.step_in_epoch + 1
             steps_done += 1

@@ -7,7 +7,7 @@ from __future__ import annotations
 import dataclasses
 import math
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
 import torch
 import torch.nn.functional as F
@@ -23,16 +23,22 @@ from hsicam.metrics import psnr_per_band, sam_degrees, ssim
 from hsicam.models import CameraSystem
 from hsicam.models.demosaic import box_mean
 from hsicam.models.priors import SpectralAutoencoder
+from hsicam.models.registry import check_network_memory
 
-# Learning rate of each camera parameter group, from the train section (units in the key names).
+@dataclasses.dataclass(frozen=True)
+class GroupRate:
+    """How the train section sets a camera parameter group's learning rate: ``key`` (for messages),
+    ``rate(train) -> lr`` in the parameters' own units, and ``shown(lr)`` in the key's units."""
+
+    key: str
+    rate: Callable[[TrainConfig], float]
+    shown: Callable[[float], str]
+
+
+# The learning rate of each camera parameter group, from the train section (units in the key names).
 CAMERA_GROUP_LR = {
-    "doe": lambda t: t.doe_lr_nm * 1e-9,  # Adam step on the height map, metres
-    "cfa": lambda t: t.cfa_lr,
-}
-# The train key that sets each group's rate (for messages), and how to print a rate in the key's units.
-CAMERA_GROUP_LR_KEY = {
-    "doe": ("train.doe_lr_nm", lambda lr: f"{lr * 1e9:g} nm"),
-    "cfa": ("train.cfa_lr", lambda lr: f"{lr:g}"),
+    "doe": GroupRate("train.doe_lr_nm", lambda t: t.doe_lr_nm * 1e-9, lambda lr: f"{lr * 1e9:g} nm"),  # metres
+    "cfa": GroupRate("train.cfa_lr", lambda t: t.cfa_lr, lambda lr: f"{lr:g}"),
 }
 
 
@@ -159,6 +165,8 @@ class SystemTask(Task):
                               f"{model.camera.kind} camera; it has {', '.join(sorted(known))}")
         self._check_something_trains()
         self._check_camera_rates()
+        if "net" not in self.freeze:  # the network was built for its weights; its training needs 4× that
+            check_network_memory(cfg, model.camera, training=True)
 
     def _check_camera_rates(self) -> None:
         """ConfigError, before any work, for a camera group trained at a rate as large as the span its
@@ -169,13 +177,12 @@ class SystemTask(Task):
         for name in self.model.camera.param_groups():
             if name in self.freeze or name not in spans or name not in CAMERA_GROUP_LR:
                 continue
-            lr, (span, what) = CAMERA_GROUP_LR[name](t), spans[name]
+            g, (span, what) = CAMERA_GROUP_LR[name], spans[name]
+            lr = g.rate(t)
             if lr >= span:
-                key, show = CAMERA_GROUP_LR_KEY.get(name, (f"the {name} group's rate", lambda v: f"{v:g}"))
-                raise ConfigError(f"{key}={show(lr)}: Adam moves each parameter by about that much per step, no less "
-                                  f"than {what}; use a rate well below {show(span)} (default "
-                                  f"{show(CAMERA_GROUP_LR[name](TrainConfig()))}), or freeze the group "
-                                  f"(train.freeze=[{name}])")
+                raise ConfigError(f"{g.key}={g.shown(lr)}: Adam moves each parameter by about that much per step, no "
+                                  f"less than {what}; use a rate well below {g.shown(span)} (default "
+                                  f"{g.shown(g.rate(TrainConfig()))}), or freeze the group (train.freeze=[{name}])")
 
     def _check_something_trains(self) -> None:
         """ConfigError, before any work, when ``train.freeze`` leaves no group to train, or freezes the
@@ -200,7 +207,7 @@ class SystemTask(Task):
         for name, params in self.model.camera.param_groups().items():
             if name not in CAMERA_GROUP_LR:
                 raise ConfigError(f"camera parameter group {name!r} has no learning rate in the train section")
-            named[name] = (params, CAMERA_GROUP_LR[name](t))
+            named[name] = (params, CAMERA_GROUP_LR[name].rate(t))
         groups = []
         for name, (params, lr) in named.items():
             if name in self.freeze:

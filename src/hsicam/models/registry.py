@@ -9,8 +9,9 @@ The builder gets the whole config (its settings are the section ``cfg.model.<kin
 camera, so physics-aware networks can use the camera's operator and sensor code. ``parameters``
 (same arguments) is the closed-form count of the network's parameters, declared next to the
 builder (tests hold it equal to the built network's); ``sizes`` are the keys of the section that
-set it. :func:`build_network` refuses a network whose training does not fit the memory budget
-before the builder allocates anything (``model.rdn.features=1000000000`` asked for 250 GB).
+set it. :func:`build_network` refuses a network whose weights do not fit the memory budget before
+the builder allocates anything (``model.rdn.features=1000000000`` asked for 250 GB), and training
+(:class:`hsicam.engine.tasks.SystemTask`) one whose training does not (:func:`check_network_memory`).
 
 Every network is an ``nn.Module`` with
 
@@ -39,6 +40,8 @@ SizeKeys = Union[Sequence[str], Callable[[Any], Sequence[str]]]
 
 #: Bytes per float32 parameter while it trains: the weight, its gradient and Adam's two moments.
 TRAINING_BYTES_PER_PARAMETER = 4 * 4
+#: Bytes per float32 parameter of a network that only reconstructs (evaluate, reconstruct, export).
+WEIGHT_BYTES_PER_PARAMETER = 4
 
 
 @dataclass(frozen=True)
@@ -87,14 +90,18 @@ def network_parameters(cfg, camera) -> int | None:
     return None if count is None else int(count(cfg, camera))
 
 
-def check_network_memory(cfg, camera) -> None:
+def check_network_memory(cfg, camera, training: bool = True) -> None:
     """ConfigError, before anything is allocated, for a network whose training (weights, gradients
-    and Adam's two moments: :data:`TRAINING_BYTES_PER_PARAMETER` bytes a parameter) needs more than
-    the memory budget (:func:`hsicam.memory.memory_budget_bytes`), naming the keys that size it."""
+    and Adam's two moments: :data:`TRAINING_BYTES_PER_PARAMETER` bytes a parameter) or, with
+    ``training`` false, whose weights alone (:data:`WEIGHT_BYTES_PER_PARAMETER`: a trained run read
+    for inference) need more than the memory budget (:func:`hsicam.memory.memory_budget_bytes`),
+    naming the keys that size it."""
     n = network_parameters(cfg, camera)
     if n is None:
         return
-    need, budget = TRAINING_BYTES_PER_PARAMETER * n, memory_budget_bytes()
+    per = TRAINING_BYTES_PER_PARAMETER if training else WEIGHT_BYTES_PER_PARAMETER
+    use = ("training needs", ": weight, gradient, Adam's two moments") if training else ("weights need", "")
+    need, budget = per * n, memory_budget_bytes()
     if need <= budget:
         return
     kind = cfg.model.kind
@@ -104,8 +111,8 @@ def check_network_memory(cfg, camera) -> None:
     values = ", ".join(f"{k}={_setting(settings, k)}" for k in keys)
     count = f"{n:,}" if n < 10**12 else f"{n:.3g}"
     raise ConfigError(f"model.kind={kind}: {section} ({values}) is a network of {count} parameters for "
-                      f"{len(camera.bands)} bands, whose training needs {format_bytes(need)} "
-                      f"({TRAINING_BYTES_PER_PARAMETER} bytes a parameter: weight, gradient, Adam's two moments), more "
+                      f"{len(camera.bands)} bands, whose {use[0]} {format_bytes(need)} ({per} bytes a parameter"
+                      f"{use[1]}), more "
                       f"than the memory budget of {format_bytes(budget)}; make these sizes smaller, or raise "
                       f"{MEMORY_BUDGET_ENV} (MiB)")
 
@@ -118,7 +125,8 @@ def _setting(settings: Any, key: str) -> str:
 
 
 def build_network(cfg, camera) -> nn.Module:
-    """The network ``cfg.model.kind`` describes, for ``camera``; one that does not fit the memory
-    budget is refused before it is built (:func:`check_network_memory`)."""
-    check_network_memory(cfg, camera)
+    """The network ``cfg.model.kind`` describes, for ``camera``; one whose weights do not fit the
+    memory budget is refused before it is built (:func:`check_network_memory`; training checks its
+    own larger need)."""
+    check_network_memory(cfg, camera, training=False)
     return NETWORKS[cfg.model.kind].build(cfg, camera)

@@ -31,6 +31,7 @@ from hsicam.optics.sampling import (
     WAVELENGTHS_PER_BATCH,
     PSFSampling,
     defocus_aliasing,
+    far_field_period_px,
     pixel_weights,
     plan_psf_sampling,
     psf_memory_estimate,
@@ -172,7 +173,7 @@ class PSFModel(nn.Module):
             supersample, kernel_px, aperture_radius_m,
         )
         smp = self.sampling
-        period_px = lam_m * z_line / (smp.pupil_pitch_m * pixel_m)
+        period_px = far_field_period_px(lam_m, z_line, smp.pupil_pitch_m, pixel_m)
         weights = np.stack([pixel_weights(per, smp.kernel_px, smp.fft_size, smp.supersample) for per in period_px])
         x = sample_coordinates_m(n_cells, cell_m, self.pupil_oversample)
         amp = aperture_amplitude(n_cells, cell_m, aperture_radius_m, self.pupil_oversample)

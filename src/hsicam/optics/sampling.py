@@ -140,15 +140,17 @@ def plan_psf_sampling(
     a = n_cells * cell_m / 2 if aperture_radius_m is None else aperture_radius_m
     s_nyq = odd_ceil(4.0 * a * pixel_m / (lam.min() * sensor_distance_m))
     if supersample is not None:
-        # the exact integral's Gauss–Legendre nodes per pixel (per axis): a midpoint rule with more costs more and
-        # is still only approximate (e.g. supersample=1000001 computed for minutes instead of refusing)
-        min_period = float(lam.min()) * sensor_distance_m / (cell_m / q * pixel_m)
-        g_exact = quadrature_nodes(min_period, n_fft)
-        if int(supersample) > max(g_exact, s_nyq):
-            raise ConfigError(f"camera.psf.supersample={int(supersample)} takes more points per pixel and axis than "
-                              f"the exact pixel integral of these optics ({g_exact} Gauss–Legendre nodes), which is "
-                              f"cheaper and exact: leave camera.psf.supersample unset (null), or use an odd value up to "
-                              f"{max(g_exact, s_nyq) - (1 - max(g_exact, s_nyq) % 2)} for the midpoint rule")
+        # the exact integral's Gauss–Legendre nodes per pixel and axis: a midpoint rule of many times more costs many
+        # times more and is still approximate (supersample=1000001 computed for minutes); up to
+        # MAX_SUPERSAMPLE_FACTOR times more stays allowed, for convergence comparisons
+        g_exact = quadrature_nodes(far_field_period_px(float(lam.min()), sensor_distance_m, cell_m / q, pixel_m), n_fft)
+        top = max(MAX_SUPERSAMPLE_FACTOR * g_exact, s_nyq)
+        top -= 1 - top % 2
+        if int(supersample) > top:
+            raise ConfigError(f"camera.psf.supersample={int(supersample)} takes over {MAX_SUPERSAMPLE_FACTOR}× the "
+                              f"points per pixel and axis of the exact pixel integral of these optics ({g_exact} "
+                              f"Gauss–Legendre nodes), which is cheaper and exact: leave camera.psf.supersample unset "
+                              f"(null), or use an odd value up to {top} for the midpoint rule")
     if supersample is not None and int(supersample) < s_nyq and (int(supersample), s_nyq) not in _BELOW_NYQUIST_WARNED:
         _BELOW_NYQUIST_WARNED.add((int(supersample), s_nyq))
         log.warning("camera.psf.supersample=%d is below these optics' Nyquist rate (%d: sub-pixels finer than "
@@ -192,6 +194,15 @@ class PSFMemory:
         return self.quadrature + self.weights + self.fft + self.kernels + self.saved
 
 
+#: ``camera.psf.supersample`` may take up to this many times the exact integral's nodes (per pixel and axis).
+MAX_SUPERSAMPLE_FACTOR = 4
+
+
+def far_field_period_px(wavelength_m: float, sensor_distance_m: float, pupil_pitch_m: float, pixel_m: float) -> float:
+    """The period (in pixels) of the far field of a pupil sampled at ``pupil_pitch_m``: λz/(Δ·pixel)."""
+    return wavelength_m * sensor_distance_m / (pupil_pitch_m * pixel_m)
+
+
 def quadrature_nodes(period_px: float, fft_size: int, supersample: int | None = None) -> int:
     """Nodes per pixel that :func:`pixel_weights` integrates with (s for the midpoint rule)."""
     if supersample is not None:
@@ -207,7 +218,7 @@ def psf_memory_estimate(sampling: PSFSampling, wavelengths_m: np.ndarray, sensor
     lam = np.asarray(wavelengths_m, dtype=np.float64).reshape(-1)
     n_lines = int(lam.size)
     p, n, k = int(sampling.pupil_samples), int(sampling.fft_size), int(sampling.kernel_px)
-    min_period = float(lam.min()) * sensor_distance_m / (sampling.pupil_pitch_m * pixel_m)
+    min_period = far_field_period_px(float(lam.min()), sensor_distance_m, sampling.pupil_pitch_m, pixel_m)
     g = quadrature_nodes(min_period, n, sampling.supersample)
     # Gauss–Legendre: a G×G companion matrix and the eigen-solver's copy (float64), then
     # t, ew (K, G) float64 and the (G, N) complex128 exponentials

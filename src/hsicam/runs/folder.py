@@ -46,8 +46,9 @@ def with_measured_psf(model, measured: MeasuredPSF):
     cam = model.camera
     if not measured.bands.matches(cam.bands):
         raise InputError(f"measured PSFs are on {measured.bands!r}, the camera on {cam.bands!r}")
-    if measured.psf.shape[-1] != cam.kernel_px or measured.psf.shape != (len(cam.bands), cam.kernel_px, cam.kernel_px):
-        raise InputError(f"measured PSFs are {measured.psf.shape[-1]} px wide, the camera's kernel {cam.kernel_px} px")
+    if measured.psf.shape != (len(cam.bands), cam.kernel_px, cam.kernel_px):
+        raise InputError(f"measured PSFs are {'×'.join(map(str, measured.psf.shape))} (bands × px × px), the camera's "
+                         f"kernels {len(cam.bands)}×{cam.kernel_px}×{cam.kernel_px}")
     return model.with_camera(FixedPSFCamera.from_camera(cam, torch.from_numpy(measured.psf)))
 
 
