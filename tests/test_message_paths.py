@@ -76,11 +76,11 @@ def test_pack_refuses_results_measured_under_test_noise(runs, tmp_path):
 
     run = runs / "run"
     ev = tmp_path / "ev"
-    assert main(["evaluate", "--run", str(run), "--sensor-sigma", "5", "--out", str(ev)]) == 0
+    assert main(["evaluate", "--run", str(run), "--sensor-sigma", "0.5", "--out", str(ev)]) == 0
     dest = tmp_path / "root"
     res = run_cli("pretrained", "pack", str(run), "--name", "x", "--dest", str(dest), "--results",
                   str(ev / "results.json"))
-    assert_clean_error(res, f"{ev / 'results.json'}: measured under test noise --sensor-sigma 5 (the camera's own: 0)",
+    assert_clean_error(res, f"{ev / 'results.json'}: measured under test noise --sensor-sigma 0.5 (the camera's own: 0)",
                        f"`hsicam evaluate --run {run} --out DIR`, no --sensor-sigma", "as --results")
     assert not dest.exists()
     data = json.loads((ev / "results.json").read_text())
