@@ -283,6 +283,23 @@ def test_doe_learned_on_a_cassi_run_names_the_runs_own_method(tmp_path, cache_en
     assert res.returncode == 0, res.stderr
 
 
+def test_doe_demosaic_references_on_a_cassi_run_name_the_runs_own_method(tmp_path, cache_env):
+    """`evaluate --method doe-box-demosaic` (tent, linear) with a learned CASSI run was a ValueError
+    traceback ("needs a camera with a per-band sensor code, not DDCASSICamera") after loading it."""
+    from hsicam.config import load_config
+    from hsicam.engine.experiments import CASSI_UNROLLED_OVERRIDES
+    from hsicam.engine.train import train
+
+    run = tmp_path / "cassi"
+    train(load_config("tiny", ["train.epochs=1", *CASSI_UNROLLED_OVERRIDES]), run, progress=False)
+    for method in ("doe-box-demosaic", "doe-tent-demosaic", "doe-linear-demosaic"):
+        out = tmp_path / method
+        res = run_cli("evaluate", "--method", method, "--run", str(run), "--out", str(out))
+        assert_clean_error(res, f"{run}: method {method} evaluates a DOE camera; this run was trained with "
+                                "camera.kind=dd_cassi (model.kind=unrolled): use --method dd-cassi-unrolled")
+        assert not out.exists()
+
+
 @pytest.mark.parametrize("override, cause", [
     ("camera.doe.enabled=false", "weights do not fit this model"),
     ("bands.step_nm=10", "checkpoint was trained on Bands(7 bands"),

@@ -206,18 +206,27 @@ def network_alone_reference(model) -> Method:
     return Method("network alone (no consistency step)", model.camera, alone.reconstructor(), model.target, {})
 
 
+def _check_doe_run(name: str, run) -> None:
+    """InputError when ``run`` was not trained with a DOE camera (a learned CASSI run), before its
+    weights load: method ``name`` (doe-learned, a DOE demosaic reference) needs the DOE camera's
+    optics and colour filter array; the refusal names the run's own method."""
+    cfg_path = resolve_run(run) / "config.yaml"
+    if not cfg_path.is_file():
+        return  # load_run says what the folder lacks
+    run_cfg = load_config(cfg_path)
+    if run_cfg.camera.kind == "doe":
+        return
+    own = f"dd-cassi-{run_cfg.model.kind}" if run_cfg.camera.kind == "dd_cassi" else None
+    use = f"--method {own}" if own in METHODS else "the learned method of its camera"
+    raise InputError(f"{run}: method {name} evaluates a DOE camera; this run was trained with "
+                     f"camera.kind={run_cfg.camera.kind} (model.kind={run_cfg.model.kind}): use {use}")
+
+
 @register_method("doe-learned")
 def _doe_method(cfg, run, device) -> Method:
     if run is None:
         raise InputError("method doe-learned needs --run RUN (a trained camera)")
-    cfg_path = resolve_run(run) / "config.yaml"
-    if cfg_path.is_file():
-        run_cfg = load_config(cfg_path)
-        if run_cfg.camera.kind != "doe":  # a learned CASSI run: its own method names it in the results
-            own = f"dd-cassi-{run_cfg.model.kind}" if run_cfg.camera.kind == "dd_cassi" else None
-            use = f"--method {own}" if own in METHODS else "the learned method of its camera"
-            raise InputError(f"{run}: method doe-learned evaluates a DOE camera; this run was trained with "
-                             f"camera.kind={run_cfg.camera.kind} (model.kind={run_cfg.model.kind}): use {use}")
+    _check_doe_run("doe-learned", run)
     _, model = load_run(run, device)
     _evaluation_settings(model, cfg, run)
     return learned_method("doe-learned", model, run)
@@ -237,6 +246,7 @@ def _demosaic_method(name: str, kernel: str, cfg, run, device) -> Method:
     captures as the learned method (the evaluation config's boundary and noise)."""
     if run is None:
         raise InputError(f"method {name} needs --run RUN (the camera whose optics it images through)")
+    _check_doe_run(name, run)
     _, model = load_run(run, device)
     _evaluation_capture(model, cfg)
     window = None
@@ -258,6 +268,7 @@ def _linear_method(cfg, run, device) -> Method:
     training split of the evaluation config's data (:func:`linear_demosaic_reference`)."""
     if run is None:
         raise InputError("method doe-linear-demosaic needs --run RUN (the camera whose optics it images through)")
+    _check_doe_run("doe-linear-demosaic", run)
     _, model = load_run(run, device)
     bands = cfg.bands.to_bands()
     train, _ = split_dataset(cfg.data, bands)  # never empty: the split keeps at least one training scene
