@@ -140,3 +140,21 @@ def signal_a_training(run: Path, cache_env, send, *extra: str, ready: str = "met
         if proc.poll() is None:
             os.killpg(proc.pid, signal.SIGKILL)
     return proc.returncode, err
+
+
+def tree_snapshot(folder: Path) -> dict[str, bytes | None]:
+    """Every entry under ``folder`` (hidden ones too) with its bytes (None for a folder): compare two to show that
+    a refused command left the folder as it was."""
+    return {p.relative_to(folder).as_posix(): (None if p.is_dir() else p.read_bytes()) for p in sorted(folder.rglob("*"))}
+
+
+def in_process_error_line(capsys, argv: list) -> str:
+    """Run ``hsicam ARGV`` in-process: exit code 2 and one error line (returned), no traceback."""
+    from hsicam.cli import main
+
+    code = main([str(a) for a in argv])
+    err = capsys.readouterr().err
+    assert code == 2, err
+    lines = [x for x in err.strip().splitlines() if x.startswith("hsicam: error:")]
+    assert len(lines) == 1 and "Traceback" not in err, err
+    return lines[0]

@@ -27,24 +27,10 @@ import torch
 from safetensors import safe_open
 from safetensors.torch import load_file, save_file
 
+from cli_helpers import in_process_error_line, tree_snapshot
 from hsicam.cli import main
 from hsicam.errors import InputError
 from hsicam.spectral import Bands
-
-
-def snapshot(folder: Path) -> dict[str, bytes | None]:
-    """Every entry under ``folder`` (hidden ones too) with its bytes (None for a folder)."""
-    return {p.relative_to(folder).as_posix(): (None if p.is_dir() else p.read_bytes()) for p in sorted(folder.rglob("*"))}
-
-
-def error_line(capsys, argv: list) -> str:
-    """Run ``hsicam ARGV`` in-process: exit code 2 and one error line (returned), no traceback."""
-    code = main([str(a) for a in argv])
-    err = capsys.readouterr().err
-    assert code == 2, err
-    lines = [x for x in err.strip().splitlines() if x.startswith("hsicam: error:")]
-    assert len(lines) == 1 and "Traceback" not in err, err
-    return lines[0]
 
 
 @pytest.fixture(scope="module")
@@ -110,12 +96,12 @@ def rewrite_all_weights(run: Path, fn) -> None:
 @pytest.mark.parametrize("command", ["reconstruct", "resume"])
 def test_a_manifest_of_other_entries_is_refused_naming_it(trained, run, tmp_path, capsys, edit, says, command):
     edit_manifest(run, edit)
-    before = snapshot(run)
+    before = tree_snapshot(run)
     argv = (["reconstruct", trained[1], "--run", run, "--out", tmp_path / "o.h5"] if command == "reconstruct"
             else ["train", "--out", run, "--resume", "--set", "train.epochs=2"])
-    line = error_line(capsys, argv)
+    line = in_process_error_line(capsys, argv)
     assert f"{run / 'checkpoints.json'}: corrupt checkpoint manifest" in line and says in line, line
-    assert snapshot(run) == before
+    assert tree_snapshot(run) == before
     assert not (tmp_path / "o.h5").exists()
 
 
@@ -142,10 +128,10 @@ def _groups_not_dicts(tensors, meta):
 def test_resume_refuses_an_optimizer_state_of_another_layout(run, capsys, damage, says):
     opt = run / json.loads((run / "checkpoints.json").read_text())["last"]["dir"] / "optimizer.safetensors"
     rewrite_safetensors(opt, damage)
-    before = snapshot(run)
-    line = error_line(capsys, ["train", "--out", run, "--resume", "--set", "train.epochs=2"])
+    before = tree_snapshot(run)
+    line = in_process_error_line(capsys, ["train", "--out", run, "--resume", "--set", "train.epochs=2"])
     assert line.startswith(f"hsicam: error: {opt}: ") and says in line, line
-    assert snapshot(run) == before
+    assert tree_snapshot(run) == before
 
 
 # ------------------------------------------------------------------------------------------------
@@ -153,14 +139,14 @@ def test_resume_refuses_an_optimizer_state_of_another_layout(run, capsys, damage
 # ------------------------------------------------------------------------------------------------
 def test_weights_with_an_unreadable_band_grid_are_refused_naming_the_file(trained, run, tmp_path, capsys):
     rewrite_all_weights(run, lambda t, m: (t, {**m, "bands": "{not json"}))
-    line = error_line(capsys, ["reconstruct", trained[1], "--run", run, "--out", tmp_path / "o.h5"])
+    line = in_process_error_line(capsys, ["reconstruct", trained[1], "--run", run, "--out", tmp_path / "o.h5"])
     assert line.startswith(f"hsicam: error: {run}/") and "model.safetensors: corrupt band grid" in line, line
     assert not (tmp_path / "o.h5").exists()
 
 
 def test_integer_weights_are_refused_not_cast(trained, run, tmp_path, capsys):
     rewrite_all_weights(run, lambda t, m: ({k: v.to(torch.int16) for k, v in t.items()}, m))
-    line = error_line(capsys, ["reconstruct", trained[1], "--run", run, "--out", tmp_path / "o.h5"])
+    line = in_process_error_line(capsys, ["reconstruct", trained[1], "--run", run, "--out", tmp_path / "o.h5"])
     assert line.startswith(f"hsicam: error: {run}/") and "model.safetensors: tensor " in line, line
     assert "holds int16 values" in line, line
     assert not (tmp_path / "o.h5").exists()
@@ -168,13 +154,13 @@ def test_integer_weights_are_refused_not_cast(trained, run, tmp_path, capsys):
 
 def test_simulate_blames_the_damaged_weights_not_its_own_boundary_setting(run, tmp_path, capsys, scene):
     rewrite_all_weights(run, lambda t, m: (t, {**m, "bands": "{not json"}))
-    line = error_line(capsys, ["simulate", "--run", run, "--scene", scene, "--out", tmp_path / "sim"])
+    line = in_process_error_line(capsys, ["simulate", "--run", run, "--scene", scene, "--out", tmp_path / "sim"])
     assert "camera.boundary" not in line and "corrupt band grid" in line, line
     assert not (tmp_path / "sim").exists()
 
 
 def test_simulate_still_names_a_set_that_changes_the_trained_network(run, tmp_path, capsys, scene):
-    line = error_line(capsys, ["simulate", "--run", run, "--scene", scene, "--out", tmp_path / "sim",
+    line = in_process_error_line(capsys, ["simulate", "--run", run, "--scene", scene, "--out", tmp_path / "sim",
                                "--set", "model.rdn.features=16"])
     assert "--set" in line and "model.rdn.features=16" in line and "changes what" in line, line
 
@@ -201,7 +187,7 @@ def test_a_measured_psf_file_of_another_shape_or_with_nan_is_refused(trained, ru
     out = tmp_path / ("o.h5" if command == "reconstruct" else "psf")
     argv = (["reconstruct", trained[1], "--run", run, "--out", out] if command == "reconstruct"
             else ["psf", "--run", run, "--out", out])
-    line = error_line(capsys, argv)
+    line = in_process_error_line(capsys, argv)
     assert line.startswith(f"hsicam: error: {p}: ") and says in line, line
     assert not out.exists()
 
@@ -210,7 +196,7 @@ def test_a_measured_psf_file_with_an_invalid_band_grid_is_named(trained, run, tm
     bad = json.dumps({"centers_nm": [-1.0] * 7, "fwhm_nm": [50.0] * 7})
     save_file({"psf": torch.rand(7, 21, 21)}, str(run / "measured_psf.safetensors"),
               metadata={"format": "hsicam-measured-psf-1", "bands": bad})
-    line = error_line(capsys, ["reconstruct", trained[1], "--run", run, "--out", tmp_path / "o.h5"])
+    line = in_process_error_line(capsys, ["reconstruct", trained[1], "--run", run, "--out", tmp_path / "o.h5"])
     assert line == f"hsicam: error: {run / 'measured_psf.safetensors'}: corrupt measured-PSF metadata", line
 
 

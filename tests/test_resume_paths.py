@@ -21,23 +21,9 @@ import numpy as np
 import pytest
 import torch
 
+from cli_helpers import in_process_error_line, tree_snapshot
 from hsicam.cli import main
 from hsicam.config import ChoiConfig, load_config
-
-
-def snapshot(folder: Path) -> dict[str, bytes | None]:
-    """Every entry under ``folder`` (hidden ones too) with its bytes (None for a folder)."""
-    return {p.relative_to(folder).as_posix(): (None if p.is_dir() else p.read_bytes()) for p in sorted(folder.rglob("*"))}
-
-
-def error_line(capsys, argv: list[str]) -> str:
-    """Run ``hsicam ARGV`` in-process: exit code 2 and one error line (returned), no traceback."""
-    code = main(argv)
-    err = capsys.readouterr().err
-    assert code == 2, err
-    lines = [x for x in err.strip().splitlines() if x.startswith("hsicam: error:")]
-    assert len(lines) == 1 and "Traceback" not in err, err
-    return lines[0]
 
 
 @pytest.fixture(scope="module")
@@ -58,25 +44,25 @@ def test_resume_refuses_a_copied_camera_and_changes_nothing(run, tmp_path, capsy
     assert main(["pretrained", "copy", "tinyA", str(copy)]) == 0
     capsys.readouterr()
     assert (copy / "model.safetensors").is_file() and not (copy / "checkpoints.json").exists()
-    before = snapshot(copy)
+    before = tree_snapshot(copy)
     for extra in ([], ["--set", "train.epochs=3"]):
-        line = error_line(capsys, ["train", "--out", str(copy), "--resume", *extra])
+        line = in_process_error_line(capsys, ["train", "--out", str(copy), "--resume", *extra])
         assert line == (f"hsicam: error: {copy}: holds trained weights (model.safetensors) but no checkpoint to resume "
                         "(a copied or shipped camera, e.g. from `hsicam pretrained copy`); training cannot go on from "
                         "weights alone and nothing was changed: train a new run with another --out, or adapt this "
                         f"camera to measured PSFs with `hsicam finetune --run {copy} --psf-dir DIR --out NEW`")
-        assert snapshot(copy) == before  # config.yaml is not rewritten, the weights are kept
+        assert tree_snapshot(copy) == before  # config.yaml is not rewritten, the weights are kept
     # the same weights without the card files: --restart does not delete them either
     bare = tmp_path / "bare"
     bare.mkdir()
     for name in ("config.yaml", "model.safetensors"):
         shutil.copy(copy / name, bare / name)
-    before = snapshot(bare)
-    line = error_line(capsys, ["train", "--config", "tiny", "--out", str(bare), "--restart"])
+    before = tree_snapshot(bare)
+    line = in_process_error_line(capsys, ["train", "--config", "tiny", "--out", str(bare), "--restart"])
     assert f"{bare}: holds trained weights (model.safetensors) but no checkpoint" in line
     assert "--restart would delete them" in line
-    line = error_line(capsys, ["train", "--out", str(bare), "--resume"])
-    assert "no checkpoint to resume" in line and snapshot(bare) == before
+    line = in_process_error_line(capsys, ["train", "--out", str(bare), "--resume"])
+    assert "no checkpoint to resume" in line and tree_snapshot(bare) == before
 
 
 def test_resume_of_a_run_killed_before_its_first_checkpoint_still_starts(tmp_path, cache_env, capsys):
@@ -108,7 +94,7 @@ def finetuned(run, tmp_path_factory):
 def test_train_resume_refuses_a_finetuned_run(finetuned, run, tmp_path, capsys):
     ft, psf_dir = finetuned
     capsys.readouterr()
-    before = snapshot(ft)
+    before = tree_snapshot(ft)
     for extra in ([], ["--set", "train.epochs=3"]):
         code = main(["train", "--out", str(ft), "--resume", *extra])
         out, err = capsys.readouterr()
@@ -118,12 +104,12 @@ def test_train_resume_refuses_a_finetuned_run(finetuned, run, tmp_path, capsys):
                                "train` cannot continue it (its optics are frozen to the measured PSFs); nothing was "
                                f"changed: continue it with hsicam finetune --resume --run {run} --psf-dir "
                                f"{psf_dir} --out {ft} (--epochs N for more epochs)")
-        assert snapshot(ft) == before
+        assert tree_snapshot(ft) == before
     # an interrupted fine-tune (no finetune.json yet): the source run comes from its weights
     killed = tmp_path / "killed"
     shutil.copytree(ft, killed)
     (killed / "finetune.json").unlink()
-    line = error_line(capsys, ["train", "--out", str(killed), "--resume"])
+    line = in_process_error_line(capsys, ["train", "--out", str(killed), "--resume"])
     assert f"made by `hsicam finetune` from {run})" in line
     assert f"hsicam finetune --resume --run {run} --psf-dir {psf_dir} --out {killed}" in line  # from its weights
 
@@ -144,7 +130,7 @@ def test_finetune_resume_finishes_an_interrupted_finetuning_as_if_never_stopped(
     assert note is not None and note.endswith(f"continue it with `hsicam finetune --resume --run {run} --psf-dir "
                                               f"{psf_dir} --out {half}`"), note
     # the same, started fresh again, is refused with the way to continue
-    line = error_line(capsys, ["finetune", "--run", str(run), "--psf-dir", str(psf_dir), "--out", str(half)])
+    line = in_process_error_line(capsys, ["finetune", "--run", str(run), "--psf-dir", str(psf_dir), "--out", str(half)])
     assert line.endswith("fine-tuning writes a new run folder: choose another --out, or continue the fine-tuning "
                          "there with --resume"), line
     # it goes on with the epochs and rate it was started with (probe 23: it took the source run's)
@@ -160,28 +146,28 @@ def test_finetune_resume_finishes_an_interrupted_finetuning_as_if_never_stopped(
 
 def test_finetune_resume_refuses_other_psfs_another_run_and_nothing_to_resume(finetuned, run, tmp_path, capsys):
     ft, psf_dir = finetuned
-    before = snapshot(ft)
+    before = tree_snapshot(ft)
     other = shutil.copytree(psf_dir, tmp_path / "other")
     psf = np.load(other / "psf.npy")
     psf[:, psf.shape[1] // 2, psf.shape[2] // 2] *= 1.5  # another calibration of the same camera
     np.save(other / "psf.npy", psf)
-    line = error_line(capsys, ["finetune", "--resume", "--run", str(run), "--psf-dir", str(other), "--out", str(ft)])
+    line = in_process_error_line(capsys, ["finetune", "--resume", "--run", str(run), "--psf-dir", str(other), "--out", str(ft)])
     assert line.startswith(f"hsicam: error: {ft}: was fine-tuned on other measured PSFs (those of {psf_dir}) than "
                            f"{other}"), line
-    assert snapshot(ft) == before
+    assert tree_snapshot(ft) == before
     # the same folder at another pitch: named as such (it said "other PSFs (those of DIR) than DIR")
-    line = error_line(capsys, ["finetune", "--resume", "--run", str(run), "--psf-dir", str(psf_dir), "--out", str(ft),
+    line = in_process_error_line(capsys, ["finetune", "--resume", "--run", str(run), "--psf-dir", str(psf_dir), "--out", str(ft),
                                "--psf-pitch-um", "5"])
     assert line.startswith(f"hsicam: error: {ft}: the PSFs of {psf_dir} as imported now differ from those it was "
                            "fine-tuned on (another --psf-pitch-um, or files changed since)"), line
     elsewhere = shutil.copytree(run, tmp_path / "elsewhere")
-    line = error_line(capsys, ["finetune", "--resume", "--run", str(elsewhere), "--psf-dir", str(psf_dir),
+    line = in_process_error_line(capsys, ["finetune", "--resume", "--run", str(elsewhere), "--psf-dir", str(psf_dir),
                                "--out", str(ft)])
     assert line == f"hsicam: error: {ft}: was fine-tuned from {run}, not {elsewhere}; resume it with --run {run}"
-    assert snapshot(ft) == before
+    assert tree_snapshot(ft) == before
     for out, why in ((tmp_path / "none", "no such folder"),
                      (run, "not a fine-tuned run (no config.yaml and measured PSFs)")):
-        line = error_line(capsys, ["finetune", "--resume", "--run", str(ft), "--psf-dir", str(psf_dir),
+        line = in_process_error_line(capsys, ["finetune", "--resume", "--run", str(ft), "--psf-dir", str(psf_dir),
                                    "--out", str(out)])
         assert line == (f"hsicam: error: {out}: nothing to resume ({why}); start the fine-tuning without --resume"), line
     assert not (tmp_path / "none").exists()
@@ -218,19 +204,19 @@ def test_an_interrupted_prior_warns_when_used_and_names_its_remedy(tmp_path, cac
         load_prior(prior, cfg.bands.to_bands())
         build_method("dd-cassi-choi", cfg, prior)  # what `evaluate --method dd-cassi-choi --run PRIOR` loads
     assert [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING] == [note, note]
-    before = snapshot(prior)
-    line = error_line(capsys, ["baseline", "train-prior", "--config", "tiny", "--out", str(prior)])
+    before = tree_snapshot(prior)
+    line = in_process_error_line(capsys, ["baseline", "train-prior", "--config", "tiny", "--out", str(prior)])
     assert line == (f"hsicam: error: {prior}: prior folder exists and is not empty: its training stopped at step 4 of 8; "
                     f"continue it with `hsicam baseline train-prior --resume --out {prior}`, or choose another --out")
-    line = error_line(capsys, ["train", "--out", str(prior), "--resume"])
+    line = in_process_error_line(capsys, ["train", "--out", str(prior), "--resume"])
     assert line == (f"hsicam: error: {prior}: holds a spectral prior (hsicam baseline train-prior), not a camera run; "
                     f"continue it with `hsicam baseline train-prior --resume --out {prior}`")
-    line = error_line(capsys, ["baseline", "train-prior", "--out", str(prior), "--resume", "--set",
+    line = in_process_error_line(capsys, ["baseline", "train-prior", "--out", str(prior), "--resume", "--set",
                                "baselines.choi.features=8"])
     assert "baselines.choi.features: 4 → 8 would make another prior" in line
-    line = error_line(capsys, ["baseline", "train-prior", "--out", str(prior), "--resume", "--config", "tiny"])
+    line = in_process_error_line(capsys, ["baseline", "train-prior", "--out", str(prior), "--resume", "--config", "tiny"])
     assert "drop --config" in line
-    assert snapshot(prior) == before
+    assert tree_snapshot(prior) == before
 
 
 def test_train_prior_resume_finishes_an_interrupted_prior(tmp_path, cache_env, capsys, caplog):
@@ -254,14 +240,14 @@ def test_train_prior_resume_finishes_an_interrupted_prior(tmp_path, cache_env, c
     with caplog.at_level(logging.WARNING):
         load_prior(prior, load_config("tiny").bands.to_bands())
     assert not [r for r in caplog.records if r.levelno == logging.WARNING]
-    before = snapshot(prior)
+    before = tree_snapshot(prior)
     assert main(["baseline", "train-prior", "--out", str(prior), "--resume"]) == 0
     assert f"{prior}: spectral prior already finished at step {steps}" in capsys.readouterr().out
-    assert snapshot(prior) == before
-    line = error_line(capsys, ["baseline", "train-prior", "--config", "tiny", "--out", str(prior)])
+    assert tree_snapshot(prior) == before
+    line = in_process_error_line(capsys, ["baseline", "train-prior", "--config", "tiny", "--out", str(prior)])
     assert line == (f"hsicam: error: {prior}: prior folder exists and is not empty: it holds a trained spectral prior "
                     f"(use it: --run {prior}); choose another --out")
-    line = error_line(capsys, ["baseline", "train-prior", "--out", str(tmp_path / "none"), "--resume"])
+    line = in_process_error_line(capsys, ["baseline", "train-prior", "--out", str(tmp_path / "none"), "--resume"])
     assert "nothing to resume (no such folder)" in line and "hsicam baseline train-prior --config CONFIG" in line
     assert not (tmp_path / "none").exists()
 
@@ -289,14 +275,14 @@ def ablation(tmp_path_factory, cache_env):
 def test_experiment_refuses_another_experiments_folder_and_keeps_its_marker(ablation, tmp_path, capsys):
     out = tmp_path / "abl"
     shutil.copytree(ablation, out)
-    before = snapshot(out)
+    before = tree_snapshot(out)
     assert json.loads((out / ".complete").read_text())["experiment"] == "ablation"
     for name, scale in (("cfa-period", "tiny"), ("noise", "tiny"), ("ablation", "quick")):
-        line = error_line(capsys, ["experiment", name, "--scale", scale, "--out", str(out)])
+        line = in_process_error_line(capsys, ["experiment", name, "--scale", scale, "--out", str(out)])
         assert line == (f"hsicam: error: {out}: holds the results of experiment ablation at tiny scale; experiment "
                         f"{name} --scale {scale} would replace them and mix its runs with theirs: choose another --out "
                         f"(e.g. runs/experiments/{name}-{scale})")
-        assert snapshot(out) == before  # the marker too: the finished experiment stays finished
+        assert tree_snapshot(out) == before  # the marker too: the finished experiment stays finished
 
 
 def test_experiment_refuses_an_interrupted_folder_of_another_experiment(ablation, tmp_path, capsys):
@@ -304,14 +290,14 @@ def test_experiment_refuses_an_interrupted_folder_of_another_experiment(ablation
     shutil.copytree(ablation, out)
     for name in (".complete", "experiment.json", "table.md"):  # as an interrupted first run leaves it
         (out / name).unlink()
-    before = snapshot(out)
-    line = error_line(capsys, ["experiment", "cfa-period", "--scale", "tiny", "--out", str(out)])
+    before = tree_snapshot(out)
+    line = in_process_error_line(capsys, ["experiment", "cfa-period", "--scale", "tiny", "--out", str(out)])
     assert line == (f"hsicam: error: {out / 'runs'}: holds doe+cfa, no-cfa, no-doe, which experiment cfa-period does "
                     "not train (another experiment's runs); choose another --out (e.g. runs/experiments/cfa-period-tiny)")
-    line = error_line(capsys, ["experiment", "ablation", "--scale", "quick", "--out", str(out)])
+    line = in_process_error_line(capsys, ["experiment", "ablation", "--scale", "quick", "--out", str(out)])
     assert line == (f"hsicam: error: {out / 'runs' / 'doe+cfa'} was trained at tiny scale: {out} holds experiment "
                     "ablation at tiny scale, not quick; choose another --out (e.g. runs/experiments/ablation-quick)")
-    assert snapshot(out) == before
+    assert tree_snapshot(out) == before
 
 
 # ------------------------------------------------------------------------------------------------
@@ -395,11 +381,11 @@ def test_a_resume_asking_for_fewer_steps_than_were_trained_is_refused(cache_env,
 
     run = tmp_path / "r"
     assert train(load_config("tiny", ["train.epochs=3"]), run, progress=False, stop_after_steps=6) == {"stopped_at_step": 6}
-    before = snapshot(run)
+    before = tree_snapshot(run)
     with pytest.raises(InputError, match=r"has trained 6 steps \(1 epochs\), more than the 4 its config now asks for; "
                                          r"a resume cannot take training back"):
         train(load_config("tiny", ["train.epochs=1"]), run, resume=True, progress=False)
-    assert snapshot(run) == before
+    assert tree_snapshot(run) == before
     assert train(load_config("tiny", ["train.epochs=3"]), run, resume=True, progress=False)["step"] == 12
 
 
@@ -428,8 +414,8 @@ def test_a_resume_with_other_frozen_groups_names_them(cache_env, tmp_path):
 
     run = tmp_path / "r"
     train(load_config("tiny", ["train.epochs=2"]), run, progress=False, stop_after_steps=2)
-    before = snapshot(run)
+    before = tree_snapshot(run)
     with pytest.raises(InputError, match=r"the run trained the parameter groups net, doe, cfa, this config trains "
                                          r"net, cfa \(train.freeze, or a camera part switched on or off"):
         train(load_config("tiny", ["train.epochs=2", "train.freeze=[doe]"]), run, resume=True, progress=False)
-    assert snapshot(run) == before
+    assert tree_snapshot(run) == before
