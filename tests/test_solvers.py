@@ -268,6 +268,82 @@ def test_spectral_autoencoder_shapes(bands, layers):
         SpectralAutoencoder(bands, 8, 16, layers=1)
 
 
+@pytest.mark.parametrize("bands,features,latent,layers", [(1, 1, 1, 2), (7, 8, 16, 3), (5, 3, 9, 4), (31, 64, 64, 6)])
+def test_the_prior_parameter_count_is_the_built_autoencoders(bands, features, latent, layers):
+    """The closed form the memory check uses equals the built autoencoder's parameter count, and
+    build_prior builds the ``baselines.choi`` sizes it counts."""
+    from hsicam.models.priors import autoencoder_parameter_count, build_prior
+
+    ae = SpectralAutoencoder(bands, features, latent, layers=layers)
+    assert autoencoder_parameter_count(bands, features, latent, layers) == sum(p.numel() for p in ae.parameters())
+    built = build_prior(ChoiConfig(features=features, latent=latent), bands)
+    assert autoencoder_parameter_count(bands, features, latent) == sum(p.numel() for p in built.parameters())
+
+
+def _budget_mb(nbytes: int) -> str:
+    return repr(nbytes / 2**20)  # exact: a whole number of bytes over 2^20 is a float with 20 fraction bits
+
+
+def test_a_prior_is_refused_exactly_when_its_weights_or_its_training_exceed_the_budget(monkeypatch):
+    """Loading a prior needs its weights (4 bytes a parameter), training it 16 (weight, gradient, Adam's
+    two moments): the same check and message as a reconstruction network's."""
+    from hsicam.engine.tasks import PriorTask
+    from hsicam.models.priors import autoencoder_parameter_count, build_prior
+
+    cfg = load_config("tiny", ["baselines.choi.features=4", "baselines.choi.latent=2"])
+    settings, bands = cfg.baselines.choi, len(cfg.bands.to_bands())
+    n = autoencoder_parameter_count(bands, 4, 2)
+    monkeypatch.setenv("HSICAM_MEMORY_BUDGET_MB", _budget_mb(4 * n))
+    build_prior(settings, bands)  # the weights fit exactly
+    monkeypatch.setenv("HSICAM_MEMORY_BUDGET_MB", _budget_mb(4 * n - 1))
+    with pytest.raises(ConfigError, match=r"^baselines.choi \(features=4, latent=2\) is a network of .* whose weights "
+                                          r"need .* \(4 bytes a parameter\), more than the memory budget"):
+        build_prior(settings, bands)
+    monkeypatch.setenv("HSICAM_MEMORY_BUDGET_MB", _budget_mb(16 * n))
+    PriorTask(cfg, settings)  # training fits exactly
+    monkeypatch.setenv("HSICAM_MEMORY_BUDGET_MB", _budget_mb(16 * n - 1))
+    with pytest.raises(ConfigError, match=r"whose training needs .* \(16 bytes a parameter: weight, gradient, Adam's "
+                                          r"two moments\)"):
+        PriorTask(cfg, settings)
+
+
+def test_an_absurd_prior_is_one_config_error_before_anything_is_built(monkeypatch, tmp_path, capsys):
+    """``baselines.choi.features=1000000000`` built a 6 + 6 layer autoencoder of ~10^20 parameters (torch's
+    allocation error, or the machine's memory); now train-prior and loading a prior folder refuse it in one
+    line naming the ``baselines.choi`` sizes, the estimate and the budget, and the autoencoder is never built."""
+    from cli_helpers import in_process_error_line
+    from hsicam.engine.tasks import PriorTask
+    from hsicam.models import priors
+
+    def never(*args, **kwargs):
+        raise AssertionError("the autoencoder was built")
+
+    monkeypatch.setenv("HSICAM_MEMORY_BUDGET_MB", "1024")
+    monkeypatch.setattr(priors, "SpectralAutoencoder", never)
+    cfg = load_config("tiny", ["baselines.choi.features=1000000000"])
+    bands = len(cfg.bands.to_bands())
+    with pytest.raises(ConfigError) as info:
+        PriorTask(cfg, cfg.baselines.choi)
+    msg = str(info.value)
+    assert "\n" not in msg
+    assert msg.startswith(f"baselines.choi (features=1000000000, latent=64) is a network of 7.2e+19 parameters for "
+                          f"{bands} bands, whose training needs ")
+    assert msg.endswith("more than the memory budget of 1 GiB; make these sizes smaller, or raise "
+                        "HSICAM_MEMORY_BUDGET_MB (MiB)")
+    out = tmp_path / "prior"
+    line = in_process_error_line(capsys, ["baseline", "train-prior", "--config", "tiny", "--out", out,
+                                          "--set", "baselines.choi.features=1000000000"])
+    assert line == f"hsicam: error: {msg}"
+    assert not out.exists()
+    # a prior folder whose prior.yaml asks for such sizes (evaluate --method dd-cassi-choi --run it)
+    folder = tmp_path / "absurd"
+    folder.mkdir()
+    (folder / "prior.yaml").write_text(yaml.safe_dump(dataclasses.asdict(ChoiConfig(features=10**9))))
+    (folder / "prior.safetensors").write_bytes(b"")
+    with pytest.raises(ConfigError, match=r"^baselines.choi \(features=1000000000, latent=64\) .* whose weights need "):
+        load_prior(folder, cfg.bands.to_bands())
+
+
 def test_trained_prior_denoises_better_than_the_untrained_one():
     """A few training steps make R a denoiser: on a held-out noisy cube R(x + n) is closer to x than
     the untrained R (the identity) leaves it, and a clean cube stays close to a fixed point."""

@@ -7,8 +7,10 @@ limit when lower), and at most half of the address space left under a ``ulimit -
 (:func:`hsicam.data.cube.check_memory_budget`), the PSF sampling plan
 (:func:`hsicam.optics.sampling.check_psf_memory`), the DOE's cell grid
 (:func:`hsicam.cameras.doe_camera.check_doe_memory`), a CASSI sensor's dispersed width
-(:func:`hsicam.cameras.cassi.check_dispersion_span`) and a network's weights or training
-(:func:`hsicam.models.registry.check_network_memory`) all use :func:`memory_budget_bytes`, so
+(:func:`hsicam.cameras.cassi.check_dispersion_span`), a network's weights or training
+(:func:`hsicam.models.registry.check_network_memory`) and the Choi prior's
+(:func:`hsicam.models.priors.build_prior`; both through
+:func:`hsicam.models.registry.check_parameter_memory`) all use :func:`memory_budget_bytes`, so
 ``HSICAM_MEMORY_BUDGET_MB`` governs them all.
 """
 

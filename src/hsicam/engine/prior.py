@@ -27,7 +27,7 @@ from hsicam.data.pipeline import absolute_data_paths
 from hsicam.engine.loop import FitOptions, fit
 from hsicam.engine.tasks import PriorTask
 from hsicam.errors import HsicamError, InputError
-from hsicam.models.priors import SpectralAutoencoder
+from hsicam.models.priors import SpectralAutoencoder, build_prior
 from hsicam.runs.checkpoint import CheckpointManager, load_weights
 from hsicam.spectral import Bands
 
@@ -158,13 +158,14 @@ def _train_prior(cfg: Config, settings: ChoiConfig | None, out: Path, progress: 
         check_prior_out(out)
     else:
         check_run_dir(out, True, restart_hint=PRIOR_RESTART_HINT)
+    torch.manual_seed(settings.seed)
+    task = PriorTask(cfg, settings)  # before the folder changes: a prior that cannot train here is refused
+    if resume:
         state = CheckpointManager(out, PRIOR_WEIGHTS).state() if (out / "summary.json").is_file() else None
         if state is not None and int(state.get("global_step", 0)) < settings.train_steps:
             # a finished prior trained longer (more train_steps): its summary describes the shorter
             # training, and would mark it finished while it goes on; the new one is written at the end
             (out / "summary.json").unlink()
-    torch.manual_seed(settings.seed)
-    task = PriorTask(cfg, settings)
     summary = fit(task, FitOptions(task.loop_config(), cfg.data.num_workers, max_steps=settings.train_steps,
                                    progress=progress), out, resume)
     if summary.get("already_finished"):
@@ -236,7 +237,7 @@ def load_prior(run: str | Path, bands: Bands, device: torch.device | str = "cpu"
     settings = load_prior_settings(run)
     if not (run / PRIOR_WEIGHTS).is_file():
         raise InputError(f"{run}: the spectral prior has no trained weights ({PRIOR_WEIGHTS} is missing)")
-    model = SpectralAutoencoder(len(bands), settings.features, settings.latent)
+    model = build_prior(settings, len(bands))  # refused when its weights do not fit the memory budget
     try:
         load_weights(run / PRIOR_WEIGHTS, model, bands)
     except InputError as exc:

@@ -22,7 +22,7 @@ from hsicam.io import atomic_open, write_json
 from hsicam.metrics import psnr_per_band, sam_degrees, ssim
 from hsicam.models import CameraSystem
 from hsicam.models.demosaic import box_mean
-from hsicam.models.priors import SpectralAutoencoder
+from hsicam.models.priors import SpectralAutoencoder, build_prior
 from hsicam.models.registry import check_network_memory
 
 @dataclasses.dataclass(frozen=True)
@@ -275,7 +275,7 @@ class PriorTask(Task):
     def __init__(self, cfg: Config, settings: ChoiConfig) -> None:
         self.cfg, self.settings = absolute_data_paths(cfg), settings  # config.yaml names the data from anywhere
         self.bands = cfg.bands.to_bands()
-        self.model = SpectralAutoencoder(len(self.bands), settings.features, settings.latent)
+        self.model = build_prior(settings, len(self.bands), training=True)  # refused when it cannot train
 
     def loop_config(self) -> TrainConfig:
         """The loop settings: ``train_steps`` steps of cosine-decayed Adam, validation at the end."""

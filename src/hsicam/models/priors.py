@@ -5,6 +5,12 @@ from __future__ import annotations
 import torch
 from torch import nn
 
+from hsicam.config import ChoiConfig
+from hsicam.models.registry import check_parameter_memory
+
+#: The keys of ``baselines.choi`` that size the autoencoder (with the band count).
+PRIOR_SIZE_KEYS = ("features", "latent")
+
 
 class SpectralAutoencoder(nn.Module):
     """Convolutional autoencoder prior R(x) = x + D(E(x)): cube (B, C, H, W) → code (B, L, H, W) →
@@ -38,6 +44,26 @@ class SpectralAutoencoder(nn.Module):
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         return x + self.decoder(self.encoder(x))
+
+
+def autoencoder_parameter_count(bands: int, features: int = 64, latent: int = 64, layers: int = 6) -> int:
+    """The parameter count of ``SpectralAutoencoder(bands, features, latent, layers)``, in closed form
+    (tests hold it equal to the built one's): each 3×3 convolution a → b has 9ab weights and b biases."""
+    c, f, lat, k = bands, features, latent, layers
+    inner = (k - 2) * (9 * f * f + f)  # the F → F convolutions of one stack
+    encoder = 9 * c * f + f + inner + 9 * f * lat + lat
+    decoder = 9 * lat * f + f + inner + 9 * f * c + c
+    return encoder + decoder
+
+
+def build_prior(settings: ChoiConfig, bands: int, training: bool = False) -> SpectralAutoencoder:
+    """The autoencoder ``settings`` (``baselines.choi``) describe for ``bands`` bands; one whose weights
+    (``training``: whose training) do not fit the memory budget is a ConfigError naming the
+    ``baselines.choi`` sizes before anything is built (:func:`hsicam.models.registry.check_parameter_memory`,
+    the check of every network)."""
+    n = autoencoder_parameter_count(bands, settings.features, settings.latent)
+    check_parameter_memory(n, "baselines.choi", settings, PRIOR_SIZE_KEYS, bands, training)
+    return SpectralAutoencoder(bands, settings.features, settings.latent)
 
 
 def _stack(cin: int, features: int, cout: int, layers: int) -> nn.Sequential:

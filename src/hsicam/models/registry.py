@@ -12,6 +12,7 @@ builder (tests hold it equal to the built network's); ``sizes`` are the keys of 
 set it. :func:`build_network` refuses a network whose weights do not fit the memory budget before
 the builder allocates anything (``model.rdn.features=1000000000`` asked for 250 GB), and training
 (:class:`hsicam.engine.tasks.SystemTask`) one whose training does not (:func:`check_network_memory`).
+The Choi prior, not a ``model.kind``, is held to the same check (:func:`check_parameter_memory`).
 
 Every network is an ``nn.Module`` with
 
@@ -91,27 +92,36 @@ def network_parameters(cfg, camera) -> int | None:
 
 
 def check_network_memory(cfg, camera, training: bool = True) -> None:
-    """ConfigError, before anything is allocated, for a network whose training (weights, gradients
-    and Adam's two moments: :data:`TRAINING_BYTES_PER_PARAMETER` bytes a parameter) or, with
-    ``training`` false, whose weights alone (:data:`WEIGHT_BYTES_PER_PARAMETER`: a trained run read
-    for inference) need more than the memory budget (:func:`hsicam.memory.memory_budget_bytes`),
-    naming the keys that size it."""
+    """ConfigError, before anything is allocated, for a network whose training or, with ``training``
+    false, whose weights alone (a trained run read for inference) need more than the memory budget
+    (:func:`check_parameter_memory`), naming the keys of ``model.<kind>`` that size it."""
     n = network_parameters(cfg, camera)
     if n is None:
         return
+    kind = cfg.model.kind
+    check_parameter_memory(n, f"model.kind={kind}: model.{kind}", getattr(cfg.model, kind), NETWORKS[kind].sizes,
+                           len(camera.bands), training)
+
+
+def check_parameter_memory(n: int, section: str, settings: Any, sizes: SizeKeys, bands: int,
+                           training: bool = True) -> None:
+    """ConfigError for a network of ``n`` parameters (``bands`` bands) whose training (weights, gradients
+    and Adam's two moments: :data:`TRAINING_BYTES_PER_PARAMETER` bytes a parameter) or, with ``training``
+    false, whose weights alone (:data:`WEIGHT_BYTES_PER_PARAMETER`) need more than the memory budget
+    (:func:`hsicam.memory.memory_budget_bytes`): one line headed ``section`` that names the values of
+    the keys ``sizes`` of ``settings`` (or ``sizes(settings)``) that set ``n``, the estimate and the
+    budget. The one message of a network too large: registered networks
+    (:func:`check_network_memory`) and the Choi prior (:func:`hsicam.models.priors.build_prior`)."""
     per = TRAINING_BYTES_PER_PARAMETER if training else WEIGHT_BYTES_PER_PARAMETER
     use = ("training needs", ": weight, gradient, Adam's two moments") if training else ("weights need", "")
     need, budget = per * n, memory_budget_bytes()
     if need <= budget:
         return
-    kind = cfg.model.kind
-    section, settings = f"model.{kind}", getattr(cfg.model, kind)
-    sizes = NETWORKS[kind].sizes
     keys = list(sizes(settings) if callable(sizes) else sizes)
     values = ", ".join(f"{k}={_setting(settings, k)}" for k in keys)
     count = f"{n:,}" if n < 10**12 else f"{n:.3g}"
-    raise ConfigError(f"model.kind={kind}: {section} ({values}) is a network of {count} parameters for "
-                      f"{len(camera.bands)} bands, whose {use[0]} {format_bytes(need)} ({per} bytes a parameter"
+    raise ConfigError(f"{section} ({values}) is a network of {count} parameters for "
+                      f"{bands} bands, whose {use[0]} {format_bytes(need)} ({per} bytes a parameter"
                       f"{use[1]}), more "
                       f"than the memory budget of {format_bytes(budget)}; make these sizes smaller, or raise "
                       f"{MEMORY_BUDGET_ENV} (MiB)")
