@@ -952,7 +952,20 @@ def test_absurd_network_sizes_are_one_config_error_before_anything_is_built(monk
 
 
 def test_every_network_kind_registers_its_parameter_count():
-    assert all(registry.NETWORKS[k].parameters is not None and registry.NETWORKS[k].sizes for k in network_kinds())
+    assert all(callable(registry.NETWORKS[k].parameters) and registry.NETWORKS[k].sizes for k in network_kinds())
+
+
+def test_a_network_kind_cannot_be_registered_without_its_parameter_count():
+    """``parameters`` is required (keyword-only, no default): a kind without it would be built unchecked
+    by the memory budget. Refused when the decorator is made, before it registers anything."""
+    kinds = dict(registry.NETWORKS)
+    with pytest.raises(TypeError, match="parameters"):
+        registry.register_network("unchecked")
+    with pytest.raises(TypeError, match=r"register_network\('unchecked'\): parameters must be"):
+        registry.register_network("unchecked", parameters=None, sizes=("features",))
+    with pytest.raises(TypeError):
+        registry.register_network("unchecked", lambda cfg, camera: 1)  # keyword-only
+    assert registry.NETWORKS == kinds
 
 
 def test_the_unrolled_refusal_names_its_front_end_only_with_init_mosaic(monkeypatch):

@@ -7,10 +7,11 @@ A network module registers its builder with one decorator line::
 
 The builder gets the whole config (its settings are the section ``cfg.model.<kind>``) and the
 camera, so physics-aware networks can use the camera's operator and sensor code. ``parameters``
-(same arguments) is the closed-form count of the network's parameters, declared next to the
-builder (tests hold it equal to the built network's); ``sizes`` are the keys of the section that
-set it. :func:`build_network` refuses a network whose weights do not fit the memory budget before
-the builder allocates anything (``model.rdn.features=1000000000`` asked for 250 GB), and training
+(same arguments; required, so that no kind is built unchecked) is the closed-form count of the
+network's parameters, declared next to the builder (tests hold it equal to the built network's);
+``sizes`` are the keys of the section that set it. :func:`build_network` refuses a network whose
+weights do not fit the memory budget before the builder allocates anything
+(``model.rdn.features=1000000000`` asked for 250 GB), and training
 (:class:`hsicam.engine.tasks.SystemTask`) one whose training does not (:func:`check_network_memory`).
 The Choi prior, not a ``model.kind``, is held to the same check (:func:`check_parameter_memory`).
 
@@ -50,18 +51,22 @@ class NetworkKind:
     """A registered ``model.kind``: its builder, its parameter count and the keys that size it."""
 
     build: Builder
-    parameters: ParameterCount | None = None
+    parameters: ParameterCount
     sizes: SizeKeys = ()
 
 
 NETWORKS: dict[str, NetworkKind] = {}
 
 
-def register_network(kind: str, *, parameters: ParameterCount | None = None,
+def register_network(kind: str, *, parameters: ParameterCount,
                      sizes: SizeKeys = ()) -> Callable[[Builder], Builder]:
     """Decorator: register ``builder(cfg, camera) -> nn.Module`` under ``model.kind = kind``, with
-    ``parameters(cfg, camera) -> int``, its exact parameter count, and ``sizes``, the keys of
-    ``model.<kind>`` that set it (named when the network is too large); see the module docstring."""
+    ``parameters(cfg, camera) -> int``, its exact parameter count (required: without it a network
+    would be built unchecked), and ``sizes``, the keys of ``model.<kind>`` that set it (named when the
+    network is too large); see the module docstring."""
+    if not callable(parameters):
+        raise TypeError(f"register_network({kind!r}): parameters must be the network's parameter count "
+                        f"(cfg, camera) -> int, got {parameters!r}")
 
     def deco(builder: Builder) -> Builder:
         if kind in NETWORKS:
@@ -83,12 +88,11 @@ def check_network_kind(kind: str) -> None:
         raise ConfigError(f"model.kind={kind!r} is unknown; choose one of {', '.join(network_kinds())}")
 
 
-def network_parameters(cfg, camera) -> int | None:
+def network_parameters(cfg, camera) -> int:
     """The parameter count of the network ``cfg.model.kind`` describes for ``camera`` (computed, not
-    built), or None for a kind registered without a count."""
+    built)."""
     check_network_kind(cfg.model.kind)
-    count = NETWORKS[cfg.model.kind].parameters
-    return None if count is None else int(count(cfg, camera))
+    return int(NETWORKS[cfg.model.kind].parameters(cfg, camera))
 
 
 def check_network_memory(cfg, camera, training: bool = True) -> None:
@@ -96,8 +100,6 @@ def check_network_memory(cfg, camera, training: bool = True) -> None:
     false, whose weights alone (a trained run read for inference) need more than the memory budget
     (:func:`check_parameter_memory`), naming the keys of ``model.<kind>`` that size it."""
     n = network_parameters(cfg, camera)
-    if n is None:
-        return
     kind = cfg.model.kind
     check_parameter_memory(n, f"model.kind={kind}: model.{kind}", getattr(cfg.model, kind), NETWORKS[kind].sizes,
                            len(camera.bands), training)
