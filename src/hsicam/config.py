@@ -375,6 +375,20 @@ class RDNConfig:
                 raise ConfigError(f"model.rdn.{k} must be >= 1, got {getattr(self, k)}")
 
 
+def _check_odd_window(section: str, key: str, value: int, zero: str) -> None:
+    """ConfigError unless ``value`` (``section``.``key``, a window's width in px) is odd, or 0 (meaning ``zero``)."""
+    if value < 0 or (value and value % 2 == 0):
+        raise ConfigError(f"{section}.{key} must be odd (or {zero}), got {value}")
+
+
+def _check_brightness(section: str, window: int, eps: float) -> None:
+    """ConfigError unless ``section``.brightness_window is 0 (off) or odd and ``section``.brightness_eps > 0
+    (the local-brightness normalisation of the mosaic and unrolled networks)."""
+    _check_odd_window(section, "brightness_window", window, "0 for off")
+    if not (eps > 0 and math.isfinite(eps)):
+        raise ConfigError(f"{section}.brightness_eps must be > 0, got {eps}")
+
+
 @dataclass
 class MosaicConfig:
     """Settings of ``model.kind = mosaic`` (sizes in channels / layers; lengths in sensor pixels)."""
@@ -416,21 +430,8 @@ class MosaicConfig:
             raise ConfigError(f"{section}.mid_features={self.mid_features} (a half-resolution stage) needs an even "
                               f"{section}.factor, got {self.factor}; set {section}.factor to an even multiple of the "
                               f"CFA period or mid_features=0")
-        MosaicConfig.check_window(section, "demosaic_window", self.demosaic_window, "0 for the CFA period")
-        MosaicConfig.check_brightness(section, self.brightness_window, self.brightness_eps)
-
-    @staticmethod
-    def check_window(section: str, key: str, value: int, zero: str) -> None:
-        """ConfigError unless ``value`` (``section``.``key``, px) is odd, or 0 (meaning ``zero``)."""
-        if value < 0 or (value and value % 2 == 0):
-            raise ConfigError(f"{section}.{key} must be odd (or {zero}), got {value}")
-
-    @staticmethod
-    def check_brightness(section: str, window: int, eps: float) -> None:
-        """ConfigError unless ``section``.brightness_window is 0 (off) or odd and brightness_eps > 0."""
-        MosaicConfig.check_window(section, "brightness_window", window, "0 for off")
-        if not (eps > 0 and math.isfinite(eps)):
-            raise ConfigError(f"{section}.brightness_eps must be > 0, got {eps}")
+        _check_odd_window(section, "demosaic_window", self.demosaic_window, "0 for the CFA period")
+        _check_brightness(section, self.brightness_window, self.brightness_eps)
 
 
 @dataclass
@@ -465,9 +466,9 @@ class UnrolledConfig:
             raise ConfigError(f"model.unrolled.init={self.init!r} is not one of {', '.join(self.INITS)}")
         if not (self.step_init > 0 and math.isfinite(self.step_init)):
             raise ConfigError(f"model.unrolled.step_init must be > 0, got {self.step_init}")
-        MosaicConfig.check_window("model.unrolled", "stage_kernel_px", self.stage_kernel_px, "0 for the full kernel")
-        MosaicConfig.check_window("model.unrolled", "demosaic_window", self.demosaic_window, "0 for the CFA period")
-        MosaicConfig.check_brightness("model.unrolled", self.brightness_window, self.brightness_eps)
+        _check_odd_window("model.unrolled", "stage_kernel_px", self.stage_kernel_px, "0 for the full kernel")
+        _check_odd_window("model.unrolled", "demosaic_window", self.demosaic_window, "0 for the CFA period")
+        _check_brightness("model.unrolled", self.brightness_window, self.brightness_eps)
         self.mosaic.check("model.unrolled.mosaic")
 
 
