@@ -370,6 +370,27 @@ def test_a_flat_field_gain_map_scales_the_variance_as_the_corrected_noise():
         SensorNoise("poisson_gaussian", gain=torch.zeros(4, 4))
 
 
+def test_the_variance_defaults_to_the_window_the_forward_noises():
+    """``variance(g)`` without an origin took the map's window at sensor pixel (0, 0), while ``forward(g)`` noises
+    the window at the map's own ``gain_origin``: with a flat field placed at a non-zero origin (a capture's CFA
+    offset) the two disagreed (here a ValueError: (0, 0) is off the map). The default origin is now
+    ``gain_origin``, and the declared variance is the sample variance of the forward's noise."""
+    n = 100_000
+    rows = torch.tensor([0.8, 1.0, 1.6, 2.5, 0.6, 1.9])
+    gain = rows.view(6, 1).expand(6, n + 4).contiguous()
+    noise = SensorNoise("poisson_gaussian", full_well_e=500.0, read_noise_e=3.0, gain=gain, gain_origin=(2, 3))
+    levels = torch.tensor([0.1, 0.3, 0.6, 0.85], dtype=torch.float64)
+    g = levels.view(1, 1, 4, 1).expand(1, 1, 4, n).contiguous()
+    sample = noise(g, torch.Generator().manual_seed(0)).var(dim=-1)[0, 0]
+    default = noise.variance(g)
+    assert torch.equal(default, noise.variance(g, origin=(2, 3)))
+    torch.testing.assert_close(default[0, 0, :, 0], sample, rtol=0.03, atol=0)
+    a = rows[:4].double()
+    torch.testing.assert_close(default[0, 0, :, 0], a * levels / 500.0 + (a * 3.0 / 500.0) ** 2, rtol=1e-6, atol=0)
+    assert not torch.allclose(noise.variance(g, origin=(4, 3)), default)  # another window of the map
+    assert torch.equal(noise.gain_window(g), gain[:4, :n])
+
+
 def test_reconstruct_counts_the_flat_fields_gain_in_the_capture_noise(noisy_capture, tmp_path):
     """``--flat F --full-well-e E``: the capture was divided by the normalised flat, so each pixel's noise is
     scaled by 1/F; the camera's noise model gets that gain map, placed at the capture's CFA offset (before, the

@@ -153,7 +153,8 @@ class SensorNoise(nn.Module):
     multiplies a capture by 1/flat (vignetting); the image is then a·n(g/a), whose variance is
     a²·v(g/a) for the variance v of the uncorrected image (a Poisson–Gaussian capture: a·g/N + (a·r/N)²).
     ``gain_origin`` is the sensor pixel (row, column) of the map's top-left corner; a window's
-    ``origin`` selects its part of the map. None: a = 1 everywhere.
+    ``origin`` selects its part of the map (default: ``gain_origin``, the window :meth:`forward` takes
+    an image to be). None: a = 1 everywhere.
     """
 
     def __init__(self, model: str = "gaussian", sigma: float = 0.0, full_well_e: float = 1e4,
@@ -170,12 +171,13 @@ class SensorNoise(nn.Module):
                 raise ValueError(f"the noise gain map must be (H, W), finite and positive, got {tuple(gain.shape)}")
         self.gain, self.gain_origin = gain, (int(gain_origin[0]), int(gain_origin[1]))
 
-    def gain_window(self, g: torch.Tensor, origin: tuple[int, int] = (0, 0)) -> torch.Tensor | None:
+    def gain_window(self, g: torch.Tensor, origin: tuple[int, int] | None = None) -> torch.Tensor | None:
         """The part of :attr:`gain` under the window ``g`` (..., H, W) whose top-left sensor pixel is
-        ``origin``, as (H, W) on g's device; None without a gain map. ValueError for a window the map
-        does not cover."""
+        ``origin`` (None: :attr:`gain_origin`, as :meth:`forward`), as (H, W) on g's device; None without
+        a gain map. ValueError for a window the map does not cover."""
         if self.gain is None:
             return None
+        origin = self.gain_origin if origin is None else origin
         y, x = origin[0] - self.gain_origin[0], origin[1] - self.gain_origin[1]
         h, w = g.shape[-2:]
         if y < 0 or x < 0 or y + h > self.gain.shape[0] or x + w > self.gain.shape[1]:
@@ -190,7 +192,7 @@ class SensorNoise(nn.Module):
     def forward(self, g: torch.Tensor, generator: torch.Generator | None = None) -> torch.Tensor:
         """The noisy image of ``g`` (B, 1, H, W), whose top-left pixel is the gain map's origin when
         there is one: a·n(g/a)."""
-        a = self.gain_window(g, self.gain_origin)
+        a = self.gain_window(g)
         if a is not None:
             return a.to(g.dtype) * self._noisy(g / a.to(g.dtype), generator)
         return self._noisy(g, generator)
@@ -210,13 +212,14 @@ class SensorNoise(nn.Module):
         return ((self.model == "gaussian" and self.sigma > 0) or self.model == "poisson_gaussian"
                 or self.bit_depth is not None)
 
-    def variance(self, g: torch.Tensor, origin: tuple[int, int] = (0, 0)) -> torch.Tensor | None:
+    def variance(self, g: torch.Tensor, origin: tuple[int, int] | None = None) -> torch.Tensor | None:
         """Per-pixel variance of the noise this model adds to the noiseless image ``g`` (B, 1, H, W;
         1 = full scale), estimated from ``g`` itself (a noisy capture serves: its photon count is the
         mean's estimate): gaussian σ², Poisson–Gaussian g / N + (r / N)² for N = ``full_well_e`` and
         r = ``read_noise_e``, plus Δ²/12 of the quantiser's step Δ = 1 / (2^bits − 1); with a gain map
-        a (the window at ``origin``), a²·v(g/a). None for a noise-free model (what the
-        measurement-consistency steps take as "trust every residual"). Computed in float32 at least
+        a (the window at ``origin``; None: at :attr:`gain_origin`, the window :meth:`forward` noises),
+        a²·v(g/a). None for a noise-free model (what the measurement-consistency steps take as "trust
+        every residual"). Computed in float32 at least
         (half precision would round (2 / 10⁴)² and a 12-bit step's Δ²/12)."""
         if not self.declares_noise:
             return None
