@@ -11,7 +11,7 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from cli_helpers import assert_clean_error, run_cli
+from cli_helpers import assert_clean_error, in_process_error_line, run_cli
 from hsicam.models.demosaic import LinearDemosaicFit, demosaic, phase_linear
 from hsicam.sensor import tile_pattern
 
@@ -207,7 +207,7 @@ def test_linear_reference_method_is_fitted_on_the_training_scenes_through_the_ru
     bands = cfg.bands.to_bands()
     train, _ = split_dataset(cfg.data, bands)
     scenes = scene_dataset(cfg.data, train, bands)
-    assert method.info["training_scenes"] == len(train) and method.info["window_px"] == 11
+    assert method.info["window_px"] == 11 and "training_scenes" not in method.info  # fitted at the first reconstruction
     cam = method.camera
     fit = LinearDemosaicFit(cam.code_period, len(cam.bands), 11, 1e-6, flat_field=True)
     se_lin = se_tent = 0.0
@@ -225,6 +225,7 @@ def test_linear_reference_method_is_fitted_on_the_training_scenes_through_the_ru
         flat = method.reconstruct(cam.A(uniform))[..., 6:-6, 6:-6]
         assert float((flat - flat.mean((-2, -1), keepdim=True)).abs().max()) < 1e-4 * float(flat.abs().max())
     assert se_lin < se_tent
+    assert method.info["training_scenes"] == len(train)
     with pytest.raises(InputError, match="needs --run"):
         build_method("doe-linear-demosaic", cfg)
 
@@ -239,6 +240,33 @@ def test_linear_reference_through_the_cli_and_its_errors(run, tmp_path):
     assert summary["method"] == "doe-linear-demosaic" and np.isfinite(summary["mean"]["psnr"])
     bad = run_cli("evaluate", "--method", "doe-linear-demosaic", "--out", str(tmp_path / "bad"), env=env)
     assert_clean_error(bad, "needs --run")
+
+
+def test_linear_reference_refuses_small_scenes_before_making_its_training_split(run, tmp_path, monkeypatch, capsys):
+    """Scenes too small to score (here 20 px, under the run's `valid` margin plus SSIM's window) are
+    refused before the method's fit: the training split is neither made (generated, for the synthetic
+    data: 2.5 GB for the standard camera) nor imaged, and no --out is written. The fit came first."""
+    from hsicam.config import load_config
+    from hsicam.data.formats import write_cube_h5
+    from hsicam.engine import linear_step, methods
+
+    d, env = run
+    monkeypatch.setenv("HSICAM_CACHE", str(tmp_path / "empty-cache"))  # a split made would generate here
+
+    def never(*args, **kwargs):
+        raise AssertionError("the training split was made before the scenes were checked")
+
+    monkeypatch.setattr(methods, "split_dataset", never)
+    monkeypatch.setattr(methods, "fit_linear_map", never)
+    monkeypatch.setattr(linear_step, "fit_linear_map", never)
+    data = tmp_path / "small"
+    bands = load_config(d / "config.yaml").bands.to_bands()
+    write_cube_h5(data / "a.h5", np.random.default_rng(0).uniform(0.1, 0.9, (len(bands), 20, 20)).astype(np.float32), bands)
+    out = tmp_path / "ev"
+    line = in_process_error_line(capsys, ["evaluate", "--run", d, "--method", "doe-linear-demosaic", "--data", data,
+                                          "--out", out])
+    assert f"{data / 'a.h5'}: scene of 20×20 px leaves" in line and "to score" in line, line
+    assert not out.exists() and not (tmp_path / "empty-cache").exists()
 
 
 def test_linear_reference_needs_a_cfa_camera():

@@ -147,6 +147,12 @@ LINEAR_REFERENCE_NAME = "CFA linear demosaic, least squares on the training scen
 LINEAR_REFERENCE_WINDOW = 11
 
 
+def linear_reference_window(camera, window: int = LINEAR_REFERENCE_WINDOW) -> int:
+    """The side (px) of :func:`linear_demosaic_reference`'s fitted filters: ``window``, grown to the
+    camera's CFA period (made odd) when that is wider (the flat-field fit sees every CFA phase)."""
+    return max(window, getattr(camera, "code_period", 1) | 1)
+
+
 def linear_demosaic_reference(model, train_scenes, window: int = LINEAR_REFERENCE_WINDOW,
                               ridge: float = LINEAR_MAP_RIDGE, weight: torch.Tensor | None = None) -> Method:
     """The best *linear* reconstruction through the model's optics: one ``window``×``window`` filter
@@ -160,8 +166,7 @@ def linear_demosaic_reference(model, train_scenes, window: int = LINEAR_REFERENC
     sensor code (the CFA). ``weight``: filters already fitted that way on the same scenes (a run's
     linear consistency step, ``model.linear_step``), used instead of fitting them again."""
     if weight is None:
-        window = max(window, getattr(model.camera, "code_period", 1) | 1)  # the flat-field fit sees every CFA phase
-        weight = fit_linear_map(model, train_scenes, window, ridge)
+        weight = fit_linear_map(model, train_scenes, linear_reference_window(model.camera, window), ridge)
     window = int(weight.shape[-1])
 
     def reconstruct(sensor: torch.Tensor) -> torch.Tensor:
@@ -265,16 +270,44 @@ def _box_method(cfg, run, device) -> Method:
 @register_method("doe-linear-demosaic")
 def _linear_method(cfg, run, device) -> Method:
     """The least-squares linear reconstruction through a trained run's optics, fitted on the
-    training split of the evaluation config's data (:func:`linear_demosaic_reference`)."""
+    training split of the evaluation config's data (:func:`linear_demosaic_reference`) through the
+    run's own capture geometry (its ``camera.boundary`` and ``padding``, whatever the evaluation's).
+
+    The fit waits for the method's first reconstruction: the training split (generated when synthetic,
+    2.5 GB for the standard camera) is made and imaged only once the scenes to score have passed
+    evaluate's checks (:func:`hsicam.engine.evaluate.check_scenes`), so scenes too small to score are
+    refused at once; ``info["training_scenes"]`` is filled by the fit."""
     if run is None:
         raise InputError("method doe-linear-demosaic needs --run RUN (the camera whose optics it images through)")
     _check_doe_run("doe-linear-demosaic", run)
     _, model = load_run(run, device)
-    bands = cfg.bands.to_bands()
-    train, _ = split_dataset(cfg.data, bands)  # never empty: the split keeps at least one training scene
-    method = linear_demosaic_reference(model, scene_dataset(cfg.data, train, bands))
+    cam = model.camera
+    own = {k: getattr(cam, k) for k in ("boundary", "padding") if hasattr(cam, k)}  # the run's, before the evaluation's
+    fitted: list[Method] = []
+
+    def reference() -> Method:
+        if not fitted:
+            bands = cfg.bands.to_bands()
+            train, _ = split_dataset(cfg.data, bands)  # never empty: the split keeps at least one training scene
+            evaluation = {k: getattr(cam, k) for k in own}
+            for k, v in own.items():
+                setattr(cam, k, v)
+            try:
+                fitted.append(linear_demosaic_reference(model, scene_dataset(cfg.data, train, bands)))
+            finally:
+                for k, v in evaluation.items():
+                    setattr(cam, k, v)
+            method.info.update(fitted[0].info, training_scenes=len(train))
+        return fitted[0]
+
+    def reconstruct(sensor: torch.Tensor) -> torch.Tensor:
+        return reference().reconstruct(sensor)
+
     _evaluation_capture(model, cfg)
-    return dataclasses.replace(method, info={**method.info, "run": str(run), "training_scenes": len(train)})
+    method = Method(LINEAR_REFERENCE_NAME, cam, reconstruct, model.target,
+                    {"window_px": linear_reference_window(cam), "ridge": LINEAR_MAP_RIDGE, "flat_field": True,
+                     "run": str(run)})
+    return method
 
 
 @register_method("doe-tent-demosaic")
