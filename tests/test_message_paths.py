@@ -117,6 +117,38 @@ def test_pack_onto_a_run_folder_is_refused_without_offering_force(runs, tmp_path
     assert res.returncode == 0, res.stderr
 
 
+def test_pack_into_its_own_run_folder_or_over_it_is_refused(runs, tmp_path):
+    """--dest RUN (or a folder inside it) wrote the camera into the run being packed, and was accepted;
+    a camera folder holding the run was refused only as "not a packed camera". Each is one line now,
+    and nothing is written."""
+    from cli_helpers import run_cli_in_process, tree_snapshot
+
+    run = tmp_path / "runQ"
+    shutil.copytree(runs / "run", run)
+    before = tree_snapshot(tmp_path)
+    for dest in (run, run / "cameras", run / "checkpoints"):
+        assert_clean_error(run_cli_in_process("pretrained", "pack", str(run), "--name", "cam", "--dest", str(dest)),
+                           f"{dest / 'cam'}: inside the run folder {run} that is being packed",
+                           f"give a --dest outside {run}")
+        assert tree_snapshot(tmp_path) == before
+    # the same run reached through a link: still its own folder
+    (tmp_path / "link").symlink_to(run)
+    assert_clean_error(run_cli_in_process("pretrained", "pack", str(tmp_path / "link"), "--name", "cam",
+                                          "--dest", str(run)), "inside the run folder")
+    (tmp_path / "link").unlink()
+    # the camera folder would hold (and replace) the run
+    inner = tmp_path / "root" / "cam" / "runQ"
+    inner.parent.mkdir(parents=True)
+    run.rename(inner)
+    before = tree_snapshot(tmp_path)
+    for force in ((), ("--force",)):
+        assert_clean_error(run_cli_in_process("pretrained", "pack", str(inner), "--name", "cam",
+                                              "--dest", str(tmp_path / "root"), *force),
+                           f"{tmp_path / 'root' / 'cam'}: holds the run folder {inner} that is being packed",
+                           "choose another --name or --dest")
+        assert tree_snapshot(tmp_path) == before
+
+
 # ------------------------------------------------------------------------------------------------
 # 20 b, c: tolerance wording
 # ------------------------------------------------------------------------------------------------

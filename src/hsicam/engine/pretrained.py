@@ -505,6 +505,21 @@ def check_pack_target(target: Path, name: str, overwrite: bool) -> None:
                      "choose another --name or --dest")
 
 
+def check_pack_apart(run_dir: Path, target: Path) -> None:
+    """One-line :class:`InputError` when the camera folder ``target`` (DEST/NAME) lies inside the run
+    ``run_dir`` being packed (``--dest RUN`` or a folder in it: the camera would be written into the
+    run, files its training never wrote), or holds it (the camera would replace the folder of its
+    own run). Both compared resolved (links followed); ``target`` equal to the run is
+    :func:`check_pack_target`'s (a run folder, never replaced)."""
+    run, cam = run_dir.resolve(), target.resolve()
+    if cam != run and cam.is_relative_to(run):
+        raise InputError(f"{target}: inside the run folder {run_dir} that is being packed; pack writes the camera "
+                         f"outside its run: give a --dest outside {run_dir}")
+    if cam != run and run.is_relative_to(cam):
+        raise InputError(f"{target}: holds the run folder {run_dir} that is being packed, which the camera would "
+                         "replace; choose another --name or --dest")
+
+
 def pack_pretrained(run_dir: str | Path, name: str, dest_root: str | Path | None = None,
                     results: str | Path | None = None, heldout: str | Path | None = None, *,
                     summary: str | None = None, preset: str | None = None, overwrite: bool = False) -> Path:
@@ -514,8 +529,9 @@ def pack_pretrained(run_dir: str | Path, name: str, dest_root: str | Path | None
     Refuses (one-line :class:`InputError`, nothing written) a run that has not finished, a
     fine-tuned run (its measured PSFs are not shipped), results of another run
     (:func:`check_results_of_run`), a ``preset`` that is not a shipped preset, weights over
-    :data:`hsicam.runs.pretrained.MAX_WEIGHTS_BYTES`, an existing camera unless ``overwrite``, and
-    a ``dest_root/name`` that is not a packed camera (:func:`check_pack_target`).
+    :data:`hsicam.runs.pretrained.MAX_WEIGHTS_BYTES`, an existing camera unless ``overwrite``, a
+    ``dest_root/name`` inside the run or holding it (:func:`check_pack_apart`), and a
+    ``dest_root/name`` that is not a packed camera (:func:`check_pack_target`).
     The folder is written under a temporary name and renamed into place."""
     run_dir = Path(run_dir)
     shipped.check_name(name)
@@ -535,6 +551,7 @@ def pack_pretrained(run_dir: str | Path, name: str, dest_root: str | Path | None
                          "camera may have; train a smaller network")
     dest = Path(dest_root) if dest_root is not None else shipped.root()
     target = dest / name
+    check_pack_apart(run_dir, target)
     check_pack_target(target, name, overwrite)
     card = card_fields(run_dir, name, results, heldout, summary=summary, preset=preset)
     text = card_markdown(card)
