@@ -8,7 +8,7 @@ import imageio.v3 as iio
 import numpy as np
 import pytest
 
-from cli_helpers import assert_clean_error, run_cli
+from cli_helpers import assert_clean_error, run_cli, run_cli_in_process
 from optics_reference import doe_field, reference_measurement, relative_l1, square_cell_psf
 
 TINY = ["--set", "camera.aperture_radius_mm=0.6", "--set", "camera.lens.focal_length_mm=5",
@@ -252,6 +252,23 @@ def test_simulate_band_grid_mismatch(tmp_path):
     write_cube_h5(tmp_path / "scene.h5", np.ones((7, 30, 30), np.float32), Bands.uniform(400, 700, 50))
     proc = run_cli("simulate", "--scene", str(tmp_path / "scene.h5"), "--out", str(tmp_path / "o"), *TINY)
     assert_clean_error(proc, "scene.h5")
+
+
+@pytest.mark.parametrize("kind", ["dd_cassi", "sd_cassi"])
+def test_simulate_refuses_valid_boundary_on_a_cassi_camera(tmp_path, kind):
+    """A CASSI camera has no PSF kernel (margin 0): --boundary valid gave the default's sensor image and
+    recorded "valid" in simulate.json. It is one line now, nothing written; the default still works."""
+    np.save(tmp_path / "scene.npy", np.ones((31, 24, 24), np.float32))
+    out = tmp_path / "o"
+    cassi = ["--config", "dd_cassi_rdn", "--set", f"camera.kind={kind}"]
+    proc = run_cli_in_process("simulate", "--scene", str(tmp_path / "scene.npy"), "--out", str(out),
+                              "--boundary", "valid", *cassi)
+    assert_clean_error(proc, f"--boundary valid: the {kind} camera images without a PSF", "no kernel margin to crop",
+                       "drop --boundary")
+    assert not out.exists()
+    proc = run_cli_in_process("simulate", "--scene", str(tmp_path / "scene.npy"), "--out", str(out), *cassi)
+    assert proc.returncode == 0, proc.stderr
+    assert json.loads((out / "simulate.json").read_text())["boundary"] == "same"
 
 
 def test_simulate_missing_scene(tmp_path):

@@ -39,7 +39,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--out", required=True, metavar="DIR", help="output folder")
     p.add_argument("--boundary", choices=("same", "valid"), default="same",
                    help="same (default): sensor as large as the scene (padded); valid: sensor smaller by the kernel margin "
-                        "(what training sees: the presets' camera.boundary)")
+                        "(what training sees: the presets' camera.boundary); a DOE camera's choice: a CASSI camera has "
+                        "no PSF kernel, so valid is refused for it")
     from hsicam.cli.args import seed_arg
     p.add_argument("--seed", type=seed_arg(), default=0,
                    help="seed of torch's generator for DOE height noise and sensor noise, an integer in [-2^63, 2^64 - 1] "
@@ -148,6 +149,18 @@ def load_scene(path: str | Path, bands: Bands, npy_bands: Bands | None = None) -
     return conform_bands(cube, scene_bands, bands, path, axis=0)
 
 
+def check_boundary_applies(camera, boundary: str) -> None:
+    """One-line :class:`InputError` for ``--boundary valid`` on a camera without a PSF kernel (the CASSI
+    cameras: the forward model codes and shears the scene, no blur, so their kernel margin is 0): there
+    is no margin to crop, and the sensor image would silently be the default's (``same``)."""
+    from hsicam.cameras import DDCASSICamera, SDCASSICamera
+
+    if boundary == "valid" and isinstance(camera, (DDCASSICamera, SDCASSICamera)):
+        raise InputError(f"--boundary valid: the {camera.kind} camera images without a PSF (its forward model codes "
+                         "and shears the scene, no blur), so it has no kernel margin to crop and its sensor image is "
+                         "the default's; drop --boundary (it applies to a DOE camera)")
+
+
 def cmd_simulate(args: argparse.Namespace) -> int:
     from hsicam.data.images import SENSOR_SCALE_KEY, SIMULATE_JSON
     from hsicam.data.pipeline import npy_bands
@@ -163,6 +176,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
         camera = system.camera
     else:
         camera, cfg = camera_from_args(args, (f"camera.boundary={args.boundary}",), command="simulate")
+    check_boundary_applies(camera, args.boundary)
     scene = load_scene(args.scene, camera.bands, npy_bands(cfg.data))
     gen = torch.Generator().manual_seed(args.seed)
     sensor = camera.capture(torch.from_numpy(scene)[None], gen, source=str(args.scene))[0, 0].numpy()
