@@ -65,6 +65,34 @@ def test_resume_refuses_a_copied_camera_and_changes_nothing(run, tmp_path, capsy
     assert "no checkpoint to resume" in line and tree_snapshot(bare) == before
 
 
+def test_resume_of_a_copied_cassi_camera_suggests_what_a_cassi_camera_can_do(tmp_path, cache_env, capsys, monkeypatch):
+    """A copied CASSI camera was told to `hsicam finetune` it, which refuses any camera but a DOE camera.
+    Its refusal now offers a new run of its own settings, a command that trains."""
+    run = tmp_path / "cassi"
+    assert main(["train", "--config", "tiny", "--out", str(run), "--set", "train.epochs=1",
+                 "--set", "camera.kind=dd_cassi"]) == 0
+    monkeypatch.setenv("HSICAM_PRETRAINED_DIR", str(tmp_path / "pre"))
+    assert main(["pretrained", "pack", "--name", "tinyC", str(run), "--dest", str(tmp_path / "pre")]) == 0
+    copy = tmp_path / "copy"
+    assert main(["pretrained", "copy", "tinyC", str(copy)]) == 0
+    capsys.readouterr()
+    before = tree_snapshot(copy)
+    line = in_process_error_line(capsys, ["train", "--out", str(copy), "--resume"])
+    assert line == (f"hsicam: error: {copy}: holds trained weights (model.safetensors) but no checkpoint to resume "
+                    "(a copied or shipped camera, e.g. from `hsicam pretrained copy`); training cannot go on from "
+                    "weights alone and nothing was changed: train a new run with another --out (`hsicam train "
+                    f"--config {copy / 'config.yaml'} --out NEW`: the same settings from a random start), or use this "
+                    f"camera as it is with --run {copy}")
+    assert tree_snapshot(copy) == before
+    # what the DOE camera is offered is refused for this one ...
+    line = in_process_error_line(capsys, ["finetune", "--run", str(copy), "--psf-dir", str(tmp_path / "psfs"),
+                                          "--out", str(tmp_path / "ft")])
+    assert "measured PSFs need a DOE camera" in line
+    # ... and what it is offered trains
+    assert main(["train", "--config", str(copy / "config.yaml"), "--out", str(tmp_path / "new")]) == 0
+    assert (tmp_path / "new" / "model.safetensors").is_file() and tree_snapshot(copy) == before
+
+
 def test_resume_of_a_run_killed_before_its_first_checkpoint_still_starts(tmp_path, cache_env, capsys):
     """Only trained weights stop a resume: a folder with a config and nothing else resumes at step 0."""
     from hsicam.config import dump_yaml

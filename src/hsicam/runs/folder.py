@@ -292,8 +292,7 @@ def check_run_dir(run_dir: Path, resume: bool, not_empty_hint: str = TRAIN_NOT_E
         if weights == "model.safetensors":
             raise InputError(f"{run_dir}: holds trained weights ({weights}) but no checkpoint to resume (a copied or "
                              "shipped camera, e.g. from `hsicam pretrained copy`); training cannot go on from weights "
-                             "alone and nothing was changed: train a new run with another --out, or adapt this camera "
-                             f"to measured PSFs with `hsicam finetune --run {run_dir} --psf-dir DIR --out NEW`")
+                             f"alone and nothing was changed: {_copied_camera_hint(run_dir)}")
         if weights is not None:
             raise InputError(f"{run_dir}: holds trained weights ({weights}) but no checkpoint to resume; training "
                              "cannot go on from weights alone and nothing was changed: train a new one with another "
@@ -309,6 +308,24 @@ def check_run_dir(run_dir: Path, resume: bool, not_empty_hint: str = TRAIN_NOT_E
             raise InputError(f"{run_dir}: run folder exists and is not empty: it holds other files than a run's "
                              f"({', '.join(foreign[:3])}{', …' if len(foreign) > 3 else ''}); {remedy}")
         raise InputError(f"{run_dir}: run folder exists and is not empty; {not_empty_hint}")
+
+
+def _copied_camera_hint(run_dir: Path) -> str:
+    """What to do instead of resuming the copied camera ``run_dir`` (weights, no checkpoint), by its
+    camera kind: a DOE camera can also be adapted to measured PSFs (``hsicam finetune``); a CASSI camera
+    cannot (finetune needs a DOE camera), so it is offered a new run of its own settings instead; a
+    camera whose config.yaml does not load, a new run alone."""
+    from hsicam.config import load_config
+
+    try:
+        kind = load_config(run_dir / "config.yaml").camera.kind
+    except (HsicamError, OSError, ValueError):  # a config.yaml that no longer loads: no command built on it
+        return "train a new run with another --out"
+    if kind == "doe":
+        return ("train a new run with another --out, or adapt this camera to measured PSFs with "
+                f"`hsicam finetune --run {run_dir} --psf-dir DIR --out NEW`")
+    return (f"train a new run with another --out (`hsicam train --config {run_dir / 'config.yaml'} --out NEW`: the same "
+            f"settings from a random start), or use this camera as it is with --run {run_dir}")
 
 
 def check_train_can_resume(run_dir: Path) -> None:
