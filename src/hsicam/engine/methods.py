@@ -271,7 +271,7 @@ def _box_method(cfg, run, device) -> Method:
 def _linear_method(cfg, run, device) -> Method:
     """The least-squares linear reconstruction through a trained run's optics, fitted on the
     training split of the evaluation config's data (:func:`linear_demosaic_reference`) through the
-    run's own capture geometry (its ``camera.boundary`` and ``padding``, whatever the evaluation's).
+    run's own capture (its ``camera.boundary``, ``padding`` and noise-free optics, whatever the evaluation's).
 
     The fit waits for the method's first reconstruction: the training split (generated when synthetic,
     2.5 GB for the standard camera) is made and imaged only once the scenes to score have passed
@@ -282,22 +282,17 @@ def _linear_method(cfg, run, device) -> Method:
     _check_doe_run("doe-linear-demosaic", run)
     _, model = load_run(run, device)
     cam = model.camera
-    own = {k: getattr(cam, k) for k in ("boundary", "padding") if hasattr(cam, k)}  # the run's, before the evaluation's
     fitted: list[Method] = []
 
     def reference() -> Method:
         if not fitted:
             bands = cfg.bands.to_bands()
             train, _ = split_dataset(cfg.data, bands)  # never empty: the split keeps at least one training scene
-            evaluation = {k: getattr(cam, k) for k in own}
-            for k, v in own.items():
-                setattr(cam, k, v)
-            try:
-                fitted.append(linear_demosaic_reference(model, scene_dataset(cfg.data, train, bands)))
-            finally:
-                for k, v in evaluation.items():
-                    setattr(cam, k, v)
-            method.info.update(fitted[0].info, training_scenes=len(train))
+            _, own = load_run(run, device)  # the run's own capture, whatever the evaluation's
+            weight = fit_linear_map(own, scene_dataset(cfg.data, train, bands), linear_reference_window(cam),
+                                    LINEAR_MAP_RIDGE)
+            fitted.append(linear_demosaic_reference(model, None, weight=weight))
+            method.info["training_scenes"] = len(train)
         return fitted[0]
 
     def reconstruct(sensor: torch.Tensor) -> torch.Tensor:
