@@ -10,6 +10,7 @@ import subprocess
 
 import numpy as np
 import pytest
+import torch
 
 from cli_helpers import assert_clean_error, run_cli, run_cli_in_process
 from hsicam.data.formats import write_cube_h5
@@ -439,3 +440,21 @@ def test_a_reconstruction_with_nan_is_refused_not_scored(run):
     with pytest.raises(InputError, match=r"s0: the CFA box demosaic \(no network\) reconstruction holds 7 non-finite"):
         evaluate_method(dataclasses.replace(box, reconstruct=broken), [scene], ["s0"])
     assert evaluate_method(box, [scene], ["s0"])[0].metrics["psnr"] < 100  # the method itself scores
+
+
+def test_scored_region_names_a_crop_only_where_the_camera_has_a_kernel_margin():
+    """results.json's ``region``: a DOE camera with boundary 'valid' scores its sensor area (the scene
+    minus its kernel margin); a CASSI camera has no PSF, so 'valid' (the dd_cassi_rdn preset's) crops
+    nothing and the whole scene is scored, as the sensor image's size shows."""
+    from hsicam.cameras.registry import build_camera
+    from hsicam.config import load_config
+    from hsicam.engine.evaluate import scored_region
+
+    doe = build_camera(load_config("tiny", ["camera.boundary=valid"]))
+    assert doe.margin > 0 and scored_region(doe).startswith("sensor area")
+    cassi = build_camera(load_config("dd_cassi_rdn", ["data.synthetic_size=32"]))
+    assert cassi.boundary == "valid" and cassi.margin == 0
+    with torch.no_grad():
+        g = cassi(torch.rand(1, len(cassi.bands), 32, 32))
+    assert tuple(g.shape[-2:]) == (32, 32)  # nothing cropped
+    assert scored_region(cassi).startswith("whole scene")

@@ -478,3 +478,31 @@ def test_finetuning_a_shipped_camera_records_it_by_name_and_resumes_from_it(env,
     assert read_weights(out / "model.safetensors")[1]["finetuned_from"] == f"pretrained:{NAME}"
     with pytest.raises(InputError, match=rf"was fine-tuned from pretrained:{NAME}, not {re.escape(str(run))}"):
         finetune(run, d, out, overrides=("train.epochs=2",), progress=False, resume=True)
+
+
+def test_a_cassi_cameras_card_names_its_aperture_and_dispersion_not_doe_noise_or_finetune():
+    """A packed CASSI camera's limits: no DOE height noise, no `hsicam finetune` (it refuses a CASSI
+    camera); instead the coded aperture and dispersion a built camera must match. A DOE camera's keep both."""
+    from hsicam.config import load_config
+    from hsicam.engine.pretrained import _limits
+
+    data = shipped.read_card("standard")["training"]["data"]
+    doe = load_config("quick")
+    doe_limits = " ".join(_limits(doe, "d", doe.bands.to_bands(), 4, data))
+    assert "DOE height noise" in doe_limits and "hsicam finetune --run pretrained:d" in doe_limits
+    linear = load_config("dd_cassi_rdn", ["camera.cassi.mask_seed=7", "camera.cassi.shift_px=1.5"])
+    text = " ".join(_limits(linear, "c", linear.bands.to_bands(), None, data))
+    assert "DOE height noise" not in text and "--psf-dir" not in text
+    assert "the random mask of seed 7" in text and "1.5 px per band" in text and "needs a DOE camera" in text
+    prism = load_config("dd_cassi_rdn", ["camera.kind=sd_cassi", "camera.cassi.dispersion=prism",
+                                         "camera.cassi.mask_file=mask.npy"])
+    text = " ".join(_limits(prism, "c", prism.bands.to_bands(), None, data))
+    assert "simulated sd_cassi one" in text and "the mask mask.npy" in text
+    assert "fused_silica prism of 30° before a 50 mm lens" in text
+    # the card's markdown: a DOE camera names its height noise, a CASSI camera has none to name
+    from hsicam.engine.pretrained import card_markdown
+
+    card = shipped.read_card("standard")
+    noise_line = lambda c: next(x for x in card_markdown(c).splitlines() if x.startswith("- noise:"))  # noqa: E731
+    assert noise_line(card).endswith("(gaussian model), DOE height σ_p in [0.0, 0.0] nm")
+    assert noise_line({**card, "camera": {**card["camera"], "kind": "dd_cassi"}}).endswith("(gaussian model)")

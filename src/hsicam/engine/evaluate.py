@@ -63,8 +63,10 @@ def config_hash(yaml_text: str) -> str:
 def scored_region(camera) -> str:
     """What a result's scores cover, for ``results.json``: the sensor area of a ``valid`` camera, or
     the whole scene (``same``, its border imaged with the camera's padding)."""
-    if camera.boundary == "valid":
+    if camera.boundary == "valid" and getattr(camera, "margin", 0) > 0:
         return "sensor area (scene minus the camera's kernel margin)"
+    if camera.boundary == "valid":  # a CASSI camera: no PSF kernel, so 'valid' crops nothing
+        return "whole scene (no kernel margin to crop: the camera images without a PSF)"
     return f"whole scene (boundary 'same', {getattr(camera, 'padding', 'zeros')} padding: border pixels included)"
 
 

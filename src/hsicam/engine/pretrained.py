@@ -378,14 +378,25 @@ def _limits(cfg, name: str, bands, cfa: int | None, data: dict[str, Any]) -> lis
                f"({len(bands)} bands); cubes on other grids are resampled, outside the range refused")
     sensor = f"pixel pitch {cfg.camera.sensor.pixel_pitch_um:g} µm"
     out.append(f"the sensor must match the simulated one: {sensor}" + (f", {cfa}×{cfa} CFA period" if cfa else ""))
+    doe = cfg.camera.kind == "doe"
     out.append(f"trained with sensor noise σ_s in [{t.sensor_sigma[0]:g}, {t.sensor_sigma[1]:g}] "
-               f"({cfg.camera.sensor.noise} model) and DOE height noise σ_p in "
-               f"[{t.sigma_height_nm[0]:g}, {t.sigma_height_nm[1]:g}] nm; noisier captures reconstruct worse"
+               f"({cfg.camera.sensor.noise} model)"
+               + (f" and DOE height noise σ_p in [{t.sigma_height_nm[0]:g}, {t.sigma_height_nm[1]:g}] nm" if doe else "")
+               + "; noisier captures reconstruct worse"
                + ("; give a capture's photon level (`hsicam reconstruct --full-well-e E --read-noise-e R`) so that "
                   "the consistency steps do not fit its noise"
                   if cfg.model.consistency.iterations > 0 and cfg.model.consistency.noise_aware else ""))
-    out.append("a built camera differs from the simulation: measure its PSFs and adapt the network with "
-               f"`hsicam finetune --run pretrained:{name} --psf-dir PSFS --out RUN2` before reconstructing real captures")
+    if doe:
+        out.append("a built camera differs from the simulation: measure its PSFs and adapt the network with "
+                   f"`hsicam finetune --run pretrained:{name} --psf-dir PSFS --out RUN2` before reconstructing real "
+                   "captures")
+    else:  # measured-PSF fine-tuning needs a DOE camera (hsicam finetune refuses others)
+        c = cfg.camera.cassi
+        mask = f"the mask {c.mask_file}" if c.mask_file else f"the random mask of seed {c.mask_seed}"
+        shear = (f"{c.shift_px:g} px per band" if c.dispersion == "linear" else
+                 f"a {c.prism_material} prism of {c.prism_apex_deg:g}° before a {c.prism_focal_length_mm:g} mm lens")
+        out.append(f"a built camera must match the simulated {cfg.camera.kind} one, its coded aperture ({mask}) and "
+                   f"its dispersion ({shear}); measured-PSF fine-tuning (`hsicam finetune`) needs a DOE camera")
     return out
 
 
@@ -439,8 +450,9 @@ def card_markdown(card: dict[str, Any]) -> str:
     elapsed = tr.get("elapsed_s")
     lines += [f"- {tr['steps']} steps ({tr['epochs']} epochs, batch {tr['batch_size']}, {tr['patch_px']} px patches)"
               + (f" in {_duration(elapsed)}" if isinstance(elapsed, (int, float)) else ""),
-              f"- noise: sensor σ_s in {nz['train_sensor_sigma']} ({nz['sensor_noise_model']} model), DOE height "
-              f"σ_p in {nz['train_sigma_height_nm']} nm", "",
+              f"- noise: sensor σ_s in {nz['train_sensor_sigma']} ({nz['sensor_noise_model']} model)"
+              + (f", DOE height σ_p in {nz['train_sigma_height_nm']} nm" if card["camera"]["kind"] == "doe" else ""),
+              "",
               "## Numbers", ""]
     log = m["training_log"]
     p, s, a = _fmt_means(log)
