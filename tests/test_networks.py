@@ -965,6 +965,13 @@ def test_a_network_kind_cannot_be_registered_without_its_parameter_count():
         registry.register_network("unchecked", parameters=None, sizes=("features",))
     with pytest.raises(TypeError):
         registry.register_network("unchecked", lambda cfg, camera: 1)  # keyword-only
+    # the keys that size it: the refusal of a network too large names them
+    count = lambda cfg, camera: 1  # noqa: E731
+    with pytest.raises(TypeError):
+        registry.register_network("unchecked", parameters=count)
+    for sizes in ((), [], "features"):
+        with pytest.raises(TypeError, match=r"register_network\('unchecked'\): sizes must name"):
+            registry.register_network("unchecked", parameters=count, sizes=sizes)
     assert registry.NETWORKS == kinds
 
 

@@ -9,7 +9,7 @@ The builder gets the whole config (its settings are the section ``cfg.model.<kin
 camera, so physics-aware networks can use the camera's operator and sensor code. ``parameters``
 (same arguments; required, so that no kind is built unchecked) is the closed-form count of the
 network's parameters, declared next to the builder (tests hold it equal to the built network's);
-``sizes`` are the keys of the section that set it. :func:`build_network` refuses a network whose
+``sizes`` (required) are the keys of the section that set it. :func:`build_network` refuses a network whose
 weights do not fit the memory budget before the builder allocates anything
 (``model.rdn.features=1000000000`` asked for 250 GB), and training
 (:class:`hsicam.engine.tasks.SystemTask`) one whose training does not (:func:`check_network_memory`).
@@ -52,21 +52,23 @@ class NetworkKind:
 
     build: Builder
     parameters: ParameterCount
-    sizes: SizeKeys = ()
+    sizes: SizeKeys
 
 
 NETWORKS: dict[str, NetworkKind] = {}
 
 
-def register_network(kind: str, *, parameters: ParameterCount,
-                     sizes: SizeKeys = ()) -> Callable[[Builder], Builder]:
+def register_network(kind: str, *, parameters: ParameterCount, sizes: SizeKeys) -> Callable[[Builder], Builder]:
     """Decorator: register ``builder(cfg, camera) -> nn.Module`` under ``model.kind = kind``, with
     ``parameters(cfg, camera) -> int``, its exact parameter count (required: without it a network
-    would be built unchecked), and ``sizes``, the keys of ``model.<kind>`` that set it (named when the
-    network is too large); see the module docstring."""
+    would be built unchecked), and ``sizes``, the keys of ``model.<kind>`` that set it (required and not
+    empty: the refusal of a network too large names them); see the module docstring."""
     if not callable(parameters):
         raise TypeError(f"register_network({kind!r}): parameters must be the network's parameter count "
                         f"(cfg, camera) -> int, got {parameters!r}")
+    if not callable(sizes) and (isinstance(sizes, str) or not sizes):
+        raise TypeError(f"register_network({kind!r}): sizes must name the keys of model.{kind} that set the "
+                        f"network's size (a sequence of them, or (settings) -> keys), got {sizes!r}")
 
     def deco(builder: Builder) -> Builder:
         if kind in NETWORKS:
