@@ -87,6 +87,19 @@ def test_auto_level_with_another_gain_is_refused(run, png16, tmp_path, extra, na
         read_capture(png16, RawCorrection(auto_level=0.5), scale=2.0)
 
 
+@pytest.mark.parametrize("given, missing", [("exposure_s", "reference_exposure_s"),
+                                            ("reference_exposure_s", "exposure_s")])
+def test_one_exposure_without_the_other_is_refused_before_the_run_is_read(png16, tmp_path, given, missing):
+    """`reconstruct --exposure-s T` without --reference-exposure-s (as docs/hardware.md's synopsis showed it) was
+    refused only after the run had been loaded and the frames read, in a line naming neither option; now before
+    any work (here the --run folder does not exist), naming both."""
+    option = f"--{given.replace('_', '-')}"
+    line = _error(_reconstruct(png16, tmp_path / "no-such-run", tmp_path / "c.h5", option, "0.01"))
+    assert line == (f"hsicam: error: {given} ({option}) needs {missing} (--{missing.replace('_', '-')}): the exposure "
+                    "normalisation multiplies the image by reference/exposure; give both or neither")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["cap16.png"], "nothing is written"
+
+
 def test_the_metadata_records_only_the_gains_applied(run, png16, tmp_path):
     _ok(_reconstruct(png16, run, tmp_path / "a.h5", "--black-level", "1000", "--auto-level", "0.5"))
     rep = _preprocessing(tmp_path / "a.h5")

@@ -275,14 +275,16 @@ def corrections_from_args(args: argparse.Namespace, cfa_period: int | None) -> "
                          auto_level=args.auto_level, scale=1.0)
 
 
-def check_one_level_setting(args: argparse.Namespace) -> None:
-    """Before any work: the library's rule (:class:`~hsicam.data.images.RawCorrection`) that
-    ``--auto-level`` is the level's only source, neither exposures nor ``--scale`` beside it."""
+def check_level_options(args: argparse.Namespace) -> None:
+    """Before any work (the run not loaded, no frame read): the library's rules
+    (:class:`~hsicam.data.images.RawCorrection`) for the level options: black and white levels, the two
+    exposures together or neither, ``--auto-level`` as the level's only source (neither exposures nor
+    ``--scale`` beside it)."""
     from hsicam.data.images import RawCorrection
 
-    if args.auto_level is not None:
-        RawCorrection(auto_level=args.auto_level, exposure_s=args.exposure_s,
-                      reference_exposure_s=args.reference_exposure_s, scale=1.0 if args.scale is None else args.scale)
+    RawCorrection(black_level=args.black_level, white_level=args.white_level, exposure_s=args.exposure_s,
+                  reference_exposure_s=args.reference_exposure_s, auto_level=args.auto_level,
+                  scale=1.0 if args.scale is None else args.scale)
 
 
 def check_noise_args(args: argparse.Namespace) -> None:
@@ -370,7 +372,7 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
     check_tile(args.tile)
     if args.scale is not None and not (np.isfinite(args.scale) and args.scale > 0):
         raise InputError("--scale must be a positive number")
-    check_one_level_setting(args)
+    check_level_options(args)
     check_noise_args(args)
     if args.psf_pitch_um is not None and not args.psf_dir:
         raise InputError("--psf-pitch-um is the pixel pitch of the measured PSFs of --psf-dir: give --psf-dir DIR "

@@ -344,7 +344,11 @@ class RawCorrection:
             if v is not None and v <= 0:
                 raise InputError(f"{name} (--{name.replace('_', '-')}) must be positive, got {v}")
         if (self.exposure_s is None) != (self.reference_exposure_s is None):
-            raise InputError("exposure normalisation needs both the capture's exposure and the reference exposure")
+            given, missing = (("exposure_s", "reference_exposure_s") if self.reference_exposure_s is None
+                              else ("reference_exposure_s", "exposure_s"))
+            raise InputError(f"{given} (--{given.replace('_', '-')}) needs {missing} (--{missing.replace('_', '-')}): "
+                             "the exposure normalisation multiplies the image by reference/exposure; give both or "
+                             "neither")
         if self.auto_level is not None and (self.exposure_s is not None or self.scale != 1.0):
             given = [f"--exposure-s {self.exposure_s:g} and --reference-exposure-s {self.reference_exposure_s:g}"
                      ] if self.exposure_s is not None else []
