@@ -1,6 +1,7 @@
 """Every ``hsicam …`` command that README.md and docs/*.md show a user parses with the real parser
 (:func:`hsicam.cli.build_parser`): the sub-command exists, every option exists (spelled out: no
-abbreviation) and takes the arguments shown, and every ``--set key=value`` names a config key
+abbreviation) and takes the arguments shown (and, for reconstruct, passes the command's own checks
+of its options together, :data:`OPTION_CHECKS`), and every ``--set key=value`` names a config key
 (a concrete value is applied through :func:`hsicam.config.load_config`, nothing is built).
 
 What is read: the lines of the shell code blocks (fences without a language, ``bash``, ``sh``,
@@ -21,6 +22,7 @@ import argparse
 import contextlib
 import dataclasses
 import functools
+import importlib
 import io
 import re
 import types
@@ -398,14 +400,27 @@ def concrete(parser: argparse.ArgumentParser, words: list[str], strict: bool) ->
 
 
 def parse_error(parser: argparse.ArgumentParser, args: list[str]) -> str | None:
-    """argparse's message for ``args``, or None when they parse."""
+    """argparse's message for ``args``, or None when they parse and pass the command's own checks of
+    its options (:data:`OPTION_CHECKS`)."""
+    from hsicam.errors import HsicamError
+
     err = io.StringIO()
     with contextlib.redirect_stderr(err), contextlib.redirect_stdout(io.StringIO()):
         try:
-            parser.parse_args(args)
+            ns = parser.parse_args(args)
         except SystemExit as exc:
             return err.getvalue().strip() or f"exit {exc.code}"
+    module, checks = OPTION_CHECKS.get(getattr(ns, "command", None), (None, ()))
+    for check in checks:
+        try:
+            getattr(importlib.import_module(module), check)(ns)
+        except HsicamError as exc:
+            return f"hsicam {ns.command}: {exc}"
     return None
+
+
+#: The checks a command makes of its options alone, before it reads anything: command → (module, functions).
+OPTION_CHECKS = {"reconstruct": ("hsicam.cli.reconstruct", ("check_level_options", "check_noise_args"))}
 
 
 # --------------------------------------------------------------------------- config keys
@@ -557,6 +572,7 @@ def test_synopsis_variants(text, expected):
     ("train --config quick --set train.no_such_key=3 --out RUN", "unknown config key 'train.no_such_key'"),
     ("train --config quick --set train.epochs=M --set train.no_such_key=M", "unknown config key 'train.no_such_key'"),
     ("train --config quick --set train.epochs=two", "train.epochs"),
+    ("reconstruct RAW --run RUN --out c.h5 --exposure-s T", "needs reference_exposure_s (--reference-exposure-s)"),
 ])
 def test_a_wrong_command_is_reported(parsers, text, fragment):
     """The check fails for what a stale document would show (an option renamed in the parser shows as
