@@ -1,4 +1,4 @@
-"""Every ``hsicam …`` command that README.md and docs/*.md show a user parses with the real parser
+"""Every ``hsicam …`` command that README.md, docs/*.md and the shipped cameras' cards show a user parses with the real parser
 (:func:`hsicam.cli.build_parser`): the sub-command exists, every option exists (spelled out: no
 abbreviation) and takes the arguments shown (and, for reconstruct, passes the command's own checks
 of its options together, :data:`OPTION_CHECKS`), and every ``--set key=value`` names a config key
@@ -32,7 +32,9 @@ from pathlib import Path
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
-DOCS = [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md"))]
+#: The documents: README, docs/, and the shipped cameras' model cards (`hsicam pretrained show NAME`).
+DOCS = [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md")),
+        *sorted((ROOT / "src" / "hsicam" / "resources" / "pretrained").glob("*/card.md"))]
 
 #: Code spans that hold ``hsicam …`` but are no command to run, (file, span) → why.
 NOT_COMMANDS = {
