@@ -1,8 +1,9 @@
-"""Every ``hsicam …`` command that README.md, docs/*.md and the shipped cameras' cards show a user parses with the real parser
-(:func:`hsicam.cli.build_parser`): the sub-command exists, every option exists (spelled out: no
-abbreviation) and takes the arguments shown (and, for reconstruct, passes the command's own checks
-of its options together, :data:`OPTION_CHECKS`), and every ``--set key=value`` names a config key
-(a concrete value is applied through :func:`hsicam.config.load_config`, nothing is built).
+"""Every ``hsicam …`` command that README.md, docs/*.md and the shipped cameras' cards show a user
+parses with the real parser (:func:`hsicam.cli.build_parser`): the sub-command exists, every option
+exists (spelled out: no abbreviation) and takes the arguments shown (and, for reconstruct, passes the
+command's own checks of its options together, :data:`OPTION_CHECKS`), and every ``--set key=value``
+names a config key (a concrete value is applied through :func:`hsicam.config.load_config`, nothing
+is built). A span of options alone (``--flat-mode pixel|cfa``) names options some command has.
 
 What is read: the lines of the shell code blocks (fences without a language, ``bash``, ``sh``,
 ``console``) that start with a command, and every inline code span holding one (``hsicam …``,
@@ -581,6 +582,24 @@ def test_a_wrong_command_is_reported(parsers, text, fragment):
     the first two)."""
     problems = problems_of(Shown("doc.md", 1, text, strict=False), parsers)
     assert problems and any(fragment in p for p in problems), problems
+
+
+@pytest.mark.parametrize("text,args", [
+    (".venv/bin/hsicam data sources", "data sources"),
+    ("python -m hsicam report DIR", "report DIR"),
+    ("torchrun --nproc_per_node=4 -m hsicam train --config paper --out RUN", "train --config paper --out RUN"),
+    ("OMP_NUM_THREADS=1 hsicam train --config quick --out RUN", "train --config quick --out RUN"),
+    ("python scripts/unseen_layouts.py OUT", None),
+    ("data: DIR: skipped 2 sub-folder(s) holding hsicam outputs", None),
+])
+def test_how_a_command_is_told(text, args):
+    assert _command(text) == args
+
+
+def test_an_option_span_with_an_unknown_option_is_reported(parsers):
+    problems = problems_of(Shown("doc.md", 1, "--flat-kind pixel|cfa", strict=False, options=True), parsers)
+    assert problems and "--flat-kind: no hsicam command has this option" in problems[0], problems
+    assert not problems_of(Shown("doc.md", 1, "--flat-mode pixel|cfa", strict=False, options=True), parsers)
 
 
 def test_a_code_block_command_needs_its_required_arguments(parsers):
