@@ -218,3 +218,17 @@ def test_a_test_sensor_noise_above_the_full_scale_is_a_usage_error(tmp_path, cap
     from hsicam.cli.args import sensor_sigma_arg
 
     assert sensor_sigma_arg("1") == 1.0 and sensor_sigma_arg("0.01") == 0.01
+
+
+@pytest.mark.parametrize("argv, option", [
+    (["evaluate", "--config", "tiny", "--out", "E", "--sensor-sig", "0.1"], "--sensor-sig"),
+    (["train", "--config", "tiny", "--out", "RUN", "--resum"], "--resum"),
+    (["data", "synth", "--n", "1", "--siz", "16", "--out", "S"], "--siz"),
+])
+def test_an_abbreviated_option_is_a_usage_error_not_the_option_it_begins(tmp_path, capsys, monkeypatch, argv, option):
+    """argparse's default takes a unique prefix for the whole option (``--sensor-sig`` for
+    ``--sensor-sigma``), in subcommands of subcommands too; hsicam takes options only in full."""
+    monkeypatch.chdir(tmp_path)
+    line = one_line_error(capsys, argv)
+    assert line.startswith("hsicam: error: unrecognized arguments:") and option in line
+    assert list(tmp_path.iterdir()) == []

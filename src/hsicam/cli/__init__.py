@@ -78,7 +78,13 @@ def _expanding(group):
 
 class _Parser(argparse.ArgumentParser):
     """argparse with usage errors reported as one line, exit code 2, and ``~`` expanded in paths
-    (:data:`PATH_METAVARS`, in argument groups too)."""
+    (:data:`PATH_METAVARS`, in argument groups too). Options are taken only as spelled out in full
+    (``allow_abbrev=False``): argparse's default would read ``--sensor-sig`` as ``--sensor-sigma``, and
+    a prefix that names one option today may name another, or none, when an option is added."""
+
+    def __init__(self, *args, **kwargs) -> None:
+        kwargs.setdefault("allow_abbrev", False)
+        super().__init__(*args, **kwargs)
 
     def error(self, message: str) -> None:  # type: ignore[override]
         self.exit(2, f"hsicam: error: {message}\n")
