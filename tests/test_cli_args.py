@@ -232,3 +232,14 @@ def test_an_abbreviated_option_is_a_usage_error_not_the_option_it_begins(tmp_pat
     line = one_line_error(capsys, argv)
     assert line.startswith("hsicam: error: unrecognized arguments:") and option in line
     assert list(tmp_path.iterdir()) == []
+
+
+def test_counts_of_one_are_singular_in_the_summary_lines(tmp_path, capsys):
+    """'trained 1 epochs', 'wrote 1 held-out scenes': the one-line summaries agree with their counts."""
+    from hsicam.cli.train import summary_line
+
+    assert summary_line({"epoch": 1, "step": 1}, "R").startswith("trained 1 epoch (1 step)")
+    assert summary_line({"epoch": 2, "step": 8}, "R").startswith("trained 2 epochs (8 steps)")
+    for n, split, what in (("1", "heldout", "1 held-out scene of"), ("2", "train", "2 scenes of")):
+        assert main(["data", "synth", "--n", n, "--size", "16", "--split", split, "--out", str(tmp_path / split)]) == 0
+        assert f"wrote {what} 16x16x31 to" in capsys.readouterr().out

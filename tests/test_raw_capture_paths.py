@@ -100,6 +100,21 @@ def test_one_exposure_without_the_other_is_refused_before_the_run_is_read(png16,
     assert sorted(p.name for p in tmp_path.iterdir()) == ["cap16.png"], "nothing is written"
 
 
+def test_flat_mode_cfa_without_a_flat_is_refused_before_the_run_is_read(png16, tmp_path):
+    """`reconstruct --flat-mode cfa` without --flat was refused only after the run had been loaded; now
+    before any work (here the --run folder does not exist)."""
+    line = _error(_reconstruct(png16, tmp_path / "no-such-run", tmp_path / "c.h5", "--flat-mode", "cfa"))
+    assert line == "hsicam: error: --flat-mode cfa needs --flat (the flat field it averages per CFA phase)"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["cap16.png"], "nothing is written"
+
+
+def test_the_success_line_names_the_cube_and_its_preview(run, png16, tmp_path):
+    res = _reconstruct(png16, run, tmp_path / "a.h5", "--black-level", "1000")
+    _ok(res)
+    out = res.stdout
+    assert f"-> {tmp_path / 'a.h5'} (sRGB preview a_rgb.png)" in out and (tmp_path / "a_rgb.png").is_file()
+
+
 def test_the_metadata_records_only_the_gains_applied(run, png16, tmp_path):
     _ok(_reconstruct(png16, run, tmp_path / "a.h5", "--black-level", "1000", "--auto-level", "0.5"))
     rep = _preprocessing(tmp_path / "a.h5")

@@ -100,7 +100,7 @@ def _synth(args: argparse.Namespace) -> int:
             print(f"{out}: already holds this dataset (n={n}, size={size}, seed={seed}, split={split})")
             return 0
         generate_dataset(out, n=n, size=size, seed=seed, bands=bands, progress=progress, room_fix=room_fix, **kw)
-    what = "held-out scenes" if split == "heldout" else "scenes"
+    what = ("held-out scene" if split == "heldout" else "scene") + ("" if n == 1 else "s")
     print(f"wrote {n} {what} of {size}x{size}x{len(bands)} to {out} (held-out sources: {', '.join(holdout) or 'none'})")
     return 0
 

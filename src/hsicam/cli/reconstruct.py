@@ -63,7 +63,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     noise.add_argument("--full-well-e", type=float, default=None, metavar="E",
                        help="electrons at the white level (the capture's photon level): shot noise g/E plus read noise "
                             "on the image as reconstructed, after any --scale, exposure or --auto-level gain")
-    noise.add_argument("--read-noise-e", type=float, default=None, metavar="E",
+    noise.add_argument("--read-noise-e", type=float, default=None, metavar="R",
                        help="read noise, electrons rms (needs --full-well-e; default 0)")
     p.add_argument("--psf-dir", metavar="DIR", help="measured PSFs of the camera (checked against the run; see hsicam finetune)")
     p.add_argument("--psf-pitch-um", type=float, default=None,
@@ -266,9 +266,7 @@ def corrections_from_args(args: argparse.Namespace, cfa_period: int | None) -> "
     dark = read_image_2d(args.dark, "dark frame") if args.dark else None
     flat = read_image_2d(args.flat, "flat field") if args.flat else None
     period = None
-    if args.flat_mode == "cfa":
-        if flat is None:
-            raise InputError("--flat-mode cfa needs --flat")
+    if args.flat_mode == "cfa":  # with a --flat: check_level_options
         period = cfa_period or 1
     return RawCorrection(black_level=args.black_level, white_level=args.white_level, dark=dark, flat=flat,
                          flat_period=period, exposure_s=args.exposure_s, reference_exposure_s=args.reference_exposure_s,
@@ -279,9 +277,11 @@ def check_level_options(args: argparse.Namespace) -> None:
     """Before any work (the run not loaded, no frame read): the library's rules
     (:class:`~hsicam.data.images.RawCorrection`) for the level options: black and white levels, the two
     exposures together or neither, ``--auto-level`` as the level's only source (neither exposures nor
-    ``--scale`` beside it)."""
+    ``--scale`` beside it), ``--flat-mode cfa`` only with a ``--flat``."""
     from hsicam.data.images import RawCorrection
 
+    if args.flat_mode == "cfa" and not args.flat:
+        raise InputError("--flat-mode cfa needs --flat (the flat field it averages per CFA phase)")
     RawCorrection(black_level=args.black_level, white_level=args.white_level, exposure_s=args.exposure_s,
                   reference_exposure_s=args.reference_exposure_s, auto_level=args.auto_level,
                   scale=1.0 if args.scale is None else args.scale)
@@ -447,5 +447,6 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
     cube = cube.float().clamp_min_(0).cpu().numpy()
     check_outputs(out, inputs)  # again: the reconstruction may have taken a while
     write_cube_file(out, cube, model.bands, meta)
-    print(f"reconstructed {cube.shape[0]} bands × {cube.shape[1]}×{cube.shape[2]} -> {out}")
+    print(f"reconstructed {cube.shape[0]} bands × {cube.shape[1]}×{cube.shape[2]} -> {out} "
+          f"(sRGB preview {output_files(out)[-1].name})")
     return 0

@@ -72,7 +72,8 @@ def _train(args: argparse.Namespace, run, new_run) -> dict:
 
 def summary_line(summary: dict, run) -> str:
     """One line on a finished training; the validation part only for the metrics the summary holds."""
-    line = f"trained {summary['epoch']} epochs ({summary['step']} steps"
+    epochs, steps = summary["epoch"], summary["step"]
+    line = f"trained {epochs} epoch{'' if epochs == 1 else 's'} ({steps} step{'' if steps == 1 else 's'}"
     if "patches_per_s" in summary:
         line += f", {summary['patches_per_s']:.1f} patches/s"
     line += ")"
