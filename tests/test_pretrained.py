@@ -238,7 +238,8 @@ def test_list_show_and_bad_names(env):
     assert out.returncode == 0, out.stderr
     line = next(x for x in out.stdout.splitlines() if x.startswith(f"{NAME}:"))
     assert c["summary"] in line and f"{c['bands']['count']} bands" in line
-    assert f"PSNR {res['mean']['psnr']:.2f} dB, SSIM {res['mean']['ssim']:.4f}, SAM {res['mean']['sam']:.2f}°" in line
+    assert (f"its {len(res['scenes'])} validation scenes: PSNR {res['mean']['psnr']:.2f} dB, "
+            f"SSIM {res['mean']['ssim']:.4f}, SAM {res['mean']['sam']:.2f}°") in line  # whose scenes, said
     show = run_cli("pretrained", "show", NAME)
     assert show.returncode == 0 and show.stdout == (root / NAME / "card.md").read_text()
     assert_clean_error(run_cli("pretrained", "show", "nope"), "'nope'", f"available: {NAME}")

@@ -52,11 +52,18 @@ def _dict(value) -> dict:
 
 
 def _metrics(card: dict) -> str:
+    """The camera's scores on its own validation (its scenes whole, else its training log's patches),
+    said as such: another camera's or the demo's scenes score differently."""
     m = _dict(card.get("metrics"))
-    val = _dict(_dict(m.get("validation")).get("mean") or m.get("training_log"))
+    scenes = _dict(m.get("validation"))
+    val = _dict(scenes.get("mean"))
+    n = scenes.get("n_scenes")
+    what = f"its {n} validation scenes" if val and isinstance(n, int) else "its validation scenes"
+    if not val:
+        val, what = _dict(m.get("training_log")), "its validation patches"
     if not all(isinstance(val.get(k), (int, float)) for k in ("psnr", "ssim", "sam")):
         return "val –"
-    return f"val PSNR {val['psnr']:.2f} dB, SSIM {val['ssim']:.4f}, SAM {val['sam']:.2f}°"
+    return f"{what}: PSNR {val['psnr']:.2f} dB, SSIM {val['ssim']:.4f}, SAM {val['sam']:.2f}°"
 
 
 def _no_cameras() -> str:
