@@ -5,6 +5,7 @@ pairs, and the `doe-linear-demosaic` method through the real entry point."""
 from __future__ import annotations
 
 import json
+import types
 
 import numpy as np
 import pytest
@@ -240,6 +241,33 @@ def test_linear_reference_through_the_cli_and_its_errors(run, tmp_path):
     assert summary["method"] == "doe-linear-demosaic" and np.isfinite(summary["mean"]["psnr"])
     bad = run_cli("evaluate", "--method", "doe-linear-demosaic", "--out", str(tmp_path / "bad"), env=env)
     assert_clean_error(bad, "needs --run")
+
+
+def test_linear_reference_fit_is_not_timed_as_the_first_scenes_reconstruction(run, monkeypatch):
+    """The deferred fit ran inside the first scene's timed reconstruction, so its runtime_s (and the
+    mean's) held the training split's generation and imaging: minutes for the standard camera. It is
+    the method's ``prepare`` now, run after the scenes are checked and before any clock starts."""
+    from hsicam.config import load_config
+    from hsicam.data.pipeline import scene_dataset, split_dataset
+    from hsicam.engine import evaluate, methods
+
+    d, env = run
+    monkeypatch.setenv("HSICAM_CACHE", env["HSICAM_CACHE"])
+    events = []
+    real_fit = methods.fit_linear_map
+    monkeypatch.setattr(methods, "fit_linear_map", lambda *a, **k: events.append("fit") or real_fit(*a, **k))
+    clock = types.SimpleNamespace(perf_counter=lambda: events.append("clock") or 0.0)
+    monkeypatch.setattr(evaluate, "time", clock)
+    cfg = load_config(d / "config.yaml")
+    method = methods.build_method("doe-linear-demosaic", cfg, d)
+    assert events == [] and method.prepare is not None
+    bands = cfg.bands.to_bands()
+    _, val = split_dataset(cfg.data, bands)
+    names = [f"s{i}" for i in range(len(val))]
+    results = evaluate.evaluate_method(method, scene_dataset(cfg.data, val, bands), names)
+    assert events[0] == "fit" and events.count("fit") == 1, events
+    assert [r.runtime_s for r in results] == [0.0] * len(val)
+    assert method.info["training_scenes"] == len(split_dataset(cfg.data, bands)[0])
 
 
 def test_linear_reference_refuses_small_scenes_before_making_its_training_split(run, tmp_path, monkeypatch, capsys):

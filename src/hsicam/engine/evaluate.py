@@ -169,6 +169,8 @@ def evaluate_method(method: Method, scenes, names: Sequence[str], noise: TestNoi
     cam = method.camera
     check_test_noise(method, noise)
     check_scenes(method, scenes, names)
+    if method.prepare is not None:  # e.g. a fit: not part of the first scene's reconstruction time
+        method.prepare()
     saved = cam.noise_levels()
     levels = dict(saved)
     if noise.sigma_height_nm is not None and "sigma_height_nm" in levels:

@@ -67,6 +67,9 @@ class Method:
         target: scene (B, C, H0, W0) → the ground truth the reconstruction is compared with.
         info: facts for result files (run folder, iterations, ...).
         model: the trained camera + network system of a learned method (None for the others).
+        prepare: work before the first reconstruction (a fit), which
+            :func:`~hsicam.engine.evaluate.evaluate_method` runs once the scenes are checked, outside
+            the timed reconstructions (None: none).
     """
 
     name: str
@@ -75,6 +78,7 @@ class Method:
     target: Callable[[torch.Tensor], torch.Tensor]
     info: dict[str, Any] = field(default_factory=dict)
     model: Any = None
+    prepare: Callable[[], Any] | None = None
 
 
 Builder = Callable[[Any, "str | Path | None", "str | torch.device"], Method]
@@ -273,10 +277,11 @@ def _linear_method(cfg, run, device) -> Method:
     training split of the evaluation config's data (:func:`linear_demosaic_reference`) through the
     run's own capture (its ``camera.boundary``, ``padding`` and noise-free optics, whatever the evaluation's).
 
-    The fit waits for the method's first reconstruction: the training split (generated when synthetic,
-    2.5 GB for the standard camera) is made and imaged only once the scenes to score have passed
-    evaluate's checks (:func:`hsicam.engine.evaluate.check_scenes`), so scenes too small to score are
-    refused at once; ``info["training_scenes"]`` is filled by the fit."""
+    The fit is the method's ``prepare`` (also run by its first reconstruction): the training split
+    (generated when synthetic, 2.5 GB for the standard camera) is made and imaged only once the scenes
+    to score have passed evaluate's checks (:func:`hsicam.engine.evaluate.check_scenes`), so scenes too
+    small to score are refused at once, and its time is not the first scene's reconstruction time;
+    ``info["training_scenes"]`` is filled by the fit."""
     if run is None:
         raise InputError("method doe-linear-demosaic needs --run RUN (the camera whose optics it images through)")
     _check_doe_run("doe-linear-demosaic", run)
@@ -284,7 +289,7 @@ def _linear_method(cfg, run, device) -> Method:
     cam = model.camera
     fitted: list[Method] = []
 
-    def reference() -> Method:
+    def fit() -> Method:
         if not fitted:
             bands = cfg.bands.to_bands()
             train, _ = split_dataset(cfg.data, bands)  # never empty: the split keeps at least one training scene
@@ -296,12 +301,12 @@ def _linear_method(cfg, run, device) -> Method:
         return fitted[0]
 
     def reconstruct(sensor: torch.Tensor) -> torch.Tensor:
-        return reference().reconstruct(sensor)
+        return fit().reconstruct(sensor)
 
     _evaluation_capture(model, cfg)
     method = Method(LINEAR_REFERENCE_NAME, cam, reconstruct, model.target,
                     {"window_px": linear_reference_window(cam), "ridge": LINEAR_MAP_RIDGE, "flat_field": True,
-                     "run": str(run)})
+                     "run": str(run)}, prepare=fit)
     return method
 
 
