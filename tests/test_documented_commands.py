@@ -317,13 +317,13 @@ def _parsers(p: argparse.ArgumentParser):
 
 
 def doc_parser(strict: bool) -> argparse.ArgumentParser:
-    """The real parser, abbreviations off (a shown ``--sensor-sig`` must not pass for
+    """The real parser, whose abbreviations are off (a shown ``--sensor-sig`` must not pass for
     ``--sensor-sigma``); not strict: no argument is required."""
     from hsicam.cli import build_parser
 
     parser = build_parser()
     for p in _parsers(parser):
-        p.allow_abbrev = False
+        assert p.allow_abbrev is False, f"{p.prog}: takes abbreviated options"  # the parser's own, not set here
         if not strict:
             for a in p._actions:
                 a.required = False
