@@ -10,6 +10,8 @@ from hsicam.models.registry import check_parameter_memory
 
 #: The keys of ``baselines.choi`` that size the autoencoder (with the band count).
 PRIOR_SIZE_KEYS = ("features", "latent")
+#: 3×3 convolutions in each of the autoencoder's encoder and decoder (not a config key).
+PRIOR_LAYERS = 6
 
 
 class SpectralAutoencoder(nn.Module):
@@ -28,7 +30,7 @@ class SpectralAutoencoder(nn.Module):
     12-channel code rebuilt clean cubes at a mean SAM of ~23°. Spatial context (4·``layers`` + 1) px.
     """
 
-    def __init__(self, bands: int, features: int = 64, latent: int = 64, layers: int = 6) -> None:
+    def __init__(self, bands: int, features: int = 64, latent: int = 64, layers: int = PRIOR_LAYERS) -> None:
         super().__init__()
         if min(bands, features, latent) < 1 or layers < 2:
             raise ValueError("autoencoder sizes must be >= 1 and layers >= 2")
@@ -46,7 +48,7 @@ class SpectralAutoencoder(nn.Module):
         return x + self.decoder(self.encoder(x))
 
 
-def autoencoder_parameter_count(bands: int, features: int = 64, latent: int = 64, layers: int = 6) -> int:
+def autoencoder_parameter_count(bands: int, features: int = 64, latent: int = 64, layers: int = PRIOR_LAYERS) -> int:
     """The parameter count of ``SpectralAutoencoder(bands, features, latent, layers)``, in closed form
     (tests hold it equal to the built one's): each 3×3 convolution a → b has 9ab weights and b biases."""
     c, f, lat, k = bands, features, latent, layers
