@@ -153,9 +153,7 @@ def check_boundary_applies(camera, boundary: str) -> None:
     """One-line :class:`InputError` for ``--boundary valid`` on a camera without a PSF kernel (the CASSI
     cameras: the forward model codes and shears the scene, no blur, so their kernel margin is 0): there
     is no margin to crop, and the sensor image would silently be the default's (``same``)."""
-    from hsicam.cameras import DDCASSICamera, SDCASSICamera
-
-    if boundary == "valid" and isinstance(camera, (DDCASSICamera, SDCASSICamera)):
+    if boundary == "valid" and camera.margin == 0:  # as evaluate's scored_region tells a crop
         raise InputError(f"--boundary valid: the {camera.kind} camera images without a PSF (its forward model codes "
                          "and shears the scene, no blur), so it has no kernel margin to crop and its sensor image is "
                          "the default's; drop --boundary (it applies to a DOE camera)")
