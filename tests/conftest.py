@@ -85,7 +85,9 @@ def scene(tmp_path_factory) -> Path:
 
 #: Lines for a script launched by torchrun: they keep the process group that ``fit`` creates, and
 #: ``group_references()`` counts what else still refers to it once training has ended. A group still
-#: referenced lives on to the interpreter's exit, where gloo's threads can abort the finished process.
+#: referenced lives on to the interpreter's exit, where gloo's threads can abort the finished process:
+#: so the script ends with ``release_the_group()``, which drops the list's own reference (else the test's
+#: instrumentation is itself such a reference: a full suite saw torchrun fail with exit -6 once in session 40).
 KEEP_THE_GROUP = """
 import sys
 import torch.distributed as dist
@@ -98,6 +100,9 @@ dist.init_process_group = _keep_the_group
 def group_references():
     # all references but the list's and getrefcount's own argument; 0 when no group was created
     return sys.getrefcount(_groups[0]) - 2 if _groups else 0
+def release_the_group():
+    # the kept group freed now, not at the interpreter's exit (where gloo's threads can abort)
+    _groups.clear()
 """
 
 

@@ -141,6 +141,7 @@ train(cfg, sys.argv[1], progress=False)
 import os, pathlib
 pathlib.Path(sys.argv[1] + ".rank" + os.environ.get("RANK", "0")).write_text(
     f"{torch.distributed.is_initialized()} {group_references()}")
+release_the_group()
 """
 
 

@@ -187,6 +187,7 @@ except TrainingStopped as exc:
     stopped = str(exc.step)
 open(sys.argv[1] + ".rank" + os.environ.get("RANK", "0"), "w").write(
     f"{stopped} {torch.distributed.is_initialized()} {group_references()}")
+release_the_group()
 """
 
 
