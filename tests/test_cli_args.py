@@ -243,3 +243,19 @@ def test_counts_of_one_are_singular_in_the_summary_lines(tmp_path, capsys):
     for n, split, what in (("1", "heldout", "1 held-out scene of"), ("2", "train", "2 scenes of")):
         assert main(["data", "synth", "--n", n, "--size", "16", "--split", split, "--out", str(tmp_path / split)]) == 0
         assert f"wrote {what} 16x16x31 to" in capsys.readouterr().out
+
+
+def test_every_argument_of_every_command_says_what_it_is():
+    """`hsicam COMMAND --help` explains each option and positional argument: none is listed bare
+    (evaluate's --out, experiment's name and --scale, report's DIR, demo's --out and pretrained's NAME were)."""
+    from hsicam.cli import build_parser
+
+    def bare(parser, name):
+        for action in parser._actions:
+            if isinstance(action, argparse._SubParsersAction):
+                for sub, child in action.choices.items():
+                    yield from bare(child, f"{name} {sub}")
+            elif not (action.help or "").strip():
+                yield f"{name} {'/'.join(action.option_strings) or action.dest}"
+
+    assert list(bare(build_parser(), "hsicam")) == []

@@ -14,7 +14,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     for action in p._actions:  # the demo's default config is the quick preset (engine.demo.demo_config)
         if "--config" in action.option_strings:
             action.help = "YAML config or preset name (default: the quick preset)"
-    p.add_argument("--out", default="runs/demo", metavar="DIR")
+    p.add_argument("--out", default="runs/demo", metavar="DIR",
+                   help="demo folder (default runs/demo): the trained run in DIR/run, results.json, results.md and "
+                        "the figures")
     p.set_defaults(func=cmd_demo, trains=True, resume_hint="run the same hsicam demo command again: it resumes the run")
 
 

@@ -28,7 +28,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="folder of supported cube files (default: the validation split of the run's data: data.root, "
                         "else the synthetic data); its sub-folders holding hsicam outputs are skipped; --out must not "
                         "be it or hold it; with --run, each row says whether the run trained on the scene (split)")
-    p.add_argument("--out", required=True, metavar="DIR")
+    p.add_argument("--out", required=True, metavar="DIR",
+                   help="result folder: results.json, results.csv, results.md (per scene and mean; with --save, cubes/)")
     p.add_argument("--sigma-height-nm", type=non_negative_number_arg, default=None,
                    help="test DOE height noise σ_p (nm), >= 0")
     p.add_argument("--sensor-sigma", type=sensor_sigma_arg, default=None,
@@ -44,14 +45,20 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=cmd_evaluate)
 
     p = sub.add_parser("experiment", help="run one of the paper's experiments (resumable)")
-    p.add_argument("name", choices=EXPERIMENTS)
-    p.add_argument("--scale", choices=SCALES, default="quick")
+    p.add_argument("name", choices=EXPERIMENTS,
+                   help="compare: our camera against the CASSI baselines (the paper's Table 1); ablation: DOE and CFA "
+                        "on/off, three trained cameras (Table 2); noise: cameras trained without and with noise, tested "
+                        "on σ_p × σ_s grids (Fig. 7); cfa-period: CFA periods 3, 6, 9, 12, 15")
+    p.add_argument("--scale", choices=SCALES, default="quick",
+                   help="the preset of that name plus the experiment's overrides: tiny (seconds, for tests), quick "
+                        "(minutes on a 2-core CPU, the default), paper (a GPU)")
     p.add_argument("--out", metavar="DIR", help="experiment folder (default: runs/experiments/NAME-SCALE)")
     p.add_argument("--seeds", type=count_arg, default=1, help="number of seeds (0, 1, ...), >= 1 (default 1)")
     p.set_defaults(func=cmd_experiment, trains=True, resume_hint="run the same hsicam experiment command again: it resumes the run")
 
     p = sub.add_parser("report", help="HTML report (index.html + PNGs) of an evaluation or experiment folder")
-    p.add_argument("dir", metavar="DIR")
+    p.add_argument("dir", metavar="DIR", help="a folder `hsicam evaluate` or `hsicam experiment` wrote; the report "
+                                              "goes to DIR/report/")
     p.set_defaults(func=cmd_report)
 
 
