@@ -12,7 +12,7 @@ SRC = Path(__file__).resolve().parents[1] / "src" / "hsicam"
 
 # Lowest first. A module may import from its own layer or any layer below it.
 LAYERS: list[set[str]] = [
-    {"errors", "io", "memory", "devices", "spectral", "config", "resources", "configs"},
+    {"errors", "io", "memory", "devices", "progress", "spectral", "config", "resources", "configs"},
     {"optics", "sensor", "color", "metrics"},
     {"cameras"},
     {"models"},

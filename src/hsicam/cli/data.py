@@ -30,7 +30,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     s.add_argument("--out", metavar="DIR", default=None,
                    help="output folder (default: the cache: data.cache_dir, else $HSICAM_CACHE, else "
                         "$XDG_CACHE_HOME/hsicam, else ~/.cache/hsicam)")
-    s.add_argument("--no-progress", action="store_true", help="no progress bar")
+    s.add_argument("--no-progress", action="store_true", help="no progress: neither the bar on a terminal nor the k/N log lines")
     add_config_args(s)
     s.set_defaults(func=_synth)
 

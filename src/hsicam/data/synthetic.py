@@ -48,7 +48,6 @@ import json
 import logging
 import os
 import re
-import sys
 from pathlib import Path
 from typing import Any, Callable, Iterable
 
@@ -287,11 +286,9 @@ def generate_dataset(out: str | os.PathLike, n: int, size: int, seed: int = 0, b
     ``split="train"`` (default): scenes without the held-out sources' spectra; ``"heldout"``: scenes
     made of them only. Every file is written atomically; the manifest marks a finished dataset.
     Refuses a folder holding another dataset's manifest or foreign cube files. ``progress=None``
-    shows a tqdm bar only on a terminal. Returns the manifest. ``room_fix``: what a refusal for want
+    shows a tqdm bar on a terminal and k/N log lines otherwise (:mod:`hsicam.progress`); False: neither. Returns the manifest. ``room_fix``: what a refusal for want
     of disk space tells the caller to change (default: the config's keys, :data:`ROOM_FIX`).
     """
-    from tqdm.auto import tqdm
-
     bands = bands or Bands.paper()
     holdout = parse_holdout(holdout_sources)
     _check_split(split)
@@ -324,12 +321,11 @@ def generate_dataset(out: str | os.PathLike, n: int, size: int, seed: int = 0, b
 def _generate_into(out: Path, n: int, size: int, seed: int, bands: Bands, lib: SpectralLibrary,
                    params: dict[str, Any], holdout: Any, split: str, progress: bool | None) -> dict[str, Any]:
     """The scenes and the manifest of :func:`generate_dataset`, written into the existing ``out``."""
-    from tqdm.auto import tqdm
+    from hsicam.progress import progress as counted
 
-    show = sys.stderr.isatty() if progress is None else progress
     scenes = []
     sum_spectrum = np.zeros(len(bands))
-    for i in tqdm(range(n), desc=f"synthetic {split} scenes", unit="scene", disable=not show):
+    for i in counted(range(n), n, f"synthetic {split} set", "scene", show=progress):
         cube, info = generate_scene(i, seed, size, lib)
         name = SCENE_PATTERN.format(i)
         meta = {"dataset": "hsicam-synthetic", "index": i, **params, **info}

@@ -1,0 +1,90 @@
+"""Progress of long loops, the one place for it: a tqdm bar on a terminal, INFO log lines elsewhere.
+
+A loop over N items (scenes, tiles, sweep points) wraps itself in :class:`Progress`. On a terminal
+(stderr a tty) it shows a tqdm bar; otherwise (CI, ``nohup``, a log file) it logs
+``{desc}: k/N {unit} … elapsed, eta`` lines at INFO on the ``hsicam.progress`` logger (stderr
+under the CLI, never stdout), the first and the last item always and the others at most every
+``every_s`` seconds (0: one line per item, for items that take seconds each). ``show=False``:
+nothing at all. (The training loop, :mod:`hsicam.engine.loop`, keeps its own step lines, which
+carry the loss.)
+"""
+
+from __future__ import annotations
+
+import logging
+import sys
+import time
+from typing import Iterable, Iterator, TypeVar
+
+log = logging.getLogger("hsicam.progress")
+T = TypeVar("T")
+
+
+def _seconds(s: float) -> str:
+    s = max(0.0, float(s))
+    if s < 60:
+        return f"{s:.1f} s" if s < 10 else f"{s:.0f} s"
+    m, sec = divmod(int(round(s)), 60)
+    h, m = divmod(m, 60)
+    return f"{h}h{m:02d}m" if h else f"{m}m{sec:02d}s"
+
+
+class Progress:
+    """Count ``total`` items done: a tqdm bar on a terminal, else throttled INFO lines with k/N and an ETA.
+
+    Args:
+        total: the number of items.
+        desc: what is done (the line's start, e.g. ``"data synth"``).
+        unit: what an item is (``"scene"``, ``"tile"``).
+        show: None: a bar on a terminal, lines otherwise; True: the bar; False: nothing.
+        every_s: least seconds between two lines (the first and the last item always get one).
+    """
+
+    def __init__(self, total: int, desc: str, unit: str = "item", show: bool | None = None, every_s: float = 10.0):
+        self.total, self.desc, self.unit, self.every_s = int(total), desc, unit, float(every_s)
+        self.done = 0
+        self.t0 = self._last = time.perf_counter()
+        self._lines = show is None and not sys.stderr.isatty()
+        self._bar = None
+        if show is not False and not self._lines:
+            from tqdm.auto import tqdm
+
+            self._bar = tqdm(total=self.total, desc=desc, unit=unit, dynamic_ncols=True)
+
+    def update(self, n: int = 1, note: str = "") -> None:
+        """``n`` more items done; ``note`` (e.g. the item's name and time) ends its line."""
+        self.done += n
+        if self._bar is not None:
+            self._bar.update(n)
+            return
+        if not self._lines:
+            return
+        now = time.perf_counter()
+        if self.done not in (1, self.total) and self.done < self.total and now - self._last < self.every_s:
+            return
+        self._last = now
+        elapsed = now - self.t0
+        left = self.total - self.done
+        eta = f", eta {_seconds(elapsed / self.done * left)}" if 0 < left and self.done else ""
+        log.info("%s: %d/%d %s%s (%s elapsed%s)", self.desc, self.done, self.total, self.unit + ("" if self.total == 1 else "s"),
+                 f" {note}" if note else "", _seconds(elapsed), eta)
+
+    def close(self) -> None:
+        if self._bar is not None:
+            self._bar.close()
+            self._bar = None
+
+    def __enter__(self) -> "Progress":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
+def progress(items: Iterable[T], total: int, desc: str, unit: str = "item", show: bool | None = None,
+             every_s: float = 10.0) -> Iterator[T]:
+    """``items`` with a :class:`Progress` counted after each one's body has run."""
+    with Progress(total, desc, unit, show, every_s) as p:
+        for x in items:
+            yield x
+            p.update()

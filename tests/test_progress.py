@@ -1,0 +1,51 @@
+"""Progress on long work: off a terminal (CI, nohup, a log file) every long loop logs k/N lines
+with an ETA on stderr (hsicam.progress), never on stdout."""
+
+from __future__ import annotations
+
+import logging
+import re
+
+import pytest
+
+from cli_helpers import assert_ok, module_cache, run_cli
+from hsicam.progress import Progress
+
+
+@pytest.fixture(scope="module")
+def env(tmp_path_factory):
+    yield from module_cache(tmp_path_factory)
+
+
+def counts(text: str, desc: str) -> list[tuple[int, int]]:
+    """The (k, N) of every ``desc: k/N`` line of ``text``, in order."""
+    return [(int(k), int(n)) for k, n in re.findall(rf"^{re.escape(desc)}: (\d+)/(\d+) ", text, re.M)]
+
+
+def test_lines_off_a_terminal_first_last_and_throttled(caplog, monkeypatch):
+    monkeypatch.setattr("sys.stderr.isatty", lambda: False, raising=False)
+    with caplog.at_level(logging.INFO, logger="hsicam.progress"):
+        with Progress(5, "job", "scene", every_s=3600) as p:
+            for _ in range(5):
+                p.update()
+        with Progress(3, "each", "scene", every_s=0) as p:
+            for i in range(3):
+                p.update(note=f"s{i}")
+        with Progress(3, "quiet", show=False) as p:
+            p.update()
+    text = "\n".join(r.getMessage() for r in caplog.records)
+    assert counts(text, "job") == [(1, 5), (5, 5)]  # throttled: the first and the last
+    assert counts(text, "each") == [(1, 3), (2, 3), (3, 3)]
+    assert "eta" in text and "s1" in text and "quiet" not in text
+
+
+def test_data_synth_logs_scene_counts_off_a_terminal(env, tmp_path):
+    res = run_cli("data", "synth", "--n", "3", "--size", "64", "--out", str(tmp_path / "d"), env=env)
+    assert_ok(res)
+    assert counts(res.stderr, "synthetic train set")[-1] == (3, 3), res.stderr
+    assert counts(res.stderr, "synthetic train set")[0] == (1, 3), res.stderr
+    assert "eta" in res.stderr and "/3" not in res.stdout
+    quiet = run_cli("data", "synth", "--n", "2", "--size", "64", "--no-progress", "--out", str(tmp_path / "q"), env=env)
+    assert_ok(quiet)
+    assert not counts(quiet.stderr, "synthetic train set"), quiet.stderr
+
