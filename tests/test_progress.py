@@ -49,3 +49,18 @@ def test_data_synth_logs_scene_counts_off_a_terminal(env, tmp_path):
     assert_ok(quiet)
     assert not counts(quiet.stderr, "synthetic train set"), quiet.stderr
 
+
+def test_tiled_reconstruction_counts_its_tiles_off_a_terminal(caplog, monkeypatch):
+    """``hsicam reconstruct`` of a large image (progress=None): a bar on a terminal used to be all, so a
+    log showed nothing for minutes; now k/N tile lines, the first and the last at least."""
+    import torch
+
+    from hsicam.engine.inference import reconstruct_tiled
+
+    monkeypatch.setattr("sys.stderr.isatty", lambda: False, raising=False)
+    with caplog.at_level(logging.INFO, logger="hsicam.progress"):
+        out = reconstruct_tiled(lambda x: x.repeat(1, 2, 1, 1), torch.rand(1, 1, 40, 50), 16, 2, progress=None)
+        reconstruct_tiled(lambda x: x.repeat(1, 2, 1, 1), torch.rand(1, 1, 40, 50), 16, 2)  # default: silent
+    assert out.shape == (1, 2, 40, 50)
+    text = "\n".join(r.getMessage() for r in caplog.records)
+    assert counts(text, "reconstruct") == [(1, 12), (12, 12)], text

@@ -5,7 +5,6 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import logging
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -441,7 +440,7 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
     if args.full_well_e is not None:  # after the offset: a flat field's gain map sits at the capture's first pixel
         meta.update(capture_noise(model, report, args.full_well_e, args.read_noise_e or 0.0, corr, offset))
     fn = offset_reconstructor(model.reconstructor(), offset)
-    cube = reconstruct_tiled(fn, sensor, tile, halo, progress=sys.stderr.isatty())[0]
+    cube = reconstruct_tiled(fn, sensor, tile, halo, progress=None)[0]
     del sensor
     # Radiance is non-negative: the network's small negative excursions are clipped at 0.
     cube = cube.float().clamp_min_(0).cpu().numpy()

@@ -33,7 +33,7 @@ def default_tile_px(halo_px: int) -> int:
 
 @torch.no_grad()
 def reconstruct_tiled(reconstruct, sensor: torch.Tensor, tile_px: int | None = None, halo_px: int | None = None,
-                      progress: bool = False) -> torch.Tensor:
+                      progress: bool | None = False) -> torch.Tensor:
     """Apply ``reconstruct`` ((1, 1, h, w) → (1, C, h, w)) to a (1, 1, H, W) image in tiles.
 
     If ``reconstruct`` takes an ``origin`` argument (e.g. :meth:`CameraSystem.reconstruct`), it
@@ -47,6 +47,8 @@ def reconstruct_tiled(reconstruct, sensor: torch.Tensor, tile_px: int | None = N
             result). Default: the ``context_px`` that ``reconstruct`` (or the object of a bound method,
             e.g. a :class:`CameraSystem`) declares, as :meth:`CameraSystem.reconstructor`'s does; an
             image larger than one tile needs it given otherwise (a halo of 0 leaves seams).
+        progress: count the tiles (:class:`hsicam.progress.Progress`): None: a bar on a terminal, k/N
+            log lines otherwise; True: the bar; False (default): nothing.
     """
     for name, value, low in (("tile_px", 1 if tile_px is None else tile_px, 1),
                              ("halo_px", 0 if halo_px is None else halo_px, 0)):
@@ -71,9 +73,9 @@ def reconstruct_tiled(reconstruct, sensor: torch.Tensor, tile_px: int | None = N
         return reconstruct(sensor)
     out = None
     ny, nx = math.ceil(h / tile_px), math.ceil(w / tile_px)
-    from tqdm.auto import tqdm
+    from hsicam.progress import Progress
 
-    with tqdm(total=ny * nx, disable=not progress, unit="tile") as bar:
+    with Progress(ny * nx, "reconstruct", "tile", show=progress) as bar:
         for ty in range(ny):
             for tx in range(nx):
                 y0, x0 = ty * tile_px, tx * tile_px
