@@ -4,7 +4,9 @@ from __future__ import annotations
 
 import csv
 import json
+import logging
 import math
+import re
 
 import numpy as np
 import pytest
@@ -76,16 +78,23 @@ def test_tolerance_at_interpolates_the_1db_point():
     assert _tolerance_at([-50, -20, 0], [27.0, 29.5, 30.0], 30.0) == pytest.approx(20 + 30 * (0.5 / 2.5))
 
 
-def test_tolerance_cli(fab_run, tmp_path):
+def test_tolerance_cli(fab_run, tmp_path, caplog):
     from hsicam.runs.folder import load_run
     from hsicam.engine.tolerance import evaluate_psf, evaluation_scenes
 
     out = tmp_path / "tol"
-    res = run_cli("tolerance", "--run", str(fab_run), "--out", str(out), "--max-scenes", "2", "--draws", "2",
-                  "--sigma-height-nm", "0,40,200", "--levels", "2,16", "--shift-cells", "0,0.5",
-                  "--sensor-distance-um=-300,0,300")
+    with caplog.at_level(logging.INFO, logger="hsicam.progress"):  # (in process: the log records)
+        res = run_cli("tolerance", "--run", str(fab_run), "--out", str(out), "--max-scenes", "2", "--draws", "2",
+                      "--sigma-height-nm", "0,40,200", "--levels", "2,16", "--shift-cells", "0,0.5",
+                      "--sensor-distance-um=-300,0,300")
     assert res.returncode == 0, res.stderr
     assert "nominal PSNR" in res.stdout
+    # off a terminal: one progress line per sweep point, in order (hsicam.progress: INFO on stderr)
+    lines = "\n".join(r.getMessage() for r in caplog.records if r.name == "hsicam.progress")
+    done = re.findall(r"^tolerance: (\d+)/(\d+) points? (\w+) ", lines, re.M)
+    assert [(int(k), int(n)) for k, n, _ in done] == [(k, 12) for k in range(1, 13)], lines
+    assert [w for _, _, w in done] == ["sigma_height_nm"] * 3 + ["levels"] * 2 + ["shift_x_cells"] * 2 + \
+        ["shift_diag_cells"] * 2 + ["sensor_distance_um"] * 3
     r = json.loads((out / "tolerance.json").read_text())
     assert (out / "tolerance.png").is_file()
     cfg, model = load_run(fab_run)

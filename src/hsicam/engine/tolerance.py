@@ -262,16 +262,18 @@ def refuse_finetuned_run(run_dir: str | Path) -> None:
 
 
 def run_tolerance(model, cfg, spec: ToleranceSpec = ToleranceSpec(), data: str | Path | None = None,
-                  progress: bool = False, run: str | Path | None = None) -> dict[str, Any]:
+                  progress: bool | None = None, run: str | Path | None = None) -> dict[str, Any]:
     """Evaluate the camera of ``model`` (a :class:`~hsicam.models.CameraSystem` with a DOE camera)
     under every perturbation of ``spec``; returns the JSON-ready result. ``run``: the run folder
     ``model`` was loaded from; its identity (:func:`hsicam.export.tolerance.run_identity`: folder,
     weights file and its SHA-256) is recorded as ``"run"`` so that ``hsicam export-optics`` cites
-    the study only for that run (None: not recorded)."""
+    the study only for that run (None: not recorded). ``progress``: one line per sweep point, k/N
+    with an ETA (:class:`hsicam.progress.Progress`; None: a bar on a terminal, lines otherwise; False: none)."""
     from hsicam.cameras import DOECamera
     from hsicam.cameras.measured import FixedPSFCamera
     from hsicam.export.doe import design_heights, quantize_levels
     from hsicam.export.tolerance import TOLERANCE_FORMAT, run_identity
+    from hsicam.progress import Progress
 
     spec.check()
     cam = model.camera
@@ -300,9 +302,13 @@ def run_tolerance(model, cfg, spec: ToleranceSpec = ToleranceSpec(), data: str |
     nominal = evaluate_psf(model, nominal_psf.psf, scenes, names, spec.seed)
     log.info("tolerance: nominal PSNR %.2f dB on %d scene(s)", nominal["psnr"], len(names))
     rows: list[dict[str, Any]] = []
+    points = (len(spec.sigma_height_nm) + len(spec.levels) + 2 * len(spec.shift_cells) if has_doe else 0) + \
+        len(spec.sensor_distance_um)
+    bar = Progress(points, "tolerance", "point", show=progress, every_s=0)
 
     def record(sweep: str, value: float, unit: str, metrics: list[dict[str, float]], energy: torch.Tensor, **extra) -> None:
         ps = [m["psnr"] for m in metrics]
+        bar.update(note=f"{sweep} {value:g} {unit}: PSNR {float(np.mean(ps)):.2f} dB")
         rows.append({"sweep": sweep, "value": value, "unit": unit, "psnr": float(np.mean(ps)),
                      "psnr_std": float(np.std(ps)) if len(ps) > 1 else 0.0,
                      "ssim": float(np.mean([m["ssim"] for m in metrics])),
@@ -357,9 +363,8 @@ def run_tolerance(model, cfg, spec: ToleranceSpec = ToleranceSpec(), data: str |
         waves = optics.aperture_radius_m**2 / 2 * (1 / (z + dz) - 1 / z) / lam0
         record("sensor_distance_um", dz_um, "um", [evaluate_psf(model, res.psf, scenes, names, spec.seed)], res.energy,
                defocus_waves=float(waves), magnification_change=float(dz / z))
-        if progress:
-            log.info("tolerance: Δz %+g µm done", dz_um)
 
+    bar.close()
     sweeps: dict[str, Any] = {}
     for r in rows:
         s = sweeps.setdefault(r["sweep"], {"unit": r["unit"], "values": [], "psnr": [], "psnr_std": [], "ssim": [], "sam": [],
