@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import csv
 import json
+import re
 import os
 import shutil
 import subprocess
@@ -246,6 +247,12 @@ def test_experiment_ablation_tiny_is_resumable(env, tmp_path, monkeypatch):
     res = run_cli("experiment", "ablation", "--scale", "tiny", "--out", str(out), env=env)
     assert res.returncode == 0, res.stderr
     exp = json.loads((out / "experiment.json").read_text())
+    # each scored scene of each camera is a k/N line on stderr (a slow method is not silent)
+    n = len(exp["rows"][0]["scenes"])
+    for m in ("doe+cfa", "no-doe", "no-cfa"):
+        assert re.findall(rf"^experiment: {re.escape(m)} \[(\d+)/(\d+)\] ", res.stderr, re.M) == \
+            [(str(k), str(n)) for k in range(1, n + 1)], res.stderr
+    assert "experiment: " not in res.stdout
     assert [r["method"] for r in exp["rows"]] == ["doe+cfa", "no-doe", "no-cfa"]
     assert all(np.isfinite(r["psnr"]) for r in exp["rows"])
     # each row is its own camera: `hsicam evaluate` of that run (same validation scenes, the run's noise, seed 0)

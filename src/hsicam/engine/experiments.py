@@ -242,6 +242,12 @@ def heldout_scenes(cfg):
     return scene_dataset(cfg.data, paths, bands), [p.stem for p in paths]
 
 
+def _scene_lines(what: str):
+    """evaluate_method's per-scene line (``[k/N] scene: PSNR …, SSIM …, SAM … (t s)``) logged at INFO as
+    ``experiment: WHAT [k/N] …``: an experiment scoring slow baselines (DeSCI: a minute a scene) is not silent."""
+    return lambda line: log.info("experiment: %s %s", what, line)
+
+
 def _row(name: str, summary: dict, **extra: Any) -> dict:
     m = summary["mean"]
     return {"method": name, "psnr": m["psnr"], "ssim": m["ssim"], "sam": m["sam"], "runtime_s": m["runtime_s"], **extra}
@@ -275,7 +281,8 @@ def run_experiment(experiment: str, scale: str, out: str | Path, seeds: tuple[in
             grid = []
             for sp in NOISE_SIGMA_HEIGHT_NM:
                 for ss in NOISE_SIGMA_SENSOR:
-                    res = evaluate_method(method, scenes, names, TestNoise(sp, ss, seeds), keep_arrays=False)
+                    res = evaluate_method(method, scenes, names, TestNoise(sp, ss, seeds), keep_arrays=False,
+                                          progress=_scene_lines(f"{spec.name}, σ_h {sp:g} nm, σ {ss:g}"))
                     s = summarize(res)
                     grid.append({"sigma_height_nm": sp, "sensor_sigma": ss, "psnr": s["mean"]["psnr"], "ssim": s["mean"]["ssim"]})
             grids[spec.name] = grid
@@ -283,7 +290,8 @@ def run_experiment(experiment: str, scale: str, out: str | Path, seeds: tuple[in
             rows.append({"method": spec.name, "psnr": clean["psnr"], "ssim": clean["ssim"],
                          "psnr_worst": min(g["psnr"] for g in grid), "ssim_worst": min(g["ssim"] for g in grid)})
         else:
-            s = summarize(evaluate_method(method, scenes, names, TestNoise(seeds=seeds), keep_arrays=False))
+            s = summarize(evaluate_method(method, scenes, names, TestNoise(seeds=seeds), keep_arrays=False,
+                                          progress=_scene_lines(spec.name)))
             rows.append(_row(spec.name, s, run=str(run), scenes=s["scenes"]))
         kept = kept_checkpoint(run)
         if kept is not None:  # which weights were scored (the best validation's is a selection on these scenes)
@@ -384,7 +392,8 @@ def _baseline_rows(cfg, scale, out, scenes, names, seeds, baselines) -> list[dic
         # a learned CASSI method is evaluated with its own overrides (e.g. without the consistency step)
         method_cfg = load_config(scale, list(LEARNED_CASSI[name])) if name in LEARNED_CASSI else cfg
         method = build_method(name, method_cfg, run)
-        s = summarize(evaluate_method(method, scenes, names, TestNoise(seeds=seeds), keep_arrays=False))
+        s = summarize(evaluate_method(method, scenes, names, TestNoise(seeds=seeds), keep_arrays=False,
+                                      progress=_scene_lines(name)))
         rows.append(_row(name, s, scenes=s["scenes"]))
         kept = kept_checkpoint(run) if name in LEARNED_CASSI else None
         if kept is not None:
