@@ -286,8 +286,9 @@ def generate_dataset(out: str | os.PathLike, n: int, size: int, seed: int = 0, b
     ``split="train"`` (default): scenes without the held-out sources' spectra; ``"heldout"``: scenes
     made of them only. Every file is written atomically; the manifest marks a finished dataset.
     Refuses a folder holding another dataset's manifest or foreign cube files. ``progress=None``
-    shows a tqdm bar on a terminal and k/N log lines otherwise (:mod:`hsicam.progress`); False: neither. Returns the manifest. ``room_fix``: what a refusal for want
-    of disk space tells the caller to change (default: the config's keys, :data:`ROOM_FIX`).
+    shows a tqdm bar on a terminal and k/N log lines otherwise (:mod:`hsicam.progress`); False:
+    neither. Returns the manifest. ``room_fix``: what a refusal for want of disk space tells the
+    caller to change (default: the config's keys, :data:`ROOM_FIX`).
     """
     bands = bands or Bands.paper()
     holdout = parse_holdout(holdout_sources)
