@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import re
 import shutil
 import signal
 import subprocess
@@ -69,10 +70,16 @@ def assert_ok(res: subprocess.CompletedProcess) -> None:
     assert res.returncode == 0, (res.returncode, res.stdout, res.stderr)
 
 
+#: A progress line of :mod:`hsicam.progress` off a terminal: ``DESC: k/N UNITs … (… elapsed…)``.
+PROGRESS_LINE = re.compile(r"^[^:]+: \d+/\d+ \S+ .*\(\S+ \S* ?elapsed")
+
+
 def assert_clean_error(proc: subprocess.CompletedProcess, *fragments: str) -> None:
-    """Exit code 2, one line on stderr starting with 'hsicam: error:', no traceback."""
+    """Exit code 2, one line on stderr starting with 'hsicam: error:', no traceback (lines of the work
+    done before the refusal, such as the data's generation and its progress, aside)."""
     assert proc.returncode == 2, (proc.returncode, proc.stdout, proc.stderr)
-    lines = [x for x in proc.stderr.strip().splitlines() if x.strip() and not x.startswith(("generating", "data:"))]
+    lines = [x for x in proc.stderr.strip().splitlines() if x.strip() and not x.startswith(("generating", "data:"))
+             and not PROGRESS_LINE.match(x)]
     assert len(lines) == 1, proc.stderr
     assert lines[0].startswith("hsicam: error:"), proc.stderr
     assert "Traceback" not in proc.stderr
