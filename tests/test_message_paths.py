@@ -44,11 +44,13 @@ def _tree(folder):
 # 13: test DOE height noise on a camera without a DOE
 # ------------------------------------------------------------------------------------------------
 def test_evaluate_refuses_height_noise_without_a_doe(runs, tmp_path):
-    out = tmp_path / "ev"
-    assert_clean_error(run_cli("evaluate", "--method", "dd-cassi-gaptv", "--config", "tiny", "--sigma-height-nm", "50",
-                               "--out", str(out)),
-                       "--sigma-height-nm 50: dd-cassi-gaptv (--config tiny): its camera (camera.kind dd_cassi) has "
+    out, cache = tmp_path / "ev", tmp_path / "empty-cache"
+    res = run_cli("evaluate", "--method", "dd-cassi-gaptv", "--config", "tiny", "--sigma-height-nm", "50",
+                  "--out", str(out), env={"HSICAM_CACHE": str(cache)})
+    assert_clean_error(res, "--sigma-height-nm 50: dd-cassi-gaptv (--config tiny): its camera (camera.kind dd_cassi) has "
                        "no DOE", "no height noise would be applied", "drop --sigma-height-nm")
+    # refused before the validation and held-out scenes are generated (it once made both first)
+    assert "generating" not in res.stderr and not cache.exists()
     nodoe = runs / "nodoe"
     assert_clean_error(run_cli("evaluate", "--run", str(nodoe), "--sigma-height-nm", "50", "--out", str(out)),
                        f"--sigma-height-nm 50: doe-learned (run {nodoe}): its camera has no DOE "

@@ -154,6 +154,9 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
         # the refusal names the method's current name: say it is the one the user asked for
         raise InputError(f"{exc} (--method {alias} is the old name of {args.method})") from None
     bands = method.camera.bands
+    noise = TestNoise(args.sigma_height_nm, args.sensor_sigma, tuple(range(args.seeds)))
+    # before the scenes are listed or generated: test noise the method's camera cannot take
+    check_test_noise(method, noise, f"run {args.run}" if args.run else f"--config {args.config or 'default'}")
     if paths is not None:
         scenes = scene_dataset(cfg.data, paths, bands)
         # unique names (stems; the scenes whose stems collide by their paths), each row with its path
@@ -172,8 +175,6 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     warning = training_scenes_warning(roles, args.run) if roles else None
     if warning:
         log.warning(warning)
-    noise = TestNoise(args.sigma_height_nm, args.sensor_sigma, tuple(range(args.seeds)))
-    check_test_noise(method, noise, f"run {args.run}" if args.run else f"--config {args.config or 'default'}")
     # every scene is read (or its header) before any is scored: a bad one fails now, not after hours of scoring
     check_scenes(method, scenes, names)
     if heldout is not None:
