@@ -287,18 +287,16 @@ def _linear_method(cfg, run, device) -> Method:
     _check_doe_run("doe-linear-demosaic", run)
     _, model = load_run(run, device)
     cam = model.camera
-    fitted: list[Method] = []
 
+    @functools.cache  # once: by prepare, or by the first reconstruction
     def fit() -> Method:
-        if not fitted:
-            bands = cfg.bands.to_bands()
-            train, _ = split_dataset(cfg.data, bands)  # never empty: the split keeps at least one training scene
-            _, own = load_run(run, device)  # the run's own capture, whatever the evaluation's
-            weight = fit_linear_map(own, scene_dataset(cfg.data, train, bands), linear_reference_window(cam),
-                                    LINEAR_MAP_RIDGE)
-            fitted.append(linear_demosaic_reference(model, None, weight=weight))
-            method.info["training_scenes"] = len(train)
-        return fitted[0]
+        bands = cfg.bands.to_bands()
+        train, _ = split_dataset(cfg.data, bands)  # never empty: the split keeps at least one training scene
+        _, own = load_run(run, device)  # the run's own capture, whatever the evaluation's
+        weight = fit_linear_map(own, scene_dataset(cfg.data, train, bands), linear_reference_window(cam),
+                                LINEAR_MAP_RIDGE)
+        method.info["training_scenes"] = len(train)
+        return linear_demosaic_reference(model, None, weight=weight)
 
     def reconstruct(sensor: torch.Tensor) -> torch.Tensor:
         return fit().reconstruct(sensor)
