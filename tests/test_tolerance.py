@@ -309,3 +309,26 @@ def test_rebuilt_optics_keep_the_lens_design_wavelength(tiny_camera):
     assert same.lens_design_wavelength_nm == 500
     np.testing.assert_array_equal(same.line_sensor_distances_m, o.line_sensor_distances_m)
     torch.testing.assert_close(psf_for_heights(same, nominal_heights(cam)).psf, p0, rtol=0, atol=1e-7)
+
+
+def test_a_failing_sweep_closes_its_progress_bar(fab_run, monkeypatch):
+    """An error in the last sweep (here the sensor distance) still closes the study's progress bar:
+    on a terminal an unclosed tqdm bar is left half-drawn above the error message."""
+    import hsicam.engine.tolerance as tolerance
+    from hsicam.progress import Progress
+    from hsicam.runs.folder import load_run
+
+    closed = []
+    real_close = Progress.close
+    monkeypatch.setattr(Progress, "close", lambda self: (closed.append(self.desc), real_close(self)))
+
+    def broken(*a, **k):
+        raise RuntimeError("sensor sweep failed")
+
+    monkeypatch.setattr(tolerance, "psf_sensor_moved", broken)
+    cfg, model = load_run(fab_run)
+    spec = tolerance.ToleranceSpec(sigma_height_nm=(0.0,), levels=(), shift_cells=(), sensor_distance_um=(100.0,),
+                                   max_scenes=1)
+    with pytest.raises(RuntimeError, match="sensor sweep failed"):
+        tolerance.run_tolerance(model, cfg, spec, progress=False)
+    assert closed == ["tolerance"]

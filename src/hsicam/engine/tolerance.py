@@ -304,67 +304,66 @@ def run_tolerance(model, cfg, spec: ToleranceSpec = ToleranceSpec(), data: str |
     rows: list[dict[str, Any]] = []
     points = (len(spec.sigma_height_nm) + len(spec.levels) + 2 * len(spec.shift_cells) if has_doe else 0) + \
         len(spec.sensor_distance_um)
-    bar = Progress(points, "tolerance", "point", show=progress, every_s=0)
+    with Progress(points, "tolerance", "point", show=progress, every_s=0) as bar:  # closed on an error too
 
-    def record(sweep: str, value: float, unit: str, metrics: list[dict[str, float]], energy: torch.Tensor, **extra) -> None:
-        ps = [m["psnr"] for m in metrics]
-        bar.update(note=f"{sweep} {value:g} {unit}: PSNR {float(np.mean(ps)):.2f} dB")
-        rows.append({"sweep": sweep, "value": value, "unit": unit, "psnr": float(np.mean(ps)),
-                     "psnr_std": float(np.std(ps)) if len(ps) > 1 else 0.0,
-                     "ssim": float(np.mean([m["ssim"] for m in metrics])),
-                     "sam": float(np.mean([m["sam"] for m in metrics])), "n": len(metrics),
-                     "energy_in_kernel_min": float(energy.min()), **extra})
+        def record(sweep: str, value: float, unit: str, metrics: list[dict[str, float]], energy: torch.Tensor, **extra) -> None:
+            ps = [m["psnr"] for m in metrics]
+            bar.update(note=f"{sweep} {value:g} {unit}: PSNR {float(np.mean(ps)):.2f} dB")
+            rows.append({"sweep": sweep, "value": value, "unit": unit, "psnr": float(np.mean(ps)),
+                         "psnr_std": float(np.std(ps)) if len(ps) > 1 else 0.0,
+                         "ssim": float(np.mean([m["ssim"] for m in metrics])),
+                         "sam": float(np.mean([m["sam"] for m in metrics])), "n": len(metrics),
+                         "energy_in_kernel_min": float(energy.min()), **extra})
 
-    # height noise: one fixed error realisation per draw (a fabricated element)
-    for sigma in spec.sigma_height_nm if has_doe else ():
-        ms, en = [], []
-        for d in range(spec.height_draws if sigma > 0 else 1):
-            g = torch.Generator().manual_seed(spec.seed * 1000 + d)
-            noise = torch.randn(h0.shape, generator=g, dtype=torch.float64) * sigma * 1e-9
-            res = psf_for_heights(optics, h0 + noise)
-            ms.append(evaluate_psf(model, res.psf, scenes, names, spec.seed))
-            en.append(res.energy.min())
-        record("sigma_height_nm", sigma, "nm", ms, torch.stack(en))
-    # quantisation: the exported L-level heights
-    if has_doe:
-        h_design, _, _ = design_heights(cam)
-    for lv in spec.levels if has_doe else ():
-        _, hq = quantize_levels(h_design, lv, *optics.doe.level_grid())
-        res = psf_for_heights(optics, torch.from_numpy(hq))
-        record("levels", lv, "levels", [evaluate_psf(model, res.psf, scenes, names, spec.seed)], res.energy)
-    # lateral misalignment along x and along the diagonal, on the Q-oversampled pupil; the
-    # reference is the same model without shift (its PSFs differ from the trained q-model's:
-    # higher orders of the cell grid leave the kernel instead of folding back in)
-    big_q = shift_subsamples_for(optics, spec.shift_subsamples)
-    shift_ref = None
-    if has_doe:
-        fine = oversampled_optics(optics, big_q)
-        for sweep, direction in (("shift_x_cells", (0.0, 1.0)), ("shift_diag_cells", (1.0, 1.0))):
-            for s in spec.shift_cells:
-                if s == 0 and shift_ref is not None:
-                    psf, energy, applied, m0 = shift_ref
-                else:
-                    psf, energy, applied = psf_shifted(fine, h0, s * direction[0], s * direction[1])
-                    m0 = evaluate_psf(model, psf, scenes, names, spec.seed)
-                    if s == 0:
-                        shift_ref = (psf, energy, applied, m0)
-                record(sweep, s, "cells", [m0], energy, applied_cells=list(applied),
-                       shift_um=[a * optics.cell_m * 1e6 for a in applied], pupil_oversample=big_q)
-        if shift_ref is None:
-            psf, energy, _ = psf_shifted(fine, h0, 0.0, 0.0)
-            shift_ref = (psf, energy, (0.0, 0.0), evaluate_psf(model, psf, scenes, names, spec.seed))
-        del fine
-    # sensor distance error
-    lam0 = optics.doe.design_wavelength_nm * 1e-9
-    z = optics.sensor_distance_m
-    for dz_um in spec.sensor_distance_um:
-        dz = dz_um * 1e-6
-        res = psf_sensor_moved(optics, h0, dz)
-        waves = optics.aperture_radius_m**2 / 2 * (1 / (z + dz) - 1 / z) / lam0
-        record("sensor_distance_um", dz_um, "um", [evaluate_psf(model, res.psf, scenes, names, spec.seed)], res.energy,
-               defocus_waves=float(waves), magnification_change=float(dz / z))
+        # height noise: one fixed error realisation per draw (a fabricated element)
+        for sigma in spec.sigma_height_nm if has_doe else ():
+            ms, en = [], []
+            for d in range(spec.height_draws if sigma > 0 else 1):
+                g = torch.Generator().manual_seed(spec.seed * 1000 + d)
+                noise = torch.randn(h0.shape, generator=g, dtype=torch.float64) * sigma * 1e-9
+                res = psf_for_heights(optics, h0 + noise)
+                ms.append(evaluate_psf(model, res.psf, scenes, names, spec.seed))
+                en.append(res.energy.min())
+            record("sigma_height_nm", sigma, "nm", ms, torch.stack(en))
+        # quantisation: the exported L-level heights
+        if has_doe:
+            h_design, _, _ = design_heights(cam)
+        for lv in spec.levels if has_doe else ():
+            _, hq = quantize_levels(h_design, lv, *optics.doe.level_grid())
+            res = psf_for_heights(optics, torch.from_numpy(hq))
+            record("levels", lv, "levels", [evaluate_psf(model, res.psf, scenes, names, spec.seed)], res.energy)
+        # lateral misalignment along x and along the diagonal, on the Q-oversampled pupil; the
+        # reference is the same model without shift (its PSFs differ from the trained q-model's:
+        # higher orders of the cell grid leave the kernel instead of folding back in)
+        big_q = shift_subsamples_for(optics, spec.shift_subsamples)
+        shift_ref = None
+        if has_doe:
+            fine = oversampled_optics(optics, big_q)
+            for sweep, direction in (("shift_x_cells", (0.0, 1.0)), ("shift_diag_cells", (1.0, 1.0))):
+                for s in spec.shift_cells:
+                    if s == 0 and shift_ref is not None:
+                        psf, energy, applied, m0 = shift_ref
+                    else:
+                        psf, energy, applied = psf_shifted(fine, h0, s * direction[0], s * direction[1])
+                        m0 = evaluate_psf(model, psf, scenes, names, spec.seed)
+                        if s == 0:
+                            shift_ref = (psf, energy, applied, m0)
+                    record(sweep, s, "cells", [m0], energy, applied_cells=list(applied),
+                           shift_um=[a * optics.cell_m * 1e6 for a in applied], pupil_oversample=big_q)
+            if shift_ref is None:
+                psf, energy, _ = psf_shifted(fine, h0, 0.0, 0.0)
+                shift_ref = (psf, energy, (0.0, 0.0), evaluate_psf(model, psf, scenes, names, spec.seed))
+            del fine
+        # sensor distance error
+        lam0 = optics.doe.design_wavelength_nm * 1e-9
+        z = optics.sensor_distance_m
+        for dz_um in spec.sensor_distance_um:
+            dz = dz_um * 1e-6
+            res = psf_sensor_moved(optics, h0, dz)
+            waves = optics.aperture_radius_m**2 / 2 * (1 / (z + dz) - 1 / z) / lam0
+            record("sensor_distance_um", dz_um, "um", [evaluate_psf(model, res.psf, scenes, names, spec.seed)], res.energy,
+                   defocus_waves=float(waves), magnification_change=float(dz / z))
 
-    bar.close()
     sweeps: dict[str, Any] = {}
     for r in rows:
         s = sweeps.setdefault(r["sweep"], {"unit": r["unit"], "values": [], "psnr": [], "psnr_std": [], "ssim": [], "sam": [],
