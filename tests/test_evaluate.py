@@ -46,6 +46,9 @@ def test_evaluate_writes_results_in_all_formats(run, env, tmp_path):
     # one progress line per scene on stderr, with that scene's numbers
     for i, r in enumerate(summary["scenes"]):
         assert f"[{i + 1}/2] {r['name']}: PSNR {r['psnr']:.2f} dB" in res.stderr, res.stderr
+    # with a time left while scenes remain (the last line has none)
+    lines = re.findall(r"^\[(\d)/2\] .*\(\d+\.\d s(, eta [^)]+)?\)$", res.stderr, re.M)
+    assert [(k, bool(eta)) for k, eta in lines] == [("1", True), ("2", False)], res.stderr
     for r in summary["scenes"]:
         assert {"psnr", "ssim", "sam", "ergas", "runtime_s"} <= set(r) and "std" in r
         # each row is the mean of its seeds, and its std their population standard deviation (numpy's)

@@ -20,7 +20,8 @@ log = logging.getLogger("hsicam.progress")
 T = TypeVar("T")
 
 
-def _seconds(s: float) -> str:
+def format_seconds(s: float) -> str:
+    """A duration for a person: ``4.2 s``, ``37 s``, ``3m05s``, ``1h02m``."""
     s = max(0.0, float(s))
     if s < 60:
         return f"{s:.1f} s" if s < 10 else f"{s:.0f} s"
@@ -65,9 +66,9 @@ class Progress:
         self._last = now
         elapsed = now - self.t0
         left = self.total - self.done
-        eta = f", eta {_seconds(elapsed / self.done * left)}" if 0 < left and self.done else ""
+        eta = f", eta {format_seconds(elapsed / self.done * left)}" if 0 < left and self.done else ""
         log.info("%s: %d/%d %s%s (%s elapsed%s)", self.desc, self.done, self.total, self.unit + ("" if self.total == 1 else "s"),
-                 f" {note}" if note else "", _seconds(elapsed), eta)
+                 f" {note}" if note else "", format_seconds(elapsed), eta)
 
     def close(self) -> None:
         if self._bar is not None:

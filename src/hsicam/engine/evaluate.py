@@ -27,6 +27,7 @@ from hsicam.engine.methods import Method, demosaic_reference  # noqa: F401  (re-
 from hsicam.errors import InputError
 from hsicam.io import atomic_open, write_json
 from hsicam.metrics import CONVENTIONS, SSIM_WINDOW_PX, all_metrics, sam_undefined_pixels
+from hsicam.progress import format_seconds
 
 METRIC_KEYS = ("psnr", "ssim", "sam", "ergas", "psnr_cube", "psnr_mst", "rmse")
 
@@ -182,6 +183,7 @@ def evaluate_method(method: Method, scenes, names: Sequence[str], noise: TestNoi
     # a network: tile large images with the context it declares (tiles of default_tile_px unless given)
     halo = method.model.context_px if method.model is not None else None
     out = []
+    t_start = time.perf_counter()
     try:
         cam.eval()
         for i, name in enumerate(names):
@@ -214,8 +216,10 @@ def evaluate_method(method: Method, scenes, names: Sequence[str], noise: TestNoi
                                    metrics_per_seed=[{"seed": int(s), **m} for s, m in zip(noise.seeds, per_seed)],
                                    noise=dict(applied), sam_excluded_px=int(sam_undefined_pixels(truth)[0])))
             if progress is not None:
+                left = len(names) - i - 1  # the scenes still to do, at the mean time per scene so far (all seeds)
+                eta = f", eta {format_seconds((time.perf_counter() - t_start) / (i + 1) * left)}" if left else ""
                 progress(f"[{i + 1}/{len(names)}] {name}: PSNR {mean['psnr']:.2f} dB, SSIM {mean['ssim']:.4f}, "
-                         f"SAM {_sam_text(mean['sam'])} ({np.mean(times):.1f} s)")
+                         f"SAM {_sam_text(mean['sam'])} ({np.mean(times):.1f} s{eta})")
     finally:
         cam.set_noise(**saved)
     return out
