@@ -125,6 +125,35 @@ def test_noise_is_reproducible_from_a_seeded_generator(model):
     assert not torch.allclose(a, c) and not torch.allclose(a, g)
 
 
+@pytest.mark.parametrize("model", ["poisson_gaussian", "none"])
+def test_sensor_sigma_set_on_any_noise_model_reaches_the_image(tiny_camera, model):
+    """σ_s set by ``set_noise(sensor_sigma=…)`` (``hsicam evaluate --sensor-sigma``, ``train.sensor_sigma``)
+    on a Poisson–Gaussian or noise-free camera was reported by ``noise_levels`` and written into the
+    results as applied, but only the "gaussian" model added it (the image was left untouched). Now it
+    is added in every model: the spread of y − A x is the closed-form √(g/N + (r/N)² + σ_s²), and the
+    variance model (noise-aware consistency) counts σ_s² too."""
+    sigma = 0.02
+    extra = ("camera.sensor.full_well_e=5000", "camera.sensor.read_noise_e=3") if model == "poisson_gaussian" else ()
+    cam = tiny_camera(f"camera.sensor.noise={model}", *extra, dtype=torch.float64)
+    x = torch.full((1, len(cam.bands), *cam.scene_size((300, 300))), 0.4, dtype=torch.float64)
+    cam.set_noise(sensor_sigma=sigma)
+    assert cam.noise_levels()["sensor_sigma"] == sigma
+    with torch.no_grad():
+        g = cam.A(x)
+        y = cam(x, torch.Generator().manual_seed(0))
+    n, r = (5000.0, 3.0) if model == "poisson_gaussian" else (math.inf, 0.0)
+    var = float(g.mean()) / n + (r / n) ** 2 + sigma**2
+    _assert_mean_var(y - g + float(g.mean()), float(g.mean()), var)
+    torch.testing.assert_close(cam.noise.variance(g), var + (g - g.mean()) / n, rtol=1e-6, atol=0)
+
+
+def test_a_noise_free_sensor_with_a_gaussian_sigma_is_a_config_error(tiny_config):
+    from hsicam.errors import ConfigError
+
+    with pytest.raises(ConfigError, match="camera.sensor.noise=none"):
+        tiny_config("camera.sensor.noise=none", "camera.sensor.sigma=0.01")
+
+
 def test_no_noise_is_identity():
     g = torch.rand(1, 1, 8, 8)
     torch.testing.assert_close(SensorNoise("none")(g), g, rtol=0, atol=0)

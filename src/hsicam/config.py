@@ -264,7 +264,7 @@ class SensorConfig:
 
     pixel_pitch_um: float = 6.0
     noise: Literal["none", "gaussian", "poisson_gaussian"] = "gaussian"
-    sigma: float = 0.0  # gaussian σ_s on the [0, 1]-scaled image
+    sigma: float = 0.0  # Gaussian σ_s on the [0, 1]-scaled image (gaussian; added to poisson_gaussian's noise too)
     full_well_e: float = 10000.0  # poisson_gaussian: electrons at signal 1.0
     read_noise_e: float = 2.0  # poisson_gaussian: read noise σ in electrons
     bit_depth: Optional[int] = None  # quantise to 2^bits levels over [0, 1] (clipping)
@@ -276,6 +276,9 @@ class SensorConfig:
                               f"scale 1; more buries any signal), got {self.sigma}")
         if self.read_noise_e < 0:
             raise ConfigError(f"camera.sensor.read_noise_e must be >= 0, got {self.read_noise_e}")
+        if self.noise == "none" and self.sigma > 0:
+            raise ConfigError(f"camera.sensor.noise=none (a noise-free sensor) with camera.sensor.sigma={self.sigma:g}: "
+                              "set camera.sensor.noise=gaussian for Gaussian noise σ_s, or sigma 0")
         if self.bit_depth is not None and not (1 <= self.bit_depth <= 32):
             raise ConfigError(f"camera.sensor.bit_depth must be in 1..32, got {self.bit_depth}")
 

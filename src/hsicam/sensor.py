@@ -149,6 +149,11 @@ def quantize_bits(g: torch.Tensor, bits: int) -> torch.Tensor:
 class SensorNoise(nn.Module):
     """Noise and quantisation applied to the noiseless sensor image g = A(f).
 
+    ``model``: "gaussian", "poisson_gaussian" (photon shot noise at ``full_well_e`` electrons for
+    signal 1, read noise ``read_noise_e`` electrons) or "none". The Gaussian σ_s (``sigma``, on the
+    [0, 1] image: the paper's sensor noise, :meth:`Camera.set_noise`'s ``sensor_sigma``) is added in
+    every model when > 0, after the photon and read noise, before the quantisation (``bit_depth``).
+
     ``gain`` (H, W), optional: a per-pixel factor applied after the noise, as a flat-field correction
     multiplies a capture by 1/flat (vignetting); the image is then a·n(g/a), whose variance is
     a²·v(g/a) for the variance v of the uncorrected image (a Poisson–Gaussian capture: a·g/N + (a·r/N)²).
@@ -198,10 +203,11 @@ class SensorNoise(nn.Module):
         return self._noisy(g, generator)
 
     def _noisy(self, g: torch.Tensor, generator: torch.Generator | None) -> torch.Tensor:
-        if self.model == "gaussian":
-            g = gaussian_noise(g, self.sigma, generator)
-        elif self.model == "poisson_gaussian":
+        if self.model == "poisson_gaussian":
             g = poisson_gaussian_noise(g, self.full_well_e, self.read_noise_e, generator)
+        # σ_s in every model (it was applied by "gaussian" alone, so a σ_s set on a Poisson–Gaussian or
+        # "none" camera, by ``evaluate --sensor-sigma`` or ``train.sensor_sigma``, was reported, never applied)
+        g = gaussian_noise(g, self.sigma, generator)
         if self.bit_depth is not None:
             g = quantize_bits(g, self.bit_depth)
         return g
@@ -209,14 +215,13 @@ class SensorNoise(nn.Module):
     @property
     def declares_noise(self) -> bool:
         """Whether :meth:`variance` gives a variance (False: a noise-free model, None)."""
-        return ((self.model == "gaussian" and self.sigma > 0) or self.model == "poisson_gaussian"
-                or self.bit_depth is not None)
+        return self.sigma > 0 or self.model == "poisson_gaussian" or self.bit_depth is not None
 
     def variance(self, g: torch.Tensor, origin: tuple[int, int] | None = None) -> torch.Tensor | None:
         """Per-pixel variance of the noise this model adds to the noiseless image ``g`` (B, 1, H, W;
         1 = full scale), estimated from ``g`` itself (a noisy capture serves: its photon count is the
-        mean's estimate): gaussian σ², Poisson–Gaussian g / N + (r / N)² for N = ``full_well_e`` and
-        r = ``read_noise_e``, plus Δ²/12 of the quantiser's step Δ = 1 / (2^bits − 1); with a gain map
+        mean's estimate): Poisson–Gaussian g / N + (r / N)² for N = ``full_well_e`` and
+        r = ``read_noise_e``, plus σ_s², plus Δ²/12 of the quantiser's step Δ = 1 / (2^bits − 1); with a gain map
         a (the window at ``origin``; None: at :attr:`gain_origin`, the window :meth:`forward` noises),
         a²·v(g/a). None for a noise-free model (what the measurement-consistency steps take as "trust
         every residual"). Computed in float32 at least
@@ -234,10 +239,10 @@ class SensorNoise(nn.Module):
     def _variance(self, g: torch.Tensor) -> torch.Tensor:
         """:meth:`variance` of an image without a gain map (``declares_noise`` holds)."""
         var = None
-        if self.model == "gaussian" and self.sigma > 0:
-            var = torch.full_like(g, self.sigma**2)
-        elif self.model == "poisson_gaussian":
+        if self.model == "poisson_gaussian":
             var = g.clamp_min(0) / self.full_well_e + (self.read_noise_e / self.full_well_e) ** 2
+        if self.sigma > 0:  # σ_s, independent of the photon and read noise
+            var = torch.full_like(g, self.sigma**2) if var is None else var + self.sigma**2
         if self.bit_depth is not None:
             q = torch.full_like(g, (1.0 / (2**self.bit_depth - 1)) ** 2 / 12.0)
             var = q if var is None else var + q
