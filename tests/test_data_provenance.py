@@ -243,3 +243,47 @@ def test_a_nan_batch_names_the_data_not_the_learning_rate(proj, tmp_path):
     assert "s0.h5" not in msg and "lower the learning rates" not in msg
     assert str(not_finite_error("training", 7, float("nan"), torch.ones(2, 3, 4, 4))) == \
         "training diverged at step 7 (loss nan); lower the learning rates"
+
+
+def test_evaluate_flags_training_scenes_of_a_synthetic_run_scored_on_another_split(tmp_path, cache_env, caplog):
+    """A run on the synthetic data has no data.json, so ``evaluate --run RUN --set data.val_fraction=…``
+    (or ``split_seed``, ``val_pool``, ``synthetic_n``: keys an evaluation may change) scored a
+    "synthetic validation split" that held scenes the network trained on, without a word. The roles are
+    now those of the run's own split: checked against the cubes themselves (a scored scene is a
+    training scene when its pixels equal those of one of the run's training scenes)."""
+    import h5py
+
+    from hsicam.data.pipeline import split_dataset
+    from hsicam.engine.provenance import synthetic_scene_roles
+
+    run = tmp_path / "run"
+    assert_ok(run_cli("train", "--config", "tiny", *SETS, "--out", str(run)))
+    run_cfg = load_config(run / "config.yaml")
+    bands = run_cfg.bands.to_bands()
+    wider = load_config(run / "config.yaml", ["data.val_fraction=0.5", "data.synthetic_n=8"])
+    train, _ = split_dataset(run_cfg.data, bands)
+    _, scored = split_dataset(wider.data, bands)
+
+    def pixels(path):  # the file's cube, read with h5py
+        with h5py.File(path, "r") as fh:
+            return fh["cube"][()].tobytes()
+
+    trained_on = {pixels(p) for p in train}
+    want = ["train" if pixels(p) in trained_on else "not train" for p in scored]
+    assert "train" in want and "not train" in want  # the case this test is about
+    got = synthetic_scene_roles(run_cfg.data, wider.data, scored)
+    assert [r if r == "train" else "not train" for r in got] == want
+    held = ",".join(reversed(run_cfg.data.holdout_sources.split(",")))  # the same sources, written otherwise
+    reordered = load_config(run / "config.yaml", ["data.val_fraction=0.5", "data.synthetic_n=8", f"data.holdout_sources={held}"])
+    assert synthetic_scene_roles(run_cfg.data, reordered.data, scored) == got
+    with caplog.at_level(logging.WARNING, logger="hsicam"):
+        assert_ok(run_cli("evaluate", "--run", str(run), "--set", "data.val_fraction=0.5", "--set", "data.synthetic_n=8",
+                          "--out", str(tmp_path / "ev")))
+    res = json.loads((tmp_path / "ev" / "results.json").read_text())
+    n = want.count("train")
+    assert res["warning"] == f"{n} of {len(want)} scenes were training scenes of {run}: their scores are not a validation"
+    assert [r["split"] == "train" for r in res["scenes"]] == [w == "train" for w in want]
+    # the run's own split: nothing to flag, the results as before (no split column)
+    assert_ok(run_cli("evaluate", "--run", str(run), "--out", str(tmp_path / "ev0")))
+    res0 = json.loads((tmp_path / "ev0" / "results.json").read_text())
+    assert "warning" not in res0 and all("split" not in r for r in res0["scenes"])

@@ -119,7 +119,7 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     from hsicam.engine.experiments import heldout_scenes, validation_scenes
     from hsicam.engine.methods import METHOD_ALIASES, build_method
     from hsicam.data.pipeline import absolute_data_paths
-    from hsicam.engine.provenance import read_data_record, scene_roles, training_scenes_warning
+    from hsicam.engine.provenance import read_data_record, scene_roles, synthetic_scene_roles, training_scenes_warning
     from hsicam.cli import prepare_output
     from hsicam.io import atomic_output
     from hsicam.runs.folder import check_is_run
@@ -172,6 +172,10 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     # which scenes the run trained on (its data.json; none for the synthetic data or an older run)
     recorded = read_data_record(args.run) if args.run else None
     roles = scene_roles(recorded, scenes.paths) if recorded is not None else None
+    if roles is None and args.run and paths is None:
+        # the synthetic data: the scored split (the evaluation's data.* keys) against the run's own split
+        synthetic = synthetic_scene_roles(config_from_args(Path(args.run) / "config.yaml").data, cfg.data, scenes.paths)
+        roles = synthetic if synthetic is not None and "train" in synthetic else None
     warning = training_scenes_warning(roles, args.run) if roles else None
     if warning:
         log.warning(warning)

@@ -11,7 +11,8 @@ Scene paths are relative to ``root`` (``/`` separators); size and modification t
 file a scene is read from (:func:`hsicam.data.pipeline.scene_stat`). A resume compares the folder
 with it and refuses another split (:func:`check_same_data`); ``evaluate --run`` tells training,
 validation and unseen scenes apart by it (:func:`scene_roles`). Runs on the synthetic data (its
-cache is deterministic) and runs from before this record have none: nothing is checked.
+cache is deterministic) and runs from before this record have none: a synthetic run's scenes are told
+apart by its config's split instead (:func:`synthetic_scene_roles`).
 """
 
 from __future__ import annotations
@@ -147,6 +148,32 @@ def scene_roles(recorded: dict[str, Any], paths: Sequence[str | os.PathLike]) ->
     return out
 
 
+def synthetic_scene_roles(trained: DataConfig, scored: DataConfig, paths: Sequence[str | os.PathLike]) -> list[str] | None:
+    """``"train"``, ``"validation"`` or ``"unseen"`` for each scene of ``paths``, scenes of the synthetic
+    training-set cache of the config ``scored`` (e.g. the validation split of an evaluation's
+    ``--set data.val_fraction=…``), by the split of the run's own synthetic data ``trained`` (its
+    config.yaml): a synthetic run has no ``data.json``, and a scored split other than the run's (another
+    ``val_fraction``, ``split_seed``, ``val_pool`` or ``synthetic_n``) holds scenes the network trained
+    on. None unless both are the synthetic data; "unseen" for every scene when the two generate other
+    scenes (another ``synthetic_seed``, ``synthetic_size`` or set of ``holdout_sources``: scene i of a seed is
+    the same cube whatever ``synthetic_n``; the bands are the run's own)."""
+    from hsicam.data.datasets import split_scenes
+    from hsicam.data.synthetic import DEFAULT_HOLDOUT, SCENE_PATTERN, parse_holdout
+
+    if trained.root is not None or scored.root is not None:
+        return None
+
+    def content(d: DataConfig) -> tuple:
+        return d.synthetic_seed, d.synthetic_size, parse_holdout(getattr(d, "holdout_sources", DEFAULT_HOLDOUT))
+
+    if content(trained) != content(scored):
+        return ["unseen"] * len(paths)
+    names = [Path(SCENE_PATTERN.format(i)) for i in range(trained.synthetic_n)]
+    train, val = split_scenes(names, trained.val_fraction, trained.split_seed, trained.val_pool)
+    role = {**{p.name: "validation" for p in val}, **{p.name: "train" for p in train}}
+    return [role.get(Path(p).name, "unseen") for p in paths]
+
+
 def training_scenes_warning(roles: Sequence[str], run: str | Path) -> str | None:
     """The one warning line when some scored scenes were training scenes of ``run``, else None."""
     n = sum(r == "train" for r in roles)
@@ -156,4 +183,4 @@ def training_scenes_warning(roles: Sequence[str], run: str | Path) -> str | None
 
 
 __all__ = ["check_same_data", "data_changes", "data_record", "read_data_record", "scene_roles",
-           "training_scenes_warning", "write_data_record"]
+           "synthetic_scene_roles", "training_scenes_warning", "write_data_record"]
