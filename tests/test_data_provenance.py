@@ -245,7 +245,15 @@ def test_a_nan_batch_names_the_data_not_the_learning_rate(proj, tmp_path):
         "training diverged at step 7 (loss nan); lower the learning rates"
 
 
-def test_evaluate_flags_training_scenes_of_a_synthetic_run_scored_on_another_split(tmp_path, cache_env, caplog):
+@pytest.fixture(scope="module")
+def synthetic_run(tmp_path_factory, cache_env):
+    """A tiny run trained on the synthetic data (no data.json)."""
+    run = tmp_path_factory.mktemp("synthetic") / "run"
+    assert_ok(run_cli("train", "--config", "tiny", *SETS, "--out", str(run)))
+    return run
+
+
+def test_evaluate_flags_training_scenes_of_a_synthetic_run_scored_on_another_split(synthetic_run, tmp_path, caplog):
     """A run on the synthetic data has no data.json, so ``evaluate --run RUN --set data.val_fraction=…``
     (or ``split_seed``, ``val_pool``, ``synthetic_n``: keys an evaluation may change) scored a
     "synthetic validation split" that held scenes the network trained on, without a word. The roles are
@@ -256,8 +264,7 @@ def test_evaluate_flags_training_scenes_of_a_synthetic_run_scored_on_another_spl
     from hsicam.data.pipeline import split_dataset
     from hsicam.engine.provenance import synthetic_scene_roles
 
-    run = tmp_path / "run"
-    assert_ok(run_cli("train", "--config", "tiny", *SETS, "--out", str(run)))
+    run = synthetic_run
     run_cfg = load_config(run / "config.yaml")
     bands = run_cfg.bands.to_bands()
     wider = load_config(run / "config.yaml", ["data.val_fraction=0.5", "data.synthetic_n=8"])
@@ -287,3 +294,29 @@ def test_evaluate_flags_training_scenes_of_a_synthetic_run_scored_on_another_spl
     assert_ok(run_cli("evaluate", "--run", str(run), "--out", str(tmp_path / "ev0")))
     res0 = json.loads((tmp_path / "ev0" / "results.json").read_text())
     assert "warning" not in res0 and all("split" not in r for r in res0["scenes"])
+
+
+def test_evaluate_refuses_a_heldout_set_of_sources_the_run_trained_on(synthetic_run, tmp_path):
+    """``--set data.holdout_sources=cie-tcs`` on a run that held out nist-philips and rawtoaces built a
+    "held-out spectral sources" set (results: "scenes whose reflectances and lights the training scenes
+    never contain") from the CIE test samples, which its training scenes were made of. Checked on the
+    spectra: every reflectance of that set is one of the run's training library; now refused before
+    anything is generated, while a subset of the run's held-out sources is still scored."""
+    from hsicam.data.spectral_sources import spectral_library
+    from hsicam.engine.provenance import heldout_sources_problem
+
+    run_cfg = load_config(synthetic_run / "config.yaml")
+    bands = run_cfg.bands.to_bands()
+    trained = spectral_library(bands, run_cfg.data.holdout_sources, "train").reflectances
+    asked = spectral_library(bands, "cie-tcs", "heldout").reflectances
+    seen = np.abs(asked[:, None, :] - trained[None, :, :]).max(axis=2).min(axis=1) < 1e-9
+    assert seen.all()  # not held out: the network trained on every one of these spectra
+    wrong = load_config(synthetic_run / "config.yaml", ["data.holdout_sources=cie-tcs"]).data
+    assert "cie-tcs" in heldout_sources_problem(run_cfg.data, wrong)
+    res = run_cli("evaluate", "--run", str(synthetic_run), "--set", "data.holdout_sources=cie-tcs",
+                  "--out", str(tmp_path / "ev"))
+    assert_clean_error(res, "cie-tcs")
+    assert not (tmp_path / "ev" / "results.json").exists()
+    subset = load_config(synthetic_run / "config.yaml", ["data.holdout_sources=rawtoaces"]).data
+    assert heldout_sources_problem(run_cfg.data, subset) is None
+    assert heldout_sources_problem(run_cfg.data, run_cfg.data) is None

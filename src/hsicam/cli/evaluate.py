@@ -119,7 +119,8 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     from hsicam.engine.experiments import heldout_scenes, validation_scenes
     from hsicam.engine.methods import METHOD_ALIASES, build_method
     from hsicam.data.pipeline import absolute_data_paths
-    from hsicam.engine.provenance import read_data_record, scene_roles, synthetic_scene_roles, training_scenes_warning
+    from hsicam.engine.provenance import (heldout_sources_problem, read_data_record, scene_roles, synthetic_scene_roles,
+                                          training_scenes_warning)
     from hsicam.cli import prepare_output
     from hsicam.io import atomic_output
     from hsicam.runs.folder import check_is_run
@@ -157,6 +158,10 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     noise = TestNoise(args.sigma_height_nm, args.sensor_sigma, tuple(range(args.seeds)))
     # before the scenes are listed or generated: test noise the method's camera cannot take
     check_test_noise(method, noise, f"run {args.run}" if args.run else f"--config {args.config or 'default'}")
+    problem = (heldout_sources_problem(config_from_args(Path(args.run) / "config.yaml").data, cfg.data)
+               if args.run and paths is None else None)
+    if problem:  # before any scene is generated
+        raise InputError(f"{args.run}: {problem}")
     if paths is not None:
         scenes = scene_dataset(cfg.data, paths, bands)
         # unique names (stems; the scenes whose stems collide by their paths), each row with its path

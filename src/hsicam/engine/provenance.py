@@ -174,6 +174,28 @@ def synthetic_scene_roles(trained: DataConfig, scored: DataConfig, paths: Sequen
     return [role.get(Path(p).name, "unseen") for p in paths]
 
 
+def heldout_sources_problem(trained: DataConfig, scored: DataConfig) -> str | None:
+    """Why the held-out-sources set of the evaluation's data config ``scored`` would not be held out
+    from a run trained on ``trained`` (its config.yaml), or None: ``--set data.holdout_sources=…``
+    naming a source the run's synthetic training scenes contained built a "held-out" set of spectra the
+    network trained on. None when ``scored`` builds no held-out set (real data, or nothing held out)."""
+    from hsicam.data.synthetic import DEFAULT_HOLDOUT, parse_holdout
+
+    asked = parse_holdout(getattr(scored, "holdout_sources", DEFAULT_HOLDOUT))
+    if scored.root is not None or not asked:
+        return None
+    if trained.root is not None:
+        return (f"data.holdout_sources={','.join(asked)}: the run trained on the scenes of {trained.root}, whose "
+                "spectra are unknown, so no synthetic set is held out from it")
+    held = set(parse_holdout(getattr(trained, "holdout_sources", DEFAULT_HOLDOUT)))
+    seen = [s for s in asked if s not in held]
+    if not seen:
+        return None
+    return (f"data.holdout_sources={','.join(asked)}: the run's training scenes contain the spectra of "
+            f"{', '.join(seen)} (it held out {', '.join(sorted(held)) or 'none'}), so a set built from them is not held "
+            "out; give data.holdout_sources a subset of the run's")
+
+
 def training_scenes_warning(roles: Sequence[str], run: str | Path) -> str | None:
     """The one warning line when some scored scenes were training scenes of ``run``, else None."""
     n = sum(r == "train" for r in roles)
@@ -183,4 +205,4 @@ def training_scenes_warning(roles: Sequence[str], run: str | Path) -> str | None
 
 
 __all__ = ["check_same_data", "data_changes", "data_record", "read_data_record", "scene_roles",
-           "synthetic_scene_roles", "training_scenes_warning", "write_data_record"]
+           "heldout_sources_problem", "synthetic_scene_roles", "training_scenes_warning", "write_data_record"]
