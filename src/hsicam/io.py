@@ -1029,11 +1029,18 @@ def write_png16(path: str | os.PathLike, image01: np.ndarray, text: dict[str, st
         tmp.write_bytes(encoded)
 
 
+def png8_values(rgb01: np.ndarray) -> np.ndarray:
+    """The 8-bit values (uint8, same shape) that :func:`write_png8` stores for an image in [0, 1]:
+    clipped, times 255, rounded (float64 temporaries of the input's size: pass large images in parts)."""
+    return np.round(np.clip(np.asarray(rgb01, dtype=np.float64), 0.0, 1.0) * 255.0).astype(np.uint8)
+
+
 def write_png8(path: str | os.PathLike, rgb01: np.ndarray) -> None:
-    """Write an (H, W, 3) or (H, W) image in [0, 1] as an 8-bit PNG (values are clipped)."""
+    """Write an (H, W, 3) or (H, W) image in [0, 1] as an 8-bit PNG (values are clipped); a uint8
+    image is taken as those 8-bit values (:func:`png8_values`) and written as is."""
     import imageio.v3 as iio
 
-    data = np.round(np.clip(np.asarray(rgb01, dtype=np.float64), 0.0, 1.0) * 255.0).astype(np.uint8)
+    data = rgb01 if isinstance(rgb01, np.ndarray) and rgb01.dtype == np.uint8 else png8_values(rgb01)
     with atomic_path(path) as tmp:  # encoded in memory, as in write_png16
         tmp.write_bytes(iio.imwrite("<bytes>", data, extension=".png"))
 

@@ -233,16 +233,63 @@ def check_outputs(path: Path, inputs: dict[str, str | None]) -> None:
     check_replaceable_outputs(path)
 
 
+#: Pixels of the cube that :func:`srgb_preview` renders at a time (256 Ki: 32 MB of a 31-band cube).
+PREVIEW_CHUNK_PX = 1 << 18
+
+#: Bytes a cube file holds besides its pixels (HDF5 headers, band centres, metadata; an ENVI header), at most.
+CUBE_FILE_OVERHEAD_BYTES = 1 << 20
+
+
+def srgb_preview(cube: np.ndarray, bands, chunk_px: int | None = None) -> np.ndarray:
+    """The 8-bit sRGB preview (H, W, 3) uint8 of a (C, H, W) float32 cube: :func:`hsicam.color.cube_to_srgb`
+    quantised as :func:`hsicam.io.write_png8` does, rendered a band of rows (about ``chunk_px`` pixels,
+    default :data:`PREVIEW_CHUNK_PX`) at a time, so its temporaries stay that size whatever the cube's
+    (whole, they were half a cube; the same values: each pixel's colour is its own)."""
+    from hsicam.color import cube_to_srgb
+    from hsicam.io import png8_values
+
+    _, h, w = cube.shape
+    rows = max(1, int(PREVIEW_CHUNK_PX if chunk_px is None else chunk_px) // w)
+    out = np.empty((h, w, 3), dtype=np.uint8)
+    for r0 in range(0, h, rows):
+        rgb = cube_to_srgb(torch.from_numpy(cube[:, r0 : r0 + rows]), bands).numpy()
+        out[r0 : r0 + rows] = png8_values(np.moveaxis(rgb, 0, -1))
+    return out
+
+
+def cube_file_bytes(path: Path, n_bands: int, height: int, width: int) -> int:
+    """Bytes, at most, of what reconstructing a (n_bands, height, width) cube to ``path`` writes: the
+    float32 cube and its file's overhead, and the preview (3 bytes a pixel: an upper bound of the PNG)."""
+    return 4 * n_bands * height * width + CUBE_FILE_OVERHEAD_BYTES + 3 * height * width + (1 << 16)
+
+
+def check_room_for_cube(path: Path, n_bands: int, height: int, width: int) -> None:
+    """InputError when the file system of ``path`` has less free space than the output
+    (:func:`cube_file_bytes`) and a margin (a tenth, at least 64 MiB): checked before the reconstruction
+    (minutes for a large capture) rather than found by a full disk at its end. Files replaced are not
+    counted as freed: each is written beside the old one before it takes its place."""
+    import shutil
+
+    from hsicam.memory import format_bytes
+
+    need = cube_file_bytes(path, n_bands, height, width)
+    where = next(p for p in (Path(path).absolute(), *Path(path).absolute().parents) if p.exists())
+    free = shutil.disk_usage(where).free
+    if free < need + max(need // 10, 1 << 26):
+        raise InputError(f"{path}: the cube of {n_bands} bands × {height}×{width} px and its preview need about "
+                         f"{format_bytes(need)}, but that disk has {format_bytes(free)} free; free some space or "
+                         "choose an --out on a larger disk")
+
+
 def write_cube_file(path: Path, cube: np.ndarray, bands, metadata: dict) -> None:
     """Our HDF5 (.h5) or ENVI (.hdr) by extension, plus an sRGB preview ``<stem>_rgb.png``."""
-    from hsicam.color import cube_to_srgb
     from hsicam.data.formats import write_cube_h5, write_envi
     from hsicam.io import write_png8
 
     suffix = path.suffix.lower()
     if suffix not in CUBE_SUFFIXES:
         raise InputError(f"{path}: output must end in .h5 (HDF5) or .hdr (ENVI)")
-    rgb = cube_to_srgb(torch.from_numpy(cube), bands).numpy()  # before any file is written
+    rgb = srgb_preview(cube, bands)  # before any file is written
     preview = path.with_name(f"{path.stem}_rgb.png")
     preview.unlink(missing_ok=True)  # an earlier reconstruction's (checked): never beside a newer cube
     if suffix in (".h5", ".hdf5"):
@@ -250,7 +297,7 @@ def write_cube_file(path: Path, cube: np.ndarray, bands, metadata: dict) -> None
     else:
         write_envi(path, cube, bands, description=ENVI_DESCRIPTIONS[0])
     try:
-        write_png8(preview, np.moveaxis(rgb, 0, -1))
+        write_png8(preview, rgb)
     except BaseException:  # Ctrl-C, SIGTERM, a full disk: the cube just written is not left without its preview
         for f in output_files(path)[:-1]:
             f.unlink(missing_ok=True)
@@ -422,6 +469,7 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
         raise InputError(f"{args.sensor}: the capture is {img.shape[0]}×{img.shape[1]} px, smaller than "
                          f"{'one CFA period' if period > 1 else 'a 2×2 image'} ({max(period, 2)}×{max(period, 2)} px): "
                          "too small to reconstruct")
+    check_room_for_cube(out, len(model.bands), *img.shape)  # before the work, which takes minutes at full size
     sensor = torch.from_numpy(img)[None, None].to(args.device)
     halo = model.context_px
     tile = args.tile  # None: reconstruct_tiled's default (default_tile_px), never below the halo
@@ -445,6 +493,10 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
     # Radiance is non-negative: the network's small negative excursions are clipped at 0.
     cube = cube.float().clamp_min_(0).cpu().numpy()
     check_outputs(out, inputs)  # again: the reconstruction may have taken a while
+    check_room_for_cube(out, cube.shape[0], *cube.shape[1:])
+    from hsicam.memory import format_bytes
+
+    log.info("writing %s (%s) and its sRGB preview", out, format_bytes(cube.nbytes))  # a minute at 4096² px
     write_cube_file(out, cube, model.bands, meta)
     print(f"reconstructed {cube.shape[0]} bands × {cube.shape[1]}×{cube.shape[2]} -> {out} "
           f"(sRGB preview {output_files(out)[-1].name})")

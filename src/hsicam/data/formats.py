@@ -1194,6 +1194,7 @@ def write_envi(path: str | os.PathLike, cube: np.ndarray, bands: Bands, *, inter
         info = np.iinfo(dt)
         out = np.clip(np.round(out), info.min, info.max)
     out = np.ascontiguousarray(out, dtype=dt.newbyteorder("<" if byte_order == "little" else ">"))
+    raw = out.reshape(-1).view(np.uint8)  # the bytes, without a copy (tobytes() doubled a cube in memory)
     c, h, w = arr.shape
     fmt = lambda v: ", ".join(f"{x:.6g}" for x in v)  # noqa: E731
     header = (
@@ -1204,10 +1205,10 @@ def write_envi(path: str | os.PathLike, cube: np.ndarray, bands: Bands, *, inter
         "wavelength units = Nanometers\n"
         f"wavelength = {{{fmt(bands.centers_nm)}}}\n"
         f"fwhm = {{{fmt(bands.fwhm_nm)}}}\n"
-        f"{ENVI_CRC_KEY} = {zlib.crc32(memoryview(out).cast('B')):08x}\n"
+        f"{ENVI_CRC_KEY} = {zlib.crc32(raw):08x}\n"
     )
-    with atomic_path(data) as tmp:
-        tmp.write_bytes(out.tobytes())
+    with atomic_path(data) as tmp, open(tmp, "wb") as fh:
+        fh.write(raw)
     with atomic_path(hdr) as tmp:
         tmp.write_text(header, encoding="utf-8")
     return hdr, data

@@ -3,7 +3,9 @@
 The networks are local (each declares its ``context_px``), so a tile computed with a halo of at
 least that many pixels on every side equals the same region of a whole-image pass: tiles are cut
 with that halo and only their centres are kept, which makes the mosaic seamless (exactly, not by
-blending) while memory stays bounded by the tile size. Reading captures: :mod:`hsicam.data.images`.
+blending) while memory stays bounded by the tile size: besides the output, one window and its
+reconstruction are held at a time (the network's own working set, about 12× the window's cube for
+``pretrained:standard``, is the largest part). Reading captures: :mod:`hsicam.data.images`.
 """
 
 from __future__ import annotations
@@ -91,5 +93,6 @@ def reconstruct_tiled(reconstruct, sensor: torch.Tensor, tile_px: int | None = N
                 if out is None:
                     out = torch.empty(1, part.shape[1], h, w, dtype=part.dtype, device=part.device)
                 out[..., y0:y1, x0:x1] = part[..., y0 - ya : y1 - ya, x0 - xa : x1 - xa]
+                del part  # freed before the next window is computed: one window's cube at a time, not two
                 bar.update(1)
     return out

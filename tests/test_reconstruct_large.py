@@ -1,0 +1,116 @@
+"""Full-size captures (2048² to 4096² px, session 41): what ``reconstruct`` holds beyond the cube it returns
+stays a fixed tile's working set (one window and its reconstruction at a time), writing the cube and
+its preview adds little to it (the preview rendered in parts, the finiteness check band by band, the
+ENVI data written from the array itself), and the free disk space is checked for the real output
+before the reconstruction starts."""
+
+from __future__ import annotations
+
+import re
+import shutil
+import tracemalloc
+import weakref
+
+import numpy as np
+import pytest
+import torch
+from cli_helpers import error_line, run_cli_in_process
+
+import hsicam.cli.reconstruct as rc
+from hsicam.color import cube_to_srgb
+from hsicam.data.formats import read_cube, read_envi
+from hsicam.engine.inference import reconstruct_tiled
+from hsicam.spectral import Bands
+
+BANDS = Bands.uniform(400.0, 700.0, 10.0)
+
+
+def test_tiles_hold_one_window_reconstruction_at_a_time():
+    """The previous tile's reconstruction (a window's whole cube, 250 MB for pretrained:standard's
+    default tile) is freed before the next window is computed: it used to stay alive through it."""
+    alive: list[weakref.ref] = []
+    held = []
+
+    def fn(window: torch.Tensor) -> torch.Tensor:
+        held.append(sum(r() is not None for r in alive))
+        part = window.expand(-1, 3, -1, -1) * 2.0
+        alive.append(weakref.ref(part))
+        return part
+
+    fn.context_px = 2
+    img = torch.rand(1, 1, 40, 30)
+    out = reconstruct_tiled(fn, img, tile_px=16)
+    assert len(held) == 6 and held == [0] * 6, held
+    torch.testing.assert_close(out, img.expand(-1, 3, -1, -1) * 2.0, rtol=0, atol=0)
+
+
+def _whole_preview(cube: np.ndarray) -> np.ndarray:
+    """The preview as it was computed before session 41: the whole cube at once."""
+    rgb = np.moveaxis(cube_to_srgb(torch.from_numpy(cube), BANDS).numpy(), 0, -1)
+    return np.round(np.clip(rgb.astype(np.float64), 0.0, 1.0) * 255.0).astype(np.uint8)
+
+
+def test_the_preview_is_rendered_in_parts_with_the_whole_cubes_values(monkeypatch):
+    cube = np.random.default_rng(0).uniform(0.0, 1.3, (31, 123, 77)).astype(np.float32)
+    calls = []
+
+    def spy(part, bands):
+        calls.append(part.shape[-2] * part.shape[-1])
+        return cube_to_srgb(part, bands)
+
+    monkeypatch.setattr("hsicam.color.cube_to_srgb", spy)
+    preview = rc.srgb_preview(cube, BANDS, chunk_px=1000)
+    assert preview.dtype == np.uint8 and preview.shape == (123, 77, 3)
+    assert len(calls) == 11 and max(calls) <= 1000 and sum(calls) == 123 * 77  # 12 rows a part
+    np.testing.assert_array_equal(preview, _whole_preview(cube))
+
+
+@pytest.mark.parametrize("suffix", [".h5", ".hdr"])
+def test_writing_a_cube_and_its_preview_holds_little_beyond_the_cube(tmp_path, monkeypatch, suffix):
+    """numpy's and Python's allocations while the cube (31 × 512 × 512, 32.5 MB) and its preview are written:
+    under a tenth of the cube (they were 0.45× for .h5: the preview's float64 copies and a whole-cube finiteness
+    mask; 1.2× for ENVI, whose data was copied into one bytes object); torch's (the preview's colour
+    conversion) are bounded by the part size, which the test above checks. The files read back as written."""
+    monkeypatch.setattr(rc, "PREVIEW_CHUNK_PX", 1 << 14, raising=False)
+    cube = np.random.default_rng(1).uniform(0.0, 1.0, (31, 512, 512)).astype(np.float32)
+    out = tmp_path / f"cube{suffix}"
+    rc.write_cube_file(tmp_path / f"warm{suffix}", cube[:, :8, :8], BANDS, {})  # imports and caches: not counted
+    tracemalloc.start()
+    try:
+        rc.write_cube_file(out, cube, BANDS, {"source": "test"})
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert peak < 0.1 * cube.nbytes, f"{peak / cube.nbytes:.2f}× the cube"
+    back = read_cube(out) if suffix == ".h5" else read_envi(out)
+    np.testing.assert_array_equal(back[0], cube)
+    import imageio.v3 as iio
+
+    np.testing.assert_array_equal(iio.imread(tmp_path / "cube_rgb.png"), _whole_preview(cube))
+
+
+def test_the_room_needed_is_the_real_output():
+    """A 4096² capture's 31-band float32 cube is 2.08 GB: the check asks for that, its preview and a little
+    more, not less."""
+    need = rc.cube_file_bytes(rc.Path("c.h5"), 31, 4096, 4096)
+    assert 31 * 4096 * 4096 * 4 + 3 * 4096 * 4096 <= need <= 31 * 4096 * 4096 * 4 + 3 * 4096 * 4096 + (2 << 20)
+
+
+def test_reconstruct_checks_the_free_space_before_the_work(tmp_path, monkeypatch):
+    sensor = tmp_path / "capture.npy"
+    np.save(sensor, np.random.default_rng(0).uniform(0.2, 0.8, (64, 80)).astype(np.float32))
+    usage = shutil.disk_usage(tmp_path)
+    need = rc.cube_file_bytes(tmp_path / "cube.h5", 31, 64, 80)
+    monkeypatch.setattr(shutil, "disk_usage", lambda p: usage._replace(free=need + (1 << 26) - 1))
+
+    def never(*args, **kwargs):
+        raise AssertionError("the reconstruction started")
+
+    monkeypatch.setattr("hsicam.engine.inference.reconstruct_tiled", never)
+    out = tmp_path / "out" / "cube.h5"
+    res = run_cli_in_process("reconstruct", str(sensor), "--run", "pretrained:standard", "--out", str(out))
+    line = error_line(res)
+    assert re.fullmatch(rf"hsicam: error: {re.escape(str(out))}: the cube of 31 bands × 64×80 px and its preview "
+                        r"need about 1\.\d+ MiB, but that disk has 65\.\d+ MiB free; free some space or choose an "
+                        r"--out on a larger disk", line), line
+    assert not out.exists() and not list(out.parent.glob("*")) if out.parent.exists() else True
