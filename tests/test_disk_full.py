@@ -105,7 +105,7 @@ def test_train_on_a_full_disk_is_one_line(env, tmp_path, monkeypatch):
 
 def test_evaluate_save_checks_the_free_space_first(reference, tmp_path, monkeypatch):
     usage = shutil.disk_usage(tmp_path)
-    monkeypatch.setattr("hsicam.engine.evaluate.shutil.disk_usage", lambda p: usage._replace(free=300_000))
+    monkeypatch.setattr("shutil.disk_usage", lambda p: usage._replace(free=300_000))
     out = tmp_path / "ev"
     res = run_cli_in_process("evaluate", "--run", str(reference), "--out", str(out), "--save")
     line = error_line(res)

@@ -93,6 +93,15 @@ def _nearest_existing(p: Path) -> Path:
     return Path(p.anchor or ".")
 
 
+def free_space_short(path: str | os.PathLike, need_bytes: int, min_margin_bytes: int = 1 << 26) -> int | None:
+    """The free bytes of the file system that ``path`` (or its nearest existing ancestor) is on, when
+    they are fewer than ``need_bytes`` plus a margin (a tenth of it, at least ``min_margin_bytes``);
+    None when there is room. The one home of the free-space checks made before long work (dataset
+    generation, ``evaluate --save``, ``reconstruct``): each caller words its own refusal."""
+    free = shutil.disk_usage(_nearest_existing(Path(path).absolute())).free
+    return free if free < need_bytes + max(need_bytes // 10, min_margin_bytes) else None
+
+
 def _writable_dir(d: Path) -> bool:
     return os.access(d, os.W_OK | os.X_OK)
 

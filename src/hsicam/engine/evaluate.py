@@ -13,7 +13,6 @@ from __future__ import annotations
 import csv
 import hashlib
 import io
-import shutil
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -25,7 +24,7 @@ import torch
 from hsicam.engine.inference import reconstruct_tiled
 from hsicam.engine.methods import Method, demosaic_reference  # noqa: F401  (re-exported)
 from hsicam.errors import InputError
-from hsicam.io import atomic_open, write_json
+from hsicam.io import atomic_open, free_space_short, write_json
 from hsicam.metrics import CONVENTIONS, SSIM_WINDOW_PX, all_metrics, sam_undefined_pixels
 from hsicam.progress import format_seconds
 
@@ -313,9 +312,8 @@ def check_room_for_cubes(out: Path, scenes, n_bands: int) -> None:
     :class:`~hsicam.data.datasets.SceneDataset`, float32 at most the scene's size) and a margin."""
     infos = [scenes.info(i) for i in range(len(scenes))]
     need = sum(2 * (n_bands * info.height * info.width * 4 + H5_OVERHEAD_BYTES) for info in infos)
-    where = next(p for p in (Path(out).absolute(), *Path(out).absolute().parents) if p.exists())
-    free = shutil.disk_usage(where).free
-    if free < need + max(need // 10, 1 << 20):
+    free = free_space_short(out, need, min_margin_bytes=1 << 20)
+    if free is not None:
         raise InputError(f"{out}: --save writes up to {need / 1e6:.1f} MB of cubes ({len(scenes)} scenes), but its file "
                          f"system has only {free / 1e6:.1f} MB free; free some space, choose another --out, or drop --save")
 
