@@ -223,8 +223,8 @@ def fit(task: Task, opts: FitOptions, run_dir: str | Path, resume: bool = False,
 
     Under torchrun (WORLD_SIZE > 1) it joins the process group, or creates it and then destroys it
     when training ends: a gloo group left to the interpreter's exit can abort the process
-    ("terminate called without an active exception", pytorch/pytorch#190489). After an error the
-    group is left as it is (a peer may still wait in a collective) and the error propagates.
+    ("terminate called without an active exception", pytorch/pytorch#190489). After an error it is
+    destroyed too, without a barrier (a peer may still wait in a collective), and the error propagates.
 
     Rank 0 holds the run folder's lock (:mod:`hsicam.runs.lock`) for as long as it writes into it,
     and lets go however it ends: another process training there is refused before anything is touched.
@@ -262,6 +262,19 @@ def fit(task: Task, opts: FitOptions, run_dir: str | Path, resume: bool = False,
         if own_group:
             dist.barrier()
             dist.destroy_process_group()
+        raise
+    except BaseException:
+        # any other error: no barrier (the other ranks may be anywhere, or gone), but the group is destroyed all the
+        # same, which only lets go of this process's side of it. Left alive, it lived on to the interpreter's exit
+        # with its gloo threads, the one condition under which a finished rank was seen to abort ("terminate called
+        # without an active exception", exit -6, instead of the error's own exit status): a non-main C++ thread that
+        # touches a Python object while Py_FinalizeEx runs is ended by pthread_exit inside a noexcept frame
+        # (pytorch#190489, pytorch#179291); the test harness's own reference to the group did it too (session 40).
+        if own_group and dist.is_initialized():
+            try:
+                dist.destroy_process_group()
+            except Exception:  # noqa: BLE001 - never in place of the error that ended the training
+                log.debug("destroy_process_group failed after an error", exc_info=True)
         raise
     if own_group:
         dist.barrier()
