@@ -260,8 +260,7 @@ def fit(task: Task, opts: FitOptions, run_dir: str | Path, resume: bool = False,
                                           finished=True)
     except (TrainingStopped, TrainingInterrupted):  # every rank stopped at the same step (_agreed_stop): the group ends cleanly
         if own_group:
-            dist.barrier()
-            dist.destroy_process_group()
+            _end_group(barrier=True)
         raise
     except BaseException:
         # any other error: no barrier (the other ranks may be anywhere, or gone), but the group is destroyed all the
@@ -270,16 +269,26 @@ def fit(task: Task, opts: FitOptions, run_dir: str | Path, resume: bool = False,
         # without an active exception", exit -6, instead of the error's own exit status): a non-main C++ thread that
         # touches a Python object while Py_FinalizeEx runs is ended by pthread_exit inside a noexcept frame
         # (pytorch#190489, pytorch#179291); the test harness's own reference to the group did it too (session 40).
-        if own_group and dist.is_initialized():
+        if own_group:
             try:
-                dist.destroy_process_group()
+                _end_group(barrier=False)
             except Exception:  # noqa: BLE001 - never in place of the error that ended the training
                 log.debug("destroy_process_group failed after an error", exc_info=True)
         raise
     if own_group:
-        dist.barrier()
-        dist.destroy_process_group()
+        _end_group(barrier=True)
     return result
+
+
+def _end_group(barrier: bool) -> None:
+    """Destroy the process group :func:`fit` created, after a barrier when every rank ends here together: also
+    when that barrier fails (a peer gone), so that the group never outlives the script (:func:`fit`)."""
+    try:
+        if barrier:
+            dist.barrier()
+    finally:
+        if dist.is_initialized():
+            dist.destroy_process_group()
 
 
 def finished_record(run_dir: Path, epochs: int, total_steps: int) -> dict[str, Any] | None:
