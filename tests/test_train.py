@@ -174,32 +174,47 @@ def test_ddp_two_processes_matches_single_process(tmp_path, cache_env, extra):
 DDP_ERROR_SCRIPT = KEEP_THE_GROUP + """
 import os, sys, torch
 from hsicam.config import load_config
+from hsicam.engine.tasks import SystemTask
 from hsicam.engine.train import train
 from hsicam.errors import InputError
-cfg = load_config("tiny", ["train.batch_size=3", "data.val_fraction=0.0"])
+overrides = ["train.batch_size=3"] if sys.argv[2] == "batch" else []  # a batch the 2 processes cannot share
+if sys.argv[2] == "step":  # an error once DDP wraps the model: after the first step's forward
+    forward = SystemTask.training_step
+    def training_step(self, model, batch, g):
+        forward(self, model, batch, g)
+        raise InputError("the step failed")
+    SystemTask.training_step = training_step
+torch.set_num_threads(1)
+cfg = load_config("tiny", ["train.epochs=1", "data.val_fraction=0.0", *overrides])
 try:
     train(cfg, sys.argv[1], progress=False)
     outcome = "trained"
 except InputError as exc:
-    outcome = "refused" if "divisible by the 2 processes" in str(exc) else repr(exc)
+    error = exc  # kept while the group's references are counted, as an uncaught error is kept to the exit
+    msg = str(exc)
+    outcome = "step" if msg == "the step failed" else "batch" if "divisible by the 2 processes" in msg else msg
 open(sys.argv[1] + ".rank" + os.environ.get("RANK", "0"), "w").write(
     f"{outcome} {torch.distributed.is_initialized()} {group_references()}")
 release_the_group()
 """
 
 
-def test_ddp_error_destroys_the_process_group(tmp_path, cache_env):
-    """An error in fit under torchrun (here a batch the 2 processes cannot share) destroys the group fit
-    created, as a finished or stopped training does: left to the interpreter's exit, its gloo threads can abort
-    the process ("terminate called without an active exception", exit -6, docs/training.md)."""
+@pytest.mark.parametrize("where", ["batch", "step"])
+def test_ddp_error_destroys_the_process_group(tmp_path, cache_env, where):
+    """An error in fit under torchrun (a batch the 2 processes cannot share, before DDP; or a step that fails,
+    once DDP wraps the model) destroys the group fit created, as a finished or stopped training does, and the
+    error's traceback no longer holds it (through the DDP wrapper in its frames): left to the interpreter's exit,
+    its gloo threads can abort the process ("terminate called without an active exception", exit -6,
+    docs/training.md). Without the destroy: "batch True 8"; without clearing the frames: "step False 1"."""
     script = tmp_path / "ddp_error.py"
     script.write_text(DDP_ERROR_SCRIPT)
     env = {**os.environ, "OMP_NUM_THREADS": "1", "HSICAM_CACHE": str(cache_env),
            "TMPDIR": str(torchrun_tmp(tmp_path))}
     res = subprocess.run([sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node=2",
-                          str(script), str(tmp_path / "run")], env=env, capture_output=True, text=True, timeout=300)
+                          str(script), str(tmp_path / "run"), where], env=env, capture_output=True, text=True,
+                         timeout=300)
     assert res.returncode == 0, res.stderr[-3000:]
-    assert [(tmp_path / f"run.rank{r}").read_text() for r in (0, 1)] == ["refused False 0", "refused False 0"]
+    assert [(tmp_path / f"run.rank{r}").read_text() for r in (0, 1)] == [f"{where} False 0"] * 2
 
 
 def test_train_and_reconstruct_cli(tmp_path, cache_env):

@@ -23,6 +23,7 @@ import logging
 import math
 import sys
 import time
+import traceback
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable, Iterator
@@ -224,7 +225,9 @@ def fit(task: Task, opts: FitOptions, run_dir: str | Path, resume: bool = False,
     Under torchrun (WORLD_SIZE > 1) it joins the process group, or creates it and then destroys it
     when training ends: a gloo group left to the interpreter's exit can abort the process
     ("terminate called without an active exception", pytorch/pytorch#190489). After an error it is
-    destroyed too, without a barrier (a peer may still wait in a collective), and the error propagates.
+    destroyed too, without a barrier (a peer may still wait in a collective), the locals of the traceback's
+    frames below ``fit`` are cleared (they hold the DDP wrapper, and through it the group), and the error
+    propagates.
 
     Rank 0 holds the run folder's lock (:mod:`hsicam.runs.lock`) for as long as it writes into it,
     and lets go however it ends: another process training there is refused before anything is touched.
@@ -266,10 +269,16 @@ def fit(task: Task, opts: FitOptions, run_dir: str | Path, resume: bool = False,
         # any other error: no barrier (the other ranks may be anywhere, or gone), but the group is destroyed all the
         # same, which only lets go of this process's side of it. Left alive, it lived on to the interpreter's exit
         # with its gloo threads, the one condition under which a finished rank was seen to abort ("terminate called
-        # without an active exception", exit -6, instead of the error's own exit status): a non-main C++ thread that
-        # touches a Python object while Py_FinalizeEx runs is ended by pthread_exit inside a noexcept frame
-        # (pytorch#190489, pytorch#179291); the test harness's own reference to the group did it too (session 40).
+        # without an active exception", exit -6, instead of the error's own exit status; pytorch#190489). Caught
+        # under gdb (docs/training.md): a pt_gloo_runloop thread drops the last reference to a finished work after
+        # wait() has returned; ~AsyncAllreduceWork frees a Python-made tensor, take_gil during Py_FinalizeEx calls
+        # pthread_exit, whose unwinding through that noexcept destructor is std::terminate. After a waited
+        # all_reduce, 9 of 20 runs that left the group alive to the exit aborted, 0 of 20 that destroyed it.
         if own_group:
+            # the traceback's frames below this one hold the DDP wrapper, whose reducer holds the group: cleared (their
+            # locals only; the traceback still prints), else the group and its threads lived as long as the error,
+            # to the interpreter's exit when it is not caught (hsicam's CLI re-raises an unexpected one)
+            traceback.clear_frames(sys.exc_info()[2])
             try:
                 _end_group(barrier=False)
             except Exception:  # noqa: BLE001 - never in place of the error that ended the training
