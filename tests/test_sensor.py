@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import logging
 import math
 
 import numpy as np
@@ -147,11 +148,18 @@ def test_sensor_sigma_set_on_any_noise_model_reaches_the_image(tiny_camera, mode
     torch.testing.assert_close(cam.noise.variance(g), var + (g - g.mean()) / n, rtol=1e-6, atol=0)
 
 
-def test_a_noise_free_sensor_with_a_gaussian_sigma_is_a_config_error(tiny_config):
-    from hsicam.errors import ConfigError
-
-    with pytest.raises(ConfigError, match="camera.sensor.noise=none"):
-        tiny_config("camera.sensor.noise=none", "camera.sensor.sigma=0.01")
+def test_a_noise_free_sensor_config_with_a_gaussian_sigma_stays_noise_free(tiny_camera, caplog):
+    """``noise: none`` with ``sigma`` > 0 loads (a run saved so keeps loading) and images as it always did,
+    noise-free, with one warning naming the key; set_noise's σ_s (evaluate --sensor-sigma) still applies."""
+    with caplog.at_level(logging.WARNING, logger="hsicam.sensor"):
+        cam = tiny_camera("camera.sensor.noise=none", "camera.sensor.sigma=0.01")
+    assert "camera.sensor.sigma=0.01 is not applied" in caplog.text
+    x = torch.rand(1, len(cam.bands), *cam.scene_size((40, 40)))
+    with torch.no_grad():
+        g = cam.A(x)
+        torch.testing.assert_close(cam(x, torch.Generator().manual_seed(0)), g, rtol=0, atol=0)
+        cam.set_noise(sensor_sigma=0.01)
+        assert float((cam(x, torch.Generator().manual_seed(0)) - g).std()) > 0.005
 
 
 def test_no_noise_is_identity():

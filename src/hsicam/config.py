@@ -276,9 +276,6 @@ class SensorConfig:
                               f"scale 1; more buries any signal), got {self.sigma}")
         if self.read_noise_e < 0:
             raise ConfigError(f"camera.sensor.read_noise_e must be >= 0, got {self.read_noise_e}")
-        if self.noise == "none" and self.sigma > 0:
-            raise ConfigError(f"camera.sensor.noise=none (a noise-free sensor) with camera.sensor.sigma={self.sigma:g}: "
-                              "set camera.sensor.noise=gaussian for Gaussian noise σ_s, or sigma 0")
         if self.bit_depth is not None and not (1 <= self.bit_depth <= 32):
             raise ConfigError(f"camera.sensor.bit_depth must be in 1..32, got {self.bit_depth}")
 

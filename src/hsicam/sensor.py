@@ -7,6 +7,7 @@ random; every forward pass applies ReLU then normalises over λ so Σ_λ κ = 1 
 
 from __future__ import annotations
 
+import logging
 import math
 
 import numpy as np
@@ -14,6 +15,8 @@ import torch
 from torch import nn
 
 from hsicam.optics.doe import straight_through
+
+log = logging.getLogger(__name__)
 
 _EPS = 1e-8
 
@@ -192,7 +195,14 @@ class SensorNoise(nn.Module):
 
     @classmethod
     def from_config(cls, s) -> "SensorNoise":  # s: hsicam.config.SensorConfig (camera.sensor)
-        return cls(s.noise, s.sigma, s.full_well_e, s.read_noise_e, s.bit_depth)
+        """The config's noise. ``noise: none`` with ``sigma`` > 0 stays noise-free, as it always imaged (a run saved
+        so keeps its images and loads), with one warning: σ_s needs ``noise: gaussian`` or ``poisson_gaussian``."""
+        sigma = s.sigma
+        if s.noise == "none" and sigma > 0:
+            log.warning("camera.sensor.sigma=%g is not applied: camera.sensor.noise=none is a noise-free sensor (set "
+                        "camera.sensor.noise=gaussian for Gaussian noise σ_s, or sigma 0)", sigma)
+            sigma = 0.0
+        return cls(s.noise, sigma, s.full_well_e, s.read_noise_e, s.bit_depth)
 
     def forward(self, g: torch.Tensor, generator: torch.Generator | None = None) -> torch.Tensor:
         """The noisy image of ``g`` (B, 1, H, W), whose top-left pixel is the gain map's origin when
