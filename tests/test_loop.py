@@ -266,3 +266,42 @@ def test_a_clamped_doe_is_checked_against_its_clamp_range():
     SystemTask(deep, CameraSystem.from_config(deep))
     wrapped = load_config("tiny", ["camera.doe.max_height_nm=300", "camera.doe.wrap=true", "train.doe_lr_nm=1000"])
     SystemTask(wrapped, CameraSystem.from_config(wrapped))  # wrapped heights span a phase period (h_2π ≈ 1282 nm)
+
+
+
+def test_clearing_an_errors_frames_reaches_the_errors_it_was_raised_from():
+    """fit's error path under torchrun clears the traceback's frame locals so the DDP wrapper (and the
+    process group it holds) dies with them; a frame reachable only through ``__cause__`` or ``__context__``
+    (an error raised while another was handled) is cleared too (review, session 41)."""
+    import traceback
+    import weakref
+
+    from hsicam.engine.loop import _clear_traceback_frames
+
+    class Held:  # stands for the DDP wrapper a training step's frame holds
+        pass
+
+    refs = []
+
+    def step(obj):
+        refs.append(weakref.ref(obj))
+        raise RuntimeError("inside the step")
+
+    def run(how):
+        try:
+            step(Held())  # the object is a local of step's frame only
+        except RuntimeError as e:
+            if how == "cause":
+                raise ValueError("from it") from e
+            raise ValueError("while handling it")
+
+    for how in ("cause", "context"):
+        for clear in (lambda err: traceback.clear_frames(err.__traceback__), _clear_traceback_frames):
+            refs.clear()
+            try:
+                run(how)
+            except ValueError as err:
+                clear(err)
+                alive = refs[0]() is not None
+            # the top traceback alone does not reach the step's frame; the chain does
+            assert alive is (clear is not _clear_traceback_frames), how

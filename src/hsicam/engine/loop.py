@@ -215,6 +215,17 @@ class FitOptions:
 # ------------------------------------------------------------------------------------------------
 # The loop
 # ------------------------------------------------------------------------------------------------
+def _clear_traceback_frames(exc: BaseException | None) -> None:
+    """Clear the locals of the frames of ``exc``'s traceback and of the errors it was raised from or
+    during (``__cause__``, ``__context__``: a frame such as the training step's, holding the DDP wrapper,
+    may be reachable only through them); executing frames are left alone (:func:`traceback.clear_frames`)."""
+    seen: set[int] = set()
+    while exc is not None and id(exc) not in seen:
+        seen.add(id(exc))
+        traceback.clear_frames(exc.__traceback__)
+        exc = exc.__cause__ or exc.__context__
+
+
 def fit(task: Task, opts: FitOptions, run_dir: str | Path, resume: bool = False,
         then: Callable[[dict[str, Any]], dict[str, Any]] | None = None) -> dict[str, Any]:
     """Train (or resume) ``task`` into ``run_dir``; returns the final summary (also the last line of
@@ -278,7 +289,7 @@ def fit(task: Task, opts: FitOptions, run_dir: str | Path, resume: bool = False,
             # the traceback's frames below this one hold the DDP wrapper, whose reducer holds the group: cleared (their
             # locals only; the traceback still prints), else the group and its threads lived as long as the error,
             # to the interpreter's exit when it is not caught (hsicam's CLI re-raises an unexpected one)
-            traceback.clear_frames(sys.exc_info()[2])
+            _clear_traceback_frames(sys.exc_info()[1])
             try:
                 _end_group(barrier=False)
             except Exception:  # noqa: BLE001 - never in place of the error that ended the training
