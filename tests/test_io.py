@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 import stat
 import subprocess
 import sys
@@ -417,3 +418,14 @@ def test_the_disk_errors_have_one_table_that_the_cli_and_checkpoints_read(monkey
                                      "resume the run once it can be written")
     monkeypatch.setitem(OS_ERROR_HINTS, errno.ENOSPC, "one place")  # the CLI has no copy of its own
     assert error_line(OSError(errno.ENOSPC, "x", "/d/x.npy")) == f"/d/x.npy: {os.strerror(errno.ENOSPC)} (one place)"
+
+
+def test_free_space_short_looks_past_a_broken_link(tmp_path):
+    """A path through a dangling symlink (e.g. a cache dir on an unmounted disk) is measured at the nearest
+    folder that exists, as the three checks it replaced did, not refused with FileNotFoundError (review)."""
+    from hsicam.io import free_space_short
+
+    link = tmp_path / "cache"
+    link.symlink_to(tmp_path / "gone" / "disk")
+    assert free_space_short(link / "data", 1) is None
+    assert free_space_short(link / "data", 1 << 62) == shutil.disk_usage(tmp_path).free

@@ -98,7 +98,9 @@ def free_space_short(path: str | os.PathLike, need_bytes: int, min_margin_bytes:
     they are fewer than ``need_bytes`` plus a margin (a tenth of it, at least ``min_margin_bytes``);
     None when there is room. The one home of the free-space checks made before long work (dataset
     generation, ``evaluate --save``, ``reconstruct``): each caller words its own refusal."""
-    free = shutil.disk_usage(_nearest_existing(Path(path).absolute())).free
+    p = Path(path).absolute()
+    where = next((a for a in (p, *p.parents) if a.exists()), Path(p.anchor or "/"))  # a broken link: its folder
+    free = shutil.disk_usage(where).free
     return free if free < need_bytes + max(need_bytes // 10, min_margin_bytes) else None
 
 
