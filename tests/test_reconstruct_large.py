@@ -44,6 +44,13 @@ def test_tiles_hold_one_window_reconstruction_at_a_time():
     torch.testing.assert_close(out, img.expand(-1, 3, -1, -1) * 2.0, rtol=0, atol=0)
 
 
+def _same_preview(a, b):
+    """Previews equal but for values on an 8-bit rounding boundary that a BLAS kernel chosen for another
+    row count may move by one (float32 colour matrices): at most one level, on a handful of values."""
+    d = np.abs(a.astype(np.int16) - b.astype(np.int16))
+    assert d.max() <= 1 and (d > 0).mean() < 1e-3, (int(d.max()), float((d > 0).mean()))
+
+
 def _whole_preview(cube: np.ndarray) -> np.ndarray:
     """The preview as it was computed before session 41: the whole cube at once."""
     rgb = np.moveaxis(cube_to_srgb(torch.from_numpy(cube), BANDS).numpy(), 0, -1)
@@ -62,7 +69,7 @@ def test_the_preview_is_rendered_in_parts_with_the_whole_cubes_values(monkeypatc
     preview = rc.srgb_preview(cube, BANDS, chunk_px=1000)
     assert preview.dtype == np.uint8 and preview.shape == (123, 77, 3)
     assert len(calls) == 11 and max(calls) <= 1000 and sum(calls) == 123 * 77  # 12 rows a part
-    np.testing.assert_array_equal(preview, _whole_preview(cube))
+    _same_preview(preview, _whole_preview(cube))
 
 
 @pytest.mark.parametrize("suffix", [".h5", ".hdr"])
@@ -71,7 +78,7 @@ def test_writing_a_cube_and_its_preview_holds_little_beyond_the_cube(tmp_path, m
     under a tenth of the cube (they were 0.45× for .h5: the preview's float64 copies and a whole-cube finiteness
     mask; 1.2× for ENVI, whose data was copied into one bytes object); torch's (the preview's colour
     conversion) are bounded by the part size, which the test above checks. The files read back as written."""
-    monkeypatch.setattr(rc, "PREVIEW_CHUNK_PX", 1 << 14, raising=False)
+    monkeypatch.setattr(rc, "PREVIEW_CHUNK_PX", 1 << 14)
     cube = np.random.default_rng(1).uniform(0.0, 1.0, (31, 512, 512)).astype(np.float32)
     out = tmp_path / f"cube{suffix}"
     rc.write_cube_file(tmp_path / f"warm{suffix}", cube[:, :8, :8], BANDS, {})  # imports and caches: not counted
@@ -86,7 +93,7 @@ def test_writing_a_cube_and_its_preview_holds_little_beyond_the_cube(tmp_path, m
     np.testing.assert_array_equal(back[0], cube)
     import imageio.v3 as iio
 
-    np.testing.assert_array_equal(iio.imread(tmp_path / "cube_rgb.png"), _whole_preview(cube))
+    _same_preview(iio.imread(tmp_path / "cube_rgb.png"), _whole_preview(cube))
 
 
 def test_the_room_needed_is_the_real_output():

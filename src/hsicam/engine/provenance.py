@@ -186,7 +186,7 @@ def heldout_sources_problem(trained: DataConfig, scored: DataConfig) -> str | No
         return None
     if trained.root is not None:
         return (f"data.holdout_sources={','.join(asked)}: the run trained on the scenes of {trained.root}, whose "
-                "spectra are unknown, so no synthetic set is held out from it")
+                "spectra are unknown, so no synthetic set is held out from it; add --set data.holdout_sources=none")
     held = set(parse_holdout(getattr(trained, "holdout_sources", DEFAULT_HOLDOUT)))
     seen = [s for s in asked if s not in held]
     if not seen:
