@@ -468,3 +468,51 @@ def test_scored_region_names_a_crop_only_where_the_camera_has_a_kernel_margin():
         g = cassi(torch.rand(1, len(cassi.bands), 32, 32))
     assert tuple(g.shape[-2:]) == (32, 32)  # nothing cropped
     assert scored_region(cassi).startswith("whole scene")
+
+
+def test_each_scene_gets_its_own_capture_noise_and_every_method_the_same(run):
+    """Under one noise seed, two scenes of the same size are captured with different sensor noise (one
+    field for all once correlated their errors), the same scene gets the same noise whichever method is
+    scored, and the DOE height draw (σ_p) is one element's for every scene: checked by re-imaging with the
+    generators evaluate documents (``capture_noise_seed``)."""
+    import dataclasses
+
+    import torch
+
+    from hsicam.config import load_config
+    from hsicam.engine.evaluate import TestNoise, capture_noise_seed, evaluate_method
+    from hsicam.engine.methods import build_method
+
+    cfg = load_config(run / "config.yaml", ["camera.sensor.noise=poisson_gaussian", "camera.sensor.full_well_e=30"])
+    box, learned = (build_method(m, cfg, run) for m in ("doe-box-demosaic", "doe-learned"))
+    scene = torch.rand(len(box.camera.bands), 48, 48, generator=torch.Generator().manual_seed(3))
+    captures: dict[tuple[str, str], torch.Tensor] = {}
+
+    def recording(method):
+        def fn(sensor):
+            captures[(method.name, f"s{sum(k[0] == method.name for k in captures)}")] = sensor.clone()
+            return method.reconstruct(sensor)
+        return dataclasses.replace(method, reconstruct=fn, model=None)
+
+    noise = TestNoise(sigma_height_nm=5.0, seeds=(7,))
+    for m in (box, learned):
+        evaluate_method(recording(m), [scene, scene], ["s0", "s1"], noise, keep_arrays=False)
+    b, l = box.name, learned.name
+    assert (captures[(b, "s0")] - captures[(b, "s1")]).abs().mean() > 1e-3  # the same scene, two captures' noise
+    for s in ("s0", "s1"):
+        torch.testing.assert_close(captures[(b, s)], captures[(l, s)], rtol=0, atol=0)
+    # what evaluate imaged: one σ_p draw from the seed, each scene's sensor noise from (seed, name)
+    cam = box.camera
+    levels = cam.noise_levels()
+    cam.set_noise(**{**levels, "sigma_height_nm": 5.0})
+    try:
+        with torch.no_grad():
+            for s in ("s0", "s1"):
+                expect = cam(scene[None], torch.Generator().manual_seed(7),
+                             sensor_generator=torch.Generator().manual_seed(capture_noise_seed(7, s)))
+                torch.testing.assert_close(captures[(b, s)], expect, rtol=0, atol=0)
+            other_element = cam(scene[None], torch.Generator().manual_seed(8),
+                                sensor_generator=torch.Generator().manual_seed(capture_noise_seed(7, "s0")))
+    finally:
+        cam.set_noise(**levels)
+    assert (other_element - captures[(b, "s0")]).abs().max() > 0  # σ_p was drawn (another seed, another element)

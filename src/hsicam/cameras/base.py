@@ -99,8 +99,10 @@ class Camera(nn.Module):
     def A_adjoint(self, y: torch.Tensor) -> torch.Tensor:  # noqa: N802
         raise NotImplementedError
 
-    def forward(self, x: torch.Tensor, generator: torch.Generator | None = None) -> torch.Tensor:
-        return self.noise(self.A(x), generator)
+    def forward(self, x: torch.Tensor, generator: torch.Generator | None = None, *,
+                sensor_generator: torch.Generator | None = None) -> torch.Tensor:
+        """Noisy sensor image: the sensor noise drawn from ``sensor_generator`` if given, else ``generator``."""
+        return self.noise(self.A(x), generator if sensor_generator is None else sensor_generator)
 
     @torch.no_grad()
     def capture(self, x: torch.Tensor, generator: torch.Generator | None = None, source: str = "scene") -> torch.Tensor:

@@ -175,9 +175,12 @@ class DOECamera(Camera):
         """The CFA transmission κ (C, height, width) of the sensor window at ``origin``."""
         return self.cfa.pattern(height, width, origin)
 
-    def forward(self, x: torch.Tensor, generator: torch.Generator | None = None) -> torch.Tensor:
-        """Noisy sensor image: DOE height noise (σ_p) and sensor noise drawn from ``generator``."""
-        return self.noise(self.A(x, self.psf(generator)), generator)
+    def forward(self, x: torch.Tensor, generator: torch.Generator | None = None, *,
+                sensor_generator: torch.Generator | None = None) -> torch.Tensor:
+        """Noisy sensor image: DOE height noise (σ_p) drawn from ``generator``, sensor noise from
+        ``sensor_generator`` if given (e.g. one fabricated element imaging several scenes, each capture
+        with its own noise), else from ``generator`` too."""
+        return self.noise(self.A(x, self.psf(generator)), generator if sensor_generator is None else sensor_generator)
 
     def measure(self, x: torch.Tensor, generator: torch.Generator | None = None):
         """(noisy sensor image, operator for the network). Without height noise the snapshot that

@@ -14,6 +14,7 @@ import csv
 import hashlib
 import io
 import time
+import zlib
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable, Sequence
@@ -53,6 +54,14 @@ class TestNoise:
     sigma_height_nm: float | None = None
     sensor_sigma: float | None = None
     seeds: tuple[int, ...] = (0,)
+
+
+def capture_noise_seed(seed: int, scene_name: str) -> int:
+    """The seed of scene ``scene_name``'s sensor noise under noise seed ``seed``: each scene's capture gets
+    its own noise field (one seed for all would give same-size scenes the same field, correlating their
+    errors), and every method scored on that scene with that seed gets the same one (paired comparisons).
+    The DOE height draw (σ_p) comes from ``seed`` alone: one fabricated element images every scene."""
+    return zlib.crc32(f"{int(seed)}:{scene_name}".encode())
 
 
 def config_hash(yaml_text: str) -> str:
@@ -192,7 +201,8 @@ def evaluate_method(method: Method, scenes, names: Sequence[str], noise: TestNoi
             per_seed, times, est0 = [], [], None
             for seed in noise.seeds:
                 g = torch.Generator(device=device).manual_seed(int(seed))
-                sensor = cam(scene, g)
+                sensor = cam(scene, g, sensor_generator=torch.Generator(device=device).manual_seed(
+                    capture_noise_seed(int(seed), name)))
                 t0 = time.perf_counter()
                 if halo is not None:
                     est = reconstruct_tiled(method.reconstruct, sensor, tile_px, halo)
