@@ -17,7 +17,7 @@ import torch
 from cli_helpers import error_line, run_cli_in_process
 
 import hsicam.cli.reconstruct as rc
-from hsicam.color import cube_to_srgb
+from hsicam.color import cube_to_srgb, srgb_preview
 from hsicam.data.formats import read_cube, read_envi
 from hsicam.engine.inference import reconstruct_tiled
 from hsicam.spectral import Bands
@@ -66,7 +66,7 @@ def test_the_preview_is_rendered_in_parts_with_the_whole_cubes_values(monkeypatc
         return cube_to_srgb(part, bands)
 
     monkeypatch.setattr("hsicam.color.cube_to_srgb", spy)
-    preview = rc.srgb_preview(cube, BANDS, chunk_px=1000)
+    preview = srgb_preview(cube, BANDS, chunk_px=1000)
     assert preview.dtype == np.uint8 and preview.shape == (123, 77, 3)
     assert len(calls) == 11 and max(calls) <= 1000 and sum(calls) == 123 * 77  # 12 rows a part
     _same_preview(preview, _whole_preview(cube))
@@ -78,7 +78,7 @@ def test_writing_a_cube_and_its_preview_holds_little_beyond_the_cube(tmp_path, m
     under a tenth of the cube (they were 0.45× for .h5: the preview's float64 copies and a whole-cube finiteness
     mask; 1.2× for ENVI, whose data was copied into one bytes object); torch's (the preview's colour
     conversion) are bounded by the part size, which the test above checks. The files read back as written."""
-    monkeypatch.setattr(rc, "PREVIEW_CHUNK_PX", 1 << 14)
+    monkeypatch.setattr("hsicam.color.PREVIEW_CHUNK_PX", 1 << 14)
     cube = np.random.default_rng(1).uniform(0.0, 1.0, (31, 512, 512)).astype(np.float32)
     out = tmp_path / f"cube{suffix}"
     rc.write_cube_file(tmp_path / f"warm{suffix}", cube[:, :8, :8], BANDS, {})  # imports and caches: not counted
@@ -99,7 +99,7 @@ def test_writing_a_cube_and_its_preview_holds_little_beyond_the_cube(tmp_path, m
 def test_the_room_needed_is_the_real_output():
     """A 4096² capture's 31-band float32 cube is 2.08 GB: the check asks for that, its preview and a little
     more, not less."""
-    need = rc.cube_file_bytes(rc.Path("c.h5"), 31, 4096, 4096)
+    need = rc.cube_file_bytes(31, 4096, 4096)
     assert 31 * 4096 * 4096 * 4 + 3 * 4096 * 4096 <= need <= 31 * 4096 * 4096 * 4 + 3 * 4096 * 4096 + (2 << 20)
 
 
@@ -107,7 +107,7 @@ def test_reconstruct_checks_the_free_space_before_the_work(tmp_path, monkeypatch
     sensor = tmp_path / "capture.npy"
     np.save(sensor, np.random.default_rng(0).uniform(0.2, 0.8, (64, 80)).astype(np.float32))
     usage = shutil.disk_usage(tmp_path)
-    need = rc.cube_file_bytes(tmp_path / "cube.h5", 31, 64, 80)
+    need = rc.cube_file_bytes(31, 64, 80)
     monkeypatch.setattr(shutil, "disk_usage", lambda p: usage._replace(free=need + (1 << 26) - 1))
 
     def never(*args, **kwargs):

@@ -150,7 +150,28 @@ def cube_to_srgb(cube: Array, bands: Bands) -> Array:
     return np.moveaxis(rgb, -1, axis)
 
 
+#: Pixels of the cube that :func:`srgb_preview` renders at a time (256 Ki: 32 MB of a 31-band cube).
+PREVIEW_CHUNK_PX = 1 << 18
+
+
+def srgb_preview(cube: np.ndarray, bands: Bands, chunk_px: int | None = None) -> np.ndarray:
+    """The 8-bit sRGB preview (H, W, 3) uint8 of a (C, H, W) float32 cube (``reconstruct``'s ``*_rgb.png``):
+    :func:`cube_to_srgb` quantised as :func:`hsicam.io.write_png8` does, rendered a band of rows (about
+    ``chunk_px`` pixels, default :data:`PREVIEW_CHUNK_PX`) at a time, so its temporaries stay that size
+    whatever the cube's (whole, they were half a cube; the same values: each pixel's colour is its own)."""
+    from hsicam.io import png8_values
+
+    _, h, w = cube.shape
+    rows = max(1, int(PREVIEW_CHUNK_PX if chunk_px is None else chunk_px) // w)
+    out = np.empty((h, w, 3), dtype=np.uint8)
+    for r0 in range(0, h, rows):
+        rgb = cube_to_srgb(torch.from_numpy(cube[:, r0 : r0 + rows]), bands).numpy()
+        out[r0 : r0 + rows] = png8_values(np.moveaxis(rgb, 0, -1))
+    return out
+
+
 __all__ = [
+    "PREVIEW_CHUNK_PX",
     "TABLE_RANGE_NM",
     "cmf_d65_table",
     "cube_to_srgb",
@@ -158,6 +179,7 @@ __all__ = [
     "spectra_to_srgb",
     "spectra_to_xyz",
     "srgb_encode",
+    "srgb_preview",
     "srgb_weights",
     "xyz_to_linear_srgb_matrix",
     "xyz_weights",

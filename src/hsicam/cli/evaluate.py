@@ -140,13 +140,14 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
             raise InputError("--run uses the run's config.yaml; drop --config")
         check_is_run(run)
         check_run_overrides(args.overrides)
+        run_cfg = config_from_args(run / "config.yaml")  # as the run trained (its data split and sources)
         cfg = config_from_args(run / "config.yaml", args.overrides)
         if args.method == "dd-cassi-choi":  # a prior key given by --set, even at its default value
             from hsicam.engine.methods import check_prior_overrides
 
             check_prior_overrides(run, cfg, args.overrides)
     else:
-        cfg = config_from_args(args.config, args.overrides)
+        run_cfg, cfg = None, config_from_args(args.config, args.overrides)
     try:
         method = build_method(args.method, cfg, args.run, args.device)
     except InputError as exc:
@@ -158,8 +159,7 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     noise = TestNoise(args.sigma_height_nm, args.sensor_sigma, tuple(range(args.seeds)))
     # before the scenes are listed or generated: test noise the method's camera cannot take
     check_test_noise(method, noise, f"run {args.run}" if args.run else f"--config {args.config or 'default'}")
-    problem = (heldout_sources_problem(config_from_args(Path(args.run) / "config.yaml").data, cfg.data)
-               if args.run and paths is None else None)
+    problem = heldout_sources_problem(run_cfg.data, cfg.data) if run_cfg is not None and paths is None else None
     if problem:  # before any scene is generated
         raise InputError(f"{args.run}: {problem}")
     if paths is not None:
@@ -179,7 +179,7 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     roles = scene_roles(recorded, scenes.paths) if recorded is not None else None
     if roles is None and args.run and paths is None:
         # the synthetic data: the scored split (the evaluation's data.* keys) against the run's own split
-        synthetic = synthetic_scene_roles(config_from_args(Path(args.run) / "config.yaml").data, cfg.data, scenes.paths)
+        synthetic = synthetic_scene_roles(run_cfg.data, cfg.data, scenes.paths)
         roles = synthetic if synthetic is not None and "train" in synthetic else None
     warning = training_scenes_warning(roles, args.run) if roles else None
     if warning:

@@ -233,32 +233,12 @@ def check_outputs(path: Path, inputs: dict[str, str | None]) -> None:
     check_replaceable_outputs(path)
 
 
-#: Pixels of the cube that :func:`srgb_preview` renders at a time (256 Ki: 32 MB of a 31-band cube).
-PREVIEW_CHUNK_PX = 1 << 18
-
 #: Bytes a cube file holds besides its pixels (HDF5 headers, band centres, metadata; an ENVI header), at most.
 CUBE_FILE_OVERHEAD_BYTES = 1 << 20
 
 
-def srgb_preview(cube: np.ndarray, bands, chunk_px: int | None = None) -> np.ndarray:
-    """The 8-bit sRGB preview (H, W, 3) uint8 of a (C, H, W) float32 cube: :func:`hsicam.color.cube_to_srgb`
-    quantised as :func:`hsicam.io.write_png8` does, rendered a band of rows (about ``chunk_px`` pixels,
-    default :data:`PREVIEW_CHUNK_PX`) at a time, so its temporaries stay that size whatever the cube's
-    (whole, they were half a cube; the same values: each pixel's colour is its own)."""
-    from hsicam.color import cube_to_srgb
-    from hsicam.io import png8_values
-
-    _, h, w = cube.shape
-    rows = max(1, int(PREVIEW_CHUNK_PX if chunk_px is None else chunk_px) // w)
-    out = np.empty((h, w, 3), dtype=np.uint8)
-    for r0 in range(0, h, rows):
-        rgb = cube_to_srgb(torch.from_numpy(cube[:, r0 : r0 + rows]), bands).numpy()
-        out[r0 : r0 + rows] = png8_values(np.moveaxis(rgb, 0, -1))
-    return out
-
-
-def cube_file_bytes(path: Path, n_bands: int, height: int, width: int) -> int:
-    """Bytes, at most, of what reconstructing a (n_bands, height, width) cube to ``path`` writes: the
+def cube_file_bytes(n_bands: int, height: int, width: int) -> int:
+    """Bytes, at most, of what reconstructing a (n_bands, height, width) cube writes: the
     float32 cube and its file's overhead, and the preview (3 bytes a pixel: an upper bound of the PNG)."""
     return 4 * n_bands * height * width + CUBE_FILE_OVERHEAD_BYTES + 3 * height * width + (1 << 16)
 
@@ -271,7 +251,7 @@ def check_room_for_cube(path: Path, n_bands: int, height: int, width: int) -> No
     from hsicam.io import free_space_short
     from hsicam.memory import format_bytes
 
-    need = cube_file_bytes(path, n_bands, height, width)
+    need = cube_file_bytes(n_bands, height, width)
     free = free_space_short(path, need)
     if free is not None:
         raise InputError(f"{path}: the cube of {n_bands} bands × {height}×{width} px and its preview need about "
@@ -281,6 +261,7 @@ def check_room_for_cube(path: Path, n_bands: int, height: int, width: int) -> No
 
 def write_cube_file(path: Path, cube: np.ndarray, bands, metadata: dict) -> None:
     """Our HDF5 (.h5) or ENVI (.hdr) by extension, plus an sRGB preview ``<stem>_rgb.png``."""
+    from hsicam.color import srgb_preview
     from hsicam.data.formats import write_cube_h5, write_envi
     from hsicam.io import write_png8
 
