@@ -39,6 +39,7 @@ def test_evaluate_writes_results_in_all_formats(run, env, tmp_path):
     assert res.stdout.startswith("doe-learned:") or "\ndoe-learned:" in res.stdout, res.stdout
     summary = json.loads((out / "results.json").read_text())
     assert summary["method"] == "doe-learned" and summary["noise"]["seeds"] == 2
+    assert "capture_noise_seed" in summary["noise"]["draws"]  # results say how the noise was drawn
     assert set(summary["conventions"]) >= {"psnr", "ssim", "sam", "ergas"}
     assert len(summary["config_hash"]) == 12
     names = [r["name"] for r in summary["scenes"]]

@@ -114,7 +114,7 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     from hsicam.data.datasets import list_scenes, scene_names, scene_path
     from hsicam.data.formats import write_cube_h5
     from hsicam.data.pipeline import scene_dataset
-    from hsicam.engine.evaluate import (TestNoise, check_room_for_cubes, check_scenes, check_test_noise, config_hash,
+    from hsicam.engine.evaluate import (NOISE_DRAWS, TestNoise, check_room_for_cubes, check_scenes, check_test_noise, config_hash,
                                         evaluate_method, format_table, scored_region, summarize, write_results)
     from hsicam.engine.experiments import heldout_scenes, validation_scenes
     from hsicam.engine.methods import METHOD_ALIASES, build_method
@@ -201,7 +201,7 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     summary = summarize(results, method=args.method, **where, data=data, config_hash=config_hash(dump_yaml(cfg)),
                         noise={"sigma_height_nm": args.sigma_height_nm, "sensor_sigma": args.sensor_sigma, "seeds": args.seeds,
                                # the capture noise of the evaluation's config (the camera's own, or --set)
-                               "camera_sensor": camera_sensor},
+                               "camera_sensor": camera_sensor, "draws": NOISE_DRAWS},
                         bands_nm=bands.centers_nm.tolist(), region=scored_region(method.camera), **saved)
     if roles is not None:
         for row, role in zip(summary["scenes"], roles):

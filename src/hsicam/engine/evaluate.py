@@ -56,6 +56,12 @@ class TestNoise:
     seeds: tuple[int, ...] = (0,)
 
 
+#: How the test noise is drawn (results.json's ``noise.draws``): see :func:`capture_noise_seed`.
+NOISE_DRAWS = ("under noise seed s, one DOE height draw (sigma_p) from s images every scene (one fabricated element); "
+               "each scene's sensor noise is drawn from seed capture_noise_seed(s, scene name): its own field, the "
+               "same for every method scored on that scene")
+
+
 def capture_noise_seed(seed: int, scene_name: str) -> int:
     """The seed of scene ``scene_name``'s sensor noise under noise seed ``seed``: each scene's capture gets
     its own noise field (one seed for all would give same-size scenes the same field, correlating their
