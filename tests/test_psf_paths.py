@@ -297,3 +297,25 @@ def test_a_doe_of_more_cells_than_the_memory_holds_is_refused_before_its_heights
     with pytest.raises(ConfigError, match="24,001×24,001 cells, whose heights alone need 2.15 GiB"):
         doe_camera.check_doe_memory(24001, 0.05, 0.6, enabled=False)
     doe_camera.check_doe_memory(16000, 0.05, 0.4, enabled=False)  # 0.95 GiB
+
+
+@pytest.mark.parametrize("period, said", [
+    ("100000", "camera.cfa.period=100000 is a CFA tile of 100,000×100,000 px whose 7 filter weights per pixel need "
+               "1.02 TiB, more than the memory budget of 1 GiB"),
+    ("99999999999999999999999", "camera.cfa.period=99999999999999999999999 is a CFA tile of"),
+])
+def test_a_cfa_period_whose_weights_exceed_the_memory_is_refused_in_one_line(tmp_path, monkeypatch, period, said):
+    """`hsicam psf --set camera.cfa.period=100000` asked torch for the 280 GB of its random weights (a
+    RuntimeError traceback of the allocator); a period beyond int64 failed in torch's argument parsing
+    (a TypeError traceback). Now the CFA's weights are checked against the memory budget first."""
+    monkeypatch.setenv("HSICAM_MEMORY_BUDGET_MB", "1024")
+    res = run_cli("psf", "--config", "tiny", "--set", f"camera.cfa.period={period}", "--out", str(tmp_path / "psf"))
+    assert_clean_error(res, said, "HSICAM_MEMORY_BUDGET_MB")
+    assert not (tmp_path / "psf").exists()
+
+
+def test_a_cfa_period_within_the_memory_is_built():
+    import hsicam.cameras.doe_camera as doe_camera
+
+    doe_camera.check_cfa_memory(15, 31)
+    doe_camera.check_cfa_memory(10**12, 31, enabled=False)  # no CFA: κ = 1, no weights

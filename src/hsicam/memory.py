@@ -6,7 +6,8 @@ limit when lower), and at most half of the address space left under a ``ulimit -
 ``prlimit --as`` limit. Sizes are in MiB. One home for every layer: the cube readers
 (:func:`hsicam.data.cube.check_memory_budget`), the PSF sampling plan
 (:func:`hsicam.optics.sampling.check_psf_memory`), the DOE's cell grid
-(:func:`hsicam.cameras.doe_camera.check_doe_memory`), a CASSI sensor's dispersed width
+(:func:`hsicam.cameras.doe_camera.check_doe_memory`), the CFA's weights
+(:func:`hsicam.cameras.doe_camera.check_cfa_memory`), a CASSI sensor's dispersed width
 (:func:`hsicam.cameras.cassi.check_dispersion_span`), a network's weights or training
 (:func:`hsicam.models.registry.check_network_memory`) and the Choi prior's
 (:func:`hsicam.models.priors.build_prior`; both through

@@ -43,6 +43,27 @@ def check_doe_memory(n_cells: int, cell_size_um: float, aperture_radius_mm: floa
                           f"({MEMORY_BUDGET_ENV}); check the cell size (in µm) or the aperture (in mm)")
 
 
+#: Bytes per CFA weight while the filters are made and trained: the float32 parameter, its gradient and
+#: Adam's two moments (the band-pass init's float64 draft aside, transient).
+CFA_BYTES_PER_WEIGHT = 4 * 4
+
+
+def check_cfa_memory(period: int, n_bands: int, enabled: bool = True) -> None:
+    """ConfigError, before the filter weights are allocated, for a CFA of more weights (bands × period²)
+    than the memory budget holds (``camera.cfa.period=100000`` asked torch for 280 GB and failed in a
+    traceback; a period beyond int64 failed in torch's argument parsing), naming the key."""
+    from hsicam.errors import ConfigError
+    from hsicam.memory import MEMORY_BUDGET_ENV, format_bytes, memory_budget_bytes
+
+    if not enabled:
+        return
+    need, budget = CFA_BYTES_PER_WEIGHT * n_bands * period**2, memory_budget_bytes()
+    if need > budget:
+        raise ConfigError(f"camera.cfa.period={period} is a CFA tile of {period:,}×{period:,} px whose {n_bands} "
+                          f"filter weights per pixel need {format_bytes(need)}, more than the memory budget of "
+                          f"{format_bytes(budget)} ({MEMORY_BUDGET_ENV}); a CFA period is a few pixels (the paper's: 3 to 15)")
+
+
 @register_camera("doe")
 class DOECamera(Camera):
     """Differentiable DOE camera. Build it with :meth:`from_config`.
@@ -91,6 +112,7 @@ class DOECamera(Camera):
             cam.object_distance_m, cam.psf.kernel_px, cam.psf.supersample, cam.psf.pupil_oversample,
             cam.psf.band_samples,
         )
+        check_cfa_memory(cam.cfa.period, len(bands), cam.cfa.enabled)
         cfa = ColorFilterArray(len(bands), cam.cfa.period, cam.cfa.enabled, cam.cfa.seed, cam.cfa.init,
                                bands.centers_nm, cam.cfa.bandpass_fwhm_nm, cam.cfa.layout)
         s = cam.sensor
