@@ -518,3 +518,20 @@ def test_the_window_checks_of_both_network_sections_name_their_own_section(secti
     with pytest.raises(ConfigError, match="^" + re.escape(section) + r"\." + message + "$"):
         load_config("tiny", [f"{section}.{setting}"])
     assert load_config("tiny", [f"{section}.demosaic_window=5", f"{section}.brightness_window=0"])
+
+
+@pytest.mark.parametrize("key", ["data.patches_per_epoch", "data.val_patches"])
+def test_a_patch_count_beyond_an_index_is_a_config_error(key, tmp_path, monkeypatch):
+    """`hsicam train --set data.patches_per_epoch=99999999999999999999999` (or data.val_patches) passed the
+    config and ended in an OverflowError traceback from the dataset's len() (Python holds a length in 64
+    bits); now the config refuses it, naming the key; 2^63 - 1 itself is a valid count."""
+    from cli_helpers import assert_clean_error, run_cli_in_process
+
+    with pytest.raises(ConfigError, match=rf"^{key} must be at most 2\^63 - 1 \(patches an epoch\), got 9223372036854775808$"):
+        load_config("tiny", [f"{key}={2**63}"])
+    load_config("tiny", [f"{key}={2**63 - 1}"])
+    monkeypatch.setenv("HSICAM_CACHE", str(tmp_path / "cache"))
+    res = run_cli_in_process("train", "--config", "tiny", "--out", str(tmp_path / "run"), "--set",
+                             f"{key}=99999999999999999999999")
+    assert_clean_error(res, f"{key} must be at most 2^63 - 1")
+    assert not (tmp_path / "run").exists()

@@ -42,6 +42,11 @@ def _positive(section: str, **values: float | None) -> None:
 SEED_MIN, SEED_MAX = -(2**63), 2**64 - 1
 
 
+#: The most patches an epoch (``data.patches_per_epoch``, ``data.val_patches``) can have: the length of a
+#: dataset, which Python's ``len`` holds in a signed 64-bit integer.
+MAX_PATCHES = 2**63 - 1
+
+
 def _power_text(n: int) -> str:
     """``n`` as ``2^k``, ``-2^k`` or ``2^k - 1`` when it is one of those (seed bounds), else its digits."""
     for m, tail in ((abs(n), ""), (n + 1, " - 1")):
@@ -706,6 +711,10 @@ class DataConfig:
         for name in ("synthetic_n", "patch_px", "patches_per_epoch", "val_patches"):
             if getattr(self, name) < 1:
                 raise ConfigError(f"data.{name} must be >= 1, got {getattr(self, name)}")
+        for name in ("patches_per_epoch", "val_patches"):  # a dataset's len(), which Python holds in 64 bits
+            if getattr(self, name) > MAX_PATCHES:
+                raise ConfigError(f"data.{name} must be at most {_power_text(MAX_PATCHES)} (patches an epoch), "
+                                  f"got {getattr(self, name)}")
         _check_seeds("data", 0, synthetic_seed=self.synthetic_seed, split_seed=self.split_seed)
         if self.synthetic_size < 16:
             raise ConfigError(f"data.synthetic_size must be >= 16 px, got {self.synthetic_size}")
