@@ -259,3 +259,18 @@ def test_every_argument_of_every_command_says_what_it_is():
                 yield f"{name} {'/'.join(action.option_strings) or action.dest}"
 
     assert list(bare(build_parser(), "hsicam")) == []
+
+
+@pytest.mark.parametrize("argv", [
+    ("evaluate", "--seeds", "99999999999999999999999", "--out", "OUT"),
+    ("experiment", "compare", "--scale", "tiny", "--seeds", "99999999999999999999999", "--out", "OUT"),
+    ("experiment", "noise", "--scale", "tiny", "--seeds", "1001", "--out", "OUT"),
+])
+def test_a_seed_count_beyond_the_bound_is_a_usage_error(tmp_path, argv):
+    """`hsicam evaluate --seeds 99999999999999999999999` (and `experiment --seeds`) passed the parser and
+    ended in an OverflowError traceback of range(); --seeds now takes at most MAX_SEEDS (1000)."""
+    from cli_helpers import assert_clean_error, run_cli_in_process
+
+    argv = tuple(str(tmp_path / "out") if a == "OUT" else a for a in argv)
+    assert_clean_error(run_cli_in_process(*argv), "argument --seeds: must be at most 1000")
+    assert not (tmp_path / "out").exists()

@@ -100,6 +100,19 @@ def count_arg(text: str) -> int:
     return value
 
 
+#: The most seeds ``--seeds`` takes: each one is a whole evaluation (or a training, for `hsicam experiment`);
+#: a count beyond the machine's integers ended in an OverflowError traceback of ``range``.
+MAX_SEEDS = 1000
+
+
+def seeds_arg(text: str) -> int:
+    """argparse ``type`` of ``--seeds`` (the seeds 0 … N-1): :func:`count_arg`, at most :data:`MAX_SEEDS`."""
+    value = count_arg(text)
+    if value > MAX_SEEDS:
+        raise argparse.ArgumentTypeError(f"must be at most {MAX_SEEDS} (each seed is a whole run), got {_shown(text)}")
+    return value
+
+
 def list_arg(convert: type, what: str, ok: Callable[[Any], bool] = lambda v: True, need: str = ""
              ) -> Callable[[str], tuple]:
     """argparse ``type`` of a comma-separated list of ``convert`` values (``what``: "numbers",

@@ -9,7 +9,7 @@ import sys
 from pathlib import Path
 
 from hsicam.cli import add_config_args, add_run_arg, config_from_args
-from hsicam.cli.args import check_tile, count_arg, device_arg, non_negative_number_arg, sensor_sigma_arg
+from hsicam.cli.args import check_tile, device_arg, non_negative_number_arg, sensor_sigma_arg, seeds_arg
 from hsicam.errors import InputError
 
 log = logging.getLogger(__name__)
@@ -34,7 +34,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="test DOE height noise σ_p (nm), >= 0")
     p.add_argument("--sensor-sigma", type=sensor_sigma_arg, default=None,
                    help="test sensor noise σ_s (fraction of full scale), in [0, 1]")
-    p.add_argument("--seeds", type=count_arg, default=1, help="number of noise seeds (0, 1, ...), >= 1 (default 1)")
+    p.add_argument("--seeds", type=seeds_arg, default=1, help="number of noise seeds (0, 1, ...), 1 to 1000 (default 1)")
     p.add_argument("--save", action="store_true",
                    help="also write each scene's reconstruction and ground truth (cubes/NAME_estimate.h5, NAME_truth.h5; "
                         "with --seeds N > 1 the estimate of seed 0, its metadata says so)")
@@ -53,7 +53,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="the preset of that name plus the experiment's overrides: tiny (seconds, for tests), quick "
                         "(minutes on a 2-core CPU, the default), paper (a GPU)")
     p.add_argument("--out", metavar="DIR", help="experiment folder (default: runs/experiments/NAME-SCALE)")
-    p.add_argument("--seeds", type=count_arg, default=1, help="number of seeds (0, 1, ...), >= 1 (default 1)")
+    p.add_argument("--seeds", type=seeds_arg, default=1, help="number of seeds (0, 1, ...), 1 to 1000 (default 1)")
     p.set_defaults(func=cmd_experiment, trains=True, resume_hint="run the same hsicam experiment command again: it resumes the run")
 
     p = sub.add_parser("report", help="HTML report (index.html + PNGs) of an evaluation or experiment folder")
