@@ -42,6 +42,11 @@ def _positive(section: str, **values: float | None) -> None:
 SEED_MIN, SEED_MAX = -(2**63), 2**64 - 1
 
 
+#: The most wavelengths ``camera.psf.band_samples`` averages per band (a huge count ended in numpy's "Maximum allowed
+#: size exceeded", the key unnamed; within the bound the PSF sampling plan's memory check applies).
+MAX_BAND_SAMPLES = 1000
+
+
 #: The most patches an epoch (``data.patches_per_epoch``, ``data.val_patches``) can have: the length of a
 #: dataset, which Python's ``len`` holds in a signed 64-bit integer.
 MAX_PATCHES = 2**63 - 1
@@ -225,8 +230,9 @@ class PSFConfig:
             raise ConfigError(f"camera.psf.supersample must be a positive odd number, got {self.supersample}")
         if self.pupil_oversample < 1:
             raise ConfigError(f"camera.psf.pupil_oversample must be >= 1, got {self.pupil_oversample}")
-        if self.band_samples < 1:
-            raise ConfigError(f"camera.psf.band_samples must be >= 1, got {self.band_samples}")
+        if not 1 <= self.band_samples <= MAX_BAND_SAMPLES:  # each sample is a whole PSF stack of the bands
+            raise ConfigError(f"camera.psf.band_samples must be 1 to {MAX_BAND_SAMPLES} (wavelengths averaged per band, "
+                              f"each one a PSF per band; 3 is ~3× the cost), got {self.band_samples}")
 
 
 @dataclass
