@@ -447,3 +447,22 @@ def test_a_resume_with_other_frozen_groups_names_them(cache_env, tmp_path):
                                          r"net, cfa \(train.freeze, or a camera part switched on or off"):
         train(load_config("tiny", ["train.epochs=2", "train.freeze=[doe]"]), run, resume=True, progress=False)
     assert tree_snapshot(run) == before
+
+
+def test_resume_of_a_users_own_folder_says_it_is_not_a_run(tmp_path, capsys):
+    """`hsicam train --out MYFOLDER --resume` on a folder of the user's own files said the run "was interrupted
+    before it started" and offered `--restart`, which refuses such a folder; it now says it is not a run folder,
+    names what it holds, and changes nothing. An empty folder is named as one."""
+    mine = tmp_path / "mine"
+    mine.mkdir()
+    (mine / "notes.txt").write_text("mine")
+    line = in_process_error_line(capsys, ["train", "--out", str(mine), "--resume"])
+    assert line == (f"hsicam: error: {mine}: nothing to resume: not a run folder (no config.yaml, and it holds notes.txt, "
+                    "which no training writes); give --resume the folder the run was started in, or start a new run "
+                    "with another --out"), line
+    assert [p.name for p in mine.iterdir()] == ["notes.txt"] and (mine / "notes.txt").read_text() == "mine"
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    line = in_process_error_line(capsys, ["train", "--out", str(empty), "--resume"])
+    assert line.startswith(f"hsicam: error: {empty}: nothing to resume (an empty folder: no training was started in "
+                           "it); start it again with `hsicam train --restart"), line

@@ -286,7 +286,16 @@ def check_run_dir(run_dir: Path, resume: bool, not_empty_hint: str = TRAIN_NOT_E
     remove_run_temporaries(run_dir)
     if resume:
         if not (run_dir / "config.yaml").is_file():
-            why = "no such folder" if not run_dir.exists() else "no config.yaml: it was interrupted before it started"
+            foreign = foreign_entries(run_dir) if run_dir.is_dir() else []
+            if foreign:  # a user's own folder: --restart would refuse it too
+                shown = ", ".join(foreign[:3]) + (f" and {len(foreign) - 3} more" if len(foreign) > 3 else "")
+                raise InputError(f"{run_dir}: nothing to resume: not a run folder (no config.yaml, and it holds "
+                                 f"{shown}, which no training writes); give --resume the folder the run was "
+                                 "started in, or start a new run with another --out")
+            if run_dir.is_dir() and not any(p for p in run_dir.iterdir() if not p.name.startswith(".")):
+                why = "an empty folder: no training was started in it"
+            else:
+                why = "no such folder" if not run_dir.exists() else "no config.yaml: it was interrupted before it started"
             raise InputError(f"{run_dir}: nothing to resume ({why}); " + restart_hint.format(run=run_dir))
         weights = weights_without_checkpoint(run_dir)
         if weights == "model.safetensors":
