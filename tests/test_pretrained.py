@@ -19,7 +19,7 @@ import numpy as np
 import pytest
 import torch
 
-from cli_helpers import assert_clean_error, run_cli
+from cli_helpers import assert_clean_error, run_cli, run_cli_in_process
 from hsicam.errors import InputError
 from hsicam.runs import pretrained as shipped
 from hsicam.runs.folder import load_run
@@ -188,6 +188,20 @@ def test_pack_refuses_the_demo_results_of_another_run(env, tmp_path):
                                          rf"\(`hsicam evaluate --run {other} --out DIR`\)"):
         pack_pretrained(other, "other", tmp_path / "root", results)
     assert not (tmp_path / "root").exists()
+
+
+def test_pack_refuses_results_whose_scenes_are_not_a_list(env, tmp_path):
+    """A results.json (or its held-out section) whose 'scenes' is a number is refused in one line
+    naming the file, not with a TypeError from len()."""
+    run, results, _ = env
+    data = json.loads(results.read_text())
+    for name, bad in (("top", {**data, "scenes": 3}), ("heldout", {**data, "heldout": {**data["heldout"], "scenes": 3}})):
+        path = tmp_path / name / "results.json"
+        path.parent.mkdir()
+        path.write_text(json.dumps(bad))
+        assert_clean_error(run_cli_in_process("pretrained", "pack", str(run), "--name", "x", "--results", str(path),
+                                              "--dest", str(tmp_path / "r")), str(path), "'scenes' is not a list (got int")
+    assert not (tmp_path / "r").exists()
 
 
 def test_pack_force_replaces_a_camera_from_a_checkout_but_never_a_foreign_folder(env, tmp_path):

@@ -103,8 +103,12 @@ def _read_results(path: str | Path) -> dict[str, Any]:
 
 
 def _scene_block(data: dict[str, Any], source: Path, data_label: str) -> dict[str, Any]:
+    scenes = data.get("scenes")
+    if scenes is not None and not isinstance(scenes, list):
+        raise InputError(f"{source}: 'scenes' is not a list (got {type(scenes).__name__}; not a results.json of "
+                         "`hsicam demo` or `hsicam evaluate`)")
     return {"source": str(source), "data": str(data.get("data") or data_label),
-            "n_scenes": len(data.get("scenes") or []), "mean": _means(data.get("mean"), source, "'mean'"),
+            "n_scenes": len(scenes or []), "mean": _means(data.get("mean"), source, "'mean'"),
             "references": _references(data.get("references"), source)}
 
 
