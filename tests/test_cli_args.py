@@ -125,8 +125,9 @@ def test_a_config_file_with_a_key_given_twice_is_refused(tmp_path, capsys):
     ("--max-scenes", "0", "must be >= 1, got 0"),
     ("--draws", "-1", "must be >= 1, got -1"),
     ("--shift-subsamples", "0", "must be >= 1, got 0"),
-    ("--sigma-height-nm", "0,10,-5", "every value must be a finite number >= 0, got -5"),
-    ("--sigma-height-nm", "nan", "every value must be a finite number >= 0, got nan"),
+    ("--sigma-height-nm", "0,10,-5", "every value must be a finite number in [0, 1000000] nm, got -5"),
+    ("--sigma-height-nm", "nan", "every value must be a finite number in [0, 1000000] nm, got nan"),
+    ("--sigma-height-nm", "0,1e300", "every value must be a finite number in [0, 1000000] nm, got 1e+300"),
     ("--levels", "2,1", "every value must be >= 2 (height levels), got 1"),
     ("--levels", "2.5", "expected comma-separated integers, got '2.5'"),
     ("--shift-cells", "0,inf", "every value must be finite, got inf"),
@@ -155,7 +156,7 @@ def test_list_types_live_with_the_other_argument_types():
     import math
 
     from hsicam.cli import build_parser
-    from hsicam.cli.args import finite_numbers_arg, levels_list_arg, list_arg, non_negative_numbers_arg
+    from hsicam.cli.args import finite_numbers_arg, levels_list_arg, list_arg, non_negative_numbers_arg, sigma_heights_arg
 
     odd = list_arg(int, "integers", lambda v: v % 2 == 1, "odd")
     assert odd("1, 3,,5") == (1, 3, 5) and odd("") == ()
@@ -167,7 +168,7 @@ def test_list_types_live_with_the_other_argument_types():
     assert levels_list_arg("2,512") == (2, 512) and math.isinf(list_arg(float, "numbers")("inf")[0])
     sub = next(a for a in build_parser()._actions if isinstance(a, argparse._SubParsersAction))
     types = {a.dest: a.type for a in sub.choices["tolerance"]._actions}
-    assert types["sigma_height_nm"] is non_negative_numbers_arg and types["levels"] is levels_list_arg
+    assert types["sigma_height_nm"] is sigma_heights_arg and types["levels"] is levels_list_arg
     assert types["shift_cells"] is finite_numbers_arg and types["sensor_distance_um"] is finite_numbers_arg
 
 
@@ -176,6 +177,7 @@ def test_list_types_live_with_the_other_argument_types():
     ("height_draws", -2, "ToleranceSpec.height_draws must be >= 1, got -2"),
     ("shift_subsamples", 0, "ToleranceSpec.shift_subsamples must be >= 1, got 0"),
     ("sigma_height_nm", (0.0, -1.0), "ToleranceSpec.sigma_height_nm values must be finite and >= 0, got -1"),
+    ("sigma_height_nm", (0.0, 1e300), "ToleranceSpec.sigma_height_nm values must be at most 1000000 nm, got 1e\\+300"),
     ("levels", (4, 1), r"ToleranceSpec.levels \(height levels\) must be >= 2, got 1"),
     ("shift_cells", (0.0, float("nan")), "ToleranceSpec.shift_cells values must be finite, got nan"),
     ("sensor_distance_um", (float("-inf"),), "ToleranceSpec.sensor_distance_um values must be finite, got -inf"),
@@ -218,6 +220,27 @@ def test_a_test_sensor_noise_above_the_full_scale_is_a_usage_error(tmp_path, cap
     from hsicam.cli.args import sensor_sigma_arg
 
     assert sensor_sigma_arg("1") == 1.0 and sensor_sigma_arg("0.01") == 0.01
+
+
+def test_a_height_noise_beyond_any_relief_is_refused_naming_its_option_or_key(tmp_path, capsys):
+    """``evaluate --sigma-height-nm 1e300`` (or the config's camera.doe.sigma_height_nm / train.sigma_height_nm)
+    overflowed the float32 heights and ended in 'sensor contains 1936 NaN or Inf value(s)', naming no option;
+    σ_p now takes at most 1e6 nm (1 mm) wherever it is given."""
+    from hsicam.cli.args import sigma_height_arg
+    from hsicam.config import load_config
+    from hsicam.errors import ConfigError
+
+    data, out = tmp_path / "data", tmp_path / "ev"
+    data.mkdir()
+    line = one_line_error(capsys, ["evaluate", "--config", "tiny", "--data", str(data), "--out", str(out),
+                                   "--sigma-height-nm", "1e300"])
+    assert line.startswith("hsicam: error: argument --sigma-height-nm: must be at most 1000000 nm") and "'1e300'" in line
+    assert not out.exists()
+    assert sigma_height_arg("1000000") == 1e6 and sigma_height_arg("20") == 20.0
+    with pytest.raises(ConfigError, match=r"camera.doe.sigma_height_nm must be at most 1000000 nm"):
+        load_config("tiny", ["camera.doe.sigma_height_nm=1e300"])
+    with pytest.raises(ConfigError, match=r"train.sigma_height_nm=\[0.0, 1e\+300\]"):
+        load_config("tiny", ["train.sigma_height_nm=[0, 1e300]"])
 
 
 @pytest.mark.parametrize("argv, option", [

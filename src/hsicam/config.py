@@ -115,6 +115,11 @@ class BandsConfig:
 #: The most height levels ``camera.doe.quantization_levels`` takes (16 bits; binary-weighted lithography usually
 #: makes 2-256; ``hsicam export-optics`` writes the same range: hsicam.export.doe.LEVELS_RANGE).
 MAX_HEIGHT_LEVELS = 2**16
+#: The largest DOE fabrication height noise σ_p (nm; ``camera.doe.sigma_height_nm``, ``train.sigma_height_nm``,
+#: ``evaluate`` / ``tolerance --sigma-height-nm``): 1 mm, thousands of times any element's relief (a few µm), where
+#: the phase is already uniformly random; far larger ones overflowed the float32 heights and ended in a
+#: 'sensor contains NaN or Inf' refusal that named no option.
+MAX_SIGMA_HEIGHT_NM = 1e6
 
 
 def _check_material_name(key: str, material: str) -> None:
@@ -212,6 +217,9 @@ class DOEConfig:
         _check_material_name("camera.doe.material", self.material)
         if not (self.sigma_height_nm >= 0 and math.isfinite(self.sigma_height_nm)):
             raise ConfigError(f"camera.doe.sigma_height_nm must be >= 0, got {self.sigma_height_nm}")
+        if self.sigma_height_nm > MAX_SIGMA_HEIGHT_NM:
+            raise ConfigError(f"camera.doe.sigma_height_nm must be at most {MAX_SIGMA_HEIGHT_NM:.0f} nm (1 mm, far beyond any "
+                              f"DOE's relief), got {self.sigma_height_nm:g}")
 
 
 @dataclass
@@ -628,6 +636,9 @@ class TrainConfig:
             v = getattr(self, k)
             if len(v) != 2 or not (0 <= v[0] <= v[1]) or not all(math.isfinite(x) for x in v):
                 raise ConfigError(f"train.{k} must be [lo, hi] with 0 <= lo <= hi, got {v}")
+        if self.sigma_height_nm[1] > MAX_SIGMA_HEIGHT_NM:
+            raise ConfigError(f"train.sigma_height_nm={self.sigma_height_nm}: σ_p above {MAX_SIGMA_HEIGHT_NM:.0f} nm (1 mm, far "
+                              "beyond any DOE's relief) is no fabrication noise; use [lo, hi] with hi <= 1000000 (e.g. [0, 20])")
         if self.sensor_sigma[1] > MAX_SENSOR_SIGMA:
             raise ConfigError(f"train.sensor_sigma={self.sensor_sigma}: σ above {MAX_SENSOR_SIGMA:g} (the full scale of "
                               "the image) buries any signal; use [lo, hi] with hi <= 1 (e.g. [0, 0.02])")

@@ -12,7 +12,7 @@ import math
 import os
 from typing import Any, Callable
 
-from hsicam.config import MAX_SENSOR_SIGMA, SEED_MAX, SEED_MIN, seed_problem
+from hsicam.config import MAX_SENSOR_SIGMA, MAX_SIGMA_HEIGHT_NM, SEED_MAX, SEED_MIN, seed_problem
 from hsicam.errors import InputError
 
 #: The smallest ``--tile`` (px) of ``reconstruct`` and ``evaluate``.
@@ -88,6 +88,16 @@ def sensor_sigma_arg(text: str) -> float:
     return value
 
 
+def sigma_height_arg(text: str) -> float:
+    """argparse ``type`` of a DOE height noise σ_p in nm (``evaluate --sigma-height-nm``): a finite number in
+    [0, :data:`hsicam.config.MAX_SIGMA_HEIGHT_NM`], the range of ``camera.doe.sigma_height_nm``."""
+    value = non_negative_number_arg(text)
+    if value > MAX_SIGMA_HEIGHT_NM:
+        raise argparse.ArgumentTypeError(f"must be at most {MAX_SIGMA_HEIGHT_NM:.0f} nm (1 mm, far beyond any DOE's "
+                                         f"relief, as camera.doe.sigma_height_nm), got {_shown(text)}")
+    return value
+
+
 def count_arg(text: str) -> int:
     """argparse ``type`` of an option that counts something and needs at least one (``--seeds``):
     an integer >= 1; 0, negative and non-integer values are usage errors."""
@@ -134,8 +144,11 @@ def list_arg(convert: type, what: str, ok: Callable[[Any], bool] = lambda v: Tru
 
 #: A list of finite numbers (``tolerance --shift-cells``, ``--sensor-distance-um``).
 finite_numbers_arg = list_arg(float, "numbers", math.isfinite, "finite")
-#: A list of finite numbers >= 0 (``tolerance --sigma-height-nm``: noise levels).
+#: A list of finite numbers >= 0 (noise levels).
 non_negative_numbers_arg = list_arg(float, "numbers", lambda v: math.isfinite(v) and v >= 0, "a finite number >= 0")
+#: A list of DOE height noise levels σ_p (nm), each in [0, MAX_SIGMA_HEIGHT_NM] (``tolerance --sigma-height-nm``).
+sigma_heights_arg = list_arg(float, "numbers", lambda v: math.isfinite(v) and 0 <= v <= MAX_SIGMA_HEIGHT_NM,
+                             f"a finite number in [0, {MAX_SIGMA_HEIGHT_NM:.0f}] nm")
 #: A list of DOE height level counts, each >= 2 (``tolerance --levels``).
 levels_list_arg = list_arg(int, "integers", lambda v: v >= 2, ">= 2 (height levels)")
 

@@ -9,7 +9,7 @@ import sys
 from pathlib import Path
 
 from hsicam.cli import add_config_args, add_run_arg, config_from_args
-from hsicam.cli.args import check_tile, device_arg, non_negative_number_arg, sensor_sigma_arg, seeds_arg
+from hsicam.cli.args import check_tile, device_arg, seeds_arg, sensor_sigma_arg, sigma_height_arg
 from hsicam.errors import InputError
 
 log = logging.getLogger(__name__)
@@ -30,8 +30,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "be it or hold it; with --run, each row says whether the run trained on the scene (split)")
     p.add_argument("--out", required=True, metavar="DIR",
                    help="result folder: results.json, results.csv, results.md (per scene and mean; with --save, cubes/)")
-    p.add_argument("--sigma-height-nm", type=non_negative_number_arg, default=None,
-                   help="test DOE height noise σ_p (nm), >= 0")
+    p.add_argument("--sigma-height-nm", type=sigma_height_arg, default=None,
+                   help="test DOE height noise σ_p (nm), in [0, 1000000]")
     p.add_argument("--sensor-sigma", type=sensor_sigma_arg, default=None,
                    help="test sensor noise σ_s (fraction of full scale), in [0, 1]")
     p.add_argument("--seeds", type=seeds_arg, default=1, help="number of noise seeds (0, 1, ...), 1 to 1000 (default 1)")

@@ -59,6 +59,7 @@ from typing import Any, Sequence
 import numpy as np
 import torch
 
+from hsicam.config import MAX_SIGMA_HEIGHT_NM
 from hsicam.errors import InputError
 from hsicam.optics.perturb import (
     nominal_heights, oversampled_optics, psf_for_heights, psf_sensor_moved, psf_shifted, sensor_distance_aliasing,
@@ -91,6 +92,9 @@ class ToleranceSpec:
         bad = [s for s in self.sigma_height_nm if not (math.isfinite(s) and s >= 0)]
         if bad:
             raise InputError(f"ToleranceSpec.sigma_height_nm values must be finite and >= 0, got {bad[0]:g}")
+        bad = [s for s in self.sigma_height_nm if s > MAX_SIGMA_HEIGHT_NM]
+        if bad:
+            raise InputError(f"ToleranceSpec.sigma_height_nm values must be at most {MAX_SIGMA_HEIGHT_NM:.0f} nm, got {bad[0]:g}")
         bad = [lv for lv in self.levels if lv < 2]
         if bad:
             raise InputError(f"ToleranceSpec.levels (height levels) must be >= 2, got {bad[0]}")
