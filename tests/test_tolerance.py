@@ -332,3 +332,17 @@ def test_a_failing_sweep_closes_its_progress_bar(fab_run, monkeypatch):
     with pytest.raises(RuntimeError, match="sensor sweep failed"):
         tolerance.run_tolerance(model, cfg, spec, progress=False)
     assert closed == ["tolerance"]
+
+
+def test_shift_subsamples_beyond_the_memory_budget_are_refused_naming_the_option_before_any_sweep(fab_run, tmp_path):
+    """`tolerance --shift-subsamples 100000` ran the nominal, height-noise and level sweeps, then was refused
+    by the PSF planner's 'check ... camera.psf.pupil_oversample', naming neither the option nor its fix."""
+    from cli_helpers import run_cli_in_process
+
+    out = tmp_path / "tol"
+    res = run_cli_in_process("tolerance", "--run", str(fab_run), "--out", str(out), "--max-scenes", "1",
+                             "--shift-subsamples", "100000")
+    assert_clean_error(res, "--shift-subsamples 100000: the misalignment study's pupil of 100000 samples per DOE cell",
+                       "memory budget", "give a smaller --shift-subsamples")
+    assert "pupil_oversample" not in res.stderr and "nominal PSNR" not in res.stdout
+    assert not out.exists()

@@ -185,6 +185,26 @@ def check_sweeps(spec: ToleranceSpec, optics) -> None:
             raise InputError(f"--shift-cells {s:g}: the misalignment study moves the relief by whole sub-samples of "
                              f"1/{q} cell, so {s:g} would be applied as {round(s * q) / q:g}; give multiples of "
                              f"{1 / q:g} (or raise --shift-subsamples)")
+    if optics.doe.enabled and spec.shift_cells:
+        check_shift_sampling(spec, optics, q)
+
+
+def check_shift_sampling(spec: ToleranceSpec, optics, q: int) -> None:
+    """The misalignment study's Q-oversampled pupil (:func:`oversampled_optics`) planned before any
+    evaluation: a ``--shift-subsamples`` whose PSF plan exceeds the memory budget was refused only after
+    the other sweeps ran, by a message that named camera.psf.pupil_oversample and not the option."""
+    from hsicam.errors import ConfigError
+    from hsicam.optics.sampling import plan_psf_sampling
+
+    try:
+        plan_psf_sampling(optics.line_wavelengths_nm * 1e-9, float(np.max(optics.line_sensor_distances_m)),
+                          optics.pixel_m, optics.cell_m, optics.doe.n_cells, q, optics.sampling.supersample,
+                          optics.kernel_px, optics.aperture_radius_m)
+    except ConfigError as exc:
+        reason = str(exc).split("; check ")[0]
+        raise InputError(f"--shift-subsamples {spec.shift_subsamples}: the misalignment study's pupil of {q} samples per "
+                         f"DOE cell cannot be simulated here ({reason}); give a smaller --shift-subsamples (default "
+                         f"{ToleranceSpec().shift_subsamples}), or no --shift-cells") from None
 
 
 def check_levels(levels: int) -> None:
