@@ -124,6 +124,7 @@ def test_a_config_file_with_a_key_given_twice_is_refused(tmp_path, capsys):
 @pytest.mark.parametrize("option,value,message", [
     ("--max-scenes", "0", "must be >= 1, got 0"),
     ("--draws", "-1", "must be >= 1, got -1"),
+    ("--draws", "1000000000000", "must be at most 1000 (each draw is a whole evaluation), got '1000000000000'"),
     ("--shift-subsamples", "0", "must be >= 1, got 0"),
     ("--sigma-height-nm", "0,10,-5", "every value must be a finite number in [0, 1000000] nm, got -5"),
     ("--sigma-height-nm", "nan", "every value must be a finite number in [0, 1000000] nm, got nan"),

@@ -123,6 +123,19 @@ def seeds_arg(text: str) -> int:
     return value
 
 
+#: The most fabricated DOEs ``tolerance --draws`` takes per height-noise level: each draw is a whole evaluation
+#: of the scenes (--draws 1000000000000 ran for ever).
+MAX_DRAWS = 1000
+
+
+def draws_arg(text: str) -> int:
+    """argparse ``type`` of ``tolerance --draws``: :func:`count_arg`, at most :data:`MAX_DRAWS`."""
+    value = count_arg(text)
+    if value > MAX_DRAWS:
+        raise argparse.ArgumentTypeError(f"must be at most {MAX_DRAWS} (each draw is a whole evaluation), got {_shown(text)}")
+    return value
+
+
 def list_arg(convert: type, what: str, ok: Callable[[Any], bool] = lambda v: True, need: str = ""
              ) -> Callable[[str], tuple]:
     """argparse ``type`` of a comma-separated list of ``convert`` values (``what``: "numbers",

@@ -10,7 +10,7 @@ from hsicam.errors import InputError
 
 def register(sub: argparse._SubParsersAction) -> None:
     from hsicam.cli import add_run_arg
-    from hsicam.cli.args import (count_arg, device_arg, finite_numbers_arg, levels_list_arg, sigma_heights_arg,
+    from hsicam.cli.args import (count_arg, device_arg, draws_arg, finite_numbers_arg, levels_list_arg, sigma_heights_arg,
                                  positive_number_arg, seed_arg)
 
     from hsicam.config import MAX_HEIGHT_LEVELS  # export.doe.LEVELS_RANGE's top (that module imports the optics)
@@ -32,8 +32,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--max-scenes", type=count_arg, default=8, help="scenes scored at most, >= 1 (default 8)")
     p.add_argument("--sigma-height-nm", type=sigma_heights_arg, default=None, metavar="LIST",
                    help="DOE height noise levels σ_p (nm), each in [0, 1000000], e.g. 0,10,20,40,60")
-    p.add_argument("--draws", type=count_arg, default=None,
-                   help="fabricated DOEs drawn per height-noise level, >= 1 (default 3)")
+    p.add_argument("--draws", type=draws_arg, default=None,
+                   help="fabricated DOEs drawn per height-noise level, 1 to 1000 (default 3)")
     p.add_argument("--levels", type=levels_list_arg, default=None, metavar="LIST", help="height levels, each >= 2, e.g. 2,4,8,16,32")
     p.add_argument("--shift-cells", type=finite_numbers_arg, default=None, metavar="LIST", help="e.g. 0,0.25,0.5,1,2")
     p.add_argument("--shift-subsamples", type=count_arg, default=None,
