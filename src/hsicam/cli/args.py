@@ -110,30 +110,27 @@ def count_arg(text: str) -> int:
     return value
 
 
-#: The most seeds ``--seeds`` takes: each one is a whole evaluation (or a training, for `hsicam experiment`);
-#: a count beyond the machine's integers ended in an OverflowError traceback of ``range``.
-MAX_SEEDS = 1000
+def bounded_count_arg(most: int, each: str) -> Callable[[str], int]:
+    """argparse ``type`` of a count of whole runs (:func:`count_arg`, at most ``most``; ``each``: what one of them
+    costs, for the message): a count beyond any budget was accepted and ran for ever, or beyond the machine's
+    integers ended in an OverflowError traceback of ``range``."""
+
+    def bounded(text: str) -> int:
+        value = count_arg(text)
+        if value > most:
+            raise argparse.ArgumentTypeError(f"must be at most {most} ({each}), got {_shown(text)}")
+        return value
+
+    return bounded
 
 
-def seeds_arg(text: str) -> int:
-    """argparse ``type`` of ``--seeds`` (the seeds 0 … N-1): :func:`count_arg`, at most :data:`MAX_SEEDS`."""
-    value = count_arg(text)
-    if value > MAX_SEEDS:
-        raise argparse.ArgumentTypeError(f"must be at most {MAX_SEEDS} (each seed is a whole run), got {_shown(text)}")
-    return value
-
-
-#: The most fabricated DOEs ``tolerance --draws`` takes per height-noise level: each draw is a whole evaluation
-#: of the scenes (--draws 1000000000000 ran for ever).
-MAX_DRAWS = 1000
-
-
-def draws_arg(text: str) -> int:
-    """argparse ``type`` of ``tolerance --draws``: :func:`count_arg`, at most :data:`MAX_DRAWS`."""
-    value = count_arg(text)
-    if value > MAX_DRAWS:
-        raise argparse.ArgumentTypeError(f"must be at most {MAX_DRAWS} (each draw is a whole evaluation), got {_shown(text)}")
-    return value
+#: The most seeds ``--seeds`` takes (``evaluate``, ``experiment``), and fabricated DOEs ``tolerance --draws`` takes
+#: per height-noise level.
+MAX_SEEDS = MAX_DRAWS = 1000
+#: ``--seeds`` (the seeds 0 … N-1): each one is a whole evaluation (or a training, for ``hsicam experiment``).
+seeds_arg = bounded_count_arg(MAX_SEEDS, "each seed is a whole run")
+#: ``tolerance --draws``: each draw is a whole evaluation of the scenes.
+draws_arg = bounded_count_arg(MAX_DRAWS, "each draw is a whole evaluation")
 
 
 def list_arg(convert: type, what: str, ok: Callable[[Any], bool] = lambda v: True, need: str = ""
