@@ -157,7 +157,7 @@ def test_list_types_live_with_the_other_argument_types():
     import math
 
     from hsicam.cli import build_parser
-    from hsicam.cli.args import finite_numbers_arg, levels_list_arg, list_arg, non_negative_numbers_arg, sigma_heights_arg
+    from hsicam.cli.args import finite_numbers_arg, levels_list_arg, list_arg, sigma_heights_arg
 
     odd = list_arg(int, "integers", lambda v: v % 2 == 1, "odd")
     assert odd("1, 3,,5") == (1, 3, 5) and odd("") == ()
@@ -165,7 +165,7 @@ def test_list_types_live_with_the_other_argument_types():
         odd("1,4")
     with pytest.raises(argparse.ArgumentTypeError, match=r"^expected comma-separated integers, got 'x'$"):
         odd("x")
-    assert finite_numbers_arg("-1,0.5") == (-1.0, 0.5) and non_negative_numbers_arg("0,2") == (0.0, 2.0)
+    assert finite_numbers_arg("-1,0.5") == (-1.0, 0.5) and sigma_heights_arg("0,2") == (0.0, 2.0)
     assert levels_list_arg("2,512") == (2, 512) and math.isinf(list_arg(float, "numbers")("inf")[0])
     sub = next(a for a in build_parser()._actions if isinstance(a, argparse._SubParsersAction))
     types = {a.dest: a.type for a in sub.choices["tolerance"]._actions}

@@ -82,11 +82,12 @@ _TEMP_PARTS = re.compile(r"^\.(?P<stem>.*)\.[A-Za-z0-9_]{8}\.(?:tmp(?P<suffix>\.
 # ------------------------------------------------------------------------------------------------
 # Output-path check
 # ------------------------------------------------------------------------------------------------
-def _nearest_existing(p: Path) -> Path:
-    """The nearest ancestor of ``p`` (or ``p`` itself) that exists in any form."""
+def _nearest_existing(p: Path, broken_links: bool = True) -> Path:
+    """The nearest ancestor of ``p`` (or ``p`` itself) that exists in any form (``broken_links=False``: a
+    link whose target is missing does not count, e.g. to measure the file system it would write on)."""
     for a in (p, *p.parents):
         try:
-            if a.exists() or a.is_symlink():
+            if a.exists() or (broken_links and a.is_symlink()):
                 return a
         except OSError:
             continue
@@ -98,9 +99,7 @@ def free_space_short(path: str | os.PathLike, need_bytes: int, min_margin_bytes:
     they are fewer than ``need_bytes`` plus a margin (a tenth of it, at least ``min_margin_bytes``);
     None when there is room. The one home of the free-space checks made before long work (dataset
     generation, ``evaluate --save``, ``reconstruct``): each caller words its own refusal."""
-    p = Path(path).absolute()
-    where = next((a for a in (p, *p.parents) if a.exists()), Path(p.anchor or "/"))  # a broken link: its folder
-    free = shutil.disk_usage(where).free
+    free = shutil.disk_usage(_nearest_existing(Path(path).absolute(), broken_links=False)).free
     return free if free < need_bytes + max(need_bytes // 10, min_margin_bytes) else None
 
 

@@ -154,8 +154,6 @@ def list_arg(convert: type, what: str, ok: Callable[[Any], bool] = lambda v: Tru
 
 #: A list of finite numbers (``tolerance --shift-cells``, ``--sensor-distance-um``).
 finite_numbers_arg = list_arg(float, "numbers", math.isfinite, "finite")
-#: A list of finite numbers >= 0 (noise levels).
-non_negative_numbers_arg = list_arg(float, "numbers", lambda v: math.isfinite(v) and v >= 0, "a finite number >= 0")
 #: A list of DOE height noise levels σ_p (nm), each in [0, MAX_SIGMA_HEIGHT_NM] (``tolerance --sigma-height-nm``).
 sigma_heights_arg = list_arg(float, "numbers", lambda v: math.isfinite(v) and 0 <= v <= MAX_SIGMA_HEIGHT_NM,
                              f"a finite number in [0, {MAX_SIGMA_HEIGHT_NM:.0f}] nm")
