@@ -40,20 +40,45 @@ def run_cli(*args: str, timeout: float = 600, env: dict | None = None) -> subpro
     return subprocess.run([str(HSICAM), *args], capture_output=True, text=True, timeout=timeout, env=cli_env(env))
 
 
-def run_cli_in_process(*args: str) -> subprocess.CompletedProcess:
-    """``hsicam ARGS`` in this process (the console script's ``main``; saves the interpreter start),
-    as a completed process like :func:`run_cli`'s."""
+def run_cli_in_process(*args: str, env: dict | None = None) -> subprocess.CompletedProcess:
+    """``hsicam ARGS`` in this process (the console script's ``main``; saves the 2–3 s interpreter and torch
+    start of :func:`run_cli`), as a completed process like :func:`run_cli`'s.
+
+    What the console script would print reaches the result's stderr as it would there: hsicam's log lines
+    (INFO and up, DEBUG with ``-v``, one ``%(message)s`` per line, as ``main``'s ``basicConfig`` sets them up) included, which
+    pytest's own log capture would otherwise take alone (it still gets them: ``caplog`` works as before). ``env`` entries are set in ``os.environ`` for the call
+    and restored afterwards. Keep :func:`run_cli` for what needs a process of its own: signals, exit
+    codes of the interpreter, another working directory, one-thread timing, the entry point itself."""
     import contextlib
     import io
+    import logging
 
     from hsicam.cli import main
 
     out, err = io.StringIO(), io.StringIO()
-    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
-        try:
-            rc = main(list(args))
-        except SystemExit as exc:  # argparse usage errors
-            rc = exc.code
+    handler = logging.StreamHandler(err)
+    handler.setFormatter(logging.Formatter("%(message)s"))
+    logger, root = logging.getLogger("hsicam"), logging.getLogger()
+    saved = {k: os.environ.get(k) for k in (env or {})}
+    old_root_level = root.level
+    logger.addHandler(handler)
+    root.setLevel(min(root.level or logging.WARNING, logging.INFO))
+    os.environ.update({k: str(v) for k, v in (env or {}).items()})
+    try:
+        with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+            try:
+                rc = main([str(a) for a in args])
+            except SystemExit as exc:  # argparse usage errors
+                rc = exc.code
+    finally:
+        logger.removeHandler(handler)
+        logger.setLevel(logging.NOTSET)
+        root.setLevel(old_root_level)
+        for k, v in saved.items():
+            if v is None:
+                os.environ.pop(k, None)
+            else:
+                os.environ[k] = v
     return subprocess.CompletedProcess(list(args), rc, out.getvalue(), err.getvalue())
 
 
@@ -63,6 +88,18 @@ def error_line(res: subprocess.CompletedProcess) -> str:
     lines = [x for x in res.stderr.strip().splitlines() if x.strip()]
     assert len(lines) == 1 and lines[0].startswith("hsicam: error: "), res.stderr
     return lines[0]
+
+
+def final_error_line(res: subprocess.CompletedProcess) -> str:
+    """The error line of a command refused after some work (exit code 2, no traceback): its last line on
+    stderr and its only ``hsicam: error: …`` line; the log of the work before it (training steps, warnings
+    about the inputs) may precede it."""
+    assert res.returncode == 2, (res.returncode, res.stdout, res.stderr)
+    assert "Traceback" not in res.stderr, res.stderr
+    lines = [x for x in res.stderr.strip().splitlines() if x.strip()]
+    assert lines and lines[-1].startswith("hsicam: error: "), res.stderr
+    assert sum(x.startswith("hsicam: error:") for x in lines) == 1, res.stderr
+    return lines[-1]
 
 
 def assert_ok(res: subprocess.CompletedProcess) -> None:

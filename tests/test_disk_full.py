@@ -15,7 +15,7 @@ from pathlib import Path
 
 import pytest
 import torch
-from cli_helpers import HSICAM, cli_env, error_line, module_cache, run_cli_in_process
+from cli_helpers import HSICAM, cli_env, error_line, final_error_line, module_cache, run_cli_in_process
 from safetensors import SafetensorError
 
 import hsicam.runs.checkpoint as checkpoint
@@ -98,7 +98,7 @@ def test_train_on_a_full_disk_is_one_line(env, tmp_path, monkeypatch):
     _fail_at_step_6(monkeypatch, "model")
     res = run_cli_in_process("train", "--config", "tiny", "--set", "train.epochs=2", "--set",
                              "train.checkpoint_every_steps=3", "--out", str(tmp_path / "run"))
-    assert error_line(res) == (f"hsicam: error: {tmp_path / 'run'}/checkpoints/step-00000006/model.safetensors: No "
+    assert final_error_line(res) == (f"hsicam: error: {tmp_path / 'run'}/checkpoints/step-00000006/model.safetensors: No "
                                "space left on device; nothing was committed: the last checkpoint (step 4) is "
                                "unchanged; free some space, then resume the run")
 
