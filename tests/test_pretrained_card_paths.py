@@ -182,3 +182,27 @@ def test_a_spectral_prior_as_a_camera_run_says_what_it_is_and_how_to_use_it(made
     assert sorted(p.name for p in tmp_path.iterdir()) == ["prior", "sensor.npy"]
     # the advice works: the Choi method takes the folder as its --run (with the folder's config.yaml)
     assert build_method("dd-cassi-choi", load_config(prior / "config.yaml"), prior).name == "dd-cassi-choi"
+
+
+# ------------------------------------------------------------------------------------------------
+# A results.json a card cannot cite: refused for its own fields first, with no warning before
+# ------------------------------------------------------------------------------------------------
+@pytest.mark.parametrize("mean, fragment", [
+    ('{"psnr": NaN, "ssim": 0.9, "sam": 5.0}', "has a mean PSNR that is not a finite number (psnr: nan)"),
+    ('{"psnr": 30.0, "ssim": 0.9, "sam": Infinity}', "has a mean SAM that is not a finite number (sam: inf)"),
+    ('{"psnr": true, "ssim": 0.9, "sam": 5.0}', "has no mean PSNR/SSIM/SAM"),
+    ('{}', "has no mean PSNR/SSIM/SAM"),
+])
+def test_pack_refuses_results_without_finite_means_before_any_warning(made, tmp_path, mean, fragment):
+    """JSON NaN/Infinity parse as floats: a card citing them would print 'nan dB' (and its card.json would not be
+    standard JSON). A file that names no run would also get the 'cited as given' warning; it is refused for its
+    means first, so the user reads one line."""
+    run, _ = made
+    results = tmp_path / "results.json"
+    results.write_text('{"scenes": [], "mean": ' + mean + '}')
+    dest = tmp_path / "root"
+    res = run_cli_in_process("pretrained", "pack", str(run), "--name", "camN", "--dest", str(dest),
+                             "--results", str(results))
+    assert_clean_error(res, f"{results}: 'mean' {fragment}")
+    assert "cited as given" not in res.stderr
+    assert not (dest / "camN").exists()

@@ -18,6 +18,7 @@ from __future__ import annotations
 import datetime
 import json
 import logging
+import math
 from pathlib import Path
 from typing import Any
 
@@ -74,9 +75,17 @@ def final_record(run_dir: Path) -> dict[str, Any]:
 
 
 def _means(block: Any, source: Path, what: str) -> dict[str, float]:
-    if not isinstance(block, dict) or not all(isinstance(block.get(k), (int, float)) for k in METRICS):
+    """``{psnr, ssim, sam}`` of a results.json ``mean`` block; one-line InputError unless each is a finite number
+    (JSON ``NaN``/``Infinity`` included: a card does not cite a score that is no number)."""
+    if not isinstance(block, dict) or not all(isinstance(block.get(k), (int, float)) and not isinstance(block.get(k), bool)
+                                              for k in METRICS):
         raise InputError(f"{source}: {what} has no mean PSNR/SSIM/SAM (not a results.json of `hsicam demo` "
                          "or `hsicam evaluate`)")
+    bad = [k for k in METRICS if not math.isfinite(float(block[k]))]
+    if bad:
+        raise InputError(f"{source}: {what} has a mean {'/'.join(k.upper() for k in bad)} that is not a finite number "
+                         f"({', '.join(f'{k}: {block[k]}' for k in bad)}); a card cites finite scores only: evaluate the "
+                         "run again")
     return {k: float(block[k]) for k in METRICS}
 
 
@@ -123,17 +132,18 @@ def results_metrics(results: str | Path | None, heldout: str | Path | None = Non
     out: dict[str, Any] = {"validation": None, "heldout": None}
     if results is not None:
         data = _read_results(results)
-        if run_dir is not None:
-            check_results_of_run(data, Path(results), Path(run_dir), "--results")
+        # the file's own fields first: a file refused for them is refused before any "cited as given" warning
         out["validation"] = _scene_block(data, Path(results), "validation scenes")
         if isinstance(data.get("heldout"), dict):
             out["heldout"] = _scene_block(data["heldout"], Path(results), "held-out spectral sources")
+        if run_dir is not None:
+            check_results_of_run(data, Path(results), Path(run_dir), "--results")
     if heldout is not None:
         data = _read_results(heldout)
-        if run_dir is not None:
-            check_results_of_run(data, Path(heldout), Path(run_dir), "--heldout")
         out["heldout"] = _scene_block(data.get("heldout") if isinstance(data.get("heldout"), dict) else data,
                                       Path(heldout), "held-out data")
+        if run_dir is not None:
+            check_results_of_run(data, Path(heldout), Path(run_dir), "--heldout")
     return out
 
 
