@@ -1,4 +1,5 @@
-"""`hsicam psf` and `hsicam simulate` through the real entry point, including bad input."""
+"""`hsicam psf` and `hsicam simulate` through the console script's ``main`` (in-process; the console script
+itself where a test needs a process of its own), including bad input."""
 
 from __future__ import annotations
 
@@ -8,8 +9,12 @@ import imageio.v3 as iio
 import numpy as np
 import pytest
 
-from cli_helpers import assert_clean_error, run_cli, run_cli_in_process
+from cli_helpers import assert_clean_error, run_cli as run_script, run_cli_in_process
 from optics_reference import doe_field, reference_measurement, relative_l1, square_cell_psf
+
+#: ``hsicam ARGS`` in this process (no interpreter and torch start per call); ``run_script`` where a test needs
+#: a process of its own
+run_cli = run_cli_in_process
 
 TINY = ["--set", "camera.aperture_radius_mm=0.6", "--set", "camera.lens.focal_length_mm=5",
         "--set", "bands.step_nm=50", "--set", "camera.cfa.period=3"]
@@ -171,8 +176,10 @@ def test_psf_bad_config_is_one_clean_line(tmp_path, override, fragment):
 )
 def test_psf_refuses_implausible_sensor_distances_before_allocating(tmp_path, distance_mm, fragments):
     out = tmp_path / "p"
-    proc = run_cli("psf", "--config", "tiny", "--set", f"camera.sensor_distance_mm={distance_mm}", "--out", str(out),
-                   timeout=120, env={"HSICAM_MEMORY_BUDGET_MB": "2000"})
+    # a process of its own, with a timeout: were the check to regress, the allocation (22 GiB and more,
+    # OOM-killed before) must not take the test process with it
+    proc = run_script("psf", "--config", "tiny", "--set", f"camera.sensor_distance_mm={distance_mm}", "--out", str(out),
+                      timeout=120, env={"HSICAM_MEMORY_BUDGET_MB": "2000"})
     assert_clean_error(proc, *fragments)
     assert not out.exists()
 
