@@ -35,7 +35,7 @@ def env(tmp_path_factory):
 def inputs(tmp_path_factory, env):
     """A trained tiny run, a scene, a capture and a small dataset folder."""
     d = tmp_path_factory.mktemp("inputs")
-    res = run_cli("train", "--config", "tiny", "--out", str(d / "run"), "--set", "train.epochs=1", env=env)
+    res = run_cli_in_process("train", "--config", "tiny", "--out", str(d / "run"), "--set", "train.epochs=1", env=env)
     assert res.returncode == 0, res.stderr
     rng = np.random.default_rng(0)
     np.save(d / "scene.npy", rng.uniform(0.1, 1, (7, 40, 40)).astype(np.float32))
@@ -142,7 +142,7 @@ def test_every_writing_command_refuses_an_unwritable_folder(inputs, tmp_path, en
     ro = tmp_path / "ro"
     ro.mkdir()
     ev = ro / "ev"  # for `report`: an evaluation folder in which report/ cannot be created
-    assert run_cli("evaluate", "--run", str(inputs / "run"), "--out", str(ev), env=env).returncode == 0
+    assert run_cli_in_process("evaluate", "--run", str(inputs / "run"), "--out", str(ev), env=env).returncode == 0
     cmds = {**commands(inputs, ro / "out"), "report": ["report", str(ev)]}
     ro.chmod(0o500)
     ev.chmod(0o500)
@@ -432,10 +432,10 @@ def test_a_corrupt_chunk_is_one_line_before_training_starts(env, tmp_path):
     write_cube_with_a_corrupt_chunk(data / "b.h5", Bands.uniform(420, 720, 50))
     args = ["train", "--config", "tiny", "--set", f"data.root={data}", "--set", "data.preload=false",
             "--set", "data.num_workers=1", "--set", "data.val_fraction=0", "--set", "train.epochs=1"]
-    proc = run_cli(*args, "--out", str(tmp_path / "run"), env=env)
+    proc = run_cli_in_process(*args, "--out", str(tmp_path / "run"), env=env)
     assert_clean_error(proc, str(data / "b.h5"), "corrupt")
     assert "DataLoader worker" not in proc.stderr
-    verbose = run_cli("-v", *args, "--out", str(tmp_path / "run2"), env=env)
+    verbose = run_cli_in_process("-v", *args, "--out", str(tmp_path / "run2"), env=env)
     assert verbose.returncode == 2 and "Traceback" in verbose.stderr, verbose.stderr
     assert verbose.stderr.strip().splitlines()[-1] == proc.stderr.strip().splitlines()[-1], verbose.stderr
 
@@ -480,7 +480,7 @@ def test_a_patch_smaller_than_the_ssim_window_is_refused_before_a_run_folder_exi
     from hsicam.metrics import SSIM_WINDOW_PX
 
     run = tmp_path / "run"
-    proc = run_cli("train", "--config", "tiny", "--set", "data.patch_px=3", "--out", str(run), env=env)
+    proc = run_cli_in_process("train", "--config", "tiny", "--set", "data.patch_px=3", "--out", str(run), env=env)
     assert_clean_error(proc, f"data.patch_px must be >= {SSIM_WINDOW_PX} px", "SSIM", "got 3")
     for n in (1, SSIM_WINDOW_PX - 1):
         code, err = call(capsys, ["train", "--config", "tiny", "--set", f"data.patch_px={n}", "--set",
@@ -500,7 +500,7 @@ def test_seeds_outside_what_their_generator_takes_are_one_line_errors(inputs, en
     from hsicam.cli import build_parser
 
     out = tmp_path / "o"
-    proc = run_cli("data", "synth", "--n", "1", "--size", "64", "--seed", "-1", "--out", str(out), env=env)
+    proc = run_cli_in_process("data", "synth", "--n", "1", "--size", "64", "--seed", "-1", "--out", str(out), env=env)
     assert_clean_error(proc, "argument --seed: must be an integer in [0, 2^64 - 1], got -1")
     huge = "99999999999999999999"
     for kv, fragment in (("data.synthetic_seed=-1", "data.synthetic_seed must be an integer in [0, 2^64 - 1], got -1"),
@@ -554,13 +554,16 @@ def test_simulate_refuses_an_overflowing_scene_and_warns_of_an_unnormalised_one(
     np.save(tmp_path / "huge.npy", cube * np.float32(1e37))
     np.save(tmp_path / "bright.npy", cube * np.float32(1e6))
     out = tmp_path / "o"
+    # a process of its own: numpy's RuntimeWarning would reach its stderr there (in-process, pytest takes it)
     proc = run_cli("simulate", "--config", "tiny", "--scene", str(tmp_path / "huge.npy"), "--out", str(out), env=env)
     assert_clean_error(proc, str(tmp_path / "huge.npy"), "not finite", "peak value is 1e+37", "[0, 1]")
     assert "RuntimeWarning" not in proc.stderr and not out.exists()
-    proc = run_cli("simulate", "--config", "tiny", "--scene", str(tmp_path / "bright.npy"), "--out", str(out), env=env)
+    proc = run_cli_in_process("simulate", "--config", "tiny", "--scene", str(tmp_path / "bright.npy"), "--out", str(out),
+                              env=env)
     assert proc.returncode == 0 and f"{tmp_path / 'bright.npy'}: the scene's peak value is 1e+06" in proc.stderr
     assert "saturates" in proc.stderr and 1e6 > SCENE_PEAK_WARN
-    proc = run_cli("simulate", "--config", "tiny", "--scene", str(inputs / "scene.npy"), "--out", str(out), env=env)
+    proc = run_cli_in_process("simulate", "--config", "tiny", "--scene", str(inputs / "scene.npy"), "--out", str(out),
+                              env=env)
     assert proc.returncode == 0 and "peak value" not in proc.stderr, proc.stderr
 
 
@@ -571,8 +574,8 @@ def test_train_prior_into_a_non_empty_folder_names_its_own_remedy(tmp_path):
     out = tmp_path / "mine"
     out.mkdir()
     (out / "notes.txt").write_text("mine")
-    res = run_cli("baseline", "train-prior", "--config", "tiny", "--out", str(out),
-                  env={"HSICAM_CACHE": str(tmp_path / "cache")})
+    res = run_cli_in_process("baseline", "train-prior", "--config", "tiny", "--out", str(out),
+                             env={"HSICAM_CACHE": str(tmp_path / "cache")})
     assert_clean_error(res, "run folder exists and is not empty", "train-prior writes a new prior folder")
     assert "--resume" not in res.stderr and not (tmp_path / "cache").exists()
     assert sorted(p.name for p in out.iterdir()) == ["notes.txt"]
@@ -584,7 +587,8 @@ def test_train_into_a_folder_of_other_files_offers_only_another_out(tmp_path):
     out = tmp_path / "mine"
     out.mkdir()
     (out / "notes.txt").write_text("mine")
-    res = run_cli("train", "--config", "tiny", "--out", str(out), env={"HSICAM_CACHE": str(tmp_path / "cache")})
+    res = run_cli_in_process("train", "--config", "tiny", "--out", str(out),
+                             env={"HSICAM_CACHE": str(tmp_path / "cache")})
     assert_clean_error(res, f"{out}: run folder exists and is not empty: it holds other files than a run's (notes.txt); "
                             "nothing there is resumed or wiped: choose another --out")
     assert "--resume" not in res.stderr and "--restart" not in res.stderr
