@@ -637,8 +637,6 @@ def test_reconstructing_simulates_own_dark_png_gives_no_bit_depth_advice(fab_run
     """`hsicam simulate` of a dark scene writes sensor.png at the full 16 bits (simulate.json beside
     it and its scale inside it): reconstructing it gives no "very dark ... sensor has N bits, pass
     --white-level" advice, which the same pixels as a real capture (no simulate.json, no text chunk) still get."""
-    from cli_helpers import run_cli as run_cli_subprocess  # warnings as the user sees them on stderr
-
     scene = tmp_path / "scene.npy"
     np.save(scene, (np.random.default_rng(3).random((3, 40, 40)) * 0.2).astype(np.float32))
     sim = tmp_path / "sim"
@@ -646,15 +644,14 @@ def test_reconstructing_simulates_own_dark_png_gives_no_bit_depth_advice(fab_run
     assert res.returncode == 0, res.stderr
     sensor = np.load(sim / "sensor.npy")
     assert sensor.max() < 1 / 8 and json.loads((sim / "simulate.json").read_text())["sensor_png_scale"] == 1.0
-    res = run_cli_subprocess("reconstruct", str(sim / "sensor.png"), "--run", str(fab_run), "--out", str(tmp_path / "a.h5"))
+    res = run_cli("reconstruct", str(sim / "sensor.png"), "--run", str(fab_run), "--out", str(tmp_path / "a.h5"))
     assert res.returncode == 0, res.stderr
     assert "very dark" not in res.stderr and "--white-level" not in res.stderr, res.stderr
     from PIL import Image
 
     with Image.open(sim / "sensor.png") as im:  # the same pixels as a real capture: no hsicam text chunk
         Image.fromarray(np.array(im)).save(tmp_path / "capture.png")
-    res = run_cli_subprocess("reconstruct", str(tmp_path / "capture.png"), "--run", str(fab_run), "--out",
-                             str(tmp_path / "b.h5"))
+    res = run_cli("reconstruct", str(tmp_path / "capture.png"), "--run", str(fab_run), "--out", str(tmp_path / "b.h5"))
     assert res.returncode == 0, res.stderr
     assert "capture.png: very dark" in res.stderr and "pass --white-level 16383" in res.stderr, res.stderr
 

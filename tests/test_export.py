@@ -331,9 +331,7 @@ def test_export_cites_only_a_tolerance_study_of_this_run(fab_run, tmp_path):
     old = tmp_path / "old" / "tolerance.json"
     old.parent.mkdir()
     old.write_text(json.dumps({k: v for k, v in study.items() if k != "run"}))
-    from cli_helpers import run_cli as run_cli_subprocess  # the warning as a user sees it on stderr
-
-    res = run_cli_subprocess("export-optics", "--run", str(other), "--out", str(tmp_path / "old_out"), "--tolerance", str(old))
+    res = run_cli("export-optics", "--run", str(other), "--out", str(tmp_path / "old_out"), "--tolerance", str(old))
     assert res.returncode == 0, res.stderr
     assert "does not record which run it studied" in res.stderr and "cannot check" in res.stderr
     studied = json.loads((tmp_path / "old_out" / "spec.json").read_text())["tolerances"]["studied"]
