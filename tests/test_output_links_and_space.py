@@ -38,7 +38,7 @@ def env(tmp_path_factory):
 def run(tmp_path_factory, env) -> Path:
     """A trained tiny run (one epoch)."""
     d = tmp_path_factory.mktemp("trained") / "run1"
-    assert_ok(run_cli("train", "--config", "tiny", "--out", str(d), "--set", "train.epochs=1", env=env))
+    assert_ok(run_cli_in_process("train", "--config", "tiny", "--out", str(d), "--set", "train.epochs=1", env=env))
     return d
 
 
@@ -112,7 +112,7 @@ def test_training_through_a_link_keeps_the_link(tmp_path, env):
     (tmp_path / "bigdisk" / "run").mkdir(parents=True)
     link = tmp_path / "run_link"
     link.symlink_to(tmp_path / "bigdisk" / "run")
-    assert_ok(run_cli("train", "--config", "tiny", "--out", str(link), "--set", "train.epochs=1", env=env))
+    assert_ok(run_cli_in_process("train", "--config", "tiny", "--out", str(link), "--set", "train.epochs=1", env=env))
     assert link.is_symlink()
     assert (tmp_path / "bigdisk" / "run" / "model.safetensors").is_file()
     assert entries(tmp_path / "bigdisk") == ["run"]
