@@ -19,6 +19,18 @@ import torch
 from hsicam.cameras import DOECamera
 from hsicam.config import load_config
 
+
+def _share_the_cores() -> None:
+    """Under pytest-xdist (``make test``: 2 workers on the project's 2-core machines), each worker's torch
+    takes its share of the cores instead of all of them: two workers each running 2 OpenMP threads on 2
+    cores only spin against each other. The CLI subprocesses run on one thread already (``cli_env``)."""
+    workers = int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "0") or 0)
+    if workers > 1:
+        torch.set_num_threads(max(1, (os.cpu_count() or 1) // workers))
+
+
+_share_the_cores()
+
 TINY_CAMERA_OVERRIDES = (
     "bands.start_nm=500",
     "bands.stop_nm=600",
