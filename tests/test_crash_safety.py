@@ -16,7 +16,7 @@ from pathlib import Path
 
 import pytest
 import torch
-from cli_helpers import run_cli
+from cli_helpers import run_cli_in_process
 
 from hsicam.config import load_config
 from hsicam.runs.checkpoint import read_weights
@@ -210,7 +210,7 @@ def test_damaged_weights_are_named_not_used(reference, tmp_path, caplog):
     _flip_a_byte(kept)
     with pytest.raises(InputError, match="both differ from the weights .* records .*the run's weights are damaged"):
         load_run(run)
-    res = run_cli("psf", "--run", str(run), "--out", str(tmp_path / "psf"))
+    res = run_cli_in_process("psf", "--run", str(run), "--out", str(tmp_path / "psf"))
     assert res.returncode == 2 and "the run's weights are damaged" in res.stderr.strip().splitlines()[-1], res.stderr
     assert not (tmp_path / "psf").exists()
     # resuming trains on from the last checkpoint: refused when it is not the file the manifest records
@@ -287,7 +287,7 @@ def test_resuming_a_finished_run_changes_nothing(reference, tmp_path):
     before = _snapshot(run)
     final = json.loads((run / "metrics.jsonl").read_text().splitlines()[-1])
     for _ in range(2):
-        proc = run_cli("train", "--out", str(run), "--resume")
+        proc = run_cli_in_process("train", "--out", str(run), "--resume")
         assert proc.returncode == 0, proc.stderr
         assert "Traceback" not in proc.stderr
         assert f"{run}: already finished at step 8 (2 epochs)" in proc.stdout
@@ -301,7 +301,7 @@ def test_resuming_a_finished_run_with_more_epochs_trains_on(reference, tmp_path)
     """Raising train.epochs continues a finished run; then that longer run is finished in turn."""
     run = tmp_path / "run"
     _train(run)
-    proc = run_cli("train", "--out", str(run), "--resume", "--set", "train.epochs=3")
+    proc = run_cli_in_process("train", "--out", str(run), "--resume", "--set", "train.epochs=3")
     assert proc.returncode == 0, proc.stderr
     assert "trained 3 epochs (12 steps" in proc.stdout and "val PSNR" in proc.stdout
     man = json.loads((run / "checkpoints.json").read_text())
@@ -311,7 +311,7 @@ def test_resuming_a_finished_run_with_more_epochs_trains_on(reference, tmp_path)
     assert last["final"] and last["step"] == 12 and "val_psnr" in last
     assert [r["step"] for r in records if r.get("final")] == [12]  # the 2-epoch summary is not left in the log
     before = _snapshot(run)
-    proc = run_cli("train", "--out", str(run), "--resume")
+    proc = run_cli_in_process("train", "--out", str(run), "--resume")
     assert proc.returncode == 0 and "already finished at step 12 (3 epochs)" in proc.stdout, proc.stderr
     assert _snapshot(run) == before
 
@@ -334,11 +334,11 @@ def test_resuming_a_run_without_validation(reference, tmp_path):
     from hsicam.engine.train import train
     run = tmp_path / "run"
     train(load_config("tiny", ["train.epochs=2", "data.val_fraction=0"]), run, progress=False, stop_after_steps=5)
-    proc = run_cli("train", "--out", str(run), "--resume")
+    proc = run_cli_in_process("train", "--out", str(run), "--resume")
     assert proc.returncode == 0, proc.stderr
     assert "trained 2 epochs (8 steps" in proc.stdout and "PSNR" not in proc.stdout
     before = _snapshot(run)
-    proc = run_cli("train", "--out", str(run), "--resume")
+    proc = run_cli_in_process("train", "--out", str(run), "--resume")
     assert proc.returncode == 0 and "already finished at step 8 (2 epochs)" in proc.stdout, proc.stderr
     assert _snapshot(run) == before
 

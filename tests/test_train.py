@@ -16,7 +16,7 @@ import torch
 import torch.nn.functional as F
 
 from conftest import KEEP_THE_GROUP, torchrun_tmp
-from cli_helpers import assert_clean_error, run_cli, signal_a_training
+from cli_helpers import assert_clean_error, run_cli, run_cli_in_process, signal_a_training
 from hsicam.config import load_config
 from hsicam.runs.checkpoint import load_weights, read_weights, save_weights
 from hsicam.engine.train import build_optimizer, train
@@ -110,7 +110,7 @@ def test_resume_with_changed_keys_records_them_in_config_yaml(tmp_path, cache_en
 
     run = tmp_path / "run"
     assert train(tiny_cfg("train.epochs=3"), run, progress=False, stop_after_steps=5) == {"stopped_at_step": 5}
-    res = run_cli("train", "--out", str(run), "--resume", "--set", "train.epochs=2", env={"HSICAM_CACHE": str(cache_env)})
+    res = run_cli_in_process("train", "--out", str(run), "--resume", "--set", "train.epochs=2", env={"HSICAM_CACHE": str(cache_env)})
     assert res.returncode == 0, res.stderr
     assert load_config(run / "config.yaml").train.epochs == 2
     records = [json.loads(x) for x in (run / "metrics.jsonl").read_text().splitlines()]
@@ -124,7 +124,7 @@ def test_sigkilled_training_resumes(tmp_path, cache_env):
     man = json.loads((run / "checkpoints.json").read_text())
     assert 0 < man["state"]["global_step"] < 160
     read_weights(run / man["last"]["dir"] / "model.safetensors")  # intact
-    res = run_cli("train", "--out", str(run), "--resume", env={"HSICAM_CACHE": str(cache_env)})
+    res = run_cli_in_process("train", "--out", str(run), "--resume", env={"HSICAM_CACHE": str(cache_env)})
     assert res.returncode == 0, res.stderr
     records = [json.loads(x) for x in (run / "metrics.jsonl").read_text().splitlines()]
     assert records[-1]["final"] and records[-1]["step"] == 160
@@ -220,17 +220,17 @@ def test_ddp_error_destroys_the_process_group(tmp_path, cache_env, where):
 def test_train_and_reconstruct_cli(tmp_path, cache_env):
     run = tmp_path / "run"
     env = {"HSICAM_CACHE": str(cache_env)}
-    res = run_cli("train", "--config", "tiny", "--out", str(run), env=env)
+    res = run_cli_in_process("train", "--config", "tiny", "--out", str(run), env=env)
     assert res.returncode == 0, res.stderr
     assert "val PSNR" in res.stdout
     for name in ("config.yaml", "model.safetensors", "metrics.jsonl", "checkpoints.json"):
         assert (run / name).is_file(), name
     # simulate through the trained optics, then reconstruct the sensor image
     np.save(tmp_path / "scene.npy", smooth_cube(1, 7, 50, 60)[0].numpy())
-    sim = run_cli("simulate", "--run", str(run), "--scene", str(tmp_path / "scene.npy"), "--out", str(tmp_path / "sim"), env=env)
+    sim = run_cli_in_process("simulate", "--run", str(run), "--scene", str(tmp_path / "scene.npy"), "--out", str(tmp_path / "sim"), env=env)
     assert sim.returncode == 0, sim.stderr
     out = tmp_path / "rec.h5"
-    rec = run_cli("reconstruct", str(tmp_path / "sim" / "sensor.png"), "--run", str(run), "--out", str(out), "--tile", "32", env=env)
+    rec = run_cli_in_process("reconstruct", str(tmp_path / "sim" / "sensor.png"), "--run", str(run), "--out", str(out), "--tile", "32", env=env)
     assert rec.returncode == 0, rec.stderr
     from hsicam.data import read_cube
 
@@ -238,15 +238,15 @@ def test_train_and_reconstruct_cli(tmp_path, cache_env):
     assert cube.shape == (7, 50, 60) and len(bands) == 7
     assert (tmp_path / "rec_rgb.png").is_file()
     # ENVI by extension (under its own name: a folder holds one cube per name, tests/test_cli_bad_paths.py)
-    rec2 = run_cli("reconstruct", str(tmp_path / "sim" / "sensor.npy"), "--run", str(run), "--out", str(tmp_path / "rec_envi.hdr"), env=env)
+    rec2 = run_cli_in_process("reconstruct", str(tmp_path / "sim" / "sensor.npy"), "--run", str(run), "--out", str(tmp_path / "rec_envi.hdr"), env=env)
     assert rec2.returncode == 0, rec2.stderr
     assert (tmp_path / "rec_envi_rgb.png").is_file()
     cube2, _, _ = read_cube(tmp_path / "rec_envi.hdr")
     np.testing.assert_allclose(cube2, cube, atol=2e-4)  # PNG quantisation only
 
     # bad input: missing run, corrupt weights, another band grid, existing run folder
-    assert_clean_error(run_cli("reconstruct", str(tmp_path / "sim" / "sensor.npy"), "--run", str(tmp_path / "nope"), "--out", str(out)), "no such run folder")
-    assert_clean_error(run_cli("train", "--config", "tiny", "--out", str(run), env=env), "not empty")
+    assert_clean_error(run_cli_in_process("reconstruct", str(tmp_path / "sim" / "sensor.npy"), "--run", str(tmp_path / "nope"), "--out", str(out)), "no such run folder")
+    assert_clean_error(run_cli_in_process("train", "--config", "tiny", "--out", str(run), env=env), "not empty")
     broken = tmp_path / "broken"
     shutil.copytree(run, broken)
     # a root weights file that differs from the manifest is never used: the manifest's checkpoint is
@@ -254,12 +254,12 @@ def test_train_and_reconstruct_cli(tmp_path, cache_env):
     (broken / "checkpoints.json").unlink()
     data = (broken / "model.safetensors").read_bytes()
     (broken / "model.safetensors").write_bytes(data[: len(data) // 2])
-    assert_clean_error(run_cli("reconstruct", str(tmp_path / "sim" / "sensor.npy"), "--run", str(broken), "--out", str(out)), "corrupt")
+    assert_clean_error(run_cli_in_process("reconstruct", str(tmp_path / "sim" / "sensor.npy"), "--run", str(broken), "--out", str(out)), "corrupt")
     other = tmp_path / "other"
     shutil.copytree(run, other)
     text = (other / "config.yaml").read_text().replace("step_nm: 50.0", "step_nm: 60.0")
     (other / "config.yaml").write_text(text)
-    assert_clean_error(run_cli("reconstruct", str(tmp_path / "sim" / "sensor.npy"), "--run", str(other), "--out", str(out)), "trained on")
+    assert_clean_error(run_cli_in_process("reconstruct", str(tmp_path / "sim" / "sensor.npy"), "--run", str(other), "--out", str(out)), "trained on")
 
 
 def test_training_on_one_scene_warns_that_nothing_is_validated(tmp_path, cache_env):
@@ -271,7 +271,7 @@ def test_training_on_one_scene_warns_that_nothing_is_validated(tmp_path, cache_e
     cube = tmp_path / "one.h5"
     write_cube_h5(cube, smooth_cube(1, 7, 64, 64)[0].numpy(), Bands.uniform(420, 720, 50))
     run = tmp_path / "run"
-    res = run_cli("train", "--config", "tiny", "--set", f"data.root={cube}", "--out", str(run),
+    res = run_cli_in_process("train", "--config", "tiny", "--set", f"data.root={cube}", "--out", str(run),
                   env={"HSICAM_CACHE": str(cache_env)})
     assert res.returncode == 0, res.stderr
     lines = [x for x in res.stderr.splitlines() if "no validation scenes" in x]
