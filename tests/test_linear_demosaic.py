@@ -12,7 +12,7 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from cli_helpers import assert_clean_error, in_process_error_line, run_cli
+from cli_helpers import assert_clean_error, in_process_error_line, run_cli_in_process
 from hsicam.models.demosaic import LinearDemosaicFit, demosaic, phase_linear
 from hsicam.sensor import tile_pattern
 
@@ -187,7 +187,7 @@ def test_bad_shapes_are_clear_errors():
 def run(tmp_path_factory):
     env = {"HSICAM_CACHE": str(tmp_path_factory.mktemp("cache"))}
     d = tmp_path_factory.mktemp("run") / "run"
-    res = run_cli("train", "--config", "tiny", "--out", str(d), "--set", "camera.cfa.init=bandpass", env=env)
+    res = run_cli_in_process("train", "--config", "tiny", "--out", str(d), "--set", "camera.cfa.init=bandpass", env=env)
     assert res.returncode == 0, res.stderr
     return d, env
 
@@ -234,12 +234,12 @@ def test_linear_reference_method_is_fitted_on_the_training_scenes_through_the_ru
 def test_linear_reference_through_the_cli_and_its_errors(run, tmp_path):
     d, env = run
     out = tmp_path / "ev"
-    res = run_cli("evaluate", "--run", str(d), "--method", "doe-linear-demosaic", "--out", str(out), env=env)
+    res = run_cli_in_process("evaluate", "--run", str(d), "--method", "doe-linear-demosaic", "--out", str(out), env=env)
     assert res.returncode == 0, res.stderr
     assert "doe-linear-demosaic: mean PSNR" in res.stdout
     summary = json.loads((out / "results.json").read_text())
     assert summary["method"] == "doe-linear-demosaic" and np.isfinite(summary["mean"]["psnr"])
-    bad = run_cli("evaluate", "--method", "doe-linear-demosaic", "--out", str(tmp_path / "bad"), env=env)
+    bad = run_cli_in_process("evaluate", "--method", "doe-linear-demosaic", "--out", str(tmp_path / "bad"), env=env)
     assert_clean_error(bad, "needs --run")
 
 

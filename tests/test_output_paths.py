@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from cli_helpers import assert_clean_error, assert_ok, run_cli, run_cli_in_process
+from cli_helpers import assert_clean_error, assert_ok, run_cli_in_process
 from hsicam.data.formats import write_cube_h5
 from hsicam.errors import InputError
 from hsicam.io import COMPLETE_MARKER, atomic_output, mark_complete
@@ -132,27 +132,27 @@ def test_an_older_marker_listing_a_subfolder_only_is_refused_unless_it_is_empty(
 def run_dir(tmp_path_factory, cache_env) -> Path:
     """A tiny trained run (``hsicam train --config tiny``)."""
     run = tmp_path_factory.mktemp("runs") / "run"
-    assert_ok(run_cli("train", "--config", "tiny", "--set", "train.epochs=1", "--out", str(run)))
+    assert_ok(run_cli_in_process("train", "--config", "tiny", "--set", "train.epochs=1", "--out", str(run)))
     return run
 
 
 def test_rerunning_evaluate_keeps_user_files_in_cubes_and_report(run_dir, tmp_path):
     ev = tmp_path / "ev"
     again = ("evaluate", "--run", str(run_dir), "--out", str(ev), "--save")
-    assert_ok(run_cli(*again))
-    assert_ok(run_cli("report", str(ev)))
+    assert_ok(run_cli_in_process(*again))
+    assert_ok(run_cli_in_process("report", str(ev)))
     (ev / "cubes" / "my_analysis.txt").write_text("my analysis")
     (ev / "report" / "notes.txt").write_text("my notes")
     before = snapshot(tmp_path)
     # one line, before any work (no progress line), nothing deleted
-    assert_clean_error(run_cli(*again), f"{ev}: holds cubes/my_analysis.txt, report/notes.txt, which hsicam "
-                                        "evaluate did not write; choose another folder or move them")
-    assert_clean_error(run_cli("report", str(ev)),
+    assert_clean_error(run_cli_in_process(*again), f"{ev}: holds cubes/my_analysis.txt, report/notes.txt, "
+                                                   "which hsicam evaluate did not write; choose another folder or move them")
+    assert_clean_error(run_cli_in_process("report", str(ev)),
                        f"{ev / 'report'}: holds notes.txt, which hsicam report did not write")
     assert snapshot(tmp_path) == before
     (ev / "cubes" / "my_analysis.txt").unlink()
     (ev / "report" / "notes.txt").unlink()
-    assert_ok(run_cli(*again))  # its own files (and the report made from them): replaced
+    assert_ok(run_cli_in_process(*again))  # its own files (and the report made from them): replaced
     cubes = sorted(p.name for p in (ev / "cubes").iterdir())
     assert cubes == sorted(p[len("ev/cubes/"):] for p in before if p.startswith("ev/cubes/") and "my_" not in p)
     assert not (ev / "report").exists()
