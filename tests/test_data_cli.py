@@ -121,56 +121,57 @@ def _tree(folder: Path) -> dict[str, bytes | None]:
     ("other_bands", ["no scenes to sample spectra from"]),  # read only when the gamut plot is drawn
 ])
 def test_show_with_a_bad_heldout_writes_nothing(tmp_path, heldout, words):
-    from cli_helpers import assert_clean_error, run_cli
+    from cli_helpers import assert_clean_error, run_cli_in_process
 
     data = _one_cube_set(tmp_path / "data", Bands.paper())
     (tmp_path / "empty").mkdir()
     _one_cube_set(tmp_path / "other_bands", Bands.uniform(500, 600, 50))
     before = _tree(tmp_path)
     # a new output folder (and its parent) is not created
-    r = run_cli("data", "show", str(data), "--out", str(tmp_path / "show" / "o"), "--heldout", str(tmp_path / heldout))
+    r = run_cli_in_process("data", "show", str(data), "--out", str(tmp_path / "show" / "o"),
+                           "--heldout", str(tmp_path / heldout))
     assert_clean_error(r, *words)
     assert _tree(tmp_path) == before
     # the default output, the dataset folder itself, is left as it was
-    assert_clean_error(run_cli("data", "show", str(data), "--heldout", str(tmp_path / heldout)), *words)
+    assert_clean_error(run_cli_in_process("data", "show", str(data), "--heldout", str(tmp_path / heldout)), *words)
     assert _tree(tmp_path) == before
 
 
 def test_show_failure_keeps_the_previous_preview(tmp_path):
     """A rerun that fails (here: on its held-out set, read last) leaves the PNGs of the last
     successful run as they were, although it would have drawn other ones (one scene, not two)."""
-    from cli_helpers import assert_clean_error, run_cli
+    from cli_helpers import assert_clean_error, run_cli_in_process
 
     data = _one_cube_set(tmp_path / "data", Bands.paper(), n=2)
     (tmp_path / "empty").mkdir()
     out = tmp_path / "preview"
-    r = run_cli("data", "show", str(data), "--out", str(out))
+    r = run_cli_in_process("data", "show", str(data), "--out", str(out))
     assert r.returncode == 0, r.stderr
     assert sorted(p.name for p in out.iterdir()) == [".complete", "contact_sheet.png", "mean_spectra.png",
                                                      "spectral_gamut.png"]
     before = _tree(tmp_path)
-    assert_clean_error(run_cli("data", "show", str(data), "--out", str(out), "--max-scenes", "1",
-                               "--heldout", str(tmp_path / "empty")), "no hyperspectral scenes")
+    assert_clean_error(run_cli_in_process("data", "show", str(data), "--out", str(out), "--max-scenes", "1",
+                                          "--heldout", str(tmp_path / "empty")), "no hyperspectral scenes")
     assert _tree(tmp_path) == before
 
 
 @pytest.mark.parametrize("value", ["0", "-1"])
 def test_show_max_scenes_below_one_is_an_error(tmp_path, value):
-    from cli_helpers import assert_clean_error, run_cli
+    from cli_helpers import assert_clean_error, run_cli_in_process
 
     data = _one_cube_set(tmp_path / "data", Bands.paper())
     before = _tree(tmp_path)
-    assert_clean_error(run_cli("data", "show", str(data), "--out", str(tmp_path / "o"), "--max-scenes", value),
-                       "--max-scenes", value)
+    assert_clean_error(run_cli_in_process("data", "show", str(data), "--out", str(tmp_path / "o"),
+                                          "--max-scenes", value), "--max-scenes", value)
     assert _tree(tmp_path) == before
 
 
 def test_show_max_scenes_caps_the_scenes(tmp_path):
-    from cli_helpers import run_cli
+    from cli_helpers import run_cli_in_process
 
     data = _one_cube_set(tmp_path / "data", Bands.paper(), n=3)
     for n in ("1", "3"):
-        r = run_cli("data", "show", str(data), "--out", str(tmp_path / n), "--max-scenes", n)
+        r = run_cli_in_process("data", "show", str(data), "--out", str(tmp_path / n), "--max-scenes", n)
         assert r.returncode == 0, r.stderr
     one, three = (iio.imread(tmp_path / n / "contact_sheet.png") for n in ("1", "3"))
     assert one.shape[1] < three.shape[1] / 2  # one thumbnail per row, not three

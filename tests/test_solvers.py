@@ -13,7 +13,7 @@ import torch
 import torch.nn.functional as F
 import yaml
 
-from cli_helpers import assert_clean_error, run_cli
+from cli_helpers import assert_clean_error, run_cli_in_process
 from hsicam.cameras import build_camera
 from hsicam.config import load_config
 from hsicam.engine.methods import baseline_names, build_method
@@ -504,7 +504,6 @@ def test_evaluate_refuses_a_prior_key_set_to_its_default(tiny_env, tmp_path):
     """`--set baselines.choi.latent=64` (the default) on a prior trained with latent 16 was taken as
     "not set" and ignored (session 22's rule); given by --set, it is now refused like any other value."""
     from hsicam.engine.methods import check_prior_overrides
-    from cli_helpers import run_cli_in_process
 
     prior, default = tiny_env["prior"], ChoiConfig()
     trained = load_prior(prior, tiny_env["cfg"].bands.to_bands())[1]
@@ -593,7 +592,8 @@ def test_cli_train_prior(tiny_env, capsys):
 
 
 def test_cli_train_prior_config_error_is_one_line():
-    r = run_cli("baseline", "train-prior", "--config", "tiny", "--out", "unused", "--set", "baselines.choi.lr=-1")
+    r = run_cli_in_process("baseline", "train-prior", "--config", "tiny", "--out", "unused",
+                           "--set", "baselines.choi.lr=-1")
     assert_clean_error(r, "baselines.choi.lr")
 
 

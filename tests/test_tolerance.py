@@ -12,8 +12,8 @@ import numpy as np
 import pytest
 import torch
 
-from cli_helpers import assert_clean_error
-from test_calibration import fab_run, run_cli  # noqa: F401 - shared fixture
+from cli_helpers import assert_clean_error, run_cli_in_process
+from test_calibration import fab_run  # noqa: F401 - shared fixture
 from hsicam.cameras import DOECamera
 from hsicam.engine.tolerance import _tolerance_at
 from hsicam.optics.perturb import (
@@ -84,9 +84,9 @@ def test_tolerance_cli(fab_run, tmp_path, caplog):
 
     out = tmp_path / "tol"
     with caplog.at_level(logging.INFO, logger="hsicam.progress"):  # (in process: the log records)
-        res = run_cli("tolerance", "--run", str(fab_run), "--out", str(out), "--max-scenes", "2", "--draws", "2",
-                      "--sigma-height-nm", "0,40,200", "--levels", "2,16", "--shift-cells", "0,0.5",
-                      "--sensor-distance-um=-300,0,300")
+        res = run_cli_in_process("tolerance", "--run", str(fab_run), "--out", str(out), "--max-scenes", "2",
+                                 "--draws", "2", "--sigma-height-nm", "0,40,200", "--levels", "2,16",
+                                 "--shift-cells", "0,0.5", "--sensor-distance-um=-300,0,300")
     assert res.returncode == 0, res.stderr
     assert "nominal PSNR" in res.stdout
     # off a terminal: one progress line per sweep point, in order (hsicam.progress: INFO on stderr)
@@ -123,12 +123,14 @@ def test_tolerance_cli(fab_run, tmp_path, caplog):
     assert len(rows) == 1 + 3 + 2 + 2 + 2 + 3 and rows[0]["sweep"] == "nominal"
     assert all(math.isfinite(float(row["psnr_db"])) for row in rows)
     # spec.json of an export cites the study
-    res = run_cli("export-optics", "--run", str(fab_run), "--out", str(tmp_path / "fab"), "--tolerance", str(out))
+    res = run_cli_in_process("export-optics", "--run", str(fab_run), "--out", str(tmp_path / "fab"),
+                             "--tolerance", str(out))
     assert res.returncode == 0, res.stderr
     spec = json.loads((tmp_path / "fab" / "spec.json").read_text())
     assert spec["tolerances"]["studied"]["nominal_psnr_db"] == pytest.approx(r["nominal"]["psnr"])
     check_sweep_rows(r, fab_run, model, scenes, names, tmp_path / "fab")
-    assert_clean_error(run_cli("tolerance", "--run", str(fab_run), "--out", str(tmp_path / "t2"), "--draws", "0"), "must be >= 1")
+    assert_clean_error(run_cli_in_process("tolerance", "--run", str(fab_run), "--out", str(tmp_path / "t2"),
+                                          "--draws", "0"), "must be >= 1")
     assert not (tmp_path / "t2").exists()
 
 
@@ -337,7 +339,6 @@ def test_a_failing_sweep_closes_its_progress_bar(fab_run, monkeypatch):
 def test_shift_subsamples_beyond_the_memory_budget_are_refused_naming_the_option_before_any_sweep(fab_run, tmp_path):
     """`tolerance --shift-subsamples 100000` ran the nominal, height-noise and level sweeps, then was refused
     by the PSF planner's 'check ... camera.psf.pupil_oversample', naming neither the option nor its fix."""
-    from cli_helpers import run_cli_in_process
 
     out = tmp_path / "tol"
     res = run_cli_in_process("tolerance", "--run", str(fab_run), "--out", str(out), "--max-scenes", "1",
