@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from cli_helpers import assert_clean_error, module_cache, run_cli
+from cli_helpers import assert_clean_error, module_cache, run_cli, run_cli_in_process
 from hsicam.cli import main
 
 
@@ -32,7 +32,7 @@ def outputs(tmp_path_factory, env):
     for args in (("train", "--config", "tiny", "--out", str(d / "run"), "--set", "train.epochs=1"),
                  ("evaluate", "--run", str(d / "run"), "--out", str(d / "ev")),
                  ("simulate", "--config", "tiny", "--scene", str(d / "scene.npy"), "--out", str(d / "sim"))):
-        res = run_cli(*args, env=env)
+        res = run_cli_in_process(*args, env=env)
         assert res.returncode == 0, res.stderr
     return d
 
@@ -56,7 +56,7 @@ def test_another_commands_completed_folder_is_never_replaced(outputs, tmp_path, 
                        "simulate": ("simulate", "--config", "tiny", "--scene", str(outputs / "scene.npy")),
                        "export-optics": ("export-optics", "--run", run),
                        "tolerance": ("tolerance", "--run", run)}.items():
-        assert_clean_error(run_cli(*args, "--out", str(ev), env=env), str(ev),
+        assert_clean_error(run_cli_in_process(*args, "--out", str(ev), env=env), str(ev),
                            f"holds the output of hsicam evaluate, not of hsicam {name}")
         assert snapshot(ev) == before, name
     assert sorted(p.name for p in tmp_path.iterdir()) == ["ev1"]  # no temporary left either
@@ -65,17 +65,17 @@ def test_another_commands_completed_folder_is_never_replaced(outputs, tmp_path, 
 def test_a_commands_own_folder_is_refreshed_but_never_with_a_users_files(outputs, tmp_path, env):
     ev = copy(outputs / "ev", tmp_path / "ev1")
     again = ("evaluate", "--run", str(outputs / "run"), "--out", str(ev))
-    assert run_cli(*again, env=env).returncode == 0  # refreshing one's own results
-    assert run_cli("report", str(ev), env=env).returncode == 0
-    res = run_cli(*again, env=env)  # report/ is derived from the results: it goes with them
+    assert run_cli_in_process(*again, env=env).returncode == 0  # refreshing one's own results
+    assert run_cli_in_process("report", str(ev), env=env).returncode == 0
+    res = run_cli_in_process(*again, env=env)  # report/ is derived from the results: it goes with them
     assert res.returncode == 0, res.stderr
     assert sorted(p.name for p in ev.iterdir()) == [".complete", "results.csv", "results.json", "results.md"]
     (ev / "notes.txt").write_text("my notes")
     (ev / "myplots").mkdir()
     (ev / "myplots" / "fig.png").write_bytes(b"png")
     before = snapshot(ev)
-    assert_clean_error(run_cli(*again, env=env), f"{ev}: holds myplots, notes.txt, which hsicam evaluate did not write",
-                       "move them")
+    assert_clean_error(run_cli_in_process(*again, env=env),
+                       f"{ev}: holds myplots, notes.txt, which hsicam evaluate did not write", "move them")
     assert snapshot(ev) == before
 
 
@@ -84,7 +84,7 @@ def test_train_does_not_resume_or_restart_in_another_commands_output(outputs, tm
     sim = copy(outputs / "sim", tmp_path / "sim")
     before = snapshot(sim)
     config = ("--config", "tiny") if mode != "--resume" else ()
-    res = run_cli("train", *config, "--out", str(sim), *([mode] if mode else []), env=env)
+    res = run_cli_in_process("train", *config, "--out", str(sim), *([mode] if mode else []), env=env)
     assert_clean_error(res, f"{sim}: holds the output of hsicam simulate, not a training run",
                        f"nothing to {mode[2:]}" if mode else "a run needs its own folder")
     assert "--resume" not in res.stderr.split("error:")[-1]  # no remedy the folder cannot take
@@ -113,15 +113,15 @@ def test_data_synth_refuses_a_folder_that_is_not_its_dataset(outputs, tmp_path, 
     for name in ("run", "ev"):
         out = copy(outputs / name, tmp_path / name)
         before = snapshot(out)
-        assert_clean_error(run_cli(*synth, str(out), env=env), str(out), "holds no dataset of hsicam data synth",
-                           "choose an empty or new --out")
+        assert_clean_error(run_cli_in_process(*synth, str(out), env=env), str(out),
+                           "holds no dataset of hsicam data synth", "choose an empty or new --out")
         assert snapshot(out) == before, name
     data = tmp_path / "data"
-    assert run_cli(*synth, str(data), env=env).returncode == 0
-    res = run_cli(*synth, str(data), env=env)  # its own dataset: recognised
+    assert run_cli_in_process(*synth, str(data), env=env).returncode == 0
+    res = run_cli_in_process(*synth, str(data), env=env)  # its own dataset: recognised
     assert res.returncode == 0 and "already holds this dataset" in res.stdout, res.stderr
     (data / "manifest.json").unlink()  # a generation killed before its manifest: completed
-    res = run_cli(*synth, str(data), env=env)
+    res = run_cli_in_process(*synth, str(data), env=env)
     assert res.returncode == 0 and (data / "manifest.json").is_file(), res.stderr
 
 
@@ -148,7 +148,8 @@ def test_demo_checks_its_output_folder_before_any_work(outputs, tmp_path, capsys
         assert err.startswith("hsicam: error:") and len(err.splitlines()) == 1, err
         assert str(out) in err and fragment in err, err
         assert "[demo]" not in captured.out and snapshot(tmp_path) == before
-    # the console script, once: one line, nothing generated first
+    # the console script, once (a process of its own: the entry point, without this test's monkeypatch):
+    # one line, nothing generated first
     proc = run_cli("demo", "--config", "tiny", "--out", str(taken), env={"HSICAM_CACHE": str(tmp_path / "cache")})
     assert_clean_error(proc, str(taken), "existing file")
     assert not (tmp_path / "cache").exists() and taken.read_text() == "user data"
