@@ -20,7 +20,7 @@ import shutil
 import numpy as np
 import pytest
 
-from cli_helpers import assert_clean_error, run_cli
+from cli_helpers import assert_clean_error, run_cli_in_process
 from hsicam.errors import InputError
 
 
@@ -45,14 +45,14 @@ def _tree(folder):
 # ------------------------------------------------------------------------------------------------
 def test_evaluate_refuses_height_noise_without_a_doe(runs, tmp_path):
     out, cache = tmp_path / "ev", tmp_path / "empty-cache"
-    res = run_cli("evaluate", "--method", "dd-cassi-gaptv", "--config", "tiny", "--sigma-height-nm", "50",
-                  "--out", str(out), env={"HSICAM_CACHE": str(cache)})
+    res = run_cli_in_process("evaluate", "--method", "dd-cassi-gaptv", "--config", "tiny", "--sigma-height-nm", "50",
+                             "--out", str(out), env={"HSICAM_CACHE": str(cache)})
     assert_clean_error(res, "--sigma-height-nm 50: dd-cassi-gaptv (--config tiny): its camera (camera.kind dd_cassi) has "
                        "no DOE", "no height noise would be applied", "drop --sigma-height-nm")
     # refused before the validation and held-out scenes are generated (it once made both first)
     assert "generating" not in res.stderr and not cache.exists()
     nodoe = runs / "nodoe"
-    assert_clean_error(run_cli("evaluate", "--run", str(nodoe), "--sigma-height-nm", "50", "--out", str(out)),
+    assert_clean_error(run_cli_in_process("evaluate", "--run", str(nodoe), "--sigma-height-nm", "50", "--out", str(out)),
                        f"--sigma-height-nm 50: doe-learned (run {nodoe}): its camera has no DOE "
                        "(camera.doe.enabled: false)", "drop --sigma-height-nm")
     assert not out.exists()
@@ -80,8 +80,8 @@ def test_pack_refuses_results_measured_under_test_noise(runs, tmp_path):
     ev = tmp_path / "ev"
     assert main(["evaluate", "--run", str(run), "--sensor-sigma", "0.5", "--out", str(ev)]) == 0
     dest = tmp_path / "root"
-    res = run_cli("pretrained", "pack", str(run), "--name", "x", "--dest", str(dest), "--results",
-                  str(ev / "results.json"))
+    res = run_cli_in_process("pretrained", "pack", str(run), "--name", "x", "--dest", str(dest), "--results",
+                             str(ev / "results.json"))
     assert_clean_error(res, f"{ev / 'results.json'}: measured under test noise --sensor-sigma 0.5 (the camera's own: 0)",
                        f"`hsicam evaluate --run {run} --out DIR`, no --sensor-sigma", "as --results")
     assert not dest.exists()
@@ -105,17 +105,17 @@ def test_pack_onto_a_run_folder_is_refused_without_offering_force(runs, tmp_path
     shutil.copytree(runs / "run", run)
     before = _tree(run)
     for force in ((), ("--force",)):
-        assert_clean_error(run_cli("pretrained", "pack", str(run), "--name", "runP", "--dest", str(tmp_path), *force),
+        assert_clean_error(run_cli_in_process("pretrained", "pack", str(run), "--name", "runP", "--dest", str(tmp_path), *force),
                            f"{run}: not a packed camera (a run folder, not a completed hsicam output)",
                            "even with --force",
                            "choose another --name or --dest")
         assert _tree(run) == before
     # a packed camera of that name still asks for --force, and is replaced with it
-    res = run_cli("pretrained", "pack", str(run), "--name", "cam", "--dest", str(tmp_path / "root"))
+    res = run_cli_in_process("pretrained", "pack", str(run), "--name", "cam", "--dest", str(tmp_path / "root"))
     assert res.returncode == 0, res.stderr
-    assert_clean_error(run_cli("pretrained", "pack", str(run), "--name", "cam", "--dest", str(tmp_path / "root")),
+    assert_clean_error(run_cli_in_process("pretrained", "pack", str(run), "--name", "cam", "--dest", str(tmp_path / "root")),
                        "a pre-trained camera 'cam' exists; pass --force")
-    res = run_cli("pretrained", "pack", str(run), "--name", "cam", "--dest", str(tmp_path / "root"), "--force")
+    res = run_cli_in_process("pretrained", "pack", str(run), "--name", "cam", "--dest", str(tmp_path / "root"), "--force")
     assert res.returncode == 0, res.stderr
 
 
@@ -123,7 +123,7 @@ def test_pack_into_its_own_run_folder_or_over_it_is_refused(runs, tmp_path):
     """--dest RUN (or a folder inside it) wrote the camera into the run being packed, and was accepted;
     a camera folder holding the run was refused only as "not a packed camera". Each is one line now,
     and nothing is written."""
-    from cli_helpers import run_cli_in_process, tree_snapshot
+    from cli_helpers import tree_snapshot
 
     run = tmp_path / "runQ"
     shutil.copytree(runs / "run", run)
@@ -192,8 +192,8 @@ def test_levels_requirement_only_when_bracketed():
 
 def test_tolerance_one_value_level_sweep_is_recorded_as_not_bracketed(runs, tmp_path):
     out = tmp_path / "tol"
-    res = run_cli("tolerance", "--run", str(runs / "run"), "--out", str(out), "--max-scenes", "1", "--draws", "1",
-                  "--levels", "16", "--sigma-height-nm", "0", "--shift-cells", "0", "--sensor-distance-um", "0")
+    res = run_cli_in_process("tolerance", "--run", str(runs / "run"), "--out", str(out), "--max-scenes", "1", "--draws", "1",
+                             "--levels", "16", "--sigma-height-nm", "0", "--shift-cells", "0", "--sensor-distance-um", "0")
     assert res.returncode == 0, res.stderr
     s = json.loads((out / "tolerance.json").read_text())["summary"]
     assert s["levels_bracketed"] is False and s["levels_note"] == "not bracketed: only one value tried"
@@ -206,15 +206,15 @@ def test_tolerance_one_value_level_sweep_is_recorded_as_not_bracketed(runs, tmp_
 # ------------------------------------------------------------------------------------------------
 def test_synth_refuses_a_scene_over_the_memory_budget_before_any_folder(tmp_path):
     out = tmp_path / "big"
-    res = run_cli("data", "synth", "--n", "2", "--size", "100000", "--out", str(out),
-                  env={"HSICAM_MEMORY_BUDGET_MB": "1024", "HSICAM_CACHE": str(tmp_path / "cache")})
+    res = run_cli_in_process("data", "synth", "--n", "2", "--size", "100000", "--out", str(out),
+                             env={"HSICAM_MEMORY_BUDGET_MB": "1024", "HSICAM_CACHE": str(tmp_path / "cache")})
     assert_clean_error(res, "--size 100000: one 100000×100000-px scene of 31 bands is a cube of 1.13 TiB",
                        "more than the memory budget of 1 GiB for one cube (HSICAM_MEMORY_BUDGET_MB", "give --size ",
                        "or raise HSICAM_MEMORY_BUDGET_MB")
     assert "tile size" not in res.stderr and "batch size" not in res.stderr
     assert not out.exists()
-    res = run_cli("data", "synth", "--n", "2", "--size", "100000",  # into the cache: no folder there either
-                  env={"HSICAM_MEMORY_BUDGET_MB": "1024", "HSICAM_CACHE": str(tmp_path / "cache")})
+    res = run_cli_in_process("data", "synth", "--n", "2", "--size", "100000",  # into the cache: no folder there either
+                             env={"HSICAM_MEMORY_BUDGET_MB": "1024", "HSICAM_CACHE": str(tmp_path / "cache")})
     assert res.returncode == 2 and "--size 100000" in res.stderr
     assert not any((tmp_path / "cache").rglob("n2-s100000*"))
 
@@ -254,24 +254,24 @@ def test_synth_failure_leaves_no_empty_folder(tmp_path, monkeypatch):
 # 20 i, k, m
 # ------------------------------------------------------------------------------------------------
 def test_demo_help_names_the_quick_preset():
-    res = run_cli("demo", "--help")
+    res = run_cli_in_process("demo", "--help")
     assert res.returncode == 0
     assert "(default: the quick preset)" in res.stdout and "paper camera" not in res.stdout
 
 
 def test_pretrained_dir_that_is_no_folder(tmp_path):
     missing = tmp_path / "nonexistent"
-    res = run_cli("pretrained", "list", env={"HSICAM_PRETRAINED_DIR": str(missing)})
+    res = run_cli_in_process("pretrained", "list", env={"HSICAM_PRETRAINED_DIR": str(missing)})
     assert res.returncode == 0, res.stderr
     assert (f"no pre-trained cameras: HSICAM_PRETRAINED_DIR={missing}, a folder that does not exist; unset "
             "HSICAM_PRETRAINED_DIR for the cameras shipped with hsicam (") in res.stdout, res.stdout
     assert "shipped in" not in res.stdout
-    assert_clean_error(run_cli("pretrained", "show", "standard", env={"HSICAM_PRETRAINED_DIR": str(missing)}),
+    assert_clean_error(run_cli_in_process("pretrained", "show", "standard", env={"HSICAM_PRETRAINED_DIR": str(missing)}),
                        f"none is shipped in HSICAM_PRETRAINED_DIR={missing}, a folder that does not exist; unset "
                        "HSICAM_PRETRAINED_DIR for the cameras shipped with hsicam")
     empty = tmp_path / "empty"
     empty.mkdir()
-    res = run_cli("pretrained", "list", env={"HSICAM_PRETRAINED_DIR": str(empty)})
+    res = run_cli_in_process("pretrained", "list", env={"HSICAM_PRETRAINED_DIR": str(empty)})
     assert res.returncode == 0, res.stderr
     assert f"no pre-trained cameras in {empty} (HSICAM_PRETRAINED_DIR); unset HSICAM_PRETRAINED_DIR" in res.stdout
     assert "shipped in" not in res.stdout
@@ -282,8 +282,8 @@ def test_tolerance_npy_without_wavelengths_gives_advice_tolerance_can_follow(run
     d.mkdir()
     np.save(d / "cube.npy", np.random.default_rng(0).random((7, 64, 64), dtype=np.float32))
     out = tmp_path / "tol"
-    res = run_cli("tolerance", "--run", str(runs / "run"), "--out", str(out), "--data", str(d / "cube.npy"),
-                  "--max-scenes", "1", "--draws", "1")
+    res = run_cli_in_process("tolerance", "--run", str(runs / "run"), "--out", str(out), "--data", str(d / "cube.npy"),
+                             "--max-scenes", "1", "--draws", "1")
     assert res.returncode == 2 and "Traceback" not in res.stderr, res.stderr
     last = res.stderr.strip().splitlines()[-1]  # after the reader's "no band list given" warning
     assert last.startswith("hsicam: error:") and "its 7 bands were taken as 400-700 nm" in last, last
@@ -304,16 +304,16 @@ def test_doe_learned_on_a_cassi_run_names_the_runs_own_method(tmp_path, cache_en
 
     run = tmp_path / "cassi"
     train(load_config("tiny", ["train.epochs=1", *CASSI_RDN_OVERRIDES]), run, progress=False)
-    res = run_cli("evaluate", "--method", "doe-learned", "--run", str(run), "--out", str(tmp_path / "ev"))
+    res = run_cli_in_process("evaluate", "--method", "doe-learned", "--run", str(run), "--out", str(tmp_path / "ev"))
     assert_clean_error(res, f"{run}: method doe-learned evaluates a DOE camera; this run was trained with "
                             "camera.kind=dd_cassi (model.kind=rdn): use --method dd-cassi-rdn")
     assert not (tmp_path / "ev").exists()
     # the old name doe-rdn: the refusal names doe-learned, and says that it is the method asked for
-    res = run_cli("evaluate", "--method", "doe-rdn", "--run", str(run), "--out", str(tmp_path / "ev"))
+    res = run_cli_in_process("evaluate", "--method", "doe-rdn", "--run", str(run), "--out", str(tmp_path / "ev"))
     assert_clean_error(res, "method doe-learned evaluates a DOE camera",
                        "use --method dd-cassi-rdn (--method doe-rdn is the old name of doe-learned)")
     assert not (tmp_path / "ev").exists()
-    res = run_cli("evaluate", "--method", "dd-cassi-rdn", "--run", str(run), "--out", str(tmp_path / "ev"))
+    res = run_cli_in_process("evaluate", "--method", "dd-cassi-rdn", "--run", str(run), "--out", str(tmp_path / "ev"))
     assert res.returncode == 0, res.stderr
 
 
@@ -328,7 +328,7 @@ def test_doe_demosaic_references_on_a_cassi_run_name_the_runs_own_method(tmp_pat
     train(load_config("tiny", ["train.epochs=1", *CASSI_UNROLLED_OVERRIDES]), run, progress=False)
     for method in ("doe-box-demosaic", "doe-tent-demosaic", "doe-linear-demosaic"):
         out = tmp_path / method
-        res = run_cli("evaluate", "--method", method, "--run", str(run), "--out", str(out))
+        res = run_cli_in_process("evaluate", "--method", method, "--run", str(run), "--out", str(out))
         assert_clean_error(res, f"{run}: method {method} evaluates a DOE camera; this run was trained with "
                                 "camera.kind=dd_cassi (model.kind=unrolled): use --method dd-cassi-unrolled")
         assert not out.exists()
@@ -341,7 +341,7 @@ def test_doe_demosaic_references_on_a_cassi_run_name_the_runs_own_method(tmp_pat
 def test_a_set_that_a_trained_run_cannot_take_is_named(runs, tmp_path, override, cause):
     """`psf --run R --set camera.doe.enabled=false` said only "weights do not fit" (probe 24, finding 12)."""
     out = tmp_path / "p"
-    assert_clean_error(run_cli("psf", "--run", str(runs / "run"), "--set", override, "--out", str(out)),
+    assert_clean_error(run_cli_in_process("psf", "--run", str(runs / "run"), "--set", override, "--out", str(out)),
                        f"--set {override}: changes what {runs / 'run'} was trained with, so its weights do not load",
                        cause, "fixed by its training")
     assert not out.exists()

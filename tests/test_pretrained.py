@@ -19,7 +19,7 @@ import numpy as np
 import pytest
 import torch
 
-from cli_helpers import assert_clean_error, run_cli, run_cli_in_process
+from cli_helpers import assert_clean_error, run_cli_in_process
 from hsicam.errors import InputError
 from hsicam.runs import pretrained as shipped
 from hsicam.runs.folder import load_run
@@ -86,7 +86,7 @@ def test_no_cameras_in_an_empty_root(tmp_path, monkeypatch):
     assert shipped.available() == []
     with pytest.raises(InputError, match="none is shipped"):
         shipped.resolve_run("pretrained:standard")
-    res = run_cli("pretrained")
+    res = run_cli_in_process("pretrained")
     assert res.returncode == 0, res.stderr
     assert "no pre-trained cameras" in res.stdout
 
@@ -233,12 +233,12 @@ def test_pack_force_replaces_a_camera_from_a_checkout_but_never_a_foreign_folder
 
 def test_pack_command(env, tmp_path):
     run, results, _ = env
-    res = run_cli("pretrained", "pack", str(run), "--name", "other", "--results", str(results),
-                  "--dest", str(tmp_path / "r"))
+    res = run_cli_in_process("pretrained", "pack", str(run), "--name", "other", "--results", str(results),
+                             "--dest", str(tmp_path / "r"))
     assert res.returncode == 0, res.stderr
     assert shipped.available(tmp_path / "r") == ["other"]
     assert json.loads((tmp_path / "r" / "other" / "card.json").read_text())["name"] == "other"
-    assert_clean_error(run_cli("pretrained", "pack", str(tmp_path / "nowhere"), "--name", "x", "--dest", str(tmp_path / "r")),
+    assert_clean_error(run_cli_in_process("pretrained", "pack", str(tmp_path / "nowhere"), "--name", "x", "--dest", str(tmp_path / "r")),
                        "no such run folder")
 
 
@@ -248,16 +248,16 @@ def test_pack_command(env, tmp_path):
 def test_list_show_and_bad_names(env):
     _, results, root = env
     c, res = card(root), json.loads(results.read_text())
-    out = run_cli("pretrained")
+    out = run_cli_in_process("pretrained")
     assert out.returncode == 0, out.stderr
     line = next(x for x in out.stdout.splitlines() if x.startswith(f"{NAME}:"))
     assert c["summary"] in line and f"{c['bands']['count']} bands" in line
     assert (f"its {len(res['scenes'])} validation scenes: PSNR {res['mean']['psnr']:.2f} dB, "
             f"SSIM {res['mean']['ssim']:.4f}, SAM {res['mean']['sam']:.2f}°") in line  # whose scenes, said
-    show = run_cli("pretrained", "show", NAME)
+    show = run_cli_in_process("pretrained", "show", NAME)
     assert show.returncode == 0 and show.stdout == (root / NAME / "card.md").read_text()
-    assert_clean_error(run_cli("pretrained", "show", "nope"), "'nope'", f"available: {NAME}")
-    assert_clean_error(run_cli("reconstruct", "x.npy", "--run", "pretrained:nope", "--out", "c.h5"),
+    assert_clean_error(run_cli_in_process("pretrained", "show", "nope"), "'nope'", f"available: {NAME}")
+    assert_clean_error(run_cli_in_process("reconstruct", "x.npy", "--run", "pretrained:nope", "--out", "c.h5"),
                        "argument --run", f"available: {NAME}", "hsicam pretrained")
 
 
@@ -268,11 +268,11 @@ def test_simulate_reconstruct_with_a_pretrained_camera_leave_it_unchanged(env, t
     n_bands = len(cfg.bands.to_bands())
     np.save(tmp_path / "scene.npy", np.random.default_rng(0).uniform(0.1, 1, (n_bands, 40, 40)).astype(np.float32))
     spec = f"pretrained:{NAME}"
-    res = run_cli("simulate", "--run", spec, "--scene", str(tmp_path / "scene.npy"), "--out", str(tmp_path / "sim"))
+    res = run_cli_in_process("simulate", "--run", spec, "--scene", str(tmp_path / "scene.npy"), "--out", str(tmp_path / "sim"))
     assert res.returncode == 0, res.stderr
-    res = run_cli("reconstruct", str(tmp_path / "sim" / "sensor.npy"), "--run", spec, "--out", str(tmp_path / "a.h5"))
+    res = run_cli_in_process("reconstruct", str(tmp_path / "sim" / "sensor.npy"), "--run", spec, "--out", str(tmp_path / "a.h5"))
     assert res.returncode == 0, res.stderr
-    res = run_cli("reconstruct", str(tmp_path / "sim" / "sensor.npy"), "--run", str(run), "--out", str(tmp_path / "b.h5"))
+    res = run_cli_in_process("reconstruct", str(tmp_path / "sim" / "sensor.npy"), "--run", str(run), "--out", str(tmp_path / "b.h5"))
     assert res.returncode == 0, res.stderr
     from hsicam.data import read_cube
 
@@ -282,7 +282,7 @@ def test_simulate_reconstruct_with_a_pretrained_camera_leave_it_unchanged(env, t
     # the cube names a shipped camera as pretrained:NAME (its package folder means nothing elsewhere), a run by its path
     assert meta_a["run"] == spec and meta_b["run"] == str(run.resolve())
     assert bands_a.matches(cfg.bands.to_bands())
-    res = run_cli("export-optics", "--run", spec, "--out", str(tmp_path / "fab"))
+    res = run_cli_in_process("export-optics", "--run", spec, "--out", str(tmp_path / "fab"))
     assert res.returncode == 0, res.stderr
     from hsicam.export import export_optics  # the library too: a Path made from the spec
 
@@ -294,7 +294,6 @@ def test_evaluate_names_a_shipped_camera_and_the_report_still_finds_it(env, tmp_
     """evaluate --run pretrained:NAME recorded the camera's package folder as results.json's run (a
     path meaningless on another machine); now run is pretrained:NAME, as in the other outputs, and
     run_path the folder read, where the report finds the camera's figures."""
-    from cli_helpers import run_cli_in_process
     from hsicam.data import read_cube, write_cube_h5
 
     run, _, root = env
@@ -334,18 +333,18 @@ def test_outputs_into_a_pretrained_camera_are_refused(env, tmp_path):
     _, _, root = env
     before = tree_digest(root)
     spec = f"pretrained:{NAME}"
-    assert_clean_error(run_cli("train", "--resume", "--out", spec), "read-only", "hsicam pretrained copy")
-    assert_clean_error(run_cli("train", "--resume", "--out", str(root / NAME)), "read-only")
-    assert_clean_error(run_cli("demo", "--out", spec), "read-only")
-    assert_clean_error(run_cli("tolerance", "--run", spec, "--out", str(root / NAME / "tolerance")), "read-only")
-    assert_clean_error(run_cli("pretrained", "copy", NAME, str(root / "copy")), "read-only")
+    assert_clean_error(run_cli_in_process("train", "--resume", "--out", spec), "read-only", "hsicam pretrained copy")
+    assert_clean_error(run_cli_in_process("train", "--resume", "--out", str(root / NAME)), "read-only")
+    assert_clean_error(run_cli_in_process("demo", "--out", spec), "read-only")
+    assert_clean_error(run_cli_in_process("tolerance", "--run", spec, "--out", str(root / NAME / "tolerance")), "read-only")
+    assert_clean_error(run_cli_in_process("pretrained", "copy", NAME, str(root / "copy")), "read-only")
     assert tree_digest(root) == before
 
 
 def test_copy_gives_a_writable_run(env, tmp_path):
     run, _, root = env
     before = tree_digest(root)
-    res = run_cli("pretrained", "copy", NAME, str(tmp_path / "mine"))
+    res = run_cli_in_process("pretrained", "copy", NAME, str(tmp_path / "mine"))
     assert res.returncode == 0, res.stderr
     mine = tmp_path / "mine"
     assert all(os.access(p, os.W_OK) for p in [mine, *mine.iterdir()])
@@ -353,7 +352,7 @@ def test_copy_gives_a_writable_run(env, tmp_path):
     _, a = load_run(mine)
     _, b = load_run(run)
     assert all(a.state_dict()[k].equal(v) for k, v in b.state_dict().items())
-    assert_clean_error(run_cli("pretrained", "copy", NAME, str(tmp_path / "mine")), "not an empty folder")
+    assert_clean_error(run_cli_in_process("pretrained", "copy", NAME, str(tmp_path / "mine")), "not an empty folder")
     assert tree_digest(root) == before
 
 
