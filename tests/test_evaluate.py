@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 import torch
 
-from cli_helpers import assert_clean_error, run_cli, run_cli_in_process
+from cli_helpers import assert_clean_error, run_cli_in_process
 from hsicam.data.formats import write_cube_h5
 from hsicam.spectral import Bands
 
@@ -26,15 +26,15 @@ def env(tmp_path_factory):
 @pytest.fixture(scope="module")
 def run(tmp_path_factory, env):
     d = tmp_path_factory.mktemp("run") / "run"
-    res = run_cli("train", "--config", "tiny", "--out", str(d), env=env)
+    res = run_cli_in_process("train", "--config", "tiny", "--out", str(d), env=env)
     assert res.returncode == 0, res.stderr
     return d
 
 
 def test_evaluate_writes_results_in_all_formats(run, env, tmp_path):
     out = tmp_path / "ev"
-    res = run_cli("evaluate", "--run", str(run), "--out", str(out), "--save", "--seeds", "2",
-                  "--sensor-sigma", "0.01", "--method", "doe-rdn", env=env)  # the old name of doe-learned
+    res = run_cli_in_process("evaluate", "--run", str(run), "--out", str(out), "--save", "--seeds", "2",
+                             "--sensor-sigma", "0.01", "--method", "doe-rdn", env=env)  # the old name of doe-learned
     assert res.returncode == 0, res.stderr
     assert res.stdout.startswith("doe-learned:") or "\ndoe-learned:" in res.stdout, res.stdout
     summary = json.loads((out / "results.json").read_text())
@@ -92,7 +92,7 @@ def test_evaluate_takes_capture_noise_and_the_step_from_its_config(run, env, tmp
     for name, sets in (("clean", []), ("noisy", ["camera.sensor.noise=poisson_gaussian", "camera.sensor.full_well_e=30"]),
                        ("step", ["model.consistency.iterations=1"])):
         args = [a for kv in sets for a in ("--set", kv)]
-        res = run_cli("evaluate", "--run", str(run), "--out", str(tmp_path / name), *args, env=env)
+        res = run_cli_in_process("evaluate", "--run", str(run), "--out", str(tmp_path / name), *args, env=env)
         assert res.returncode == 0, res.stderr
         means[name] = json.loads((tmp_path / name / "results.json").read_text())["mean"]
     assert means["noisy"]["psnr"] < means["clean"]["psnr"] - 1.0
@@ -109,12 +109,12 @@ def test_small_scenes_are_one_clear_error_and_score_whole_with_boundary_same(run
     data.mkdir()
     rng = np.random.default_rng(0)
     write_cube_h5(data / "small.h5", rng.random((len(bands), 26, 40)).astype(np.float32), bands)
-    res = run_cli("evaluate", "--run", str(run), "--data", str(data), "--out", str(tmp_path / "valid"), env=env)
+    res = run_cli_in_process("evaluate", "--run", str(run), "--data", str(data), "--out", str(tmp_path / "valid"), env=env)
     assert_clean_error(res, "small", "6×20 px", "at least 31 px", "camera.boundary=same")
     assert not (tmp_path / "valid" / "results.json").exists()
     out = tmp_path / "same"
-    res = run_cli("evaluate", "--run", str(run), "--data", str(data), "--out", str(out), "--save",
-                  "--set", "camera.boundary=same", env=env)
+    res = run_cli_in_process("evaluate", "--run", str(run), "--data", str(data), "--out", str(out), "--save",
+                             "--set", "camera.boundary=same", env=env)
     assert res.returncode == 0, res.stderr
     from hsicam.data import read_cube
 
@@ -135,14 +135,14 @@ def test_evaluate_scores_npy_cubes_on_the_grid_data_npy_bands_gives(run, env, tm
     np.save(tmp_path / "npy" / "c.npy", cube)
     write_cube_h5(tmp_path / "h5" / "c.h5", cube, bands)
     same = ["--set", "camera.boundary=same"]
-    res = run_cli("evaluate", "--run", str(run), "--data", str(tmp_path / "npy"), "--out", str(tmp_path / "e0"), *same, env=env)
+    res = run_cli_in_process("evaluate", "--run", str(run), "--data", str(tmp_path / "npy"), "--out", str(tmp_path / "e0"), *same, env=env)
     last = res.stderr.strip().splitlines()[-1]  # after the reader's notice that 400-700 nm is assumed
     assert res.returncode == 2 and "Traceback" not in res.stderr, res.stderr
     assert last.startswith("hsicam: error:") and "c.npy" in last and "data.npy_bands" in last, res.stderr
     means = {}
     for kind, extra in (("npy", ["--set", "data.npy_bands={start_nm: 420, stop_nm: 720, step_nm: 50}"]), ("h5", [])):
-        res = run_cli("evaluate", "--run", str(run), "--data", str(tmp_path / kind), "--out", str(tmp_path / f"e_{kind}"),
-                      *same, *extra, env=env)
+        res = run_cli_in_process("evaluate", "--run", str(run), "--data", str(tmp_path / kind), "--out", str(tmp_path / f"e_{kind}"),
+                                 *same, *extra, env=env)
         assert res.returncode == 0, res.stderr
         means[kind] = json.loads((tmp_path / f"e_{kind}" / "results.json").read_text())["mean"]
     for k in ("psnr", "ssim", "sam"):
@@ -195,7 +195,7 @@ def test_evaluate_on_a_folder_of_files(run, env, tmp_path):
     rng = np.random.default_rng(0)
     for i in range(2):
         write_cube_h5(data / f"s{i}.h5", rng.uniform(0.1, 1, (7, 48, 52)).astype(np.float32), Bands.uniform(420, 720, 50))
-    res = run_cli("evaluate", "--run", str(run), "--data", str(data), "--out", str(tmp_path / "ev"), env=env)
+    res = run_cli_in_process("evaluate", "--run", str(run), "--data", str(data), "--out", str(tmp_path / "ev"), env=env)
     assert res.returncode == 0, res.stderr
     summary = json.loads((tmp_path / "ev" / "results.json").read_text())
     assert [r["name"] for r in summary["scenes"]] == ["s0", "s1"]
@@ -205,11 +205,11 @@ def test_evaluate_bad_input(run, env, tmp_path):
     nowt = tmp_path / "noweights"
     shutil.copytree(run, nowt)
     (nowt / "model.safetensors").unlink()
-    assert_clean_error(run_cli("evaluate", "--run", str(nowt), "--out", str(tmp_path / "o"), env=env), "no trained weights")
+    assert_clean_error(run_cli_in_process("evaluate", "--run", str(nowt), "--out", str(tmp_path / "o"), env=env), "no trained weights")
     data = tmp_path / "other_grid"
     write_cube_h5(data / "a.h5", np.ones((7, 48, 48), np.float32), Bands.uniform(400, 700, 50))  # does not reach 720 nm
-    assert_clean_error(run_cli("evaluate", "--run", str(run), "--data", str(data), "--out", str(tmp_path / "o"), env=env), "720")
-    assert_clean_error(run_cli("evaluate", "--run", str(tmp_path / "missing"), "--out", str(tmp_path / "o"), env=env), "no such run")
+    assert_clean_error(run_cli_in_process("evaluate", "--run", str(run), "--data", str(data), "--out", str(tmp_path / "o"), env=env), "720")
+    assert_clean_error(run_cli_in_process("evaluate", "--run", str(tmp_path / "missing"), "--out", str(tmp_path / "o"), env=env), "no such run")
     assert not (tmp_path / "o" / "results.json").exists()
 
 
@@ -221,17 +221,17 @@ def test_data_outside_a_trained_runs_bands_asks_for_other_data_not_another_grid(
     for i in range(2):  # two scenes: the run's split keeps one for validation
         write_cube_h5(data / f"s{i}.h5", rng.uniform(0.1, 1, (7, 48, 48)).astype(np.float32), Bands.uniform(400, 700, 50))
     for args in (("--set", f"data.root={data}"), ("--data", str(data))):
-        res = run_cli("evaluate", "--run", str(run), *args, "--out", str(tmp_path / "o"), env=env)
+        res = run_cli_in_process("evaluate", "--run", str(run), *args, "--out", str(tmp_path / "o"), env=env)
         assert_clean_error(res, "the run's bands 420-720 nm", "data's 400-700 nm", "fixed by its training",
                            "data that covers 420-720 nm", "train a new camera on a band grid inside 400-700 nm")
         assert "use a camera band grid" not in res.stderr
     assert not (tmp_path / "o" / "results.json").exists()
     resumed = tmp_path / "resumed"
     shutil.copytree(run, resumed)
-    res = run_cli("train", "--out", str(resumed), "--resume", "--set", f"data.root={data}", "--set", "train.epochs=9",
-                  env=env)
+    res = run_cli_in_process("train", "--out", str(resumed), "--resume", "--set", f"data.root={data}", "--set", "train.epochs=9",
+                             env=env)
     assert_clean_error(res, "the run's bands 420-720 nm", "fixed by its training")
-    res = run_cli("train", "--config", "tiny", "--set", f"data.root={data}", "--out", str(tmp_path / "new"), env=env)
+    res = run_cli_in_process("train", "--config", "tiny", "--set", f"data.root={data}", "--out", str(tmp_path / "new"), env=env)
     assert_clean_error(res, "the camera's bands 420-720 nm", "use a camera band grid inside 400-700 nm")
     assert not (tmp_path / "new").exists()
 
@@ -248,7 +248,7 @@ def evaluate_mean(monkeypatch, env, run, out, *options) -> dict:
 
 def test_experiment_ablation_tiny_is_resumable(env, tmp_path, monkeypatch):
     out = tmp_path / "abl"
-    res = run_cli("experiment", "ablation", "--scale", "tiny", "--out", str(out), env=env)
+    res = run_cli_in_process("experiment", "ablation", "--scale", "tiny", "--out", str(out), env=env)
     assert res.returncode == 0, res.stderr
     exp = json.loads((out / "experiment.json").read_text())
     # each scored scene of each camera is a k/N line on stderr (a slow method is not silent)
@@ -272,7 +272,7 @@ def test_experiment_ablation_tiny_is_resumable(env, tmp_path, monkeypatch):
 
     assert load_config(out / "runs" / "no-doe" / "config.yaml").camera.doe.enabled is False
     stamp = (out / "runs" / "no-cfa" / "model.safetensors").stat().st_mtime_ns
-    again = run_cli("experiment", "ablation", "--scale", "tiny", "--out", str(out), env=env)
+    again = run_cli_in_process("experiment", "ablation", "--scale", "tiny", "--out", str(out), env=env)
     assert again.returncode == 0, again.stderr
     assert (out / "runs" / "no-cfa" / "model.safetensors").stat().st_mtime_ns == stamp  # finished runs are skipped
     assert json.loads((out / "experiment.json").read_text())["rows"][0]["psnr"] == pytest.approx(exp["rows"][0]["psnr"])
@@ -280,7 +280,7 @@ def test_experiment_ablation_tiny_is_resumable(env, tmp_path, monkeypatch):
 
 def test_experiment_noise_grid_and_report(env, tmp_path, monkeypatch):
     out = tmp_path / "noise"
-    res = run_cli("experiment", "noise", "--scale", "tiny", "--out", str(out), env=env)
+    res = run_cli_in_process("experiment", "noise", "--scale", "tiny", "--out", str(out), env=env)
     assert res.returncode == 0, res.stderr
     exp = json.loads((out / "experiment.json").read_text())
     grid = exp["noise_grid"]
@@ -298,7 +298,7 @@ def test_experiment_noise_grid_and_report(env, tmp_path, monkeypatch):
         assert cell["psnr"] == pytest.approx(mean["psnr"], rel=1e-6), name
         assert cell["ssim"] == pytest.approx(mean["ssim"], rel=1e-6), name
         assert abs(cell["psnr"] - clean["psnr"]) > 1e-3, name
-    rep = run_cli("report", str(out), env=env)
+    rep = run_cli_in_process("report", str(out), env=env)
     assert rep.returncode == 0, rep.stderr
     page = (out / "report" / "index.html").read_text()
     assert "noise_grid.png" in page and (out / "report" / "noise_grid.png").is_file()
@@ -335,8 +335,8 @@ def test_browser_is_required_in_ci(monkeypatch):
 
 def test_report_renders_in_headless_chromium(run, env, tmp_path):
     out = tmp_path / "ev"
-    assert run_cli("evaluate", "--run", str(run), "--out", str(out), "--save", env=env).returncode == 0
-    rep = run_cli("report", str(out), env=env)
+    assert run_cli_in_process("evaluate", "--run", str(run), "--out", str(out), "--save", env=env).returncode == 0
+    rep = run_cli_in_process("report", str(out), env=env)
     assert rep.returncode == 0, rep.stderr
     index = out / "report" / "index.html"
     page = index.read_text()
@@ -358,7 +358,7 @@ def test_report_renders_in_headless_chromium(run, env, tmp_path):
 
 
 def test_report_bad_folder(tmp_path):
-    assert_clean_error(run_cli("report", str(tmp_path)), "results.json")
+    assert_clean_error(run_cli_in_process("report", str(tmp_path)), "results.json")
 
 
 @pytest.mark.parametrize("kind", ["mosaic", "unrolled", "rdn"])
@@ -399,7 +399,7 @@ def test_sam_breakdown_script_on_a_trained_run(run, env, tmp_path):
     assert proc.returncode == 0, proc.stderr
     rows = [line for line in proc.stdout.splitlines() if line.startswith("| ") and not line.startswith("| scene |")]
     out = tmp_path / "ev"
-    res = run_cli("evaluate", "--run", str(run), "--out", str(out), env=env)
+    res = run_cli_in_process("evaluate", "--run", str(run), "--out", str(out), env=env)
     assert res.returncode == 0, res.stderr
     summary = json.loads((out / "results.json").read_text())
     assert len(rows) == len(summary["scenes"]) + 1
@@ -413,11 +413,11 @@ def test_report_shows_the_heldout_sources_results(run, env, tmp_path):
     """Probe 26 #1: results.json and results.md held the held-out-sources scores, the HTML report
     only the validation table."""
     out = tmp_path / "ev"
-    assert run_cli("evaluate", "--run", str(run), "--out", str(out), env=env).returncode == 0
+    assert run_cli_in_process("evaluate", "--run", str(run), "--out", str(out), env=env).returncode == 0
     res = json.loads((out / "results.json").read_text())
     held = res["heldout"]
     assert held["scenes"]
-    rep = run_cli("report", str(out), env=env)
+    rep = run_cli_in_process("report", str(out), env=env)
     assert rep.returncode == 0, rep.stderr
     page = (out / "report" / "index.html").read_text()
     head, _, tail = page.partition("<h2>Held-out spectral sources</h2>")
