@@ -62,8 +62,10 @@ def build_report(folder: str | Path) -> Path:
     with atomic_output(folder / "report", overwrite=True, marker={"command": "report"}) as out:
         try:
             body = _experiment_sections(folder, out, data) if kind == "experiment" else _evaluation_sections(folder, out, data)
-        except (KeyError, TypeError, IndexError, ValueError) as exc:
-            raise InputError(f"{source}: corrupt {source.name} (malformed entry: {type(exc).__name__} {exc})") from None
+        except KeyError as exc:  # a field the checks above do not cover
+            raise InputError(f"{source}: corrupt {source.name} (the field {exc} is missing)") from None
+        except (TypeError, IndexError, ValueError) as exc:
+            raise InputError(f"{source}: corrupt {source.name} (a field holds a value of the wrong kind: {exc})") from None
         title = f"hsicam {kind} report"
         page = (f"<!doctype html><html><head><meta charset='utf-8'><title>{title}</title><style>{CSS}</style></head>"
                 f"<body><h1>{title}</h1><p class='note'>{html.escape(str(folder))}</p>{''.join(body)}{CHECK_IMAGES}</body></html>")
@@ -89,14 +91,51 @@ _FIELDS = {"evaluation": {"scenes": list, "mean": dict, "conventions": dict},
 
 
 def _check_fields(path: Path, data: dict, kind: str) -> None:
+    """One-line InputError naming the first field the report reads that is missing or of the wrong kind."""
+    def corrupt(what: str) -> InputError:
+        return InputError(f"{path}: corrupt {path.name} ({what})")
+
     for key, typ in _FIELDS[kind].items():
         if not isinstance(data.get(key), typ):
-            raise InputError(f"{path}: corrupt {path.name} ('{key}' is missing or not a {typ.__name__})")
+            raise corrupt(f"'{key}' is missing or not a {typ.__name__}")
     rows = data["scenes"] if kind == "evaluation" else data["rows"]
     if not all(isinstance(r, dict) for r in rows):
-        raise InputError(f"{path}: corrupt {path.name} (an entry of '{'scenes' if kind == 'evaluation' else 'rows'}' is not an object)")
-    if kind == "experiment" and data["experiment"] == "noise" and not isinstance(data.get("noise_grid"), dict):
-        raise InputError(f"{path}: corrupt {path.name} ('noise_grid' is missing)")
+        raise corrupt(f"an entry of '{'scenes' if kind == 'evaluation' else 'rows'}' is not an object")
+    if kind == "evaluation":
+        if "bands_nm" in data and not _numbers(data["bands_nm"], positive=True):
+            raise corrupt("'bands_nm' is not a list of wavelengths in nm")
+        held = data.get("heldout")
+        if isinstance(held, dict) and held.get("scenes"):
+            if not isinstance(held["scenes"], list) or not all(isinstance(r, dict) for r in held["scenes"]):
+                raise corrupt("'heldout.scenes' is not a list of objects")
+            if not isinstance(held.get("mean"), dict):
+                raise corrupt("'heldout.mean' is missing or not a dict")
+        return
+    if "seeds" not in data:
+        raise corrupt("'seeds' is missing")
+    if not all(isinstance(r.get("method"), str) for r in rows):
+        raise corrupt("an entry of 'rows' names no 'method'")
+    if data["experiment"] == "noise":
+        grid = data.get("noise_grid")
+        if not isinstance(grid, dict):
+            raise corrupt("'noise_grid' is missing")
+        if not _numbers(grid.get("sigma_height_nm")):
+            raise corrupt("'noise_grid.sigma_height_nm' is not a list of numbers")
+        results = grid.get("results")
+        point = ("sigma_height_nm", "sensor_sigma", "psnr", "ssim")
+        if not isinstance(results, dict) or not all(
+                isinstance(pts, list) and all(isinstance(g, dict) and _numbers([g.get(k) for k in point], finite=False) for g in pts)
+                for pts in results.values()):
+            raise corrupt("'noise_grid.results' is not, per camera, a list of points with numeric "
+                          + ", ".join(point))
+
+
+def _numbers(values, positive: bool = False, finite: bool = True) -> bool:
+    """Whether ``values`` is a non-empty list of JSON numbers, finite unless ``finite=False`` (a score may be
+    NaN or infinite), and > 0 with ``positive``."""
+    return (isinstance(values, list) and bool(values)
+            and all(isinstance(v, (int, float)) and not isinstance(v, bool) and (np.isfinite(v) or not finite)
+                    and (v > 0 or not positive) for v in values))
 
 
 # -- sections ---------------------------------------------------------------------------------
