@@ -10,6 +10,7 @@ import imageio.v3 as iio
 import numpy as np
 import pytest
 
+from cli_helpers import cli_env
 from hsicam.data import read_cube
 from hsicam.data.synthetic import generate_dataset
 from hsicam.spectral import Bands
@@ -20,7 +21,9 @@ pytestmark = pytest.mark.skipif(not HSICAM.exists(), reason="hsicam entry point 
 
 
 def run(*args: str, cwd: Path) -> subprocess.CompletedProcess:
-    return subprocess.run([str(HSICAM), *args], cwd=cwd, capture_output=True, text=True, timeout=300)
+    """The installed ``hsicam`` in ``cwd`` (relative paths are the point), with the environment of
+    :func:`cli_helpers.run_cli`: this checkout's ``src`` first, one thread."""
+    return subprocess.run([str(HSICAM), *args], cwd=cwd, capture_output=True, text=True, timeout=300, env=cli_env())
 
 
 def test_synth_then_show(tmp_path):
