@@ -8,7 +8,7 @@ TORCH_SPEC ?= torch==2.13.0
 PYTEST_ARGS ?=
 # `make test` runs the suite in this many pytest-xdist worker processes, one test file per worker at a
 # time (--dist loadfile keeps each file's module fixtures, e.g. its private dataset cache, in one
-# process). 2 suits the project's 2-core machines (16.5 -> 11.5 min there, session 28); 0 runs serially.
+# process). 2 suits the project's 2-core machines (16.5 -> 11.5 min there, session 28; 7 min since session 43, docs/architecture.md "Tests"); 0 runs serially.
 TEST_WORKERS ?= 2
 
 .PHONY: setup demo test test-slow bench clean
