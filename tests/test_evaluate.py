@@ -1,4 +1,5 @@
-"""`hsicam evaluate`, `hsicam experiment` and `hsicam report` through the real entry point."""
+"""`hsicam evaluate`, `hsicam experiment` and `hsicam report` through the command line (the console
+script's `main`, in-process)."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""Probe 28's evaluation findings, through the real entry point, judged by independent computations
+"""Probe 28's evaluation findings, through the command line, judged by independent computations
 on the files evaluate really wrote:
 
 * #3 SAM: pixels whose truth spectrum is all zero have no angle and are left out (they scored 90°);

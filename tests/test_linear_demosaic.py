@@ -1,6 +1,6 @@
 """The least-squares linear demosaic (one filter per CFA phase and band): against a loop reference,
 exact recovery of known filters, the tent as a special case, tiles, optimality on its training
-pairs, and the `doe-linear-demosaic` method through the real entry point."""
+pairs, and the `doe-linear-demosaic` method through the command line."""
 
 from __future__ import annotations
 
