@@ -41,14 +41,15 @@ def run_cli(*args: str, timeout: float = 600, env: dict | None = None) -> subpro
 
 
 def run_cli_in_process(*args: str, env: dict | None = None) -> subprocess.CompletedProcess:
-    """``hsicam ARGS`` in this process (the console script's ``main``; saves the 2–3 s interpreter and torch
-    start of :func:`run_cli`), as a completed process like :func:`run_cli`'s.
+    """``hsicam ARGS`` in this process (the console script's ``main``; saves the 2–3 s interpreter and
+    torch start of :func:`run_cli`), as a completed process like :func:`run_cli`'s.
 
-    What the console script would print reaches the result's stderr as it would there: hsicam's log lines
-    (INFO and up, DEBUG with ``-v``, one ``%(message)s`` per line, as ``main``'s ``basicConfig`` sets them up) included, which
-    pytest's own log capture would otherwise take alone (it still gets them: ``caplog`` works as before). ``env`` entries are set in ``os.environ`` for the call
-    and restored afterwards. Keep :func:`run_cli` for what needs a process of its own: signals, exit
-    codes of the interpreter, another working directory, one-thread timing, the entry point itself."""
+    What the console script would print reaches the result's stderr as it would there, hsicam's log
+    lines included (INFO and up, DEBUG with ``-v``, one ``%(message)s`` per line, as ``main``'s
+    ``basicConfig`` sets them up); pytest's log capture still gets them too (``caplog`` works). ``env``
+    entries are set in ``os.environ`` for the call and restored afterwards. Keep :func:`run_cli` for
+    what needs a process of its own: signals, exit codes of the interpreter, another working
+    directory, one-thread timing, the entry point itself, third-party warnings on stderr."""
     import contextlib
     import io
     import logging
@@ -60,9 +61,9 @@ def run_cli_in_process(*args: str, env: dict | None = None) -> subprocess.Comple
     handler.setFormatter(logging.Formatter("%(message)s"))
     logger, root = logging.getLogger("hsicam"), logging.getLogger()
     saved = {k: os.environ.get(k) for k in (env or {})}
-    old_root_level = root.level
+    old_root_level, old_level = root.level, logger.level
     logger.addHandler(handler)
-    root.setLevel(min(root.level or logging.WARNING, logging.INFO))
+    root.setLevel(min(root.level, logging.INFO))  # NOTSET (0) stays: everything passes already
     os.environ.update({k: str(v) for k, v in (env or {}).items()})
     try:
         with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
@@ -72,7 +73,7 @@ def run_cli_in_process(*args: str, env: dict | None = None) -> subprocess.Comple
                 rc = exc.code
     finally:
         logger.removeHandler(handler)
-        logger.setLevel(logging.NOTSET)
+        logger.setLevel(old_level)  # main sets it by -v
         root.setLevel(old_root_level)
         for k, v in saved.items():
             if v is None:
