@@ -109,8 +109,12 @@ def test_resume_with_changed_keys_records_them_in_config_yaml(tmp_path, cache_en
     from hsicam.config import load_config
 
     run = tmp_path / "run"
+    assert not torch.are_deterministic_algorithms_enabled()
     assert train(tiny_cfg("train.epochs=3"), run, progress=False, stop_after_steps=5) == {"stopped_at_step": 5}
-    res = run_cli_in_process("train", "--out", str(run), "--resume", "--set", "train.epochs=2", env={"HSICAM_CACHE": str(cache_env)})
+    # the tiny preset trains with train.deterministic; torch is left as the caller had it (later tests here run on)
+    assert tiny_cfg().train.deterministic and not torch.are_deterministic_algorithms_enabled()
+    res = run_cli_in_process("train", "--out", str(run), "--resume", "--set", "train.epochs=2",
+                             env={"HSICAM_CACHE": str(cache_env)})
     assert res.returncode == 0, res.stderr
     assert load_config(run / "config.yaml").train.epochs == 2
     records = [json.loads(x) for x in (run / "metrics.jsonl").read_text().splitlines()]

@@ -18,6 +18,7 @@ logging and checkpoints happen on rank 0 only.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import logging
 import math
@@ -265,7 +266,7 @@ def fit(task: Task, opts: FitOptions, run_dir: str | Path, resume: bool = False,
         dist.init_process_group("nccl" if device.type == "cuda" else "gloo")
     try:
         with RunLock(run_dir, enabled=rank == 0) as lock, OutputLock(run_dir, "train", enabled=rank == 0) as new_run, \
-                StopRequests(opts.loop.max_minutes) as stop:
+                StopRequests(opts.loop.max_minutes) as stop, deterministic_algorithms(opts.loop.deterministic):
             result = _fit(task, opts, Path(run_dir), resume, lock, new_run, stop)
             if then is not None and rank == 0 and "stopped_at_step" not in result:
                 result = then(result)
@@ -376,6 +377,20 @@ def _agreed_stop(stop: StopRequests, next_step_s: float, distributed: bool, devi
     return None if code == 0 else (stop.describe(code), code)
 
 
+@contextlib.contextmanager
+def deterministic_algorithms(enabled: bool):
+    """``train.deterministic``: torch's deterministic algorithms (warn-only) inside the block, and the caller's
+    setting back afterwards (a training called from a notebook or a test process leaves torch as it found it)."""
+    before = (torch.are_deterministic_algorithms_enabled(), torch.is_deterministic_algorithms_warn_only_enabled())
+    if enabled:
+        torch.use_deterministic_algorithms(True, warn_only=True)
+    try:
+        yield
+    finally:
+        if (torch.are_deterministic_algorithms_enabled(), torch.is_deterministic_algorithms_warn_only_enabled()) != before:
+            torch.use_deterministic_algorithms(before[0], warn_only=before[1])
+
+
 def _fit(task: Task, opts: FitOptions, run_dir: Path, resume: bool, lock: RunLock, new_run: OutputLock,
          stop: StopRequests) -> dict[str, Any]:
     t = opts.loop
@@ -385,8 +400,6 @@ def _fit(task: Task, opts: FitOptions, run_dir: Path, resume: bool, lock: RunLoc
     is_main = rank == 0
     if t.batch_size % world:
         raise InputError(f"train.batch_size={t.batch_size} must be divisible by the {world} processes")
-    if t.deterministic:
-        torch.use_deterministic_algorithms(True, warn_only=True)
     if is_main:
         if resume:
             lock.acquire()  # before anything in the run is read or removed
