@@ -358,6 +358,22 @@ def test_report_renders_in_headless_chromium(run, env, tmp_path):
     assert img.shape[0] >= 1000 and img.std() > 5  # a rendered page, not a blank one
 
 
+def test_report_of_a_run_whose_training_log_is_damaged_says_so_in_the_page(run, env, tmp_path):
+    """The evaluated run's metrics.jsonl cut mid-line: the report is written, and where the training curves
+    would be it says that the run's log is damaged (the results.json is sound and is not blamed)."""
+    copy = tmp_path / "run"
+    shutil.copytree(run, copy)
+    out = tmp_path / "ev"
+    assert run_cli_in_process("evaluate", "--run", str(copy), "--out", str(out), env=env).returncode == 0
+    log = copy / "metrics.jsonl"
+    log.write_text(log.read_text() + '{"step": 9, "train_lo')
+    rep = run_cli_in_process("report", str(out), env=env)
+    assert rep.returncode == 0, rep.stderr
+    page = (out / "report" / "index.html").read_text()
+    assert f"training curves unavailable: {log} is damaged (JSONDecodeError" in page
+    assert not (out / "report" / "training.png").exists() and (out / "report" / "psf.png").is_file()
+
+
 def test_report_bad_folder(tmp_path):
     assert_clean_error(run_cli_in_process("report", str(tmp_path)), "results.json")
 

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import html
 import json
+import math
 from pathlib import Path
 
 import matplotlib
@@ -65,7 +66,8 @@ def build_report(folder: str | Path) -> Path:
         except KeyError as exc:  # a field the checks above do not cover
             raise InputError(f"{source}: corrupt {source.name} (the field {exc} is missing)") from None
         except (TypeError, IndexError, ValueError) as exc:
-            raise InputError(f"{source}: corrupt {source.name} (a field holds a value of the wrong kind: {exc})") from None
+            raise InputError(f"{source}: corrupt {source.name} (a field holds a value of the wrong kind: "
+                             f"{exc})") from None
         title = f"hsicam {kind} report"
         page = (f"<!doctype html><html><head><meta charset='utf-8'><title>{title}</title><style>{CSS}</style></head>"
                 f"<body><h1>{title}</h1><p class='note'>{html.escape(str(folder))}</p>{''.join(body)}{CHECK_IMAGES}</body></html>")
@@ -134,7 +136,7 @@ def _numbers(values, positive: bool = False, finite: bool = True) -> bool:
     """Whether ``values`` is a non-empty list of JSON numbers, finite unless ``finite=False`` (a score may be
     NaN or infinite), and > 0 with ``positive``."""
     return (isinstance(values, list) and bool(values)
-            and all(isinstance(v, (int, float)) and not isinstance(v, bool) and (np.isfinite(v) or not finite)
+            and all(isinstance(v, (int, float)) and not isinstance(v, bool) and (math.isfinite(v) or not finite)
                     and (v > 0 or not positive) for v in values))
 
 
@@ -177,9 +179,15 @@ def _camera_section(run: Path, out: Path, prefix: str = "", label: str | None = 
     parts = [f"<h2>Camera ({html.escape(label or run_label(run))})</h2>"]
     for name, caption in write_optics_figures(cam, out, prefix, psf=True).items():
         parts.append(_img(name, caption))
-    if (run / "metrics.jsonl").is_file():
-        plot_training_curves(run / "metrics.jsonl", out / f"{prefix}training.png", cfg.train.loss_formula())
-        parts.append(_img(f"{prefix}training.png", "training loss and the PSNR / SSIM on validation patches"))
+    metrics = run / "metrics.jsonl"
+    if metrics.is_file():
+        try:
+            plot_training_curves(metrics, out / f"{prefix}training.png", cfg.train.loss_formula())
+        except (ValueError, KeyError, TypeError, UnicodeDecodeError) as exc:  # the run's log, not the results file
+            parts.append(f"<p class='note'>training curves unavailable: {html.escape(str(metrics))} is damaged "
+                         f"({html.escape(type(exc).__name__)}: {html.escape(str(exc))})</p>")
+        else:
+            parts.append(_img(f"{prefix}training.png", "training loss and the PSNR / SSIM on validation patches"))
     return "".join(parts)
 
 
