@@ -187,19 +187,24 @@ def test_a_spectral_prior_as_a_camera_run_says_what_it_is_and_how_to_use_it(made
 # ------------------------------------------------------------------------------------------------
 # A results.json a card cannot cite: refused for its own fields first, with no warning before
 # ------------------------------------------------------------------------------------------------
-@pytest.mark.parametrize("mean, fragment", [
-    ('{"psnr": NaN, "ssim": 0.9, "sam": 5.0}', "has a mean PSNR that is not a finite number (psnr: nan)"),
-    ('{"psnr": 30.0, "ssim": 0.9, "sam": Infinity}', "has a mean SAM that is not a finite number (sam: inf)"),
-    ('{"psnr": true, "ssim": 0.9, "sam": 5.0}', "has no mean PSNR/SSIM/SAM"),
-    ('{}', "has no mean PSNR/SSIM/SAM"),
+@pytest.mark.parametrize("mean, extra, fragment", [
+    ('{"psnr": NaN, "ssim": 0.9, "sam": 5.0}', "", "has a mean PSNR that is not a finite number (psnr: nan)"),
+    ('{"psnr": 30.0, "ssim": 0.9, "sam": Infinity}', "", "has a mean SAM that is not a finite number (sam: inf)"),
+    ('{"psnr": 30.0, "ssim": 0.9, "sam": NaN}', ', "sam_undefined": ["dark_0"]',
+     "has no mean SAM: the spectral angle is undefined on every scene (the truth is zero at every scored pixel: "
+     "dark_0)"),
+    ('{"psnr": 1' + '0' * 400 + ', "ssim": 0.9, "sam": 5.0}', "", "has a mean PSNR that is not a finite number"),
+    ('{"psnr": true, "ssim": 0.9, "sam": 5.0}', "", "has no mean PSNR/SSIM/SAM as numbers"),
+    ('{}', "", "has no mean PSNR/SSIM/SAM as numbers"),
 ])
-def test_pack_refuses_results_without_finite_means_before_any_warning(made, tmp_path, mean, fragment):
+def test_pack_refuses_results_without_finite_means_before_any_warning(made, tmp_path, mean, extra, fragment):
     """JSON NaN/Infinity parse as floats: a card citing them would print 'nan dB' (and its card.json would not be
-    standard JSON). A file that names no run would also get the 'cited as given' warning; it is refused for its
-    means first, so the user reads one line."""
+    standard JSON); `hsicam evaluate` writes a NaN mean SAM (and lists the scenes) when no scene has a spectral
+    angle. A file that names no run would also get the 'cited as given' warning; it is refused for its means
+    first, so the user reads one line."""
     run, _ = made
     results = tmp_path / "results.json"
-    results.write_text('{"scenes": [], "mean": ' + mean + '}')
+    results.write_text('{"scenes": [], "mean": ' + mean + extra + '}')
     dest = tmp_path / "root"
     res = run_cli_in_process("pretrained", "pack", str(run), "--name", "camN", "--dest", str(dest),
                              "--results", str(results))

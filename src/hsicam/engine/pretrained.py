@@ -74,18 +74,30 @@ def final_record(run_dir: Path) -> dict[str, Any]:
     return final[-1]
 
 
-def _means(block: Any, source: Path, what: str) -> dict[str, float]:
-    """``{psnr, ssim, sam}`` of a results.json ``mean`` block; one-line InputError unless each is a finite number
-    (JSON ``NaN``/``Infinity`` included: a card does not cite a score that is no number)."""
-    if not isinstance(block, dict) or not all(isinstance(block.get(k), (int, float)) and not isinstance(block.get(k), bool)
-                                              for k in METRICS):
-        raise InputError(f"{source}: {what} has no mean PSNR/SSIM/SAM (not a results.json of `hsicam demo` "
-                         "or `hsicam evaluate`)")
-    bad = [k for k in METRICS if not math.isfinite(float(block[k]))]
+def _finite(value: Any) -> bool:
+    try:
+        return math.isfinite(float(value))
+    except OverflowError:  # a JSON integer of hundreds of digits
+        return False
+
+
+def _means(block: Any, source: Path, what: str, sam_undefined: Any = None) -> dict[str, float]:
+    """``{psnr, ssim, sam}`` of a results.json ``mean`` block; one-line InputError unless each is a finite
+    number (JSON ``NaN``/``Infinity`` included: a card does not cite a score that is no number).
+    ``sam_undefined``: the file's list of scenes without a spectral angle (truth zero at every scored pixel)."""
+    if not isinstance(block, dict) or not all(isinstance(block.get(k), (int, float))
+                                              and not isinstance(block.get(k), bool) for k in METRICS):
+        raise InputError(f"{source}: {what} has no mean PSNR/SSIM/SAM as numbers (not a results.json of "
+                         "`hsicam demo` or `hsicam evaluate`)")
+    bad = [k for k in METRICS if not _finite(block[k])]
+    if bad == ["sam"] and sam_undefined:
+        raise InputError(f"{source}: {what} has no mean SAM: the spectral angle is undefined on every scene (the "
+                         f"truth is zero at every scored pixel: {', '.join(map(str, sam_undefined))}); a card cites "
+                         "scores of scenes with light: evaluate the run on other scenes")
     if bad:
-        raise InputError(f"{source}: {what} has a mean {'/'.join(k.upper() for k in bad)} that is not a finite number "
-                         f"({', '.join(f'{k}: {block[k]}' for k in bad)}); a card cites finite scores only: evaluate the "
-                         "run again")
+        raise InputError(f"{source}: {what} has a mean {'/'.join(k.upper() for k in bad)} that is not a finite "
+                         f"number ({', '.join(f'{k}: {block[k]}' for k in bad)}); a card cites finite scores only: "
+                         "evaluate the run again")
     return {k: float(block[k]) for k in METRICS}
 
 
@@ -117,7 +129,8 @@ def _scene_block(data: dict[str, Any], source: Path, data_label: str) -> dict[st
         raise InputError(f"{source}: 'scenes' is not a list (got {type(scenes).__name__}; not a results.json of "
                          "`hsicam demo` or `hsicam evaluate`)")
     return {"source": str(source), "data": str(data.get("data") or data_label),
-            "n_scenes": len(scenes or []), "mean": _means(data.get("mean"), source, "'mean'"),
+            "n_scenes": len(scenes or []),
+            "mean": _means(data.get("mean"), source, "'mean'", data.get("sam_undefined")),
             "references": _references(data.get("references"), source)}
 
 
