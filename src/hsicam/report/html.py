@@ -125,9 +125,11 @@ def _check_fields(path: Path, data: dict, kind: str) -> None:
             raise corrupt("'noise_grid.sigma_height_nm' is not a list of numbers")
         results = grid.get("results")
         point = ("sigma_height_nm", "sensor_sigma", "psnr", "ssim")
-        if not isinstance(results, dict) or not all(
-                isinstance(pts, list) and all(isinstance(g, dict) and _numbers([g.get(k) for k in point], finite=False) for g in pts)
-                for pts in results.values()):
+        def numeric(g) -> bool:
+            return isinstance(g, dict) and _numbers([g.get(k) for k in point], finite=False)
+
+        if not isinstance(results, dict) or not all(isinstance(pts, list) and all(map(numeric, pts))
+                                                    for pts in results.values()):
             raise corrupt("'noise_grid.results' is not, per camera, a list of points with numeric "
                           + ", ".join(point))
 
