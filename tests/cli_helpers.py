@@ -40,39 +40,52 @@ def run_cli(*args: str, timeout: float = 600, env: dict | None = None) -> subpro
     return subprocess.run([str(HSICAM), *args], capture_output=True, text=True, timeout=timeout, env=cli_env(env))
 
 
+#: Warnings a Python process does not show by default (``python -W default`` would): left out of
+#: :func:`run_cli_in_process`'s stderr, as the console script leaves them out of its own.
+HIDDEN_WARNINGS = (DeprecationWarning, PendingDeprecationWarning, ImportWarning, ResourceWarning)
+
+
 def run_cli_in_process(*args: str, env: dict | None = None) -> subprocess.CompletedProcess:
     """``hsicam ARGS`` in this process (the console script's ``main``; saves the 2–3 s interpreter and
     torch start of :func:`run_cli`), as a completed process like :func:`run_cli`'s.
 
-    What the console script would print reaches the result's stderr as it would there, hsicam's log
-    lines included (INFO and up, DEBUG with ``-v``, one ``%(message)s`` per line, as ``main``'s
-    ``basicConfig`` sets them up); pytest's log capture still gets them too (``caplog`` works). ``env``
-    entries are set in ``os.environ`` for the call and restored afterwards. Keep :func:`run_cli` for
-    what needs a process of its own: signals, exit codes of the interpreter, another working
-    directory, one-thread timing, the entry point itself, third-party warnings on stderr."""
+    Its stderr holds what the console script would print there: the log lines of every logger at INFO
+    and up (DEBUG with ``-v`` for hsicam's), one ``%(message)s`` per line, as ``main``'s ``basicConfig``
+    sets them up, and Python's warnings (those a process shows by default). pytest still gets both
+    (``caplog`` and the warnings summary work). ``env`` entries are set in ``os.environ`` for the call
+    (None: unset) and restored afterwards. Keep :func:`run_cli` for what needs a process of its own:
+    signals, exit codes of the interpreter, another working directory, the entry point itself, a
+    command that would exhaust memory if its check broke, warnings shown once per process."""
     import contextlib
     import io
     import logging
+    import warnings
 
     from hsicam.cli import main
 
     out, err = io.StringIO(), io.StringIO()
     handler = logging.StreamHandler(err)
     handler.setFormatter(logging.Formatter("%(message)s"))
+    handler.setLevel(logging.DEBUG if {"-v", "--verbose"} & set(map(str, args)) else logging.INFO)
     logger, root = logging.getLogger("hsicam"), logging.getLogger()
     saved = {k: os.environ.get(k) for k in (env or {})}
     old_root_level, old_level = root.level, logger.level
-    logger.addHandler(handler)
+    root.addHandler(handler)
     root.setLevel(min(root.level, logging.INFO))  # NOTSET (0) stays: everything passes already
-    os.environ.update({k: str(v) for k, v in (env or {}).items()})
+    for k, v in (env or {}).items():
+        if v is None:
+            os.environ.pop(k, None)
+        else:
+            os.environ[k] = str(v)
     try:
-        with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+        with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err), \
+                warnings.catch_warnings(record=True) as caught:
             try:
                 rc = main([str(a) for a in args])
             except SystemExit as exc:  # argparse usage errors
-                rc = exc.code
+                rc = 0 if exc.code is None else exc.code
     finally:
-        logger.removeHandler(handler)
+        root.removeHandler(handler)
         logger.setLevel(old_level)  # main sets it by -v
         root.setLevel(old_root_level)
         for k, v in saved.items():
@@ -80,6 +93,10 @@ def run_cli_in_process(*args: str, env: dict | None = None) -> subprocess.Comple
                 os.environ.pop(k, None)
             else:
                 os.environ[k] = v
+    for w in caught:
+        if not issubclass(w.category, HIDDEN_WARNINGS):
+            err.write(warnings.formatwarning(w.message, w.category, w.filename, w.lineno, w.line))
+        warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)  # for pytest's own record
     return subprocess.CompletedProcess(list(args), rc, out.getvalue(), err.getvalue())
 
 

@@ -20,7 +20,7 @@ import shutil
 import numpy as np
 import pytest
 
-from cli_helpers import assert_clean_error, run_cli_in_process
+from cli_helpers import assert_clean_error, run_cli, run_cli_in_process
 from hsicam.errors import InputError
 
 
@@ -205,16 +205,18 @@ def test_tolerance_one_value_level_sweep_is_recorded_as_not_bracketed(runs, tmp_
 # 20 h: data synth memory
 # ------------------------------------------------------------------------------------------------
 def test_synth_refuses_a_scene_over_the_memory_budget_before_any_folder(tmp_path):
+    """In a process of its own: were the check broken, the scene's 40 GB label map would be allocated, which a
+    large machine grants and then kills the process for (the test's, not the suite's)."""
     out = tmp_path / "big"
-    res = run_cli_in_process("data", "synth", "--n", "2", "--size", "100000", "--out", str(out),
-                             env={"HSICAM_MEMORY_BUDGET_MB": "1024", "HSICAM_CACHE": str(tmp_path / "cache")})
+    res = run_cli("data", "synth", "--n", "2", "--size", "100000", "--out", str(out), timeout=120,
+                  env={"HSICAM_MEMORY_BUDGET_MB": "1024", "HSICAM_CACHE": str(tmp_path / "cache")})
     assert_clean_error(res, "--size 100000: one 100000×100000-px scene of 31 bands is a cube of 1.13 TiB",
                        "more than the memory budget of 1 GiB for one cube (HSICAM_MEMORY_BUDGET_MB", "give --size ",
                        "or raise HSICAM_MEMORY_BUDGET_MB")
     assert "tile size" not in res.stderr and "batch size" not in res.stderr
     assert not out.exists()
-    res = run_cli_in_process("data", "synth", "--n", "2", "--size", "100000",  # into the cache: no folder there either
-                             env={"HSICAM_MEMORY_BUDGET_MB": "1024", "HSICAM_CACHE": str(tmp_path / "cache")})
+    res = run_cli("data", "synth", "--n", "2", "--size", "100000", timeout=120,  # into the cache: no folder there either
+                  env={"HSICAM_MEMORY_BUDGET_MB": "1024", "HSICAM_CACHE": str(tmp_path / "cache")})
     assert res.returncode == 2 and "--size 100000" in res.stderr
     assert not any((tmp_path / "cache").rglob("n2-s100000*"))
 
