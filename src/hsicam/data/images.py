@@ -50,6 +50,7 @@ Checks on the result (:func:`preprocess_raw`, :func:`read_capture`):
 
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 import math
@@ -225,11 +226,24 @@ def _binary_image(path: Path, what: str, kind: str) -> str:
             "(8- or 16-bit integers, or floats with 1 = full scale)")
 
 
+@contextlib.contextmanager
+def _quiet_logger(name: str):
+    """Inside the block the library logger ``name`` prints nothing: its complaints about a damaged file (tifffile
+    logs an ERROR line per bad tag before it raises) are said once, in hsicam's own refusal."""
+    logger = logging.getLogger(name)
+    disabled = logger.disabled
+    logger.disabled = True
+    try:
+        yield
+    finally:
+        logger.disabled = disabled
+
+
 def _read_tiff(path: Path, what: str) -> tuple[np.ndarray, np.dtype]:
     import tifffile
 
     try:
-        with warnings.catch_warnings():
+        with warnings.catch_warnings(), _quiet_logger("tifffile"):
             warnings.simplefilter("ignore")
             with tifffile.TiffFile(path) as tf:
                 if len(tf.pages) < 1:
