@@ -17,20 +17,25 @@ CONVENTIONS = {"psnr": "per band, peak 1"}
 
 
 def evaluation(**changes) -> dict:
+    """A results.json of the shape `hsicam evaluate` writes, with ``changes``."""
     data = {"method": "doe-learned", "scenes": [{"name": "a", **MEAN}], "mean": MEAN, "conventions": CONVENTIONS,
             "bands_nm": [500.0, 550.0, 600.0]}
     return {**data, **changes}
 
 
-def experiment(**changes) -> dict:
+def experiment(*, drop: str | None = None, **changes) -> dict:
+    """An experiment.json of the shape `hsicam experiment noise` writes, with ``changes`` and without ``drop``."""
     point = {"sigma_height_nm": 0.0, "sensor_sigma": 0.0, "psnr": 30.0, "ssim": 0.9}
     data = {"experiment": "noise", "scale": "tiny", "seeds": [0], "scenes": ["a"],
             "rows": [{"method": "doe-learned", **MEAN}], "conventions": CONVENTIONS,
             "noise_grid": {"sigma_height_nm": [0.0], "sensor_sigma": [0.0], "results": {"doe-learned": [point]}}}
-    return {**data, **changes}
+    data = {**data, **changes}
+    data.pop(drop, None)
+    return data
 
 
 def folder_with(tmp_path: Path, name: str, data: dict) -> Path:
+    """``tmp_path/ev`` holding ``name`` (``data`` as JSON) and the completion marker its command writes last."""
     d = tmp_path / "ev"
     d.mkdir(parents=True)
     (d / name).write_text(json.dumps(data))
@@ -53,7 +58,7 @@ def test_a_damaged_evaluation_field_is_named(tmp_path, data, fragment):
 
 
 @pytest.mark.parametrize("change, fragment", [
-    ({"seeds": None}, "'seeds' is missing"),
+    ({"drop": "seeds"}, "'seeds' is missing"),
     ({"rows": [{"psnr": 30.0, "missing": True}]}, "an entry of 'rows' names no 'method'"),
     ({"noise_grid": {"sigma_height_nm": "0", "sensor_sigma": [0.0], "results": {}}},
      "'noise_grid.sigma_height_nm' is not a list of numbers"),
@@ -62,8 +67,6 @@ def test_a_damaged_evaluation_field_is_named(tmp_path, data, fragment):
 ])
 def test_a_damaged_experiment_field_is_named(tmp_path, change, fragment):
     data = experiment(**change)
-    if change.get("seeds", 0) is None:
-        del data["seeds"]
     d = folder_with(tmp_path, "experiment.json", data)
     with pytest.raises(InputError) as info:
         build_report(d)
