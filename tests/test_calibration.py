@@ -41,7 +41,6 @@ FAB_OVERRIDES = (
 )
 
 
-run_cli = run_cli_in_process
 
 
 def write_homogeneous_scenes(folder: Path, n: int = 8, size: int = 40) -> Path:
@@ -270,7 +269,7 @@ def test_finetune_improves_psnr_on_perturbed_psfs(fab_run, tmp_path):
     d = write_psf_dir(tmp_path / "measured", perturbed, base.bands, 10.0, centre="axis", axis_px=[k // 2, k // 2],
                       normalize="none")
     run2 = tmp_path / "run2"
-    res = run_cli("finetune", "--run", str(fab_run), "--psf-dir", str(d), "--out", str(run2), "--epochs", "10", "--lr", "0.001")
+    res = run_cli_in_process("finetune", "--run", str(fab_run), "--psf-dir", str(d), "--out", str(run2), "--epochs", "10", "--lr", "0.001")
     assert res.returncode == 0, res.stderr
     assert "fine-tuned" in res.stdout
     summary = json.loads((run2 / "finetune.json").read_text())
@@ -302,7 +301,7 @@ def test_finetune_improves_psnr_on_perturbed_psfs(fab_run, tmp_path):
     # reconstruct with --psf-dir knows the network was tuned to these PSFs
     np.save(tmp_path / "cap.npy", np.random.default_rng(0).random((30, 34)).astype(np.float32))
     out = tmp_path / "rec.h5"
-    rec = run_cli("reconstruct", str(tmp_path / "cap.npy"), "--run", str(run2), "--out", str(out), "--psf-dir", str(d))
+    rec = run_cli_in_process("reconstruct", str(tmp_path / "cap.npy"), "--run", str(run2), "--out", str(out), "--psf-dir", str(d))
     assert rec.returncode == 0, rec.stderr
     import h5py
 
@@ -313,7 +312,7 @@ def test_finetune_improves_psnr_on_perturbed_psfs(fab_run, tmp_path):
     # with a consistency step, --psf-dir makes the step explain the capture with the measured PSFs,
     # also for a run that was not tuned to them (it images with its design PSFs otherwise)
     out1 = tmp_path / "rec1.h5"
-    rec = run_cli("reconstruct", str(tmp_path / "cap.npy"), "--run", str(fab_run), "--out", str(out1), "--psf-dir",
+    rec = run_cli_in_process("reconstruct", str(tmp_path / "cap.npy"), "--run", str(fab_run), "--out", str(out1), "--psf-dir",
                   str(d), "--consistency-steps", "1")
     assert rec.returncode == 0, rec.stderr
     from hsicam.data.formats import read_hsicam_h5
@@ -331,12 +330,12 @@ def test_finetune_improves_psnr_on_perturbed_psfs(fab_run, tmp_path):
 
 
 def test_finetune_cli_errors(fab_run, tmp_path):
-    assert_clean_error(run_cli("finetune", "--run", str(tmp_path / "nope"), "--psf-dir", str(tmp_path), "--out", str(tmp_path / "o")),
+    assert_clean_error(run_cli_in_process("finetune", "--run", str(tmp_path / "nope"), "--psf-dir", str(tmp_path), "--out", str(tmp_path / "o")),
                        "nope: no such run folder")
     d = tmp_path / "empty"
     d.mkdir()
     write_json(d / "psf.json", {"pixel_pitch_um": 10.0})
-    assert_clean_error(run_cli("finetune", "--run", str(fab_run), "--psf-dir", str(d), "--out", str(tmp_path / "o")),
+    assert_clean_error(run_cli_in_process("finetune", "--run", str(fab_run), "--psf-dir", str(d), "--out", str(tmp_path / "o")),
                        "no PSF images")
     assert not (tmp_path / "o").exists()
 
@@ -414,9 +413,9 @@ def test_reconstruct_raw_capture_cli_tiled_equals_whole(fab_run, tmp_path):
         tifffile.imwrite(tmp_path / f"{name}.tif", a)
     common = ["--run", str(fab_run), "--dark", str(tmp_path / "dark.tif"), "--flat", str(tmp_path / "flat.tif"),
               "--black-level", "100", "--white-level", "40000", "--exposure-s", "0.5", "--reference-exposure-s", "0.25"]
-    r1 = run_cli("reconstruct", str(tmp_path / "raw.tif"), "--out", str(tmp_path / "tiled.h5"), "--tile", "16", *common)
+    r1 = run_cli_in_process("reconstruct", str(tmp_path / "raw.tif"), "--out", str(tmp_path / "tiled.h5"), "--tile", "16", *common)
     assert r1.returncode == 0, r1.stderr
-    r2 = run_cli("reconstruct", str(tmp_path / "raw.tif"), "--out", str(tmp_path / "whole.h5"), "--tile", "512", *common)
+    r2 = run_cli_in_process("reconstruct", str(tmp_path / "raw.tif"), "--out", str(tmp_path / "whole.h5"), "--tile", "512", *common)
     assert r2.returncode == 0, r2.stderr
     tiled, _, _ = read_cube(tmp_path / "tiled.h5")
     whole, _, _ = read_cube(tmp_path / "whole.h5")
@@ -439,7 +438,7 @@ def test_reconstruct_raw_capture_cli_tiled_equals_whole(fab_run, tmp_path):
     np.testing.assert_allclose(whole, ref, rtol=1e-5, atol=1e-5)
     # mismatched dark frame size: one-line error, no output file
     tifffile.imwrite(tmp_path / "small.tif", dark[:10, :10])
-    bad = run_cli("reconstruct", str(tmp_path / "raw.tif"), "--out", str(tmp_path / "bad.h5"), "--run", str(fab_run),
+    bad = run_cli_in_process("reconstruct", str(tmp_path / "raw.tif"), "--out", str(tmp_path / "bad.h5"), "--run", str(fab_run),
                   "--dark", str(tmp_path / "small.tif"))
     assert_clean_error(bad, "dark frame")
     assert not (tmp_path / "bad.h5").exists() and not (tmp_path / "bad_rgb.png").exists()
@@ -448,7 +447,7 @@ def test_reconstruct_raw_capture_cli_tiled_equals_whole(fab_run, tmp_path):
 def test_psf_folder_written_by_hsicam_psf_is_read_exactly(tiny_config, tmp_path):
     from conftest import TINY_CAMERA_OVERRIDES as tiny
 
-    res = run_cli("psf", *[a for o in (*tiny, "camera.psf.pupil_oversample=3") for a in ("--set", o)], "--out", str(tmp_path / "psf"))
+    res = run_cli_in_process("psf", *[a for o in (*tiny, "camera.psf.pupil_oversample=3") for a in ("--set", o)], "--out", str(tmp_path / "psf"))
     assert res.returncode == 0, res.stderr
     cam = DOECamera.from_config(tiny_config("camera.psf.pupil_oversample=3"))
     m = import_for_camera(tmp_path / "psf", cam)
@@ -504,10 +503,10 @@ def test_reconstruct_int64_capture_needs_white_level(fab_run, tmp_path):
     sensor = np.random.default_rng(5).random((30, 34))
     np.save(tmp_path / "cap.npy", np.round(sensor * 4095).astype(np.int64))
     out = tmp_path / "x.h5"
-    res = run_cli("reconstruct", str(tmp_path / "cap.npy"), "--run", str(fab_run), "--out", str(out))
+    res = run_cli_in_process("reconstruct", str(tmp_path / "cap.npy"), "--run", str(fab_run), "--out", str(out))
     assert_clean_error(res, "cap.npy", "int64", "--white-level")
     _outputs_absent(out)
-    ok = run_cli("reconstruct", str(tmp_path / "cap.npy"), "--run", str(fab_run), "--out", str(out), "--white-level", "4095")
+    ok = run_cli_in_process("reconstruct", str(tmp_path / "cap.npy"), "--run", str(fab_run), "--out", str(out), "--white-level", "4095")
     assert ok.returncode == 0, ok.stderr
     assert out.is_file()
 
@@ -560,7 +559,7 @@ def test_reconstruct_dark_frame_brighter_than_capture_is_an_error(fab_run, tmp_p
     tifffile.imwrite(tmp_path / "cap.tif", raw)
     np.save(tmp_path / "dark.npy", np.full((64, 64), 60000, np.uint16))
     out = tmp_path / "x.h5"
-    res = run_cli("reconstruct", str(tmp_path / "cap.tif"), "--run", str(fab_run), "--out", str(out),
+    res = run_cli_in_process("reconstruct", str(tmp_path / "cap.tif"), "--run", str(fab_run), "--out", str(out),
                   "--dark", str(tmp_path / "dark.npy"))
     assert_clean_error(res, "cap.tif", "dark frame", "nothing to reconstruct")
     _outputs_absent(out)
@@ -623,12 +622,12 @@ def test_finetune_refuses_psfs_outside_the_kernel(fab_run, tmp_path):
     _, base = load_run(fab_run)
     d = _psf_tifs(tmp_path / "psf", base.bands, pixel_pitch_um=6, centre="axis", axis_px=[1e9, -5])
     out = tmp_path / "run2"
-    res = run_cli("finetune", "--run", str(fab_run), "--psf-dir", str(d), "--out", str(out), "--epochs", "1")
+    res = run_cli_in_process("finetune", "--run", str(fab_run), "--psf-dir", str(d), "--out", str(out), "--epochs", "1")
     assert_clean_error(res, f"psf_{base.bands.centers_nm[0]:g}nm.tif", "axis_px", "outside")
     assert not out.exists()
     cap = tmp_path / "cap.npy"
     np.save(cap, np.random.default_rng(8).random((30, 34)).astype(np.float32))
-    rec = run_cli("reconstruct", str(cap), "--run", str(fab_run), "--out", str(tmp_path / "x.h5"), "--psf-dir", str(d))
+    rec = run_cli_in_process("reconstruct", str(cap), "--run", str(fab_run), "--out", str(tmp_path / "x.h5"), "--psf-dir", str(d))
     assert_clean_error(rec, "axis_px", "outside")
     _outputs_absent(tmp_path / "x.h5")
 
@@ -640,18 +639,18 @@ def test_reconstructing_simulates_own_dark_png_gives_no_bit_depth_advice(fab_run
     scene = tmp_path / "scene.npy"
     np.save(scene, (np.random.default_rng(3).random((3, 40, 40)) * 0.2).astype(np.float32))
     sim = tmp_path / "sim"
-    res = run_cli("simulate", "--run", str(fab_run), "--scene", str(scene), "--out", str(sim))
+    res = run_cli_in_process("simulate", "--run", str(fab_run), "--scene", str(scene), "--out", str(sim))
     assert res.returncode == 0, res.stderr
     sensor = np.load(sim / "sensor.npy")
     assert sensor.max() < 1 / 8 and json.loads((sim / "simulate.json").read_text())["sensor_png_scale"] == 1.0
-    res = run_cli("reconstruct", str(sim / "sensor.png"), "--run", str(fab_run), "--out", str(tmp_path / "a.h5"))
+    res = run_cli_in_process("reconstruct", str(sim / "sensor.png"), "--run", str(fab_run), "--out", str(tmp_path / "a.h5"))
     assert res.returncode == 0, res.stderr
     assert "very dark" not in res.stderr and "--white-level" not in res.stderr, res.stderr
     from PIL import Image
 
     with Image.open(sim / "sensor.png") as im:  # the same pixels as a real capture: no hsicam text chunk
         Image.fromarray(np.array(im)).save(tmp_path / "capture.png")
-    res = run_cli("reconstruct", str(tmp_path / "capture.png"), "--run", str(fab_run), "--out", str(tmp_path / "b.h5"))
+    res = run_cli_in_process("reconstruct", str(tmp_path / "capture.png"), "--run", str(fab_run), "--out", str(tmp_path / "b.h5"))
     assert res.returncode == 0, res.stderr
     assert "capture.png: very dark" in res.stderr and "pass --white-level 16383" in res.stderr, res.stderr
 

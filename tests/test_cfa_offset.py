@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 import torch
 
-from cli_helpers import assert_ok, error_line, run_cli_in_process as run_cli
+from cli_helpers import assert_ok, error_line, run_cli_in_process
 from hsicam.engine.cfa_offset import estimate_cfa_offset
 from hsicam.errors import InputError
 from hsicam.runs.folder import load_run
@@ -76,18 +76,18 @@ def test_auto_reconstructs_as_the_explicit_offset_and_records_it(capture, tmp_pa
     crop = tmp_path / "crop.npy"
     np.save(crop, sensor[0, 0, dy:, dx:].numpy())
     with caplog.at_level(logging.INFO):
-        assert_ok(run_cli("reconstruct", str(crop), "--run", RUN, "--out", str(tmp_path / "auto.h5"),
+        assert_ok(run_cli_in_process("reconstruct", str(crop), "--run", RUN, "--out", str(tmp_path / "auto.h5"),
                           "--cfa-offset", "auto"))
     [line] = [r.getMessage() for r in caplog.records if r.getMessage().startswith("--cfa-offset auto")]
     assert line.startswith("--cfa-offset auto: 1,2 (relative residual"), line
     # the phase is known modulo the CFA period only: auto is the offset 1,2, which gives each pixel the
     # filter that 5,2 gives it (the trunk's cell grid, 8 px, may sit elsewhere: within ~0.01 dB)
     for name, given in (("given.h5", "1,2"), ("given_true.h5", f"{dy},{dx}")):
-        assert_ok(run_cli("reconstruct", str(crop), "--run", RUN, "--out", str(tmp_path / name), "--cfa-offset", given))
+        assert_ok(run_cli_in_process("reconstruct", str(crop), "--run", RUN, "--out", str(tmp_path / name), "--cfa-offset", given))
     read = lambda name: h5py.File(tmp_path / name, "r")["cube"][()]  # noqa: E731
     np.testing.assert_array_equal(read("auto.h5"), read("given.h5"))
     blind = tmp_path / "blind.h5"
-    assert_ok(run_cli("reconstruct", str(crop), "--run", RUN, "--out", str(blind)))
+    assert_ok(run_cli_in_process("reconstruct", str(crop), "--run", RUN, "--out", str(blind)))
     err = lambda name: float(np.mean((read(name) - read("given_true.h5")) ** 2))  # noqa: E731
     assert err("auto.h5") < 0.01 * err("blind.h5")  # as good as the true offset; 0,0 is far off
     with h5py.File(tmp_path / "auto.h5", "r") as a:
@@ -104,7 +104,7 @@ def test_a_featureless_capture_is_called_ambiguous(capture, tmp_path, caplog):
     flat = tmp_path / "flat.npy"
     np.save(flat, np.random.default_rng(2).uniform(0.3, 0.31, (120, 120)).astype(np.float32))
     with caplog.at_level(logging.WARNING):
-        assert_ok(run_cli("reconstruct", str(flat), "--run", RUN, "--out", str(tmp_path / "f.h5"),
+        assert_ok(run_cli_in_process("reconstruct", str(flat), "--run", RUN, "--out", str(tmp_path / "f.h5"),
                           "--cfa-offset", "auto"))
     assert any("is barely better than the other phases" in r.getMessage() for r in caplog.records), caplog.text
 
@@ -117,7 +117,7 @@ def test_too_small_or_black_captures_are_one_clear_error(capture, tmp_path):
         estimate_cfa_offset(system, torch.zeros(1, 1, 100, 100))
     small = tmp_path / "small.npy"
     np.save(small, sensor[0, 0, :30, :30].numpy())
-    res = run_cli("reconstruct", str(small), "--run", RUN, "--out", str(tmp_path / "s.h5"), "--cfa-offset", "auto")
+    res = run_cli_in_process("reconstruct", str(small), "--run", RUN, "--out", str(tmp_path / "s.h5"), "--cfa-offset", "auto")
     assert "--cfa-offset Y,X" in error_line(res)
-    res = run_cli("reconstruct", str(small), "--run", RUN, "--out", str(tmp_path / "s.h5"), "--cfa-offset", "autox")
+    res = run_cli_in_process("reconstruct", str(small), "--run", RUN, "--out", str(tmp_path / "s.h5"), "--cfa-offset", "autox")
     assert "or auto" in error_line(res)

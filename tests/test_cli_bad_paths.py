@@ -18,7 +18,7 @@ import tifffile
 
 from conftest import TINY_CAMERA_OVERRIDES
 from cli_helpers import assert_clean_error, assert_ok, error_line, run_cli_in_process
-from test_calibration import run_cli, write_homogeneous_scenes
+from test_calibration import write_homogeneous_scenes
 from hsicam.config import load_config
 from hsicam.data.formats import HSICAM_FORMAT_VERSION, read_cube, read_window, write_cube_h5
 from hsicam.data.images import read_image_2d
@@ -52,7 +52,7 @@ def capture(tmp_path) -> Path:
 
 
 def _reconstruct(capture: Path, run: Path, out: Path, *extra: str):
-    return run_cli("reconstruct", str(capture), "--run", str(run), "--out", str(out), "--tile", "16", *extra)
+    return run_cli_in_process("reconstruct", str(capture), "--run", str(run), "--out", str(out), "--tile", "16", *extra)
 
 
 # ------------------------------------------------------------------------------------------------
@@ -153,7 +153,7 @@ def test_a_half_trained_run_warns_once_on_reconstruct_and_evaluate(runs, capture
                  ("evaluate", "--run", str(half), "--out", str(tmp_path / "ev"))):
         caplog.clear()
         with caplog.at_level(logging.WARNING):
-            _ok(run_cli(*args))
+            _ok(run_cli_in_process(*args))
         [msg] = _unfinished(caplog)  # once
         assert msg.startswith(f"{half}: its training did not finish: the last checkpoint is at step 2 of 12 "
                               "(0 of 3 epochs done)"), msg
@@ -236,7 +236,7 @@ def test_a_cube_file_of_a_newer_format_version_is_refused(runs, tmp_path):
     newer = _cube_file(tmp_path / "v99.h5", 99)
     _both_readers_refuse(newer, rf"v99\.h5: hsicam cube format version 99, newer than this hsicam reads \(version "
                                 rf"{HSICAM_FORMAT_VERSION} and older\): upgrade hsicam")
-    line = _error(run_cli("simulate", "--run", str(runs["done"]), "--scene", str(newer), "--out", str(tmp_path / "sim")))
+    line = _error(run_cli_in_process("simulate", "--run", str(runs["done"]), "--scene", str(newer), "--out", str(tmp_path / "sim")))
     assert "format version 99" in line and "upgrade hsicam" in line
     with pytest.raises(InputError, match=r"unreadable hsicam cube format version 'x'"):
         read_cube(_cube_file(tmp_path / "vx.h5", "x"))
@@ -275,14 +275,14 @@ def test_simulate_refuses_a_scene_smaller_than_the_camera_needs(runs, tmp_path, 
     """The tiny optics: a 3×3 CFA period and a 7-px PSF kernel (valid: the sensor is 6 px smaller)."""
     scene = tmp_path / "scene.npy"
     np.save(scene, np.full((3, side, side), 0.5, np.float32))
-    line = _error(run_cli("simulate", "--run", str(runs["done"]), "--scene", str(scene), "--boundary", boundary,
+    line = _error(run_cli_in_process("simulate", "--run", str(runs["done"]), "--scene", str(scene), "--boundary", boundary,
                           "--out", str(tmp_path / "sim")))
     assert f"scene.npy: the scene is {side}×{side} px, too small: this camera needs {minimum}×{minimum} px" in line
     assert "a sensor image of at least 3×3 px (one CFA period)" in line
     assert ("plus the 6 px per axis that boundary=valid loses to the 7-px PSF kernel" in line) == (boundary == "valid")
     assert not (tmp_path / "sim").exists()
     np.save(scene, np.full((3, minimum, minimum), 0.5, np.float32))  # the minimum itself is imaged
-    _ok(run_cli("simulate", "--run", str(runs["done"]), "--scene", str(scene), "--boundary", boundary,
+    _ok(run_cli_in_process("simulate", "--run", str(runs["done"]), "--scene", str(scene), "--boundary", boundary,
                 "--out", str(tmp_path / "sim")))
     assert np.load(tmp_path / "sim" / "sensor.npy").shape == (3, 3)
 
@@ -295,5 +295,5 @@ def test_psf_pitch_without_psf_dir_is_refused(runs, capture, tmp_path):
     assert "--psf-pitch-um" in line and "--psf-dir" in line
     assert not list(tmp_path.glob("rec*"))
     # finetune: --psf-dir is required, so its --psf-pitch-um is never ignored
-    line = _error(run_cli("finetune", "--run", str(runs["done"]), "--out", str(tmp_path / "ft"), "--psf-pitch-um", "3.45"))
+    line = _error(run_cli_in_process("finetune", "--run", str(runs["done"]), "--out", str(tmp_path / "ft"), "--psf-pitch-um", "3.45"))
     assert "--psf-dir" in line

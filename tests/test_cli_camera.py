@@ -9,19 +9,15 @@ import imageio.v3 as iio
 import numpy as np
 import pytest
 
-from cli_helpers import assert_clean_error, run_cli as run_script, run_cli_in_process
+from cli_helpers import assert_clean_error, run_cli, run_cli_in_process
 from optics_reference import doe_field, reference_measurement, relative_l1, square_cell_psf
-
-#: ``hsicam ARGS`` in this process (no interpreter and torch start per call); ``run_script`` where a test needs
-#: a process of its own
-run_cli = run_cli_in_process
 
 TINY = ["--set", "camera.aperture_radius_mm=0.6", "--set", "camera.lens.focal_length_mm=5",
         "--set", "bands.step_nm=50", "--set", "camera.cfa.period=3"]
 
 
 def test_psf_command_writes_contract_files(tmp_path):
-    proc = run_cli("psf", "--out", str(tmp_path), *TINY)
+    proc = run_cli_in_process("psf", "--out", str(tmp_path), *TINY)
     assert proc.returncode == 0, proc.stderr
     psf = np.load(tmp_path / "psf.npy")
     info = json.loads((tmp_path / "psf.json").read_text())
@@ -52,7 +48,7 @@ def test_psf_command_writes_contract_files(tmp_path):
 
 
 def test_psf_paper_defaults_kernel_141(tmp_path):
-    proc = run_cli("psf", "--out", str(tmp_path))
+    proc = run_cli_in_process("psf", "--out", str(tmp_path))
     assert proc.returncode == 0, proc.stderr
     info = json.loads((tmp_path / "psf.json").read_text())
     assert info["kernel_px"] == 141 and len(info["bands_nm"]) == 31
@@ -70,7 +66,7 @@ def test_simulate_command_outputs(tmp_path):
     np.save(tmp_path / "scene.npy", scene)
     out = tmp_path / "out"
     noise_off = ["--set", "camera.sensor.sigma=0", "--set", "camera.doe.sigma_height_nm=0"]
-    proc = run_cli("simulate", "--scene", str(tmp_path / "scene.npy"), "--out", str(out), *TINY, *noise_off)
+    proc = run_cli_in_process("simulate", "--scene", str(tmp_path / "scene.npy"), "--out", str(out), *TINY, *noise_off)
     assert proc.returncode == 0, proc.stderr
     # the grid it assumed is said (evaluate --data takes a .npy as 400-700 nm, and would refuse this one)
     assert "its 7 bands were taken as the camera's (420-720 nm): give data.npy_bands if they are not" in proc.stderr
@@ -108,7 +104,7 @@ def test_simulate_png_keeps_its_scale_when_copied_elsewhere(tmp_path):
 
     np.save(tmp_path / "scene.npy", np.full((7, 40, 48), 3.0, np.float32))  # a scene 3× full scale
     out = tmp_path / "out"
-    proc = run_cli("simulate", "--scene", str(tmp_path / "scene.npy"), "--out", str(out), *TINY)
+    proc = run_cli_in_process("simulate", "--scene", str(tmp_path / "scene.npy"), "--out", str(out), *TINY)
     assert proc.returncode == 0, proc.stderr
     sensor = np.load(out / "sensor.npy")
     scale = json.loads((out / "simulate.json").read_text())["sensor_png_scale"]
@@ -129,7 +125,7 @@ def test_simulate_png_keeps_its_scale_when_copied_elsewhere(tmp_path):
 def test_simulate_valid_boundary_shrinks_sensor(tmp_path):
     np.save(tmp_path / "scene.npy", np.ones((7, 40, 40), np.float32))
     out = tmp_path / "out"
-    proc = run_cli("simulate", "--scene", str(tmp_path / "scene.npy"), "--out", str(out), "--boundary", "valid", *TINY)
+    proc = run_cli_in_process("simulate", "--scene", str(tmp_path / "scene.npy"), "--out", str(out), "--boundary", "valid", *TINY)
     assert proc.returncode == 0, proc.stderr
     sensor = np.load(out / "sensor.npy")
     assert sensor.shape == (20, 20)  # 40 - (21 - 1)
@@ -160,7 +156,7 @@ def test_simulate_valid_boundary_shrinks_sensor(tmp_path):
     ],
 )
 def test_psf_bad_config_is_one_clean_line(tmp_path, override, fragment):
-    assert_clean_error(run_cli("psf", "--out", str(tmp_path), "--set", override), fragment)
+    assert_clean_error(run_cli_in_process("psf", "--out", str(tmp_path), "--set", override), fragment)
 
 
 @pytest.mark.parametrize(
@@ -178,7 +174,7 @@ def test_psf_refuses_implausible_sensor_distances_before_allocating(tmp_path, di
     out = tmp_path / "p"
     # a process of its own, with a timeout: were the check to regress, the allocation (22 GiB and more,
     # OOM-killed before) must not take the test process with it
-    proc = run_script("psf", "--config", "tiny", "--set", f"camera.sensor_distance_mm={distance_mm}", "--out", str(out),
+    proc = run_cli("psf", "--config", "tiny", "--set", f"camera.sensor_distance_mm={distance_mm}", "--out", str(out),
                       timeout=120, env={"HSICAM_MEMORY_BUDGET_MB": "2000"})
     assert_clean_error(proc, *fragments)
     assert not out.exists()
@@ -188,13 +184,13 @@ def test_psf_deliberate_defocus_needs_the_pupil_sampling_it_implies(tmp_path):
     """10 % behind the focus of the tiny 5 mm lens the residual defocus aliases on 30 µm cells
     (blur 0.12 mm > field λz/Δ = 0.077 mm at 420 nm): refused with the oversampling that fixes it,
     which then runs; a 4 % defocus (blur 0.05 mm) runs as it is."""
-    proc = run_cli("psf", "--config", "tiny", "--set", "camera.sensor_distance_mm=5.5", "--out", str(tmp_path / "a"))
+    proc = run_cli_in_process("psf", "--config", "tiny", "--set", "camera.sensor_distance_mm=5.5", "--out", str(tmp_path / "a"))
     assert_clean_error(proc, "camera.sensor_distance_mm=5.5 defocuses the lens more than the pupil sampling can "
                              "represent", "raise camera.psf.pupil_oversample to at least 2")
     for overrides in (["camera.sensor_distance_mm=5.5", "camera.psf.pupil_oversample=2"],
                       ["camera.sensor_distance_mm=5.2"]):
         out = tmp_path / overrides[-1]
-        proc = run_cli("psf", "--config", "tiny", *[a for o in overrides for a in ("--set", o)], "--out", str(out))
+        proc = run_cli_in_process("psf", "--config", "tiny", *[a for o in overrides for a in ("--set", o)], "--out", str(out))
         assert proc.returncode == 0, proc.stderr
         assert json.loads((out / "psf.json").read_text())["lens"]["sensor_distance_mm"] == pytest.approx(
             float(overrides[0].split("=")[1]))
@@ -214,23 +210,23 @@ def test_psf_deliberate_defocus_needs_the_pupil_sampling_it_implies(tmp_path):
 )
 def test_psf_sampling_plan_over_the_memory_budget_is_refused(tmp_path, override, fragments):
     out = tmp_path / "p"
-    proc = run_cli("psf", "--config", "tiny", "--set", override, "--out", str(out), env={"HSICAM_MEMORY_BUDGET_MB": "4"})
+    proc = run_cli_in_process("psf", "--config", "tiny", "--set", override, "--out", str(out), env={"HSICAM_MEMORY_BUDGET_MB": "4"})
     assert_clean_error(proc, "the PSF sampling plan needs at least", "over the memory budget of 4 MiB", *fragments)
     assert not out.exists()
     # the tiny camera itself (81-point FFTs, 21 px kernel) fits that budget
-    proc = run_cli("psf", "--config", "tiny", "--out", str(out), env={"HSICAM_MEMORY_BUDGET_MB": "4"})
+    proc = run_cli_in_process("psf", "--config", "tiny", "--out", str(out), env={"HSICAM_MEMORY_BUDGET_MB": "4"})
     assert proc.returncode == 0, proc.stderr
 
 
 def test_bad_config_file(tmp_path):
     cfg = tmp_path / "c.yaml"
     cfg.write_text("camera:\n  doe:\n    sigma_heigth_nm: 3\n")
-    assert_clean_error(run_cli("psf", "--config", str(cfg), "--out", str(tmp_path / "o")), "sigma_heigth_nm")
+    assert_clean_error(run_cli_in_process("psf", "--config", str(cfg), "--out", str(tmp_path / "o")), "sigma_heigth_nm")
 
 
 def test_simulate_band_count_mismatch(tmp_path):
     np.save(tmp_path / "scene.npy", np.ones((5, 30, 30), np.float32))
-    proc = run_cli("simulate", "--scene", str(tmp_path / "scene.npy"), "--out", str(tmp_path / "o"), *TINY)
+    proc = run_cli_in_process("simulate", "--scene", str(tmp_path / "scene.npy"), "--out", str(tmp_path / "o"), *TINY)
     assert_clean_error(proc, "5 bands", "7")
     assert not (tmp_path / "o" / "sensor.npy").exists()
 
@@ -247,7 +243,7 @@ def test_simulate_reads_npy_scenes_on_the_grid_data_npy_bands_gives(tmp_path):
     write_cube_h5(tmp_path / "scene.h5", cube, fine)
     grid = ["--set", "data.npy_bands={start_nm: 410, stop_nm: 730, step_nm: 20}"]
     for name, extra in (("scene.npy", grid), ("scene.h5", [])):
-        proc = run_cli("simulate", "--scene", str(tmp_path / name), "--out", str(tmp_path / name[-3:]), *TINY, *extra)
+        proc = run_cli_in_process("simulate", "--scene", str(tmp_path / name), "--out", str(tmp_path / name[-3:]), *TINY, *extra)
         assert proc.returncode == 0, proc.stderr
     np.testing.assert_allclose(np.load(tmp_path / "npy" / "sensor.npy"), np.load(tmp_path / ".h5" / "sensor.npy"), rtol=1e-6)
 
@@ -257,7 +253,7 @@ def test_simulate_band_grid_mismatch(tmp_path):
     from hsicam.spectral import Bands
 
     write_cube_h5(tmp_path / "scene.h5", np.ones((7, 30, 30), np.float32), Bands.uniform(400, 700, 50))
-    proc = run_cli("simulate", "--scene", str(tmp_path / "scene.h5"), "--out", str(tmp_path / "o"), *TINY)
+    proc = run_cli_in_process("simulate", "--scene", str(tmp_path / "scene.h5"), "--out", str(tmp_path / "o"), *TINY)
     assert_clean_error(proc, "scene.h5")
 
 
@@ -279,12 +275,12 @@ def test_simulate_refuses_valid_boundary_on_a_cassi_camera(tmp_path, kind):
 
 
 def test_simulate_missing_scene(tmp_path):
-    assert_clean_error(run_cli("simulate", "--scene", str(tmp_path / "nope.npy"), "--out", str(tmp_path)), "nope.npy")
+    assert_clean_error(run_cli_in_process("simulate", "--scene", str(tmp_path / "nope.npy"), "--out", str(tmp_path)), "nope.npy")
 
 
 def test_simulate_scene_too_small_for_valid(tmp_path):
     np.save(tmp_path / "scene.npy", np.ones((7, 10, 10), np.float32))
-    proc = run_cli("simulate", "--scene", str(tmp_path / "scene.npy"), "--out", str(tmp_path / "o"), "--boundary", "valid", *TINY)
+    proc = run_cli_in_process("simulate", "--scene", str(tmp_path / "scene.npy"), "--out", str(tmp_path / "o"), "--boundary", "valid", *TINY)
     assert_clean_error(proc, "too small")
 
 
@@ -294,7 +290,7 @@ def test_simulate_refusal_says_a_mat_files_grid_was_assumed(tmp_path):
     import scipy.io
 
     scipy.io.savemat(tmp_path / "icvl.mat", {"rad": np.ones((40, 40, 31), np.float32)})
-    proc = run_cli("simulate", "--scene", str(tmp_path / "icvl.mat"), "--out", str(tmp_path / "o"), *TINY)
+    proc = run_cli_in_process("simulate", "--scene", str(tmp_path / "icvl.mat"), "--out", str(tmp_path / "o"), *TINY)
     assert proc.returncode == 2
     assert ("not covered by the data's 400-700 nm" in proc.stderr and "the file lists no wavelengths, so its bands "
             "were assumed to be 31 bands, 400-700 nm in 10 nm steps; add its band list as a variable 'bands'"

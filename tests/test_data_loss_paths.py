@@ -19,9 +19,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from cli_helpers import assert_clean_error, assert_ok, error_line, run_cli as run_script
+from cli_helpers import assert_clean_error, assert_ok, error_line, run_cli, run_cli_in_process
 from conftest import TINY_CAMERA_OVERRIDES
-from test_calibration import run_cli, write_homogeneous_scenes
+from test_calibration import write_homogeneous_scenes
 from hsicam.config import load_config
 from hsicam.data.datasets import list_scenes
 from hsicam.data.formats import read_cube, write_cube_h5, write_envi
@@ -64,7 +64,7 @@ def _png8(path: Path, rgb: bool = False) -> Path:
 
 
 def _reconstruct(capture: Path, run: Path, out: Path, *extra: str):
-    return run_cli("reconstruct", str(capture), "--run", str(run), "--out", str(out), "--tile", "16", *extra)
+    return run_cli_in_process("reconstruct", str(capture), "--run", str(run), "--out", str(out), "--tile", "16", *extra)
 
 
 # ------------------------------------------------------------------------------------------------
@@ -74,7 +74,7 @@ def test_reconstruct_refuses_to_write_its_preview_over_its_own_capture(setup, tm
     """``u/cap_rgb.png`` reconstructed to ``u/cap.h5``: the preview path is the capture (the console script)."""
     cap = _png8(tmp_path / "cap_rgb.png")
     before = _md5(cap)
-    res = run_script("reconstruct", str(cap), "--run", str(setup["run"]), "--out", str(tmp_path / "cap.h5"))
+    res = run_cli("reconstruct", str(cap), "--run", str(setup["run"]), "--out", str(tmp_path / "cap.h5"))
     assert_clean_error(res, f"{cap}: is the capture SENSOR, which reconstruct reads; the preview of --out "
                             f"{tmp_path / 'cap.h5'} would be written over it: choose another --out name")
     assert _md5(cap) == before
@@ -174,7 +174,7 @@ def test_reconstruct_replaces_its_own_earlier_output_only(setup, tmp_path):
 # F10. evaluate: --out is, holds or lies inside --data; an evaluation's saved cubes as data
 # ------------------------------------------------------------------------------------------------
 def _saved_evaluation(setup, out: Path) -> Path:
-    _ok(run_cli("evaluate", "--run", str(setup["run"]), "--data", str(setup["data"]), "--out", str(out), "--save"))
+    _ok(run_cli_in_process("evaluate", "--run", str(setup["run"]), "--data", str(setup["data"]), "--out", str(out), "--save"))
     assert sorted(p.name for p in (out / "cubes").iterdir())[:2] == ["s00_estimate.h5", "s00_truth.h5"]
     return out
 
@@ -183,16 +183,16 @@ def test_evaluate_refuses_an_out_that_is_its_data(setup, tmp_path):
     """The probe's case: ``--data ev --out ev`` on a --save evaluation deleted its cubes (the console script)."""
     ev = _saved_evaluation(setup, tmp_path / "ev")
     cubes = sorted((ev / "cubes").iterdir())
-    res = run_script("evaluate", "--run", str(setup["run"]), "--data", str(ev), "--out", str(ev))
+    res = run_cli("evaluate", "--run", str(setup["run"]), "--data", str(ev), "--out", str(ev))
     assert_clean_error(res, f"{ev}: is the --data folder; evaluate replaces its --out folder whole, which would delete "
                             f"the scenes it reads: give --out a folder outside {ev}")
     assert sorted((ev / "cubes").iterdir()) == cubes
-    line = _error(run_cli("evaluate", "--run", str(setup["run"]), "--data", str(ev / "cubes"), "--out", str(ev)))
+    line = _error(run_cli_in_process("evaluate", "--run", str(setup["run"]), "--data", str(ev / "cubes"), "--out", str(ev)))
     assert line == (f"{ev}: holds the --data {ev / 'cubes'}; evaluate replaces its --out folder whole, which would "
                     f"delete the scenes it reads: give --out a folder outside {ev / 'cubes'}")
     link = tmp_path / "link"
     link.symlink_to(ev)
-    assert _error(run_cli("evaluate", "--run", str(setup["run"]), "--data", str(link), "--out", str(ev))).startswith(
+    assert _error(run_cli_in_process("evaluate", "--run", str(setup["run"]), "--data", str(link), "--out", str(ev))).startswith(
         f"{ev}: is the --data folder")
     assert sorted((ev / "cubes").iterdir()) == cubes
 
@@ -201,8 +201,8 @@ def test_an_evaluation_kept_inside_its_data_is_not_scored_as_data(setup, tmp_pat
     """--out inside --data is allowed (results next to the data): the next evaluation of that folder
     skips it and scores the same scenes."""
     data = shutil.copytree(setup["data"], tmp_path / "data")
-    _ok(run_cli("evaluate", "--run", str(setup["run"]), "--data", str(data), "--out", str(data / "eval"), "--save"))
-    _ok(run_cli("evaluate", "--run", str(setup["run"]), "--data", str(data), "--out", str(tmp_path / "again")))
+    _ok(run_cli_in_process("evaluate", "--run", str(setup["run"]), "--data", str(data), "--out", str(data / "eval"), "--save"))
+    _ok(run_cli_in_process("evaluate", "--run", str(setup["run"]), "--data", str(data), "--out", str(tmp_path / "again")))
     first, again = (json.loads((p / "results.json").read_text()) for p in (data / "eval", tmp_path / "again"))
     assert [s["name"] for s in again["scenes"]] == [s["name"] for s in first["scenes"]]
     assert len(again["scenes"]) == 4 and (data / "eval" / "cubes").is_dir()
@@ -214,12 +214,12 @@ def test_an_evaluation_is_not_taken_for_ground_truth(setup, tmp_path):
     scored = f"which scored {Path(setup['data']).resolve()}"
     for data, where in ((ev, "is"), (ev / "cubes", f"lies inside {ev}, which is"),
                         (ev / "cubes" / "s00_estimate.h5", f"lies inside {ev}, which is")):
-        line = _error(run_cli("evaluate", "--run", str(setup["run"]), "--data", str(data), "--out", str(tmp_path / "o")))
+        line = _error(run_cli_in_process("evaluate", "--run", str(setup["run"]), "--data", str(data), "--out", str(tmp_path / "o")))
         assert line == (f"{data}: {where} the output of hsicam evaluate ({scored}); its cubes/*_estimate.h5 are a "
                         "method's reconstructions, not scenes: use the scenes it scored as the data, or copy its "
                         "*_truth.h5 files into a folder of their own")
         assert not (tmp_path / "o").exists()
-    _ok(run_cli("evaluate", "--run", str(setup["run"]), "--data", str(ev / "cubes" / "s00_truth.h5"),
+    _ok(run_cli_in_process("evaluate", "--run", str(setup["run"]), "--data", str(ev / "cubes" / "s00_truth.h5"),
                 "--out", str(tmp_path / "o")))
     assert [s["name"] for s in json.loads((tmp_path / "o" / "results.json").read_text())["scenes"]] == ["s00_truth"]
 
@@ -231,14 +231,14 @@ def _data_with_outputs(setup, tmp_path) -> Path:
     """The 4 scenes, plus an evaluation saved (elsewhere, then moved) into eval/ and a simulation in sim/."""
     data = shutil.copytree(setup["data"], tmp_path / "mydata")
     shutil.move(_saved_evaluation(setup, tmp_path / "ev"), data / "eval")
-    _ok(run_cli("simulate", "--run", str(setup["run"]), "--scene", str(data / "s00.h5"), "--out", str(data / "sim")))
+    _ok(run_cli_in_process("simulate", "--run", str(setup["run"]), "--scene", str(data / "s00.h5"), "--out", str(data / "sim")))
     return data
 
 
 def test_a_data_folder_skips_the_hsicam_outputs_inside_it(setup, tmp_path, caplog):
     data = _data_with_outputs(setup, tmp_path)
     with caplog.at_level(logging.INFO, logger="hsicam.data.datasets"):
-        res = run_cli("evaluate", "--run", str(setup["run"]), "--data", str(data), "--out", str(tmp_path / "o"))
+        res = run_cli_in_process("evaluate", "--run", str(setup["run"]), "--data", str(data), "--out", str(tmp_path / "o"))
         _ok(res)
         list_scenes(data)  # a second scan of the same folder says nothing more
     names = [s["name"] for s in json.loads((tmp_path / "o" / "results.json").read_text())["scenes"]]
@@ -246,7 +246,7 @@ def test_a_data_folder_skips_the_hsicam_outputs_inside_it(setup, tmp_path, caplo
     said = [r.getMessage() for r in caplog.records if "skipped" in r.getMessage()]
     assert said == [f"data: {data}: skipped 2 sub-folder(s) holding hsicam outputs, not scenes: eval (evaluate), "
                     "sim (simulate)"]
-    assert _error(run_cli("evaluate", "--run", str(setup["run"]), "--data", str(data / "sim"),
+    assert _error(run_cli_in_process("evaluate", "--run", str(setup["run"]), "--data", str(data / "sim"),
                           "--out", str(tmp_path / "o2"))) == (
         f"{data / 'sim'}: is the output of hsicam simulate, not a folder of scenes; use a folder of cube files as the data")
 

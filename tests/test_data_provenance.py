@@ -17,7 +17,7 @@ import pytest
 import torch
 import yaml
 
-from cli_helpers import assert_clean_error, assert_ok, run_cli_in_process as run_cli
+from cli_helpers import assert_clean_error, assert_ok, run_cli_in_process
 from conftest import TINY_CAMERA_OVERRIDES
 from hsicam.config import dump_yaml, load_config
 from hsicam.data.formats import write_cube_h5, write_envi
@@ -54,7 +54,7 @@ def proj(tmp_path_factory, cache_env):
     base = tmp_path_factory.mktemp("prov")
     write_scenes(base / "projA" / "data")
     with contextlib.chdir(base / "projA"):
-        assert_ok(run_cli("train", "--config", "tiny", *SETS, "--set", "data.root=data",
+        assert_ok(run_cli_in_process("train", "--config", "tiny", *SETS, "--set", "data.root=data",
                           "--set", "data.cache_dir=cache", "--out", "../run"))
     return base
 
@@ -68,7 +68,7 @@ def _copy(proj: Path, tmp_path: Path) -> tuple[Path, Path]:
 
 
 def _resume(run: Path, data: Path, *extra: str):
-    return run_cli("train", "--out", str(run), "--resume", "--set", f"data.root={data}", "--set", "train.epochs=2",
+    return run_cli_in_process("train", "--out", str(run), "--resume", "--set", f"data.root={data}", "--set", "train.epochs=2",
                    *extra)
 
 
@@ -104,7 +104,7 @@ def test_evaluate_from_another_folder_scores_the_runs_own_validation_scenes(proj
     """02 + 06: from projB (its own data/), `evaluate --run` scores projA's validation split and says so."""
     write_scenes(tmp_path / "projB" / "data", seed=50)
     monkeypatch.chdir(tmp_path / "projB")
-    assert_ok(run_cli("evaluate", "--run", str(proj / "run"), "--out", "ev"))
+    assert_ok(run_cli_in_process("evaluate", "--run", str(proj / "run"), "--out", "ev"))
     res = json.loads(Path("ev/results.json").read_text())
     rec = json.loads((proj / "run" / "data.json").read_text())
     assert res["data"] == f"validation split of {proj / 'projA' / 'data'}"
@@ -117,7 +117,7 @@ def test_evaluate_on_the_training_folder_flags_training_scenes(proj, tmp_path, c
     copy of the folder elsewhere (times kept) is recognised; another folder's scenes are unseen."""
     run, data = proj / "run", proj / "projA" / "data"
     with caplog.at_level(logging.WARNING, logger="hsicam"):
-        assert_ok(run_cli("evaluate", "--run", str(run), "--data", str(data), "--out", str(tmp_path / "ev")))
+        assert_ok(run_cli_in_process("evaluate", "--run", str(run), "--data", str(data), "--out", str(tmp_path / "ev")))
     res = json.loads((tmp_path / "ev" / "results.json").read_text())
     rec = json.loads((run / "data.json").read_text())
     assert {r["path"]: r["split"] for r in res["scenes"]} == {
@@ -136,7 +136,7 @@ def test_evaluate_on_the_training_folder_flags_training_scenes(proj, tmp_path, c
     assert roles[2] == "unseen" and roles[:2] == [
         "train" if p in rec["train"] else "validation" for p in ("day1/s5.h5", "s0.h5")]
     other = write_scenes(tmp_path / "other", seed=70)
-    assert_ok(run_cli("evaluate", "--run", str(run), "--data", str(other), "--out", str(tmp_path / "ev2")))
+    assert_ok(run_cli_in_process("evaluate", "--run", str(run), "--data", str(other), "--out", str(tmp_path / "ev2")))
     res2 = json.loads((tmp_path / "ev2" / "results.json").read_text())
     assert {r["split"] for r in res2["scenes"]} == {"unseen"} and "warning" not in res2
 
@@ -206,10 +206,10 @@ def test_finetune_resume_refuses_a_changed_folder(proj, tmp_path):
                                 "axis_px": [k // 2, k // 2], "normalize": "none"})
     ft = tmp_path / "ft"
     args = ("--run", str(run), "--psf-dir", str(d), "--out", str(ft))
-    assert_ok(run_cli("finetune", *args, "--epochs", "1"))
+    assert_ok(run_cli_in_process("finetune", *args, "--epochs", "1"))
     assert json.loads((ft / "data.json").read_text())["root"] == str(data)
     (data / "s2.h5").unlink()
-    assert_clean_error(run_cli("finetune", *args, "--resume", "--epochs", "2"), "removed: s2.h5")
+    assert_clean_error(run_cli_in_process("finetune", *args, "--resume", "--epochs", "2"), "removed: s2.h5")
 
 
 def test_a_nan_batch_names_the_data_not_the_learning_rate(proj, tmp_path):
@@ -249,7 +249,7 @@ def test_a_nan_batch_names_the_data_not_the_learning_rate(proj, tmp_path):
 def synthetic_run(tmp_path_factory, cache_env):
     """A tiny run trained on the synthetic data (no data.json)."""
     run = tmp_path_factory.mktemp("synthetic") / "run"
-    assert_ok(run_cli("train", "--config", "tiny", *SETS, "--out", str(run)))
+    assert_ok(run_cli_in_process("train", "--config", "tiny", *SETS, "--out", str(run)))
     return run
 
 
@@ -284,14 +284,14 @@ def test_evaluate_flags_training_scenes_of_a_synthetic_run_scored_on_another_spl
     reordered = load_config(run / "config.yaml", ["data.val_fraction=0.5", "data.synthetic_n=8", f"data.holdout_sources={held}"])
     assert synthetic_scene_roles(run_cfg.data, reordered.data, scored) == got
     with caplog.at_level(logging.WARNING, logger="hsicam"):
-        assert_ok(run_cli("evaluate", "--run", str(run), "--set", "data.val_fraction=0.5", "--set", "data.synthetic_n=8",
+        assert_ok(run_cli_in_process("evaluate", "--run", str(run), "--set", "data.val_fraction=0.5", "--set", "data.synthetic_n=8",
                           "--out", str(tmp_path / "ev")))
     res = json.loads((tmp_path / "ev" / "results.json").read_text())
     n = want.count("train")
     assert res["warning"] == f"{n} of {len(want)} scenes were training scenes of {run}: their scores are not a validation"
     assert [r["split"] == "train" for r in res["scenes"]] == [w == "train" for w in want]
     # the run's own split: nothing to flag, the results as before (no split column)
-    assert_ok(run_cli("evaluate", "--run", str(run), "--out", str(tmp_path / "ev0")))
+    assert_ok(run_cli_in_process("evaluate", "--run", str(run), "--out", str(tmp_path / "ev0")))
     res0 = json.loads((tmp_path / "ev0" / "results.json").read_text())
     assert "warning" not in res0 and all("split" not in r for r in res0["scenes"])
 
@@ -313,7 +313,7 @@ def test_evaluate_refuses_a_heldout_set_of_sources_the_run_trained_on(synthetic_
     assert seen.all()  # not held out: the network trained on every one of these spectra
     wrong = load_config(synthetic_run / "config.yaml", ["data.holdout_sources=cie-tcs"]).data
     assert "cie-tcs" in heldout_sources_problem(run_cfg.data, wrong)
-    res = run_cli("evaluate", "--run", str(synthetic_run), "--set", "data.holdout_sources=cie-tcs",
+    res = run_cli_in_process("evaluate", "--run", str(synthetic_run), "--set", "data.holdout_sources=cie-tcs",
                   "--out", str(tmp_path / "ev"))
     assert_clean_error(res, "cie-tcs")
     assert not (tmp_path / "ev" / "results.json").exists()

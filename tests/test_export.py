@@ -12,8 +12,8 @@ import numpy as np
 import pytest
 import torch
 
-from cli_helpers import assert_clean_error
-from test_calibration import fab_run, run_cli  # noqa: F401 - shared fixture
+from cli_helpers import assert_clean_error, run_cli_in_process
+from test_calibration import fab_run  # noqa: F401 - shared fixture
 from hsicam.errors import InputError
 from hsicam.export.cfa import fit_filter
 from hsicam.export.doe import phase_error, quantize_levels
@@ -52,7 +52,7 @@ def test_export_round_trip(fab_run, tmp_path):
     from hsicam.runs.folder import load_run
 
     out = tmp_path / "fab"
-    res = run_cli("export-optics", "--run", str(fab_run), "--out", str(out), "--levels", "8")
+    res = run_cli_in_process("export-optics", "--run", str(fab_run), "--out", str(out), "--levels", "8")
     assert res.returncode == 0, res.stderr
     assert "doe_L8.gds" in res.stdout
     cfg, model = load_run(fab_run)
@@ -197,11 +197,11 @@ def test_export_without_gdstk(fab_run, tmp_path, monkeypatch):
 
 
 def test_export_cli_errors_and_non_binary_levels(fab_run, tmp_path):
-    assert_clean_error(run_cli("export-optics", "--run", str(tmp_path / "nope"), "--out", str(tmp_path / "o")), "no such run folder")
-    assert_clean_error(run_cli("export-optics", "--run", str(fab_run), "--out", str(tmp_path / "o"), "--levels", "1"), "levels")
+    assert_clean_error(run_cli_in_process("export-optics", "--run", str(tmp_path / "nope"), "--out", str(tmp_path / "o")), "no such run folder")
+    assert_clean_error(run_cli_in_process("export-optics", "--run", str(fab_run), "--out", str(tmp_path / "o"), "--levels", "1"), "levels")
     # the command line takes powers of 2 only (its help says so); the library also exports other counts
     for bad in ("3", "6"):
-        assert_clean_error(run_cli("export-optics", "--run", str(fab_run), "--out", str(tmp_path / "o"), "--levels", bad),
+        assert_clean_error(run_cli_in_process("export-optics", "--run", str(fab_run), "--out", str(tmp_path / "o"), "--levels", bad),
                            "power of 2")
     assert not (tmp_path / "o").exists()
     from hsicam.export import export_optics
@@ -227,7 +227,7 @@ def test_a_run_trained_with_more_than_256_levels_is_exported_with_its_levels(fab
     assert text.count("quantization_levels: null") == 1
     (run / "config.yaml").write_text(text.replace("quantization_levels: null", "quantization_levels: 512"))
     out = tmp_path / "fab"
-    res = run_cli("export-optics", "--run", str(run), "--out", str(out))  # the run's own levels
+    res = run_cli_in_process("export-optics", "--run", str(run), "--out", str(out))  # the run's own levels
     assert res.returncode == 0, res.stderr
     assert "512 levels" in res.stdout and "doe_L512.gds" in res.stdout
     cfg, model = load_run(run)
@@ -247,7 +247,7 @@ def test_a_run_trained_with_more_than_256_levels_is_exported_with_its_levels(fab
     spec = json.loads((out / "spec.json").read_text())
     assert spec["doe"]["quantized"]["levels"] == 512 and len(spec["doe"]["quantized"]["gds"]["layers"]) == 9
     # --levels takes the same range as the config; beyond it the refusal names the option and the value
-    res = run_cli("export-optics", "--run", str(fab_run), "--out", str(tmp_path / "o"), "--levels", str(2 * MAX_HEIGHT_LEVELS))
+    res = run_cli_in_process("export-optics", "--run", str(fab_run), "--out", str(tmp_path / "o"), "--levels", str(2 * MAX_HEIGHT_LEVELS))
     assert_clean_error(res, f"--levels must be a power of 2 in 2..{MAX_HEIGHT_LEVELS}", f"got {2 * MAX_HEIGHT_LEVELS}")
     assert not (tmp_path / "o").exists()
 
@@ -293,7 +293,7 @@ def test_export_cites_only_a_tolerance_study_of_this_run(fab_run, tmp_path):
     from hsicam.runs.folder import load_run
 
     tol = tmp_path / "tol"
-    res = run_cli("tolerance", "--run", str(fab_run), "--out", str(tol), "--max-scenes", "1", "--draws", "1",
+    res = run_cli_in_process("tolerance", "--run", str(fab_run), "--out", str(tol), "--max-scenes", "1", "--draws", "1",
                   "--sigma-height-nm", "0", "--levels", "8", "--shift-cells", "0", "--sensor-distance-um", "0")
     assert res.returncode == 0, res.stderr
     study = json.loads((tol / "tolerance.json").read_text())
@@ -301,7 +301,7 @@ def test_export_cites_only_a_tolerance_study_of_this_run(fab_run, tmp_path):
                             "weights_sha256": file_sha256(root_weights_path(fab_run))}
 
     def export(run, tolerance, name):
-        return run_cli("export-optics", "--run", str(run), "--out", str(tmp_path / name), "--tolerance", str(tolerance))
+        return run_cli_in_process("export-optics", "--run", str(run), "--out", str(tmp_path / name), "--tolerance", str(tolerance))
 
     res = export(fab_run, tol, "ok")
     assert res.returncode == 0, res.stderr
@@ -331,7 +331,7 @@ def test_export_cites_only_a_tolerance_study_of_this_run(fab_run, tmp_path):
     old = tmp_path / "old" / "tolerance.json"
     old.parent.mkdir()
     old.write_text(json.dumps({k: v for k, v in study.items() if k != "run"}))
-    res = run_cli("export-optics", "--run", str(other), "--out", str(tmp_path / "old_out"), "--tolerance", str(old))
+    res = run_cli_in_process("export-optics", "--run", str(other), "--out", str(tmp_path / "old_out"), "--tolerance", str(old))
     assert res.returncode == 0, res.stderr
     assert "does not record which run it studied" in res.stderr and "cannot check" in res.stderr
     studied = json.loads((tmp_path / "old_out" / "spec.json").read_text())["tolerances"]["studied"]

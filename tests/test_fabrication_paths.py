@@ -22,8 +22,8 @@ import numpy as np
 import pytest
 import torch
 
-from cli_helpers import assert_clean_error
-from test_calibration import FAB_OVERRIDES, fab_run, run_cli, write_psf_dir  # noqa: F401 - shared fixture
+from cli_helpers import assert_clean_error, run_cli_in_process
+from test_calibration import FAB_OVERRIDES, fab_run, write_psf_dir  # noqa: F401 - shared fixture
 from hsicam.cameras import DOECamera
 from hsicam.config import load_config
 from hsicam.errors import ConfigError, InputError
@@ -61,7 +61,7 @@ def finetuned_run(fab_run, tmp_path_factory):
     d = write_psf_dir(base / "measured", psf, model.bands, 10.0, centre="axis", axis_px=[k // 2, k // 2],
                       normalize="none")
     run = base / "ft"
-    res = run_cli("finetune", "--run", str(fab_run), "--psf-dir", str(d), "--out", str(run), "--epochs", "1")
+    res = run_cli_in_process("finetune", "--run", str(fab_run), "--psf-dir", str(d), "--out", str(run), "--epochs", "1")
     assert res.returncode == 0, res.stderr
     return run
 
@@ -123,7 +123,7 @@ def test_tolerance_refuses_aliased_sensor_distances(fab_run, tmp_path, monkeypat
     out = tmp_path / "tol"
     with monkeypatch.context() as m:  # refused before any scene is loaded or scored
         m.setattr(tol, "evaluation_scenes", lambda *a, **k: (_ for _ in ()).throw(AssertionError("scored")))
-        res = run_cli("tolerance", "--run", str(fab_run), "--out", str(out), "--max-scenes", "1", "--draws", "1",
+        res = run_cli_in_process("tolerance", "--run", str(fab_run), "--out", str(out), "--max-scenes", "1", "--draws", "1",
                       "--sensor-distance-um=-4000,-1000,0,1000,1e6,1e9")
     assert_clean_error(res, "--sensor-distance-um: Δz = -4000, -1000, 1000, 1e+06, 1e+09 µm",
                        "pupil sampling can represent", "sweep within that range", "camera.psf.pupil_oversample >=")
@@ -136,7 +136,7 @@ def test_tolerance_refuses_aliased_sensor_distances(fab_run, tmp_path, monkeypat
     lo_um, hi_um = math.ceil(lo * 1e7) / 10, math.floor(hi * 1e7) / 10  # as printed: cut toward zero
     assert f"represent Δz from {lo_um:g} µm toward the lens to +{hi_um:g} µm away" in res.stderr, res.stderr
     # the printed limits themselves are accepted: the study runs and records the range
-    res = run_cli("tolerance", "--run", str(fab_run), "--out", str(out), "--max-scenes", "1", "--draws", "1",
+    res = run_cli_in_process("tolerance", "--run", str(fab_run), "--out", str(out), "--max-scenes", "1", "--draws", "1",
                   "--sigma-height-nm", "0", "--levels", "8", "--shift-cells", "0",
                   f"--sensor-distance-um={lo_um:g},0,{hi_um:g}")
     assert res.returncode == 0, res.stderr
@@ -145,7 +145,7 @@ def test_tolerance_refuses_aliased_sensor_distances(fab_run, tmp_path, monkeypat
     assert r["sweeps"]["sensor_distance_um"]["values"] == [lo_um, 0.0, hi_um]
     # one value just past the limit is refused on its own
     past = f"{hi_um + 1:g}"
-    assert_clean_error(run_cli("tolerance", "--run", str(fab_run), "--out", str(tmp_path / "t2"),
+    assert_clean_error(run_cli_in_process("tolerance", "--run", str(fab_run), "--out", str(tmp_path / "t2"),
                                f"--sensor-distance-um=0,{past}"), f"Δz = {past} µm")
     assert not (tmp_path / "t2").exists()
 
@@ -158,7 +158,7 @@ def test_export_without_doe_writes_no_doe_files(no_doe_run, tmp_path):
     from hsicam.runs.folder import load_run
 
     out = tmp_path / "fab"
-    res = run_cli("export-optics", "--run", str(no_doe_run), "--out", str(out))
+    res = run_cli_in_process("export-optics", "--run", str(no_doe_run), "--out", str(out))
     assert res.returncode == 0, res.stderr
     assert "no DOE (camera.doe.enabled: false: no DOE files)" in res.stdout and "CFA (3×3" in res.stdout
     files = sorted(p.name for p in out.iterdir() if not p.name.startswith("."))
@@ -172,14 +172,14 @@ def test_export_without_doe_writes_no_doe_files(no_doe_run, tmp_path):
     lam, t, names = read_transmission_csv(out / "cfa_transmission.csv")
     np.testing.assert_array_equal(t, model.camera.cfa.tile().detach().numpy().reshape(len(lam), -1))
     # nothing to quantise: --levels is refused, naming the way out
-    assert_clean_error(run_cli("export-optics", "--run", str(no_doe_run), "--out", str(tmp_path / "o"), "--levels", "8"),
+    assert_clean_error(run_cli_in_process("export-optics", "--run", str(no_doe_run), "--out", str(tmp_path / "o"), "--levels", "8"),
                        "--levels 8", "has no DOE (camera.doe.enabled: false)", "leave out --levels")
     assert not (tmp_path / "o").exists()
 
 
 def test_export_without_cfa_writes_no_cfa_files(no_cfa_run, tmp_path):
     out = tmp_path / "fab"
-    res = run_cli("export-optics", "--run", str(no_cfa_run), "--out", str(out))
+    res = run_cli_in_process("export-optics", "--run", str(no_cfa_run), "--out", str(out))
     assert res.returncode == 0, res.stderr
     assert "no CFA (camera.cfa.enabled: false: no CFA files)" in res.stdout and "DOE (" in res.stdout
     files = sorted(p.name for p in out.iterdir() if not p.name.startswith("."))
@@ -209,14 +209,14 @@ def test_export_with_neither_doe_nor_cfa_is_the_spec_alone(fab_run, tmp_path):
     spec = export_optics(run, tmp_path / "fab")
     assert spec["doe"]["enabled"] is False and spec["cfa"]["enabled"] is False
     assert sorted(p.name for p in (tmp_path / "fab").iterdir() if not p.name.startswith(".")) == ["spec.json"]
-    res = run_cli("export-optics", "--run", str(run), "--out", str(tmp_path / "fab2"))
+    res = run_cli_in_process("export-optics", "--run", str(run), "--out", str(tmp_path / "fab2"))
     assert res.returncode == 0, res.stderr
     assert "exported no DOE" in res.stdout and "no CFA" in res.stdout
 
 
 def test_tolerance_without_doe_skips_the_doe_sweeps(no_doe_run, tmp_path):
     out = tmp_path / "tol"
-    res = run_cli("tolerance", "--run", str(no_doe_run), "--out", str(out), "--max-scenes", "1",
+    res = run_cli_in_process("tolerance", "--run", str(no_doe_run), "--out", str(out), "--max-scenes", "1",
                   "--sensor-distance-um=-50,0,50")
     assert res.returncode == 0, res.stderr
     assert "no DOE (camera.doe.enabled: false): DOE sweeps skipped" in res.stdout
@@ -237,7 +237,7 @@ def test_tolerance_without_doe_skips_the_doe_sweeps(no_doe_run, tmp_path):
     assert Image.open(out / "tolerance.png").size[0] > 100
     # asking for a DOE sweep of a camera without a DOE is refused, naming the options and the way out
     for opts in (("--levels", "2,4"), ("--sigma-height-nm", "0,20", "--draws", "2"), ("--shift-cells", "0,1")):
-        assert_clean_error(run_cli("tolerance", "--run", str(no_doe_run), "--out", str(tmp_path / "t2"), *opts),
+        assert_clean_error(run_cli_in_process("tolerance", "--run", str(no_doe_run), "--out", str(tmp_path / "t2"), *opts),
                            f"{opts[0]}", "has no DOE (camera.doe.enabled: false)", "leave out", "sensor distance only")
     assert not (tmp_path / "t2").exists()
 
@@ -261,7 +261,7 @@ def test_tolerance_refuses_a_finetuned_run(fab_run, finetuned_run, tmp_path):
     from hsicam.runs.folder import load_run
 
     out = tmp_path / "tol"
-    res = run_cli("tolerance", "--run", str(finetuned_run), "--out", str(out), "--max-scenes", "1")
+    res = run_cli_in_process("tolerance", "--run", str(finetuned_run), "--out", str(out), "--max-scenes", "1")
     assert_clean_error(res, f"{finetuned_run}: a run fine-tuned on measured PSFs", "already fabricated and measured",
                        "not the measured PSFs this run images with",
                        f"the design run it was fine-tuned from ({fab_run}, finetune.json)",
@@ -277,10 +277,10 @@ def test_tolerance_refuses_a_finetuned_run(fab_run, finetuned_run, tmp_path):
     bare = tmp_path / "bare"
     shutil.copytree(finetuned_run, bare, ignore=shutil.ignore_patterns("checkpoints*"))
     (bare / "finetune.json").unlink()
-    assert_clean_error(run_cli("tolerance", "--run", str(bare), "--out", str(out)),
+    assert_clean_error(run_cli_in_process("tolerance", "--run", str(bare), "--out", str(out)),
                        "study the design run it was fine-tuned from: hsicam tolerance --run DESIGN_RUN")
     # a design run's study records that the design optics were studied
-    res = run_cli("tolerance", "--run", str(fab_run), "--out", str(out), "--max-scenes", "1", "--draws", "1",
+    res = run_cli_in_process("tolerance", "--run", str(fab_run), "--out", str(out), "--max-scenes", "1", "--draws", "1",
                   "--sigma-height-nm", "0", "--levels", "8", "--shift-cells", "0", "--sensor-distance-um", "0")
     assert res.returncode == 0, res.stderr
     assert json.loads((out / "tolerance.json").read_text())["optics_studied"].startswith("design")
@@ -297,11 +297,11 @@ def test_export_does_not_cite_a_study_of_a_finetuned_run(fab_run, finetuned_run,
     study.parent.mkdir()
     study.write_text(json.dumps({"format": TOLERANCE_FORMAT, "run": run_identity(ft), "nominal": {"psnr": 25.0},
                                  "summary": {}}))
-    assert_clean_error(run_cli("export-optics", "--run", str(ft), "--out", str(tmp_path / "o"), "--tolerance", str(study)),
+    assert_clean_error(run_cli_in_process("export-optics", "--run", str(ft), "--out", str(tmp_path / "o"), "--tolerance", str(study)),
                        f"{ft} is a run fine-tuned on measured PSFs", "perturbed the simulated design optics",
                        "export without --tolerance", f"export the design run it was fine-tuned from ({fab_run})")
     assert not (tmp_path / "o").exists()
-    res = run_cli("export-optics", "--run", str(ft), "--out", str(tmp_path / "o"))
+    res = run_cli_in_process("export-optics", "--run", str(ft), "--out", str(tmp_path / "o"))
     assert res.returncode == 0, res.stderr
     tol = json.loads((tmp_path / "o" / "spec.json").read_text())["tolerances"]
     assert tol["studied"] is None and "not cited" in tol["note"] and "fine-tuned on measured PSFs" in tol["note"]
@@ -318,7 +318,7 @@ def test_export_of_a_finetuned_run_says_so_and_points_at_the_design_runs_study(f
     assert spec["tolerances"]["note"].endswith(f"`hsicam tolerance --run {fab_run} --out DIR`")
     assert json.loads((tmp_path / "o" / "spec.json").read_text()) == spec
     # the note's command is one tolerance accepts (the design run), unlike the fine-tuned run itself
-    assert_clean_error(run_cli("tolerance", "--run", str(finetuned_run), "--out", str(tmp_path / "t")),
+    assert_clean_error(run_cli_in_process("tolerance", "--run", str(finetuned_run), "--out", str(tmp_path / "t")),
                        "fine-tuned on measured PSFs")
     # the design run's own export: no "finetuned" entry, and its study's place named by the run's path
     design = export_optics(fab_run, tmp_path / "d")

@@ -19,7 +19,7 @@ from hsicam.errors import ConfigError
 from hsicam.models.consistency import (WIENER_WINDOW_PX, consistency_step, linear_consistency_step, reach_px,
                                        wiener_residual)
 from hsicam.sensor import SensorNoise
-from cli_helpers import assert_ok, error_line, run_cli_in_process as run_cli
+from cli_helpers import assert_ok, error_line, run_cli_in_process
 from test_consistency import _assert_step_tiles_equal_whole, _high_contrast_problem, _linear_system, _snapshot, _system
 
 C = 3
@@ -286,11 +286,11 @@ def noisy_capture(tmp_path_factory):
 def test_reconstruct_weighs_a_noisy_capture_by_its_photon_level(noisy_capture):
     folder, truth, full_well = noisy_capture
     cap, run = str(folder / "capture.npy"), "pretrained:standard"
-    assert_ok(run_cli("reconstruct", cap, "--run", run, "--out", str(folder / "plain.h5")))
-    assert_ok(run_cli("reconstruct", cap, "--run", run, "--out", str(folder / "aware.h5"),
+    assert_ok(run_cli_in_process("reconstruct", cap, "--run", run, "--out", str(folder / "plain.h5")))
+    assert_ok(run_cli_in_process("reconstruct", cap, "--run", run, "--out", str(folder / "aware.h5"),
                       "--full-well-e", f"{full_well:g}", "--read-noise-e", "2"))
     # the same electrons stored at half the scale: twice the electrons at its white level, --scale 2
-    assert_ok(run_cli("reconstruct", str(folder / "half.npy"), "--run", run, "--out", str(folder / "half.h5"),
+    assert_ok(run_cli_in_process("reconstruct", str(folder / "half.npy"), "--run", run, "--out", str(folder / "half.h5"),
                       "--scale", "2", "--full-well-e", f"{2 * full_well:g}", "--read-noise-e", "2"))
 
     def read(name):
@@ -314,7 +314,7 @@ def test_reconstruct_weighs_a_noisy_capture_by_its_photon_level(noisy_capture):
 ])
 def test_bad_noise_settings_are_one_clear_error(noisy_capture, args, match):
     folder, _, _ = noisy_capture
-    line = error_line(run_cli("reconstruct", str(folder / "capture.npy"), "--run", "pretrained:standard",
+    line = error_line(run_cli_in_process("reconstruct", str(folder / "capture.npy"), "--run", "pretrained:standard",
                               "--out", str(folder / "bad.h5"), *args))
     assert match in line
     assert not (folder / "bad.h5").exists()
@@ -330,13 +330,13 @@ def test_the_full_well_is_counted_from_the_black_to_the_white_level(noisy_captur
     black, white = 64, 4095
     np.save(folder / "raw12.npy", np.round(black + g * (white - black)).astype(np.uint16))
     out = folder / "raw12.h5"
-    assert_ok(run_cli("reconstruct", str(folder / "raw12.npy"), "--run", "pretrained:standard", "--out", str(out),
+    assert_ok(run_cli_in_process("reconstruct", str(folder / "raw12.npy"), "--run", "pretrained:standard", "--out", str(out),
                       "--black-level", str(black), "--white-level", str(white), "--full-well-e", "300"))
     with h5py.File(out, "r") as f:
         meta = json.loads(f.attrs["metadata_json"])
     assert meta["noise_full_well_e_at_image_scale"] == pytest.approx(300.0)
     with caplog.at_level(logging.WARNING):
-        assert_ok(run_cli("reconstruct", str(folder / "capture.npy"), "--run", "pretrained:standard",
+        assert_ok(run_cli_in_process("reconstruct", str(folder / "capture.npy"), "--run", "pretrained:standard",
                           "--out", str(folder / "off.h5"), "--consistency-steps", "0", "--full-well-e", "300"))
     assert any("--full-well-e only weighs the measurement-consistency steps" in r.getMessage() for r in caplog.records)
 
@@ -420,7 +420,7 @@ def test_reconstruct_counts_the_flat_fields_gain_in_the_capture_noise(noisy_capt
     np.testing.assert_allclose(got, expected, rtol=1e-5)
     assert meta["noise_flat_field_gain"] is True
     out = tmp_path / "cube.h5"
-    assert_ok(run_cli("reconstruct", str(tmp_path / "raw.npy"), "--run", "pretrained:standard", "--out", str(out),
+    assert_ok(run_cli_in_process("reconstruct", str(tmp_path / "raw.npy"), "--run", "pretrained:standard", "--out", str(out),
                       "--black-level", "64", "--white-level", "4095", "--flat", str(tmp_path / "flat.npy"),
                       "--full-well-e", "300", "--read-noise-e", "2", "--cfa-offset", "1,2"))
     with h5py.File(out, "r") as f:

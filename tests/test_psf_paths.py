@@ -28,7 +28,6 @@ from hsicam.io import write_json
 LOGGER = "hsicam.data.measured_psf"
 
 
-run_cli = run_cli_in_process
 
 
 @pytest.fixture(scope="module")
@@ -108,13 +107,13 @@ def test_finetune_and_reconstruct_refuse_a_pitch_in_mm(trained, tmp_path):
     run, cam, psf = trained
     d = band_images(tmp_path / "mm", psf, cam.bands, 0.006)
     out = tmp_path / "ft"
-    res = run_cli("finetune", "--run", str(run), "--psf-dir", str(d), "--out", str(out), "--epochs", "1")
+    res = run_cli_in_process("finetune", "--run", str(run), "--psf-dir", str(d), "--out", str(out), "--epochs", "1")
     assert_clean_error(res, "psf_420nm.npy (420 nm): at pixel_pitch_um 0.006", "0.021 of one 6 µm camera pixel",
                        "0.006 mm would be 6 µm")
     assert not out.exists()
     cap = tmp_path / "cap.npy"
     np.save(cap, np.random.default_rng(3).random((64, 64)).astype(np.float32))
-    res = run_cli("reconstruct", str(cap), "--run", str(run), "--psf-dir", str(d), "--out", str(tmp_path / "c.h5"))
+    res = run_cli_in_process("reconstruct", str(cap), "--run", str(run), "--psf-dir", str(d), "--out", str(tmp_path / "c.h5"))
     assert_clean_error(res, "psf_420nm.npy (420 nm): at pixel_pitch_um 0.006", "0.006 mm would be 6 µm")
     assert not (tmp_path / "c.h5").exists()
 
@@ -173,7 +172,7 @@ def test_heavily_clipped_psf_images_are_refused(trained, tmp_path):
                                          r"again with a shorter exposure \(brightest pixel below 255\)"):
         import_for_camera(d, cam)
     out = tmp_path / "ft"
-    res = run_cli("finetune", "--run", str(run), "--psf-dir", str(d), "--out", str(out), "--epochs", "1")
+    res = run_cli_in_process("finetune", "--run", str(run), "--psf-dir", str(d), "--out", str(out), "--epochs", "1")
     # after the warnings about the bands clipped within the allowance, as the user sees them
     assert f"psf_{lam:g}nm.png ({lam:g} nm): a clipped (over-exposed) PSF image: {n} of its 441 pixels" in final_error_line(res)
     assert not out.exists()
@@ -187,14 +186,14 @@ def test_psf_of_a_trained_run_and_of_a_pretrained_camera(trained, tmp_path, monk
     from hsicam.runs import pretrained as shipped
 
     run, cam, psf = trained
-    res = run_cli("psf", "--run", str(run), "--out", str(tmp_path / "trained"))
+    res = run_cli_in_process("psf", "--run", str(run), "--out", str(tmp_path / "trained"))
     assert res.returncode == 0, res.stderr
     assert f"PSF stack ({run}'s trained camera): 7 bands, 21×21 px" in res.stdout
     got = np.load(tmp_path / "trained" / "psf.npy")
     np.testing.assert_allclose(got, psf, rtol=0, atol=1e-7)
     meta = json.loads((tmp_path / "trained" / "psf.json").read_text())
     assert meta["source"] == {"run": str(run.resolve()), "optics": "the run's trained DOE (model.safetensors)"}
-    res = run_cli("psf", "--config", "tiny", "--out", str(tmp_path / "design"))
+    res = run_cli_in_process("psf", "--config", "tiny", "--out", str(tmp_path / "design"))
     assert res.returncode == 0 and "(the config's camera, DOE as initialised)" in res.stdout, res.stderr
     assert np.abs(np.load(tmp_path / "design" / "psf.npy") - got).max() > 1e-3  # training moved the DOE
     assert json.loads((tmp_path / "design" / "psf.json").read_text())["source"]["config"] == "tiny"
@@ -202,7 +201,7 @@ def test_psf_of_a_trained_run_and_of_a_pretrained_camera(trained, tmp_path, monk
     root = tmp_path / "root"
     pack_pretrained(run, "cam", root)
     monkeypatch.setenv(shipped.ENV_VAR, str(root))
-    res = run_cli("psf", "--run", "pretrained:cam", "--out", str(tmp_path / "pre"))
+    res = run_cli_in_process("psf", "--run", "pretrained:cam", "--out", str(tmp_path / "pre"))
     assert res.returncode == 0, res.stderr
     np.testing.assert_array_equal(np.load(tmp_path / "pre" / "psf.npy"), got)
     # a shipped camera is named as the user gave it, not by its package folder (export-optics' spec.json does the same)
@@ -212,14 +211,14 @@ def test_psf_of_a_trained_run_and_of_a_pretrained_camera(trained, tmp_path, monk
 def test_psf_and_simulate_refuse_a_runs_config_yaml(trained, tmp_path):
     run, cam, psf = trained
     out = tmp_path / "p"
-    res = run_cli("psf", "--config", str(run / "config.yaml"), "--out", str(out))
+    res = run_cli_in_process("psf", "--config", str(run / "config.yaml"), "--out", str(out))
     assert_clean_error(res, f"--config {run}/config.yaml: the config.yaml of the trained run {run}, whose DOE heights are in "
                             f"{run}/model.safetensors", f"use `hsicam psf --run {run} --out DIR` for the trained camera")
     scene = tmp_path / "scene.npy"
     np.save(scene, np.random.default_rng(0).random((len(cam.bands), 48, 48)).astype(np.float32))
-    res = run_cli("simulate", "--config", str(run / "config.yaml"), "--scene", str(scene), "--out", str(out))
+    res = run_cli_in_process("simulate", "--config", str(run / "config.yaml"), "--scene", str(scene), "--out", str(out))
     assert_clean_error(res, f"use `hsicam simulate --run {run} --scene FILE --out DIR`")
-    assert_clean_error(run_cli("psf", "--run", str(run), "--config", "tiny", "--out", str(out)), "drop --config")
+    assert_clean_error(run_cli_in_process("psf", "--run", str(run), "--config", "tiny", "--out", str(out)), "drop --config")
     assert not out.exists()
 
 
@@ -232,7 +231,7 @@ def test_psf_of_a_finetuned_run_is_its_measured_psfs(trained, tmp_path):
     d = band_images(tmp_path / "m", measured, cam.bands, 6.0)
     ft = tmp_path / "ft"
     finetune(run, d, ft, overrides=("train.epochs=1",), progress=False)
-    res = run_cli("psf", "--run", str(ft), "--out", str(tmp_path / "p"))
+    res = run_cli_in_process("psf", "--run", str(ft), "--out", str(tmp_path / "p"))
     assert res.returncode == 0, res.stderr
     assert f"PSF stack ({ft}'s measured PSFs)" in res.stdout
     np.testing.assert_array_equal(np.load(tmp_path / "p" / "psf.npy"), load_measured_psf(ft / MEASURED_PSF_FILE).psf)
@@ -310,7 +309,7 @@ def test_a_cfa_period_whose_weights_exceed_the_memory_is_refused_in_one_line(tmp
     RuntimeError traceback of the allocator); a period beyond int64 failed in torch's argument parsing
     (a TypeError traceback). Now the CFA's weights are checked against the memory budget first."""
     monkeypatch.setenv("HSICAM_MEMORY_BUDGET_MB", "1024")
-    res = run_cli("psf", "--config", "tiny", "--set", f"camera.cfa.period={period}", "--out", str(tmp_path / "psf"))
+    res = run_cli_in_process("psf", "--config", "tiny", "--set", f"camera.cfa.period={period}", "--out", str(tmp_path / "psf"))
     assert_clean_error(res, said, "HSICAM_MEMORY_BUDGET_MB")
     assert not (tmp_path / "psf").exists()
 

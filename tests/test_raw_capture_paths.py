@@ -20,7 +20,7 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from cli_helpers import assert_ok, error_line, run_cli_in_process as run_cli
+from cli_helpers import assert_ok, error_line, run_cli_in_process
 from conftest import TINY_CAMERA_OVERRIDES
 from test_calibration import write_homogeneous_scenes, write_psf_dir
 from hsicam.config import load_config
@@ -47,7 +47,7 @@ def run(tmp_path_factory, cache_env) -> Path:
 
 
 def _reconstruct(capture: Path, run: Path, out: Path, *extra: str):
-    return run_cli("reconstruct", str(capture), "--run", str(run), "--out", str(out), "--tile", "16",
+    return run_cli_in_process("reconstruct", str(capture), "--run", str(run), "--out", str(out), "--tile", "16",
                    "--consistency-steps", "0", *extra)
 
 
@@ -206,15 +206,15 @@ def test_an_empty_psf_folder_and_a_file_are_named_for_what_they_are(run, tmp_pat
     bands = Bands.uniform(500, 600, 50)
     with pytest.raises(InputError, match=r"empty: no PSF images \(\*\.npy"):  # no psf.json: the pitch is not the issue
         import_psf_dir(empty, bands, 10e-6, 9)
-    line = _error(run_cli("finetune", "--run", str(run), "--psf-dir", str(empty), "--out", str(tmp_path / "o")))
+    line = _error(run_cli_in_process("finetune", "--run", str(run), "--psf-dir", str(empty), "--out", str(tmp_path / "o")))
     assert line == (f"hsicam: error: {empty}: no PSF images (*.npy, *.png, *.tif named with their wavelength, or "
                     "psf.npy + psf.json)")
     config = run / "config.yaml"
-    line = _error(run_cli("finetune", "--run", str(run), "--psf-dir", str(config), "--out", str(tmp_path / "o")))
+    line = _error(run_cli_in_process("finetune", "--run", str(run), "--psf-dir", str(config), "--out", str(tmp_path / "o")))
     assert line == (f"hsicam: error: {config}: is a file, not a folder: --psf-dir takes the folder that holds the "
                     "measured PSF images (one per band, named with their wavelength, e.g. psf_450nm.tif, or psf.npy + "
                     "psf.json)")
-    assert "no such PSF folder" in _error(run_cli("finetune", "--run", str(run), "--psf-dir", str(tmp_path / "nope"),
+    assert "no such PSF folder" in _error(run_cli_in_process("finetune", "--run", str(run), "--psf-dir", str(tmp_path / "nope"),
                                                   "--out", str(tmp_path / "o")))
     assert not (tmp_path / "o").exists()
 

@@ -20,8 +20,8 @@ import scipy.io
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from cli_helpers import assert_clean_error
-from test_calibration import fab_run, run_cli  # noqa: F401 - shared fixture
+from cli_helpers import assert_clean_error, run_cli_in_process
+from test_calibration import fab_run  # noqa: F401 - shared fixture
 from hsicam.data import read_cube, write_cube_h5, write_envi
 from hsicam.data.images import MAX_IMAGE_PIXELS, read_capture, read_image_2d
 from hsicam.errors import HsicamError, InputError
@@ -314,7 +314,7 @@ def test_reconstruct_cli_on_corrupt_captures(fab_run, originals, tmp_path_factor
     out = d / "out"
     out.mkdir()
     with time_limit(30):
-        res = run_cli("reconstruct", str(cap), "--run", str(fab_run), "--out", str(out / "rec.h5"), "--tile", "16")
+        res = run_cli_in_process("reconstruct", str(cap), "--run", str(fab_run), "--out", str(out / "rec.h5"), "--tile", "16")
     if res.returncode == 0:
         assert sorted(p.name for p in out.iterdir()) == ["rec.h5", "rec_rgb.png"]
         assert outcome(read_cube, out / "rec.h5") == "ok"
@@ -341,30 +341,30 @@ def test_cli_on_corrupt_runs_and_scenes(fab_run, originals, tmp_path):
             (run / "config.yaml").write_text("camera: [unclosed\n")
         else:
             (run / "model.safetensors").unlink()
-        assert_clean_error(run_cli("reconstruct", str(tmp_path / "cap.npy"), "--run", str(run), "--out", str(out / "r.h5")))
-        assert_clean_error(run_cli("export-optics", "--run", str(run), "--out", str(out / "fab")))
-        assert_clean_error(run_cli("tolerance", "--run", str(run), "--out", str(out / "tol")))
+        assert_clean_error(run_cli_in_process("reconstruct", str(tmp_path / "cap.npy"), "--run", str(run), "--out", str(out / "r.h5")))
+        assert_clean_error(run_cli_in_process("export-optics", "--run", str(run), "--out", str(out / "fab")))
+        assert_clean_error(run_cli_in_process("tolerance", "--run", str(run), "--out", str(out / "tol")))
     _no_outputs(out)
     # a corrupt scene for `hsicam simulate`, a corrupt measured-PSF stack for finetune / reconstruct
     (tmp_path / "scene.h5").write_bytes(originals["a.h5"][:300])
-    assert_clean_error(run_cli("simulate", "--run", str(fab_run), "--scene", str(tmp_path / "scene.h5"), "--out", str(out / "sim")))
+    assert_clean_error(run_cli_in_process("simulate", "--run", str(fab_run), "--scene", str(tmp_path / "scene.h5"), "--out", str(out / "sim")))
     psf = tmp_path / "psf"
     psf.mkdir()
     (psf / "psf.json").write_text('{"pixel_pitch_um": 10, "bands_nm": [500, 550, 600]}')
     (psf / "psf.npy").write_bytes(originals["n.npy"][:100])
-    assert_clean_error(run_cli("finetune", "--run", str(fab_run), "--psf-dir", str(psf), "--out", str(out / "ft")))
-    assert_clean_error(run_cli("reconstruct", str(tmp_path / "cap.npy"), "--run", str(fab_run), "--out", str(out / "r.h5"),
+    assert_clean_error(run_cli_in_process("finetune", "--run", str(fab_run), "--psf-dir", str(psf), "--out", str(out / "ft")))
+    assert_clean_error(run_cli_in_process("reconstruct", str(tmp_path / "cap.npy"), "--run", str(fab_run), "--out", str(out / "r.h5"),
                                "--psf-dir", str(psf)))
     (psf / "psf.json").write_text("{not json")
-    assert_clean_error(run_cli("finetune", "--run", str(fab_run), "--psf-dir", str(psf), "--out", str(out / "ft")), "JSON")
+    assert_clean_error(run_cli_in_process("finetune", "--run", str(fab_run), "--psf-dir", str(psf), "--out", str(out / "ft")), "JSON")
     _no_outputs(out)
     # bad raw-correction arguments and frames
     (tmp_path / "flat.npy").write_bytes(originals["s.npy"][:50])
-    assert_clean_error(run_cli("reconstruct", str(tmp_path / "cap.npy"), "--run", str(fab_run), "--out", str(out / "r.h5"),
+    assert_clean_error(run_cli_in_process("reconstruct", str(tmp_path / "cap.npy"), "--run", str(fab_run), "--out", str(out / "r.h5"),
                                "--flat", str(tmp_path / "flat.npy")))
-    assert_clean_error(run_cli("reconstruct", str(tmp_path / "cap.npy"), "--run", str(fab_run), "--out", str(out / "r.h5"),
+    assert_clean_error(run_cli_in_process("reconstruct", str(tmp_path / "cap.npy"), "--run", str(fab_run), "--out", str(out / "r.h5"),
                                "--exposure-s", "0.1"), "both")
-    assert_clean_error(run_cli("reconstruct", str(tmp_path / "cap.npy"), "--run", str(fab_run), "--out", str(out / "r.txt")),
+    assert_clean_error(run_cli_in_process("reconstruct", str(tmp_path / "cap.npy"), "--run", str(fab_run), "--out", str(out / "r.txt")),
                        ".h5")
     _no_outputs(out)
 
