@@ -429,3 +429,15 @@ def test_free_space_short_looks_past_a_broken_link(tmp_path):
     link.symlink_to(tmp_path / "gone" / "disk")
     assert free_space_short(link / "data", 1) is None
     assert free_space_short(link / "data", 1 << 62) == shutil.disk_usage(tmp_path).free
+
+
+def test_json_number_is_a_finite_number_as_python_reads_json():
+    """Python's json reads NaN/Infinity as floats and any integer at all; a bool is an int to isinstance."""
+    import json
+
+    from hsicam.io import json_number
+
+    values = json.loads('[1, 2.5, -3e2, NaN, Infinity, -Infinity, true, "1", null, 1' + "0" * 400 + "]")
+    assert [json_number(v) for v in values] == [True, True, True, False, False, False, False, False, False, False]
+    assert [json_number(v, finite=False) for v in values] == [True, True, True, True, True, True, False, False, False,
+                                                             True]

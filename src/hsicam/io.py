@@ -46,6 +46,7 @@ import errno
 import glob
 import json
 import logging
+import math
 import os
 import re
 import secrets
@@ -1073,3 +1074,14 @@ def json_default(obj: Any) -> Any:
     if isinstance(obj, Path):
         return str(obj)
     raise TypeError(f"not JSON serializable: {type(obj).__name__}")
+
+
+def json_number(value: Any, finite: bool = True) -> bool:
+    """Whether ``value``, as read from JSON, is a number (a bool is not) and, with ``finite``, a finite one:
+    NaN and Infinity, which Python's json reads as floats, are not, nor an integer too large for a float."""
+    if not isinstance(value, (int, float)) or isinstance(value, bool):
+        return False
+    try:
+        return not finite or math.isfinite(value)
+    except OverflowError:  # an integer of hundreds of digits
+        return False

@@ -18,13 +18,12 @@ from __future__ import annotations
 import datetime
 import json
 import logging
-import math
 from pathlib import Path
 from typing import Any
 
 from hsicam.errors import InputError
-from hsicam.io import (COMPLETE_MARKER, atomic_open, atomic_output, copy_file, is_complete, mark_complete, same_path,
-                       write_json)
+from hsicam.io import (COMPLETE_MARKER, atomic_open, atomic_output, copy_file, is_complete, json_number, mark_complete,
+                       same_path, write_json)
 from hsicam.runs import pretrained as shipped
 from hsicam.runs.checkpoint import file_sha256, root_weights_path
 from hsicam.runs.folder import MetricsLog, check_is_run, load_run
@@ -74,22 +73,14 @@ def final_record(run_dir: Path) -> dict[str, Any]:
     return final[-1]
 
 
-def _finite(value: Any) -> bool:
-    try:
-        return math.isfinite(float(value))
-    except OverflowError:  # a JSON integer of hundreds of digits
-        return False
-
-
 def _means(block: Any, source: Path, what: str, sam_undefined: Any = None) -> dict[str, float]:
     """``{psnr, ssim, sam}`` of a results.json ``mean`` block; one-line InputError unless each is a finite
     number (JSON ``NaN``/``Infinity`` included: a card does not cite a score that is no number).
     ``sam_undefined``: the file's list of scenes without a spectral angle (truth zero at every scored pixel)."""
-    if not isinstance(block, dict) or not all(isinstance(block.get(k), (int, float))
-                                              and not isinstance(block.get(k), bool) for k in METRICS):
+    if not isinstance(block, dict) or not all(json_number(block.get(k), finite=False) for k in METRICS):
         raise InputError(f"{source}: {what} has no mean PSNR/SSIM/SAM as numbers (not a results.json of "
                          "`hsicam demo` or `hsicam evaluate`)")
-    bad = [k for k in METRICS if not _finite(block[k])]
+    bad = [k for k in METRICS if not json_number(block[k])]
     if bad == ["sam"] and sam_undefined:
         raise InputError(f"{source}: {what} has no mean SAM: the spectral angle is undefined on every scene (the "
                          f"truth is zero at every scored pixel: {', '.join(map(str, sam_undefined))}); a card cites "

@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import html
 import json
-import math
 from pathlib import Path
 
 import matplotlib
@@ -20,7 +19,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
 from hsicam.errors import InputError  # noqa: E402
-from hsicam.io import atomic_open, atomic_output, is_complete, save_figure  # noqa: E402
+from hsicam.io import atomic_open, atomic_output, is_complete, json_number, save_figure  # noqa: E402
 from hsicam.report.reconstruction import cube_rgb, plot_training_curves  # noqa: E402
 from hsicam.spectral import Bands  # noqa: E402
 
@@ -138,8 +137,7 @@ def _numbers(values, positive: bool = False, finite: bool = True) -> bool:
     """Whether ``values`` is a non-empty list of JSON numbers, finite unless ``finite=False`` (a score may be
     NaN or infinite), and > 0 with ``positive``."""
     return (isinstance(values, list) and bool(values)
-            and all(isinstance(v, (int, float)) and not isinstance(v, bool) and (math.isfinite(v) or not finite)
-                    and (v > 0 or not positive) for v in values))
+            and all(json_number(v, finite) and (v > 0 or not positive) for v in values))
 
 
 # -- sections ---------------------------------------------------------------------------------
@@ -185,7 +183,7 @@ def _camera_section(run: Path, out: Path, prefix: str = "", label: str | None = 
     if metrics.is_file():
         try:
             plot_training_curves(metrics, out / f"{prefix}training.png", cfg.train.loss_formula())
-        except (ValueError, KeyError, TypeError, UnicodeDecodeError) as exc:  # the run's log, not the results file
+        except (ValueError, KeyError, TypeError) as exc:  # the run's log (a bad line, bad UTF-8), not the results file
             parts.append(f"<p class='note'>training curves unavailable: {html.escape(str(metrics))} is damaged "
                          f"({html.escape(type(exc).__name__)}: {html.escape(str(exc))})</p>")
         else:
