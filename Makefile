@@ -34,6 +34,7 @@ test-slow: setup
 bench: setup
 	$(BIN)/python benchmarks/bench_camera.py
 	$(BIN)/python benchmarks/bench_data.py
+	$(BIN)/python benchmarks/bench_cli.py
 
 clean:
 	rm -rf $(VENV) runs .pytest_cache build src/*.egg-info

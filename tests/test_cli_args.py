@@ -298,3 +298,70 @@ def test_a_seed_count_beyond_the_bound_is_a_usage_error(tmp_path, argv):
     argv = tuple(str(tmp_path / "out") if a == "OUT" else a for a in argv)
     assert_clean_error(run_cli_in_process(*argv), "argument --seeds: must be at most 1000")
     assert not (tmp_path / "out").exists()
+
+
+def test_the_parser_is_built_without_torch():
+    """`hsicam --help`, `hsicam COMMAND --help` and a usage error waited ~2.5 s for torch and scipy, which the
+    parser's modules imported (cli/camera.py, cli/reconstruct.py, the method and experiment registries behind
+    evaluate's choices, Bands inside the configs). Built in a fresh process, the whole parser, its help and a
+    usage error of every command load neither (the help of evaluate and experiment lists the registries' names,
+    which loads them); a command that works still gets them."""
+    import subprocess
+    import sys
+
+    script = (
+        "import contextlib, io, sys\n"
+        "from hsicam.cli import build_parser, main\n"
+        "parser = build_parser()\n"
+        "assert 'evaluate' in parser.format_help() and 'reconstruct' in parser.format_help()\n"
+        "for command in ('psf', 'simulate', 'data', 'train', 'reconstruct', 'evaluate', 'experiment', 'report',\n"
+        "                'demo', 'baseline', 'export-optics', 'tolerance', 'finetune', 'pretrained'):\n"
+        "    if command not in ('evaluate', 'experiment'):  # their help lists the registries' names\n"
+        "        with contextlib.redirect_stdout(io.StringIO()), contextlib.suppress(SystemExit):\n"
+        "            main([command, '--help'])\n"
+        "    with contextlib.redirect_stderr(io.StringIO()), contextlib.suppress(SystemExit):\n"
+        "        main([command, '--no-such-option'])\n"
+        "print(sorted({'torch', 'scipy'} & set(sys.modules)))\n"
+        "main(['psf', '--config', 'tiny', '--out', sys.argv[1]])\n"
+        "print(sorted({'torch', 'scipy'} & set(sys.modules)))\n"
+    )
+    import tempfile
+
+    with tempfile.TemporaryDirectory() as tmp:
+        res = subprocess.run([sys.executable, "-c", script, f"{tmp}/psf"], capture_output=True, text=True)
+    assert res.returncode == 0, res.stderr
+    lines = res.stdout.strip().splitlines()
+    assert lines[0] == "[]" and lines[-1] == "['scipy', 'torch']", res.stdout
+
+
+def test_evaluate_and_experiment_choices_are_the_registries_names(capsys, monkeypatch):
+    """The registry choices (read when a value is checked or the help written, not while the parser is built)
+    are exactly the method and experiment registries' names: every one is taken, another is refused with the
+    list, and each command's help lists them."""
+    from hsicam.cli import build_parser
+    from hsicam.engine.experiments import EXPERIMENTS, SCALES
+    from hsicam.engine.methods import METHOD_ALIASES, method_names
+
+    parser = build_parser()
+    methods = (*method_names(), *METHOD_ALIASES)
+    assert len(methods) >= 9 and "doe-learned" in methods and "dd-cassi-unrolled" in methods
+    for method in methods:
+        assert parser.parse_args(["evaluate", "--method", method, "--out", "o"]).method == method
+    assert parser.parse_args(["evaluate", "--out", "o"]).method == "doe-learned"
+    for name in EXPERIMENTS:
+        for scale in SCALES:
+            args = parser.parse_args(["experiment", name, "--scale", scale])
+            assert (args.name, args.scale) == (name, scale)
+    line = one_line_error(capsys, ["evaluate", "--method", "gap-tv", "--out", "o"])
+    assert line == ("hsicam: error: argument --method: invalid choice: 'gap-tv' (choose from "
+                    + ", ".join(repr(m) for m in methods) + ")")
+    line = one_line_error(capsys, ["experiment", "table1"])
+    assert line == ("hsicam: error: argument NAME: invalid choice: 'table1' (choose from "
+                    + ", ".join(repr(e) for e in EXPERIMENTS) + ")")
+    monkeypatch.setenv("COLUMNS", "2000")  # argparse wraps help to the terminal, at hyphens too
+    sub = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
+    evaluate_help = sub.choices["evaluate"].format_help()
+    assert f"reconstruction method: {', '.join(methods)} (default: " in evaluate_help
+    experiment_help = sub.choices["experiment"].format_help()
+    assert f"the experiment ({', '.join(EXPERIMENTS)})" in experiment_help
+    assert f"the preset of that name ({', '.join(SCALES)})" in experiment_help

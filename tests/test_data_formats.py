@@ -769,3 +769,27 @@ def test_mat_cube_saved_as_chw_names_the_axis_order(tmp_path, variables, words):
         read_cube(path)
     assert_one_line_error(exc, path, *words, "look like (C, H, W)", "a MATLAB file holds H×W×C",
                           "np.transpose(cube, (1, 2, 0))")
+
+
+def test_the_data_package_loads_its_names_on_first_use():
+    """`hsicam.data` gives each public name of its modules (PEP 562), imported when first asked for, so a
+    light module of the package (`hsicam.data.estimates`, read by the command line's parser) loads without
+    torch; every name is its home module's own object, and an unknown name is an AttributeError."""
+    import importlib
+    import subprocess
+    import sys
+
+    import hsicam.data as data
+
+    for name in data.__all__:
+        home = importlib.import_module(data._HOME_OF[name])
+        assert name in vars(home) and getattr(data, name) is vars(home)[name], name
+    assert set(data.__all__) <= set(dir(data)) and "read_cube" in data.__all__ and "PatchDataset" in data.__all__
+    with pytest.raises(AttributeError, match="has no attribute 'read_cubes'"):
+        data.read_cubes  # noqa: B018
+    from hsicam.data import formats, read_cube  # a sub-module and a name, as other modules import them
+
+    assert read_cube is formats.read_cube
+    loaded = subprocess.run([sys.executable, "-c", "import sys, hsicam.data.estimates; print('torch' in sys.modules)"],
+                            capture_output=True, text=True, check=True).stdout.strip()
+    assert loaded == "False"

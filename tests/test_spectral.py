@@ -52,6 +52,7 @@ def test_uniform_grid_is_the_paper_grid():
     assert b.min_nm == 420.0 and b.max_nm == 720.0
     assert Bands.paper() == b
     np.testing.assert_allclose(b.wavelengths_m().numpy(), b.centers_nm * 1e-9, rtol=1e-15)
+    assert b.wavelengths_m().dtype == torch.float64 and b.wavelengths_m(dtype=torch.float32).dtype == torch.float32
 
 
 @pytest.mark.parametrize("start, stop, step", [(420, 725, 10), (500, 400, 10), (420, 720, 0), (420, 720, -10)])

@@ -10,6 +10,7 @@ import argparse
 import functools
 import math
 import os
+from collections.abc import Sequence
 from typing import Any, Callable
 
 from hsicam.config import MAX_SENSOR_SIGMA, MAX_SIGMA_HEIGHT_NM, SEED_MAX, SEED_MIN, seed_problem
@@ -17,6 +18,30 @@ from hsicam.errors import InputError
 
 #: The smallest ``--tile`` (px) of ``reconstruct`` and ``evaluate``.
 MIN_TILE_PX = 16
+
+
+class RegistryChoices(Sequence):
+    """The ``choices`` of an option whose names a registry holds (``evaluate --method``, ``experiment NAME``),
+    asked of ``names()`` only when argparse needs them: to check a value or to write the command's help. So the
+    parser is built without importing the registry (torch and the methods behind it): ``hsicam --help`` and
+    a usage error come back at once. Give the option a ``metavar`` (argparse lists choices without one while
+    building) and ``%(choices)s`` in its help."""
+
+    def __init__(self, names: Callable[[], Sequence[str]]) -> None:
+        self._names = names
+
+    @functools.cached_property
+    def _list(self) -> tuple[str, ...]:
+        return tuple(self._names())
+
+    def __getitem__(self, index):
+        return self._list[index]
+
+    def __len__(self) -> int:
+        return len(self._list)
+
+    def __contains__(self, value: object) -> bool:
+        return value in self._list
 
 
 def _shown(text: str) -> str:
@@ -43,7 +68,11 @@ def seed_arg(low: int = SEED_MIN, high: int = SEED_MAX) -> Callable[[str], int]:
 
 def device_arg(spec: str) -> str:
     """argparse ``type`` of every ``--device``: a torch device this machine has (``cpu``, ``cuda``,
-    ``cuda:N``, ``mps``), else a usage error saying what is available, never a traceback later."""
+    ``cuda:N``, ``mps``), else a usage error saying what is available, never a traceback later. ``cpu``, which every
+    machine has, is taken without asking torch: argparse checks the string default of every ``--device`` while it
+    parses, also for ``--help`` or a usage error, which should not wait for torch to load."""
+    if spec == "cpu":
+        return spec
     from hsicam.devices import device_problem
 
     problem = device_problem(spec)

@@ -11,16 +11,20 @@ from __future__ import annotations
 import argparse
 import logging
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
-import torch
 
-from hsicam.cameras import build_camera
 from hsicam.cli import add_config_args, add_run_arg, config_from_args, prepare_output
 from hsicam.config import dump_yaml
 from hsicam.errors import InputError
 from hsicam.io import atomic_open, atomic_output, write_json, write_npy, write_png16
-from hsicam.spectral import Bands
+
+if TYPE_CHECKING:
+    from hsicam.spectral import Bands
+
+# torch and the cameras are imported by the commands that use them, not with this module: the parser of
+# every command is built from the modules of hsicam.cli, and `hsicam --help` should not wait for torch.
 
 log = logging.getLogger(__name__)
 
@@ -69,6 +73,8 @@ def check_not_run_config(config: str | Path | None, command: str) -> None:
 
 def camera_from_args(args: argparse.Namespace, extra_overrides: tuple[str, ...] = (), command: str = "psf"):
     """(camera, config) of the command line's config file and --set overrides (any camera kind)."""
+    from hsicam.cameras import build_camera
+
     check_not_run_config(args.config, command)
     cfg = config_from_args(args.config, [*args.overrides, *extra_overrides])
     return build_camera(cfg), cfg
@@ -160,6 +166,8 @@ def check_boundary_applies(camera, boundary: str) -> None:
 
 
 def cmd_simulate(args: argparse.Namespace) -> int:
+    import torch
+
     from hsicam.data.images import SENSOR_SCALE_KEY, SIMULATE_JSON
     from hsicam.data.pipeline import npy_bands
     from hsicam.report.camera import write_optics_figures

@@ -9,21 +9,38 @@ import sys
 from pathlib import Path
 
 from hsicam.cli import add_config_args, add_run_arg, config_from_args
-from hsicam.cli.args import check_tile, device_arg, seeds_arg, sensor_sigma_arg, sigma_height_arg
+from hsicam.cli.args import RegistryChoices, check_tile, device_arg, seeds_arg, sensor_sigma_arg, sigma_height_arg
 from hsicam.errors import InputError
 
 log = logging.getLogger(__name__)
 
 
-def register(sub: argparse._SubParsersAction) -> None:
-    from hsicam.engine.experiments import EXPERIMENTS, SCALES
+def _method_names() -> tuple[str, ...]:
     from hsicam.engine.methods import METHOD_ALIASES, method_names
 
+    return (*method_names(), *METHOD_ALIASES)
+
+
+def _experiment_names() -> tuple[str, ...]:
+    from hsicam.engine.experiments import EXPERIMENTS
+
+    return EXPERIMENTS
+
+
+def _scale_names() -> tuple[str, ...]:
+    from hsicam.engine.experiments import SCALES
+
+    return SCALES
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    # the registries' names are read when a value is checked or a command's help written (RegistryChoices),
+    # not now: they import torch and the methods, and building the parser should not wait for that
     p = sub.add_parser("evaluate", help="evaluate a camera + reconstruction method on a dataset")
     add_config_args(p)
     add_run_arg(p, "trained run folder (needed by learned methods)", required=False)
-    p.add_argument("--method", default="doe-learned", choices=(*method_names(), *METHOD_ALIASES),
-                   help="reconstruction method (default: the run's learned camera)")
+    p.add_argument("--method", default="doe-learned", choices=RegistryChoices(_method_names), metavar="METHOD",
+                   help="reconstruction method: %(choices)s (default: the run's learned camera, doe-learned)")
     p.add_argument("--data", metavar="DIR",
                    help="folder of supported cube files (default: the validation split of the run's data: data.root, "
                         "else the synthetic data); its sub-folders holding hsicam outputs are skipped; --out must not "
@@ -45,12 +62,12 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=cmd_evaluate)
 
     p = sub.add_parser("experiment", help="run one of the paper's experiments (resumable)")
-    p.add_argument("name", choices=EXPERIMENTS,
-                   help="compare: our camera against the CASSI baselines (the paper's Table 1); ablation: DOE and CFA "
+    p.add_argument("name", choices=RegistryChoices(_experiment_names), metavar="NAME",
+                   help="the experiment (%(choices)s). compare: our camera against the CASSI baselines (the paper's Table 1); ablation: DOE and CFA "
                         "on/off, three trained cameras (Table 2); noise: cameras trained without and with noise, tested "
                         "on σ_p × σ_s grids (Fig. 7); cfa-period: CFA periods 3, 6, 9, 12, 15")
-    p.add_argument("--scale", choices=SCALES, default="quick",
-                   help="the preset of that name plus the experiment's overrides: tiny (seconds, for tests), quick "
+    p.add_argument("--scale", choices=RegistryChoices(_scale_names), default="quick", metavar="SCALE",
+                   help="the preset of that name (%(choices)s) plus the experiment's overrides: tiny (seconds, for tests), quick "
                         "(minutes on a 2-core CPU, the default), paper (a GPU)")
     p.add_argument("--out", metavar="DIR", help="experiment folder (default: runs/experiments/NAME-SCALE)")
     p.add_argument("--seeds", type=seeds_arg, default=1, help="number of seeds (0, 1, ...), 1 to 1000 (default 1)")

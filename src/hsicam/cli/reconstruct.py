@@ -6,12 +6,15 @@ import argparse
 import dataclasses
 import logging
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
-import torch
 
 from hsicam.data.estimates import ENVI_DESCRIPTIONS, head, is_reconstruct_h5, reconstruct_envi_header
 from hsicam.errors import InputError
+
+if TYPE_CHECKING:
+    import torch
 
 log = logging.getLogger(__name__)
 
@@ -334,6 +337,8 @@ def capture_noise(model, report: dict, full_well_e: float, read_noise_e: float, 
     map, placed at the capture's first sensor pixel ``offset`` (its CFA offset). The
     measurement-consistency steps weigh their residuals by that variance. Returns the cube metadata that
     records it."""
+    import torch
+
     from hsicam.data.images import frame_data, normalised_flat
     from hsicam.sensor import SensorNoise
 
@@ -388,6 +393,8 @@ def psf_mismatch_message(args: argparse.Namespace, measured, fine_tuned: bool) -
 
 
 def cmd_reconstruct(args: argparse.Namespace) -> int:
+    import torch  # here, not with the module: the parser is built without torch (hsicam.cli.camera)
+
     from hsicam.config import MAX_CONSISTENCY_ITERATIONS
     from hsicam.runs.folder import load_run
     from hsicam.data.images import read_capture

@@ -22,13 +22,16 @@ No rule extrapolates: a target centre outside the source's range is refused.
 from __future__ import annotations
 
 import math
+import sys
 from dataclasses import dataclass
-from typing import Any, Sequence
+from typing import TYPE_CHECKING, Any, Sequence
 
 import numpy as np
-import torch
 
 from hsicam.errors import InputError
+
+if TYPE_CHECKING:
+    import torch
 
 _TOL_NM = 1e-6
 #: Most bands a uniform grid may have (a hyperspectral camera has tens to hundreds; a mistyped step
@@ -140,9 +143,13 @@ class Bands:
     def max_nm(self) -> float:
         return float(self.centers_nm[-1])
 
-    def wavelengths_m(self, device: torch.device | str | None = None, dtype: torch.dtype = torch.float64) -> torch.Tensor:
-        """Band centres in metres as a tensor of shape (C,)."""
-        return torch.as_tensor(self.centers_nm * 1e-9, dtype=dtype, device=device)
+    def wavelengths_m(self, device: torch.device | str | None = None, dtype: torch.dtype | None = None) -> torch.Tensor:
+        """Band centres in metres as a tensor of shape (C,), float64 unless ``dtype`` says otherwise. (torch is
+        imported here, not with the module: the command line builds its parser from the configs, which hold
+        Bands, without loading torch.)"""
+        import torch
+
+        return torch.as_tensor(self.centers_nm * 1e-9, dtype=torch.float64 if dtype is None else dtype, device=device)
 
     def to_dict(self) -> dict[str, Any]:
         return {"centers_nm": self.centers_nm.tolist(), "fwhm_nm": self.fwhm_nm.tolist()}
@@ -258,7 +265,8 @@ def resample_spectra(values: np.ndarray | torch.Tensor, src: Bands, dst: Bands, 
     if src.matches(dst):
         return values
     w = resampling_matrix(src, dst)
-    if isinstance(values, torch.Tensor):
+    torch = sys.modules.get("torch")  # values that are a tensor mean torch is loaded: numpy input does not load it
+    if torch is not None and isinstance(values, torch.Tensor):
         wt = torch.as_tensor(w, dtype=values.dtype, device=values.device)
         moved = values.movedim(axis, -1)
         return (moved @ wt.T).movedim(-1, axis)
