@@ -21,7 +21,8 @@ log = logging.getLogger(__name__)
 
 def register(sub: argparse._SubParsersAction) -> None:
     from hsicam.cli import add_run_arg
-    from hsicam.cli.args import device_arg
+    from hsicam.cli.args import device_arg, positive_number_arg
+    from hsicam.config import RECOMMENDED_TV_WEIGHT
 
     p = sub.add_parser("reconstruct", help="reconstruct a hyperspectral cube from a sensor image or raw capture")
     p.add_argument("sensor", metavar="SENSOR", help="sensor image / raw capture: .npy, 8/16-bit PNG or TIFF")
@@ -44,6 +45,13 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--consistency-steps", type=int, default=None, metavar="N",
                    help="measurement-consistency steps after the network (default: the run's "
                         "model.consistency.iterations; 0: the network alone)")
+    p.add_argument("--tv-steps", type=int, default=None, metavar="N",
+                   help="N Landweber steps with a total-variation prior instead of the run's own (after its linear step): "
+                        "fewer blotches on flat regions, edges kept, +0.3 to +1.1 dB on the demo camera in and out of distribution "
+                        "at 12 steps, ~0.8 s per step for a 512² image (docs/networks.md, 'A TV prior in the steps')")
+    p.add_argument("--tv-weight", type=positive_number_arg, default=None, metavar="W",
+                   help=f"weight of that prior, relative to the local brightness (default {RECOMMENDED_TV_WEIGHT}, chosen "
+                        "on the demo camera's training scenes)")
     raw = p.add_argument_group("raw capture corrections (values in the file's digital numbers, DN)")
     raw.add_argument("--black-level", type=float, default=None, metavar="DN",
                      help="sensor black level (default: the dark frame's median, else 0)")
@@ -392,6 +400,30 @@ def psf_mismatch_message(args: argparse.Namespace, measured, fine_tuned: bool) -
             "reconstruct with RUN2")
 
 
+def check_tv_args(args: argparse.Namespace, max_steps: int) -> None:
+    """One-line InputError for --tv-steps out of [1, max_steps] or --tv-weight without --tv-steps."""
+    if args.tv_weight is not None and args.tv_steps is None:
+        raise InputError("--tv-weight is the weight of the --tv-steps' prior: give --tv-steps N too")
+    if args.tv_steps is not None and not 1 <= args.tv_steps <= max_steps:
+        raise InputError(f"--tv-steps must be >= 1 and <= {max_steps}, got {args.tv_steps}")
+
+
+def tv_consistency(model, steps: int, weight: float | None):
+    """``model.consistency`` with ``steps`` Landweber steps carrying the TV prior of ``weight`` (default
+    :data:`hsicam.config.RECOMMENDED_TV_WEIGHT`): a run of kind linear keeps its linear
+    step and takes them after it (``landweber_after``), a run of kind landweber takes them as its steps.
+    InputError when the run's consistency steps are off (``--consistency-steps 0``, or a run without them)."""
+    from hsicam.config import RECOMMENDED_TV_WEIGHT
+
+    c = model.consistency
+    if not model.consistency_on:
+        raise InputError("--tv-steps: the measurement-consistency steps are off for this run (model.consistency."
+                         "iterations=0, or --consistency-steps 0), and the TV prior acts in them: drop "
+                         "--consistency-steps 0, or give --consistency-steps 1")
+    steps_key = "landweber_after" if c.kind == "linear" else "iterations"
+    return dataclasses.replace(c, tv_weight=RECOMMENDED_TV_WEIGHT if weight is None else weight, **{steps_key: steps})
+
+
 def cmd_reconstruct(args: argparse.Namespace) -> int:
     import torch  # here, not with the module: the parser is built without torch (hsicam.cli.camera)
 
@@ -421,9 +453,12 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
     if args.consistency_steps is not None and not 0 <= args.consistency_steps <= MAX_CONSISTENCY_ITERATIONS:
         raise InputError(f"--consistency-steps must be >= 0 and <= {MAX_CONSISTENCY_ITERATIONS} (each step widens "
                          "the tiles' halo; more than one rarely changes the estimate)")
+    check_tv_args(args, MAX_CONSISTENCY_ITERATIONS)
     cfg, model = load_run(args.run, args.device)
     if args.consistency_steps is not None:
         model.consistency = dataclasses.replace(cfg.model.consistency, iterations=args.consistency_steps)
+    if args.tv_steps is not None:
+        model.consistency = tv_consistency(model, args.tv_steps, args.tv_weight)
     from hsicam.runs.pretrained import run_label
 
     meta: dict = {"source": str(args.sensor), "run": run_label(args.run),
@@ -431,6 +466,8 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
     if model.consistency_on and model.consistency.landweber_after:
         meta["consistency_landweber_after"] = model.consistency.landweber_after
         meta["consistency_spectral_prior"] = model.consistency.spectral_prior
+    if model.consistency_on and model.consistency.tv_weight > 0:
+        meta["consistency_tv_weight"] = model.consistency.tv_weight
     if args.psf_dir:
         from hsicam.data.measured_psf import import_for_camera
         from hsicam.engine.calibration import run_psf_fingerprint

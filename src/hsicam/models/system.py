@@ -91,8 +91,10 @@ class CameraSystem(nn.Module):
         if c.kind == "linear":  # the filters' own width when loaded (a file fitted with another window_px)
             window = int(self.linear_step.shape[-1]) if self.linear_step is not None else c.window_px
             return (int(self.net.context_px) + linear_reach_px(step_op, window, c.iterations, psf_energy)
-                    + reach_px(step_op, c.landweber_after, psf_energy) + wiener * (c.iterations + c.landweber_after))
-        return int(self.net.context_px) + reach_px(step_op, c.iterations, psf_energy) + wiener * c.iterations
+                    + reach_px(step_op, c.landweber_after, psf_energy, tv=c.tv_weight > 0)
+                    + wiener * (c.iterations + c.landweber_after))
+        return (int(self.net.context_px) + reach_px(step_op, c.iterations, psf_energy, tv=c.tv_weight > 0)
+                + wiener * c.iterations)
 
     @property
     def _weighs_noise(self) -> bool:
@@ -163,7 +165,7 @@ class CameraSystem(nn.Module):
         iterations = c.landweber_after if c.kind == "linear" else c.iterations
         return consistency_step(op, sensor, x, origin, damping=c.damping, iterations=iterations,
                                 psf_energy=energy, extend=self._extension(), spectral_prior=c.spectral_prior,
-                                noise_variance=var)
+                                noise_variance=var, tv_weight=c.tv_weight)
 
     def check_input(self, sensor: torch.Tensor) -> None:
         """:class:`InputError` unless ``sensor`` is a finite floating (B, 1, H, W) image, B, H, W >= 1, on
