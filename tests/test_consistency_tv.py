@@ -11,14 +11,11 @@ import pytest
 import torch
 from skimage.restoration import denoise_tv_chambolle
 
-from hsicam.cameras.doe_camera import DOESnapshot
 from hsicam.engine.inference import reconstruct_tiled
 from hsicam.errors import ConfigError
 from hsicam.models import CameraSystem
 from hsicam.models.consistency import BRIGHTNESS_EPS, BrightnessTV, consistency_step, reach_px
-from hsicam.spectral import Bands
-
-C, K, M = 3, 5, 3  # bands, kernel (px), CFA period
+from test_consistency import C, K, _snapshot  # bands, kernel (px); a DOE snapshot of random PSFs and CFA
 
 
 def _prox(v: torch.Tensor, x0: torch.Tensor, weight: float, calls: int = 5000) -> torch.Tensor:
@@ -72,14 +69,6 @@ def test_the_prior_follows_the_local_brightness():
     rel = float((out_dark / 0.1 - out_bright).abs().max() / (out_bright - bright).abs().max())
     assert rel < 0.05
     assert float((out_bright - bright).abs().max()) > 0.01
-
-
-def _snapshot(seed: int = 0) -> DOESnapshot:
-    g = torch.Generator().manual_seed(seed)
-    psf = torch.rand(C, K, K, generator=g, dtype=torch.float64)
-    psf = psf / psf.sum(dim=(-2, -1), keepdim=True)
-    tile = torch.rand(C, M, M, generator=g, dtype=torch.float64)
-    return DOESnapshot(Bands.uniform(500, 700, 100), psf, tile, M)
 
 
 @pytest.mark.parametrize("iterations", [1, 3])
