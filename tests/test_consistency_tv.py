@@ -18,24 +18,25 @@ from hsicam.models.consistency import BRIGHTNESS_EPS, BrightnessTV, consistency_
 from test_consistency import C, K, _snapshot  # bands, kernel (px); a DOE snapshot of random PSFs and CFA
 
 
-def _prox(v: torch.Tensor, x0: torch.Tensor, weight: float, calls: int = 5000) -> torch.Tensor:
-    """The prox as the steps approach it: the same input given ``calls`` times (one dual iteration each)."""
+def _prox(v: torch.Tensor, x0: torch.Tensor, weight: float, calls: int = 5000, level: float | None = None) -> torch.Tensor:
+    """The prox as the steps approach it: the same input given ``calls`` times (one dual iteration each); ``level``:
+    the brightness b set to that one number (else x0's local brightness)."""
     tv = BrightnessTV(x0, weight)
+    if level is not None:
+        tv.brightness = torch.full_like(tv.brightness, level)
     for _ in range(calls):
         out = tv(v)
     return out
 
 
 def test_one_band_prox_is_scikit_images_tv_denoising():
-    """One band, a flat estimate (so the brightness b is one number): the prox converges to b · argmin_u
-    ½‖u − v/b‖² + w·TV(u), as scikit-image's Chambolle solver computes it (isotropic TV, Neumann border)."""
+    """One band, the brightness b one number: the prox converges to b · argmin_u ½‖u − v/b‖² + w·TV(u), as
+    scikit-image's Chambolle solver computes it (isotropic TV, Neumann border)."""
     g = torch.Generator().manual_seed(0)
     v = torch.rand(1, 1, 14, 17, generator=g, dtype=torch.float64) * 0.2
-    level = 0.2
-    x0 = torch.full_like(v, level)
-    b = level + BRIGHTNESS_EPS
+    b = 0.2 + BRIGHTNESS_EPS
     weight = 0.05
-    got = _prox(v, x0, weight)
+    got = _prox(v, v, weight, level=b)
     want = b * denoise_tv_chambolle((v / b)[0, 0].numpy(), weight=weight, eps=1e-15, max_num_iter=100000)
     np.testing.assert_allclose(got[0, 0].numpy(), want, atol=1e-9)
     assert float((got - v).abs().max()) > 0.01  # the weight does something
@@ -49,9 +50,8 @@ def test_the_bands_share_their_edges():
     phi = torch.rand(1, 1, 12, 13, generator=g, dtype=torch.float64)
     s = torch.tensor([0.2, 0.5, 1.0], dtype=torch.float64)[None, :, None, None]
     v = s * phi
-    x0 = torch.full_like(v, 1.0 - BRIGHTNESS_EPS)  # b = 1
     weight = 0.05
-    got = _prox(v, x0, weight)
+    got = _prox(v, v, weight, level=1.0)
     psi = denoise_tv_chambolle(phi[0, 0].numpy(), weight=weight / float(s.norm()), eps=1e-15, max_num_iter=100000)
     np.testing.assert_allclose(got[0].numpy(), (s[0] * torch.from_numpy(psi)).numpy(), atol=1e-6)
     per_band = denoise_tv_chambolle(v[0, 0].numpy(), weight=weight, eps=1e-15, max_num_iter=100000)
@@ -77,7 +77,7 @@ def test_steps_with_the_prior_reach_what_reach_px_says(iterations):
     upper bound) equal the whole image; with the plain steps' reach they do not (the prior reaches further)."""
     snap = _snapshot(6)
     reach = reach_px(snap, iterations, psf_energy=1.0, tv=True)
-    assert reach == reach_px(snap, iterations, psf_energy=1.0) + 3 * iterations + 9
+    assert reach > reach_px(snap, iterations, psf_energy=1.0)
 
     def f(window, origin=(0, 0)):
         x0 = window.expand(-1, C, -1, -1) * torch.tensor([0.7, 0.4, 1.1], dtype=window.dtype)[:, None, None]
@@ -92,8 +92,8 @@ def test_steps_with_the_prior_reach_what_reach_px_says(iterations):
 
 def test_the_prior_removes_blotches_the_plain_steps_keep():
     """A piecewise-constant scene (blocks of three spectra), its noiseless measurement, and an estimate with
-    blotches (smooth random errors of 5 %, as a network leaves on flat regions): 10 steps with a small TV prior end
-    closer to the truth than 10 plain steps, which can only remove what the camera sees, and than the start;
+    blotches (smooth random errors of 5 %, as a network leaves on flat regions): 20 steps with a small TV prior end
+    closer to the truth than 20 plain steps, which can only remove what the camera sees, and than the start;
     the measurement stays explained. (A large weight, or many more steps towards the regularised solution, would
     flatten these small blocks: the weight is a trade, chosen on a camera's training scenes.)"""
     snap = _snapshot(4)
@@ -112,9 +112,9 @@ def test_the_prior_removes_blotches_the_plain_steps_keep():
         return float((x - t).norm() / t.norm())
 
     origin = (K // 2, K // 2)  # the window's first pixel: the CFA phase of y
-    plain = consistency_step(snap, y, x0, origin, iterations=10, psf_energy=1.0)
-    tv = consistency_step(snap, y, x0, origin, iterations=10, psf_energy=1.0, tv_weight=0.003)
-    assert error(tv) < 0.7 * error(plain) and error(tv) < 0.7 * error(x0)
+    plain = consistency_step(snap, y, x0, origin, iterations=20, psf_energy=1.0)
+    tv = consistency_step(snap, y, x0, origin, iterations=20, psf_energy=1.0, tv_weight=0.003)
+    assert error(tv) < 0.85 * error(plain) and error(tv) < 0.6 * error(x0)
 
     def residual(x):  # the border extended by replication, as the steps start it; the padded cube starts at pixel 0
         image = snap.A(torch.nn.functional.pad(x, (2, 2, 2, 2), mode="replicate"), (0, 0))[..., 2:-2, 2:-2]
@@ -146,7 +146,9 @@ def test_the_system_takes_the_prior_from_its_config_and_tiles_exactly(tiny_confi
 
 
 @pytest.mark.parametrize("overrides, match", [
-    (("model.consistency.tv_weight=-0.1",), "tv_weight must be a finite number >= 0"),
+    (("model.consistency.tv_weight=-0.1",), r"tv_weight must be 0 \(no TV prior\) or in \[1e-06, 10\], got -0.1"),
+    (("model.consistency.tv_weight=1e308",), r"tv_weight must be 0 \(no TV prior\) or in \[1e-06, 10\], got 1e\+308"),
+    (("model.consistency.tv_weight=1e-320",), r"tv_weight must be 0 \(no TV prior\) or in \[1e-06, 10\]"),
     (("model.consistency.tv_weight=nan",), "'model.consistency.tv_weight' must be a finite number, got 'nan'"),
     (("model.consistency.tv_weight=inf",), "'model.consistency.tv_weight' must be a finite number, got 'inf'"),
     (("model.consistency.kind=linear", "model.consistency.tv_weight=0.03"),
@@ -204,9 +206,59 @@ def test_reconstruct_takes_tv_steps_and_records_them(tmp_path):
         assert np.abs(f["cube"][()] - cube).max() > 1e-4
     for extra, message in [(("--tv-weight", "0.1"), "--tv-weight is the weight of the --tv-steps' prior"),
                            (("--tv-steps", "0"), "--tv-steps must be >= 1 and <= 100, got 0"),
-                           (("--tv-steps", "2", "--consistency-steps", "0"), "the TV prior acts in them"),
-                           (("--tv-steps", "2", "--tv-weight", "-1"), "--tv-weight")]:
+                           (("--tv-steps", "2", "--consistency-steps", "0"),
+                            "--tv-steps adds measurement-consistency steps and --consistency-steps 0 removes them"),
+                           (("--tv-steps", "2", "--tv-weight", "-1"), "argument --tv-weight: must be a number in [1e-06, 10]"),
+                           (("--tv-steps", "2", "--tv-weight", "1e308"), "argument --tv-weight: must be a number in"),
+                           (("--tv-steps", "2", "--tv-weight", "nan"), "argument --tv-weight: must be a number in")]:
         res = run_cli_in_process("reconstruct", str(tmp_path / "s.npy"), "--run", "pretrained:standard",
                                  "--out", str(tmp_path / "bad.h5"), *extra)
         assert res.returncode == 2 and message in error_line(res), res.stderr
     assert not (tmp_path / "bad.h5").exists()
+
+
+@pytest.mark.parametrize("weight", [0.03, 0.3])
+def test_the_steps_with_the_prior_settle(weight):
+    """The steps with the prior converge: the 400th moves the estimate by less than 1e-4 of its norm and by a tenth of
+    what the 50th moved it, at the recommended weight and at ten times it (momentum with a prox solved one dual
+    iteration at a time cycled here instead, moving it by 3 % to 25 % per step)."""
+    snap = _snapshot(4)
+    g = torch.Generator().manual_seed(8)
+    truth = torch.rand(1, C, 36, 36, generator=g, dtype=torch.float64)
+    truth = torch.nn.functional.avg_pool2d(truth, 7, 1, 3)
+    y = snap.A(truth)[..., 2:-2, 2:-2]
+    x0 = truth[..., 2:-2, 2:-2] * (1 + 0.1 * torch.randn(1, C, 32, 32, generator=g, dtype=torch.float64))
+
+    def change(n):  # how much the n-th step moves the estimate
+        before = consistency_step(snap, y, x0, (2, 2), iterations=n - 1, psf_energy=1.0, tv_weight=weight)
+        after = consistency_step(snap, y, x0, (2, 2), iterations=n, psf_energy=1.0, tv_weight=weight)
+        return float((after - before).norm() / after.norm())
+
+    late = change(400)
+    assert late < 1e-4 and late < 0.1 * change(50)
+
+
+def test_tv_steps_name_the_steps_of_either_kind_of_run(tiny_config):
+    """--tv-steps on a run of kind landweber are its steps (also where they were off), with --consistency-steps
+    they would name them twice; on a run of kind linear they follow the linear step, which must be on."""
+    import argparse
+
+    from hsicam.cli.reconstruct import tv_consistency
+    from hsicam.config import RECOMMENDED_TV_WEIGHT
+    from hsicam.errors import InputError
+
+    def args(**kw):
+        return argparse.Namespace(**{"tv_steps": 3, "tv_weight": None, "consistency_steps": None, **kw})
+
+    landweber = CameraSystem.from_config(tiny_config("model.consistency.iterations=0"))
+    c = tv_consistency(landweber, args())
+    assert (c.iterations, c.tv_weight, landweber.consistency_on) == (3, RECOMMENDED_TV_WEIGHT, True)
+    assert tv_consistency(landweber, args(tv_weight=0.2)).tv_weight == 0.2
+    with pytest.raises(InputError, match="--tv-steps and --consistency-steps both give the steps of this run"):
+        tv_consistency(landweber, args(consistency_steps=2))
+    linear = CameraSystem.from_config(tiny_config("model.consistency.iterations=1", "model.consistency.kind=linear"))
+    c = tv_consistency(linear, args(tv_steps=5))
+    assert (c.iterations, c.landweber_after, c.tv_weight) == (1, 5, RECOMMENDED_TV_WEIGHT)
+    linear.consistency = dataclasses.replace(linear.consistency, iterations=0)
+    with pytest.raises(InputError, match="follow the run's linear consistency step, which is off"):
+        tv_consistency(linear, args())

@@ -793,3 +793,7 @@ def test_the_data_package_loads_its_names_on_first_use():
     loaded = subprocess.run([sys.executable, "-c", "import sys, hsicam.data.estimates; print('torch' in sys.modules)"],
                             capture_output=True, text=True, check=True).stdout.strip()
     assert loaded == "False"
+    # a sub-module as an attribute of the package, in a fresh process (nothing imported it before)
+    script = "import hsicam.data as d; print(d.formats.__name__, d.datasets.__name__, hasattr(d, 'no_such_module'))"
+    names = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, check=True).stdout.split()
+    assert names == ["hsicam.data.formats", "hsicam.data.datasets", "False"]

@@ -13,7 +13,8 @@ import os
 from collections.abc import Sequence
 from typing import Any, Callable
 
-from hsicam.config import MAX_SENSOR_SIGMA, MAX_SIGMA_HEIGHT_NM, SEED_MAX, SEED_MIN, seed_problem
+from hsicam.config import (MAX_SENSOR_SIGMA, MAX_SIGMA_HEIGHT_NM, MAX_TV_WEIGHT, MIN_TV_WEIGHT, SEED_MAX, SEED_MIN,
+                           seed_problem)
 from hsicam.errors import InputError
 
 #: The smallest ``--tile`` (px) of ``reconstruct`` and ``evaluate``.
@@ -90,6 +91,18 @@ def positive_number_arg(text: str) -> float:
         value = math.nan
     if not (math.isfinite(value) and value > 0):
         raise argparse.ArgumentTypeError(f"must be a finite number > 0, got {_shown(text)}")
+    return value
+
+
+def tv_weight_arg(text: str) -> float:
+    """argparse ``type`` of ``reconstruct --tv-weight``: a number in the config's range of a non-zero
+    ``model.consistency.tv_weight``, [:data:`~hsicam.config.MIN_TV_WEIGHT`, :data:`~hsicam.config.MAX_TV_WEIGHT`]."""
+    try:
+        value = float(text)
+    except ValueError:
+        value = math.nan
+    if not MIN_TV_WEIGHT <= value <= MAX_TV_WEIGHT:
+        raise argparse.ArgumentTypeError(f"must be a number in [{MIN_TV_WEIGHT:g}, {MAX_TV_WEIGHT:g}], got {_shown(text)}")
     return value
 
 

@@ -21,7 +21,7 @@ log = logging.getLogger(__name__)
 
 def register(sub: argparse._SubParsersAction) -> None:
     from hsicam.cli import add_run_arg
-    from hsicam.cli.args import device_arg, positive_number_arg
+    from hsicam.cli.args import device_arg, tv_weight_arg
     from hsicam.config import RECOMMENDED_TV_WEIGHT
 
     p = sub.add_parser("reconstruct", help="reconstruct a hyperspectral cube from a sensor image or raw capture")
@@ -47,9 +47,10 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "model.consistency.iterations; 0: the network alone)")
     p.add_argument("--tv-steps", type=int, default=None, metavar="N",
                    help="N Landweber steps with a total-variation prior instead of the run's own (after its linear step): "
-                        "fewer blotches on flat regions, edges kept, +0.3 to +1.1 dB on the demo camera in and out of distribution "
-                        "at 12 steps, ~0.8 s per step for a 512² image (docs/networks.md, 'A TV prior in the steps')")
-    p.add_argument("--tv-weight", type=positive_number_arg, default=None, metavar="W",
+                        "fewer blotches on flat regions, edges kept; 24 steps: +0.3 to +1.1 dB on the demo camera in and "
+                        "out of distribution, ~0.85 s per step for a 512² image (docs/networks.md, 'A TV prior in the "
+                        "steps')")
+    p.add_argument("--tv-weight", type=tv_weight_arg, default=None, metavar="W",
                    help=f"weight of that prior, relative to the local brightness (default {RECOMMENDED_TV_WEIGHT}, chosen "
                         "on the demo camera's training scenes)")
     raw = p.add_argument_group("raw capture corrections (values in the file's digital numbers, DN)")
@@ -401,27 +402,43 @@ def psf_mismatch_message(args: argparse.Namespace, measured, fine_tuned: bool) -
 
 
 def check_tv_args(args: argparse.Namespace, max_steps: int) -> None:
-    """One-line InputError for --tv-steps out of [1, max_steps] or --tv-weight without --tv-steps."""
+    """One-line InputError for --tv-steps out of [1, max_steps], --tv-weight without --tv-steps, or --tv-steps with
+    --consistency-steps 0."""
     if args.tv_weight is not None and args.tv_steps is None:
         raise InputError("--tv-weight is the weight of the --tv-steps' prior: give --tv-steps N too")
-    if args.tv_steps is not None and not 1 <= args.tv_steps <= max_steps:
+    if args.tv_steps is None:
+        return
+    if not 1 <= args.tv_steps <= max_steps:
         raise InputError(f"--tv-steps must be >= 1 and <= {max_steps}, got {args.tv_steps}")
+    if args.consistency_steps == 0:
+        raise InputError("--tv-steps adds measurement-consistency steps and --consistency-steps 0 removes them: give one")
 
 
-def tv_consistency(model, steps: int, weight: float | None):
-    """``model.consistency`` with ``steps`` Landweber steps carrying the TV prior of ``weight`` (default
-    :data:`hsicam.config.RECOMMENDED_TV_WEIGHT`): a run of kind linear keeps its linear
-    step and takes them after it (``landweber_after``), a run of kind landweber takes them as its steps.
-    InputError when the run's consistency steps are off (``--consistency-steps 0``, or a run without them)."""
+def tv_consistency(model, args: argparse.Namespace):
+    """``model.consistency`` with ``args.tv_steps`` Landweber steps carrying the TV prior of ``args.tv_weight``
+    (default :data:`hsicam.config.RECOMMENDED_TV_WEIGHT`): a run of kind linear takes them after its linear step
+    (``landweber_after``; the linear step on, ``--consistency-steps`` times), a run of kind landweber takes them as
+    its steps (``iterations``; with ``--consistency-steps`` too, the two options would name its steps twice).
+    InputError where they cannot apply: the linear step off in the run, or a camera the steps skip."""
     from hsicam.config import RECOMMENDED_TV_WEIGHT
 
     c = model.consistency
+    weight = RECOMMENDED_TV_WEIGHT if args.tv_weight is None else args.tv_weight
+    if c.kind == "linear":
+        if c.iterations == 0:
+            raise InputError("--tv-steps follow the run's linear consistency step, which is off "
+                             "(model.consistency.iterations=0): give --consistency-steps 1 too")
+        tuned = dataclasses.replace(c, tv_weight=weight, landweber_after=args.tv_steps)
+    else:
+        if args.consistency_steps is not None:
+            raise InputError(f"--tv-steps and --consistency-steps both give the steps of this run (model.consistency."
+                             f"kind={c.kind}): give --tv-steps alone")
+        tuned = dataclasses.replace(c, tv_weight=weight, iterations=args.tv_steps)
+    model.consistency = tuned
     if not model.consistency_on:
-        raise InputError("--tv-steps: the measurement-consistency steps are off for this run (model.consistency."
-                         "iterations=0, or --consistency-steps 0), and the TV prior acts in them: drop "
-                         "--consistency-steps 0, or give --consistency-steps 1")
-    steps_key = "landweber_after" if c.kind == "linear" else "iterations"
-    return dataclasses.replace(c, tv_weight=RECOMMENDED_TV_WEIGHT if weight is None else weight, **{steps_key: steps})
+        raise InputError(f"--tv-steps: the measurement-consistency steps do not apply to this run's camera "
+                         f"(camera.kind={model.camera.kind}); drop --tv-steps")
+    return tuned
 
 
 def cmd_reconstruct(args: argparse.Namespace) -> int:
@@ -458,7 +475,7 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
     if args.consistency_steps is not None:
         model.consistency = dataclasses.replace(cfg.model.consistency, iterations=args.consistency_steps)
     if args.tv_steps is not None:
-        model.consistency = tv_consistency(model, args.tv_steps, args.tv_weight)
+        model.consistency = tv_consistency(model, args)
     from hsicam.runs.pretrained import run_label
 
     meta: dict = {"source": str(args.sensor), "run": run_label(args.run),

@@ -12,6 +12,7 @@ import torch with the datasets.
 from __future__ import annotations
 
 import importlib
+import importlib.util
 from typing import Any
 
 #: Each public name of the package → the module that defines it.
@@ -29,11 +30,15 @@ __all__ = sorted(_HOME_OF)
 
 
 def __getattr__(name: str) -> Any:
-    """``hsicam.data.NAME`` from its module, imported now (a sub-module's name falls through to the import system)."""
+    """``hsicam.data.NAME`` from its module, imported now; a sub-module's name (``hsicam.data.formats``) imports that
+    sub-module, as the package's eager imports used to make them attributes."""
     module = _HOME_OF.get(name)
-    if module is None:
+    if module is not None:
+        value = getattr(importlib.import_module(module), name)
+    elif importlib.util.find_spec(f"{__name__}.{name}") is not None:
+        value = importlib.import_module(f"{__name__}.{name}")
+    else:
         raise AttributeError(f"module 'hsicam.data' has no attribute {name!r}")
-    value = getattr(importlib.import_module(module), name)
     globals()[name] = value
     return value
 

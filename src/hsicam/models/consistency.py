@@ -22,25 +22,23 @@ the extension too, so border pixels are explained by it instead of being forced 
 The step is local: an output pixel depends on the estimate within :func:`reach_px` pixels, so
 tiles with that much more halo reproduce the whole image exactly.
 
-With a total-variation prior (``tv_weight`` w > 0) the steps are those of FISTA on
-
-    ½ ‖y − A x‖²_{D⁻¹} + w · TV(x ⊘ b),
-
-each Landweber step followed by the proximal step of the vectorial TV (:class:`BrightnessTV`) of the estimate
-divided by its local brightness b: edges shared by every band are kept, the blotches a network leaves on flat
-regions are not, and dark regions are regularised as much as bright ones. It is GAP-TV started from the network's
-estimate instead of from Aᵀy (docs/networks.md, "A TV prior in the steps").
+With a total-variation prior (``tv_weight`` w > 0) each Landweber step is followed by a step towards the proximal
+point of the vectorial TV of the estimate divided by its local brightness b (:class:`BrightnessTV`): edges shared by
+every band are kept, the blotches a network leaves on flat regions are not, and a dark region is regularised as
+much as a bright one. A forward-backward (proximal-gradient) iteration in the spirit of GAP-TV, started from the
+network's estimate instead of from Aᵀy; not the minimiser of one objective (the data step and the prox are taken in
+different metrics), and without momentum, which with a prox solved one dual iteration at a time cycles instead of
+converging (docs/networks.md, "A TV prior in the steps").
 """
 
 from __future__ import annotations
-
-import math
 
 import torch
 import torch.nn.functional as F
 
 from hsicam.errors import InputError
-from hsicam.models.demosaic import phase_linear
+from hsicam.models.demosaic import brightness, phase_linear
+from hsicam.models.tv import chambolle_step, dual_divergence
 
 
 def consistency_step(op, y: torch.Tensor, x0: torch.Tensor, origin: tuple[int, int] = (0, 0),
@@ -65,10 +63,10 @@ def consistency_step(op, y: torch.Tensor, x0: torch.Tensor, origin: tuple[int, i
     the proportions of the estimate's own spectrum (:func:`spectral_preconditioner`; 0: the plain step).
     ``noise_variance`` (broadcastable to y; None: a noise-free capture): each step's residual is first
     passed through :func:`wiener_residual`, so residuals at the noise's level move the estimate little.
-    ``tv_weight`` w ≥ 0: each step is followed by one step towards the proximal point of w · TV(x ⊘ b)
-    (:class:`BrightnessTV`, b the local brightness of x0) and the steps take FISTA's momentum; the output then
-    reaches :data:`TV_REACH_PX` px further per step and :data:`BRIGHTNESS_WINDOW_PX` // 2 once more
-    (:func:`reach_px` with ``tv=True``). 0: the plain (or preconditioned) Landweber steps. Differentiable.
+    ``tv_weight`` w ≥ 0: each step is followed by one step towards b · prox_{w·TV}(x ⊘ b) (:class:`BrightnessTV`,
+    b the local brightness of x0); the output then reaches :data:`TV_REACH_PX` px further per step and
+    :data:`BRIGHTNESS_WINDOW_PX` // 2 once more (:func:`reach_px` with ``tv=True``). 0: the plain (or
+    preconditioned) Landweber steps. Differentiable.
     """
     mode = _extension_mode(extend)
     if iterations < 0 or not damping > 0 or not 0 < psf_energy <= 1 or not 0 <= spectral_prior < float("inf") \
@@ -105,11 +103,11 @@ def consistency_step(op, y: torch.Tensor, x0: torch.Tensor, origin: tuple[int, i
         g = a_t(wiener_residual(y - a(x), noise_variance) / row_sums)
         return g if precondition is None else precondition(g)
 
-    if tv_weight > 0:
-        x = _fista_tv(x, lambda z: z + _step(z), BrightnessTV(x, tv_weight), iterations)
-    else:
-        for _ in range(iterations):
-            x = x + _step(x)
+    prox = BrightnessTV(x, tv_weight) if tv_weight > 0 else None
+    for _ in range(iterations):
+        x = x + _step(x)
+        if prox is not None:
+            x = prox(x)
     return x[..., py : py + h, px : px + w]
 
 
@@ -132,29 +130,31 @@ def spectral_preconditioner(x: torch.Tensor, alpha: float):
     return apply
 
 
-#: The local brightness b that the TV prior divides the estimate by: a box of this width (px, odd) over the band mean
-#: of the step's start, plus :data:`BRIGHTNESS_EPS` (of full scale), as the mosaic network's own normalisation.
+#: The local brightness b that the TV prior divides the estimate by: the mosaic network's own normalisation
+#: (:func:`hsicam.models.demosaic.brightness`, the defaults of ``model.mosaic.brightness_window`` and ``brightness_eps``)
+#: over the band mean of the steps' start: a box of this width (px, odd), plus :data:`BRIGHTNESS_EPS` (of full scale).
 BRIGHTNESS_WINDOW_PX = 19
 BRIGHTNESS_EPS = 1e-3
-#: How much further (px) one step with the TV prior reaches: the dual's update and its divergence (3 px).
-TV_REACH_PX = 3
+#: How much further (px) one step with the TV prior reaches than the plain step: the dual field's update reads one
+#: pixel of the estimate ahead, and its divergence one behind.
+TV_REACH_PX = 2
 
 
 class BrightnessTV:
-    """The proximal step of w · TV(x ⊘ b), TV the vectorial (colour) total variation Σ_pixels ‖∇u‖₂, the norm
-    taken over both gradient directions and every band at once, so an edge costs the same whether one band or
-    all carry it and bands keep their edges together (Bresson & Chan 2008); b (B, 1, H, W) the local brightness of
-    ``x0`` (:data:`BRIGHTNESS_WINDOW_PX`, :data:`BRIGHTNESS_EPS`), so a dark region is regularised as much as a
-    bright one. Each call takes one iteration of Chambolle's dual projection (2004; step 1/8) from the dual of
-    the previous call: within FISTA the prox is solved as the iterates converge (warm start; five iterations per
-    call scored the same as one on the demo camera's training scenes)."""
-
-    tau = 0.125
+    """b · prox_{w·TV}(v ⊘ b): the proximal step of the vectorial total variation (Σ_pixels ‖∇u‖₂, the norm over
+    both gradient directions and every band at once, so bands keep their edges together; Bresson & Chan 2008) of
+    the estimate divided by its local brightness b, (B, 1, H, W) from the steps' start ``x0`` (B, C, H, W)
+    (:data:`BRIGHTNESS_WINDOW_PX`, :data:`BRIGHTNESS_EPS`). ``weight`` w is dimensionless, in units of the
+    normalised estimate u = x ⊘ b, so the step is scale-equivariant: a scene ten times darker gets the same
+    correction, ten times smaller. (It is the prox of w·TV(x ⊘ b) in the metric diag(b⁻²), not the Euclidean
+    one.) Each call takes one iteration of Chambolle's dual projection (:func:`hsicam.models.tv.chambolle_step`)
+    from the dual of the previous call, so the calls keep state: within the steps the prox is solved as the
+    iterates settle (warm start; five dual iterations per call scored the same as one on the demo camera's
+    training scenes)."""
 
     def __init__(self, x0: torch.Tensor, weight: float) -> None:
         mean = x0.mean(dim=1, keepdim=True).clamp_min(0)
-        k = BRIGHTNESS_WINDOW_PX
-        self.brightness = F.avg_pool2d(mean, k, stride=1, padding=k // 2, count_include_pad=False) + BRIGHTNESS_EPS
+        self.brightness = brightness(mean, BRIGHTNESS_WINDOW_PX, BRIGHTNESS_EPS)
         self.weight = float(weight)
         self.dual: tuple[torch.Tensor, torch.Tensor] | None = None
 
@@ -163,33 +163,8 @@ class BrightnessTV:
         u = v / self.brightness
         if self.dual is None:
             self.dual = (torch.zeros_like(u), torch.zeros_like(u))
-        py, px = self.dual
-        d = _divergence(py, px) - u / self.weight
-        gy = F.pad(d[..., 1:, :] - d[..., :-1, :], (0, 0, 0, 1))  # forward differences, zero at the last row
-        gx = F.pad(d[..., :, 1:] - d[..., :, :-1], (0, 1))
-        # + tiny: the square root's gradient stays finite where the field is flat (its value does not move)
-        norm = 1 + self.tau * ((gy * gy + gx * gx).sum(dim=1, keepdim=True) + torch.finfo(u.dtype).tiny).sqrt()
-        py, px = (py + self.tau * gy) / norm, (px + self.tau * gx) / norm
-        self.dual = (py, px)
-        return (u - self.weight * _divergence(py, px)) * self.brightness
-
-
-def _divergence(py: torch.Tensor, px: torch.Tensor) -> torch.Tensor:
-    """−∇ᵀ of the dual field (py, px) of :class:`BrightnessTV` (backward differences; last row / column of the
-    forward differences are zero)."""
-    return py - F.pad(py[..., :-1, :], (0, 0, 1, 0)) + px - F.pad(px[..., :, :-1], (1, 0))
-
-
-def _fista_tv(x: torch.Tensor, gradient_step, prox, iterations: int) -> torch.Tensor:
-    """``iterations`` of FISTA (Beck & Teboulle 2009) from ``x``: x_k = prox(gradient_step(z_k)), z_{k+1} = x_k +
-    (t_k − 1) / t_{k+1} · (x_k − x_{k−1})."""
-    z, t = x, 1.0
-    for _ in range(iterations):
-        x_new = prox(gradient_step(z))
-        t_new = (1 + math.sqrt(1 + 4 * t * t)) / 2
-        z = x_new + ((t - 1) / t_new) * (x_new - x)
-        x, t = x_new, t_new
-    return x
+        self.dual = chambolle_step(*self.dual, u / self.weight, vectorial=True)
+        return (u - self.weight * dual_divergence(*self.dual)) * self.brightness
 
 
 def linear_consistency_step(op, y: torch.Tensor, x0: torch.Tensor, weight: torch.Tensor,

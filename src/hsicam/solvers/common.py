@@ -7,7 +7,8 @@ steps, ``camera.gram_diagonal(y)`` (diag ΦΦᵀ, declared by cameras whose ΦΦ
 from __future__ import annotations
 
 import torch
-import torch.nn.functional as F
+
+from hsicam.models.tv import chambolle_step, dual_divergence
 
 
 def gap_projection(camera, x: torch.Tensor, y: torch.Tensor, phi: torch.Tensor) -> torch.Tensor:
@@ -59,16 +60,5 @@ def tv_denoise(f: torch.Tensor, weight: float | torch.Tensor, iterations: int = 
     py = torch.zeros_like(f)
     px = torch.zeros_like(f)
     for _ in range(iterations):
-        # the dual field's last row (py) / column (px) stay zero, so div p is p minus its shifted self
-        d = _div_fast(py, px) - g
-        gy = F.pad(d[..., 1:, :] - d[..., :-1, :], (0, 0, 0, 1))
-        gx = F.pad(d[..., :, 1:] - d[..., :, :-1], (0, 1))
-        norm = torch.hypot(gy, gx).mul_(tau).add_(1.0)
-        py = py.add_(gy, alpha=tau).div_(norm)
-        px = px.add_(gx, alpha=tau).div_(norm)
-    return f - w * _div_fast(py, px)
-
-
-def _div_fast(py: torch.Tensor, px: torch.Tensor) -> torch.Tensor:
-    """:func:`_div` for fields whose last row (py) and last column (px) are zero."""
-    return py - F.pad(py[..., :-1, :], (0, 0, 1, 0)) + px - F.pad(px[..., :, :-1], (1, 0))
+        py, px = chambolle_step(py, px, g, tau, inplace=True)
+    return f - w * dual_divergence(py, px)
