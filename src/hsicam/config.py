@@ -531,7 +531,7 @@ class ConsistencyConfig:
     # Landweber steps: w of a total-variation prior, each step followed by one dual iteration towards b · prox_wTV(x / b),
     # the vectorial TV (every band's edges together) of the estimate divided by its local brightness b (in the spirit of
     # GAP-TV, started from the network's estimate); 0: none, else in [MIN_TV_WEIGHT, MAX_TV_WEIGHT]. Measured gains and
-    # cost (~0.8 s per step at 512²): docs/networks.md, "A TV prior in the steps"
+    # cost (~0.85 s per step at 512²): docs/networks.md, "A TV prior in the steps"
     tv_weight: float = 0.0
 
     def __post_init__(self) -> None:
@@ -559,7 +559,7 @@ class ConsistencyConfig:
                               f"{MAX_TV_WEIGHT:g}], got {self.tv_weight}")
         if self.tv_weight > 0 and self.kind == "linear" and self.iterations > 0 and self.landweber_after == 0:
             raise ConfigError(f"model.consistency.tv_weight={self.tv_weight} acts in the Landweber steps, and kind=linear "
-                              "takes none (landweber_after=0): set model.consistency.landweber_after, e.g. 12")
+                              "takes none (landweber_after=0): set model.consistency.landweber_after, e.g. 24")
 
 
 @dataclass

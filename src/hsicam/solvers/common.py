@@ -25,19 +25,6 @@ def _grad(u: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     return gy, gx
 
 
-def _div(py: torch.Tensor, px: torch.Tensor) -> torch.Tensor:
-    """Discrete divergence, the negative adjoint of :func:`_grad`."""
-    dy = torch.zeros_like(py)
-    dy[..., 0, :] = py[..., 0, :]
-    dy[..., 1:-1, :] = py[..., 1:-1, :] - py[..., :-2, :]
-    dy[..., -1, :] = -py[..., -2, :]
-    dx = torch.zeros_like(px)
-    dx[..., :, 0] = px[..., :, 0]
-    dx[..., :, 1:-1] = px[..., :, 1:-1] - px[..., :, :-2]
-    dx[..., :, -1] = -px[..., :, -2]
-    return dy + dx
-
-
 def total_variation(u: torch.Tensor) -> torch.Tensor:
     """Isotropic spatial TV of each cube, summed over bands and pixels, (B,)."""
     gy, gx = _grad(u)
