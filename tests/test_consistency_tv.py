@@ -14,7 +14,7 @@ from skimage.restoration import denoise_tv_chambolle
 from hsicam.engine.inference import reconstruct_tiled
 from hsicam.errors import ConfigError
 from hsicam.models import CameraSystem
-from hsicam.models.consistency import BRIGHTNESS_EPS, BrightnessTV, consistency_step, reach_px
+from hsicam.models.consistency import BRIGHTNESS_EPS, TV_MOMENTUM_MAX, BrightnessTV, consistency_step, reach_px
 from test_consistency import C, K, _snapshot  # bands, kernel (px); a DOE snapshot of random PSFs and CFA
 
 
@@ -92,10 +92,11 @@ def test_steps_with_the_prior_reach_what_reach_px_says(iterations):
 
 def test_the_prior_removes_blotches_the_plain_steps_keep():
     """A piecewise-constant scene (blocks of three spectra), its noiseless measurement, and an estimate with
-    blotches (smooth random errors of 5 %, as a network leaves on flat regions): 20 steps with a small TV prior end
-    closer to the truth than 20 plain steps, which can only remove what the camera sees, and than the start;
-    the measurement stays explained. (A large weight, or many more steps towards the regularised solution, would
-    flatten these small blocks: the weight is a trade, chosen on a camera's training scenes.)"""
+    blotches (smooth random errors of 5 %, as a network leaves on flat regions): 10 steps with a small TV prior (and
+    its momentum) end closer to the truth than 20 plain steps, which can only remove what the camera sees, and than
+    the start; the measurement stays explained. (A large weight, or many more steps towards the regularised solution,
+    would flatten these small blocks: here 40 steps with the prior end behind the plain ones. The weight and the
+    steps are a trade, chosen on a camera's training scenes.)"""
     snap = _snapshot(4)
     g = torch.Generator().manual_seed(8)
     spectra = torch.tensor([[0.8, 0.3, 0.2], [0.2, 0.6, 0.4], [0.5, 0.5, 0.9]], dtype=torch.float64)
@@ -113,7 +114,7 @@ def test_the_prior_removes_blotches_the_plain_steps_keep():
 
     origin = (K // 2, K // 2)  # the window's first pixel: the CFA phase of y
     plain = consistency_step(snap, y, x0, origin, iterations=20, psf_energy=1.0)
-    tv = consistency_step(snap, y, x0, origin, iterations=20, psf_energy=1.0, tv_weight=0.003)
+    tv = consistency_step(snap, y, x0, origin, iterations=10, psf_energy=1.0, tv_weight=0.003)
     assert error(tv) < 0.85 * error(plain) and error(tv) < 0.6 * error(x0)
 
     def residual(x):  # the border extended by replication, as the steps start it; the padded cube starts at pixel 0
@@ -219,9 +220,10 @@ def test_reconstruct_takes_tv_steps_and_records_them(tmp_path):
 
 @pytest.mark.parametrize("weight", [0.03, 0.3])
 def test_the_steps_with_the_prior_settle(weight):
-    """The steps with the prior converge: the 400th moves the estimate by less than 1e-4 of its norm and by a tenth of
-    what the 50th moved it, at the recommended weight and at ten times it (momentum with a prox solved one dual
-    iteration at a time cycled here instead, moving it by 3 % to 25 % per step)."""
+    """The steps with the prior converge, with their capped momentum and without it: the 400th moves the estimate by
+    less than 1e-4 of its norm and by a tenth of what the 50th moved it, at the recommended weight and at ten times it
+    (FISTA's uncapped momentum with a prox solved one dual iteration at a time cycled here, moving it by 3 % to 25 %
+    per step)."""
     snap = _snapshot(4)
     g = torch.Generator().manual_seed(8)
     truth = torch.rand(1, C, 36, 36, generator=g, dtype=torch.float64)
@@ -229,13 +231,40 @@ def test_the_steps_with_the_prior_settle(weight):
     y = snap.A(truth)[..., 2:-2, 2:-2]
     x0 = truth[..., 2:-2, 2:-2] * (1 + 0.1 * torch.randn(1, C, 32, 32, generator=g, dtype=torch.float64))
 
-    def change(n):  # how much the n-th step moves the estimate
-        before = consistency_step(snap, y, x0, (2, 2), iterations=n - 1, psf_energy=1.0, tv_weight=weight)
-        after = consistency_step(snap, y, x0, (2, 2), iterations=n, psf_energy=1.0, tv_weight=weight)
-        return float((after - before).norm() / after.norm())
+    for momentum in (TV_MOMENTUM_MAX, 0.0):
+        def change(n):  # how much the n-th step moves the estimate
+            before, after = (consistency_step(snap, y, x0, (2, 2), iterations=k, psf_energy=1.0, tv_weight=weight,
+                                              tv_momentum=momentum) for k in (n - 1, n))
+            return float((after - before).norm() / after.norm())
 
-    late = change(400)
-    assert late < 1e-4 and late < 0.1 * change(50)
+        late = change(400)
+        assert late < 1e-4 and late < 0.1 * change(50), momentum
+
+
+def test_the_momentum_reaches_the_steps_limit_sooner():
+    """The steps with the prior lead to one estimate with their capped momentum or without it (1500 steps each), and
+    the momentum gets there sooner: after 24 steps it is nearly half as far from it as the plain steps, after 48 a
+    third; a momentum of 1 or more, or below 0, is refused."""
+    snap = _snapshot(4)
+    g = torch.Generator().manual_seed(5)
+    truth = torch.nn.functional.avg_pool2d(torch.rand(1, C, 36, 36, generator=g, dtype=torch.float64), 5, 1, 2)
+    y = snap.A(truth)[..., 2:-2, 2:-2]
+    x0 = truth[..., 2:-2, 2:-2] * (1 + 0.1 * torch.randn(1, C, 32, 32, generator=g, dtype=torch.float64))
+
+    def steps(n, momentum):
+        return consistency_step(snap, y, x0, (2, 2), iterations=n, psf_energy=1.0, tv_weight=0.03, tv_momentum=momentum)
+
+    limit = steps(1500, TV_MOMENTUM_MAX)
+    torch.testing.assert_close(steps(1500, 0.0), limit, rtol=0, atol=1e-5)
+
+    def distance(x):
+        return float((x - limit).norm() / (x0 - limit).norm())
+
+    for n, ratio in ((24, 0.6), (48, 0.4)):
+        assert distance(steps(n, TV_MOMENTUM_MAX)) < ratio * distance(steps(n, 0.0)), n
+    for bad in (1.0, 1.5, -0.1, float("nan")):
+        with pytest.raises(ValueError, match="tv_momentum"):
+            steps(1, bad)
 
 
 def test_tv_steps_name_the_steps_of_either_kind_of_run(tiny_config):
