@@ -120,11 +120,11 @@ def consistency_step(op, y: torch.Tensor, x0: torch.Tensor, origin: tuple[int, i
     return x[..., py : py + h, px : px + w]
 
 
-#: The cap on the momentum of the steps with the TV prior. FISTA's β_k = (t_k − 1) / t_{k+1} climbs towards 1, and with a
-#: prox solved one dual iteration per step the steps then oscillate instead of settling: on a test camera of random
-#: PSFs they still moved the estimate by 0.4 % (w = 0.03) and 10 % (w = 0.3) per step after 400 steps with the cap at
-#: 0.8, 0.005 % and 2 % at 0.65, and settled as the plain steps do at 0.5 and below (tested). At 0.5, 24 steps on the
-#: demo camera's training scenes score what ~40 plain ones do (docs/networks.md, "A TV prior in the steps").
+#: The cap on the momentum of the steps with the TV prior. FISTA's β_k = (t_k − 1) / t_{k+1} climbs towards 1, and
+#: with a prox solved one dual iteration per step the steps then oscillate instead of settling: on a test camera of
+#: random PSFs they still moved the estimate by 0.4 % (w = 0.03) and 10 % (w = 0.3) per step after 400 steps with the
+#: cap at 0.8, 0.005 % and 2 % at 0.65, and settled as the plain steps do at 0.5 and below (tested). At 0.5, 24 steps
+#: on the demo camera's training scenes score what ~40 plain ones do (docs/networks.md, "A TV prior in the steps").
 TV_MOMENTUM_MAX = 0.5
 
 
