@@ -37,7 +37,7 @@ from pathlib import Path
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from timing import median_time  # noqa: E402
+from timing import allocator_option, apply_allocator, median_time  # noqa: E402
 
 from hsicam.cameras import build_camera  # noqa: E402
 from hsicam.config import load_config  # noqa: E402
@@ -147,12 +147,15 @@ def main() -> None:
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--kinds", default="quick,rdn,mosaic,unrolled,unrolled-mosaic")
     ap.add_argument("--threads", type=int, default=0, help="torch threads (0: torch's default)")
+    allocator_option(ap)
     args = ap.parse_args()
+    kept = apply_allocator(args)
     if args.threads:
         torch.set_num_threads(args.threads)
     cfg = load_config("quick")
     out = {"preset": "quick", "batch": cfg.train.batch_size, "patch_px": cfg.data.patch_px,
-           "threads": torch.get_num_threads(), "load_avg_1min_start": os.getloadavg()[0], "kinds": {}}
+           "threads": torch.get_num_threads(), "keep_freed_memory": kept, "load_avg_1min_start": os.getloadavg()[0],
+           "kinds": {}}
     for kind in args.kinds.split(","):
         res = train_step(kind, cfg, args.steps)
         res.update(inference(kind, cfg, args.repeats))

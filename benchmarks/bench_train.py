@@ -19,14 +19,19 @@ from __future__ import annotations
 import argparse
 import json
 import statistics
+import sys
 import time
+from pathlib import Path
 
 import torch
 
-from hsicam.config import load_config
-from hsicam.engine.tasks import system_loss
-from hsicam.engine.train import build_optimizer
-from hsicam.models import CameraSystem
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from timing import allocator_option, apply_allocator  # noqa: E402
+
+from hsicam.config import load_config  # noqa: E402
+from hsicam.engine.tasks import system_loss  # noqa: E402
+from hsicam.engine.train import build_optimizer  # noqa: E402
+from hsicam.models import CameraSystem  # noqa: E402
 
 
 def _sync(device: torch.device) -> None:
@@ -162,11 +167,13 @@ def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--steps", type=int, default=5)
     ap.add_argument("--threads", type=int, default=None, help="torch CPU threads (default: torch's choice)")
+    allocator_option(ap)
     args = ap.parse_args()
+    kept = apply_allocator(args)
     if args.threads:
         torch.set_num_threads(args.threads)
     cpu = torch.device("cpu")
-    out = {"torch": torch.__version__, "threads": torch.get_num_threads(),
+    out = {"torch": torch.__version__, "threads": torch.get_num_threads(), "keep_freed_memory": kept,
            "train_quick_cpu": train_steps("quick", cpu, args.steps, []),
            "train_quick_cpu_fixed_optics": fixed_optics_steps("quick", cpu, args.steps),
            "inference_cpu": [inference("quick", cpu), inference("paper", cpu, repeats=1)],

@@ -1,9 +1,25 @@
-"""Shared timing helper for the benchmark scripts (imported as a sibling module)."""
+"""Shared timing helpers for the benchmark scripts (imported as a sibling module)."""
 
 from __future__ import annotations
 
+import argparse
 import statistics
 import time
+
+from hsicam.memory import keep_freed_memory
+
+
+def allocator_option(parser: argparse.ArgumentParser) -> None:
+    """``--glibc-default``: time under glibc's own allocator settings instead of the ``hsicam`` command's."""
+    parser.add_argument("--glibc-default", action="store_true",
+                        help="leave glibc's allocator as it is; by default the benchmark keeps freed memory for the "
+                             "next tensor as the hsicam command does (hsicam.memory.keep_freed_memory)")
+
+
+def apply_allocator(args: argparse.Namespace) -> bool:
+    """Keep freed memory as the ``hsicam`` command does, unless ``--glibc-default``; whether it was applied (for
+    the JSON: ``keep_freed_memory``)."""
+    return False if args.glibc_default else keep_freed_memory()
 
 
 def median_time(fn, repeats: int = 1, warmup: int = 0) -> float:

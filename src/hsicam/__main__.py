@@ -1,5 +1,5 @@
 import sys
 
-from hsicam.cli import main
+from hsicam.cli import entry
 
-sys.exit(main())
+sys.exit(entry())

@@ -298,5 +298,16 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 2
 
 
+def entry() -> int:
+    """The ``hsicam`` command (its console script and ``python -m hsicam``): :func:`main` in a process whose C
+    allocator keeps freed memory for the next tensor (:func:`hsicam.memory.keep_freed_memory`: a 512² reconstruction
+    1.7× faster, its TV steps 2.4×, on this project's CPU). Calling :func:`main` from Python leaves the allocator
+    alone."""
+    from hsicam.memory import keep_freed_memory
+
+    keep_freed_memory()
+    return main()
+
+
 if __name__ == "__main__":  # pragma: no cover
-    sys.exit(main())
+    sys.exit(entry())
