@@ -48,7 +48,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--tv-steps", type=int, default=None, metavar="N",
                    help="N Landweber steps with a total-variation prior instead of the run's own (after its linear step): "
                         "fewer blotches on flat regions, edges kept; 24 steps: +0.4 to +1.4 dB on the demo camera in and "
-                        "out of distribution (12: +0.3 to +1.0 dB), ~0.85 s per step for a 512² image "
+                        "out of distribution (12: +0.3 to +1.0 dB), ~0.3 s per step for a 512² image on a 2-core CPU "
                         "(docs/networks.md, 'A TV prior in the steps')")
     p.add_argument("--tv-weight", type=tv_weight_arg, default=None, metavar="W",
                    help=f"weight of that prior, relative to the local brightness (default {RECOMMENDED_TV_WEIGHT}, chosen "
