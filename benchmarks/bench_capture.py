@@ -39,7 +39,8 @@ def make_run(run: Path, overrides: list[str]) -> dict:
     save_weights(run / "model.safetensors", model, model.bands)
     n_params = sum(p.numel() for p in model.net.parameters())
     return {"bands": len(model.bands), "net_params": n_params, "halo_px": model.context_px,
-            "model": {k: getattr(cfg.model, k) for k in ("blocks", "features", "growth", "layers_per_block")}}
+            "model": {"kind": cfg.model.kind,
+                      **{k: getattr(cfg.model.rdn, k) for k in ("blocks", "features", "growth", "layers_per_block")}}}
 
 
 def make_capture(d: Path, size: int) -> None:

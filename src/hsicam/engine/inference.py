@@ -18,6 +18,7 @@ import torch
 
 from hsicam.cameras.base import check_finite, check_sensor_image
 from hsicam.errors import InputError
+from hsicam.memory import release_freed_memory
 
 
 #: The range (px) of :func:`default_tile_px`.
@@ -94,5 +95,6 @@ def reconstruct_tiled(reconstruct, sensor: torch.Tensor, tile_px: int | None = N
                     out = torch.empty(1, part.shape[1], h, w, dtype=part.dtype, device=part.device)
                 out[..., y0:y1, x0:x1] = part[..., y0 - ya : y1 - ya, x0 - xa : x1 - xa]
                 del part  # freed before the next window is computed: one window's cube at a time, not two
+                release_freed_memory()  # the hsicam command's kept heap: not one tile's fragments into the next
                 bar.update(1)
     return out
