@@ -314,8 +314,9 @@ def consistency_summary(c) -> str:
     """What the measurement-consistency steps of ``c`` (:class:`hsicam.config.ConsistencyConfig`, on) do,
     in words for the model card."""
     def landweber(n: int) -> str:
-        prior = f" with a spectral prior (α = {c.spectral_prior:g})" if c.spectral_prior else ""
-        return f"{n} Landweber step{'s' if n != 1 else ''}{prior}"
+        priors = ([f"a spectral prior (α = {c.spectral_prior:g})"] if c.spectral_prior else []) + \
+                 ([f"a TV prior (w = {c.tv_weight:g})"] if c.tv_weight else [])
+        return f"{n} Landweber step{'s' if n != 1 else ''}" + (" with " + " and ".join(priors) if priors else "")
 
     if c.kind == "linear":
         text = (f"{c.iterations} linear measurement-consistency step{'s' if c.iterations != 1 else ''} "
