@@ -48,12 +48,18 @@ _OPERATIONS = textwrap.dedent("""
 _PAGES = 31 * 532 * 512 * 4 // 4096  # 8 246 pages of 4 KiB per result
 
 
-def _faults_per_operation(env_value: str | None) -> tuple[bool, float]:
+def _child(code: str, env_value: str | None) -> list[str]:
+    """What a fresh Python process running ``code`` prints (split), ``HSICAM_KEEP_FREED_MEMORY`` set to
+    ``env_value`` (None: unset)."""
     env = {k: v for k, v in os.environ.items() if k != memory_mod.KEEP_FREED_MEMORY_ENV}
     if env_value is not None:
         env[memory_mod.KEEP_FREED_MEMORY_ENV] = env_value
-    out = subprocess.run([sys.executable, "-c", _OPERATIONS], env=env, capture_output=True, text=True, check=True)
-    applied, faults = out.stdout.split()
+    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True)
+    return out.stdout.split()
+
+
+def _faults_per_operation(env_value: str | None) -> tuple[bool, float]:
+    applied, faults = _child(_OPERATIONS, env_value)
     return applied == "True", float(faults)
 
 
@@ -90,15 +96,11 @@ def test_release_hands_the_kept_memory_back(env_value):
     """After four 32 MiB results were made and freed ten times the kept heap holds about them (~130 MiB resident
     beyond the start); :func:`release_freed_memory` gives it back. Under glibc's defaults nothing was kept and the
     release does nothing."""
-    env = {k: v for k, v in os.environ.items() if k != memory_mod.KEEP_FREED_MEMORY_ENV}
-    if env_value is not None:
-        env[memory_mod.KEEP_FREED_MEMORY_ENV] = env_value
-    out = subprocess.run([sys.executable, "-c", _RELEASE], env=env, capture_output=True, text=True, check=True)
-    applied, kept_mib, after_mib = out.stdout.split()
+    applied, kept_mib, after_mib = printed = _child(_RELEASE, env_value)
     if env_value is None:
-        assert applied == "True" and float(kept_mib) > 30 and float(after_mib) < 0.3 * float(kept_mib), out.stdout
+        assert applied == "True" and float(kept_mib) > 30 and float(after_mib) < 0.3 * float(kept_mib), printed
     else:
-        assert applied == "False" and abs(float(kept_mib)) < 16 and abs(float(after_mib)) < 16, out.stdout
+        assert applied == "False" and abs(float(kept_mib)) < 16 and abs(float(after_mib)) < 16, printed
 
 
 def test_tiles_release_the_kept_memory_between_them(monkeypatch):
