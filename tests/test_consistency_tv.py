@@ -202,8 +202,9 @@ def test_reconstruct_takes_tv_steps_and_records_them(tmp_path):
     np.testing.assert_allclose(cube, want, rtol=1e-5, atol=1e-6)
     assert_ok(run_cli_in_process("reconstruct", str(tmp_path / "s.npy"), "--run", "pretrained:standard",
                                  "--out", str(tmp_path / "plain.h5")))
-    with h5py.File(tmp_path / "plain.h5", "r") as f:
-        assert "consistency_tv_weight" not in json.loads(f.attrs["metadata_json"])
+    with h5py.File(tmp_path / "plain.h5", "r") as f:  # the shipped camera's own: 12 steps with the prior at 0.03
+        meta = json.loads(f.attrs["metadata_json"])
+        assert meta["consistency_tv_weight"] == 0.03 and meta["consistency_landweber_after"] == 12
         assert np.abs(f["cube"][()] - cube).max() > 1e-4
     for extra, message in [(("--tv-weight", "0.1"), "--tv-weight is the weight of the --tv-steps' prior"),
                            (("--tv-steps", "0"), "--tv-steps must be >= 1 and <= 100, got 0"),

@@ -445,17 +445,16 @@ def test_training_time_adds_up_the_sessions_of_a_resumed_run(tmp_path):
 
 
 def test_the_card_says_what_the_consistency_steps_are():
-    """The card names each kind of step and its settings (quick's: the linear step, then two spectral-prior
-    Landweber steps; with the TV prior, that too), not a bare count."""
+    """The card names each kind of step and its settings (quick's: the linear step, then twelve spectral-prior
+    Landweber steps with the TV prior; without the prior, not that), not a bare count."""
     from hsicam.config import load_config
     from hsicam.engine.pretrained import card_markdown, consistency_summary
 
     quick = load_config("quick").model.consistency
-    assert consistency_summary(quick) == ("1 linear measurement-consistency step (gain 0.7, 11 px filters), then 2 "
-                                          "Landweber steps with a spectral prior (α = 4)")
-    tv = load_config("quick", ["model.consistency.landweber_after=12", "model.consistency.tv_weight=0.03"])
-    assert consistency_summary(tv.model.consistency).endswith(
-        "then 12 Landweber steps with a spectral prior (α = 4) and a TV prior (w = 0.03)")
+    assert consistency_summary(quick) == ("1 linear measurement-consistency step (gain 0.7, 11 px filters), then 12 "
+                                          "Landweber steps with a spectral prior (α = 4) and a TV prior (w = 0.03)")
+    no_tv = load_config("quick", ["model.consistency.landweber_after=2", "model.consistency.tv_weight=0"])
+    assert consistency_summary(no_tv.model.consistency).endswith("then 2 Landweber steps with a spectral prior (α = 4)")
     tv_alone = load_config("quick", ["model.consistency.landweber_after=3", "model.consistency.tv_weight=0.1",
                                      "model.consistency.spectral_prior=0"])
     assert consistency_summary(tv_alone.model.consistency).endswith("then 3 Landweber steps with a TV prior (w = 0.1)")

@@ -33,8 +33,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "files are replaced only when they are an earlier reconstruct's output, never an input")
     p.add_argument("--scale", type=float, default=None, help="multiply the image after normalising to [0, 1]")
     p.add_argument("--tile", type=int, default=None, metavar="PX",
-                   help="tile side for large images (default: 4× the reconstruction's context, within 512-1024 px, "
-                        "so that the tiles' halos cost at most 2.25× their own pixels where that fits)")
+                   help="tile side for large images (default: 4× the context of the reconstruction up to its "
+                        "consistency steps, which then go over the whole image, within 512-1024 px, so that the tiles' "
+                        "halos cost at most 2.25× their own pixels where that fits)")
     p.add_argument("--cfa-offset", type=cfa_offset_arg, default=(0, 0), metavar="Y,X|auto",
                    help="the sensor row and column of the capture's first pixel (a crop or a region-of-interest "
                         "readout of the camera's sensor): the CFA phase of every pixel follows from it (default 0,0: "
@@ -46,9 +47,10 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="measurement-consistency steps after the network (default: the run's "
                         "model.consistency.iterations; 0: the network alone)")
     p.add_argument("--tv-steps", type=int, default=None, metavar="N",
-                   help="N Landweber steps with a total-variation prior instead of the run's own (after its linear step): "
-                        "fewer blotches on flat regions, edges kept; 24 steps: +0.4 to +1.4 dB on the demo camera in and "
-                        "out of distribution (12: +0.3 to +1.0 dB), ~0.3 s per step for a 512² image on a 2-core CPU "
+                   help="N Landweber steps with a total-variation prior instead of the run's own (after its linear step; "
+                        "the quick and standard presets take 12): fewer blotches on flat regions, edges kept; against "
+                        "two plain steps, 12 steps +0.3 to +1.0 dB on the demo camera in and out of distribution (24: "
+                        "+0.4 to +1.4 dB), ~0.3 s per step for a 512² image on a 2-core CPU; fewer for speed "
                         "(docs/networks.md, 'A TV prior in the steps')")
     p.add_argument("--tv-weight", type=tv_weight_arg, default=None, metavar="W",
                    help=f"weight of that prior, relative to the local brightness (default {RECOMMENDED_TV_WEIGHT}, chosen "
@@ -126,6 +128,14 @@ def offset_reconstructor(fn, offset: tuple[int, int]):
         return fn(sensor, (origin[0] + oy, origin[1] + ox))
 
     shifted.context_px = fn.context_px
+    if hasattr(fn, "steps"):  # the stages reconstruct_tiled takes apart, shifted alike
+        shifted.before_steps = offset_reconstructor(fn.before_steps, offset)
+
+        def steps(sensor: torch.Tensor, x: torch.Tensor, origin: tuple[int, int] = (0, 0), on_step=None):
+            return fn.steps(sensor, x, (origin[0] + oy, origin[1] + ox), on_step)
+
+        steps.count = fn.steps.count
+        shifted.steps = steps
     return shifted
 
 
@@ -511,12 +521,6 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
                          "too small to reconstruct")
     check_room_for_cube(out, len(model.bands), *img.shape)  # before the work, which takes minutes at full size
     sensor = torch.from_numpy(img)[None, None].to(args.device)
-    halo = model.context_px
-    tile = args.tile  # None: reconstruct_tiled's default (default_tile_px), never below the halo
-    if tile is not None and tile < halo and max(img.shape) > tile:
-        log.warning("--tile %d is smaller than the reconstruction's context (%d px per side): each tile computes "
-                    "about %.0f× its own pixels; a tile of %d px or more is faster", tile, halo,
-                    ((tile + 2 * halo) / tile) ** 2, 2 * halo)
     offset = args.cfa_offset
     if period > 1:
         if offset == "auto":
@@ -527,8 +531,16 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
         offset = (0, 0)
     if args.full_well_e is not None:  # after the offset: a flat field's gain map sits at the capture's first pixel
         meta.update(capture_noise(model, report, args.full_well_e, args.read_noise_e or 0.0, corr, offset))
-    fn = offset_reconstructor(model.reconstructor(), offset)
-    cube = reconstruct_tiled(fn, sensor, tile, halo, progress=None)[0]
+    rec = model.reconstructor()
+    # the halo of the tiles: what comes before the consistency steps, which then go over the whole image
+    halo = rec.before_steps.context_px if hasattr(rec, "steps") else rec.context_px
+    tile = args.tile  # None: reconstruct_tiled's default (default_tile_px), never below the halo
+    if tile is not None and tile < halo and max(img.shape) > tile:
+        log.warning("--tile %d is smaller than the reconstruction's context (%d px per side): each tile computes "
+                    "about %.0f× its own pixels; a tile of %d px or more is faster", tile, halo,
+                    ((tile + 2 * halo) / tile) ** 2, 2 * halo)
+    fn = offset_reconstructor(rec, offset)
+    cube = reconstruct_tiled(fn, sensor, tile, progress=None)[0]  # the halo fn declares
     del sensor
     # Radiance is non-negative: the network's small negative excursions are clipped at 0.
     cube = cube.float().clamp_min_(0).cpu().numpy()

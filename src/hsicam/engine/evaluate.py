@@ -210,8 +210,9 @@ def evaluate_method(method: Method, scenes, names: Sequence[str], noise: TestNoi
                 sensor = cam(scene, g, sensor_generator=torch.Generator(device=device).manual_seed(
                     capture_noise_seed(int(seed), name)))
                 t0 = time.perf_counter()
-                if halo is not None:
-                    est = reconstruct_tiled(method.reconstruct, sensor, tile_px, halo)
+                if halo is not None:  # the halo the reconstructor declares (tiles up to its steps, if it has any)
+                    declared = getattr(method.reconstruct, "context_px", None) is not None
+                    est = reconstruct_tiled(method.reconstruct, sensor, tile_px, None if declared else halo)
                 else:
                     est = method.reconstruct(sensor)
                 times.append(time.perf_counter() - t0)

@@ -52,6 +52,13 @@ def reconstruct_tiled(reconstruct, sensor: torch.Tensor, tile_px: int | None = N
             image larger than one tile needs it given otherwise (a halo of 0 leaves seams).
         progress: count the tiles (:class:`hsicam.progress.Progress`): None: a bar on a terminal, k/N
             log lines otherwise; True: the bar; False (default): nothing.
+
+    A ``reconstruct`` with measurement-consistency steps after it (``reconstruct.before_steps`` and
+    ``reconstruct.steps``, as :meth:`CameraSystem.reconstructor` gives; ``halo_px`` not given) is tiled up to
+    its steps, with ``before_steps.context_px`` of halo (and tiles of :func:`default_tile_px` of that), and its
+    steps then go over the whole image (in bands of rows, the same cube as tiles with their halo: each step
+    reaches a few dozen px further, so 12 steps with a TV prior would need 490 px of halo where the network
+    needs 237, and a 2048² capture's tiles 9.6 GB).
     """
     for name, value, low in (("tile_px", 1 if tile_px is None else tile_px, 1),
                              ("halo_px", 0 if halo_px is None else halo_px, 0)):
@@ -62,6 +69,16 @@ def reconstruct_tiled(reconstruct, sensor: torch.Tensor, tile_px: int | None = N
     check_sensor_image(sensor, "sensor")
     check_finite(sensor, "sensor")
     _, _, h, w = sensor.shape
+    steps = getattr(reconstruct, "steps", None)
+    if halo_px is None and steps is not None:  # tiles up to the steps, which then go over the whole image
+        before = reconstruct.before_steps
+        tile_px = default_tile_px(before.context_px) if tile_px is None else tile_px
+        if h > tile_px or w > tile_px:
+            x = reconstruct_tiled(before, sensor, tile_px, None, progress)
+            from hsicam.progress import Progress
+
+            with Progress(int(getattr(steps, "count", 0)) or 1, "consistency steps", "step", show=progress) as bar:
+                return steps(sensor, x, on_step=lambda: bar.update(1))
     if halo_px is None:
         declared = (getattr(x, "context_px", None) for x in (reconstruct, getattr(reconstruct, "__self__", None)))
         halo_px = next((int(c) for c in declared if c is not None), None)

@@ -40,6 +40,7 @@ import torch
 import torch.nn.functional as F
 
 from hsicam.errors import InputError
+from hsicam.memory import release_freed_memory
 from hsicam.models.demosaic import brightness, phase_linear
 from hsicam.models.tv import chambolle_step, dual_divergence
 
@@ -48,7 +49,7 @@ def consistency_step(op, y: torch.Tensor, x0: torch.Tensor, origin: tuple[int, i
                      damping: float = 0.02, iterations: int = 1, psf_energy: float = 0.995,
                      extend: bool | str = True, spectral_prior: float = 0.0,
                      noise_variance: torch.Tensor | None = None, tv_weight: float = 0.0,
-                     tv_momentum: float | None = None) -> torch.Tensor:
+                     tv_momentum: float | None = None, band_px: int | None = None, on_step=None) -> torch.Tensor:
     """x0 (B, C, h, w) moved towards A x = y for the sensor window y (B, 1, h, w) at ``origin``.
 
     ``op`` is an operator snapshot in ``same`` geometry (``A(x, origin)``, ``A_adjoint(y, origin)``,
@@ -72,7 +73,15 @@ def consistency_step(op, y: torch.Tensor, x0: torch.Tensor, origin: tuple[int, i
     :data:`BRIGHTNESS_WINDOW_PX` // 2 once more (:func:`reach_px` with ``tv=True``). 0: the plain (or
     preconditioned) Landweber steps. ``tv_momentum`` in [0, 1) (None: :data:`TV_MOMENTUM_MAX`): the cap on the
     inertia of the steps with the prior (each starts from x + β (x − x_previous), β = FISTA's (t_k − 1) / t_{k+1}
-    capped there; 0: plain forward-backward steps). Differentiable.
+    capped there; 0: plain forward-backward steps).
+
+    ``band_px`` (None: the whole window at once, differentiable): each step is computed band of rows by band of
+    rows, each band of at least this many rows read with :func:`step_reach_px` rows of halo, in place (not
+    differentiable: call it without gradients). The result is the whole window's (a step is local), but the
+    working memory is a band's, not the window's: the steps of a 2048² capture then hold their state (the
+    estimate, the previous estimate and the TV prior's dual field, a few whole cubes) plus one band's temporaries,
+    where the whole-window steps held a dozen whole cubes. :func:`default_band_px` picks a band of about
+    :data:`STEP_BAND_PIXELS` pixels. ``on_step``: called with no argument after each step (progress).
     """
     mode = _extension_mode(extend)
     if iterations < 0 or not damping > 0 or not 0 < psf_energy <= 1 or not 0 <= spectral_prior < float("inf") \
@@ -83,6 +92,11 @@ def consistency_step(op, y: torch.Tensor, x0: torch.Tensor, origin: tuple[int, i
     momentum = TV_MOMENTUM_MAX if tv_momentum is None else float(tv_momentum)
     if not 0 <= momentum < 1:
         raise ValueError(f"need tv_momentum in [0, 1), got {tv_momentum}")
+    if band_px is not None and (isinstance(band_px, bool) or not isinstance(band_px, int) or band_px < 1):
+        raise ValueError(f"need band_px None or an int >= 1, got {band_px!r}")
+    if band_px is not None and torch.is_grad_enabled() and (x0.requires_grad or y.requires_grad):
+        raise ValueError("band_px computes the steps in place, without gradients: call it under torch.no_grad(), "
+                         "or leave band_px None")
     if iterations == 0:
         return x0
     op, mode, py, px = _window_setup(op, y, mode, psf_energy)
@@ -90,34 +104,47 @@ def consistency_step(op, y: torch.Tensor, x0: torch.Tensor, origin: tuple[int, i
         raise InputError(f"measurement consistency needs an operator with a bound of ‖A‖² (lipschitz), "
                          f"not {type(op).__name__}")
     h, w = y.shape[-2:]
-    o = (origin[0] - py, origin[1] - px)
     lam = damping * float(op.lipschitz)
-
-    def a(x: torch.Tensor) -> torch.Tensor:  # extended cube (h + 2py, w + 2px) → sensor window (h, w)
-        return op.A(x, o)[..., py : py + h, px : px + w]
-
-    def a_t(v: torch.Tensor) -> torch.Tensor:
-        return op.A_adjoint(F.pad(v, (px, px, py, py)), o)
-
     y = y.to(x0.dtype)
     x = F.pad(x0, (px, px, py, py), mode=mode) if (py or px) else x0
-    if spectral_prior > 0:
-        precondition = spectral_preconditioner(x, spectral_prior)
-        row_sums = a(precondition(a_t(torch.ones_like(y)))) + lam  # per image: S follows each estimate
-    else:
-        precondition = None
-        row_sums = a(a_t(torch.ones_like(y[:1]))) + lam  # the same for every image of the batch
-
-    def _step(x: torch.Tensor) -> torch.Tensor:
-        g = a_t(wiener_residual(y - a(x), noise_variance) / row_sums)
-        return g if precondition is None else precondition(g)
-
-    if tv_weight > 0:
-        x = _inertial_tv_steps(x, _step, BrightnessTV(x, tv_weight), iterations, momentum)
-    else:
+    # the spectral prior's ŝ is the start's: in bands, whose steps overwrite x in place, each band's rows of x0
+    # extended as x was (no copy of x kept)
+    frame = _Frame(op, y, (origin[0] - py, origin[1] - px), py, px, noise_variance, spectral_prior,
+                   x if band_px is None else x0, None if band_px is None else (mode, py, px))
+    tv = tv_weight > 0
+    halo = _half_reach(op)[0]
+    step_halo = 2 * halo + (WIENER_WINDOW_PX // 2 if noise_variance is not None else 0) + (TV_REACH_PX if tv else 0)
+    if band_px is not None and x is x0:
+        x = x0.clone()  # the bands write in place, never into the caller's tensor
+    # D = A S Aᵀ 𝟙 + λ on the frame's rows (1 outside the sensor's): with the prior S follows each estimate
+    ones = {"rows": torch.ones_like(x[: (None if spectral_prior > 0 else 1), :1])}
+    rows = _in_bands(lambda ya, yb, win: {"rows": frame.row_sums(ya, yb, win, lam)}, ones, band_px,
+                     2 * halo + 1)["rows"]
+    state = {"x": x, "rows": rows}
+    if not tv:
         for _ in range(iterations):
-            x = x + _step(x)
-    return x[..., py : py + h, px : px + w]
+            state = _in_bands(lambda ya, yb, win: {"x": win["x"] + frame.step(ya, yb, win, win["x"])}, state,
+                              band_px, step_halo)
+            _after_step(band_px, on_step)
+        return state["x"][..., py : py + h, px : px + w]
+    state.update(previous=x.clone() if band_px is not None else x, brightness=_tv_brightness(x),
+                 dual_y=torch.zeros_like(x), dual_x=torch.zeros_like(x))
+    t = 1.0
+    for _ in range(iterations):
+        t_next = (1 + math.sqrt(1 + 4 * t * t)) / 2
+        beta = min(momentum, (t - 1) / t_next)
+
+        def tv_step(ya: int, yb: int, win: dict, beta: float = beta) -> dict:
+            z = win["x"] + beta * (win["x"] - win["previous"]) if beta > 0 else win["x"]
+            out, dual = brightness_tv_prox(z + frame.step(ya, yb, win, z), win["brightness"], tv_weight,
+                                           (win["dual_y"], win["dual_x"]))
+            # the new estimate goes where the previous one was, which the next step no longer needs
+            return {"previous": out, "dual_y": dual[0], "dual_x": dual[1]}
+
+        state = _in_bands(tv_step, state, band_px, step_halo)
+        state["x"], state["previous"], t = state["previous"], state["x"], t_next
+        _after_step(band_px, on_step)
+    return state["x"][..., py : py + h, px : px + w]
 
 
 #: The cap on the momentum of the steps with the TV prior. FISTA's β_k = (t_k − 1) / t_{k+1} climbs towards 1, and
@@ -127,17 +154,126 @@ def consistency_step(op, y: torch.Tensor, x0: torch.Tensor, origin: tuple[int, i
 #: on the demo camera's training scenes score what ~40 plain ones do (docs/networks.md, "A TV prior in the steps").
 TV_MOMENTUM_MAX = 0.5
 
+#: The pixels (rows × the window's width) of the bands :func:`default_band_px` cuts a window's steps into: a 512²
+#: image is one band (no overhead), a 2048² capture's steps go in bands of 128 rows, each read with 22 rows of halo
+#: a side for the shipped standard camera. Its 12 steps with the TV prior on a 2048² capture (session 47): 2^18 px
+#: bands 8.3–9.4 s per step and 4.2 GB peak, 2^19 px 7.1–7.8 s and 5.0 GB, 2^20 px 9.1–9.5 s and 6.3 GB.
+STEP_BAND_PIXELS = 2**18
 
-def _inertial_tv_steps(x: torch.Tensor, step, prox: "BrightnessTV", iterations: int, momentum: float) -> torch.Tensor:
-    """``iterations`` forward-backward steps x ← prox(z + step(z)) from z = x + β_k (x − x_previous), β_k FISTA's
-    (t_k − 1) / t_{k+1} (t_1 = 1, t_{k+1} = (1 + √(1 + 4 t_k²)) / 2) capped at ``momentum`` (0: z = x)."""
-    t, previous = 1.0, x
-    for _ in range(iterations):
-        t_next = (1 + math.sqrt(1 + 4 * t * t)) / 2
-        beta = min(momentum, (t - 1) / t_next)
-        z = x + beta * (x - previous) if beta > 0 else x
-        previous, x, t = x, prox(z + step(z)), t_next
-    return x
+
+def _after_step(band_px: int | None, on_step) -> None:
+    if band_px is not None:
+        release_freed_memory()  # the hsicam command's kept heap: not one step's band fragments into the next
+    if on_step is not None:
+        on_step()
+
+
+def default_band_px(width_px: int) -> int:
+    """The band height (rows) for :func:`consistency_step`'s ``band_px`` on a window ``width_px`` wide."""
+    return max(1, STEP_BAND_PIXELS // max(int(width_px), 1))
+
+
+class _Frame:
+    """The geometry of the steps on the estimate's frame, the window extended by (py, px) px a side (E): rows
+    [ya, yb) of E are the sensor rows [max(ya, py) − py, min(yb, py + h) − py), and every column of the window.
+    ``origin``: the sensor pixel of E's top-left corner. ``start``: the steps' start, whose spectra the spectral
+    prior follows: on E, or (``extension`` = (mode, rows, columns)) the window's x0, extended by F.pad band by
+    band."""
+
+    def __init__(self, op, y, origin, py, px, noise_variance, spectral_prior, start, extension=None):
+        self.op, self.y, self.origin, self.py, self.px = op, y, origin, py, px
+        self.var, self.spectral_prior, self.start, self.extension = noise_variance, spectral_prior, start, extension
+        self.h, self.w = y.shape[-2:]
+
+    def start_rows(self, ya: int, yb: int) -> torch.Tensor:
+        """Rows [ya, yb) of the steps' start on E."""
+        if self.extension is None:
+            return self.start[..., ya:yb, :]
+        mode, py, px = self.extension
+        if not (py or px):
+            return self.start[..., ya:yb, :]
+        # x0's rows under the band and py + 1 more each side (what a mirrored border needs), extended, then E's rows
+        lo = max(min(max(ya - py, 0), self.h) - py - 1, 0)
+        hi = min(min(max(yb - py, 0), self.h) + py + 1, self.h)
+        return F.pad(self.start[..., lo:hi, :], (px, px, py, py), mode=mode)[..., ya - lo : yb - lo, :]
+
+    def _sensor_rows(self, ya: int, yb: int) -> tuple[int, int]:
+        return max(ya, self.py), min(yb, self.py + self.h)
+
+    def a(self, ya: int, yb: int, x: torch.Tensor) -> torch.Tensor:
+        """A of the frame rows [ya, yb) (B, C, yb − ya, W_E) → the sensor rows they hold (B, 1, ·, w)."""
+        sa, sb = self._sensor_rows(ya, yb)
+        return self.op.A(x, (self.origin[0] + ya, self.origin[1]))[..., sa - ya : sb - ya, self.px : self.px + self.w]
+
+    def a_t(self, ya: int, yb: int, v: torch.Tensor) -> torch.Tensor:
+        """Aᵀ of the sensor rows of frame rows [ya, yb) → those frame rows (zero light beyond the sensor)."""
+        sa, sb = self._sensor_rows(ya, yb)
+        return self.op.A_adjoint(F.pad(v, (self.px, self.px, sa - ya, yb - sb)), (self.origin[0] + ya, self.origin[1]))
+
+    def precondition(self, ya: int, yb: int):
+        """S on frame rows [ya, yb) (:func:`spectral_preconditioner` of the start's), None without the prior."""
+        return None if self.spectral_prior <= 0 else spectral_preconditioner(self.start_rows(ya, yb),
+                                                                               self.spectral_prior)
+
+    def row_sums(self, ya: int, yb: int, win: dict, lam: float) -> torch.Tensor:
+        """D = A S Aᵀ 𝟙 + λ on frame rows [ya, yb) (1 outside the sensor; S: :meth:`precondition`)."""
+        sa, sb = self._sensor_rows(ya, yb)
+        back = self.a_t(ya, yb, win["rows"][..., sa - ya : sb - ya, self.px : self.px + self.w])
+        s = self.precondition(ya, yb)
+        d = self.a(ya, yb, back if s is None else s(back)) + lam
+        return F.pad(d, (self.px, self.px, sa - ya, yb - sb), value=1.0)
+
+    def step(self, ya: int, yb: int, win: dict, z: torch.Tensor) -> torch.Tensor:
+        """The Landweber step S Aᵀ (w(y − A z) ⊘ D) on frame rows [ya, yb) (w: :func:`wiener_residual`)."""
+        sa, sb = self._sensor_rows(ya, yb)
+        ys = slice(sa - self.py, sb - self.py)
+        var = self.var
+        if var is not None and var.dim() >= 2 and var.shape[-2] > 1:
+            var = var[..., ys, :]
+        r = wiener_residual(self.y[..., ys, :] - self.a(ya, yb, z), var)
+        g = self.a_t(ya, yb, r / win["rows"][..., sa - ya : sb - ya, self.px : self.px + self.w])
+        s = self.precondition(ya, yb)
+        return g if s is None else s(g)
+
+
+def _in_bands(update, state: dict, band_px: int | None, halo_px: int) -> dict:
+    """``state`` (frame tensors (·, ·, H, W), or None) with ``update(ya, yb, windows) → {key: new rows}`` applied.
+
+    ``band_px`` None (or ≥ H): one call on the whole frame, nothing in place. Else bands of max(``band_px``,
+    ``halo_px``) rows, top to bottom, each computed from its rows ± ``halo_px`` (the rows that reach the band's
+    output) and written into ``state`` in place: the old rows the next band reads above its own are kept aside
+    before they are overwritten, so every band sees the old values, as the whole-frame call does."""
+    height = state["x" if "x" in state else "rows"].shape[-2]
+    if band_px is None or band_px >= height:
+        return {**state, **update(0, height, state)}
+    band = max(int(band_px), int(halo_px), 1)
+    kept: dict = {}  # the old rows [y0 − halo, y0) of the keys written, for the band starting at y0
+    for y0 in range(0, height, band):
+        y1 = min(y0 + band, height)
+        ya, yb = max(y0 - halo_px, 0), min(y1 + halo_px, height)
+        win = {k: None if t is None else torch.cat([kept[k], t[..., y0:yb, :]], dim=-2) if k in kept
+               else t[..., ya:yb, :] for k, t in state.items()}
+        new = update(ya, yb, win)
+        del win
+        kept = {k: state[k][..., max(y1 - halo_px, 0) : y1, :].clone() for k in new}
+        for k, v in new.items():
+            state[k][..., y0:y1, :] = v[..., y0 - ya : y1 - ya, :]
+        del new
+    return state
+
+
+def _tv_brightness(x0: torch.Tensor) -> torch.Tensor:
+    """The local brightness b (B, 1, H, W) that :class:`BrightnessTV` divides by, of the steps' start x0."""
+    return brightness(x0.mean(dim=1, keepdim=True).clamp_min(0), BRIGHTNESS_WINDOW_PX, BRIGHTNESS_EPS)
+
+
+def brightness_tv_prox(v: torch.Tensor, b: torch.Tensor, weight: float,
+                       dual: tuple[torch.Tensor, torch.Tensor]) -> tuple[torch.Tensor, tuple[torch.Tensor, torch.Tensor]]:
+    """One step towards b · prox_{w·TV}(v ⊘ b) (:class:`BrightnessTV`): v (B, C, H, W), b (B, 1, H, W), the dual
+    field (two of v's shape) → (b · (u − w · div p), the new dual p), u = v ⊘ b, p one Chambolle iteration on."""
+    u = v / b
+    dual = chambolle_step(*dual, u / weight, vectorial=True)
+    return (u - weight * dual_divergence(*dual)) * b, dual
 
 
 def spectral_preconditioner(x: torch.Tensor, alpha: float):
@@ -182,18 +318,16 @@ class BrightnessTV:
     training scenes)."""
 
     def __init__(self, x0: torch.Tensor, weight: float) -> None:
-        mean = x0.mean(dim=1, keepdim=True).clamp_min(0)
-        self.brightness = brightness(mean, BRIGHTNESS_WINDOW_PX, BRIGHTNESS_EPS)
+        self.brightness = _tv_brightness(x0)
         self.weight = float(weight)
         self.dual: tuple[torch.Tensor, torch.Tensor] | None = None
 
     def __call__(self, v: torch.Tensor) -> torch.Tensor:
         """v (B, C, H, W) → b · (u − w · div p), u = v ⊘ b, after one update of the dual field p."""
-        u = v / self.brightness
         if self.dual is None:
-            self.dual = (torch.zeros_like(u), torch.zeros_like(u))
-        self.dual = chambolle_step(*self.dual, u / self.weight, vectorial=True)
-        return (u - self.weight * dual_divergence(*self.dual)) * self.brightness
+            self.dual = (torch.zeros_like(v), torch.zeros_like(v))
+        out, self.dual = brightness_tv_prox(v, self.brightness, self.weight, self.dual)
+        return out
 
 
 def linear_consistency_step(op, y: torch.Tensor, x0: torch.Tensor, weight: torch.Tensor,

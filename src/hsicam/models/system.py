@@ -10,8 +10,8 @@ from torch import nn
 from hsicam.cameras import Camera, build_camera
 from hsicam.cameras.base import check_device, check_finite, check_sensor_image
 from hsicam.errors import InputError
-from hsicam.models.consistency import (WIENER_WINDOW_PX, consistency_step, cut_psf, linear_consistency_step,
-                                       linear_reach_px, reach_px)
+from hsicam.models.consistency import (WIENER_WINDOW_PX, consistency_step, cut_psf, default_band_px,
+                                       linear_consistency_step, linear_reach_px, reach_px)
 from hsicam.models.registry import build_network
 
 log = logging.getLogger(__name__)
@@ -86,15 +86,25 @@ class CameraSystem(nn.Module):
     def _context_px(self, step_op, psf_energy: float) -> int:
         """:attr:`context_px` with the step through ``step_op``, its PSFs cut to ``psf_energy``."""
         c = self.consistency
-        # each step's Wiener gain on a noisy capture's residual looks WIENER_WINDOW_PX // 2 further
-        wiener = WIENER_WINDOW_PX // 2 if self._weighs_noise else 0
-        if c.kind == "linear":  # the filters' own width when loaded (a file fitted with another window_px)
-            window = int(self.linear_step.shape[-1]) if self.linear_step is not None else c.window_px
-            return (int(self.net.context_px) + linear_reach_px(step_op, window, c.iterations, psf_energy)
-                    + reach_px(step_op, c.landweber_after, psf_energy, tv=c.tv_weight > 0)
-                    + wiener * (c.iterations + c.landweber_after))
-        return (int(self.net.context_px) + reach_px(step_op, c.iterations, psf_energy, tv=c.tv_weight > 0)
-                + wiener * c.iterations)
+        iterations = c.landweber_after if c.kind == "linear" else c.iterations
+        return (self._context_before_steps_px(step_op, psf_energy)
+                + reach_px(step_op, iterations, psf_energy, tv=c.tv_weight > 0) + self._wiener_reach_px * iterations)
+
+    def _context_before_steps_px(self, step_op, psf_energy: float) -> int:
+        """The context (px per side) of :meth:`reconstruct_before_steps` with the step through ``step_op``."""
+        c = self.consistency
+        if c.kind != "linear":
+            return int(self.net.context_px)
+        # the filters' own width when loaded (a file fitted with another window_px)
+        window = int(self.linear_step.shape[-1]) if self.linear_step is not None else c.window_px
+        return (int(self.net.context_px) + linear_reach_px(step_op, window, c.iterations, psf_energy)
+                + self._wiener_reach_px * c.iterations)
+
+    @property
+    def _wiener_reach_px(self) -> int:
+        """How much further each step reaches on a noisy capture: its Wiener gain looks WIENER_WINDOW_PX // 2
+        further (0 unless :attr:`_weighs_noise`)."""
+        return WIENER_WINDOW_PX // 2 if self._weighs_noise else 0
 
     @property
     def _weighs_noise(self) -> bool:
@@ -139,33 +149,51 @@ class CameraSystem(nn.Module):
         """Sensor image (B, 1, H, W) → cube (B, C, H, W) (float32): :meth:`network`, then, in eval
         mode with ``consistency`` on, the measurement-consistency step through the nominal snapshot
         of ``step_camera`` (default ``camera``), its PSFs cut to ``consistency.psf_energy``, or
-        through ``step_operator`` as given (already cut: :meth:`reconstructor` passes one).
+        through ``step_operator`` as given (already cut: :meth:`reconstructor` passes one). Without
+        gradients the Landweber steps go in bands of rows (:func:`~hsicam.models.consistency.consistency_step`'s
+        ``band_px``: the same cube, a band's working memory).
 
         ``sensor``: floating (any precision), values in [0, 1] (1 = full scale), finite, on the model's
         device; else an :class:`InputError` naming what is wrong (:meth:`check_input`)."""
+        x = self.reconstruct_before_steps(sensor, origin, operator, step_operator)
+        if self.training or not self.consistency_on:
+            return x
+        return self.landweber_steps(sensor, x, origin, step_operator)
+
+    def reconstruct_before_steps(self, sensor: torch.Tensor, origin: tuple[int, int] = (0, 0), operator=None,
+                                 step_operator=None) -> torch.Tensor:
+        """:meth:`reconstruct` without its Landweber steps: the network, then (eval mode, consistency on, kind
+        linear) the linear step. Arguments as there."""
         self.check_input(sensor)
         x = self.network(sensor, origin, operator)
-        if self.training or not self.consistency_on:
+        if self.training or not self.consistency_on or self.consistency.kind != "linear":
             return x
         c = self.consistency
         op, energy = (self._step_operator(), c.psf_energy) if step_operator is None else (step_operator, 1.0)
-        if c.kind == "linear":
-            if self.linear_step is None:
-                raise InputError("model.consistency.kind=linear needs the run's linear_step.safetensors, fitted when "
-                                 "training ends; for a run without it: `hsicam train --out RUN --resume --set "
-                                 "model.consistency.kind=linear --set model.consistency.iterations=1` (a fine-tuned run: "
-                                 "`hsicam finetune … --resume`), or use --set model.consistency.kind=landweber")
-        var = self._noise_variance(sensor, origin)
-        if c.kind == "linear":
-            x = linear_consistency_step(op, sensor, x, self.linear_step, origin, gain=c.gain,
-                                        iterations=c.iterations, psf_energy=energy, extend=self._extension(),
-                                        noise_variance=var)
-            if not c.landweber_after:
-                return x
+        if self.linear_step is None:
+            raise InputError("model.consistency.kind=linear needs the run's linear_step.safetensors, fitted when "
+                             "training ends; for a run without it: `hsicam train --out RUN --resume --set "
+                             "model.consistency.kind=linear --set model.consistency.iterations=1` (a fine-tuned run: "
+                             "`hsicam finetune … --resume`), or use --set model.consistency.kind=landweber")
+        return linear_consistency_step(op, sensor, x, self.linear_step, origin, gain=c.gain, iterations=c.iterations,
+                                       psf_energy=energy, extend=self._extension(),
+                                       noise_variance=self._noise_variance(sensor, origin))
+
+    def landweber_steps(self, sensor: torch.Tensor, x: torch.Tensor, origin: tuple[int, int] = (0, 0),
+                        step_operator=None, on_step=None) -> torch.Tensor:
+        """The Landweber steps of ``consistency`` (kind landweber: its ``iterations``; linear: ``landweber_after``)
+        from the estimate x (B, C, H, W) of ``sensor`` (B, 1, H, W) at ``origin``; x itself when there are none.
+        ``step_operator`` as in :meth:`reconstruct`; ``on_step``: called after each step (progress)."""
+        c = self.consistency
         iterations = c.landweber_after if c.kind == "linear" else c.iterations
+        if not self.consistency_on or iterations <= 0:
+            return x
+        op, energy = (self._step_operator(), c.psf_energy) if step_operator is None else (step_operator, 1.0)
+        band = None if torch.is_grad_enabled() else default_band_px(sensor.shape[-1])
         return consistency_step(op, sensor, x, origin, damping=c.damping, iterations=iterations,
                                 psf_energy=energy, extend=self._extension(), spectral_prior=c.spectral_prior,
-                                noise_variance=var, tv_weight=c.tv_weight)
+                                noise_variance=self._noise_variance(sensor, origin), tv_weight=c.tv_weight,
+                                band_px=band, on_step=on_step)
 
     def check_input(self, sensor: torch.Tensor) -> None:
         """:class:`InputError` unless ``sensor`` is a finite floating (B, 1, H, W) image, B, H, W >= 1, on
@@ -179,7 +207,11 @@ class CameraSystem(nn.Module):
         tiles or scenes of one camera: ``fn(sensor, origin=(0, 0)) → cube``; ``fn.context_px`` is
         :attr:`context_px` (the halo :func:`~hsicam.engine.inference.reconstruct_tiled` takes by
         default). (A network given the camera itself would rebuild its PSF stack on every call.)
-        Take a new one after the optics change."""
+        Take a new one after the optics change. With Landweber steps, ``fn.before_steps(sensor, origin)`` (what
+        comes before them; its ``context_px``) and ``fn.steps(sensor, x, origin, on_step)`` (the ``fn.steps.count``
+        steps from x) too:
+        :func:`~hsicam.engine.inference.reconstruct_tiled` tiles the first and takes the steps on the whole
+        image, in bands, whose halo would otherwise grow with every step."""
         snap = getattr(self.camera, "snapshot", None)
         with torch.no_grad():
             op = snap(nominal=True) if callable(snap) else self.camera
@@ -192,6 +224,18 @@ class CameraSystem(nn.Module):
             return self.reconstruct(sensor, origin, operator=op, step_operator=step_op)
 
         fn.context_px = int(self.net.context_px) if step_op is None else self._context_px(step_op, 1.0)
+        c = self.consistency
+        if step_op is not None and (c.landweber_after if c.kind == "linear" else c.iterations) > 0:
+            def before_steps(sensor: torch.Tensor, origin: tuple[int, int] = (0, 0)) -> torch.Tensor:
+                return self.reconstruct_before_steps(sensor, origin, operator=op, step_operator=step_op)
+
+            def steps(sensor: torch.Tensor, x: torch.Tensor, origin: tuple[int, int] = (0, 0),
+                      on_step=None) -> torch.Tensor:
+                return self.landweber_steps(sensor, x, origin, step_operator=step_op, on_step=on_step)
+
+            before_steps.context_px = self._context_before_steps_px(step_op, 1.0)
+            steps.count = c.landweber_after if c.kind == "linear" else c.iterations
+            fn.before_steps, fn.steps = before_steps, steps
         return fn
 
     def forward(self, scene: torch.Tensor, generator: torch.Generator | None = None,
