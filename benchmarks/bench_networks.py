@@ -9,7 +9,8 @@ For each network kind on the ``quick`` camera (joint optics: DOE heights and CFA
 - one 512×512 reconstruction (31 bands), network only, no gradient;
 - for ``quick``, also the whole inference the demo runs (``infer_512_with_steps_s``): the network, then the
   preset's measurement-consistency steps (the linear step, with zero filters of the fitted shape, which
-  cost the same as fitted ones, and the spectral-prior Landweber steps of ``landweber_after``), through
+  cost the same as fitted ones, and the spectral-prior Landweber steps of ``landweber_after`` with the TV prior of
+  ``tv_weight``: since session 47, 12 of them), through
   the untrained camera's PSFs cut to ``psf_energy`` (``consistency.psf_kernel_px``; a trained quick camera's
   are far narrower, so its steps cost less: docs/networks.md).
 
