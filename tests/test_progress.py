@@ -64,3 +64,22 @@ def test_tiled_reconstruction_counts_its_tiles_off_a_terminal(caplog, monkeypatc
     assert out.shape == (1, 2, 40, 50)
     text = "\n".join(r.getMessage() for r in caplog.records)
     assert counts(text, "reconstruct") == [(1, 12), (12, 12)], text
+
+
+def test_tiled_reconstruction_counts_its_consistency_steps_off_a_terminal(caplog, monkeypatch, tiny_config):
+    """The consistency steps that go over the whole image after the tiles (minutes on a large capture) count
+    themselves too: k/N step lines after the tile lines."""
+    import torch
+
+    from hsicam.engine.inference import reconstruct_tiled
+    from hsicam.models import CameraSystem
+
+    model = CameraSystem.from_config(tiny_config("model.consistency.iterations=3",
+                                                 "model.consistency.tv_weight=0.05")).eval()
+    monkeypatch.setattr("sys.stderr.isatty", lambda: False, raising=False)
+    with caplog.at_level(logging.INFO, logger="hsicam.progress"):
+        reconstruct_tiled(model.reconstructor(), torch.rand(1, 1, 40, 50), 16, progress=None)
+    text = "\n".join(r.getMessage() for r in caplog.records)
+    assert counts(text, "reconstruct") == [(1, 12), (12, 12)], text
+    assert counts(text, "consistency steps")[0] == (1, 3) and counts(text, "consistency steps")[-1] == (3, 3), text
+    assert text.index("reconstruct: 12/12") < text.index("consistency steps: 1/3")
