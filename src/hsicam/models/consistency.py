@@ -124,7 +124,7 @@ def consistency_step(op, y: torch.Tensor, x0: torch.Tensor, origin: tuple[int, i
     # several bands: the kept heap's free pages go back after each step (one band's fragments are not kept into the
     # next step); one band: kept, for the next step's tensors of the same size (a trim would fault them in again:
     # 12 steps on a 512² image 4.0 → 6.3–8.5 s)
-    release = band_px is not None and x.shape[-2] // max(int(band_px), step_halo, 1) >= 2
+    release = _band_rows(x.shape[-2], band_px, step_halo) is not None
     if not tv:
         for _ in range(iterations):
             state = _in_bands(lambda ya, yb, win: {"x": win["x"] + frame.step(ya, yb, win, win["x"])}, state,
@@ -245,19 +245,26 @@ class _Frame:
         return g if s is None else s(g)
 
 
+def _band_rows(height: int, band_px: int | None, halo_px: int) -> int | None:
+    """The rows of each of the equal bands of at least max(``band_px``, ``halo_px``) rows that a frame ``height``
+    rows high splits into (no short band left over: a 532-row frame with ``band_px`` 512 is one band); None for one
+    band (or ``band_px`` None)."""
+    if band_px is None:
+        return None
+    band = math.ceil(height / max(height // max(int(band_px), int(halo_px), 1), 1))
+    return None if band >= height else band
+
+
 def _in_bands(update, state: dict, band_px: int | None, halo_px: int) -> dict:
     """``state`` (frame tensors (·, ·, H, W), or None) with ``update(ya, yb, windows) → {key: new rows}`` applied.
 
-    ``band_px`` None (or ≥ H): one call on the whole frame, nothing in place. Else equal bands of at least
-    max(``band_px``, ``halo_px``) rows (a 532-row frame with ``band_px`` 512: one), top to bottom, each computed from its rows ± ``halo_px`` (the rows that reach the band's
-    output) and written into ``state`` in place: the old rows the next band reads above its own are kept aside
-    before they are overwritten, so every band sees the old values, as the whole-frame call does."""
+    One band (:func:`_band_rows` None): one call on the whole frame, nothing in place. Else top to bottom, each band
+    computed from its rows ± ``halo_px`` (the rows that reach the band's output) and written into ``state`` in
+    place: the old rows the next band reads above its own are kept aside before they are overwritten, so every band
+    sees the old values, as the whole-frame call does."""
     height = state["x" if "x" in state else "rows"].shape[-2]
-    if band_px is None or band_px >= height:
-        return {**state, **update(0, height, state)}
-    # equal bands of at least max(band_px, halo_px) rows (no short band left over at the bottom)
-    band = math.ceil(height / max(height // max(int(band_px), int(halo_px), 1), 1))
-    if band >= height:
+    band = _band_rows(height, band_px, halo_px)
+    if band is None:
         return {**state, **update(0, height, state)}
     kept: dict = {}  # the old rows [y0 − halo, y0) of the keys written, for the band starting at y0
     for y0 in range(0, height, band):

@@ -86,7 +86,7 @@ class CameraSystem(nn.Module):
     def _context_px(self, step_op, psf_energy: float) -> int:
         """:attr:`context_px` with the step through ``step_op``, its PSFs cut to ``psf_energy``."""
         c = self.consistency
-        iterations = c.landweber_after if c.kind == "linear" else c.iterations
+        iterations = self._landweber_iterations
         return (self._context_before_steps_px(step_op, psf_energy)
                 + reach_px(step_op, iterations, psf_energy, tv=c.tv_weight > 0) + self._wiener_reach_px * iterations)
 
@@ -99,6 +99,13 @@ class CameraSystem(nn.Module):
         window = int(self.linear_step.shape[-1]) if self.linear_step is not None else c.window_px
         return (int(self.net.context_px) + linear_reach_px(step_op, window, c.iterations, psf_energy)
                 + self._wiener_reach_px * c.iterations)
+
+    @property
+    def _landweber_iterations(self) -> int:
+        """The Landweber steps of ``consistency``: kind linear's ``landweber_after`` (after its linear step), else
+        its ``iterations``."""
+        c = self.consistency
+        return c.landweber_after if c.kind == "linear" else c.iterations
 
     @property
     def _wiener_reach_px(self) -> int:
@@ -185,7 +192,7 @@ class CameraSystem(nn.Module):
         from the estimate x (B, C, H, W) of ``sensor`` (B, 1, H, W) at ``origin``; x itself when there are none.
         ``step_operator`` as in :meth:`reconstruct`; ``on_step``: called after each step (progress)."""
         c = self.consistency
-        iterations = c.landweber_after if c.kind == "linear" else c.iterations
+        iterations = self._landweber_iterations
         if not self.consistency_on or iterations <= 0:
             return x
         op, energy = (self._step_operator(), c.psf_energy) if step_operator is None else (step_operator, 1.0)
@@ -224,8 +231,7 @@ class CameraSystem(nn.Module):
             return self.reconstruct(sensor, origin, operator=op, step_operator=step_op)
 
         fn.context_px = int(self.net.context_px) if step_op is None else self._context_px(step_op, 1.0)
-        c = self.consistency
-        if step_op is not None and (c.landweber_after if c.kind == "linear" else c.iterations) > 0:
+        if step_op is not None and self._landweber_iterations > 0:
             def before_steps(sensor: torch.Tensor, origin: tuple[int, int] = (0, 0)) -> torch.Tensor:
                 return self.reconstruct_before_steps(sensor, origin, operator=op, step_operator=step_op)
 
@@ -234,7 +240,7 @@ class CameraSystem(nn.Module):
                 return self.landweber_steps(sensor, x, origin, step_operator=step_op, on_step=on_step)
 
             before_steps.context_px = self._context_before_steps_px(step_op, 1.0)
-            steps.count = c.landweber_after if c.kind == "linear" else c.iterations
+            steps.count = self._landweber_iterations
             fn.before_steps, fn.steps = before_steps, steps
         return fn
 
