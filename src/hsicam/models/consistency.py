@@ -42,7 +42,7 @@ import torch.nn.functional as F
 from hsicam.errors import InputError
 from hsicam.memory import release_freed_memory
 from hsicam.models.demosaic import brightness, phase_linear
-from hsicam.models.tv import chambolle_step, dual_divergence
+from hsicam.models.tv import band_inner, chambolle_step, dual_divergence
 
 
 def consistency_step(op, y: torch.Tensor, x0: torch.Tensor, origin: tuple[int, int] = (0, 0),
@@ -139,7 +139,8 @@ def consistency_step(op, y: torch.Tensor, x0: torch.Tensor, origin: tuple[int, i
         beta = min(momentum, (t - 1) / t_next)
 
         def tv_step(ya: int, yb: int, win: dict, beta: float = beta) -> dict:
-            z = win["x"] + beta * (win["x"] - win["previous"]) if beta > 0 else win["x"]
+            # x + β (x − x_previous), one pass over memory
+            z = torch.lerp(win["previous"], win["x"], 1 + beta) if beta > 0 else win["x"]
             out, dual = brightness_tv_prox(z + frame.step(ya, yb, win, z), win["brightness"], tv_weight,
                                            (win["dual_y"], win["dual_x"]))
             # the new estimate goes where the previous one was, which the next step no longer needs
@@ -289,10 +290,10 @@ def _tv_brightness(x0: torch.Tensor) -> torch.Tensor:
 def brightness_tv_prox(v: torch.Tensor, b: torch.Tensor, weight: float,
                        dual: tuple[torch.Tensor, torch.Tensor]) -> tuple[torch.Tensor, tuple[torch.Tensor, torch.Tensor]]:
     """One step towards b · prox_{w·TV}(v ⊘ b) (:class:`BrightnessTV`): v (B, C, H, W), b (B, 1, H, W), the dual
-    field (two of v's shape) → (b · (u − w · div p), the new dual p), u = v ⊘ b, p one Chambolle iteration on."""
-    u = v / b
-    dual = chambolle_step(*dual, u / weight, vectorial=True)
-    return (u - weight * dual_divergence(*dual)) * b, dual
+    field (two of v's shape) → (b · (u − w · div p), the new dual p), u = v ⊘ b, p one Chambolle iteration on
+    (b · (u − w · div p) computed as v − w · b · div p: one pass over memory)."""
+    dual = chambolle_step(*dual, v / (b * weight), vectorial=True)
+    return torch.addcmul(v, b, dual_divergence(*dual), value=-weight), dual
 
 
 def spectral_preconditioner(x: torch.Tensor, alpha: float):
@@ -306,10 +307,10 @@ def spectral_preconditioner(x: torch.Tensor, alpha: float):
     does not pass, along the estimate's spectrum there: where a grey edge or a line of text is in
     the sensor image, every band gets it, not only the pixel's own filter's bands."""
     s = x.clamp_min(0)
-    s = s / (s * s).sum(dim=1, keepdim=True).sqrt().clamp_min(torch.finfo(s.dtype).tiny)
+    s = s / band_inner(s, s).sqrt().clamp_min(torch.finfo(s.dtype).tiny)
 
     def apply(v: torch.Tensor) -> torch.Tensor:
-        return v + alpha * s * (s * v).sum(dim=1, keepdim=True)
+        return torch.addcmul(v, s, band_inner(s, v), value=alpha)
 
     return apply
 
