@@ -13,7 +13,14 @@ import torch
 from hsicam.cameras.base import Camera
 from hsicam.cameras.registry import register_camera
 from hsicam.errors import InputError
-from hsicam.optics.convolution import coded_conv_valid, coded_conv_valid_adjoint, pad_same, pad_same_adjoint
+from hsicam.optics.convolution import (
+    coded_conv_valid,
+    coded_conv_valid_adjoint,
+    coded_fft_shape,
+    pad_same,
+    pad_same_adjoint,
+    psf_spectrum,
+)
 from hsicam.optics.doe import DOE
 from hsicam.optics.lens import lens_from_config
 from hsicam.optics.psf import PSFModel, PSFResult
@@ -255,7 +262,18 @@ class DOESnapshot:
     gradients reach the DOE heights and the CFA weights. Light from outside the window is taken as
     zero: on a crop of a larger scene (a ``valid`` training patch), A x differs from the
     measurement within K//2 px of the border.
+
+    Applied without gradients (inference: the consistency steps call A and Aᵀ a few dozen times on windows of
+    one size), the snapshot keeps the PSFs' spectra and the CFA transmission of the last
+    :data:`KEPT_WINDOWS` window sizes and phases it saw: 31 of a call's 62 FFTs and the CFA's (C, h, w) tiling
+    are not redone (a 512² consistency step 0.14 → 0.10 s for A and Aᵀ together; session 48). Nothing is kept
+    while the PSFs or the CFA need gradients.
     """
+
+    #: How many window geometries (FFT shape; CFA size and phase) the kept spectra and CFA tilings cover: the
+    #: steps of one image use one (a 2048² capture's bands of rows, about three: the first, the middle ones, the
+    #: last), tiles of one size one more.
+    KEPT_WINDOWS = 3
 
     def __init__(self, bands: Bands, psf: torch.Tensor, tile: torch.Tensor, code_period: int) -> None:
         self.bands, self.psf, self.tile, self.code_period = bands, psf, tile, int(code_period)
@@ -263,6 +281,33 @@ class DOESnapshot:
         self.reach_px = (k - 1, k - 1)
         with torch.no_grad():  # ‖A‖² ≤ max_c ‖p_c‖₁² · max_pixel Σ_c κ_c² (Young + Cauchy–Schwarz)
             self.lipschitz = float(psf.sum(dim=(-2, -1)).max() ** 2 * tile.square().sum(0).max())
+        self._kept: dict = {}  # (what, geometry, dtype) → tensor, the oldest first
+
+    def _keep(self, key: tuple, make, source: torch.Tensor) -> torch.Tensor:
+        """``make()``, kept under ``key`` while ``source`` (the PSFs or the CFA tile) needs no gradient."""
+        if torch.is_grad_enabled() and source.requires_grad:
+            return make()
+        if key in self._kept:
+            return self._kept[key]
+        same_kind = [k for k in self._kept if k[0] == key[0]]
+        if len(same_kind) >= self.KEPT_WINDOWS:
+            del self._kept[same_kind[0]]
+        with torch.no_grad():
+            self._kept[key] = make()
+        return self._kept[key]
+
+    def _spectra(self, scene_hw: tuple[int, int], dtype: torch.dtype) -> torch.Tensor | None:
+        """The PSFs' spectra for a (padded) scene of ``scene_hw``, or None while the PSFs need gradients."""
+        if torch.is_grad_enabled() and self.psf.requires_grad:
+            return None
+        shape = coded_fft_shape(scene_hw)
+        return self._keep(("spectra", shape, dtype), lambda: psf_spectrum(self.psf.to(dtype), shape), self.psf)
+
+    def _code(self, height: int, width: int, origin: tuple[int, int], dtype: torch.dtype) -> torch.Tensor:
+        m = self.tile.shape[-2:]
+        phase = (origin[0] % m[0], origin[1] % m[1])
+        return self._keep(("code", (height, width, phase), dtype),
+                          lambda: self.sensor_code(height, width, phase).to(dtype), self.tile)
 
     @property
     def kernel_px(self) -> int:
@@ -283,16 +328,19 @@ class DOESnapshot:
         """Sensor window (B, 1, h, w) of the cube ``x`` (B, C, h, w)."""
         if x.dim() != 4 or x.shape[1] != len(self.bands):
             raise InputError(f"cube must be (B, {len(self.bands)}, H, W), got shape {tuple(x.shape)}")
-        kappa = self.sensor_code(x.shape[-2], x.shape[-1], origin).to(x.dtype)
-        return coded_conv_valid(pad_same(x, self.kernel_px), self.psf.to(x.dtype), kappa)
+        kappa = self._code(x.shape[-2], x.shape[-1], origin, x.dtype)
+        padded = pad_same(x, self.kernel_px)
+        return coded_conv_valid(padded, self.psf.to(x.dtype), kappa, self._spectra(tuple(padded.shape[-2:]), x.dtype))
 
     def A_adjoint(self, y: torch.Tensor, origin: tuple[int, int] = (0, 0)) -> torch.Tensor:  # noqa: N802
         """Exact adjoint of :meth:`A`: (B, 1, h, w) → (B, C, h, w)."""
         if y.dim() != 4 or y.shape[1] != 1:
             raise InputError(f"sensor image must be (B, 1, H, W), got shape {tuple(y.shape)}")
-        kappa = self.sensor_code(y.shape[-2], y.shape[-1], origin).to(y.dtype)
-        x = coded_conv_valid_adjoint(y, self.psf.to(y.dtype), kappa)
-        return pad_same_adjoint(x, self.kernel_px)
+        kappa = self._code(y.shape[-2], y.shape[-1], origin, y.dtype)
+        k = self.kernel_px
+        spectra = self._spectra((y.shape[-2] + k - 1, y.shape[-1] + k - 1), y.dtype)
+        x = coded_conv_valid_adjoint(y, self.psf.to(y.dtype), kappa, spectra)
+        return pad_same_adjoint(x, k)
 
     def cropped(self, kernel_px: int) -> "DOESnapshot":
         """The same operator with each PSF cut to its central ``kernel_px`` (odd) pixels: cheaper,
