@@ -38,7 +38,7 @@ from pathlib import Path
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from timing import allocator_option, apply_allocator, median_time  # noqa: E402
+from timing import allocator_option, apply_allocator, median_time, untrained_system_for_inference  # noqa: E402
 
 from hsicam.cameras import build_camera  # noqa: E402
 from hsicam.config import load_config  # noqa: E402
@@ -126,10 +126,7 @@ def inference(kind: str, cfg, repeats: int) -> dict:
     out = {"infer_512_s": wall, "infer_512_cpu_s": statistics.median(cpu)}
     if kind == "quick" and cfg.model.consistency.iterations > 0:
         torch.manual_seed(0)
-        system = CameraSystem.from_config(cfg).eval()
-        if cfg.model.consistency.kind == "linear":
-            m, w = system.camera.code_period, cfg.model.consistency.window_px
-            system.linear_step = torch.zeros(m * m, len(system.bands), w, w)
+        system = untrained_system_for_inference(CameraSystem.from_config(cfg).eval(), cfg)
         fn = system.reconstructor()
         out["infer_512_with_steps_s"] = median_time(lambda: fn(g), repeats=repeats, warmup=1)
         # the steps' cost grows with the PSF they keep: this untrained camera's lens PSF needs a far wider kernel

@@ -32,3 +32,16 @@ def median_time(fn, repeats: int = 1, warmup: int = 0) -> float:
         fn()
         times.append(time.perf_counter() - t0)
     return statistics.median(times)
+
+
+def untrained_system_for_inference(system, cfg):
+    """``system`` (an untrained :class:`~hsicam.models.CameraSystem` of ``cfg``) able to reconstruct as a trained run
+    does: a preset with the linear consistency step gets zero filters of the fitted shape (a trained run's come from
+    its ``linear_step.safetensors``; zero ones cost the same). Returns ``system``."""
+    import torch
+
+    if cfg.model.consistency.iterations > 0 and cfg.model.consistency.kind == "linear" and system.linear_step is None:
+        m, w = system.camera.code_period, cfg.model.consistency.window_px
+        device = next(system.parameters()).device
+        system.linear_step = torch.zeros(m * m, len(system.bands), w, w, device=device)
+    return system
