@@ -14,7 +14,7 @@ from hsicam.models.consistency import consistency_step
 from hsicam.optics.convolution import (
     coded_conv_valid,
     coded_conv_valid_adjoint,
-    coded_fft_shape,
+    linear_fft_shape,
     conv_valid,
     psf_spectrum,
 )
@@ -37,7 +37,7 @@ def test_coded_convolutions_take_kept_spectra():
     k, c = 5, 3
     x, y = _rand(2, c, 12 + k - 1, 10 + k - 1, seed=9), _rand(2, 1, 12, 10, seed=10)
     psf, kappa = _rand(c, k, k, seed=11), _rand(c, 12, 10, seed=12)
-    spectra = psf_spectrum(psf, coded_fft_shape(tuple(x.shape[-2:])))
+    spectra = psf_spectrum(psf, linear_fft_shape(tuple(x.shape[-2:])))
     with torch.no_grad():
         torch.testing.assert_close(coded_conv_valid(x, psf, kappa, spectra), coded_conv_valid(x, psf, kappa),
                                    rtol=1e-12, atol=1e-14)

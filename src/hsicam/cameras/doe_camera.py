@@ -16,7 +16,7 @@ from hsicam.errors import InputError
 from hsicam.optics.convolution import (
     coded_conv_valid,
     coded_conv_valid_adjoint,
-    coded_fft_shape,
+    linear_fft_shape,
     pad_same,
     pad_same_adjoint,
     psf_spectrum,
@@ -300,7 +300,7 @@ class DOESnapshot:
         """The PSFs' spectra for a (padded) scene of ``scene_hw``, or None while the PSFs need gradients."""
         if torch.is_grad_enabled() and self.psf.requires_grad:
             return None
-        shape = coded_fft_shape(scene_hw)
+        shape = linear_fft_shape(scene_hw)
         return self._keep(("spectra", shape, dtype), lambda: psf_spectrum(self.psf.to(dtype), shape), self.psf)
 
     def _code(self, height: int, width: int, origin: tuple[int, int], dtype: torch.dtype) -> torch.Tensor:

@@ -41,9 +41,10 @@ def psf_spectrum(psf: torch.Tensor, fft_shape: tuple[int, int]) -> torch.Tensor:
     return torch.fft.rfft2(psf, s=fft_shape)
 
 
-def coded_fft_shape(scene_hw: tuple[int, int]) -> tuple[int, int]:
-    """The FFT shape :func:`coded_conv_valid` and :func:`coded_conv_valid_adjoint` use for a scene (H+K−1, W+K−1):
-    the spectra their ``psf_f`` takes are ``psf_spectrum(psf, coded_fft_shape(scene_hw))``."""
+def linear_fft_shape(scene_hw: tuple[int, int]) -> tuple[int, int]:
+    """The FFT shape of every valid convolution here (and its adjoint) for a scene (H+K−1, W+K−1): the fast sizes
+    ≥ the scene's, enough for a linear convolution's valid part; the spectra :func:`coded_conv_valid` and
+    :func:`coded_conv_valid_adjoint` take as ``psf_f`` are ``psf_spectrum(psf, linear_fft_shape(scene_hw))``."""
     return fast_fft_size(scene_hw[0]), fast_fft_size(scene_hw[1])
 
 
@@ -59,7 +60,7 @@ def conv_valid(x: torch.Tensor, psf: torch.Tensor) -> torch.Tensor:
     h, w = hx - k + 1, wx - k + 1
     if h < 1 or w < 1:
         raise ValueError(f"valid convolution needs inputs of at least {k}×{k} pixels, got {hx}×{wx}")
-    shape = (fast_fft_size(hx), fast_fft_size(wx))
+    shape = linear_fft_shape((hx, wx))
     y = torch.fft.irfft2(torch.fft.rfft2(x, s=shape) * psf_spectrum(psf, shape), s=shape)
     return y[..., k - 1 : k - 1 + h, k - 1 : k - 1 + w]
 
@@ -70,7 +71,7 @@ def conv_valid_adjoint(y: torch.Tensor, psf: torch.Tensor) -> torch.Tensor:
     k = psf.shape[-1]
     h, w = y.shape[-2:]
     hx, wx = h + k - 1, w + k - 1
-    shape = (fast_fft_size(hx), fast_fft_size(wx))
+    shape = linear_fft_shape((hx, wx))
     placed = F.pad(y, (k - 1, shape[1] - (k - 1) - w, k - 1, shape[0] - (k - 1) - h))
     x = torch.fft.irfft2(torch.fft.rfft2(placed) * psf_spectrum(psf, shape).conj(), s=shape)
     return x[..., :hx, :wx]
@@ -169,7 +170,7 @@ class _CodedConvolution(torch.autograd.Function):
         k = psf.shape[-1]
         batch, bands, hx, wx = x.shape
         h, w = hx - k + 1, wx - k + 1
-        shape = coded_fft_shape((hx, wx))
+        shape = linear_fft_shape((hx, wx))
         chunks = _chunks(batch, bands, shape[0] * (shape[1] // 2 + 1) * 2 * x.element_size())
         keep_y = ctx.needs_input_grad[2]
         differentiated = any(ctx.needs_input_grad[:3])
@@ -238,7 +239,7 @@ def coded_conv_valid_adjoint(g: torch.Tensor, psf: torch.Tensor, kappa: torch.Te
     Run chunk by chunk with the row transforms pruned, as the fused op's backward: about 3× faster
     on CPU for 31 bands at 512² with a 21 px kernel (0.33 → 0.10 s, session 34), which the consistency steps take at
     inference. Without autograd only (its chunks are written in place); with gradients required
-    it falls back to :func:`conv_valid_adjoint`. ``psf_f``: the PSFs' spectra at :func:`coded_fft_shape` of the
+    it falls back to :func:`conv_valid_adjoint`. ``psf_f``: the PSFs' spectra at :func:`linear_fft_shape` of the
     scene, when the caller keeps them (an operator applied many times: 31 FFTs fewer a call; ignored with
     gradients)."""
     if g.dim() != 4 or g.shape[1] != 1:
@@ -252,7 +253,7 @@ def coded_conv_valid_adjoint(g: torch.Tensor, psf: torch.Tensor, kappa: torch.Te
     if kappa.shape != (psf.shape[0], h, w):
         raise ValueError(f"kappa must have shape {(psf.shape[0], h, w)}, got {tuple(kappa.shape)}")
     hx, wx = h + k - 1, w + k - 1
-    shape = coded_fft_shape((hx, wx))
+    shape = linear_fft_shape((hx, wx))
     _check_spectra(psf_f, psf, shape)
     out = g.new_empty(batch, psf.shape[0], hx, wx)
     for bs, cs in _chunks(batch, psf.shape[0], shape[0] * (shape[1] // 2 + 1) * 2 * g.element_size()):
@@ -269,7 +270,7 @@ def coded_conv_valid(x: torch.Tensor, psf: torch.Tensor, kappa: torch.Tensor,
         x: scene (B, C, H+K−1, W+K−1).
         psf: PSF stack (C, K, K).
         kappa: per-band weights on the sensor (C, H, W).
-        psf_f: optional, the PSFs' spectra ``psf_spectrum(psf, coded_fft_shape(x.shape[-2:]))`` (C, Lh, Lw//2+1)
+        psf_f: optional, the PSFs' spectra ``psf_spectrum(psf, linear_fft_shape(x.shape[-2:]))`` (C, Lh, Lw//2+1)
             when the caller keeps them (an operator applied many times without gradients: 31 of the call's 62
             FFTs saved); the PSF's gradient is still taken from ``psf``.
     Returns:
@@ -282,7 +283,7 @@ def coded_conv_valid(x: torch.Tensor, psf: torch.Tensor, kappa: torch.Tensor,
         raise ValueError(f"valid convolution needs inputs of at least {k}×{k} pixels, got {tuple(x.shape[-2:])}")
     if kappa.shape != (psf.shape[0], h, w):
         raise ValueError(f"kappa must have shape {(psf.shape[0], h, w)}, got {tuple(kappa.shape)}")
-    _check_spectra(psf_f, psf, coded_fft_shape(tuple(x.shape[-2:])))
+    _check_spectra(psf_f, psf, linear_fft_shape(tuple(x.shape[-2:])))
     return _CodedConvolution.apply(x, psf, kappa, psf_f)
 
 
