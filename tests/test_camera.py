@@ -168,6 +168,52 @@ def test_coded_adjoint_is_the_transpose_of_the_coded_convolution(monkeypatch):
         coded_conv_valid_adjoint(torch.rand(1, 3, 4, 6), psf, kappa)
 
 
+@pytest.mark.parametrize("device", ["cpu", "cuda"])
+@pytest.mark.parametrize("batch, bands, spectrum_bytes", [(8, 31, 400 * 201 * 8), (16, 31, 208 * 105 * 8), (1, 3, 5),
+                                                          (3, 7, 2**31)])
+def test_convolution_chunks_cover_every_image_once(device, batch, bands, spectrum_bytes):
+    """The coded convolutions' (batch, band) chunks: every image of the batch in every band exactly once, each
+    chunk's spectra within the device's limit (or a single image); on CPU the small chunks of ``CHUNK_BYTES``, on an
+    accelerator (planned here without one: a plan is arithmetic) whole batches, so that the paper camera's
+    training step (8 patches of 256 px behind 141 px PSFs: 400² FFTs) is one chunk, not 62."""
+    import hsicam.optics.convolution as conv
+
+    dev = torch.device(device)
+    limit = conv.chunk_bytes(dev)
+    assert limit == (conv.CHUNK_BYTES if device == "cpu" else conv.ACCELERATOR_CHUNK_BYTES)
+    chunks = conv._chunks(batch, bands, spectrum_bytes, dev)
+    seen = torch.zeros(batch, bands, dtype=torch.int64)
+    for bs, cs in chunks:
+        seen[bs, cs] += 1
+        images = len(range(*bs.indices(batch))) * len(range(*cs.indices(bands)))
+        assert images == 1 or images * spectrum_bytes <= limit
+    assert bool((seen == 1).all())
+    if (batch, bands, spectrum_bytes) == (8, 31, 400 * 201 * 8):
+        assert len(chunks) == (1 if device == "cuda" else 62)
+
+
+def test_coded_convolution_in_whole_batches_equals_small_chunks(monkeypatch):
+    """The accelerator's plan (whole batches, the einsum's band sum) run here on CPU: the same measurement,
+    adjoint and gradients as the CPU's small chunks, to float64 rounding."""
+    import hsicam.optics.convolution as conv
+
+    g = torch.Generator().manual_seed(21)
+    x = torch.rand(3, 4, 14, 15, generator=g, dtype=torch.float64, requires_grad=True)
+    psf = torch.rand(4, 5, 5, generator=g, dtype=torch.float64, requires_grad=True)
+    kappa = torch.rand(4, 10, 11, generator=g, dtype=torch.float64, requires_grad=True)
+    y = torch.rand(3, 1, 10, 11, generator=g, dtype=torch.float64)
+    results = []
+    for limit in (1, conv.ACCELERATOR_CHUNK_BYTES):  # one image a chunk; everything at once
+        monkeypatch.setattr(conv, "chunk_bytes", lambda device, limit=limit: limit)
+        out = coded_conv_valid(x, psf, kappa)
+        grads = torch.autograd.grad((out * y).sum(), (x, psf, kappa))
+        with torch.no_grad():
+            results.append((out.detach(), coded_conv_valid(x, psf, kappa), coded_conv_valid_adjoint(y, psf.detach(),
+                                                                                                      kappa.detach()), *grads))
+    for a, b in zip(*results):
+        torch.testing.assert_close(a, b, rtol=1e-12, atol=1e-13)
+
+
 def test_coded_adjoint_keeps_gradients_to_the_psf():
     """With gradients required (an unrolled network's stages train the optics through Aᵀ) the coded
     adjoint gives the plain correlation's value and gradients."""

@@ -119,15 +119,26 @@ def _unpad_1d(y: torch.Tensor, r: int, mode: str, dim: int) -> torch.Tensor:
     return core
 
 
-# Spectra of at most this many bytes are computed at a time. Small temporaries are recycled by
-# the C allocator; whole-batch spectra (tens of MB each) are fresh mmaps that the kernel has to
+# On CPU, spectra of at most this many bytes are computed at a time. Small temporaries are recycled
+# by the C allocator; whole-batch spectra (tens of MB each) are fresh mmaps that the kernel has to
 # page-fault and zero on every call, which cost more than the FFTs themselves on CPU.
 CHUNK_BYTES = 4 * 2**20
+# On an accelerator the opposite holds: a chunk costs a few kernel launches and a Python pass whatever its
+# size, and the caching allocator reuses whole-batch buffers. At CHUNK_BYTES the paper camera's training step
+# (8 patches of 256 px, 31 bands, 141 px PSFs) ran each coded convolution in 62 chunks of 6 images: on an H200
+# (session 49) ~1 000 FFT calls a step, the GPU mostly waiting for Python. Up to this many bytes go at once there.
+ACCELERATOR_CHUNK_BYTES = 2**30
 
 
-def _chunks(batch: int, bands: int, spectrum_bytes: int) -> list[tuple[slice, slice]]:
-    """(batch slice, band slice) pairs whose spectra hold at most CHUNK_BYTES (at least one image)."""
-    per_band = max(1, CHUNK_BYTES // max(1, spectrum_bytes))
+def chunk_bytes(device: torch.device) -> int:
+    """The most bytes of spectra the coded convolutions compute at a time on ``device``."""
+    return CHUNK_BYTES if device.type == "cpu" else ACCELERATOR_CHUNK_BYTES
+
+
+def _chunks(batch: int, bands: int, spectrum_bytes: int, device: torch.device) -> list[tuple[slice, slice]]:
+    """(batch slice, band slice) pairs whose spectra hold at most :func:`chunk_bytes` of ``device``
+    (at least one image)."""
+    per_band = max(1, chunk_bytes(device) // max(1, spectrum_bytes))
     if per_band >= batch:  # whole batch, several bands at a time
         step = per_band // batch
         return [(slice(0, batch), slice(c, min(bands, c + step))) for c in range(0, bands, step)]
@@ -157,7 +168,8 @@ def _rfft2_rows(img: torch.Tensor, shape: tuple[int, int], row0: int, col0: int)
 class _CodedConvolution(torch.autograd.Function):
     """g = Σ_c κ_c ⊙ valid_conv(x_c, psf_c): the DOE camera's measurement in one fused op.
 
-    The work runs over small (batch, band) chunks (see ``CHUNK_BYTES``) and the backward is
+    The work runs over (batch, band) chunks (small on CPU, whole batches on an accelerator: see
+    :func:`chunk_bytes`) and the backward is
     written out (gradients for x, psf and κ, each only when needed), with the FFTs pruned over
     the rows that are known to be zero or discarded. Nothing spectral is kept for the backward:
     the scene's spectrum is recomputed chunk by chunk (one FFT), which is cheaper than holding
@@ -171,21 +183,23 @@ class _CodedConvolution(torch.autograd.Function):
         batch, bands, hx, wx = x.shape
         h, w = hx - k + 1, wx - k + 1
         shape = linear_fft_shape((hx, wx))
-        chunks = _chunks(batch, bands, shape[0] * (shape[1] // 2 + 1) * 2 * x.element_size())
+        chunks = _chunks(batch, bands, shape[0] * (shape[1] // 2 + 1) * 2 * x.element_size(), x.device)
         keep_y = ctx.needs_input_grad[2]
         differentiated = any(ctx.needs_input_grad[:3])
+        on_cpu = x.device.type == "cpu"
         y_all = x.new_empty(batch, bands, h, w) if keep_y else None
         g = x.new_zeros(batch, h, w)
         for bs, cs in chunks:
             xf = torch.fft.rfft2(_placed(x[bs, cs], shape))
             xf.mul_(torch.fft.rfft2(psf[cs], s=shape) if psf_f is None else psf_f[cs])
             y = _irfft2_rows(xf, shape, k - 1, h)[..., k - 1 : k - 1 + w]
-            if differentiated:
+            if differentiated or not on_cpu:
                 g[bs] += torch.einsum("bchw,chw->bhw", y, kappa[cs])
             else:
-                # inference: Σ_c κ_c ⊙ y_c band by band, where the einsum is a bmm after a transposing copy (A of a
-                # 512² × 31 window 46 → 35 ms). Training keeps the einsum's order of summation, so that runs train
-                # bit for bit as before (the demo's figures are compared across sessions)
+                # inference on CPU: Σ_c κ_c ⊙ y_c band by band, where the einsum is a bmm after a transposing copy (A of
+                # a 512² × 31 window 46 → 35 ms). Training keeps the einsum's order of summation, so that runs train
+                # bit for bit as before (the demo's figures are compared across sessions); an accelerator keeps it
+                # too (one launch, not one per band)
                 for j, c in enumerate(range(*cs.indices(bands))):
                     g[bs].addcmul_(y[:, j], kappa[c])
             if keep_y:
@@ -256,7 +270,7 @@ def coded_conv_valid_adjoint(g: torch.Tensor, psf: torch.Tensor, kappa: torch.Te
     shape = linear_fft_shape((hx, wx))
     _check_spectra(psf_f, psf, shape)
     out = g.new_empty(batch, psf.shape[0], hx, wx)
-    for bs, cs in _chunks(batch, psf.shape[0], shape[0] * (shape[1] // 2 + 1) * 2 * g.element_size()):
+    for bs, cs in _chunks(batch, psf.shape[0], shape[0] * (shape[1] // 2 + 1) * 2 * g.element_size(), g.device):
         out[bs, cs] = _correlate_chunk(_rfft2_rows(g[bs] * kappa[cs], shape, k - 1, k - 1), psf[cs], shape, hx, wx,
                                        None if psf_f is None else psf_f[cs])
     return out
