@@ -9,7 +9,9 @@
 #
 # Environment: PRESET (default quick), MINUTES of training (default 6; the calibration, data generation
 # and evaluation come on top: keep MINUTES + 3 within the call's limit), SETS (extra KEY=VALUE
-# overrides, space-separated), TESTS (1: run the `cuda`-marked tests first), DEVICE (default cuda;
+# overrides, space-separated), TESTS (1: run the `cuda`-marked tests first), CALIB_PATCHES (patches per
+# epoch of the 2 calibration epochs; default the preset's: a paper-scale epoch of 1890 patches is too long
+# to spend on timing), BUDGET (train.max_minutes as a multiple of MINUTES, default 1.5), DEVICE (default cuda;
 # `DEVICE=cpu PRESET=tiny MINUTES=0.2` tries the script here), OUT (the device tool's $OUT; elsewhere default a temporary folder, printed),
 # WORKERS (DataLoader workers, default 8 on CUDA, 0 on CPU).
 # The device image has python3 with a CUDA torch and most dependencies; colour-science (to generate the
@@ -70,27 +72,34 @@ overrides=(--set "train.device=$DEVICE" --set "data.num_workers=$WORKERS")
 for kv in $SETS; do overrides+=(--set "$kv"); done
 
 echo "== calibration: 2 epochs of $PRESET (also generates the data)"
-"$PY" -m hsicam train --config "$PRESET" --out "$WORK/calib" "${overrides[@]}" --set train.epochs=2 \
+calib=(--set train.epochs=2)
+if [[ -n "${CALIB_PATCHES:-}" ]]; then calib+=(--set "data.patches_per_epoch=$CALIB_PATCHES"); fi
+"$PY" -m hsicam train --config "$PRESET" --out "$WORK/calib" "${overrides[@]}" "${calib[@]}" \
     > "$WORK/calib.log" 2>&1 || { tail -n 20 "$WORK/calib.log"; cp "$WORK/calib.log" "$OUT/"; exit 1; }
-EPOCHS=$("$PY" - "$WORK/calib/metrics.jsonl" "$MINUTES" <<'EOF'
-import json, math, sys
+EPOCHS=$("$PY" - "$WORK/calib/metrics.jsonl" "$MINUTES" "$PRESET" "${overrides[@]}" <<'EOF'
+import json, statistics, sys
+from hsicam.config import load_config
 recs = [json.loads(line) for line in open(sys.argv[1]) if line.strip()]
 final = [r for r in recs if r.get("final")][-1]
 steps = [r for r in recs if "train_loss" in r]
-# seconds per epoch from the second epoch on (the first also pays for start-up), validation included
-first = next(r for r in steps if r["epoch"] >= 1)
-per_step = (final["elapsed_s"] - first["elapsed_s"]) / max(final["step"] - first["step"], 1)
-steps_per_epoch = final["step"] / max(final["epoch"], 1)
-epochs = max(2, int(float(sys.argv[2]) * 60 / (per_step * steps_per_epoch)))
+# a training step: the median gap between consecutive steps of the second epoch (the first also pays for
+# start-up); a validation: what the run's end took after its last step (the second epoch's validation)
+second = [r for r in steps if r["epoch"] >= 1]
+gaps = [b["elapsed_s"] - a["elapsed_s"] for a, b in zip(second, second[1:]) if b["step"] == a["step"] + 1]
+per_step = statistics.median(gaps) if gaps else (final["elapsed_s"] - second[0]["elapsed_s"]) / max(len(second), 1)
+val_s = max(final["elapsed_s"] - steps[-1]["elapsed_s"], 0.0)
+cfg = load_config(sys.argv[3], [a for a in sys.argv[4:] if a != "--set"])  # the demo's own config
+steps_per_epoch = cfg.data.patches_per_epoch // cfg.train.batch_size
+epochs = max(2, int(float(sys.argv[2]) * 60 / (per_step * steps_per_epoch + val_s)))
 print(epochs)
-print(f"calibration: {per_step:.4f} s per step (validation included), {steps_per_epoch:.0f} steps per epoch "
+print(f"calibration: {per_step:.4f} s per step, {val_s:.1f} s per validation, {steps_per_epoch} steps per epoch "
       f"-> {epochs} epochs in {sys.argv[2]} min", file=sys.stderr)
 EOF
 )
 echo "epochs: $EPOCHS"
 
-echo "== demo: $PRESET, $EPOCHS epochs (budget $MINUTES min + 50 %)"
-budget=$("$PY" -c "print(round(float('$MINUTES') * 1.5, 2))")
+echo "== demo: $PRESET, $EPOCHS epochs (budget $MINUTES min × ${BUDGET:-1.5})"
+budget=$("$PY" -c "print(round(float('$MINUTES') * float('${BUDGET:-1.5}'), 2))")
 status=0
 "$PY" -m hsicam demo --config "$PRESET" --out "$WORK/demo" "${overrides[@]}" --set "train.epochs=$EPOCHS" \
     --set "train.max_minutes=$budget" > "$OUT/demo.log" 2>&1 || status=$?

@@ -1,0 +1,87 @@
+#!/usr/bin/env bash
+# One call on a lent GPU machine that makes its minutes count twice: two time-boxed demos side by side on
+# the one GPU (`scripts/gpu_session.sh` each; a small network leaves most of an H200 idle), and meanwhile
+# the CUDA tests and a CUDA smoke training of the tiny preset with bf16, channels_last and torch.compile.
+# Every training ends within LIMIT seconds (coreutils `timeout`; a stopped training saves its step), so
+# the archives are packed inside the call's own limit. What comes back under $OUT (6 files):
+#   a.log, b.log       each demo's session log (calibration, epochs chosen, the demo's last lines)
+#   a_demo.tar.gz, b_demo.tar.gz   each demo folder (figures, tables, results.json; weights when small)
+#   gpu_checks.log     the CUDA tests and the smoke training
+#   logs.tar.gz        every log (calibration, demo, evaluation) of both
+#
+#   A_PRESET=paper-unrolled A_MINUTES=4.5 B_PRESET=quick B_MINUTES=4.5 \
+#   B_SETS="data.synthetic_n=256 data.val_pool=64" bash scripts/gpu_lease.sh
+#
+# Environment: A_PRESET, A_MINUTES, A_SETS, A_CALIB_PATCHES, A_WORKERS and the same for B (see gpu_session.sh),
+# THREADS_EACH and WORKERS_EACH (each demo's torch threads and DataLoader workers; default a quarter of the
+# cores less two each, so that the two demos' main processes and their workers fill the machine without
+# oversubscribing it),
+# LIMIT (seconds for each demo, default 500), BUDGET (default 1.15), DEVICE (default cuda; `DEVICE=cpu
+# A_PRESET=tiny B_PRESET=tiny A_MINUTES=0.1 B_MINUTES=0.1` tries it here), OUT (default a temporary folder).
+# Wheels: as for gpu_session.sh (`bash scripts/gpu_session.sh --fetch-wheels`, carry .whl).
+set -uo pipefail
+
+PY=${PYTHON:-python3}
+DEVICE=${DEVICE:-cuda}
+LIMIT=${LIMIT:-500}
+W=$(mktemp -d "${TMPDIR:-/tmp}/hsicam-lease.XXXXXX")
+OUT=${OUT:-$W/out}
+mkdir -p "$OUT"
+echo "work folder $W, results in $OUT"
+export PYTHONUNBUFFERED=1
+# The cores shared out: each process's torch (OpenMP) pool sized to its share, since pools that each take every
+# core spin against one another (session 49's first lease: two demos and the checks with 16 threads each on 16
+# cores ran a paper-unrolled step in 3.0 s against 0.15-0.4 s alone, and a linear-step fit 144 s).
+CORES=$(nproc)
+THREADS_EACH=${THREADS_EACH:-$(( (CORES - 2) / 4 > 1 ? (CORES - 2) / 4 : 1 ))}
+WORKERS_EACH=${WORKERS_EACH:-$(( (CORES - 2) / 4 > 1 ? (CORES - 2) / 4 : 0 ))}
+echo "$CORES cores: $THREADS_EACH threads and $WORKERS_EACH DataLoader workers for each demo, 2 threads for the checks"
+if compgen -G ".whl/*.whl" > /dev/null && ! "$PY" -c "import colour, gdstk, OpenEXR" 2>/dev/null; then
+    "$PY" -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target "$W/site" .whl/*.whl
+    export PYTHONPATH="$W/site${PYTHONPATH:+:$PYTHONPATH}"
+fi
+
+demo() {  # demo NAME: one gpu_session.sh run from the NAME_* variables
+    local n=$1 preset minutes sets calib workers
+    preset=$(eval echo "\${${n^^}_PRESET:-quick}")
+    minutes=$(eval echo "\${${n^^}_MINUTES:-4}")
+    sets=$(eval echo "\${${n^^}_SETS:-}")
+    calib=$(eval echo "\${${n^^}_CALIB_PATCHES:-}")
+    workers=$(eval echo "\${${n^^}_WORKERS:-$WORKERS_EACH}")
+    OUT="$W/$n" PRESET="$preset" MINUTES="$minutes" SETS="$sets" CALIB_PATCHES="$calib" TESTS=0 \
+        BUDGET="${BUDGET:-1.15}" DEVICE="$DEVICE" WORKERS="$workers" \
+        OMP_NUM_THREADS="$THREADS_EACH" MKL_NUM_THREADS="$THREADS_EACH" \
+        timeout -k 20 "$LIMIT" bash scripts/gpu_session.sh > "$W/$n.log" 2>&1
+    echo "gpu_session.sh $n ($preset): exit $?" >> "$W/$n.log"
+}
+
+checks() {  # the CUDA tests, then a smoke training of the tiny preset through the CUDA-only options
+    export OMP_NUM_THREADS=2 MKL_NUM_THREADS=2
+    {
+        nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv 2>&1 || true
+        echo "== CUDA tests"
+        PYTHONPATH="$PWD/src${PYTHONPATH:+:$PYTHONPATH}" timeout 200 "$PY" -m pytest -q -p no:cacheprovider -rs \
+            "tests/test_camera_contract.py::test_cpu_equals_cuda" "tests/test_camera.py::test_cpu_and_cuda_agree" 2>&1 \
+            | tail -n 25
+        echo "== tiny preset on $DEVICE with bf16, channels_last, compile"
+        PYTHONPATH="$PWD/src${PYTHONPATH:+:$PYTHONPATH}" HSICAM_CACHE="$W/cache-smoke" timeout 200 "$PY" -m hsicam train \
+            --config tiny --out "$W/smoke" --set "train.device=$DEVICE" --set train.bf16=true \
+            --set train.channels_last=true --set train.compile=true --set train.epochs=3 2>&1 | tail -n 15
+        echo "smoke training: exit ${PIPESTATUS[0]}"
+    } > "$W/gpu_checks.log" 2>&1
+}
+
+checks &
+demo a &
+demo b &
+wait
+
+for n in a b; do
+    cp "$W/$n.log" "$OUT/$n.log" 2>/dev/null
+    [[ -f "$W/$n/demo.tar.gz" ]] && cp "$W/$n/demo.tar.gz" "$OUT/${n}_demo.tar.gz"
+done
+cp "$W/gpu_checks.log" "$OUT/"
+(cd "$W" && tar -czf "$OUT/logs.tar.gz" --ignore-failed-read ./*.log ./a/*.log ./b/*.log ./a/env.txt ./b/env.txt \
+    ./*/calib.log 2>/dev/null)
+ls -la "$OUT"
+tail -n 4 "$OUT/gpu_checks.log" "$OUT/a.log" "$OUT/b.log"

@@ -1,0 +1,46 @@
+"""scripts/gpu_lease.sh (two time-boxed demos side by side and the CUDA checks, in one call on a lent GPU
+machine) runs end to end here on the CPU with the tiny preset: what comes back is the six files it names, each
+demo calibrated on short epochs but sized for the preset's own, and the cores shared out."""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import subprocess
+import sys
+import tarfile
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+@pytest.mark.slow
+def test_gpu_lease_script_on_cpu(tmp_path):
+    out = tmp_path / "out"
+    env = {**os.environ, "DEVICE": "cpu", "A_PRESET": "tiny", "B_PRESET": "tiny", "A_MINUTES": "0.15",
+           "B_MINUTES": "0.15", "A_CALIB_PATCHES": "8", "B_SETS": "data.synthetic_n=24 data.val_pool=12",
+           "LIMIT": "300", "OUT": str(out), "PYTHON": sys.executable, "TMPDIR": str(tmp_path)}
+    run = subprocess.run(["bash", str(ROOT / "scripts" / "gpu_lease.sh")], cwd=ROOT, env=env, capture_output=True,
+                         text=True, timeout=900)
+    assert run.returncode == 0, run.stdout[-3000:] + run.stderr[-3000:]
+    assert {p.name for p in out.iterdir()} == {"a.log", "b.log", "a_demo.tar.gz", "b_demo.tar.gz", "gpu_checks.log",
+                                               "logs.tar.gz"}
+    assert "threads and" in run.stdout and "DataLoader workers for each demo" in run.stdout
+    # the CUDA tests ran (skipped without CUDA) and so did the smoke training through bf16/channels_last/compile
+    checks = (out / "gpu_checks.log").read_text()
+    assert "9 skipped" in checks and "smoke training: exit 0" in checks
+    for name in ("a", "b"):
+        log = (out / f"{name}.log").read_text()
+        # a calibration of 8-patch epochs (2 steps) still sizes the demo's epochs of tiny's own 16 patches (4 steps)
+        assert re.search(r"calibration: [0-9.]+ s per step, [0-9.]+ s per validation, 4 steps per epoch", log), log
+        status = int(re.search(rf"gpu_session.sh {name} \(tiny\): exit (\d+)", log).group(1))
+        assert status in (0, 75), log  # 75: the time budget stopped it, the partly trained run scored
+        with tarfile.open(out / f"{name}_demo.tar.gz") as tar:
+            scored = "results.json" if status == 0 else "eval-partial/results.json"
+            assert json.load(tar.extractfile(f"./{scored}"))["mean"]["psnr"] > 0
+    assert "PRESET=tiny" in (out / "a.log").read_text()
+    with tarfile.open(out / "logs.tar.gz") as tar:
+        assert {"./a/demo.log", "./b/demo.log", "./gpu_checks.log"} <= set(tar.getnames())
