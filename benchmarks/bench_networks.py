@@ -1,6 +1,7 @@
 """Reconstruction networks benchmark (issue 17): prints one JSON object.
 
-For each network kind on the ``quick`` camera (joint optics: DOE heights and CFA trainable):
+For each network kind on the ``quick`` camera (joint optics: DOE heights and CFA trainable; ``--config``
+another preset's camera and training batch, ``--device cuda`` on a GPU):
 
 - a full training step (camera forward, network forward + backward, optics backward, Adam) on a
   batch of ``train.batch_size`` patches of ``data.patch_px``, split into the optics (PSF + camera
@@ -15,11 +16,13 @@ For each network kind on the ``quick`` camera (joint optics: DOE heights and CFA
   are far narrower, so its steps cost less: docs/networks.md).
 
 Kinds: ``quick`` (the quick preset's own network, as configured: today the mosaic network with
-detail features), ``rdn`` (the quick RDN section with the demosaic input), ``mosaic`` (MosaicConfig defaults),
+detail features; with ``--config``, that preset's own network), ``rdn`` (the quick RDN section with the demosaic input), ``mosaic`` (MosaicConfig defaults),
 ``unrolled`` (UnrolledConfig defaults: demosaic init, 2 stages, full 141 px kernel) and
 ``unrolled-mosaic`` (MosaicNet front end without head, 2 stages with the PSF cut to 31 px).
 
-Run: `PYTHONPATH=src .venv/bin/python benchmarks/bench_networks.py [--steps N] [--kinds a,b]`.
+Run: `PYTHONPATH=src .venv/bin/python benchmarks/bench_networks.py [--steps N] [--kinds a,b]`; on a lent GPU e.g.
+`python3 benchmarks/bench_networks.py --device cuda --config paper-unrolled --kinds quick --steps 10` (the CPU
+times are then the host's, the wall times wait for the GPU's queue).
 Timings are medians of wall time (``*_s``) and of this process's CPU time (``*_cpu_s``); on a
 shared machine the wall times swell with the load (reported), the CPU times much less: with
 ``--threads 1`` the CPU time is what the wall time would be on an idle core.
@@ -38,10 +41,11 @@ from pathlib import Path
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from timing import allocator_option, apply_allocator, median_time, untrained_system_for_inference  # noqa: E402
+from timing import allocator_option, apply_allocator, median_time, synchronize, untrained_system_for_inference  # noqa: E402
 
 from hsicam.cameras import build_camera  # noqa: E402
 from hsicam.config import load_config  # noqa: E402
+from hsicam.devices import device_problem  # noqa: E402
 from hsicam.engine.tasks import system_loss  # noqa: E402
 from hsicam.models import CameraSystem  # noqa: E402
 from hsicam.config import MosaicConfig, UnrolledConfig  # noqa: E402
@@ -58,38 +62,38 @@ KINDS = {
 }
 
 
-def build(kind: str, cfg):
-    """(camera, network module, reconstruct(sensor) callable)."""
+def build(kind: str, cfg, device: torch.device):
+    """(camera, network module, reconstruct(sensor) callable), on ``device``."""
     torch.manual_seed(0)
     if kind in ("quick", "rdn"):
-        system = CameraSystem.from_config(cfg if kind == "quick" else load_config("quick", ["model.kind=rdn"]))
+        system = CameraSystem.from_config(cfg if kind == "quick" else load_config("quick", ["model.kind=rdn"])).to(device)
         return system.camera, system.net, system.reconstruct
-    cam = build_camera(cfg)
-    net = KINDS[kind](cam)
+    cam = build_camera(cfg).to(device)
+    net = KINDS[kind](cam).to(device)
     return cam, net, lambda s: net(s, cam)
 
 
-def train_step(kind: str, cfg, steps: int) -> dict:
-    cam, net, recon = build(kind, cfg)
+def train_step(kind: str, cfg, steps: int, device: torch.device) -> dict:
+    cam, net, recon = build(kind, cfg, device)
     params = list(net.parameters()) + [p for p in cam.parameters() if p.requires_grad]
     opt = torch.optim.Adam(params, lr=1e-4)
     b, p, m = cfg.train.batch_size, cfg.data.patch_px, cam.margin
-    scene = torch.rand(b, len(cam.bands), p + m, p + m)
+    scene = torch.rand(b, len(cam.bands), p + m, p + m, device=device)
     r = m // 2
     truth = scene[..., r : r + p, r : r + p]
     times: dict[str, list[float]] = {}
     for i in range(steps + 1):
-        t0 = _now()
+        t0 = _now(device)
         sensor = cam(scene)
-        t1 = _now()
+        t1 = _now(device)
         sensor_in = sensor.detach().requires_grad_()
         loss = system_loss(recon(sensor_in), truth, cfg.train)  # the preset's loss (quick: L1 + SSIM term)
         opt.zero_grad(set_to_none=True)
         loss.backward()
-        t2 = _now()
+        t2 = _now(device)
         sensor.backward(sensor_in.grad)
         opt.step()
-        t3 = _now()
+        t3 = _now(device)
         if i:  # the first step warms up
             for j, clock in enumerate(("", "_cpu")):
                 times.setdefault("optics" + clock, []).append((t1[j] - t0[j]) + (t3[j] - t2[j]))
@@ -99,8 +103,9 @@ def train_step(kind: str, cfg, steps: int) -> dict:
     return {**out, "params_M": sum(q.numel() for q in net.parameters()) / 1e6, "context_px": _context(kind, net, cam)}
 
 
-def _now() -> tuple[float, float]:
-    """(wall, process CPU) seconds."""
+def _now(device: torch.device) -> tuple[float, float]:
+    """(wall, process CPU) seconds, once the work queued on ``device`` is done."""
+    synchronize(device)
     return time.perf_counter(), time.process_time()
 
 
@@ -113,22 +118,23 @@ def _context(kind, net, cam) -> int:
 
 
 @torch.no_grad()
-def inference(kind: str, cfg, repeats: int) -> dict:
-    cam, net, recon = build(kind, cfg)
+def inference(kind: str, cfg, repeats: int, device: torch.device) -> dict:
+    cam, net, recon = build(kind, cfg, device)
     net.eval()
-    g = torch.rand(1, 1, 512, 512)
-    wall = median_time(lambda: recon(g), repeats=repeats, warmup=1)
+    g = torch.rand(1, 1, 512, 512, device=device)
+    wall = median_time(lambda: recon(g), repeats=repeats, warmup=1, device=device)
     cpu = []
     for _ in range(repeats):
         c0 = time.process_time()
         recon(g)
+        synchronize(device)
         cpu.append(time.process_time() - c0)
     out = {"infer_512_s": wall, "infer_512_cpu_s": statistics.median(cpu)}
     if kind == "quick" and cfg.model.consistency.iterations > 0:
         torch.manual_seed(0)
-        system = untrained_system_for_inference(CameraSystem.from_config(cfg).eval(), cfg)
+        system = untrained_system_for_inference(CameraSystem.from_config(cfg).to(device).eval(), cfg)
         fn = system.reconstructor()
-        out["infer_512_with_steps_s"] = median_time(lambda: fn(g), repeats=repeats, warmup=1)
+        out["infer_512_with_steps_s"] = median_time(lambda: fn(g), repeats=repeats, warmup=1, device=device)
         # the steps' cost grows with the PSF they keep: this untrained camera's lens PSF needs a far wider kernel
         # for psf_energy than a trained quick camera's (21 px)
         kept = cut_psf(system.camera.snapshot(nominal=True), cfg.model.consistency.psf_energy)
@@ -145,18 +151,27 @@ def main() -> None:
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--kinds", default="quick,rdn,mosaic,unrolled,unrolled-mosaic")
     ap.add_argument("--threads", type=int, default=0, help="torch threads (0: torch's default)")
+    ap.add_argument("--config", default="quick", help="preset or YAML whose camera, batch and patch size are timed "
+                                                      "(kind quick: its own network)")
+    ap.add_argument("--device", default="cpu", help="cpu (default), cuda or cuda:N")
     allocator_option(ap)
     args = ap.parse_args()
+    problem = device_problem(args.device)
+    if problem is not None:
+        ap.error(problem)
+    device = torch.device(args.device)
     kept = apply_allocator(args)
     if args.threads:
         torch.set_num_threads(args.threads)
-    cfg = load_config("quick")
-    out = {"preset": "quick", "batch": cfg.train.batch_size, "patch_px": cfg.data.patch_px,
+    cfg = load_config(args.config)
+    out = {"preset": args.config, "device": str(device), "batch": cfg.train.batch_size, "patch_px": cfg.data.patch_px,
            "threads": torch.get_num_threads(), "keep_freed_memory": kept, "load_avg_1min_start": os.getloadavg()[0],
            "kinds": {}}
+    if device.type == "cuda":
+        out["gpu"] = torch.cuda.get_device_name(device)
     for kind in args.kinds.split(","):
-        res = train_step(kind, cfg, args.steps)
-        res.update(inference(kind, cfg, args.repeats))
+        res = train_step(kind, cfg, args.steps, device)
+        res.update(inference(kind, cfg, args.repeats, device))
         out["kinds"][kind] = res
     out["load_avg_1min_end"] = os.getloadavg()[0]
     print(json.dumps(out, indent=1))

@@ -22,14 +22,26 @@ def apply_allocator(args: argparse.Namespace) -> bool:
     return False if args.glibc_default else keep_freed_memory()
 
 
-def median_time(fn, repeats: int = 1, warmup: int = 0) -> float:
-    """Median wall time (s) of ``repeats`` calls of ``fn`` after ``warmup`` untimed calls."""
+def synchronize(device=None) -> None:
+    """Wait for the work queued on ``device`` (a torch device or its name; CUDA runs asynchronously, so a wall
+    time read without this measures the queueing); nothing on CPU."""
+    import torch
+
+    if device is not None and torch.device(device).type == "cuda":
+        torch.cuda.synchronize(device)
+
+
+def median_time(fn, repeats: int = 1, warmup: int = 0, device=None) -> float:
+    """Median wall time (s) of ``repeats`` calls of ``fn`` after ``warmup`` untimed calls; on a CUDA ``device``
+    each call's queued work is waited for before its time is read."""
     for _ in range(warmup):
         fn()
+    synchronize(device)
     times = []
     for _ in range(repeats):
         t0 = time.perf_counter()
         fn()
+        synchronize(device)
         times.append(time.perf_counter() - t0)
     return statistics.median(times)
 
