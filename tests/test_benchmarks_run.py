@@ -1,5 +1,7 @@
-"""The benchmark scripts run: a small size of ``benchmarks/bench_baselines.py`` end to end (its DOE row crashed for
-sessions unnoticed, since nothing ran it, when the quick preset took the linear consistency step)."""
+"""The benchmark scripts run: each at a small size end to end, its JSON read back (``bench_baselines.py``'s DOE row
+crashed for sessions unnoticed, since nothing ran it, when the quick preset took the linear consistency step).
+``bench_train.py`` (half a minute even at one step: the paper network's step and 512² inference) runs among the
+slow tests."""
 
 from __future__ import annotations
 
@@ -8,6 +10,8 @@ import os
 import subprocess
 import sys
 from pathlib import Path
+
+import pytest
 
 BENCHMARKS = Path(__file__).resolve().parents[1] / "benchmarks"
 
@@ -46,3 +50,47 @@ def test_bench_networks_times_a_preset_given_and_refuses_a_missing_device():
         proc = subprocess.run([sys.executable, script, "--device", "cuda"], capture_output=True, text=True, timeout=120,
                               env=env)
         assert proc.returncode == 2 and "no CUDA device" in proc.stderr and "Traceback" not in proc.stderr
+
+
+def _run(script: str, *args: str, timeout: float = 300) -> dict:
+    """``benchmarks/SCRIPT ARGS`` on one thread: its printed JSON (a failure shows its stderr)."""
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    proc = subprocess.run([sys.executable, str(BENCHMARKS / script), *args], capture_output=True, text=True,
+                          timeout=timeout, env=env)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    return json.loads(proc.stdout)
+
+
+def test_bench_camera_runs_small():
+    out = _run("bench_camera.py", "--repeats", "1", "--batch", "1", "--size", "32")
+    assert out["threads"] == 1 and out["kernel_px"] == 141 and out["batch"][0] == 1
+    for key in ("psf_forward_s_float32", "psf_forward_backward_s_float64", "camera_forward_backward_s",
+                "conv_fft_forward_s_slice", "conv_direct_forward_s_slice"):
+        assert out[key] > 0, key
+    assert out["direct_over_fft_ratio"] == pytest.approx(out["conv_direct_forward_s_slice"] / out["conv_fft_forward_s_slice"])
+
+
+def test_bench_data_runs_small():
+    out = _run("bench_data.py", "--scenes", "2", "--batches", "2", "--demo-n", "0")
+    assert out["synth_scenes_timed"] == 2 and out["synth_s_per_scene"] > 0
+    assert out["holdout_sources"] == ["nist-philips", "rawtoaces"]
+    assert all(out[k] > 0 for k in out if k.startswith("loader_patches_per_s_"))
+
+
+def test_bench_capture_reconstructs_a_small_capture():
+    out = _run("bench_capture.py", "--size", "256")
+    assert out["exit_code"] == 0 and out["capture_px"] == [256, 256] and out["bands"] == 31
+    assert out["wall_s"] > 0 and out["peak_rss_bytes"] > 0 and out["output_h5_bytes"] > 256 * 256 * 31 * 2 // 2
+
+
+def test_bench_cli_times_the_commands():
+    out = _run("bench_cli.py", "--repeats", "1")
+    assert out["repeats"] == 1
+    assert all(out[k] > 0 for k in ("help_s", "psf_help_s", "evaluate_help_s", "usage_error_s", "torch_import_s"))
+
+
+@pytest.mark.slow
+def test_bench_train_runs_one_step():
+    out = _run("bench_train.py", "--steps", "1", timeout=900)
+    assert out["linear_step_cpu"]["size"] == [31, 512, 512] and out["linear_step_cpu"]["seconds"] > 0
+    assert out["consistency_step_cpu"]["seconds"] > 0
