@@ -5,7 +5,8 @@
 # Every training ends within LIMIT seconds (coreutils `timeout`; a stopped training saves its step), so
 # the archives are packed inside the call's own limit. What comes back under $OUT (6 files):
 #   a.log, b.log       each demo's session log (calibration, epochs chosen, the demo's last lines)
-#   a_demo.tar.gz, b_demo.tar.gz   each demo folder (figures, tables, results.json; weights when small)
+#   a_demo.tar.gz, b_demo.tar.gz   each demo folder (figures, tables, results.json; weights when small; a demo
+#                      that LIMIT stopped: its folder as it was, the run's config and metrics.jsonl in it)
 #   gpu_checks.log     the CUDA tests and the smoke training
 #   logs.tar.gz        every log (calibration, demo, evaluation) of both
 #
@@ -48,11 +49,27 @@ demo() {  # demo NAME: one gpu_session.sh run from the NAME_* variables
     sets=$(eval echo "\${${n^^}_SETS:-}")
     calib=$(eval echo "\${${n^^}_CALIB_PATCHES:-}")
     workers=$(eval echo "\${${n^^}_WORKERS:-$WORKERS_EACH}")
+    mkdir -p "$W/$n-tmp"
     OUT="$W/$n" PRESET="$preset" MINUTES="$minutes" SETS="$sets" CALIB_PATCHES="$calib" TESTS=0 \
-        BUDGET="${BUDGET:-1.15}" DEVICE="$DEVICE" WORKERS="$workers" \
+        BUDGET="${BUDGET:-1.15}" DEVICE="$DEVICE" WORKERS="$workers" TMPDIR="$W/$n-tmp" \
         OMP_NUM_THREADS="$THREADS_EACH" MKL_NUM_THREADS="$THREADS_EACH" \
         timeout -k 20 "$LIMIT" bash scripts/gpu_session.sh > "$W/$n.log" 2>&1
-    echo "gpu_session.sh $n ($preset): exit $?" >> "$W/$n.log"
+    local status=$?
+    echo "gpu_session.sh $n ($preset): exit $status" >> "$W/$n.log"
+    if [[ ! -f "$W/$n/demo.tar.gz" ]]; then
+        # stopped before it packed (LIMIT, or a failure): what the demo folder holds so far comes back instead (its
+        # run's config, metrics.jsonl and weights, any figures), without checkpoints or data
+        local demo_dir
+        demo_dir=$(compgen -G "$W/$n-tmp/hsicam-gpu.*/demo" | head -n 1)
+        if [[ -n "$demo_dir" ]]; then
+            tar -czf "$W/$n/demo.tar.gz" -C "$demo_dir" --exclude='run/checkpoints' . 2>/dev/null
+            if (( $(stat -c %s "$W/$n/demo.tar.gz") > 15 * 1024 * 1024 )); then  # over what comes back: no weights
+                tar -czf "$W/$n/demo.tar.gz" -C "$demo_dir" --exclude='run/checkpoints' --exclude='*.safetensors' . \
+                    2>/dev/null
+            fi
+            echo "packed the demo folder as it was at the stop (exit $status)" >> "$W/$n.log"
+        fi
+    fi
 }
 
 checks() {  # the CUDA tests, then a smoke training of the tiny preset through the CUDA-only options

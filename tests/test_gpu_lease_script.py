@@ -44,3 +44,23 @@ def test_gpu_lease_script_on_cpu(tmp_path):
     assert "PRESET=tiny" in (out / "a.log").read_text()
     with tarfile.open(out / "logs.tar.gz") as tar:
         assert {"./a/demo.log", "./b/demo.log", "./gpu_checks.log"} <= set(tar.getnames())
+
+
+@pytest.mark.slow
+def test_gpu_lease_script_brings_back_a_demo_stopped_at_its_limit(tmp_path):
+    """A demo that LIMIT stops before it packs (the first lease's fate) still comes back: its demo folder as it was,
+    the run's config and metrics in it."""
+    out = tmp_path / "out"
+    env = {**os.environ, "DEVICE": "cpu", "A_PRESET": "tiny", "B_PRESET": "tiny", "A_MINUTES": "3", "B_MINUTES": "3",
+           "LIMIT": "60", "OUT": str(out), "PYTHON": sys.executable, "TMPDIR": str(tmp_path)}
+    run = subprocess.run(["bash", str(ROOT / "scripts" / "gpu_lease.sh")], cwd=ROOT, env=env, capture_output=True,
+                         text=True, timeout=600)
+    assert run.returncode == 0, run.stdout[-3000:] + run.stderr[-3000:]
+    for name in ("a", "b"):
+        log = (out / f"{name}.log").read_text()
+        assert f"gpu_session.sh {name} (tiny): exit 124" in log, log[-2000:]
+        assert "packed the demo folder as it was at the stop (exit 124)" in log
+        with tarfile.open(out / f"{name}_demo.tar.gz") as tar:
+            names = set(tar.getnames())
+        assert {"./run/config.yaml", "./run/metrics.jsonl"} <= names
+        assert not any(n.startswith("./run/checkpoints/") for n in names)
