@@ -214,6 +214,23 @@ def test_coded_convolution_in_whole_batches_equals_small_chunks(monkeypatch):
         torch.testing.assert_close(a, b, rtol=1e-12, atol=1e-13)
 
 
+def test_coded_convolution_runs_the_accelerator_path_on_the_meta_device():
+    """The path a GPU takes (whole batches, the einsum's band sum without gradients too), run on torch's ``meta``
+    device (shapes only, no data): the measurement, the adjoint and the three gradients come out in their shapes,
+    and on the meta device, not silently on CPU."""
+    x = torch.empty(2, 4, 14, 15, device="meta")
+    psf, kappa = torch.empty(4, 5, 5, device="meta"), torch.empty(4, 10, 11, device="meta")
+    with torch.no_grad():
+        g = coded_conv_valid(x, psf, kappa)
+        back = coded_conv_valid_adjoint(torch.empty(2, 1, 10, 11, device="meta"), psf, kappa)
+    assert (g.shape, g.device.type) == ((2, 1, 10, 11), "meta")
+    assert (back.shape, back.device.type) == ((2, 4, 14, 15), "meta")
+    for t in (x, psf, kappa):
+        t.requires_grad_(True)
+    coded_conv_valid(x, psf, kappa).sum().backward()
+    assert [t.grad.shape for t in (x, psf, kappa)] == [x.shape, psf.shape, kappa.shape]
+
+
 def test_coded_adjoint_keeps_gradients_to_the_psf():
     """With gradients required (an unrolled network's stages train the optics through Aᵀ) the coded
     adjoint gives the plain correlation's value and gradients."""
