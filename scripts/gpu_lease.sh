@@ -3,7 +3,8 @@
 # the one GPU (`scripts/gpu_session.sh` each; a small network leaves most of an H200 idle), and meanwhile
 # the CUDA tests and a CUDA smoke training of the tiny preset with bf16, channels_last and torch.compile.
 # Every training ends within LIMIT seconds (coreutils `timeout`; a stopped training saves its step), so
-# the archives are packed inside the call's own limit. What comes back under $OUT (6 files):
+# the archives are packed inside the call's own limit. What comes back under $OUT (6 files; 8 when both demo
+# archives are over 15 MiB and come in two parts, a_demo.tar.gz.part-aa and -ab: scripts/pack_demo.sh):
 #   a.log, b.log       each demo's session log (calibration, epochs chosen, the demo's last lines)
 #   a_demo.tar.gz, b_demo.tar.gz   each demo folder (figures, tables, results.json; weights when small; a demo
 #                      that LIMIT stopped: its folder as it was, the run's config and metrics.jsonl in it)
@@ -56,17 +57,13 @@ demo() {  # demo NAME: one gpu_session.sh run from the NAME_* variables
         timeout -k 20 "$LIMIT" bash scripts/gpu_session.sh > "$W/$n.log" 2>&1
     local status=$?
     echo "gpu_session.sh $n ($preset): exit $status" >> "$W/$n.log"
-    if [[ ! -f "$W/$n/demo.tar.gz" ]]; then
+    if ! compgen -G "$W/$n/demo.tar.gz*" > /dev/null; then
         # stopped before it packed (LIMIT, or a failure): what the demo folder holds so far comes back instead (its
         # run's config, metrics.jsonl and weights, any figures), without checkpoints or data
         local demo_dir
         demo_dir=$(compgen -G "$W/$n-tmp/hsicam-gpu.*/demo" | head -n 1)
         if [[ -n "$demo_dir" ]]; then
-            tar -czf "$W/$n/demo.tar.gz" -C "$demo_dir" --exclude='run/checkpoints' . 2>/dev/null
-            if (( $(stat -c %s "$W/$n/demo.tar.gz") > 15 * 1024 * 1024 )); then  # over what comes back: no weights
-                tar -czf "$W/$n/demo.tar.gz" -C "$demo_dir" --exclude='run/checkpoints' --exclude='*.safetensors' . \
-                    2>/dev/null
-            fi
+            bash scripts/pack_demo.sh "$demo_dir" "$W/$n/demo.tar.gz" >> "$W/$n.log" 2>&1
             echo "packed the demo folder as it was at the stop (exit $status)" >> "$W/$n.log"
         fi
     fi
@@ -95,7 +92,9 @@ wait
 
 for n in a b; do
     cp "$W/$n.log" "$OUT/$n.log" 2>/dev/null
-    [[ -f "$W/$n/demo.tar.gz" ]] && cp "$W/$n/demo.tar.gz" "$OUT/${n}_demo.tar.gz"
+    for f in "$W/$n"/demo.tar.gz*; do  # demo.tar.gz, or its 15 MiB parts demo.tar.gz.part-aa, -ab, …
+        [[ -f "$f" ]] && cp "$f" "$OUT/${n}_$(basename "$f")"
+    done
 done
 cp "$W/gpu_checks.log" "$OUT/"
 (cd "$W" && tar -czf "$OUT/logs.tar.gz" --ignore-failed-read ./*.log ./a/*.log ./b/*.log ./a/env.txt ./b/env.txt \

@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # One call on a lent GPU machine (the device tool's `run`, from the repo root): the CUDA tests, then a
 # time-boxed demo of a preset trained on the GPU (its schedule sized to the time box, so a cosine
-# schedule ends where it should), then its evaluation; what the team needs comes back under $OUT.
+# schedule ends where it should), then its evaluation; what the team needs comes back under $OUT (the demo
+# folder as demo.tar.gz, or demo.tar.gz.part-aa, -ab, … when over 15 MiB: scripts/pack_demo.sh).
 #
 #   bash scripts/gpu_session.sh                          # quick preset, 6 minutes of training
 #   PRESET=paper-unrolled MINUTES=7 TESTS=0 bash scripts/gpu_session.sh
@@ -114,13 +115,9 @@ elif [[ $status != 0 ]]; then
     echo "demo: exit $status"
 fi
 
-# at most 8 files come back: the figures and tables in one archive, the weights beside it when small enough
+# at most 8 files come back: the figures, tables and weights in one archive (in 15 MiB parts when larger)
 if [[ -d "$WORK/demo" ]]; then
-    tar -czf "$OUT/demo.tar.gz" -C "$WORK/demo" --exclude='run/checkpoints' .
-    if (( $(stat -c %s "$OUT/demo.tar.gz") > 15 * 1024 * 1024 )); then  # over what comes back: the weights stay
-        tar -czf "$OUT/demo.tar.gz" -C "$WORK/demo" --exclude='run/checkpoints' --exclude='*.safetensors' .
-        echo "the weights are over 15 MiB compressed and stay on the device machine"
-    fi
+    bash "$(dirname "$0")/pack_demo.sh" "$WORK/demo" "$OUT/demo.tar.gz"
     ls -la "$OUT"
 fi
 exit $status
