@@ -12,7 +12,7 @@ from torch.func import functional_call
 
 from hsicam.errors import InputError
 from optics_reference import direct_valid_conv, reference_measurement
-from hsicam.optics.convolution import coded_conv_valid, coded_conv_valid_adjoint, conv_valid_adjoint
+from hsicam.optics.convolution import coded_conv_valid, coded_conv_valid_adjoint, conv_valid_adjoint, pad_same, pad_same_adjoint
 
 BOUNDARIES = [("valid", "zeros"), ("same", "zeros"), ("same", "reflect"), ("same", "replicate"), ("same", "circular")]
 SWITCHES = list(itertools.product([True, False], [True, False]))  # (DOE enabled, CFA enabled)
@@ -212,6 +212,56 @@ def test_coded_convolution_in_whole_batches_equals_small_chunks(monkeypatch):
                                                                                                       kappa.detach()), *grads))
     for a, b in zip(*results):
         torch.testing.assert_close(a, b, rtol=1e-12, atol=1e-13)
+
+
+@pytest.mark.parametrize("limit", [1, None])  # one image a chunk; the CPU's own chunks (here: everything at once)
+@pytest.mark.parametrize("spectra", [False, True])
+def test_coded_convolution_in_same_geometry_equals_the_padded_valid_one(monkeypatch, limit, spectra):
+    """coded_conv_same / coded_conv_same_adjoint (the snapshot's A and Aᵀ without gradients: no padded copy, pruned
+    transforms, cropped on the way out) against their definitions, the valid convolution of the zero-padded cube and
+    its adjoint folded back, on a rectangular window, with and without kept spectra; and the pair is adjoint."""
+    import hsicam.optics.convolution as conv
+
+    if limit is not None:
+        monkeypatch.setattr(conv, "chunk_bytes", lambda device: limit)
+    g = torch.Generator().manual_seed(31)
+    b, c, k, h, w = 2, 5, 7, 9, 13
+    x = torch.rand(b, c, h, w, generator=g, dtype=torch.float64)
+    y = torch.rand(b, 1, h, w, generator=g, dtype=torch.float64)
+    psf = torch.rand(c, k, k, generator=g, dtype=torch.float64)
+    kappa = torch.rand(c, h, w, generator=g, dtype=torch.float64)
+    psf_f = conv.psf_spectrum(psf, conv.linear_fft_shape((h + k - 1, w + k - 1))) if spectra else None
+    with torch.no_grad():
+        forward = conv.coded_conv_same(x, psf, kappa, psf_f)
+        back = conv.coded_conv_same_adjoint(y, psf, kappa, psf_f)
+    torch.testing.assert_close(forward, coded_conv_valid(pad_same(x, k), psf, kappa), rtol=1e-12, atol=1e-13)
+    torch.testing.assert_close(back, pad_same_adjoint(conv_valid_adjoint(y * kappa, psf), k), rtol=1e-12, atol=1e-13)
+    direct = (direct_valid_conv(_np(pad_same(x, k)), _np(psf)) * _np(kappa)[None]).sum(axis=1, keepdims=True)
+    np.testing.assert_allclose(_np(forward), direct, rtol=1e-10, atol=1e-12)
+    assert float((forward * y).sum()) == pytest.approx(float((x * back).sum()), rel=1e-12)
+
+
+def test_coded_convolution_in_same_geometry_keeps_gradients_and_refuses_bad_shapes():
+    """With gradients required the same-geometry pair is the differentiable composition (gradients reach the PSFs
+    and the CFA, as the unrolled stages need); a wrong CFA shape or wrong spectra are one clear ValueError."""
+    import hsicam.optics.convolution as conv
+
+    g = torch.Generator().manual_seed(32)
+    x = torch.rand(1, 3, 8, 10, generator=g, dtype=torch.float64, requires_grad=True)
+    psf = torch.rand(3, 5, 5, generator=g, dtype=torch.float64, requires_grad=True)
+    kappa = torch.rand(3, 8, 10, generator=g, dtype=torch.float64, requires_grad=True)
+    y = torch.rand(1, 1, 8, 10, generator=g, dtype=torch.float64)
+    assert torch.autograd.gradcheck(conv.coded_conv_same, (x, psf, kappa), eps=1e-6, atol=1e-8, rtol=1e-5)
+    (gp, gk) = torch.autograd.grad((conv.coded_conv_same_adjoint(y, psf, kappa) * x.detach()).sum(), (psf, kappa))
+    (rp, rk) = torch.autograd.grad((pad_same_adjoint(conv_valid_adjoint(y * kappa, psf), 5) * x.detach()).sum(),
+                                   (psf, kappa))
+    torch.testing.assert_close((gp, gk), (rp, rk), rtol=1e-12, atol=1e-13)
+    with torch.no_grad(), pytest.raises(ValueError, match="kappa must have shape"):
+        conv.coded_conv_same(x, psf, kappa[:, :7])
+    with torch.no_grad(), pytest.raises(ValueError, match="kappa must have shape"):
+        conv.coded_conv_same_adjoint(y, psf, kappa[:, :, :9])
+    with torch.no_grad(), pytest.raises(ValueError, match="psf_f must be"):
+        conv.coded_conv_same(x, psf, kappa, conv.psf_spectrum(psf, (8, 10)))
 
 
 def test_coded_convolution_runs_the_accelerator_path_on_the_meta_device():

@@ -193,15 +193,7 @@ class _CodedConvolution(torch.autograd.Function):
             xf = torch.fft.rfft2(_placed(x[bs, cs], shape))
             xf.mul_(torch.fft.rfft2(psf[cs], s=shape) if psf_f is None else psf_f[cs])
             y = _irfft2_rows(xf, shape, k - 1, h)[..., k - 1 : k - 1 + w]
-            if differentiated or not on_cpu:
-                g[bs] += torch.einsum("bchw,chw->bhw", y, kappa[cs])
-            else:
-                # inference on CPU: Σ_c κ_c ⊙ y_c band by band, where the einsum is a bmm after a transposing copy (A of
-                # a 512² × 31 window 46 → 35 ms). Training keeps the einsum's order of summation, so that runs train
-                # bit for bit as before (the demo's figures are compared across sessions); an accelerator keeps it
-                # too (one launch, not one per band)
-                for j, c in enumerate(range(*cs.indices(bands))):
-                    g[bs].addcmul_(y[:, j], kappa[c])
+            _add_coded(g[bs], y, kappa, cs, band_by_band=not differentiated and on_cpu)
             if keep_y:
                 y_all[bs, cs] = y
         ctx.save_for_backward(x, psf, kappa, y_all)
@@ -234,6 +226,19 @@ class _CodedConvolution(torch.autograd.Function):
             if ctx.needs_input_grad[1]:
                 grad_psf = torch.fft.irfft2(cross, s=shape)[..., :k, :k]
         return grad_x, grad_psf, grad_kappa, None
+
+
+def _add_coded(g: torch.Tensor, y: torch.Tensor, kappa: torch.Tensor, cs: slice, band_by_band: bool) -> None:
+    """g (b, h, w) += Σ_c κ_c ⊙ y_c over a chunk's bands ``cs`` (y (b, c, h, w), κ (C, h, w)), in place.
+    ``band_by_band`` (inference on CPU): one addcmul a band, where the einsum is a bmm after a transposing copy (A of
+    a 512² × 31 window 46 → 35 ms). Training keeps the einsum's order of summation, so that runs train bit for bit
+    as before (the demo's figures are compared across sessions); an accelerator keeps it too (one launch, not one per
+    band)."""
+    if not band_by_band:
+        g += torch.einsum("bchw,chw->bhw", y, kappa[cs])
+        return
+    for j, c in enumerate(range(*cs.indices(kappa.shape[0]))):
+        g.addcmul_(y[:, j], kappa[c])
 
 
 def _correlate_chunk(gf: torch.Tensor, psf: torch.Tensor, shape: tuple[int, int], hx: int, wx: int,
@@ -299,6 +304,62 @@ def coded_conv_valid(x: torch.Tensor, psf: torch.Tensor, kappa: torch.Tensor,
         raise ValueError(f"kappa must have shape {(psf.shape[0], h, w)}, got {tuple(kappa.shape)}")
     _check_spectra(psf_f, psf, linear_fft_shape(tuple(x.shape[-2:])))
     return _CodedConvolution.apply(x, psf, kappa, psf_f)
+
+
+def coded_conv_same(x: torch.Tensor, psf: torch.Tensor, kappa: torch.Tensor,
+                    psf_f: torch.Tensor | None = None) -> torch.Tensor:
+    """Σ over bands of κ ⊙ (each band convolved with its PSF), in ``same`` geometry with zero padding: x (B, C, H, W),
+    psf (C, K, K), kappa (C, H, W) → (B, 1, H, W), equal to ``coded_conv_valid(pad_same(x, K), psf, kappa, psf_f)``
+    (``psf_f``: the PSFs' spectra at ``linear_fft_shape((H + K − 1, W + K − 1))``).
+
+    Without gradients each chunk of x goes straight into its FFT canvas, its transforms pruned over the rows known to
+    be zero, with no padded copy of the cube: a DOE camera's snapshot A of a 532² × 31 window 44–56 → 35–39 ms
+    (session 49). With gradients required it is that composition (differentiable)."""
+    _check(x, psf)
+    k = psf.shape[-1]
+    if torch.is_grad_enabled() and (x.requires_grad or psf.requires_grad or kappa.requires_grad):
+        return coded_conv_valid(pad_same(x, k), psf, kappa, psf_f)
+    batch, bands, h, w = x.shape
+    if kappa.shape != (bands, h, w):
+        raise ValueError(f"kappa must have shape {(bands, h, w)}, got {tuple(kappa.shape)}")
+    shape = linear_fft_shape((h + k - 1, w + k - 1))
+    _check_spectra(psf_f, psf, shape)
+    r = k // 2
+    g = x.new_zeros(batch, h, w)
+    for bs, cs in _chunks(batch, bands, shape[0] * (shape[1] // 2 + 1) * 2 * x.element_size(), x.device):
+        xf = _rfft2_rows(x[bs, cs], shape, r, r)  # = the chunk of pad_same(x) placed at (0, 0)
+        xf.mul_(torch.fft.rfft2(psf[cs], s=shape) if psf_f is None else psf_f[cs])
+        _add_coded(g[bs], _irfft2_rows(xf, shape, k - 1, h)[..., k - 1 : k - 1 + w], kappa, cs,
+                   band_by_band=x.device.type == "cpu")
+    return g.unsqueeze(1)
+
+
+def coded_conv_same_adjoint(g: torch.Tensor, psf: torch.Tensor, kappa: torch.Tensor,
+                            psf_f: torch.Tensor | None = None) -> torch.Tensor:
+    """Exact adjoint of :func:`coded_conv_same`: (B, 1, H, W) → (B, C, H, W), equal to
+    ``pad_same_adjoint(coded_conv_valid_adjoint(g, psf, kappa, psf_f), K)``. Without gradients each chunk's
+    correlation is inverse-transformed over the H rows kept only and written into the output cropped (no (H + K − 1)²
+    cube, no crop copy: a snapshot Aᵀ of a 532² × 31 window 41–47 → 36–38 ms, session 49); with gradients required
+    it is that composition."""
+    if g.dim() != 4 or g.shape[1] != 1:
+        raise ValueError(f"expected a (B, 1, H, W) sensor image, got shape {tuple(g.shape)}")
+    if psf.dim() != 3 or psf.shape[-1] != psf.shape[-2] or psf.shape[-1] % 2 == 0:
+        raise ValueError(f"expected an odd square PSF stack (C, K, K), got shape {tuple(psf.shape)}")
+    k = psf.shape[-1]
+    if torch.is_grad_enabled() and (g.requires_grad or psf.requires_grad or kappa.requires_grad):
+        return pad_same_adjoint(coded_conv_valid_adjoint(g, psf, kappa, psf_f), k)
+    batch, _, h, w = g.shape
+    if kappa.shape != (psf.shape[0], h, w):
+        raise ValueError(f"kappa must have shape {(psf.shape[0], h, w)}, got {tuple(kappa.shape)}")
+    shape = linear_fft_shape((h + k - 1, w + k - 1))
+    _check_spectra(psf_f, psf, shape)
+    r = k // 2
+    out = g.new_empty(batch, psf.shape[0], h, w)
+    for bs, cs in _chunks(batch, psf.shape[0], shape[0] * (shape[1] // 2 + 1) * 2 * g.element_size(), g.device):
+        gf = _rfft2_rows(g[bs] * kappa[cs], shape, k - 1, k - 1)
+        gf.mul_((torch.fft.rfft2(psf[cs], s=shape) if psf_f is None else psf_f[cs]).conj())
+        out[bs, cs] = _irfft2_rows(gf, shape, r, h)[..., r : r + w]
+    return out
 
 
 def _check_spectra(psf_f: torch.Tensor | None, psf: torch.Tensor, shape: tuple[int, int]) -> None:
