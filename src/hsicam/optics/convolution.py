@@ -261,10 +261,7 @@ def coded_conv_valid_adjoint(g: torch.Tensor, psf: torch.Tensor, kappa: torch.Te
     it falls back to :func:`conv_valid_adjoint`. ``psf_f``: the PSFs' spectra at :func:`linear_fft_shape` of the
     scene, when the caller keeps them (an operator applied many times: 31 FFTs fewer a call; ignored with
     gradients)."""
-    if g.dim() != 4 or g.shape[1] != 1:
-        raise ValueError(f"expected a (B, 1, H, W) sensor image, got shape {tuple(g.shape)}")
-    if psf.dim() != 3 or psf.shape[-1] != psf.shape[-2] or psf.shape[-1] % 2 == 0:
-        raise ValueError(f"expected an odd square PSF stack (C, K, K), got shape {tuple(psf.shape)}")
+    _check_sensor(g, psf)
     if torch.is_grad_enabled() and (g.requires_grad or psf.requires_grad or kappa.requires_grad):
         return conv_valid_adjoint(g * kappa, psf)
     k = psf.shape[-1]
@@ -341,10 +338,7 @@ def coded_conv_same_adjoint(g: torch.Tensor, psf: torch.Tensor, kappa: torch.Ten
     correlation is inverse-transformed over the H rows kept only and written into the output cropped (no (H + K − 1)²
     cube, no crop copy: a snapshot Aᵀ of a 532² × 31 window 41–47 → 36–38 ms, session 49); with gradients required
     it is that composition."""
-    if g.dim() != 4 or g.shape[1] != 1:
-        raise ValueError(f"expected a (B, 1, H, W) sensor image, got shape {tuple(g.shape)}")
-    if psf.dim() != 3 or psf.shape[-1] != psf.shape[-2] or psf.shape[-1] % 2 == 0:
-        raise ValueError(f"expected an odd square PSF stack (C, K, K), got shape {tuple(psf.shape)}")
+    _check_sensor(g, psf)
     k = psf.shape[-1]
     if torch.is_grad_enabled() and (g.requires_grad or psf.requires_grad or kappa.requires_grad):
         return pad_same_adjoint(coded_conv_valid_adjoint(g, psf, kappa, psf_f), k)
@@ -360,6 +354,14 @@ def coded_conv_same_adjoint(g: torch.Tensor, psf: torch.Tensor, kappa: torch.Ten
         gf.mul_((torch.fft.rfft2(psf[cs], s=shape) if psf_f is None else psf_f[cs]).conj())
         out[bs, cs] = _irfft2_rows(gf, shape, r, h)[..., r : r + w]
     return out
+
+
+def _check_sensor(g: torch.Tensor, psf: torch.Tensor) -> None:
+    """The adjoints' arguments: a (B, 1, H, W) sensor image and an odd square PSF stack (C, K, K)."""
+    if g.dim() != 4 or g.shape[1] != 1:
+        raise ValueError(f"expected a (B, 1, H, W) sensor image, got shape {tuple(g.shape)}")
+    if psf.dim() != 3 or psf.shape[-1] != psf.shape[-2] or psf.shape[-1] % 2 == 0:
+        raise ValueError(f"expected an odd square PSF stack (C, K, K), got shape {tuple(psf.shape)}")
 
 
 def _check_spectra(psf_f: torch.Tensor | None, psf: torch.Tensor, shape: tuple[int, int]) -> None:
