@@ -73,30 +73,12 @@ overrides=(--set "train.device=$DEVICE" --set "data.num_workers=$WORKERS")
 for kv in $SETS; do overrides+=(--set "$kv"); done
 
 echo "== calibration: 2 epochs of $PRESET (also generates the data)"
-calib=(--set train.epochs=2)
+# every step logged (the presets log every 20th): the step time is read off consecutive steps
+calib=(--set train.epochs=2 --set train.log_every_steps=1)
 if [[ -n "${CALIB_PATCHES:-}" ]]; then calib+=(--set "data.patches_per_epoch=$CALIB_PATCHES"); fi
 "$PY" -m hsicam train --config "$PRESET" --out "$WORK/calib" "${overrides[@]}" "${calib[@]}" \
     > "$WORK/calib.log" 2>&1 || { tail -n 20 "$WORK/calib.log"; cp "$WORK/calib.log" "$OUT/"; exit 1; }
-EPOCHS=$("$PY" - "$WORK/calib/metrics.jsonl" "$MINUTES" "$PRESET" "${overrides[@]}" <<'EOF'
-import json, statistics, sys
-from hsicam.config import load_config
-recs = [json.loads(line) for line in open(sys.argv[1]) if line.strip()]
-final = [r for r in recs if r.get("final")][-1]
-steps = [r for r in recs if "train_loss" in r]
-# a training step: the median gap between consecutive steps of the second epoch (the first also pays for
-# start-up); a validation: what the run's end took after its last step (the second epoch's validation)
-second = [r for r in steps if r["epoch"] >= 1]
-gaps = [b["elapsed_s"] - a["elapsed_s"] for a, b in zip(second, second[1:]) if b["step"] == a["step"] + 1]
-per_step = statistics.median(gaps) if gaps else (final["elapsed_s"] - second[0]["elapsed_s"]) / max(len(second), 1)
-val_s = max(final["elapsed_s"] - steps[-1]["elapsed_s"], 0.0)
-cfg = load_config(sys.argv[3], [a for a in sys.argv[4:] if a != "--set"])  # the demo's own config
-steps_per_epoch = cfg.data.patches_per_epoch // cfg.train.batch_size
-epochs = max(2, int(float(sys.argv[2]) * 60 / (per_step * steps_per_epoch + val_s)))
-print(epochs)
-print(f"calibration: {per_step:.4f} s per step, {val_s:.1f} s per validation, {steps_per_epoch} steps per epoch "
-      f"-> {epochs} epochs in {sys.argv[2]} min", file=sys.stderr)
-EOF
-)
+EPOCHS=$("$PY" "$(dirname "$0")/calibrate_epochs.py" "$WORK/calib/metrics.jsonl" "$MINUTES" "$PRESET" "${overrides[@]}")
 echo "epochs: $EPOCHS"
 
 echo "== demo: $PRESET, $EPOCHS epochs (budget $MINUTES min × ${BUDGET:-1.5})"
