@@ -15,9 +15,8 @@
 #   B_SETS="data.synthetic_n=256 data.val_pool=64" bash scripts/gpu_lease.sh
 #
 # Environment: A_PRESET, A_MINUTES, A_SETS, A_CALIB_PATCHES, A_WORKERS and the same for B (see gpu_session.sh),
-# THREADS_EACH and WORKERS_EACH (each demo's torch threads and DataLoader workers; default a quarter of the
-# cores less two each, so that the two demos' main processes and their workers fill the machine without
-# oversubscribing it),
+# THREADS_EACH and WORKERS_EACH (each demo's torch threads and DataLoader workers; default (cores − 2) / 4 each,
+# so that the two demos' main processes and their workers fill the machine without oversubscribing it),
 # LIMIT (seconds for each demo, default 500), BUDGET (default 1.15), DEVICE (default cuda; `DEVICE=cpu
 # A_PRESET=tiny B_PRESET=tiny A_MINUTES=0.1 B_MINUTES=0.1` tries it here), OUT (default a temporary folder).
 # Wheels: as for gpu_session.sh (`bash scripts/gpu_session.sh --fetch-wheels`, carry .whl).
@@ -33,7 +32,7 @@ echo "work folder $W, results in $OUT"
 export PYTHONUNBUFFERED=1
 # The cores shared out: each process's torch (OpenMP) pool sized to its share, since pools that each take every
 # core spin against one another (session 49's first lease: two demos and the checks with 16 threads each on 16
-# cores ran a paper-unrolled step in 3.0 s against 0.15-0.4 s alone, and a linear-step fit 144 s).
+# cores; the quick demo's linear-step fit took 144 s for 248 scenes, 2-3 s for 56 on a 2-core CPU alone).
 CORES=$(nproc)
 THREADS_EACH=${THREADS_EACH:-$(( (CORES - 2) / 4 > 1 ? (CORES - 2) / 4 : 1 ))}
 WORKERS_EACH=${WORKERS_EACH:-$(( (CORES - 2) / 4 > 1 ? (CORES - 2) / 4 : 0 ))}
@@ -44,18 +43,25 @@ if compgen -G ".whl/*.whl" > /dev/null && ! "$PY" -c "import colour, gdstk, Open
 fi
 
 demo() {  # demo NAME: one gpu_session.sh run from the NAME_* variables
-    local n=$1 preset minutes sets calib workers
-    preset=$(eval echo "\${${n^^}_PRESET:-quick}")
-    minutes=$(eval echo "\${${n^^}_MINUTES:-4}")
-    sets=$(eval echo "\${${n^^}_SETS:-}")
-    calib=$(eval echo "\${${n^^}_CALIB_PATCHES:-}")
-    workers=$(eval echo "\${${n^^}_WORKERS:-$WORKERS_EACH}")
+    local n=$1 p=${1^^} preset minutes sets calib workers
+    local v_preset=${p}_PRESET v_minutes=${p}_MINUTES v_sets=${p}_SETS v_calib=${p}_CALIB_PATCHES v_workers=${p}_WORKERS
+    preset=${!v_preset:-quick}
+    minutes=${!v_minutes:-4}
+    sets=${!v_sets:-}
+    calib=${!v_calib:-}
+    workers=${!v_workers:-$WORKERS_EACH}
     mkdir -p "$W/$n-tmp"
     OUT="$W/$n" PRESET="$preset" MINUTES="$minutes" SETS="$sets" CALIB_PATCHES="$calib" TESTS=0 \
         BUDGET="${BUDGET:-1.15}" DEVICE="$DEVICE" WORKERS="$workers" TMPDIR="$W/$n-tmp" \
         OMP_NUM_THREADS="$THREADS_EACH" MKL_NUM_THREADS="$THREADS_EACH" \
         timeout -k 20 "$LIMIT" bash scripts/gpu_session.sh > "$W/$n.log" 2>&1
     local status=$?
+    # timeout ends gpu_session.sh at once, but the training it started saves its step on SIGTERM first (orphaned by
+    # then): wait for it, at most a minute, so that its folder is packed whole
+    for _ in $(seq 60); do
+        pgrep -f -- "$W/$n-tmp" > /dev/null 2>&1 || break
+        sleep 1
+    done
     echo "gpu_session.sh $n ($preset): exit $status" >> "$W/$n.log"
     if ! compgen -G "$W/$n/demo.tar.gz*" > /dev/null; then
         # stopped before it packed (LIMIT, or a failure): what the demo folder holds so far comes back instead (its
@@ -98,6 +104,9 @@ for n in a b; do
 done
 cp "$W/gpu_checks.log" "$OUT/"
 (cd "$W" && tar -czf "$OUT/logs.tar.gz" --ignore-failed-read ./*.log ./a/*.log ./b/*.log ./a/env.txt ./b/env.txt \
-    ./*/calib.log 2>/dev/null)
+    ./*-tmp/hsicam-gpu.*/calib.log 2>/dev/null)
+if (( $(find "$OUT" -type f | wc -l) > 8 )); then  # the device tool brings back 8 files at most
+    echo "warning: $(find "$OUT" -type f | wc -l) files under \$OUT, over the 8 that come back" >&2
+fi
 ls -la "$OUT"
 tail -n 4 "$OUT/gpu_checks.log" "$OUT/a.log" "$OUT/b.log"

@@ -15,7 +15,12 @@ fi
 src=$1
 dest=$2
 rm -f "$dest" "$dest".part-*
-tar -czf "$dest" -C "$src" --exclude='run/checkpoints' .
+rc=0  # 1: a file changed while it was read (a run still saving): packed as it was, kept
+tar --warning=no-file-changed -czf "$dest" -C "$src" --exclude='run/checkpoints' . || rc=$?
+if (( rc > 1 )); then
+    echo "pack_demo.sh: tar failed (exit $rc)" >&2
+    exit "$rc"
+fi
 if (( $(stat -c %s "$dest") > 15 * 1024 * 1024 )); then
     split -b 15M "$dest" "$dest.part-"
     rm -f "$dest"

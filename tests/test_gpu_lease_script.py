@@ -31,7 +31,7 @@ def test_gpu_lease_script_on_cpu(tmp_path):
     assert "threads and" in run.stdout and "DataLoader workers for each demo" in run.stdout
     # the CUDA tests ran (skipped without CUDA) and so did the smoke training through bf16/channels_last/compile
     checks = (out / "gpu_checks.log").read_text()
-    assert "9 skipped" in checks and "smoke training: exit 0" in checks
+    assert re.search(r"\b9 (passed|skipped)\b", checks) and "smoke training: exit 0" in checks
     for name in ("a", "b"):
         log = (out / f"{name}.log").read_text()
         # a calibration of 8-patch epochs (2 steps) still sizes the demo's epochs of tiny's own 16 patches (4 steps)
@@ -43,16 +43,19 @@ def test_gpu_lease_script_on_cpu(tmp_path):
             assert json.load(tar.extractfile(f"./{scored}"))["mean"]["psnr"] > 0
     assert "PRESET=tiny" in (out / "a.log").read_text()
     with tarfile.open(out / "logs.tar.gz") as tar:
-        assert {"./a/demo.log", "./b/demo.log", "./gpu_checks.log"} <= set(tar.getnames())
+        names = set(tar.getnames())
+    assert {"./a/demo.log", "./b/demo.log", "./gpu_checks.log"} <= names
+    assert sum(n.endswith("/calib.log") for n in names) == 2  # both calibrations' logs, from their work folders
 
 
 @pytest.mark.slow
 def test_gpu_lease_script_brings_back_a_demo_stopped_at_its_limit(tmp_path):
     """A demo that LIMIT stops before it packs (the first lease's fate) still comes back: its demo folder as it was,
-    the run's config and metrics in it."""
+    the run's config and metrics in it (LIMIT 90 s: past the tiny calibration on a busy 2-core machine, well before a
+    3-minute demo ends)."""
     out = tmp_path / "out"
     env = {**os.environ, "DEVICE": "cpu", "A_PRESET": "tiny", "B_PRESET": "tiny", "A_MINUTES": "3", "B_MINUTES": "3",
-           "LIMIT": "60", "OUT": str(out), "PYTHON": sys.executable, "TMPDIR": str(tmp_path)}
+           "LIMIT": "90", "OUT": str(out), "PYTHON": sys.executable, "TMPDIR": str(tmp_path)}
     run = subprocess.run(["bash", str(ROOT / "scripts" / "gpu_lease.sh")], cwd=ROOT, env=env, capture_output=True,
                          text=True, timeout=600)
     assert run.returncode == 0, run.stdout[-3000:] + run.stderr[-3000:]
