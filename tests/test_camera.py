@@ -12,7 +12,8 @@ from torch.func import functional_call
 
 from hsicam.errors import InputError
 from optics_reference import direct_valid_conv, reference_measurement
-from hsicam.optics.convolution import coded_conv_valid, coded_conv_valid_adjoint, conv_valid_adjoint, pad_same, pad_same_adjoint
+from hsicam.optics.convolution import (coded_conv_same, coded_conv_same_adjoint, coded_conv_valid, coded_conv_valid_adjoint,
+                                      conv_valid_adjoint, pad_same, pad_same_adjoint)
 
 BOUNDARIES = [("valid", "zeros"), ("same", "zeros"), ("same", "reflect"), ("same", "replicate"), ("same", "circular")]
 SWITCHES = list(itertools.product([True, False], [True, False]))  # (DOE enabled, CFA enabled)
@@ -193,8 +194,9 @@ def test_convolution_chunks_cover_every_image_once(device, batch, bands, spectru
 
 
 def test_coded_convolution_in_whole_batches_equals_small_chunks(monkeypatch):
-    """The accelerator's plan (whole batches, the einsum's band sum) run here on CPU: the same measurement,
-    adjoint and gradients as the CPU's small chunks, to float64 rounding."""
+    """The accelerator's chunk plan (whole batches) run here on CPU: the same measurement, adjoint and gradients as
+    the CPU's small chunks, to float64 rounding (the band sum stays the CPU's: it follows the device, not the plan;
+    the meta-device test below runs the accelerator's)."""
     import hsicam.optics.convolution as conv
 
     g = torch.Generator().manual_seed(21)
@@ -273,8 +275,13 @@ def test_coded_convolution_runs_the_accelerator_path_on_the_meta_device():
     with torch.no_grad():
         g = coded_conv_valid(x, psf, kappa)
         back = coded_conv_valid_adjoint(torch.empty(2, 1, 10, 11, device="meta"), psf, kappa)
+        kappa_same = torch.empty(4, 14, 15, device="meta")
+        g_same = coded_conv_same(x, psf, kappa_same)
+        back_same = coded_conv_same_adjoint(torch.empty(2, 1, 14, 15, device="meta"), psf, kappa_same)
     assert (g.shape, g.device.type) == ((2, 1, 10, 11), "meta")
     assert (back.shape, back.device.type) == ((2, 4, 14, 15), "meta")
+    assert (g_same.shape, g_same.device.type) == ((2, 1, 14, 15), "meta")
+    assert (back_same.shape, back_same.device.type) == ((2, 4, 14, 15), "meta")
     for t in (x, psf, kappa):
         t.requires_grad_(True)
     coded_conv_valid(x, psf, kappa).sum().backward()
@@ -367,6 +374,16 @@ def test_cpu_and_cuda_agree(tiny_camera, clone_camera, dtype):
     loss = gpu.A(x.cuda()).square().sum()
     loss.backward()
     assert torch.isfinite(gpu.optics.doe.height_m.grad).all() and gpu.cfa.weights.grad.device.type == "cuda"
+    # the snapshot's A and Aᵀ without gradients (the consistency steps: the same-geometry convolutions, whole batches
+    # and the einsum's band sum on the GPU) against the CPU's
+    with torch.no_grad():
+        s_cpu, s_gpu = cpu.snapshot(nominal=True), gpu.snapshot(nominal=True)
+        xs = torch.rand(2, len(cpu.bands), *SENSOR_HW, generator=torch.Generator().manual_seed(14), dtype=dtype)
+        for origin in ((0, 0), (1, 2)):
+            sa_cpu, sa_gpu = s_cpu.A(xs, origin), s_gpu.A(xs.cuda(), origin)
+            st_cpu, st_gpu = s_cpu.A_adjoint(y, origin), s_gpu.A_adjoint(y.cuda(), origin)
+            torch.testing.assert_close(sa_gpu.cpu(), sa_cpu, rtol=0, atol=tol * sa_cpu.abs().max().item())
+            torch.testing.assert_close(st_gpu.cpu(), st_cpu, rtol=0, atol=tol * st_cpu.abs().max().item())
 
 
 # --------------------------------------------------------------------------------------------

@@ -334,8 +334,8 @@ class DOESnapshot:
             raise InputError(f"cube must be (B, {len(self.bands)}, H, W), got shape {tuple(x.shape)}")
         kappa = self._code(x.shape[-2], x.shape[-1], origin, x.dtype)
         k = self.kernel_px
-        return coded_conv_same(x, self.psf.to(x.dtype), kappa, self._spectra((x.shape[-2] + k - 1, x.shape[-1] + k - 1),
-                                                                             x.dtype))
+        spectra = self._spectra((x.shape[-2] + k - 1, x.shape[-1] + k - 1), x.dtype)
+        return coded_conv_same(x, self.psf.to(x.dtype), kappa, spectra)
 
     def A_adjoint(self, y: torch.Tensor, origin: tuple[int, int] = (0, 0)) -> torch.Tensor:  # noqa: N802
         """Exact adjoint of :meth:`A`: (B, 1, h, w) → (B, C, h, w)."""
