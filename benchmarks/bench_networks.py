@@ -152,7 +152,7 @@ def main() -> None:
     ap.add_argument("--kinds", default="quick,rdn,mosaic,unrolled,unrolled-mosaic")
     ap.add_argument("--threads", type=int, default=0, help="torch threads (0: torch's default)")
     ap.add_argument("--config", default="quick", help="preset or YAML whose camera, batch and patch size are timed "
-                                                      "(kind quick: its own network)")
+                                                      "(kind quick: its own network; kind rdn keeps the quick camera)")
     ap.add_argument("--device", default="cpu", help="cpu (default), cuda or cuda:N")
     allocator_option(ap)
     args = ap.parse_args()
