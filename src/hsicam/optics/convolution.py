@@ -145,6 +145,11 @@ def _chunks(batch: int, bands: int, spectrum_bytes: int, device: torch.device) -
     return [(slice(b, min(batch, b + per_band)), slice(c, c + 1)) for c in range(bands) for b in range(0, batch, per_band)]
 
 
+def _spectrum_chunks(batch: int, bands: int, shape: tuple[int, int], like: torch.Tensor) -> list[tuple[slice, slice]]:
+    """:func:`_chunks` for rFFT spectra of ``shape`` (complex, of ``like``'s precision) on ``like``'s device."""
+    return _chunks(batch, bands, shape[0] * (shape[1] // 2 + 1) * 2 * like.element_size(), like.device)
+
+
 def _placed(img: torch.Tensor, shape: tuple[int, int], row0: int = 0, col0: int = 0) -> torch.Tensor:
     """``img`` (…, h, w) copied at (row0, col0) into a zero canvas (…, *shape)."""
     out = img.new_zeros(img.shape[:-2] + tuple(shape))
@@ -183,7 +188,7 @@ class _CodedConvolution(torch.autograd.Function):
         batch, bands, hx, wx = x.shape
         h, w = hx - k + 1, wx - k + 1
         shape = linear_fft_shape((hx, wx))
-        chunks = _chunks(batch, bands, shape[0] * (shape[1] // 2 + 1) * 2 * x.element_size(), x.device)
+        chunks = _spectrum_chunks(batch, bands, shape, x)
         keep_y = ctx.needs_input_grad[2]
         differentiated = any(ctx.needs_input_grad[:3])
         on_cpu = x.device.type == "cpu"
@@ -266,13 +271,12 @@ def coded_conv_valid_adjoint(g: torch.Tensor, psf: torch.Tensor, kappa: torch.Te
         return conv_valid_adjoint(g * kappa, psf)
     k = psf.shape[-1]
     batch, _, h, w = g.shape
-    if kappa.shape != (psf.shape[0], h, w):
-        raise ValueError(f"kappa must have shape {(psf.shape[0], h, w)}, got {tuple(kappa.shape)}")
+    _check_kappa(kappa, (psf.shape[0], h, w))
     hx, wx = h + k - 1, w + k - 1
     shape = linear_fft_shape((hx, wx))
     _check_spectra(psf_f, psf, shape)
     out = g.new_empty(batch, psf.shape[0], hx, wx)
-    for bs, cs in _chunks(batch, psf.shape[0], shape[0] * (shape[1] // 2 + 1) * 2 * g.element_size(), g.device):
+    for bs, cs in _spectrum_chunks(batch, psf.shape[0], shape, g):
         out[bs, cs] = _correlate_chunk(_rfft2_rows(g[bs] * kappa[cs], shape, k - 1, k - 1), psf[cs], shape, hx, wx,
                                        None if psf_f is None else psf_f[cs])
     return out
@@ -297,8 +301,7 @@ def coded_conv_valid(x: torch.Tensor, psf: torch.Tensor, kappa: torch.Tensor,
     h, w = x.shape[-2] - k + 1, x.shape[-1] - k + 1
     if h < 1 or w < 1:
         raise ValueError(f"valid convolution needs inputs of at least {k}×{k} pixels, got {tuple(x.shape[-2:])}")
-    if kappa.shape != (psf.shape[0], h, w):
-        raise ValueError(f"kappa must have shape {(psf.shape[0], h, w)}, got {tuple(kappa.shape)}")
+    _check_kappa(kappa, (psf.shape[0], h, w))
     _check_spectra(psf_f, psf, linear_fft_shape(tuple(x.shape[-2:])))
     return _CodedConvolution.apply(x, psf, kappa, psf_f)
 
@@ -317,13 +320,12 @@ def coded_conv_same(x: torch.Tensor, psf: torch.Tensor, kappa: torch.Tensor,
     if torch.is_grad_enabled() and (x.requires_grad or psf.requires_grad or kappa.requires_grad):
         return coded_conv_valid(pad_same(x, k), psf, kappa, psf_f)
     batch, bands, h, w = x.shape
-    if kappa.shape != (bands, h, w):
-        raise ValueError(f"kappa must have shape {(bands, h, w)}, got {tuple(kappa.shape)}")
+    _check_kappa(kappa, (bands, h, w))
     shape = linear_fft_shape((h + k - 1, w + k - 1))
     _check_spectra(psf_f, psf, shape)
     r = k // 2
     g = x.new_zeros(batch, h, w)
-    for bs, cs in _chunks(batch, bands, shape[0] * (shape[1] // 2 + 1) * 2 * x.element_size(), x.device):
+    for bs, cs in _spectrum_chunks(batch, bands, shape, x):
         xf = _rfft2_rows(x[bs, cs], shape, r, r)  # = the chunk of pad_same(x) placed at (0, 0)
         xf.mul_(torch.fft.rfft2(psf[cs], s=shape) if psf_f is None else psf_f[cs])
         _add_coded(g[bs], _irfft2_rows(xf, shape, k - 1, h)[..., k - 1 : k - 1 + w], kappa, cs,
@@ -343,13 +345,12 @@ def coded_conv_same_adjoint(g: torch.Tensor, psf: torch.Tensor, kappa: torch.Ten
     if torch.is_grad_enabled() and (g.requires_grad or psf.requires_grad or kappa.requires_grad):
         return pad_same_adjoint(coded_conv_valid_adjoint(g, psf, kappa, psf_f), k)
     batch, _, h, w = g.shape
-    if kappa.shape != (psf.shape[0], h, w):
-        raise ValueError(f"kappa must have shape {(psf.shape[0], h, w)}, got {tuple(kappa.shape)}")
+    _check_kappa(kappa, (psf.shape[0], h, w))
     shape = linear_fft_shape((h + k - 1, w + k - 1))
     _check_spectra(psf_f, psf, shape)
     r = k // 2
     out = g.new_empty(batch, psf.shape[0], h, w)
-    for bs, cs in _chunks(batch, psf.shape[0], shape[0] * (shape[1] // 2 + 1) * 2 * g.element_size(), g.device):
+    for bs, cs in _spectrum_chunks(batch, psf.shape[0], shape, g):
         gf = _rfft2_rows(g[bs] * kappa[cs], shape, k - 1, k - 1)
         gf.mul_((torch.fft.rfft2(psf[cs], s=shape) if psf_f is None else psf_f[cs]).conj())
         out[bs, cs] = _irfft2_rows(gf, shape, r, h)[..., r : r + w]
@@ -362,6 +363,12 @@ def _check_sensor(g: torch.Tensor, psf: torch.Tensor) -> None:
         raise ValueError(f"expected a (B, 1, H, W) sensor image, got shape {tuple(g.shape)}")
     if psf.dim() != 3 or psf.shape[-1] != psf.shape[-2] or psf.shape[-1] % 2 == 0:
         raise ValueError(f"expected an odd square PSF stack (C, K, K), got shape {tuple(psf.shape)}")
+
+
+def _check_kappa(kappa: torch.Tensor, expected: tuple[int, int, int]) -> None:
+    """The coded convolutions' CFA transmission: (C, H, W) of the sensor window."""
+    if tuple(kappa.shape) != expected:
+        raise ValueError(f"kappa must have shape {expected}, got {tuple(kappa.shape)}")
 
 
 def _check_spectra(psf_f: torch.Tensor | None, psf: torch.Tensor, shape: tuple[int, int]) -> None:
