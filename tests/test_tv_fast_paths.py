@@ -79,11 +79,14 @@ def test_the_prox_and_the_spectral_preconditioner_without_gradients_are_the_diff
     dual = (torch.zeros_like(v), torch.zeros_like(v))
     dual_slow = tuple(_as_differentiable(*dual))
     v_slow, b_slow = _as_differentiable(v, b)
+    divergence = None
     for _ in range(3):
         with torch.no_grad():
-            out, dual = brightness_tv_prox(v, b, 0.05, dual)
-        out_slow, dual_slow = brightness_tv_prox(v_slow, b_slow, 0.05, dual_slow)
+            out, dual, divergence = brightness_tv_prox(v, b, 0.05, dual, divergence)
+        out_slow, dual_slow, _ = brightness_tv_prox(v_slow, b_slow, 0.05, dual_slow)
         torch.testing.assert_close(out, out_slow.detach(), rtol=1e-12, atol=1e-14)
+        # the divergence handed on is the new field's, and the caller's is left as it was
+        torch.testing.assert_close(divergence, _reference_divergence(*dual), rtol=0, atol=1e-15)
     # the prox as first written: b · (u − w · div p), u = v ⊘ b
     torch.testing.assert_close(out, (v / b - 0.05 * _reference_divergence(*dual)) * b, rtol=1e-12, atol=1e-14)
     s = spectral_preconditioner(v, 3.0)
@@ -94,3 +97,22 @@ def test_the_prox_and_the_spectral_preconditioner_without_gradients_are_the_diff
     torch.testing.assert_close(fast, w + 3.0 * unit * (unit * w).sum(1, keepdim=True), rtol=1e-12, atol=1e-14)
     with torch.no_grad():
         torch.testing.assert_close(band_inner(v, w), (v * w).sum(1, keepdim=True), rtol=1e-13, atol=0)
+
+
+def test_the_prox_with_a_kept_divergence_is_the_prox_that_recomputes_it():
+    """The consistency steps hand each prox the previous one's divergence (session 50): the same iterates as
+    recomputing it each call, and the kept tensor is not written into."""
+    v, b = _rand(1, 5, 12, 10, seed=9), _rand(1, 1, 12, 10, seed=10) + 0.1
+    kept = recomputed = (torch.zeros_like(v), torch.zeros_like(v))
+    divergence = None
+    with torch.no_grad():
+        for k in range(4):
+            u = v * (1 + 0.1 * k)
+            before = None if divergence is None else divergence.clone()
+            out_kept, kept, new_divergence = brightness_tv_prox(u, b, 0.07, kept, divergence)
+            if before is not None:
+                torch.testing.assert_close(divergence, before, rtol=0, atol=0)
+            divergence = new_divergence
+            out, recomputed, _ = brightness_tv_prox(u, b, 0.07, recomputed)
+            torch.testing.assert_close(out_kept, out, rtol=0, atol=0)
+    assert float(out.sub(u).abs().max()) > 1e-3  # the prior moved the estimate: the comparison is not vacuous

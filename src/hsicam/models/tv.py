@@ -72,11 +72,19 @@ def chambolle_step(py: torch.Tensor, px: torch.Tensor, g: torch.Tensor, tau: flo
     gradient over every band and both directions (else per band). ``inplace``: update py and px in place (the
     solvers' denoising; not differentiable through them)."""
     d = dual_divergence(py, px).sub_(g) if not _differentiable(py, px, g) else dual_divergence(py, px) - g
+    return chambolle_update(py, px, d, tau, vectorial, inplace)
+
+
+def chambolle_update(py: torch.Tensor, px: torch.Tensor, d: torch.Tensor, tau: float = CHAMBOLLE_TAU,
+                     vectorial: bool = False, inplace: bool = False) -> tuple[torch.Tensor, torch.Tensor]:
+    """:func:`chambolle_step` given d = div p − g (B, C, H, W), for a caller that has div p already (the TV prior
+    of the consistency steps keeps it from its previous step): p ← (p + τ ∇d) / (1 + τ |∇d|). ``d`` is not
+    needed afterwards (it may be overwritten)."""
     gy, gx = forward_differences(d)
     del d
     if vectorial:
         # + tiny: the square root's gradient stays finite where the field is flat (its value does not move)
-        norm = (band_inner(gy, gy) + band_inner(gx, gx) + torch.finfo(g.dtype).tiny).sqrt()
+        norm = (band_inner(gy, gy) + band_inner(gx, gx) + torch.finfo(gy.dtype).tiny).sqrt()
         norm = norm.mul_(tau).add_(1.0) if not _differentiable(norm) else 1 + tau * norm
     else:
         norm = torch.hypot(gy, gx).mul_(tau).add_(1.0)
