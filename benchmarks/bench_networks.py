@@ -15,6 +15,13 @@ another preset's camera and training batch, ``--device cuda`` on a GPU):
   the untrained camera's PSFs cut to ``psf_energy`` (``consistency.psf_kernel_px``; a trained quick camera's
   are far narrower, so its steps cost less: docs/networks.md).
 
+- a trained camera's whole inference (``trained``; ``--run``, default ``pretrained:standard``, the shipped camera: the
+  quick preset's network on trained optics, its linear step and its 12 TV steps through its own trained PSFs, cut as
+  its steps cut them): what issue 17's "512×512×31 CPU inference ≤ 2 s" is about, where ``infer_512_with_steps_s``
+  above pays an untrained camera's far wider PSFs. Its first call (``whole_first_s``: the heap's first touch), then the
+  median, least and most of ``--repeats`` more, and the network alone (``network_s``); ``--run none`` skips it,
+  ``--size`` times another square image.
+
 Kinds: ``quick`` (the quick preset's own network, as configured: today the mosaic network with
 detail features; with ``--config``, that preset's own network), ``rdn`` (the quick RDN section with the demosaic input), ``mosaic`` (MosaicConfig defaults),
 ``unrolled`` (UnrolledConfig defaults: demosaic init, 2 stages, full 141 px kernel) and
@@ -47,11 +54,13 @@ from hsicam.cameras import build_camera  # noqa: E402
 from hsicam.config import load_config  # noqa: E402
 from hsicam.devices import device_problem  # noqa: E402
 from hsicam.engine.tasks import system_loss  # noqa: E402
+from hsicam.errors import InputError  # noqa: E402
 from hsicam.models import CameraSystem  # noqa: E402
 from hsicam.config import MosaicConfig, UnrolledConfig  # noqa: E402
 from hsicam.models.consistency import cut_psf  # noqa: E402
 from hsicam.models.mosaic import build_mosaic  # noqa: E402
 from hsicam.models.unrolled import build_unrolled  # noqa: E402
+from hsicam.runs.folder import load_run  # noqa: E402
 
 KINDS = {
     "mosaic": lambda cam: build_mosaic(MosaicConfig(), cam),
@@ -145,20 +154,61 @@ def inference(kind: str, cfg, repeats: int, device: torch.device) -> dict:
     return out
 
 
+#: Issue 17's bound on a 512×512×31 reconstruction on this project's 2-core CPU, the whole inference (s).
+TARGET_512_S = 2.0
+
+
+@torch.no_grad()
+def trained_inference(run: str, size: int, repeats: int, device: torch.device) -> dict:
+    """The whole inference of the trained ``run`` (``reconstructor()``: network, linear step, Landweber/TV steps) on
+    a random ``size``² sensor image at half scale: its first call, then ``repeats`` more (median, least, most), and
+    the network alone on the same operator snapshot."""
+    cfg, system = load_run(run, device)
+    fn = system.reconstructor()
+    sensor = torch.rand(1, 1, size, size, generator=torch.Generator().manual_seed(0)).mul_(0.5).to(device)
+    t0 = _now(device)[0]
+    fn(sensor)
+    first = _now(device)[0] - t0
+    times = []
+    for _ in range(max(1, repeats)):
+        t0 = _now(device)[0]
+        fn(sensor)
+        times.append(_now(device)[0] - t0)
+    snap = getattr(system.camera, "snapshot", None)
+    op = snap(nominal=True) if callable(snap) else system.camera
+    network = median_time(lambda: system.network(sensor, (0, 0), op), repeats=max(1, repeats), device=device)
+    c = cfg.model.consistency
+    out = {"run": run, "size_px": size, "network_kind": cfg.model.kind, "whole_first_s": first,
+           "whole_s": statistics.median(times), "whole_min_s": min(times), "whole_max_s": max(times),
+           "network_s": network, "consistency": {"kind": c.kind, "iterations": c.iterations,
+                                                 "landweber_after": c.landweber_after, "tv_weight": c.tv_weight}}
+    if callable(snap):
+        out["consistency"]["psf_kernel_px"] = int(cut_psf(op, c.psf_energy).kernel_px)
+    if size == 512 and device.type == "cpu":
+        out["target_s"], out["within_target"] = TARGET_512_S, out["whole_s"] <= TARGET_512_S
+    return out
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--steps", type=int, default=3)
     ap.add_argument("--repeats", type=int, default=3)
-    ap.add_argument("--kinds", default="quick,rdn,mosaic,unrolled,unrolled-mosaic")
+    ap.add_argument("--kinds", default="quick,rdn,mosaic,unrolled,unrolled-mosaic",
+                    help="network kinds to time on the preset's camera, comma-separated; none: only --run")
     ap.add_argument("--threads", type=int, default=0, help="torch threads (0: torch's default)")
     ap.add_argument("--config", default="quick", help="preset or YAML whose camera, batch and patch size are timed "
                                                       "(kind quick: its own network; kind rdn keeps the quick camera)")
     ap.add_argument("--device", default="cpu", help="cpu (default), cuda or cuda:N")
+    ap.add_argument("--run", default="pretrained:standard",
+                    help="trained run (or pretrained:NAME) whose whole inference is timed; none: skip it")
+    ap.add_argument("--size", type=int, default=512, help="side (px) of the trained run's sensor image")
     allocator_option(ap)
     args = ap.parse_args()
     problem = device_problem(args.device)
     if problem is not None:
         ap.error(problem)
+    if args.size < 1:
+        ap.error(f"--size must be >= 1, got {args.size}")
     device = torch.device(args.device)
     kept = apply_allocator(args)
     if args.threads:
@@ -169,10 +219,15 @@ def main() -> None:
            "kinds": {}}
     if device.type == "cuda":
         out["gpu"] = torch.cuda.get_device_name(device)
-    for kind in args.kinds.split(","):
+    for kind in [k for k in args.kinds.split(",") if k and k != "none"]:
         res = train_step(kind, cfg, args.steps, device)
         res.update(inference(kind, cfg, args.repeats, device))
         out["kinds"][kind] = res
+    if args.run != "none":
+        try:
+            out["trained"] = trained_inference(args.run, args.size, args.repeats, device)
+        except InputError as exc:  # a missing or damaged run: one line, as the hsicam command says it
+            ap.error(f"--run {args.run}: {exc}")
     out["load_avg_1min_end"] = os.getloadavg()[0]
     print(json.dumps(out, indent=1))
 

@@ -37,10 +37,11 @@ def test_bench_networks_times_a_preset_given_and_refuses_a_missing_device():
     env = {**os.environ, "OMP_NUM_THREADS": "1"}
     script = str(BENCHMARKS / "bench_networks.py")
     proc = subprocess.run([sys.executable, script, "--config", "tiny", "--kinds", "quick", "--steps", "1", "--repeats",
-                           "1"], capture_output=True, text=True, timeout=300, env=env)
+                           "1", "--run", "none"], capture_output=True, text=True, timeout=300, env=env)
     assert proc.returncode == 0, proc.stderr[-3000:]
     printed = json.loads(proc.stdout)
     assert (printed["preset"], printed["device"], printed["batch"], printed["patch_px"]) == ("tiny", "cpu", 4, 16)
+    assert "trained" not in printed  # --run none
     timed = printed["kinds"]["quick"]
     assert timed["step_s"] >= timed["network_s"] > 0 and timed["optics_s"] > 0 and timed["infer_512_s"] > 0
     assert timed["params_M"] < 0.01  # tiny's own network, not the quick preset's 1.7 M parameters
@@ -50,6 +51,29 @@ def test_bench_networks_times_a_preset_given_and_refuses_a_missing_device():
         proc = subprocess.run([sys.executable, script, "--device", "cuda"], capture_output=True, text=True, timeout=120,
                               env=env)
         assert proc.returncode == 2 and "no CUDA device" in proc.stderr and "Traceback" not in proc.stderr
+
+
+def test_bench_networks_times_a_trained_run_whole():
+    """``--run``: a trained camera's whole inference (the shipped one: the network, its linear step and its 12 TV
+    steps through its trained PSFs cut to 23 px), here on a 64² image; the network alone takes less than the whole.
+    A run that is not there is one usage error, not a traceback."""
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    script = str(BENCHMARKS / "bench_networks.py")
+    proc = subprocess.run([sys.executable, script, "--kinds", "none", "--run", "pretrained:standard", "--size", "64",
+                           "--repeats", "2"], capture_output=True, text=True, timeout=300, env=env)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    printed = json.loads(proc.stdout)
+    assert printed["kinds"] == {}
+    trained = printed["trained"]
+    assert (trained["run"], trained["size_px"], trained["network_kind"]) == ("pretrained:standard", 64, "mosaic")
+    assert trained["consistency"] == {"kind": "linear", "iterations": 1, "landweber_after": 12, "tv_weight": 0.03,
+                                      "psf_kernel_px": 23}
+    assert trained["whole_min_s"] <= trained["whole_s"] <= trained["whole_max_s"]
+    assert 0 < trained["network_s"] < trained["whole_s"]
+    assert "target_s" not in trained  # the 2 s bound is for 512² images
+    proc = subprocess.run([sys.executable, script, "--kinds", "none", "--run", "/nonexistent/run"], capture_output=True,
+                          text=True, timeout=120, env=env)
+    assert proc.returncode == 2 and "--run /nonexistent/run" in proc.stderr and "Traceback" not in proc.stderr
 
 
 def _run(script: str, *args: str, timeout: float = 300) -> dict:
