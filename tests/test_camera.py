@@ -218,21 +218,23 @@ def test_coded_convolution_in_whole_batches_equals_small_chunks(monkeypatch):
 
 @pytest.mark.parametrize("limit", [1, None])  # one image a chunk; the CPU's own chunks (here: everything at once)
 @pytest.mark.parametrize("spectra", [False, True])
-def test_coded_convolution_in_same_geometry_equals_the_padded_valid_one(monkeypatch, limit, spectra):
+@pytest.mark.parametrize("k, h, w", [(7, 9, 13), (9, 3, 2), (11, 4, 17), (1, 5, 6)])
+def test_coded_convolution_in_same_geometry_equals_the_padded_valid_one(monkeypatch, limit, spectra, k, h, w):
     """coded_conv_same / coded_conv_same_adjoint (the snapshot's A and Aᵀ without gradients: no padded copy, pruned
-    transforms, cropped on the way out) against their definitions, the valid convolution of the zero-padded cube and
-    its adjoint folded back, on a rectangular window, with and without kept spectra; and the pair is adjoint."""
+    transforms on transposed spectra, the adjoint's columns read wrapped) against their definitions, the valid
+    convolution of the zero-padded cube and its adjoint folded back, on rectangular windows (narrower than half the
+    kernel too, and a 1 px kernel), with and without kept spectra; and the pair is adjoint."""
     import hsicam.optics.convolution as conv
 
     if limit is not None:
         monkeypatch.setattr(conv, "chunk_bytes", lambda device: limit)
     g = torch.Generator().manual_seed(31)
-    b, c, k, h, w = 2, 5, 7, 9, 13
+    b, c = 2, 5
     x = torch.rand(b, c, h, w, generator=g, dtype=torch.float64)
     y = torch.rand(b, 1, h, w, generator=g, dtype=torch.float64)
     psf = torch.rand(c, k, k, generator=g, dtype=torch.float64)
     kappa = torch.rand(c, h, w, generator=g, dtype=torch.float64)
-    psf_f = conv.psf_spectrum(psf, conv.linear_fft_shape((h + k - 1, w + k - 1))) if spectra else None
+    psf_f = conv.same_spectra(psf, conv.linear_fft_shape((h + k - 1, w + k - 1))) if spectra else None
     with torch.no_grad():
         forward = conv.coded_conv_same(x, psf, kappa, psf_f)
         back = conv.coded_conv_same_adjoint(y, psf, kappa, psf_f)
@@ -258,6 +260,18 @@ def test_coded_convolution_in_same_geometry_keeps_gradients_and_refuses_bad_shap
     (rp, rk) = torch.autograd.grad((pad_same_adjoint(conv_valid_adjoint(y * kappa, psf), 5) * x.detach()).sum(),
                                    (psf, kappa))
     torch.testing.assert_close((gp, gk), (rp, rk), rtol=1e-12, atol=1e-13)
+    # the cube needing gradients and the PSFs not (frozen optics): kept spectra, transposed, serve the composition
+    spectra = conv.same_spectra(psf.detach(), conv.linear_fft_shape((8 + 4, 10 + 4)))
+    forward = conv.coded_conv_same(x, psf.detach(), kappa.detach(), spectra)
+    (gx,) = torch.autograd.grad((forward * y).sum(), x)
+    torch.testing.assert_close(forward, coded_conv_valid(pad_same(x, 5), psf, kappa), rtol=1e-12, atol=1e-13)
+    with torch.no_grad():
+        torch.testing.assert_close(gx, conv.coded_conv_same_adjoint(y, psf, kappa), rtol=1e-12, atol=1e-13)
+    back = conv.coded_conv_same_adjoint(y.requires_grad_(True), psf.detach(), kappa.detach(), spectra)
+    (gy,) = torch.autograd.grad((back * x.detach()).sum(), y)
+    with torch.no_grad():
+        torch.testing.assert_close(gy, conv.coded_conv_same(x, psf, kappa), rtol=1e-12, atol=1e-13)
+    y.requires_grad_(False)
     with torch.no_grad(), pytest.raises(ValueError, match="kappa must have shape"):
         conv.coded_conv_same(x, psf, kappa[:, :7])
     with torch.no_grad(), pytest.raises(ValueError, match="kappa must have shape"):

@@ -21,7 +21,7 @@ from hsicam.optics.convolution import (
     linear_fft_shape,
     pad_same,
     pad_same_adjoint,
-    psf_spectrum,
+    same_spectra,
 )
 from hsicam.optics.doe import DOE
 from hsicam.optics.lens import lens_from_config
@@ -301,11 +301,12 @@ class DOESnapshot:
         return self._kept[key]
 
     def _spectra(self, scene_hw: tuple[int, int], dtype: torch.dtype) -> torch.Tensor | None:
-        """The PSFs' spectra for a (padded) scene of ``scene_hw``, or None while the PSFs need gradients."""
+        """The PSFs' spectra for a (padded) scene of ``scene_hw`` as the same-geometry convolutions take them
+        (:func:`~hsicam.optics.convolution.same_spectra`), or None while the PSFs need gradients."""
         if torch.is_grad_enabled() and self.psf.requires_grad:
             return None
         shape = linear_fft_shape(scene_hw)
-        return self._keep(("spectra", shape, dtype), lambda: psf_spectrum(self.psf.to(dtype), shape), self.psf)
+        return self._keep(("spectra", shape, dtype), lambda: same_spectra(self.psf.to(dtype), shape), self.psf)
 
     def _code(self, height: int, width: int, origin: tuple[int, int], dtype: torch.dtype) -> torch.Tensor:
         m = self.tile.shape[-2:]

@@ -170,6 +170,39 @@ def _rfft2_rows(img: torch.Tensor, shape: tuple[int, int], row0: int, col0: int)
     return torch.fft.fft(_placed(rows, (shape[0], rows.shape[-1]), row0, 0), dim=-2)
 
 
+def same_spectra(psf: torch.Tensor, fft_shape: tuple[int, int]) -> torch.Tensor:
+    """The PSFs' spectra as :func:`coded_conv_same` and :func:`coded_conv_same_adjoint` take them (``psf_f``):
+    :func:`psf_spectrum` transposed, (C, Lw//2 + 1, Lh), contiguous."""
+    return psf_spectrum(psf, fft_shape).transpose(-1, -2).contiguous()
+
+
+def _rfft2_transposed(img: torch.Tensor, shape: tuple[int, int], row0: int) -> torch.Tensor:
+    """rfft2 of ``img`` (…, h, w) placed at (row0, 0) in a zero ``shape`` canvas, transposed: (…, Lw//2+1, Lh). The
+    row transforms run over the h rows of ``img`` only; their output is copied transposed into the canvas of the
+    column transforms, which then run along its contiguous last dimension (along a strided one torch copies each
+    chunk twice more). ``img`` may already be Lw wide, zero beyond its columns (:func:`_coded_rows`)."""
+    rows = torch.fft.rfft(img, n=shape[1], dim=-1)
+    canvas = rows.new_zeros(rows.shape[:-2] + (rows.shape[-1], shape[0]))
+    canvas[..., row0 : row0 + img.shape[-2]].copy_(rows.transpose(-1, -2))
+    return torch.fft.fft(canvas, dim=-1)
+
+
+def _coded_rows(g: torch.Tensor, kappa: torch.Tensor, width: int) -> torch.Tensor:
+    """κ ⊙ g for a chunk's bands, g (b, 1, h, w) and κ (c, h, w), written into rows ``width`` wide whose columns
+    beyond w are zero: (b, c, h, width), what the row transforms take without padding it again."""
+    b, _, h, w = g.shape
+    out = g.new_empty(b, kappa.shape[0], h, width)
+    out[..., w:].zero_()
+    torch.mul(g, kappa, out=out[..., :w])
+    return out
+
+
+def _irfft2_transposed(spec: torch.Tensor, shape: tuple[int, int], row0: int, rows: int) -> torch.Tensor:
+    """Rows row0..row0+rows−1 of the irfft2 of a transposed spectrum ``spec`` (…, Lw//2+1, Lh): (…, rows, Lw)."""
+    tmp = torch.fft.ifft(spec, dim=-1)[..., row0 : row0 + rows]
+    return torch.fft.irfft(tmp.transpose(-1, -2), n=shape[1], dim=-1)
+
+
 class _CodedConvolution(torch.autograd.Function):
     """g = Σ_c κ_c ⊙ valid_conv(x_c, psf_c): the DOE camera's measurement in one fused op.
 
@@ -309,26 +342,29 @@ def coded_conv_valid(x: torch.Tensor, psf: torch.Tensor, kappa: torch.Tensor,
 def coded_conv_same(x: torch.Tensor, psf: torch.Tensor, kappa: torch.Tensor,
                     psf_f: torch.Tensor | None = None) -> torch.Tensor:
     """Σ over bands of κ ⊙ (each band convolved with its PSF), in ``same`` geometry with zero padding: x (B, C, H, W),
-    psf (C, K, K), kappa (C, H, W) → (B, 1, H, W), equal to ``coded_conv_valid(pad_same(x, K), psf, kappa, psf_f)``
-    (``psf_f``: the PSFs' spectra at ``linear_fft_shape((H + K − 1, W + K − 1))``).
+    psf (C, K, K), kappa (C, H, W) → (B, 1, H, W), equal to ``coded_conv_valid(pad_same(x, K), psf, kappa)``.
+    ``psf_f``: the PSFs' spectra when the caller keeps them, ``same_spectra(psf, linear_fft_shape((H + K − 1,
+    W + K − 1)))`` (transposed, (C, Lw//2+1, Lh)).
 
-    Without gradients each chunk of x goes straight into its FFT canvas, its transforms pruned over the rows known to
-    be zero, with no padded copy of the cube: a DOE camera's snapshot A of a 532² × 31 window 44–56 → 35–39 ms
-    (session 49). With gradients required it is that composition (differentiable)."""
+    Without gradients each chunk of x goes straight into its FFT canvas (no padded copy of the cube; x at the
+    canvas's corner, the output read K//2 px further), its row transforms over the H rows of x only, its column
+    transforms along a contiguous dimension (the spectra transposed): a DOE camera's snapshot A of a 532² × 31
+    window 44–56 → 35–39 ms (session 49) → 33–34 ms against 37–40 ms the same hour (session 50). With gradients
+    required it is that composition (differentiable)."""
     _check(x, psf)
     k = psf.shape[-1]
-    if torch.is_grad_enabled() and (x.requires_grad or psf.requires_grad or kappa.requires_grad):
-        return coded_conv_valid(pad_same(x, k), psf, kappa, psf_f)
     batch, bands, h, w = x.shape
-    _check_kappa(kappa, (bands, h, w))
     shape = linear_fft_shape((h + k - 1, w + k - 1))
-    _check_spectra(psf_f, psf, shape)
+    _check_same_spectra(psf_f, psf, shape)
+    if torch.is_grad_enabled() and (x.requires_grad or psf.requires_grad or kappa.requires_grad):
+        return coded_conv_valid(pad_same(x, k), psf, kappa, None if psf_f is None else psf_f.transpose(-1, -2))
+    _check_kappa(kappa, (bands, h, w))
     r = k // 2
     g = x.new_zeros(batch, h, w)
     for bs, cs in _spectrum_chunks(batch, bands, shape, x):
-        xf = _rfft2_rows(x[bs, cs], shape, r, r)  # = the chunk of pad_same(x) placed at (0, 0)
-        xf.mul_(torch.fft.rfft2(psf[cs], s=shape) if psf_f is None else psf_f[cs])
-        _add_coded(g[bs], _irfft2_rows(xf, shape, k - 1, h)[..., k - 1 : k - 1 + w], kappa, cs,
+        xf = _rfft2_transposed(x[bs, cs], shape, 0)
+        xf.mul_(same_spectra(psf[cs], shape) if psf_f is None else psf_f[cs])
+        _add_coded(g[bs], _irfft2_transposed(xf, shape, r, h)[..., r : r + w], kappa, cs,
                    band_by_band=x.device.type == "cpu")
     return g.unsqueeze(1)
 
@@ -336,24 +372,30 @@ def coded_conv_same(x: torch.Tensor, psf: torch.Tensor, kappa: torch.Tensor,
 def coded_conv_same_adjoint(g: torch.Tensor, psf: torch.Tensor, kappa: torch.Tensor,
                             psf_f: torch.Tensor | None = None) -> torch.Tensor:
     """Exact adjoint of :func:`coded_conv_same`: (B, 1, H, W) → (B, C, H, W), equal to
-    ``pad_same_adjoint(coded_conv_valid_adjoint(g, psf, kappa, psf_f), K)``. Without gradients each chunk's
-    correlation is inverse-transformed over the H rows kept only and written into the output cropped (no (H + K − 1)²
-    cube, no crop copy: a snapshot Aᵀ of a 532² × 31 window 41–47 → 36–38 ms, session 49); with gradients required
-    it is that composition."""
+    ``pad_same_adjoint(coded_conv_valid_adjoint(g, psf, kappa), K)``; ``psf_f`` as there. Without gradients each
+    chunk's correlation is inverse-transformed over the H rows kept only (the transposed spectra, as the forward)
+    and written into the output cropped (κ ⊙ g at the canvas's left edge, so the H·W kept are the columns from
+    −K//2, wrapped: no (H + K − 1)² cube, no crop copy); with gradients required it is that composition."""
     _check_sensor(g, psf)
     k = psf.shape[-1]
-    if torch.is_grad_enabled() and (g.requires_grad or psf.requires_grad or kappa.requires_grad):
-        return pad_same_adjoint(coded_conv_valid_adjoint(g, psf, kappa, psf_f), k)
     batch, _, h, w = g.shape
-    _check_kappa(kappa, (psf.shape[0], h, w))
     shape = linear_fft_shape((h + k - 1, w + k - 1))
-    _check_spectra(psf_f, psf, shape)
+    _check_same_spectra(psf_f, psf, shape)
+    if torch.is_grad_enabled() and (g.requires_grad or psf.requires_grad or kappa.requires_grad):
+        return pad_same_adjoint(coded_conv_valid_adjoint(g, psf, kappa,
+                                                         None if psf_f is None else psf_f.transpose(-1, -2)), k)
+    _check_kappa(kappa, (psf.shape[0], h, w))
     r = k // 2
     out = g.new_empty(batch, psf.shape[0], h, w)
     for bs, cs in _spectrum_chunks(batch, psf.shape[0], shape, g):
-        gf = _rfft2_rows(g[bs] * kappa[cs], shape, k - 1, k - 1)
-        gf.mul_((torch.fft.rfft2(psf[cs], s=shape) if psf_f is None else psf_f[cs]).conj())
-        out[bs, cs] = _irfft2_rows(gf, shape, r, h)[..., r : r + w]
+        gf = _rfft2_transposed(_coded_rows(g[bs], kappa[cs], shape[1]), shape, k - 1)
+        gf.mul_((same_spectra(psf[cs], shape) if psf_f is None else psf_f[cs]).conj())
+        full = _irfft2_transposed(gf, shape, r, h)
+        # output column j is the correlation's column j − K//2, which the canvas wraps to its end for j < K//2
+        left = min(r, w)
+        out[bs, cs, :, :left] = full[..., shape[1] - r : shape[1] - r + left]
+        if w > r:
+            out[bs, cs, :, r:] = full[..., : w - r]
     return out
 
 
@@ -369,6 +411,12 @@ def _check_kappa(kappa: torch.Tensor, expected: tuple[int, int, int]) -> None:
     """The coded convolutions' CFA transmission: (C, H, W) of the sensor window."""
     if tuple(kappa.shape) != expected:
         raise ValueError(f"kappa must have shape {expected}, got {tuple(kappa.shape)}")
+
+
+def _check_same_spectra(psf_f: torch.Tensor | None, psf: torch.Tensor, shape: tuple[int, int]) -> None:
+    if psf_f is not None and tuple(psf_f.shape) != (psf.shape[0], shape[1] // 2 + 1, shape[0]):
+        raise ValueError(f"psf_f must be the PSFs' spectra of same_spectra(), shape "
+                         f"{(psf.shape[0], shape[1] // 2 + 1, shape[0])}, got {tuple(psf_f.shape)}")
 
 
 def _check_spectra(psf_f: torch.Tensor | None, psf: torch.Tensor, shape: tuple[int, int]) -> None:
