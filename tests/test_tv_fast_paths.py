@@ -95,6 +95,10 @@ def test_the_prox_and_the_spectral_preconditioner_without_gradients_are_the_diff
     unit = v / v.square().sum(1, keepdim=True).sqrt()
     w = b * v.flip(1)
     torch.testing.assert_close(fast, w + 3.0 * unit * (unit * w).sum(1, keepdim=True), rtol=1e-12, atol=1e-14)
+    with torch.no_grad():  # written over its argument (the steps' Aᵀ output): the same values, in that tensor
+        over = w.clone()
+        assert s(over, inplace=True) is over
+    torch.testing.assert_close(over, fast, rtol=0, atol=0)
     with torch.no_grad():
         torch.testing.assert_close(band_inner(v, w), (v * w).sum(1, keepdim=True), rtol=1e-13, atol=0)
 
