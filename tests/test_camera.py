@@ -219,15 +219,19 @@ def test_coded_convolution_in_whole_batches_equals_small_chunks(monkeypatch):
 @pytest.mark.parametrize("limit", [1, None])  # one image a chunk; the CPU's own chunks (here: everything at once)
 @pytest.mark.parametrize("spectra", [False, True])
 @pytest.mark.parametrize("k, h, w", [(7, 9, 13), (9, 3, 2), (11, 4, 17), (1, 5, 6)])
-def test_coded_convolution_in_same_geometry_equals_the_padded_valid_one(monkeypatch, limit, spectra, k, h, w):
+@pytest.mark.parametrize("einsum", [False, True])  # the CPU's band-by-band CFA sum, or an accelerator's einsum
+def test_coded_convolution_in_same_geometry_equals_the_padded_valid_one(monkeypatch, limit, spectra, k, h, w, einsum):
     """coded_conv_same / coded_conv_same_adjoint (the snapshot's A and Aᵀ without gradients: no padded copy, pruned
     transforms on transposed spectra, the adjoint's columns read wrapped) against their definitions, the valid
     convolution of the zero-padded cube and its adjoint folded back, on rectangular windows (narrower than half the
-    kernel too, and a 1 px kernel), with and without kept spectra; and the pair is adjoint."""
+    kernel too, and a 1 px kernel), with and without kept spectra, the CFA sum either way; and the pair is adjoint."""
     import hsicam.optics.convolution as conv
 
     if limit is not None:
         monkeypatch.setattr(conv, "chunk_bytes", lambda device: limit)
+    if einsum:
+        add_coded = conv._add_coded
+        monkeypatch.setattr(conv, "_add_coded", lambda g, y, kappa, cs, band_by_band: add_coded(g, y, kappa, cs, False))
     g = torch.Generator().manual_seed(31)
     b, c = 2, 5
     x = torch.rand(b, c, h, w, generator=g, dtype=torch.float64)

@@ -175,6 +175,23 @@ def test_steps_with_the_prior_are_differentiable():
     assert torch.autograd.gradcheck(f, (x0,), eps=1e-6, atol=1e-5)
 
 
+@pytest.mark.parametrize("prior", [dict(), dict(spectral_prior=4.0), dict(tv_weight=0.05),
+                                   dict(tv_weight=0.05, spectral_prior=4.0)])
+def test_whole_window_steps_leave_the_callers_estimate_alone(prior):
+    """Without the estimate's extension (``extend=False``) and without bands the steps start from the caller's own
+    tensor, and without gradients they write their sums in place (session 50): never into x0, nor into y."""
+    snap = _snapshot(2)
+    g = torch.Generator().manual_seed(6)
+    y = torch.rand(1, 1, 9, 10, generator=g, dtype=torch.float64)
+    x0 = torch.rand(1, C, 9, 10, generator=g, dtype=torch.float64)
+    x_kept, y_kept = x0.clone(), y.clone()
+    with torch.no_grad():
+        out = consistency_step(snap, y, x0, iterations=3, psf_energy=1.0, extend=False, **prior)
+    assert float((out - x0).abs().max()) > 1e-6  # the steps moved the estimate
+    torch.testing.assert_close(x0, x_kept, rtol=0, atol=0)
+    torch.testing.assert_close(y, y_kept, rtol=0, atol=0)
+
+
 def test_reconstruct_takes_tv_steps_and_records_them(tmp_path):
     """`hsicam reconstruct --tv-steps N [--tv-weight W]` reconstructs with N Landweber steps carrying the prior after
     the run's linear step (the run's own config with those two keys), and the cube's metadata says so; bad uses are

@@ -85,7 +85,7 @@ def test_the_prox_and_the_spectral_preconditioner_without_gradients_are_the_diff
             out, dual, divergence = brightness_tv_prox(v, b, 0.05, dual, divergence)
         out_slow, dual_slow, _ = brightness_tv_prox(v_slow, b_slow, 0.05, dual_slow)
         torch.testing.assert_close(out, out_slow.detach(), rtol=1e-12, atol=1e-14)
-        # the divergence handed on is the new field's, and the caller's is left as it was
+        # the divergence handed on is the new field's
         torch.testing.assert_close(divergence, _reference_divergence(*dual), rtol=0, atol=1e-15)
     # the prox as first written: b · (u − w · div p), u = v ⊘ b
     torch.testing.assert_close(out, (v / b - 0.05 * _reference_divergence(*dual)) * b, rtol=1e-12, atol=1e-14)
@@ -120,3 +120,21 @@ def test_the_prox_with_a_kept_divergence_is_the_prox_that_recomputes_it():
             out, recomputed, _ = brightness_tv_prox(u, b, 0.07, recomputed)
             torch.testing.assert_close(out_kept, out, rtol=0, atol=0)
     assert float(out.sub(u).abs().max()) > 1e-3  # the prior moved the estimate: the comparison is not vacuous
+
+
+def test_brightness_tv_restarts_its_dual_field_without_the_old_divergence():
+    """``BrightnessTV`` keeps its dual field's divergence between calls: a field reset (``dual = None``) or set from
+    outside starts from that field, as a fresh prior does, not from the divergence of the field it replaced."""
+    from hsicam.models.consistency import BrightnessTV
+
+    v = _rand(1, 4, 10, 9, seed=11)
+    with torch.no_grad():
+        tv = BrightnessTV(v, 0.05)
+        for k in range(5):
+            tv(v * (1 + 0.2 * k))
+        tv.dual = None
+        torch.testing.assert_close(tv(v), BrightnessTV(v, 0.05)(v), rtol=0, atol=0)
+        other = BrightnessTV(v, 0.05)
+        other(v * 0.5)
+        tv.dual = tuple(t.clone() for t in other.dual)
+        torch.testing.assert_close(tv(v), other(v), rtol=0, atol=0)

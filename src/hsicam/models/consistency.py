@@ -134,7 +134,7 @@ def consistency_step(op, y: torch.Tensor, x0: torch.Tensor, origin: tuple[int, i
     # the dual field's divergence is kept from one step to the next (one of the prox's two divergences) when the
     # frame is one band; in bands it would be one more whole cube of state (a 2048² capture: +0.5 GB), so each band
     # recomputes it
-    keep_divergence = not release
+    keep_divergence = _band_rows(x.shape[-2], band_px, step_halo) is None
     state.update(previous=x.clone() if band_px is not None else x, brightness=_tv_brightness(x),
                  dual_y=torch.zeros_like(x), dual_x=torch.zeros_like(x), divergence=None)
     t = 1.0
@@ -354,7 +354,7 @@ class BrightnessTV:
     (:data:`BRIGHTNESS_WINDOW_PX`, :data:`BRIGHTNESS_EPS`). ``weight`` w is dimensionless, in units of the
     normalised estimate u = x ⊘ b, so the step is scale-equivariant: a scene ten times darker gets the same
     correction, ten times smaller. (It is the prox of w·TV(x ⊘ b) in the metric diag(b⁻²), not the Euclidean
-    one.) Each call takes one iteration of Chambolle's dual projection (:func:`hsicam.models.tv.chambolle_step`)
+    one.) Each call takes one iteration of Chambolle's dual projection (:func:`hsicam.models.tv.chambolle_update`)
     from the dual of the previous call, so the calls keep state: within the steps the prox is solved as the
     iterates settle (warm start; five dual iterations per call scored the same as one on the demo camera's
     training scenes)."""
@@ -362,15 +362,17 @@ class BrightnessTV:
     def __init__(self, x0: torch.Tensor, weight: float) -> None:
         self.brightness = _tv_brightness(x0)
         self.weight = float(weight)
-        self.dual: tuple[torch.Tensor, torch.Tensor] | None = None
-        self.divergence: torch.Tensor | None = None  # div of the dual field, kept for the next call
+        self.dual: tuple[torch.Tensor, torch.Tensor] | None = None  # None (or another field set here): start anew
+        self._divergence: tuple[tuple | None, torch.Tensor | None] = (None, None)  # (the dual field, its div)
 
     def __call__(self, v: torch.Tensor) -> torch.Tensor:
         """v (B, C, H, W) → b · (u − w · div p), u = v ⊘ b, after one update of the dual field p."""
         if self.dual is None:
             self.dual = (torch.zeros_like(v), torch.zeros_like(v))
-        out, self.dual, self.divergence = brightness_tv_prox(v, self.brightness, self.weight, self.dual,
-                                                             self.divergence)
+        # the divergence kept from the last call serves only the field that call left (not one set since)
+        kept = self._divergence[1] if self._divergence[0] is self.dual else None
+        out, self.dual, divergence = brightness_tv_prox(v, self.brightness, self.weight, self.dual, kept)
+        self._divergence = (self.dual, divergence)
         return out
 
 

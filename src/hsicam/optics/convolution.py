@@ -355,7 +355,7 @@ def coded_conv_same(x: torch.Tensor, psf: torch.Tensor, kappa: torch.Tensor,
     k = psf.shape[-1]
     batch, bands, h, w = x.shape
     shape = linear_fft_shape((h + k - 1, w + k - 1))
-    _check_same_spectra(psf_f, psf, shape)
+    _check_spectra(psf_f, psf, shape, transposed=True)
     if torch.is_grad_enabled() and (x.requires_grad or psf.requires_grad or kappa.requires_grad):
         return coded_conv_valid(pad_same(x, k), psf, kappa, None if psf_f is None else psf_f.transpose(-1, -2))
     _check_kappa(kappa, (bands, h, w))
@@ -380,7 +380,7 @@ def coded_conv_same_adjoint(g: torch.Tensor, psf: torch.Tensor, kappa: torch.Ten
     k = psf.shape[-1]
     batch, _, h, w = g.shape
     shape = linear_fft_shape((h + k - 1, w + k - 1))
-    _check_same_spectra(psf_f, psf, shape)
+    _check_spectra(psf_f, psf, shape, transposed=True)
     if torch.is_grad_enabled() and (g.requires_grad or psf.requires_grad or kappa.requires_grad):
         return pad_same_adjoint(coded_conv_valid_adjoint(g, psf, kappa,
                                                          None if psf_f is None else psf_f.transpose(-1, -2)), k)
@@ -413,13 +413,14 @@ def _check_kappa(kappa: torch.Tensor, expected: tuple[int, int, int]) -> None:
         raise ValueError(f"kappa must have shape {expected}, got {tuple(kappa.shape)}")
 
 
-def _check_same_spectra(psf_f: torch.Tensor | None, psf: torch.Tensor, shape: tuple[int, int]) -> None:
-    if psf_f is not None and tuple(psf_f.shape) != (psf.shape[0], shape[1] // 2 + 1, shape[0]):
-        raise ValueError(f"psf_f must be the PSFs' spectra of same_spectra(), shape "
-                         f"{(psf.shape[0], shape[1] // 2 + 1, shape[0])}, got {tuple(psf_f.shape)}")
-
-
-def _check_spectra(psf_f: torch.Tensor | None, psf: torch.Tensor, shape: tuple[int, int]) -> None:
-    if psf_f is not None and tuple(psf_f.shape) != (psf.shape[0], shape[0], shape[1] // 2 + 1):
-        raise ValueError(f"psf_f must be the PSFs' spectra of shape {(psf.shape[0], shape[0], shape[1] // 2 + 1)}, "
-                         f"got {tuple(psf_f.shape)}")
+def _check_spectra(psf_f: torch.Tensor | None, psf: torch.Tensor, shape: tuple[int, int],
+                   transposed: bool = False) -> None:
+    """A ValueError unless ``psf_f`` is None or shaped as the PSFs' spectra at FFT ``shape``: :func:`psf_spectrum`'s
+    (C, Lh, Lw//2+1), or ``transposed`` :func:`same_spectra`'s (C, Lw//2+1, Lh). Where Lh = Lw//2+1 the two layouts
+    have one shape and the check cannot tell them apart (the snapshot, the one caller that keeps spectra, makes
+    them with the function that goes with its convolutions)."""
+    c, lh, lw = psf.shape[0], shape[0], shape[1] // 2 + 1
+    expected = (c, lw, lh) if transposed else (c, lh, lw)
+    if psf_f is not None and tuple(psf_f.shape) != expected:
+        raise ValueError(f"psf_f must be the PSFs' spectra of {'same_spectra()' if transposed else 'psf_spectrum()'}, "
+                         f"shape {expected}, got {tuple(psf_f.shape)}")
