@@ -124,17 +124,16 @@ def consistency_step(op, y: torch.Tensor, x0: torch.Tensor, origin: tuple[int, i
     # several bands: the kept heap's free pages go back after each step (one band's fragments are not kept into the
     # next step); one band: kept, for the next step's tensors of the same size (a trim would fault them in again:
     # 12 steps on a 512² image 4.0 → 6.3–8.5 s)
-    release = _band_rows(x.shape[-2], band_px, step_halo) is not None
+    one_band = _band_rows(x.shape[-2], band_px, step_halo) is None
     if not tv:
         for _ in range(iterations):
             state = _in_bands(lambda ya, yb, win: {"x": frame.stepped(ya, yb, win, win["x"])}, state, band_px,
                               step_halo)
-            _after_step(release, on_step)
+            _after_step(not one_band, on_step)
         return state["x"][..., py : py + h, px : px + w]
     # the dual field's divergence is kept from one step to the next (one of the prox's two divergences) when the
     # frame is one band; in bands it would be one more whole cube of state (a 2048² capture: +0.5 GB), so each band
     # recomputes it
-    keep_divergence = _band_rows(x.shape[-2], band_px, step_halo) is None
     state.update(previous=x.clone() if band_px is not None else x, brightness=_tv_brightness(x),
                  dual_y=torch.zeros_like(x), dual_x=torch.zeros_like(x), divergence=None)
     t = 1.0
@@ -149,11 +148,11 @@ def consistency_step(op, y: torch.Tensor, x0: torch.Tensor, origin: tuple[int, i
                                                        (win["dual_y"], win["dual_x"]), win["divergence"])
             # the new estimate goes where the previous one was, which the next step no longer needs
             new = {"previous": out, "dual_y": dual[0], "dual_x": dual[1]}
-            return {**new, "divergence": divergence} if keep_divergence else new
+            return {**new, "divergence": divergence} if one_band else new
 
         state = _in_bands(tv_step, state, band_px, step_halo)
         state["x"], state["previous"], t = state["previous"], state["x"], t_next
-        _after_step(release, on_step)
+        _after_step(not one_band, on_step)
     return state["x"][..., py : py + h, px : px + w]
 
 

@@ -339,6 +339,20 @@ def coded_conv_valid(x: torch.Tensor, psf: torch.Tensor, kappa: torch.Tensor,
     return _CodedConvolution.apply(x, psf, kappa, psf_f)
 
 
+def _same_plan(psf: torch.Tensor, h: int, w: int, psf_f: torch.Tensor | None):
+    """The same-geometry pair's FFT shape for an h × w window, with ``psf_f`` (:func:`same_spectra`'s layout) checked,
+    and those spectra as the padded valid composition takes them (a transposed view; None without them)."""
+    k = psf.shape[-1]
+    shape = linear_fft_shape((h + k - 1, w + k - 1))
+    _check_spectra(psf_f, psf, shape, transposed=True)
+    return shape, None if psf_f is None else psf_f.transpose(-1, -2)
+
+
+def _chunk_spectra(psf: torch.Tensor, psf_f: torch.Tensor | None, cs: slice, shape: tuple[int, int]) -> torch.Tensor:
+    """A chunk's bands ``cs`` of the transposed spectra: the kept ones, or computed from the PSFs."""
+    return same_spectra(psf[cs], shape) if psf_f is None else psf_f[cs]
+
+
 def coded_conv_same(x: torch.Tensor, psf: torch.Tensor, kappa: torch.Tensor,
                     psf_f: torch.Tensor | None = None) -> torch.Tensor:
     """Σ over bands of κ ⊙ (each band convolved with its PSF), in ``same`` geometry with zero padding: x (B, C, H, W),
@@ -354,16 +368,15 @@ def coded_conv_same(x: torch.Tensor, psf: torch.Tensor, kappa: torch.Tensor,
     _check(x, psf)
     k = psf.shape[-1]
     batch, bands, h, w = x.shape
-    shape = linear_fft_shape((h + k - 1, w + k - 1))
-    _check_spectra(psf_f, psf, shape, transposed=True)
+    shape, valid_f = _same_plan(psf, h, w, psf_f)
     if torch.is_grad_enabled() and (x.requires_grad or psf.requires_grad or kappa.requires_grad):
-        return coded_conv_valid(pad_same(x, k), psf, kappa, None if psf_f is None else psf_f.transpose(-1, -2))
+        return coded_conv_valid(pad_same(x, k), psf, kappa, valid_f)
     _check_kappa(kappa, (bands, h, w))
     r = k // 2
     g = x.new_zeros(batch, h, w)
     for bs, cs in _spectrum_chunks(batch, bands, shape, x):
         xf = _rfft2_transposed(x[bs, cs], shape, 0)
-        xf.mul_(same_spectra(psf[cs], shape) if psf_f is None else psf_f[cs])
+        xf.mul_(_chunk_spectra(psf, psf_f, cs, shape))
         _add_coded(g[bs], _irfft2_transposed(xf, shape, r, h)[..., r : r + w], kappa, cs,
                    band_by_band=x.device.type == "cpu")
     return g.unsqueeze(1)
@@ -379,17 +392,15 @@ def coded_conv_same_adjoint(g: torch.Tensor, psf: torch.Tensor, kappa: torch.Ten
     _check_sensor(g, psf)
     k = psf.shape[-1]
     batch, _, h, w = g.shape
-    shape = linear_fft_shape((h + k - 1, w + k - 1))
-    _check_spectra(psf_f, psf, shape, transposed=True)
+    shape, valid_f = _same_plan(psf, h, w, psf_f)
     if torch.is_grad_enabled() and (g.requires_grad or psf.requires_grad or kappa.requires_grad):
-        return pad_same_adjoint(coded_conv_valid_adjoint(g, psf, kappa,
-                                                         None if psf_f is None else psf_f.transpose(-1, -2)), k)
+        return pad_same_adjoint(coded_conv_valid_adjoint(g, psf, kappa, valid_f), k)
     _check_kappa(kappa, (psf.shape[0], h, w))
     r = k // 2
     out = g.new_empty(batch, psf.shape[0], h, w)
     for bs, cs in _spectrum_chunks(batch, psf.shape[0], shape, g):
         gf = _rfft2_transposed(_coded_rows(g[bs], kappa[cs], shape[1]), shape, k - 1)
-        gf.mul_((same_spectra(psf[cs], shape) if psf_f is None else psf_f[cs]).conj())
+        gf.mul_(_chunk_spectra(psf, psf_f, cs, shape).conj())
         full = _irfft2_transposed(gf, shape, r, h)
         # output column j is the correlation's column j − K//2, which the canvas wraps to its end for j < K//2
         left = min(r, w)
