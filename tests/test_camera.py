@@ -428,6 +428,19 @@ def test_too_small_scene_for_reflect_padding_is_an_input_error(tiny_camera):
         cam.A(torch.rand(1, 3, 2, 2))
 
 
+@pytest.mark.parametrize("padding, least", [("reflect", 4), ("circular", 3), ("replicate", 1), ("zeros", 1)])
+def test_the_smallest_scene_each_padding_takes(tiny_camera, padding, least):
+    """A 7-px kernel pads a ``same`` scene by 3 px a side: reflection needs 4 px (it mirrors about the edge
+    pixel), wrapping around 3 (torch's circular padding may not wrap more than once); smaller scenes are one
+    InputError naming the least size, not F.pad's RuntimeError. The least size images."""
+    cam = tiny_camera("camera.boundary=same", f"camera.padding={padding}")
+    assert cam.margin // 2 == 3
+    assert cam.A(torch.rand(1, 3, least, least + 2)).shape[-2:] == (least, least + 2)
+    if least > 1:
+        with pytest.raises(InputError, match=rf"too small for {padding} padding by 3 px: it needs at least {least} px"):
+            cam.A(torch.rand(1, 3, least - 1, 12))
+
+
 def test_fixed_measure_computes_the_doe_psf_once_unless_height_noise_is_drawn(tiny_camera):
     """The DOE camera's ``fixed_measure`` reuses one nominal PSF stack (the optics do not change
     while it is used); with fabrication noise σ_p > 0 each call draws its own PSF."""

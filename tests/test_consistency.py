@@ -4,6 +4,7 @@ reference, the residual and error guarantees, GAP on DD-CASSI, exact tiling, con
 from __future__ import annotations
 
 import dataclasses
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -372,6 +373,31 @@ def test_experiment_builds_learned_cassi_methods_from_their_own_overrides(monkey
     for name in LEARNED_CASSI:
         assert seen[name].camera.kind == "dd_cassi" and seen[name].model.consistency.iterations == 0, name
     assert seen["dd-cassi-gaptv"] is cfg
+
+
+def test_experiment_evaluates_each_camera_with_the_config_it_trained_with(monkeypatch, tmp_path):
+    """The cfa-period sweep trains its cameras with the linear step widened to its largest period (15 px at
+    quick scale, whose preset has 11): each camera is built for scoring with its own config, or the 15 px
+    linear step its training fitted would be refused against the preset's 11 after all five trainings."""
+    from hsicam.engine import experiments
+
+    seen = []
+
+    class Built(Exception):
+        pass
+
+    def fake_build(name, cfg, run=None, device="cpu"):
+        seen.append((Path(run).name, cfg))
+        raise Built
+
+    monkeypatch.setattr(experiments, "ensure_trained", lambda *a, **k: None)
+    monkeypatch.setattr(experiments, "validation_scenes", lambda cfg: ([], []))
+    monkeypatch.setattr(experiments, "build_method", fake_build)
+    assert load_config("quick").model.consistency.window_px == 11
+    with pytest.raises(Built):
+        experiments.run_experiment("cfa-period", "quick", tmp_path / "sweep")
+    (run, cfg), = seen
+    assert run == "period-3" and cfg.camera.cfa.period == 3 and cfg.model.consistency.window_px == 15
 
 
 # ------------------------------------------------------------------------------------------------

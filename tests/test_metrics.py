@@ -218,10 +218,11 @@ def test_sam_breakdown_leaves_out_pixels_without_an_angle():
     assert got["bright"][0] == pytest.approx(np.nanmean(amap[:, 3:]), abs=1e-9)
 
 
-def test_all_metrics_sam_is_undefined_only_for_a_black_truth_and_infinite_for_a_broken_estimate():
+def test_all_metrics_sam_is_undefined_only_for_a_black_truth_and_the_worst_for_a_broken_estimate():
     """NaN SAM means "no angle anywhere" (a truth zero at every pixel: the scene is left out of the mean
-    SAM); an estimate with NaN pixels is a broken reconstruction and scores an infinite error, as
-    every other metric does, never a NaN that a mean would skip."""
+    SAM); an estimate with NaN pixels is a broken reconstruction and scores the worst value of every
+    metric (−inf PSNR and SSIM, +inf errors), never a NaN that a mean would skip nor a +inf PSNR that
+    reads as a perfect score."""
     import math
 
     from hsicam.metrics import all_metrics
@@ -232,4 +233,8 @@ def test_all_metrics_sam_is_undefined_only_for_a_black_truth_and_infinite_for_a_
     est[0, :, 3, 3] = float("nan")
     m = all_metrics(est, truth)
     assert m["sam"][0] == math.inf and math.isnan(m["sam"][1])
-    assert m["psnr"][0] == math.inf
+    for name in ("psnr", "psnr_cube", "psnr_mst", "ssim"):
+        assert m[name][0] == -math.inf, name
+        assert math.isfinite(m[name][1]), name  # the black truth estimated exactly: a finite (floored) score
+    for name in ("ergas", "rmse"):
+        assert m[name][0] == math.inf, name

@@ -118,6 +118,9 @@ def test_card_numbers_come_from_the_run_and_results(env):
     for got, want in zip(m["validation"]["references"], res["references"]):
         assert got["mean"] == {k: want["mean"][k] for k in ("psnr", "ssim", "sam")}
     assert m["validation"]["n_scenes"] == len(res["scenes"]) and m["heldout"]["n_scenes"] == len(res["heldout"]["scenes"])
+    # the demo names the area it scored as `hsicam evaluate` does, from the run's camera (valid: the sensor area)
+    from hsicam.engine.evaluate import scored_region
+    assert res["region"] == scored_region(model.camera) and res["region"].startswith("sensor area")
     assert c["training"]["steps"] == final["step"] and c["training"]["elapsed_s"] == final["elapsed_s"]
     assert c["bands"]["centers_nm"] == model.bands.centers_nm.tolist() and c["bands"]["count"] == len(model.bands)
     assert c["network"]["parameters"] == sum(p.numel() for p in model.net.parameters())

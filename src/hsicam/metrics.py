@@ -249,7 +249,14 @@ def all_metrics(estimate: torch.Tensor, truth: torch.Tensor) -> dict[str, list[f
     for name, fn in fns.items():
         vals = fn(estimate, truth).tolist()
         # SAM is NaN, undefined, only for a truth that is zero everywhere (no angle anywhere); a NaN
-        # that a broken estimate (NaN pixels) gives is an infinite error, as for every other metric
-        out[name] = [v if math.isfinite(v) or (name == "sam" and math.isnan(v) and u) else float("inf")
+        # that a broken estimate (NaN pixels) gives is the worst score, for every metric: −inf for those
+        # where higher is better (PSNR, SSIM), +inf for the errors (a NaN would be skipped by a mean, and
+        # +inf PSNR read as a perfect band)
+        worst = -math.inf if name in HIGHER_IS_BETTER else math.inf
+        out[name] = [v if math.isfinite(v) or (name == "sam" and math.isnan(v) and u) else worst
                      for v, u in zip(vals, undefined)]
     return out
+
+
+#: The metrics of :func:`all_metrics` where a higher value is better (the others are errors).
+HIGHER_IS_BETTER = frozenset({"psnr", "psnr_cube", "psnr_mst", "ssim"})

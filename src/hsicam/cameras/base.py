@@ -293,10 +293,14 @@ class Camera(nn.Module):
         if x.shape[0] < 1:
             raise InputError(f"scene of shape {tuple(x.shape)} is an empty batch: it needs B >= 1")
         check_device(x, self, "scene")
-        if self.boundary == "same" and getattr(self, "padding", "zeros") == "reflect" and min(x.shape[-2:]) <= self.margin // 2:
+        padding = getattr(self, "padding", "zeros")
+        # reflection mirrors the scene about its edge pixel, so it needs more pixels than it pads; wrapping around
+        # needs at least as many (the padding may not wrap around the scene more than once)
+        least = {"reflect": self.margin // 2 + 1, "circular": self.margin // 2}.get(padding, 0)
+        if self.boundary == "same" and min(x.shape[-2:]) < least:
             raise InputError(
-                f"scene of {x.shape[-2]}×{x.shape[-1]} px is too small for reflect padding by {self.margin // 2} px: "
-                f"it needs more than {self.margin // 2} px per side"
+                f"scene of {x.shape[-2]}×{x.shape[-1]} px is too small for {padding} padding by {self.margin // 2} px: "
+                f"it needs at least {least} px per side"
             )
         h, w = self.sensor_size(tuple(x.shape[-2:]))
         if h < 1 or w < 1:

@@ -11,7 +11,7 @@ from typing import Any
 from hsicam.config import Config, load_config
 from hsicam.data.pipeline import scene_dataset, split_dataset
 from hsicam.engine.evaluate import (TestNoise, demosaic_reference, evaluate_method, evaluate_scenes, format_table,
-                                    grey_reference, summarize)
+                                    grey_reference, scored_region, summarize)
 from hsicam.engine.experiments import ensure_trained, heldout_scenes
 from hsicam.engine.methods import (LINEAR_REFERENCE_WINDOW, linear_demosaic_reference, network_alone_reference,
                                    network_skip)
@@ -117,7 +117,7 @@ def run_demo(cfg: Config, out: str | Path) -> dict[str, Any]:
     kept = kept_checkpoint(run)
     if kept is not None:  # which weights were scored: the last step's, or the best validation's (a selection)
         summary["weights"] = kept
-    summary["region"] = "sensor area of each scene (scene minus the kernel margin), valid mode"
+    summary["region"] = scored_region(model.camera)  # as `hsicam evaluate` says it (a `--set camera.boundary=same` demo: the whole scene)
     write_json(out / "results.json", summary)
     table = format_table(summary)
     with atomic_open(out / "results.md", "w", encoding="utf-8") as fh:

@@ -276,7 +276,8 @@ def run_experiment(experiment: str, scale: str, out: str | Path, seeds: tuple[in
     grids: dict[str, Any] = {}
     for spec in specs:
         run = out / "runs" / spec.name
-        method = build_method("doe-learned", cfg, run)
+        # evaluated as it was trained (the preset plus the spec's overrides, e.g. the sweep's wider linear step)
+        method = build_method("doe-learned", run_cfgs[spec.name], run)
         if experiment == "noise":
             grid = []
             for sp in NOISE_SIGMA_HEIGHT_NM:
