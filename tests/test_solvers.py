@@ -608,3 +608,61 @@ def test_classical_cassi_methods_take_a_doe_preset(name):
     assert method.camera.kind == "dd_cassi" and len(method.camera.bands) == 31
     if name == "dd-cassi-gaptv":
         assert method.info["iterations"] == 400 and method.reconstruct.keywords["iterations"] == 400
+
+
+def test_cassi_methods_of_a_doe_config_are_scored_on_its_sensor_area(tiny_env):
+    """`hsicam evaluate --config quick --method dd-cassi-gaptv` is how the CASSI rows beside the DOE camera are
+    measured: the DOE camera scores its sensor area (the scene less its kernel margin, 20 px at the tiny preset),
+    so the CASSI method, which reconstructs the whole scene, is scored on the same pixels (it was scored on the
+    whole scene, borders the DOE camera's sensor never sees included). A CASSI config or a `same` DOE config:
+    the whole scene."""
+    from hsicam.cameras import build_camera
+    from hsicam.engine.evaluate import evaluate_method, scored_region
+    from hsicam.metrics import all_metrics
+
+    cfg = load_config("tiny", FAST)
+    assert build_camera(cfg).margin == 20
+    method = build_method("dd-cassi-gaptv", cfg)
+    assert method.border_px == 10 and method.info["scored_border_px"] == 10
+    assert build_method("dd-cassi-gaptv", load_config("tiny", [*FAST, "camera.boundary=same"])).border_px == 0
+    assert build_method("dd-cassi-gaptv", load_config("tiny", [*FAST, "camera.kind=dd_cassi"])).border_px == 0
+    assert "less 10 px a side" in scored_region(method.camera, method.border_px)
+    scenes = _validation_scenes(cfg)
+    whole = evaluate_method(dataclasses.replace(method, border_px=0), scenes, ["a", "b"])
+    inner = evaluate_method(method, scenes, ["a", "b"])
+    for w, i, k in zip(whole, inner, range(2)):
+        assert w.truth.shape == scenes[k].shape and i.truth.shape == (scenes[k].shape[0], 44, 44)
+        np.testing.assert_array_equal(i.truth, scenes[k].numpy()[:, 10:-10, 10:-10])
+        np.testing.assert_array_equal(i.estimate, w.estimate[:, 10:-10, 10:-10])  # the same reconstruction
+        want = all_metrics(torch.from_numpy(w.estimate[None, :, 10:-10, 10:-10]),
+                           torch.from_numpy(w.truth[None, :, 10:-10, 10:-10]))
+        for name in ("psnr", "ssim", "sam"):
+            assert i.metrics[name] == pytest.approx(want[name][0], rel=1e-12), name
+        assert i.metrics["psnr"] != pytest.approx(w.metrics["psnr"], abs=1e-6)  # the border did count before
+
+
+def test_compare_scores_every_cassi_row_on_the_doe_cameras_area(monkeypatch, tmp_path):
+    """`hsicam experiment compare`: the learned CASSI rows (whose own configs are CASSI configs) and the
+    iterative ones are all scored without the DOE camera's border."""
+    from hsicam.engine import experiments
+    from hsicam.engine.experiments import LEARNED_CASSI
+    from hsicam.engine.methods import Method
+
+    class Scored(Exception):
+        pass
+
+    scored = {}
+    monkeypatch.setattr(experiments, "ensure_trained", lambda *a, **k: None)
+    monkeypatch.setattr(experiments, "ensure_choi_prior", lambda *a, **k: None)
+    monkeypatch.setattr(experiments, "build_method", lambda name, cfg, run=None, device="cpu": Method(
+        name, None, None, None))
+
+    def fake_evaluate(method, scenes, names, noise, **kw):
+        scored[method.name] = method.border_px
+        raise Scored
+
+    monkeypatch.setattr(experiments, "evaluate_method", fake_evaluate)
+    for name in (*LEARNED_CASSI, "dd-cassi-gaptv"):
+        with pytest.raises(Scored):
+            experiments._baseline_rows(load_config("quick"), "quick", tmp_path, [], [], (0,), [name], 70)
+    assert scored == {name: 70 for name in (*LEARNED_CASSI, "dd-cassi-gaptv")}

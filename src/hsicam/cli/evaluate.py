@@ -219,7 +219,7 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
                         noise={"sigma_height_nm": args.sigma_height_nm, "sensor_sigma": args.sensor_sigma, "seeds": args.seeds,
                                # the capture noise of the evaluation's config (the camera's own, or --set)
                                "camera_sensor": camera_sensor, "draws": NOISE_DRAWS},
-                        bands_nm=bands.centers_nm.tolist(), region=scored_region(method.camera), **saved)
+                        bands_nm=bands.centers_nm.tolist(), region=scored_region(method.camera, method.border_px), **saved)
     if roles is not None:
         for row, role in zip(summary["scenes"], roles):
             row["split"] = role

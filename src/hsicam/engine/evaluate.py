@@ -75,9 +75,14 @@ def config_hash(yaml_text: str) -> str:
     return hashlib.sha256(yaml_text.encode()).hexdigest()[:12]
 
 
-def scored_region(camera) -> str:
+def scored_region(camera, border_px: int = 0) -> str:
     """What a result's scores cover, for ``results.json``: the sensor area of a ``valid`` camera, or
-    the whole scene (``same``, its border imaged with the camera's padding)."""
+    the whole scene (``same``, its border imaged with the camera's padding); with ``border_px``
+    (:attr:`~hsicam.engine.methods.Method.border_px`) a CASSI method's whole-scene reconstruction
+    scored on a DOE camera's sensor area."""
+    if border_px:
+        return (f"the sensor area of the DOE camera it is compared with: the scene less {border_px} px a side "
+                "(the reconstruction covers the whole scene)")
     if camera.boundary == "valid" and getattr(camera, "margin", 0) > 0:
         return "sensor area (scene minus the camera's kernel margin)"
     if camera.boundary == "valid":  # a CASSI camera: no PSF kernel, so 'valid' crops nothing
@@ -85,12 +90,19 @@ def scored_region(camera) -> str:
     return f"whole scene (boundary 'same', {getattr(camera, 'padding', 'zeros')} padding: border pixels included)"
 
 
-def _check_scored_area(name: str, scene_hw: tuple[int, int], truth_hw: tuple[int, int], camera) -> None:
-    """InputError unless the scored area ``truth_hw`` (empty when a ``valid`` camera's margin exceeds
-    the scene) holds SSIM's window; the message names the scene by ``name`` (its path when it has
-    one) and gives the minimum scene size."""
+def _check_scored_area(name: str, scene_hw: tuple[int, int], truth_hw: tuple[int, int], camera,
+                       border_px: int = 0) -> None:
+    """InputError unless the scored area ``truth_hw`` (empty when a ``valid`` camera's margin, or the
+    ``border_px`` a method leaves out, exceeds the scene) holds SSIM's window; the message names the
+    scene by ``name`` (its path when it has one) and gives the minimum scene size."""
     if min(truth_hw) >= SSIM_WINDOW_PX:
         return
+    if border_px:
+        raise InputError(
+            f"{name}: scene of {scene_hw[0]}×{scene_hw[1]} px leaves {max(truth_hw[0], 0)}×{max(truth_hw[1], 0)} px "
+            f"to score on the sensor area of the DOE camera it is compared with ({border_px} px a side left out); "
+            f"SSIM needs at least {SSIM_WINDOW_PX}×{SSIM_WINDOW_PX}: scenes of at least "
+            f"{2 * border_px + SSIM_WINDOW_PX} px on each side, or camera.boundary=same (whole scenes scored)")
     crop = camera.boundary == "valid"
     margin = camera.margin if crop else 0
     raise InputError(
@@ -104,11 +116,18 @@ def _check_scored_area(name: str, scene_hw: tuple[int, int], truth_hw: tuple[int
 def _scored_hw(method: Method, n_bands: int, scene_hw: tuple[int, int]) -> tuple[int, int]:
     """(H, W) of ``method.target`` for a scene of ``scene_hw``, computed on a tensor without data
     (the ``meta`` device: no memory, no pixels read)."""
+    b = 2 * method.border_px
     try:
         t = method.target(torch.empty((1, n_bands, *scene_hw), device="meta"))
-        return int(t.shape[-2]), int(t.shape[-1])
+        return int(t.shape[-2]) - b, int(t.shape[-1]) - b
     except (RuntimeError, NotImplementedError, TypeError):  # a target that needs data: the scene's own size
-        return scene_hw
+        return scene_hw[0] - b, scene_hw[1] - b
+
+
+def _without_border(x: torch.Tensor, border_px: int) -> torch.Tensor:
+    """x (…, H, W) less ``border_px`` px on every side."""
+    b = border_px
+    return x[..., b : x.shape[-2] - b, b : x.shape[-1] - b] if b else x
 
 
 def scene_label(scenes, i: int, name: str) -> str:
@@ -136,7 +155,8 @@ def check_scenes(method: Method, scenes, names: Sequence[str]) -> None:
             hw = (got.height, got.width)
         else:
             hw = tuple(int(v) for v in scenes[i].shape[-2:])
-        _check_scored_area(scene_label(scenes, i, name), hw, _scored_hw(method, n_bands, hw), method.camera)
+        _check_scored_area(scene_label(scenes, i, name), hw, _scored_hw(method, n_bands, hw), method.camera,
+                           method.border_px)
 
 
 def no_doe_reason(camera) -> str | None:
@@ -202,8 +222,8 @@ def evaluate_method(method: Method, scenes, names: Sequence[str], noise: TestNoi
         cam.eval()
         for i, name in enumerate(names):
             scene = scenes[i][None].to(device)
-            truth = method.target(scene)
-            _check_scored_area(scene_label(scenes, i, name), scene.shape[-2:], truth.shape[-2:], cam)
+            truth = _without_border(method.target(scene), method.border_px)
+            _check_scored_area(scene_label(scenes, i, name), scene.shape[-2:], truth.shape[-2:], cam, method.border_px)
             per_seed, times, est0 = [], [], None
             for seed in noise.seeds:
                 g = torch.Generator(device=device).manual_seed(int(seed))
@@ -220,7 +240,7 @@ def evaluate_method(method: Method, scenes, names: Sequence[str], noise: TestNoi
                 if bad:  # clipping would hide inf and metrics would score NaN as infinitely good: refuse
                     raise InputError(f"{scene_label(scenes, i, name)}: the {method.name} reconstruction holds {bad} "
                                      "non-finite values (NaN or inf): a broken reconstruction is not scored")
-                est = est.float().clamp(0, 1)
+                est = _without_border(est, method.border_px).float().clamp(0, 1)
                 per_seed.append({k: v[0] for k, v in all_metrics(est, truth).items()})
                 if est0 is None:
                     est0 = est

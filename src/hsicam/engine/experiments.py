@@ -14,6 +14,7 @@ scale: a folder of another is refused before any change (:func:`check_experiment
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import logging
 from dataclasses import dataclass
@@ -22,7 +23,7 @@ from typing import Any
 
 from hsicam.config import Config, load_config, training_differences
 from hsicam.data.pipeline import absolute_data_paths
-from hsicam.engine.evaluate import TestNoise, evaluate_method, summarize
+from hsicam.engine.evaluate import TestNoise, evaluate_method, scored_region, summarize
 from hsicam.engine.linear_step import refresh_linear_step
 from hsicam.engine.methods import baseline_names, build_method
 from hsicam.engine.prior import ensure_choi_prior
@@ -274,10 +275,13 @@ def run_experiment(experiment: str, scale: str, out: str | Path, seeds: tuple[in
     scenes, names = validation_scenes(cfg)
     rows: list[dict] = []
     grids: dict[str, Any] = {}
+    region = None  # the pixels the DOE cameras score (the CASSI rows of compare are scored on the same)
     for spec in specs:
         run = out / "runs" / spec.name
         # evaluated as it was trained (the preset plus the spec's overrides, e.g. the sweep's wider linear step)
         method = build_method("doe-learned", run_cfgs[spec.name], run)
+        if region is None:
+            region, doe_camera = scored_region(method.camera), method.camera
         if experiment == "noise":
             grid = []
             for sp in NOISE_SIGMA_HEIGHT_NM:
@@ -300,9 +304,11 @@ def run_experiment(experiment: str, scale: str, out: str | Path, seeds: tuple[in
         if spec.note:
             rows[-1]["overrides"], rows[-1]["note"] = list(spec.overrides), spec.note
     if experiment == "compare":
-        rows += _baseline_rows(cfg, scale, out, scenes, names, seeds, baseline_names() if baselines is None else baselines)
+        border = doe_camera.margin // 2 if doe_camera.boundary == "valid" else 0
+        rows += _baseline_rows(cfg, scale, out, scenes, names, seeds, baseline_names() if baselines is None else baselines,
+                               border)
     result = {"experiment": experiment, "scale": scale, "seeds": list(seeds), "scenes": names,
-              "conventions": summarize([])["conventions"], "rows": rows}
+              "conventions": summarize([])["conventions"], "region": region, "rows": rows}
     notes = [f"{spec.name}: {spec.note}" for spec in specs if spec.note]
     if notes:
         result["notes"] = notes
@@ -380,8 +386,9 @@ def check_experiment_folder(out: Path, experiment: str, scale: str, run_cfgs: di
         check_same_training(run, cfg)
 
 
-def _baseline_rows(cfg, scale, out, scenes, names, seeds, baselines) -> list[dict]:
-    """Rows for the CASSI baselines (learned ones are trained, or resumed, first)."""
+def _baseline_rows(cfg, scale, out, scenes, names, seeds, baselines, border_px: int = 0) -> list[dict]:
+    """Rows for the CASSI baselines (learned ones are trained, or resumed, first), each scored without a
+    border of ``border_px`` px a side: on the pixels the DOE camera's rows are scored on (its sensor area)."""
     rows = []
     for name in baselines:
         run = None
@@ -392,7 +399,7 @@ def _baseline_rows(cfg, scale, out, scenes, names, seeds, baselines) -> list[dic
             run = ensure_choi_prior(out / "runs" / name, scale)
         # a learned CASSI method is evaluated with its own overrides (e.g. without the consistency step)
         method_cfg = load_config(scale, list(LEARNED_CASSI[name])) if name in LEARNED_CASSI else cfg
-        method = build_method(name, method_cfg, run)
+        method = dataclasses.replace(build_method(name, method_cfg, run), border_px=border_px)
         s = summarize(evaluate_method(method, scenes, names, TestNoise(seeds=seeds), keep_arrays=False,
                                       progress=_scene_lines(name)))
         rows.append(_row(name, s, scenes=s["scenes"]))
@@ -406,7 +413,11 @@ def format_experiment_table(result: dict) -> str:
     """Markdown table of an experiment's rows (conventions stated above the table)."""
     c = result["conventions"]
     lines = [f"## {result['experiment']} ({result['scale']} scale; {len(result['scenes'])} validation scenes, "
-             f"seeds {result['seeds']})", "", f"PSNR: {c['psnr']}. SSIM: {c['ssim']}. SAM: {c['sam']}.", ""]
+             f"seeds {result['seeds']})", "", f"PSNR: {c['psnr']}. SSIM: {c['ssim']}. SAM: {c['sam']}."
+             + (f" Scored area: the DOE cameras' {result['region']}"
+                + (" (the CASSI rows too: their whole-scene reconstructions scored on the same pixels)."
+                   if result["experiment"] == "compare" else ".") if result.get("region") else ""),
+             ""]
     if result["experiment"] == "noise":
         lines += ["| camera | PSNR clean | SSIM clean | worst PSNR on grid | worst SSIM on grid |", "|---|---|---|---|---|"]
         for r in result["rows"]:

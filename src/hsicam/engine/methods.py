@@ -27,7 +27,10 @@ Methods are registered by name (:func:`register_method`); :func:`build_method` l
 The DD-CASSI camera of the iterative methods is built from the evaluation config's band grid,
 ``camera.cassi`` and ``camera.sensor`` (whatever ``camera.kind`` says); the learned methods use
 their run's own camera. CASSI has no blur, so the ground truth is the whole scene and every
-reconstruction has the scene's size.
+reconstruction has the scene's size; where the evaluation config's camera is a DOE camera in
+``valid`` mode (``--config quick``) the iterative methods are scored on that camera's sensor area
+(:func:`compared_border_px`), and ``hsicam experiment compare`` scores every CASSI row there: one
+table, the same pixels.
 """
 
 from __future__ import annotations
@@ -70,6 +73,10 @@ class Method:
         prepare: work before the first reconstruction (a fit), which
             :func:`~hsicam.engine.evaluate.evaluate_method` runs once the scenes are checked, outside
             the timed reconstructions (None: none).
+        border_px: px left out of the score on every side of ``target(scene)`` and of the
+            reconstruction (which still covers all of it): a CASSI method scored on the pixels a DOE
+            camera scores, the scene less its kernel margin, where the two are compared
+            (:func:`compared_border_px`). 0: all of ``target``.
     """
 
     name: str
@@ -79,6 +86,7 @@ class Method:
     info: dict[str, Any] = field(default_factory=dict)
     model: Any = None
     prepare: Callable[[], Any] | None = None
+    border_px: int = 0
 
 
 Builder = Callable[[Any, "str | Path | None", "str | torch.device"], Method]
@@ -328,6 +336,26 @@ def _identity(scene: torch.Tensor) -> torch.Tensor:
     return scene
 
 
+def compared_border_px(cfg) -> int:
+    """The border a CASSI method built from the evaluation config ``cfg`` leaves out of its score: when
+    ``cfg``'s camera is a DOE camera in ``valid`` mode (``--config quick``, the comparison of Table 1), that
+    camera's kernel margin // 2 px a side, so the CASSI rows are scored on the same pixels as the DOE camera's
+    (its sensor area; they reconstruct the whole scene, whose border a DOE camera's sensor does not see); 0
+    for a CASSI config or a ``same`` DOE config (the DOE camera then scores the whole scene too)."""
+    if cfg.camera.kind != "doe" or cfg.camera.boundary != "valid":
+        return 0
+    from hsicam.cameras import build_camera
+
+    return build_camera(cfg).margin // 2
+
+
+def _cassi_method(name: str, cfg, cam, rec, info: dict) -> Method:
+    """A DD-CASSI method of the evaluation config ``cfg``, scored on the area :func:`compared_border_px` says."""
+    border = compared_border_px(cfg)
+    return Method(name, cam, rec, _identity, {**info, **({"scored_border_px": border} if border else {})},
+                  border_px=border)
+
+
 def _camera_info(cam) -> dict:
     return {"camera": cam.kind, "convention": cam.convention, "shifts_px": list(cam.shifts),
             "aperture": cam.aperture.source or f"random seed {cam.aperture.seed}, density {cam.aperture.density}"}
@@ -339,7 +367,7 @@ def _gaptv_method(cfg, run, device) -> Method:
     cam = dd_cassi_camera(cfg, device)
     rec = functools.partial(gap_tv, cam, iterations=s.iterations, tv_weight=s.tv_weight,
                             tv_iterations=s.tv_iterations, accelerate=s.accelerate)
-    return Method("dd-cassi-gaptv", cam, rec, _identity, {"solver": "gap-tv", **dataclasses.asdict(s), **_camera_info(cam)})
+    return _cassi_method("dd-cassi-gaptv", cfg, cam, rec, {"solver": "gap-tv", **dataclasses.asdict(s), **_camera_info(cam)})
 
 
 @register_method("dd-cassi-desci")
@@ -348,8 +376,8 @@ def _desci_method(cfg, run, device) -> Method:
     cam = dd_cassi_camera(cfg, device)
     ds = desci_settings(s.preset, **s.overrides())
     rec = functools.partial(desci, cam, settings=ds)
-    return Method("dd-cassi-desci", cam, rec, _identity,
-                  {"solver": "desci", "preset": s.preset, **dataclasses.asdict(ds), **_camera_info(cam)})
+    return _cassi_method("dd-cassi-desci", cfg, cam, rec,
+                         {"solver": "desci", "preset": s.preset, **dataclasses.asdict(ds), **_camera_info(cam)})
 
 
 def _check_prior_keys(asked, trained, run, explicit: tuple[str, ...] = ()) -> None:
@@ -392,7 +420,7 @@ def _choi_method(cfg, run, device) -> Method:
     _check_prior_keys(admm, trained, run)
     admm = dataclasses.replace(admm, features=trained.features, latent=trained.latent)
     rec = functools.partial(admm_prior, cam, prior=prior, settings=admm)
-    return Method("dd-cassi-choi", cam, rec, _identity, {"solver": "choi-admm", "run": str(run), **dataclasses.asdict(admm),
+    return _cassi_method("dd-cassi-choi", cfg, cam, rec, {"solver": "choi-admm", "run": str(run), **dataclasses.asdict(admm),
                                                          **_camera_info(cam)})
 
 
