@@ -140,6 +140,44 @@ def test_a_single_page_tiff_and_one_with_a_thumbnail_are_read(tmp_path):
         assert got.full_scale == 65535.0
 
 
+@pytest.mark.parametrize("dtype, full_scale", [(np.uint16, 65535.0), (np.uint8, 255.0), (np.float32, None)])
+def test_an_lzw_tiff_is_read_without_imagecodecs(tmp_path, dtype, full_scale):
+    """LZW, the commonest compression of captures, needs tifffile's optional imagecodecs package; without it
+    the capture was refused as "corrupt or truncated?". Pillow (written by it here, read back the same) decodes
+    it: the same pixels as the uncompressed file."""
+    from PIL import Image
+
+    rng = np.random.default_rng(3)
+    image = (rng.random((37, 53)) * (1 if dtype == np.float32 else 4000 if dtype == np.uint16 else 250)).astype(dtype)
+    Image.fromarray(image).save(tmp_path / "lzw.tif", compression="tiff_lzw")
+    with tifffile.TiffFile(tmp_path / "lzw.tif") as tf:
+        assert tf.pages[0].compression == 5  # LZW
+    tifffile.imwrite(tmp_path / "plain.tif", image, photometric="minisblack")
+    got, plain = read_image_2d(tmp_path / "lzw.tif", "sensor image"), read_image_2d(tmp_path / "plain.tif", "sensor image")
+    np.testing.assert_array_equal(got.data, plain.data)
+    assert got.full_scale == plain.full_scale and (full_scale is None or got.full_scale == full_scale)
+
+
+def test_a_tiff_neither_reader_decodes_names_its_compression(tmp_path, monkeypatch):
+    """When Pillow cannot decode the page either, the refusal says which compression and what to do, not
+    "corrupt or truncated?"."""
+    from PIL import Image
+
+    Image.fromarray(np.arange(12, dtype=np.uint16).reshape(3, 4)).save(tmp_path / "lzw.tif", compression="tiff_lzw")
+
+    def cannot(*a, **k):
+        raise OSError("decoder tiff_lzw not available")
+
+    def without_imagecodecs(*a, **k):  # as tifffile answers where imagecodecs is not installed
+        raise ValueError("<COMPRESSION.LZW: 5> requires the 'imagecodecs' package")
+
+    monkeypatch.setattr(tifffile.TiffPage, "asarray", without_imagecodecs)
+    monkeypatch.setattr(Image, "open", cannot)
+    with pytest.raises(InputError, match=r"lzw.tif: TIFF compressed with LZW.*pip install imagecodecs.*uncompressed") as err:
+        read_image_2d(tmp_path / "lzw.tif", "sensor image")
+    assert "corrupt" not in str(err.value)
+
+
 # ------------------------------------------------------------------------------------------------
 # 3. A half-trained run
 # ------------------------------------------------------------------------------------------------

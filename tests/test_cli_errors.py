@@ -616,6 +616,21 @@ def test_an_interruption_during_start_up_is_one_line(capsys, monkeypatch):
     assert capsys.readouterr().err == "hsicam: interrupted\n"
 
 
+def test_an_interruption_while_the_options_are_read_is_one_line(monkeypatch, capsys, tmp_path):
+    """`--run`'s type checks the run's weights, importing torch: a Ctrl-C in that second printed a traceback
+    (probe of session 51); now the one line of an interruption anywhere else."""
+    import hsicam.cli as cli
+
+    def interrupted(spec):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(cli, "run_folder", interrupted)
+    assert cli.main(["reconstruct", str(tmp_path / "c.npy"), "--run", "pretrained:standard",
+                     "--out", str(tmp_path / "c.h5")]) == 130
+    assert capsys.readouterr().err == "hsicam: interrupted\n"
+    assert not any(tmp_path.iterdir())
+
+
 @pytest.mark.parametrize("command", ["evaluate", "reconstruct", "export-optics", "tolerance", "finetune", "pretrained pack"])
 def test_a_demo_folder_as_the_run_names_the_run_inside_it(inputs, tmp_path, capsys, command):
     """`--run runs/demo` (the README's demo output, not a run): the one line names its run/ folder."""

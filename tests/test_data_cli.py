@@ -297,7 +297,8 @@ def test_data_synth_beyond_the_disk_names_its_own_options(tmp_path, monkeypatch,
     assert main(args) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0].startswith("hsicam: error: the synthetic dataset of 100,000 scenes of 64×64 px and "
-                                                "31 bands needs about "), err
+                                                "31 bands needs, in "), err
+    assert "more is kept free beyond it (" in err[0], err  # the margin the check keeps is said
     fix = ("give --out a folder on a larger disk" if where == "out" else
            "write to a larger disk (--out, or data.cache_dir / HSICAM_CACHE)")
     assert err[0].endswith(f"but that disk has 1 GiB free; lower --n or --size, or {fix}"), err

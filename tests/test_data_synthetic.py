@@ -232,8 +232,9 @@ def test_a_dataset_larger_than_the_free_disk_is_refused_before_any_scene(tmp_pat
     free = 1000 * per_scene  # room for 1000 scenes less the margin (64 MiB at least)
     monkeypatch.setattr(shutil, "disk_usage", lambda path: usage(10 * free, 9 * free, free))
     cache = tmp_path / "cache"
-    with pytest.raises(InputError, match=r"the synthetic dataset of 2,000 scenes of 32×32 px and 7 bands needs about "
-                                         r".* but that disk has .* free; lower data.synthetic_n"):
+    with pytest.raises(InputError, match=r"the synthetic dataset of 2,000 scenes of 32×32 px and 7 bands needs, in .*, "
+                                         r"about .*, and 64 MiB more is kept free beyond it \(.* in all\), but that "
+                                         r"disk has .* free; lower data.synthetic_n"):
         synthetic_dataset(2000, 32, 0, bands, cache_dir=cache, progress=False)
     assert not cache.exists()
     # what fits is generated (the margin: a tenth of the need, at least 64 MiB)

@@ -109,9 +109,9 @@ def test_evaluate_save_checks_the_free_space_first(reference, tmp_path, monkeypa
     out = tmp_path / "ev"
     res = run_cli_in_process("evaluate", "--run", str(reference), "--out", str(out), "--save")
     line = error_line(res)
-    assert re.fullmatch(rf"hsicam: error: {re.escape(str(out))}: --save writes up to \d+\.\d MB of cubes \(2 scenes\), "
-                        r"but its file system has only 0\.3 MB free; free some space, choose another --out, or drop "
-                        r"--save", line), line
+    assert re.fullmatch(rf"hsicam: error: {re.escape(str(out))}: --save writes cubes \(2 scenes\) of about [\d.]+ [KM]iB, "
+                        r"and 1 MiB more is kept free beyond it \([\d.]+ [KM]iB in all\), but that disk has 293 KiB "
+                        r"free; free some space, choose another --out, or drop --save", line), line
     assert "[1/2]" not in res.stderr  # refused before the evaluation
     assert not out.exists() and not list(tmp_path.glob(".ev.*"))
 

@@ -118,6 +118,7 @@ def test_reconstruct_checks_the_free_space_before_the_work(tmp_path, monkeypatch
     res = run_cli_in_process("reconstruct", str(sensor), "--run", "pretrained:standard", "--out", str(out))
     line = error_line(res)
     assert re.fullmatch(rf"hsicam: error: {re.escape(str(out))}: the cube of 31 bands × 64×80 px and its preview "
-                        r"need about 1\.\d+ MiB, but that disk has 65\.\d+ MiB free; free some space or choose an "
+                        r"need about 1\.\d+ MiB, and 64 MiB more is kept free beyond it \(65\.\d+ MiB in all\), but "
+                        r"that disk has 65\.\d+ MiB free; free some space or choose an "
                         r"--out on a larger disk", line), line
     assert not out.exists() and not (out.parent.exists() and any(out.parent.iterdir()))  # nothing written

@@ -97,11 +97,27 @@ def _nearest_existing(p: Path, broken_links: bool = True) -> Path:
 
 def free_space_short(path: str | os.PathLike, need_bytes: int, min_margin_bytes: int = 1 << 26) -> int | None:
     """The free bytes of the file system that ``path`` (or its nearest existing ancestor) is on, when
-    they are fewer than ``need_bytes`` plus a margin (a tenth of it, at least ``min_margin_bytes``);
-    None when there is room. The one home of the free-space checks made before long work (dataset
-    generation, ``evaluate --save``, ``reconstruct``): each caller words its own refusal."""
+    they are fewer than ``need_bytes`` plus a margin (:func:`free_space_margin`); None when there is room. The
+    one home of the free-space checks made before long work (dataset generation, ``evaluate --save``,
+    ``reconstruct``): each caller words its own refusal, with :func:`free_space_text`."""
     free = shutil.disk_usage(_nearest_existing(Path(path).absolute(), broken_links=False)).free
-    return free if free < need_bytes + max(need_bytes // 10, min_margin_bytes) else None
+    return free if free < need_bytes + free_space_margin(need_bytes, min_margin_bytes) else None
+
+
+def free_space_margin(need_bytes: int, min_margin_bytes: int = 1 << 26) -> int:
+    """The bytes :func:`free_space_short` keeps free beyond ``need_bytes``: a tenth of it, at least
+    ``min_margin_bytes`` (other writers, the file system's own blocks)."""
+    return max(need_bytes // 10, min_margin_bytes)
+
+
+def free_space_text(need_bytes: int, free_bytes: int, min_margin_bytes: int = 1 << 26) -> str:
+    """How a refusal of :func:`free_space_short` states the numbers: what the output needs, the margin kept
+    free beyond it, and what the disk has (which may exceed the output alone: the margin is the difference)."""
+    from hsicam.memory import format_bytes
+
+    margin = free_space_margin(need_bytes, min_margin_bytes)
+    return (f"about {format_bytes(need_bytes)}, and {format_bytes(margin)} more is kept free beyond it "
+            f"({format_bytes(need_bytes + margin)} in all), but that disk has {format_bytes(free_bytes)} free")
 
 
 def _writable_dir(d: Path) -> bool:

@@ -262,10 +262,11 @@ def sigterm_as_interrupt(enabled: bool = True):
 def main(argv: Sequence[str] | None = None) -> int:
     try:
         parser = build_parser()  # imports the commands' modules, not torch (hsicam.cli.args.RegistryChoices): ~0.2 s
+        # the options' types run here: `--run` checks the run's weights, importing torch (~1 s to interrupt)
+        args = parser.parse_args(argv)
     except KeyboardInterrupt:
         print("hsicam: interrupted", file=sys.stderr)
         return 130
-    args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     # -v: hsicam's own debug lines only (matplotlib's font search, PIL's and h5py's chatter stay out)
     logging.getLogger("hsicam").setLevel(logging.DEBUG if args.verbose else logging.NOTSET)

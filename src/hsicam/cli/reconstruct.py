@@ -270,15 +270,13 @@ def check_room_for_cube(path: Path, n_bands: int, height: int, width: int) -> No
     (:func:`cube_file_bytes`) and a margin (a tenth, at least 64 MiB): checked before the reconstruction
     (minutes for a large capture) rather than found by a full disk at its end. Files replaced are not
     counted as freed: each is written beside the old one before it takes its place."""
-    from hsicam.io import free_space_short
-    from hsicam.memory import format_bytes
+    from hsicam.io import free_space_short, free_space_text
 
     need = cube_file_bytes(n_bands, height, width)
     free = free_space_short(path, need)
     if free is not None:
-        raise InputError(f"{path}: the cube of {n_bands} bands × {height}×{width} px and its preview need about "
-                         f"{format_bytes(need)}, but that disk has {format_bytes(free)} free; free some space or "
-                         "choose an --out on a larger disk")
+        raise InputError(f"{path}: the cube of {n_bands} bands × {height}×{width} px and its preview need "
+                         f"{free_space_text(need, free)}; free some space or choose an --out on a larger disk")
 
 
 def write_cube_file(path: Path, cube: np.ndarray, bands, metadata: dict) -> None:

@@ -259,7 +259,12 @@ def _read_tiff(path: Path, what: str) -> tuple[np.ndarray, np.dtype]:
                     raise InputError(_binary_image(path, what, "a 1-bit TIFF"))
                 if dtype.kind not in "uif":
                     raise InputError(f"{path}: unsupported TIFF data type {dtype}")
-                arr = page.asarray()
+                try:
+                    arr = page.asarray()
+                except ValueError as exc:  # LZW, JPEG …: tifffile decodes them only with the optional imagecodecs
+                    if "imagecodecs" not in str(exc):
+                        raise
+                    arr = _tiff_by_pillow(path, page.shape, dtype, getattr(page.compression, "name", page.compression))
     except InputError:
         raise
     except MemoryError:
@@ -267,6 +272,28 @@ def _read_tiff(path: Path, what: str) -> tuple[np.ndarray, np.dtype]:
     except Exception as exc:  # noqa: BLE001 - tifffile raises many types on corrupt files
         raise InputError(f"{path}: cannot read TIFF (corrupt or truncated?): {_first_line(exc)}") from None
     return np.asarray(arr), dtype
+
+
+def _tiff_by_pillow(path: Path, shape: tuple[int, ...], dtype: np.dtype, compression) -> np.ndarray:
+    """The pixels of a single-page TIFF whose compression (LZW, the commonest for captures; JPEG …) tifffile
+    decodes only with the optional ``imagecodecs`` package, decoded by Pillow (a dependency already); they
+    must come back with the page's shape and data type. A lossy (JPEG) page is read with a warning."""
+    from PIL import Image
+
+    why = f"{path}: TIFF compressed with {compression}, which neither tifffile without the imagecodecs package nor Pillow " \
+          "decodes here: `pip install imagecodecs`, or save the capture uncompressed"
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            with Image.open(path) as im:
+                arr = np.array(im)
+    except Exception as exc:  # noqa: BLE001 - PIL raises OSError, ValueError … on what it cannot decode
+        raise InputError(f"{why} ({_first_line(exc)})") from None
+    if arr.dtype != dtype or arr.shape != _squeeze_2d(path, shape, "image"):
+        raise InputError(f"{why} (Pillow decodes it as {arr.dtype} {arr.shape}, not {dtype} {tuple(shape)})")
+    if str(compression).upper().startswith("JPEG"):
+        log.warning("%s: JPEG-compressed TIFF: lossy, its values are not the sensor's as captured", path)
+    return arr
 
 
 def _check_single_page(path: Path, tf, what: str) -> None:

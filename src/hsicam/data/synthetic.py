@@ -265,15 +265,14 @@ def check_room_for_scenes(out: Path, n: int, size: int, n_bands: int, fix: str =
     the scenes still to write (``n`` minus those already there: a rerun resumes) and a margin (a
     tenth, at least 64 MiB): a count of scenes far beyond the disk used to fill it scene by scene.
     ``fix``: what to change, in the caller's terms (the config's keys, or ``data synth``'s options)."""
-    from hsicam.io import free_space_short
-    from hsicam.memory import format_bytes
+    from hsicam.io import free_space_short, free_space_text
 
     written = sum((out / SCENE_PATTERN.format(i)).is_file() for i in range(min(n, 100_000))) if out.is_dir() else 0
     need = (n - written) * (4 * int(size) ** 2 * int(n_bands) + SCENE_FILE_OVERHEAD_BYTES)
     free = free_space_short(out, need)
     if free is not None:
-        raise InputError(f"the synthetic dataset of {n:,} scenes of {size}×{size} px and {n_bands} bands needs about "
-                         f"{format_bytes(need)} in {out}, but that disk has {format_bytes(free)} free; {fix}")
+        raise InputError(f"the synthetic dataset of {n:,} scenes of {size}×{size} px and {n_bands} bands needs, in {out}, "
+                         f"{free_space_text(need, free)}; {fix}")
 
 
 def generate_dataset(out: str | os.PathLike, n: int, size: int, seed: int = 0, bands: Bands | None = None,

@@ -25,7 +25,7 @@ import torch
 from hsicam.engine.inference import reconstruct_tiled
 from hsicam.engine.methods import Method, demosaic_reference  # noqa: F401  (re-exported)
 from hsicam.errors import InputError
-from hsicam.io import atomic_open, free_space_short, write_json
+from hsicam.io import atomic_open, free_space_short, free_space_text, write_json
 from hsicam.metrics import CONVENTIONS, SSIM_WINDOW_PX, all_metrics, sam_undefined_pixels
 from hsicam.progress import format_seconds
 
@@ -351,8 +351,8 @@ def check_room_for_cubes(out: Path, scenes, n_bands: int) -> None:
     need = sum(2 * (n_bands * info.height * info.width * 4 + H5_OVERHEAD_BYTES) for info in infos)
     free = free_space_short(out, need, min_margin_bytes=1 << 20)
     if free is not None:
-        raise InputError(f"{out}: --save writes up to {need / 1e6:.1f} MB of cubes ({len(scenes)} scenes), but its file "
-                         f"system has only {free / 1e6:.1f} MB free; free some space, choose another --out, or drop --save")
+        raise InputError(f"{out}: --save writes cubes ({len(scenes)} scenes) of {free_space_text(need, free, 1 << 20)}; "
+                         "free some space, choose another --out, or drop --save")
 
 
 def write_results(out: Path, summary: dict) -> None:
