@@ -303,3 +303,35 @@ def test_data_synth_beyond_the_disk_names_its_own_options(tmp_path, monkeypatch,
            "write to a larger disk (--out, or data.cache_dir / HSICAM_CACHE)")
     assert err[0].endswith(f"but that disk has 1 GiB free; lower --n or --size, or {fix}"), err
     assert not any(tmp_path.iterdir())
+
+
+def test_an_interrupted_synth_leaves_no_dataset_that_evaluate_would_take(tmp_path, capsys, monkeypatch):
+    """`data synth --out DIR` killed after some scenes used to leave DIR with those scenes and no manifest, which
+    `evaluate --data DIR` scored as a dataset (a probe of session 51). Now the scenes go to a hidden temporary
+    folder that takes DIR's name when the manifest is written: an interruption leaves no DIR, and the next run
+    generates the whole set."""
+    import hsicam.data.synthetic as synthetic
+    from hsicam.cli import main
+    from hsicam.data.datasets import list_scenes
+    from hsicam.errors import InputError
+
+    made = []
+    real = synthetic.generate_scene
+
+    def interrupted_at_the_third(i, *args, **kwargs):
+        if len(made) == 2:
+            raise KeyboardInterrupt
+        made.append(i)
+        return real(i, *args, **kwargs)
+
+    monkeypatch.setattr(synthetic, "generate_scene", interrupted_at_the_third)
+    out = tmp_path / "ds"
+    assert main(["data", "synth", "--n", "4", "--size", "24", "--out", str(out), "--no-progress"]) == 130
+    assert made == [0, 1] and capsys.readouterr().err.strip().endswith("hsicam: interrupted")
+    assert list(tmp_path.iterdir()) == []  # neither the folder nor its temporary
+    with pytest.raises(InputError, match="no such dataset"):
+        list_scenes(out)
+    monkeypatch.setattr(synthetic, "generate_scene", real)
+    assert main(["data", "synth", "--n", "4", "--size", "24", "--out", str(out), "--no-progress"]) == 0
+    assert [p.name for p in list_scenes(out)] == [f"scene_{i:04d}.h5" for i in range(4)]
+    assert (out / "manifest.json").is_file() and [p.name for p in tmp_path.iterdir()] == ["ds"]

@@ -99,7 +99,18 @@ def _synth(args: argparse.Namespace) -> int:
         if is_complete(out, n, size, seed, bands, **kw):
             print(f"{out}: already holds this dataset (n={n}, size={size}, seed={seed}, split={split})")
             return 0
-        generate_dataset(out, n=n, size=size, seed=seed, bands=bands, progress=progress, room_fix=room_fix, **kw)
+        if out.is_dir() and any(not f.name.startswith(".") for f in out.iterdir()):
+            # scene files of a generation killed before its manifest (written in place before session 51): finished there
+            generate_dataset(out, n=n, size=size, seed=seed, bands=bands, progress=progress, room_fix=room_fix, **kw)
+        else:
+            # whole or not at all: written into a hidden temporary folder that takes the name at the end, so a killed
+            # generation leaves no folder of scenes that `evaluate --data` or `data show` would take for a dataset
+            from hsicam.data.synthetic import check_room_for_scenes
+            from hsicam.io import atomic_output
+
+            check_room_for_scenes(out, n, size, len(bands), room_fix)  # named by --out, before the temporary
+            with atomic_output(out, "dir", marker=False) as tmp:
+                generate_dataset(tmp, n=n, size=size, seed=seed, bands=bands, progress=progress, room_fix=room_fix, **kw)
     what = ("held-out scene" if split == "heldout" else "scene") + ("" if n == 1 else "s")
     print(f"wrote {n} {what} of {size}x{size}x{len(bands)} to {out} (held-out sources: {', '.join(holdout) or 'none'})")
     return 0
