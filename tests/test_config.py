@@ -544,3 +544,21 @@ def test_psf_band_samples_out_of_range_names_its_key(value):
     with pytest.raises(ConfigError, match=rf"^camera\.psf\.band_samples must be 1 to 1000 .*, got {value}$"):
         load_config("tiny", [f"camera.psf.band_samples={value}"])
     assert load_config("tiny", ["camera.psf.band_samples=1000"]).camera.psf.band_samples == 1000
+
+
+def test_a_bad_setting_in_a_file_names_the_file_and_one_in_an_override_does_not(tmp_path):
+    """A damaged run's config.yaml (`--run RUN`): the error named the key but not the file (`unknown config key
+    'bogus'`), against the README's `<file>: <problem>`; an override's own error stays the override's."""
+    path = tmp_path / "config.yaml"
+    path.write_text("camera:\n  sensor:\n    pixel_pitch_um: abc\n")
+    with pytest.raises(ConfigError, match=rf"^{re.escape(str(path))}: config key 'camera.sensor.pixel_pitch_um' must be"):
+        load_config(path)
+    with pytest.raises(ConfigError, match=rf"^{re.escape(str(path))}: .*pixel_pitch_um"):
+        load_config(path, ["train.epochs=3"])  # the file's error, though overrides are given
+    path.write_text("bogus_key: 1\n")
+    with pytest.raises(ConfigError, match=rf"^{re.escape(str(path))}: unknown config key 'bogus_key'"):
+        load_config(path)
+    path.write_text("train:\n  epochs: 3\n")
+    assert load_config(path).train.epochs == 3
+    with pytest.raises(ConfigError, match=r"^unknown config key 'train.nope'"):
+        load_config(path, ["train.nope=1"])

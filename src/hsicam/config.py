@@ -11,6 +11,8 @@ where a value can be meaningless, a check in that section's ``__post_init__``.
 
 from __future__ import annotations
 
+import copy
+
 import dataclasses
 import math
 import re
@@ -983,10 +985,25 @@ def load_config(path: str | Path | None = None, overrides: Sequence[str] = (), c
         if not isinstance(loaded, dict):
             raise ConfigError(f"{path}: the top level must be a mapping of sections")
         data = loaded
+        if overrides:  # what is wrong in the file names the file; what an override breaks, the override
+            _file_settings(path, cls, copy.deepcopy(data))
     for item in overrides:
         apply_override(data, item)
+    if path is not None and not overrides:
+        return _file_settings(path, cls, data)
     _migrate_model_section(data)
     return from_dict(cls, data)
+
+
+def _file_settings(path: Path, cls: type, data: dict[str, Any]) -> Any:
+    """``cls`` from the settings ``data`` read from the file ``path``; a :class:`ConfigError` in them names the
+    file (``PATH: unknown config key 'x'``), as the README's one error line promises."""
+    _migrate_model_section(data)
+    try:
+        return from_dict(cls, data)
+    except ConfigError as exc:
+        text = str(exc)
+        raise ConfigError(text if text.startswith(f"{path}: ") else f"{path}: {text}") from None
 
 
 _RDN_KEYS = ("blocks", "features", "growth", "layers_per_block", "demosaic_input", "backprojection_input")
