@@ -351,6 +351,11 @@ def test_evaluate_refuses_settings_a_trained_run_would_ignore(inputs, tmp_path, 
         code, err = call(capsys, ["evaluate", "--run", run, "--out", str(tmp_path / "o"), "--set", kv])
         assert_one_line(code, err, f"--set {kv.split('=')[0]}", "fixed by its training")
         assert not (tmp_path / "o").exists()
+    # a key no config has is said as such (it was "fixed by its training" too), whatever its section
+    for kv in ("bogus=1", "camera.no_such_key=2", "model.consistency.nope=3"):
+        code, err = call(capsys, ["evaluate", "--run", run, "--out", str(tmp_path / "o"), "--set", kv])
+        assert_one_line(code, err, f"unknown config key '{kv.split('=')[0]}'")
+        assert "fixed by its training" not in err and not (tmp_path / "o").exists()
     code, err = call(capsys, ["evaluate", "--run", run, "--out", str(tmp_path / "ok"), "--set", "camera.boundary=same",
                               "--set", "model.consistency.iterations=1", "--set", "camera.sensor.noise=gaussian"])
     assert code == 0, err

@@ -92,9 +92,17 @@ RUN_EVALUATION_KEYS = ("data", "model.consistency", "camera.boundary", "camera.p
 def check_run_overrides(overrides) -> None:
     """InputError for a ``--set`` that a trained run would silently ignore (it used to be recorded in
     the results' config hash all the same)."""
+    from hsicam.config import load_config
+    from hsicam.errors import ConfigError
+
     for item in overrides:
         key = str(item).split("=", 1)[0].strip()
         if not any(key == k or key.startswith(k + ".") for k in RUN_EVALUATION_KEYS):
+            try:  # a key no config has is said as such, not as a key the run fixes
+                load_config(None, [item])
+            except ConfigError as exc:
+                if "unknown config key" in str(exc):
+                    raise
             raise InputError(f"--set {key}: a trained run's camera, bands and network are fixed by its training; with "
                              f"--run, evaluate changes only {', '.join(RUN_EVALUATION_KEYS)} (and their keys) "
                              "(other optics: hsicam tolerance; another design: hsicam train)")
