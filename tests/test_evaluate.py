@@ -4,6 +4,7 @@ script's `main`, in-process)."""
 from __future__ import annotations
 
 import csv
+import html
 import json
 import re
 import os
@@ -303,6 +304,7 @@ def test_experiment_noise_grid_and_report(env, tmp_path, monkeypatch):
     assert rep.returncode == 0, rep.stderr
     page = (out / "report" / "index.html").read_text()
     assert "noise_grid.png" in page and (out / "report" / "noise_grid.png").is_file()
+    assert f"scored area: the DOE cameras' {html.escape(exp['region'])}</p>" in page
 
 
 def _chromium() -> str | None:
@@ -443,6 +445,7 @@ def test_report_shows_the_heldout_sources_results(run, env, tmp_path):
         assert f"<td>{scene['name']}</td>" in tail and f"<td>{scene['psnr']:.2f}</td>" in tail
     assert f"<td>{held['mean']['psnr']:.2f}</td>" in tail
     assert f"<td>{res['mean']['psnr']:.2f}</td>" in head  # the validation mean stays in its own table
+    assert f"scored area: {html.escape(res['region'])}" in head  # which pixels the scores cover, as results.json says
 
 
 def test_a_reconstruction_with_nan_is_refused_not_scored(run):

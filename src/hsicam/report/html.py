@@ -194,7 +194,8 @@ def _camera_section(run: Path, out: Path, prefix: str = "", label: str | None = 
 def _evaluation_sections(folder: Path, out: Path, res: dict) -> list[str]:
     parts = [f"<h2>Results: {html.escape(str(res.get('method', '')))}</h2>",
              f"<p class='note'>data: {html.escape(str(res.get('data', '')))}; noise: {html.escape(json.dumps(res.get('noise')))}; "
-             f"config {html.escape(str(res.get('config_hash', '')))}</p>"]
+             f"config {html.escape(str(res.get('config_hash', '')))}"
+             + (f"; scored area: {html.escape(str(res['region']))}" if res.get("region") else "") + "</p>"]
     cols = [("name", "scene", ""), ("psnr", "PSNR (dB)", ".2f"), ("ssim", "SSIM", ".4f"), ("sam", "SAM (°)", ".2f"),
             ("ergas", "ERGAS", ".2f"), ("psnr_mst", "PSNR MST (dB)", ".2f"), ("runtime_s", "runtime (s)", ".3f")]
     parts.append(_table(res["scenes"] + [{"name": "mean", **res["mean"]}], cols))
@@ -239,7 +240,10 @@ def _evaluated_run(res: dict) -> Path:
 
 def _experiment_sections(folder: Path, out: Path, exp: dict) -> list[str]:
     parts = [f"<h2>Experiment: {html.escape(exp['experiment'])} ({html.escape(exp['scale'])} scale)</h2>",
-             f"<p class='note'>{len(exp['scenes'])} validation scenes, seeds {exp['seeds']}</p>"]
+             f"<p class='note'>{len(exp['scenes'])} validation scenes, seeds {exp['seeds']}"
+             + (f"; scored area: the DOE cameras' {html.escape(str(exp['region']))}"
+                + (", the CASSI rows' too" if exp["experiment"] == "compare" else "") if exp.get("region") else "")
+             + "</p>"]
     rows = [r for r in exp["rows"] if "missing" not in r]
     if exp["experiment"] == "noise":
         cols = [("method", "camera", ""), ("psnr", "PSNR clean", ".2f"), ("ssim", "SSIM clean", ".4f"),
