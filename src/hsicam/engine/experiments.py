@@ -25,7 +25,7 @@ from hsicam.config import Config, load_config, training_differences
 from hsicam.data.pipeline import absolute_data_paths
 from hsicam.engine.evaluate import TestNoise, evaluate_method, scored_region, summarize
 from hsicam.engine.linear_step import refresh_linear_step
-from hsicam.engine.methods import baseline_names, build_method
+from hsicam.engine.methods import baseline_names, build_method, sensor_border_px
 from hsicam.engine.prior import ensure_choi_prior
 from hsicam.engine.train import train
 from hsicam.errors import InputError
@@ -304,9 +304,8 @@ def run_experiment(experiment: str, scale: str, out: str | Path, seeds: tuple[in
         if spec.note:
             rows[-1]["overrides"], rows[-1]["note"] = list(spec.overrides), spec.note
     if experiment == "compare":
-        border = doe_camera.margin // 2 if doe_camera.boundary == "valid" else 0
         rows += _baseline_rows(cfg, scale, out, scenes, names, seeds, baseline_names() if baselines is None else baselines,
-                               border)
+                               sensor_border_px(doe_camera))
     result = {"experiment": experiment, "scale": scale, "seeds": list(seeds), "scenes": names,
               "conventions": summarize([])["conventions"], "region": region, "rows": rows}
     notes = [f"{spec.name}: {spec.note}" for spec in specs if spec.note]

@@ -346,7 +346,13 @@ def compared_border_px(cfg) -> int:
         return 0
     from hsicam.cameras import build_camera
 
-    return build_camera(cfg).margin // 2
+    return sensor_border_px(build_camera(cfg))
+
+
+def sensor_border_px(camera) -> int:
+    """The px a side by which ``camera``'s scored area falls short of the scene: margin // 2 in ``valid``
+    mode (the centre crop of :meth:`hsicam.models.CameraSystem.target`), 0 in ``same`` mode."""
+    return camera.margin // 2 if camera.boundary == "valid" else 0
 
 
 def _cassi_method(name: str, cfg, cam, rec, info: dict) -> Method:
