@@ -122,6 +122,27 @@ def test_simulate_png_keeps_its_scale_when_copied_elsewhere(tmp_path):
     np.testing.assert_allclose(read_sensor_image(tmp_path / "plain.png"), plain / 65535.0, atol=1e-7)
 
 
+def test_reading_simulates_image_of_a_scene_far_above_full_scale_warns(tmp_path, caplog):
+    """simulate's PNG of a scene far brighter than full scale reads back at its level, with the warning a
+    float capture that far above 1 gets (the network never saw such images); a scene at full scale: none."""
+    import logging
+
+    from hsicam.data.images import FLOAT_OVER_SCALE, read_sensor_image
+
+    levels = {}
+    for name, level in (("hot", 20.0), ("normal", 1.0)):
+        np.save(tmp_path / f"{name}.npy", np.full((7, 40, 48), level, np.float32))
+        out = tmp_path / name
+        proc = run_cli_in_process("simulate", "--scene", str(tmp_path / f"{name}.npy"), "--out", str(out), *TINY)
+        assert proc.returncode == 0, proc.stderr
+        caplog.clear()
+        with caplog.at_level(logging.WARNING, logger="hsicam.data.images"):
+            levels[name] = float(read_sensor_image(out / "sensor.png").max())
+        levels[name + "_warned"] = any("far brighter than full scale" in r.getMessage() for r in caplog.records)
+    assert levels["hot"] > FLOAT_OVER_SCALE and levels["hot_warned"]
+    assert levels["normal"] < FLOAT_OVER_SCALE and not levels["normal_warned"]
+
+
 def test_simulate_valid_boundary_shrinks_sensor(tmp_path):
     np.save(tmp_path / "scene.npy", np.ones((7, 40, 40), np.float32))
     out = tmp_path / "out"

@@ -751,6 +751,12 @@ def read_capture(path: str | Path, corr: RawCorrection | None = None, scale: flo
     # simulate's own image is written at the file's full bit depth: a dark one is a dark scene
     img, report = preprocess_raw(image.data, image.full_scale, corr, str(path), check_saturation=not stretched,
                                  check_bit_depth=not simulated, check_level=not stretched, stored_dtype=image.dtype)
+    if stretched and img.size and float(img.max()) > FLOAT_OVER_SCALE:
+        # the float capture's warning (preprocess_raw), for simulate's image of a scene far above full scale
+        log.warning("%s: hsicam simulate's image of a scene far brighter than full scale: it is read back at its "
+                    "simulated level (%s %g), and reaches %.4g; a real sensor saturates at 1 and the network was "
+                    "trained on images within [0, 1]: simulate the scene normalised to [0, 1]", path,
+                    SENSOR_SCALE_KEY if png_scale is not None else SIMULATE_JSON, scale, float(img.max()))
     report.update({"source": str(path), "stored_dtype": image.dtype, "format": image.format,
                    "shape": [int(s) for s in img.shape]})
     return img, report
