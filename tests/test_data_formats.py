@@ -118,14 +118,15 @@ def test_harvard_mat5_roundtrip(tmp_path):
     read_harvard(path)
 
 
+@pytest.mark.parametrize("key", ["img", "HSI"])  # HSI: MST's KAIST_CVPR2021 release
 @pytest.mark.parametrize("version", ["5", "7.3"])
-def test_kaist_mst_mat_roundtrip(tmp_path, version):
+def test_kaist_mst_mat_roundtrip(tmp_path, version, key):
     data = cube_hwc(28, seed=3)
     path = tmp_path / "scene01.mat"
     if version == "5":
-        scipy.io.savemat(path, {"img": data})
+        scipy.io.savemat(path, {key: data})
     else:
-        write_mat73(path, {"img": data})
+        write_mat73(path, {key: data})
     assert detect_format(path) == "kaist-mat"
     cube, b, _ = read_kaist_mat(path)
     np.testing.assert_allclose(cube, np.transpose(data, (2, 0, 1)), rtol=1e-6)
@@ -196,6 +197,11 @@ def test_exr_channel_names():
     assert exr_channel_wavelength("S1.550nm") is None  # polarisation, not a band
     assert exr_channel_wavelength("R") is None
     assert exr_channel_wavelength("band_03") is None  # 3 nm is not a wavelength
+    # a band named by its edges (RenderToolbox3-style spectral EXR): its centre, not the upper edge
+    assert exr_channel_wavelength("415-425nm") == 420.0
+    assert exr_channel_wavelength("415.00-425.00nm") == 420.0
+    assert exr_channel_wavelength("S0.415,0-425,0nm") == 420.0
+    assert exr_channel_wavelength("0.415-0.425um") == pytest.approx(420.0)
     assert exr_channel_wavelength("0.55") is None and exr_channel_wavelength("0.55", True) == pytest.approx(550.0)
     assert exr_bare_micrometres(["0.40", "0.55", "R", "0.7nm"]) and not exr_bare_micrometres(["0.4", "550"])
     assert not exr_bare_micrometres([str(i) for i in range(31)])  # band numbers: not a wavelength in µm
@@ -238,6 +244,30 @@ def test_envi_micrometres_descending_and_scale(tmp_path):
     cube, b, _ = read_cube(hdr)
     np.testing.assert_allclose(b.centers_nm, [400, 550, 700])
     np.testing.assert_allclose(cube, chw[::-1] / 100.0, rtol=1e-6)  # stored ascending
+
+
+def test_envi_wavelengths_printed_from_float32_cover_the_round_grid(tmp_path):
+    """A header that prints float32 centres (420.00002 … 719.99997) is read at 0.001 nm, so it covers a
+    420-720 nm camera grid (it was refused: 719.99997 < 720)."""
+    chw = np.random.default_rng(9).random((31, H, W)).astype(np.float32)
+    listed = ", ".join(["420.00002", *(f"{w:.5f}" for w in range(430, 720, 10)), "719.99997"])
+    hdr = tmp_path / "f32.hdr"
+    hdr.write_text(envi_header(W, H, 31, 4, "bsq", 0, 0, f"wavelength units = nm\nwavelength = {{{listed}}}\n"))
+    chw.tofile(tmp_path / "f32.img")
+    cube, b, _ = read_cube(hdr)
+    np.testing.assert_array_equal(b.centers_nm, np.arange(420, 721, 10))
+    assert b.covers(Bands.uniform(420, 720, 10))
+    np.testing.assert_array_equal(cube, chw)
+
+
+def test_envi_header_in_latin1_with_micrometres(tmp_path):
+    chw = np.ones((3, H, W), np.float32)
+    text = envi_header(W, H, 3, 4, "bsq", 0, 0, "wavelength units = µm\nwavelength = {0.45, 0.55, 0.65}\n")
+    hdr = tmp_path / "lat.hdr"
+    hdr.write_bytes(text.encode("latin-1"))  # 'µ' is one byte 0xB5: not UTF-8
+    chw.tofile(tmp_path / "lat.img")
+    _, b, _ = read_cube(hdr)
+    np.testing.assert_allclose(b.centers_nm, [450, 550, 650])
 
 
 @pytest.mark.parametrize("interleave", ["bsq", "bil", "bip"])
@@ -427,7 +457,7 @@ def test_missing_keys(tmp_path):
     scipy.io.savemat(m, {"something": np.ones((3, 3))})
     with pytest.raises(InputError) as exc:
         read_cube(m)
-    assert_one_line_error(exc, m, "something")
+    assert_one_line_error(exc, m, "something", "HSI", "rename the cube's variable", "write_cube_h5")
 
     i = tmp_path / "icvl.mat"
     write_mat73(i, {"cube": cube_hwc(31), "bands": np.arange(400.0, 701.0, 10.0)[None]})

@@ -49,7 +49,7 @@ count is refused with a note on the (C, H, W) order, not guessed.
 A band list stored without a unit (MAT ``bands``, ENVI ``wavelength`` without ``wavelength units``)
 whose values all lie below :data:`MICROMETRE_BELOW` (30) is read as micrometres, with a logged note;
 one that is not numbers (text, a struct or cell array) is an :class:`~hsicam.errors.InputError`.
-Centres converted from micrometres are rounded to :data:`NM_DECIMALS` (3) decimals of a nm, and a
+Band centres (in nm, or converted from micrometres) are rounded to :data:`NM_DECIMALS` (3) decimals of a nm, and a
 float32 list is read at its shortest decimal (float32 0.7 µm is 700 nm, not 699.99998). A strictly
 descending list (MAT, HDF5, ours) is reversed together with the cube's band axis (ENVI sorts any
 order, each band carrying its own wavelength); a list in neither order is refused.
@@ -192,7 +192,8 @@ def _head(p: Path, n: int) -> bytes:
         raise InputError(f"{p}: cannot read ({exc.strerror})") from None
 
 
-_HDF5_KEYS = (("rad", "icvl"), ("img", "kaist-mat"), ("img_expand", "kaist-mat"), ("ref", "harvard"))
+_HDF5_KEYS = (("rad", "icvl"), ("img", "kaist-mat"), ("img_expand", "kaist-mat"), ("HSI", "kaist-mat"),
+              ("ref", "harvard"))
 
 
 def _detect_hdf5(p: Path, head: bytes) -> str:
@@ -211,11 +212,11 @@ def _detect_hdf5(p: Path, head: bytes) -> str:
             if "cube" in keys:
                 raise InputError(f"{p}: HDF5 file with 'cube' but missing key 'bands_nm' (our format) or a band list "
                                  f"'bands' (ARAD; also read under the names {', '.join(BAND_LIST_NAMES[1:])})")
-    raise InputError(f"{p}: HDF5/MAT file with no known hyperspectral variable "
-                     f"(expected one of cube, rad, img, img_expand, ref; found {', '.join(sorted(keys)) or 'none'})")
+    raise _no_known_variable(p, "HDF5/MAT", ("cube", *(k for k, _ in _HDF5_KEYS)), sorted(keys))
 
 
-_MAT5_KEYS = (("rad", "icvl"), ("cube", "arad"), ("img", "kaist-mat"), ("img_expand", "kaist-mat"), ("ref", "harvard"))
+_MAT5_KEYS = (("rad", "icvl"), ("cube", "arad"), ("img", "kaist-mat"), ("img_expand", "kaist-mat"), ("HSI", "kaist-mat"),
+              ("ref", "harvard"))
 
 
 def _detect_mat5(p: Path) -> str:
@@ -226,8 +227,14 @@ def _detect_mat5(p: Path) -> str:
     for key, fmt in _MAT5_KEYS:
         if key in names:
             return fmt
-    raise InputError(f"{p}: MAT file with no known hyperspectral variable "
-                     f"(expected one of rad, cube, img, img_expand, ref; found {', '.join(names) or 'none'})")
+    raise _no_known_variable(p, "MAT", tuple(k for k, _ in _MAT5_KEYS), names)
+
+
+def _no_known_variable(p: Path, kind: str, known: Sequence[str], found: Sequence[str]) -> InputError:
+    """The refusal of a MAT/HDF5 file whose variables hold no cube under a name we know, saying what to do."""
+    return InputError(f"{p}: {kind} file with no known hyperspectral variable (expected one of {', '.join(known)}; "
+                      f"found {', '.join(found) or 'none'}): rename the cube's variable to one of these (with its band "
+                      "list as 'bands', in nm), or rewrite it with hsicam.data.formats.write_cube_h5")
 
 
 # ------------------------------------------------------------------------------------------------
@@ -284,15 +291,17 @@ def _band_numbers(p: Path, values: Any, key: str) -> np.ndarray:
     return arr.astype(np.float64).reshape(-1)
 
 
-#: Decimals (of a nanometre) kept when band centres are converted from micrometres: float32 0.7 µm is
-#: 699.99998 nm after the multiplication, which would not cover a camera band at 700 nm.
+#: Decimals (of a nanometre) kept of the band centres (and widths) that a file lists: float32 0.7 µm is
+#: 699.99998 nm after the conversion, and an ENVI header that prints float32 centres lists 719.99997 nm;
+#: neither would cover a camera band at 700 or 720 nm (coverage is checked to 1e-6 nm).
 NM_DECIMALS = 3
 
 
 def _um_to_nm(values: np.ndarray | float, scale: float = 1000.0) -> Any:
-    """``values`` × ``scale`` (1000 for micrometres, 1 for nanometres) in nm, a conversion rounded to
-    :data:`NM_DECIMALS` decimals."""
-    return values if scale == 1.0 else np.round(np.asarray(values, dtype=np.float64) * scale, NM_DECIMALS)
+    """``values`` × ``scale`` (1000 for micrometres, 1 for nanometres) in nm, rounded to
+    :data:`NM_DECIMALS` decimals (a float for a float, else an array)."""
+    nm = np.round(np.asarray(values, dtype=np.float64) * scale, NM_DECIMALS)
+    return float(nm) if np.ndim(values) == 0 else nm
 
 
 def _ascending(p: Path, cube: np.ndarray, centres: np.ndarray, fwhm: np.ndarray | None, key: str,
@@ -446,7 +455,7 @@ BAND_LIST_NAMES = ("bands", "bands_nm", "wavelength", "wavelengths", "wavelength
 _MAT_KEYS: dict[str, tuple[str, ...]] = {
     "icvl": ("rad",),
     "arad": ("cube",),
-    "kaist-mat": ("img", "img_expand"),
+    "kaist-mat": ("img", "img_expand", "HSI"),  # HSI: MST's KAIST_CVPR2021 release
     "harvard": ("ref",),
 }
 
@@ -709,24 +718,32 @@ def read_harvard(path: str | os.PathLike, *, allow_negative: bool = False, memor
 # OpenEXR (KAIST)
 # ------------------------------------------------------------------------------------------------
 _EXR_NUM = re.compile(r"(\d+(?:[.,]\d+)?)\s*(nm|um|µm)?\s*$", re.IGNORECASE)
+#: A channel named by its band's edges, ``415-425nm`` (spectral EXR writers such as RenderToolbox3's):
+#: the band's centre is their mean (read as the upper edge, every band would be off by half its width).
+_EXR_RANGE = re.compile(r"(\d+(?:[.,]\d+)?)\s*(?:nm|um|µm)?\s*-\s*(\d+(?:[.,]\d+)?)\s*(nm|um|µm)?\s*$", re.IGNORECASE)
 
 
 def exr_channel_wavelength(name: str, bare_micrometres: bool = False) -> float | None:
     """Wavelength in nm encoded in an EXR channel name, or None for a non-spectral channel.
 
-    Accepts ``550``, ``550nm``, ``w550nm``, ``550.5nm``, ``0.55um`` and the spectral-EXR names
-    ``S0.550,000nm`` (emissive) / ``T.550nm`` (reflective); polarisation components S1-S3 are not
-    spectral bands. A number without a unit is in nm, or in µm with ``bare_micrometres``
-    (:func:`exr_bare_micrometres` decides it for a whole file).
+    Accepts ``550``, ``550nm``, ``w550nm``, ``550.5nm``, ``0.55um``, the spectral-EXR names
+    ``S0.550,000nm`` (emissive) / ``T.550nm`` (reflective), and a band's edges ``545-555nm`` (its
+    centre, 550); polarisation components S1-S3 are not spectral bands. A number without a unit is
+    in nm, or in µm with ``bare_micrometres`` (:func:`exr_bare_micrometres` decides it for a whole file).
     """
     if re.match(r"^S[123]\.", name):
         return None
     stem = re.sub(r"^(S0|T)\.", "", name)
-    m = _EXR_NUM.search(stem)
-    if m is None:
-        return None
-    value = float(m.group(1).replace(",", "."))
-    unit = (m.group(2) or "").lower()
+    r = _EXR_RANGE.search(stem)
+    if r is not None and float(r.group(2).replace(",", ".")) > float(r.group(1).replace(",", ".")):
+        value = (float(r.group(1).replace(",", ".")) + float(r.group(2).replace(",", "."))) / 2
+        unit = (r.group(3) or "").lower()
+    else:
+        m = _EXR_NUM.search(stem)
+        if m is None:
+            return None
+        value = float(m.group(1).replace(",", "."))
+        unit = (m.group(2) or "").lower()
     if unit in ("um", "µm") or (not unit and bare_micrometres):
         value = float(_um_to_nm(value))
     return value if 200.0 <= value <= 2600.0 else None
@@ -859,7 +876,11 @@ def parse_envi_header(path: str | os.PathLike) -> dict[str, str]:
     """Parse an ENVI ``.hdr`` into {lower-case key: raw value string} (braced values joined)."""
     p = _as_path(path)
     with _reading(p, "ENVI header"):
-        text = p.read_text(encoding="utf-8", errors="replace")
+        raw = p.read_bytes()
+    try:
+        text = raw.decode("utf-8")
+    except UnicodeDecodeError:  # a header saved in Latin-1 (e.g. 'wavelength units = µm' by older Windows tools)
+        text = raw.decode("latin-1")
     lines = text.splitlines()
     if not lines or not lines[0].strip().startswith("ENVI"):
         raise InputError(f"{p}: not an ENVI header (first line must be 'ENVI')")
