@@ -105,6 +105,17 @@ def test_export_round_trip(fab_run, tmp_path):
         for i in range(m):
             for j in range(m):
                 assert np.float32(float(r[f"r{i}c{j}"])) == tile[b, i, j]
+    # the placement spec.json states: filter r{i}c{j} at the sensor image's pixels (row ≡ i, column ≡ j mod m),
+    # checked on the camera's own measurement: a scene lit in band b only images κ_b's tile
+    assert f"row mod {m} = i" in spec["cfa"]["placement"] and "pixel (0, 0)" in spec["cfa"]["placement"]
+    hw = model.camera.min_scene_size()
+    for b in range(tile.shape[0]):
+        scene = torch.zeros(1, tile.shape[0], *hw)
+        scene[0, b] = 1.0
+        with torch.no_grad():
+            y = model.camera.A(scene)[0, 0].numpy()
+        ratio = y / np.tile(tile[b], (-(-y.shape[0] // m), -(-y.shape[1] // m)))[: y.shape[0], : y.shape[1]]
+        assert ratio.std() < 1e-3 * ratio.mean(), b
     # 16-bit TIFF: the scale is in the description; values within half a count
     import tifffile
 
@@ -165,6 +176,29 @@ def test_gds_masks_are_binary_weighted(tmp_path):
     with pytest.raises(InputError, match="2\\^k"):
         write_gds(tmp_path / "x.gds", level, 6, 30.0, aperture, 100.0, 60.0)
     assert not (tmp_path / "x.gds").exists()
+
+
+@pytest.mark.parametrize("cell_um", [30.0, 1.001, 0.333, 25.001, 2.5005])
+def test_gds_rows_and_runs_share_their_edges_on_the_1nm_grid(tmp_path, cell_um, caplog):
+    """Every rectangle's corners lie on the n + 1 cell edges of the 1 nm grid, so the rows of one mask
+    tile the aperture with neither slivers nor overlaps (each rectangle rounded on its own left 1 nm
+    gaps for a cell of an odd number of nm, whose edges fall on half nanometres)."""
+    n = 21
+    level = np.zeros((n, n), int)  # every cell etched by every mask: one rectangle per row and layer
+    level[:, 10] = 7  # ... but the middle column unetched: two runs per row
+    write_gds(tmp_path / "g.gds", level, 8, cell_um, np.ones((n, n)), 100.0, n * cell_um / 2)
+    lib = gdstk.read_gds(str(tmp_path / "g.gds"))
+    assert lib.unit == pytest.approx(1e-6) and lib.precision == pytest.approx(1e-9)
+    polys = [p for p in lib.cells[0].polygons if p.layer == 1]
+    assert len(polys) == 2 * n
+    nm = np.round(np.concatenate([p.points for p in polys]) * 1000).astype(np.int64)
+    edges = np.round((np.arange(n + 1) - n / 2) * cell_um * 1000).astype(np.int64)  # independent of the writer
+    assert set(nm[:, 0]) <= set(edges) and set(-nm[:, 1]) <= set(edges)
+    area = sum(abs(p.area()) for p in polys) * 1e6  # nm²: rows abut exactly, so the areas add to the union's
+    whole = (edges[-1] - edges[0]) * ((edges[-1] - edges[0]) - (edges[11] - edges[10]))
+    assert area == pytest.approx(whole, rel=1e-12)
+    odd = abs(cell_um * 1000 - round(cell_um * 1000)) > 1e-6
+    assert any("not a whole number of nm" in r.getMessage() for r in caplog.records) == odd
 
 
 def test_cfa_fit_recovers_gaussian_filters():
@@ -327,6 +361,15 @@ def test_export_cites_only_a_tolerance_study_of_this_run(fab_run, tmp_path):
     assert_clean_error(export(other, tol, "x"), "a tolerance study of another run", str(fab_run.resolve()),
                        f"weights sha256 {study['run']['weights_sha256'][:12]}", "hsicam tolerance --run")
     assert not any((tmp_path / n).exists() for n in ("r", "b", "x"))
+    # the same stale study found by itself in RUN/tolerance (the run changed after its study): the export
+    # goes on, does not cite it, and says why (it was refused, with no option to leave it out)
+    shutil.copytree(tol, other / "tolerance")
+    res = run_cli_in_process("export-optics", "--run", str(other), "--out", str(tmp_path / "stale"))
+    assert res.returncode == 0, res.stderr
+    assert "not cited" in res.stderr and "a tolerance study of another run" in res.stderr
+    tolerances = json.loads((tmp_path / "stale" / "spec.json").read_text())["tolerances"]
+    assert tolerances["studied"] is None and "not cited" in tolerances["note"]
+    shutil.rmtree(other / "tolerance")
     # a study written before the run was recorded: cited, with a warning that it cannot be checked
     old = tmp_path / "old" / "tolerance.json"
     old.parent.mkdir()

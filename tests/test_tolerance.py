@@ -98,6 +98,15 @@ def test_tolerance_cli(fab_run, tmp_path, caplog):
     r = json.loads((out / "tolerance.json").read_text())
     assert (out / "tolerance.png").is_file()
     cfg, model = load_run(fab_run)
+    # the levels sweep is said to quantise as the export does (a clamp range said "wrapped" before)
+    from hsicam.export.doe import level_grid_text
+
+    assert r["methods"]["levels"] == f"exported L-level heights (piston removed; {level_grid_text(model.camera.optics.doe)})"
+    doe = model.camera.optics.doe
+    assert "wrapped modulo h_2π" in level_grid_text(doe) and doe.max_height_m is None
+    doe.max_height_m = 2e-6  # a clamp range that does not wrap (camera.doe.max_height_nm, wrap false)
+    assert level_grid_text(doe).startswith("clamp range k·2000 nm/L") and "wrapped" not in level_grid_text(doe)
+    doe.max_height_m = None
     scenes, names = evaluation_scenes(cfg, model.bands, 2)
     with torch.no_grad():
         nominal = evaluate_psf(model, model.camera.psf(), scenes, names)

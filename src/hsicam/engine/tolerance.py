@@ -6,7 +6,8 @@ PSNR (per band, peak 1; also SSIM and SAM) over validation scenes versus each pe
 * **height noise** σ_p (nm): i.i.d. Gaussian height error per cell. A fabricated element carries
   one fixed error realisation, so each draw is one DOE; results are mean ± std over draws.
 * **quantisation levels** L: the heights of the fabrication export (piston removed, L levels over
-  h_2π, wrapped; :mod:`hsicam.export.doe`), so the study and the exported files agree.
+  h_2π, wrapped, or over a clamp range that does not wrap; :mod:`hsicam.export.doe`), so the study
+  and the exported files agree.
 * **lateral misalignment** of the DOE against the lens and aperture stop by a fraction of a cell,
   along x and along the diagonal. Method: pupil oversampling — the pupil is resampled with Q
   samples per cell (``shift_subsamples``, rounded up to a multiple of the camera's own q; the
@@ -295,7 +296,7 @@ def run_tolerance(model, cfg, spec: ToleranceSpec = ToleranceSpec(), data: str |
     with an ETA (:class:`hsicam.progress.Progress`; None: a bar on a terminal, lines otherwise; False: none)."""
     from hsicam.cameras import DOECamera
     from hsicam.cameras.measured import FixedPSFCamera
-    from hsicam.export.doe import design_heights, quantize_levels
+    from hsicam.export.doe import design_heights, level_grid_text, quantize_levels
     from hsicam.export.tolerance import TOLERANCE_FORMAT, run_identity
     from hsicam.progress import Progress
 
@@ -429,7 +430,7 @@ def run_tolerance(model, cfg, spec: ToleranceSpec = ToleranceSpec(), data: str |
         "doe_enabled": has_doe,
         "methods": {k: v for k, v in {
             "sigma_height_nm": "i.i.d. Gaussian height error per cell; each draw = one fabricated DOE; mean ± std over draws",
-            "levels": "exported L-level heights (piston removed, L levels over h_2pi, wrapped)",
+            "levels": f"exported L-level heights (piston removed; {level_grid_text(optics.doe)})",
             "shift": (f"pupil oversampled to Q = {big_q} samples per cell, relief shifted by whole samples against the "
                       "fixed aperture and lens; PSNR and its 1-dB tolerance relative to the same Q model without "
                       "shift (reference_psnr)"),

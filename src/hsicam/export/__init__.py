@@ -87,7 +87,15 @@ def _tolerances(run_dir: Path, cfg, tolerance: str | Path | None) -> dict[str, A
         return out
     if cand.is_file():
         # a tolerance study (not any JSON), and of this run when it records its run
-        out["studied"] = read_tolerance_study(cand, run_dir)
+        try:
+            out["studied"] = read_tolerance_study(cand, run_dir)
+        except InputError as exc:
+            if tolerance is not None:  # asked for: its refusal is the answer
+                raise
+            # found by itself in RUN/tolerance (e.g. a study of the run before it was resumed): the export
+            # goes on without citing it, and says why
+            log.warning("not cited: %s", exc)
+            out["note"] = f"not cited: {exc}; run the study again (`hsicam tolerance --run {run_dir} --out DIR`)"
     elif tolerance is not None:
         raise InputError(f"{tolerance}: no tolerance.json (run `hsicam tolerance --run RUN --out DIR` first)")
     elif source is not None:  # `hsicam tolerance` refuses a fine-tuned run: its optics are the design run's

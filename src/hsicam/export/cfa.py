@@ -217,6 +217,10 @@ def export_cfa(camera, out: Path) -> dict[str, Any]:
         "period": int(tile.shape[-1]),
         "filters": len(fits),
         "convention": "kappa sums to 1 over bands per filter (model); *_peak1.csv: each filter scaled to a peak of 1",
+        "placement": (f"filter r{{i}}c{{j}} covers the sensor pixels (row, column) with row mod {tile.shape[-2]} = i and "
+                      f"column mod {tile.shape[-1]} = j, counted from the sensor image's pixel (0, 0) as read out; one "
+                      "filter per pixel, at the sensor's pixel pitch; a tile mounted mirrored or rotated is another "
+                      "CFA (reconstruct --cfa-offset finds shifts only)"),
         "fit_model": "offset + 1 or 2 Gaussians on the peak-normalised curve (AICc choice)",
         "fit_rms_error": {"mean": float(np.mean(rms)), "max": float(np.max(rms))},
         "fits": [{k: v for k, v in f.items() if not k.startswith("_")} for f in fits],

@@ -237,6 +237,14 @@ def plot_doe_export(height_nm: np.ndarray, quantized_nm: np.ndarray, aperture: n
     save_figure(fig, path)
 
 
+def level_grid_text(doe) -> str:
+    """How an L-level element's heights are quantised (:meth:`hsicam.optics.doe.DOE.level_grid`), in words
+    (for ``spec.json`` and the tolerance study's methods)."""
+    top, wrap = doe.level_grid()
+    return ("phase levels k·h_2π/L, wrapped modulo h_2π" if wrap else
+            f"clamp range k·{top * 1e9:g} nm/L, k = 0..L−1 (camera.doe.max_height_nm, wrap false)")
+
+
 def export_doe(camera, out: Path, levels: int, bands_nm: np.ndarray) -> dict[str, Any]:
     """Write the DOE files into ``out``; returns the facts for ``spec.json``."""
     from hsicam.export.gds import gds_layers, write_gds
@@ -301,12 +309,14 @@ def export_doe(camera, out: Path, levels: int, bands_nm: np.ndarray) -> dict[str
         "piston_removed_nm": piston * 1e9,
         "tiff_scale_nm_per_count": scale,
         "orientation": "row 0 at the top (+y), column 0 at the left (−x); array axes = sensor (row, column) axes "
-                       "seen from the same side along the optical axis",
+                       "seen from the same side along the optical axis: the files (GDS, TIFF, CSV) show the element as "
+                       "seen from the side from which the sensor's rows and columns are counted; a relief made as "
+                       "drawn and seen from its other side is mirrored (x → −x), and a mirrored element mirrors every "
+                       "PSF",
         "quantized": {
             "levels": levels,
             "step_nm": top * 1e9 / levels,
-            "grid": ("phase levels k·h_2π/L, wrapped modulo h_2π" if wrap else
-                     f"clamp range k·{top * 1e9:g} nm/L, k = 0..L−1 (camera.doe.max_height_nm, wrap false)"),
+            "grid": level_grid_text(doe),
             "tiff_scale_nm_per_count": scale_q,
             "phase_error_design_wavelength_rad": {"rms": err0["rms_rad"][0], "max": err0["max_rad"][0],
                                                   "bound_pi_over_L": math.pi / levels if wrap else None},

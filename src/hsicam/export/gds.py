@@ -13,6 +13,7 @@ written with a fixed timestamp, so identical designs give identical files.
 from __future__ import annotations
 
 import datetime
+import logging
 from pathlib import Path
 from typing import Any
 
@@ -20,6 +21,8 @@ import numpy as np
 
 from hsicam.errors import InputError
 from hsicam.io import atomic_path
+
+log = logging.getLogger(__name__)
 
 APERTURE_LAYER = 100
 LABEL_LAYER = 101
@@ -71,6 +74,14 @@ def cell_centres_um(n: int, cell_um: float) -> tuple[np.ndarray, np.ndarray]:
     return (idx - c) * cell_um, -(idx - c) * cell_um
 
 
+def cell_edges_um(n: int, cell_um: float) -> np.ndarray:
+    """The n + 1 cell edges (µm) along x, (j − n/2)·Δ, each on the 1 nm database grid: neighbouring
+    rectangles share an edge exactly (rounding each rectangle's own edges left 1 nm slivers and
+    overlaps for a cell of an odd number of nm, whose edges fall on half nanometres). Rows use the
+    same edges negated (row 0 at the top, y up)."""
+    return np.round((np.arange(n + 1, dtype=np.float64) - n / 2.0) * cell_um * 1000.0) / 1000.0
+
+
 def write_gds(path: str | Path, level: np.ndarray, levels: int, cell_um: float, aperture: np.ndarray,
               step_nm: float, aperture_radius_um: float) -> dict[str, Any]:
     """Write the etch masks of an L-level height map (level indices (n, n)) as GDSII, atomically."""
@@ -80,13 +91,16 @@ def write_gds(path: str | Path, level: np.ndarray, levels: int, cell_um: float, 
     masks = etch_masks(level, levels, inside)
     lib = gdstk.Library(name="HSICAM_DOE", unit=1e-6, precision=1e-9)
     cell = lib.new_cell(CELL_NAME)
-    xc, yc = cell_centres_um(n, cell_um)
-    half = cell_um / 2.0
+    edges = cell_edges_um(n, cell_um)
+    if abs(cell_um * 1000.0 - round(cell_um * 1000.0)) > 1e-6:
+        log.warning("the DOE cell of %g µm is not a whole number of nm: on the GDSII's 1 nm grid its edges round, so "
+                    "cells are %g or %g nm wide (each edge within 0.5 nm of the design)", cell_um,
+                    np.floor(cell_um * 1000.0), np.ceil(cell_um * 1000.0))
     counts = []
     for j, m in enumerate(masks):
         runs = _row_runs(m)
-        for i, a, b in runs:
-            cell.add(gdstk.rectangle((xc[a] - half, yc[i] - half), (xc[b - 1] + half, yc[i] + half), layer=j + 1, datatype=0))
+        for i, a, b in runs:  # row i spans y from -edges[i + 1] (bottom) to -edges[i] (top)
+            cell.add(gdstk.rectangle((edges[a], -edges[i + 1]), (edges[b], -edges[i]), layer=j + 1, datatype=0))
         counts.append(len(runs))
     cell.add(gdstk.ellipse((0, 0), aperture_radius_um, tolerance=min(0.01 * cell_um, 0.1), layer=APERTURE_LAYER))
     cell.add(gdstk.Label(f"hsicam DOE L={levels} step={step_nm:.3f}nm cell={cell_um:g}um", (0, -aperture_radius_um - 2 * cell_um),
