@@ -7,8 +7,10 @@ Conventions (also written into ``spec.json``):
   in the PNG and in the sensor image. The array axes coincide with the sensor's (row, column)
   axes when both are viewed from the same side along the optical axis; mounting the DOE
   mirrored mirrors every PSF.
-* Only cells that touch the circular aperture carry the design (``aperture`` = the fraction of
-  the cell inside the circle); the other cells are written as 0 (no relief; light does not pass).
+* Only cells with light through them in the optics model carry the design (``aperture`` = the
+  fraction of the cell inside the circle, sampled on 8×8 sub-points as the PSFs are: a cell that
+  the circle only grazes, missing every sub-point, counts as outside); the other cells are written
+  as 0 (no relief; light does not pass).
 * The piston (the minimum height over the aperture) is removed: a constant height adds the same
   phase everywhere and leaves every PSF unchanged, so the relief starts at 0.
 * L-level quantisation (binary-weighted lithography, L = 2^k) by the DOE's own rule
