@@ -28,7 +28,7 @@ from hsicam.data.measured_psf import (
 )
 from hsicam.engine.calibration import load_calibrated_run
 from hsicam.runs.measured_psf import load_measured_psf
-from hsicam.data.images import RawCorrection, preprocess_raw, read_capture
+from hsicam.data.images import RawCorrection, normalised_flat, preprocess_raw, read_capture
 from hsicam.errors import InputError
 from hsicam.io import write_json, write_npy
 from hsicam.spectral import Bands
@@ -343,6 +343,28 @@ def test_finetune_cli_errors(fab_run, tmp_path):
 # ------------------------------------------------------------------------------------------------
 # Raw captures
 # ------------------------------------------------------------------------------------------------
+def test_a_16bit_png_opened_as_32bit_mode_i_keeps_its_16bit_full_scale(tmp_path, monkeypatch):
+    """Pillow < 10 (the dependency allows 9.1) opens a 16-bit grey PNG in mode "I" (int32): it is read as
+    the uint16 it stores, full scale 65535, not refused as a 32-bit capture without a white level."""
+    from PIL import Image
+
+    values = (np.arange(48, dtype=np.uint16).reshape(6, 8) * 1300 + 17)
+    Image.fromarray(values).save(tmp_path / "c.png")
+    expected, _ = read_capture(tmp_path / "c.png")
+    opened = Image.open
+
+    def open_as_mode_i(*args, **kwargs):  # what Pillow 9 returns for this file
+        im = opened(*args, **kwargs)
+        return im.convert("I") if im.format == "PNG" and im.mode.startswith("I;16") else im
+
+    monkeypatch.setattr(Image, "open", open_as_mode_i)
+    assert Image.open(tmp_path / "c.png").mode == "I"
+    img, report = read_capture(tmp_path / "c.png")
+    assert report["stored_dtype"] == "uint16"
+    np.testing.assert_array_equal(img, expected)
+    np.testing.assert_allclose(img, values / 65535.0, rtol=1e-6)
+
+
 def test_raw_preprocessing_reference():
     """g = (raw − dark)/(white − black)/flat_norm · t_ref/t_exp, against a direct computation."""
     rng = np.random.default_rng(1)
@@ -367,7 +389,16 @@ def test_raw_preprocessing_reference():
     cfa = np.tile(np.array([[0.5, 1.0, 1.5], [1.0, 1.5, 0.5], [1.5, 0.5, 1.0]]), (4, 6))
     flat_cfa = black + 2000.0 * cfa
     img3, _ = preprocess_raw(raw, 65535.0, RawCorrection(black_level=black, white_level=white, flat=flat_cfa, flat_period=3))
-    np.testing.assert_allclose(img3[1:-1, 1:-1], ((raw - black) / (white - black))[1:-1, 1:-1], rtol=1e-4)
+    # ... on the border rows and columns too (edge replication left the pattern there: ±25 % at period 3)
+    np.testing.assert_allclose(img3, (raw - black) / (white - black), rtol=1e-4)
+    for hh, ww in ((11, 17), (2, 5)):  # sizes that are no multiple of the period, or below it
+        flat_n = normalised_flat(flat_cfa[:hh, :ww], black, 3)
+        assert flat_n.shape == (hh, ww) and np.all(np.isfinite(flat_n))
+        if hh >= 3 and ww >= 3:
+            np.testing.assert_allclose(flat_n, 1.0, rtol=1e-9)
+    with pytest.raises(InputError, match="--flat-mode cfa"):  # a CFA flat used pixel-wise: the hint
+        preprocess_raw(raw, 65535.0, RawCorrection(black_level=black, white_level=white,
+                                                   flat=black + 2000.0 * np.where(cfa > 1.2, 1.0, 0.01)))
     # bad inputs
     with pytest.raises(InputError, match="both"):
         RawCorrection(exposure_s=0.1)

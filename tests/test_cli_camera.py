@@ -117,6 +117,8 @@ def test_simulate_png_keeps_its_scale_when_copied_elsewhere(tmp_path):
     tol = scale / 65535
     np.testing.assert_allclose(read_sensor_image(copy), sensor, atol=tol)  # was sensor / scale
     np.testing.assert_allclose(read_sensor_image(out / "sensor.png"), sensor, atol=tol)
+    # a scale multiplies the simulated level, as it multiplies sensor.npy (it replaced the PNG's own scale)
+    np.testing.assert_allclose(read_sensor_image(copy, 0.5), 0.5 * sensor, atol=tol)
     plain = np.arange(16, dtype=np.uint16).reshape(4, 4) * 4000
     Image.fromarray(plain).save(tmp_path / "plain.png")  # any other PNG: as stored
     np.testing.assert_allclose(read_sensor_image(tmp_path / "plain.png"), plain / 65535.0, atol=1e-7)

@@ -211,6 +211,12 @@ def _read_png(path: Path, what: str) -> tuple[np.ndarray, np.dtype]:
                 if getattr(im, "n_frames", 1) > 1:
                     raise InputError(f"{path}: animated PNG; expected one {what}")
                 arr = np.array(im)
+                if im.mode == "I" and arr.dtype.kind in "iu":
+                    # Pillow < 10 opens a 16-bit grey PNG as 32-bit mode "I"; a PNG holds at most 16 bits, so
+                    # its full scale is 65535 (as int32 it read 2^31 - 1, and the capture was refused)
+                    if arr.size and (int(arr.min()) < 0 or int(arr.max()) > 65535):
+                        raise InputError(f"{path}: PNG values outside 0..65535 (corrupt?)")
+                    arr = arr.astype(np.uint16)
     except InputError:
         raise
     except MemoryError:
@@ -500,14 +506,24 @@ def normalised_flat(flat_dn: np.ndarray, black: float, period: int | None = None
     if period and period > 1:
         from scipy.ndimage import uniform_filter
 
-        flat = uniform_filter(flat, size=period, mode="nearest")
+        # padded by whole periods, so every window of the border sees each CFA phase once (edge
+        # replication counted the border's phases twice and left the CFA's pattern in the flat there)
+        m = period
+        h, w = flat.shape
+        rows = np.r_[np.arange(-m, 0) % m if h >= m else np.zeros(m, int), np.arange(h),
+                     (h - m + np.arange(m)) if h >= m else np.full(m, h - 1)]
+        cols = np.r_[np.arange(-m, 0) % m if w >= m else np.zeros(m, int), np.arange(w),
+                     (w - m + np.arange(m)) if w >= m else np.full(m, w - 1)]
+        flat = uniform_filter(flat[np.ix_(rows, cols)], size=m, mode="nearest")[m:-m, m:-m]
     mean = float(flat.mean())
     if not mean > 0:
         raise InputError(f"flat field has no signal above the black level ({black:g} DN)")
     flat /= mean
     low = int(np.count_nonzero(flat < 0.05))
     if low:
-        raise InputError(f"flat field has {low} pixel(s) below 5 % of its mean (dead pixels or a wrong black level)")
+        hint = "" if period and period > 1 else "; a flat taken through the CFA: --flat-mode cfa"
+        raise InputError(f"flat field has {low} pixel(s) below 5 % of its mean (dead pixels or a wrong black level"
+                         f"{hint})")
     return flat
 
 
@@ -708,9 +724,10 @@ def is_simulated_image(path: str | Path, fmt: str, png_scale: float | None = Non
 def read_capture(path: str | Path, corr: RawCorrection | None = None, scale: float | None = None) -> tuple[np.ndarray, dict]:
     """Read a capture and apply ``corr`` → (float32 (H, W) on the simulator scale, report).
 
-    ``scale`` (if given) overrides ``corr.scale``; by default the ``sensor.png`` of ``hsicam simulate``
-    uses the scale written inside it (:data:`SENSOR_SCALE_KEY`), and PNG/TIFF captures with a
-    ``simulate.json`` beside them (older simulations) its ``sensor_png_scale``.
+    ``scale`` (if given) overrides ``corr.scale``. The ``sensor.png`` of ``hsicam simulate`` is first brought
+    back to its simulated level by the scale written inside it (:data:`SENSOR_SCALE_KEY`), and PNG/TIFF
+    captures with a ``simulate.json`` beside them (older simulations) by its ``sensor_png_scale``; ``scale``
+    multiplies that level, as it would simulate's ``sensor.npy`` (``corr.auto_level`` sets the level instead).
 
     Raises :class:`InputError` for a 32/64-bit integer capture without ``corr.white_level`` (or
     ``auto_level``, which makes the white level irrelevant): the type's maximum is no full scale.
@@ -737,26 +754,29 @@ def read_capture(path: str | Path, corr: RawCorrection | None = None, scale: flo
     png_scale = png_sensor_scale(path) if image.format == "png" else None  # the PNG's own, wherever it was copied
     simulated = is_simulated_image(path, image.format, png_scale)
     stretched = False  # simulate's PNG of an image brighter than full scale: its peak is full scale by design
-    if scale is None and simulated and corr.scale == 1.0 and corr.auto_level is None:
-        scale = png_scale
-        if scale is None:
+    simulated_scale = None
+    if simulated and corr.auto_level is None:  # (--auto-level sets the level itself)
+        simulated_scale = png_scale
+        if simulated_scale is None:
             meta = path.parent / SIMULATE_JSON
             try:
-                scale = float(json.loads(meta.read_text()).get("sensor_png_scale", 1.0))
+                simulated_scale = float(json.loads(meta.read_text()).get("sensor_png_scale", 1.0))
             except (ValueError, TypeError, AttributeError):
                 raise InputError(f"{meta}: unreadable simulate.json") from None
-        stretched = scale > 1.0
+        stretched = simulated_scale > 1.0
+        # a --scale multiplies the image at its simulated level, as it multiplies simulate's sensor.npy
+        scale = simulated_scale * (corr.scale if scale is None else scale)
     if scale is not None:
         corr = RawCorrection(**{**corr.__dict__, "scale": float(scale)})
     # simulate's own image is written at the file's full bit depth: a dark one is a dark scene
     img, report = preprocess_raw(image.data, image.full_scale, corr, str(path), check_saturation=not stretched,
                                  check_bit_depth=not simulated, check_level=not stretched, stored_dtype=image.dtype)
-    if stretched and img.size and float(img.max()) > FLOAT_OVER_SCALE:
+    if stretched and simulated_scale > FLOAT_OVER_SCALE:  # its brightest pixel: simulated_scale
         # the float capture's warning (preprocess_raw), for simulate's image of a scene far above full scale
         log.warning("%s: hsicam simulate's image of a scene far brighter than full scale: it is read back at its "
-                    "simulated level (%s %g), and reaches %.4g; a real sensor saturates at 1 and the network was "
+                    "simulated level (%s %g, its brightest pixel); a real sensor saturates at 1 and the network was "
                     "trained on images within [0, 1]: simulate the scene normalised to [0, 1]", path,
-                    SENSOR_SCALE_KEY if png_scale is not None else SIMULATE_JSON, scale, float(img.max()))
+                    SENSOR_SCALE_KEY if png_scale is not None else SIMULATE_JSON, simulated_scale)
     report.update({"source": str(path), "stored_dtype": image.dtype, "format": image.format,
                    "shape": [int(s) for s in img.shape]})
     return img, report
@@ -766,8 +786,9 @@ def read_sensor_image(path: str | Path, scale: float | None = None) -> np.ndarra
     """A sensor image as float32 (H, W) on the simulator's [0, 1] scale.
 
     ``.npy`` float arrays are used as is; integer images (PNG, TIFF, integer ``.npy``) are divided
-    by the type's maximum (32/64-bit integers are refused: see :func:`read_capture`); then multiplied by ``scale`` — by default the scale
-    ``hsicam simulate`` wrote into its PNG, or ``sensor_png_scale`` from a ``simulate.json`` beside a PNG/TIFF, else 1.
+    by the type's maximum (32/64-bit integers are refused: see :func:`read_capture`); ``hsicam simulate``'s
+    image is then brought back to its simulated level (the scale written into its PNG, or ``sensor_png_scale``
+    from a ``simulate.json`` beside a PNG/TIFF); then multiplied by ``scale`` (default 1).
     """
     img, _ = read_capture(path, None, scale)
     return img
