@@ -498,6 +498,15 @@ def preprocess_raw(raw: np.ndarray, full_scale: float, corr: RawCorrection, sour
     return img.astype(np.float32, copy=False), report
 
 
+def _same_phase_index(n: int, m: int) -> np.ndarray:
+    """Indices into an axis of ``n`` pixels for the positions −m … n + m − 1: inside, themselves; outside,
+    the nearest pixel of the same phase modulo ``m`` (clipped to the axis when it is shorter than ``m``)."""
+    k = np.arange(-m, n + m)
+    k = np.where(k < 0, k % m, k)
+    k = np.where(k >= n, k - m * ((k - n) // m + 1), k)
+    return np.clip(k, 0, n - 1)
+
+
 def normalised_flat(flat_dn: np.ndarray, black: float, period: int | None = None) -> np.ndarray:
     """The flat-field frame (H, W, DN) as the capture is divided by it: minus the black level, averaged
     over ``period`` (the CFA period; None or 1: pixel-wise), normalised to mean 1 (float64). InputError
@@ -509,11 +518,7 @@ def normalised_flat(flat_dn: np.ndarray, black: float, period: int | None = None
         # padded by whole periods, so every window of the border sees each CFA phase once (edge
         # replication counted the border's phases twice and left the CFA's pattern in the flat there)
         m = period
-        h, w = flat.shape
-        rows = np.r_[np.arange(-m, 0) % m if h >= m else np.zeros(m, int), np.arange(h),
-                     (h - m + np.arange(m)) if h >= m else np.full(m, h - 1)]
-        cols = np.r_[np.arange(-m, 0) % m if w >= m else np.zeros(m, int), np.arange(w),
-                     (w - m + np.arange(m)) if w >= m else np.full(m, w - 1)]
+        rows, cols = (_same_phase_index(n, m) for n in flat.shape)
         flat = uniform_filter(flat[np.ix_(rows, cols)], size=m, mode="nearest")[m:-m, m:-m]
     mean = float(flat.mean())
     if not mean > 0:
