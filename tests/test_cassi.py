@@ -205,7 +205,8 @@ def test_aperture_from_file(tmp_path):
 
 
 @pytest.mark.parametrize("content, match", [(np.full((4, 4), 2.0), "in \\[0, 1\\]"), (np.zeros(5), "2-D"),
-                                            (np.full((4, 4), np.nan), "finite")])
+                                            (np.full((4, 4), np.nan), "finite"),
+                                            (np.zeros((64, 96)), "closed everywhere")])
 def test_bad_aperture_files(tmp_path, content, match):
     np.save(tmp_path / "bad.npy", content)
     with pytest.raises(InputError, match=match):

@@ -3,7 +3,12 @@
 Band c (of C) is displaced by an integer dispersion ``d_c`` pixels along the sensor rows
 (``d_0 = 0``, ``D = max_c d_c``); ``P`` is the coded aperture and ``s`` the band convention
 (``sum``: s = 1, the MST convention; ``mean``: s = 1/C, so a white scene gives ≈ the aperture's
-open fraction, comparable with the DOE camera whose CFA sums to 1 over bands):
+open fraction, comparable with the DOE camera whose CFA sums to 1 over bands). Under sensor noise
+given relative to full scale 1 (``camera.sensor``, ``evaluate --sensor-sigma``) that level matters:
+with the random aperture (density ½) a white scene's DD-CASSI measurement has mean ≈ 0.5 and peak
+≈ 0.84 where the DOE camera's is ≈ 1 everywhere, so at equal σ CASSI's measurement SNR is lower (the
+aperture blocks half the light; the DOE camera's filters are normalised as if each pixel saw all
+of it). Noise-free scores do not depend on s (the solvers divide by ΦΦᵀ):
 
 - **DD-CASSI** (dual disperser; Gehm et al. 2007). The first disperser shears the scene onto the
   aperture, the second undoes the shear, so the measurement has the scene's size and each band
@@ -97,6 +102,9 @@ def load_aperture(path: str | Path) -> np.ndarray:
         raise InputError(f"{path}: coded-aperture values must be finite (the array has NaN or inf)")
     if arr.min() < 0 or arr.max() > 1:
         raise InputError(f"{path}: coded-aperture values must be in [0, 1] (got {arr.min():g}..{arr.max():g})")
+    if not arr.max() > 0:
+        raise InputError(f"{path}: the coded aperture is closed everywhere (all values 0): the camera would measure "
+                         "nothing")
     return arr
 
 
