@@ -84,6 +84,24 @@ def test_outputs_get_the_usual_permissions(tmp_path):
     assert stat.S_IMODE((tmp_path / "out").stat().st_mode) == 0o755
 
 
+def test_weights_files_get_the_usual_permissions_and_leave_no_temporary(tmp_path):
+    """Checkpoint weights followed the umask as every other output does: safetensors' own writer made a
+    0600 file (a group sharing the run could not read it) through a .tmpXXXXXX of its own that a kill left."""
+    import torch
+    from safetensors.torch import load_file
+
+    from hsicam.runs.checkpoint import save_safetensors
+
+    old = os.umask(0o002)
+    try:
+        save_safetensors(tmp_path / "w.safetensors", {"a": torch.arange(6.0), "b": torch.ones(2, 3)}, {"k": "v", "j": "u"})
+    finally:
+        os.umask(old)
+    assert stat.S_IMODE((tmp_path / "w.safetensors").stat().st_mode) == 0o664
+    assert [p.name for p in tmp_path.iterdir()] == ["w.safetensors"]
+    assert torch.equal(load_file(tmp_path / "w.safetensors")["a"], torch.arange(6.0))
+
+
 # ------------------------------------------------------------------------------------------------
 # check_output_path
 # ------------------------------------------------------------------------------------------------

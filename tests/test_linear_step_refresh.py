@@ -228,3 +228,29 @@ def test_a_shipped_camera_with_another_width_is_told_its_filters_are_fixed(name,
     assert linear_step_problem(folder, other) == (
         f"{folder / LINEAR_STEP_FILE} holds {width} px filters; model.consistency.window_px asks for {width + 2}; "
         "a shipped camera's filters are fixed: evaluate it with its own model.consistency settings")
+
+
+def test_a_run_without_its_filters_is_named_with_what_to_do(cache_env, linear_run, tmp_path):
+    """A run stopped before its training ended has no filters yet: evaluate said only "for a run without it:
+    `hsicam train --out RUN …`" (a placeholder, and a refit for a run that needs its training finished)."""
+    from cli_helpers import assert_clean_error, final_error_line, run_cli_in_process
+
+    from hsicam.engine.train import train
+
+    stopped = tmp_path / "stopped"
+    keys = ["train.epochs=2", *LINEAR]
+    assert train(load_config("tiny", keys), stopped, progress=False, stop_after_steps=3) == {"stopped_at_step": 3}
+    assert not (stopped / LINEAR_STEP_FILE).exists()
+    out = tmp_path / "ev"
+    res = run_cli_in_process("evaluate", "--run", str(stopped), "--out", str(out))
+    line = final_error_line(res)  # after the warning that the training did not finish, before any scene is read
+    for fragment in (f"{stopped}: model.consistency.kind=linear needs the run's {LINEAR_STEP_FILE}",
+                     f"its training did not finish, and the step is fitted when it ends: hsicam train --out {stopped} "
+                     "--resume", "--set model.consistency.kind=landweber"):
+        assert fragment in line, line
+    assert "generating" not in res.stderr and "[1/" not in res.stderr
+    finished = shutil.copytree(linear_run, tmp_path / "finished")
+    (finished / LINEAR_STEP_FILE).unlink()
+    assert_clean_error(run_cli_in_process("evaluate", "--run", str(finished), "--out", str(out)),
+                       f"fit it: hsicam train --out {finished} --resume --set model.consistency.kind=linear")
+    assert not out.exists()

@@ -417,6 +417,26 @@ def test_a_resume_asking_for_fewer_steps_than_were_trained_is_refused(cache_env,
     assert train(load_config("tiny", ["train.epochs=3"]), run, resume=True, progress=False)["step"] == 12
 
 
+@pytest.mark.parametrize("change", ["train.batch_size=8", "data.patches_per_epoch=128"])
+def test_a_resume_with_another_batch_size_or_epoch_length_is_refused(cache_env, tmp_path, change):
+    """The checkpoint's position (step in its epoch, steps done) counts batches of the size it trained with:
+    read in another size the resume skipped the rest of the epoch and stopped early as finished (or was
+    refused as "cannot take training back"). It is refused naming both, and nothing changes."""
+    from hsicam.engine.train import train
+    from hsicam.errors import InputError
+
+    keys = ["train.epochs=3"]
+    run = tmp_path / "r"
+    full = train(load_config("tiny", keys), tmp_path / "full", progress=False)
+    assert train(load_config("tiny", keys), run, progress=False, stop_after_steps=7) == {"stopped_at_step": 7}
+    before = tree_snapshot(run)
+    with pytest.raises(InputError, match=r"was trained in epochs of 4 steps of 4 patches, and its config now asks for "
+                                         r"\d+ steps of \d+ .*keep the batch size and the patches per epoch"):
+        train(load_config("tiny", [*keys, change]), run, resume=True, progress=False)
+    assert tree_snapshot(run) == before
+    assert train(load_config("tiny", keys), run, resume=True, progress=False)["step"] == full["step"]
+
+
 @pytest.mark.parametrize("sets, fragment", [
     (["train.freeze=[net,doe,cfa]"], "train.freeze=[cfa, doe, net] leaves nothing to train"),
     (["train.freeze=[net]", "camera.doe.enabled=false", "camera.cfa.enabled=false"],

@@ -349,6 +349,16 @@ def test_a_signal_during_a_long_validation_stops_it_at_its_next_batch(tmp_path, 
     wa, wb = _last_weights(tmp_path / "full"), _last_weights(run)
     for k in wa:
         torch.testing.assert_close(wb[k], wa[k], rtol=0, atol=1e-6, msg=k)
+    # the cut validation is taken again on resume: the history holds both epochs' validations, as the
+    # uninterrupted run's does, and the best checkpoint is the same step (it was lost for good: the
+    # checkpoint had counted the epoch as done)
+
+    def validations(r):
+        return [(x["step"], x["epoch"], round(x["val_psnr"], 4)) for x in map(json.loads, (r / "metrics.jsonl").read_text().splitlines())
+                if "val_psnr" in x and not x.get("final")]
+
+    assert validations(run) == validations(tmp_path / "full") and len(validations(run)) == 2
+    assert _manifest(run)["best"]["step"] == _manifest(tmp_path / "full")["best"]["step"]
 
     # in the last epoch's validation a signal lets the training finish, that validation whole: the
     # final record holds its scores, not the previous epoch's (a cut there recorded a finished run

@@ -64,6 +64,8 @@ class LoopState:
     loss_sum: float = 0.0  # running train loss of the current epoch (so a mid-epoch resume continues it)
     loss_n: int = 0
     total_steps: int = 0  # the run's planned steps (epochs × steps per epoch, capped by max_steps); 0 = unknown
+    steps_per_epoch: int = 0  # the unit of step_in_epoch and global_step (0: a checkpoint from before it was kept)
+    batch_size: int = 0
 
     def to_dict(self) -> dict[str, Any]:
         return dataclasses.asdict(self)
@@ -451,6 +453,13 @@ def _fit(task: Task, opts: FitOptions, run_dir: Path, resume: bool, lock: RunLoc
             # checkpoint's: the optimizer's moments continue, its schedule starts from these
             for g, lr in zip(optimizer.param_groups, base_lrs):
                 g["base_lr"] = lr
+            if state.steps_per_epoch and (state.steps_per_epoch, state.batch_size) != (steps_per_epoch, t.batch_size):
+                # its position (step in epoch, steps done) counts batches of the size it was trained with
+                raise InputError(f"{run_dir}: was trained in epochs of {state.steps_per_epoch} steps of "
+                                 f"{state.batch_size} patches, and its config now asks for {steps_per_epoch} steps of "
+                                 f"{t.batch_size} ({len(train_ds)} patches per epoch, {task.batch_size_key}="
+                                 f"{t.batch_size}): a resume would misplace where it stopped; keep the batch size and "
+                                 "the patches per epoch as they were; nothing was changed")
             if state.global_step > total_steps:  # before the config is rewritten: nothing changes
                 raise InputError(f"{run_dir}: has trained {state.global_step} steps ({state.epoch} epochs), more than the "
                                  f"{total_steps} its config now asks for; a resume cannot take training back: ask for at "
@@ -471,6 +480,7 @@ def _fit(task: Task, opts: FitOptions, run_dir: Path, resume: bool, lock: RunLoc
         lock.moved()
         new_run.release()  # in place: the run's own lock keeps it
     state.total_steps = total_steps  # saved with each checkpoint: what a half-trained run is measured against
+    state.steps_per_epoch, state.batch_size = steps_per_epoch, t.batch_size
     if distributed:
         dist.barrier()
     val_loader = make_loader(val_ds, t.batch_size, opts.num_workers, shuffle=False) if (val_ds is not None and is_main) else None
@@ -616,11 +626,14 @@ def _fit(task: Task, opts: FitOptions, run_dir: Path, resume: bool, lock: RunLoc
                 if asked is not None:
                     stop_here(*asked, saved=False)
         # end of an epoch (or of the step budget)
+        ended = LoopState.from_dict(state.to_dict())  # its last step done, the epoch not yet counted
         state.epoch, state.step_in_epoch, state.loss_sum, state.loss_n = state.epoch + 1, 0, 0.0, 0
         last_epoch = state.epoch == t.epochs or state.global_step >= total_steps
         tags = ["last"]
+        cut = False  # a stop signal cut this epoch's validation short
         if is_main and val_loader is not None and (state.epoch % t.eval_every_epochs == 0 or last_epoch):
             val = validate_now(cut=not last_epoch)
+            cut = val is None
             if val is not None:
                 last_val = val.get("psnr")
                 log_validation(val)
@@ -628,11 +641,19 @@ def _fit(task: Task, opts: FitOptions, run_dir: Path, resume: bool, lock: RunLoc
                     state.best_psnr, state.best_step = last_val, state.global_step
                     tags.append("best")
                 summary = {**val}
+        if cut:
+            # the checkpoint keeps the epoch uncounted, so that a resume takes its (empty) rest and then the
+            # validation again: counted, the validation was lost for good (its record, and the best
+            # weights when it would have been the best)
+            state = ended
         if is_main:  # one commit: the manifest names this checkpoint last (and best); the root weights follow
             ckpt.save(model, optimizer, state.to_dict(), bands, tuple(tags), meta)
         if distributed:
             dist.barrier()
-        if state.epoch < t.epochs and state.global_step < total_steps:
+        if cut and not (state.epoch + 1 < t.epochs and state.global_step < total_steps):
+            # the last epoch's validation, cut only by the loader's workers ending: unfinished, not finished
+            stop_here(stop.describe(stop.exit_code()), stop.exit_code(), saved=True)
+        if state.epoch + cut < t.epochs and state.global_step < total_steps:
             asked = _agreed_stop(stop, (time.perf_counter() - t_start) / max(steps_done, 1), distributed, device)
             if asked is not None:
                 stop_here(*asked, saved=True)  # rank 0 saved it just above

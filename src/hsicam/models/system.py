@@ -40,6 +40,8 @@ class CameraSystem(nn.Module):
         # model.consistency.kind linear: the filters (m², C, K, K) of RUN/linear_step.safetensors (not
         # in the state dict: fitted after training, hsicam.engine.linear_step)
         self.linear_step: torch.Tensor | None = None
+        # why a run has no linear step and what to do, naming the run (set by hsicam.runs.folder.load_run)
+        self.linear_step_missing: str | None = None
         self.autocast_dtype: torch.dtype | None = None  # e.g. torch.bfloat16 for the network on CUDA
 
     def __setattr__(self, name: str, value) -> None:
@@ -59,7 +61,7 @@ class CameraSystem(nn.Module):
         and consistency step (through ``camera``: ``step_camera`` is not carried over)."""
         out = type(self)(camera, self.net, self.consistency)
         out.autocast_dtype = self.autocast_dtype
-        out.linear_step = self.linear_step
+        out.linear_step, out.linear_step_missing = self.linear_step, self.linear_step_missing
         return out
 
     @property
@@ -178,6 +180,8 @@ class CameraSystem(nn.Module):
         c = self.consistency
         op, energy = (self._step_operator(), c.psf_energy) if step_operator is None else (step_operator, 1.0)
         if self.linear_step is None:
+            if self.linear_step_missing:
+                raise InputError(self.linear_step_missing)
             raise InputError("model.consistency.kind=linear needs the run's linear_step.safetensors, fitted when "
                              "training ends; for a run without it: `hsicam train --out RUN --resume --set "
                              "model.consistency.kind=linear --set model.consistency.iterations=1` (a fine-tuned run: "

@@ -37,14 +37,13 @@ import hashlib
 import json
 import logging
 import os
-import re
 import shutil
 from pathlib import Path
 from typing import Any
 
 import torch
 from safetensors import SafetensorError
-from safetensors.torch import load_file, save_file
+from safetensors.torch import load_file, save
 from torch import nn
 
 from hsicam.errors import InputError
@@ -79,10 +78,6 @@ def file_sha256(path: str | Path) -> str:
     return _HASHES[key]
 
 
-#: The OS error number in a safetensors I/O error's text ("… No space left on device (os error 28)").
-_OS_ERROR = re.compile(r"\(os error (\d+)\)")
-
-
 def _reason(exc: OSError) -> str:
     """What went wrong in ``exc``, without the file name."""
     if exc.errno is not None:
@@ -97,17 +92,22 @@ def _resume_hint(exc: OSError) -> str:
 
 def save_safetensors(path: str | Path, tensors: dict[str, torch.Tensor], meta: dict[str, str]) -> None:
     """``tensors`` → safetensors file ``path`` (atomic). A failed write (a full disk …) is an
-    OSError naming ``path`` (safetensors' own error names no file), ``path`` left as it was."""
-    try:
-        with atomic_path(path) as tmp:
-            save_file(tensors, str(tmp), metadata=meta)
-            _sort_metadata(tmp)
-    except SafetensorError as exc:
-        found = _OS_ERROR.search(str(exc))
-        if found is None:
-            raise
-        code = int(found.group(1))
-        raise OSError(code, os.strerror(code), str(path)) from None
+    OSError naming ``path``, ``path`` left as it was."""
+    with atomic_path(path) as tmp:
+        _write_safetensors(tensors, tmp, meta)
+        _sort_metadata(tmp)
+
+
+def _write_safetensors(tensors: dict[str, torch.Tensor], path: Path, meta: dict[str, str]) -> None:
+    """The safetensors bytes of ``tensors`` into ``path`` (a temporary of :func:`save_safetensors`).
+
+    Serialised in memory and written here, not by safetensors' ``save_file``: that writes a mkstemp file
+    of its own (mode 0600 whatever the umask, so a group sharing the run could not read its checkpoints;
+    named ``.tmpXXXXXX``, which a killed process left where no cleanup looks) and renames it onto
+    ``path``; its errors named no file."""
+    data = save(tensors, metadata=meta)
+    with open(path, "wb") as fh:
+        fh.write(data)
 
 
 def _sort_metadata(path: Path) -> None:
