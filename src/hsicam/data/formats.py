@@ -470,6 +470,9 @@ def _assumed_grid(fmt: str, n: int) -> tuple[Bands, str]:
         return Bands.uniform(420.0, 720.0, 10.0), "Harvard's 31 bands, 420-720 nm in 10 nm steps"
     if fmt == "kaist-mat" and n == 28:
         return Bands.from_centers(MST_28_NM), "MST's 28 KAIST bands, 453.3-648.1 nm"
+    if fmt == "kaist-mat":  # (31) MST-style files hold CAVE scenes too: they say nothing of which
+        return Bands.uniform(400.0, 700.0, 10.0), ("31 bands, 400-700 nm in 10 nm steps (CAVE's grid; KAIST's own 31 "
+                                                   "bands span 420-720 nm: a KAIST file needs its band list)")
     return Bands.uniform(400.0, 700.0, 10.0), "31 bands, 400-700 nm in 10 nm steps"
 
 
@@ -651,7 +654,7 @@ def _read_mat_format(path: str | os.PathLike, fmt: str, allow_negative: bool, bu
         bands, assumed = _assumed_grid(fmt, cube.shape[0])
         text = f"{p}: the file lists no wavelengths (no variable {names}); assuming {assumed}"
         hints = [n for n, length in m.vectors.items() if length == cube.shape[0] and "fwhm" not in n.lower()]
-        level = logging.INFO
+        level = logging.WARNING if (fmt, cube.shape[0]) == ("kaist-mat", 31) else logging.INFO  # a 20 nm guess
         if hints:  # a vector of the band count under another name may be the wavelengths
             level, text = logging.WARNING, f"{text}; if '{hints[0]}' holds the wavelengths, name it 'bands'"
         notes.append((level, text))
