@@ -193,6 +193,35 @@ def test_pack_refuses_the_demo_results_of_another_run(env, tmp_path):
     assert not (tmp_path / "root").exists()
 
 
+def test_pack_refuses_a_demos_results_once_its_run_trained_on(env, tmp_path):
+    """The demo's results.json records the weights and config it scored, as evaluate's does: the same run
+    folder trained on since is refused (it was accepted, its folder being the one the results name); and a
+    linear-step run without its filters is not packed (the shipped camera could not reconstruct)."""
+    import shutil
+
+    from hsicam.config import load_config
+    from hsicam.engine.pretrained import pack_pretrained, run_config_hash
+    from hsicam.engine.train import train
+    from hsicam.runs.checkpoint import file_sha256, root_weights_path
+
+    run, results, _ = env
+    recorded = json.loads(results.read_text())
+    assert recorded["weights_sha256"] == file_sha256(root_weights_path(run))
+    assert recorded["config_hash"] == run_config_hash(run)
+    demo = shutil.copytree(run.parent, tmp_path / "demo")
+    train(load_config(demo / "run" / "config.yaml", ["train.epochs=2"]), demo / "run", resume=True, progress=False)
+    with pytest.raises(InputError, match=r"results of another run|the run was trained on since"):
+        pack_pretrained(demo / "run", "again", tmp_path / "root", demo / "results.json")
+    assert not (tmp_path / "root").exists()
+    linear = tmp_path / "linear"
+    train(load_config("tiny", ["train.epochs=1", "model.consistency.kind=linear", "model.consistency.iterations=1"]),
+          linear, progress=False)
+    (linear / "linear_step.safetensors").unlink()
+    with pytest.raises(InputError, match=r"needs the run's linear_step.safetensors.*nothing packed"):
+        pack_pretrained(linear, "nols", tmp_path / "root")
+    assert not (tmp_path / "root").exists()
+
+
 def test_pack_refuses_results_whose_scenes_are_not_a_list(env, tmp_path):
     """A results.json (or its held-out section) whose 'scenes' is a number is refused in one line
     naming the file, not with a TypeError from len()."""
@@ -528,3 +557,15 @@ def test_a_cassi_cameras_card_names_its_aperture_and_dispersion_not_doe_noise_or
     noise_line = lambda c: next(x for x in card_markdown(c).splitlines() if x.startswith("- noise:"))  # noqa: E731
     assert noise_line(card).endswith("(gaussian model), DOE height σ_p in [0.0, 0.0] nm")
     assert noise_line({**card, "camera": {**card["camera"], "kind": "dd_cassi"}}).endswith("(gaussian model)")
+
+
+def test_a_tolerance_study_names_a_shipped_camera_by_its_label(monkeypatch):
+    """tolerance.json's run (copied into export-optics' spec.json) is pretrained:NAME for a shipped camera, as
+    every other output names it: it recorded the folder inside the installed package."""
+    from hsicam.export.tolerance import run_identity
+    from hsicam.runs.checkpoint import file_sha256
+
+    monkeypatch.delenv(shipped.ENV_VAR, raising=False)
+    ident = run_identity("pretrained:standard")
+    assert ident["path"] == "pretrained:standard" and ident["weights"] == "model.safetensors"
+    assert ident["weights_sha256"] == file_sha256(shipped.package_root() / "standard" / "model.safetensors")

@@ -85,10 +85,13 @@ def _no_cameras() -> str:
 def _list_line(name: str) -> tuple[str, bool]:
     """(the line of camera ``name`` in `hsicam pretrained`, whether it is usable): its summary, bands
     and numbers, or what is wrong with its folder."""
-    from hsicam.runs.pretrained import parse_card, root
+    from hsicam.runs.pretrained import parse_card, root, weights_problem
 
     card, why = parse_card(root() / name)
     if card is None:
+        return f"{name}: {why}: not usable", False
+    why = weights_problem(root() / name)  # what --run and copy refuse it for
+    if why is not None:
         return f"{name}: {why}: not usable", False
     count = _dict(card.get("bands")).get("count", "?")
     return f"{name}: {card.get('summary', '')} | {count} bands | {_metrics(card)}", True

@@ -8,10 +8,10 @@ import logging
 from pathlib import Path
 from typing import Any
 
-from hsicam.config import Config, load_config
+from hsicam.config import Config, dump_yaml, load_config
 from hsicam.data.pipeline import scene_dataset, split_dataset
-from hsicam.engine.evaluate import (TestNoise, demosaic_reference, evaluate_method, evaluate_scenes, format_table,
-                                    grey_reference, scored_region, summarize)
+from hsicam.engine.evaluate import (TestNoise, config_hash, demosaic_reference, evaluate_method, evaluate_scenes,
+                                    format_table, grey_reference, scored_region, summarize)
 from hsicam.engine.experiments import ensure_trained, heldout_scenes
 from hsicam.engine.methods import (LINEAR_REFERENCE_WINDOW, linear_demosaic_reference, network_alone_reference,
                                    network_skip)
@@ -20,7 +20,7 @@ from hsicam.io import (atomic_open, clear_complete, clear_derived, is_complete, 
                        output_description, read_marker, write_json)
 from hsicam.report.camera import write_optics_figures, write_psf_outputs
 from hsicam.report.reconstruction import plot_reconstructions, plot_training_curves
-from hsicam.runs.checkpoint import kept_checkpoint
+from hsicam.runs.checkpoint import file_sha256, kept_checkpoint, root_weights_path
 from hsicam.runs.folder import load_run
 
 log = logging.getLogger(__name__)
@@ -114,6 +114,10 @@ def run_demo(cfg: Config, out: str | Path) -> dict[str, Any]:
                 for ref in references],
         }
     summary["run"] = str(run)
+    # which weights and config were scored, as `hsicam evaluate` records them (`hsicam pretrained pack --results`
+    # checks them: a run trained on since, or another demo's run of the same relative path, is not these)
+    summary["weights_sha256"] = file_sha256(root_weights_path(run))
+    summary["config_hash"] = config_hash(dump_yaml(cfg))
     kept = kept_checkpoint(run)
     if kept is not None:  # which weights were scored: the last step's, or the best validation's (a selection)
         summary["weights"] = kept

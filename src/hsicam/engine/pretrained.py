@@ -164,7 +164,7 @@ def _evaluated_folder(recorded: str, source: Path) -> Path | None:
     resolved; ``hsicam demo`` as given (``OUT/run``, relative to where the demo ran, beside its
     results.json)."""
     p = Path(recorded).expanduser()
-    for c in ([p] if p.is_absolute() else [Path.cwd() / p, source.parent / p.name]):
+    for c in ([p] if p.is_absolute() else [source.parent / p.name, Path.cwd() / p]):  # beside it first
         if (c / "config.yaml").is_file():
             return c
     return None
@@ -336,6 +336,9 @@ def card_fields(run_dir: str | Path, name: str, results: str | Path | None = Non
     for key, t in model.state_dict().items():
         if t.is_floating_point() and not bool(torch.isfinite(t).all()):
             raise InputError(f"{run_dir}: NaN/Inf in the weights ({key}); nothing packed")
+    c = cfg.model.consistency
+    if c.kind == "linear" and c.iterations > 0 and model.linear_step is None and model.linear_step_missing:
+        raise InputError(f"{model.linear_step_missing}; nothing packed (a shipped camera could not reconstruct)")
     bands = model.camera.bands
     weights = root_weights_path(run_dir)
     preset = check_preset(preset, cfg, run_dir) if preset else matching_preset(cfg)
@@ -358,7 +361,7 @@ def card_fields(run_dir: str | Path, name: str, results: str | Path | None = Non
         "preset": preset,
         "packed_utc": datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ"),
         "hsicam_version": _version(),
-        "source_run": str(run_dir),
+        "source_run": str(run_dir.resolve()),
         "camera": {"kind": cam.kind, "cfa_period": cfa, "pixel_pitch_um": cam.sensor.pixel_pitch_um,
                    "aperture_radius_mm": cam.aperture_radius_mm, "focal_length_mm": cam.lens.focal_length_mm,
                    "kernel_px": getattr(model.camera, "kernel_px", None), "trainable_parameters": n_cam},

@@ -29,7 +29,7 @@ def run_identity(run_dir: str | Path) -> dict[str, str]:
     the weights file its kept weights are read from, relative to the folder, and that
     file's SHA-256 (hex)."""
     from hsicam.runs.checkpoint import file_sha256, root_weights_path
-    from hsicam.runs.pretrained import resolve_run
+    from hsicam.runs.pretrained import resolve_run, run_label
 
     run = resolve_run(run_dir)
     weights = root_weights_path(run)
@@ -37,7 +37,8 @@ def run_identity(run_dir: str | Path) -> dict[str, str]:
         rel = str(weights.relative_to(run))
     except ValueError:
         rel = str(weights)
-    return {"path": str(run.resolve()), "weights": rel, "weights_sha256": file_sha256(weights)}
+    # run_label: a shipped camera is pretrained:NAME, not its folder inside the installed package
+    return {"path": run_label(run), "weights": rel, "weights_sha256": file_sha256(weights)}
 
 
 def finetuned_from(run_dir: str | Path) -> str | None:

@@ -107,7 +107,10 @@ def load_run(run_dir: str | Path, device: torch.device | str = "cpu", overrides:
     if unfinished:
         log.warning("%s", unfinished)
     if linear_step and not (run_dir / LINEAR_STEP_FILE).is_file():  # said, naming the run, if the step is used
-        how = (f"its training did not finish, and the step is fitted when it ends: "
+        from hsicam.runs.pretrained import is_pretrained_path
+
+        how = ("a shipped camera's files are fixed: install it again" if is_pretrained_path(run_dir) else
+               f"its training did not finish, and the step is fitted when it ends: "
                f"{refit_command(run_dir)}" if unfinished else
                f"fit it: {refit_command(run_dir, ('model.consistency.kind=linear', 'model.consistency.iterations=1'))}")
         model.linear_step_missing = (f"{run_dir}: model.consistency.kind=linear needs the run's {LINEAR_STEP_FILE}, "
