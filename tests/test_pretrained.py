@@ -222,6 +222,29 @@ def test_pack_refuses_a_demos_results_once_its_run_trained_on(env, tmp_path):
     assert not (tmp_path / "root").exists()
 
 
+def test_pack_refuses_results_of_other_scenes_than_the_validation_split(env, tmp_path):
+    """A card's validation figures are of the scenes its training held out: an evaluation of a --data folder
+    (which may hold training scenes: a synthetic folder records no split) or one whose rows evaluate marked as
+    training scenes was packed as "validation" / "held-out sources"."""
+    from hsicam.engine.pretrained import pack_pretrained
+
+    run, results, _ = env
+    data = json.loads(results.read_text())
+    (tmp_path / "folder.json").write_text(json.dumps({**data, "data": str(tmp_path / "scenes")}))
+    with pytest.raises(InputError, match=r"an evaluation of the scenes in .*scenes \(--data\), not of the run's "
+                                         r"validation split"):
+        pack_pretrained(run, "other", tmp_path / "root", tmp_path / "folder.json")
+    def one_training_scene(block):
+        return {**block, "scenes": [{**r, "split": "train"} if i == 0 else r for i, r in enumerate(block["scenes"])]}
+
+    (tmp_path / "train.json").write_text(json.dumps(one_training_scene(data)))
+    (tmp_path / "held.json").write_text(json.dumps({**data, "heldout": one_training_scene(data["heldout"])}))
+    for option, path in (("results", "train.json"), ("heldout", "held.json")):
+        with pytest.raises(InputError, match=r"1 of its \d+ scenes were training scenes of the run"):
+            pack_pretrained(run, "other", tmp_path / "root", **{option: tmp_path / path})
+    assert not (tmp_path / "root").exists()
+
+
 def test_pack_refuses_results_whose_scenes_are_not_a_list(env, tmp_path):
     """A results.json (or its held-out section) whose 'scenes' is a number is refused in one line
     naming the file, not with a TypeError from len()."""

@@ -119,6 +119,11 @@ def _scene_block(data: dict[str, Any], source: Path, data_label: str) -> dict[st
     if scenes is not None and not isinstance(scenes, list):
         raise InputError(f"{source}: 'scenes' is not a list (got {type(scenes).__name__}; not a results.json of "
                          "`hsicam demo` or `hsicam evaluate`)")
+    trained_on = [r.get("name", "?") for r in scenes or () if isinstance(r, dict) and r.get("split") == "train"]
+    if trained_on:  # evaluate marks the scenes the run trained on (its data.json)
+        raise InputError(f"{source}: {len(trained_on)} of its {len(scenes)} scenes were training scenes of the run "
+                         f"({', '.join(map(str, trained_on[:3]))}{', …' if len(trained_on) > 3 else ''}): their scores "
+                         "are not a validation, and a card cites none of them")
     return {"source": str(source), "data": str(data.get("data") or data_label),
             "n_scenes": len(scenes or []),
             "mean": _means(data.get("mean"), source, "'mean'", data.get("sam_undefined")),
@@ -136,6 +141,13 @@ def results_metrics(results: str | Path | None, heldout: str | Path | None = Non
     out: dict[str, Any] = {"validation": None, "heldout": None}
     if results is not None:
         data = _read_results(results)
+        scored = data.get("data")
+        own_split = scored in (None, "synthetic validation split") or str(scored).startswith("validation split of")
+        if not own_split:
+            # `evaluate --data DIR`: any scenes, the training ones included (a synthetic folder records no split)
+            raise InputError(f"{results}: an evaluation of the scenes in {scored} (--data), not of the run's validation "
+                             "split: the card's validation figures are those of the scenes its training held out; "
+                             "evaluate it without --data (`hsicam evaluate --run RUN --out DIR`) and pass DIR/results.json")
         # the file's own fields first: a file refused for them is refused before any "cited as given" warning
         out["validation"] = _scene_block(data, Path(results), "validation scenes")
         if isinstance(data.get("heldout"), dict):
