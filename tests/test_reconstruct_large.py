@@ -122,3 +122,71 @@ def test_reconstruct_checks_the_free_space_before_the_work(tmp_path, monkeypatch
                         r"that disk has 65\.\d+ MiB free; free some space or choose an "
                         r"--out on a larger disk", line), line
     assert not out.exists() and not (out.parent.exists() and any(out.parent.iterdir()))  # nothing written
+
+
+def test_reconstruct_refuses_an_image_whose_whole_image_steps_would_not_fit_in_memory(tmp_path, monkeypatch):
+    """The consistency steps go over the whole image, so the peak grows with it whatever the tile: an
+    8000² capture started, then was killed (or ended in torch's allocator traceback). Now the estimate
+    (:func:`reconstruction_memory_bytes`) is checked against the memory the process may take first."""
+    from hsicam.engine.inference import reconstruction_memory_bytes
+    from hsicam.runs.folder import load_run
+
+    _, model = load_run("pretrained:standard")
+    rec = model.reconstructor()
+    small, big = (reconstruction_memory_bytes(rec, 31, n, n) for n in (256, 2048))
+    assert small < big and big - small >= 7 * 4 * 31 * (2048**2 - 256**2)  # ≥ 7 whole cubes with the TV steps
+    model.consistency = type(model.consistency)(iterations=0)  # the network alone: one whole cube
+    alone = reconstruction_memory_bytes(model.reconstructor(), 31, 2048, 2048)
+    assert alone < big - 5 * 4 * 31 * 2048**2
+
+    sensor = tmp_path / "capture.npy"
+    np.save(sensor, np.random.default_rng(0).uniform(0.2, 0.8, (1024, 1024)).astype(np.float32))
+
+    def never(*args, **kwargs):
+        raise AssertionError("the reconstruction started")
+
+    monkeypatch.setattr("hsicam.engine.inference.reconstruct_tiled", never)
+    monkeypatch.setenv("HSICAM_MEMORY_BUDGET_MB", "1500")
+    out = tmp_path / "cube.h5"
+    line = error_line(run_cli_in_process("reconstruct", str(sensor), "--run", "pretrained:standard", "--out", str(out)))
+    found = re.fullmatch(rf"hsicam: error: {re.escape(str(sensor))}: reconstructing 1024×1024 px into 31 bands takes "
+                         r"about [\d.]+ GiB of memory .* more than the limit HSICAM_MEMORY_BUDGET_MB sets \(1.46 GiB\); "
+                         r"reconstruct it in parts of at most about (\d+)×\1 px .*", line)
+    assert found, line
+    part = int(found.group(1))  # the largest square part that fits the limit, by the same estimate
+    assert reconstruction_memory_bytes(rec, 31, part, part) <= 1500 * 2**20 < reconstruction_memory_bytes(rec, 31, part + 1, part + 1)
+    assert not out.exists()
+
+
+def test_torch_out_of_memory_is_one_line():
+    from hsicam.cli import error_line as line_of
+
+    cpu = RuntimeError("[enforce fail at alloc_cpu.cpp:117] data. DefaultCPUAllocator: can't allocate memory: you "
+                       "tried to allocate 7936000000 bytes. Error code 12 (Cannot allocate memory)")
+    assert line_of(cpu).startswith("out of memory ([enforce fail") and "smaller image or in parts" in line_of(cpu)
+    assert line_of(torch.OutOfMemoryError("CUDA out of memory. Tried to allocate 2.00 GiB")).startswith(
+        "out of memory (CUDA out of memory.")
+    assert line_of(RuntimeError("a bug")) is None  # any other RuntimeError stays a traceback
+
+
+def test_an_image_of_one_tile_shows_the_steps_progress(monkeypatch):
+    """An image that fits one tile was reconstructed in one call, without the steps' progress (a 719² capture:
+    43 s of silence); it now goes through the tiles and the steps as a larger one does, to the same cube."""
+    import hsicam.progress as progress
+    from hsicam.runs.folder import load_run
+
+    _, model = load_run("pretrained:standard")
+    rec = model.reconstructor()
+    sensor = torch.from_numpy(np.random.default_rng(1).uniform(0.2, 0.8, (1, 1, 48, 40)).astype(np.float32))
+    counted = []
+    real = progress.Progress
+
+    class Counting(real):
+        def __init__(self, total, what, unit, show=None):
+            counted.append((what, total))
+            super().__init__(total, what, unit, show=False)
+
+    monkeypatch.setattr(progress, "Progress", Counting)
+    got = reconstruct_tiled(rec, sensor)
+    assert ("consistency steps", rec.steps.count) in counted
+    torch.testing.assert_close(got, rec(sensor), rtol=0, atol=1e-5)

@@ -105,6 +105,19 @@ def memory_budget_bytes(budget_mb: float | None = None) -> int:
     return budget
 
 
+def machine_memory_bytes() -> int | None:
+    """The memory one process may take in all (bytes): ``HSICAM_MEMORY_BUDGET_MB`` when set, else the machine's
+    (physical RAM, or the cgroup limit when lower, and the address space left under a ``ulimit -v``); None
+    when none of them can be read. For a whole command's peak, where :func:`memory_budget_bytes` (a
+    quarter of it) bounds one allocation."""
+    env = os.environ.get(MEMORY_BUDGET_ENV, "").strip()
+    if env:
+        return int(_parse_budget_mb(env, MEMORY_BUDGET_ENV) * 2**20)
+    known = [n for n in (_physical_memory_bytes(), _cgroup_memory_limit_bytes(), _address_space_left_bytes())
+             if n is not None]
+    return min(known) if known else None
+
+
 def format_bytes(nbytes: float) -> str:
     """``nbytes`` in B, KiB, MiB, GiB, TiB or PiB (3 significant digits)."""
     for unit, size in (("PiB", 2**50), ("TiB", 2**40), ("GiB", 2**30), ("MiB", 2**20), ("KiB", 2**10)):

@@ -206,6 +206,12 @@ def error_line(exc: BaseException) -> str | None:
         return f"unreadable input: not UTF-8 text ({exc.reason})"
     if isinstance(exc, MemoryError):
         return "out of memory (lower the memory budget HSICAM_MEMORY_BUDGET_MB, the tile size or the batch size)"
+    if isinstance(exc, RuntimeError) and (type(exc).__name__ == "OutOfMemoryError"
+                                          or "can't allocate memory" in str(exc)):
+        # torch's allocators (CPU: a RuntimeError; CUDA: torch.OutOfMemoryError), not Python's MemoryError
+        what = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        return (f"out of memory ({what}): work on a smaller image or in parts, or lower the tile size or the batch "
+                "size")
     try:
         import yaml
 

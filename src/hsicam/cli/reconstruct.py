@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import logging
+import os
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -303,6 +304,30 @@ def write_cube_file(path: Path, cube: np.ndarray, bands, metadata: dict) -> None
         raise
 
 
+def check_reconstruction_memory(rec, bands: int, shape: tuple[int, int], tile: int | None, source) -> None:
+    """One-line :class:`InputError` when reconstructing an image of ``shape`` would need more memory than the
+    process may take (:func:`hsicam.memory.machine_memory_bytes`): the steps go over the whole image, so its
+    peak grows with the image, whatever the tile (it was killed, or ended in torch's allocator traceback)."""
+    from hsicam.engine.inference import reconstruction_memory_bytes
+    from hsicam.memory import MEMORY_BUDGET_ENV, format_bytes, machine_memory_bytes
+
+    need, have = reconstruction_memory_bytes(rec, bands, *shape, tile), machine_memory_bytes()
+    if have is None or need <= have:
+        return
+    h, w = shape
+    lo, hi = 0, max(h, w)  # the largest square part that fits: lo fits (0: none), hi does not
+    while hi - lo > 1:
+        mid = (lo + hi) // 2
+        lo, hi = (mid, hi) if reconstruction_memory_bytes(rec, bands, mid, mid, tile) <= have else (lo, mid)
+    where = ("the limit HSICAM_MEMORY_BUDGET_MB sets" if os.environ.get(MEMORY_BUDGET_ENV, "").strip() else
+             "this machine's memory")
+    todo = (f"reconstruct it in parts of at most about {lo}×{lo} px (crop the capture; --cfa-offset gives each part's "
+            "CFA phase)" if lo >= 64 else "even a small part would not fit: run it where more memory is free")
+    raise InputError(f"{source}: reconstructing {h}×{w} px into {bands} bands takes about {format_bytes(need)} of memory "
+                     f"(whole-image cubes for the consistency steps, and one tile's window), more than {where} "
+                     f"({format_bytes(have)}); {todo}, or with fewer steps (--consistency-steps 0)")
+
+
 def corrections_from_args(args: argparse.Namespace, cfa_period: int | None) -> "object":
     """A :class:`~hsicam.engine.inference.RawCorrection` from the command line."""
     from hsicam.data.images import RawCorrection, read_image_2d
@@ -533,6 +558,7 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
     # the halo of the tiles: what comes before the consistency steps, which then go over the whole image
     halo = rec.before_steps.context_px if hasattr(rec, "steps") else rec.context_px
     tile = args.tile  # None: reconstruct_tiled's default (default_tile_px), never below the halo
+    check_reconstruction_memory(rec, len(model.bands), img.shape, tile, args.sensor)  # before minutes of work
     if tile is not None and tile < halo and max(img.shape) > tile:
         log.warning("--tile %d is smaller than the reconstruction's context (%d px per side): each tile computes "
                     "about %.0f× its own pixels; a tile of %d px or more is faster", tile, halo,

@@ -34,6 +34,29 @@ def default_tile_px(halo_px: int) -> int:
     return min(max(MIN_DEFAULT_TILE_PX, 4 * int(halo_px)), MAX_DEFAULT_TILE_PX)
 
 
+#: Peak memory of a reconstruction (:func:`reconstruction_memory_bytes`), measured with the demo camera (session 52,
+#: peak RSS of `hsicam reconstruct`: 0.49 GB at 64², 2.14 GB at 1031×1027 and 2.89 GB at 2048×1027 in 300 px tiles):
+#: the process and the model, whole-image cubes (the output and the steps' state: estimate, previous estimate,
+#: TV dual fields, brightness), and one tile's window of the network and linear step.
+RECONSTRUCT_BASE_BYTES = 512 * 2**20
+STEP_CUBES = {"none": 1, "landweber": 4, "tv": 7}  # whole-image (C, H, W) float32 cubes alive at the peak
+WINDOW_CUBES = 12  # (C, window) float32 cubes of the network's and linear step's working set
+
+
+def reconstruction_memory_bytes(reconstruct, bands: int, h: int, w: int, tile_px: int | None = None) -> int:
+    """About the peak memory (bytes) of :func:`reconstruct_tiled` of an (h, w) image into ``bands`` bands
+    with ``reconstruct`` (a :meth:`CameraSystem.reconstructor`): its whole-image cubes (more with consistency
+    steps, most with their TV prior) plus one tile's window. An estimate for a refusal before the work,
+    within about ±40 % of the measured peaks (:data:`RECONSTRUCT_BASE_BYTES`)."""
+    steps = getattr(reconstruct, "steps", None)
+    before = getattr(reconstruct, "before_steps", reconstruct)
+    halo = int(getattr(before, "context_px", 0) or 0)
+    tile = default_tile_px(halo) if tile_px is None else int(tile_px)
+    kind = "none" if steps is None else ("tv" if getattr(steps, "tv", False) else "landweber")
+    window = (min(tile, h) + 2 * halo) * (min(tile, w) + 2 * halo)
+    return int(RECONSTRUCT_BASE_BYTES + 4 * bands * (STEP_CUBES[kind] * h * w + WINDOW_CUBES * window))
+
+
 @torch.no_grad()
 def reconstruct_tiled(reconstruct, sensor: torch.Tensor, tile_px: int | None = None, halo_px: int | None = None,
                       progress: bool | None = False) -> torch.Tensor:
@@ -73,12 +96,12 @@ def reconstruct_tiled(reconstruct, sensor: torch.Tensor, tile_px: int | None = N
     if halo_px is None and steps is not None:  # tiles up to the steps, which then go over the whole image
         before = reconstruct.before_steps
         tile_px = default_tile_px(before.context_px) if tile_px is None else tile_px
-        if h > tile_px or w > tile_px:
-            x = reconstruct_tiled(before, sensor, tile_px, None, progress)
-            from hsicam.progress import Progress
+        # (an image of one tile too: the same cube as reconstruct(sensor), and the steps' progress is shown)
+        x = reconstruct_tiled(before, sensor, tile_px, None, progress)
+        from hsicam.progress import Progress
 
-            with Progress(int(getattr(steps, "count", 0)) or 1, "consistency steps", "step", show=progress) as bar:
-                return steps(sensor, x, on_step=lambda: bar.update(1))
+        with Progress(int(getattr(steps, "count", 0)) or 1, "consistency steps", "step", show=progress) as bar:
+            return steps(sensor, x, on_step=lambda: bar.update(1))
     if halo_px is None:
         declared = (getattr(x, "context_px", None) for x in (reconstruct, getattr(reconstruct, "__self__", None)))
         halo_px = next((int(c) for c in declared if c is not None), None)

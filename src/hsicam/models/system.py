@@ -245,6 +245,7 @@ class CameraSystem(nn.Module):
 
             before_steps.context_px = self._context_before_steps_px(step_op, 1.0)
             steps.count = self._landweber_iterations
+            steps.tv = self.consistency.tv_weight > 0  # (its memory: hsicam.engine.inference.reconstruction_memory_bytes)
             fn.before_steps, fn.steps = before_steps, steps
         return fn
 
