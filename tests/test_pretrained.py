@@ -592,3 +592,25 @@ def test_a_tolerance_study_names_a_shipped_camera_by_its_label(monkeypatch):
     ident = run_identity("pretrained:standard")
     assert ident["path"] == "pretrained:standard" and ident["weights"] == "model.safetensors"
     assert ident["weights_sha256"] == file_sha256(shipped.package_root() / "standard" / "model.safetensors")
+
+
+def test_the_report_of_a_demo_folder_finds_its_camera_from_anywhere(trained, tmp_path, monkeypatch):
+    """The demo recorded its run as given (runs/demo/run, relative to where it ran) and no method, data or
+    references section: `hsicam report` elsewhere said "camera figures unavailable" and left out the references
+    the demo's results.md lists. Now results.json records run_path, method and data as evaluate's does."""
+    import shutil
+
+    from cli_helpers import run_cli_in_process
+
+    run, results, _ = trained
+    demo = shutil.copytree(results.parent, tmp_path / "copy" / "demo")
+    data = json.loads((demo / "results.json").read_text())
+    assert data["method"] == "doe-learned" and data["data"] == "synthetic validation split"
+    assert data["run_path"] == str(run.resolve())
+    monkeypatch.chdir(tmp_path)  # not where the demo ran
+    res = run_cli_in_process("report", str(demo))
+    assert res.returncode == 0, res.stderr
+    page = (demo / "report" / "index.html").read_text()
+    assert "camera figures unavailable" not in page and "psf.png" in page
+    assert "references on the same scenes" in page and all(r["method"] in page for r in data["references"])
+    assert "../reconstructions.png" in page and (demo / "reconstructions.png").is_file()

@@ -114,6 +114,11 @@ def run_demo(cfg: Config, out: str | Path) -> dict[str, Any]:
                 for ref in references],
         }
     summary["run"] = str(run)
+    # as `hsicam evaluate` records them: the folder read (`hsicam report` finds the camera from anywhere), the
+    # method and the scenes
+    summary.update(run_path=str(run.resolve()), method="doe-learned",
+                   data=("synthetic validation split" if cfg.data.root is None else
+                         f"validation split of {Path(cfg.data.root).resolve()}"))
     # which weights and config were scored, as `hsicam evaluate` records them (`hsicam pretrained pack --results`
     # checks them: a run trained on since, or another demo's run of the same relative path, is not these)
     summary["weights_sha256"] = file_sha256(root_weights_path(run))

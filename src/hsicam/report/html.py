@@ -20,7 +20,7 @@ import numpy as np  # noqa: E402
 
 from hsicam.errors import InputError  # noqa: E402
 from hsicam.io import atomic_open, atomic_output, is_complete, json_number, save_figure  # noqa: E402
-from hsicam.report.reconstruction import cube_rgb, plot_training_curves  # noqa: E402
+from hsicam.report.reconstruction import cube_rgb, plot_training_curves, spectra_exponent  # noqa: E402
 from hsicam.spectral import Bands  # noqa: E402
 
 CSS = """body{font-family:system-ui,sans-serif;max-width:1200px;margin:2em auto;padding:0 1em;color:#222}
@@ -199,12 +199,17 @@ def _evaluation_sections(folder: Path, out: Path, res: dict) -> list[str]:
     cols = [("name", "scene", ""), ("psnr", "PSNR (dB)", ".2f"), ("ssim", "SSIM", ".4f"), ("sam", "SAM (°)", ".2f"),
             ("ergas", "ERGAS", ".2f"), ("psnr_mst", "PSNR MST (dB)", ".2f"), ("runtime_s", "runtime (s)", ".3f")]
     parts.append(_table(res["scenes"] + [{"name": "mean", **res["mean"]}], cols))
+    parts += _references(res)
     parts.append(_conventions(res["conventions"]))
     held = res.get("heldout")
     if isinstance(held, dict) and held.get("scenes"):  # scored beside the validation scenes (evaluate on synthetic data)
         parts.append("<h2>Held-out spectral sources</h2>")
         parts.append(f"<p class='note'>{html.escape(str(held.get('data', '')))}</p>")
         parts.append(_table(held["scenes"] + [{"name": "mean", **held["mean"]}], cols))
+        parts += _references(held)
+    if (folder / "reconstructions.png").is_file():  # hsicam demo's own figure, beside its results.json
+        parts.append(_img("../reconstructions.png", "the demo's reconstructions (hsicam demo), as written beside "
+                                                    "its results.json"))
     bands = Bands.from_centers(res["bands_nm"]) if "bands_nm" in res else None
     cubes = folder / "cubes"
     if cubes.is_dir() and bands is not None:
@@ -225,6 +230,16 @@ def _evaluation_sections(folder: Path, out: Path, res: dict) -> list[str]:
     if res.get("run"):
         parts.append(_camera_section(_evaluated_run(res), out, label=str(res["run"])))
     return parts
+
+
+def _references(res: dict) -> list[str]:
+    """The network-free references scored beside the camera (``hsicam demo``'s ``references``) as a table."""
+    refs = [r for r in res.get("references") or () if isinstance(r, dict) and isinstance(r.get("mean"), dict)]
+    if not refs:
+        return []
+    cols = [("name", "reference", ""), ("psnr", "PSNR (dB)", ".2f"), ("ssim", "SSIM", ".4f"), ("sam", "SAM (°)", ".2f")]
+    return ["<p class='note'>references on the same scenes:</p>",
+            _table([{"name": str(r.get("method", "")), **r["mean"]} for r in refs], cols)]
 
 
 def _evaluated_run(res: dict) -> Path:
@@ -292,9 +307,13 @@ def plot_scene_comparison(truth: np.ndarray, est: np.ndarray, bands: Bands, path
             cax.set_xticks([])
             cax.set_yticks([])
     ax = fig.add_subplot(gs[:, 4])
+    exp = spectra_exponent([a[:, y, x] for y, x, _ in pts for a in (truth, est)])
     for y, x, c in pts:
-        ax.plot(bands.centers_nm, truth[:, y, x], color=c, lw=1.6)
-        ax.plot(bands.centers_nm, est[:, y, x], color=c, lw=1.2, ls="--")
+        ax.plot(bands.centers_nm, truth[:, y, x] / 10.0**exp, color=c, lw=1.6)
+        ax.plot(bands.centers_nm, est[:, y, x] / 10.0**exp, color=c, lw=1.2, ls="--")
+    ax.yaxis.tick_right()  # clear of the crop beside it (the labels ran over it)
+    ax.yaxis.set_label_position("right")
+    ax.set_ylabel("value (peak 1)" + (f", × 1e{exp}" if exp else ""), fontsize=8)
     ax.set_xlabel("wavelength (nm)")
     ax.set_title("spectra: truth solid, reconstruction dashed", fontsize=8)
     save_figure(fig, path)

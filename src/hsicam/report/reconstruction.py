@@ -31,8 +31,10 @@ def spectra_exponent(spectra) -> int:
 
 
 def plot_reconstructions(results, bands: Bands, path: str | Path, max_rows: int = 6) -> None:
-    """Rows of [ground truth RGB | reconstruction RGB | mean abs error map | spectra at 3 pixels]."""
-    results = list(results)[:max_rows]
+    """Rows of [ground truth RGB | reconstruction RGB | mean abs error map | spectra at 3 pixels]; the first
+    ``max_rows`` scenes (the figure's title says so when there are more)."""
+    results = list(results)
+    total, results = len(results), results[:max_rows]
     fig, axes = plt.subplots(len(results), 4, figsize=(14, 3.2 * len(results)), squeeze=False,
                              gridspec_kw={"wspace": 0.55, "hspace": 0.45})
     for row, r in zip(axes, results):
@@ -43,8 +45,8 @@ def plot_reconstructions(results, bands: Bands, path: str | Path, max_rows: int 
         row[1].set_title(f"reconstruction  {r.metrics['psnr']:.2f} dB / SSIM {r.metrics['ssim']:.3f}", fontsize=9)
         err = np.abs(est - gt).mean(axis=0)
         im = row[2].imshow(err, cmap="magma", vmin=0, vmax=max(float(np.percentile(err, 99)), 1e-6))
-        row[2].set_title("mean |error| over bands", fontsize=9)
-        fig.colorbar(im, cax=row[2].inset_axes([1.03, 0.0, 0.05, 1.0]))
+        row[2].set_title("mean |error| over bands\n(this scene's scale; its top 1 % clipped)", fontsize=9)
+        fig.colorbar(im, cax=row[2].inset_axes([1.03, 0.0, 0.05, 1.0]), extend="max")
         h, w = gt.shape[1:]
         pts = [(h // 4, w // 4), (h // 2, w // 2), (3 * h // 4, 3 * w // 4)]
         exp = spectra_exponent([a[:, y, x] for y, x in pts for a in (gt, est)])
@@ -61,6 +63,11 @@ def plot_reconstructions(results, bands: Bands, path: str | Path, max_rows: int 
         for ax in row[:3]:
             ax.set_xticks([])
             ax.set_yticks([])
+    if total > len(results):
+        height = fig.get_figheight()
+        fig.subplots_adjust(top=1 - 0.6 / height)
+        fig.suptitle(f"the first {len(results)} of {total} scenes (every scene's scores: results.md)", fontsize=10,
+                     y=1 - 0.1 / height)
     save_figure(fig, path)
 
 
@@ -89,6 +96,9 @@ def plot_training_curves(metrics_jsonl: str | Path, path: str | Path, loss_formu
         b = a1.twinx()
         b.plot(s, q, "s--", color="tab:orange", label="SSIM")
         b.set_ylabel("SSIM on validation patches")
+        a1.yaxis.label.set_color("tab:blue")
+        b.yaxis.label.set_color("tab:orange")
+        a1.legend(a1.get_lines() + b.get_lines(), ["PSNR", "SSIM"], loc="lower right", fontsize=8)
     a1.set_xlabel("step")
     a1.grid(alpha=0.3)
     save_figure(fig, path)
