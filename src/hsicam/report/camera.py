@@ -102,13 +102,16 @@ def plot_psf_montage(psf: np.ndarray, bands: Bands, path: str | Path, decades: f
     rows = math.ceil(c / cols)
     fig = plt.figure(figsize=(1.6 * cols, 1.75 * rows + 3.2), layout="constrained")
     grid = fig.add_gridspec(rows + 1, cols, height_ratios=[1.0] * rows + [1.8])
+    tiles = []
     for i in range(c):
         ax = fig.add_subplot(grid[i // cols, i % cols])
         ax.axis("off")
         img = shown[i] / max(shown[i].max(), 1e-300)
-        ax.imshow(np.log10(np.maximum(img, 10.0**-decades)), cmap="inferno", vmin=-decades, vmax=0,
-                  interpolation="nearest")
+        im = ax.imshow(np.log10(np.maximum(img, 10.0**-decades)), cmap="inferno", vmin=-decades, vmax=0,
+                       interpolation="nearest")
         ax.set_title(f"{bands.centers_nm[i]:g} nm, r {rms[i]:.1f}", fontsize=7)
+        tiles.append(ax)
+    fig.colorbar(im, ax=tiles, shrink=0.6, label="log10(PSF / its band's peak)")  # one scale for every tile
     ax = fig.add_subplot(grid[rows, :])
     radii = np.arange(0, k // 2 * math.sqrt(2) + 1.0)
     ee = encircled_energy(psf, radii)
