@@ -148,7 +148,7 @@ def test_evaluate_records_the_scored_checkpoint(runs, tmp_path):
 
 
 def test_demo_sentence_names_the_selection():
-    from hsicam.engine.demo import weights_text
+    from hsicam.runs.checkpoint import weights_text
 
     assert weights_text(None) == ""
     last = weights_text({"checkpoint": "last", "step": 640, "last_step": 640})

@@ -614,3 +614,4 @@ def test_the_report_of_a_demo_folder_finds_its_camera_from_anywhere(trained, tmp
     assert "camera figures unavailable" not in page and "psf.png" in page
     assert "references on the same scenes" in page and all(r["method"] in page for r in data["references"])
     assert "../reconstructions.png" in page and (demo / "reconstructions.png").is_file()
+    assert "Weights: " in page  # which checkpoint was scored, as results.md says

@@ -22,8 +22,9 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 def cmd_demo(args: argparse.Namespace) -> int:
     from hsicam.cli import prepare_output
-    from hsicam.engine.demo import check_demo_folder, demo_config, means_line, run_demo, weights_text
+    from hsicam.engine.demo import check_demo_folder, demo_config, means_line, run_demo
     from hsicam.engine.experiments import check_same_training, is_finished
+    from hsicam.runs.checkpoint import weights_text
 
     t0 = time.perf_counter()
     out = prepare_output(args.out, "dir")  # before any work; never a shipped camera (the demo writes in place)

@@ -20,7 +20,7 @@ from hsicam.io import (atomic_open, clear_complete, clear_derived, is_complete, 
                        output_description, read_marker, write_json)
 from hsicam.report.camera import write_optics_figures, write_psf_outputs
 from hsicam.report.reconstruction import plot_reconstructions, plot_training_curves
-from hsicam.runs.checkpoint import file_sha256, kept_checkpoint, root_weights_path
+from hsicam.runs.checkpoint import file_sha256, kept_checkpoint, root_weights_path, weights_text
 from hsicam.runs.folder import load_run
 
 log = logging.getLogger(__name__)
@@ -31,20 +31,6 @@ FIGURES = ("reconstructions.png", "psf.png", "cfa.png", "doe.png", "training.png
 def means_line(m: dict) -> str:
     """"PSNR … dB, SSIM …, SAM …°" of a mean-metrics dict."""
     return f"PSNR {m['psnr']:.2f} dB, SSIM {m['ssim']:.4f}, SAM {m['sam']:.2f}°"
-
-
-def weights_text(kept: dict | None) -> str:
-    """The sentence saying which checkpoint was scored (:func:`~hsicam.runs.checkpoint.kept_checkpoint`),
-    or "" when unknown."""
-    if kept is None:
-        return ""
-    if kept["checkpoint"] == "last":
-        return f"Weights: the last step's ({kept['step']}), no checkpoint selection."
-    if kept["step"] == kept["last_step"]:
-        return (f"Weights: the best validation's, which is the last step ({kept['step']}): the selection on these "
-                "scenes changed nothing.")
-    return (f"Weights: the best validation's (step {kept['step']} of {kept['last_step']}), selected on patches of "
-            "these scenes (train.keep_weights: best), so these figures are mildly optimistic.")
 
 
 def check_demo_folder(out: str | Path) -> None:

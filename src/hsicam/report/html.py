@@ -199,6 +199,13 @@ def _evaluation_sections(folder: Path, out: Path, res: dict) -> list[str]:
     cols = [("name", "scene", ""), ("psnr", "PSNR (dB)", ".2f"), ("ssim", "SSIM", ".4f"), ("sam", "SAM (°)", ".2f"),
             ("ergas", "ERGAS", ".2f"), ("psnr_mst", "PSNR MST (dB)", ".2f"), ("runtime_s", "runtime (s)", ".3f")]
     parts.append(_table(res["scenes"] + [{"name": "mean", **res["mean"]}], cols))
+    if isinstance(res.get("weights"), dict):  # which checkpoint was scored (evaluate and demo record it)
+        from hsicam.runs.checkpoint import weights_text
+
+        try:
+            parts.append(f"<p class='note'>{html.escape(weights_text(res['weights']))}</p>")
+        except (KeyError, TypeError):  # a results.json from elsewhere: its fields are not ours to vouch for
+            pass
     parts += _references(res)
     parts.append(_conventions(res["conventions"]))
     held = res.get("heldout")

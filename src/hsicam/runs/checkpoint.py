@@ -539,6 +539,19 @@ def kept_checkpoint(run_dir: str | Path, weights_file: str = "model.safetensors"
     return out
 
 
+def weights_text(kept: dict | None) -> str:
+    """The sentence saying which checkpoint was scored (:func:`kept_checkpoint`), or "" when unknown."""
+    if kept is None:
+        return ""
+    if kept["checkpoint"] == "last":
+        return f"Weights: the last step's ({kept['step']}), no checkpoint selection."
+    if kept["step"] == kept["last_step"]:
+        return (f"Weights: the best validation's, which is the last step ({kept['step']}): the selection on these "
+                "scenes changed nothing.")
+    return (f"Weights: the best validation's (step {kept['step']} of {kept['last_step']}), selected on patches of "
+            "these scenes (train.keep_weights: best), so these figures are mildly optimistic.")
+
+
 def root_weights_path(run_dir: str | Path, weights_file: str = "model.safetensors") -> Path:
     """The weights file that holds the weights a run keeps (:func:`kept_entry`).
 
