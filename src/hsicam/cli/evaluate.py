@@ -140,10 +140,10 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     from hsicam.data.formats import write_cube_h5
     from hsicam.data.pipeline import scene_dataset
     from hsicam.engine.evaluate import (NOISE_DRAWS, TestNoise, check_room_for_cubes, check_scenes, check_test_noise, config_hash,
-                                        evaluate_method, format_table, scored_region, summarize, write_results)
+                                        evaluate_method, format_table, scored_region, summarize, validation_data_label,
+                                        write_results)
     from hsicam.engine.experiments import heldout_scenes, validation_scenes
     from hsicam.engine.methods import METHOD_ALIASES, build_method
-    from hsicam.data.pipeline import absolute_data_paths
     from hsicam.engine.provenance import (heldout_sources_problem, read_data_record, scene_roles, synthetic_scene_roles,
                                           training_scenes_warning)
     from hsicam.cli import prepare_output
@@ -196,8 +196,7 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     else:
         scenes, names = validation_scenes(cfg)
         rel = _relative_to_common_folder(scenes.paths)
-        data = ("synthetic validation split" if cfg.data.root is None else
-                f"validation split of {absolute_data_paths(cfg).data.root}")
+        data = validation_data_label(cfg)
         heldout = heldout_scenes(cfg)
     # which scenes the run trained on (its data.json; none for the synthetic data or an older run)
     recorded = read_data_record(args.run) if args.run else None

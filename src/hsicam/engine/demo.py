@@ -11,7 +11,8 @@ from typing import Any
 from hsicam.config import Config, dump_yaml, load_config
 from hsicam.data.pipeline import scene_dataset, split_dataset
 from hsicam.engine.evaluate import (TestNoise, config_hash, demosaic_reference, evaluate_method, evaluate_scenes,
-                                    format_table, grey_reference, scored_region, summarize)
+                                    format_table, grey_reference, scored_region, summarize,
+                                    validation_data_label)
 from hsicam.engine.experiments import ensure_trained, heldout_scenes
 from hsicam.engine.methods import (LINEAR_REFERENCE_WINDOW, linear_demosaic_reference, network_alone_reference,
                                    network_skip)
@@ -103,8 +104,7 @@ def run_demo(cfg: Config, out: str | Path) -> dict[str, Any]:
     # as `hsicam evaluate` records them: the folder read (`hsicam report` finds the camera from anywhere), the
     # method and the scenes
     summary.update(run_path=str(run.resolve()), method="doe-learned",
-                   data=("synthetic validation split" if cfg.data.root is None else
-                         f"validation split of {Path(cfg.data.root).resolve()}"))
+                   data=validation_data_label(cfg))
     # which weights and config were scored, as `hsicam evaluate` records them (`hsicam pretrained pack --results`
     # checks them: a run trained on since, or another demo's run of the same relative path, is not these)
     summary["weights_sha256"] = file_sha256(root_weights_path(run))

@@ -70,6 +70,24 @@ def capture_noise_seed(seed: int, scene_name: str) -> int:
     return zlib.crc32(f"{int(seed)}:{scene_name}".encode())
 
 
+#: results.json ``data`` of a run's own validation split: the embedded synthetic data, or ``VALIDATION_OF`` its folder.
+SYNTHETIC_VALIDATION = "synthetic validation split"
+VALIDATION_OF = "validation split of "
+
+
+def validation_data_label(cfg) -> str:
+    """What results.json's ``data`` says of the config ``cfg``'s own validation split (``hsicam evaluate`` without
+    ``--data``, ``hsicam demo``)."""
+    from hsicam.data.pipeline import absolute_data_paths
+
+    return SYNTHETIC_VALIDATION if cfg.data.root is None else f"{VALIDATION_OF}{absolute_data_paths(cfg).data.root}"
+
+
+def is_validation_data_label(label) -> bool:
+    """Whether a results.json ``data`` is a run's own validation split (None: an older file that did not say)."""
+    return label is None or label == SYNTHETIC_VALIDATION or str(label).startswith(VALIDATION_OF)
+
+
 def config_hash(yaml_text: str) -> str:
     """Short SHA-256 of a resolved config (identifies the run a result came from)."""
     return hashlib.sha256(yaml_text.encode()).hexdigest()[:12]

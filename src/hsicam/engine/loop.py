@@ -626,7 +626,7 @@ def _fit(task: Task, opts: FitOptions, run_dir: Path, resume: bool, lock: RunLoc
                 if asked is not None:
                     stop_here(*asked, saved=False)
         # end of an epoch (or of the step budget)
-        ended = LoopState.from_dict(state.to_dict())  # its last step done, the epoch not yet counted
+        ended = dataclasses.replace(state)  # its last step done, the epoch not yet counted
         state.epoch, state.step_in_epoch, state.loss_sum, state.loss_n = state.epoch + 1, 0, 0.0, 0
         last_epoch = state.epoch == t.epochs or state.global_step >= total_steps
         tags = ["last"]

@@ -197,10 +197,10 @@ def _evaluation_settings(model, cfg, run) -> None:
     problem = linear_step_problem(resolve_run(run), cfg.model.consistency)
     if problem:
         raise InputError(problem)
-    c = cfg.model.consistency
-    if c.kind == "linear" and c.iterations > 0 and model.linear_step is None and model.linear_step_missing:
-        raise InputError(model.linear_step_missing)  # before any scene is read, not at the first reconstruction
-    model.consistency = c
+    missing = model.missing_linear_step(cfg.model.consistency)
+    if missing:
+        raise InputError(missing)  # before any scene is read, not at the first reconstruction
+    model.consistency = cfg.model.consistency
     _evaluation_capture(model, cfg)
 
 

@@ -138,12 +138,13 @@ def results_metrics(results: str | Path | None, heldout: str | Path | None = Non
     ``references``, ``heldout``). ``heldout``: a results.json of an evaluation on held-out data,
     used instead of ``results``' own ``heldout`` section. With ``run_dir``, each file must be an
     evaluation of that run (:func:`check_results_of_run`)."""
+    from hsicam.engine.evaluate import is_validation_data_label
+
     out: dict[str, Any] = {"validation": None, "heldout": None}
     if results is not None:
         data = _read_results(results)
         scored = data.get("data")
-        own_split = scored in (None, "synthetic validation split") or str(scored).startswith("validation split of")
-        if not own_split:
+        if not is_validation_data_label(scored):
             # `evaluate --data DIR`: any scenes, the training ones included (a synthetic folder records no split)
             raise InputError(f"{results}: an evaluation of the scenes in {scored} (--data), not of the run's validation "
                              "split: the card's validation figures are those of the scenes its training held out; "
@@ -348,9 +349,9 @@ def card_fields(run_dir: str | Path, name: str, results: str | Path | None = Non
     for key, t in model.state_dict().items():
         if t.is_floating_point() and not bool(torch.isfinite(t).all()):
             raise InputError(f"{run_dir}: NaN/Inf in the weights ({key}); nothing packed")
-    c = cfg.model.consistency
-    if c.kind == "linear" and c.iterations > 0 and model.linear_step is None and model.linear_step_missing:
-        raise InputError(f"{model.linear_step_missing}; nothing packed (a shipped camera could not reconstruct)")
+    missing = model.missing_linear_step()
+    if missing:
+        raise InputError(f"{missing}; nothing packed (a shipped camera could not reconstruct)")
     bands = model.camera.bands
     weights = root_weights_path(run_dir)
     preset = check_preset(preset, cfg, run_dir) if preset else matching_preset(cfg)

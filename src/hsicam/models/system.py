@@ -51,6 +51,14 @@ class CameraSystem(nn.Module):
         else:
             super().__setattr__(name, value)
 
+    def missing_linear_step(self, consistency=None) -> str | None:
+        """Why ``consistency`` (default: the model's own) asks for a linear step that the run has not got, naming
+        the run and what to do (:func:`hsicam.runs.folder.load_run` sets it), else None."""
+        c = self.consistency if consistency is None else consistency
+        if c is None or c.kind != "linear" or c.iterations <= 0 or self.linear_step is not None:
+            return None
+        return self.linear_step_missing
+
     @classmethod
     def from_config(cls, cfg) -> "CameraSystem":  # cfg: hsicam.config.Config
         camera = build_camera(cfg)
@@ -180,8 +188,9 @@ class CameraSystem(nn.Module):
         c = self.consistency
         op, energy = (self._step_operator(), c.psf_energy) if step_operator is None else (step_operator, 1.0)
         if self.linear_step is None:
-            if self.linear_step_missing:
-                raise InputError(self.linear_step_missing)
+            why = self.missing_linear_step()
+            if why:
+                raise InputError(why)
             raise InputError("model.consistency.kind=linear needs the run's linear_step.safetensors, fitted when "
                              "training ends; for a run without it: `hsicam train --out RUN --resume --set "
                              "model.consistency.kind=linear --set model.consistency.iterations=1` (a fine-tuned run: "
