@@ -245,6 +245,22 @@ def test_pack_refuses_results_of_other_scenes_than_the_validation_split(env, tmp
     assert not (tmp_path / "root").exists()
 
 
+def test_the_cards_held_out_column_says_what_was_held_out(env, tmp_path):
+    """`--heldout` of an evaluation of another folder (`evaluate --run RUN --data DIR`, e.g. the unseen layouts)
+    was tabled under "held-out sources"; only the synthetic held-out-sources scenes are called that."""
+    from hsicam.engine.pretrained import card_fields, card_markdown
+
+    run, results, _ = env
+    data = json.loads(results.read_text())
+    layouts = {k: v for k, v in data.items() if k != "heldout"} | {"data": str(tmp_path / "unseen_layouts")}
+    (tmp_path / "layouts.json").write_text(json.dumps(layouts))
+    md = card_markdown(card_fields(run, "other", results, tmp_path / "layouts.json"))
+    assert "| held-out data PSNR (dB) |" in md and "held-out sources" not in md
+    assert f"- held-out data: {len(data['scenes'])} scenes, {tmp_path / 'unseen_layouts'} (from layouts.json)" in md
+    md = card_markdown(card_fields(run, "other", results))  # the demo's own held-out-sources scenes
+    assert "| held-out sources PSNR (dB) |" in md and "held-out data" not in md
+
+
 def test_pack_refuses_results_whose_scenes_are_not_a_list(env, tmp_path):
     """A results.json (or its held-out section) whose 'scenes' is a number is refused in one line
     naming the file, not with a TypeError from len()."""

@@ -140,8 +140,8 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     from hsicam.data.formats import write_cube_h5
     from hsicam.data.pipeline import scene_dataset
     from hsicam.engine.evaluate import (NOISE_DRAWS, TestNoise, check_room_for_cubes, check_scenes, check_test_noise, config_hash,
-                                        evaluate_method, format_table, scored_region, summarize, validation_data_label,
-                                        write_results)
+                                        evaluate_method, format_table, heldout_sources_label, scored_region, summarize,
+                                        validation_data_label, write_results)
     from hsicam.engine.experiments import heldout_scenes, validation_scenes
     from hsicam.engine.methods import METHOD_ALIASES, build_method
     from hsicam.engine.provenance import (heldout_sources_problem, read_data_record, scene_roles, synthetic_scene_roles,
@@ -244,8 +244,8 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     if heldout is not None:
         held = evaluate_method(method, heldout[0], heldout[1], noise, args.device, keep_arrays=False, progress=show,
                                paths=_relative_to_common_folder(heldout[0].paths), tile_px=args.tile)
-        summary["heldout"] = {"data": f"held-out spectral sources ({cfg.data.holdout_sources}): scenes whose "
-                                      f"reflectances and lights the training scenes never contain",
+        summary["heldout"] = {"data": heldout_sources_label(cfg, "scenes whose reflectances and lights the "
+                                                                  "training scenes never contain"),
                               **summarize(held)}
     # One result, several files: written into a temporary folder that gets the completion marker and
     # is renamed into place at the end (an interrupted evaluation leaves nothing `report` accepts).

@@ -11,8 +11,8 @@ from typing import Any
 from hsicam.config import Config, dump_yaml, load_config
 from hsicam.data.pipeline import scene_dataset, split_dataset
 from hsicam.engine.evaluate import (TestNoise, config_hash, demosaic_reference, evaluate_method, evaluate_scenes,
-                                    format_table, grey_reference, scored_region, summarize,
-                                    validation_data_label)
+                                    format_table, grey_reference, heldout_sources_label, scored_region,
+                                    summarize, validation_data_label)
 from hsicam.engine.experiments import ensure_trained, heldout_scenes
 from hsicam.engine.methods import (LINEAR_REFERENCE_WINDOW, linear_demosaic_reference, network_alone_reference,
                                    network_skip)
@@ -94,7 +94,7 @@ def run_demo(cfg: Config, out: str | Path) -> dict[str, Any]:
     if held is not None:  # the same camera on scenes of spectral sources the training never saw
         h_results = evaluate_scenes(model, held[0], held[1], seed=cfg.train.seed, keep_arrays=False)
         summary["heldout"] = {
-            "data": f"held-out spectral sources ({cfg.data.holdout_sources})",
+            "data": heldout_sources_label(cfg),
             **summarize(h_results),
             "references": [{"method": ref.name, "mean": summarize(evaluate_method(
                 ref, held[0], held[1], TestNoise(seeds=(cfg.train.seed,)), keep_arrays=False))["mean"]}

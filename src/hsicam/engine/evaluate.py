@@ -83,6 +83,20 @@ def validation_data_label(cfg) -> str:
     return SYNTHETIC_VALIDATION if cfg.data.root is None else f"{VALIDATION_OF}{absolute_data_paths(cfg).data.root}"
 
 
+HELDOUT_SOURCES = "held-out spectral sources"
+
+
+def heldout_sources_label(cfg, detail: str = "") -> str:
+    """What results.json's ``heldout.data`` says of the config ``cfg``'s held-out-sources scenes (its synthetic
+    companion set, :func:`hsicam.data.pipeline.heldout_dataset`); ``detail`` is appended after a colon."""
+    return f"{HELDOUT_SOURCES} ({cfg.data.holdout_sources})" + (f": {detail}" if detail else "")
+
+
+def is_heldout_sources_label(label) -> bool:
+    """Whether a results.json ``data`` names held-out spectral sources (not any other folder given as held out)."""
+    return str(label).startswith(HELDOUT_SOURCES)
+
+
 def is_validation_data_label(label) -> bool:
     """Whether a results.json ``data`` is a run's own validation split (None: an older file that did not say)."""
     return label is None or label == SYNTHETIC_VALIDATION or str(label).startswith(VALIDATION_OF)

@@ -495,7 +495,11 @@ def card_markdown(card: dict[str, Any]) -> str:
     lines.append("")
     val, held = m.get("validation"), m.get("heldout")
     if val or held:
-        lines += ["| method | validation PSNR (dB) | SSIM | SAM (°) | held-out sources PSNR (dB) | SSIM | SAM (°) |",
+        from hsicam.engine.evaluate import is_heldout_sources_label
+
+        # `--heldout` may be an evaluation of any folder (`evaluate --data DIR`): its column says "held-out data"
+        held_what = "held-out sources" if held is None or is_heldout_sources_label(held["data"]) else "held-out data"
+        lines += [f"| method | validation PSNR (dB) | SSIM | SAM (°) | {held_what} PSNR (dB) | SSIM | SAM (°) |",
                   "|---|---|---|---|---|---|---|"]
         lines.append(f"| {name} | " + " | ".join((*_fmt_means(val and val["mean"]), *_fmt_means(held and held["mean"])))
                      + " |")
@@ -506,7 +510,7 @@ def card_markdown(card: dict[str, Any]) -> str:
             h = next((r["mean"] for r in (held or {}).get("references", []) if r["method"] == ref), None)
             lines.append(f"| {ref} | " + " | ".join((*_fmt_means(v), *_fmt_means(h))) + " |")
         lines.append("")
-        for what, blk in (("validation", val), ("held-out sources", held)):
+        for what, blk in (("validation", val), (held_what, held)):
             if blk:
                 lines.append(f"- {what}: {blk['n_scenes']} scenes, {blk['data']} (from {Path(blk['source']).name})")
         lines.append("")
