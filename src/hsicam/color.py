@@ -9,8 +9,16 @@ needs neither colour-science nor a network.
 
 Normalisation: ``spectra_to_xyz`` scales so that a perfect white reflector (all ones) has Y = 1;
 ``spectra_to_srgb`` additionally scales each linear sRGB channel so that the perfect white reflector
-maps exactly to (1, 1, 1) (this absorbs the small white-point error of a truncated or coarse grid,
-e.g. 420-720 nm). Values outside [0, 1] are clipped before gamma encoding.
+maps exactly to (1, 1, 1) (a camera's white balance: it absorbs the white-point error of a truncated or
+coarse grid, e.g. 420-720 nm) when each channel's white is within :data:`WHITE_BALANCE_RANGE`, i.e.
+the grid covers part of every primary's spectrum. A grid that misses a primary's (550-700 nm, say,
+where blue's white is negative) is rendered without that balance, so its hues stay right and its white
+is tinted: balancing there divided by near-zero or negative sums and turned a 620 nm line white.
+Values outside [0, 1] are clipped before gamma encoding.
+
+Band grids beyond the table (a VIS-NIR camera, 500-900 nm) are rendered from the part of their
+range inside 380-780 nm: the other bands carry no colour. A grid with nothing inside (800-1000 nm)
+renders grey, the mean over its bands, so a preview never stops a simulation or a reconstruction.
 
 All functions accept numpy arrays or torch tensors (differentiable; computed in the input's dtype
 and device) and return the same kind.
@@ -58,21 +66,37 @@ def xyz_to_linear_srgb_matrix() -> np.ndarray:
     return np.linalg.inv(prim * scale[None, :])
 
 
+#: Range of every linear sRGB channel's white-reflector value within which :func:`srgb_weights` balances
+#: the channels to 1 (a factor 3 either way; 420-720 nm: 0.99, 1.01, 0.95; 550-700 nm: 2.5, 0.65, −0.13).
+WHITE_BALANCE_RANGE = (1.0 / 3.0, 3.0)
+
+
+def _d65_white_xyz() -> np.ndarray:
+    """XYZ (3,) of the D65 white point with Y = 1 (linear sRGB (1, 1, 1))."""
+    wx, wy = _D65_WHITE_XY
+    return np.array([wx / wy, 1.0, (1 - wx - wy) / wy])
+
+
 @functools.lru_cache(maxsize=32)
 def _xyz_weights_cached(centers: tuple[float, ...]) -> np.ndarray:
     c = np.asarray(centers, dtype=np.float64)
     lo, hi = TABLE_RANGE_NM
-    if c[0] < lo - 1e-9 or c[-1] > hi + 1e-9:
-        raise InputError(
-            f"colour rendering needs bands inside {lo:g}-{hi:g} nm (the CIE table), got {c[0]:g}-{c[-1]:g} nm"
-        )
+    a, b = max(c[0], lo), min(c[-1], hi)  # the part of the grid's range that has colour
+    if a > b + 1e-9 or (c.size == 1 and not lo - 1e-9 <= c[0] <= hi + 1e-9):
+        # nothing inside the table (e.g. 800-1000 nm): grey, the mean over the bands, white point Y = 1
+        w = np.outer(_d65_white_xyz(), np.full(c.size, 1.0 / c.size))
+        w.setflags(write=False)
+        return w
     table = cmf_d65_table()
     if c.size == 1:
         fine = c.copy()
         weights_fine = np.ones(1)
+    elif b - a < 1e-9:  # the grid touches the table at one end only (…-380 or 780-…): that wavelength alone
+        fine = np.array([a])
+        weights_fine = np.ones(1)
     else:
-        inner = np.arange(np.ceil(c[0]), np.floor(c[-1]) + 1.0, 1.0)
-        fine = np.unique(np.concatenate([[c[0]], inner, [c[-1]]]))
+        inner = np.arange(np.ceil(a), np.floor(b) + 1.0, 1.0)
+        fine = np.unique(np.concatenate([[a], inner, [b]]))
         weights_fine = np.zeros_like(fine)  # trapezoid weights on the fine grid, nm
         d = np.diff(fine)
         weights_fine[:-1] += d / 2
@@ -82,7 +106,7 @@ def _xyz_weights_cached(centers: tuple[float, ...]) -> np.ndarray:
     kernel = cmf * d65[None, :] * weights_fine[None, :]  # (3, F)
     if c.size == 1:
         w = kernel
-    else:
+    else:  # the piecewise-linear spectrum between band centres, evaluated on the fine grid
         interp = interpolation_matrix(Bands.from_centers(c), Bands.from_centers(fine))  # (F, C)
         w = kernel @ interp  # (3, C)
     w = w / w[1].sum()  # perfect white reflector: Y = 1
@@ -91,14 +115,20 @@ def _xyz_weights_cached(centers: tuple[float, ...]) -> np.ndarray:
 
 
 def xyz_weights(bands: Bands) -> np.ndarray:
-    """Weights W (3, C), float64, with XYZ = W @ reflectance (white reflector: Y = 1)."""
+    """Weights W (3, C), float64, with XYZ = W @ reflectance (white reflector: Y = 1). Bands outside
+    380-780 nm get no weight beyond their share of the interpolant inside it; a grid entirely outside
+    gives grey (module docstring)."""
     return _xyz_weights_cached(tuple(float(v) for v in bands.centers_nm))
 
 
 def srgb_weights(bands: Bands) -> np.ndarray:
-    """Weights W (3, C) with linear sRGB = W @ reflectance; all-ones maps exactly to (1, 1, 1)."""
+    """Weights W (3, C) with linear sRGB = W @ reflectance. All-ones maps exactly to (1, 1, 1) when each
+    channel's white is within :data:`WHITE_BALANCE_RANGE` (a grid covering every primary's spectrum);
+    otherwise the channels are left unbalanced, so hues stay right (module docstring)."""
     w = xyz_to_linear_srgb_matrix() @ xyz_weights(bands)
-    return w / w.sum(axis=1, keepdims=True)
+    white = w.sum(axis=1, keepdims=True)
+    lo, hi = WHITE_BALANCE_RANGE
+    return w / white if np.all((white >= lo) & (white <= hi)) else w
 
 
 def srgb_encode(linear: Array) -> Array:
@@ -173,6 +203,7 @@ def srgb_preview(cube: np.ndarray, bands: Bands, chunk_px: int | None = None) ->
 __all__ = [
     "PREVIEW_CHUNK_PX",
     "TABLE_RANGE_NM",
+    "WHITE_BALANCE_RANGE",
     "cmf_d65_table",
     "cube_to_srgb",
     "spectra_to_linear_srgb",
