@@ -426,6 +426,35 @@ def test_gradients_reach_the_doe_and_cfa_through_the_stages():
     assert net.step_logits.grad is not None and net.step_logits.grad.abs().sum() > 0
 
 
+def test_the_optics_gradient_through_the_stages_is_the_losss_derivative():
+    """Finite differences (float64) of a loss through the unrolled stages along a random direction of the CFA weights
+    and of the DOE heights equal autograd's. The steps' α = softplus(θ)/L depend on the optics through the bound L;
+    a snapshot kept L as a float, so the optics got the gradient of another function (CFA: the sign was wrong here)."""
+    cam = camera("doe", "camera.boundary=same").double()
+    net = randomise(build_unrolled(UnrolledConfig(stages=2, init="demosaic", prior_features=8, prior_blocks=1,
+                                                  prior_scale=2), cam)).double()
+    truth = torch.rand(1, len(cam.bands), 16, 16, dtype=torch.float64, generator=torch.Generator().manual_seed(3))
+    with torch.no_grad():
+        sensor = cam.A(truth)
+
+    def loss() -> torch.Tensor:
+        return (net(sensor, cam.snapshot()) - truth).square().sum()
+
+    for param in (cam.cfa.weights, cam.optics.doe.height_m):
+        direction = torch.randn(param.shape, dtype=torch.float64, generator=torch.Generator().manual_seed(4))
+        param.grad = None
+        loss().backward()
+        along = float((param.grad * direction).sum())
+        eps = 1e-6 * float(param.detach().abs().max())
+        with torch.no_grad():
+            param.add_(eps * direction)
+            up = float(loss())
+            param.sub_(2 * eps * direction)
+            down = float(loss())
+            param.add_(eps * direction)
+        assert along == pytest.approx((up - down) / (2 * eps), rel=1e-4, abs=1e-9)
+
+
 def test_a_snapshot_passed_in_is_used_as_is():
     cam = camera("doe", "camera.doe.sigma_height_nm=30")
     net = randomise(build_unrolled(UNROLLED, cam)).eval()

@@ -283,8 +283,13 @@ class DOESnapshot:
         self.bands, self.psf, self.tile, self.code_period = bands, psf, tile, int(code_period)
         k = psf.shape[-1]
         self.reach_px = (k - 1, k - 1)
-        with torch.no_grad():  # ‖A‖² ≤ max_c ‖p_c‖₁² · max_pixel Σ_c κ_c² (Young + Cauchy–Schwarz)
-            self.lipschitz = float(psf.sum(dim=(-2, -1)).max() ** 2 * tile.square().sum(0).max())
+        # ‖A‖² ≤ max_c ‖p_c‖₁² · max_pixel Σ_c κ_c² (Young + Cauchy–Schwarz)
+        bound = psf.sum(dim=(-2, -1)).amax() ** 2 * tile.square().sum(0).amax()
+        self.lipschitz = float(bound.detach())
+        #: the same bound as a 0-dim tensor in the optics' autograd graph (None when they need no gradient): the
+        #: unrolled network's steps α = softplus(θ)/L must see how L moves with the PSFs and the CFA, or the optics
+        #: are trained by the gradient of another function (session 53: 48 % off for the CFA, the sign wrong in a probe)
+        self.lipschitz_in_graph = bound if bound.requires_grad else None
         self._kept: dict = {}  # (what, geometry, dtype) → tensor, the oldest first
 
     def _keep(self, key: tuple, make, source: torch.Tensor) -> torch.Tensor:

@@ -115,8 +115,9 @@ class UnrolledNet(nn.Module):
     def _prior(self, k: int) -> Prior:
         return self.priors[k % len(self.priors)]
 
-    def step_sizes(self, lipschitz: float | None) -> torch.Tensor:
-        """α_k (K,) = softplus(θ_k) / L (gradient steps) or softplus(θ_k) (GAP steps)."""
+    def step_sizes(self, lipschitz: float | torch.Tensor | None) -> torch.Tensor:
+        """α_k (K,) = softplus(θ_k) / L (gradient steps) or softplus(θ_k) (GAP steps). ``lipschitz``: the
+        operator's bound L of ‖A‖², a 0-dim tensor where it carries gradients to the optics."""
         if self.step == "gap":
             return F.softplus(self.step_logits)
         return F.softplus(self.step_logits) / (lipschitz or 1.0)
@@ -155,7 +156,8 @@ class UnrolledNet(nn.Module):
         if len(op.bands) != self.bands:
             raise ValueError(f"the camera has {len(op.bands)} bands, the network {self.bands}")
         x = self.initial(sensor, op, origin)
-        alphas = self.step_sizes(getattr(op, "lipschitz", None))
+        bound = getattr(op, "lipschitz_in_graph", None)  # L with its gradient to the optics, where they have one
+        alphas = self.step_sizes(bound if bound is not None else getattr(op, "lipschitz", None))
         for k in range(self.stages):
             x = self.data_step(x, sensor, op, alphas[k], origin)
             x = x + self._prior(k)(x, origin)
