@@ -338,6 +338,19 @@ def test_bad_inputs():
         sd.A_adjoint(torch.rand(1, 1, 8, 8))
 
 
+@pytest.mark.parametrize("kind", ["unrolled", "rdn"])
+def test_a_capture_narrower_than_the_dispersion_is_one_input_error(kind):
+    """An SD-CASSI capture narrower than the span reached torch as a negative tensor size (RuntimeError) through
+    the networks' back-projection start; only a width equal to the span was refused."""
+    extra = ["model.unrolled.prior_features=8", "model.unrolled.prior_blocks=1"] if kind == "unrolled" else \
+        ["model.rdn.backprojection_input=true"]
+    model = CameraSystem.from_config(load_config("tiny", ["camera.kind=sd_cassi", f"model.kind={kind}", *extra])).eval()
+    span = model.camera.span
+    for width in (span - 3, span):
+        with torch.no_grad(), pytest.raises(InputError, match=f"width {width} is not wider than the dispersion span"):
+            model.reconstruct(torch.rand(1, 1, 5, width))
+
+
 def test_camera_system_with_cassi_has_no_weights_beyond_the_network():
     model = CameraSystem.from_config(load_config("tiny", ["camera.kind=dd_cassi"]))
     assert all(k.startswith("net.") for k in model.state_dict())

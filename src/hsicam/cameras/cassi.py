@@ -399,6 +399,10 @@ class SDCASSICamera(_CASSICamera):
         return scene_hw[0], scene_hw[1] + self.span
 
     def scene_size(self, sensor_hw: tuple[int, int]) -> tuple[int, int]:
+        """The scene (H, W − D) behind a measurement of ``sensor_hw`` (H, W); InputError unless W > D."""
+        if sensor_hw[1] <= self.span:
+            raise InputError(f"SD-CASSI measurement of width {sensor_hw[1]} is not wider than the dispersion span "
+                             f"{self.span}")
         return sensor_hw[0], sensor_hw[1] - self.span
 
     def A(self, x: torch.Tensor) -> torch.Tensor:  # noqa: N802
@@ -410,9 +414,7 @@ class SDCASSICamera(_CASSICamera):
     def A_adjoint(self, y: torch.Tensor) -> torch.Tensor:  # noqa: N802
         """Exact adjoint of :meth:`A`: (B, 1, H, W + D) → (B, C, H, W)."""
         self.check_measurement(y)
-        w = y.shape[-1] - self.span
-        if w < 1:
-            raise InputError(f"SD-CASSI measurement of width {y.shape[-1]} is not wider than the dispersion span {self.span}")
+        _, w = self.scene_size(tuple(y.shape[-2:]))
         p = self.aperture.pattern(y.shape[-2], w, y.device, y.dtype)
         return sd_cassi_adjoint(y, p, self.shifts, self.scale)
 
