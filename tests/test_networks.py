@@ -22,7 +22,7 @@ from hsicam.errors import ConfigError
 from hsicam.config import MosaicConfig, UnrolledConfig
 from hsicam.models.mosaic import MosaicNet, build_mosaic, phase_pad
 from hsicam.models.rdn import RDNReconstructor
-from hsicam.models.unrolled import build_unrolled
+from hsicam.models.unrolled import UnrolledNet, build_unrolled
 
 CAMERA_KINDS = ("doe", "dd_cassi", "sd_cassi")
 MOSAIC = MosaicConfig(features=8, blocks=1, head_features=4, head_layers=2)
@@ -453,6 +453,15 @@ def test_the_optics_gradient_through_the_stages_is_the_losss_derivative():
             down = float(loss())
             param.add_(eps * direction)
         assert along == pytest.approx((up - down) / (2 * eps), rel=1e-4, abs=1e-9)
+
+
+@pytest.mark.parametrize("kwargs,match", [({"stages": 0}, "stages must be >= 1"), ({"step_init": -1.0}, "step_init"),
+                                          ({"step_init": float("nan")}, "step_init"), ({"init": "mosaic"}, "front="),
+                                          ({"init": "zeros"}, "init must be"), ({"step": "admm"}, "step must be")])
+def test_an_unrolled_net_built_directly_refuses_what_its_config_refuses(kwargs, match):
+    """Built from Python, stages=0 returned x⁰ unchanged and step_init=-1 failed as 'math domain error'."""
+    with pytest.raises(ValueError, match=match):
+        UnrolledNet(7, (4, 4), **kwargs)
 
 
 def test_a_snapshot_passed_in_is_used_as_is():

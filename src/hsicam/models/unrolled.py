@@ -91,6 +91,15 @@ class UnrolledNet(nn.Module):
                  front: MosaicNet | None = None, step: str = "gradient", brightness_window: int = 0,
                  brightness_eps: float = 1e-3) -> None:
         super().__init__()
+        # the config's checks (UnrolledConfig), again for a network built directly
+        if int(stages) < 1:
+            raise ValueError(f"stages must be >= 1, got {stages}")
+        if not (step_init > 0 and math.isfinite(step_init)):
+            raise ValueError(f"step_init must be a finite number > 0, got {step_init}")
+        if init not in ("demosaic", "backprojection", "mosaic") or (init == "mosaic") != (front is not None):
+            raise ValueError(f"init must be demosaic, backprojection or mosaic (with front=a MosaicNet), got {init!r}")
+        if step not in ("gradient", "gap"):
+            raise ValueError(f"step must be gradient or gap, got {step!r}")
         self.bands, self.stages, self.init, self.step = int(bands), int(stages), init, step
         self.op_reach, self.stage_kernel_px, self.demosaic_window = tuple(op_reach), int(stage_kernel_px), int(demosaic_window)
         self.front = front
