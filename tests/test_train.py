@@ -121,6 +121,24 @@ def test_resume_with_changed_keys_records_them_in_config_yaml(tmp_path, cache_en
     assert records[-1]["final"] and records[-1]["step"] == 8  # 4 steps per epoch
 
 
+@pytest.mark.parametrize("changes,named", [
+    (["data.split_seed=3"], "data.split_seed: 0 → 3"),
+    (["camera.doe.seed=7", "data.synthetic_seed=2"], "camera.doe.seed: 0 → 7; data.synthetic_seed: 0 → 2"),
+    (["data.root=/elsewhere"], "data.root: None → '/elsewhere'"),
+])
+def test_a_resume_may_not_change_what_the_run_is(tmp_path, cache_env, changes, named):
+    """`train --resume --set data.split_seed=3` trained on, rewrote config.yaml with the other split, and `evaluate
+    --run` then scored a scene the network had trained on as validation; a DOE seed or the scenes changed the same
+    way. Refused, naming the keys; the run is left as it was."""
+    run = tmp_path / "run"
+    assert train(tiny_cfg("train.epochs=2"), run, progress=False, stop_after_steps=2) == {"stopped_at_step": 2}
+    before = {p.name: p.read_bytes() for p in run.iterdir() if p.is_file()}
+    sets = [a for c in ["train.epochs=3", *changes] for a in ("--set", c)]
+    res = run_cli_in_process("train", "--out", str(run), "--resume", *sets, env={"HSICAM_CACHE": str(cache_env)})
+    assert_clean_error(res, f"not its bands, camera, network, scenes or split: {named}; nothing was changed")
+    assert {p.name: p.read_bytes() for p in run.iterdir() if p.is_file()} == before
+
+
 def test_sigkilled_training_resumes(tmp_path, cache_env):
     run = tmp_path / "run"
     code, _ = signal_a_training(run, cache_env, lambda proc: proc.send_signal(signal.SIGKILL), ready="checkpoints.json")

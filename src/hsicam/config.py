@@ -1214,6 +1214,29 @@ def training_differences(have: Config, want: Config, limit: int = 3) -> list[str
     return sorted(out)
 
 
+#: Keys (and sections) that say what a run *is*: its bands, camera, network, scenes and split. `hsicam train
+#: --resume --set` may change how it goes on (epochs, learning rates, losses, augmentation, runtime keys), not these:
+#: config.yaml would then describe a camera or a split the run never had (a resumed run whose split seed changed
+#: scored one of its training scenes as "validation").
+RUN_IDENTITY_KEYS = (
+    "bands", "camera", "model", "data.synthetic_n", "data.synthetic_size", "data.synthetic_seed",
+    "data.patch_px", "data.val_patches", "data.val_fraction", "data.split_seed", "data.val_pool",
+    "data.holdout_sources", "data.npy_bands",
+)
+
+
+def identity_differences(have: Config, want: Config, limit: int = 3) -> list[str]:
+    """The first ``limit`` differences (``"key: have → want"``) of :func:`training_differences` under
+    :data:`RUN_IDENTITY_KEYS` (``model.consistency``, applied after the network, is not one), and ``data.root``
+    turned on or off (synthetic ↔ a folder; a folder moved elsewhere is checked scene by scene by its data.json,
+    :func:`hsicam.engine.provenance.check_same_data`). Empty: none."""
+    every = training_differences(have, want, limit=10**6)
+    out = [d for d in every if any(d.startswith(k + ".") or d.startswith(k + ":") for k in RUN_IDENTITY_KEYS)]
+    if (have.data.root is None) != (want.data.root is None):
+        out.append(f"data.root: {have.data.root!r} → {want.data.root!r}")
+    return sorted(out)[:limit]
+
+
 def dump_yaml(cfg: Any) -> str:
     """The resolved config as YAML text (round-trips through :func:`load_config`)."""
     return yaml.safe_dump(to_dict(cfg), sort_keys=False)

@@ -143,6 +143,15 @@ def config_from_args(path: str | Path | None, overrides: Sequence[str] = ()):
                                                      "least one section")
 
 
+def run_config_from_args(run: str | Path, overrides: Sequence[str] = ()):
+    """``load_config`` of a run's own config.yaml (``--run``, ``--resume``), with ``overrides``: an emptied file
+    is a damaged run (:data:`hsicam.runs.folder.EMPTY_RUN_CONFIG`), not a request for a preset."""
+    from hsicam.config import load_config
+    from hsicam.runs.folder import EMPTY_RUN_CONFIG
+
+    return load_config(Path(run) / "config.yaml", list(overrides), empty=EMPTY_RUN_CONFIG)
+
+
 def prepare_output(path: str | Path, kind: str = "dir", replace: bool = False, command: str | None = None,
                    run: str | Path | None = None) -> Path:
     """Before any work: :func:`hsicam.io.check_output_path` (one-line error for an output that cannot

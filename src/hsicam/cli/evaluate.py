@@ -8,7 +8,7 @@ import os
 import sys
 from pathlib import Path
 
-from hsicam.cli import add_config_args, add_run_arg, config_from_args
+from hsicam.cli import add_config_args, add_run_arg, config_from_args, run_config_from_args
 from hsicam.cli.args import RegistryChoices, check_tile, device_arg, seeds_arg, sensor_sigma_arg, sigma_height_arg
 from hsicam.errors import InputError
 
@@ -165,8 +165,8 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
             raise InputError("--run uses the run's config.yaml; drop --config")
         check_is_run(run)
         check_run_overrides(args.overrides)
-        run_cfg = config_from_args(run / "config.yaml")  # as the run trained (its data split and sources)
-        cfg = config_from_args(run / "config.yaml", args.overrides)
+        run_cfg = run_config_from_args(run)  # as the run trained (its data split and sources)
+        cfg = run_config_from_args(run, args.overrides)
         if args.method == "dd-cassi-choi":  # a prior key given by --set, even at its default value
             from hsicam.engine.methods import check_prior_overrides
 

@@ -143,7 +143,7 @@ def _fmt(v, unit: str) -> str:
 
 
 def cmd_finetune(args: argparse.Namespace) -> int:
-    from hsicam.cli import config_from_args
+    from hsicam.cli import config_from_args, run_config_from_args
     from hsicam.engine.calibration import finetune
     from hsicam.cli import prepare_output
     from hsicam.runs.folder import check_is_run
@@ -158,7 +158,7 @@ def cmd_finetune(args: argparse.Namespace) -> int:
         overrides.append(f"train.epochs={args.epochs}")
     lr = args.lr
     if lr is None and not args.resume:  # a resume goes on with the rate it was started with
-        lr = 0.1 * config_from_args(run / "config.yaml", args.overrides).train.lr
+        lr = 0.1 * run_config_from_args(run, args.overrides).train.lr
     if lr is not None:
         if not lr > 0:
             raise InputError("--lr must be positive")

@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 import logging
 
-from hsicam.cli import add_config_args, config_from_args
+from hsicam.cli import add_config_args, config_from_args, run_config_from_args
 from hsicam.errors import InputError
 
 log = logging.getLogger(__name__)
@@ -61,13 +61,26 @@ def _train(args: argparse.Namespace, run, new_run) -> dict:
             raise InputError("--resume continues with the run's own config.yaml; drop --config (use --set to change keys)")
         check_run_dir(run, resume=True)  # says how to start again when there is nothing to resume
         check_train_can_resume(run)  # a fine-tuned run or a spectral prior: named, with the command that continues it
-        cfg = config_from_args(run / "config.yaml", args.overrides)
+        cfg = run_config_from_args(run, args.overrides)
+        if args.overrides:
+            check_resume_keeps_the_run(run, cfg)
     else:
         cfg = config_from_args(args.config, args.overrides)  # a bad config wipes nothing
         if args.restart:
             restart_run_dir(run)
     new_run.release()
     return train(cfg, run, resume=args.resume)
+
+
+def check_resume_keeps_the_run(run, cfg) -> None:
+    """InputError when ``--resume --set`` would change what the run is (:data:`hsicam.config.RUN_IDENTITY_KEYS`)."""
+    from hsicam.config import identity_differences
+
+    changed = identity_differences(run_config_from_args(run), cfg)
+    if changed:
+        raise InputError(f"{run}: --resume may change how a run goes on (train.*, augmentation, model.consistency), not "
+                         f"its bands, camera, network, scenes or split: {'; '.join(changed)}; nothing was changed. For "
+                         f"another run: hsicam train --config {run / 'config.yaml'} --set … --out NEW")
 
 
 def summary_line(summary: dict, run) -> str:
