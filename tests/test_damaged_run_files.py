@@ -144,6 +144,18 @@ def test_weights_with_an_unreadable_band_grid_are_refused_naming_the_file(traine
     assert not (tmp_path / "o.h5").exists()
 
 
+@pytest.mark.parametrize("command", ["evaluate", "resume"])
+def test_an_emptied_run_config_is_called_damaged_not_a_missing_preset(run, tmp_path, capsys, command):
+    """`evaluate --run` and `train --resume` of a run whose config.yaml was emptied advised `--config`'s fix ("give a
+    preset (tiny, quick, paper) …"), which these commands do not take."""
+    (run / "config.yaml").write_text("# emptied\n")
+    args = (["evaluate", "--run", run, "--out", tmp_path / "ev"] if command == "evaluate"
+            else ["train", "--out", run, "--resume", "--set", "train.epochs=2"])
+    line = in_process_error_line(capsys, args)
+    assert "config.yaml is damaged" in line and "restore it from a copy of the run" in line, line
+    assert "give a preset" not in line
+
+
 def test_integer_weights_are_refused_not_cast(trained, run, tmp_path, capsys):
     rewrite_all_weights(run, lambda t, m: ({k: v.to(torch.int16) for k, v in t.items()}, m))
     line = in_process_error_line(capsys, ["reconstruct", trained[1], "--run", run, "--out", tmp_path / "o.h5"])
