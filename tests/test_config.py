@@ -562,3 +562,52 @@ def test_a_bad_setting_in_a_file_names_the_file_and_one_in_an_override_does_not(
     assert load_config(path).train.epochs == 3
     with pytest.raises(ConfigError, match=r"^unknown config key 'train.nope'"):
         load_config(path, ["train.nope=1"])
+
+
+# ------------------------------------------------------------------------------------------------
+# Session 53: YAML 1.1 integers, preset names with a folder, a file completed by --set
+# ------------------------------------------------------------------------------------------------
+@pytest.mark.parametrize("override,says", [
+    ("train.seed=0042", "without leading zeros, got '0042' (write 42"), ("data.synthetic_n=012", "(write 12"),
+    ("camera.cfa.period=011", "(write 11"), ("train.epochs=1:30", "must be an integer, got '1:30'")])
+def test_yaml_11_integer_forms_are_refused_not_read_as_octal_or_base_60(override, says, tmp_path):
+    """`train.seed=0042` was 34 (octal), `010` 8, `train.epochs=1:30` 90 (base 60), while `008` was refused."""
+    with pytest.raises(ConfigError, match=re.escape(says)):
+        load_config("tiny", [override])
+    key, _, value = override.partition("=")
+    section, *rest = key.split(".")
+    body = f"{section}:\n" + "".join(f"{'  ' * (i + 1)}{k}:" + ("\n" if i < len(rest) - 1 else f" {value}\n")
+                                      for i, k in enumerate(rest))
+    (tmp_path / "c.yaml").write_text(body)
+    with pytest.raises(ConfigError, match=re.escape(str(tmp_path / "c.yaml"))):
+        load_config(tmp_path / "c.yaml")
+
+
+def test_yaml_12_integers_and_text_that_looks_like_numbers():
+    cfg = load_config("tiny", ["train.seed=0x1F", "data.synthetic_n=1_000", "train.lr=1e-3", "data.split_seed=0"])
+    assert (cfg.train.seed, cfg.data.synthetic_n, cfg.train.lr, cfg.data.split_seed) == (31, 1000, 1e-3, 0)
+    assert load_config("tiny", ["data.holdout_sources=010"]).data.holdout_sources == "010"  # text stays text
+
+
+def test_a_config_path_with_a_folder_is_that_file_never_a_preset(tmp_path, monkeypatch):
+    """`--config myexp/quick` loaded the shipped quick preset when myexp/quick did not exist."""
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "myexp").mkdir()
+    (tmp_path / "myexp" / "quick.yaml").write_text("train:\n  epochs: 3\n")
+    for path in ("myexp/quick", str(tmp_path / "no" / "tiny")):
+        with pytest.raises(ConfigError, match="no such config file"):
+            load_config(path)
+    assert load_config("myexp/quick.yaml").train.epochs == 3 and load_config("quick").train.epochs != 3
+
+
+def test_a_file_completed_by_an_override_loads(tmp_path):
+    """The docstring's promise, overrides applied before validation: a file whose dispersed layout needs the
+    band-pass init that `--set` gives was refused, naming the file. What the file gets wrong alone still names it."""
+    (tmp_path / "partial.yaml").write_text("camera:\n  cfa:\n    period: 4\n    layout: dispersed\n")
+    cfg = load_config(tmp_path / "partial.yaml", ["camera.cfa.init=bandpass"])
+    assert (cfg.camera.cfa.layout, cfg.camera.cfa.init) == ("dispersed", "bandpass")
+    with pytest.raises(ConfigError, match=re.escape(f"{tmp_path / 'partial.yaml'}")):
+        load_config(tmp_path / "partial.yaml", ["train.epochs=2"])
+    (tmp_path / "bad.yaml").write_text("train:\n  bogus: 1\n")
+    with pytest.raises(ConfigError, match=re.escape(f"{tmp_path / 'bad.yaml'}: unknown config key")):
+        load_config(tmp_path / "bad.yaml", ["train.epochs=2"])

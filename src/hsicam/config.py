@@ -985,14 +985,18 @@ def load_config(path: str | Path | None = None, overrides: Sequence[str] = (), c
         if not isinstance(loaded, dict):
             raise ConfigError(f"{path}: the top level must be a mapping of sections")
         data = loaded
-        if overrides:  # what is wrong in the file names the file; what an override breaks, the override
-            _file_settings(path, cls, copy.deepcopy(data))
+    file_alone = copy.deepcopy(data) if path is not None and overrides else None
     for item in overrides:
         apply_override(data, item)
     if path is not None and not overrides:
         return _file_settings(path, cls, data)
     _migrate_model_section(data)
-    return from_dict(cls, data)
+    try:  # the file and the overrides together, as the module docstring says (an override may complete the file)
+        return from_dict(cls, data)
+    except ConfigError:
+        if file_alone is not None:  # what is wrong in the file names the file; what an override breaks, the override
+            _file_settings(path, cls, file_alone)
+        raise
 
 
 def _file_settings(path: Path, cls: type, data: dict[str, Any]) -> Any:
@@ -1037,7 +1041,8 @@ def resolve_preset(path: str | Path) -> Path:
     """A config path, or the name of a shipped preset (:func:`preset_names`); ConfigError listing the
     presets when ``path`` is neither an existing file nor a preset's name."""
     p = Path(path)
-    if not p.exists() and p.suffix == "" and (PRESETS_DIR / f"{p.name}.yaml").is_file():
+    # a bare name only: `--config myexp/quick` is that file or an error, never the shipped `quick`
+    if not p.exists() and p.suffix == "" and len(p.parts) == 1 and (PRESETS_DIR / f"{p.name}.yaml").is_file():
         return PRESETS_DIR / f"{p.name}.yaml"
     if not p.exists() and not p.is_symlink():
         raise ConfigError(f"{p}: no such config file, nor a shipped preset (presets: {', '.join(preset_names())})")
@@ -1068,10 +1073,25 @@ def yaml_error_text(path: str | Path, text: str, exc: yaml.YAMLError) -> str:
     return f"{path}: invalid YAML at line {mark.line + 1}, column {mark.column + 1}: {problem}{opened}{tab}"
 
 
+class ConfigLoader(yaml.SafeLoader):
+    """PyYAML's SafeLoader with YAML 1.2's integers: decimal (``42``, ``-3``, ``1_000``), ``0x…`` and ``0o…``.
+    YAML 1.1's other forms read a zero-padded number as octal and ``h:mm`` in base 60 (``seed: 0042`` was 34,
+    ``epochs: 1:30`` was 90, while ``008`` was refused); they stay text here, which an integer key refuses."""
+
+
+ConfigLoader.yaml_implicit_resolvers = {
+    first: [(tag, rx) for tag, rx in resolvers if tag != "tag:yaml.org,2002:int"]
+    for first, resolvers in yaml.SafeLoader.yaml_implicit_resolvers.items()}
+for _first in "-+0123456789":  # before the float resolver, as in SafeLoader (so "7" is an int, not a float)
+    ConfigLoader.yaml_implicit_resolvers.setdefault(_first, []).insert(
+        0, ("tag:yaml.org,2002:int", re.compile(r"^(?:[-+]?(?:0|[1-9][0-9_]*)|0x[0-9a-fA-F_]+|0o[0-7_]+)$")))
+
+
 def strict_yaml(text: str) -> Any:
-    """``yaml.safe_load(text)``, but a key given twice in one mapping (``train:`` twice, or ``lr:``
-    twice in one section) is a :class:`DuplicateKeyError`, where ``safe_load`` silently keeps the last."""
-    loader = yaml.SafeLoader(text)
+    """``yaml.safe_load(text)`` with :class:`ConfigLoader`'s integers, and a key given twice in one mapping
+    (``train:`` twice, or ``lr:`` twice in one section) is a :class:`DuplicateKeyError`, where ``safe_load``
+    silently keeps the last."""
+    loader = ConfigLoader(text)
     try:
         node = loader.get_single_node()
         if node is None:
@@ -1289,6 +1309,9 @@ def _coerce(tp: Any, value: Any, key: str) -> Any:
             raise ConfigError(f"config key '{key}' must be true or false, got {value!r}")
         return value
     if tp is int:
+        if isinstance(value, str) and re.fullmatch(r"[-+]?0[0-9_]+", value.strip()):  # ConfigLoader: YAML 1.1's octal
+            raise ConfigError(f"config key '{key}' must be an integer without leading zeros, got {value!r} (write "
+                              f"{int(value.replace('_', ''))}; YAML 1.1 would read it as an octal number)")
         if isinstance(value, bool) or not isinstance(value, int):
             raise ConfigError(f"config key '{key}' must be an integer, got {value!r}")
         return value
