@@ -87,7 +87,7 @@ def test_pack_refuses_an_evaluation_with_another_config_or_method(runs, tmp_path
     noisy, box = tmp_path / "ev_noisy", tmp_path / "ev_box"
     assert main(["evaluate", "--run", str(a), "--set", "camera.sensor.sigma=0.05", "--out", str(noisy)]) == 0
     with pytest.raises(InputError, match=rf"ev_noisy/results.json: an evaluation of {a} with another config .*"
-                                         r"evaluated with --set overrides, or the run was trained on since; "
+                                         r"evaluated with --set overrides, the run trained on since, or an older hsicam evaluated it .*; "
                                          rf"evaluate this run \(`hsicam evaluate --run {a} --out DIR`\)"):
         pack_pretrained(a, "x", tmp_path / "root", noisy / "results.json")
     assert main(["evaluate", "--method", "doe-box-demosaic", "--run", str(a), "--out", str(box)]) == 0

@@ -246,8 +246,9 @@ def check_results_of_run(data: dict[str, Any], source: Path, run_dir: Path, opti
     if isinstance(recorded_hash, str) and recorded_hash != this_hash:
         if same:
             raise InputError(f"{source}: an evaluation of {run_dir} with another config (config hash {recorded_hash}; its "
-                             f"config.yaml hashes to {this_hash}): evaluated with --set overrides, or the run was "
-                             f"trained on since; {again} (no --set)")
+                             f"config.yaml hashes to {this_hash}): evaluated with --set overrides, the run trained on "
+                             f"since, or an older hsicam evaluated it (the hash covers every config key, defaults "
+                             f"included, and keys were added since); {again} (no --set)")
         raise InputError(f"{source}: results of another run ({rec_path or '?'}, config hash {recorded_hash}), not of "
                          f"{run_dir} (config hash {this_hash}); {again}")
     if same_weights:
