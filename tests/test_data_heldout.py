@@ -190,3 +190,62 @@ def test_heldout_dataset_is_cached_apart(tmp_path, monkeypatch):
     # the default dataset (presets) holds out DEFAULT_HOLDOUT; holding out nothing is another set
     assert syn.cache_key(2, 24, 1, PAPER) != syn.cache_key(2, 24, 1, PAPER, holdout_sources=())
     assert syn.parameters(2, 24, 1, PAPER)["holdout_sources"] == sorted(syn.DEFAULT_HOLDOUT)
+
+
+TINY = Bands.uniform(420.0, 720.0, 50.0)  # the tiny preset's grid: 50 nm bands need spectra over 356-784 nm
+
+
+def test_held_out_sources_without_a_spectrum_on_the_grid_are_refused_not_replaced_by_training_spectra():
+    """On the tiny grid nist-philips and rawtoaces give no spectrum (their data start at 380 nm), and every role of the
+    held-out library fell back to the training spectra: scenes of training spectra scored as "held-out sources"."""
+    from hsicam.data.spectral_sources import NoHeldOutSpectra
+
+    with pytest.raises(NoHeldOutSpectra, match=r"nist-philips, rawtoaces give no spectrum on bands 420-720 nm, whose "
+                                                r"widths need spectra spanning 356-784 nm \(nist-philips: 22 spectra"):
+        syn.spectral_library(TINY, syn.DEFAULT_HOLDOUT, "heldout")
+    held = syn.spectral_library(TINY, "nist-cqs", "heldout")  # a source that covers the grid: a true held-out set
+    train = syn.spectral_library(TINY, "nist-cqs", "train")
+    assert set(held.reflectance_sources) == {"nist-cqs"} and "nist-cqs" not in set(train.reflectance_sources)
+    assert held.sources["held_out_roles"]["reflectances"]
+
+
+def test_no_held_out_scenes_rather_than_false_ones(tmp_path, caplog):
+    """`evaluate`/`demo` score a held-out-sources set beside the validation scenes when the config has one: on a grid
+    its sources do not cover there is none (a warning says why), also when an older hsicam cached a false one."""
+    import logging
+
+    from hsicam.config import load_config
+    from hsicam.data.pipeline import heldout_root
+
+    cfg = load_config("tiny", [f"data.cache_dir={tmp_path}", "data.holdout_sources=nist-philips,rawtoaces"]).data
+    with caplog.at_level(logging.WARNING, logger="hsicam"):
+        assert heldout_root(cfg, TINY, n=1, progress=False) is None
+    assert "no held-out-sources scenes: the held-out sources nist-philips, rawtoaces give no spectrum" in caplog.text
+    fake = syn.dataset_dir(1, cfg.synthetic_size, cfg.synthetic_seed, TINY, cache_dir=tmp_path,
+                           holdout_sources=syn.DEFAULT_HOLDOUT, split="heldout")
+    good = load_config("tiny", [f"data.cache_dir={tmp_path}"]).data  # nist-cqs: a true held-out set
+    root = heldout_root(good, TINY, n=1, progress=False)
+    fake.parent.mkdir(parents=True, exist_ok=True)
+    import shutil
+
+    shutil.copytree(root, fake)  # as an older hsicam left it: its manifest says no role was held out
+    man = json.loads((fake / "manifest.json").read_text())
+    man["parameters"] = syn.parameters(1, cfg.synthetic_size, cfg.synthetic_seed, TINY,
+                                       holdout_sources=syn.DEFAULT_HOLDOUT, split="heldout")
+    man["sources"]["held_out_roles"] = {"reflectances": False, "illuminants": False, "emitters": False}
+    (fake / "manifest.json").write_text(json.dumps(man))
+    caplog.clear()
+    with caplog.at_level(logging.WARNING, logger="hsicam"):
+        assert heldout_root(cfg, TINY, n=1, progress=False) is None
+    assert "was made of the training spectra" in caplog.text
+
+
+def test_data_synth_holds_out_the_configs_sources(tmp_path):
+    """`data synth --config C` took --n, --size and --seed from the config but held out the default sources."""
+    from cli_helpers import run_cli_in_process
+
+    res = run_cli_in_process("data", "synth", "--config", "tiny", "--set", "data.holdout_sources=cie-tcs", "--n", "1",
+                             "--out", str(tmp_path / "d"), "--no-progress")
+    assert res.returncode == 0, res.stderr
+    man = json.loads((tmp_path / "d" / "manifest.json").read_text())
+    assert man["parameters"]["holdout_sources"] == ["cie-tcs"]

@@ -232,7 +232,8 @@ def test_data_outside_a_trained_runs_bands_asks_for_other_data_not_another_grid(
     shutil.copytree(run, resumed)
     res = run_cli_in_process("train", "--out", str(resumed), "--resume", "--set", f"data.root={data}", "--set", "train.epochs=9",
                              env=env)
-    assert_clean_error(res, "the run's bands 420-720 nm", "fixed by its training")
+    # a synthetic run resumed on a folder of scenes: refused as another run's data before its bands are looked at
+    assert_clean_error(res, "not its bands, camera, network, scenes or split: data.root: None →")
     res = run_cli_in_process("train", "--config", "tiny", "--set", f"data.root={data}", "--out", str(tmp_path / "new"), env=env)
     assert_clean_error(res, "the camera's bands 420-720 nm", "use a camera band grid inside 400-700 nm")
     assert not (tmp_path / "new").exists()

@@ -210,7 +210,7 @@ def test_pack_refuses_a_demos_results_once_its_run_trained_on(env, tmp_path):
     assert recorded["config_hash"] == run_config_hash(run)
     demo = shutil.copytree(run.parent, tmp_path / "demo")
     train(load_config(demo / "run" / "config.yaml", ["train.epochs=2"]), demo / "run", resume=True, progress=False)
-    with pytest.raises(InputError, match=r"results of another run|the run was trained on since"):
+    with pytest.raises(InputError, match=r"results of another run|the run trained on since"):
         pack_pretrained(demo / "run", "again", tmp_path / "root", demo / "results.json")
     assert not (tmp_path / "root").exists()
     linear = tmp_path / "linear"

@@ -23,7 +23,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     s.add_argument("--seed", type=seed_arg(0), default=None, help="random seed (default: data.synthetic_seed)")
     s.add_argument("--holdout-sources", metavar="IDS", default=None,
                    help="comma-separated spectral source ids whose spectra never reach the training scenes "
-                        "(default: nist-philips,rawtoaces; 'none' for none; see `hsicam data sources`)")
+                        "(default: the config's data.holdout_sources, nist-philips,rawtoaces in most presets; "
+                        "'none' for none; see `hsicam data sources`)")
     s.add_argument("--split", choices=("train", "heldout"), default="train",
                    help="train (default): scenes without the held-out sources; heldout: the held-out "
                         "validation set, made only of the held-out sources' spectra")
@@ -54,7 +55,6 @@ def register(sub: argparse._SubParsersAction) -> None:
 def _synth(args: argparse.Namespace) -> int:
     from hsicam.cli import config_from_args
     from hsicam.data.synthetic import (
-        DEFAULT_HOLDOUT,
         HELDOUT_N,
         generate_dataset,
         is_complete,
@@ -73,7 +73,8 @@ def _synth(args: argparse.Namespace) -> int:
         from hsicam.data.synthetic import check_dataset_folder
 
         check_dataset_folder(prepare_output(args.out, "dir"))
-    holdout = DEFAULT_HOLDOUT if args.holdout_sources is None else parse_holdout(args.holdout_sources)
+    # the config's held-out sources, as training takes them (a set made here then is the one its cache key names)
+    holdout = parse_holdout(cfg.data.holdout_sources if args.holdout_sources is None else args.holdout_sources)
     split = args.split
     if args.n is not None:
         n = args.n

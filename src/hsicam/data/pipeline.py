@@ -90,9 +90,35 @@ def heldout_root(cfg: DataConfig, bands: Bands, n: int | None = None, progress: 
     holdout = parse_holdout(getattr(cfg, "holdout_sources", DEFAULT_HOLDOUT))
     if not holdout:
         return None
+    from hsicam.data.spectral_sources import NoHeldOutSpectra
+
     n = (getattr(cfg, "heldout_n", HELDOUT_N) if n is None else n)
-    return heldout_dataset(n, cfg.synthetic_size, cfg.synthetic_seed, bands,
-                           cache_dir=cfg.cache_dir, progress=progress, holdout_sources=holdout)
+    try:
+        root = heldout_dataset(n, cfg.synthetic_size, cfg.synthetic_seed, bands,
+                               cache_dir=cfg.cache_dir, progress=progress, holdout_sources=holdout)
+    except NoHeldOutSpectra as exc:  # e.g. the tiny preset's 50 nm bands: no held-out set rather than a false one
+        log.warning("no held-out-sources scenes: %s", exc)
+        return None
+    roles = heldout_roles(root)
+    if roles is not None and not any(roles.values()) and "otsu2018" not in holdout:  # cached by an older hsicam, which built it of training spectra
+        log.warning("no held-out-sources scenes: %s was made of the training spectra (its held-out sources %s give no "
+                    "spectrum on these bands)", root, ", ".join(holdout))
+        return None
+    return root
+
+
+def heldout_roles(root: Path) -> dict[str, bool] | None:
+    """A held-out set's ``sources.held_out_roles`` from its manifest ({role: whether held-out spectra fill it}), or
+    None when the manifest does not say."""
+    import json
+
+    from hsicam.data.synthetic import MANIFEST
+
+    try:
+        roles = json.loads((Path(root) / MANIFEST).read_text(encoding="utf-8")).get("sources", {}).get("held_out_roles")
+    except (OSError, ValueError, AttributeError):
+        return None
+    return roles if isinstance(roles, dict) else None
 
 
 def _should_preload(cfg: DataConfig, scenes: list[Path]) -> bool:

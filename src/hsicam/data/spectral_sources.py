@@ -393,6 +393,11 @@ def _same_as_any(x: np.ndarray, ref: np.ndarray, atol: float) -> np.ndarray:
     return d.min(axis=1) <= atol
 
 
+class NoHeldOutSpectra(InputError):
+    """The held-out sources give no spectrum on this band grid (each is used only where it covers the grid's
+    range, ±10 nm): a held-out set of them would be made of the training spectra alone."""
+
+
 def split_library(lib: SpectralLibrary, holdout_sources: str | Iterable[str] | None, split: str) -> SpectralLibrary:
     """The training or held-out part of a full library.
 
@@ -435,6 +440,15 @@ def split_library(lib: SpectralLibrary, holdout_sources: str | Iterable[str] | N
             idx = train_idx
         parts[role] = (arr[idx], [names[i] for i in idx], [srcs[i] for i in idx])
     otsu_ok = ("otsu2018" in held) == (split == "heldout")
+    if split == "heldout" and "otsu2018" not in held and not any(s in held for role in parts for s in parts[role][2]):
+        # every role would fall back to the training spectra: scenes scored as "held-out sources" that are not
+        skipped = lib.sources.get("not_used_out_of_range") or {}
+        why = "; ".join(f"{src}: {len(skipped[src])} spectra do not span the grid" for src in holdout if src in skipped)
+        raise NoHeldOutSpectra(
+            f"the held-out sources {', '.join(holdout)} give no spectrum on bands {lib.bands.min_nm:g}-"
+            f"{lib.bands.max_nm:g} nm, whose widths need spectra spanning {_fine_grid(lib.bands)[0]:g}-"
+            f"{_fine_grid(lib.bands)[-1]:g} nm ({why or 'none of their spectra is in the library'}): a held-out set would be "
+            "the training spectra; hold out sources that cover these bands (`hsicam data sources`)")
     if parts["reflectances"][0].shape[0] == 0 and not otsu_ok:
         raise InputError(f"holding out {', '.join(holdout)} leaves no reflectance for the {split} scenes")
     if parts["illuminants"][0].shape[0] == 0:
@@ -549,6 +563,7 @@ class OtsuModel:
 
 __all__ = [
     "DEFAULT_HOLDOUT",
+    "NoHeldOutSpectra",
     "OtsuModel",
     "ReflectanceBasis",
     "SAME_SPECTRUM_ATOL",
