@@ -741,8 +741,11 @@ class DataConfig:
         if self.root is None and self.patch_px + margin_px > self.synthetic_size:
             raise ConfigError(f"data.patch_px {self.patch_px} plus the camera margin of {margin_px} px needs scenes of "
                               f"{self.patch_px + margin_px} px, but the synthetic scenes are data.synthetic_size="
-                              f"{self.synthetic_size} px: lower data.patch_px to <= {self.synthetic_size - margin_px} "
-                              f"or raise data.synthetic_size")
+                              f"{self.synthetic_size} px: " + (
+                                  f"lower data.patch_px to <= {self.synthetic_size - margin_px} or raise "
+                                  "data.synthetic_size" if self.synthetic_size - margin_px >= max(MIN_PATCH_PX, code_period)
+                                  else f"raise data.synthetic_size to >= {max(MIN_PATCH_PX, code_period) + margin_px} "
+                                       f"(a patch has at least {max(MIN_PATCH_PX, code_period)} px)"))
 
     def __post_init__(self) -> None:
         for name in ("synthetic_n", "patch_px", "patches_per_epoch", "val_patches"):
