@@ -355,3 +355,19 @@ def test_data_show_refuses_an_npy_grid_of_the_wrong_length_in_one_line(tmp_path)
     res = run_cli_in_process("data", "show", str(data), "--out", str(tmp_path / "o"),
                              "--set", "data.npy_bands={start_nm: 700, stop_nm: 420, step_nm: 10}")
     assert_clean_error(res, "data.npy_bands.stop_nm")
+
+
+def test_a_band_narrower_than_the_fine_grid_samples_its_centre():
+    """0.3 nm bands centred between the 1 nm samples had no sample within ±3σ: 0/0 rows, NaN spectra, and the
+    generator blamed the illuminants' range. Such a band is a point sample: linear interpolation at its centre."""
+    from hsicam.spectral.bands import band_matrix
+
+    fine = np.arange(400.0, 731.0, 1.0)
+    bands = Bands(np.array([420.5, 430.6, 600.0]), np.array([0.3, 0.3, 10.0]))
+    g = band_matrix(bands, fine)
+    assert np.isfinite(g).all() and np.allclose(g.sum(axis=1), 1.0)
+    f = np.sin(fine / 17.0) + fine / 300.0
+    np.testing.assert_allclose((g @ f)[:2], np.interp([420.5, 430.6], fine, f), rtol=1e-12)
+    wide = np.exp(-0.5 * ((fine - 600.0) / (10.0 / 2.3548200450309493)) ** 2)
+    wide[np.abs(fine - 600.0) > 3 * 10.0 / 2.3548200450309493] = 0.0
+    np.testing.assert_allclose(g[2], wide / wide.sum(), rtol=1e-12)  # a band wider than the grid: unchanged

@@ -168,10 +168,21 @@ class Bands:
 
 
 def band_matrix(bands: Bands, fine_nm: np.ndarray) -> np.ndarray:
-    """G (C, F): band-averaging weights of each band's Gaussian response (FWHM) on the fine grid."""
+    """G (C, F): band-averaging weights of each band's Gaussian response (FWHM) on the fine grid. A band so
+    narrow that no fine sample lies within its ±3σ (e.g. 0.3 nm wide at 420.5 nm on a 1 nm grid) samples the
+    spectrum at its centre by linear interpolation (its rows were 0/0, NaN spectra)."""
+    fine_nm = np.asarray(fine_nm, dtype=np.float64)
     sigma = bands.fwhm_nm / (2.0 * np.sqrt(2.0 * np.log(2.0)))
     g = np.exp(-0.5 * ((fine_nm[None, :] - bands.centers_nm[:, None]) / sigma[:, None]) ** 2)
     g[np.abs(fine_nm[None, :] - bands.centers_nm[:, None]) > 3.0 * sigma[:, None]] = 0.0
+    for c in np.flatnonzero(g.sum(axis=1) == 0.0):  # narrower than the grid: a point sample
+        x = float(np.clip(bands.centers_nm[c], fine_nm[0], fine_nm[-1]))
+        j = int(np.clip(np.searchsorted(fine_nm, x) - 1, 0, max(len(fine_nm) - 2, 0)))
+        if len(fine_nm) == 1:
+            g[c, 0] = 1.0
+            continue
+        t = (x - fine_nm[j]) / (fine_nm[j + 1] - fine_nm[j])
+        g[c, j], g[c, j + 1] = 1.0 - t, t
     return g / g.sum(axis=1, keepdims=True)
 
 
