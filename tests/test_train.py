@@ -479,3 +479,20 @@ def test_weights_files_are_byte_identical_for_the_same_weights(tmp_path):
     assert list(header["__metadata__"]) == sorted(meta)
     with safe_open(str(tmp_path / "w0.safetensors"), framework="pt") as fh:  # the reader itself accepts it
         assert fh.metadata() == meta
+
+
+def test_a_camera_noise_level_that_training_does_not_draw_is_warned_about(caplog):
+    """camera.sensor.sigma=0.01 alone trained noise-free (each step draws σ_s from train.sensor_sigma, [0, 0]) and
+    validated noisy, without a word."""
+    import logging
+
+    from hsicam.engine.train import warn_camera_noise_not_trained
+
+    with caplog.at_level(logging.WARNING, logger="hsicam"):
+        lines = warn_camera_noise_not_trained(tiny_cfg("camera.sensor.sigma=0.01", "camera.doe.sigma_height_nm=20"))
+    assert len(lines) == 2 and [r.getMessage() for r in caplog.records] == lines
+    assert "sensor noise σ_s 0.01 is used by the validation and the evaluation only" in lines[0]
+    assert "--set train.sensor_sigma=[0.01,0.01]" in lines[0] and "train.sigma_height_nm=[20,20]" in lines[1]
+    assert tiny_cfg("camera.sensor.sigma=0.01", "train.sensor_sigma=[0.01,0.01]").train.sensor_sigma == [0.01, 0.01]
+    assert warn_camera_noise_not_trained(tiny_cfg("camera.sensor.sigma=0.01", "train.sensor_sigma=[0,0.02]")) == []
+    assert warn_camera_noise_not_trained(tiny_cfg()) == []

@@ -202,7 +202,8 @@ class DOEConfig:
     max_height_nm: Optional[float] = None  # clamp heights to [0, max] (straight-through gradient)
     wrap: bool = False  # wrap heights modulo h_2π (phase wrapping)
     quantization_levels: Optional[int] = None  # L levels over [0, h_2π] (straight-through gradient)
-    sigma_height_nm: float = 0.0  # fabrication noise, i.i.d. Gaussian per cell, per forward pass
+    sigma_height_nm: float = 0.0  # fabrication noise, i.i.d. Gaussian per cell, per forward pass (validation and
+    # evaluation; training draws its level per step from train.sigma_height_nm)
 
     def __post_init__(self) -> None:
         _positive("camera.doe", cell_size_um=self.cell_size_um, design_wavelength_nm=self.design_wavelength_nm,
@@ -285,7 +286,8 @@ class SensorConfig:
 
     pixel_pitch_um: float = 6.0
     noise: Literal["none", "gaussian", "poisson_gaussian"] = "gaussian"
-    sigma: float = 0.0  # Gaussian σ_s on the [0, 1]-scaled image (gaussian; added to poisson_gaussian's noise too)
+    sigma: float = 0.0  # Gaussian σ_s on the [0, 1]-scaled image (gaussian; added to poisson_gaussian's noise too);
+    # validation and evaluation: training draws its σ_s per step from train.sensor_sigma
     full_well_e: float = 10000.0  # poisson_gaussian: electrons at signal 1.0
     read_noise_e: float = 2.0  # poisson_gaussian: read noise σ in electrons
     bit_depth: Optional[int] = None  # quantise to 2^bits levels over [0, 1] (clipping)

@@ -4,6 +4,7 @@
 
 from __future__ import annotations
 
+import logging
 from pathlib import Path
 from typing import Any
 
@@ -13,6 +14,8 @@ from hsicam.config import Config
 from hsicam.engine.loop import FitOptions, fit
 from hsicam.engine.tasks import SystemTask
 from hsicam.models import CameraSystem
+
+log = logging.getLogger(__name__)
 
 
 def build_optimizer(cfg: Config, model: CameraSystem) -> torch.optim.Optimizer:
@@ -39,10 +42,29 @@ def train(cfg: Config, run_dir: str | Path, resume: bool = False, progress: bool
         from hsicam.runs.folder import check_train_can_resume
 
         check_train_can_resume(Path(run_dir))
+    warn_camera_noise_not_trained(cfg)
     torch.manual_seed(cfg.train.seed)
     task = SystemTask(cfg, CameraSystem.from_config(cfg))
     opts = FitOptions(cfg.train, cfg.data.num_workers, progress=progress, stop_after_steps=stop_after_steps)
     return fit(task, opts, run_dir, resume, then=lambda summary: _refresh(run_dir, cfg, summary))
+
+
+def warn_camera_noise_not_trained(cfg: Config) -> list[str]:
+    """Log (and return) a warning for each noise level of the camera (``camera.sensor.sigma``,
+    ``camera.doe.sigma_height_nm``) that training does not draw: each step draws its levels from the ``train``
+    ranges (:func:`hsicam.engine.tasks.draw_noise`), so a camera σ with a range of [0, 0] is seen only by
+    the validation and the evaluation."""
+    t, cam = cfg.train, cfg.camera
+    lines = []
+    for what, level, key, rng in (("sensor noise σ_s", cam.sensor.sigma, "sensor_sigma", t.sensor_sigma),
+                                  ("DOE height noise σ_p (nm)", cam.doe.sigma_height_nm, "sigma_height_nm",
+                                   t.sigma_height_nm)):
+        if level > 0 and max(rng) == 0:
+            lines.append(f"the camera's {what} {level:g} is used by the validation and the evaluation only: training "
+                         f"draws it from train.{key} = {list(rng)}; to train with it: --set train.{key}=[{level:g},{level:g}]")
+    for line in lines:
+        log.warning("%s", line)
+    return lines
 
 
 def _refresh(run_dir: str | Path, cfg: Config, summary: dict[str, Any]) -> dict[str, Any]:
