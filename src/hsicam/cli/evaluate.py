@@ -16,26 +16,26 @@ log = logging.getLogger(__name__)
 
 
 def _method_names() -> tuple[str, ...]:
-    from hsicam.engine.methods import METHOD_ALIASES, method_names
+    from hsicam.engine.names import METHOD_NAMES  # torch-free; a test holds it equal to the methods' registry
 
-    return (*method_names(), *METHOD_ALIASES)
+    return METHOD_NAMES
 
 
 def _experiment_names() -> tuple[str, ...]:
-    from hsicam.engine.experiments import EXPERIMENTS
+    from hsicam.engine.names import EXPERIMENTS
 
     return EXPERIMENTS
 
 
 def _scale_names() -> tuple[str, ...]:
-    from hsicam.engine.experiments import SCALES
+    from hsicam.engine.names import SCALES
 
     return SCALES
 
 
 def register(sub: argparse._SubParsersAction) -> None:
     # the registries' names are read when a value is checked or a command's help written (RegistryChoices),
-    # not now: they import torch and the methods, and building the parser should not wait for that
+    # from hsicam.engine.names: torch-free, so neither this parser nor a command's help waits for torch
     p = sub.add_parser("evaluate", help="evaluate a camera + reconstruction method on a dataset")
     add_config_args(p)
     add_run_arg(p, "trained run folder (needed by learned methods)", required=False)

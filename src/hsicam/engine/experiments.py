@@ -26,6 +26,7 @@ from hsicam.data.pipeline import absolute_data_paths
 from hsicam.engine.evaluate import TestNoise, evaluate_method, scored_region, summarize
 from hsicam.engine.linear_step import refresh_linear_step
 from hsicam.engine.methods import baseline_names, build_method, sensor_border_px
+from hsicam.engine.names import EXPERIMENTS, SCALES  # their one home (the CLI reads them torch-free)
 from hsicam.engine.prior import ensure_choi_prior
 from hsicam.engine.train import train
 from hsicam.errors import InputError
@@ -34,8 +35,6 @@ from hsicam.runs.checkpoint import kept_checkpoint
 
 log = logging.getLogger(__name__)
 
-EXPERIMENTS = ("compare", "ablation", "noise", "cfa-period")
-SCALES = ("tiny", "quick", "paper")
 NOISE_SIGMA_HEIGHT_NM = (0.0, 15.0, 30.0, 45.0, 60.0)
 NOISE_SIGMA_SENSOR = (0.0, 0.0025, 0.005, 0.0075, 0.01)
 CFA_PERIODS = (3, 6, 9, 12, 15)

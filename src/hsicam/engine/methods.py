@@ -49,6 +49,7 @@ from hsicam.data.pipeline import scene_dataset, split_dataset
 from hsicam.engine.prior import load_prior
 from hsicam.errors import InputError
 from hsicam.engine.linear_step import LINEAR_MAP_RIDGE, fit_linear_map
+from hsicam.engine.names import METHOD_ALIASES  # old name → registered name (the CLI reads it torch-free)
 from hsicam.models.demosaic import camera_demosaic, phase_linear
 from hsicam.runs.folder import linear_step_problem, load_run
 from hsicam.runs.pretrained import resolve_run
@@ -91,7 +92,6 @@ class Method:
 
 Builder = Callable[[Any, "str | Path | None", "str | torch.device"], Method]
 METHODS: dict[str, Builder] = {}
-METHOD_ALIASES: dict[str, str] = {"doe-rdn": "doe-learned"}  # old name → registered name
 
 
 def register_method(name: str) -> Callable[[Builder], Builder]:
