@@ -5,7 +5,9 @@ and memory do not depend on the weight values), writes a 12-bit-in-16-bit TIFF c
 dark frame and a flat field, and runs ``hsicam reconstruct`` (black level, dark, flat averaged
 over the CFA period, exposure normalisation, tiles) in a child process. Reports the wall time and
 the child's peak resident memory (``ru_maxrss`` from ``os.wait4``) against the 4 GiB target.
-Prints one JSON object.
+Prints one JSON object. A reconstruct that fails measured nothing: ``wall_s``, ``megapixels_per_s`` and
+``within_target`` are then null, ``exit_code`` and ``error_tail`` (its output's tail) say why, and the benchmark
+exits 1.
 
 Run: ``.venv/bin/python benchmarks/bench_capture.py [--size 2048] [--tile 512] [--threads N]``.
 """
@@ -60,17 +62,25 @@ def make_capture(d: Path, size: int) -> None:
     tifffile.imwrite(d / "flat.tif", flat)
 
 
+#: How much of a child's output (its stdout and stderr, interleaved) the benchmark keeps: the tail.
+TAIL_CHARS = 800
+
+
 def run_child(cmd: list[str], env: dict) -> tuple[float, int, int, str]:
-    """(wall s, peak RSS bytes, exit code, stderr tail) of a child process."""
-    t0 = time.perf_counter()
-    proc = subprocess.Popen(cmd, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
-    _, status, usage = os.wait4(proc.pid, 0)
-    wall = time.perf_counter() - t0
-    out = proc.stdout.read().decode() if proc.stdout else ""
-    err = proc.stderr.read().decode() if proc.stderr else ""
-    proc.returncode = os.waitstatus_to_exitcode(status)
+    """(wall s, peak RSS bytes, exit code, output tail) of a child process. Its stdout and stderr go to one temporary
+    file, not a pipe: a pipe that nobody reads while ``os.wait4`` waits (for the child's ``ru_maxrss``) would block a
+    child writing more than the pipe's buffer (64 KiB) for ever."""
+    with tempfile.TemporaryFile() as log:
+        t0 = time.perf_counter()
+        proc = subprocess.Popen(cmd, env=env, stdin=subprocess.DEVNULL, stdout=log, stderr=subprocess.STDOUT)
+        _, status, usage = os.wait4(proc.pid, 0)
+        wall = time.perf_counter() - t0
+        proc.returncode = os.waitstatus_to_exitcode(status)
+        size = log.seek(0, os.SEEK_END)
+        log.seek(max(0, size - 4 * TAIL_CHARS))  # the tail only (UTF-8: at most 4 bytes a character)
+        tail = log.read().decode(errors="replace")[-TAIL_CHARS:]
     rss = usage.ru_maxrss * (1 if sys.platform == "darwin" else 1024)
-    return wall, rss, proc.returncode, (out + err)[-800:]
+    return wall, rss, proc.returncode, tail
 
 
 def main() -> None:
@@ -94,30 +104,38 @@ def main() -> None:
                *(["--tile", str(args.tile)] if args.tile else [])]
         wall, rss, rc, tail = run_child(cmd, env)
         # the same child doing nothing but start up and load the run: the fixed part of the memory
-        base_wall, base_rss, _, _ = run_child([sys.executable, "-c", "import torch, hsicam.cli, hsicam.models"], env)
+        base_wall, base_rss, base_rc, base_tail = run_child(
+            [sys.executable, "-c", "import torch, hsicam.cli, hsicam.models"], env)
         out_bytes = (d / "cube.h5").stat().st_size if (d / "cube.h5").exists() else None
+    ok = rc == 0  # a reconstruct that failed measured nothing: its time, rate and verdict are null, the exit non-zero
     result = {
         "benchmark": "reconstruct a raw capture in tiles (hsicam reconstruct, CPU)",
         "capture_px": [args.size, args.size],
         "tile_px": args.tile or "reconstruct's default (hsicam.engine.inference.default_tile_px)",
         **facts,
         "exit_code": rc,
-        "wall_s": round(wall, 2),
-        "megapixels_per_s": round(args.size**2 / 1e6 / wall, 4),
+        "wall_s": round(wall, 2) if ok else None,
+        "megapixels_per_s": round(args.size**2 / 1e6 / wall, 4) if ok else None,
         "peak_rss_bytes": rss,
         "peak_rss_gib": round(rss / 2**30, 3),
         "target_gib": TARGET_BYTES / 2**30,
-        "within_target": rss < TARGET_BYTES,
-        "interpreter_and_imports_rss_gib": round(base_rss / 2**30, 3),
+        "within_target": rss < TARGET_BYTES if ok else None,
+        "interpreter_and_imports_rss_gib": round(base_rss / 2**30, 3) if base_rc == 0 else None,
         "output_h5_bytes": out_bytes,
         "threads": args.threads or os.environ.get("OMP_NUM_THREADS", "default"),
         "cpu_count": os.cpu_count(),
         "machine": platform.machine(),
         "python": platform.python_version(),
     }
-    if rc != 0:
+    if not ok:
         result["error_tail"] = tail
+    if base_rc != 0:
+        result["imports_exit_code"], result["imports_error_tail"] = base_rc, base_tail
     print(json.dumps(result, indent=2))
+    if not ok or base_rc != 0:
+        failed = f"hsicam reconstruct exited {rc}" if not ok else f"the imports-only child exited {base_rc}"
+        print(f"bench_capture: {failed}; nothing measured (the JSON's error tails say why)", file=sys.stderr)
+        sys.exit(1)
 
 
 if __name__ == "__main__":

@@ -6,7 +6,9 @@ another preset's camera and training batch, ``--device cuda`` on a GPU):
 - a full training step (camera forward, network forward + backward, optics backward, Adam) on a
   batch of ``train.batch_size`` patches of ``data.patch_px``, split into the optics (PSF + camera
   and their backward) and the network (forward + backward; for the unrolled network this includes
-  its own snapshot of the operator: one more PSF computation and the A/Aᵀ of its stages);
+  its own snapshot of the operator: one more PSF computation and the A/Aᵀ of its stages); the network set up
+  as training sets it up (``timing.as_trained``, i.e. ``SystemTask.on_device``: ``train.bf16``'s bfloat16 autocast,
+  on CUDA only, ``train.channels_last``, ``train.compile``; the JSON's ``train_*`` say which applied);
 - one 512×512 reconstruction (31 bands), network only, no gradient;
 - for ``quick``, also the whole inference the demo runs (``infer_512_with_steps_s``): the network, then the
   preset's measurement-consistency steps (the linear step, with zero filters of the fitted shape, which
@@ -50,7 +52,8 @@ from pathlib import Path
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from timing import allocator_option, apply_allocator, median_time, synchronize, untrained_system_for_inference  # noqa: E402
+from timing import (allocator_option, apply_allocator, as_trained, median_time, synchronize,  # noqa: E402
+                    untrained_system_for_inference)
 
 from hsicam.cameras import build_camera  # noqa: E402
 from hsicam.config import load_config  # noqa: E402
@@ -74,19 +77,26 @@ KINDS = {
 }
 
 
-def build(kind: str, cfg, device: torch.device):
-    """(camera, network module, reconstruct(sensor) callable), on ``device``."""
+def build(kind: str, cfg, device: torch.device, training: bool = False):
+    """(camera, network module, reconstruct(sensor) callable), on ``device``; the callable is a bound method of the
+    :class:`CameraSystem` holding both. ``training``: that system set up for ``cfg``'s training step as training sets
+    it up (:func:`timing.as_trained`: ``train.bf16``'s autocast on CUDA, ``train.channels_last``, ``train.compile``);
+    else as a trained run is read for inference (float32, the default memory format)."""
     torch.manual_seed(0)
     if kind in ("quick", "rdn"):
         system = CameraSystem.from_config(cfg if kind == "quick" else load_config("quick", ["model.kind=rdn"])).to(device)
-        return system.camera, system.net, system.reconstruct
-    cam = build_camera(cfg).to(device)
-    net = KINDS[kind](cam).to(device)
-    return cam, net, lambda s: net(s, cam)
+        recon = system.reconstruct
+    else:
+        cam = build_camera(cfg).to(device)
+        system = CameraSystem(cam, KINDS[kind](cam)).to(device)
+        recon = system.network  # the network alone (no consistency step), under the system's autocast
+    if training:
+        as_trained(system, cfg, device)
+    return system.camera, system.net, recon
 
 
 def train_step(kind: str, cfg, steps: int, device: torch.device) -> dict:
-    cam, net, recon = build(kind, cfg, device)
+    cam, net, recon = build(kind, cfg, device, training=True)
     params = list(net.parameters()) + [p for p in cam.parameters() if p.requires_grad]
     opt = torch.optim.Adam(params, lr=1e-4)
     b, p, m = cfg.train.batch_size, cfg.data.patch_px, cam.margin
@@ -223,6 +233,9 @@ def main() -> None:
         torch.set_num_threads(args.threads)
     cfg = load_config(args.config)
     out = {"preset": args.config, "device": str(device), "batch": cfg.train.batch_size, "patch_px": cfg.data.patch_px,
+           # the training step's settings, as training applies them (timing.as_trained; autocast is CUDA's only)
+           "train_bf16_autocast": bool(cfg.train.bf16 and device.type == "cuda"),
+           "train_channels_last": bool(cfg.train.channels_last), "train_compile": bool(cfg.train.compile),
            "threads": torch.get_num_threads(), "keep_freed_memory": kept, "load_avg_1min_start": os.getloadavg()[0],
            "kinds": {}}
     if device.type == "cuda":

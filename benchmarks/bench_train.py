@@ -4,8 +4,9 @@
   the preset's loss: L1 and its optional terms, e.g. quick's SSIM term; backward, Adam) for the ``quick`` preset on this machine, with the time split between the
   optics (PSF + camera) and the network, forward and backward.
 - The same preset's step once the optics are fixed (``train.optics_steps``): network only.
-- With CUDA: the same for the ``paper`` preset (256 px patches, bf16 autocast, channels_last).
-- Inference time of one 512×512×31 reconstruction (network only) for the quick and paper networks.
+- With CUDA: the same for the ``paper`` preset (256 px patches, bf16 autocast, channels_last). Each step's model is
+  set up as training sets it up (``timing.as_trained``: ``SystemTask.on_device``).
+- Inference time of one 512×512 reconstruction (network only; all the preset's bands) for the quick and paper networks.
 - The measurement-consistency steps after the network (``model.consistency``, one iteration, the
   Landweber step and the linear step of the quick preset) on
   512×512, through the shipped ``standard`` camera's trained PSFs (the untrained quick camera's
@@ -26,7 +27,7 @@ from pathlib import Path
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from timing import allocator_option, apply_allocator  # noqa: E402
+from timing import allocator_option, apply_allocator, as_trained  # noqa: E402
 
 from hsicam.config import load_config  # noqa: E402
 from hsicam.engine.tasks import system_loss  # noqa: E402
@@ -42,11 +43,7 @@ def _sync(device: torch.device) -> None:
 def train_steps(preset: str, device: torch.device, steps: int, overrides: list[str]) -> dict:
     cfg = load_config(preset, overrides)
     torch.manual_seed(0)
-    model = CameraSystem.from_config(cfg).to(device)
-    if device.type == "cuda" and cfg.train.bf16:
-        model.autocast_dtype = torch.bfloat16
-    if cfg.train.channels_last:
-        model.net.to(memory_format=torch.channels_last)
+    model = as_trained(CameraSystem.from_config(cfg).to(device), cfg, device)  # bf16 autocast (CUDA), channels_last
     opt = build_optimizer(cfg, model)
     b, p, m = cfg.train.batch_size, cfg.data.patch_px, model.camera.margin
     scene = torch.rand(b, len(model.bands), p + m, p + m, device=device)
@@ -83,7 +80,7 @@ def fixed_optics_steps(preset: str, device: torch.device, steps: int) -> dict:
     built once, no autograd through the optics), the network trained alone."""
     cfg = load_config(preset)
     torch.manual_seed(0)
-    model = CameraSystem.from_config(cfg).to(device)
+    model = as_trained(CameraSystem.from_config(cfg).to(device), cfg, device)
     opt = torch.optim.Adam(model.net.parameters(), lr=cfg.train.lr)
     b, p, m = cfg.train.batch_size, cfg.data.patch_px, model.camera.margin
     scene = torch.rand(b, len(model.bands), p + m, p + m, device=device)
@@ -120,7 +117,8 @@ def inference(preset: str, device: torch.device, repeats: int = 3) -> dict:
         model.reconstruct(g)
         _sync(device)
         times.append(time.perf_counter() - t0)
-    return {"preset": preset, "device": str(device), "size": [31, 512, 512], "seconds": statistics.median(times)}
+    return {"preset": preset, "device": str(device), "size": [len(model.bands), 512, 512],
+            "seconds": statistics.median(times)}
 
 
 @torch.no_grad()
@@ -139,7 +137,7 @@ def consistency_step_time(run: str = "pretrained:standard", repeats: int = 3) ->
         consistency_step(snap, g, x, damping=c.damping, iterations=c.iterations, psf_energy=c.psf_energy)
         times.append(time.perf_counter() - t0)
     return {"camera": run, "iterations": c.iterations, "kernel_px": cut_psf(snap, c.psf_energy).kernel_px,
-            "size": [31, 512, 512], "seconds": statistics.median(times[1:])}
+            "size": list(x.shape[1:]), "seconds": statistics.median(times[1:])}
 
 
 @torch.no_grad()

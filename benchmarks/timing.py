@@ -57,3 +57,14 @@ def untrained_system_for_inference(system, cfg):
         device = next(system.parameters()).device
         system.linear_step = torch.zeros(m * m, len(system.bands), w, w, device=device)
     return system
+
+
+def as_trained(system, cfg, device):
+    """``system`` (a :class:`~hsicam.models.CameraSystem` on ``device``) set up for ``cfg``'s training step as training
+    sets it up (:meth:`hsicam.engine.tasks.SystemTask.on_device`): ``train.bf16``'s bfloat16 autocast of the network
+    (which :class:`~hsicam.models.CameraSystem` takes off the CPU only), ``train.channels_last``, ``train.compile``.
+    Returns ``system``."""
+    from hsicam.engine.tasks import SystemTask
+
+    SystemTask(cfg, system).on_device(device)
+    return system

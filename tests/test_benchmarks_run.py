@@ -127,3 +127,66 @@ def test_bench_train_runs_one_step():
     out = _run("bench_train.py", "--steps", "1", timeout=900)
     assert out["linear_step_cpu"]["size"] == [31, 512, 512] and out["linear_step_cpu"]["seconds"] > 0
     assert out["consistency_step_cpu"]["seconds"] > 0
+
+
+def _bench_module(name: str):
+    """``benchmarks/NAME.py`` imported (its sibling ``timing`` module importable)."""
+    import importlib
+
+    if str(BENCHMARKS) not in sys.path:
+        sys.path.insert(0, str(BENCHMARKS))
+    return importlib.import_module(name)
+
+
+def test_bench_capture_run_child_reads_a_long_output_and_the_child_memory():
+    """``run_child`` waits for the child (``os.wait4``, for its peak RSS) with its output in a file, not a pipe: a
+    child writing more than a pipe's 64 KiB is not blocked for ever; its exit code, output tail and memory come back."""
+    run_child = _bench_module("bench_capture").run_child
+    code = ("import sys; b = bytearray(200 * 2**20); sys.stdout.write('x' * 200_000); sys.stdout.flush(); "
+            "sys.stderr.write('the end'); sys.exit(3)")
+    wall, rss, rc, tail = run_child([sys.executable, "-c", code], dict(os.environ))
+    assert rc == 3 and tail.endswith("xxthe end") and len(tail) == 800
+    assert rss >= 200 * 2**20 and 0 < wall < 60
+
+
+def test_bench_capture_a_failed_reconstruct_measures_nothing():
+    """A reconstruct that fails (a tile below reconstruct's 16 px) is no measurement: null time, rate and verdict,
+    its exit code and error, and the benchmark exits 1 (it reported a passing 'within_target' before)."""
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    proc = subprocess.run([sys.executable, str(BENCHMARKS / "bench_capture.py"), "--size", "64", "--tile", "3"],
+                          capture_output=True, text=True, timeout=300, env=env)
+    assert proc.returncode == 1, proc.stderr[-3000:]
+    out = json.loads(proc.stdout)
+    assert out["exit_code"] == 2 and "--tile" in out["error_tail"]
+    assert out["wall_s"] is None and out["megapixels_per_s"] is None and out["within_target"] is None
+    assert "hsicam reconstruct exited 2" in proc.stderr
+
+
+def test_bench_networks_times_the_training_step_as_training_sets_it_up():
+    """The step timed for a preset with ``train.bf16`` and ``train.channels_last`` (paper-unrolled) is set up as
+    ``SystemTask.on_device`` sets training up: bf16 autocast of the network (CameraSystem takes it on CUDA only) and
+    channels_last weights, for the preset's own network and the other kinds; inference stays as a run is read."""
+    import torch
+
+    bn = _bench_module("bench_networks")
+    from hsicam.config import load_config
+
+    cfg = load_config("paper-unrolled", ["data.patch_px=16"])
+    assert cfg.train.bf16 and cfg.train.channels_last
+    cpu = torch.device("cpu")
+
+    def conv_channels_last(net) -> bool:
+        return next(p for p in net.parameters() if p.dim() == 4).is_contiguous(memory_format=torch.channels_last)
+
+    for kind in ("quick", "unrolled-mosaic"):
+        _, net, recon = bn.build(kind, cfg, cpu, training=True)
+        assert recon.__self__.autocast_dtype == torch.bfloat16 and conv_channels_last(net), kind
+    _, net, recon = bn.build("quick", cfg, cpu)
+    assert recon.__self__.autocast_dtype is None and not conv_channels_last(net)
+
+
+def test_bench_train_inference_names_the_preset_bands():
+    import torch
+
+    out = _bench_module("bench_train").inference("tiny", torch.device("cpu"), repeats=1)
+    assert out["size"] == [7, 512, 512] and out["seconds"] > 0
