@@ -239,6 +239,63 @@ def test_measured_psf_energy_and_errors(tiny_camera, tmp_path):
         import_psf_dir(tmp_path / "nope", bands, 10e-6, k)
 
 
+def _gaussian_spots(bands: Bands, size: int = 64, width_px: float = 2.0) -> np.ndarray:
+    """(C, size, size) unit-sum Gaussian spots, centred, one per band (a PSF in energy fractions)."""
+    r = np.arange(size) - size // 2
+    spot = np.exp(-(r[:, None] ** 2 + r[None, :] ** 2) / (2 * width_px**2))
+    return np.repeat((spot / spot.sum())[None], len(bands), axis=0)
+
+
+def test_background_border_is_the_frame_median_and_a_number_is_subtracted(tiny_camera, tmp_path):
+    """No test held `background` (a mutant that never subtracted it passed): a black level of 200 DN with a hot
+    pixel in the frame comes off with `border` (the median ignores the hot pixel) or with the number 200."""
+    cam = tiny_camera()
+    bands, k = cam.bands, cam.kernel_px
+    spots = _gaussian_spots(bands)
+    counts = 40000 * spots / spots.max(axis=(1, 2), keepdims=True)
+    counts[:, 0, 0] = 59800.0  # a hot pixel in the frame: it would lift the frame's mean by ~80 DN, not its median
+    want = import_psf_dir(write_psf_dir(tmp_path / "clean", counts, bands, 10.0, normalize="sum"), bands, 10e-6, k).psf
+    black = counts + 200.0
+    for background in ("border", 200.0):
+        got = import_psf_dir(write_psf_dir(tmp_path / f"b{background}", black, bands, 10.0, normalize="sum",
+                                           background=background), bands, 10e-6, k)
+        np.testing.assert_allclose(got.psf, want, atol=1e-9)
+
+
+def test_a_black_level_left_in_is_warned_about_naming_background(tiny_camera, tmp_path, caplog):
+    """A 200 DN pedestal with the default `background: none` was taken as PSF light (the imported PSF 0.96 off) and
+    the warning sent the user to axis_px and the pitch."""
+    import logging
+
+    cam = tiny_camera()
+    bands, k = cam.bands, cam.kernel_px
+    spots = _gaussian_spots(bands)
+    counts = 40000 * spots / spots.max(axis=(1, 2), keepdims=True) + 200.0
+    with caplog.at_level(logging.WARNING, logger="hsicam"):
+        import_psf_dir(write_psf_dir(tmp_path / "ped", counts, bands, 10.0, normalize="sum"), bands, 10e-6, k)
+    assert "if that is a black level (pedestal, dark current), it is counted as PSF light" in caplog.text
+    assert "set background: border" in caplog.text and ": 0.5 %" in caplog.text  # 200 of 40200 at the peak
+    caplog.clear()
+    with caplog.at_level(logging.WARNING, logger="hsicam"):
+        import_psf_dir(write_psf_dir(tmp_path / "ok", counts, bands, 10.0, normalize="sum", background="border"),
+                       bands, 10e-6, k)
+    assert "black level" not in caplog.text
+
+
+def test_normalize_none_refuses_images_that_are_not_energy_fractions(tiny_camera, tmp_path):
+    """`normalize: none` with 16-bit counts was accepted: a camera ~10⁵ times too bright, fine-tuned on silently."""
+    cam = tiny_camera()
+    bands, k = cam.bands, cam.kernel_px
+    spots = _gaussian_spots(bands)
+    with pytest.raises(InputError, match=r"with normalize: none .* sums to 1\.00\d+e\+06 \(counts\?\): set normalize: sum"):
+        import_psf_dir(write_psf_dir(tmp_path / "dn", 40000 * spots / spots.max(), bands, 10.0, normalize="none"),
+                       bands, 10e-6, k)
+    m = import_psf_dir(write_psf_dir(tmp_path / "frac", 0.9 * spots, bands, 10.0, normalize="none"), bands, 10e-6, k)
+    # fractions kept as given (10 % of the light lost before the image), less what falls outside the kernel
+    np.testing.assert_allclose(m.psf.sum(axis=(1, 2)), 0.9 * np.asarray(m.report["energy_in_kernel"]), rtol=1e-5)
+    assert m.report["psf_dir"] == str((tmp_path / "frac").resolve())
+
+
 def test_fixed_psf_camera_keeps_the_state_dict(tiny_camera):
     cam = tiny_camera()
     with torch.no_grad():
@@ -337,6 +394,12 @@ def test_finetune_cli_errors(fab_run, tmp_path):
     write_json(d / "psf.json", {"pixel_pitch_um": 10.0})
     assert_clean_error(run_cli_in_process("finetune", "--run", str(fab_run), "--psf-dir", str(d), "--out", str(tmp_path / "o")),
                        "no PSF images")
+    assert not (tmp_path / "o").exists()
+    # the camera is what it is: a pixel pitch given here resampled the PSFs for a sensor it does not have
+    for key in ("camera.sensor.pixel_pitch_um=4", "bands.step_nm=10", "camera.cfa.period=3"):
+        assert_clean_error(run_cli_in_process("finetune", "--run", str(fab_run), "--psf-dir", str(d), "--set", key,
+                                              "--out", str(tmp_path / "o")),
+                           f"--set {key.split('=')[0]}: fine-tuning keeps the camera it fine-tunes")
     assert not (tmp_path / "o").exists()
 
 

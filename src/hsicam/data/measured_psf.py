@@ -145,18 +145,37 @@ def centroid(image: np.ndarray) -> tuple[float, float]:
     return float(img.sum(axis=1) @ rows / total), float(img.sum(axis=0) @ cols / total)
 
 
+def border_level(image: np.ndarray) -> float | None:
+    """Median of the outer frame of ``image`` (max(2, 5 %) of the smaller side), or None for an image too small
+    to have one (``background: border``'s estimate)."""
+    img = np.asarray(image, dtype=np.float64)
+    t = max(2, int(0.05 * min(img.shape)))
+    if 2 * t >= min(img.shape):
+        return None
+    frame = np.concatenate([img[:t].ravel(), img[-t:].ravel(), img[t:-t, :t].ravel(), img[t:-t, -t:].ravel()])
+    return float(np.median(frame))
+
+
+#: A border median above this fraction of the image's peak, with ``background: none``, is warned about as a black
+#: level counted as PSF light (a PSF's far tail is orders of magnitude below its peak; a 64 DN pedestal under a
+#: 40 000 DN peak is 0.16 %, and already distorts the PSF by 0.67 of its peak on a 128 px frame).
+PEDESTAL_FRACTION = 1e-3
+
+#: With ``normalize: none`` an image is energy fractions of the band's light: a sum above this is refused.
+MAX_UNNORMALISED_SUM = 1.05
+
+
 def subtract_background(image: np.ndarray, background: str | float) -> tuple[np.ndarray, float]:
     """``image − b`` clipped at 0, with b = 0 (``none``), the median of the outer frame (``border``:
-    a frame of max(2, 5 %) of the smaller side), or the given number. Returns (image, b)."""
+    a frame of max(2, 5 %) of the smaller side, :func:`border_level`), or the given number. Returns (image, b)."""
     img = np.asarray(image, dtype=np.float64)
     if background == "none":
         b = 0.0
     elif background == "border":
-        t = max(2, int(0.05 * min(img.shape)))
-        if 2 * t >= min(img.shape):
+        level = border_level(img)
+        if level is None:
             raise InputError(f"PSF image of {img.shape[0]}×{img.shape[1]} px is too small for border background estimation")
-        frame = np.concatenate([img[:t].ravel(), img[-t:].ravel(), img[t:-t, :t].ravel(), img[t:-t, -t:].ravel()])
-        b = float(np.median(frame))
+        b = level
     else:
         try:
             b = float(background)
@@ -212,6 +231,9 @@ def prepare_psf_image(image: np.ndarray, opts: PSFImportOptions) -> tuple[np.nda
     total = float(img.sum())
     if not total > 0:
         raise InputError("PSF image has no positive signal (after background subtraction)")
+    if opts.normalize == "none" and total > MAX_UNNORMALISED_SUM:  # counts read as energy fractions: ×10⁵ too bright
+        raise InputError(f"with normalize: none a PSF image holds fractions of the band's light, but this one sums to "
+                         f"{total:.4g} (counts?): set normalize: sum in psf.json")
     if opts.normalize == "sum":
         img = img / total
     return img, b, total
@@ -496,9 +518,12 @@ def import_psf_dir(psf_dir: str | Path, bands: Bands, camera_pixel_m: float, ker
             img = img / img.sum()
             total = img if total is None else total + img
         common = find_centre(total, opts.centre)
-    stack, per_band, low = [], [], []
+    stack, per_band, low, floors = [], [], [], []
     for lam, j in zip(bands.centers_nm, chosen):
         w, f, img, _ = items[j]
+        level = border_level(img) if opts.background == "none" else None
+        if level is not None and level > PEDESTAL_FRACTION * float(np.max(img)):
+            floors.append(f"{f.name if f else '?'} ({w:g} nm): {100 * level / float(np.max(img)):.2g} %")
         try:
             psf, rep = import_psf_image(img, opts.pitch_um * 1e-6, camera_pixel_m, kernel_px, opts, common)  # type: ignore[operator]
         except InputError as exc:
@@ -518,17 +543,23 @@ def import_psf_dir(psf_dir: str | Path, bands: Bands, camera_pixel_m: float, ker
         stack.append(psf)
         per_band.append({"band_nm": float(lam), "wavelength_nm": w, "file": f.name if f else None, **rep,
                          "saturated_px": saturated[j]})
+    if floors:  # a black level read as light: each band loses another share of its PSF to it
+        log.warning("%s: the images' borders sit above zero (border median, of the peak: %s) and background is none: "
+                    "if that is a black level (pedestal, dark current), it is counted as PSF light, spread over the whole "
+                    "frame; set background: border (or the black level in the files' units) in psf.json", d,
+                    ", ".join(floors))
     if low:
         log.warning("%s: most of the measured PSF light falls outside the camera's %d×%d px kernel (energy in kernel: "
-                    "%s); the camera model loses it: check axis_px / centre and pixel_pitch_um in psf.json "
-                    "(or --psf-pitch-um), or use a larger camera.psf.kernel_px", d, kernel_px, kernel_px, ", ".join(low))
+                    "%s); the camera model loses it: %scheck axis_px / centre and pixel_pitch_um in psf.json "
+                    "(or --psf-pitch-um), or use a larger camera.psf.kernel_px", d, kernel_px, kernel_px, ", ".join(low),
+                    "subtract the black level first (above), " if floors else "")
     ratio = opts.pitch_um * 1e-6 / camera_pixel_m  # type: ignore[operator]
     if ratio > 1.0 + 1e-9:
         log.warning("measured PSFs are sampled at %.3g µm, coarser than the camera's %.3g µm pixels: "
                     "they are spread uniformly over each measured pixel", opts.pitch_um, camera_pixel_m * 1e6)
     psf = np.stack(stack).astype(np.float32)
     report = {
-        "psf_dir": str(d),
+        "psf_dir": str(Path(d).resolve()),  # absolute: compared with --psf-dir from any working folder
         "pixel_pitch_um": opts.pitch_um,
         "camera_pixel_pitch_um": camera_pixel_m * 1e6,
         "kernel_px": int(kernel_px),

@@ -138,7 +138,7 @@ class FinetuneTask(SystemTask):
 
     def weights_metadata(self) -> dict[str, str]:
         return {"finetuned_from": run_label(self.source_run), "psf_fingerprint": self.measured.fingerprint,
-                "psf_dir": str(self.psf_dir)}
+                "psf_dir": str(Path(self.psf_dir).resolve())}
 
 
 def finetune(run_dir: str | Path, psf_dir: str | Path, out_dir: str | Path, *, overrides: tuple[str, ...] = (),
@@ -162,8 +162,29 @@ def finetune(run_dir: str | Path, psf_dir: str | Path, out_dir: str | Path, *, o
         return _finetune(run_dir, psf_dir, out_dir, overrides, pitch_um, progress, resume, stop_after_steps)
 
 
+#: The camera keys a fine-tuning's ``--set`` may change: the measured PSFs' kernel and the sensor's noise. The others
+#: (and ``bands``) describe the optics the PSFs were measured through: a pixel pitch set here resampled the PSFs and
+#: fine-tuned the network for a sensor the camera does not have, silently (``--psf-pitch-um`` is the PSFs' pitch).
+FINETUNE_CAMERA_KEYS = ("camera.psf.kernel_px", "camera.sensor.noise", "camera.sensor.sigma",
+                        "camera.sensor.full_well_e", "camera.sensor.read_noise_e", "camera.sensor.bit_depth")
+
+
+def check_finetune_overrides(overrides) -> None:
+    """InputError naming the first ``--set`` of a fine-tuning that changes the camera or its bands
+    (other than :data:`FINETUNE_CAMERA_KEYS`)."""
+    from hsicam.config import override_keys
+
+    for key in sorted(override_keys(overrides)):
+        if (key.split(".")[0] in ("camera", "bands") and key not in FINETUNE_CAMERA_KEYS
+                and not any(k.startswith(key + ".") for k in FINETUNE_CAMERA_KEYS)):
+            hint = " (the measured PSFs' own pitch is --psf-pitch-um)" if key == "camera.sensor.pixel_pitch_um" else ""
+            raise InputError(f"--set {key}: fine-tuning keeps the camera it fine-tunes (its optics, sensor and bands); "
+                             f"it may change {', '.join(FINETUNE_CAMERA_KEYS)}, train.* and the data{hint}")
+
+
 def _finetune(run_dir: Path, psf_dir, out_dir: Path, overrides, pitch_um, progress, resume, stop_after_steps):
     # before any work, in fine-tuning's words
+    check_finetune_overrides(overrides)
     if resume:
         check_finetune_resume(out_dir)
     else:
@@ -197,7 +218,7 @@ def _finetune(run_dir: Path, psf_dir, out_dir: Path, overrides, pitch_um, progre
     best = max(vals, key=lambda r: r["val_psnr"]) if vals else None
     summary = {
         "source_run": run_label(run_dir),  # pretrained:NAME for a shipped camera, not its package folder
-        "psf_dir": str(psf_dir),
+        "psf_dir": str(Path(psf_dir).resolve()),  # absolute: the folder named from any working folder
         "psf_fingerprint": measured.fingerprint,
         "frozen": ["camera.optics (DOE)", "camera.cfa"],
         "epochs": cfg.train.epochs,
