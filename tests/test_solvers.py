@@ -641,6 +641,51 @@ def test_cassi_methods_of_a_doe_config_are_scored_on_its_sensor_area(tiny_env):
         assert i.metrics["psnr"] != pytest.approx(w.metrics["psnr"], abs=1e-6)  # the border did count before
 
 
+def test_compare_refuses_a_stale_choi_prior_before_it_changes_its_folder(tiny_env, tmp_path, monkeypatch):
+    """`experiment compare` found a Choi prior trained with other settings only after scoring every other row, having
+    already taken its folder's marker and report away; now refused first, the folder as it was."""
+    from hsicam.engine import experiments
+
+    out = tmp_path / "compare-tiny"
+    run = out / "runs" / "dd-cassi-choi"
+    shutil.copytree(tiny_env["prior"], run)
+    prior_yaml = yaml.safe_load((run / "prior.yaml").read_text())
+    prior_yaml["lr"] = prior_yaml["lr"] * 2
+    (run / "prior.yaml").write_text(yaml.safe_dump(prior_yaml, sort_keys=False))
+    (out / "experiment.json").write_text("{}")
+    (out / "report").mkdir()
+    before = sorted(str(p.relative_to(out)) for p in out.rglob("*"))
+
+    def never(*a, **k):
+        raise AssertionError("trained or scored before the prior was checked")
+
+    monkeypatch.setattr(experiments, "ensure_trained", never)
+    monkeypatch.setattr(experiments, "evaluate_method", never)
+    with pytest.raises(InputError, match=r"dd-cassi-choi was trained with other settings \(baselines.choi.lr: "):
+        experiments.run_experiment("compare", "tiny", out)
+    assert sorted(str(p.relative_to(out)) for p in out.rglob("*")) == before
+
+
+def test_seeds_without_test_noise_score_one_seed(caplog):
+    """`experiment ablation --seeds 3` on a noise-free preset scored the same captures three times (std 0.0), a table
+    that read as replication; one seed is scored, with a warning. The noise experiment, or a preset with camera noise,
+    keeps its seeds."""
+    import logging
+
+    from hsicam.engine.experiments import has_test_noise, scored_seeds
+
+    tiny = load_config("tiny")
+    assert not has_test_noise(tiny)
+    noisy = [load_config("tiny", [o]) for o in ("camera.sensor.sigma=0.01", "camera.sensor.noise=poisson_gaussian",
+                                                "camera.doe.sigma_height_nm=10")]
+    assert all(has_test_noise(c) for c in noisy)
+    with caplog.at_level(logging.WARNING, logger="hsicam"):
+        assert scored_seeds("ablation", "tiny", tiny, (0, 1, 2)) == (0,)
+    assert "has no test noise" in caplog.text and "scoring seed 0 only" in caplog.text
+    assert scored_seeds("noise", "tiny", tiny, (0, 1, 2)) == (0, 1, 2)
+    assert all(scored_seeds("compare", "tiny", c, (0, 1)) == (0, 1) for c in noisy)
+
+
 def test_compare_scores_every_cassi_row_on_the_doe_cameras_area(monkeypatch, tmp_path):
     """`hsicam experiment compare`: the learned CASSI rows (whose own configs are CASSI configs) and the
     iterative ones are all scored without the DOE camera's border."""

@@ -169,7 +169,8 @@ def bounded_count_arg(most: int, each: str) -> Callable[[str], int]:
 #: The most seeds ``--seeds`` takes (``evaluate``, ``experiment``), and fabricated DOEs ``tolerance --draws`` takes
 #: per height-noise level.
 MAX_SEEDS = MAX_DRAWS = 1000
-#: ``--seeds`` (the seeds 0 … N-1): each one is a whole evaluation (or a training, for ``hsicam experiment``).
+#: ``--seeds`` (the noise seeds 0 … N-1): each one is a whole evaluation under fresh test noise (``hsicam experiment``
+#: trains its runs once).
 seeds_arg = bounded_count_arg(MAX_SEEDS, "each seed is a whole run")
 #: ``tolerance --draws``: each draw is a whole evaluation of the scenes.
 draws_arg = bounded_count_arg(MAX_DRAWS, "each draw is a whole evaluation")

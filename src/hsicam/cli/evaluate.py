@@ -70,7 +70,10 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="the preset of that name (%(choices)s) plus the experiment's overrides: tiny (seconds, for tests), quick "
                         "(minutes on a 2-core CPU, the default), paper (a GPU)")
     p.add_argument("--out", metavar="DIR", help="experiment folder (default: runs/experiments/NAME-SCALE)")
-    p.add_argument("--seeds", type=seeds_arg, default=1, help="number of seeds (0, 1, ...), 1 to 1000 (default 1)")
+    p.add_argument("--seeds", type=seeds_arg, default=1,
+                   help="number of test-noise seeds (0, 1, ...), 1 to 1000 (default 1): each scores the scenes again "
+                        "under fresh test noise (the runs are trained once); the noise experiment's grid, or a "
+                        "preset with camera noise, has some; without any, one seed is scored")
     p.set_defaults(func=cmd_experiment, trains=True, resume_hint="run the same hsicam experiment command again: it resumes the run")
 
     p = sub.add_parser("report", help="HTML report (index.html + PNGs) of an evaluation or experiment folder")

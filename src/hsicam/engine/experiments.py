@@ -27,7 +27,7 @@ from hsicam.engine.evaluate import TestNoise, evaluate_method, scored_region, su
 from hsicam.engine.linear_step import refresh_linear_step
 from hsicam.engine.methods import baseline_names, build_method, sensor_border_px
 from hsicam.engine.names import EXPERIMENTS, SCALES  # their one home (the CLI reads them torch-free)
-from hsicam.engine.prior import ensure_choi_prior
+from hsicam.engine.prior import check_choi_prior, ensure_choi_prior
 from hsicam.engine.train import train
 from hsicam.errors import InputError
 from hsicam.io import atomic_open, clear_complete, clear_derived, write_json
@@ -260,6 +260,7 @@ def run_experiment(experiment: str, scale: str, out: str | Path, seeds: tuple[in
         raise InputError(f"unknown scale {scale!r}; choose one of {', '.join(SCALES)}")
     out = Path(out)
     cfg = load_config(scale)  # every check before any change (the configs of all its cameras too)
+    seeds = scored_seeds(experiment, scale, cfg, seeds)
     specs = run_specs(experiment, cfg)
     run_cfgs = run_configs(experiment, scale)
     check_experiment_folder(out, experiment, scale, run_cfgs)
@@ -317,6 +318,25 @@ def run_experiment(experiment: str, scale: str, out: str | Path, seeds: tuple[in
     with atomic_open(out / "table.md", "w", encoding="utf-8") as fh:
         fh.write(format_experiment_table(result) + "\n")
     return result
+
+
+def has_test_noise(cfg: Config) -> bool:
+    """Whether the config's camera adds random noise at test time (its own, as ``evaluate`` scores it without
+    --sigma options): Poisson–Gaussian sensor noise, a Gaussian σ_s or a DOE height σ_p above 0."""
+    sensor = cfg.camera.sensor
+    return sensor.noise == "poisson_gaussian" or sensor.sigma > 0 or cfg.camera.doe.sigma_height_nm > 0
+
+
+def scored_seeds(experiment: str, scale: str, cfg: Config, seeds: tuple[int, ...]) -> tuple[int, ...]:
+    """The noise seeds an experiment scores: ``seeds``, or its first alone (with a warning) when nothing it scores is
+    noisy (not the noise experiment, and no test noise in ``cfg``, :func:`has_test_noise`): every seed would score
+    the same captures, N identical tables that read as replication."""
+    if len(seeds) > 1 and experiment != "noise" and not has_test_noise(cfg):
+        log.warning("experiment %s at %s scale has no test noise (the camera's sensor and DOE noise are 0): its %d "
+                    "seeds would score the same; scoring seed %d only (the runs are trained once, whatever the seeds)",
+                    experiment, scale, len(seeds), seeds[0])
+        return tuple(seeds[:1])
+    return tuple(seeds)
 
 
 def run_configs(experiment: str, scale: str) -> dict[str, Config]:
@@ -382,6 +402,8 @@ def check_experiment_folder(out: Path, experiment: str, scale: str, run_cfgs: di
                 raise InputError(f"{run} was trained at {other_scale} scale: {out} holds experiment {experiment} at "
                                  f"{other_scale} scale, not {scale}; choose another --out (e.g. {default})")
         check_same_training(run, cfg)
+    if experiment == "compare":  # its Choi prior, trained by an earlier compare: checked now, not after the other rows
+        check_choi_prior(runs / "dd-cassi-choi", scale)
 
 
 def _baseline_rows(cfg, scale, out, scenes, names, seeds, baselines, border_px: int = 0) -> list[dict]:

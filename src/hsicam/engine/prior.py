@@ -192,22 +192,31 @@ def prior_differences(run: str | Path, cfg: Config, settings: ChoiConfig, limit:
     return sorted(out)[:limit]
 
 
+def check_choi_prior(run: str | Path, scale: str = "quick") -> tuple[Config, ChoiConfig]:
+    """The config and prior settings of an experiment ``scale``'s spectral prior; an :class:`InputError` naming the
+    first differences when the folder ``run`` holds a prior trained otherwise (reads only: ``experiment compare``
+    checks this before it changes its folder)."""
+    run = Path(run)
+    if scale not in PRIOR_SCALE_OVERRIDES:
+        raise InputError(f"unknown scale {scale!r}; choose one of {', '.join(PRIOR_SCALE_OVERRIDES)}")
+    cfg = load_config(scale, PRIOR_SCALE_OVERRIDES[scale])
+    settings = cfg.baselines.choi if cfg.baselines.choi is not None else ChoiConfig()
+    if (run / "config.yaml").is_file():
+        changed = prior_differences(run, cfg, settings)
+        if changed:
+            raise InputError(f"{run} was trained with other settings ({'; '.join(changed)}): "
+                             "delete it to train it again, or choose another output folder")
+    return cfg, settings
+
+
 def ensure_choi_prior(run: str | Path, scale: str = "quick") -> Path:
     """A trained spectral prior in ``run`` for an experiment ``scale`` (trained when missing; an
     interrupted training resumes; a finished one is reused). A folder trained with other bands,
     data or prior training settings is an :class:`InputError` naming the first differences, so a
     table never reports a prior other than the scale's."""
     run = Path(run)
-    if scale not in PRIOR_SCALE_OVERRIDES:
-        raise InputError(f"unknown scale {scale!r}; choose one of {', '.join(PRIOR_SCALE_OVERRIDES)}")
-    cfg = load_config(scale, PRIOR_SCALE_OVERRIDES[scale])
-    settings = cfg.baselines.choi if cfg.baselines.choi is not None else ChoiConfig()
+    cfg, settings = check_choi_prior(run, scale)
     resume = (run / "config.yaml").is_file()
-    if resume:
-        changed = prior_differences(run, cfg, settings)
-        if changed:
-            raise InputError(f"{run} was trained with other settings ({'; '.join(changed)}): "
-                             "delete it to train it again, or choose another output folder")
     if is_prior_run(run):
         log.info("%s: spectral prior finished, reused", run)
         return run
