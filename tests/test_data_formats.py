@@ -285,6 +285,26 @@ def test_envi_writer_roundtrip(tmp_path, interleave):
     np.testing.assert_allclose(b.fwhm_nm, bands.fwhm_nm)
 
 
+def test_envi_writer_integer_types_keep_a_cube_of_fractions(tmp_path):
+    """`write_envi(..., dtype="uint16")` of a [0, 1] cube rounded every value to 0 or 1 without a word. With
+    reflectance_scale the data are scaled and the header's reflectance scale factor says so (read_envi divides it
+    out, to within the integer step); without it such a cube is refused. Counts (peak > 1) are rounded as before."""
+    chw = np.random.default_rng(10).random((4, H, W)).astype(np.float32)
+    bands = Bands.from_centers([410.0, 500.5, 600.0, 700.0])
+    with pytest.raises(InputError, match=r"would be rounded to 0s and 1s; pass reflectance_scale"):
+        write_envi(tmp_path / "frac.hdr", chw, bands, dtype="uint16")
+    assert not (tmp_path / "frac.hdr").exists() and not (tmp_path / "frac.img").exists()
+    hdr, _ = write_envi(tmp_path / "scaled.hdr", chw, bands, dtype="uint16", reflectance_scale=10000)
+    assert parse_envi_header(hdr)["reflectance scale factor"] == "10000"
+    cube, _, _ = read_cube(hdr)
+    np.testing.assert_allclose(cube, chw, atol=0.5e-4 + 1e-7)
+    counts = np.round(chw * 4000.0)
+    write_envi(tmp_path / "counts.hdr", counts, bands, dtype="uint16")
+    np.testing.assert_array_equal(read_cube(tmp_path / "counts.hdr")[0], counts)
+    with pytest.raises(InputError, match="reflectance_scale must be a positive number"):
+        write_envi(tmp_path / "bad.hdr", chw, bands, dtype="uint16", reflectance_scale=-1)
+
+
 def test_npy_roundtrip_with_and_without_bands(tmp_path):
     data = np.random.default_rng(9).random((31, H, W)).astype(np.float32)
     path = tmp_path / "cube.npy"

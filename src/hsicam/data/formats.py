@@ -1192,8 +1192,14 @@ def _envi_nodata(cube: np.ndarray, value: float) -> np.ndarray:
 
 
 def write_envi(path: str | os.PathLike, cube: np.ndarray, bands: Bands, *, interleave: str = "bsq",
-               dtype: str | np.dtype = "float32", byte_order: str = "little", description: str = "hsicam write_envi") -> tuple[Path, Path]:
+               dtype: str | np.dtype = "float32", byte_order: str = "little", description: str = "hsicam write_envi",
+               reflectance_scale: float | None = None) -> tuple[Path, Path]:
     """Write an ENVI pair ``<name>.hdr`` + ``<name>.img`` atomically; returns (header, data) paths.
+
+    ``reflectance_scale``: the data are written as ``cube × reflectance_scale`` and the header's ``reflectance scale
+    factor`` says so (:func:`read_envi` divides it out): e.g. 10000 for an integer ``dtype`` of a [0, 1] cube. An
+    integer ``dtype`` without it rounds the values themselves, so a cube of fractions (peak ≤ 1) is refused (it
+    would be written as 0s and 1s).
 
     ``path`` may name either file. The data file is written first, the header last, so a reader
     never finds a header without its data; the header records the data's CRC-32
@@ -1213,6 +1219,14 @@ def write_envi(path: str | os.PathLike, cube: np.ndarray, bands: Bands, *, inter
         raise InputError(f"write_envi: interleave must be bsq, bil or bip, got {interleave!r}")
     if byte_order not in ("little", "big"):
         raise InputError(f"write_envi: byte_order must be 'little' or 'big', got {byte_order!r}")
+    if reflectance_scale is not None:
+        if not (isinstance(reflectance_scale, (int, float)) and math.isfinite(reflectance_scale) and reflectance_scale > 0):
+            raise InputError(f"write_envi: reflectance_scale must be a positive number, got {reflectance_scale!r}")
+        arr = arr * np.float64(reflectance_scale)
+    elif dt.kind in "iu" and arr.size and float(np.nanmax(arr)) <= 1.0 and not np.array_equal(arr, np.round(arr)):
+        raise InputError(f"{p}: a cube of values up to {float(np.nanmax(arr)):.3g} written as {dt} would be rounded to "
+                         f"0s and 1s; pass reflectance_scale (e.g. 10000: the header's reflectance scale factor, which "
+                         "read_envi divides out) or write float32")
     out = {"bsq": arr, "bil": arr.transpose(1, 0, 2), "bip": arr.transpose(1, 2, 0)}[interleave]
     if dt.kind in "iu":
         info = np.iinfo(dt)
@@ -1229,7 +1243,8 @@ def write_envi(path: str | os.PathLike, cube: np.ndarray, bands: Bands, *, inter
         "wavelength units = Nanometers\n"
         f"wavelength = {{{fmt(bands.centers_nm)}}}\n"
         f"fwhm = {{{fmt(bands.fwhm_nm)}}}\n"
-        f"{ENVI_CRC_KEY} = {zlib.crc32(raw):08x}\n"
+        + (f"reflectance scale factor = {reflectance_scale:.10g}\n" if reflectance_scale is not None else "")
+        + f"{ENVI_CRC_KEY} = {zlib.crc32(raw):08x}\n"
     )
     with atomic_path(data) as tmp, open(tmp, "wb") as fh:
         fh.write(raw)
