@@ -115,6 +115,10 @@ def test_too_small_or_black_captures_are_one_clear_error(capture, tmp_path):
         estimate_cfa_offset(system, sensor[..., :30, :30])
     with pytest.raises(InputError, match="black"):
         estimate_cfa_offset(system, torch.zeros(1, 1, 100, 100))
+    hot = sensor.clone()
+    hot[..., hot.shape[-2] // 2, hot.shape[-1] // 2] = float("nan")  # was called "black" from the Python API
+    with pytest.raises(InputError, match="NaN or infinite values"):
+        estimate_cfa_offset(system, hot)
     small = tmp_path / "small.npy"
     np.save(small, sensor[0, 0, :30, :30].numpy())
     res = run_cli_in_process("reconstruct", str(small), "--run", RUN, "--out", str(tmp_path / "s.h5"), "--cfa-offset", "auto")

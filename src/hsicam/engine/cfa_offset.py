@@ -81,10 +81,6 @@ MIN_CONTRAST = 0.1
 MIN_RESIDUAL_GAP = 1e-4
 
 
-#: Below this :attr:`CfaOffsetEstimate.separation` the estimate is called ambiguous (a warning).
-AMBIGUOUS_SEPARATION = 0.05
-
-
 @torch.no_grad()
 def estimate_cfa_offset(system, sensor: torch.Tensor, window_px: int = DEFAULT_WINDOW_PX) -> CfaOffsetEstimate:
     """The CFA phase (Y, X) of the capture ``sensor`` (1, 1, H, W), values in [0, 1], for the trained
@@ -120,6 +116,10 @@ def estimate_cfa_offset(system, sensor: torch.Tensor, window_px: int = DEFAULT_W
         wy, wx = (h - wh) // 2, (w - ww) // 2
         y = sensor[..., wy : wy + wh, wx : wx + ww].float()
         inner = (..., slice(margin, wh - margin), slice(margin, ww - margin))
+        if not torch.isfinite(y).all():  # the command line refuses such captures first; the library says it too
+            raise InputError("the capture holds NaN or infinite values where its CFA offset would be estimated (its "
+                             "central window): replace them (e.g. hot or dead pixels) or give the offset with "
+                             "--cfa-offset Y,X")
         norm = float(y[inner].square().sum())
         if not norm > 0:
             raise InputError("the capture is black where its CFA offset would be estimated (its central window): "
