@@ -399,11 +399,14 @@ class SDCASSICamera(_CASSICamera):
         return scene_hw[0], scene_hw[1] + self.span
 
     def scene_size(self, sensor_hw: tuple[int, int]) -> tuple[int, int]:
-        """The scene (H, W − D) behind a measurement of ``sensor_hw`` (H, W); InputError unless W > D."""
-        if sensor_hw[1] <= self.span:
-            raise InputError(f"SD-CASSI measurement of width {sensor_hw[1]} is not wider than the dispersion span "
-                             f"{self.span}")
+        """The scene (H, W − D) behind a sensor of ``sensor_hw`` (H, W) (W − D < 1 for a sensor no wider than the
+        span: :meth:`check_measurement_width` refuses such a measurement)."""
         return sensor_hw[0], sensor_hw[1] - self.span
+
+    def check_measurement_width(self, width: int) -> None:
+        """InputError unless a measurement of ``width`` px is wider than the dispersion span (holds a scene)."""
+        if width <= self.span:
+            raise InputError(f"SD-CASSI measurement of width {width} is not wider than the dispersion span {self.span}")
 
     def A(self, x: torch.Tensor) -> torch.Tensor:  # noqa: N802
         """Noiseless measurement (B, 1, H, W + D) of the scene ``x`` (B, C, H, W)."""
@@ -414,8 +417,8 @@ class SDCASSICamera(_CASSICamera):
     def A_adjoint(self, y: torch.Tensor) -> torch.Tensor:  # noqa: N802
         """Exact adjoint of :meth:`A`: (B, 1, H, W + D) → (B, C, H, W)."""
         self.check_measurement(y)
-        _, w = self.scene_size(tuple(y.shape[-2:]))
-        p = self.aperture.pattern(y.shape[-2], w, y.device, y.dtype)
+        self.check_measurement_width(y.shape[-1])
+        p = self.aperture.pattern(y.shape[-2], y.shape[-1] - self.span, y.device, y.dtype)
         return sd_cassi_adjoint(y, p, self.shifts, self.scale)
 
 
@@ -440,6 +443,11 @@ class CASSISnapshot:
         self.code_period = 1
 
     def scene_size(self, sensor_hw: tuple[int, int]) -> tuple[int, int]:
+        """The cube (h, w′) behind a measured window of ``sensor_hw``; SD-CASSI: InputError unless it is wider than
+        the dispersion span (the networks' start asked it of any capture: a narrower one reached torch as a
+        negative size)."""
+        if self.single:
+            self.camera.check_measurement_width(sensor_hw[1])
         return self.camera.scene_size(sensor_hw)
 
     def sensor_code(self, height: int, width: int, origin: tuple[int, int] = (0, 0)) -> torch.Tensor:
