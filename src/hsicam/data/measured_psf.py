@@ -145,15 +145,31 @@ def centroid(image: np.ndarray) -> tuple[float, float]:
     return float(img.sum(axis=1) @ rows / total), float(img.sum(axis=0) @ cols / total)
 
 
-def border_level(image: np.ndarray) -> float | None:
-    """Median of the outer frame of ``image`` (max(2, 5 %) of the smaller side), or None for an image too small
-    to have one (``background: border``'s estimate)."""
+def _frame(image: np.ndarray) -> np.ndarray | None:
+    """The outer frame's pixels of ``image`` (max(2, 5 %) of the smaller side), or None for an image too small."""
     img = np.asarray(image, dtype=np.float64)
     t = max(2, int(0.05 * min(img.shape)))
     if 2 * t >= min(img.shape):
         return None
-    frame = np.concatenate([img[:t].ravel(), img[-t:].ravel(), img[t:-t, :t].ravel(), img[t:-t, -t:].ravel()])
-    return float(np.median(frame))
+    return np.concatenate([img[:t].ravel(), img[-t:].ravel(), img[t:-t, :t].ravel(), img[t:-t, -t:].ravel()])
+
+
+def border_level(image: np.ndarray) -> float | None:
+    """Median of the outer frame of ``image`` (``background: border``'s estimate), or None for an image too
+    small to have a frame."""
+    frame = _frame(image)
+    return None if frame is None else float(np.median(frame))
+
+
+def pedestal_level(image: np.ndarray) -> float | None:
+    """The frame's median when the frame looks like a black level: flat (its 10th–90th percentile spread within
+    half its median, noise on a pedestal) rather than the PSF's own tail, which varies across the frame; else None."""
+    frame = _frame(image)
+    if frame is None:
+        return None
+    level = float(np.median(frame))
+    lo, hi = np.percentile(frame, [10, 90])
+    return level if level > 0 and hi - lo <= 0.5 * level else None
 
 
 #: A border median above this fraction of the image's peak, with ``background: none``, is warned about as a black
@@ -231,9 +247,6 @@ def prepare_psf_image(image: np.ndarray, opts: PSFImportOptions) -> tuple[np.nda
     total = float(img.sum())
     if not total > 0:
         raise InputError("PSF image has no positive signal (after background subtraction)")
-    if opts.normalize == "none" and total > MAX_UNNORMALISED_SUM:  # counts read as energy fractions: ×10⁵ too bright
-        raise InputError(f"with normalize: none a PSF image holds fractions of the band's light, but this one sums to "
-                         f"{total:.4g} (counts?): set normalize: sum in psf.json")
     if opts.normalize == "sum":
         img = img / total
     return img, b, total
@@ -521,7 +534,15 @@ def import_psf_dir(psf_dir: str | Path, bands: Bands, camera_pixel_m: float, ker
     stack, per_band, low, floors = [], [], [], []
     for lam, j in zip(bands.centers_nm, chosen):
         w, f, img, _ = items[j]
-        level = border_level(img) if opts.background == "none" else None
+        if opts.normalize == "none":  # counts read as energy fractions: a camera ×10⁵ too bright
+            try:
+                total = prepare_psf_image(img, opts)[2]
+            except InputError as exc:
+                raise InputError(f"{f} ({w:g} nm): {exc}") from None
+            if total > MAX_UNNORMALISED_SUM:
+                raise InputError(f"{f} ({w:g} nm): with normalize: none a PSF image holds fractions of the band's "
+                                 f"light, but this one sums to {total:.4g} (counts?): set normalize: sum in psf.json")
+        level = pedestal_level(img) if opts.background == "none" else None
         if level is not None and level > PEDESTAL_FRACTION * float(np.max(img)):
             floors.append(f"{f.name if f else '?'} ({w:g} nm): {100 * level / float(np.max(img)):.2g} %")
         try:
