@@ -231,6 +231,7 @@ def test_sqnorm_is_the_largest_gain(case):
         assert float(cam.A(x).square().sum() / x.square().sum()) <= s * (1 + 1e-6)
 
 
+@pytest.mark.cuda  # selected by scripts/gpu_session.sh's `-m "cuda and not slow"`
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
 def test_cpu_equals_cuda(case):
     _, _, cam = case

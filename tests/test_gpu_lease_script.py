@@ -4,6 +4,7 @@ demo calibrated on short epochs but sized for the preset's own, and the cores sh
 
 from __future__ import annotations
 
+import importlib
 import json
 import os
 import re
@@ -29,9 +30,16 @@ def test_gpu_lease_script_on_cpu(tmp_path):
     assert {p.name for p in out.iterdir()} == {"a.log", "b.log", "a_demo.tar.gz", "b_demo.tar.gz", "gpu_checks.log",
                                                "logs.tar.gz"}
     assert "threads and" in run.stdout and "DataLoader workers for each demo" in run.stdout
-    # the CUDA tests ran (skipped without CUDA) and so did the smoke training through bf16/channels_last/compile
+    # the CUDA tests ran (skipped only on a machine without CUDA: where there is one, all 9 pass, whatever DEVICE
+    # says) and so did the smoke training through bf16/channels_last/compile
     checks = (out / "gpu_checks.log").read_text()
-    assert re.search(r"\b9 (passed|skipped)\b", checks) and "smoke training: exit 0" in checks
+    import torch
+
+    outcome = "passed" if torch.cuda.is_available() else "skipped"
+    summary = re.search(r"^=* ?(\d+ (?:passed|skipped|failed|errors?|deselected)\b.*) in [0-9.]+s", checks, re.M)
+    assert summary and summary.group(1).startswith(f"9 {outcome}"), checks[-3000:]  # all 9, none failed
+    assert not re.search(r"failed|error", summary.group(1)), checks[-3000:]
+    assert "smoke training: exit 0" in checks, checks[-3000:]
     for name in ("a", "b"):
         log = (out / f"{name}.log").read_text()
         # a calibration of 8-patch epochs (2 steps) still sizes the demo's epochs of tiny's own 16 patches (4 steps)
@@ -67,3 +75,16 @@ def test_gpu_lease_script_brings_back_a_demo_stopped_at_its_limit(tmp_path):
             names = set(tar.getnames())
         assert {"./run/config.yaml", "./run/metrics.jsonl"} <= names
         assert not any(n.startswith("./run/checkpoints/") for n in names)
+
+
+def test_the_cuda_tests_the_lease_names_are_the_ones_gpu_session_selects():
+    """gpu_lease.sh names its CUDA tests by node id; gpu_session.sh selects them by ``-m "cuda and not slow"``:
+    every test the lease names must carry the ``cuda`` mark (registered in pyproject.toml) and not ``slow``
+    (test_cpu_equals_cuda had no mark, so the session ran 2 of the 9 CUDA tests)."""
+    assert '-m "cuda and not slow"' in (ROOT / "scripts" / "gpu_session.sh").read_text()
+    assert '"cuda: ' in (ROOT / "pyproject.toml").read_text()
+    named = re.findall(r'"tests/(test_\w+)\.py::(\w+)"', (ROOT / "scripts" / "gpu_lease.sh").read_text())
+    assert {name for _, name in named} == {"test_cpu_equals_cuda", "test_cpu_and_cuda_agree"}, named
+    for module, name in named:
+        marks = {m.name for m in getattr(getattr(importlib.import_module(module), name), "pytestmark", [])}
+        assert "cuda" in marks and "slow" not in marks, (module, name, marks)

@@ -260,3 +260,58 @@ def test_evaluate_passes_its_tile_on(tiny_config, monkeypatch):
     assert seen == [None, 16]
     line = error_line(run_cli_in_process("evaluate", "--config", "tiny", "--out", "never", "--tile", "8"))
     assert "--tile must be at least 16 px" in line
+
+
+def _float64_camera_and_nets(kind: str):
+    """The tiny camera of ``kind`` in float64, its frozen operator, and small random-weight (every path
+    on) unrolled and mosaic networks in float64 (prior scale 2: a cell reaches 1 px past its pixel)."""
+    import dataclasses
+
+    from hsicam.cameras import build_camera
+    from hsicam.config import MosaicConfig, UnrolledConfig
+    from hsicam.models.mosaic import build_mosaic
+    from hsicam.models.unrolled import build_unrolled
+
+    torch.manual_seed(0)
+    cam = build_camera(load_config("tiny", [f"camera.kind={kind}"])).double()
+    op = cam.snapshot(nominal=True)
+    small = UnrolledConfig(stages=1, prior_features=6, prior_blocks=1, prior_scale=2)
+    nets = {"unrolled": build_unrolled(small, cam)}
+    if kind == "dd_cassi":  # (the DOE camera's AᵀA reach, 20 px a stage, would need a larger image)
+        nets["unrolled-2"] = build_unrolled(dataclasses.replace(small, stages=2), cam)
+    if kind == "doe":
+        nets["unrolled-brightness"] = build_unrolled(dataclasses.replace(small, brightness_window=5), cam)
+        mosaic = MosaicConfig(features=6, blocks=1, head_features=4, head_layers=2)
+        nets["mosaic"] = build_mosaic(mosaic, cam)
+        nets["mosaic-mid"] = build_mosaic(dataclasses.replace(mosaic, detail_features=2, factor=6, mid_features=4,
+                                                              mid_blocks=1), cam)
+    g = torch.Generator().manual_seed(1)
+    with torch.no_grad():
+        for net in nets.values():
+            for p in net.parameters():
+                p.add_(0.3 * torch.randn(p.shape, generator=g, dtype=p.dtype))
+    return op, {name: net.double().eval() for name, net in nets.items()}
+
+
+@pytest.mark.parametrize("kind", ["doe", "dd_cassi"])
+def test_unrolled_and_mosaic_tiles_are_seamless_in_float64_with_exactly_the_declared_context(kind):
+    """As for the RDN above: in float64 the tiled pass with halo = context_px is the whole-image pass to
+    rounding, and one pixel less of halo shows. The tiles are 23 px, odd, so that tiles start at either
+    phase of the priors' 2×2 cells (a cell reaches scale − 1 px past the pixel at its far corner, a term
+    of the prior's reach that a float32 tolerance of 1e-5 and cell-aligned tiles let drop unnoticed).
+    Two stages: context_px adds each stage's worst case, but a second prior starts from a cell-aligned
+    pixel, so its scale − 1 px are spare there; only the first part of the check applies."""
+    op, nets = _float64_camera_and_nets(kind)
+    y = torch.rand(1, 1, 75, 71, generator=torch.Generator().manual_seed(2), dtype=torch.float64)
+    for name, net in nets.items():
+        run = lambda s, origin=(0, 0): net(s, op, origin)  # noqa: E731
+        ctx = net.context_px
+        with torch.no_grad():
+            whole = net(y, op)
+        assert whole.dtype == torch.float64 and 0 < ctx < 35, (name, ctx)  # real tiles: kept centres beside halos
+        tiled = reconstruct_tiled(run, y, tile_px=23, halo_px=ctx)
+        assert tiled.dtype == torch.float64
+        torch.testing.assert_close(tiled, whole, rtol=0, atol=1e-12, msg=lambda m: f"{name}: {m}")
+        if name != "unrolled-2":
+            short = reconstruct_tiled(run, y, tile_px=23, halo_px=ctx - 1)
+            assert (short - whole).abs().max() > 1e-9, name  # the declared halo is the least that works

@@ -207,6 +207,48 @@ def test_atomic_path_success_and_failure(tmp_path):
     assert target.read_text() == "whole" and hidden(target.parent) == []
 
 
+@pytest.mark.skipif(not Path("/proc/self/fd").is_dir(), reason="reads which file an fd is from /proc/self/fd")
+def test_atomic_files_are_fsynced_before_the_rename_and_their_folder_after_it(tmp_path, monkeypatch):
+    """``atomic_path``'s promise, for the writers of checkpoints (safetensors weights) and of the run's
+    manifest (JSON): the temporary file, whole, is fsynced before ``os.replace`` puts it in place, and the
+    folder holding it is fsynced after the rename (a crash then finds the old file or the whole new one,
+    never an empty new name). Recorded through os.fsync and os.replace, in order."""
+    import torch
+
+    from hsicam.runs.checkpoint import save_safetensors
+
+    events = []
+    real_fsync, real_replace = os.fsync, os.replace
+
+    def fsync(fd):
+        target = Path(os.readlink(f"/proc/self/fd/{fd}"))
+        events.append(("fsync", target, target.read_bytes() if target.is_file() else None))
+        return real_fsync(fd)
+
+    def replace(src, dst, **kwargs):
+        events.append(("replace", Path(src), Path(dst)))
+        return real_replace(src, dst, **kwargs)
+
+    monkeypatch.setattr(os, "fsync", fsync)
+    monkeypatch.setattr(os, "replace", replace)
+    folder = (tmp_path / "run").resolve()
+    writers = {"checkpoints.json": lambda p: write_json(p, {"format": "m", "checkpoints": [1, 2]}),
+               "model.safetensors": lambda p: save_safetensors(p, {"w": torch.arange(5.0)}, {"k": "v", "j": "u"})}
+    for name, write in writers.items():
+        for _ in range(2):  # a new file, then one replaced
+            events.clear()
+            write(folder / name)
+            final = (folder / name).read_bytes()
+            renames = [e for e in events if e[0] == "replace"]
+            assert len(renames) == 1 and renames[0][2] == folder / name, events
+            tmp = renames[0][1]
+            assert tmp.parent == folder and is_temporary(tmp.name)
+            i = events.index(renames[0])
+            synced_tmp = [e for e in events[:i] if e[0] == "fsync" and e[1] == tmp]
+            assert synced_tmp and synced_tmp[-1][2] == final, (name, events)  # the whole temporary, before the rename
+            assert ("fsync", folder, None) in events[i + 1 :], (name, events)  # its folder, after the rename
+
+
 # ------------------------------------------------------------------------------------------------
 # Atomic folders and markers
 # ------------------------------------------------------------------------------------------------
