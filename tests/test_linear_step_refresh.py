@@ -106,6 +106,26 @@ def test_load_run_refuses_filters_fitted_through_other_weights(linear_run, tmp_p
     load_run(run)
 
 
+def test_a_damaged_filter_file_is_refitted_by_the_resume_it_names(linear_run, tmp_path, capsys):
+    """A linear_step.safetensors cut short made the run unloadable, even reconstructed without the step, and the
+    `train --resume` that refits stale filters called it up to date ("nothing changed")."""
+    from hsicam.runs.folder import load_run
+
+    run = shutil.copytree(linear_run, tmp_path / "run")
+    path = run / LINEAR_STEP_FILE
+    path.write_bytes(path.read_bytes()[:300])
+    with pytest.raises(InputError, match=rf"corrupt or unreadable .*; resume the run to fit it again: hsicam train "
+                                         rf"--out {run} --resume$"):
+        load_run(run)
+    _, model = load_run(run, overrides=("model.consistency.kind=landweber",))  # without the step: loads
+    assert model.linear_step is None
+    capsys.readouterr()
+    assert main(["train", "--out", str(run), "--resume"]) == 0
+    assert "its linear consistency step refitted" in capsys.readouterr().out
+    torch.testing.assert_close(stored_filters(run), refit_reference(run, WINDOW))
+    assert load_run(run)[1].linear_step is not None
+
+
 def test_a_finished_run_resumed_with_another_filter_width_records_and_refits_it(linear_run, tmp_path, capsys):
     run = shutil.copytree(linear_run, tmp_path / "run")
     weights = sha256(run / "model.safetensors")

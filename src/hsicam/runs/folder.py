@@ -94,13 +94,21 @@ def load_run(run_dir: str | Path, device: torch.device | str = "cpu", overrides:
                          "training (another design: hsicam train)") from None
     check_finite_weights(model, kept)
     if linear_step and (run_dir / LINEAR_STEP_FILE).is_file():  # the linear step's filters (fitted after training)
-        model.linear_step = load_linear_step(run_dir / LINEAR_STEP_FILE, len(model.bands),
-                                             int(getattr(model.camera, "code_period", 1)))
-        problem = linear_step_problem(run_dir, cfg.model.consistency)
-        if problem:
-            raise InputError(problem)
-        if stale_reason(run_dir / LINEAR_STEP_FILE, kept):
-            model.linear_step = None  # not used (e.g. kind landweber): never the step of other weights
+        uses = cfg.model.consistency.kind == "linear" and cfg.model.consistency.iterations > 0
+        try:
+            model.linear_step = load_linear_step(run_dir / LINEAR_STEP_FILE, len(model.bands),
+                                                 int(getattr(model.camera, "code_period", 1)))
+        except InputError as exc:
+            if uses:  # a resume refits a damaged file (runs.linear_step.stale_reason)
+                raise InputError(f"{exc}; resume the run to fit it again: hsicam train --out {run_dir} --resume") from None
+            # a run reconstructed without the step (e.g. --set model.consistency.kind=landweber) does not need it
+            log.warning("%s; not used (model.consistency.kind %s)", exc, cfg.model.consistency.kind)
+        if model.linear_step is not None:
+            problem = linear_step_problem(run_dir, cfg.model.consistency)
+            if problem:
+                raise InputError(problem)
+            if stale_reason(run_dir / LINEAR_STEP_FILE, kept):
+                model.linear_step = None  # not used (e.g. kind landweber): never the step of other weights
     if (run_dir / MEASURED_PSF_FILE).is_file():  # a run fine-tuned on measured PSFs images with them
         model = with_measured_psf(model, load_measured_psf(run_dir / MEASURED_PSF_FILE))
     unfinished = unfinished_training(run_dir, cfg)

@@ -66,6 +66,8 @@ def stale_reason(path: str | Path, weights: str | Path, window_px: int | None = 
     from hsicam.runs.checkpoint import file_sha256
 
     info = linear_step_info(path)
+    if not info and Path(path).is_file():  # a file cut short or overwritten: refitted like a stale one
+        return f"{path} cannot be read as a linear-step file (damaged)"
     fitted_through = info.get("weights_sha256")
     if isinstance(fitted_through, str) and fitted_through != file_sha256(weights):
         return (f"{path} was fitted through other weights (sha256 {fitted_through[:12]}…) than {Path(weights).name} "
