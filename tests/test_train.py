@@ -192,6 +192,13 @@ def test_ddp_two_processes_matches_single_process(tmp_path, cache_env, extra):
     moved = max((ws[k] - init[k]).abs().max().item() for k in ws if k in init)
     assert moved > 1e-4  # training changed the weights, so the comparison means something
 
+    def losses(run):
+        return [r["train_loss"] for r in map(json.loads, (run / "metrics.jsonl").read_text().splitlines())
+                if "train_loss" in r]
+
+    # the logged loss is the global batch's (it was rank 0's half of it: 12 % off)
+    assert losses(tmp_path / "ddp") == pytest.approx(losses(tmp_path / "single"), rel=1e-4)
+
 
 DDP_ERROR_SCRIPT = KEEP_THE_GROUP + """
 import os, sys, torch

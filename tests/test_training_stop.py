@@ -4,6 +4,7 @@ train.max_minutes save the checkpoint of the step they stop at, and a resume goe
 from __future__ import annotations
 
 import json
+import logging
 import os
 import re
 import signal
@@ -68,6 +69,21 @@ def _sigint_armed_stops_once_then_interrupts():
             os.kill(os.getpid(), signal.SIGINT)
             time.sleep(1)
     assert signal.getsignal(signal.SIGINT) is before
+
+
+def test_under_torchrun_a_second_sigterm_is_the_forwarded_echo_not_a_kill(monkeypatch, caplog):
+    """A scheduler's SIGTERM reaches the workers and torchrun, which forwards one more to each: the second one killed a
+    worker mid-step before it saved the step it stopped at. Under torchrun it is ignored (torchrun's SIGKILL after its
+    grace period is the hard stop); a second Ctrl-C still stops at once."""
+    monkeypatch.setenv("TORCHELASTIC_RUN_ID", "test")
+    with caplog.at_level(logging.WARNING, logger="hsicam"), StopRequests() as stop:
+        stop.armed = True
+        os.kill(os.getpid(), signal.SIGTERM)
+        time.sleep(0.01)
+        os.kill(os.getpid(), signal.SIGTERM)  # killed this process before
+        time.sleep(0.01)
+        assert stop.reason() == "SIGTERM" and stop.exit_code() == 128 + signal.SIGTERM
+    assert "its SIGKILL after the grace period stops at once" in caplog.text
 
 
 def test_an_ignored_signal_stays_ignored():

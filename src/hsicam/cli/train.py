@@ -38,6 +38,10 @@ def cmd_train(args: argparse.Namespace) -> int:
         if (args.resume or args.restart) and (run / "config.yaml").is_file():
             lock.acquire()  # held from the first change (a restart's removal) to the last (re-entrant in fit)
         summary = _train(args, run, new_run)
+    from hsicam.devices import dist_env
+
+    if dist_env()[0] != 0:  # under torchrun: rank 0 says it (the others hold no validation, their own throughput)
+        return 0
     if summary.get("already_finished"):
         changed = ("; ".join(summary["changed"]) + ", nothing else changed" if summary.get("changed")
                    else "nothing changed")

@@ -130,7 +130,10 @@ def resolve_device(spec: str, local_rank: int = 0) -> torch.device:
     problem = device_problem(spec)
     if problem is not None:
         raise InputError(f"train.device={spec}: {problem}")
-    return torch.device(spec)
+    device = torch.device(spec)
+    if device.type == "cuda" and device.index is None:  # under torchrun each rank its own GPU, as `auto` does
+        return torch.device(f"cuda:{local_rank}")
+    return device
 
 
 # ------------------------------------------------------------------------------------------------
@@ -256,6 +259,8 @@ def fit(task: Task, opts: FitOptions, run_dir: str | Path, resume: bool = False,
     resume goes on exactly (:mod:`hsicam.engine.stopping`). A signal during the last step or the
     files written after it lets them finish, then raises ``TrainingInterrupted(finished=True)``."""
     rank, world, local_rank = dist_env()
+    if opts.loop.batch_size % world:  # before the group: one rank's error tore its half down while the other connected
+        raise InputError(f"train.batch_size={opts.loop.batch_size} must be divisible by the {world} processes")
     own_group = world > 1 and not dist.is_initialized()
     if own_group:
         # before the group exists: torch._dynamo, which torch imports lazily later on (the optimizer's
@@ -581,11 +586,18 @@ def _fit(task: Task, opts: FitOptions, run_dir: Path, resume: bool, lock: RunLoc
             grad_norm = None
             if t.grad_clip is not None:
                 grad_norm = torch.nn.utils.clip_grad_norm_(model.parameters(), t.grad_clip)
-            loss_v = loss.item()
-            if not math.isfinite(loss_v):  # before the step: the weights stay those of the last good step
+            loss_v = own_v = loss.item()
+            if distributed:  # the global batch's loss (each rank holds a share), logged and checked by every rank
+                total = loss.detach().reshape(1).clone()
+                dist.all_reduce(total)
+                loss_v = total.item() / world
+            if not math.isfinite(own_v):  # before the step: the weights stay those of the last good step
                 first = state.step_in_epoch * t.batch_size + rank * (t.batch_size // world)  # this rank's first item
-                raise not_finite_error(task.what, step, loss_v, batch,
+                raise not_finite_error(task.what, step, own_v, batch,
                                        lambda j: patch_source(train_ds, first + j))
+            if not math.isfinite(loss_v):  # another rank's share: it names its patches; this one stops with it
+                raise InputError(f"{task.what} diverged at step {step}: the loss of another process's share of the "
+                                 f"batch is {loss_v:.4g}; that process's error names its patches")
             if grad_norm is not None and not math.isfinite(norm_v := grad_norm.item()):
                 # a finite loss whose gradient is not: clipping by an infinite norm zeroed every gradient, and the run
                 # trained on, flat, without an error (e.g. train.ssim_loss=1e30)

@@ -29,6 +29,11 @@ STOP_SIGNALS = (signal.SIGTERM, signal.SIGINT)
 BUDGET_EXIT_CODE = 75
 
 
+def _under_torchrun() -> bool:
+    """Whether this process is a worker that torchrun started (it forwards the signals it receives to them)."""
+    return "TORCHELASTIC_RUN_ID" in os.environ or int(os.environ.get("WORLD_SIZE", "1") or 1) > 1
+
+
 class StopRequests:
     """What asks a training to stop early: a signal received, or the budget of ``max_minutes``
     (minutes of wall-clock time since ``start``, a :func:`time.monotonic` value; default: now).
@@ -61,8 +66,16 @@ class StopRequests:
     def _handle(self, signum: int, frame) -> None:
         if self.armed and self.received is None:
             self.received = signal.Signals(signum).name
-            log.warning("%s: stopping after this step and saving its checkpoint (%s again stops at once)",
-                        self.received, "Ctrl-C" if signum == signal.SIGINT else self.received)
+            again = ("Ctrl-C again stops at once" if signum == signal.SIGINT else
+                     "under torchrun, its SIGKILL after the grace period stops at once" if _under_torchrun() else
+                     f"{self.received} again stops at once")
+            log.warning("%s: stopping after this step and saving its checkpoint (%s)", self.received, again)
+            return
+        if self.armed and signum == signal.SIGTERM and _under_torchrun():
+            # a scheduler's SIGTERM reaches the workers and torchrun, which forwards one more to each: the second, a
+            # few ms later, killed a worker mid-step before it saved the step it stopped at. Under torchrun a repeated
+            # SIGTERM is that echo; torchrun's SIGKILL after its grace period stays the hard stop (Ctrl-C still
+            # stops at once)
             return
         previous = self._previous.get(signum, signal.SIG_DFL)  # not armed, or a second signal: as without us
         if callable(previous):
