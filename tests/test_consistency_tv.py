@@ -71,6 +71,20 @@ def test_the_prior_follows_the_local_brightness():
     assert float((out_bright - bright).abs().max()) > 0.01
 
 
+def test_a_flat_true_cube_is_a_fixed_point_of_the_steps_with_the_prior_up_to_the_border(tiny_camera):
+    """The true cube explains y exactly and a flat one has no variation for the TV to remove, so the steps must leave it
+    as it is everywhere. The brightness the prior divides by was averaged with zeros beyond the image (half at an edge,
+    a quarter at a corner): x/b had a false ramp within 9 px of the border, which the prox flattened (5 % of the
+    value at the border of a zero-padded `same` camera)."""
+    cam = tiny_camera("camera.boundary=same", "camera.padding=zeros", dtype=torch.float64)
+    truth = torch.full((1, len(cam.bands), 40, 40), 0.4, dtype=torch.float64)
+    y = cam.A(truth)
+    with torch.no_grad():
+        got = consistency_step(cam.snapshot(nominal=True), y, truth, iterations=12, psf_energy=1.0, extend=False,
+                               spectral_prior=4.0, tv_weight=0.03)
+    torch.testing.assert_close(got, truth, rtol=0, atol=1e-9)
+
+
 @pytest.mark.parametrize("iterations", [1, 3])
 def test_steps_with_the_prior_reach_what_reach_px_says(iterations):
     """The steps with the TV prior after a pixel-wise estimate: tiles with ``reach_px(..., tv=True)`` of halo (an
@@ -261,8 +275,9 @@ def test_the_steps_with_the_prior_settle(weight):
 
 def test_the_momentum_reaches_the_steps_limit_sooner():
     """The steps with the prior lead to one estimate with their capped momentum or without it (1500 steps each), and
-    the momentum gets there sooner: after 24 steps it is nearly half as far from it as the plain steps, after 48 a
-    third; a momentum of 1 or more, or below 0, is refused."""
+    the momentum gets there sooner: after 24 and 48 steps it is about two thirds as far from it as the plain steps
+    (0.63, 0.68; half and a third while the prior's brightness was zero-padded at the border, whose false ramp also
+    slowed both: the plain steps are now 1.9× and 3.4× closer there); a momentum of 1 or more, or below 0, is refused."""
     snap = _snapshot(4)
     g = torch.Generator().manual_seed(5)
     truth = torch.nn.functional.avg_pool2d(torch.rand(1, C, 36, 36, generator=g, dtype=torch.float64), 5, 1, 2)
@@ -278,7 +293,7 @@ def test_the_momentum_reaches_the_steps_limit_sooner():
     def distance(x):
         return float((x - limit).norm() / (x0 - limit).norm())
 
-    for n, ratio in ((24, 0.6), (48, 0.4)):
+    for n, ratio in ((24, 0.7), (48, 0.75)):
         assert distance(steps(n, TV_MOMENTUM_MAX)) < ratio * distance(steps(n, 0.0)), n
     for bad in (1.0, 1.5, -0.1, float("nan")):
         with pytest.raises(ValueError, match="tv_momentum"):

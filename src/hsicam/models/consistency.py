@@ -291,8 +291,13 @@ def _in_bands(update, state: dict, band_px: int | None, halo_px: int) -> dict:
 
 
 def _tv_brightness(x0: torch.Tensor) -> torch.Tensor:
-    """The local brightness b (B, 1, H, W) that :class:`BrightnessTV` divides by, of the steps' start x0."""
-    return brightness(x0.mean(dim=1, keepdim=True).clamp_min(0), BRIGHTNESS_WINDOW_PX, BRIGHTNESS_EPS)
+    """The local brightness b (B, 1, H, W) that :class:`BrightnessTV` divides by, of the steps' start x0: its band
+    mean averaged over a BRIGHTNESS_WINDOW_PX box, the image extended by its edge values (zeros outside halved b at
+    an edge and quartered it at a corner, a false ramp in x/b that the TV prox then flattened: a flat true cube was
+    not a fixed point within 9 px of the border), plus BRIGHTNESS_EPS."""
+    g = x0.mean(dim=1, keepdim=True).clamp_min(0)
+    r = BRIGHTNESS_WINDOW_PX // 2
+    return F.avg_pool2d(F.pad(g, (r, r, r, r), mode="replicate"), BRIGHTNESS_WINDOW_PX, stride=1) + BRIGHTNESS_EPS
 
 
 def brightness_tv_prox(v: torch.Tensor, b: torch.Tensor, weight: float, dual: tuple[torch.Tensor, torch.Tensor],
