@@ -289,7 +289,10 @@ def main(argv: Sequence[str] | None = None) -> int:
 
     try:
         fixed = getattr(args, "run", None) is not None or bool(getattr(args, "resume", False))
-        with trained_bands(fixed), sigterm_as_interrupt(not getattr(args, "trains", False)):
+        # a command that trains and then scores (demo, experiment) spends most of its time outside the loop, where
+        # SIGTERM must clean up as Ctrl-C does; the loop's own stop chains to it (hsicam.engine.stopping)
+        cleanup = not getattr(args, "trains", False) or getattr(args, "scores", False)
+        with trained_bands(fixed), sigterm_as_interrupt(cleanup):
             return int(args.func(args) or 0)
     except (TrainingStopped, TrainingInterrupted) as exc:  # a signal or train.max_minutes: the run was saved at that step
         from hsicam.devices import dist_env

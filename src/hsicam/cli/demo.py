@@ -17,7 +17,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--out", default="runs/demo", metavar="DIR",
                    help="demo folder (default runs/demo): the trained run in DIR/run, results.json, results.md and "
                         "the figures")
-    p.set_defaults(func=cmd_demo, trains=True, resume_hint="run the same hsicam demo command again: it resumes the run")
+    p.set_defaults(func=cmd_demo, trains=True, scores=True, resume_hint="run the same hsicam demo command again: it resumes the run")
 
 
 def cmd_demo(args: argparse.Namespace) -> int:

@@ -74,7 +74,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="number of test-noise seeds (0, 1, ...), 1 to 1000 (default 1): each scores the scenes again "
                         "under fresh test noise (the runs are trained once); the noise experiment's grid, or a "
                         "preset with camera noise, has some; without any, one seed is scored")
-    p.set_defaults(func=cmd_experiment, trains=True, resume_hint="run the same hsicam experiment command again: it resumes the run")
+    p.set_defaults(func=cmd_experiment, trains=True, scores=True, resume_hint="run the same hsicam experiment command again: it resumes the run")
 
     p = sub.add_parser("report", help="HTML report (index.html + PNGs) of an evaluation or experiment folder")
     p.add_argument("dir", metavar="DIR", help="a folder `hsicam evaluate` or `hsicam experiment` wrote; the report "

@@ -13,12 +13,12 @@ from hsicam.data.pipeline import scene_dataset, split_dataset
 from hsicam.engine.evaluate import (TestNoise, config_hash, demosaic_reference, evaluate_method, evaluate_scenes,
                                     format_table, grey_reference, heldout_sources_label, scored_region,
                                     summarize, validation_data_label)
-from hsicam.engine.experiments import ensure_trained, heldout_scenes
+from hsicam.engine.experiments import check_same_training, ensure_trained, heldout_scenes
 from hsicam.engine.methods import (LINEAR_REFERENCE_WINDOW, linear_demosaic_reference, network_alone_reference,
                                    network_skip)
 from hsicam.errors import InputError
-from hsicam.io import (atomic_open, clear_complete, clear_derived, is_complete, is_temporary, mark_complete,
-                       output_description, read_marker, write_json)
+from hsicam.io import (OutputLock, atomic_open, clear_complete, clear_derived, cleanup_stale_temporaries, is_complete,
+                       is_temporary, mark_complete, output_description, read_marker, write_json)
 from hsicam.report.camera import write_optics_figures, write_psf_outputs
 from hsicam.report.reconstruction import plot_reconstructions, plot_training_curves
 from hsicam.runs.checkpoint import file_sha256, kept_checkpoint, root_weights_path, weights_text
@@ -57,14 +57,26 @@ def run_demo(cfg: Config, out: str | Path) -> dict[str, Any]:
     :class:`InputError` (``ensure_trained``), never silently reused.
     """
     out = Path(out)
+    # one demo at a time per folder, from its checks to its marker: a second one reusing the run while the first
+    # scored it switched the kept weights under it (results naming one checkpoint and scoring another)
+    with OutputLock(out, "demo") as lock:
+        lock.acquire()
+        return _run_demo(cfg, out)
+
+
+def _run_demo(cfg: Config, out: Path) -> dict[str, Any]:
     check_demo_folder(out)
+    run = out / "run"
+    check_same_training(run, cfg)  # refused before any change
     if out.is_dir():
         clear_derived(out)  # a report/ of its old results would stand beside the new ones
-    run = out / "run"
+        # before the run is touched: a reuse that switches its kept weights or refits its step, interrupted, left a
+        # finished folder whose results no longer matched its run
+        clear_complete(out)
+        cleanup_stale_temporaries(out)  # a figure or table of a killed demo, half-written
     status = ensure_trained(run, cfg)
-    if out.is_dir():
-        clear_complete(out)  # the results below are rewritten; `hsicam report` waits for the marker
     cfg, model = load_run(run)  # its model.consistency is the demo's (ensure_trained)
+    scored_sha, kept = file_sha256(root_weights_path(run)), kept_checkpoint(run)  # what is scored below, recorded
     bands = cfg.bands.to_bands()
     train_list, val = split_dataset(cfg.data, bands)
     scenes, names = scene_dataset(cfg.data, val, bands), [p.stem for p in val]
@@ -107,9 +119,8 @@ def run_demo(cfg: Config, out: str | Path) -> dict[str, Any]:
                    data=validation_data_label(cfg))
     # which weights and config were scored, as `hsicam evaluate` records them (`hsicam pretrained pack --results`
     # checks them: a run trained on since, or another demo's run of the same relative path, is not these)
-    summary["weights_sha256"] = file_sha256(root_weights_path(run))
+    summary["weights_sha256"] = scored_sha
     summary["config_hash"] = config_hash(dump_yaml(cfg))
-    kept = kept_checkpoint(run)
     if kept is not None:  # which weights were scored: the last step's, or the best validation's (a selection)
         summary["weights"] = kept
     summary["region"] = scored_region(model.camera)  # as `hsicam evaluate` says it (a `--set camera.boundary=same` demo: the whole scene)

@@ -135,8 +135,8 @@ def cfa_period_specs(cfg: Config | None, periods: tuple[int, ...] = CFA_PERIODS)
 def is_finished(run: Path) -> bool:
     """A run whose metrics.jsonl ends with its final record and that has its weights."""
     m = run / "metrics.jsonl"
-    if not (m.is_file() and (run / "model.safetensors").is_file()):
-        return False
+    if not (m.is_file() and (run / "model.safetensors").is_file() and (run / "config.yaml").is_file()):
+        return False  # (without its config.yaml a run is damaged: load_run says so)
     lines = [x for x in m.read_text().splitlines() if x.strip()]
     try:
         return bool(lines) and bool(json.loads(lines[-1]).get("final", False))

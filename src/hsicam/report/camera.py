@@ -127,7 +127,7 @@ def plot_psf_montage(psf: np.ndarray, bands: Bands, path: str | Path, decades: f
     ax.grid(True, alpha=0.3)
     sm = plt.cm.ScalarMappable(cmap=cmap, norm=plt.Normalize(lo, hi))
     fig.colorbar(sm, ax=ax, label="band (nm)", pad=0.01)
-    held = encircled_fraction_in_square(psf, crop).min()
+    held = math.floor(float(encircled_fraction_in_square(psf, crop).min()) * 100) / 100  # "≥": rounded down
     fig.suptitle(f"PSF per band: central {crop}×{crop} of {k}×{k} px (≥ {held:.0%} of each band's light in the "
                  f"kernel), log10 of each band's peak over {decades:g} decades, r = RMS radius (px)\n"
                  f"below: light within a radius, over the whole kernel", fontsize=9)

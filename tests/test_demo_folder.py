@@ -1,0 +1,87 @@
+"""The demo folder as a user meets it again: one demo at a time, nothing stale left marked complete, a killed
+demo's temporaries removed, and refusals that name the same keys every time (session 53 audit)."""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import subprocess
+import sys
+
+import pytest
+
+from hsicam.cli import main
+from hsicam.config import load_config, training_differences
+from hsicam.io import COMPLETE_MARKER
+
+
+@pytest.fixture(scope="module")
+def finished(tmp_path_factory, cache_env):
+    """A finished tiny demo folder (one epoch)."""
+    from hsicam.engine.demo import run_demo
+
+    out = tmp_path_factory.mktemp("demo") / "demo"
+    run_demo(load_config("tiny", ["train.epochs=1"]), out)
+    assert (out / COMPLETE_MARKER).is_file()
+    return out
+
+
+def test_a_demo_holds_its_folder_while_it_scores(finished, tmp_path, monkeypatch):
+    """Two demos into one finished folder both ran: one reused the run (switching its kept weights) while the other
+    scored it, and the folder was marked complete with results naming one checkpoint and scoring another. A demo
+    now holds its folder's lock from its checks to its marker: another writer is refused while it scores."""
+    from hsicam.engine import demo
+
+    out = shutil.copytree(finished, tmp_path / "demo")
+    probe = ("import sys\nfrom hsicam.io import OutputLock\ntry:\n    OutputLock(sys.argv[1], 'demo').acquire()\n"
+             "    print('free')\nexcept Exception as exc:\n    print(exc)")
+    seen = []
+    scores = demo.evaluate_scenes
+
+    def scoring(*a, **k):  # while the demo scores: can another process take its folder?
+        if not seen:
+            seen.append(subprocess.run([sys.executable, "-c", probe, str(out)], capture_output=True, text=True,
+                                       env={**os.environ}).stdout.strip())
+        return scores(*a, **k)
+
+    monkeypatch.setattr(demo, "evaluate_scenes", scoring)
+    demo.run_demo(load_config("tiny", ["train.epochs=1"]), out)
+    assert seen and seen[0].startswith(f"{out}: being written by another process (hsicam demo, pid {os.getpid()}"), seen
+    assert (out / COMPLETE_MARKER).is_file()
+
+
+def test_an_interrupted_reuse_leaves_no_complete_marker_and_a_rerun_restores_it(finished, tmp_path, monkeypatch):
+    """The marker came off only after the run was reused (its kept weights switched, its step refitted): a Ctrl-C in
+    between left a folder marked complete over results that no longer matched its run."""
+    from hsicam.engine import demo
+
+    out = shutil.copytree(finished, tmp_path / "demo")
+    (out / ".psf.0a1b2c3d.tmp.png").write_bytes(b"half a figure")  # a killed demo's temporary
+
+    def interrupted(*a, **k):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(demo, "ensure_trained", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        demo.run_demo(load_config("tiny", ["train.epochs=1"]), out)
+    assert not (out / COMPLETE_MARKER).exists()
+    assert not (out / ".psf.0a1b2c3d.tmp.png").exists()
+    monkeypatch.undo()
+    assert main(["demo", "--config", "tiny", "--set", "train.epochs=1", "--out", str(out)]) == 0
+    assert (out / COMPLETE_MARKER).is_file()
+    res, was = (json.loads((d / "results.json").read_text())["mean"] for d in (out, finished))
+    assert {k: res[k] for k in ("psnr", "ssim", "sam")} == pytest.approx({k: was[k] for k in ("psnr", "ssim", "sam")})
+
+
+def test_the_keys_a_refusal_names_do_not_depend_on_the_hash_seed(tmp_path):
+    """training_differences stopped at `limit` while walking sets of keys in hash order, so a tiny demo folder
+    reused with the quick preset named other keys in every process."""
+    every = training_differences(load_config("tiny"), load_config("quick"), limit=10**6)
+    assert len(every) > 3 and every == sorted(every)
+    assert training_differences(load_config("tiny"), load_config("quick")) == every[:3]
+    code = ("from hsicam.config import load_config, training_differences; "
+            "print(training_differences(load_config('tiny'), load_config('quick')))")
+    seen = {subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True,
+                           env={**os.environ, "PYTHONHASHSEED": seed}).stdout for seed in ("1", "2", "3")}
+    assert seen == {f"{every[:3]}\n"}
