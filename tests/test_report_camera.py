@@ -140,3 +140,13 @@ def test_encircled_energy_of_a_large_kernel_needs_no_radius_by_kernel_array():
     assert peak < 8 * psf.nbytes  # 20 MB, against ≈ 0.4 GB for the mask
     np.testing.assert_allclose(ee[:, -1], 1.0, rtol=1e-9)  # a running sum of 160 801 pixels
     assert np.all(np.diff(ee, axis=1) >= 0)
+
+
+def test_a_camera_without_a_cfa_gets_no_cfa_figure(tmp_path, tiny_camera):
+    """`camera.cfa.enabled: false` (κ = 1) drew a "CFA tile 1×1" whose curves summed to C over the bands under an
+    axis saying Σ = 1, listed as the colour filter array; export-optics wrote no CFA files for the same camera."""
+    from hsicam.report.camera import write_optics_figures
+
+    written = write_optics_figures(tiny_camera("camera.cfa.enabled=false"), tmp_path)
+    assert "cfa.png" not in written and not (tmp_path / "cfa.png").exists() and "doe.png" in written
+    assert "cfa.png" in write_optics_figures(tiny_camera(), tmp_path / "with")

@@ -279,6 +279,16 @@ def test_bandpass_cfa_init_places_gaussian_filters_over_the_band_range():
         ColorFilterArray(5, period=3, init="bandpass")
 
 
+def test_one_bandpass_filter_sits_in_the_middle_of_the_range():
+    """At period 1 the band-pass start's one filter peaked on the first band (a blue edge filter blocking 93 % of the
+    rest): its centre is the middle of the bands' range, as 'spread evenly' means for one."""
+    import numpy as np
+
+    lam = np.arange(420.0, 721.0, 5.0)
+    w = bandpass_weights(torch.from_numpy(lam), 1, 40.0).reshape(len(lam)).double().numpy()
+    assert lam[w.argmax()] == 570.0
+
+
 def test_bandpass_cfa_from_config(tiny_config):
     from hsicam.cameras import DOECamera
     from hsicam.errors import ConfigError

@@ -71,7 +71,9 @@ def bandpass_weights(centers_nm: torch.Tensor, period: int, fwhm_nm: float, seed
     A small floor (1 % of the peak) keeps every band learnable."""
     lam = centers_nm.double()
     n = period * period
-    centres = torch.linspace(float(lam[0]), float(lam[-1]), n, dtype=torch.float64)
+    # one filter (period 1): the middle of the range (linspace would put it on the first band, a blue edge filter)
+    centres = (torch.linspace(float(lam[0]), float(lam[-1]), n, dtype=torch.float64) if n > 1 else
+               torch.tensor([0.5 * (float(lam[0]) + float(lam[-1]))], dtype=torch.float64))
     if layout == "random":
         order = torch.randperm(n, generator=torch.Generator().manual_seed(int(seed)))
     elif layout == "dispersed":

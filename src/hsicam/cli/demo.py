@@ -51,5 +51,8 @@ def cmd_demo(args: argparse.Namespace) -> int:
         print(f"[demo] {h['data']}, {len(h['scenes'])} scenes: {means_line(h['mean'])}")
         for r in h["references"]:
             print(f"[demo] held-out reference, {r['method']}: {means_line(r['mean'])}")
-    print(f"[demo] figures and tables in {out}: reconstructions.png, psf.png, cfa.png, doe.png, training.png, results.md")
+    from hsicam.engine.demo import FIGURES
+
+    shown = ", ".join(name for name in (*FIGURES, "results.md") if (out / name).is_file())
+    print(f"[demo] figures and tables in {out}: {shown}")
     return 0

@@ -243,7 +243,7 @@ def write_optics_figures(camera, out: Path, prefix: str = "", psf: bool = False)
                              optics.cell_m * 1e6, out / f"{prefix}doe.png")
             written[f"{prefix}doe.png"] = "DOE height map"
         cfa = getattr(camera, "cfa", None)
-        if cfa is not None:
+        if cfa is not None and cfa.enabled:  # no CFA (κ = 1): no tile to draw (a figure said "Σ over bands = 1" of κ = 1)
             plot_cfa(cfa.tile().detach().cpu().numpy(), camera.bands, out / f"{prefix}cfa.png")
             written[f"{prefix}cfa.png"] = "colour filter array tile and transmission curves"
     return written
