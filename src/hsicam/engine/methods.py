@@ -226,6 +226,14 @@ def network_alone_reference(model) -> Method:
     return Method("network alone (no consistency step)", model.camera, alone.reconstructor(), model.target, {})
 
 
+def own_learned_method(run_cfg) -> str | None:
+    """The registered method that scores a run of config ``run_cfg`` by its own network: ``doe-learned`` for a DOE
+    camera, ``dd-cassi-{model.kind}`` for a learned DD-CASSI one; None when none is registered (SD-CASSI)."""
+    own = "doe-learned" if run_cfg.camera.kind == "doe" else (
+        f"dd-cassi-{run_cfg.model.kind}" if run_cfg.camera.kind == "dd_cassi" else None)
+    return own if own in METHODS else None
+
+
 def _check_doe_run(name: str, run) -> None:
     """InputError when ``run`` was not trained with a DOE camera (a learned CASSI run), before its
     weights load: method ``name`` (doe-learned, a DOE demosaic reference) needs the DOE camera's
@@ -236,8 +244,8 @@ def _check_doe_run(name: str, run) -> None:
     run_cfg = load_config(cfg_path)
     if run_cfg.camera.kind == "doe":
         return
-    own = f"dd-cassi-{run_cfg.model.kind}" if run_cfg.camera.kind == "dd_cassi" else None
-    use = f"--method {own}" if own in METHODS else "the learned method of its camera"
+    own = own_learned_method(run_cfg)
+    use = f"--method {own}" if own is not None else "the learned method of its camera"
     raise InputError(f"{run}: method {name} evaluates a DOE camera; this run was trained with "
                      f"camera.kind={run_cfg.camera.kind} (model.kind={run_cfg.model.kind}): use {use}")
 

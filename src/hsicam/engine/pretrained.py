@@ -225,11 +225,16 @@ def check_results_of_run(data: dict[str, Any], source: Path, run_dir: Path, opti
     measured under test noise other than the run's own are refused (:func:`check_results_noise`)."""
     from hsicam.engine.methods import METHOD_ALIASES
 
-    again = (f"evaluate this run (`hsicam evaluate --run {run_dir} --out DIR`) and pass DIR/results.json as {option}")
+    from hsicam.config import load_config
+    from hsicam.engine.methods import own_learned_method
+
+    own = own_learned_method(load_config(Path(run_dir) / "config.yaml")) or LEARNED_METHOD  # dd-cassi-rdn for a CASSI run
+    how = "" if own == LEARNED_METHOD else f" --method {own}"
+    again = (f"evaluate this run (`hsicam evaluate --run {run_dir}{how} --out DIR`) and pass DIR/results.json as "
+             f"{option}")
     method = data.get("method")
-    if isinstance(method, str) and METHOD_ALIASES.get(method, method) != LEARNED_METHOD:
-        raise InputError(f"{source}: results of method {method!r}, not of the run's own network ({LEARNED_METHOD}); "
-                         f"{again}")
+    if isinstance(method, str) and METHOD_ALIASES.get(method, method) != own:
+        raise InputError(f"{source}: results of method {method!r}, not of the run's own network ({own}); {again}")
     check_results_noise(data, source, run_dir, option)
     recorded = data.get("run")
     rec_path = recorded.get("path") if isinstance(recorded, dict) else recorded
@@ -377,7 +382,9 @@ def card_fields(run_dir: str | Path, name: str, results: str | Path | None = Non
         "hsicam_version": _version(),
         "source_run": str(run_dir.resolve()),
         "camera": {"kind": cam.kind, "cfa_period": cfa, "pixel_pitch_um": cam.sensor.pixel_pitch_um,
-                   "aperture_radius_mm": cam.aperture_radius_mm, "focal_length_mm": cam.lens.focal_length_mm,
+                   "aperture_radius_mm": cam.aperture_radius_mm, "lens_model": cam.lens.model,
+                   # the focal length at the design wavelength (a singlet ignores focal_length_mm: R / (n(λ0) − 1))
+                   "focal_length_mm": cam.lens.design_focal_length_mm(),
                    "kernel_px": getattr(model.camera, "kernel_px", None), "trainable_parameters": n_cam},
         "network": {"kind": cfg.model.kind, "parameters": n_net, "context_px": model.context_px,
                     "consistency_steps": cfg.model.consistency.iterations if model.consistency_on else 0,
@@ -467,7 +474,8 @@ def card_markdown(card: dict[str, Any]) -> str:
              "## Camera and network", "",
              f"- camera: {card['camera']['kind']}" + (f", {card['camera']['cfa_period']}×{card['camera']['cfa_period']} "
                                                       "CFA" if card['camera']['cfa_period'] else "")
-             + f", pixel pitch {card['camera']['pixel_pitch_um']:g} µm, PSF kernel {card['camera']['kernel_px']} px",
+             + f", pixel pitch {card['camera']['pixel_pitch_um']:g} µm"
+             + (f", PSF kernel {card['camera']['kernel_px']} px" if card['camera'].get('kernel_px') else ""),
              f"- network: {card['network']['kind']}, {card['network']['parameters']:,} parameters"
              + (f", then {card['network']['consistency']} at inference (`model.consistency`)"
                 if card['network'].get('consistency') else

@@ -237,7 +237,7 @@ def write_optics_figures(camera, out: Path, prefix: str = "", psf: bool = False)
                                            f"energy in kernel "
                                            f"{res.energy.min().item():.4f}–{res.energy.max().item():.4f}")
         optics = getattr(camera, "optics", None)
-        if optics is not None:
+        if optics is not None and optics.doe.enabled:  # no DOE (h = 0): no height map to draw (export-optics: none)
             q = optics.pupil_oversample
             plot_doe_heights(optics.doe.heights().detach().cpu().numpy(), optics.amplitude[::q, ::q].cpu().numpy(),
                              optics.cell_m * 1e6, out / f"{prefix}doe.png")

@@ -1,0 +1,67 @@
+"""Packing and figures of designs other than the demo's (session 53 audit of non-default designs): a learned
+DD-CASSI run packs with its own method's scores, its card names no PSF kernel, a singlet's card its real focal
+length, and a camera without a DOE gets no height map."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from hsicam.cli import main
+from hsicam.config import load_config
+
+
+@pytest.fixture(scope="module")
+def cassi_run(tmp_path_factory, cache_env):
+    run = tmp_path_factory.mktemp("cassi") / "run"
+    assert main(["train", "--config", "tiny", "--set", "camera.kind=dd_cassi", "--set", "train.epochs=1",
+                 "--out", str(run)]) == 0
+    return run
+
+
+def test_a_learned_cassi_run_packs_with_its_own_methods_scores(cassi_run, tmp_path, capsys):
+    """`evaluate --run` of a DD-CASSI run names `--method dd-cassi-rdn`; pack --results then refused those scores as
+    "not of the run's own network (doe-learned)" and sent the user back to the refused command."""
+    ev = tmp_path / "ev"
+    assert main(["evaluate", "--run", str(cassi_run), "--method", "dd-cassi-rdn", "--out", str(ev)]) == 0
+    assert main(["pretrained", "pack", str(cassi_run), "--name", "dd", "--results", str(ev / "results.json"),
+                 "--dest", str(tmp_path / "root")]) == 0
+    card = json.loads((tmp_path / "root" / "dd" / "card.json").read_text())
+    res = json.loads((ev / "results.json").read_text())
+    assert card["metrics"]["validation"]["mean"]["psnr"] == res["mean"]["psnr"]
+    md = (tmp_path / "root" / "dd" / "card.md").read_text()
+    assert "PSF kernel" not in md and "None" not in md.split("## Camera and network")[1].split("\n\n")[1]
+    # another method's scores are still refused, naming the run's own
+    box = tmp_path / "gap"
+    assert main(["evaluate", "--run", str(cassi_run), "--method", "dd-cassi-gaptv", "--set",
+                 "baselines.gaptv.iterations=2", "--out", str(box)]) == 0
+    capsys.readouterr()
+    assert main(["pretrained", "pack", str(cassi_run), "--name", "dd2", "--results", str(box / "results.json"),
+                 "--dest", str(tmp_path / "root")]) == 2
+    err = capsys.readouterr().err
+    assert "not of the run's own network (dd-cassi-rdn)" in err and "--method dd-cassi-rdn --out DIR" in err
+
+
+def test_a_singlets_card_records_the_focal_length_it_has(tmp_path, cache_env):
+    """A singlet ignores camera.lens.focal_length_mm (f = R / (n(λ0) − 1), 34.9 mm here): its card recorded the
+    ignored 5 mm, against the 34.9 mm of its spec.json and psf.json."""
+    from hsicam.engine.pretrained import card_fields
+
+    run = tmp_path / "singlet"
+    assert main(["train", "--config", "tiny", "--set", "camera.lens.model=singlet", "--set", "data.synthetic_size=160",
+                 "--set", "train.epochs=1", "--set", "data.patches_per_epoch=4", "--out", str(run)]) == 0
+    lens = load_config(run / "config.yaml").camera.lens
+    card = card_fields(run, "s")
+    assert card["camera"]["lens_model"] == "singlet"
+    assert card["camera"]["focal_length_mm"] == pytest.approx(lens.design_focal_length_mm()) == pytest.approx(34.899,
+                                                                                                               abs=1e-3)
+    assert lens.focal_length_mm != pytest.approx(34.899, abs=1)
+
+
+def test_a_camera_without_a_doe_gets_no_height_map(tmp_path, tiny_camera):
+    """`camera.doe.enabled: false` drew "DOE height map" of a flat 0 nm element; export-optics exports no DOE."""
+    from hsicam.report.camera import write_optics_figures
+
+    written = write_optics_figures(tiny_camera("camera.doe.enabled=false"), tmp_path)
+    assert "doe.png" not in written and not (tmp_path / "doe.png").exists() and "cfa.png" in written
