@@ -65,3 +65,21 @@ def test_a_camera_without_a_doe_gets_no_height_map(tmp_path, tiny_camera):
 
     written = write_optics_figures(tiny_camera("camera.doe.enabled=false"), tmp_path)
     assert "doe.png" not in written and not (tmp_path / "doe.png").exists() and "cfa.png" in written
+
+
+def test_a_trained_sd_cassi_run_is_scored_by_its_own_method(tmp_path, cache_env, capsys):
+    """`evaluate --run` of an SD-CASSI run told the user to use "the learned method of its camera", and none
+    existed (`dd-cassi-unrolled` refused it, `sd-cassi-unrolled` was not a method): the run could not be scored."""
+    run = tmp_path / "sd"
+    assert main(["train", "--config", "tiny", "--set", "camera.kind=sd_cassi", "--set", "model.kind=unrolled",
+                 "--set", "model.unrolled.prior_features=8", "--set", "model.unrolled.prior_blocks=1",
+                 "--set", "train.epochs=1", "--out", str(run)]) == 0
+    capsys.readouterr()
+    assert main(["evaluate", "--run", str(run), "--out", str(tmp_path / "refused")]) == 2
+    assert "use --method sd-cassi-unrolled" in capsys.readouterr().err
+    assert main(["evaluate", "--run", str(run), "--method", "sd-cassi-unrolled", "--out", str(tmp_path / "ev")]) == 0
+    res = json.loads((tmp_path / "ev" / "results.json").read_text())
+    assert res["method"] == "sd-cassi-unrolled" and len(res["scenes"]) >= 1
+    assert all(0 < r["psnr"] < 100 for r in res["scenes"])
+    assert main(["evaluate", "--run", str(run), "--method", "dd-cassi-unrolled", "--out", str(tmp_path / "no")]) == 2
+    assert "needs a run trained with camera.kind=dd_cassi" in capsys.readouterr().err

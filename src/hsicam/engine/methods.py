@@ -228,9 +228,10 @@ def network_alone_reference(model) -> Method:
 
 def own_learned_method(run_cfg) -> str | None:
     """The registered method that scores a run of config ``run_cfg`` by its own network: ``doe-learned`` for a DOE
-    camera, ``dd-cassi-{model.kind}`` for a learned DD-CASSI one; None when none is registered (SD-CASSI)."""
-    own = "doe-learned" if run_cfg.camera.kind == "doe" else (
-        f"dd-cassi-{run_cfg.model.kind}" if run_cfg.camera.kind == "dd_cassi" else None)
+    camera, ``dd-cassi-{model.kind}`` / ``sd-cassi-{model.kind}`` for a learned CASSI one; None when none is
+    registered (e.g. a CASSI run of the mosaic network, which the config refuses)."""
+    kind = run_cfg.camera.kind
+    own = "doe-learned" if kind == "doe" else f"{kind.replace('_', '-')}-{run_cfg.model.kind}"
     return own if own in METHODS else None
 
 
@@ -441,18 +442,18 @@ def _choi_method(cfg, run, device) -> Method:
                                                          **_camera_info(cam)})
 
 
-def _learned_cassi(name: str, network: str) -> Builder:
-    """Builder of a learned DD-CASSI method: a run trained with camera.kind=dd_cassi and ``network``."""
+def _learned_cassi(name: str, network: str, kind: str = "dd_cassi") -> Builder:
+    """Builder of a learned CASSI method: a run trained with camera.kind=``kind`` and ``network``."""
 
     def build(cfg, run, device) -> Method:
         if run is None:
-            raise InputError(f"method {name} needs --run RUN (trained with `hsicam train --set camera.kind=dd_cassi "
+            raise InputError(f"method {name} needs --run RUN (trained with `hsicam train --set camera.kind={kind} "
                              f"--set model.kind={network}`)")
         cfg_path = resolve_run(run) / "config.yaml"
         if cfg_path.is_file():
             run_cfg = load_config(cfg_path)
-            if run_cfg.camera.kind != "dd_cassi":
-                raise InputError(f"{run}: method {name} needs a run trained with camera.kind=dd_cassi, "
+            if run_cfg.camera.kind != kind:
+                raise InputError(f"{run}: method {name} needs a run trained with camera.kind={kind}, "
                                  f"this one has camera.kind={run_cfg.camera.kind}")
             if run_cfg.model.kind != network:
                 raise InputError(f"{run}: method {name} needs a run trained with model.kind={network}, "
@@ -466,3 +467,6 @@ def _learned_cassi(name: str, network: str) -> Builder:
 
 register_method("dd-cassi-rdn")(_learned_cassi("dd-cassi-rdn", "rdn"))
 register_method("dd-cassi-unrolled")(_learned_cassi("dd-cassi-unrolled", "unrolled"))
+# a trained SD-CASSI run scored by its own network (not a baseline of the comparison: baseline_names is DD-CASSI's)
+register_method("sd-cassi-rdn")(_learned_cassi("sd-cassi-rdn", "rdn", "sd_cassi"))
+register_method("sd-cassi-unrolled")(_learned_cassi("sd-cassi-unrolled", "unrolled", "sd_cassi"))

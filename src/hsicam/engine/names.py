@@ -20,6 +20,7 @@ METHOD_ALIASES: dict[str, str] = {"doe-rdn": "doe-learned"}
 METHOD_NAMES: tuple[str, ...] = (
     "doe-learned", "doe-box-demosaic", "doe-linear-demosaic", "doe-tent-demosaic",
     "dd-cassi-gaptv", "dd-cassi-desci", "dd-cassi-choi", "dd-cassi-rdn", "dd-cassi-unrolled",
+    "sd-cassi-rdn", "sd-cassi-unrolled",
     *METHOD_ALIASES,
 )
 
