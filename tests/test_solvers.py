@@ -679,6 +679,7 @@ def test_seeds_without_test_noise_score_one_seed(caplog):
     noisy = [load_config("tiny", [o]) for o in ("camera.sensor.sigma=0.01", "camera.sensor.noise=poisson_gaussian",
                                                 "camera.doe.sigma_height_nm=10")]
     assert all(has_test_noise(c) for c in noisy)
+    assert not has_test_noise(load_config("tiny", ["camera.sensor.noise=none", "camera.sensor.sigma=0.01"]))  # unapplied
     with caplog.at_level(logging.WARNING, logger="hsicam"):
         assert scored_seeds("ablation", "tiny", tiny, (0, 1, 2)) == (0,)
     assert "has no test noise" in caplog.text and "scoring seed 0 only" in caplog.text

@@ -503,3 +503,4 @@ def test_a_camera_noise_level_that_training_does_not_draw_is_warned_about(caplog
     assert tiny_cfg("camera.sensor.sigma=0.01", "train.sensor_sigma=[0.01,0.01]").train.sensor_sigma == [0.01, 0.01]
     assert warn_camera_noise_not_trained(tiny_cfg("camera.sensor.sigma=0.01", "train.sensor_sigma=[0,0.02]")) == []
     assert warn_camera_noise_not_trained(tiny_cfg()) == []
+    assert warn_camera_noise_not_trained(tiny_cfg("camera.sensor.noise=none", "camera.sensor.sigma=0.01")) == []

@@ -56,25 +56,23 @@ def cmf_d65_table() -> np.ndarray:
     return table
 
 
+def _d65_white_xyz() -> np.ndarray:
+    """XYZ (3,) of the D65 white point with Y = 1 (linear sRGB (1, 1, 1))."""
+    wx, wy = _D65_WHITE_XY
+    return np.array([wx / wy, 1.0, (1 - wx - wy) / wy])
+
+
 def xyz_to_linear_srgb_matrix() -> np.ndarray:
     """The 3×3 matrix M with linear sRGB = M @ XYZ, derived from the sRGB primaries and D65 white."""
     xy = _SRGB_PRIMARIES_XY
     prim = np.stack([xy[:, 0] / xy[:, 1], np.ones(3), (1 - xy[:, 0] - xy[:, 1]) / xy[:, 1]])  # columns: XYZ of R, G, B (Y=1)
-    wx, wy = _D65_WHITE_XY
-    white = np.array([wx / wy, 1.0, (1 - wx - wy) / wy])
-    scale = np.linalg.solve(prim, white)
+    scale = np.linalg.solve(prim, _d65_white_xyz())
     return np.linalg.inv(prim * scale[None, :])
 
 
 #: Range of every linear sRGB channel's white-reflector value within which :func:`srgb_weights` balances
 #: the channels to 1 (a factor 3 either way; 420-720 nm: 0.99, 1.01, 0.95; 550-700 nm: 2.5, 0.65, −0.13).
 WHITE_BALANCE_RANGE = (1.0 / 3.0, 3.0)
-
-
-def _d65_white_xyz() -> np.ndarray:
-    """XYZ (3,) of the D65 white point with Y = 1 (linear sRGB (1, 1, 1))."""
-    wx, wy = _D65_WHITE_XY
-    return np.array([wx / wy, 1.0, (1 - wx - wy) / wy])
 
 
 @functools.lru_cache(maxsize=32)

@@ -91,6 +91,7 @@ def heldout_root(cfg: DataConfig, bands: Bands, n: int | None = None, progress: 
     if not holdout:
         return None
     from hsicam.data.spectral_sources import NoHeldOutSpectra
+    from hsicam.data.synthetic import heldout_roles
 
     n = (getattr(cfg, "heldout_n", HELDOUT_N) if n is None else n)
     try:
@@ -105,20 +106,6 @@ def heldout_root(cfg: DataConfig, bands: Bands, n: int | None = None, progress: 
                     "spectrum on these bands)", root, ", ".join(holdout))
         return None
     return root
-
-
-def heldout_roles(root: Path) -> dict[str, bool] | None:
-    """A held-out set's ``sources.held_out_roles`` from its manifest ({role: whether held-out spectra fill it}), or
-    None when the manifest does not say."""
-    import json
-
-    from hsicam.data.synthetic import MANIFEST
-
-    try:
-        roles = json.loads((Path(root) / MANIFEST).read_text(encoding="utf-8")).get("sources", {}).get("held_out_roles")
-    except (OSError, ValueError, AttributeError):
-        return None
-    return roles if isinstance(roles, dict) else None
 
 
 def _should_preload(cfg: DataConfig, scenes: list[Path]) -> bool:

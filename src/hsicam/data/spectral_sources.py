@@ -444,10 +444,10 @@ def split_library(lib: SpectralLibrary, holdout_sources: str | Iterable[str] | N
         # every role would fall back to the training spectra: scenes scored as "held-out sources" that are not
         skipped = lib.sources.get("not_used_out_of_range") or {}
         why = "; ".join(f"{src}: {len(skipped[src])} spectra do not span the grid" for src in holdout if src in skipped)
+        fine = _fine_grid(lib.bands)
         raise NoHeldOutSpectra(
             f"the held-out sources {', '.join(holdout)} give no spectrum on bands {lib.bands.min_nm:g}-"
-            f"{lib.bands.max_nm:g} nm, whose widths need spectra spanning {_fine_grid(lib.bands)[0]:g}-"
-            f"{_fine_grid(lib.bands)[-1]:g} nm ({why or 'none of their spectra is in the library'}): a held-out set would be "
+            f"{lib.bands.max_nm:g} nm, whose widths need spectra spanning {fine[0]:g}-{fine[-1]:g} nm ({why or 'none of their spectra is in the library'}): a held-out set would be "
             "the training spectra; hold out sources that cover these bands (`hsicam data sources`)")
     if parts["reflectances"][0].shape[0] == 0 and not otsu_ok:
         raise InputError(f"holding out {', '.join(holdout)} leaves no reflectance for the {split} scenes")

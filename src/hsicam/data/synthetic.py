@@ -214,6 +214,14 @@ def is_complete(out: str | os.PathLike, n: int, size: int, seed: int, bands: Ban
     return all((out / s["file"]).is_file() for s in man.get("scenes", []))
 
 
+def heldout_roles(out: str | os.PathLike) -> dict[str, bool] | None:
+    """A held-out set's ``sources.held_out_roles`` from its manifest ({role: whether held-out spectra fill it}), or
+    None when the manifest does not say."""
+    sources = (_read_manifest(Path(out)) or {}).get("sources")
+    roles = sources.get("held_out_roles") if isinstance(sources, dict) else None
+    return roles if isinstance(roles, dict) else None
+
+
 def _read_manifest(out: Path) -> dict[str, Any] | None:
     try:
         return json.loads((out / MANIFEST).read_text(encoding="utf-8"))
@@ -1044,6 +1052,7 @@ __all__ = [
     "generate_scene",
     "glyph_text",
     "heldout_dataset",
+    "heldout_roles",
     "is_complete",
     "palette",
     "parameters",

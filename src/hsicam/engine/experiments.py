@@ -323,8 +323,9 @@ def run_experiment(experiment: str, scale: str, out: str | Path, seeds: tuple[in
 def has_test_noise(cfg: Config) -> bool:
     """Whether the config's camera adds random noise at test time (its own, as ``evaluate`` scores it without
     --sigma options): Poisson–Gaussian sensor noise, a Gaussian σ_s or a DOE height σ_p above 0."""
-    sensor = cfg.camera.sensor
-    return sensor.noise == "poisson_gaussian" or sensor.sigma > 0 or cfg.camera.doe.sigma_height_nm > 0
+    sensor = cfg.camera.sensor  # (noise "none" leaves a σ_s unapplied: hsicam.sensor.SensorNoise.from_config)
+    return (sensor.noise == "poisson_gaussian" or (sensor.noise != "none" and sensor.sigma > 0)
+            or cfg.camera.doe.sigma_height_nm > 0)
 
 
 def scored_seeds(experiment: str, scale: str, cfg: Config, seeds: tuple[int, ...]) -> tuple[int, ...]:

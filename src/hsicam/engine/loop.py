@@ -404,9 +404,7 @@ def _fit(task: Task, opts: FitOptions, run_dir: Path, resume: bool, lock: RunLoc
     rank, world, local_rank = dist_env()
     distributed = world > 1
     device = resolve_device(t.device, local_rank)
-    is_main = rank == 0
-    if t.batch_size % world:
-        raise InputError(f"train.batch_size={t.batch_size} must be divisible by the {world} processes")
+    is_main = rank == 0  # (train.batch_size divides by the world size: checked by fit, before the group)
     if is_main:
         if resume:
             lock.acquire()  # before anything in the run is read or removed

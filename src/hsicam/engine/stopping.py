@@ -31,7 +31,9 @@ BUDGET_EXIT_CODE = 75
 
 def _under_torchrun() -> bool:
     """Whether this process is a worker that torchrun started (it forwards the signals it receives to them)."""
-    return "TORCHELASTIC_RUN_ID" in os.environ or int(os.environ.get("WORLD_SIZE", "1") or 1) > 1
+    from hsicam.devices import dist_env
+
+    return "TORCHELASTIC_RUN_ID" in os.environ or dist_env()[1] > 1
 
 
 class StopRequests:

@@ -56,7 +56,8 @@ def warn_camera_noise_not_trained(cfg: Config) -> list[str]:
     the validation and the evaluation."""
     t, cam = cfg.train, cfg.camera
     lines = []
-    for what, level, key, rng in (("sensor noise σ_s", cam.sensor.sigma, "sensor_sigma", t.sensor_sigma),
+    sigma = cam.sensor.sigma if cam.sensor.noise != "none" else 0.0  # noise none: not applied (its own warning)
+    for what, level, key, rng in (("sensor noise σ_s", sigma, "sensor_sigma", t.sensor_sigma),
                                   ("DOE height noise σ_p (nm)", cam.doe.sigma_height_nm, "sigma_height_nm",
                                    t.sigma_height_nm)):
         if level > 0 and max(rng) == 0:
