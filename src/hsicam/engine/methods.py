@@ -437,9 +437,10 @@ def _choi_method(cfg, run, device) -> Method:
     admm = cfg.baselines.choi if cfg.baselines.choi is not None else trained
     _check_prior_keys(admm, trained, run)
     admm = dataclasses.replace(admm, features=trained.features, latent=trained.latent)
-    rec = functools.partial(admm_prior, cam, prior=prior, settings=admm)
+    init_tv = cfg.baselines.gaptv.tv_weight  # the start is the GAP-TV baseline's (its iterations: init_iterations)
+    rec = functools.partial(admm_prior, cam, prior=prior, settings=admm, init_tv_weight=init_tv)
     return _cassi_method("dd-cassi-choi", cfg, cam, rec, {"solver": "choi-admm", "run": str(run), **dataclasses.asdict(admm),
-                                                         **_camera_info(cam)})
+                                                         "init_tv_weight": init_tv, **_camera_info(cam)})
 
 
 def _learned_cassi(name: str, network: str, kind: str = "dd_cassi") -> Builder:

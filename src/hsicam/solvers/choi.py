@@ -73,13 +73,18 @@ def _prior_grad(prior: nn.Module, z: torch.Tensor) -> torch.Tensor:
 
 @torch.no_grad()
 def admm_prior(camera, y: torch.Tensor, prior: nn.Module, settings: ChoiConfig | None = None,
-               x0: torch.Tensor | None = None, return_info: bool = False):
+               x0: torch.Tensor | None = None, return_info: bool = False,
+               init_tv_weight: float = GAPTVConfig.tv_weight):
     """Choi et al. reconstruction: measurement (B, 1, H, W') → cube (B, C, H, W) [, SolverInfo].
 
-    ``info.objective`` holds the objective of the z-iterate after each iteration (when
-    ``return_info``); ``info.extra["primal_residual"]`` the ‖x − z‖ / ‖z‖ sequence.
+    ``init_tv_weight`` is the TV weight λ of the GAP-TV start (the GAP-TV baseline's,
+    ``baselines.gaptv.tv_weight``; cube values in [0, 1]). ``info.objective`` holds the objective of
+    the z-iterate after each iteration (when ``return_info``); ``info.extra["primal_residual"]`` the
+    ‖x − z‖ / ‖z‖ sequence.
     """
     camera.check_measurement(y)
+    if not (init_tv_weight >= 0 and math.isfinite(init_tv_weight)):
+        raise InputError(f"Choi: init_tv_weight must be a finite number >= 0, got {init_tv_weight}")
     s = settings or ChoiConfig()
     t0 = time.perf_counter()
     info = SolverInfo()
@@ -91,7 +96,7 @@ def admm_prior(camera, y: torch.Tensor, prior: nn.Module, settings: ChoiConfig |
     if x0 is not None:
         x = x0.clone()
     elif s.init_iterations > 0:
-        x = gap_tv(camera, y, s.init_iterations, GAPTVConfig.tv_weight)
+        x = gap_tv(camera, y, s.init_iterations, init_tv_weight)
     else:
         x = camera.A_adjoint(y / phi)
     z, u = x.clone(), torch.zeros_like(x)
@@ -117,7 +122,7 @@ def admm_prior(camera, y: torch.Tensor, prior: nn.Module, settings: ChoiConfig |
         rho *= s.rho_growth
     info.iterations = s.iterations
     info.runtime_s = time.perf_counter() - t0
-    info.extra = {"primal_residual": primal}
+    info.extra = {"primal_residual": primal, "init_tv_weight": init_tv_weight}
     log.info("Choi ADMM: %d iterations in %.1f s", s.iterations, info.runtime_s)
     return (z, info) if return_info else z
 

@@ -122,10 +122,11 @@ def block_matching(feat: torch.Tensor, patch: int, rows: torch.Tensor, cols: tor
     Args:
         feat: (C', H, W) features.
         rows, cols: reference top-left coordinates (the references are their outer product).
-        search: ±window (px); group: K (capped by the window size).
+        search: ±window (px); group: K, capped by the fewest in-image candidates of any reference
+            (images a few px wider than the patch have fewer than K).
     Returns:
-        (len(rows)·len(cols), K) indices i·W + j into the patch-position grid of the image; the
-        first one is the reference itself.
+        (len(rows)·len(cols), K) indices i·W + j (i ≤ H − patch, j ≤ W − patch) into the
+        patch-position grid of the image; the first one is the reference itself.
     """
     c, h, w = feat.shape
     hp, wp = h - patch + 1, w - patch + 1
@@ -133,7 +134,6 @@ def block_matching(feat: torch.Tensor, patch: int, rows: torch.Tensor, cols: tor
     rows, cols = rows.to(dev), cols.to(dev)
     offs = range(-search, search + 1)
     n_off = len(offs) ** 2
-    k = min(group, n_off)
     pad = F.pad(feat[None], (search, search, search, search), mode="constant", value=0.0)[0]
     dists = torch.empty(len(offs), len(offs), len(rows), len(cols), dtype=feat.dtype, device=dev)
     inf = torch.tensor(float("inf"), dtype=feat.dtype, device=dev)
@@ -149,7 +149,14 @@ def block_matching(feat: torch.Tensor, patch: int, rows: torch.Tensor, cols: tor
         ok = valid_r[None, :, None] & valid_c[:, None, :]
         dists[a] = torch.where(ok, d, inf)
     dists = dists.reshape(n_off, -1).T  # (R, n_off)
-    best = torch.topk(dists, k, dim=1, largest=False).indices  # (R, K)
+    # A reference has a candidate at offset (0, 0) but may have fewer than K in the image: an
+    # out-of-image (infinite) candidate's index would point past the image or wrap into the next row.
+    k = min(group, int(torch.isfinite(dists).sum(1).min()))
+    # The reference first, also when other candidates tie with it at distance 0 (flat regions, where
+    # topk's order among ties is arbitrary): a reference left out of its group leaves its pixels
+    # covered by no patch (estimate 0).
+    dists[:, search * len(offs) + search] = -1.0
+    best = torch.topk(dists, k, dim=1, largest=False).indices  # (R, K), by distance
     dy = best // len(offs) - search
     dx = best % len(offs) - search
     ry = rows[:, None].expand(len(rows), len(cols)).reshape(-1, 1)
