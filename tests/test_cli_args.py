@@ -194,18 +194,17 @@ def test_tolerance_spec_names_the_field_it_refuses(field, value, message):
         replace(ToleranceSpec(), **{field: value}).check()
 
 
-def test_simulates_seed_help_says_its_range_and_why_it_differs_from_data_synths():
-    """simulate --seed -1 is taken (torch's generator, as the config's camera.doe.seed and train.seed)
-    while data synth --seed -1 is refused (numpy's, as data.synthetic_seed): the help says which."""
+def test_simulates_seed_help_says_its_range_as_every_seed_key():
+    """simulate --seed takes the range of every seed key and of data synth --seed, [0, 2^32 - 1], and says so."""
     from hsicam.cli import build_parser
     from hsicam.config import load_config
 
     parser = build_parser()
-    assert parser.parse_args(["simulate", "--scene", "s.npy", "--out", "o", "--seed", "-1"]).seed == -1
-    assert load_config("tiny", ["camera.doe.seed=-1", "train.seed=-1"]).train.seed == -1
+    assert parser.parse_args(["simulate", "--scene", "s.npy", "--out", "o", "--seed", str(2**32 - 1)]).seed == 2**32 - 1
+    assert load_config("tiny", ["camera.doe.seed=0", f"train.seed={2**32 - 1}"]).train.seed == 2**32 - 1
     sub = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
     (seed,) = [a for a in sub.choices["simulate"]._actions if a.dest == "seed"]
-    assert "[-2^63, 2^64 - 1]" in seed.help and "camera.doe.seed" in seed.help and "data synth" in seed.help
+    assert "[0, 2^32 - 1]" in seed.help and "camera.doe.seed" in seed.help and "data synth" in seed.help
 
 
 def test_a_test_sensor_noise_above_the_full_scale_is_a_usage_error(tmp_path, capsys):

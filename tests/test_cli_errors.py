@@ -10,6 +10,7 @@ the real console script in a subprocess.
 from __future__ import annotations
 
 import json
+import re
 import shutil
 import subprocess
 import sys
@@ -499,32 +500,54 @@ def test_a_patch_smaller_than_the_ssim_window_is_refused_before_a_run_folder_exi
 
 
 def test_seeds_outside_what_their_generator_takes_are_one_line_errors(inputs, env, tmp_path, capsys):
-    """Every seed, of the config or of a --seed option, is one clear error outside what its generator
-    takes (numpy's: no negative seed; torch's: [-2^63, 2^64 - 1]; tolerance seeds its height-noise draws
-    with seed·1000 + draw), never a traceback; the negative seeds that worked still work."""
+    """Every seed, of the config or of a --seed option, is one clear error outside [0, 2^32 - 1], where distinct
+    seeds give distinct draws (tolerance seeds its height-noise draws with seed·1000 + draw, so its --seed stops
+    1000 times lower), never a traceback."""
     from hsicam.cli import build_parser
+    from hsicam.config import TOLERANCE_SEED_MAX
 
     out = tmp_path / "o"
     proc = run_cli_in_process("data", "synth", "--n", "1", "--size", "64", "--seed", "-1", "--out", str(out), env=env)
-    assert_clean_error(proc, "argument --seed: must be an integer in [0, 2^64 - 1], got -1")
+    assert_clean_error(proc, "argument --seed: must be an integer in [0, 2^32 - 1], got -1")
     huge = "99999999999999999999"
-    for kv, fragment in (("data.synthetic_seed=-1", "data.synthetic_seed must be an integer in [0, 2^64 - 1], got -1"),
-                         ("data.split_seed=-1", "data.split_seed must be an integer in [0, 2^64 - 1], got -1"),
-                         (f"train.seed={huge}", f"train.seed must be an integer in [-2^63, 2^64 - 1], got {huge}")):
+    for kv, fragment in (("data.synthetic_seed=-1", "data.synthetic_seed must be an integer in [0, 2^32 - 1], got -1"),
+                         ("data.split_seed=-1", "data.split_seed must be an integer in [0, 2^32 - 1], got -1"),
+                         ("train.seed=-1", "train.seed must be an integer in [0, 2^32 - 1], got -1"),
+                         (f"camera.doe.seed={2**32}", f"camera.doe.seed must be an integer in [0, 2^32 - 1], got {2**32}"),
+                         (f"train.seed={huge}", f"train.seed must be an integer in [0, 2^32 - 1], got {huge}")):
         assert_one_line(*call(capsys, ["train", "--config", "tiny", "--set", kv, "--out", str(out)]), fragment)
     scene, run = str(inputs / "scene.npy"), str(inputs / "run")
     err = usage_error(capsys, ["simulate", "--config", "tiny", "--scene", scene, "--out", str(out), "--seed", huge])
-    assert f"argument --seed: must be an integer in [-2^63, 2^64 - 1], got {huge}" in err
-    err = usage_error(capsys, ["tolerance", "--run", run, "--out", str(out), "--seed", huge])
-    assert f"argument --seed: must be an integer in [-2^53, 2^53], got {huge}" in err
+    assert f"argument --seed: must be an integer in [0, 2^32 - 1], got {huge}" in err
+    for bad in ("-3", str(TOLERANCE_SEED_MAX + 1)):
+        err = usage_error(capsys, ["tolerance", "--run", run, "--out", str(out), "--seed", bad])
+        assert f"argument --seed: must be an integer in [0, {TOLERANCE_SEED_MAX}], got {bad}" in err
     err = usage_error(capsys, ["simulate", "--config", "tiny", "--scene", scene, "--out", str(out), "--seed", "1.5"])
     assert "argument --seed: must be an integer, got '1.5'" in err
     assert not out.exists()
     parser = build_parser()
-    assert parser.parse_args(["tolerance", "--run", run, "--out", str(out), "--seed", "-3"]).seed == -3
-    assert parser.parse_args(["data", "synth", "--seed", "0"]).seed == 0
-    code, err = call(capsys, ["simulate", "--config", "tiny", "--scene", scene, "--out", str(out), "--seed", "-1"])
-    assert code == 0 and json.loads((out / "simulate.json").read_text())["seed"] == -1, err
+    assert parser.parse_args(["tolerance", "--run", run, "--out", str(out), "--seed", str(TOLERANCE_SEED_MAX)]).seed \
+        == TOLERANCE_SEED_MAX
+    assert parser.parse_args(["data", "synth", "--seed", str(2**32 - 1)]).seed == 2**32 - 1
+    code, err = call(capsys, ["simulate", "--config", "tiny", "--scene", scene, "--out", str(out), "--seed", "7"])
+    assert code == 0 and json.loads((out / "simulate.json").read_text())["seed"] == 7, err
+
+
+def test_tolerance_draw_seeds_stay_distinct_seeds():
+    """Draw d of --seed S seeds torch with S·1000 + d: at the largest --seed and draw that is still below 2^32, so no
+    two (seed, draw) pairs share a generator state."""
+    from hsicam.config import SEED_MAX, TOLERANCE_DRAW_STRIDE, TOLERANCE_SEED_MAX
+    from hsicam.engine.tolerance import ToleranceSpec
+    from hsicam.errors import InputError
+
+    assert TOLERANCE_SEED_MAX * TOLERANCE_DRAW_STRIDE + TOLERANCE_DRAW_STRIDE - 1 <= SEED_MAX
+    assert (TOLERANCE_SEED_MAX + 1) * TOLERANCE_DRAW_STRIDE + TOLERANCE_DRAW_STRIDE - 1 > SEED_MAX
+    ToleranceSpec(seed=TOLERANCE_SEED_MAX, height_draws=TOLERANCE_DRAW_STRIDE).check()
+    for spec, what in ((ToleranceSpec(seed=TOLERANCE_SEED_MAX + 1), "ToleranceSpec.seed must be an integer in"),
+                       (ToleranceSpec(seed=-1), "ToleranceSpec.seed must be an integer in"),
+                       (ToleranceSpec(height_draws=TOLERANCE_DRAW_STRIDE + 1), "ToleranceSpec.height_draws must be at most")):
+        with pytest.raises(InputError, match=re.escape(what)):
+            spec.check()
 
 
 def test_finetune_errors_name_its_own_options(inputs, tmp_path, capsys):

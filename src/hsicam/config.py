@@ -39,9 +39,14 @@ def _positive(section: str, **values: float | None) -> None:
             raise ConfigError(f"{section}.{name} must be a finite number > 0, got {v}")
 
 
-#: The seeds torch's generators take (``torch.Generator.manual_seed``): any value in [-2^63, 2^64 - 1].
-#: Seeds of numpy's generators (``data.synthetic_seed``, ``data.split_seed``) take no negative value.
-SEED_MIN, SEED_MAX = -(2**63), 2**64 - 1
+#: The seeds every key and ``--seed`` option takes: [0, 2^32 - 1], where distinct seeds give distinct draws. torch's
+#: CPU generator (``torch.Generator.manual_seed``) takes [-2^63, 2^64 - 1] but keeps only a seed's low 32 bits, so 0,
+#: 2^32 and -2^64 seeded the same DOE, CFA and network while config.yaml recorded the seed asked for; numpy's
+#: ``SeedSequence`` drops a seed's high zero words, so [10·2^32, 0] and [0, 10] gave one scene.
+SEED_MIN, SEED_MAX = 0, 2**32 - 1
+#: ``hsicam tolerance`` seeds its height-noise draw d (fewer than this stride) with seed·stride + d, a seed above too.
+TOLERANCE_DRAW_STRIDE = 1000
+TOLERANCE_SEED_MAX = (SEED_MAX - TOLERANCE_DRAW_STRIDE + 1) // TOLERANCE_DRAW_STRIDE
 
 
 #: The most wavelengths ``camera.psf.band_samples`` averages per band (a huge count ended in numpy's "Maximum allowed
@@ -73,10 +78,10 @@ def seed_problem(value: Any, low: int = SEED_MIN, high: int = SEED_MAX) -> Optio
     return None
 
 
-def _check_seeds(section: str, low: int = SEED_MIN, **values: Any) -> None:
-    """ConfigError naming the first of ``values`` (seed keys of ``section``) outside [low, SEED_MAX]."""
+def _check_seeds(section: str, **values: Any) -> None:
+    """ConfigError naming the first of ``values`` (seed keys of ``section``) outside [SEED_MIN, SEED_MAX]."""
     for name, v in values.items():
-        problem = seed_problem(v, low)
+        problem = seed_problem(v)
         if problem is not None:
             raise ConfigError(f"{section}.{name} {problem}")
 
@@ -757,7 +762,7 @@ class DataConfig:
             if getattr(self, name) > MAX_PATCHES:
                 raise ConfigError(f"data.{name} must be at most {_power_text(MAX_PATCHES)} (patches an epoch), "
                                   f"got {getattr(self, name)}")
-        _check_seeds("data", 0, synthetic_seed=self.synthetic_seed, split_seed=self.split_seed)
+        _check_seeds("data", synthetic_seed=self.synthetic_seed, split_seed=self.split_seed)
         if self.synthetic_size < 16:
             raise ConfigError(f"data.synthetic_size must be >= 16 px, got {self.synthetic_size}")
         if not (0.0 <= self.val_fraction < 1.0):

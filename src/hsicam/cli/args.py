@@ -14,7 +14,7 @@ from collections.abc import Sequence
 from typing import Any, Callable
 
 from hsicam.config import (MAX_SENSOR_SIGMA, MAX_SIGMA_HEIGHT_NM, MAX_TV_WEIGHT, MIN_TV_WEIGHT, SEED_MAX, SEED_MIN,
-                           seed_problem)
+                           TOLERANCE_DRAW_STRIDE, seed_problem)
 from hsicam.errors import InputError
 
 #: The smallest ``--tile`` (px) of ``reconstruct`` and ``evaluate``.
@@ -50,9 +50,9 @@ def _shown(text: str) -> str:
 
 
 def seed_arg(low: int = SEED_MIN, high: int = SEED_MAX) -> Callable[[str], int]:
-    """argparse ``type`` of a ``--seed``: an integer in [``low``, ``high``] (default: every seed torch's
-    generators take; ``low=0`` for seeds of numpy's generators), checked by the config's one seed
-    check (:func:`hsicam.config.seed_problem`)."""
+    """argparse ``type`` of a ``--seed``: an integer in [``low``, ``high``] (default: the seeds every config key
+    takes, [0, 2^32 - 1], where distinct seeds give distinct draws), checked by the config's one seed check
+    (:func:`hsicam.config.seed_problem`)."""
 
     def seed(text: str) -> int:
         try:
@@ -168,7 +168,8 @@ def bounded_count_arg(most: int, each: str) -> Callable[[str], int]:
 
 #: The most seeds ``--seeds`` takes (``evaluate``, ``experiment``), and fabricated DOEs ``tolerance --draws`` takes
 #: per height-noise level.
-MAX_SEEDS = MAX_DRAWS = 1000
+MAX_SEEDS = 1000
+MAX_DRAWS = TOLERANCE_DRAW_STRIDE  # a draw's seed is --seed·stride + draw (hsicam.engine.tolerance)
 #: ``--seeds`` (the noise seeds 0 … N-1): each one is a whole evaluation under fresh test noise (``hsicam experiment``
 #: trains its runs once).
 seeds_arg = bounded_count_arg(MAX_SEEDS, "each seed is a whole run")

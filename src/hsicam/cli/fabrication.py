@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from hsicam.config import TOLERANCE_SEED_MAX
 from hsicam.errors import InputError
 
 
@@ -40,8 +41,10 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="pupil samples per cell Q for the misalignment study (shift resolution 1/Q cell), >= 1 (default 4)")
     p.add_argument("--sensor-distance-um", type=finite_numbers_arg, default=None, metavar="LIST",
                    help="e.g. --sensor-distance-um=-100,-50,0,50,100 (use '=' for lists starting with '-')")
-    p.add_argument("--seed", type=seed_arg(-(2**53), 2**53), default=0,  # height-noise draw d: torch seed seed·1000 + d
-                   help="seed for the height-noise draws and the sensor noise, in [-2^53, 2^53]")
+    # height-noise draw d (< 1000) takes the torch seed seed·1000 + d, which must stay below 2^32 (torch keeps a seed's
+    # low 32 bits, so larger or negative seeds would repeat another --seed's draws)
+    p.add_argument("--seed", type=seed_arg(0, TOLERANCE_SEED_MAX), default=0,
+                   help=f"seed for the height-noise draws and the sensor noise, in [0, {TOLERANCE_SEED_MAX}]")
     p.add_argument("--device", default="cpu", type=device_arg, help="torch device (default cpu)")
     p.set_defaults(func=cmd_tolerance)
 

@@ -60,7 +60,7 @@ from typing import Any, Sequence
 import numpy as np
 import torch
 
-from hsicam.config import MAX_SIGMA_HEIGHT_NM
+from hsicam.config import MAX_SIGMA_HEIGHT_NM, TOLERANCE_DRAW_STRIDE, TOLERANCE_SEED_MAX, seed_problem
 from hsicam.errors import InputError
 from hsicam.optics.perturb import (
     nominal_heights, oversampled_optics, psf_for_heights, psf_sensor_moved, psf_shifted, sensor_distance_aliasing,
@@ -90,6 +90,11 @@ class ToleranceSpec:
         for name in ("height_draws", "max_scenes", "shift_subsamples"):
             if getattr(self, name) < 1:
                 raise InputError(f"ToleranceSpec.{name} must be >= 1, got {getattr(self, name)}")
+        if self.height_draws > TOLERANCE_DRAW_STRIDE:  # draw d seeds seed·stride + d: more would repeat the next seed's
+            raise InputError(f"ToleranceSpec.height_draws must be at most {TOLERANCE_DRAW_STRIDE}, got {self.height_draws}")
+        problem = seed_problem(self.seed, 0, TOLERANCE_SEED_MAX)
+        if problem is not None:
+            raise InputError(f"ToleranceSpec.seed {problem}")
         bad = [s for s in self.sigma_height_nm if not (math.isfinite(s) and s >= 0)]
         if bad:
             raise InputError(f"ToleranceSpec.sigma_height_nm values must be finite and >= 0, got {bad[0]:g}")
@@ -344,7 +349,7 @@ def run_tolerance(model, cfg, spec: ToleranceSpec = ToleranceSpec(), data: str |
         for sigma in spec.sigma_height_nm if has_doe else ():
             ms, en = [], []
             for d in range(spec.height_draws if sigma > 0 else 1):
-                g = torch.Generator().manual_seed(spec.seed * 1000 + d)
+                g = torch.Generator().manual_seed(spec.seed * TOLERANCE_DRAW_STRIDE + d)
                 noise = torch.randn(h0.shape, generator=g, dtype=torch.float64) * sigma * 1e-9
                 res = psf_for_heights(optics, h0 + noise)
                 ms.append(evaluate_psf(model, res.psf, scenes, names, spec.seed))
