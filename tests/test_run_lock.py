@@ -171,3 +171,43 @@ def test_a_resume_and_a_restart_hold_the_lock_from_their_first_change(stopped, t
     assert main(["train", "--config", "tiny", "--out", str(killed), "--restart", "--set", "train.epochs=1"]) == 0
     assert {name for name, _ in seen} == {"check_run_dir", "restart_run_dir"} and all(held for _, held in seen), seen
     assert not (run / LOCK_FILE).exists() and not (killed / LOCK_FILE).exists()
+
+
+def test_a_forked_child_does_not_keep_the_lock_of_its_killed_parent(tmp_path):
+    """A DataLoader worker is a fork of the training: it must not hold the run's lock once the training is killed
+    (an flock lock lasts while any copy of its descriptor is open, and an orphaned worker lives on ~5 s, so an
+    immediate --resume was refused). The parent's lock itself stays while the parent lives."""
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    from hsicam.io import held_elsewhere
+
+    run = tmp_path / "run"
+    run.mkdir()
+    script = (
+        "import os, sys, time\n"
+        "from hsicam.runs.lock import RunLock\n"
+        f"lock = RunLock({str(run)!r}); lock.acquire()\n"
+        "child = os.fork()\n"
+        "if child == 0:\n"
+        "    time.sleep(30); os._exit(0)\n"
+        "print(child, flush=True); time.sleep(60)\n")
+    proc = subprocess.Popen([sys.executable, "-c", script], stdout=subprocess.PIPE, text=True,
+                            env={**os.environ, "PYTHONPATH": os.pathsep.join(sys.path)})
+    child = int(proc.stdout.readline())
+    try:
+        assert held_elsewhere(run / LOCK_FILE)  # the parent holds it while it lives
+        proc.send_signal(signal.SIGKILL)
+        proc.wait(10)
+        os.kill(child, 0)  # the orphan lives on
+        assert not held_elsewhere(run / LOCK_FILE)
+        with RunLock(run) as lock:
+            lock.acquire()  # a resume now takes it at once
+    finally:
+        proc.kill()
+        try:
+            os.kill(child, signal.SIGKILL)
+        except ProcessLookupError:
+            pass

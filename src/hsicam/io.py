@@ -267,10 +267,30 @@ def _naming_output(exc: OSError, final: Path, tmp: Path, kind: str) -> OSError:
 #: The lock files this process holds (:class:`OutputLock`, :class:`hsicam.runs.lock.RunLock`), by
 #: (device, inode): this process's own lock is never a refusal.
 _HELD: dict[tuple[int, int], Path] = {}
+#: Their descriptors, closed in a forked child (:func:`_forget_locks_in_child`).
+_HELD_FDS: set[int] = set()
 
 #: How long a writer waits for a cleanup that holds its lock file while it removes a killed
 #: process's temporaries (they may be large); another writer is a refusal at once.
 _CLEANUP_WAIT_S = 60.0
+
+
+def _forget_locks_in_child() -> None:
+    """In a process forked from a lock's holder (a DataLoader worker): close its copies of the lock descriptors. An
+    flock lock lasts while any descriptor of its open file does, so a worker orphaned by a ``kill -9`` of its parent
+    held the run's lock until it noticed (~5 s) and an immediate ``--resume`` was refused. Closing a copy (not
+    ``LOCK_UN``, which would release the parent's lock too) leaves the parent's lock as it is."""
+    for fd in _HELD_FDS:
+        try:
+            os.close(fd)
+        except OSError:
+            pass
+    _HELD_FDS.clear()
+    _HELD.clear()
+
+
+if hasattr(os, "register_at_fork"):
+    os.register_at_fork(after_in_child=_forget_locks_in_child)
 
 
 class LockHeld(Exception):
@@ -368,6 +388,7 @@ def lock_file(path: str | os.PathLike, info: dict[str, Any] | None = None, tries
         if n >= tries:
             raise LockHeld(str(path))
     _HELD[_file_key(fd)] = Path(path)
+    _HELD_FDS.add(fd)
     try:
         os.ftruncate(fd, 0)
         os.write(fd, json.dumps({"pid": os.getpid(), "since": time.strftime("%Y-%m-%d %H:%M:%S"),
@@ -380,6 +401,7 @@ def lock_file(path: str | os.PathLike, info: dict[str, Any] | None = None, tries
 def unlock_file(fd: int, path: str | os.PathLike | None) -> None:
     """Remove the lock file ``path`` (while it is still the one open as ``fd``) and let go of it."""
     _HELD.pop(_file_key(fd), None)
+    _HELD_FDS.discard(fd)
     try:
         if path is not None and names_open_file(path, fd):
             os.unlink(path)
