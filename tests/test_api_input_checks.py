@@ -181,3 +181,48 @@ def test_a_cassi_camera_images_half_precision_scenes_on_the_cpu():
             want = cam.A(scene)
             for dtype, tol in ((torch.float16, 2e-3), (torch.bfloat16, 2e-2)):
                 torch.testing.assert_close(cam.A(scene.to(dtype)).float(), want, rtol=tol, atol=tol)
+
+
+def test_a_dark_area_below_zero_gives_a_finite_cube_in_proportion():
+    """A capture whose black level was set a little high has areas whose local mean is below 0. The mosaic network
+    divides by the local brightness box(g) + eps, which reached 0 there: g / b was infinite and the whole cube NaN.
+    The brightness is now taken at 0 below 0: the cube stays finite and the dark area stays dark."""
+    cfg = load_config("tiny", ["model.kind=mosaic", "model.mosaic.features=8", "model.mosaic.blocks=1",
+                               "model.mosaic.brightness_window=5"])
+    torch.manual_seed(0)
+    s = CameraSystem.from_config(cfg).eval()
+    y = torch.rand(1, 1, 40, 40, generator=torch.Generator().manual_seed(1)) * 0.5
+    y[..., 10:20, 10:20] = -cfg.model.mosaic.brightness_eps
+    with torch.no_grad():
+        out = s.reconstruct(y)
+    assert out.isfinite().all()
+    assert out[..., 13:17, 13:17].abs().max() < 0.05 * out[..., 25:, 25:].abs().max()
+
+
+def test_train_mode_reconstructs_tiled_as_whole():
+    """In train mode reconstruct is the network alone (the steps are inference's): tiled reconstruction of the same
+    reconstructor is too, where it ran the Landweber steps (a module fresh from from_config is in train mode)."""
+    cfg = load_config("tiny", ["model.consistency.iterations=2", "model.consistency.kind=landweber"])
+    torch.manual_seed(0)
+    s = CameraSystem.from_config(cfg)
+    assert s.training
+    y = torch.rand(1, 1, 40, 40, generator=torch.Generator().manual_seed(0))
+    with torch.no_grad():
+        f = s.reconstructor()
+        whole = f(y)
+        assert torch.equal(whole, s.network(y))
+        torch.testing.assert_close(reconstruct_tiled(f, y), whole)
+        torch.testing.assert_close(reconstruct_tiled(f, y, tile_px=16), whole, atol=1e-5, rtol=1e-5)
+
+
+@pytest.mark.parametrize("padding", ["reflect", "circular"])
+def test_min_scene_size_of_a_padded_camera_is_a_scene_it_captures(padding):
+    """A `same` camera's reflect or circular padding needs a scene of about half the kernel: min_scene_size said 3×3
+    and capture's own refusal named 3×3 px, then the camera refused that scene."""
+    cam = CameraSystem.from_config(load_config("tiny", ["camera.boundary=same", f"camera.padding={padding}"])).camera
+    h, w = cam.min_scene_size()
+    assert min(h, w) >= cam.margin // 2
+    with torch.no_grad():
+        cam.capture(torch.rand(1, len(cam.bands), h, w))
+        with pytest.raises(InputError, match=rf"needs {h}×{w} px"):
+            cam.capture(torch.rand(1, len(cam.bands), h - 1, w))

@@ -251,11 +251,20 @@ class Camera(nn.Module):
         period of the sensor code (the CFA's) when larger."""
         return max(MIN_SENSOR_PX, int(getattr(self, "code_period", 1)))
 
+    def min_padded_px(self) -> int:
+        """Smallest scene side (px) a ``same`` camera's padding takes (0: any): reflection mirrors the scene about its
+        edge pixel, so it needs more pixels than it pads; wrapping around needs at least as many (the padding may not
+        wrap around the scene more than once)."""
+        if self.boundary != "same":
+            return 0
+        return {"reflect": self.margin // 2 + 1, "circular": self.margin // 2}.get(getattr(self, "padding", "zeros"), 0)
+
     def min_scene_size(self) -> tuple[int, int]:
         """Smallest scene (H, W) in px whose sensor image is at least ``n``×``n`` px, ``n`` =
         :meth:`min_sensor_px`: in ``valid`` mode the sensor is smaller than the scene by :attr:`margin`
-        (the PSF kernel's width − 1), so the scene needs ``n + margin``."""
-        n = self.min_sensor_px()
+        (the PSF kernel's width − 1), so the scene needs ``n + margin``; in ``same`` mode with reflect or
+        circular padding at least :meth:`min_padded_px`."""
+        n = max(self.min_sensor_px(), self.min_padded_px())
         h, w = self.scene_size((n, n))
         return max(h, n), max(w, n)
 
@@ -293,14 +302,11 @@ class Camera(nn.Module):
         if x.shape[0] < 1:
             raise InputError(f"scene of shape {tuple(x.shape)} is an empty batch: it needs B >= 1")
         check_device(x, self, "scene")
-        padding = getattr(self, "padding", "zeros")
-        # reflection mirrors the scene about its edge pixel, so it needs more pixels than it pads; wrapping around
-        # needs at least as many (the padding may not wrap around the scene more than once)
-        least = {"reflect": self.margin // 2 + 1, "circular": self.margin // 2}.get(padding, 0)
-        if self.boundary == "same" and min(x.shape[-2:]) < least:
+        least = self.min_padded_px()
+        if min(x.shape[-2:]) < least:
             raise InputError(
-                f"scene of {x.shape[-2]}×{x.shape[-1]} px is too small for {padding} padding by {self.margin // 2} px: "
-                f"it needs at least {least} px per side"
+                f"scene of {x.shape[-2]}×{x.shape[-1]} px is too small for {self.padding} padding by "
+                f"{self.margin // 2} px: it needs at least {least} px per side"
             )
         h, w = self.sensor_size(tuple(x.shape[-2:]))
         if h < 1 or w < 1:

@@ -74,8 +74,10 @@ def brightness(sensor: torch.Tensor, window: int, eps: float) -> torch.Tensor:
     The networks see g / b and return b × their output, so a scene and the same scene ×c get
     the same reconstruction ×c (for b ≫ ε): what is learned on bright patches serves dark ones.
     Since Σ_c κ_c = 1 per pixel, g is a weighted mean over bands and b is on the scale of the cube.
+    The box mean is taken at 0 where it is negative (a dark area of a capture whose black level was set a little
+    high): b at or below 0 made g / b infinite, and the whole cube NaN once the convolutions spread it.
     """
-    return box_mean(sensor, window) + eps
+    return box_mean(sensor, window).clamp_min(0.0) + eps
 
 
 def skip_window(period: int, kernel: str = "box") -> int:

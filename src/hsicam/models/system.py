@@ -170,8 +170,10 @@ class CameraSystem(nn.Module):
         gradients the Landweber steps go in bands of rows (:func:`~hsicam.models.consistency.consistency_step`'s
         ``band_px``: the same cube, a band's working memory).
 
-        ``sensor``: floating (any precision), values in [0, 1] (1 = full scale), finite, on the model's
-        device; else an :class:`InputError` naming what is wrong (:meth:`check_input`)."""
+        ``sensor``: floating (any precision), finite, on the model's device, else an :class:`InputError` naming what
+        is wrong (:meth:`check_input`); its values on the scale the camera gives, 1 = full scale (not checked: a raw
+        capture's counts are divided by their full scale first, :func:`hsicam.data.images.read_capture`; values a
+        little below 0 after a black level are taken as they are)."""
         x = self.reconstruct_before_steps(sensor, origin, operator, step_operator)
         if self.training or not self.consistency_on:
             return x
@@ -206,7 +208,7 @@ class CameraSystem(nn.Module):
         ``step_operator`` as in :meth:`reconstruct`; ``on_step``: called after each step (progress)."""
         c = self.consistency
         iterations = self._landweber_iterations
-        if not self.consistency_on or iterations <= 0:
+        if self.training or not self.consistency_on or iterations <= 0:  # as reconstruct: the steps are inference's
             return x
         op, energy = (self._step_operator(), c.psf_energy) if step_operator is None else (step_operator, 1.0)
         band = None if torch.is_grad_enabled() else default_band_px(sensor.shape[-1])
