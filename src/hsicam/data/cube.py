@@ -139,7 +139,8 @@ def conform_bands(cube: Any, cube_bands: Bands, camera_bands: Bands, source: Pat
     """Bring ``cube`` (bands on ``axis``: -3 fits (C, H, W) and (B, C, H, W)) from ``cube_bands``
     onto ``camera_bands``: the one band-grid policy of every command.
 
-    Same grid: the cube is returned unchanged. Otherwise :func:`hsicam.spectral.resample_spectra`
+    Same band centres and no camera band wider than the data's own: the cube is returned unchanged.
+    Otherwise :func:`hsicam.spectral.resample_spectra`
     (a camera band wider than the data's own bands: the data's interpolant integrated over a Gaussian
     of the width they lack; any other: linear interpolation in band centre), with an INFO log note
     naming ``source`` and the rule unless ``note=False``; numpy input gives float32, a torch tensor keeps its dtype (and gradient).
@@ -150,7 +151,8 @@ def conform_bands(cube: Any, cube_bands: Bands, camera_bands: Bands, source: Pat
     n = cube.shape[axis]
     if n != len(cube_bands):
         raise InputError(f"{source}: the cube has {n} bands but its band grid has {len(cube_bands)} ({cube_bands!r})")
-    if cube_bands.matches(camera_bands):
+    # same centres but wider camera bands: still resampled (integrated), as a 2e-6 nm shift would be
+    if cube_bands.matches(camera_bands) and not resolved_bands(cube_bands, camera_bands).any():
         return cube
     if not cube_bands.covers(camera_bands):
         cam = f"{nm_text(camera_bands.min_nm)}-{nm_text(camera_bands.max_nm)} nm"

@@ -119,7 +119,9 @@ class Bands:
         return self.matches(other)
 
     def __hash__(self) -> int:
-        return hash(tuple(np.round(self.centers_nm, 6)))
+        # the band count only: equality allows 1e-6 nm per centre, and any two grids of one length are
+        # linked by a chain of such steps, so no hash of the centres (rounded or not) agrees with ==
+        return hash(len(self))
 
     def __repr__(self) -> str:
         c = self.centers_nm
@@ -168,13 +170,18 @@ class Bands:
 
 
 def band_matrix(bands: Bands, fine_nm: np.ndarray) -> np.ndarray:
-    """G (C, F): band-averaging weights of each band's Gaussian response (FWHM) on the fine grid. A band so
-    narrow that no fine sample lies within its ±3σ (e.g. 0.3 nm wide at 420.5 nm on a 1 nm grid) samples the
-    spectrum at its centre by linear interpolation (its rows were 0/0, NaN spectra)."""
+    """G (C, F): band-averaging weights of each band's Gaussian response (FWHM) on the ascending fine grid
+    (nm), rows summing to 1. Each sample is weighed by the wavelength interval it stands for (half the
+    distance between its neighbours, one spacing at the grid's ends), so a non-uniform grid averages per nm,
+    not per sample; on a uniform grid every sample weighs the same. A band so narrow that no fine sample
+    lies within its ±3σ (e.g. 0.3 nm wide at 420.5 nm on a 1 nm grid) samples the spectrum at its centre by
+    linear interpolation (its rows were 0/0, NaN spectra)."""
     fine_nm = np.asarray(fine_nm, dtype=np.float64)
     sigma = bands.fwhm_nm / (2.0 * np.sqrt(2.0 * np.log(2.0)))
     g = np.exp(-0.5 * ((fine_nm[None, :] - bands.centers_nm[:, None]) / sigma[:, None]) ** 2)
     g[np.abs(fine_nm[None, :] - bands.centers_nm[:, None]) > 3.0 * sigma[:, None]] = 0.0
+    if len(fine_nm) > 1:  # per-sample weights were biased towards the dense side of a non-uniform grid
+        g *= np.gradient(fine_nm)[None, :]
     for c in np.flatnonzero(g.sum(axis=1) == 0.0):  # narrower than the grid: a point sample
         x = float(np.clip(bands.centers_nm[c], fine_nm[0], fine_nm[-1]))
         j = int(np.clip(np.searchsorted(fine_nm, x) - 1, 0, max(len(fine_nm) - 2, 0)))
@@ -268,12 +275,14 @@ def resample_spectra(values: np.ndarray | torch.Tensor, src: Bands, dst: Bands, 
     Works on numpy arrays and torch tensors (differentiable); linear in the values. The rule
     (:func:`resampling_matrix`): bands that the source samples finer than their FWHM integrate the
     source over their Gaussian response; the others interpolate linearly in band centre. The
-    same grid (by centres) returns ``values`` itself.
+    same centres with nothing left to average (no ``dst`` band wider than the source's own) return
+    ``values`` itself.
     """
     n = values.shape[axis]
     if n != len(src):
         raise InputError(f"resample_spectra: axis {axis} has {n} entries but the source grid has {len(src)} bands")
-    if src.matches(dst):
+    # equal centres are not enough: wider dst bands still integrate the source (the rule, continuous in the centres)
+    if src.matches(dst) and not resolved_bands(src, dst).any():
         return values
     w = resampling_matrix(src, dst)
     torch = sys.modules.get("torch")  # values that are a tensor mean torch is loaded: numpy input does not load it

@@ -65,7 +65,8 @@ class TabulatedMaterial:
         """Read a CSV with a header row naming ``wavelength_nm`` and ``n`` columns."""
         path = Path(path)
         try:
-            with open(path, newline="", encoding="utf-8") as fh:
+            # utf-8-sig: Excel's "CSV UTF-8" starts with a byte-order mark that would glue onto the first column name
+            with open(path, newline="", encoding="utf-8-sig") as fh:
                 reader = csv.DictReader(fh)
                 rows = list(reader)
                 header = reader.fieldnames or []
