@@ -241,3 +241,76 @@ def test_a_dataset_larger_than_the_free_disk_is_refused_before_any_scene(tmp_pat
     monkeypatch.setattr(shutil, "disk_usage", lambda path: usage(10**12, 0, 3 * per_scene + (1 << 26)))
     out = synthetic_dataset(3, 32, 0, bands, cache_dir=cache, progress=False)
     assert len(list(out.glob("scene_*.h5"))) == 3
+
+
+def _damage(folder, name, how):
+    """Truncate ``name`` (an interrupted copy) or zero a block of its pixels in place (still valid HDF5)."""
+    import h5py
+
+    path = folder / name
+    if how == "truncated":
+        with open(path, "r+b") as f:
+            f.truncate(path.stat().st_size // 2)
+        return
+    with h5py.File(path, "r") as f:
+        offset, shape = f["cube"].id.get_offset(), f["cube"].shape
+    block = np.memmap(path, dtype="<f4", mode="r+", offset=offset, shape=shape)
+    block[:, 4:12, 4:12] = 0.0
+    block.flush()
+
+
+@pytest.mark.parametrize("how", ["truncated", "altered"])
+def test_data_synth_finds_a_damaged_cached_scene_and_generates_the_set_again(tmp_path, monkeypatch, capsys, how):
+    """The cache trusted that its files exist: a truncated scene stopped training with no word of the cache, and one
+    altered in place trained silently, while `data synth` said "wrote" and wrote nothing. It now checks every scene
+    against the manifest's checksum and generates a damaged set again (the same bytes), and says an intact set is."""
+    from hsicam.cli import main
+
+    monkeypatch.setenv("HSICAM_CACHE", str(tmp_path))
+    args = ["data", "synth", "--config", "tiny", "--n", "3", "--size", "32", "--no-progress"]
+    assert main(args) == 0
+    (folder,) = (tmp_path / "synthetic").iterdir()
+    good = {p.name: p.read_bytes() for p in folder.glob("scene_*.h5")}
+    assert syn.damaged_scenes(folder) == []
+    capsys.readouterr()
+    assert main(args) == 0
+    assert "already holds this dataset" in capsys.readouterr().out
+    _damage(folder, "scene_0001.h5", how)
+    assert syn.damaged_scenes(folder) == ["scene_0001.h5"]
+    assert main(args) == 0
+    out = capsys.readouterr().out
+    assert "1 of its 3 scenes missing or not the bytes its manifest records (scene_0001.h5)" in out
+    assert {p.name: p.read_bytes() for p in folder.glob("scene_*.h5")} == good
+    assert syn.damaged_scenes(folder) == []
+
+
+def test_training_on_a_truncated_cached_scene_says_how_to_repair_the_cache(tmp_path, monkeypatch):
+    from hsicam.data.pipeline import build_datasets
+
+    monkeypatch.setenv("HSICAM_CACHE", str(tmp_path))
+    cfg = load_config("tiny", ["data.synthetic_n=3", "data.synthetic_size=32", "data.patch_px=16",
+                               "data.preload=true"])
+    bands = cfg.bands.to_bands()
+    folder = syn.synthetic_dataset(3, 32, cfg.data.synthetic_seed, bands, progress=False,
+                                   holdout_sources=cfg.data.holdout_sources)
+    _damage(folder, "scene_0000.h5", "truncated")
+    with pytest.raises(InputError, match=r"scene_0000\.h5: .*synthetic dataset cache .*`hsicam data synth`"):
+        build_datasets(cfg.data, bands, margin_px=4)
+
+
+def test_a_cached_set_of_other_package_versions_is_reused_with_a_warning(tmp_path, caplog):
+    """The scenes depend on colour-science (spectra, Otsu basis) and scikit-image (photos, textures), which the
+    cache key leaves out: a set made with other versions is reused, and now says so once."""
+    import logging
+
+    folder = syn.synthetic_dataset(2, 32, 0, PAPER, cache_dir=tmp_path, progress=False)
+    assert syn.version_differences(folder) == []
+    man = json.loads((folder / "manifest.json").read_text())
+    man["software"]["colour-science"] = "0.3.16"
+    (folder / "manifest.json").write_text(json.dumps(man))
+    assert syn.version_differences(folder) == [f"colour-science 0.3.16 → {syn._versions()['colour-science']}"]
+    with caplog.at_level(logging.WARNING, logger="hsicam.data.synthetic"):
+        assert syn.synthetic_dataset(2, 32, 0, PAPER, cache_dir=tmp_path) == folder
+        assert syn.synthetic_dataset(2, 32, 0, PAPER, cache_dir=tmp_path) == folder
+    said = [r.getMessage() for r in caplog.records if "other versions" in r.getMessage()]
+    assert len(said) == 1 and "colour-science 0.3.16" in said[0]

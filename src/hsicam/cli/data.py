@@ -56,6 +56,8 @@ def _synth(args: argparse.Namespace) -> int:
     from hsicam.cli import config_from_args
     from hsicam.data.synthetic import (
         HELDOUT_N,
+        damaged_scenes,
+        dataset_dir,
         generate_dataset,
         is_complete,
         parse_holdout,
@@ -92,14 +94,28 @@ def _synth(args: argparse.Namespace) -> int:
     room_fix = "lower --n or --size, or " + (  # a refusal for want of disk space names the options
         "give --out a folder on a larger disk" if args.out is not None else
         "write to a larger disk (--out, or data.cache_dir / HSICAM_CACHE)")
+    what = ("held-out scene" if split == "heldout" else "scene") + ("" if n == 1 else "s")
+    target = Path(args.out) if args.out is not None else dataset_dir(n, size, seed, bands, cache_dir=cfg.data.cache_dir,
+                                                                     **kw)
+    if is_complete(target, n, size, seed, bands, **kw):
+        # a finished set: its files checked against the manifest's checksums (training trusts them), a damaged one
+        # generated again in place (the same bytes; each file replaced atomically, the manifest last)
+        bad = damaged_scenes(target)
+        if not bad:
+            print(f"{target}: already holds this dataset (n={n}, size={size}, seed={seed}, split={split}); "
+                  f"its {n} {what} match their checksums")
+            return 0
+        print(f"{target}: {len(bad)} of its {n} {what} missing or not the bytes its manifest records "
+              f"({', '.join(bad[:3])}{', …' if len(bad) > 3 else ''}): generating the set again")
+        generate_dataset(target, n=n, size=size, seed=seed, bands=bands, progress=progress, room_fix=room_fix, **kw)
+        print(f"wrote {n} {what} of {size}x{size}x{len(bands)} to {target} (held-out sources: "
+              f"{', '.join(holdout) or 'none'})")
+        return 0
     if args.out is None:
         out = synthetic_dataset(n, size, seed, bands, cache_dir=cfg.data.cache_dir, progress=progress,
                                 room_fix=room_fix, **kw)
     else:
         out = Path(args.out)
-        if is_complete(out, n, size, seed, bands, **kw):
-            print(f"{out}: already holds this dataset (n={n}, size={size}, seed={seed}, split={split})")
-            return 0
         if out.is_dir() and any(not f.name.startswith(".") for f in out.iterdir()):
             # scene files of a generation killed before its manifest (written in place before session 51): finished there
             generate_dataset(out, n=n, size=size, seed=seed, bands=bands, progress=progress, room_fix=room_fix, **kw)
@@ -112,7 +128,6 @@ def _synth(args: argparse.Namespace) -> int:
             check_room_for_scenes(out, n, size, len(bands), room_fix)  # named by --out, before the temporary
             with atomic_output(out, "dir", marker=False) as tmp:
                 generate_dataset(tmp, n=n, size=size, seed=seed, bands=bands, progress=progress, room_fix=room_fix, **kw)
-    what = ("held-out scene" if split == "heldout" else "scene") + ("" if n == 1 else "s")
     print(f"wrote {n} {what} of {size}x{size}x{len(bands)} to {out} (held-out sources: {', '.join(holdout) or 'none'})")
     return 0
 

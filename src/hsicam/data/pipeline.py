@@ -14,6 +14,7 @@ from torch.utils.data import DataLoader, Dataset
 
 from hsicam.config import DataConfig
 from hsicam.data.datasets import PatchDataset, SceneDataset, list_scenes, split_scenes
+from hsicam.errors import InputError
 from hsicam.spectral import Bands
 
 log = logging.getLogger(__name__)
@@ -164,12 +165,21 @@ def build_datasets(cfg: DataConfig, bands: Bands, margin_px: int, *, progress: b
         log.log(logging.WARNING if cfg.val_fraction > 0 else logging.INFO,
                 "data: no validation scenes (%s): training runs without validation and the run keeps its last "
                 "checkpoint, not the best one; %s", no_validation_reason(cfg, len(scenes)), fix)
-    train = PatchDataset(scene_dataset(cfg, train_scenes, bands, preload=preload), cfg.patch_px, margin_px,
+    try:
+        train_set = scene_dataset(cfg, train_scenes, bands, preload=preload)
+        val_set = scene_dataset(cfg, val_scenes, bands, preload=preload) if val_scenes else None
+    except InputError as exc:
+        if cfg.root is None:  # a scene of the synthetic cache that cannot be read: say how the cache is repaired
+            raise InputError(f"{exc}; it is a scene of the synthetic dataset cache {root}: `hsicam data synth` with "
+                             "the same --config and --set options checks every scene against its checksum and generates "
+                             "a damaged set again") from None
+        raise
+    train = PatchDataset(train_set, cfg.patch_px, margin_px,
                          patches_per_epoch=cfg.patches_per_epoch, flips=cfg.augment_flips, rot90=cfg.augment_rot90,
                          seed=cfg.split_seed, relight_sigma=cfg.augment_relight, relight_prob=cfg.augment_relight_prob)
     val = None
-    if val_scenes:
-        val = PatchDataset(scene_dataset(cfg, val_scenes, bands, preload=preload), cfg.patch_px, margin_px,
+    if val_set is not None:
+        val = PatchDataset(val_set, cfg.patch_px, margin_px,
                            patches_per_epoch=cfg.val_patches, flips=False, rot90=False, seed=cfg.split_seed + 1,
                            fixed=True)
     return train, val
