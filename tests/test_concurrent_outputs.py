@@ -330,3 +330,63 @@ def test_a_run_check_under_its_own_lock_restores_an_output_a_killed_replacement_
         lock.acquire()
         assert remove_run_temporaries(run) == [aside]
     assert hidden(tmp_path) == [] and (run / "config.yaml").is_file()
+
+
+# ------------------------------------------------------------------------------------------------
+# An experiment's folder (session 54 review: `hsicam experiment` held no lock on it)
+# ------------------------------------------------------------------------------------------------
+HOLD_EXPERIMENT = """
+from hsicam.io import OutputLock
+
+with OutputLock(sys.argv[3], "experiment") as lock:
+    lock.acquire()
+    pause(sys.argv[3])
+"""
+
+LOCK_PROBE = ("import sys\nfrom hsicam.io import OutputLock\ntry:\n    OutputLock(sys.argv[1], 'experiment').acquire()\n"
+              "    print('free')\nexcept Exception as exc:\n    print(exc)")
+
+
+def test_an_experiment_holds_its_folder_from_its_checks_to_its_marker(tmp_path, monkeypatch, capsys):
+    """Two `hsicam experiment` into one folder both ran (experiment.json from one, table.md maybe from the other,
+    marked complete all the same): while one trains, another process taking the folder is refused, naming it."""
+    import hsicam.engine.experiments as experiments
+    from hsicam.cli import main
+
+    out = tmp_path / "new" / "exp"  # its parent too is new (as runs/experiments/ is at first): locked all the same
+    seen = []
+
+    def training(run, cfg, *a, **k):  # while the experiment trains: can another process take its folder?
+        seen.append(subprocess.run([sys.executable, "-c", LOCK_PROBE, str(out)], capture_output=True, text=True,
+                                   env=cli_env()).stdout.strip())
+        raise KeyboardInterrupt  # enough: nothing is trained
+
+    monkeypatch.setattr(experiments, "ensure_trained", training)
+    assert main(["experiment", "ablation", "--scale", "tiny", "--out", str(out)]) == 130
+    assert seen and seen[0].startswith(f"{out}: being written by another process (hsicam experiment, pid "
+                                       f"{os.getpid()}, since "), seen
+    assert hidden(out.parent) == []  # let go on the way out (the lock file removed)
+
+
+def test_an_experiment_is_refused_while_another_process_writes_its_folder(tmp_path, start, monkeypatch):
+    """run_experiment (the library call that `hsicam experiment` makes) took no lock: with the folder held by
+    another process it cleared the folder's marker and trained into it. Now one line naming that process, before
+    the folder is touched."""
+    import hsicam.engine.experiments as experiments
+
+    out = tmp_path / "exp"
+    (out / "runs").mkdir(parents=True)
+    (out / ".complete").write_text('{"complete": true, "command": "experiment"}')
+    before = sorted(p.name for p in out.rglob("*"))
+
+    def training(*a, **k):
+        raise AssertionError("the experiment started in a folder another process writes")
+
+    monkeypatch.setattr(experiments, "ensure_trained", training)
+    w = start(HOLD_EXPERIMENT, out)
+    with pytest.raises(hio.InputError) as exc:
+        experiments.run_experiment("ablation", "tiny", out)
+    assert re.fullmatch(rf"{re.escape(str(out))}: being written by another process \(hsicam experiment, pid {w.pid}, "
+                        rf"since [0-9-]+ [0-9:]+\); wait for it or stop it", str(exc.value)), str(exc.value)
+    assert sorted(p.name for p in out.rglob("*")) == before and (out / ".complete").is_file()
+    assert_ok(w.go())

@@ -850,3 +850,37 @@ def test_the_data_package_loads_its_names_on_first_use():
     script = "import hsicam.data as d; print(d.formats.__name__, d.datasets.__name__, hasattr(d, 'no_such_module'))"
     names = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, check=True).stdout.split()
     assert names == ["hsicam.data.formats", "hsicam.data.datasets", "False"]
+
+
+def test_envi_writer_keeps_metadata_in_one_header_line_that_envi_readers_take_whole(tmp_path, caplog):
+    """write_envi kept no metadata (reconstruct's --out X.hdr lost the capture, run and CFA offset that its .h5
+    records; session 54 review). It is one header line now, ``hsicam metadata = {JSON}``, that read_envi returns in
+    the cube's meta as read_hsicam_h5 does; braces and commas inside its strings are JSON escapes, so a reader that
+    counts braces sees them balanced and one that splits a braced value at its commas (the spectral package)
+    joins the pieces back into the same JSON."""
+    import json
+
+    from hsicam.data.formats import ENVI_METADATA_KEY
+
+    meta = {"source": 'scan{1}, "a"\\b,\n\u00e9\u2028.npy', "run": "pretrained:standard", "cfa_offset": [1, 2],
+            "cfa_offset_estimate": {"residuals": {"0,0": 0.5, "1,2": 0.01}, "ambiguous": False},
+            "list": [" a", "b ", {"x": "}{"}], "empty": "", "format": "not the file's"}
+    chw = np.random.default_rng(3).random((3, 4, 5)).astype(np.float32)
+    hdr, _ = write_envi(tmp_path / "c.hdr", chw, Bands.uniform(450, 550, 50), metadata=meta)
+    text = hdr.read_text(encoding="utf-8")
+    assert text.isascii()
+    line = [x for x in text.splitlines() if x.startswith(ENVI_METADATA_KEY)]
+    assert len(line) == 1 and len(text.splitlines()) == len(text.split("\n")) - 1  # one line, whatever splits lines
+    value = parse_envi_header(hdr)[ENVI_METADATA_KEY]
+    assert value.count("{") == value.count("}") and json.loads(value[1:-1]) == meta
+    # the spectral package's split of a braced value: the text between the outer braces, at every comma, stripped
+    assert json.loads(",".join(v.strip() for v in value[1:-1].split(","))) == meta
+    cube, _, got = read_cube(hdr)
+    np.testing.assert_array_equal(cube, chw)
+    assert {k: got[k] for k in meta if k != "format"} == {k: v for k, v in meta.items() if k != "format"}
+    assert got["format"] == "envi"  # the file's own facts win
+    # a value that is not a JSON object: read without it, with a warning
+    hdr.write_text(text.replace(line[0], f"{ENVI_METADATA_KEY} = {{not json}}"), encoding="utf-8")
+    with caplog.at_level(logging.WARNING):
+        _, _, got = read_cube(hdr)
+    assert "run" not in got and f"ignoring its unreadable '{ENVI_METADATA_KEY}'" in caplog.text

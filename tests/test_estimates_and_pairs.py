@@ -191,3 +191,27 @@ def test_another_writers_envi_data_with_trailing_bytes_is_read_with_a_warning(tm
     with caplog.at_level("WARNING"):
         np.testing.assert_array_equal(read_envi(hdr)[0], a)
     assert f"{data}: {a.nbytes + 512} bytes of ENVI data, but e.hdr describes {a.nbytes}" in caplog.text
+
+
+def test_reconstruct_to_envi_records_the_metadata_its_hdf5_records(tmp_path, capsys):
+    """`reconstruct --out X.hdr` wrote none of the metadata that --out X.h5 records (source, run, preprocessing,
+    cfa_offset and --cfa-offset auto's cfa_offset_estimate, the consistency steps; session 54 review): the header
+    keeps it now (write_envi's ``hsicam metadata`` line), and read_cube returns the same as from the .h5."""
+    import h5py
+
+    from hsicam.cli import main
+
+    sensor = tmp_path / "capture.npy"
+    np.save(sensor, np.random.default_rng(0).uniform(0.2, 0.8, (48, 48)).astype(np.float32))
+    for name in ("c.hdr", "d.h5"):
+        argv = ["reconstruct", str(sensor), "--run", "pretrained:standard", "--cfa-offset", "auto",
+                "--out", str(tmp_path / name)]
+        assert main(argv) == 0, capsys.readouterr().err
+    with h5py.File(tmp_path / "d.h5") as f:
+        recorded = json.loads(f.attrs["metadata_json"])
+    assert {"command", "source", "run", "preprocessing", "cfa_offset", "cfa_offset_estimate",
+            "consistency_steps"} <= recorded.keys()
+    meta = read_cube(tmp_path / "c.hdr")[2]
+    assert {k: meta.get(k) for k in recorded} == recorded
+    assert meta["format"] == "envi" and meta["command"] == "reconstruct"
+    assert main(argv[:-1] + [str(tmp_path / "c.hdr")]) == 0  # its own earlier output: replaced

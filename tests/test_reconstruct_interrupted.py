@@ -107,3 +107,38 @@ def test_the_training_commands_are_marked_as_such():
         "psf": ["psf", "--out", "x"]}.items()}
     assert trains == {"train": True, "demo": True, "finetune": True, "experiment": True, "train-prior": True,
                       "reconstruct": False, "evaluate": False, "psf": False}
+
+
+@pytest.mark.parametrize("how", ["int", "term"])
+def test_a_stop_between_the_envi_data_and_its_header_leaves_no_data_file_and_the_command_runs_again(
+        capture, tmp_path, monkeypatch, capsys, how):
+    """An ENVI cube is two files: stopped after its .img took its place and before its .hdr, the .img was left alone,
+    and the same command then refused it as a user's file ("its header c.hdr is missing"), while SIGTERM's line said
+    nothing half-written was left (session 54 review). The data file this write put there goes with the stop now."""
+    import contextlib
+
+    import hsicam.data.formats as formats
+    from hsicam.cli import main
+    from hsicam.errors import Terminated
+
+    out = tmp_path / "out"
+    out.mkdir()
+    argv = ["reconstruct", str(capture), "--run", "pretrained:standard", "--out", str(out / "c.hdr")]
+    real = formats.atomic_path
+
+    @contextlib.contextmanager
+    def stopped_before_the_header(path):
+        if str(path).endswith(".hdr"):
+            assert (out / "c.img").is_file()  # the data file is in place: the stop falls between the two
+            raise Terminated() if how == "term" else KeyboardInterrupt()
+        with real(path) as tmp:
+            yield tmp
+
+    monkeypatch.setattr(formats, "atomic_path", stopped_before_the_header)
+    assert main(argv) == (143 if how == "term" else 130)
+    assert capsys.readouterr().err.strip().splitlines()[-1] == (
+        "hsicam: terminated (SIGTERM); nothing half-written was left" if how == "term" else "hsicam: interrupted")
+    assert sorted(p.name for p in out.iterdir()) == []  # no .img without its header, no temporary
+    monkeypatch.undo()
+    assert main(argv) == 0, capsys.readouterr().err
+    assert sorted(p.name for p in out.iterdir()) == ["c.hdr", "c.img", "c_rgb.png"]

@@ -356,3 +356,23 @@ def test_shift_subsamples_beyond_the_memory_budget_are_refused_naming_the_option
                        "memory budget", "give a smaller --shift-subsamples")
     assert "pupil_oversample" not in res.stderr and "nominal PSNR" not in res.stdout
     assert not out.exists()
+
+
+def test_a_side_never_swept_is_said_so_not_beyond_the_swept_range(fab_run, tmp_path):
+    """--sensor-distance-um=0,50 holds no negative value, and σ_p and the shift only 0: their 1-dB tolerances were
+    null, said as "beyond the swept range" (and read so in tolerance.json and the spec.json that export-optics copies
+    it to). They are "not swept" now, and the summary names them under not_swept (session 54 review)."""
+    out = tmp_path / "tol"
+    res = run_cli_in_process("tolerance", "--run", str(fab_run), "--out", str(out), "--max-scenes", "1",
+                             "--sigma-height-nm", "0", "--draws", "1", "--levels", "8", "--shift-cells", "0",
+                             "--sensor-distance-um=0,50")
+    assert res.returncode == 0, res.stderr
+    s = json.loads((out / "tolerance.json").read_text())["summary"]
+    assert s["not_swept"] == ["sigma_height_nm_at_1db_loss", "shift_x_cells_at_1db_loss",
+                              "shift_diag_cells_at_1db_loss", "sensor_distance_um_at_1db_loss.minus"]
+    assert s["sigma_height_nm_at_1db_loss"] is None and s["sensor_distance_um_at_1db_loss"]["minus"] is None
+    line = res.stdout.strip().splitlines()[-1]
+    assert "σ_p not swept, shift not swept (x), Δz toward the lens not swept, away " in line, line
+    away = re.search(r"away (.+?)(?:, levels|\s->)", line).group(1)
+    plus = s["sensor_distance_um_at_1db_loss"]["plus"]
+    assert away == ("beyond the swept range" if plus is None else f"{plus:.3g} µm"), line

@@ -300,21 +300,24 @@ def _saved_cubes_text(seeds) -> str:
 
 
 def cmd_experiment(args: argparse.Namespace) -> int:
-    from hsicam.engine.experiments import format_experiment_table, run_experiment
+    from hsicam.engine.experiments import experiment_lock, format_experiment_table, run_experiment
     from hsicam.cli import prepare_output
     from hsicam.io import is_complete, mark_complete, output_description, read_marker
 
     out = prepare_output(args.out or f"runs/experiments/{args.name}-{args.scale}", "dir")
-    # accepted: absent or empty, an interrupted experiment (runs/, no marker) or a finished one
-    if out.is_dir() and any(out.iterdir()):
-        if is_complete(out):
-            if read_marker(out).get("command") != "experiment":
-                raise InputError(f"{out}: holds {output_description(out)}, not an experiment; choose another --out")
-        elif not (out / "runs").is_dir():
-            raise InputError(f"{out}: folder exists and is not an experiment folder; choose another --out")
-    # run_experiment checks the folder holds this experiment at this scale, then takes its marker off
-    result = run_experiment(args.name, args.scale, out, tuple(range(args.seeds)))
-    mark_complete(out, {"command": "experiment", "experiment": args.name, "scale": args.scale})
+    # the folder is this process's from its checks to its marker (run_experiment takes the same lock, re-entrant):
+    # a second experiment started meanwhile is refused naming this one, not run into the same files
+    with experiment_lock(out):
+        # accepted: absent or empty, an interrupted experiment (runs/, no marker) or a finished one
+        if out.is_dir() and any(out.iterdir()):
+            if is_complete(out):
+                if read_marker(out).get("command") != "experiment":
+                    raise InputError(f"{out}: holds {output_description(out)}, not an experiment; choose another --out")
+            elif not (out / "runs").is_dir():
+                raise InputError(f"{out}: folder exists and is not an experiment folder; choose another --out")
+        # run_experiment checks the folder holds this experiment at this scale, then takes its marker off
+        result = run_experiment(args.name, args.scale, out, tuple(range(args.seeds)))
+        mark_complete(out, {"command": "experiment", "experiment": args.name, "scale": args.scale})
     print(format_experiment_table(result))
     print(f"-> {out}/experiment.json, {out}/table.md")
     return 0

@@ -121,28 +121,41 @@ def cmd_tolerance(args: argparse.Namespace) -> int:
     result = run_tolerance(model, cfg, spec, args.data, run=args.run)
     with atomic_output(out, overwrite=True, marker={"command": "tolerance"}) as tmp:
         write_tolerance(tmp, result)
+    from hsicam.engine.tolerance import NOT_SWEPT_KEY
+
     s = result["summary"]
-    dz = s.get("sensor_distance_um_at_1db_loss") or {}
+    not_swept = set(s.get(NOT_SWEPT_KEY) or ())
+
+    def tol(key: str, unit: str) -> str:
+        """The summary's KEY (or KEY.SIDE of the sensor distance's) as the line says it."""
+        name, _, side = key.partition(".")
+        value = (s.get(name) or {}).get(side) if side else s.get(name)
+        # null for a sweep (or side) that held no value but 0, or none at all (then absent), is not "beyond the
+        # swept range": it was never swept
+        return _fmt(value, unit, not_swept=key in not_swept or name not in s)
+
     if result.get("skipped"):
         doe = "no DOE (camera.doe.enabled: false): DOE sweeps skipped; 1-dB tolerances: "
         doe_tol = ""
     else:
         doe = "1-dB tolerances: "
-        doe_tol = (f"σ_p {_fmt(s.get('sigma_height_nm_at_1db_loss'), 'nm')}, "
-                   f"shift {_fmt(s.get('shift_x_cells_at_1db_loss'), 'cells')} (x), ")
+        doe_tol = f"σ_p {tol('sigma_height_nm_at_1db_loss', 'nm')}, shift {tol('shift_x_cells_at_1db_loss', 'cells')} (x), "
     from hsicam.report.tolerance import levels_text
 
     lv = "" if result.get("skipped") else levels_text(result)  # "levels ≥ L" only when the sweep brackets L
     levels = f", {lv}" if lv else ""
     print(f"nominal PSNR {result['nominal']['psnr']:.2f} dB on {len(result['scenes'])} scene(s); {doe}{doe_tol}"
-          f"Δz toward the lens {_fmt(dz.get('minus'), 'µm')}, away {_fmt(dz.get('plus'), 'µm')}{levels} "
-          f"-> {args.out}")
+          f"Δz toward the lens {tol('sensor_distance_um_at_1db_loss.minus', 'µm')}, "
+          f"away {tol('sensor_distance_um_at_1db_loss.plus', 'µm')}{levels} -> {args.out}")
     return 0
 
 
-def _fmt(v, unit: str) -> str:
-    """A 1-dB tolerance with its unit, or the words for one the sweep never reached."""
-    return "beyond the swept range" if v is None else f"{v:.3g} {unit}"
+def _fmt(v, unit: str, not_swept: bool = False) -> str:
+    """A 1-dB tolerance with its unit, or the words for one the sweep never reached, or (``not_swept``: its
+    sweep, or side, held no value but 0) for one never swept."""
+    if v is not None:
+        return f"{v:.3g} {unit}"
+    return "not swept" if not_swept else "beyond the swept range"
 
 
 def cmd_finetune(args: argparse.Namespace) -> int:

@@ -281,7 +281,9 @@ def check_room_for_cube(path: Path, n_bands: int, height: int, width: int) -> No
 
 
 def write_cube_file(path: Path, cube: np.ndarray, bands, metadata: dict) -> None:
-    """Our HDF5 (.h5) or ENVI (.hdr) by extension, plus an sRGB preview ``<stem>_rgb.png``."""
+    """Our HDF5 (.h5) or ENVI (.hdr) by extension, plus an sRGB preview ``<stem>_rgb.png``; ``metadata``
+    (with ``command``: reconstruct) goes into the HDF5's ``metadata_json`` or the ENVI header's
+    ``hsicam metadata`` line (:data:`hsicam.data.formats.ENVI_METADATA_KEY`)."""
     from hsicam.color import srgb_preview
     from hsicam.data.formats import write_cube_h5, write_envi
     from hsicam.io import write_png8
@@ -292,10 +294,11 @@ def write_cube_file(path: Path, cube: np.ndarray, bands, metadata: dict) -> None
     rgb = srgb_preview(cube, bands)  # before any file is written
     preview = path.with_name(f"{path.stem}_rgb.png")
     preview.unlink(missing_ok=True)  # an earlier reconstruction's (checked): never beside a newer cube
+    metadata = {"command": "reconstruct", **metadata}  # ENVI's header keeps what the HDF5 keeps (write_envi)
     if suffix in (".h5", ".hdf5"):
-        write_cube_h5(path, cube, bands, {"command": "reconstruct", **metadata})
-    else:
-        write_envi(path, cube, bands, description=ENVI_DESCRIPTIONS[0])
+        write_cube_h5(path, cube, bands, metadata)
+    else:  # a stop between its two files removes the data file it put there (write_envi): none is left alone
+        write_envi(path, cube, bands, description=ENVI_DESCRIPTIONS[0], metadata=metadata)
     try:
         write_png8(preview, rgb)
     except BaseException:  # Ctrl-C, SIGTERM, a full disk: the cube just written is not left without its preview

@@ -109,6 +109,9 @@ _ENVI_DATA_SUFFIXES = ("", ".img", ".dat", ".raw", ".bsq", ".bil", ".bip", ".bin
 #: Key of the CRC-32 (hex) of the data file in the ENVI headers hsicam writes (:func:`write_envi`);
 #: other ENVI software ignores unknown keys.
 ENVI_CRC_KEY = "hsicam data crc32"
+#: The ENVI header key under which :func:`write_envi` keeps a cube's metadata (the JSON that our HDF5 keeps as its
+#: ``metadata_json`` attribute; :func:`envi_metadata_value`), which :func:`read_envi` returns in the cube's meta.
+ENVI_METADATA_KEY = "hsicam metadata"
 _ENVI_DTYPES = {1: "u1", 2: "i2", 3: "i4", 4: "f4", 5: "f8", 12: "u2", 13: "u4", 14: "i8", 15: "u8"}
 
 Cube = tuple[np.ndarray, Bands, dict[str, Any]]
@@ -1120,6 +1123,9 @@ def read_envi(path: str | os.PathLike, *, allow_negative: bool = False, memory_b
         raise InputError(f"{hdr}: ENVI header has no 'wavelength' list; cannot tell the bands")
     meta = {"format": "envi", "interleave": interleave, "data_type": dtype_code, "byte_order": order,
             "header": str(hdr), "data_file": str(data), "description": h.get("description", "").strip("{} ")}
+    # what write_envi kept (e.g. reconstruct's source, run and cfa_offset), as read_hsicam_h5 returns its metadata;
+    # the file's own facts above win over a key of the same name
+    meta = {**_envi_metadata(hdr, h), **meta}
     if good is not None:
         meta["bad_bands_nm"] = [float(w) for w in np.sort(dropped)]
     if ignore is not None:
@@ -1193,8 +1199,12 @@ def _envi_nodata(cube: np.ndarray, value: float) -> np.ndarray:
 
 def write_envi(path: str | os.PathLike, cube: np.ndarray, bands: Bands, *, interleave: str = "bsq",
                dtype: str | np.dtype = "float32", byte_order: str = "little", description: str = "hsicam write_envi",
-               reflectance_scale: float | None = None) -> tuple[Path, Path]:
+               reflectance_scale: float | None = None, metadata: dict[str, Any] | None = None) -> tuple[Path, Path]:
     """Write an ENVI pair ``<name>.hdr`` + ``<name>.img`` atomically; returns (header, data) paths.
+
+    ``metadata`` (JSON-serialisable): kept in the header as one line, ``hsicam metadata = {JSON}``
+    (:func:`envi_metadata_value`), and returned by :func:`read_envi` in the cube's meta, as our HDF5's
+    ``metadata_json`` is by :func:`read_hsicam_h5`.
 
     ``reflectance_scale``: the data are written as ``cube × reflectance_scale`` and the header's ``reflectance scale
     factor`` says so (:func:`read_envi` divides it out): e.g. 10000 for an integer ``dtype`` of a [0, 1] cube. An
@@ -1204,7 +1214,9 @@ def write_envi(path: str | os.PathLike, cube: np.ndarray, bands: Bands, *, inter
     ``path`` may name either file. The data file is written first, the header last, so a reader
     never finds a header without its data; the header records the data's CRC-32
     (:data:`ENVI_CRC_KEY`), so a pair left half-replaced by an interruption between the two renames
-    (new data, old header) is refused by :func:`read_envi` instead of read as another shape.
+    (new data, old header) is refused by :func:`read_envi` instead of read as another shape. A failure
+    or interruption (Ctrl-C, SIGTERM) between the two removes the files of the pair that this call
+    put where none was, so no data file is left without its header.
     """
     p = Path(path)
     hdr, data = (p, p.with_suffix(".img")) if p.suffix.lower() == ".hdr" else (p.with_suffix(".hdr"), p)
@@ -1244,13 +1256,60 @@ def write_envi(path: str | os.PathLike, cube: np.ndarray, bands: Bands, *, inter
         f"wavelength = {{{fmt(bands.centers_nm)}}}\n"
         f"fwhm = {{{fmt(bands.fwhm_nm)}}}\n"
         + (f"reflectance scale factor = {reflectance_scale:.10g}\n" if reflectance_scale is not None else "")
+        + (f"{ENVI_METADATA_KEY} = {envi_metadata_value(metadata)}\n" if metadata is not None else "")
         + f"{ENVI_CRC_KEY} = {zlib.crc32(raw):08x}\n"
     )
-    with atomic_path(data) as tmp, open(tmp, "wb") as fh:
-        fh.write(raw)
-    with atomic_path(hdr) as tmp:
-        tmp.write_text(header, encoding="utf-8")
+    new = [f for f in (data, hdr) if not os.path.lexists(f)]
+    try:
+        with atomic_path(data) as tmp, open(tmp, "wb") as fh:
+            fh.write(raw)
+        with atomic_path(hdr) as tmp:
+            tmp.write_text(header, encoding="utf-8")
+    except BaseException:
+        # stopped between the two renames, a new data file stood alone: no reader takes it without its header, and
+        # `hsicam reconstruct` run again refused it as a user's file. A file that was there before is kept (an old
+        # header beside new data is refused by its CRC-32, and the same command replaces the pair).
+        for f in new:
+            f.unlink(missing_ok=True)
+        raise
     return hdr, data
+
+
+def envi_metadata_value(metadata: dict[str, Any]) -> str:
+    """The ENVI header value of :data:`ENVI_METADATA_KEY`: ``metadata`` as one line of JSON in ENVI's braces,
+    ``{{...}}``, that every ENVI reader takes whole. ASCII only (``ensure_ascii``: no character that a reader's
+    line splitting, e.g. Python's ``str.splitlines`` on U+2028, would break the line at); no spaces after the
+    separators; and inside strings ``{``, ``}`` and ``,`` written as JSON's ``\\u007b``, ``\\u007d`` and
+    ``\\u002c``: readers that count braces to find the value's end see them balanced, and those that split a
+    braced value at its commas (the ``spectral`` package) split only between JSON items, with nothing stripped, so
+    that joining the pieces with ``,`` gives the JSON back. :func:`read_envi` reads it (:func:`_envi_metadata`)."""
+    text = json.dumps(metadata, sort_keys=True, default=json_default, ensure_ascii=True, separators=(",", ":"))
+    text = _JSON_STRING.sub(lambda m: m.group(0).replace("{", "\\u007b").replace("}", "\\u007d")
+                            .replace(",", "\\u002c"), text)
+    return "{" + text + "}"
+
+
+#: A JSON string literal (its escapes, ``\\"`` included, kept inside it).
+_JSON_STRING = re.compile(r'"(?:[^"\\]|\\.)*"')
+
+
+def _envi_metadata(hdr: Path, h: dict[str, str]) -> dict[str, Any]:
+    """The metadata that :func:`write_envi` kept in the header ``h`` ({} when none; a value that is not a JSON
+    object in braces: a warning, and {}, as an unreadable ``metadata_json`` of our HDF5 is ignored)."""
+    value = h.get(ENVI_METADATA_KEY)
+    if value is None:
+        return {}
+    value = value.strip()
+    try:
+        if not (value.startswith("{") and value.endswith("}")):
+            raise ValueError("not in braces")
+        loaded = json.loads(value[1:-1])
+    except ValueError:  # json.JSONDecodeError too
+        loaded = None
+    if not isinstance(loaded, dict):
+        log.warning("%s: ignoring its unreadable '%s' (not a JSON object in braces)", hdr, ENVI_METADATA_KEY)
+        return {}
+    return loaded
 
 
 # ------------------------------------------------------------------------------------------------

@@ -30,7 +30,7 @@ from hsicam.engine.names import EXPERIMENTS, SCALES  # their one home (the CLI r
 from hsicam.engine.prior import check_choi_prior, ensure_choi_prior
 from hsicam.engine.train import train
 from hsicam.errors import InputError
-from hsicam.io import atomic_open, clear_complete, clear_derived, write_json
+from hsicam.io import OutputLock, atomic_open, clear_complete, clear_derived, write_json
 from hsicam.runs.checkpoint import kept_checkpoint
 
 log = logging.getLogger(__name__)
@@ -255,7 +255,11 @@ def _row(name: str, summary: dict, **extra: Any) -> dict:
 
 def run_experiment(experiment: str, scale: str, out: str | Path, seeds: tuple[int, ...] = (0,),
                    baselines: tuple[str, ...] | None = None) -> dict:
-    """Run (or resume) one experiment; writes ``experiment.json`` and ``table.md`` into ``out``."""
+    """Run (or resume) one experiment; writes ``experiment.json`` and ``table.md`` into ``out``.
+
+    Holds ``out``'s :class:`~hsicam.io.OutputLock` from its checks to its last file (``hsicam experiment`` from
+    before its checks to its marker: re-entrant): another process writing the folder is refused in one line,
+    naming its pid."""
     if scale not in SCALES:
         raise InputError(f"unknown scale {scale!r}; choose one of {', '.join(SCALES)}")
     out = Path(out)
@@ -263,6 +267,26 @@ def run_experiment(experiment: str, scale: str, out: str | Path, seeds: tuple[in
     seeds = scored_seeds(experiment, scale, cfg, seeds)
     specs = run_specs(experiment, cfg)
     run_cfgs = run_configs(experiment, scale)
+    # one experiment at a time per folder: two at once both trained and scored into it, and its experiment.json and
+    # table.md could come from different runs (two --seeds), marked complete all the same
+    with experiment_lock(out):
+        return _run_experiment(experiment, scale, out, cfg, seeds, specs, run_cfgs, baselines)
+
+
+def experiment_lock(out: Path) -> OutputLock:
+    """The experiment folder ``out``'s :class:`~hsicam.io.OutputLock`, taken (one-line InputError naming the
+    process that holds it; re-entrant), to be let go by ``with``. The folder's parent is made first: the lock file
+    lies beside the folder, and without a parent nothing would be locked (a first experiment under a new
+    runs/experiments/, which a second one could then run into)."""
+    out.parent.mkdir(parents=True, exist_ok=True)
+    lock = OutputLock(out, "experiment")
+    lock.acquire()
+    return lock
+
+
+def _run_experiment(experiment: str, scale: str, out: Path, cfg: Config, seeds: tuple[int, ...], specs: list[RunSpec],
+                    run_cfgs: dict[str, Config], baselines: tuple[str, ...] | None) -> dict:
+    """:func:`run_experiment` under the folder's lock."""
     check_experiment_folder(out, experiment, scale, run_cfgs)
     # filled in place (its trained runs resume): a finished folder's marker comes off until
     # experiment.json and table.md are written again (``hsicam experiment`` marks it then)

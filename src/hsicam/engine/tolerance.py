@@ -148,6 +148,12 @@ def evaluate_psf(model, psf: torch.Tensor, scenes, names: Sequence[str], seed: i
     return {k: float(np.mean([r.metrics[k] for r in results])) for k in ("psnr", "ssim", "sam")}
 
 
+#: The key of tolerance.json's ``summary`` that lists the 1-dB tolerances left null because their sweep (or, for
+#: the sensor distance, its side: ``sensor_distance_um_at_1db_loss.minus``, ``.plus``) held no value but 0: never
+#: swept, not "beyond the swept range" (absent when every sweep run reached out from 0).
+NOT_SWEPT_KEY = "not_swept"
+
+
 def _tolerance_at(values: Sequence[float], psnr: Sequence[float], nominal: float, drop_db: float = 1.0) -> float | None:
     """Largest |value| (interpolated) before the PSNR falls ``drop_db`` below nominal, scanning
     outward from 0; None if it never does within the range."""
@@ -402,14 +408,21 @@ def run_tolerance(model, cfg, spec: ToleranceSpec = ToleranceSpec(), data: str |
             s[k].append(r[k])
         s["values"].append(r["value"])
     summary = {}
+    # a null tolerance is either a sweep that never lost 1 dB or a side that holds no value but 0 (never swept):
+    # the second is named in "not_swept", so that neither reads as the other (:data:`NOT_SWEPT_KEY`)
+    not_swept: list[str] = []
     if "sigma_height_nm" in sweeps:
         sw = sweeps["sigma_height_nm"]
         summary["sigma_height_nm_at_1db_loss"] = _tolerance_at(sw["values"], sw["psnr"], nominal["psnr"])
+        if not any(v != 0 for v in sw["values"]):
+            not_swept.append("sigma_height_nm_at_1db_loss")
     shift_psnr0 = None if shift_ref is None else shift_ref[3]["psnr"]
     for name in ("shift_x_cells", "shift_diag_cells"):
         if name in sweeps and shift_psnr0 is not None:
             sweeps[name]["reference_psnr"] = shift_psnr0
             summary[f"{name}_at_1db_loss"] = _tolerance_at(sweeps[name]["values"], sweeps[name]["psnr"], shift_psnr0)
+            if not any(v != 0 for v in sweeps[name]["values"]):
+                not_swept.append(f"{name}_at_1db_loss")
     if "sensor_distance_um" in sweeps:
         sw = sweeps["sensor_distance_um"]
         neg = [(v, p) for v, p in zip(sw["values"], sw["psnr"]) if v <= 0]
@@ -418,6 +431,10 @@ def run_tolerance(model, cfg, spec: ToleranceSpec = ToleranceSpec(), data: str |
             "minus": _tolerance_at([v for v, _ in neg], [p for _, p in neg], nominal["psnr"]),
             "plus": _tolerance_at([v for v, _ in pos], [p for _, p in pos], nominal["psnr"]),
         }
+        not_swept += [f"sensor_distance_um_at_1db_loss.{side}" for side, pts in (("minus", neg), ("plus", pos))
+                      if not any(v != 0 for v, _ in pts)]
+    if not_swept:
+        summary[NOT_SWEPT_KEY] = not_swept
     if "levels" in sweeps:
         req = levels_requirement(sweeps["levels"]["values"], sweeps["levels"]["psnr"], nominal["psnr"])
         summary["min_levels_within_1db"] = req["min_levels_within_1db"]
