@@ -390,3 +390,24 @@ def test_an_experiment_is_refused_while_another_process_writes_its_folder(tmp_pa
                         rf"since [0-9-]+ [0-9:]+\); wait for it or stop it", str(exc.value)), str(exc.value)
     assert sorted(p.name for p in out.rglob("*")) == before and (out / ".complete").is_file()
     assert_ok(w.go())
+
+
+def test_a_demo_under_a_new_parent_holds_its_folder(tmp_path, monkeypatch):
+    """The demo's lock file lies beside its folder: under a parent that did not exist yet (runs/ in a fresh clone)
+    nothing was locked, and a second demo could run into the same folder."""
+    import hsicam.engine.demo as demo
+    from hsicam.config import load_config
+
+    out = tmp_path / "runs" / "demo"
+    seen = []
+
+    def training(run, cfg, *a, **k):  # while the demo trains: can another process take its folder?
+        seen.append(subprocess.run([sys.executable, "-c", LOCK_PROBE, str(out)], capture_output=True, text=True,
+                                   env=cli_env()).stdout.strip())
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(demo, "ensure_trained", training)
+    with pytest.raises(KeyboardInterrupt):
+        demo.run_demo(load_config("tiny"), out)
+    assert seen and seen[0].startswith(f"{out}: being written by another process (hsicam demo, pid {os.getpid()}"), seen
+    assert hidden(out.parent) == []

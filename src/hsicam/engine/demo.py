@@ -59,6 +59,7 @@ def run_demo(cfg: Config, out: str | Path) -> dict[str, Any]:
     out = Path(out)
     # one demo at a time per folder, from its checks to its marker: a second one reusing the run while the first
     # scored it switched the kept weights under it (results naming one checkpoint and scoring another)
+    out.parent.mkdir(parents=True, exist_ok=True)  # the lock file lies beside the folder: without a parent, no lock
     with OutputLock(out, "demo") as lock:
         lock.acquire()
         return _run_demo(cfg, out)
