@@ -125,3 +125,29 @@ def test_too_small_or_black_captures_are_one_clear_error(capture, tmp_path):
     assert "--cfa-offset Y,X" in error_line(res)
     res = run_cli_in_process("reconstruct", str(small), "--run", RUN, "--out", str(tmp_path / "s.h5"), "--cfa-offset", "autox")
     assert "or auto" in error_line(res)
+
+
+def test_a_crop_of_a_cassi_capture_is_reconstructed_at_its_offset(tmp_path):
+    """A DD-CASSI camera's coded aperture is taken at the capture's place, as a CFA is: `--cfa-offset Y,X` of a crop was
+    dropped ("the camera has no colour filter array") and the crop reconstructed with the aperture of (0, 0). It is
+    now honoured (the crop's interior equals the whole capture's), and `auto`, which searches a CFA period, is one
+    clear error."""
+    from hsicam.cli import main
+    from hsicam.data import read_cube
+
+    run = tmp_path / "run"
+    assert main(["train", "--config", "tiny", "--set", "camera.kind=dd_cassi", "--set",
+                 "model.rdn.backprojection_input=true", "--set", "train.epochs=1", "--out", str(run)]) == 0
+    sensor = np.random.default_rng(0).uniform(0.1, 0.6, (48, 60)).astype(np.float32)
+    np.save(tmp_path / "whole.npy", sensor)
+    np.save(tmp_path / "crop.npy", sensor[7:, 5:])
+    assert main(["reconstruct", str(tmp_path / "whole.npy"), "--run", str(run), "--out", str(tmp_path / "w.h5")]) == 0
+    assert main(["reconstruct", str(tmp_path / "crop.npy"), "--run", str(run), "--out", str(tmp_path / "c.h5"),
+                 "--cfa-offset", "7,5"]) == 0
+    (whole, _, _), (crop, _, meta) = read_cube(tmp_path / "w.h5"), read_cube(tmp_path / "c.h5")
+    c = 12  # past the network's context and the tiles' halo
+    np.testing.assert_allclose(crop[:, c:-c, c:-c], whole[:, 7 + c:-c, 5 + c:-c], atol=1e-5)
+    assert meta["cfa_offset"] == [7, 5]
+    res = run_cli_in_process("reconstruct", str(tmp_path / "crop.npy"), "--run", str(run), "--out",
+                             str(tmp_path / "a.h5"), "--cfa-offset", "auto")
+    assert res.returncode == 2 and "coded aperture has no period" in error_line(res)

@@ -41,8 +41,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="the sensor row and column of the capture's first pixel (a crop or a region-of-interest "
                         "readout of the camera's sensor): the CFA phase of every pixel follows from it (default 0,0: "
                         "the capture starts where the sensor does; a crop off the CFA period otherwise reconstructs "
-                        "wrong spectra); auto: estimated from the capture (the phase whose reconstruction the camera "
-                        "images back closest to it), logged and recorded in the cube's metadata")
+                        "wrong spectra; a CASSI camera's coded aperture is placed the same way); auto: estimated "
+                        "from the capture (the CFA phase whose reconstruction the camera images back closest to it; "
+                        "not for CASSI), logged and recorded in the cube's metadata")
     p.add_argument("--device", default="cpu", type=device_arg, help="torch device (default cpu)")
     p.add_argument("--consistency-steps", type=int, default=None, metavar="N",
                    help="measurement-consistency steps after the network (default: the run's "
@@ -551,6 +552,12 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
     if period > 1:
         if offset == "auto":
             offset, meta["cfa_offset_estimate"] = estimated_cfa_offset(model, sensor)
+        meta["cfa_offset"] = list(offset)
+    elif cfg.camera.kind != "doe":  # a CASSI camera's coded aperture is taken at the capture's place, as a CFA is
+        if offset == "auto":
+            raise InputError("--cfa-offset auto estimates the phase of a periodic CFA; this CASSI camera's coded "
+                             "aperture has no period: give the sensor row and column of the capture's first pixel, "
+                             "--cfa-offset Y,X (0,0: where the sensor starts)")
         meta["cfa_offset"] = list(offset)
     elif offset != (0, 0):
         log.warning("--cfa-offset is ignored: the camera has no colour filter array")
