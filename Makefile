@@ -11,16 +11,36 @@ PYTEST_ARGS ?=
 # process). 2 suits the project's 2-core machines (16.5 -> 11.5 min there, session 28; 7 min since session 43, docs/architecture.md "Tests"); 0 runs serially.
 TEST_WORKERS ?= 2
 
-.PHONY: setup demo test test-slow bench clean
+.PHONY: setup demo test test-slow bench clean FORCE
 
-setup: $(VENV)/.installed
+STAMP := $(VENV)/.installed
+# The TORCH_SPEC the venv was installed with, written by the install below.
+SPEC_FILE := $(VENV)/.torch-spec
+# Besides its prerequisites' dates, an existing stamp is stale when the venv's python no longer runs (its base
+# interpreter upgraded or removed leaves bin/python3 a dangling link, and `test -x` on the venv never noticed) or when
+# it was installed with another TORCH_SPEC (`make test TORCH_SPEC=torch` on an existing .venv did nothing). Both are
+# read when make starts, not in a recipe, so that `make -q setup` and `make -n` tell the truth and an up-to-date venv
+# costs one python start, never a pip run.
+ifneq ($(wildcard $(STAMP)),)
+ifeq ($(shell $(BIN)/python -c '' >/dev/null 2>&1 && echo runs),)
+SETUP_STALE := FORCE
+endif
+ifneq ($(shell cat $(SPEC_FILE) 2>/dev/null),$(strip $(TORCH_SPEC)))
+SETUP_STALE := FORCE
+endif
+endif
 
-$(VENV)/.installed: pyproject.toml Makefile
-	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
+setup: $(STAMP)
+
+$(STAMP): pyproject.toml Makefile $(SETUP_STALE)
+	$(BIN)/python -c '' 2>/dev/null || { rm -rf $(VENV) && $(PYTHON) -m venv $(VENV); }
 	$(BIN)/python -m pip install -q --upgrade pip
 	$(BIN)/python -m pip install -q "$(TORCH_SPEC)"
 	$(BIN)/python -m pip install -q -e ".[dev]"
+	printf '%s\n' '$(TORCH_SPEC)' > $(SPEC_FILE)
 	touch $@
+
+FORCE:
 
 demo: setup
 	$(BIN)/hsicam demo --out runs/demo

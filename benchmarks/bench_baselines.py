@@ -35,7 +35,7 @@ from hsicam.solvers.choi import admm_prior
 from hsicam.config import BaselinesConfig, ChoiConfig
 from hsicam.solvers.desci import desci, desci_settings
 from hsicam.solvers.gaptv import gap_tv
-from timing import median_time, untrained_system_for_inference
+from timing import median_time, positive_int, untrained_system_for_inference
 
 
 def smooth_scene(c: int, size: int, seed: int = 0) -> torch.Tensor:
@@ -47,12 +47,14 @@ def smooth_scene(c: int, size: int, seed: int = 0) -> torch.Tensor:
 @torch.no_grad()
 def main() -> None:
     ap = argparse.ArgumentParser()
-    ap.add_argument("--size", type=int, default=256)
-    ap.add_argument("--repeats", type=int, default=3)
+    ap.add_argument("--size", type=positive_int, default=256)
+    ap.add_argument("--repeats", type=positive_int, default=3)
     ap.add_argument("--full", action="store_true", help="also time DeSCI's full preset (slow)")
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--out", help="also write the JSON here")
     args = ap.parse_args()
+    if args.size < 16:  # the smooth scene is drawn on a size/16 grid
+        ap.error(f"--size must be >= 16, got {args.size}")
     dev = torch.device(args.device)
     torch.manual_seed(0)
     cfg = load_config("quick")

@@ -22,14 +22,14 @@ import torch.nn.functional as F
 from hsicam.cameras import DOECamera
 from hsicam.config import load_config
 from hsicam.optics.convolution import conv_valid
-from timing import median_time
+from timing import median_time, positive_int
 
 
 def main() -> None:
     ap = argparse.ArgumentParser()
-    ap.add_argument("--repeats", type=int, default=5)
-    ap.add_argument("--batch", type=int, default=4)
-    ap.add_argument("--size", type=int, default=256)
+    ap.add_argument("--repeats", type=positive_int, default=5)
+    ap.add_argument("--batch", type=positive_int, default=4)
+    ap.add_argument("--size", type=positive_int, default=256)
     ap.add_argument("--threads", type=int, default=None, help="torch CPU threads (default: torch's choice)")
     args = ap.parse_args()
     if args.threads:

@@ -19,32 +19,43 @@ import subprocess
 import sys
 from pathlib import Path
 
-from timing import median_time
+from timing import median_time, positive_int
 
+#: JSON key -> (the ``hsicam`` arguments timed, the exit code they must end with: 2 for the usage error).
 CASES = {
-    "help_s": ["--help"],
-    "psf_help_s": ["psf", "--help"],
-    "evaluate_help_s": ["evaluate", "--help"],
-    "experiment_help_s": ["experiment", "--help"],
-    "usage_error_s": ["train"],
+    "help_s": (["--help"], 0),
+    "psf_help_s": (["psf", "--help"], 0),
+    "evaluate_help_s": (["evaluate", "--help"], 0),
+    "experiment_help_s": (["experiment", "--help"], 0),
+    "usage_error_s": (["train"], 2),
 }
 
 
-def main() -> None:
+def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--repeats", type=int, default=5)
+    parser.add_argument("--repeats", type=positive_int, default=5, help="timed runs of each command (>= 1)")
     args = parser.parse_args()
     script = Path(sys.executable).with_name("hsicam")
     command = [str(script)] if script.is_file() else [sys.executable, "-m", "hsicam"]
     result: dict[str, object] = {"python": platform.python_version(), "repeats": args.repeats,
                                  "command": " ".join(command)}
-    for key, argv in CASES.items():
-        result[key] = round(median_time(lambda argv=argv: subprocess.run([*command, *argv], capture_output=True),
-                                        repeats=args.repeats, warmup=1), 3)
-    result["torch_import_s"] = round(median_time(lambda: subprocess.run([sys.executable, "-c", "import torch"]),
-                                                 repeats=args.repeats, warmup=1), 3)
+    cases = {key: ([*command, *argv], code) for key, (argv, code) in CASES.items()}
+    cases["torch_import_s"] = ([sys.executable, "-c", "import torch"], 0)
+    for key, (argv, code) in cases.items():
+        # One untimed run (the warm-up) must end as the command should: a CLI that crashes at start-up exits
+        # quickly, and timing it would report a fast, passing start-up.
+        proc = subprocess.run(argv, capture_output=True, text=True)
+        if proc.returncode != code:
+            tail = (proc.stderr or proc.stdout).strip().splitlines()[-1:] or [""]
+            result["error"] = f"{' '.join(argv)} exited {proc.returncode}, expected {code}: {tail[0]}"
+            print(json.dumps(result, indent=2))
+            print(f"bench_cli: {result['error']}", file=sys.stderr)
+            return 1
+        result[key] = round(median_time(lambda argv=argv: subprocess.run(argv, capture_output=True),
+                                        repeats=args.repeats), 3)
     print(json.dumps(result, indent=2))
+    return 0
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(main())

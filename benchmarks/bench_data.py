@@ -36,6 +36,7 @@ from hsicam.data.synthetic import (
     synthetic_dataset,
 )
 from hsicam.spectral import Bands
+from timing import positive_int
 
 
 def loader_rate(root: Path, bands: Bands, patch: int, margin: int, batches: int, workers: int, preload: bool) -> float:
@@ -53,8 +54,8 @@ def loader_rate(root: Path, bands: Bands, patch: int, margin: int, batches: int,
 
 def main() -> None:
     ap = argparse.ArgumentParser()
-    ap.add_argument("--scenes", type=int, default=len(SCHEDULE))
-    ap.add_argument("--batches", type=int, default=40)
+    ap.add_argument("--scenes", type=positive_int, default=len(SCHEDULE))
+    ap.add_argument("--batches", type=positive_int, default=40)
     ap.add_argument("--demo-n", type=int, default=64, help="training scenes of the demo's dataset (0: skip)")
     args = ap.parse_args()
     torch.set_num_threads(1)

@@ -52,7 +52,7 @@ from pathlib import Path
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from timing import (allocator_option, apply_allocator, as_trained, median_time, synchronize,  # noqa: E402
+from timing import (allocator_option, apply_allocator, as_trained, median_time, positive_int, synchronize,  # noqa: E402
                     untrained_system_for_inference)
 
 from hsicam.cameras import build_camera  # noqa: E402
@@ -204,8 +204,8 @@ def trained_inference(run: str, size: int, repeats: int, device: torch.device) -
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--steps", type=int, default=3)
-    ap.add_argument("--repeats", type=int, default=3)
+    ap.add_argument("--steps", type=positive_int, default=3)
+    ap.add_argument("--repeats", type=positive_int, default=3)
     ap.add_argument("--kinds", default="quick,rdn,mosaic,unrolled,unrolled-mosaic",
                     help="network kinds to time on the preset's camera, comma-separated; none: only --run")
     ap.add_argument("--threads", type=int, default=0, help="torch threads (0: torch's default)")
@@ -222,6 +222,15 @@ def main() -> None:
         ap.error(problem)
     if args.size < 1:
         ap.error(f"--size must be >= 1, got {args.size}")
+    # A kind or config that is not there is said at once, not as a traceback after minutes of the other kinds' timings.
+    kinds = [k for k in args.kinds.split(",") if k and k != "none"]
+    unknown = [k for k in kinds if k not in ("quick", "rdn", *KINDS)]
+    if unknown:
+        ap.error(f"--kinds: unknown kind {unknown[0]!r}; choose from quick, rdn, {', '.join(KINDS)} or none")
+    try:
+        cfg = load_config(args.config)
+    except (HsicamError, OSError) as exc:
+        ap.error(f"--config: {exc}")  # the message names the preset or file
     if args.run != "none":  # a run that is not there is said before minutes of the kinds' timings, not after
         try:
             check_is_run(resolve_run(args.run))
@@ -231,7 +240,6 @@ def main() -> None:
     kept = apply_allocator(args)
     if args.threads:
         torch.set_num_threads(args.threads)
-    cfg = load_config(args.config)
     out = {"preset": args.config, "device": str(device), "batch": cfg.train.batch_size, "patch_px": cfg.data.patch_px,
            # the training step's settings, as training applies them (timing.as_trained; autocast is CUDA's only)
            "train_bf16_autocast": bool(cfg.train.bf16 and device.type == "cuda"),
@@ -240,14 +248,14 @@ def main() -> None:
            "kinds": {}}
     if device.type == "cuda":
         out["gpu"] = torch.cuda.get_device_name(device)
-    for kind in [k for k in args.kinds.split(",") if k and k != "none"]:
+    for kind in kinds:
         res = train_step(kind, cfg, args.steps, device)
         res.update(inference(kind, cfg, args.repeats, device))
         out["kinds"][kind] = res
     if args.run != "none":
         try:
             out["trained"] = trained_inference(args.run, args.size, args.repeats, device)
-        except HsicamError as exc:  # a damaged run (weights, config): one line, as the hsicam command says it
+        except (HsicamError, OSError) as exc:  # a damaged run (weights, config): one line, as hsicam says it
             ap.error(f"--run {args.run}: {exc}")
     out["load_avg_1min_end"] = os.getloadavg()[0]
     print(json.dumps(out, indent=1))

@@ -27,7 +27,7 @@ from pathlib import Path
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from timing import allocator_option, apply_allocator, as_trained  # noqa: E402
+from timing import allocator_option, apply_allocator, as_trained, positive_int  # noqa: E402
 
 from hsicam.config import load_config  # noqa: E402
 from hsicam.engine.tasks import system_loss  # noqa: E402
@@ -163,7 +163,7 @@ def linear_step_time(run: str = "pretrained:standard", window: int = 11, repeats
 
 def main() -> None:
     ap = argparse.ArgumentParser()
-    ap.add_argument("--steps", type=int, default=5)
+    ap.add_argument("--steps", type=positive_int, default=5)
     ap.add_argument("--threads", type=int, default=None, help="torch CPU threads (default: torch's choice)")
     allocator_option(ap)
     args = ap.parse_args()

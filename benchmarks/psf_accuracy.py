@@ -23,16 +23,22 @@ from optics_reference import doe_field, relative_l1, square_cell_psf  # noqa: E4
 
 from hsicam.cameras import DOECamera  # noqa: E402
 from hsicam.config import load_config  # noqa: E402
+from hsicam.errors import HsicamError  # noqa: E402
 
 
 def main() -> None:
     ap = argparse.ArgumentParser()
-    ap.add_argument("--set", dest="overrides", action="append", default=[])
+    ap.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE")
     ap.add_argument("--bands-nm", type=float, nargs="+", default=[420.0, 550.0, 720.0])
     ap.add_argument("--sub", type=int, default=11)
     args = ap.parse_args()
-    cfg = load_config(overrides=args.overrides)
-    cam = DOECamera.from_config(cfg).double()
+    if args.sub < 1:
+        ap.error(f"--sub must be >= 1, got {args.sub}")
+    try:  # a bad --set is one usage line, as the hsicam command says it, not a ConfigError traceback
+        cfg = load_config(overrides=args.overrides)
+        cam = DOECamera.from_config(cfg).double()
+    except (HsicamError, OSError) as exc:
+        ap.error(str(exc))
     o = cam.optics
     with torch.no_grad():
         res = cam.psf_result()

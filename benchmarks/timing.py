@@ -9,6 +9,18 @@ import time
 from hsicam.memory import keep_freed_memory
 
 
+def positive_int(text: str) -> int:
+    """argparse ``type`` of a count that needs at least one (``--repeats``, ``--steps``): 0 ended in a
+    StatisticsError traceback of the median of no times, after the set-up."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"must be an integer >= 1, got {text!r}") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be >= 1, got {value}")
+    return value
+
+
 def allocator_option(parser: argparse.ArgumentParser) -> None:
     """``--glibc-default``: time under glibc's own allocator settings instead of the ``hsicam`` command's."""
     parser.add_argument("--glibc-default", action="store_true",

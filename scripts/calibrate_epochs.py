@@ -11,16 +11,22 @@ demo's own (PRESET with the same overrides: its ``patches_per_epoch`` and ``batc
 
 from __future__ import annotations
 
+import argparse
 import json
+import math
 import statistics
 import sys
 
 from hsicam.config import load_config
+from hsicam.errors import HsicamError, InputError
 
 
 def seconds_per_step_and_validation(records: list[dict]) -> tuple[float, float]:
     """(s per training step, s per validation) of a calibration run's metrics.jsonl records."""
-    final = [r for r in records if r.get("final")][-1]
+    finals = [r for r in records if r.get("final")]
+    if not finals:  # a calibration that was stopped or is still running: its time per step is unknown
+        raise InputError("no final record")
+    final = finals[-1]
     steps = [r for r in records if "train_loss" in r]
     second = [r for r in steps if r["epoch"] >= 1] or steps
     gaps = [b["elapsed_s"] - a["elapsed_s"] for a, b in zip(second, second[1:]) if b["step"] == a["step"] + 1]
@@ -34,18 +40,41 @@ def seconds_per_step_and_validation(records: list[dict]) -> tuple[float, float]:
     return per_step, val_s
 
 
-def main(argv: list[str]) -> None:
-    metrics, minutes, preset, overrides = argv[0], float(argv[1]), argv[2], [a for a in argv[3:] if a != "--set"]
-    with open(metrics, encoding="utf-8") as fh:
-        records = [json.loads(line) for line in fh if line.strip()]
-    per_step, val_s = seconds_per_step_and_validation(records)
-    cfg = load_config(preset, overrides)  # the demo's own config
+def _minutes(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number of minutes, got {text!r}") from None
+    if not (math.isfinite(value) and value > 0):
+        raise argparse.ArgumentTypeError(f"must be a finite number > 0, got {text!r}")
+    return value
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("metrics", help="the calibration run's metrics.jsonl")
+    ap.add_argument("minutes", type=_minutes, help="the time box of the demo's training")
+    ap.add_argument("preset", help="the demo's preset (or YAML)")
+    ap.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
+                    help="the demo's config overrides (repeatable)")
+    args = ap.parse_args(argv)
+    try:
+        with open(args.metrics, encoding="utf-8") as fh:
+            try:
+                records = [json.loads(line) for line in fh if line.strip()]
+                per_step, val_s = seconds_per_step_and_validation(records)
+            except (ValueError, KeyError, TypeError, AttributeError) as exc:  # JSON, UTF-8, not a run's records
+                raise InputError(f"{args.metrics}: not a finished run's metrics.jsonl ({exc})") from None
+        cfg = load_config(args.preset, args.overrides)  # the demo's own config
+    except (HsicamError, OSError) as exc:
+        ap.error(str(exc))
     steps_per_epoch = cfg.data.patches_per_epoch // cfg.train.batch_size
-    epochs = max(2, int(minutes * 60 / (per_step * steps_per_epoch + val_s)))
+    epochs = max(2, int(args.minutes * 60 / (per_step * steps_per_epoch + val_s)))
     print(epochs)
     print(f"calibration: {per_step:.4f} s per step, {val_s:.1f} s per validation, {steps_per_epoch} steps per epoch "
-          f"-> {epochs} epochs in {minutes:g} min", file=sys.stderr)
+          f"-> {epochs} epochs in {args.minutes:g} min", file=sys.stderr)
+    return 0
 
 
 if __name__ == "__main__":
-    main(sys.argv[1:])
+    sys.exit(main())

@@ -11,6 +11,7 @@ within 3×3 px and the RMS radius (hsicam.report.camera.rms_radius_px).
 from __future__ import annotations
 
 import argparse
+import sys
 
 import matplotlib
 
@@ -23,22 +24,40 @@ from hsicam.report.camera import rms_radius_px  # noqa: E402
 START_NM, STEP_NM, CROP = 420.0, 10.0, 9
 
 
-def main() -> None:
+def _waves(text: str) -> list[float]:
+    try:
+        return [float(w) for w in text.split(",")]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected comma-separated numbers (nm), got {text!r}") from None
+
+
+def _stack(path: str) -> np.ndarray:
+    """The (bands, K, K) PSF stack in ``path``; a file that is not one is a ValueError naming it."""
+    try:
+        stack = np.load(path, allow_pickle=False)
+    except (ValueError, EOFError):  # not a .npy file (numpy takes it for a pickle), truncated, or pickled objects
+        raise ValueError(f"{path}: not a .npy array") from None
+    if not isinstance(stack, np.ndarray) or stack.ndim != 3 or stack.shape[1] != stack.shape[2]:
+        raise ValueError(f"{path}: expected a (bands, K, K) PSF stack, got shape {getattr(stack, 'shape', None)}")
+    return stack
+
+
+def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("out")
     p.add_argument("psfs", nargs="+", help="LABEL=path/to/psf.npy")
-    p.add_argument("--bands", default="420,570,720", help="band centres in nm")
-    args = p.parse_args()
-    waves = [float(w) for w in args.bands.split(",")]
+    p.add_argument("--bands", type=_waves, default="420,570,720", help="band centres in nm")
+    args = p.parse_args(argv)
+    waves = args.bands
     rows = []
     for item in args.psfs:
         label, sep, path = item.partition("=")
         if not sep:
-            raise SystemExit(f"expected LABEL=path/to/psf.npy, got {item!r}")
-        stack = np.load(path)
-        if stack.ndim != 3 or stack.shape[1] != stack.shape[2]:
-            raise SystemExit(f"{path}: expected a (bands, K, K) PSF stack, got shape {stack.shape}")
-        rows.append((label, stack))
+            p.error(f"expected LABEL=path/to/psf.npy, got {item!r}")
+        try:  # a missing or unreadable file, or no PSF stack: one line, before anything is drawn
+            rows.append((label, _stack(path)))
+        except (OSError, ValueError) as exc:
+            p.error(str(exc))
     fig, axes = plt.subplots(len(rows), len(waves), figsize=(2.4 * len(waves), 2.5 * len(rows)), squeeze=False)
     for r, (label, stack) in enumerate(rows):
         k = stack.shape[1]
@@ -47,7 +66,7 @@ def main() -> None:
         for j, w in enumerate(waves):
             b = int(round((w - START_NM) / STEP_NM))
             if not 0 <= b < stack.shape[0]:
-                raise SystemExit(f"{w:g} nm is not a band of {label} ({stack.shape[0]} bands from {START_NM:g} nm)")
+                p.error(f"{w:g} nm is not a band of {label} ({stack.shape[0]} bands from {START_NM:g} nm)")
             psf = stack[b] / stack[b].sum()
             ax = axes[r, j]
             ax.imshow(psf[c - h:c + h + 1, c - h:c + h + 1], cmap="inferno", vmin=0)
@@ -59,9 +78,13 @@ def main() -> None:
                 ax.set_ylabel(label, fontsize=9)
     fig.suptitle(f"PSF, central {CROP}×{CROP} px, linear, each panel to its peak", fontsize=9)
     fig.tight_layout()
-    fig.savefig(args.out, dpi=110)
+    try:
+        fig.savefig(args.out, dpi=110)
+    except OSError as exc:  # a folder that is not there, a full disk
+        p.error(str(exc))
     print(f"wrote {args.out}")
+    return 0
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(main())

@@ -20,6 +20,7 @@ import time
 
 import numpy as np
 
+from hsicam.cli.args import count_arg, list_arg
 from hsicam.config import load_config
 from hsicam.data.pipeline import scene_dataset, split_dataset
 from hsicam.engine.evaluate import evaluate_method
@@ -35,12 +36,24 @@ def weight_values(text: str, iterations: int) -> float | list[float]:
     return [float(v) for v in np.geomspace(a, b, max(iterations, 1))]
 
 
+def _weights(text: str) -> list[str]:
+    """argparse ``type`` of ``--weights``: the comma-separated weights or ``a>b`` schedules as written (the JSON's
+    ``tv_weight``), each checked here, before the scenes are loaded."""
+    items = text.split(",")
+    for item in items:
+        try:
+            weight_values(item, 1)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected numbers or schedules a>b, got {item!r}") from None
+    return items
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--config", default="quick")
-    p.add_argument("--scenes", type=int, default=8, help="training scenes used (the first N of the split)")
-    p.add_argument("--iterations", default="80,160,320")
-    p.add_argument("--weights", default="0.01,0.02,0.03,0.05")
+    p.add_argument("--scenes", type=count_arg, default=8, help="training scenes used (the first N of the split)")
+    p.add_argument("--iterations", type=list_arg(int, "integers", lambda v: v >= 1, ">= 1"), default="80,160,320")
+    p.add_argument("--weights", type=_weights, default="0.01,0.02,0.03,0.05")
     p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE")
     args = p.parse_args(argv)
     try:
@@ -51,8 +64,8 @@ def main(argv: list[str] | None = None) -> int:
         scenes = scene_dataset(cfg.data, paths, bands)
         names = [q.stem for q in paths]
         rows = []
-        for iterations in (int(v) for v in args.iterations.split(",")):
-            for weight in args.weights.split(","):
+        for iterations in args.iterations:
+            for weight in args.weights:
                 method = build_method("dd-cassi-gaptv", cfg)
                 base = method.reconstruct  # functools.partial(gap_tv, camera, **the config's settings)
                 method.reconstruct = functools.partial(base.func, *base.args, **{
@@ -65,9 +78,8 @@ def main(argv: list[str] | None = None) -> int:
                        "s_per_scene": (time.perf_counter() - t0) / len(names)}
                 rows.append(row)
                 print(json.dumps(row), flush=True)
-    except HsicamError as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return 2
+    except (HsicamError, OSError) as exc:  # a bad config or --set, unreadable scenes: one line, not a traceback
+        p.error(str(exc))
     print(f"\nDD-CASSI + GAP-TV on {len(names)} training scenes ({', '.join(names)}):\n")
     print("| iterations | TV weight | PSNR | SSIM | SAM | worst PSNR | s per scene |\n|---|---|---|---|---|---|---|")
     for r in sorted(rows, key=lambda r: -r["psnr"]):

@@ -102,6 +102,9 @@ class _Parser(argparse.ArgumentParser):
 def build_parser() -> argparse.ArgumentParser:
     parser = _Parser(prog="hsicam", description="Learned snapshot hyperspectral cameras: design, simulate, train, use.")
     parser.add_argument("-v", "--verbose", action="store_true", help="debug logging")
+    from hsicam import __version__  # hsicam/__init__ loads neither numpy nor torch: the help stays fast
+
+    parser.add_argument("--version", action="version", version=f"hsicam {__version__}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=_Parser)
     sub.required = True
     for name in COMMAND_MODULES:
