@@ -103,7 +103,7 @@ def _synth(args: argparse.Namespace) -> int:
         bad = damaged_scenes(target)
         if not bad:
             print(f"{target}: already holds this dataset (n={n}, size={size}, seed={seed}, split={split}); "
-                  f"its {n} {what} match their checksums")
+                  + (f"its {n} {what} match their checksums" if n > 1 else f"its {what} matches its checksum"))
             return 0
         print(f"{target}: {len(bad)} of its {n} {what} missing or not the bytes its manifest records "
               f"({', '.join(bad[:3])}{', …' if len(bad) > 3 else ''}): generating the set again")

@@ -221,7 +221,9 @@ def damaged_scenes(out: str | os.PathLike) -> list[str]:
     scene (~1 s per 500 MB): ``hsicam data synth`` checks a cached set with it, training does not."""
     out = Path(out)
     bad = []
-    for s in (_read_manifest(out) or {}).get("scenes", []):
+    scenes = (_read_manifest(out) or {}).get("scenes", [])
+    log.debug("synthetic dataset cached at %s: checking its %d scene files against their checksums", out, len(scenes))
+    for s in scenes:
         path = out / s["file"]
         try:
             digest = hashlib.sha256(path.read_bytes()).hexdigest()
