@@ -704,7 +704,7 @@ class DataConfig:
     synthetic_size: int = 256  # synthetic scene side, px
     synthetic_seed: int = 0
     cache_dir: Optional[str] = None  # None: $HSICAM_CACHE, else $XDG_CACHE_HOME/hsicam, else ~/.cache/hsicam
-    patch_px: int = 64  # sensor-side patch; the scene patch is patch_px + kernel_px - 1
+    patch_px: int = 64  # sensor-side patch; the scene patch is patch_px + kernel_px - 1 (boundary same: so is the sensor)
     patches_per_epoch: int = 1024  # random training patches drawn per epoch
     val_patches: int = 64  # fixed validation patches (drawn once from the validation scenes)
     val_fraction: float = 0.125  # fraction of scenes held out for validation (scene-level split)

@@ -90,7 +90,8 @@ class Camera(nn.Module):
 
     @property
     def margin(self) -> int:
-        """Extra scene pixels per axis needed in ``valid`` mode (0 in ``same`` mode)."""
+        """The PSF kernel's width − 1 (px; 0 for a camera without one), in both modes: the extra scene pixels per axis
+        a ``valid`` sensor needs (:meth:`sensor_size`); a ``same`` sensor is as large as its scene."""
         raise NotImplementedError
 
     def A(self, x: torch.Tensor) -> torch.Tensor:  # noqa: N802 - operator notation
