@@ -307,3 +307,19 @@ def test_a_crop_off_the_cfa_grid_reconstructs_as_the_whole_capture_given_its_off
         assert json.loads(f.attrs["metadata_json"])["cfa_offset"] == [dy, dx]
     res = _reconstruct(tmp_path / "crop.npy", run, tmp_path / "bad.h5", "--cfa-offset", "1")
     assert res.returncode == 2 and "--cfa-offset" in _error(res), _error(res)
+
+
+def test_the_psf_warning_names_a_shipped_camera_by_its_pretrained_name():
+    """`reconstruct --run pretrained:standard --psf-dir D` resolves the run to its folder inside the package; the
+    warning named that folder (meaningless on another machine, and not what the user typed) in the finetune command
+    it gives, where every other message says pretrained:standard."""
+    import argparse
+
+    from hsicam.cli.reconstruct import psf_mismatch_message
+    from hsicam.runs.pretrained import pretrained_dir
+
+    folder = pretrained_dir("standard")
+    msg = psf_mismatch_message(argparse.Namespace(run=str(folder), psf_dir="psfs", psf_pitch_um=None), None, False)
+    assert "the network of pretrained:standard was not fine-tuned" in msg
+    assert "`hsicam finetune --run pretrained:standard --psf-dir psfs --out RUN2`" in msg
+    assert str(folder) not in msg

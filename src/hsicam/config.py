@@ -568,7 +568,8 @@ class ConsistencyConfig:
                               f"{MAX_TV_WEIGHT:g}], got {self.tv_weight}")
         if self.tv_weight > 0 and self.kind == "linear" and self.iterations > 0 and self.landweber_after == 0:
             raise ConfigError(f"model.consistency.tv_weight={self.tv_weight} acts in the Landweber steps, and kind=linear "
-                              "takes none (landweber_after=0): set model.consistency.landweber_after, e.g. 24")
+                              "takes none (landweber_after=0): set model.consistency.landweber_after, e.g. 24, or "
+                              "model.consistency.tv_weight=0 for the linear step alone")
 
 
 @dataclass

@@ -419,21 +419,24 @@ def psf_mismatch_message(args: argparse.Namespace, measured, fine_tuned: bool) -
         except InputError:  # only a better message: an unreadable file keeps the plain one
             diff = None
         source = finetune_source(Path(args.run))[0]
-    base = (source or "ORIGINAL_RUN") if fine_tuned else args.run  # fine-tuning starts from the design run
+    from hsicam.runs.pretrained import run_label
+
+    run = run_label(args.run)  # a shipped camera by its pretrained:NAME, not its folder inside the package
+    base = (source or "ORIGINAL_RUN") if fine_tuned else run  # fine-tuning starts from the design run
     if diff is None:
-        return (f"the network of {args.run} was not fine-tuned on the PSFs of {args.psf_dir}; run `hsicam finetune "
+        return (f"the network of {run} was not fine-tuned on the PSFs of {args.psf_dir}; run `hsicam finetune "
                 f"--run {base} --psf-dir {args.psf_dir} --out RUN2` and reconstruct with RUN2")
     what, why = diff
     if what == "pixel_pitch_um":
         tuned_pitch = load_measured_psf(Path(args.run) / MEASURED_PSF_FILE).report["pixel_pitch_um"]
         now = "--psf-pitch-um" if args.psf_pitch_um is not None else f"pixel_pitch_um in {Path(args.psf_dir) / 'psf.json'}"
         pitch = measured.report["pixel_pitch_um"]
-        return (f"the PSFs of {args.psf_dir} differ from the ones the network of {args.run} was fine-tuned on: the same "
+        return (f"the PSFs of {args.psf_dir} differ from the ones the network of {run} was fine-tuned on: the same "
                 f"folder, but read at pixel pitch {pitch:g} µm ({now}) instead of the {tuned_pitch:g} µm it was "
                 f"fine-tuned with; reconstruct with --psf-pitch-um {tuned_pitch:g} if that is the images' pitch, or "
                 f"fine-tune for this one: `hsicam finetune --run {base} --psf-dir {args.psf_dir} --psf-pitch-um "
                 f"{pitch:g} --out RUN2` and reconstruct with RUN2")
-    return (f"the PSFs of {args.psf_dir} differ from the ones the network of {args.run} was fine-tuned on (the same "
+    return (f"the PSFs of {args.psf_dir} differ from the ones the network of {run} was fine-tuned on (the same "
             f"folder): {why}; fine-tune again: `hsicam finetune --run {base} --psf-dir {args.psf_dir} --out RUN2` and "
             "reconstruct with RUN2")
 
