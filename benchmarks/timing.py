@@ -11,7 +11,8 @@ from hsicam.memory import keep_freed_memory
 
 def positive_int(text: str) -> int:
     """argparse ``type`` of a count that needs at least one (``--repeats``, ``--steps``): 0 ended in a
-    StatisticsError traceback of the median of no times, after the set-up."""
+    StatisticsError traceback of the median of no times, after the set-up. The CLI's ``count_arg`` is not imported:
+    ``bench_cli`` must run, and report, when the ``hsicam.cli`` package itself is broken."""
     try:
         value = int(text)
     except ValueError:
