@@ -145,8 +145,12 @@ class RDNReconstructor(RDN):
 
     def forward(self, sensor: torch.Tensor, camera=None, origin: tuple[int, int] = (0, 0)) -> torch.Tensor:  # type: ignore[override]
         """Sensor (B, 1, H, W) → cube (B, C, H', W'); ``camera`` (or its snapshot) is needed with
-        either input estimate. Any floating input dtype; the output has the weights' dtype."""
-        return super().forward(self.network_input(sensor, camera, origin).to(self.tentative.weight.dtype))
+        either input estimate. Any floating input dtype; the output has the weights' dtype. The sensor is
+        taken to the weights' dtype first, as the other networks do, so the input estimate is computed in it
+        (a float16 image's back-projection through the DOE camera's FFTs failed on the CPU, its demosaic lost
+        precision)."""
+        sensor = sensor.to(self.tentative.weight.dtype)  # float32 unless the network was converted
+        return super().forward(self.network_input(sensor, camera, origin))
 
 
 def rdn_parameters(bands: int, in_channels: int = 1, blocks: int = 8, features: int = 64, growth: int = 32,
