@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import html
 import json
+import urllib.parse
 from pathlib import Path
 
 import matplotlib
@@ -142,7 +143,10 @@ def _numbers(values, positive: bool = False, finite: bool = True) -> bool:
 
 # -- sections ---------------------------------------------------------------------------------
 def _img(name: str, caption: str) -> str:
-    return f"<figure><img src='{html.escape(name)}' alt='{html.escape(caption)}'><figcaption class='note'>{html.escape(caption)}</figcaption></figure>"
+    """A figure of the image file ``name`` (a path relative to the page: percent-encoded, so that a scene's
+    ``#``, ``?`` or ``%`` is part of the file name, not a fragment, a query or an escape)."""
+    return (f"<figure><img src='{html.escape(urllib.parse.quote(name))}' alt='{html.escape(caption)}'>"
+            f"<figcaption class='note'>{html.escape(caption)}</figcaption></figure>")
 
 
 def _table(rows: list[dict], cols: list[tuple[str, str, str]]) -> str:

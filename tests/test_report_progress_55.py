@@ -1,0 +1,75 @@
+"""Review 55 (reports, progress): each test checks one measured defect against an independent reference."""
+
+from __future__ import annotations
+
+import json
+import urllib.parse
+from html.parser import HTMLParser
+from pathlib import Path
+
+import numpy as np
+
+from hsicam.data.formats import write_cube_h5
+from hsicam.io import mark_complete
+from hsicam.report.html import build_report
+from hsicam.spectral import Bands
+
+MEAN = {"psnr": 30.0, "ssim": 0.9, "sam": 5.0}
+
+
+class _Page(HTMLParser):
+    """The image sources and table cells of a page, as a browser's parser sees them."""
+
+    def __init__(self, text: str):
+        super().__init__()
+        self.images: list[str] = []
+        self.cells: list[str] = []
+        self._in_cell = False
+        self.feed(text)
+        self.close()
+
+    def handle_starttag(self, tag, attrs):
+        if tag == "img":
+            self.images.append(dict(attrs)["src"])
+        elif tag == "td":
+            self._in_cell = True
+            self.cells.append("")
+
+    def handle_endtag(self, tag):
+        if tag == "td":
+            self._in_cell = False
+
+    def handle_data(self, data):
+        if self._in_cell:
+            self.cells[-1] += data
+
+
+def _evaluation(tmp_path: Path, data: dict, cubes: tuple[str, ...] = ()) -> Path:
+    """A complete evaluation folder holding ``data`` as results.json and, for each name of ``cubes``, the
+    estimate and truth cubes `hsicam evaluate --save` writes (cubes/NAME_estimate.h5, NAME_truth.h5)."""
+    d = tmp_path / "ev"
+    d.mkdir()
+    (d / "results.json").write_text(json.dumps(data), encoding="utf-8")
+    bands = Bands.from_centers(data["bands_nm"]) if "bands_nm" in data else None
+    rng = np.random.default_rng(0)
+    for name in cubes:
+        truth = rng.random((len(bands), 12, 12)).astype(np.float32)
+        write_cube_h5(d / "cubes" / f"{name}_truth.h5", truth, bands)
+        write_cube_h5(d / "cubes" / f"{name}_estimate.h5", 0.9 * truth, bands)
+    mark_complete(d, {"command": "test"})
+    return d
+
+
+def test_report_images_of_scenes_named_with_url_characters_load(tmp_path):
+    """A scene's file name with '#', '?' or '%' (``scene #1?v%41.h5``): every <img src> of the page, resolved
+    as a browser resolves a relative URL against the page's, names a file that exists (the src was the raw
+    name: '#' began a fragment, '?' a query, '%41' decoded to 'A', so all its figures were broken)."""
+    name = "scene #1?v%41"
+    data = {"method": "m", "scenes": [{"name": name, **MEAN}], "mean": MEAN, "conventions": {},
+            "bands_nm": [500.0, 550.0, 600.0]}
+    index = build_report(_evaluation(tmp_path, data, cubes=(name,)))
+    images = _Page(index.read_text(encoding="utf-8")).images
+    assert len(images) == 2  # the scene's comparison and its error maps
+    for src in images:
+        url = urllib.parse.urljoin(index.resolve().as_uri(), src)
+        assert Path(urllib.parse.unquote(urllib.parse.urlparse(url).path)).is_file(), src
