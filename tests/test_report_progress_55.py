@@ -73,3 +73,19 @@ def test_report_images_of_scenes_named_with_url_characters_load(tmp_path):
     for src in images:
         url = urllib.parse.urljoin(index.resolve().as_uri(), src)
         assert Path(urllib.parse.unquote(urllib.parse.urlparse(url).path)).is_file(), src
+
+
+def test_report_table_shows_a_score_without_value_as_n_a(tmp_path):
+    """A scene whose SAM is undefined (NaN in results.json: its truth is zero at every scored pixel,
+    ``sam_undefined``) and a null runtime read "n/a" in the report's table, not "nan" / "None"."""
+    scenes = [{"name": "a", **MEAN, "runtime_s": 1.5}, {"name": "dark", **MEAN, "sam": float("nan"), "runtime_s": None}]
+    data = {"method": "m", "scenes": scenes, "mean": {**MEAN, "runtime_s": 1.5}, "sam_undefined": ["dark"],
+            "conventions": {}}
+    text = build_report(_evaluation(tmp_path, data)).read_text(encoding="utf-8")
+    assert "NaN" in (tmp_path / "ev" / "results.json").read_text()  # as json.dump writes a float('nan')
+    cells = _Page(text).cells
+    cols = 7  # scene, PSNR, SSIM, SAM, ERGAS, PSNR MST, runtime
+    rows = [cells[i : i + cols] for i in range(0, len(cells), cols)]
+    assert [r[0] for r in rows] == ["a", "dark", "mean"]
+    assert [r[3] for r in rows] == ["5.00", "n/a", "5.00"]  # SAM
+    assert [r[6] for r in rows] == ["1.500", "n/a", "1.500"]  # runtime (s)

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import html
 import json
+import math
 import urllib.parse
 from pathlib import Path
 
@@ -149,6 +150,14 @@ def _img(name: str, caption: str) -> str:
             f"<figcaption class='note'>{html.escape(caption)}</figcaption></figure>")
 
 
+def _cell(v, fmt: str) -> str:
+    """A table cell's text: a number in ``fmt``; "n/a" for a score that has no value (null, NaN: e.g. the SAM of
+    a scene whose truth is zero at every scored pixel, or ±Infinity)."""
+    if v is None or (isinstance(v, float) and not math.isfinite(v)):
+        return "n/a"
+    return format(v, fmt) if isinstance(v, (int, float)) and fmt else str(v)
+
+
 def _table(rows: list[dict], cols: list[tuple[str, str, str]]) -> str:
     """cols: (key, header, format)."""
     head = "".join(f"<th>{html.escape(h)}</th>" for _, h, _ in cols)
@@ -156,8 +165,7 @@ def _table(rows: list[dict], cols: list[tuple[str, str, str]]) -> str:
     for r in rows:
         cells = []
         for key, _, fmt in cols:
-            v = r.get(key, "")
-            cells.append(f"<td>{html.escape(format(v, fmt) if isinstance(v, (int, float)) and fmt else str(v))}</td>")
+            cells.append(f"<td>{html.escape(_cell(r.get(key, ''), fmt))}</td>")
         body.append("<tr>" + "".join(cells) + "</tr>")
     return f"<table><tr>{head}</tr>{''.join(body)}</table>"
 
