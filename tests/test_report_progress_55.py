@@ -89,3 +89,31 @@ def test_report_table_shows_a_score_without_value_as_n_a(tmp_path):
     assert [r[0] for r in rows] == ["a", "dark", "mean"]
     assert [r[3] for r in rows] == ["5.00", "n/a", "5.00"]  # SAM
     assert [r[6] for r in rows] == ["1.500", "n/a", "1.500"]  # runtime (s)
+
+
+def test_report_writes_any_json_value_of_a_hand_edited_file_as_text(tmp_path):
+    """experiment.json's 'seeds' and results.json's 'conventions' values, edited by hand: a markup string is
+    shown as text (it was written into the page raw, a <script> element ran), a number is shown
+    (``html.escape(1)`` raised AttributeError, a traceback instead of a report)."""
+    markup = "<script>alert(1)</script>"
+    d = tmp_path / "ex"
+    d.mkdir()
+    (d / "experiment.json").write_text(json.dumps(
+        {"experiment": "compare", "scale": "tiny", "seeds": markup, "scenes": ["a"],
+         "rows": [{"method": "x", **MEAN}], "conventions": {"psnr": 1}}))
+    mark_complete(d, {"command": "test"})
+    text = build_report(d).read_text(encoding="utf-8")
+
+    class Text(HTMLParser):
+        scripts, data = 0, ""
+
+        def handle_starttag(self, tag, attrs):
+            self.scripts += tag == "script"
+
+        def handle_data(self, data):
+            self.data += data
+
+    page = Text()
+    page.feed(text)
+    assert page.scripts == 1  # the report's own image check only
+    assert f"seeds {markup}" in page.data and "psnr: 1" in page.data

@@ -171,7 +171,7 @@ def _table(rows: list[dict], cols: list[tuple[str, str, str]]) -> str:
 
 
 def _conventions(conv: dict) -> str:
-    return "<p class='note'>" + "; ".join(f"{html.escape(k)}: {html.escape(v)}" for k, v in conv.items()) + "</p>"
+    return "<p class='note'>" + "; ".join(f"{html.escape(k)}: {html.escape(str(v))}" for k, v in conv.items()) + "</p>"
 
 
 def _camera_section(run: Path, out: Path, prefix: str = "", label: str | None = None) -> str:
@@ -274,7 +274,7 @@ def _evaluated_run(res: dict) -> Path:
 
 def _experiment_sections(folder: Path, out: Path, exp: dict) -> list[str]:
     parts = [f"<h2>Experiment: {html.escape(exp['experiment'])} ({html.escape(exp['scale'])} scale)</h2>",
-             f"<p class='note'>{len(exp['scenes'])} validation scenes, seeds {exp['seeds']}"
+             f"<p class='note'>{len(exp['scenes'])} validation scenes, seeds {html.escape(str(exp['seeds']))}"
              + (f"; scored area: the DOE cameras' {html.escape(str(exp['region']))}"
                 + (", the CASSI rows' too" if exp["experiment"] == "compare" else "") if exp.get("region") else "")
              + "</p>"]
