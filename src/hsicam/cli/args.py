@@ -215,9 +215,14 @@ def check_tile(tile: int | None) -> None:
 def path_arg(convert: Callable[[str], Any] | None = None) -> Callable[[str], Any]:
     """argparse ``type`` of a path argument: a leading ``~`` expanded as a shell does
     (``os.path.expanduser``, also when it reached hsicam quoted, from a script or a Makefile), then
-    ``convert`` (e.g. :func:`hsicam.cli.run_folder`), whose name argparse's errors keep."""
+    ``convert`` (e.g. :func:`hsicam.cli.run_folder`), whose name argparse's errors keep. An empty path
+    (``--dark "$DARK"`` with the variable unset) is a usage error: taken as given it was no option at all
+    (``--dark``, ``--flat``, ``--psf-dir``, ``evaluate --data``, ``experiment --out``: exit 0 without it) or
+    the current folder (``data show --out``, ``finetune --psf-dir``)."""
 
     def path(text: str) -> Any:
+        if text == "":
+            raise argparse.ArgumentTypeError("the path is empty (an unset variable?)")
         text = os.path.expanduser(text)
         return text if convert is None else convert(text)
 

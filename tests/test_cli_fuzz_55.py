@@ -1,0 +1,62 @@
+"""Hostile command lines found by session 55's fuzzing that used to pass or to do something else than asked.
+
+An empty path (``--dark "$DARK"`` with the variable unset) was taken as no option at all (``reconstruct --dark``
+and ``--flat``: exit 0 without the correction) or as the current folder (``data show --out``: its PNGs written
+there; ``finetune --psf-dir``: the folder's files read as PSF images) or as the default (``evaluate --data``:
+the config's own validation scenes scored; ``experiment --out``: the whole experiment run into its default folder): every path argument refuses it now, as a
+usage error naming the option, before any work and without writing anything."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from cli_helpers import error_line, run_cli_in_process, tree_snapshot
+
+EMPTY = "the path is empty (an unset variable?)"
+
+
+@pytest.fixture
+def files(tmp_path, monkeypatch) -> dict[str, Path]:
+    """A capture and a cube in their real format (``.npy``) outside an empty working folder ``cwd`` (the one
+    the commands run in)."""
+    inputs = tmp_path / "inputs"
+    inputs.mkdir()
+    rng = np.random.default_rng(0)
+    np.save(inputs / "cap.npy", (rng.random((48, 48)) * 0.5).astype(np.float32))
+    np.save(inputs / "cube.npy", rng.random((7, 24, 24)).astype(np.float32))
+    cwd = tmp_path / "cwd"
+    cwd.mkdir()
+    monkeypatch.chdir(cwd)
+    return {"cap": inputs / "cap.npy", "cube": inputs / "cube.npy", "cwd": cwd, "root": tmp_path}
+
+
+@pytest.mark.parametrize("option", ["--dark", "--flat", "--psf-dir"])
+def test_reconstruct_refuses_an_empty_correction_path(files, option):
+    out = files["root"] / "est.h5"
+    res = run_cli_in_process("reconstruct", option, "", str(files["cap"]), "--run", "pretrained:standard",
+                             "--out", str(out))
+    assert error_line(res) == f"hsicam: error: argument {option}: {EMPTY}"
+    assert not out.exists() and not (files["root"] / "est_rgb.png").exists()
+
+
+def test_data_show_refuses_an_empty_out_and_writes_nothing_in_the_working_folder(files):
+    res = run_cli_in_process("data", "show", str(files["cube"]), "--out", "")
+    assert error_line(res) == f"hsicam: error: argument --out: {EMPTY}"
+    assert tree_snapshot(files["cwd"]) == {}
+
+
+@pytest.mark.parametrize("argv", [
+    ("finetune", "--psf-dir", "", "--run", "pretrained:standard", "--out", "RUN2"),
+    ("evaluate", "--data", "", "--config", "tiny", "--method", "doe-box-demosaic", "--out", "EV"),
+    ("simulate", "--scene", "", "--config", "tiny", "--out", "SIM"),
+])
+def test_every_path_option_refuses_an_empty_path_naming_it(files, cache_env, argv):
+    (files["cwd"] / "psf_450nm.npy").write_bytes(b"")  # what an empty --psf-dir read as the current folder
+    before = tree_snapshot(files["cwd"])
+    res = run_cli_in_process(*argv)
+    option = argv[argv.index("") - 1]
+    assert error_line(res) == f"hsicam: error: argument {option}: {EMPTY}"
+    assert tree_snapshot(files["cwd"]) == before
