@@ -60,3 +60,25 @@ def test_every_path_option_refuses_an_empty_path_naming_it(files, cache_env, arg
     option = argv[argv.index("") - 1]
     assert error_line(res) == f"hsicam: error: argument {option}: {EMPTY}"
     assert tree_snapshot(files["cwd"]) == before
+
+
+@pytest.mark.parametrize("setting,said", [
+    ("camera.lens.focal_length_mm=1e300", r"the PSF sampling plan needs at least [\d.e+]+ PiB of memory"),
+    ("camera.sensor.pixel_pitch_um=1e-300", r"the PSF sampling plan needs at least [\d.e+]+ PiB of memory"),
+    ("camera.sensor_distance_mm=1e-300", r"camera.sensor_distance_mm=1e-300 is implausible for this lens .*"
+                                         r"no pupil oversampling can represent a defocus this large"),
+    ("camera.doe.max_height_nm=1e300", r"camera.doe.max_height_nm must be at most 1000000 nm .*got 1e\+300"),
+    ("camera.doe.init_range_nm=1e300", r"camera.doe.init_range_nm must be at most 1000000 nm .*got 1e\+300"),
+])
+def test_absurd_optics_are_one_error_line(tmp_path, setting, said):
+    """Optics values far out of range are refused in one line naming the problem. Before, the memory refusal's own
+    message overflowed (a 1e300 mm lens: 'integer division result too large for a float'), a sensor at 1e-300 mm
+    overflowed the defocus check (int of infinity), and 1e300 nm heights overflowed float32 in torch (a
+    RuntimeError, or NaN PSFs and a ValueError in their plot): all tracebacks."""
+    import re
+
+    out = tmp_path / "psf"
+    res = run_cli_in_process("psf", "--config", "tiny", "--set", setting, "--out", str(out))
+    line = error_line(res)
+    assert res.returncode != 0 and re.fullmatch(rf"hsicam: error: {said}.*", line), line
+    assert "Traceback" not in res.stderr and not out.exists()

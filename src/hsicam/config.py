@@ -125,7 +125,8 @@ MAX_HEIGHT_LEVELS = 2**16
 #: The largest DOE fabrication height noise σ_p (nm; ``camera.doe.sigma_height_nm``, ``train.sigma_height_nm``,
 #: ``evaluate`` / ``tolerance --sigma-height-nm``): 1 mm, thousands of times any element's relief (a few µm), where
 #: the phase is already uniformly random; far larger ones overflowed the float32 heights and ended in a
-#: 'sensor contains NaN or Inf' refusal that named no option.
+#: 'sensor contains NaN or Inf' refusal that named no option. The same bound holds camera.doe.max_height_nm and
+#: init_range_nm.
 MAX_SIGMA_HEIGHT_NM = 1e6
 
 
@@ -228,6 +229,11 @@ class DOEConfig:
         if self.sigma_height_nm > MAX_SIGMA_HEIGHT_NM:
             raise ConfigError(f"camera.doe.sigma_height_nm must be at most {MAX_SIGMA_HEIGHT_NM:.0f} nm (1 mm, far beyond any "
                               f"DOE's relief), got {self.sigma_height_nm:g}")
+        for key in ("max_height_nm", "init_range_nm"):  # 1e300 nm overflowed the float32 heights (a torch
+            value = getattr(self, key)  # RuntimeError, or NaN PSFs and a traceback in their plot)
+            if value is not None and value > MAX_SIGMA_HEIGHT_NM:
+                raise ConfigError(f"camera.doe.{key} must be at most {MAX_SIGMA_HEIGHT_NM:.0f} nm (1 mm, far beyond "
+                                  f"any DOE's relief), got {value:g}")
 
 
 @dataclass

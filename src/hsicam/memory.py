@@ -20,6 +20,8 @@ freed tensors instead of handing it back to the system and faulting it in again.
 
 from __future__ import annotations
 
+import decimal
+
 import ctypes
 import math
 import os
@@ -122,7 +124,10 @@ def format_bytes(nbytes: float) -> str:
     """``nbytes`` in B, KiB, MiB, GiB, TiB or PiB (3 significant digits)."""
     for unit, size in (("PiB", 2**50), ("TiB", 2**40), ("GiB", 2**30), ("MiB", 2**20), ("KiB", 2**10)):
         if nbytes >= size:
-            return f"{nbytes / size:.3g} {unit}"
+            try:
+                return f"{nbytes / size:.3g} {unit}"
+            except OverflowError:  # an int beyond float (a memory estimate from absurd optics, e.g. a 1e300 mm lens)
+                return f"{decimal.Decimal(int(nbytes)) / size:.3g} {unit}"
     return f"{int(nbytes)} B"
 
 

@@ -165,7 +165,7 @@ class PSFModel(nn.Module):
         inv_zo = 0.0 if object_distance_m is None else 1.0 / object_distance_m
         lam_m = self.line_wavelengths_nm * 1e-9
         f_line = lens.focal_lengths_m(self.line_wavelengths_nm)
-        with np.errstate(divide="ignore"):  # a zero distance is refused by plan_psf_sampling below
+        with np.errstate(divide="ignore", over="ignore"):  # a zero distance: plan_psf_sampling; inf: _check_defocus
             defocus = np.pi / lam_m * (inv_zo + 1.0 / z_line - 1.0 / f_line)
         self._check_defocus(defocus, z_line, sensor_distance_m is not None, n_cells)
         self.sampling: PSFSampling = plan_psf_sampling(
@@ -213,12 +213,19 @@ class PSFModel(nn.Module):
         else:
             what = f"the {self.lens.model} lens's focus shift"
         obj = "object at infinity" if zo is None else f"object at {zo:g} m"
-        q_need = int(np.ceil(q * ratio[i] - 1e-9))
-        n_need = 2 * n_cells * q_need - 1  # about the FFT length that oversampling needs
-        k_est = int(np.ceil(self.line_wavelengths_nm.max() * 1e-9 * float(z_line.max()) / (cell * self.pixel_m)))
-        mem = psf_memory_estimate(PSFSampling(n_cells * q_need, cell / q_need, n_need, k_est, k_est, None, 1),
-                                  self.line_wavelengths_nm * 1e-9, float(z_line.max()), self.pixel_m)
-        if mem.total <= memory_budget_bytes():
+        q_need_f = q * float(ratio[i])
+        if not q_need_f < 1e9:  # e.g. a sensor at 1e-300 mm: infinite defocus (int(inf) was a traceback)
+            deliberate = "no pupil oversampling can represent a defocus this large"
+            q_need = None
+        else:
+            q_need = int(np.ceil(q_need_f - 1e-9))
+            n_need = 2 * n_cells * q_need - 1  # about the FFT length that oversampling needs
+            k_est = int(np.ceil(self.line_wavelengths_nm.max() * 1e-9 * float(z_line.max()) / (cell * self.pixel_m)))
+            mem = psf_memory_estimate(PSFSampling(n_cells * q_need, cell / q_need, n_need, k_est, k_est, None, 1),
+                                      self.line_wavelengths_nm * 1e-9, float(z_line.max()), self.pixel_m)
+        if q_need is None:
+            pass
+        elif mem.total <= memory_budget_bytes():
             deliberate = f"for a deliberate defocus raise camera.psf.pupil_oversample to at least {q_need}"
         else:
             deliberate = (f"a deliberate defocus this large would need camera.psf.pupil_oversample >= {q_need}: "
