@@ -89,7 +89,8 @@ def _records(run: Path) -> list[dict]:
     out = []
     for line in (run / "metrics.jsonl").read_text().splitlines():
         rec = json.loads(line)
-        out.append({k: v for k, v in rec.items() if k not in TIME_KEYS})
+        if "session" not in rec:  # a session's start (its time, versions): a recovered run has one per process
+            out.append({k: v for k, v in rec.items() if k not in TIME_KEYS})
     return out
 
 

@@ -101,6 +101,33 @@ def test_resume_matches_uninterrupted_run(tmp_path, cache_env):
     steps = [json.loads(x)["step"] for x in (tmp_path / "part" / "metrics.jsonl").read_text().splitlines()
              if "train_loss" in json.loads(x)]
     assert steps == list(range(1, 13))
+    # each training session (the first and the resume) records the software it ran with, where it began
+    sessions = [json.loads(x) for x in (tmp_path / "part" / "metrics.jsonl").read_text().splitlines()
+                if "session" in json.loads(x)]
+    assert [(r["step"], r["epoch"]) for r in sessions] == [(0, 0), (5, 1)]
+    for r in sessions:
+        _assert_is_this_software(r["session"])
+
+
+def _assert_is_this_software(session: dict) -> None:
+    """A run's session record names this process's software: its versions, device, and the checkout's commit."""
+    import datetime
+    import platform
+
+    import hsicam
+
+    assert session["torch"] == torch.__version__ and session["numpy"] == np.__version__
+    assert session["python"] == platform.python_version() and session["executable"] == sys.executable
+    assert session["hsicam"] == hsicam.__version__  # pyproject's version, which the package repeats
+    assert session["device"] == "cpu" and session["world_size"] == 1
+    started = datetime.datetime.fromisoformat(session["started_utc"])
+    assert abs((datetime.datetime.now(datetime.timezone.utc) - started).total_seconds()) < 3600
+    checkout = Path(hsicam.__file__).resolve().parents[2]
+    head = subprocess.run(["git", "-C", str(checkout), "rev-parse", "HEAD"], capture_output=True, text=True)
+    if (checkout / ".git").exists() and head.returncode == 0:
+        assert session["git_commit"] in (head.stdout.strip(), head.stdout.strip() + "+dirty")
+    else:  # an installed package: no commit to name
+        assert session["git_commit"] is None
 
 
 def test_resume_with_changed_keys_records_them_in_config_yaml(tmp_path, cache_env):

@@ -37,7 +37,7 @@ from torch.utils.data import Sampler
 from hsicam.config import TrainConfig
 from hsicam.data.pipeline import make_loader, patch_source
 from hsicam.devices import device_problem, dist_env
-from hsicam.engine.provenance import check_same_data, read_data_record, write_data_record
+from hsicam.engine.provenance import check_same_data, read_data_record, software_record, write_data_record
 from hsicam.engine.stopping import BUDGET_EXIT_CODE, StopRequests
 from hsicam.errors import InputError, TrainingInterrupted, TrainingStopped
 from hsicam.io import OutputLock, atomic_output, is_complete, output_description
@@ -482,6 +482,9 @@ def _fit(task: Task, opts: FitOptions, run_dir: Path, resume: bool, lock: RunLoc
                 write_data_record(tmp, record)
         lock.moved()
         new_run.release()  # in place: the run's own lock keeps it
+    if is_main:  # which software this session trains with (a resume adds its own record)
+        metrics.write({"step": state.global_step, "epoch": state.epoch,
+                       "session": software_record(str(device), world)})
     state.total_steps = total_steps  # saved with each checkpoint: what a half-trained run is measured against
     state.steps_per_epoch, state.batch_size = steps_per_epoch, t.batch_size
     if distributed:

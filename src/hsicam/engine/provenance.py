@@ -13,13 +13,22 @@ with it and refuses another split (:func:`check_same_data`); ``evaluate --run`` 
 validation and unseen scenes apart by it (:func:`scene_roles`). Runs on the synthetic data (its
 cache is deterministic) and runs from before this record have none: a synthetic run's scenes are told
 apart by its config's split instead (:func:`synthetic_scene_roles`).
+
+Which software trained it: each training session (a new run, or a resume) begins its ``metrics.jsonl`` records
+with one ``{"step": S, "epoch": E, "session": {...}}`` (:func:`software_record`): the UTC time, the hsicam,
+torch, numpy and Python versions, the platform, the device and the process count, and the hsicam git commit
+when hsicam runs from a git checkout (``"+dirty"`` when its tracked files differ from it).
 """
 
 from __future__ import annotations
 
+import datetime
 import json
 import logging
 import os
+import platform
+import subprocess
+import sys
 from pathlib import Path
 from typing import Any, Sequence
 
@@ -206,3 +215,37 @@ def training_scenes_warning(roles: Sequence[str], run: str | Path) -> str | None
 
 __all__ = ["check_same_data", "data_changes", "data_record", "read_data_record", "scene_roles",
            "heldout_sources_problem", "synthetic_scene_roles", "training_scenes_warning", "write_data_record"]
+
+
+def _source_commit() -> str | None:
+    """The git commit of the checkout hsicam runs from (``+dirty`` when a tracked file differs), or None (an
+    installed wheel, no git, a git that fails)."""
+    root = Path(__file__).resolve().parents[3]  # src/hsicam/engine/provenance.py → the checkout
+    if not (root / ".git").exists() or not (root / "src" / "hsicam").is_dir():
+        return None
+    try:
+        run = lambda *args: subprocess.run(["git", "-C", str(root), *args], capture_output=True, text=True,  # noqa: E731
+                                           timeout=10, check=True).stdout.strip()
+        commit = run("rev-parse", "HEAD")
+        dirty = run("status", "--porcelain", "--untracked-files=no", "--", "src")
+    except (OSError, subprocess.SubprocessError):
+        return None
+    return commit + ("+dirty" if dirty else "") if commit else None
+
+
+def software_record(device: str, world_size: int = 1) -> dict[str, Any]:
+    """What a training session runs on, for its run's ``metrics.jsonl``: UTC start time, versions (hsicam,
+    torch, numpy, Python), platform, ``device`` (e.g. "cpu", "cuda:0"), ``world_size`` (processes), and the
+    hsicam git commit when run from a checkout (None otherwise)."""
+    import numpy
+    import torch
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        hsicam_version = version("hsicam")
+    except PackageNotFoundError:  # a source tree never installed (PYTHONPATH=src)
+        from hsicam import __version__ as hsicam_version
+    return {"started_utc": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
+            "hsicam": hsicam_version, "git_commit": _source_commit(), "torch": torch.__version__,
+            "numpy": numpy.__version__, "python": platform.python_version(), "platform": platform.platform(),
+            "executable": sys.executable, "device": str(device), "world_size": int(world_size)}
