@@ -45,6 +45,15 @@ TINY_CAMERA_OVERRIDES = (
 
 
 @pytest.fixture
+def one_torch_thread():
+    """torch on one thread for the test (small networks: threads cost more than they give), restored after."""
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)
+
+
+@pytest.fixture
 def tiny_config():
     """Factory: ``tiny_config(*overrides)`` → validated :class:`hsicam.config.Config` of the tiny camera."""
 

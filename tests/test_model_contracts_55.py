@@ -9,12 +9,7 @@ from hsicam.config import load_config
 from hsicam.models import CameraSystem
 
 
-@pytest.fixture(autouse=True)
-def _one_thread():
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 def _random_weights(net: torch.nn.Module) -> None:

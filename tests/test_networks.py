@@ -32,12 +32,7 @@ MOSAIC_MID = dataclasses.replace(MOSAIC_DETAIL, factor=6, mid_features=4, mid_bl
 UNROLLED = UnrolledConfig(stages=2, prior_features=8, prior_blocks=1, prior_scale=2)
 
 
-@pytest.fixture(autouse=True)
-def _one_thread():
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 def camera(kind: str = "doe", *overrides: str):
