@@ -388,3 +388,37 @@ def test_a_signal_during_a_long_validation_stops_it_at_its_next_batch(tmp_path, 
     final = [json.loads(x) for x in (last / "metrics.jsonl").read_text().splitlines()][-1]
     assert final["final"] and final["step"] == full["step"]
     assert final["val_psnr"] == pytest.approx(full["val_psnr"], abs=1e-6)
+
+
+def test_a_diverged_training_says_what_its_folder_keeps_and_the_advice_works(tmp_path, cache_env):
+    """A divergence (here a learning rate of 1e308) leaves the run folder behind. Its one error line says what the
+    folder keeps (no checkpoint yet; later the last checkpoint, from before the divergence) and the command that goes
+    on from it with a lower rate; that command, as said, then trains. Before, the line said only "lower the learning
+    rates", and running the same command with a lower rate was refused: the folder is not empty."""
+    from cli_helpers import run_cli_in_process
+
+    def error_line(res) -> str:  # the last line: the training's progress lines come before it
+        assert res.returncode == 2 and "Traceback" not in res.stderr, res.stderr
+        return res.stderr.strip().splitlines()[-1]
+
+    env = {"HSICAM_CACHE": str(cache_env)}
+    run = tmp_path / "run"
+    res = run_cli_in_process("train", "--config", "tiny", "--out", str(run), "--set", "train.lr=1e308", env=env)
+    assert res.returncode == 2
+    assert error_line(res) == (f"hsicam: error: training diverged at step 1 (loss nan); lower the learning rates; {run} "
+                               f"holds no checkpoint yet; continue with a lower rate: hsicam train --out {run} --resume "
+                               "--set train.lr=LR (or start over with --restart)")
+    # the advice, with a rate that trains: one epoch (4 steps), then a second epoch at 1e308 diverges at its first step
+    ok = run_cli_in_process("train", "--out", str(run), "--resume", "--set", "train.lr=1e-3", "--set", "train.epochs=1",
+                            env=env)
+    assert ok.returncode == 0, ok.stderr
+    res = run_cli_in_process("train", "--out", str(run), "--resume", "--set", "train.lr=1e308", "--set",
+                             "train.epochs=2", env=env)
+    assert res.returncode == 2
+    assert error_line(res).startswith(f"hsicam: error: training diverged at step 5 (loss nan); lower the learning rates; "
+                                      f"{run} keeps the checkpoint of step 4, from before the divergence; continue")
+    assert _manifest(run)["last"]["step"] == 4
+    ok = run_cli_in_process("train", "--out", str(run), "--resume", "--set", "train.lr=1e-3", "--set", "train.epochs=2",
+                            env=env)
+    assert ok.returncode == 0, ok.stderr
+    assert _manifest(run)["last"]["step"] == 8

@@ -15,6 +15,16 @@ class InputError(HsicamError, ValueError):
     """An input file or array that cannot be used (format, shape, band grid, values)."""
 
 
+class TrainingDiverged(InputError):
+    """A training whose loss or gradient stopped being finite (the learning rates, or the loss weights).
+    :func:`hsicam.engine.loop.fit` adds what its run folder keeps: ``run_dir`` and ``checkpoint_step`` (the step of
+    its last checkpoint, all of whose weights are finite; None when it has none yet), so the CLI can say how to go
+    on with a lower rate."""
+
+    run_dir = None
+    checkpoint_step = None
+
+
 class _Stop:
     """What a training that stopped on request says: the run, the step, why, the exit code, and
     whether the training had already ended (its last files written; then there is nothing to resume)."""

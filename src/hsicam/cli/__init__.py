@@ -32,7 +32,8 @@ import traceback
 from pathlib import Path
 from typing import Sequence
 
-from hsicam.errors import HsicamError, InputError, Terminated, TrainingInterrupted, TrainingStopped, original_message
+from hsicam.errors import (HsicamError, InputError, Terminated, TrainingDiverged, TrainingInterrupted, TrainingStopped,
+                           original_message)
 
 COMMAND_MODULES = (
     "hsicam.cli.camera",
@@ -314,6 +315,11 @@ def main(argv: Sequence[str] | None = None) -> int:
         line = error_line(exc)
         if line is None:
             raise
+        hint = getattr(args, "diverged_hint", None)
+        if isinstance(exc, TrainingDiverged) and exc.run_dir is not None and hint:  # how to go on with a lower rate
+            kept = ("holds no checkpoint yet" if exc.checkpoint_step is None else
+                    f"keeps the checkpoint of step {exc.checkpoint_step}, from before the divergence")
+            line += f"; {exc.run_dir} {kept}; {hint.format(run=exc.run_dir)}"
         if args.verbose:
             traceback.print_exc()
         print(f"hsicam: error: {line}", file=sys.stderr)

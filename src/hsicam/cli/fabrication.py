@@ -61,7 +61,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="network learning rate, a finite number > 0 (default: 0.1 × the run's train.lr)")
     p.add_argument("--set", dest="overrides", metavar="KEY=VALUE", action="append", default=[],
                    help="dotted override of the run's config, e.g. data.patches_per_epoch=256 (repeatable)")
-    p.set_defaults(func=cmd_finetune, trains=True, resume_hint="go on with the same hsicam finetune command and --resume")
+    p.set_defaults(func=cmd_finetune, trains=True, resume_hint="go on with the same hsicam finetune command and --resume",
+                   diverged_hint="continue with a lower rate: the same hsicam finetune command with --resume and a "
+                                 "lower --lr (or remove {run} to start over)")
 
 
 def cmd_export(args: argparse.Namespace) -> int:

@@ -20,7 +20,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     mode.add_argument("--restart", action="store_true",
                       help="start again in a run folder that holds no finished checkpoint (e.g. a run killed before "
                            "its first checkpoint): its files are removed first; a folder with a checkpoint is refused")
-    p.set_defaults(func=cmd_train, trains=True, resume_hint="go on with: hsicam train --out {run} --resume")
+    p.set_defaults(func=cmd_train, trains=True, resume_hint="go on with: hsicam train --out {run} --resume",
+                   diverged_hint="continue with a lower rate: hsicam train --out {run} --resume --set train.lr=LR "
+                                 "(or start over with --restart)")
 
 
 def cmd_train(args: argparse.Namespace) -> int:

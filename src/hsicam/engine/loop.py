@@ -39,7 +39,7 @@ from hsicam.data.pipeline import make_loader, patch_source
 from hsicam.devices import device_problem, dist_env
 from hsicam.engine.provenance import check_same_data, read_data_record, software_record, write_data_record
 from hsicam.engine.stopping import BUDGET_EXIT_CODE, StopRequests
-from hsicam.errors import InputError, TrainingInterrupted, TrainingStopped
+from hsicam.errors import InputError, TrainingDiverged, TrainingInterrupted, TrainingStopped
 from hsicam.io import OutputLock, atomic_output, is_complete, output_description
 from hsicam.runs.checkpoint import CheckpointManager, save_weights
 from hsicam.runs.folder import MetricsLog, check_run_dir
@@ -284,7 +284,13 @@ def fit(task: Task, opts: FitOptions, run_dir: str | Path, resume: bool = False,
         if own_group:
             _end_group(barrier=True)
         raise
-    except BaseException:
+    except BaseException as exc:
+        if isinstance(exc, TrainingDiverged):  # what the run folder keeps: the CLI says how to go on from it
+            exc.run_dir = Path(run_dir)
+            try:
+                exc.checkpoint_step = (CheckpointManager(run_dir).state() or {}).get("global_step")
+            except Exception:  # noqa: BLE001 - a damaged manifest: the divergence is still the error to report
+                exc.run_dir = None
         # any other error: no barrier (the other ranks may be anywhere, or gone), but the group is destroyed all the
         # same, which only lets go of this process's side of it. Left alive, it lived on to the interpreter's exit
         # with its gloo threads, the one condition under which a finished rank was seen to abort ("terminate called
@@ -362,7 +368,7 @@ def not_finite_error(what: str, step: int, loss: float, batch: torch.Tensor,
     values (naming up to 3 scene files, ``source(row)``), else a divergence (the learning rates)."""
     bad = ~torch.isfinite(batch.detach())
     if not bool(bad.any()):
-        return InputError(f"{what} diverged at step {step} (loss {loss}); lower the learning rates")
+        return TrainingDiverged(f"{what} diverged at step {step} (loss {loss}); lower the learning rates")
     rows = bad.reshape(bad.shape[0], -1).any(dim=1).nonzero().flatten().tolist() if bad.ndim > 1 else []
     files = sorted({str(f) for f in (source(j) for j in rows) if f is not None})
     more = f" and {len(files) - 3} more" if len(files) > 3 else ""
@@ -597,14 +603,14 @@ def _fit(task: Task, opts: FitOptions, run_dir: Path, resume: bool, lock: RunLoc
                 raise not_finite_error(task.what, step, own_v, batch,
                                        lambda j: patch_source(train_ds, first + j))
             if not math.isfinite(loss_v):  # another rank's share: it names its patches; this one stops with it
-                raise InputError(f"{task.what} diverged at step {step}: the loss of another process's share of the "
+                raise TrainingDiverged(f"{task.what} diverged at step {step}: the loss of another process's share of the "
                                  f"batch is {loss_v:.4g}; that process's error names its patches")
             if grad_norm is not None and not math.isfinite(norm_v := grad_norm.item()):
                 # a finite loss whose gradient is not: clipping by an infinite norm zeroed every gradient, and the run
                 # trained on, flat, without an error (e.g. train.ssim_loss=1e30)
                 why = ("it overflows float32" if math.isinf(norm_v) else
                        "a NaN in the backward pass of a finite loss, e.g. a square root or division at 0")
-                raise InputError(f"{task.what} diverged at step {step}: the loss is {loss_v:.4g} but its gradient's norm "
+                raise TrainingDiverged(f"{task.what} diverged at step {step}: the loss is {loss_v:.4g} but its gradient's norm "
                                  f"is {norm_v} ({why}), so clipping would zero every gradient; lower the loss weights "
                                  "(train.ssim_loss, sam_loss, relative_l1, spectral_grad_loss, phase_loss) or the "
                                  "learning rates")
