@@ -243,8 +243,8 @@ def software_record(device: str, world_size: int = 1) -> dict[str, Any]:
 
     try:
         hsicam_version = version("hsicam")
-    except PackageNotFoundError:  # a source tree never installed (PYTHONPATH=src)
-        from hsicam import __version__ as hsicam_version
+    except PackageNotFoundError:  # a source tree never installed (PYTHONPATH=src): its git_commit says which
+        hsicam_version = None
     return {"started_utc": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
             "hsicam": hsicam_version, "git_commit": _source_commit(), "torch": torch.__version__,
             "numpy": numpy.__version__, "python": platform.python_version(), "platform": platform.platform(),
