@@ -82,3 +82,26 @@ def test_absurd_optics_are_one_error_line(tmp_path, setting, said):
     line = error_line(res)
     assert res.returncode != 0 and re.fullmatch(rf"hsicam: error: {said}.*", line), line
     assert "Traceback" not in res.stderr and not out.exists()
+
+
+def test_a_float64_capture_beyond_float32_is_one_line_naming_it(files):
+    """A float64 capture holding values float32 cannot (1e300) is refused for what it is. Before, numpy's overflow
+    warning (2 lines) came first, then "the corrections produced NaN or Inf values", though no correction was asked."""
+    cap = files["root"] / "huge.npy"
+    values = np.full((48, 48), 0.25)
+    values[:2, :3] = 1e300
+    np.save(cap, values)
+    out = files["root"] / "est.h5"
+    res = run_cli_in_process("reconstruct", str(cap), "--run", "pretrained:standard", "--out", str(out))
+    assert error_line(res) == (f"hsicam: error: {cap}: 6 value(s) beyond float32's range (largest 1e+300); a capture "
+                               "is processed in float32: scale it, or check the file")
+    assert not out.exists()
+
+
+def test_a_white_level_beyond_float32_is_refused_without_numpys_warning(files):
+    """--white-level 1e39 on a [0, 1] capture: the refusal alone (error_line: one line), no RuntimeWarning before it."""
+    out = files["root"] / "est.h5"
+    res = run_cli_in_process("reconstruct", str(files["cap"]), "--white-level", "1e39", "--run", "pretrained:standard",
+                             "--out", str(out))
+    assert "--white-level 1e+39 is far above this float capture's values" in error_line(res)
+    assert not out.exists()

@@ -432,7 +432,13 @@ def preprocess_raw(raw: np.ndarray, full_scale: float, corr: RawCorrection, sour
             ``hsicam simulate``'s stretched image, above full scale by design).
         stored_dtype: the capture file's data type (for the messages about frames of other units).
     """
-    raw = np.asarray(raw, dtype=np.float32)
+    stored = np.asarray(raw)
+    with np.errstate(over="ignore"):  # a float64 capture beyond float32's range: said below, not as numpy's warning
+        raw = stored.astype(np.float32, copy=False)
+    if stored.dtype.kind == "f" and stored.dtype.itemsize > 4 and np.isinf(raw).any() and not np.isinf(stored).any():
+        raise InputError(f"{source}: {int(np.count_nonzero(np.isinf(raw)))} value(s) beyond float32's range (largest "
+                         f"{float(np.abs(stored).max()):.3g}); a capture is processed in float32: scale it, or check "
+                         "the file")
     h, w = raw.shape
     _check_frame_type("dark frame", corr.dark, stored_dtype, full_scale, source,
                       "it would be subtracted from the capture's DN as it is")
@@ -450,7 +456,8 @@ def preprocess_raw(raw: np.ndarray, full_scale: float, corr: RawCorrection, sour
     if not white > black:
         raise InputError(f"white level ({white:g} DN) must be above the black level ({black:g} DN)")
     report: dict[str, Any] = {"black_level_dn": black, "white_level_dn": white}
-    saturated = int(np.count_nonzero(raw >= white)) if check_saturation and (corr.white_level is not None or full_scale > 1) else 0
+    with np.errstate(over="ignore"):  # a white level beyond float32 (e.g. 1e39) compares as +inf: nothing saturates
+        saturated = int(np.count_nonzero(raw >= white)) if check_saturation and (corr.white_level is not None or full_scale > 1) else 0
     report["saturated_px"] = saturated
     notes = _check_saturated(raw, saturated, white, corr.white_level is not None, source)
     img = raw - (dark.astype(np.float32) if dark is not None else np.float32(black))
