@@ -117,3 +117,31 @@ def test_report_writes_any_json_value_of_a_hand_edited_file_as_text(tmp_path):
     page.feed(text)
     assert page.scripts == 1  # the report's own image check only
     assert f"seeds {markup}" in page.data and "psnr: 1" in page.data
+
+
+def test_the_cgroup_memory_limit_is_the_lowest_over_the_process_cgroup_and_its_ancestors(tmp_path):
+    """A limit set on a nested cgroup (a systemd slice, a job scheduler's) bounds the process too; only the top
+    files were read before, so such a limit was not seen. cgroup v2 and v1 layouts as the kernel writes them."""
+    from hsicam.memory import _cgroup_memory_limit_bytes as limit
+
+    def tree(files: dict[str, str], proc: str) -> tuple[Path, Path]:
+        root = tmp_path / f"sys{len(list(tmp_path.iterdir()))}"
+        for rel, text in files.items():
+            (root / rel).parent.mkdir(parents=True, exist_ok=True)
+            (root / rel).write_text(text + "\n")
+        (root / "proc_cgroup").write_text(proc)
+        return root / "proc_cgroup", root
+
+    # v2: the job's cgroup sets 1 GiB, its parent and the top none ("max")
+    assert limit(*tree({"memory.max": "max", "jobs/memory.max": "max", "jobs/42/memory.max": str(2**30)},
+                       "0::/jobs/42\n")) == 2**30
+    # v1: the parent's limit is the lower one; the own cgroup writes v1's huge "no limit"
+    assert limit(*tree({"memory/memory.limit_in_bytes": "9223372036854771712",
+                        "memory/slice/memory.limit_in_bytes": str(512 * 2**20),
+                        "memory/slice/task/memory.limit_in_bytes": "9223372036854771712"},
+                       "5:cpu,cpuacct:/slice/task\n4:memory:/slice/task\n0::/\n")) == 512 * 2**20
+    # a container's own cgroup mounted at the top ("0::/" and the top file): as before
+    assert limit(*tree({"memory.max": str(3 * 2**30)}, "0::/\n")) == 3 * 2**30
+    # no limit anywhere, or nothing readable
+    assert limit(*tree({"memory.max": "max"}, "0::/a\n")) is None
+    assert limit(tmp_path / "none", tmp_path / "none") is None

@@ -20,12 +20,11 @@ freed tensors instead of handing it back to the system and faulting it in again.
 
 from __future__ import annotations
 
-import decimal
-
 import ctypes
+import decimal
 import math
 import os
-from pathlib import Path
+from pathlib import Path, PurePosixPath
 from typing import Any
 
 from hsicam.errors import ConfigError
@@ -45,15 +44,39 @@ def _physical_memory_bytes() -> int | None:
     return n if n > 0 else None
 
 
-def _cgroup_memory_limit_bytes() -> int | None:
-    for f in ("/sys/fs/cgroup/memory.max", "/sys/fs/cgroup/memory/memory.limit_in_bytes"):
+def _cgroup_memory_limit_bytes(proc_cgroup: str | Path = "/proc/self/cgroup",
+                               root: str | Path = "/sys/fs/cgroup") -> int | None:
+    """The lowest memory limit (bytes) over this process's cgroup and its ancestors, or None when none is set.
+
+    cgroup v2 (``0::/PATH`` in ``proc_cgroup``): ``root/PATH/memory.max``; v1 (``N:memory:/PATH``):
+    ``root/memory/PATH/memory.limit_in_bytes``; each up to the top, whose files count too (a container's own
+    cgroup is mounted there). Before session 55 only the top files were read: a limit set on a nested cgroup
+    (a systemd slice, a job scheduler's) was not seen."""
+    root = Path(root)
+    files = [root / "memory.max", root / "memory" / "memory.limit_in_bytes"]
+    try:
+        lines = Path(proc_cgroup).read_text(encoding="ascii").splitlines()
+    except (OSError, UnicodeDecodeError):
+        lines = []
+    for line in lines:
+        _, controllers, path = (line.split(":", 2) + ["", ""])[:3]
+        if controllers == "":
+            base, name = root, "memory.max"
+        elif "memory" in controllers.split(","):
+            base, name = root / "memory", "memory.limit_in_bytes"
+        else:
+            continue
+        rel = PurePosixPath(path.strip() or "/")
+        files += [base / str(p).lstrip("/") / name for p in (rel, *rel.parents)]
+    limits = []
+    for f in files:
         try:
-            text = Path(f).read_text(encoding="ascii").strip()
+            text = f.read_text(encoding="ascii").strip()
         except (OSError, UnicodeDecodeError):
             continue
-        if text.isdigit() and 0 < int(text) < 1 << 60:  # cgroup v1 writes a huge number for "no limit"
-            return int(text)
-    return None
+        if text.isdigit() and 0 < int(text) < 1 << 60:  # "max" (v2) or a huge number (v1) is no limit
+            limits.append(int(text))
+    return min(limits) if limits else None
 
 
 def _address_space_left_bytes() -> int | None:
