@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 import torch
 
+from demosaic_reference import box_demosaic_reference
 from hsicam.config import load_config
 from hsicam.data.images import read_sensor_image
 from hsicam.models.context import conv_receptive_radius as receptive_radius
@@ -79,18 +80,6 @@ def test_cfa_pattern_window_matches_the_whole_sensor():
         torch.testing.assert_close(win, whole[:, origin[0] : origin[0] + 9, origin[1] : origin[1] + 11], rtol=0, atol=0)
 
 
-def _demosaic_reference(g: np.ndarray, kappa: np.ndarray, window: int) -> np.ndarray:
-    """x̃_c(p) = Σ_q κ_c(q) g(q) / Σ_q κ_c(q) over the window around p inside the image (loops)."""
-    c, h, w = kappa.shape
-    r = window // 2
-    out = np.zeros((c, h, w))
-    for i in range(h):
-        for j in range(w):
-            sl = (slice(max(i - r, 0), i + r + 1), slice(max(j - r, 0), j + r + 1))
-            out[:, i, j] = (kappa[:, sl[0], sl[1]] * g[sl]).sum((1, 2)) / kappa[:, sl[0], sl[1]].sum((1, 2))
-    return out
-
-
 def _small_system(tiny_config, *overrides: str):
     from hsicam.models import CameraSystem
 
@@ -112,7 +101,7 @@ def test_demosaic_input_is_the_normalised_local_average_per_band(tiny_config, pe
     assert inp.shape == (2, 1 + c, 13, 17)
     torch.testing.assert_close(inp[:, :1], g)
     for b in range(2):
-        np.testing.assert_allclose(inp[b, 1:].numpy(), _demosaic_reference(g[b, 0].numpy(), kappa, model.net.window),
+        np.testing.assert_allclose(inp[b, 1:].numpy(), box_demosaic_reference(g[b, 0].numpy(), kappa, model.net.window),
                                    rtol=1e-10)
     # a flat grey sensor image demosaics to the same grey in every band
     flat = model.net.network_input(torch.full((1, 1, 13, 17), 0.3, dtype=torch.float64), model.camera)

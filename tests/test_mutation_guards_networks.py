@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 import torch
 
+from demosaic_reference import box_demosaic_reference
 from hsicam.cameras import build_camera
 from hsicam.config import load_config
 
@@ -239,19 +240,6 @@ def test_mosaic_context_covers_a_brightness_window_wider_than_the_demosaic():
     assert net.context_px >= radius
 
 
-def np_box_demosaic(g: np.ndarray, code: np.ndarray, window: int) -> np.ndarray:
-    """x̃_c(i, j) = Σ κ_c g / Σ κ_c over the window × window box around (i, j), zeros outside the image (loops)."""
-    c, h, w = code.shape
-    r = window // 2
-    out = np.zeros((c, h, w))
-    for i in range(h):
-        for j in range(w):
-            sl = (slice(max(i - r, 0), i + r + 1), slice(max(j - r, 0), j + r + 1))
-            for b in range(c):
-                out[b, i, j] = (code[b][sl] * g[sl]).sum() / code[b][sl].sum()
-    return out
-
-
 def test_mosaic_net_inputs_are_the_phase_cells_the_cell_mean_skip_and_the_filtered_residual():
     """What the trunk and the head of a MosaicNet read, by loops over the definitions (module docstring): the stem
     sees each m×m cell of the sensor grid (a window at ``origin`` padded by origin mod m) as m² phase channels and
@@ -274,7 +262,7 @@ def test_mosaic_net_inputs_are_the_phase_cells_the_cell_mean_skip_and_the_filter
         net(y, op, origin)
     g = y[0, 0].numpy()
     code = op.sensor_code(h, w, origin).detach().double().numpy()
-    skip = np_box_demosaic(g, code, 3)
+    skip = box_demosaic_reference(g, code, 3)
     top, left = origin[0] % m, origin[1] % m
     hp, wp = -(-(h + top) // m), -(-(w + left) // m)
     cells = np.zeros((m * m + c, hp, wp))
@@ -358,7 +346,7 @@ def test_a_one_pixel_demosaic_is_the_sensor_value_where_the_filter_passes_light(
 
     g = torch.rand(1, 1, 5, 6, generator=torch.Generator().manual_seed(4), dtype=torch.float64)
     code = 0.05 + torch.rand(3, 5, 6, generator=torch.Generator().manual_seed(5), dtype=torch.float64)
-    ref = np_box_demosaic(g[0, 0].numpy(), code.numpy(), 1)
+    ref = box_demosaic_reference(g[0, 0].numpy(), code.numpy(), 1)
     np.testing.assert_allclose(demosaic(g, code, 1)[0].numpy(), ref, rtol=1e-12)
 
 
