@@ -603,17 +603,17 @@ def _fit(task: Task, opts: FitOptions, run_dir: Path, resume: bool, lock: RunLoc
                 raise not_finite_error(task.what, step, own_v, batch,
                                        lambda j: patch_source(train_ds, first + j))
             if not math.isfinite(loss_v):  # another rank's share: it names its patches; this one stops with it
-                raise TrainingDiverged(f"{task.what} diverged at step {step}: the loss of another process's share of the "
-                                 f"batch is {loss_v:.4g}; that process's error names its patches")
+                raise TrainingDiverged(f"{task.what} diverged at step {step}: the loss of another process's share of "
+                                       f"the batch is {loss_v:.4g}; that process's error names its patches")
             if grad_norm is not None and not math.isfinite(norm_v := grad_norm.item()):
                 # a finite loss whose gradient is not: clipping by an infinite norm zeroed every gradient, and the run
                 # trained on, flat, without an error (e.g. train.ssim_loss=1e30)
                 why = ("it overflows float32" if math.isinf(norm_v) else
                        "a NaN in the backward pass of a finite loss, e.g. a square root or division at 0")
-                raise TrainingDiverged(f"{task.what} diverged at step {step}: the loss is {loss_v:.4g} but its gradient's norm "
-                                 f"is {norm_v} ({why}), so clipping would zero every gradient; lower the loss weights "
-                                 "(train.ssim_loss, sam_loss, relative_l1, spectral_grad_loss, phase_loss) or the "
-                                 "learning rates")
+                raise TrainingDiverged(f"{task.what} diverged at step {step}: the loss is {loss_v:.4g} but its "
+                                       f"gradient's norm is {norm_v} ({why}), so clipping would zero every gradient; "
+                                       "lower the loss weights (train.ssim_loss, sam_loss, relative_l1, "
+                                       "spectral_grad_loss, phase_loss) or the learning rates")
             optimizer.step()
             state.loss_sum, state.loss_n = state.loss_sum + loss_v, state.loss_n + 1
             state.global_step, state.step_in_epoch = step + 1, state.step_in_epoch + 1

@@ -21,6 +21,7 @@ import logging
 from pathlib import Path
 from typing import Any
 
+from hsicam.engine.provenance import installed_version
 from hsicam.errors import InputError
 from hsicam.io import (COMPLETE_MARKER, atomic_open, atomic_output, copy_file, is_complete, json_number, mark_complete,
                        same_path, write_json)
@@ -379,7 +380,7 @@ def card_fields(run_dir: str | Path, name: str, results: str | Path | None = Non
         "summary": " ".join(str(summary).split()),
         "preset": preset,
         "packed_utc": datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ"),
-        "hsicam_version": _version(),
+        "hsicam_version": installed_version(),
         "source_run": str(run_dir.resolve()),
         "camera": {"kind": cam.kind, "cfa_period": cfa, "pixel_pitch_um": cam.sensor.pixel_pitch_um,
                    "aperture_radius_mm": cam.aperture_radius_mm, "lens_model": cam.lens.model,
@@ -441,17 +442,6 @@ def _limits(cfg, name: str, bands, cfa: int | None, data: dict[str, Any]) -> lis
         out.append(f"a built camera must match the simulated {cfg.camera.kind} one, its coded aperture ({mask}) and "
                    f"its dispersion ({shear}); measured-PSF fine-tuning (`hsicam finetune`) needs a DOE camera")
     return out
-
-
-def _version() -> str | None:
-    from importlib.metadata import PackageNotFoundError, version
-
-    try:
-        return version("hsicam")
-    except PackageNotFoundError:  # pragma: no cover - a source tree that was never installed
-        return None
-
-
 
 
 def _duration(seconds: float) -> str:

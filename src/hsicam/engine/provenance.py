@@ -213,8 +213,17 @@ def training_scenes_warning(roles: Sequence[str], run: str | Path) -> str | None
     return f"{n} of {len(roles)} scenes were training scenes of {run}: their scores are not a validation"
 
 
-__all__ = ["check_same_data", "data_changes", "data_record", "read_data_record", "scene_roles",
-           "heldout_sources_problem", "synthetic_scene_roles", "training_scenes_warning", "write_data_record"]
+
+
+def installed_version() -> str | None:
+    """hsicam's version as installed (its package metadata), or None for a source tree never installed
+    (``PYTHONPATH=src``; the engine does not import the package root for ``__version__``)."""
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        return version("hsicam")
+    except PackageNotFoundError:
+        return None
 
 
 def _source_commit() -> str | None:
@@ -239,13 +248,13 @@ def software_record(device: str, world_size: int = 1) -> dict[str, Any]:
     hsicam git commit when run from a checkout (None otherwise)."""
     import numpy
     import torch
-    from importlib.metadata import PackageNotFoundError, version
 
-    try:
-        hsicam_version = version("hsicam")
-    except PackageNotFoundError:  # a source tree never installed (PYTHONPATH=src): its git_commit says which
-        hsicam_version = None
     return {"started_utc": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
-            "hsicam": hsicam_version, "git_commit": _source_commit(), "torch": torch.__version__,
+            "hsicam": installed_version(), "git_commit": _source_commit(), "torch": torch.__version__,
             "numpy": numpy.__version__, "python": platform.python_version(), "platform": platform.platform(),
             "executable": sys.executable, "device": str(device), "world_size": int(world_size)}
+
+
+__all__ = ["check_same_data", "data_changes", "data_record", "installed_version", "read_data_record", "scene_roles",
+           "heldout_sources_problem", "software_record", "synthetic_scene_roles", "training_scenes_warning",
+           "write_data_record"]
