@@ -509,6 +509,25 @@ def test_the_choi_method_starts_from_the_configured_gap_tv_baseline(monkeypatch,
     assert method.info["init_tv_weight"] == 0.05
 
 
+@pytest.mark.parametrize("own", [None, 0.2])
+def test_the_desci_method_starts_from_the_configured_gap_tv_baseline(own):
+    """dd-cassi-desci's GAP-TV start takes ``baselines.gaptv.tv_weight`` (as Choi's does) unless
+    ``baselines.desci.init_tv_weight`` is set; no DeSCI iteration runs, so the result is the start."""
+    sets = ["baselines.gaptv.tv_weight=0.05", "baselines.desci.iterations=[0]", "baselines.desci.sigmas=[10]",
+            "baselines.desci.init_iterations=5"]
+    if own is not None:
+        sets.append(f"baselines.desci.init_tv_weight={own}")
+    method = build_method("dd-cassi-desci", load_config("tiny", sets))
+    weight = 0.05 if own is None else own
+    assert method.info["init_tv_weight"] == weight
+    g = torch.Generator().manual_seed(0)
+    cam = method.camera.to(torch.float64)
+    truth = torch.rand(1, len(cam.bands), 24, 24, generator=g, dtype=torch.float64)
+    y = cam.A(truth)
+    expected = gap_tv(cam, y, 5, weight, accelerate=method.info["accelerate"])
+    torch.testing.assert_close(method.reconstruct(y), expected)
+
+
 # --------------------------------------------------------------------------------------------
 # Config section
 # --------------------------------------------------------------------------------------------

@@ -841,7 +841,7 @@ class DeSCIConfig:
     match_every: Optional[int] = None
     match_components: Optional[int] = None
     init_iterations: Optional[int] = None
-    init_tv_weight: Optional[float] = None
+    init_tv_weight: Optional[float] = None  # None: the GAP-TV baseline's baselines.gaptv.tv_weight
 
     def __post_init__(self) -> None:
         sec = "baselines.desci"

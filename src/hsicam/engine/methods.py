@@ -392,7 +392,9 @@ def _gaptv_method(cfg, run, device) -> Method:
 def _desci_method(cfg, run, device) -> Method:
     s = cfg.baselines.desci
     cam = dd_cassi_camera(cfg, device)
-    ds = desci_settings(s.preset, **s.overrides())
+    # The GAP-TV start uses the GAP-TV baseline's weight (as Choi's does) unless baselines.desci sets its own.
+    overrides = {"init_tv_weight": cfg.baselines.gaptv.tv_weight, **s.overrides()}
+    ds = desci_settings(s.preset, **overrides)
     rec = functools.partial(desci, cam, settings=ds)
     return _cassi_method("dd-cassi-desci", cfg, cam, rec,
                          {"solver": "desci", "preset": s.preset, **dataclasses.asdict(ds), **_camera_info(cam)})
