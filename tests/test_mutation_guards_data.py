@@ -381,14 +381,15 @@ def test_power_law_noise_has_a_power_spectrum_of_slope_minus_beta(beta):
     assert abs(slope + beta) < 0.25
 
 
-@pytest.mark.parametrize("width", [1.0, 2.0, 2.5, 4.0])
-def test_a_line_covers_its_width_per_unit_length(width):
-    """A horizontal segment of width w ≥ 1 px at a sub-pixel height: along its length each column's coverage sums
-    to w (the area of the line per px of length), and a 16×16 supersampling of the band |y − y0| ≤ w/2 agrees
-    pixel by pixel within the anti-aliasing ramp's error (a half-pixel narrower ramp loses a pixel of width)."""
+@pytest.mark.parametrize("y0", [12.3, 12.5, 12.0, 12.9])
+@pytest.mark.parametrize("width", [0.4, 0.5, 0.8, 1.0, 2.0, 2.5, 4.0])
+def test_a_line_covers_its_width_per_unit_length(width, y0):
+    """A horizontal segment of width w at a sub-pixel height: along its length each column's coverage sums
+    to w (the area of the line per px of length; below 1 px too, where generator version 2 scaled by w twice:
+    0.28 px for a 0.5 px line), and a 16×16 supersampling of the band |y − y0| ≤ w/2 agrees pixel by pixel
+    within the anti-aliasing ramp's error (a half-pixel narrower ramp loses a pixel of width)."""
     from hsicam.data.synthetic import line_coverage
 
-    y0 = 12.3
     ys, xs, cov = line_coverage(32, y0, 4.0, y0, 28.0, width)
     full = np.zeros((32, 32))
     full[ys, xs] = cov

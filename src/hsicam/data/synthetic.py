@@ -72,7 +72,7 @@ from hsicam.spectral import Bands
 
 log = logging.getLogger(__name__)
 
-GENERATOR_VERSION = 2
+GENERATOR_VERSION = 3  # 3: sub-pixel lines at their full width (line_coverage); 2 under-inked them
 MANIFEST = "manifest.json"
 SCENE_PATTERN = "scene_{:04d}.h5"
 SPLITS = ("train", "heldout")
@@ -599,7 +599,14 @@ def power_law_noise(rng: np.random.Generator, size: int, beta: float) -> np.ndar
 
 
 def line_coverage(size: int, y0: float, x0: float, y1: float, x1: float, width: float) -> tuple[slice, slice, np.ndarray]:
-    """Anti-aliased coverage in [0, 1] of a line segment of ``width`` px: (rows, cols, window)."""
+    """Anti-aliased coverage in [0, 1] of a line segment of ``width`` px: (rows, cols, window).
+
+    The fraction of each pixel the line covers, as a ramp across the pixel edges: 1 px from the
+    line's edge at most, capped at ``width`` for a line narrower than a pixel, so each column across a
+    straight line sums to ``width`` (its area per px of length) at every width. Before generator
+    version 3 a line narrower than a pixel was scaled by its width twice (a 0.5 px line carried 0.28 px
+    of ink).
+    """
     pad = width / 2.0 + 1.5
     ya, yb = max(int(min(y0, y1) - pad), 0), min(int(max(y0, y1) + pad) + 1, size)
     xa, xb = max(int(min(x0, x1) - pad), 0), min(int(max(x0, x1) + pad) + 1, size)
@@ -611,7 +618,7 @@ def line_coverage(size: int, y0: float, x0: float, y1: float, x1: float, width: 
     length2 = max(dy * dy + dx * dx, 1e-9)
     t = np.clip(((yy - y0) * dy + (xx - x0) * dx) / length2, 0.0, 1.0)
     dist = np.hypot(yy - (y0 + t * dy), xx - (x0 + t * dx))
-    cov = np.clip(width / 2.0 + 0.5 - dist, 0.0, 1.0) * min(width, 1.0)
+    cov = np.clip(width / 2.0 + 0.5 - dist, 0.0, min(width, 1.0))
     return slice(ya, yb), slice(xa, xb), cov.astype(np.float32)
 
 
