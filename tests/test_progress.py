@@ -83,3 +83,13 @@ def test_tiled_reconstruction_counts_its_consistency_steps_off_a_terminal(caplog
     assert counts(text, "reconstruct") == [(1, 12), (12, 12)], text
     assert counts(text, "consistency steps")[0] == (1, 3) and counts(text, "consistency steps")[-1] == (3, 3), text
     assert text.index("reconstruct: 12/12") < text.index("consistency steps: 1/3")
+
+
+@pytest.mark.parametrize("seconds, text", [(4.24, "4.2 s"), (37.4, "37 s"), (185, "3m05s"), (3720, "1h02m"), (-3, "0.0 s"),
+                                           (float("inf"), "?"), (float("nan"), "?")])
+def test_format_seconds(seconds, text):
+    """Durations as a person reads them; an ETA that cannot be estimated reads ``?`` instead of raising
+    (``int(round(inf))`` was an OverflowError, NaN a ValueError)."""
+    from hsicam.progress import format_seconds
+
+    assert format_seconds(seconds) == text

@@ -12,6 +12,7 @@ carry the loss.)
 from __future__ import annotations
 
 import logging
+import math
 import sys
 import time
 from typing import Iterable, Iterator, TypeVar
@@ -21,8 +22,11 @@ T = TypeVar("T")
 
 
 def format_seconds(s: float) -> str:
-    """A duration for a person: ``4.2 s``, ``37 s``, ``3m05s``, ``1h02m``."""
-    s = max(0.0, float(s))
+    """A duration for a person: ``4.2 s``, ``37 s``, ``3m05s``, ``1h02m``; ``?`` when not finite."""
+    s = float(s)
+    if not math.isfinite(s):
+        return "?"
+    s = max(0.0, s)
     if s < 60:
         return f"{s:.1f} s" if s < 10 else f"{s:.0f} s"
     m, sec = divmod(int(round(s)), 60)
