@@ -393,3 +393,23 @@ def test_the_priors_validation_psnr_is_over_every_value_of_the_validation_patche
         err = np.concatenate([(task.model(x) - x).double().numpy().ravel() for x in loader])
     got = task.validate(loader, torch.device("cpu"))
     assert got["psnr"] == pytest.approx(-10 * np.log10(np.mean(err**2)), rel=1e-5)
+
+
+# --------------------------------------------------------------------------------------------
+# runs/checkpoint.py
+# --------------------------------------------------------------------------------------------
+def test_a_checkpoint_at_step_zero_is_a_readable_last_and_best(tmp_path):
+    """A fine-tuning validates its starting weights and saves them as step 0 (last and best): the manifest's
+    entries with step 0 are read back (not refused as corrupt), and the run's weights are that checkpoint's."""
+    from hsicam.runs.checkpoint import CheckpointManager, kept_checkpoint, read_weights
+    from hsicam.spectral import Bands
+
+    model = torch.nn.Linear(3, 2)
+    opt = torch.optim.Adam(model.parameters())
+    mgr = CheckpointManager(tmp_path)
+    mgr.save(model, opt, {"global_step": 0, "best_psnr": 20.0}, Bands.uniform(500, 600, 50), ("last", "best"))
+    assert CheckpointManager(tmp_path).state()["global_step"] == 0
+    kept = kept_checkpoint(tmp_path)
+    assert (kept["checkpoint"], kept["step"], kept["last_step"]) == ("best", 0, 0)
+    saved, _ = read_weights(tmp_path / "model.safetensors")
+    torch.testing.assert_close(saved["weight"], model.weight.detach(), rtol=0, atol=0)
