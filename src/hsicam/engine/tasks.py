@@ -317,10 +317,11 @@ class PriorTask(Task):
 
     def validate(self, loader, device: torch.device) -> dict[str, float]:
         se, n = 0.0, 0
-        for clean in loader:
-            clean = clean.to(device)
-            se += float((self.model(clean) - clean).square().sum())
-            n += clean.numel()
+        with torch.no_grad():  # (the loop validates under no_grad too; a direct call builds no graph)
+            for clean in loader:
+                clean = clean.to(device)
+                se += float((self.model(clean) - clean).square().sum())
+                n += clean.numel()
         return {"psnr": -10 * math.log10(max(se / max(n, 1), 1e-30))}
 
     def weights_metadata(self) -> dict[str, str]:
