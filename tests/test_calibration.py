@@ -331,6 +331,13 @@ def test_finetune_improves_psnr_on_perturbed_psfs(fab_run, tmp_path):
     assert "fine-tuned" in res.stdout
     summary = json.loads((run2 / "finetune.json").read_text())
     assert summary["best_val_psnr"] > summary["before"]["psnr"]
+    # "before" is the validation of the starting weights (step 0), "after_last_epoch" the last one: read back
+    vals = [r for r in map(json.loads, (run2 / "metrics.jsonl").read_text().splitlines())
+            if "val_psnr" in r and not r.get("final")]
+    assert vals[0]["step"] == 0 and len(vals) == 11
+    assert summary["before"] == {k[4:]: v for k, v in vals[0].items() if k.startswith("val_")}
+    assert summary["after_last_epoch"]["psnr"] == vals[-1]["val_psnr"] != vals[0]["val_psnr"]
+    assert summary["best_val_psnr"] == max(r["val_psnr"] for r in vals)
     # independent check on whole scenes
     scenes, names = evaluation_scenes(cfg, base.bands, 8)
     _, tuned, measured = load_calibrated_run(run2)
