@@ -378,3 +378,17 @@ def test_choi_minimum_norm_start_fits_the_measurement():
     prior = SpectralAutoencoder(4, features=2, latent=2, layers=2).double()
     x = admm_prior(cam, y, prior, ChoiConfig(iterations=0, init_iterations=0))
     torch.testing.assert_close(cam.A(x), y, rtol=1e-9, atol=1e-12)
+
+
+def test_write_envi_keeps_the_band_centres_and_widths_to_the_readers_decimals_beyond_1000_nm(tmp_path):
+    """write_envi → read_envi gives back centres and FWHM to NM_DECIMALS (3) decimals of a nm above 1000 nm too
+    (printed with 6 significant digits, 1234.567 nm came back as 1234.57)."""
+    from hsicam.data.formats import read_envi, write_envi
+    from hsicam.spectral import Bands
+
+    centres, widths = [912.125, 1234.567, 1500.25], [5.125, 12.375, 20.5]
+    hdr, _ = write_envi(tmp_path / "swir.hdr", np.ones((3, 2, 2), np.float32), Bands(centres, widths))
+    line = next(l for l in hdr.read_text().splitlines() if l.startswith("wavelength ="))
+    assert [float(v) for v in line.split("{")[1].rstrip("}").split(",")] == centres
+    _, bands, _ = read_envi(hdr)
+    assert bands.centers_nm.tolist() == centres and bands.fwhm_nm.tolist() == widths

@@ -1246,7 +1246,8 @@ def write_envi(path: str | os.PathLike, cube: np.ndarray, bands: Bands, *, inter
     out = np.ascontiguousarray(out, dtype=dt.newbyteorder("<" if byte_order == "little" else ">"))
     raw = out.reshape(-1).view(np.uint8)  # the bytes, without a copy (tobytes() doubled a cube in memory)
     c, h, w = arr.shape
-    fmt = lambda v: ", ".join(f"{x:.6g}" for x in v)  # noqa: E731
+    # to the NM_DECIMALS the readers keep (6 significant digits dropped the third decimal above 1000 nm)
+    fmt = lambda v: ", ".join(f"{round(float(x), NM_DECIMALS):.12g}" for x in v)  # noqa: E731
     header = (
         "ENVI\n"
         f"description = {{{description}}}\n"
