@@ -270,6 +270,21 @@ def test_envi_header_in_latin1_with_micrometres(tmp_path):
     np.testing.assert_allclose(b.centers_nm, [450, 550, 650])
 
 
+@pytest.mark.parametrize("units, listed", [("Micrometres", "0.45, 0.55, 0.65"), ("micrometre", "0.45, 0.55, 0.65"),
+                                           ("\u03bcm", "0.45, 0.55, 0.65"), ("Nanometres", "450, 550, 650"),
+                                           ("nanometre", "450, 550, 650")])
+def test_envi_wavelength_units_in_british_spelling_or_with_a_greek_mu(tmp_path, units, listed):
+    """'Micrometres', 'Nanometres' and 'μm' (Greek mu, U+03BC, beside the micro sign U+00B5) are the units they name;
+    they were refused as unsupported units."""
+    chw = np.ones((3, H, W), np.float32)
+    hdr = tmp_path / "u.hdr"
+    hdr.write_text(envi_header(W, H, 3, 4, "bsq", 0, 0, f"wavelength units = {units}\nwavelength = {{{listed}}}\n"),
+                   encoding="utf-8")
+    chw.tofile(tmp_path / "u.img")
+    _, b, _ = read_cube(hdr)
+    np.testing.assert_allclose(b.centers_nm, [450, 550, 650])
+
+
 @pytest.mark.parametrize("interleave", ["bsq", "bil", "bip"])
 def test_envi_writer_roundtrip(tmp_path, interleave):
     rng = np.random.default_rng(8)

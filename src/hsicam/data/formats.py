@@ -271,6 +271,11 @@ def _finish(p: Path, cube: np.ndarray, bands: Bands, meta: dict[str, Any], allow
 #: Band centres stored without a unit that all lie below this are micrometres, else nanometres
 #: (30 µm is far infrared, 30 nm extreme ultraviolet: no hyperspectral camera's band is either).
 MICROMETRE_BELOW = 30.0
+#: ENVI ``wavelength units`` read as micrometres / nanometres (lower case; American and British spellings, the
+#: micro sign U+00B5 and the Greek mu U+03BC); another unit is refused, none means "look at the values".
+MICROMETRE_UNITS = ("micrometers", "micrometer", "micrometres", "micrometre", "microns", "micron", "um", "\u00b5m",
+                    "\u03bcm")
+NANOMETRE_UNITS = ("", "unknown", "nanometers", "nanometer", "nanometres", "nanometre", "nm")
 
 
 def _unitless_scale(p: Path, centres: np.ndarray, key: str) -> tuple[float, str | None]:
@@ -1087,14 +1092,14 @@ def read_envi(path: str | os.PathLike, *, allow_negative: bool = False, memory_b
         waves = _envi_floats(hdr, h, "wavelength")
         units = h.get("wavelength units", "").strip().lower()
         scale = 1.0
-        if units in ("micrometers", "micrometer", "microns", "micron", "um", "µm"):
+        if units in MICROMETRE_UNITS:
             scale = 1000.0
             if waves.size and waves.min() > MICROMETRE_BELOW:  # 420 "µm" is far infrared: the values are nanometres
                 raise InputError(f"{hdr}: wavelength units say {h['wavelength units'].strip()} but the values "
                                  f"({waves.min():g}–{waves.max():g}) are nanometres; fix 'wavelength units'")
         elif units in ("", "unknown"):
             scale, note = _unitless_scale(hdr, waves, "wavelength")
-        elif units not in ("", "unknown", "nanometers", "nanometer", "nm"):
+        elif units not in NANOMETRE_UNITS:
             raise InputError(f"{hdr}: unsupported wavelength units {h['wavelength units']!r} (nm or µm)")
         waves = _um_to_nm(waves, scale)
         if waves.size != nbands:
