@@ -787,3 +787,25 @@ def test_float_capture_in_dn_and_simulates_stretched_png(tmp_path, caplog):
     assert rep["saturated_px"] == 0 and rep_plain["saturated_px"] >= 1
     assert [m for m in (r.getMessage() for r in caplog.records) if "saturated" in m] == \
         [m for m in (r.getMessage() for r in caplog.records) if "plain.png" in m and "saturated" in m] != []
+
+
+def test_a_resumed_fine_tuning_goes_on_with_the_train_and_data_settings_it_was_started_with(tmp_path):
+    """continued_settings: the train.* and data.* keys where the fine-tuning's config.yaml differs from the source
+    run's, as --set overrides that rebuild exactly its train and data sections from the source's config; the
+    camera and model sections are the source run's own (not listed)."""
+    from hsicam.config import dump_yaml
+    from hsicam.engine.calibration import continued_settings
+
+    source_cfg = load_config("tiny")
+    started_cfg = load_config("tiny", ["train.lr=0.0003", "train.epochs=7", "train.sensor_sigma=[0.001, 0.002]",
+                                       "data.patch_px=40", "data.augment_relight=0.5"])
+    (tmp_path / "src").mkdir()
+    (tmp_path / "out").mkdir()
+    (tmp_path / "src" / "config.yaml").write_text(dump_yaml(source_cfg))
+    (tmp_path / "out" / "config.yaml").write_text(dump_yaml(started_cfg))
+    sets = continued_settings(tmp_path / "out", tmp_path / "src")
+    assert sorted(s.split("=")[0] for s in sets) == ["data.augment_relight", "data.patch_px", "train.epochs", "train.lr",
+                                                     "train.sensor_sigma"]
+    rebuilt = load_config(tmp_path / "src" / "config.yaml", sets)
+    assert rebuilt.train == started_cfg.train and rebuilt.data == started_cfg.data
+    assert rebuilt.camera == source_cfg.camera
