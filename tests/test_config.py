@@ -569,9 +569,11 @@ def test_a_bad_setting_in_a_file_names_the_file_and_one_in_an_override_does_not(
 # ------------------------------------------------------------------------------------------------
 @pytest.mark.parametrize("override,says", [
     ("train.seed=0042", "without leading zeros, got '0042' (write 42"), ("data.synthetic_n=012", "(write 12"),
-    ("camera.cfa.period=011", "(write 11"), ("train.epochs=1:30", "must be an integer, got '1:30'")])
+    ("camera.cfa.period=011", "(write 11"), ("train.epochs=1:30", "must be an integer, got '1:30'"),
+    ("train.lr=1:30.0", "must be a number, got '1:30.0'"), ("train.lr=-0:01.5", "must be a number, got '-0:01.5'")])
 def test_yaml_11_integer_forms_are_refused_not_read_as_octal_or_base_60(override, says, tmp_path):
-    """`train.seed=0042` was 34 (octal), `010` 8, `train.epochs=1:30` 90 (base 60), while `008` was refused."""
+    """`train.seed=0042` was 34 (octal), `010` 8, `train.epochs=1:30` 90 (base 60), while `008` was refused; a
+    base-60 float (`train.lr=1:30.0`) was 90.0."""
     with pytest.raises(ConfigError, match=re.escape(says)):
         load_config("tiny", [override])
     key, _, value = override.partition("=")
@@ -586,6 +588,12 @@ def test_yaml_11_integer_forms_are_refused_not_read_as_octal_or_base_60(override
 def test_yaml_12_integers_and_text_that_looks_like_numbers():
     cfg = load_config("tiny", ["train.seed=0x1F", "data.synthetic_n=1_000", "train.lr=1e-3", "data.split_seed=0"])
     assert (cfg.train.seed, cfg.data.synthetic_n, cfg.train.lr, cfg.data.split_seed) == (31, 1000, 1e-3, 0)
+    # YAML 1.1's floats stay (base 60 aside): plain, leading dot, signed exponent, underscores; .inf is read as
+    # infinity (and refused by a key that needs a finite number)
+    floats = load_config("tiny", ["train.lr=.5", "train.grad_clip=1_000.5", "train.doe_lr_nm=1.5e-3"])
+    assert (floats.train.lr, floats.train.grad_clip, floats.train.doe_lr_nm) == (0.5, 1000.5, 1.5e-3)
+    with pytest.raises(ConfigError, match="must be a finite number, got inf"):
+        load_config("tiny", ["train.grad_clip=.inf"])
     assert load_config("tiny", ["data.holdout_sources=010"]).data.holdout_sources == "010"  # text stays text
 
 

@@ -1093,12 +1093,20 @@ def yaml_error_text(path: str | Path, text: str, exc: yaml.YAMLError) -> str:
 class ConfigLoader(yaml.SafeLoader):
     """PyYAML's SafeLoader with YAML 1.2's integers: decimal (``42``, ``-3``, ``1_000``), ``0x…`` and ``0o…``.
     YAML 1.1's other forms read a zero-padded number as octal and ``h:mm`` in base 60 (``seed: 0042`` was 34,
-    ``epochs: 1:30`` was 90, while ``008`` was refused); they stay text here, which an integer key refuses."""
+    ``epochs: 1:30`` was 90, while ``008`` was refused); they stay text here, which an integer key refuses. So do
+    YAML 1.1's base-60 floats (``lr: 1:30.0`` was 90.0), which a number key refuses."""
 
 
 ConfigLoader.yaml_implicit_resolvers = {
-    first: [(tag, rx) for tag, rx in resolvers if tag != "tag:yaml.org,2002:int"]
+    first: [(tag, rx) for tag, rx in resolvers if tag not in ("tag:yaml.org,2002:int", "tag:yaml.org,2002:float")]
     for first, resolvers in yaml.SafeLoader.yaml_implicit_resolvers.items()}
+# SafeLoader's float forms less the base-60 one ([-+]?[0-9][0-9_]*(?::[0-5]?[0-9])+\.[0-9_]*)
+_FLOAT = re.compile(r"""^(?:[-+]?(?:[0-9][0-9_]*)\.[0-9_]*(?:[eE][-+][0-9]+)?
+                    |\.[0-9][0-9_]*(?:[eE][-+][0-9]+)?
+                    |[-+]?\.(?:inf|Inf|INF)
+                    |\.(?:nan|NaN|NAN))$""", re.X)
+for _first in "-+0123456789.":
+    ConfigLoader.yaml_implicit_resolvers.setdefault(_first, []).append(("tag:yaml.org,2002:float", _FLOAT))
 for _first in "-+0123456789":  # before the float resolver, as in SafeLoader (so "7" is an int, not a float)
     ConfigLoader.yaml_implicit_resolvers.setdefault(_first, []).insert(
         0, ("tag:yaml.org,2002:int", re.compile(r"^(?:[-+]?(?:0|[1-9][0-9_]*)|0x_*[0-9a-fA-F][0-9a-fA-F_]*|0o_*[0-7][0-7_]*)$")))
