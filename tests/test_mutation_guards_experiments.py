@@ -1,0 +1,388 @@
+"""Guards found by mutation testing of the methods registry, the experiments, the demo and the reports
+(session 56, mut5c): each test kills a small change of the code that the rest of the suite let through,
+and checks against an independent reference (a brute-force search, the camera's own image sizes, a file
+read back, the exact line a user sees)."""
+
+from __future__ import annotations
+
+import json
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+import torch
+
+from hsicam.config import load_config
+from hsicam.errors import InputError
+
+
+# ------------------------------------------------------------------------------------------------
+# methods
+# ------------------------------------------------------------------------------------------------
+def test_an_old_method_name_is_built_as_the_registered_method():
+    """``doe-rdn`` (METHOD_ALIASES) reaches doe-learned's builder: its refusal without --run, not an unknown name."""
+    from hsicam.engine.methods import build_method
+
+    with pytest.raises(InputError) as err:
+        build_method("doe-rdn", load_config("tiny"), None)
+    assert str(err.value) == "method doe-learned needs --run RUN (a trained camera)"
+
+
+def test_the_linear_reference_window_grows_to_the_smallest_odd_width_covering_the_cfa_period():
+    from hsicam.engine.methods import LINEAR_REFERENCE_WINDOW, linear_reference_window
+
+    for period in (1, 3, 4, 9, 11, 12, 14, 15, 20):
+        # the smallest odd width >= the period, found by search, and at least the default window
+        odd_cover = next(w for w in range(1, 100, 2) if w >= period)
+        assert linear_reference_window(SimpleNamespace(code_period=period)) == max(LINEAR_REFERENCE_WINDOW, odd_cover)
+    assert linear_reference_window(SimpleNamespace()) == LINEAR_REFERENCE_WINDOW  # no CFA: the default
+
+
+def test_the_compared_border_is_half_the_difference_between_scene_and_sensor(tiny_config):
+    """A CASSI row of a DOE ``valid`` config is scored without the px a side that the DOE camera's sensor
+    does not see: measured by imaging a scene through that camera."""
+    from hsicam.cameras import build_camera
+    from hsicam.engine.methods import compared_border_px, sensor_border_px
+
+    cfg = tiny_config("camera.boundary=valid")
+    cam = build_camera(cfg)
+    size = 40
+    with torch.no_grad():
+        sensor = cam.A(torch.rand(1, len(cam.bands), size, size))
+    lost = size - sensor.shape[-1]
+    assert lost > 0 and lost % 2 == 0
+    assert compared_border_px(cfg) == sensor_border_px(cam) == lost // 2
+    assert compared_border_px(tiny_config("camera.boundary=same")) == 0
+    assert compared_border_px(load_config("tiny", ["camera.kind=dd_cassi", "model.consistency.iterations=0"])) == 0
+
+
+def test_the_own_method_of_a_cassi_run_is_its_registered_name():
+    from hsicam.engine.experiments import CASSI_RDN_OVERRIDES, CASSI_UNROLLED_OVERRIDES
+    from hsicam.engine.methods import METHODS, own_learned_method
+
+    assert own_learned_method(load_config("tiny")) == "doe-learned"
+    assert own_learned_method(load_config("tiny", list(CASSI_RDN_OVERRIDES))) == "dd-cassi-rdn"
+    assert own_learned_method(load_config("tiny", list(CASSI_UNROLLED_OVERRIDES))) == "dd-cassi-unrolled"
+    assert {"dd-cassi-rdn", "dd-cassi-unrolled"} <= set(METHODS)
+
+
+# ------------------------------------------------------------------------------------------------
+# experiments: the sweeps' overrides
+# ------------------------------------------------------------------------------------------------
+def _overrides(spec) -> dict[str, str]:
+    return dict(o.split("=", 1) for o in spec.overrides)
+
+
+def test_the_cfa_sweep_keeps_a_dispersed_layout_exactly_when_every_period_is_a_power_of_two():
+    from hsicam.engine.experiments import cfa_period_specs
+
+    quick = load_config("quick")
+    assert quick.camera.cfa.layout == "dispersed"
+    powers = {2**i for i in range(10)}
+    for periods in ((2, 4, 8), (4, 16), (1, 2), (3, 4), (4, 6), (2, 4, 7)):
+        specs = cfa_period_specs(quick, periods)
+        random = [_overrides(s).get("camera.cfa.layout") == "random" for s in specs]
+        assert random == [not set(periods) <= powers] * len(periods), periods
+
+
+def test_the_cfa_sweep_widens_the_linear_step_to_the_smallest_odd_width_over_every_period():
+    from hsicam.engine.experiments import cfa_period_specs
+
+    cfg = load_config("quick", ["model.consistency.window_px=5"])
+    assert cfg.model.consistency.kind == "linear" and cfg.model.consistency.iterations > 0
+    for periods in ((3, 6, 12), (4, 8), (3, 5), (2, 4)):
+        want = next(w for w in range(cfg.model.consistency.window_px, 100, 2) if w >= max(periods))
+        got = {_overrides(s).get("model.consistency.window_px") for s in cfa_period_specs(cfg, periods)}
+        assert got == ({None} if want == 5 else {str(want)}), periods
+    # without the step (iterations 0) its filters are not used: nothing is widened
+    off = load_config("quick", ["model.consistency.window_px=5", "model.consistency.iterations=0"])
+    assert all("model.consistency.window_px" not in _overrides(s) for s in cfa_period_specs(off, (3, 6, 12)))
+
+
+def test_the_cfa_sweep_sets_the_mosaic_factor_to_the_nearest_multiple_of_each_period():
+    from hsicam.engine.experiments import cfa_period_specs
+
+    cfg = load_config("quick", ["model.mosaic.factor=4"])
+    for m, spec in zip((3, 4, 6, 9, 15), cfa_period_specs(cfg, (3, 4, 6, 9, 15))):
+        got = _overrides(spec).get("model.mosaic.factor")
+        if 4 % m == 0:
+            assert got is None, m  # already a multiple of the period: the preset's
+            continue
+        nearest = min((k * m for k in range(1, 20)), key=lambda f: abs(f - 4))  # brute force, at least m
+        assert got == str(nearest), m
+        assert f"model.mosaic.factor={nearest} (a multiple of the period near the preset's 4)" in spec.note
+
+
+def test_the_ablation_pins_the_mosaic_factor_only_when_the_preset_lets_the_cfa_period_choose_it():
+    from hsicam.engine.experiments import same_network_without_cfa
+
+    assert same_network_without_cfa(load_config("quick")) == ()  # factor 8 given: kept without the CFA
+    assert same_network_without_cfa(load_config("quick", ["model.mosaic.factor=0"])) == ("model.mosaic.factor=4",)
+    assert same_network_without_cfa(load_config("quick", ["model.mosaic.factor=0", "camera.cfa.enabled=false"])) == ()
+    assert same_network_without_cfa(None) == ()
+    # a period-1 CFA regroups nothing: the no-CFA run keeps the network's own fallback, as the CFA run does
+    assert same_network_without_cfa(load_config("quick", ["model.mosaic.factor=0", "camera.cfa.period=1"])) == ()
+    assert same_network_without_cfa(load_config("quick", ["model.kind=unrolled", "model.unrolled.init=mosaic",
+                                                          "model.unrolled.mosaic.factor=0"])) == (
+        "model.unrolled.mosaic.factor=4",)
+
+
+# ------------------------------------------------------------------------------------------------
+# experiments: finished runs, test noise, folders, tables
+# ------------------------------------------------------------------------------------------------
+def _run_folder(path, records, weights=True):
+    path.mkdir(parents=True)
+    (path / "config.yaml").write_text("{}\n")
+    if weights:
+        (path / "model.safetensors").write_bytes(b"")
+    (path / "metrics.jsonl").write_text("".join(json.dumps(r) + "\n" for r in records) + "\n")
+    return path
+
+
+def test_a_run_is_finished_when_its_log_ends_with_its_final_record_and_it_has_its_weights(tmp_path):
+    from hsicam.engine.experiments import is_finished
+
+    assert is_finished(_run_folder(tmp_path / "a", [{"step": 1}, {"step": 2, "final": True}]))
+    assert not is_finished(_run_folder(tmp_path / "b", [{"step": 2, "final": True}, {"step": 3}]))  # trained on since
+    assert not is_finished(_run_folder(tmp_path / "c", [{"step": 1}, {"step": 2}]))
+    assert not is_finished(_run_folder(tmp_path / "d", [{"step": 2, "final": True}], weights=False))
+
+
+def test_test_noise_is_what_the_sensor_model_and_the_doe_add():
+    from hsicam.engine.experiments import has_test_noise
+
+    assert not has_test_noise(load_config("tiny", ["camera.sensor.noise=none", "camera.sensor.sigma=0.01"]))
+    assert has_test_noise(load_config("tiny", ["camera.sensor.noise=gaussian", "camera.sensor.sigma=0.01"]))
+    assert not has_test_noise(load_config("tiny", ["camera.sensor.noise=gaussian", "camera.sensor.sigma=0"]))
+    assert has_test_noise(load_config("tiny", ["camera.sensor.sigma=0", "camera.doe.sigma_height_nm=10"]))
+
+
+def test_the_noise_experiment_scores_every_seed_without_test_noise():
+    from hsicam.engine.experiments import scored_seeds
+
+    cfg = load_config("tiny", ["camera.sensor.sigma=0"])
+    assert scored_seeds("noise", "tiny", cfg, (0, 1, 2)) == (0, 1, 2)  # its grid adds the noise
+    assert scored_seeds("ablation", "tiny", cfg, (5, 1, 2)) == (5,)
+
+
+def test_a_folder_of_other_runs_is_refused_naming_three_and_hidden_entries_are_ignored(tmp_path):
+    from hsicam.engine.experiments import check_experiment_folder, run_configs
+
+    cfgs = run_configs("ablation", "tiny")
+    out = tmp_path / "abl"
+    (out / "runs" / ".cache").mkdir(parents=True)
+    check_experiment_folder(out, "ablation", "tiny", cfgs)  # a hidden entry is nobody's run
+    for name in ("e", "d", "c", "b", "a"):
+        (out / "runs" / name).mkdir()
+    with pytest.raises(InputError) as err:
+        check_experiment_folder(out, "ablation", "tiny", cfgs)
+    assert str(err.value) == (f"{out / 'runs'}: holds a, b, c and 2 more, which experiment ablation does not train "
+                              "(another experiment's runs); choose another --out (e.g. runs/experiments/ablation-tiny)")
+
+
+def test_a_compare_folder_may_hold_its_choi_prior(tmp_path):
+    from hsicam.engine.experiments import check_experiment_folder, run_configs
+
+    out = tmp_path / "cmp"
+    (out / "runs" / "dd-cassi-choi").mkdir(parents=True)
+    check_experiment_folder(out, "compare", "tiny", run_configs("compare", "tiny"))  # no refusal
+
+
+def test_an_interrupted_experiment_is_recognised_by_its_experiment_json(tmp_path):
+    from hsicam.engine.experiments import recorded_experiment
+
+    assert recorded_experiment(tmp_path) is None
+    (tmp_path / "experiment.json").write_text(json.dumps({"experiment": "noise", "scale": "tiny"}))
+    assert recorded_experiment(tmp_path) == ("noise", "tiny")
+
+
+def _noise_result():
+    from hsicam.engine.evaluate import summarize
+
+    hs, ss = (0.0, 30.0), (0.0, 0.005, 0.01)
+    grid = [{"sigma_height_nm": h, "sensor_sigma": s, "psnr": 40.0 - h / 10 - 100 * s, "ssim": 0.9}
+            for h in hs for s in ss]
+    return {"experiment": "noise", "scale": "tiny", "seeds": [0], "scenes": ["a"],
+            "conventions": summarize([])["conventions"], "region": None,
+            "rows": [{"method": "trained-clean", "psnr": 40.0, "ssim": 0.9, "psnr_worst": 36.0, "ssim_worst": 0.9}],
+            "noise_grid": {"sigma_height_nm": list(hs), "sensor_sigma": list(ss), "results": {"trained-clean": grid}}}
+
+
+def test_the_noise_table_has_a_row_per_height_noise_and_a_column_per_sensor_noise():
+    from hsicam.engine.experiments import format_experiment_table
+
+    lines = format_experiment_table(_noise_result()).splitlines()
+    assert "| σ_p \\ σ_s | 0 | 0.005 | 0.01 |" in lines
+    assert "| 0 | 40.00 | 39.50 | 39.00 |" in lines
+    assert "| 30 | 37.00 | 36.50 | 36.00 |" in lines
+
+
+def test_a_missing_row_is_shown_as_not_available():
+    from hsicam.engine.evaluate import summarize
+    from hsicam.engine.experiments import format_experiment_table
+
+    result = {"experiment": "compare", "scale": "tiny", "seeds": [0], "scenes": ["a"],
+              "conventions": summarize([])["conventions"],
+              "rows": [{"method": "dd-cassi-desci", "missing": True}]}
+    assert format_experiment_table(result).splitlines()[-1] == "| dd-cassi-desci | – | – | – | not available |"
+
+
+# ------------------------------------------------------------------------------------------------
+# demo folder
+# ------------------------------------------------------------------------------------------------
+def test_a_demo_folder_check_takes_an_older_demo_and_a_folder_of_temporaries(tmp_path):
+    from hsicam.engine.demo import check_demo_folder
+    from hsicam.io import mark_complete
+
+    old = tmp_path / "old"
+    old.mkdir()
+    (old / "results.json").write_text("{}")
+    mark_complete(old)  # an older demo's marker names no command
+    check_demo_folder(old)
+    temp = tmp_path / "temp"
+    temp.mkdir()
+    (temp / ".results.json.abcd1234.tmp").write_text("")  # a killed demo's temporary only
+    check_demo_folder(temp)
+    other = tmp_path / "other"
+    other.mkdir()
+    mark_complete(other, {"command": "evaluate"})
+    with pytest.raises(InputError) as err:
+        check_demo_folder(other)
+    assert str(err.value) == f"{other}: holds the output of hsicam evaluate, not a demo; choose another --out"
+
+
+# ------------------------------------------------------------------------------------------------
+# report: pages read back
+# ------------------------------------------------------------------------------------------------
+MEAN = {"psnr": 30.0, "ssim": 0.9, "sam": 5.0}
+
+
+def _complete_folder(tmp_path, name: str, data: dict):
+    from hsicam.io import mark_complete
+
+    d = tmp_path / "ev"
+    d.mkdir()
+    (d / name).write_text(json.dumps(data))
+    mark_complete(d, {"command": "test"})
+    return d
+
+
+def _cells(page: str) -> list[list[str]]:
+    """The table rows of a report page, as lists of cell texts (an independent read of the HTML)."""
+    import re
+
+    return [re.findall(r"<t[dh]>(.*?)</t[dh]>", row) for row in re.findall(r"<tr>(.*?)</tr>", page)]
+
+
+def test_an_empty_band_list_is_a_corrupt_field(tmp_path):
+    from hsicam.report.html import build_report
+
+    d = _complete_folder(tmp_path, "results.json", {"method": "x", "scenes": [{"name": "a", **MEAN}], "mean": MEAN,
+                                                     "conventions": {}, "bands_nm": []})
+    with pytest.raises(InputError) as err:
+        build_report(d)
+    assert str(err.value) == f"{d / 'results.json'}: corrupt results.json ('bands_nm' is not a list of wavelengths in nm)"
+
+
+def test_an_ablation_page_lists_missing_rows_apart_and_claims_no_cassi_rows(tmp_path):
+    from hsicam.report.html import build_report
+
+    d = _complete_folder(tmp_path, "experiment.json", {
+        "experiment": "ablation", "scale": "tiny", "seeds": [0], "scenes": ["a"], "conventions": {},
+        "region": "central 10x10 px", "rows": [{"method": "doe+cfa", **MEAN, "runtime_s": 0.5},
+                                               {"method": "no-doe", "missing": True}]})
+    page = build_report(d).read_text(encoding="utf-8")
+    rows = _cells(page)
+    assert rows == [["method", "PSNR (dB)", "SSIM", "SAM (°)", "runtime (s/scene)"],
+                    ["doe+cfa", "30.00", "0.9000", "5.00", "0.500"]]
+    assert "not available in this installation: no-doe" in page
+    assert "scored area: the DOE cameras' central 10x10 px</p>" in page  # no CASSI row in an ablation
+
+
+def test_the_references_of_a_demo_are_tabled_in_its_report(tmp_path):
+    from hsicam.report.html import build_report
+
+    d = _complete_folder(tmp_path, "results.json", {
+        "method": "doe-learned", "scenes": [{"name": "a", **MEAN}], "mean": MEAN, "conventions": {},
+        "references": [{"method": "CFA box demosaic (no network)", "mean": {"psnr": 25.125, "ssim": 0.5, "sam": 9.0}}]})
+    rows = _cells(build_report(d).read_text(encoding="utf-8"))
+    assert ["CFA box demosaic (no network)", "25.12", "0.5000", "9.00"] in rows
+
+
+def test_a_run_path_no_longer_there_falls_back_to_the_run_label(tmp_path):
+    from pathlib import Path
+
+    from hsicam.report.html import _evaluated_run
+
+    assert _evaluated_run({"run_path": str(tmp_path / "gone"), "run": "pretrained:x"}) == Path("pretrained:x")
+    assert _evaluated_run({"run_path": str(tmp_path), "run": "pretrained:x"}) == tmp_path
+
+
+# ------------------------------------------------------------------------------------------------
+# report: camera files and figures
+# ------------------------------------------------------------------------------------------------
+def test_a_flat_filter_is_drawn_as_the_white_of_a_perfect_reflector():
+    """Each filter is peak-normalised before rendering: a flat κ = 1/C is the colour of a reflectance of 1."""
+    from hsicam.color import spectra_to_srgb
+    from hsicam.report.camera import cfa_tile_rgb
+    from hsicam.spectral import Bands
+
+    bands = Bands.from_centers([450.0 + 10 * i for i in range(21)])
+    tile = np.full((21, 2, 2), 1 / 21)
+    white = spectra_to_srgb(torch.ones(21, dtype=torch.float64), bands).numpy()
+    np.testing.assert_allclose(cfa_tile_rgb(tile, bands), np.broadcast_to(white, (2, 2, 3)), atol=1e-9)
+
+
+def test_psf_files_read_back_hold_the_psf_its_energy_and_the_exact_heights(tmp_path, tiny_camera):
+    from hsicam.report.camera import write_psf_outputs
+
+    cam = tiny_camera()
+    info = write_psf_outputs(cam, tmp_path)
+    psf = np.load(tmp_path / "psf.npy")
+    meta = json.loads((tmp_path / "psf.json").read_text())
+    assert meta == json.loads(json.dumps(info))
+    assert psf.shape == (len(cam.bands), cam.kernel_px, cam.kernel_px)
+    # the energy in the kernel is the light the kernel holds: the PSF's sum per band (less than 1: some falls outside)
+    np.testing.assert_allclose(meta["energy_in_kernel"], psf.astype(np.float64).sum(axis=(1, 2)), rtol=1e-5)
+    heights = np.load(tmp_path / "doe_height_m.npy")
+    assert heights.dtype == np.float64
+    np.testing.assert_array_equal(heights, cam.optics.doe.heights().detach().double().numpy())
+
+
+def test_the_camera_figures_draw_a_psf_only_when_asked(tmp_path, tiny_camera):
+    from hsicam.report.camera import write_optics_figures
+
+    cam = tiny_camera()
+    (tmp_path / "a").mkdir()
+    assert sorted(write_optics_figures(cam, tmp_path / "a")) == ["cfa.png", "doe.png"]
+    assert sorted(p.name for p in (tmp_path / "a").iterdir()) == ["cfa.png", "doe.png"]
+    (tmp_path / "b").mkdir()
+    assert sorted(write_optics_figures(cam, tmp_path / "b", "x_", psf=True)) == ["x_cfa.png", "x_doe.png", "x_psf.png"]
+
+
+# ------------------------------------------------------------------------------------------------
+# demo: its references (a tiny run, one epoch)
+# ------------------------------------------------------------------------------------------------
+@pytest.mark.slow
+def test_a_demo_with_a_consistency_step_scores_the_network_alone_and_each_reference_on_its_own_scenes(
+        tmp_path, cache_env, monkeypatch):
+    from hsicam.engine.demo import run_demo
+    from hsicam.engine.evaluate import TestNoise, evaluate_method, summarize
+    from hsicam.engine.experiments import heldout_scenes
+    from hsicam.engine.methods import demosaic_reference
+    from hsicam.runs.folder import load_run
+
+    monkeypatch.chdir(tmp_path)
+    run_demo(load_config("tiny", ["train.epochs=1", "model.consistency.iterations=1",
+                                  "model.consistency.kind=landweber"]), "demo")  # a relative --out
+    res = json.loads((tmp_path / "demo" / "results.json").read_text())
+    assert res["run_path"] == str(tmp_path.resolve() / "demo" / "run")  # absolute: `hsicam report` from anywhere
+    assert "network alone (no consistency step)" in [r["method"] for r in res["references"]]
+    # the held-out references are scored on the held-out scenes: the box demosaic scored here on them
+    cfg, model = load_run(tmp_path / "demo" / "run")
+    held, names = heldout_scenes(cfg)
+    box = summarize(evaluate_method(demosaic_reference(model), held, names, TestNoise(seeds=(cfg.train.seed,)),
+                                    keep_arrays=False))["mean"]
+    got = {r["method"]: r["mean"] for r in res["heldout"]["references"]}["CFA box demosaic (no network)"]
+    val = {r["method"]: r["mean"] for r in res["references"]}["CFA box demosaic (no network)"]
+    assert got["psnr"] == pytest.approx(box["psnr"], abs=1e-6) and got["psnr"] != pytest.approx(val["psnr"], abs=1e-3)
