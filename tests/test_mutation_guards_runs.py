@@ -1,0 +1,274 @@
+"""Guards found by mutation testing of the run folder (:mod:`hsicam.runs.folder`), its lock
+(:mod:`hsicam.runs.lock`), the linear step's file (:mod:`hsicam.runs.linear_step`), shipped cameras
+(:mod:`hsicam.runs.pretrained`, :mod:`hsicam.engine.pretrained`), the data record and provenance
+(:mod:`hsicam.engine.provenance`) and checkpoints (:mod:`hsicam.runs.checkpoint`): each test kills a
+mutant that the other tests let live, against an independent reference (the error a user sees, a file
+read back in its real format, an ``fcntl`` lock taken directly, a sum done by hand)."""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+
+import pytest
+import torch
+
+from hsicam.errors import InputError
+from hsicam.runs.linear_step import load_linear_step, save_linear_step
+
+
+# ------------------------------------------------------------------------------------------------
+# The lock
+# ------------------------------------------------------------------------------------------------
+def test_a_nested_run_lock_once_released_takes_the_lock_when_acquired_again(tmp_path):
+    fcntl = pytest.importorskip("fcntl")
+    from hsicam.runs.lock import LOCK_FILE, RunLock
+
+    def locked_by_us(path: Path) -> bool:  # an independent flock on a new descriptor conflicts with ours
+        fd = os.open(path, os.O_RDONLY)
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            return True
+        finally:
+            os.close(fd)
+        return False
+
+    outer, inner = RunLock(tmp_path), RunLock(tmp_path)
+    outer.acquire()
+    inner.acquire()  # held by this process already: nested, takes nothing
+    inner.release()  # keeps the outer
+    assert locked_by_us(tmp_path / LOCK_FILE)
+    outer.release()
+    assert not (tmp_path / LOCK_FILE).exists()
+    inner.acquire()  # nobody holds it now: this one must take it
+    try:
+        assert (tmp_path / LOCK_FILE).is_file() and locked_by_us(tmp_path / LOCK_FILE)
+    finally:
+        inner.release()
+    assert not (tmp_path / LOCK_FILE).exists()
+
+
+# ------------------------------------------------------------------------------------------------
+# The linear step's file
+# ------------------------------------------------------------------------------------------------
+def test_linear_step_filters_of_even_width_are_refused_with_the_expected_shape(tmp_path):
+    path = tmp_path / "linear_step.safetensors"
+    save_linear_step(path, torch.zeros(4, 3, 4, 4), {"weights_sha256": "0" * 64})
+    with pytest.raises(InputError) as exc:
+        load_linear_step(path, bands=3, period=2)
+    assert str(exc.value) == (f"{path}: filters of shape (4, 3, 4, 4) do not fit a camera of 3 bands and CFA period 2 "
+                              "(expected (4, 3, K, K), K odd)")
+    save_linear_step(path, torch.zeros(4, 3, 5, 5), {})
+    assert tuple(load_linear_step(path, bands=3, period=2).shape) == (4, 3, 5, 5)
+
+
+def test_linear_step_filters_holding_nan_or_inf_are_refused_with_their_count(tmp_path):
+    path = tmp_path / "linear_step.safetensors"
+    w = torch.zeros(1, 2, 3, 3)
+    w[0, 1, 1, 1], w[0, 0, 2, 0] = float("nan"), float("inf")
+    save_linear_step(path, w, {})
+    with pytest.raises(InputError) as exc:
+        load_linear_step(path, bands=2, period=1)
+    assert str(exc.value) == (f"{path}: 2 NaN/Inf value(s) in the linear step's filters; delete the file and resume "
+                              "the run (hsicam train --out RUN --resume) to fit it again")
+
+
+def test_a_safetensors_file_of_another_format_is_not_a_linear_step_file(tmp_path):
+    from safetensors.torch import save_file
+
+    path = tmp_path / "linear_step.safetensors"
+    save_file({"weight": torch.zeros(1, 2, 3, 3)}, str(path), metadata={"format": "hsicam-weights-1"})
+    with pytest.raises(InputError) as exc:
+        load_linear_step(path, bands=2, period=1)
+    assert str(exc.value) == f"{path}: not a linear-step file"
+
+
+# ------------------------------------------------------------------------------------------------
+# The run folder
+# ------------------------------------------------------------------------------------------------
+def _manifest(run_dir: Path, state: dict) -> None:
+    """A committed checkpoint as :class:`~hsicam.runs.checkpoint.CheckpointManager` writes its manifest."""
+    d = f"checkpoints/step-{state['global_step']:08d}"
+    (run_dir / d).mkdir(parents=True)
+    entry = {"dir": d, "step": state["global_step"]}
+    (run_dir / "checkpoints.json").write_text(json.dumps(
+        {"format": "hsicam-run-manifest-1", "last": entry, "best": None, "state": state,
+         "weights": {"file": "model.safetensors", "from": "last", "dir": d, "sha256": None}}))
+
+
+def _metrics(run_dir: Path, records: list[dict]) -> None:
+    (run_dir / "metrics.jsonl").write_text("".join(json.dumps(r) + "\n" for r in records))
+
+
+def test_a_final_record_of_an_earlier_session_does_not_make_an_extended_run_finished(tmp_path):
+    from hsicam.config import load_config
+    from hsicam.runs.folder import unfinished_training
+
+    cfg = load_config("tiny", ["train.epochs=4"])
+    # trained 2 epochs (final at step 6), resumed with train.epochs=4, killed after its checkpoint at step 9 (no log
+    # record since: train.log_every_steps above 3): the last record is the earlier training's final one
+    _manifest(tmp_path, {"global_step": 9, "epoch": 3, "total_steps": 12})
+    _metrics(tmp_path, [{"step": 3, "epoch": 1, "train_loss": 0.7}, {"step": 6, "epoch": 2, "final": True}])
+    assert unfinished_training(tmp_path, cfg) == (
+        f"{tmp_path}: its training did not finish: the last checkpoint is at step 9 of 12 (3 of 4 epochs done) and "
+        "metrics.jsonl has no final record; the weights are of a partly trained network: continue it with "
+        f"`hsicam train --resume --out {tmp_path}`")
+    _metrics(tmp_path, [{"step": 9, "epoch": 3, "final": True}])  # its own final record: finished
+    assert unfinished_training(tmp_path, cfg) is None
+
+
+def test_a_folder_holding_four_runs_names_all_four_without_an_ellipsis(tmp_path):
+    from hsicam.runs.folder import not_a_run_message
+
+    runs = [tmp_path / "runs" / n for n in ("a", "b", "c", "d")]
+    for r in runs:
+        r.mkdir(parents=True)
+        (r / "config.yaml").write_text("{}\n")
+    assert not_a_run_message(tmp_path) == (f"{tmp_path}: not a run folder (config.yaml is missing); it holds the run "
+                                           f"folders {', '.join(map(str, runs))}: give one as the run")
+    (tmp_path / "runs" / "e").mkdir()
+    (tmp_path / "runs" / "e" / "config.yaml").write_text("{}\n")
+    assert not_a_run_message(tmp_path).endswith(f"folders {', '.join(map(str, runs))}, …: give one as the run")
+
+
+def test_a_new_run_in_a_run_folder_with_other_files_is_told_to_resume_or_restart(tmp_path):
+    from hsicam.runs.folder import check_run_dir
+
+    (tmp_path / "config.yaml").write_text("{}\n")
+    (tmp_path / "notes.txt").write_text("mine\n")
+    with pytest.raises(InputError) as exc:
+        check_run_dir(tmp_path, resume=False)
+    assert str(exc.value) == (f"{tmp_path}: run folder exists and is not empty; use --resume, --restart (a run without "
+                              "a checkpoint) or another --out")
+    (tmp_path / "config.yaml").unlink()  # no run there: the user's files are named, nothing is offered to wipe them
+    with pytest.raises(InputError) as exc:
+        check_run_dir(tmp_path, resume=False)
+    assert str(exc.value) == (f"{tmp_path}: run folder exists and is not empty: it holds other files than a run's "
+                              "(notes.txt); nothing there is resumed or wiped: choose another --out")
+
+
+def test_restart_wipes_an_unfinished_run_whatever_hidden_files_it_holds(tmp_path):
+    from hsicam.runs.folder import restart_run_dir
+
+    run = tmp_path / "run"
+    run.mkdir()
+    for name in ("config.yaml", "metrics.jsonl", ".DS_Store"):  # a file manager's hidden file is no user's file
+        (run / name).write_text("x\n")
+    assert restart_run_dir(run) is True
+    assert list(run.iterdir()) == []
+
+
+def test_restart_refuses_a_run_with_a_finished_checkpoint_and_removes_nothing(tmp_path):
+    from hsicam.runs.folder import restart_run_dir
+
+    (tmp_path / "config.yaml").write_text("{}\n")
+    _manifest(tmp_path, {"global_step": 9, "epoch": 3})
+    before = sorted(p.relative_to(tmp_path).as_posix() for p in tmp_path.rglob("*"))
+    with pytest.raises(InputError) as exc:
+        restart_run_dir(tmp_path)
+    assert str(exc.value) == (f"{tmp_path}: holds a finished checkpoint (step 9); continue it with --resume, or delete "
+                              "the folder yourself to start over")
+    assert sorted(p.relative_to(tmp_path).as_posix() for p in tmp_path.rglob("*")) == before
+
+
+def test_truncating_the_metrics_log_drops_the_final_record_of_the_training_a_resume_continues(tmp_path):
+    from hsicam.runs.folder import MetricsLog
+
+    records = [{"step": 3, "epoch": 0, "train_loss": 1.0}, {"step": 6, "epoch": 1, "val_psnr": 20.0},
+               {"step": 6, "epoch": 1, "final": True, "elapsed_s": 2.0}, {"step": 6, "epoch": 2, "val_psnr": 21.0}]
+    _metrics(tmp_path, records)
+    MetricsLog(tmp_path / "metrics.jsonl").truncate_after(step=6, epoch=1)
+    lines = (tmp_path / "metrics.jsonl").read_text(encoding="utf-8").splitlines()
+    assert [json.loads(x) for x in lines] == records[:2]
+
+
+def test_no_linear_step_problem_when_the_steps_are_off_even_for_stale_filters(tmp_path):
+    from hsicam.config import ConsistencyConfig
+    from hsicam.runs.folder import linear_step_problem
+
+    (tmp_path / "model.safetensors").write_bytes(b"weights of the run")
+    save_linear_step(tmp_path / "linear_step.safetensors", torch.zeros(1, 2, 3, 3), {"weights_sha256": "f" * 64})
+    assert linear_step_problem(tmp_path, ConsistencyConfig(kind="linear", iterations=0, window_px=3)) is None
+    why = linear_step_problem(tmp_path, ConsistencyConfig(kind="linear", iterations=1, window_px=3))
+    assert why.startswith(f"{tmp_path / 'linear_step.safetensors'} was fitted through other weights (sha256 ffffffffffff…)")
+    assert why.endswith("; the run has no checkpoint to refit the filters from: copy the run folder again from its "
+                        "source, or train it again")
+
+
+def test_a_run_folder_holding_its_data_record_is_only_a_run_folder(tmp_path):
+    from hsicam.runs.folder import restart_run_dir
+
+    run = tmp_path / "run"
+    run.mkdir()
+    for name in ("config.yaml", "data.json", "metrics.jsonl"):  # a run on a data.root folder, killed before a checkpoint
+        (run / name).write_text("{}\n")
+    assert restart_run_dir(run) is True
+    assert list(run.iterdir()) == []
+
+
+def test_resuming_a_folder_with_only_hidden_files_says_no_training_was_started_in_it(tmp_path):
+    from hsicam.runs.folder import check_run_dir
+
+    (tmp_path / ".DS_Store").write_text("x")
+    with pytest.raises(InputError) as exc:
+        check_run_dir(tmp_path, resume=True)
+    assert str(exc.value) == (f"{tmp_path}: nothing to resume (an empty folder: no training was started in it); start it "
+                              f"again with `hsicam train --restart --config CONFIG --out {tmp_path}`")
+
+
+# ------------------------------------------------------------------------------------------------
+# The data record (provenance)
+# ------------------------------------------------------------------------------------------------
+def _record(scenes: dict[str, tuple[int, int]], train: list[str], root: str = "/data") -> dict:
+    return {"root": root, "split": {}, "scenes": [{"path": p, "size": s, "mtime_ns": t} for p, (s, t) in scenes.items()],
+            "train": train, "validation": [p for p in scenes if p not in train]}
+
+
+def test_a_scene_with_only_another_modification_time_is_changed_and_only_warned_about(tmp_path, caplog):
+    from hsicam.engine.provenance import check_same_data, data_changes
+
+    was = _record({"a.h5": (10, 1), "b.h5": (20, 2)}, ["a.h5"])
+    now = _record({"a.h5": (10, 5), "b.h5": (20, 2)}, ["a.h5"])
+    assert data_changes(was, now) == {"added": [], "removed": [], "changed": ["a.h5"], "moved": []}
+    with caplog.at_level("WARNING", logger="hsicam.engine.provenance"):
+        check_same_data(tmp_path, was, now)  # goes on
+    assert [r.getMessage() for r in caplog.records] == [
+        "data: 1 scene(s) of /data changed size or time since the run started (a.h5): the resume trains and validates "
+        "on them as they are now"]
+
+
+def test_a_refused_resume_does_not_also_say_it_trains_on_the_changed_scenes(tmp_path, caplog):
+    from hsicam.engine.provenance import check_same_data
+
+    was = _record({"a.h5": (10, 1), "b.h5": (20, 2)}, ["a.h5"])
+    now = _record({"a.h5": (11, 1), "b.h5": (20, 2), "c.h5": (5, 5)}, ["a.h5", "c.h5"])
+    with caplog.at_level("WARNING", logger="hsicam.engine.provenance"), pytest.raises(InputError) as exc:
+        check_same_data(tmp_path, was, now)
+    assert str(exc.value) == (f"{tmp_path}: the scenes of /data are not those the run started with (its data.json; "
+                              "added: c.h5): a resume would train and validate on another split; restore the folder as "
+                              "it was, or start a new run with another --out")
+    assert caplog.records == []
+
+
+def test_shown_names_up_to_three_then_how_many_more():
+    from hsicam.engine.provenance import shown
+
+    assert shown(["a", "b", "c"]) == "a, b, c"
+    assert shown(["a", "b", "c", "d", "e"]) == "a, b, c and 2 more"
+    assert shown([]) == ""
+
+
+def test_synthetic_scenes_of_another_held_out_source_set_are_all_unseen():
+    import dataclasses
+
+    from hsicam.config import load_config
+    from hsicam.engine.provenance import synthetic_scene_roles
+
+    trained = load_config("tiny").data
+    paths = [f"scene_{i:04d}.h5" for i in range(trained.synthetic_n)]
+    same = synthetic_scene_roles(trained, trained, paths)
+    assert "train" in same  # the run's own cache: its training scenes are told apart
+    other = dataclasses.replace(trained, holdout_sources="none")  # other spectra: other cubes under the same names
+    assert synthetic_scene_roles(trained, other, paths) == ["unseen"] * len(paths)
