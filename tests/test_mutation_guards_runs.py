@@ -197,6 +197,27 @@ def test_no_linear_step_problem_when_the_steps_are_off_even_for_stale_filters(tm
                         "source, or train it again")
 
 
+# ------------------------------------------------------------------------------------------------
+# Packing a camera: its card
+# ------------------------------------------------------------------------------------------------
+def test_training_time_adds_each_sessions_last_time_even_when_a_resume_starts_slower(tmp_path):
+    from hsicam.engine.pretrained import training_seconds
+
+    # session 1 killed after its checkpoint at step 10 (5 s); the resume's first log (8 s) is later than that
+    _metrics(tmp_path, [{"step": 0, "epoch": 0, "session": {"started_utc": "2025-01-01T00:00:00+00:00"}},
+                        {"step": 10, "epoch": 0, "train_loss": 1.0, "elapsed_s": 5.0},
+                        {"step": 10, "epoch": 1, "session": {"started_utc": "2025-01-01T01:00:00+00:00"}},
+                        {"step": 20, "epoch": 1, "train_loss": 0.9, "elapsed_s": 8.0},
+                        {"step": 30, "epoch": 2, "final": True, "elapsed_s": 16.0}])
+    assert training_seconds(tmp_path) == 5.0 + 16.0
+    # a log from before the session records: a drop in elapsed_s marks the resume
+    _metrics(tmp_path, [{"step": 5, "elapsed_s": 3.0}, {"step": 10, "elapsed_s": 6.0}, {"step": 15, "elapsed_s": 2.0},
+                        {"step": 20, "final": True, "elapsed_s": 9.0}])
+    assert training_seconds(tmp_path) == 6.0 + 9.0
+    _metrics(tmp_path, [{"step": 0, "epoch": 0, "session": {}}])
+    assert training_seconds(tmp_path) is None
+
+
 def test_a_run_folder_holding_its_data_record_is_only_a_run_folder(tmp_path):
     from hsicam.runs.folder import restart_run_dir
 

@@ -52,10 +52,12 @@ def _records(run_dir: Path) -> list[dict[str, Any]]:
 
 def training_seconds(run_dir: Path) -> float | None:
     """Wall time the kept steps of a run took, over all its sessions (s): each session's
-    ``elapsed_s`` counts from its own start, so a drop marks a resume and the sessions' last
-    values add up. None when the log has no times."""
+    ``elapsed_s`` counts from its own start, so its ``session`` record (or, in logs from before
+    those, a drop) marks a resume and the sessions' last values add up. None when the log has no times."""
     total, last = 0.0, None
     for r in _records(run_dir):
+        if "session" in r and last is not None:  # a resume: its times count from 0 again, however slow its start
+            total, last = total + last, None
         e = r.get("elapsed_s")
         if not isinstance(e, (int, float)):
             continue
