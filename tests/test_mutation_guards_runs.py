@@ -293,3 +293,17 @@ def test_synthetic_scenes_of_another_held_out_source_set_are_all_unseen():
     assert "train" in same  # the run's own cache: its training scenes are told apart
     other = dataclasses.replace(trained, holdout_sources="none")  # other spectra: other cubes under the same names
     assert synthetic_scene_roles(trained, other, paths) == ["unseen"] * len(paths)
+
+
+def test_results_measured_under_less_noise_than_the_cameras_own_are_refused_for_a_card(tmp_path):
+    from hsicam.config import dump_yaml, load_config
+    from hsicam.engine.pretrained import check_results_noise
+
+    (tmp_path / "config.yaml").write_text(dump_yaml(load_config("tiny", ["camera.sensor.sigma=0.01"])))
+    check_results_noise({"noise": {"sensor_sigma": 0.01}}, Path("results.json"), tmp_path)  # its own noise: fine
+    with pytest.raises(InputError) as exc:  # a noiseless evaluation flatters the camera
+        check_results_noise({"noise": {"sensor_sigma": 0.0}}, Path("results.json"), tmp_path)
+    assert str(exc.value) == ("results.json: measured under test noise --sensor-sigma 0 (the camera's own: 0.01); a "
+                              "card's numbers are those of the camera with its own noise: evaluate without it (`hsicam "
+                              f"evaluate --run {tmp_path} --out DIR`, no --sensor-sigma) and pass DIR/results.json as "
+                              "--results")
