@@ -12,7 +12,6 @@ import numpy as np
 import pytest
 import torch
 
-from hsicam.errors import InputError
 
 
 # --------------------------------------------------------------------------------------------

@@ -1,14 +1,13 @@
-"""Guards found by mutation testing of the run folder (:mod:`hsicam.runs.folder`), its lock
-(:mod:`hsicam.runs.lock`), the linear step's file (:mod:`hsicam.runs.linear_step`), shipped cameras
+"""Guards found by mutation testing of the run folder (:mod:`hsicam.runs.folder`; its lock's guard is in
+tests/test_run_lock.py), the linear step's file (:mod:`hsicam.runs.linear_step`), shipped cameras
 (:mod:`hsicam.runs.pretrained`, :mod:`hsicam.engine.pretrained`), the data record and provenance
 (:mod:`hsicam.engine.provenance`) and checkpoints (:mod:`hsicam.runs.checkpoint`): each test kills a
 mutant that the other tests let live, against an independent reference (the error a user sees, a file
-read back in its real format, an ``fcntl`` lock taken directly, a sum done by hand)."""
+read back in its real format, a sum done by hand)."""
 
 from __future__ import annotations
 
 import json
-import os
 from pathlib import Path
 
 import pytest
@@ -16,38 +15,6 @@ import torch
 
 from hsicam.errors import InputError
 from hsicam.runs.linear_step import load_linear_step, save_linear_step
-
-
-# ------------------------------------------------------------------------------------------------
-# The lock
-# ------------------------------------------------------------------------------------------------
-def test_a_nested_run_lock_once_released_takes_the_lock_when_acquired_again(tmp_path):
-    fcntl = pytest.importorskip("fcntl")
-    from hsicam.runs.lock import LOCK_FILE, RunLock
-
-    def locked_by_us(path: Path) -> bool:  # an independent flock on a new descriptor conflicts with ours
-        fd = os.open(path, os.O_RDONLY)
-        try:
-            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except BlockingIOError:
-            return True
-        finally:
-            os.close(fd)
-        return False
-
-    outer, inner = RunLock(tmp_path), RunLock(tmp_path)
-    outer.acquire()
-    inner.acquire()  # held by this process already: nested, takes nothing
-    inner.release()  # keeps the outer
-    assert locked_by_us(tmp_path / LOCK_FILE)
-    outer.release()
-    assert not (tmp_path / LOCK_FILE).exists()
-    inner.acquire()  # nobody holds it now: this one must take it
-    try:
-        assert (tmp_path / LOCK_FILE).is_file() and locked_by_us(tmp_path / LOCK_FILE)
-    finally:
-        inner.release()
-    assert not (tmp_path / LOCK_FILE).exists()
 
 
 # ------------------------------------------------------------------------------------------------

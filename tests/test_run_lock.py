@@ -211,3 +211,21 @@ def test_a_forked_child_does_not_keep_the_lock_of_its_killed_parent(tmp_path):
             os.kill(child, signal.SIGKILL)
         except ProcessLookupError:
             pass
+
+
+def test_a_nested_run_lock_once_released_takes_the_lock_when_acquired_again(tmp_path):
+    """(A mutation guard.) A nested RunLock takes nothing while the outer one holds the lock; released by both, the
+    same object acquired again must really take the lock (an flock through another open file sees it)."""
+    outer, inner = RunLock(tmp_path), RunLock(tmp_path)
+    outer.acquire()
+    inner.acquire()  # held by this process already: nested, takes nothing
+    inner.release()  # keeps the outer
+    assert _held_elsewhere(tmp_path)
+    outer.release()
+    assert not (tmp_path / LOCK_FILE).exists()
+    inner.acquire()  # nobody holds it now: this one must take it
+    try:
+        assert (tmp_path / LOCK_FILE).is_file() and _held_elsewhere(tmp_path)
+    finally:
+        inner.release()
+    assert not (tmp_path / LOCK_FILE).exists()
