@@ -294,6 +294,10 @@ def test_experiment_noise_grid_and_report(env, tmp_path, monkeypatch):
         clean = next(x for x in g if x["sigma_height_nm"] == 0 and x["sensor_sigma"] == 0)
         worst = next(x for x in g if x["sigma_height_nm"] == 60 and x["sensor_sigma"] == 0.01)
         assert worst["psnr"] < clean["psnr"]  # noise at test time costs quality
+        # the table's row: the noise-free cell, and the worst over the grid (not its last cell, not its best)
+        row = next(r for r in exp["rows"] if r["method"] == name)
+        assert (row["psnr"], row["ssim"]) == (clean["psnr"], clean["ssim"])
+        assert (row["psnr_worst"], row["ssim_worst"]) == (min(x["psnr"] for x in g), min(x["ssim"] for x in g))
         # an off-axis cell is `hsicam evaluate` of that camera with that test noise and seed count
         cell = next(x for x in g if x["sigma_height_nm"] == 60 and x["sensor_sigma"] == 0)
         mean = evaluate_mean(monkeypatch, env, out / "runs" / name, tmp_path / f"ev-{name}", "--sigma-height-nm", "60",

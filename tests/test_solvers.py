@@ -845,3 +845,36 @@ def test_compare_scores_every_cassi_row_on_the_doe_cameras_area(monkeypatch, tmp
         with pytest.raises(Scored):
             experiments._baseline_rows(load_config("quick"), "quick", tmp_path, [], [], (0,), [name], 70)
     assert scored == {name: 70 for name in (*LEARNED_CASSI, "dd-cassi-gaptv")}
+
+
+def test_compare_gives_the_cassi_rows_the_border_of_its_own_doe_camera(monkeypatch, tmp_path):
+    """run_experiment("compare") hands the CASSI rows the px a side by which its DOE camera's sensor image falls
+    short of the scene (measured here by imaging a scene), not 0 (the whole scene)."""
+    from hsicam.cameras import DOECamera
+    from hsicam.engine import experiments
+    from hsicam.engine.methods import Method
+
+    class Handed(Exception):
+        pass
+
+    cam = DOECamera.from_config(load_config("tiny"))
+    with torch.no_grad():
+        sensor = cam.A(torch.rand(1, len(cam.bands), 64, 64))
+    expected = (64 - sensor.shape[-1]) // 2
+    assert expected > 0 and sensor.shape[-2] == sensor.shape[-1]
+    monkeypatch.setattr(experiments, "ensure_trained", lambda *a, **k: None)
+    monkeypatch.setattr(experiments, "validation_scenes", lambda cfg: ([], []))
+    monkeypatch.setattr(experiments, "build_method", lambda name, cfg, run=None, device="cpu": Method(name, cam, None, None))
+    monkeypatch.setattr(experiments, "evaluate_method", lambda *a, **k: [])
+    monkeypatch.setattr(experiments, "summarize", lambda res: {"mean": dict.fromkeys(("psnr", "ssim", "sam", "runtime_s"), 0.0),
+                                                               "scenes": []})
+    handed = []
+
+    def baseline_rows(*args):
+        handed.append(args[-1])
+        raise Handed
+
+    monkeypatch.setattr(experiments, "_baseline_rows", baseline_rows)
+    with pytest.raises(Handed):
+        experiments.run_experiment("compare", "tiny", tmp_path / "out")
+    assert handed == [expected]
