@@ -501,3 +501,36 @@ def test_json_number_is_a_finite_number_as_python_reads_json():
     assert [json_number(v) for v in values] == [True, True, True, False, False, False, False, False, False, False]
     assert [json_number(v, finite=False) for v in values] == [True, True, True, True, True, True, False, False, False,
                                                              True]
+
+
+# ------------------------------------------------------------------------------------------------
+# Session 56: guards for mutants of io that the suite let through (helper mut5a's I01-I03, I11, I12)
+# ------------------------------------------------------------------------------------------------
+@pytest.mark.parametrize("need, margin", [(10**9, 10**8), (10**7, 1 << 26)])
+def test_free_space_short_keeps_a_tenth_of_the_need_or_64_mib_free_beyond_it(monkeypatch, tmp_path, need, margin):
+    """Room means need + max(need / 10, 64 MiB) free: one byte less is short (the free bytes are returned), exactly
+    that is enough; the refusal's text adds the two up."""
+    from collections import namedtuple
+
+    from hsicam.io import free_space_short, free_space_text
+    from hsicam.memory import format_bytes
+
+    usage = namedtuple("usage", "total used free")
+    for free, short in ((need + margin - 1, True), (need + margin, False)):
+        monkeypatch.setattr(shutil, "disk_usage", lambda path, free=free: usage(10**13, 10**13 - free, free))
+        assert free_space_short(tmp_path, need) == (free if short else None)
+    text = free_space_text(need, need)
+    assert f"and {format_bytes(margin)} more is kept free beyond it ({format_bytes(need + margin)} in all)" in text
+
+
+def test_8_and_16_bit_pngs_round_to_the_nearest_level(tmp_path):
+    """A value 0.6 of a level above level k is stored as k + 1 (rounded, not truncated), read back with imageio."""
+    import imageio.v3 as iio
+    import numpy as np
+
+    from hsicam.io import png8_values, write_png16
+
+    levels = np.array([[0.0, 1.6, 300.6, 65534.6]])
+    write_png16(tmp_path / "g.png", levels / 65535.0)
+    np.testing.assert_array_equal(iio.imread(tmp_path / "g.png"), [[0, 2, 301, 65535]])
+    np.testing.assert_array_equal(png8_values(np.array([0.0, 1.6, 100.4, 254.6]) / 255.0), [0, 2, 100, 255])
