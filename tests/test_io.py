@@ -534,3 +534,49 @@ def test_8_and_16_bit_pngs_round_to_the_nearest_level(tmp_path):
     write_png16(tmp_path / "g.png", levels / 65535.0)
     np.testing.assert_array_equal(iio.imread(tmp_path / "g.png"), [[0, 2, 301, 65535]])
     np.testing.assert_array_equal(png8_values(np.array([0.0, 1.6, 100.4, 254.6]) / 255.0), [0, 2, 100, 255])
+
+
+def test_written_entries_lists_files_and_folders_with_a_slash_and_leaves_out_temporaries(tmp_path):
+    """A marker's "files": every entry as a sorted POSIX path, a folder's ending in "/", hidden temporaries (a
+    ``.NAME.XXXXXXXX.tmp`` file, a ``.tmpdir`` folder) left out; compared with a listing made here by hand."""
+    from hsicam.io import written_entries
+
+    (tmp_path / "sub" / "deep").mkdir(parents=True)
+    (tmp_path / "a.json").write_text("{}")
+    (tmp_path / "sub" / "b.npy").write_bytes(b"x")
+    (tmp_path / "sub" / "deep" / "c.png").write_bytes(b"x")
+    (tmp_path / ".a.Ab3dE6gH.tmp.json").write_text("{}")
+    (tmp_path / ".run.Zz9yY8xX.tmpdir").mkdir()
+    (tmp_path / ".run.Zz9yY8xX.tmpdir" / "inside").write_text("x")
+    assert written_entries(tmp_path) == ["a.json", "sub/", "sub/b.npy", "sub/deep/", "sub/deep/c.png"]
+
+
+@pytest.mark.parametrize("command, says", [("train", "being trained by another process (pid 42, since T0)"),
+                                           ("evaluate", "being written by another process (hsicam evaluate, pid 42, "
+                                                        "since T0)")])
+def test_a_lock_refusal_says_trained_for_a_training_and_names_any_other_command(tmp_path, command, says):
+    from hsicam.io import lock_refusal
+
+    lock = tmp_path / ".lock"
+    lock.write_text(json.dumps({"pid": 42, "since": "T0", "command": command}))
+    assert str(lock_refusal("RUN", lock)) == f"RUN: {says}; wait for it or stop it"
+
+
+def test_a_set_aside_output_is_not_restored_over_one_in_its_place(tmp_path):
+    """``.NAME.XXXXXXXX.old`` goes back to NAME only when NAME is missing: a folder in its place, even an empty one
+    (which a rename would silently replace), stays as it is."""
+    from hsicam.io import restore_set_aside
+
+    old = tmp_path / ".out.Ab3dE6gH.old"
+    old.mkdir()
+    (old / "previous.txt").write_text("old")
+    (tmp_path / "out").mkdir()
+    (tmp_path / "out" / "current.txt").write_text("new")
+    assert restore_set_aside(old) is False
+    assert sorted(p.name for p in (tmp_path / "out").iterdir()) == ["current.txt"] and old.is_dir()
+    (tmp_path / "out" / "current.txt").unlink()
+    assert restore_set_aside(old) is False  # an empty folder in its place
+    assert not any((tmp_path / "out").iterdir()) and old.is_dir()
+    (tmp_path / "out").rmdir()
+    assert restore_set_aside(old) is True
+    assert (tmp_path / "out" / "previous.txt").read_text() == "old" and not old.exists()
