@@ -272,10 +272,10 @@ def _finish(p: Path, cube: np.ndarray, bands: Bands, meta: dict[str, Any], allow
 #: (30 µm is far infrared, 30 nm extreme ultraviolet: no hyperspectral camera's band is either).
 MICROMETRE_BELOW = 30.0
 #: ENVI ``wavelength units`` read as micrometres / nanometres (lower case; American and British spellings, the
-#: micro sign U+00B5 and the Greek mu U+03BC); another unit is refused, none means "look at the values".
+#: micro sign U+00B5 and the Greek mu U+03BC); none or "unknown" means "look at the values", another unit is refused.
 MICROMETRE_UNITS = ("micrometers", "micrometer", "micrometres", "micrometre", "microns", "micron", "um", "\u00b5m",
                     "\u03bcm")
-NANOMETRE_UNITS = ("", "unknown", "nanometers", "nanometer", "nanometres", "nanometre", "nm")
+NANOMETRE_UNITS = ("nanometers", "nanometer", "nanometres", "nanometre", "nm")
 
 
 def _unitless_scale(p: Path, centres: np.ndarray, key: str) -> tuple[float, str | None]:

@@ -213,8 +213,6 @@ def training_scenes_warning(roles: Sequence[str], run: str | Path) -> str | None
     return f"{n} of {len(roles)} scenes were training scenes of {run}: their scores are not a validation"
 
 
-
-
 def installed_version() -> str | None:
     """hsicam's version as installed (its package metadata), or None for a source tree never installed
     (``PYTHONPATH=src``; the engine does not import the package root for ``__version__``)."""

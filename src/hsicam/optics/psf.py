@@ -216,20 +216,17 @@ class PSFModel(nn.Module):
         q_need_f = q * float(ratio[i])
         if not q_need_f < 1e9:  # e.g. a sensor at 1e-300 mm: infinite defocus (int(inf) was a traceback)
             deliberate = "no pupil oversampling can represent a defocus this large"
-            q_need = None
         else:
             q_need = int(np.ceil(q_need_f - 1e-9))
             n_need = 2 * n_cells * q_need - 1  # about the FFT length that oversampling needs
             k_est = int(np.ceil(self.line_wavelengths_nm.max() * 1e-9 * float(z_line.max()) / (cell * self.pixel_m)))
             mem = psf_memory_estimate(PSFSampling(n_cells * q_need, cell / q_need, n_need, k_est, k_est, None, 1),
                                       self.line_wavelengths_nm * 1e-9, float(z_line.max()), self.pixel_m)
-        if q_need is None:
-            pass
-        elif mem.total <= memory_budget_bytes():
-            deliberate = f"for a deliberate defocus raise camera.psf.pupil_oversample to at least {q_need}"
-        else:
-            deliberate = (f"a deliberate defocus this large would need camera.psf.pupil_oversample >= {q_need}: "
-                          f"an FFT of about {n_need} points per axis, {format_bytes(mem.total)} of memory")
+            if mem.total <= memory_budget_bytes():
+                deliberate = f"for a deliberate defocus raise camera.psf.pupil_oversample to at least {q_need}"
+            else:
+                deliberate = (f"a deliberate defocus this large would need camera.psf.pupil_oversample >= {q_need}: "
+                              f"an FFT of about {n_need} points per axis, {format_bytes(mem.total)} of memory")
         lens_facts = (f"focal length {f0 * 1e3:.4g} mm at {self.lens_design_wavelength_nm:g} nm, {obj}: "
                       f"the sensor belongs near {z_focus * 1e3:.4g} mm")
         blur = (f"the residual defocus blurs a point over {blur_mm:.3g} mm at {lam_m * 1e9:.4g} nm, wider than the "
