@@ -327,3 +327,42 @@ def test_evaluate_refuses_a_heldout_set_of_sources_the_run_trained_on(synthetic_
     subset = load_config(synthetic_run / "config.yaml", ["data.holdout_sources=rawtoaces"]).data
     assert heldout_sources_problem(run_cfg.data, subset) is None
     assert heldout_sources_problem(run_cfg.data, run_cfg.data) is None
+
+
+def test_the_session_records_commit_is_the_checkouts_and_dirty_only_for_changed_tracked_sources(tmp_path):
+    """``_source_commit`` names the checkout hsicam runs from: its HEAD, with ``+dirty`` exactly when a tracked file
+    under src/ differs from it (not for untracked files, nor for tracked files elsewhere), and None without git.
+    The module is run from a copy inside a throwaway git checkout, whose state the test sets."""
+    import importlib.util
+    import subprocess
+
+    import hsicam.engine.provenance as real
+
+    if shutil.which("git") is None:
+        pytest.skip("git is not installed")
+    root = tmp_path / "checkout"
+    module = root / "src" / "hsicam" / "engine" / "provenance.py"
+    module.parent.mkdir(parents=True)
+    shutil.copyfile(real.__file__, module)
+    (root / "README.md").write_text("readme\n")
+    spec = importlib.util.spec_from_file_location("provenance_copy", module)
+    copy = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(copy)
+    assert copy._source_commit() is None  # no .git: an installed package
+
+    git = lambda *a: subprocess.run(["git", "-C", str(root), *a], capture_output=True, text=True,  # noqa: E731
+                                    check=True).stdout.strip()
+    git("init", "-q")
+    git("add", "-A")
+    git("-c", "user.name=t", "-c", "user.email=t@t", "commit", "-q", "-m", "start")
+    head = git("rev-parse", "HEAD")
+    assert len(head) == 40
+    assert copy._source_commit() == head
+    (root / "src" / "hsicam" / "new.py").write_text("x = 1\n")  # untracked
+    (root / "README.md").write_text("edited\n")  # tracked, outside src/
+    assert copy._source_commit() == head
+    with open(module, "a") as f:  # a tracked source edited
+        f.write("\n# edited\n")
+    assert copy._source_commit() == head + "+dirty"
+    git("-c", "user.name=t", "-c", "user.email=t@t", "commit", "-q", "-am", "edit")
+    assert copy._source_commit() == git("rev-parse", "HEAD") != head
