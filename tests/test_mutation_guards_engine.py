@@ -413,3 +413,48 @@ def test_a_checkpoint_at_step_zero_is_a_readable_last_and_best(tmp_path):
     assert (kept["checkpoint"], kept["step"], kept["last_step"]) == ("best", 0, 0)
     saved, _ = read_weights(tmp_path / "model.safetensors")
     torch.testing.assert_close(saved["weight"], model.weight.detach(), rtol=0, atol=0)
+
+
+def test_a_later_validation_that_only_ties_the_best_keeps_the_earlier_checkpoint_as_best(tmp_path):
+    """"The checkpoint of the highest validation PSNR so far" (docs/training.md): a later validation that
+    equals it is not higher, so best stays at the first step that reached it (in checkpoints.json, read back as
+    JSON, and in the final record) while last moves on."""
+    import dataclasses
+    import json
+
+    from hsicam.config import ChoiConfig, load_config
+    from hsicam.engine.loop import FitOptions, fit
+    from hsicam.engine.tasks import PriorTask
+
+    class Patches(torch.utils.data.Dataset):
+        def __init__(self, n, seed):
+            self.x = torch.rand(n, 7, 8, 8, generator=torch.Generator().manual_seed(seed))
+
+        def set_epoch(self, epoch):
+            pass
+
+        def __len__(self):
+            return len(self.x)
+
+        def __getitem__(self, i):
+            return self.x[i]
+
+    class Flat(PriorTask):
+        """Every validation scores the same PSNR (a tie each epoch)."""
+
+        def data_record(self):
+            return None
+
+        def datasets(self):
+            return Patches(8, 0), Patches(4, 1)
+
+        def validate(self, loader, device):
+            return {"psnr": 30.0}
+
+    torch.manual_seed(0)
+    task = Flat(load_config("tiny"), ChoiConfig(train_steps=6, batch_size=4, features=8, latent=3, lr=1e-3))
+    loop = dataclasses.replace(task.loop_config(), epochs=3, eval_every_epochs=1, checkpoint_every_steps=1000)
+    final = fit(task, FitOptions(loop, 0, progress=False), tmp_path / "run")
+    man = json.loads((tmp_path / "run" / "checkpoints.json").read_text())
+    assert (man["last"]["step"], man["best"]["step"]) == (6, 2)
+    assert final["best_psnr"] == 30.0
