@@ -386,3 +386,45 @@ def test_a_demo_with_a_consistency_step_scores_the_network_alone_and_each_refere
     got = {r["method"]: r["mean"] for r in res["heldout"]["references"]}["CFA box demosaic (no network)"]
     val = {r["method"]: r["mean"] for r in res["references"]}["CFA box demosaic (no network)"]
     assert got["psnr"] == pytest.approx(box["psnr"], abs=1e-6) and got["psnr"] != pytest.approx(val["psnr"], abs=1e-3)
+
+
+# ------------------------------------------------------------------------------------------------
+# methods: the demosaic references of a run (an in-memory run stands in for load_run)
+# ------------------------------------------------------------------------------------------------
+def _in_memory_run(monkeypatch, tmp_path, overrides):
+    """A tiny DOE system built from ``overrides``, which methods.load_run hands back for ``tmp_path``."""
+    from hsicam.engine import methods
+    from hsicam.models import CameraSystem
+
+    cfg = load_config("tiny", overrides)
+    torch.manual_seed(0)
+    model = CameraSystem.from_config(cfg).eval()
+    monkeypatch.setattr(methods, "load_run", lambda run, device=None: (cfg, model))
+    return model
+
+
+def test_the_tent_reference_of_a_run_whose_network_starts_with_a_tent_demosaic_uses_its_window(tmp_path, monkeypatch):
+    """doe-tent-demosaic through a run whose mosaic network's skip is a 3-px tent (not the default 2·3 − 1 = 5 px)
+    is that network's own start: the tent demosaic of width 3; the box reference keeps its own window."""
+    from hsicam.engine.methods import build_method
+    from hsicam.models.demosaic import camera_demosaic
+
+    _in_memory_run(monkeypatch, tmp_path, ["model.kind=mosaic", "model.mosaic.demosaic_kernel=tent",
+                                          "model.mosaic.demosaic_window=3"])
+    tent = build_method("doe-tent-demosaic", load_config("tiny"), tmp_path)
+    y = torch.rand(1, 1, 24, 24, generator=torch.Generator().manual_seed(3))
+    with torch.no_grad():
+        got = tent.reconstruct(y)
+        torch.testing.assert_close(got, camera_demosaic(tent.camera, y, kernel="tent", window=3))
+        assert not torch.allclose(got, camera_demosaic(tent.camera, y, kernel="tent"))
+
+
+def test_a_demosaic_reference_captures_with_the_evaluation_configs_padding(tmp_path, monkeypatch):
+    """The evaluation config's camera.padding (with boundary same) is the capture's, not the run's own."""
+    from hsicam.engine.methods import build_method
+
+    model = _in_memory_run(monkeypatch, tmp_path, [])
+    assert model.camera.padding == "zeros"
+    box = build_method("doe-box-demosaic", load_config("tiny", ["camera.boundary=same", "camera.padding=reflect"]),
+                       tmp_path)
+    assert (box.camera.boundary, box.camera.padding) == ("same", "reflect")
