@@ -428,3 +428,14 @@ def test_a_demosaic_reference_captures_with_the_evaluation_configs_padding(tmp_p
     box = build_method("doe-box-demosaic", load_config("tiny", ["camera.boundary=same", "camera.padding=reflect"]),
                        tmp_path)
     assert (box.camera.boundary, box.camera.padding) == ("same", "reflect")
+
+
+def test_a_demosaic_reference_captures_with_the_evaluation_configs_doe_height_noise(tmp_path, monkeypatch):
+    """--set camera.doe.sigma_height_nm=15 on the evaluation draws 15 nm (1.5e-8 m) of height noise per DOE cell in
+    the reference's captures, whatever the run trained with (0 here)."""
+    from hsicam.engine.methods import build_method
+
+    model = _in_memory_run(monkeypatch, tmp_path, ["camera.doe.sigma_height_nm=0"])
+    assert model.camera.optics.doe.sigma_height_m == 0
+    box = build_method("doe-box-demosaic", load_config("tiny", ["camera.doe.sigma_height_nm=15"]), tmp_path)
+    assert box.camera.optics.doe.sigma_height_m == pytest.approx(1.5e-8, rel=1e-12)
