@@ -274,3 +274,114 @@ def test_results_measured_under_less_noise_than_the_cameras_own_are_refused_for_
                               "card's numbers are those of the camera with its own noise: evaluate without it (`hsicam "
                               f"evaluate --run {tmp_path} --out DIR`, no --sensor-sigma) and pass DIR/results.json as "
                               "--results")
+
+
+@pytest.mark.slow
+def test_a_packed_camera_carries_its_runs_linear_step_file_and_its_card_names_its_size_and_sha256(
+        tmp_path, cache_env):
+    """A run with the linear consistency step packs its filters beside the weights, byte for byte, and the card
+    records that file's size and SHA-256 (hashlib over the run's own file here)."""
+    import hashlib
+
+    from hsicam.config import load_config
+    from hsicam.engine.pretrained import pack_pretrained
+    from hsicam.engine.train import train
+
+    run = tmp_path / "linear"
+    train(load_config("tiny", ["train.epochs=1", "model.consistency.kind=linear", "model.consistency.iterations=1"]),
+          run, progress=False)
+    step = (run / "linear_step.safetensors").read_bytes()
+    target = pack_pretrained(run, "ls", tmp_path / "root")
+    assert (target / "linear_step.safetensors").read_bytes() == step
+    card = json.loads((target / "card.json").read_text(encoding="utf-8"))
+    assert card["linear_step"] == {"file": "linear_step.safetensors", "bytes": len(step),
+                                   "sha256": hashlib.sha256(step).hexdigest()}
+
+
+def test_a_card_naming_a_linear_step_without_its_sha256_is_a_weights_problem(tmp_path):
+    """A card whose "linear_step" entry records no sha256 cannot vouch for the filters: refused like the weights'
+    (a card with no "linear_step" entry at all has none to check)."""
+    import hashlib
+
+    from hsicam.runs.pretrained import weights_problem
+
+    cam = tmp_path / "cam"
+    cam.mkdir()
+    (cam / "config.yaml").write_text("{}\n")
+    (cam / "model.safetensors").write_bytes(b"w")
+    card = {"weights": {"file": "model.safetensors", "sha256": hashlib.sha256(b"w").hexdigest()}}
+    (cam / "card.json").write_text(json.dumps(card))
+    assert weights_problem(cam) is None
+    (cam / "card.json").write_text(json.dumps({**card, "linear_step": {"file": "linear_step.safetensors"}}))
+    assert weights_problem(cam) == (
+        f"{cam / 'card.json'}: records no sha256 of linear_step.safetensors, so {cam / 'linear_step.safetensors'} "
+        f"cannot be checked; re-pack it (`hsicam pretrained pack RUN --name cam --dest {tmp_path} --force`) or "
+        "re-install it from where it came")
+
+
+def _camera(folder: Path, files=("config.yaml", "model.safetensors", "card.json"), weights: bytes = b"w") -> Path:
+    """A packed camera's files in ``folder`` (``files`` of them), its card recording the sha256 of ``weights``."""
+    import hashlib
+
+    folder.mkdir(parents=True)
+    for f in files:
+        (folder / f).write_text("{}\n")
+    if "model.safetensors" in files:
+        (folder / "model.safetensors").write_bytes(b"w")
+    if "card.json" in files:
+        (folder / "card.json").write_text(json.dumps({"weights": {"sha256": hashlib.sha256(weights).hexdigest()}}))
+    return folder
+
+
+def test_the_cameras_of_a_root_are_its_visible_folders_holding_any_camera_file(tmp_path, monkeypatch):
+    """camera_folders lists broken cameras too (one file of three) and no hidden folder; is_camera is a visible
+    folder with all three; a path inside the root is a shipped camera's, labelled pretrained:NAME."""
+    from hsicam.runs import pretrained as shipped
+
+    monkeypatch.setenv(shipped.ENV_VAR, str(tmp_path))
+    _camera(tmp_path / "good")
+    _camera(tmp_path / "broken", files=("config.yaml",))
+    _camera(tmp_path / ".hidden")
+    (tmp_path / "other").mkdir()
+    assert shipped.camera_folders() == ["broken", "good"]
+    assert [shipped.is_camera(tmp_path / n) for n in ("good", "broken", ".hidden")] == [True, False, False]
+    assert shipped.is_pretrained_path(tmp_path / "good" / "model.safetensors")
+    assert not shipped.is_pretrained_path(tmp_path.parent)
+    assert shipped.run_label(tmp_path / "good") == "pretrained:good"
+
+
+# ------------------------------------------------------------------------------------------------
+# Checkpoints: the manifest's entries, pruning, damaged weights
+# ------------------------------------------------------------------------------------------------
+@pytest.mark.parametrize("entry, problem", [
+    ({"dir": "checkpoints/step-1", "step": True}, "'last.step' is not a step number: True"),
+    ({"dir": "checkpoints/../../elsewhere", "step": 1}, "'last.dir' is not a checkpoint folder inside the run: "
+                                                       "'checkpoints/../../elsewhere'"),
+    ({"dir": "checkpoints/step-1", "step": 0}, None),
+])
+def test_a_manifest_entry_with_a_boolean_step_or_a_dir_leaving_the_run_is_named(entry, problem):
+    from hsicam.runs.checkpoint import _entry_problem
+
+    assert _entry_problem("last", entry) == problem
+
+
+def test_a_checkpoint_removes_hidden_temporaries_of_killed_writes_and_refuses_damaged_weights(tmp_path):
+    from hsicam.runs.checkpoint import CheckpointManager
+    from hsicam.spectral import Bands
+
+    bands = Bands.uniform(500, 600, 50)
+    model = torch.nn.Linear(3, 2)
+    opt = torch.optim.Adam(model.parameters())
+    mgr = CheckpointManager(tmp_path)
+    mgr.save(model, opt, {"global_step": 1}, bands, ("last",))
+    killed = mgr.ckpt_dir / ".step-7.tmp123"
+    killed.mkdir()
+    (killed / "model.safetensors").write_bytes(b"half")
+    mgr.save(model, opt, {"global_step": 2}, bands, ("last",))
+    assert not killed.exists()
+    d = mgr.path("last")
+    (d / "model.safetensors").write_bytes((d / "model.safetensors").read_bytes()[:-1] + b" ")
+    with pytest.raises(InputError) as exc:
+        CheckpointManager(tmp_path).load("last", model, opt, bands)
+    assert str(exc.value).startswith(f"{d / 'model.safetensors'} differs from the weights {tmp_path / 'checkpoints.json'} "
+                                     "records (sha256 ")
