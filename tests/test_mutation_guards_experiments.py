@@ -439,3 +439,201 @@ def test_a_demosaic_reference_captures_with_the_evaluation_configs_doe_height_no
     assert model.camera.optics.doe.sigma_height_m == 0
     box = build_method("doe-box-demosaic", load_config("tiny", ["camera.doe.sigma_height_nm=15"]), tmp_path)
     assert box.camera.optics.doe.sigma_height_m == pytest.approx(1.5e-8, rel=1e-12)
+
+
+def test_a_demosaic_reference_of_an_unknown_kernel_is_refused_by_name():
+    from hsicam.engine.methods import demosaic_reference
+    from hsicam.models import CameraSystem
+
+    model = CameraSystem.from_config(load_config("tiny"))
+    with pytest.raises(ValueError) as err:
+        demosaic_reference(model, "gauss")
+    assert str(err.value) == "demosaic kernel must be one of box, tent, got 'gauss'"
+
+
+def test_a_report_of_a_folder_without_its_completion_marker_is_refused(tmp_path):
+    from hsicam.report.html import build_report
+
+    d = tmp_path / "ev"
+    d.mkdir()
+    (d / "results.json").write_text(json.dumps({"method": "x", "scenes": [{"name": "a", **MEAN}], "mean": MEAN,
+                                                "conventions": {}}))
+    with pytest.raises(InputError) as err:
+        build_report(d)
+    assert str(err.value) == (f"{d}: incomplete evaluation folder (no completion marker: the command that wrote it "
+                              "failed or was interrupted); run `hsicam evaluate` again")
+
+
+def test_a_noise_experiment_without_its_noise_grid_is_a_corrupt_field(tmp_path):
+    from hsicam.report.html import build_report
+
+    d = _complete_folder(tmp_path, "experiment.json", {"experiment": "noise", "scale": "tiny", "seeds": [0],
+                                                        "scenes": ["a"], "conventions": {}, "rows": []})
+    with pytest.raises(InputError) as err:
+        build_report(d)
+    assert str(err.value) == f"{d / 'experiment.json'}: corrupt experiment.json ('noise_grid' is missing)"
+
+
+def test_a_demo_report_shows_its_reconstructions_and_its_held_out_table(tmp_path):
+    from hsicam.report.html import build_report
+
+    other = {"psnr": 20.5, "ssim": 0.25, "sam": 7.0}
+    d = _complete_folder(tmp_path, "results.json", {
+        "method": "doe-learned", "scenes": [{"name": "a", **MEAN}], "mean": MEAN, "conventions": {},
+        "heldout": {"data": "held-out sources", "scenes": [{"name": "h", **other}], "mean": other}})
+    (d / "reconstructions.png").write_bytes(b"\x89PNG")
+    page = build_report(d).read_text(encoding="utf-8")
+    assert "<img src='../reconstructions.png'" in page
+    assert "<h2>Held-out spectral sources</h2>" in page and ["h", "20.50", "0.2500", "7.00"] == _cells(page)[-2][:4]
+
+
+def test_an_evaluation_asking_for_a_linear_step_the_run_has_not_got_is_refused_when_the_method_is_built(
+        tmp_path, monkeypatch):
+    """--set model.consistency.kind=linear on a run without linear_step.safetensors: the refusal load_run prepared
+    (model.linear_step_missing) is raised by build_method, before any scene is read."""
+    from hsicam.engine.methods import build_method
+
+    model = _in_memory_run(monkeypatch, tmp_path, [])
+    assert model.linear_step is None
+    model.linear_step_missing = f"{tmp_path}: no linear step here"
+    cfg = load_config("tiny", ["model.consistency.kind=linear", "model.consistency.iterations=1"])
+    with pytest.raises(InputError) as err:
+        build_method("doe-learned", cfg, tmp_path)
+    assert str(err.value) == f"{tmp_path}: no linear step here"
+
+
+def _random_psf(k: int = 9, c: int = 2) -> np.ndarray:
+    return np.random.default_rng(4).random((c, k, k))
+
+
+def test_rms_radius_and_central_square_fraction_against_a_brute_force_sum():
+    """A PSF with light off the axis in x only: RMS radius sqrt(Σ p (x² + y²) / Σ p) and the light in the central
+    3×3 and 5×5 squares, by explicit loops over the pixels."""
+    from hsicam.report.camera import encircled_fraction_in_square, rms_radius_px
+
+    psf = np.zeros((2, 9, 9))
+    psf[0, 4, 7] = 1.0  # 3 px right of the axis
+    psf[1] = _random_psf(c=1)[0]
+    r2 = [sum(p[i, j] * ((i - 4) ** 2 + (j - 4) ** 2) for i in range(9) for j in range(9)) / p.sum() for p in psf]
+    np.testing.assert_allclose(rms_radius_px(psf), np.sqrt(r2), rtol=1e-12)
+    for size in (3, 5):
+        lo = 4 - size // 2
+        want = [sum(p[i, j] for i in range(lo, lo + size) for j in range(lo, lo + size)) / p.sum() for p in psf]
+        np.testing.assert_allclose(encircled_fraction_in_square(psf, size), want, rtol=1e-12)
+
+
+def test_the_psf_crop_holds_the_fraction_of_every_band_not_of_their_mean(tmp_path):
+    """Nine bands a point on the axis, the tenth spread 4 px out: the 90 % crop is the one that holds the tenth's
+    (9 px, brute force over odd sizes), not 1 px, where the mean over bands already reaches 90 %; a montage asked
+    for a crop beyond the kernel shows the whole kernel."""
+    from hsicam.report.camera import plot_psf_montage, psf_crop_px
+    from hsicam.spectral import Bands
+
+    psf = np.zeros((10, 11, 11))
+    psf[:9, 5, 5] = 1.0
+    psf[9, 5, [1, 9]] = 0.5
+    psf[9, 5, 5] = 1e-3
+    fits = [s for s in range(1, 12, 2)
+            if all(p[5 - s // 2:5 + s // 2 + 1, 5 - s // 2:5 + s // 2 + 1].sum() / p.sum() >= 0.9 for p in psf)]
+    assert psf_crop_px(psf, 0.9, minimum=1) == fits[0] == 9
+    assert plot_psf_montage(psf, Bands.uniform(400, 490, 10), tmp_path / "psf.png", crop_px=99) == 11
+
+
+def test_the_doe_figure_shows_the_whole_centred_aperture_of_an_oversampled_pupil(tmp_path, tiny_camera, monkeypatch):
+    """With 2 pupil samples per cell the DOE figure's aperture is one value per cell over the whole centred disc:
+    open at the centre, shut in all four corners (not the top-left quarter of the oversampled pupil, whose far
+    corner is the disc's centre)."""
+    from hsicam.report import camera as figures
+
+    drawn = []
+    monkeypatch.setattr(figures, "plot_doe_heights", lambda h, aperture, cell_um, path: drawn.append((h, aperture)))
+    cam = tiny_camera("camera.psf.pupil_oversample=2")
+    figures.write_optics_figures(cam, tmp_path)
+    (h, aperture), = drawn
+    n = cam.optics.doe.n_cells
+    assert h.shape == aperture.shape == (n, n)
+    assert aperture[n // 2, n // 2] > 0
+    assert [aperture[0, 0], aperture[0, -1], aperture[-1, 0], aperture[-1, -1]] == [0, 0, 0, 0]
+
+
+def test_an_unfinished_run_of_an_experiment_is_resumed_not_reused(tmp_path, monkeypatch):
+    """A run folder of the same config whose log has no final record is trained on (resume=True), not scored as
+    it is; a finished one is reused without training, its linear step and kept weights brought to the config's."""
+    from hsicam.config import dump_yaml
+    from hsicam.engine import experiments
+
+    calls = []
+    monkeypatch.setattr(experiments, "train", lambda cfg, run, resume=False: calls.append((run, resume)))
+    refreshed = []
+    monkeypatch.setattr(experiments, "refresh_linear_step", lambda *a: refreshed.append(a) or [])
+    cfg = load_config("tiny")
+    run = _run_folder(tmp_path / "run", [{"step": 1}, {"step": 2}])
+    (run / "config.yaml").write_text(dump_yaml(cfg))
+    assert experiments.ensure_trained(run, cfg) == "resumed" and calls == [(run, True)]
+    (run / "metrics.jsonl").write_text(json.dumps({"step": 2, "final": True}) + "\n")
+    assert experiments.ensure_trained(run, cfg) == "reused" and calls == [(run, True)]
+    assert refreshed == [(run, cfg.model.consistency, cfg.train.keep_weights)]
+
+
+def test_each_row_of_a_run_with_a_note_records_its_overrides_and_note(tmp_path, monkeypatch):
+    """A row of experiment.json (read back as JSON) whose run the experiment set beyond the swept key says so:
+    the run's overrides and note (training and scoring stubbed: only the rows' fields are checked)."""
+    from hsicam.engine import experiments
+
+    specs = [experiments.RunSpec("plain"), experiments.RunSpec("wide", ("model.consistency.window_px=9",), "why")]
+    monkeypatch.setattr(experiments, "ensure_trained", lambda run, cfg: "reused")
+    monkeypatch.setattr(experiments, "validation_scenes", lambda cfg: ([], ["a"]))
+    monkeypatch.setattr(experiments, "build_method", lambda *a: SimpleNamespace(camera=None))
+    monkeypatch.setattr(experiments, "scored_region", lambda camera: None)
+    monkeypatch.setattr(experiments, "evaluate_method", lambda *a, **k: [])
+    conventions = experiments.summarize([])["conventions"]
+    monkeypatch.setattr(experiments, "summarize",
+                        lambda res: {"mean": {**MEAN, "runtime_s": 0.5}, "scenes": [], "conventions": conventions})
+    cfg = load_config("tiny")
+    experiments._run_experiment("ablation", "tiny", tmp_path / "ex", cfg, (0,), specs,
+                                {"plain": cfg, "wide": cfg}, ())
+    rows = json.loads((tmp_path / "ex" / "experiment.json").read_text())["rows"]
+    assert [(r["method"], r.get("overrides"), r.get("note")) for r in rows] == [
+        ("plain", None, None), ("wide", ["model.consistency.window_px=9"], "why")]
+
+
+def test_the_demo_trains_the_quick_preset_unless_told_otherwise():
+    from hsicam.config import dump_yaml
+    from hsicam.engine.demo import demo_config
+
+    assert dump_yaml(demo_config(None, ())) == dump_yaml(load_config("quick"))
+    assert dump_yaml(demo_config("tiny", ("train.epochs=1",))) == dump_yaml(load_config("tiny", ["train.epochs=1"]))
+
+
+def test_a_demo_over_a_run_of_another_config_is_refused_before_its_folder_changes(tmp_path):
+    """A finished demo folder whose run was trained with another CFA period: refused naming the difference, its
+    completion marker and its report/ left as they were."""
+    from hsicam.config import dump_yaml
+    from hsicam.engine.demo import _run_demo
+    from hsicam.io import mark_complete
+
+    out = tmp_path / "demo"
+    (out / "run").mkdir(parents=True)
+    (out / "run" / "config.yaml").write_text(dump_yaml(load_config("tiny", ["camera.cfa.period=4"])))
+    (out / "report").mkdir()
+    (out / "report" / "index.html").write_text("x")
+    mark_complete(out / "report", {"command": "report", "files": ["index.html"]})
+    mark_complete(out, {"command": "demo"})
+    before = sorted(str(p.relative_to(out)) for p in out.rglob("*"))
+    with pytest.raises(InputError, match=r"demo/run was trained with another config \(.*camera\.cfa\.period"):
+        _run_demo(load_config("tiny"), out)
+    assert sorted(str(p.relative_to(out)) for p in out.rglob("*")) == before
+
+
+def test_an_experiment_report_draws_cameras_only_of_runs_with_weights(tmp_path):
+    """runs/ of an experiment may hold a folder without weights (the compare's Choi prior, a run never started):
+    no camera section for it, the page is still written."""
+    from hsicam.report.html import build_report
+
+    d = _complete_folder(tmp_path, "experiment.json", {
+        "experiment": "ablation", "scale": "tiny", "seeds": [0], "scenes": ["a"], "conventions": {},
+        "rows": [{"method": "doe+cfa", **MEAN, "runtime_s": 0.5}]})
+    (d / "runs" / "dd-cassi-choi").mkdir(parents=True)
+    (d / "runs" / "dd-cassi-choi" / "summary.json").write_text("{}")
+    page = build_report(d).read_text(encoding="utf-8")
+    assert "dd-cassi-choi" not in page
