@@ -458,3 +458,26 @@ def test_a_later_validation_that_only_ties_the_best_keeps_the_earlier_checkpoint
     man = json.loads((tmp_path / "run" / "checkpoints.json").read_text())
     assert (man["last"]["step"], man["best"]["step"]) == (6, 2)
     assert final["best_psnr"] == 30.0
+
+
+def test_a_run_keeping_its_last_weights_roots_them_from_the_last_checkpoint_even_when_an_earlier_was_best(tmp_path):
+    """keep="last": after a best at step 1 and a later last at step 2, checkpoints.json (read back as JSON) says the
+    root weights come from the last, and RUN/model.safetensors holds the step-2 weights, not the best's."""
+    import json
+
+    from hsicam.runs.checkpoint import CheckpointManager, read_weights
+    from hsicam.spectral import Bands
+
+    bands = Bands.uniform(500, 600, 50)
+    model = torch.nn.Linear(3, 2)
+    opt = torch.optim.Adam(model.parameters())
+    mgr = CheckpointManager(tmp_path, keep="last")
+    mgr.save(model, opt, {"global_step": 1, "best_psnr": 20.0}, bands, ("last", "best"))
+    with torch.no_grad():
+        model.weight.add_(1.0)
+    mgr.save(model, opt, {"global_step": 2, "best_psnr": 20.0}, bands, ("last",))
+    mgr.sync_root()
+    man = json.loads((tmp_path / "checkpoints.json").read_text())
+    assert (man["weights"]["from"], man["best"]["step"], man["last"]["step"]) == ("last", 1, 2)
+    saved, _ = read_weights(tmp_path / "model.safetensors")
+    torch.testing.assert_close(saved["weight"], model.weight.detach(), rtol=0, atol=0)
