@@ -481,3 +481,26 @@ def test_a_run_keeping_its_last_weights_roots_them_from_the_last_checkpoint_even
     assert (man["weights"]["from"], man["best"]["step"], man["last"]["step"]) == ("last", 1, 2)
     saved, _ = read_weights(tmp_path / "model.safetensors")
     torch.testing.assert_close(saved["weight"], model.weight.detach(), rtol=0, atol=0)
+
+
+def test_weights_of_another_band_grid_or_an_optimizer_of_other_groups_are_refused(tmp_path):
+    """Weights saved for 500–600 nm in 50 nm steps do not load into a model of 10 nm steps; an optimizer state of the
+    groups ["net"] does not load into one training ["net", "doe"]: each one line naming the file."""
+    from hsicam.errors import InputError
+    from hsicam.runs.checkpoint import load_optimizer, load_weights, save_optimizer, save_weights
+    from hsicam.spectral import Bands
+
+    model = torch.nn.Linear(3, 2)
+    save_weights(tmp_path / "w.safetensors", model, Bands.uniform(500, 600, 50))
+    with pytest.raises(InputError, match=r"w\.safetensors: checkpoint was trained on .*, but the model has "):
+        load_weights(tmp_path / "w.safetensors", model, Bands.uniform(500, 600, 10))
+    doe = torch.nn.Parameter(torch.zeros(2))
+    saved = torch.optim.Adam([{"params": model.parameters(), "name": "net"}])
+    save_optimizer(tmp_path / "opt.safetensors", saved)
+    now = torch.optim.Adam([{"params": model.parameters(), "name": "net"}, {"params": [doe], "name": "doe"}])
+    with pytest.raises(InputError) as exc:
+        load_optimizer(tmp_path / "opt.safetensors", now)
+    assert str(exc.value) == (
+        f"{tmp_path / 'opt.safetensors'}: the run trained the parameter groups net, this config trains net, doe "
+        "(train.freeze, or a camera part switched on or off, differs from the run's config.yaml); resume with the "
+        "run's own settings, or start a new run")
