@@ -504,3 +504,19 @@ def test_weights_of_another_band_grid_or_an_optimizer_of_other_groups_are_refuse
         f"{tmp_path / 'opt.safetensors'}: the run trained the parameter groups net, this config trains net, doe "
         "(train.freeze, or a camera part switched on or off, differs from the run's config.yaml); resume with the "
         "run's own settings, or start a new run")
+
+
+def test_a_prior_whose_last_checkpoint_reached_its_steps_is_not_in_progress(tmp_path):
+    """prior_progress: a checkpoint at step 10 of 10 (no summary.json yet) is done, at step 9 it is (9, 10)."""
+    from hsicam.config import ChoiConfig
+    from hsicam.engine.prior import PRIOR_WEIGHTS, prior_progress
+    from hsicam.runs.checkpoint import CheckpointManager
+    from hsicam.spectral import Bands
+
+    model = torch.nn.Linear(3, 2)
+    opt = torch.optim.Adam(model.parameters())
+    settings = ChoiConfig(train_steps=10)
+    for step, want in ((9, (9, 10)), (10, None)):
+        CheckpointManager(tmp_path, PRIOR_WEIGHTS).save(model, opt, {"global_step": step}, Bands.uniform(500, 600, 50),
+                                                        ("last",))
+        assert prior_progress(tmp_path, settings) == want
