@@ -520,3 +520,14 @@ def test_a_prior_whose_last_checkpoint_reached_its_steps_is_not_in_progress(tmp_
         CheckpointManager(tmp_path, PRIOR_WEIGHTS).save(model, opt, {"global_step": step}, Bands.uniform(500, 600, 50),
                                                         ("last",))
         assert prior_progress(tmp_path, settings) == want
+
+
+def test_a_prior_folder_is_finished_only_with_its_summary_and_its_weights(tmp_path):
+    from hsicam.engine.prior import PRIOR_WEIGHTS, is_prior_run
+
+    (tmp_path / "summary.json").write_text("{}")
+    assert not is_prior_run(tmp_path)  # weights deleted or never written
+    (tmp_path / PRIOR_WEIGHTS).write_bytes(b"")
+    assert is_prior_run(tmp_path)
+    (tmp_path / "summary.json").unlink()
+    assert not is_prior_run(tmp_path)
