@@ -637,3 +637,56 @@ def test_an_experiment_report_draws_cameras_only_of_runs_with_weights(tmp_path):
     (d / "runs" / "dd-cassi-choi" / "summary.json").write_text("{}")
     page = build_report(d).read_text(encoding="utf-8")
     assert "dd-cassi-choi" not in page
+
+
+def test_an_evaluation_report_draws_the_first_six_scenes_of_its_cubes_and_skips_one_without_truth(tmp_path):
+    """`hsicam report` of an evaluation whose cubes/ hold eight scenes: a comparison and an error figure for each of
+    the first six names in order (a scene whose truth is missing is skipped, the rest still drawn), no more."""
+    from hsicam.data.formats import write_cube_h5
+    from hsicam.io import mark_complete
+    from hsicam.report.html import build_report
+    from hsicam.spectral import Bands
+
+    bands = Bands.uniform(500, 600, 50)
+    mean = {"psnr": 30.0, "ssim": 0.9, "sam": 5.0}
+    names = [f"s{i}" for i in range(8)]
+    ev = tmp_path / "ev"
+    (ev / "cubes").mkdir(parents=True)
+    rng = np.random.default_rng(0)
+    for n in names:
+        truth = rng.random((3, 16, 16)).astype(np.float32)
+        write_cube_h5(ev / "cubes" / f"{n}_estimate.h5", truth * 0.9, bands)
+        if n != "s2":
+            write_cube_h5(ev / "cubes" / f"{n}_truth.h5", truth, bands)
+    (ev / "results.json").write_text(json.dumps({
+        "method": "doe-learned", "scenes": [{"name": n, **mean} for n in names], "mean": mean,
+        "conventions": {"psnr": "per band, peak 1"}, "bands_nm": list(bands.centers_nm)}))
+    mark_complete(ev, {"command": "test"})
+    page = build_report(ev)
+    drawn = sorted(p.name for p in page.parent.glob("recon_*.png"))
+    assert drawn == [f"recon_{n}.png" for n in ("s0", "s1", "s3", "s4", "s5")]
+    assert sorted(p.name for p in page.parent.glob("errors_*.png")) == [f"errors_{n}.png" for n in ("s0", "s1", "s3", "s4", "s5")]
+    text = page.read_text()
+    assert all(f"recon_{n}.png" in text for n in ("s0", "s1", "s3", "s4", "s5"))
+    assert "recon_s6.png" not in text and "recon_s2.png" not in text
+
+
+@pytest.mark.parametrize("n_bands, shown", [(31, 16), (10, 10)])
+def test_the_band_error_figure_spreads_its_bands_from_the_first_to_the_last(tmp_path, monkeypatch, n_bands, shown):
+    """The per-band error figure shows up to 16 bands chosen over the whole range: the first and the last band among
+    them, no gap wider than twice the grid's mean spacing, each panel the |error| of the band it names."""
+    import hsicam.report.html as report
+    from hsicam.spectral import Bands
+
+    bands = Bands.uniform(420, 420 + 10 * (n_bands - 1), 10)
+    truth = np.zeros((n_bands, 8, 8), np.float32)
+    est = truth + np.arange(n_bands, dtype=np.float32)[:, None, None] / 100  # band c's error is c / 100 everywhere
+    figs = []
+    monkeypatch.setattr(report, "save_figure", lambda fig, path: figs.append(fig))
+    report.plot_band_errors(truth, est, bands, tmp_path / "e.png")
+    panels = [(float(ax.get_title().split()[0]), ax.images[0].get_array()) for ax in figs[0].axes if ax.images]
+    nm = [p[0] for p in panels]
+    assert len(nm) == shown and nm[0] == 420 and nm[-1] == 420 + 10 * (n_bands - 1)
+    assert np.all(np.diff(nm) > 0) and np.max(np.diff(nm)) <= 2 * (nm[-1] - nm[0]) / (shown - 1)
+    for wl, img in panels:
+        np.testing.assert_allclose(np.asarray(img), (wl - 420) / 10 / 100, rtol=1e-5)
