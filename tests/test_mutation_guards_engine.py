@@ -531,3 +531,25 @@ def test_a_prior_folder_is_finished_only_with_its_summary_and_its_weights(tmp_pa
     assert is_prior_run(tmp_path)
     (tmp_path / "summary.json").unlink()
     assert not is_prior_run(tmp_path)
+
+
+@pytest.mark.parametrize("key, value", [("features", 16), ("latent", 8), ("train_steps", 7), ("batch_size", 3),
+                                        ("lr", 2e-3), ("train_noise", 0.1), ("seed", 5)])
+def test_a_prior_trained_with_another_autoencoder_setting_is_named_and_an_admm_setting_is_not(tmp_path, key, value):
+    """prior_differences: every setting that changes the trained autoencoder (its sizes, its training and its seed)
+    is named as "baselines.choi.KEY: have → want"; the ADMM settings, applied at evaluation, are not."""
+    import dataclasses
+
+    import yaml
+
+    from hsicam.config import ChoiConfig, dump_yaml, load_config
+    from hsicam.engine.prior import PRIOR_SETTINGS, prior_differences
+
+    cfg = load_config("tiny")
+    (tmp_path / "config.yaml").write_text(dump_yaml(cfg))
+    have = ChoiConfig()
+    (tmp_path / PRIOR_SETTINGS).write_text(yaml.safe_dump(dataclasses.asdict(have)))
+    assert prior_differences(tmp_path, cfg, have) == []
+    assert prior_differences(tmp_path, cfg, dataclasses.replace(have, iterations=3, rho=0.25)) == []
+    want = dataclasses.replace(have, **{key: value})
+    assert prior_differences(tmp_path, cfg, want) == [f"baselines.choi.{key}: {getattr(have, key)!r} → {value!r}"]
