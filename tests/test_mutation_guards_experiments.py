@@ -690,3 +690,17 @@ def test_the_band_error_figure_spreads_its_bands_from_the_first_to_the_last(tmp_
     assert np.all(np.diff(nm) > 0) and np.max(np.diff(nm)) <= 2 * (nm[-1] - nm[0]) / (shown - 1)
     for wl, img in panels:
         np.testing.assert_allclose(np.asarray(img), (wl - 420) / 10 / 100, rtol=1e-5)
+
+
+def test_every_experiment_scale_is_a_shipped_preset_and_the_cli_takes_each(capsys):
+    """The experiments run at the scales of the presets tiny, quick and paper (docs/training.md): `hsicam experiment
+    NAME --scale S` parses for each, and each names a preset that loads; another name is refused by argparse."""
+    from hsicam.cli import build_parser
+
+    parser = build_parser()
+    for scale in ("tiny", "quick", "paper"):
+        assert parser.parse_args(["experiment", "ablation", "--scale", scale, "--out", "x"]).scale == scale
+        load_config(scale)
+    with pytest.raises(SystemExit):
+        parser.parse_args(["experiment", "ablation", "--scale", "huge", "--out", "x"])
+    assert "invalid choice: 'huge'" in capsys.readouterr().err
