@@ -1,0 +1,228 @@
+"""Mutation guards of the command-line floor (``hsicam.cli.*``): each test pins a behaviour that a small
+change of the code (a bound, a forwarded option, a default) broke without any other test noticing. The
+engine is replaced by a recorder where the test is about what the command line hands it."""
+
+from __future__ import annotations
+
+import argparse
+import json
+
+import numpy as np
+import pytest
+
+from cli_helpers import error_line, run_cli_in_process
+
+
+class Received(Exception):
+    """Raised by a recording stand-in of an engine function: the command stops there."""
+
+
+def record(store: dict):
+    def fake(*args, **kwargs):
+        store["args"], store["kwargs"] = args, kwargs
+        raise Received
+    return fake
+
+
+# -- args.py ----------------------------------------------------------------------------------------------
+
+def test_counts_take_their_maximum_and_refuse_one_more():
+    from hsicam.cli.args import MAX_DRAWS, MAX_SEEDS, draws_arg, seeds_arg
+
+    assert seeds_arg(str(MAX_SEEDS)) == MAX_SEEDS
+    assert draws_arg(str(MAX_DRAWS)) == MAX_DRAWS
+    for parse, most in ((seeds_arg, MAX_SEEDS), (draws_arg, MAX_DRAWS)):
+        with pytest.raises(argparse.ArgumentTypeError, match=f"must be at most {most} "):
+            parse(str(most + 1))
+
+
+def test_a_seed_above_the_commands_own_bound_is_a_usage_error(tmp_path):
+    from hsicam.config import TOLERANCE_SEED_MAX
+
+    res = run_cli_in_process("tolerance", "--run", "pretrained:standard", "--out", tmp_path / "t",
+                             "--seed", str(TOLERANCE_SEED_MAX + 1))
+    line = error_line(res)
+    assert line.startswith("hsicam: error: argument --seed: ")
+    assert not (tmp_path / "t").exists()
+
+
+def test_the_bounds_of_noise_and_weight_options_are_inclusive():
+    from hsicam.cli.args import sensor_sigma_arg, sigma_height_arg, tv_weight_arg
+    from hsicam.config import MAX_SENSOR_SIGMA, MAX_SIGMA_HEIGHT_NM, MAX_TV_WEIGHT, MIN_TV_WEIGHT
+
+    assert sensor_sigma_arg("0") == 0.0 and sensor_sigma_arg(repr(MAX_SENSOR_SIGMA)) == MAX_SENSOR_SIGMA
+    assert sigma_height_arg("0") == 0.0 and sigma_height_arg(repr(MAX_SIGMA_HEIGHT_NM)) == MAX_SIGMA_HEIGHT_NM
+    assert tv_weight_arg(repr(MIN_TV_WEIGHT)) == MIN_TV_WEIGHT and tv_weight_arg(repr(MAX_TV_WEIGHT)) == MAX_TV_WEIGHT
+
+
+# -- train.py ---------------------------------------------------------------------------------------------
+
+def test_train_summary_line_says_throughput_and_every_metric():
+    from hsicam.cli.train import summary_line
+
+    s = {"epoch": 2, "step": 1, "patches_per_s": 12.345, "val_psnr": 30.123, "val_ssim": 0.98765, "val_sam": 3.456}
+    assert summary_line(s, "RUN") == ("trained 2 epochs (1 step, 12.3 patches/s): val PSNR 30.12 dB, SSIM 0.9877, "
+                                      "SAM 3.46° -> RUN")
+
+
+# -- reconstruct.py ---------------------------------------------------------------------------------------
+
+def test_a_cfa_offset_shifts_rows_by_y_and_columns_by_x():
+    from hsicam.cli.reconstruct import offset_reconstructor
+
+    seen = []
+
+    def fn(sensor, origin=(0, 0)):
+        seen.append(origin)
+        return sensor
+
+    fn.context_px = 3
+    shifted = offset_reconstructor(fn, (1, 2))
+    shifted(None, (10, 20))
+    shifted(None)
+    assert seen == [(11, 22), (1, 2)] and shifted.context_px == 3
+
+
+def test_a_cfa_flat_is_averaged_over_the_runs_cfa_period(tmp_path):
+    from hsicam.cli.reconstruct import corrections_from_args
+
+    np.save(tmp_path / "flat.npy", np.ones((8, 8), np.float32))
+    args = argparse.Namespace(dark=None, flat=str(tmp_path / "flat.npy"), flat_mode="cfa", black_level=None,
+                              white_level=None, exposure_s=None, reference_exposure_s=None, auto_level=None)
+    assert corrections_from_args(args, 4).flat_period == 4
+    assert corrections_from_args(args, None).flat_period == 1  # no CFA: the flat as it is
+    assert corrections_from_args(argparse.Namespace(**{**vars(args), "flat_mode": "pixel"}), 4).flat_period is None
+
+
+# -- evaluate.py ------------------------------------------------------------------------------------------
+
+def test_evaluate_hands_the_engine_its_noise_seeds_and_tile(tmp_path, monkeypatch):
+    import hsicam.engine.evaluate as ev
+    from hsicam.data.formats import write_cube_h5
+    from hsicam.spectral import Bands
+
+    data = tmp_path / "data"
+    data.mkdir()
+    bands = Bands.paper()
+    write_cube_h5(data / "a.h5", np.full((len(bands), 160, 160), 0.5, np.float32), bands)
+    got: dict = {}
+    monkeypatch.setattr(ev, "evaluate_method", record(got))
+    with pytest.raises(Received):
+        run_cli_in_process("evaluate", "--run", "pretrained:standard", "--data", data,
+                           "--out", tmp_path / "ev", "--sensor-sigma", "0.01", "--sigma-height-nm", "5",
+                           "--seeds", "3", "--tile", "40")
+    noise = got["args"][3]
+    assert (noise.sigma_height_nm, noise.sensor_sigma, tuple(noise.seeds)) == (5.0, 0.01, (0, 1, 2))
+    assert got["kwargs"]["tile_px"] == 40
+
+
+# -- camera.py --------------------------------------------------------------------------------------------
+
+def _simulate(tmp_path, name, *extra):
+    scene = tmp_path / "scene.npy"
+    if not scene.exists():
+        from hsicam.config import load_config
+
+        n = len(load_config("tiny").bands.to_bands())
+        np.save(scene, np.random.default_rng(0).uniform(0.1, 0.2, (n, 24, 24)).astype(np.float32))
+    out = tmp_path / name
+    res = run_cli_in_process("simulate", "--config", "tiny", "--scene", scene, "--out", out,
+                             "--set", "camera.sensor.sigma=0.05", *extra)
+    assert res.returncode == 0, res.stderr
+    return out
+
+
+def test_simulate_draws_its_noise_from_seed_and_records_it(tmp_path):
+    a, b, a2 = (_simulate(tmp_path, n, "--seed", s) for n, s in (("a", "1"), ("b", "2"), ("a2", "1")))
+    sa, sb, sa2 = (np.load(p / "sensor.npy") for p in (a, b, a2))
+    assert np.array_equal(sa, sa2) and not np.array_equal(sa, sb)
+    from hsicam.data.images import SIMULATE_JSON
+
+    assert json.loads((b / SIMULATE_JSON).read_text())["seed"] == 2
+
+
+def test_simulate_png_of_a_dim_sensor_image_is_not_stretched(tmp_path):
+    from PIL import Image
+
+    out = _simulate(tmp_path, "s", "--set", "camera.sensor.sigma=0")
+    sensor = np.load(out / "sensor.npy")
+    assert 0 < sensor.max() < 1.0
+    png = np.asarray(Image.open(out / "sensor.png")).astype(np.float64) / 65535
+    np.testing.assert_allclose(png, np.clip(sensor, 0, 1), atol=1 / 65535)
+
+
+# -- fabrication.py ---------------------------------------------------------------------------------------
+
+def test_tolerance_hands_the_engine_every_option(tmp_path, monkeypatch):
+    import hsicam.engine.tolerance as tol
+
+    got: dict = {}
+    monkeypatch.setattr(tol, "run_tolerance", record(got))
+    with pytest.raises(Received):
+        run_cli_in_process("tolerance", "--run", "pretrained:standard", "--out", tmp_path / "t", "--draws", "7",
+                           "--max-scenes", "2", "--seed", "5", "--shift-subsamples", "3", "--levels", "2,4",
+                           "--sigma-height-nm", "0,15", "--shift-cells", "0,1", "--sensor-distance-um=-5,5")
+    spec = got["args"][2]
+    assert (spec.height_draws, spec.max_scenes, spec.seed, spec.shift_subsamples) == (7, 2, 5, 3)
+    assert (tuple(spec.levels), tuple(spec.sigma_height_nm), tuple(spec.shift_cells),
+            tuple(spec.sensor_distance_um)) == ((2, 4), (0.0, 15.0), (0.0, 1.0), (-5.0, 5.0))
+
+
+@pytest.mark.parametrize("resume", [False, True])
+def test_finetune_rate_is_a_tenth_of_the_runs_unless_resumed(tmp_path, monkeypatch, resume):
+    import hsicam.engine.calibration as cal
+    from hsicam.cli import run_folder
+    from hsicam.config import load_config
+
+    run_lr = load_config(run_folder("pretrained:standard") / "config.yaml").train.lr
+    got: dict = {}
+    monkeypatch.setattr(cal, "finetune", record(got))
+    with pytest.raises(Received):
+        run_cli_in_process("finetune", "--run", "pretrained:standard", "--psf-dir", tmp_path, "--out", tmp_path / "f",
+                           *(["--resume"] if resume else []))
+    rates = [o for o in got["kwargs"]["overrides"] if o.startswith("train.lr=")]
+    if resume:
+        assert rates == []  # a resume goes on with the rate it started with
+    else:
+        assert len(rates) == 1 and float(rates[0].split("=")[1]) == pytest.approx(0.1 * run_lr, rel=1e-6)
+
+
+def test_a_tolerance_never_swept_is_said_so():
+    from hsicam.cli.fabrication import _fmt
+
+    assert (_fmt(None, "nm", not_swept=True), _fmt(None, "nm"), _fmt(12.34, "nm")) == (
+        "not swept", "beyond the swept range", "12.3 nm")
+
+
+# -- data.py ----------------------------------------------------------------------------------------------
+
+def test_data_synth_hands_the_generator_its_options(tmp_path, monkeypatch):
+    import hsicam.data.synthetic as syn
+
+    got: dict = {}
+    monkeypatch.setattr(syn, "generate_dataset", record(got))
+    with pytest.raises(Received):
+        run_cli_in_process("data", "synth", "--config", "tiny", "--split", "heldout", "--seed", "17", "--size", "16",
+                           "--holdout-sources", "cie-a", "--out", tmp_path / "d", "--no-progress")
+    kw = got["kwargs"]
+    assert (kw["n"], kw["size"], kw["seed"], kw["split"], tuple(kw["holdout_sources"])) == (
+        syn.HELDOUT_N, 16, 17, "heldout", ("cie-a",))
+
+
+# -- pretrained.py ----------------------------------------------------------------------------------------
+
+def test_pretrained_pack_forwards_force(tmp_path, monkeypatch):
+    import hsicam.engine.pretrained as pre
+
+    for force in (False, True):
+        got: dict = {}
+        monkeypatch.setattr(pre, "pack_pretrained", record(got))
+        with pytest.raises(Received):
+            run_cli_in_process("pretrained", "pack", tmp_path, "--name", "x", *(["--force"] if force else []))
+        assert got["kwargs"]["overwrite"] is force
+
+
+def test_pretrained_show_takes_the_run_spelling(tmp_path):
+    bare, prefixed = (run_cli_in_process("pretrained", "show", n) for n in ("standard", "pretrained:standard"))
+    assert bare.returncode == prefixed.returncode == 0 and prefixed.stdout == bare.stdout
+
