@@ -226,3 +226,19 @@ def test_pretrained_show_takes_the_run_spelling(tmp_path):
     bare, prefixed = (run_cli_in_process("pretrained", "show", n) for n in ("standard", "pretrained:standard"))
     assert bare.returncode == prefixed.returncode == 0 and prefixed.stdout == bare.stdout
 
+
+
+@pytest.mark.slow  # two PSF stacks of the 31-band camera: ~10 s on a 2-core CPU
+def test_psf_refuses_the_config_a_psf_of_a_trained_run_wrote(tmp_path):
+    trained = tmp_path / "trained"
+    assert run_cli_in_process("psf", "--run", "pretrained:standard", "--out", trained).returncode == 0
+    assert json.loads((trained / "psf.json").read_text())["source"]["run"] == "pretrained:standard"
+    line = error_line(run_cli_in_process("psf", "--config", trained / "config.yaml", "--out", tmp_path / "again"))
+    assert line == (f"hsicam: error: --config {trained / 'config.yaml'}: the config.yaml that hsicam psf wrote for the "
+                    "trained camera pretrained:standard, whose DOE heights are in that run's weights; --config gives the "
+                    "untrained design's camera: use `hsicam psf --run pretrained:standard --out DIR` for the trained camera")
+    assert not (tmp_path / "again").exists()
+    # a psf of a config (no run behind it) is that config's camera: its config.yaml gives it again
+    design = tmp_path / "design"
+    assert run_cli_in_process("psf", "--config", "tiny", "--out", design).returncode == 0
+    assert run_cli_in_process("psf", "--config", design / "config.yaml", "--out", tmp_path / "design2").returncode == 0

@@ -69,6 +69,24 @@ def check_not_run_config(config: str | Path | None, command: str) -> None:
                          f"{run / 'model.safetensors'}; --config gives the untrained design's camera: use "
                          f"`hsicam {command} --run {run} {_REST[command]}` for the trained camera (the design before training: "
                          "copy the config.yaml out of the run folder first)")
+    source = _psf_output_run(run) if path.is_file() else None
+    if source is not None:
+        raise InputError(f"--config {path}: the config.yaml that hsicam psf wrote for the trained camera {source}, whose "
+                         f"DOE heights are in that run's weights; --config gives the untrained design's camera: use "
+                         f"`hsicam {command} --run {source} {_REST[command]}` for the trained camera")
+
+
+def _psf_output_run(folder: Path) -> str | None:
+    """The run (its label) whose trained camera ``folder``, an output of ``hsicam psf --run``, holds the PSFs
+    of (its psf.json's source), else None."""
+    import json
+
+    try:
+        source = json.loads((folder / "psf.json").read_text(encoding="utf-8")).get("source")
+    except (OSError, ValueError, AttributeError):
+        return None
+    run = source.get("run") if isinstance(source, dict) else None
+    return run if isinstance(run, str) and run else None
 
 
 def camera_from_args(args: argparse.Namespace, extra_overrides: tuple[str, ...] = (), command: str = "psf"):
