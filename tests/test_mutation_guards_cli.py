@@ -236,7 +236,8 @@ def test_psf_refuses_the_config_a_psf_of_a_trained_run_wrote(tmp_path):
     line = error_line(run_cli_in_process("psf", "--config", trained / "config.yaml", "--out", tmp_path / "again"))
     assert line == (f"hsicam: error: --config {trained / 'config.yaml'}: the config.yaml that hsicam psf wrote for the "
                     "trained camera pretrained:standard, whose DOE heights are in that run's weights; --config gives the "
-                    "untrained design's camera: use `hsicam psf --run pretrained:standard --out DIR` for the trained camera")
+                    "untrained design's camera: use `hsicam psf --run pretrained:standard --out DIR` for the trained camera "
+                    "(the design before training: copy the config.yaml out of that folder first)")
     assert not (tmp_path / "again").exists()
     # a psf of a config (no run behind it) is that config's camera: its config.yaml gives it again
     design = tmp_path / "design"

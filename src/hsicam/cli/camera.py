@@ -73,7 +73,8 @@ def check_not_run_config(config: str | Path | None, command: str) -> None:
     if source is not None:
         raise InputError(f"--config {path}: the config.yaml that hsicam psf wrote for the trained camera {source}, whose "
                          f"DOE heights are in that run's weights; --config gives the untrained design's camera: use "
-                         f"`hsicam {command} --run {source} {_REST[command]}` for the trained camera")
+                         f"`hsicam {command} --run {source} {_REST[command]}` for the trained camera (the design before training: "
+                         "copy the config.yaml out of that folder first)")
 
 
 def _psf_output_run(folder: Path) -> str | None:
