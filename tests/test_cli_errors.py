@@ -692,6 +692,13 @@ def test_bad_inputs_found_by_session_31s_audit(inputs, tmp_path, capsys, recwarn
                               str(tmp_path / "r.h5"), "--scale", "1e39"])
     assert_one_line(code, err, "--scale factor 1e+39 exceeds float32", "lower --scale")
     assert not [w for w in recwarn if issubclass(w.category, RuntimeWarning)], [str(w.message) for w in recwarn]
+    # the other end (session 57): a gain below float32's smallest numbers left an all-zero image, reconstructed with
+    # only a "very dark" warning, where an all-zero capture is refused
+    code, err = call(capsys, ["reconstruct", str(inputs / "cap.npy"), "--run", str(inputs / "run"), "--out",
+                              str(tmp_path / "r.h5"), "--scale", "1e-300"])
+    assert_one_line(code, err, "--scale factor 1e-300 takes the image below float32's smallest numbers (its brightest "
+                               "pixel becomes 0)", "raise --scale")
+    assert not (tmp_path / "r.h5").exists()
     scene = tmp_path / "group.h5"
     with h5py.File(scene, "w") as f:
         f.create_group("cube")

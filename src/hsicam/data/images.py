@@ -490,6 +490,10 @@ def preprocess_raw(raw: np.ndarray, full_scale: float, corr: RawCorrection, sour
             raise InputError(f"{source}: the exposure × auto-level × --scale factor {factor:g} exceeds float32; "
                              "lower --scale")
         raise InputError(f"{source}: the corrections produced NaN or Inf values")
+    if np.count_nonzero(img > 0) <= MIN_SIGNAL_SHARE * img.size:  # it had signal (_check_signal): float32 underflow
+        raise InputError(f"{source}: the exposure × auto-level × --scale factor {factor:g} takes the image below "
+                         f"float32's smallest numbers (its brightest pixel becomes {float(img.max()):g}): nothing would "
+                         "be left to reconstruct; raise --scale")
     if check_level:
         notes += _check_level(img, corr, source)
     if check_bit_depth and full_scale > 1 and corr.white_level is None and corr.auto_level is None:
