@@ -243,3 +243,28 @@ def test_psf_refuses_the_config_a_psf_of_a_trained_run_wrote(tmp_path):
     design = tmp_path / "design"
     assert run_cli_in_process("psf", "--config", "tiny", "--out", design).returncode == 0
     assert run_cli_in_process("psf", "--config", design / "config.yaml", "--out", tmp_path / "design2").returncode == 0
+
+
+@pytest.mark.slow  # one PSF stack of the 31-band camera: ~5 s on a 2-core CPU
+def test_simulate_records_its_source_and_refuses_the_config_a_simulation_of_a_trained_run_wrote(tmp_path):
+    """simulate.json records the run or config simulated; the config.yaml beside it, when a run's, is refused as
+    --config (it would be the untrained design), and a config's own is taken again."""
+    scene = tmp_path / "scene.npy"
+    np.save(scene, np.full((31, 24, 24), 0.5, np.float32))
+    trained = tmp_path / "trained"
+    assert run_cli_in_process("simulate", "--run", "pretrained:standard", "--scene", scene, "--out", trained).returncode == 0
+    assert json.loads((trained / "simulate.json").read_text())["source"] == {"run": "pretrained:standard"}
+    line = error_line(run_cli_in_process("simulate", "--config", trained / "config.yaml", "--scene", scene,
+                                         "--out", tmp_path / "again"))
+    assert line == (f"hsicam: error: --config {trained / 'config.yaml'}: the config.yaml that hsicam simulate wrote for "
+                    "the trained camera pretrained:standard, whose DOE heights are in that run's weights; --config gives "
+                    "the untrained design's camera: use `hsicam simulate --run pretrained:standard --scene FILE --out DIR` "
+                    "for the trained camera (the design before training: copy the config.yaml out of that folder first)")
+    assert not (tmp_path / "again").exists()
+    small = tmp_path / "small.npy"
+    np.save(small, np.full((7, 24, 24), 0.5, np.float32))  # the tiny camera's 7 bands
+    design = tmp_path / "design"
+    assert run_cli_in_process("simulate", "--config", "tiny", "--scene", small, "--out", design).returncode == 0
+    assert json.loads((design / "simulate.json").read_text())["source"] == {"config": "tiny"}
+    assert run_cli_in_process("simulate", "--config", design / "config.yaml", "--scene", small,
+                              "--out", tmp_path / "design2").returncode == 0

@@ -58,7 +58,8 @@ _REST = {"psf": "--out DIR", "simulate": "--scene FILE --out DIR"}
 
 def check_not_run_config(config: str | Path | None, command: str) -> None:
     """One-line :class:`InputError` when ``--config`` is a trained run's own config.yaml (a file
-    beside ``model.safetensors``): the config describes the camera before training, its trained DOE
+    beside ``model.safetensors``), or the copy of it that ``hsicam psf --run`` or ``hsicam simulate --run`` wrote
+    (their psf.json / simulate.json name the run): the config describes the camera before training, its trained DOE
     heights are in the weights, so ``--config`` would silently give another camera than the run's."""
     if config is None:
         return
@@ -69,25 +70,30 @@ def check_not_run_config(config: str | Path | None, command: str) -> None:
                          f"{run / 'model.safetensors'}; --config gives the untrained design's camera: use "
                          f"`hsicam {command} --run {run} {_REST[command]}` for the trained camera (the design before training: "
                          "copy the config.yaml out of the run folder first)")
-    source = _psf_output_run(run) if path.is_file() else None
+    source = _output_run(run) if path.is_file() else None
     if source is not None:
-        raise InputError(f"--config {path}: the config.yaml that hsicam psf wrote for the trained camera {source}, whose "
+        raise InputError(f"--config {path}: the config.yaml that hsicam {source[0]} wrote for the trained camera {source[1]}, whose "
                          f"DOE heights are in that run's weights; --config gives the untrained design's camera: use "
-                         f"`hsicam {command} --run {source} {_REST[command]}` for the trained camera (the design before training: "
+                         f"`hsicam {command} --run {source[1]} {_REST[command]}` for the trained camera (the design before training: "
                          "copy the config.yaml out of that folder first)")
 
 
-def _psf_output_run(folder: Path) -> str | None:
-    """The run (its label) whose trained camera ``folder``, an output of ``hsicam psf --run``, holds the PSFs
-    of (its psf.json's source), else None."""
+def _output_run(folder: Path) -> tuple[str, str] | None:
+    """(command, run label) when ``folder`` is the output of ``hsicam psf --run RUN`` or ``hsicam simulate --run RUN``
+    (the ``source`` its psf.json or simulate.json records), else None."""
     import json
 
-    try:
-        source = json.loads((folder / "psf.json").read_text(encoding="utf-8")).get("source")
-    except (OSError, ValueError, AttributeError):
-        return None
-    run = source.get("run") if isinstance(source, dict) else None
-    return run if isinstance(run, str) and run else None
+    from hsicam.data.images import SIMULATE_JSON
+
+    for command, name in (("psf", "psf.json"), ("simulate", SIMULATE_JSON)):
+        try:
+            source = json.loads((folder / name).read_text(encoding="utf-8")).get("source")
+        except (OSError, ValueError, AttributeError):
+            continue
+        run = source.get("run") if isinstance(source, dict) else None
+        if isinstance(run, str) and run:
+            return command, run
+    return None
 
 
 def camera_from_args(args: argparse.Namespace, extra_overrides: tuple[str, ...] = (), command: str = "psf"):
@@ -197,10 +203,14 @@ def cmd_simulate(args: argparse.Namespace) -> int:
 
         if args.config:
             raise InputError("--run uses the run's config.yaml; drop --config")
+        from hsicam.runs.pretrained import run_label
+
         cfg, system = load_run(args.run, overrides=(*args.overrides, f"camera.boundary={args.boundary}"))
         camera = system.camera
+        source = {"run": run_label(args.run)}  # its config.yaml below is then no design to simulate again with --config
     else:
         camera, cfg = camera_from_args(args, (f"camera.boundary={args.boundary}",), command="simulate")
+        source = {"config": str(args.config) if args.config else "paper (default)"}
     check_boundary_applies(camera, args.boundary)
     scene = load_scene(args.scene, camera.bands, npy_bands(cfg.data))
     gen = torch.Generator().manual_seed(args.seed)
@@ -221,6 +231,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
             "sensor_png_scale": png_scale,
             "bands_nm": camera.bands.centers_nm.tolist(),
             "seed": args.seed,
+            "source": source,
         })
         with atomic_open(tmp / "config.yaml") as fh:
             fh.write(dump_yaml(cfg))
