@@ -16,6 +16,22 @@ import torch
 from hsicam.config import TrainConfig
 
 
+class _Patches(torch.utils.data.Dataset):
+    """``n`` fixed random 7-band 8×8 patches from ``seed`` (no scene generation), for the loop's tests."""
+
+    def __init__(self, n, seed):
+        self.x = torch.rand(n, 7, 8, 8, generator=torch.Generator().manual_seed(seed))
+
+    def set_epoch(self, epoch):
+        pass
+
+    def __len__(self):
+        return len(self.x)
+
+    def __getitem__(self, i):
+        return self.x[i]
+
+
 def _angles_deg_free(r: np.ndarray, t: np.ndarray, min_brightness: float) -> list[float]:
     """Spectral angles (rad) of the pixels of (B, C, H, W) arrays whose truth's band mean exceeds ``min_brightness``
     (a numpy loop, float64)."""
@@ -157,27 +173,12 @@ def test_the_loop_steps_adam_at_the_scheduled_rate_with_clipped_gradients_and_lo
 
     losses: list[float] = []
 
-    class Patches(torch.utils.data.Dataset):
-        """16 fixed random spectra patches (no scene generation)."""
-
-        def __init__(self, n, seed):
-            self.x = torch.rand(n, 7, 8, 8, generator=torch.Generator().manual_seed(seed))
-
-        def set_epoch(self, epoch):
-            pass
-
-        def __len__(self):
-            return len(self.x)
-
-        def __getitem__(self, i):
-            return self.x[i]
-
     class Watched(PriorTask):
         def data_record(self):
             return None
 
         def datasets(self):
-            return Patches(16, 0), Patches(4, 1)
+            return _Patches(16, 0), _Patches(4, 1)
 
         def training_step(self, trainable, clean, generator):
             loss = super().training_step(trainable, clean, generator)
@@ -426,19 +427,6 @@ def test_a_later_validation_that_only_ties_the_best_keeps_the_earlier_checkpoint
     from hsicam.engine.loop import FitOptions, fit
     from hsicam.engine.tasks import PriorTask
 
-    class Patches(torch.utils.data.Dataset):
-        def __init__(self, n, seed):
-            self.x = torch.rand(n, 7, 8, 8, generator=torch.Generator().manual_seed(seed))
-
-        def set_epoch(self, epoch):
-            pass
-
-        def __len__(self):
-            return len(self.x)
-
-        def __getitem__(self, i):
-            return self.x[i]
-
     class Flat(PriorTask):
         """Every validation scores the same PSNR (a tie each epoch)."""
 
@@ -446,7 +434,7 @@ def test_a_later_validation_that_only_ties_the_best_keeps_the_earlier_checkpoint
             return None
 
         def datasets(self):
-            return Patches(8, 0), Patches(4, 1)
+            return _Patches(8, 0), _Patches(4, 1)
 
         def validate(self, loader, device):
             return {"psnr": 30.0}
