@@ -65,6 +65,15 @@ def test_train_summary_line_says_throughput_and_every_metric():
                                       "SAM 3.46° -> RUN")
 
 
+def test_train_resume_refuses_a_config_it_would_ignore(tmp_path):
+    run = tmp_path / "run"
+    run.mkdir()
+    line = error_line(run_cli_in_process("train", "--out", run, "--resume", "--config", "tiny"))
+    assert line == ("hsicam: error: --resume continues with the run's own config.yaml; drop --config (use --set to "
+                    "change keys)")
+    assert list(run.iterdir()) == []
+
+
 # -- reconstruct.py ---------------------------------------------------------------------------------------
 
 def test_a_cfa_offset_shifts_rows_by_y_and_columns_by_x():
@@ -94,6 +103,90 @@ def test_a_cfa_flat_is_averaged_over_the_runs_cfa_period(tmp_path):
     assert corrections_from_args(argparse.Namespace(**{**vars(args), "flat_mode": "pixel"}), 4).flat_period is None
 
 
+def test_a_cfa_offset_below_zero_in_either_coordinate_is_a_usage_error():
+    from hsicam.cli.reconstruct import cfa_offset_arg
+
+    assert cfa_offset_arg("0,0") == (0, 0) and cfa_offset_arg("2, 3") == (2, 3)
+    for text in ("-1,0", "0,-1"):
+        with pytest.raises(argparse.ArgumentTypeError, match=f"Y and X must be >= 0, got '{text}'"):
+            cfa_offset_arg(text)
+
+
+def test_reconstruct_takes_a_read_noise_of_zero_and_refuses_a_gain_of_zero(tmp_path):
+    from hsicam.cli.reconstruct import check_noise_args
+
+    check_noise_args(argparse.Namespace(full_well_e=100.0, read_noise_e=0.0))  # shot noise alone: accepted
+    np.save(tmp_path / "s.npy", np.full((16, 16), 0.5, np.float32))
+    line = error_line(run_cli_in_process("reconstruct", tmp_path / "s.npy", "--run", "pretrained:standard",
+                                         "--out", tmp_path / "c.h5", "--scale", "0"))
+    assert line == "hsicam: error: --scale must be a positive number"
+    assert not (tmp_path / "c.h5").exists()
+
+
+def _read_cube(path):
+    import h5py
+
+    with h5py.File(path, "r") as f:
+        return f["cube"][()], json.loads(f.attrs["metadata_json"])
+
+
+def test_reconstruct_clips_negative_radiance_at_zero(tmp_path):
+    import torch
+
+    from hsicam.runs.folder import load_run
+
+    sensor = np.random.default_rng(0).random((48, 48)).astype(np.float32)  # a noisy capture: negative excursions
+    np.save(tmp_path / "s.npy", sensor)
+    res = run_cli_in_process("reconstruct", tmp_path / "s.npy", "--run", "pretrained:standard", "--out", tmp_path / "c.h5")
+    assert res.returncode == 0, res.stderr
+    cube, _ = _read_cube(tmp_path / "c.h5")
+    _, model = load_run("pretrained:standard")
+    with torch.no_grad():
+        raw = model.eval().reconstructor()(torch.from_numpy(sensor)[None, None])[0].numpy()
+    assert raw.min() < -0.01  # the network's own estimate goes below 0 here
+    np.testing.assert_allclose(cube, np.maximum(raw, 0), rtol=1e-5, atol=1e-6)
+
+
+def test_a_cube_records_no_consistency_steps_when_the_camera_skips_them(tmp_path, monkeypatch):
+    from hsicam.models import CameraSystem
+
+    np.save(tmp_path / "s.npy", np.full((24, 24), 0.3, np.float32))
+    res = run_cli_in_process("reconstruct", tmp_path / "s.npy", "--run", "pretrained:standard", "--out", tmp_path / "on.h5")
+    assert res.returncode == 0, res.stderr
+    assert _read_cube(tmp_path / "on.h5")[1]["consistency_steps"] >= 1  # the run's steps, taken
+    # a camera whose steps are skipped (as SD-CASSI's): the run's config keeps its steps, the cube took none
+    monkeypatch.setattr(CameraSystem, "consistency_on", property(lambda self: False))
+    res = run_cli_in_process("reconstruct", tmp_path / "s.npy", "--run", "pretrained:standard", "--out", tmp_path / "off.h5")
+    assert res.returncode == 0, res.stderr
+    meta = _read_cube(tmp_path / "off.h5")[1]
+    assert meta["consistency_steps"] == 0 and "consistency_landweber_after" not in meta
+
+
+def _bare_run(folder, *overrides):
+    """An untrained camera of the tiny config with ``overrides``, saved as a run folder (config and weights)."""
+    from hsicam.config import dump_yaml, load_config
+    from hsicam.models import CameraSystem
+    from hsicam.runs.checkpoint import save_weights
+
+    from conftest import TINY_CAMERA_OVERRIDES
+
+    folder.mkdir()
+    cfg = load_config("tiny", [*TINY_CAMERA_OVERRIDES, *overrides])
+    (folder / "config.yaml").write_text(dump_yaml(cfg), encoding="utf-8")
+    model = CameraSystem.from_config(cfg)
+    save_weights(folder / "model.safetensors", model, model.bands)
+    return folder
+
+
+def test_a_capture_thinner_than_two_pixels_is_refused_without_a_cfa(tmp_path):
+    run = _bare_run(tmp_path / "nocfa", "camera.cfa.enabled=false")
+    np.save(tmp_path / "thin.npy", np.full((1, 40), 0.5, np.float32))
+    line = error_line(run_cli_in_process("reconstruct", tmp_path / "thin.npy", "--run", run, "--out", tmp_path / "t.h5"))
+    assert line == (f"hsicam: error: {tmp_path / 'thin.npy'}: the capture is 1×40 px, smaller than a 2×2 image "
+                    "(2×2 px): too small to reconstruct")
+    assert not (tmp_path / "t.h5").exists()
+
+
 # -- evaluate.py ------------------------------------------------------------------------------------------
 
 def test_evaluate_hands_the_engine_its_noise_seeds_and_tile(tmp_path, monkeypatch):
@@ -114,6 +207,33 @@ def test_evaluate_hands_the_engine_its_noise_seeds_and_tile(tmp_path, monkeypatc
     noise = got["args"][3]
     assert (noise.sigma_height_nm, noise.sensor_sigma, tuple(noise.seeds)) == (5.0, 0.01, (0, 1, 2))
     assert got["kwargs"]["tile_px"] == 40
+
+
+def test_evaluate_of_a_run_refuses_a_config_it_would_ignore(tmp_path, monkeypatch):
+    import hsicam.engine.evaluate as ev
+    from hsicam.data.formats import write_cube_h5
+    from hsicam.spectral import Bands
+
+    data = tmp_path / "data"
+    data.mkdir()
+    write_cube_h5(data / "a.h5", np.full((len(Bands.paper()), 32, 32), 0.5, np.float32), Bands.paper())
+    monkeypatch.setattr(ev, "evaluate_method", record({}))  # never reached: the refusal comes first
+    line = error_line(run_cli_in_process("evaluate", "--run", "pretrained:standard", "--config", "tiny",
+                                         "--data", data, "--out", tmp_path / "ev"))
+    assert line == "hsicam: error: --run uses the run's config.yaml; drop --config"
+
+
+def test_experiment_writes_to_runs_experiments_name_scale_by_default(tmp_path, monkeypatch):
+    import hsicam.engine.experiments as experiments
+
+    got: dict = {}
+    monkeypatch.setattr(experiments, "run_experiment", record(got))
+    monkeypatch.chdir(tmp_path)
+    with pytest.raises(Received):
+        run_cli_in_process("experiment", "ablation", "--scale", "tiny")
+    name, scale, out = got["args"][:3]
+    assert (name, scale) == ("ablation", "tiny")
+    assert (tmp_path / out).resolve() == (tmp_path / "runs" / "experiments" / "ablation-tiny").resolve()
 
 
 # -- camera.py --------------------------------------------------------------------------------------------
@@ -194,6 +314,33 @@ def test_a_tolerance_never_swept_is_said_so():
         "not swept", "beyond the swept range", "12.3 nm")
 
 
+def test_tolerance_refuses_an_empty_list_of_values(tmp_path, monkeypatch):
+    import hsicam.engine.tolerance as tol
+
+    monkeypatch.setattr(tol, "run_tolerance", record({}))  # never reached: the refusal comes first
+    for opt in ("--levels", "--sigma-height-nm", "--shift-cells", "--sensor-distance-um"):
+        line = error_line(run_cli_in_process("tolerance", "--run", "pretrained:standard", "--out", tmp_path / "t",
+                                             f"{opt}=,"))
+        assert line == f"hsicam: error: {opt} needs at least one value"
+    assert not (tmp_path / "t").exists()
+
+
+def test_tolerance_without_a_doe_refuses_draws_alone(tmp_path, monkeypatch):
+    import hsicam.engine.tolerance as tol
+
+    monkeypatch.setattr(tol, "run_tolerance", record({}))
+    run = _bare_run(tmp_path / "nodoe", "camera.doe.enabled=false")
+    line = error_line(run_cli_in_process("tolerance", "--run", run, "--out", tmp_path / "t", "--draws", "2"))
+    assert line.startswith("hsicam: error: ") and "--draws" in line and "has no DOE (camera.doe.enabled: false)" in line
+
+
+def test_finetune_refuses_zero_epochs_naming_its_option(tmp_path):
+    line = error_line(run_cli_in_process("finetune", "--run", "pretrained:standard", "--psf-dir", tmp_path,
+                                         "--out", tmp_path / "f", "--epochs", "0"))
+    assert line == "hsicam: error: --epochs must be >= 1"
+    assert not (tmp_path / "f").exists()
+
+
 # -- data.py ----------------------------------------------------------------------------------------------
 
 def test_data_synth_hands_the_generator_its_options(tmp_path, monkeypatch):
@@ -207,6 +354,13 @@ def test_data_synth_hands_the_generator_its_options(tmp_path, monkeypatch):
     kw = got["kwargs"]
     assert (kw["n"], kw["size"], kw["seed"], kw["split"], tuple(kw["holdout_sources"])) == (
         syn.HELDOUT_N, 16, 17, "heldout", ("cie-a",))
+
+
+def test_data_synth_refuses_scenes_below_16_px(tmp_path):
+    line = error_line(run_cli_in_process("data", "synth", "--config", "tiny", "--n", "1", "--size", "15",
+                                         "--out", tmp_path / "d", "--no-progress"))
+    assert line == "hsicam: error: --n must be >= 1 and --size >= 16, got 1 and 15"
+    assert not (tmp_path / "d").exists()
 
 
 # -- pretrained.py ----------------------------------------------------------------------------------------
@@ -225,6 +379,25 @@ def test_pretrained_pack_forwards_force(tmp_path, monkeypatch):
 def test_pretrained_show_takes_the_run_spelling(tmp_path):
     bare, prefixed = (run_cli_in_process("pretrained", "show", n) for n in ("standard", "pretrained:standard"))
     assert bare.returncode == prefixed.returncode == 0 and prefixed.stdout == bare.stdout
+
+
+# -- demo.py ----------------------------------------------------------------------------------------------
+
+def test_demo_says_whether_it_trains_or_resumes_its_run(tmp_path, monkeypatch, capsys):
+    import hsicam.engine.demo as demo
+    from hsicam.cli import main
+    from hsicam.config import dump_yaml
+
+    monkeypatch.setattr(demo, "run_demo", record({}))
+    out = tmp_path / "demo"
+    with pytest.raises(Received):
+        main(["demo", "--config", "tiny", "--out", str(out)])
+    assert capsys.readouterr().out.startswith(f"[demo] training the camera in {out / 'run'} (")
+    (out / "run").mkdir(parents=True, exist_ok=True)  # a run started with this config, not finished
+    (out / "run" / "config.yaml").write_text(dump_yaml(demo.demo_config("tiny", ())), encoding="utf-8")
+    with pytest.raises(Received):
+        main(["demo", "--config", "tiny", "--out", str(out)])
+    assert capsys.readouterr().out.startswith(f"[demo] resuming the camera in {out / 'run'} (")
 
 
 
