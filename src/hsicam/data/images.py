@@ -779,6 +779,8 @@ def read_capture(path: str | Path, corr: RawCorrection | None = None, scale: flo
                 simulated_scale = float(json.loads(meta.read_text()).get("sensor_png_scale", 1.0))
             except (ValueError, TypeError, AttributeError):
                 raise InputError(f"{meta}: unreadable simulate.json") from None
+            if not (math.isfinite(simulated_scale) and simulated_scale > 0):  # not a --scale the user gave
+                raise InputError(f"{meta}: its sensor_png_scale is {simulated_scale:g}, not a positive scale")
         stretched = simulated_scale > 1.0
         # a --scale multiplies the image at its simulated level, as it multiplies simulate's sensor.npy
         scale = simulated_scale * (corr.scale if scale is None else scale)
