@@ -207,3 +207,25 @@ def test_progress_bar_when_asked_counts_to_the_total(capsys, caplog):
     assert p._bar is None and p.done == 3
     assert not caplog.records  # the bar, not the log lines
 
+
+@pytest.mark.parametrize("body, why", [({"dir": "checkpoints/step-00000002", "global_step": "abc"},
+                                        "'last.step' is not a step number: 'abc'"),
+                                       ({"dir": 5, "global_step": 2}, "'last.dir' is not a checkpoint folder inside the run: 5"),
+                                       ({"dir": "/etc", "global_step": 2},
+                                        "'last.dir' is not a checkpoint folder inside the run: '/etc'")])
+def test_a_damaged_legacy_last_pointer_is_one_line_for_every_reader(tmp_path, body, why):
+    """An older run's last.json is checked as a manifest's entries are: a step that is no number was a ValueError
+    traceback from `hsicam train --restart` (finished_checkpoint_step's int()), a dir that is no string a TypeError
+    from CheckpointManager.path, and an absolute dir was followed outside the run."""
+    from hsicam.runs.folder import finished_checkpoint_step, restart_run_dir
+
+    (tmp_path / "last.json").write_text(json.dumps(body))
+    expected = (f"{tmp_path / 'last.json'}: corrupt checkpoint pointer ({why}); copy the run folder again from its "
+                "source, or train it again")
+    for call in (lambda: CheckpointManager(tmp_path).path("last"), CheckpointManager(tmp_path).manifest):
+        with pytest.raises(InputError) as err:
+            call()
+        assert str(err.value) == expected
+    # as for a corrupt checkpoints.json: no finished checkpoint, so --restart starts the run again
+    assert finished_checkpoint_step(tmp_path) is None
+    assert restart_run_dir(tmp_path) is True and not (tmp_path / "last.json").exists()

@@ -288,6 +288,10 @@ class CheckpointManager:
             except (OSError, UnicodeDecodeError, ValueError, KeyError, TypeError, AttributeError):
                 raise InputError(f"{ptr}: corrupt checkpoint pointer") from None
             entries[tag] = {"dir": d, "step": data.get("global_step"), "state": data}
+            problem = _entry_problem(tag, entries[tag])  # checked as a manifest's entries are: readers index it
+            if problem is not None:
+                raise InputError(f"{ptr}: corrupt checkpoint pointer ({problem}); copy the run folder again from "
+                                 "its source, or train it again")
         if "last" not in entries:
             return None
         best = entries.get("best")
