@@ -1,0 +1,261 @@
+"""Lines of the core modules (data, config, cli, solvers, spectral) that the default suite never ran: each test runs
+one and checks what it does against an independent reference (the exact line a user sees, a cube read back)."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import h5py
+import numpy as np
+import pytest
+import yaml
+
+from cli_helpers import assert_ok, error_line, run_cli_in_process
+from hsicam.config import ConfigError, load_config
+from hsicam.data.measured_psf import import_psf_dir
+from hsicam.errors import InputError
+from hsicam.spectral import Bands
+
+ONE_BAND = Bands(np.array([500.0]), np.array([10.0]))
+
+
+def _spot(size: int = 31) -> np.ndarray:
+    img = np.zeros((size, size))
+    img[size // 2, size // 2] = 1.0
+    img[size // 2 - 1:size // 2 + 2, size // 2 - 1:size // 2 + 2] += 0.1
+    return img
+
+
+def _psf_dir(d: Path, meta, files: dict[str, np.ndarray]) -> Path:
+    d.mkdir()
+    if meta is not None:
+        (d / "psf.json").write_text(meta if isinstance(meta, str) else json.dumps(meta))
+    for name, arr in files.items():
+        np.save(d / name, arr)
+    return d
+
+
+# --- data/measured_psf.py: every refusal of a PSF folder is one clear line naming what is wrong -----------------
+
+STACK = np.stack([_spot()] * 2)
+
+
+@pytest.mark.parametrize("meta, files, text", [
+    ("[1, 2]", {"psf_500nm.npy": _spot()}, "{d}/psf.json: must be a JSON object"),
+    ({"axis_px": [1]}, {"psf_500nm.npy": _spot()}, "psf.json: axis_px must be [row, col], got [1]"),
+    ({"wavelength_tolerance_nm": "x"}, {"psf_500nm.npy": _spot()}, "psf.json: wavelength_tolerance_nm must be a number"),
+    ({"bands_nm": "abc"}, {"psf.npy": STACK}, "{d}/psf.json: bands_nm must be a list of numbers"),
+    ({"bands_nm": [500, 510, 520]}, {"psf.npy": STACK},
+     "{d}/psf.npy: expected a (C, H, W) stack with C = 3 (bands_nm), got shape (2, 31, 31)"),
+    ({"bands_nm": [500, 510]}, {"psf.npy": STACK > 0}, "{d}/psf.npy: unsupported data type bool"),
+    ({"bands_nm": [500, 510]}, {"psf.npy": np.zeros((2, 0, 5))}, "{d}/psf.npy: unusable PSF stack shape (2, 0, 5)"),
+    (None, {"psf.npy": STACK}, "{d}/psf.npy: a PSF stack needs its wavelengths: bands_nm in {d}/psf.json"),
+    (None, {"psf_500nm.npy": _spot(), "b_500nm.npy": _spot()}, "{d}: two PSF images name the same wavelength"),
+    ({"centre": "middle"}, {"psf_500nm.npy": _spot()},
+     "PSF centre must be one of centroid, peak, axis, centroid_per_band, peak_per_band, got 'middle'"),
+    ({"centre": "axis"}, {"psf_500nm.npy": _spot()}, "PSF centre 'axis' needs axis_px [row, col] in psf.json"),
+    ({"normalize": "max"}, {"psf_500nm.npy": _spot()}, "PSF normalize must be 'sum' or 'none', got 'max'"),
+    ({"wavelength_tolerance_nm": 0}, {"psf_500nm.npy": _spot()}, "wavelength_tolerance_nm must be positive"),
+    ({"background": "nan"}, {"psf_500nm.npy": _spot()},
+     "{d}/psf_500nm.npy (500 nm): PSF background must be finite, got 'nan'"),
+    ({"background": "median"}, {"psf_500nm.npy": _spot()},
+     "{d}/psf_500nm.npy (500 nm): PSF background must be 'none', 'border' or a number, got 'median'"),
+    ({"background": "border"}, {"psf_500nm.npy": _spot()[:3, :3]},
+     "{d}/psf_500nm.npy (500 nm): PSF image of 3×3 px is too small for border background estimation"),
+    ({"background": 5}, {"psf_500nm.npy": _spot()},
+     "{d}/psf_500nm.npy (500 nm): PSF image has no positive signal (after background subtraction)"),
+])
+def test_psf_folder_refusals_name_the_problem(tmp_path, meta, files, text):
+    d = _psf_dir(tmp_path / "psfs", meta, files)
+    with pytest.raises(InputError) as exc:
+        import_psf_dir(d, ONE_BAND, 5e-6, 15, pitch_um=5.0)
+    assert str(exc.value) == text.format(d=d)
+
+
+def test_psf_pitch_unknown_and_mixed_sizes_under_a_common_centre(tmp_path):
+    d = _psf_dir(tmp_path / "a", {}, {"psf_500nm.npy": _spot()})
+    with pytest.raises(InputError) as exc:
+        import_psf_dir(d, ONE_BAND, 5e-6, 15)
+    assert str(exc.value) == ("the measured PSFs' pixel pitch is unknown: put pixel_pitch_um in psf.json or pass "
+                              "--psf-pitch-um")
+    two = Bands(np.array([500.0, 510.0]), np.array([10.0, 10.0]))
+    d = _psf_dir(tmp_path / "b", {"centre": "centroid"}, {"psf_500nm.npy": _spot(31), "psf_510nm.npy": _spot(21)})
+    with pytest.raises(InputError) as exc:
+        import_psf_dir(d, two, 5e-6, 15, pitch_um=5.0)
+    assert str(exc.value) == (f"{d}: PSF images have different sizes [(21, 21), (31, 31)]; a common centre needs one "
+                              "frame (use centre: centroid_per_band or axis in psf.json)")
+
+
+def test_a_coarser_psf_pitch_spreads_each_sample_over_its_pixel(tmp_path, caplog):
+    """Sampled at twice the camera's pitch, a one-sample PSF centred on the axis is a 10 µm square of light over 5 µm
+    pixels: per axis half on the centre pixel and a quarter on each neighbour (area resampling), with the warning
+    that says so."""
+    img = np.zeros((31, 31))
+    img[15, 15] = 1.0
+    d = _psf_dir(tmp_path / "p", {"centre": "axis", "axis_px": [15.0, 15.0]}, {"psf_500nm.npy": img})
+    caplog.set_level("WARNING")
+    psf = import_psf_dir(d, ONE_BAND, 5e-6, 15, pitch_um=10.0).psf
+    assert "coarser than the camera's 5 µm pixels" in caplog.text
+    k = np.asarray(psf[0])
+    assert k.sum() == pytest.approx(1.0, abs=1e-9)
+    one_axis = np.array([0.25, 0.5, 0.25])
+    expected = np.zeros((15, 15))
+    expected[6:9, 6:9] = np.outer(one_axis, one_axis)
+    np.testing.assert_allclose(k, expected, atol=1e-6)
+
+
+# --- config.py -----------------------------------------------------------------------------------------------------
+
+def test_config_not_utf8_is_one_config_error(tmp_path):
+    p = tmp_path / "a.yaml"
+    p.write_bytes(b"seed: 1\n# \xff\xfe\n")
+    with pytest.raises(ConfigError) as exc:
+        load_config(p)
+    assert str(exc.value) == (f"{p}: cannot read config ('utf-8' codec can't decode byte 0xff in position 10: "
+                              "invalid start byte)")
+
+
+def test_an_old_model_section_is_read_as_kind_and_rdn(tmp_path):
+    """``model: {name: rdn, blocks: …}`` (configs written before network kinds) reads as the current layout."""
+    old, new = tmp_path / "old.yaml", tmp_path / "new.yaml"
+    old.write_text("model:\n  name: rdn\n  blocks: 3\n  features: 8\n")
+    new.write_text("model:\n  kind: rdn\n  rdn: {blocks: 3, features: 8}\n")
+    assert load_config(old).model == load_config(new).model
+    assert load_config(old).model.rdn.blocks == 3
+
+
+@pytest.mark.parametrize("override, text", [
+    ("a..b=1", "override 'a..b=1': empty key"),
+    ("model.rdn.blocks=0", "model.rdn.blocks must be >= 1, got 0"),
+    ("train.epochs=0", "train.epochs must be >= 1, got 0"),
+    ("train.warmup_steps=-1", "train.warmup_steps must be >= 0, got -1"),
+    ("data.heldout_n=0", "data.heldout_n must be >= 1, got 0"),
+    ('data.root=" "', "data.root must be a path or null"),
+    ("camera.sensor.read_noise_e=-1", "camera.sensor.read_noise_e must be >= 0, got -1.0"),
+    ("baselines.gaptv.tv_weight=-1", "baselines.gaptv.tv_weight must be >= 0, got -1.0"),
+])
+def test_config_refusals(override, text):
+    with pytest.raises(ConfigError) as exc:
+        load_config(None, [override])
+    assert str(exc.value) == text
+
+
+# --- cli: the one line a user sees ---------------------------------------------------------------------------------
+
+def test_error_line_of_unreadable_inputs():
+    from hsicam.cli import error_line as line
+
+    try:
+        json.loads('{"a": }')
+    except json.JSONDecodeError as exc:
+        assert line(exc) == "unreadable JSON input (Expecting value at line 1)"
+    try:
+        b"\xff".decode("utf-8")
+    except UnicodeDecodeError as exc:
+        assert line(exc) == "unreadable input: not UTF-8 text (invalid start byte)"
+    assert line(MemoryError()).startswith("out of memory (lower the memory budget HSICAM_MEMORY_BUDGET_MB")
+    try:
+        yaml.safe_load("a: [1")
+    except yaml.YAMLError as exc:
+        assert line(exc) == f"unreadable YAML input ({str(exc).splitlines()[0]})"
+    assert line(ValueError("a bug")) is None
+
+
+def test_cli_refusals_without_a_run(tmp_path):
+    res = run_cli_in_process("data", "show", str(tmp_path / "nothing"))
+    assert error_line(res) == f"hsicam: error: {tmp_path / 'nothing'}: no such dataset folder or cube file"
+    res = run_cli_in_process("data", "synth", "--n", "1", "--size", "16", "--split", "heldout", "--holdout-sources",
+                             "none", "--out", str(tmp_path / "s"))
+    assert error_line(res) == ("hsicam: error: --split heldout needs at least one held-out source "
+                               "(--holdout-sources)")
+    assert not (tmp_path / "s").exists()
+    res = run_cli_in_process("psf", "--config", "dd_cassi_rdn", "--out", str(tmp_path / "p"))
+    assert error_line(res) == "hsicam: error: hsicam psf needs a DOE camera (camera.kind=doe), not camera.kind=dd_cassi"
+
+
+@pytest.fixture(scope="module")
+def no_cfa_run(tmp_path_factory, cache_env):
+    """A DOE run without a CFA, one consistency step that is not noise-aware (trains in seconds)."""
+    run = tmp_path_factory.mktemp("nocfa") / "run"
+    res = run_cli_in_process("train", "--config", "tiny", "--set", "camera.cfa.enabled=false", "--set",
+                             "model.consistency.iterations=1", "--set", "model.consistency.noise_aware=false",
+                             "--set", "train.epochs=1", "--out", str(run))
+    assert_ok(res)
+    return run
+
+
+def test_reconstruct_options_that_change_nothing_say_so_and_change_nothing(no_cfa_run, tmp_path):
+    cap = tmp_path / "cap.npy"
+    np.save(cap, np.random.default_rng(0).uniform(0.1, 0.6, (40, 40)).astype(np.float32))
+    assert_ok(run_cli_in_process("reconstruct", str(cap), "--run", str(no_cfa_run), "--out", str(tmp_path / "a.h5")))
+    res = run_cli_in_process("reconstruct", str(cap), "--run", str(no_cfa_run), "--out", str(tmp_path / "b.h5"),
+                             "--cfa-offset", "1,2", "--full-well-e", "1000")
+    assert_ok(res)
+    assert "--cfa-offset is ignored: the camera has no colour filter array" in res.stderr
+    assert "--full-well-e changes nothing: the run's model.consistency.noise_aware is off" in res.stderr
+    with h5py.File(tmp_path / "a.h5", "r") as a, h5py.File(tmp_path / "b.h5", "r") as b:
+        np.testing.assert_array_equal(a["cube"][()], b["cube"][()])
+        assert "cfa_offset" not in json.loads(b.attrs["metadata_json"])
+    res = run_cli_in_process("reconstruct", str(cap), "--run", str(no_cfa_run), "--out", str(tmp_path / "c.tif"))
+    assert error_line(res) == f"hsicam: error: {tmp_path / 'c.tif'}: output must end in .h5 (HDF5) or .hdr (ENVI)"
+    assert not list(tmp_path.glob("c.*")) and not list(tmp_path.glob("c_*"))
+
+
+# --- spectral / solvers / datasets ---------------------------------------------------------------------------------
+
+def test_bands_from_dict_missing_key_and_comparison_with_another_type():
+    with pytest.raises(InputError) as exc:
+        Bands.from_dict({"centers_nm": [500.0]})
+    assert str(exc.value) == "Bands: missing key 'fwhm_nm'"
+    assert (Bands.paper() == "paper") is False and (Bands.paper() != 3) is True
+
+
+def test_solver_setting_refusals(tiny_camera):
+    import torch
+
+    from hsicam.solvers.desci import desci_settings
+    from hsicam.solvers.gaptv import gap_tv
+
+    with pytest.raises(InputError) as exc:
+        desci_settings(sigmas=[1.0, 2.0], iterations=[3])
+    assert str(exc.value) == "DeSCI: 2 sigmas but 1 iteration counts"
+    with pytest.raises(InputError) as exc:
+        desci_settings(patch=0)
+    assert str(exc.value) == "DeSCI: patch, step, group, match_every and chunk must be >= 1, search >= 0"
+    cam = tiny_camera()
+    h, w = cam.sensor_size((32, 32))
+    with pytest.raises(InputError) as exc:
+        gap_tv(cam, torch.zeros(1, 1, h, w), iterations=-1)
+    assert str(exc.value) == "iterations must be >= 0, got -1"
+
+
+def test_scene_and_patch_dataset_refusals(tmp_path):
+    from hsicam.data.datasets import PatchDataset, SceneDataset
+
+    with pytest.raises(InputError) as exc:
+        SceneDataset([], Bands.paper())
+    assert str(exc.value) == "SceneDataset: no scenes"
+    for kwargs, text in (({"patch_px": 0}, "PatchDataset: need patch_px >= 1 and margin_px >= 0, got 0, 0"),
+                         ({"patch_px": 8, "patches_per_epoch": 0}, "PatchDataset: patches_per_epoch must be >= 1, got 0")):
+        with pytest.raises(InputError) as exc:
+            PatchDataset(None, **kwargs)
+        assert str(exc.value) == text
+
+
+def test_experiment_refuses_a_folder_that_holds_something_else(tmp_path):
+    out = tmp_path / "ex"
+    out.mkdir()
+    (out / "notes.txt").write_text("mine")
+    res = run_cli_in_process("experiment", "ablation", "--scale", "tiny", "--out", str(out))
+    assert error_line(res) == f"hsicam: error: {out}: folder exists and is not an experiment folder; choose another --out"
+    assert sorted(p.name for p in out.iterdir()) == ["notes.txt"] and (out / "notes.txt").read_text() == "mine"
+
+
+def test_data_show_of_an_all_zero_cube_is_one_clear_error(tmp_path):
+    cube = tmp_path / "zero.npy"
+    np.save(cube, np.zeros((7, 32, 32), np.float32))
+    res = run_cli_in_process("data", "show", str(cube), "--out", str(tmp_path / "show"))
+    assert res.returncode == 2 and "Traceback" not in res.stderr
+    assert res.stderr.strip().splitlines()[-1] == (f"hsicam: error: {cube}: the cube is all zeros; cannot normalise by "
+                                                  "its maximum")
