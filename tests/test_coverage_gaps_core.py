@@ -45,6 +45,9 @@ STACK = np.stack([_spot()] * 2)
     ("[1, 2]", {"psf_500nm.npy": _spot()}, "{d}/psf.json: must be a JSON object"),
     ({"axis_px": [1]}, {"psf_500nm.npy": _spot()}, "psf.json: axis_px must be [row, col], got [1]"),
     ({"wavelength_tolerance_nm": "x"}, {"psf_500nm.npy": _spot()}, "psf.json: wavelength_tolerance_nm must be a number"),
+    # JSON booleans are no numbers (Python counts them as ints: [true, false] was read as the axis (1, 0))
+    ({"axis_px": [True, False]}, {"psf_500nm.npy": _spot()}, "psf.json: axis_px must be [row, col], got [True, False]"),
+    ({"wavelength_tolerance_nm": True}, {"psf_500nm.npy": _spot()}, "psf.json: wavelength_tolerance_nm must be a number"),
     ({"bands_nm": "abc"}, {"psf.npy": STACK}, "{d}/psf.json: bands_nm must be a list of numbers"),
     ({"bands_nm": [500, 510, 520]}, {"psf.npy": STACK},
      "{d}/psf.npy: expected a (C, H, W) stack with C = 3 (bands_nm), got shape (2, 31, 31)"),

@@ -374,6 +374,12 @@ def _read_manifest(d: Path) -> dict[str, Any]:
     return meta
 
 
+def _is_number(v: Any) -> bool:
+    """A JSON number (``true`` / ``false`` are bools, which Python counts as ints: an axis at [true, false] is no
+    position)."""
+    return isinstance(v, (int, float)) and not isinstance(v, bool)
+
+
 def options_from_manifest(meta: dict[str, Any], pitch_um: float | None = None, centre: str | None = None,
                           background: str | float | None = None) -> PSFImportOptions:
     """Import options: arguments first, then ``psf.json`` keys, then defaults."""
@@ -384,11 +390,11 @@ def options_from_manifest(meta: dict[str, Any], pitch_um: float | None = None, c
         axis, centre = [(k - 1) / 2, (k - 1) / 2], "axis"
         meta = {"normalize": "none", **meta}  # already energy fractions of the whole FFT plane
     if axis is not None:
-        if not (isinstance(axis, list) and len(axis) == 2 and all(isinstance(v, (int, float)) for v in axis)):
+        if not (isinstance(axis, list) and len(axis) == 2 and all(_is_number(v) for v in axis)):
             raise InputError(f"psf.json: axis_px must be [row, col], got {axis!r}")
         axis = (float(axis[0]), float(axis[1]))
     tol = meta.get("wavelength_tolerance_nm", 1.0)
-    if not isinstance(tol, (int, float)):
+    if not _is_number(tol):
         raise InputError("psf.json: wavelength_tolerance_nm must be a number")
     opts = PSFImportOptions(
         pitch_um=pitch_um if pitch_um is not None else meta.get("pixel_pitch_um"),
