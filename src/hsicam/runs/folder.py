@@ -504,13 +504,6 @@ def restart_run_dir(run_dir: Path) -> bool:
     return True
 
 
-def prepare_run_dir(run_dir: Path, resume: bool) -> None:
-    """:func:`check_run_dir`, then create the folder of a new run."""
-    check_run_dir(run_dir, resume)
-    if not resume:
-        run_dir.mkdir(parents=True, exist_ok=True)
-
-
 class MetricsLog:
     """Append-only metrics.jsonl; each record is written with one write() call."""
 
