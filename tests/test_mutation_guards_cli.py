@@ -400,7 +400,6 @@ def test_demo_says_whether_it_trains_or_resumes_its_run(tmp_path, monkeypatch, c
     assert capsys.readouterr().out.startswith(f"[demo] resuming the camera in {out / 'run'} (")
 
 
-
 @pytest.mark.slow  # two PSF stacks of the 31-band camera: ~10 s on a 2-core CPU
 def test_psf_refuses_the_config_a_psf_of_a_trained_run_wrote(tmp_path):
     trained = tmp_path / "trained"
