@@ -229,3 +229,45 @@ def test_a_damaged_legacy_last_pointer_is_one_line_for_every_reader(tmp_path, bo
     # as for a corrupt checkpoints.json: no finished checkpoint, so --restart starts the run again
     assert finished_checkpoint_step(tmp_path) is None
     assert restart_run_dir(tmp_path) is True and not (tmp_path / "last.json").exists()
+
+
+# --- engine/experiments.py: the refusals and small decisions the default suite never reached (session 57) ----------
+
+def test_an_unknown_experiment_is_refused_naming_every_experiment_the_cli_offers():
+    from hsicam.engine.experiments import run_specs
+
+    with pytest.raises(InputError) as exc:
+        run_specs("sweep")
+    assert str(exc.value) == "unknown experiment 'sweep'; choose one of compare, ablation, noise, cfa-period"
+
+
+def test_the_cfa_period_sweep_without_a_preset_is_one_run_per_period_setting_only_the_period():
+    from hsicam.engine.experiments import cfa_period_specs
+
+    specs = cfa_period_specs(None, (2, 3, 5))
+    assert [(s.name, tuple(s.overrides)) for s in specs] == [
+        ("period-2", ("camera.cfa.period=2",)), ("period-3", ("camera.cfa.period=3",)),
+        ("period-5", ("camera.cfa.period=5",))]
+
+
+def test_a_run_whose_metrics_log_ends_in_a_torn_line_is_not_finished(tmp_path):
+    """A kill mid-write leaves half a JSON line at the end of metrics.jsonl: the run is unfinished (resumed), not an
+    error, and the same run with its final record whole is finished."""
+    from hsicam.engine.experiments import is_finished
+
+    (tmp_path / "model.safetensors").write_bytes(b"w")
+    (tmp_path / "config.yaml").write_text("train: {}\n")
+    (tmp_path / "metrics.jsonl").write_text('{"step": 1}\n{"step": 2, "final": tr')
+    assert not is_finished(tmp_path)
+    (tmp_path / "metrics.jsonl").write_text('{"step": 1}\n{"step": 2, "final": true}\n')
+    assert is_finished(tmp_path)
+
+
+def test_scoring_the_held_out_sources_of_a_config_that_holds_none_out_is_one_line():
+    from hsicam.config import load_config
+    from hsicam.engine.experiments import scored_scenes
+
+    cfg = load_config("tiny", ["data.holdout_sources=none"])
+    with pytest.raises(InputError) as exc:
+        scored_scenes(cfg, heldout=True)
+    assert str(exc.value) == "the run holds out no spectral sources (data.holdout_sources)"
