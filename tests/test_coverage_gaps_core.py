@@ -126,6 +126,17 @@ def test_an_old_model_section_is_read_as_kind_and_rdn(tmp_path):
     new.write_text("model:\n  kind: rdn\n  rdn: {blocks: 3, features: 8}\n")
     assert load_config(old).model == load_config(new).model
     assert load_config(old).model.rdn.blocks == 3
+    # both spellings agreeing are one setting; disagreeing, neither is silently dropped (session 57)
+    old.write_text("model:\n  name: rdn\n  kind: rdn\n  blocks: 3\n  rdn: {blocks: 3, features: 8}\n")
+    assert load_config(old).model == load_config(new).model
+    for text, error in (("model:\n  kind: rdn\n  name: unrolled\n",
+                         "model.name (the older spelling of model.kind) is 'unrolled' but model.kind is 'rdn'; keep one"),
+                        ("model:\n  blocks: 5\n  rdn: {blocks: 3}\n",
+                         "model.blocks (the older spelling of model.rdn.blocks) is 5 but model.rdn.blocks is 3; keep one")):
+        old.write_text(text)
+        with pytest.raises(ConfigError) as exc:
+            load_config(old)
+        assert str(exc.value) == error
 
 
 @pytest.mark.parametrize("override, text", [

@@ -1041,9 +1041,15 @@ def _migrate_model_section(data: dict[str, Any]) -> None:
         return
     for k in _RDN_KEYS:
         if k in model:
-            rdn.setdefault(k, model.pop(k))
+            old = model.pop(k)
+            if rdn.setdefault(k, old) != old:  # both spellings, two values: neither is silently dropped
+                raise ConfigError(f"model.{k} (the older spelling of model.rdn.{k}) is {old!r} but model.rdn.{k} is "
+                                  f"{rdn[k]!r}; keep one")
     if "name" in model:
-        model.setdefault("kind", model.pop("name"))
+        old = model.pop("name")
+        if model.setdefault("kind", old) != old:
+            raise ConfigError(f"model.name (the older spelling of model.kind) is {old!r} but model.kind is "
+                              f"{model['kind']!r}; keep one")
 
 
 PRESETS_DIR = Path(__file__).resolve().parent / "configs"
