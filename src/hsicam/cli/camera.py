@@ -61,21 +61,25 @@ def check_not_run_config(config: str | Path | None, command: str) -> None:
     beside ``model.safetensors``), or the copy of it that ``hsicam psf --run`` or ``hsicam simulate --run`` wrote
     (their psf.json / simulate.json name the run): the config describes the camera before training, its trained DOE
     heights are in the weights, so ``--config`` would silently give another camera than the run's."""
-    if config is None:
+    if config is None or not Path(config).is_file():
         return
     path = Path(config)
-    run = path.parent
-    if path.is_file() and (run / "model.safetensors").is_file():
-        raise InputError(f"--config {path}: the config.yaml of the trained run {run}, whose DOE heights are in "
-                         f"{run / 'model.safetensors'}; --config gives the untrained design's camera: use "
-                         f"`hsicam {command} --run {run} {_REST[command]}` for the trained camera (the design before training: "
-                         "copy the config.yaml out of the run folder first)")
-    source = _output_run(run) if path.is_file() else None
-    if source is not None:
-        raise InputError(f"--config {path}: the config.yaml that hsicam {source[0]} wrote for the trained camera {source[1]}, whose "
-                         f"DOE heights are in that run's weights; --config gives the untrained design's camera: use "
-                         f"`hsicam {command} --run {source[1]} {_REST[command]}` for the trained camera (the design before training: "
-                         "copy the config.yaml out of that folder first)")
+    folder = path.parent
+    if (folder / "model.safetensors").is_file():
+        run, what = folder, (f"the config.yaml of the trained run {folder}, whose DOE heights are in "
+                             f"{folder / 'model.safetensors'}")
+        where = "the run folder"
+    else:
+        source = _output_run(folder)
+        if source is None:
+            return
+        writer, run = source
+        what = (f"the config.yaml that hsicam {writer} wrote for the trained camera {run}, whose DOE heights are in "
+                "that run's weights")
+        where = "that folder"
+    raise InputError(f"--config {path}: {what}; --config gives the untrained design's camera: use "
+                     f"`hsicam {command} --run {run} {_REST[command]}` for the trained camera (the design before training: "
+                     f"copy the config.yaml out of {where} first)")
 
 
 def _output_run(folder: Path) -> tuple[str, str] | None:
