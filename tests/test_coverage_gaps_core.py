@@ -43,11 +43,11 @@ STACK = np.stack([_spot()] * 2)
 
 @pytest.mark.parametrize("meta, files, text", [
     ("[1, 2]", {"psf_500nm.npy": _spot()}, "{d}/psf.json: must be a JSON object"),
-    ({"axis_px": [1]}, {"psf_500nm.npy": _spot()}, "psf.json: axis_px must be [row, col], got [1]"),
-    ({"wavelength_tolerance_nm": "x"}, {"psf_500nm.npy": _spot()}, "psf.json: wavelength_tolerance_nm must be a number"),
+    ({"axis_px": [1]}, {"psf_500nm.npy": _spot()}, "{d}/psf.json: axis_px must be [row, col], got [1]"),
+    ({"wavelength_tolerance_nm": "x"}, {"psf_500nm.npy": _spot()}, "{d}/psf.json: wavelength_tolerance_nm must be a number"),
     # JSON booleans are no numbers (Python counts them as ints: [true, false] was read as the axis (1, 0))
-    ({"axis_px": [True, False]}, {"psf_500nm.npy": _spot()}, "psf.json: axis_px must be [row, col], got [True, False]"),
-    ({"wavelength_tolerance_nm": True}, {"psf_500nm.npy": _spot()}, "psf.json: wavelength_tolerance_nm must be a number"),
+    ({"axis_px": [True, False]}, {"psf_500nm.npy": _spot()}, "{d}/psf.json: axis_px must be [row, col], got [True, False]"),
+    ({"wavelength_tolerance_nm": True}, {"psf_500nm.npy": _spot()}, "{d}/psf.json: wavelength_tolerance_nm must be a number"),
     ({"bands_nm": "abc"}, {"psf.npy": STACK}, "{d}/psf.json: bands_nm must be a list of numbers"),
     ({"bands_nm": [500, 510, 520]}, {"psf.npy": STACK},
      "{d}/psf.npy: expected a (C, H, W) stack with C = 3 (bands_nm), got shape (2, 31, 31)"),
@@ -56,10 +56,10 @@ STACK = np.stack([_spot()] * 2)
     (None, {"psf.npy": STACK}, "{d}/psf.npy: a PSF stack needs its wavelengths: bands_nm in {d}/psf.json"),
     (None, {"psf_500nm.npy": _spot(), "b_500nm.npy": _spot()}, "{d}: two PSF images name the same wavelength"),
     ({"centre": "middle"}, {"psf_500nm.npy": _spot()},
-     "PSF centre must be one of centroid, peak, axis, centroid_per_band, peak_per_band, got 'middle'"),
-    ({"centre": "axis"}, {"psf_500nm.npy": _spot()}, "PSF centre 'axis' needs axis_px [row, col] in psf.json"),
-    ({"normalize": "max"}, {"psf_500nm.npy": _spot()}, "PSF normalize must be 'sum' or 'none', got 'max'"),
-    ({"wavelength_tolerance_nm": 0}, {"psf_500nm.npy": _spot()}, "wavelength_tolerance_nm must be positive"),
+     "{d}: PSF centre must be one of centroid, peak, axis, centroid_per_band, peak_per_band, got 'middle'"),
+    ({"centre": "axis"}, {"psf_500nm.npy": _spot()}, "{d}: PSF centre 'axis' needs axis_px [row, col] in psf.json"),
+    ({"normalize": "max"}, {"psf_500nm.npy": _spot()}, "{d}: PSF normalize must be 'sum' or 'none', got 'max'"),
+    ({"wavelength_tolerance_nm": 0}, {"psf_500nm.npy": _spot()}, "{d}: wavelength_tolerance_nm must be positive"),
     ({"background": "nan"}, {"psf_500nm.npy": _spot()},
      "{d}/psf_500nm.npy (500 nm): PSF background must be finite, got 'nan'"),
     ({"background": "median"}, {"psf_500nm.npy": _spot()},
@@ -80,7 +80,7 @@ def test_psf_pitch_unknown_and_mixed_sizes_under_a_common_centre(tmp_path):
     d = _psf_dir(tmp_path / "a", {}, {"psf_500nm.npy": _spot()})
     with pytest.raises(InputError) as exc:
         import_psf_dir(d, ONE_BAND, 5e-6, 15)
-    assert str(exc.value) == ("the measured PSFs' pixel pitch is unknown: put pixel_pitch_um in psf.json or pass "
+    assert str(exc.value) == (f"{d}: the measured PSFs' pixel pitch is unknown: put pixel_pitch_um in psf.json or pass "
                               "--psf-pitch-um")
     two = Bands(np.array([500.0, 510.0]), np.array([10.0, 10.0]))
     d = _psf_dir(tmp_path / "b", {"centre": "centroid"}, {"psf_500nm.npy": _spot(31), "psf_510nm.npy": _spot(21)})

@@ -381,8 +381,10 @@ def _is_number(v: Any) -> bool:
 
 
 def options_from_manifest(meta: dict[str, Any], pitch_um: float | None = None, centre: str | None = None,
-                          background: str | float | None = None) -> PSFImportOptions:
-    """Import options: arguments first, then ``psf.json`` keys, then defaults."""
+                          background: str | float | None = None, folder: Path | None = None) -> PSFImportOptions:
+    """Import options: arguments first, then ``psf.json`` keys, then defaults. ``folder``: the PSF folder, named in
+    every refusal."""
+    where = folder / "psf.json" if folder is not None else "psf.json"
     axis = meta.get("axis_px")
     if axis is None and centre is None and "centre" not in meta and isinstance(meta.get("kernel_px"), int):
         # written by `hsicam psf`: simulated kernels with the optical axis on the centre pixel
@@ -391,11 +393,11 @@ def options_from_manifest(meta: dict[str, Any], pitch_um: float | None = None, c
         meta = {"normalize": "none", **meta}  # already energy fractions of the whole FFT plane
     if axis is not None:
         if not (isinstance(axis, list) and len(axis) == 2 and all(_is_number(v) for v in axis)):
-            raise InputError(f"psf.json: axis_px must be [row, col], got {axis!r}")
+            raise InputError(f"{where}: axis_px must be [row, col], got {axis!r}")
         axis = (float(axis[0]), float(axis[1]))
     tol = meta.get("wavelength_tolerance_nm", 1.0)
     if not _is_number(tol):
-        raise InputError("psf.json: wavelength_tolerance_nm must be a number")
+        raise InputError(f"{where}: wavelength_tolerance_nm must be a number")
     opts = PSFImportOptions(
         pitch_um=pitch_um if pitch_um is not None else meta.get("pixel_pitch_um"),
         centre=centre or meta.get("centre", "centroid"),
@@ -404,7 +406,12 @@ def options_from_manifest(meta: dict[str, Any], pitch_um: float | None = None, c
         normalize=meta.get("normalize", "sum"),
         wavelength_tolerance_nm=float(tol),
     )
-    opts.check()
+    try:
+        opts.check()
+    except InputError as exc:
+        if folder is None:
+            raise
+        raise InputError(f"{folder}: {exc}") from None
     return opts
 
 
@@ -509,7 +516,7 @@ def import_psf_dir(psf_dir: str | Path, bands: Bands, camera_pixel_m: float, ker
         raise InputError(f"{d}: no such PSF folder")
     meta = _read_manifest(d)
     items = _list_band_images(d, meta)  # first: a folder without images needs no pitch to be refused
-    opts = options_from_manifest(meta, pitch_um, centre, background)
+    opts = options_from_manifest(meta, pitch_um, centre, background, folder=d)
     waves = np.array([w for w, _, _, _ in items])
     chosen, missing = [], []
     for lam in bands.centers_nm:
