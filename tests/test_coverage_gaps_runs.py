@@ -76,7 +76,8 @@ def test_an_optimizer_file_whose_groups_torch_refuses_is_one_line(tmp_path):
     save_safetensors(path, {}, {"param_groups": json.dumps([{"lr": 1.0}]), "scalars": "{}"})  # no 'params'
     with pytest.raises(InputError) as err:
         load_optimizer(path, torch.optim.Adam(torch.nn.Linear(1, 1).parameters()))
-    assert str(err.value).startswith(f"{path}: optimizer state does not fit (")
+    assert str(err.value) == (f"{path}: not an hsicam optimizer state (a parameter group has no 'params' entry); "
+                              "copy the run folder again from its source, or train it again")
 
 
 # ------------------------------------------------------------------------------------------------
@@ -271,3 +272,25 @@ def test_scoring_the_held_out_sources_of_a_config_that_holds_none_out_is_one_lin
     with pytest.raises(InputError) as exc:
         scored_scenes(cfg, heldout=True)
     assert str(exc.value) == "the run holds out no spectral sources (data.holdout_sources)"
+
+
+@pytest.mark.parametrize("stale", ["file", "folder"])
+def test_a_stale_step_entry_no_manifest_names_is_replaced_by_the_checkpoint(tmp_path, stale):
+    """A file (or a half-written folder, left by a killed process) in the place of the step folder that no manifest
+    names is replaced: the checkpoint is written and committed, its weights read back equal the model's."""
+    from hsicam.spectral import Bands
+
+    model = torch.nn.Linear(3, 2)
+    opt = torch.optim.Adam(model.parameters())
+    place = tmp_path / "checkpoints" / "step-00000004"
+    if stale == "file":
+        place.parent.mkdir(parents=True)
+        place.write_text("not a checkpoint")
+    else:
+        place.mkdir(parents=True)
+        (place / "model.safetensors").write_bytes(b"torn")
+    manager = CheckpointManager(tmp_path)
+    manager.save(model, opt, {"global_step": 4}, Bands.uniform(500, 600, 50), ("last",))
+    assert manager.manifest()["last"]["dir"] == "checkpoints/step-00000004"
+    tensors, _ = read_weights(place / "model.safetensors")
+    assert torch.equal(tensors["weight"], model.weight.detach())

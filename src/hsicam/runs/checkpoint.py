@@ -229,7 +229,10 @@ def load_optimizer(path: str | Path, optimizer: torch.optim.Optimizer) -> None:
                          "differs from the run's config.yaml); resume with the run's own settings, or start a new run")
     try:
         optimizer.load_state_dict({"state": state, "param_groups": groups})
-    except (ValueError, KeyError, TypeError, AttributeError) as exc:
+    except KeyError as exc:  # torch's own words would be just the key, e.g. ('params')
+        raise InputError(f"{path}: not an hsicam optimizer state (a parameter group has no {exc.args[0]!r} entry); "
+                         "copy the run folder again from its source, or train it again") from None
+    except (ValueError, TypeError, AttributeError) as exc:
         raise InputError(f"{path}: optimizer state does not fit ({exc})") from None
     for param, st in optimizer.state.items():  # torch checks none of this; the first step would fail on it
         for name, val in st.items():
@@ -335,11 +338,13 @@ class CheckpointManager:
             # only the training state moves on, and it lives in the manifest.
             sha = named[rel].get("weights_sha256") or file_sha256(final / "model.safetensors")
         else:
-            if final.exists():  # a folder no manifest names (left by a killed process): redo it
-                shutil.rmtree(final)
             tmp = self.ckpt_dir / f".{name}.{os.urandom(4).hex()}.tmpdir"
             writing = final  # what a failed write is named by
             try:
+                if final.is_dir() and not final.is_symlink():  # a folder no manifest names (left by a killed
+                    shutil.rmtree(final)                          # process): redo it
+                elif final.is_symlink() or final.exists():  # a file (or link) in the step folder's place
+                    final.unlink()
                 self.ckpt_dir.mkdir(parents=True, exist_ok=True)
                 os.mkdir(tmp)
                 for file, write in (("model.safetensors", lambda p: save_weights(p, model, bands, meta)),
