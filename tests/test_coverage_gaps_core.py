@@ -136,7 +136,19 @@ def test_an_old_model_section_is_read_as_kind_and_rdn(tmp_path):
         old.write_text(text)
         with pytest.raises(ConfigError) as exc:
             load_config(old)
-        assert str(exc.value) == error
+        assert str(exc.value) == f"{old}: {error}"  # the file is named, as for every other error in it
+        with pytest.raises(ConfigError) as exc:  # with an override that is not at fault: still the file's
+            load_config(old, ["train.epochs=2"])
+        assert str(exc.value) == f"{old}: {error}"
+    # model.rdn not a mapping: that is the error, not the older keys beside it (they were named unknown)
+    old.write_text("model:\n  name: rdn\n  rdn: 5\n  blocks: 3\n")
+    with pytest.raises(ConfigError) as exc:
+        load_config(old)
+    assert str(exc.value) == f"{old}: model.rdn must be a mapping, got int"
+    old.write_text("model:\n  name: rdn\n")
+    with pytest.raises(ConfigError) as exc:  # an override breaking the section: the override's error, no file
+        load_config(old, ["model.rdn=5"])
+    assert str(exc.value) == "model.rdn must be a mapping, got int"
 
 
 @pytest.mark.parametrize("override, text", [

@@ -1007,8 +1007,8 @@ def load_config(path: str | Path | None = None, overrides: Sequence[str] = (), c
         apply_override(data, item)
     if path is not None and not overrides:
         return _file_settings(path, cls, data)
-    _migrate_model_section(data)
     try:  # the file and the overrides together, as the module docstring says (an override may complete the file)
+        _migrate_model_section(data)
         return from_dict(cls, data)
     except ConfigError:
         if file_alone is not None:  # what is wrong in the file names the file; what an override breaks, the override
@@ -1019,8 +1019,8 @@ def load_config(path: str | Path | None = None, overrides: Sequence[str] = (), c
 def _file_settings(path: Path, cls: type, data: dict[str, Any]) -> Any:
     """``cls`` from the settings ``data`` read from the file ``path``; a :class:`ConfigError` in them names the
     file (``PATH: unknown config key 'x'``), as the README's one error line promises."""
-    _migrate_model_section(data)
     try:
+        _migrate_model_section(data)
         return from_dict(cls, data)
     except ConfigError as exc:
         text = str(exc)
@@ -1037,8 +1037,8 @@ def _migrate_model_section(data: dict[str, Any]) -> None:
     if not isinstance(model, dict) or not any(k in model for k in (*_RDN_KEYS, "name")):
         return
     rdn = model.setdefault("rdn", {})
-    if not isinstance(rdn, dict):
-        return
+    if not isinstance(rdn, dict):  # said here: left as it is, the older keys would be the ones named unknown
+        raise ConfigError(f"model.rdn must be a mapping, got {type(rdn).__name__}")
     for k in _RDN_KEYS:
         if k in model:
             old = model.pop(k)
