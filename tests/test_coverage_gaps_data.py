@@ -1,0 +1,310 @@
+"""Lines of the data readers (formats, images, preview, estimates) and of export that the default suite never
+ran: each user-facing refusal checked against the exact text a user sees, each edge case against a file read
+back in its real format or a closed form."""
+from __future__ import annotations
+
+import json
+import logging
+import sys
+import types
+
+import h5py
+import numpy as np
+import pytest
+import scipy.io
+
+from hsicam.errors import InputError
+from hsicam.spectral.bands import Bands
+
+
+def _msg(exc) -> str:
+    return str(exc.value)
+
+
+# ---- data/formats.py: band lists -----------------------------------------------------------------------
+def test_one_band_npy_is_read_at_550_nm(tmp_path):
+    """A (1, H, W) .npy without a band grid: its one band at the middle of 400-700 nm, 10 nm wide (the
+    'evenly spaced' grid of one band), the cube as stored."""
+    from hsicam.data.formats import read_cube
+
+    arr = np.random.default_rng(0).random((1, 5, 6)).astype(np.float32)
+    np.save(tmp_path / "one.npy", arr)
+    cube, bands, meta = read_cube(tmp_path / "one.npy")
+    np.testing.assert_array_equal(cube, arr)
+    assert bands.centers_nm.tolist() == [(400.0 + 700.0) / 2] and bands.fwhm_nm.tolist() == [10.0]
+    assert meta["bands_assumed"] is True
+
+
+def test_a_mat_file_of_one_band_with_its_band_list_reads_that_band(tmp_path):
+    """A single-band MAT cube (H×W×1) with 'bands': no order to check, the listed wavelength kept."""
+    from hsicam.data.formats import read_cube
+
+    img = np.random.default_rng(1).random((4, 5, 1))
+    scipy.io.savemat(tmp_path / "one.mat", {"cube": img, "bands": np.array([612.5])})
+    cube, bands, meta = read_cube(tmp_path / "one.mat")
+    np.testing.assert_allclose(cube, img.transpose(2, 0, 1).astype(np.float32))
+    assert bands.centers_nm.tolist() == [612.5] and meta["format"] == "arad"
+
+
+@pytest.mark.parametrize("edit, tail", [
+    ({"fwhm_nm": [-1.0, 10.0, 10.0]}, "invalid band list: Bands: FWHM must be finite and positive"),
+    ({"fwhm_nm": [10.0, 10.0]}, "invalid band list: Bands: 3 centres but 2 FWHM values"),
+    ({"bands_nm": [500.0, np.nan, 520.0]},
+     "invalid band list: Bands: band centres must be finite and positive, got 1 that are not (e.g. [nan]) among 3"),
+])
+def test_our_h5_with_a_bad_band_list_is_refused_naming_the_file(tmp_path, edit, tail):
+    from hsicam.data.formats import read_cube, write_cube_h5
+
+    p = write_cube_h5(tmp_path / "c.h5", np.ones((3, 4, 4), np.float32), Bands.from_centers([500.0, 510.0, 520.0]))
+    with h5py.File(p, "a") as f:
+        for key, values in edit.items():
+            if key in f:
+                del f[key]
+            f[key] = np.array(values)
+    with pytest.raises(InputError) as exc:
+        read_cube(p)
+    assert _msg(exc) == f"{p}: {tail}"
+
+
+def test_our_h5_with_a_descending_band_list_flips_its_fwhm_with_it(tmp_path):
+    from hsicam.data.formats import read_cube, write_cube_h5
+
+    cube = np.random.default_rng(2).random((3, 4, 4)).astype(np.float32)
+    p = write_cube_h5(tmp_path / "c.h5", cube, Bands.from_centers([500.0, 510.0, 520.0]))
+    with h5py.File(p, "a") as f:
+        del f["bands_nm"], f["cube"]
+        if "fwhm_nm" in f:
+            del f["fwhm_nm"]
+        f["bands_nm"], f["fwhm_nm"], f["cube"] = np.array([520.0, 510.0, 500.0]), np.array([5.0, 10.0, 20.0]), cube
+    got, bands, _ = read_cube(p)
+    np.testing.assert_array_equal(got, cube[::-1])
+    assert bands.centers_nm.tolist() == [500.0, 510.0, 520.0] and bands.fwhm_nm.tolist() == [20.0, 10.0, 5.0]
+
+
+# ---- data/formats.py: files that are not what the reader was asked for ------------------------------
+def test_hdf5_without_any_known_variable_names_what_it_holds(tmp_path):
+    from hsicam.data.formats import read_cube
+
+    p = tmp_path / "foo.h5"
+    with h5py.File(p, "w") as f:
+        f["foo"] = np.ones(3)
+    with pytest.raises(InputError) as exc:
+        read_cube(p)
+    assert _msg(exc) == (f"{p}: HDF5/MAT file with no known hyperspectral variable (expected one of cube, rad, img, "
+                         "img_expand, HSI, ref; found foo): rename the cube's variable to one of these (with its band "
+                         "list as 'bands', in nm), or rewrite it with hsicam.data.formats.write_cube_h5")
+
+
+def test_explicit_readers_refuse_files_of_another_kind(tmp_path):
+    from hsicam.data.formats import read_hsicam_h5, read_icvl
+
+    rad = tmp_path / "rad.h5"
+    with h5py.File(rad, "w") as f:
+        f["rad"] = np.ones((3, 4, 4), np.float32)
+    with pytest.raises(InputError) as exc:
+        read_hsicam_h5(rad)
+    assert _msg(exc) == f"{rad}: missing key 'cube' (not an hsicam cube file)"
+
+    m5 = tmp_path / "m5.mat"
+    scipy.io.savemat(m5, {"foo": np.ones((4, 4, 3))})
+    with pytest.raises(InputError) as exc:
+        read_icvl(m5)
+    assert _msg(exc) == f"{m5}: missing key 'rad' (found: foo)"
+
+    txt = tmp_path / "t.mat"
+    txt.write_text("hello")
+    with pytest.raises(InputError) as exc:
+        read_icvl(txt)
+    assert _msg(exc) == f"{txt}: not a MAT file (no MATLAB 5.0 header and not HDF5/MAT v7.3)"
+
+    with pytest.raises(InputError) as exc:
+        read_icvl(tmp_path)  # a folder given to a file reader
+    assert _msg(exc) == f"{tmp_path}: cannot read (Is a directory)"
+
+
+def test_a_group_where_the_cube_variable_goes_is_refused(tmp_path):
+    from hsicam.data.formats import read_cube
+
+    p = tmp_path / "g.h5"
+    with h5py.File(p, "w") as f:
+        f.create_group("rad")
+    with pytest.raises(InputError) as exc:
+        read_cube(p)
+    assert _msg(exc) == f"{p}: 'rad' is not a numeric array"
+
+
+def test_read_window_of_an_hdf5_that_is_not_ours_is_none(tmp_path):
+    """Not our HDF5 (an ICVL-style file): no window; the caller reads the whole cube through its reader."""
+    from hsicam.data.formats import read_window
+
+    p = tmp_path / "rad.h5"
+    with h5py.File(p, "w") as f:
+        f["rad"] = np.ones((3, 4, 4), np.float32)
+    assert read_window(p, 0, 0, 2, 2) is None
+
+
+def test_npy_of_format_version_3_is_refused_naming_the_version(tmp_path):
+    from hsicam.data.formats import read_cube
+
+    p = tmp_path / "v3.npy"
+    with open(p, "wb") as fh:
+        np.lib.format.write_array(fh, np.ones((2, 3, 3), np.float32), version=(3, 0))
+    assert p.read_bytes()[6:8] == b"\x03\x00"
+    with pytest.raises(InputError) as exc:
+        read_cube(p)
+    assert _msg(exc) == f"{p}: unsupported NPY format version 3.0"
+
+
+# ---- data/formats.py: OpenEXR -------------------------------------------------------------------------
+def _exr(path, channels):
+    OpenEXR = pytest.importorskip("OpenEXR")
+    if not hasattr(OpenEXR, "File"):
+        pytest.skip("openexr < 3.3")
+    header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
+    with OpenEXR.File(header, {n: OpenEXR.Channel(a) for n, a in channels.items()}) as f:
+        f.write(str(path))
+    return path
+
+
+def test_exr_refusals_name_the_file_and_the_channels(tmp_path):
+    from hsicam.data.formats import read_kaist_exr
+
+    plane = np.ones((4, 4), np.float32)
+    p = _exr(tmp_path / "rgb.exr", {"R": plane, "G": plane})
+    with pytest.raises(InputError) as exc:
+        read_kaist_exr(p)
+    assert _msg(exc) == f"{p}: no EXR channel name carries a wavelength (channels: G, R)"
+
+    p = _exr(tmp_path / "twice.exr", {"w500nm": plane, "w500.0nm": plane, "w510nm": plane})
+    with pytest.raises(InputError) as exc:
+        read_kaist_exr(p)
+    assert _msg(exc) == f"{p}: two EXR channels name the same wavelength"
+
+
+def test_exr_reader_without_openexr_or_with_an_old_one_says_what_to_install(tmp_path, monkeypatch):
+    from hsicam.data.formats import read_kaist_exr
+
+    p = tmp_path / "s.exr"
+    p.write_bytes(b"\x76\x2f\x31\x01")
+    monkeypatch.setitem(sys.modules, "OpenEXR", None)  # import OpenEXR: ImportError
+    with pytest.raises(InputError) as exc:
+        read_kaist_exr(p)
+    assert _msg(exc) == f"{p}: reading OpenEXR needs the 'openexr' package (pip install 'hsicam[exr]')"
+    monkeypatch.setitem(sys.modules, "OpenEXR", types.ModuleType("OpenEXR"))  # openexr < 3.3: no OpenEXR.File
+    with pytest.raises(InputError) as exc:
+        read_kaist_exr(p)
+    assert _msg(exc) == f"{p}: reading OpenEXR needs openexr >= 3.3 (the OpenEXR.File API)"
+
+
+# ---- data/formats.py: ENVI ----------------------------------------------------------------------------
+def test_envi_wrong_byte_order_is_named_with_a_data_ignore_value_too(tmp_path):
+    """A float32 file whose header says byte order 0 but whose bytes are big-endian: a value that reads NaN
+    little-endian and finite big-endian is blamed on the header's byte order, also when the header gives a
+    data ignore value (the no-data values are left out of the other order's check)."""
+    from envi_files import write_envi_pair
+
+    from hsicam.data.formats import read_cube
+
+    le = np.full((2, 3, 3), 1.0, "<f4")
+    le[0, 0, 0] = np.frombuffer(bytes([0, 0, 0xC0, 0x7F]), "<f4")[0]  # NaN read little-endian
+    le[1, 2, 2] = -1.0  # the ignore value as read little-endian
+    assert np.isnan(le[0, 0, 0]) and np.isfinite(le.view(">f4")).all()  # big-endian: all finite
+    hdr = write_envi_pair(tmp_path, le, "data ignore value = -1\n", [500, 600], dtype="<f4", code=4, interleave="bsq")
+    with pytest.raises(InputError) as exc:
+        read_cube(hdr)
+    assert _msg(exc) == (f"{tmp_path / 'scene.img'}: 1 NaN/Inf value(s) with byte order 0, none with byte order 1: "
+                         "fix 'byte order' in scene.hdr")
+
+
+def test_envi_hsicam_metadata_not_in_braces_is_ignored_with_a_warning(tmp_path, caplog):
+    from envi_files import write_envi_pair
+
+    from hsicam.data.formats import read_cube
+
+    chw = np.random.default_rng(3).random((2, 3, 3)).astype(np.float32)
+    hdr = write_envi_pair(tmp_path, chw, 'hsicam metadata = "{}"\n', [500, 600], dtype="<f4", code=4)
+    with caplog.at_level(logging.WARNING, logger="hsicam.data.formats"):
+        cube, _, meta = read_cube(hdr)
+    np.testing.assert_array_equal(cube, chw)
+    assert f"{hdr}: ignoring its unreadable 'hsicam metadata' (not a JSON object in braces)" in caplog.messages
+    assert "command" not in meta
+
+
+# ---- data/images.py -----------------------------------------------------------------------------------
+def test_tiff_capture_beside_an_unreadable_simulate_json_names_that_file(tmp_path):
+    import tifffile
+
+    from hsicam.data.images import read_capture
+
+    tifffile.imwrite(tmp_path / "sensor.tif", np.full((8, 8), 30000, np.uint16))
+    (tmp_path / "simulate.json").write_text("{not json")
+    with pytest.raises(InputError) as exc:
+        read_capture(tmp_path / "sensor.tif")
+    assert _msg(exc) == f"{tmp_path / 'simulate.json'}: unreadable simulate.json"
+
+
+def test_raw_correction_flat_period_below_one_is_refused():
+    from hsicam.data.images import RawCorrection
+
+    with pytest.raises(InputError) as exc:
+        RawCorrection(flat_period=0)
+    assert _msg(exc) == "flat period must be >= 1, got 0"
+
+
+def test_dark_frame_brighter_than_most_pixels_warns_naming_the_dark_frame(caplog):
+    """60 % of the pixels below a dark frame of 800 DN: a warning naming the dark frame (its median), not a black
+    level; the image is (raw - dark) / (white - black) with black = the dark frame's median."""
+    from hsicam.data.images import RawCorrection, preprocess_raw
+
+    raw = np.full((10, 10), 1000.0, np.float32)
+    raw[:6] = 700.0
+    dark = np.full((10, 10), 800.0, np.float32)
+    with caplog.at_level(logging.WARNING, logger="hsicam.data.images"):
+        img, report = preprocess_raw(raw, 4095.0, RawCorrection(dark=dark), "cap.npy", check_bit_depth=False)
+    np.testing.assert_allclose(img, (raw - 800.0) / (4095.0 - 800.0), rtol=1e-6)
+    assert report["black_level_dn"] == 800.0
+    assert any(m.startswith("cap.npy: 60 % of the pixels are below 0 after subtracting the dark frame (median 800 DN); ")
+               for m in caplog.messages), caplog.messages
+
+
+# ---- data/estimates.py: files that are not reconstruct's ----------------------------------------------
+def test_is_reconstruct_h5_is_false_for_hdf5_that_reconstruct_did_not_write(tmp_path):
+    from hsicam.data.estimates import is_reconstruct_h5
+    from hsicam.data.formats import write_cube_h5
+
+    plain = tmp_path / "plain.h5"
+    with h5py.File(plain, "w") as f:  # another tool's HDF5
+        f["cube"] = np.ones((2, 3, 3), np.float32)
+    assert not is_reconstruct_h5(plain)
+    listed = write_cube_h5(tmp_path / "list.h5", np.ones((2, 3, 3), np.float32), Bands.from_centers([500.0, 600.0]))
+    with h5py.File(listed, "a") as f:
+        f.attrs["metadata_json"] = json.dumps(["command", "reconstruct"])  # JSON, but not an object
+    assert not is_reconstruct_h5(listed)
+    mine = write_cube_h5(tmp_path / "mine.h5", np.ones((2, 3, 3), np.float32), Bands.from_centers([500.0, 600.0]),
+                         {"command": "reconstruct"})
+    assert is_reconstruct_h5(mine)  # the same file with reconstruct's metadata: True
+
+
+def test_reconstruct_envi_header_is_none_for_a_large_or_unparseable_envi_file(tmp_path):
+    from hsicam.data.estimates import reconstruct_envi_header
+
+    big = tmp_path / "big.hdr"
+    big.write_bytes(b"ENVI\ndescription = {hsicam reconstruct}\n" + b" " * (1 << 20))
+    assert reconstruct_envi_header(big) is None  # over 1 MiB: not a header reconstruct wrote
+    bad = tmp_path / "bad.hdr"
+    bad.write_text("ENVI\ndescription = {hsicam reconstruct\n")  # an unclosed brace
+    assert reconstruct_envi_header(bad) is None
+
+
+# ---- export: the default number of DOE levels ----------------------------------------------------------
+def test_export_default_levels_of_a_run_trained_with_levels_not_a_power_of_two_is_refused():
+    from hsicam.export import default_levels
+
+    def cfg(levels):
+        return types.SimpleNamespace(camera=types.SimpleNamespace(doe=types.SimpleNamespace(quantization_levels=levels)))
+
+    assert default_levels(cfg(None)) == 8 and default_levels(cfg(16)) == 16
+    with pytest.raises(InputError) as exc:
+        default_levels(cfg(6))
+    assert _msg(exc) == ("the run was trained with 6 DOE levels, not a power of 2: binary-weighted lithography needs "
+                         "L = 2^k; pass --levels explicitly")
