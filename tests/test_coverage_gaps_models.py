@@ -11,7 +11,7 @@ import torch
 from torch import nn
 
 from conftest import TINY_CAMERA_OVERRIDES
-from hsicam.cameras import DOECamera
+from hsicam.cameras import DOECamera, build_camera
 from hsicam.cameras.base import Camera, OperatorSnapshot
 from hsicam.config import ConfigError, load_config
 from hsicam.errors import InputError
@@ -188,3 +188,16 @@ def test_shift_fill_by_the_size_or_more_is_all_zeros_and_smaller_shifts_match_a_
                     ref[i, j] = x[i - dy, j - dx]
         assert torch.equal(shift_fill(x, dy, dx), ref)
 
+
+# --- cameras/cassi.py: coded-aperture files --------------------------------------------------------------------
+def _cassi(tmp_path, mask_name: str):
+    cfg = load_config(overrides=["bands.start_nm=500", "bands.stop_nm=700", "bands.step_nm=50",
+                                 "camera.kind=dd_cassi", f"camera.cassi.mask_file={tmp_path / mask_name}"])
+    return build_camera(cfg).double()
+
+
+def test_a_boolean_mask_file_is_a_binary_coded_aperture(tmp_path):
+    mask = np.random.default_rng(0).random((12, 30)) > 0.5  # np.save of a thresholded pattern: dtype bool
+    np.save(tmp_path / "mask.npy", mask)
+    cam = _cassi(tmp_path, "mask.npy")
+    np.testing.assert_array_equal(cam.aperture.pattern(12, 18).numpy(), mask[:, :18].astype(np.float64))

@@ -84,7 +84,7 @@ def random_aperture(h: int, w: int, seed: int = 0, density: float = 0.5,
 
 
 def load_aperture(path: str | Path) -> np.ndarray:
-    """Coded aperture (H, W) from a ``.npy`` file; values must be finite and in [0, 1]."""
+    """Coded aperture (H, W) from a ``.npy`` file; values must be finite and in [0, 1] (a boolean mask: 1 = open)."""
     path = Path(path).expanduser()
     if not path.is_file():
         raise InputError(f"{path}: no such coded-aperture file")
@@ -95,7 +95,7 @@ def load_aperture(path: str | Path) -> np.ndarray:
     arr = np.squeeze(np.asarray(arr))
     if arr.ndim != 2 or min(arr.shape) < 1:
         raise InputError(f"{path}: a coded aperture must be a 2-D (H, W) array, got shape {arr.shape}")
-    if not np.issubdtype(arr.dtype, np.number) or np.issubdtype(arr.dtype, np.complexfloating):
+    if arr.dtype != np.bool_ and (not np.issubdtype(arr.dtype, np.number) or np.issubdtype(arr.dtype, np.complexfloating)):
         raise InputError(f"{path}: a coded aperture must be real numbers, got dtype {arr.dtype}")
     arr = arr.astype(np.float64)
     if not np.all(np.isfinite(arr)):
