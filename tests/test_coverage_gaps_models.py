@@ -201,3 +201,16 @@ def test_a_boolean_mask_file_is_a_binary_coded_aperture(tmp_path):
     np.save(tmp_path / "mask.npy", mask)
     cam = _cassi(tmp_path, "mask.npy")
     np.testing.assert_array_equal(cam.aperture.pattern(12, 18).numpy(), mask[:, :18].astype(np.float64))
+
+
+@pytest.mark.parametrize("content, what", [(b"0 1 1 0\n1 0 0 1\n", "no NumPy header"), (None, "a .npz archive")])
+def test_a_mask_file_that_is_not_npy_is_named_as_such_without_pickle_advice(tmp_path, content, what):
+    path = tmp_path / "mask.npy"
+    if content is None:  # np.savez to a file object keeps the .npy name
+        with open(path, "wb") as fh:
+            np.savez(fh, mask=np.ones((4, 4)))
+    else:
+        path.write_bytes(content)
+    with pytest.raises(InputError) as err:
+        _cassi(tmp_path, "mask.npy")
+    assert str(err.value) == f"{path}: not a .npy file ({what}); save the coded aperture (H, W) with numpy.save"

@@ -89,9 +89,15 @@ def load_aperture(path: str | Path) -> np.ndarray:
     if not path.is_file():
         raise InputError(f"{path}: no such coded-aperture file")
     try:
-        arr = np.load(path, allow_pickle=False)
+        with open(path, "rb") as fh:
+            head = fh.read(6)
+        if head == b"\x93NUMPY":  # else np.load would open a zip (.npz) or refuse "pickled data", advising allow_pickle
+            arr = np.load(path, allow_pickle=False)
     except (OSError, ValueError) as exc:
         raise InputError(f"{path}: not a readable .npy array ({exc})") from None
+    if head != b"\x93NUMPY":
+        raise InputError(f"{path}: not a .npy file ({'a .npz archive' if head.startswith(b'PK') else 'no NumPy header'}); "
+                         "save the coded aperture (H, W) with numpy.save")
     arr = np.squeeze(np.asarray(arr))
     if arr.ndim != 2 or min(arr.shape) < 1:
         raise InputError(f"{path}: a coded aperture must be a 2-D (H, W) array, got shape {arr.shape}")
