@@ -214,3 +214,18 @@ def test_a_mask_file_that_is_not_npy_is_named_as_such_without_pickle_advice(tmp_
     with pytest.raises(InputError) as err:
         _cassi(tmp_path, "mask.npy")
     assert str(err.value) == f"{path}: not a .npy file ({what}); save the coded aperture (H, W) with numpy.save"
+
+
+# --- config.py ----------------------------------------------------------------------------------------------------
+@pytest.mark.parametrize("overrides, message", [
+    (["baselines.desci.iterations=[]"], "baselines.desci.iterations must be a non-empty list of counts >= 0, got []"),
+    (["baselines.desci.iterations=[3, -1]"],
+     "baselines.desci.iterations must be a non-empty list of counts >= 0, got [3, -1]"),
+    # a value that is not valid YAML is kept as the string typed, then refused as that string
+    (["model.consistency.kind=[linear"],
+     "config key 'model.consistency.kind' must be one of 'landweber', 'linear', got '[linear'"),
+])
+def test_config_refusals_name_the_key_and_the_value_typed(overrides, message):
+    with pytest.raises(ConfigError) as err:
+        load_config(overrides=overrides)
+    assert str(err.value) == message
