@@ -33,6 +33,7 @@ def test_one_band_npy_is_read_at_550_nm(tmp_path):
     np.testing.assert_array_equal(cube, arr)
     assert bands.centers_nm.tolist() == [(400.0 + 700.0) / 2] and bands.fwhm_nm.tolist() == [10.0]
     assert meta["bands_assumed"] is True
+    assert meta["assumed_grid"] == "one band at 550 nm"  # not "1 bands evenly spaced over 400-700 nm"
 
 
 def test_a_mat_file_of_one_band_with_its_band_list_reads_that_band(tmp_path):
@@ -119,7 +120,12 @@ def test_explicit_readers_refuse_files_of_another_kind(tmp_path):
 
     with pytest.raises(InputError) as exc:
         read_icvl(tmp_path)  # a folder given to a file reader
-    assert _msg(exc) == f"{tmp_path}: cannot read (Is a directory)"
+    assert _msg(exc) == f"{tmp_path}: a folder, not a file"
+    from hsicam.data.formats import read_hsicam_h5
+
+    with pytest.raises(InputError) as exc:  # h5py's own words were read as a corrupt file
+        read_hsicam_h5(tmp_path)
+    assert _msg(exc) == f"{tmp_path}: a folder, not a file (HDF5 expected)"
 
 
 def test_a_group_where_the_cube_variable_goes_is_refused(tmp_path):

@@ -118,10 +118,15 @@ Cube = tuple[np.ndarray, Bands, dict[str, Any]]
 
 
 def bands_400_700(n: int = 31) -> Bands:
-    """``n`` bands evenly spaced over 400-700 nm (the 10 nm grid for n = 31)."""
+    """``n`` bands evenly spaced over 400-700 nm (the 10 nm grid for n = 31; one band: 550 nm)."""
     if n == 1:
         return Bands.from_centers([550.0])
     return Bands.from_centers(np.linspace(400.0, 700.0, n))
+
+
+def describe_400_700(n: int) -> str:
+    """What :func:`bands_400_700` assumed, for a log line or a file's metadata."""
+    return "one band at 550 nm" if n == 1 else f"{n} bands evenly spaced over 400-700 nm"
 
 
 # ------------------------------------------------------------------------------------------------
@@ -139,6 +144,8 @@ def _reading(path: Path, what: str) -> Iterator[None]:
     except FileNotFoundError:
         raise InputError(f"{path}: no such file or folder") from None
     except Exception as exc:  # noqa: BLE001 - h5py/scipy/imageio/OpenEXR raise many types
+        if path.is_dir():  # h5py's words for it: "[Errno 21] Unable to synchronously open file", read as corrupt
+            raise InputError(f"{path}: a folder, not a file ({what} expected)") from None
         detail = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
         raise InputError(f"{path}: cannot read {what} file (corrupt or truncated?): {detail}") from None
 
@@ -188,6 +195,8 @@ def detect_format(path: str | os.PathLike) -> str:
 
 
 def _head(p: Path, n: int) -> bytes:
+    if p.is_dir():
+        raise InputError(f"{p}: a folder, not a file")
     try:
         with open(p, "rb") as fh:
             return fh.read(n)
@@ -1354,12 +1363,12 @@ def read_npy(path: str | os.PathLike, *, bands: Bands | None = None, allow_negat
         arr = np.array(arr)
     if bands is None:
         bands = bands_400_700(arr.shape[0])
-        log.info("%s: no band list given; assuming %d bands evenly spaced over 400-700 nm", p, arr.shape[0])
+        log.info("%s: no band list given; assuming %s", p, describe_400_700(arr.shape[0]))
         assumed = True
     else:
         assumed = False
     meta = {"format": "npy", "bands_assumed": assumed,
-            "assumed_grid": f"{arr.shape[0]} bands evenly spaced over 400-700 nm" if assumed else None}
+            "assumed_grid": describe_400_700(arr.shape[0]) if assumed else None}
     return _finish(p, arr, bands, meta, allow_negative)
 
 
