@@ -333,3 +333,32 @@ def test_export_of_a_shipped_camera_names_it_not_its_package_folder(tmp_path):
     assert spec["run"] == "pretrained:standard" and "finetuned" not in spec
     assert spec["tolerances"]["note"] == ("no tolerance study found: run `hsicam tolerance --run pretrained:standard "
                                           "--out DIR`")
+
+
+def test_export_refusals_name_the_run_and_what_is_missing_of_a_tolerance_folder(tmp_path):
+    """An untrained camera with 6 DOE levels: exporting it without --levels names the run (the message said only "the
+    run was trained with 6 DOE levels"); --tolerance given a folder without tolerance.json, or a path that does not
+    exist, says which (it said "DIR: no tolerance.json" for both)."""
+    from hsicam.config import dump_yaml
+    from hsicam.export import export_optics
+    from hsicam.models import CameraSystem
+    from hsicam.runs.checkpoint import save_weights
+
+    run = tmp_path / "bare"
+    run.mkdir()
+    cfg = load_config("tiny", [*FAB_OVERRIDES, "camera.doe.quantization_levels=6"])
+    (run / "config.yaml").write_text(dump_yaml(cfg), encoding="utf-8")
+    model = CameraSystem.from_config(cfg)
+    save_weights(run / "model.safetensors", model, model.bands)
+    with pytest.raises(InputError) as exc:
+        export_optics(run, tmp_path / "fab")
+    assert str(exc.value) == (f"{run.resolve()}: the run was trained with 6 DOE levels, not a power of 2: "
+                              "binary-weighted lithography needs L = 2^k; pass --levels explicitly")
+    empty = tmp_path / "study"
+    empty.mkdir()
+    for given, why in ((empty, "no tolerance.json in this folder"), (tmp_path / "nowhere", "no such file or folder")):
+        with pytest.raises(InputError) as exc:
+            export_optics(run, tmp_path / "fab", levels=8, tolerance=given)
+        assert str(exc.value) == (f"{given}: {why} (--tolerance takes the folder `hsicam tolerance --run "
+                                  f"{run.resolve()} --out DIR` wrote, or its tolerance.json)")
+    assert not (tmp_path / "fab").exists()  # nothing half-written

@@ -97,7 +97,9 @@ def _tolerances(run_dir: Path, cfg, tolerance: str | Path | None) -> dict[str, A
             log.warning("not cited: %s", exc)
             out["note"] = f"not cited: {exc}; run the study again (`hsicam tolerance --run {run_dir} --out DIR`)"
     elif tolerance is not None:
-        raise InputError(f"{tolerance}: no tolerance.json (run `hsicam tolerance --run RUN --out DIR` first)")
+        where = "no tolerance.json in this folder" if Path(tolerance).is_dir() else "no such file or folder"
+        raise InputError(f"{tolerance}: {where} (--tolerance takes the folder `hsicam tolerance --run {run_label(run_dir)} "
+                         "--out DIR` wrote, or its tolerance.json)")
     elif source is not None:  # `hsicam tolerance` refuses a fine-tuned run: its optics are the design run's
         out["note"] = (f"no tolerance study: {run_dir} was fine-tuned on measured PSFs, so a study of {design} applies "
                        f"to these optics: `hsicam tolerance --run {source or 'DESIGN_RUN'} --out DIR`")
@@ -134,7 +136,10 @@ def export_optics(run_dir: str | Path, out_dir: str | Path, levels: int | None =
                              f"{'the CFA files and ' if camera.cfa.enabled else ''}spec.json)")
     else:
         if levels is None:
-            levels = default_levels(cfg)  # within the config's range (camera.doe.quantization_levels)
+            try:
+                levels = default_levels(cfg)  # within the config's range (camera.doe.quantization_levels)
+            except InputError as exc:
+                raise InputError(f"{run_label(run_dir)}: {exc}") from None
         elif not LEVELS_RANGE[0] <= levels <= LEVELS_RANGE[1]:
             raise InputError(f"--levels must be in {LEVELS_RANGE[0]}..{LEVELS_RANGE[1]} (the range of "
                              f"camera.doe.quantization_levels), got {levels}")
