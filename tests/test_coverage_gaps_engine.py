@@ -204,7 +204,8 @@ def test_a_resume_whose_checkpoint_folders_are_gone_names_the_missing_checkpoint
     before = tree_snapshot(run)
     line = in_process_error_line(capsys, ["train", "--out", run, "--resume"])
     assert line == (f"hsicam: error: {run / kept / 'model.safetensors'}: the checkpoint named by "
-                    f"{run / 'checkpoints.json'} is missing")
+                    f"{run / 'checkpoints.json'} is missing (the run folder is incomplete); copy the run folder again "
+                    "from its source, or train it again")
     assert tree_snapshot(run) == before
 
 

@@ -435,7 +435,8 @@ class CheckpointManager:
             return False
         path, sha = src
         if not path.is_file():
-            raise InputError(f"{path}: the checkpoint named by {self.run_dir / MANIFEST} is missing")
+            raise InputError(f"{path}: the checkpoint named by {self.run_dir / MANIFEST} is missing (the run folder "
+                             "is incomplete); copy the run folder again from its source, or train it again")
         sha = sha or file_sha256(path)
         root = self.run_dir / self.weights_file
         if root.is_file() and file_sha256(root) == sha:
