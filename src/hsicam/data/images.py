@@ -295,6 +295,8 @@ def _tiff_by_pillow(path: Path, shape: tuple[int, ...], dtype: np.dtype, compres
                 arr = np.array(im)
     except Exception as exc:  # noqa: BLE001 - PIL raises OSError, ValueError … on what it cannot decode
         raise InputError(f"{why} ({_first_line(exc)})") from None
+    if arr.dtype.byteorder not in "=|":  # a big-endian ("MM") file's 16-bit page: Pillow keeps its byte order (I;16B)
+        arr = arr.astype(arr.dtype.newbyteorder("="))
     if arr.dtype != dtype or arr.shape != _squeeze_2d(path, shape, "image"):
         raise InputError(f"{why} (Pillow decodes it as {arr.dtype} {arr.shape}, not {dtype} {tuple(shape)})")
     if str(compression).upper().startswith("JPEG"):
