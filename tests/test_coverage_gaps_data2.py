@@ -59,3 +59,97 @@ def test_a_big_endian_lzw_tiff_reads_as_the_little_endian_one(tmp_path, order):
     got = read_image_2d(tmp_path / "lzw.tif", "sensor image")
     np.testing.assert_array_equal(got.data, image.astype(np.float32))
     assert got.full_scale == 65535.0 and got.dtype == "uint16" and got.format == "tiff"
+
+
+def test_an_lzw_tiff_that_pillow_decodes_as_another_type_is_refused_naming_both(tmp_path):
+    """A uint32 LZW page comes back from Pillow as int32 (its mode "I"): refused, not read with int32's scale."""
+    image = (np.random.default_rng(6).random((8, 9)) * 4000).astype(np.uint32)
+    _lzw_tiff(tmp_path / "u32.tif", image, "<")
+    with pytest.raises(InputError) as err:
+        read_image_2d(tmp_path / "u32.tif", "sensor image")
+    assert str(err.value) == (
+        f"{tmp_path / 'u32.tif'}: TIFF compressed with LZW, which neither tifffile without the imagecodecs package nor "
+        "Pillow decodes here: `pip install imagecodecs`, or save the capture uncompressed (Pillow decodes it as int32 "
+        "(8, 9), not uint32 (8, 9))")
+
+
+def test_a_jpeg_compressed_tiff_is_read_by_pillow_with_a_lossy_warning(tmp_path, caplog):
+    from PIL import Image
+
+    image = (np.random.default_rng(7).random((24, 32)) * 200 + 20).astype(np.uint8)
+    Image.fromarray(image).save(tmp_path / "jpeg.tif", compression="jpeg")
+    with tifffile.TiffFile(tmp_path / "jpeg.tif") as tf:
+        assert tf.pages[0].compression == 7  # JPEG
+    with Image.open(tmp_path / "jpeg.tif") as im:
+        decoded = np.array(im)
+    with caplog.at_level(logging.WARNING, logger="hsicam.data.images"):
+        got = read_image_2d(tmp_path / "jpeg.tif", "sensor image")
+    np.testing.assert_array_equal(got.data, decoded.astype(np.float32))
+    assert got.full_scale == 255.0 and np.abs(got.data - image).mean() < 20  # lossy, but the same picture
+    assert [r.getMessage() for r in caplog.records] == [
+        f"{tmp_path / 'jpeg.tif'}: JPEG-compressed TIFF: lossy, its values are not the sensor's as captured"]
+
+
+def test_a_tiff_whose_header_points_to_no_image_is_refused(tmp_path):
+    (tmp_path / "empty.tif").write_bytes(b"II*\x00" + struct.pack("<I", 0))  # first IFD offset 0: no page
+    with pytest.raises(InputError) as err:
+        read_image_2d(tmp_path / "empty.tif", "dark frame")
+    assert str(err.value) == f"{tmp_path / 'empty.tif'}: TIFF without images"
+
+
+def test_raw_correction_is_identity_only_without_any_correction(tmp_path):
+    assert RawCorrection().is_identity and RawCorrection(black_level=0.0).is_identity
+    for kw in ({"black_level": 64.0}, {"white_level": 4095.0}, {"dark": np.zeros((2, 2))}, {"flat": np.ones((2, 2))},
+               {"exposure_s": 0.01, "reference_exposure_s": 0.02}, {"auto_level": 0.8}, {"scale": 2.0}):
+        assert not RawCorrection(**kw).is_identity, kw
+
+
+# ------------------------------------------------------------------------------------------------
+# data show: a cube without visible bands, no scenes, the held-out companion of a cached set
+# ------------------------------------------------------------------------------------------------
+def test_contact_sheet_shows_a_near_infrared_cube_in_grey(tmp_path):
+    from hsicam.data.formats import write_cube_h5
+    from hsicam.data.preview import _scene_figures
+
+    nir = Bands.uniform(750.0, 950.0, 50.0)  # 5 bands, one of them (750 nm) in the colour-matching table (380-780 nm)
+    rows = np.linspace(0.1, 1.0, 12)[:, None] * np.ones((12, 16))  # a vertical ramp, the same in every band
+    cube = np.repeat(rows[None], len(nir), axis=0).astype(np.float32)
+    write_cube_h5(tmp_path / "nir.h5", cube, nir)
+    sheet, _ = _scene_figures(tmp_path, [tmp_path / "nir.h5"])
+    [ax] = sheet.axes
+    assert ax.get_title() == "nir.h5 (grey)"
+    shown = np.asarray(ax.images[0].get_array())
+    assert shown.shape == (12, 16, 3) and np.ptp(shown, axis=-1).max() == 0  # grey: R = G = B
+    expect = rows * 0.8 / np.percentile(rows, 99)  # the band mean, exposed with its 99th percentile at 0.8
+    np.testing.assert_allclose(shown[..., 0], np.clip(expect, 0, 1), rtol=1e-5)
+    assert sheet._suptitle.get_text().endswith("; (grey): mean over bands, fewer than 2 bands in 380-780 nm")
+
+
+def test_pixel_spectra_of_no_scenes_is_refused_naming_the_folder(tmp_path):
+    from hsicam.data.preview import pixel_spectra
+
+    with pytest.raises(InputError) as err:
+        pixel_spectra([], source=tmp_path)
+    assert str(err.value) == f"{tmp_path}: no scenes to sample spectra from"
+
+
+def test_a_cached_training_set_finds_the_held_out_set_drawn_with_its_parameters(tmp_path):
+    from hsicam.data.preview import _find_heldout
+
+    params = {"generator_version": 3, "size": 24, "seed": 1, "bands": {"centers_nm": [400, 500]},
+              "holdout_sources": ["cie-tcs"], "split": "train"}
+
+    def folder(name, **change):
+        d = tmp_path / name
+        d.mkdir()
+        (d / "manifest.json").write_text(json.dumps({"parameters": {**params, **change}}), encoding="utf-8")
+        return d
+
+    train = folder("train-n2")
+    assert _find_heldout(train) is None  # no companion yet
+    folder("heldout-a-other-seed", seed=2, split="heldout")
+    (tmp_path / "heldout-b-no-manifest").mkdir()
+    assert _find_heldout(train) is None
+    mine = folder("heldout-c", split="heldout")
+    assert _find_heldout(train) == mine
+    assert _find_heldout(folder("train-no-holdout", holdout_sources=[])) is None
