@@ -153,3 +153,19 @@ def test_a_cached_training_set_finds_the_held_out_set_drawn_with_its_parameters(
     mine = folder("heldout-c", split="heldout")
     assert _find_heldout(train) == mine
     assert _find_heldout(folder("train-no-holdout", holdout_sources=[])) is None
+
+
+def test_a_gain_that_fits_float32_but_not_times_the_image_names_both():
+    """A float capture of 1e30 DN at --scale 1e10: the factor fits float32, its product with the pixels does not. The
+    refusal names the factor and the brightest pixel and says to lower --scale (it said only 'the corrections
+    produced NaN or Inf values'); NaN already in the capture is still that line."""
+    from hsicam.data.images import RawCorrection, preprocess_raw
+
+    raw = np.full((8, 8), 1e30, np.float32)
+    raw[0, 0] = 0.0
+    with pytest.raises(InputError) as exc:
+        preprocess_raw(raw, 1.0, RawCorrection(scale=1e10), "cap.npy", check_saturation=False)
+    assert str(exc.value) == ("cap.npy: the exposure × auto-level × --scale factor 1e+10 times the brightest corrected "
+                              f"pixel {float(np.float32(1e30)):g} exceeds float32; lower --scale")
+    img, _ = preprocess_raw(raw, 1.0, RawCorrection(scale=1e8), "cap.npy", check_saturation=False, check_level=False)
+    assert np.isfinite(img).all() and img.max() == np.float32(1e30) * np.float32(1e8)  # 1e38 fits: no refusal

@@ -484,6 +484,7 @@ def preprocess_raw(raw: np.ndarray, full_scale: float, corr: RawCorrection, sour
     if corr.scale != 1.0:
         report["scale"] = corr.scale
     factor *= corr.scale
+    peak = max(abs(float(img.max())), abs(float(img.min()))) if img.size else 0.0  # not finite: from before the gain
     with np.errstate(over="ignore", invalid="ignore"):  # an overflow is the one-line error below, no warning
         img *= np.float32(factor)
     report["gain"] = factor / (white - black)
@@ -491,6 +492,9 @@ def preprocess_raw(raw: np.ndarray, full_scale: float, corr: RawCorrection, sour
         if factor > float(np.finfo(np.float32).max):
             raise InputError(f"{source}: the exposure × auto-level × --scale factor {factor:g} exceeds float32; "
                              "lower --scale")
+        if math.isfinite(peak):  # the factor alone fits, its product with the brightest pixel does not
+            raise InputError(f"{source}: the exposure × auto-level × --scale factor {factor:g} times the brightest "
+                             f"corrected pixel {peak:g} exceeds float32; lower --scale")
         raise InputError(f"{source}: the corrections produced NaN or Inf values")
     if np.count_nonzero(img > 0) <= MIN_SIGNAL_SHARE * img.size:  # it had signal (_check_signal): float32 underflow
         raise InputError(f"{source}: the exposure × auto-level × --scale factor {factor:g} takes the image below "
