@@ -233,6 +233,8 @@ def check_replaceable_outputs(path: Path) -> None:
                 actual = -1
             if header is None or size != actual:
                 why = (f"its header {hdr.name} is missing" if header is None else
+                       f"{hdr.name} does not describe its size (samples, lines and bands of data type 4)"
+                       if size is None else
                        f"its size ({actual} bytes) is not the {size} bytes that {hdr.name} describes")
                 raise InputError(f"{data}: exists and is not the ENVI data of a cube that hsicam reconstruct wrote "
                                  f"({why}); reconstruct replaces only its own earlier output: choose another --out name "
