@@ -94,6 +94,7 @@ def test_tv_steps_on_an_sd_cassi_run_are_refused_naming_the_camera(runs, capture
     assert res.stderr.strip().splitlines()[-1] == (
         "hsicam: error: --tv-steps: the measurement-consistency steps do not apply to this run's camera "
         "(camera.kind=sd_cassi); drop --tv-steps")
+    assert "is skipped" not in res.stderr  # the refusal alone, not a warning that the steps are skipped before it
     assert not list(tmp_path.glob("c.*")) and not list(tmp_path.glob("c_*"))  # nothing written
 
 

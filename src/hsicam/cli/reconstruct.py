@@ -464,6 +464,9 @@ def tv_consistency(model, args: argparse.Namespace):
     InputError where they cannot apply: the linear step off in the run, or a camera the steps skip."""
     from hsicam.config import RECOMMENDED_TV_WEIGHT
 
+    if not model.camera_takes_consistency:  # (before consistency_on, which would warn of the skip first)
+        raise InputError(f"--tv-steps: the measurement-consistency steps do not apply to this run's camera "
+                         f"(camera.kind={model.camera.kind}); drop --tv-steps")
     c = model.consistency
     weight = RECOMMENDED_TV_WEIGHT if args.tv_weight is None else args.tv_weight
     if c.kind == "linear":
@@ -477,9 +480,6 @@ def tv_consistency(model, args: argparse.Namespace):
                              f"kind={c.kind}): give --tv-steps alone")
         tuned = dataclasses.replace(c, tv_weight=weight, iterations=args.tv_steps)
     model.consistency = tuned
-    if not model.consistency_on:
-        raise InputError(f"--tv-steps: the measurement-consistency steps do not apply to this run's camera "
-                         f"(camera.kind={model.camera.kind}); drop --tv-steps")
     return tuned
 
 

@@ -73,12 +73,18 @@ class CameraSystem(nn.Module):
         return out
 
     @property
+    def camera_takes_consistency(self) -> bool:
+        """Whether the camera's scene grid is the sensor's, so that measurement-consistency steps apply to it
+        (SD-CASSI's is not)."""
+        return getattr(self.camera, "kind", None) != "sd_cassi"
+
+    @property
     def consistency_on(self) -> bool:
         """Whether :meth:`reconstruct` takes the step: configured, and a camera whose scene grid is
         the sensor's (SD-CASSI's is not: its reconstructions skip the step, with a warning once)."""
         if self.consistency is None or self.consistency.iterations <= 0:
             return False
-        if getattr(self.camera, "kind", None) == "sd_cassi":
+        if not self.camera_takes_consistency:
             if not getattr(self, "_warned_grid", False):
                 log.warning("model.consistency is skipped: SD-CASSI's scene grid is not the sensor's")
                 self._warned_grid = True
