@@ -64,6 +64,8 @@ def build_report(folder: str | Path) -> Path:
     with atomic_output(folder / "report", overwrite=True, marker={"command": "report"}) as out:
         try:
             body = _experiment_sections(folder, out, data) if kind == "experiment" else _evaluation_sections(folder, out, data)
+        except InputError:  # a file the page reads besides this one (a saved cube) names itself
+            raise
         except KeyError as exc:  # a field the checks above do not cover
             raise InputError(f"{source}: corrupt {source.name} (the field {exc} is missing)") from None
         except (TypeError, IndexError, ValueError) as exc:
@@ -241,7 +243,10 @@ def _evaluation_sections(folder: Path, out: Path, res: dict) -> list[str]:
             if not truth_path.is_file():
                 continue
             est, b, _ = read_cube(est_path)
-            truth, _, _ = read_cube(truth_path)
+            truth, tb, _ = read_cube(truth_path)
+            if truth.shape != est.shape or not tb.matches(b):
+                raise InputError(f"{truth_path}: a {_cube_text(truth, tb)} cube, but {est_path.name} holds a "
+                                 f"{_cube_text(est, b)} one: not the same scene's pair (cubes/ of two evaluations?)")
             plot_scene_comparison(truth, est, b, out / f"recon_{name}.png", title=name)
             plot_band_errors(truth, est, b, out / f"errors_{name}.png")
             parts.append(_img(f"recon_{name}.png", f"{name}: ground truth vs reconstruction (sRGB, CIE 1931 / D65) with zoomed crops and spectra at marked pixels"))
@@ -249,6 +254,11 @@ def _evaluation_sections(folder: Path, out: Path, res: dict) -> list[str]:
     if res.get("run"):
         parts.append(_camera_section(_evaluated_run(res), out, label=str(res["run"])))
     return parts
+
+
+def _cube_text(cube: np.ndarray, bands: Bands) -> str:
+    """``C-band (A-B nm) H×W``: a cube and its bands, for a message."""
+    return f"{len(bands)}-band ({bands.centers_nm[0]:g}-{bands.centers_nm[-1]:g} nm) {cube.shape[1]}×{cube.shape[2]}"
 
 
 def _references(res: dict) -> list[str]:
