@@ -83,6 +83,14 @@ def test_report_weights_sentence_only_from_a_well_formed_entry(tmp_path, weights
         assert f"<p class='note'>{sentence}</p>" in page
 
 
+def test_report_refuses_unordered_bands_naming_the_field(tmp_path):
+    d = folder_with(tmp_path, "results.json", evaluation(bands_nm=[600.0, 500.0, 550.0]))
+    with pytest.raises(InputError) as info:
+        build_report(d)
+    assert str(info.value) == f"{d / 'results.json'}: corrupt results.json ('bands_nm' is not in strictly ascending order)"
+    assert entries(d) == [".complete", "results.json"]
+
+
 def _with_cubes(tmp_path: Path, truth: np.ndarray, truth_bands: list[float], est: np.ndarray | None) -> Path:
     d = tmp_path / "ev"
     d.mkdir()

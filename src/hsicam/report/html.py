@@ -109,6 +109,8 @@ def _check_fields(path: Path, data: dict, kind: str) -> None:
     if kind == "evaluation":
         if "bands_nm" in data and not _numbers(data["bands_nm"], positive=True):
             raise corrupt("'bands_nm' is not a list of wavelengths in nm")
+        if "bands_nm" in data and any(b <= a for a, b in zip(data["bands_nm"], data["bands_nm"][1:])):
+            raise corrupt("'bands_nm' is not in strictly ascending order")
         held = data.get("heldout")
         if isinstance(held, dict) and held.get("scenes"):
             if not isinstance(held["scenes"], list) or not all(isinstance(r, dict) for r in held["scenes"]):
