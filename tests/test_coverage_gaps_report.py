@@ -233,3 +233,30 @@ def test_a_pickled_scene_dataset_reopens_its_files(tmp_path):
         expected = f["cube"][:, 1:5, 2:7] / f["cube"][()].max()
     np.testing.assert_array_equal(copy.window(0, 1, 2, 4, 5), expected.astype(np.float32))
     np.testing.assert_array_equal(first, copy.window(0, 1, 2, 4, 5))
+
+
+# ------------------------------------------------------------------------------------------------
+# data/synthetic.py (library callers; the CLI's config checks these first)
+# ------------------------------------------------------------------------------------------------
+@pytest.mark.parametrize("kwargs, message", [
+    ({"n": 0, "size": 32}, "synthetic: need at least one scene, got n=0"),
+    ({"n": 2, "size": 15}, "synthetic: scenes must be at least 16 px, got size=15"),
+    ({"n": 2, "size": 32, "split": "test"}, "split must be one of {splits}, got 'test'"),
+])
+def test_generate_dataset_refuses_before_writing(tmp_path, kwargs, message):
+    from hsicam.data.synthetic import SPLITS, generate_dataset
+
+    with pytest.raises(InputError) as info:
+        generate_dataset(tmp_path / "syn", progress=False, **kwargs)
+    assert str(info.value) == message.format(splits=", ".join(SPLITS))
+    assert entries(tmp_path) == []
+
+
+def test_dataset_folder_that_is_a_file(tmp_path):
+    from hsicam.data.synthetic import check_dataset_folder
+
+    (tmp_path / "syn").write_text("mine")
+    with pytest.raises(InputError) as info:
+        check_dataset_folder(tmp_path / "syn")
+    assert str(info.value) == f"{tmp_path / 'syn'}: exists and is not a folder"
+    assert (tmp_path / "syn").read_text() == "mine"
