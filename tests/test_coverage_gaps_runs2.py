@@ -184,6 +184,40 @@ def test_a_disabled_metrics_log_writes_nothing(tmp_path):
     assert [json.loads(x) for x in (tmp_path / "metrics.jsonl").read_text().splitlines()] == [{"step": 2}]
 
 
+@pytest.fixture(scope="module")
+def tiny_run(tmp_path_factory, cache_env) -> Path:
+    from hsicam.engine.train import train
+
+    run = tmp_path_factory.mktemp("gaps_runs2") / "A"
+    train(load_config("tiny", ["train.epochs=1"]), run, progress=False)
+    return run
+
+
+@pytest.mark.parametrize("other", ["kernel", "bands"])
+def test_a_run_with_measured_psfs_of_another_camera_names_the_file(tiny_run, tmp_path, capsys, other):
+    """A fine-tuned run's measured_psf.safetensors that is another camera's (a file copied in): the refusal
+    names that file and the remedy, not only the two grids."""
+    from hsicam.runs.folder import load_run
+    from hsicam.runs.measured_psf import MEASURED_PSF_FILE, MeasuredPSF, save_measured_psf
+
+    run = shutil.copytree(tiny_run, tmp_path / "T", ignore=shutil.ignore_patterns(".lock", ".complete"))
+    _, model = load_run(run)
+    with torch.no_grad():
+        psf = model.camera.psf().float().numpy()
+    k, bands = psf.shape[-1], model.bands
+    if other == "kernel":
+        psf, why = psf[:, 1:-1, 1:-1].copy(), (f"measured PSFs are {len(bands)}×{k - 2}×{k - 2} (bands × px × px), "
+                                             f"the camera's kernels {len(bands)}×{k}×{k}")
+    else:
+        shifted = Bands.from_dict({**bands.to_dict(), "centers_nm": [c + 3.0 for c in bands.centers_nm.tolist()]})
+        bands, why = shifted, f"measured PSFs are on {shifted!r}, the camera on {model.bands!r}"
+    save_measured_psf(run / MEASURED_PSF_FILE, MeasuredPSF(psf, bands, {}))
+    line = in_process_error_line(capsys, ["evaluate", "--run", run, "--out", tmp_path / "ev"])
+    assert line == (f"hsicam: error: {run / MEASURED_PSF_FILE}: {why}: the file is not this run's; copy the run "
+                    "folder again from its source, or fine-tune it again (hsicam finetune)")
+    assert not (tmp_path / "ev").exists()
+
+
 # ------------------------------------------------------------------------------------------------
 # engine
 # ------------------------------------------------------------------------------------------------

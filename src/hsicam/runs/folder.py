@@ -110,7 +110,12 @@ def load_run(run_dir: str | Path, device: torch.device | str = "cpu", overrides:
             if stale_reason(run_dir / LINEAR_STEP_FILE, kept):
                 model.linear_step = None  # not used (e.g. kind landweber): never the step of other weights
     if (run_dir / MEASURED_PSF_FILE).is_file():  # a run fine-tuned on measured PSFs images with them
-        model = with_measured_psf(model, load_measured_psf(run_dir / MEASURED_PSF_FILE))
+        measured = load_measured_psf(run_dir / MEASURED_PSF_FILE)
+        try:
+            model = with_measured_psf(model, measured)
+        except InputError as exc:  # another camera's PSFs (a file copied in): name the file, not only the grids
+            raise InputError(f"{run_dir / MEASURED_PSF_FILE}: {exc}: the file is not this run's; copy the run folder "
+                             "again from its source, or fine-tune it again (hsicam finetune)") from None
     unfinished = unfinished_training(run_dir, cfg)
     if unfinished:
         log.warning("%s", unfinished)
