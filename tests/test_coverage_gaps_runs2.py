@@ -221,6 +221,19 @@ def test_a_run_with_measured_psfs_of_another_camera_names_the_file(tiny_run, tmp
 # ------------------------------------------------------------------------------------------------
 # engine
 # ------------------------------------------------------------------------------------------------
+def test_tolerance_of_a_cassi_run_names_the_run_and_its_camera(cache_env, tmp_path, capsys):
+    from hsicam.cli import main
+
+    run = tmp_path / "C"
+    assert main(["train", "--config", "tiny", "--set", "camera.kind=dd_cassi", "--set", "train.epochs=1",
+                 "--out", str(run)]) == 0
+    capsys.readouterr()
+    line = in_process_error_line(capsys, ["tolerance", "--run", run, "--out", tmp_path / "tol"])
+    assert line == (f"hsicam: error: {run}: tolerance analysis needs a DOE camera (camera.kind: doe), got "
+                    "camera.kind: dd_cassi")
+    assert not (tmp_path / "tol").exists()
+
+
 def test_cfa_offset_estimation_refuses_a_camera_without_cfa_and_a_capture_of_other_shape():
     from hsicam.engine.cfa_offset import estimate_cfa_offset
 

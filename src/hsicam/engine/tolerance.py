@@ -314,7 +314,8 @@ def run_tolerance(model, cfg, spec: ToleranceSpec = ToleranceSpec(), data: str |
     spec.check()
     cam = model.camera
     if not isinstance(cam, DOECamera) or not hasattr(cam, "optics"):
-        raise InputError("tolerance analysis needs a DOE camera (camera.kind: doe)")
+        raise InputError(f"{'' if run is None else f'{run}: '}tolerance analysis needs a DOE camera (camera.kind: doe), "
+                         f"got camera.kind: {cfg.camera.kind}")
     if run is not None:
         refuse_finetuned_run(run)
     if isinstance(cam, FixedPSFCamera):  # a model imaging with measured PSFs (fine-tuned run)
