@@ -38,13 +38,27 @@ def _saved(run: Path, steps=(2,), best: int | None = None) -> CheckpointManager:
 # ------------------------------------------------------------------------------------------------
 # runs/checkpoint.py
 # ------------------------------------------------------------------------------------------------
-@pytest.mark.parametrize("man", [{"format": "hsicam-run-manifest-2", "last": {"dir": "checkpoints/step-00000001"}},
-                                 {"format": MANIFEST_FORMAT, "last": "checkpoints/step-00000001"}])
-def test_a_manifest_of_another_format_or_without_a_last_entry_is_one_line(tmp_path, man):
-    (tmp_path / MANIFEST).write_text(json.dumps(man), encoding="utf-8")
+AGAIN = "copy the run folder again from its source, or train it again"
+
+
+@pytest.mark.parametrize("text, why", [
+    (json.dumps({"format": "hsicam-run-manifest-2", "last": {"dir": "checkpoints/step-00000001"}}),
+     f"not a checkpoint manifest this hsicam reads (format 'hsicam-run-manifest-2', expected '{MANIFEST_FORMAT}': "
+     f"written by another hsicam version, or damaged); use the hsicam that trained the run, or {AGAIN}"),
+    (json.dumps({"format": MANIFEST_FORMAT, "last": "checkpoints/step-00000001"}),
+     f"corrupt checkpoint manifest ('last' is not an entry {{dir, step, …}}); {AGAIN}"),
+    (json.dumps({"format": MANIFEST_FORMAT, "last": {"step": 1}}),
+     f"corrupt checkpoint manifest ('last' is not an entry {{dir, step, …}}); {AGAIN}"),
+    ('{"format": "hsicam-run-', f"corrupt checkpoint manifest (not readable JSON); {AGAIN}"),
+    ("[1]", f"corrupt checkpoint manifest (not a JSON object); {AGAIN}"),
+])
+def test_a_manifest_of_another_format_or_without_a_last_entry_is_one_line_with_its_reason(tmp_path, text, why):
+    """Each of these said only 'corrupt checkpoint manifest': no reason, no remedy (a newer hsicam's manifest read as
+    damaged)."""
+    (tmp_path / MANIFEST).write_text(text, encoding="utf-8")
     with pytest.raises(InputError) as err:
         CheckpointManager(tmp_path).manifest()
-    assert str(err.value) == f"{tmp_path / MANIFEST}: corrupt checkpoint manifest"
+    assert str(err.value) == f"{tmp_path / MANIFEST}: {why}"
 
 
 def test_a_manifest_whose_best_is_no_entry_names_it(tmp_path):

@@ -265,17 +265,23 @@ class CheckpointManager:
         ``last.json`` / ``best.json``), or None when the run has no checkpoint yet."""
         path = self.run_dir / MANIFEST
         if path.is_file():
+            again = "copy the run folder again from its source, or train it again"
             try:
                 man = json.loads(path.read_text(encoding="utf-8"))
-                if man.get("format") != MANIFEST_FORMAT or not isinstance(man.get("last"), dict):
-                    raise ValueError
-                man["last"]["dir"]  # noqa: B018 - must be present
-            except (OSError, UnicodeDecodeError, ValueError, KeyError, TypeError, AttributeError):
-                raise InputError(f"{path}: corrupt checkpoint manifest") from None
+            except (OSError, UnicodeDecodeError, ValueError):
+                raise InputError(f"{path}: corrupt checkpoint manifest (not readable JSON); {again}") from None
+            if not isinstance(man, dict):
+                raise InputError(f"{path}: corrupt checkpoint manifest (not a JSON object); {again}")
+            if man.get("format") != MANIFEST_FORMAT:
+                raise InputError(f"{path}: not a checkpoint manifest this hsicam reads (format {man.get('format')!r}, "
+                                 f"expected {MANIFEST_FORMAT!r}: written by another hsicam version, or damaged); "
+                                 f"use the hsicam that trained the run, or {again}")
+            if not isinstance(man.get("last"), dict) or "dir" not in man["last"]:
+                raise InputError(f"{path}: corrupt checkpoint manifest ('last' is not an entry {{dir, step, …}}); "
+                                 f"{again}")
             problem = _manifest_problem(man)
             if problem is not None:
-                raise InputError(f"{path}: corrupt checkpoint manifest ({problem}); copy the run folder again from "
-                                 "its source, or train it again")
+                raise InputError(f"{path}: corrupt checkpoint manifest ({problem}); {again}")
             return man
         return self._legacy_manifest()
 
