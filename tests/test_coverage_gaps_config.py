@@ -10,13 +10,54 @@ import numpy as np
 import pytest
 import torch
 
-from hsicam.config import BandsConfig, ChoiConfig, ConfigError, TrainConfig, load_config
+from hsicam.config import BandsConfig, ChoiConfig, ConfigError, LensConfig, TrainConfig, load_config
 from hsicam.data.measured_psf import (centroid, find_centre, import_psf_dir, pedestal_level, resample_area,
                                       saturated_pixels)
 from hsicam.errors import InputError
-from hsicam.spectral import Bands
+from hsicam.spectral import Bands, TabulatedMaterial
 
 ONE_BAND = Bands(np.array([500.0]), np.array([10.0]))
+
+
+def _table(path: Path, lo: float, hi: float) -> Path:
+    path.write_text(f"wavelength_nm,n\n{lo:g},1.47\n{hi:g},1.45\n", encoding="utf-8")
+    return path
+
+
+# --- spectral/materials.py: a CSV table short of the wavelengths the camera needs -----------------------------------
+
+def test_a_doe_material_table_short_of_the_bands_names_its_file_and_the_wavelengths(tmp_path):
+    """config.py's range check leaves a CSV table to be read with the camera (_check_material_range returns); the
+    camera then said only "material 'glass' is tabulated for 400-700 nm only", naming no file and no wavelength."""
+    from hsicam.cameras import build_camera
+
+    table = _table(tmp_path / "glass.csv", 400, 700)
+    cfg = load_config("tiny", overrides=[f"camera.doe.material={table}"])  # accepted: the file is not opened here
+    assert cfg.camera.psf.band_samples == 1  # the PSF is computed at the band centres
+    centres = BandsConfig(**{k: getattr(cfg.bands, k) for k in ("start_nm", "stop_nm", "step_nm")}).to_bands().centers_nm
+    assert centres.max() > 700
+    with pytest.raises(InputError) as exc:
+        build_camera(cfg)
+    assert str(exc.value) == (f"{table}: material 'glass' is tabulated for 400-700 nm only, but its refractive index "
+                              f"is needed at {centres.min():g}-{centres.max():g} nm")
+
+
+def test_a_singlet_lens_table_short_of_its_design_wavelength_names_key_file_and_wavelength(tmp_path):
+    table = _table(tmp_path / "lens.csv", 600, 700)
+    cfg = load_config(overrides=["camera.lens.model=singlet", f"camera.lens.material={table}"])  # not opened yet
+    with pytest.raises(ConfigError) as exc:
+        cfg.camera.lens.design_focal_length_mm()
+    assert str(exc.value) == (f"camera.lens.material: {table}: material 'lens' is tabulated for 600-700 nm only, but "
+                              f"its refractive index is needed at {LensConfig().design_wavelength_nm:g} nm")
+
+
+def test_a_table_built_in_memory_is_refused_by_its_name_and_shows_its_range():
+    mat = TabulatedMaterial(np.array([400.0, 700.0]), np.array([1.5, 1.4]), name="mine")
+    assert repr(mat) == "TabulatedMaterial('mine', 400-700 nm)"
+    assert mat.n(550.0) == pytest.approx(1.45)  # linear between the two rows
+    with pytest.raises(InputError) as exc:
+        mat.n(np.array([380.0, 500.0]))
+    assert str(exc.value) == "material 'mine' is tabulated for 400-700 nm only, but its refractive index is needed at 380-500 nm"
 
 
 # --- config.py ----------------------------------------------------------------------------------------------------

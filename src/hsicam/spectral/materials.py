@@ -59,6 +59,7 @@ class TabulatedMaterial:
         if np.any(nn < 1.0):
             raise InputError(f"material {name!r}: refractive index below 1")
         self.wavelength_nm, self.n_table, self.name = wl, nn, name
+        self.path: Path | None = None  # the CSV file it was read from (from_csv), named in its refusals
 
     @classmethod
     def from_csv(cls, path: str | Path) -> "TabulatedMaterial":
@@ -82,13 +83,21 @@ class TabulatedMaterial:
             n = [float(r["n"]) for r in rows]
         except (TypeError, ValueError):
             raise InputError(f"{path}: non-numeric value in material table") from None
-        return cls(np.array(wl), np.array(n), name=path.stem)
+        material = cls(np.array(wl), np.array(n), name=path.stem)
+        material.path = path
+        return material
 
     def n(self, wavelength_nm: np.ndarray | float) -> np.ndarray:
         lam = np.asarray(wavelength_nm, dtype=np.float64)
         if np.any(lam < self.wavelength_nm[0] - 1e-9) or np.any(lam > self.wavelength_nm[-1] + 1e-9):
+            # the wavelengths asked for, and the file: a camera built on this table said only "material 'glass' is
+            # tabulated for 400-700 nm only", naming neither the table's path nor the bands that fall outside it
+            where = f"{self.path}: " if self.path is not None else ""
+            lo, hi = float(lam.min()), float(lam.max())
+            asked = f"{lo:g} nm" if lo == hi else f"{lo:g}-{hi:g} nm"
             raise InputError(
-                f"material {self.name!r} is tabulated for {self.wavelength_nm[0]:g}-{self.wavelength_nm[-1]:g} nm only"
+                f"{where}material {self.name!r} is tabulated for {self.wavelength_nm[0]:g}-{self.wavelength_nm[-1]:g} nm "
+                f"only, but its refractive index is needed at {asked}"
             )
         return np.interp(lam, self.wavelength_nm, self.n_table)
 
