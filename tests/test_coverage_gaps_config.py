@@ -132,8 +132,9 @@ def test_an_unsaturated_8_bit_psf_imports_without_a_clipping_warning(tmp_path, c
 
 
 def test_psf_images_without_signal_past_the_saturation_check_and_with_normalize_none_name_the_file(tmp_path):
-    """An all-255 frame: 961 clipped pixels, but nothing left over its border level (the saturation check skips it,
-    the import refuses it by name); an empty image with normalize: none and the centre on a given axis."""
+    """An all-255 frame: 961 clipped pixels, nothing left over its border level: refused as clipped (it was 'no
+    positive signal', which sends the user looking for a dark frame); an empty image with normalize: none and the
+    centre on a given axis: no signal."""
     sat = tmp_path / "sat"
     sat.mkdir()
     np.save(sat / "psf_500nm.npy", np.full((31, 31), 255, np.uint8))
@@ -142,10 +143,14 @@ def test_psf_images_without_signal_past_the_saturation_check_and_with_normalize_
     zero.mkdir()
     np.save(zero / "psf_500nm.npy", np.zeros((31, 31)))
     (zero / "psf.json").write_text(json.dumps({"normalize": "none", "centre": "axis", "axis_px": [15, 15]}))
-    for d in (sat, zero):
-        with pytest.raises(InputError) as exc:
-            import_psf_dir(d, ONE_BAND, 5e-6, 15, pitch_um=5.0)
-        assert str(exc.value) == f"{d}/psf_500nm.npy (500 nm): PSF image has no positive signal (after background subtraction)"
+    with pytest.raises(InputError) as exc:
+        import_psf_dir(sat, ONE_BAND, 5e-6, 15, pitch_um=5.0)
+    assert str(exc.value) == (f"{sat}/psf_500nm.npy (500 nm): a clipped (over-exposed) PSF image: 961 of its 961 pixels "
+                              "are at 255 (the file type's maximum), its border too, so nothing is left above the "
+                              "background: measure it again with a shorter exposure (brightest pixel below 255)")
+    with pytest.raises(InputError) as exc:
+        import_psf_dir(zero, ONE_BAND, 5e-6, 15, pitch_um=5.0)
+    assert str(exc.value) == f"{zero}/psf_500nm.npy (500 nm): PSF image has no positive signal (after background subtraction)"
 
 
 def test_measured_psf_helpers_refuse_what_the_import_never_passes():

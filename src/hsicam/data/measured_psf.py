@@ -482,8 +482,12 @@ def _check_saturation(items: list[tuple[float, Path, np.ndarray, float | None]],
         try:
             bs, _, total = prepare_psf_image(img, PSFImportOptions(pitch_um=opts.pitch_um, background=opts.background,
                                                                   normalize="none"))
-        except InputError:
-            continue  # an image without signal is refused, with its name, below
+        except InputError:  # nothing above the background: clipped up to its border (an all-255 frame), else
+            if n == img.size or bool(np.all(img[0] == level)):  # refused without signal, with its name, below
+                raise InputError(f"{f} ({w:g} nm): a clipped (over-exposed) PSF image: {n} of its {img.size} pixels "
+                                 f"are at {level:g} ({what}), its border too, so nothing is left above the background: "
+                                 f"measure it again with a shorter exposure (brightest pixel below {level:g})") from None
+            continue
         share = float(bs[img == level].sum()) / total
         where = f"{n} of its {img.size} pixels are at {level:g} ({what}), holding {share:.0%} of its light"
         if share > MAX_CLIPPED_LIGHT_SHARE:
