@@ -80,10 +80,12 @@ class Bands:
         """Evenly spaced bands from ``start_nm`` to ``stop_nm`` inclusive (FWHM defaults to the step)."""
         if step_nm <= 0 or stop_nm < start_nm:
             raise InputError(f"Bands.uniform: need step > 0 and stop >= start, got {start_nm}..{stop_nm} step {step_nm}")
-        n = round((stop_nm - start_nm) / step_nm) + 1
-        if n > MAX_UNIFORM_BANDS:  # checked before any array is made (a step of 1e-6 nm is 3e8 bands)
-            raise InputError(f"Bands.uniform: {start_nm:g}..{stop_nm:g} nm in steps of {step_nm:g} nm gives {n:,} bands, "
-                             f"more than {MAX_UNIFORM_BANDS}; check the step (in nm)")
+        ratio = (stop_nm - start_nm) / step_nm  # inf for a subnormal step (1e-320 nm): no integer to round to
+        n = round(ratio) + 1 if math.isfinite(ratio) else None
+        if n is None or n > MAX_UNIFORM_BANDS:  # checked before any array is made (a step of 1e-6 nm is 3e8 bands)
+            raise InputError(f"Bands.uniform: {start_nm:g}..{stop_nm:g} nm in steps of {step_nm:g} nm gives "
+                             f"{'infinitely many' if n is None else f'{n:,}'} bands, more than {MAX_UNIFORM_BANDS}; "
+                             "check the step (in nm)")
         centers = start_nm + step_nm * np.arange(n, dtype=np.float64)
         # relative to the smaller of step and stop: a step far beyond the range (1e30 nm) is one band at
         # start_nm, which is not stop_nm (a tolerance of the step's size let it drop stop_nm silently)
