@@ -134,6 +134,7 @@ def test_pixel_spectra_of_no_scenes_is_refused_naming_the_folder(tmp_path):
 
 
 def test_a_cached_training_set_finds_the_held_out_set_drawn_with_its_parameters(tmp_path):
+    """Its companion: the held-out folder of the same parameters (seed and size too); a held-out set has none."""
     from hsicam.data.preview import _find_heldout
 
     params = {"generator_version": 3, "size": 24, "seed": 1, "bands": {"centers_nm": [400, 500]},
@@ -148,11 +149,13 @@ def test_a_cached_training_set_finds_the_held_out_set_drawn_with_its_parameters(
     train = folder("train-n2")
     assert _find_heldout(train) is None  # no companion yet
     folder("heldout-a-other-seed", seed=2, split="heldout")
+    folder("heldout-a-other-size", size=48, split="heldout")
     (tmp_path / "heldout-b-no-manifest").mkdir()
     assert _find_heldout(train) is None
     mine = folder("heldout-c", split="heldout")
     assert _find_heldout(train) == mine
     assert _find_heldout(folder("train-no-holdout", holdout_sources=[])) is None
+    assert _find_heldout(folder("held-as-input", split="heldout")) is None  # a held-out set has no companion
 
 
 def test_a_gain_that_fits_float32_but_not_times_the_image_names_both():

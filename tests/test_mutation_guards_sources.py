@@ -195,26 +195,6 @@ def test_a_preview_png_carries_the_sha256_of_its_pixels_and_a_changed_or_linked_
     assert pv.foreign_previews(tmp_path) == []
 
 
-def test_the_held_out_companion_must_match_size_and_the_set_must_be_a_training_set(tmp_path):
-    from hsicam.data.preview import _find_heldout
-
-    params = {"generator_version": 3, "size": 24, "seed": 1, "bands": {"centers_nm": [400, 500]},
-              "holdout_sources": ["cie-tcs"], "split": "train"}
-
-    def folder(name, **change):
-        d = tmp_path / name
-        d.mkdir()
-        (d / "manifest.json").write_text(json.dumps({"parameters": {**params, **change}}), encoding="utf-8")
-        return d
-
-    train = folder("train")
-    folder("heldout-a-other-size", size=48, split="heldout")
-    assert _find_heldout(train) is None
-    folder("heldout-b", split="heldout")
-    assert _find_heldout(train) == tmp_path / "heldout-b"
-    assert _find_heldout(folder("held-as-input", split="heldout")) is None  # a held-out set has no companion
-
-
 def test_common_grid_is_the_best_range_by_brute_force():
     """Against a brute force over every (first band, last band) range of the first grid: most grids covering it,
     then most bands, the earliest such range winning ties; at least min_bands bands."""
