@@ -15,6 +15,7 @@ import torch
 from cli_helpers import assert_ok, error_line, run_cli_in_process
 from conftest import TINY_CAMERA_OVERRIDES
 from test_calibration import write_homogeneous_scenes, write_psf_dir
+from test_cli_bad_paths import capture  # noqa: F401 - shared fixture: a 48×48 float capture
 from hsicam.config import load_config
 from hsicam.data.formats import read_cube
 
@@ -33,13 +34,6 @@ def runs(tmp_path_factory, cache_env) -> dict[str, Path]:
         cfg = load_config("tiny", [*TINY_CAMERA_OVERRIDES, f"data.root={data}", "train.epochs=1", *extra])
         assert train(cfg, base / name, progress=False)["final"]
     return {name: base / name for name in kinds}
-
-
-@pytest.fixture
-def capture(tmp_path) -> Path:
-    path = tmp_path / "cap.npy"
-    np.save(path, (np.random.default_rng(0).random((48, 48)) * 0.5).astype(np.float32))
-    return path
 
 
 def _reconstruct(capture: Path, run: Path, out: Path, *extra: str):
