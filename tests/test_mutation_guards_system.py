@@ -9,6 +9,7 @@ method's fixed point on a diagonal operator, a state dict's keys, a figure's plo
 from __future__ import annotations
 
 import json
+import math
 import logging
 from types import SimpleNamespace
 
@@ -439,3 +440,33 @@ def test_reconstruct_takes_the_landweber_steps_in_eval_mode_only(tiny_camera):
                                 extend="replicate", spectral_prior=c.spectral_prior, tv_weight=c.tv_weight)
     assert (got - x0).abs().max() > 1e-3
     torch.testing.assert_close(got, want, rtol=1e-9, atol=1e-12)
+
+
+def test_spec_of_a_singlet_states_its_focal_length_at_the_design_wavelength(tmp_path):
+    """E13 (left open by mut8b): a singlet's spec.json focal length is R / (n(λ0) − 1) at the design wavelength
+    587.6 nm, n from Malitson's Sellmeier formula for fused silica written out here, not the first band's (420 nm,
+    0.3 mm shorter); the per-band list follows the same formula at each band."""
+    from hsicam.config import dump_yaml
+    from hsicam.export import export_optics
+    from hsicam.models import CameraSystem
+    from hsicam.runs.checkpoint import save_weights
+
+    def n_fused_silica(nm: float) -> float:
+        um2 = (nm / 1000.0) ** 2
+        return math.sqrt(1 + 0.6961663 * um2 / (um2 - 0.0684043 ** 2) + 0.4079426 * um2 / (um2 - 0.1162414 ** 2)
+                         + 0.8974794 * um2 / (um2 - 9.896161 ** 2))
+
+    run = tmp_path / "singlet"
+    run.mkdir()
+    cfg = load_config("tiny", [*TINY_CAMERA_OVERRIDES, "camera.lens.model=singlet"])
+    (run / "config.yaml").write_text(dump_yaml(cfg), encoding="utf-8")
+    model = CameraSystem.from_config(cfg)
+    save_weights(run / "model.safetensors", model, model.bands)
+    export_optics(run, tmp_path / "fab", levels=4)
+    lens = json.loads((tmp_path / "fab" / "spec.json").read_text(encoding="utf-8"))["lens"]
+    radius = cfg.camera.lens.radius_of_curvature_mm
+    assert lens["model"] == "singlet" and lens["design_wavelength_nm"] == 587.6
+    assert lens["focal_length_mm"] == pytest.approx(radius / (n_fused_silica(587.6) - 1), rel=1e-6)
+    assert lens["focal_length_per_band_mm"] == pytest.approx(
+        [radius / (n_fused_silica(nm) - 1) for nm in model.camera.bands.centers_nm], rel=1e-6)
+    assert lens["focal_length_mm"] - lens["focal_length_per_band_mm"][0] > 0.2  # the first band's is not the design's
