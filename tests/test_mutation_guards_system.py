@@ -19,6 +19,7 @@ import torch
 
 from conftest import TINY_CAMERA_OVERRIDES
 from test_calibration import fab_run  # noqa: F401 - shared fixture
+from test_consistency import _Oracle  # a "network" returning a fixed cube
 from hsicam.cameras import build_camera
 from hsicam.cameras.base import Camera
 from hsicam.config import load_config
@@ -287,19 +288,6 @@ def test_tolerance_figure_says_why_a_skipped_shift_sweep_was_not_studied(monkeyp
 # ------------------------------------------------------------------------------------------------
 # models/system.py
 # ------------------------------------------------------------------------------------------------
-class _Fixed(torch.nn.Module):
-    """A "network" returning a fixed cube (context 0)."""
-
-    context_px = 0
-
-    def __init__(self, cube: torch.Tensor) -> None:
-        super().__init__()
-        self.cube = cube
-
-    def forward(self, sensor, camera, origin=(0, 0)):
-        return self.cube
-
-
 def _consistency(*overrides: str):
     return load_config(overrides=["model.consistency.iterations=1", *overrides]).model.consistency
 
@@ -309,7 +297,7 @@ def test_with_camera_keeps_the_network_and_its_settings_but_not_the_step_camera(
     through the new camera; the step camera (a nominal design for another camera) is not carried over."""
     cam, other = tiny_camera(), tiny_camera("camera.cfa.period=5")
     c = _consistency()
-    model = CameraSystem(cam, _Fixed(torch.zeros(1)), c)
+    model = CameraSystem(cam, _Oracle(torch.zeros(1)), c)
     model.autocast_dtype = torch.bfloat16
     model.linear_step = torch.ones(9, 3, 5, 5)
     model.linear_step_missing = "run r has no linear step"
@@ -325,7 +313,7 @@ def test_step_camera_is_a_reference_not_a_submodule(tiny_camera):
     """A step camera set on the model is neither a submodule nor in the state dict (the checkpoint holds the
     imaging camera and the network only), and .to() leaves it alone."""
     cam = tiny_camera()
-    model = CameraSystem(cam, _Fixed(torch.zeros(1)), _consistency())
+    model = CameraSystem(cam, _Oracle(torch.zeros(1)), _consistency())
     keys = set(model.state_dict())
     step = tiny_camera()
     model.step_camera = step
@@ -340,7 +328,7 @@ def test_consistency_applies_to_cassi_cameras_whose_scene_grid_is_the_sensors(ki
     """DD-CASSI images a scene on the sensor's grid, so the step applies; SD-CASSI's scene grid is wider than the
     sensor (the dispersion), so its reconstructions skip the step, warning once."""
     cam = build_camera(load_config(overrides=[*TINY_CAMERA_OVERRIDES, f"camera.kind={kind}"]))
-    model = CameraSystem(cam, _Fixed(torch.zeros(1)), _consistency())
+    model = CameraSystem(cam, _Oracle(torch.zeros(1)), _consistency())
     assert model.camera_takes_consistency is takes
     with caplog.at_level(logging.WARNING, logger="hsicam.models.system"):
         assert model.consistency_on is takes
@@ -431,7 +419,7 @@ def test_reconstruct_takes_the_landweber_steps_in_eval_mode_only(tiny_camera):
     cam = tiny_camera(dtype=torch.float64)
     x0 = torch.full((1, len(cam.bands), 24, 24), 0.3, dtype=torch.float64)
     c = _consistency("model.consistency.psf_energy=1")
-    model = CameraSystem(cam, _Fixed(x0), c)
+    model = CameraSystem(cam, _Oracle(x0), c)
     y = torch.rand(1, 1, 24, 24, generator=torch.Generator().manual_seed(3), dtype=torch.float64)
     with torch.no_grad():
         assert torch.equal(model.train().reconstruct(y), x0)
