@@ -91,11 +91,11 @@ def load_aperture(path: str | Path) -> np.ndarray:
     try:
         with open(path, "rb") as fh:
             head = fh.read(6)
-        if head == b"\x93NUMPY":  # else np.load would open a zip (.npz) or refuse "pickled data", advising allow_pickle
-            arr = np.load(path, allow_pickle=False)
+        # only a .npy: np.load would open a zip (.npz) or refuse "pickled data", advising allow_pickle
+        arr = np.load(path, allow_pickle=False) if head == b"\x93NUMPY" else None
     except (OSError, ValueError) as exc:
         raise InputError(f"{path}: not a readable .npy array ({exc})") from None
-    if head != b"\x93NUMPY":
+    if arr is None:
         raise InputError(f"{path}: not a .npy file ({'a .npz archive' if head.startswith(b'PK') else 'no NumPy header'}); "
                          "save the coded aperture (H, W) with numpy.save")
     arr = np.squeeze(np.asarray(arr))

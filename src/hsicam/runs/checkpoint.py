@@ -54,6 +54,8 @@ FORMAT = "hsicam-checkpoint-1"
 MANIFEST = "checkpoints.json"
 MANIFEST_FORMAT = "hsicam-run-manifest-1"
 LEGACY_POINTERS = ("last.json", "best.json")
+#: What a damaged or incomplete run folder's refusals tell the user to do.
+RECOPY_HINT = "copy the run folder again from its source, or train it again"
 #: Which checkpoint a run's root weights hold (``train.keep_weights``).
 KEEP_WEIGHTS = ("best", "last")
 
@@ -186,8 +188,7 @@ def _saved_bands(path: str | Path, text: str) -> Bands:
         return Bands.from_dict(json.loads(text))
     except (ValueError, KeyError, TypeError, AttributeError) as exc:  # JSONDecodeError is a ValueError
         reason = (str(exc).splitlines() or [type(exc).__name__])[0]
-        raise InputError(f"{path}: corrupt band grid in the file's metadata ({reason}); copy the run folder "
-                         "again from its source, or train it again") from None
+        raise InputError(f"{path}: corrupt band grid in the file's metadata ({reason}); {RECOPY_HINT}") from None
 
 
 def save_optimizer(path: str | Path, optimizer: torch.optim.Optimizer) -> None:
@@ -231,7 +232,7 @@ def load_optimizer(path: str | Path, optimizer: torch.optim.Optimizer) -> None:
         optimizer.load_state_dict({"state": state, "param_groups": groups})
     except KeyError as exc:  # torch's own words would be just the key, e.g. ('params')
         raise InputError(f"{path}: not an hsicam optimizer state (a parameter group has no {exc.args[0]!r} entry); "
-                         "copy the run folder again from its source, or train it again") from None
+                         f"{RECOPY_HINT}") from None
     except (ValueError, TypeError, AttributeError) as exc:
         raise InputError(f"{path}: optimizer state does not fit ({exc})") from None
     for param, st in optimizer.state.items():  # torch checks none of this; the first step would fail on it
@@ -239,8 +240,8 @@ def load_optimizer(path: str | Path, optimizer: torch.optim.Optimizer) -> None:
             if isinstance(val, torch.Tensor) and val.dim() > 0 and val.shape != param.shape:
                 optimizer.state.clear()
                 raise InputError(f"{path}: optimizer state {name} has shape {tuple(val.shape)}, its parameter "
-                                 f"{tuple(param.shape)}: the file belongs to another model; copy the run folder "
-                                 "again from its source, or train it again")
+                                 f"{tuple(param.shape)}: the file belongs to another model; "
+                                 f"{RECOPY_HINT}")
 
 
 class CheckpointManager:
@@ -265,23 +266,22 @@ class CheckpointManager:
         ``last.json`` / ``best.json``), or None when the run has no checkpoint yet."""
         path = self.run_dir / MANIFEST
         if path.is_file():
-            again = "copy the run folder again from its source, or train it again"
             try:
                 man = json.loads(path.read_text(encoding="utf-8"))
             except (OSError, UnicodeDecodeError, ValueError):
-                raise InputError(f"{path}: corrupt checkpoint manifest (not readable JSON); {again}") from None
+                raise InputError(f"{path}: corrupt checkpoint manifest (not readable JSON); {RECOPY_HINT}") from None
             if not isinstance(man, dict):
-                raise InputError(f"{path}: corrupt checkpoint manifest (not a JSON object); {again}")
+                raise InputError(f"{path}: corrupt checkpoint manifest (not a JSON object); {RECOPY_HINT}")
             if man.get("format") != MANIFEST_FORMAT:
                 raise InputError(f"{path}: not a checkpoint manifest this hsicam reads (format {man.get('format')!r}, "
                                  f"expected {MANIFEST_FORMAT!r}: written by another hsicam version, or damaged); "
-                                 f"use the hsicam that trained the run, or {again}")
+                                 f"use the hsicam that trained the run, or {RECOPY_HINT}")
             if not isinstance(man.get("last"), dict) or "dir" not in man["last"]:
                 raise InputError(f"{path}: corrupt checkpoint manifest ('last' is not an entry {{dir, step, …}}); "
-                                 f"{again}")
+                                 f"{RECOPY_HINT}")
             problem = _manifest_problem(man)
             if problem is not None:
-                raise InputError(f"{path}: corrupt checkpoint manifest ({problem}); {again}")
+                raise InputError(f"{path}: corrupt checkpoint manifest ({problem}); {RECOPY_HINT}")
             return man
         return self._legacy_manifest()
 
@@ -299,8 +299,7 @@ class CheckpointManager:
             entries[tag] = {"dir": d, "step": data.get("global_step"), "state": data}
             problem = _entry_problem(tag, entries[tag])  # checked as a manifest's entries are: readers index it
             if problem is not None:
-                raise InputError(f"{ptr}: corrupt checkpoint pointer ({problem}); copy the run folder again from "
-                                 "its source, or train it again")
+                raise InputError(f"{ptr}: corrupt checkpoint pointer ({problem}); {RECOPY_HINT}")
         if "last" not in entries:
             return None
         best = entries.get("best")
@@ -442,7 +441,7 @@ class CheckpointManager:
         path, sha = src
         if not path.is_file():
             raise InputError(f"{path}: the checkpoint named by {self.run_dir / MANIFEST} is missing (the run folder "
-                             "is incomplete); copy the run folder again from its source, or train it again")
+                             f"is incomplete); {RECOPY_HINT}")
         sha = sha or file_sha256(path)
         root = self.run_dir / self.weights_file
         if root.is_file() and file_sha256(root) == sha:
@@ -481,7 +480,7 @@ class CheckpointManager:
         if sha is not None and file_sha256(d / "model.safetensors") != sha:  # never train on from damaged weights
             raise InputError(f"{d / 'model.safetensors'} differs from the weights {self.run_dir / MANIFEST} records "
                              f"(sha256 {sha[:12]}…): the checkpoint is damaged (a copy cut short, a disk error, an edit); "
-                             "copy the run folder again from its source, or train it again")
+                             f"{RECOPY_HINT}")
         load_weights(d / "model.safetensors", model, bands)
         if optimizer is not None:
             load_optimizer(d / "optimizer.safetensors", optimizer)
@@ -587,8 +586,8 @@ def root_weights_path(run_dir: str | Path, weights_file: str = "model.safetensor
         return root
     if sha is not None and file_sha256(path) != sha:
         raise InputError(f"{root} and {path} both differ from the weights {run_dir / MANIFEST} records (sha256 "
-                         f"{sha[:12]}…): the run's weights are damaged (a copy cut short, a disk error, an edit); copy "
-                         "the run folder again from its source, or train it again")
+                         f"{sha[:12]}…): the run's weights are damaged (a copy cut short, a disk error, an edit); "
+                         f"{RECOPY_HINT}")
     if (root, path) not in _FALLBACKS_SAID:  # readers ask more than once per command: one line
         _FALLBACKS_SAID.add((root, path))
         log.info("%s does not hold the weights %s records (out of date, or damaged); using %s, which does",

@@ -47,7 +47,8 @@ class FusedSilica:
 class TabulatedMaterial:
     """A material given by a table of (wavelength in nm, refractive index), linearly interpolated."""
 
-    def __init__(self, wavelength_nm: np.ndarray, n: np.ndarray, name: str = "tabulated") -> None:
+    def __init__(self, wavelength_nm: np.ndarray, n: np.ndarray, name: str = "tabulated",
+                 path: Path | None = None) -> None:
         wl = np.asarray(wavelength_nm, dtype=np.float64).reshape(-1)
         nn = np.asarray(n, dtype=np.float64).reshape(-1)
         if wl.size < 2 or wl.shape != nn.shape:
@@ -59,7 +60,7 @@ class TabulatedMaterial:
         if np.any(nn < 1.0):
             raise InputError(f"material {name!r}: refractive index below 1")
         self.wavelength_nm, self.n_table, self.name = wl, nn, name
-        self.path: Path | None = None  # the CSV file it was read from (from_csv), named in its refusals
+        self.path = path  # the CSV file it was read from (from_csv), named in its refusals
 
     @classmethod
     def from_csv(cls, path: str | Path) -> "TabulatedMaterial":
@@ -83,9 +84,7 @@ class TabulatedMaterial:
             n = [float(r["n"]) for r in rows]
         except (TypeError, ValueError):
             raise InputError(f"{path}: non-numeric value in material table") from None
-        material = cls(np.array(wl), np.array(n), name=path.stem)
-        material.path = path
-        return material
+        return cls(np.array(wl), np.array(n), name=path.stem, path=path)
 
     def n(self, wavelength_nm: np.ndarray | float) -> np.ndarray:
         lam = np.asarray(wavelength_nm, dtype=np.float64)
