@@ -447,6 +447,19 @@ def test_shipped_cameras(name, monkeypatch):
 
 
 @pytest.mark.parametrize("name", shipped.available(shipped.package_root()))
+def test_a_shipped_cameras_baselines_are_todays_defaults(name, monkeypatch):
+    """`hsicam evaluate --run pretrained:NAME --method dd-cassi-gaptv` scores the baseline with the run's
+    config.yaml: a camera packed before a baseline's default changed (GAP-TV 80 -> 400 iterations, session 24)
+    would compare against a weaker GAP-TV than the docs quote. The baselines are not part of what the camera is."""
+    from hsicam.config import BaselinesConfig, to_dict
+
+    monkeypatch.delenv(shipped.ENV_VAR, raising=False)
+    cfg, _ = load_run(f"pretrained:{name}")
+    assert to_dict(cfg.baselines) == to_dict(BaselinesConfig())
+    assert cfg.baselines.gaptv.iterations == 400
+
+
+@pytest.mark.parametrize("name", shipped.available(shipped.package_root()))
 def test_shipped_camera_beats_the_box_demosaic_on_held_out_sources(name, monkeypatch, tmp_path):
     """The shipped camera reconstructs scenes made only of spectra its training never saw (the
     held-out sources, a seed of its own) better than the network-free box demosaic through the
