@@ -258,6 +258,7 @@ def _read_tiff(path: Path, what: str) -> tuple[np.ndarray, np.dtype]:
                 page = tf.pages[0]
                 if not hasattr(page, "shape"):
                     raise InputError(f"{path}: unreadable first TIFF page")
+                _check_tiff_page(path, page)
                 _check_pixels(path, page.shape, what)
                 _squeeze_2d(path, page.shape, what)
                 dtype = np.dtype(page.dtype)
@@ -302,6 +303,22 @@ def _tiff_by_pillow(path: Path, shape: tuple[int, ...], dtype: np.dtype, compres
     if str(compression).upper().startswith("JPEG"):
         log.warning("%s: JPEG-compressed TIFF: lossy, its values are not the sensor's as captured", path)
     return arr
+
+
+def _check_tiff_page(path: Path, page) -> None:
+    """InputError for a first TIFF page that holds no image: no tags at all, no ImageWidth/ImageLength, or no
+    StripOffsets/TileOffsets (a page without tags was refused as "image must be 2-D, got shape ()")."""
+    tags = getattr(page, "tags", None)
+    if tags is None or len(tags) == 0:
+        raise InputError(f"{path}: the first TIFF page has no tags (no width, height or pixel data): corrupt, or not "
+                         "an image")
+    missing = [name for code, name in ((256, "ImageWidth"), (257, "ImageLength")) if code not in tags]
+    if missing:
+        raise InputError(f"{path}: the first TIFF page has no image: its {' and '.join(missing)} tag"
+                         f"{'s are' if len(missing) > 1 else ' is'} missing (corrupt, or not an image)")
+    if not (273 in tags or 324 in tags):
+        raise InputError(f"{path}: the first TIFF page has no pixel data: its StripOffsets (or TileOffsets) tag is "
+                         "missing (corrupt, or not an image)")
 
 
 def _check_single_page(path: Path, tf, what: str) -> None:

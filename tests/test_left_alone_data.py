@@ -1,0 +1,58 @@
+"""Items earlier reviews noticed and left alone: a TIFF page that holds no image, NPY format 3.0, a held-out
+source whose spectra are zero on the bands, a material table short of the camera's wavelengths."""
+
+from __future__ import annotations
+
+import struct
+
+import numpy as np
+import pytest
+
+from hsicam.errors import InputError
+
+
+# --- data/images.py: a TIFF whose first page holds no image ---------------------------------------------------------
+
+def _tiff(entries: list[tuple[int, int, int, int]]) -> bytes:
+    """A little-endian TIFF of one IFD with ``entries`` (tag, type, count, value), written after the TIFF 6.0
+    specification: header, IFD at offset 8, no next IFD."""
+    ifd = struct.pack("<H", len(entries))
+    for tag, typ, count, value in entries:
+        ifd += struct.pack("<HHII", tag, typ, count, value)
+    return b"II*\x00" + struct.pack("<I", 8) + ifd + struct.pack("<I", 0)
+
+
+@pytest.mark.parametrize("entries, says", [
+    ([], "the first TIFF page has no tags (no width, height or pixel data): corrupt, or not an image"),
+    ([(305, 2, 4, int.from_bytes(b"abc\x00", "little"))],  # Software "abc" only
+     "the first TIFF page has no image: its ImageWidth and ImageLength tags are missing (corrupt, or not an image)"),
+    ([(256, 4, 1, 4), (257, 4, 1, 4), (258, 3, 1, 16)],  # 4×4, 16 bits, no strips
+     "the first TIFF page has no pixel data: its StripOffsets (or TileOffsets) tag is missing (corrupt, or not an "
+     "image)"),
+])
+def test_a_tiff_whose_first_page_holds_no_image_says_what_the_file_lacks(tmp_path, entries, says):
+    """A page with no tags was refused as "image must be 2-D, got shape ()", one without width and height as an
+    "empty image (shape (0, 0))", one without strips with tifffile's "missing data offset"."""
+    import tifffile
+
+    from hsicam.data.images import read_image_2d
+
+    path = tmp_path / "odd.tif"
+    path.write_bytes(_tiff(entries))
+    with tifffile.TiffFile(path) as tf:  # a TIFF with one page, as tifffile reads it
+        assert len(tf.pages) == 1 and len(tf.pages[0].tags) == len(entries)
+    with pytest.raises(InputError) as exc:
+        read_image_2d(path, "sensor image")
+    assert str(exc.value) == f"{path}: {says}"
+
+
+def test_a_tiff_with_its_tags_and_strip_still_reads(tmp_path):
+    """The same hand-written TIFF with its strip (4×4 uint16) reads back as written."""
+    from hsicam.data.images import read_image_2d
+
+    image = np.arange(16, dtype="<u2").reshape(4, 4) * 1000
+    entries = [(256, 4, 1, 4), (257, 4, 1, 4), (258, 3, 1, 16), (259, 3, 1, 1), (262, 3, 1, 1),
+               (273, 4, 1, 8 + 2 + 12 * 9 + 4), (277, 3, 1, 1), (278, 4, 1, 4), (279, 4, 1, image.nbytes)]
+    (tmp_path / "ok.tif").write_bytes(_tiff(entries) + image.tobytes())
+    got = read_image_2d(tmp_path / "ok.tif", "sensor image")
+    np.testing.assert_array_equal(got.data, image.astype(np.float32))
