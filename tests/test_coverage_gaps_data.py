@@ -149,18 +149,6 @@ def test_read_window_of_an_hdf5_that_is_not_ours_is_none(tmp_path):
     assert read_window(p, 0, 0, 2, 2) is None
 
 
-def test_npy_of_format_version_3_is_refused_naming_the_version(tmp_path):
-    from hsicam.data.formats import read_cube
-
-    p = tmp_path / "v3.npy"
-    with open(p, "wb") as fh:
-        np.lib.format.write_array(fh, np.ones((2, 3, 3), np.float32), version=(3, 0))
-    assert p.read_bytes()[6:8] == b"\x03\x00"
-    with pytest.raises(InputError) as exc:
-        read_cube(p)
-    assert _msg(exc) == f"{p}: unsupported NPY format version 3.0"
-
-
 # ---- data/formats.py: OpenEXR -------------------------------------------------------------------------
 def _exr(path, channels):
     OpenEXR = pytest.importorskip("OpenEXR")

@@ -56,3 +56,38 @@ def test_a_tiff_with_its_tags_and_strip_still_reads(tmp_path):
     (tmp_path / "ok.tif").write_bytes(_tiff(entries) + image.tobytes())
     got = read_image_2d(tmp_path / "ok.tif", "sensor image")
     np.testing.assert_array_equal(got.data, image.astype(np.float32))
+
+
+# --- data/formats.py: NPY format version 3.0 -------------------------------------------------------------------------
+
+def test_an_npy_of_format_version_3_reads_as_np_load_reads_it(tmp_path):
+    """numpy's format 3.0 is 2.0 with a UTF-8 header; np.load reads a plain float cube saved as 3.0, which
+    npy_header and read_cube refused: "unsupported NPY format version 3.0"."""
+    from hsicam.data.formats import npy_header, read_cube
+
+    cube = np.random.default_rng(3).random((4, 5, 6)).astype(np.float32)
+    path = tmp_path / "v3.npy"
+    with open(path, "wb") as fh:
+        np.lib.format.write_array(fh, cube, version=(3, 0))
+    assert path.read_bytes()[:8] == b"\x93NUMPY\x03\x00"
+    ref = np.load(path, allow_pickle=False)
+    assert npy_header(path) == (ref.shape, ref.dtype)
+    data, _, meta = read_cube(path)
+    assert meta["format"] == "npy"
+    np.testing.assert_array_equal(data, ref)
+
+
+def test_an_npy_of_an_unknown_format_version_is_still_refused_by_its_version(tmp_path):
+    from hsicam.data.formats import npy_header
+
+    path = tmp_path / "v4.npy"
+    with open(path, "wb") as fh:
+        np.lib.format.write_array(fh, np.zeros((2, 3, 4), np.float32), version=(2, 0))
+    data = bytearray(path.read_bytes())
+    data[6] = 4  # major version 4: np.load refuses it too
+    path.write_bytes(bytes(data))
+    with pytest.raises(ValueError):
+        np.load(path)
+    with pytest.raises(InputError) as exc:
+        npy_header(path)
+    assert str(exc.value) == f"{path}: unsupported NPY format version 4.0"

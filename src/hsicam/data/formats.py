@@ -1338,7 +1338,10 @@ def npy_header(path: str | os.PathLike) -> tuple[tuple[int, ...], np.dtype]:
             version = np.lib.format.read_magic(fh)
             if version == (1, 0):
                 shape, _, dtype = np.lib.format.read_array_header_1_0(fh)
-            elif version == (2, 0):
+            elif version in ((2, 0), (3, 0)):
+                # 3.0 is 2.0's layout with a UTF-8 header instead of Latin-1, which np.load reads: numpy writes it
+                # only for a structured dtype with field names beyond Latin-1 (no cube: refused by its dtype, those
+                # names garbled here); a plain array saved as 3.0 has an ASCII header, read alike
                 shape, _, dtype = np.lib.format.read_array_header_2_0(fh)
             else:
                 raise InputError(f"{p}: unsupported NPY format version {version[0]}.{version[1]}")
