@@ -534,7 +534,11 @@ class OtsuModel:
 
     Per cluster k (chosen by a kd-tree on CIE xy): reflectance = mean_k + w·basis_k with the three
     weights solving XYZ(reflectance) = XYZ under D65 and the CIE 1931 2° observer; clipped to
-    [0, 1] on the 380-730 nm, 10 nm grid (as colour-science's ``XYZ_to_sd_Otsu2018``).
+    [0, 1] on the 380-730 nm, 10 nm grid (as colour-science's ``XYZ_to_sd_Otsu2018``, to 1e-9), except
+    for XYZ = 0 (black), which has no chromaticity: here it takes the D65 white point's xy (the limit of
+    dimmer and dimmer D65 greys), where colour-science takes xy (0, 0) and so another cluster; the two
+    spectra of a black pixel differ by up to 0.03. Kept, since the synthetic scenes (and the datasets
+    cached from them) are made with it.
     """
 
     selector: np.ndarray  # (R, 4): origin, axis, lesser, greater
