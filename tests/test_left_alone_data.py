@@ -110,3 +110,35 @@ def test_the_otsu_model_departs_from_colour_science_only_at_black_as_its_docstri
     np.testing.assert_allclose(black, dim, atol=1e-9)  # the limit of dim D65 greys, computed by colour-science
     assert 0.02 < np.abs(black - ref).max() <= 0.03
     assert "XYZ = 0" in OtsuModel.__doc__ and "differ by up to 0.03" in OtsuModel.__doc__
+
+
+# --- data/spectral_sources.py: a held-out source whose lamps are dark on the bands ------------------------------------
+
+@pytest.mark.filterwarnings("ignore:Aligning", "ignore:.*shape could not be honoured", "ignore:.*Interpolating")
+def test_a_held_out_source_dark_on_every_band_is_refused_as_dark_not_as_out_of_range(monkeypatch):
+    """A lamp measured over 380-780 nm with no output below 560 nm spans the 400-440 nm grid but is 0 on it; a
+    held-out source made only of it was refused as "kinoton: 1 spectra do not span the grid". The manifest's
+    not_used_out_of_range still lists it (cache keys depend on it)."""
+    colour = pytest.importorskip("colour")
+    from colour.colorimetry.datasets.light_sources import sds as light_sources
+
+    from hsicam.data import spectral_sources as ss
+    from hsicam.spectral import Bands
+
+    wl = np.arange(380.0, 781.0, 5.0)
+    dark = colour.SpectralDistribution(np.where(wl >= 560.0, 1.0, 0.0), wl)
+    bands = Bands.uniform(400, 440, 10)
+    monkeypatch.setattr(light_sources, "SDS_LIGHT_SOURCES_COMMON", {"Dark lamp": dark})
+    ss._library_cached.cache_clear()
+    try:
+        lib = ss.spectral_library(bands)
+        fine = ss._fine_grid(bands)
+        assert wl[0] <= fine[0] and wl[-1] >= fine[-1]  # the lamp spans the grid ...
+        assert not (ss.band_matrix(bands, fine) @ np.interp(fine, wl, dark.values)).any()  # ... and is 0 on it
+        assert lib.sources["not_used_out_of_range"]["kinoton"] == ["Dark lamp"]  # manifest field unchanged
+        with pytest.raises(ss.NoHeldOutSpectra) as exc:
+            ss.split_library(lib, "kinoton,pmc", "heldout")
+        n_pmc = len(lib.sources["not_used_out_of_range"]["pmc"])  # PMC's 400-700 nm do not reach 387 nm
+        assert f"(kinoton: 1 spectra are 0 on every band; pmc: {n_pmc} spectra do not span the grid)" in str(exc.value)
+    finally:
+        ss._library_cached.cache_clear()  # the next library is built of colour-science's own lamps

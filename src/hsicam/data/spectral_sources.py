@@ -177,6 +177,9 @@ class SpectralLibrary:
     holdout: tuple[str, ...] = ()
     basis: ReflectanceBasis | None = None  # for basis draws; None: no basis draws
     removed: list[str] = field(default_factory=list)  # training spectra dropped as equal to held-out ones
+    # per source, the lights left out for being 0 on every band though they span the grid (listed with the others
+    # under the manifest's not_used_out_of_range; kept apart here to say so when a held-out set is refused)
+    zero_on_bands: dict[str, list[str]] = field(default_factory=dict)
 
     def counts(self) -> dict[str, dict[str, int]]:
         """Number of spectra per role and source id."""
@@ -241,6 +244,7 @@ def _library_cached(centers: tuple[float, ...], fwhm: tuple[float, ...]) -> Spec
     fine = _fine_grid(bands)
     G = band_matrix(bands, fine)
     skipped: dict[str, list[str]] = {}
+    zero: dict[str, list[str]] = {}  # of those, the lights that span the grid but are 0 on every band
 
     def integrate(wl: np.ndarray, values: np.ndarray) -> np.ndarray:
         # linear interpolation onto the fine grid (ends held constant), then band averaging
@@ -313,6 +317,7 @@ def _library_cached(centers: tuple[float, ...], fwhm: tuple[float, ...]) -> Spec
         e = integrate(wl, np.clip(values, 0.0, None))
         if not e.max() > 0:
             skipped.setdefault(source, []).append(name)
+            zero.setdefault(source, []).append(name)
             return
         if emitter:
             emit.append(e / e.max())
@@ -368,7 +373,7 @@ def _library_cached(centers: tuple[float, ...], fwhm: tuple[float, ...]) -> Spec
     lib = SpectralLibrary(
         bands, refl_arr, rnames, np.asarray(illum, dtype=np.float32), inames, groups, otsu,
         functools.partial(colour.sRGB_to_XYZ), {}, rsrc, isrc, np.asarray(emit, dtype=np.float32), enames, esrc,
-        split="all", holdout=(), basis=ReflectanceBasis.fit(refl_arr))
+        split="all", holdout=(), basis=ReflectanceBasis.fit(refl_arr), zero_on_bands=zero)
     lib.sources = _describe(lib, skipped, colour.__version__)
     return lib
 
@@ -445,7 +450,16 @@ def _same_as_any(x: np.ndarray, ref: np.ndarray, atol: float) -> np.ndarray:
 
 class NoHeldOutSpectra(InputError):
     """The held-out sources give no spectrum on this band grid (each is used only where it covers the grid's
-    range, ±10 nm): a held-out set of them would be made of the training spectra alone."""
+    range, ±10 nm, and is not 0 on every band): a held-out set of them would be made of the training spectra alone."""
+
+
+def _why_unused(names: list[str], zero: list[str]) -> str:
+    """Why a source's spectra ``names`` are not in the library: they do not span the grid, or (``zero``) they do
+    but are 0 on every band (a lamp dark at these wavelengths)."""
+    out = len(names) - len(zero)
+    parts = ([f"{out} spectra do not span the grid"] if out else []) + \
+        ([f"{len(zero)} spectra are 0 on every band"] if zero else [])
+    return " and ".join(parts)
 
 
 def split_library(lib: SpectralLibrary, holdout_sources: str | Iterable[str] | None, split: str) -> SpectralLibrary:
@@ -493,7 +507,8 @@ def split_library(lib: SpectralLibrary, holdout_sources: str | Iterable[str] | N
     if split == "heldout" and "otsu2018" not in held and not any(s in held for role in parts for s in parts[role][2]):
         # every role would fall back to the training spectra: scenes scored as "held-out sources" that are not
         skipped = lib.sources.get("not_used_out_of_range") or {}
-        why = "; ".join(f"{src}: {len(skipped[src])} spectra do not span the grid" for src in holdout if src in skipped)
+        why = "; ".join(f"{src}: {_why_unused(skipped[src], lib.zero_on_bands.get(src, []))}" for src in holdout
+                        if src in skipped)
         fine = _fine_grid(lib.bands)
         raise NoHeldOutSpectra(
             f"the held-out sources {', '.join(holdout)} give no spectrum on bands {lib.bands.min_nm:g}-"
