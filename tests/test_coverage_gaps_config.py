@@ -38,8 +38,8 @@ def test_a_doe_material_table_short_of_the_bands_names_its_file_and_the_waveleng
     assert centres.max() > 700
     with pytest.raises(InputError) as exc:
         build_camera(cfg)
-    assert str(exc.value) == (f"{table}: material 'glass' is tabulated for 400-700 nm only, but its refractive index "
-                              f"is needed at {centres.min():g}-{centres.max():g} nm")
+    assert str(exc.value) == (f"camera.doe.material: {table}: material 'glass' is tabulated for 400-700 nm only, but "
+                              f"its refractive index is needed at {centres.min():g}-{centres.max():g} nm")
 
 
 def test_a_singlet_lens_table_short_of_its_design_wavelength_names_key_file_and_wavelength(tmp_path):

@@ -142,3 +142,35 @@ def test_a_held_out_source_dark_on_every_band_is_refused_as_dark_not_as_out_of_r
         assert f"(kinoton: 1 spectra are 0 on every band; pmc: {n_pmc} spectra do not span the grid)" in str(exc.value)
     finally:
         ss._library_cached.cache_clear()  # the next library is built of colour-science's own lamps
+
+
+# --- spectral/materials.py + cameras: a material table short of the camera's wavelengths names its config key -------
+
+@pytest.mark.parametrize("key, overrides", [
+    ("camera.doe.material", []),
+    ("camera.lens.material", ["camera.lens.model=singlet"]),
+])
+def test_a_material_table_short_of_the_bands_names_the_config_key_that_chose_it(tmp_path, key, overrides):
+    """A table covering 450-700 nm (the design wavelength 587.6 nm inside it) and tiny's bands beyond it: the camera
+    named the file and the wavelengths but not the key (`--set camera.doe.material=glass.csv`)."""
+    from hsicam.cameras import build_camera
+    from hsicam.config import load_config
+
+    table = tmp_path / "glass.csv"
+    table.write_text("wavelength_nm,n\n450,1.47\n700,1.45\n", encoding="utf-8")
+    cfg = load_config("tiny", overrides=overrides + [f"{key}={table}"])  # accepted: the file is not opened here
+    centres = cfg.bands.to_bands().centers_nm
+    assert cfg.camera.psf.band_samples == 1 and centres.min() < 450  # the PSF is computed at the band centres
+    with pytest.raises(InputError) as exc:
+        build_camera(cfg)
+    assert str(exc.value) == (f"{key}: {table}: material 'glass' is tabulated for 450-700 nm only, but its "
+                              f"refractive index is needed at {centres.min():g}-{centres.max():g} nm")
+
+
+def test_a_table_built_in_memory_still_names_only_itself():
+    from hsicam.spectral import TabulatedMaterial, get_material
+
+    assert get_material("fused_silica", "camera.doe.material").n(550.0) == pytest.approx(1.45991, abs=1e-5)
+    with pytest.raises(InputError) as exc:
+        TabulatedMaterial(np.array([400.0, 700.0]), np.array([1.5, 1.4]), name="mine").n(380.0)
+    assert str(exc.value) == "material 'mine' is tabulated for 400-700 nm only, but its refractive index is needed at 380 nm"

@@ -107,7 +107,8 @@ class DOECamera(Camera):
         n_cells = cells_across(cam.aperture_radius_mm * 1e-3, cell_m)
         check_doe_memory(n_cells, cam.doe.cell_size_um, cam.aperture_radius_mm, cam.doe.enabled)
         doe = DOE(
-            n_cells, get_material(cam.doe.material), cam.doe.design_wavelength_nm, cam.doe.enabled,
+            n_cells, get_material(cam.doe.material, "camera.doe.material"), cam.doe.design_wavelength_nm,
+            cam.doe.enabled,
             cam.doe.init, cam.doe.seed,
             None if cam.doe.max_height_nm is None else cam.doe.max_height_nm * 1e-9,
             cam.doe.wrap, cam.doe.quantization_levels, cam.doe.sigma_height_nm * 1e-9,

@@ -61,4 +61,5 @@ def lens_from_config(cfg) -> Lens:  # cfg: hsicam.config.LensConfig
     (config sits below optics); test_config holds the two equal."""
     if cfg.model == "achromatic":
         return AchromaticLens(cfg.focal_length_mm * 1e-3)
-    return SingletLens(cfg.radius_of_curvature_mm * 1e-3, cfg.center_thickness_mm * 1e-3, get_material(cfg.material))
+    return SingletLens(cfg.radius_of_curvature_mm * 1e-3, cfg.center_thickness_mm * 1e-3,
+                       get_material(cfg.material, "camera.lens.material"))

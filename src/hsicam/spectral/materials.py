@@ -48,7 +48,7 @@ class TabulatedMaterial:
     """A material given by a table of (wavelength in nm, refractive index), linearly interpolated."""
 
     def __init__(self, wavelength_nm: np.ndarray, n: np.ndarray, name: str = "tabulated",
-                 path: Path | None = None) -> None:
+                 path: Path | None = None, key: str | None = None) -> None:
         wl = np.asarray(wavelength_nm, dtype=np.float64).reshape(-1)
         nn = np.asarray(n, dtype=np.float64).reshape(-1)
         if wl.size < 2 or wl.shape != nn.shape:
@@ -61,10 +61,12 @@ class TabulatedMaterial:
             raise InputError(f"material {name!r}: refractive index below 1")
         self.wavelength_nm, self.n_table, self.name = wl, nn, name
         self.path = path  # the CSV file it was read from (from_csv), named in its refusals
+        self.key = key  # the config key that chose it (e.g. camera.doe.material), named in its refusals
 
     @classmethod
-    def from_csv(cls, path: str | Path) -> "TabulatedMaterial":
-        """Read a CSV with a header row naming ``wavelength_nm`` and ``n`` columns."""
+    def from_csv(cls, path: str | Path, key: str | None = None) -> "TabulatedMaterial":
+        """Read a CSV with a header row naming ``wavelength_nm`` and ``n`` columns (``key``: the config key that
+        names the file, said when the table falls short of a wavelength)."""
         path = Path(path)
         try:
             # utf-8-sig: Excel's "CSV UTF-8" starts with a byte-order mark that would glue onto the first column name
@@ -84,14 +86,14 @@ class TabulatedMaterial:
             n = [float(r["n"]) for r in rows]
         except (TypeError, ValueError):
             raise InputError(f"{path}: non-numeric value in material table") from None
-        return cls(np.array(wl), np.array(n), name=path.stem, path=path)
+        return cls(np.array(wl), np.array(n), name=path.stem, path=path, key=key)
 
     def n(self, wavelength_nm: np.ndarray | float) -> np.ndarray:
         lam = np.asarray(wavelength_nm, dtype=np.float64)
         if np.any(lam < self.wavelength_nm[0] - 1e-9) or np.any(lam > self.wavelength_nm[-1] + 1e-9):
             # the wavelengths asked for, and the file: a camera built on this table said only "material 'glass' is
             # tabulated for 400-700 nm only", naming neither the table's path nor the bands that fall outside it
-            where = f"{self.path}: " if self.path is not None else ""
+            where = "".join(f"{part}: " for part in (self.key, self.path) if part is not None)
             lo, hi = float(lam.min()), float(lam.max())
             asked = f"{lo:g} nm" if lo == hi else f"{lo:g}-{hi:g} nm"
             raise InputError(
@@ -104,10 +106,11 @@ class TabulatedMaterial:
         return f"TabulatedMaterial({self.name!r}, {self.wavelength_nm[0]:g}-{self.wavelength_nm[-1]:g} nm)"
 
 
-def get_material(spec: str) -> Material:
-    """``"fused_silica"`` or a path to a ``wavelength_nm,n`` CSV file."""
+def get_material(spec: str, key: str | None = None) -> Material:
+    """``"fused_silica"`` or a path to a ``wavelength_nm,n`` CSV file (``key``: the config key that names it, said
+    in a table's refusal of a wavelength outside it)."""
     if spec == "fused_silica":
         return FusedSilica()
     if spec.lower().endswith(".csv"):
-        return TabulatedMaterial.from_csv(spec)
+        return TabulatedMaterial.from_csv(spec, key)
     raise InputError(f"unknown material {spec!r}: use 'fused_silica' or a path to a CSV file (wavelength_nm,n)")
