@@ -149,6 +149,7 @@ def test_a_held_out_source_dark_on_every_band_is_refused_as_dark_not_as_out_of_r
 @pytest.mark.parametrize("key, overrides", [
     ("camera.doe.material", []),
     ("camera.lens.material", ["camera.lens.model=singlet"]),
+    ("camera.cassi.prism_material", ["camera.kind=dd_cassi", "camera.cassi.dispersion=prism"]),
 ])
 def test_a_material_table_short_of_the_bands_names_the_config_key_that_chose_it(tmp_path, key, overrides):
     """A table covering 450-700 nm (the design wavelength 587.6 nm inside it) and tiny's bands beyond it: the camera

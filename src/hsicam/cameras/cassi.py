@@ -176,15 +176,17 @@ def linear_dispersion(n_bands: int, shift_px: float) -> list[int]:
 
 
 def prism_shifts_px(bands: Bands, material: str = "fused_silica", apex_deg: float = 30.0,
-                    focal_length_m: float = 0.05, pixel_pitch_m: float = 6e-6) -> np.ndarray:
+                    focal_length_m: float = 0.05, pixel_pitch_m: float = 6e-6,
+                    material_key: str | None = None) -> np.ndarray:
     """Thin-prism dispersion (px, float64, not rounded), 0 for the least dispersed band.
 
     Deviation δ(λ) = (n(λ) − 1)·α; the lens after the prism maps the deviation difference to a
     sensor shift f·tan(δ(λ_0) − δ(λ)). Normal dispersion (n falls with λ) makes the shifts grow
     with the band index, faster in the blue than in the red. An absurd focal length gives huge (or, past
-    float64, infinite) shifts, which :func:`check_dispersion_span` refuses.
+    float64, infinite) shifts, which :func:`check_dispersion_span` refuses. ``material_key``: the config key
+    that named ``material``, said in a material table's refusal.
     """
-    n = np.asarray(get_material(material).n(bands.centers_nm), dtype=np.float64)
+    n = np.asarray(get_material(material, material_key).n(bands.centers_nm), dtype=np.float64)
     alpha = math.radians(apex_deg)
     delta = (n - 1.0) * alpha
     with np.errstate(over="ignore", invalid="ignore"):
@@ -193,11 +195,16 @@ def prism_shifts_px(bands: Bands, material: str = "fused_silica", apex_deg: floa
 
 
 def prism_dispersion(bands: Bands, material: str = "fused_silica", apex_deg: float = 30.0,
-                     focal_length_m: float = 0.05, pixel_pitch_m: float = 6e-6) -> list[int]:
+                     focal_length_m: float = 0.05, pixel_pitch_m: float = 6e-6,
+                     material_key: str | None = None) -> list[int]:
     """Thin-prism dispersion in whole pixels, d_0 = 0, for bands ascending in wavelength
     (:func:`prism_shifts_px` rounded)."""
-    d = np.round(prism_shifts_px(bands, material, apex_deg, focal_length_m, pixel_pitch_m)).astype(int)
+    d = np.round(prism_shifts_px(bands, material, apex_deg, focal_length_m, pixel_pitch_m, material_key)).astype(int)
     return [int(v) for v in d]
+
+
+#: The config key of the prism's material (a material table's refusal names it).
+PRISM_MATERIAL_KEY = "camera.cassi.prism_material"
 
 
 def dispersion_from_config(bands: Bands, cassi, pixel_pitch_um: float) -> list[int]:
@@ -205,7 +212,7 @@ def dispersion_from_config(bands: Bands, cassi, pixel_pitch_um: float) -> list[i
     if cassi.dispersion == "linear":
         return linear_dispersion(len(bands), cassi.shift_px)
     return prism_dispersion(bands, cassi.prism_material, cassi.prism_apex_deg, cassi.prism_focal_length_mm * 1e-3,
-                            pixel_pitch_um * 1e-6)
+                            pixel_pitch_um * 1e-6, PRISM_MATERIAL_KEY)
 
 
 #: Bytes per pixel of a CASSI sensor window while a scene is imaged: the float32 measurement, and the
@@ -234,7 +241,8 @@ def check_dispersion_span(cam, bands: Bands, scene_px: int,
         fix = "set camera.cassi.shift_px to a few px (MST's CASSI: 2)"
     else:
         span = float(np.max(prism_shifts_px(bands, cassi.prism_material, cassi.prism_apex_deg,
-                                            cassi.prism_focal_length_mm * 1e-3, cam.sensor.pixel_pitch_um * 1e-6)))
+                                            cassi.prism_focal_length_mm * 1e-3, cam.sensor.pixel_pitch_um * 1e-6,
+                                            PRISM_MATERIAL_KEY)))
         what = (f"camera.cassi.dispersion=prism with camera.cassi.prism_focal_length_mm={cassi.prism_focal_length_mm:g}, "
                 f"prism_apex_deg={cassi.prism_apex_deg:g} and prism_material={cassi.prism_material} over "
                 f"{len(bands)} bands and {cam.sensor.pixel_pitch_um:g} µm pixels (camera.sensor.pixel_pitch_um)")
