@@ -602,3 +602,21 @@ def test_all_metrics_per_item_equals_alone(seed, b, h, w, c):
         alone = metrics.all_metrics(x[i : i + 1], y[i : i + 1])
         for k, v in batch.items():
             assert v[i] == pytest.approx(alone[k][0], rel=1e-12, nan_ok=True), k
+
+
+# ------------------------------------------------------------------------------------------------
+# Regressions of the findings
+# ------------------------------------------------------------------------------------------------
+@pytest.mark.parametrize("full_well", [1e5, 1e6])
+def test_poisson_gaussian_noise_of_a_half_precision_image_counts_beyond_65504_electrons(full_well):
+    """A float16 image at 0.9 of a 10⁵ e⁻ full well: 90 000 electrons overflowed half precision and every pixel came
+    back −inf; the noise is counted in float32 and the image keeps its dtype, with mean g and variance g/N + (r/N)²."""
+    g = torch.full((1, 1, 64, 64), 0.9, dtype=torch.float16)
+    out = poisson_gaussian_noise(g, full_well, 2.0, torch.Generator().manual_seed(0))
+    assert out.dtype == torch.float16
+    assert bool(torch.isfinite(out).all())
+    var = 0.9 / full_well + (2.0 / full_well) ** 2
+    step = 2.0**-11  # half precision's spacing just below 1
+    assert float(out.float().mean()) == pytest.approx(0.9, abs=5 * math.sqrt(var / out.numel()) + step)
+    if var > 10 * step**2:  # the shot noise spans several half-precision steps: its variance is measurable
+        assert float(out.float().var()) == pytest.approx(var, rel=0.15)

@@ -138,11 +138,15 @@ def poisson_gaussian_noise(
     g: torch.Tensor, full_well_e: float, read_noise_e: float, generator: torch.Generator | None = None
 ) -> torch.Tensor:
     """Photon shot noise (signal 1.0 = ``full_well_e`` electrons) plus Gaussian read noise (e⁻),
-    returned on the same [0, 1] scale. Straight-through gradient (identity) for training."""
-    electrons = torch.poisson(g.detach().clamp_min(0) * full_well_e, generator=generator)
+    returned on the same [0, 1] scale. Straight-through gradient (identity) for training. The electrons are
+    counted in float32 at least (a half-precision image tops out at 65504: a full well of 10⁵ e⁻ gave −inf)."""
+    signal = g.detach()
+    signal = signal.float() if signal.element_size() < 4 else signal
+    electrons = torch.poisson(signal.clamp_min(0) * full_well_e, generator=generator)
     if read_noise_e > 0:
-        electrons = electrons + read_noise_e * torch.randn(g.shape, generator=generator, device=g.device, dtype=g.dtype)
-    return straight_through(g, electrons / full_well_e)
+        electrons = electrons + read_noise_e * torch.randn(g.shape, generator=generator, device=g.device,
+                                                           dtype=electrons.dtype)
+    return straight_through(g, (electrons / full_well_e).to(g.dtype))
 
 
 def quantize_bits(g: torch.Tensor, bits: int) -> torch.Tensor:
