@@ -620,3 +620,14 @@ def test_poisson_gaussian_noise_of_a_half_precision_image_counts_beyond_65504_el
     assert float(out.float().mean()) == pytest.approx(0.9, abs=5 * math.sqrt(var / out.numel()) + step)
     if var > 10 * step**2:  # the shot noise spans several half-precision steps: its variance is measurable
         assert float(out.float().var()) == pytest.approx(var, rel=0.15)
+
+
+@PROP
+@given(seed=seeds, dtype=st.sampled_from([torch.float16, torch.bfloat16, torch.float32, torch.float64]),
+       c=st.integers(1, 4), h=st.integers(1, 5), w=st.integers(1, 5))
+def test_check_cube_takes_a_tensor_of_any_float_dtype(seed, dtype, c, h, w):
+    """check_cube of a torch tensor (bfloat16 included: it has no numpy type, a TypeError) = its float32 values."""
+    t = torch.rand(c, h, w, generator=torch.Generator().manual_seed(seed), dtype=torch.float64).to(dtype)
+    out = check_cube(t)
+    assert out.dtype == np.float32 and out.shape == (c, h, w)
+    np.testing.assert_array_equal(out, t.float().numpy())

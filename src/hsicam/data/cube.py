@@ -82,7 +82,10 @@ def check_cube(cube: Any, source: PathLike | str = "cube", *, bands: Bands | Non
     clipped to 0 instead. A torch tensor is accepted and returned as a numpy array.
     """
     if hasattr(cube, "detach") and hasattr(cube, "cpu"):  # torch.Tensor, without importing torch
-        cube = cube.detach().cpu().numpy()
+        cube = cube.detach().cpu()
+        if cube.is_floating_point() and cube.element_size() < 4:  # bfloat16 has no numpy type (a TypeError)
+            cube = cube.float()
+        cube = cube.numpy()
     arr = np.asarray(cube)
     if arr.ndim != 3:
         raise InputError(f"{source}: expected a 3-D cube (bands, height, width), got {arr.ndim} dimensions {arr.shape}")
