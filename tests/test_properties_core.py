@@ -631,3 +631,31 @@ def test_check_cube_takes_a_tensor_of_any_float_dtype(seed, dtype, c, h, w):
     out = check_cube(t)
     assert out.dtype == np.float32 and out.shape == (c, h, w)
     np.testing.assert_array_equal(out, t.float().numpy())
+
+
+@PROP
+@given(seed=seeds, n=st.integers(1, 300), q=st.floats(0.0, 1.0), ties=st.booleans())
+def test_sam_breakdown_quantile_is_torch_quantile(seed, n, q, ties):
+    """The edge threshold of sam_breakdown = torch.quantile (linear interpolation) where torch's applies."""
+    gen = torch.Generator().manual_seed(seed)
+    t = torch.rand(n, generator=gen, dtype=torch.float64)
+    if ties:
+        t = (t * 4).floor()
+    torch.testing.assert_close(metrics._quantile(t, q), torch.quantile(t, q), rtol=1e-12, atol=1e-12)
+
+
+@pytest.mark.slow
+def test_sam_breakdown_of_an_image_beyond_2_24_pixels():
+    """A 4097×4096 image (2²⁴ + 4096 px): torch.quantile refused it ("quantile() input tensor is too large") and
+    sam_breakdown stopped with a RuntimeError. A vertical step edge: the top 20 % of the gradient are its two
+    columns' neighbours (numpy's quantile as the reference), SAM 0 for an estimate equal to the truth."""
+    h, w = 4097, 4096
+    y = torch.full((1, 1, h, w), 0.5)
+    y[..., w // 2 :] = 1.0
+    y[..., : h // 3, :] += torch.linspace(0, 0.1, w)  # a ramp over the top third: gradients of several sizes
+    got = metrics.sam_breakdown(y, y)
+    assert got["all"] == [0.0] and got["edges"] == [0.0] and got["dark_fraction"] == [0.0]
+    gy, gx = np.gradient(y[0, 0].double().numpy())
+    grad = np.sqrt(gx * gx + gy * gy)
+    assert float(metrics._quantile(torch.from_numpy(grad).flatten(), 0.8)) == pytest.approx(np.quantile(grad, 0.8),
+                                                                                             rel=1e-12)

@@ -220,7 +220,7 @@ def sam_breakdown(x: torch.Tensor, y: torch.Tensor, dark_level: float = 0.01, ed
     for a, b, t in zip(angle, level, y):
         gy, gx = torch.gradient(b)
         grad = (gx * gx + gy * gy).sqrt()
-        edge = grad > torch.quantile(grad.flatten(), edge_quantile)
+        edge = grad > _quantile(grad.flatten(), edge_quantile)
         dark = b < dark_level
         regions = {"dark": dark, "bright": ~dark, "edges": edge & ~dark, "flat": ~edge & ~dark}
         out["dark_fraction"].append(float(dark.double().mean()))
@@ -230,6 +230,17 @@ def sam_breakdown(x: torch.Tensor, y: torch.Tensor, dark_level: float = 0.01, ed
             mask = mask & defined
             out[k].append(float(a[mask].mean()) if bool(mask.any()) else nan)
     return out
+
+
+def _quantile(t: torch.Tensor, q: float) -> torch.Tensor:
+    """``torch.quantile(t, q)`` (linear interpolation) of a 1-D tensor of any length: torch's refuses more than
+    2²⁴ elements ("input tensor is too large", a 4097×4096 image)."""
+    pos = q * (t.numel() - 1)
+    lo = math.floor(pos)
+    values = torch.kthvalue(t, lo + 1).values
+    if pos > lo:
+        values = torch.lerp(values, torch.kthvalue(t, lo + 2).values, pos - lo)
+    return values
 
 
 def ergas(x: torch.Tensor, y: torch.Tensor, eps: float = 1e-12) -> torch.Tensor:
