@@ -456,3 +456,20 @@ def test_tv_denoise_keeps_each_bands_mean_and_a_flat_image(h, w, bands, iteratio
         for c in range(bands):
             one = tv_denoise(f[i : i + 1, c : c + 1], float(weight[i, c]), iterations)
             torch.testing.assert_close(u[i : i + 1, c : c + 1], one, rtol=0, atol=1e-13)
+
+
+@pytest.mark.parametrize("kind", ["dd_cassi", "sd_cassi"])
+@pytest.mark.parametrize("hw", [(1, 9), (9, 1), (1, 1)])
+def test_choi_admm_on_a_one_px_cube_is_one_input_error(kind, hw):
+    """A cube 1 px high or wide: the prior's reflect padding cannot mirror it (torch raised a RuntimeError from
+    deep inside the autoencoder); one InputError naming the size instead, as DeSCI's for an image below its patch."""
+    from hsicam.config import ChoiConfig
+    from hsicam.errors import InputError
+    from hsicam.models.priors import SpectralAutoencoder
+    from hsicam.solvers import admm_prior
+
+    cam = cassi(kind, 100.0)
+    y = torch.rand(1, 1, hw[0], hw[1] + (cam.span if kind == "sd_cassi" else 0), dtype=torch.float64)
+    prior = SpectralAutoencoder(len(cam.bands), 4, 4).double()
+    with pytest.raises(InputError, match=rf"^Choi: the cube \({hw[0]}×{hw[1]} px\) is smaller than 2×2 px"):
+        admm_prior(cam, y, prior, ChoiConfig(iterations=1, init_iterations=1))

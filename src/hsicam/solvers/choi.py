@@ -83,6 +83,10 @@ def admm_prior(camera, y: torch.Tensor, prior: nn.Module, settings: ChoiConfig |
     ‖x − z‖ / ‖z‖ sequence.
     """
     camera.check_measurement(y)
+    h, w = camera.scene_size(tuple(y.shape[-2:]))
+    if min(h, w) < 2:  # a reflect-padded 3×3 convolution needs 2 px a side (torch refused 1 px with a RuntimeError)
+        raise InputError(f"Choi: the cube ({h}×{w} px) is smaller than 2×2 px, which the prior's reflect-padded "
+                         "convolutions need")
     if not (init_tv_weight >= 0 and math.isfinite(init_tv_weight)):
         raise InputError(f"Choi: init_tv_weight must be a finite number >= 0, got {init_tv_weight}")
     s = settings or ChoiConfig()
