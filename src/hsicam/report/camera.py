@@ -232,6 +232,10 @@ def write_optics_figures(camera, out: Path, prefix: str = "", psf: bool = False)
     with torch.no_grad():
         if psf and hasattr(camera, "psf_result"):
             res = camera.psf_result()
+            if not bool(torch.isfinite(res.psf).all()):  # a damaged camera (e.g. DOE heights of 1e38 m), not a figure
+                raise ValueError(f"its PSF holds {int((~torch.isfinite(res.psf)).sum())} NaN/Inf value(s) (DOE heights "
+                                 f"up to {float(camera.optics.doe.heights().abs().max()):.3g} m)"
+                                 if getattr(camera, "optics", None) is not None else "its PSF holds NaN/Inf values")
             crop = plot_psf_montage(res.psf.float().cpu().numpy(), camera.bands, out / f"{prefix}psf.png")
             written[f"{prefix}psf.png"] = (f"PSF per band (log scale, central {crop}×{crop} px) and encircled energy; "
                                            f"energy in kernel "

@@ -193,7 +193,14 @@ def _camera_section(run: Path, out: Path, prefix: str = "", label: str | None = 
         return f"<p class='note'>camera figures unavailable: {html.escape(str(exc))}</p>"
     cam = model.camera
     parts = [f"<h2>Camera ({html.escape(label or run_label(run))})</h2>"]
-    for name, caption in write_optics_figures(cam, out, prefix, psf=True).items():
+    try:
+        figures = write_optics_figures(cam, out, prefix, psf=True)
+    except ValueError as exc:  # the run's camera (its weights or config.yaml), not the results file: say which
+        figures = {}
+        parts.append(f"<p class='note'>camera figures unavailable: {html.escape(str(run))}: the camera its weights and "
+                     f"config.yaml describe cannot be drawn ({html.escape(str(exc))}): the run's model.safetensors or "
+                     f"config.yaml is damaged</p>")
+    for name, caption in figures.items():
         parts.append(_img(name, caption))
     metrics = run / "metrics.jsonl"
     if metrics.is_file():

@@ -1,0 +1,37 @@
+"""Items earlier sessions noticed and left alone (session 59, left9a): each test holds the behaviour a user meets."""
+
+from __future__ import annotations
+
+import json
+import types
+
+import pytest
+import torch
+import yaml
+
+from hsicam.config import ChoiConfig, load_config
+from hsicam.errors import InputError
+from hsicam.io import mark_complete
+
+
+def test_the_report_names_the_run_whose_camera_cannot_be_drawn_not_the_results_file(tiny_camera, tmp_path, monkeypatch):
+    """A run whose DOE heights are finite but absurd (3e38 m) has a NaN PSF: the report stopped with "corrupt
+    results.json (a field holds a value of the wrong kind: cannot convert float NaN to integer)", blaming a sound
+    results.json. Now the camera section says which run's camera cannot be drawn and why; the page is written."""
+    from hsicam.report.html import _camera_section
+
+    cam = tiny_camera()
+    with torch.no_grad():
+        cam.optics.doe.height_m.fill_(3e38)
+    assert not bool(torch.isfinite(cam.psf_result().psf).all())  # the damage: a PSF of NaN/Inf values
+    run = tmp_path / "run"
+    run.mkdir()
+    monkeypatch.setattr("hsicam.runs.folder.load_run", lambda r: (load_config("tiny"), types.SimpleNamespace(camera=cam)))
+    out = tmp_path / "report"
+    out.mkdir()
+    page = _camera_section(run, out)
+    note = page[page.index("<p class='note'>camera figures unavailable"):]
+    assert note.startswith(f"<p class='note'>camera figures unavailable: {run}: the camera its weights and config.yaml "
+                           "describe cannot be drawn (its PSF holds ")
+    assert "NaN/Inf value(s) (DOE heights up to 3e+38 m)): the run's model.safetensors or config.yaml is damaged</p>" in note
+    assert "results.json" not in page
