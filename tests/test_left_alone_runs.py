@@ -35,3 +35,25 @@ def test_the_report_names_the_run_whose_camera_cannot_be_drawn_not_the_results_f
                            "describe cannot be drawn (its PSF holds ")
     assert "NaN/Inf value(s) (DOE heights up to 3e+38 m)): the run's model.safetensors or config.yaml is damaged</p>" in note
     assert "results.json" not in page
+
+
+def test_a_data_folder_inside_a_report_inside_an_evaluation_is_refused_as_the_evaluation(tmp_path):
+    """check_not_an_output stopped at the first marked folder above the data: EVAL/report/scenes (a report's
+    folder, itself inside an evaluate's output) was taken as data, while EVAL/scenes was refused."""
+    from hsicam.data.datasets import check_not_an_output
+
+    ev = tmp_path / "eval"
+    for d in (ev / "scenes", ev / "report" / "scenes"):
+        d.mkdir(parents=True)
+    (ev / "results.json").write_text(json.dumps({"data": "DATA"}))
+    mark_complete(ev, {"command": "evaluate"})
+    mark_complete(ev / "report", {"command": "report"})
+    with pytest.raises(InputError) as beside:
+        check_not_an_output(ev / "scenes")
+    with pytest.raises(InputError) as nested:
+        check_not_an_output(ev / "report" / "scenes")
+    assert str(nested.value) == str(beside.value).replace(str(ev / "scenes"), str(ev / "report" / "scenes"), 1)
+    assert str(nested.value).startswith(f"{ev / 'report' / 'scenes'}: lies inside {ev}, which is the output of hsicam "
+                                        "evaluate (which scored DATA)")
+    with pytest.raises(InputError, match="is the report folder|is .*report"):  # the report folder itself, as before
+        check_not_an_output(ev / "report")

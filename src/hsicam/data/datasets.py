@@ -322,7 +322,7 @@ def check_not_an_output(root: str | os.PathLike) -> None:
         if a == full and root.is_dir():
             raise InputError(f"{root}: is {output_description(a)}, not a folder of scenes; use a folder of cube files "
                              "as the data")
-        return
+        # (no return: that output may itself lie inside an evaluate's, e.g. its report/, which the folders above show)
 
 
 def _as_given(root: Path, full: Path, ancestor: Path) -> Path:
