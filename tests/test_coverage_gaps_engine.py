@@ -327,8 +327,9 @@ def test_a_prior_whose_weights_do_not_fit_its_settings_is_refused_in_one_line(pr
         load_prior(p, load_config("tiny").bands.to_bands())
     msg = str(exc.value)
     assert "\n" not in msg and msg.startswith(str(p / "prior.safetensors"))
-    assert msg.endswith(": a prior trained by an earlier hsicam has the old 3 + 3 layer autoencoder; train it again "
-                        "with `hsicam baseline train-prior`")
+    assert msg.endswith(": its prior.yaml says features: 8, but the weights were trained with features: 4 (prior.yaml "
+                        "edited after the training?); put back features: 4 in prior.yaml, or train it again with "
+                        "`hsicam baseline train-prior`")
 
 
 def test_prior_progress_of_a_folder_with_an_unreadable_manifest_is_none(prior, tmp_path):

@@ -57,3 +57,46 @@ def test_a_data_folder_inside_a_report_inside_an_evaluation_is_refused_as_the_ev
                                         "evaluate (which scored DATA)")
     with pytest.raises(InputError, match="is the report folder|is .*report"):  # the report folder itself, as before
         check_not_an_output(ev / "report")
+
+
+@pytest.fixture(scope="module")
+def small_prior(tmp_path_factory, cache_env):
+    from hsicam.engine.prior import train_prior
+
+    p = tmp_path_factory.mktemp("left_prior") / "p"
+    train_prior(load_config("tiny"), ChoiConfig(features=4, latent=8, train_steps=2, batch_size=1), p, progress=False)
+    return p
+
+
+def test_a_prior_whose_prior_yaml_was_edited_is_told_so_not_that_it_is_an_old_prior(small_prior, tmp_path):
+    """Weights of the current 6 + 6 autoencoder beside a prior.yaml whose features were edited by hand got the hint
+    "a prior trained by an earlier hsicam has the old 3 + 3 layer autoencoder"; the weights' shapes tell which."""
+    import shutil
+
+    from hsicam.engine.prior import load_prior
+
+    bands = load_config("tiny").bands.to_bands()
+    p = shutil.copytree(small_prior, tmp_path / "edited")
+    settings = yaml.safe_load((p / "prior.yaml").read_text())
+    settings["features"] = 8
+    (p / "prior.yaml").write_text(yaml.safe_dump(settings))
+    with pytest.raises(InputError) as exc:
+        load_prior(p, bands)
+    assert str(exc.value).endswith(": its prior.yaml says features: 8, but the weights were trained with features: 4 "
+                                   "(prior.yaml edited after the training?); put back features: 4 in prior.yaml, or "
+                                   "train it again with `hsicam baseline train-prior`")
+
+    # weights of a 3 + 3 layer autoencoder (an earlier hsicam's), the same file format: the old hint stays
+    from safetensors import safe_open
+    from safetensors.torch import save_file
+
+    from hsicam.models.priors import SpectralAutoencoder
+
+    old = shutil.copytree(small_prior, tmp_path / "old")
+    with safe_open(str(old / "prior.safetensors"), "pt") as f:
+        meta = f.metadata()
+    save_file(SpectralAutoencoder(len(bands), 4, 8, layers=3).state_dict(), str(old / "prior.safetensors"), metadata=meta)
+    with pytest.raises(InputError) as exc:
+        load_prior(old, bands)
+    assert str(exc.value).endswith(": a prior trained by an earlier hsicam has the old 3 + 3 layer autoencoder; train "
+                                   "it again with `hsicam baseline train-prior`")

@@ -238,6 +238,32 @@ def load_prior_settings(run: str | Path) -> ChoiConfig:
     return from_dict(ChoiConfig, data, "baselines.choi")
 
 
+def _misfit_hint(weights: Path, settings: ChoiConfig) -> str:
+    """Why a prior's weights do not fit the autoencoder its ``prior.yaml`` describes, told from their shapes: the
+    old 3 + 3 layer autoencoder of an earlier hsicam, or ``prior.yaml``'s sizes edited after its training."""
+    from safetensors import safe_open
+
+    from hsicam.models.priors import PRIOR_LAYERS
+
+    try:
+        with safe_open(str(weights), "pt") as f:
+            convs = sorted(((int(k.split(".")[1]), f.get_slice(k).get_shape()) for k in f.keys()
+                            if k.startswith("encoder.") and k.endswith(".weight")), key=lambda kv: kv[0])
+    except Exception:  # noqa: BLE001 - shapes that cannot be read: the hint of the common case
+        convs = []
+    if len(convs) == PRIOR_LAYERS and all(len(shape) == 4 for _, shape in convs):
+        trained = {"features": int(convs[0][1][0]), "latent": int(convs[-1][1][0])}
+        edited = {k: v for k, v in trained.items() if getattr(settings, k) != v}
+        if edited:
+            said = ", ".join(f"{k}: {getattr(settings, k)}" for k in edited)
+            were = ", ".join(f"{k}: {v}" for k, v in edited.items())
+            return (f"its {PRIOR_SETTINGS} says {said}, but the weights were trained with {were} ({PRIOR_SETTINGS} "
+                    f"edited after the training?); put back {were} in {PRIOR_SETTINGS}, or train it again with "
+                    "`hsicam baseline train-prior`")
+    return ("a prior trained by an earlier hsicam has the old 3 + 3 layer autoencoder; train it again with "
+            "`hsicam baseline train-prior`")
+
+
 def load_prior(run: str | Path, bands: Bands, device: torch.device | str = "cpu") -> tuple[SpectralAutoencoder, ChoiConfig]:
     """The trained autoencoder of a prior folder (checked against ``bands``) and its settings."""
     run = Path(run)
@@ -252,8 +278,7 @@ def load_prior(run: str | Path, bands: Bands, device: torch.device | str = "cpu"
     except InputError as exc:
         if "do not fit" not in str(exc) and "the model expects" not in str(exc):
             raise
-        raise InputError(f"{exc}: a prior trained by an earlier hsicam has the old 3 + 3 layer autoencoder; train it "
-                         "again with `hsicam baseline train-prior`") from None
+        raise InputError(f"{exc}: {_misfit_hint(run / PRIOR_WEIGHTS, settings)}") from None
     model.requires_grad_(False)
     unfinished = unfinished_prior(run, settings)
     if unfinished:
