@@ -100,3 +100,39 @@ def test_a_prior_whose_prior_yaml_was_edited_is_told_so_not_that_it_is_an_old_pr
         load_prior(old, bands)
     assert str(exc.value).endswith(": a prior trained by an earlier hsicam has the old 3 + 3 layer autoencoder; train "
                                    "it again with `hsicam baseline train-prior`")
+
+
+TENT = ["train.epochs=1", "model.kind=mosaic", "model.mosaic.features=8", "model.mosaic.blocks=1",
+        "model.mosaic.head_features=4", "model.mosaic.head_layers=1", "model.mosaic.demosaic_kernel=tent"]
+
+
+@pytest.mark.slow
+def test_a_demo_of_a_network_with_a_tent_skip_scores_the_tent_demosaic_too(tmp_path, cache_env):
+    """demo.py's tent branch: the network's own start, network-free, is a reference of its own (window 2·3 − 1)."""
+    from hsicam.engine.demo import run_demo
+    from hsicam.engine.methods import DEMOSAIC_REFERENCE_NAMES
+
+    res = run_demo(load_config("tiny", TENT), tmp_path / "demo")
+    names = [r["method"] for r in res["references"]]
+    assert names[1:3] == [DEMOSAIC_REFERENCE_NAMES["box"], DEMOSAIC_REFERENCE_NAMES["tent"]]
+    box, tent = (r["mean"]["psnr"] for r in res["references"][1:3])
+    assert box != tent  # two demosaics (3 px box, 5 px tent), not one scored twice
+    md = (tmp_path / "demo" / "results.md").read_text()
+    assert f"- {DEMOSAIC_REFERENCE_NAMES['tent']}: " in md
+    assert json.loads((tmp_path / "demo" / "results.json").read_text())["references"][2]["method"] == names[2]
+
+
+def test_a_demo_of_a_cassi_config_scores_the_grey_reference_alone_and_draws_no_optics(tmp_path, cache_env):
+    """demo.py's CASSI branch: the demosaic references need a per-band sensor code (refused with ValueError and
+    skipped), and the DOE camera's figures (PSF, DOE, CFA) are not drawn."""
+    from hsicam.engine.demo import run_demo
+
+    res = run_demo(load_config("tiny", ["train.epochs=1", "camera.kind=dd_cassi"]), tmp_path / "demo")
+    assert [r["method"] for r in res["references"]] == ["sensor image x mean training spectrum"]
+    files = {p.name for p in (tmp_path / "demo").iterdir()}
+    assert {"results.json", "results.md", "reconstructions.png", "training.png", ".complete"} <= files
+    assert not files & {"psf.npy", "psf.png", "doe.png", "cfa.png"}
+    md = (tmp_path / "demo" / "results.md").read_text()
+    assert md.split("References:\n\n")[1].splitlines()[0].startswith("- sensor image x mean training spectrum: ")
+    held = [r["method"] for r in res["heldout"]["references"]]  # the held-out scenes' references alike
+    assert held == ["sensor image x mean training spectrum"] and md.count("\n- ") == 2
