@@ -136,3 +136,22 @@ def test_a_demo_of_a_cassi_config_scores_the_grey_reference_alone_and_draws_no_o
     assert md.split("References:\n\n")[1].splitlines()[0].startswith("- sensor image x mean training spectrum: ")
     held = [r["method"] for r in res["heldout"]["references"]]  # the held-out scenes' references alike
     assert held == ["sensor image x mean training spectrum"] and md.count("\n- ") == 2
+
+
+def test_a_capture_through_a_damaged_camera_blames_the_camera_not_the_scene(tiny_camera):
+    """`hsicam simulate` with a camera whose PSF is NaN (DOE heights of 3e38 m) told the user to normalise a scene
+    of peak 1 ("float overflow: the scene's peak value is 1"); a scene of huge values still gets that advice."""
+    cam = tiny_camera()
+    h, w = cam.min_scene_size()
+    scene = torch.full((1, len(cam.bands), h, w), 0.5)
+    scene[..., 0, 0] = 1.0
+    assert bool(torch.isfinite(cam.capture(scene)).all())  # the sound camera images it
+    with torch.no_grad():
+        cam.optics.doe.height_m.fill_(3e38)
+    with pytest.raises(InputError) as exc:
+        cam.capture(scene, source="s.h5")
+    assert str(exc.value).startswith("s.h5: the simulated sensor image is not finite, and so is this camera's image of "
+                                     "a uniform scene of 1: the camera's model (its weights or config.yaml")
+    assert "normalise the scene" not in str(exc.value)
+    with pytest.raises(InputError, match=r"the scene.s peak value is 1e\+38\); normalise the scene first"):
+        tiny_camera().capture(scene * 1e38, source="s.h5")  # the scene's overflow: as before

@@ -112,7 +112,7 @@ class Camera(nn.Module):
         :data:`SCENE_PEAK_WARN` is logged (WARNING, naming ``source``): its image goes far past the
         sensor's full scale of 1. A scene holding NaN/Inf values is an :class:`InputError` naming ``source``
         and their count; so is a sensor image that is not finite (float overflow of a scene with huge
-        values: naming the scene's peak), and a scene smaller than :meth:`min_scene_size`
+        values: naming the scene's peak; or a damaged camera, whose image of a uniform scene is not finite either), and a scene smaller than :meth:`min_scene_size`
         (:meth:`check_capture_size`)."""
         self.check_capture_size(tuple(x.shape[-2:]), source)
         check_finite(x, source)
@@ -121,6 +121,10 @@ class Camera(nn.Module):
                   "divide raw counts or percent by their full scale, or the cube by its maximum)")
         y = self(x, generator)
         if not bool(torch.isfinite(y).all()):
+            if not bool(torch.isfinite(self.A(torch.ones_like(x))).all()):  # the camera, not the scene
+                raise InputError(f"{source}: the simulated sensor image is not finite, and so is this camera's image of "
+                                 "a uniform scene of 1: the camera's model (its weights or config.yaml: PSFs, DOE "
+                                 "heights, CFA) holds NaN/Inf values or overflows; the scene is not the cause")
             raise InputError(f"{source}: the simulated sensor image is not finite (float overflow: the scene's peak "
                              f"value is {peak:.4g}); {advice}")
         if peak > SCENE_PEAK_WARN:
