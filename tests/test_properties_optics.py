@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import functools
 import math
+from fractions import Fraction
 
 import numpy as np
 import pytest
@@ -569,3 +570,20 @@ def test_cassi_window_at_any_origin_is_the_whole_measurement_there(kind, c, hh, 
         torch.testing.assert_close(tile[..., d:tw], whole[..., r0 : r0 + th, c0 + d : c0 + tw], rtol=0, atol=1e-15)
     if one is not None:
         torch.testing.assert_close(one, tile[1:2], rtol=0, atol=0)
+
+
+@settings(max_examples=60, **PROP)
+@given(c=st.integers(1, 80), num=st.integers(1, 500), den=st.sampled_from([2, 4, 10, 100, 1000]))
+def test_linear_dispersion_rounds_exact_halves_up(c, num, den):
+    """d_c = ⌊shift·c + ½⌋ computed exactly (shift = num/den px, a decimal as a config gives it): a product that is
+    a half rounds up, as the docstring says, whatever the float rounding of shift·c."""
+    ref = [math.floor(Fraction(num, den) * i + Fraction(1, 2)) for i in range(c)]
+    assert linear_dispersion(c, num / den) == ref
+
+
+def test_linear_dispersion_of_a_decimal_shift_rounds_its_halves_up():
+    """0.7 px × band 45 = 31.5 px and 0.29 px × band 50 = 14.5 px round up to 32 and 15 (binary 0.7 and 0.29 are a
+    hair below: the products came out 31.499… and 14.499…, rounded down to 31 and 14)."""
+    assert linear_dispersion(46, 0.7)[45] == 32
+    assert linear_dispersion(51, 0.29)[50] == 15
+    assert linear_dispersion(46, 0.7) == [math.floor(Fraction(7, 10) * i + Fraction(1, 2)) for i in range(46)]

@@ -169,10 +169,11 @@ class CodedAperture(nn.Module):
 # --------------------------------------------------------------------------------------------
 def linear_dispersion(n_bands: int, shift_px: float) -> list[int]:
     """d_c = ⌊shift_px · c + ½⌋, c = 0..C-1 (MST: shift_px = 2): halves round up, so the steps stay
-    even (Python's round would send 1.5·3 = 4.5 to 4: [0, 2, 3, 4, 6])."""
+    even (Python's round would send 1.5·3 = 4.5 to 4: [0, 2, 3, 4, 6]), with a 1e-9 tolerance against
+    round-off (0.7 px is 0.69999… in binary: 0.7·45 = 31.5 gave 31.499…, rounded down to 31)."""
     if not (shift_px > 0 and math.isfinite(shift_px)):
         raise ValueError(f"shift_px must be positive, got {shift_px}")
-    return [int(math.floor(shift_px * c + 0.5)) for c in range(n_bands)]
+    return [int(math.floor(shift_px * c + 0.5 + 1e-9)) for c in range(n_bands)]
 
 
 def prism_shifts_px(bands: Bands, material: str = "fused_silica", apex_deg: float = 30.0,
