@@ -1,0 +1,427 @@
+"""Property-based tests (hypothesis) of the cube readers and writers, the capture readers and the
+raw-capture corrections, and the atomic writers, on unusual but legal inputs: 1×1 and odd sizes,
+one band and many, non-uniform band grids, float32/float64/integer data, zeros and big values, every
+ENVI interleave and byte order, files written by independent writers (h5py, scipy.io.savemat,
+numpy, a hand-written ENVI header, Pillow, tifffile), and paths with spaces and non-ASCII names.
+
+Each invariant is checked against an independent reference: the array written, indexed by hand,
+or a closed form computed in float64 with numpy.
+"""
+
+from __future__ import annotations
+
+import json
+import uuid
+
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, assume, given, settings
+from hypothesis import strategies as st
+
+from hsicam.data import formats
+from hsicam.data.images import RawCorrection, normalised_flat, preprocess_raw, read_image_2d
+from hsicam.io import atomic_path, write_json, write_npy, write_png16
+from hsicam.spectral import Bands
+
+PROPS = settings(max_examples=30, deadline=None, derandomize=True, database=None,
+                 suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large])
+FEW = settings(PROPS, max_examples=12)
+
+#: awkward names for the files: spaces, non-ASCII letters, an emoji, a leading dash
+NAMES = st.sampled_from(["cube", "a b", "spéctre", "日本 語", "-x", "🌈 scene", "x.y.z"])
+
+
+@pytest.fixture(scope="module")
+def fresh_dir(tmp_path_factory):
+    """A factory of new empty folders (hypothesis runs many examples in one test call)."""
+    base = tmp_path_factory.mktemp("props")
+
+    def make():
+        d = base / uuid.uuid4().hex[:10]
+        d.mkdir()
+        return d
+
+    return make
+
+
+@st.composite
+def band_grids(draw, min_bands=1, max_bands=40):
+    """Strictly ascending band centres (nm) at 3 decimals, on a uniform or an irregular grid, from the
+    UV to the SWIR (200-2500 nm), with FWHM of any positive size."""
+    n = draw(st.integers(min_bands, max_bands))
+    start = draw(st.floats(200.0, 1500.0))
+    steps = draw(st.lists(st.floats(0.01, 40.0), min_size=n, max_size=n))
+    if draw(st.booleans()):
+        steps = [steps[0]] * n
+    centres = np.round(start + np.concatenate([[0.0], np.cumsum(steps[1:])]), 3)
+    assume(np.all(np.diff(centres) > 0))
+    fwhm = np.round(np.asarray(draw(st.lists(st.floats(0.01, 100.0), min_size=n, max_size=n))), 3)
+    assume(np.all(fwhm > 0))
+    return centres, fwhm
+
+
+@st.composite
+def cubes(draw, bands=None, max_side=7, dtype=None, integers=False):
+    """A (C, H, W) cube of C = len(bands) (or 1..40), sides 1..max_side, with zeros, tiny and big values."""
+    c = len(bands) if bands is not None else draw(st.integers(1, 40))
+    h, w = draw(st.integers(1, max_side)), draw(st.integers(1, max_side))
+    seed = draw(st.integers(0, 2**31 - 1))
+    rng = np.random.default_rng(seed)
+    if integers:
+        cube = rng.integers(0, 65536, size=(c, h, w)).astype(np.float64)
+    else:
+        mag = draw(st.sampled_from([1.0, 1e-30, 1e-3, 1e4, 3e38]))
+        cube = rng.random((c, h, w)) * mag
+    cube[rng.random((c, h, w)) < 0.2] = 0.0
+    return cube.astype(dtype or draw(st.sampled_from([np.float32, np.float64])))
+
+
+# ------------------------------------------------------------------------------------------------
+# Our HDF5
+# ------------------------------------------------------------------------------------------------
+@PROPS
+@given(grid=band_grids(), data=st.data(), name=NAMES)
+def test_hsicam_h5_round_trip(fresh_dir, grid, data, name):
+    """write_cube_h5 -> read_cube: the float32 cube, the band centres and FWHM come back exactly; a
+    window read with read_window is that slice of the cube."""
+    centres, fwhm = grid
+    bands = Bands(centres, fwhm)
+    cube = data.draw(cubes(bands))
+    path = fresh_dir() / f"{name}.h5"
+    formats.write_cube_h5(path, cube, bands, metadata={"name": name})
+    got, got_bands, meta = formats.read_cube(path)
+    assert got.dtype == np.float32 and got.shape == cube.shape
+    np.testing.assert_array_equal(got, cube.astype(np.float32))
+    np.testing.assert_array_equal(got_bands.centers_nm, centres)
+    np.testing.assert_array_equal(got_bands.fwhm_nm, fwhm)
+    assert meta["name"] == name and meta["format"] == "hsicam"
+    _, h, w = cube.shape
+    y, x = data.draw(st.integers(0, h - 1)), data.draw(st.integers(0, w - 1))
+    hh, ww = data.draw(st.integers(1, h - y)), data.draw(st.integers(1, w - x))
+    win, win_bands = formats.read_window(path, y, x, hh, ww)
+    np.testing.assert_array_equal(win, cube.astype(np.float32)[:, y:y + hh, x:x + ww])
+    assert win_bands == bands
+
+
+# ------------------------------------------------------------------------------------------------
+# ENVI
+# ------------------------------------------------------------------------------------------------
+ENVI_CODES = {"u1": 1, "i2": 2, "i4": 3, "f4": 4, "f8": 5, "u2": 12, "u4": 13, "i8": 14, "u8": 15}
+
+
+@PROPS
+@given(grid=band_grids(), data=st.data(), interleave=st.sampled_from(["bsq", "bil", "bip"]),
+       order=st.sampled_from(["little", "big"]), dtype=st.sampled_from(["float32", "float64", "uint16", "int32"]),
+       name=NAMES)
+def test_envi_round_trip(fresh_dir, grid, data, interleave, order, dtype, name):
+    """write_envi -> read_envi for every interleave, byte order and a float or integer type: the cube
+    as float32 (integers: the integer values), bands and FWHM at 3 decimals."""
+    centres, fwhm = grid
+    bands = Bands(centres, fwhm)
+    integer = dtype in ("uint16", "int32")
+    cube = data.draw(cubes(bands, integers=integer))
+    if dtype == "float32" or integer:
+        cube = cube.astype(np.float64)
+    if dtype == "float32":  # a float32 file holds float32 values: keep them in range
+        cube = np.minimum(cube, 1e38)
+    hdr, raw = formats.write_envi(fresh_dir() / f"{name}.hdr", cube, bands, interleave=interleave, dtype=dtype,
+                                  byte_order=order, metadata={"n": name, "s": "{a, b}"})
+    for path in (hdr, raw):
+        got, got_bands, meta = formats.read_cube(path)
+        np.testing.assert_array_equal(got, cube.astype(np.float32))
+        np.testing.assert_array_equal(got_bands.centers_nm, centres)
+        np.testing.assert_array_equal(got_bands.fwhm_nm, fwhm)
+        assert meta["interleave"] == interleave and meta["n"] == name and meta["s"] == "{a, b}"
+
+
+@PROPS
+@given(c=st.integers(1, 12), h=st.integers(1, 6), w=st.integers(1, 6), code=st.sampled_from(sorted(ENVI_CODES)),
+       interleave=st.sampled_from(["bsq", "bil", "bip"]), big=st.booleans(), offset=st.integers(0, 40),
+       shuffle=st.booleans(), micrometres=st.booleans(), seed=st.integers(0, 2**31 - 1))
+def test_envi_independent_writer(fresh_dir, c, h, w, code, interleave, big, offset, shuffle, micrometres, seed):
+    """A hand-written ENVI pair (numpy's tofile of the values in the file's own order, a header offset,
+    the bands in any order, wavelengths in µm or nm) reads back as the brute-force indexing of the
+    stored values, bands sorted ascending with their planes."""
+    rng = np.random.default_rng(seed)
+    dt = np.dtype(code).newbyteorder(">" if big else "<")
+    hi = 255 if code == "u1" else 1000
+    stored = rng.integers(0, hi + 1, size={"bsq": (c, h, w), "bil": (h, c, w), "bip": (h, w, c)}[interleave])
+    waves_nm = np.round(rng.permutation(400.0 + 7.5 * np.arange(c)) if shuffle else 400.0 + 7.5 * np.arange(c), 3)
+    listed = waves_nm / 1000.0 if micrometres else waves_nm
+    d = fresh_dir()
+    (d / "scene.hdr").write_text(
+        "ENVI\ndescription = {hand written}\n"
+        f"samples = {w}\nlines = {h}\nbands = {c}\nheader offset = {offset}\ndata type = {ENVI_CODES[code]}\n"
+        f"interleave = {interleave}\nbyte order = {1 if big else 0}\n"
+        f"wavelength units = {'Micrometers' if micrometres else 'Nanometers'}\n"
+        f"wavelength = {{{', '.join(repr(float(v)) for v in listed)}}}\n", encoding="ascii")
+    with open(d / "scene.img", "wb") as fh:
+        fh.write(b"\x00" * offset)
+        stored.astype(dt).tofile(fh)
+    got, got_bands, _ = formats.read_envi(d / "scene.hdr")
+    want = np.empty((c, h, w))
+    for b in range(c):
+        for y in range(h):
+            for x in range(w):
+                want[b, y, x] = (stored[b, y, x] if interleave == "bsq" else stored[y, b, x] if interleave == "bil"
+                                 else stored[y, x, b])
+    order = np.argsort(waves_nm)
+    np.testing.assert_array_equal(got, want[order].astype(np.float32))
+    np.testing.assert_allclose(got_bands.centers_nm, waves_nm[order], rtol=0, atol=5e-4)
+
+
+JSON_TEXT = st.text(st.characters(codec="utf-8", exclude_categories=("Cs",)), max_size=12)
+JSON_VALUES = st.recursive(st.none() | st.booleans() | st.integers(-10**6, 10**6) | JSON_TEXT
+                           | st.floats(allow_nan=False, allow_infinity=False),
+                           lambda inner: st.lists(inner, max_size=3) | st.dictionaries(JSON_TEXT, inner, max_size=3),
+                           max_leaves=8)
+
+
+@PROPS
+@given(meta=st.dictionaries(JSON_TEXT, JSON_VALUES, max_size=4))
+def test_envi_metadata_round_trip(fresh_dir, meta):
+    """Any JSON object kept by write_envi (text with braces, commas, quotes, backslashes, line
+    separators, any Unicode) comes back from read_envi as it was (keys not shadowed by the file's own
+    facts)."""
+    own = {"format", "interleave", "data_type", "byte_order", "header", "data_file", "description", "source"}
+    meta = {k: v for k, v in meta.items() if k not in own}
+    hdr, _ = formats.write_envi(fresh_dir() / "m.hdr", np.ones((2, 1, 1)), Bands.from_centers([500.0, 600.0]),
+                                metadata=meta)
+    _, _, got = formats.read_envi(hdr)
+    assert {k: got[k] for k in meta} == json.loads(json.dumps(meta))
+
+
+# ------------------------------------------------------------------------------------------------
+# MAT v5 (scipy), MAT v7.3 and plain HDF5 (h5py), NPY (numpy): independent writers
+# ------------------------------------------------------------------------------------------------
+@PROPS
+@given(grid=band_grids(min_bands=2, max_bands=33), data=st.data(), key=st.sampled_from(["rad", "cube", "img", "ref"]),
+       descending=st.booleans(), list_name=st.sampled_from(["bands", "wavelength", "WL", "lambda"]))
+def test_mat5_savemat(fresh_dir, grid, data, key, descending, list_name):
+    """A MAT v5 file of scipy.io.savemat (H×W×C, a band list in nm, ascending or descending) reads as
+    the (C, H, W) transpose, bands ascending with their planes."""
+    import scipy.io
+
+    centres, _ = grid
+    cube = data.draw(cubes(Bands.from_centers(centres)))
+    hwc = np.transpose(cube, (1, 2, 0))
+    waves = centres[::-1] if descending else centres
+    hwc_disk = hwc[..., ::-1] if descending else hwc
+    path = fresh_dir() / "scene.mat"
+    scipy.io.savemat(path, {key: np.ascontiguousarray(hwc_disk), list_name: waves[None, :]})
+    got, got_bands, meta = formats.read_cube(path)
+    np.testing.assert_array_equal(got, cube.astype(np.float32))
+    np.testing.assert_array_equal(got_bands.centers_nm, centres)
+    assert meta["mat_version"] == "5"
+
+
+def _write_mat73(path, variables):
+    """A MAT v7.3 file as MATLAB writes it: the 512-byte user block with its text header, every
+    array stored with its axes reversed (column-major), MATLAB_class attributes."""
+    import h5py
+
+    with h5py.File(path, "w", userblock_size=512) as f:
+        for name, value in variables.items():
+            arr = np.asarray(value)
+            ds = f.create_dataset(name, data=arr.T)
+            ds.attrs["MATLAB_class"] = np.bytes_("double" if arr.dtype == np.float64 else "single")
+    with open(path, "r+b") as fh:
+        fh.write(b"MATLAB 7.3 MAT-file, Platform: GLNXA64, Created on: Mon Jan  1 00:00:00 2024 HDF5 schema 1.00 .")
+
+
+@PROPS
+@given(grid=band_grids(min_bands=1, max_bands=33), data=st.data(), key=st.sampled_from(["rad", "cube", "img"]),
+       descending=st.booleans(), micrometres=st.booleans())
+def test_mat73_h5py(fresh_dir, grid, data, key, descending, micrometres):
+    """A MAT v7.3 file (h5py with MATLAB's user block, axes reversed on disk) of an H×W×C cube reads as
+    (C, H, W); a band list in µm (all below 30) is converted to nm; descending lists are reversed."""
+    centres, _ = grid
+    assume(not (descending and centres.size == 1))
+    cube = data.draw(cubes(Bands.from_centers(centres)))
+    waves = centres[::-1] if descending else centres
+    hwc = np.transpose(cube[::-1] if descending else cube, (1, 2, 0))
+    listed = waves / 1000.0 if micrometres else waves
+    path = fresh_dir() / "scene.mat"
+    _write_mat73(path, {key: hwc, "bands": listed[None, :]})
+    got, got_bands, meta = formats.read_cube(path)
+    np.testing.assert_array_equal(got, cube.astype(np.float32))
+    np.testing.assert_allclose(got_bands.centers_nm, centres, rtol=0, atol=5e-4)
+    assert meta["mat_version"] == "7.3"
+
+
+@PROPS
+@given(grid=band_grids(min_bands=1, max_bands=33), data=st.data(), hwc=st.booleans())
+def test_plain_h5_c_order(fresh_dir, grid, data, hwc):
+    """A plain HDF5 file (h5py, C order) with ``cube`` (C, H, W) or (H, W, C) and ``bands`` reads as
+    (C, H, W) when only one of its first and last axes has the band count."""
+    import h5py
+
+    centres, _ = grid
+    cube = data.draw(cubes(Bands.from_centers(centres)))
+    c, h, w = cube.shape
+    assume((h != c) if hwc else (w != c))  # both ends with the band count: refused as ambiguous (documented)
+    path = fresh_dir() / "scene.h5"
+    with h5py.File(path, "w") as f:
+        f.create_dataset("cube", data=np.transpose(cube, (1, 2, 0)) if hwc else cube)
+        f.create_dataset("bands", data=centres)
+    got, got_bands, meta = formats.read_cube(path)
+    np.testing.assert_array_equal(got, cube.astype(np.float32))
+    np.testing.assert_array_equal(got_bands.centers_nm, centres)
+    assert meta["container"] == "HDF5"
+
+
+@PROPS
+@given(c=st.integers(1, 40), h=st.integers(1, 7), w=st.integers(1, 7),
+       dtype=st.sampled_from(["<f4", ">f4", "<f8", ">f8", "<u2", ">u2", "u1", "<i4"]), fortran=st.booleans(),
+       given_bands=st.booleans(), seed=st.integers(0, 2**31 - 1))
+def test_npy(fresh_dir, c, h, w, dtype, fortran, given_bands, seed):
+    """np.save of a (C, H, W) array of any byte order and memory order reads back as its float32 copy;
+    bands are the ones given, else C evenly over 400-700 nm (550 nm for one)."""
+    rng = np.random.default_rng(seed)
+    arr = (rng.random((c, h, w)) * 200).astype(dtype)
+    arr = np.asfortranarray(arr) if fortran else arr
+    path = fresh_dir() / "x.npy"
+    np.save(path, arr)
+    bands = Bands.from_centers(np.arange(c) * 3.0 + 900.0) if given_bands else None
+    got, got_bands, meta = formats.read_cube(path, bands=bands)
+    np.testing.assert_array_equal(got, arr.astype(np.float32))
+    want = np.arange(c) * 3.0 + 900.0 if given_bands else (np.array([550.0]) if c == 1 else np.linspace(400, 700, c))
+    np.testing.assert_array_equal(got_bands.centers_nm, want)
+    assert meta["bands_assumed"] is (not given_bands)
+
+
+@FEW
+@given(h=st.integers(1, 5), w=st.integers(1, 5), bits=st.sampled_from([8, 16]), seed=st.integers(0, 2**31 - 1))
+def test_cave_folder(fresh_dir, h, w, bits, seed):
+    """A CAVE folder of 31 grey PNGs (Pillow) reads as the stack divided by the integer full scale."""
+    from PIL import Image
+
+    rng = np.random.default_rng(seed)
+    full = 2**bits - 1
+    stack = rng.integers(0, full + 1, size=(31, h, w)).astype(np.uint16 if bits == 16 else np.uint8)
+    d = fresh_dir() / "balloons_ms"
+    d.mkdir()
+    for i in range(31):
+        Image.fromarray(stack[i]).save(d / f"balloons_ms_{i + 1:02d}.png")
+    got, got_bands, _ = formats.read_cube(d)
+    np.testing.assert_allclose(got, stack / full, rtol=1e-6, atol=0)
+    np.testing.assert_array_equal(got_bands.centers_nm, np.arange(400.0, 701.0, 10.0))
+
+
+# ------------------------------------------------------------------------------------------------
+# Captures: PNG, TIFF, NPY of 8/16-bit integers and floats
+# ------------------------------------------------------------------------------------------------
+@PROPS
+@given(h=st.integers(1, 9), w=st.integers(1, 9), kind=st.sampled_from(["png8", "png16", "tif8", "tif16", "tif32f",
+                                                                      "tif64f", "npy16", "npyf4", "npyf8"]),
+       shape3=st.sampled_from([None, "first", "last"]), seed=st.integers(0, 2**31 - 1), name=NAMES)
+def test_read_image_2d(fresh_dir, h, w, kind, shape3, seed, name):
+    """A single-channel image written by Pillow, tifffile or numpy comes back with the stored values,
+    (H, W), and the type's full scale (255, 65535; 1 for floats)."""
+    import tifffile
+    from PIL import Image
+
+    # (1, N, 1) is both (1, H, W) with W = 1 and (H, W, 1) with H = 1: read as the first (the documented layout)
+    assume(not (shape3 == "last" and h == 1))
+    rng = np.random.default_rng(seed)
+    dtype = {"png8": np.uint8, "png16": np.uint16, "tif8": np.uint8, "tif16": np.uint16, "tif32f": np.float32,
+             "tif64f": np.float64, "npy16": np.uint16, "npyf4": np.float32, "npyf8": np.float64}[kind]
+    if np.dtype(dtype).kind == "u":
+        img = rng.integers(0, np.iinfo(dtype).max + 1, size=(h, w)).astype(dtype)
+        full = float(np.iinfo(dtype).max)
+    else:
+        img = (rng.random((h, w)) * 3.0).astype(dtype)
+        full = 1.0
+    d = fresh_dir()
+    if kind.startswith("png"):
+        path = d / f"{name}.png"
+        Image.fromarray(img).save(path)
+    elif kind.startswith("tif"):
+        path = d / f"{name}.tif"
+        tifffile.imwrite(path, img, photometric="minisblack")  # (a 3-D array: tifffile decides which axes are H, W)
+    else:
+        path = d / f"{name}.npy"
+        np.save(path, img[None] if shape3 == "first" else img[..., None] if shape3 == "last" else img)
+    got = read_image_2d(path)
+    assert got.data.shape == (h, w) and got.full_scale == full
+    np.testing.assert_array_equal(got.data, img.astype(np.float64 if dtype == np.float64 else np.float32))
+
+
+@PROPS
+@given(h=st.integers(1, 9), w=st.integers(1, 9), black=st.floats(0, 500), span=st.floats(500, 60000),
+       t_exp=st.floats(1e-6, 10.0), ratio=st.floats(0.25, 4.0), scale=st.floats(0.25, 2.0),
+       period=st.sampled_from([None, 1, 2, 3, 5]), use_dark=st.booleans(), seed=st.integers(0, 2**31 - 1))
+def test_preprocess_raw_closed_form(h, w, black, span, t_exp, ratio, scale, period, use_dark, seed):
+    """g = (raw − dark) / (white − black) / flat_norm · (t_ref / t_exp) · scale, computed in float64 with
+    numpy (flat_norm: flat − black, averaged over the period with the same-phase padding done by hand,
+    over its mean)."""
+    # an image smaller than the period has no window that sees every CFA phase: its flat is only "clipped to the
+    # axis" (normalised_flat's docstring), with no closed form to hold it to
+    assume(not period or min(h, w) >= period)
+    rng = np.random.default_rng(seed)
+    white = black + span
+    raw = black + rng.uniform(0.05, 0.3, size=(h, w)) * span / (ratio * scale)
+    dark = black + rng.uniform(-0.01, 0.01, size=(h, w)) * span if use_dark else None
+    flat = black + rng.uniform(0.5, 1.0, size=(h, w)) * span
+    corr = RawCorrection(black_level=black, white_level=white, dark=dark, flat=flat, flat_period=period,
+                         exposure_s=t_exp, reference_exposure_s=t_exp * ratio, scale=scale)
+    img, report = preprocess_raw(raw, 65535.0, corr, check_saturation=False, check_bit_depth=False, check_level=False)
+    f = flat - black
+    if period and period > 1:  # brute force: the mean over the m×m window of same-phase-padded pixels
+        m = period
+
+        def idx(k, n):
+            return min(max(k if 0 <= k < n else (k % m if k < 0 else k - m * ((k - n) // m + 1)), 0), n - 1)
+
+        lo, hi = -(m // 2), m - m // 2
+        f = np.array([[np.mean([f[idx(y + a, h), idx(x + b, w)] for a in range(lo, hi) for b in range(lo, hi)])
+                       for x in range(w)] for y in range(h)])
+    f = f / f.mean()
+    sub = raw - (dark if dark is not None else black)
+    want = sub / (white - black) / f * ratio * scale
+    np.testing.assert_allclose(img, want, rtol=2e-5, atol=1e-6 * np.abs(want).max())
+    assert report["gain"] == pytest.approx(ratio * scale / (white - black), rel=1e-12)
+
+
+@PROPS
+@given(m=st.integers(2, 6), ny=st.integers(1, 4), nx=st.integers(1, 4), ry=st.integers(0, 5), rx=st.integers(0, 5),
+       level=st.floats(10.0, 1e5), black=st.floats(0, 100), seed=st.integers(0, 2**31 - 1))
+def test_flat_of_a_pure_cfa_pattern_is_one(m, ny, nx, ry, rx, level, black, seed):
+    """A flat that is only the CFA's periodic pattern (no vignetting), averaged over that period, is 1
+    everywhere, whatever the image's size (a multiple of the period or not, ≥ one period)."""
+    rng = np.random.default_rng(seed)
+    pattern = rng.uniform(0.2, 1.0, size=(m, m)) * level
+    h, w = ny * m + min(ry, m - 1), nx * m + min(rx, m - 1)
+    flat = black + np.tile(pattern, (ny + 1, nx + 1))[:h, :w]
+    np.testing.assert_allclose(normalised_flat(flat, black, m), 1.0, rtol=1e-12)
+
+
+# ------------------------------------------------------------------------------------------------
+# Atomic writers
+# ------------------------------------------------------------------------------------------------
+@PROPS
+@given(name=NAMES, old=st.binary(max_size=64), h=st.integers(1, 6), w=st.integers(1, 6),
+       seed=st.integers(0, 2**31 - 1))
+def test_atomic_writers(fresh_dir, name, old, h, w, seed):
+    """A write that fails midway leaves the old file byte for byte and no temporary; the writers'
+    files (JSON, NPY, 16-bit PNG) read back in their real formats, at any name."""
+    rng = np.random.default_rng(seed)
+    d = fresh_dir()
+    target = d / f"{name}.bin"
+    target.write_bytes(old)
+    with pytest.raises(RuntimeError):
+        with atomic_path(target) as tmp:
+            tmp.write_bytes(b"new" * 10)
+            raise RuntimeError("interrupted")
+    assert target.read_bytes() == old and sorted(p.name for p in d.iterdir()) == [target.name]
+    obj = {"name": name, "values": rng.random(3).tolist()}
+    write_json(d / f"{name}.json", obj)
+    assert json.loads((d / f"{name}.json").read_text(encoding="utf-8")) == obj
+    arr = rng.random((h, w))
+    write_npy(d / f"{name}.npy", arr)
+    np.testing.assert_array_equal(np.load(d / f"{name}.npy"), arr)
+    img = rng.uniform(-0.2, 1.2, size=(h, w))
+    write_png16(d / f"{name}.png", img)
+    got = read_image_2d(d / f"{name}.png")
+    np.testing.assert_array_equal(got.data, np.round(np.clip(img, 0, 1) * 65535))
+    assert not [p for p in d.iterdir() if p.name.startswith(".")]
