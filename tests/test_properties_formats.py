@@ -20,6 +20,7 @@ from hypothesis import strategies as st
 
 from hsicam.data import formats
 from hsicam.data.images import RawCorrection, normalised_flat, preprocess_raw, read_image_2d
+from hsicam.errors import InputError
 from hsicam.io import atomic_path, write_json, write_npy, write_png16
 from hsicam.spectral import Bands
 
@@ -168,6 +169,42 @@ def test_envi_independent_writer(fresh_dir, c, h, w, code, interleave, big, offs
     order = np.argsort(waves_nm)
     np.testing.assert_array_equal(got, want[order].astype(np.float32))
     np.testing.assert_allclose(got_bands.centers_nm, waves_nm[order], rtol=0, atol=5e-4)
+
+
+def test_envi_integer_writer_refuses_values_beyond_the_type(fresh_dir):
+    """A radiance cube peaking at 10, written as uint16 with the docstring's reflectance_scale 10000, came back
+    capped at 6.5535 (uint8 counts of 300: 255), without a word: refused now, and no file is left."""
+    d = fresh_dir()
+    bands = Bands.from_centers([550.0])
+    with pytest.raises(InputError, match=r"^.*r\.hdr: a cube of values up to 10 × reflectance_scale 10000 = "
+                       r"100000 written as uint16 \(at most 65535\) would be clipped to 65535; pass a smaller "
+                       r"reflectance_scale, or write a wider integer type or float32$"):
+        formats.write_envi(d / "r.hdr", np.array([[[0.5, 2.0, 10.0]]]), bands, dtype="uint16", reflectance_scale=10000)
+    with pytest.raises(InputError, match=r"values up to 300 written as uint8 \(at most 255\)"):
+        formats.write_envi(d / "s.hdr", np.array([[[100.0, 300.0]]]), bands, dtype="uint8")
+    assert not list(d.iterdir())
+
+
+@PROPS
+@given(data=st.data(), dtype=st.sampled_from(["uint8", "int16", "uint16", "int32"]),
+       scale=st.sampled_from([None, 1.0, 255.0, 1000.0, 10000.0]), peak=st.floats(1.5, 1e5))
+def test_envi_integer_round_trip(fresh_dir, data, dtype, scale, peak):
+    """write_envi to an integer type reads back within half a step (0.5 / reflectance_scale) of the cube, or is
+    refused with one InputError when the values (× the scale) do not fit the type: never clipped silently."""
+    cube = data.draw(cubes(Bands.from_centers([500.0, 600.0]))).astype(np.float64)
+    cube = cube / max(cube.max(), 1e-300) * peak
+    k = 1.0 if scale is None else scale
+    cube32 = cube.astype(np.float32).astype(np.float64)  # what the writer scales (its cube check gives float32)
+    fits = np.round(cube32.max() * k) <= np.iinfo(dtype).max
+    path = fresh_dir() / "i.hdr"
+    if not fits:
+        with pytest.raises(InputError, match="would be clipped to"):
+            formats.write_envi(path, cube, Bands.from_centers([500.0, 600.0]), dtype=dtype, reflectance_scale=scale)
+        return
+    formats.write_envi(path, cube, Bands.from_centers([500.0, 600.0]), dtype=dtype, reflectance_scale=scale)
+    got, _, _ = formats.read_envi(path)
+    np.testing.assert_allclose(got, np.round(cube32 * k) / k, rtol=1e-6, atol=0)
+    assert np.all(np.abs(got - cube) <= 0.5 / k * (1 + 1e-6) + 1e-6 * cube)
 
 
 JSON_TEXT = st.text(st.characters(codec="utf-8", exclude_categories=("Cs",)), max_size=12)

@@ -1223,7 +1223,8 @@ def write_envi(path: str | os.PathLike, cube: np.ndarray, bands: Bands, *, inter
     ``reflectance_scale``: the data are written as ``cube × reflectance_scale`` and the header's ``reflectance scale
     factor`` says so (:func:`read_envi` divides it out): e.g. 10000 for an integer ``dtype`` of a [0, 1] cube. An
     integer ``dtype`` without it rounds the values themselves, so a cube of fractions (peak ≤ 1) is refused (it
-    would be written as 0s and 1s).
+    would be written as 0s and 1s), and so is a cube whose values (× ``reflectance_scale``) exceed the type's maximum
+    (they would be clipped to it).
 
     ``path`` may name either file. The data file is written first, the header last, so a reader
     never finds a header without its data; the header records the data's CRC-32
@@ -1253,6 +1254,13 @@ def write_envi(path: str | os.PathLike, cube: np.ndarray, bands: Bands, *, inter
         raise InputError(f"{p}: a cube of values up to {float(np.nanmax(arr)):.3g} written as {dt} would be rounded to "
                          f"0s and 1s; pass reflectance_scale (e.g. 10000: the header's reflectance scale factor, which "
                          "read_envi divides out) or write float32")
+    if dt.kind in "iu" and arr.size and float(np.round(np.max(arr))) > np.iinfo(dt).max:  # (no negatives: check_cube)
+        peak = float(np.max(arr))
+        scaled = "" if reflectance_scale is None else \
+            f"{peak / reflectance_scale:.6g} × reflectance_scale {reflectance_scale:g} = "
+        raise InputError(f"{p}: a cube of values up to {scaled}{peak:.6g} written as {dt} (at most {np.iinfo(dt).max}) "
+                         f"would be clipped to {np.iinfo(dt).max}; pass a smaller reflectance_scale, or write a wider "
+                         "integer type or float32")
     out = {"bsq": arr, "bil": arr.transpose(1, 0, 2), "bip": arr.transpose(1, 2, 0)}[interleave]
     if dt.kind in "iu":
         info = np.iinfo(dt)
