@@ -24,9 +24,9 @@ from hsicam.errors import InputError
 from hsicam.io import atomic_path, write_json, write_npy, write_png16
 from hsicam.spectral import Bands
 
-PROPS = settings(max_examples=30, deadline=None, derandomize=True, database=None,
+PROPS = settings(max_examples=50, deadline=None, derandomize=True, database=None,
                  suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large])
-FEW = settings(PROPS, max_examples=12)
+FEW = settings(PROPS, max_examples=15)
 
 #: awkward names for the files: spaces, non-ASCII letters, an emoji, a leading dash
 NAMES = st.sampled_from(["cube", "a b", "spéctre", "日本 語", "-x", "🌈 scene", "x.y.z"])
@@ -462,3 +462,133 @@ def test_atomic_writers(fresh_dir, name, old, h, w, seed):
     got = read_image_2d(d / f"{name}.png")
     np.testing.assert_array_equal(got.data, np.round(np.clip(img, 0, 1) * 65535))
     assert not [p for p in d.iterdir() if p.name.startswith(".")]
+
+
+@PROPS
+@given(c=st.integers(2, 10), h=st.integers(1, 5), w=st.integers(1, 5), code=st.sampled_from(["u2", "i2", "f4", "f8"]),
+       interleave=st.sampled_from(["bsq", "bil", "bip"]), big=st.booleans(), use_bbl=st.booleans(),
+       ignore=st.sampled_from([None, 0, 7, 1000]), use_gain=st.booleans(), use_offset=st.booleans(),
+       rsf=st.sampled_from([None, 1.0, 10000.0, 0.5]), seed=st.integers(0, 2**31 - 1))
+def test_envi_gain_offset_bbl_ignore_closed_form(fresh_dir, c, h, w, code, interleave, big, use_bbl, ignore, use_gain,
+                                                 use_offset, rsf, seed):
+    """value = (gain · stored + offset) / reflectance scale factor per band; values equal to the data ignore value
+    are 0; bands marked 0 in bbl are dropped with their wavelengths; bands (listed shuffled) come back ascending
+    with their planes. Reference: the same arithmetic in float64, value by value."""
+    rng = np.random.default_rng(seed)
+    chw = rng.integers(0, 12, size=(c, h, w)).astype(np.float64)  # small integers: the ignore value 7 occurs
+    waves = np.round(rng.permutation(np.linspace(450.0, 850.0, c) + rng.uniform(-1, 1, c)), 3)
+    good = np.ones(c, bool)
+    if use_bbl:
+        good[rng.choice(c, size=rng.integers(0, c - 1), replace=False)] = False
+        assume(good.sum() >= 2 and not good.all())
+    gain = np.round(rng.uniform(0.1, 3.0, c), 4) if use_gain else np.ones(c)
+    offset = np.round(rng.uniform(0.0, 2.0, c), 4) if use_offset else np.zeros(c)
+    ign = chw == ignore if ignore is not None else np.zeros(chw.shape, bool)
+    assume(not ign[good].all())
+    lines = [f"bbl = {{{', '.join(str(int(g)) for g in good)}}}" if use_bbl else "",
+             f"data ignore value = {ignore}" if ignore is not None else "",
+             f"data gain values = {{{', '.join(repr(float(g)) for g in gain)}}}" if use_gain else "",
+             f"data offset values = {{{', '.join(repr(float(o)) for o in offset)}}}" if use_offset else "",
+             f"reflectance scale factor = {rsf!r}" if rsf is not None else ""]
+    d = fresh_dir()
+    (d / "s.hdr").write_text(
+        f"ENVI\nsamples = {w}\nlines = {h}\nbands = {c}\ndata type = {ENVI_CODES[code]}\ninterleave = {interleave}\n"
+        f"byte order = {int(big)}\nwavelength = {{{', '.join(repr(float(v)) for v in waves)}}}\n"
+        + "\n".join(x for x in lines if x) + "\n")
+    disk = {"bsq": chw, "bil": chw.transpose(1, 0, 2), "bip": chw.transpose(1, 2, 0)}[interleave]
+    np.ascontiguousarray(disk).astype(np.dtype(code).newbyteorder(">" if big else "<")).tofile(d / "s.img")
+    got, bands, meta = formats.read_envi(d / "s.hdr")
+    want = (gain[:, None, None] * chw + offset[:, None, None]) / (1.0 if rsf is None else rsf)
+    want[ign] = 0.0
+    order = [i for i in np.argsort(waves) if good[i]]
+    np.testing.assert_allclose(got, want[order], rtol=1e-6, atol=1e-6)
+    np.testing.assert_array_equal(bands.centers_nm, waves[order])
+    if use_bbl:
+        assert meta["bad_bands_nm"] == sorted(waves[~good].tolist())
+    if use_gain or use_offset:
+        np.testing.assert_array_equal(meta["data_gain_values"], gain[order])
+        np.testing.assert_array_equal(meta["data_offset_values"], offset[order])
+
+
+@PROPS
+@given(grid=band_grids(min_bands=2, max_bands=33), data=st.data(), micrometres=st.booleans(),
+       container=st.sampled_from(["mat5", "mat73", "h5"]))
+def test_float32_band_lists_read_at_their_decimal(fresh_dir, grid, data, micrometres, container):
+    """A band list stored as float32 (in nm, or µm below 30) reads as the decimals written (float32 453.3 is
+    453.3 nm, not 453.29998779), in a MAT v5, MAT v7.3 or plain HDF5 file."""
+    import h5py
+    import scipy.io
+
+    centres, _ = grid
+    assume(centres.max() < 10000)
+    centres = np.round(centres, 1)  # float32 holds 7 significant digits: 1 decimal of up to 4-digit nm, 4 of µm
+    assume(np.all(np.diff(centres) > 0))
+    cube = data.draw(cubes(Bands.from_centers(centres), dtype=np.float32))
+    listed = (centres / 1000.0 if micrometres else centres).astype(np.float32)
+    path = fresh_dir() / "s.mat"
+    hwc = np.transpose(cube, (1, 2, 0))
+    if container == "mat5":
+        scipy.io.savemat(path, {"cube": hwc, "bands": listed[None, :]})
+    elif container == "mat73":
+        _write_mat73(path, {"cube": hwc, "bands": listed[None, :]})
+    else:
+        assume(cube.shape[2] != cube.shape[0])
+        with h5py.File(path, "w") as f:
+            f.create_dataset("cube", data=cube)
+            f.create_dataset("wavelengths", data=listed)
+    got, bands, _ = formats.read_cube(path)
+    np.testing.assert_array_equal(bands.centers_nm, centres)
+    np.testing.assert_array_equal(got, cube)
+
+
+@PROPS
+@given(grid=band_grids(min_bands=1, max_bands=24), data=st.data(),
+       naming=st.sampled_from(["{}nm", "w{}nm", "S0.{}nm", "T.{}nm", "{}", "um", "range"]),
+       extra=st.booleans())
+def test_exr_round_trip(fresh_dir, grid, data, naming, extra):
+    """An OpenEXR file (the OpenEXR package) with one float32 channel per band, named by its wavelength in any of
+    the documented spellings (nm, µm, a band's edges), reads as the planes sorted by wavelength; non-spectral
+    channels (R, S1 polarisation) are left out."""
+    import OpenEXR
+
+    centres, _ = grid
+    assume(centres.max() <= 2600 and (naming != "um" or np.all(np.diff(np.round(centres, 1)) > 0)))
+    if naming == "um":
+        centres = np.round(centres, 1)  # 4 decimals of µm
+    cube = data.draw(cubes(Bands.from_centers(centres), dtype=np.float32))
+    cube = np.minimum(cube, 6e4)  # (float32 channels hold any float32; kept finite and moderate)
+
+    def name(v):
+        if naming == "um":
+            return f"{v / 1000:.4f}um"
+        if naming == "range":
+            return f"{float(v) - 0.5}-{float(v) + 0.5}nm"
+        return naming.format(float(v))  # the shortest decimal of the centre
+
+    order = data.draw(st.permutations(range(centres.size)))
+    channels = {name(centres[i]): OpenEXR.Channel(np.ascontiguousarray(cube[i])) for i in order}
+    if extra:
+        channels["R"] = OpenEXR.Channel(np.zeros(cube.shape[1:], np.float32))
+        channels["S1.550nm"] = OpenEXR.Channel(np.ones(cube.shape[1:], np.float32))
+    path = fresh_dir() / "s.exr"
+    with OpenEXR.File({"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}, channels) as f:
+        f.write(str(path))
+    got, bands, _ = formats.read_cube(path)
+    np.testing.assert_array_equal(got, cube)
+    np.testing.assert_allclose(bands.centers_nm, centres, rtol=0, atol=1e-9)
+
+
+@PROPS
+@given(h=st.integers(1, 9), w=st.integers(1, 9), level=st.floats(0.05, 1.0), black=st.floats(0, 1000),
+       seed=st.integers(0, 2**31 - 1))
+def test_auto_level_puts_the_percentile_at_the_level(h, w, level, black, seed):
+    """auto_level: the corrected image's 99.9th percentile equals the level asked for, and the image is the
+    black-subtracted capture times one gain (closed form: (raw − black) · level / P99.9(raw − black))."""
+    rng = np.random.default_rng(seed)
+    raw = black + rng.uniform(1.0, 4000.0, size=(h, w))
+    img, report = preprocess_raw(raw, 65535.0, RawCorrection(black_level=black, auto_level=level),
+                                 check_saturation=False, check_bit_depth=False, check_level=False)
+    sub = raw.astype(np.float32).astype(np.float64) - black
+    want = sub * level / np.percentile(sub, 99.9)
+    np.testing.assert_allclose(img, want, rtol=1e-5)
+    assert float(np.percentile(img, 99.9)) == pytest.approx(level, rel=1e-5)
