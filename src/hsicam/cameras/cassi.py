@@ -22,7 +22,7 @@ of it). Noise-free scores do not depend on s (the solvers divide by ΦΦᵀ):
       y(i, j) = s · Σ_c P(i, j - d_c) · x_c(i, j - d_c)     y: (B, 1, H, W + D), P: (H, W)
 
 Both are linear with exact adjoints, and ΦΦᵀ is diagonal (each scene voxel reaches one sensor
-pixel), which GAP and ADMM use. Dispersion is linear (``d_c = round(shift_px · c)``; MST: 2 px per
+pixel), which GAP and ADMM use. Dispersion is linear (``d_c = ⌊shift_px · c + ½⌋``, halves up; MST: 2 px per
 band) or from a thin prism (``d_c`` from the prism glass's n(λ), rounded to whole pixels so that
 ΦΦᵀ stays diagonal). CASSI has no blur kernel: ``margin`` is 0, so ``valid`` and ``same`` give the
 same measurement (the scene is the reconstruction target in both).
