@@ -207,6 +207,20 @@ def test_envi_integer_round_trip(fresh_dir, data, dtype, scale, peak):
     assert np.all(np.abs(got - cube) <= 0.5 / k * (1 + 1e-6) + 1e-6 * cube)
 
 
+def test_envi_description_that_would_end_its_header_value_is_refused(fresh_dir):
+    """write_envi wrote ``description = {TEXT}`` raw: a ``}`` and a newline in TEXT put header keys of the caller's
+    choosing after it (here a bad-band list that drops band 1 on reading). Refused now, before any file."""
+    d = fresh_dir()
+    bands = Bands.from_centers([500.0, 600.0])
+    bad = "mine}\nbbl = {0, 1"
+    with pytest.raises(InputError, match=r"^write_envi: description must be one line of text without braces, got "):
+        formats.write_envi(d / "x.hdr", np.ones((2, 2, 2)), bands, description=bad)
+    assert not list(d.iterdir())
+    hdr, _ = formats.write_envi(d / "y.hdr", np.ones((2, 2, 2)), bands, description="scene 3, (rev. 2): ok")
+    cube, got_bands, meta = formats.read_envi(hdr)
+    assert cube.shape == (2, 2, 2) and meta["description"] == "scene 3, (rev. 2): ok"
+
+
 JSON_TEXT = st.text(st.characters(codec="utf-8", exclude_categories=("Cs",)), max_size=12)
 JSON_VALUES = st.recursive(st.none() | st.booleans() | st.integers(-10**6, 10**6) | JSON_TEXT
                            | st.floats(allow_nan=False, allow_infinity=False),

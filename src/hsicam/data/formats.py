@@ -1246,6 +1246,9 @@ def write_envi(path: str | os.PathLike, cube: np.ndarray, bands: Bands, *, inter
         raise InputError(f"write_envi: interleave must be bsq, bil or bip, got {interleave!r}")
     if byte_order not in ("little", "big"):
         raise InputError(f"write_envi: byte_order must be 'little' or 'big', got {byte_order!r}")
+    if not isinstance(description, str) or any(ch in description for ch in "{}\r\n"):
+        # a brace ends the header's braced value: what followed it was read as more header keys
+        raise InputError(f"write_envi: description must be one line of text without braces, got {description!r}")
     if reflectance_scale is not None:
         if not (isinstance(reflectance_scale, (int, float)) and math.isfinite(reflectance_scale) and reflectance_scale > 0):
             raise InputError(f"write_envi: reflectance_scale must be a positive number, got {reflectance_scale!r}")
