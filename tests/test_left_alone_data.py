@@ -175,3 +175,20 @@ def test_a_table_built_in_memory_still_names_only_itself():
     with pytest.raises(InputError) as exc:
         TabulatedMaterial(np.array([400.0, 700.0]), np.array([1.5, 1.4]), name="mine").n(380.0)
     assert str(exc.value) == "material 'mine' is tabulated for 400-700 nm only, but its refractive index is needed at 380 nm"
+
+
+def test_an_envi_data_file_without_its_header_says_the_header_is_missing(tmp_path):
+    """`hsicam data show out.img` of a data file whose .hdr was lost (or not copied) said only "unknown format";
+    a file of another name keeps the plain refusal."""
+    from hsicam.data.formats import detect_format
+
+    (tmp_path / "out.img").write_bytes(bytes(range(200)))
+    (tmp_path / "notes.xyz").write_bytes(bytes(range(200)))
+    with pytest.raises(InputError) as exc:
+        detect_format(tmp_path / "out.img")
+    assert str(exc.value) == (f"{tmp_path / 'out.img'}: unknown format (not our HDF5, MAT v5/v7.3, NPY, OpenEXR, ENVI "
+                              "or a CAVE folder); if it is an ENVI data file, its header is missing: no ENVI out.hdr "
+                              "next to it")
+    with pytest.raises(InputError) as exc:
+        detect_format(tmp_path / "notes.xyz")
+    assert str(exc.value).endswith("unknown format (not our HDF5, MAT v5/v7.3, NPY, OpenEXR, ENVI or a CAVE folder)")

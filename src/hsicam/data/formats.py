@@ -191,7 +191,10 @@ def detect_format(path: str | os.PathLike) -> str:
         return "envi"
     if head.startswith(_PNG_MAGIC) and _CAVE_RE.match(p.name):
         raise InputError(f"{p}: a single CAVE band image; pass the scene folder that holds all 31 PNGs")
-    raise InputError(f"{p}: unknown format (not our HDF5, MAT v5/v7.3, NPY, OpenEXR, ENVI or a CAVE folder)")
+    hint = ""
+    if p.suffix.lower() in _ENVI_DATA_SUFFIXES:  # e.g. an ENVI pair whose header was lost or not copied along
+        hint = f"; if it is an ENVI data file, its header is missing: no ENVI {p.with_suffix('.hdr').name} next to it"
+    raise InputError(f"{p}: unknown format (not our HDF5, MAT v5/v7.3, NPY, OpenEXR, ENVI or a CAVE folder){hint}")
 
 
 def _head(p: Path, n: int) -> bytes:
