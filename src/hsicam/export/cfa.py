@@ -80,7 +80,7 @@ def fit_gaussians(lam_nm: np.ndarray, t: np.ndarray, n_gaussians: int) -> dict[s
     lam = np.asarray(lam_nm, dtype=np.float64)
     t = np.asarray(t, dtype=np.float64)
     span = max(float(lam[-1] - lam[0]), 1.0)
-    step = float(np.min(np.diff(lam))) if lam.size > 1 else 10.0
+    step = float(np.min(np.diff(lam))) if lam.size > 1 else span  # (one band: no step; the span is 1 nm)
     s_lo, s_hi = step / FWHM_PER_SIGMA, 2.0 * span / FWHM_PER_SIGMA  # FWHM ≥ one band step (resolvable)
     mu_lo, mu_hi = lam[0] - span / 2, lam[-1] + span / 2
     base = max(float(t.min()), 0.0)
