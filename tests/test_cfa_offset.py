@@ -151,3 +151,36 @@ def test_a_crop_of_a_cassi_capture_is_reconstructed_at_its_offset(tmp_path):
     res = run_cli_in_process("reconstruct", str(tmp_path / "crop.npy"), "--run", str(run), "--out",
                              str(tmp_path / "a.h5"), "--cfa-offset", "auto")
     assert res.returncode == 2 and "coded aperture has no period" in error_line(res)
+
+
+def test_a_small_capture_is_warned_about_even_when_its_phase_stands_apart(capture, tmp_path, caplog, monkeypatch):
+    """A capture a little above the minimum is scored on a few dozen pixels; on 34 px scored, two of four crops came
+    back at a wrong phase that stood apart from the median (not ambiguous). Below MIN_SCORED_PX the log says so."""
+    from hsicam.cli.reconstruct import estimated_cfa_offset
+    from hsicam.engine import cfa_offset
+    from hsicam.engine.cfa_offset import MIN_SCORED_PX, CfaOffsetEstimate
+
+    system, sensor = capture
+    big = estimate_cfa_offset(system, sensor, window_px=160)
+    assert big.scored_px == (160 - 2 * big.margin_px,) * 2 and not big.small
+    assert big.as_dict()["small"] is False
+    side = 2 * big.margin_px + MIN_SCORED_PX - 4  # scored on 60 px
+    crop = tmp_path / "small.npy"
+    np.save(crop, sensor[0, 0, :side, :side].numpy())
+    assert_ok(run_cli_in_process("reconstruct", str(crop), "--run", RUN, "--out", str(tmp_path / "s.h5"),
+                                 "--cfa-offset", "auto"))
+    with h5py.File(tmp_path / "s.h5", "r") as f:
+        assert json.loads(f.attrs["metadata_json"])["cfa_offset_estimate"]["small"] is True
+    # a phase that stands apart (contrast 1.9, not ambiguous) on 60 px scored: the warning of a small capture
+    residuals = {f"{y},{x}": 0.0029 for y in range(4) for x in range(4)}
+    residuals.update({"0,2": 0.00118, "1,2": 0.00126})
+    est = CfaOffsetEstimate((0, 2), residuals, (0, 0, side, side), big.margin_px)
+    assert not est.ambiguous and est.small and est.scored_px == (MIN_SCORED_PX - 4,) * 2
+    monkeypatch.setattr(cfa_offset, "estimate_cfa_offset", lambda model, sensor: est)
+    caplog.clear()
+    with caplog.at_level(logging.WARNING):
+        assert estimated_cfa_offset(None, None)[0] == (0, 2)
+    [line] = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
+    assert line == (f"--cfa-offset auto: 0,2 was scored on only {MIN_SCORED_PX - 4}×{MIN_SCORED_PX - 4} px (the capture "
+                    f"less the camera's PSF reach), under the {MIN_SCORED_PX} px a side on which it was reliable in "
+                    "tests: check the reconstruction's spectra, or give the offset with --cfa-offset Y,X")

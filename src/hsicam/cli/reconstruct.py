@@ -104,7 +104,7 @@ def cfa_offset_arg(text: str) -> tuple[int, int] | str:
 def estimated_cfa_offset(model, sensor: torch.Tensor) -> tuple[tuple[int, int], dict]:
     """``--cfa-offset auto``: (Y, X) estimated from the capture, logged (a warning when ambiguous),
     and the estimate's record for the cube's metadata."""
-    from hsicam.engine.cfa_offset import estimate_cfa_offset
+    from hsicam.engine.cfa_offset import MIN_SCORED_PX, estimate_cfa_offset
 
     est = estimate_cfa_offset(model, sensor)
     (oy, ox), best = est.offset, est.residuals[f"{est.offset[0]},{est.offset[1]}"]
@@ -116,6 +116,10 @@ def estimated_cfa_offset(model, sensor: torch.Tensor) -> tuple[tuple[int, int], 
                     "candidate's is only %.0f%% higher): the capture may be too dark, noisy or featureless to tell; if "
                     "its spectra look wrong, measure the offset (e.g. on a capture of a textured, colourful target) and "
                     "give it with --cfa-offset Y,X", oy, ox, best, 100 * min(est.contrast, 99.0))
+    elif est.small:
+        log.warning("--cfa-offset auto: %d,%d was scored on only %d×%d px (the capture less the camera's PSF reach), "
+                    "under the %d px a side on which it was reliable in tests: check the reconstruction's spectra, or "
+                    "give the offset with --cfa-offset Y,X", oy, ox, *est.scored_px, MIN_SCORED_PX)
     return est.offset, est.as_dict()
 
 
