@@ -289,6 +289,11 @@ class CFAConfig:
 #: The largest Gaussian σ of the sensor noise, on the image scaled to full scale 1 (``camera.sensor.sigma``,
 #: ``train.sensor_sigma``): noise above the full scale buries any signal (σ = 1e30 trained a flat network silently).
 MAX_SENSOR_SIGMA = 1.0
+#: The most electrons ``camera.sensor.full_well_e`` takes: 10⁶ times any sensor's full well, where the shot noise (σ 1e-6
+#: of full scale) is below a float32 image's resolution; far more (1e20) overflowed torch.poisson's int64 count into a
+#: negative, constant image, silently. The fewest is 1 (a full scale of less than one electron counts no photon; 1e-300
+#: made the image infinite).
+MIN_FULL_WELL_E, MAX_FULL_WELL_E = 1.0, 1e12
 
 
 @dataclass
@@ -308,8 +313,14 @@ class SensorConfig:
         if not (0 <= self.sigma <= MAX_SENSOR_SIGMA):
             raise ConfigError(f"camera.sensor.sigma must be in [0, {MAX_SENSOR_SIGMA:g}] (σ of the image scaled to full "
                               f"scale 1; more buries any signal), got {self.sigma}")
+        if not MIN_FULL_WELL_E <= self.full_well_e <= MAX_FULL_WELL_E:
+            raise ConfigError(f"camera.sensor.full_well_e must be in [{MIN_FULL_WELL_E:g}, {MAX_FULL_WELL_E:g}] (electrons "
+                              f"at full scale; sensors hold 10^3 to 10^6), got {self.full_well_e:g}")
         if self.read_noise_e < 0:
             raise ConfigError(f"camera.sensor.read_noise_e must be >= 0, got {self.read_noise_e}")
+        if self.read_noise_e > MAX_SENSOR_SIGMA * self.full_well_e:  # σ above the full scale, as camera.sensor.sigma
+            raise ConfigError(f"camera.sensor.read_noise_e must be at most camera.sensor.full_well_e ({self.full_well_e:g} "
+                              f"e-: read noise above the full scale buries any signal), got {self.read_noise_e:g}")
         if self.bit_depth is not None and not (1 <= self.bit_depth <= 32):
             raise ConfigError(f"camera.sensor.bit_depth must be in 1..32, got {self.bit_depth}")
 
