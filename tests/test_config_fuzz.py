@@ -45,3 +45,28 @@ def test_full_well_bounds_give_poisson_statistics(full_well):
     sd = (0.5 / full_well) ** 0.5
     assert abs(out.mean().item() - 0.5) < 5 * sd / 256 + 1e-6
     assert out.min().item() >= 0.0
+
+
+# -- camera.doe.init_correlation_cells (init smooth) --------------------------------------------------------------
+@pytest.mark.parametrize("sigma", ["1e155", "1e300"])
+def test_huge_smooth_correlation_is_refused_naming_the_key(sigma):
+    # σ² overflowed in gaussian_lowpass_periodic: OverflowError (34, 'Numerical result out of range') at build
+    from hsicam.cameras import build_camera
+
+    cfg = load_config("tiny", ["camera.doe.init=smooth", f"camera.doe.init_correlation_cells={sigma}"])
+    with pytest.raises(ConfigError, match=r"camera\.doe\.init_correlation_cells=1e\+(155|300) is too wide"):
+        build_camera(cfg)
+
+
+def test_lowpass_matches_a_direct_periodic_gaussian_convolution():
+    # closed form: a cosine cos(2π k x / n) comes back scaled by the Gaussian's transfer exp(-2π² σ² (k/n)²)
+    from hsicam.optics.doe import gaussian_lowpass_periodic
+
+    n, k, sigma = 32, 3, 1.7
+    x = torch.arange(n, dtype=torch.float64)
+    wave = torch.cos(2 * torch.pi * k * x / n)[None, :].expand(n, n)
+    out = gaussian_lowpass_periodic(wave, sigma)
+    expected = wave * torch.exp(torch.tensor(-2.0 * torch.pi**2 * sigma**2 * (k / n) ** 2, dtype=torch.float64))
+    assert torch.allclose(out, expected, atol=1e-12)
+    flat = gaussian_lowpass_periodic(wave + 0.25, 1e300)  # the mean alone survives
+    assert torch.allclose(flat, torch.full_like(flat, 0.25), atol=1e-12)

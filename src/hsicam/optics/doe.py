@@ -55,7 +55,9 @@ def gaussian_lowpass_periodic(x: torch.Tensor, sigma_cells: float) -> torch.Tens
     (by FFT: the Gaussian's transfer function exp(−2π²σ²f²), f in cycles per cell)."""
     fy = torch.fft.fftfreq(x.shape[-2], dtype=x.dtype)[:, None]
     fx = torch.fft.rfftfreq(x.shape[-1], dtype=x.dtype)[None, :]
-    transfer = torch.exp(-2.0 * math.pi**2 * sigma_cells**2 * (fy**2 + fx**2))
+    # (σ f)², not σ² f²: σ ≳ 1e154 cells overflowed σ² (a Python OverflowError, the key unnamed), where (σ f)² is inf
+    # away from f = 0 (transfer 0) and 0 at it (the mean kept): a constant field, which DOE refuses naming the key
+    transfer = torch.exp(-2.0 * (math.pi * sigma_cells * torch.sqrt(fy**2 + fx**2)) ** 2)
     return torch.fft.irfft2(torch.fft.rfft2(x) * transfer, s=x.shape[-2:])
 
 
