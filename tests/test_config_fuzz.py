@@ -8,7 +8,7 @@ import re
 import pytest
 import torch
 
-from hsicam.config import MAX_FULL_WELL_E, MIN_FULL_WELL_E, load_config
+from hsicam.config import MAX_FULL_WELL_E, MAX_STEP_INIT, MIN_FULL_WELL_E, load_config
 from hsicam.errors import ConfigError
 from hsicam.sensor import poisson_gaussian_noise
 
@@ -70,3 +70,21 @@ def test_lowpass_matches_a_direct_periodic_gaussian_convolution():
     assert torch.allclose(out, expected, atol=1e-12)
     flat = gaussian_lowpass_periodic(wave + 0.25, 1e300)  # the mean alone survives
     assert torch.allclose(flat, torch.full_like(flat, 0.25), atol=1e-12)
+
+
+# -- model.unrolled.step_init --------------------------------------------------------------------------------------
+@pytest.mark.parametrize("value", ["710", "1e300"])
+def test_huge_unrolled_step_init_is_refused_naming_the_key(value):
+    # was accepted, then math.log(math.expm1(step_init)) raised OverflowError: math range error as the network was built
+    text = _refused(f"model.unrolled.step_init={value}", "model.unrolled.step_init")
+    assert f"got {float(value):g}" in text
+
+
+def test_largest_unrolled_step_init_starts_at_that_step():
+    # closed form: the stages' step is softplus(θ) = log(1 + e^θ), which must give back step_init at the bound
+    from hsicam.models.system import CameraSystem
+
+    cfg = load_config("tiny", ["model.kind=unrolled", f"model.unrolled.step_init={MAX_STEP_INIT}"])
+    net = CameraSystem.from_config(cfg).net
+    steps = torch.nn.functional.softplus(net.step_logits.detach().double())
+    assert torch.allclose(steps, torch.full_like(steps, MAX_STEP_INIT), rtol=1e-6)

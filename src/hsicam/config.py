@@ -479,6 +479,11 @@ class MosaicConfig:
         _check_brightness(section, self.brightness_window, self.brightness_eps)
 
 
+#: The largest ``model.unrolled.step_init`` (α·L): 50 times the bound 2 below which a step decreases the data term;
+#: the step's softplus⁻¹ overflowed above ~709 (a Python OverflowError as the network was built, the key unnamed).
+MAX_STEP_INIT = 100.0
+
+
 @dataclass
 class UnrolledConfig:
     """Settings of ``model.kind = unrolled`` (sizes in channels / layers; lengths in sensor pixels)."""
@@ -511,6 +516,9 @@ class UnrolledConfig:
             raise ConfigError(f"model.unrolled.init={self.init!r} is not one of {', '.join(self.INITS)}")
         if not (self.step_init > 0 and math.isfinite(self.step_init)):
             raise ConfigError(f"model.unrolled.step_init must be > 0, got {self.step_init}")
+        if self.step_init > MAX_STEP_INIT:
+            raise ConfigError(f"model.unrolled.step_init must be at most {MAX_STEP_INIT:g} (α·L; below 2 each stage "
+                              f"decreases the data term), got {self.step_init:g}")
         _check_odd_window("model.unrolled", "stage_kernel_px", self.stage_kernel_px, "0 for the full kernel")
         _check_odd_window("model.unrolled", "demosaic_window", self.demosaic_window, "0 for the CFA period")
         _check_brightness("model.unrolled", self.brightness_window, self.brightness_eps)
