@@ -8,7 +8,7 @@ import re
 import pytest
 import torch
 
-from hsicam.config import MAX_FULL_WELL_E, MAX_STEP_INIT, MIN_FULL_WELL_E, load_config
+from hsicam.config import MAX_FULL_WELL_E, MAX_STEP_INIT, MAX_WINDOW_PX, MIN_FULL_WELL_E, load_config
 from hsicam.errors import ConfigError
 from hsicam.sensor import poisson_gaussian_noise
 
@@ -88,3 +88,29 @@ def test_largest_unrolled_step_init_starts_at_that_step():
     net = CameraSystem.from_config(cfg).net
     steps = torch.nn.functional.softplus(net.step_logits.detach().double())
     assert torch.allclose(steps, torch.full_like(steps, MAX_STEP_INIT), rtol=1e-6)
+
+
+# -- odd windows of the networks (brightness, demosaic, stage PSF cut) ------------------------------------------------
+WINDOW_KEYS = ["model.mosaic.brightness_window", "model.mosaic.demosaic_window", "model.unrolled.brightness_window",
+               "model.unrolled.demosaic_window", "model.unrolled.stage_kernel_px",
+               "model.unrolled.mosaic.brightness_window", "model.unrolled.mosaic.demosaic_window"]
+
+
+@pytest.mark.parametrize("key", WINDOW_KEYS)
+@pytest.mark.parametrize("value", [2**31 + 1, 2**70 + 1])
+def test_window_wider_than_any_sensor_is_refused_naming_the_key(key, value):
+    # model.mosaic.brightness_window=2**70+1 was accepted; the forward then raised TypeError avg_pool2d(): argument
+    # 'padding' failed to unpack ... Overflow when unpacking long long (2**31+1: RuntimeError ... without overflow)
+    text = _refused(f"{key}={value}", key)
+    assert f"got {value}" in text
+
+
+def test_widest_window_box_mean_is_the_image_sum_over_its_area():
+    # closed form: a box of W ≥ 2·side − 1 px covers the whole image at every pixel; zeros outside, so the mean is
+    # the image's sum over W²
+    from hsicam.models.demosaic import box_mean
+
+    cfg = load_config("tiny", [f"model.mosaic.brightness_window={MAX_WINDOW_PX}"])
+    w = cfg.model.mosaic.brightness_window
+    x = torch.rand(1, 1, 12, 12, generator=torch.Generator().manual_seed(0), dtype=torch.float64)
+    assert torch.allclose(box_mean(x, w), torch.full_like(x, float(x.sum()) / w**2), rtol=1e-9)

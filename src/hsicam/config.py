@@ -420,10 +420,19 @@ class RDNConfig:
                 raise ConfigError(f"model.rdn.{k} must be >= 1, got {getattr(self, k)}")
 
 
+#: The widest window (px) of the networks' box / tent means and of a stage's PSF cut: wider than any sensor; a window of
+#: 2^31 + 1 px ended in torch's "value cannot be converted to type int without overflow" (the key unnamed), and
+#: 2^70 + 1 in avg_pool2d's "Overflow when unpacking long long".
+MAX_WINDOW_PX = 32767
+
+
 def _check_odd_window(section: str, key: str, value: int, zero: str) -> None:
-    """ConfigError unless ``value`` (``section``.``key``, a window's width in px) is odd, or 0 (meaning ``zero``)."""
+    """ConfigError unless ``value`` (``section``.``key``, a window's width in px) is odd and at most
+    :data:`MAX_WINDOW_PX`, or 0 (meaning ``zero``)."""
     if value < 0 or (value and value % 2 == 0):
         raise ConfigError(f"{section}.{key} must be odd (or {zero}), got {value}")
+    if value > MAX_WINDOW_PX:
+        raise ConfigError(f"{section}.{key} must be at most {MAX_WINDOW_PX} px (wider than any sensor), got {value}")
 
 
 def _check_brightness(section: str, window: int, eps: float) -> None:
