@@ -114,3 +114,48 @@ def test_widest_window_box_mean_is_the_image_sum_over_its_area():
     w = cfg.model.mosaic.brightness_window
     x = torch.rand(1, 1, 12, 12, generator=torch.Generator().manual_seed(0), dtype=torch.float64)
     assert torch.allclose(box_mean(x, w), torch.full_like(x, float(x.sum()) / w**2), rtol=1e-9)
+
+
+# -- the sweep: every leaf key against a small hostile battery ----------------------------------------------------
+def _leaf_keys(cls, where: str = "") -> list[str]:
+    """Every leaf key of the config tree, walking the dataclasses' fields (an optional section, e.g. baselines.choi,
+    by its dataclass)."""
+    import dataclasses
+    import types
+    import typing
+
+    out = []
+    hints = typing.get_type_hints(cls)
+    for f in dataclasses.fields(cls):
+        tp, key = hints[f.name], f"{where}.{f.name}" if where else f.name
+        if typing.get_origin(tp) in (typing.Union, types.UnionType):
+            args = [a for a in typing.get_args(tp) if a is not type(None)]
+            tp = args[0] if len(args) == 1 else tp
+        out += _leaf_keys(tp, key) if dataclasses.is_dataclass(tp) else [key]
+    return out
+
+
+def _config_class():
+    from hsicam.config import Config
+
+    return Config
+
+
+LEAF_KEYS = _leaf_keys(_config_class())
+
+
+def test_the_sweep_walks_every_section():
+    assert len(LEAF_KEYS) > 150 and len(set(LEAF_KEYS)) == len(LEAF_KEYS)
+    assert {"baselines.choi.rho", "data.npy_bands.step_nm", "model.unrolled.mosaic.factor", "train.freeze"} <= set(LEAF_KEYS)
+
+
+@pytest.mark.parametrize("key", LEAF_KEYS)
+def test_hostile_values_are_a_config_error_naming_the_key_or_accepted(key):
+    from hsicam.errors import InputError
+
+    for value in ("abc", ".nan", "-1", "[1, 2]"):
+        try:
+            load_config("tiny", [f"{key}={value}"])
+        except (ConfigError, InputError) as exc:
+            assert re.search(rf"(?<![\w.]){re.escape(key)}(?![\w])", str(exc)), (key, value, str(exc))
+        # any other exception fails the test: a traceback for the user
