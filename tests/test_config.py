@@ -107,7 +107,7 @@ def test_an_unknown_lens_material_is_refused_whatever_the_lens_model():
     (["camera.kind=dd_cassi", "camera.cassi.dispersion=prism", "bands.start_nm=100"],
      r"camera.cassi.prism_material: .* the band centres \(bands.start_nm .. bands.stop_nm\) span 100-720 nm"),
     (["camera.doe.quantization_levels=70000"], r"camera.doe.quantization_levels must be in \[2, 65536\]"),
-    (["bands.step_nm=1e30"], r"^bands: \(720.0 - 420.0\) is not a multiple of the step 1e\+30$"),
+    (["bands.step_nm=1e30"], r"^bands.start_nm, bands.stop_nm, bands.step_nm \(420, 720, 1e\+30\): \(720.0 - 420.0\) is not a multiple of the step 1e\+30$"),
     (["bands.fwhm_nm=4000"], r"bands.fwhm_nm \(4000 nm\) is more than 10 times the range its bands cover \(310 nm\)"),
 ])
 def test_settings_the_camera_cannot_be_built_with_are_refused_naming_their_key(overrides, message):

@@ -159,3 +159,18 @@ def test_hostile_values_are_a_config_error_naming_the_key_or_accepted(key):
         except (ConfigError, InputError) as exc:
             assert re.search(rf"(?<![\w.]){re.escape(key)}(?![\w])", str(exc)), (key, value, str(exc))
         # any other exception fails the test: a traceback for the user
+
+
+def test_a_band_grid_refusal_names_the_keys_and_a_huge_count_in_a_few_digits():
+    """`bands.start_nm=5` said "bands: (720.0 - 5.0) is not a multiple of the step 50.0" (the keys unnamed);
+    `bands.stop_nm=1e300` printed a band count of ~300 digits."""
+    with pytest.raises(ConfigError) as exc:
+        load_config("tiny", ["bands.start_nm=5"])
+    assert str(exc.value) == ("bands.start_nm, bands.stop_nm, bands.step_nm (5, 720, 50): (720.0 - 5.0) is not a "
+                              "multiple of the step 50.0")
+    with pytest.raises(ConfigError) as exc:
+        load_config("tiny", ["bands.stop_nm=1e300"])
+    assert str(exc.value) == ("bands.start_nm, bands.stop_nm, bands.step_nm (420, 1e+300, 50): 420..1e+300 nm in "
+                              "steps of 50 nm gives 2e+298 bands, more than 10000; check the step (in nm)")
+    with pytest.raises(ConfigError, match=r"^data\.npy_bands\.start_nm, data\.npy_bands\.stop_nm, "):
+        load_config("tiny", ["data.npy_bands.start_nm=5"])

@@ -113,7 +113,8 @@ class BandsConfig:
         try:
             self.to_bands()
         except Exception as exc:  # noqa: BLE001 - re-raised as a config error with the key named
-            raise ConfigError(f"{s}: {str(exc).removeprefix('Bands.uniform: ')}") from None
+            raise ConfigError(f"{s}.start_nm, {s}.stop_nm, {s}.step_nm ({self.start_nm:g}, {self.stop_nm:g}, "
+                              f"{self.step_nm:g}): {str(exc).removeprefix('Bands.uniform: ')}") from None
 
     def to_bands(self) -> Bands:
         return Bands.uniform(self.start_nm, self.stop_nm, self.step_nm, self.fwhm_nm)

@@ -84,7 +84,8 @@ class Bands:
         n = round(ratio) + 1 if math.isfinite(ratio) else None
         if n is None or n > MAX_UNIFORM_BANDS:  # checked before any array is made (a step of 1e-6 nm is 3e8 bands)
             raise InputError(f"Bands.uniform: {start_nm:g}..{stop_nm:g} nm in steps of {step_nm:g} nm gives "
-                             f"{'infinitely many' if n is None else f'{n:,}'} bands, more than {MAX_UNIFORM_BANDS}; "
+                             f"{'infinitely many' if n is None else f'{n:,}' if n < 10**15 else f'{n:.3g}'} bands, more than "
+                             f"{MAX_UNIFORM_BANDS}; "
                              "check the step (in nm)")
         centers = start_nm + step_nm * np.arange(n, dtype=np.float64)
         # relative to the smaller of step and stop: a step far beyond the range (1e30 nm) is one band at
