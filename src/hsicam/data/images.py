@@ -483,6 +483,11 @@ def preprocess_raw(raw: np.ndarray, full_scale: float, corr: RawCorrection, sour
     dark_median = (black if corr.black_level is None else float(np.median(dark))) if dark is not None else None
     notes += _check_signal(img, raw, black, dark_median, source)
     img *= np.float32(1.0 / (white - black))
+    if np.count_nonzero(img > 0) <= MIN_SIGNAL_SHARE * img.size:  # it had signal (_check_signal): float32 underflow
+        raise InputError(f"{source}: the white level {white:g} DN (--white-level) takes the image below float32's "
+                         f"smallest numbers (its brightest pixel becomes {float(img.max()):g}): nothing would be left "
+                         "to reconstruct; give the sensor's full scale as --white-level (4095 for 12 bit, 65535 for "
+                         "16 bit)")
     if flat_dn is not None:
         flat = normalised_flat(flat_dn, black, corr.flat_period)
         img /= flat.astype(np.float32)
@@ -508,15 +513,15 @@ def preprocess_raw(raw: np.ndarray, full_scale: float, corr: RawCorrection, sour
     if not np.all(np.isfinite(img)):
         if factor > float(np.finfo(np.float32).max):
             raise InputError(f"{source}: the exposure × auto-level × --scale factor {factor:g} exceeds float32; "
-                             "lower --scale")
+                             f"lower {_gain_option_names(corr)}")
         if math.isfinite(peak):  # the factor alone fits, its product with the brightest pixel does not
             raise InputError(f"{source}: the exposure × auto-level × --scale factor {factor:g} times the brightest "
-                             f"corrected pixel {peak:g} exceeds float32; lower --scale")
+                             f"corrected pixel {peak:g} exceeds float32; lower {_gain_option_names(corr)}")
         raise InputError(f"{source}: the corrections produced NaN or Inf values")
     if np.count_nonzero(img > 0) <= MIN_SIGNAL_SHARE * img.size:  # it had signal (_check_signal): float32 underflow
         raise InputError(f"{source}: the exposure × auto-level × --scale factor {factor:g} takes the image below "
                          f"float32's smallest numbers (its brightest pixel becomes {float(img.max()):g}): nothing would "
-                         "be left to reconstruct; raise --scale")
+                         f"be left to reconstruct; raise {_gain_option_names(corr)}")
     if check_level:
         notes += _check_level(img, corr, source)
     if check_bit_depth and full_scale > 1 and corr.white_level is None and corr.auto_level is None:
@@ -599,6 +604,14 @@ def _gain_options(corr: RawCorrection) -> list[str]:
     if corr.scale != 1.0:
         opts.append(f"--scale {corr.scale:g}")
     return opts
+
+
+def _gain_option_names(corr: RawCorrection) -> str:
+    """The options of ``corr`` that multiply the image, by name (what a gain's refusal tells to change)."""
+    names = [name for name, given in (("--reference-exposure-s / --exposure-s", corr.exposure_s is not None),
+                                      ("--auto-level", corr.auto_level is not None), ("--scale", corr.scale != 1.0))
+             if given]
+    return " or ".join(names) or "--scale"
 
 
 def _check_level(img: np.ndarray, corr: RawCorrection, source: str) -> list[str]:
