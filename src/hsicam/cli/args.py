@@ -212,6 +212,16 @@ def check_tile(tile: int | None) -> None:
         raise InputError(f"--tile must be at least {MIN_TILE_PX} px")
 
 
+def text_arg(text: str) -> str:
+    """argparse ``type`` of an option that takes a name or a line of text (``data synth --holdout-sources``,
+    ``pretrained pack --summary``, ``--preset``): an empty or blank value (``--preset "$PRESET"`` with the
+    variable unset) is a usage error; taken as given it was the option's default (the config's held-out sources
+    replaced by none, the preset guessed from the config) or an empty summary on the camera's card."""
+    if not text.strip():
+        raise argparse.ArgumentTypeError("the value is empty (an unset variable?)")
+    return text
+
+
 def path_arg(convert: Callable[[str], Any] | None = None) -> Callable[[str], Any]:
     """argparse ``type`` of a path argument: a leading ``~`` expanded as a shell does
     (``os.path.expanduser``, also when it reached hsicam quoted, from a script or a Makefile), then

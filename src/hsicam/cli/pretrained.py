@@ -33,8 +33,10 @@ def register(sub: argparse._SubParsersAction) -> None:
                                                      "(an evaluation of another run is refused)")
     q.add_argument("--heldout", metavar="FILE", help="results.json of an evaluation of this run on held-out data "
                                                      "(instead of --results' own held-out section)")
-    q.add_argument("--summary", help="one-line summary (default: made from the run)")
-    q.add_argument("--preset", help="shipped preset the run was trained from (default: the preset its config equals, "
+    from hsicam.cli.args import text_arg
+
+    q.add_argument("--summary", type=text_arg, help="one-line summary (default: made from the run)")
+    q.add_argument("--preset", type=text_arg, help="shipped preset the run was trained from (default: the preset its config equals, "
                                     "if any; a camera that differs from it is warned about)")
     q.add_argument("--dest", metavar="DIR", help="root of the shipped cameras (default: $HSICAM_PRETRAINED_DIR, "
                                                  "else the package's resources/pretrained)")
