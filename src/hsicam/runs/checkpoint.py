@@ -477,6 +477,9 @@ class CheckpointManager:
         if d is None:
             raise InputError(f"{self.run_dir}: no '{tag}' checkpoint to resume from")
         sha = ((self.manifest() or {}).get(tag) or {}).get("weights_sha256")
+        if not (d / "model.safetensors").is_file():  # (file_sha256 would be a raw FileNotFoundError)
+            raise InputError(f"{d / 'model.safetensors'}: missing from the '{tag}' checkpoint that {self.run_dir / MANIFEST} "
+                             f"names (the run folder is incomplete); {RECOPY_HINT}")
         if sha is not None and file_sha256(d / "model.safetensors") != sha:  # never train on from damaged weights
             raise InputError(f"{d / 'model.safetensors'} differs from the weights {self.run_dir / MANIFEST} records "
                              f"(sha256 {sha[:12]}…): the checkpoint is damaged (a copy cut short, a disk error, an edit); "
