@@ -12,6 +12,7 @@ every rule (see the invariants)."""
 from __future__ import annotations
 
 import errno
+import hashlib
 import json
 import os
 import shutil
@@ -227,7 +228,10 @@ class RunFolderMachine(RuleBasedStateMachine):
         elif how == "truncate":
             path.write_bytes(raw[: data.draw(st.integers(0, len(raw) - 1))])
         else:
-            i = data.draw(st.integers(0, len(raw) - 1))
+            lo = 0
+            if f.endswith(".safetensors") and data.draw(st.booleans()):  # in the tensors' bytes, past the header
+                lo = min(8 + int.from_bytes(raw[:8], "little"), len(raw) - 1)
+            i = data.draw(st.integers(lo, len(raw) - 1))
             path.write_bytes(raw[:i] + bytes([raw[i] ^ 0x01]) + raw[i + 1:])
             st_ = path.stat()
             os.utime(path, ns=(st_.st_atime_ns, st_.st_mtime_ns + 1_000_000_000))  # later than its write
@@ -362,3 +366,22 @@ def test_loading_a_checkpoint_whose_weights_file_was_deleted_is_one_line(tmp_pat
         mgr.load("last", torch.nn.Linear(2, 3), None, BANDS)
     assert str(err.value) == (f"{weights}: missing from the 'last' checkpoint that {run / MANIFEST} names (the run "
                               f"folder is incomplete); {ck.RECOPY_HINT}")
+
+
+def test_loading_a_checkpoint_whose_optimizer_state_has_a_flipped_byte_is_refused(tmp_path):
+    """save; flip one byte of the tensor data of optimizer.safetensors (a disk error); load last with the optimizer:
+    its Adam moments came back silently wrong (exp_avg_sq 0.0019 -> 6.4e35), as the weights never do."""
+    run, mgr, _, opt = _saved_run(tmp_path)
+    path = run / "checkpoints" / "step-00000001" / "optimizer.safetensors"
+    raw = bytearray(path.read_bytes())
+    sha = hashlib.sha256(raw).hexdigest()  # what the save wrote
+    header = json.loads(raw[8:8 + int.from_bytes(raw[:8], "little")])
+    raw[8 + int.from_bytes(raw[:8], "little") + header["1.exp_avg_sq"]["data_offsets"][0] + 3] ^= 0x40
+    path.write_bytes(bytes(raw))
+    net2 = torch.nn.Linear(2, 3)
+    opt2 = torch.optim.Adam(net2.parameters(), lr=1e-3)
+    with pytest.raises(InputError) as err:
+        mgr.load("last", net2, opt2, BANDS)
+    assert str(err.value) == (f"{path} differs from the optimizer state {run / MANIFEST} records (sha256 {sha[:12]}…): "
+                              f"the checkpoint is damaged (a copy cut short, a disk error, an edit); {ck.RECOPY_HINT}")
+    assert not opt2.state  # nothing loaded from it

@@ -14,8 +14,9 @@ Run folder layout::
 renamed into place; then ONE small manifest, ``checkpoints.json``, is replaced atomically::
 
     {"format": "hsicam-run-manifest-1",
-     "last":  {"dir": "checkpoints/step-00000012", "step": 12, "weights_sha256": "…"},
-     "best":  {"dir": "checkpoints/step-00000008", "step": 8, "psnr": 23.4, "weights_sha256": "…"} | null,
+     "last":  {"dir": "checkpoints/step-00000012", "step": 12, "weights_sha256": "…", "optimizer_sha256": "…"},
+     "best":  {"dir": "checkpoints/step-00000008", "step": 8, "psnr": 23.4, "weights_sha256": "…",
+               "optimizer_sha256": "…"} | null,
      "state": {LoopState of the last checkpoint: epoch, step_in_epoch, global_step, best_psnr, …},
      "weights": {"file": "model.safetensors", "from": "best" | "last", "sha256": "…"}}
 
@@ -342,6 +343,7 @@ class CheckpointManager:
             # Same step (e.g. the epoch-end save after a periodic one): the weights are the same;
             # only the training state moves on, and it lives in the manifest.
             sha = named[rel].get("weights_sha256") or file_sha256(final / "model.safetensors")
+            opt_sha = named[rel].get("optimizer_sha256")
         else:
             tmp = self.ckpt_dir / f".{name}.{os.urandom(4).hex()}.tmpdir"
             writing = final  # what a failed write is named by
@@ -365,7 +367,8 @@ class CheckpointManager:
                     raise self._uncommitted(exc, writing, old) from None
                 raise
             sha = file_sha256(final / "model.safetensors")
-        entry = {"dir": rel, "step": step, "weights_sha256": sha}
+            opt_sha = file_sha256(final / "optimizer.safetensors")
+        entry = {"dir": rel, "step": step, "weights_sha256": sha, "optimizer_sha256": opt_sha}
         best = None if old is None else old.get("best")
         if "best" in tags:
             best = {**entry, "psnr": state.get("best_psnr")}
@@ -486,7 +489,13 @@ class CheckpointManager:
                              f"{RECOPY_HINT}")
         load_weights(d / "model.safetensors", model, bands)
         if optimizer is not None:
-            load_optimizer(d / "optimizer.safetensors", optimizer)
+            opt_sha = ((self.manifest() or {}).get(tag) or {}).get("optimizer_sha256")
+            opt_file = d / "optimizer.safetensors"
+            if opt_sha is not None and opt_file.is_file() and file_sha256(opt_file) != opt_sha:  # nor from damaged moments
+                raise InputError(f"{opt_file} differs from the optimizer state {self.run_dir / MANIFEST} records (sha256 "
+                                 f"{opt_sha[:12]}…): the checkpoint is damaged (a copy cut short, a disk error, an edit); "
+                                 f"{RECOPY_HINT}")
+            load_optimizer(opt_file, optimizer)
         if tag == "last":
             return self.state() or {}
         try:
@@ -505,9 +514,10 @@ def _entry_problem(key: str, entry: Any) -> str | None:
     step = entry.get("step")
     if step is not None and (not isinstance(step, int) or isinstance(step, bool) or step < 0):
         return f"'{key}.step' is not a step number: {step!r}"
-    sha = entry.get("weights_sha256")
-    if sha is not None and not isinstance(sha, str):
-        return f"'{key}.weights_sha256' is not a hash: {sha!r}"
+    for field in ("weights_sha256", "optimizer_sha256"):
+        sha = entry.get(field)
+        if sha is not None and not isinstance(sha, str):
+            return f"'{key}.{field}' is not a hash: {sha!r}"
     return None
 
 
