@@ -585,7 +585,8 @@ def root_weights_path(run_dir: str | Path, weights_file: str = "model.safetensor
 
     The root file when it matches the manifest (or the run has no manifest); else — a process was
     killed between the manifest's commit and the root file's rewrite — the checkpoint the manifest
-    names, so the kept weights are never taken from another checkpoint."""
+    names, so the kept weights are never taken from another checkpoint (that checkpoint missing too:
+    one :class:`InputError`)."""
     run_dir = Path(run_dir)
     root = run_dir / weights_file
     mgr = CheckpointManager(run_dir, weights_file)
@@ -594,6 +595,10 @@ def root_weights_path(run_dir: str | Path, weights_file: str = "model.safetensor
         return root
     path, sha = src
     if not path.is_file():
+        if sha is not None and root.is_file() and file_sha256(root) != sha:  # no checkpoint to fall back on
+            raise InputError(f"{root} differs from the weights {run_dir / MANIFEST} records (sha256 {sha[:12]}…), and "
+                             f"{path}, which holds them, is missing: the run's weights are out of date or damaged (a "
+                             f"process killed while it wrote them, a copy cut short); {RECOPY_HINT}")
         return root
     if root.is_file() and file_sha256(root) == (sha or file_sha256(path)):
         return root
