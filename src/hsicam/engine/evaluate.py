@@ -13,6 +13,7 @@ from __future__ import annotations
 import csv
 import hashlib
 import io
+import re
 import time
 import zlib
 from dataclasses import dataclass, field
@@ -360,9 +361,15 @@ def format_table(summary: dict, keys: tuple[str, ...] = ("psnr", "ssim", "sam"))
     sep = "|---" * (len(keys) + 1 + split) + "|"
     lines = [head, sep]
     for row in summary["scenes"] + [{"name": "**mean**", **summary["mean"]}]:
-        lines.append(f"| {row['name']} | " + " | ".join(_fmt(k, row[k]) for k in keys) + " |"
+        lines.append(f"| {_md_cell(row['name'])} | " + " | ".join(_fmt(k, row[k]) for k in keys) + " |"
                      + (f" {row.get('split', '')} |" if split else ""))
     return "\n".join(lines)
+
+
+def _md_cell(text) -> str:
+    """``text`` as one Markdown table cell: backslashes and ``|`` escaped (a scene file may be named ``a|b``),
+    line breaks as spaces (a line break would end the row)."""
+    return re.sub(r"\r\n?|\n", " ", str(text).replace("\\", "\\\\").replace("|", "\\|"))
 
 
 def _fmt(key: str, v: float) -> str:
