@@ -143,3 +143,23 @@ def test_a_pipe_or_line_break_in_a_scene_name_keeps_the_markdown_table_whole(tmp
     assert [len(_gfm_cells(r)) for r in rows] == [6, 6, 6]
     assert [_md_unescape(_gfm_cells(r)[0]) for r in rows] == ["a|b", "x y", "c\\|d"]
     assert [_gfm_cells(r)[1] for r in rows] == ["30.00", "31.00", "32.00"]
+
+
+# -- previews ---------------------------------------------------------------------------------------------
+def test_a_strip_cube_is_previewed(tmp_path):
+    """A 4×1000 px cube (shorter than one 6-px block on its short side) crashed ``hsicam data show`` with
+    numpy's "zero-size array to reduction operation maximum"; its contact sheet now holds a 1×166 render."""
+    from PIL import Image
+
+    from hsicam.data.preview import CONTACT_SHEET, preview_rgb, write_preview
+
+    cube = np.random.default_rng(0).random((31, 4, 1000)).astype(np.float32)
+    rgb = preview_rgb(cube, Bands.from_centers(np.linspace(400.0, 700.0, 31)))
+    assert rgb.shape == (1, 166, 3) and np.isfinite(rgb).all()
+    np.save(tmp_path / "strip.npy", cube)
+    written = write_preview(tmp_path / "strip.npy", tmp_path / "out")
+    assert (tmp_path / "out" / CONTACT_SHEET) in written
+    for p in written:
+        with Image.open(p) as im:
+            im.load()
+            assert min(im.size) > 0 and np.isfinite(np.asarray(im, dtype=np.float64)).all()

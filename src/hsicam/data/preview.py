@@ -43,11 +43,13 @@ def renderable(bands: Bands) -> bool:
 
 
 def _downsample(c: np.ndarray, max_side: int) -> np.ndarray:
-    """(C, H, W) area-averaged over step×step blocks so that its longer side is at most ``max_side``."""
+    """(C, H, W) area-averaged over step×step blocks so that its longer side is at most ``max_side`` (a side
+    shorter than a step, e.g. a 4×1000 strip's, is one block: a strip keeps at least one row)."""
     step = max(1, int(math.ceil(max(c.shape[1:]) / max_side)))
     if step > 1:
-        h, w = (c.shape[1] // step) * step, (c.shape[2] // step) * step
-        c = c[:, :h, :w].reshape(c.shape[0], h // step, step, w // step, step).mean(axis=(2, 4))
+        sy, sx = min(step, c.shape[1]), min(step, c.shape[2])
+        h, w = (c.shape[1] // sy) * sy, (c.shape[2] // sx) * sx
+        c = c[:, :h, :w].reshape(c.shape[0], h // sy, sy, w // sx, sx).mean(axis=(2, 4))
     return c
 
 
