@@ -146,6 +146,46 @@ def test_a_pipe_or_line_break_in_a_scene_name_keeps_the_markdown_table_whole(tmp
 
 
 # -- previews ---------------------------------------------------------------------------------------------
+def _preview_side(side: int, longest: int, max_side: int) -> int:
+    """The documented preview size of one side: step×step blocks (step = ceil(longest / max_side)), at least
+    one block (the whole side) when the side is shorter than a step."""
+    step = max(1, math.ceil(longest / max_side))
+    return max(1, side // step)
+
+
+CUBES = st.tuples(st.integers(1, 8), st.integers(1, 70), st.integers(1, 70),
+                  st.sampled_from(["random", "zero", "hot", "tiny", "huge"]))
+
+
+@SETTINGS
+@given(spec=CUBES)
+def test_previews_of_any_cube_are_finite_images_of_the_documented_size(spec):
+    from hsicam.data.preview import preview_grey, preview_rgb, renderable
+
+    c, h, w, kind = spec
+    rng = np.random.default_rng(c * 1000 + h * 10 + w)
+    cube = {"random": lambda: rng.random((c, h, w)), "zero": lambda: np.zeros((c, h, w)),
+            "tiny": lambda: rng.random((c, h, w)) * 1e-37, "huge": lambda: rng.random((c, h, w)) * 3e38,
+            "hot": lambda: np.zeros((c, h, w))}[kind]().astype(np.float32)
+    if kind == "hot":
+        cube[rng.integers(c), rng.integers(h), rng.integers(w)] = 1.0
+    bands = Bands.from_centers(np.linspace(420.0, 720.0, c)) if c > 1 else Bands.from_centers([550.0])
+    max_side = 16
+    shape = (_preview_side(h, max(h, w), max_side), _preview_side(w, max(h, w), max_side), 3)
+    grey = preview_grey(cube, max_side)
+    assert grey.shape == shape and np.isfinite(grey).all() and grey.min() >= 0 and grey.max() <= 1
+    if not renderable(bands):
+        with pytest.raises(InputError, match="fewer than 2 bands"):
+            preview_rgb(cube, bands, max_side)
+        return
+    if not cube.any():
+        with pytest.raises(InputError, match="all zeros"):
+            preview_rgb(cube, bands, max_side)
+        return
+    rgb = preview_rgb(cube, bands, max_side)
+    assert rgb.shape == shape and np.isfinite(rgb).all()
+
+
 def test_a_strip_cube_is_previewed(tmp_path):
     """A 4×1000 px cube (shorter than one 6-px block on its short side) crashed ``hsicam data show`` with
     numpy's "zero-size array to reduction operation maximum"; its contact sheet now holds a 1×166 render."""

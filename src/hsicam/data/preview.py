@@ -49,7 +49,8 @@ def _downsample(c: np.ndarray, max_side: int) -> np.ndarray:
     if step > 1:
         sy, sx = min(step, c.shape[1]), min(step, c.shape[2])
         h, w = (c.shape[1] // sy) * sy, (c.shape[2] // sx) * sx
-        c = c[:, :h, :w].reshape(c.shape[0], h // sy, sy, w // sx, sx).mean(axis=(2, 4))
+        # summed in float64: a float32 sum of large values (a cube near float32's 3.4e38) overflows to inf
+        c = c[:, :h, :w].reshape(c.shape[0], h // sy, sy, w // sx, sx).mean(axis=(2, 4), dtype=np.float64)
     return c
 
 
