@@ -203,3 +203,35 @@ def test_a_strip_cube_is_previewed(tmp_path):
         with Image.open(p) as im:
             im.load()
             assert min(im.size) > 0 and np.isfinite(np.asarray(im, dtype=np.float64)).all()
+
+
+def test_a_scene_file_name_that_is_not_utf8_is_scored_and_named_by_its_escaped_bytes(tmp_path):
+    """An old Latin-1 file name (b"sc\\xe8ne.h5", held by Python as a lone surrogate) stopped `hsicam evaluate
+    --data` with "UnicodeEncodeError: surrogates not allowed" (the capture-noise seed, then the results writers)."""
+    import os
+
+    from cli_helpers import assert_ok, run_cli_in_process
+    from hsicam.config import load_config
+    from hsicam.data.datasets import displayable_name, scene_names
+    from hsicam.data.formats import write_cube_h5
+
+    assert displayable_name(os.fsdecode(b"sc\xe8ne")) == "sc\\xe8ne" and displayable_name("scène") == "scène"
+    assert displayable_name("a\udc00b") == "a\\udc00b"  # a surrogate no byte maps to
+    data = tmp_path / "data"
+    data.mkdir()
+    bands = load_config("tiny").bands.to_bands()
+    cube = np.random.default_rng(0).random((len(bands), 48, 48)).astype(np.float32)
+    latin1 = os.path.join(os.fsencode(data), b"sc\xe8ne.h5")
+    try:
+        write_cube_h5(os.fsdecode(latin1), cube, bands)
+    except (OSError, UnicodeError):
+        pytest.skip("this file system refuses a file name that is not UTF-8")
+    assert scene_names([os.fsdecode(latin1)], data) == ["sc\\xe8ne"]
+    out = tmp_path / "ev"
+    assert_ok(run_cli_in_process("evaluate", "--config", "tiny", "--method", "dd-cassi-gaptv", "--set",
+                                 "baselines.gaptv.iterations=2", "--data", str(data), "--out", str(out), "--save"))
+    row = json.loads((out / "results.json").read_text(encoding="utf-8"))["scenes"][0]
+    assert (row["name"], row["path"]) == ("sc\\xe8ne", "sc\\xe8ne.h5")
+    with open(out / "results.csv", newline="", encoding="utf-8") as f:
+        assert next(csv.DictReader(f))["name"] == "sc\\xe8ne"
+    assert sorted(p.name for p in (out / "cubes").iterdir()) == ["sc\\xe8ne_estimate.h5", "sc\\xe8ne_truth.h5"]

@@ -139,7 +139,7 @@ def check_out_apart_from_data(out: str | Path, data: str | Path) -> None:
 
 def cmd_evaluate(args: argparse.Namespace) -> int:
     from hsicam.config import dump_yaml
-    from hsicam.data.datasets import list_scenes, scene_names, scene_path
+    from hsicam.data.datasets import displayable_name, list_scenes, scene_names, scene_path
     from hsicam.data.formats import write_cube_h5
     from hsicam.data.pipeline import scene_dataset
     from hsicam.engine.evaluate import (NOISE_DRAWS, TestNoise, check_room_for_cubes, check_scenes, check_test_noise, config_hash,
@@ -193,7 +193,7 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     if paths is not None:
         scenes = scene_dataset(cfg.data, paths, bands)
         # unique names (stems; the scenes whose stems collide by their paths), each row with its path
-        names, rel = scene_names(paths, args.data), [scene_path(p, args.data) for p in paths]
+        names, rel = scene_names(paths, args.data), [displayable_name(scene_path(p, args.data)) for p in paths]
         data = str(Path(args.data).resolve())
         heldout = None
     else:
@@ -284,10 +284,10 @@ def _relative_to_common_folder(paths) -> list[str]:
     """Scene paths relative to the folder that holds them all (the synthetic dataset's)."""
     import os
 
-    from hsicam.data.datasets import scene_path
+    from hsicam.data.datasets import displayable_name, scene_path
 
     root = os.path.commonpath([os.path.abspath(Path(p).parent) for p in paths]) if len(paths) else "."
-    return [scene_path(p, root) for p in paths]
+    return [displayable_name(scene_path(p, root)) for p in paths]
 
 
 def _saved_cubes_text(seeds) -> str:

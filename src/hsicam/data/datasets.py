@@ -190,6 +190,17 @@ def scene_path(scene: str | os.PathLike, root: str | os.PathLike) -> str:
     return rel.as_posix() if rel.parts else scene.name
 
 
+def displayable_name(text: str) -> str:
+    """``text`` (a file name from the file system) as text any writer takes: the bytes of a name that is not
+    UTF-8 (an old Latin-1 ``sc\\xe8ne.h5``, which Python holds as lone surrogates) as ``\\xe8`` escapes; valid text
+    unchanged. Such a name stopped an evaluation with "UnicodeEncodeError: surrogates not allowed"."""
+    try:
+        raw = text.encode("utf-8", "surrogateescape")
+    except UnicodeEncodeError:  # a lone surrogate that no byte maps to
+        return text.encode("utf-8", "backslashreplace").decode("utf-8")
+    return raw.decode("utf-8", "backslashreplace")
+
+
 #: What joins the folders of a scene's relative path in its name (``day1/scene.h5`` → ``day1__scene``).
 SCENE_NAME_SEPARATOR = "__"
 
@@ -203,7 +214,7 @@ def scene_names(scenes: Sequence[str | os.PathLike], root: str | os.PathLike | N
     (default: their common folder; :func:`scene_path`), the suffix dropped and the folders joined by
     :data:`SCENE_NAME_SEPARATOR` (``day1/scene.h5`` → ``day1__scene``). Scenes that still share a name
     (``scene.h5`` beside ``scene.mat``) keep their suffix (``scene.h5``), and any left then get
-    ``-2``, ``-3`` … in list order."""
+    ``-2``, ``-3`` … in list order. A name that is not UTF-8 is given as :func:`displayable_name`."""
     paths = [Path(p) for p in scenes]
     if root is None:
         root = os.path.commonpath([os.path.abspath(p.parent) for p in paths]) if paths else "."
@@ -212,9 +223,9 @@ def scene_names(scenes: Sequence[str | os.PathLike], root: str | os.PathLike | N
         rel = scene_path(p, root)
         if not suffix and not p.is_dir():
             rel = rel[: len(rel) - len(p.suffix)] if p.suffix else rel
-        return rel.replace("/", SCENE_NAME_SEPARATOR)
+        return displayable_name(rel.replace("/", SCENE_NAME_SEPARATOR))
 
-    names = [p.stem for p in paths]
+    names = [displayable_name(p.stem) for p in paths]
     for rename in (lambda p: relative(p, False), lambda p: relative(p, True)):
         clash = _clashing(names)
         if not clash:
