@@ -368,14 +368,25 @@ def check_level_options(args: argparse.Namespace) -> None:
 
 
 def check_noise_args(args: argparse.Namespace) -> None:
-    """Before any work: --full-well-e a positive number, --read-noise-e one >= 0 and only beside it."""
+    """Before any work: --full-well-e a positive number in the range of ``camera.sensor.full_well_e``, --read-noise-e
+    one >= 0, at most the full well (as ``camera.sensor.read_noise_e``) and only beside it: a full well of 1e-300 e-
+    or a read noise of 1e308 e- overflowed the noise variance (r/E)² in an OverflowError traceback."""
+    from hsicam.config import MAX_FULL_WELL_E, MAX_SENSOR_SIGMA, MIN_FULL_WELL_E
+
     if args.read_noise_e is not None and args.full_well_e is None:
         raise InputError("--read-noise-e needs --full-well-e (the electrons at the white level), which sets the "
                          "capture's noise model")
     if args.full_well_e is not None and not (np.isfinite(args.full_well_e) and args.full_well_e > 0):
         raise InputError(f"--full-well-e must be a positive number of electrons, got {args.full_well_e:g}")
+    if args.full_well_e is not None and not MIN_FULL_WELL_E <= args.full_well_e <= MAX_FULL_WELL_E:
+        raise InputError(f"--full-well-e must be a positive number of electrons in [{MIN_FULL_WELL_E:g}, "
+                         f"{MAX_FULL_WELL_E:g}] (at the white level; sensors hold 10^3 to 10^6, as "
+                         f"camera.sensor.full_well_e), got {args.full_well_e:g}")
     if args.read_noise_e is not None and not (np.isfinite(args.read_noise_e) and args.read_noise_e >= 0):
         raise InputError(f"--read-noise-e must be a number of electrons >= 0, got {args.read_noise_e:g}")
+    if args.read_noise_e is not None and args.read_noise_e > MAX_SENSOR_SIGMA * args.full_well_e:
+        raise InputError(f"--read-noise-e must be at most --full-well-e ({args.full_well_e:g} e-: read noise above the "
+                         f"full scale buries any signal, as camera.sensor.read_noise_e), got {args.read_noise_e:g}")
 
 
 def capture_noise(model, report: dict, full_well_e: float, read_noise_e: float, corr=None,
