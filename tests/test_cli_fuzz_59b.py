@@ -2,16 +2,43 @@
 
 ``reconstruct --full-well-e 1000 --read-noise-e 1e308`` (and ``--full-well-e 1e-300 --read-noise-e 2``) ended in an
 OverflowError traceback of the noise variance (r/E)², after the run was loaded and the network had run; ``--full-well-e
-1e-300`` alone reconstructed (exit 0) with an infinite noise variance."""
+1e-300`` alone reconstructed (exit 0) with an infinite noise variance. ``tolerance --shift-subsamples 1000000000000``
+(or 2**70) never came back: the FFT length of its pupil was searched by trying n, n + 1, … for a 7-smooth number, whose
+gaps grow with n, in the very check that refuses that pupil for its memory (``train --set
+camera.psf.pupil_oversample=...`` alike)."""
 
 from __future__ import annotations
 
+import signal
 from pathlib import Path
 
 import numpy as np
 import pytest
 
 from cli_helpers import error_line, run_cli_in_process, tree_snapshot
+
+
+class Hung(AssertionError):
+    """Raised by :func:`guarded`'s alarm (the command's error boundary re-raises it, as any bug)."""
+
+
+def guarded(fn, *args, seconds: int = 30):
+    """``fn(*args)``, failing the test instead of hanging when it runs past ``seconds`` (far above what it takes when
+    it works)."""
+
+    def hung(signum, frame):
+        raise Hung()
+
+    old = signal.signal(signal.SIGALRM, hung)
+    signal.alarm(seconds)
+    try:
+        return fn(*args)
+    except Hung:
+        pass  # failed below, outside this handler: pytest cannot show the frame a signal interrupted
+    finally:
+        signal.alarm(0)
+        signal.signal(signal.SIGALRM, old)
+    pytest.fail(f"{getattr(fn, '__name__', fn)} still running after {seconds} s")
 
 
 @pytest.fixture
@@ -59,3 +86,41 @@ def test_reconstruct_still_takes_a_read_noise_equal_to_the_full_well(capture, tm
     with h5py.File(out, "r") as f:
         meta = json.loads(f.attrs["metadata_json"])
     assert meta["noise_full_well_e"] == 50.0 and meta["noise_read_noise_e"] == 50.0
+
+
+def smooth7_reference(n: int) -> int:
+    """The smallest 2^a·3^b·5^c·7^d >= n, from the sorted set of every such number up to the power of 2 >= n."""
+    top = 1 << max(0, n - 1).bit_length()  # a power of 2 >= n: the answer is at most it
+    found = {1}
+    for p in (2, 3, 5, 7):
+        grown = set()
+        for v in found:
+            while v <= top:
+                grown.add(v)
+                v *= p
+        found = grown
+    return min(v for v in found if v >= n)
+
+
+@pytest.mark.parametrize("n", [1, 2, 11, 13, 665, 2 * 333 - 1, 10007, 2 * 41 * 10**12 - 1, 2 * 41 * 2**70 - 1,
+                               10**30 + 1])
+def test_fast_fft_length_is_the_smallest_7_smooth_length(n):
+    from hsicam.optics.sampling import fast_fft_length
+
+    assert guarded(fast_fft_length, n) == smooth7_reference(n)
+
+
+@pytest.mark.parametrize("q", [str(10**12), str(2**70)])
+def test_tolerance_refuses_a_huge_shift_subsampling_at_once(tmp_path, q):
+    """The memory check refuses such a pupil in one line naming the option; it used to search its FFT length for
+    hours first."""
+    data = tmp_path / "scene.npy"
+    np.save(data, np.random.default_rng(0).random((7, 32, 32)).astype(np.float32))
+    out = tmp_path / "tol"
+    res = guarded(run_cli_in_process, "tolerance", "--run", "pretrained:standard", "--out", str(out), "--data",
+                  str(data), "--shift-cells", "0.5", "--shift-subsamples", q, "--sigma-height-nm", "0", "--levels", "2",
+                  "--sensor-distance-um", "0")
+    line = error_line(res)
+    assert line.startswith(f"hsicam: error: --shift-subsamples {q}: the misalignment study's pupil of {q} samples per "
+                           "DOE cell cannot be simulated here (the PSF sampling plan needs at least "), line
+    assert not out.exists()

@@ -77,16 +77,30 @@ def smallest_kernel_px(max_wavelength_m: float, sensor_distance_m: float, cell_m
 def fast_fft_length(n: int) -> int:
     """Smallest 7-smooth integer ≥ n (2^a·3^b·5^c·7^d: a fast FFT length). Even lengths are
     allowed: with N ≥ 2P − 1 the intensity has no harmonic at N/2 (measured: 672 is 1.4× faster
-    than the odd 675 for the paper pupil, P = 333)."""
+    than the odd 675 for the paper pupil, P = 333). Found among the 7-smooth numbers themselves (each 7^d·5^c·3^b
+    times the least power of 2 that reaches n), not by trying n, n + 1, …: their gaps grow with n, and that search
+    did not come back for the pupil of a huge oversampling (``tolerance --shift-subsamples 10**12``: 3.7e9
+    candidates), before the memory check that refuses it."""
     m = max(1, int(n))
+    best = None
+    p7 = 1
     while True:
-        r = m
-        for f in (2, 3, 5, 7):
-            while r % f == 0:
-                r //= f
-        if r == 1:
-            return m
-        m += 1
+        p5 = p7
+        while True:
+            p3 = p5
+            while True:
+                q = -(-m // p3)  # the least power of 2 >= ceil(m / p3)
+                v = p3 << (q - 1).bit_length()
+                best = v if best is None or v < best else best
+                if p3 >= m:
+                    break
+                p3 *= 3
+            if p5 >= m:
+                break
+            p5 *= 5
+        if p7 >= m:
+            return best
+        p7 *= 7
 
 
 def plan_psf_sampling(
