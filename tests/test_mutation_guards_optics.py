@@ -229,7 +229,8 @@ def test_sweep_limits_are_the_lens_and_the_aperture_diameter(tiny_camera):
     with pytest.raises(InputError, match="onto the lens"):
         check_sweeps(ToleranceSpec(sensor_distance_um=(-5000.0,), shift_cells=()), optics)
     check_sweeps(ToleranceSpec(sensor_distance_um=(), shift_cells=(0.0, 7.5, 10.0), levels=()), optics)
-    with pytest.raises(InputError, match=r"exceeds the aperture's diameter \(10 cells"):
+    with pytest.raises(InputError, match=r"^--shift-cells 10.25: a DOE shift of 10.25 cells exceeds the aperture's "
+                       r"diameter \(10 cells"):  # the option named (session 59: it was not)
         check_sweeps(ToleranceSpec(sensor_distance_um=(), shift_cells=(10.25,), levels=()), optics)
 
 

@@ -190,7 +190,7 @@ def check_sweeps(spec: ToleranceSpec, optics) -> None:
     q = shift_subsamples_for(optics, spec.shift_subsamples)
     for s in spec.shift_cells:
         if abs(s) > limit:
-            raise InputError(f"DOE shift {s} cells exceeds the aperture's diameter ({limit:.0f} cells of "
+            raise InputError(f"--shift-cells {s:g}: a DOE shift of {s:g} cells exceeds the aperture's diameter ({limit:.0f} cells of "
                              f"{optics.cell_m * 1e6:g} µm): the element would leave the aperture")
         if optics.doe.enabled and not math.isclose(s * q, round(s * q), abs_tol=1e-6):
             # the relief moves by whole pupil sub-samples: the CSV, plot and summary would show a shift not applied
