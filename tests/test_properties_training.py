@@ -121,6 +121,23 @@ def test_spectral_angle_loss_is_free_of_the_datas_scale(scale_exp, c, seed):
     assert got == pytest.approx(ref, rel=2e-3, abs=2e-4)
 
 
+@PROPS
+@given(scale_exp=st.integers(-15, 15), c=st.integers(2, 31), seed=st.integers(0, 2**16))
+@example(scale_exp=-13, c=31, seed=0)
+def test_spectral_angle_loss_is_free_of_the_estimates_scale(scale_exp, c, seed):
+    """The angle does not depend on the estimate's own level either (a network's output far below or above the
+    truth, as early in training): the float32 loss of k·x̂ against x is the float64 angle of x̂ and x. Scaled by the
+    truth's peak alone, an estimate at k = 1e-13 scored 0.069 rad for an angle of 0.0014 (its squared norm fell
+    under the floor) and k = 1e15 overflowed."""
+    rng = np.random.default_rng(seed)
+    t = 0.1 + rng.random((1, c, 5, 6))
+    r = t * (1 + 0.1 * rng.standard_normal(t.shape))
+    k = 10.0 ** scale_exp
+    ref = _ref_sam(r, t, 0.01)
+    got = float(spectral_angle_loss(torch.from_numpy(r * k).float(), torch.from_numpy(t).float(), 0.01))
+    assert got == pytest.approx(ref, rel=2e-3, abs=2e-4)
+
+
 _ALL_TERMS = TrainConfig(relative_l1=1.0, ssim_loss=1.0, sam_loss=1.0, spectral_grad_loss=1.0, phase_loss=1.0,
                          relative_eps=0.01)
 

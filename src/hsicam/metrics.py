@@ -159,7 +159,7 @@ def _ssim_map(x: torch.Tensor, y: torch.Tensor, g: torch.Tensor, c1: float, c2: 
     return ((2 * mx * my + c1) * (2 * cxy + c2)) / ((mx * mx + my * my + c1) * (vx + vy + c2))
 
 
-def _spectra_scaled(t: torch.Tensor) -> torch.Tensor:
+def spectra_scaled(t: torch.Tensor) -> torch.Tensor:
     """Each pixel's spectrum (dim 1) divided by its largest magnitude (all-zero spectra kept zero):
     the angle is scale-invariant, and the squared norms of the scaled spectra lie in [1, C], so they
     can neither underflow nor overflow."""
@@ -174,7 +174,7 @@ def sam_map(x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
     NaN where the truth spectrum is all zero (the angle is undefined); 90° where the estimate is
     all zero and the truth is not (no spectrum at all is as far as any from the truth's)."""
     x, y = _batched(x, y)
-    xs, ys = _spectra_scaled(x), _spectra_scaled(y)
+    xs, ys = spectra_scaled(x), spectra_scaled(y)
     norm = ((xs * xs).sum(dim=1) * (ys * ys).sum(dim=1)).sqrt()  # one root: exactly the dot product for x = y
     cos = ((xs * ys).sum(dim=1) / torch.where(norm > 0, norm, torch.ones_like(norm))).clamp(-1.0, 1.0)
     angle = torch.rad2deg(torch.acos(cos))  # a zero estimate: cos 0, 90°

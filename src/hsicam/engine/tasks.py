@@ -19,7 +19,7 @@ from hsicam.engine.loop import Task, draw_uniform, step_generator
 from hsicam.engine.provenance import data_record
 from hsicam.errors import ConfigError
 from hsicam.io import atomic_open, write_json
-from hsicam.metrics import psnr_per_band, sam_degrees, ssim
+from hsicam.metrics import psnr_per_band, sam_degrees, spectra_scaled, ssim
 from hsicam.models import CameraSystem
 from hsicam.models.demosaic import box_mean
 from hsicam.models.priors import SpectralAutoencoder, build_prior
@@ -99,12 +99,10 @@ def spectral_angle_loss(recon: torch.Tensor, truth: torch.Tensor, min_brightness
     keep = truth.mean(dim=1) > min_brightness  # (B, H, W)
     if not bool(keep.any()):
         return recon.sum() * 0.0
-    # both spectra over the truth's peak (the angle is free of a common scale): the truth's squared norm then lies
-    # in [1, C], so the floor below stays far under every product of norms the data's scale allows (unscaled, a
-    # perfect estimate of pixels of band mean 1e-7 came out at 1.4 rad: |x̂|²·|x|² fell under the floor)
-    peak = truth.abs().amax(dim=1, keepdim=True)
-    peak = torch.where(peak > 0, peak, torch.ones_like(peak))
-    recon, truth = recon / peak, truth / peak
+    # each spectrum over its own peak, as sam_map (the angle is free of scale): both squared norms then lie in
+    # [1, C], so the floor below stays far under their product whatever the data's scale or the estimate's level
+    # (unscaled, a perfect estimate of pixels of band mean 1e-7 came out at 1.4 rad: |x̂|²·|x|² fell under the floor)
+    recon, truth = spectra_scaled(recon), spectra_scaled(truth)
     dot = (recon * truth).sum(dim=1)[keep]
     # one root of the product of squared norms (Tensor.norm over the band axis is ~15× slower on CPU);
     # the floor sits under the root, so the root's gradient stays finite for a zero spectrum
