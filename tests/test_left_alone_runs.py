@@ -37,6 +37,27 @@ def test_the_report_names_the_run_whose_camera_cannot_be_drawn_not_the_results_f
     assert "results.json" not in page
 
 
+def test_the_report_blames_the_run_only_for_a_damaged_camera(tiny_camera, tmp_path, monkeypatch):
+    """Only the camera's own refusal (an InputError: a NaN PSF) is reported as a damaged run; another failure while
+    drawing (a plotting bug, here a ValueError of the PSF montage) is not turned into "model.safetensors or
+    config.yaml is damaged" about a sound run."""
+    from hsicam.report.html import _camera_section
+
+    cam = tiny_camera()
+    run = tmp_path / "run"
+    run.mkdir()
+    monkeypatch.setattr("hsicam.runs.folder.load_run", lambda r: (load_config("tiny"), types.SimpleNamespace(camera=cam)))
+
+    def broken_montage(*args, **kwargs):
+        raise ValueError("a plotting bug")
+
+    monkeypatch.setattr("hsicam.report.camera.plot_psf_montage", broken_montage)
+    out = tmp_path / "report"
+    out.mkdir()
+    with pytest.raises(ValueError, match="a plotting bug"):
+        _camera_section(run, out)
+
+
 def test_a_data_folder_inside_a_report_inside_an_evaluation_is_refused_as_the_evaluation(tmp_path):
     """check_not_an_output stopped at the first marked folder above the data: EVAL/report/scenes (a report's
     folder, itself inside an evaluate's output) was taken as data, while EVAL/scenes was refused."""

@@ -12,6 +12,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
+from hsicam.errors import InputError  # noqa: E402
 from hsicam.io import save_figure, write_json, write_npy  # noqa: E402
 from hsicam.spectral import Bands  # noqa: E402
 
@@ -233,7 +234,7 @@ def write_optics_figures(camera, out: Path, prefix: str = "", psf: bool = False)
         if psf and hasattr(camera, "psf_result"):
             res = camera.psf_result()
             if not bool(torch.isfinite(res.psf).all()):  # a damaged camera (e.g. DOE heights of 1e38 m), not a figure
-                raise ValueError(f"its PSF holds {int((~torch.isfinite(res.psf)).sum())} NaN/Inf value(s) (DOE heights "
+                raise InputError(f"its PSF holds {int((~torch.isfinite(res.psf)).sum())} NaN/Inf value(s) (DOE heights "
                                  f"up to {float(camera.optics.doe.heights().abs().max()):.3g} m)"
                                  if getattr(camera, "optics", None) is not None else "its PSF holds NaN/Inf values")
             crop = plot_psf_montage(res.psf.float().cpu().numpy(), camera.bands, out / f"{prefix}psf.png")

@@ -195,7 +195,7 @@ def _camera_section(run: Path, out: Path, prefix: str = "", label: str | None = 
     parts = [f"<h2>Camera ({html.escape(label or run_label(run))})</h2>"]
     try:
         figures = write_optics_figures(cam, out, prefix, psf=True)
-    except ValueError as exc:  # the run's camera (its weights or config.yaml), not the results file: say which
+    except InputError as exc:  # the run's camera (its weights or config.yaml), not the results file: say which
         figures = {}
         parts.append(f"<p class='note'>camera figures unavailable: {html.escape(str(run))}: the camera its weights and "
                      f"config.yaml describe cannot be drawn ({html.escape(str(exc))}): the run's model.safetensors or "
