@@ -592,26 +592,30 @@ def _check_frame_type(name: str, frame: "np.ndarray | RawImage | None", capture_
                      "capture's DN")
 
 
-def _gain_options(corr: RawCorrection) -> list[str]:
-    """The options of ``corr`` that multiply the image (CLI spelling, with their values)."""
-    opts = []
+def _given_gains(corr: RawCorrection) -> list[tuple[str, str]]:
+    """The options of ``corr`` that multiply the image, each as (its name, its name with the values given): the
+    one list of them (a new gain option is added here)."""
+    gains = []
     if corr.exposure_s is not None:
         ratio = corr.reference_exposure_s / corr.exposure_s
-        opts.append(f"--reference-exposure-s {corr.reference_exposure_s:g} / --exposure-s {corr.exposure_s:g} "
-                    f"(×{ratio:.3g})")
+        gains.append(("--reference-exposure-s / --exposure-s",
+                      f"--reference-exposure-s {corr.reference_exposure_s:g} / --exposure-s {corr.exposure_s:g} "
+                      f"(×{ratio:.3g})"))
     if corr.auto_level is not None:
-        opts.append(f"--auto-level {corr.auto_level:g}")
+        gains.append(("--auto-level", f"--auto-level {corr.auto_level:g}"))
     if corr.scale != 1.0:
-        opts.append(f"--scale {corr.scale:g}")
-    return opts
+        gains.append(("--scale", f"--scale {corr.scale:g}"))
+    return gains
+
+
+def _gain_options(corr: RawCorrection) -> list[str]:
+    """The options of ``corr`` that multiply the image (CLI spelling, with their values)."""
+    return [given for _, given in _given_gains(corr)]
 
 
 def _gain_option_names(corr: RawCorrection) -> str:
     """The options of ``corr`` that multiply the image, by name (what a gain's refusal tells to change)."""
-    names = [name for name, given in (("--reference-exposure-s / --exposure-s", corr.exposure_s is not None),
-                                      ("--auto-level", corr.auto_level is not None), ("--scale", corr.scale != 1.0))
-             if given]
-    return " or ".join(names) or "--scale"
+    return " or ".join(name for name, _ in _given_gains(corr)) or "--scale"
 
 
 def _check_level(img: np.ndarray, corr: RawCorrection, source: str) -> list[str]:
