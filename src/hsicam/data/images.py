@@ -316,7 +316,7 @@ def _check_tiff_page(path: Path, page) -> None:
     if missing:
         raise InputError(f"{path}: the first TIFF page has no image: its {' and '.join(missing)} tag"
                          f"{'s are' if len(missing) > 1 else ' is'} missing (corrupt, or not an image)")
-    if not (273 in tags or 324 in tags):
+    if not (273 in tags or 324 in tags):  # StripOffsets, TileOffsets (TIFF 6.0 tag codes, as 256/257 above)
         raise InputError(f"{path}: the first TIFF page has no pixel data: its StripOffsets (or TileOffsets) tag is "
                          "missing (corrupt, or not an image)")
 
