@@ -10,12 +10,12 @@ camera.psf.pupil_oversample=...`` alike)."""
 from __future__ import annotations
 
 import signal
-from pathlib import Path
 
 import numpy as np
 import pytest
 
 from cli_helpers import error_line, run_cli_in_process, tree_snapshot
+from test_cli_fuzz_59 import capture  # noqa: F401 - the fixture (a 48×48 float capture .npy), as there
 
 
 class Hung(AssertionError):
@@ -39,14 +39,6 @@ def guarded(fn, *args, seconds: int = 30):
         signal.alarm(0)
         signal.signal(signal.SIGALRM, old)
     pytest.fail(f"{getattr(fn, '__name__', fn)} still running after {seconds} s")
-
-
-@pytest.fixture
-def capture(tmp_path) -> Path:
-    """A float capture on the simulator's scale (values in [0, 0.5]), in its real format (.npy)."""
-    path = tmp_path / "cap.npy"
-    np.save(path, (np.random.default_rng(0).random((48, 48)) * 0.5).astype(np.float32))
-    return path
 
 
 @pytest.mark.parametrize("options, said", [
