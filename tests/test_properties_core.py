@@ -16,7 +16,7 @@ from hypothesis import strategies as st
 from hsicam import metrics
 from hsicam.color import srgb_encode, srgb_weights, xyz_to_linear_srgb_matrix, xyz_weights
 from hsicam.data.cube import check_cube, normalize_per_cube_max, resample_cube
-from hsicam.models.demosaic import box_mean, demosaic, phase_linear, tent_mean
+from hsicam.models.demosaic import demosaic, phase_linear
 from hsicam.models.tv import chambolle_step, dual_divergence, forward_differences
 from hsicam.sensor import SensorNoise, cfa_tile, poisson_gaussian_noise, quantize_bits, tile_pattern
 from hsicam.spectral import Bands, resample_spectra
