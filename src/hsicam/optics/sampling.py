@@ -82,25 +82,19 @@ def fast_fft_length(n: int) -> int:
     did not come back for the pupil of a huge oversampling (``tolerance --shift-subsamples 10**12``: 3.7e9
     candidates), before the memory check that refuses it."""
     m = max(1, int(n))
-    best = None
-    p7 = 1
+    odd_parts = (odd for p7 in _powers(1, 7, m) for p5 in _powers(p7, 5, m) for odd in _powers(p5, 3, m))
+    # each odd part 7^d·5^c·3^b times the least power of 2 that brings it to ≥ m
+    return min(odd << (-(-m // odd) - 1).bit_length() for odd in odd_parts)
+
+
+def _powers(start: int, factor: int, limit: int):
+    """start, start·factor, start·factor², … up to and including the first one ≥ ``limit``."""
+    value = start
     while True:
-        p5 = p7
-        while True:
-            p3 = p5
-            while True:
-                q = -(-m // p3)  # the least power of 2 >= ceil(m / p3)
-                v = p3 << (q - 1).bit_length()
-                best = v if best is None or v < best else best
-                if p3 >= m:
-                    break
-                p3 *= 3
-            if p5 >= m:
-                break
-            p5 *= 5
-        if p7 >= m:
-            return best
-        p7 *= 7
+        yield value
+        if value >= limit:
+            return
+        value *= factor
 
 
 def plan_psf_sampling(
