@@ -474,27 +474,29 @@ class CheckpointManager:
         return removed
 
     # -- reading ------------------------------------------------------------------------------
+    def _check_recorded(self, path: Path, sha: str | None, what: str) -> None:
+        """InputError when ``path`` differs from the sha256 the manifest records for it (``what``: "weights",
+        "optimizer state"); nothing to check for an older manifest without it."""
+        if sha is not None and file_sha256(path) != sha:
+            raise InputError(f"{path} differs from the {what} {self.run_dir / MANIFEST} records (sha256 {sha[:12]}…): the "
+                             f"checkpoint is damaged (a copy cut short, a disk error, an edit); {RECOPY_HINT}")
+
     def load(self, tag: str, model: nn.Module, optimizer: torch.optim.Optimizer | None, bands: Bands) -> dict[str, Any]:
         """Restore model (and optimizer) from ``tag``; returns the committed training state."""
         d = self.path(tag)
         if d is None:
             raise InputError(f"{self.run_dir}: no '{tag}' checkpoint to resume from")
-        sha = ((self.manifest() or {}).get(tag) or {}).get("weights_sha256")
-        if not (d / "model.safetensors").is_file():  # (file_sha256 would be a raw FileNotFoundError)
-            raise InputError(f"{d / 'model.safetensors'}: missing from the '{tag}' checkpoint that {self.run_dir / MANIFEST} "
+        entry = (self.manifest() or {}).get(tag) or {}
+        weights = d / "model.safetensors"
+        if not weights.is_file():  # (file_sha256 would be a raw FileNotFoundError)
+            raise InputError(f"{weights}: missing from the '{tag}' checkpoint that {self.run_dir / MANIFEST} "
                              f"names (the run folder is incomplete); {RECOPY_HINT}")
-        if sha is not None and file_sha256(d / "model.safetensors") != sha:  # never train on from damaged weights
-            raise InputError(f"{d / 'model.safetensors'} differs from the weights {self.run_dir / MANIFEST} records "
-                             f"(sha256 {sha[:12]}…): the checkpoint is damaged (a copy cut short, a disk error, an edit); "
-                             f"{RECOPY_HINT}")
-        load_weights(d / "model.safetensors", model, bands)
+        self._check_recorded(weights, entry.get("weights_sha256"), "weights")  # never train on from damaged weights
+        load_weights(weights, model, bands)
         if optimizer is not None:
-            opt_sha = ((self.manifest() or {}).get(tag) or {}).get("optimizer_sha256")
             opt_file = d / "optimizer.safetensors"
-            if opt_sha is not None and opt_file.is_file() and file_sha256(opt_file) != opt_sha:  # nor from damaged moments
-                raise InputError(f"{opt_file} differs from the optimizer state {self.run_dir / MANIFEST} records (sha256 "
-                                 f"{opt_sha[:12]}…): the checkpoint is damaged (a copy cut short, a disk error, an edit); "
-                                 f"{RECOPY_HINT}")
+            if opt_file.is_file():  # (a missing one: load_optimizer's refusal)
+                self._check_recorded(opt_file, entry.get("optimizer_sha256"), "optimizer state")  # nor damaged moments
             load_optimizer(opt_file, optimizer)
         if tag == "last":
             return self.state() or {}
