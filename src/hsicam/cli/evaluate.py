@@ -142,7 +142,7 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     from hsicam.data.datasets import displayable_name, list_scenes, scene_names, scene_path
     from hsicam.data.formats import write_cube_h5
     from hsicam.data.pipeline import scene_dataset
-    from hsicam.engine.evaluate import (NOISE_DRAWS, TestNoise, check_room_for_cubes, check_scenes, check_test_noise, config_hash,
+    from hsicam.engine.evaluate import (HELDOUT_NOISE_SET, NOISE_DRAWS, TestNoise, check_room_for_cubes, check_scenes, check_test_noise, config_hash,
                                         evaluate_method, format_table, heldout_sources_label, scored_region, summarize,
                                         validation_data_label, write_results)
     from hsicam.engine.experiments import heldout_scenes, validation_scenes
@@ -246,7 +246,8 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
             summary["weights"] = kept
     if heldout is not None:
         held = evaluate_method(method, heldout[0], heldout[1], noise, args.device, keep_arrays=False, progress=show,
-                               paths=_relative_to_common_folder(heldout[0].paths), tile_px=args.tile)
+                               paths=_relative_to_common_folder(heldout[0].paths), tile_px=args.tile,
+                               scene_set=HELDOUT_NOISE_SET)
         summary["heldout"] = {"data": heldout_sources_label(cfg, "scenes whose reflectances and lights the "
                                                                   "training scenes never contain"),
                               **summarize(held)}

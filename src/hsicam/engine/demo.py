@@ -10,7 +10,7 @@ from typing import Any
 
 from hsicam.config import Config, dump_yaml, load_config
 from hsicam.data.pipeline import scene_dataset, split_dataset
-from hsicam.engine.evaluate import (TestNoise, config_hash, demosaic_reference, evaluate_method, evaluate_scenes,
+from hsicam.engine.evaluate import (HELDOUT_NOISE_SET, TestNoise, config_hash, demosaic_reference, evaluate_method, evaluate_scenes,
                                     format_table, grey_reference, heldout_sources_label, scored_region,
                                     summarize, validation_data_label)
 from hsicam.engine.experiments import check_same_training, ensure_trained, heldout_scenes
@@ -105,12 +105,14 @@ def _run_demo(cfg: Config, out: Path) -> dict[str, Any]:
     ]
     held = heldout_scenes(cfg)
     if held is not None:  # the same camera on scenes of spectral sources the training never saw
-        h_results = evaluate_scenes(model, held[0], held[1], seed=cfg.train.seed, keep_arrays=False)
+        h_results = evaluate_scenes(model, held[0], held[1], seed=cfg.train.seed, keep_arrays=False,
+                                    scene_set=HELDOUT_NOISE_SET)
         summary["heldout"] = {
             "data": heldout_sources_label(cfg),
             **summarize(h_results),
             "references": [{"method": ref.name, "mean": summarize(evaluate_method(
-                ref, held[0], held[1], TestNoise(seeds=(cfg.train.seed,)), keep_arrays=False))["mean"]}
+                ref, held[0], held[1], TestNoise(seeds=(cfg.train.seed,)), keep_arrays=False,
+                scene_set=HELDOUT_NOISE_SET))["mean"]}
                 for ref in references],
         }
     summary["run"] = str(run)

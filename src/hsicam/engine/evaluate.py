@@ -59,16 +59,22 @@ class TestNoise:
 
 #: How the test noise is drawn (results.json's ``noise.draws``): see :func:`capture_noise_seed`.
 NOISE_DRAWS = ("under noise seed s, one DOE height draw (sigma_p) from s images every scene (one fabricated element); "
-               "each scene's sensor noise is drawn from seed capture_noise_seed(s, scene name): its own field, the "
-               "same for every method scored on that scene")
+               "each scene's sensor noise is drawn from seed capture_noise_seed(s, scene name, scene set): its own "
+               "field, the same for every method scored on that scene (the held-out-sources scenes' seeds mix in "
+               "their set's name: independent of the validation scenes' of the same name)")
 
 
-def capture_noise_seed(seed: int, scene_name: str) -> int:
+def capture_noise_seed(seed: int, scene_name: str, scene_set: str | None = None) -> int:
     """The seed of scene ``scene_name``'s sensor noise under noise seed ``seed``: each scene's capture gets
     its own noise field (one seed for all would give same-size scenes the same field, correlating their
     errors), and every method scored on that scene with that seed gets the same one (paired comparisons).
-    The DOE height draw (σ_p) comes from ``seed`` alone: one fabricated element images every scene."""
-    return zlib.crc32(f"{int(seed)}:{scene_name}".encode())
+    The DOE height draw (σ_p) comes from ``seed`` alone: one fabricated element images every scene.
+
+    ``scene_set``: the name of the set the scene belongs to, mixed into the seed, so that two sets scored
+    together (the validation split and the held-out-sources scenes, both named ``scene_0000``…) get independent
+    noise; None (the validation split, a ``--data`` folder) keeps the seed of the scene name alone."""
+    key = f"{int(seed)}:{scene_name}" if scene_set is None else f"{int(seed)}:{scene_set}:{scene_name}"
+    return zlib.crc32(key.encode())
 
 
 #: results.json ``data`` of a run's own validation split: the embedded synthetic data, or ``VALIDATION_OF`` its folder.
@@ -85,6 +91,8 @@ def validation_data_label(cfg) -> str:
 
 
 HELDOUT_SOURCES = "held-out spectral sources"
+#: The ``scene_set`` of the held-out-sources scenes' capture noise (:func:`capture_noise_seed`).
+HELDOUT_NOISE_SET = "heldout-sources"
 
 
 def heldout_sources_label(cfg, detail: str = "") -> str:
@@ -222,8 +230,8 @@ def check_test_noise(method: Method, noise: TestNoise, source: str | None = None
 @torch.no_grad()
 def evaluate_method(method: Method, scenes, names: Sequence[str], noise: TestNoise = TestNoise(),
                     device: str | torch.device = "cpu", keep_arrays: bool = True, tile_px: int | None = None,
-                    progress: Callable[[str], None] | None = None, paths: Sequence[str] | None = None
-                    ) -> list[SceneResult]:
+                    progress: Callable[[str], None] | None = None, paths: Sequence[str] | None = None,
+                    scene_set: str | None = None) -> list[SceneResult]:
     """Simulate, reconstruct and score every scene of ``scenes`` (items: (C, H, W) tensors).
 
     Every scene is checked first (:func:`check_scenes`): a scene that cannot be scored fails before
@@ -231,6 +239,8 @@ def evaluate_method(method: Method, scenes, names: Sequence[str], noise: TestNoi
     ``paths``: each scene's file as the results name it (:attr:`SceneResult.path`). The arrays kept
     (``keep_arrays``) are those of the first seed, :attr:`SceneResult.seed`. ``tile_px``: the tile side
     for a network's large images (default :func:`~hsicam.engine.inference.default_tile_px` of its context).
+    ``scene_set``: the scenes' set, mixed into their capture noise seeds (:func:`capture_noise_seed`; e.g.
+    :data:`HELDOUT_NOISE_SET`); None for the validation split or a folder of scenes.
     """
     if len(names) != len(scenes) or (paths is not None and len(paths) != len(names)):
         raise ValueError(f"{len(scenes)} scenes, {len(names)} names" + (f", {len(paths)} paths" if paths is not None else ""))
@@ -261,7 +271,7 @@ def evaluate_method(method: Method, scenes, names: Sequence[str], noise: TestNoi
             for seed in noise.seeds:
                 g = torch.Generator(device=device).manual_seed(int(seed))
                 sensor = cam(scene, g, sensor_generator=torch.Generator(device=device).manual_seed(
-                    capture_noise_seed(int(seed), name)))
+                    capture_noise_seed(int(seed), name, scene_set)))
                 t0 = time.perf_counter()
                 if halo is not None:  # the halo the reconstructor declares (tiles up to its steps, if it has any)
                     declared = getattr(method.reconstruct, "context_px", None) is not None
@@ -299,10 +309,11 @@ def _sam_text(sam: float) -> str:
 
 
 def evaluate_scenes(model, scenes, names: Sequence[str], seed: int = 0, device: str | torch.device = "cpu",
-                    keep_arrays: bool = True) -> list[SceneResult]:
-    """The learned camera (a :class:`~hsicam.models.CameraSystem`) with its configured noise."""
+                    keep_arrays: bool = True, scene_set: str | None = None) -> list[SceneResult]:
+    """The learned camera (a :class:`~hsicam.models.CameraSystem`) with its configured noise (``scene_set``: see
+    :func:`evaluate_method`)."""
     method = Method("doe-learned", model.camera, model.reconstructor(), model.target, model=model)
-    return evaluate_method(method, scenes, names, TestNoise(seeds=(seed,)), device, keep_arrays)
+    return evaluate_method(method, scenes, names, TestNoise(seeds=(seed,)), device, keep_arrays, scene_set=scene_set)
 
 
 def grey_reference(model, train_scenes) -> Method:
