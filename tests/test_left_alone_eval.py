@@ -4,6 +4,7 @@ the checkpoint hash cache and root sync, ``stage_kernel_px`` on CASSI cameras, a
 from __future__ import annotations
 
 import dataclasses
+import json
 import zlib
 
 import pytest
@@ -90,3 +91,58 @@ def test_heldout_scenes_get_noise_independent_of_the_validation_scenes_of_the_sa
             e_held = (held_sensors[name] - cam.A(held[held_names.index(name)][None])).flatten()
             corr = float(torch.corrcoef(torch.stack([e_val, e_held]))[0, 1])
             assert abs(corr) < 0.2, (name, corr)
+
+
+def _flip_byte_in_place(path, offset: int) -> None:
+    with open(path, "r+b") as fh:
+        fh.seek(offset)
+        b = fh.read(1)
+        fh.seek(offset)
+        fh.write(bytes([b[0] ^ 0x01]))
+
+
+def test_file_sha256_hashes_again_a_file_changed_in_place_with_its_mtime_set_back(tmp_path):
+    """A byte flipped in place (same path, inode and size), the mtime set back to the ns (os.utime): the per-process
+    cache handed out the old hash (keyed on path, inode, size, mtime); the change time moves on any write."""
+    import hashlib
+    import os
+
+    from hsicam.runs.checkpoint import file_sha256
+
+    path = tmp_path / "w.safetensors"
+    path.write_bytes(bytes(range(256)) * 16)
+    first = file_sha256(path)
+    st = path.stat()
+    _flip_byte_in_place(path, 100)
+    os.utime(path, ns=(st.st_atime_ns, st.st_mtime_ns))
+    after = path.stat()
+    assert (after.st_ino, after.st_size, after.st_mtime_ns) == (st.st_ino, st.st_size, st.st_mtime_ns)  # the case
+    assert hashlib.sha256(path.read_bytes()).hexdigest() != first
+    assert file_sha256(path) == hashlib.sha256(path.read_bytes()).hexdigest()
+
+
+def test_root_sync_does_not_copy_a_damaged_checkpoint_and_says_so(tmp_path, caplog):
+    """The root weights missing, the kept checkpoint's weights with a flipped byte: sync_root copied the damaged
+    file to the run root without a word (readers then refused both). It now leaves the root alone, with one warning."""
+    import logging
+
+    from hsicam.runs import checkpoint as ck
+    from hsicam.runs.checkpoint import MANIFEST, RECOPY_HINT, CheckpointManager
+    from hsicam.spectral import Bands
+
+    run = tmp_path / "run"
+    net = torch.nn.Linear(2, 3)
+    mgr = CheckpointManager(run)
+    mgr.save(net, torch.optim.Adam(net.parameters()), {"global_step": 1, "best_psnr": None}, Bands.uniform(500, 600, 50))
+    root, kept = run / "model.safetensors", run / "checkpoints" / "step-00000001" / "model.safetensors"
+    sha = json.loads((run / MANIFEST).read_text())["weights"]["sha256"]
+    assert root.read_bytes() == kept.read_bytes()  # an undamaged checkpoint is copied
+    root.unlink()
+    _flip_byte_in_place(kept, kept.stat().st_size - 3)  # in the tensors' bytes
+    ck._HASHES.clear()  # as a new process (a resume) would see it
+    with caplog.at_level(logging.WARNING, logger="hsicam.runs.checkpoint"):
+        assert mgr.sync_root() is False
+    assert not root.exists()
+    assert [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING] == [
+        f"{kept} differs from the weights {run / MANIFEST} records (sha256 {sha[:12]}…): the checkpoint is damaged (a "
+        f"copy cut short, a disk error, an edit), so {root} was not rewritten from it; {RECOPY_HINT}"]

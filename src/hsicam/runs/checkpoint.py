@@ -63,15 +63,17 @@ KEEP_WEIGHTS = ("best", "last")
 log = logging.getLogger(__name__)
 
 
-#: SHA-256 of the files already hashed in this process, by (path, inode, size, mtime).
-_HASHES: dict[tuple[str, int, int, int], str] = {}
+#: SHA-256 of the files already hashed in this process, by (path, inode, size, mtime, ctime) in ns.
+_HASHES: dict[tuple[str, int, int, int, int], str] = {}
 
 
 def file_sha256(path: str | Path) -> str:
     """SHA-256 of a file's bytes (hex), read once per process while the file's path, inode, size and
-    modification time stay the same (e.g. a shipped camera's weights, checked and then recorded)."""
+    modification and change times (ns) stay the same (e.g. a shipped camera's weights, checked and then
+    recorded). The change time moves on any write and cannot be set back (``os.utime`` sets the modification
+    time only): a byte changed in place, its mtime restored, is hashed again."""
     st = os.stat(path)
-    key = (str(Path(path).resolve()), st.st_ino, st.st_size, st.st_mtime_ns)
+    key = (str(Path(path).resolve()), st.st_ino, st.st_size, st.st_mtime_ns, st.st_ctime_ns)
     if key not in _HASHES:
         h = hashlib.sha256()
         with open(path, "rb") as fh:
@@ -437,7 +439,9 @@ class CheckpointManager:
 
     def sync_root(self) -> bool:
         """Rewrite the root weights file when it is missing or holds other weights than the
-        checkpoint the manifest keeps (:meth:`root_source`); returns True when it was rewritten."""
+        checkpoint the manifest keeps (:meth:`root_source`); returns True when it was rewritten.
+        A kept checkpoint that differs from the sha256 the manifest records (damaged) is not copied:
+        a warning says so and the root file stays as it is (readers refuse both)."""
         src = self.root_source()
         if src is None:
             return False
@@ -445,9 +449,14 @@ class CheckpointManager:
         if not path.is_file():
             raise InputError(f"{path}: the checkpoint named by {self.run_dir / MANIFEST} is missing (the run folder "
                              f"is incomplete); {RECOPY_HINT}")
-        sha = sha or file_sha256(path)
+        recorded, sha = sha, sha or file_sha256(path)
         root = self.run_dir / self.weights_file
         if root.is_file() and file_sha256(root) == sha:
+            return False
+        if recorded is not None and file_sha256(path) != recorded:
+            log.warning("%s differs from the weights %s records (sha256 %s…): the checkpoint is damaged (a copy cut "
+                        "short, a disk error, an edit), so %s was not rewritten from it; %s", path,
+                        self.run_dir / MANIFEST, recorded[:12], root, RECOPY_HINT)
             return False
         with atomic_path(root) as tmp:
             shutil.copyfile(path, tmp)
