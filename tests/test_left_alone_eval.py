@@ -146,3 +146,30 @@ def test_root_sync_does_not_copy_a_damaged_checkpoint_and_says_so(tmp_path, capl
     assert [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING] == [
         f"{kept} differs from the weights {run / MANIFEST} records (sha256 {sha[:12]}…): the checkpoint is damaged (a "
         f"copy cut short, a disk error, an edit), so {root} was not rewritten from it; {RECOPY_HINT}"]
+
+
+def test_stage_kernel_px_on_a_cassi_camera_is_not_silently_ignored(tiny_config, caplog):
+    """model.unrolled.stage_kernel_px cuts the DOE camera's PSF in the stages; a CASSI camera has no kernel, and the
+    key (31 on the quick preset) went unapplied without a word. Not refused (runs trained so must still load): one
+    warning naming the key, none when it is 0, and none on the DOE camera, whose kernel it cuts."""
+    import logging
+
+    from hsicam.cameras import build_camera
+    from hsicam.models.unrolled import build_unrolled
+
+    def built(cfg):
+        camera = build_camera(cfg)
+        caplog.clear()
+        with caplog.at_level(logging.WARNING, logger="hsicam.models.unrolled"):
+            net = build_unrolled(cfg.model.unrolled, camera)
+        return camera, net, [r.getMessage() for r in caplog.records if r.levelno >= logging.WARNING]
+
+    for kind in ("dd_cassi", "sd_cassi"):
+        for px in (31, 0):
+            camera, _, said = built(tiny_config(f"camera.kind={kind}", "model.kind=unrolled", "model.unrolled.init=backprojection",
+                                                "model.consistency.iterations=0", f"model.unrolled.stage_kernel_px={px}"))
+            assert said == ([] if px == 0 else [
+                f"model.unrolled.stage_kernel_px=31 is not applied: it cuts the DOE camera's PSF in the stages, and "
+                f"{type(camera).__name__} has no PSF kernel to cut (its stages use its exact operator); set it to 0"]), kind
+    camera, net, said = built(tiny_config("model.kind=unrolled", "model.unrolled.stage_kernel_px=3"))
+    assert said == [] and camera.margin > 2 and net.op_reach == (2, 2)  # the DOE camera's kernel cut to 3 px

@@ -26,6 +26,7 @@ light from outside the window as zero).
 
 from __future__ import annotations
 
+import logging
 import math
 
 import torch
@@ -41,6 +42,8 @@ from hsicam.models.demosaic import backprojection, brightness, camera_operator, 
 
 INITS = UnrolledConfig.INITS
 STEPS = UnrolledConfig.STEPS
+
+log = logging.getLogger(__name__)
 
 
 class Prior(nn.Module):
@@ -188,6 +191,11 @@ def build_unrolled(mcfg: UnrolledConfig, camera) -> UnrolledNet:
         op = camera.snapshot(nominal=True)
         if mcfg.stage_kernel_px and hasattr(op, "cropped"):
             op = op.cropped(mcfg.stage_kernel_px)
+    if mcfg.stage_kernel_px and not hasattr(op, "cropped"):
+        # not refused: runs trained so (a CASSI camera on the quick preset, whose 31 is the DOE camera's) still load
+        log.warning("model.unrolled.stage_kernel_px=%d is not applied: it cuts the DOE camera's PSF in the stages, and "
+                    "%s has no PSF kernel to cut (its stages use its exact operator); set it to 0",
+                    mcfg.stage_kernel_px, type(camera).__name__)
     if mcfg.step == "gap" and not hasattr(op, "gram_diagonal"):
         raise ConfigError(f"model.unrolled.step=gap needs a camera whose ΦΦᵀ is diagonal (CASSI), not "
                           f"{type(camera).__name__}; use step=gradient")
