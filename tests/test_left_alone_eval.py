@@ -173,3 +173,25 @@ def test_stage_kernel_px_on_a_cassi_camera_is_not_silently_ignored(tiny_config, 
                 f"{type(camera).__name__} has no PSF kernel to cut (its stages use its exact operator); set it to 0"]), kind
     camera, net, said = built(tiny_config("model.kind=unrolled", "model.unrolled.stage_kernel_px=3"))
     assert said == [] and camera.margin > 2 and net.op_reach == (2, 2)  # the DOE camera's kernel cut to 3 px
+
+
+@pytest.mark.parametrize("show", [None, True])
+def test_an_empty_job_says_0_of_0_once(show, caplog, monkeypatch):
+    """Progress(0): nothing was said (and an update read "1/0 points"); now one line saying there is nothing to do,
+    on a terminal too (no bare tqdm counter); nothing with show=False; a negative total is refused."""
+    import logging
+    import sys
+
+    from hsicam.progress import Progress, progress
+
+    monkeypatch.setattr(sys.stderr, "isatty", lambda: False)  # the CLI's lines (show=None), as in a log file
+    with caplog.at_level(logging.INFO, logger="hsicam.progress"):
+        with Progress(0, "tolerance", "point", show=show) as bar:
+            bar.update()  # (a caller that miscounts: no "1/0")
+        assert list(progress([], 0, "synthetic train set", "scene", show=show)) == []
+        with Progress(0, "quiet", show=False):
+            pass
+    assert [r.getMessage() for r in caplog.records] == ["tolerance: 0/0 points, nothing to do",
+                                                        "synthetic train set: 0/0 scenes, nothing to do"]
+    with pytest.raises(ValueError, match=r"^total must be >= 0 \(the number of items\), got -1$"):
+        Progress(-1, "x")

@@ -38,7 +38,7 @@ class Progress:
     """Count ``total`` items done: a tqdm bar on a terminal, else throttled INFO lines with k/N and an ETA.
 
     Args:
-        total: the number of items.
+        total: the number of items (0: an empty job, one line ``{desc}: 0/0 {unit}s, nothing to do`` and no bar).
         desc: what is done (the line's start, e.g. ``"data synth"``).
         unit: what an item is (``"scene"``, ``"tile"``).
         show: None: a bar on a terminal, lines otherwise; True: the bar; False: nothing.
@@ -47,10 +47,17 @@ class Progress:
 
     def __init__(self, total: int, desc: str, unit: str = "item", show: bool | None = None, every_s: float = 10.0):
         self.total, self.desc, self.unit, self.every_s = int(total), desc, unit, float(every_s)
+        if self.total < 0:
+            raise ValueError(f"total must be >= 0 (the number of items), got {total}")
         self.done = 0
         self.t0 = self._last = time.perf_counter()
         self._lines = show is None and not sys.stderr.isatty()
         self._bar = None
+        if self.total == 0:  # nothing to count: said once (a line would read "1/0", a bar a bare counter)
+            if show is not False:
+                log.info("%s: 0/0 %ss, nothing to do", desc, unit)
+            self._lines = False
+            return
         if show is not False and not self._lines:
             from tqdm.auto import tqdm
 
