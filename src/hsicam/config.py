@@ -507,7 +507,7 @@ class UnrolledConfig:
     prior_scale: int = 4  # the prior runs at 1/prior_scale resolution (space-to-depth, px)
     step_init: float = 1.0  # initial α_k·L (L ≥ ‖A‖²; < 2 guarantees a decreasing data term)
     stage_kernel_px: int = 0  # DOE camera: PSF cut to this many px (odd) in the stages; 0 = the full kernel
-    # (CASSI cameras have no kernel: not applied, with a warning)
+    # (CASSI cameras have no kernel: not applied, a note says so)
     demosaic_window: int = 0  # box width (px, odd) of the demosaic init; 0 = the CFA period rounded up to odd
     brightness_window: int = 0  # priors see z / b, b = box(g) + ε of this width (px, odd); 0 = off
     brightness_eps: float = 1.0e-3  # ε of b (sensor units; full scale 1)
