@@ -86,8 +86,15 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=cmd_reconstruct)
 
 
+#: The largest row or column ``--cfa-offset Y,X`` takes: the sensor position of a capture's first pixel, and no sensor
+#: has 65536 rows or columns (the largest have about 14 000). Beyond it an offset was accepted whatever its size: a
+#: CFA camera took it modulo its cells (2^70,0 reconstructed as 0,0), a CASSI camera drew its coded aperture up to it
+#: (an out-of-memory error, or an OverflowError traceback).
+MAX_CFA_OFFSET = 2**16 - 1
+
+
 def cfa_offset_arg(text: str) -> tuple[int, int] | str:
-    """argparse ``type`` of ``--cfa-offset Y,X``: two integers >= 0, or ``"auto"``."""
+    """argparse ``type`` of ``--cfa-offset Y,X``: two integers in [0, :data:`MAX_CFA_OFFSET`], or ``"auto"``."""
     if text.strip().lower() == "auto":
         return "auto"
     parts = text.replace(" ", "").split(",")
@@ -98,6 +105,9 @@ def cfa_offset_arg(text: str) -> tuple[int, int] | str:
                                          f"capture's first pixel) or auto, got {text!r}") from None
     if y < 0 or x < 0:
         raise argparse.ArgumentTypeError(f"Y and X must be >= 0, got {text!r}")
+    if max(y, x) > MAX_CFA_OFFSET:
+        raise argparse.ArgumentTypeError(f"Y and X must be at most {MAX_CFA_OFFSET} (the sensor row and column of the "
+                                         f"capture's first pixel; no sensor is that large), got {text!r}")
     return y, x
 
 
