@@ -12,6 +12,8 @@ import numpy as np
 import pytest
 
 from cli_helpers import error_line, run_cli_in_process
+from hsicam.config import load_config
+from hsicam.errors import ConfigError
 
 
 def test_cfa_offset_beyond_any_sensor_is_a_usage_error(tmp_path):
@@ -31,3 +33,30 @@ def test_cfa_offset_beyond_any_sensor_is_a_usage_error(tmp_path):
     assert cfa_offset_arg("65535,65535") == (65535, 65535)  # the largest taken
     with pytest.raises(argparse.ArgumentTypeError, match="at most 65535"):
         cfa_offset_arg("0,65536")
+
+
+def test_epochs_beyond_any_budget_are_refused():
+    """``train.epochs=2**70`` trained for ever (a progress line promising an end in 10^18 s)."""
+    with pytest.raises(ConfigError, match=rf"^train.epochs must be at most 1000000 \(the paper trains 100\), "
+                                          rf"got {2**70}$"):
+        load_config("tiny", [f"train.epochs={2**70}"])
+    assert load_config("tiny", ["train.epochs=1000000"]).train.epochs == 10**6
+
+
+@pytest.mark.parametrize("option, value, said", [
+    ("--epochs", str(2**70), f"--epochs must be at most 1000000 (as train.epochs), got {2**70}"),
+])
+def test_finetune_refuses_epochs_and_rates_beyond_train_keys(tmp_path, monkeypatch, option, value, said):
+    """``finetune --epochs 2**70`` trained for ever, ``--lr 1e308`` ended in torch's "value cannot be converted to type
+    float without overflow" traceback at its first step: both are refused before the fine-tuning, naming the option."""
+    import hsicam.engine.calibration as cal
+
+    def reached(*args, **kwargs):
+        raise AssertionError(f"the fine-tuning started with {option} {value}")
+
+    monkeypatch.setattr(cal, "finetune", reached)
+    out = tmp_path / "ft"
+    res = run_cli_in_process("finetune", "--run", "pretrained:standard", "--psf-dir", str(tmp_path), "--out", str(out),
+                             option, value)
+    assert error_line(res) == f"hsicam: error: {said}"
+    assert not out.exists()

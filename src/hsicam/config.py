@@ -54,6 +54,11 @@ TOLERANCE_SEED_MAX = (SEED_MAX - TOLERANCE_DRAW_STRIDE + 1) // TOLERANCE_DRAW_ST
 MAX_BAND_SAMPLES = 1000
 
 
+#: The most epochs ``train.epochs`` (and ``hsicam finetune --epochs``) takes: 10^4 times the paper's 100. A count far
+#: beyond it (2^70) was accepted and trained for ever, its progress line promising an end in 10^18 s.
+MAX_EPOCHS = 10**6
+
+
 #: The most patches an epoch (``data.patches_per_epoch``, ``data.val_patches``) can have: the length of a
 #: dataset, which Python's ``len`` holds in a signed 64-bit integer.
 MAX_PATCHES = 2**63 - 1
@@ -685,6 +690,8 @@ class TrainConfig:
         for k in ("epochs", "batch_size", "eval_every_epochs", "checkpoint_every_steps", "log_every_steps", "lr_step_epochs"):
             if getattr(self, k) < 1:
                 raise ConfigError(f"train.{k} must be >= 1, got {getattr(self, k)}")
+        if self.epochs > MAX_EPOCHS:
+            raise ConfigError(f"train.epochs must be at most {MAX_EPOCHS} (the paper trains 100), got {self.epochs}")
         _positive("train", lr=self.lr, doe_lr_nm=self.doe_lr_nm, cfa_lr=self.cfa_lr, lr_gamma=self.lr_gamma,
                   grad_clip=self.grad_clip, relative_eps=self.relative_eps, max_minutes=self.max_minutes)
         _check_seeds("train", seed=self.seed)

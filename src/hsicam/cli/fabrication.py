@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from hsicam.config import TOLERANCE_SEED_MAX
+from hsicam.config import MAX_EPOCHS, TOLERANCE_SEED_MAX
 from hsicam.errors import InputError
 
 
@@ -173,6 +173,8 @@ def cmd_finetune(args: argparse.Namespace) -> int:
     if args.epochs is not None:
         if args.epochs < 1:
             raise InputError("--epochs must be >= 1")
+        if args.epochs > MAX_EPOCHS:
+            raise InputError(f"--epochs must be at most {MAX_EPOCHS} (as train.epochs), got {args.epochs}")
         overrides.append(f"train.epochs={args.epochs}")
     lr = args.lr
     if lr is None and not args.resume:  # a resume goes on with the rate it was started with
