@@ -43,8 +43,17 @@ def test_epochs_beyond_any_budget_are_refused():
     assert load_config("tiny", ["train.epochs=1000000"]).train.epochs == 10**6
 
 
+def test_learning_rate_beyond_one_is_refused():
+    """``train.lr=1e308`` passed the config; its first Adam step overflowed float32 (a traceback in fine-tuning)."""
+    with pytest.raises(ConfigError, match=r"^train.lr must be at most 1 \(Adam's step per weight; the presets take "
+                                          r"1e-4 to 1e-3\), got 1e\+308$"):
+        load_config("tiny", ["train.lr=1e308"])
+    assert load_config("tiny", ["train.lr=1"]).train.lr == 1.0
+
+
 @pytest.mark.parametrize("option, value, said", [
     ("--epochs", str(2**70), f"--epochs must be at most 1000000 (as train.epochs), got {2**70}"),
+    ("--lr", "1e308", "--lr must be at most 1 (as train.lr), got 1e+308"),
 ])
 def test_finetune_refuses_epochs_and_rates_beyond_train_keys(tmp_path, monkeypatch, option, value, said):
     """``finetune --epochs 2**70`` trained for ever, ``--lr 1e308`` ended in torch's "value cannot be converted to type

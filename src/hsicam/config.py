@@ -59,6 +59,13 @@ MAX_BAND_SAMPLES = 1000
 MAX_EPOCHS = 10**6
 
 
+#: The largest network learning rate ``train.lr`` (and ``hsicam finetune --lr``) takes: Adam moves every weight by about
+#: the rate each step, so 1 is 10^3 to 10^4 times the presets' 1e-4 to 1e-3. Beyond about 3e37 the first step's
+#: size (rate / (1 − β1)) left float32 and the fine-tuning ended in torch's "cannot be converted to type float
+#: without overflow" traceback.
+MAX_LR = 1.0
+
+
 #: The most patches an epoch (``data.patches_per_epoch``, ``data.val_patches``) can have: the length of a
 #: dataset, which Python's ``len`` holds in a signed 64-bit integer.
 MAX_PATCHES = 2**63 - 1
@@ -694,6 +701,9 @@ class TrainConfig:
             raise ConfigError(f"train.epochs must be at most {MAX_EPOCHS} (the paper trains 100), got {self.epochs}")
         _positive("train", lr=self.lr, doe_lr_nm=self.doe_lr_nm, cfa_lr=self.cfa_lr, lr_gamma=self.lr_gamma,
                   grad_clip=self.grad_clip, relative_eps=self.relative_eps, max_minutes=self.max_minutes)
+        if self.lr > MAX_LR:
+            raise ConfigError(f"train.lr must be at most {MAX_LR:g} (Adam's step per weight; the presets take 1e-4 to "
+                              f"1e-3), got {self.lr:g}")
         _check_seeds("train", seed=self.seed)
         for k in ("relative_l1", "ssim_loss", "sam_loss", "spectral_grad_loss", "phase_loss"):
             v = getattr(self, k)

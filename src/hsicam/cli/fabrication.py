@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from hsicam.config import MAX_EPOCHS, TOLERANCE_SEED_MAX
+from hsicam.config import MAX_EPOCHS, MAX_LR, TOLERANCE_SEED_MAX
 from hsicam.errors import InputError
 
 
@@ -182,6 +182,8 @@ def cmd_finetune(args: argparse.Namespace) -> int:
     if lr is not None:
         if not lr > 0:
             raise InputError("--lr must be positive")
+        if lr > MAX_LR:
+            raise InputError(f"--lr must be at most {MAX_LR:g} (as train.lr), got {lr:g}")
         overrides.append(f"train.lr={lr:.6e}")
     s = finetune(run, args.psf_dir, args.out, overrides=tuple(overrides), pitch_um=args.psf_pitch_um,
                  resume=args.resume)
