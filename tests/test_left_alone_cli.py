@@ -69,3 +69,17 @@ def test_finetune_refuses_epochs_and_rates_beyond_train_keys(tmp_path, monkeypat
                              option, value)
     assert error_line(res) == f"hsicam: error: {said}"
     assert not out.exists()
+
+
+def test_a_coded_aperture_closed_everywhere_is_refused():
+    """``camera.cassi.mask_density=1e-300`` opened no cell of the random aperture (its uniform values are multiples of
+    2^-32) and CASSI trained on an all-zero sensor, exit 0."""
+    from hsicam.cameras.cassi import random_aperture
+
+    assert float(random_aperture(256, 256, 0, 1e-300).sum()) == 0.0  # what the density did
+    for d in ("1e-300", "0.0009"):
+        with pytest.raises(ConfigError, match=rf"^camera.cassi.mask_density={d} leaves the coded aperture \(almost\) "
+                                              r"closed: it must be at least 0.001 \(the fraction of open cells; 0.5 is "
+                                              r"usual\)$"):
+            load_config("tiny", ["camera.kind=dd_cassi", f"camera.cassi.mask_density={d}"])
+    assert load_config("tiny", ["camera.kind=dd_cassi", "camera.cassi.mask_density=0.001"]).camera.cassi.mask_density == 1e-3

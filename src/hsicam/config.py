@@ -338,6 +338,12 @@ class SensorConfig:
             raise ConfigError(f"camera.sensor.bit_depth must be in 1..32, got {self.bit_depth}")
 
 
+#: The smallest ``camera.cassi.mask_density``: a coded aperture opens 10-90 % of its cells (0.5 as the paper's
+#: baselines); at 10^-3 a 64 px training patch still sees about 4 open cells. The random aperture's uniform values are
+#: multiples of 2^-32, so a density below that (1e-300) closed every cell: CASSI trained on an all-zero sensor, silently.
+MIN_MASK_DENSITY = 1e-3
+
+
 @dataclass
 class CASSIConfig:
     """Coded-aperture cameras (DD-CASSI, SD-CASSI) used as baselines (see hsicam.cameras.cassi)."""
@@ -358,6 +364,9 @@ class CASSIConfig:
         _check_seeds("camera.cassi", mask_seed=self.mask_seed)
         if not (0.0 < self.mask_density <= 1.0):
             raise ConfigError(f"camera.cassi.mask_density must be in (0, 1], got {self.mask_density}")
+        if self.mask_density < MIN_MASK_DENSITY:
+            raise ConfigError(f"camera.cassi.mask_density={self.mask_density:g} leaves the coded aperture (almost) closed: "
+                              f"it must be at least {MIN_MASK_DENSITY:g} (the fraction of open cells; 0.5 is usual)")
         if self.prism_apex_deg >= 90.0:
             raise ConfigError(f"camera.cassi.prism_apex_deg must be below 90, got {self.prism_apex_deg}")
         if self.mask_file is not None and not self.mask_file.lower().endswith(".npy"):
