@@ -19,7 +19,7 @@ from hypothesis import strategies as st
 
 from hsicam.engine.evaluate import SceneResult, summarize, write_results
 from hsicam.errors import InputError
-from hsicam.io import mark_complete
+from hsicam.io import mark_complete, nan_for_null
 from hsicam.report.html import build_report
 from hsicam.spectral import Bands
 
@@ -87,6 +87,10 @@ class _Tables(html.parser.HTMLParser):
             self.cell += data
 
 
+def _refuse(constant: str):
+    raise ValueError(f"not strict JSON: {constant}")
+
+
 def _same(a: float, b: float) -> bool:
     return (math.isnan(a) and math.isnan(b)) or a == b
 
@@ -105,16 +109,17 @@ def _folder(tmp_path_factory, names, scores, method="doe-learned") -> tuple[Path
 def test_results_files_and_report_read_back_any_name_and_score(tmp_path_factory, rows, method):
     names, scores = [n for n, _ in rows], [v for _, v in rows]
     d, summary = _folder(tmp_path_factory, names, scores, method)
-    # results.json: Python's json reads it back (NaN/±Infinity as the docs say: an undefined SAM is NaN)
-    data = json.loads((d / "results.json").read_text(encoding="utf-8"))
+    # results.json: strict JSON (a score that is not finite is null, as the docs say), which hsicam's readers take
+    # as NaN again (nan_for_null)
+    data = nan_for_null(json.loads((d / "results.json").read_text(encoding="utf-8"), parse_constant=_refuse))
     assert [r["name"] for r in data["scenes"]] == names and data["method"] == method
-    assert all(_same(r[k], v) for r, v in zip(data["scenes"], scores) for k in METRICS)
-    # results.csv: the csv module reads the names back, and every score equals results.json's to %.6g
+    assert all(_same(r[k], v if math.isfinite(v) else math.nan) for r, v in zip(data["scenes"], scores) for k in METRICS)
+    # results.csv: the csv module reads the names back, and every score equals the one scored to %.6g
     with open(d / "results.csv", newline="", encoding="utf-8") as fh:
         table = list(csv.DictReader(fh))
     assert [r["name"] for r in table[:-1]] == names
-    for row, js in zip(table, data["scenes"]):
-        assert all(_same(float(row[k]), float(f"{js[k]:.6g}")) for k in METRICS)
+    for row, v in zip(table, scores):
+        assert all(_same(float(row[k]), float(f"{v:.6g}")) for k in METRICS)
     # results.md: every table row has the header's cell count, and its first cell is the name
     md = (d / "results.md").read_text(encoding="utf-8")
     lines = re.split(r"\r\n?|\n", md)

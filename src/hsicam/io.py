@@ -1028,10 +1028,10 @@ def clear_complete(folder: str | os.PathLike) -> None:
 # Writers
 # ------------------------------------------------------------------------------------------------
 def write_json(path: str | os.PathLike, obj: Any) -> None:
-    """Write ``obj`` as indented JSON, atomically."""
+    """Write ``obj`` as indented, strict JSON (:func:`json_text`), atomically."""
+    text = json_text(obj, indent=2)  # before the file is opened: a value JSON cannot hold leaves no file
     with atomic_open(path, "w", encoding="utf-8") as fh:
-        json.dump(obj, fh, indent=2, sort_keys=False, default=json_default)
-        fh.write("\n")
+        fh.write(text + "\n")
 
 
 def write_npy(path: str | os.PathLike, array: np.ndarray) -> None:
@@ -1112,6 +1112,48 @@ def json_default(obj: Any) -> Any:
     if isinstance(obj, Path):
         return str(obj)
     raise TypeError(f"not JSON serializable: {type(obj).__name__}")
+
+
+def json_ready(obj: Any) -> Any:
+    """``obj`` as strict JSON (RFC 8259) can hold it: a non-finite float (NaN, ±inf, numpy's too) becomes None
+    (null), numpy scalars and arrays Python numbers and lists, tuples lists; other values as they are (a path is
+    left to :func:`json_default`). Python's ``json`` writes ``NaN``/``Infinity``, which strict parsers refuse."""
+    if isinstance(obj, dict):
+        return {k: json_ready(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [json_ready(v) for v in obj]
+    if isinstance(obj, (np.generic, np.ndarray)):
+        obj = obj.tolist()
+        if isinstance(obj, list):
+            return json_ready(obj)
+    if isinstance(obj, float) and not math.isfinite(obj):
+        return None
+    return obj
+
+
+def json_text(obj: Any, **kwargs: Any) -> str:
+    """``obj`` as strict JSON text: non-finite floats written as null (:func:`json_ready`), and ``allow_nan=False``
+    the guard that nothing else slips through as ``NaN``/``Infinity``. A reader of a score takes null back as
+    NaN (:func:`nan_for_null`). ``kwargs``: ``json.dumps``'s (indent, separators …)."""
+    return json.dumps(json_ready(obj), allow_nan=False, default=json_default, **kwargs)
+
+
+#: The scores of hsicam's JSON files (results.json, experiment.json, card.json, metrics.jsonl: ``psnr``,
+#: ``val_psnr`` …): a float each, written as null when it is not finite (NaN: e.g. the SAM of a scene whose
+#: truth is zero at every scored pixel), which :func:`nan_for_null` reads back as NaN.
+SCORE_KEYS = frozenset(p + k for k in ("psnr", "ssim", "sam", "ergas", "psnr_cube", "psnr_mst", "rmse",
+                                       "psnr_worst", "ssim_worst") for p in ("", "val_"))
+
+
+def nan_for_null(obj: Any, keys: frozenset[str] = SCORE_KEYS) -> Any:
+    """``obj`` as read from JSON with a null under any of ``keys`` (at any depth) read as NaN: the non-finite
+    score :func:`json_text` wrote as null. A file of an older hsicam (``NaN`` literals, which Python's json
+    reads as floats) reads the same."""
+    if isinstance(obj, dict):
+        return {k: math.nan if v is None and k in keys else nan_for_null(v, keys) for k, v in obj.items()}
+    if isinstance(obj, list):
+        return [nan_for_null(v, keys) for v in obj]
+    return obj
 
 
 def json_number(value: Any, finite: bool = True) -> bool:

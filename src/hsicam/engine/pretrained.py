@@ -24,7 +24,7 @@ from typing import Any
 from hsicam.engine.provenance import installed_version
 from hsicam.errors import InputError
 from hsicam.io import (COMPLETE_MARKER, atomic_open, atomic_output, copy_file, is_complete, json_number, mark_complete,
-                       same_path, write_json)
+                       nan_for_null, same_path, write_json)
 from hsicam.runs import pretrained as shipped
 from hsicam.runs.checkpoint import file_sha256, root_weights_path
 from hsicam.runs.folder import MetricsLog, check_is_run, load_run
@@ -114,7 +114,7 @@ def _read_results(path: str | Path) -> dict[str, Any]:
         raise InputError(f"{path}: unreadable results.json ({getattr(exc, 'msg', None) or exc})") from None
     if not isinstance(data, dict):
         raise InputError(f"{path}: unreadable results.json (not a JSON object)")
-    return data
+    return nan_for_null(data)  # a mean written as null (not finite: an undefined SAM) is NaN again
 
 
 def _scene_block(data: dict[str, Any], source: Path, data_label: str) -> dict[str, Any]:

@@ -21,7 +21,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
 from hsicam.errors import InputError  # noqa: E402
-from hsicam.io import atomic_open, atomic_output, is_complete, json_number, save_figure  # noqa: E402
+from hsicam.io import atomic_open, atomic_output, is_complete, json_number, nan_for_null, save_figure  # noqa: E402
 from hsicam.report.reconstruction import cube_rgb, plot_training_curves, spectra_exponent  # noqa: E402
 from hsicam.spectral import Bands  # noqa: E402
 
@@ -88,7 +88,7 @@ def _read_json(path: Path) -> dict:
         raise InputError(f"{path}: corrupt {path.name} ({exc.msg} at line {exc.lineno})") from None
     if not isinstance(data, dict):
         raise InputError(f"{path}: corrupt {path.name} (not a JSON object)")
-    return data
+    return nan_for_null(data)  # a score written as null (not finite: an undefined SAM) is NaN again
 
 
 _FIELDS = {"evaluation": {"scenes": list, "mean": dict, "conventions": dict},

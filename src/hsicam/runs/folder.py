@@ -28,8 +28,8 @@ from typing import Any
 import torch
 
 from hsicam.errors import HsicamError, InputError
-from hsicam.io import (OS_ERROR_HINTS, atomic_open, cleanup_stale_temporaries, held_here, is_temporary, output_lock_path,
-                       remove_if_stale, restore_set_aside)
+from hsicam.io import (OS_ERROR_HINTS, atomic_open, cleanup_stale_temporaries, held_here, is_temporary, json_text,
+                       nan_for_null, output_lock_path, remove_if_stale, restore_set_aside)
 from hsicam.runs.checkpoint import LEGACY_POINTERS, MANIFEST, CheckpointManager, load_weights, root_weights_path
 from hsicam.runs.linear_step import LINEAR_STEP_FILE, load_linear_step, stale_reason
 from hsicam.runs.lock import LOCK_FILE
@@ -518,7 +518,7 @@ class MetricsLog:
     def write(self, record: dict[str, Any]) -> None:
         if not self.enabled:
             return
-        data = (json.dumps(record) + "\n").encode()
+        data = (json_text(record) + "\n").encode()  # strict JSON: a non-finite score as null
         fd = os.open(self.path, os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o644)
         try:
             os.write(fd, data)
@@ -527,7 +527,7 @@ class MetricsLog:
 
     def read(self) -> list[dict[str, Any]]:
         """The complete records, in order (a line torn by a kill, or not an object, is skipped);
-        [] when the file does not exist."""
+        [] when the file does not exist. A score written as null (not finite) reads as NaN again."""
         if not self.path.exists():
             return []
         records = []
@@ -537,7 +537,7 @@ class MetricsLog:
             except json.JSONDecodeError:
                 continue
             if isinstance(rec, dict):
-                records.append(rec)
+                records.append(nan_for_null(rec))
         return records
 
     def truncate_after(self, step: int, epoch: int) -> None:
@@ -553,4 +553,4 @@ class MetricsLog:
         kept = [r for r in self.read() if not r.get("final") and
                 (r.get("step", 0) < step or (r.get("step", 0) == step and r.get("epoch", 0) <= epoch))]
         with atomic_open(self.path, "w", encoding="utf-8") as fh:
-            fh.write("".join(json.dumps(r) + "\n" for r in kept))
+            fh.write("".join(json_text(r) + "\n" for r in kept))

@@ -32,6 +32,7 @@ from pathlib import Path
 from typing import Any
 
 from hsicam.errors import InputError
+from hsicam.io import nan_for_null
 
 #: Environment variable: another root folder of pre-trained cameras (instead of the package's).
 ENV_VAR = "HSICAM_PRETRAINED_DIR"
@@ -105,7 +106,19 @@ def parse_card(folder: Path) -> tuple[dict[str, Any] | None, str | None]:
         card = json.loads((folder / CARD_JSON).read_text(encoding="utf-8"))
     except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
         return None, f"unreadable model card ({getattr(exc, 'msg', None) or getattr(exc, 'strerror', None) or exc})"
-    return (card, None) if isinstance(card, dict) else (None, "unreadable model card (not a JSON object)")
+    return (_scores(card), None) if isinstance(card, dict) else (None, "unreadable model card (not a JSON object)")
+
+
+def _scores(card: dict[str, Any]) -> dict[str, Any]:
+    """``card`` with its scores written as null (not finite: e.g. the SAM of validation patches with no light)
+    read as NaN again (:func:`hsicam.io.nan_for_null`); a training log whose PSNR, SSIM and SAM are all null is
+    that of a run without validation: they stay None, as the card wrote them."""
+    metrics = card.get("metrics")
+    log = metrics.get("training_log") if isinstance(metrics, dict) else None
+    out = nan_for_null(card)
+    if isinstance(log, dict) and all(log.get(k) is None for k in ("psnr", "ssim", "sam")):
+        out["metrics"]["training_log"] = log
+    return out
 
 
 def folder_problem(folder: Path) -> str | None:
