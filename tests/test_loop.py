@@ -85,11 +85,13 @@ def test_loop_state_round_trip_and_old_checkpoints():
 def test_lr_schedule():
     t = load_config("tiny", ["train.lr_schedule=cosine", "train.warmup_steps=4"]).train
     assert [lr_factor(t, s, 100, 10) for s in range(4)] == [0.25, 0.5, 0.75, 1.0]
-    assert lr_factor(t, 50, 100, 10) == pytest.approx(0.5)
+    # after the warm-up the cosine runs over the remaining T − W = 96 steps: 1 at step W, ½ half-way, 0 at T
+    assert lr_factor(t, 4, 100, 10) == pytest.approx(1.0, abs=1e-15)
+    assert lr_factor(t, 52, 100, 10) == pytest.approx(0.5)
     assert lr_factor(t, 100, 100, 10) == pytest.approx(0.0, abs=1e-12)
-    # the cosine's shape, not only its ends and middle (a linear decay also gives 0.5 there): cos²(π s / 2T)
+    # the cosine's shape, not only its ends and middle (a linear decay also gives 0.5 there): cos²(π (s − W) / 2(T − W))
     for s in (25, 75, 90):
-        assert lr_factor(t, s, 100, 10) == pytest.approx(math.cos(math.pi * s / 200) ** 2, abs=1e-12)
+        assert lr_factor(t, s, 100, 10) == pytest.approx(math.cos(math.pi * (s - 4) / 192) ** 2, abs=1e-12)
     # step decay: γ^(epoch // lr_step_epochs), after the warm-up
     t = load_config("tiny", ["train.lr_schedule=step", "train.warmup_steps=0", "train.lr_gamma=0.5",
                              "train.lr_step_epochs=2"]).train

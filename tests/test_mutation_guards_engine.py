@@ -141,14 +141,16 @@ def test_validation_scores_are_means_over_patches_of_the_clipped_estimate():
 # engine/loop.py: schedule, clipping, cadences, running loss, sampler
 # --------------------------------------------------------------------------------------------
 def test_warm_up_ends_at_the_schedules_own_value():
-    """The step right after a warm-up of W steps is the schedule's value there (cosine: ½(1 + cos(π W / T))), not
-    (W + 1) / W > 1: the warm-up covers steps 0 … W − 1 only."""
+    """The step right after a warm-up of W steps is the schedule's value there (cosine: its start, 1, then
+    ½(1 + cos(π (s − W) / (T − W))) over the remaining steps), not (W + 1) / W > 1: the warm-up covers steps
+    0 … W − 1 only."""
     from hsicam.engine.loop import lr_factor
 
     for w in (1, 4, 10):
         t = TrainConfig(lr_schedule="cosine", warmup_steps=w)
         assert lr_factor(t, w - 1, 100, 10) == pytest.approx(1.0, abs=1e-15)
-        assert lr_factor(t, w, 100, 10) == pytest.approx(0.5 * (1 + math.cos(math.pi * w / 100)), abs=1e-15)
+        assert lr_factor(t, w, 100, 10) == pytest.approx(1.0, abs=1e-15)
+        assert lr_factor(t, w + 1, 100, 10) == pytest.approx(0.5 * (1 + math.cos(math.pi / (100 - w))), abs=1e-15)
     t = TrainConfig(lr_schedule="constant", warmup_steps=4)
     assert [lr_factor(t, s, 100, 10) for s in range(7)] == [0.25, 0.5, 0.75, 1.0, 1.0, 1.0, 1.0]
 
@@ -157,7 +159,7 @@ def test_the_loop_steps_adam_at_the_scheduled_rate_with_clipped_gradients_and_lo
         tmp_path, monkeypatch):
     """One run of the loop (the spectral prior's task: 3 epochs of 4 steps), watched from outside:
 
-    - each Adam step uses base lr × (warm-up (s + 1)/W for s < W, then ½(1 + cos(π s / T))), closed form here;
+    - each Adam step uses base lr × (warm-up (s + 1)/W for s < W, then ½(1 + cos(π (s − W) / (T − W)))), closed form here;
     - the gradient Adam steps with has a global norm of at most train.grad_clip (clipping is active here);
     - metrics.jsonl has a train record every log_every_steps steps, whose ``lr`` is the rate of the step just
       taken and whose ``train_loss`` is the mean of this epoch's step losses so far (recorded here);
@@ -211,7 +213,7 @@ def test_the_loop_steps_adam_at_the_scheduled_rate_with_clipped_gradients_and_lo
                                eval_every_epochs=2, checkpoint_every_steps=5)
     fit(task, FitOptions(loop, 0, progress=False), tmp_path / "run")
 
-    factor = [(s + 1) / w if s < w else 0.5 * (1 + math.cos(math.pi * s / total)) for s in range(total)]
+    factor = [(s + 1) / w if s < w else 0.5 * (1 + math.cos(math.pi * (s - w) / (total - w))) for s in range(total)]
     assert len(steps) == len(losses) == total
     for s, (lrs, _) in enumerate(steps):
         assert lrs == [pytest.approx(lr * factor[s], rel=1e-12)], f"step {s}"

@@ -191,8 +191,9 @@ def test_a_batch_items_gradient_is_its_own(name, c, m, seed):
        spe=st.integers(1, 50), step_epochs=st.integers(1, 5), gamma=st.floats(0.1, 1.0))
 def test_lr_schedule_against_its_closed_form(total, warm, schedule, spe, step_epochs, gamma):
     """A function of the global step only (a resumed run at step k gets the uninterrupted run's rate): the warm-up
-    climbs linearly (s + 1)/W to 1 at its last step; afterwards the schedule's closed form (cosine ½(1 + cos(π s/T)),
-    non-increasing, its last step ½(1 + cos(π (T − 1)/T)) > 0; step γ^⌊⌊s/E⌋/k⌋), always in (0, 1]."""
+    climbs linearly (s + 1)/W to 1 at its last step; afterwards the schedule's closed form (cosine over the remaining
+    steps ½(1 + cos(π (s − W)/(T − W))), non-increasing, its last step ½(1 + cos(π (T − 1 − W)/(T − W))) > 0; step
+    γ^⌊⌊s/E⌋/k⌋), always in (0, 1]."""
     t = TrainConfig(lr_schedule=schedule, warmup_steps=warm, lr_step_epochs=step_epochs, lr_gamma=gamma)
     run = [lr_factor(t, s, total, spe) for s in range(total)]
     resumed = [lr_factor(t, s, total, spe) for s in range(total)[::-1]]
@@ -201,7 +202,7 @@ def test_lr_schedule_against_its_closed_form(total, warm, schedule, spe, step_ep
         if s < warm:
             ref = (s + 1) / warm
         elif schedule == "cosine":
-            ref = 0.5 * (1 + math.cos(math.pi * s / total))
+            ref = 0.5 * (1 + math.cos(math.pi * (s - warm) / (total - warm)))
         elif schedule == "step":
             ref = gamma ** ((s // spe) // step_epochs)
         else:
@@ -212,7 +213,7 @@ def test_lr_schedule_against_its_closed_form(total, warm, schedule, spe, step_ep
     assert all(b <= a + 1e-15 for a, b in zip(after, after[1:]))  # monotone decay after the warm-up
     assert all(b > a for a, b in zip(run[:warm], run[1:warm]))  # a strictly rising warm-up
     if warm < total and schedule == "cosine":
-        assert run[-1] == pytest.approx(0.5 * (1 + math.cos(math.pi * (total - 1) / total)), rel=1e-12)
+        assert run[-1] == pytest.approx(0.5 * (1 + math.cos(math.pi * (total - 1 - warm) / (total - warm))), rel=1e-12)
 
 
 @PROPS

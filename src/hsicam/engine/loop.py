@@ -97,11 +97,16 @@ class ShardedBatches(Sampler[int]):
 
 
 def lr_factor(t: TrainConfig, step: int, total_steps: int, steps_per_epoch: int) -> float:
-    """Learning-rate multiplier at global ``step`` (warm-up, then the schedule of ``t``)."""
-    if t.warmup_steps and step < t.warmup_steps:
-        return (step + 1) / t.warmup_steps
+    """Learning-rate multiplier at global ``step`` (warm-up, then the schedule of ``t``).
+
+    The warm-up climbs (s + 1)/W to 1 at its last step W − 1; the cosine then runs over the remaining
+    T − W steps, ½(1 + cos(π (s − W)/(T − W))): 1 at step W, so the rate does not drop where the warm-up
+    ends (without a warm-up, ½(1 + cos(π s/T)))."""
+    w = t.warmup_steps
+    if w and step < w:
+        return (step + 1) / w
     if t.lr_schedule == "cosine":
-        return 0.5 * (1.0 + math.cos(math.pi * min(step / max(total_steps, 1), 1.0)))
+        return 0.5 * (1.0 + math.cos(math.pi * min((step - w) / max(total_steps - w, 1), 1.0)))
     if t.lr_schedule == "step":
         return t.lr_gamma ** ((step // steps_per_epoch) // t.lr_step_epochs)
     return 1.0
