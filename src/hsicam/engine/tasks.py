@@ -19,7 +19,7 @@ from hsicam.engine.loop import Task, draw_uniform, step_generator
 from hsicam.engine.provenance import data_record
 from hsicam.errors import ConfigError
 from hsicam.io import atomic_open, write_json
-from hsicam.metrics import psnr_per_band, sam_degrees, spectra_scaled, ssim
+from hsicam.metrics import psnr_per_band, sam_degrees, ssim
 from hsicam.models import CameraSystem
 from hsicam.models.demosaic import box_mean
 from hsicam.models.priors import SpectralAutoencoder, build_prior
@@ -93,21 +93,38 @@ def spectral_gradient_loss(recon: torch.Tensor, truth: torch.Tensor) -> torch.Te
     return F.l1_loss(recon.diff(dim=1), truth.diff(dim=1))
 
 
+SAM_LOSS_FLOOR = 1e-3  # spectral_angle_loss: the estimate's norm floor, relative to its batch's typical level
+
+
 def spectral_angle_loss(recon: torch.Tensor, truth: torch.Tensor, min_brightness: float) -> torch.Tensor:
     """Mean spectral angle (radians) over the pixels whose truth has a mean over bands above
-    ``min_brightness`` (dark pixels fix no spectrum, and acos has no gradient at 1); 0 if none."""
+    ``min_brightness`` (dark pixels fix no spectrum, and acos has no gradient at 1); 0 if none.
+
+    The angle's gradient has the size 1/|x̂|: an estimate of (near) zero at one bright pixel gave 1e11 there,
+    1e18 at 1e-20 of its truth, inf below, and under ``train.grad_clip`` set the whole step's direction. So
+    the estimate's norm has a floor: with u = x̂ / (peak(x) · s), s the batch's typical level of estimate
+    against truth (the median over the kept pixels of peak(x̂)/peak(x), which the dark pixels' large ratios do
+    not raise; a constant for autograd; 1 where it is 0), |u| under δ = SAM_LOSS_FLOOR counts as
+    r = (|u|² + δ²)/(2δ) ≥ δ/2 (the same value and slope at δ). The angle is exact where |u| ≥ δ, and its gradient
+    in u has the size 1/r (r = |u| above δ) ≤ 2/δ: ≤ 2/(δ · peak(x) · s · K) per pixel of x̂, K kept pixels.
+    Dividing the spectra by positive factors leaves the angle as it is and keeps it free of the data's and of
+    the estimate's overall scale (float32 from 1e-15 to 1e15)."""
     keep = truth.mean(dim=1) > min_brightness  # (B, H, W)
     if not bool(keep.any()):
         return recon.sum() * 0.0
-    # each spectrum over its own peak, as sam_map (the angle is free of scale): both squared norms then lie in
-    # [1, C], so the floor below stays far under their product whatever the data's scale or the estimate's level
-    # (unscaled, a perfect estimate of pixels of band mean 1e-7 came out at 1.4 rad: |x̂|²·|x|² fell under the floor)
-    recon, truth = spectra_scaled(recon), spectra_scaled(truth)
-    dot = (recon * truth).sum(dim=1)[keep]
-    # one root of the product of squared norms (Tensor.norm over the band axis is ~15× slower on CPU);
-    # the floor sits under the root, so the root's gradient stays finite for a zero spectrum
-    norm = ((recon * recon).sum(dim=1) * (truth * truth).sum(dim=1))[keep].clamp_min(1e-24).sqrt()
-    return torch.acos((dot / norm).clamp(-1.0 + 1e-6, 1.0 - 1e-6)).mean()
+    peak = truth.abs().amax(dim=1)  # (B, H, W); kept: >= the band mean > min_brightness > 0
+    peak = torch.where(keep, peak, torch.ones_like(peak))[:, None]  # (the others are dropped below)
+    with torch.no_grad():
+        level = (recon.abs().amax(dim=1, keepdim=True) / peak)[:, 0][keep].median()
+        level = torch.where(level > 0, level, torch.ones_like(level))
+    # |y|² in [1, C] and |u|² about as much for a typical kept pixel; the dropped pixels' u is set to 0 (the
+    # estimate of a dark truth over the batch's level could overflow, and an inf there poisons the gradient)
+    u, y = torch.where(keep[:, None], recon / (peak * level), 0.0), truth / peak
+    u2, dot, y2 = (u * u).sum(dim=1)[keep], (u * y).sum(dim=1)[keep], (y * y).sum(dim=1)[keep]
+    d = SAM_LOSS_FLOOR
+    norm_u = torch.where(u2 >= d * d, u2.clamp_min(d * d).sqrt(), (u2 + d * d) / (2 * d))
+    cos = dot / (norm_u * y2.sqrt())
+    return torch.acos(cos.clamp(-1.0 + 1e-6, 1.0 - 1e-6)).mean()
 
 
 def apply_noise(camera, levels: dict[str, float]) -> None:
