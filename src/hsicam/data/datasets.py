@@ -8,7 +8,7 @@ single normalisation policy). Tensors are (C, H, W) float32, bands ascending.
 :class:`PatchDataset` serves square patches of ``patch_px + margin_px`` pixels: the margin is what
 the camera's ``valid`` convolution consumes (kernel_px − 1 pixels in total per axis), so the
 sensor crop is ``patch_px`` wide. Patch positions and augmentations (flips, 90° rotations) are
-drawn from a generator seeded by ``(seed, epoch, index)``, so a patch does not depend on which
+drawn from a generator seeded by ``(seed, epoch, index[, stream])``, so a patch does not depend on which
 DataLoader worker serves it and runs are reproducible.
 """
 
@@ -711,7 +711,9 @@ class PatchDataset(Dataset):
 
     ``len`` is ``patches_per_epoch``. Item ``k`` of epoch ``e`` picks a scene (uniformly), a
     position and, with ``flips``/``rot90``, one of the 8 dihedral transforms, all from
-    ``numpy.random.default_rng((seed, e, k))``. ``fixed=True`` (validation) ignores the epoch, so
+    ``numpy.random.default_rng((seed, e, k))``, or ``(seed, e, k, stream)`` for a ``stream`` other than 0
+    (the run's ``train.seed``: another seed, other patches; 0 keeps the stream of ``seed`` alone, the one
+    before ``stream`` existed). ``fixed=True`` (validation) ignores the epoch, so
     the same patches are served every time. ``relight_sigma`` > 0: with probability
     ``relight_prob`` the patch is also relit (:func:`relight`, Legendre coefficients drawn N(0, σ²)
     from the same generator, after the rest).
@@ -719,7 +721,7 @@ class PatchDataset(Dataset):
 
     def __init__(self, scenes: SceneDataset, patch_px: int, margin_px: int = 0, *, patches_per_epoch: int = 1024,
                  flips: bool = True, rot90: bool = True, seed: int = 0, fixed: bool = False,
-                 relight_sigma: float = 0.0, relight_prob: float = 0.5) -> None:
+                 relight_sigma: float = 0.0, relight_prob: float = 0.5, stream: int = 0) -> None:
         if patch_px < 1 or margin_px < 0:
             raise InputError(f"PatchDataset: need patch_px >= 1 and margin_px >= 0, got {patch_px}, {margin_px}")
         if patches_per_epoch < 1:
@@ -737,6 +739,7 @@ class PatchDataset(Dataset):
         self.relight_sigma = float(relight_sigma)
         self.relight_prob = float(relight_prob)
         self.seed = int(seed)
+        self.stream = int(stream)
         self.fixed = fixed
         self.epoch = 0
         for i in range(len(scenes)):
@@ -762,7 +765,8 @@ class PatchDataset(Dataset):
         """(the generator of patch ``k`` this epoch, the scene index it drew first)."""
         if not 0 <= k < self.patches_per_epoch:
             raise IndexError(k)
-        rng = np.random.default_rng([self.seed, 0 if self.fixed else self.epoch, int(k)])
+        key = [self.seed, 0 if self.fixed else self.epoch, int(k)]
+        rng = np.random.default_rng(key + [self.stream] if self.stream else key)
         return rng, int(rng.integers(len(self.scenes)))
 
     def scene_of(self, k: int) -> Path:

@@ -144,12 +144,14 @@ def no_validation_reason(cfg: DataConfig, n_scenes: int) -> str:
 
 
 def build_datasets(cfg: DataConfig, bands: Bands, margin_px: int, *, progress: bool | None = None,
-                   code_period: int = 1) -> tuple[PatchDataset, PatchDataset | None]:
+                   code_period: int = 1, stream: int = 0) -> tuple[PatchDataset, PatchDataset | None]:
     """Training and validation patch datasets (validation None when ``val_fraction`` is 0).
 
     ``margin_px`` is the camera's ``valid``-convolution margin (kernel_px − 1); ``code_period`` its CFA
     period (1: none), which a patch must hold whole (:meth:`DataConfig.check_patches`). Scenes are split at
-    scene level with ``cfg.split_seed``; validation patches are fixed and not augmented.
+    scene level with ``cfg.split_seed``; validation patches are fixed and not augmented. ``stream`` (the run's
+    ``train.seed``) is mixed into the training patches' draws (:class:`PatchDataset`; 0: ``split_seed``'s
+    stream alone, as before it existed); the split and the validation patches do not depend on it.
     """
     cfg.check_patches(margin_px, code_period)  # before the synthetic data is generated
     root = dataset_root(cfg, bands, progress=progress)
@@ -176,7 +178,8 @@ def build_datasets(cfg: DataConfig, bands: Bands, margin_px: int, *, progress: b
         raise
     train = PatchDataset(train_set, cfg.patch_px, margin_px,
                          patches_per_epoch=cfg.patches_per_epoch, flips=cfg.augment_flips, rot90=cfg.augment_rot90,
-                         seed=cfg.split_seed, relight_sigma=cfg.augment_relight, relight_prob=cfg.augment_relight_prob)
+                         seed=cfg.split_seed, relight_sigma=cfg.augment_relight, relight_prob=cfg.augment_relight_prob,
+                         stream=stream)
     val = None
     if val_set is not None:
         val = PatchDataset(val_set, cfg.patch_px, margin_px,

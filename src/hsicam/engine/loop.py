@@ -6,7 +6,7 @@ learning-rate schedule, gradient clipping, the metrics log and progress, the val
 checkpoints and resume. A task supplies its modules, parameter groups, data, the per-step noise,
 the loss of a batch and the validation metrics; it never writes a checkpoint.
 
-Determinism and resume: patches depend only on (seed, epoch, index), the random numbers of step n
+Determinism and resume: patches depend only on (seeds, epoch, index), the random numbers of step n
 only on (seed, n, rank), and the learning rate only on the global step, so a run resumed from its
 last checkpoint continues exactly the same schedule (the :class:`LoopState`, including the
 running train loss of the current epoch, is part of every checkpoint).

@@ -259,7 +259,7 @@ class SystemTask(Task):
 
     def datasets(self):
         return build_datasets(self.cfg.data, self.bands, self.model.camera.margin,
-                              code_period=getattr(self.model.camera, "code_period", 1))
+                              code_period=getattr(self.model.camera, "code_period", 1), stream=self.cfg.train.seed)
 
     def on_step_start(self, step: int, generator: torch.Generator) -> None:
         apply_noise(self.model.camera, draw_noise(self.cfg.train, generator))
