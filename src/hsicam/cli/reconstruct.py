@@ -120,7 +120,7 @@ def estimated_cfa_offset(model, sensor: torch.Tensor) -> tuple[tuple[int, int], 
     (oy, ox), best = est.offset, est.residuals[f"{est.offset[0]},{est.offset[1]}"]
     second, r2 = est.runner_up
     log.info("--cfa-offset auto: %d,%d (relative residual %.3g; next best %s: %.3g; scored on the central %d×%d px)",
-             oy, ox, best, second, r2, est.window[2], est.window[3])
+             oy, ox, best, second, r2, *est.scored_px)
     if est.ambiguous:
         log.warning("--cfa-offset auto: %d,%d is barely better than the other phases (residual %.4g; the median "
                     "candidate's is only %.0f%% higher): the capture may be too dark, noisy or featureless to tell; if "
