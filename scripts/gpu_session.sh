@@ -13,7 +13,7 @@
 # overrides, space-separated), TESTS (1: run the `cuda`-marked tests first), CALIB_PATCHES (patches per
 # epoch of the 2 calibration epochs; default the preset's: a paper-scale epoch of 1890 patches is too long
 # to spend on timing), BUDGET (train.max_minutes as a multiple of MINUTES, default 1.5), DEVICE (default cuda;
-# `DEVICE=cpu PRESET=tiny MINUTES=0.2` tries the script here), OUT (the device tool's $OUT; elsewhere default a temporary folder, printed),
+# `PYTHON=.venv/bin/python DEVICE=cpu PRESET=tiny MINUTES=0.2` tries the script here), OUT (the device tool's $OUT; elsewhere default a temporary folder, printed),
 # WORKERS (DataLoader workers, default 8 on CUDA, 0 on CPU).
 # The device image has python3 with a CUDA torch and most dependencies; colour-science (to generate the
 # synthetic data) and openexr / gdstk (some tests) travel as wheels in .whl: fetch them here first with
