@@ -6,7 +6,9 @@ module to ``COMMAND_MODULES`` to add commands.
 **One error boundary** (:func:`main`): every :class:`HsicamError` (bad config, bad file, bad
 argument), every ``OSError`` (an output path that cannot be written, a full disk, an input that
 cannot be read) and every unreadable JSON/YAML/text input is printed as ONE line ``hsicam: error:
-<file>: <problem>`` and exits with code 2, without a traceback (``-v`` adds the traceback). Commands
+<file>: <problem>`` and exits with code 2, without a traceback (``-v`` adds the traceback). Output piped into
+a reader that stops early (``hsicam data sources | head -1``) ends quietly with 141 (128 + SIGPIPE), as a shell
+tool's does (:func:`stdout_closed`). Commands
 that write check their output paths with :func:`prepare_output` before any work starts and write
 through :func:`hsicam.io.atomic_output`, so a failed or killed command leaves nothing that a later
 command accepts. A command never removes what another process is writing now: a folder output that
@@ -25,7 +27,9 @@ import json
 import logging
 import os
 import re
+import select
 import signal
+import stat
 import sys
 import threading
 import traceback
@@ -278,6 +282,22 @@ def sigterm_as_interrupt(enabled: bool = True):
         signal.signal(signal.SIGTERM, previous)
 
 
+def stdout_closed() -> bool:
+    """True when standard output is a pipe or socket whose reader has gone (``| head`` has exited): the
+    :class:`BrokenPipeError` of a write to it is the reader's choice, not an error of the command's. A broken pipe
+    elsewhere (an output the command opened) stays an error."""
+    try:
+        fd = sys.stdout.fileno()
+        mode = os.fstat(fd).st_mode
+    except (AttributeError, OSError, ValueError):  # replaced by an object without a descriptor, or closed
+        return False
+    if not (stat.S_ISFIFO(mode) or stat.S_ISSOCK(mode)):
+        return False
+    poll = select.poll()
+    poll.register(fd, select.POLLOUT)
+    return any(events & (select.POLLERR | select.POLLHUP) for _, events in poll.poll(0))
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     try:
         parser = build_parser()  # imports the commands' modules, not torch (hsicam.cli.args.RegistryChoices): ~0.2 s
@@ -312,6 +332,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         print("hsicam: interrupted", file=sys.stderr)
         return 130
     except Exception as exc:  # noqa: BLE001 - the one error boundary
+        if isinstance(exc, BrokenPipeError) and stdout_closed():
+            # what is left in Python's buffer would fail again at exit ("Exception ignored ... BrokenPipeError")
+            os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+            return 128 + signal.SIGPIPE
         line = error_line(exc)
         if line is None:
             raise
