@@ -39,6 +39,11 @@ TESTS=${TESTS:-1}
 DEVICE=${DEVICE:-cuda}
 if [[ "$DEVICE" == cpu ]]; then WORKERS=${WORKERS:-0}; else WORKERS=${WORKERS:-8}; fi
 PY=${PYTHON:-python3}
+if ! "$PY" -c "import torch" 2>/dev/null; then  # else set -e stopped the env.txt block below, its error only in env.txt
+    echo "gpu_session.sh: $PY cannot import torch; set PYTHON to the project's python (e.g. PYTHON=.venv/bin/python)" >&2
+    exit 1
+fi
+
 WORK=$(mktemp -d "${TMPDIR:-/tmp}/hsicam-gpu.XXXXXX")
 OUT=${OUT:-$WORK/out}
 echo "work folder $WORK, results in $OUT"

@@ -88,3 +88,21 @@ def test_the_cuda_tests_the_lease_names_are_the_ones_gpu_session_selects():
     for module, name in named:
         marks = {m.name for m in getattr(getattr(importlib.import_module(module), name), "pytestmark", [])}
         assert "cuda" in marks and "slow" not in marks, (module, name, marks)
+
+
+def test_gpu_session_script_says_when_its_python_has_no_torch(tmp_path):
+    """docs/training.md's CPU try of scripts/gpu_session.sh, run with a python that has no torch (the script's default
+    python3 on this machine), exited 1 with nothing said: the import error went into env.txt only. Now one line naming
+    the python and PYTHON, before any work folder is made."""
+    no_torch = tmp_path / "python"
+    no_torch.write_text('#!/bin/sh\nexit 1\n')  # a python whose `import torch` fails
+    no_torch.chmod(0o755)
+    work = tmp_path / "tmp"
+    work.mkdir()
+    env = {**os.environ, "DEVICE": "cpu", "PRESET": "tiny", "PYTHON": str(no_torch), "TMPDIR": str(work)}
+    run = subprocess.run(["bash", str(ROOT / "scripts" / "gpu_session.sh")], cwd=ROOT, env=env, capture_output=True,
+                         text=True, timeout=60)
+    assert run.returncode == 1
+    assert run.stderr.strip() == (f"gpu_session.sh: {no_torch} cannot import torch; set PYTHON to the project's python "
+                                  "(e.g. PYTHON=.venv/bin/python)")
+    assert list(work.iterdir()) == []  # no work folder left behind
