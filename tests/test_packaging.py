@@ -1,14 +1,21 @@
-"""Packaging: every third-party module that the package imports is declared in pyproject.toml."""
+"""Packaging: every third-party module that the package imports is declared in pyproject.toml; hsicam as an installed
+package (``pip install hsicam``, ``pip install 'hsicam[synth]'``): the files it reads at run time ship in the wheel, and
+a missing or outdated optional package is one line naming its extra."""
 
 from __future__ import annotations
 
 import ast
+import os
 import re
+import shutil
+import subprocess
 import sys
+import zipfile
 from importlib.metadata import packages_distributions
 from pathlib import Path
 
 import pytest
+from cli_helpers import run_cli_in_process
 
 ROOT = Path(__file__).resolve().parents[1]
 SRC = ROOT / "src" / "hsicam"
@@ -57,3 +64,103 @@ def test_build_backend_supports_the_license_string():
         (req,) = [r for r in data["build-system"]["requires"] if r.startswith("setuptools")]
         m = re.search(r">=\s*(\d+)", req)
         assert m and int(m.group(1)) >= 77, req
+
+
+# ---- what the wheel ships ---------------------------------------------------------------------------------
+def _pyproject() -> dict:
+    return tomllib.loads((ROOT / "pyproject.toml").read_text(encoding="utf-8"))
+
+
+def _resource_files() -> set[str]:
+    """Every non-Python file under src/hsicam (the configs/ symlink followed, as setuptools does), relative."""
+    out = set()
+    for d, dirs, files in os.walk(SRC, followlinks=True):
+        dirs[:] = [x for x in dirs if x != "__pycache__" and not x.startswith(".")]
+        for f in files:
+            if not f.endswith((".py", ".pyc")) and not f.startswith("."):
+                out.add((Path(d) / f).relative_to(SRC).as_posix())
+    return out
+
+
+def _package_data_matches() -> set[str]:
+    globs = _pyproject()["tool"]["setuptools"]["package-data"]["hsicam"]
+    return {p.relative_to(SRC).as_posix() for g in globs for p in SRC.glob(g) if p.is_file()}
+
+
+def _loaded_at_run_time() -> set[str]:
+    """The files the code reads: the presets, the CIE table of hsicam.color, each shipped camera's files."""
+    from hsicam.config import PRESETS_DIR, preset_names
+    from hsicam.runs import pretrained
+
+    names = {f"configs/{n}.yaml" for n in preset_names()}
+    assert PRESETS_DIR == SRC / "configs" or PRESETS_DIR.resolve() == (SRC / "configs").resolve()
+    names.add("resources/cie1931_2deg_d65.csv")
+    shipped = pretrained.package_root()
+    for cam in pretrained.camera_folders(shipped):
+        names |= {p.resolve().relative_to(SRC.resolve()).as_posix() for p in (shipped / cam).iterdir() if p.is_file()}
+    return names
+
+
+def test_every_resource_file_is_matched_by_package_data():
+    files = _resource_files()
+    loaded = _loaded_at_run_time()
+    # what the code loads exists in the tree (a checkout without symlinks has no presets: src/hsicam/configs
+    # is then a text file, and `--config tiny` would find nothing)
+    assert {"configs/tiny.yaml", "configs/quick.yaml", "resources/cie1931_2deg_d65.csv",
+            "resources/pretrained/standard/model.safetensors"} <= loaded
+    assert loaded <= files, sorted(loaded - files)
+    unmatched = files - _package_data_matches()
+    assert not unmatched, f"add a [tool.setuptools.package-data] glob for {sorted(unmatched)}"
+
+
+@pytest.mark.slow
+def test_built_wheel_holds_the_configs_cameras_and_resources(tmp_path):
+    # a copy of what the build reads, so that pip's in-tree build leaves no build/ or egg-info in the checkout
+    src = tmp_path / "src_tree"
+    src.mkdir()
+    for f in ("pyproject.toml", "README.md"):
+        shutil.copy2(ROOT / f, src / f)
+    shutil.copytree(ROOT / "src", src / "src", symlinks=False,
+                    ignore=shutil.ignore_patterns("__pycache__", "*.egg-info", "*.pyc"))
+    run = subprocess.run([sys.executable, "-m", "pip", "wheel", "--no-deps", "-q", "-w", str(tmp_path / "dist"),
+                          str(src)], capture_output=True, text=True, timeout=600)
+    if run.returncode != 0 and re.search(r"(No matching distribution found for setuptools|Could not find a version "
+                                         r"that satisfies the requirement setuptools|NewConnectionError|"
+                                         r"Temporary failure in name resolution)", run.stderr):
+        pytest.skip(f"pip cannot reach an index for the build backend: {run.stderr.strip().splitlines()[-1]}")
+    assert run.returncode == 0, run.stderr
+    (wheel,) = (tmp_path / "dist").glob("hsicam-*.whl")
+    names = set(zipfile.ZipFile(wheel).namelist())
+    want = {f"hsicam/{f}" for f in _resource_files()}
+    assert want <= names, sorted(want - names)
+    assert {f"hsicam/{f}" for f in _loaded_at_run_time()} <= names
+    assert "hsicam/cli/__init__.py" in names and "hsicam/runs/pretrained.py" in names
+
+
+# ---- optional packages: one line naming the extra --------------------------------------------------------
+# gdstk: test_export.py::test_export_without_gdstk; OpenEXR's reader: test_coverage_gaps_data.py (function level).
+
+def _one_error_line(res) -> str:
+    lines = [x for x in res.stderr.splitlines() if x.startswith("hsicam: error:")]
+    assert res.returncode == 2 and len(lines) == 1 and "Traceback" not in res.stderr, res.stderr
+    return lines[0]
+
+
+def test_synthetic_data_without_colour_science_is_one_line_naming_the_synth_extra(tmp_path, monkeypatch):
+    monkeypatch.setitem(sys.modules, "colour", None)  # `import colour`: ImportError
+    # bands no other test builds the library for (its lru_cache would skip the import)
+    res = run_cli_in_process("data", "synth", "--n", "1", "--size", "32", "--seed", "3", "--out", str(tmp_path / "s"),
+                             "--set", "bands.start_nm=425", "--set", "bands.stop_nm=705", "--set", "bands.step_nm=70",
+                             env={"HSICAM_CACHE": str(tmp_path / "cache")})
+    assert _one_error_line(res) == ("hsicam: error: generating the synthetic dataset needs colour-science "
+                                    "(pip install 'hsicam[synth]'): import of colour halted; None in sys.modules")
+    assert not (tmp_path / "s").exists()
+
+
+def test_reading_an_exr_scene_without_openexr_is_one_line_naming_the_exr_extra(tmp_path, monkeypatch):
+    p = tmp_path / "scene.exr"
+    p.write_bytes(b"\x76\x2f\x31\x01")  # the OpenEXR magic number
+    monkeypatch.setitem(sys.modules, "OpenEXR", None)
+    res = run_cli_in_process("simulate", "--config", "tiny", "--scene", str(p), "--out", str(tmp_path / "sim"))
+    assert _one_error_line(res) == (f"hsicam: error: {p}: reading OpenEXR needs the 'openexr' package "
+                                    "(pip install 'hsicam[exr]')")
