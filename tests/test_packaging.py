@@ -157,6 +157,27 @@ def test_synthetic_data_without_colour_science_is_one_line_naming_the_synth_extr
     assert not (tmp_path / "s").exists()
 
 
+def test_colour_science_older_than_the_datasets_read_is_one_line_naming_the_upgrade(tmp_path, monkeypatch):
+    """colour-science 0.4.4-0.4.6 (which the synth extra used to allow) stop the generator with a KeyError ('PMC')
+    or an AttributeError (SDS_TCS of one set): a traceback. Now one line naming the version needed."""
+    colour = pytest.importorskip("colour")
+    monkeypatch.setattr(colour, "__version__", "0.4.6")
+    res = run_cli_in_process("data", "synth", "--n", "1", "--size", "32", "--seed", "3", "--out", str(tmp_path / "s"),
+                             "--set", "bands.start_nm=425", "--set", "bands.stop_nm=705", "--set", "bands.step_nm=35",
+                             env={"HSICAM_CACHE": str(tmp_path / "cache")})
+    assert _one_error_line(res) == ("hsicam: error: generating the synthetic dataset needs colour-science >= 0.4.7, "
+                                    "found 0.4.6 (pip install -U 'hsicam[synth]')")
+
+
+def test_synth_and_dev_extras_ask_for_the_colour_science_the_code_needs():
+    from hsicam.data.spectral_sources import COLOUR_MIN_VERSION
+
+    need = "colour-science>=" + ".".join(map(str, COLOUR_MIN_VERSION))
+    extras = _pyproject()["project"]["optional-dependencies"]
+    assert extras["synth"] == [need]
+    assert [d for d in extras["dev"] if d.startswith("colour-science")] == [need]
+
+
 def test_reading_an_exr_scene_without_openexr_is_one_line_naming_the_exr_extra(tmp_path, monkeypatch):
     p = tmp_path / "scene.exr"
     p.write_bytes(b"\x76\x2f\x31\x01")  # the OpenEXR magic number

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import functools
 import logging
+import re
 from dataclasses import dataclass, field, replace
 from typing import Any, Callable, Iterable
 
@@ -29,6 +30,10 @@ log = logging.getLogger(__name__)
 
 #: Band centres the generator can serve (Otsu 2018 covers 380-730 nm; tails are held constant).
 SUPPORTED_RANGE_NM = (380.0, 730.0)
+
+#: The oldest colour-science whose datasets the library reads: 0.4.7 (the PMC chart, and SDS_TCS as CIE 1995 and CIE
+#: 2024 sets; 0.4.4-0.4.6 stop with a KeyError or AttributeError). pyproject.toml's ``synth`` extra asks for the same.
+COLOUR_MIN_VERSION = (0, 4, 7)
 
 
 @dataclass(frozen=True)
@@ -231,9 +236,21 @@ def _cie_illuminant_source(name: str) -> str | None:
     return None  # E (not a light source), ISO 7589 (stops at 690 nm)
 
 
+def _check_colour_version(version: str) -> None:
+    """InputError naming the upgrade when colour-science ``version`` is older than :data:`COLOUR_MIN_VERSION`
+    (a version that does not parse is let through)."""
+    m = re.match(r"(\d+)\.(\d+)(?:\.(\d+))?", version)
+    if m and tuple(int(p or 0) for p in m.groups()) < COLOUR_MIN_VERSION:
+        need = ".".join(map(str, COLOUR_MIN_VERSION))
+        raise InputError(f"generating the synthetic dataset needs colour-science >= {need}, found {version} "
+                         f"(pip install -U 'hsicam[synth]')")
+
+
 @functools.lru_cache(maxsize=4)
 def _library_cached(centers: tuple[float, ...], fwhm: tuple[float, ...]) -> SpectralLibrary:
     import colour
+
+    _check_colour_version(getattr(colour, "__version__", ""))
     from colour.characterisation import read_training_data_rawtoaces_v1
     from colour.colorimetry.datasets.light_sources import sds as light_sources
     from colour.quality.cfi2017 import load_TCS_CIE2017
