@@ -185,3 +185,21 @@ def test_reading_an_exr_scene_without_openexr_is_one_line_naming_the_exr_extra(t
     res = run_cli_in_process("simulate", "--config", "tiny", "--scene", str(p), "--out", str(tmp_path / "sim"))
     assert _one_error_line(res) == (f"hsicam: error: {p}: reading OpenEXR needs the 'openexr' package "
                                     "(pip install 'hsicam[exr]')")
+
+
+def test_data_sources_without_colour_science_lists_the_registry_and_says_why_the_counts_are_unknown(monkeypatch, capsys):
+    """`hsicam data sources` without colour-science printed '?' in every count and said nothing about why (every
+    exception swallowed, a bug's included). Now the registry as before on stdout, and one line on stderr naming the
+    extra."""
+    from hsicam.cli import main
+    from hsicam.data import spectral_sources
+
+    monkeypatch.setitem(sys.modules, "colour", None)
+    monkeypatch.setattr(spectral_sources, "_library_cached", spectral_sources._library_cached.__wrapped__)
+    assert main(["data", "sources"]) == 0
+    out, err = capsys.readouterr()
+    rows = out.splitlines()
+    assert [r.split()[0] for r in rows] == list(spectral_sources.SOURCES)
+    assert all(r.split()[2] == "?" for r in rows)
+    assert err.strip() == ("hsicam: counts '?': generating the synthetic dataset needs colour-science "
+                           "(pip install 'hsicam[synth]'): import of colour halted; None in sys.modules")

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import sys
 from pathlib import Path
 
 
@@ -135,7 +136,10 @@ def _synth(args: argparse.Namespace) -> int:
 def _sources(args: argparse.Namespace) -> int:
     from hsicam.data.spectral_sources import DEFAULT_HOLDOUT, SOURCES
 
+    from hsicam.errors import InputError
+
     counts: dict[str, int] = {}
+    why = None
     try:
         from hsicam.data.spectral_sources import spectral_library
         from hsicam.spectral import Bands
@@ -143,12 +147,14 @@ def _sources(args: argparse.Namespace) -> int:
         for role in spectral_library(Bands.paper()).counts().values():
             for k, v in role.items():
                 counts[k] = counts.get(k, 0) + v
-    except Exception:  # colour-science missing: list the registry without counts
-        counts = {}
+    except InputError as exc:  # colour-science missing or too old: list the registry without counts, and say why
+        counts, why = {}, str(exc)
     for s in SOURCES.values():
         n = str(counts.get(s.id, "-")) if counts else "?"
         mark = " (held out by default)" if s.id in DEFAULT_HOLDOUT else ""
         print(f"{s.id:18s} {s.role:15s} {n:>4s}  {s.origin}{mark}")
+    if why:
+        print(f"hsicam: counts '?': {why}", file=sys.stderr)
     return 0
 
 
