@@ -614,6 +614,10 @@ def root_weights_path(run_dir: str | Path, weights_file: str = "model.safetensor
     if root.is_file() and file_sha256(root) == (sha or file_sha256(path)):
         return root
     if sha is not None and file_sha256(path) != sha:
+        if not root.is_file():
+            raise InputError(f"{root} is missing, and {path}, which should hold the weights {run_dir / MANIFEST} "
+                             f"records (sha256 {sha[:12]}…), differs from them: the run's weights are damaged (a copy "
+                             f"cut short, a disk error, an edit); {RECOPY_HINT}")
         raise InputError(f"{root} and {path} both differ from the weights {run_dir / MANIFEST} records (sha256 "
                          f"{sha[:12]}…): the run's weights are damaged (a copy cut short, a disk error, an edit); "
                          f"{RECOPY_HINT}")
