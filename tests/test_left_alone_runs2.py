@@ -47,3 +47,38 @@ def test_root_weights_path_says_the_root_is_missing_not_that_it_differs(tmp_path
     assert str(err.value) == (f"{root} is missing, and {kept}, which should hold the weights {run / MANIFEST} records "
                               f"(sha256 {sha[:12]}…), differs from them: the run's weights are damaged (a copy cut "
                               f"short, a disk error, an edit); {RECOPY_HINT}")
+
+
+def test_fit_does_not_write_its_final_weights_as_the_root_when_the_kept_checkpoint_is_damaged(cache_env, tmp_path,
+                                                                                                caplog):
+    """Tiny run, 2 epochs, best after epoch 1 (step 4), stopped at step 5; the root weights deleted and the best
+    checkpoint given a flipped byte; then resumed to the end. The end of fit wrote the final model's weights (step 8's)
+    as the root, which the manifest does not record (readers refused them as "differing"). The root now stays missing,
+    the warning naming the damaged checkpoint, and the readers' refusal says the root is missing."""
+    import hashlib
+    import logging
+
+    from hsicam.config import load_config
+    from hsicam.engine.train import train
+
+    torch.set_num_threads(1)
+    run = tmp_path / "run"
+    cfg = load_config("tiny", ["train.epochs=2", "train.checkpoint_every_steps=3"])
+    train(cfg, run, progress=False, stop_after_steps=5)
+    man = json.loads((run / MANIFEST).read_text())
+    assert man["weights"]["from"] == "best" and man["best"]["step"] < man["last"]["step"], man  # the case
+    root, kept, sha = run / "model.safetensors", run / man["best"]["dir"] / "model.safetensors", man["best"]["weights_sha256"]
+    root.unlink()
+    _flip_byte_in_place(kept, kept.stat().st_size - 3)
+    ck._HASHES.clear()
+    with caplog.at_level(logging.WARNING, logger="hsicam.runs.checkpoint"):
+        final = train(cfg, run, resume=True, progress=False)
+    man = json.loads((run / MANIFEST).read_text())
+    assert final["step"] == man["last"]["step"] > 5 and man["weights"]["dir"] == man["best"]["dir"]  # best unchanged
+    assert hashlib.sha256(kept.read_bytes()).hexdigest() != sha
+    assert not root.exists()
+    said = {r.getMessage() for r in caplog.records if r.levelno == logging.WARNING and r.name == "hsicam.runs.checkpoint"}
+    assert said == {f"{kept} differs from the weights {run / MANIFEST} records (sha256 {sha[:12]}…): the checkpoint is "
+                    f"damaged (a copy cut short, a disk error, an edit), so {root} was not rewritten from it; {RECOPY_HINT}"}
+    with pytest.raises(InputError, match=r" is missing, and .* differs from them: the run's weights are damaged"):
+        root_weights_path(run)

@@ -682,8 +682,10 @@ def _fit(task: Task, opts: FitOptions, run_dir: Path, resume: bool, lock: RunLoc
             if asked is not None:
                 stop_here(*asked, saved=True)  # rank 0 saved it just above
     bar.close()  # (a signal from here on is honoured once the training's last files are written: fit)
-    if is_main and not ckpt.sync_root() and not (run_dir / task.weights_file).exists():
-        save_weights(run_dir / task.weights_file, model, bands, meta)  # no checkpoint at all
+    # no checkpoint at all: the final weights are the run's. A kept checkpoint that is damaged leaves a missing root
+    # missing (sync_root's warning names it): the final model's weights there were not those the manifest records
+    if is_main and not ckpt.sync_root() and not (run_dir / task.weights_file).exists() and ckpt.root_source() is None:
+        save_weights(run_dir / task.weights_file, model, bands, meta)
     elapsed = time.perf_counter() - t_start
     final = {"step": state.global_step, "epoch": state.epoch, "final": True, "best_psnr": state.best_psnr,
              **{f"val_{k}": v for k, v in summary.items()}, "elapsed_s": elapsed}
