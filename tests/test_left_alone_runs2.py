@@ -82,3 +82,29 @@ def test_fit_does_not_write_its_final_weights_as_the_root_when_the_kept_checkpoi
                     f"damaged (a copy cut short, a disk error, an edit), so {root} was not rewritten from it; {RECOPY_HINT}"}
     with pytest.raises(InputError, match=r" is missing, and .* differs from them: the run's weights are damaged"):
         root_weights_path(run)
+
+
+def test_apply_keep_refuses_a_damaged_checkpoint_before_committing_it(tmp_path):
+    """A run keeping its best (step 1), its last checkpoint (step 2) given a flipped byte, then asked to keep its last
+    (train.keep_weights: last): apply_keep committed the manifest to the damaged checkpoint, sync_root then left the
+    root alone, and a run that readers took became one they refused. Now one refusal, the manifest and root unchanged."""
+    import hashlib
+
+    run = tmp_path / "run"
+    mgr = CheckpointManager(run)
+    for step, tags in ((1, ("last", "best")), (2, ("last",))):
+        net = torch.nn.Linear(2, 3)
+        mgr.save(net, torch.optim.Adam(net.parameters()), {"global_step": step, "best_psnr": 20.0}, BANDS, tags)
+    root, last = run / "model.safetensors", run / "checkpoints" / "step-00000002" / "model.safetensors"
+    sha = json.loads((run / MANIFEST).read_text())["last"]["weights_sha256"]
+    _flip_byte_in_place(last, last.stat().st_size - 3)
+    ck._HASHES.clear()
+    assert hashlib.sha256(last.read_bytes()).hexdigest() != sha
+    before = {p: p.read_bytes() for p in (run / MANIFEST, root)}
+    with pytest.raises(InputError) as err:
+        CheckpointManager(run, keep="last").apply_keep()
+    assert str(err.value) == (f"{last} differs from the weights {run / MANIFEST} records (sha256 {sha[:12]}…): the "
+                              "last checkpoint is damaged (a copy cut short, a disk error, an edit), so the run cannot "
+                              f"keep it (train.keep_weights: last); nothing was changed; {RECOPY_HINT}")
+    assert {p: p.read_bytes() for p in before} == before
+    assert root_weights_path(run) == root  # still the run's recorded (best) weights

@@ -402,7 +402,8 @@ class CheckpointManager:
         run given another ``train.keep_weights``. A run of the older layout (``last.json`` /
         ``best.json``) gets its manifest now, as at its next checkpoint. Returns True when the
         manifest changed; a run without any checkpoint is left as it is. The checkpoint it would
-        keep must exist (one-line :class:`InputError` otherwise, nothing changed)."""
+        keep must exist and hold the weights the manifest records (one-line :class:`InputError` otherwise,
+        nothing changed)."""
         man = self.manifest()
         if man is None:
             return False
@@ -415,7 +416,12 @@ class CheckpointManager:
         if not weights.is_file():
             raise InputError(f"{weights}: the {tag} checkpoint named by {self.run_dir / MANIFEST if not legacy else tag + '.json'} "
                              f"is missing, so the run cannot keep it (train.keep_weights: {self.keep}); nothing was changed")
-        man["weights"] = {"file": self.weights_file, "from": tag, "dir": src["dir"], "sha256": src.get("weights_sha256")}
+        sha = src.get("weights_sha256")
+        if sha is not None and file_sha256(weights) != sha:  # committed, readers would then refuse the run's weights
+            raise InputError(f"{weights} differs from the weights {self.run_dir / MANIFEST} records (sha256 {sha[:12]}…): "
+                             f"the {tag} checkpoint is damaged (a copy cut short, a disk error, an edit), so the run "
+                             f"cannot keep it (train.keep_weights: {self.keep}); nothing was changed; {RECOPY_HINT}")
+        man["weights"] = {"file": self.weights_file, "from": tag, "dir": src["dir"], "sha256": sha}
         write_json(self.run_dir / MANIFEST, man)  # the commit point; the root weights follow
         for pointer in LEGACY_POINTERS:
             (self.run_dir / pointer).unlink(missing_ok=True)
