@@ -326,8 +326,10 @@ class PriorTask(Task):
 
     def datasets(self):
         """The published prior's training data: clean patches, never relit (``data.augment_relight`` is
-        a setting of the camera's own training; :data:`hsicam.engine.prior.PRIOR_UNREAD_DATA_KEYS`)."""
-        return build_datasets(dataclasses.replace(self.cfg.data, augment_relight=0.0), self.bands, 0)
+        a setting of the camera's own training; :data:`hsicam.engine.prior.PRIOR_UNREAD_DATA_KEYS`). The
+        training patches' stream is the prior's own ``baselines.choi.seed`` (0: ``data.split_seed``'s alone)."""
+        return build_datasets(dataclasses.replace(self.cfg.data, augment_relight=0.0), self.bands, 0,
+                              stream=self.settings.seed)
 
     def training_step(self, trainable, clean: torch.Tensor, generator: torch.Generator) -> torch.Tensor:
         b = clean.shape[0]
