@@ -1,5 +1,5 @@
-"""Seeds earlier sessions left alone (session 60): the Choi prior's own seed and its patch stream, the validation
-noise of runs of different seeds."""
+"""Seeds and windows earlier sessions left alone (session 60): the Choi prior's own seed and its patch stream, the
+validation noise of runs of different seeds, the CASSI coded-aperture window far from the origin."""
 
 from __future__ import annotations
 
@@ -8,6 +8,7 @@ import pytest
 import torch
 
 from hsicam.config import ChoiConfig, load_config
+from hsicam.errors import InputError
 
 _NPY_BANDS = "data.npy_bands={start_nm: 420, stop_nm: 720, step_nm: 50}"
 
@@ -92,3 +93,103 @@ def test_runs_of_every_seed_validate_on_the_noise_draws_of_seed_0(tmp_path):
     assert got[1] == got[0] and got[7] == got[0]
     # the noise matters: another seed's draws score otherwise (the check above could not pass by chance)
     assert validate_system(model, loader, torch.device("cpu"), seed=1)["psnr"] != got[0]["psnr"]
+
+
+# ------------------------------------------------------------------------------------------------
+# 3. the CASSI coded-aperture window: only the window is hashed
+# ------------------------------------------------------------------------------------------------
+def _np_hashed_uniform(seed: int, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
+    """The documented hash, in numpy: u = mix(mix(mix(seed·0x2545F491 + 0x9E3779B9) ^ row) ^ column) / 2³², with
+    mix the 32-bit finaliser h ← ((h >> 16) ^ h)·0x45D9F3B mod 2³² (twice), then (h >> 16) ^ h."""
+    m = np.uint64(0xFFFFFFFF)
+
+    def mix(h):
+        h = np.asarray(h, dtype=np.uint64)
+        for _ in range(2):
+            h = (((h >> np.uint64(16)) ^ h) * np.uint64(0x45D9F3B)) & m
+        return (h >> np.uint64(16)) ^ h
+
+    s = mix((seed * 0x2545F491 + 0x9E3779B9) & 0xFFFFFFFF)
+    v = mix(mix(s ^ rows.astype(np.uint64)[:, None]) ^ cols.astype(np.uint64)[None, :])
+    return v.astype(np.float64) / 2.0**32
+
+
+def _cassi(kind: str, *overrides: str):
+    from hsicam.cameras import build_camera
+
+    return build_camera(load_config(overrides=["bands.start_nm=500", "bands.stop_nm=700", "bands.step_nm=50",
+                                               f"camera.kind={kind}", *overrides])).double()
+
+
+@pytest.mark.parametrize("kind", ("dd_cassi", "sd_cassi"))
+def test_the_aperture_window_is_the_crop_of_the_whole_pattern_and_hashes_only_its_own_pixels(kind, monkeypatch):
+    """CASSISnapshot hashed the whole pattern (r0 + h, c0 + w) to crop its window at (r0, c0): at --cfa-offset
+    65535,65535 about 34 GB for any capture (at 4000,4000 a 32×32 window took 376 MiB). Now only the window is hashed;
+    its values are those of the whole pattern's crop, bit for bit, and of the documented hash far away."""
+    import hsicam.cameras.cassi as cassi
+
+    cam = _cassi(kind, "camera.cassi.mask_seed=5")
+    hashed: list[int] = []
+    real = cassi.hashed_uniform
+
+    def counting(h, w, *args, **kwargs):
+        hashed.append(h * w)
+        return real(h, w, *args, **kwargs)
+
+    x = torch.rand(2, len(cam.bands), 9, 11, dtype=torch.float64)
+    wide = 11 + (cam.span if kind == "dd_cassi" else 0)  # the aperture columns the window needs
+    for r0, c0 in ((0, 0), (1, 0), (0, 3), (17, 29), (400, 61), (1000, 2000)):
+        whole = cam.aperture.pattern(r0 + 9, c0 + wide, dtype=torch.float64)[r0:, c0:]  # the crop, as before
+        cam.aperture._cache.clear()
+        monkeypatch.setattr(cassi, "hashed_uniform", counting)
+        hashed.clear()
+        snap = cassi.CASSISnapshot(cam, offset=(r0, c0))
+        window = snap._aperture(9, wide, (0, 0), x)
+        assert hashed == [9 * wide], (r0, c0)  # the window's pixels, not (r0 + 9) × (c0 + wide)
+        monkeypatch.setattr(cassi, "hashed_uniform", real)
+        assert torch.equal(window, whole), (r0, c0)
+        assert torch.equal(cassi.CASSISnapshot(cam, offset=(0, c0))._aperture(9, wide, (r0, 0), x), whole)
+        if r0 + c0 < 1000:  # the window's measurement: the crop of the measurement of the scene pasted there
+            big = torch.zeros(2, len(cam.bands), r0 + 9, c0 + 11, dtype=torch.float64)
+            big[..., r0:, c0:] = x
+            torch.testing.assert_close(snap.A(x), cam.A(big)[..., r0:, c0:], rtol=1e-12, atol=1e-14)
+    # at the largest offset reconstruct takes: the documented hash of those rows and columns, thresholded at 0.5
+    r0 = c0 = 65535
+    ref = _np_hashed_uniform(5, np.arange(r0, r0 + 9), np.arange(c0, c0 + wide)) < 0.5
+    window = cassi.CASSISnapshot(cam, offset=(r0, c0))._aperture(9, wide, (0, 0), x)
+    np.testing.assert_array_equal(window.numpy(), ref.astype(np.float64))
+    u = cassi.hashed_uniform(6, 7, 5, origin=(3, 11))
+    np.testing.assert_array_equal(u.numpy(), _np_hashed_uniform(5, np.arange(3, 9), np.arange(11, 18)))
+
+
+def test_the_pattern_cache_keys_on_the_window_origin():
+    from hsicam.cameras import CodedAperture
+
+    ap = CodedAperture(seed=2)
+    whole = ap.pattern(12, 13)
+    first = ap.pattern(4, 5, origin=(0, 0))
+    assert ap.pattern(4, 5, origin=(0, 0)) is first  # cached
+    for r0, c0 in ((1, 0), (0, 1), (8, 8), (0, 0)):
+        assert torch.equal(ap.pattern(4, 5, origin=(r0, c0)), whole[r0:r0 + 4, c0:c0 + 5]), (r0, c0)
+
+
+def test_a_loaded_aperture_window_is_the_arrays_crop_and_one_outside_it_is_refused(tmp_path):
+    arr = np.random.default_rng(1).random((20, 31))
+    np.save(tmp_path / "mask.npy", arr)
+    cam = _cassi("dd_cassi", f"camera.cassi.mask_file={tmp_path / 'mask.npy'}")
+    import hsicam.cameras.cassi as cassi
+
+    x = torch.rand(1, len(cam.bands), 6, 7, dtype=torch.float64)
+    for r0, c0 in ((0, 0), (3, 0), (0, 5), (14, 16)):  # 14 + 6 = 20 rows, 16 + 7 + 8 = 31 columns: the last fit
+        snap = cassi.CASSISnapshot(cam, offset=(r0, c0))
+        np.testing.assert_array_equal(snap._aperture(6, 7 + cam.span, (0, 0), x).numpy(),
+                                      arr[r0:r0 + 6, c0:c0 + 7 + cam.span])
+        y = np.zeros((1, 1, 6, 7))
+        for c, d in enumerate(cam.shifts):  # y = s Σ_c P[i, j + d_c] x_c, P at the window's place
+            y[0, 0] += cam.scale * arr[r0:r0 + 6, c0 + d:c0 + d + 7] * x[0, c].numpy()
+        np.testing.assert_allclose(snap.A(x).numpy(), y, rtol=1e-12)
+    for r0, c0, need in ((15, 0, "21×15"), (0, 17, "6×32"), (65535, 65535, "65541×65550")):
+        with pytest.raises(InputError) as err:
+            cassi.CASSISnapshot(cam, offset=(r0, c0)).A(x)
+        assert str(err.value) == (f"coded aperture {tmp_path / 'mask.npy'} is 20×31 px but {need} px are needed "
+                                  "(rows × columns, including the dispersion span)")

@@ -68,19 +68,24 @@ def _mix32(h: torch.Tensor) -> torch.Tensor:
     return (h >> 16) ^ h
 
 
-def hashed_uniform(h: int, w: int, seed: int, device: torch.device | str | None = None) -> torch.Tensor:
-    """Uniform values in [0, 1) (float64, (h, w)) that depend only on (seed, row, column)."""
+def hashed_uniform(h: int, w: int, seed: int, device: torch.device | str | None = None,
+                   origin: tuple[int, int] = (0, 0)) -> torch.Tensor:
+    """Uniform values in [0, 1) (float64, (h, w)) that depend only on (seed, row, column): the window of rows
+    ``origin[0]``… and columns ``origin[1]``… (only those are hashed: the memory is the window's, not its offset's)."""
+    r0, c0 = int(origin[0]), int(origin[1])
     s = _mix32(torch.tensor((seed * 0x2545F491 + 0x9E3779B9) & _M32, dtype=torch.int64, device=device))
-    rows = torch.arange(h, dtype=torch.int64, device=device)[:, None]
-    cols = torch.arange(w, dtype=torch.int64, device=device)[None, :]
+    rows = torch.arange(r0, r0 + h, dtype=torch.int64, device=device)[:, None]
+    cols = torch.arange(c0, c0 + w, dtype=torch.int64, device=device)[None, :]
     v = _mix32(_mix32(s ^ rows) ^ cols)
     return v.to(torch.float64) / 2.0**32
 
 
 def random_aperture(h: int, w: int, seed: int = 0, density: float = 0.5,
-                    device: torch.device | str | None = None, dtype: torch.dtype = torch.float32) -> torch.Tensor:
-    """Random binary coded aperture (h, w): 1 (open) with probability ``density``, position-hashed."""
-    return (hashed_uniform(h, w, seed, device) < density).to(dtype)
+                    device: torch.device | str | None = None, dtype: torch.dtype = torch.float32,
+                    origin: tuple[int, int] = (0, 0)) -> torch.Tensor:
+    """Random binary coded aperture (h, w) at ``origin`` (row, column): 1 (open) with probability ``density``,
+    position-hashed."""
+    return (hashed_uniform(h, w, seed, device, origin) < density).to(dtype)
 
 
 def load_aperture(path: str | Path) -> np.ndarray:
@@ -117,8 +122,9 @@ def load_aperture(path: str | Path) -> np.ndarray:
 class CodedAperture(nn.Module):
     """The coded aperture P: a position-hashed random binary pattern, or an array (from a file).
 
-    ``pattern(h, w)`` is the top-left (h, w) window; an array smaller than that is an
-    :class:`InputError`. The array is a non-persistent buffer: checkpoints do not store it.
+    ``pattern(h, w)`` is the top-left (h, w) window, ``pattern(h, w, origin=(r0, c0))`` the one at row r0, column c0;
+    an array that does not hold the window is an :class:`InputError`. The array is a non-persistent buffer:
+    checkpoints do not store it.
     """
 
     def __init__(self, seed: int = 0, density: float = 0.5, array: np.ndarray | torch.Tensor | None = None,
@@ -138,21 +144,24 @@ class CodedAperture(nn.Module):
         return cls(array=load_aperture(path), source=str(path))
 
     def pattern(self, h: int, w: int, device: torch.device | str | None = None,
-                dtype: torch.dtype = torch.float32) -> torch.Tensor:
-        """Aperture window (h, w) on ``device`` in ``dtype`` (cached for the last few sizes)."""
+                dtype: torch.dtype = torch.float32, origin: tuple[int, int] = (0, 0)) -> torch.Tensor:
+        """Aperture window (h, w) at ``origin`` (row, column) on ``device`` in ``dtype`` (cached for the last few
+        windows): the (h, w) crop at ``origin`` of the pattern ``pattern(r0 + h, c0 + w)``, of which only the window is
+        hashed."""
         device = torch.device(device) if device is not None else torch.device("cpu")
-        key = (h, w, str(device), dtype)
+        r0, c0 = int(origin[0]), int(origin[1])
+        key = (h, w, r0, c0, str(device), dtype)
         p = self._cache.get(key)
         if p is not None:
             return p
         if self.array is None:
-            p = random_aperture(h, w, self.seed, self.density, device, dtype)
+            p = random_aperture(h, w, self.seed, self.density, device, dtype, (r0, c0))
         else:
             ah, aw = self.array.shape
-            if ah < h or aw < w:
-                raise InputError(f"coded aperture {self.source or ''} is {ah}×{aw} px but {h}×{w} px are needed "
-                                 f"(rows × columns, including the dispersion span)")
-            p = self.array[:h, :w].to(device=device, dtype=dtype)
+            if ah < r0 + h or aw < c0 + w:
+                raise InputError(f"coded aperture {self.source or ''} is {ah}×{aw} px but {r0 + h}×{c0 + w} px are "
+                                 f"needed (rows × columns, including the dispersion span)")
+            p = self.array[r0:r0 + h, c0:c0 + w].to(device=device, dtype=dtype)
         if len(self._cache) >= 8:
             self._cache.clear()
         self._cache[key] = p
@@ -470,7 +479,7 @@ class CASSISnapshot:
 
     def _aperture(self, h: int, w: int, origin: tuple[int, int], ref: torch.Tensor) -> torch.Tensor:
         r0, c0 = self.offset[0] + int(origin[0]), self.offset[1] + int(origin[1])
-        return self.camera.aperture.pattern(r0 + h, c0 + w, ref.device, ref.dtype)[r0:, c0:]
+        return self.camera.aperture.pattern(h, w, ref.device, ref.dtype, (r0, c0))
 
     def A(self, x: torch.Tensor, origin: tuple[int, int] = (0, 0)) -> torch.Tensor:  # noqa: N802
         self.camera.check_scene(x)
