@@ -86,7 +86,7 @@ import numpy as np
 
 from hsicam.data.cube import check_cube, check_memory_budget
 from hsicam.errors import InputError
-from hsicam.io import atomic_path, json_default
+from hsicam.io import atomic_path, json_text, nan_for_null
 from hsicam.spectral import Bands
 
 log = logging.getLogger(__name__)
@@ -426,8 +426,8 @@ def _read_attrs(attrs: Any) -> dict[str, Any]:
         raw = raw.decode() if isinstance(raw, bytes) else str(raw)
         try:
             loaded = json.loads(raw)
-            if isinstance(loaded, dict):
-                meta.update(loaded)
+            if isinstance(loaded, dict):  # a score written as null (not finite) is NaN again, as older files' NaN
+                meta.update(nan_for_null(loaded))
         except json.JSONDecodeError:
             log.warning("ignoring unreadable metadata_json attribute")
     for key in ("max_value", "version"):
@@ -440,7 +440,8 @@ def write_cube_h5(path: str | os.PathLike, cube: np.ndarray, bands: Bands, metad
     """Write our HDF5 cube file atomically (byte-identical for identical inputs: no timestamps).
 
     ``cube`` (C, H, W) is stored contiguous float32 (so windows can be read cheaply); ``metadata``
-    must be JSON-serialisable and is stored as the ``metadata_json`` attribute. HDF5 writes through
+    must be JSON-serialisable and is stored as the ``metadata_json`` attribute, strict JSON
+    (:func:`hsicam.io.json_text`: a float that is not finite, NaN or ±inf, written as null). HDF5 writes through
     a Python file object, so a failed write (a full disk …) is a plain OSError: with HDF5's own file
     driver, a file it could not flush stayed open in the library and crashed the interpreter at exit.
     """
@@ -450,7 +451,7 @@ def write_cube_h5(path: str | os.PathLike, cube: np.ndarray, bands: Bands, metad
     arr = check_cube(cube, p)
     if arr.shape[0] != len(bands):
         raise InputError(f"{p}: the cube has {arr.shape[0]} bands but {len(bands)} band centres were given")
-    meta_json = json.dumps(metadata or {}, sort_keys=True, default=json_default)
+    meta_json = json_text(metadata or {}, sort_keys=True)  # strict JSON: h5py + any JSON parser read it
     with atomic_path(p) as tmp, open(tmp, "w+b") as fh, h5py.File(fh, "w", libver=("earliest", "v110")) as f:
         f.create_dataset("cube", data=arr, track_times=False)
         f.create_dataset("bands_nm", data=np.asarray(bands.centers_nm, dtype=np.float64), track_times=False)
@@ -1306,13 +1307,14 @@ def write_envi(path: str | os.PathLike, cube: np.ndarray, bands: Bands, *, inter
 
 def envi_metadata_value(metadata: dict[str, Any]) -> str:
     """The ENVI header value of :data:`ENVI_METADATA_KEY`: ``metadata`` as one line of JSON in ENVI's braces,
-    ``{{...}}``, that every ENVI reader takes whole. ASCII only (``ensure_ascii``: no character that a reader's
+    ``{{...}}``, that every ENVI reader takes whole. Strict JSON (:func:`hsicam.io.json_text`: a float that is not
+    finite written as null, which strict parsers take and ``NaN``/``Infinity`` they refuse). ASCII only (``ensure_ascii``: no character that a reader's
     line splitting, e.g. Python's ``str.splitlines`` on U+2028, would break the line at); no spaces after the
     separators; and inside strings ``{``, ``}`` and ``,`` written as JSON's ``\\u007b``, ``\\u007d`` and
     ``\\u002c``: readers that count braces to find the value's end see them balanced, and those that split a
     braced value at its commas (the ``spectral`` package) split only between JSON items, with nothing stripped, so
     that joining the pieces with ``,`` gives the JSON back. :func:`read_envi` reads it (:func:`_envi_metadata`)."""
-    text = json.dumps(metadata, sort_keys=True, default=json_default, ensure_ascii=True, separators=(",", ":"))
+    text = json_text(metadata, sort_keys=True, ensure_ascii=True, separators=(",", ":"))
     text = _JSON_STRING.sub(lambda m: m.group(0).replace("{", "\\u007b").replace("}", "\\u007d")
                             .replace(",", "\\u002c"), text)
     return "{" + text + "}"
@@ -1338,7 +1340,7 @@ def _envi_metadata(hdr: Path, h: dict[str, str]) -> dict[str, Any]:
     if not isinstance(loaded, dict):
         log.warning("%s: ignoring its unreadable '%s' (not a JSON object in braces)", hdr, ENVI_METADATA_KEY)
         return {}
-    return loaded
+    return nan_for_null(loaded)  # a score written as null (not finite) is NaN again, as older files' NaN
 
 
 # ------------------------------------------------------------------------------------------------

@@ -1,0 +1,93 @@
+"""Follow-ups of the strict-JSON files (tests/test_strict_json.py): the JSON that hsicam embeds in other files (our
+HDF5 cube's ``metadata_json``, the ENVI header's ``hsicam metadata`` line) is strict too, and both readers read the
+new files and the older ones (``NaN``/``Infinity`` literals) alike."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import h5py
+import numpy as np
+
+from hsicam.data import read_cube
+from hsicam.data.formats import ENVI_METADATA_KEY, write_cube_h5, write_envi
+from hsicam.engine.cfa_offset import CfaOffsetEstimate
+from hsicam.spectral import Bands
+
+
+def _refuse(constant: str):
+    raise ValueError(f"not strict JSON: {constant}")
+
+
+def strict(text: str):
+    """``text`` parsed as a strict parser does (JavaScript's JSON.parse): NaN, Infinity and -Infinity refused."""
+    return json.loads(text, parse_constant=_refuse)
+
+
+BANDS = Bands.from_centers([450.0, 550.0, 650.0])
+
+
+def _cube() -> np.ndarray:
+    return np.random.default_rng(0).uniform(0.1, 1.0, (3, 6, 5)).astype(np.float32)
+
+
+def _metadata() -> dict:
+    """A cube's metadata with values that are not finite: a NaN score, and reconstruct's record of a --cfa-offset auto
+    estimate whose chosen phase explains the capture exactly (residual 0: the contrast (median − best) / best is inf)."""
+    est = CfaOffsetEstimate((0, 1), {"0,0": 0.5, "0,1": 0.0, "1,0": 0.25, "1,1": 0.5}, (0, 0, 64, 64), 8)
+    assert est.contrast == math.inf
+    return {"command": "reconstruct", "sam": float("nan"), "psnr": np.float32(31.5), "cfa_offset": [0, 1],
+            "cfa_offset_estimate": est.as_dict()}
+
+
+def _check_read(meta: dict, contrast) -> None:
+    """What read_cube returns of :func:`_metadata`: the NaN score as NaN (null read back), the rest as written."""
+    assert math.isnan(meta["sam"]) and meta["psnr"] == 31.5 and meta["cfa_offset"] == [0, 1]
+    rec = meta["cfa_offset_estimate"]
+    assert rec["offset"] == [0, 1] and rec["residuals"]["0,1"] == 0.0 and rec["ambiguous"] is False
+    assert rec["contrast"] == contrast
+
+
+def test_cube_h5_metadata_json_is_strict_json_and_old_files_still_read(tmp_path):
+    """write_cube_h5 kept the metadata with Python's ``NaN``/``Infinity``, which a strict parser (h5py + JSON.parse,
+    jq, serde) refuses: now null there. read_cube reads the new file and one as older hsicam wrote it alike."""
+    path = write_cube_h5(tmp_path / "c.h5", _cube(), BANDS, _metadata())
+    with h5py.File(path, "r") as f:  # the attribute as any HDF5 tool reads it
+        raw = f.attrs["metadata_json"]
+    data = strict(raw.decode() if isinstance(raw, bytes) else str(raw))
+    assert data["sam"] is None and data["cfa_offset_estimate"]["contrast"] is None and data["psnr"] == 31.5
+    cube, bands, meta = read_cube(path)
+    np.testing.assert_array_equal(cube, _cube())
+    _check_read(meta, None)
+    with h5py.File(path, "a") as f:  # the same file as older hsicam wrote it: NaN and Infinity literals
+        rec = {**data["cfa_offset_estimate"], "contrast": math.inf}
+        f.attrs["metadata_json"] = json.dumps({**data, "sam": math.nan, "cfa_offset_estimate": rec}, sort_keys=True)
+    with h5py.File(path, "r") as f:
+        assert "NaN" in str(f.attrs["metadata_json"]) and "Infinity" in str(f.attrs["metadata_json"])
+    _check_read(read_cube(path)[2], math.inf)
+
+
+def _header_metadata(hdr) -> str:
+    """The JSON of the header's ``hsicam metadata = {...}`` line, read as plain text (ENVI's braces taken off)."""
+    lines = [x for x in hdr.read_text(encoding="utf-8").splitlines() if x.startswith(f"{ENVI_METADATA_KEY} = ")]
+    assert len(lines) == 1
+    value = lines[0].split(" = ", 1)[1].strip()
+    assert value.startswith("{") and value.endswith("}")
+    return value[1:-1]
+
+
+def test_envi_metadata_line_is_strict_json_and_old_headers_still_read(tmp_path):
+    """write_envi's ``hsicam metadata`` header line held ``NaN``/``Infinity`` too: now null; read_cube reads it, and a
+    header as older hsicam wrote it, alike."""
+    hdr, _ = write_envi(tmp_path / "c.hdr", _cube(), BANDS, metadata=_metadata())
+    text = _header_metadata(hdr)
+    data = strict(text)
+    assert data["sam"] is None and data["cfa_offset_estimate"]["contrast"] is None and data["psnr"] == 31.5
+    cube, _, meta = read_cube(hdr)
+    np.testing.assert_array_equal(cube, _cube())
+    _check_read(meta, None)
+    old = text.replace('"sam":null', '"sam":NaN').replace('"contrast":null', '"contrast":Infinity')
+    assert old != text
+    hdr.write_text(hdr.read_text(encoding="utf-8").replace(text, old), encoding="utf-8")  # the CRC is the data's
+    _check_read(read_cube(hdr)[2], math.inf)
