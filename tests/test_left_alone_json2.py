@@ -1,6 +1,6 @@
 """Follow-ups of the strict-JSON files (tests/test_strict_json.py): the JSON that hsicam embeds in other files (our
 HDF5 cube's ``metadata_json``, the ENVI header's ``hsicam metadata`` line) is strict too, and both readers read the
-new files and the older ones (``NaN``/``Infinity`` literals) alike."""
+new files and the older ones (``NaN``/``Infinity`` literals) alike; the metric conventions say what the files hold."""
 
 from __future__ import annotations
 
@@ -9,10 +9,13 @@ import math
 
 import h5py
 import numpy as np
+import torch
 
 from hsicam.data import read_cube
 from hsicam.data.formats import ENVI_METADATA_KEY, write_cube_h5, write_envi
 from hsicam.engine.cfa_offset import CfaOffsetEstimate
+from hsicam.engine.evaluate import SceneResult, summarize, write_results
+from hsicam.metrics import CONVENTIONS, all_metrics
 from hsicam.spectral import Bands
 
 
@@ -91,3 +94,20 @@ def test_envi_metadata_line_is_strict_json_and_old_headers_still_read(tmp_path):
     assert old != text
     hdr.write_text(hdr.read_text(encoding="utf-8").replace(text, old), encoding="utf-8")  # the CRC is the data's
     _check_read(read_cube(hdr)[2], math.inf)
+
+
+def test_sam_convention_says_what_memory_and_results_json_hold(tmp_path):
+    """CONVENTIONS["sam"] (copied into results.json) said "NaN when the truth is zero at every pixel", while the file
+    holds null there: the text now names both, NaN as all_metrics returns it and null as results.json holds it."""
+    est, truth = np.full((3, 16, 16), 0.1), np.zeros((3, 16, 16))
+    m = {k: v[0] for k, v in all_metrics(torch.from_numpy(est)[None], torch.from_numpy(truth)[None]).items()}
+    assert math.isnan(m["sam"])  # in memory: NaN
+    write_results(tmp_path, summarize([SceneResult("dark", m, None, None, 0.5, sam_excluded_px=256)]))
+    data = strict((tmp_path / "results.json").read_text(encoding="utf-8"))
+    assert data["scenes"][0]["sam"] is None and data["sam_undefined"] == ["dark"]  # in the file: null
+    text = data["conventions"]["sam"]
+    assert text == CONVENTIONS["sam"]
+    assert "undefined when the truth is zero at every pixel: NaN (null in the JSON files, nan in results.csv and " \
+           "results.md; results.json lists such scenes in sam_undefined" in text
+    assert "NaN when" not in text
+    assert "nan" in (tmp_path / "results.csv").read_text(encoding="utf-8").splitlines()[1].split(",")

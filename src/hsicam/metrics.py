@@ -33,7 +33,9 @@ CONVENTIONS = {
     "ssim": "per band, Gaussian 11x11 sigma 1.5, K=(0.01,0.03), data range 1, mean",
     "sam": ("mean spectral angle over pixels, degrees; pixels whose truth spectrum is all zero have no angle "
             "and are left out (sam_excluded_px counts them); an all-zero estimate spectrum where the truth is "
-            "not counts as 90 degrees; NaN when the truth is zero at every pixel"),
+            "not counts as 90 degrees; undefined when the truth is zero at every pixel: NaN (null in the JSON "
+            "files, nan in results.csv and results.md; results.json lists such scenes in sam_undefined, and a mean "
+            "is over the other scenes)"),
     "ergas": "100 * sqrt(mean_b (RMSE_b / mean_b)^2), resolution ratio 1",
     "rmse": "whole cube",
 }
