@@ -1,21 +1,28 @@
 """Follow-ups of the strict-JSON files (tests/test_strict_json.py): the JSON that hsicam embeds in other files (our
 HDF5 cube's ``metadata_json``, the ENVI header's ``hsicam metadata`` line) is strict too, and both readers read the
-new files and the older ones (``NaN``/``Infinity`` literals) alike; the metric conventions say what the files hold."""
+new files and the older ones (``NaN``/``Infinity`` literals) alike; the metric conventions say what the files hold;
+ERGAS is undefined (NaN, as an undefined SAM) for a truth with a band whose mean is 0, where the floor of that mean
+at 1e-12 gave values of 10¹¹ and more."""
 
 from __future__ import annotations
 
+import csv
 import json
 import math
+from html.parser import HTMLParser
 
 import h5py
 import numpy as np
+import pytest
 import torch
 
 from hsicam.data import read_cube
 from hsicam.data.formats import ENVI_METADATA_KEY, write_cube_h5, write_envi
 from hsicam.engine.cfa_offset import CfaOffsetEstimate
 from hsicam.engine.evaluate import SceneResult, summarize, write_results
-from hsicam.metrics import CONVENTIONS, all_metrics
+from hsicam.io import mark_complete
+from hsicam.metrics import CONVENTIONS, all_metrics, ergas
+from hsicam.report.html import build_report
 from hsicam.spectral import Bands
 
 
@@ -96,6 +103,80 @@ def test_envi_metadata_line_is_strict_json_and_old_headers_still_read(tmp_path):
     _check_read(read_cube(hdr)[2], math.inf)
 
 
+def _ergas_numpy(est: np.ndarray, truth: np.ndarray) -> float:
+    """ERGAS of one (C, H, W) pair, resolution ratio 1: 100·sqrt(mean_b (RMSE_b / μ_b)²), NaN when a μ_b is 0."""
+    rmse_b = np.sqrt(((est - truth) ** 2).mean(axis=(1, 2)))
+    mu = truth.mean(axis=(1, 2))
+    return float("nan") if np.any(mu == 0) else float(100 * np.sqrt(np.mean((rmse_b / mu) ** 2)))
+
+
+def test_ergas_on_cubes_whose_band_means_are_positive_is_the_formula():
+    """Unchanged where every band's truth mean is > 0 (small ones too): the formula, computed with numpy."""
+    rng = np.random.default_rng(1)
+    truth = rng.uniform(0.0, 1.0, (3, 5, 13, 12))
+    truth[1, 2] *= 1e-6  # a dim band, not a dark one
+    truth[2, 0, 1:, :] = 0.0  # a band dark but for one row
+    est = np.clip(truth + rng.normal(0, 0.05, truth.shape), 0, 1)
+    got = ergas(torch.from_numpy(est), torch.from_numpy(truth))
+    for i in range(3):
+        assert got[i].item() == pytest.approx(_ergas_numpy(est[i], truth[i]), rel=1e-12)
+    assert all(map(math.isfinite, all_metrics(torch.from_numpy(est), torch.from_numpy(truth))["ergas"]))
+
+
+def _scenes():
+    """A lit scene (estimate 0.9 × truth) and one whose first band is dark (zero) in the truth, with an error of
+    0.01 there: ERGAS divided it by the floor 1e-12 (5.8·10¹¹)."""
+    rng = np.random.default_rng(2)
+    lit = rng.uniform(0.2, 1.0, (3, 16, 16))
+    dark = rng.uniform(0.2, 1.0, (3, 16, 16))
+    dark[0] = 0.0
+    est_dark = 0.9 * dark
+    est_dark[0] = 0.01
+    return {"lit": (0.9 * lit, lit), "dark": (est_dark, dark)}
+
+
+def test_ergas_of_a_truth_with_a_dark_band_is_undefined_through_all_metrics_and_the_results_files(tmp_path):
+    """A truth with a band zero at every pixel has no ERGAS: NaN from all_metrics (not the worst score, as a broken
+    estimate's), listed in ergas_undefined, null in results.json, nan in results.csv and results.md, "n/a" in the
+    report, and the means over the other scenes, as for an undefined SAM; the other metrics are as before."""
+    scenes = _scenes()
+    rows = []
+    for name, (est, truth) in scenes.items():
+        m = {k: v[0] for k, v in all_metrics(torch.from_numpy(est)[None], torch.from_numpy(truth)[None]).items()}
+        rows.append(SceneResult(name, m, None, None, 0.5, sam_excluded_px=0))
+    by = {r.name: r.metrics for r in rows}
+    assert by["lit"]["ergas"] == pytest.approx(_ergas_numpy(*scenes["lit"]), rel=1e-9)
+    assert math.isnan(by["dark"]["ergas"]) and math.isnan(_ergas_numpy(*scenes["dark"]))
+    assert math.isfinite(by["dark"]["psnr"]) and math.isfinite(by["dark"]["sam"])
+    # a broken estimate (a NaN pixel) of a lit truth is still the worst ERGAS; of the dark-band truth undefined
+    broken = torch.from_numpy(scenes["lit"][0]).clone()[None]
+    broken[0, 1, 2, 2] = math.nan
+    assert all_metrics(broken, torch.from_numpy(scenes["lit"][1])[None])["ergas"] == [math.inf]
+    out = tmp_path / "ev"
+    out.mkdir()
+    write_results(out, summarize(rows, method="doe-learned"))
+    mark_complete(out, {"command": "evaluate"})
+    data = strict((out / "results.json").read_text(encoding="utf-8"))
+    js = {r["name"]: r for r in data["scenes"]}
+    assert js["dark"]["ergas"] is None and data["ergas_undefined"] == ["dark"] and "sam_undefined" not in data
+    assert data["mean"]["ergas"] == pytest.approx(by["lit"]["ergas"], rel=1e-12)  # over the scenes that have one
+    assert data["mean"]["psnr"] == pytest.approx((by["lit"]["psnr"] + by["dark"]["psnr"]) / 2)
+    with open(out / "results.csv", newline="", encoding="utf-8") as fh:
+        table = {r["name"]: r for r in csv.DictReader(fh)}
+    assert table["dark"]["ergas"] == "nan" and float(table["mean"]["ergas"]) == pytest.approx(by["lit"]["ergas"], rel=1e-5)
+    md = (out / "results.md").read_text(encoding="utf-8")
+    assert "- ERGAS undefined (a band of the truth is zero at every scored pixel) for dark" in md
+    dark_row = next(line for line in md.splitlines() if line.startswith("| dark |"))
+    assert dark_row.split("|")[5].strip() == "nan"  # | scene | psnr | ssim | sam | ergas | runtime_s |
+    cells = _Cells(build_report(out).read_text(encoding="utf-8")).cells
+    ergas_col = [cells[i + 4] for i in range(0, len(cells), 7)]  # scene, PSNR, SSIM, SAM, ERGAS, PSNR MST, runtime
+    assert ergas_col == [f"{by['lit']['ergas']:.2f}", "n/a", f"{by['lit']['ergas']:.2f}"]
+    text = data["conventions"]["ergas"]  # the conventions say so
+    assert text == CONVENTIONS["ergas"] and "undefined when a band's mean_b is 0" in text
+    assert "NaN (null in the JSON files, nan in results.csv and results.md; results.json lists such scenes in " \
+           "ergas_undefined" in text
+
+
 def test_sam_convention_says_what_memory_and_results_json_hold(tmp_path):
     """CONVENTIONS["sam"] (copied into results.json) said "NaN when the truth is zero at every pixel", while the file
     holds null there: the text now names both, NaN as all_metrics returns it and null as results.json holds it."""
@@ -111,3 +192,26 @@ def test_sam_convention_says_what_memory_and_results_json_hold(tmp_path):
            "results.md; results.json lists such scenes in sam_undefined" in text
     assert "NaN when" not in text
     assert "nan" in (tmp_path / "results.csv").read_text(encoding="utf-8").splitlines()[1].split(",")
+
+
+class _Cells(HTMLParser):
+    """The table cells of a page."""
+
+    def __init__(self, text: str):
+        super().__init__()
+        self.cells: list[str] = []
+        self._in = False
+        self.feed(text)
+
+    def handle_starttag(self, tag, attrs):
+        if tag == "td":
+            self._in = True
+            self.cells.append("")
+
+    def handle_endtag(self, tag):
+        if tag == "td":
+            self._in = False
+
+    def handle_data(self, data):
+        if self._in:
+            self.cells[-1] += data

@@ -15,7 +15,8 @@ All functions take (B, C, H, W) tensors (or (C, H, W), treated as B = 1) with va
   truth spectrum is all zero has no angle and is left out (:func:`sam_undefined_pixels` counts them);
   an estimate spectrum that is all zero where the truth is not counts as 90° (leaving it out would
   reward returning zeros); NaN for a cube whose truth is zero at every pixel.
-- ``ergas``, ``rmse``.
+- ``ergas``: NaN for a cube in which a band's truth mean is 0 (a band dark in the truth has no relative
+  error; :func:`ergas_undefined`). ``rmse``.
 """
 
 from __future__ import annotations
@@ -36,7 +37,10 @@ CONVENTIONS = {
             "not counts as 90 degrees; undefined when the truth is zero at every pixel: NaN (null in the JSON "
             "files, nan in results.csv and results.md; results.json lists such scenes in sam_undefined, and a mean "
             "is over the other scenes)"),
-    "ergas": "100 * sqrt(mean_b (RMSE_b / mean_b)^2), resolution ratio 1",
+    "ergas": ("100 * sqrt(mean_b (RMSE_b / mean_b)^2), resolution ratio 1, mean_b the truth's mean of band b; "
+              "undefined when a band's mean_b is 0 (a band zero at every pixel of the truth): NaN (null in the JSON "
+              "files, nan in results.csv and results.md; results.json lists such scenes in ergas_undefined, and a "
+              "mean is over the other scenes)"),
     "rmse": "whole cube",
 }
 
@@ -246,28 +250,41 @@ def _quantile(t: torch.Tensor, q: float) -> torch.Tensor:
 
 
 def ergas(x: torch.Tensor, y: torch.Tensor, eps: float = 1e-12) -> torch.Tensor:
-    """ERGAS (resolution ratio 1): 100·sqrt(mean over bands of (RMSE_b / mean_b(y))²), (B,)."""
+    """ERGAS (resolution ratio 1): 100·sqrt(mean over bands of (RMSE_b / mean_b(y))²), (B,); NaN for a cube
+    in which a band's truth mean is 0 (:func:`ergas_undefined`: the ratio is undefined there, as SAM is for a
+    truth zero at every pixel; the floor ``eps`` of |mean_b| alone made it RMSE_b·10¹²: 5·10¹¹ for an error of
+    0.01 in one band of four). A mean_b in (0, ``eps``) is floored at ``eps``."""
     x, y = _batched(x, y)
     rmse_b = (x - y).square().mean(dim=(-2, -1)).sqrt()
-    mean_b = y.mean(dim=(-2, -1)).abs().clamp_min(eps)
-    return 100.0 * (rmse_b / mean_b).square().mean(dim=1).sqrt()
+    mean_b = y.mean(dim=(-2, -1)).abs()
+    value = 100.0 * (rmse_b / mean_b.clamp_min(eps)).square().mean(dim=1).sqrt()
+    return torch.where((mean_b == 0).any(dim=1), torch.full_like(value, math.nan), value)
+
+
+def ergas_undefined(y: torch.Tensor) -> torch.Tensor:
+    """(B,) True for a truth cube in which a band's mean is 0 (a band dark at every pixel): its ERGAS is
+    undefined (:func:`ergas` gives NaN)."""
+    y = y[None] if y.dim() == 3 else y
+    return (y.to(torch.float64).mean(dim=(-2, -1)) == 0).any(dim=1)
 
 
 def all_metrics(estimate: torch.Tensor, truth: torch.Tensor) -> dict[str, list[float]]:
-    """Every metric above, one list entry per cube (SAM NaN where :func:`sam_degrees` is)."""
+    """Every metric above, one list entry per cube (SAM NaN where :func:`sam_degrees` is, ERGAS NaN where
+    :func:`ergas` is: undefined)."""
     fns = {"psnr": psnr_per_band, "psnr_cube": psnr_cube, "psnr_mst": psnr_mst, "ssim": ssim,
            "sam": sam_degrees, "ergas": ergas, "rmse": rmse}
     out = {}
-    undefined = (sam_undefined_pixels(truth) == truth.shape[-2] * truth.shape[-1]).tolist()  # per cube
+    undefined = {"sam": (sam_undefined_pixels(truth) == truth.shape[-2] * truth.shape[-1]).tolist(),  # per cube
+                 "ergas": ergas_undefined(truth).tolist()}
     for name, fn in fns.items():
         vals = fn(estimate, truth).tolist()
-        # SAM is NaN, undefined, only for a truth that is zero everywhere (no angle anywhere); a NaN
-        # that a broken estimate (NaN pixels) gives is the worst score, for every metric: −inf for those
-        # where higher is better (PSNR, SSIM), +inf for the errors (a NaN would be skipped by a mean, and
-        # +inf PSNR read as a perfect band)
+        # SAM is NaN, undefined, only for a truth that is zero everywhere (no angle anywhere), ERGAS only for a
+        # truth with a band whose mean is 0; a NaN that a broken estimate (NaN pixels) gives is the worst score,
+        # for every metric: −inf for those where higher is better (PSNR, SSIM), +inf for the errors (a NaN would
+        # be skipped by a mean, and +inf PSNR read as a perfect band)
         worst = -math.inf if name in HIGHER_IS_BETTER else math.inf
-        out[name] = [v if math.isfinite(v) or (name == "sam" and math.isnan(v) and u) else worst
-                     for v, u in zip(vals, undefined)]
+        none = undefined.get(name, [False] * len(vals))
+        out[name] = [v if math.isfinite(v) or (math.isnan(v) and u) else worst for v, u in zip(vals, none)]
     return out
 
 

@@ -346,20 +346,21 @@ def summarize(results: list[SceneResult], **facts) -> dict:
     A row has the scene's ``path`` (when known), its metrics (means over the seeds), ``std`` and
     ``per_seed`` (several seeds), and ``sam_excluded_px``. A scene whose SAM is undefined (NaN:
     its truth is zero at every scored pixel) is listed in ``sam_undefined``, and the mean SAM is
-    over the other scenes."""
+    over the other scenes; likewise a scene whose ERGAS is undefined (NaN: a band's truth mean over the
+    scored area is 0) in ``ergas_undefined``."""
     rows = [{"name": r.name, **({"path": r.path} if r.path is not None else {}), **r.metrics,
              "runtime_s": r.runtime_s, "sam_excluded_px": r.sam_excluded_px,
              **({"std": r.metrics_std} if r.metrics_std else {}),
              **({"per_seed": r.metrics_per_seed} if len(r.metrics_per_seed) > 1 else {})} for r in results]
     keys = [k for k in METRIC_KEYS if results and k in results[0].metrics] + ["runtime_s"]
     means = {k: _mean([row[k] for row in rows]) for k in keys} if rows else {}
-    undefined = [row["name"] for row in rows if "sam" in row and np.isnan(row["sam"])]
-    return {**facts, "scenes": rows, "mean": means, **({"sam_undefined": undefined} if undefined else {}),
-            "conventions": CONVENTIONS}
+    undefined = {f"{k}_undefined": names for k in ("sam", "ergas")
+                 if (names := [row["name"] for row in rows if k in row and np.isnan(row[k])])}
+    return {**facts, "scenes": rows, "mean": means, **undefined, "conventions": CONVENTIONS}
 
 
 def _mean(values: list[float]) -> float:
-    """Mean over the values that are not NaN (an undefined SAM), NaN when none is."""
+    """Mean over the values that are not NaN (an undefined SAM or ERGAS), NaN when none is."""
     kept = [v for v in values if not np.isnan(v)]
     return float(np.mean(kept)) if kept else float("nan")
 
@@ -430,6 +431,9 @@ def write_results(out: Path, summary: dict) -> None:
     if summary.get("sam_undefined"):
         head.append(f"- SAM undefined (the truth is zero at every scored pixel) for {', '.join(summary['sam_undefined'])}; "
                     "the mean SAM is over the other scenes")
+    if summary.get("ergas_undefined"):
+        head.append(f"- ERGAS undefined (a band of the truth is zero at every scored pixel) for "
+                    f"{', '.join(summary['ergas_undefined'])}; the mean ERGAS is over the other scenes")
     excluded = [f"{row['name']} ({row['sam_excluded_px']} px)" for row in summary["scenes"] if row.get("sam_excluded_px")]
     if excluded:
         head.append(f"- pixels without a spectral angle (truth all zero), left out of SAM: {', '.join(excluded)}")
