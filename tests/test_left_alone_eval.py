@@ -142,6 +142,7 @@ def test_root_sync_does_not_copy_a_damaged_checkpoint_and_says_so(tmp_path, capl
     ck._HASHES.clear()  # as a new process (a resume) would see it
     with caplog.at_level(logging.WARNING, logger="hsicam.runs.checkpoint"):
         assert mgr.sync_root() is False
+        assert mgr.sync_root() is False  # the next save's sync (a resumed run: one per epoch) says it no more
     assert not root.exists()
     assert [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING] == [
         f"{kept} differs from the weights {run / MANIFEST} records (sha256 {sha[:12]}…): the checkpoint is damaged (a "

@@ -262,6 +262,7 @@ class CheckpointManager:
         self.ckpt_dir = self.run_dir / "checkpoints"
         self.weights_file = weights_file
         self.keep = keep
+        self._told_damaged: set[tuple[Path, str]] = set()  # sync_root's warnings given (one per file and hash)
 
     # -- the manifest -------------------------------------------------------------------------
     def manifest(self) -> dict[str, Any] | None:
@@ -460,6 +461,9 @@ class CheckpointManager:
         if root.is_file() and file_sha256(root) == sha:
             return False
         if recorded is not None and file_sha256(path) != recorded:
+            if (path, recorded) in self._told_damaged:  # a save after each epoch would repeat it word for word
+                return False
+            self._told_damaged.add((path, recorded))
             log.warning("%s differs from the weights %s records (sha256 %s…): the checkpoint is damaged (a copy cut "
                         "short, a disk error, an edit), so %s was not rewritten from it; %s", path,
                         self.run_dir / MANIFEST, recorded[:12], root, RECOPY_HINT)
