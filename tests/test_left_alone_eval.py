@@ -11,6 +11,7 @@ import pytest
 import torch
 
 from cli_helpers import module_cache, run_cli_in_process
+from damage import flip_byte_in_place
 
 
 @pytest.fixture(scope="module")
@@ -93,14 +94,6 @@ def test_heldout_scenes_get_noise_independent_of_the_validation_scenes_of_the_sa
             assert abs(corr) < 0.2, (name, corr)
 
 
-def _flip_byte_in_place(path, offset: int) -> None:
-    with open(path, "r+b") as fh:
-        fh.seek(offset)
-        b = fh.read(1)
-        fh.seek(offset)
-        fh.write(bytes([b[0] ^ 0x01]))
-
-
 def test_file_sha256_hashes_again_a_file_changed_in_place_with_its_mtime_set_back(tmp_path):
     """A byte flipped in place (same path, inode and size), the mtime set back to the ns (os.utime): the per-process
     cache handed out the old hash (keyed on path, inode, size, mtime); the change time moves on any write."""
@@ -113,7 +106,7 @@ def test_file_sha256_hashes_again_a_file_changed_in_place_with_its_mtime_set_bac
     path.write_bytes(bytes(range(256)) * 16)
     first = file_sha256(path)
     st = path.stat()
-    _flip_byte_in_place(path, 100)
+    flip_byte_in_place(path, 100)
     os.utime(path, ns=(st.st_atime_ns, st.st_mtime_ns))
     after = path.stat()
     assert (after.st_ino, after.st_size, after.st_mtime_ns) == (st.st_ino, st.st_size, st.st_mtime_ns)  # the case
@@ -138,7 +131,7 @@ def test_root_sync_does_not_copy_a_damaged_checkpoint_and_says_so(tmp_path, capl
     sha = json.loads((run / MANIFEST).read_text())["weights"]["sha256"]
     assert root.read_bytes() == kept.read_bytes()  # an undamaged checkpoint is copied
     root.unlink()
-    _flip_byte_in_place(kept, kept.stat().st_size - 3)  # in the tensors' bytes
+    flip_byte_in_place(kept, kept.stat().st_size - 3)  # in the tensors' bytes
     ck._HASHES.clear()  # as a new process (a resume) would see it
     with caplog.at_level(logging.WARNING, logger="hsicam.runs.checkpoint"):
         assert mgr.sync_root() is False

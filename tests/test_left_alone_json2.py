@@ -9,13 +9,13 @@ from __future__ import annotations
 import csv
 import json
 import math
-from html.parser import HTMLParser
 
 import h5py
 import numpy as np
 import pytest
 import torch
 
+from html_helpers import PageParts
 from hsicam.data import read_cube
 from hsicam.data.formats import ENVI_METADATA_KEY, write_cube_h5, write_envi
 from hsicam.engine.cfa_offset import CfaOffsetEstimate
@@ -168,7 +168,7 @@ def test_ergas_of_a_truth_with_a_dark_band_is_undefined_through_all_metrics_and_
     assert "- ERGAS undefined (a band of the truth is zero at every scored pixel) for dark" in md
     dark_row = next(line for line in md.splitlines() if line.startswith("| dark |"))
     assert dark_row.split("|")[5].strip() == "nan"  # | scene | psnr | ssim | sam | ergas | runtime_s |
-    cells = _Cells(build_report(out).read_text(encoding="utf-8")).cells
+    cells = PageParts(build_report(out).read_text(encoding="utf-8")).cells
     ergas_col = [cells[i + 4] for i in range(0, len(cells), 7)]  # scene, PSNR, SSIM, SAM, ERGAS, PSNR MST, runtime
     assert ergas_col == [f"{by['lit']['ergas']:.2f}", "n/a", f"{by['lit']['ergas']:.2f}"]
     text = data["conventions"]["ergas"]  # the conventions say so
@@ -192,26 +192,3 @@ def test_sam_convention_says_what_memory_and_results_json_hold(tmp_path):
            "results.md; results.json lists such scenes in sam_undefined" in text
     assert "NaN when" not in text
     assert "nan" in (tmp_path / "results.csv").read_text(encoding="utf-8").splitlines()[1].split(",")
-
-
-class _Cells(HTMLParser):
-    """The table cells of a page."""
-
-    def __init__(self, text: str):
-        super().__init__()
-        self.cells: list[str] = []
-        self._in = False
-        self.feed(text)
-
-    def handle_starttag(self, tag, attrs):
-        if tag == "td":
-            self._in = True
-            self.cells.append("")
-
-    def handle_endtag(self, tag):
-        if tag == "td":
-            self._in = False
-
-    def handle_data(self, data):
-        if self._in:
-            self.cells[-1] += data

@@ -8,20 +8,13 @@ import json
 import pytest
 import torch
 
+from damage import flip_byte_in_place
 from hsicam.errors import InputError
 from hsicam.runs import checkpoint as ck
 from hsicam.runs.checkpoint import MANIFEST, RECOPY_HINT, CheckpointManager, root_weights_path
 from hsicam.spectral import Bands
 
 BANDS = Bands.uniform(500, 600, 50)
-
-
-def _flip_byte_in_place(path, offset: int) -> None:
-    with open(path, "r+b") as fh:
-        fh.seek(offset)
-        b = fh.read(1)
-        fh.seek(offset)
-        fh.write(bytes([b[0] ^ 0x01]))
 
 
 def _saved_run(tmp_path, keep: str = "best"):
@@ -40,7 +33,7 @@ def test_root_weights_path_says_the_root_is_missing_not_that_it_differs(tmp_path
     root, kept = run / "model.safetensors", run / "checkpoints" / "step-00000001" / "model.safetensors"
     sha = json.loads((run / MANIFEST).read_text())["weights"]["sha256"]
     root.unlink()
-    _flip_byte_in_place(kept, kept.stat().st_size - 3)
+    flip_byte_in_place(kept, kept.stat().st_size - 3)
     ck._HASHES.clear()
     with pytest.raises(InputError) as err:
         root_weights_path(run)
@@ -69,7 +62,7 @@ def test_fit_does_not_write_its_final_weights_as_the_root_when_the_kept_checkpoi
     assert man["weights"]["from"] == "best" and man["best"]["step"] < man["last"]["step"], man  # the case
     root, kept, sha = run / "model.safetensors", run / man["best"]["dir"] / "model.safetensors", man["best"]["weights_sha256"]
     root.unlink()
-    _flip_byte_in_place(kept, kept.stat().st_size - 3)
+    flip_byte_in_place(kept, kept.stat().st_size - 3)
     ck._HASHES.clear()
     with caplog.at_level(logging.WARNING, logger="hsicam.runs.checkpoint"):
         final = train(cfg, run, resume=True, progress=False)
@@ -97,7 +90,7 @@ def test_apply_keep_refuses_a_damaged_checkpoint_before_committing_it(tmp_path):
         mgr.save(net, torch.optim.Adam(net.parameters()), {"global_step": step, "best_psnr": 20.0}, BANDS, tags)
     root, last = run / "model.safetensors", run / "checkpoints" / "step-00000002" / "model.safetensors"
     sha = json.loads((run / MANIFEST).read_text())["last"]["weights_sha256"]
-    _flip_byte_in_place(last, last.stat().st_size - 3)
+    flip_byte_in_place(last, last.stat().st_size - 3)
     ck._HASHES.clear()
     assert hashlib.sha256(last.read_bytes()).hexdigest() != sha
     before = {p: p.read_bytes() for p in (run / MANIFEST, root)}

@@ -10,6 +10,7 @@ import pytest
 import torch
 
 from hsicam.config import TrainConfig
+from patch_streams import NPY_BANDS, assert_seeded_streams, write_scenes
 from hsicam.engine.loop import lr_factor
 
 
@@ -113,16 +114,6 @@ def test_spectral_angle_value_is_unchanged_on_ordinary_spectra(dtype, scale):
 # ------------------------------------------------------------------------------------------------
 # 3. train.seed and the training patches
 # ------------------------------------------------------------------------------------------------
-def _stream_reference(cubes: list[np.ndarray], size: int, key: list[int]) -> np.ndarray:
-    """The patch that the documented draw gives: from numpy.random.default_rng(key) a scene (uniform), a
-    position, 90° turns and a left-right flip, cut from the scene over its peak."""
-    rng = np.random.default_rng(key)
-    cube = cubes[int(rng.integers(len(cubes)))]
-    y, x = int(rng.integers(cube.shape[1] - size + 1)), int(rng.integers(cube.shape[2] - size + 1))
-    patch = np.rot90(cube[:, y:y + size, x:x + size] / cube.max(), k=int(rng.integers(4)), axes=(1, 2))
-    return patch[:, :, ::-1] if bool(rng.integers(2)) else patch
-
-
 def test_train_seed_draws_its_own_patches_and_the_default_keeps_todays_stream(tmp_path):
     """train.seed changed the network's start and the noise but not the patches: runs "with two seeds" trained on
     one patch stream (seeds 0, 1 and 7 of the tiny preset drew byte-identical patches). Now a seed s ≠ 0 draws
@@ -132,27 +123,10 @@ def test_train_seed_draws_its_own_patches_and_the_default_keeps_todays_stream(tm
     from hsicam.engine.tasks import SystemTask
     from hsicam.models import CameraSystem
 
-    rng = np.random.default_rng(0)
-    cubes = [rng.uniform(0.1, 1.0, (7, 40, 44)).astype(np.float32) for _ in range(6)]
-    for i, cube in enumerate(cubes):
-        np.save(tmp_path / f"scene_{i}.npy", cube)
-    streams, vals = {}, {}
-    for seed in (0, 1, 7):
-        cfg = load_config("tiny", [f"data.root={tmp_path}", f"train.seed={seed}", "data.split_seed=3",
-                                   "data.npy_bands={start_nm: 420, stop_nm: 720, step_nm: 50}"])
-        train, val = SystemTask(cfg, CameraSystem.from_config(cfg)).datasets()
-        names = [p.name for p in train.scenes.paths]
-        mine = [cubes[int(n[6:-4])] for n in names]  # the training scenes, in the dataset's order
-        for epoch in (0, 2):
-            train.set_epoch(epoch)
-            got = [train[k].numpy() for k in range(6)]
-            streams[seed, epoch] = got
-            key = lambda k: [3, epoch, k] + ([seed] if seed else [])  # noqa: E731
-            for k, patch in enumerate(got):
-                np.testing.assert_allclose(patch, _stream_reference(mine, train.size_px, key(k)), rtol=1e-6,
-                                           err_msg=f"seed {seed}, epoch {epoch}, patch {k}")
-        vals[seed] = [val[k].numpy() for k in range(len(val))]
-    for epoch in (0, 2):  # three seeds, three streams
-        for a, b in ((0, 1), (0, 7), (1, 7)):
-            assert not all(np.array_equal(p, q) for p, q in zip(streams[a, epoch], streams[b, epoch])), (a, b, epoch)
-    assert all(np.array_equal(p, q) for s in (1, 7) for p, q in zip(vals[0], vals[s]))
+    cubes = write_scenes(tmp_path)
+
+    def datasets(seed):
+        cfg = load_config("tiny", [f"data.root={tmp_path}", f"train.seed={seed}", "data.split_seed=3", NPY_BANDS])
+        return SystemTask(cfg, CameraSystem.from_config(cfg)).datasets()
+
+    assert_seeded_streams(datasets, cubes, split_seed=3, what="seed")

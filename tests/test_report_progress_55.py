@@ -9,39 +9,13 @@ from pathlib import Path
 
 import numpy as np
 
+from html_helpers import PageParts
 from hsicam.data.formats import write_cube_h5
 from hsicam.io import mark_complete
 from hsicam.report.html import build_report
 from hsicam.spectral import Bands
 
 MEAN = {"psnr": 30.0, "ssim": 0.9, "sam": 5.0}
-
-
-class _Page(HTMLParser):
-    """The image sources and table cells of a page, as a browser's parser sees them."""
-
-    def __init__(self, text: str):
-        super().__init__()
-        self.images: list[str] = []
-        self.cells: list[str] = []
-        self._in_cell = False
-        self.feed(text)
-        self.close()
-
-    def handle_starttag(self, tag, attrs):
-        if tag == "img":
-            self.images.append(dict(attrs)["src"])
-        elif tag == "td":
-            self._in_cell = True
-            self.cells.append("")
-
-    def handle_endtag(self, tag):
-        if tag == "td":
-            self._in_cell = False
-
-    def handle_data(self, data):
-        if self._in_cell:
-            self.cells[-1] += data
 
 
 def _evaluation(tmp_path: Path, data: dict, cubes: tuple[str, ...] = ()) -> Path:
@@ -68,7 +42,7 @@ def test_report_images_of_scenes_named_with_url_characters_load(tmp_path):
     data = {"method": "m", "scenes": [{"name": name, **MEAN}], "mean": MEAN, "conventions": {},
             "bands_nm": [500.0, 550.0, 600.0]}
     index = build_report(_evaluation(tmp_path, data, cubes=(name,)))
-    images = _Page(index.read_text(encoding="utf-8")).images
+    images = PageParts(index.read_text(encoding="utf-8")).images
     assert len(images) == 2  # the scene's comparison and its error maps
     for src in images:
         url = urllib.parse.urljoin(index.resolve().as_uri(), src)
@@ -83,7 +57,7 @@ def test_report_table_shows_a_score_without_value_as_n_a(tmp_path):
             "conventions": {}}
     text = build_report(_evaluation(tmp_path, data)).read_text(encoding="utf-8")
     assert "NaN" in (tmp_path / "ev" / "results.json").read_text()  # as json.dump writes a float('nan')
-    cells = _Page(text).cells
+    cells = PageParts(text).cells
     cols = 7  # scene, PSNR, SSIM, SAM, ERGAS, PSNR MST, runtime
     rows = [cells[i : i + cols] for i in range(0, len(cells), cols)]
     assert [r[0] for r in rows] == ["a", "dark", "mean"]

@@ -8,12 +8,12 @@ from __future__ import annotations
 
 import json
 import math
-from html.parser import HTMLParser
 
 import numpy as np
 import pytest
 import torch
 
+from html_helpers import PageParts
 from hsicam.engine.evaluate import SceneResult, summarize, write_results
 from hsicam.engine.loop import last_validation
 from hsicam.engine.pretrained import results_metrics
@@ -32,29 +32,6 @@ def _refuse(constant: str):
 def strict(text: str):
     """``text`` parsed as a strict parser does (JSON.parse): NaN, Infinity and -Infinity are refused."""
     return json.loads(text, parse_constant=_refuse)
-
-
-class _Cells(HTMLParser):
-    """The table cells of a page."""
-
-    def __init__(self, text: str):
-        super().__init__()
-        self.cells: list[str] = []
-        self._in = False
-        self.feed(text)
-
-    def handle_starttag(self, tag, attrs):
-        if tag == "td":
-            self._in = True
-            self.cells.append("")
-
-    def handle_endtag(self, tag):
-        if tag == "td":
-            self._in = False
-
-    def handle_data(self, data):
-        if self._in:
-            self.cells[-1] += data
 
 
 def _results(scenes: dict[str, tuple[np.ndarray, np.ndarray]], **facts) -> dict:
@@ -90,7 +67,7 @@ def test_results_json_of_an_undefined_sam_is_strict_and_reports_as_before(tmp_pa
     # results.csv and results.md still say nan (they are no JSON)
     assert "nan" in (out / "results.csv").read_text().splitlines()[1].split(",")
     assert "| dark | 20.00 | " in (out / "results.md").read_text() and " | nan | " in (out / "results.md").read_text()
-    cells = _Cells(build_report(out).read_text(encoding="utf-8")).cells
+    cells = PageParts(build_report(out).read_text(encoding="utf-8")).cells
     table = [cells[i : i + 7] for i in range(0, 21, 7)]  # scene, PSNR, SSIM, SAM, ERGAS, PSNR MST, runtime
     assert [r[0] for r in table] == ["dark", "lit", "mean"]
     lit = f"{rows['lit']['sam']:.2f}"
@@ -129,7 +106,7 @@ def test_noise_grid_with_a_non_finite_score_is_strict_and_still_reported(tmp_pat
     mark_complete(d, {"command": "experiment"})
     data = strict((d / "experiment.json").read_text(encoding="utf-8"))
     assert data["noise_grid"]["results"]["cam"][1]["psnr"] is None and data["rows"][0]["psnr_worst"] is None
-    cells = _Cells(build_report(d).read_text(encoding="utf-8")).cells
+    cells = PageParts(build_report(d).read_text(encoding="utf-8")).cells
     assert cells == ["cam", "30.00", "0.5000", "n/a", "0.5000"]
     assert (d / "report" / "noise_grid.png").is_file()
 
