@@ -365,7 +365,8 @@ def test_an_experiment_holds_its_folder_from_its_checks_to_its_marker(tmp_path, 
     assert main(["experiment", "ablation", "--scale", "tiny", "--out", str(out)]) == 130
     assert seen and seen[0].startswith(f"{out}: being written by another process (hsicam experiment, pid "
                                        f"{os.getpid()}, since "), seen
-    assert hidden(out.parent) == []  # let go on the way out (the lock file removed)
+    # let go on the way out (the lock file removed), and the folders it made, empty, removed with it
+    assert not out.parent.exists()
 
 
 def test_an_experiment_is_refused_while_another_process_writes_its_folder(tmp_path, start, monkeypatch):

@@ -185,7 +185,64 @@ def prepare_output(path: str | Path, kind: str = "dir", replace: bool = False, c
         check_replaceable(Path(out), overwrite=True, command=command)
     if dist_env()[0] == 0:  # another rank's temporaries are rank 0's own
         remove_stale_siblings(follow_link(out), kind)
+    _note_output(out, kind)
     return out
+
+
+#: The outputs :func:`prepare_output` checked for the command now running (:func:`main`), each with the outermost
+#: folder of its path that did not exist then (None: none was missing) and whether it was an empty folder then.
+_PREPARED: list[tuple[Path, Path | None, bool]] = []
+
+
+def _note_output(out: Path, kind: str) -> None:
+    """Record what of ``out``'s path exists before the command's work (:data:`_PREPARED`)."""
+    path = Path(os.path.abspath(out))
+    missing = []
+    for a in (path, *path.parents):
+        if os.path.lexists(a):
+            break
+        missing.append(a)
+    if kind == "file":  # the output itself is a file: only the folders above it count
+        missing = [a for a in missing if a != path]
+    empty = kind == "dir" and path.is_dir() and not path.is_symlink() and not any(path.iterdir())
+    _PREPARED.append((path, missing[-1] if missing else None, empty))
+
+
+def _remove_unused_outputs() -> None:
+    """After a failed command: the folders of its outputs' paths that were missing before its work
+    (:func:`prepare_output`), and the sub-folders it made in an output folder that was empty then, are removed
+    again while they hold no file at any depth: a command that failed before it wrote anything leaves no new
+    folder, a folder the user named stays, and whatever it wrote stays (a run to resume). Never while another
+    process holds the output's lock (it may be filling them); in a ``torchrun`` group, rank 0 only."""
+    from hsicam.devices import dist_env
+    from hsicam.io import output_lock_path
+
+    prepared = list(_PREPARED)
+    _PREPARED.clear()
+    if dist_env()[0] != 0:
+        return
+    for out, top, empty in prepared:
+        if os.path.lexists(output_lock_path(out)):  # another process's: this one's own were let go with the error
+            continue
+        if top is not None:
+            _remove_empty_folders(top, keep_root=False)
+        elif empty:
+            _remove_empty_folders(out, keep_root=True)
+
+
+def _remove_empty_folders(root: Path, keep_root: bool) -> None:
+    """Remove the folder tree ``root`` (only its sub-folders with ``keep_root``) when it holds nothing but
+    folders; a file or a link anywhere in it keeps it all."""
+    if root.is_symlink() or not root.is_dir():
+        return
+    folders = []
+    for folder, dirs, files in os.walk(root):
+        if files or any(os.path.islink(os.path.join(folder, d)) for d in dirs):
+            return
+        folders.append(folder)
+    for folder in reversed(folders[1:] if keep_root else folders):  # the innermost first
+        with contextlib.suppress(OSError):  # not empty any more (another process): kept
+            os.rmdir(folder)
 
 
 def _refuse_run_folder(out: Path, command: str | None, run: str | Path | None) -> None:
@@ -316,8 +373,15 @@ def main(argv: Sequence[str] | None = None) -> int:
         # a command that trains and then scores (demo, experiment) spends most of its time outside the loop, where
         # SIGTERM must clean up as Ctrl-C does; the loop's own stop chains to it (hsicam.engine.stopping)
         cleanup = not getattr(args, "trains", False) or getattr(args, "scores", False)
+        _PREPARED.clear()
         with trained_bands(fixed), sigterm_as_interrupt(cleanup):
-            return int(args.func(args) or 0)
+            try:
+                return int(args.func(args) or 0)
+            except BaseException:
+                _remove_unused_outputs()  # a failed command leaves no new empty folder
+                raise
+            finally:
+                _PREPARED.clear()
     except (TrainingStopped, TrainingInterrupted) as exc:  # a signal or train.max_minutes: the run was saved at that step
         from hsicam.devices import dist_env
 
