@@ -132,6 +132,27 @@ def split_dataset(cfg: DataConfig, bands: Bands, *, progress: bool | None = None
     return _split(cfg, list_scenes(dataset_root(cfg, bands, progress=progress)))
 
 
+def validation_split(cfg: DataConfig, bands: Bands, *, progress: bool | None = None) -> tuple[list[Path], int]:
+    """(validation scene paths, number of scenes) of the config's dataset: the validation scenes of
+    :func:`split_dataset`. Of the synthetic data only these scenes are generated, in the set's own cache
+    folder (:func:`hsicam.data.synthetic.synthetic_scenes`: scene i is the same file whatever else is
+    there), not the whole set: an evaluation scores them alone (16 of the standard camera's 320 scenes),
+    and a training of the same config completes the set."""
+    if cfg.root is not None:
+        train, val = split_dataset(cfg, bands, progress=progress)
+        return val, len(train) + len(val)
+    from hsicam.data.synthetic import DEFAULT_HOLDOUT, SCENE_PATTERN, dataset_dir, synthetic_scenes
+
+    holdout = getattr(cfg, "holdout_sources", DEFAULT_HOLDOUT)
+    folder = dataset_dir(cfg.synthetic_n, cfg.synthetic_size, cfg.synthetic_seed, bands, cache_dir=cfg.cache_dir,
+                         holdout_sources=holdout)
+    every = [folder / SCENE_PATTERN.format(i) for i in range(cfg.synthetic_n)]  # the set's files (list_scenes)
+    _, val = _split(cfg, every)
+    index = {p: i for i, p in enumerate(every)}
+    return synthetic_scenes([index[p] for p in val], cfg.synthetic_n, cfg.synthetic_size, cfg.synthetic_seed, bands,
+                            cache_dir=cfg.cache_dir, progress=progress, holdout_sources=holdout), len(every)
+
+
 def _split(cfg: DataConfig, scenes: list[Path]) -> tuple[list[Path], list[Path]]:
     return split_scenes(scenes, cfg.val_fraction, cfg.split_seed, cfg.val_pool)
 

@@ -49,7 +49,7 @@ import logging
 import os
 import re
 from pathlib import Path
-from typing import Any, Callable, Iterable
+from typing import Any, Callable, Iterable, Sequence
 
 import numpy as np
 
@@ -317,15 +317,19 @@ ROOM_FIX = ("lower data.synthetic_n or data.synthetic_size, or point data.cache_
             "disk")
 
 
-def check_room_for_scenes(out: Path, n: int, size: int, n_bands: int, fix: str = ROOM_FIX) -> None:
+def check_room_for_scenes(out: Path, n: int, size: int, n_bands: int, fix: str = ROOM_FIX,
+                          indices: Sequence[int] | None = None) -> None:
     """InputError, before any scene is generated, when the file system of ``out`` lacks the room for
     the scenes still to write (``n`` minus those already there: a rerun resumes) and a margin (a
     tenth, at least 64 MiB): a count of scenes far beyond the disk used to fill it scene by scene.
-    ``fix``: what to change, in the caller's terms (the config's keys, or ``data synth``'s options)."""
+    ``fix``: what to change, in the caller's terms (the config's keys, or ``data synth``'s options).
+    ``indices``: only these scenes are to be written (:func:`generate_scenes`)."""
     from hsicam.io import free_space_short, free_space_text
 
-    written = sum((out / SCENE_PATTERN.format(i)).is_file() for i in range(min(n, 100_000))) if out.is_dir() else 0
-    need = (n - written) * (4 * int(size) ** 2 * int(n_bands) + SCENE_FILE_OVERHEAD_BYTES)
+    todo = range(min(n, 100_000)) if indices is None else indices
+    written = sum((out / SCENE_PATTERN.format(i)).is_file() for i in todo) if out.is_dir() else 0
+    need = ((n if indices is None else len(indices)) - written) * (4 * int(size) ** 2 * int(n_bands)
+                                                                  + SCENE_FILE_OVERHEAD_BYTES)
     free = free_space_short(out, need)
     if free is not None:
         raise InputError(f"the synthetic dataset of {n:,} scenes of {size}×{size} px and {n_bands} bands needs, in {out}, "
@@ -381,10 +385,8 @@ def _generate_into(out: Path, n: int, size: int, seed: int, bands: Bands, lib: S
     scenes = []
     sum_spectrum = np.zeros(len(bands))
     for i in counted(range(n), n, f"synthetic {split} set", "scene", show=progress):
-        cube, info = generate_scene(i, seed, size, lib)
-        name = SCENE_PATTERN.format(i)
-        meta = {"dataset": "hsicam-synthetic", "index": i, **params, **info}
-        path = write_cube_h5(out / name, cube, bands, meta)
+        cube, info, path = _write_scene(out, i, seed, size, bands, lib, params)
+        name = path.name
         mean_spec = cube.mean(axis=(1, 2), dtype=np.float64)
         sum_spectrum += mean_spec
         scenes.append({"file": name, **info, "min": float(cube.min()), "max": float(cube.max()),
@@ -412,6 +414,77 @@ def _generate_into(out: Path, n: int, size: int, seed: int, bands: Bands, lib: S
     }
     write_json(out / MANIFEST, manifest)
     return manifest
+
+
+def _write_scene(out: Path, i: int, seed: int, size: int, bands: Bands, lib: SpectralLibrary,
+                 params: dict[str, Any]) -> tuple[np.ndarray, dict[str, Any], Path]:
+    """Generate scene ``i`` and write it (atomically) as ``out/scene_IIII.h5``: (cube, info, path)."""
+    cube, info = generate_scene(i, seed, size, lib)
+    meta = {"dataset": "hsicam-synthetic", "index": i, **params, **info}
+    return cube, info, write_cube_h5(out / SCENE_PATTERN.format(i), cube, bands, meta)
+
+
+def synthetic_scenes(indices: Sequence[int], n: int, size: int = 256, seed: int = 0, bands: Bands | None = None,
+                     cache_dir: str | os.PathLike | None = None, progress: bool | None = None, *,
+                     holdout_sources: str | Iterable[str] | None = DEFAULT_HOLDOUT, split: str = "train",
+                     room_fix: str = "") -> list[Path]:
+    """The files of scenes ``indices`` of the cached synthetic set of these parameters, in that set's
+    folder (:func:`dataset_dir`), generating only those it lacks: the same files, byte for byte, as
+    :func:`synthetic_dataset` writes, for a caller that reads a few scenes of a large set (an evaluation
+    scores the validation split only). A folder of scene files without a manifest is what a generation
+    cut short leaves: :func:`synthetic_dataset` completes it later (a training of the same config)."""
+    bands = bands or Bands.paper()
+    holdout = parse_holdout(holdout_sources)
+    out = dataset_dir(n, size, seed, bands, cache_dir=cache_dir, holdout_sources=holdout, split=split)
+    bad = [i for i in indices if not 0 <= int(i) < n]
+    if bad:
+        raise InputError(f"synthetic: scene index {bad[0]} is outside a set of {n} scenes")
+    paths = [out / SCENE_PATTERN.format(i) for i in indices]
+    if is_complete(out, n, size, seed, bands, holdout_sources=holdout, split=split):
+        log.debug("synthetic dataset cached at %s", out)
+        _warn_versions(out)
+        return paths
+    missing = [int(i) for i in dict.fromkeys(indices) if not (out / SCENE_PATTERN.format(i)).is_file()]
+    if not missing:
+        return paths
+    _check_cache(out, cache_dir)
+    generate_scenes(out, missing, n, size, seed, bands, progress, holdout_sources=holdout, split=split,
+                    room_fix=room_fix)
+    return paths
+
+
+def generate_scenes(out: str | os.PathLike, indices: Sequence[int], n: int, size: int, seed: int = 0,
+                    bands: Bands | None = None, progress: bool | None = None, *,
+                    holdout_sources: str | Iterable[str] | None = DEFAULT_HOLDOUT, split: str = "train",
+                    room_fix: str = "") -> list[Path]:
+    """Write the scenes ``indices`` of the ``n``-scene set into ``out`` (the files :func:`generate_dataset`
+    writes for them), and no manifest: :func:`generate_dataset` completes the folder. Returns their paths."""
+    bands = bands or Bands.paper()
+    holdout = parse_holdout(holdout_sources)
+    _check_split(split)
+    check_bands(bands)
+    out = Path(out)
+    params = parameters(n, size, seed, bands, holdout_sources=holdout, split=split)
+    check_dataset_folder(out, params)
+    check_scene_memory(size, len(bands))
+    check_room_for_scenes(out, n, size, len(bands), room_fix or ROOM_FIX, indices=indices)
+    log.info("generating %d of the %d scenes of the synthetic %s set (%dx%dx%d, held-out sources: %s) in %s",
+             len(indices), n, split, size, size, len(bands), ", ".join(holdout) or "none", out)
+    lib = spectral_library(bands, holdout, split)
+    made = [p for p in (out, *out.parents) if not p.exists()]  # the folders this call creates
+    out.mkdir(parents=True, exist_ok=True)
+    from hsicam.progress import progress as counted
+
+    try:
+        return [_write_scene(out, i, seed, size, bands, lib, params)[2]
+                for i in counted(indices, len(indices), f"synthetic {split} scenes", "scene", show=progress)]
+    except BaseException:
+        for p in made:  # a failure leaves no empty folder behind (written scenes stay)
+            try:
+                p.rmdir()
+            except OSError:
+                break
+        raise
 
 
 def _used_sources(lib: SpectralLibrary) -> list[str]:

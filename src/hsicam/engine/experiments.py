@@ -208,12 +208,12 @@ def ensure_trained(run: Path, preset, overrides: tuple[str, ...] = ()) -> str:
 
 def validation_scenes(cfg):
     """The preset's validation scenes (SceneDataset) and their names."""
-    from hsicam.data.pipeline import no_validation_reason, scene_dataset, split_dataset
+    from hsicam.data.pipeline import no_validation_reason, scene_dataset, validation_split
 
     bands = cfg.bands.to_bands()
-    train_scenes, val = split_dataset(cfg.data, bands)
+    val, n_scenes = validation_split(cfg.data, bands)  # of the synthetic data, only these scenes are generated
     if not val:
-        raise InputError(f"the config has no validation scenes ({no_validation_reason(cfg.data, len(train_scenes))})")
+        raise InputError(f"the config has no validation scenes ({no_validation_reason(cfg.data, n_scenes)})")
     return scene_dataset(cfg.data, val, bands), [p.stem for p in val]
 
 

@@ -120,14 +120,14 @@ NPY_BANDS_ADVICE = ("tolerance reads the wavelengths from the file only, so save
 
 def evaluation_scenes(cfg, bands, max_scenes: int, data: str | Path | None = None):
     """(SceneDataset, names): the run's validation scenes (all scenes when it has none), or ``data``."""
-    from hsicam.data import dataset_root, list_scenes, split_dataset
+    from hsicam.data import dataset_root, list_scenes
     from hsicam.data.datasets import scene_names
-    from hsicam.data.pipeline import scene_dataset
+    from hsicam.data.pipeline import scene_dataset, validation_split
 
     if data is not None:
         scenes = list_scenes(data)
     else:
-        _, val = split_dataset(cfg.data, bands)
+        val, _ = validation_split(cfg.data, bands)  # of the synthetic data, only these scenes are generated
         scenes = val or list_scenes(dataset_root(cfg.data, bands))
     scenes = scenes[:max_scenes]
     advice = {} if data is None else {"npy_bands_advice": NPY_BANDS_ADVICE}  # its own data: no --set to give a grid
