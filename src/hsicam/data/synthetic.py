@@ -369,7 +369,7 @@ def generate_dataset(out: str | os.PathLike, n: int, size: int, seed: int = 0, b
     try:
         return _generate_into(out, n, size, seed, bands, lib, params, holdout, split, progress)
     except BaseException:
-        for p in made:  # a failure leaves no empty folder behind (written scenes stay: a rerun resumes)
+        for p in made:  # a failure leaves no empty folder behind (scenes written stay; a rerun rewrites all, same bytes)
             try:
                 p.rmdir()
             except OSError:
