@@ -284,11 +284,11 @@ def test_tiling_an_image_taller_or_wider_than_a_tile_needs_a_halo(h, w):
 
 
 def test_the_memory_estimate_counts_the_largest_window_the_tiling_cuts():
-    """reconstruction_memory_bytes = base + 4 B · C · (1 whole-image cube + 12 cubes of one window): the window being
+    """reconstruction_memory_bytes = base + fixed + 4 B · C · (1 whole-image cube + 13 cubes of one window): the window being
     the largest one reconstruct_tiled actually cuts (a tile and a halo on each side, measured here), not a tile and
     one halo."""
-    from hsicam.engine.inference import (RECONSTRUCT_BASE_BYTES, WINDOW_CUBES, reconstruct_tiled,
-                                         reconstruction_memory_bytes)
+    from hsicam.engine.inference import (RECONSTRUCT_BASE_BYTES, RECONSTRUCT_FIXED_BYTES, WINDOW_CUBES,
+                                         reconstruct_tiled, reconstruction_memory_bytes)
 
     class Local:
         context_px = 5
@@ -303,7 +303,7 @@ def test_the_memory_estimate_counts_the_largest_window_the_tiling_cuts():
     rec, (h, w, tile) = Local(), (40, 37, 16)
     reconstruct_tiled(rec, torch.rand(1, 1, h, w), tile_px=tile)
     assert max(rec.areas) == (tile + 10) ** 2  # an inner tile
-    expect = RECONSTRUCT_BASE_BYTES + 4 * 3 * (h * w + WINDOW_CUBES * max(rec.areas))
+    expect = RECONSTRUCT_BASE_BYTES + RECONSTRUCT_FIXED_BYTES + 4 * 3 * (h * w + WINDOW_CUBES * max(rec.areas))
     assert reconstruction_memory_bytes(rec, 3, h, w, tile_px=tile) == expect
 
 

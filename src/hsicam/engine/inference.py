@@ -34,27 +34,58 @@ def default_tile_px(halo_px: int) -> int:
     return min(max(MIN_DEFAULT_TILE_PX, 4 * int(halo_px)), MAX_DEFAULT_TILE_PX)
 
 
-#: Peak memory of a reconstruction (:func:`reconstruction_memory_bytes`), measured with the demo camera (session 52,
-#: peak RSS of `hsicam reconstruct`: 0.49 GB at 64², 2.14 GB at 1031×1027 and 2.89 GB at 2048×1027 in 300 px tiles):
-#: the process and the model, whole-image cubes (the output and the steps' state: estimate, previous estimate,
-#: TV dual fields, brightness), and one tile's window of the network and linear step.
+#: Peak memory of a reconstruction (:func:`reconstruction_memory_bytes`): the process and the model (0.40–0.45 GB
+#: resident for ``pretrained:standard`` before it starts, 0.27 GB for the tiny preset; session 60), plus
+#: :func:`reconstruction_working_bytes`, fitted to the peak resident memory that reconstructions added in fresh
+#: processes (session 60, ``hsicam.memory.keep_freed_memory`` applied as the command does; the standard camera and the
+#: tiny preset with and without 12 Landweber/TV steps, 128²–1536², whole and in 128–300 px tiles): 1.05–1.4× of it
+#: (the same run's peak varies by up to 15 %).
 RECONSTRUCT_BASE_BYTES = 512 * 2**20
-STEP_CUBES = {"none": 1, "landweber": 4, "tv": 7}  # whole-image (C, H, W) float32 cubes alive at the peak
-WINDOW_CUBES = 12  # (C, window) float32 cubes of the network's and linear step's working set
+RECONSTRUCT_FIXED_BYTES = 8 * 2**20  # what any reconstruction adds besides its cubes (threads, small tensors)
+#: The network's (and linear step's) working set, in (C, window) float32 cubes: 8–13.4 measured (more with several
+#: windows, whose freed memory the kept heap does not always reuse), the output cube besides.
+WINDOW_CUBES = 13
+#: The consistency steps' working set, in float32 values per pixel (C bands + 1-band planes): (cubes, planes) over
+#: the whole frame (the image and the steps' margin: estimate, previous estimate, TV dual fields, brightness, row
+#: sums, the network's output, what the kept heap holds from the network) and over one band of rows with its halo
+#: (a step's temporaries; the whole frame when it is one band: :data:`~hsicam.models.consistency.STEP_BAND_PIXELS`).
+STEP_FRAME_VALUES = {"landweber": (5, 16), "tv": (8, 0)}
+STEP_BAND_VALUES = {"landweber": (5, 16), "tv": (18, 30)}
 
 
-def reconstruction_memory_bytes(reconstruct, bands: int, h: int, w: int, tile_px: int | None = None) -> int:
-    """About the peak memory (bytes) of :func:`reconstruct_tiled` of an (h, w) image into ``bands`` bands
-    with ``reconstruct`` (a :meth:`CameraSystem.reconstructor`): its whole-image cubes (more with consistency
-    steps, most with their TV prior) plus one tile's window. An estimate for a refusal before the work,
-    within about ±40 % of the measured peaks (:data:`RECONSTRUCT_BASE_BYTES`)."""
+def reconstruction_working_bytes(reconstruct, bands: int, h: int, w: int, tile_px: int | None = None) -> int:
+    """About the peak memory (bytes) that :func:`reconstruct_tiled` of an (h, w) image into ``bands`` bands adds to
+    the process that holds ``reconstruct`` (a :meth:`CameraSystem.reconstructor`): the output cube, and the larger of
+    one tile's window through the network (:data:`WINDOW_CUBES`) and the consistency steps' whole-image state and
+    one band's temporaries (:data:`STEP_FRAME_VALUES`, :data:`STEP_BAND_VALUES`)."""
+    from hsicam.models.consistency import TV_REACH_PX, WIENER_WINDOW_PX, _band_rows, default_band_px
+
     steps = getattr(reconstruct, "steps", None)
     before = getattr(reconstruct, "before_steps", reconstruct)
     halo = int(getattr(before, "context_px", 0) or 0)
     tile = default_tile_px(halo) if tile_px is None else int(tile_px)
-    kind = "none" if steps is None else ("tv" if getattr(steps, "tv", False) else "landweber")
-    window = (min(tile, h) + 2 * halo) * (min(tile, w) + 2 * halo)
-    return int(RECONSTRUCT_BASE_BYTES + 4 * bands * (STEP_CUBES[kind] * h * w + WINDOW_CUBES * window))
+    # the largest window reconstruct_tiled cuts: a tile and a halo each side, within the image
+    window = min(tile + 2 * halo, h) * min(tile + 2 * halo, w)
+    network = WINDOW_CUBES * bands * window
+    work = 0
+    if steps is not None and int(getattr(steps, "count", 1) or 0) > 0:
+        kind = "tv" if getattr(steps, "tv", False) else "landweber"
+        pad = int(getattr(steps, "frame_px", 0) or 0)
+        fh, fw = h + 2 * pad, w + 2 * pad
+        step_halo = 2 * pad + WIENER_WINDOW_PX // 2 + (TV_REACH_PX if kind == "tv" else 0)
+        band = _band_rows(fh, default_band_px(w), step_halo)
+        band_h = fh if band is None else min(band + 2 * step_halo, fh)
+        (fc, fp), (bc, bp) = STEP_FRAME_VALUES[kind], STEP_BAND_VALUES[kind]
+        work = (fc * bands + fp) * fh * fw + (bc * bands + bp) * band_h * fw
+    return int(RECONSTRUCT_FIXED_BYTES + 4 * (bands * h * w + max(network, work)))
+
+
+def reconstruction_memory_bytes(reconstruct, bands: int, h: int, w: int, tile_px: int | None = None) -> int:
+    """About the peak memory (bytes) of :func:`reconstruct_tiled` of an (h, w) image into ``bands`` bands
+    with ``reconstruct`` (a :meth:`CameraSystem.reconstructor`): the process and its model
+    (:data:`RECONSTRUCT_BASE_BYTES`) and :func:`reconstruction_working_bytes`. An estimate for a refusal before the
+    work, 1.05–1.4× the measured peaks of what the reconstruction adds (session 60)."""
+    return RECONSTRUCT_BASE_BYTES + reconstruction_working_bytes(reconstruct, bands, h, w, tile_px)
 
 
 @torch.no_grad()

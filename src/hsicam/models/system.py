@@ -10,7 +10,7 @@ from torch import nn
 from hsicam.cameras import Camera, build_camera
 from hsicam.cameras.base import check_device, check_finite, check_sensor_image
 from hsicam.errors import InputError
-from hsicam.models.consistency import (WIENER_WINDOW_PX, consistency_step, cut_psf, default_band_px,
+from hsicam.models.consistency import (WIENER_WINDOW_PX, _half_reach, consistency_step, cut_psf, default_band_px,
                                        linear_consistency_step, linear_reach_px, reach_px)
 from hsicam.models.registry import build_network
 
@@ -263,6 +263,7 @@ class CameraSystem(nn.Module):
             before_steps.context_px = self._context_before_steps_px(step_op, 1.0)
             steps.count = self._landweber_iterations
             steps.tv = self.consistency.tv_weight > 0  # (its memory: hsicam.engine.inference.reconstruction_memory_bytes)
+            steps.frame_px = max(_half_reach(step_op))  # the margin its frame extends the image by (ditto)
             fn.before_steps, fn.steps = before_steps, steps
         return fn
 
