@@ -730,6 +730,18 @@ def test_cli_train_prior_config_error_is_one_line():
     assert_clean_error(r, "baselines.choi.lr")
 
 
+@pytest.mark.parametrize("key, value, bound", [("lr", "2", "1"), ("train_steps", "2000000", "1000000")])
+def test_train_prior_beyond_the_training_bounds_names_the_prior_key(key, value, bound):
+    """The prior trains through a TrainConfig of its settings, whose bounds (train.lr <= 1, train.epochs <= 10^6) then
+    refused baselines.choi.lr=2 as 'train.lr must be at most 1', a key the user did not set; now the prior's own key,
+    at the config's load, and the bound itself is taken."""
+    r = run_cli_in_process("baseline", "train-prior", "--config", "tiny", "--out", "unused",
+                           "--set", f"baselines.choi.{key}={value}")
+    assert_clean_error(r, f"baselines.choi.{key} must be at most {bound}", f"got {value}")
+    assert "train." not in r.stderr.split("(")[0]
+    assert getattr(load_config("tiny", [f"baselines.choi.{key}={bound}"]).baselines.choi, key) == float(bound)
+
+
 @pytest.mark.parametrize("name", ["dd-cassi-gaptv", "dd-cassi-desci"])
 def test_classical_cassi_methods_take_a_doe_preset(name):
     """`hsicam evaluate --config quick --method dd-cassi-gaptv` (docs/training.md's command) failed:

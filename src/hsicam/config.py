@@ -951,6 +951,12 @@ class ChoiConfig:
                         batch_size=self.batch_size, inner_steps=self.inner_steps)
         _check_at_least(sec, 0, iterations=self.iterations, init_iterations=self.init_iterations)
         _check_positive(sec, lr=self.lr, rho=self.rho, rho_growth=self.rho_growth)
+        # the prior trains through a TrainConfig of these (PriorTask.loop_config): its bounds, named by their keys here
+        if self.train_steps > MAX_EPOCHS:
+            raise ConfigError(f"{sec}.train_steps must be at most {MAX_EPOCHS} (as train.epochs; the default is 1500), "
+                              f"got {self.train_steps}")
+        if self.lr > MAX_LR:
+            raise ConfigError(f"{sec}.lr must be at most {MAX_LR:g} (as train.lr; the default is 1e-3), got {self.lr:g}")
         _check_seeds(sec, seed=self.seed)
         for k in ("train_noise", "prior_weight", "tv_weight"):
             v = getattr(self, k)
