@@ -320,8 +320,8 @@ ROOM_FIX = ("lower data.synthetic_n or data.synthetic_size, or point data.cache_
 def check_room_for_scenes(out: Path, n: int, size: int, n_bands: int, fix: str = ROOM_FIX,
                           indices: Sequence[int] | None = None) -> None:
     """InputError, before any scene is generated, when the file system of ``out`` lacks the room for
-    the scenes still to write (``n`` minus those already there: a rerun resumes) and a margin (a
-    tenth, at least 64 MiB): a count of scenes far beyond the disk used to fill it scene by scene.
+    the scenes still to write (``n`` minus those already there, which a rerun rewrites in place) and a
+    margin (a tenth, at least 64 MiB): a count of scenes far beyond the disk used to fill it scene by scene.
     ``fix``: what to change, in the caller's terms (the config's keys, or ``data synth``'s options).
     ``indices``: only these scenes are to be written (:func:`generate_scenes`)."""
     from hsicam.io import free_space_short, free_space_text
