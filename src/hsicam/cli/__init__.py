@@ -348,7 +348,7 @@ def stdout_closed() -> bool:
         mode = os.fstat(fd).st_mode
     except (AttributeError, OSError, ValueError):  # replaced by an object without a descriptor, or closed
         return False
-    if not (stat.S_ISFIFO(mode) or stat.S_ISSOCK(mode)):
+    if not (stat.S_ISFIFO(mode) or stat.S_ISSOCK(mode)) or not hasattr(select, "poll"):  # Windows: no poll()
         return False
     poll = select.poll()
     poll.register(fd, select.POLLOUT)
@@ -399,7 +399,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         if isinstance(exc, BrokenPipeError) and stdout_closed():
             # what is left in Python's buffer would fail again at exit ("Exception ignored ... BrokenPipeError")
             os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
-            return 128 + signal.SIGPIPE
+            return 128 + getattr(signal, "SIGPIPE", 13)  # 141, as a shell tool killed by SIGPIPE
         line = error_line(exc)
         if line is None:
             raise
