@@ -14,6 +14,14 @@ def dist_env() -> tuple[int, int, int]:
     return int(os.environ.get("RANK", "0")), world, int(os.environ.get("LOCAL_RANK", "0"))
 
 
+def float64_device(device: torch.device | str) -> torch.device:
+    """Where float64 work on the tensors of ``device`` runs (metrics, the PSF energy cut): on ``device`` itself, or
+    on the CPU for a device without float64. Apple's MPS has none: a float64 tensor there is a TypeError ("Cannot
+    convert a MPS Tensor to float64 dtype"), which stopped a training on ``mps`` at its first validation."""
+    device = torch.device(device)
+    return torch.device("cpu") if device.type == "mps" else device
+
+
 def device_problem(spec: str) -> str | None:
     """Why ``spec`` is not a torch device this machine has (cpu, cuda, cuda:N, mps), or None."""
     try:

@@ -25,6 +25,8 @@ import math
 
 import torch
 
+from hsicam.devices import float64_device
+
 CONVENTIONS = {
     "psnr": ("per band, peak 1, mean over bands; a band reproduced exactly (MSE 0, e.g. a band dark in truth and "
              "estimate) counts 300 dB (MSE floored at 1e-30), where scikit-image would give inf"),
@@ -52,7 +54,15 @@ def _batched(x: torch.Tensor, y: torch.Tensor, dtype: torch.dtype = torch.float6
         x, y = x[None], y[None]
     if x.dim() != 4:
         raise ValueError(f"expected (B, C, H, W) or (C, H, W), got {tuple(x.shape)}")
-    return x.to(dtype), y.to(dtype)
+    return _as(x, dtype), _as(y, dtype)
+
+
+def _as(t: torch.Tensor, dtype: torch.dtype) -> torch.Tensor:
+    """``t`` in ``dtype``; float64 on the CPU for a device that has none (MPS: :func:`~hsicam.devices.float64_device`),
+    so a score is the same whatever the device."""
+    if dtype == torch.float64:
+        t = t.to(float64_device(t.device))
+    return t.to(dtype)
 
 
 def _psnr_from_mse(mse: torch.Tensor, peak: float) -> torch.Tensor:
@@ -202,7 +212,8 @@ def sam_degrees(x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
     """Mean spectral angle (degrees) over the pixels where it is defined (:func:`sam_map`: not those
     whose truth spectrum is all zero), (B,); NaN for a cube whose truth is zero everywhere (and, as
     before, where the estimate holds a NaN at a scored pixel)."""
-    angle, defined = sam_map(x, y), _sam_defined(y)
+    angle = sam_map(x, y)
+    defined = _sam_defined(y).to(angle.device)  # where the angle was computed (the CPU for MPS)
     total = torch.where(defined, angle, torch.zeros_like(angle)).sum(dim=(1, 2))
     return total / defined.sum(dim=(1, 2))  # 0/0: NaN where no pixel has an angle
 
@@ -265,7 +276,7 @@ def ergas_undefined(y: torch.Tensor) -> torch.Tensor:
     """(B,) True for a truth cube in which a band's mean is 0 (a band dark at every pixel): its ERGAS is
     undefined (:func:`ergas` gives NaN)."""
     y = y[None] if y.dim() == 3 else y
-    return (y.to(torch.float64).mean(dim=(-2, -1)) == 0).any(dim=1)
+    return (_as(y, torch.float64).mean(dim=(-2, -1)) == 0).any(dim=1)
 
 
 def all_metrics(estimate: torch.Tensor, truth: torch.Tensor) -> dict[str, list[float]]:

@@ -39,6 +39,7 @@ import math
 import torch
 import torch.nn.functional as F
 
+from hsicam.devices import float64_device
 from hsicam.errors import InputError
 from hsicam.memory import release_freed_memory
 from hsicam.models.demosaic import brightness, phase_linear
@@ -493,7 +494,7 @@ def cut_psf(op, energy: float):
     if energy >= 1 or psf is None or not hasattr(op, "cropped"):
         return op
     with torch.no_grad():
-        p = psf.detach().double()
+        p = psf.detach().to(float64_device(psf.device)).double()  # (MPS has no float64)
         total = p.sum(dim=(-2, -1))
         k_full, c = p.shape[-1], p.shape[-1] // 2
         for k in range(1, k_full, 2):
