@@ -67,3 +67,29 @@ def test_the_psf_energy_cut_measures_in_float64_where_float64_device_says(monkey
     Op.psf[:, 2, 2] = 1.0
     monkeypatch.setattr(c, "float64_device", spy)
     assert c.cut_psf(Op(), 0.99) == 1 and seen == [torch.device("cpu")]
+
+
+def _float64_then_cpu(node: ast.AST) -> bool:
+    """``X.double().cpu()`` / ``X.to(torch.float64).cpu()``: the conversion runs on X's device before the copy."""
+    if not (isinstance(node, ast.Call) and isinstance(node.func, ast.Attribute) and node.func.attr == "cpu"):
+        return False
+    inner = node.func.value
+    if not (isinstance(inner, ast.Call) and isinstance(inner.func, ast.Attribute)):
+        return False
+    if inner.func.attr == "double":
+        return True
+    args = [*inner.args, *(k.value for k in inner.keywords)]
+    return inner.func.attr == "to" and any(isinstance(a, ast.Attribute) and a.attr in ("float64", "double")
+                                           for a in args)
+
+
+def test_no_float64_conversion_on_the_device_before_a_copy_to_the_cpu():
+    """``t.double().cpu()`` makes the float64 copy on ``t``'s device: on MPS a TypeError (a camera loaded with
+    ``--device mps``: fabrication export, camera report, tolerance, the linear demosaic's fit); ``t.cpu().double()``
+    gives the same values everywhere."""
+    found = []
+    for path in sorted(SRC.rglob("*.py")):
+        for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+            if _float64_then_cpu(node):
+                found.append(f"{path.relative_to(SRC)}:{node.lineno}")
+    assert found == []

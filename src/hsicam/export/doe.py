@@ -53,13 +53,13 @@ def design_heights(camera) -> tuple[np.ndarray, np.ndarray, float]:
     doe = optics.doe
     q = optics.pupil_oversample
     n = doe.n_cells
-    amp = optics.amplitude.detach().double().cpu().numpy()
+    amp = optics.amplitude.detach().cpu().double().numpy()
     aperture = amp.reshape(n, q, n, q).mean(axis=(1, 3)) if q > 1 else amp
     saved = doe.sigma_height_m
     try:
         doe.sigma_height_m = 0.0
         with torch.no_grad():
-            h = doe.heights().detach().double().cpu().numpy()
+            h = doe.heights().detach().cpu().double().numpy()
     finally:
         doe.sigma_height_m = saved
     inside = aperture > 0

@@ -213,7 +213,7 @@ class LinearDemosaicFit:
                              f"{tuple(sensor.shape)} and {tuple(truth.shape)}")
         r, m = self.window // 2, self.period
         h, w = sensor.shape[-2:]
-        sensor, truth = sensor.detach().double().cpu(), truth.detach().double().cpu()
+        sensor, truth = sensor.detach().cpu().double(), truth.detach().cpu().double()
         padded = F.pad(sensor, (r, r, r, r), mode="replicate") if r else sensor
         k = self.window
         patches = padded[:, 0].unfold(1, k, 1).unfold(2, k, 1).reshape(-1, k * k)  # (B·H·W, K²)

@@ -27,7 +27,7 @@ def nominal_heights(camera) -> torch.Tensor:
     try:
         doe.sigma_height_m = 0.0
         with torch.no_grad():
-            return doe.heights().detach().double().cpu()
+            return doe.heights().detach().cpu().double()
     finally:
         doe.sigma_height_m = saved
 
@@ -50,7 +50,7 @@ def sensor_distance_aliasing(optics, dz_m: float) -> np.ndarray:
     residual defocus with the sensor moved by ``dz_m`` (the defocus that :func:`psf_for_heights`
     computes with :func:`defocus_delta_per_m2`), on the optics' own pupil grid (cell / q). Above 1
     the PSF aliases: the criterion :class:`~hsicam.optics.psf.PSFModel` refuses a config with."""
-    total = optics.defocus_per_m2.detach().double().cpu().numpy() + defocus_delta_per_m2(optics, dz_m).numpy()
+    total = optics.defocus_per_m2.detach().cpu().double().numpy() + defocus_delta_per_m2(optics, dz_m).numpy()
     return defocus_aliasing(total, optics.aperture_radius_m, optics.cell_m / optics.pupil_oversample)
 
 
@@ -61,7 +61,7 @@ def sensor_distance_limits_m(optics) -> tuple[float, float]:
     − 1/z_ℓ (z_ℓ: ``optics.line_sensor_distances_m``), simulated wavelength ℓ needs
     |c_ℓ + π u_ℓ/λ_ℓ| ≤ π/(2 a d) (``defocus_aliasing``); Δz falls as u_ℓ rises, so each wavelength
     bounds Δz on both sides and the range is the intersection."""
-    c0 = optics.defocus_per_m2.detach().double().cpu().numpy()
+    c0 = optics.defocus_per_m2.detach().cpu().double().numpy()
     lam = np.asarray(optics.line_wavelengths_nm, dtype=np.float64) * 1e-9
     z = np.asarray(optics.line_sensor_distances_m, dtype=np.float64)
     limit = math.pi / (2.0 * optics.aperture_radius_m * optics.cell_m / optics.pupil_oversample)

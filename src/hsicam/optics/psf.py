@@ -282,7 +282,7 @@ class PSFModel(nn.Module):
     def aperture_per_cell(self) -> np.ndarray:
         """Aperture transmission (area fraction) per DOE cell, (n, n) float64."""
         n, q = self.doe.n_cells, self.pupil_oversample
-        amp = self.amplitude.detach().double().cpu().numpy()
+        amp = self.amplitude.detach().cpu().double().numpy()
         return amp.reshape(n, q, n, q).mean(axis=(1, 3)) if q > 1 else amp
 
     def describe(self) -> dict:

@@ -204,7 +204,7 @@ def write_psf_outputs(camera, out: Path) -> dict:
         "fwhm_nm": camera.bands.fwhm_nm.tolist(),
         "pixel_pitch_um": optics.pixel_m * 1e6,
         "kernel_px": camera.kernel_px,
-        "energy_in_kernel": res.energy.double().cpu().numpy().tolist(),
+        "energy_in_kernel": res.energy.cpu().double().numpy().tolist(),
         "lens": desc["lens"],
         "doe": desc["doe"],
         "aperture_radius_mm": desc["aperture_radius_mm"],
@@ -218,8 +218,8 @@ def write_psf_outputs(camera, out: Path) -> dict:
         },
     }
     write_npy(out / "psf.npy", psf)
-    write_npy(out / "doe_height_m.npy", heights.detach().double().cpu().numpy())
-    write_npy(out / "aperture.npy", optics.amplitude.detach().double().cpu().numpy())
+    write_npy(out / "doe_height_m.npy", heights.detach().cpu().double().numpy())
+    write_npy(out / "aperture.npy", optics.amplitude.detach().cpu().double().numpy())
     write_json(out / "psf.json", info)
     plot_psf_montage(psf, camera.bands, out / "psf.png")
     return info
