@@ -95,7 +95,7 @@ def test_the_aperture_window_is_the_crop_of_the_whole_pattern_and_hashes_only_it
 
     cam = _cassi(kind, "camera.cassi.mask_seed=5")
     hashed: list[int] = []
-    real = cassi.hashed_uniform
+    real = cassi.hashed_bits  # what random_aperture hashes (hashed_uniform divides it)
 
     def counting(h, w, *args, **kwargs):
         hashed.append(h * w)
@@ -106,12 +106,12 @@ def test_the_aperture_window_is_the_crop_of_the_whole_pattern_and_hashes_only_it
     for r0, c0 in ((0, 0), (1, 0), (0, 3), (17, 29), (400, 61), (1000, 2000)):
         whole = cam.aperture.pattern(r0 + 9, c0 + wide, dtype=torch.float64)[r0:, c0:]  # the crop, as before
         cam.aperture._cache.clear()
-        monkeypatch.setattr(cassi, "hashed_uniform", counting)
+        monkeypatch.setattr(cassi, "hashed_bits", counting)
         hashed.clear()
         snap = cassi.CASSISnapshot(cam, offset=(r0, c0))
         window = snap._aperture(9, wide, (0, 0), x)
         assert hashed == [9 * wide], (r0, c0)  # the window's pixels, not (r0 + 9) × (c0 + wide)
-        monkeypatch.setattr(cassi, "hashed_uniform", real)
+        monkeypatch.setattr(cassi, "hashed_bits", real)
         assert torch.equal(window, whole), (r0, c0)
         assert torch.equal(cassi.CASSISnapshot(cam, offset=(0, c0))._aperture(9, wide, (r0, 0), x), whole)
         if r0 + c0 < 1000:  # the window's measurement: the crop of the measurement of the scene pasted there

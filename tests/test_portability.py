@@ -93,3 +93,47 @@ def test_no_float64_conversion_on_the_device_before_a_copy_to_the_cpu():
             if _float64_then_cpu(node):
                 found.append(f"{path.relative_to(SRC)}:{node.lineno}")
     assert found == []
+
+
+class _NoFloat64(torch.overrides.TorchFunctionMode):
+    """Stands for a device without float64 (MPS): any operation that makes a float64 tensor raises MPS's TypeError."""
+
+    def __torch_function__(self, func, types, args=(), kwargs=None):
+        out = func(*args, **(kwargs or {}))
+        for t in out if isinstance(out, (tuple, list)) else (out,):
+            if isinstance(t, torch.Tensor) and t.dtype == torch.float64:
+                raise TypeError(f"{getattr(func, '__name__', func)}: Cannot convert a MPS Tensor to float64 dtype "
+                                "as the MPS framework doesn't support float64. Please use float32 instead.")
+        return out
+
+
+@pytest.mark.parametrize("density", [0.5, 0.1, 0.9, 1.0, 2.0**-32 * 3, 0.5 + 2.0**-33])
+def test_the_random_coded_aperture_is_made_on_its_device_without_float64(density):
+    """A CASSI camera on ``mps`` hashes its aperture there: the old float64 draw (hashed_uniform) was a TypeError.
+    The cells are those of the float64 rule ``hashed_uniform < density``, computed here outside the device."""
+    from hsicam.cameras.cassi import hashed_uniform, random_aperture
+
+    want = (hashed_uniform(40, 50, 7, origin=(3, 11)) < density).to(torch.float32)
+    with _NoFloat64():
+        got = random_aperture(40, 50, seed=7, density=density, origin=(3, 11))
+    assert got.dtype == torch.float32
+    assert torch.equal(got, want)
+
+
+def test_a_coded_aperture_file_does_not_stop_the_camera_from_moving_to_a_device_without_float64(tmp_path):
+    """``camera.to("mps")`` converts every buffer and parameter to the device: a float64 one is a TypeError there.
+    The file's values stay exact (float64 on the CPU) for a float64 window."""
+    import numpy as np
+
+    from hsicam.cameras import build_camera
+    from hsicam.config import load_config
+
+    mask = np.random.default_rng(0).random((12, 30))
+    np.save(tmp_path / "mask.npy", mask)
+    cfg = load_config(overrides=["bands.start_nm=500", "bands.stop_nm=700", "bands.step_nm=50",
+                                 "camera.kind=dd_cassi", f"camera.cassi.mask_file={tmp_path / 'mask.npy'}"])
+    cam = build_camera(cfg)
+    moved = [name for name, t in [*cam.named_buffers(), *cam.named_parameters()] if t.dtype == torch.float64]
+    assert moved == []
+    np.testing.assert_array_equal(cam.aperture.pattern(12, 18, dtype=torch.float64).numpy(), mask[:, :18])
+    np.testing.assert_array_equal(cam.aperture.pattern(12, 18).numpy(), mask[:, :18].astype(np.float32))

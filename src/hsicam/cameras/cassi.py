@@ -68,24 +68,32 @@ def _mix32(h: torch.Tensor) -> torch.Tensor:
     return (h >> 16) ^ h
 
 
-def hashed_uniform(h: int, w: int, seed: int, device: torch.device | str | None = None,
-                   origin: tuple[int, int] = (0, 0)) -> torch.Tensor:
-    """Uniform values in [0, 1) (float64, (h, w)) that depend only on (seed, row, column): the window of rows
+def hashed_bits(h: int, w: int, seed: int, device: torch.device | str | None = None,
+                origin: tuple[int, int] = (0, 0)) -> torch.Tensor:
+    """32 random bits (int64 in [0, 2³²), (h, w)) that depend only on (seed, row, column): the window of rows
     ``origin[0]``… and columns ``origin[1]``… (only those are hashed: the memory is the window's, not its offset's)."""
     r0, c0 = int(origin[0]), int(origin[1])
     s = _mix32(torch.tensor((seed * 0x2545F491 + 0x9E3779B9) & _M32, dtype=torch.int64, device=device))
     rows = torch.arange(r0, r0 + h, dtype=torch.int64, device=device)[:, None]
     cols = torch.arange(c0, c0 + w, dtype=torch.int64, device=device)[None, :]
-    v = _mix32(_mix32(s ^ rows) ^ cols)
-    return v.to(torch.float64) / 2.0**32
+    return _mix32(_mix32(s ^ rows) ^ cols)
+
+
+def hashed_uniform(h: int, w: int, seed: int, device: torch.device | str | None = None,
+                   origin: tuple[int, int] = (0, 0)) -> torch.Tensor:
+    """Uniform values in [0, 1) (float64, (h, w)): :func:`hashed_bits` / 2³²."""
+    return hashed_bits(h, w, seed, device, origin).to(torch.float64) / 2.0**32
 
 
 def random_aperture(h: int, w: int, seed: int = 0, density: float = 0.5,
                     device: torch.device | str | None = None, dtype: torch.dtype = torch.float32,
                     origin: tuple[int, int] = (0, 0)) -> torch.Tensor:
     """Random binary coded aperture (h, w) at ``origin`` (row, column): 1 (open) with probability ``density``,
-    position-hashed."""
-    return (hashed_uniform(h, w, seed, device, origin) < density).to(dtype)
+    position-hashed: open where :func:`hashed_uniform` < ``density``, compared in integers (bits < ⌈density·2³²⌉,
+    the same cells) so that no float64 tensor is made on ``device`` (MPS has none)."""
+    d = float(density)
+    limit = math.ceil(d * 2.0**32) if 0.0 < d <= 1.0 else (1 << 32 if d > 1.0 else 0)  # NaN or <= 0: all closed
+    return (hashed_bits(h, w, seed, device, origin) < limit).to(dtype)
 
 
 def load_aperture(path: str | Path) -> np.ndarray:
@@ -123,8 +131,9 @@ class CodedAperture(nn.Module):
     """The coded aperture P: a position-hashed random binary pattern, or an array (from a file).
 
     ``pattern(h, w)`` is the top-left (h, w) window, ``pattern(h, w, origin=(r0, c0))`` the one at row r0, column c0;
-    an array that does not hold the window is an :class:`InputError`. The array is a non-persistent buffer:
-    checkpoints do not store it.
+    an array that does not hold the window is an :class:`InputError`. The array is no buffer: it stays on the CPU in
+    float64 when the camera moves (a float64 buffer made ``camera.to("mps")`` a TypeError: MPS has no float64), its
+    windows go to the device they are asked for; checkpoints do not store it.
     """
 
     def __init__(self, seed: int = 0, density: float = 0.5, array: np.ndarray | torch.Tensor | None = None,
@@ -136,7 +145,7 @@ class CodedAperture(nn.Module):
         arr = None if array is None else torch.as_tensor(np.asarray(array, dtype=np.float64))
         if arr is not None and arr.dim() != 2:
             raise InputError(f"a coded aperture must be 2-D, got shape {tuple(arr.shape)}")
-        self.register_buffer("array", arr, persistent=False)
+        self.array = arr  # a plain attribute, on the CPU (see the class docstring)
         self._cache: dict[tuple, torch.Tensor] = {}
 
     @classmethod
@@ -517,6 +526,7 @@ __all__ = [
     "check_dispersion_span",
     "dd_cassi_forward",
     "dispersion_from_config",
+    "hashed_bits",
     "hashed_uniform",
     "linear_dispersion",
     "load_aperture",
