@@ -76,6 +76,15 @@ class LoopState:
         return cls(**{k: v for k, v in d.items() if k in names})
 
 
+def older_epoch_length(state: LoopState) -> int | None:
+    """The steps per epoch of a checkpoint saved before :class:`LoopState` kept them (None: a newer one, or
+    one whose length cannot be told: no completed epoch, or epochs of unequal lengths)."""
+    done = state.global_step - state.step_in_epoch  # the steps of its completed epochs
+    if state.steps_per_epoch or state.epoch < 1 or done <= 0 or done % state.epoch:
+        return None
+    return done // state.epoch
+
+
 class ShardedBatches(Sampler[int]):
     """Indices of this rank's share of global batches ``start_batch..n_batches-1``.
 
@@ -474,6 +483,14 @@ def _fit(task: Task, opts: FitOptions, run_dir: Path, resume: bool, lock: RunLoc
                                  f"{t.batch_size} ({len(train_ds)} patches per epoch, {task.batch_size_key}="
                                  f"{t.batch_size}): a resume would misplace where it stopped; keep the batch size and "
                                  "the patches per epoch as they were; nothing was changed")
+            old_epoch = older_epoch_length(state)
+            if old_epoch is not None and old_epoch != steps_per_epoch:
+                # a checkpoint of an older hsicam (no batch size kept): its completed epochs give their length
+                raise InputError(f"{run_dir}: was trained in epochs of {old_epoch} steps (a checkpoint of an older "
+                                 f"hsicam, which did not record its batch size), and its config now asks for "
+                                 f"{steps_per_epoch} steps of {t.batch_size} ({len(train_ds)} patches per epoch, "
+                                 f"{task.batch_size_key}={t.batch_size}): a resume would misplace where it stopped; "
+                                 "keep the batch size and the patches per epoch as they were; nothing was changed")
             if state.global_step > total_steps:  # before the config is rewritten: nothing changes
                 raise InputError(f"{run_dir}: has trained {state.global_step} steps ({state.epoch} epochs), more than the "
                                  f"{total_steps} its config now asks for; a resume cannot take training back: ask for at "

@@ -1,0 +1,95 @@
+"""Run folders written by older hsicam versions, which users keep for months: a run trained by an older
+version must still resume, evaluate and report today, or be refused in one line that says what to do.
+
+No run folder of an older version is stored in git: each test trains a tiny run with today's code and turns
+it into the layout an older version wrote (the keys and records that version did not write are taken out).
+The layouts (see `git log -- src/hsicam/runs/ src/hsicam/engine/loop.py`):
+
+- before ab50949: the checkpoint's training state (checkpoints.json "state", the step's state.json) had no
+  ``steps_per_epoch`` or ``batch_size``;
+- before db9c133: metrics.jsonl had no "session" records;
+- before 0e7b4fa: checkpoints.json's entries had no ``optimizer_sha256``.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+from safetensors.torch import load_file
+
+from cli_helpers import tree_snapshot
+from hsicam.config import load_config
+
+
+def _as_before_loop_state_kept_its_epoch_length(run: Path) -> None:
+    """The checkpoint state an hsicam before ab50949 wrote: no steps_per_epoch, no batch_size."""
+    man = json.loads((run / "checkpoints.json").read_text())
+    state_file = run / man["last"]["dir"] / "state.json"
+    state = json.loads(state_file.read_text())
+    for entry in (man["state"], state):
+        del entry["steps_per_epoch"], entry["batch_size"]
+    state_file.write_text(json.dumps(state, indent=2))
+    (run / "checkpoints.json").write_text(json.dumps(man, indent=2))
+
+
+def _as_before_sessions_and_optimizer_hashes(run: Path) -> None:
+    """metrics.jsonl without session records (before db9c133), checkpoints.json without optimizer_sha256
+    (before 0e7b4fa)."""
+    lines = (run / "metrics.jsonl").read_text().splitlines()
+    (run / "metrics.jsonl").write_text("".join(x + "\n" for x in lines if '"session"' not in x))
+    man = json.loads((run / "checkpoints.json").read_text())
+    for tag in ("last", "best"):
+        if isinstance(man.get(tag), dict):
+            man[tag].pop("optimizer_sha256", None)
+    (run / "checkpoints.json").write_text(json.dumps(man, indent=2))
+
+
+@pytest.mark.parametrize("change", ["train.batch_size=2", "train.batch_size=8", "data.patches_per_epoch=128"])
+def test_an_older_checkpoint_resumed_with_another_epoch_length_is_refused(cache_env, tmp_path, change):
+    """A run stopped in its second epoch by an hsicam that did not keep its batch size in the checkpoint was
+    resumed with another one: batch size 2 trained on from a misplaced position (20 steps where a new run of
+    that config has 24), 128 patches per epoch stopped at step 68 of 96, and batch size 8 was refused as
+    asking for fewer steps ("ask for at least as many"). A newer run is refused naming the batch size; the
+    older one now too, by the length its completed epochs had, and nothing changes."""
+    from hsicam.engine.train import train
+    from hsicam.errors import InputError
+
+    keys = ["train.epochs=3"]
+    cfg = load_config("tiny", keys)
+    run = tmp_path / "r"
+    assert train(cfg, run, progress=False, stop_after_steps=7) == {"stopped_at_step": 7}
+    _as_before_loop_state_kept_its_epoch_length(run)
+    before = tree_snapshot(run)
+    old_steps = cfg.data.patches_per_epoch // cfg.train.batch_size  # the epochs it trained in
+    new = load_config("tiny", [*keys, change])
+    new_steps = new.data.patches_per_epoch // new.train.batch_size
+    with pytest.raises(InputError) as e:
+        train(new, run, resume=True, progress=False)
+    assert str(e.value) == (
+        f"{run}: was trained in epochs of {old_steps} steps (a checkpoint of an older hsicam, which did not "
+        f"record its batch size), and its config now asks for {new_steps} steps of {new.train.batch_size} "
+        f"({new.data.patches_per_epoch} patches per epoch, train.batch_size={new.train.batch_size}): a resume would "
+        "misplace where it stopped; keep the batch size and the patches per epoch as they were; nothing was changed")
+    assert tree_snapshot(run) == before
+    # the config it trained with goes on, to the length of an uninterrupted run
+    assert train(cfg, run, resume=True, progress=False)["step"] == cfg.train.epochs * old_steps
+
+
+def test_an_older_run_without_sessions_or_optimizer_hashes_resumes_bit_identically(cache_env, tmp_path):
+    """A run stopped by an hsicam before session records and optimizer hashes resumes today to the weights
+    of an uninterrupted run, and the resume adds its own session record."""
+    from hsicam.engine.train import train
+
+    cfg = load_config("tiny", ["train.epochs=2", "train.keep_weights=last"])
+    full = tmp_path / "full"
+    train(cfg, full, progress=False)
+    run = tmp_path / "r"
+    assert train(cfg, run, progress=False, stop_after_steps=5) == {"stopped_at_step": 5}
+    _as_before_sessions_and_optimizer_hashes(run)
+    train(cfg, run, resume=True, progress=False)
+    a, b = load_file(full / "model.safetensors"), load_file(run / "model.safetensors")
+    assert a.keys() == b.keys() and all((a[k] == b[k]).all() for k in a)
+    sessions = [r for r in map(json.loads, (run / "metrics.jsonl").read_text().splitlines()) if "session" in r]
+    assert [r["step"] for r in sessions] == [5]
