@@ -186,6 +186,11 @@ class Task:
         None: nothing (e.g. the synthetic data)."""
         return None
 
+    def resume_warning(self, run_dir: Path) -> str | None:
+        """What a resume of ``run_dir`` should be warned of about the task's data (e.g. synthetic scenes of another
+        generator version than the run started on: :func:`hsicam.engine.provenance.generator_change_warning`)."""
+        return None
+
     def on_device(self, device: torch.device) -> None:
         """Called once the module is on ``device`` (memory format, ``torch.compile``, autocast)."""
 
@@ -501,6 +506,9 @@ def _fit(task: Task, opts: FitOptions, run_dir: Path, resume: bool, lock: RunLoc
             summary = last_validation(metrics.read())  # kept when no epoch is left to validate
             task.write_run_files(run_dir)  # the config it goes on with (e.g. `--set train.epochs=…`)
             log.info("resuming %s at epoch %d, step %d", run_dir, state.epoch, state.global_step)
+            warning = task.resume_warning(run_dir)
+            if warning:
+                log.warning(warning)
     elif is_main:
         # The run folder appears at once with all its files (config.yaml, ...) or not at all.
         with atomic_output(run_dir, marker=False) as tmp:

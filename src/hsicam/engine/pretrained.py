@@ -313,15 +313,21 @@ def matching_preset(cfg) -> str | None:
     return None
 
 
-def _training_data(cfg) -> dict[str, Any]:
+def _training_data(cfg, run_dir: Path) -> dict[str, Any]:
     d = cfg.data
     if d.root is not None:
         return {"kind": "folder", "root": str(d.root), "note": "the maintainer's own scene folder (data.root)"}
     from hsicam.data.spectral_sources import SOURCES, parse_holdout
     from hsicam.data.synthetic import GENERATOR_VERSION
+    from hsicam.engine.provenance import trained_generator_version
 
+    version = trained_generator_version(run_dir)  # the run's own (recorded since session 60)
+    if version is None:
+        log.warning("%s does not record the synthetic-data generator version it trained on (a run of an hsicam "
+                    "before session 60): the card names this hsicam's, version %d", run_dir, GENERATOR_VERSION)
+        version = GENERATOR_VERSION
     held = list(parse_holdout(d.holdout_sources))
-    return {"kind": "embedded synthetic generator", "generator_version": GENERATOR_VERSION,
+    return {"kind": "embedded synthetic generator", "generator_version": version,
             "scenes": d.synthetic_n, "scene_px": d.synthetic_size, "seed": d.synthetic_seed,
             "validation_fraction": d.val_fraction, **({"validation_pool": d.val_pool} if d.val_pool is not None else {}),
             "holdout_sources": held,
@@ -368,7 +374,7 @@ def card_fields(run_dir: str | Path, name: str, results: str | Path | None = Non
     cam, t = cfg.camera, cfg.train
     n_net = sum(p.numel() for p in model.net.parameters())
     n_cam = sum(p.numel() for p in model.camera.parameters())
-    data = _training_data(cfg)
+    data = _training_data(cfg, run_dir)
     cfa = cam.cfa.period if cam.kind == "doe" and cam.cfa.enabled else None
     if summary is None:
         on = ("the embedded synthetic data" if cfg.data.root is None else "its own scene folder")

@@ -35,9 +35,10 @@ from typing import Any, Sequence
 from hsicam.config import DataConfig
 from hsicam.data.datasets import scene_path
 from hsicam.data.pipeline import dataset_root, scene_stat, split_dataset
+from hsicam.data.synthetic import GENERATOR_VERSION
 from hsicam.errors import InputError
 from hsicam.io import write_json
-from hsicam.runs.folder import DATA_RECORD
+from hsicam.runs.folder import DATA_RECORD, MetricsLog
 from hsicam.spectral import Bands
 
 log = logging.getLogger(__name__)
@@ -250,9 +251,39 @@ def software_record(device: str, world_size: int = 1) -> dict[str, Any]:
     return {"started_utc": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
             "hsicam": installed_version(), "git_commit": _source_commit(), "torch": torch.__version__,
             "numpy": numpy.__version__, "python": platform.python_version(), "platform": platform.platform(),
-            "executable": sys.executable, "device": str(device), "world_size": int(world_size)}
+            "executable": sys.executable, "device": str(device), "world_size": int(world_size),
+            "synthetic_generator": GENERATOR_VERSION}
 
 
-__all__ = ["check_same_data", "data_changes", "data_record", "installed_version", "read_data_record", "scene_roles",
-           "heldout_sources_problem", "software_record", "synthetic_scene_roles", "training_scenes_warning",
-           "write_data_record"]
+def trained_generator_version(run_dir: str | Path) -> int | None:
+    """The synthetic-data generator version (:data:`hsicam.data.synthetic.GENERATOR_VERSION`) of the software that
+    started the run ``run_dir``: its first session record's; None when not recorded (a run of an hsicam before
+    session 60, a folder without metrics.jsonl such as a shipped camera's) or unreadable."""
+    try:
+        records = MetricsLog(Path(run_dir) / "metrics.jsonl", enabled=False).read()
+    except (InputError, OSError):
+        return None
+    for r in records:
+        if isinstance(r.get("session"), dict):
+            v = r["session"].get("synthetic_generator")
+            return v if isinstance(v, int) and not isinstance(v, bool) else None
+    return None
+
+
+def generator_change_warning(run_dir: str | Path, data: DataConfig, doing: str) -> str | None:
+    """A warning when the run at ``run_dir`` trained on the synthetic data of another generator version than this
+    hsicam's, which ``doing`` (e.g. "is scored", "goes on") on this version's scenes; None otherwise (a data.root
+    run, an unrecorded version, the same version)."""
+    if data.root is not None:
+        return None
+    was = trained_generator_version(run_dir)
+    if was is None or was == GENERATOR_VERSION:
+        return None
+    return (f"{run_dir} trained on scenes of synthetic-data generator version {was}; this hsicam generates version "
+            f"{GENERATOR_VERSION} (docs/data.md), so it {doing} on other scenes than its own version's: figures are "
+            f"not comparable with those the run's version gave")
+
+
+__all__ = ["check_same_data", "data_changes", "data_record", "generator_change_warning", "installed_version",
+           "read_data_record", "scene_roles", "heldout_sources_problem", "software_record", "synthetic_scene_roles",
+           "trained_generator_version", "training_scenes_warning", "write_data_record"]

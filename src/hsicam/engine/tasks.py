@@ -16,7 +16,7 @@ import yaml
 from hsicam.config import ChoiConfig, Config, TrainConfig, dump_yaml
 from hsicam.data.pipeline import absolute_data_paths, build_datasets, dataset_root
 from hsicam.engine.loop import Task, draw_uniform, step_generator
-from hsicam.engine.provenance import data_record
+from hsicam.engine.provenance import data_record, generator_change_warning
 from hsicam.errors import ConfigError
 from hsicam.io import atomic_open, write_json
 from hsicam.metrics import psnr_per_band, sam_degrees, ssim
@@ -264,6 +264,9 @@ class SystemTask(Task):
     def data_record(self) -> dict[str, Any] | None:
         return data_record(self.cfg.data, self.bands)
 
+    def resume_warning(self, run_dir: Path) -> str | None:
+        return generator_change_warning(run_dir, self.cfg.data, "goes on")
+
     def datasets(self):
         return build_datasets(self.cfg.data, self.bands, self.model.camera.margin,
                               code_period=getattr(self.model.camera, "code_period", 1), stream=self.cfg.train.seed)
@@ -330,6 +333,9 @@ class PriorTask(Task):
 
     def data_record(self) -> dict[str, Any] | None:
         return data_record(self.cfg.data, self.bands)
+
+    def resume_warning(self, run_dir: Path) -> str | None:
+        return generator_change_warning(run_dir, self.cfg.data, "goes on")
 
     def datasets(self):
         """The published prior's training data: clean patches, never relit (``data.augment_relight`` is

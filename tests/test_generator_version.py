@@ -1,0 +1,98 @@
+"""Which synthetic-data generator a run trained on (session 60; compat1's finding): a run of an older version
+(generator 2) was evaluated, resumed and packed on regenerated version-3 scenes without a word, and its card named
+version 3. A run records the version in its session records now; a run of another version is warned about."""
+
+from __future__ import annotations
+
+import json
+import logging
+import shutil
+
+import pytest
+
+from hsicam.cli import main
+from hsicam.config import load_config
+from hsicam.data.synthetic import GENERATOR_VERSION
+from hsicam.engine.provenance import trained_generator_version
+
+OLDER = GENERATOR_VERSION - 1
+
+
+@pytest.fixture(scope="module")
+def demo(tmp_path_factory, cache_env):
+    """A finished tiny demo folder (one epoch, then resumable to two)."""
+    from hsicam.engine.demo import run_demo
+
+    out = tmp_path_factory.mktemp("genver") / "demo"
+    run_demo(load_config("tiny", ["train.epochs=1"]), out)
+    return out
+
+
+def _as_of_version(run, version):
+    """The run's session records as the software of ``version`` (None: an hsicam before session 60) wrote them."""
+    path = run / "metrics.jsonl"
+    records = [json.loads(line) for line in path.read_text(encoding="utf-8").splitlines()]
+    for r in records:
+        if "session" in r:
+            if version is None:
+                r["session"].pop("synthetic_generator")
+            else:
+                r["session"]["synthetic_generator"] = version
+    path.write_text("".join(json.dumps(r) + "\n" for r in records), encoding="utf-8")
+
+
+def _warning(run, doing):
+    return (f"{run} trained on scenes of synthetic-data generator version {OLDER}; this hsicam generates version "
+            f"{GENERATOR_VERSION} (docs/data.md), so it {doing} on other scenes than its own version's: figures are "
+            f"not comparable with those the run's version gave")
+
+
+def test_a_run_records_the_generator_version_it_trains_on(demo):
+    records = [json.loads(line) for line in (demo / "run" / "metrics.jsonl").read_text(encoding="utf-8").splitlines()]
+    sessions = [r["session"] for r in records if "session" in r]
+    assert sessions and all(s["synthetic_generator"] == GENERATOR_VERSION for s in sessions)
+    assert trained_generator_version(demo / "run") == GENERATOR_VERSION
+
+
+def test_evaluating_a_run_of_another_generator_version_says_so(demo, tmp_path, caplog):
+    run = shutil.copytree(demo / "run", tmp_path / "run")
+    with caplog.at_level(logging.WARNING):
+        assert main(["evaluate", "--run", str(run), "--out", str(tmp_path / "same")]) == 0
+    assert not [r for r in caplog.records if "generator version" in r.getMessage()]
+    _as_of_version(run, OLDER)
+    caplog.clear()
+    with caplog.at_level(logging.WARNING):
+        assert main(["evaluate", "--run", str(run), "--out", str(tmp_path / "other")]) == 0
+    assert _warning(run, "is scored") in [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
+    _as_of_version(run, None)  # an hsicam before session 60 recorded none: nothing to tell
+    caplog.clear()
+    with caplog.at_level(logging.WARNING):
+        assert main(["evaluate", "--run", str(run), "--out", str(tmp_path / "unrecorded")]) == 0
+    assert not [r for r in caplog.records if "generator version" in r.getMessage()]
+
+
+def test_resuming_a_run_of_another_generator_version_says_so(demo, tmp_path, caplog):
+    run = shutil.copytree(demo / "run", tmp_path / "run")
+    _as_of_version(run, OLDER)
+    with caplog.at_level(logging.WARNING):
+        assert main(["train", "--out", str(run), "--resume", "--set", "train.epochs=2"]) == 0
+    assert _warning(run, "goes on") in [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
+    assert trained_generator_version(run) == OLDER  # the run's start, not the resume's
+
+
+def test_a_packed_card_names_the_generator_version_the_run_trained_on(demo, tmp_path, caplog):
+    from hsicam.engine.pretrained import pack_pretrained
+
+    run = shutil.copytree(demo / "run", tmp_path / "run")
+    _as_of_version(run, OLDER)
+    card = json.loads((pack_pretrained(run, "older", tmp_path / "root", demo / "results.json") / "card.json")
+                      .read_text(encoding="utf-8"))
+    assert card["training"]["data"]["generator_version"] == OLDER
+    _as_of_version(run, None)
+    with caplog.at_level(logging.WARNING):
+        card = json.loads((pack_pretrained(run, "unrecorded", tmp_path / "root", demo / "results.json") / "card.json")
+                          .read_text(encoding="utf-8"))
+    assert card["training"]["data"]["generator_version"] == GENERATOR_VERSION
+    assert [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING] == [
+        f"{run} does not record the synthetic-data generator version it trained on (a run of an hsicam before "
+        f"session 60): the card names this hsicam's, version {GENERATOR_VERSION}"]
