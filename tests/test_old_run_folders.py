@@ -93,3 +93,33 @@ def test_an_older_run_without_sessions_or_optimizer_hashes_resumes_bit_identical
     assert a.keys() == b.keys() and all((a[k] == b[k]).all() for k in a)
     sessions = [r for r in map(json.loads, (run / "metrics.jsonl").read_text().splitlines()) if "session" in r]
     assert [r["step"] for r in sessions] == [5]
+
+
+def test_the_report_of_an_older_demo_folder_leaves_out_the_facts_it_does_not_record(tmp_path):
+    """A demo folder of an older hsicam (before c36e057) records no method, data, noise or config hash in its
+    results.json: its report read "Results: " and "data: ; noise: null; config ". Now only the facts it has; a
+    folder of today's shows every one as before."""
+    import html as html_lib
+
+    from hsicam.io import mark_complete
+    from hsicam.report.html import build_report
+
+    def page(res):
+        d = tmp_path / str(len(list(tmp_path.iterdir())))
+        d.mkdir()
+        (d / "results.json").write_text(json.dumps(res), encoding="utf-8")
+        mark_complete(d)
+        return build_report(d).read_text(encoding="utf-8")
+
+    from hsicam.metrics import CONVENTIONS
+
+    scenes = [{"name": "scene_0000", "psnr": 30.0, "ssim": 0.9, "sam": 5.0}]
+    old = page({"scenes": scenes, "mean": {"psnr": 30.0, "ssim": 0.9, "sam": 5.0}, "conventions": dict(CONVENTIONS)})
+    assert "<h2>Results</h2>" in old
+    assert "data: ;" not in old and "noise: null" not in old and "config <" not in old
+    new = page({"method": "doe-learned", "data": "synthetic validation split", "noise": {"sensor_sigma": None},
+                "config_hash": "abc123", "region": "valid area", "scenes": scenes,
+                "mean": {"psnr": 30.0, "ssim": 0.9, "sam": 5.0}, "conventions": dict(CONVENTIONS)})
+    assert "<h2>Results: doe-learned</h2>" in new
+    assert ("<p class='note'>data: synthetic validation split; noise: "
+            + html_lib.escape(json.dumps({"sensor_sigma": None})) + "; config abc123; scored area: valid area</p>") in new

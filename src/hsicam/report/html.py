@@ -215,10 +215,14 @@ def _camera_section(run: Path, out: Path, prefix: str = "", label: str | None = 
 
 
 def _evaluation_sections(folder: Path, out: Path, res: dict) -> list[str]:
-    parts = [f"<h2>Results: {html.escape(str(res.get('method', '')))}</h2>",
-             f"<p class='note'>data: {html.escape(str(res.get('data', '')))}; noise: {html.escape(json.dumps(res.get('noise')))}; "
-             f"config {html.escape(str(res.get('config_hash', '')))}"
-             + (f"; scored area: {html.escape(str(res['region']))}" if res.get("region") else "") + "</p>"]
+    # the facts the results record (a demo folder of an older hsicam records fewer: no empty "data: ; noise: null")
+    facts = [f"{label}{html.escape(text)}" for label, text in (
+        ("data: ", str(res["data"]) if res.get("data") else None),
+        ("noise: ", json.dumps(res["noise"]) if res.get("noise") is not None else None),
+        ("config ", str(res["config_hash"]) if res.get("config_hash") else None),
+        ("scored area: ", str(res["region"]) if res.get("region") else None)) if text is not None]
+    method = f": {html.escape(str(res['method']))}" if res.get("method") else ""
+    parts = [f"<h2>Results{method}</h2>"] + ([f"<p class='note'>{'; '.join(facts)}</p>"] if facts else [])
     cols = [("name", "scene", ""), ("psnr", "PSNR (dB)", ".2f"), ("ssim", "SSIM", ".4f"), ("sam", "SAM (°)", ".2f"),
             ("ergas", "ERGAS", ".2f"), ("psnr_mst", "PSNR MST (dB)", ".2f"), ("runtime_s", "runtime (s)", ".3f")]
     parts.append(_table(res["scenes"] + [{"name": "mean", **res["mean"]}], cols))
