@@ -390,12 +390,24 @@ def test_a_signal_during_a_long_validation_stops_it_at_its_next_batch(tmp_path, 
     assert final["val_psnr"] == pytest.approx(full["val_psnr"], abs=1e-6)
 
 
-def test_a_diverged_training_says_what_its_folder_keeps_and_the_advice_works(tmp_path, cache_env):
-    """A divergence (here a learning rate of 1e308) leaves the run folder behind. Its one error line says what the
-    folder keeps (no checkpoint yet; later the last checkpoint, from before the divergence) and the command that goes
-    on from it with a lower rate; that command, as said, then trains. Before, the line said only "lower the learning
-    rates", and running the same command with a lower rate was refused: the folder is not empty."""
+def test_a_diverged_training_says_what_its_folder_keeps_and_the_advice_works(tmp_path, cache_env, monkeypatch):
+    """A divergence leaves the run folder behind. Its one error line says what the folder keeps (no checkpoint yet;
+    later the last checkpoint, from before the divergence) and the command that goes on from it with a lower rate;
+    that command, as said, then trains. Before, the line said only "lower the learning rates", and running the same
+    command with a lower rate was refused: the folder is not empty. The divergence: a training step's loss is NaN
+    after the first of a process at any learning rate above 0.5 (1e308 made it real until session 60 bounded
+    train.lr at 1; the tiny preset trains on at 1)."""
     from cli_helpers import run_cli_in_process
+    from hsicam.engine.tasks import SystemTask
+
+    step = SystemTask.training_step
+
+    def diverging(self, trainable, scene, generator):  # as 1e308 did: the first step's loss finite, the next NaN
+        loss = step(self, trainable, scene, generator)
+        self.steps_taken = getattr(self, "steps_taken", 0) + 1
+        return loss * float("nan") if self.cfg.train.lr > 0.5 and self.steps_taken > 1 else loss
+
+    monkeypatch.setattr(SystemTask, "training_step", diverging)
 
     def error_line(res) -> str:  # the last line: the training's progress lines come before it
         assert res.returncode == 2 and "Traceback" not in res.stderr, res.stderr
@@ -403,16 +415,16 @@ def test_a_diverged_training_says_what_its_folder_keeps_and_the_advice_works(tmp
 
     env = {"HSICAM_CACHE": str(cache_env)}
     run = tmp_path / "run"
-    res = run_cli_in_process("train", "--config", "tiny", "--out", str(run), "--set", "train.lr=1e308", env=env)
+    res = run_cli_in_process("train", "--config", "tiny", "--out", str(run), "--set", "train.lr=0.9", env=env)
     assert res.returncode == 2
     assert error_line(res) == (f"hsicam: error: training diverged at step 1 (loss nan); lower the learning rates; {run} "
                                f"holds no checkpoint yet; continue with a lower rate: hsicam train --out {run} --resume "
                                "--set train.lr=LR (or start over with --restart)")
-    # the advice, with a rate that trains: one epoch (4 steps), then a second epoch at 1e308 diverges at its first step
+    # the advice, with a rate that trains: one epoch (4 steps), then a second epoch at 0.9 diverges at its first step
     ok = run_cli_in_process("train", "--out", str(run), "--resume", "--set", "train.lr=1e-3", "--set", "train.epochs=1",
                             env=env)
     assert ok.returncode == 0, ok.stderr
-    res = run_cli_in_process("train", "--out", str(run), "--resume", "--set", "train.lr=1e308", "--set",
+    res = run_cli_in_process("train", "--out", str(run), "--resume", "--set", "train.lr=0.9", "--set",
                              "train.epochs=2", env=env)
     assert res.returncode == 2
     assert error_line(res).startswith(f"hsicam: error: training diverged at step 5 (loss nan); lower the learning rates; "
