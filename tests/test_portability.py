@@ -137,3 +137,29 @@ def test_a_coded_aperture_file_does_not_stop_the_camera_from_moving_to_a_device_
     assert moved == []
     np.testing.assert_array_equal(cam.aperture.pattern(12, 18, dtype=torch.float64).numpy(), mask[:, :18])
     np.testing.assert_array_equal(cam.aperture.pattern(12, 18).numpy(), mask[:, :18].astype(np.float32))
+
+
+def test_desci_does_its_float64_eigen_work_where_float64_device_says(monkeypatch):
+    """DeSCI's spectral PCA and WNNM groups made float64 tensors on the data's device (`evaluate --method
+    dd-cassi-desci --device mps`: a TypeError on MPS). They go through float64_device now (the CPU for mps; here a
+    spy on the CPU), with the same results as before and back on the data's device in its dtype."""
+    import importlib
+
+    d = importlib.import_module("hsicam.solvers.desci")  # the package exports a function of that name
+
+    seen = []
+
+    def spy(device):
+        seen.append(torch.device(device))
+        return torch.device("cpu")
+
+    g = torch.Generator().manual_seed(0)
+    x = torch.rand(6, 12, 10, generator=g)
+    groups = torch.rand(4, 9, 5, generator=g)
+    before = d.spectral_features(x, 3), d.wnnm_groups(groups, 0.1)
+    monkeypatch.setattr(d, "float64_device", spy)
+    after = d.spectral_features(x, 3), d.wnnm_groups(groups, 0.1)
+    assert seen == [torch.device("cpu")] * 2
+    for a, b in zip(before, after):
+        assert b.dtype == torch.float32 and b.device.type == "cpu"
+        torch.testing.assert_close(a, b, rtol=0, atol=0)

@@ -39,6 +39,7 @@ import torch
 import torch.nn.functional as F
 
 from hsicam.config import GAPTVConfig
+from hsicam.devices import float64_device
 from hsicam.errors import InputError
 from hsicam.solvers.gaptv import SolverInfo, gap_tv
 
@@ -108,10 +109,10 @@ def spectral_features(x: torch.Tensor, components: int | None) -> torch.Tensor:
     c = x.shape[0]
     if components is None or components >= c:
         return x
-    flat = x.reshape(c, -1).to(torch.float64)
+    flat = x.reshape(c, -1).to(float64_device(x.device), torch.float64)  # the CPU for MPS, which has no float64
     cov = flat @ flat.T / flat.shape[1]
     _, vecs = torch.linalg.eigh(cov)
-    basis = vecs[:, -components:].T.to(x.dtype)  # (C', C), orthonormal rows
+    basis = vecs[:, -components:].T.to(x.device, x.dtype)  # (C', C), orthonormal rows
     return (basis @ x.reshape(c, -1)).reshape(components, *x.shape[1:])
 
 
@@ -178,14 +179,14 @@ def wnnm_groups(groups: torch.Tensor, sigma: float, c: float = 1.0) -> torch.Ten
     g, d, k = groups.shape
     mean = groups.mean(dim=2, keepdim=True)
     y = groups - mean
-    gram = (y.transpose(1, 2) @ y).to(torch.float64)  # (G, K, K)
+    gram = (y.transpose(1, 2) @ y).to(float64_device(y.device), torch.float64)  # (G, K, K); the CPU for MPS
     evals, vecs = torch.linalg.eigh(gram)
     s = evals.clamp_min(0).sqrt()
     weight = c * sigma**2 * (math.sqrt(d) + math.sqrt(k)) ** 2 / 4
     shrunk = wnnm_shrink(s, weight)
     ratio = torch.where(s > 1e-12, shrunk / s.clamp_min(1e-12), torch.zeros_like(s))
     proj = (vecs * ratio[:, None, :]) @ vecs.transpose(1, 2)  # V diag(s'/s) Vᵀ, (G, K, K)
-    return y @ proj.to(groups.dtype) + mean
+    return y @ proj.to(groups.device, groups.dtype) + mean
 
 
 def _patch_offsets(patch: int, w: int, device: torch.device) -> torch.Tensor:
