@@ -42,6 +42,7 @@ training on the cached files does not need it.
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import hashlib
 import json
@@ -350,6 +351,18 @@ def generate_dataset(out: str | os.PathLike, n: int, size: int, seed: int = 0, b
     """
     bands = bands or Bands.paper()
     holdout = parse_holdout(holdout_sources)
+    out, params = _checked_output(out, n, size, seed, bands, holdout, split, room_fix)
+    log.info("generating the synthetic %s set (%d scenes of %dx%dx%d, held-out sources: %s) in %s", split, n, size,
+             size, len(bands), ", ".join(holdout) or "none", out)
+    lib = spectral_library(bands, holdout, split)
+    with _folder_removed_if_failed(out):  # scenes written stay; a rerun rewrites all, the same bytes
+        return _generate_into(out, n, size, seed, bands, lib, params, holdout, split, progress)
+
+
+def _checked_output(out: str | os.PathLike, n: int, size: int, seed: int, bands: Bands, holdout: tuple[str, ...],
+                    split: str, room_fix: str, indices: Sequence[int] | None = None) -> tuple[Path, dict[str, Any]]:
+    """(out, the set's parameters) after the checks before any scene of the ``n``-scene set is written into
+    ``out`` (all, or ``indices``): the split, the sizes, the bands, the folder's own dataset, memory, disk room."""
     _check_split(split)
     if n < 1:
         raise InputError(f"synthetic: need at least one scene, got n={n}")
@@ -360,16 +373,19 @@ def generate_dataset(out: str | os.PathLike, n: int, size: int, seed: int = 0, b
     params = parameters(n, size, seed, bands, holdout_sources=holdout, split=split)
     check_dataset_folder(out, params)
     check_scene_memory(size, len(bands))
-    check_room_for_scenes(out, n, size, len(bands), room_fix or ROOM_FIX)
-    log.info("generating the synthetic %s set (%d scenes of %dx%dx%d, held-out sources: %s) in %s", split, n, size,
-             size, len(bands), ", ".join(holdout) or "none", out)
-    lib = spectral_library(bands, holdout, split)
+    check_room_for_scenes(out, n, size, len(bands), room_fix or ROOM_FIX, indices=indices)
+    return out, params
+
+
+@contextlib.contextmanager
+def _folder_removed_if_failed(out: Path):
+    """Make ``out`` (and its missing parents); a failure inside removes those of them left empty again."""
     made = [p for p in (out, *out.parents) if not p.exists()]  # the folders this call creates
     out.mkdir(parents=True, exist_ok=True)
     try:
-        return _generate_into(out, n, size, seed, bands, lib, params, holdout, split, progress)
+        yield
     except BaseException:
-        for p in made:  # a failure leaves no empty folder behind (scenes written stay; a rerun rewrites all, same bytes)
+        for p in made:
             try:
                 p.rmdir()
             except OSError:
@@ -459,32 +475,17 @@ def generate_scenes(out: str | os.PathLike, indices: Sequence[int], n: int, size
                     room_fix: str = "") -> list[Path]:
     """Write the scenes ``indices`` of the ``n``-scene set into ``out`` (the files :func:`generate_dataset`
     writes for them), and no manifest: :func:`generate_dataset` completes the folder. Returns their paths."""
+    from hsicam.progress import progress as counted
+
     bands = bands or Bands.paper()
     holdout = parse_holdout(holdout_sources)
-    _check_split(split)
-    check_bands(bands)
-    out = Path(out)
-    params = parameters(n, size, seed, bands, holdout_sources=holdout, split=split)
-    check_dataset_folder(out, params)
-    check_scene_memory(size, len(bands))
-    check_room_for_scenes(out, n, size, len(bands), room_fix or ROOM_FIX, indices=indices)
+    out, params = _checked_output(out, n, size, seed, bands, holdout, split, room_fix, indices)
     log.info("generating %d of the %d scenes of the synthetic %s set (%dx%dx%d, held-out sources: %s) in %s",
              len(indices), n, split, size, size, len(bands), ", ".join(holdout) or "none", out)
     lib = spectral_library(bands, holdout, split)
-    made = [p for p in (out, *out.parents) if not p.exists()]  # the folders this call creates
-    out.mkdir(parents=True, exist_ok=True)
-    from hsicam.progress import progress as counted
-
-    try:
+    with _folder_removed_if_failed(out):  # written scenes stay
         return [_write_scene(out, i, seed, size, bands, lib, params)[2]
                 for i in counted(indices, len(indices), f"synthetic {split} scenes", "scene", show=progress)]
-    except BaseException:
-        for p in made:  # a failure leaves no empty folder behind (written scenes stay)
-            try:
-                p.rmdir()
-            except OSError:
-                break
-        raise
 
 
 def _used_sources(lib: SpectralLibrary) -> list[str]:
