@@ -7,7 +7,7 @@ Runs DD-CASSI + GAP-TV (``hsicam.solvers.gaptv``) on the first ``--scenes`` scen
 training split for every (iterations, tv_weight) pair, each scene captured as the evaluation captures
 it, and prints one JSON line per setting (mean per-band PSNR, SSIM, SAM, seconds per scene), then a
 Markdown table. The weights may also be a falling schedule ``a>b`` (geometric from a to b over the
-iterations). The config's ``baselines.gaptv`` defaults were chosen with this script (docs/training.md).
+iterations). The config's ``baselines.gaptv`` defaults were chosen with this script (docs/training_log.md).
 """
 
 from __future__ import annotations

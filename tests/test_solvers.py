@@ -744,7 +744,7 @@ def test_train_prior_beyond_the_training_bounds_names_the_prior_key(key, value, 
 
 @pytest.mark.parametrize("name", ["dd-cassi-gaptv", "dd-cassi-desci"])
 def test_classical_cassi_methods_take_a_doe_preset(name):
-    """`hsicam evaluate --config quick --method dd-cassi-gaptv` (docs/training.md's command) failed:
+    """`hsicam evaluate --config quick --method dd-cassi-gaptv` (docs/training_log.md's command) failed:
     the quick preset's linear consistency step is a config error on a DD-CASSI camera, though a
     classical solver has no network to follow it."""
     cfg = load_config("quick")

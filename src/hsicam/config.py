@@ -867,7 +867,7 @@ def _check_at_least(section: str, low: int, **values) -> None:
 @dataclass
 class GAPTVConfig:
     """GAP-TV (hsicam.solvers.gaptv): accelerated GAP + spatial TV denoising. The defaults were tuned
-    on training scenes, never the scored ones (``scripts/tune_gaptv.py``, docs/training.md): on the
+    on training scenes, never the scored ones (``scripts/tune_gaptv.py``, docs/training_log.md): on the
     quick data's DD-CASSI camera 80 iterations stop ~2 dB short of convergence, 400 are within ~0.2 dB."""
 
     iterations: int = 400
@@ -923,7 +923,7 @@ class ChoiConfig:
 
     Prior architecture and training (``hsicam baseline train-prior``) and the ADMM solve. The ADMM
     defaults were tuned on training scenes of the quick data, never the scored ones (session 25,
-    docs/training.md).
+    docs/training_log.md).
     """
 
     # autoencoder (hsicam.models.priors.SpectralAutoencoder: 6 + 6 3×3 convolutions, the published

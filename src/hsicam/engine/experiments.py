@@ -147,7 +147,7 @@ def is_finished(run: Path) -> bool:
 #: A scale preset's RDN on the DD-CASSI camera, reading the measurement alone (the paper's input; the
 #: DOE-camera presets may switch on the CFA demosaic input, which CASSI has no CFA for). The
 #: code-aware input (model.rdn.backprojection_input) ties it at quick scale (31.89 against 31.88 dB,
-#: docs/training.md): 640 CPU steps do not teach either to decode the code, and the experiments
+#: docs/training_log.md): 640 CPU steps do not teach either to decode the code, and the experiments
 #: keep the paper's input.
 #: The learned CASSI rows are scored without the DOE presets' consistency step: on the blind RDN one
 #: GAP projection lowers the total squared error but moves it between bands (quick, 8 validation

@@ -314,7 +314,7 @@ def fit(task: Task, opts: FitOptions, run_dir: str | Path, resume: bool = False,
         # same, which only lets go of this process's side of it. Left alive, it lived on to the interpreter's exit
         # with its gloo threads, the one condition under which a finished rank was seen to abort ("terminate called
         # without an active exception", exit -6, instead of the error's own exit status; pytorch#190489). Caught
-        # under gdb (docs/training.md): a pt_gloo_runloop thread drops the last reference to a finished work after
+        # under gdb (docs/training_log.md): a pt_gloo_runloop thread drops the last reference to a finished work after
         # wait() has returned; ~AsyncAllreduceWork frees a Python-made tensor, take_gil during Py_FinalizeEx calls
         # pthread_exit, whose unwinding through that noexcept destructor is std::terminate. After a waited
         # all_reduce, 9 of 20 runs that left the group alive to the exit aborted, 0 of 20 that destroyed it.

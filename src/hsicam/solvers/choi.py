@@ -19,7 +19,7 @@ Differences from the paper, stated so results can be read correctly (tables call
 "Choi-style"): the paper's prior term acts on the code α (15 ADMM iterations × 100 Adam steps on
 α through the decoder, TV split on the image gradients); here the prior term ‖x − D(E(x))‖² and
 TV act on the cube, which costs one autoencoder gradient per inner step instead of a hundred
-Adam steps. Measured (session 25, docs/training.md): the earlier 3 + 3 mostly-1×1 autoencoder
+Adam steps. Measured (session 25, docs/training_log.md): the earlier 3 + 3 mostly-1×1 autoencoder
 with a 12-channel code reconstructed *clean* cubes at SAM ≈ 23°, so the ADMM pulled spectra away
 from the truth (SAM worse than GAP-TV); the published plain 6 + 6 stack did not train within the
 CPU scales' step budgets (after 800 of 1500 steps its loss was still 3× the identity's), hence the skip. A "RED" z-update
