@@ -40,6 +40,7 @@ DOCS = [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md")),
 #: Code spans that hold ``hsicam …`` but are no command to run, (file, span) → why.
 NOT_COMMANDS = {
     ("README.md", "hsicam -v COMMAND …"): "the general form of -v (any command), no one command",
+    ("docs/usage.md", "hsicam -v COMMAND …"): "the general form of -v (any command), no one command",
     ("docs/data.md", "hsicam write_envi"): "the ENVI description string write_envi writes by default",
     ("docs/hardware.md", "hsicam cube"): "the ENVI description string of an older hsicam's cubes",
     ("docs/hardware.md", "hsicam data crc32 = <hex>"): "an ENVI header key",

@@ -52,7 +52,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="N Landweber steps with a total-variation prior instead of the run's own (after its linear step; "
                         "the quick and standard presets take 12): fewer blotches on flat regions, edges kept; against "
                         "two plain steps, 12 steps +0.3 to +1.0 dB on the demo camera in and out of distribution (24: "
-                        "+0.4 to +1.4 dB), about 0.11-0.15 s per step for a 512² image on a 2-core CPU (README); fewer for "
+                        "+0.4 to +1.4 dB), about 0.11-0.15 s per step for a 512² image on a 2-core CPU (docs/results.md); fewer for "
                         "speed (docs/networks.md, 'A TV prior in the steps')")
     p.add_argument("--tv-weight", type=tv_weight_arg, default=None, metavar="W",
                    help=f"weight of that prior, relative to the local brightness (default {RECOMMENDED_TV_WEIGHT}, chosen "
