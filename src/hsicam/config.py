@@ -15,6 +15,7 @@ import copy
 
 import dataclasses
 import math
+import operator
 import re
 import types
 import typing
@@ -88,6 +89,23 @@ def seed_problem(value: Any, low: int = SEED_MIN, high: int = SEED_MAX) -> Optio
         shown = str(value) if value.bit_length() <= 128 else f"an integer of {value.bit_length()} bits"
         return f"must be an integer in [{_power_text(low)}, {_power_text(high)}], got {shown}"
     return None
+
+
+def design_seed(value: Any, name: str) -> int:
+    """``value`` as the seed of a design drawn from it (``name``, e.g. ``"DOE seed"``: the DOE's heights, a CFA, a
+    coded aperture), else a :class:`ConfigError` "``name`` must be an integer in [0, 2^32 - 1], got …": the draws keep
+    only a seed's low 32 bits (``torch.Generator.manual_seed``, the aperture's 32-bit hash), so a seed outside gave the
+    design of another seed (2^32 that of 0, -1 that of 2^32 - 1). The config's keys are checked at load
+    (:func:`_check_seeds`); this checks the classes built without a config. Integers of any kind (numpy's too)."""
+    if not isinstance(value, bool):
+        try:
+            value = operator.index(value)
+        except TypeError:
+            pass
+    problem = seed_problem(value)
+    if problem is not None:
+        raise ConfigError(f"{name} {problem}")
+    return value
 
 
 def _check_seeds(section: str, **values: Any) -> None:

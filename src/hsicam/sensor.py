@@ -14,6 +14,7 @@ import numpy as np
 import torch
 from torch import nn
 
+from hsicam.config import design_seed
 from hsicam.optics.doe import straight_through
 
 log = logging.getLogger(__name__)
@@ -75,7 +76,7 @@ def bandpass_weights(centers_nm: torch.Tensor, period: int, fwhm_nm: float, seed
     centres = (torch.linspace(float(lam[0]), float(lam[-1]), n, dtype=torch.float64) if n > 1 else
                torch.tensor([0.5 * (float(lam[0]) + float(lam[-1]))], dtype=torch.float64))
     if layout == "random":
-        order = torch.randperm(n, generator=torch.Generator().manual_seed(int(seed)))
+        order = torch.randperm(n, generator=torch.Generator().manual_seed(design_seed(seed, "CFA seed")))
     elif layout == "dispersed":
         order = dispersed_order(period).reshape(-1)
     else:
@@ -95,10 +96,11 @@ class ColorFilterArray(nn.Module):
     def __init__(self, n_bands: int, period: int = 9, enabled: bool = True, seed: int = 0, init: str = "uniform",
                  centers_nm=None, bandpass_fwhm_nm: float = 40.0, layout: str = "random") -> None:
         super().__init__()
+        seed = design_seed(seed, "CFA seed")
         self.n_bands, self.period, self.enabled = int(n_bands), int(period), bool(enabled)
         if self.enabled:
             if init == "uniform":
-                g = torch.Generator().manual_seed(int(seed))
+                g = torch.Generator().manual_seed(seed)
                 w = torch.rand(self.n_bands, self.period, self.period, generator=g)
             elif init == "bandpass":
                 if centers_nm is None or len(centers_nm) != self.n_bands:

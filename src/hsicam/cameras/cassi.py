@@ -44,6 +44,7 @@ from torch import nn
 
 from hsicam.cameras.base import Camera
 from hsicam.cameras.registry import register_camera
+from hsicam.config import design_seed
 from hsicam.errors import ConfigError, InputError
 from hsicam.memory import MEMORY_BUDGET_ENV, format_bytes, memory_budget_bytes
 from hsicam.sensor import SensorNoise
@@ -73,6 +74,7 @@ def hashed_bits(h: int, w: int, seed: int, device: torch.device | str | None = N
     """32 random bits (int64 in [0, 2³²), (h, w)) that depend only on (seed, row, column): the window of rows
     ``origin[0]``… and columns ``origin[1]``… (only those are hashed: the memory is the window's, not its offset's)."""
     r0, c0 = int(origin[0]), int(origin[1])
+    seed = design_seed(seed, "coded-aperture seed")  # the hash keeps its low 32 bits: 2^32 drew seed 0's aperture
     s = _mix32(torch.tensor((seed * 0x2545F491 + 0x9E3779B9) & _M32, dtype=torch.int64, device=device))
     rows = torch.arange(r0, r0 + h, dtype=torch.int64, device=device)[:, None]
     cols = torch.arange(c0, c0 + w, dtype=torch.int64, device=device)[None, :]
@@ -141,7 +143,7 @@ class CodedAperture(nn.Module):
         super().__init__()
         if not (0.0 < density <= 1.0):
             raise ValueError(f"aperture density must be in (0, 1], got {density}")
-        self.seed, self.density, self.source = int(seed), float(density), source
+        self.seed, self.density, self.source = design_seed(seed, "coded-aperture seed"), float(density), source
         arr = None if array is None else torch.as_tensor(np.asarray(array, dtype=np.float64))
         if arr is not None and arr.dim() != 2:
             raise InputError(f"a coded aperture must be 2-D, got shape {tuple(arr.shape)}")

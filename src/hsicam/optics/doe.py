@@ -13,6 +13,7 @@ import numpy as np
 import torch
 from torch import nn
 
+from hsicam.config import design_seed
 from hsicam.errors import ConfigError
 from hsicam.spectral.materials import Material
 
@@ -115,6 +116,7 @@ class DOE(nn.Module):
         init_grating_period_cells: float = 55.0,
     ) -> None:
         super().__init__()
+        seed = design_seed(seed, "DOE seed")
         self.n_cells = int(n_cells)
         self.material = material
         self.design_wavelength_nm = float(design_wavelength_nm)
