@@ -703,7 +703,7 @@ class TrainConfig:
     log_every_steps: int = 20
     seed: int = 0
     device: str = "auto"  # auto: cuda when available, else cpu
-    bf16: bool = False  # autocast the network in bfloat16 (CUDA)
+    bf16: bool = False  # autocast the network in bfloat16 (CUDA; mps where torch can; nothing on the CPU)
     channels_last: bool = False
     compile: bool = False  # torch.compile the network
     deterministic: bool = False

@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import os
+import warnings
 
 import torch
 
@@ -20,6 +21,28 @@ def float64_device(device: torch.device | str) -> torch.device:
     convert a MPS Tensor to float64 dtype"), which stopped a training on ``mps`` at its first validation."""
     device = torch.device(device)
     return torch.device("cpu") if device.type == "mps" else device
+
+
+def autocast_problem(device: torch.device | str, dtype: torch.dtype) -> str | None:
+    """Why this torch cannot autocast on ``device`` in ``dtype`` (torch's own words, one line), or None; None on the CPU,
+    where the network is not autocast (:meth:`hsicam.models.CameraSystem.network` runs it in float32). ``train.bf16``
+    on ``mps`` autocasts there, which torch 2.4 cannot (an error at the first step, after the data and the run folder
+    were made), torch 2.5 only in float16 (a warning, and the training ran in float32 while its config said bf16), later
+    ones in bfloat16 from macOS 14 on; a CUDA device without bfloat16 is an error too."""
+    device = torch.device(device)
+    if device.type == "cpu":
+        return None
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        try:
+            with torch.autocast(device.type, dtype=dtype):
+                on = torch.is_autocast_enabled(device.type) and torch.get_autocast_dtype(device.type) == dtype
+        except (RuntimeError, TypeError, ValueError) as exc:
+            return " ".join(str(exc).split())
+    if on:
+        return None
+    said = " ".join(" ".join(str(w.message).split()) for w in caught)
+    return said or f"torch does not autocast {device.type} in {dtype}"
 
 
 def device_problem(spec: str) -> str | None:

@@ -36,10 +36,10 @@ from torch.utils.data import Sampler
 
 from hsicam.config import TrainConfig
 from hsicam.data.pipeline import make_loader, patch_source
-from hsicam.devices import device_problem, dist_env
+from hsicam.devices import autocast_problem, device_problem, dist_env
 from hsicam.engine.provenance import check_same_data, read_data_record, software_record, write_data_record
 from hsicam.engine.stopping import BUDGET_EXIT_CODE, StopRequests
-from hsicam.errors import InputError, TrainingDiverged, TrainingInterrupted, TrainingStopped
+from hsicam.errors import ConfigError, InputError, TrainingDiverged, TrainingInterrupted, TrainingStopped
 from hsicam.io import OutputLock, atomic_output, is_complete, output_description
 from hsicam.runs.checkpoint import CheckpointManager, save_weights
 from hsicam.runs.folder import MetricsLog, check_run_dir
@@ -429,6 +429,11 @@ def _fit(task: Task, opts: FitOptions, run_dir: Path, resume: bool, lock: RunLoc
     rank, world, local_rank = dist_env()
     distributed = world > 1
     device = resolve_device(t.device, local_rank)
+    if t.bf16:  # before any work: a torch that cannot failed at the first step, or trained in float32 unsaid
+        problem = autocast_problem(device, torch.bfloat16)
+        if problem is not None:
+            raise ConfigError(f"train.bf16 on {device}: torch {torch.__version__} cannot autocast the network there in "
+                              f"bfloat16 ({problem}); set train.bf16=false to train in float32")
     is_main = rank == 0  # (train.batch_size divides by the world size: checked by fit, before the group)
     if is_main:
         if resume:
