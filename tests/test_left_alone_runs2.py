@@ -65,9 +65,11 @@ def test_fit_does_not_write_its_final_weights_as_the_root_when_the_kept_checkpoi
     flip_byte_in_place(kept, kept.stat().st_size - 3)
     ck._HASHES.clear()
     with caplog.at_level(logging.WARNING, logger="hsicam.runs.checkpoint"):
-        final = train(cfg, run, resume=True, progress=False)
+        with pytest.raises(InputError, match="^training ended, but the run has no readable weights: "):  # (test_damaged_kept_weights.py)
+            train(cfg, run, resume=True, progress=False)
+    final = json.loads((run / "metrics.jsonl").read_text().splitlines()[-1])
     man = json.loads((run / MANIFEST).read_text())
-    assert final["step"] == man["last"]["step"] > 5 and man["weights"]["dir"] == man["best"]["dir"]  # best unchanged
+    assert final["final"] and final["step"] == man["last"]["step"] > 5 and man["weights"]["dir"] == man["best"]["dir"]  # best unchanged
     assert hashlib.sha256(kept.read_bytes()).hexdigest() != sha
     assert not root.exists()
     said = {r.getMessage() for r in caplog.records if r.levelno == logging.WARNING and r.name == "hsicam.runs.checkpoint"}

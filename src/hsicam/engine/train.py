@@ -11,6 +11,7 @@ from typing import Any
 import torch
 
 from hsicam.config import Config
+from hsicam.devices import dist_env
 from hsicam.engine.loop import FitOptions, fit
 from hsicam.engine.tasks import SystemTask
 from hsicam.models import CameraSystem
@@ -46,7 +47,38 @@ def train(cfg: Config, run_dir: str | Path, resume: bool = False, progress: bool
     torch.manual_seed(cfg.train.seed)
     task = SystemTask(cfg, CameraSystem.from_config(cfg))
     opts = FitOptions(cfg.train, cfg.data.num_workers, progress=progress, stop_after_steps=stop_after_steps)
-    return fit(task, opts, run_dir, resume, then=lambda summary: _refresh(run_dir, cfg, summary))
+    result = fit(task, opts, run_dir, resume, then=lambda summary: _refresh(run_dir, cfg, summary))
+    if "stopped_at_step" not in result and dist_env()[0] == 0:
+        check_kept_weights(run_dir)
+    return result
+
+
+def check_kept_weights(run_dir: str | Path) -> None:
+    """One-line :class:`InputError` when a run that finished training has no weights its readers take: the checkpoint
+    it keeps (``train.keep_weights``) is damaged and its root weights are not those the manifest records
+    (:func:`~hsicam.runs.checkpoint.root_weights_path`'s refusal; the loop's end then leaves the root as it is, with a
+    warning). The training exited 0 and the next ``hsicam evaluate`` failed; now the training fails, naming the
+    damaged file and the way out: the run's last checkpoint when it is another one and intact
+    (``train.keep_weights=last``), else copying the run again."""
+    from hsicam.errors import InputError
+    from hsicam.runs.checkpoint import RECOPY_HINT, CheckpointManager, file_sha256, kept_entry, root_weights_path
+
+    run_dir = Path(run_dir)
+    try:
+        root_weights_path(run_dir)
+        return
+    except InputError as exc:
+        text = str(exc)
+    man = CheckpointManager(run_dir).manifest()
+    tag, entry = kept_entry(man)
+    last = man["last"]
+    weights = run_dir / last["dir"] / "model.safetensors"
+    if tag != "last" and last["dir"] != entry["dir"] and weights.is_file() and \
+            last.get("weights_sha256") in (None, file_sha256(weights)):
+        way = (f"keep the last checkpoint's weights (step {last.get('step')}, intact) instead: hsicam train --out "
+               f"{run_dir} --resume --set train.keep_weights=last; or {RECOPY_HINT}")
+        text = text[: -len(RECOPY_HINT)] + way if text.endswith(RECOPY_HINT) else f"{text}; {way}"
+    raise InputError(f"training ended, but the run has no readable weights: {text}")
 
 
 def warn_camera_noise_not_trained(cfg: Config) -> list[str]:

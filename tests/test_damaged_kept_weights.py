@@ -1,0 +1,112 @@
+"""A training that ends with its kept checkpoint damaged (``train.keep_weights: best``; the root weights missing): the
+loop leaves the root as it is with a warning, and ``hsicam train`` exited 0 while the next ``hsicam evaluate`` refused
+the run ("the run has no trained weights"). Now the training itself fails (exit 2), in one line naming the damaged
+file and the way out (the run's intact last checkpoint: ``--resume --set train.keep_weights=last``), the run folder
+finished and consistent (final record, manifest, no root written from the final model)."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+
+import pytest
+import torch
+
+from damage import flip_byte_in_place
+from hsicam.errors import InputError
+from hsicam.runs import checkpoint as ck
+from hsicam.runs.checkpoint import MANIFEST, RECOPY_HINT, CheckpointManager, root_weights_path
+from hsicam.spectral import Bands
+
+BANDS = Bands.uniform(500, 600, 50)
+
+
+def _sha(path):
+    return hashlib.sha256(path.read_bytes()).hexdigest()
+
+
+def _two_checkpoints(tmp_path):
+    """A run keeping its best (step 1) whose last is step 2; its root weights deleted and its best damaged."""
+    from hsicam.engine.train import check_kept_weights  # noqa: F401 - the function under test exists
+
+    run = tmp_path / "run"
+    mgr = CheckpointManager(run)
+    for step, tags in ((1, ("last", "best")), (2, ("last",))):
+        net = torch.nn.Linear(2, 3)
+        mgr.save(net, torch.optim.Adam(net.parameters()), {"global_step": step, "best_psnr": 20.0}, BANDS, tags)
+    man = json.loads((run / MANIFEST).read_text())
+    root, best = run / "model.safetensors", run / man["best"]["dir"] / "model.safetensors"
+    root.unlink()
+    flip_byte_in_place(best, best.stat().st_size - 3)
+    ck._HASHES.clear()
+    return run, root, best, man
+
+
+def _refusal(run, root, best, sha, way):
+    return (f"training ended, but the run has no readable weights: {root} is missing, and {best}, which should hold "
+            f"the weights {run / MANIFEST} records (sha256 {sha[:12]}…), differs from them: the run's weights are "
+            f"damaged (a copy cut short, a disk error, an edit); {way}")
+
+
+def test_a_damaged_kept_checkpoint_is_refused_with_the_intact_last_as_the_way_out(tmp_path):
+    from hsicam.engine.train import check_kept_weights
+
+    run, root, best, man = _two_checkpoints(tmp_path)
+    with pytest.raises(InputError) as err:
+        check_kept_weights(run)
+    assert str(err.value) == _refusal(run, root, best, man["best"]["weights_sha256"],
+                                      f"keep the last checkpoint's weights (step 2, intact) instead: hsicam train --out "
+                                      f"{run} --resume --set train.keep_weights=last; or {RECOPY_HINT}")
+
+
+def test_with_the_last_damaged_too_only_a_new_copy_is_offered(tmp_path):
+    from hsicam.engine.train import check_kept_weights
+
+    run, root, best, man = _two_checkpoints(tmp_path)
+    last = run / man["last"]["dir"] / "model.safetensors"
+    flip_byte_in_place(last, last.stat().st_size - 3)
+    ck._HASHES.clear()
+    with pytest.raises(InputError) as err:
+        check_kept_weights(run)
+    assert str(err.value) == _refusal(run, root, best, man["best"]["weights_sha256"], RECOPY_HINT)
+
+
+def test_readable_runs_pass(tmp_path):
+    from hsicam.engine.train import check_kept_weights
+
+    run, root, best, man = _two_checkpoints(tmp_path)
+    CheckpointManager(run, keep="last").apply_keep()  # the way out: the root now holds the last checkpoint's weights
+    check_kept_weights(run)
+    assert root_weights_path(run) == root and _sha(root) == man["last"]["weights_sha256"]
+
+
+def test_hsicam_train_fails_at_the_end_and_the_way_out_works(cache_env, tmp_path, capsys):
+    """Tiny run, 2 epochs, best after epoch 1 (step 4), stopped at step 5; the root deleted and the best damaged;
+    `hsicam train --resume` trains to step 8 and exits 2 (was 0), again when resumed as it is, and 0 with
+    train.keep_weights=last, after which the run's weights are the last checkpoint's."""
+    from hsicam.cli import main
+    from hsicam.config import load_config
+    from hsicam.engine.train import train
+
+    torch.set_num_threads(1)
+    run = tmp_path / "run"
+    train(load_config("tiny", ["train.epochs=2", "train.checkpoint_every_steps=3"]), run, progress=False,
+          stop_after_steps=5)
+    man = json.loads((run / MANIFEST).read_text())
+    assert man["weights"]["from"] == "best" and man["best"]["step"] < man["last"]["step"], man  # the case
+    root, best, sha = run / "model.safetensors", run / man["best"]["dir"] / "model.safetensors", man["best"]["weights_sha256"]
+    root.unlink()
+    flip_byte_in_place(best, best.stat().st_size - 3)
+    ck._HASHES.clear()
+    capsys.readouterr()
+    for _ in range(2):  # the end of the training, then a resume of the finished run as it is
+        assert main(["train", "--out", str(run), "--resume"]) == 2
+        man = json.loads((run / MANIFEST).read_text())
+        err = capsys.readouterr().err.strip().splitlines()
+        assert err[-1] == "hsicam: error: " + _refusal(
+            run, root, best, sha, f"keep the last checkpoint's weights (step {man['last']['step']}, intact) instead: "
+                                  f"hsicam train --out {run} --resume --set train.keep_weights=last; or {RECOPY_HINT}")
+        final = json.loads((run / "metrics.jsonl").read_text().splitlines()[-1])
+        assert final["final"] and final["step"] == man["last"]["step"] == 8 and not root.exists()
+    assert main(["train", "--out", str(run), "--resume", "--set", "train.keep_weights=last"]) == 0
+    assert root_weights_path(run) == root and _sha(root) == man["last"]["weights_sha256"]
