@@ -187,13 +187,21 @@ class CodedAperture(nn.Module):
 # --------------------------------------------------------------------------------------------
 # Dispersion
 # --------------------------------------------------------------------------------------------
+#: Pixels added before :func:`linear_dispersion` rounds a shift down: a product shift_px · c meant to be an exact
+#: half is a few ulps below it in binary (0.7 · 45 = 31.499…, not 31.5), and the half must round up. 1e-9 px is
+#: about 10^4 float64 ulps at a shift of 1000 px, and less than the 1e-8 px by which a product of a shift given to
+#: 8 decimals misses a half when it is not one.
+HALF_PX_ROUNDOFF = 1e-9
+
+
 def linear_dispersion(n_bands: int, shift_px: float) -> list[int]:
     """d_c = ⌊shift_px · c + ½⌋, c = 0..C-1 (MST: shift_px = 2): halves round up, so the steps stay
-    even (Python's round would send 1.5·3 = 4.5 to 4: [0, 2, 3, 4, 6]), with a 1e-9 tolerance against
-    round-off (0.7 px is 0.69999… in binary: 0.7·45 = 31.5 gave 31.499…, rounded down to 31)."""
+    even (Python's round would send 1.5·3 = 4.5 to 4: [0, 2, 3, 4, 6]), with a tolerance of
+    :data:`HALF_PX_ROUNDOFF` against round-off (0.7 px is 0.69999… in binary: 0.7·45 = 31.5 gave 31.499…, rounded
+    down to 31)."""
     if not (shift_px > 0 and math.isfinite(shift_px)):
         raise ValueError(f"shift_px must be positive, got {shift_px}")
-    return [int(math.floor(shift_px * c + 0.5 + 1e-9)) for c in range(n_bands)]
+    return [int(math.floor(shift_px * c + 0.5 + HALF_PX_ROUNDOFF)) for c in range(n_bands)]
 
 
 def prism_shifts_px(bands: Bands, material: str = "fused_silica", apex_deg: float = 30.0,
