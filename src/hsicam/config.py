@@ -580,7 +580,7 @@ class UnrolledConfig:
 MAX_CONSISTENCY_ITERATIONS = 100
 #: The weight of the TV prior in the consistency steps (``model.consistency.tv_weight``) that `hsicam reconstruct
 #: --tv-steps` takes by default: at 12 steps on 20 training scenes of the demo camera, the best SSIM of 0.01, 0.03
-#: and 0.1, with PSNR within 0.01 dB of the best (docs/networks.md, "A TV prior in the steps").
+#: and 0.1, with PSNR within 0.01 dB of the best (docs/networks_log.md, "A TV prior in the steps").
 RECOMMENDED_TV_WEIGHT = 0.03
 #: The range of a non-zero ``tv_weight`` (dimensionless: the estimate over its local brightness): below, the prior
 #: does nothing a float can tell (and f / w overflows); above, it flattens every scene to its brightness.
@@ -615,7 +615,7 @@ class ConsistencyConfig:
     # Landweber steps: w of a total-variation prior, each step followed by one dual iteration towards b · prox_wTV(x / b),
     # the vectorial TV (every band's edges together) of the estimate divided by its local brightness b (in the spirit of
     # GAP-TV, started from the network's estimate); 0: none, else in [MIN_TV_WEIGHT, MAX_TV_WEIGHT]. Measured gains and
-    # cost (~0.85 s per step at 512²): docs/networks.md, "A TV prior in the steps"
+    # cost (~0.85 s per step at 512²): docs/networks_log.md, "A TV prior in the steps"
     tv_weight: float = 0.0
 
     def __post_init__(self) -> None:

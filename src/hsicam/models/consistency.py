@@ -29,7 +29,7 @@ much as a bright one. A forward-backward (proximal-gradient) iteration in the sp
 network's estimate instead of from Aᵀy; not the minimiser of one objective (the data step and the prox are taken in
 different metrics). The steps carry FISTA's momentum capped at :data:`TV_MOMENTUM_MAX`: with a prox solved one dual
 iteration at a time, larger momentum oscillates instead of converging; capped, 24 steps score what about 40 plain
-ones do (docs/networks.md, "A TV prior in the steps").
+ones do (docs/networks_log.md, "A TV prior in the steps").
 """
 
 from __future__ import annotations
@@ -161,7 +161,7 @@ def consistency_step(op, y: torch.Tensor, x0: torch.Tensor, origin: tuple[int, i
 #: with a prox solved one dual iteration per step the steps then oscillate instead of settling: on a test camera of
 #: random PSFs they still moved the estimate by 0.4 % (w = 0.03) and 10 % (w = 0.3) per step after 400 steps with the
 #: cap at 0.8, 0.005 % and 2 % at 0.65, and settled as the plain steps do at 0.5 and below (tested). At 0.5, 24 steps
-#: on the demo camera's training scenes score what ~40 plain ones do (docs/networks.md, "A TV prior in the steps").
+#: on the demo camera's training scenes score what ~40 plain ones do (docs/networks_log.md, "A TV prior in the steps").
 TV_MOMENTUM_MAX = 0.5
 
 #: The pixels (rows × the window's width) of the bands :func:`default_band_px` cuts a window's steps into: a 512²
