@@ -150,7 +150,7 @@ def backprojection(op, y: torch.Tensor, origin: tuple[int, int] = (0, 0)) -> tor
 # λ_q = H_q⁻¹(S_q G_q⁻¹ c_q − M), H_q = S_q G_q⁻¹ S_qᵀ and M = (Σ H_q⁻¹)⁻¹ Σ H_q⁻¹ S_q G_q⁻¹ c_q
 # (the Lagrange conditions; only m²×m² systems besides each phase's own Gram matrix). On the demo's
 # camera: the trace's share of the error energy on that scene 5.1 % → 2.0 % (+0.7 dB there), the
-# validation mean +0.05 dB / +0.002 SSIM, held out +0.03 dB / +0.001 (docs/networks_log.md).
+# validation mean +0.05 dB / +0.002 SSIM, held out +0.01 dB / +0.001 (docs/networks_log.md).
 
 
 def phase_linear(sensor: torch.Tensor, weight: torch.Tensor, origin: tuple[int, int] = (0, 0)) -> torch.Tensor:
