@@ -18,7 +18,7 @@ import tifffile
 
 from conftest import TINY_CAMERA_OVERRIDES
 from cli_helpers import assert_clean_error, assert_ok, error_line, run_cli_in_process
-from test_calibration import write_homogeneous_scenes
+from fab_runs import write_homogeneous_scenes
 from hsicam.config import load_config
 from hsicam.data.formats import HSICAM_FORMAT_VERSION, read_cube, read_window, write_cube_h5
 from hsicam.data.images import read_image_2d

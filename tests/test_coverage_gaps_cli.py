@@ -14,7 +14,7 @@ import torch
 
 from cli_helpers import assert_ok, error_line, run_cli_in_process
 from conftest import TINY_CAMERA_OVERRIDES
-from test_calibration import write_homogeneous_scenes, write_psf_dir
+from fab_runs import write_homogeneous_scenes, write_psf_dir
 from test_cli_bad_paths import capture  # noqa: F401 - shared fixture: a 48×48 float capture
 from hsicam.config import load_config
 from hsicam.data.formats import read_cube

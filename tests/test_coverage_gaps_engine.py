@@ -19,7 +19,7 @@ from safetensors.torch import load_file, save_file
 
 from cli_helpers import in_process_error_line, tree_snapshot
 from conftest import TINY_CAMERA_OVERRIDES
-from test_calibration import write_homogeneous_scenes
+from fab_runs import write_homogeneous_scenes
 from hsicam.config import ChoiConfig, load_config
 from hsicam.errors import InputError
 

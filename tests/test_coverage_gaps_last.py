@@ -293,7 +293,7 @@ def test_a_fixed_psf_camera_refuses_a_psf_stack_of_another_shape(tiny_camera):
 def test_load_calibrated_run_with_a_psf_folder_images_with_those_psfs(tmp_path):
     """``psf_dir``: the run's network behind a camera that images with the folder's PSFs (read back from its
     psf.npy), in eval mode; the network is the run's own, bit for bit."""
-    from test_calibration import FAB_OVERRIDES, write_homogeneous_scenes, write_psf_dir
+    from fab_runs import FAB_OVERRIDES, write_homogeneous_scenes, write_psf_dir
 
     from hsicam.cameras.measured import FixedPSFCamera
     from hsicam.config import load_config

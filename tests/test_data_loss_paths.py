@@ -21,7 +21,7 @@ import pytest
 
 from cli_helpers import assert_clean_error, assert_ok, error_line, run_cli, run_cli_in_process
 from conftest import TINY_CAMERA_OVERRIDES
-from test_calibration import write_homogeneous_scenes
+from fab_runs import write_homogeneous_scenes
 from hsicam.config import load_config
 from hsicam.data.datasets import list_scenes
 from hsicam.data.formats import read_cube, write_cube_h5, write_envi

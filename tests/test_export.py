@@ -13,7 +13,7 @@ import pytest
 import torch
 
 from cli_helpers import assert_clean_error, run_cli_in_process
-from test_calibration import fab_run  # noqa: F401 - shared fixture
+from fab_runs import fab_run  # noqa: F401 - shared fixture
 from hsicam.errors import InputError
 from hsicam.export.cfa import fit_filter
 from hsicam.export.doe import phase_error, quantize_levels

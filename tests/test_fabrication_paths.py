@@ -23,7 +23,7 @@ import pytest
 import torch
 
 from cli_helpers import assert_clean_error, run_cli_in_process
-from test_calibration import FAB_OVERRIDES, fab_run, write_psf_dir  # noqa: F401 - shared fixture
+from fab_runs import FAB_OVERRIDES, fab_run, write_psf_dir  # noqa: F401 - shared fixture
 from hsicam.cameras import DOECamera
 from hsicam.config import load_config
 from hsicam.errors import ConfigError, InputError

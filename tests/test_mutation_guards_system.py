@@ -18,7 +18,7 @@ import pytest
 import torch
 
 from conftest import TINY_CAMERA_OVERRIDES
-from test_calibration import fab_run  # noqa: F401 - shared fixture
+from fab_runs import fab_run  # noqa: F401 - shared fixture
 from test_consistency import _Oracle  # a "network" returning a fixed cube
 from hsicam.cameras import build_camera
 from hsicam.cameras.base import Camera

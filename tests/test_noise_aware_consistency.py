@@ -269,7 +269,7 @@ def noisy_capture(tmp_path_factory):
     scale, 2 e⁻ read noise) of the procedural scene through the shipped standard camera."""
     from hsicam.runs.folder import load_run
     from hsicam.sensor import poisson_gaussian_noise
-    from test_cfa_offset import procedural_scene
+    from procedural_scenes import procedural_scene
 
     _, system = load_run("pretrained:standard")
     scene = torch.from_numpy(procedural_scene(system.camera.bands.centers_nm, size=220))[None]

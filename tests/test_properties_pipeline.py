@@ -284,7 +284,7 @@ def test_cfa_offset_of_a_crop_of_a_simulated_capture_comes_back(dy, dx, seed):
     """pretrained:standard (4×4 CFA), a noise-free capture of a procedural scene cropped at (dy, dx): the estimate is
     (dy mod 4, dx mod 4), the smallest residual. Windows of 96 px: at 64 px (34 px scored inside the PSF margin) a
     wrong phase can win by a few percent and is not flagged ambiguous: below the 128-256 px the module measured."""
-    from test_cfa_offset import procedural_scene
+    from procedural_scenes import procedural_scene
 
     from hsicam.engine.cfa_offset import estimate_cfa_offset
     from hsicam.runs.folder import load_run

@@ -22,7 +22,7 @@ from PIL import Image
 
 from cli_helpers import assert_ok, error_line, run_cli_in_process
 from conftest import TINY_CAMERA_OVERRIDES
-from test_calibration import write_homogeneous_scenes, write_psf_dir
+from fab_runs import write_homogeneous_scenes, write_psf_dir
 from hsicam.config import load_config
 from hsicam.data.images import RawCorrection, read_capture
 from hsicam.data.measured_psf import import_for_camera, import_psf_dir

@@ -21,7 +21,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from cli_helpers import assert_clean_error, run_cli_in_process
-from test_calibration import fab_run  # noqa: F401 - shared fixture
+from fab_runs import fab_run  # noqa: F401 - shared fixture
 from hsicam.data import read_cube, write_cube_h5, write_envi
 from hsicam.data.images import MAX_IMAGE_PIXELS, read_capture, read_image_2d
 from hsicam.errors import HsicamError, InputError
