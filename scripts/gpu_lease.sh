@@ -81,7 +81,7 @@ checks() {  # the CUDA tests, then a smoke training of the tiny preset through t
         nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv 2>&1 || true
         echo "== CUDA tests"
         PYTHONPATH="$PWD/src${PYTHONPATH:+:$PYTHONPATH}" timeout 200 "$PY" -m pytest -q -p no:cacheprovider -rs \
-            "tests/test_camera_contract.py::test_cpu_equals_cuda" "tests/test_camera.py::test_cpu_and_cuda_agree" 2>&1 \
+            "tests/cameras/test_camera_contract.py::test_cpu_equals_cuda" "tests/cameras/test_camera.py::test_cpu_and_cuda_agree" 2>&1 \
             | tail -n 25
         echo "== tiny preset on $DEVICE with bf16, channels_last, compile"
         PYTHONPATH="$PWD/src${PYTHONPATH:+:$PYTHONPATH}" HSICAM_CACHE="$W/cache-smoke" timeout 200 "$PY" -m hsicam train \

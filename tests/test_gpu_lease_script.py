@@ -5,6 +5,7 @@ demo calibrated on short epochs but sized for the preset's own, and the cores sh
 from __future__ import annotations
 
 import importlib
+import importlib.util
 import json
 import os
 import re
@@ -83,11 +84,20 @@ def test_the_cuda_tests_the_lease_names_are_the_ones_gpu_session_selects():
     (test_cpu_equals_cuda had no mark, so the session ran 2 of the 9 CUDA tests)."""
     assert '-m "cuda and not slow"' in (ROOT / "scripts" / "gpu_session.sh").read_text()
     assert '"cuda: ' in (ROOT / "pyproject.toml").read_text()
-    named = re.findall(r'"tests/(test_\w+)\.py::(\w+)"', (ROOT / "scripts" / "gpu_lease.sh").read_text())
+    named = re.findall(r'"tests/((?:\w+/)*test_\w+)\.py::(\w+)"', (ROOT / "scripts" / "gpu_lease.sh").read_text())
     assert {name for _, name in named} == {"test_cpu_equals_cuda", "test_cpu_and_cuda_agree"}, named
     for module, name in named:
-        marks = {m.name for m in getattr(getattr(importlib.import_module(module), name), "pytestmark", [])}
+        marks = {m.name for m in getattr(getattr(_test_module(module), name), "pytestmark", [])}
         assert "cuda" in marks and "slow" not in marks, (module, name, marks)
+
+
+def _test_module(path: str):
+    """The test file tests/PATH.py as a module, by its path: a sub-folder of tests/ is on sys.path only once pytest has
+    collected a file there."""
+    spec = importlib.util.spec_from_file_location(Path(path).name, ROOT / "tests" / f"{path}.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
 
 
 def test_gpu_session_script_says_when_its_python_has_no_torch(tmp_path):

@@ -6,7 +6,7 @@ A camera module registers its class with one decorator line::
     class DDCASSICamera(Camera): ...
 
 and :func:`build_camera` (the one factory every caller uses: training, evaluation, CLI, tests)
-looks the kind up. The contract tests (``tests/test_camera_contract.py``) run over
+looks the kind up. The contract tests (``tests/cameras/test_camera_contract.py``) run over
 :func:`camera_kinds`, so a new camera is tested without editing a test.
 """
 
