@@ -138,7 +138,7 @@ def test_built_wheel_holds_the_configs_cameras_and_resources(tmp_path):
 
 
 # ---- optional packages: one line naming the extra --------------------------------------------------------
-# gdstk: test_export.py::test_export_without_gdstk; OpenEXR's reader: test_coverage_gaps_data.py (function level).
+# gdstk: test_export.py::test_export_without_gdstk; OpenEXR's reader: test_readers_rare_paths.py (function level).
 
 def _one_error_line(res) -> str:
     lines = [x for x in res.stderr.splitlines() if x.startswith("hsicam: error:")]

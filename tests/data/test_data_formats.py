@@ -388,7 +388,7 @@ def test_resampling_refuses_to_extrapolate():
 
 def test_resample_spectra_matches_numpy_interp():
     src = Bands.uniform(400, 700, 10)
-    # bands as wide as the data's (10 nm): point samples (wider bands integrate: tests/test_data_band_response.py)
+    # bands as wide as the data's (10 nm): point samples (wider bands integrate: tests/data/test_data_band_response.py)
     dst = Bands.from_centers(np.linspace(401.3, 699.1, 17), 10.0)
     rng = np.random.default_rng(0)
     s = rng.random(len(src))
