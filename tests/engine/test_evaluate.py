@@ -417,7 +417,7 @@ def test_sam_breakdown_script_on_a_trained_run(run, env, tmp_path):
     import sys
     from pathlib import Path
 
-    script = Path(__file__).resolve().parents[1] / "scripts" / "sam_breakdown.py"
+    script = Path(__file__).resolve().parents[2] / "scripts" / "sam_breakdown.py"
     full_env = {**os.environ, **env}
     proc = subprocess.run([sys.executable, str(script), str(run)], capture_output=True, text=True, env=full_env, timeout=300)
     assert proc.returncode == 0, proc.stderr
