@@ -1,5 +1,5 @@
 """Guards found by mutation testing of the run folder (:mod:`hsicam.runs.folder`; its lock's guard is in
-tests/test_run_lock.py), the linear step's file (:mod:`hsicam.runs.linear_step`), shipped cameras
+tests/runs/test_run_lock.py), the linear step's file (:mod:`hsicam.runs.linear_step`), shipped cameras
 (:mod:`hsicam.runs.pretrained`, :mod:`hsicam.engine.pretrained`), the data record and provenance
 (:mod:`hsicam.engine.provenance`) and checkpoints (:mod:`hsicam.runs.checkpoint`): each test kills a
 mutant that the other tests let live, against an independent reference (the error a user sees, a file
