@@ -298,7 +298,7 @@ def test_train_and_reconstruct_cli(tmp_path, cache_env):
     cube, bands, _ = read_cube(out)
     assert cube.shape == (7, 50, 60) and len(bands) == 7
     assert (tmp_path / "rec_rgb.png").is_file()
-    # ENVI by extension (under its own name: a folder holds one cube per name, tests/test_cli_bad_paths.py)
+    # ENVI by extension (under its own name: a folder holds one cube per name, tests/cli/test_cli_bad_paths.py)
     rec2 = run_cli_in_process("reconstruct", str(tmp_path / "sim" / "sensor.npy"), "--run", str(run), "--out", str(tmp_path / "rec_envi.hdr"), env=env)
     assert rec2.returncode == 0, rec2.stderr
     assert (tmp_path / "rec_envi_rgb.png").is_file()

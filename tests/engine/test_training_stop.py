@@ -281,7 +281,7 @@ def test_finetune_stopped_during_its_start_validation_resumes(tmp_path, cache_en
 def test_sigterm_to_the_process_group_with_dataloader_workers(tmp_path, cache_env):
     """A scheduler's SIGTERM reaches every process of the job, the DataLoader workers too: they end
     quietly (status 0), the main process stops cleanly at the step's end, and nothing hangs; a
-    worker's own crash still ends the command (tests/test_cli_errors.py)."""
+    worker's own crash still ends the command (tests/cli/test_cli_errors.py)."""
     run = tmp_path / "run"
     code, err = signal_a_training(run, cache_env, lambda proc: os.killpg(proc.pid, signal.SIGTERM),
                                    "--set", "data.num_workers=2", "--set", "data.preload=false")

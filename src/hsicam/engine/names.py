@@ -5,7 +5,7 @@
 The home of :data:`METHOD_ALIASES`, :data:`EXPERIMENTS` and :data:`SCALES`
 (:mod:`hsicam.engine.methods` and :mod:`hsicam.engine.experiments` import them from here). The
 registered methods live in :mod:`hsicam.engine.methods`' registry (:func:`register_method`);
-:data:`METHOD_NAMES` is a copy of its names for the command line, and tests/test_cli_names.py
+:data:`METHOD_NAMES` is a copy of its names for the command line, and tests/cli/test_cli_names.py
 holds it equal to ``(*method_names(), *METHOD_ALIASES)``, order included: register a method, add
 its name here.
 """

@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 from cli_helpers import error_line, run_cli_in_process, tree_snapshot
-from test_cli_fuzz_59 import capture  # noqa: F401 - the fixture (a 48×48 float capture .npy), as there
+from test_cli_option_fuzz import capture  # noqa: F401 - the fixture (a 48×48 float capture .npy), as there
 
 
 class Hung(AssertionError):

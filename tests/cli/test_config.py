@@ -27,7 +27,7 @@ def test_defaults_are_the_paper_camera():
 
 
 def test_paper_preset_holds_the_paper_optics():
-    path = Path(__file__).resolve().parents[1] / "configs" / "paper.yaml"
+    path = Path(__file__).resolve().parents[2] / "configs" / "paper.yaml"
     if not path.is_file():
         pytest.skip("configs/paper.yaml is not in this checkout")
     cfg = load_config(path)
