@@ -1,4 +1,4 @@
-"""Follow-ups of the strict-JSON files (tests/test_strict_json.py): the JSON that hsicam embeds in other files (our
+"""Follow-ups of the strict-JSON files (tests/io/test_strict_json.py): the JSON that hsicam embeds in other files (our
 HDF5 cube's ``metadata_json``, the ENVI header's ``hsicam metadata`` line) is strict too, and both readers read the
 new files and the older ones (``NaN``/``Infinity`` literals) alike; the metric conventions say what the files hold;
 ERGAS is undefined (NaN, as an undefined SAM) for a truth with a band whose mean is 0, where the floor of that mean

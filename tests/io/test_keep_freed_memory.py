@@ -22,7 +22,7 @@ import pytest
 import hsicam.cli as cli
 import hsicam.memory as memory_mod
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 
 
 def _glibc() -> bool:
