@@ -32,7 +32,7 @@ from pathlib import Path
 
 import pytest
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 #: The documents: README, docs/, and the shipped cameras' model cards (`hsicam pretrained show NAME`).
 DOCS = [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md")),
         *sorted((ROOT / "src" / "hsicam" / "resources" / "pretrained").glob("*/card.md"))]

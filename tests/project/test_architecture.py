@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 
-SRC = Path(__file__).resolve().parents[1] / "src" / "hsicam"
+SRC = Path(__file__).resolve().parents[2] / "src" / "hsicam"
 
 # Lowest first. A module may import from its own layer or any layer below it.
 LAYERS: list[set[str]] = [

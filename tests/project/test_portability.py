@@ -12,7 +12,7 @@ from pathlib import Path
 import pytest
 import torch
 
-SRC = Path(__file__).resolve().parents[1] / "src" / "hsicam"
+SRC = Path(__file__).resolve().parents[2] / "src" / "hsicam"
 
 
 # ------------------------------------------------------------------------------------------------

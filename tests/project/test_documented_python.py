@@ -47,7 +47,7 @@ import numpy as np
 import pytest
 import torch
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 #: The documents: README, docs/, and the Markdown shipped in the package (the pretrained cameras' cards).
 DOCS = [ROOT / "README.md", *sorted((ROOT / "docs").rglob("*.md")), *sorted((ROOT / "src" / "hsicam").rglob("*.md"))]
 _PY_FENCES = {"python", "py", "python3", "pycon"}

@@ -12,7 +12,7 @@ import yaml
 
 from hsicam.config import MosaicConfig, UnrolledConfig
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 DOCS = [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md"))]
 
 
