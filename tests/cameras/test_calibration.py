@@ -1,6 +1,6 @@
 """Measured PSFs, fine-tuning with frozen optics, raw-capture preprocessing, seamless tiling.
 
-``fab_run`` (shared with test_export / test_tolerance / test_robustness) is a small trained run on
+``fab_run`` (tests/fab_runs.py; shared with test_export / test_tolerance / test_reader_robustness) is a small trained run on
 the 3-band tiny optics (conftest) with a homogeneous dataset (smooth abundance maps of three
 fixed smooth spectra), trained with the optics frozen, so its network actually depends on the
 PSFs (it drops > 2 dB when the band throughput changes) and fine-tuning effects are measurable.
