@@ -1008,6 +1008,38 @@ def test_a_network_kind_cannot_be_registered_without_its_parameter_count():
     assert registry.NETWORKS == kinds
 
 
+def test_a_network_registered_outside_hsicam_is_built_and_checked(monkeypatch):
+    """A user's own ``model.kind`` (registered in their script, examples/custom_network.py) has no section in
+    ``ModelConfig``: building it through ``CameraSystem.from_config`` raised AttributeError ('ModelConfig' object
+    has no attribute '<kind>') in the memory check. Now it is built, and a too-large one is refused in one line
+    naming its ``sizes`` keys (they have no config values to give)."""
+    from hsicam.models import CameraSystem
+
+    class Plain(torch.nn.Module):
+        def __init__(self, bands: int) -> None:
+            super().__init__()
+            self.conv = torch.nn.Conv2d(1, bands, 3, padding=1)
+
+        def forward(self, sensor, camera, origin=(0, 0)):
+            return self.conv(sensor)
+
+        context_px = 1
+
+    monkeypatch.setitem(registry.NETWORKS, "outside", registry.NetworkKind(
+        lambda cfg, camera: Plain(len(camera.bands)), lambda cfg, camera: 10 * len(camera.bands), ("width",)))
+    cfg = load_config("tiny", ["model.kind=outside"])
+    system = CameraSystem.from_config(cfg)
+    assert isinstance(system.net, Plain)
+    assert sum(p.numel() for p in system.net.parameters()) == 10 * len(system.camera.bands)  # the declared count
+    monkeypatch.setitem(registry.NETWORKS, "outside", registry.NetworkKind(
+        lambda cfg, camera: Plain(1), lambda cfg, camera: 10**12, ("width",)))
+    with pytest.raises(ConfigError) as info:
+        build_network(cfg, system.camera)
+    msg = str(info.value)
+    assert msg.startswith("model.kind=outside: model.outside (width) is a network of 1e+12 parameters for 7 bands")
+    assert "\n" not in msg and "more than the memory budget" in msg
+
+
 def test_the_unrolled_refusal_names_its_front_end_only_with_init_mosaic(monkeypatch):
     cam = build_camera(load_config("tiny"))
     monkeypatch.setenv("HSICAM_MEMORY_BUDGET_MB", "1")  # after the camera (its PSF plan needs more)

@@ -103,7 +103,8 @@ def check_network_memory(cfg, camera, training: bool = True) -> None:
     (:func:`check_parameter_memory`), naming the keys of ``model.<kind>`` that size it."""
     n = network_parameters(cfg, camera)
     kind = cfg.model.kind
-    check_parameter_memory(n, f"model.kind={kind}: model.{kind}", getattr(cfg.model, kind), NETWORKS[kind].sizes,
+    # a kind registered outside hsicam has no section in ModelConfig (its settings are its builder's): None
+    check_parameter_memory(n, f"model.kind={kind}: model.{kind}", getattr(cfg.model, kind, None), NETWORKS[kind].sizes,
                            len(camera.bands), training)
 
 
@@ -113,7 +114,8 @@ def check_parameter_memory(n: int, section: str, settings: Any, sizes: SizeKeys,
     and Adam's two moments: :data:`TRAINING_BYTES_PER_PARAMETER` bytes a parameter) or, with ``training``
     false, whose weights alone (:data:`WEIGHT_BYTES_PER_PARAMETER`) need more than the memory budget
     (:func:`hsicam.memory.memory_budget_bytes`): one line headed ``section`` that names the values of
-    the keys ``sizes`` of ``settings`` (or ``sizes(settings)``) that set ``n``, the estimate and the
+    the keys ``sizes`` of ``settings`` (or ``sizes(settings)``) that set ``n`` (the keys alone where ``settings`` is None: a
+    kind registered outside hsicam, whose settings are not in the config), the estimate and the
     budget. The one message of a network too large: registered networks
     (:func:`check_network_memory`) and the Choi prior (:func:`hsicam.models.priors.build_prior`)."""
     per = TRAINING_BYTES_PER_PARAMETER if training else WEIGHT_BYTES_PER_PARAMETER
@@ -122,7 +124,7 @@ def check_parameter_memory(n: int, section: str, settings: Any, sizes: SizeKeys,
     if need <= budget:
         return
     keys = list(sizes(settings) if callable(sizes) else sizes)
-    values = ", ".join(f"{k}={_setting(settings, k)}" for k in keys)
+    values = ", ".join(k if settings is None else f"{k}={_setting(settings, k)}" for k in keys)
     count = f"{n:,}" if n < 10**12 else f"{n:.3g}"
     raise ConfigError(f"{section} ({values}) is a network of {count} parameters for "
                       f"{bands} bands, whose {use[0]} {format_bytes(need)} ({per} bytes a parameter"
