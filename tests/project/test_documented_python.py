@@ -25,6 +25,10 @@ The blocks are found by globbing the documents, and each must be registered here
   real decorator's signature and the registry holds what they say (:data:`REGISTRIES`); every other name
   used resolves.
 
+- :class:`Excerpt`: lines quoted from a file of the checkout (``examples/*.py``, which ``test_examples.py``
+  runs): each non-blank line of the block is, stripped of its indentation, a line of that file, in the file's
+  order, so the page cannot drift from the code it quotes. Not run.
+
 A block that is none of these fails unless :data:`NOT_CHECKED` lists it with a reason.
 """
 
@@ -128,6 +132,29 @@ class Skeleton:
     module: str
 
 
+@dataclasses.dataclass(frozen=True)
+class Excerpt:
+    """Lines quoted from the file ``path`` (relative to the checkout's root; see the module docstring)."""
+
+    path: str
+
+
+def check_excerpt(block: Block, path: str) -> list[str]:
+    """The block's non-blank lines that are not lines of ``path`` (stripped), or not in the file's order."""
+    lines = [ln.strip() for ln in (ROOT / path).read_text(encoding="utf-8").splitlines()]
+    problems, at = [], 0
+    for no, line in enumerate(block.code.splitlines(), block.line):
+        if not line.strip():
+            continue
+        if line.strip() not in lines:
+            problems.append(f"{block.file}:{no}: {line.strip()!r} is not a line of {path}")
+        elif line.strip() not in lines[at:]:
+            problems.append(f"{block.file}:{no}: {line.strip()!r} comes before the line above it in {path}")
+        else:
+            at = lines.index(line.strip(), at) + 1
+    return problems
+
+
 # -- the runnable examples' data and claims
 
 
@@ -191,7 +218,7 @@ def _check_pretrained_example(ns: dict[str, Any]) -> None:
 
 
 #: Each block, by (document, start of its first code line) → how it is run or checked.
-BLOCKS: dict[tuple[str, str], Run | Listing | Skeleton] = {
+BLOCKS: dict[tuple[str, str], Run | Listing | Skeleton | Excerpt] = {
     ("README.md", "from hsicam.config import load_config"):
         Run(given=("scene",), symbols={"B": 2, "H": 12, "W": 20}, check=_check_camera_example),
     ("docs/data.md", "from hsicam.data import read_cube"):
@@ -202,13 +229,19 @@ BLOCKS: dict[tuple[str, str], Run | Listing | Skeleton] = {
             check=_check_pretrained_example),
     ("docs/architecture.md", "from hsicam.cameras.base import Camera"): Skeleton("hsicam.cameras.cassi"),
     ("docs/architecture.md", "from hsicam.models.registry import register_network"): Skeleton("hsicam.models.rdn"),
+    ("docs/python.md", "cfg = load_config(\"paper\", [f\"camera.lens.model"): Excerpt("examples/camera_and_psf.py"),
+    ("docs/python.md", "cfg, system = load_run(\"pretrained:standard\""): Excerpt("examples/simulate_and_reconstruct.py"),
+    ("docs/python.md", "cam = DDCASSICamera.from_config(cfg)"): Excerpt("examples/cassi_baseline.py"),
+    ("docs/python.md", "bands = load_config(\"paper\", [\"bands.stop_nm=700\"])"): Excerpt("examples/custom_bands_and_files.py"),
+    ("docs/python.md", "cfg = load_config(\"tiny\", [f\"data.cache_dir"): Excerpt("examples/train_tiny.py"),
+    ("docs/python.md", "@register_network(\"code_cnn\""): Excerpt("examples/custom_network.py"),
 }
 
 #: Blocks neither run nor checked, (document, start of the first code line) → why.
 NOT_CHECKED: dict[tuple[str, str], str] = {}
 
 
-def _entry(block: Block) -> Run | Listing | Skeleton | str | None:
+def _entry(block: Block) -> Run | Listing | Skeleton | Excerpt | str | None:
     """What ``block`` is registered as (a :data:`NOT_CHECKED` reason is a str), None when it is not."""
     found = [v for (f, start), v in [*BLOCKS.items(), *NOT_CHECKED.items()]
              if f == block.file and block.first.startswith(start)]
@@ -770,7 +803,8 @@ def test_documented_python(block, tmp_path, monkeypatch):
         monkeypatch.delenv("HSICAM_PRETRAINED_DIR", raising=False)  # pretrained:NAME is the shipped camera
         run_example(block, entry, tmp_path, monkeypatch)
         return
-    problems = check_listing(block, entry.module) if isinstance(entry, Listing) else check_skeleton(block, entry.module)
+    problems = (check_excerpt(block, entry.path) if isinstance(entry, Excerpt) else check_listing(block, entry.module)
+                if isinstance(entry, Listing) else check_skeleton(block, entry.module))
     assert not problems, "\n".join(problems)
 
 
@@ -828,6 +862,17 @@ def test_a_wrong_skeleton_is_reported_with_its_line(tmp_path):
             "DDCASSICamera.A(self, x)") in problems
     assert "doc.md:9: Camera.A(self, y) is documented" in problems
     assert "doc.md:10: DDCASSICamera.B is documented, but DDCASSICamera has no B" in problems
+
+
+def test_a_wrong_excerpt_is_reported_with_its_line(tmp_path):
+    block = _doc_block(tmp_path, "```python\nout = args.out or Path(tempfile.mkdtemp(prefix=\"hsicam_psf_\"))\n\n"
+                                 "cam = DOECamera.from_config(cfg, 1)\n"
+                                 "    cam = DOECamera.from_config(cfg)\n"
+                                 "cfg = load_config(\"paper\", [f\"camera.lens.model={args.lens}\"])\n```\n")
+    problems = check_excerpt(block, "examples/camera_and_psf.py")
+    assert problems == ["doc.md:4: 'cam = DOECamera.from_config(cfg, 1)' is not a line of examples/camera_and_psf.py",
+                        "doc.md:6: 'cfg = load_config(\"paper\", [f\"camera.lens.model={args.lens}\"])' comes before "
+                        "the line above it in examples/camera_and_psf.py"], problems
 
 
 def test_an_unregistered_block_fails(tmp_path):
