@@ -25,6 +25,11 @@ class TrainingDiverged(InputError):
     checkpoint_step = None
 
 
+class PeerFailed(HsicamError):
+    """What the other processes of a ``torchrun`` group raise when rank 0 failed in work they wait for (the files
+    written at the end of a training: :func:`hsicam.engine.loop.fit`): one line each, rank 0's own error saying why."""
+
+
 class _Stop:
     """What a training that stopped on request says: the run, the step, why, the exit code, and
     whether the training had already ended (its last files written; then there is nothing to resume)."""

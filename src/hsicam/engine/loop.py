@@ -39,7 +39,7 @@ from hsicam.data.pipeline import make_loader, patch_source
 from hsicam.devices import autocast_problem, device_problem, dist_env
 from hsicam.engine.provenance import check_same_data, read_data_record, software_record, write_data_record
 from hsicam.engine.stopping import BUDGET_EXIT_CODE, StopRequests
-from hsicam.errors import ConfigError, InputError, TrainingDiverged, TrainingInterrupted, TrainingStopped
+from hsicam.errors import ConfigError, InputError, PeerFailed, TrainingDiverged, TrainingInterrupted, TrainingStopped
 from hsicam.io import OutputLock, atomic_output, is_complete, output_description
 from hsicam.runs.checkpoint import CheckpointManager, save_weights
 from hsicam.runs.folder import MetricsLog, check_run_dir
@@ -294,8 +294,9 @@ def fit(task: Task, opts: FitOptions, run_dir: str | Path, resume: bool = False,
         with RunLock(run_dir, enabled=rank == 0) as lock, OutputLock(run_dir, "train", enabled=rank == 0) as new_run, \
                 StopRequests(opts.loop.max_minutes) as stop, deterministic_algorithms(opts.loop.deterministic):
             result = _fit(task, opts, Path(run_dir), resume, lock, new_run, stop)
-            if then is not None and rank == 0 and "stopped_at_step" not in result:
-                result = then(result)
+            if then is not None and "stopped_at_step" not in result:
+                result = _then_on_rank_0(then, result, rank, world, resolve_device(opts.loop.device, local_rank),
+                                         task.what)
             if stop.received is not None and "step" in result:  # asked during the last step or the files after it
                 raise TrainingInterrupted(run_dir, result["step"], result["step"], stop.received, stop.exit_code(),
                                           finished=True)
@@ -330,6 +331,31 @@ def fit(task: Task, opts: FitOptions, run_dir: str | Path, resume: bool = False,
         raise
     if own_group:
         _end_group(barrier=True)
+    return result
+
+
+def _then_on_rank_0(then: Callable[[dict[str, Any]], dict[str, Any]], result: dict[str, Any], rank: int, world: int,
+                    device: torch.device, what: str = "training") -> dict[str, Any]:
+    """``then(result)`` on rank 0; in a DDP group every rank learns whether it failed, and the others then raise
+    :class:`~hsicam.errors.PeerFailed`. Rank 0's error used to end its side of the group while the others waited in
+    the end-of-training barrier: they failed with gloo's "Connection closed by peer" (a traceback from each), and
+    NCCL's barrier knows no such thing (it waits for the group's timeout)."""
+    if world == 1:
+        return then(result)
+    failed = torch.zeros(1, device=device)
+    if rank == 0:
+        try:
+            result = then(result)
+        except BaseException:
+            failed.fill_(1)
+            try:
+                dist.all_reduce(failed, op=dist.ReduceOp.MAX)
+            except Exception:  # noqa: BLE001 - never in place of the error that ended the training
+                log.debug("telling the other ranks that rank 0 failed failed", exc_info=True)
+            raise
+    dist.all_reduce(failed, op=dist.ReduceOp.MAX)
+    if rank != 0 and failed.item():
+        raise PeerFailed(f"rank 0 failed at the end of the {what} (its own error says why); rank {rank} stops with it")
     return result
 
 

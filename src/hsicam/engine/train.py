@@ -11,7 +11,6 @@ from typing import Any
 import torch
 
 from hsicam.config import Config
-from hsicam.devices import dist_env
 from hsicam.engine.loop import FitOptions, fit
 from hsicam.engine.tasks import SystemTask
 from hsicam.models import CameraSystem
@@ -47,10 +46,9 @@ def train(cfg: Config, run_dir: str | Path, resume: bool = False, progress: bool
     torch.manual_seed(cfg.train.seed)
     task = SystemTask(cfg, CameraSystem.from_config(cfg))
     opts = FitOptions(cfg.train, cfg.data.num_workers, progress=progress, stop_after_steps=stop_after_steps)
-    result = fit(task, opts, run_dir, resume, then=lambda summary: _refresh(run_dir, cfg, summary))
-    if "stopped_at_step" not in result and dist_env()[0] == 0:
-        check_kept_weights(run_dir)
-    return result
+    # the run's weights are checked in the loop's end-of-training work (rank 0's, which a DDP group's other ranks
+    # wait for and learn the outcome of: fit); checked after fit returned, rank 0 failed while the others exited 0
+    return fit(task, opts, run_dir, resume, then=lambda summary: _refresh(run_dir, cfg, summary))
 
 
 def check_kept_weights(run_dir: str | Path) -> None:
@@ -104,8 +102,9 @@ def _refresh(run_dir: str | Path, cfg: Config, summary: dict[str, Any]) -> dict[
     """After training (under the run's lock): the run's inference settings and its linear
     consistency step's filters, through the weights the run keeps (train.keep_weights): fitted when training
     ends, refitted when the run trained on or the filter width changed, config.yaml's
-    model.consistency when a finished run got other keys."""
+    model.consistency when a finished run got other keys; then :func:`check_kept_weights`."""
     from hsicam.engine.linear_step import refresh_linear_step
 
     changed = refresh_linear_step(run_dir, cfg.model.consistency, cfg.train.keep_weights)
+    check_kept_weights(run_dir)
     return {**summary, "changed": changed} if changed else summary
