@@ -59,24 +59,11 @@ def check_kept_weights(run_dir: str | Path) -> None:
     damaged file and the way out: the run's last checkpoint when it is another one and intact
     (``train.keep_weights=last``), else copying the run again."""
     from hsicam.errors import InputError
-    from hsicam.runs.checkpoint import RECOPY_HINT, CheckpointManager, file_sha256, kept_entry, root_weights_path
+    from hsicam.runs.folder import damaged_weights_message
 
-    run_dir = Path(run_dir)
-    try:
-        root_weights_path(run_dir)
-        return
-    except InputError as exc:
-        text = str(exc)
-    man = CheckpointManager(run_dir).manifest()
-    tag, entry = kept_entry(man)
-    last = man["last"]
-    weights = run_dir / last["dir"] / "model.safetensors"
-    if tag != "last" and last["dir"] != entry["dir"] and weights.is_file() and \
-            last.get("weights_sha256") in (None, file_sha256(weights)):
-        way = (f"keep the last checkpoint's weights (step {last.get('step')}, intact) instead: hsicam train --out "
-               f"{run_dir} --resume --set train.keep_weights=last; or {RECOPY_HINT}")
-        text = text[: -len(RECOPY_HINT)] + way if text.endswith(RECOPY_HINT) else f"{text}; {way}"
-    raise InputError(f"training ended, but the run has no readable weights: {text}")
+    text = damaged_weights_message(Path(run_dir))
+    if text is not None:
+        raise InputError(f"training ended, but the run has no readable weights: {text}")
 
 
 def warn_camera_noise_not_trained(cfg: Config) -> list[str]:

@@ -81,7 +81,9 @@ def load_run(run_dir: str | Path, device: torch.device | str = "cpu", overrides:
     cfg = load_config(cfg_path, overrides, empty=EMPTY_RUN_CONFIG)
     weights = run_dir / "model.safetensors"
     if not weights.is_file():
-        raise InputError(no_weights_message(run_dir))
+        damaged = damaged_weights_message(run_dir)  # a kept checkpoint to read them from, but damaged
+        raise InputError(f"{run_dir}: the run has no readable weights: {damaged}" if damaged else
+                         no_weights_message(run_dir))
     model = CameraSystem.from_config(cfg)
     try:
         load_weights(kept := root_weights_path(run_dir), model, cfg.bands.to_bands())
@@ -243,6 +245,33 @@ def no_weights_message(run_dir: Path) -> str:
                 f"evaluate --method dd-cassi-choi --run {run_dir} --out DIR`; this command needs a camera run "
                 "(hsicam train, or --run pretrained:NAME)")
     return f"{run_dir}: the run has no trained weights (model.safetensors is missing)"
+
+
+def damaged_weights_message(run_dir: Path) -> str | None:
+    """Why the weights a run keeps cannot be read (:func:`~hsicam.runs.checkpoint.root_weights_path`'s refusal: its
+    kept checkpoint, ``train.keep_weights``, damaged and the root weights not those the manifest records), with the
+    way out: the run's last checkpoint when it is another one and intact (:func:`refit_command` with
+    ``train.keep_weights=last``), else copying the run again; None when they can be read."""
+    from hsicam.runs.checkpoint import RECOPY_HINT, file_sha256, kept_entry
+
+    src = CheckpointManager(run_dir).root_source()
+    if src is None or (src[0].is_file() and src[1] in (None, file_sha256(src[0]))):
+        return None  # no checkpoint, or the kept one intact (readers fall back on it: not told here)
+    try:
+        root_weights_path(run_dir)
+        return None
+    except InputError as exc:
+        text = str(exc)
+    man = CheckpointManager(run_dir).manifest()
+    tag, entry = kept_entry(man)
+    last = man["last"]
+    weights = run_dir / last["dir"] / "model.safetensors"
+    if tag != "last" and last["dir"] != entry["dir"] and weights.is_file() and \
+            last.get("weights_sha256") in (None, file_sha256(weights)):
+        way = (f"keep the last checkpoint's weights (step {last.get('step')}, intact) instead: "
+               f"{refit_command(run_dir, ('train.keep_weights=last',))}; or {RECOPY_HINT}")
+        text = text[: -len(RECOPY_HINT)] + way if text.endswith(RECOPY_HINT) else f"{text}; {way}"
+    return text
 
 
 def unfinished_training(run_dir: Path, cfg) -> str | None:
