@@ -75,6 +75,9 @@ log = logging.getLogger(__name__)
 
 GENERATOR_VERSION = 3  # 3: sub-pixel lines at their full width (line_coverage); 2 under-inked them
 MANIFEST = "manifest.json"
+#: What a set of which only some scenes were written (:func:`generate_scenes`) records in place of the manifest, which
+#: marks a finished set: the parameters and the package versions its scenes were made with (:func:`version_differences`).
+PARTIAL = "partial.json"
 SCENE_PATTERN = "scene_{:04d}.h5"
 SPLITS = ("train", "heldout")
 #: Third element of the random stream of held-out scenes (so they never repeat a training scene).
@@ -242,8 +245,9 @@ SCENE_PACKAGES = ("colour-science", "scikit-image")
 
 def version_differences(out: str | os.PathLike) -> list[str]:
     """``"package recorded → installed"`` for each of :data:`SCENE_PACKAGES` whose version differs between the
-    manifest of ``out`` and this installation ([] when none, or when the manifest records no versions)."""
-    recorded = (_read_manifest(Path(out)) or {}).get("software")
+    manifest of ``out`` (of a partial set: its :data:`PARTIAL` record) and this installation ([] when none, or when
+    they record no versions)."""
+    recorded = (_read_manifest(Path(out)) or _read_manifest(Path(out), PARTIAL) or {}).get("software")
     if not isinstance(recorded, dict):
         return []
     installed = _versions()
@@ -272,9 +276,9 @@ def heldout_roles(out: str | os.PathLike) -> dict[str, bool] | None:
     return roles if isinstance(roles, dict) else None
 
 
-def _read_manifest(out: Path) -> dict[str, Any] | None:
+def _read_manifest(out: Path, name: str = MANIFEST) -> dict[str, Any] | None:
     try:
-        return json.loads((out / MANIFEST).read_text(encoding="utf-8"))
+        return json.loads((out / name).read_text(encoding="utf-8"))
     except (OSError, json.JSONDecodeError):
         return None
 
@@ -429,6 +433,7 @@ def _generate_into(out: Path, n: int, size: int, seed: int, bands: Bands, lib: S
         "scenes": scenes,
     }
     write_json(out / MANIFEST, manifest)
+    (out / PARTIAL).unlink(missing_ok=True)  # every scene rewritten, with these versions: the manifest says it all
     return manifest
 
 
@@ -461,11 +466,11 @@ def synthetic_scenes(indices: Sequence[int], n: int, size: int = 256, seed: int 
         _warn_versions(out)
         return paths
     missing = [int(i) for i in dict.fromkeys(indices) if not (out / SCENE_PATTERN.format(i)).is_file()]
-    if not missing:
-        return paths
-    _check_cache(out, cache_dir)
-    generate_scenes(out, missing, n, size, seed, bands, progress, holdout_sources=holdout, split=split,
-                    room_fix=room_fix)
+    if missing:
+        _check_cache(out, cache_dir)
+        generate_scenes(out, missing, n, size, seed, bands, progress, holdout_sources=holdout, split=split,
+                        room_fix=room_fix)
+    _warn_versions(out)  # a partial set's scenes, reused or joined by new ones: its record (PARTIAL) says with what
     return paths
 
 
@@ -474,7 +479,9 @@ def generate_scenes(out: str | os.PathLike, indices: Sequence[int], n: int, size
                     holdout_sources: str | Iterable[str] | None = DEFAULT_HOLDOUT, split: str = "train",
                     room_fix: str = "") -> list[Path]:
     """Write the scenes ``indices`` of the ``n``-scene set into ``out`` (the files :func:`generate_dataset`
-    writes for them), and no manifest: :func:`generate_dataset` completes the folder. Returns their paths."""
+    writes for them), and no manifest: :func:`generate_dataset` completes the folder. What the manifest would record
+    of the parameters and the package versions goes to :data:`PARTIAL` (kept when there: the versions the first scenes
+    were made with), for :func:`version_differences`. Returns their paths."""
     from hsicam.progress import progress as counted
 
     bands = bands or Bands.paper()
@@ -484,8 +491,13 @@ def generate_scenes(out: str | os.PathLike, indices: Sequence[int], n: int, size
              len(indices), n, split, size, size, len(bands), ", ".join(holdout) or "none", out)
     lib = spectral_library(bands, holdout, split)
     with _folder_removed_if_failed(out):  # written scenes stay
-        return [_write_scene(out, i, seed, size, bands, lib, params)[2]
-                for i in counted(indices, len(indices), f"synthetic {split} scenes", "scene", show=progress)]
+        paths = [_write_scene(out, i, seed, size, bands, lib, params)[2]
+                 for i in counted(indices, len(indices), f"synthetic {split} scenes", "scene", show=progress)]
+    if _read_manifest(out) is None and _read_manifest(out, PARTIAL) is None:
+        write_json(out / PARTIAL, {"format": "hsicam-synthetic-partial", "parameters": params,
+                                   "key": cache_key(n, size, seed, bands, holdout_sources=holdout, split=split),
+                                   "software": _versions()})
+    return paths
 
 
 def _used_sources(lib: SpectralLibrary) -> list[str]:
@@ -498,7 +510,8 @@ def _used_sources(lib: SpectralLibrary) -> list[str]:
 def check_dataset_folder(out: str | os.PathLike, params: dict[str, Any] | None = None) -> None:
     """InputError unless ``out`` can take (or already holds) a dataset of :func:`generate_dataset`:
     absent, empty, a finished dataset (its manifest; with ``params``, of these parameters) without
-    foreign cube files, or only scene files (a generation killed before its manifest). Cheap: the
+    foreign cube files, or only scene files (a generation killed before its manifest, or a partial set of
+    :func:`generate_scenes`, whose :data:`PARTIAL` record, with ``params``, has these parameters). Cheap: the
     CLI calls it before any work, :func:`generate_dataset` again before writing."""
     out = Path(out)
     if not out.exists():
@@ -516,7 +529,11 @@ def check_dataset_folder(out: str | os.PathLike, params: dict[str, Any] | None =
         if params is not None and man.get("parameters") != params:
             raise InputError(f"{out}: holds a synthetic dataset with other parameters; choose another --out or remove it")
         return
-    other = sorted(n for n in names if not re.fullmatch(r"scene_\d{4,}\.h5", n))
+    partial = _read_manifest(out, PARTIAL)
+    if isinstance(partial, dict) and params is not None and partial.get("parameters") != params:
+        raise InputError(f"{out}: holds scenes of a synthetic dataset with other parameters; choose another --out or "
+                         "remove it")
+    other = sorted(n for n in names if not re.fullmatch(r"scene_\d{4,}\.h5", n) and n != PARTIAL)
     if other:
         shown = ", ".join(other[:3]) + (f" and {len(other) - 3} more" if len(other) > 3 else "")
         raise InputError(f"{out}: folder is not empty and holds no dataset of hsicam data synth ({shown}); "
