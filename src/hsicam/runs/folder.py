@@ -256,7 +256,9 @@ def damaged_weights_message(run_dir: Path) -> str | None:
 
     src = CheckpointManager(run_dir).root_source()
     if src is None or (src[0].is_file() and src[1] in (None, file_sha256(src[0]))):
-        return None  # no checkpoint, or the kept one intact (readers fall back on it: not told here)
+        # no checkpoint, or the kept one intact: nothing damaged to name (root_weights_path falls back on it, but
+        # load_run, which asks only when the root is missing, then says that: no_weights_message)
+        return None
     try:
         root_weights_path(run_dir)
         return None
