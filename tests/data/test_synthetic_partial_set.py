@@ -85,3 +85,14 @@ def test_a_partial_set_of_other_parameters_is_not_written_into(tmp_path):
     with pytest.raises(InputError, match="holds scenes of a synthetic dataset with other parameters"):
         syn.generate_dataset(part, N, SIZE, 1, BANDS, progress=False)  # another seed: other scenes under its names
     assert sorted(_files(part)) == [syn.PARTIAL, "scene_0001.h5"]
+
+
+def test_scenes_of_an_hsicam_before_the_record_get_none_claiming_todays_versions(tmp_path, monkeypatch):
+    """A partial folder written before partial.json existed (its scenes, no record), joined by a new scene: a record
+    written then would give this installation's versions to scenes made with unknown ones; none is written."""
+    syn.synthetic_scenes([1], N, SIZE, 0, BANDS, cache_dir=tmp_path / "old", progress=False)
+    folder = next((tmp_path / "old").rglob(syn.PARTIAL)).parent
+    (folder / syn.PARTIAL).unlink()  # as an hsicam before the record left it
+    _upgraded(monkeypatch)  # today's installation differs from the one that wrote scene 1
+    syn.synthetic_scenes([1, 3], N, SIZE, 0, BANDS, cache_dir=tmp_path / "old", progress=False)
+    assert sorted(p.name for p in folder.iterdir()) == [syn.SCENE_PATTERN.format(1), syn.SCENE_PATTERN.format(3)]

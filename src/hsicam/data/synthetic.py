@@ -480,8 +480,9 @@ def generate_scenes(out: str | os.PathLike, indices: Sequence[int], n: int, size
                     room_fix: str = "") -> list[Path]:
     """Write the scenes ``indices`` of the ``n``-scene set into ``out`` (the files :func:`generate_dataset`
     writes for them), and no manifest: :func:`generate_dataset` completes the folder. What the manifest would record
-    of the parameters and the package versions goes to :data:`PARTIAL` (kept when there: the versions the first scenes
-    were made with), for :func:`version_differences`. Returns their paths."""
+    of the parameters and the package versions goes to :data:`PARTIAL` with the folder's first scenes (kept when
+    there: the versions the first scenes were made with; not written beside scenes of an hsicam before the record,
+    whose versions are unknown), for :func:`version_differences`. Returns their paths."""
     from hsicam.progress import progress as counted
 
     bands = bands or Bands.paper()
@@ -490,10 +491,13 @@ def generate_scenes(out: str | os.PathLike, indices: Sequence[int], n: int, size
     log.info("generating %d of the %d scenes of the synthetic %s set (%dx%dx%d, held-out sources: %s) in %s",
              len(indices), n, split, size, size, len(bands), ", ".join(holdout) or "none", out)
     lib = spectral_library(bands, holdout, split)
+    # the record says with what the folder's scenes were made: written only with its first scenes (scenes already
+    # there without one, from an hsicam before the record, were made with versions nobody knows)
+    first = not any(out.glob(SCENE_PATTERN.replace("{:04d}", "*"))) if out.is_dir() else True
     with _folder_removed_if_failed(out):  # written scenes stay
         paths = [_write_scene(out, i, seed, size, bands, lib, params)[2]
                  for i in counted(indices, len(indices), f"synthetic {split} scenes", "scene", show=progress)]
-    if _read_manifest(out) is None and _read_manifest(out, PARTIAL) is None:
+    if first and _read_manifest(out) is None and _read_manifest(out, PARTIAL) is None:
         write_json(out / PARTIAL, {"format": "hsicam-synthetic-partial", "parameters": params,
                                    "key": cache_key(n, size, seed, bands, holdout_sources=holdout, split=split),
                                    "software": _versions()})
