@@ -27,8 +27,6 @@ def _sha(path):
 
 def _two_checkpoints(tmp_path):
     """A run keeping its best (step 1) whose last is step 2; its root weights deleted and its best damaged."""
-    from hsicam.engine.train import check_kept_weights  # noqa: F401 - the function under test exists
-
     run = tmp_path / "run"
     mgr = CheckpointManager(run)
     for step, tags in ((1, ("last", "best")), (2, ("last",))):
@@ -110,3 +108,34 @@ def test_hsicam_train_fails_at_the_end_and_the_way_out_works(cache_env, tmp_path
         assert final["final"] and final["step"] == man["last"]["step"] == 8 and not root.exists()
     assert main(["train", "--out", str(run), "--resume", "--set", "train.keep_weights=last"]) == 0
     assert root_weights_path(run) == root and _sha(root) == man["last"]["weights_sha256"]
+
+
+def test_a_finished_run_resumed_without_its_root_weights_gets_them_back(cache_env, tmp_path, capsys):
+    """A finished tiny run whose root weights were deleted (the kept checkpoint intact): every reader refused it ("the
+    run has no trained weights") while `hsicam train --resume` said "already finished ... nothing changed" and exit 0,
+    the root still missing. The resume now copies the kept checkpoint back (bytes equal to the manifest's sha256) and
+    says so; `load_run` then reads the run."""
+    from hsicam.cli import main
+    from hsicam.config import load_config
+    from hsicam.engine.train import train
+    from hsicam.runs.folder import load_run
+
+    torch.set_num_threads(1)
+    run = tmp_path / "run"
+    train(load_config("tiny", ["train.epochs=1"]), run, progress=False)
+    man = json.loads((run / MANIFEST).read_text())
+    root = run / "model.safetensors"
+    root.unlink()
+    ck._HASHES.clear()
+    kept = man["weights"]["from"]
+    with pytest.raises(InputError) as err:
+        load_run(run)
+    assert str(err.value) == (f"{run}: the run has no trained weights (model.safetensors is missing); its kept "
+                              f"checkpoint {run / man[kept]['dir'] / 'model.safetensors'} holds them: hsicam train "
+                              f"--out {run} --resume restores them")
+    capsys.readouterr()
+    assert main(["train", "--out", str(run), "--resume"]) == 0
+    said = capsys.readouterr().out.strip().splitlines()[-1]
+    assert f"its root weights {root} restored from the {kept} checkpoint (step {man[kept]['step']})" in said, said
+    assert _sha(root) == man[kept]["weights_sha256"] == man["weights"]["sha256"]
+    load_run(run)

@@ -85,6 +85,12 @@ def _refresh_linear_step(run_dir: Path, consistency, keep_weights: str | None = 
         now = kept_checkpoint(run_dir)
         changed.append(f"its kept weights: the {now['checkpoint']} checkpoint's (step {now['step']}; were the "
                        f"{was['checkpoint']} checkpoint's, step {was['step']}; train.keep_weights {keep_weights})")
+    elif was is not None and CheckpointManager(run_dir, keep=keep_weights or run_cfg.train.keep_weights).sync_root():
+        # a finished run resumed after its root weights were lost (deleted, a copy without them): readers refuse a
+        # run without them, so they come back from the intact checkpoint the manifest keeps (a damaged one is not
+        # copied: sync_root warns, and the training's end refuses the run, engine.train.check_kept_weights)
+        changed.append(f"its root weights {run_dir / 'model.safetensors'} restored from the {was['checkpoint']} "
+                       f"checkpoint (step {was['step']})")
     if consistency.kind == "linear" and consistency.iterations > 0 and run_cfg.camera.kind == "doe":
         # (SD-CASSI skips the step; the config refuses it for DD-CASSI)
         path = run_dir / LINEAR_STEP_FILE

@@ -244,7 +244,13 @@ def no_weights_message(run_dir: Path) -> str:
         return (f"{run_dir}: a spectral prior (hsicam baseline train-prior), not a camera run: use it with `hsicam "
                 f"evaluate --method dd-cassi-choi --run {run_dir} --out DIR`; this command needs a camera run "
                 "(hsicam train, or --run pretrained:NAME)")
-    return f"{run_dir}: the run has no trained weights (model.safetensors is missing)"
+    text = f"{run_dir}: the run has no trained weights (model.safetensors is missing)"
+    src = CheckpointManager(run_dir).root_source()
+    if src is not None and src[0].is_file() and not (run_dir / MEASURED_PSF_FILE).is_file():
+        # the kept checkpoint is there (intact: damaged_weights_message is asked first): a resume copies it back
+        # (engine.linear_step's refresh; a stopped run trains on first). A fine-tuned run's resume does not.
+        text += f"; its kept checkpoint {src[0]} holds them: {refit_command(run_dir)} restores them"
+    return text
 
 
 def damaged_weights_message(run_dir: Path) -> str | None:
@@ -256,8 +262,8 @@ def damaged_weights_message(run_dir: Path) -> str | None:
 
     src = CheckpointManager(run_dir).root_source()
     if src is None or (src[0].is_file() and src[1] in (None, file_sha256(src[0]))):
-        # no checkpoint, or the kept one intact: nothing damaged to name (root_weights_path falls back on it, but
-        # load_run, which asks only when the root is missing, then says that: no_weights_message)
+        # no checkpoint, or the kept one intact: nothing damaged to name (load_run, which asks only when the root
+        # is missing, then says so and how a resume restores it: no_weights_message)
         return None
     try:
         root_weights_path(run_dir)
