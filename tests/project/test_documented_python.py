@@ -868,10 +868,12 @@ def test_a_wrong_excerpt_is_reported_with_its_line(tmp_path):
     block = _doc_block(tmp_path, "```python\nout = args.out or Path(tempfile.mkdtemp(prefix=\"hsicam_psf_\"))\n\n"
                                  "cam = DOECamera.from_config(cfg, 1)\n"
                                  "    cam = DOECamera.from_config(cfg)\n"
-                                 "cfg = load_config(\"paper\", [f\"camera.lens.model={args.lens}\"])\n```\n")
+                                 "cfg = load_config(\"paper\", [f\"camera.lens.model={args.lens}\", "
+                                 "f\"camera.doe.enabled={not args.no_doe}\"])\n```\n")
     problems = check_excerpt(block, "examples/camera_and_psf.py")
     assert problems == ["doc.md:4: 'cam = DOECamera.from_config(cfg, 1)' is not a line of examples/camera_and_psf.py",
-                        "doc.md:6: 'cfg = load_config(\"paper\", [f\"camera.lens.model={args.lens}\"])' comes before "
+                        "doc.md:6: 'cfg = load_config(\"paper\", [f\"camera.lens.model={args.lens}\", "
+                        "f\"camera.doe.enabled={not args.no_doe}\"])' comes before "
                         "the line above it in examples/camera_and_psf.py"], problems
 
 
