@@ -26,8 +26,8 @@ class TrainingDiverged(InputError):
 
 
 class PeerFailed(HsicamError):
-    """What the other processes of a ``torchrun`` group raise when rank 0 failed in work they wait for (the files
-    written at the end of a training: :func:`hsicam.engine.loop.fit`): one line each, rank 0's own error saying why."""
+    """What the other processes of a ``torchrun`` group raise when rank 0 failed in work they wait for (its work alone
+    between two collectives: :class:`hsicam.engine.loop.SoloWork`): one line each, rank 0's own error saying why."""
 
 
 class _Stop:

@@ -13,7 +13,8 @@ running train loss of the current epoch, is part of every checkpoint).
 
 Distributed: launched by ``torchrun``, each process takes its share of every global batch
 (``batch_size`` must divide by the number of processes); DDP averages the gradients; validation,
-logging and checkpoints happen on rank 0 only.
+logging and checkpoints happen on rank 0 only; an error there ends every rank at the next collective, rank 0's
+with its own error, the others' in one line (:class:`SoloWork`).
 """
 
 from __future__ import annotations
@@ -270,7 +271,8 @@ def fit(task: Task, opts: FitOptions, run_dir: str | Path, resume: bool = False,
     A new run's folder is this process's from before its data are prepared until it is in place (its
     :class:`~hsicam.io.OutputLock`): another training into it is refused the same way meanwhile.
     ``then(summary) -> summary`` runs on rank 0 under that lock after a training that was not cut
-    short (files derived from the final weights, e.g. the linear step's filters).
+    short (files derived from the final weights, e.g. the linear step's filters); an error of rank 0 there, as in
+    all its work alone, ends the other ranks with :class:`~hsicam.errors.PeerFailed` (:class:`SoloWork`).
 
     SIGTERM, Ctrl-C and the budget ``train.max_minutes`` stop the loop at the end of a step: that
     step's checkpoint is saved and :class:`~hsicam.errors.TrainingStopped` (the budget) or
@@ -295,8 +297,11 @@ def fit(task: Task, opts: FitOptions, run_dir: str | Path, resume: bool = False,
                 StopRequests(opts.loop.max_minutes) as stop, deterministic_algorithms(opts.loop.deterministic):
             result = _fit(task, opts, Path(run_dir), resume, lock, new_run, stop)
             if then is not None and "stopped_at_step" not in result:
-                result = _then_on_rank_0(then, result, rank, world, resolve_device(opts.loop.device, local_rank),
-                                         task.what)
+                solo = SoloWork(rank, world, resolve_device(opts.loop.device, local_rank))
+                with solo.work():
+                    if rank == 0:
+                        result = then(result)
+                solo.agree(f"at the end of the {task.what}")
             if stop.received is not None and "step" in result:  # asked during the last step or the files after it
                 raise TrainingInterrupted(run_dir, result["step"], result["step"], stop.received, stop.exit_code(),
                                           finished=True)
@@ -334,29 +339,63 @@ def fit(task: Task, opts: FitOptions, run_dir: str | Path, resume: bool = False,
     return result
 
 
-def _then_on_rank_0(then: Callable[[dict[str, Any]], dict[str, Any]], result: dict[str, Any], rank: int, world: int,
-                    device: torch.device, what: str = "training") -> dict[str, Any]:
-    """``then(result)`` on rank 0; in a DDP group every rank learns whether it failed, and the others then raise
-    :class:`~hsicam.errors.PeerFailed`. Rank 0's error used to end its side of the group while the others waited in
-    the end-of-training barrier: they failed with gloo's "Connection closed by peer" (a traceback from each), and
-    NCCL's barrier knows no such thing (it waits for the group's timeout)."""
-    if world == 1:
-        return then(result)
-    failed = torch.zeros(1, device=device)
-    if rank == 0:
+class SoloWork:
+    """Work that one rank does alone between two collectives of a DDP group (rank 0's: the run folder's checks, the
+    data, the metrics log, checkpoints, validation, the files that end a training, ``fit``'s ``then``), and the
+    agreement after it, where every rank learns whether one of them failed.
+
+    An error in such work used to end that rank's side of the group alone: the others, waiting in their next
+    collective, died with gloo's 26-line traceback ("Connection closed by peer"), and NCCL's collectives wait for the
+    group's timeout instead. In a group, :meth:`work` holds the error until the next agreement (:meth:`agree`, one
+    collective where the loop had a barrier; :meth:`reduce`, one value more in a reduction made anyway, so that no
+    step pays for another collective): the rank that failed raises its own error there, the others
+    :class:`~hsicam.errors.PeerFailed` (one line each). A rank that holds an error does no more work alone before it
+    (``held``). In one process an error is raised at once."""
+
+    def __init__(self, rank: int, world: int, device: torch.device) -> None:
+        self.rank, self.world, self.device = rank, world, device
+        self.error: BaseException | None = None
+
+    @property
+    def held(self) -> bool:
+        """Whether this rank failed in its work since the last agreement."""
+        return self.error is not None
+
+    @contextlib.contextmanager
+    def work(self):
+        """A block of this rank's own work: in a group, an error in it is held until the next agreement."""
         try:
-            result = then(result)
-        except BaseException:
-            failed.fill_(1)
-            try:
-                dist.all_reduce(failed, op=dist.ReduceOp.MAX)
-            except Exception:  # noqa: BLE001 - never in place of the error that ended the training
-                log.debug("telling the other ranks that rank 0 failed failed", exc_info=True)
-            raise
-    dist.all_reduce(failed, op=dist.ReduceOp.MAX)
-    if rank != 0 and failed.item():
-        raise PeerFailed(f"rank 0 failed at the end of the {what} (its own error says why); rank {rank} stops with it")
-    return result
+            yield
+        except BaseException as exc:
+            if self.world == 1 or self.error is not None:
+                raise
+            self.error = exc
+
+    def reduce(self, values: list[int], where: str) -> list[int]:
+        """``values`` reduced to their maximum over the group, in one collective with whether a rank failed in its
+        work: this rank's error raised when it holds one, else :class:`PeerFailed` when another rank failed
+        (``where``: when, for its message, e.g. "at step 12 of the training")."""
+        if self.world == 1:
+            return values
+        flags = torch.tensor([*values, self.rank + 1 if self.error is not None else 0], device=self.device)
+        try:
+            dist.all_reduce(flags, op=dist.ReduceOp.MAX)
+        except Exception:  # noqa: BLE001 - a peer gone: never in place of this rank's own error
+            if self.error is None:
+                raise
+            log.debug("telling the other ranks that rank %d failed failed", self.rank, exc_info=True)
+        if self.error is not None:
+            error, self.error = self.error, None
+            raise error
+        failed = int(flags[-1].item())
+        if failed:
+            raise PeerFailed(f"rank {failed - 1} failed {where} (its own error says why); rank {self.rank} stops "
+                             "with it")
+        return [int(v) for v in flags[:-1].tolist()]
+
+    def agree(self, where: str) -> None:
+        """Every rank learns whether one failed in its work (:meth:`reduce`, nothing else reduced)."""
+        self.reduce([], where)
 
 
 def _end_group(barrier: bool) -> None:
@@ -423,15 +462,12 @@ def not_finite_error(what: str, step: int, loss: float, batch: torch.Tensor,
                       "those scene files, then train again")
 
 
-def _agreed_stop(stop: StopRequests, next_step_s: float, distributed: bool, device: torch.device) -> tuple[str, int] | None:
+def _agreed_stop(stop: StopRequests, next_step_s: float, solo: SoloWork, where: str) -> tuple[str, int] | None:
     """(reason, exit code) when the training is to stop now (:class:`StopRequests`), else None; in a
-    DDP group every rank gets the same answer (the strongest code any rank has: a signal over the budget)."""
+    DDP group every rank gets the same answer (the strongest code any rank has: a signal over the budget),
+    in the collective that also tells every rank whether one failed in its work since the last (``solo``)."""
     why = stop.reason(next_step_s)
-    code = 0 if why is None else stop.exit_code()
-    if distributed:
-        flag = torch.tensor([code], device=device)
-        dist.all_reduce(flag, op=dist.ReduceOp.MAX)
-        code = int(flag.item())
+    code = solo.reduce([0 if why is None else stop.exit_code()], where)[0]
     return None if code == 0 else (stop.describe(code), code)
 
 
@@ -461,21 +497,24 @@ def _fit(task: Task, opts: FitOptions, run_dir: Path, resume: bool, lock: RunLoc
             raise ConfigError(f"train.bf16 on {device}: torch {torch.__version__} cannot autocast the network there in "
                               f"bfloat16 ({problem}); set train.bf16=false to train in float32")
     is_main = rank == 0  # (train.batch_size divides by the world size: checked by fit, before the group)
-    if is_main:
-        if resume:
-            lock.acquire()  # before anything in the run is read or removed
-            check_not_an_output(run_dir)
-        else:
-            check_not_locked(run_dir)  # a new run's folder: locked in its temporary folder below
-            new_run.acquire()  # until then its output lock: taken before check_run_dir removes a killed run's temporaries
-        check_run_dir(run_dir, resume)  # before any work; nothing is created until the data are known good
-    record = task.data_record() if is_main else None  # the scenes, before any is read
-    if is_main and resume:  # a run goes on with the scenes and the split it started with
-        check_same_data(run_dir, read_data_record(run_dir), record)
-    if distributed:  # generate/cache the dataset once, on rank 0, before the others read it
+    # rank 0's own work between the collectives of a DDP group: its error, held until the next agreement, ends every
+    # rank there in one line (SoloWork; the others waited in a barrier and died with gloo's traceback)
+    solo = SoloWork(rank, world, device)
+    with solo.work():
         if is_main:
+            if resume:
+                lock.acquire()  # before anything in the run is read or removed
+                check_not_an_output(run_dir)
+            else:
+                check_not_locked(run_dir)  # a new run's folder: locked in its temporary folder below
+                new_run.acquire()  # until then its output lock: taken before check_run_dir removes a killed run's temporaries
+            check_run_dir(run_dir, resume)  # before any work; nothing is created until the data are known good
+        record = task.data_record() if is_main else None  # the scenes, before any is read
+        if is_main and resume:  # a run goes on with the scenes and the split it started with
+            check_same_data(run_dir, read_data_record(run_dir), record)
+        if distributed and is_main:  # generate/cache the dataset once, on rank 0, before the others read it
             task.prepare_data()
-        dist.barrier()
+    solo.agree(f"before the {task.what} started")
     train_ds, val_ds = task.datasets()
     steps_per_epoch = len(train_ds) // t.batch_size
     if steps_per_epoch < 1:
@@ -502,60 +541,60 @@ def _fit(task: Task, opts: FitOptions, run_dir: Path, resume: bool, lock: RunLoc
     metrics = MetricsLog(run_dir / "metrics.jsonl", is_main)
     state = LoopState()
     summary: dict[str, Any] = {}  # the last validation's metrics, reported by the final record
-    if resume:
-        if is_main:
-            ckpt.cleanup()  # temporaries and step folders the manifest does not name (a killed process)
-        if ckpt.path("last"):
-            base_lrs = [g["base_lr"] for g in optimizer.param_groups]
-            state = LoopState.from_dict(ckpt.load("last", model, optimizer, bands))
-            # the learning rates of the config it goes on with (e.g. `--set train.lr=…`), not the
-            # checkpoint's: the optimizer's moments continue, its schedule starts from these
-            for g, lr in zip(optimizer.param_groups, base_lrs):
-                g["base_lr"] = lr
-            if state.steps_per_epoch and (state.steps_per_epoch, state.batch_size) != (steps_per_epoch, t.batch_size):
-                # its position (step in epoch, steps done) counts batches of the size it was trained with
-                raise InputError(f"{run_dir}: was trained in epochs of {state.steps_per_epoch} steps of "
-                                 f"{state.batch_size} patches, and its config now asks for {steps_per_epoch} steps of "
-                                 f"{t.batch_size} ({len(train_ds)} patches per epoch, {task.batch_size_key}="
-                                 f"{t.batch_size}): a resume would misplace where it stopped; keep the batch size and "
-                                 "the patches per epoch as they were; nothing was changed")
-            old_epoch = older_epoch_length(state)
-            if old_epoch is not None and old_epoch != steps_per_epoch:
-                # a checkpoint of an older hsicam (no batch size kept): its completed epochs give their length
-                raise InputError(f"{run_dir}: was trained in epochs of {old_epoch} steps (a checkpoint of an older "
-                                 f"hsicam, which did not record its batch size), and its config now asks for "
-                                 f"{steps_per_epoch} steps of {t.batch_size} ({len(train_ds)} patches per epoch, "
-                                 f"{task.batch_size_key}={t.batch_size}): a resume would misplace where it stopped; "
-                                 "keep the batch size and the patches per epoch as they were; nothing was changed")
-            if state.global_step > total_steps:  # before the config is rewritten: nothing changes
-                raise InputError(f"{run_dir}: has trained {state.global_step} steps ({state.epoch} epochs), more than the "
-                                 f"{total_steps} its config now asks for; a resume cannot take training back: ask for at "
-                                 "least as many, or leave the length as it was; nothing was changed")
-        if is_main:
-            ckpt.sync_root()  # a kill between the manifest's commit and the root weights' rewrite
-            metrics.truncate_after(state.global_step, state.epoch)
-            summary = last_validation(metrics.read())  # kept when no epoch is left to validate
-            task.write_run_files(run_dir)  # the config it goes on with (e.g. `--set train.epochs=…`)
-            log.info("resuming %s at epoch %d, step %d", run_dir, state.epoch, state.global_step)
-            warning = task.resume_warning(run_dir)
-            if warning:
-                log.warning(warning)
-    elif is_main:
-        # The run folder appears at once with all its files (config.yaml, ...) or not at all.
-        with atomic_output(run_dir, marker=False) as tmp:
-            lock.acquire(tmp)  # held across the rename: the run is never in place unlocked
-            task.write_run_files(tmp)
-            if record is not None:
-                write_data_record(tmp, record)
-        lock.moved()
-        new_run.release()  # in place: the run's own lock keeps it
-    if is_main:  # which software this session trains with (a resume adds its own record)
-        metrics.write({"step": state.global_step, "epoch": state.epoch,
-                       "session": software_record(str(device), world)})
+    with solo.work():
+        if resume:
+            if is_main:
+                ckpt.cleanup()  # temporaries and step folders the manifest does not name (a killed process)
+            if ckpt.path("last"):
+                base_lrs = [g["base_lr"] for g in optimizer.param_groups]
+                state = LoopState.from_dict(ckpt.load("last", model, optimizer, bands))
+                # the learning rates of the config it goes on with (e.g. `--set train.lr=…`), not the
+                # checkpoint's: the optimizer's moments continue, its schedule starts from these
+                for g, lr in zip(optimizer.param_groups, base_lrs):
+                    g["base_lr"] = lr
+                if state.steps_per_epoch and (state.steps_per_epoch, state.batch_size) != (steps_per_epoch, t.batch_size):
+                    # its position (step in epoch, steps done) counts batches of the size it was trained with
+                    raise InputError(f"{run_dir}: was trained in epochs of {state.steps_per_epoch} steps of "
+                                     f"{state.batch_size} patches, and its config now asks for {steps_per_epoch} steps of "
+                                     f"{t.batch_size} ({len(train_ds)} patches per epoch, {task.batch_size_key}="
+                                     f"{t.batch_size}): a resume would misplace where it stopped; keep the batch size and "
+                                     "the patches per epoch as they were; nothing was changed")
+                old_epoch = older_epoch_length(state)
+                if old_epoch is not None and old_epoch != steps_per_epoch:
+                    # a checkpoint of an older hsicam (no batch size kept): its completed epochs give their length
+                    raise InputError(f"{run_dir}: was trained in epochs of {old_epoch} steps (a checkpoint of an older "
+                                     f"hsicam, which did not record its batch size), and its config now asks for "
+                                     f"{steps_per_epoch} steps of {t.batch_size} ({len(train_ds)} patches per epoch, "
+                                     f"{task.batch_size_key}={t.batch_size}): a resume would misplace where it stopped; "
+                                     "keep the batch size and the patches per epoch as they were; nothing was changed")
+                if state.global_step > total_steps:  # before the config is rewritten: nothing changes
+                    raise InputError(f"{run_dir}: has trained {state.global_step} steps ({state.epoch} epochs), more than the "
+                                     f"{total_steps} its config now asks for; a resume cannot take training back: ask for at "
+                                     "least as many, or leave the length as it was; nothing was changed")
+            if is_main:
+                ckpt.sync_root()  # a kill between the manifest's commit and the root weights' rewrite
+                metrics.truncate_after(state.global_step, state.epoch)
+                summary = last_validation(metrics.read())  # kept when no epoch is left to validate
+                task.write_run_files(run_dir)  # the config it goes on with (e.g. `--set train.epochs=…`)
+                log.info("resuming %s at epoch %d, step %d", run_dir, state.epoch, state.global_step)
+                warning = task.resume_warning(run_dir)
+                if warning:
+                    log.warning(warning)
+        elif is_main:
+            # The run folder appears at once with all its files (config.yaml, ...) or not at all.
+            with atomic_output(run_dir, marker=False) as tmp:
+                lock.acquire(tmp)  # held across the rename: the run is never in place unlocked
+                task.write_run_files(tmp)
+                if record is not None:
+                    write_data_record(tmp, record)
+            lock.moved()
+            new_run.release()  # in place: the run's own lock keeps it
+        if is_main:  # which software this session trains with (a resume adds its own record)
+            metrics.write({"step": state.global_step, "epoch": state.epoch,
+                           "session": software_record(str(device), world)})
     state.total_steps = total_steps  # saved with each checkpoint: what a half-trained run is measured against
     state.steps_per_epoch, state.batch_size = steps_per_epoch, t.batch_size
-    if distributed:
-        dist.barrier()
+    solo.agree(f"before the {task.what} started")
     val_loader = make_loader(val_ds, t.batch_size, opts.num_workers, shuffle=False) if (val_ds is not None and is_main) else None
 
     task.on_device(device)
@@ -609,22 +648,27 @@ def _fit(task: Task, opts: FitOptions, run_dir: Path, resume: bool, lock: RunLoc
     def stop_here(why: str, code: int, saved: bool) -> None:
         """Save the checkpoint of this step (unless ``saved``) and raise :class:`TrainingStopped`
         (the budget) or :class:`TrainingInterrupted` (a signal)."""
-        if is_main and not saved:
-            ckpt.save(model, optimizer, state.to_dict(), bands, ("last",), meta)
+        if not saved:
+            with solo.work():
+                if is_main:
+                    ckpt.save(model, optimizer, state.to_dict(), bands, ("last",), meta)
+            solo.agree(f"at step {state.global_step} of the {task.what}")
         bar.close()
         kind = TrainingStopped if code == BUDGET_EXIT_CODE else TrainingInterrupted
         raise kind(run_dir, state.global_step, total_steps, why, code)
 
     stop.armed = True  # from here a signal stops the loop at the next step's end (hsicam.engine.stopping)
     if opts.validate_at_start and not resume:
-        if is_main:
-            val = validate_now() if val_loader is not None else None
-            if val is not None:
-                summary = val
-                log_validation(summary)
-                state.best_psnr, state.best_step = summary.get("psnr"), 0
-            ckpt.save(model, optimizer, state.to_dict(), bands, ("last", "best") if val is not None else ("last",), meta)
-        asked = _agreed_stop(stop, 0.0, distributed, device)  # (a full validation pass can take minutes)
+        with solo.work():
+            if is_main:
+                val = validate_now() if val_loader is not None else None
+                if val is not None:
+                    summary = val
+                    log_validation(summary)
+                    state.best_psnr, state.best_step = summary.get("psnr"), 0
+                ckpt.save(model, optimizer, state.to_dict(), bands, ("last", "best") if val is not None else ("last",),
+                          meta)
+        asked = _agreed_stop(stop, 0.0, solo, f"at step 0 of the {task.what}")  # (a full validation can take minutes)
         if asked is not None:
             stop_here(*asked, saved=True)  # the step-0 checkpoint just written: a resume starts from it
     model.train()
@@ -681,28 +725,33 @@ def _fit(task: Task, opts: FitOptions, run_dir: Path, resume: bool, lock: RunLoc
             steps_done += 1
             bar.update(1)
             bar.set_postfix(loss=f"{loss_v:.4f}", psnr="-" if last_val is None else f"{last_val:.2f}", epoch=state.epoch)
-            if is_main and state.global_step % t.log_every_steps == 0:
-                rec = {"step": state.global_step, "epoch": state.epoch, "train_loss": state.loss_sum / state.loss_n,
-                       "lr": optimizer.param_groups[0]["base_lr"] * factor, "elapsed_s": time.perf_counter() - t_start}
-                metrics.write(rec)
-                if writer:
-                    writer.add_scalar("train/loss", rec["train_loss"], rec["step"])
-                if not use_bar:
-                    eta = (time.perf_counter() - t_start) / steps_done * (total_steps - state.global_step)
-                    log.info("step %d/%d epoch %d loss %.4f eta %.0fs", rec["step"], total_steps, state.epoch,
-                             rec["train_loss"], eta)
-            if is_main and state.global_step % t.checkpoint_every_steps == 0:
-                ckpt.save(model, optimizer, state.to_dict(), bands, ("last",), meta)
-            if opts.stop_after_steps is not None and state.global_step >= opts.stop_after_steps:
-                if is_main:
+            # rank 0's metrics and checkpoint: an error is held to the stop check below (its collective says it to
+            # the other ranks), or to the end of the epoch's (nothing more is done alone before it: solo.held)
+            with solo.work():
+                if is_main and state.global_step % t.log_every_steps == 0:
+                    rec = {"step": state.global_step, "epoch": state.epoch, "train_loss": state.loss_sum / state.loss_n,
+                           "lr": optimizer.param_groups[0]["base_lr"] * factor, "elapsed_s": time.perf_counter() - t_start}
+                    metrics.write(rec)
+                    if writer:
+                        writer.add_scalar("train/loss", rec["train_loss"], rec["step"])
+                    if not use_bar:
+                        eta = (time.perf_counter() - t_start) / steps_done * (total_steps - state.global_step)
+                        log.info("step %d/%d epoch %d loss %.4f eta %.0fs", rec["step"], total_steps, state.epoch,
+                                 rec["train_loss"], eta)
+                if is_main and state.global_step % t.checkpoint_every_steps == 0:
                     ckpt.save(model, optimizer, state.to_dict(), bands, ("last",), meta)
+            if opts.stop_after_steps is not None and state.global_step >= opts.stop_after_steps:
+                with solo.work():
+                    if is_main and not solo.held:
+                        ckpt.save(model, optimizer, state.to_dict(), bands, ("last",), meta)
+                solo.agree(f"at step {state.global_step} of the {task.what}")
                 bar.close()
                 return {"stopped_at_step": state.global_step}
             if state.global_step >= total_steps:
                 break
             if state.step_in_epoch < steps_per_epoch:  # (at an epoch's end: after its checkpoint, below)
-                asked = _agreed_stop(stop, (time.perf_counter() - t_start) / max(steps_done, 1), distributed,
-                                      device)
+                asked = _agreed_stop(stop, (time.perf_counter() - t_start) / max(steps_done, 1), solo,
+                                     f"at step {state.global_step} of the {task.what}")
                 if asked is not None:
                     stop_here(*asked, saved=False)
         # end of an epoch (or of the step budget)
@@ -711,45 +760,49 @@ def _fit(task: Task, opts: FitOptions, run_dir: Path, resume: bool, lock: RunLoc
         last_epoch = state.epoch == t.epochs or state.global_step >= total_steps
         tags = ["last"]
         cut = False  # a stop signal cut this epoch's validation short
-        if is_main and val_loader is not None and (state.epoch % t.eval_every_epochs == 0 or last_epoch):
-            val = validate_now(cut=not last_epoch)
-            cut = val is None
-            if val is not None:
-                last_val = val.get("psnr")
-                log_validation(val)
-                if state.best_psnr is None or (last_val is not None and last_val > state.best_psnr):
-                    state.best_psnr, state.best_step = last_val, state.global_step
-                    tags.append("best")
-                summary = {**val}
-        if cut:
-            # the checkpoint keeps the epoch uncounted, so that a resume takes its (empty) rest and then the
-            # validation again: counted, the validation was lost for good (its record, and the best
-            # weights when it would have been the best)
-            state = ended
-        if is_main:  # one commit: the manifest names this checkpoint last (and best); the root weights follow
-            ckpt.save(model, optimizer, state.to_dict(), bands, tuple(tags), meta)
-        if distributed:
-            dist.barrier()
+        with solo.work():  # rank 0's validation and checkpoint; not after its last step's files failed (held)
+            if is_main and not solo.held and val_loader is not None and (
+                    state.epoch % t.eval_every_epochs == 0 or last_epoch):
+                val = validate_now(cut=not last_epoch)
+                cut = val is None
+                if val is not None:
+                    last_val = val.get("psnr")
+                    log_validation(val)
+                    if state.best_psnr is None or (last_val is not None and last_val > state.best_psnr):
+                        state.best_psnr, state.best_step = last_val, state.global_step
+                        tags.append("best")
+                    summary = {**val}
+            if cut:
+                # the checkpoint keeps the epoch uncounted, so that a resume takes its (empty) rest and then the
+                # validation again: counted, the validation was lost for good (its record, and the best
+                # weights when it would have been the best)
+                state = ended
+            if is_main and not solo.held:  # one commit: the manifest names it last (and best); the root weights follow
+                ckpt.save(model, optimizer, state.to_dict(), bands, tuple(tags), meta)
+        solo.agree(f"at step {state.global_step} of the {task.what}")
         if cut and not (state.epoch + 1 < t.epochs and state.global_step < total_steps):
             # the last epoch's validation, cut only by the loader's workers ending: unfinished, not finished
             stop_here(stop.describe(stop.exit_code()), stop.exit_code(), saved=True)
         if state.epoch + cut < t.epochs and state.global_step < total_steps:
-            asked = _agreed_stop(stop, (time.perf_counter() - t_start) / max(steps_done, 1), distributed, device)
+            asked = _agreed_stop(stop, (time.perf_counter() - t_start) / max(steps_done, 1), solo,
+                                 f"at step {state.global_step} of the {task.what}")
             if asked is not None:
                 stop_here(*asked, saved=True)  # rank 0 saved it just above
     bar.close()  # (a signal from here on is honoured once the training's last files are written: fit)
     # no checkpoint at all: the final weights are the run's. A kept checkpoint that is damaged leaves a missing root
     # missing (sync_root's warning names it): the final model's weights there were not those the manifest records
-    if is_main and not ckpt.sync_root() and not (run_dir / task.weights_file).exists() and ckpt.root_source() is None:
-        save_weights(run_dir / task.weights_file, model, bands, meta)
-    elapsed = time.perf_counter() - t_start
-    final = {"step": state.global_step, "epoch": state.epoch, "final": True, "best_psnr": state.best_psnr,
-             **{f"val_{k}": v for k, v in summary.items()}, "elapsed_s": elapsed}
-    if steps_done:  # (a resume that only writes the final record trained nothing to time)
-        final["patches_per_s"] = steps_done * t.batch_size / max(elapsed, 1e-9)
-    if is_main:
-        final = task.on_fit_end(run_dir, final)
-        metrics.write(final)
+    with solo.work():  # rank 0's last files
+        if is_main and not ckpt.sync_root() and not (run_dir / task.weights_file).exists() and ckpt.root_source() is None:
+            save_weights(run_dir / task.weights_file, model, bands, meta)
+        elapsed = time.perf_counter() - t_start
+        final = {"step": state.global_step, "epoch": state.epoch, "final": True, "best_psnr": state.best_psnr,
+                 **{f"val_{k}": v for k, v in summary.items()}, "elapsed_s": elapsed}
+        if steps_done:  # (a resume that only writes the final record trained nothing to time)
+            final["patches_per_s"] = steps_done * t.batch_size / max(elapsed, 1e-9)
+        if is_main:
+            final = task.on_fit_end(run_dir, final)
+            metrics.write(final)
+    solo.agree(f"at the end of the {task.what}")
     if writer:
         writer.close()
     return final
