@@ -383,7 +383,7 @@ class SoloWork:
         except Exception:  # noqa: BLE001 - a peer gone: never in place of this rank's own error
             if self.error is None:
                 raise
-            log.debug("telling the other ranks that rank %d failed failed", self.rank, exc_info=True)
+            log.debug("telling the other ranks that rank %d failed: they are gone", self.rank, exc_info=True)
         if self.error is not None:
             error, self.error = self.error, None
             raise error
