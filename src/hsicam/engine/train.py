@@ -47,7 +47,7 @@ def train(cfg: Config, run_dir: str | Path, resume: bool = False, progress: bool
     task = SystemTask(cfg, CameraSystem.from_config(cfg))
     opts = FitOptions(cfg.train, cfg.data.num_workers, progress=progress, stop_after_steps=stop_after_steps)
     # the run's weights are checked in the loop's end-of-training work (rank 0's, which a DDP group's other ranks
-    # wait for and learn the outcome of: fit); checked after fit returned, rank 0 failed while the others exited 0
+    # wait for and learn the outcome of: fit); a check after fit returned would fail rank 0 alone, the others exit 0
     return fit(task, opts, run_dir, resume, then=lambda summary: _refresh(run_dir, cfg, summary))
 
 
