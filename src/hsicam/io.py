@@ -1114,46 +1114,75 @@ def json_default(obj: Any) -> Any:
     raise TypeError(f"not JSON serializable: {type(obj).__name__}")
 
 
-def json_ready(obj: Any) -> Any:
+def json_ready(obj: Any, keys: frozenset[str] | None = None) -> Any:
     """``obj`` as strict JSON (RFC 8259) can hold it: a non-finite float (NaN, ±inf, numpy's too) becomes None
     (null), numpy scalars and arrays Python numbers and lists, tuples lists; other values as they are (a path is
-    left to :func:`json_default`). Python's ``json`` writes ``NaN``/``Infinity``, which strict parsers refuse."""
+    left to :func:`json_default`). Python's ``json`` writes ``NaN``/``Infinity``, which strict parsers refuse.
+    A score (a value under one of ``keys``, default :data:`SCORE_KEYS`) that is ±inf becomes the string
+    ``"inf"``/``"-inf"`` instead (:data:`INF_TEXT`): a score of ±inf is the best or the worst, not undefined
+    (null, NaN), and :func:`nan_for_null` reads it back as ±inf."""
+    keys = SCORE_KEYS if keys is None else keys
     if isinstance(obj, dict):
-        return {k: json_ready(v) for k, v in obj.items()}
+        return {k: _score_ready(v, keys) if k in keys else json_ready(v, keys) for k, v in obj.items()}
     if isinstance(obj, (list, tuple)):
-        return [json_ready(v) for v in obj]
+        return [json_ready(v, keys) for v in obj]
     if isinstance(obj, (np.generic, np.ndarray)):
         obj = obj.tolist()
         if isinstance(obj, list):
-            return json_ready(obj)
+            return json_ready(obj, keys)
     if isinstance(obj, float) and not math.isfinite(obj):
         return None
     return obj
 
 
+def _score_ready(value: Any, keys: frozenset[str]) -> Any:
+    """A score for strict JSON: ±inf as ``"inf"``/``"-inf"``, NaN as null, anything else as :func:`json_ready`."""
+    if isinstance(value, (float, np.floating)) and math.isinf(value):
+        return INF_TEXT[1 if value > 0 else -1]
+    return json_ready(value, keys)
+
+
 def json_text(obj: Any, **kwargs: Any) -> str:
-    """``obj`` as strict JSON text: non-finite floats written as null (:func:`json_ready`), and ``allow_nan=False``
-    the guard that nothing else slips through as ``NaN``/``Infinity``. A reader of a score takes null back as
-    NaN (:func:`nan_for_null`). ``kwargs``: ``json.dumps``'s (indent, separators …)."""
+    """``obj`` as strict JSON text: non-finite floats written as null, an infinite score as ``"inf"``/``"-inf"``
+    (:func:`json_ready`), and ``allow_nan=False`` the guard that nothing else slips through as ``NaN``/``Infinity``.
+    A reader of a score takes null back as NaN and ``"inf"``/``"-inf"`` as ±inf (:func:`nan_for_null`).
+    ``kwargs``: ``json.dumps``'s (indent, separators …)."""
     return json.dumps(json_ready(obj), allow_nan=False, default=json_default, **kwargs)
 
 
 #: The scores of hsicam's JSON files (results.json, experiment.json, card.json, metrics.jsonl: ``psnr``,
-#: ``val_psnr`` …): a float each, written as null when it is not finite (NaN: e.g. the SAM of a scene whose
-#: truth is zero at every scored pixel), which :func:`nan_for_null` reads back as NaN.
+#: ``val_psnr`` …): a float each. Strict JSON has no NaN nor infinity: a NaN score (undefined, e.g. the SAM of a
+#: scene whose truth is zero at every scored pixel) is written as null, a score of ±inf (the best or the worst:
+#: :func:`hsicam.metrics.all_metrics` scores a broken estimate -inf dB, +inf for an error) as the string ``"inf"``
+#: or ``"-inf"``; :func:`nan_for_null` reads them back as NaN and ±inf.
 SCORE_KEYS = frozenset(p + k for k in ("psnr", "ssim", "sam", "ergas", "psnr_cube", "psnr_mst", "rmse",
                                        "psnr_worst", "ssim_worst") for p in ("", "val_"))
 
+#: How an infinite score is written in hsicam's JSON files (:func:`json_ready`), by its sign.
+INF_TEXT = {1: "inf", -1: "-inf"}
+_INF_OF_TEXT = {text: math.inf * sign for sign, text in INF_TEXT.items()}
+
 
 def nan_for_null(obj: Any, keys: frozenset[str] = SCORE_KEYS) -> Any:
-    """``obj`` as read from JSON with a null under any of ``keys`` (at any depth) read as NaN: the non-finite
-    score :func:`json_text` wrote as null. A file of an older hsicam (``NaN`` literals, which Python's json
-    reads as floats) reads the same."""
+    """``obj`` as read from JSON with a null under any of ``keys`` (at any depth) read as NaN and ``"inf"`` /
+    ``"-inf"`` as ±inf: the non-finite scores :func:`json_text` wrote so. A file of an older hsicam (``NaN`` or
+    ``Infinity`` literals, which Python's json reads as floats) reads the same; an older hsicam wrote an infinite
+    score as null too, which reads as NaN."""
     if isinstance(obj, dict):
-        return {k: math.nan if v is None and k in keys else nan_for_null(v, keys) for k, v in obj.items()}
+        return {k: _score_of_json(v, keys) if k in keys else nan_for_null(v, keys) for k, v in obj.items()}
     if isinstance(obj, list):
         return [nan_for_null(v, keys) for v in obj]
     return obj
+
+
+def _score_of_json(value: Any, keys: frozenset[str]) -> Any:
+    """A score as read from JSON: null → NaN, ``"inf"``/``"-inf"`` → ±inf, anything else as
+    :func:`nan_for_null`."""
+    if value is None:
+        return math.nan
+    if isinstance(value, str) and value in _INF_OF_TEXT:
+        return _INF_OF_TEXT[value]
+    return nan_for_null(value, keys)
 
 
 def json_number(value: Any, finite: bool = True) -> bool:

@@ -1,5 +1,6 @@
 """hsicam's JSON files are strict JSON (RFC 8259, what JavaScript's ``JSON.parse`` takes): a score that is not a
-finite number (the NaN SAM of a scene whose truth is zero at every scored pixel) is written as null, not as the
+finite number (the NaN SAM of a scene whose truth is zero at every scored pixel) is written as null (a score of
+±inf as "inf"/"-inf": a value, the worst, not undefined), not as the
 ``NaN`` / ``Infinity`` that Python's json writes and strict parsers refuse; hsicam's readers take that null as NaN
 again, so the report, ``pretrained pack``, cards and resumes say what they said before, and files of older
 versions (``NaN`` literals) still read."""
@@ -160,3 +161,51 @@ def test_write_json_writes_every_non_finite_number_as_null(tmp_path):
     write_json(tmp_path / "x.json", obj)
     assert strict((tmp_path / "x.json").read_text(encoding="utf-8")) == {
         "a": None, "b": [None, 1.5, None], "c": [[0.25, None]], "d": [3, True, None, "NaN"], "e": {"f": 0.1}}
+
+
+def test_an_infinite_score_round_trips_as_inf_not_as_an_undefined_nan(tmp_path):
+    """A score of ±inf (all_metrics' worst: -inf dB, +inf SAM/ERGAS/RMSE for a broken estimate with a NaN pixel) is a
+    value, not undefined: results.json holds "-inf"/"inf" (strict JSON has no Infinity; it was null, read back as NaN
+    and shown "n/a" as an undefined SAM is), hsicam's readers take ±inf again, the mean over scenes with an infinite
+    score is that infinity (NaN, undefined, scenes are left out of a mean; ±inf are not), and results.csv, results.md
+    and the report say -inf / inf, while the dark scene's undefined SAM stays null / nan / "n/a"."""
+    scenes = _dark_and_lit()
+    est, truth = scenes["lit"]
+    broken = est.copy()
+    broken[1, 3, 4] = np.nan
+    scenes["broken"] = (broken, truth)
+    out = tmp_path / "ev"
+    out.mkdir()
+    write_results(out, _results(scenes))
+    mark_complete(out, {"command": "evaluate"})
+    data = strict((out / "results.json").read_text(encoding="utf-8"))
+    rows = {r["name"]: r for r in data["scenes"]}
+    assert {k: rows["broken"][k] for k in ("psnr", "ssim", "sam", "ergas", "rmse")} == {
+        "psnr": "-inf", "ssim": "-inf", "sam": "inf", "ergas": "inf", "rmse": "inf"}
+    assert rows["dark"]["sam"] is None and data["sam_undefined"] == ["dark"]  # NaN stays null, apart from inf
+    assert data["mean"]["psnr"] == "-inf" and data["mean"]["sam"] == "inf"  # over lit and broken (dark: undefined)
+    with pytest.raises(InputError, match=r"has a mean PSNR/SSIM/SAM that is not a finite number \(psnr: -inf, "
+                                         r"ssim: -inf, sam: inf\)"):
+        results_metrics(out / "results.json")
+    csv_rows = {line.split(",")[0]: line.split(",") for line in (out / "results.csv").read_text().splitlines()}
+    assert csv_rows["broken"][2:5] == ["-inf", "-inf", "inf"] and csv_rows["mean"][2] == "-inf"  # psnr, ssim, sam
+    assert csv_rows["dark"][4] == "nan"
+    md = (out / "results.md").read_text(encoding="utf-8")
+    assert "| broken | -inf | -inf | inf | inf |" in md and "| **mean** | -inf | -inf | inf |" in md
+    cells = PageParts(build_report(out).read_text(encoding="utf-8")).cells
+    table = {r[0]: r for r in (cells[i : i + 7] for i in range(0, len(cells), 7))}  # scene, PSNR, SSIM, SAM, ERGAS ...
+    assert table["broken"][1:5] == ["-inf", "-inf", "inf", "inf"] and table["mean"][1] == "-inf"
+    assert table["dark"][3] == "n/a" and table["mean"][3] == "inf"
+
+
+def test_metrics_jsonl_keeps_an_infinite_score_apart_from_nan(tmp_path):
+    """metrics.jsonl (MetricsLog): a val_psnr of +inf is written "inf" (strict JSON) and read back +inf, a NaN SAM
+    null and read back NaN; a line an older hsicam wrote with Infinity reads as +inf too."""
+    log = MetricsLog(tmp_path / "metrics.jsonl")
+    log.write({"step": 1, "epoch": 0, "val_psnr": math.inf, "val_ssim": 1.0, "val_sam": math.nan})
+    line = strict(log.path.read_text(encoding="utf-8").splitlines()[0])
+    assert line["val_psnr"] == "inf" and line["val_sam"] is None
+    with log.path.open("a", encoding="utf-8") as fh:
+        fh.write('{"step": 2, "epoch": 0, "val_psnr": Infinity, "val_ssim": 1.0, "val_sam": NaN}\n')
+    for rec in log.read():
+        assert rec["val_psnr"] == math.inf and math.isnan(rec["val_sam"])

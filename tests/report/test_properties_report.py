@@ -109,11 +109,11 @@ def _folder(tmp_path_factory, names, scores, method="doe-learned") -> tuple[Path
 def test_results_files_and_report_read_back_any_name_and_score(tmp_path_factory, rows, method):
     names, scores = [n for n, _ in rows], [v for _, v in rows]
     d, summary = _folder(tmp_path_factory, names, scores, method)
-    # results.json: strict JSON (a score that is not finite is null, as the docs say), which hsicam's readers take
-    # as NaN again (nan_for_null)
+    # results.json: strict JSON (a NaN score is null, ±inf "inf"/"-inf", as the docs say), which hsicam's readers
+    # take as NaN and ±inf again (nan_for_null)
     data = nan_for_null(json.loads((d / "results.json").read_text(encoding="utf-8"), parse_constant=_refuse))
     assert [r["name"] for r in data["scenes"]] == names and data["method"] == method
-    assert all(_same(r[k], v if math.isfinite(v) else math.nan) for r, v in zip(data["scenes"], scores) for k in METRICS)
+    assert all(_same(r[k], v) for r, v in zip(data["scenes"], scores) for k in METRICS)
     # results.csv: the csv module reads the names back, and every score equals the one scored to %.6g
     with open(d / "results.csv", newline="", encoding="utf-8") as fh:
         table = list(csv.DictReader(fh))
@@ -129,13 +129,13 @@ def test_results_files_and_report_read_back_any_name_and_score(tmp_path_factory,
     assert [_md_unescape(_gfm_cells(line)[0]) for line in rows_md[2:-1]] == [re.sub(r"\r\n?|\n", " ", n).strip()
                                                                            for n in names]
     # the report: names escaped (the parser's text equals each name; the page's one script is its own),
-    # a score shown in the table's format, "n/a" when it has no finite value
+    # a score shown in the table's format (±inf as inf / -inf), "n/a" when it has no value (NaN)
     page = _Tables()
     page.feed(build_report(d).read_text(encoding="utf-8"))
     assert page.scripts == 1
     body = page.tables[0][1:-1]
     assert [r[0] for r in body] == [re.sub(r"\r\n?", "\n", n) for n in names]  # HTML reads CR LF and CR as LF
-    assert [r[1] for r in body] == [format(v, ".2f") if math.isfinite(v) else "n/a" for v in scores]
+    assert [r[1] for r in body] == [format(v, ".2f") if not math.isnan(v) else "n/a" for v in scores]
 
 
 def test_a_pipe_or_line_break_in_a_scene_name_keeps_the_markdown_table_whole(tmp_path_factory):

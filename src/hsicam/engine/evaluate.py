@@ -360,7 +360,8 @@ def summarize(results: list[SceneResult], **facts) -> dict:
 
 
 def _mean(values: list[float]) -> float:
-    """Mean over the values that are not NaN (an undefined SAM or ERGAS), NaN when none is."""
+    """Mean over the values that are not NaN (an undefined SAM or ERGAS), NaN when none is; an infinite value (the
+    worst score of a broken estimate) is kept: the mean is that infinity."""
     kept = [v for v in values if not np.isnan(v)]
     return float(np.mean(kept)) if kept else float("nan")
 

@@ -156,9 +156,12 @@ def _img(name: str, caption: str) -> str:
 
 def _cell(v, fmt: str) -> str:
     """A table cell's text: a number in ``fmt``; "n/a" for a score that has no value (null, NaN: e.g. the SAM of
-    a scene whose truth is zero at every scored pixel, or ±Infinity)."""
-    if v is None or (isinstance(v, float) and not math.isfinite(v)):
+    a scene whose truth is zero at every scored pixel); "inf" / "-inf" for an infinite one (the best or the worst
+    score, e.g. the -inf dB of a broken estimate: it has a value, and a mean over it is that infinity)."""
+    if v is None or (isinstance(v, float) and math.isnan(v)):
         return "n/a"
+    if isinstance(v, float) and math.isinf(v):
+        return "inf" if v > 0 else "-inf"
     return format(v, fmt) if isinstance(v, (int, float)) and fmt else str(v)
 
 
