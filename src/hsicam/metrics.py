@@ -39,8 +39,9 @@ CONVENTIONS = {
             "not counts as 90 degrees; undefined when the truth is zero at every pixel: NaN (null in the JSON "
             "files, nan in results.csv and results.md; results.json lists such scenes in sam_undefined, and a mean "
             "is over the other scenes)"),
-    "ergas": ("100 * sqrt(mean_b (RMSE_b / mean_b)^2), resolution ratio 1, mean_b the truth's mean of band b; "
-              "undefined when a band's mean_b is 0 (a band zero at every pixel of the truth): NaN (null in the JSON "
+    "ergas": ("100 * sqrt(mean_b (RMSE_b / mean_b)^2), resolution ratio 1, mean_b the truth's mean of band b "
+              "(in float64, however small: no floor); undefined when a band's mean_b is 0 (a band zero at every "
+              "pixel of the truth): NaN (null in the JSON "
               "files, nan in results.csv and results.md; results.json lists such scenes in ergas_undefined, and a "
               "mean is over the other scenes)"),
     "rmse": "whole cube",
@@ -260,16 +261,19 @@ def _quantile(t: torch.Tensor, q: float) -> torch.Tensor:
     return values
 
 
-def ergas(x: torch.Tensor, y: torch.Tensor, eps: float = 1e-12) -> torch.Tensor:
+def ergas(x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
     """ERGAS (resolution ratio 1): 100·sqrt(mean over bands of (RMSE_b / mean_b(y))²), (B,); NaN for a cube
     in which a band's truth mean is 0 (:func:`ergas_undefined`: the ratio is undefined there, as SAM is for a
-    truth zero at every pixel; the floor ``eps`` of |mean_b| alone made it RMSE_b·10¹²: 5·10¹¹ for an error of
-    0.01 in one band of four). A mean_b in (0, ``eps``) is floored at ``eps``."""
+    truth zero at every pixel; a floor of 1e-12 on |mean_b| made it RMSE_b·10¹²: 5·10¹¹ for an error of 0.01 in
+    one band of four). Any other mean_b, however small, divides as it is, in float64 (a floor at 1e-12 made a
+    band of mean 5·10⁻¹⁴ count as one of 10⁻¹²: an ERGAS neither the formula's nor undefined); a ratio beyond
+    float64 is +inf."""
     x, y = _batched(x, y)
     rmse_b = (x - y).square().mean(dim=(-2, -1)).sqrt()
     mean_b = y.mean(dim=(-2, -1)).abs()
-    value = 100.0 * (rmse_b / mean_b.clamp_min(eps)).square().mean(dim=1).sqrt()
-    return torch.where((mean_b == 0).any(dim=1), torch.full_like(value, math.nan), value)
+    dark = (mean_b == 0).any(dim=1)
+    value = 100.0 * (rmse_b / torch.where(mean_b == 0, 1.0, mean_b)).square().mean(dim=1).sqrt()
+    return torch.where(dark, torch.full_like(value, math.nan), value)
 
 
 def ergas_undefined(y: torch.Tensor) -> torch.Tensor:

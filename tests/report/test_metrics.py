@@ -121,6 +121,32 @@ def test_ergas_closed_form():
     assert metrics.ergas(est, truth).item() == pytest.approx(10.0)
 
 
+def test_ergas_of_a_band_with_a_tiny_positive_mean_divides_by_that_mean():
+    """A band whose truth mean lies in (0, 1e-12) (dark but for one pixel of 1e-10, as a float32 cube normalised by
+    its maximum can hold) divides by its own mean, as the formula and a float64 numpy reference do: the floor at
+    1e-12 gave a finite ERGAS 2.56× too small here (divided by 1e-12 instead of 3.9e-13), neither the formula's
+    value nor undefined. all_metrics (evaluate's scores) gives the same; a mean so small that the squared ratio
+    exceeds float64 gives +inf, as numpy does."""
+    rng = np.random.default_rng(3)
+    truth = rng.uniform(0.2, 1.0, (4, 16, 16)).astype(np.float32)
+    truth[2] = 0.0
+    truth[2, 5, 7] = 1e-10  # mean 1e-10 / 256 = 3.9e-13
+    est = (0.9 * truth).astype(np.float32)
+    est[2] = 0.01
+    t64, e64 = truth.astype(np.float64), est.astype(np.float64)
+    mu = t64.mean(axis=(1, 2))
+    assert 0 < mu[2] < 1e-12
+    want = 100 * np.sqrt(np.mean((np.sqrt(((e64 - t64) ** 2).mean(axis=(1, 2))) / mu) ** 2))
+    assert metrics.ergas(torch.from_numpy(est), torch.from_numpy(truth)).item() == pytest.approx(want, rel=1e-12)
+    assert metrics.all_metrics(torch.from_numpy(est)[None], torch.from_numpy(truth)[None])["ergas"][0] == \
+        pytest.approx(want, rel=1e-12)
+    sub = t64.copy()
+    sub[2] = 1e-300  # mean_b 1e-300: (RMSE_b / mean_b)² overflows float64
+    with np.errstate(over="ignore"):
+        want_sub = 100 * np.sqrt(np.mean((np.sqrt(((e64 - sub) ** 2).mean(axis=(1, 2))) / sub.mean(axis=(1, 2))) ** 2))
+    assert want_sub == math.inf and metrics.ergas(torch.from_numpy(e64), torch.from_numpy(sub)).item() == math.inf
+
+
 def test_rmse_matches_skimage_per_cube_and_closed_form():
     """RMSE of each cube of a batch is √(scikit-image's mean squared error over the whole cube);
     a constant offset of 0.05 gives 0.05 (3-D input is one cube)."""
