@@ -96,3 +96,19 @@ def test_a_packed_card_names_the_generator_version_the_run_trained_on(demo, tmp_
     assert [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING] == [
         f"{run} does not record the synthetic-data generator version it trained on (a run of an hsicam before "
         f"session 60): the card names this hsicam's, version {GENERATOR_VERSION}"]
+
+
+def test_a_run_of_an_hsicam_before_session_records_resumed_today_records_no_version(tmp_path):
+    """The generator version is that of the run's starting session record, the first record of metrics.jsonl: a run
+    of an hsicam before session records (generator 2) resumed today begins with its training records, and the
+    resume's record (this version) was taken for its start, so evaluate --run said nothing and a packed card named
+    version 3 without its warning."""
+    run = tmp_path / "run"
+    run.mkdir()
+    session = lambda v: {"step": 3, "epoch": 0, "session": {"hsicam": "0.1.0", "synthetic_generator": v}}  # noqa: E731
+    lines = [{"step": 1, "epoch": 0, "train_loss": 0.1, "lr": 0.001}, session(GENERATOR_VERSION)]
+    (run / "metrics.jsonl").write_text("".join(json.dumps(r) + "\n" for r in lines), encoding="utf-8")
+    assert trained_generator_version(run) is None
+    lines = [{**session(OLDER), "step": 0}, lines[0], session(GENERATOR_VERSION)]
+    (run / "metrics.jsonl").write_text("".join(json.dumps(r) + "\n" for r in lines), encoding="utf-8")
+    assert trained_generator_version(run) == OLDER

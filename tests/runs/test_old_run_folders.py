@@ -9,6 +9,7 @@ The layouts (see `git log -- src/hsicam/runs/ src/hsicam/engine/loop.py`):
   ``steps_per_epoch`` or ``batch_size``;
 - before db9c133: metrics.jsonl had no "session" records;
 - before 0e7b4fa: checkpoints.json's entries had no ``optimizer_sha256``.
+- before c1ab911 (session 60): the session records had no ``synthetic_generator``.
 """
 
 from __future__ import annotations
@@ -123,3 +124,56 @@ def test_the_report_of_an_older_demo_folder_leaves_out_the_facts_it_does_not_rec
     assert "<h2>Results: doe-learned</h2>" in new
     assert ("<p class='note'>data: synthetic validation split; noise: "
             + html_lib.escape(json.dumps({"sensor_sigma": None})) + "; config abc123; scored area: valid area</p>") in new
+
+
+def _as_before_session_60(run: Path) -> None:
+    """The session records an hsicam of session 59 wrote (db9c133 … c1ab911): no ``synthetic_generator``."""
+    path = run / "metrics.jsonl"
+    records = [json.loads(line) for line in path.read_text(encoding="utf-8").splitlines()]
+    for r in records:
+        if "session" in r:
+            r["session"].pop("synthetic_generator")
+    path.write_text("".join(json.dumps(r) + "\n" for r in records), encoding="utf-8")
+
+
+def test_a_run_started_before_session_60_resumed_today_says_what_changes(cache_env, tmp_path, caplog):
+    """Session 60 changed the cosine after a warm-up (c5559eb) and the patch stream of a seed other than 0: a run
+    an older hsicam started (tiny, warm-up 2 of 8 steps, seed 3, stopped at step 3) resumed today went on at
+    0.933 x the rate where its own schedule gives 0.6913, on another patch stream, without a word. The resume
+    now says so in one warning, naming both (again at a later resume: the run's start decides); a run of today,
+    and an older one that none of the changes touch (no warm-up, seed 0), resume without it."""
+    import logging
+    import math
+    import shutil
+
+    from hsicam.engine.train import train
+
+    keys = ["train.lr_schedule=cosine", "train.warmup_steps=2", "train.seed=3", "train.epochs=2"]
+    cfg = load_config("tiny", keys)
+    today = tmp_path / "today"
+    assert train(cfg, today, progress=False, stop_after_steps=3) == {"stopped_at_step": 3}
+    total = 2 * cfg.data.patches_per_epoch // cfg.train.batch_size
+    older = 0.5 * (1 + math.cos(math.pi * 3 / total))  # the schedule before c5559eb, at step 3
+    now = 0.5 * (1 + math.cos(math.pi * (3 - 2) / (total - 2)))
+    assert (total, round(older, 4), round(now, 4)) == (8, 0.6913, 0.933)
+
+    def warnings(run, keys_now=keys):
+        caplog.clear()
+        with caplog.at_level(logging.WARNING):
+            train(load_config("tiny", keys_now), run, resume=True, progress=False)
+        return [r.getMessage() for r in caplog.records if "session 60" in r.getMessage()]
+
+    for fabricate in (_as_before_sessions_and_optimizer_hashes, _as_before_session_60):
+        run = shutil.copytree(today, tmp_path / fabricate.__name__)
+        fabricate(run)
+        assert warnings(run) == [
+            f"{run}: started by an hsicam before session 60, whose training this one changed; it goes on with this "
+            f"one's: the cosine after the 2-step warm-up runs over the remaining {total - 2} steps (step 3: {now:.4g} x "
+            f"the base rate, where that hsicam gives {older:.4g}); the training patches come from train.seed=3's own "
+            "stream (that hsicam drew seed 0's) (docs/training.md): not the run that hsicam would have finished; to "
+            "finish it as it began, resume it with that hsicam, or train a new run with another --out"], fabricate
+    assert len(warnings(run, [*keys, "train.epochs=3"])) == 1  # its own session records since: still its start
+    assert warnings(today) == []
+    plain = shutil.copytree(today, tmp_path / "plain")  # the same run resumed without a warm-up, at seed 0
+    _as_before_sessions_and_optimizer_hashes(plain)
+    assert warnings(plain, ["train.lr_schedule=cosine", "train.warmup_steps=0", "train.seed=0", "train.epochs=2"]) == []

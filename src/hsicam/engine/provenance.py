@@ -255,19 +255,38 @@ def software_record(device: str, world_size: int = 1) -> dict[str, Any]:
             "synthetic_generator": GENERATOR_VERSION}
 
 
+def _records(run_dir: str | Path) -> list[dict[str, Any]]:
+    """The run's metrics.jsonl records; [] when it has none or they cannot be read."""
+    try:
+        return MetricsLog(Path(run_dir) / "metrics.jsonl", enabled=False).read()
+    except (InputError, OSError):
+        return []
+
+
+def starting_session(records: list[dict[str, Any]]) -> dict[str, Any] | None:
+    """The session record a run began with: the first of its metrics.jsonl ``records`` (:func:`software_record`,
+    written before any other since db9c133); None for a run of an hsicam before session records, whose first record
+    is another (the session records of the resumes that came later are not its start), or no record."""
+    first = records[0].get("session") if records else None
+    return first if isinstance(first, dict) else None
+
+
 def trained_generator_version(run_dir: str | Path) -> int | None:
     """The synthetic-data generator version (:data:`hsicam.data.synthetic.GENERATOR_VERSION`) of the software that
-    started the run ``run_dir``: its first session record's; None when not recorded (a run of an hsicam before
-    session 60, a folder without metrics.jsonl such as a shipped camera's) or unreadable."""
-    try:
-        records = MetricsLog(Path(run_dir) / "metrics.jsonl", enabled=False).read()
-    except (InputError, OSError):
-        return None
-    for r in records:
-        if isinstance(r.get("session"), dict):
-            v = r["session"].get("synthetic_generator")
-            return v if isinstance(v, int) and not isinstance(v, bool) else None
-    return None
+    started the run ``run_dir``: its starting session record's; None when not recorded (a run of an hsicam before
+    session 60, also when a later hsicam resumed it; a folder without metrics.jsonl such as a shipped camera's) or
+    unreadable."""
+    v = (starting_session(_records(run_dir)) or {}).get("synthetic_generator")
+    return v if isinstance(v, int) and not isinstance(v, bool) else None
+
+
+def started_before_session_60(run_dir: str | Path) -> bool:
+    """Whether an hsicam before session 60 started the run at ``run_dir``: its metrics.jsonl holds records, but its
+    starting session record (:func:`starting_session`) is missing (before db9c133) or lacks ``synthetic_generator``
+    (recorded since session 60, after that session changed the training: :func:`hsicam.engine.loop.older_run_changes`).
+    False when nothing is recorded (no metrics.jsonl, or no record in it) or it cannot be read."""
+    records = _records(run_dir)
+    return bool(records) and "synthetic_generator" not in (starting_session(records) or {})
 
 
 def generator_change_warning(run_dir: str | Path, data: DataConfig, doing: str) -> str | None:
@@ -285,5 +304,6 @@ def generator_change_warning(run_dir: str | Path, data: DataConfig, doing: str) 
 
 
 __all__ = ["check_same_data", "data_changes", "data_record", "generator_change_warning", "installed_version",
-           "read_data_record", "scene_roles", "heldout_sources_problem", "software_record", "synthetic_scene_roles",
-           "trained_generator_version", "training_scenes_warning", "write_data_record"]
+           "read_data_record", "scene_roles", "heldout_sources_problem", "software_record", "started_before_session_60",
+           "starting_session", "synthetic_scene_roles", "trained_generator_version", "training_scenes_warning",
+           "write_data_record"]

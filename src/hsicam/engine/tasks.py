@@ -284,6 +284,9 @@ class SystemTask(Task):
         return system_loss(recon.float(), self.model.target(scene), self.cfg.train,
                            getattr(self.model.camera, "code_period", 1))
 
+    def noisy_validation(self) -> bool:
+        return any(v > 0 for v in self.eval_noise.values())
+
     def validate(self, loader, device: torch.device) -> dict[str, float]:
         self.model.camera.set_noise(**self.eval_noise)
         return validate_system(self.model, loader, device, VALIDATION_NOISE_SEED)
@@ -302,6 +305,7 @@ class PriorTask(Task):
     weights_file = "prior.safetensors"
     what = "prior training"
     batch_size_key = "baselines.choi.batch_size"
+    seed_key = "baselines.choi.seed"
 
     def __init__(self, cfg: Config, settings: ChoiConfig) -> None:
         self.cfg, self.settings = absolute_data_paths(cfg), settings  # config.yaml names the data from anywhere
