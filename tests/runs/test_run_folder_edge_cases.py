@@ -385,3 +385,18 @@ def test_a_checkpoint_removes_hidden_temporaries_of_killed_writes_and_refuses_da
         CheckpointManager(tmp_path).load("last", model, opt, bands)
     assert str(exc.value).startswith(f"{d / 'model.safetensors'} differs from the weights {tmp_path / 'checkpoints.json'} "
                                      "records (sha256 ")
+
+
+def test_a_metrics_log_saved_on_windows_reads_the_same(tmp_path):
+    """metrics.jsonl as a Windows editor saves it: CRLF line ends and Notepad's UTF-8 byte-order mark. The mark made
+    the first record unreadable, and it was skipped as torn: the run's starting session record, so the run's generator
+    version read as unrecorded (and a resume took the run for one an hsicam before session 60 started)."""
+    from hsicam.engine.provenance import trained_generator_version
+    from hsicam.runs.folder import MetricsLog
+
+    records = [{"step": 0, "epoch": 0, "session": {"hsicam": None, "synthetic_generator": 3}},
+               {"step": 4, "epoch": 1, "train_loss": 0.25, "lr": 0.001}, {"step": 4, "epoch": 1, "final": True}]
+    path = tmp_path / "metrics.jsonl"
+    path.write_bytes(b"\xef\xbb\xbf" + "".join(json.dumps(r) + "\r\n" for r in records).encode("utf-8"))
+    assert MetricsLog(path, enabled=False).read() == records
+    assert trained_generator_version(tmp_path) == 3

@@ -564,11 +564,13 @@ class MetricsLog:
 
     def read(self) -> list[dict[str, Any]]:
         """The complete records, in order (a line torn by a kill, or not an object, is skipped);
-        [] when the file does not exist. A score written as null (not finite) reads as NaN again."""
+        [] when the file does not exist. A score written as null (not finite) reads as NaN again. A file saved
+        on Windows reads the same: CRLF line ends, and the UTF-8 byte-order mark Notepad may put first (which made
+        the first record, the run's starting session, unreadable)."""
         if not self.path.exists():
             return []
         records = []
-        for line in self.path.read_text(encoding="utf-8", errors="replace").splitlines():
+        for line in self.path.read_text(encoding="utf-8-sig", errors="replace").splitlines():
             try:
                 rec = json.loads(line)
             except json.JSONDecodeError:
