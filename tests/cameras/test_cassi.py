@@ -10,6 +10,7 @@ import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from cassi_reference import cassi, loop_gram_diagonal
 from hsicam.cameras import CodedAperture, DDCASSICamera, SDCASSICamera, build_camera
 from hsicam.cameras.cassi import hashed_uniform, linear_dispersion, prism_dispersion, random_aperture
 from hsicam.config import load_config
@@ -477,3 +478,66 @@ def test_an_rdn_reading_the_wider_sd_cassi_sensor_is_refused_and_its_back_projec
     assert sensor.shape[-1] > scene.shape[-1] and cube.shape == scene.shape
     # the DD-CASSI camera (sensor on the scene's grid) still takes the RDN reading g
     CameraSystem.from_config(load_config("tiny", ["camera.kind=dd_cassi"]))
+
+
+# --------------------------------------------------------------------------------------------
+# Guards found by mutation testing: ‖A‖² of an open aperture (power iteration), the tiling reach, and
+# diag(ΦΦᵀ) of a window (loop sums over the aperture, tests/cassi_reference.py)
+# --------------------------------------------------------------------------------------------
+def power_iteration(op, shape, iterations: int = 200) -> float:
+    """‖A‖² = the largest eigenvalue of AᵀA, by power iteration from a fixed random start (float64)."""
+    g = torch.Generator().manual_seed(0)
+    x = torch.rand(shape, generator=g, dtype=torch.float64)
+    lam = 0.0
+    for _ in range(iterations):
+        x = op.A_adjoint(op.A(x))
+        lam = float(x.norm())
+        x = x / lam
+    return lam
+
+
+@pytest.mark.parametrize("kind", ("dd_cassi", "sd_cassi"))
+@pytest.mark.parametrize("convention", ("sum", "mean"))
+def test_cassi_lipschitz_is_the_operator_norm_squared_of_an_open_aperture(kind, convention):
+    """With every aperture pixel open, ΦΦᵀ = s²·C·I, so ‖A‖² = s²·C exactly (power iteration on AᵀA): the
+    snapshot's ``lipschitz`` is a bound of ‖A‖² that the unrolled network divides its steps by, and s·C (a
+    dropped square) made the 'mean' convention's steps C = 5 times too small. (SD-CASSI: a scene at least as wide as
+    the span D = 8 px, so that some sensor column sees every band.)"""
+    cam = cassi(kind, "camera.cassi.mask_density=1", f"camera.cassi.convention={convention}")
+    snap = cam.snapshot(nominal=True)
+    ref = power_iteration(snap, (1, 5, 4, 12))
+    assert snap.lipschitz == pytest.approx(ref, rel=1e-6)
+
+
+def test_sd_cassi_reach_is_the_support_of_a_gradient_steps_impulse_response():
+    """One gradient step x − αAᵀ(Ax − y) spreads a voxel over the support of AᵀA δ: for SD-CASSI, the voxel of
+    band c at column j reaches sensor column j + d_c, which every band c′ reads back from its column j + d_c − d_c′,
+    so the reach is the dispersion span D along the columns and 0 along the rows (the tiling halo, ``reach_px``)."""
+    cam = cassi("sd_cassi", "camera.cassi.mask_density=1")
+    snap = cam.snapshot(nominal=True)
+    h, w = 5, 21
+    rows, cols = 0, 0
+    for c in range(5):
+        x = torch.zeros(1, 5, h, w, dtype=torch.float64)
+        x[0, c, h // 2, w // 2] = 1.0
+        nz = torch.nonzero(snap.A_adjoint(snap.A(x))[0].abs().sum(0) > 0)
+        rows = max(rows, int((nz[:, 0] - h // 2).abs().max()))
+        cols = max(cols, int((nz[:, 1] - w // 2).abs().max()))
+    assert cam.span == 8
+    assert tuple(snap.reach_px) == (rows, cols) == (0, 8)
+
+
+@pytest.mark.parametrize("kind", ("dd_cassi", "sd_cassi"))
+@pytest.mark.parametrize("origin", ((0, 0), (3, 5)))
+def test_cassi_gram_diagonal_of_a_window_is_the_loop_sum_over_its_aperture(kind, origin):
+    """diag(ΦΦᵀ) of the sensor window at ``origin``, from the aperture array by the definitions: DD-CASSI
+    s²·Σ_c P(r0 + i, c0 + j + d_c)², SD-CASSI s²·Σ_c P(r0 + i, c0 + j − d_c)² over the bands whose scene column
+    j − d_c lies in the window. A diagonal taken at (0, 0) for every window fed the GAP steps of tiles the
+    top-left code's normalisation."""
+    cam = cassi(kind, "camera.cassi.convention=sum")
+    snap = cam.snapshot(nominal=True)
+    h, w = 6, 9
+    ref = loop_gram_diagonal(cam, kind, h, w, origin)
+    y = torch.zeros(1, 1, h, w, dtype=torch.float64)
+    got = snap.gram_diagonal(y, origin)[0, 0].numpy()
+    np.testing.assert_allclose(got, ref, atol=1e-12)

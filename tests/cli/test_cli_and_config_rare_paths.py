@@ -12,7 +12,7 @@ import pytest
 import yaml
 
 from cli_helpers import assert_ok, error_line, run_cli_in_process
-from hsicam.config import ConfigError, load_config
+from hsicam.config import BandsConfig, ChoiConfig, ConfigError, TrainConfig, load_config
 from hsicam.data.measured_psf import import_psf_dir
 from hsicam.errors import InputError
 from hsicam.spectral import Bands
@@ -165,6 +165,49 @@ def test_config_refusals(override, text):
     with pytest.raises(ConfigError) as exc:
         load_config(None, [override])
     assert str(exc.value) == text
+
+
+def test_a_seed_set_in_python_that_is_no_integer_is_refused_with_its_key():
+    """The YAML path refuses it in _coerce; a section built in Python reaches seed_problem's type check."""
+    from hsicam.engine.tolerance import ToleranceSpec
+
+    with pytest.raises(ConfigError) as exc:
+        ChoiConfig(seed=1.5)
+    assert str(exc.value) == "baselines.choi.seed must be an integer, got 1.5"
+    with pytest.raises(ConfigError) as exc:
+        TrainConfig(seed=True)  # a bool is no seed although Python counts it as an int
+    assert str(exc.value) == "train.seed must be an integer, got True"
+    with pytest.raises(InputError) as exc:
+        ToleranceSpec(seed=2.0).check()
+    assert str(exc.value) == "ToleranceSpec.seed must be an integer, got 2.0"
+
+
+@pytest.mark.parametrize("overrides, text", [
+    (["baselines.desci.sigmas=[1, 2]", "baselines.desci.iterations=[3]"], "baselines.desci: 2 sigmas but 1 iteration counts"),
+    (["baselines.choi.train_noise=-1"], "baselines.choi.train_noise must be >= 0, got -1.0"),
+    (["baselines.choi.prior_weight=-0.5"], "baselines.choi.prior_weight must be >= 0, got -0.5"),
+    (["baselines.choi.tv_weight=-0.001"], "baselines.choi.tv_weight must be >= 0, got -0.001"),
+])
+def test_baseline_settings_refused_with_their_key(overrides, text):
+    with pytest.raises(ConfigError) as exc:
+        load_config(overrides=overrides)
+    assert str(exc.value) == text
+
+
+def test_a_config_file_with_a_control_character_is_one_line_naming_the_file(tmp_path):
+    """PyYAML's reader error has no problem mark (yaml_error_text's branch without line:column)."""
+    path = tmp_path / "bad.yaml"
+    path.write_bytes(b"train:\n  lr: 1\x07\n")
+    with pytest.raises(ConfigError) as exc:
+        load_config(path)
+    assert str(exc.value) == f"{path}: invalid YAML (unacceptable character #x0007: special characters are not allowed)"
+
+
+def test_a_section_left_empty_in_a_file_takes_its_defaults(tmp_path):
+    path = tmp_path / "c.yaml"
+    path.write_text("train:\nbands:\ndata: {synthetic_n: 7}\n", encoding="utf-8")
+    cfg = load_config(path)
+    assert cfg.train == TrainConfig() and cfg.bands == BandsConfig() and cfg.data.synthetic_n == 7
 
 
 # --- cli: the one line a user sees ---------------------------------------------------------------------------------

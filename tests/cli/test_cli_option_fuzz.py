@@ -1,9 +1,15 @@
-"""Hostile option values found by session 59's option-by-option fuzzing of the command line (fuzz10d).
+"""Hostile option values found by session 59's option-by-option fuzzing of the command line (fuzz10d, fuzz11a).
 
 A raw-capture gain or level far out of range was refused in one line that told the user to change an option
 they had not given: ``reconstruct --auto-level 1e308`` (a gain past float32) said "lower --scale", and
 ``--white-level 1e308`` (the image divided below float32's smallest numbers) said "the exposure × auto-level ×
---scale factor 1 … raise --scale". The line now names the option that did it."""
+--scale factor 1 … raise --scale". The line now names the option that did it.
+
+``reconstruct --full-well-e 1000 --read-noise-e 1e308`` (and ``--full-well-e 1e-300 --read-noise-e 2``) ended in an
+OverflowError traceback of the noise variance (r/E)², after the run was loaded and the network had run; ``--full-well-e
+1e-300`` alone reconstructed (exit 0) with an infinite noise variance. ``tolerance --shift-subsamples 1000000000000``
+(or 2**70) never came back: the FFT length of its pupil was searched by trying n, n + 1, … for a 7-smooth number,
+in the very check that refuses that pupil for its memory (the FFT length itself: tests/optics/test_optics_psf.py)."""
 
 from __future__ import annotations
 
@@ -13,6 +19,7 @@ import numpy as np
 import pytest
 
 from cli_helpers import error_line, run_cli_in_process, tree_snapshot
+from hang_guard import guarded
 
 
 @pytest.fixture
@@ -75,3 +82,58 @@ def test_pretrained_pack_refuses_an_empty_summary_or_preset(finished_run, tmp_pa
     res = run_cli_in_process("pretrained", "pack", str(finished_run), "--name", "mine", "--dest", str(dest), option, "")
     assert error_line(res) == f"hsicam: error: argument {option}: {EMPTY}"
     assert not dest.exists()
+
+
+@pytest.mark.parametrize("options, said", [
+    (("--full-well-e", "1000", "--read-noise-e", "1e308"),
+     "--read-noise-e must be at most --full-well-e (1000 e-: read noise above the full scale buries any signal, as "
+     "camera.sensor.read_noise_e), got 1e+308"),
+    (("--full-well-e", "1e-300", "--read-noise-e", "2"),
+     "--full-well-e must be a positive number of electrons in [1, 1e+12] (at the white level; sensors hold 10^3 to "
+     "10^6, as camera.sensor.full_well_e), got 1e-300"),
+    (("--full-well-e", "1e-300"),
+     "--full-well-e must be a positive number of electrons in [1, 1e+12] (at the white level; sensors hold 10^3 to "
+     "10^6, as camera.sensor.full_well_e), got 1e-300"),
+    (("--full-well-e", "1e308"),
+     "--full-well-e must be a positive number of electrons in [1, 1e+12] (at the white level; sensors hold 10^3 to "
+     "10^6, as camera.sensor.full_well_e), got 1e+308"),
+])
+def test_reconstruct_refuses_capture_noise_outside_the_configs_range(capture, tmp_path, options, said):
+    """The range camera.sensor takes (full well in [1, 1e12] e-, read noise at most the full well), in one line naming
+    the option, before any work and without writing anything."""
+    before = tree_snapshot(tmp_path)
+    res = run_cli_in_process("reconstruct", str(capture), "--run", "pretrained:standard", "--out",
+                             str(tmp_path / "est.h5"), *options)
+    assert error_line(res) == f"hsicam: error: {said}"
+    assert tree_snapshot(tmp_path) == before
+
+
+def test_reconstruct_still_takes_a_read_noise_equal_to_the_full_well(capture, tmp_path):
+    """The bound's edge (read noise = full well, as the config allows) reconstructs, the values in the cube's metadata."""
+    import json
+
+    import h5py
+
+    out = tmp_path / "est.h5"
+    res = run_cli_in_process("reconstruct", str(capture), "--run", "pretrained:standard", "--out", str(out),
+                             "--full-well-e", "50", "--read-noise-e", "50")
+    assert res.returncode == 0, res.stderr
+    with h5py.File(out, "r") as f:
+        meta = json.loads(f.attrs["metadata_json"])
+    assert meta["noise_full_well_e"] == 50.0 and meta["noise_read_noise_e"] == 50.0
+
+
+@pytest.mark.parametrize("q", [str(10**12), str(2**70)])
+def test_tolerance_refuses_a_huge_shift_subsampling_at_once(tmp_path, q):
+    """The memory check refuses such a pupil in one line naming the option; it used to search its FFT length for
+    hours first."""
+    data = tmp_path / "scene.npy"
+    np.save(data, np.random.default_rng(0).random((7, 32, 32)).astype(np.float32))
+    out = tmp_path / "tol"
+    res = guarded(run_cli_in_process, "tolerance", "--run", "pretrained:standard", "--out", str(out), "--data",
+                  str(data), "--shift-cells", "0.5", "--shift-subsamples", q, "--sigma-height-nm", "0", "--levels", "2",
+                  "--sensor-distance-um", "0")
+    line = error_line(res)
+    assert line.startswith(f"hsicam: error: --shift-subsamples {q}: the misalignment study's pupil of {q} samples per "
+                           "DOE cell cannot be simulated here (the PSF sampling plan needs at least "), line
+    assert not out.exists()

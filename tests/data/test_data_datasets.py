@@ -356,3 +356,65 @@ def test_a_worker_count_beyond_the_machine_is_capped_once_with_a_warning(monkeyp
     assert [loader.num_workers for loader in loaders] == [6, 6] and kept.num_workers == 6
     said = [r.getMessage() for r in caplog.records if "num_workers" in r.getMessage()]
     assert said == ["data.num_workers=1000000000 is more processes than this machine's CPUs can keep busy; using 6"]
+
+
+# --------------------------------------------------------------------------------------------
+# Guards found by mutation testing (data/datasets.py): brute force over scenes and positions
+# --------------------------------------------------------------------------------------------
+def _scene_files(tmp_path, sizes, seed=0):
+    from hsicam.data import write_cube_h5
+
+    bands = Bands.uniform(420, 720, 30)
+    rng = np.random.default_rng(seed)
+    paths, cubes = [], []
+    for i, (h, w) in enumerate(sizes):
+        cube = (rng.random((len(bands), h, w)) + 0.1).astype(np.float32)
+        write_cube_h5(tmp_path / f"s{i}.h5", cube, bands)
+        paths.append(tmp_path / f"s{i}.h5")
+        cubes.append(cube / cube.max())
+    return paths, cubes, bands
+
+
+@pytest.mark.parametrize("n, fraction", [(1, 0.9), (2, 0.9), (3, 0.95), (10, 0.99)])
+def test_a_split_always_keeps_a_training_scene(tmp_path, n, fraction):
+    """round(fraction · n) may be all n scenes (0.9 of 2 is 2): the split still leaves one to train on, and the two
+    sets are a partition of the scenes."""
+    from hsicam.data import split_scenes
+
+    scenes = [tmp_path / f"s{i}.h5" for i in range(n)]
+    train, val = split_scenes(scenes, fraction, seed=3)
+    assert len(train) >= 1 and sorted(train + val) == sorted(scenes) and not set(train) & set(val)
+    assert len(val) >= (1 if n >= 2 else 0)
+
+
+def test_patches_reach_every_position_and_every_scene(tmp_path):
+    """Patch positions are uniform over all placements, the last row and column included, and scenes uniform over
+    all scenes: with scenes one pixel larger than a patch each patch is found by brute force in its scene, and all
+    (scene, y, x) of the 3 × 2 × 2 come up among 96 patches."""
+    from hsicam.data import PatchDataset, SceneDataset
+
+    paths, cubes, bands = _scene_files(tmp_path, [(9, 9)] * 3)
+    ds = PatchDataset(SceneDataset(paths, bands), 8, 0, patches_per_epoch=96, flips=False, rot90=False, seed=5)
+    seen = set()
+    for k in range(len(ds)):
+        p = ds[k].numpy()
+        hits = [(i, y, x) for i, c in enumerate(cubes) for y in range(2) for x in range(2)
+                if np.allclose(c[:, y:y + 8, x:x + 8], p, rtol=0, atol=1e-6)]
+        assert len(hits) == 1
+        assert ds.scene_of(k) == paths[hits[0][0]]
+        seen.add(hits[0])
+    assert seen == {(i, y, x) for i in range(3) for y in range(2) for x in range(2)}
+
+
+def test_a_window_one_pixel_past_the_edge_of_a_windowed_scene_is_refused(tmp_path):
+    """A window read straight from an hsicam HDF5 file (no full load) that reaches one pixel past the right or
+    bottom edge is one clear error; h5py would return it a pixel narrower without a word. Windows that end on the
+    edge are the normalised crop of the cube."""
+    from hsicam.data import SceneDataset
+
+    paths, cubes, bands = _scene_files(tmp_path, [(12, 10)])
+    ds = SceneDataset(paths, bands)
+    np.testing.assert_allclose(ds.window(0, 4, 2, 8, 8), cubes[0][:, 4:12, 2:10], rtol=1e-6)
+    for y, x in ((4, 3), (5, 2)):
+        with pytest.raises(InputError, match=r"window 8x8 at \(%d, %d\) is outside the cube" % (y, x)):
+            ds.window(0, y, x, 8, 8)

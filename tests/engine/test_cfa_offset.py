@@ -166,3 +166,28 @@ def test_a_small_capture_is_warned_about_even_when_its_phase_stands_apart(captur
     assert line == (f"--cfa-offset auto: 0,2 was scored on only {MIN_SCORED_PX - 4}×{MIN_SCORED_PX - 4} px (the capture "
                     f"less the camera's PSF reach), under the {MIN_SCORED_PX} px a side on which it was reliable in "
                     "tests: check the reconstruction's spectra, or give the offset with --cfa-offset Y,X")
+
+
+# --- what the estimate reports (a guard found by mutation testing): np.median of the residuals by hand ---
+def test_cfa_offset_contrast_runner_up_and_ambiguity_follow_the_median_of_the_residuals():
+    """9 candidates (a 3×3 CFA): contrast = (median − best)/best (np.median of an odd count), runner-up = the
+    second smallest residual, ambiguous when the contrast is below MIN_CONTRAST or the median within
+    MIN_RESIDUAL_GAP of the best."""
+    from hsicam.engine.cfa_offset import MIN_CONTRAST, MIN_RESIDUAL_GAP, CfaOffsetEstimate
+
+    def estimate(values):
+        keys = [f"{y},{x}" for y in range(3) for x in range(3)]
+        return CfaOffsetEstimate((0, 0), dict(zip(keys, values)), (0, 0, 64, 64), 5)
+
+    clear = estimate([0.01, 0.5, 0.02, 0.3, 0.04, 0.05, 0.06, 9.0, 0.07])
+    assert clear.contrast == pytest.approx((np.median(list(clear.residuals.values())) - 0.01) / 0.01)
+    assert clear.runner_up == ("0,2", 0.02)
+    assert not clear.ambiguous
+    # a wild worst candidate does not make a capture unambiguous: the median is 0.0105 (contrast 0.05)
+    close = estimate([0.01, 0.0101, 0.0102, 0.0103, 0.0105, 0.011, 0.012, 5.0, 0.013])
+    assert close.contrast == pytest.approx(0.05) and 0.05 < MIN_CONTRAST
+    assert close.ambiguous
+    # a large relative contrast on residuals that all explain the capture to within MIN_RESIDUAL_GAP: ambiguous
+    flat = estimate([1e-7, 2e-7, 3e-7, 4e-7, 5e-6, 6e-6, 7e-6, 8e-6, 9e-6])
+    assert flat.contrast > MIN_CONTRAST and 5e-6 - 1e-7 < MIN_RESIDUAL_GAP
+    assert flat.ambiguous

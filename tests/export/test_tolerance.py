@@ -16,6 +16,7 @@ from cli_helpers import assert_clean_error, run_cli_in_process
 from fab_runs import fab_run  # noqa: F401 - shared fixture
 from hsicam.cameras import DOECamera
 from hsicam.engine.tolerance import _tolerance_at
+from hsicam.errors import InputError
 from hsicam.optics.perturb import (
     defocus_delta_per_m2, nominal_heights, oversampled_optics, psf_for_heights, psf_shifted, shift_fill,
 )
@@ -376,3 +377,138 @@ def test_a_side_never_swept_is_said_so_not_beyond_the_swept_range(fab_run, tmp_p
     away = re.search(r"away (.+?)(?:, levels|\s->)", line).group(1)
     plus = s["sensor_distance_um_at_1db_loss"]["plus"]
     assert away == ("beyond the swept range" if plus is None else f"{plus:.3g} µm"), line
+
+
+# --------------------------------------------------------------------------------------------
+# Guards found by mutation testing (optics/perturb.py, engine/tolerance.py, export/tolerance.py): closed
+# forms of the defocus, brute-force searches, hashlib on the weights file
+# --------------------------------------------------------------------------------------------
+@pytest.mark.parametrize("q", (1, 2, 3))
+def test_misalignment_subsamples_round_up_to_the_pupil_oversampling(q):
+    """The misalignment study needs at least the requested sub-samples per cell, on a grid that holds the camera's
+    own pupil samples: the smallest multiple of q not below the request (rounding down gave 3 for a request of 5
+    at q = 3, a coarser shift grid than asked)."""
+    from types import SimpleNamespace
+
+    from hsicam.optics.perturb import shift_subsamples_for
+
+    optics = SimpleNamespace(pupil_oversample=q)
+    for want in range(1, 12):
+        ref = min(k for k in range(q, 100, q) if k >= want)
+        assert shift_subsamples_for(optics, want) == ref, want
+
+
+@pytest.fixture(scope="module")
+def tolerance_study(tmp_path_factory):
+    """A tolerance study of an untrained tiny system on one random scene: (result, optics). About 1 s."""
+    import torch
+
+    from conftest import TINY_CAMERA_OVERRIDES
+    from hsicam.config import load_config
+    from hsicam.data import write_cube_h5
+    from hsicam.engine.tolerance import ToleranceSpec, run_tolerance
+    from hsicam.models import CameraSystem
+
+    cfg = load_config(overrides=[*TINY_CAMERA_OVERRIDES, "model.rdn.features=8", "model.rdn.growth=4"])
+    torch.manual_seed(0)
+    model = CameraSystem.from_config(cfg).eval()
+    d = tmp_path_factory.mktemp("tol_scene")
+    bands = cfg.bands.to_bands()
+    write_cube_h5(d / "s.h5", np.random.default_rng(0).random((len(bands), 24, 24)).astype(np.float32), bands)
+    spec = ToleranceSpec(sigma_height_nm=(0.0, 200.0), height_draws=2, levels=(), shift_cells=(),
+                         sensor_distance_um=(-20.0, 0.0, 30.0), max_scenes=1)
+    return run_tolerance(model, cfg, spec, data=d, progress=False), model.camera.optics
+
+
+def test_tolerance_sensor_rows_report_the_closed_form_defocus_and_magnification(tolerance_study):
+    """defocus_waves = (a²/2)·(1/(z + Δz) − 1/z)/λ0 (peak residual defocus in waves at the design wavelength);
+    magnification_change = Δz/z (the scene's scale change, not applied)."""
+    result, optics = tolerance_study
+    a, z, lam0 = 0.25e-3, 5e-3, 587.6e-9  # the tiny camera: 0.25 mm aperture radius, f = 5 mm, the lens's λ0
+    assert optics.sensor_distance_m == pytest.approx(z) and optics.aperture_radius_m == pytest.approx(a)
+    rows = [r for r in result["rows"] if r["sweep"] == "sensor_distance_um"]
+    assert [r["value"] for r in rows] == [-20.0, 0.0, 30.0]
+    for r in rows:
+        dz = r["value"] * 1e-6
+        assert r["defocus_waves"] == pytest.approx(a**2 / 2 * (1 / (z + dz) - 1 / z) / lam0, rel=1e-9, abs=1e-15)
+        assert r["magnification_change"] == pytest.approx(dz / z, rel=1e-9, abs=1e-15)
+
+
+def test_tolerance_height_noise_draws_are_different_elements(tolerance_study):
+    """Each draw is one fabricated DOE with its own error: two draws of σ = 200 nm give two PSNRs."""
+    result, _ = tolerance_study
+    row = next(r for r in result["rows"] if r["sweep"] == "sigma_height_nm" and r["value"] == 200.0)
+    assert row["n"] == 2 and row["psnr_std"] > 0
+
+
+def test_sweep_limits_are_the_lens_and_the_aperture_diameter(tiny_camera):
+    """Δz = −z puts the sensor onto the lens; a DOE shift is refused only beyond the aperture's diameter 2a/Δ
+    (10 cells of 50 µm for the tiny camera's 0.25 mm radius)."""
+    from hsicam.engine.tolerance import ToleranceSpec, check_sweeps
+
+    optics = tiny_camera().optics
+    with pytest.raises(InputError, match="onto the lens"):
+        check_sweeps(ToleranceSpec(sensor_distance_um=(-5000.0,), shift_cells=()), optics)
+    check_sweeps(ToleranceSpec(sensor_distance_um=(), shift_cells=(0.0, 7.5, 10.0), levels=()), optics)
+    with pytest.raises(InputError, match=r"^--shift-cells 10.25: a DOE shift of 10.25 cells exceeds the aperture's "
+                       r"diameter \(10 cells"):  # the option named (session 59: it was not)
+        check_sweeps(ToleranceSpec(sensor_distance_um=(), shift_cells=(10.25,), levels=()), optics)
+
+
+def test_height_draws_up_to_the_seed_stride_are_allowed():
+    from hsicam.config import TOLERANCE_DRAW_STRIDE
+    from hsicam.engine.tolerance import ToleranceSpec
+
+    ToleranceSpec(height_draws=TOLERANCE_DRAW_STRIDE).check()
+    with pytest.raises(InputError, match="height_draws must be at most"):
+        ToleranceSpec(height_draws=TOLERANCE_DRAW_STRIDE + 1).check()
+
+
+def test_an_aliasing_sensor_distance_names_the_smallest_pupil_oversampling_that_represents_it(tiny_camera):
+    """Brute force: rebuild the camera with q = 1, 2, … until the sweep is accepted; the message names that q."""
+    import re
+
+    from hsicam.engine.tolerance import check_defocus_sweep
+
+    dz = 700.0
+    with pytest.raises(InputError) as err:
+        check_defocus_sweep([dz], tiny_camera().optics)
+    said = int(re.search(r"pupil_oversample >= (\d+)", str(err.value)).group(1))
+    for q in range(1, 40):
+        try:
+            check_defocus_sweep([dz], tiny_camera(f"camera.psf.pupil_oversample={q}").optics)
+        except InputError:
+            continue
+        break
+    assert said == q > 1
+
+
+def test_a_tolerance_study_is_cited_only_for_the_run_whose_weights_it_hashed(tmp_path):
+    """run_identity: the weights file relative to the run and its SHA-256 (hashlib on the file's bytes); a study
+    is refused for another run's hash, another format, or a nominal PSNR that is not a finite number."""
+    import hashlib
+    import json
+
+    from hsicam.export.tolerance import TOLERANCE_FORMAT, read_tolerance_study, run_identity
+
+    run = tmp_path / "run"
+    run.mkdir()
+    (run / "model.safetensors").write_bytes(b"weights of this run")
+    sha = hashlib.sha256(b"weights of this run").hexdigest()
+    ident = run_identity(run)
+    assert (ident["weights"], ident["weights_sha256"]) == ("model.safetensors", sha)
+
+    def study(name, **fields):
+        p = tmp_path / name
+        p.write_text(json.dumps({"format": TOLERANCE_FORMAT, "nominal": {"psnr": 30.0}, **fields}), encoding="utf-8")
+        return p
+
+    ok = read_tolerance_study(study("ok.json", run={"path": str(run), "weights_sha256": sha}), run)
+    assert ok["run_checked"] is True and ok["nominal_psnr_db"] == 30.0
+    with pytest.raises(InputError, match="a tolerance study of another run"):
+        read_tolerance_study(study("other.json", run={"path": "x", "weights_sha256": "0" * 64}), run)
+    with pytest.raises(InputError, match="format 'hsicam-tolerance-0'"):
+        read_tolerance_study(study("fmt.json", format="hsicam-tolerance-0"), run)
+    for bad in (True, float("nan"), "30"):
+        with pytest.raises(InputError, match="no finite nominal PSNR"):
+            read_tolerance_study(study("psnr.json", nominal={"psnr": bad}), run)

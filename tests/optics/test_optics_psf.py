@@ -16,14 +16,15 @@ import torch
 from scipy.integrate import quad
 from scipy.special import j1, jn_zeros
 
+from hang_guard import guarded
 from hsicam.cameras import DOECamera
 from hsicam.config import load_config
 from hsicam.errors import ConfigError, InputError
 from hsicam.optics.doe import DOE
 from hsicam.optics.lens import AchromaticLens, SingletLens
 from hsicam.optics.psf import PSFModel, psf_stack
-from hsicam.optics.pupil import aperture_amplitude, sample_coordinates_m
-from hsicam.optics.sampling import fast_fft_length, pixel_weights
+from hsicam.optics.pupil import aperture_amplitude, cells_across, sample_coordinates_m
+from hsicam.optics.sampling import defocus_aliasing, fast_fft_length, pixel_weights, plan_psf_sampling
 from hsicam.spectral import Bands, FusedSilica
 
 # --------------------------------------------------------------------------------------------
@@ -658,3 +659,69 @@ def test_a_supersample_far_finer_than_the_exact_integral_is_refused():
             sampling.plan_psf_sampling(**plan, supersample=s)
     with pytest.raises(ConfigError, match=r"camera\.psf\.supersample=1000001"):  # through the config as well
         DOECamera.from_config(load_config("tiny", ["camera.psf.supersample=1000001"]))
+
+
+# --------------------------------------------------------------------------------------------
+# The sampling plan's guards, found by mutation testing (optics/pupil.py, optics/sampling.py): brute-force
+# counts and phase steps on the pupil grid, the Nyquist condition λ_min·z/(4a) by hand
+# --------------------------------------------------------------------------------------------
+@pytest.mark.parametrize("ratio", [0.3, 0.5, 0.75, 0.99, 1.0, 1.5, 2.0, 2.5, 7.3])
+def test_cells_across_counts_the_cell_centres_inside_the_aperture(ratio):
+    """Cells j·Δ with |j·Δ| ≤ R, counted by brute force; a cell up to the aperture's diameter gives one cell, a
+    larger one is refused."""
+    radius = 1e-3
+    cell = radius / ratio
+    if cell > 2 * radius:
+        with pytest.raises(InputError, match="larger than the aperture diameter"):
+            cells_across(radius, cell)
+        return
+    brute = sum(1 for j in range(-100, 101) if abs(j) * cell <= radius * (1 + 1e-12))
+    assert cells_across(radius, cell) == brute
+
+
+def test_nyquist_supersample_of_the_plan_is_the_smallest_odd_s_below_lambda_z_over_4a():
+    """s_nyq: smallest odd s with pixel/s ≤ λ_min·z/(4a), a = half the grid by default (a brute-force search)."""
+    lam = np.array([450e-9, 520e-9, 610e-9])
+    z, pixel, cell, n_cells = 8e-3, 7e-6, 40e-6, 21
+    for a in (None, 0.3e-3):
+        radius = n_cells * cell / 2 if a is None else a
+        s = next(s for s in range(1, 999, 2) if pixel / s <= lam.min() * z / (4 * radius))
+        smp = plan_psf_sampling(lam, z, pixel, cell, n_cells, aperture_radius_m=a)
+        assert smp.nyquist_supersample == s
+
+
+def test_defocus_aliasing_is_the_largest_phase_step_between_pupil_samples_in_units_of_pi():
+    """Brute force on the pupil samples inside the aperture: max |c·x_{j+1}² − c·x_j²| / π."""
+    n_cells, cell, q = 41, 30e-6, 3
+    radius = n_cells * cell / 2
+    x = sample_coordinates_m(n_cells, cell, q)
+    x = x[np.abs(x) <= radius]
+    for c in (2e5, -7e5, 3e6):
+        brute = np.max(np.abs(np.diff(c * x**2))) / math.pi
+        got = float(defocus_aliasing(np.array([c]), radius, cell / q)[0])
+        assert got == pytest.approx(brute, rel=0.03)
+
+
+# --------------------------------------------------------------------------------------------
+# The FFT length (session 59's fuzzing: tolerance --shift-subsamples 10**12 searched it for hours)
+# --------------------------------------------------------------------------------------------
+def smooth7_reference(n: int) -> int:
+    """The smallest 2^a·3^b·5^c·7^d >= n, from the sorted set of every such number up to the power of 2 >= n."""
+    top = 1 << max(0, n - 1).bit_length()  # a power of 2 >= n: the answer is at most it
+    found = {1}
+    for p in (2, 3, 5, 7):
+        grown = set()
+        for v in found:
+            while v <= top:
+                grown.add(v)
+                v *= p
+        found = grown
+    return min(v for v in found if v >= n)
+
+
+@pytest.mark.parametrize("n", [1, 2, 11, 13, 665, 2 * 333 - 1, 10007, 2 * 41 * 10**12 - 1, 2 * 41 * 2**70 - 1,
+                               10**30 + 1])
+def test_fast_fft_length_is_the_smallest_7_smooth_length(n):
+    from hsicam.optics.sampling import fast_fft_length
+
+    assert guarded(fast_fft_length, n) == smooth7_reference(n)

@@ -4,14 +4,18 @@ band averaging on non-uniform grids, Bands' hash, and material tables written wi
 from __future__ import annotations
 
 import logging
+import math
 
 import numpy as np
 import pytest
 import torch
+from scipy import integrate
 
 from hsicam.data.cube import conform_bands
 from hsicam.errors import InputError
-from hsicam.spectral import Bands, band_matrix, get_material, resample_spectra, resampling_matrix
+from hsicam.spectral import (Bands, band_matrix, get_material, interpolation_matrix, resample_spectra,
+                             resampling_matrix, resolved_bands)
+from hsicam.spectral.bands import band_sample_wavelengths, kernel_fwhm
 
 
 def test_same_centres_of_wider_bands_are_integrated_not_passed_through():
@@ -98,3 +102,100 @@ def test_material_csv_with_a_byte_order_mark(tmp_path):
     p = tmp_path / "glass.csv"
     p.write_text("wavelength_nm,n\n400,1.47\n700,1.455\n", encoding="utf-8-sig")
     assert float(get_material(str(p)).n(550.0)) == pytest.approx(1.4625)
+
+
+# --------------------------------------------------------------------------------------------
+# Guards found by mutation testing (spectral/bands.py, spectral/materials.py): closed forms, numerical
+# integrals (scipy quad), brute force
+# --------------------------------------------------------------------------------------------
+FWHM_TO_SIGMA = 1.0 / (2.0 * math.sqrt(2.0 * math.log(2.0)))
+
+
+def test_band_sub_wavelengths_are_the_slice_midpoints_weighted_by_the_gaussian_of_the_fwhm():
+    """M sub-wavelengths at the midpoints of M equal slices of [c − f/2, c + f/2], weighted by the band's Gaussian
+    of FWHM f: the weight at an offset x is 2^(−(2x/f)²) of the centre's (half at ±f/2)."""
+    c, f, m = np.array([450.0, 600.0]), np.array([10.0, 24.0]), 4
+    lam, w = band_sample_wavelengths(c, f, m)
+    for i in range(len(c)):
+        edges = np.linspace(c[i] - f[i] / 2, c[i] + f[i] / 2, m + 1)
+        np.testing.assert_allclose(lam[i], 0.5 * (edges[:-1] + edges[1:]), rtol=0, atol=1e-9)
+        ref = 2.0 ** (-((2.0 * (lam[i] - c[i]) / f[i]) ** 2))
+        np.testing.assert_allclose(w[i], ref / ref.sum(), rtol=1e-12)
+
+
+def test_a_target_band_beyond_the_source_by_a_fraction_of_a_nm_is_refused():
+    """No extrapolation: a grid ending 0.01 nm past the data's last centre is refused (only 1e-6 nm of rounding
+    is forgiven); a tolerance of a nm would clip it onto the last band silently."""
+    src = Bands.uniform(420, 720, 10)
+    for end in (720.01, 720.5):
+        dst = Bands.from_centers([500.0, end], 10.0)
+        assert not src.covers(dst)
+        with pytest.raises(InputError, match="not covered"):
+            interpolation_matrix(src, dst)
+    assert src.covers(Bands.from_centers([420.0 - 5e-7, 720.0 + 5e-7], 10.0))
+
+
+def test_default_fwhm_of_given_centres_is_the_local_spacing():
+    """from_centers without FWHM: each band is as wide as its local spacing, (c[i+1] − c[i−1]) / 2 inside and the
+    one-sided step at the ends (10 nm for a single band)."""
+    c = np.array([400.0, 410.0, 430.0, 460.0, 465.0])
+    got = Bands.from_centers(c).fwhm_nm
+    ref = np.concatenate([[c[1] - c[0]], (c[2:] - c[:-2]) / 2, [c[-1] - c[-2]]])
+    np.testing.assert_allclose(got, ref, rtol=0, atol=1e-12)
+    assert Bands.from_centers([550.0]).fwhm_nm.tolist() == [10.0]
+
+
+def test_bands_a_fraction_of_a_nm_wider_than_the_data_integrate_it():
+    """Same centres, camera bands √(10² + 0.5²) nm wide over 10 nm data: 0.5 nm of averaging is left, so the bands
+    are resolved (kernel FWHM > 0) and a line at one band loses a little of its height to the neighbours: the
+    linear interpolant integrated over the truncated (±3σ) Gaussian of FWHM 0.5 nm, by scipy quad."""
+    src = Bands.uniform(420, 720, 10)
+    k = 0.5
+    dst = Bands(src.centers_nm, np.full(len(src), math.hypot(10.0, k)))
+    np.testing.assert_allclose(kernel_fwhm(src, dst), k, rtol=1e-9)
+    assert resolved_bands(src, dst).all()
+    x = np.zeros(len(src))
+    x[13] = 1.0
+    s = k * FWHM_TO_SIGMA
+    num = integrate.quad(lambda t: math.exp(-0.5 * (t / s) ** 2) * (1 - abs(t) / 10.0), -3 * s, 3 * s, points=[0])[0]
+    den = integrate.quad(lambda t: math.exp(-0.5 * (t / s) ** 2), -3 * s, 3 * s)[0]
+    got = resample_spectra(x, src, dst)
+    assert got is not x
+    np.testing.assert_allclose(got[13], num / den, rtol=0, atol=1e-4)  # the quadrature of 0.02 nm steps
+    np.testing.assert_allclose(got[12] + got[13] + got[14], 1.0, atol=1e-9)  # the line's area is kept
+
+
+def test_the_remaining_width_uses_the_source_fwhm_at_each_band():
+    """Source bands whose FWHM changes along the grid (4 nm at the blue end to 9 nm at the red): the kernel left
+    for a 10 nm band is √(10² − f_src(c)²) with f_src read at that band's centre (Gaussians compose in quadrature),
+    not one width for all."""
+    c = np.arange(420.0, 721.0, 5.0)
+    f_src = np.linspace(4.0, 9.0, len(c))
+    src = Bands(c, f_src)
+    dst = Bands.uniform(430, 710, 10)
+    ref = np.sqrt(10.0 ** 2 - np.interp(dst.centers_nm, c, f_src) ** 2)
+    np.testing.assert_allclose(kernel_fwhm(src, dst), ref, rtol=1e-12)
+
+
+def test_fused_silica_is_refused_beyond_both_ends_of_malitsons_fit():
+    """The Sellmeier fit holds for 0.21–3.71 µm: a wavelength past either end is one clear error (past 3.71 µm
+    the third term's pole at 9.9 µm is near, and the formula is no longer the glass)."""
+    from hsicam.spectral import FusedSilica
+
+    fs = FusedSilica()
+    for lam in (200.0, 3800.0, [500.0, 5000.0]):
+        with pytest.raises(InputError, match="valid for 210-3710 nm only"):
+            fs.n(lam)
+    assert np.isfinite(fs.n([210.0, 3710.0])).all()
+
+
+def test_a_material_table_is_refused_a_fraction_of_a_nm_past_its_ends():
+    """A table from 400 to 700 nm answers inside (linear interpolation) and refuses 700.5 nm and 399.5 nm: no
+    extrapolation, not even by a few nm."""
+    from hsicam.spectral import TabulatedMaterial
+
+    mat = TabulatedMaterial(np.array([400.0, 550.0, 700.0]), np.array([1.47, 1.46, 1.455]), name="glass")
+    np.testing.assert_allclose(mat.n([400.0, 475.0, 700.0]), [1.47, 1.465, 1.455], rtol=0, atol=1e-12)
+    for lam in (700.5, 399.5, 705.0):
+        with pytest.raises(InputError, match="tabulated for 400-700 nm only"):
+            mat.n(lam)

@@ -1,17 +1,14 @@
-"""Guards found by mutation testing of the capture and cube file readers/writers (data/images, cube, estimates,
-formats, pipeline) and of the remaining models and solvers (RDN, the Choi prior, receptive-field bounds, DeSCI,
-Choi's ADMM): each test kills a hand-made mutant (a swapped axis, a wrong interleave or byte order, a dropped
-normalisation, an off-by-one window, a skipped branch) that the rest of the suite let through. References are
-independent of the code under test: files written here byte by byte (numpy raw bytes and a hand-written ENVI
-header), with h5py or scipy.io.savemat; corrections computed in numpy; brute-force loops.
+"""Guards found by mutation testing of the capture and cube file readers and writers (data/images, cube,
+estimates, formats, pipeline): each test kills a hand-made mutant (a swapped axis, a wrong interleave or byte
+order, a dropped normalisation, an off-by-one window, a skipped branch) that the rest of the suite let through.
+References are independent of the code under test: files written here byte by byte (numpy raw bytes and a
+hand-written ENVI header), with h5py or Pillow; corrections computed in numpy; brute-force loops.
 """
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
-import torch
-
 
 
 # --------------------------------------------------------------------------------------------
@@ -187,6 +184,20 @@ def test_a_float32_band_list_in_our_hdf5_is_read_at_its_decimal(tmp_path):
     assert bands.centers_nm.tolist() == list(MST_28_NM)
 
 
+def test_write_envi_keeps_the_band_centres_and_widths_to_the_readers_decimals_beyond_1000_nm(tmp_path):
+    """write_envi → read_envi gives back centres and FWHM to NM_DECIMALS (3) decimals of a nm above 1000 nm too
+    (printed with 6 significant digits, 1234.567 nm came back as 1234.57)."""
+    from hsicam.data.formats import read_envi, write_envi
+    from hsicam.spectral import Bands
+
+    centres, widths = [912.125, 1234.567, 1500.25], [5.125, 12.375, 20.5]
+    hdr, _ = write_envi(tmp_path / "swir.hdr", np.ones((3, 2, 2), np.float32), Bands(centres, widths))
+    line = next(l for l in hdr.read_text().splitlines() if l.startswith("wavelength ="))
+    assert [float(v) for v in line.split("{")[1].rstrip("}").split(",")] == centres
+    _, bands, _ = read_envi(hdr)
+    assert bands.centers_nm.tolist() == centres and bands.fwhm_nm.tolist() == widths
+
+
 # --------------------------------------------------------------------------------------------
 # data/pipeline.py
 # --------------------------------------------------------------------------------------------
@@ -217,177 +228,3 @@ def test_preload_limit_is_in_mebibytes(tmp_path):
     assert _should_preload(cfg, [path])
     path.write_bytes(b"\0" * (2**20 + 1))
     assert not _should_preload(cfg, [path])
-
-
-# --------------------------------------------------------------------------------------------
-# models/rdn.py
-# --------------------------------------------------------------------------------------------
-@pytest.mark.parametrize("window", [3, 5])
-def test_rdn_context_adds_half_the_demosaic_window_to_the_conv_reach(window):
-    """Receptive radius by counting 3×3 convolutions (sfe1, sfe2, every dense layer, global fusion 3×3, output:
-    4 + D·C px) plus the demosaic's own reach, half its (odd) box width."""
-    from hsicam.models.rdn import RDNReconstructor
-
-    d, c = 2, 3
-    net = RDNReconstructor(4, demosaic_input=True, window=window, blocks=d, features=8, growth=4, layers_per_block=c)
-    assert net.context_px == 4 + d * c + window // 2
-
-
-def test_rdn_on_the_back_projection_starts_as_its_band_mean_in_every_band():
-    """backprojection_input: the untrained network (output conv at zero) returns, in every band, the mean of the
-    C input bands at that pixel."""
-    from hsicam.models.rdn import RDN, RDNReconstructor
-
-    torch.manual_seed(0)
-    net = RDNReconstructor(5, backprojection_input=True, blocks=1, features=8, growth=4)
-    x = torch.rand(2, 5, 6, 7)
-    out = RDN.forward(net, x)  # the network on its input (the back-projection needs a camera, not tested here)
-    np.testing.assert_allclose(out.detach().numpy(), x.mean(1, keepdim=True).expand(-1, 5, -1, -1).numpy(),
-                               rtol=1e-6, atol=1e-7)
-
-
-# --------------------------------------------------------------------------------------------
-# models/context.py
-# --------------------------------------------------------------------------------------------
-@pytest.mark.parametrize("padding", ["valid", "same", 0, 1, 2])
-def test_conv_reach_is_the_farthest_input_pixel_an_output_pixel_depends_on(padding):
-    """Brute force by autograd: the output pixel at (i, j) of a 3×5 conv depends on input pixels up to conv_reach px
-    away from (i, j), on some side of some axis (valid padding: all of them after the pixel)."""
-    from torch import nn
-
-    from hsicam.models.context import conv_reach
-
-    torch.manual_seed(0)
-    conv = nn.Conv2d(1, 1, (3, 5), padding=padding)
-    with torch.no_grad():
-        conv.weight.fill_(1.0)
-    x = torch.rand(1, 1, 21, 21, requires_grad=True)
-    i = j = 8
-    conv(x)[0, 0, i, j].backward()
-    ys, xs = torch.nonzero(x.grad[0, 0], as_tuple=True)
-    measured = int(max((ys - i).abs().max(), (xs - j).abs().max()))
-    assert conv_reach(conv) == measured
-
-
-# --------------------------------------------------------------------------------------------
-# models/priors.py
-# --------------------------------------------------------------------------------------------
-def test_the_prior_encoder_pads_by_reflection():
-    """The encoder is 3×3 convolutions with reflect padding and ReLU between them: recomputed layer by layer with
-    F.pad(mode='reflect') + F.conv2d, borders included (zero padding darkens the border pixels)."""
-    import torch.nn.functional as F
-
-    from hsicam.models.priors import SpectralAutoencoder
-
-    torch.manual_seed(1)
-    prior = SpectralAutoencoder(3, features=4, latent=5, layers=3)
-    x = torch.rand(2, 3, 6, 7) + 0.5
-    convs = [mod for mod in prior.encoder if isinstance(mod, torch.nn.Conv2d)]
-    ref = x
-    for k, conv in enumerate(convs):
-        ref = F.conv2d(F.pad(ref, (1, 1, 1, 1), mode="reflect"), conv.weight, conv.bias)
-        if k < len(convs) - 1:
-            ref = ref.relu()
-    torch.testing.assert_close(prior.encode(x), ref, rtol=1e-5, atol=1e-6)
-
-
-# --------------------------------------------------------------------------------------------
-# solvers/desci.py
-# --------------------------------------------------------------------------------------------
-def test_wnnm_groups_equal_a_numpy_svd_with_the_closed_form_shrinkage():
-    """Each group Y (d × K): mean column removed, SVD (numpy), singular values s shrunk to
-    (s − ε + √((s + ε)² − 4w)) / 2 where the discriminant is positive (else 0), w = c·σ²(√d + √K)²/4, mean put back."""
-    from hsicam.solvers.desci import wnnm_groups
-
-    rng = np.random.default_rng(7)
-    g, d, k, sigma, c, eps = 3, 12, 6, 0.1, 1.3, 1e-8
-    low = rng.random((g, d, 2)) @ rng.random((g, 2, k))  # rank 2 + noise: some values kept, some removed
-    groups = low + sigma * rng.standard_normal((g, d, k))
-    got = wnnm_groups(torch.from_numpy(groups), sigma, c).numpy()
-    w = c * sigma**2 * (np.sqrt(d) + np.sqrt(k)) ** 2 / 4
-    for i in range(g):
-        mean = groups[i].mean(axis=1, keepdims=True)
-        u, s, vt = np.linalg.svd(groups[i] - mean, full_matrices=False)
-        disc = (s + eps) ** 2 - 4 * w
-        shrunk = np.where(disc > 0, (s - eps + np.sqrt(np.maximum(disc, 0))) / 2, 0.0)
-        assert 0 < np.count_nonzero(shrunk) < k  # the test exercises both branches
-        np.testing.assert_allclose(got[i], u @ np.diag(shrunk) @ vt + mean, rtol=1e-7, atol=1e-9)
-
-
-# --------------------------------------------------------------------------------------------
-# solvers/choi.py
-# --------------------------------------------------------------------------------------------
-def _small_cassi(bands: int = 4):
-    from hsicam.cameras import build_camera
-    from hsicam.config import load_config
-
-    cfg = load_config(overrides=["bands.start_nm=500", f"bands.stop_nm={500 + 20 * (bands - 1)}", "bands.step_nm=20",
-                                 "camera.kind=dd_cassi"])
-    return build_camera(cfg).to(torch.float64)
-
-
-def test_prior_residual_is_half_the_squared_distance_to_the_prior():
-    """½‖z − R(z)‖² per cube, for a prior R(z) = z/2 + 0.1: ½·Σ(z/2 − 0.1)²."""
-    from hsicam.solvers.choi import prior_residual
-
-    z = torch.rand(3, 2, 4, 5, dtype=torch.float64)
-    got = prior_residual(lambda t: 0.5 * t + 0.1, z)
-    torch.testing.assert_close(got, 0.5 * ((0.5 * z - 0.1) ** 2).sum(dim=(1, 2, 3)))
-
-
-@pytest.mark.parametrize("tv_weight", [0.0, 0.02])
-def test_choi_admm_with_an_identity_prior_is_the_closed_form_x_update_then_the_tv_prox(tv_weight):
-    """With R = identity (an untrained autoencoder) and τ1 = 0, one proximal-gradient step of size 1/ρ lands on
-    w = x + u, so each iteration is scaled-form ADMM: the exact x-update x = v + Φᵀ((y − Φv)/m / (diag(ΦΦᵀ)/m + ρ))
-    at v = z − u (m the mean of diag ΦΦᵀ), the TV prox of w at weight τ2/ρ, u += x − z; ρ grows by rho_growth."""
-    from hsicam.config import ChoiConfig
-    from hsicam.models.priors import SpectralAutoencoder
-    from hsicam.solvers.choi import admm_prior
-    from hsicam.solvers.common import tv_denoise
-
-    torch.manual_seed(0)
-    cam = _small_cassi(4)
-    truth = torch.rand(1, 4, 12, 12, dtype=torch.float64)
-    y = cam.A(truth)
-    prior = SpectralAutoencoder(4, features=2, latent=2, layers=2).double()
-    s = ChoiConfig(iterations=3, rho=0.7, rho_growth=1.5, prior_weight=0.0, tv_weight=tv_weight, inner_steps=1,
-                   init_iterations=0)
-    got = admm_prior(cam, y, prior, s, x0=torch.zeros_like(truth))
-    phi = cam.gram_diagonal(y)
-    m = phi.mean()
-    z, u, rho = torch.zeros_like(truth), torch.zeros_like(truth), 0.7
-    for _ in range(3):  # scaled-form ADMM (u stays 0 without TV)
-        v = z - u
-        x = v + cam.A_adjoint((y - cam.A(v)) / m / (phi / m + rho))
-        z = tv_denoise(x + u, tv_weight / rho, 5)
-        u = u + x - z
-        rho *= 1.5
-    torch.testing.assert_close(got, z, rtol=1e-9, atol=1e-12)
-
-
-def test_choi_minimum_norm_start_fits_the_measurement():
-    """No GAP-TV start and no iteration: the start Φᵀ(y ⊘ diag ΦΦᵀ) reproduces y exactly (ΦΦᵀ is diagonal)."""
-    from hsicam.config import ChoiConfig
-    from hsicam.models.priors import SpectralAutoencoder
-    from hsicam.solvers.choi import admm_prior
-
-    torch.manual_seed(0)
-    cam = _small_cassi(4)
-    y = cam.A(torch.rand(1, 4, 12, 12, dtype=torch.float64))
-    prior = SpectralAutoencoder(4, features=2, latent=2, layers=2).double()
-    x = admm_prior(cam, y, prior, ChoiConfig(iterations=0, init_iterations=0))
-    torch.testing.assert_close(cam.A(x), y, rtol=1e-9, atol=1e-12)
-
-
-def test_write_envi_keeps_the_band_centres_and_widths_to_the_readers_decimals_beyond_1000_nm(tmp_path):
-    """write_envi → read_envi gives back centres and FWHM to NM_DECIMALS (3) decimals of a nm above 1000 nm too
-    (printed with 6 significant digits, 1234.567 nm came back as 1234.57)."""
-    from hsicam.data.formats import read_envi, write_envi
-    from hsicam.spectral import Bands
-
-    centres, widths = [912.125, 1234.567, 1500.25], [5.125, 12.375, 20.5]
-    hdr, _ = write_envi(tmp_path / "swir.hdr", np.ones((3, 2, 2), np.float32), Bands(centres, widths))
-    line = next(l for l in hdr.read_text().splitlines() if l.startswith("wavelength ="))
-    assert [float(v) for v in line.split("{")[1].rstrip("}").split(",")] == centres
-    _, bands, _ = read_envi(hdr)
-    assert bands.centers_nm.tolist() == centres and bands.fwhm_nm.tolist() == widths
