@@ -37,11 +37,40 @@ _FALLBACK_MEMORY_BYTES = 8 * 2**30  # when the machine's memory cannot be read
 
 
 def _physical_memory_bytes() -> int | None:
+    """The machine's physical RAM (bytes): ``sysconf`` on POSIX, ``GlobalMemoryStatusEx`` on Windows (which has no
+    ``os.sysconf``: before session 62 the budget there was the fixed 8 GiB fallback, a whole machine's RAM on an
+    8 GiB laptop); None when neither answers."""
     try:
         n = int(os.sysconf("SC_PHYS_PAGES")) * int(os.sysconf("SC_PAGE_SIZE"))
     except (AttributeError, ValueError, OSError):
-        return None
+        n = _windows_physical_memory_bytes() or 0
     return n if n > 0 else None
+
+
+class _MemoryStatusEx(ctypes.Structure):
+    """Win32 ``MEMORYSTATUSEX`` (sysinfoapi.h), the argument of ``GlobalMemoryStatusEx``."""
+
+    _fields_ = [("dwLength", ctypes.c_uint32), ("dwMemoryLoad", ctypes.c_uint32),
+                ("ullTotalPhys", ctypes.c_uint64), ("ullAvailPhys", ctypes.c_uint64),
+                ("ullTotalPageFile", ctypes.c_uint64), ("ullAvailPageFile", ctypes.c_uint64),
+                ("ullTotalVirtual", ctypes.c_uint64), ("ullAvailVirtual", ctypes.c_uint64),
+                ("ullAvailExtendedVirtual", ctypes.c_uint64)]
+
+
+def _windows_physical_memory_bytes() -> int | None:
+    """Physical RAM (bytes) by kernel32's ``GlobalMemoryStatusEx``; None off Windows or when the call fails."""
+    windll = getattr(ctypes, "windll", None)
+    if windll is None:
+        return None
+    status = _MemoryStatusEx()
+    status.dwLength = ctypes.sizeof(_MemoryStatusEx)
+    try:
+        ok = windll.kernel32.GlobalMemoryStatusEx(ctypes.byref(status))
+    except (AttributeError, OSError):
+        return None
+    if not ok:
+        return None
+    return int(status.ullTotalPhys) or None
 
 
 def _cgroup_memory_limit_bytes(proc_cgroup: str | Path = "/proc/self/cgroup",

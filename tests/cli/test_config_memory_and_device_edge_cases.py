@@ -345,3 +345,36 @@ def test_replacing_a_folder_with_seven_unlisted_files_names_five_and_counts_the_
         check_replaceable(out, True, "evaluate")
     assert str(exc.value) == (f"{out}: holds {', '.join(names[:5])} and 2 more, which hsicam evaluate did not write; "
                               "choose another folder or move them")
+
+
+def test_windows_reads_its_ram_by_global_memory_status_ex(monkeypatch):
+    """Windows has no os.sysconf: the RAM comes from kernel32's GlobalMemoryStatusEx (simulated here, with the
+    struct's documented 64-byte layout), not the fixed 8 GiB fallback that let one allocation take a whole 8 GiB
+    laptop's memory; a failing call still falls back."""
+    import ctypes
+    import types
+
+    import hsicam.memory as mem
+
+    calls = []
+
+    def global_memory_status_ex(ref, total=12 * 2**30):
+        status = ref._obj
+        calls.append(status.dwLength)
+        status.ullTotalPhys = total
+        return 1
+
+    kernel32 = types.SimpleNamespace(GlobalMemoryStatusEx=global_memory_status_ex)
+    monkeypatch.delattr(mem.os, "sysconf", raising=False)
+    monkeypatch.setattr(ctypes, "windll", types.SimpleNamespace(kernel32=kernel32), raising=False)
+    monkeypatch.delenv(mem.MEMORY_BUDGET_ENV, raising=False)
+    monkeypatch.setattr(mem, "_cgroup_memory_limit_bytes", lambda: None)
+    monkeypatch.setattr(mem, "_address_space_left_bytes", lambda: None)
+    assert ctypes.sizeof(mem._MemoryStatusEx) == 64  # MEMORYSTATUSEX, sysinfoapi.h
+    assert mem._physical_memory_bytes() == 12 * 2**30
+    assert calls == [64]  # dwLength set before the call, as the API requires
+    assert mem.memory_budget_bytes() == 3 * 2**30  # a quarter of the RAM
+    assert mem.machine_memory_bytes() == 12 * 2**30
+    kernel32.GlobalMemoryStatusEx = lambda ref: 0  # the call failed
+    assert mem._physical_memory_bytes() is None
+    assert mem.memory_budget_bytes() == 8 * 2**30
