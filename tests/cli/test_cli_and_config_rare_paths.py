@@ -232,7 +232,7 @@ def test_error_line_of_unreadable_inputs():
 
 
 def test_cli_refusals_without_a_run(tmp_path):
-    res = run_cli_in_process("data", "show", str(tmp_path / "nothing"))
+    res = run_cli_in_process("data", "show", str(tmp_path / "nothing"), "--out", str(tmp_path / "o"))
     assert error_line(res) == f"hsicam: error: {tmp_path / 'nothing'}: no such dataset folder or cube file"
     res = run_cli_in_process("data", "synth", "--n", "1", "--size", "16", "--split", "heldout", "--holdout-sources",
                              "none", "--out", str(tmp_path / "s"))

@@ -3,8 +3,8 @@
 1. A command replacing its own completed folder checks every entry at any depth against its marker's
    ``files`` (and a derived ``report/`` against its own marker): a user's file in ``DIR/cubes/`` or
    ``DIR/report/`` is refused, named by its path relative to DIR, before any work.
-2. ``data show`` without ``--out`` replaces a preview-named PNG in the data folder only when it wrote
-   that file (the PNG's own mark); the folder stays readable as data.
+2. ``data show`` needs ``--out``: it never writes into its data folder (it wrote its PNGs there by default
+   until session 62; before that, over a user's files of the previews' names).
 6. The spectral-gamut plot samples every scene of a folder with mixed band grids (resampled onto one
    grid), and says which scenes it leaves out and why.
 12. A held-out set on another grid is resampled, or refused naming the folder, the grids and the reason.
@@ -15,12 +15,14 @@ from __future__ import annotations
 import json
 import logging
 import shutil
+import subprocess
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-from cli_helpers import assert_clean_error, assert_ok, run_cli_in_process
+from cli_helpers import (HSICAM, assert_clean_error, assert_ok, cli_env, error_line, run_cli_in_process,
+                         unprivileged_prefix)
 from hsicam.data.formats import write_cube_h5
 from hsicam.errors import InputError
 from hsicam.io import COMPLETE_MARKER, atomic_output, mark_complete
@@ -173,47 +175,52 @@ def _show(*args: str):
     return run_cli_in_process("data", "show", *args)
 
 
-def test_data_show_keeps_a_users_files_of_the_previews_names(tmp_path):
-    import imageio.v3 as iio
-
-    data = _scenes(tmp_path / "data", Bands.paper())
-    iio.imwrite(data / "contact_sheet.png", np.full((10, 10, 3), 7, np.uint8))
-    (data / "mean_spectra.png").write_text("my own notes")
-    (tmp_path / "mine.png").write_bytes(b"mine")
-    (data / "spectral_gamut.png").symlink_to(tmp_path / "mine.png")
-    before = snapshot(tmp_path)
-    assert_clean_error(_show(str(data)), f"{data}: holds contact_sheet.png, mean_spectra.png, spectral_gamut.png, "
-                                         "which hsicam data show did not write",
-                       "give the preview its own folder with --out DIR")
-    assert snapshot(tmp_path) == before
-    assert_clean_error(_show(str(data / "s0.h5")), f"{data}: holds contact_sheet.png")  # a cube file's folder too
-    assert snapshot(tmp_path) == before
-
-
-def test_data_show_replaces_only_its_own_unchanged_previews_and_the_folder_stays_data(tmp_path):
-    from PIL import Image, PngImagePlugin
-
-    from hsicam.data.datasets import list_scenes
+def test_data_show_never_writes_into_its_data_folder(tmp_path):
+    """`hsicam data show DIR` wrote its three PNGs into the data folder DIR itself (a user's input; docs/usage.md did
+    not say so): it needs --out now, a folder of its own; the data folder is left byte for byte as it was, a refusal
+    is one line, and an --out holding a file of the user's is refused, not mixed into."""
+    from PIL import Image
 
     data = _scenes(tmp_path / "data", Bands.paper(), Bands.paper())
-    for _ in range(2):  # the second run replaces the first's previews
-        assert_ok(_show(str(data)))
-    assert sorted(p.name for p in data.iterdir()) == sorted(["s0.h5", "s1.h5", *PNGS])
-    assert list_scenes(data) == [data / "s0.h5", data / "s1.h5"]
-    # a preview the user edited (the text chunks kept, as some editors do) is the user's now
-    sheet = data / "contact_sheet.png"
-    with Image.open(sheet) as im:
-        im.load()
-        edited, text = im.copy(), dict(im.text)
-    edited.putpixel((0, 0), (255, 0, 0, 255))
-    info = PngImagePlugin.PngInfo()
-    for k, v in text.items():
-        info.add_text(k, v)
-    edited.save(sheet, pnginfo=info)
     before = snapshot(tmp_path)
-    assert_clean_error(_show(str(data)), f"{data}: holds contact_sheet.png, which hsicam data show did not write",
-                       "--out DIR, or move it")
+    res = _show(str(data))
+    assert error_line(res) == "hsicam: error: the following arguments are required: --out"
+    assert_clean_error(_show(str(data / "s0.h5")), "required: --out")  # a cube file: not its folder either
+    assert_clean_error(_show(str(data), "--out", str(data)), f"{data}: folder exists and is not empty")
+    mine = tmp_path / "mine"
+    mine.mkdir()
+    (mine / "notes.txt").write_text("my notes")
+    before = snapshot(tmp_path)
+    assert_clean_error(_show(str(data), "--out", str(mine)), f"{mine}: folder exists and is not empty")
     assert snapshot(tmp_path) == before
+    out = tmp_path / "preview"
+    for _ in range(2):  # the second run refreshes the first's output
+        assert_ok(_show(str(data), "--out", str(out)))
+    assert snapshot(data) == {k[len("data/"):]: v for k, v in before.items() if k.startswith("data/")}
+    assert sorted(p.name for p in out.iterdir()) == sorted([COMPLETE_MARKER, *PNGS])
+    for name in PNGS:
+        with Image.open(out / name) as im:
+            assert im.format == "PNG" and min(im.size) > 16
+
+
+def test_data_show_of_a_read_only_data_folder(tmp_path):
+    """Data on a read-only mount (a shared dataset) is previewed into --out; an unwritable --out is one line."""
+    prefix = unprivileged_prefix()
+    if prefix is None:
+        pytest.skip("running as root without setpriv: chmod cannot make a folder unwritable here")
+    data = _scenes(tmp_path / "data", Bands.paper())
+    data.chmod(0o500)
+    try:
+        def show(out: Path) -> subprocess.CompletedProcess:
+            return subprocess.run([*prefix, str(HSICAM), "data", "show", str(data), "--out", str(out)],
+                                  capture_output=True, text=True, timeout=300, env=cli_env())
+
+        assert_ok(show(tmp_path / "preview"))
+        assert_clean_error(show(data / "preview"), f"{data / 'preview'}: cannot be created", "not writable")
+    finally:
+        data.chmod(0o700)
+    assert sorted(p.name for p in data.iterdir()) == ["s0.h5"]
+    assert sorted(p.name for p in (tmp_path / "preview").iterdir()) == sorted([COMPLETE_MARKER, *PNGS])
 
 
 # ------------------------------------------------------------------------------------------------

@@ -4,7 +4,6 @@
 from __future__ import annotations
 
 import argparse
-import os
 import sys
 from pathlib import Path
 
@@ -44,7 +43,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                                   "e.g. --set 'data.npy_bands={start_nm: 420, stop_nm: 720, step_nm: 10}' (default: "
                                   "its bands evenly over 400-700 nm). Other config keys are not used here.")
     v.add_argument("path", metavar="DIR", help="dataset folder, or one cube file / CAVE folder")
-    v.add_argument("--out", metavar="DIR", default=None, help="where to write the PNGs (default: DIR)")
+    v.add_argument("--out", metavar="OUT", required=True,
+                   help="a new or empty folder for the PNGs (or an earlier data show output, refreshed); never the "
+                        "data folder itself: data show does not write into its input")
     v.add_argument("--max-scenes", type=int, default=16, help="at most this many scenes, >= 1 (default 16)")
     v.add_argument("--heldout", metavar="DIR", default=None,
                    help="held-out dataset to compare in the gamut plot (default: the cached companion of a "
@@ -170,49 +171,12 @@ def _show(args: argparse.Namespace) -> int:
     src = Path(args.path)
     if not src.exists():
         raise InputError(f"{src}: no such dataset folder or cube file")
-    preview = lambda out, check=None: write_preview(args.path, out, max_scenes=args.max_scenes,  # noqa: E731
-                                                    heldout=args.heldout, before_save=check, npy_bands=grid)
-    if args.out is None:
-        written = preview(_default_preview_folder(src), _check_own_previews)
-    else:
-        written = _show_into(Path(args.out), preview)
+    preview = lambda out: write_preview(args.path, out, max_scenes=args.max_scenes,  # noqa: E731
+                                        heldout=args.heldout, npy_bands=grid)
+    written = _show_into(Path(args.out), preview)
     for path in written:
         print(path)
     return 0
-
-
-def _default_preview_folder(src: Path) -> Path:
-    """Where ``data show`` writes without ``--out``: next to the data (the dataset folder, or a cube
-    file's folder), checked before any work; never inside another command's completed output, whose
-    folder that command replaces whole (and refuses to, once it holds files it did not write), nor
-    over a file of a preview's name that ``data show`` did not write (:func:`_check_own_previews`)."""
-    from hsicam.cli import prepare_output
-    from hsicam.errors import InputError
-    from hsicam.io import is_complete, output_description
-
-    folder = src if src.is_dir() else src.parent
-    full = Path(os.path.abspath(folder))
-    for a in (full, *full.parents):
-        if is_complete(a):
-            inside = "" if a == full else f" (inside {a})"
-            raise InputError(f"{folder}{inside}: holds {output_description(a)}; give the preview its own folder "
-                             "with --out DIR (a new or empty folder)")
-    out = prepare_output(folder, "dir")
-    _check_own_previews(out)
-    return out
-
-
-def _check_own_previews(folder: Path) -> None:
-    """InputError naming the files of ``folder`` that have a preview's name but were not written by
-    ``data show`` (or were changed since): the PNGs carry its mark (:func:`hsicam.data.preview.is_own_preview`),
-    which travels with the file, so a user's own file of that name is never replaced."""
-    from hsicam.data.preview import foreign_previews
-    from hsicam.errors import InputError
-
-    foreign = foreign_previews(folder)
-    if foreign:
-        raise InputError(f"{folder}: holds {', '.join(foreign)}, which hsicam data show did not write; give the "
-                         f"preview its own folder with --out DIR, or move {'it' if len(foreign) == 1 else 'them'}")
 
 
 def _show_into(out: Path, preview) -> list[Path]:
