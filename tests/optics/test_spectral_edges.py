@@ -50,17 +50,22 @@ def test_generator_warns_once_when_the_range_edges_drop_spectra(caplog):
 
     logger = "hsicam.data.spectral_sources"
     edge = Bands.uniform(380, 730, 10, fwhm_nm=9.75)  # a width of its own: a fresh build, not a cached library
-    with caplog.at_level(logging.WARNING, logger=logger):
+    with caplog.at_level(logging.DEBUG, logger=logger):
         lib = spectral_library(edge)
         spectral_library(edge)  # cached: no second warning
     said = [r.getMessage() for r in caplog.records if r.name == logger and r.levelno == logging.WARNING]
-    assert len(said) == 1, said
+    detail = [r.getMessage() for r in caplog.records if r.name == logger and r.levelno == logging.DEBUG
+              and "not used for bands" in r.getMessage()]
+    assert len(said) == 1 and len(detail) == 1, (said, detail)
     kept = sum(lib.counts()["reflectances"].values())
-    assert kept < 100 and f"{460 - kept} of 460 reflectance spectra" in said[0], said[0]
-    assert "reflectance spectra (rawtoaces 190" in said[0] and "illuminant spectra (" in said[0], said[0]
+    unused = {k: len(v) for k, v in lib.sources["not_used_out_of_range"].items() if k != "cie (not used)"}
+    assert kept < 100 and said[0].startswith(f"synthetic: {sum(unused.values())} of "), said[0]
+    assert "(rawtoaces 190, " in said[0] and len(said[0]) <= 250, said[0]  # the largest source first; one short line
+    assert f"{460 - kept} of 460 reflectance spectra (rawtoaces 190" in detail[0], detail[0]  # the full count at -v
+    assert "illuminant spectra (" in detail[0], detail[0]
     t = 3.0 * 9.75 / 2.3548  # the widest band's 3σ: the stated range is ALL_SOURCES_RANGE_NM (370-740) less it
-    assert f"not_used_out_of_range); at this FWHM all but the PMC and Smits sets are used for band centres within " \
-           f"{round(370 + t, 1):g}-{round(740 - t, 1):g} nm" in said[0], said[0]
+    assert f"band centres within {round(370 + t, 1):g}-{round(740 - t, 1):g} nm would use all but PMC and Smits" \
+           in said[0], said[0]
     caplog.clear()
     inside = Bands.uniform(390, 720, 10, fwhm_nm=9.75)
     with caplog.at_level(logging.WARNING, logger=logger):
