@@ -64,3 +64,29 @@ def test_every_dotted_hsicam_name_in_the_docs_exists():
     assert len(cited) > 20
     missing = {name: where for name, where in cited.items() if not _resolves(name)}
     assert not missing
+
+
+def test_the_held_out_sources_the_docs_name_are_each_presets():
+    """`hsicam demo --config tiny` held out nist-cqs while README.md said the demo holds out two sources and nothing
+    said which preset holds out what: docs/usage.md names every preset's data.holdout_sources, README.md the demo's
+    (quick's), each read here from the shipped config files."""
+    from hsicam.config import load_config
+    from hsicam.data.spectral_sources import parse_holdout
+
+    usage = (ROOT / "docs" / "usage.md").read_text(encoding="utf-8")
+    claim = usage.split("Held-out spectral sources (`data.holdout_sources`", 1)[1].split("\n\n", 1)[0]
+    claim = claim.split("): ", 1)[1].split(" (", 1)[0].replace("\n", " ")
+    said: dict[str, tuple[str, ...]] = {}
+    for part in claim.split("; "):
+        ids, presets = re.fullmatch(r"`([a-z0-9,-]+)` in (.+)", part).groups()
+        for preset in re.findall(r"`([a-z_-]+)`", presets):
+            said[preset] = tuple(ids.split(","))
+    shipped = sorted(p.stem for p in (ROOT / "src" / "hsicam" / "configs").glob("*.yaml"))
+    assert sorted(said) == shipped
+    for preset, ids in said.items():
+        assert parse_holdout(load_config(preset).data.holdout_sources) == parse_holdout(",".join(ids)), preset
+    readme = (ROOT / "README.md").read_text(encoding="utf-8").split("## What `make demo` does", 1)[1].split("\n## ")[0]
+    readme = " ".join(readme.split())
+    demo = parse_holdout(load_config("quick").data.holdout_sources)
+    assert "sources, " + " and ".join(f"`{s}`" for s in demo) + ", are held out" in readme
+    assert f"the `tiny` preset holds out {', '.join(f'`{s}`' for s in said['tiny'])}," in readme

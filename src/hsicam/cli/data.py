@@ -23,7 +23,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     s.add_argument("--seed", type=seed_arg(0), default=None, help="random seed (default: data.synthetic_seed)")
     s.add_argument("--holdout-sources", metavar="IDS", default=None, type=text_arg,
                    help="comma-separated spectral source ids whose spectra never reach the training scenes "
-                        "(default: the config's data.holdout_sources, nist-philips,rawtoaces in most presets; "
+                        "(default: the config's data.holdout_sources, nist-philips,rawtoaces in every preset but tiny, which holds out nist-cqs; "
                         "'none' for none; see `hsicam data sources`)")
     s.add_argument("--split", choices=("train", "heldout"), default="train",
                    help="train (default): scenes without the held-out sources; heldout: the held-out "
