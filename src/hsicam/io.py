@@ -560,6 +560,16 @@ def _remove(path: Path) -> None:
         path.unlink(missing_ok=True)
 
 
+def output_name(path: str | os.PathLike) -> Path:
+    """The output a folder or file temporary of :func:`atomic_output` becomes (``DIR/.NAME.XXXXXXXX.tmpdir`` →
+    ``DIR/NAME``), for messages that name what the user asked for; any other path as it is."""
+    p = Path(path)
+    parts = _TEMP_PARTS.match(p.name)
+    if parts is None or parts["folder"] == "old":
+        return p
+    return p.with_name(parts["stem"] + (parts["suffix"] or ""))
+
+
 def is_temporary(name: str) -> bool:
     """True for the name of a hidden temporary written by this module."""
     return bool(_TEMP_RE.match(name))

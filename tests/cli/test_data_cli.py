@@ -323,3 +323,18 @@ def test_an_interrupted_synth_leaves_no_dataset_that_evaluate_would_take(tmp_pat
     assert main(["data", "synth", "--n", "4", "--size", "24", "--out", str(out), "--no-progress"]) == 0
     assert [p.name for p in list_scenes(out)] == [f"scene_{i:04d}.h5" for i in range(4)]
     assert (out / "manifest.json").is_file() and [p.name for p in tmp_path.iterdir()] == ["ds"]
+
+
+def test_synth_names_its_out_folder_and_counts_one_scene(tmp_path):
+    """`data synth --n 1 --out scenes` (README's first command) said "generating ... (1 scenes of ...) in
+    .scenes.1a2b3c4d.tmpdir": the hidden temporary instead of the folder asked for, and a plural for one scene."""
+    from cli_helpers import assert_ok, run_cli_in_process
+
+    out = tmp_path / "scenes"
+    res = run_cli_in_process("data", "synth", "--n", "1", "--size", "16", "--seed", "3", "--split", "heldout",
+                             "--out", str(out), "--no-progress")
+    assert_ok(res)
+    said = [line for line in res.stderr.splitlines() if line.startswith("generating the synthetic")]
+    assert said == [f"generating the synthetic heldout set (1 scene of 16x16x31, held-out sources: nist-philips, "
+                    f"rawtoaces) in {out}"], res.stderr
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["scenes"]

@@ -356,8 +356,10 @@ def generate_dataset(out: str | os.PathLike, n: int, size: int, seed: int = 0, b
     bands = bands or Bands.paper()
     holdout = parse_holdout(holdout_sources)
     out, params = _checked_output(out, n, size, seed, bands, holdout, split, room_fix)
-    log.info("generating the synthetic %s set (%d scenes of %dx%dx%d, held-out sources: %s) in %s", split, n, size,
-             size, len(bands), ", ".join(holdout) or "none", out)
+    from hsicam.io import output_name
+
+    log.info("generating the synthetic %s set (%d scene%s of %dx%dx%d, held-out sources: %s) in %s", split, n,
+             "" if n == 1 else "s", size, size, len(bands), ", ".join(holdout) or "none", output_name(out))
     lib = spectral_library(bands, holdout, split)
     with _folder_removed_if_failed(out):  # scenes written stay; a rerun rewrites all, the same bytes
         return _generate_into(out, n, size, seed, bands, lib, params, holdout, split, progress)
