@@ -133,7 +133,7 @@ def cmd_psf(args: argparse.Namespace) -> int:
     with atomic_output(out, overwrite=True, marker={"command": "psf"}) as tmp:
         info = write_psf_outputs(camera, tmp)
         write_json(tmp / "psf.json", {**info, "source": source})
-        with atomic_open(tmp / "config.yaml") as fh:
+        with atomic_open(tmp / "config.yaml", encoding="utf-8") as fh:
             fh.write(dump_yaml(cfg))
     e = np.asarray(info["energy_in_kernel"])
     what = (f"{run_label(args.run)}'s {'measured PSFs' if camera.kind == 'measured_psf' else 'trained camera'}" if args.run
@@ -237,7 +237,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
             "seed": args.seed,
             "source": source,
         })
-        with atomic_open(tmp / "config.yaml") as fh:
+        with atomic_open(tmp / "config.yaml", encoding="utf-8") as fh:
             fh.write(dump_yaml(cfg))
     if Path(args.scene).suffix.lower() == ".npy" and npy_bands(cfg.data) is None:
         # a scene made for this camera; the data readers (train, evaluate --data) take a .npy as

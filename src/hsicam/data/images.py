@@ -816,7 +816,7 @@ def read_capture(path: str | Path, corr: RawCorrection | None = None, scale: flo
         if simulated_scale is None:
             meta = path.parent / SIMULATE_JSON
             try:
-                simulated_scale = float(json.loads(meta.read_text()).get("sensor_png_scale", 1.0))
+                simulated_scale = float(json.loads(meta.read_text(encoding="utf-8")).get("sensor_png_scale", 1.0))
             except (ValueError, TypeError, AttributeError):
                 raise InputError(f"{meta}: unreadable simulate.json") from None
             if not (math.isfinite(simulated_scale) and simulated_scale > 0):  # not a --scale the user gave

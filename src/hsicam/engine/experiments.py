@@ -137,7 +137,7 @@ def is_finished(run: Path) -> bool:
     m = run / "metrics.jsonl"
     if not (m.is_file() and (run / "model.safetensors").is_file() and (run / "config.yaml").is_file()):
         return False  # (without its config.yaml a run is damaged: load_run says so)
-    lines = [x for x in m.read_text().splitlines() if x.strip()]
+    lines = [x for x in m.read_text(encoding="utf-8-sig").splitlines() if x.strip()]
     try:
         return bool(lines) and bool(json.loads(lines[-1]).get("final", False))
     except json.JSONDecodeError:

@@ -114,7 +114,7 @@ def _refresh_linear_step(run_dir: Path, consistency, keep_weights: str | None = 
         run_cfg.train.keep_weights = keep_weights
         rewrite = True
     if rewrite:
-        with atomic_open(run_dir / "config.yaml") as fh:
+        with atomic_open(run_dir / "config.yaml", encoding="utf-8") as fh:
             fh.write(dump_yaml(run_cfg))
     return changed
 

@@ -246,7 +246,7 @@ class SystemTask(Task):
         return groups
 
     def write_run_files(self, run_dir: Path) -> None:
-        with atomic_open(run_dir / "config.yaml") as fh:
+        with atomic_open(run_dir / "config.yaml", encoding="utf-8") as fh:
             fh.write(dump_yaml(self.cfg))
 
     def on_device(self, device: torch.device) -> None:
@@ -327,9 +327,9 @@ class PriorTask(Task):
         return [{"params": list(self.model.parameters()), "lr": self.settings.lr, "name": "prior"}]
 
     def write_run_files(self, run_dir: Path) -> None:
-        with atomic_open(run_dir / "config.yaml") as fh:
+        with atomic_open(run_dir / "config.yaml", encoding="utf-8") as fh:
             fh.write(dump_yaml(self.cfg))
-        with atomic_open(run_dir / "prior.yaml") as fh:
+        with atomic_open(run_dir / "prior.yaml", encoding="utf-8") as fh:
             fh.write(yaml.safe_dump(dataclasses.asdict(self.settings), sort_keys=False))
 
     def prepare_data(self) -> None:

@@ -77,7 +77,7 @@ def plot_training_curves(metrics_jsonl: str | Path, path: str | Path, loss_formu
     evaluation does, so its figures differ from the evaluation's). ``loss_formula``
     (the run's :meth:`hsicam.config.TrainConfig.loss_formula`) titles the loss panel; the logged loss is
     the whole training loss, whatever its terms."""
-    recs = [nan_for_null(json.loads(x)) for x in Path(metrics_jsonl).read_text().splitlines() if x.strip()]
+    recs = [nan_for_null(json.loads(x)) for x in Path(metrics_jsonl).read_text(encoding="utf-8-sig").splitlines() if x.strip()]
     tr = [(r["step"], r["train_loss"]) for r in recs if "train_loss" in r]
     va = [(r["step"], r["val_psnr"], r["val_ssim"]) for r in recs if "val_psnr" in r and not r.get("final")]
     fig, (a0, a1) = plt.subplots(1, 2, figsize=(10, 3.5))

@@ -520,7 +520,7 @@ class CheckpointManager:
         if tag == "last":
             return self.state() or {}
         try:
-            return json.loads((d / "state.json").read_text())
+            return json.loads((d / "state.json").read_text(encoding="utf-8"))
         except (OSError, ValueError):
             raise InputError(f"{d / 'state.json'}: corrupt checkpoint state") from None
 
