@@ -369,8 +369,9 @@ def fit(task: Task, opts: FitOptions, run_dir: str | Path, resume: bool = False,
 
 class SoloWork:
     """Work that one rank does alone between two collectives of a DDP group (rank 0's: the run folder's checks, the
-    data, the metrics log, checkpoints, validation, the files that end a training, ``fit``'s ``then``), and the
-    agreement after it, where every rank learns whether one of them failed.
+    data, the metrics log, checkpoints, validation, the files that end a training, ``fit``'s ``then``; any rank's:
+    reading its data and a resume's checkpoint), and the agreement after it, where every rank learns whether one of
+    them failed.
 
     An error in such work used to end that rank's side of the group alone: the others, waiting in their next
     collective, died with gloo's 26-line traceback ("Connection closed by peer"), and NCCL's collectives wait for the
@@ -543,7 +544,9 @@ def _fit(task: Task, opts: FitOptions, run_dir: Path, resume: bool, lock: RunLoc
         if distributed and is_main:  # generate/cache the dataset once, on rank 0, before the others read it
             task.prepare_data()
     solo.agree(f"before the {task.what} started")
-    train_ds, val_ds = task.datasets()
+    with solo.work():  # every rank reads its data: one rank's error (a file only it reads) is told before any file is made
+        train_ds, val_ds = task.datasets()
+    solo.agree(f"before the {task.what} started")
     steps_per_epoch = len(train_ds) // t.batch_size
     if steps_per_epoch < 1:
         raise InputError(f"data.patches_per_epoch={len(train_ds)} is smaller than {task.batch_size_key}={t.batch_size}")
