@@ -174,7 +174,7 @@ def files_of(run) -> dict[str, bytes]:
 
 @pytest.mark.slow
 @pytest.mark.parametrize("failing_rank", [0, 1])
-@pytest.mark.parametrize("where", ["datasets"])
+@pytest.mark.parametrize("where", ["datasets", "load"])
 def test_any_rank_failing_alone_in_its_own_reading_ends_every_rank_in_one_line(tmp_path, cache_env, finished_run,
                                                                                where, failing_rank):
     run = tmp_path / "run"

@@ -602,6 +602,10 @@ def _fit(task: Task, opts: FitOptions, run_dir: Path, resume: bool, lock: RunLoc
                     raise InputError(f"{run_dir}: has trained {state.global_step} steps ({state.epoch} epochs), more than the "
                                      f"{total_steps} its config now asks for; a resume cannot take training back: ask for at "
                                      "least as many, or leave the length as it was; nothing was changed")
+    if resume:  # every rank read the checkpoint: one rank's failure (e.g. a file only it reads) is told before any change
+        solo.agree(f"before the {task.what} started")
+    with solo.work():
+        if resume:
             if is_main:
                 ckpt.sync_root()  # a kill between the manifest's commit and the root weights' rewrite
                 metrics.truncate_after(state.global_step, state.epoch)
