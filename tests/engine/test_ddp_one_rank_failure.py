@@ -190,3 +190,17 @@ def test_any_rank_failing_alone_in_its_own_reading_ends_every_rank_in_one_line(t
         assert files_of(run) == before
     else:  # nothing was made
         assert not run.exists()
+
+
+@pytest.mark.slow
+def test_a_signal_to_rank_0_alone_cutting_the_last_validation_stops_every_rank(tmp_path, cache_env):
+    run = tmp_path / "run"
+    ranks = run_two_ranks(tmp_path, cache_env, run, "validation_cut", 0)
+    code = str(128 + signal.SIGTERM)
+    assert ranks[0] == [code, "False 0", f"hsicam: {run}: training stopped at step 4 of 4 (SIGTERM); the checkpoint of "
+                                         f"step 4 is saved; go on with: hsicam train --out {run} --resume"]
+    assert ranks[1] == [code, "False 0"]  # (the line once, from rank 0)
+    from hsicam.runs.checkpoint import CheckpointManager
+
+    state = CheckpointManager(run).state()  # the epoch uncounted: a resume validates it again
+    assert (state["global_step"], state["epoch"]) == (4, 0)

@@ -821,10 +821,14 @@ def _fit(task: Task, opts: FitOptions, run_dir: Path, resume: bool, lock: RunLoc
                 state = ended
             if is_main and not solo.held:  # one commit: the manifest names it last (and best); the root weights follow
                 ckpt.save(model, optimizer, state.to_dict(), bands, tuple(tags), meta)
-        solo.agree(f"at step {state.global_step} of the {task.what}")
+        # every rank learns whether rank 0's validation was cut (by a signal that may have reached rank 0 alone), and
+        # by which signal: they stop together below (a rank 0 that stopped alone left the others in a collective)
+        cut_code = solo.reduce([stop.exit_code() if cut else 0], f"at step {state.global_step} of the {task.what}")[0]
+        if cut_code and not cut:
+            state, cut = ended, True
         if cut and not (state.epoch + 1 < t.epochs and state.global_step < total_steps):
             # the last epoch's validation, cut only by the loader's workers ending: unfinished, not finished
-            stop_here(stop.describe(stop.exit_code()), stop.exit_code(), saved=True)
+            stop_here(stop.describe(cut_code), cut_code, saved=True)
         if state.epoch + cut < t.epochs and state.global_step < total_steps:
             asked = _agreed_stop(stop, (time.perf_counter() - t_start) / max(steps_done, 1), solo,
                                  f"at step {state.global_step} of the {task.what}")
