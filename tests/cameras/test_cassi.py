@@ -150,7 +150,7 @@ def test_each_dd_band_sees_the_aperture_shifted_by_its_dispersion():
     assert (y != 0).sum() <= 1
 
 
-def test_float32_and_float64_agree():
+def test_sd_cassi_float32_and_float64_agree():
     c64, c32 = camera("sd_cassi"), camera("sd_cassi", dtype=torch.float32)
     x = torch.rand(1, 5, 16, 16, dtype=torch.float64)
     torch.testing.assert_close(c32.A(x.float()).double(), c64.A(x), rtol=1e-5, atol=1e-6)

@@ -21,9 +21,10 @@ import pytest
 import torch
 
 from cli_helpers import assert_clean_error, final_error_line, run_cli_in_process
-from hsicam.data.measured_psf import import_for_camera
+from hsicam.data.measured_psf import import_for_camera, import_psf_dir
 from hsicam.errors import InputError
 from hsicam.io import write_json
+from hsicam.spectral import Bands
 
 LOGGER = "hsicam.data.measured_psf"
 
@@ -319,3 +320,94 @@ def test_a_cfa_period_within_the_memory_is_built():
 
     doe_camera.check_cfa_memory(15, 31)
     doe_camera.check_cfa_memory(10**12, 31, enabled=False)  # no CFA: κ = 1, no weights
+
+
+ONE_BAND = Bands(np.array([500.0]), np.array([10.0]))
+
+
+def _spot(size: int = 31) -> np.ndarray:
+    img = np.zeros((size, size))
+    img[size // 2, size // 2] = 1.0
+    img[size // 2 - 1:size // 2 + 2, size // 2 - 1:size // 2 + 2] += 0.1
+    return img
+
+
+def _psf_dir(d: Path, meta, files: dict[str, np.ndarray]) -> Path:
+    d.mkdir()
+    if meta is not None:
+        (d / "psf.json").write_text(meta if isinstance(meta, str) else json.dumps(meta))
+    for name, arr in files.items():
+        np.save(d / name, arr)
+    return d
+
+
+# --- data/measured_psf.py: every refusal of a PSF folder is one clear line naming what is wrong -----------------
+
+STACK = np.stack([_spot()] * 2)
+
+
+@pytest.mark.parametrize("meta, files, text", [
+    ("[1, 2]", {"psf_500nm.npy": _spot()}, "{d}/psf.json: must be a JSON object"),
+    ({"axis_px": [1]}, {"psf_500nm.npy": _spot()}, "{d}/psf.json: axis_px must be [row, col], got [1]"),
+    ({"wavelength_tolerance_nm": "x"}, {"psf_500nm.npy": _spot()}, "{d}/psf.json: wavelength_tolerance_nm must be a number"),
+    # JSON booleans are no numbers (Python counts them as ints: [true, false] was read as the axis (1, 0))
+    ({"axis_px": [True, False]}, {"psf_500nm.npy": _spot()}, "{d}/psf.json: axis_px must be [row, col], got [True, False]"),
+    ({"wavelength_tolerance_nm": True}, {"psf_500nm.npy": _spot()}, "{d}/psf.json: wavelength_tolerance_nm must be a number"),
+    ({"bands_nm": "abc"}, {"psf.npy": STACK}, "{d}/psf.json: bands_nm must be a list of numbers"),
+    ({"bands_nm": [500, 510, 520]}, {"psf.npy": STACK},
+     "{d}/psf.npy: expected a (C, H, W) stack with C = 3 (bands_nm), got shape (2, 31, 31)"),
+    ({"bands_nm": [500, 510]}, {"psf.npy": STACK > 0}, "{d}/psf.npy: unsupported data type bool"),
+    ({"bands_nm": [500, 510]}, {"psf.npy": np.zeros((2, 0, 5))}, "{d}/psf.npy: unusable PSF stack shape (2, 0, 5)"),
+    (None, {"psf.npy": STACK}, "{d}/psf.npy: a PSF stack needs its wavelengths: bands_nm in {d}/psf.json"),
+    (None, {"psf_500nm.npy": _spot(), "b_500nm.npy": _spot()}, "{d}: two PSF images name the same wavelength"),
+    ({"centre": "middle"}, {"psf_500nm.npy": _spot()},
+     "{d}: PSF centre must be one of centroid, peak, axis, centroid_per_band, peak_per_band, got 'middle'"),
+    ({"centre": "axis"}, {"psf_500nm.npy": _spot()}, "{d}: PSF centre 'axis' needs axis_px [row, col] in psf.json"),
+    ({"normalize": "max"}, {"psf_500nm.npy": _spot()}, "{d}: PSF normalize must be 'sum' or 'none', got 'max'"),
+    ({"wavelength_tolerance_nm": 0}, {"psf_500nm.npy": _spot()}, "{d}: wavelength_tolerance_nm must be positive"),
+    ({"background": "nan"}, {"psf_500nm.npy": _spot()},
+     "{d}/psf_500nm.npy (500 nm): PSF background must be finite, got 'nan'"),
+    ({"background": "median"}, {"psf_500nm.npy": _spot()},
+     "{d}/psf_500nm.npy (500 nm): PSF background must be 'none', 'border' or a number, got 'median'"),
+    ({"background": "border"}, {"psf_500nm.npy": _spot()[:3, :3]},
+     "{d}/psf_500nm.npy (500 nm): PSF image of 3×3 px is too small for border background estimation"),
+    ({"background": 5}, {"psf_500nm.npy": _spot()},
+     "{d}/psf_500nm.npy (500 nm): PSF image has no positive signal (after background subtraction)"),
+])
+def test_psf_folder_refusals_name_the_problem(tmp_path, meta, files, text):
+    d = _psf_dir(tmp_path / "psfs", meta, files)
+    with pytest.raises(InputError) as exc:
+        import_psf_dir(d, ONE_BAND, 5e-6, 15, pitch_um=5.0)
+    assert str(exc.value) == text.format(d=d)
+
+
+def test_psf_pitch_unknown_and_mixed_sizes_under_a_common_centre(tmp_path):
+    d = _psf_dir(tmp_path / "a", {}, {"psf_500nm.npy": _spot()})
+    with pytest.raises(InputError) as exc:
+        import_psf_dir(d, ONE_BAND, 5e-6, 15)
+    assert str(exc.value) == (f"{d}: the measured PSFs' pixel pitch is unknown: put pixel_pitch_um in psf.json or pass "
+                              "--psf-pitch-um")
+    two = Bands(np.array([500.0, 510.0]), np.array([10.0, 10.0]))
+    d = _psf_dir(tmp_path / "b", {"centre": "centroid"}, {"psf_500nm.npy": _spot(31), "psf_510nm.npy": _spot(21)})
+    with pytest.raises(InputError) as exc:
+        import_psf_dir(d, two, 5e-6, 15, pitch_um=5.0)
+    assert str(exc.value) == (f"{d}: PSF images have different sizes [(21, 21), (31, 31)]; a common centre needs one "
+                              "frame (use centre: centroid_per_band or axis in psf.json)")
+
+
+def test_a_coarser_psf_pitch_spreads_each_sample_over_its_pixel(tmp_path, caplog):
+    """Sampled at twice the camera's pitch, a one-sample PSF centred on the axis is a 10 µm square of light over 5 µm
+    pixels: per axis half on the centre pixel and a quarter on each neighbour (area resampling), with the warning
+    that says so."""
+    img = np.zeros((31, 31))
+    img[15, 15] = 1.0
+    d = _psf_dir(tmp_path / "p", {"centre": "axis", "axis_px": [15.0, 15.0]}, {"psf_500nm.npy": img})
+    caplog.set_level("WARNING")
+    psf = import_psf_dir(d, ONE_BAND, 5e-6, 15, pitch_um=10.0).psf
+    assert "coarser than the camera's 5 µm pixels" in caplog.text
+    k = np.asarray(psf[0])
+    assert k.sum() == pytest.approx(1.0, abs=1e-9)
+    one_axis = np.array([0.25, 0.5, 0.25])
+    expected = np.zeros((15, 15))
+    expected[6:9, 6:9] = np.outer(one_axis, one_axis)
+    np.testing.assert_allclose(k, expected, atol=1e-6)

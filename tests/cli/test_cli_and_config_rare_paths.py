@@ -1,10 +1,9 @@
-"""Lines of the core modules (data, config, cli, solvers, spectral) that the default suite never ran: each test runs
+"""Lines of the configuration and the command line (config, cli) that the default suite never ran: each test runs
 one and checks what it does against an independent reference (the exact line a user sees, a cube read back)."""
 
 from __future__ import annotations
 
 import json
-from pathlib import Path
 
 import h5py
 import numpy as np
@@ -13,99 +12,7 @@ import yaml
 
 from cli_helpers import assert_ok, error_line, run_cli_in_process
 from hsicam.config import BandsConfig, ChoiConfig, ConfigError, TrainConfig, load_config
-from hsicam.data.measured_psf import import_psf_dir
 from hsicam.errors import InputError
-from hsicam.spectral import Bands
-
-ONE_BAND = Bands(np.array([500.0]), np.array([10.0]))
-
-
-def _spot(size: int = 31) -> np.ndarray:
-    img = np.zeros((size, size))
-    img[size // 2, size // 2] = 1.0
-    img[size // 2 - 1:size // 2 + 2, size // 2 - 1:size // 2 + 2] += 0.1
-    return img
-
-
-def _psf_dir(d: Path, meta, files: dict[str, np.ndarray]) -> Path:
-    d.mkdir()
-    if meta is not None:
-        (d / "psf.json").write_text(meta if isinstance(meta, str) else json.dumps(meta))
-    for name, arr in files.items():
-        np.save(d / name, arr)
-    return d
-
-
-# --- data/measured_psf.py: every refusal of a PSF folder is one clear line naming what is wrong -----------------
-
-STACK = np.stack([_spot()] * 2)
-
-
-@pytest.mark.parametrize("meta, files, text", [
-    ("[1, 2]", {"psf_500nm.npy": _spot()}, "{d}/psf.json: must be a JSON object"),
-    ({"axis_px": [1]}, {"psf_500nm.npy": _spot()}, "{d}/psf.json: axis_px must be [row, col], got [1]"),
-    ({"wavelength_tolerance_nm": "x"}, {"psf_500nm.npy": _spot()}, "{d}/psf.json: wavelength_tolerance_nm must be a number"),
-    # JSON booleans are no numbers (Python counts them as ints: [true, false] was read as the axis (1, 0))
-    ({"axis_px": [True, False]}, {"psf_500nm.npy": _spot()}, "{d}/psf.json: axis_px must be [row, col], got [True, False]"),
-    ({"wavelength_tolerance_nm": True}, {"psf_500nm.npy": _spot()}, "{d}/psf.json: wavelength_tolerance_nm must be a number"),
-    ({"bands_nm": "abc"}, {"psf.npy": STACK}, "{d}/psf.json: bands_nm must be a list of numbers"),
-    ({"bands_nm": [500, 510, 520]}, {"psf.npy": STACK},
-     "{d}/psf.npy: expected a (C, H, W) stack with C = 3 (bands_nm), got shape (2, 31, 31)"),
-    ({"bands_nm": [500, 510]}, {"psf.npy": STACK > 0}, "{d}/psf.npy: unsupported data type bool"),
-    ({"bands_nm": [500, 510]}, {"psf.npy": np.zeros((2, 0, 5))}, "{d}/psf.npy: unusable PSF stack shape (2, 0, 5)"),
-    (None, {"psf.npy": STACK}, "{d}/psf.npy: a PSF stack needs its wavelengths: bands_nm in {d}/psf.json"),
-    (None, {"psf_500nm.npy": _spot(), "b_500nm.npy": _spot()}, "{d}: two PSF images name the same wavelength"),
-    ({"centre": "middle"}, {"psf_500nm.npy": _spot()},
-     "{d}: PSF centre must be one of centroid, peak, axis, centroid_per_band, peak_per_band, got 'middle'"),
-    ({"centre": "axis"}, {"psf_500nm.npy": _spot()}, "{d}: PSF centre 'axis' needs axis_px [row, col] in psf.json"),
-    ({"normalize": "max"}, {"psf_500nm.npy": _spot()}, "{d}: PSF normalize must be 'sum' or 'none', got 'max'"),
-    ({"wavelength_tolerance_nm": 0}, {"psf_500nm.npy": _spot()}, "{d}: wavelength_tolerance_nm must be positive"),
-    ({"background": "nan"}, {"psf_500nm.npy": _spot()},
-     "{d}/psf_500nm.npy (500 nm): PSF background must be finite, got 'nan'"),
-    ({"background": "median"}, {"psf_500nm.npy": _spot()},
-     "{d}/psf_500nm.npy (500 nm): PSF background must be 'none', 'border' or a number, got 'median'"),
-    ({"background": "border"}, {"psf_500nm.npy": _spot()[:3, :3]},
-     "{d}/psf_500nm.npy (500 nm): PSF image of 3×3 px is too small for border background estimation"),
-    ({"background": 5}, {"psf_500nm.npy": _spot()},
-     "{d}/psf_500nm.npy (500 nm): PSF image has no positive signal (after background subtraction)"),
-])
-def test_psf_folder_refusals_name_the_problem(tmp_path, meta, files, text):
-    d = _psf_dir(tmp_path / "psfs", meta, files)
-    with pytest.raises(InputError) as exc:
-        import_psf_dir(d, ONE_BAND, 5e-6, 15, pitch_um=5.0)
-    assert str(exc.value) == text.format(d=d)
-
-
-def test_psf_pitch_unknown_and_mixed_sizes_under_a_common_centre(tmp_path):
-    d = _psf_dir(tmp_path / "a", {}, {"psf_500nm.npy": _spot()})
-    with pytest.raises(InputError) as exc:
-        import_psf_dir(d, ONE_BAND, 5e-6, 15)
-    assert str(exc.value) == (f"{d}: the measured PSFs' pixel pitch is unknown: put pixel_pitch_um in psf.json or pass "
-                              "--psf-pitch-um")
-    two = Bands(np.array([500.0, 510.0]), np.array([10.0, 10.0]))
-    d = _psf_dir(tmp_path / "b", {"centre": "centroid"}, {"psf_500nm.npy": _spot(31), "psf_510nm.npy": _spot(21)})
-    with pytest.raises(InputError) as exc:
-        import_psf_dir(d, two, 5e-6, 15, pitch_um=5.0)
-    assert str(exc.value) == (f"{d}: PSF images have different sizes [(21, 21), (31, 31)]; a common centre needs one "
-                              "frame (use centre: centroid_per_band or axis in psf.json)")
-
-
-def test_a_coarser_psf_pitch_spreads_each_sample_over_its_pixel(tmp_path, caplog):
-    """Sampled at twice the camera's pitch, a one-sample PSF centred on the axis is a 10 µm square of light over 5 µm
-    pixels: per axis half on the centre pixel and a quarter on each neighbour (area resampling), with the warning
-    that says so."""
-    img = np.zeros((31, 31))
-    img[15, 15] = 1.0
-    d = _psf_dir(tmp_path / "p", {"centre": "axis", "axis_px": [15.0, 15.0]}, {"psf_500nm.npy": img})
-    caplog.set_level("WARNING")
-    psf = import_psf_dir(d, ONE_BAND, 5e-6, 15, pitch_um=10.0).psf
-    assert "coarser than the camera's 5 µm pixels" in caplog.text
-    k = np.asarray(psf[0])
-    assert k.sum() == pytest.approx(1.0, abs=1e-9)
-    one_axis = np.array([0.25, 0.5, 0.25])
-    expected = np.zeros((15, 15))
-    expected[6:9, 6:9] = np.outer(one_axis, one_axis)
-    np.testing.assert_allclose(k, expected, atol=1e-6)
 
 
 # --- config.py -----------------------------------------------------------------------------------------------------
@@ -269,47 +176,6 @@ def test_reconstruct_options_that_change_nothing_say_so_and_change_nothing(no_cf
     res = run_cli_in_process("reconstruct", str(cap), "--run", str(no_cfa_run), "--out", str(tmp_path / "c.tif"))
     assert error_line(res) == f"hsicam: error: {tmp_path / 'c.tif'}: output must end in .h5 (HDF5) or .hdr (ENVI)"
     assert not list(tmp_path.glob("c.*")) and not list(tmp_path.glob("c_*"))
-
-
-# --- spectral / solvers / datasets ---------------------------------------------------------------------------------
-
-def test_bands_from_dict_missing_key_and_comparison_with_another_type():
-    with pytest.raises(InputError) as exc:
-        Bands.from_dict({"centers_nm": [500.0]})
-    assert str(exc.value) == "Bands: missing key 'fwhm_nm'"
-    assert (Bands.paper() == "paper") is False and (Bands.paper() != 3) is True
-
-
-def test_solver_setting_refusals(tiny_camera):
-    import torch
-
-    from hsicam.solvers.desci import desci_settings
-    from hsicam.solvers.gaptv import gap_tv
-
-    with pytest.raises(InputError) as exc:
-        desci_settings(sigmas=[1.0, 2.0], iterations=[3])
-    assert str(exc.value) == "DeSCI: 2 sigmas but 1 iteration counts"
-    with pytest.raises(InputError) as exc:
-        desci_settings(patch=0)
-    assert str(exc.value) == "DeSCI: patch, step, group, match_every and chunk must be >= 1, search >= 0"
-    cam = tiny_camera()
-    h, w = cam.sensor_size((32, 32))
-    with pytest.raises(InputError) as exc:
-        gap_tv(cam, torch.zeros(1, 1, h, w), iterations=-1)
-    assert str(exc.value) == "iterations must be >= 0, got -1"
-
-
-def test_scene_and_patch_dataset_refusals(tmp_path):
-    from hsicam.data.datasets import PatchDataset, SceneDataset
-
-    with pytest.raises(InputError) as exc:
-        SceneDataset([], Bands.paper())
-    assert str(exc.value) == "SceneDataset: no scenes"
-    for kwargs, text in (({"patch_px": 0}, "PatchDataset: need patch_px >= 1 and margin_px >= 0, got 0, 0"),
-                         ({"patch_px": 8, "patches_per_epoch": 0}, "PatchDataset: patches_per_epoch must be >= 1, got 0")):
-        with pytest.raises(InputError) as exc:
-            PatchDataset(None, **kwargs)
-        assert str(exc.value) == text
 
 
 def test_experiment_refuses_a_folder_that_holds_something_else(tmp_path):

@@ -152,7 +152,7 @@ def test_an_unfinished_spectral_prior_as_out_is_never_replaced(runs, tmp_path):
     assert sorted((p.name, p.read_bytes()) for p in prior.iterdir()) == before
 
 
-def test_a_device_this_machine_lacks_is_a_usage_error(tmp_path):
+def test_reconstruct_on_a_cuda_index_this_machine_lacks_gives_device_problems_reason(tmp_path):
     from hsicam.devices import device_problem
 
     problem = device_problem("cuda:99")  # no machine has 100 GPUs: the reason this one gives

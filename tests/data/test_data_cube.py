@@ -387,5 +387,5 @@ def test_conform_bands_refuses_only_extrapolation():
     assert conform_bands(x, src, Bands.from_centers([400.0, 700.0]), "s").shape == (2, 2, 3)
 
 
-def test_errors_are_hsicam_errors():
+def test_input_and_config_errors_are_hsicam_errors():
     assert issubclass(InputError, HsicamError) and issubclass(ConfigError, HsicamError)

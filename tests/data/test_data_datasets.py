@@ -418,3 +418,16 @@ def test_a_window_one_pixel_past_the_edge_of_a_windowed_scene_is_refused(tmp_pat
     for y, x in ((4, 3), (5, 2)):
         with pytest.raises(InputError, match=r"window 8x8 at \(%d, %d\) is outside the cube" % (y, x)):
             ds.window(0, y, x, 8, 8)
+
+
+def test_scene_and_patch_dataset_refusals(tmp_path):
+    from hsicam.data.datasets import PatchDataset, SceneDataset
+
+    with pytest.raises(InputError) as exc:
+        SceneDataset([], Bands.paper())
+    assert str(exc.value) == "SceneDataset: no scenes"
+    for kwargs, text in (({"patch_px": 0}, "PatchDataset: need patch_px >= 1 and margin_px >= 0, got 0, 0"),
+                         ({"patch_px": 8, "patches_per_epoch": 0}, "PatchDataset: patches_per_epoch must be >= 1, got 0")):
+        with pytest.raises(InputError) as exc:
+            PatchDataset(None, **kwargs)
+        assert str(exc.value) == text

@@ -369,6 +369,6 @@ def test_cli_on_corrupt_runs_and_scenes(fab_run, originals, tmp_path):
     _no_outputs(out)
 
 
-def test_errors_are_hsicam_errors():
+def test_input_error_is_an_hsicam_error():
     """The CLI prints HsicamError as one line; InputError is one."""
     assert issubclass(InputError, HsicamError)

@@ -84,3 +84,41 @@ def test_train_bf16_on_mps_where_torch_cannot_is_refused_before_any_work(monkeyp
     assert str(err.value) == (f"train.bf16 on mps: torch {torch.__version__} cannot autocast the network there in "
                               f"bfloat16 ({TORCH_24}); set train.bf16=false to train in float32")
     assert not run.exists() and not list(cache_env.iterdir())  # no run folder, no scene generated
+
+
+# --------------------------------------------------------------------------------------------
+# devices.py
+# --------------------------------------------------------------------------------------------
+def test_dist_env_reads_rank_world_and_local_rank(monkeypatch):
+    from hsicam.devices import dist_env
+
+    for name in ("RANK", "WORLD_SIZE", "LOCAL_RANK"):
+        monkeypatch.delenv(name, raising=False)
+    assert dist_env() == (0, 1, 0)
+    monkeypatch.setenv("RANK", "5")
+    monkeypatch.setenv("WORLD_SIZE", "8")
+    monkeypatch.setenv("LOCAL_RANK", "1")
+    assert dist_env() == (5, 8, 1)
+
+
+def test_a_cuda_index_beyond_the_machines_devices_is_named(monkeypatch):
+    import torch
+
+    from hsicam.devices import device_problem
+
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
+    monkeypatch.setattr(torch.cuda, "device_count", lambda: 2)
+    assert device_problem("cuda:1") is None and device_problem("cuda") is None
+    assert device_problem("cuda:2") == "this machine has 2 CUDA device(s), cuda:0 to cuda:1"
+
+
+def test_mps_without_an_mps_device_is_refused(monkeypatch):
+    import torch
+
+    from hsicam.devices import device_problem
+
+    monkeypatch.setattr(torch.backends.mps, "is_available", lambda: False)
+    assert device_problem("mps") == "no MPS device is available here; use cpu"
+    assert device_problem("cpu") is None
+    assert device_problem("meta") == "hsicam runs on cpu, cuda or mps"
+    assert device_problem("banana") == "unknown device; use cpu, cuda, cuda:N or mps"

@@ -580,3 +580,70 @@ def test_a_set_aside_output_is_not_restored_over_one_in_its_place(tmp_path):
     (tmp_path / "out").rmdir()
     assert restore_set_aside(old) is True
     assert (tmp_path / "out" / "previous.txt").read_text() == "old" and not old.exists()
+
+
+# --------------------------------------------------------------------------------------------
+# io.py: a folder's disk error, derived outputs, the list of a user's files
+# --------------------------------------------------------------------------------------------
+def test_a_full_disk_while_a_folder_is_written_names_the_folder_and_keeps_its_errno(tmp_path):
+    import errno
+
+    from hsicam.io import atomic_output
+
+    out = tmp_path / "eval"
+    with pytest.raises(OSError) as exc:
+        with atomic_output(out):
+            raise OSError(errno.ENOSPC, "No space left on device")  # as a write() reports it: no file named
+    assert (exc.value.errno, exc.value.strerror, exc.value.filename) == (errno.ENOSPC, "No space left on device", str(out))
+    assert not out.exists() and list(tmp_path.iterdir()) == []
+    # an error that is not the disk's and names no file is left as it was: the folder is not its cause
+    with pytest.raises(OSError) as exc:
+        with atomic_output(out):
+            raise OSError(errno.EACCES, "Permission denied")
+    assert (exc.value.errno, exc.value.filename) == (errno.EACCES, None)
+
+
+def _report_folder(folder, listed, present):
+    """``folder/report/`` as ``hsicam report`` leaves it: its marker lists ``listed``; ``present`` files exist."""
+    import json
+
+    report = folder / "report"
+    report.mkdir(parents=True)
+    for name in present:
+        (report / name).write_text("x")
+    (report / ".complete").write_text(json.dumps({"complete": True, "command": "report", "files": listed}))
+    return report
+
+
+def test_clearing_the_derived_report_refuses_one_holding_a_users_file_and_removes_nothing(tmp_path):
+    from hsicam.errors import InputError
+    from hsicam.io import clear_derived
+
+    report = _report_folder(tmp_path / "demo", ["index.html"], ["index.html", "my_notes.txt"])
+    with pytest.raises(InputError) as exc:
+        clear_derived(tmp_path / "demo")
+    assert str(exc.value) == (f"{report}: holds my_notes.txt, which hsicam report did not write; it is made from "
+                              f"{tmp_path / 'demo'}'s results and would be removed as out of date: move them")
+    assert sorted(p.name for p in report.iterdir()) == [".complete", "index.html", "my_notes.txt"]
+    # one holding only what its marker lists is removed
+    (report / "my_notes.txt").unlink()
+    assert clear_derived(tmp_path / "demo") == [report] and not report.exists()
+
+
+def test_replacing_a_folder_with_seven_unlisted_files_names_five_and_counts_the_rest(tmp_path):
+    import json
+
+    from hsicam.errors import InputError
+    from hsicam.io import check_replaceable
+
+    out = tmp_path / "eval"
+    out.mkdir()
+    (out / "metrics.json").write_text("{}")
+    (out / ".complete").write_text(json.dumps({"complete": True, "command": "evaluate", "files": ["metrics.json"]}))
+    names = [f"mine_{i}.txt" for i in range(7)]
+    for n in names:
+        (out / n).write_text("x")
+    with pytest.raises(InputError) as exc:
+        check_replaceable(out, True, "evaluate")
+    assert str(exc.value) == (f"{out}: holds {', '.join(names[:5])} and 2 more, which hsicam evaluate did not write; "
+                              "choose another folder or move them")

@@ -4,6 +4,7 @@ reference, the residual and error guarantees, GAP on DD-CASSI, exact tiling, con
 from __future__ import annotations
 
 import dataclasses
+import math
 from pathlib import Path
 
 import numpy as np
@@ -615,3 +616,33 @@ def test_kind_landweber_takes_its_own_steps_and_ignores_landweber_after(tiny_con
     assert a.context_px == b.context_px
     with torch.no_grad():
         torch.testing.assert_close(a.reconstruct(sensor), b.reconstruct(sensor))
+
+
+# --------------------------------------------------------------------------------------------
+# models/consistency.py
+# --------------------------------------------------------------------------------------------
+def test_steps_with_the_prior_carry_fistas_momentum_schedule(tiny_camera):
+    """With a vanishing TV weight the prox is the identity, and the steps with the prior are plain Landweber steps L
+    taken from z_k = x_k + β_k (x_k − x_{k−1}), β_k = min(cap, (t_k − 1) / t_{k+1}), t_1 = 1,
+    t_{k+1} = (1 + √(1 + 4 t_k²)) / 2 (Beck & Teboulle): rebuilt here from single plain steps."""
+    from hsicam.models.consistency import TV_MOMENTUM_MAX, consistency_step
+
+    cam = tiny_camera("camera.doe.init=random", dtype=torch.float64)
+    g = torch.Generator().manual_seed(0)
+    with torch.no_grad():
+        snap = cam.snapshot()
+        truth = torch.rand(1, len(cam.bands), 12, 12, generator=g, dtype=torch.float64)
+        y = snap.A(truth)
+        x0 = torch.rand(1, len(cam.bands), 12, 12, generator=g, dtype=torch.float64)
+
+        def plain(z):
+            return consistency_step(snap, y, z, extend=False, psf_energy=1.0)
+
+        got = consistency_step(snap, y, x0, iterations=4, extend=False, psf_energy=1.0, tv_weight=1e-12)
+        x, prev, t = x0, x0, 1.0
+        for _ in range(4):
+            t_next = (1 + math.sqrt(1 + 4 * t * t)) / 2
+            beta = min(TV_MOMENTUM_MAX, (t - 1) / t_next)
+            x, prev, t = plain(x + beta * (x - prev)), x, t_next
+    assert (x - plain(plain(plain(plain(x0))))).abs().max() > 1e-4  # the momentum matters here
+    torch.testing.assert_close(got, x, rtol=0, atol=1e-9)

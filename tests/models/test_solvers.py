@@ -890,3 +890,22 @@ def test_compare_gives_the_cassi_rows_the_border_of_its_own_doe_camera(monkeypat
     with pytest.raises(Handed):
         experiments.run_experiment("compare", "tiny", tmp_path / "out")
     assert handed == [expected]
+
+
+def test_solver_setting_refusals(tiny_camera):
+    import torch
+
+    from hsicam.solvers.desci import desci_settings
+    from hsicam.solvers.gaptv import gap_tv
+
+    with pytest.raises(InputError) as exc:
+        desci_settings(sigmas=[1.0, 2.0], iterations=[3])
+    assert str(exc.value) == "DeSCI: 2 sigmas but 1 iteration counts"
+    with pytest.raises(InputError) as exc:
+        desci_settings(patch=0)
+    assert str(exc.value) == "DeSCI: patch, step, group, match_every and chunk must be >= 1, search >= 0"
+    cam = tiny_camera()
+    h, w = cam.sensor_size((32, 32))
+    with pytest.raises(InputError) as exc:
+        gap_tv(cam, torch.zeros(1, 1, h, w), iterations=-1)
+    assert str(exc.value) == "iterations must be >= 0, got -1"

@@ -211,3 +211,10 @@ def test_unknown_material_and_missing_file(tmp_path):
         get_material("unobtainium")
     with pytest.raises(InputError):
         get_material(str(tmp_path / "missing.csv"))
+
+
+def test_bands_from_dict_missing_key_and_comparison_with_another_type():
+    with pytest.raises(InputError) as exc:
+        Bands.from_dict({"centers_nm": [500.0]})
+    assert str(exc.value) == "Bands: missing key 'fwhm_nm'"
+    assert (Bands.paper() == "paper") is False and (Bands.paper() != 3) is True

@@ -264,3 +264,42 @@ def test_all_metrics_sam_is_undefined_only_for_a_black_truth_and_the_worst_for_a
         assert math.isfinite(m[name][1]), name  # the black truth estimated exactly: a finite (floored) score
     for name in ("ergas", "rmse"):
         assert m[name][0] == math.inf, name
+
+
+# --------------------------------------------------------------------------------------------
+# metrics.py
+# --------------------------------------------------------------------------------------------
+def test_sam_breakdown_edges_count_bright_pixels_only():
+    """``sam_breakdown``'s ``edges`` and ``flat`` are parts of the bright pixels: closed-form angles θ per pixel (two
+    bands rotated by θ), regions rebuilt with numpy from the documented definitions (band mean below ``dark_level``;
+    central-difference gradient of the band mean above its 0.8 quantile)."""
+    from hsicam.metrics import sam_breakdown
+
+    rng = np.random.default_rng(4)
+    h = w = 24
+    level = rng.uniform(0.0, 0.03, size=(h, w))
+    a = rng.uniform(0.1, 1.4, size=(h, w))
+    theta = rng.uniform(0.0, 0.5, size=(h, w))
+    truth = np.stack([level * np.cos(a), level * np.sin(a)])
+    est = np.stack([level * np.cos(a + theta), level * np.sin(a + theta)])
+    out = sam_breakdown(torch.from_numpy(est)[None], torch.from_numpy(truth)[None])
+    b = truth.mean(axis=0)
+    gy, gx = np.gradient(b)
+    grad = np.hypot(gx, gy)
+    edge = grad > np.quantile(grad, 0.8)
+    dark = b < 0.01
+    assert (edge & dark).any() and (edge & ~dark).any()  # the test has teeth
+    deg = np.degrees(theta)
+    assert out["edges"][0] == pytest.approx(deg[edge & ~dark].mean(), abs=1e-6)
+    assert out["flat"][0] == pytest.approx(deg[~edge & ~dark].mean(), abs=1e-6)
+    assert out["dark"][0] == pytest.approx(deg[dark].mean(), abs=1e-6)
+
+
+def test_sam_of_tiny_negative_spectra_is_their_true_angle():
+    """The spectral angle is scale-invariant: an estimate −1e-200 · s is at 180° from s, and 1e-200 · s at 0°
+    (float64; each spectrum is scaled by its largest magnitude before the dot product, so nothing underflows)."""
+    from hsicam.metrics import sam_map
+
+    s = torch.tensor([1.0, 2.0, 0.5], dtype=torch.float64)[None, :, None, None]
+    assert float(sam_map(-1e-200 * s, s)) == pytest.approx(180.0, abs=1e-6)
+    assert float(sam_map(1e-200 * s, s)) == pytest.approx(0.0, abs=1e-5)
