@@ -162,39 +162,6 @@ def _cubes(folder, n, bands=Bands.uniform(420.0, 720.0, 30.0), size=12, seed=0):
     return folder
 
 
-def test_a_preview_png_carries_the_sha256_of_its_pixels_and_a_changed_or_linked_one_is_foreign(tmp_path):
-    """Read back with PIL: the text chunk is "data show " + sha256(mode, size, pixels), computed here; a copy with one
-    pixel changed, or a link to a true preview, is not this module's file, and foreign_previews names every one of
-    the three names so taken."""
-    import hashlib
-
-    from matplotlib.figure import Figure
-    from PIL import Image
-
-    from hsicam.data import preview as pv
-
-    fig = Figure(figsize=(1, 1))
-    fig.add_subplot(1, 1, 1).plot([0, 1], [1, 0])
-    (png,) = pv.save_figures({pv.CONTACT_SHEET: fig}, tmp_path)
-    with Image.open(png) as im:
-        im.load()
-        digest = hashlib.sha256(f"{im.mode} {im.size}".encode() + im.tobytes()).hexdigest()
-        assert im.text[pv.PREVIEW_KEY] == f"data show {digest}"
-        changed = im.copy()
-        info = __import__("PIL.PngImagePlugin", fromlist=["PngInfo"]).PngInfo()
-        for k, v in im.text.items():
-            info.add_text(k, v)
-    assert pv.is_own_preview(png)
-    changed.putpixel((0, 0), tuple(255 - c for c in changed.getpixel((0, 0))))
-    other = tmp_path / "o"
-    other.mkdir()
-    changed.save(other / pv.SPECTRAL_GAMUT, format="PNG", pnginfo=info)  # the old mark, other pixels
-    (other / pv.MEAN_SPECTRA).symlink_to(png)
-    assert not pv.is_own_preview(other / pv.SPECTRAL_GAMUT) and not pv.is_own_preview(other / pv.MEAN_SPECTRA)
-    assert pv.foreign_previews(other) == [pv.MEAN_SPECTRA, pv.SPECTRAL_GAMUT]
-    assert pv.foreign_previews(tmp_path) == []
-
-
 def test_common_grid_is_the_best_range_by_brute_force():
     """Against a brute force over every (first band, last band) range of the first grid: most grids covering it,
     then most bands, the earliest such range winning ties; at least min_bands bands."""

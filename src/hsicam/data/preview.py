@@ -10,8 +10,6 @@ are still visible.
 from __future__ import annotations
 
 import contextlib
-import hashlib
-import io
 import logging
 import math
 import numbers
@@ -88,57 +86,13 @@ def check_max_scenes(max_scenes: int) -> int:
 
 def save_figures(figures: dict[str, Any], out_dir: Path, dpi: int = 120) -> list[Path]:
     """Save matplotlib figures as ``out_dir/NAME``, all or none: each is drawn into a temporary file
-    (PNGs marked by :func:`_mark_preview`) and the files are renamed into place only when every one
-    was drawn. Returns their paths."""
+    and the files are renamed into place only when every one was drawn. Returns their paths."""
     with contextlib.ExitStack() as stack:
         finals = [out_dir / name for name in figures]
         for final, fig in zip(finals, figures.values()):
             tmp = stack.enter_context(atomic_path(final))
             fig.savefig(tmp, dpi=dpi, bbox_inches="tight")
-            if final.suffix.lower() == ".png":
-                _mark_preview(tmp)
     return finals
-
-
-#: PNG text key of the previews this module writes: "data show SHA256" of the image's pixels.
-PREVIEW_KEY = "hsicam-preview"
-
-
-def _pixels_sha256(im: Any) -> str:
-    return hashlib.sha256(f"{im.mode} {im.size}".encode() + im.tobytes()).hexdigest()
-
-
-def _mark_preview(png: Path) -> None:
-    """Re-save ``png`` (same pixels, same text) with a :data:`PREVIEW_KEY` text chunk holding the
-    sha256 of its pixels: the mark by which :func:`is_own_preview` knows the file, in the file itself."""
-    from PIL import Image, PngImagePlugin
-
-    im = Image.open(io.BytesIO(png.read_bytes()))
-    info = PngImagePlugin.PngInfo()
-    for key, value in im.text.items():
-        info.add_text(key, value)
-    info.add_text(PREVIEW_KEY, f"data show {_pixels_sha256(im)}")
-    im.save(png, format="PNG", pnginfo=info)
-
-
-def is_own_preview(png: Path) -> bool:
-    """True when ``png`` is a plain file that this module wrote and nobody changed since (its
-    :data:`PREVIEW_KEY` matches its pixels); False for any other file, a link or an unreadable one."""
-    from PIL import Image
-
-    if png.is_symlink() or not png.is_file():
-        return False
-    try:
-        with Image.open(png) as im:
-            return getattr(im, "text", {}).get(PREVIEW_KEY) == f"data show {_pixels_sha256(im)}"
-    except (OSError, ValueError, SyntaxError, Image.DecompressionBombError):
-        return False
-
-
-def foreign_previews(folder: Path) -> list[str]:
-    """The preview names in ``folder`` taken by something :func:`is_own_preview` does not accept."""
-    paths = [folder / n for n in (CONTACT_SHEET, MEAN_SPECTRA, SPECTRAL_GAMUT)]
-    return [p.name for p in paths if (p.exists() or p.is_symlink()) and not is_own_preview(p)]
 
 
 def write_preview(path: str | os.PathLike, out_dir: str | os.PathLike | None = None, max_scenes: int = 16,
@@ -378,6 +332,5 @@ def _gamut_figure(path: Path, scenes: list[Path], held_dir: Path | None, held_sc
     return fig
 
 
-__all__ = ["CONTACT_SHEET", "MEAN_SPECTRA", "PREVIEW_KEY", "SPECTRAL_GAMUT", "check_max_scenes", "common_grid",
-           "foreign_previews", "is_own_preview", "pixel_spectra", "preview_rgb", "save_figures", "write_preview",
-           "write_spectral_gamut"]
+__all__ = ["CONTACT_SHEET", "MEAN_SPECTRA", "SPECTRAL_GAMUT", "check_max_scenes", "common_grid", "pixel_spectra",
+           "preview_rgb", "save_figures", "write_preview", "write_spectral_gamut"]
