@@ -15,7 +15,7 @@ import math
 import numbers
 import os
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 import numpy as np
 
@@ -96,18 +96,16 @@ def save_figures(figures: dict[str, Any], out_dir: Path, dpi: int = 120) -> list
 
 
 def write_preview(path: str | os.PathLike, out_dir: str | os.PathLike | None = None, max_scenes: int = 16,
-                  heldout: str | os.PathLike | None = None,
-                  before_save: Callable[[Path], None] | None = None, npy_bands: Bands | None = None) -> list[Path]:
+                  heldout: str | os.PathLike | None = None, npy_bands: Bands | None = None) -> list[Path]:
     """Write ``contact_sheet.png``, ``mean_spectra.png`` and ``spectral_gamut.png`` for a dataset.
 
     ``path`` is a dataset folder or one cube file; ``out_dir`` defaults to the dataset folder (the
     file's folder for a single file). ``heldout``: a held-out dataset folder to compare in the
     gamut plot (default: for a cached synthetic set, its held-out companion when one exists).
     ``max_scenes`` (≥ 1) caps the scenes of each set. Every input is read and every figure drawn
-    before the first PNG is written: on an error none is written. ``before_save(out_dir)`` is called
-    then (a last check of the output folder). ``npy_bands``: the band grid of ``.npy`` cubes, which
-    carry none (the config's ``data.npy_bands``, :func:`hsicam.data.pipeline.npy_bands`; None: C bands
-    evenly over 400-700 nm). Returns their paths.
+    before the first PNG is written: on an error none is written. ``npy_bands``: the band grid of
+    ``.npy`` cubes, which carry none (the config's ``data.npy_bands``,
+    :func:`hsicam.data.pipeline.npy_bands`; None: C bands evenly over 400-700 nm). Returns their paths.
     """
     path = Path(path)
     n = check_max_scenes(max_scenes)
@@ -117,8 +115,6 @@ def write_preview(path: str | os.PathLike, out_dir: str | os.PathLike | None = N
     out = Path(out_dir) if out_dir is not None else (path if path.is_dir() else path.parent)
     sheet, plot = _scene_figures(path, scenes, npy_bands)
     gamut = _gamut_figure(path, scenes, held_dir, held_scenes, npy_bands)
-    if before_save is not None:
-        before_save(out)
     written = save_figures({CONTACT_SHEET: sheet, MEAN_SPECTRA: plot, SPECTRAL_GAMUT: gamut}, out)
     log.info("wrote %s", ", ".join(str(p) for p in written))
     return written
