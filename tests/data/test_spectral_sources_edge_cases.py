@@ -190,6 +190,23 @@ def test_common_grid_is_the_best_range_by_brute_force():
                                   [500.0, 510.0, 520.0])
 
 
+def test_write_preview_has_no_default_folder_and_leaves_the_data_as_it_was(tmp_path):
+    """write_preview without out_dir wrote its three PNGs into the dataset folder, which `hsicam data show` (--out
+    required) never writes: the call is refused as Python refuses a missing argument, the folder's listing unchanged;
+    given a folder, the three PNGs go there and only there."""
+    from hsicam.data import preview as pv
+
+    data = _cubes(tmp_path / "d", 2)
+    before = sorted(p.name for p in data.iterdir())
+    with pytest.raises(TypeError, match="out_dir"):
+        pv.write_preview(data)
+    assert sorted(p.name for p in data.iterdir()) == before == ["scene_0.h5", "scene_1.h5"]
+    written = pv.write_preview(data, tmp_path / "o", max_scenes=1)
+    assert sorted(p.name for p in (tmp_path / "o").iterdir()) == sorted(
+        [pv.CONTACT_SHEET, pv.MEAN_SPECTRA, pv.SPECTRAL_GAMUT]) == sorted(p.name for p in written)
+    assert sorted(p.name for p in data.iterdir()) == before
+
+
 def test_max_scenes_caps_the_dataset_and_the_held_out_set(tmp_path, monkeypatch):
     """``max_scenes`` 2 of 3 scenes: the contact sheet shows 2 renders, and 2 scenes of each set are sampled for the
     gamut plot (write_preview and write_spectral_gamut)."""

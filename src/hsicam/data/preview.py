@@ -95,13 +95,14 @@ def save_figures(figures: dict[str, Any], out_dir: Path, dpi: int = 120) -> list
     return finals
 
 
-def write_preview(path: str | os.PathLike, out_dir: str | os.PathLike | None = None, max_scenes: int = 16,
+def write_preview(path: str | os.PathLike, out_dir: str | os.PathLike, max_scenes: int = 16,
                   heldout: str | os.PathLike | None = None, npy_bands: Bands | None = None) -> list[Path]:
     """Write ``contact_sheet.png``, ``mean_spectra.png`` and ``spectral_gamut.png`` for a dataset.
 
-    ``path`` is a dataset folder or one cube file; ``out_dir`` defaults to the dataset folder (the
-    file's folder for a single file). ``heldout``: a held-out dataset folder to compare in the
-    gamut plot (default: for a cached synthetic set, its held-out companion when one exists).
+    ``path`` is a dataset folder or one cube file; ``out_dir``, the folder written into, has no
+    default: as with ``hsicam data show --out``, a preview is not written into its data unasked.
+    ``heldout``: a held-out dataset folder to compare in the gamut plot (default: for a cached
+    synthetic set, its held-out companion when one exists).
     ``max_scenes`` (≥ 1) caps the scenes of each set. Every input is read and every figure drawn
     before the first PNG is written: on an error none is written. ``npy_bands``: the band grid of
     ``.npy`` cubes, which carry none (the config's ``data.npy_bands``,
@@ -112,7 +113,7 @@ def write_preview(path: str | os.PathLike, out_dir: str | os.PathLike | None = N
     scenes = list_scenes(path)[:n]
     held_dir = Path(heldout) if heldout is not None else _find_heldout(path)
     held_scenes = list_scenes(held_dir)[:n] if held_dir is not None else []  # a bad held-out set fails before any work
-    out = Path(out_dir) if out_dir is not None else (path if path.is_dir() else path.parent)
+    out = Path(out_dir)
     sheet, plot = _scene_figures(path, scenes, npy_bands)
     gamut = _gamut_figure(path, scenes, held_dir, held_scenes, npy_bands)
     written = save_figures({CONTACT_SHEET: sheet, MEAN_SPECTRA: plot, SPECTRAL_GAMUT: gamut}, out)
