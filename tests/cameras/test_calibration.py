@@ -85,7 +85,7 @@ def _fine_camera_pair(tiny_config, *overrides):
     fine = DOECamera.from_config(tiny_config(*overrides, f"camera.sensor.pixel_pitch_um={pitch}", "camera.psf.supersample=1",
                                                   f"camera.psf.kernel_px={s * cam.kernel_px}"))
     fine.load_state_dict(cam.state_dict())
-    assert fine.optics.sampling.fft_sizes == cam.optics.sampling.fft_sizes
+    assert fine.optics.sampling.fft_size == cam.optics.sampling.fft_size
     with torch.no_grad():
         coarse, fine = cam.psf().double().numpy(), fine.psf().double().numpy()
     # the images hold only the light inside the fine kernel (square cells send the rest beyond it,

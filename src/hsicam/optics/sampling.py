@@ -57,11 +57,6 @@ class PSFSampling:
     nyquist_supersample: int  # smallest odd s whose sub-pixel is below λ_min·z/(4a)
     memory_bytes: int = 0  # at least this much memory is needed (:func:`psf_memory_estimate`)
 
-    @property
-    def fft_sizes(self) -> tuple[int, ...]:
-        """Kept for callers of the old per-band plan: one size, N, for all bands."""
-        return (self.fft_size,)
-
 
 def odd_ceil(x: float) -> int:
     """Smallest odd integer ≥ x (with a 1e-9 tolerance against round-off)."""
