@@ -51,10 +51,7 @@ def design_heights(camera) -> tuple[np.ndarray, np.ndarray, float]:
     """
     optics = camera.optics
     doe = optics.doe
-    q = optics.pupil_oversample
-    n = doe.n_cells
-    amp = optics.amplitude.detach().cpu().double().numpy()
-    aperture = amp.reshape(n, q, n, q).mean(axis=(1, 3)) if q > 1 else amp
+    aperture = optics.aperture_per_cell()
     saved = doe.sigma_height_m
     try:
         doe.sigma_height_m = 0.0
