@@ -97,13 +97,6 @@ def test_a_tiff_whose_header_points_to_no_image_is_refused(tmp_path):
     assert str(err.value) == f"{tmp_path / 'empty.tif'}: TIFF without images"
 
 
-def test_raw_correction_is_identity_only_without_any_correction(tmp_path):
-    assert RawCorrection().is_identity and RawCorrection(black_level=0.0).is_identity
-    for kw in ({"black_level": 64.0}, {"white_level": 4095.0}, {"dark": np.zeros((2, 2))}, {"flat": np.ones((2, 2))},
-               {"exposure_s": 0.01, "reference_exposure_s": 0.02}, {"auto_level": 0.8}, {"scale": 2.0}):
-        assert not RawCorrection(**kw).is_identity, kw
-
-
 # ------------------------------------------------------------------------------------------------
 # data show: a cube without visible bands, no scenes, the held-out companion of a cached set
 # ------------------------------------------------------------------------------------------------

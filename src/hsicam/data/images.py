@@ -427,11 +427,6 @@ class RawCorrection:
         if self.black_level is not None and self.black_level < 0:
             raise InputError(f"black_level (--black-level) must be >= 0, got {self.black_level}")
 
-    @property
-    def is_identity(self) -> bool:
-        return (self.black_level in (None, 0.0) and self.white_level is None and self.dark is None and self.flat is None
-                and self.exposure_s is None and self.auto_level is None and self.scale == 1.0)
-
 
 def preprocess_raw(raw: np.ndarray, full_scale: float, corr: RawCorrection, source: str = "capture",
                    check_saturation: bool = True, check_bit_depth: bool = True,
