@@ -382,19 +382,27 @@ def plot_band_errors(truth: np.ndarray, est: np.ndarray, bands: Bands, path: Pat
 
 
 def plot_noise_grid(grid: dict, path: Path) -> None:
-    """Fig. 7 style: PSNR (solid, left axis) and SSIM (dashed, right axis) versus σ_s per σ_p."""
+    """Fig. 7 style: PSNR (solid, left axis) and SSIM (dashed, right axis) versus σ_s per σ_p, one panel per
+    camera, every panel on the same PSNR and the same SSIM scale (the cameras are compared across panels)."""
     names = list(grid["results"])
-    fig, axes = plt.subplots(1, len(names), figsize=(5.5 * len(names), 4), squeeze=False)
+    fig, axes = plt.subplots(1, len(names), figsize=(5.5 * len(names), 4), squeeze=False, sharey=True,
+                             layout="constrained")  # constrained: a panel's SSIM axis is clear of the next one's PSNR axis
     colors = plt.cm.viridis(np.linspace(0, 0.9, len(grid["sigma_height_nm"])))
+    first_ssim = None
     for ax, name in zip(axes[0], names):
         ax2 = ax.twinx()
+        if first_ssim is None:
+            first_ssim = ax2
+        else:
+            ax2.sharey(first_ssim)
         for sp, c in zip(grid["sigma_height_nm"], colors):
             pts = [g for g in grid["results"][name] if g["sigma_height_nm"] == sp]
             xs = [g["sensor_sigma"] for g in pts]
             ax.plot(xs, [g["psnr"] for g in pts], "-o", color=c, label=f"σ_p {sp:g} nm")
             ax2.plot(xs, [g["ssim"] for g in pts], "--s", color=c, ms=4)
-        ax.set_xlabel("sensor noise σ_s")
+        ax.set_xlabel("sensor noise σ_s (fraction of full scale)")
         ax.set_ylabel("PSNR (dB), solid")
+        ax.yaxis.set_tick_params(labelleft=True)  # sharey hides them on all but the first panel
         ax2.set_ylabel("SSIM, dashed")
         ax.set_title(name)
         ax.grid(alpha=0.3)

@@ -1,0 +1,64 @@
+"""Figures of the reports that compare panels: every panel on one scale, clipping said, nothing drawn over a
+neighbour. Found by looking at the PNGs of a tiny-scale demo, evaluation and experiments (a review of the
+pictures); each test reads the property back from the figure object (axis limits, label text, colour-bar
+extension, the rendered text's bounding boxes)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from hsicam.report import html as report_html
+
+
+@pytest.fixture
+def captured(monkeypatch):
+    """The figures the report module saves, kept open to be inspected after the save."""
+    figures = []
+    real_save = report_html.save_figure
+    monkeypatch.setattr(report_html, "save_figure", lambda fig, path: (figures.append(fig), real_save(fig, path)))
+    return figures
+
+
+def _grid(levels: dict[str, tuple[float, float]]) -> dict:
+    """A noise grid of σ_p 0, 30 nm × σ_s 0, 0.005, 0.01; camera → (PSNR at the clean point, SSIM there)."""
+    results = {}
+    for name, (psnr, ssim) in levels.items():
+        results[name] = [{"sigma_height_nm": sp, "sensor_sigma": ss, "psnr": psnr - 0.1 * sp - 100 * ss,
+                          "ssim": ssim - 0.001 * sp - 5 * ss} for sp in (0.0, 30.0) for ss in (0.0, 0.005, 0.01)]
+    return {"sigma_height_nm": [0.0, 30.0], "results": results}
+
+
+def _box(fig, axis):
+    """Window extent of an axis's tick labels and label, as drawn (the figure drawn again, as it was saved)."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.transforms import Bbox
+
+    canvas = FigureCanvasAgg(fig)  # the saved figure was closed: its canvas no longer renders
+    canvas.draw()
+    renderer = canvas.get_renderer()
+    parts = [t.get_window_extent(renderer) for t in axis.get_ticklabels() if t.get_visible() and t.get_text()]
+    parts.append(axis.label.get_window_extent(renderer))
+    return Bbox.union(parts)
+
+
+def test_noise_grid_panels_share_psnr_and_ssim_scales_and_keep_clear_of_each_other(tmp_path, captured):
+    """Two cameras 5 dB and 0.1 SSIM apart: both panels span both cameras' values (on the old figure each
+    panel had its own autoscaled axes, so the worse camera looked as good), and the first panel's SSIM axis
+    (right) does not run into the second panel's PSNR axis (left): they were drawn over each other."""
+    grid = _grid({"trained-clean": (30.0, 0.9), "trained-noisy": (25.0, 0.8)})
+    report_html.plot_noise_grid(grid, tmp_path / "noise_grid.png")
+    (fig,) = captured
+    psnr_axes = [a for a in fig.axes if a.get_ylabel().startswith("PSNR")]
+    ssim_axes = [a for a in fig.axes if a.get_ylabel().startswith("SSIM")]
+    assert len(psnr_axes) == len(ssim_axes) == 2
+    all_psnr = [g["psnr"] for pts in grid["results"].values() for g in pts]
+    all_ssim = [g["ssim"] for pts in grid["results"].values() for g in pts]
+    for axes, values in ((psnr_axes, all_psnr), (ssim_axes, all_ssim)):
+        lims = [a.get_ylim() for a in axes]
+        assert lims[0] == pytest.approx(lims[1])
+        assert lims[0][0] <= min(values) and lims[0][1] >= max(values)
+    assert "fraction of full scale" in psnr_axes[0].get_xlabel()
+    left_ssim = min(ssim_axes, key=lambda a: a.get_position().x0)
+    right_psnr = max(psnr_axes, key=lambda a: a.get_position().x0)
+    assert not _box(fig, left_ssim.yaxis).overlaps(_box(fig, right_psnr.yaxis))
