@@ -62,3 +62,27 @@ def test_noise_grid_panels_share_psnr_and_ssim_scales_and_keep_clear_of_each_oth
     left_ssim = min(ssim_axes, key=lambda a: a.get_position().x0)
     right_psnr = max(psnr_axes, key=lambda a: a.get_position().x0)
     assert not _box(fig, left_ssim.yaxis).overlaps(_box(fig, right_psnr.yaxis))
+
+
+def test_band_error_maps_say_when_their_colour_scale_clips_the_largest_errors(tmp_path, captured):
+    """One pixel wrong by 0.9, the rest by 0.01: the shared scale ends at the 99.5th percentile (numpy's), so that
+    pixel is clipped; the colour bar points beyond its top and the title gives the largest error (on the old
+    figure a tiny-scale scene's errors of up to 0.85 were drawn as 0.46 with nothing saying so). Errors within
+    the scale: no arrow, no such words."""
+    from hsicam.spectral import Bands
+
+    bands = Bands.uniform(420, 510, 10)
+    truth = np.zeros((10, 8, 8), np.float32)
+    est = truth + np.float32(0.01)
+    est[3, 4, 4] = 0.9
+    report_html.plot_band_errors(truth, est, bands, tmp_path / "e.png", title="scene_7")
+    report_html.plot_band_errors(truth, truth + np.float32(0.01), bands, tmp_path / "f.png")
+    (fig, flat) = captured
+    images = [ax.images[0] for ax in fig.axes if ax.images]
+    top = float(np.percentile(np.abs(est - truth), 99.5))
+    assert all(im.get_clim()[1] == pytest.approx(top) for im in images) and top < 0.9
+    assert next(im.colorbar for im in images if im.colorbar is not None).extend == "max"
+    title = fig.get_suptitle()
+    assert title.startswith("scene_7: ") and "clipped" in title and "0.9" in title
+    flat_images = [ax.images[0] for ax in flat.axes if ax.images]
+    assert next(im.colorbar for im in flat_images if im.colorbar is not None).extend == "neither" and "clipped" not in flat.get_suptitle()

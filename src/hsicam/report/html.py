@@ -264,7 +264,7 @@ def _evaluation_sections(folder: Path, out: Path, res: dict) -> list[str]:
                 raise InputError(f"{truth_path}: a {_cube_text(truth, tb)} cube, but {est_path.name} holds a "
                                  f"{_cube_text(est, b)} one: not the same scene's pair (cubes/ of two evaluations?)")
             plot_scene_comparison(truth, est, b, out / f"recon_{name}.png", title=name)
-            plot_band_errors(truth, est, b, out / f"errors_{name}.png")
+            plot_band_errors(truth, est, b, out / f"errors_{name}.png", title=name)
             parts.append(_img(f"recon_{name}.png", f"{name}: ground truth vs reconstruction (sRGB, CIE 1931 / D65) with zoomed crops and spectra at marked pixels"))
             parts.append(_img(f"errors_{name}.png", f"{name}: absolute error per band"))
     if res.get("run"):
@@ -364,11 +364,15 @@ def plot_scene_comparison(truth: np.ndarray, est: np.ndarray, bands: Bands, path
     save_figure(fig, path)
 
 
-def plot_band_errors(truth: np.ndarray, est: np.ndarray, bands: Bands, path: Path, max_bands: int = 16) -> None:
-    """|estimate − truth| for up to ``max_bands`` evenly chosen bands, one shared colour scale."""
+def plot_band_errors(truth: np.ndarray, est: np.ndarray, bands: Bands, path: Path, max_bands: int = 16,
+                     title: str = "") -> None:
+    """|estimate − truth| for up to ``max_bands`` evenly chosen bands, one shared colour scale up to the 99.5th
+    percentile of the shown errors; when larger errors are clipped, the colour bar's arrow and the title say so,
+    with the largest error."""
     idx = np.unique(np.linspace(0, len(bands) - 1, min(max_bands, len(bands))).round().astype(int))
     err = np.abs(est - truth)
     vmax = max(float(np.percentile(err[idx], 99.5)), 1e-6)
+    top = float(err[idx].max())
     cols = min(8, idx.size)
     rows = int(np.ceil(idx.size / cols))
     fig, axes = plt.subplots(rows, cols, figsize=(1.7 * cols, 1.9 * rows), squeeze=False)
@@ -377,7 +381,10 @@ def plot_band_errors(truth: np.ndarray, est: np.ndarray, bands: Bands, path: Pat
     for ax, i in zip(axes.flat, idx):
         im = ax.imshow(err[i], cmap="magma", vmin=0, vmax=vmax)
         ax.set_title(f"{bands.centers_nm[i]:g} nm", fontsize=8)
-    fig.colorbar(im, ax=axes.ravel().tolist(), fraction=0.02, label="|error|")
+    clipped = top > vmax
+    fig.colorbar(im, ax=axes.ravel().tolist(), fraction=0.02, label="|error|", extend="max" if clipped else "neither")
+    fig.suptitle(f"{title + ': ' if title else ''}|reconstruction − truth| per band, one colour scale"
+                 + (f"; errors above {vmax:.3g} (the top 0.5 %) clipped, up to {top:.3g}" if clipped else ""), fontsize=9)
     save_figure(fig, path)
 
 
