@@ -8,6 +8,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from figure_helpers import drawn_extent
 from hsicam.report import html as report_html
 
 
@@ -29,19 +30,6 @@ def _grid(levels: dict[str, tuple[float, float]]) -> dict:
     return {"sigma_height_nm": [0.0, 30.0], "results": results}
 
 
-def _box(fig, axis):
-    """Window extent of an axis's tick labels and label, as drawn (the figure drawn again, as it was saved)."""
-    from matplotlib.backends.backend_agg import FigureCanvasAgg
-    from matplotlib.transforms import Bbox
-
-    canvas = FigureCanvasAgg(fig)  # the saved figure was closed: its canvas no longer renders
-    canvas.draw()
-    renderer = canvas.get_renderer()
-    parts = [t.get_window_extent(renderer) for t in axis.get_ticklabels() if t.get_visible() and t.get_text()]
-    parts.append(axis.label.get_window_extent(renderer))
-    return Bbox.union(parts)
-
-
 def test_noise_grid_panels_share_psnr_and_ssim_scales_and_keep_clear_of_each_other(tmp_path, captured):
     """Two cameras 5 dB and 0.1 SSIM apart: both panels span both cameras' values (on the old figure each
     panel had its own autoscaled axes, so the worse camera looked as good), and the first panel's SSIM axis
@@ -61,7 +49,7 @@ def test_noise_grid_panels_share_psnr_and_ssim_scales_and_keep_clear_of_each_oth
     assert "fraction of full scale" in psnr_axes[0].get_xlabel()
     left_ssim = min(ssim_axes, key=lambda a: a.get_position().x0)
     right_psnr = max(psnr_axes, key=lambda a: a.get_position().x0)
-    assert not _box(fig, left_ssim.yaxis).overlaps(_box(fig, right_psnr.yaxis))
+    assert not drawn_extent(fig, left_ssim.yaxis).overlaps(drawn_extent(fig, right_psnr.yaxis))
 
 
 def test_band_error_maps_say_when_their_colour_scale_clips_the_largest_errors(tmp_path, captured):

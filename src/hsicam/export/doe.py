@@ -207,7 +207,8 @@ def write_phase_error_csv(path: str | Path, bands_nm: np.ndarray, err: dict[str,
 def plot_doe_export(height_nm: np.ndarray, quantized_nm: np.ndarray, aperture: np.ndarray, cell_um: float,
                     levels: int, top_nm: float, path: str | Path) -> None:
     """Continuous heights, L-level heights and their difference over the aperture (nm), the
-    difference wrapped to ±h_2π/2 (a wrap by h_2π is no error at the design wavelength)."""
+    difference wrapped to ±h_2π/2 (a wrap by h_2π is no error at the design wavelength). The two
+    height maps share one colour scale (a colour is the same height in both)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -217,13 +218,15 @@ def plot_doe_export(height_nm: np.ndarray, quantized_nm: np.ndarray, aperture: n
     n = height_nm.shape[0]
     half = n * cell_um * 1e-3 / 2
     ext = (-half, half, -half, half)
-    fig, axes = plt.subplots(1, 3, figsize=(13, 3.8))
+    fig, axes = plt.subplots(1, 3, figsize=(13, 3.8), layout="constrained")  # colour bars clear of the next panel
+    heights = np.concatenate([height_nm[inside], quantized_nm[inside]])
+    height_range = {"vmin": float(heights.min()), "vmax": float(heights.max())} if heights.size else {}
     panels = [(height_nm, "continuous height (nm)", "viridis"), (quantized_nm, f"{levels}-level height (nm)", "viridis"),
               (np.mod(quantized_nm - height_nm + top_nm / 2, top_nm) - top_nm / 2,
                "quantised − continuous, mod h$_{2π}$ (nm)", "coolwarm")]
     for ax, (img, title, cmap) in zip(axes, panels):
         shown = np.where(inside, img, np.nan)
-        kw = {}
+        kw = dict(height_range)
         if cmap == "coolwarm":
             lim = float(np.nanmax(np.abs(shown))) if inside.any() else 1.0
             kw = {"vmin": -lim, "vmax": lim}
