@@ -137,14 +137,17 @@ def _scene_figures(path: Path, scenes: list[Path], npy_bands: Bands | None = Non
         spectra.append((s.name, bands, norm.mean(axis=(1, 2))))
     cols = min(len(thumbs), 4)
     rows = int(math.ceil(len(thumbs) / cols))
-    sheet = Figure(figsize=(2.6 * cols, 2.8 * rows))
+    sheet = Figure(figsize=(2.6 * cols, 2.8 * rows), layout="constrained")  # the two-line title clear of the thumbnails
     for k, (name, rgb) in enumerate(thumbs):
         ax = sheet.add_subplot(rows, cols, k + 1)
         ax.imshow(np.clip(rgb, 0, 1), interpolation="nearest")
         ax.set_title(name, fontsize=8)
         ax.axis("off")
     lo, hi = TABLE_RANGE_NM
-    sheet.suptitle(f"{path.name}: sRGB renders (CIE 1931 2°, D65)" + (
+    # each thumbnail is exposed to its own brightness (preview_rgb): say so, or a dim scene looks as bright as
+    # any other, and 3x brighter than the absolute render of reconstruct's *_rgb.png
+    sheet.suptitle(f"{path.name}: sRGB renders (CIE 1931 2°, D65)\neach scene exposed to its own brightness "
+                   f"(99th-percentile luminance at 0.8)" + (
         f"; (grey): mean over bands, fewer than 2 bands in {lo:g}-{hi:g} nm" if grey else ""), fontsize=10)
 
     plot = Figure(figsize=(7, 4.2))
