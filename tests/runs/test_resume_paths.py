@@ -437,6 +437,23 @@ def test_a_resume_with_another_batch_size_or_epoch_length_is_refused(cache_env, 
     assert train(load_config("tiny", keys), run, resume=True, progress=False)["step"] == full["step"]
 
 
+def test_a_finished_run_resumed_with_a_larger_batch_and_more_epochs_is_refused(cache_env, tmp_path, capsys):
+    """A finished run of 2 epochs of 4 steps, resumed with `--set train.batch_size=8 --set train.epochs=3`
+    (3 epochs of 2 steps: 6 steps, fewer than the 8 done), was taken as finished: "already finished at step 8
+    (2 epochs); nothing changed. To train on, raise train.epochs: … (N > 2)", which it had just done. It is
+    refused naming the batch size, as for an unfinished run, and nothing changes."""
+    run = tmp_path / "r"
+    assert main(["train", "--config", "tiny", "--out", str(run)]) == 0
+    before = tree_snapshot(run)
+    capsys.readouterr()
+    assert in_process_error_line(capsys, ["train", "--out", run, "--resume", "--set", "train.batch_size=8",
+                                          "--set", "train.epochs=3"]) == (
+        f"hsicam: error: {run}: was trained in epochs of 4 steps of 4 patches, and its config now asks for 2 steps of 8 "
+        "(16 patches per epoch, train.batch_size=8): a resume would misplace where it stopped; keep the batch size "
+        "and the patches per epoch as they were; nothing was changed")
+    assert tree_snapshot(run) == before
+
+
 @pytest.mark.parametrize("sets, fragment", [
     (["train.freeze=[net,doe,cfa]"], "train.freeze=[cfa, doe, net] leaves nothing to train"),
     (["train.freeze=[net]", "camera.doe.enabled=false", "camera.cfa.enabled=false"],

@@ -438,15 +438,23 @@ def _end_group(barrier: bool) -> None:
             dist.destroy_process_group()
 
 
-def finished_record(run_dir: Path, epochs: int, total_steps: int) -> dict[str, Any] | None:
+def finished_record(run_dir: Path, epochs: int, total_steps: int, steps_per_epoch: int | None = None,
+                    batch_size: int | None = None) -> dict[str, Any] | None:
     """The final ``metrics.jsonl`` record of a run with nothing left to train, else None.
 
     Finished: the last checkpoint has done ``epochs`` epochs (or ``total_steps`` steps) and the
-    metrics log ends with the final record of that step. Reads only."""
+    metrics log ends with the final record of that step. A config of other epochs (``steps_per_epoch``
+    batches of ``batch_size``) than the run trained in is not judged here: its steps count other
+    batches, and the resume refuses it naming both. Reads only."""
     state = CheckpointManager(run_dir).state()
     if state is None:
         return None
     last = LoopState.from_dict(state)
+    if steps_per_epoch is not None:
+        trained = ((last.steps_per_epoch, last.batch_size) if last.steps_per_epoch else
+                   (older_epoch_length(last), batch_size))
+        if trained[0] is not None and trained != (steps_per_epoch, batch_size):
+            return None  # e.g. more epochs of a larger batch: "already finished, raise train.epochs" misled
     if last.epoch < epochs and last.global_step < total_steps:
         return None  # e.g. resumed with more epochs
     records = MetricsLog(run_dir / "metrics.jsonl", enabled=False).read()
@@ -557,7 +565,7 @@ def _fit(task: Task, opts: FitOptions, run_dir: Path, resume: bool, lock: RunLoc
         log.warning("train.warmup_steps=%d is more than the run's %d steps: the learning rate never reaches train.lr "
                     "(it climbs to %.3g of it)", t.warmup_steps, total_steps, total_steps / t.warmup_steps)
     if resume:
-        done = finished_record(run_dir, t.epochs, total_steps)
+        done = finished_record(run_dir, t.epochs, total_steps, steps_per_epoch, t.batch_size)
         if done is not None:  # nothing left to train: the run stays as it is (no file is written)
             log.debug("%s: already finished at step %d (%d epochs); nothing to train", run_dir, done["step"],
                      done["epoch"])
