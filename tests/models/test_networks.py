@@ -585,7 +585,11 @@ def test_every_registered_network_through_the_system(kind):
 
 
 def test_unknown_network_kind_is_one_clear_error():
-    with pytest.raises(ConfigError, match="model.kind='transformer' is unknown; choose one of mosaic, rdn, unrolled"):
+    """The error lists every registered kind (a network added as docs/architecture.md says joins the list)."""
+    from hsicam.models.registry import network_kinds
+
+    assert {"mosaic", "rdn", "unrolled"} <= set(network_kinds())
+    with pytest.raises(ConfigError, match=f"model.kind='transformer' is unknown; choose one of {', '.join(network_kinds())}$"):
         CameraSystem.from_config(load_config("tiny", ["model.kind=transformer"]))
 
 
