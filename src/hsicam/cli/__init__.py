@@ -58,7 +58,7 @@ COMMAND_MODULES = (
 #: them the ``type`` :func:`hsicam.cli.args.path_arg` (around their own). ``--set KEY=VALUE`` is no
 #: path: its value goes into the config as written (a path key, e.g. ``data.root``, is expanded
 #: where it is read).
-PATH_METAVARS = frozenset({"DIR", "FILE", "PATH", "RUN", "RUN2", "SENSOR"})
+PATH_METAVARS = frozenset({"DIR", "FILE", "OUT", "PATH", "RUN", "RUN2", "SENSOR"})
 
 
 def _path_kwargs(kwargs: dict) -> dict:

@@ -14,6 +14,7 @@ import logging
 import math
 import numbers
 import os
+import textwrap
 from pathlib import Path
 from typing import Any
 
@@ -146,9 +147,11 @@ def _scene_figures(path: Path, scenes: list[Path], npy_bands: Bands | None = Non
     lo, hi = TABLE_RANGE_NM
     # each thumbnail is exposed to its own brightness (preview_rgb): say so, or a dim scene looks as bright as
     # any other, and 3x brighter than the absolute render of reconstruct's *_rgb.png
-    sheet.suptitle(f"{path.name}: sRGB renders (CIE 1931 2°, D65)\neach scene exposed to its own brightness "
-                   f"(99th-percentile luminance at 0.8)" + (
-        f"; (grey): mean over bands, fewer than 2 bands in {lo:g}-{hi:g} nm" if grey else ""), fontsize=10)
+    title = [f"{path.name}: sRGB renders (CIE 1931 2°, D65)", "each scene exposed to its own brightness "
+             "(99th-percentile luminance at 0.8)" + (
+                 f"; (grey): mean over bands, fewer than 2 bands in {lo:g}-{hi:g} nm" if grey else "")]
+    width = 30 * cols + 4  # characters of 10 pt text across the sheet: a narrow sheet's title wraps, not widens it
+    sheet.suptitle("\n".join(textwrap.fill(line, width) for line in title), fontsize=10)
 
     plot = Figure(figsize=(7, 4.2))
     ax = plot.add_subplot(1, 1, 1)
