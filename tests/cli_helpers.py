@@ -210,6 +210,11 @@ def tree_snapshot(folder: Path) -> dict[str, bytes | None]:
     return {p.relative_to(folder).as_posix(): (None if p.is_dir() else p.read_bytes()) for p in sorted(folder.rglob("*"))}
 
 
+def entries(folder: Path) -> list[str]:
+    """The names in ``folder`` (hidden ones too), sorted: what a command wrote there, or that it wrote nothing."""
+    return sorted(p.name for p in folder.iterdir())
+
+
 def in_process_error_line(capsys, argv: list) -> str:
     """Run ``hsicam ARGV`` in-process: exit code 2 and one error line (returned), no traceback."""
     from hsicam.cli import main

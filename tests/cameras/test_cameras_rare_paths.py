@@ -1,13 +1,20 @@
-"""Lines of data/measured_psf and of the camera registry that the default suite never ran: each test runs one and
-checks what it does against an independent reference (the exact line a user sees, a closed form)."""
+"""Lines of data/measured_psf, the camera registry, cameras/measured.py and engine/calibration.py that the default
+suite never ran, and the cameras' defocus and coded-aperture refusals (moved from models/test_models_rare_paths.py
+and data/test_data_sources_rare_paths.py): each test runs one and checks what it does against an independent
+reference (the exact line a user sees, a closed form, a file read back)."""
 
 from __future__ import annotations
 
 import json
+import math
 
 import numpy as np
 import pytest
+import torch
 
+from conftest import TINY_CAMERA_OVERRIDES
+from hsicam.cameras import DOECamera, build_camera
+from hsicam.config import ConfigError, load_config
 from hsicam.data.measured_psf import (centroid, find_centre, import_psf_dir, pedestal_level, resample_area,
                                       saturated_pixels)
 from hsicam.errors import InputError
@@ -90,3 +97,121 @@ def test_a_camera_kind_registered_twice_is_refused():
     with pytest.raises(ValueError, match=rf"^camera kind 'doe' is registered twice \({existing.__name__}, Other\)$"):
         register_camera("doe")(Other)
     assert CAMERAS["doe"] is existing
+
+
+def _sellmeier_fused_silica(lam_nm: float) -> float:
+    """Malitson (1965), written out here (not the library's table)."""
+    x = (lam_nm / 1000.0) ** 2
+    return math.sqrt(1 + 0.6961663 * x / (x - 0.0684043**2) + 0.4079426 * x / (x - 0.1162414**2)
+                     + 0.8974794 * x / (x - 9.896161**2))
+
+
+# --- optics/psf.py: the defocus refusal names the option that caused it -----------------------------------------
+def test_object_distance_defocus_refusal_names_the_object_distance_and_where_the_sensor_belongs():
+    # tiny optics: f = 5 mm, aperture radius 0.25 mm, 50 µm cells; an object at 5.1 mm images at
+    # 1 / (1/5 − 1/5.1) = 255 mm, the sensor stays at f: geometric blur 2a · z_i / z_o = 0.5 · 5 / 5.1 mm
+    blur_mm = 0.5 * 5.0 / 5.1
+    field_mm = 500e-9 * 5e-3 / 50e-6 * 1e3  # λ z / d at 500 nm (the band that aliases most: the shortest)
+    with pytest.raises(ConfigError) as err:
+        DOECamera.from_config(load_config(overrides=[*TINY_CAMERA_OVERRIDES, "camera.object_distance_m=0.0051"]))
+    msg = str(err.value)
+    assert msg.startswith("camera.object_distance_m=0.0051 defocuses the lens more than the pupil sampling can "
+                          "represent (focal length 5 mm at 587.6 nm, object at 0.0051 m: the sensor belongs near "
+                          f"{1 / (1 / 5 - 1 / 5.1):.4g} mm)")
+    assert f"blurs a point over {blur_mm:.3g} mm at 500 nm, wider than the {field_mm:.3g} mm field" in msg
+    assert msg.endswith(f"focus on the object (camera.sensor_distance_mm={1 / (1 / 5 - 1 / 5.1):.4g}), or for a "
+                        f"deliberate defocus raise camera.psf.pupil_oversample to at least "
+                        f"{math.ceil(blur_mm / field_mm)}")
+
+
+def test_singlet_focus_shift_refusal_blames_the_lens_not_an_option():
+    # the paper's singlet (R = 16 mm, t = 2 mm, f = R/(n−1)) on 100 µm cells: at 420 nm the sensor, placed at f(587.6 nm)
+    # from the rear principal plane H' (t/n behind the curved vertex, so it moves with n), sits off that band's focus
+    n0, n1 = _sellmeier_fused_silica(587.6), _sellmeier_fused_silica(420.0)
+    f0, f1 = 16.0 / (n0 - 1), 16.0 / (n1 - 1)
+    z = f0 - 2.0 / n0 + 2.0 / n1  # the sensor's distance from H'(420 nm)
+    blur_mm = 2 * 5.0 * abs(1 - z / f1)  # aperture diameter 10 mm
+    field_mm = 420e-9 * z * 1e-3 / 100e-6 * 1e3
+    with pytest.raises(ConfigError) as err:
+        DOECamera.from_config(load_config(overrides=["camera.lens.model=singlet", "camera.doe.cell_size_um=100"]))
+    msg = str(err.value)
+    assert msg.startswith("the singlet lens's focus shift defocuses the lens more than the pupil sampling can represent "
+                          f"(focal length {f0:.4g} mm at 587.6 nm, object at infinity: the sensor belongs near {f0:.4g} mm)")
+    assert f"blurs a point over {blur_mm:.3g} mm at 420 nm, wider than the {field_mm:.3g} mm field" in msg
+    assert msg.endswith(f"; for a deliberate defocus raise camera.psf.pupil_oversample to at least "
+                        f"{math.ceil(blur_mm / field_mm)}")
+
+
+# --- cameras/cassi.py: coded-aperture files --------------------------------------------------------------------
+def _cassi(tmp_path, mask_name: str):
+    cfg = load_config(overrides=["bands.start_nm=500", "bands.stop_nm=700", "bands.step_nm=50",
+                                 "camera.kind=dd_cassi", f"camera.cassi.mask_file={tmp_path / mask_name}"])
+    return build_camera(cfg).double()
+
+
+def test_a_boolean_mask_file_is_a_binary_coded_aperture(tmp_path):
+    mask = np.random.default_rng(0).random((12, 30)) > 0.5  # np.save of a thresholded pattern: dtype bool
+    np.save(tmp_path / "mask.npy", mask)
+    cam = _cassi(tmp_path, "mask.npy")
+    np.testing.assert_array_equal(cam.aperture.pattern(12, 18).numpy(), mask[:, :18].astype(np.float64))
+
+
+@pytest.mark.parametrize("content, what", [(b"0 1 1 0\n1 0 0 1\n", "no NumPy header"), (None, "a .npz archive")])
+def test_a_mask_file_that_is_not_npy_is_named_as_such_without_pickle_advice(tmp_path, content, what):
+    path = tmp_path / "mask.npy"
+    if content is None:  # np.savez to a file object keeps the .npy name
+        with open(path, "wb") as fh:
+            np.savez(fh, mask=np.ones((4, 4)))
+    else:
+        path.write_bytes(content)
+    with pytest.raises(InputError) as err:
+        _cassi(tmp_path, "mask.npy")
+    assert str(err.value) == f"{path}: not a .npy file ({what}); save the coded aperture (H, W) with numpy.save"
+
+
+# --- cameras/measured.py (session 58, cov12a: moved from data/test_data_sources_rare_paths.py) ----------------------
+def test_a_fixed_psf_camera_refuses_a_psf_stack_of_another_shape(tiny_camera):
+    """set_psf keeps the stack's shape (C, K, K); another is refused with both shapes, the PSFs left as they were."""
+    from hsicam.cameras.measured import FixedPSFCamera
+
+    base = tiny_camera()
+    c, k = len(base.bands), base.kernel_px
+    first = torch.rand(c, k, k, generator=torch.Generator().manual_seed(0))
+    cam = FixedPSFCamera.from_camera(base, first)
+    bad = torch.zeros(c, k + 2, k + 2)
+    with pytest.raises(ValueError) as info:
+        cam.set_psf(bad)
+    assert str(info.value) == f"PSF stack must have shape {(c, k, k)}, got {(c, k + 2, k + 2)}"
+    torch.testing.assert_close(cam.fixed_psf, first)
+
+
+# --- engine/calibration.py (the same) -------------------------------------------------------------------------------
+def test_load_calibrated_run_with_a_psf_folder_images_with_those_psfs(tmp_path):
+    """``psf_dir``: the run's network behind a camera that images with the folder's PSFs (read back from its
+    psf.npy), in eval mode; the network is the run's own, bit for bit."""
+    from fab_runs import FAB_OVERRIDES, write_homogeneous_scenes, write_psf_dir
+
+    from hsicam.cameras.measured import FixedPSFCamera
+    from hsicam.config import load_config
+    from hsicam.engine.calibration import load_calibrated_run
+    from hsicam.engine.train import train
+    from hsicam.runs.folder import load_run
+
+    data = write_homogeneous_scenes(tmp_path / "data", n=4, size=32)
+    run = tmp_path / "run"
+    train(load_config("tiny", [*FAB_OVERRIDES, "train.epochs=1", f"data.root={data}"]), run, progress=False)
+    _, base = load_run(run)
+    with torch.no_grad():
+        nominal = base.camera.psf().double().numpy()
+    perturbed = nominal * np.linspace(0.5, 1.0, len(base.bands))[:, None, None]
+    k = nominal.shape[-1]
+    pitch_um = base.camera.optics.pixel_m * 1e6
+    d = write_psf_dir(tmp_path / "measured", perturbed, base.bands, pitch_um, centre="axis",
+                      axis_px=[k // 2, k // 2], normalize="none")
+    _, model, measured = load_calibrated_run(run, psf_dir=d)
+    assert isinstance(model.camera, FixedPSFCamera) and not model.training
+    np.testing.assert_allclose(measured.psf, perturbed, atol=1e-7)
+    np.testing.assert_allclose(model.camera.fixed_psf.double().numpy(), perturbed, atol=1e-7)
+    torch.testing.assert_close(model.net.state_dict(), base.net.state_dict())
+    _, plain, none = load_calibrated_run(run)  # without: the simulated optics, no measured PSFs
+    assert none is None and not isinstance(plain.camera, FixedPSFCamera)

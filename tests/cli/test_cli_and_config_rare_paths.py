@@ -117,6 +117,21 @@ def test_a_section_left_empty_in_a_file_takes_its_defaults(tmp_path):
     assert cfg.train == TrainConfig() and cfg.bands == BandsConfig() and cfg.data.synthetic_n == 7
 
 
+# (from models/test_models_rare_paths.py)
+@pytest.mark.parametrize("overrides, message", [
+    (["baselines.desci.iterations=[]"], "baselines.desci.iterations must be a non-empty list of counts >= 0, got []"),
+    (["baselines.desci.iterations=[3, -1]"],
+     "baselines.desci.iterations must be a non-empty list of counts >= 0, got [3, -1]"),
+    # a value that is not valid YAML is kept as the string typed, then refused as that string
+    (["model.consistency.kind=[linear"],
+     "config key 'model.consistency.kind' must be one of 'landweber', 'linear', got '[linear'"),
+])
+def test_config_refusals_name_the_key_and_the_value_typed(overrides, message):
+    with pytest.raises(ConfigError) as err:
+        load_config(overrides=overrides)
+    assert str(err.value) == message
+
+
 # --- cli: the one line a user sees ---------------------------------------------------------------------------------
 
 def test_error_line_of_unreadable_inputs():

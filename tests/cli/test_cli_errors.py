@@ -24,6 +24,7 @@ from cli_helpers import (HSICAM, assert_clean_error, cli_env, module_cache, run_
                          unprivileged_prefix)
 from hsicam.cli import main
 from hsicam.data.formats import write_cube_h5
+from hsicam.errors import ConfigError, HsicamError, InputError
 from hsicam.spectral import Bands
 
 
@@ -788,3 +789,13 @@ def test_a_two_level_image_is_no_capture(tmp_path, kind):
     res = run_cli_in_process("reconstruct", str(path), "--run", "pretrained:standard", "--out", str(tmp_path / "m.h5"))
     assert_one_line(res.returncode, res.stderr, f"{path}: a ", "holds two levels, not the values of a sensor image")
     assert not (tmp_path / "m.h5").exists()
+
+
+# --- errors.py: a user's error is an HsicamError, the one line the CLI prints (moved from data/) ------------------
+def test_input_error_is_an_hsicam_error():
+    """The CLI prints HsicamError as one line; InputError is one."""
+    assert issubclass(InputError, HsicamError)
+
+
+def test_input_and_config_errors_are_hsicam_errors():
+    assert issubclass(InputError, HsicamError) and issubclass(ConfigError, HsicamError)

@@ -34,7 +34,7 @@ from hsicam.data.cube import (
     resample_cube,
 )
 from hsicam.data.formats import npy_header, read_cave, read_harvard, read_icvl, read_kaist_exr
-from hsicam.errors import ConfigError, HsicamError, InputError
+from hsicam.errors import ConfigError, InputError
 from hsicam.spectral import Bands
 
 GIB = 2**30
@@ -385,7 +385,3 @@ def test_conform_bands_refuses_only_extrapolation():
     one_line(exc, "s.npy", "5 bands", "31")
     # narrower or coarser grids inside the data's range are fine
     assert conform_bands(x, src, Bands.from_centers([400.0, 700.0]), "s").shape == (2, 2, 3)
-
-
-def test_input_and_config_errors_are_hsicam_errors():
-    assert issubclass(InputError, HsicamError) and issubclass(ConfigError, HsicamError)

@@ -1,18 +1,20 @@
-"""Lines of the data, report, export and measured-camera modules that the default suite never ran (coverage audit,
-session 58, cov12a): each test drives one such path and checks it against a reference computed here (the exact
-message a user sees, a file read back in its real format, colour-science's own data, a closed form).
+"""Lines of the data modules that the default suite never ran (coverage audit, session 58, cov12a; those of the
+report, export and measured-camera modules went to their floors): each test drives one such path and checks it
+against a reference computed here (the exact message a user sees, a file read back in its real format,
+colour-science's own data, a closed form).
 """
 
 from __future__ import annotations
 
 import json
+import pickle
 import re
 
 import h5py
 import numpy as np
 import pytest
-import torch
 
+from cli_helpers import entries
 from hsicam.data.formats import write_cube_h5
 from hsicam.errors import InputError
 from hsicam.io import mark_complete
@@ -101,6 +103,86 @@ def test_a_header_that_claims_all_zeros_over_real_pixels_is_read_whole_and_norma
     np.testing.assert_array_equal(patches.bands.centers_nm, B3)
 
 
+# (cov11a, moved from report/test_report_rare_paths.py)
+def test_list_scenes_skips_hidden_folders(tmp_path):
+    from hsicam.data.datasets import list_scenes
+
+    np.save(tmp_path / "a.npy", np.ones((3, 4, 4), np.float32))
+    (tmp_path / ".trash").mkdir()
+    np.save(tmp_path / ".trash" / "b.npy", np.ones((3, 4, 4), np.float32))
+    assert list_scenes(tmp_path) == [tmp_path / "a.npy"]
+
+
+def test_scene_path_of_a_scene_outside_its_root_is_its_name(tmp_path):
+    from hsicam.data.datasets import scene_path
+
+    assert scene_path(tmp_path / "x" / "day1" / "s.h5", tmp_path / "y") == "s.h5"
+    assert scene_path(tmp_path / "y" / "day1" / "s.h5", tmp_path / "y") == "day1/s.h5"
+
+
+@pytest.mark.parametrize("results", [None, "{not json", json.dumps(["list"]), json.dumps({"data": ""})])
+def test_evaluate_folder_as_data_without_a_usable_results_json(tmp_path, results):
+    """The refusal stays one line; only the '(which scored …)' part is left out."""
+    from hsicam.data.datasets import check_not_an_output
+
+    d = tmp_path / "ev"
+    d.mkdir()
+    if results is not None:
+        (d / "results.json").write_text(results)
+    mark_complete(d, {"command": "evaluate"})
+    with pytest.raises(InputError) as info:
+        check_not_an_output(d)
+    assert str(info.value) == (f"{d}: is the output of hsicam evaluate; its cubes/*_estimate.h5 are a method's "
+                               "reconstructions, not scenes: use the scenes it scored as the data, or copy its "
+                               "*_truth.h5 files into a folder of their own")
+
+
+def test_a_windowed_scene_whose_header_claims_light_but_whose_pixels_are_zero(tmp_path):
+    from hsicam.data.datasets import SceneDataset
+
+    bands = Bands.from_centers(B3)
+    path = write_cube_h5(tmp_path / "z.h5", np.zeros((3, 8, 8), np.float32), bands)
+    with h5py.File(path, "r+") as f:
+        f.attrs["max_value"] = 1.0  # a hand-edited header: the probe takes the file as windowable
+    with pytest.raises(InputError) as info:
+        SceneDataset([path], bands).info(0)
+    assert str(info.value) == f"{path}: the cube is all zeros; cannot normalise by its maximum"
+
+
+def test_probe_declines_a_file_on_other_bands(tmp_path):
+    """Not windowable on another grid: the full reader resamples it instead (None), on its own grid it is."""
+    from hsicam.data.datasets import probe_hsicam
+
+    path = write_cube_h5(tmp_path / "s.h5", np.full((3, 5, 6), 2.0, np.float32), Bands.from_centers(B3))
+    assert probe_hsicam(path, Bands.from_centers([500.0, 560.0, 600.0])) is None
+    info = probe_hsicam(path, Bands.from_centers(B3))
+    assert (info.height, info.width, info.peak) == (5, 6, 2.0)
+
+
+def test_near_black_percentile_of_a_black_cube_is_none():
+    from hsicam.data.datasets import near_black_percentile
+
+    assert near_black_percentile(np.zeros((2, 4, 4), np.float32)) is None
+
+
+def test_a_pickled_scene_dataset_reopens_its_files(tmp_path):
+    """What a spawned DataLoader worker receives: no cached cubes, no open handles; its windows are the file's."""
+    from hsicam.data.datasets import SceneDataset
+
+    bands = Bands.from_centers(B3)
+    cube = np.random.default_rng(2).random((3, 10, 12), dtype=np.float32) * 5
+    path = write_cube_h5(tmp_path / "s.h5", cube, bands)
+    ds = SceneDataset([path], bands)
+    first = ds.window(0, 1, 2, 4, 5)  # opens the file
+    assert ds._handles
+    copy = pickle.loads(pickle.dumps(ds))
+    assert copy._handles == {} and len(copy._cache) == 0
+    with h5py.File(path, "r") as f:
+        expected = f["cube"][:, 1:5, 2:7] / f["cube"][()].max()
+    np.testing.assert_array_equal(copy.window(0, 1, 2, 4, 5), expected.astype(np.float32))
+    np.testing.assert_array_equal(first, copy.window(0, 1, 2, 4, 5))
+
+
 # ------------------------------------------------------------------------------------------------
 # data/synthetic.py
 # ------------------------------------------------------------------------------------------------
@@ -148,6 +230,31 @@ def test_a_power_law_procedural_texture_is_the_power_law_field_of_its_drawn_expo
     assert kind == "power_law" and 0.5 <= beta <= 2.2
     np.testing.assert_array_equal(tex, power_law_noise(rng, 32, beta))
     assert tex.shape == (32, 32) and tex.min() >= 0 and tex.max() <= 1
+
+
+# library callers; the CLI's config checks these first (cov11a, moved from report/test_report_rare_paths.py)
+@pytest.mark.parametrize("kwargs, message", [
+    ({"n": 0, "size": 32}, "synthetic: need at least one scene, got n=0"),
+    ({"n": 2, "size": 15}, "synthetic: scenes must be at least 16 px, got size=15"),
+    ({"n": 2, "size": 32, "split": "test"}, "split must be one of {splits}, got 'test'"),
+])
+def test_generate_dataset_refuses_before_writing(tmp_path, kwargs, message):
+    from hsicam.data.synthetic import SPLITS, generate_dataset
+
+    with pytest.raises(InputError) as info:
+        generate_dataset(tmp_path / "syn", progress=False, **kwargs)
+    assert str(info.value) == message.format(splits=", ".join(SPLITS))
+    assert entries(tmp_path) == []
+
+
+def test_dataset_folder_that_is_a_file(tmp_path):
+    from hsicam.data.synthetic import check_dataset_folder
+
+    (tmp_path / "syn").write_text("mine")
+    with pytest.raises(InputError) as info:
+        check_dataset_folder(tmp_path / "syn")
+    assert str(info.value) == f"{tmp_path / 'syn'}: exists and is not a folder"
+    assert (tmp_path / "syn").read_text() == "mine"
 
 
 # ------------------------------------------------------------------------------------------------
@@ -223,99 +330,3 @@ def test_holding_out_every_reflectance_trains_on_the_otsu_cluster_means(full):
     expect = np.stack([np.interp(Bands.paper().centers_nm, wl, m) for m in means])
     np.testing.assert_allclose(train.reflectances, np.clip(expect, 0, 1), atol=0.01)
     np.testing.assert_allclose(train.basis.mean, train.reflectances.mean(axis=0), atol=1e-6)
-
-
-# ------------------------------------------------------------------------------------------------
-# report/camera.py, export/tolerance.py, export/doe.py, cameras/measured.py
-# ------------------------------------------------------------------------------------------------
-def test_a_psf_band_without_light_makes_the_crop_the_whole_kernel():
-    """A band holding no light never reaches the fraction in any crop: the whole kernel, not an error."""
-    from hsicam.report.camera import psf_crop_px
-
-    psf = np.zeros((2, 21, 21))
-    psf[0, 10, 10] = 1.0  # a point: 15 px (the minimum) holds it
-    assert psf_crop_px(psf[:1]) == 15
-    assert psf_crop_px(psf) == 21
-
-
-@pytest.mark.parametrize("doc,kind", [("[1, 2]", "list"), ("3.5", "float"), ('"x"', "str"), ("null", "NoneType")])
-def test_a_tolerance_json_that_is_no_object_is_refused_in_one_line(tmp_path, doc, kind):
-    from hsicam.export.tolerance import read_tolerance_study
-
-    path = tmp_path / "tolerance.json"
-    path.write_text(doc)
-    with pytest.raises(InputError) as info:
-        read_tolerance_study(path, tmp_path)
-    assert str(info.value) == (f"{path}: not an hsicam tolerance study (a JSON {kind}, not an object); pass the "
-                               "tolerance.json that `hsicam tolerance --run RUN --out DIR` writes")
-
-
-def test_an_all_zero_doe_exports_zero_tiffs_at_one_nm_per_count(tiny_config, tmp_path):
-    """A flat element (no relief): nice_scale(0) is 1 nm per count; both TIFFs read back all zero, the levels
-    all 0, and the height range [0, 0]."""
-    from hsicam.cameras import DOECamera
-    from hsicam.export.doe import export_doe, nice_scale, read_height_tiff
-
-    assert nice_scale(0.0) == 1.0 and nice_scale(-3.0) == 1.0 and nice_scale(float("nan")) == 1.0
-    cam = DOECamera.from_config(tiny_config())
-    with torch.no_grad():
-        for name, p in cam.named_parameters():
-            if "doe" in name:
-                p.zero_()
-    out = tmp_path / "fab"
-    out.mkdir()
-    facts = export_doe(cam, out, 4, cam.bands.centers_nm)
-    assert facts["tiff_scale_nm_per_count"] == 1.0 and facts["height_range_nm"] == [0.0, 0.0]
-    for name in ("doe_height_nm.tif", "doe_height_L4_nm.tif"):
-        h, desc = read_height_tiff(out / name)
-        assert not h.any() and desc["scale_nm_per_count"] == 1.0, name
-    assert not np.load(out / "doe_level_L4.npy").any()
-
-
-def test_a_fixed_psf_camera_refuses_a_psf_stack_of_another_shape(tiny_camera):
-    """set_psf keeps the stack's shape (C, K, K); another is refused with both shapes, the PSFs left as they were."""
-    from hsicam.cameras.measured import FixedPSFCamera
-
-    base = tiny_camera()
-    c, k = len(base.bands), base.kernel_px
-    first = torch.rand(c, k, k, generator=torch.Generator().manual_seed(0))
-    cam = FixedPSFCamera.from_camera(base, first)
-    bad = torch.zeros(c, k + 2, k + 2)
-    with pytest.raises(ValueError) as info:
-        cam.set_psf(bad)
-    assert str(info.value) == f"PSF stack must have shape {(c, k, k)}, got {(c, k + 2, k + 2)}"
-    torch.testing.assert_close(cam.fixed_psf, first)
-
-
-# ------------------------------------------------------------------------------------------------
-# engine/calibration.py
-# ------------------------------------------------------------------------------------------------
-def test_load_calibrated_run_with_a_psf_folder_images_with_those_psfs(tmp_path):
-    """``psf_dir``: the run's network behind a camera that images with the folder's PSFs (read back from its
-    psf.npy), in eval mode; the network is the run's own, bit for bit."""
-    from fab_runs import FAB_OVERRIDES, write_homogeneous_scenes, write_psf_dir
-
-    from hsicam.cameras.measured import FixedPSFCamera
-    from hsicam.config import load_config
-    from hsicam.engine.calibration import load_calibrated_run
-    from hsicam.engine.train import train
-    from hsicam.runs.folder import load_run
-
-    data = write_homogeneous_scenes(tmp_path / "data", n=4, size=32)
-    run = tmp_path / "run"
-    train(load_config("tiny", [*FAB_OVERRIDES, "train.epochs=1", f"data.root={data}"]), run, progress=False)
-    _, base = load_run(run)
-    with torch.no_grad():
-        nominal = base.camera.psf().double().numpy()
-    perturbed = nominal * np.linspace(0.5, 1.0, len(base.bands))[:, None, None]
-    k = nominal.shape[-1]
-    pitch_um = base.camera.optics.pixel_m * 1e6
-    d = write_psf_dir(tmp_path / "measured", perturbed, base.bands, pitch_um, centre="axis",
-                      axis_px=[k // 2, k // 2], normalize="none")
-    _, model, measured = load_calibrated_run(run, psf_dir=d)
-    assert isinstance(model.camera, FixedPSFCamera) and not model.training
-    np.testing.assert_allclose(measured.psf, perturbed, atol=1e-7)
-    np.testing.assert_allclose(model.camera.fixed_psf.double().numpy(), perturbed, atol=1e-7)
-    torch.testing.assert_close(model.net.state_dict(), base.net.state_dict())
-    _, plain, none = load_calibrated_run(run)  # without: the simulated optics, no measured PSFs
-    assert none is None and not isinstance(plain.camera, FixedPSFCamera)

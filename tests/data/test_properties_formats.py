@@ -6,23 +6,32 @@ numpy, a hand-written ENVI header, Pillow, tifffile), and paths with spaces and 
 
 Each invariant is checked against an independent reference: the array written, indexed by hand,
 or a closed form computed in float64 with numpy.
+
+Also the cube checks and band resampling (against a per-pixel loop of resample_spectra; moved from
+optics/test_properties_spectral_sensor_metrics.py) and the previews of cubes of any band count and size (finite
+images of the documented size; moved from report/test_properties_report.py).
 """
 
 from __future__ import annotations
 
 import json
+import math
 import uuid
 
 import numpy as np
 import pytest
+import torch
 from hypothesis import HealthCheck, assume, given, settings
 from hypothesis import strategies as st
 
 from hsicam.data import formats
+from hsicam.data.cube import check_cube, normalize_per_cube_max, resample_cube
 from hsicam.data.images import RawCorrection, normalised_flat, preprocess_raw, read_image_2d
 from hsicam.errors import InputError
 from hsicam.io import atomic_path, write_json, write_npy, write_png16
 from hsicam.spectral import Bands
+from hsicam.spectral.bands import resampling_matrix
+from property_settings import CORE_PROP, OUTPUT_PROPS, random_grid, seeds
 
 PROPS = settings(max_examples=50, deadline=None, derandomize=True, database=None,
                  suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large])
@@ -606,3 +615,107 @@ def test_auto_level_puts_the_percentile_at_the_level(h, w, level, black, seed):
     want = sub * level / np.percentile(sub, 99.9)
     np.testing.assert_allclose(img, want, rtol=1e-5)
     assert float(np.percentile(img, 99.9)) == pytest.approx(level, rel=1e-5)
+
+
+# ------------------------------------------------------------------------------------------------
+# Cubes
+# ------------------------------------------------------------------------------------------------
+@CORE_PROP
+@given(seed=seeds, c=st.integers(1, 6), h=st.integers(1, 7), w=st.integers(1, 7),
+       dtype=st.sampled_from([np.float64, np.float32, np.uint8, np.uint16, np.int32]), transpose=st.booleans())
+def test_check_and_normalise_cube(seed, c, h, w, dtype, transpose):
+    """check_cube: float32 C-contiguous, the same values (non-contiguous input too); normalised max is exactly 1."""
+    rng = np.random.default_rng(seed)
+    arr = (rng.random((c, w, h) if transpose else (c, h, w)) * 200 + 1).astype(dtype)
+    if transpose:
+        arr = arr.transpose(0, 2, 1)
+    out = check_cube(arr)
+    assert out.dtype == np.float32 and out.flags.c_contiguous and out.shape == (c, h, w)
+    np.testing.assert_array_equal(out, arr.astype(np.float32))
+    norm, peak = normalize_per_cube_max(out)
+    assert peak == float(arr.astype(np.float32).max()) and norm.max() == 1.0 and norm.dtype == np.float32
+
+
+@CORE_PROP
+@given(seed=seeds, n=st.integers(2, 25), m=st.integers(1, 25))
+def test_resample_cube_is_resample_spectra_per_pixel(seed, n, m):
+    """resample_cube = resampling_matrix @ each pixel's spectrum (float64 reference), returned as float32."""
+    rng = np.random.default_rng(seed)
+    src = Bands.from_centers(random_grid(seed, n, 400.0, 10.0))
+    dst = Bands(np.unique(rng.uniform(src.min_nm, src.max_nm, m)), rng.uniform(1, 40))
+    cube = rng.random((n, 3, 4)).astype(np.float32)
+    ref = np.einsum("dc,chw->dhw", resampling_matrix(src, dst), cube.astype(np.float64))
+    out = resample_cube(cube, src, dst)
+    assert out.dtype == np.float32
+    np.testing.assert_allclose(out, ref, rtol=1e-6, atol=1e-7)
+
+
+@CORE_PROP
+@given(seed=seeds, dtype=st.sampled_from([torch.float16, torch.bfloat16, torch.float32, torch.float64]),
+       c=st.integers(1, 4), h=st.integers(1, 5), w=st.integers(1, 5))
+def test_check_cube_takes_a_tensor_of_any_float_dtype(seed, dtype, c, h, w):
+    """check_cube of a torch tensor (bfloat16 included: it has no numpy type, a TypeError) = its float32 values."""
+    t = torch.rand(c, h, w, generator=torch.Generator().manual_seed(seed), dtype=torch.float64).to(dtype)
+    out = check_cube(t)
+    assert out.dtype == np.float32 and out.shape == (c, h, w)
+    np.testing.assert_array_equal(out, t.float().numpy())
+
+
+# -- previews ---------------------------------------------------------------------------------------------
+def _preview_side(side: int, longest: int, max_side: int) -> int:
+    """The documented preview size of one side: step×step blocks (step = ceil(longest / max_side)), at least
+    one block (the whole side) when the side is shorter than a step."""
+    step = max(1, math.ceil(longest / max_side))
+    return max(1, side // step)
+
+
+CUBES = st.tuples(st.integers(1, 8), st.integers(1, 70), st.integers(1, 70),
+                  st.sampled_from(["random", "zero", "hot", "tiny", "huge"]))
+
+
+@OUTPUT_PROPS
+@given(spec=CUBES)
+def test_previews_of_any_cube_are_finite_images_of_the_documented_size(spec):
+    from hsicam.data.preview import preview_grey, preview_rgb, renderable
+
+    c, h, w, kind = spec
+    rng = np.random.default_rng(c * 1000 + h * 10 + w)
+    cube = {"random": lambda: rng.random((c, h, w)), "zero": lambda: np.zeros((c, h, w)),
+            "tiny": lambda: rng.random((c, h, w)) * 1e-37, "huge": lambda: rng.random((c, h, w)) * 3e38,
+            "hot": lambda: np.zeros((c, h, w))}[kind]().astype(np.float32)
+    if kind == "hot":
+        cube[rng.integers(c), rng.integers(h), rng.integers(w)] = 1.0
+    bands = Bands.from_centers(np.linspace(420.0, 720.0, c)) if c > 1 else Bands.from_centers([550.0])
+    max_side = 16
+    shape = (_preview_side(h, max(h, w), max_side), _preview_side(w, max(h, w), max_side), 3)
+    grey = preview_grey(cube, max_side)
+    assert grey.shape == shape and np.isfinite(grey).all() and grey.min() >= 0 and grey.max() <= 1
+    if not renderable(bands):
+        with pytest.raises(InputError, match="fewer than 2 bands"):
+            preview_rgb(cube, bands, max_side)
+        return
+    if not cube.any():
+        with pytest.raises(InputError, match="all zeros"):
+            preview_rgb(cube, bands, max_side)
+        return
+    rgb = preview_rgb(cube, bands, max_side)
+    assert rgb.shape == shape and np.isfinite(rgb).all()
+
+
+def test_a_strip_cube_is_previewed(tmp_path):
+    """A 4×1000 px cube (shorter than one 6-px block on its short side) crashed ``hsicam data show`` with
+    numpy's "zero-size array to reduction operation maximum"; its contact sheet now holds a 1×166 render."""
+    from PIL import Image
+
+    from hsicam.data.preview import CONTACT_SHEET, preview_rgb, write_preview
+
+    cube = np.random.default_rng(0).random((31, 4, 1000)).astype(np.float32)
+    rgb = preview_rgb(cube, Bands.from_centers(np.linspace(400.0, 700.0, 31)))
+    assert rgb.shape == (1, 166, 3) and np.isfinite(rgb).all()
+    np.save(tmp_path / "strip.npy", cube)
+    written = write_preview(tmp_path / "strip.npy", tmp_path / "out")
+    assert (tmp_path / "out" / CONTACT_SHEET) in written
+    for p in written:
+        with Image.open(p) as im:
+            im.load()
+            assert min(im.size) > 0 and np.isfinite(np.asarray(im, dtype=np.float64)).all()

@@ -24,7 +24,7 @@ from cli_helpers import assert_clean_error, run_cli_in_process
 from fab_runs import fab_run  # noqa: F401 - shared fixture
 from hsicam.data import read_cube, write_cube_h5, write_envi
 from hsicam.data.images import MAX_IMAGE_PIXELS, read_capture, read_image_2d
-from hsicam.errors import HsicamError, InputError
+from hsicam.errors import InputError
 from hsicam.spectral import Bands
 
 FUZZ = settings(max_examples=12, deadline=timedelta(seconds=5), derandomize=True, database=None,
@@ -367,8 +367,3 @@ def test_cli_on_corrupt_runs_and_scenes(fab_run, originals, tmp_path):
     assert_clean_error(run_cli_in_process("reconstruct", str(tmp_path / "cap.npy"), "--run", str(fab_run), "--out", str(out / "r.txt")),
                        ".h5")
     _no_outputs(out)
-
-
-def test_input_error_is_an_hsicam_error():
-    """The CLI prints HsicamError as one line; InputError is one."""
-    assert issubclass(InputError, HsicamError)

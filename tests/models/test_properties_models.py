@@ -1,27 +1,35 @@
 """Property-based tests (hypothesis) of the reconstruction networks' and solvers' pure functions on unusual
 inputs: odd and prime sizes, 1-px images, one band or many, any CFA period and phase, tiles that do not divide
 the image, batches whose items differ. Each invariant is checked against an independent reference: a brute-force
-loop in numpy, the call on one batch item alone, the whole image, or a closed form.
+loop in numpy, the call on one batch item alone, the whole image, or a closed form. The least-squares linear
+map (:class:`LinearDemosaicFit`, free and flat-field) against the ridge normal equations and the constrained optimum
+by the null-space method, and the linear consistency step against its definition by loops.
 
 Operators are random :class:`~hsicam.cameras.doe_camera.DOESnapshot` stacks (any band count, kernel and CFA
 period, built in microseconds) and the tiny preset's CASSI cameras."""
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import pytest
 import torch
-from hypothesis import HealthCheck, given, settings
+from hypothesis import HealthCheck, assume, given, settings
 from hypothesis import strategies as st
 
 from hsicam.cameras.doe_camera import DOESnapshot
 from hsicam.engine.inference import reconstruct_tiled
-from hsicam.models.consistency import consistency_step, cut_psf, reach_px, spectral_preconditioner, wiener_residual
-from hsicam.models.demosaic import demosaic, phase_linear
+from hsicam.models.consistency import (consistency_step, cut_psf, linear_consistency_step, reach_px,
+                                       spectral_preconditioner, wiener_residual)
+from hsicam.models.demosaic import LinearDemosaicFit, demosaic, phase_linear
 from hsicam.models.mosaic import MosaicNet, phase_pad
 from hsicam.models.rdn import RDNReconstructor
+from hsicam.models.tv import chambolle_step, dual_divergence, forward_differences
 from hsicam.models.unrolled import UnrolledNet
+from hsicam.sensor import cfa_tile, tile_pattern
 from hsicam.spectral import Bands
+from property_settings import CORE_FEW, CORE_PROP, PIPELINE_PROPS, seeds
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
@@ -473,3 +481,268 @@ def test_choi_admm_on_a_one_px_cube_is_one_input_error(kind, hw):
     prior = SpectralAutoencoder(len(cam.bands), 4, 4).double()
     with pytest.raises(InputError, match=rf"^Choi: the cube \({hw[0]}×{hw[1]} px\) is smaller than 2×2 px"):
         admm_prior(cam, y, prior, ChoiConfig(iterations=1, init_iterations=1))
+
+
+# ------------------------------------------------------------------------------------------------
+# LinearDemosaicFit and the linear consistency step (moved from engine/test_properties_pipeline.py; their
+# settings are those of PIPELINE_PROPS)
+# ------------------------------------------------------------------------------------------------
+def _patches(g: np.ndarray, k: int) -> np.ndarray:
+    """(B, H, W, K²): the K×K window around every pixel of g (B, 1, H, W), the image extended by replication."""
+    r = k // 2
+    gp = np.pad(g[:, 0], ((0, 0), (r, r), (r, r)), mode="edge")
+    b, h, w = g.shape[0], g.shape[2], g.shape[3]
+    out = np.empty((b, h, w, k * k))
+    for i in range(h):
+        for j in range(w):
+            out[:, i, j] = gp[:, i : i + k, j : j + k].reshape(b, -1)
+    return out
+
+
+def _phase(h: int, w: int, m: int, origin: tuple[int, int]) -> np.ndarray:
+    return ((np.arange(h)[:, None] + origin[0]) % m) * m + (np.arange(w)[None, :] + origin[1]) % m
+
+
+def _normal_equations(g, t, m, k, origin, ridge):
+    """Per phase: X_qᵀX_q + reg I and X_qᵀT_q from the definition (reg = ridge × mean diagonal)."""
+    x = _patches(g, k)
+    ph = np.broadcast_to(_phase(g.shape[2], g.shape[3], m, origin), x.shape[:3])
+    vals = t.transpose(0, 2, 3, 1)
+    grams, cross = [], []
+    for q in range(m * m):
+        xs, ts = x[ph == q], vals[ph == q]
+        gram = xs.T @ xs
+        grams.append(gram + ridge * np.trace(gram) / (k * k) * np.eye(k * k))
+        cross.append(xs.T @ ts)
+    return grams, cross
+
+
+# ------------------------------------------------------------------------------------------------
+# LinearDemosaicFit: the least-squares filters
+# ------------------------------------------------------------------------------------------------
+@PIPELINE_PROPS
+@given(m=st.integers(1, 3), k=st.sampled_from([1, 3, 5]), c=st.integers(1, 4), h=st.integers(1, 9),
+       w=st.integers(1, 9), b=st.integers(1, 2), oy=st.integers(0, 5), ox=st.integers(0, 5), seed=st.integers(0, 999),
+       scale=st.sampled_from([1e-6, 1.0, 1e4]))
+def test_free_fit_is_the_ridge_least_squares_by_brute_force(m, k, c, h, w, b, oy, ox, seed, scale):
+    """Per phase (w_q = (X_qᵀX_q + reg I)⁻¹ X_qᵀT_q, a phase without samples 0), for any image size (smaller
+    than the window or the period too), origin, batch and brightness (the ridge is relative: scale-free)."""
+    rng = np.random.default_rng(seed)
+    g, t = rng.random((b, 1, h, w)) * scale, rng.random((b, c, h, w))
+    fit = LinearDemosaicFit(m, c, k, ridge=1e-3)
+    fit.add(torch.from_numpy(g), torch.from_numpy(t), (oy, ox))
+    got = fit.solve().double().numpy()
+    grams, cross = _normal_equations(g, t, m, k, (oy, ox), 1e-3)
+    ref = np.stack([np.linalg.solve(gr, cr).T.reshape(c, k, k) if np.trace(gr) > 0 else np.zeros((c, k, k))
+                    for gr, cr in zip(grams, cross)])
+    np.testing.assert_allclose(got, ref, rtol=2e-4, atol=1e-5 * np.abs(ref).max())
+
+
+@PIPELINE_PROPS
+@given(m=st.integers(1, 3), k=st.sampled_from([1, 3, 5]), c=st.integers(1, 3), h=st.integers(1, 9),
+       w=st.integers(1, 9), b=st.integers(1, 2), oy=st.integers(0, 5), ox=st.integers(0, 5), seed=st.integers(0, 999),
+       scale=st.sampled_from([1e-6, 1.0, 1e4]), ridge=st.sampled_from([1e-6, 1e-2]))
+def test_flat_field_fit_is_the_constrained_optimum_by_the_null_space_method(m, k, c, h, w, b, oy, ox, seed, scale,
+                                                                            ridge):
+    """Under S_q w_q = S_0 w_0 for all phases q (S_q[p, tap] = 1 where phase q's tap reads a pixel of phase p,
+    written here from the definition) the fit minimises Σ_q ‖X_q w_q − T_q‖² + reg_q ‖w_q‖²: w = Z z with Z a
+    basis of the constraints' null space (SVD) and (ZᵀGZ) z = Zᵀc.
+
+    Every phase has samples (h, w >= m, as on any training scene): a phase without any is a degenerate problem
+    (its Gram matrix 0, an absolute ridge of 1 against a relative one elsewhere) that only a sub-period image makes."""
+    assume(k >= m and h >= m and w >= m)
+    rng = np.random.default_rng(seed)
+    g, t = rng.random((b, 1, h, w)) * scale, rng.random((b, c, h, w))
+    fit = LinearDemosaicFit(m, c, k, ridge=ridge, flat_field=True)
+    fit.add(torch.from_numpy(g), torch.from_numpy(t), (oy, ox))
+    got = fit.solve().double().numpy()
+    q_n, n, r = m * m, k * k, k // 2
+    select = np.zeros((q_n, q_n, n))
+    for q in range(q_n):
+        for u in range(k):
+            for v in range(k):
+                select[q, ((q // m + u - r) % m) * m + (q % m + v - r) % m, u * k + v] = 1.0
+    cons = np.zeros(((q_n - 1) * q_n, q_n * n))
+    for q in range(1, q_n):
+        cons[(q - 1) * q_n : q * q_n, q * n : (q + 1) * n] = select[q]
+        cons[(q - 1) * q_n : q * q_n, :n] = -select[0]
+    if cons.size:
+        _, sv, vt = np.linalg.svd(cons)
+        null = vt[int((sv > 1e-9).sum()) :].T
+    else:
+        null = np.eye(q_n * n)
+    grams, cross = _normal_equations(g, t, m, k, (oy, ox), ridge)
+    big = np.zeros((q_n * n, q_n * n))
+    for q in range(q_n):
+        big[q * n : (q + 1) * n, q * n : (q + 1) * n] = grams[q]
+    sol = null @ np.linalg.solve(null.T @ big @ null, null.T @ np.concatenate(cross))
+    ref = sol.reshape(q_n, n, c).transpose(0, 2, 1).reshape(q_n, c, k, k)
+    np.testing.assert_allclose(got, ref, rtol=1e-3, atol=1e-4 * np.abs(ref).max())
+
+
+# ------------------------------------------------------------------------------------------------
+# linear_consistency_step: the definition, batch items
+# ------------------------------------------------------------------------------------------------
+def _a_replicated(x, psf, tile, origin):
+    """y_ij = Σ_c κ_c(i + oy, j + ox) Σ_uv p_c[u, v] x_c[i − u + r, j − v + r], x extended by replication."""
+    b, c, h, w = x.shape
+    k, m, r = psf.shape[-1], tile.shape[-1], psf.shape[-1] // 2
+    rows, cols = np.clip(np.arange(-r, h + r), 0, h - 1), np.clip(np.arange(-r, w + r), 0, w - 1)
+    xe = x[:, :, rows][:, :, :, cols]
+    y = np.zeros((b, 1, h, w))
+    for i in range(h):
+        for j in range(w):
+            win = xe[:, :, i : i + k, j : j + k][:, :, ::-1, ::-1]  # x[i − u + r]: the window flipped
+            kappa = tile[:, (i + origin[0]) % m, (j + origin[1]) % m]
+            y[:, 0, i, j] = np.einsum("bcuv,cuv,c->b", win, psf, kappa)
+    return y
+
+
+def _phase_linear(g, weight, origin):
+    m, k = math.isqrt(weight.shape[0]), weight.shape[-1]
+    x = _patches(g, k)
+    ph = _phase(g.shape[2], g.shape[3], m, origin)
+    return np.einsum("bhwn,hwcn->bchw", x, weight.reshape(m * m, weight.shape[1], k * k)[ph])
+
+
+@PIPELINE_PROPS
+@given(bands=st.integers(1, 5), kernel=st.sampled_from([1, 3, 5]), m=st.integers(1, 4),
+       window=st.sampled_from([1, 3, 5]), h=st.integers(1, 11), w=st.integers(1, 11),
+       origin=st.tuples(st.integers(0, 9), st.integers(0, 9)), gain=st.sampled_from([0.1, 0.5, 1.0]),
+       iterations=st.integers(0, 3), seed=st.integers(0, 99))
+def test_linear_step_is_x_plus_gain_w_residual_by_brute_force(bands, kernel, m, window, h, w, origin, gain, iterations,
+                                                              seed):
+    """x ← x + gain · W(y − A x), the estimate extended by replication for A, each batch item as alone."""
+    op = snapshot(bands, kernel, m, seed)
+    rng = np.random.default_rng(seed)
+    x0 = rng.random((2, bands, h, w))
+    y = rng.random((2, 1, h, w))
+    weight = rng.normal(size=(m * m, bands, window, window)) * 0.1
+    got = linear_consistency_step(op, torch.from_numpy(y), torch.from_numpy(x0), torch.from_numpy(weight), origin,
+                                  gain=gain, iterations=iterations, psf_energy=1.0).numpy()
+    x = x0
+    for _ in range(iterations):
+        x = x + gain * _phase_linear(y - _a_replicated(x, op.psf.numpy(), op.tile.numpy(), origin), weight, origin)
+    np.testing.assert_allclose(got, x, rtol=1e-9, atol=1e-10)
+
+
+# ------------------------------------------------------------------------------------------------
+# Demosaic and TV
+# ------------------------------------------------------------------------------------------------
+def _zero_padded_mean(x: np.ndarray, weights: np.ndarray) -> np.ndarray:
+    """Brute force: Σ_{u,v} w_u w_v x[i+u, j+v] (zeros outside), w normalised to sum 1, per (B, C)."""
+    k = len(weights)
+    r = k // 2
+    b, c, h, w = x.shape
+    p = np.zeros((b, c, h + 2 * r, w + 2 * r))
+    p[..., r : r + h, r : r + w] = x
+    out = np.zeros_like(x)
+    for u in range(k):
+        for v in range(k):
+            out += weights[u] * weights[v] * p[..., u : u + h, v : v + w]
+    return out
+
+
+@CORE_PROP
+@given(seed=seeds, b=st.integers(1, 2), c=st.integers(1, 6), h=st.integers(1, 13), w=st.integers(1, 13),
+       m=st.integers(1, 5), window=st.sampled_from([1, 3, 5, 7, 9, 15]), kernel=st.sampled_from(["box", "tent"]),
+       grey=st.floats(0.01, 10.0), dtype=st.sampled_from([torch.float32, torch.float64]))
+def test_demosaic_grey_scene_comes_back_and_is_the_brute_force(seed, b, c, h, w, m, window, kernel, grey, dtype):
+    """A grey scene (every band v) gives g = v through any CFA (Σκ = 1) and the demosaic returns v at every pixel,
+    border included, any window and size; in general it is the brute-force ratio of zero-padded weighted sums.
+    (Grey comes back only where the band is seen: a filter that blocks band c at every pixel of the window gives 0,
+    the clamped 0/0; so the grey part uses filters that pass every band, the brute-force part zero filters too.)"""
+    gen = torch.Generator().manual_seed(seed)
+    code = tile_pattern(cfa_tile(torch.rand(c, m, m, generator=gen) + 0.05), h, w).to(dtype)
+    g = torch.full((b, 1, h, w), grey, dtype=dtype)
+    out = demosaic(g, code, window, kernel)
+    torch.testing.assert_close(out, torch.full((b, c, h, w), grey, dtype=dtype),
+                               rtol=1e-5 if dtype == torch.float32 else 1e-12, atol=0)
+    code = tile_pattern(cfa_tile(torch.rand(c, m, m, generator=gen) - 0.3), h, w).to(dtype)
+    scene = torch.rand(b, c, h, w, generator=gen, dtype=torch.float64)
+    g = (scene * code.double()).sum(1, keepdim=True).to(dtype)
+    out = demosaic(g, code, window, kernel).double().numpy()
+    r = window // 2
+    wts = np.ones(window) if kernel == "box" else (r + 1 - np.abs(np.arange(-r, r + 1))).astype(float)
+    wts = wts / wts.sum()
+    num = _zero_padded_mean(g.double().numpy() * code.double().numpy()[None], wts)
+    den = _zero_padded_mean(code.double().numpy()[None], wts)
+    np.testing.assert_allclose(out, num / np.maximum(den, 1e-6), rtol=1e-5 if dtype == torch.float32 else 1e-10)
+
+
+@CORE_PROP
+@given(seed=seeds, b=st.integers(1, 2), c=st.integers(1, 4), h=st.integers(1, 12), w=st.integers(1, 12),
+       channels_last=st.booleans())
+def test_tv_divergence_is_minus_the_adjoint_of_the_gradient(seed, b, c, h, w, channels_last):
+    """<∇d, p> = −<d, div p> for p with zero last row (py) / column (px); fast and differentiable paths agree."""
+    gen = torch.Generator().manual_seed(seed)
+    d = torch.randn(b, c, h, w, generator=gen, dtype=torch.float64)
+    py = torch.randn(b, c, h, w, generator=gen, dtype=torch.float64)
+    px = torch.randn(b, c, h, w, generator=gen, dtype=torch.float64)
+    py[..., -1, :] = 0
+    px[..., :, -1] = 0
+    if channels_last:
+        d, py, px = (t.to(memory_format=torch.channels_last) for t in (d, py, px))
+    gy, gx = forward_differences(d)
+    div = dual_divergence(py, px)
+    lhs = float((gy * py).sum() + (gx * px).sum())
+    rhs = -float((d * div).sum())
+    assert lhs == pytest.approx(rhs, rel=1e-10, abs=1e-10)
+    # numpy reference of the forward differences
+    dn = d.numpy()
+    ref_y = np.zeros_like(dn)
+    ref_y[..., :-1, :] = dn[..., 1:, :] - dn[..., :-1, :]
+    ref_x = np.zeros_like(dn)
+    ref_x[..., :, :-1] = dn[..., :, 1:] - dn[..., :, :-1]
+    np.testing.assert_allclose(gy.numpy(), ref_y, atol=1e-14)
+    np.testing.assert_allclose(gx.numpy(), ref_x, atol=1e-14)
+    dr = d.clone().requires_grad_(True)
+    gy2, gx2 = forward_differences(dr)
+    torch.testing.assert_close(gy2.detach(), gy)
+    torch.testing.assert_close(gx2.detach(), gx)
+    torch.testing.assert_close(dual_divergence(py.clone().requires_grad_(True), px).detach(), div)
+
+
+@CORE_FEW
+@given(seed=seeds, c=st.integers(1, 3), h=st.integers(1, 10), w=st.integers(1, 10), weight=st.floats(0.01, 2.0),
+       vectorial=st.booleans())
+def test_tv_prox_keeps_the_mean_and_lowers_tv(seed, c, h, w, weight, vectorial):
+    """u = f − w div p after Chambolle's iterations: mean of u = mean of f (div sums to 0), TV(u) ≤ TV(f), and the
+    prox objective ½|u − f|² + w TV(u) ≤ its value at u = f."""
+    gen = torch.Generator().manual_seed(seed)
+    f = torch.rand(1, c, h, w, generator=gen, dtype=torch.float64)
+    py, px = torch.zeros_like(f), torch.zeros_like(f)
+    for _ in range(200):
+        py, px = chambolle_step(py, px, f / weight, vectorial=vectorial)
+    u = f - weight * dual_divergence(py, px)
+
+    def tv(z):
+        gy, gx = forward_differences(z)
+        if vectorial:
+            return float((gy.square().sum(1) + gx.square().sum(1)).sqrt().sum())
+        return float(torch.hypot(gy, gx).sum())
+
+    torch.testing.assert_close(u.mean(dim=(-2, -1)), f.mean(dim=(-2, -1)), rtol=0, atol=1e-12)
+    assert tv(u) <= tv(f) + 1e-9
+    assert 0.5 * float((u - f).square().sum()) + weight * tv(u) <= weight * tv(f) + 1e-9
+
+
+@CORE_PROP
+@given(seed=seeds, m=st.integers(1, 4), k=st.sampled_from([1, 3, 5]), h=st.integers(1, 11), w=st.integers(1, 11),
+       oy=st.integers(0, 7), ox=st.integers(0, 7), b=st.integers(1, 2))
+def test_phase_linear_is_the_brute_force(seed, m, k, h, w, oy, ox, b):
+    """Each output pixel = the K×K replicate-padded neighbourhood · W[phase of the pixel on the whole sensor]."""
+    gen = torch.Generator().manual_seed(seed)
+    c = 2
+    g = torch.rand(b, 1, h, w, generator=gen, dtype=torch.float64)
+    wt = torch.randn(m * m, c, k, k, generator=gen, dtype=torch.float64)
+    out = phase_linear(g, wt, (oy, ox)).numpy()
+    r = k // 2
+    p = np.pad(g.numpy()[:, 0], ((0, 0), (r, r), (r, r)), mode="edge")
+    ref = np.zeros((b, c, h, w))
+    for i in range(h):
+        for j in range(w):
+            q = ((i + oy) % m) * m + (j + ox) % m
+            patch = p[:, i : i + k, j : j + k]
+            ref[:, :, i, j] = np.einsum("buv,cuv->bc", patch, wt[q].numpy())
+    np.testing.assert_allclose(out, ref, atol=1e-12)

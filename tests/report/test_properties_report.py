@@ -1,7 +1,9 @@
-"""Property tests of the result and preview writers: scene names of any text and scores of any value are
+"""Property tests of the result writers and the metrics: scene names of any text and scores of any value are
 written so that each format reads them back (results.json by json, results.csv by csv, results.md's table by
-the GitHub-flavoured Markdown cell rule, the report's table by an HTML parser), and previews of cubes of any
-band count and size render to finite images of the documented size."""
+the GitHub-flavoured Markdown cell rule, the report's table by an HTML parser); PSNR, RMSE, ERGAS, SSIM and SAM on
+odd and 1-px sizes, one band or many, float64, batches whose items differ, against their formulas, scikit-image
+and brute force (moved from optics/test_properties_spectral_sensor_metrics.py). The previews' properties are in
+data/test_properties_formats.py."""
 
 from __future__ import annotations
 
@@ -14,17 +16,16 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from hypothesis import HealthCheck, given, settings
+import torch
+from hypothesis import given
 from hypothesis import strategies as st
 
+from hsicam import metrics
 from hsicam.engine.evaluate import SceneResult, summarize, write_results
-from hsicam.errors import InputError
 from hsicam.io import mark_complete, nan_for_null
 from hsicam.report.html import build_report
-from hsicam.spectral import Bands
+from property_settings import CORE_FEW, CORE_PROP, OUTPUT_PROPS, seeds
 
-SETTINGS = settings(derandomize=True, database=None, deadline=None, max_examples=30,
-                    suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow])
 METRICS = ("psnr", "ssim", "sam", "ergas", "psnr_cube", "psnr_mst", "rmse")
 
 NAMES = st.one_of(st.text(min_size=1, max_size=30),
@@ -104,7 +105,7 @@ def _folder(tmp_path_factory, names, scores, method="doe-learned") -> tuple[Path
     return d, summary
 
 
-@SETTINGS
+@OUTPUT_PROPS
 @given(rows=st.lists(st.tuples(NAMES, SCORES), min_size=1, max_size=3), method=NAMES)
 def test_results_files_and_report_read_back_any_name_and_score(tmp_path_factory, rows, method):
     names, scores = [n for n, _ in rows], [v for _, v in rows]
@@ -150,66 +151,6 @@ def test_a_pipe_or_line_break_in_a_scene_name_keeps_the_markdown_table_whole(tmp
     assert [_gfm_cells(r)[1] for r in rows] == ["30.00", "31.00", "32.00"]
 
 
-# -- previews ---------------------------------------------------------------------------------------------
-def _preview_side(side: int, longest: int, max_side: int) -> int:
-    """The documented preview size of one side: step×step blocks (step = ceil(longest / max_side)), at least
-    one block (the whole side) when the side is shorter than a step."""
-    step = max(1, math.ceil(longest / max_side))
-    return max(1, side // step)
-
-
-CUBES = st.tuples(st.integers(1, 8), st.integers(1, 70), st.integers(1, 70),
-                  st.sampled_from(["random", "zero", "hot", "tiny", "huge"]))
-
-
-@SETTINGS
-@given(spec=CUBES)
-def test_previews_of_any_cube_are_finite_images_of_the_documented_size(spec):
-    from hsicam.data.preview import preview_grey, preview_rgb, renderable
-
-    c, h, w, kind = spec
-    rng = np.random.default_rng(c * 1000 + h * 10 + w)
-    cube = {"random": lambda: rng.random((c, h, w)), "zero": lambda: np.zeros((c, h, w)),
-            "tiny": lambda: rng.random((c, h, w)) * 1e-37, "huge": lambda: rng.random((c, h, w)) * 3e38,
-            "hot": lambda: np.zeros((c, h, w))}[kind]().astype(np.float32)
-    if kind == "hot":
-        cube[rng.integers(c), rng.integers(h), rng.integers(w)] = 1.0
-    bands = Bands.from_centers(np.linspace(420.0, 720.0, c)) if c > 1 else Bands.from_centers([550.0])
-    max_side = 16
-    shape = (_preview_side(h, max(h, w), max_side), _preview_side(w, max(h, w), max_side), 3)
-    grey = preview_grey(cube, max_side)
-    assert grey.shape == shape and np.isfinite(grey).all() and grey.min() >= 0 and grey.max() <= 1
-    if not renderable(bands):
-        with pytest.raises(InputError, match="fewer than 2 bands"):
-            preview_rgb(cube, bands, max_side)
-        return
-    if not cube.any():
-        with pytest.raises(InputError, match="all zeros"):
-            preview_rgb(cube, bands, max_side)
-        return
-    rgb = preview_rgb(cube, bands, max_side)
-    assert rgb.shape == shape and np.isfinite(rgb).all()
-
-
-def test_a_strip_cube_is_previewed(tmp_path):
-    """A 4×1000 px cube (shorter than one 6-px block on its short side) crashed ``hsicam data show`` with
-    numpy's "zero-size array to reduction operation maximum"; its contact sheet now holds a 1×166 render."""
-    from PIL import Image
-
-    from hsicam.data.preview import CONTACT_SHEET, preview_rgb, write_preview
-
-    cube = np.random.default_rng(0).random((31, 4, 1000)).astype(np.float32)
-    rgb = preview_rgb(cube, Bands.from_centers(np.linspace(400.0, 700.0, 31)))
-    assert rgb.shape == (1, 166, 3) and np.isfinite(rgb).all()
-    np.save(tmp_path / "strip.npy", cube)
-    written = write_preview(tmp_path / "strip.npy", tmp_path / "out")
-    assert (tmp_path / "out" / CONTACT_SHEET) in written
-    for p in written:
-        with Image.open(p) as im:
-            im.load()
-            assert min(im.size) > 0 and np.isfinite(np.asarray(im, dtype=np.float64)).all()
-
-
 def test_a_scene_file_name_that_is_not_utf8_is_scored_and_named_by_its_escaped_bytes(tmp_path):
     """An old Latin-1 file name (b"sc\\xe8ne.h5", held by Python as a lone surrogate) stopped `hsicam evaluate
     --data` with "UnicodeEncodeError: surrogates not allowed" (the capture-noise seed, then the results writers)."""
@@ -240,3 +181,140 @@ def test_a_scene_file_name_that_is_not_utf8_is_scored_and_named_by_its_escaped_b
     with open(out / "results.csv", newline="", encoding="utf-8") as f:
         assert next(csv.DictReader(f))["name"] == "sc\\xe8ne"
     assert sorted(p.name for p in (out / "cubes").iterdir()) == ["sc\\xe8ne_estimate.h5", "sc\\xe8ne_truth.h5"]
+
+
+# ------------------------------------------------------------------------------------------------
+# Metrics
+# ------------------------------------------------------------------------------------------------
+def _pair(seed, b, c, h, w, dtype=torch.float32, noise=0.1):
+    g = torch.Generator().manual_seed(seed)
+    y = torch.rand(b, c, h, w, generator=g, dtype=torch.float64)
+    x = (y + noise * torch.randn(b, c, h, w, generator=g, dtype=torch.float64)).clamp(0, 1)
+    return x.to(dtype), y.to(dtype)
+
+
+@CORE_PROP
+@given(seed=seeds, b=st.integers(1, 3), c=st.integers(1, 7), h=st.integers(1, 13), w=st.integers(1, 13),
+       dtype=st.sampled_from([torch.float32, torch.float64]))
+def test_psnr_rmse_ergas_are_the_formulas(seed, b, c, h, w, dtype):
+    """PSNR per band / cube, RMSE and ERGAS against scikit-image and numpy, per batch item."""
+    from skimage.metrics import peak_signal_noise_ratio as sk_psnr
+
+    x, y = _pair(seed, b, c, h, w, dtype)
+    xn, yn = x.double().numpy(), y.double().numpy()
+    for i in range(b):
+        bands = [sk_psnr(yn[i, k], xn[i, k], data_range=1.0) for k in range(c)]
+        bands = [min(v, 300.0) for v in bands]
+        assert float(metrics.psnr_per_band(x, y)[i]) == pytest.approx(np.mean(bands), rel=1e-9)
+        assert float(metrics.psnr_cube(x, y)[i]) == pytest.approx(min(sk_psnr(yn[i], xn[i], data_range=1.0), 300.0), rel=1e-9)
+        assert float(metrics.rmse(x, y)[i]) == pytest.approx(np.sqrt(np.mean((xn[i] - yn[i]) ** 2)), rel=1e-9, abs=1e-15)
+        rb = np.sqrt(((xn[i] - yn[i]) ** 2).mean(axis=(1, 2)))
+        mb = np.maximum(np.abs(yn[i].mean(axis=(1, 2))), 1e-12)
+        assert float(metrics.ergas(x, y)[i]) == pytest.approx(100 * np.sqrt(np.mean((rb / mb) ** 2)), rel=1e-9)
+        # batch item i of the batched call is the call on item i alone
+        assert float(metrics.psnr_per_band(x[i], y[i])[0]) == float(metrics.psnr_per_band(x, y)[i])
+
+
+@CORE_FEW
+@given(seed=seeds, b=st.integers(1, 2), c=st.integers(1, 3), h=st.integers(11, 23), w=st.integers(11, 23),
+       dtype=st.sampled_from([torch.float32, torch.float64]), noise=st.sampled_from([0.0, 0.02, 0.3]))
+def test_ssim_is_scikit_image(seed, b, c, h, w, dtype, noise):
+    """SSIM = skimage structural_similarity(gaussian_weights, σ 1.5, population covariance, range 1), mean over
+    bands, for odd, prime and non-square sizes down to the 11-px window."""
+    from skimage.metrics import structural_similarity
+
+    x, y = _pair(seed, b, c, h, w, dtype, noise)
+    got = metrics.ssim(x, y)
+    for i in range(b):
+        ref = np.mean([structural_similarity(y[i, k].double().numpy(), x[i, k].double().numpy(), gaussian_weights=True,
+                                             sigma=1.5, use_sample_covariance=False, data_range=1.0)
+                       for k in range(c)])
+        assert float(got[i]) == pytest.approx(ref, abs=1e-6)
+
+
+@CORE_FEW
+@given(seed=seeds, h=st.integers(11, 20), w=st.integers(11, 20))
+def test_ssim_chunked_path_equals_matrix_path(seed, h, w):
+    """The large-image path (shifted multiply-adds, bands in chunks) gives the matrix path's value."""
+    x, y = _pair(seed, 2, 5, h, w, torch.float64)
+    ref = metrics.ssim(x, y)
+    old = (metrics._SSIM_MATRIX_MAX_PX, metrics._SSIM_CHUNK_BYTES)
+    try:
+        metrics._SSIM_MATRIX_MAX_PX, metrics._SSIM_CHUNK_BYTES = 1, 5 * 2 * h * w * 8 * 2  # 2 bands per chunk
+        got = metrics.ssim(x, y)
+    finally:
+        metrics._SSIM_MATRIX_MAX_PX, metrics._SSIM_CHUNK_BYTES = old
+    torch.testing.assert_close(got, ref, rtol=1e-12, atol=1e-12)
+
+
+@CORE_PROP
+@given(seed=seeds, b=st.integers(1, 3), c=st.integers(1, 8), h=st.integers(1, 6), w=st.integers(1, 6),
+       zero_frac=st.sampled_from([0.0, 0.3, 1.0]), scale=st.sampled_from([1e-30, 1.0, 1e30]),
+       dtype=st.sampled_from([torch.float32, torch.float64]))
+def test_sam_is_the_angle_brute_force(seed, b, c, h, w, zero_frac, scale, dtype):
+    """SAM per pixel = arccos(<x, y> / |x||y|) in degrees (numpy, long double not needed at these scales after
+    scaling), all-zero truth excluded, all-zero estimate 90°; mean per cube; NaN when nothing is defined."""
+    rng = np.random.default_rng(seed)
+    y = rng.random((b, c, h, w)) * (rng.random((b, 1, h, w)) >= zero_frac)
+    x = np.abs(y + 0.2 * rng.normal(size=y.shape)) * (rng.random((b, 1, h, w)) > 0.2)
+    x, y = x * scale, y * scale
+    xt, yt = torch.tensor(x, dtype=dtype), torch.tensor(y, dtype=dtype)
+    xs, ys = xt.double().numpy() / scale, yt.double().numpy() / scale  # what the metric sees, rescaled
+    got = metrics.sam_degrees(xt, yt).numpy()
+    for i in range(b):
+        angles = []
+        for r in range(h):
+            for s in range(w):
+                u, v = xs[i, :, r, s], ys[i, :, r, s]
+                if not np.any(v != 0):
+                    continue
+                if not np.any(u != 0):
+                    angles.append(90.0)
+                    continue
+                cos = np.dot(u, v) / (np.linalg.norm(u) * np.linalg.norm(v))
+                angles.append(math.degrees(math.acos(min(1.0, max(-1.0, cos)))))
+        if not angles:
+            assert math.isnan(got[i])
+        else:
+            assert got[i] == pytest.approx(np.mean(angles), abs=1e-5)
+
+
+@CORE_FEW
+@given(seed=seeds, b=st.integers(1, 3), h=st.integers(11, 15), w=st.integers(11, 15), c=st.integers(1, 4))
+def test_all_metrics_per_item_equals_alone(seed, b, h, w, c):
+    """all_metrics of a batch whose items differ (one item's truth all zero) = all_metrics of each item alone."""
+    x, y = _pair(seed, b, c, h, w)
+    y[0] = 0
+    batch = metrics.all_metrics(x, y)
+    for i in range(b):
+        alone = metrics.all_metrics(x[i : i + 1], y[i : i + 1])
+        for k, v in batch.items():
+            assert v[i] == pytest.approx(alone[k][0], rel=1e-12, nan_ok=True), k
+
+
+@CORE_PROP
+@given(seed=seeds, n=st.integers(1, 300), q=st.floats(0.0, 1.0), ties=st.booleans())
+def test_sam_breakdown_quantile_is_torch_quantile(seed, n, q, ties):
+    """The edge threshold of sam_breakdown = torch.quantile (linear interpolation) where torch's applies."""
+    gen = torch.Generator().manual_seed(seed)
+    t = torch.rand(n, generator=gen, dtype=torch.float64)
+    if ties:
+        t = (t * 4).floor()
+    torch.testing.assert_close(metrics._quantile(t, q), torch.quantile(t, q), rtol=1e-12, atol=1e-12)
+
+
+@pytest.mark.slow
+def test_sam_breakdown_of_an_image_beyond_2_24_pixels():
+    """A 4097×4096 image (2²⁴ + 4096 px): torch.quantile refused it ("quantile() input tensor is too large") and
+    sam_breakdown stopped with a RuntimeError. A vertical step edge: the top 20 % of the gradient are its two
+    columns' neighbours (numpy's quantile as the reference), SAM 0 for an estimate equal to the truth."""
+    h, w = 4097, 4096
+    y = torch.full((1, 1, h, w), 0.5)
+    y[..., w // 2 :] = 1.0
+    y[..., : h // 3, :] += torch.linspace(0, 0.1, w)  # a ramp over the top third: gradients of several sizes
+    got = metrics.sam_breakdown(y, y)
+    assert got["all"] == [0.0] and got["edges"] == [0.0] and got["dark_fraction"] == [0.0]
+    gy, gx = np.gradient(y[0, 0].double().numpy())
+    grad = np.sqrt(gx * gx + gy * gy)
+    assert float(metrics._quantile(torch.from_numpy(grad).flatten(), 0.8)) == pytest.approx(np.quantile(grad, 0.8),
+                                                                                             rel=1e-12)

@@ -2,6 +2,10 @@
 mut8b, moved here from the models floor's camera-system file: each test kills a hand-made mutant that the rest of the
 suite let through, asserting against a figure's plotted data or text read back from its axes and values worked out
 by hand.
+
+Then those of the report pages and the camera files and figures (report/html.py, report/camera.py), session 56,
+mut5c, moved here from engine/test_experiments_and_demo_edge_cases.py: against a page's table read back, a file read
+back, brute-force sums over a PSF's pixels, the exact line a user sees.
 """
 
 from __future__ import annotations
@@ -11,7 +15,9 @@ from types import SimpleNamespace
 
 import numpy as np
 import pytest
+import torch
 
+from hsicam.errors import InputError
 from hsicam.spectral import Bands
 
 
@@ -146,3 +152,272 @@ def test_tolerance_figure_says_why_a_skipped_shift_sweep_was_not_studied(monkeyp
         assert [t.get_text() for t in ax[i].texts] == ["not studied:\n" + why]
         assert len(ax[i].get_lines()) == 0
     assert len(ax[3].texts) == 0 and _hline(ax[3], "−1 dB") == 29.0
+
+
+# ------------------------------------------------------------------------------------------------
+# report: pages read back
+# ------------------------------------------------------------------------------------------------
+MEAN = {"psnr": 30.0, "ssim": 0.9, "sam": 5.0}
+
+
+def _complete_folder(tmp_path, name: str, data: dict):
+    from hsicam.io import mark_complete
+
+    d = tmp_path / "ev"
+    d.mkdir()
+    (d / name).write_text(json.dumps(data))
+    mark_complete(d, {"command": "test"})
+    return d
+
+
+def _cells(page: str) -> list[list[str]]:
+    """The table rows of a report page, as lists of cell texts (an independent read of the HTML)."""
+    import re
+
+    return [re.findall(r"<t[dh]>(.*?)</t[dh]>", row) for row in re.findall(r"<tr>(.*?)</tr>", page)]
+
+
+def test_an_empty_band_list_is_a_corrupt_field(tmp_path):
+    from hsicam.report.html import build_report
+
+    d = _complete_folder(tmp_path, "results.json", {"method": "x", "scenes": [{"name": "a", **MEAN}], "mean": MEAN,
+                                                     "conventions": {}, "bands_nm": []})
+    with pytest.raises(InputError) as err:
+        build_report(d)
+    assert str(err.value) == f"{d / 'results.json'}: corrupt results.json ('bands_nm' is not a list of wavelengths in nm)"
+
+
+def test_an_ablation_page_lists_missing_rows_apart_and_claims_no_cassi_rows(tmp_path):
+    from hsicam.report.html import build_report
+
+    d = _complete_folder(tmp_path, "experiment.json", {
+        "experiment": "ablation", "scale": "tiny", "seeds": [0], "scenes": ["a"], "conventions": {},
+        "region": "central 10x10 px", "rows": [{"method": "doe+cfa", **MEAN, "runtime_s": 0.5},
+                                               {"method": "no-doe", "missing": True}]})
+    page = build_report(d).read_text(encoding="utf-8")
+    rows = _cells(page)
+    assert rows == [["method", "PSNR (dB)", "SSIM", "SAM (°)", "runtime (s/scene)"],
+                    ["doe+cfa", "30.00", "0.9000", "5.00", "0.500"]]
+    assert "not available in this installation: no-doe" in page
+    assert "scored area: the DOE cameras' central 10x10 px</p>" in page  # no CASSI row in an ablation
+
+
+def test_the_references_of_a_demo_are_tabled_in_its_report(tmp_path):
+    from hsicam.report.html import build_report
+
+    d = _complete_folder(tmp_path, "results.json", {
+        "method": "doe-learned", "scenes": [{"name": "a", **MEAN}], "mean": MEAN, "conventions": {},
+        "references": [{"method": "CFA box demosaic (no network)", "mean": {"psnr": 25.125, "ssim": 0.5, "sam": 9.0}}]})
+    rows = _cells(build_report(d).read_text(encoding="utf-8"))
+    assert ["CFA box demosaic (no network)", "25.12", "0.5000", "9.00"] in rows
+
+
+def test_a_run_path_no_longer_there_falls_back_to_the_run_label(tmp_path):
+    from pathlib import Path
+
+    from hsicam.report.html import _evaluated_run
+
+    assert _evaluated_run({"run_path": str(tmp_path / "gone"), "run": "pretrained:x"}) == Path("pretrained:x")
+    assert _evaluated_run({"run_path": str(tmp_path), "run": "pretrained:x"}) == tmp_path
+
+
+# ------------------------------------------------------------------------------------------------
+# report: camera files and figures
+# ------------------------------------------------------------------------------------------------
+def test_a_flat_filter_is_drawn_as_the_white_of_a_perfect_reflector():
+    """Each filter is peak-normalised before rendering: a flat κ = 1/C is the colour of a reflectance of 1."""
+    from hsicam.color import spectra_to_srgb
+    from hsicam.report.camera import cfa_tile_rgb
+    from hsicam.spectral import Bands
+
+    bands = Bands.from_centers([450.0 + 10 * i for i in range(21)])
+    tile = np.full((21, 2, 2), 1 / 21)
+    white = spectra_to_srgb(torch.ones(21, dtype=torch.float64), bands).numpy()
+    np.testing.assert_allclose(cfa_tile_rgb(tile, bands), np.broadcast_to(white, (2, 2, 3)), atol=1e-9)
+
+
+def test_psf_files_read_back_hold_the_psf_its_energy_and_the_exact_heights(tmp_path, tiny_camera):
+    from hsicam.report.camera import write_psf_outputs
+
+    cam = tiny_camera()
+    info = write_psf_outputs(cam, tmp_path)
+    psf = np.load(tmp_path / "psf.npy")
+    meta = json.loads((tmp_path / "psf.json").read_text())
+    assert meta == json.loads(json.dumps(info))
+    assert psf.shape == (len(cam.bands), cam.kernel_px, cam.kernel_px)
+    # the energy in the kernel is the light the kernel holds: the PSF's sum per band (less than 1: some falls outside)
+    np.testing.assert_allclose(meta["energy_in_kernel"], psf.astype(np.float64).sum(axis=(1, 2)), rtol=1e-5)
+    heights = np.load(tmp_path / "doe_height_m.npy")
+    assert heights.dtype == np.float64
+    np.testing.assert_array_equal(heights, cam.optics.doe.heights().detach().double().numpy())
+
+
+def test_the_camera_figures_draw_a_psf_only_when_asked(tmp_path, tiny_camera):
+    from hsicam.report.camera import write_optics_figures
+
+    cam = tiny_camera()
+    (tmp_path / "a").mkdir()
+    assert sorted(write_optics_figures(cam, tmp_path / "a")) == ["cfa.png", "doe.png"]
+    assert sorted(p.name for p in (tmp_path / "a").iterdir()) == ["cfa.png", "doe.png"]
+    (tmp_path / "b").mkdir()
+    assert sorted(write_optics_figures(cam, tmp_path / "b", "x_", psf=True)) == ["x_cfa.png", "x_doe.png", "x_psf.png"]
+
+
+# ------------------------------------------------------------------------------------------------
+# report: more pages and figures
+# ------------------------------------------------------------------------------------------------
+def test_a_report_of_a_folder_without_its_completion_marker_is_refused(tmp_path):
+    from hsicam.report.html import build_report
+
+    d = tmp_path / "ev"
+    d.mkdir()
+    (d / "results.json").write_text(json.dumps({"method": "x", "scenes": [{"name": "a", **MEAN}], "mean": MEAN,
+                                                "conventions": {}}))
+    with pytest.raises(InputError) as err:
+        build_report(d)
+    assert str(err.value) == (f"{d}: incomplete evaluation folder (no completion marker: the command that wrote it "
+                              "failed or was interrupted); run `hsicam evaluate` again")
+
+
+def test_a_noise_experiment_without_its_noise_grid_is_a_corrupt_field(tmp_path):
+    from hsicam.report.html import build_report
+
+    d = _complete_folder(tmp_path, "experiment.json", {"experiment": "noise", "scale": "tiny", "seeds": [0],
+                                                        "scenes": ["a"], "conventions": {}, "rows": []})
+    with pytest.raises(InputError) as err:
+        build_report(d)
+    assert str(err.value) == f"{d / 'experiment.json'}: corrupt experiment.json ('noise_grid' is missing)"
+
+
+def test_a_demo_report_shows_its_reconstructions_and_its_held_out_table(tmp_path):
+    from hsicam.report.html import build_report
+
+    other = {"psnr": 20.5, "ssim": 0.25, "sam": 7.0}
+    d = _complete_folder(tmp_path, "results.json", {
+        "method": "doe-learned", "scenes": [{"name": "a", **MEAN}], "mean": MEAN, "conventions": {},
+        "heldout": {"data": "held-out sources", "scenes": [{"name": "h", **other}], "mean": other}})
+    (d / "reconstructions.png").write_bytes(b"\x89PNG")
+    page = build_report(d).read_text(encoding="utf-8")
+    assert "<img src='../reconstructions.png'" in page
+    assert "<h2>Held-out spectral sources</h2>" in page and ["h", "20.50", "0.2500", "7.00"] == _cells(page)[-2][:4]
+
+
+def _random_psf(k: int = 9, c: int = 2) -> np.ndarray:
+    return np.random.default_rng(4).random((c, k, k))
+
+
+def test_rms_radius_and_central_square_fraction_against_a_brute_force_sum():
+    """A PSF with light off the axis in x only: RMS radius sqrt(Σ p (x² + y²) / Σ p) and the light in the central
+    3×3 and 5×5 squares, by explicit loops over the pixels."""
+    from hsicam.report.camera import encircled_fraction_in_square, rms_radius_px
+
+    psf = np.zeros((2, 9, 9))
+    psf[0, 4, 7] = 1.0  # 3 px right of the axis
+    psf[1] = _random_psf(c=1)[0]
+    r2 = [sum(p[i, j] * ((i - 4) ** 2 + (j - 4) ** 2) for i in range(9) for j in range(9)) / p.sum() for p in psf]
+    np.testing.assert_allclose(rms_radius_px(psf), np.sqrt(r2), rtol=1e-12)
+    for size in (3, 5):
+        lo = 4 - size // 2
+        want = [sum(p[i, j] for i in range(lo, lo + size) for j in range(lo, lo + size)) / p.sum() for p in psf]
+        np.testing.assert_allclose(encircled_fraction_in_square(psf, size), want, rtol=1e-12)
+
+
+def test_the_psf_crop_holds_the_fraction_of_every_band_not_of_their_mean(tmp_path):
+    """Nine bands a point on the axis, the tenth spread 4 px out: the 90 % crop is the one that holds the tenth's
+    (9 px, brute force over odd sizes), not 1 px, where the mean over bands already reaches 90 %; a montage asked
+    for a crop beyond the kernel shows the whole kernel."""
+    from hsicam.report.camera import plot_psf_montage, psf_crop_px
+    from hsicam.spectral import Bands
+
+    psf = np.zeros((10, 11, 11))
+    psf[:9, 5, 5] = 1.0
+    psf[9, 5, [1, 9]] = 0.5
+    psf[9, 5, 5] = 1e-3
+    fits = [s for s in range(1, 12, 2)
+            if all(p[5 - s // 2:5 + s // 2 + 1, 5 - s // 2:5 + s // 2 + 1].sum() / p.sum() >= 0.9 for p in psf)]
+    assert psf_crop_px(psf, 0.9, minimum=1) == fits[0] == 9
+    assert plot_psf_montage(psf, Bands.uniform(400, 490, 10), tmp_path / "psf.png", crop_px=99) == 11
+
+
+def test_the_doe_figure_shows_the_whole_centred_aperture_of_an_oversampled_pupil(tmp_path, tiny_camera, monkeypatch):
+    """With 2 pupil samples per cell the DOE figure's aperture is one value per cell over the whole centred disc:
+    open at the centre, shut in all four corners (not the top-left quarter of the oversampled pupil, whose far
+    corner is the disc's centre)."""
+    from hsicam.report import camera as figures
+
+    drawn = []
+    monkeypatch.setattr(figures, "plot_doe_heights", lambda h, aperture, cell_um, path: drawn.append((h, aperture)))
+    cam = tiny_camera("camera.psf.pupil_oversample=2")
+    figures.write_optics_figures(cam, tmp_path)
+    (h, aperture), = drawn
+    n = cam.optics.doe.n_cells
+    assert h.shape == aperture.shape == (n, n)
+    assert aperture[n // 2, n // 2] > 0
+    assert [aperture[0, 0], aperture[0, -1], aperture[-1, 0], aperture[-1, -1]] == [0, 0, 0, 0]
+
+
+def test_an_experiment_report_draws_cameras_only_of_runs_with_weights(tmp_path):
+    """runs/ of an experiment may hold a folder without weights (the compare's Choi prior, a run never started):
+    no camera section for it, the page is still written."""
+    from hsicam.report.html import build_report
+
+    d = _complete_folder(tmp_path, "experiment.json", {
+        "experiment": "ablation", "scale": "tiny", "seeds": [0], "scenes": ["a"], "conventions": {},
+        "rows": [{"method": "doe+cfa", **MEAN, "runtime_s": 0.5}]})
+    (d / "runs" / "dd-cassi-choi").mkdir(parents=True)
+    (d / "runs" / "dd-cassi-choi" / "summary.json").write_text("{}")
+    page = build_report(d).read_text(encoding="utf-8")
+    assert "dd-cassi-choi" not in page
+
+
+def test_an_evaluation_report_draws_the_first_six_scenes_of_its_cubes_and_skips_one_without_truth(tmp_path):
+    """`hsicam report` of an evaluation whose cubes/ hold eight scenes: a comparison and an error figure for each of
+    the first six names in order (a scene whose truth is missing is skipped, the rest still drawn), no more."""
+    from hsicam.data.formats import write_cube_h5
+    from hsicam.io import mark_complete
+    from hsicam.report.html import build_report
+    from hsicam.spectral import Bands
+
+    bands = Bands.uniform(500, 600, 50)
+    mean = {"psnr": 30.0, "ssim": 0.9, "sam": 5.0}
+    names = [f"s{i}" for i in range(8)]
+    ev = tmp_path / "ev"
+    (ev / "cubes").mkdir(parents=True)
+    rng = np.random.default_rng(0)
+    for n in names:
+        truth = rng.random((3, 16, 16)).astype(np.float32)
+        write_cube_h5(ev / "cubes" / f"{n}_estimate.h5", truth * 0.9, bands)
+        if n != "s2":
+            write_cube_h5(ev / "cubes" / f"{n}_truth.h5", truth, bands)
+    (ev / "results.json").write_text(json.dumps({
+        "method": "doe-learned", "scenes": [{"name": n, **mean} for n in names], "mean": mean,
+        "conventions": {"psnr": "per band, peak 1"}, "bands_nm": list(bands.centers_nm)}))
+    mark_complete(ev, {"command": "test"})
+    page = build_report(ev)
+    drawn = sorted(p.name for p in page.parent.glob("recon_*.png"))
+    assert drawn == [f"recon_{n}.png" for n in ("s0", "s1", "s3", "s4", "s5")]
+    assert sorted(p.name for p in page.parent.glob("errors_*.png")) == [f"errors_{n}.png" for n in ("s0", "s1", "s3", "s4", "s5")]
+    text = page.read_text()
+    assert all(f"recon_{n}.png" in text for n in ("s0", "s1", "s3", "s4", "s5"))
+    assert "recon_s6.png" not in text and "recon_s2.png" not in text
+
+
+@pytest.mark.parametrize("n_bands, shown", [(31, 16), (10, 10)])
+def test_the_band_error_figure_spreads_its_bands_from_the_first_to_the_last(tmp_path, monkeypatch, n_bands, shown):
+    """The per-band error figure shows up to 16 bands chosen over the whole range: the first and the last band among
+    them, no gap wider than twice the grid's mean spacing, each panel the |error| of the band it names."""
+    import hsicam.report.html as report
+    from hsicam.spectral import Bands
+
+    bands = Bands.uniform(420, 420 + 10 * (n_bands - 1), 10)
+    truth = np.zeros((n_bands, 8, 8), np.float32)
+    est = truth + np.arange(n_bands, dtype=np.float32)[:, None, None] / 100  # band c's error is c / 100 everywhere
+    figs = []
+    monkeypatch.setattr(report, "save_figure", lambda fig, path: figs.append(fig))
+    report.plot_band_errors(truth, est, bands, tmp_path / "e.png")
+    panels = [(float(ax.get_title().split()[0]), ax.images[0].get_array()) for ax in figs[0].axes if ax.images]
+    nm = [p[0] for p in panels]
+    assert len(nm) == shown and nm[0] == 420 and nm[-1] == 420 + 10 * (n_bands - 1)
+    assert np.all(np.diff(nm) > 0) and np.max(np.diff(nm)) <= 2 * (nm[-1] - nm[0]) / (shown - 1)
+    for wl, img in panels:
+        np.testing.assert_allclose(np.asarray(img), (wl - 420) / 10 / 100, rtol=1e-5)

@@ -1,16 +1,16 @@
-"""Lines of the report, DOE export and dataset modules that the default suite never ran (coverage round 11, cov11a)."""
+"""Lines of the report modules that the default suite never ran (coverage round 11, cov11a; those of the DOE export
+and the dataset modules are in export/test_export_rare_paths.py and data/test_data_sources_rare_paths.py)."""
 
 from __future__ import annotations
 
 import html
 import json
-import pickle
 from pathlib import Path
 
-import h5py
 import numpy as np
 import pytest
 
+from cli_helpers import entries
 from hsicam.data.formats import write_cube_h5
 from hsicam.errors import InputError
 from hsicam.io import mark_complete
@@ -26,10 +26,6 @@ def evaluation(**changes) -> dict:
     """A results.json of the shape `hsicam evaluate` writes, with ``changes``."""
     return {"method": "doe-learned", "scenes": [{"name": "a", **MEAN}], "mean": MEAN,
             "conventions": {"psnr": "per band, peak 1"}, "bands_nm": B3, **changes}
-
-
-def entries(d: Path) -> list[str]:
-    return sorted(p.name for p in d.iterdir())
 
 
 # ------------------------------------------------------------------------------------------------
@@ -135,121 +131,13 @@ def test_report_of_a_matching_pair_draws_it(tmp_path):
 
 
 # ------------------------------------------------------------------------------------------------
-# export/doe.py
+# report/camera.py (session 58, cov12a: moved from data/test_data_sources_rare_paths.py)
 # ------------------------------------------------------------------------------------------------
-def test_height_tiff_refuses_negative_heights_and_writes_nothing(tmp_path):
-    from hsicam.export.doe import write_height_tiff
+def test_a_psf_band_without_light_makes_the_crop_the_whole_kernel():
+    """A band holding no light never reaches the fraction in any crop: the whole kernel, not an error."""
+    from hsicam.report.camera import psf_crop_px
 
-    with pytest.raises(InputError) as info:
-        write_height_tiff(tmp_path / "h.tif", np.array([[0.0, 10.0], [-0.5, 3.0]]), 30.0, {})
-    assert str(info.value) == "heights must be >= 0 for the 16-bit TIFF"
-    assert entries(tmp_path) == []
-
-
-# ------------------------------------------------------------------------------------------------
-# data/datasets.py
-# ------------------------------------------------------------------------------------------------
-def test_list_scenes_skips_hidden_folders(tmp_path):
-    from hsicam.data.datasets import list_scenes
-
-    np.save(tmp_path / "a.npy", np.ones((3, 4, 4), np.float32))
-    (tmp_path / ".trash").mkdir()
-    np.save(tmp_path / ".trash" / "b.npy", np.ones((3, 4, 4), np.float32))
-    assert list_scenes(tmp_path) == [tmp_path / "a.npy"]
-
-
-def test_scene_path_of_a_scene_outside_its_root_is_its_name(tmp_path):
-    from hsicam.data.datasets import scene_path
-
-    assert scene_path(tmp_path / "x" / "day1" / "s.h5", tmp_path / "y") == "s.h5"
-    assert scene_path(tmp_path / "y" / "day1" / "s.h5", tmp_path / "y") == "day1/s.h5"
-
-
-@pytest.mark.parametrize("results", [None, "{not json", json.dumps(["list"]), json.dumps({"data": ""})])
-def test_evaluate_folder_as_data_without_a_usable_results_json(tmp_path, results):
-    """The refusal stays one line; only the '(which scored …)' part is left out."""
-    from hsicam.data.datasets import check_not_an_output
-
-    d = tmp_path / "ev"
-    d.mkdir()
-    if results is not None:
-        (d / "results.json").write_text(results)
-    mark_complete(d, {"command": "evaluate"})
-    with pytest.raises(InputError) as info:
-        check_not_an_output(d)
-    assert str(info.value) == (f"{d}: is the output of hsicam evaluate; its cubes/*_estimate.h5 are a method's "
-                               "reconstructions, not scenes: use the scenes it scored as the data, or copy its "
-                               "*_truth.h5 files into a folder of their own")
-
-
-def test_a_windowed_scene_whose_header_claims_light_but_whose_pixels_are_zero(tmp_path):
-    from hsicam.data.datasets import SceneDataset
-
-    bands = Bands.from_centers(B3)
-    path = write_cube_h5(tmp_path / "z.h5", np.zeros((3, 8, 8), np.float32), bands)
-    with h5py.File(path, "r+") as f:
-        f.attrs["max_value"] = 1.0  # a hand-edited header: the probe takes the file as windowable
-    with pytest.raises(InputError) as info:
-        SceneDataset([path], bands).info(0)
-    assert str(info.value) == f"{path}: the cube is all zeros; cannot normalise by its maximum"
-
-
-def test_probe_declines_a_file_on_other_bands(tmp_path):
-    """Not windowable on another grid: the full reader resamples it instead (None), on its own grid it is."""
-    from hsicam.data.datasets import probe_hsicam
-
-    path = write_cube_h5(tmp_path / "s.h5", np.full((3, 5, 6), 2.0, np.float32), Bands.from_centers(B3))
-    assert probe_hsicam(path, Bands.from_centers([500.0, 560.0, 600.0])) is None
-    info = probe_hsicam(path, Bands.from_centers(B3))
-    assert (info.height, info.width, info.peak) == (5, 6, 2.0)
-
-
-def test_near_black_percentile_of_a_black_cube_is_none():
-    from hsicam.data.datasets import near_black_percentile
-
-    assert near_black_percentile(np.zeros((2, 4, 4), np.float32)) is None
-
-
-def test_a_pickled_scene_dataset_reopens_its_files(tmp_path):
-    """What a spawned DataLoader worker receives: no cached cubes, no open handles; its windows are the file's."""
-    from hsicam.data.datasets import SceneDataset
-
-    bands = Bands.from_centers(B3)
-    cube = np.random.default_rng(2).random((3, 10, 12), dtype=np.float32) * 5
-    path = write_cube_h5(tmp_path / "s.h5", cube, bands)
-    ds = SceneDataset([path], bands)
-    first = ds.window(0, 1, 2, 4, 5)  # opens the file
-    assert ds._handles
-    copy = pickle.loads(pickle.dumps(ds))
-    assert copy._handles == {} and len(copy._cache) == 0
-    with h5py.File(path, "r") as f:
-        expected = f["cube"][:, 1:5, 2:7] / f["cube"][()].max()
-    np.testing.assert_array_equal(copy.window(0, 1, 2, 4, 5), expected.astype(np.float32))
-    np.testing.assert_array_equal(first, copy.window(0, 1, 2, 4, 5))
-
-
-# ------------------------------------------------------------------------------------------------
-# data/synthetic.py (library callers; the CLI's config checks these first)
-# ------------------------------------------------------------------------------------------------
-@pytest.mark.parametrize("kwargs, message", [
-    ({"n": 0, "size": 32}, "synthetic: need at least one scene, got n=0"),
-    ({"n": 2, "size": 15}, "synthetic: scenes must be at least 16 px, got size=15"),
-    ({"n": 2, "size": 32, "split": "test"}, "split must be one of {splits}, got 'test'"),
-])
-def test_generate_dataset_refuses_before_writing(tmp_path, kwargs, message):
-    from hsicam.data.synthetic import SPLITS, generate_dataset
-
-    with pytest.raises(InputError) as info:
-        generate_dataset(tmp_path / "syn", progress=False, **kwargs)
-    assert str(info.value) == message.format(splits=", ".join(SPLITS))
-    assert entries(tmp_path) == []
-
-
-def test_dataset_folder_that_is_a_file(tmp_path):
-    from hsicam.data.synthetic import check_dataset_folder
-
-    (tmp_path / "syn").write_text("mine")
-    with pytest.raises(InputError) as info:
-        check_dataset_folder(tmp_path / "syn")
-    assert str(info.value) == f"{tmp_path / 'syn'}: exists and is not a folder"
-    assert (tmp_path / "syn").read_text() == "mine"
+    psf = np.zeros((2, 21, 21))
+    psf[0, 10, 10] = 1.0  # a point: 15 px (the minimum) holds it
+    assert psf_crop_px(psf[:1]) == 15
+    assert psf_crop_px(psf) == 21
