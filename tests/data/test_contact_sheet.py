@@ -22,7 +22,7 @@ def test_a_dim_scene_and_a_bright_one_look_alike_and_the_title_says_why(tmp_path
     sheet, _ = _scene_figures(tmp_path, [tmp_path / "bright.h5", tmp_path / "dim.h5"])
     a, b = (np.asarray(ax.images[0].get_array()) for ax in sheet.axes)
     np.testing.assert_allclose(a, b, atol=1e-5)  # the 20x is not shown: each thumbnail has its own exposure
-    title = sheet.get_suptitle()
+    title = " ".join(sheet.get_suptitle().split())  # (wrapped to the sheet's width)
     assert "exposed to its own brightness" in title and "99th-percentile luminance at 0.8" in title
     one, _ = _scene_figures(tmp_path, [tmp_path / "dim.h5"])  # one column: the two-line title is the widest thing
     from matplotlib.backends.backend_agg import FigureCanvasAgg
