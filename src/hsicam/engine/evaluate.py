@@ -18,7 +18,7 @@ import time
 import zlib
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable, Sequence
+from typing import Callable, Collection, Sequence
 
 import numpy as np
 import torch
@@ -229,15 +229,16 @@ def check_test_noise(method: Method, noise: TestNoise, source: str | None = None
 
 @torch.no_grad()
 def evaluate_method(method: Method, scenes, names: Sequence[str], noise: TestNoise = TestNoise(),
-                    device: str | torch.device = "cpu", keep_arrays: bool = True, tile_px: int | None = None,
-                    progress: Callable[[str], None] | None = None, paths: Sequence[str] | None = None,
+                    device: str | torch.device = "cpu", keep_arrays: bool | Collection[str] = True,
+                    tile_px: int | None = None, progress: Callable[[str], None] | None = None, paths: Sequence[str] | None = None,
                     scene_set: str | None = None) -> list[SceneResult]:
     """Simulate, reconstruct and score every scene of ``scenes`` (items: (C, H, W) tensors).
 
     Every scene is checked first (:func:`check_scenes`): a scene that cannot be scored fails before
     any work. ``progress``: called with one line per finished scene (e.g. ``print`` to stderr).
     ``paths``: each scene's file as the results name it (:attr:`SceneResult.path`). The arrays kept
-    (``keep_arrays``) are those of the first seed, :attr:`SceneResult.seed`. ``tile_px``: the tile side
+    (``keep_arrays``: every scene's, none, or those of the scenes it names) are those of the first seed,
+    :attr:`SceneResult.seed`. ``tile_px``: the tile side
     for a network's large images (default :func:`~hsicam.engine.inference.default_tile_px` of its context).
     ``scene_set``: the scenes' set, mixed into their capture noise seeds (:func:`capture_noise_seed`; e.g.
     :data:`HELDOUT_NOISE_SET`); None for the validation split or a folder of scenes.
@@ -289,8 +290,9 @@ def evaluate_method(method: Method, scenes, names: Sequence[str], noise: TestNoi
                     est0 = est
             mean = {k: float(np.mean([m[k] for m in per_seed])) for k in per_seed[0]}
             std = {k: float(np.std([m[k] for m in per_seed])) for k in per_seed[0]} if len(per_seed) > 1 else {}
-            out.append(SceneResult(name, mean, truth[0].cpu().numpy() if keep_arrays else None,
-                                   est0[0].cpu().numpy() if keep_arrays else None, float(np.mean(times)), std,
+            kept = keep_arrays if isinstance(keep_arrays, bool) else name in keep_arrays
+            out.append(SceneResult(name, mean, truth[0].cpu().numpy() if kept else None,
+                                   est0[0].cpu().numpy() if kept else None, float(np.mean(times)), std,
                                    path=None if paths is None else str(paths[i]), seed=int(noise.seeds[0]),
                                    metrics_per_seed=[{"seed": int(s), **m} for s, m in zip(noise.seeds, per_seed)],
                                    noise=dict(applied), sam_excluded_px=int(sam_undefined_pixels(truth)[0])))

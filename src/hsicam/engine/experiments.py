@@ -300,6 +300,7 @@ def _run_experiment(experiment: str, scale: str, out: Path, cfg: Config, seeds: 
     rows: list[dict] = []
     grids: dict[str, Any] = {}
     region = None  # the pixels the DOE cameras score (the CASSI rows of compare are scored on the same)
+    figures = ComparisonFigures(experiment in FIGURE_EXPERIMENTS, cfg.bands.to_bands(), len(names))
     for spec in specs:
         run = out / "runs" / spec.name
         # evaluated as it was trained (the preset plus the spec's overrides, e.g. the sweep's wider linear step)
@@ -319,8 +320,14 @@ def _run_experiment(experiment: str, scale: str, out: Path, cfg: Config, seeds: 
             rows.append({"method": spec.name, "psnr": clean["psnr"], "ssim": clean["ssim"],
                          "psnr_worst": min(g["psnr"] for g in grid), "ssim_worst": min(g["ssim"] for g in grid)})
         else:
-            s = summarize(evaluate_method(method, scenes, names, TestNoise(seeds=seeds), keep_arrays=False,
-                                          progress=_scene_lines(spec.name)))
+            res = evaluate_method(method, scenes, names, TestNoise(seeds=seeds), keep_arrays=figures.chosen_names(),
+                                  progress=_scene_lines(spec.name))
+            if figures.wanted and spec is specs[0]:  # our camera (the first): its worst and median scenes
+                figures.choose(res)
+                figures.keep(spec.name, _rescore(method, scenes, names, figures.chosen_names(), seeds[0]))
+            else:
+                figures.keep(spec.name, res)
+            s = summarize(res)
             rows.append(_row(spec.name, s, run=str(run), scenes=s["scenes"]))
         kept = kept_checkpoint(run)
         if kept is not None:  # which weights were scored (the best validation's is a selection on these scenes)
@@ -329,9 +336,11 @@ def _run_experiment(experiment: str, scale: str, out: Path, cfg: Config, seeds: 
             rows[-1]["overrides"], rows[-1]["note"] = list(spec.overrides), spec.note
     if experiment == "compare":
         rows += _baseline_rows(cfg, scale, out, scenes, names, seeds, baseline_names() if baselines is None else baselines,
-                               sensor_border_px(doe_camera))
+                               sensor_border_px(doe_camera), figures)
     result = {"experiment": experiment, "scale": scale, "seeds": list(seeds), "scenes": names,
               "conventions": summarize([])["conventions"], "region": region, "rows": rows}
+    if figures.wanted:
+        result["figures"] = figures.write(out, f"{experiment}, {scale} scale, noise seed {seeds[0]}")
     notes = [f"{spec.name}: {spec.note}" for spec in specs if spec.note]
     if notes:
         result["notes"] = notes
@@ -342,6 +351,80 @@ def _run_experiment(experiment: str, scale: str, out: Path, cfg: Config, seeds: 
     with atomic_open(out / "table.md", "w", encoding="utf-8") as fh:
         fh.write(format_experiment_table(result) + "\n")
     return result
+
+
+#: The experiments whose folder gets comparison figures (:class:`ComparisonFigures`), by the scene's role.
+FIGURE_EXPERIMENTS = ("compare", "ablation")
+COMPARISON_FILES = {"worst": "comparison_worst.png", "median": "comparison_median.png"}
+
+
+class ComparisonFigures:
+    """The comparison figures of an experiment (``wanted``): for our camera's worst and median validation scene
+    by PSNR (the first method scored; the upper median, so two scenes give two figures), the truth and every
+    method's reconstruction, rendered and with its error map (:func:`~hsicam.report.reconstruction.
+    plot_method_comparison`). Only the chosen scenes' arrays are kept, and of them only what the figure draws
+    (:class:`~hsicam.report.reconstruction.ComparisonPanel`: 4 values a pixel, not two cubes)."""
+
+    def __init__(self, wanted: bool, bands, n_scenes: int):
+        self.wanted, self.bands, self.n_scenes = wanted, bands, n_scenes
+        self.chosen: dict[str, str] = {}  # role -> scene
+        self.truth_rgb: dict[str, Any] = {}  # scene -> (H, W, 3)
+        self.panels: dict[str, list] = {}  # scene -> ComparisonPanel per method, in the rows' order
+
+    def chosen_names(self) -> set[str] | bool:
+        """What :func:`~hsicam.engine.evaluate.evaluate_method` keeps arrays of: the chosen scenes (False: none)."""
+        return set(self.chosen.values()) if self.wanted else False
+
+    def choose(self, results) -> None:
+        order = sorted(results, key=lambda r: r.metrics["psnr"])
+        picks = {"worst": order[0].name, "median": order[len(order) // 2].name} if order else {}
+        self.chosen = {role: scene for role, scene in picks.items() if role == "worst" or scene != picks["worst"]}
+
+    def keep(self, label: str, results) -> None:
+        """The panels of ``label``'s results (their first seed's estimate and scores) on the chosen scenes."""
+        from hsicam.report.reconstruction import comparison_panel, cube_rgb
+
+        if not self.wanted:
+            return
+        for r in results:
+            if r.name not in self.chosen.values() or r.estimate is None:
+                continue
+            if r.name not in self.truth_rgb:
+                self.truth_rgb[r.name] = cube_rgb(r.truth, self.bands)
+            first = r.metrics_per_seed[0] if r.metrics_per_seed else r.metrics
+            try:
+                panel = comparison_panel(label, r.truth, r.estimate, self.bands, first["psnr"], first["ssim"])
+            except ValueError as exc:  # not on the pixels the others are scored on: left out of the figure, said
+                log.warning("experiment: %s left out of the comparison figure of %s (%s)", label, r.name, exc)
+                continue
+            self.panels.setdefault(r.name, []).append(panel)
+
+    def write(self, out: Path, what: str) -> list[dict]:
+        """Draw the figures into ``out`` (COMPARISON_FILES; an earlier run's of a role not drawn now removed);
+        their records for experiment.json."""
+        from hsicam.report.reconstruction import plot_method_comparison
+
+        records = []
+        for role, file in COMPARISON_FILES.items():
+            (out / file).unlink(missing_ok=True)
+            scene = self.chosen.get(role)
+            if scene is None or scene not in self.panels:
+                continue
+            first = self.panels[scene][0].label
+            plot_method_comparison(self.truth_rgb[scene], self.panels[scene], out / file,
+                                   title=f"{scene}: the {role} of {self.n_scenes} validation scenes for {first} by "
+                                         f"PSNR ({what})")
+            records.append({"file": file, "scene": scene, "role": role,
+                            "methods": [p.label for p in self.panels[scene]]})
+        return records
+
+
+def _rescore(method, scenes, names, keep: set[str], seed: int):
+    """``method``'s results, with arrays, on the scenes ``keep`` names alone under noise seed ``seed``: the same
+    captures and estimates as in the experiment's scoring (every scene's noise is drawn from its own seed,
+    :func:`~hsicam.engine.evaluate.capture_noise_seed`), for the figures of the method that chooses their scenes."""
+    idx = [i for i, n in enumerate(names) if n in keep]
+    return evaluate_method(method, [scenes[i] for i in idx], [names[i] for i in idx], TestNoise(seeds=(seed,)))
 
 
 def has_test_noise(cfg: Config) -> bool:
@@ -431,9 +514,11 @@ def check_experiment_folder(out: Path, experiment: str, scale: str, run_cfgs: di
         check_choi_prior(runs / "dd-cassi-choi", scale)
 
 
-def _baseline_rows(cfg, scale, out, scenes, names, seeds, baselines, border_px: int = 0) -> list[dict]:
+def _baseline_rows(cfg, scale, out, scenes, names, seeds, baselines, border_px: int = 0,
+                   figures: ComparisonFigures | None = None) -> list[dict]:
     """Rows for the CASSI baselines (learned ones are trained, or resumed, first), each scored without a
-    border of ``border_px`` px a side: on the pixels the DOE camera's rows are scored on (its sensor area)."""
+    border of ``border_px`` px a side: on the pixels the DOE camera's rows are scored on (its sensor area);
+    ``figures`` keeps their panels of its chosen scenes."""
     rows = []
     for name in baselines:
         run = None
@@ -445,8 +530,12 @@ def _baseline_rows(cfg, scale, out, scenes, names, seeds, baselines, border_px: 
         # a learned CASSI method is evaluated with its own overrides (e.g. without the consistency step)
         method_cfg = load_config(scale, list(LEARNED_CASSI[name])) if name in LEARNED_CASSI else cfg
         method = dataclasses.replace(build_method(name, method_cfg, run), border_px=border_px)
-        s = summarize(evaluate_method(method, scenes, names, TestNoise(seeds=seeds), keep_arrays=False,
-                                      progress=_scene_lines(name)))
+        res = evaluate_method(method, scenes, names, TestNoise(seeds=seeds),
+                              keep_arrays=figures.chosen_names() if figures is not None else False,
+                              progress=_scene_lines(name))
+        if figures is not None:
+            figures.keep(name, res)
+        s = summarize(res)
         rows.append(_row(name, s, scenes=s["scenes"]))
         kept = kept_checkpoint(run) if name in LEARNED_CASSI else None
         if kept is not None:

@@ -120,6 +120,12 @@ def _check_fields(path: Path, data: dict, kind: str) -> None:
         return
     if "seeds" not in data:
         raise corrupt("'seeds' is missing")
+    figures = data.get("figures", [])
+    if not (isinstance(figures, list) and all(
+            isinstance(f, dict) and isinstance(f.get("file"), str) and Path(f["file"]).name == f["file"]
+            and isinstance(f.get("scene"), str) and isinstance(f.get("role"), str)
+            and isinstance(f.get("methods"), list) and f["methods"] for f in figures)):
+        raise corrupt("'figures' is not a list of objects naming a file of the folder, its scene, role and methods")
     if not all(isinstance(r.get("method"), str) for r in rows):
         raise corrupt("an entry of 'rows' names no 'method'")
     if data["experiment"] == "noise":
@@ -318,6 +324,12 @@ def _experiment_sections(folder: Path, out: Path, exp: dict) -> list[str]:
         missing = [r["method"] for r in exp["rows"] if "missing" in r]
         if missing:
             parts.append(f"<p class='note'>not available in this installation: {html.escape(', '.join(missing))}</p>")
+        for f in exp.get("figures") or ():  # drawn by the experiment beside its experiment.json (the arrays are not kept)
+            if (folder / f["file"]).is_file():
+                parts.append(_img(f"../{f['file']}", f"{f['scene']} ({f['role']} scene of {f['methods'][0]} by PSNR): "
+                                  "ground truth and each method's reconstruction (absolute sRGB render, CIE 1931 / D65, "
+                                  "as reconstruct's *_rgb.png), titled with its PSNR / SSIM on this scene, and each "
+                                  "method's mean |error| over bands on one colour scale"))
     parts.append(_conventions(exp["conventions"]))
     runs = sorted(p for p in (folder / "runs").iterdir() if (p / "model.safetensors").is_file()) if (folder / "runs").is_dir() else []
     for i, run in enumerate(runs):

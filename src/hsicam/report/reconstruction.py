@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from dataclasses import dataclass
 from pathlib import Path
 
 import matplotlib
@@ -68,6 +69,60 @@ def plot_reconstructions(results, bands: Bands, path: str | Path, max_rows: int 
         fig.subplots_adjust(top=1 - 0.6 / height)
         fig.suptitle(f"the first {len(results)} of {total} scenes (every scene's scores: results.md)", fontsize=10,
                      y=1 - 0.1 / height)
+    save_figure(fig, path)
+
+
+@dataclass(frozen=True)
+class ComparisonPanel:
+    """One method's column of :func:`plot_method_comparison`: its reconstruction's RGB render (H, W, 3), its mean
+    absolute error over bands (H, W) and its scores on the scene. The render and the error map are what the figure
+    needs of the two (C, H, W) cubes: an experiment keeps these, not the cubes (:func:`comparison_panel`)."""
+
+    label: str
+    rgb: np.ndarray
+    error: np.ndarray
+    psnr: float
+    ssim: float
+
+
+def comparison_panel(label: str, truth: np.ndarray, est: np.ndarray, bands: Bands, psnr: float,
+                     ssim: float) -> ComparisonPanel:
+    """The :class:`ComparisonPanel` of the estimate ``est`` of ``truth`` (both (C, H, W)): the absolute render
+    :func:`cube_rgb` and mean |est − truth| over bands."""
+    if est.shape != truth.shape:
+        raise ValueError(f"{label}: estimate {est.shape} and truth {truth.shape} differ in shape")
+    return ComparisonPanel(label, np.clip(cube_rgb(est, bands), 0, 1).astype(np.float32),
+                           np.abs(est - truth).mean(axis=0).astype(np.float32), float(psnr), float(ssim))
+
+
+def plot_method_comparison(truth_rgb: np.ndarray, panels, path: str | Path, title: str = "") -> None:
+    """One scene, every method: top row the truth and each method's reconstruction as the absolute sRGB render
+    (:func:`cube_rgb`, as reconstruct's ``*_rgb.png`` and the demo's reconstructions.png: not exposed per image, so
+    a method that is too dark looks too dark), titled with the method and its PSNR / SSIM; bottom row each
+    method's mean |error| over bands on one colour scale (0 to the largest error of any method: nothing clipped)
+    with one colour bar."""
+    panels = list(panels)
+    n = len(panels) + 1
+    vmax = max(max((float(p.error.max()) for p in panels), default=0.0), 1e-6)
+    fig, axes = plt.subplots(2, n, figsize=(2.3 * n, 5.2), squeeze=False, layout="constrained")
+    for ax in axes.flat:
+        ax.set_xticks([])
+        ax.set_yticks([])
+    axes[0, 0].imshow(np.clip(truth_rgb, 0, 1))
+    axes[0, 0].set_title("ground truth", fontsize=9)
+    axes[1, 0].axis("off")
+    axes[1, 0].text(0.5, 0.5, "mean |error|\nover bands,\none colour scale\nfor all methods", ha="center",
+                    va="center", fontsize=8, transform=axes[1, 0].transAxes)
+    im = None
+    for col, p in enumerate(panels, start=1):
+        axes[0, col].imshow(p.rgb)
+        axes[0, col].set_title(f"{p.label}\n{p.psnr:.2f} dB / SSIM {p.ssim:.3f}", fontsize=9)
+        im = axes[1, col].imshow(p.error, cmap="magma", vmin=0, vmax=vmax)
+        axes[1, col].set_title(f"{p.label}: mean {float(p.error.mean()):.3g}", fontsize=8)
+    if im is not None:
+        fig.colorbar(im, ax=axes[1, 1:].tolist(), shrink=0.9, label="mean |error| over bands")
+    if title:
+        fig.suptitle(title, fontsize=10)
     save_figure(fig, path)
 
 
