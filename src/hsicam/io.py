@@ -1094,14 +1094,27 @@ def png8_values(rgb01: np.ndarray) -> np.ndarray:
     return np.round(np.clip(np.asarray(rgb01, dtype=np.float64), 0.0, 1.0) * 255.0).astype(np.uint8)
 
 
-def write_png8(path: str | os.PathLike, rgb01: np.ndarray) -> None:
+def write_png8(path: str | os.PathLike, rgb01: np.ndarray, text: dict[str, str] | None = None) -> None:
     """Write an (H, W, 3) or (H, W) image in [0, 1] as an 8-bit PNG (values are clipped); a uint8
-    image is taken as those 8-bit values (:func:`png8_values`) and written as is."""
+    image is taken as those 8-bit values (:func:`png8_values`) and written as is; ``text`` as in :func:`write_png16`."""
     import imageio.v3 as iio
 
     data = rgb01 if isinstance(rgb01, np.ndarray) and rgb01.dtype == np.uint8 else png8_values(rgb01)
+    if text:
+        import io as _io
+
+        from PIL import Image, PngImagePlugin
+
+        info = PngImagePlugin.PngInfo()
+        for key, value in text.items():
+            info.add_text(key, value)
+        buf = _io.BytesIO()
+        Image.fromarray(data).save(buf, format="PNG", pnginfo=info)
+        encoded = buf.getvalue()
+    else:
+        encoded = iio.imwrite("<bytes>", data, extension=".png")
     with atomic_path(path) as tmp:  # encoded in memory, as in write_png16
-        tmp.write_bytes(iio.imwrite("<bytes>", data, extension=".png"))
+        tmp.write_bytes(encoded)
 
 
 def save_figure(fig: Any, path: str | os.PathLike, dpi: int = 120) -> None:

@@ -95,6 +95,37 @@ def test_simulate_command_outputs(tmp_path):
     np.testing.assert_allclose(sensor, want, rtol=0, atol=2e-6 * float(np.abs(want).max()))
 
 
+def test_simulate_writes_a_display_preview_beside_the_dim_data_file(tmp_path):
+    """A dim scene's sensor.png (the linear 16-bit data reconstruct reads) looks black: the tiny camera's image of a
+    scene at 0.1 peaks near 0.1 of full scale. sensor_preview.png beside it is the same image times the exposure
+    that puts its 99th percentile at 0.8 (computed here from sensor.npy), said in the printed line and
+    simulate.json; reconstruct refuses it as sensor data, in one line."""
+    from hsicam.data.images import read_capture
+    from hsicam.errors import InputError
+
+    scene = np.random.default_rng(1).uniform(0, 0.1, size=(7, 40, 48)).astype(np.float32)
+    np.save(tmp_path / "scene.npy", scene)
+    out = tmp_path / "out"
+    proc = run_cli_in_process("simulate", "--scene", str(tmp_path / "scene.npy"), "--out", str(out), *TINY)
+    assert proc.returncode == 0, proc.stderr
+    sensor = np.load(out / "sensor.npy")
+    data = iio.imread(out / "sensor.png")  # the data file: unchanged, linear, dim
+    assert data.dtype == np.uint16 and data.max() / 65535 < 0.15
+    np.testing.assert_allclose(data / 65535.0, sensor, atol=1 / 65535)
+    exposure = 0.8 / float(np.percentile(sensor, 99))
+    preview = iio.imread(out / "sensor_preview.png")
+    assert preview.dtype == np.uint8 and preview.shape == sensor.shape
+    want = np.round(np.clip(sensor.astype(np.float64) * exposure, 0, 1) * 255)
+    assert np.abs(preview.astype(np.float64) - want).max() <= 1
+    assert abs(np.percentile(preview, 99) / 255 - 0.8) < 0.01
+    assert json.loads((out / "simulate.json").read_text())["sensor_preview_exposure"] == pytest.approx(exposure)
+    assert (f"sensor_preview.png: a display preview (linear, ×{exposure:.3g}: its 99th percentile at 0.8 of white), "
+            "not data") in proc.stdout
+    with pytest.raises(InputError, match=r"sensor_preview.png: hsicam simulate's display preview \(exposed x[0-9.]+, "
+                                         r"8 bit\), not sensor data: give its sensor.png or sensor.npy$"):
+        read_capture(out / "sensor_preview.png")
+
+
 def test_simulate_png_keeps_its_scale_when_copied_elsewhere(tmp_path):
     """A sensor brighter than full scale is stored stretched (PNG = sensor / peak): the scale travels
     inside the PNG, so a copy away from simulate.json reads back at the simulated level."""

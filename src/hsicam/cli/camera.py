@@ -18,7 +18,7 @@ import numpy as np
 from hsicam.cli import add_config_args, add_run_arg, config_from_args, prepare_output
 from hsicam.config import dump_yaml
 from hsicam.errors import InputError
-from hsicam.io import atomic_open, atomic_output, write_json, write_npy, write_png16
+from hsicam.io import atomic_open, atomic_output, write_json, write_npy, write_png8, write_png16
 
 if TYPE_CHECKING:
     from hsicam.spectral import Bands
@@ -197,7 +197,8 @@ def check_boundary_applies(camera, boundary: str) -> None:
 def cmd_simulate(args: argparse.Namespace) -> int:
     import torch
 
-    from hsicam.data.images import SENSOR_SCALE_KEY, SIMULATE_JSON
+    from hsicam.data.images import (SENSOR_PREVIEW, SENSOR_PREVIEW_KEY, SENSOR_PREVIEW_LEVEL, SENSOR_SCALE_KEY,
+                                    SIMULATE_JSON, sensor_preview)
     from hsicam.data.pipeline import npy_bands
     from hsicam.report.camera import write_optics_figures
 
@@ -225,6 +226,8 @@ def cmd_simulate(args: argparse.Namespace) -> int:
         write_npy(tmp / "sensor.npy", sensor.astype(np.float32))
         # the scale travels inside the PNG too: a copy taken away from simulate.json keeps its level
         write_png16(tmp / "sensor.png", sensor / png_scale, text={SENSOR_SCALE_KEY: repr(png_scale)})
+        preview, exposure = sensor_preview(sensor)  # to look at: the data file of a dim scene looks black
+        write_png8(tmp / SENSOR_PREVIEW, preview, text={SENSOR_PREVIEW_KEY: f"{exposure:.6g}"})
         if camera.kind == "doe":
             write_optics_figures(camera, tmp)
         write_json(tmp / SIMULATE_JSON, {
@@ -233,6 +236,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
             "sensor_shape": list(sensor.shape),
             "boundary": args.boundary,
             "sensor_png_scale": png_scale,
+            "sensor_preview_exposure": exposure,
             "bands_nm": camera.bands.centers_nm.tolist(),
             "seed": args.seed,
             "source": source,
@@ -245,5 +249,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
         b = camera.bands
         log.info("%s: a .npy scene carries no wavelengths; its %d bands were taken as the camera's (%g-%g nm): give "
                  "data.npy_bands if they are not", args.scene, len(b), b.min_nm, b.max_nm)
-    print(f"sensor image {sensor.shape[0]}×{sensor.shape[1]} (min {sensor.min():.4g}, max {peak:.4g}) -> {out}")
+    print(f"sensor image {sensor.shape[0]}×{sensor.shape[1]} (min {sensor.min():.4g}, max {peak:.4g}) -> {out}; "
+          f"{SENSOR_PREVIEW}: a display preview (linear, ×{exposure:.3g}: its 99th percentile at "
+          f"{SENSOR_PREVIEW_LEVEL:g} of white), not data")
     return 0

@@ -742,6 +742,34 @@ SIMULATE_JSON = "simulate.json"
 SENSOR_SCALE_KEY = "hsicam-sensor-scale"
 
 
+#: ``hsicam simulate``'s display image of its sensor image, beside the data file sensor.png: 8-bit, linear, exposed
+#: so that its 99th percentile is :data:`SENSOR_PREVIEW_LEVEL` of white (the data file of a dim scene, e.g. the tiny
+#: camera's at 0.12 of full scale, looks black). Not sensor data: reconstruct refuses it (its text chunk
+#: :data:`SENSOR_PREVIEW_KEY` holds the exposure).
+SENSOR_PREVIEW = "sensor_preview.png"
+SENSOR_PREVIEW_LEVEL = 0.8
+SENSOR_PREVIEW_KEY = "hsicam-display-preview-exposure"
+
+
+def sensor_preview(sensor: np.ndarray) -> tuple[np.ndarray, float]:
+    """(image in [0, 1], exposure) of :data:`SENSOR_PREVIEW`: ``sensor`` times the exposure that puts its 99th
+    percentile at :data:`SENSOR_PREVIEW_LEVEL` (1 for an image whose 99th percentile is 0), clipped."""
+    p99 = float(np.percentile(sensor, 99)) if sensor.size else 0.0
+    exposure = SENSOR_PREVIEW_LEVEL / p99 if p99 > 0 else 1.0
+    return np.clip(np.asarray(sensor, dtype=np.float64) * exposure, 0.0, 1.0), exposure
+
+
+def _png_text(path: str | Path, key: str) -> str | None:
+    """The PNG text chunk ``key`` of ``path``, else None (none, another format, or unreadable)."""
+    from PIL import Image
+
+    try:
+        with Image.open(path) as im:
+            return getattr(im, "text", {}).get(key) if im.format == "PNG" else None
+    except Exception:  # noqa: BLE001 - unreadable: the reader says so
+        return None
+
+
 def png_sensor_scale(path: str | Path) -> float | None:
     """The scale that ``hsicam simulate`` wrote into a ``sensor.png`` (:data:`SENSOR_SCALE_KEY`), else
     None (another PNG, or not a PNG). :class:`InputError` for a chunk that is no positive finite number."""
@@ -789,6 +817,9 @@ def read_capture(path: str | Path, corr: RawCorrection | None = None, scale: flo
     if path.suffix.lower() not in IMAGE_SUFFIXES:
         raise InputError(f"{path}: unsupported sensor image format (use .npy, .png, .tif)")
     image = read_image_2d(path, "sensor image")
+    if image.format == "png" and _png_text(path, SENSOR_PREVIEW_KEY) is not None:
+        raise InputError(f"{path}: hsicam simulate's display preview (exposed x{_png_text(path, SENSOR_PREVIEW_KEY)}, "
+                         f"8 bit), not sensor data: give its sensor.png or sensor.npy")
     corr = corr or RawCorrection()
     if np.dtype(image.dtype).kind in "ui" and np.dtype(image.dtype).itemsize >= 4 and corr.white_level is None \
             and corr.auto_level is None:
