@@ -74,3 +74,43 @@ def test_band_error_maps_say_when_their_colour_scale_clips_the_largest_errors(tm
     assert title.startswith("scene_7: ") and "clipped" in title and "0.9" in title
     flat_images = [ax.images[0] for ax in flat.axes if ax.images]
     assert next(im.colorbar for im in flat_images if im.colorbar is not None).extend == "neither" and "clipped" not in flat.get_suptitle()
+
+
+def test_training_curves_with_two_validation_points_draw_psnr_and_ssim_apart_with_markers(tmp_path, monkeypatch):
+    """A tiny run validates twice: on the old figure PSNR and SSIM shared one panel on two autoscaled axes, so
+    each line ran from corner to corner and the two were drawn exactly over each other, the legend over the last
+    point. Read back from the drawn figure: every validation point is drawn with a marker, no PSNR point lies
+    within 5 px of an SSIM point, and no legend covers a point."""
+    import json
+
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+
+    from hsicam.report import reconstruction
+
+    figures = []
+    real_save = reconstruction.save_figure
+    monkeypatch.setattr(reconstruction, "save_figure", lambda fig, path: (figures.append(fig), real_save(fig, path)))
+    recs = [{"step": 1, "train_loss": 0.1}, {"step": 4, "val_psnr": 27.93, "val_ssim": 0.4596},
+            {"step": 8, "train_loss": 0.09}, {"step": 8, "val_psnr": 27.62, "val_ssim": 0.4527},
+            {"step": 8, "final": True, "val_psnr": 27.62, "val_ssim": 0.4527}]
+    (tmp_path / "metrics.jsonl").write_text("".join(json.dumps(r) + "\n" for r in recs))
+    reconstruction.plot_training_curves(tmp_path / "metrics.jsonl", tmp_path / "training.png")
+    (fig,) = figures
+    canvas = FigureCanvasAgg(fig)
+    canvas.draw()
+    renderer = canvas.get_renderer()
+
+    def drawn_points(values):
+        """Display positions (px) of the markers of the line through ``values`` (steps 4, 8)."""
+        for ax in fig.axes:
+            for line in ax.get_lines():
+                if list(line.get_xdata()) == [4, 8] and np.allclose(line.get_ydata(), values):
+                    assert line.get_marker() not in (None, "", "None", " ")
+                    return ax.transData.transform(np.column_stack([line.get_xdata(), line.get_ydata()]))
+        raise AssertionError(f"no line through {values}")
+
+    psnr, ssim = drawn_points([27.93, 27.62]), drawn_points([0.4596, 0.4527])
+    assert np.linalg.norm(psnr[:, None] - ssim[None], axis=-1).min() > 5
+    for legend in [ax.get_legend() for ax in fig.axes if ax.get_legend()] + fig.legends:
+        box = legend.get_window_extent(renderer)
+        assert not any(box.contains(x, y) for x, y in np.vstack([psnr, ssim]))

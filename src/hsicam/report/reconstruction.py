@@ -135,7 +135,9 @@ def plot_training_curves(metrics_jsonl: str | Path, path: str | Path, loss_formu
     recs = [nan_for_null(json.loads(x)) for x in Path(metrics_jsonl).read_text(encoding="utf-8-sig").splitlines() if x.strip()]
     tr = [(r["step"], r["train_loss"]) for r in recs if "train_loss" in r]
     va = [(r["step"], r["val_psnr"], r["val_ssim"]) for r in recs if "val_psnr" in r and not r.get("final")]
-    fig, (a0, a1) = plt.subplots(1, 2, figsize=(10, 3.5))
+    # PSNR and SSIM each on its own panel, with markers: on two autoscaled axes of one panel, two validation points
+    # drew the two lines exactly over each other (each axis spans its own two values), under the legend
+    fig, (a0, a1, a2) = plt.subplots(1, 3, figsize=(13, 3.5), layout="constrained")
     if tr:
         a0.plot(*zip(*tr), lw=1)
     a0.set_xlabel("step")
@@ -146,14 +148,11 @@ def plot_training_curves(metrics_jsonl: str | Path, path: str | Path, loss_formu
     a0.grid(alpha=0.3)
     if va:
         s, p, q = zip(*va)
-        a1.plot(s, p, "o-", color="tab:blue", label="PSNR")
-        a1.set_ylabel("PSNR on validation patches (dB)")
-        b = a1.twinx()
-        b.plot(s, q, "s--", color="tab:orange", label="SSIM")
-        b.set_ylabel("SSIM on validation patches")
-        a1.yaxis.label.set_color("tab:blue")
-        b.yaxis.label.set_color("tab:orange")
-        a1.legend(a1.get_lines() + b.get_lines(), ["PSNR", "SSIM"], loc="lower right", fontsize=8)
-    a1.set_xlabel("step")
-    a1.grid(alpha=0.3)
+        a1.plot(s, p, "o-", color="tab:blue")
+        a2.plot(s, q, "s-", color="tab:orange")
+    a1.set_ylabel("PSNR on validation patches (dB)")
+    a2.set_ylabel("SSIM on validation patches")
+    for ax in (a1, a2):
+        ax.set_xlabel("step")
+        ax.grid(alpha=0.3)
     save_figure(fig, path)
