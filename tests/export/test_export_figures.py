@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 from figure_helpers import drawn_extent
+from hsicam.export import cfa as export_cfa
 from hsicam.export import doe as export_doe
 
 
@@ -32,3 +33,48 @@ def test_doe_export_figure_draws_both_height_maps_on_one_scale_clear_of_each_oth
     first_bar = maps[0].colorbar.ax.yaxis
     second_map = next(ax for ax in fig.axes if ax.images and ax.images[0] is maps[1])
     assert not drawn_extent(fig, first_bar).overlaps(drawn_extent(fig, second_map.yaxis))
+
+
+def test_cfa_fit_figure_has_wavelength_axes_readable_text_and_whole_fits(tmp_path, monkeypatch):
+    """export-optics' cfa_fit.png (a review of the pictures: the tiny run's 3×3 CFA): no axes, 5-pt labels, and
+    the fitted curves clipped at 1.2 (two fits peak at 1.49 and 1.54: drawn with flat tops). Read back from the
+    figure: each panel has wavelength tick labels (bottom row) in nm and a y axis, the axis labels name
+    wavelength (nm) and transmission, no text is below 7 pt, and each fit is drawn whole inside its panel: its
+    drawn maximum is that of offset + Σ Gaussians evaluated here from the fit's parameters (CSV fields)."""
+    from hsicam.spectral import Bands
+
+    figures = []
+    real_save = export_cfa.save_figure
+    monkeypatch.setattr(export_cfa, "save_figure", lambda fig, path: (figures.append(fig), real_save(fig, path)))
+    bands = Bands.from_centers(np.arange(420.0, 721.0, 50.0))
+    tile = np.random.default_rng(1).uniform(0, 1, (7, 3, 3))
+    tile /= tile.sum(axis=0)
+    fits = export_cfa.fit_tile(tile, bands)
+    export_cfa.plot_fits(tile, bands, fits, tmp_path / "cfa_fit.png")
+    (fig,) = figures
+
+    fine = np.linspace(420.0, 720.0, 2001)
+    def reference(f):  # the fit written to cfa_fit.csv: offset + amplitude · exp(-(λ - centre)² / (2 σ²))
+        sigma = [c["fwhm_nm"] / (2 * np.sqrt(2 * np.log(2))) for c in f["components"]]
+        return f["offset"] + sum(c["amplitude"] * np.exp(-0.5 * ((fine - c["centre_nm"]) / s) ** 2)
+                                 for c, s in zip(f["components"], sigma))
+
+    peaks = [float(reference(f).max()) for f in fits]
+    assert max(peaks) > 1.3  # the case that was cut flat at 1.2
+    panels = [ax for ax in fig.axes if len(ax.get_lines()) == 2]
+    assert len(panels) == 9
+    for ax, f, peak in zip(panels, fits, peaks):
+        fit_line = ax.get_lines()[1]
+        assert float(np.max(fit_line.get_ydata())) == pytest.approx(peak, rel=2e-3)
+        assert ax.get_ylim()[1] > peak and ax.get_ylim()[0] < float(reference(f).min())
+        assert ax.axison
+    bottom = panels[-1]
+    ticks = [float(t.get_text().replace("\u2212", "-")) for t in bottom.get_xticklabels() if t.get_text()]
+    lo, hi = bottom.get_xlim()
+    assert lo < 420 and hi > 720 and len([v for v in ticks if lo <= v <= hi]) >= 2  # the band range, in nm
+    assert drawn_extent(fig, bottom.xaxis).width > 0 and drawn_extent(fig, panels[0].yaxis).height > 0
+    labels = " ".join(t.get_text() for t in fig.findobj(lambda a: hasattr(a, "get_text") and hasattr(a, "get_fontsize")))
+    assert "wavelength (nm)" in labels and "transmission" in labels
+    sizes = [t.get_fontsize() for t in fig.findobj(lambda a: hasattr(a, "get_fontsize") and hasattr(a, "get_text"))
+             if t.get_text() and t.get_visible()]
+    assert min(sizes) >= 7
