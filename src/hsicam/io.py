@@ -1065,27 +1065,30 @@ def copy_file(src: str | os.PathLike, dst: str | os.PathLike) -> None:
 def write_png16(path: str | os.PathLike, image01: np.ndarray, text: dict[str, str] | None = None) -> None:
     """Write a single-channel image in [0, 1] as a 16-bit grayscale PNG (values are clipped);
     ``text``: PNG text chunks (key → value) that travel with the file."""
-    import imageio.v3 as iio
-
     img = np.asarray(image01, dtype=np.float64)
     if img.ndim != 2:
         raise ValueError(f"write_png16 expects a 2-D image, got shape {img.shape}")
     data = np.round(np.clip(img, 0.0, 1.0) * 65535.0).astype(np.uint16)
-    if text:
-        import io as _io
-
-        from PIL import Image, PngImagePlugin
-
-        info = PngImagePlugin.PngInfo()
-        for key, value in text.items():
-            info.add_text(key, value)
-        buf = _io.BytesIO()
-        Image.fromarray(data).save(buf, format="PNG", pnginfo=info)
-        encoded = buf.getvalue()
-    else:
-        encoded = iio.imwrite("<bytes>", data, extension=".png")
     with atomic_path(path) as tmp:  # encoded in memory: imageio never sees (nor expands "~" in) the path
-        tmp.write_bytes(encoded)
+        tmp.write_bytes(_png_bytes(data, text))
+
+
+def _png_bytes(data: np.ndarray, text: dict[str, str] | None) -> bytes:
+    """``data`` (uint8 or uint16) encoded as PNG, with ``text`` as PNG text chunks (key → value) when given."""
+    if not text:
+        import imageio.v3 as iio
+
+        return iio.imwrite("<bytes>", data, extension=".png")
+    import io as _io
+
+    from PIL import Image, PngImagePlugin
+
+    info = PngImagePlugin.PngInfo()
+    for key, value in text.items():
+        info.add_text(key, value)
+    buf = _io.BytesIO()
+    Image.fromarray(data).save(buf, format="PNG", pnginfo=info)
+    return buf.getvalue()
 
 
 def png8_values(rgb01: np.ndarray) -> np.ndarray:
@@ -1097,24 +1100,9 @@ def png8_values(rgb01: np.ndarray) -> np.ndarray:
 def write_png8(path: str | os.PathLike, rgb01: np.ndarray, text: dict[str, str] | None = None) -> None:
     """Write an (H, W, 3) or (H, W) image in [0, 1] as an 8-bit PNG (values are clipped); a uint8
     image is taken as those 8-bit values (:func:`png8_values`) and written as is; ``text`` as in :func:`write_png16`."""
-    import imageio.v3 as iio
-
     data = rgb01 if isinstance(rgb01, np.ndarray) and rgb01.dtype == np.uint8 else png8_values(rgb01)
-    if text:
-        import io as _io
-
-        from PIL import Image, PngImagePlugin
-
-        info = PngImagePlugin.PngInfo()
-        for key, value in text.items():
-            info.add_text(key, value)
-        buf = _io.BytesIO()
-        Image.fromarray(data).save(buf, format="PNG", pnginfo=info)
-        encoded = buf.getvalue()
-    else:
-        encoded = iio.imwrite("<bytes>", data, extension=".png")
     with atomic_path(path) as tmp:  # encoded in memory, as in write_png16
-        tmp.write_bytes(encoded)
+        tmp.write_bytes(_png_bytes(data, text))
 
 
 def save_figure(fig: Any, path: str | os.PathLike, dpi: int = 120) -> None:
