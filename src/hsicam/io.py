@@ -1147,7 +1147,12 @@ def json_ready(obj: Any, keys: frozenset[str] | None = None) -> Any:
 
 
 def _score_ready(value: Any, keys: frozenset[str]) -> Any:
-    """A score for strict JSON: ±inf as ``"inf"``/``"-inf"``, NaN as null, anything else as :func:`json_ready`."""
+    """A score for strict JSON: ±inf as ``"inf"``/``"-inf"``, NaN as null, a list of scores (a sweep's) item by
+    item, anything else as :func:`json_ready`."""
+    if isinstance(value, np.ndarray):
+        value = value.tolist()
+    if isinstance(value, (list, tuple)):
+        return [_score_ready(v, keys) for v in value]
     if isinstance(value, (float, np.floating)) and math.isinf(value):
         return INF_TEXT[1 if value > 0 else -1]
     return json_ready(value, keys)
@@ -1193,6 +1198,8 @@ def _score_of_json(value: Any, keys: frozenset[str]) -> Any:
         return math.nan
     if isinstance(value, str) and value in _INF_OF_TEXT:
         return _INF_OF_TEXT[value]
+    if isinstance(value, list):  # a list of scores (a sweep's), item by item
+        return [_score_of_json(v, keys) for v in value]
     return nan_for_null(value, keys)
 
 

@@ -209,3 +209,20 @@ def test_metrics_jsonl_keeps_an_infinite_score_apart_from_nan(tmp_path):
         fh.write('{"step": 2, "epoch": 0, "val_psnr": Infinity, "val_ssim": 1.0, "val_sam": NaN}\n')
     for rec in log.read():
         assert rec["val_psnr"] == math.inf and math.isnan(rec["val_sam"])
+
+
+def test_a_list_of_scores_keeps_its_infinities_apart_from_nan(tmp_path):
+    """A list under a score key (a tolerance sweep's PSNRs) is written item by item as a single score is: ±inf as
+    "inf"/"-inf", NaN as null; read back, ±inf and NaN again (it wrote every non-finite item as null)."""
+    from hsicam.io import nan_for_null, write_json
+
+    obj = {"sweeps": {"dz": {"psnr": [30.0, -math.inf, math.nan], "offset_um": [0.0, math.inf]}},
+           "rows": [{"psnr": np.float32(-np.inf)}], "ssim": np.array([0.5, np.inf])}
+    write_json(tmp_path / "t.json", obj)
+    data = strict((tmp_path / "t.json").read_text(encoding="utf-8"))
+    assert data["sweeps"]["dz"]["psnr"] == [30.0, "-inf", None] and data["rows"] == [{"psnr": "-inf"}]
+    assert data["sweeps"]["dz"]["offset_um"] == [0.0, None]  # not a score key: null, as every non-finite value
+    assert data["ssim"] == [0.5, "inf"]
+    back = nan_for_null(data)
+    assert back["sweeps"]["dz"]["psnr"][:2] == [30.0, -math.inf] and math.isnan(back["sweeps"]["dz"]["psnr"][2])
+    assert back["ssim"] == [0.5, math.inf] and back["rows"][0]["psnr"] == -math.inf
