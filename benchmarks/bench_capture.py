@@ -36,7 +36,7 @@ def make_run(run: Path, overrides: list[str]) -> dict:
 
     cfg = load_config(None, overrides)
     run.mkdir(parents=True)
-    (run / "config.yaml").write_text(dump_yaml(cfg))
+    (run / "config.yaml").write_text(dump_yaml(cfg), encoding="utf-8")
     model = CameraSystem.from_config(cfg)
     save_weights(run / "model.safetensors", model, model.bands)
     n_params = sum(p.numel() for p in model.net.parameters())

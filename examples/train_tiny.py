@@ -36,7 +36,7 @@ cfg = load_config("tiny", [f"data.cache_dir={out / 'cache'}", f"train.epochs={ar
 run = out / "run"
 summary = train(cfg, run, resume=(run / "config.yaml").is_file(), progress=False)
 print(f"trained {summary.get('step')} steps; files: {sorted(p.name for p in run.iterdir())}")
-last = [json.loads(line) for line in (run / "metrics.jsonl").read_text().splitlines()][-1]
+last = [json.loads(line) for line in (run / "metrics.jsonl").read_text(encoding="utf-8-sig").splitlines()][-1]
 print(f"last record of metrics.jsonl: {json.dumps({k: last[k] for k in sorted(last)[:6]})}")
 
 # 3. Load the run (the camera and network rebuilt from config.yaml, weights from model.safetensors).

@@ -59,7 +59,7 @@ def main(argv: list[str] | None = None) -> int:
                     help="the demo's config overrides (repeatable)")
     args = ap.parse_args(argv)
     try:
-        with open(args.metrics, encoding="utf-8") as fh:
+        with open(args.metrics, encoding="utf-8-sig") as fh:
             try:
                 records = [json.loads(line) for line in fh if line.strip()]
                 per_step, val_s = seconds_per_step_and_validation(records)
