@@ -115,7 +115,7 @@ def test_contact_sheet_shows_a_near_infrared_cube_in_grey(tmp_path):
     assert shown.shape == (12, 16, 3) and np.ptp(shown, axis=-1).max() == 0  # grey: R = G = B
     expect = rows * 0.8 / np.percentile(rows, 99)  # the band mean, exposed with its 99th percentile at 0.8
     np.testing.assert_allclose(shown[..., 0], np.clip(expect, 0, 1), rtol=1e-5)
-    assert sheet._suptitle.get_text().endswith("; (grey): mean over bands, fewer than 2 bands in 380-780 nm")
+    assert " ".join(sheet.get_suptitle().split()).endswith("; (grey): mean over bands, fewer than 2 bands in 380-780 nm")
 
 
 def test_pixel_spectra_of_no_scenes_is_refused_naming_the_folder(tmp_path):
