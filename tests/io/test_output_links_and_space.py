@@ -66,7 +66,7 @@ def test_a_tilde_in_an_output_and_an_input_means_home(tmp_path, monkeypatch, sce
     monkeypatch.chdir(tmp_path)
     res = simulate(Path("~/scene.npy"), "~/sim")
     assert_ok(res)
-    assert res.stdout.strip().endswith(f"-> {home / 'sim'}")
+    assert res.stdout.splitlines()[0].endswith(f"-> {home / 'sim'}")  # (the next line: the display preview)
     assert entries(tmp_path) == ["home"]  # no "./~" folder
     assert visible(home) == ["scene.npy", "sim"] and not any(is_temporary(n) for n in entries(home))
     assert read_marker(home / "sim")["command"] == "simulate" and (home / "sim" / "sensor.png").stat().st_size > 0

@@ -882,8 +882,8 @@ def test_compare_gives_the_cassi_rows_the_border_of_its_own_doe_camera(monkeypat
                                                                "scenes": []})
     handed = []
 
-    def baseline_rows(*args):
-        handed.append(args[-1])
+    def baseline_rows(*args, border_px=0, figures=None):
+        handed.append(border_px)
         raise Handed
 
     monkeypatch.setattr(experiments, "_baseline_rows", baseline_rows)

@@ -249,7 +249,8 @@ def cmd_simulate(args: argparse.Namespace) -> int:
         b = camera.bands
         log.info("%s: a .npy scene carries no wavelengths; its %d bands were taken as the camera's (%g-%g nm): give "
                  "data.npy_bands if they are not", args.scene, len(b), b.min_nm, b.max_nm)
-    print(f"sensor image {sensor.shape[0]}×{sensor.shape[1]} (min {sensor.min():.4g}, max {peak:.4g}) -> {out}; "
+    # the preview on a line of its own: the first stays the line scripts read (its last word the output folder)
+    print(f"sensor image {sensor.shape[0]}×{sensor.shape[1]} (min {sensor.min():.4g}, max {peak:.4g}) -> {out}\n"
           f"{SENSOR_PREVIEW}: a display preview (linear, ×{exposure:.3g}: its 99th percentile at "
           f"{SENSOR_PREVIEW_LEVEL:g} of white), not data")
     return 0

@@ -336,7 +336,7 @@ def _run_experiment(experiment: str, scale: str, out: Path, cfg: Config, seeds: 
             rows[-1]["overrides"], rows[-1]["note"] = list(spec.overrides), spec.note
     if experiment == "compare":
         rows += _baseline_rows(cfg, scale, out, scenes, names, seeds, baseline_names() if baselines is None else baselines,
-                               sensor_border_px(doe_camera), figures)
+                               border_px=sensor_border_px(doe_camera), figures=figures)
     result = {"experiment": experiment, "scale": scale, "seeds": list(seeds), "scenes": names,
               "conventions": summarize([])["conventions"], "region": region, "rows": rows}
     if figures.wanted:
