@@ -392,7 +392,11 @@ class ComparisonFigures:
             if r.name not in self.truth_rgb:
                 self.truth_rgb[r.name] = cube_rgb(r.truth, self.bands)
             first = r.metrics_per_seed[0] if r.metrics_per_seed else r.metrics
+            scored = self.truth_rgb[r.name].shape[:2]
             try:
+                if tuple(r.truth.shape[-2:]) != tuple(scored):  # scored on other pixels than the figure's truth
+                    raise ValueError(f"scored on {r.truth.shape[-2]}x{r.truth.shape[-1]} px, the figure's truth on "
+                                     f"{scored[0]}x{scored[1]}")
                 panel = comparison_panel(label, r.truth, r.estimate, self.bands, first["psnr"], first["ssim"])
             except ValueError as exc:  # not on the pixels the others are scored on: left out of the figure, said
                 log.warning("experiment: %s left out of the comparison figure of %s (%s)", label, r.name, exc)
