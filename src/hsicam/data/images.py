@@ -773,13 +773,7 @@ def _png_text(path: str | Path, key: str) -> str | None:
 def png_sensor_scale(path: str | Path) -> float | None:
     """The scale that ``hsicam simulate`` wrote into a ``sensor.png`` (:data:`SENSOR_SCALE_KEY`), else
     None (another PNG, or not a PNG). :class:`InputError` for a chunk that is no positive finite number."""
-    from PIL import Image
-
-    try:
-        with Image.open(path) as im:
-            value = getattr(im, "text", {}).get(SENSOR_SCALE_KEY) if im.format == "PNG" else None
-    except Exception:  # noqa: BLE001 - unreadable: the reader says so
-        return None
+    value = _png_text(path, SENSOR_SCALE_KEY)
     if value is None:
         return None
     try:
@@ -817,9 +811,10 @@ def read_capture(path: str | Path, corr: RawCorrection | None = None, scale: flo
     if path.suffix.lower() not in IMAGE_SUFFIXES:
         raise InputError(f"{path}: unsupported sensor image format (use .npy, .png, .tif)")
     image = read_image_2d(path, "sensor image")
-    if image.format == "png" and _png_text(path, SENSOR_PREVIEW_KEY) is not None:
-        raise InputError(f"{path}: hsicam simulate's display preview (exposed x{_png_text(path, SENSOR_PREVIEW_KEY)}, "
-                         f"8 bit), not sensor data: give its sensor.png or sensor.npy")
+    preview_exposure = _png_text(path, SENSOR_PREVIEW_KEY) if image.format == "png" else None
+    if preview_exposure is not None:
+        raise InputError(f"{path}: hsicam simulate's display preview (exposed x{preview_exposure}, 8 bit), not sensor "
+                         "data: give its sensor.png or sensor.npy")
     corr = corr or RawCorrection()
     if np.dtype(image.dtype).kind in "ui" and np.dtype(image.dtype).itemsize >= 4 and corr.white_level is None \
             and corr.auto_level is None:
