@@ -91,24 +91,31 @@ def test_readable_runs_pass(tmp_path):
     assert root_weights_path(run) == root and _sha(root) == man["last"]["weights_sha256"]
 
 
-def test_hsicam_train_fails_at_the_end_and_the_way_out_works(cache_env, tmp_path, capsys):
-    """Tiny run, 2 epochs, best after epoch 1 (step 4), stopped at step 5; the root deleted and the best damaged;
-    `hsicam train --resume` trains to step 8 and exits 2 (was 0), again when resumed as it is, and 0 with
-    train.keep_weights=last, after which the run's weights are the last checkpoint's."""
-    from hsicam.cli import main
-    from hsicam.config import load_config
+def _stopped_run_with_its_best_damaged(tmp_path):
+    """Tiny run, 2 epochs, best after epoch 1 (step 4), stopped at step 5; its root weights deleted and the best
+    checkpoint given a flipped byte. (config, run, root, damaged best, the best's recorded sha256)."""
     from hsicam.engine.train import train
 
     torch.set_num_threads(1)
     run = tmp_path / "run"
-    train(load_config("tiny", ["train.epochs=2", "train.checkpoint_every_steps=3"]), run, progress=False,
-          stop_after_steps=5)
+    cfg = load_config("tiny", ["train.epochs=2", "train.checkpoint_every_steps=3"])
+    train(cfg, run, progress=False, stop_after_steps=5)
     man = json.loads((run / MANIFEST).read_text())
     assert man["weights"]["from"] == "best" and man["best"]["step"] < man["last"]["step"], man  # the case
     root, best, sha = run / "model.safetensors", run / man["best"]["dir"] / "model.safetensors", man["best"]["weights_sha256"]
     root.unlink()
     flip_byte_in_place(best, best.stat().st_size - 3)
     ck._HASHES.clear()
+    return cfg, run, root, best, sha
+
+
+def test_hsicam_train_fails_at_the_end_and_the_way_out_works(cache_env, tmp_path, capsys):
+    """Tiny run, 2 epochs, best after epoch 1 (step 4), stopped at step 5; the root deleted and the best damaged;
+    `hsicam train --resume` trains to step 8 and exits 2 (was 0), again when resumed as it is, and 0 with
+    train.keep_weights=last, after which the run's weights are the last checkpoint's."""
+    from hsicam.cli import main
+
+    _, run, root, best, sha = _stopped_run_with_its_best_damaged(tmp_path)
     capsys.readouterr()
     for _ in range(2):  # the end of the training, then a resume of the finished run as it is
         assert main(["train", "--out", str(run), "--resume"]) == 2
@@ -188,19 +195,9 @@ def test_fit_does_not_write_its_final_weights_as_the_root_when_the_kept_checkpoi
     import hashlib
     import logging
 
-    from hsicam.config import load_config
     from hsicam.engine.train import train
 
-    torch.set_num_threads(1)
-    run = tmp_path / "run"
-    cfg = load_config("tiny", ["train.epochs=2", "train.checkpoint_every_steps=3"])
-    train(cfg, run, progress=False, stop_after_steps=5)
-    man = json.loads((run / MANIFEST).read_text())
-    assert man["weights"]["from"] == "best" and man["best"]["step"] < man["last"]["step"], man  # the case
-    root, kept, sha = run / "model.safetensors", run / man["best"]["dir"] / "model.safetensors", man["best"]["weights_sha256"]
-    root.unlink()
-    flip_byte_in_place(kept, kept.stat().st_size - 3)
-    ck._HASHES.clear()
+    cfg, run, root, kept, sha = _stopped_run_with_its_best_damaged(tmp_path)
     with caplog.at_level(logging.WARNING, logger="hsicam.runs.checkpoint"):
         with pytest.raises(InputError, match="^training ended, but the run has no readable weights: "):  # (the refusal: test_hsicam_train_fails_at_the_end_...)
             train(cfg, run, resume=True, progress=False)
