@@ -130,3 +130,29 @@ def test_off_axis_spot_at_420nm_paper_optics():
         assert (img * xx).sum() / img.sum() == pytest.approx((ref * xx).sum() / ref.sum(), abs=0.01)
         assert (img * yy).sum() / img.sum() == pytest.approx((ref * yy).sum() / ref.sum(), abs=0.01)
     assert abs(got5.max() / ref.max() - 1) > 2 * abs(got.max() / ref.max() - 1)
+
+
+@pytest.mark.parametrize("period_cells", [2, 4])
+def test_grating_orders_off_the_design_wavelength_follow_the_square_cell_fourier_series(period_cells):
+    """Staircase gratings of square cells (binary 0/π, period 2; 4-level blaze 0, π/2, π, 3π/2, period 4, both at
+    587.6 nm) at 420 and 720 nm, where the steps are not those phases: order m holds |c_m|² of the light, the
+    Fourier coefficient of one period of square cells, c_m = sinc(m/p)·(1/p)·Σ_j e^{iφ_j(λ)} e^{−2πi m j/p}
+    (the cells' envelope sinc²(a·sinθ/λ) at sinθ = mλ/Λ, times the dispersed staircase; binary: 0th order
+    cos²(Δφ/2), ±1st 4/π²·sin²(Δφ/2)), at m·λz/Λ from the axis. Measured (audit session 63): within 1e-3."""
+    n = 101
+    lams = (420.0, 720.0)
+    h = np.broadcast_to((np.arange(n) % period_cells) * H2PI / period_cells, (n, n)).copy()
+    with torch.no_grad():
+        psf = _model(lams, h, kernel_px=201)().psf.numpy()
+        spot = _model(lams, None, kernel_px=201)().psf.numpy()
+    c, r = 100, 5
+    for band, lam in enumerate(lams):
+        phi = 2 * np.pi * (sellmeier_fused_silica(lam) - 1.0) * h[0, :period_cells] / (lam * 1e-9)
+        order_px = lam * 1e-9 * Z_M / (period_cells * CELL_M * PIXEL_M)
+        for m in range(-3, 4):
+            x = c + int(round(m * order_px))
+            if abs(x - c) > c - r - 1:
+                continue
+            coeff = np.sinc(m / period_cells) * np.mean(np.exp(1j * phi) * np.exp(-2j * np.pi * m * np.arange(period_cells) / period_cells))
+            got = _window(psf[band], c, x, r) / _window(spot[band], c, c, r)
+            assert got == pytest.approx(abs(coeff) ** 2, abs=2e-3), (period_cells, lam, m, got, abs(coeff) ** 2)
