@@ -113,7 +113,10 @@ class Camera(nn.Module):
         sensor's full scale of 1. A scene holding NaN/Inf values is an :class:`InputError` naming ``source``
         and their count; so is a sensor image that is not finite (float overflow of a scene with huge
         values: naming the scene's peak; or a damaged camera, whose image of a uniform scene is not finite either), and a scene smaller than :meth:`min_scene_size`
-        (:meth:`check_capture_size`)."""
+        (:meth:`check_capture_size`). The layout is checked first (:meth:`check_scene`): a NumPy array, a cube
+        without its batch axis or with its bands last is told as such, not as a scene of the wrong size."""
+        if not isinstance(x, torch.Tensor) or x.dim() != 4 or x.shape[1] != len(self.bands):
+            self.check_scene(x)
         self.check_capture_size(tuple(x.shape[-2:]), source)
         check_finite(x, source)
         peak = float(x.max()) if x.numel() else 0.0
@@ -292,12 +295,17 @@ class Camera(nn.Module):
         :attr:`half_precision_on_cpu`), B >= 1, on the camera's device. Values are not scanned here (a
         solver calls ``A`` every iteration): :meth:`capture` refuses NaN/Inf scenes, and
         :meth:`hsicam.models.CameraSystem.reconstruct` NaN/Inf sensor images."""
+        c = len(self.bands)
         if not isinstance(x, torch.Tensor):
-            raise InputError(f"scene must be a torch.Tensor (B, C, H, W), got {type(x).__name__}")
+            hint = ": torch.from_numpy(x)" if type(x).__module__ == "numpy" else ""
+            raise InputError(f"scene must be a torch.Tensor (B, C, H, W), got {type(x).__name__}{hint}")
         if x.dim() != 4:
-            raise InputError(f"scene must be a (B, C, H, W) tensor, got shape {tuple(x.shape)}")
-        if x.shape[1] != len(self.bands):
-            raise InputError(f"scene has {x.shape[1]} bands but the camera has {len(self.bands)} ({self.bands!r})")
+            hint = ": a (C, H, W) cube is x[None]" if x.dim() == 3 and x.shape[0] == c else ""
+            raise InputError(f"scene must be a (B, C, H, W) tensor, got shape {tuple(x.shape)}{hint}")
+        if x.shape[1] != c:
+            hint = ("; its last axis has the camera's bands: a (B, H, W, C) cube is x.permute(0, 3, 1, 2)"
+                    if x.shape[-1] == c else "")
+            raise InputError(f"scene has {x.shape[1]} bands but the camera has {c} ({self.bands!r}){hint}")
         if not torch.is_floating_point(x):
             raise InputError(f"scene must be a floating-point tensor with values in [0, 1] (reflectance-like), "
                              f"got {x.dtype}")
