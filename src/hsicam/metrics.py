@@ -26,6 +26,7 @@ import math
 import torch
 
 from hsicam.devices import float64_device
+from hsicam.errors import InputError
 
 CONVENTIONS = {
     "psnr": ("per band, peak 1, mean over bands; a band reproduced exactly (MSE 0, e.g. a band dark in truth and "
@@ -48,13 +49,22 @@ CONVENTIONS = {
 }
 
 
-def _batched(x: torch.Tensor, y: torch.Tensor, dtype: torch.dtype = torch.float64) -> tuple[torch.Tensor, torch.Tensor]:
+def _check_pair(x: torch.Tensor, y: torch.Tensor) -> None:
+    """:class:`InputError` unless ``x`` and ``y`` are torch tensors of one shape, (B, C, H, W) or (C, H, W)."""
+    for t, what in ((x, "estimate"), (y, "truth")):
+        if not isinstance(t, torch.Tensor):
+            hint = ": torch.from_numpy(a)" if type(t).__module__ == "numpy" else ""
+            raise InputError(f"{what} must be a torch.Tensor (B, C, H, W) or (C, H, W), got {type(t).__name__}{hint}")
     if x.shape != y.shape:
-        raise ValueError(f"shapes differ: {tuple(x.shape)} vs {tuple(y.shape)}")
+        raise InputError(f"shapes differ: {tuple(x.shape)} vs {tuple(y.shape)}")
+    if x.dim() not in (3, 4):
+        raise InputError(f"expected (B, C, H, W) or (C, H, W), got {tuple(x.shape)}")
+
+
+def _batched(x: torch.Tensor, y: torch.Tensor, dtype: torch.dtype = torch.float64) -> tuple[torch.Tensor, torch.Tensor]:
+    _check_pair(x, y)
     if x.dim() == 3:
         x, y = x[None], y[None]
-    if x.dim() != 4:
-        raise ValueError(f"expected (B, C, H, W) or (C, H, W), got {tuple(x.shape)}")
     return _as(x, dtype), _as(y, dtype)
 
 
@@ -155,7 +165,7 @@ def ssim(x: torch.Tensor, y: torch.Tensor, window: int = SSIM_WINDOW_PX, sigma: 
     x, y = _batched(x, y, dtype)
     b, c, h, w = x.shape
     if min(h, w) < window:
-        raise ValueError(f"SSIM needs images of at least {window}×{window} px, got {h}×{w}")
+        raise InputError(f"SSIM needs images of at least {window}×{window} px, got {h}×{w}")
     g = _gaussian_1d(window, sigma, x.dtype, x.device)
     c1, c2 = (k1 * data_range) ** 2, (k2 * data_range) ** 2
     if max(h, w) <= _SSIM_MATRIX_MAX_PX:
@@ -285,7 +295,10 @@ def ergas_undefined(y: torch.Tensor) -> torch.Tensor:
 
 def all_metrics(estimate: torch.Tensor, truth: torch.Tensor) -> dict[str, list[float]]:
     """Every metric above, one list entry per cube (SAM NaN where :func:`sam_degrees` is, ERGAS NaN where
-    :func:`ergas` is: undefined)."""
+    :func:`ergas` is: undefined): ``{"psnr": [dB, ...], "psnr_cube": [dB], "psnr_mst": [dB], "ssim": [...],
+    "sam": [degrees], "ergas": [...], "rmse": [...]}``. ``estimate`` and ``truth``: torch tensors of one shape,
+    (B, C, H, W) or (C, H, W), values on a [0, 1] scale (peak 1); anything else is an :class:`InputError`."""
+    _check_pair(estimate, truth)  # before the undefined-scene masks read the truth's shape
     fns = {"psnr": psnr_per_band, "psnr_cube": psnr_cube, "psnr_mst": psnr_mst, "ssim": ssim,
            "sam": sam_degrees, "ergas": ergas, "rmse": rmse}
     out = {}
