@@ -166,11 +166,25 @@ def spectra_to_srgb(spectra: Array, bands: Bands) -> Array:
     return srgb_encode(spectra_to_linear_srgb(spectra, bands))
 
 
+def _check_band_axis(cube: Array, axis: int, bands: Bands, what: str) -> None:
+    """:class:`InputError` in the user's own shape when ``cube``'s band axis ``axis`` does not hold ``bands``
+    (naming the transpose when its last axis does: a cube stored bands last)."""
+    n = len(bands)
+    if cube.shape[axis] == n:
+        return
+    layout = "(C, H, W)" if axis == 0 else "(B, C, H, W)"
+    move = f"cube.movedim(-1, {axis})" if isinstance(cube, torch.Tensor) else f"np.moveaxis(cube, -1, {axis})"
+    hint = f"; its last axis has the bands: a cube stored bands last is {move}" if cube.shape[-1] == n else ""
+    raise InputError(f"{what}: the cube must be {layout} with the {n} bands of {bands!r} on axis {axis}, "
+                     f"got shape {tuple(cube.shape)}{hint}")
+
+
 def cube_to_srgb(cube: Array, bands: Bands) -> Array:
     """sRGB render of a cube (B, C, H, W) → (B, 3, H, W), or (C, H, W) → (3, H, W); values in [0, 1]."""
     if cube.ndim not in (3, 4):
         raise InputError(f"cube_to_srgb expects (C, H, W) or (B, C, H, W), got shape {tuple(cube.shape)}")
     axis = cube.ndim - 3
+    _check_band_axis(cube, axis, bands, "cube_to_srgb")
     if isinstance(cube, torch.Tensor):
         rgb = spectra_to_srgb(cube.movedim(axis, -1), bands)
         return rgb.movedim(-1, axis)
@@ -189,6 +203,12 @@ def srgb_preview(cube: np.ndarray, bands: Bands, chunk_px: int | None = None) ->
     whatever the cube's (whole, they were half a cube; the same values: each pixel's colour is its own)."""
     from hsicam.io import png8_values
 
+    if not isinstance(cube, np.ndarray):
+        hint = ": cube.detach().cpu().numpy()" if isinstance(cube, torch.Tensor) else ""
+        raise InputError(f"srgb_preview: the cube must be a NumPy array (C, H, W), got {type(cube).__name__}{hint}")
+    if cube.ndim != 3:
+        raise InputError(f"srgb_preview: the cube must be (C, H, W), got shape {tuple(cube.shape)}")
+    _check_band_axis(cube, 0, bands, "srgb_preview")
     _, h, w = cube.shape
     rows = max(1, int(PREVIEW_CHUNK_PX if chunk_px is None else chunk_px) // w)
     out = np.empty((h, w, 3), dtype=np.uint8)
