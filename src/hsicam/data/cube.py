@@ -189,9 +189,21 @@ def resample_cube(cube: np.ndarray, bands: Bands, target: Bands, source: PathLik
 def normalize_per_cube_max(cube: np.ndarray, source: PathLike | str = "cube") -> tuple[np.ndarray, float]:
     """The normalisation policy: divide by the cube's maximum → values in [0, 1]. Returns (cube, max).
 
-    Raises :class:`InputError` for an all-zero cube (nothing to learn from, and no scale).
+    ``cube``: a NumPy array (C, H, W), any scale (raw counts, radiance). Raises :class:`InputError` for an
+    all-zero cube (nothing to learn from, and no scale), one without a positive value, one holding NaN/Inf
+    values (its maximum is no scale: the result would be NaN), and for a torch tensor (divide it by its maximum).
     """
+    if not isinstance(cube, np.ndarray):
+        hint = ": cube.numpy(), or divide the tensor by cube.max()" if type(cube).__module__.startswith("torch") else ""
+        raise InputError(f"{source}: normalize_per_cube_max takes a NumPy array (C, H, W), got {type(cube).__name__}{hint}")
     peak = float(np.max(cube))
+    if not math.isfinite(peak):
+        bad = int(np.count_nonzero(~np.isfinite(cube)))
+        raise InputError(f"{source}: the cube contains {bad} NaN or Inf value(s) of {cube.size}; cannot normalise by its "
+                         "maximum")
+    if peak < 0:
+        raise InputError(f"{source}: the cube has no positive value (its maximum is {peak:.4g}); cannot normalise by "
+                         "its maximum")
     if not peak > 0:
         raise InputError(f"{source}: the cube is all zeros; cannot normalise by its maximum")
     return (np.asarray(cube, dtype=np.float32) / np.float32(peak)).astype(np.float32, copy=False), peak
