@@ -109,6 +109,22 @@ def test_scene_checks_of_the_camera(system):
         assert cam.A(bad).isnan().any()
 
 
+def test_target_refuses_a_scene_not_on_the_band_axis(system):
+    """The truth crop of a bands-last cube was a (1, 28, 0, ...) slice of the wrong axis, silently; now an
+    InputError naming the permute, while a (B, C, H, W) scene gives the centre crop the sensor sees."""
+    scene = torch.rand(1, 7, 44, 44, generator=torch.Generator().manual_seed(2))
+    r = system.camera.margin // 2
+    torch.testing.assert_close(system.target(scene), scene[..., r:44 - r, r:44 - r], rtol=0, atol=0)
+    with torch.no_grad():
+        assert system.target(scene).shape[-2:] == system.camera(scene).shape[-2:]
+    expected = ("scene must be (B, 7, H, W) on the camera's 7 bands, got shape (1, 44, 44, 7); its last axis has "
+                "the camera's bands: a (B, H, W, C) cube is x.permute(0, 3, 1, 2)")
+    with pytest.raises(InputError, match="^" + re.escape(expected) + "$"):
+        system.target(scene.permute(0, 2, 3, 1))
+    with pytest.raises(InputError, match=re.escape("got shape (7, 44, 44)")):
+        system.target(scene[0])
+
+
 def test_tiled_reconstruction_takes_the_models_context_as_its_default_halo(system):
     sensor = _sensor(53, 47)
     fn = system.reconstructor()
