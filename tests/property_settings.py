@@ -5,12 +5,15 @@ test on one torch thread (the ``one_torch_thread`` fixture of conftest.py).
   fabrication exports (engine/, models/, runs/, export/): 40 and 15 examples, function-scoped fixtures and slow
   inputs allowed.
 - ``OUTPUT_PROPS``: the result and preview writers (report/, data/): 30 examples, the same health checks off.
+- ``TRAINING_PROPS`` / ``TRAINING_FEW``: the training side's pure functions and the data it reads (loss terms,
+  schedule, patch sampler, relighting, generator, memory arithmetic: engine/, data/): 30 and 10 examples,
+  function-scoped fixtures and slow inputs allowed.
 - ``CORE_PROP`` / ``CORE_FEW``: the core pure functions (bands, sensor, colour, metrics, demosaic, TV, cubes:
   optics/, models/, report/, data/): 30 and 15 examples, every health check on; with ``seeds`` and
   ``random_grid`` (a random increasing wavelength grid).
 
-Moved here from engine/test_properties_pipeline.py, optics/test_properties_spectral_sensor_metrics.py and
-report/test_properties_report.py when their tests went to the floors of the code they test, so that each file
+Moved here from engine/test_properties_pipeline.py, engine/test_properties_training.py,
+optics/test_properties_spectral_sensor_metrics.py and report/test_properties_report.py when their tests went to the floors of the code they test, so that each file
 imports them without importing another test file."""
 
 from __future__ import annotations
@@ -28,6 +31,10 @@ PIPELINE_FEW = settings(PIPELINE_PROPS, max_examples=15)
 
 OUTPUT_PROPS = settings(derandomize=True, database=None, deadline=None, max_examples=30,
                         suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow])
+
+TRAINING_PROPS = settings(max_examples=30, deadline=None, derandomize=True, database=None,
+                          suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow])
+TRAINING_FEW = settings(TRAINING_PROPS, max_examples=10)
 
 CORE_PROP = settings(max_examples=30, deadline=None, derandomize=True, database=None)
 CORE_FEW = settings(max_examples=15, deadline=None, derandomize=True, database=None)
