@@ -33,6 +33,7 @@ from hsicam.data import (
     write_envi,
 )
 from hsicam.data.formats import exr_bare_micrometres, exr_channel_wavelength, parse_envi_header, read_window
+from hsicam.data.images import read_sensor_image
 from hsicam.errors import InputError
 from hsicam.spectral import Bands, resample_spectra
 
@@ -899,3 +900,27 @@ def test_envi_writer_keeps_metadata_in_one_header_line_that_envi_readers_take_wh
     with caplog.at_level(logging.WARNING):
         _, _, got = read_cube(hdr)
     assert "run" not in got and f"ignoring its unreadable '{ENVI_METADATA_KEY}'" in caplog.text
+
+
+# ------------------------------------------------------------------------------------------------
+# Sensor images (2-D): a 16-bit PNG at its scale; a cube, an unknown suffix, a missing file refused
+# (moved from engine/test_inference.py)
+# ------------------------------------------------------------------------------------------------
+def test_read_sensor_png16_and_scale(tmp_path):
+    import imageio.v3 as iio
+
+    data = np.array([[0, 65535], [32768, 1000]], dtype=np.uint16)
+    iio.imwrite(tmp_path / "s.png", data)
+    img = read_sensor_image(tmp_path / "s.png", scale=2.0)
+    np.testing.assert_allclose(img, data / 65535.0 * 2.0, rtol=1e-6)
+
+
+def test_read_sensor_errors(tmp_path):
+    np.save(tmp_path / "s.npy", np.ones((2, 3, 4)))
+    with pytest.raises(InputError, match="2-D"):
+        read_sensor_image(tmp_path / "s.npy")
+    (tmp_path / "x.jpg").write_bytes(b"123")
+    with pytest.raises(InputError, match="unsupported"):
+        read_sensor_image(tmp_path / "x.jpg")
+    with pytest.raises(InputError, match="no such"):
+        read_sensor_image(tmp_path / "missing.npy")

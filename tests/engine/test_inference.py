@@ -1,18 +1,18 @@
-"""Tiled reconstruction equals the whole-image pass; sensor image reading."""
+"""Tiled reconstruction equals the whole-image pass. (The RDN's own receptive radius, initialisation and demosaic
+input are in models/test_rdn.py, the sensor image reader in data/test_data_formats.py, the CFA window in
+optics/test_sensor.py.)"""
 
 from __future__ import annotations
 
-import numpy as np
 import pytest
 import torch
 
-from demosaic_reference import box_demosaic_reference
 from hsicam.config import load_config
-from hsicam.data.images import read_sensor_image
 from hsicam.models.context import conv_receptive_radius as receptive_radius
 from hsicam.engine.inference import reconstruct_tiled
 from hsicam.errors import InputError
 from hsicam.models import RDN, CameraSystem
+from rdn_systems import demosaic_input_system
 
 
 def _untrained_but_spatial(net: RDN) -> None:
@@ -44,76 +44,9 @@ def test_tiles_are_seamless():
     assert (bad - whole).abs().max() > 1e-3
 
 
-def test_receptive_radius_of_rdn():
-    net = RDN(bands=3, blocks=2, features=8, growth=4, layers_per_block=3)
-    # sfe1, sfe2, 2×3 block convs, global 3×3, output: all 3×3 → radius 1 each
-    assert receptive_radius(net) == 2 + 6 + 2
-
-
-def test_read_sensor_png16_and_scale(tmp_path):
-    import imageio.v3 as iio
-
-    data = np.array([[0, 65535], [32768, 1000]], dtype=np.uint16)
-    iio.imwrite(tmp_path / "s.png", data)
-    img = read_sensor_image(tmp_path / "s.png", scale=2.0)
-    np.testing.assert_allclose(img, data / 65535.0 * 2.0, rtol=1e-6)
-
-
-def test_read_sensor_errors(tmp_path):
-    np.save(tmp_path / "s.npy", np.ones((2, 3, 4)))
-    with pytest.raises(InputError, match="2-D"):
-        read_sensor_image(tmp_path / "s.npy")
-    (tmp_path / "x.jpg").write_bytes(b"123")
-    with pytest.raises(InputError, match="unsupported"):
-        read_sensor_image(tmp_path / "x.jpg")
-    with pytest.raises(InputError, match="no such"):
-        read_sensor_image(tmp_path / "missing.npy")
-
-
-def test_cfa_pattern_window_matches_the_whole_sensor():
-    from hsicam.sensor import ColorFilterArray
-
-    cfa = ColorFilterArray(5, period=4, seed=3)
-    whole = cfa.pattern(23, 19)
-    for origin in [(0, 0), (1, 2), (5, 7), (12, 3)]:
-        win = cfa.pattern(9, 11, origin)
-        torch.testing.assert_close(win, whole[:, origin[0] : origin[0] + 9, origin[1] : origin[1] + 11], rtol=0, atol=0)
-
-
-def _small_system(tiny_config, *overrides: str):
-    from hsicam.models import CameraSystem
-
-    torch.manual_seed(0)
-    return CameraSystem.from_config(tiny_config("model.rdn.demosaic_input=true", "model.rdn.blocks=1", "model.rdn.features=8",
-                                                "model.rdn.growth=4", *overrides)).eval()
-
-
-@pytest.mark.parametrize("period", [3, 4])
-def test_demosaic_input_is_the_normalised_local_average_per_band(tiny_config, period):
-    model = _small_system(tiny_config, f"camera.cfa.period={period}")
-    c = len(model.bands)
-    assert model.net.tentative.in_channels == 1 + c
-    assert model.net.window == (3 if period == 3 else 5)
-    g = torch.rand(2, 1, 13, 17, dtype=torch.float64)
-    with torch.no_grad():
-        inp = model.double().net.network_input(g, model.camera, origin=(3, 4))
-        kappa = model.camera.cfa.pattern(20, 25)[:, 3:16, 4:21].numpy()
-    assert inp.shape == (2, 1 + c, 13, 17)
-    torch.testing.assert_close(inp[:, :1], g)
-    for b in range(2):
-        np.testing.assert_allclose(inp[b, 1:].numpy(), box_demosaic_reference(g[b, 0].numpy(), kappa, model.net.window),
-                                   rtol=1e-10)
-    # a flat grey sensor image demosaics to the same grey in every band
-    flat = model.net.network_input(torch.full((1, 1, 13, 17), 0.3, dtype=torch.float64), model.camera)
-    torch.testing.assert_close(flat[:, 1:], torch.full((1, c, 13, 17), 0.3, dtype=torch.float64))
-    # untrained, the system returns the demosaic (tentative = x̃, zero output conv)
-    with torch.no_grad():
-        torch.testing.assert_close(model.reconstruct(g, origin=(3, 4)), inp[:, 1:])
-
-
 def test_demosaic_input_tiles_are_seamless(tiny_config):
     """Each tile must see the CFA phase of its own position and enough context, or seams show."""
-    model = _small_system(tiny_config).double()
+    model = demosaic_input_system(tiny_config).double()
     _untrained_but_spatial(model.net)
     img = torch.rand(1, 1, 61, 47, dtype=torch.float64)
     with torch.no_grad():
@@ -144,15 +77,6 @@ def test_demosaic_input_needs_a_camera_with_a_code():
                                                        "model.consistency.iterations=0"]))
     cassi = CameraSystem.from_config(load_config("quick", list(CASSI_RDN_OVERRIDES)))
     assert cassi.camera.kind == "dd_cassi" and cassi.net.tentative.in_channels == 1
-
-
-def test_untrained_rdn_returns_the_grey_image():
-    """Documented initialisation: tentative t_c = g, zero output conv, so f̂ = g in every band."""
-    net = RDN(bands=5, in_channels=3, blocks=1, features=8, growth=4, layers_per_block=2)
-    x = torch.rand(2, 3, 9, 7)
-    with torch.no_grad():
-        out = net(x)
-    torch.testing.assert_close(out, x[:, :1].expand(2, 5, 9, 7))
 
 
 def test_reconstructor_builds_the_operator_once_for_all_tiles(tiny_config):

@@ -63,6 +63,16 @@ def test_tile_pattern_origin_and_cfa_gradient():
     assert torch.isfinite(w.grad).all() and (w.grad != 0).all()
 
 
+def test_cfa_pattern_window_matches_the_whole_sensor():
+    from hsicam.sensor import ColorFilterArray
+
+    cfa = ColorFilterArray(5, period=4, seed=3)
+    whole = cfa.pattern(23, 19)
+    for origin in [(0, 0), (1, 2), (5, 7), (12, 3)]:
+        win = cfa.pattern(9, 11, origin)
+        torch.testing.assert_close(win, whole[:, origin[0] : origin[0] + 9, origin[1] : origin[1] + 11], rtol=0, atol=0)
+
+
 # --------------------------------------------------------------------------------------------
 # Noise statistics (bounds: 5 standard deviations of the estimator)
 # --------------------------------------------------------------------------------------------
