@@ -65,7 +65,7 @@ def relative_l1(a: np.ndarray, ref: np.ndarray) -> float:
 
 # --------------------------------------------------------------------------------------------
 # The camera model written out: direct shift-and-add, no FFT, no code of the package
-# (tests/cameras/test_camera.py's operator tests and the command-line tests)
+# (tests/cameras/test_camera.py's operator tests, tests/optics/test_coded_convolution.py and the command-line tests)
 # --------------------------------------------------------------------------------------------
 NP_PAD = {"zeros": "constant", "reflect": "reflect", "replicate": "edge", "circular": "wrap"}
 
