@@ -1,4 +1,4 @@
-"""A small CASSI camera for tests, and diag(ΦΦᵀ) of a sensor window by loops over its aperture array (from the
+"""Small CASSI cameras for tests, and diag(ΦΦᵀ) of a sensor window by loops over its aperture array (from the
 definitions, not from the cameras' own ``gram_diagonal``): used by tests/cameras and tests/models."""
 
 from __future__ import annotations
@@ -14,6 +14,14 @@ def cassi(kind: str, *overrides: str, dtype=torch.float64):
     """A CASSI camera of five bands (500..700 nm), 2 px per band."""
     cfg = load_config(overrides=["bands.start_nm=500", "bands.stop_nm=700", "bands.step_nm=50", f"camera.kind={kind}",
                                  *overrides])
+    return build_camera(cfg).to(dtype)
+
+
+def cassi_bands(kind: str = "dd_cassi", bands: int = 8, *overrides: str, dtype=torch.float64):
+    """A CASSI camera of ``bands`` bands 20 nm apart from 500 nm (the baseline solvers' test camera)."""
+    stop = 500 + 20 * (bands - 1)
+    cfg = load_config(overrides=["bands.start_nm=500", f"bands.stop_nm={stop}", "bands.step_nm=20",
+                                 f"camera.kind={kind}", *overrides])
     return build_camera(cfg).to(dtype)
 
 

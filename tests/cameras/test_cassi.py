@@ -10,7 +10,7 @@ import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from cassi_reference import cassi, loop_gram_diagonal
+from cassi_reference import cassi, cassi_bands, loop_gram_diagonal
 from hsicam.cameras import CodedAperture, DDCASSICamera, SDCASSICamera, build_camera
 from hsicam.cameras.cassi import hashed_uniform, linear_dispersion, prism_dispersion, random_aperture
 from hsicam.config import load_config
@@ -541,3 +541,32 @@ def test_cassi_gram_diagonal_of_a_window_is_the_loop_sum_over_its_aperture(kind,
     y = torch.zeros(1, 1, h, w, dtype=torch.float64)
     got = snap.gram_diagonal(y, origin)[0, 0].numpy()
     np.testing.assert_allclose(got, ref, atol=1e-12)
+
+
+# --------------------------------------------------------------------------------------------
+# ΦΦᵀ is diagonal and gram_diagonal is its diagonal, against the dense Φ (moved from
+# models/test_solvers.py, whose GAP projection divides by it)
+# --------------------------------------------------------------------------------------------
+def dense_matrix(fn, n_in: int, in_shape, dtype=torch.float64) -> torch.Tensor:
+    cols = []
+    for k in range(n_in):
+        e = torch.zeros(n_in, dtype=dtype)
+        e[k] = 1
+        cols.append(fn(e.reshape(in_shape)).reshape(-1))
+    return torch.stack(cols, dim=1)
+
+
+@pytest.mark.parametrize("kind", ("dd_cassi", "sd_cassi"))
+@pytest.mark.parametrize("convention", ("sum", "mean"))
+def test_phi_phi_t_is_diagonal_and_phi_diagonal_is_its_diagonal(kind, convention):
+    cam = cassi_bands(kind, 4, f"camera.cassi.convention={convention}")
+    h, w = 4, 5
+    phi = dense_matrix(cam.A, 4 * h * w, (1, 4, h, w))  # (M, N)
+    gram = phi @ phi.T
+    off = gram - torch.diag(torch.diag(gram))
+    assert float(off.abs().max()) == 0.0
+    y = torch.zeros(1, 1, *cam.sensor_size((h, w)), dtype=torch.float64)
+    d = cam.gram_diagonal(y).reshape(-1)
+    expected = torch.diag(gram)
+    expected = torch.where(expected > 1e-12, expected, torch.ones_like(expected))
+    torch.testing.assert_close(d, expected)
