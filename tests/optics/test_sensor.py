@@ -1,4 +1,5 @@
-"""Colour filter array, sensor noise statistics, ADC quantisation and DOE fabrication effects."""
+"""Colour filter array, sensor noise statistics and declared variance, ADC quantisation and DOE fabrication
+effects."""
 
 from __future__ import annotations
 
@@ -191,6 +192,96 @@ def test_bit_depth_quantisation_levels(bits):
     assert ((out.detach() - clipped).abs() <= 0.5 / (levels - 1) + 1e-12).all()
     out.sum().backward()  # straight-through gradient
     torch.testing.assert_close(g.grad, torch.ones_like(g))
+
+
+# --------------------------------------------------------------------------------------------
+# The variance each noise model declares (what the noise-aware consistency steps weigh by; moved from
+# models/test_noise_aware_consistency.py)
+# --------------------------------------------------------------------------------------------
+@pytest.mark.parametrize("model, kw", [
+    ("gaussian", {"sigma": 0.02}),
+    ("poisson_gaussian", {"full_well_e": 1000.0, "read_noise_e": 3.0}),
+    ("poisson_gaussian", {"full_well_e": 200.0, "read_noise_e": 0.0}),
+    ("gaussian", {"sigma": 0.02, "bit_depth": 5}),  # Δ²/12 is 18 % of this variance
+])
+def test_variance_is_the_empirical_variance_of_the_noise(model, kw):
+    """The variance the model declares at each signal level equals the sample variance of 100 000
+    draws of the noise it adds there (Poisson: mean/N; read noise: (r/N)²; quantiser: Δ²/12, for a
+    noise much wider than the step; levels 5σ inside [0, 1], where the quantiser clips nothing)."""
+    noise = SensorNoise(model, **kw)
+    levels = torch.tensor([0.1, 0.3, 0.6, 0.85], dtype=torch.float64).view(1, 1, 4, 1)
+    g = levels.expand(1, 1, 4, 100_000).contiguous()
+    gen = torch.Generator().manual_seed(0)
+    sample = noise(g, gen)
+    empirical = sample.var(dim=-1)
+    declared = noise.variance(g)[..., 0]
+    torch.testing.assert_close(declared, empirical, rtol=0.03, atol=0)
+
+
+def test_noise_free_models_declare_no_variance():
+    g = torch.rand(1, 1, 8, 8)
+    assert SensorNoise("none").variance(g) is None
+    assert SensorNoise("gaussian", sigma=0.0).variance(g) is None
+    q = SensorNoise("none", bit_depth=10).variance(g)  # the quantiser alone: Δ²/12
+    torch.testing.assert_close(q, torch.full_like(g, (1 / 1023) ** 2 / 12))
+
+
+def test_variance_is_computed_in_float32_for_half_precision_images():
+    g = torch.full((1, 1, 4, 4), 0.25, dtype=torch.float16)
+    var = SensorNoise("poisson_gaussian", full_well_e=1e4, read_noise_e=2.0).variance(g)
+    assert var.dtype == torch.float32
+    torch.testing.assert_close(var, torch.full((1, 1, 4, 4), 0.25 / 1e4 + (2 / 1e4) ** 2))
+    assert SensorNoise("none", bit_depth=12).variance(g).min() > 0
+
+
+def test_a_flat_field_gain_map_scales_the_variance_as_the_corrected_noise():
+    """A capture divided by its flat field F (vignetting) is a·n(g/a) with a = 1/F: its variance is a²·v(g/a)
+    (Poisson–Gaussian: a·g/N + (a·r/N)²), checked against the sample variance of 100 000 draws at each of four
+    (gain, level) pairs; a window's variance at its origin is the whole image's there (what tiles see)."""
+    gains = torch.tensor([0.8, 1.0, 1.6, 2.5], dtype=torch.float64)
+    levels = torch.tensor([0.1, 0.3, 0.6, 0.85], dtype=torch.float64)
+    n = 100_000
+    noise = SensorNoise("poisson_gaussian", full_well_e=500.0, read_noise_e=3.0,
+                        gain=gains.view(4, 1).expand(4, n).float())
+    g = levels.view(1, 1, 4, 1).expand(1, 1, 4, n).contiguous()
+    sample = noise(g, torch.Generator().manual_seed(0))
+    expected = gains * levels / 500.0 + (gains * 3.0 / 500.0) ** 2  # written out, not the model's code
+    torch.testing.assert_close(sample.var(dim=-1)[0, 0], expected, rtol=0.03, atol=0)
+    torch.testing.assert_close(noise.variance(g)[0, 0, :, 0], expected, rtol=1e-6, atol=0)
+    # a window of a larger map, the map placed at sensor pixel (2, 3) (a capture's CFA offset)
+    rng = torch.Generator().manual_seed(1)
+    gain = 0.5 + torch.rand(20, 30, generator=rng)
+    image = torch.rand(1, 1, 20, 30, generator=rng)
+    placed = SensorNoise("poisson_gaussian", full_well_e=200.0, read_noise_e=2.0, gain=gain, gain_origin=(2, 3))
+    whole = placed.variance(image, origin=(2, 3))
+    torch.testing.assert_close(whole, (gain * image / 200.0 + (gain * 2.0 / 200.0) ** 2).float())
+    window = image[..., 5:12, 7:19]
+    torch.testing.assert_close(placed.variance(window, origin=(7, 10)), whole[..., 5:12, 7:19])
+    with pytest.raises(ValueError, match="not within the noise gain map"):
+        placed.variance(window, origin=(0, 0))
+    with pytest.raises(ValueError, match="finite and positive"):
+        SensorNoise("poisson_gaussian", gain=torch.zeros(4, 4))
+
+
+def test_the_variance_defaults_to_the_window_the_forward_noises():
+    """``variance(g)`` without an origin took the map's window at sensor pixel (0, 0), while ``forward(g)`` noises
+    the window at the map's own ``gain_origin``: with a flat field placed at a non-zero origin (a capture's CFA
+    offset) the two disagreed (here a ValueError: (0, 0) is off the map). The default origin is now
+    ``gain_origin``, and the declared variance is the sample variance of the forward's noise."""
+    n = 100_000
+    rows = torch.tensor([0.8, 1.0, 1.6, 2.5, 0.6, 1.9])
+    gain = rows.view(6, 1).expand(6, n + 4).contiguous()
+    noise = SensorNoise("poisson_gaussian", full_well_e=500.0, read_noise_e=3.0, gain=gain, gain_origin=(2, 3))
+    levels = torch.tensor([0.1, 0.3, 0.6, 0.85], dtype=torch.float64)
+    g = levels.view(1, 1, 4, 1).expand(1, 1, 4, n).contiguous()
+    sample = noise(g, torch.Generator().manual_seed(0)).var(dim=-1)[0, 0]
+    default = noise.variance(g)
+    assert torch.equal(default, noise.variance(g, origin=(2, 3)))
+    torch.testing.assert_close(default[0, 0, :, 0], sample, rtol=0.03, atol=0)
+    a = rows[:4].double()
+    torch.testing.assert_close(default[0, 0, :, 0], a * levels / 500.0 + (a * 3.0 / 500.0) ** 2, rtol=1e-6, atol=0)
+    assert not torch.allclose(noise.variance(g, origin=(4, 3)), default)  # another window of the map
+    assert torch.equal(noise.gain_window(g), gain[:4, :n])
 
 
 # --------------------------------------------------------------------------------------------
