@@ -16,16 +16,9 @@ from hsicam.errors import InputError
 from hsicam.io import mark_complete
 from hsicam.report.html import build_report
 from hsicam.spectral import Bands
-from test_report_fields import folder_with
+from report_files import MEAN, evaluation, folder_with
 
-MEAN = {"psnr": 30.0, "ssim": 0.9, "sam": 5.0}
 B3 = [500.0, 550.0, 600.0]
-
-
-def evaluation(**changes) -> dict:
-    """A results.json of the shape `hsicam evaluate` writes, with ``changes``."""
-    return {"method": "doe-learned", "scenes": [{"name": "a", **MEAN}], "mean": MEAN,
-            "conventions": {"psnr": "per band, peak 1"}, "bands_nm": B3, **changes}
 
 
 # ------------------------------------------------------------------------------------------------
