@@ -323,8 +323,9 @@ def _run_experiment(experiment: str, scale: str, out: Path, cfg: Config, seeds: 
             res = evaluate_method(method, scenes, names, TestNoise(seeds=seeds), keep_arrays=figures.chosen_names(),
                                   progress=_scene_lines(spec.name))
             if figures.wanted and spec is specs[0]:  # our camera (the first): its worst and median scenes
-                figures.choose(res)
-                figures.keep(spec.name, _rescore(method, scenes, names, figures.chosen_names(), seeds[0]))
+                figures.choose(res)  # (its arrays of the first seed, its scores of every seed: the table's)
+                figures.keep(spec.name, _rescore(method, scenes, names, figures.chosen_names(), seeds[0]),
+                             scores={r.name: r.metrics for r in res})
             else:
                 figures.keep(spec.name, res)
             s = summarize(res)
@@ -340,7 +341,10 @@ def _run_experiment(experiment: str, scale: str, out: Path, cfg: Config, seeds: 
     result = {"experiment": experiment, "scale": scale, "seeds": list(seeds), "scenes": names,
               "conventions": summarize([])["conventions"], "region": region, "rows": rows}
     if figures.wanted:
-        result["figures"] = figures.write(out, f"{experiment}, {scale} scale, noise seed {seeds[0]}")
+        several = f"renders and error maps of noise seed {seeds[0]}; PSNR / SSIM: means over noise seeds " \
+                  f"{', '.join(map(str, seeds))}, as experiment.json records them"
+        result["figures"] = figures.write(out, f"{experiment}, {scale} scale, noise seed {seeds[0]}",
+                                          several if len(seeds) > 1 else "")
     notes = [f"{spec.name}: {spec.note}" for spec in specs if spec.note]
     if notes:
         result["notes"] = notes
@@ -380,8 +384,10 @@ class ComparisonFigures:
         picks = {"worst": order[0].name, "median": order[len(order) // 2].name} if order else {}
         self.chosen = {role: scene for role, scene in picks.items() if role == "worst" or scene != picks["worst"]}
 
-    def keep(self, label: str, results) -> None:
-        """The panels of ``label``'s results (their first seed's estimate and scores) on the chosen scenes."""
+    def keep(self, label: str, results, scores: dict[str, dict] | None = None) -> None:
+        """The panels of ``label``'s results on the chosen scenes: their first seed's estimate, titled with their
+        scores (``scores``, by scene, else the results' own): the means over every seed scored, as the experiment's
+        table and experiment.json's per-scene rows give them, not the first seed's alone."""
         from hsicam.report.reconstruction import comparison_panel, cube_rgb
 
         if not self.wanted:
@@ -391,21 +397,21 @@ class ComparisonFigures:
                 continue
             if r.name not in self.truth_rgb:
                 self.truth_rgb[r.name] = cube_rgb(r.truth, self.bands)
-            first = r.metrics_per_seed[0] if r.metrics_per_seed else r.metrics
+            mean = r.metrics if scores is None else scores[r.name]
             scored = self.truth_rgb[r.name].shape[:2]
             try:
                 if tuple(r.truth.shape[-2:]) != tuple(scored):  # scored on other pixels than the figure's truth
                     raise ValueError(f"scored on {r.truth.shape[-2]}x{r.truth.shape[-1]} px, the figure's truth on "
                                      f"{scored[0]}x{scored[1]}")
-                panel = comparison_panel(label, r.truth, r.estimate, self.bands, first["psnr"], first["ssim"])
+                panel = comparison_panel(label, r.truth, r.estimate, self.bands, mean["psnr"], mean["ssim"])
             except ValueError as exc:  # not on the pixels the others are scored on: left out of the figure, said
                 log.warning("experiment: %s left out of the comparison figure of %s (%s)", label, r.name, exc)
                 continue
             self.panels.setdefault(r.name, []).append(panel)
 
-    def write(self, out: Path, what: str) -> list[dict]:
-        """Draw the figures into ``out`` (COMPARISON_FILES; an earlier run's of a role not drawn now removed);
-        their records for experiment.json."""
+    def write(self, out: Path, what: str, note: str = "") -> list[dict]:
+        """Draw the figures into ``out`` (COMPARISON_FILES; an earlier run's of a role not drawn now removed),
+        titled with ``what`` (and ``note`` on a second line); their records for experiment.json."""
         from hsicam.report.reconstruction import plot_method_comparison
 
         records = []
@@ -417,7 +423,7 @@ class ComparisonFigures:
             first = self.panels[scene][0].label
             plot_method_comparison(self.truth_rgb[scene], self.panels[scene], out / file,
                                    title=f"{scene}: the {role} of {self.n_scenes} validation scenes for {first} by "
-                                         f"PSNR ({what})")
+                                         f"PSNR ({what})" + (f"\n{note}" if note else ""))
             records.append({"file": file, "scene": scene, "role": role,
                             "methods": [p.label for p in self.panels[scene]]})
         return records
