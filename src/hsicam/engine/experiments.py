@@ -358,6 +358,11 @@ def _run_experiment(experiment: str, scale: str, out: Path, cfg: Config, seeds: 
 
 
 #: The experiments whose folder gets comparison figures (:class:`ComparisonFigures`), by the scene's role.
+#: Not the CFA-period sweep: a figure chooses its scenes by our camera (the first row) and sets every other row
+#: beside it, and the sweep has no such camera. Its rows are candidate periods of one design; its first, period 3,
+#: is the scale's own camera at tiny scale only (quick's 4 x 4 CFA is not among CFA_PERIODS, paper's 9 x 9 is the
+#: third row), so its figures would show period 3's worst and median scenes with period 3 in the place of ours.
+#: The sweep's answer is its table (PSNR / SSIM / SAM against the period).
 FIGURE_EXPERIMENTS = ("compare", "ablation")
 COMPARISON_FILES = {"worst": "comparison_worst.png", "median": "comparison_median.png"}
 
