@@ -1,5 +1,5 @@
-"""Lines of data/measured_psf, the camera registry, cameras/measured.py and engine/calibration.py that the default
-suite never ran, and the cameras' defocus and coded-aperture refusals (moved from models/test_models_rare_paths.py
+"""Lines of data/measured_psf, the camera registry and cameras/measured.py that the default suite never
+ran, and the cameras' defocus and coded-aperture refusals (moved from models/test_models_rare_paths.py
 and data/test_data_sources_rare_paths.py): each test runs one and checks what it does against an independent
 reference (the exact line a user sees, a closed form, a file read back)."""
 
@@ -183,35 +183,3 @@ def test_a_fixed_psf_camera_refuses_a_psf_stack_of_another_shape(tiny_camera):
         cam.set_psf(bad)
     assert str(info.value) == f"PSF stack must have shape {(c, k, k)}, got {(c, k + 2, k + 2)}"
     torch.testing.assert_close(cam.fixed_psf, first)
-
-
-# --- engine/calibration.py (the same) -------------------------------------------------------------------------------
-def test_load_calibrated_run_with_a_psf_folder_images_with_those_psfs(tmp_path):
-    """``psf_dir``: the run's network behind a camera that images with the folder's PSFs (read back from its
-    psf.npy), in eval mode; the network is the run's own, bit for bit."""
-    from fab_runs import FAB_OVERRIDES, write_homogeneous_scenes, write_psf_dir
-
-    from hsicam.cameras.measured import FixedPSFCamera
-    from hsicam.config import load_config
-    from hsicam.engine.calibration import load_calibrated_run
-    from hsicam.engine.train import train
-    from hsicam.runs.folder import load_run
-
-    data = write_homogeneous_scenes(tmp_path / "data", n=4, size=32)
-    run = tmp_path / "run"
-    train(load_config("tiny", [*FAB_OVERRIDES, "train.epochs=1", f"data.root={data}"]), run, progress=False)
-    _, base = load_run(run)
-    with torch.no_grad():
-        nominal = base.camera.psf().double().numpy()
-    perturbed = nominal * np.linspace(0.5, 1.0, len(base.bands))[:, None, None]
-    k = nominal.shape[-1]
-    pitch_um = base.camera.optics.pixel_m * 1e6
-    d = write_psf_dir(tmp_path / "measured", perturbed, base.bands, pitch_um, centre="axis",
-                      axis_px=[k // 2, k // 2], normalize="none")
-    _, model, measured = load_calibrated_run(run, psf_dir=d)
-    assert isinstance(model.camera, FixedPSFCamera) and not model.training
-    np.testing.assert_allclose(measured.psf, perturbed, atol=1e-7)
-    np.testing.assert_allclose(model.camera.fixed_psf.double().numpy(), perturbed, atol=1e-7)
-    torch.testing.assert_close(model.net.state_dict(), base.net.state_dict())
-    _, plain, none = load_calibrated_run(run)  # without: the simulated optics, no measured PSFs
-    assert none is None and not isinstance(plain.camera, FixedPSFCamera)

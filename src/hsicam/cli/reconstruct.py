@@ -563,7 +563,9 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
         meta["network_tuned_to_psfs"] = tuned == measured.fingerprint
         from hsicam.cameras.measured import FixedPSFCamera
 
-        # the consistency step explains the capture with the measured PSFs (what this camera does)
+        # the consistency step explains the capture with the measured PSFs (what this camera does); the network
+        # still sees the camera it was trained with (runs.folder.with_measured_psf would put the measured PSFs
+        # under an unrolled network's own data steps too: another cube)
         model.step_camera = FixedPSFCamera.from_camera(model.camera, torch.from_numpy(measured.psf))
         if tuned != measured.fingerprint:
             log.warning("%s", psf_mismatch_message(args, measured, tuned is not None))

@@ -34,21 +34,6 @@ from hsicam.runs.pretrained import resolve_run, run_label
 log = logging.getLogger(__name__)
 
 
-def load_calibrated_run(run_dir: str | Path, device: torch.device | str = "cpu", overrides: tuple[str, ...] = (),
-                        psf_dir: str | Path | None = None, pitch_um: float | None = None):
-    """(config, CameraSystem, MeasuredPSF or None) of a run: with ``psf_dir`` the camera images
-    with those measured PSFs; else with the run's own ``measured_psf.safetensors`` if it has one
-    (a fine-tuned run); else the simulated optics."""
-    cfg, model = load_run(run_dir, device, overrides)
-    measured = None
-    if psf_dir is not None:
-        measured = import_for_camera(psf_dir, model.camera, pitch_um=pitch_um)
-        model = with_measured_psf(model, measured).to(device).eval()
-    elif (Path(run_dir) / MEASURED_PSF_FILE).is_file():  # load_run already images with these
-        measured = load_measured_psf(Path(run_dir) / MEASURED_PSF_FILE)
-    return cfg, model, measured
-
-
 def run_psf_fingerprint(run_dir: str | Path) -> str | None:
     """Fingerprint of the measured PSFs a run was fine-tuned on (None for a simulated-optics run)."""
     p = Path(run_dir) / MEASURED_PSF_FILE
