@@ -166,11 +166,6 @@ class Bands:
         except KeyError as exc:
             raise InputError(f"Bands: missing key {exc}") from None
 
-    def require_match(self, other: "Bands", what: str = "data") -> None:
-        """Raise :class:`InputError` unless ``other`` has this band grid."""
-        if not self.matches(other):
-            raise InputError(f"{what} has {other!r} but the camera expects {self!r}; resample it first")
-
 
 def band_matrix(bands: Bands, fine_nm: np.ndarray) -> np.ndarray:
     """G (C, F): band-averaging weights of each band's Gaussian response (FWHM) on the ascending fine grid
