@@ -1,7 +1,7 @@
-"""Lines of data/measured_psf, the camera registry and cameras/measured.py that the default suite never
-ran, and the cameras' defocus and coded-aperture refusals (moved from models/test_models_rare_paths.py
-and data/test_data_sources_rare_paths.py): each test runs one and checks what it does against an independent
-reference (the exact line a user sees, a closed form, a file read back)."""
+"""Lines of data/measured_psf and the camera registry that the default suite never ran, and the cameras' defocus
+and coded-aperture refusals (moved from models/test_models_rare_paths.py and data/test_data_sources_rare_paths.py):
+each test runs one and checks what it does against an independent reference (the exact line a user sees, a closed
+form, a file read back)."""
 
 from __future__ import annotations
 
@@ -10,7 +10,6 @@ import math
 
 import numpy as np
 import pytest
-import torch
 
 from conftest import TINY_CAMERA_OVERRIDES
 from hsicam.cameras import DOECamera, build_camera
@@ -167,19 +166,3 @@ def test_a_mask_file_that_is_not_npy_is_named_as_such_without_pickle_advice(tmp_
     with pytest.raises(InputError) as err:
         _cassi(tmp_path, "mask.npy")
     assert str(err.value) == f"{path}: not a .npy file ({what}); save the coded aperture (H, W) with numpy.save"
-
-
-# --- cameras/measured.py (session 58, cov12a: moved from data/test_data_sources_rare_paths.py) ----------------------
-def test_a_fixed_psf_camera_refuses_a_psf_stack_of_another_shape(tiny_camera):
-    """set_psf keeps the stack's shape (C, K, K); another is refused with both shapes, the PSFs left as they were."""
-    from hsicam.cameras.measured import FixedPSFCamera
-
-    base = tiny_camera()
-    c, k = len(base.bands), base.kernel_px
-    first = torch.rand(c, k, k, generator=torch.Generator().manual_seed(0))
-    cam = FixedPSFCamera.from_camera(base, first)
-    bad = torch.zeros(c, k + 2, k + 2)
-    with pytest.raises(ValueError) as info:
-        cam.set_psf(bad)
-    assert str(info.value) == f"PSF stack must have shape {(c, k, k)}, got {(c, k + 2, k + 2)}"
-    torch.testing.assert_close(cam.fixed_psf, first)

@@ -38,7 +38,7 @@ def test_a_fixed_psf_cameras_energy_is_each_bands_sum_and_its_noise_is_the_senso
         fixed.set_noise(sigma_height_nm=10.0)
 
 
-def test_a_fixed_psf_stack_of_another_kernel_is_refused_and_the_set_one_is_a_copy(tiny_camera):
+def test_a_fixed_psf_stack_of_another_kernel_is_refused_and_the_given_one_is_a_copy(tiny_camera):
     import torch
 
     from hsicam.cameras.measured import FixedPSFCamera
@@ -48,9 +48,8 @@ def test_a_fixed_psf_stack_of_another_kernel_is_refused_and_the_set_one_is_a_cop
     for shape in ((c, k - 2, k - 2), (c, k, k + 2), (c + 1, k, k)):
         with pytest.raises(ValueError, match=rf"must be \({c}, {k}, {k}\)"):
             FixedPSFCamera.from_camera(cam, torch.zeros(shape))
-    fixed = FixedPSFCamera.from_camera(cam, torch.zeros(c, k, k))
     new = torch.full((c, k, k), 1.0 / (k * k))
-    fixed.set_psf(new)
+    fixed = FixedPSFCamera.from_camera(cam, new)
     new.mul_(2.0)  # the caller's tensor changes afterwards: the camera keeps what it was given
     assert torch.equal(fixed.psf(), torch.full((c, k, k), 1.0 / (k * k)))
 

@@ -48,12 +48,6 @@ class FixedPSFCamera(DOECamera):
         """The CFA only (when enabled): the PSFs are fixed, the DOE heights unused."""
         return {k: v for k, v in super().param_groups().items() if k != "doe"}
 
-    def set_psf(self, psf: torch.Tensor) -> None:
-        """Replace the PSF stack (same shape)."""
-        if psf.shape != self.fixed_psf.shape:
-            raise ValueError(f"PSF stack must have shape {tuple(self.fixed_psf.shape)}, got {tuple(psf.shape)}")
-        self.fixed_psf = psf.detach().to(self.fixed_psf.device, self.fixed_psf.dtype).clone()
-
     def psf_result(self, generator: torch.Generator | None = None) -> PSFResult:
         return PSFResult(self.fixed_psf, self.fixed_psf.sum(dim=(-2, -1)))
 
