@@ -564,8 +564,9 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
         from hsicam.cameras.measured import FixedPSFCamera
 
         # the consistency step explains the capture with the measured PSFs (what this camera does); the network
-        # still sees the camera it was trained with (runs.folder.with_measured_psf would put the measured PSFs
-        # under an unrolled network's own data steps too: another cube)
+        # still sees the camera it was trained with (load_run: a fine-tuned run's PSFs, else the design's).
+        # runs.folder.with_measured_psf would put the measured PSFs under an unrolled network's own data steps too:
+        # measured no better, and 2-4.5 dB worse for PSFs it was not tuned to (docs/hardware_log.md, session 63)
         model.step_camera = FixedPSFCamera.from_camera(model.camera, torch.from_numpy(measured.psf))
         if tuned != measured.fingerprint:
             log.warning("%s", psf_mismatch_message(args, measured, tuned is not None))
