@@ -177,3 +177,40 @@ def test_a_run_started_before_session_60_resumed_today_says_what_changes(cache_e
     plain = shutil.copytree(today, tmp_path / "plain")  # the same run resumed without a warm-up, at seed 0
     _as_before_sessions_and_optimizer_hashes(plain)
     assert warnings(plain, ["train.lr_schedule=cosine", "train.warmup_steps=0", "train.seed=0", "train.epochs=2"]) == []
+
+
+@pytest.mark.parametrize("damage", ["torn", "blank"])
+def test_a_run_of_today_whose_first_metrics_line_is_torn_is_not_taken_for_an_older_hsicams(cache_env, tmp_path,
+                                                                                            caplog, damage):
+    """The run's start is judged from metrics.jsonl's first record (its starting session record). With that line
+    torn (a kill mid-write: its first 40 characters) or blanked, the first whole record was the step-1 record, as
+    in a run of an hsicam before db9c133, so a run of today (seed 3, warm-up 2) resumed with the warning that an
+    hsicam before session 60 started it, and again at every later resume (the resume rewrote the file without the
+    torn line). The start is now unknown: no warning, the torn line kept, and a fabricated older run still warns."""
+    import logging
+    import shutil
+
+    from hsicam.engine.train import train
+
+    keys = ["train.lr_schedule=cosine", "train.warmup_steps=2", "train.seed=3", "train.epochs=2"]
+    today = tmp_path / "today"
+    assert train(load_config("tiny", keys), today, progress=False, stop_after_steps=3) == {"stopped_at_step": 3}
+    run = shutil.copytree(today, tmp_path / damage)
+    path = run / "metrics.jsonl"
+    lines = path.read_text(encoding="utf-8").splitlines(keepends=True)
+    assert '"session"' in lines[0] and '"session"' not in lines[1]
+    first = lines[0][:40] + "\n" if damage == "torn" else "\n"
+    path.write_text(first + "".join(lines[1:]), encoding="utf-8")
+
+    def warnings(run, epochs):
+        caplog.clear()
+        with caplog.at_level(logging.WARNING):
+            train(load_config("tiny", [*keys, f"train.epochs={epochs}"]), run, resume=True, progress=False)
+        return [r.getMessage() for r in caplog.records if "session 60" in r.getMessage()]
+
+    assert warnings(run, 2) == []
+    assert path.read_text(encoding="utf-8").splitlines(keepends=True)[0] == first  # the evidence kept
+    assert warnings(run, 3) == []  # a later resume: still unknown, not older
+    older = shutil.copytree(today, tmp_path / "older")
+    _as_before_sessions_and_optimizer_hashes(older)
+    assert len(warnings(older, 2)) == 1

@@ -284,8 +284,15 @@ def started_before_session_60(run_dir: str | Path) -> bool:
     """Whether an hsicam before session 60 started the run at ``run_dir``: its metrics.jsonl holds records, but its
     starting session record (:func:`starting_session`) is missing (before db9c133) or lacks ``synthetic_generator``
     (recorded since session 60, after that session changed the training: :func:`hsicam.engine.loop.older_run_changes`).
-    False when nothing is recorded (no metrics.jsonl, or no record in it) or it cannot be read."""
+    False when nothing is recorded (no metrics.jsonl, or no record in it), it cannot be read, or its first line is
+    no whole record (torn by a kill, or blank: the starting session record is lost, the start unknown)."""
     records = _records(run_dir)
+    if records and not MetricsLog(Path(run_dir) / "metrics.jsonl", enabled=False).first_line_whole():
+        # a first line torn by a kill (or blanked) held the starting session record: the start is not known, and an
+        # hsicam before session 60 is no likelier than this one (nothing else in the folder dates the run)
+        log.debug("%s: metrics.jsonl's first line is no whole record: the software that started the run is not "
+                  "known", run_dir)
+        return False
     return bool(records) and "synthetic_generator" not in (starting_session(records) or {})
 
 

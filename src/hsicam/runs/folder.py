@@ -546,6 +546,15 @@ def restart_run_dir(run_dir: Path) -> bool:
     return True
 
 
+def _record(line: str) -> dict[str, Any] | None:
+    """The record a metrics.jsonl line holds; None for a line that is not one (torn by a kill, blank, not an object)."""
+    try:
+        rec = json.loads(line)
+    except json.JSONDecodeError:
+        return None
+    return rec if isinstance(rec, dict) else None
+
+
 class MetricsLog:
     """Append-only metrics.jsonl; each record is written with one write() call."""
 
@@ -567,17 +576,19 @@ class MetricsLog:
         [] when the file does not exist. A score written as null (not finite) reads as NaN again. A file saved
         on Windows reads the same: CRLF line ends, and the UTF-8 byte-order mark Notepad may put first (which made
         the first record, the run's starting session, unreadable)."""
+        return [nan_for_null(rec) for rec in map(_record, self._lines()) if rec is not None]
+
+    def first_line_whole(self) -> bool:
+        """Whether the file's first line is a whole record: False when it is torn (a kill or a crash mid-write) or
+        blank, which loses the run's starting session record (:func:`hsicam.engine.provenance.starting_session`);
+        True when the file does not exist or is empty."""
+        lines = self._lines()
+        return not lines or _record(lines[0]) is not None
+
+    def _lines(self) -> list[str]:
         if not self.path.exists():
             return []
-        records = []
-        for line in self.path.read_text(encoding="utf-8-sig", errors="replace").splitlines():
-            try:
-                rec = json.loads(line)
-            except json.JSONDecodeError:
-                continue
-            if isinstance(rec, dict):
-                records.append(nan_for_null(rec))
-        return records
+        return self.path.read_text(encoding="utf-8-sig", errors="replace").splitlines()
 
     def truncate_after(self, step: int, epoch: int) -> None:
         """Keep only the complete records a checkpoint at (``step``, ``epoch`` epochs done) had seen.
@@ -591,5 +602,8 @@ class MetricsLog:
             return
         kept = [r for r in self.read() if not r.get("final") and
                 (r.get("step", 0) < step or (r.get("step", 0) == step and r.get("epoch", 0) <= epoch))]
+        # a torn first line stays: the run's starting session record was there, and without it the run's start is
+        # unknown, which a later resume must still see (not a run whose first record is a step's, an older hsicam's)
+        torn = [] if self.first_line_whole() else [self._lines()[0]]
         with atomic_open(self.path, "w", encoding="utf-8") as fh:
-            fh.write("".join(json_text(r) + "\n" for r in kept))
+            fh.write("".join(line + "\n" for line in torn) + "".join(json_text(r) + "\n" for r in kept))
