@@ -10,6 +10,7 @@ The layouts (see `git log -- src/hsicam/runs/ src/hsicam/engine/loop.py`):
 - before db9c133: metrics.jsonl had no "session" records;
 - before 0e7b4fa: checkpoints.json's entries had no ``optimizer_sha256``.
 - before c1ab911 (session 60): the session records had no ``synthetic_generator``.
+- c5559eb … 215c9e2 (an hour of session 60): the same, but the session record's ``git_commit`` is one of those.
 """
 
 from __future__ import annotations
@@ -214,3 +215,81 @@ def test_a_run_of_today_whose_first_metrics_line_is_torn_is_not_taken_for_an_old
     older = shutil.copytree(today, tmp_path / "older")
     _as_before_sessions_and_optimizer_hashes(older)
     assert len(warnings(older, 2)) == 1
+
+
+def _as_started_by(commit: str):
+    """The session records a run of ``commit`` (session 60, c5559eb … 215c9e2, from a git checkout) wrote: its
+    git_commit, no ``synthetic_generator`` (recorded since c1ab911)."""
+    def fabricate(run: Path) -> None:
+        _as_before_session_60(run)
+        path = run / "metrics.jsonl"
+        records = [json.loads(line) for line in path.read_text(encoding="utf-8").splitlines()]
+        for r in records:
+            if "session" in r:
+                r["session"]["git_commit"] = commit
+        path.write_text("".join(json.dumps(r) + "\n" for r in records), encoding="utf-8")
+    return fabricate
+
+
+@pytest.mark.parametrize("commit, named", [
+    ("215c9e2c6a5b8cfb4155e94a547c7cb96ff3dbbd", None),  # the last before c1ab911: every change already
+    ("487c91d1c989396c1c7d8405a8e6d100198dfd25+dirty", None),  # the validation noise's commit, src edited
+    ("c5559eb5f5d609ab584e8aa0697d03cb6f465f42", "stream"),  # the cosine's commit: the seed's patches not yet
+    ("c5559eb^", "cosine"),  # (the commit before: see below) an hsicam before session 60
+])
+def test_a_run_started_in_session_60_before_it_recorded_the_generator_is_told_by_its_commit(
+        cache_env, tmp_path, caplog, commit, named):
+    """A run started by a commit of session 60 between c5559eb (the cosine after a warm-up) and c1ab911 (the
+    first to record ``synthetic_generator``) was taken for an older hsicam's: a run of 215c9e2 (tiny, warm-up 2,
+    seed 3) resumed with the warning that 'that hsicam' gave 0.5 x the rate at step 4, where 215c9e2 gave 0.75 as
+    today's does, and drew seed 0's patches. Its session record's git_commit tells which of the changes it had
+    (the records fabricated here are those that commit's hsicam writes, measured by training with it)."""
+    import logging
+    import shutil
+    import subprocess
+
+    from hsicam.engine.train import train
+
+    if commit == "c5559eb^":  # the commit before the window, from this checkout's history when it has it
+        root = Path(__file__).parents[2]
+        got = subprocess.run(["git", "-C", str(root), "rev-parse", "c5559eb^"], capture_output=True, text=True)
+        if got.returncode:
+            pytest.skip("no git history of session 60 here")
+        commit = got.stdout.strip()
+    keys = ["train.lr_schedule=cosine", "train.warmup_steps=2", "train.seed=3", "train.epochs=2"]
+    run = tmp_path / "run"
+    assert train(load_config("tiny", keys), run, progress=False, stop_after_steps=3) == {"stopped_at_step": 3}
+    _as_started_by(commit)(run)
+    caplog.clear()
+    with caplog.at_level(logging.WARNING):
+        train(load_config("tiny", keys), run, resume=True, progress=False)
+    got = [r.getMessage() for r in caplog.records if "session 60" in r.getMessage()]
+    if named is None:
+        assert got == []
+    elif named == "stream":
+        assert got == [
+            f"{run}: started by hsicam c5559eb (session 60, before c1ab911), whose training this one changed; it goes "
+            "on with this one's: the training patches come from train.seed=3's own stream (that hsicam drew seed 0's) "
+            "(docs/training.md): not the run that hsicam would have finished; to finish it as it began, resume it "
+            "with that hsicam, or train a new run with another --out"]
+    else:
+        assert len(got) == 1 and "started by an hsicam before session 60" in got[0] and "cosine" in got[0]
+
+
+def test_the_session_60_commits_are_those_between_c5559eb_and_c1ab911():
+    """SESSION_60_COMMITS against this checkout's git history (skipped without it): every commit from c5559eb to
+    c1ab911's parent, each with the changes its ancestors made (c5559eb cosine, 4625829 seed, 7cf40af choi_seed,
+    487c91d validation_noise)."""
+    import subprocess
+
+    from hsicam.engine.provenance import SESSION_60_COMMITS
+
+    root = Path(__file__).parents[2]
+    git = lambda *a: subprocess.run(["git", "-C", str(root), *a], capture_output=True, text=True)  # noqa: E731
+    listed = git("rev-list", "c5559eb^..c1ab911^")
+    if listed.returncode:
+        pytest.skip("no git history of session 60 here")
+    firsts = {"cosine": "c5559eb", "seed": "4625829", "choi_seed": "7cf40af", "validation_noise": "487c91d"}
+    want = {c: frozenset(k for k, first in firsts.items() if git("merge-base", "--is-ancestor", first, c).returncode == 0)
+            for c in listed.stdout.split()}
+    assert len(want) == 39 and SESSION_60_COMMITS == want

@@ -38,8 +38,8 @@ from torch.utils.data import Sampler
 from hsicam.config import TrainConfig
 from hsicam.data.pipeline import make_loader, patch_source
 from hsicam.devices import autocast_problem, device_problem, dist_env
-from hsicam.engine.provenance import (check_same_data, read_data_record, software_record, started_before_session_60,
-                                      write_data_record)
+from hsicam.engine.provenance import (check_same_data, read_data_record, session_60_changes_had, software_record,
+                                      started_before_session_60, write_data_record)
 from hsicam.engine.stopping import BUDGET_EXIT_CODE, StopRequests
 from hsicam.errors import ConfigError, InputError, PeerFailed, TrainingDiverged, TrainingInterrupted, TrainingStopped
 from hsicam.io import OutputLock, atomic_output, is_complete, output_description
@@ -124,24 +124,26 @@ def lr_factor(t: TrainConfig, step: int, total_steps: int, steps_per_epoch: int)
 
 
 def older_run_changes(t: TrainConfig, step: int, total_steps: int, seed_key: str = "train.seed",
-                      noisy_validation: bool = False) -> list[str]:
+                      noisy_validation: bool = False, had: frozenset[str] = frozenset()) -> list[str]:
     """What this hsicam trains otherwise, from ``step`` on, than an hsicam before session 60 that started the run
     (:func:`hsicam.engine.provenance.started_before_session_60`): the cosine after a warm-up (c5559eb: over the
     remaining steps, not ½(1 + cos(π s/T))), the patch stream of a seed other than 0 (``seed_key``; that hsicam
     drew seed 0's) and, where the validation draws noise, its seed (0, not ``train.seed``). [] when the run's
-    settings meet none of them (no warm-up or another schedule, seed 0)."""
+    settings meet none of them (no warm-up or another schedule, seed 0). ``had``: those the hsicam that started the
+    run trained with already (a commit of session 60 before c1ab911,
+    :data:`hsicam.engine.provenance.SESSION_60_COMMITS`), left out."""
     changes = []
     w = t.warmup_steps
     s = max(step, w)  # the first step after the warm-up that the resume trains
-    if t.lr_schedule == "cosine" and w and s < total_steps:
+    if t.lr_schedule == "cosine" and w and s < total_steps and "cosine" not in had:
         old = 0.5 * (1.0 + math.cos(math.pi * min(s / max(total_steps, 1), 1.0)))
         changes.append(f"the cosine after the {w}-step warm-up runs over the remaining {total_steps - w} steps "
                        f"(step {s}: {lr_factor(t, s, total_steps, 1):.4g} x the base rate, where that hsicam "
                        f"gives {old:.4g})")
-    if t.seed != 0:
+    if t.seed != 0 and ("seed" if seed_key == "train.seed" else "choi_seed") not in had:
         changes.append(f"the training patches come from {seed_key}={t.seed}'s own stream (that hsicam drew seed 0's)")
-        if noisy_validation:
-            changes.append(f"the validation noise is drawn from seed 0 (that hsicam drew it from train.seed={t.seed})")
+    if t.seed != 0 and noisy_validation and "validation_noise" not in had:
+        changes.append(f"the validation noise is drawn from seed 0 (that hsicam drew it from train.seed={t.seed})")
     return changes
 
 
@@ -623,13 +625,16 @@ def _fit(task: Task, opts: FitOptions, run_dir: Path, resume: bool, lock: RunLoc
                 warning = task.resume_warning(run_dir)
                 if warning:
                     log.warning(warning)
+                commit, had = session_60_changes_had(run_dir)  # a commit of session 60 before it recorded this
                 changes = older_run_changes(t, state.global_step, total_steps, task.seed_key,
-                                            task.noisy_validation()) if started_before_session_60(run_dir) else []
+                                            task.noisy_validation(), had) if started_before_session_60(run_dir) else []
                 if changes:  # the resume cannot be the run that hsicam would have finished: said, not hidden
-                    log.warning("%s: started by an hsicam before session 60, whose training this one changed; it goes "
+                    log.warning("%s: started by %s, whose training this one changed; it goes "
                                 "on with this one's: %s (docs/training.md): not the run that hsicam would have "
                                 "finished; to finish it as it began, resume it with that hsicam, or train a new "
-                                "run with another --out", run_dir, "; ".join(changes))
+                                "run with another --out", run_dir,
+                                f"hsicam {commit[:7]} (session 60, before c1ab911)" if commit
+                                else "an hsicam before session 60", "; ".join(changes))
         elif is_main:
             # The run folder appears at once with all its files (config.yaml, ...) or not at all.
             with atomic_output(run_dir, marker=False) as tmp:

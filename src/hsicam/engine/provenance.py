@@ -296,6 +296,56 @@ def started_before_session_60(run_dir: str | Path) -> bool:
     return bool(records) and "synthetic_generator" not in (starting_session(records) or {})
 
 
+#: The commits of session 60 from c5559eb, its first change of the training that
+#: :func:`hsicam.engine.loop.older_run_changes` names, to 215c9e2, the last before c1ab911 recorded
+#: ``synthetic_generator`` (an hour): a run one of them started lacks it, as a run of an hsicam before session 60 does,
+#: and it trained with some of those changes already: "cosine" (c5559eb: the cosine after a warm-up), "seed" (4625829:
+#: train.seed's patch stream), "choi_seed" (7cf40af: baselines.choi.seed's), "validation_noise" (487c91d: drawn from
+#: seed 0). Only its starting session record's ``git_commit`` tells which (a run from a git checkout; "+dirty" is read
+#: as its commit): nothing else such a run writes differs from an older hsicam's (its hsicam version is the same, its
+#: started_utc is the machine's clock, not the code's, its checkpoint and config are today's layout), so a run of that
+#: hour from an installed package (git_commit null) cannot be told from an older one and its resume names every change.
+SESSION_60_COMMITS: dict[str, frozenset[str]] = {
+    **dict.fromkeys((
+        "c5559eb5f5d609ab584e8aa0697d03cb6f465f42", "9a61ce975f2a83d998625ca23d012fd523182be2",
+    ), frozenset({"cosine"})),
+    **dict.fromkeys((
+        "46258292dfa30e997d70c85c9806b1eb6dd61bb3", "cd86546166146b7ac1eec5383fadbf32e7e94a6f",
+        "8709e122aec82bd34ab2aeab2307fdbe097ea457", "781e9eed8102b4fa31e99b951c91875bf5638091",
+        "d3f87b6eae8bd3cbb46e045afce41b2280b3a6d0", "528b47533d06b87b3e7f50eede6a6ed96c72ba5e",
+        "673e8051d612133bd92373137ad3cdc1306e6857", "d1e4deefa1163e2156638521d3974459eeaea00c",
+        "f6ac91428b682dfb3b098fd2cb67dfb3c07d6847", "eede12b0e2558a9ae478b804f5320b1ad2e41a45",
+        "c339cceffee4eb15968a8e1b8eb1c6951a13a06c", "01e709e8bc69fa69601f9e72f983f4a71b148227",
+        "c30355916a3e112365611d0097994ce0bef5aad4", "d716039a77812b6c26a8d3f60b9276ef036951b3",
+        "b1647cdf03d821a854c046a120025c02c5fe1997",
+    ), frozenset({"cosine", "seed"})),
+    **dict.fromkeys((
+        "7cf40af10a5763a37f6198233efecef2dacda8b5",
+    ), frozenset({"cosine", "seed", "choi_seed"})),
+    **dict.fromkeys((
+        "487c91d1c989396c1c7d8405a8e6d100198dfd25", "8d28eaa40e4714a705dd3333bc567d2caff8c0da",
+        "c930343abc04e9c675db6f615fb07aa62165d64c", "fb48ab7309ec8f888b9fcc8bb384656b5e4eef0d",
+        "68f907c15f82a32c81f9779f5ee08d10c35812eb", "f8ce426b730bfaf18c4bedf25d2c631310cff5d6",
+        "d33dd4d30b49d1f217af100fa9d498d83f1f7edb", "e26a0ca242b0832e3c0607fbadf077424393f7c6",
+        "cfa9e0019ebbdd31972ec8d5c941d1d801ab0815", "c79848ee4719ee471410c3a0e6713b159054db3e",
+        "0e2ecde7acd7d01df487738359abe9696b7c0729", "135f19e260df158abf05239e1edba8e83e3c1c5a",
+        "354395ea310c23e9b99cb1330080e141642b2f4b", "8d5fc3fba4e4db50035d9dadf12ef2a7891a30a8",
+        "3779572269a78a85647c7068bb2efb8c4e66fb8d", "0b3ab4f4c32720cc7c9e724768815cb42b5a7cf8",
+        "1688edeaf0f51be2f988f44680643a2064ff8915", "e2d121aea83247afa13f77c86ef1d63b5416ba82",
+        "27a4dcaa378bd0aa98373323ce32b7b73d590881", "e9ca0fb98263ae444dc4e7e53d3518cc0f4593a2",
+        "215c9e2c6a5b8cfb4155e94a547c7cb96ff3dbbd",
+    ), frozenset({"cosine", "seed", "choi_seed", "validation_noise"})),
+}
+
+
+def session_60_changes_had(run_dir: str | Path) -> tuple[str | None, frozenset[str]]:
+    """The commit that started the run at ``run_dir`` when it is one of :data:`SESSION_60_COMMITS`, and which of
+    session 60's changes of the training it had already; (None, frozenset()) otherwise."""
+    commit = (starting_session(_records(run_dir)) or {}).get("git_commit")
+    commit = commit.removesuffix("+dirty") if isinstance(commit, str) else None
+    return (commit, SESSION_60_COMMITS[commit]) if commit in SESSION_60_COMMITS else (None, frozenset())
+
+
 def generator_change_warning(run_dir: str | Path, data: DataConfig, doing: str) -> str | None:
     """A warning when the run at ``run_dir`` trained on the synthetic data of another generator version than this
     hsicam's, which ``doing`` (e.g. "is scored", "goes on") on this version's scenes; None otherwise (a data.root
@@ -311,6 +361,7 @@ def generator_change_warning(run_dir: str | Path, data: DataConfig, doing: str) 
 
 
 __all__ = ["check_same_data", "data_changes", "data_record", "generator_change_warning", "installed_version",
-           "read_data_record", "scene_roles", "heldout_sources_problem", "software_record", "started_before_session_60",
+           "read_data_record", "scene_roles", "heldout_sources_problem", "SESSION_60_COMMITS", "session_60_changes_had",
+           "software_record", "started_before_session_60",
            "starting_session", "synthetic_scene_roles", "trained_generator_version", "training_scenes_warning",
            "write_data_record"]
