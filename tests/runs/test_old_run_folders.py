@@ -293,3 +293,32 @@ def test_the_session_60_commits_are_those_between_c5559eb_and_c1ab911():
     want = {c: frozenset(k for k, first in firsts.items() if git("merge-base", "--is-ancestor", first, c).returncode == 0)
             for c in listed.stdout.split()}
     assert len(want) == 39 and SESSION_60_COMMITS == want
+
+
+def test_an_older_run_with_noisy_validation_is_told_its_validation_noise_changed(cache_env, tmp_path, caplog):
+    """Session 60 drew the validation noise from seed 0, not train.seed (487c91d): an older run of seed 3 that
+    validates under sensor noise (camera.sensor.sigma 0.01, no warm-up: the patch stream the only other change)
+    resumed today is told so, and a run without validation noise is not (the branch of older_run_changes for it
+    had no test). The reference: the message's words, and its absence under sigma 0 or seed 0."""
+    import logging
+
+    from hsicam.config import TrainConfig
+    from hsicam.engine.loop import older_run_changes
+    from hsicam.engine.train import train
+
+    noise = "the validation noise is drawn from seed 0 (that hsicam drew it from train.seed=3)"
+    stream = "the training patches come from train.seed=3's own stream (that hsicam drew seed 0's)"
+    t = TrainConfig(seed=3)
+    assert older_run_changes(t, 3, 8, noisy_validation=True) == [stream, noise]
+    assert older_run_changes(t, 3, 8, noisy_validation=False) == [stream]
+    assert older_run_changes(TrainConfig(seed=0), 3, 8, noisy_validation=True) == []
+    assert older_run_changes(t, 3, 8, noisy_validation=True, had=frozenset({"seed"})) == [noise]
+
+    keys = ["train.seed=3", "train.epochs=2", "camera.sensor.sigma=0.01"]  # the task's noisy_validation() reaches it
+    run = tmp_path / "run"
+    assert train(load_config("tiny", keys), run, progress=False, stop_after_steps=3) == {"stopped_at_step": 3}
+    _as_before_session_60(run)
+    with caplog.at_level(logging.WARNING):
+        train(load_config("tiny", keys), run, resume=True, progress=False)
+    (got,) = [r.getMessage() for r in caplog.records if "session 60" in r.getMessage()]
+    assert f"it goes on with this one's: {stream}; {noise} (docs/training.md)" in got
