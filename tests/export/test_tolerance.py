@@ -512,3 +512,23 @@ def test_a_tolerance_study_is_cited_only_for_the_run_whose_weights_it_hashed(tmp
     for bad in (True, float("nan"), "30"):
         with pytest.raises(InputError, match="no finite nominal PSNR"):
             read_tolerance_study(study("psnr.json", nominal={"psnr": bad}), run)
+
+
+def test_a_scene_without_a_spectral_angle_leaves_the_mean_sam_of_the_others(fab_run):
+    """The tolerance study's mean SAM took np.mean over the scenes: one scene whose truth is zero at every pixel
+    (SAM undefined, NaN) made every point's SAM NaN ('n/a' in the table, null in tolerance.json), where hsicam
+    evaluate's mean is over the scenes where SAM is defined (measured on a tiny run: nan, where evaluate gave
+    28.43°). Reference: each scene's score from evaluate_scenes, averaged by hand over the defined ones."""
+    from hsicam.engine.evaluate import evaluate_scenes
+    from hsicam.engine.tolerance import evaluate_psf, evaluation_scenes
+    from hsicam.runs.folder import load_run
+
+    cfg, model = load_run(fab_run)
+    scenes, names = evaluation_scenes(cfg, model.bands, 2)
+    scenes, names = [*scenes, torch.zeros_like(scenes[0])], [*names, "black"]
+    with torch.no_grad():
+        got = evaluate_psf(model, model.camera.psf(), scenes, names)
+        per = [r.metrics for r in evaluate_scenes(model, scenes, names, seed=0, keep_arrays=False)]
+    assert math.isnan(per[-1]["sam"]) and all(math.isfinite(m["sam"]) for m in per[:-1])
+    assert got["sam"] == pytest.approx(sum(m["sam"] for m in per[:-1]) / (len(per) - 1), rel=1e-6)
+    assert got["psnr"] == pytest.approx(sum(m["psnr"] for m in per) / len(per), rel=1e-6)  # every scene counts

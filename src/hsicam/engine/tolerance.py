@@ -135,9 +135,11 @@ def evaluation_scenes(cfg, bands, max_scenes: int, data: str | Path | None = Non
 
 
 def evaluate_psf(model, psf: torch.Tensor, scenes, names: Sequence[str], seed: int = 0) -> dict[str, float]:
-    """Mean PSNR / SSIM / SAM of ``model``'s network on ``scenes`` imaged with the PSF stack ``psf``."""
+    """Mean PSNR / SSIM / SAM of ``model``'s network on ``scenes`` imaged with the PSF stack ``psf``, as ``hsicam
+    evaluate`` takes it (:func:`~hsicam.engine.evaluate.summarize`: the mean SAM over the scenes where it is defined,
+    NaN when none)."""
     from hsicam.cameras.measured import FixedPSFCamera
-    from hsicam.engine.evaluate import evaluate_scenes
+    from hsicam.engine.evaluate import evaluate_scenes, summarize
     from hsicam.models import CameraSystem
 
     cam = FixedPSFCamera.from_camera(model.camera, psf)
@@ -145,7 +147,8 @@ def evaluate_psf(model, psf: torch.Tensor, scenes, names: Sequence[str], seed: i
     system.step_camera = model.camera  # the consistency step knows the design, not the fabrication error
     device = next(model.net.parameters()).device
     results = evaluate_scenes(system, scenes, list(names), seed=seed, device=device, keep_arrays=False)
-    return {k: float(np.mean([r.metrics[k] for r in results])) for k in ("psnr", "ssim", "sam")}
+    mean = summarize(results)["mean"]  # a scene of all-zero truth has no SAM: one NaN made every point's NaN
+    return {k: mean[k] for k in ("psnr", "ssim", "sam")}
 
 
 #: The key of tolerance.json's ``summary`` that lists the 1-dB tolerances left null because their sweep (or, for
