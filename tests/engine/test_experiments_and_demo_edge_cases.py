@@ -440,3 +440,19 @@ def test_every_experiment_scale_is_a_shipped_preset_and_the_cli_takes_each(capsy
     with pytest.raises(SystemExit):
         parser.parse_args(["experiment", "ablation", "--scale", "huge", "--out", "x"])
     assert "invalid choice: 'huge'" in capsys.readouterr().err
+
+
+def test_the_noise_grids_worst_score_does_not_depend_on_where_an_undefined_point_sits():
+    """psnr_worst / ssim_worst of the noise experiment were min() over the grid: NaN when the undefined (NaN) point
+    came first, the least of the others when it came later. Now the least defined point in every order (the
+    reference: the sorted defined values' first), NaN only when no point is defined."""
+    import itertools
+    import math
+
+    from hsicam.engine.experiments import grid_worst
+
+    grid = [31.5, math.nan, 24.25, 40.0]
+    for order in itertools.permutations(grid):
+        assert grid_worst(order) == sorted(v for v in grid if not math.isnan(v))[0] == 24.25
+    assert grid_worst([-math.inf, math.nan, 30.0]) == -math.inf  # a broken estimate's worst score stays the worst
+    assert math.isnan(grid_worst([math.nan, math.nan]))

@@ -17,6 +17,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import logging
+import math
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -284,6 +285,14 @@ def experiment_lock(out: Path) -> OutputLock:
     return lock
 
 
+def grid_worst(values) -> float:
+    """The least of a noise grid's scores that are defined (not NaN, as the means of
+    :func:`~hsicam.engine.evaluate.summarize` leave an undefined scene out), NaN when none is: min() returned a NaN
+    point or skipped it by its place in the grid."""
+    kept = [v for v in values if not math.isnan(v)]
+    return min(kept) if kept else math.nan
+
+
 def _run_experiment(experiment: str, scale: str, out: Path, cfg: Config, seeds: tuple[int, ...], specs: list[RunSpec],
                     run_cfgs: dict[str, Config], baselines: tuple[str, ...] | None) -> dict:
     """:func:`run_experiment` under the folder's lock."""
@@ -318,7 +327,7 @@ def _run_experiment(experiment: str, scale: str, out: Path, cfg: Config, seeds: 
             grids[spec.name] = grid
             clean = grid[0]
             rows.append({"method": spec.name, "psnr": clean["psnr"], "ssim": clean["ssim"],
-                         "psnr_worst": min(g["psnr"] for g in grid), "ssim_worst": min(g["ssim"] for g in grid)})
+                         "psnr_worst": grid_worst(g["psnr"] for g in grid), "ssim_worst": grid_worst(g["ssim"] for g in grid)})
         else:
             res = evaluate_method(method, scenes, names, TestNoise(seeds=seeds), keep_arrays=figures.chosen_names(),
                                   progress=_scene_lines(spec.name))
