@@ -219,19 +219,21 @@ class _CodedConvolution(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx, x: torch.Tensor, psf: torch.Tensor, kappa: torch.Tensor,  # type: ignore[override]
-                psf_f: torch.Tensor | None = None) -> torch.Tensor:
+                psf_f: torch.Tensor | None = None, recording: bool = True) -> torch.Tensor:
+        # recording: whether autograd records this call (grad mode on outside the Function; inside forward it is
+        # off, and ctx.needs_input_grad follows requires_grad alone): under no_grad nothing is kept for a backward
         k = psf.shape[-1]
         batch, bands, hx, wx = x.shape
         h, w = hx - k + 1, wx - k + 1
         shape = linear_fft_shape((hx, wx))
         chunks = _spectrum_chunks(batch, bands, shape, x)
-        keep_y = ctx.needs_input_grad[2]
+        keep_y = recording and ctx.needs_input_grad[2]
         differentiated = any(ctx.needs_input_grad[:3])
         on_cpu = x.device.type == "cpu"
         y_all = x.new_empty(batch, bands, h, w) if keep_y else None
         # the PSFs' gradient correlates the scene's spectra with the coded gradient's: kept (when the scene needs no
         # gradient, e.g. a training batch) instead of transformed again in the backward
-        keep_xf = ctx.needs_input_grad[1] and not ctx.needs_input_grad[0]
+        keep_xf = recording and ctx.needs_input_grad[1] and not ctx.needs_input_grad[0]
         kept_xf = []
         g = x.new_zeros(batch, h, w)
         for bs, cs in chunks:
@@ -277,7 +279,7 @@ class _CodedConvolution(torch.autograd.Function):
                     grad_x[bs, cs] = _correlate_chunk(gf, psf[cs], shape, hx, wx)
             if ctx.needs_input_grad[1]:
                 grad_psf = torch.fft.irfft2(cross, s=shape)[..., :k, :k]
-        return grad_x, grad_psf, grad_kappa, None
+        return grad_x, grad_psf, grad_kappa, None, None
 
 
 def _add_coded(g: torch.Tensor, y: torch.Tensor, kappa: torch.Tensor, cs: slice, band_by_band: bool) -> None:
@@ -350,7 +352,7 @@ def coded_conv_valid(x: torch.Tensor, psf: torch.Tensor, kappa: torch.Tensor,
         raise ValueError(f"valid convolution needs inputs of at least {k}×{k} pixels, got {tuple(x.shape[-2:])}")
     _check_kappa(kappa, (psf.shape[0], h, w))
     _check_spectra(psf_f, psf, linear_fft_shape(tuple(x.shape[-2:])))
-    return _CodedConvolution.apply(x, psf, kappa, psf_f)
+    return _CodedConvolution.apply(x, psf, kappa, psf_f, torch.is_grad_enabled())
 
 
 def _same_plan(psf: torch.Tensor, h: int, w: int, psf_f: torch.Tensor | None):
