@@ -160,7 +160,7 @@ def test_list_types_live_with_the_other_argument_types():
     from hsicam.cli.args import finite_numbers_arg, levels_list_arg, list_arg, sigma_heights_arg
 
     odd = list_arg(int, "integers", lambda v: v % 2 == 1, "odd")
-    assert odd("1, 3,,5") == (1, 3, 5) and odd("") == ()
+    assert odd("1, 3 ,5") == (1, 3, 5) and odd("") == ()
     with pytest.raises(argparse.ArgumentTypeError, match=r"^every value must be odd, got 4$"):
         odd("1,4")
     with pytest.raises(argparse.ArgumentTypeError, match=r"^expected comma-separated integers, got 'x'$"):
@@ -171,6 +171,32 @@ def test_list_types_live_with_the_other_argument_types():
     types = {a.dest: a.type for a in sub.choices["tolerance"]._actions}
     assert types["sigma_height_nm"] is sigma_heights_arg and types["levels"] is levels_list_arg
     assert types["shift_cells"] is finite_numbers_arg and types["sensor_distance_um"] is finite_numbers_arg
+
+
+@pytest.mark.parametrize("argv,value,item", [
+    (["tolerance", "--run", "pretrained:standard", "--sigma-height-nm"], "0,,20", 2),
+    (["tolerance", "--run", "pretrained:standard", "--levels"], "2,4,", 3),
+    (["tolerance", "--run", "pretrained:standard", "--shift-cells"], ",0.5", 1),
+    (["tolerance", "--run", "pretrained:standard", "--sensor-distance-um"], "-50, ,50", 2),
+    (["tolerance", "--run", "pretrained:standard", "--levels"], ",", 1),
+    (["data", "synth", "--config", "tiny", "--holdout-sources"], "nist-philips,,rawtoaces", 2),
+])
+def test_an_empty_item_of_a_list_option_is_refused_naming_it(tmp_path, capsys, monkeypatch, argv, value, item):
+    """``--sigma-height-nm 0,,20`` (or a trailing comma) ran the study on 0 and 20 alone, and
+    ``--holdout-sources a,,b`` held out a and b, without a word: every list option dropped its empty items. Now
+    an empty item is a usage error of its option naming the item, before any work."""
+    import hsicam.runs.folder as folder
+
+    def no_load(*a, **k):
+        raise AssertionError("the run was loaded before the options were checked")
+
+    monkeypatch.setattr(folder, "load_run", no_load)
+    out = tmp_path / "out"
+    line = one_line_error(capsys, [*argv[:-1], f"{argv[-1]}={value}", "--out", str(out)])
+    assert line == (f"hsicam: error: argument {argv[-1]}: item {item} of {value!r} is empty (two commas in a row, "
+                    "or one at an end); give its value or remove the comma")
+    assert [v.strip() for v in value.split(",")][item - 1] == ""  # the item named is the empty one
+    assert not out.exists()
 
 
 @pytest.mark.parametrize("field,value,message", [

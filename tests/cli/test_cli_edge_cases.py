@@ -320,7 +320,7 @@ def test_tolerance_refuses_an_empty_list_of_values(tmp_path, monkeypatch):
     monkeypatch.setattr(tol, "run_tolerance", record({}))  # never reached: the refusal comes first
     for opt in ("--levels", "--sigma-height-nm", "--shift-cells", "--sensor-distance-um"):
         line = error_line(run_cli_in_process("tolerance", "--run", "pretrained:standard", "--out", tmp_path / "t",
-                                             f"{opt}=,"))
+                                             f"{opt}="))
         assert line == f"hsicam: error: {opt} needs at least one value"
     assert not (tmp_path / "t").exists()
 

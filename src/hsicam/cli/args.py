@@ -1,5 +1,5 @@
 """argparse ``type`` functions of the command line's options (``--device``, ``--seed``, ``--lr``,
-``--seeds``, comma-separated lists: :func:`list_arg`; ``--run`` is :func:`hsicam.cli.run_folder`): a
+``--seeds``, comma-separated lists: :func:`list_arg`, :func:`id_list_arg`; ``--run`` is :func:`hsicam.cli.run_folder`): a
 bad value is a usage error naming the option (exit code 2, one line), never a traceback later in the
 work. :func:`path_arg`: the ``~`` of every path argument (the parser adds it to them,
 :data:`hsicam.cli.PATH_METAVARS`)."""
@@ -177,6 +177,20 @@ seeds_arg = bounded_count_arg(MAX_SEEDS, "each seed is a whole run")
 draws_arg = bounded_count_arg(MAX_DRAWS, "each draw is a whole evaluation")
 
 
+def list_items(text: str) -> list[str]:
+    """The items of a comma-separated list option, stripped: none for an empty or blank value (each option says
+    whether it needs one), else every item, and an empty item ("1,,2", "1,2,", ",") is a usage error naming it:
+    dropping it ran a study of one value fewer than the user typed, without a word."""
+    if not text.strip():
+        return []
+    items = [v.strip() for v in text.split(",")]
+    empty = next((i for i, v in enumerate(items) if not v), None)
+    if empty is not None:
+        raise argparse.ArgumentTypeError(f"item {empty + 1} of {text!r} is empty (two commas in a row, or one at an "
+                                         "end); give its value or remove the comma")
+    return items
+
+
 def list_arg(convert: type, what: str, ok: Callable[[Any], bool] = lambda v: True, need: str = ""
              ) -> Callable[[str], tuple]:
     """argparse ``type`` of a comma-separated list of ``convert`` values (``what``: "numbers",
@@ -185,7 +199,7 @@ def list_arg(convert: type, what: str, ok: Callable[[Any], bool] = lambda v: Tru
 
     def parse(text: str) -> tuple:
         try:
-            values = tuple(convert(v) for v in text.split(",") if v.strip())
+            values = tuple(convert(v) for v in list_items(text))
         except ValueError:
             raise argparse.ArgumentTypeError(f"expected comma-separated {what}, got {text!r}") from None
         bad = [v for v in values if not ok(v)]
@@ -219,6 +233,13 @@ def text_arg(text: str) -> str:
     replaced by none, the preset guessed from the config) or an empty summary on the camera's card."""
     if not text.strip():
         raise argparse.ArgumentTypeError("the value is empty (an unset variable?)")
+    return text
+
+
+def id_list_arg(text: str) -> str:
+    """argparse ``type`` of a comma-separated list of names (``data synth --holdout-sources``): not empty
+    (:func:`text_arg`), and no empty item (:func:`list_items`); the names are checked where they are used."""
+    list_items(text_arg(text))
     return text
 
 

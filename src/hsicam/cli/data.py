@@ -19,9 +19,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     s.add_argument("--n", type=int, default=None,
                    help="number of scenes (default: data.synthetic_n; 8 for --split heldout)")
     s.add_argument("--size", type=int, default=None, help="scene side in px (default: data.synthetic_size)")
-    from hsicam.cli.args import seed_arg, text_arg
+    from hsicam.cli.args import id_list_arg, seed_arg
     s.add_argument("--seed", type=seed_arg(0), default=None, help="random seed (default: data.synthetic_seed)")
-    s.add_argument("--holdout-sources", metavar="IDS", default=None, type=text_arg,
+    s.add_argument("--holdout-sources", metavar="IDS", default=None, type=id_list_arg,
                    help="comma-separated spectral source ids whose spectra never reach the training scenes "
                         "(default: the config's data.holdout_sources, nist-philips,rawtoaces in every preset but tiny, which holds out nist-cqs; "
                         "'none' for none; see `hsicam data sources`)")
