@@ -407,3 +407,33 @@ def test_scenes_of_an_hsicam_before_the_record_get_none_claiming_todays_versions
     _upgraded(monkeypatch)  # today's installation differs from the one that wrote scene 1
     syn.synthetic_scenes([1, 3], N, SIZE, 0, BANDS, cache_dir=tmp_path / "old", progress=False)
     assert sorted(p.name for p in folder.iterdir()) == [syn.SCENE_PATTERN.format(1), syn.SCENE_PATTERN.format(3)]
+
+
+@pytest.mark.parametrize("record", [True, False], ids=["partial.json", "before-the-record"])
+def test_a_partial_set_given_as_data_is_refused_not_taken_for_the_whole_set(tmp_path, record):
+    """`hsicam evaluate --data FOLDER` (or data.root) of a partial set's cache folder scored its few scenes as if
+    they were the set, without a word (2 of 4 here; 16 of the standard camera's 320), also for a folder an hsicam
+    before partial.json left. Now one line says how many of how many scenes it holds; the same scenes copied into a
+    folder of one's own, or the whole set, are listed as before."""
+    from cli_helpers import error_line, run_cli_in_process
+
+    from hsicam.data.datasets import list_scenes
+
+    part = syn.synthetic_scenes([1, 3], N, SIZE, 0, BANDS, cache_dir=tmp_path / "c", progress=False)[0].parent
+    if not record:
+        (part / syn.PARTIAL).unlink()  # as an hsicam before the record left it
+    held = sorted(p.name for p in part.glob("scene_*.h5"))
+    line = error_line(run_cli_in_process("evaluate", "--config", "tiny", "--method", "dd-cassi-gaptv", "--data",
+                                         str(part), "--out", str(tmp_path / "ev")))
+    assert line == (f"hsicam: error: {part}: holds {len(held)} of the {N} scenes of a synthetic set (a partial set: "
+                    "the validation scenes that hsicam evaluate generates, or a generation cut short), not a whole "
+                    "dataset; `hsicam data synth` with the config that made it completes the set, or give a folder of "
+                    "the scenes you mean")
+    assert not (tmp_path / "ev").exists()
+    mine = tmp_path / "mine"
+    mine.mkdir()
+    for name in held:
+        (mine / name).write_bytes((part / name).read_bytes())
+    assert [p.name for p in list_scenes(mine)] == held
+    whole = syn.synthetic_dataset(N, SIZE, 0, BANDS, cache_dir=tmp_path / "c", progress=False)
+    assert whole == part and [p.name for p in list_scenes(whole)] == [syn.SCENE_PATTERN.format(i) for i in range(N)]
