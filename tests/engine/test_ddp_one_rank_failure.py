@@ -56,7 +56,7 @@ settings = {"datasets": [], "load": ["train.epochs=2"], "validation_cut": [],
             "refresh": ["data.val_fraction=0.0"], "check": ["data.val_fraction=0.0"], "exists": [],
             "session": ["data.val_fraction=0.0"], "step": ["data.val_fraction=0.0", "train.checkpoint_every_steps=1"],
             "last_step": ["train.checkpoint_every_steps=1"], "validate": [], "end": [],
-            "stop": ["data.val_fraction=0.0", "train.max_minutes=0.00001"]}[where]
+            "stop": ["data.val_fraction=0.0", "train.max_minutes=0.00001"], "step_data": []}[where]
 def cut_validation(self, loader, device):  # a SIGTERM to this rank's process group: its loader's workers end
     os.kill(os.getpid(), signal.SIGTERM)
     raise RuntimeError("DataLoader worker (pid 12345) exited unexpectedly")
@@ -84,6 +84,19 @@ if os.environ["RANK"] == failing_rank:  # this rank alone fails
         tasks.SystemTask.on_fit_end = fail
     elif where == "stop":  # the checkpoint of the step the budget stops at
         checkpoint.CheckpointManager.save = fail
+    elif where == "step_data":  # a scene file only this rank reads, mid-epoch: its first patch of step 2 (of 0..3)
+        datasets = tasks.SystemTask.datasets
+        def bad_datasets(self):
+            train, val = datasets(self)
+            kind, first = type(train), 2 * 4 + int(failing_rank) * 2  # global batch 2 of 4 patches, 2 per rank
+            class BadScene(kind):
+                def __getitem__(self, i):
+                    if i == first:
+                        fail()
+                    return kind.__getitem__(self, i)
+            train.__class__ = BadScene
+            return train, val
+        tasks.SystemTask.datasets = bad_datasets
 torch.set_num_threads(1)
 err, sys.stderr = sys.stderr, io.StringIO()
 try:
@@ -204,3 +217,30 @@ def test_a_signal_to_rank_0_alone_cutting_the_last_validation_stops_every_rank(t
 
     state = CheckpointManager(run).state()  # the epoch uncounted: a resume validates it again
     assert (state["global_step"], state["epoch"]) == (4, 0)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("failing_rank", [0, 1])
+def test_any_rank_failing_alone_in_a_training_step_ends_every_rank_in_one_line(tmp_path, cache_env, failing_rank):
+    """A scene file that one rank alone reads mid-epoch (step 2 of 4): that rank ended with its error, the other died
+    in the step's collective (DDP's buffers or gradients) with gloo's traceback ("Connection reset by peer", exit 1).
+    Now it says which rank failed, in one line (exit 2), and the run resumes from its last checkpoint."""
+    from hsicam.cli import main
+    from hsicam.runs.checkpoint import CheckpointManager
+
+    run = tmp_path / "run"
+    ranks = run_two_ranks(tmp_path, cache_env, run, "step_data", failing_rank)
+    other = 1 - failing_rank
+    assert ranks[failing_rank] == ["2", "False 0", f"hsicam: error: rank {failing_rank}'s own work failed (step_data)"]
+    assert ranks[other] == ["2", "False 0", f"hsicam: error: rank {failing_rank} failed at step 2 of the training (its "
+                                            f"own error says why); rank {other} stops with it"]
+    assert CheckpointManager(run).state()["global_step"] == 2  # nothing of step 2 kept: the checkpoint before it
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        assert main(["train", "--out", str(run), "--resume"]) == 0
+    finally:
+        torch.set_num_threads(n)
+    records = [json.loads(x) for x in (run / "metrics.jsonl").read_text().splitlines()]
+    assert [r["step"] for r in records if "train_loss" in r] == [1, 2, 3, 4]
+    assert records[-1]["final"] and records[-1]["step"] == 4

@@ -308,7 +308,9 @@ def fit(task: Task, opts: FitOptions, run_dir: str | Path, resume: bool = False,
     step's checkpoint is saved and :class:`~hsicam.errors.TrainingStopped` (the budget) or
     :class:`~hsicam.errors.TrainingInterrupted` (a signal) raised, every rank at the same step, so a
     resume goes on exactly (:mod:`hsicam.engine.stopping`). A signal during the last step or the
-    files written after it lets them finish, then raises ``TrainingInterrupted(finished=True)``."""
+    files written after it lets them finish, then raises ``TrainingInterrupted(finished=True)``. An error of one rank in a training step (e.g. a
+    scene file only it reads) ends the others, whose collective of that step then fails, with
+    :class:`~hsicam.errors.PeerFailed` naming it (:func:`_tell_failure`), not gloo's traceback."""
     rank, world, local_rank = dist_env()
     if opts.loop.batch_size % world:  # before the group: one rank's error tore its half down while the other connected
         raise InputError(f"train.batch_size={opts.loop.batch_size} must be divisible by the {world} processes")
@@ -346,6 +348,8 @@ def fit(task: Task, opts: FitOptions, run_dir: str | Path, resume: bool = False,
                 exc.checkpoint_step = (CheckpointManager(run_dir).state() or {}).get("global_step")
             except Exception:  # noqa: BLE001 - a damaged manifest: the divergence is still the error to report
                 exc.run_dir = None
+        if world > 1 and not isinstance(exc, PeerFailed):  # this rank's own error: the others' step learns who failed
+            _tell_failure(rank)
         # any other error: no barrier (the other ranks may be anywhere, or gone), but the group is destroyed all the
         # same, which only lets go of this process's side of it. Left alive, it lived on to the interpreter's exit
         # with its gloo threads, the one condition under which a finished rank was seen to abort ("terminate called
@@ -438,6 +442,33 @@ def _end_group(barrier: bool) -> None:
     finally:
         if dist.is_initialized():
             dist.destroy_process_group()
+
+
+#: The key of the group's store under which a rank that fails on its own leaves its number (:func:`_tell_failure`).
+_FAILED_RANK_KEY = "hsicam/failed_rank"
+
+
+def _tell_failure(rank: int) -> None:
+    """Leave this rank's number in the process group's store before its error ends its side of the group: the other
+    ranks' training step, whose collective then fails, learns who failed (:func:`_failed_peer`) at no cost to a step
+    that goes well."""
+    try:
+        store = dist.distributed_c10d._get_default_store()
+        store.set(_FAILED_RANK_KEY, str(rank))
+        store.get(_FAILED_RANK_KEY)  # a round trip (a set is not answered): the store holds it before the group ends
+    except Exception:  # noqa: BLE001 - never in place of the error that ended the training
+        log.debug("could not tell the other ranks that rank %d failed", rank, exc_info=True)
+
+
+def _failed_peer(rank: int) -> int | None:
+    """The rank other than ``rank`` that failed on its own (:func:`_tell_failure`) before this rank's error surfaced,
+    else None (this rank's error is its own, or a peer was killed outright)."""
+    try:
+        store = dist.distributed_c10d._get_default_store()
+        failed = int(store.get(_FAILED_RANK_KEY)) if store.check([_FAILED_RANK_KEY]) else None
+    except Exception:  # noqa: BLE001 - no word from another rank: the collective's own error is the one to report
+        return None
+    return failed if failed != rank else None
 
 
 def finished_record(run_dir: Path, epochs: int, total_steps: int, steps_per_epoch: int | None = None,
@@ -747,17 +778,27 @@ def _fit(task: Task, opts: FitOptions, run_dir: Path, resume: bool, lock: RunLoc
             factor = lr_factor(t, step, total_steps, steps_per_epoch)
             for group in optimizer.param_groups:
                 group["lr"] = group["base_lr"] * factor
-            loss = task.training_step(trainable, batch.to(device, non_blocking=True), g)
-            optimizer.zero_grad(set_to_none=True)
-            loss.backward()
-            grad_norm = None
-            if t.grad_clip is not None:
-                grad_norm = torch.nn.utils.clip_grad_norm_(model.parameters(), t.grad_clip)
-            loss_v = own_v = loss.item()
-            if distributed:  # the global batch's loss (each rank holds a share), logged and checked by every rank
-                total = loss.detach().reshape(1).clone()
-                dist.all_reduce(total)
-                loss_v = total.item() / world
+            try:  # (in a group, its collectives: DDP's buffers and gradients, the loss)
+                loss = task.training_step(trainable, batch.to(device, non_blocking=True), g)
+                optimizer.zero_grad(set_to_none=True)
+                loss.backward()
+                grad_norm = None
+                if t.grad_clip is not None:
+                    grad_norm = torch.nn.utils.clip_grad_norm_(model.parameters(), t.grad_clip)
+                loss_v = own_v = loss.item()
+                if distributed:  # the global batch's loss (each rank holds a share), logged and checked by every rank
+                    total = loss.detach().reshape(1).clone()
+                    dist.all_reduce(total)
+                    loss_v = total.item() / world
+            except RuntimeError as exc:
+                # another rank failed alone in this step (e.g. a scene file only it reads): its error ended its side
+                # of the group, and this rank's collective failed with gloo's traceback ("Connection reset by
+                # peer"); now one line, as SoloWork's. Before the optimizer's step: the run keeps its last checkpoint
+                failed = _failed_peer(rank) if distributed else None
+                if failed is None:
+                    raise
+                raise PeerFailed(f"rank {failed} failed at step {step} of the {task.what} (its own error says why); "
+                                 f"rank {rank} stops with it") from exc
             if not math.isfinite(own_v):  # before the step: the weights stay those of the last good step
                 first = state.step_in_epoch * t.batch_size + rank * (t.batch_size // world)  # this rank's first item
                 raise not_finite_error(task.what, step, own_v, batch,
