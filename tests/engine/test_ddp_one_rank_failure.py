@@ -56,7 +56,7 @@ settings = {"datasets": [], "load": ["train.epochs=2"], "validation_cut": [],
             "refresh": ["data.val_fraction=0.0"], "check": ["data.val_fraction=0.0"], "exists": [],
             "session": ["data.val_fraction=0.0"], "step": ["data.val_fraction=0.0", "train.checkpoint_every_steps=1"],
             "last_step": ["train.checkpoint_every_steps=1"], "validate": [], "end": [],
-            "stop": ["data.val_fraction=0.0", "train.max_minutes=0.00001"], "step_data": []}[where]
+            "stop": ["data.val_fraction=0.0", "train.max_minutes=0.00001"], "step_data": [], "last_step_signal": []}[where]
 def cut_validation(self, loader, device):  # a SIGTERM to this rank's process group: its loader's workers end
     os.kill(os.getpid(), signal.SIGTERM)
     raise RuntimeError("DataLoader worker (pid 12345) exited unexpectedly")
@@ -97,6 +97,13 @@ if os.environ["RANK"] == failing_rank:  # this rank alone fails
             train.__class__ = BadScene
             return train, val
         tasks.SystemTask.datasets = bad_datasets
+    elif where == "last_step_signal":  # SIGTERM to this rank alone during the last step (3 of 0..3)
+        step_start = tasks.SystemTask.on_step_start
+        def signalled(self, step, g):
+            if step == 3:
+                os.kill(os.getpid(), signal.SIGTERM)
+            return step_start(self, step, g)
+        tasks.SystemTask.on_step_start = signalled
 torch.set_num_threads(1)
 err, sys.stderr = sys.stderr, io.StringIO()
 try:
@@ -244,3 +251,18 @@ def test_any_rank_failing_alone_in_a_training_step_ends_every_rank_in_one_line(t
     records = [json.loads(x) for x in (run / "metrics.jsonl").read_text().splitlines()]
     assert [r["step"] for r in records if "train_loss" in r] == [1, 2, 3, 4]
     assert records[-1]["final"] and records[-1]["step"] == 4
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("failing_rank", [0, 1])
+def test_a_signal_to_one_rank_during_the_last_step_ends_every_rank_alike(tmp_path, cache_env, failing_rank):
+    """SIGTERM to one rank alone during the last step: the training finishes (its final files written), then the
+    signalled rank exited 143 and the other 0 (rank 1 signalled: no line at all). Now every rank exits 143, as one
+    process does, and rank 0 says it once."""
+    run = tmp_path / "run"
+    ranks = run_two_ranks(tmp_path, cache_env, run, "last_step_signal", failing_rank)
+    code = str(128 + signal.SIGTERM)
+    assert ranks[0] == [code, "False 0", f"hsicam: {run}: training finished (step 4 of 4) before stopping on SIGTERM"]
+    assert ranks[1] == [code, "False 0"]  # (the line once, from rank 0)
+    records = [json.loads(x) for x in (run / "metrics.jsonl").read_text().splitlines()]
+    assert records[-1]["final"] and records[-1]["step"] == 4  # finished: nothing to resume

@@ -308,7 +308,8 @@ def fit(task: Task, opts: FitOptions, run_dir: str | Path, resume: bool = False,
     step's checkpoint is saved and :class:`~hsicam.errors.TrainingStopped` (the budget) or
     :class:`~hsicam.errors.TrainingInterrupted` (a signal) raised, every rank at the same step, so a
     resume goes on exactly (:mod:`hsicam.engine.stopping`). A signal during the last step or the
-    files written after it lets them finish, then raises ``TrainingInterrupted(finished=True)``. An error of one rank in a training step (e.g. a
+    files written after it lets them finish, then raises ``TrainingInterrupted(finished=True)``, on every rank when it
+    reached one alone (the training's last agreement carries it). An error of one rank in a training step (e.g. a
     scene file only it reads) ends the others, whose collective of that step then fails, with
     :class:`~hsicam.errors.PeerFailed` naming it (:func:`_tell_failure`), not gloo's traceback."""
     rank, world, local_rank = dist_env()
@@ -328,15 +329,19 @@ def fit(task: Task, opts: FitOptions, run_dir: str | Path, resume: bool = False,
         with RunLock(run_dir, enabled=rank == 0) as lock, OutputLock(run_dir, "train", enabled=rank == 0) as new_run, \
                 StopRequests(opts.loop.max_minutes) as stop, deterministic_algorithms(opts.loop.deterministic):
             result = _fit(task, opts, Path(run_dir), resume, lock, new_run, stop)
-            if then is not None and "stopped_at_step" not in result:
+            if "stopped_at_step" not in result:
                 solo = SoloWork(rank, world, resolve_device(opts.loop.device, local_rank))
-                with solo.work():
-                    if rank == 0:
-                        result = then(result)
-                solo.agree(f"at the end of the {task.what}")
-            if stop.received is not None and "step" in result:  # asked during the last step or the files after it
-                raise TrainingInterrupted(run_dir, result["step"], result["step"], stop.received, stop.exit_code(),
-                                          finished=True)
+                if then is not None:
+                    with solo.work():
+                        if rank == 0:
+                            result = then(result)
+                # a signal during the last step or the files after it, which may have reached one rank alone: every
+                # rank learns of it here (the signalled one exited 143 and the others 0), and all stop alike
+                code = solo.reduce([stop.exit_code() if stop.received is not None else 0],
+                                   f"at the end of the {task.what}")[0]
+                if code and "step" in result:
+                    raise TrainingInterrupted(run_dir, result["step"], result["step"], stop.describe(code), code,
+                                              finished=True)
     except (TrainingStopped, TrainingInterrupted):  # every rank stopped at the same step (_agreed_stop): the group ends cleanly
         if own_group:
             _end_group(barrier=True)
