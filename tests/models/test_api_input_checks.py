@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import re
 
+import numpy as np
 import pytest
 import torch
 
@@ -123,6 +124,15 @@ def test_target_refuses_a_scene_not_on_the_band_axis(system):
         system.target(scene.permute(0, 2, 3, 1))
     with pytest.raises(InputError, match=re.escape("got shape (7, 44, 44)")):
         system.target(scene[0])
+
+
+def test_target_refuses_a_numpy_scene_in_one_line(system):
+    """A NumPy scene reached ``scene.dim()``: AttributeError "'numpy.ndarray' object has no attribute 'dim'" (before
+    the layout check, the crop of the array, silently); now the InputError its docstring promises, as
+    Camera.check_scene says it."""
+    expected = "scene must be a torch.Tensor (B, 7, H, W), got ndarray: torch.from_numpy(x)"
+    with pytest.raises(InputError, match="^" + re.escape(expected) + "$"):
+        system.target(np.zeros((1, 7, 44, 44), dtype=np.float32))
 
 
 def test_tiled_reconstruction_takes_the_models_context_as_its_default_halo(system):

@@ -151,6 +151,9 @@ class CameraSystem(nn.Module):
         ``scene``: (B, C, H, W) on the camera's bands; anything else is an :class:`InputError` (a
         bands-last cube would otherwise be cropped along its bands, silently)."""
         c = len(self.camera.bands)
+        if not isinstance(scene, torch.Tensor):
+            hint = ": torch.from_numpy(x)" if type(scene).__module__ == "numpy" else ""
+            raise InputError(f"scene must be a torch.Tensor (B, {c}, H, W), got {type(scene).__name__}{hint}")
         if scene.dim() != 4 or scene.shape[1] != c:
             hint = ("; its last axis has the camera's bands: a (B, H, W, C) cube is x.permute(0, 3, 1, 2)"
                     if scene.dim() == 4 and scene.shape[-1] == c else "")
