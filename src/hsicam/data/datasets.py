@@ -27,14 +27,11 @@ import torch
 from torch.utils.data import Dataset
 
 from hsicam.data.cube import normalize_per_cube_max, resample_cube
-from hsicam.data.formats import _CAVE_RE, _reading, read_cube
+from hsicam.data.formats import _CAVE_RE, SCENE_SUFFIXES, _reading, read_cube
 from hsicam.errors import InputError
 from hsicam.spectral import Bands
 
 log = logging.getLogger(__name__)
-
-#: File suffixes considered when a folder is listed as a dataset (format is still judged by content).
-SCENE_SUFFIXES = (".h5", ".hdf5", ".mat", ".npy", ".exr", ".hdr")
 
 
 def list_scenes(root: str | os.PathLike) -> list[Path]:
@@ -290,24 +287,16 @@ def _manifest_scenes(root: Path) -> list[Path] | None:
 
 def _check_not_partial_synthetic(root: Path) -> None:
     """InputError for a folder that holds fewer scene files than the synthetic set they belong to (no manifest: the
-    validation scenes alone that ``hsicam evaluate`` generates, or a generation cut short). The set's size is its
-    ``partial.json``'s, else (a partial set of an hsicam before that record, or a killed generation) the one its cache
-    folder's name says (:func:`hsicam.data.synthetic.dataset_dir`); scenes copied into a folder of one's own are
-    listed as any files. Listed as any folder, a partial set was a dataset of its few scenes, without a word (3 of 12
-    scenes scored, or trained on, as if they were the set)."""
-    import json
-    import re
+    validation scenes alone that ``hsicam evaluate`` generates, or a generation cut short;
+    :func:`hsicam.data.synthetic.partial_set_size`); scenes copied into a folder of one's own are listed as any files.
+    Listed as any folder, a partial set was a dataset of its few scenes, without a word (3 of 12 scenes scored, or
+    trained on, as if they were the set)."""
+    from hsicam.data.synthetic import partial_set_size
 
-    files = [p for p in root.iterdir() if re.fullmatch(r"scene_\d{4,}\.h5", p.name)]
-    if not files:
-        return
-    try:
-        n = json.loads((root / "partial.json").read_text(encoding="utf-8"))["parameters"]["n"]
-    except (OSError, ValueError, KeyError, TypeError):
-        named = re.fullmatch(r"(?:heldout-)?n(\d+)-s\d+-seed\d+-[0-9a-f]{12}", root.resolve().name)
-        n = int(named.group(1)) if named else None
-    if isinstance(n, int) and not isinstance(n, bool) and len(files) < n:
-        raise InputError(f"{root}: holds {len(files)} of the {n} scenes of a synthetic set (a partial set: the "
+    size = partial_set_size(root)
+    if size is not None:
+        held, n = size
+        raise InputError(f"{root}: holds {held} of the {n} scenes of a synthetic set (a partial set: the "
                          "validation scenes that hsicam evaluate generates, or a generation cut short), not a whole "
                          "dataset; `hsicam data synth` with the config that made it completes the set, or give a "
                          "folder of the scenes you mean")

@@ -100,6 +100,9 @@ MST_28_NM = (453.3, 457.6, 462.1, 466.8, 471.6, 476.5, 481.6, 486.9, 492.4, 498.
 
 FORMATS = ("hsicam", "icvl", "arad", "kaist-mat", "harvard", "kaist-exr", "cave", "envi", "npy")
 
+#: File suffixes considered when a folder is listed as a dataset (format is still judged by content).
+SCENE_SUFFIXES = (".h5", ".hdf5", ".mat", ".npy", ".exr", ".hdr")
+
 _HDF5_MAGIC = b"\x89HDF\r\n\x1a\n"
 _NPY_MAGIC = b"\x93NUMPY"
 _EXR_MAGIC = b"v/1\x01"
@@ -1435,6 +1438,7 @@ __all__ = [
     "FORMATS",
     "MST_28_NM",
     "READERS",
+    "SCENE_SUFFIXES",
     "assumed_bands_note",
     "bands_400_700",
     "detect_format",

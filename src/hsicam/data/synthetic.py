@@ -54,7 +54,7 @@ from typing import Any, Callable, Iterable, Sequence
 
 import numpy as np
 
-from hsicam.data.formats import write_cube_h5
+from hsicam.data.formats import SCENE_SUFFIXES, write_cube_h5
 from hsicam.data.spectral_sources import (
     DEFAULT_HOLDOUT,
     SOURCES,
@@ -167,6 +167,29 @@ def dataset_dir(n: int, size: int, seed: int, bands: Bands, *, cache_dir: str | 
     key = cache_key(n, size, seed, bands, holdout_sources=holdout_sources, split=split)
     prefix = "heldout-" if split == "heldout" else ""
     return root / "synthetic" / f"{prefix}n{n}-s{size}-seed{seed}-{key}"
+
+
+#: The name of a cached set's folder (:func:`dataset_dir`); its group ``n``: the set's number of scenes.
+_DATASET_DIR_RE = re.compile(r"(?:heldout-)?n(?P<n>\d+)-s\d+-seed\d+-[0-9a-f]{12}")
+_SCENE_FILE_RE = re.compile(r"scene_\d{4,}\.h5")
+
+
+def partial_set_size(folder: str | os.PathLike) -> tuple[int, int] | None:
+    """(scene files held, scenes of the set) for a folder that holds fewer of a synthetic set's scene files than
+    the set has: the set's size is its :data:`PARTIAL` record's ``n``, else (a partial set of an hsicam before that
+    record, or a killed generation) the one its cache folder's name says (:func:`dataset_dir`). None for a finished
+    set, a folder of other files, or one whose size is not known."""
+    folder = Path(folder)
+    held = sum(1 for p in folder.iterdir() if _SCENE_FILE_RE.fullmatch(p.name))
+    if not held:
+        return None
+    record = _read_manifest(folder, PARTIAL)
+    params = record.get("parameters") if isinstance(record, dict) else None
+    n = params.get("n") if isinstance(params, dict) else None
+    if not isinstance(n, int) or isinstance(n, bool):
+        named = _DATASET_DIR_RE.fullmatch(folder.resolve().name)
+        n = int(named.group("n")) if named else None
+    return (held, n) if n is not None and held < n else None
 
 
 def synthetic_dataset(n: int = 32, size: int = 256, seed: int = 0, bands: Bands | None = None,
@@ -524,8 +547,6 @@ def check_dataset_folder(out: str | os.PathLike, params: dict[str, Any] | None =
         return
     if not out.is_dir():
         raise InputError(f"{out}: exists and is not a folder")
-    from hsicam.data.datasets import SCENE_SUFFIXES
-
     names = [f.name for f in out.iterdir() if not f.name.startswith(".")]
     foreign = [n for n in names if Path(n).suffix.lower() in SCENE_SUFFIXES and not n.startswith("scene_")]
     if foreign:
@@ -1212,6 +1233,7 @@ __all__ = [
     "palette",
     "parameters",
     "parse_holdout",
+    "partial_set_size",
     "power_law_noise",
     "smooth_field",
     "spectral_library",
