@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import functools
 import math
+import weakref
 from fractions import Fraction
 
 import numpy as np
@@ -614,3 +615,37 @@ def test_psf_gradient_of_a_training_batch_reuses_the_scene_spectra_and_equals_br
     np.testing.assert_allclose(psf.grad.numpy(), ref_psf, atol=1e-10)
     np.testing.assert_allclose(kappa.grad.numpy(), (y.numpy() * direct_valid_conv(xn, psf.detach().numpy())).sum(0),
                                atol=1e-10)
+
+
+def test_the_coded_convolution_keeps_nothing_for_a_backward_under_no_grad(monkeypatch):
+    """PSFs and CFA made with a gradient, then imaged under no_grad (an evaluation): no backward will come, so the
+    forward holds one scene spectrum at a time, as in a recorded call whose scene needs a gradient, not every chunk's
+    (ctx.needs_input_grad follows requires_grad alone, whatever the grad mode); the image is the recorded call's."""
+    g = torch.Generator().manual_seed(4)
+    b, c, kpx, h, w = 2, 3, 5, 7, 6
+    x = torch.randn(b, c, h + kpx - 1, w + kpx - 1, generator=g, dtype=torch.float64)
+    psf = torch.rand(c, kpx, kpx, generator=g, dtype=torch.float64, requires_grad=True)
+    kappa = torch.rand(c, h, w, generator=g, dtype=torch.float64, requires_grad=True)
+    monkeypatch.setattr(cv, "CHUNK_BYTES", 1)  # one image a chunk: b * c = 6 chunks
+    spectra, alive = [], []
+    rfft2, add_coded = torch.fft.rfft2, cv._add_coded
+
+    def kept_rfft2(*a, **k):
+        out = rfft2(*a, **k)
+        if a[0].shape[-3] == 1 and a[0].dim() == 4:  # a scene chunk (1, 1, Lh, Lw); the PSFs' are (1, Lh, Lw)
+            spectra.append(weakref.ref(out))
+        return out
+
+    def counting_add_coded(*a, **k):
+        alive.append(sum(r() is not None for r in spectra))
+        return add_coded(*a, **k)
+
+    monkeypatch.setattr(torch.fft, "rfft2", kept_rfft2)
+    monkeypatch.setattr(cv, "_add_coded", counting_add_coded)
+    with torch.no_grad():
+        evaluated = cv.coded_conv_valid(x, psf, kappa)
+    assert len(alive) == b * c and max(alive) == 1
+    spectra.clear(); alive.clear()
+    recorded = cv.coded_conv_valid(x, psf, kappa)  # a training batch: every chunk's spectrum kept for the backward
+    assert alive == list(range(1, b * c + 1))
+    torch.testing.assert_close(evaluated, recorded.detach(), rtol=0, atol=0)
