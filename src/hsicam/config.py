@@ -1088,6 +1088,7 @@ def load_config(path: str | Path | None = None, overrides: Sequence[str] = (), c
     if path is not None and not overrides:
         return _file_settings(path, cls, data)
     try:  # the file and the overrides together, as the module docstring says (an override may complete the file)
+        _check_list_overrides(data, overrides)
         _migrate_model_section(data)
         return from_dict(cls, data)
     except ConfigError:
@@ -1105,6 +1106,31 @@ def _file_settings(path: Path, cls: type, data: dict[str, Any]) -> Any:
     except ConfigError as exc:
         text = str(exc)
         raise ConfigError(text if text.startswith(f"{path}: ") else f"{path}: {text}") from None
+
+
+#: Keys whose value is a comma-separated list of names (``"a,b"``).
+LIST_KEYS = ("data.holdout_sources",)
+
+
+def _check_list_overrides(data: dict[str, Any], overrides: Sequence[str]) -> None:
+    """An empty item in a list key an override sets (``--set data.holdout_sources=nist-cqs,,rawtoaces``) is a
+    :class:`ConfigError` naming the key and the item, as ``data synth --holdout-sources`` refuses it: dropped, it
+    held out one source fewer than typed, without a word. Checked on the overrides alone, not in
+    :class:`DataConfig`: a run's config.yaml keeps the value as it was given, and one written before this check
+    still loads (its empty item ignored, as it was then)."""
+    given = {str(item).partition("=")[0].strip() for item in overrides}
+    for key in LIST_KEYS:
+        if not any(key == k or key.startswith(k + ".") for k in given):  # set itself, or in a section's mapping
+            continue
+        node: Any = data
+        for part in key.split("."):
+            node = node.get(part) if isinstance(node, dict) else None
+        if not isinstance(node, str) or node.strip().lower() in ("", "none"):
+            continue  # a wrong type is from_dict's error; "none": no item
+        items = [v.strip() for v in node.split(",")]
+        if "" in items:
+            raise ConfigError(f"{key}: item {items.index('') + 1} of {node!r} is empty (two commas in a row, or one "
+                              "at an end); give its value or remove the comma")
 
 
 _RDN_KEYS = ("blocks", "features", "growth", "layers_per_block", "demosaic_input", "backprojection_input")

@@ -67,6 +67,35 @@ def test_a_group_frozen_twice_is_frozen_once():
     assert load_config(None, ["train.freeze=[doe, cfa, doe]"]).train.freeze == ["doe", "cfa"]
 
 
+@pytest.mark.parametrize("override, item", [
+    ("data.holdout_sources=nist-cqs,,rawtoaces", 2), ("data.holdout_sources=nist-cqs,", 2),
+    ("data.holdout_sources=,nist-cqs", 1), ("data={holdout_sources: 'nist-cqs,,rawtoaces'}", 2),
+])
+def test_an_empty_item_of_the_held_out_sources_in_an_override_is_refused(override, item):
+    """`--set data.holdout_sources=nist-cqs,,rawtoaces` held out two sources without a word (the empty item
+    dropped), while `data synth --holdout-sources nist-cqs,,rawtoaces` refuses it: one error naming the key."""
+    value = override.split("=", 1)[1].strip("{}").split(": ")[-1].strip("'")
+    refused([override], f"data.holdout_sources: item {item} of {value!r} is empty (two commas in a row, or one at an "
+                        "end); give its value or remove the comma")
+
+
+def test_a_run_config_written_with_an_empty_held_out_item_still_loads(tmp_path):
+    """A run's config.yaml keeps data.holdout_sources as it was given (checked here: the file training writes
+    holds the string, empty item and all), so a run trained with one before the check still loads, resumes
+    with other overrides, and holds out the sources it held out."""
+    import yaml
+
+    from hsicam.config import DataConfig, dump_yaml
+    from hsicam.data.spectral_sources import parse_holdout
+
+    path = tmp_path / "config.yaml"
+    path.write_text(dump_yaml(Config(data=DataConfig(holdout_sources="nist-cqs,,rawtoaces"))))
+    assert yaml.safe_load(path.read_text())["data"]["holdout_sources"] == "nist-cqs,,rawtoaces"
+    for overrides in ([], ["train.epochs=3"]):
+        cfg = load_config(path, overrides)
+        assert parse_holdout(cfg.data.holdout_sources) == ("nist-cqs", "rawtoaces")
+
+
 # --------------------------------------------------------------------------------------------
 # config.py: YAML
 # --------------------------------------------------------------------------------------------
