@@ -98,6 +98,43 @@ def test_a_packed_card_names_the_generator_version_the_run_trained_on(demo, tmp_
         f"session 60): the card names this hsicam's, version {GENERATOR_VERSION}"]
 
 
+def test_a_packed_card_of_a_run_whose_start_is_unknown_or_of_session_60_says_which(demo, tmp_path, caplog, monkeypatch):
+    """pack said "a run of an hsicam before session 60" of every run without a recorded generator version: also of one
+    whose starting session record (metrics.jsonl's first line) is torn, whose start is not known, and of one that a
+    commit of session 60 started before c1ab911 recorded the version, whose version is known: 3, the
+    GENERATOR_VERSION of each of those commits (git show 215c9e2:src/hsicam/data/synthetic.py), which its card names
+    with no warning, also under an hsicam of another version (4 here)."""
+    from hsicam.engine.pretrained import pack_pretrained
+
+    def packed(name, edit):
+        run = shutil.copytree(demo / "run", tmp_path / name)
+        path = run / "metrics.jsonl"
+        lines = path.read_text(encoding="utf-8").splitlines(keepends=True)
+        first = json.loads(lines[0])
+        first["session"].pop("synthetic_generator")
+        lines[0] = edit(first)
+        path.write_text("".join(lines), encoding="utf-8")
+        caplog.clear()
+        with caplog.at_level(logging.WARNING):
+            card = json.loads((pack_pretrained(run, name, tmp_path / "root", demo / "results.json") / "card.json")
+                              .read_text(encoding="utf-8"))
+        return run, card["training"]["data"]["generator_version"], [
+            r.getMessage() for r in caplog.records if r.levelno == logging.WARNING and "generator version" in r.getMessage()]
+
+    monkeypatch.setattr("hsicam.data.synthetic.GENERATOR_VERSION", 4)
+    later = "the card names this hsicam's, version 4"
+    run, version, said = packed("torn", lambda r: json.dumps(r)[:40] + "\n")
+    assert version == 4 and said == [
+        f"{run} does not record the synthetic-data generator version it trained on (its metrics.jsonl's first line, "
+        f"the record of the session that started it, is torn or blank): {later}"]
+    session_60 = lambda commit: lambda r: json.dumps({**r, "session": {**r["session"], "git_commit": commit}}) + "\n"  # noqa: E731
+    for commit in ("215c9e2c6a5b8cfb4155e94a547c7cb96ff3dbbd", "c5559eb5f5d609ab584e8aa0697d03cb6f465f42+dirty"):
+        assert packed(f"s60-{commit[:7]}", session_60(commit))[1:] == (3, [])
+    run, version, said = packed("older", session_60("c5559eb5f5d609ab584e8aa0697d03cb6f465f42"[::-1]))
+    assert version == 4 and said == [f"{run} does not record the synthetic-data generator version it trained on (a "
+                                     f"run of an hsicam before session 60): {later}"]
+
+
 def test_a_run_of_an_hsicam_before_session_records_resumed_today_records_no_version(tmp_path):
     """The generator version is that of the run's starting session record, the first record of metrics.jsonl: a run
     of an hsicam before session records (generator 2) resumed today begins with its training records, and the

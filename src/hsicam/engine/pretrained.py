@@ -319,12 +319,17 @@ def _training_data(cfg, run_dir: Path) -> dict[str, Any]:
         return {"kind": "folder", "root": str(d.root), "note": "the maintainer's own scene folder (data.root)"}
     from hsicam.data.spectral_sources import SOURCES, parse_holdout
     from hsicam.data.synthetic import GENERATOR_VERSION
-    from hsicam.engine.provenance import trained_generator_version
+    from hsicam.engine.provenance import started_before_session_60, trained_generator_version
+    from hsicam.runs.folder import MetricsLog
 
     version = trained_generator_version(run_dir)  # the run's own (recorded since session 60)
     if version is None:
-        log.warning("%s does not record the synthetic-data generator version it trained on (a run of an hsicam "
-                    "before session 60): the card names this hsicam's, version %d", run_dir, GENERATOR_VERSION)
+        why = ("a run of an hsicam before session 60" if started_before_session_60(run_dir) else
+               "its metrics.jsonl's first line, the record of the session that started it, is torn or blank"
+               if not MetricsLog(Path(run_dir) / "metrics.jsonl", enabled=False).first_line_whole() else
+               "the record of the session that started it does not say")
+        log.warning("%s does not record the synthetic-data generator version it trained on (%s): the card names this "
+                    "hsicam's, version %d", run_dir, why, GENERATOR_VERSION)
         version = GENERATOR_VERSION
     held = list(parse_holdout(d.holdout_sources))
     return {"kind": "embedded synthetic generator", "generator_version": version,

@@ -275,8 +275,14 @@ def trained_generator_version(run_dir: str | Path) -> int | None:
     """The synthetic-data generator version (:data:`hsicam.data.synthetic.GENERATOR_VERSION`) of the software that
     started the run ``run_dir``: its starting session record's; None when not recorded (a run of an hsicam before
     session 60, also when a later hsicam resumed it; a folder without metrics.jsonl such as a shipped camera's) or
-    unreadable."""
-    v = (starting_session(_records(run_dir)) or {}).get("synthetic_generator")
+    unreadable. A run one of :data:`SESSION_60_COMMITS` started records none but trained on
+    :data:`SESSION_60_GENERATOR`."""
+    start = starting_session(_records(run_dir)) or {}
+    v = start.get("synthetic_generator")
+    if v is None and "synthetic_generator" not in start:
+        commit = start.get("git_commit")
+        if isinstance(commit, str) and commit.removesuffix("+dirty") in SESSION_60_COMMITS:
+            return SESSION_60_GENERATOR
     return v if isinstance(v, int) and not isinstance(v, bool) else None
 
 
@@ -338,6 +344,10 @@ SESSION_60_COMMITS: dict[str, frozenset[str]] = {
 }
 
 
+#: The synthetic-data generator version of every commit of :data:`SESSION_60_COMMITS` (each one's GENERATOR_VERSION).
+SESSION_60_GENERATOR = 3
+
+
 def session_60_changes_had(run_dir: str | Path) -> tuple[str | None, frozenset[str]]:
     """The commit that started the run at ``run_dir`` when it is one of :data:`SESSION_60_COMMITS`, and which of
     session 60's changes of the training it had already; (None, frozenset()) otherwise."""
@@ -361,7 +371,7 @@ def generator_change_warning(run_dir: str | Path, data: DataConfig, doing: str) 
 
 
 __all__ = ["check_same_data", "data_changes", "data_record", "generator_change_warning", "installed_version",
-           "read_data_record", "scene_roles", "heldout_sources_problem", "SESSION_60_COMMITS", "session_60_changes_had",
-           "software_record", "started_before_session_60",
+           "read_data_record", "scene_roles", "heldout_sources_problem", "SESSION_60_COMMITS", "SESSION_60_GENERATOR",
+           "session_60_changes_had", "software_record", "started_before_session_60",
            "starting_session", "synthetic_scene_roles", "trained_generator_version", "training_scenes_warning",
            "write_data_record"]
