@@ -383,6 +383,31 @@ def test_scenes_added_to_a_partial_set_after_an_upgrade_keep_the_first_scenes_ve
     assert syn.version_differences(part) == [diff] and len(_warnings(caplog)) == 1
 
 
+def test_a_partial_set_cut_short_after_its_first_scene_keeps_its_record(tmp_path, monkeypatch, caplog):
+    """partial.json was written after the last scene: `hsicam evaluate` interrupted after scene 0 of [0, 2] left
+    scene_0000.h5 alone, and the rerun (the folder no longer empty) wrote none, so after an upgrade the scene was
+    reused without the warning. The record now comes with the first scene: the versions that wrote it."""
+    real, write = syn._versions(), syn._write_scene
+
+    def interrupted(out, i, *args, **kwargs):
+        if i == 2:
+            raise KeyboardInterrupt
+        return write(out, i, *args, **kwargs)
+
+    monkeypatch.setattr(syn, "_write_scene", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        syn.synthetic_scenes([0, 2], N, SIZE, 0, BANDS, cache_dir=tmp_path, progress=False)
+    monkeypatch.setattr(syn, "_write_scene", write)
+    part = next(tmp_path.rglob(syn.SCENE_PATTERN.format(0))).parent
+    assert sorted(_files(part)) == [syn.PARTIAL, "scene_0000.h5"]
+    assert json.loads((part / syn.PARTIAL).read_text())["software"] == real
+    diff = _upgraded(monkeypatch)
+    with caplog.at_level(logging.WARNING, logger="hsicam.data.synthetic"):
+        syn.synthetic_scenes([0, 2], N, SIZE, 0, BANDS, cache_dir=tmp_path, progress=False)
+    said = _warnings(caplog)
+    assert len(said) == 1 and diff in said[0] and str(part) in said[0]
+
+
 def test_a_complete_set_written_over_a_partial_one_is_a_fresh_generation_byte_for_byte(tmp_path):
     part = syn.synthetic_scenes([0, 2], N, SIZE, 0, BANDS, cache_dir=tmp_path / "part", progress=False)[0].parent
     assert syn.synthetic_dataset(N, SIZE, 0, BANDS, cache_dir=tmp_path / "part", progress=False) == part

@@ -505,7 +505,7 @@ def generate_scenes(out: str | os.PathLike, indices: Sequence[int], n: int, size
                     room_fix: str = "") -> list[Path]:
     """Write the scenes ``indices`` of the ``n``-scene set into ``out`` (the files :func:`generate_dataset`
     writes for them), and no manifest: :func:`generate_dataset` completes the folder. What the manifest would record
-    of the parameters and the package versions goes to :data:`PARTIAL` with the folder's first scenes (kept when
+    of the parameters and the package versions goes to :data:`PARTIAL` with the folder's first scene (kept when
     there: the versions the first scenes were made with; not written beside scenes of an hsicam before the record,
     whose versions are unknown), for :func:`version_differences`. Returns their paths."""
     from hsicam.progress import progress as counted
@@ -519,13 +519,16 @@ def generate_scenes(out: str | os.PathLike, indices: Sequence[int], n: int, size
     # the record says with what the folder's scenes were made: written only with its first scenes (scenes already
     # there without one, from an hsicam before the record, were made with versions nobody knows)
     first = not any(out.glob(SCENE_PATTERN.replace("{:04d}", "*"))) if out.is_dir() else True
+    paths = []
     with _folder_removed_if_failed(out):  # written scenes stay
-        paths = [_write_scene(out, i, seed, size, bands, lib, params)[2]
-                 for i in counted(indices, len(indices), f"synthetic {split} scenes", "scene", show=progress)]
-    if first and _read_manifest(out) is None and _read_manifest(out, PARTIAL) is None:
-        write_json(out / PARTIAL, {"format": "hsicam-synthetic-partial", "parameters": params,
-                                   "key": cache_key(n, size, seed, bands, holdout_sources=holdout, split=split),
-                                   "software": _versions()})
+        for i in counted(indices, len(indices), f"synthetic {split} scenes", "scene", show=progress):
+            paths.append(_write_scene(out, i, seed, size, bands, lib, params)[2])
+            # with the first scene, not after the last: a generation cut short (evaluate interrupted) kept its scenes
+            # without it, and they were reused ever after as scenes of unknown versions
+            if first and len(paths) == 1 and _read_manifest(out) is None and _read_manifest(out, PARTIAL) is None:
+                write_json(out / PARTIAL, {"format": "hsicam-synthetic-partial", "parameters": params,
+                                           "key": cache_key(n, size, seed, bands, holdout_sources=holdout, split=split),
+                                           "software": _versions()})
     return paths
 
 
