@@ -434,6 +434,28 @@ def test_scenes_of_an_hsicam_before_the_record_get_none_claiming_todays_versions
     assert sorted(p.name for p in folder.iterdir()) == [syn.SCENE_PATTERN.format(1), syn.SCENE_PATTERN.format(3)]
 
 
+def test_scenes_of_an_hsicam_before_the_record_are_reused_with_a_warning_that_their_versions_are_unknown(
+        tmp_path, caplog):
+    """Such a folder's scenes were reused by `hsicam evaluate` without a word (version_differences has nothing to
+    compare): they may come from other package versions. One line says so (once a process) and how to make them
+    anew; a partial set with its record, and a complete set, say nothing."""
+    folder = syn.synthetic_scenes([1], N, SIZE, 0, BANDS, cache_dir=tmp_path, progress=False)[0].parent
+    whole = syn.synthetic_dataset(N, SIZE, 0, BANDS, cache_dir=tmp_path / "whole", progress=False)
+    with caplog.at_level(logging.WARNING, logger="hsicam.data.synthetic"):
+        syn.synthetic_scenes([1], N, SIZE, 0, BANDS, cache_dir=tmp_path, progress=False)
+        syn.synthetic_scenes([1], N, SIZE, 0, BANDS, cache_dir=tmp_path / "whole", progress=False)
+    assert not [r for r in caplog.records if "versions of the packages" in r.getMessage()]
+    (folder / syn.PARTIAL).unlink()  # as an hsicam before the record left it
+    with caplog.at_level(logging.WARNING, logger="hsicam.data.synthetic"):
+        for _ in range(2):
+            syn.synthetic_scenes([1, 3], N, SIZE, 0, BANDS, cache_dir=tmp_path, progress=False)
+    said = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING and str(folder) in r.getMessage()]
+    assert said == [f"synthetic scenes in {folder} record no versions of the packages they come from (written by an "
+                    "hsicam before session 61, or by a generation cut short): they may differ from the scenes this "
+                    "installation generates; delete the folder to generate them anew"]
+    assert not (folder / syn.PARTIAL).exists()  # still none claiming today's versions
+
+
 @pytest.mark.parametrize("record", [True, False], ids=["partial.json", "before-the-record"])
 def test_a_partial_set_given_as_data_is_refused_not_taken_for_the_whole_set(tmp_path, record):
     """`hsicam evaluate --data FOLDER` (or data.root) of a partial set's cache folder scored its few scenes as if

@@ -282,13 +282,22 @@ _VERSIONS_SAID: set[Path] = set()
 
 
 def _warn_versions(out: Path) -> None:
-    """One warning per process and cached set made with other versions of :data:`SCENE_PACKAGES`."""
+    """One warning per process and cached set made with other versions of :data:`SCENE_PACKAGES`, or (a partial set
+    without a :data:`PARTIAL` record: written by an hsicam before that record, or by a generation of the whole set
+    cut short) with versions that nobody recorded."""
+    if out in _VERSIONS_SAID:
+        return
     diff = version_differences(out)
-    if diff and out not in _VERSIONS_SAID:
+    if diff:
         _VERSIONS_SAID.add(out)
         log.warning("synthetic dataset %s was generated with other versions of the packages its scenes come from (%s): "
                     "it may hold other scenes than this installation generates, so runs on it compare only with runs "
                     "on the same files; delete the folder to generate it anew", out, ", ".join(diff))
+    elif _read_manifest(out) is None and not isinstance((_read_manifest(out, PARTIAL) or {}).get("software"), dict):
+        _VERSIONS_SAID.add(out)
+        log.warning("synthetic scenes in %s record no versions of the packages they come from (written by an hsicam "
+                    "before session 61, or by a generation cut short): they may differ from the scenes this "
+                    "installation generates; delete the folder to generate them anew", out)
 
 
 def heldout_roles(out: str | os.PathLike) -> dict[str, bool] | None:
