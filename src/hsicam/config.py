@@ -1112,6 +1112,17 @@ def _file_settings(path: Path, cls: type, data: dict[str, Any]) -> Any:
 LIST_KEYS = ("data.holdout_sources",)
 
 
+def empty_item_problem(text: str) -> str | None:
+    """What is wrong with a comma-separated list ``text`` that has an empty item ("1,,2", "1,2,", ","), else None:
+    one wording for the command line's list options (:func:`hsicam.cli.args.list_items`) and the overrides of
+    :data:`LIST_KEYS`. Dropped, the empty item ran with one value fewer than typed, without a word."""
+    items = [v.strip() for v in text.split(",")]
+    if "" not in items:
+        return None
+    return (f"item {items.index('') + 1} of {text!r} is empty (two commas in a row, or one at an end); give its value "
+            "or remove the comma")
+
+
 def _check_list_overrides(data: dict[str, Any], overrides: Sequence[str]) -> None:
     """An empty item in a list key an override sets (``--set data.holdout_sources=nist-cqs,,rawtoaces``) is a
     :class:`ConfigError` naming the key and the item, as ``data synth --holdout-sources`` refuses it: dropped, it
@@ -1127,10 +1138,9 @@ def _check_list_overrides(data: dict[str, Any], overrides: Sequence[str]) -> Non
             node = node.get(part) if isinstance(node, dict) else None
         if not isinstance(node, str) or node.strip().lower() in ("", "none"):
             continue  # a wrong type is from_dict's error; "none": no item
-        items = [v.strip() for v in node.split(",")]
-        if "" in items:
-            raise ConfigError(f"{key}: item {items.index('') + 1} of {node!r} is empty (two commas in a row, or one "
-                              "at an end); give its value or remove the comma")
+        problem = empty_item_problem(node)
+        if problem:
+            raise ConfigError(f"{key}: {problem}")
 
 
 _RDN_KEYS = ("blocks", "features", "growth", "layers_per_block", "demosaic_input", "backprojection_input")

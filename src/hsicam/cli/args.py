@@ -14,7 +14,7 @@ from collections.abc import Sequence
 from typing import Any, Callable
 
 from hsicam.config import (MAX_SENSOR_SIGMA, MAX_SIGMA_HEIGHT_NM, MAX_TV_WEIGHT, MIN_TV_WEIGHT, SEED_MAX, SEED_MIN,
-                           TOLERANCE_DRAW_STRIDE, seed_problem)
+                           TOLERANCE_DRAW_STRIDE, empty_item_problem, seed_problem)
 from hsicam.errors import InputError
 
 #: The smallest ``--tile`` (px) of ``reconstruct`` and ``evaluate``.
@@ -183,12 +183,10 @@ def list_items(text: str) -> list[str]:
     dropping it ran a study of one value fewer than the user typed, without a word."""
     if not text.strip():
         return []
-    items = [v.strip() for v in text.split(",")]
-    empty = next((i for i, v in enumerate(items) if not v), None)
-    if empty is not None:
-        raise argparse.ArgumentTypeError(f"item {empty + 1} of {text!r} is empty (two commas in a row, or one at an "
-                                         "end); give its value or remove the comma")
-    return items
+    problem = empty_item_problem(text)
+    if problem:
+        raise argparse.ArgumentTypeError(problem)
+    return [v.strip() for v in text.split(",")]
 
 
 def list_arg(convert: type, what: str, ok: Callable[[Any], bool] = lambda v: True, need: str = ""
