@@ -490,9 +490,7 @@ def test_reconstruct_raw_capture_cli_tiled_equals_whole(fab_run, tmp_path):
 
 
 def test_psf_folder_written_by_hsicam_psf_is_read_exactly(tiny_config, tmp_path):
-    from conftest import TINY_CAMERA_OVERRIDES as tiny
-
-    res = run_cli_in_process("psf", *[a for o in (*tiny, "camera.psf.pupil_oversample=3") for a in ("--set", o)], "--out", str(tmp_path / "psf"))
+    res = run_cli_in_process("psf", *[a for o in (*TINY_CAMERA_OVERRIDES, "camera.psf.pupil_oversample=3") for a in ("--set", o)], "--out", str(tmp_path / "psf"))
     assert res.returncode == 0, res.stderr
     cam = DOECamera.from_config(tiny_config("camera.psf.pupil_oversample=3"))
     m = import_for_camera(tmp_path / "psf", cam)

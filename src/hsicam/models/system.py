@@ -61,6 +61,9 @@ class CameraSystem(nn.Module):
 
     @classmethod
     def from_config(cls, cfg) -> "CameraSystem":  # cfg: hsicam.config.Config
+        """The untrained system a config describes: its camera (``cfg.camera``, on ``cfg.bands``), its network
+        (``cfg.model.kind``) and its consistency settings (``cfg.model.consistency``). A trained run's system:
+        :func:`hsicam.runs.folder.load_run`."""
         camera = build_camera(cfg)
         return cls(camera, build_network(cfg, camera), cfg.model.consistency)
 
