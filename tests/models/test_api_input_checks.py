@@ -118,8 +118,8 @@ def test_target_refuses_a_scene_not_on_the_band_axis(system):
     torch.testing.assert_close(system.target(scene), scene[..., r:44 - r, r:44 - r], rtol=0, atol=0)
     with torch.no_grad():
         assert system.target(scene).shape[-2:] == system.camera(scene).shape[-2:]
-    expected = ("scene must be (B, 7, H, W) on the camera's 7 bands, got shape (1, 44, 44, 7); its last axis has "
-                "the camera's bands: a (B, H, W, C) cube is x.permute(0, 3, 1, 2)")
+    expected = (f"scene has 44 bands but the camera has 7 ({system.camera.bands!r}); its last axis has the camera's "
+                "bands: a (B, H, W, C) cube is x.permute(0, 3, 1, 2)")
     with pytest.raises(InputError, match="^" + re.escape(expected) + "$"):
         system.target(scene.permute(0, 2, 3, 1))
     with pytest.raises(InputError, match=re.escape("got shape (7, 44, 44)")):
@@ -130,7 +130,7 @@ def test_target_refuses_a_numpy_scene_in_one_line(system):
     """A NumPy scene reached ``scene.dim()``: AttributeError "'numpy.ndarray' object has no attribute 'dim'" (before
     the layout check, the crop of the array, silently); now the InputError its docstring promises, as
     Camera.check_scene says it."""
-    expected = "scene must be a torch.Tensor (B, 7, H, W), got ndarray: torch.from_numpy(x)"
+    expected = "scene must be a torch.Tensor (B, C, H, W), got ndarray: torch.from_numpy(x)"
     with pytest.raises(InputError, match="^" + re.escape(expected) + "$"):
         system.target(np.zeros((1, 7, 44, 44), dtype=np.float32))
 

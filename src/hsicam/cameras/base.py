@@ -115,8 +115,7 @@ class Camera(nn.Module):
         values: naming the scene's peak; or a damaged camera, whose image of a uniform scene is not finite either), and a scene smaller than :meth:`min_scene_size`
         (:meth:`check_capture_size`). The layout is checked first (:meth:`check_scene`): a NumPy array, a cube
         without its batch axis or with its bands last is told as such, not as a scene of the wrong size."""
-        if not isinstance(x, torch.Tensor) or x.dim() != 4 or x.shape[1] != len(self.bands):
-            self.check_scene(x)
+        self.check_scene_layout(x)
         self.check_capture_size(tuple(x.shape[-2:]), source)
         check_finite(x, source)
         peak = float(x.max()) if x.numel() else 0.0
@@ -289,12 +288,10 @@ class Camera(nn.Module):
             fix += " or boundary=same" if min(h, w) >= n else ""
         raise InputError(f"{source}: the scene is {h}×{w} px, too small: this camera needs {mh}×{mw} px, {why}; {fix}")
 
-    def check_scene(self, x: torch.Tensor) -> None:
-        """Raise :class:`InputError` unless ``x`` is a (B, C, H, W) cube on this camera's grid: floating
-        (float32/float64 on the CPU for a camera whose FFTs have no half precision there:
-        :attr:`half_precision_on_cpu`), B >= 1, on the camera's device. Values are not scanned here (a
-        solver calls ``A`` every iteration): :meth:`capture` refuses NaN/Inf scenes, and
-        :meth:`hsicam.models.CameraSystem.reconstruct` NaN/Inf sensor images."""
+    def check_scene_layout(self, x: torch.Tensor) -> None:
+        """Raise :class:`InputError` unless ``x`` is a torch tensor (B, C, H, W) with this camera's bands on axis 1,
+        naming the fix of a NumPy array, a cube without its batch axis or one with its bands last. The layout alone
+        (any device, dtype and size: the first of :meth:`check_scene`'s checks)."""
         c = len(self.bands)
         if not isinstance(x, torch.Tensor):
             hint = ": torch.from_numpy(x)" if type(x).__module__ == "numpy" else ""
@@ -306,6 +303,14 @@ class Camera(nn.Module):
             hint = ("; its last axis has the camera's bands: a (B, H, W, C) cube is x.permute(0, 3, 1, 2)"
                     if x.shape[-1] == c else "")
             raise InputError(f"scene has {x.shape[1]} bands but the camera has {c} ({self.bands!r}){hint}")
+
+    def check_scene(self, x: torch.Tensor) -> None:
+        """Raise :class:`InputError` unless ``x`` is a (B, C, H, W) cube on this camera's grid: floating
+        (float32/float64 on the CPU for a camera whose FFTs have no half precision there:
+        :attr:`half_precision_on_cpu`), B >= 1, on the camera's device. Values are not scanned here (a
+        solver calls ``A`` every iteration): :meth:`capture` refuses NaN/Inf scenes, and
+        :meth:`hsicam.models.CameraSystem.reconstruct` NaN/Inf sensor images."""
+        self.check_scene_layout(x)
         if not torch.is_floating_point(x):
             raise InputError(f"scene must be a floating-point tensor with values in [0, 1] (reflectance-like), "
                              f"got {x.dtype}")

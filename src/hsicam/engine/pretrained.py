@@ -324,10 +324,12 @@ def _training_data(cfg, run_dir: Path) -> dict[str, Any]:
 
     version = trained_generator_version(run_dir)  # the run's own (recorded since session 60)
     if version is None:
-        why = ("a run of an hsicam before session 60" if started_before_session_60(run_dir) else
-               "its metrics.jsonl's first line, the record of the session that started it, is torn or blank"
-               if not MetricsLog(Path(run_dir) / "metrics.jsonl", enabled=False).first_line_whole() else
-               "the record of the session that started it does not say")
+        if started_before_session_60(run_dir):
+            why = "a run of an hsicam before session 60"
+        elif not MetricsLog(Path(run_dir) / "metrics.jsonl", enabled=False).first_line_whole():
+            why = "its metrics.jsonl's first line, the record of the session that started it, is torn or blank"
+        else:
+            why = "the record of the session that started it does not say"
         log.warning("%s does not record the synthetic-data generator version it trained on (%s): the card names this "
                     "hsicam's, version %d", run_dir, why, GENERATOR_VERSION)
         version = GENERATOR_VERSION

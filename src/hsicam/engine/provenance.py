@@ -279,10 +279,8 @@ def trained_generator_version(run_dir: str | Path) -> int | None:
     :data:`SESSION_60_GENERATOR`."""
     start = starting_session(_records(run_dir)) or {}
     v = start.get("synthetic_generator")
-    if v is None and "synthetic_generator" not in start:
-        commit = start.get("git_commit")
-        if isinstance(commit, str) and commit.removesuffix("+dirty") in SESSION_60_COMMITS:
-            return SESSION_60_GENERATOR
+    if v is None and "synthetic_generator" not in start and _session_60_commit(start):
+        return SESSION_60_GENERATOR
     return v if isinstance(v, int) and not isinstance(v, bool) else None
 
 
@@ -351,9 +349,16 @@ SESSION_60_GENERATOR = 3
 def session_60_changes_had(run_dir: str | Path) -> tuple[str | None, frozenset[str]]:
     """The commit that started the run at ``run_dir`` when it is one of :data:`SESSION_60_COMMITS`, and which of
     session 60's changes of the training it had already; (None, frozenset()) otherwise."""
-    commit = (starting_session(_records(run_dir)) or {}).get("git_commit")
+    commit = _session_60_commit(starting_session(_records(run_dir)) or {})
+    return (commit, SESSION_60_COMMITS[commit]) if commit else (None, frozenset())
+
+
+def _session_60_commit(start: dict[str, Any]) -> str | None:
+    """The commit of :data:`SESSION_60_COMMITS` that a starting session record names (its "+dirty" read as that
+    commit), else None."""
+    commit = start.get("git_commit")
     commit = commit.removesuffix("+dirty") if isinstance(commit, str) else None
-    return (commit, SESSION_60_COMMITS[commit]) if commit in SESSION_60_COMMITS else (None, frozenset())
+    return commit if commit in SESSION_60_COMMITS else None
 
 
 def generator_change_warning(run_dir: str | Path, data: DataConfig, doing: str) -> str | None:

@@ -151,17 +151,9 @@ class CameraSystem(nn.Module):
 
     def target(self, scene: torch.Tensor) -> torch.Tensor:
         """Ground truth aligned with the sensor: the centre crop in ``valid`` mode, else the scene.
-        ``scene``: (B, C, H, W) on the camera's bands; anything else is an :class:`InputError` (a
-        bands-last cube would otherwise be cropped along its bands, silently)."""
-        c = len(self.camera.bands)
-        if not isinstance(scene, torch.Tensor):
-            hint = ": torch.from_numpy(x)" if type(scene).__module__ == "numpy" else ""
-            raise InputError(f"scene must be a torch.Tensor (B, {c}, H, W), got {type(scene).__name__}{hint}")
-        if scene.dim() != 4 or scene.shape[1] != c:
-            hint = ("; its last axis has the camera's bands: a (B, H, W, C) cube is x.permute(0, 3, 1, 2)"
-                    if scene.dim() == 4 and scene.shape[-1] == c else "")
-            raise InputError(f"scene must be (B, {c}, H, W) on the camera's {c} bands, got shape "
-                             f"{tuple(scene.shape)}{hint}")
+        ``scene``: (B, C, H, W) on the camera's bands; anything else is an :class:`InputError`
+        (:meth:`~hsicam.cameras.Camera.check_scene_layout`: a bands-last cube was cropped along its bands, silently)."""
+        self.camera.check_scene_layout(scene)
         if self.camera.boundary != "valid":
             return scene
         r = self.camera.margin // 2
