@@ -1123,6 +1123,27 @@ def empty_item_problem(text: str) -> str | None:
             "or remove the comma")
 
 
+def check_list_keys(cfg: Config, path: str | Path | None) -> None:
+    """An empty item in a list key (:data:`LIST_KEYS`) of the config FILE ``path`` that a user gives (``--config``)
+    is a :class:`ConfigError` naming the file, the key and the item, as the same value in an override is
+    (:func:`_check_list_overrides`): loaded, ``data: {holdout_sources: "nist-cqs,,rawtoaces"}`` held out one source
+    fewer than typed, without a word. Not in :func:`load_config`, which also reads a run's own config.yaml: that
+    file keeps the value as it was given, and one written with an empty item still loads (ignored, as it was then).
+    Call it on ``load_config(path, overrides)``'s result: an override that gives the key a bad value was refused
+    there, so a bad value here is the file's."""
+    if path is None:
+        return
+    for key in LIST_KEYS:
+        node: Any = cfg
+        for part in key.split("."):
+            node = getattr(node, part, None)
+        if not isinstance(node, str) or node.strip().lower() in ("", "none"):
+            continue
+        problem = empty_item_problem(node)
+        if problem:
+            raise ConfigError(f"{resolve_preset(path)}: {key}: {problem}")
+
+
 def _check_list_overrides(data: dict[str, Any], overrides: Sequence[str]) -> None:
     """An empty item in a list key an override sets (``--set data.holdout_sources=nist-cqs,,rawtoaces``) is a
     :class:`ConfigError` naming the key and the item, as ``data synth --holdout-sources`` refuses it: dropped, it

@@ -96,6 +96,27 @@ def test_a_run_config_written_with_an_empty_held_out_item_still_loads(tmp_path):
         assert parse_holdout(cfg.data.holdout_sources) == ("nist-cqs", "rawtoaces")
 
 
+@pytest.mark.parametrize("value, item", [("nist-cqs,,rawtoaces", 2), ("nist-cqs,", 2), (",nist-cqs", 1)])
+def test_an_empty_held_out_item_in_a_config_file_given_with_config_is_refused(tmp_path, value, item):
+    """A YAML file of the user's own (`--config my.yaml`) with `data: {holdout_sources: "nist-cqs,,rawtoaces"}`
+    loaded without a word and held out one source fewer than typed, while the same value in `--set` is refused:
+    now the same one line, naming the file; an override that replaces the value loads, and so does the run's own
+    config.yaml written with it (the test above)."""
+    from hsicam.cli import config_from_args
+    from hsicam.engine.demo import demo_config
+
+    path = tmp_path / "my.yaml"
+    path.write_text(f"data:\n  holdout_sources: '{value}'\n")
+    message = (f"{path}: data.holdout_sources: item {item} of {value!r} is empty (two commas in a row, or one at an "
+               "end); give its value or remove the comma")
+    for load in (config_from_args, demo_config):
+        for overrides in ((), ("train.epochs=3",)):
+            with pytest.raises(ConfigError) as exc:
+                load(path, overrides)
+            assert str(exc.value) == message
+        assert load(path, ("data.holdout_sources=nist-cqs",)).data.holdout_sources == "nist-cqs"
+
+
 # --------------------------------------------------------------------------------------------
 # config.py: YAML
 # --------------------------------------------------------------------------------------------

@@ -144,11 +144,14 @@ def add_run_arg(p: argparse.ArgumentParser, help: str, required: bool = True) ->
 
 def config_from_args(path: str | Path | None, overrides: Sequence[str] = ()):
     """``load_config`` for the command line: a config FILE that is empty (or holds only comments)
-    is an error, never silently the built-in defaults (the paper camera)."""
-    from hsicam.config import load_config
+    is an error, never silently the built-in defaults (the paper camera); so is an empty item in one of its
+    comma-separated lists (:func:`hsicam.config.check_list_keys`), as in an override."""
+    from hsicam.config import check_list_keys, load_config
 
-    return load_config(path, list(overrides), empty="give a preset (tiny, quick, paper) or a YAML file with at "
-                                                     "least one section")
+    cfg = load_config(path, list(overrides), empty="give a preset (tiny, quick, paper) or a YAML file with at "
+                                                    "least one section")
+    check_list_keys(cfg, path)
+    return cfg
 
 
 def run_config_from_args(run: str | Path, overrides: Sequence[str] = ()):

@@ -8,7 +8,7 @@ import logging
 from pathlib import Path
 from typing import Any
 
-from hsicam.config import Config, dump_yaml, load_config
+from hsicam.config import Config, check_list_keys, dump_yaml, load_config
 from hsicam.data.pipeline import scene_dataset, split_dataset
 from hsicam.engine.evaluate import (HELDOUT_NOISE_SET, TestNoise, config_hash, demosaic_reference, evaluate_method, evaluate_scenes,
                                     format_table, grey_reference, heldout_sources_label, scored_region,
@@ -150,5 +150,8 @@ def _run_demo(cfg: Config, out: Path) -> dict[str, Any]:
 
 
 def demo_config(config: str | Path | None, overrides: tuple[str, ...]) -> Config:
-    """The demo's config: ``config`` (default the ``quick`` preset) with ``overrides``."""
-    return load_config(config or "quick", list(overrides))
+    """The demo's config: ``config`` (default the ``quick`` preset) with ``overrides`` (an empty item in a list of
+    the file refused: :func:`hsicam.config.check_list_keys`)."""
+    cfg = load_config(config or "quick", list(overrides))
+    check_list_keys(cfg, config or "quick")
+    return cfg
