@@ -287,7 +287,7 @@ def test_tolerance_npy_without_wavelengths_gives_advice_tolerance_can_follow(run
     res = run_cli_in_process("tolerance", "--run", str(runs / "run"), "--out", str(out), "--data", str(d / "cube.npy"),
                              "--max-scenes", "1", "--draws", "1")
     assert res.returncode == 2 and "Traceback" not in res.stderr, res.stderr
-    last = res.stderr.strip().splitlines()[-1]  # after the reader's "no band list given" warning
+    last = res.stderr.strip().splitlines()[-1]  # after the reader's "carries no wavelengths" warning
     assert last.startswith("hsicam: error:") and "its 7 bands were taken as 400-700 nm" in last, last
     assert last.endswith("tolerance reads the wavelengths from the file only, so save it as .h5 with its band list "
                          "(hsicam.data.formats.write_cube_h5) and pass that to --data)"), last

@@ -334,6 +334,23 @@ def test_npy_roundtrip_with_and_without_bands(tmp_path):
     assert b2.matches(given) and meta2["bands_assumed"] is False
 
 
+def test_npy_without_bands_warns_once_per_file_of_the_grid_it_assumes(tmp_path, caplog):
+    """read_cube of a .npy without ``bands`` took 400-700 nm with an INFO line only, which a library user does not
+    see (Python shows WARNING and above by default): a 420-720 nm cube was resampled from the wrong wavelengths
+    without a word. Now a warning, once per file (a dataset reads its scenes again), none when bands are given."""
+    paths = [tmp_path / "a.npy", tmp_path / "b.npy"]
+    for p, c in zip(paths, (31, 1)):
+        np.save(p, np.random.default_rng(9).random((c, H, W)).astype(np.float32))
+    with caplog.at_level(logging.WARNING, logger="hsicam"):
+        for p in [*paths, *paths]:
+            read_cube(p)
+        read_npy(paths[0], bands=Bands.paper())
+    assert [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING] == [
+        f"{paths[0]}: the file carries no wavelengths and none were given for it; assuming 31 bands evenly spaced "
+        "over 400-700 nm",
+        f"{paths[1]}: the file carries no wavelengths and none were given for it; assuming one band at 550 nm"]
+
+
 def test_hsicam_h5_layout_written_by_hand(tmp_path):
     data = np.random.default_rng(10).random((3, H, W)).astype(np.float32)
     path = tmp_path / "mine.h5"

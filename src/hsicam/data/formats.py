@@ -1369,7 +1369,9 @@ def npy_header(path: str | os.PathLike) -> tuple[tuple[int, ...], np.dtype]:
 
 def read_npy(path: str | os.PathLike, *, bands: Bands | None = None, allow_negative: bool = False,
              memory_budget_mb: float | None = None) -> Cube:
-    """``.npy`` array (C, H, W). Bands: ``bands`` if given, else C bands evenly over 400-700 nm."""
+    """``.npy`` array (C, H, W). Bands: ``bands`` if given, else C bands evenly over 400-700 nm, said in a warning
+    once per file and process (the file carries no wavelengths: a cube of 420-720 nm read so is resampled from the
+    wrong wavelengths)."""
     p = _as_path(path)
     shape, dtype = npy_header(p)
     if len(shape) != 3:
@@ -1385,13 +1387,17 @@ def read_npy(path: str | os.PathLike, *, bands: Bands | None = None, allow_negat
         arr = np.array(arr)
     if bands is None:
         bands = bands_400_700(arr.shape[0])
-        log.info("%s: no band list given; assuming %s", p, describe_400_700(arr.shape[0]))
         assumed = True
     else:
         assumed = False
     meta = {"format": "npy", "bands_assumed": assumed,
             "assumed_grid": describe_400_700(arr.shape[0]) if assumed else None}
-    return _finish(p, arr, bands, meta, allow_negative)
+    cube = _finish(p, arr, bands, meta, allow_negative)
+    text = f"{p}: the file carries no wavelengths and none were given for it; assuming {meta['assumed_grid']}"
+    if assumed and text not in _NOTED:  # once per file: a dataset reads its scenes again and again
+        _NOTED.add(text)
+        log.warning("%s", text)
+    return cube
 
 
 READERS: dict[str, Callable[..., Cube]] = {
