@@ -408,6 +408,40 @@ def test_a_partial_set_cut_short_after_its_first_scene_keeps_its_record(tmp_path
     assert len(said) == 1 and diff in said[0] and str(part) in said[0]
 
 
+def test_a_whole_set_generation_cut_short_after_its_first_scene_keeps_a_record(tmp_path, monkeypatch, caplog):
+    """The generation of a whole set (`hsicam data synth`, the dataset cache of a training) killed after its first
+    scene left scene_0000.h5 without any record of its versions (partial.json came from partial sets only): after an
+    upgrade it was reused with "record no versions" only. Now the same record as a partial set's, with the first
+    scene (reference: the manifest of the completed set); the completed set is a fresh one, byte for byte."""
+    real, write = syn._versions(), syn._write_scene
+
+    def interrupted(out, i, *args, **kwargs):
+        if i == 1:
+            raise KeyboardInterrupt
+        return write(out, i, *args, **kwargs)
+
+    monkeypatch.setattr(syn, "_write_scene", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        syn.synthetic_dataset(N, SIZE, 0, BANDS, cache_dir=tmp_path / "cut", progress=False)
+    monkeypatch.setattr(syn, "_write_scene", write)
+    cut = next((tmp_path / "cut").rglob(syn.SCENE_PATTERN.format(0))).parent
+    assert sorted(_files(cut)) == [syn.PARTIAL, "scene_0000.h5"]
+    record = json.loads((cut / syn.PARTIAL).read_text())
+    assert record["software"] == real and syn.partial_set_size(cut) == (1, N)
+    whole = syn.synthetic_dataset(N, SIZE, 0, BANDS, cache_dir=tmp_path / "whole", progress=False)
+    manifest = json.loads((whole / syn.MANIFEST).read_text())
+    assert {k: record[k] for k in ("parameters", "key", "software")} == \
+        {k: manifest[k] for k in ("parameters", "key", "software")}
+    diff = _upgraded(monkeypatch)
+    with caplog.at_level(logging.WARNING, logger="hsicam.data.synthetic"):
+        syn.synthetic_scenes([0], N, SIZE, 0, BANDS, cache_dir=tmp_path / "cut", progress=False)
+    said = _warnings(caplog)
+    assert len(said) == 1 and diff in said[0] and str(cut) in said[0]
+    monkeypatch.setattr(syn, "_versions", lambda: real)
+    syn.synthetic_dataset(N, SIZE, 0, BANDS, cache_dir=tmp_path / "cut", progress=False)
+    assert _files(cut) == _files(whole)  # manifest.json included, partial.json gone
+
+
 def test_a_complete_set_written_over_a_partial_one_is_a_fresh_generation_byte_for_byte(tmp_path):
     part = syn.synthetic_scenes([0, 2], N, SIZE, 0, BANDS, cache_dir=tmp_path / "part", progress=False)[0].parent
     assert syn.synthetic_dataset(N, SIZE, 0, BANDS, cache_dir=tmp_path / "part", progress=False) == part

@@ -284,7 +284,7 @@ _VERSIONS_SAID: set[Path] = set()
 def _warn_versions(out: Path) -> None:
     """One warning per process and cached set made with other versions of :data:`SCENE_PACKAGES`, or (a partial set
     without a :data:`PARTIAL` record: written by an hsicam before that record, or by a generation of the whole set
-    cut short) with versions that nobody recorded."""
+    cut short before it wrote that record too) with versions that nobody recorded."""
     if out in _VERSIONS_SAID:
         return
     diff = version_differences(out)
@@ -379,7 +379,8 @@ def generate_dataset(out: str | os.PathLike, n: int, size: int, seed: int = 0, b
     """Write ``n`` scenes (``scene_0000.h5`` …) and ``manifest.json`` (last) into ``out``.
 
     ``split="train"`` (default): scenes without the held-out sources' spectra; ``"heldout"``: scenes
-    made of them only. Every file is written atomically; the manifest marks a finished dataset.
+    made of them only. Every file is written atomically; the manifest marks a finished dataset (until then, in a
+    folder that held no scene, :data:`PARTIAL` records the versions from the first scene on: :func:`_record_partial`).
     Refuses a folder holding another dataset's manifest or foreign cube files. ``progress=None``
     shows a tqdm bar on a terminal and k/N log lines otherwise (:mod:`hsicam.progress`); False:
     neither. Returns the manifest. ``room_fix``: what a refusal for want of disk space tells the
@@ -438,8 +439,11 @@ def _generate_into(out: Path, n: int, size: int, seed: int, bands: Bands, lib: S
 
     scenes = []
     sum_spectrum = np.zeros(len(bands))
+    first = _holds_no_scene(out)
     for i in counted(range(n), n, f"synthetic {split} set", "scene", show=progress):
         cube, info, path = _write_scene(out, i, seed, size, bands, lib, params)
+        if first and i == 0:  # a generation cut short keeps its scenes with the record of their versions
+            _record_partial(out, params, n, size, seed, bands, holdout, split)
         name = path.name
         mean_spec = cube.mean(axis=(1, 2), dtype=np.float64)
         sum_spectrum += mean_spec
@@ -469,6 +473,24 @@ def _generate_into(out: Path, n: int, size: int, seed: int, bands: Bands, lib: S
     write_json(out / MANIFEST, manifest)
     (out / PARTIAL).unlink(missing_ok=True)  # every scene rewritten, with these versions: the manifest says it all
     return manifest
+
+
+def _holds_no_scene(out: Path) -> bool:
+    """Whether the folder ``out`` (or a missing one) holds no scene file yet: a generation into it writes the folder's
+    first scenes, whose versions its :data:`PARTIAL` record may give (:func:`_record_partial`)."""
+    return not any(out.glob(SCENE_PATTERN.replace("{:04d}", "*"))) if out.is_dir() else True
+
+
+def _record_partial(out: Path, params: dict[str, Any], n: int, size: int, seed: int, bands: Bands, holdout: Any,
+                    split: str) -> None:
+    """Write ``out``'s :data:`PARTIAL` record (atomically) after the first scene of a generation into a folder that
+    held none (:func:`_holds_no_scene`), unless it has a record or a manifest already: not after the last scene, so
+    that the scenes of a generation cut short (an evaluation interrupted, a whole set's generation killed) say with
+    which versions they were made (:func:`version_differences`). A finished set's manifest replaces it."""
+    if _read_manifest(out) is None and _read_manifest(out, PARTIAL) is None:
+        write_json(out / PARTIAL, {"format": "hsicam-synthetic-partial", "parameters": params,
+                                   "key": cache_key(n, size, seed, bands, holdout_sources=holdout, split=split),
+                                   "software": _versions()})
 
 
 def _write_scene(out: Path, i: int, seed: int, size: int, bands: Bands, lib: SpectralLibrary,
@@ -527,17 +549,15 @@ def generate_scenes(out: str | os.PathLike, indices: Sequence[int], n: int, size
     lib = spectral_library(bands, holdout, split)
     # the record says with what the folder's scenes were made: written only with its first scenes (scenes already
     # there without one, from an hsicam before the record, were made with versions nobody knows)
-    first = not any(out.glob(SCENE_PATTERN.replace("{:04d}", "*"))) if out.is_dir() else True
+    first = _holds_no_scene(out)
     paths = []
     with _folder_removed_if_failed(out):  # written scenes stay
         for i in counted(indices, len(indices), f"synthetic {split} scenes", "scene", show=progress):
             paths.append(_write_scene(out, i, seed, size, bands, lib, params)[2])
             # with the first scene, not after the last: a generation cut short (evaluate interrupted) kept its scenes
             # without it, and they were reused ever after as scenes of unknown versions
-            if first and len(paths) == 1 and _read_manifest(out) is None and _read_manifest(out, PARTIAL) is None:
-                write_json(out / PARTIAL, {"format": "hsicam-synthetic-partial", "parameters": params,
-                                           "key": cache_key(n, size, seed, bands, holdout_sources=holdout, split=split),
-                                           "software": _versions()})
+            if first and len(paths) == 1:
+                _record_partial(out, params, n, size, seed, bands, holdout, split)
     return paths
 
 
