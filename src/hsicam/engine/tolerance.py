@@ -137,7 +137,22 @@ def evaluation_scenes(cfg, bands, max_scenes: int, data: str | Path | None = Non
 def evaluate_psf(model, psf: torch.Tensor, scenes, names: Sequence[str], seed: int = 0) -> dict[str, float]:
     """Mean PSNR / SSIM / SAM of ``model``'s network on ``scenes`` imaged with the PSF stack ``psf``, as ``hsicam
     evaluate`` takes it (:func:`~hsicam.engine.evaluate.summarize`: the mean SAM over the scenes where it is defined,
-    NaN when none)."""
+    NaN when none).
+
+    Which PSFs go where (``psf``: the perturbed camera, e.g. a fabricated DOE; ``model.camera``: the camera the run
+    knows, the design's PSFs or, for a fine-tuned run, its measured ones):
+
+    - the scenes are imaged with ``psf`` (a :class:`~hsicam.cameras.measured.FixedPSFCamera` with the model's CFA and
+      sensor noise): the fabricated camera's measurement;
+    - the network is handed that same perturbed camera (``net(sensor, camera, origin)``): the RDN without an input
+      estimate and the mosaic network do not use its PSFs, but an unrolled network's stages and the RDN's
+      ``backprojection_input`` do, so they see ``psf`` itself, an error the deployed system would not know;
+    - the measurement-consistency steps (``model.consistency``, when on) use ``model.camera``'s PSFs
+      (``step_camera``): the camera the deployed system knows, not the fabrication error.
+
+    This is the reverse of ``hsicam reconstruct --psf-dir``, whose network keeps the run's camera and whose steps take
+    the measured PSFs: there the measured PSFs are the best knowledge of the real camera; here ``psf`` is an error to
+    be suffered, not known."""
     from hsicam.cameras.measured import FixedPSFCamera
     from hsicam.engine.evaluate import evaluate_scenes, summarize
     from hsicam.models import CameraSystem
