@@ -144,24 +144,22 @@ def evaluate_psf(model, psf: torch.Tensor, scenes, names: Sequence[str], seed: i
 
     - the scenes are imaged with ``psf`` (a :class:`~hsicam.cameras.measured.FixedPSFCamera` with the model's CFA and
       sensor noise): the fabricated camera's measurement;
-    - the network is handed that same perturbed camera (``net(sensor, camera, origin)``): the RDN without an input
-      estimate and the mosaic network do not use its PSFs, but an unrolled network's stages and the RDN's
-      ``backprojection_input`` do, so they see ``psf`` itself, an error the deployed system would not know;
-    - the measurement-consistency steps (``model.consistency``, when on) use ``model.camera``'s PSFs
-      (``step_camera``): the camera the deployed system knows, not the fabrication error.
+    - the whole reconstruction (the network, and the measurement-consistency steps when on) is ``model``'s own, on
+      ``model.camera``: the deployed system knows the design, not the fabrication error. (An unrolled network's
+      stages and the RDN's ``backprojection_input`` use the camera's PSFs; until session 64 they were handed ``psf``
+      itself, an error the deployed system would not know, so their tolerances came out optimistic.)
 
-    This is the reverse of ``hsicam reconstruct --psf-dir``, whose network keeps the run's camera and whose steps take
-    the measured PSFs: there the measured PSFs are the best knowledge of the real camera; here ``psf`` is an error to
-    be suffered, not known."""
+    This is the reverse of ``hsicam reconstruct --psf-dir``, whose consistency steps take the measured PSFs: there the
+    measured PSFs are the best knowledge of the real camera; here ``psf`` is an error to be suffered, not known."""
     from hsicam.cameras.measured import FixedPSFCamera
-    from hsicam.engine.evaluate import evaluate_scenes, summarize
-    from hsicam.models import CameraSystem
+    from hsicam.engine.evaluate import TestNoise, evaluate_method, summarize
+    from hsicam.engine.methods import Method
 
-    cam = FixedPSFCamera.from_camera(model.camera, psf)
-    system = model.with_camera(cam).eval()
-    system.step_camera = model.camera  # the consistency step knows the design, not the fabrication error
+    fabricated = FixedPSFCamera.from_camera(model.camera, psf)  # images the scenes; the reconstruction never sees it
+    model.eval()
+    method = Method("doe-learned", fabricated, model.reconstructor(), model.target, model=model)
     device = next(model.net.parameters()).device
-    results = evaluate_scenes(system, scenes, list(names), seed=seed, device=device, keep_arrays=False)
+    results = evaluate_method(method, scenes, list(names), TestNoise(seeds=(seed,)), device, keep_arrays=False)
     mean = summarize(results)["mean"]  # a scene of all-zero truth has no SAM: one NaN made every point's NaN
     return {k: mean[k] for k in ("psnr", "ssim", "sam")}
 
