@@ -178,8 +178,16 @@ def ssim(x: torch.Tensor, y: torch.Tensor, window: int = SSIM_WINDOW_PX, sigma: 
 
 
 def _ssim_map(x: torch.Tensor, y: torch.Tensor, g: torch.Tensor, c1: float, c2: float) -> torch.Tensor:
-    """SSIM at every pixel of the 'valid' area of (B, C, H, W) ``x`` and ``y``, Gaussian window ``g``."""
-    mx, my, xx, yy, xy = _gaussian_filter_valid(torch.stack([x, y, x * x, y * y, x * y]), g)
+    """SSIM at every pixel of the 'valid' area of (B, C, H, W) ``x`` and ``y``, Gaussian window ``g``.
+
+    As a loss (autograd recording, the truth ``y`` without gradient) the truth's statistics are filtered
+    apart, without autograd: the filter's backward then runs over the estimate's three images, not all five."""
+    if torch.is_grad_enabled() and not y.requires_grad:
+        mx, xx, xy = _gaussian_filter_valid(torch.stack([x, x * x, x * y]), g)
+        with torch.no_grad():
+            my, yy = _gaussian_filter_valid(torch.stack([y, y * y]), g)
+    else:
+        mx, my, xx, yy, xy = _gaussian_filter_valid(torch.stack([x, y, x * x, y * y, x * y]), g)
     vx = xx - mx * mx
     vy = yy - my * my
     cxy = xy - mx * my

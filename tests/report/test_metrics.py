@@ -176,6 +176,34 @@ def test_ssim_both_filter_paths_match_skimage(monkeypatch, matrix_max_px, chunk_
         assert metrics.ssim(est, truth)[b].item() == pytest.approx(ref, abs=1e-10)
 
 
+
+def test_ssim_as_a_loss_differentiates_only_the_estimates_filtered_images():
+    """As the training loss (the truth without gradient) the truth's mean and variance are filtered outside
+    autograd: the backward's matrix products run over the estimate's 3 filtered images (x, x², x·y), 3/5 of
+    those of a backward through all 5 (counted by torch's FLOP counter); the value and the gradient stay
+    those of the full graph, and the gradient that of finite differences (gradcheck)."""
+    from torch.utils.flop_counter import FlopCounterMode
+
+    g = torch.Generator().manual_seed(3)
+    truth = torch.rand(2, 3, 16, 18, generator=g, dtype=torch.float64)
+    est0 = (truth + 0.1 * torch.randn(truth.shape, generator=g, dtype=torch.float64)).clamp(0, 1)
+
+    def backward(truth_grad: bool) -> tuple[int, torch.Tensor, torch.Tensor]:
+        est, y = est0.clone().requires_grad_(), truth.clone().requires_grad_(truth_grad)
+        value = metrics.ssim(est, y, dtype=torch.float64)
+        with FlopCounterMode(display=False) as counter:
+            value.sum().backward()
+        return counter.get_total_flops(), value.detach(), est.grad
+
+    loss_flops, loss_value, loss_grad = backward(False)
+    full_flops, full_value, full_grad = backward(True)
+    assert full_flops > 0 and 5 * loss_flops == 3 * full_flops
+    assert torch.equal(loss_value, full_value)
+    torch.testing.assert_close(loss_grad, full_grad, rtol=1e-12, atol=1e-15)
+    small = est0[:1, :1, :12, :12].clone().requires_grad_()
+    assert torch.autograd.gradcheck(lambda e: metrics.ssim(e, truth[:1, :1, :12, :12]), (small,))
+
+
 def _sam_reference(est: np.ndarray, truth: np.ndarray) -> tuple[float, np.ndarray]:
     """Independent SAM of (C, H, W) arrays: arccos of the normalised dot product at the pixels whose
     truth is not all zero (an all-zero estimate there: 90°), mean in degrees; and the angle map (NaN
