@@ -562,211 +562,291 @@ def deterministic_algorithms(enabled: bool):
 
 def _fit(task: Task, opts: FitOptions, run_dir: Path, resume: bool, lock: RunLock, new_run: OutputLock,
          stop: StopRequests) -> dict[str, Any]:
-    t = opts.loop
-    rank, world, local_rank = dist_env()
-    distributed = world > 1
-    device = resolve_device(t.device, local_rank)
-    if t.bf16:  # before any work: a torch that cannot failed at the first step, or trained in float32 unsaid
-        problem = autocast_problem(device, torch.bfloat16)
-        if problem is not None:
-            raise ConfigError(f"train.bf16 on {device}: torch {torch.__version__} cannot autocast the network there in "
-                              f"bfloat16 ({problem}); set train.bf16=false to train in float32")
-    is_main = rank == 0  # (train.batch_size divides by the world size: checked by fit, before the group)
-    # rank 0's own work between the collectives of a DDP group: its error, held until the next agreement, ends every
-    # rank there in one line (SoloWork; the others waited in a barrier and died with gloo's traceback)
-    solo = SoloWork(rank, world, device)
-    with solo.work():
-        if is_main:
-            if resume:
-                lock.acquire()  # before anything in the run is read or removed
-                check_not_an_output(run_dir)
-            else:
-                check_not_locked(run_dir)  # a new run's folder: locked in its temporary folder below
-                new_run.acquire()  # until then its output lock: taken before check_run_dir removes a killed run's temporaries
-            check_run_dir(run_dir, resume)  # before any work; nothing is created until the data are known good
-        record = task.data_record() if is_main else None  # the scenes, before any is read
-        if is_main and resume:  # a run goes on with the scenes and the split it started with
-            check_same_data(run_dir, read_data_record(run_dir), record)
-        if distributed and is_main:  # generate/cache the dataset once, on rank 0, before the others read it
-            task.prepare_data()
-    solo.agree(f"before the {task.what} started")
-    with solo.work():  # every rank reads its data: one rank's error (a file only it reads) is told before any file is made
-        train_ds, val_ds = task.datasets()
-    solo.agree(f"before the {task.what} started")
-    steps_per_epoch = len(train_ds) // t.batch_size
-    if steps_per_epoch < 1:
-        raise InputError(f"data.patches_per_epoch={len(train_ds)} is smaller than {task.batch_size_key}={t.batch_size}")
-    total_steps = steps_per_epoch * t.epochs
-    if opts.max_steps is not None:
-        total_steps = min(total_steps, opts.max_steps)
-    if t.warmup_steps > total_steps and is_main:  # a warm-up meant for a longer run, or a typo (equal: its last step)
-        log.warning("train.warmup_steps=%d is more than the run's %d steps: the learning rate never reaches train.lr "
-                    "(it climbs to %.3g of it)", t.warmup_steps, total_steps, total_steps / t.warmup_steps)
+    """The training of :func:`fit`, inside its locks and signal handlers: the steps of :class:`_Training` in order.
+
+    Under DDP every rank runs these same steps, so every rank reaches the same agreements (:class:`SoloWork`) and
+    collectives in the same order; rank 0's work alone between them is held in ``solo.work()``."""
+    run = _Training(task, opts, run_dir, stop)
+    record = run.check_run_and_data(resume, lock, new_run)
+    run.read_datasets()
     if resume:
-        done = finished_record(run_dir, t.epochs, total_steps, steps_per_epoch, t.batch_size)
+        done = finished_record(run_dir, run.t.epochs, run.total_steps, run.steps_per_epoch, run.t.batch_size)
         if done is not None:  # nothing left to train: the run stays as it is (no file is written)
             log.debug("%s: already finished at step %d (%d epochs); nothing to train", run_dir, done["step"],
                      done["epoch"])
             return {**done, "already_finished": True}
+    run.build_model()
+    if resume:
+        run.load_checkpoint()
+    run.open_session(resume, lock, new_run, record)
+    run.start()
+    stop.armed = True  # from here a signal stops the loop at the next step's end (hsicam.engine.stopping)
+    if opts.validate_at_start and not resume:
+        run.validate_at_start()
+    run.model.train()
+    while run.state.epoch < run.t.epochs and run.state.global_step < run.total_steps:
+        if not run.train_epoch():
+            return {"stopped_at_step": run.state.global_step}
+        run.end_epoch()
+    return run.finish()
 
-    model = task.module().to(device)
-    optimizer = torch.optim.Adam(task.param_groups())
-    for g in optimizer.param_groups:
-        g["base_lr"] = g["lr"]
-    bands, meta = task.bands, task.weights_metadata()
-    ckpt = CheckpointManager(run_dir, task.weights_file, keep=t.keep_weights)
-    metrics = MetricsLog(run_dir / "metrics.jsonl", is_main)
-    state = LoopState()
-    summary: dict[str, Any] = {}  # the last validation's metrics, reported by the final record
-    with solo.work():
-        if resume:
+
+class _Training:
+    """One training of :func:`fit` on this rank: its settings, data, model, checkpoints and where it stands
+    (``state``, a :class:`LoopState`). :func:`_fit` calls its steps in order.
+
+    Invariants kept by every method: each rank calls the same collectives (``solo.agree``/``solo.reduce``, DDP's,
+    the loss's ``all_reduce``) in the same order; rank 0's work alone (the run folder, metrics, checkpoints,
+    validation) runs inside ``solo.work()``, so that its error reaches the other ranks at the next agreement instead
+    of leaving them in a collective; a checkpoint is one commit (:class:`CheckpointManager`), so a kill at any moment
+    leaves the last one whole; a stop signal or the budget stops every rank at the same step (:meth:`stop_here`)."""
+
+    def __init__(self, task: Task, opts: FitOptions, run_dir: Path, stop: StopRequests) -> None:
+        self.task, self.opts, self.t, self.run_dir, self.stop = task, opts, opts.loop, run_dir, stop
+        self.rank, self.world, local_rank = dist_env()
+        self.distributed = self.world > 1
+        self.device = resolve_device(self.t.device, local_rank)
+        if self.t.bf16:  # before any work: a torch that cannot failed at the first step, or trained in float32 unsaid
+            problem = autocast_problem(self.device, torch.bfloat16)
+            if problem is not None:
+                raise ConfigError(f"train.bf16 on {self.device}: torch {torch.__version__} cannot autocast the network "
+                                  f"there in bfloat16 ({problem}); set train.bf16=false to train in float32")
+        self.is_main = self.rank == 0  # (train.batch_size divides by the world size: checked by fit, before the group)
+        # rank 0's own work between the collectives of a DDP group: its error, held until the next agreement, ends every
+        # rank there in one line (SoloWork; the others waited in a barrier and died with gloo's traceback)
+        self.solo = SoloWork(self.rank, self.world, self.device)
+        self.summary: dict[str, Any] = {}  # the last validation's metrics, reported by the final record
+
+    def where(self) -> str:
+        """When, for the messages of an agreement: "at step n of the training"."""
+        return f"at step {self.state.global_step} of the {self.task.what}"
+
+    # -- set-up: every rank agrees after each part, before anything is created -----------------------------------
+    def check_run_and_data(self, resume: bool, lock: RunLock, new_run: OutputLock) -> dict[str, Any] | None:
+        """Rank 0 takes the run folder's lock and checks the folder, records the task's scenes (checked against the
+        run's own on resume) and, under DDP, prepares the data before the others read it; returns the record.
+        Nothing is created until the data are known good."""
+        task, run_dir, is_main = self.task, self.run_dir, self.is_main
+        with self.solo.work():
             if is_main:
+                if resume:
+                    lock.acquire()  # before anything in the run is read or removed
+                    check_not_an_output(run_dir)
+                else:
+                    check_not_locked(run_dir)  # a new run's folder: locked in its temporary folder below
+                    new_run.acquire()  # until then its output lock: taken before check_run_dir removes a killed run's temporaries
+                check_run_dir(run_dir, resume)  # before any work; nothing is created until the data are known good
+            record = task.data_record() if is_main else None  # the scenes, before any is read
+            if is_main and resume:  # a run goes on with the scenes and the split it started with
+                check_same_data(run_dir, read_data_record(run_dir), record)
+            if self.distributed and is_main:  # generate/cache the dataset once, on rank 0, before the others read it
+                task.prepare_data()
+        self.solo.agree(f"before the {task.what} started")
+        return record
+
+    def read_datasets(self) -> None:
+        """Every rank reads its data (one rank's error, e.g. a file only it reads, is told before any file is made);
+        then the run's length: ``steps_per_epoch`` and ``total_steps``."""
+        t, task = self.t, self.task
+        with self.solo.work():  # every rank reads its data: one rank's error (a file only it reads) is told before any file is made
+            self.train_ds, self.val_ds = task.datasets()
+        self.solo.agree(f"before the {task.what} started")
+        self.steps_per_epoch = len(self.train_ds) // t.batch_size
+        if self.steps_per_epoch < 1:
+            raise InputError(f"data.patches_per_epoch={len(self.train_ds)} is smaller than {task.batch_size_key}="
+                             f"{t.batch_size}")
+        total_steps = self.steps_per_epoch * t.epochs
+        if self.opts.max_steps is not None:
+            total_steps = min(total_steps, self.opts.max_steps)
+        if t.warmup_steps > total_steps and self.is_main:  # a warm-up meant for a longer run, or a typo (equal: its last step)
+            log.warning("train.warmup_steps=%d is more than the run's %d steps: the learning rate never reaches train.lr "
+                        "(it climbs to %.3g of it)", t.warmup_steps, total_steps, total_steps / t.warmup_steps)
+        self.total_steps = total_steps
+
+    def build_model(self) -> None:
+        """The task's module on the device, its Adam optimizer (each group's ``base_lr``, the rate the schedule
+        scales), the checkpoints, the metrics log and a fresh :class:`LoopState`."""
+        task, t = self.task, self.t
+        self.model = task.module().to(self.device)
+        self.optimizer = torch.optim.Adam(task.param_groups())
+        for g in self.optimizer.param_groups:
+            g["base_lr"] = g["lr"]
+        self.bands, self.meta = task.bands, task.weights_metadata()
+        self.ckpt = CheckpointManager(self.run_dir, task.weights_file, keep=t.keep_weights)
+        self.metrics = MetricsLog(self.run_dir / "metrics.jsonl", self.is_main)
+        self.state = LoopState()
+
+    def load_checkpoint(self) -> None:
+        """Resume: every rank loads the last checkpoint (rank 0 first removes what a killed process left) and checks
+        that the config's epochs count the same batches and no fewer steps; then every rank agrees, so that one
+        rank's failure is told before anything changes."""
+        t, run_dir, ckpt, optimizer = self.t, self.run_dir, self.ckpt, self.optimizer
+        steps_per_epoch, total_steps = self.steps_per_epoch, self.total_steps
+        with self.solo.work():
+            if self.is_main:
                 ckpt.cleanup()  # temporaries and step folders the manifest does not name (a killed process)
             if ckpt.path("last"):
                 base_lrs = [g["base_lr"] for g in optimizer.param_groups]
-                state = LoopState.from_dict(ckpt.load("last", model, optimizer, bands))
+                state = self.state = LoopState.from_dict(ckpt.load("last", self.model, optimizer, self.bands))
                 # the learning rates of the config it goes on with (e.g. `--set train.lr=…`), not the
                 # checkpoint's: the optimizer's moments continue, its schedule starts from these
                 for g, lr in zip(optimizer.param_groups, base_lrs):
                     g["base_lr"] = lr
+                batches = (f"{steps_per_epoch} steps of {t.batch_size} ({len(self.train_ds)} patches per epoch, "
+                           f"{self.task.batch_size_key}={t.batch_size}): a resume would misplace where it stopped; keep "
+                           "the batch size and the patches per epoch as they were; nothing was changed")
                 if state.steps_per_epoch and (state.steps_per_epoch, state.batch_size) != (steps_per_epoch, t.batch_size):
                     # its position (step in epoch, steps done) counts batches of the size it was trained with
                     raise InputError(f"{run_dir}: was trained in epochs of {state.steps_per_epoch} steps of "
-                                     f"{state.batch_size} patches, and its config now asks for {steps_per_epoch} steps of "
-                                     f"{t.batch_size} ({len(train_ds)} patches per epoch, {task.batch_size_key}="
-                                     f"{t.batch_size}): a resume would misplace where it stopped; keep the batch size and "
-                                     "the patches per epoch as they were; nothing was changed")
+                                     f"{state.batch_size} patches, and its config now asks for {batches}")
                 old_epoch = older_epoch_length(state)
                 if old_epoch is not None and old_epoch != steps_per_epoch:
                     # a checkpoint of an older hsicam (no batch size kept): its completed epochs give their length
                     raise InputError(f"{run_dir}: was trained in epochs of {old_epoch} steps (a checkpoint of an older "
-                                     f"hsicam, which did not record its batch size), and its config now asks for "
-                                     f"{steps_per_epoch} steps of {t.batch_size} ({len(train_ds)} patches per epoch, "
-                                     f"{task.batch_size_key}={t.batch_size}): a resume would misplace where it stopped; "
-                                     "keep the batch size and the patches per epoch as they were; nothing was changed")
+                                     f"hsicam, which did not record its batch size), and its config now asks for {batches}")
                 if state.global_step > total_steps:  # before the config is rewritten: nothing changes
                     raise InputError(f"{run_dir}: has trained {state.global_step} steps ({state.epoch} epochs), more than the "
                                      f"{total_steps} its config now asks for; a resume cannot take training back: ask for at "
                                      "least as many, or leave the length as it was; nothing was changed")
-    if resume:  # every rank read the checkpoint: one rank's failure (e.g. a file only it reads) is told before any change
-        solo.agree(f"before the {task.what} started")
-    with solo.work():
-        if resume:
-            if is_main:
-                ckpt.sync_root()  # a kill between the manifest's commit and the root weights' rewrite
-                metrics.truncate_after(state.global_step, state.epoch)
-                summary = last_validation(metrics.read())  # kept when no epoch is left to validate
-                task.write_run_files(run_dir)  # the config it goes on with (e.g. `--set train.epochs=…`)
-                log.info("resuming %s at epoch %d, step %d", run_dir, state.epoch, state.global_step)
-                warning = task.resume_warning(run_dir)
-                if warning:
-                    log.warning(warning)
-                commit, had = session_60_changes_had(run_dir)  # a commit of session 60 before it recorded this
-                changes = older_run_changes(t, state.global_step, total_steps, task.seed_key,
-                                            task.noisy_validation(), had) if started_before_session_60(run_dir) else []
-                if changes:  # the resume cannot be the run that hsicam would have finished: said, not hidden
-                    log.warning("%s: started by %s, whose training this one changed; it goes "
-                                "on with this one's: %s (docs/training.md): not the run that hsicam would have "
-                                "finished; to finish it as it began, resume it with that hsicam, or train a new "
-                                "run with another --out", run_dir,
-                                f"hsicam {commit[:7]} (session 60, before c1ab911)" if commit
-                                else "an hsicam before session 60", "; ".join(changes))
-        elif is_main:
-            # The run folder appears at once with all its files (config.yaml, ...) or not at all.
-            with atomic_output(run_dir, marker=False) as tmp:
-                lock.acquire(tmp)  # held across the rename: the run is never in place unlocked
-                task.write_run_files(tmp)
-                if record is not None:
-                    write_data_record(tmp, record)
-            lock.moved()
-            new_run.release()  # in place: the run's own lock keeps it
-        if is_main:  # which software this session trains with (a resume adds its own record)
-            metrics.write({"step": state.global_step, "epoch": state.epoch,
-                           "session": software_record(str(device), world)})
-    state.total_steps = total_steps  # saved with each checkpoint: what a half-trained run is measured against
-    state.steps_per_epoch, state.batch_size = steps_per_epoch, t.batch_size
-    solo.agree(f"before the {task.what} started")
-    val_loader = make_loader(val_ds, t.batch_size, opts.num_workers, shuffle=False) if (val_ds is not None and is_main) else None
+        # every rank read the checkpoint: one rank's failure (e.g. a file only it reads) is told before any change
+        self.solo.agree(f"before the {self.task.what} started")
 
-    task.on_device(device)
-    trainable: nn.Module = model
-    if distributed:
-        trainable = torch.nn.parallel.DistributedDataParallel(
-            model, device_ids=[device.index] if device.type == "cuda" else None,
-            find_unused_parameters=task.find_unused_parameters)
-    writer = _tensorboard(run_dir) if (t.tensorboard and is_main) else None
+    def open_session(self, resume: bool, lock: RunLock, new_run: OutputLock, record: dict[str, Any] | None) -> None:
+        """Rank 0 makes the run folder in place, whole and locked (a new run), or brings a resumed run's files to its
+        checkpoint (:meth:`note_resume`); then records this session's software in the metrics log. Every rank
+        agrees afterwards."""
+        with self.solo.work():
+            if resume:
+                if self.is_main:
+                    self.note_resume()
+            elif self.is_main:
+                # The run folder appears at once with all its files (config.yaml, ...) or not at all.
+                with atomic_output(self.run_dir, marker=False) as tmp:
+                    lock.acquire(tmp)  # held across the rename: the run is never in place unlocked
+                    self.task.write_run_files(tmp)
+                    if record is not None:
+                        write_data_record(tmp, record)
+                lock.moved()
+                new_run.release()  # in place: the run's own lock keeps it
+            if self.is_main:  # which software this session trains with (a resume adds its own record)
+                self.metrics.write({"step": self.state.global_step, "epoch": self.state.epoch,
+                                    "session": software_record(str(self.device), self.world)})
+        state = self.state
+        state.total_steps = self.total_steps  # saved with each checkpoint: what a half-trained run is measured against
+        state.steps_per_epoch, state.batch_size = self.steps_per_epoch, self.t.batch_size
+        self.solo.agree(f"before the {self.task.what} started")
 
-    def stoppable(loader):
+    def note_resume(self) -> None:
+        """Rank 0, on resume: the root weights and the metrics log brought back to the last checkpoint, the last
+        validation kept for the final record, the config it goes on with written, and what the resume changes
+        said (the task's data, an older hsicam's training)."""
+        task, run_dir, state = self.task, self.run_dir, self.state
+        self.ckpt.sync_root()  # a kill between the manifest's commit and the root weights' rewrite
+        self.metrics.truncate_after(state.global_step, state.epoch)
+        self.summary = last_validation(self.metrics.read())  # kept when no epoch is left to validate
+        task.write_run_files(run_dir)  # the config it goes on with (e.g. `--set train.epochs=…`)
+        log.info("resuming %s at epoch %d, step %d", run_dir, state.epoch, state.global_step)
+        warning = task.resume_warning(run_dir)
+        if warning:
+            log.warning(warning)
+        commit, had = session_60_changes_had(run_dir)  # a commit of session 60 before it recorded this
+        changes = older_run_changes(self.t, state.global_step, self.total_steps, task.seed_key,
+                                    task.noisy_validation(), had) if started_before_session_60(run_dir) else []
+        if changes:  # the resume cannot be the run that hsicam would have finished: said, not hidden
+            log.warning("%s: started by %s, whose training this one changed; it goes "
+                        "on with this one's: %s (docs/training.md): not the run that hsicam would have "
+                        "finished; to finish it as it began, resume it with that hsicam, or train a new "
+                        "run with another --out", run_dir,
+                        f"hsicam {commit[:7]} (session 60, before c1ab911)" if commit
+                        else "an hsicam before session 60", "; ".join(changes))
+
+    def start(self) -> None:
+        """What the steps need: rank 0's validation loader, the module ready on its device (DDP-wrapped as
+        ``trainable`` in a group), tensorboard, the progress bar and the clock."""
+        t, task, device, is_main = self.t, self.task, self.device, self.is_main
+        self.val_loader = (make_loader(self.val_ds, t.batch_size, self.opts.num_workers, shuffle=False)
+                           if (self.val_ds is not None and is_main) else None)
+        task.on_device(device)
+        self.trainable: nn.Module = self.model
+        if self.distributed:
+            self.trainable = torch.nn.parallel.DistributedDataParallel(
+                self.model, device_ids=[device.index] if device.type == "cuda" else None,
+                find_unused_parameters=task.find_unused_parameters)
+        self.writer = _tensorboard(self.run_dir) if (t.tensorboard and is_main) else None
+        self.use_bar = (sys.stderr.isatty() if self.opts.progress is None else self.opts.progress) and is_main
+        from tqdm.auto import tqdm
+
+        self.bar = tqdm(total=self.total_steps, initial=self.state.global_step, disable=not self.use_bar, unit="step",
+                        dynamic_ncols=True)
+        self.t_start, self.steps_done, self.last_val = time.perf_counter(), 0, None
+
+    # -- validation -----------------------------------------------------------------------------------------------
+    def stoppable(self, loader):
         """``loader``'s batches until a stop signal arrives: a long validation (many or large
         patches) ends at its next batch, so that a scheduler's notice is honoured in time."""
         for batch in loader:
-            if stop.received is not None:
+            if self.stop.received is not None:
                 raise _ValidationCut
             yield batch
 
-    def validate_now(cut: bool = True) -> dict[str, float] | None:
-        """The validation metrics; None when a stop signal arrived meanwhile (with ``cut``, the
+    def validate(self, cut: bool = True) -> dict[str, float] | None:
+        """The validation metrics (rank 0); None when a stop signal arrived meanwhile (with ``cut``, the
         validation ends at its next batch) or ended the loader's workers (a SIGTERM to the whole
         process group reaches them too): that validation is not recorded. The last epoch's is not
         ``cut``: a signal then lets the training finish, its final validation included."""
-        model.eval()
+        stop = self.stop
+        self.model.eval()
         try:
             with torch.no_grad():
-                return task.validate(stoppable(val_loader) if cut else val_loader, device)
+                return self.task.validate(self.stoppable(self.val_loader) if cut else self.val_loader, self.device)
         except (RuntimeError, _ValidationCut) as exc:
             if stop.received is None:
                 raise
             why = "its data workers ended" if isinstance(exc, RuntimeError) else "it stopped at its next batch"
             log.warning("%s: the validation at step %d was cut short by %s (%s); not recorded",
-                        run_dir, state.global_step, stop.received, why)
+                        self.run_dir, self.state.global_step, stop.received, why)
             return None
         finally:
-            model.train()
+            self.model.train()
 
-    def log_validation(val: dict[str, float]) -> None:
-        metrics.write({"step": state.global_step, "epoch": state.epoch, **{f"val_{k}": v for k, v in val.items()}})
-        if writer:
+    def log_validation(self, val: dict[str, float]) -> None:
+        """A validation's record in the metrics log, tensorboard and the log."""
+        state = self.state
+        self.metrics.write({"step": state.global_step, "epoch": state.epoch, **{f"val_{k}": v for k, v in val.items()}})
+        if self.writer:
             for k, v in val.items():
-                writer.add_scalar(f"val/{k}", v, state.global_step)
+                self.writer.add_scalar(f"val/{k}", v, state.global_step)
         log.info("epoch %d: val %s", state.epoch, ", ".join(f"{k} {v:.4g}" for k, v in val.items()))
 
-    use_bar = (sys.stderr.isatty() if opts.progress is None else opts.progress) and is_main
-    from tqdm.auto import tqdm
-
-    bar = tqdm(total=total_steps, initial=state.global_step, disable=not use_bar, unit="step", dynamic_ncols=True)
-    t_start, steps_done, last_val = time.perf_counter(), 0, None
-
-    def stop_here(why: str, code: int, saved: bool) -> None:
-        """Save the checkpoint of this step (unless ``saved``) and raise :class:`TrainingStopped`
-        (the budget) or :class:`TrainingInterrupted` (a signal)."""
-        if not saved:
-            with solo.work():
-                if is_main:
-                    ckpt.save(model, optimizer, state.to_dict(), bands, ("last",), meta)
-            solo.agree(f"at step {state.global_step} of the {task.what}")
-        bar.close()
-        kind = TrainingStopped if code == BUDGET_EXIT_CODE else TrainingInterrupted
-        raise kind(run_dir, state.global_step, total_steps, why, code)
-
-    stop.armed = True  # from here a signal stops the loop at the next step's end (hsicam.engine.stopping)
-    if opts.validate_at_start and not resume:
-        with solo.work():
-            if is_main:
-                val = validate_now() if val_loader is not None else None
+    def validate_at_start(self) -> None:
+        """``validate_at_start`` (fine-tuning): rank 0 scores the starting weights and saves them as step 0's
+        checkpoint (also the best when scored); then every rank agrees whether to stop."""
+        state = self.state
+        with self.solo.work():
+            if self.is_main:
+                val = self.validate() if self.val_loader is not None else None
                 if val is not None:
-                    summary = val
-                    log_validation(summary)
-                    state.best_psnr, state.best_step = summary.get("psnr"), 0
-                ckpt.save(model, optimizer, state.to_dict(), bands, ("last", "best") if val is not None else ("last",),
-                          meta)
-        asked = _agreed_stop(stop, 0.0, solo, f"at step 0 of the {task.what}")  # (a full validation can take minutes)
+                    self.summary = val
+                    self.log_validation(val)
+                    state.best_psnr, state.best_step = val.get("psnr"), 0
+                self.ckpt.save(self.model, self.optimizer, state.to_dict(), self.bands,
+                               ("last", "best") if val is not None else ("last",), self.meta)
+        # (a full validation can take minutes)
+        asked = _agreed_stop(self.stop, 0.0, self.solo, f"at step 0 of the {self.task.what}")
         if asked is not None:
-            stop_here(*asked, saved=True)  # the step-0 checkpoint just written: a resume starts from it
-    model.train()
-    while state.epoch < t.epochs and state.global_step < total_steps:
-        train_ds.set_epoch(state.epoch)
-        sampler = ShardedBatches(steps_per_epoch, t.batch_size, rank, world, state.step_in_epoch)
-        loader = make_loader(train_ds, t.batch_size // world, opts.num_workers, shuffle=False, sampler=sampler)
+            self.stop_here(*asked, saved=True)  # the step-0 checkpoint just written: a resume starts from it
+
+    # -- the steps of an epoch ------------------------------------------------------------------------------------
+    def train_epoch(self) -> bool:
+        """This rank's batches of the current epoch (from ``step_in_epoch`` on, so a resume continues the epoch),
+        one :meth:`train_step` each, until the epoch or the run's steps end; False when ``opts.stop_after_steps``
+        ended the training (its checkpoint saved). A stop signal or the budget, agreed by every rank after a step
+        that is not the epoch's last, stops here (:meth:`stop_here`)."""
+        t, state = self.t, self.state
+        self.train_ds.set_epoch(state.epoch)
+        sampler = ShardedBatches(self.steps_per_epoch, t.batch_size, self.rank, self.world, state.step_in_epoch)
+        loader = make_loader(self.train_ds, t.batch_size // self.world, self.opts.num_workers, shuffle=False,
+                             sampler=sampler)
         batches = iter(loader)
         while True:
             try:
@@ -774,143 +854,194 @@ def _fit(task: Task, opts: FitOptions, run_dir: Path, resume: bool, lock: RunLoc
             except StopIteration:
                 break
             except RuntimeError:  # a stop signal to the whole process group ended the loader's workers too
-                if stop.received is None:
+                if self.stop.received is None:
                     raise
-                stop_here(stop.describe(stop.exit_code()), stop.exit_code(), saved=False)
-            step = state.global_step
-            g = step_generator(t.seed, step, rank, device)
-            task.on_step_start(step, g)
-            factor = lr_factor(t, step, total_steps, steps_per_epoch)
-            for group in optimizer.param_groups:
-                group["lr"] = group["base_lr"] * factor
-            try:  # (in a group, its collectives: DDP's buffers and gradients, the loss)
-                loss = task.training_step(trainable, batch.to(device, non_blocking=True), g)
-                optimizer.zero_grad(set_to_none=True)
-                loss.backward()
-                grad_norm = None
-                if t.grad_clip is not None:
-                    grad_norm = torch.nn.utils.clip_grad_norm_(model.parameters(), t.grad_clip)
-                loss_v = own_v = loss.item()
-                if distributed:  # the global batch's loss (each rank holds a share), logged and checked by every rank
-                    total = loss.detach().reshape(1).clone()
-                    dist.all_reduce(total)
-                    loss_v = total.item() / world
-            except RuntimeError as exc:
-                # another rank failed alone in this step (e.g. a scene file only it reads): its error ended its side
-                # of the group, and this rank's collective failed with gloo's traceback ("Connection reset by
-                # peer"); now one line, as SoloWork's. Before the optimizer's step: the run keeps its last checkpoint
-                failed = _failed_peer(rank) if distributed else None
-                if failed is None:
-                    raise
-                raise PeerFailed(f"rank {failed} failed at step {step} of the {task.what} (its own error says why); "
-                                 f"rank {rank} stops with it") from exc
-            if not math.isfinite(own_v):  # before the step: the weights stay those of the last good step
-                first = state.step_in_epoch * t.batch_size + rank * (t.batch_size // world)  # this rank's first item
-                raise not_finite_error(task.what, step, own_v, batch,
-                                       lambda j: patch_source(train_ds, first + j))
-            if not math.isfinite(loss_v):  # another rank's share: it names its patches; this one stops with it
-                raise TrainingDiverged(f"{task.what} diverged at step {step}: the loss of another process's share of "
-                                       f"the batch is {loss_v:.4g}; that process's error names its patches")
-            if grad_norm is not None and not math.isfinite(norm_v := grad_norm.item()):
-                # a finite loss whose gradient is not: clipping by an infinite norm zeroed every gradient, and the run
-                # trained on, flat, without an error (e.g. train.ssim_loss=1e30)
-                why = ("it overflows float32" if math.isinf(norm_v) else
-                       "a NaN in the backward pass of a finite loss, e.g. a square root or division at 0")
-                raise TrainingDiverged(f"{task.what} diverged at step {step}: the loss is {loss_v:.4g} but its "
-                                       f"gradient's norm is {norm_v} ({why}), so clipping would zero every gradient; "
-                                       "lower the loss weights (train.ssim_loss, sam_loss, relative_l1, "
-                                       "spectral_grad_loss, phase_loss) or the learning rates")
-            optimizer.step()
-            state.loss_sum, state.loss_n = state.loss_sum + loss_v, state.loss_n + 1
-            state.global_step, state.step_in_epoch = step + 1, state.step_in_epoch + 1
-            steps_done += 1
-            bar.update(1)
-            bar.set_postfix(loss=f"{loss_v:.4f}", psnr="-" if last_val is None else f"{last_val:.2f}", epoch=state.epoch)
-            # rank 0's metrics and checkpoint: an error is held to the stop check below (its collective says it to
-            # the other ranks), or to the end of the epoch's (nothing more is done alone before it: solo.held)
-            with solo.work():
-                if is_main and state.global_step % t.log_every_steps == 0:
-                    rec = {"step": state.global_step, "epoch": state.epoch, "train_loss": state.loss_sum / state.loss_n,
-                           "lr": optimizer.param_groups[0]["base_lr"] * factor, "elapsed_s": time.perf_counter() - t_start}
-                    metrics.write(rec)
-                    if writer:
-                        writer.add_scalar("train/loss", rec["train_loss"], rec["step"])
-                    if not use_bar:
-                        eta = (time.perf_counter() - t_start) / steps_done * (total_steps - state.global_step)
-                        log.info("step %d/%d epoch %d loss %.4f eta %.0fs", rec["step"], total_steps, state.epoch,
-                                 rec["train_loss"], eta)
-                if is_main and state.global_step % t.checkpoint_every_steps == 0:
-                    ckpt.save(model, optimizer, state.to_dict(), bands, ("last",), meta)
-            if opts.stop_after_steps is not None and state.global_step >= opts.stop_after_steps:
-                with solo.work():
-                    if is_main and not solo.held:
-                        ckpt.save(model, optimizer, state.to_dict(), bands, ("last",), meta)
-                solo.agree(f"at step {state.global_step} of the {task.what}")
-                bar.close()
-                return {"stopped_at_step": state.global_step}
-            if state.global_step >= total_steps:
+                self.stop_here(self.stop.describe(self.stop.exit_code()), self.stop.exit_code(), saved=False)
+            factor = self.train_step(batch)
+            self.record_step(factor)
+            if self.opts.stop_after_steps is not None and state.global_step >= self.opts.stop_after_steps:
+                with self.solo.work():
+                    if self.is_main and not self.solo.held:
+                        self.ckpt.save(self.model, self.optimizer, state.to_dict(), self.bands, ("last",), self.meta)
+                self.solo.agree(self.where())
+                self.bar.close()
+                return False
+            if state.global_step >= self.total_steps:
                 break
-            if state.step_in_epoch < steps_per_epoch:  # (at an epoch's end: after its checkpoint, below)
-                asked = _agreed_stop(stop, (time.perf_counter() - t_start) / max(steps_done, 1), solo,
-                                     f"at step {state.global_step} of the {task.what}")
-                if asked is not None:
-                    stop_here(*asked, saved=False)
-        # end of an epoch (or of the step budget)
-        ended = dataclasses.replace(state)  # its last step done, the epoch not yet counted
+            if state.step_in_epoch < self.steps_per_epoch:  # (at an epoch's end: after its checkpoint, end_epoch)
+                self.stop_if_asked(saved=False)
+        return True
+
+    def train_step(self, batch: torch.Tensor) -> float:
+        """One optimizer step on this rank's share of a global batch; returns the step's learning-rate factor.
+        Its random numbers depend only on (seed, step, rank) and its rate only on the step (an exact resume).
+        Every rank reaches the same collectives (DDP's buffers and gradients, the loss's ``all_reduce``); the
+        weights change only when the loss and its gradient are finite on every rank (:meth:`check_finite`)."""
+        t, task, state, world = self.t, self.task, self.state, self.world
+        step = state.global_step
+        g = step_generator(t.seed, step, self.rank, self.device)
+        task.on_step_start(step, g)
+        factor = lr_factor(t, step, self.total_steps, self.steps_per_epoch)
+        for group in self.optimizer.param_groups:
+            group["lr"] = group["base_lr"] * factor
+        try:  # (in a group, its collectives: DDP's buffers and gradients, the loss)
+            loss = task.training_step(self.trainable, batch.to(self.device, non_blocking=True), g)
+            self.optimizer.zero_grad(set_to_none=True)
+            loss.backward()
+            grad_norm = None
+            if t.grad_clip is not None:
+                grad_norm = torch.nn.utils.clip_grad_norm_(self.model.parameters(), t.grad_clip)
+            loss_v = own_v = loss.item()
+            if self.distributed:  # the global batch's loss (each rank holds a share), logged and checked by every rank
+                total = loss.detach().reshape(1).clone()
+                dist.all_reduce(total)
+                loss_v = total.item() / world
+        except RuntimeError as exc:
+            # another rank failed alone in this step (e.g. a scene file only it reads): its error ended its side
+            # of the group, and this rank's collective failed with gloo's traceback ("Connection reset by
+            # peer"); now one line, as SoloWork's. Before the optimizer's step: the run keeps its last checkpoint
+            failed = _failed_peer(self.rank) if self.distributed else None
+            if failed is None:
+                raise
+            raise PeerFailed(f"rank {failed} failed at step {step} of the {task.what} (its own error says why); "
+                             f"rank {self.rank} stops with it") from exc
+        self.check_finite(step, batch, own_v, loss_v, grad_norm)
+        self.optimizer.step()
+        state.loss_sum, state.loss_n = state.loss_sum + loss_v, state.loss_n + 1
+        state.global_step, state.step_in_epoch = step + 1, state.step_in_epoch + 1
+        self.steps_done += 1
+        self.bar.update(1)
+        self.bar.set_postfix(loss=f"{loss_v:.4f}", psnr="-" if self.last_val is None else f"{self.last_val:.2f}",
+                             epoch=state.epoch)
+        return factor
+
+    def check_finite(self, step: int, batch: torch.Tensor, own_v: float, loss_v: float,
+                     grad_norm: torch.Tensor | None) -> None:
+        """The error for a step whose loss (this rank's ``own_v``, the global batch's ``loss_v``) or gradient norm
+        is not finite, raised before the optimizer's step: the weights stay those of the last good step."""
+        t, what = self.t, self.task.what
+        if not math.isfinite(own_v):  # before the step: the weights stay those of the last good step
+            first = self.state.step_in_epoch * t.batch_size + self.rank * (t.batch_size // self.world)  # this rank's first item
+            raise not_finite_error(what, step, own_v, batch, lambda j: patch_source(self.train_ds, first + j))
+        if not math.isfinite(loss_v):  # another rank's share: it names its patches; this one stops with it
+            raise TrainingDiverged(f"{what} diverged at step {step}: the loss of another process's share of "
+                                   f"the batch is {loss_v:.4g}; that process's error names its patches")
+        if grad_norm is not None and not math.isfinite(norm_v := grad_norm.item()):
+            # a finite loss whose gradient is not: clipping by an infinite norm zeroed every gradient, and the run
+            # trained on, flat, without an error (e.g. train.ssim_loss=1e30)
+            why = ("it overflows float32" if math.isinf(norm_v) else
+                   "a NaN in the backward pass of a finite loss, e.g. a square root or division at 0")
+            raise TrainingDiverged(f"{what} diverged at step {step}: the loss is {loss_v:.4g} but its "
+                                   f"gradient's norm is {norm_v} ({why}), so clipping would zero every gradient; "
+                                   "lower the loss weights (train.ssim_loss, sam_loss, relative_l1, "
+                                   "spectral_grad_loss, phase_loss) or the learning rates")
+
+    def record_step(self, factor: float) -> None:
+        """Rank 0's metrics record (every ``log_every_steps``) and checkpoint (every ``checkpoint_every_steps``)
+        after a step. An error is held to the stop check that follows (its collective says it to the other ranks),
+        or to the end of the epoch's (nothing more is done alone before it: ``solo.held``)."""
+        t, state = self.t, self.state
+        with self.solo.work():
+            if self.is_main and state.global_step % t.log_every_steps == 0:
+                rec = {"step": state.global_step, "epoch": state.epoch, "train_loss": state.loss_sum / state.loss_n,
+                       "lr": self.optimizer.param_groups[0]["base_lr"] * factor,
+                       "elapsed_s": time.perf_counter() - self.t_start}
+                self.metrics.write(rec)
+                if self.writer:
+                    self.writer.add_scalar("train/loss", rec["train_loss"], rec["step"])
+                if not self.use_bar:
+                    eta = (time.perf_counter() - self.t_start) / self.steps_done * (self.total_steps - state.global_step)
+                    log.info("step %d/%d epoch %d loss %.4f eta %.0fs", rec["step"], self.total_steps, state.epoch,
+                             rec["train_loss"], eta)
+            if self.is_main and state.global_step % t.checkpoint_every_steps == 0:
+                self.ckpt.save(self.model, self.optimizer, state.to_dict(), self.bands, ("last",), self.meta)
+
+    # -- the end of an epoch, stops, the end of the run -------------------------------------------------------------
+    def end_epoch(self) -> None:
+        """The epoch counted; rank 0's validation (every ``eval_every_epochs`` and at the last epoch) and the
+        epoch's checkpoint, one commit (tagged best when it scores best); then every rank learns whether a signal
+        cut that validation, and all stop together, or go on unless asked to stop (:meth:`stop_if_asked`)."""
+        t, total_steps = self.t, self.total_steps
+        ended = dataclasses.replace(self.state)  # its last step done, the epoch not yet counted
+        state = self.state
         state.epoch, state.step_in_epoch, state.loss_sum, state.loss_n = state.epoch + 1, 0, 0.0, 0
         last_epoch = state.epoch == t.epochs or state.global_step >= total_steps
         tags = ["last"]
         cut = False  # a stop signal cut this epoch's validation short
-        with solo.work():  # rank 0's validation and checkpoint; not after its last step's files failed (held)
-            if is_main and not solo.held and val_loader is not None and (
+        with self.solo.work():  # rank 0's validation and checkpoint; not after its last step's files failed (held)
+            if self.is_main and not self.solo.held and self.val_loader is not None and (
                     state.epoch % t.eval_every_epochs == 0 or last_epoch):
-                val = validate_now(cut=not last_epoch)
+                val = self.validate(cut=not last_epoch)
                 cut = val is None
                 if val is not None:
-                    last_val = val.get("psnr")
-                    log_validation(val)
-                    if state.best_psnr is None or (last_val is not None and last_val > state.best_psnr):
-                        state.best_psnr, state.best_step = last_val, state.global_step
+                    self.last_val = val.get("psnr")
+                    self.log_validation(val)
+                    if state.best_psnr is None or (self.last_val is not None and self.last_val > state.best_psnr):
+                        state.best_psnr, state.best_step = self.last_val, state.global_step
                         tags.append("best")
-                    summary = {**val}
+                    self.summary = {**val}
             if cut:
                 # the checkpoint keeps the epoch uncounted, so that a resume takes its (empty) rest and then the
                 # validation again: counted, the validation was lost for good (its record, and the best
                 # weights when it would have been the best)
-                state = ended
-            if is_main and not solo.held:  # one commit: the manifest names it last (and best); the root weights follow
-                ckpt.save(model, optimizer, state.to_dict(), bands, tuple(tags), meta)
+                self.state = ended
+            if self.is_main and not self.solo.held:  # one commit: the manifest names it last (and best); the root weights follow
+                self.ckpt.save(self.model, self.optimizer, self.state.to_dict(), self.bands, tuple(tags), self.meta)
         # every rank learns whether rank 0's validation was cut (by a signal that may have reached rank 0 alone), and
         # by which signal: they stop together below (a rank 0 that stopped alone left the others in a collective)
-        cut_code = solo.reduce([stop.exit_code() if cut else 0], f"at step {state.global_step} of the {task.what}")[0]
+        cut_code = self.solo.reduce([self.stop.exit_code() if cut else 0], self.where())[0]
         if cut_code and not cut:
-            state, cut = ended, True
-        if cut and not (state.epoch + 1 < t.epochs and state.global_step < total_steps):
+            self.state, cut = ended, True
+        if cut and not (self.state.epoch + 1 < t.epochs and self.state.global_step < total_steps):
             # the last epoch's validation, cut only by the loader's workers ending: unfinished, not finished
-            stop_here(stop.describe(cut_code), cut_code, saved=True)
-        if state.epoch + cut < t.epochs and state.global_step < total_steps:
-            asked = _agreed_stop(stop, (time.perf_counter() - t_start) / max(steps_done, 1), solo,
-                                 f"at step {state.global_step} of the {task.what}")
-            if asked is not None:
-                stop_here(*asked, saved=True)  # rank 0 saved it just above
-    bar.close()  # (a signal from here on is honoured once the training's last files are written: fit)
-    # no checkpoint at all: the final weights are the run's. A kept checkpoint that is damaged leaves a missing root
-    # missing (sync_root's warning names it): the final model's weights there were not those the manifest records
-    with solo.work():  # rank 0's last files
-        if is_main and not ckpt.sync_root() and not (run_dir / task.weights_file).exists() and ckpt.root_source() is None:
-            save_weights(run_dir / task.weights_file, model, bands, meta)
-        elapsed = time.perf_counter() - t_start
-        final = {"step": state.global_step, "epoch": state.epoch, "final": True, "best_psnr": state.best_psnr,
-                 **{f"val_{k}": v for k, v in summary.items()}, "elapsed_s": elapsed}
-        if steps_done:  # (a resume that only writes the final record trained nothing to time)
-            final["patches_per_s"] = steps_done * t.batch_size / max(elapsed, 1e-9)
-        if is_main:
-            final = task.on_fit_end(run_dir, final)
-            metrics.write(final)
-    solo.agree(f"at the end of the {task.what}")
-    if writer:
-        writer.close()
-    return final
+            self.stop_here(self.stop.describe(cut_code), cut_code, saved=True)
+        if self.state.epoch + cut < t.epochs and self.state.global_step < total_steps:
+            self.stop_if_asked(saved=True)  # rank 0 saved it just above
+
+    def stop_if_asked(self, saved: bool) -> None:
+        """Stop here (:meth:`stop_here`) when a signal or the budget asks to, as agreed by every rank
+        (:func:`_agreed_stop`: one collective, which also tells whether a rank failed in its work)."""
+        asked = _agreed_stop(self.stop, (time.perf_counter() - self.t_start) / max(self.steps_done, 1), self.solo,
+                             self.where())
+        if asked is not None:
+            self.stop_here(*asked, saved=saved)
+
+    def stop_here(self, why: str, code: int, saved: bool) -> None:
+        """Save the checkpoint of this step (unless ``saved``) and raise :class:`TrainingStopped`
+        (the budget) or :class:`TrainingInterrupted` (a signal)."""
+        if not saved:
+            with self.solo.work():
+                if self.is_main:
+                    self.ckpt.save(self.model, self.optimizer, self.state.to_dict(), self.bands, ("last",), self.meta)
+            self.solo.agree(self.where())
+        self.bar.close()
+        kind = TrainingStopped if code == BUDGET_EXIT_CODE else TrainingInterrupted
+        raise kind(self.run_dir, self.state.global_step, self.total_steps, why, code)
+
+    def finish(self) -> dict[str, Any]:
+        """The run's last files (rank 0): the root weights when no checkpoint gave them, then the final record
+        (the task's files first: they mark the run finished); every rank agrees; returns the final record."""
+        t, task, run_dir, state = self.t, self.task, self.run_dir, self.state
+        self.bar.close()  # (a signal from here on is honoured once the training's last files are written: fit)
+        # no checkpoint at all: the final weights are the run's. A kept checkpoint that is damaged leaves a missing root
+        # missing (sync_root's warning names it): the final model's weights there were not those the manifest records
+        with self.solo.work():  # rank 0's last files
+            ckpt = self.ckpt
+            if self.is_main and not ckpt.sync_root() and not (run_dir / task.weights_file).exists() and \
+                    ckpt.root_source() is None:
+                save_weights(run_dir / task.weights_file, self.model, self.bands, self.meta)
+            elapsed = time.perf_counter() - self.t_start
+            final = {"step": state.global_step, "epoch": state.epoch, "final": True, "best_psnr": state.best_psnr,
+                     **{f"val_{k}": v for k, v in self.summary.items()}, "elapsed_s": elapsed}
+            if self.steps_done:  # (a resume that only writes the final record trained nothing to time)
+                final["patches_per_s"] = self.steps_done * t.batch_size / max(elapsed, 1e-9)
+            if self.is_main:
+                final = task.on_fit_end(run_dir, final)
+                self.metrics.write(final)
+        self.solo.agree(f"at the end of the {task.what}")
+        if self.writer:
+            self.writer.close()
+        return final
 
 
 class _ValidationCut(Exception):
