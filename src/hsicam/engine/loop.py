@@ -330,52 +330,68 @@ def fit(task: Task, opts: FitOptions, run_dir: str | Path, resume: bool = False,
                 StopRequests(opts.loop.max_minutes) as stop, deterministic_algorithms(opts.loop.deterministic):
             result = _fit(task, opts, Path(run_dir), resume, lock, new_run, stop)
             if "stopped_at_step" not in result:
-                solo = SoloWork(rank, world, resolve_device(opts.loop.device, local_rank))
-                if then is not None:
-                    with solo.work():
-                        if rank == 0:
-                            result = then(result)
-                # a signal during the last step or the files after it, which may have reached one rank alone: every
-                # rank learns of it here (the signalled one exited 143 and the others 0), and all stop alike
-                code = solo.reduce([stop.exit_code() if stop.received is not None else 0],
-                                   f"at the end of the {task.what}")[0]
-                if code and "step" in result:
-                    raise TrainingInterrupted(run_dir, result["step"], result["step"], stop.describe(code), code,
-                                              finished=True)
+                result = _finish_together(task, opts, run_dir, result, then, stop)
     except (TrainingStopped, TrainingInterrupted):  # every rank stopped at the same step (_agreed_stop): the group ends cleanly
         if own_group:
             _end_group(barrier=True)
         raise
     except BaseException as exc:
-        if isinstance(exc, TrainingDiverged):  # what the run folder keeps: the CLI says how to go on from it
-            exc.run_dir = Path(run_dir)
-            try:
-                exc.checkpoint_step = (CheckpointManager(run_dir).state() or {}).get("global_step")
-            except Exception:  # noqa: BLE001 - a damaged manifest: the divergence is still the error to report
-                exc.run_dir = None
-        if world > 1 and not isinstance(exc, PeerFailed):  # this rank's own error: the others' step learns who failed
-            _tell_failure(rank)
-        # any other error: no barrier (the other ranks may be anywhere, or gone), but the group is destroyed all the
-        # same, which only lets go of this process's side of it. Left alive, it lived on to the interpreter's exit
-        # with its gloo threads, the one condition under which a finished rank was seen to abort ("terminate called
-        # without an active exception", exit -6, instead of the error's own exit status; pytorch#190489). Caught
-        # under gdb (docs/training_log.md): a pt_gloo_runloop thread drops the last reference to a finished work after
-        # wait() has returned; ~AsyncAllreduceWork frees a Python-made tensor, take_gil during Py_FinalizeEx calls
-        # pthread_exit, whose unwinding through that noexcept destructor is std::terminate. After a waited
-        # all_reduce, 9 of 20 runs that left the group alive to the exit aborted, 0 of 20 that destroyed it.
-        if own_group:
-            # the traceback's frames below this one hold the DDP wrapper, whose reducer holds the group: cleared (their
-            # locals only; the traceback still prints), else the group and its threads lived as long as the error,
-            # to the interpreter's exit when it is not caught (hsicam's CLI re-raises an unexpected one)
-            _clear_traceback_frames(sys.exc_info()[1])
-            try:
-                _end_group(barrier=False)
-            except Exception:  # noqa: BLE001 - never in place of the error that ended the training
-                log.debug("destroy_process_group failed after an error", exc_info=True)
+        _after_error(exc, run_dir, rank, world, own_group)
         raise
     if own_group:
         _end_group(barrier=True)
     return result
+
+
+def _finish_together(task: Task, opts: FitOptions, run_dir: str | Path, result: dict[str, Any],
+                     then: Callable[[dict[str, Any]], dict[str, Any]] | None, stop: StopRequests) -> dict[str, Any]:
+    """After a training that was not cut short: rank 0's ``then(result)`` (its error ends the other ranks with
+    :class:`~hsicam.errors.PeerFailed`, :class:`SoloWork`), then one agreement on whether a stop signal arrived
+    since the last step began; the summary, or :class:`~hsicam.errors.TrainingInterrupted` ``(finished=True)``
+    raised on every rank alike."""
+    rank, world, local_rank = dist_env()
+    solo = SoloWork(rank, world, resolve_device(opts.loop.device, local_rank))
+    if then is not None:
+        with solo.work():
+            if rank == 0:
+                result = then(result)
+    # a signal during the last step or the files after it, which may have reached one rank alone: every
+    # rank learns of it here (the signalled one exited 143 and the others 0), and all stop alike
+    code = solo.reduce([stop.exit_code() if stop.received is not None else 0], f"at the end of the {task.what}")[0]
+    if code and "step" in result:
+        raise TrainingInterrupted(run_dir, result["step"], result["step"], stop.describe(code), code, finished=True)
+    return result
+
+
+def _after_error(exc: BaseException, run_dir: str | Path, rank: int, world: int, own_group: bool) -> None:
+    """What :func:`fit` does for an error that ends the training, before it propagates: a divergence is told what
+    the run folder keeps, the other ranks which rank failed (:func:`_tell_failure`), and the group :func:`fit`
+    created is destroyed without a barrier."""
+    if isinstance(exc, TrainingDiverged):  # what the run folder keeps: the CLI says how to go on from it
+        exc.run_dir = Path(run_dir)
+        try:
+            exc.checkpoint_step = (CheckpointManager(run_dir).state() or {}).get("global_step")
+        except Exception:  # noqa: BLE001 - a damaged manifest: the divergence is still the error to report
+            exc.run_dir = None
+    if world > 1 and not isinstance(exc, PeerFailed):  # this rank's own error: the others' step learns who failed
+        _tell_failure(rank)
+    # any other error: no barrier (the other ranks may be anywhere, or gone), but the group is destroyed all the
+    # same, which only lets go of this process's side of it. Left alive, it lived on to the interpreter's exit
+    # with its gloo threads, the one condition under which a finished rank was seen to abort ("terminate called
+    # without an active exception", exit -6, instead of the error's own exit status; pytorch#190489). Caught
+    # under gdb (docs/training_log.md): a pt_gloo_runloop thread drops the last reference to a finished work after
+    # wait() has returned; ~AsyncAllreduceWork frees a Python-made tensor, take_gil during Py_FinalizeEx calls
+    # pthread_exit, whose unwinding through that noexcept destructor is std::terminate. After a waited
+    # all_reduce, 9 of 20 runs that left the group alive to the exit aborted, 0 of 20 that destroyed it.
+    if own_group:
+        # the traceback's frames below fit's hold the DDP wrapper, whose reducer holds the group: cleared (their
+        # locals only; the traceback still prints), else the group and its threads lived as long as the error,
+        # to the interpreter's exit when it is not caught (hsicam's CLI re-raises an unexpected one)
+        _clear_traceback_frames(exc)
+        try:
+            _end_group(barrier=False)
+        except Exception:  # noqa: BLE001 - never in place of the error that ended the training
+            log.debug("destroy_process_group failed after an error", exc_info=True)
 
 
 class SoloWork:
