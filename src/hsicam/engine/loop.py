@@ -578,9 +578,9 @@ def deterministic_algorithms(enabled: bool):
 
 def _fit(task: Task, opts: FitOptions, run_dir: Path, resume: bool, lock: RunLock, new_run: OutputLock,
          stop: StopRequests) -> dict[str, Any]:
-    """The training of :func:`fit`, inside its locks and signal handlers: the steps of :class:`_Training` in order.
+    """The training of :func:`fit`, inside its locks and signal handlers: the parts of :class:`_Training` in order.
 
-    Under DDP every rank runs these same steps, so every rank reaches the same agreements (:class:`SoloWork`) and
+    Under DDP every rank runs these same parts, so every rank reaches the same agreements (:class:`SoloWork`) and
     collectives in the same order; rank 0's work alone between them is held in ``solo.work()``."""
     run = _Training(task, opts, run_dir, stop)
     record = run.check_run_and_data(resume, lock, new_run)
@@ -609,7 +609,7 @@ def _fit(task: Task, opts: FitOptions, run_dir: Path, resume: bool, lock: RunLoc
 
 class _Training:
     """One training of :func:`fit` on this rank: its settings, data, model, checkpoints and where it stands
-    (``state``, a :class:`LoopState`). :func:`_fit` calls its steps in order.
+    (``state``, a :class:`LoopState`). :func:`_fit` calls its parts in order.
 
     Invariants kept by every method: each rank calls the same collectives (``solo.agree``/``solo.reduce``, DDP's,
     the loss's ``all_reduce``) in the same order; rank 0's work alone (the run folder, metrics, checkpoints,
@@ -661,8 +661,7 @@ class _Training:
         return record
 
     def read_datasets(self) -> None:
-        """Every rank reads its data (one rank's error, e.g. a file only it reads, is told before any file is made);
-        then the run's length: ``steps_per_epoch`` and ``total_steps``."""
+        """Every rank reads its data, and agrees; then the run's length: ``steps_per_epoch`` and ``total_steps``."""
         t, task = self.t, self.task
         with self.solo.work():  # every rank reads its data: one rank's error (a file only it reads) is told before any file is made
             self.train_ds, self.val_ds = task.datasets()
