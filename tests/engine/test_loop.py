@@ -307,3 +307,33 @@ def test_clearing_an_errors_frames_reaches_the_errors_it_was_raised_from():
                 alive = refs[0]() is not None
             # the top traceback alone does not reach the step's frame; the chain does
             assert alive is (clear is not _clear_traceback_frames), how
+
+
+def test_a_failed_rank_told_in_an_earlier_fit_is_not_named_for_a_later_fits_own_error(tmp_path, monkeypatch):
+    """A rank that fails on its own leaves its number in the group's store for the other ranks' failed collective
+    (PeerFailed names it). The key was one for the whole group: in a group a script made itself and trained in twice,
+    a second fit's own error of rank 0 was put on the rank that failed in the first (measured with two gloo processes:
+    `_failed_peer(0)` returned 1). Reference: a real in-process c10d store, and what it holds after each fit starts."""
+    import torch.distributed as dist
+
+    from hsicam.config import TrainConfig
+    from hsicam.engine import loop
+
+    store = dist.HashStore()
+    monkeypatch.setattr(dist.distributed_c10d, "_get_default_store", lambda: store)
+
+    class FailsAtOnce(loop.Task):
+        def data_record(self):
+            raise InputError("this rank's own error")
+
+    def a_fit_ending_in_its_own_error(name):
+        with pytest.raises(InputError, match="this rank's own error"):
+            fit(FailsAtOnce(), FitOptions(loop=TrainConfig()), tmp_path / name)
+
+    a_fit_ending_in_its_own_error("first")
+    loop._tell_failure(1)  # in that fit, rank 1 failed on its own
+    assert loop._failed_peer(0) == 1 and loop._failed_peer(1) is None
+    a_fit_ending_in_its_own_error("second")  # the next fit: rank 0's error is its own
+    assert loop._failed_peer(0) is None
+    loop._tell_failure(1)
+    assert loop._failed_peer(0) == 1

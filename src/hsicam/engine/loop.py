@@ -312,6 +312,8 @@ def fit(task: Task, opts: FitOptions, run_dir: str | Path, resume: bool = False,
     reached one alone (the training's last agreement carries it). An error of one rank in a training step (e.g. a
     scene file only it reads) ends the others, whose collective of that step then fails, with
     :class:`~hsicam.errors.PeerFailed` naming it (:func:`_tell_failure`), not gloo's traceback."""
+    global _fit_calls
+    _fit_calls += 1  # (this call's failed-rank key: _failed_rank_key)
     rank, world, local_rank = dist_env()
     if opts.loop.batch_size % world:  # before the group: one rank's error tore its half down while the other connected
         raise InputError(f"train.batch_size={opts.loop.batch_size} must be divisible by the {world} processes")
@@ -465,8 +467,17 @@ def _end_group(barrier: bool) -> None:
             dist.destroy_process_group()
 
 
-#: The key of the group's store under which a rank that fails on its own leaves its number (:func:`_tell_failure`).
+#: The key of the group's store under which a rank that fails on its own leaves its number (:func:`_tell_failure`),
+#: followed by the number of the :func:`fit` call (:func:`_failed_rank_key`).
 _FAILED_RANK_KEY = "hsicam/failed_rank"
+_fit_calls = 0  # fit calls in this process so far: every rank of a group calls fit alike, so the numbers match
+
+
+def _failed_rank_key() -> str:
+    """The store key of this :func:`fit` call's failed rank. One per call: a key left by an earlier fit in the same
+    group (a script that made its own group and trains twice) named that fit's failed rank for a later fit's own
+    error; a delete when fit starts would race a peer still telling the earlier failure."""
+    return f"{_FAILED_RANK_KEY}/{_fit_calls}"
 
 
 def _tell_failure(rank: int) -> None:
@@ -475,8 +486,9 @@ def _tell_failure(rank: int) -> None:
     that goes well."""
     try:
         store = dist.distributed_c10d._get_default_store()
-        store.set(_FAILED_RANK_KEY, str(rank))
-        store.get(_FAILED_RANK_KEY)  # a round trip (a set is not answered): the store holds it before the group ends
+        key = _failed_rank_key()
+        store.set(key, str(rank))
+        store.get(key)  # a round trip (a set is not answered): the store holds it before the group ends
     except Exception:  # noqa: BLE001 - never in place of the error that ended the training
         log.debug("could not tell the other ranks that rank %d failed", rank, exc_info=True)
 
@@ -486,7 +498,8 @@ def _failed_peer(rank: int) -> int | None:
     else None (this rank's error is its own, or a peer was killed outright)."""
     try:
         store = dist.distributed_c10d._get_default_store()
-        failed = int(store.get(_FAILED_RANK_KEY)) if store.check([_FAILED_RANK_KEY]) else None
+        key = _failed_rank_key()
+        failed = int(store.get(key)) if store.check([key]) else None
     except Exception:  # noqa: BLE001 - no word from another rank: the collective's own error is the one to report
         return None
     return failed if failed != rank else None
