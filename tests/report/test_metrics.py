@@ -176,7 +176,6 @@ def test_ssim_both_filter_paths_match_skimage(monkeypatch, matrix_max_px, chunk_
         assert metrics.ssim(est, truth)[b].item() == pytest.approx(ref, abs=1e-10)
 
 
-
 def test_ssim_as_a_loss_differentiates_only_the_estimates_filtered_images():
     """As the training loss (the truth without gradient) the truth's mean and variance are filtered outside
     autograd: the backward's matrix products run over the estimate's 3 filtered images (x, x², x·y), 3/5 of

@@ -145,9 +145,8 @@ def evaluate_psf(model, psf: torch.Tensor, scenes, names: Sequence[str], seed: i
     - the scenes are imaged with ``psf`` (a :class:`~hsicam.cameras.measured.FixedPSFCamera` with the model's CFA and
       sensor noise): the fabricated camera's measurement;
     - the whole reconstruction (the network, and the measurement-consistency steps when on) is ``model``'s own, on
-      ``model.camera``: the deployed system knows the design, not the fabrication error. (An unrolled network's
-      stages and the RDN's ``backprojection_input`` use the camera's PSFs; until session 64 they were handed ``psf``
-      itself, an error the deployed system would not know, so their tolerances came out optimistic.)
+      ``model.camera``: the deployed system knows the design, not the fabrication error (an unrolled network's
+      stages and the RDN's ``backprojection_input`` use the camera's PSFs: handed ``psf``, they would know it).
 
     This is the reverse of ``hsicam reconstruct --psf-dir``, whose consistency steps take the measured PSFs: there the
     measured PSFs are the best knowledge of the real camera; here ``psf`` is an error to be suffered, not known."""
