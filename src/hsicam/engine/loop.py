@@ -630,6 +630,30 @@ class _Training:
     of leaving them in a collective; a checkpoint is one commit (:class:`CheckpointManager`), so a kill at any moment
     leaves the last one whole; a stop signal or the budget stops every rank at the same step (:meth:`stop_here`)."""
 
+    # What the parts set, in the order :func:`_fit` calls them (each part reads only what an earlier one set):
+    # read_datasets
+    train_ds: Any
+    val_ds: Any
+    steps_per_epoch: int
+    total_steps: int
+    # build_model
+    model: nn.Module
+    optimizer: torch.optim.Optimizer
+    bands: Bands
+    meta: dict[str, str]
+    ckpt: CheckpointManager
+    metrics: MetricsLog
+    state: LoopState
+    # start
+    val_loader: Any
+    trainable: nn.Module  # the model, DDP-wrapped in a group
+    writer: Any
+    use_bar: bool
+    bar: Any
+    t_start: float
+    steps_done: int
+    last_val: float | None
+
     def __init__(self, task: Task, opts: FitOptions, run_dir: Path, stop: StopRequests) -> None:
         self.task, self.opts, self.t, self.run_dir, self.stop = task, opts, opts.loop, run_dir, stop
         self.rank, self.world, local_rank = dist_env()
@@ -795,7 +819,7 @@ class _Training:
         self.val_loader = (make_loader(self.val_ds, t.batch_size, self.opts.num_workers, shuffle=False)
                            if (self.val_ds is not None and is_main) else None)
         task.on_device(device)
-        self.trainable: nn.Module = self.model
+        self.trainable = self.model
         if self.distributed:
             self.trainable = torch.nn.parallel.DistributedDataParallel(
                 self.model, device_ids=[device.index] if device.type == "cuda" else None,
