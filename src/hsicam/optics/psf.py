@@ -57,9 +57,16 @@ class _PSFBatch(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx, phase: torch.Tensor, amplitude: torch.Tensor, weights: torch.Tensor) -> torch.Tensor:  # type: ignore[override]
-        n = weights.shape[-1]
+        n, p = weights.shape[-1], phase.shape[-1]
         field = torch.polar(amplitude.expand_as(phase), phase)
-        spec = torch.fft.fft(torch.fft.fft(field, n=n, dim=-1), n=n, dim=-2)
+        rows = torch.fft.fft(field, n=n, dim=-1)  # (L, P, N)
+        # the column transforms run along the contiguous last dimension of a transposed zero canvas (what
+        # fft(dim=-2) copies its input into anyway): one copy of the P non-zero rows, not a padded copy and a
+        # transposing copy of all N; spec is the same tensor, bit for bit, in the same memory layout
+        canvas = rows.new_empty(rows.shape[0], n, n)
+        canvas[..., p:].zero_()
+        canvas[..., :p].copy_(rows.transpose(-1, -2))
+        spec = torch.fft.fft(canvas, dim=-1).transpose(-1, -2)
         inten = spec.real.square() + spec.imag.square()
         pooled = weights @ inten @ weights.transpose(-1, -2)
         ctx.save_for_backward(phase, field, spec, weights)
@@ -72,7 +79,9 @@ class _PSFBatch(torch.autograd.Function):
         n, p = weights.shape[-1], phase.shape[-1]
         g = weights.transpose(-1, -2) @ grad @ weights  # (L, N, N): adjoint of W·I·Wᵀ
         # ∂L/∂u = 2·(adjoint of the zero-padded FFT)(g·U) = 2n²·ifft(g·U), first p rows/columns
-        gf = torch.fft.ifft(spec * g, dim=-2)[..., :p, :]
+        # spec (complex) times g (real) as real pairs: no complex copy of g, the same products
+        sg = torch.view_as_complex(torch.view_as_real(spec) * g[..., None])
+        gf = torch.fft.ifft(sg, dim=-2)[..., :p, :]
         gf = torch.fft.ifft(gf, dim=-1)[..., :p]
         gf = gf * (2.0 * n * n)
         grad_phase = (field.conj() * gf).imag if ctx.needs_input_grad[0] else None
