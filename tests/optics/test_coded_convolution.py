@@ -202,3 +202,42 @@ def test_coded_adjoint_keeps_gradients_to_the_psf():
     (grad_plain,) = torch.autograd.grad((conv_valid_adjoint(y * kappa, psf) * weights).sum(), psf)
     torch.testing.assert_close(grad_coded, grad_plain, rtol=1e-12, atol=1e-13)
     assert grad_coded.abs().max() > 0
+
+
+def test_coded_convolution_for_training_fills_one_canvas_and_copies_no_spectrum_transposed(monkeypatch):
+    """The training op (PSFs and κ with gradients, the scene without), one band a chunk as on a CPU: its forward
+    zero-fills one FFT canvas for all the chunks (the scene chunk only ever overwrites the same corner; it was one
+    canvas a chunk: 31 fills of 3 MB in a quick training step) and its backward's column transforms run on a
+    transposed canvas (fft(dim=-2) of a plain canvas copied each chunk's spectrum transposed first; review 64). The
+    measurement and both gradients against the direct shift-and-add convolution, differentiated by autograd."""
+    from torch.profiler import ProfilerActivity, profile
+
+    import hsicam.optics.convolution as conv
+
+    g = torch.Generator().manual_seed(64)
+    b, c, k, h, w = 2, 3, 5, 6, 7
+    x = torch.rand(b, c, h + k - 1, w + k - 1, generator=g, dtype=torch.float64)
+    psf = torch.rand(c, k, k, generator=g, dtype=torch.float64, requires_grad=True)
+    kappa = torch.rand(c, h, w, generator=g, dtype=torch.float64, requires_grad=True)
+    weight = torch.rand(b, 1, h, w, generator=g, dtype=torch.float64)
+    lh, lw = conv.linear_fft_shape((h + k - 1, w + k - 1))
+    monkeypatch.setattr(conv, "chunk_bytes", lambda device: b * lh * (lw // 2 + 1) * 16)  # the batch, one band
+    assert len(conv._spectrum_chunks(b, c, (lh, lw), x)) == c
+
+    def top_level(run):  # (op, shape of its first input) of the ops ``run`` calls, and its result
+        with profile(activities=[ProfilerActivity.CPU], record_shapes=True) as prof:
+            result = run()
+        return [(e.name, list(e.input_shapes[0])) for e in prof.events() if e.input_shapes], result
+
+    forward, out = top_level(lambda: coded_conv_valid(x, psf, kappa))
+    backward, grads = top_level(lambda: torch.autograd.grad((out * weight).sum(), (psf, kappa)))
+    assert forward.count(("aten::zero_", [b, 1, lh, lw])) == 1
+    assert ("aten::copy_", [b, 1, lw // 2 + 1, lh]) not in backward
+
+    r = k // 2
+    direct = sum(psf[None, :, r + dy, r + dx, None, None] * x[:, :, r - dy : r - dy + h, r - dx : r - dx + w]
+                 for dy in range(-r, r + 1) for dx in range(-r, r + 1))
+    ref = (direct * kappa).sum(1, keepdim=True)
+    torch.testing.assert_close(out, ref, rtol=1e-12, atol=1e-12)
+    for got, want in zip(grads, torch.autograd.grad((ref * weight).sum(), (psf, kappa))):
+        torch.testing.assert_close(got, want, rtol=1e-12, atol=1e-12)

@@ -167,7 +167,11 @@ def _rfft2_rows(img: torch.Tensor, shape: tuple[int, int], row0: int, col0: int)
     """rfft2 of ``img`` (…, h, w) placed at (row0, col0) in a zero ``shape`` canvas (pruned:
     the row transforms run over the h non-zero rows only)."""
     rows = torch.fft.rfft(_placed(img, (img.shape[-2], shape[1]), 0, col0), dim=-1)
-    return torch.fft.fft(_placed(rows, (shape[0], rows.shape[-1]), row0, 0), dim=-2)
+    # the column transforms on a transposed canvas (what fft(dim=-2) would copy a plain canvas into): the same
+    # spectrum, bit for bit, returned as the transposed view that fft(dim=-2) returns, one copy of the chunk fewer
+    canvas = rows.new_zeros(rows.shape[:-2] + (rows.shape[-1], shape[0]))
+    canvas[..., row0 : row0 + rows.shape[-2]].copy_(rows.transpose(-1, -2))
+    return torch.fft.fft(canvas, dim=-1).transpose(-1, -2)
 
 
 def same_spectra(psf: torch.Tensor, fft_shape: tuple[int, int]) -> torch.Tensor:
@@ -236,8 +240,13 @@ class _CodedConvolution(torch.autograd.Function):
         keep_xf = recording and ctx.needs_input_grad[1] and not ctx.needs_input_grad[0]
         kept_xf = []
         g = x.new_zeros(batch, h, w)
+        canvas = None  # one zero canvas for the chunks of a shape: only its top-left corner is ever written
         for bs, cs in chunks:
-            xf = torch.fft.rfft2(_placed(x[bs, cs], shape))
+            size = x[bs, cs].shape[:2]
+            if canvas is None or canvas.shape[:2] != size:
+                canvas = x.new_zeros(size + shape)
+            canvas[..., :hx, :wx] = x[bs, cs]
+            xf = torch.fft.rfft2(canvas)
             spectrum = torch.fft.rfft2(psf[cs], s=shape) if psf_f is None else psf_f[cs]
             if keep_xf:
                 kept_xf.append(xf)
