@@ -165,7 +165,24 @@ def validate_system(model: CameraSystem, loader, device: torch.device,
     return out
 
 
-class SystemTask(Task):
+class _ConfigDataTask(Task):
+    """A task trained on the scenes of its config's ``data`` section (``self.cfg.data``, on ``self.bands``): the
+    synthetic set generated (or a folder listed) once before the ranks read it, recorded in ``RUN/data.json``, and a
+    resume warned when the generator version changed since the run began."""
+
+    cfg: Config
+
+    def prepare_data(self) -> None:
+        dataset_root(self.cfg.data, self.bands)
+
+    def data_record(self) -> dict[str, Any] | None:
+        return data_record(self.cfg.data, self.bands)
+
+    def resume_warning(self, run_dir: Path) -> str | None:
+        return generator_change_warning(run_dir, self.cfg.data, "goes on")
+
+
+class SystemTask(_ConfigDataTask):
     """Camera + network trained end to end: each step simulates sensor images of ground-truth
     patches through the *current* optics, reconstructs them, loss L1 (paper eq. 10).
 
@@ -258,15 +275,6 @@ class SystemTask(Task):
         if t.compile:
             self.model.net.compile()  # in place: state-dict keys stay those of the plain module
 
-    def prepare_data(self) -> None:
-        dataset_root(self.cfg.data, self.bands)
-
-    def data_record(self) -> dict[str, Any] | None:
-        return data_record(self.cfg.data, self.bands)
-
-    def resume_warning(self, run_dir: Path) -> str | None:
-        return generator_change_warning(run_dir, self.cfg.data, "goes on")
-
     def datasets(self):
         return build_datasets(self.cfg.data, self.bands, self.model.camera.margin,
                               code_period=getattr(self.model.camera, "code_period", 1), stream=self.cfg.train.seed)
@@ -296,7 +304,7 @@ class SystemTask(Task):
         return summary
 
 
-class PriorTask(Task):
+class PriorTask(_ConfigDataTask):
     """The Choi et al. spectral prior: a denoising autoencoder on training-split patches of
     ``cfg.data`` (bands ``cfg.bands``); inputs corrupted by Gaussian noise of σ uniform in
     [0, ``train_noise``] per patch, loss MSE. Writes ``prior.safetensors`` and, last,
@@ -331,15 +339,6 @@ class PriorTask(Task):
             fh.write(dump_yaml(self.cfg))
         with atomic_open(run_dir / "prior.yaml", encoding="utf-8") as fh:
             fh.write(yaml.safe_dump(dataclasses.asdict(self.settings), sort_keys=False))
-
-    def prepare_data(self) -> None:
-        dataset_root(self.cfg.data, self.bands)
-
-    def data_record(self) -> dict[str, Any] | None:
-        return data_record(self.cfg.data, self.bands)
-
-    def resume_warning(self, run_dir: Path) -> str | None:
-        return generator_change_warning(run_dir, self.cfg.data, "goes on")
 
     def datasets(self):
         """The published prior's training data: clean patches, never relit (``data.augment_relight`` is
