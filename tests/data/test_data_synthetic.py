@@ -383,18 +383,24 @@ def test_scenes_added_to_a_partial_set_after_an_upgrade_keep_the_first_scenes_ve
     assert syn.version_differences(part) == [diff] and len(_warnings(caplog)) == 1
 
 
-def test_a_partial_set_cut_short_after_its_first_scene_keeps_its_record(tmp_path, monkeypatch, caplog):
-    """partial.json was written after the last scene: `hsicam evaluate` interrupted after scene 0 of [0, 2] left
-    scene_0000.h5 alone, and the rerun (the folder no longer empty) wrote none, so after an upgrade the scene was
-    reused without the warning. The record now comes with the first scene: the versions that wrote it."""
-    real, write = syn._versions(), syn._write_scene
+def _interrupt_the_write_of_scene(index, monkeypatch):
+    """A KeyboardInterrupt where scene ``index`` would be written (a Ctrl-C mid-generation); returns the real writer."""
+    write = syn._write_scene
 
     def interrupted(out, i, *args, **kwargs):
-        if i == 2:
+        if i == index:
             raise KeyboardInterrupt
         return write(out, i, *args, **kwargs)
 
     monkeypatch.setattr(syn, "_write_scene", interrupted)
+    return write
+
+
+def test_a_partial_set_cut_short_after_its_first_scene_keeps_its_record(tmp_path, monkeypatch, caplog):
+    """partial.json was written after the last scene: `hsicam evaluate` interrupted after scene 0 of [0, 2] left
+    scene_0000.h5 alone, and the rerun (the folder no longer empty) wrote none, so after an upgrade the scene was
+    reused without the warning. The record now comes with the first scene: the versions that wrote it."""
+    real, write = syn._versions(), _interrupt_the_write_of_scene(2, monkeypatch)
     with pytest.raises(KeyboardInterrupt):
         syn.synthetic_scenes([0, 2], N, SIZE, 0, BANDS, cache_dir=tmp_path, progress=False)
     monkeypatch.setattr(syn, "_write_scene", write)
@@ -413,14 +419,7 @@ def test_a_whole_set_generation_cut_short_after_its_first_scene_keeps_a_record(t
     scene left scene_0000.h5 without any record of its versions (partial.json came from partial sets only): after an
     upgrade it was reused with "record no versions" only. Now the same record as a partial set's, with the first
     scene (reference: the manifest of the completed set); the completed set is a fresh one, byte for byte."""
-    real, write = syn._versions(), syn._write_scene
-
-    def interrupted(out, i, *args, **kwargs):
-        if i == 1:
-            raise KeyboardInterrupt
-        return write(out, i, *args, **kwargs)
-
-    monkeypatch.setattr(syn, "_write_scene", interrupted)
+    real, write = syn._versions(), _interrupt_the_write_of_scene(1, monkeypatch)
     with pytest.raises(KeyboardInterrupt):
         syn.synthetic_dataset(N, SIZE, 0, BANDS, cache_dir=tmp_path / "cut", progress=False)
     monkeypatch.setattr(syn, "_write_scene", write)
