@@ -320,32 +320,16 @@ def run_tolerance(model, cfg, spec: ToleranceSpec = ToleranceSpec(), data: str |
     weights file and its SHA-256) is recorded as ``"run"`` so that ``hsicam export-optics`` cites
     the study only for that run (None: not recorded). ``progress``: one line per sweep point, k/N
     with an ETA (:class:`hsicam.progress.Progress`; None: a bar on a terminal, lines otherwise; False: none)."""
-    from hsicam.cameras import DOECamera
-    from hsicam.cameras.measured import FixedPSFCamera
     from hsicam.export.doe import design_heights, level_grid_text, quantize_levels
     from hsicam.export.tolerance import TOLERANCE_FORMAT, run_identity
     from hsicam.progress import Progress
 
     spec.check()
-    cam = model.camera
-    if not isinstance(cam, DOECamera) or not hasattr(cam, "optics"):
-        raise InputError(f"{'' if run is None else f'{run}: '}tolerance analysis needs a DOE camera (camera.kind: doe), "
-                         f"got camera.kind: {cfg.camera.kind}")
-    if run is not None:
-        refuse_finetuned_run(run)
-    if isinstance(cam, FixedPSFCamera):  # a model imaging with measured PSFs (fine-tuned run)
-        raise InputError("the model images with measured PSFs (a run fine-tuned on them): a tolerance study perturbs "
-                         "the simulated design optics; study the design run it was fine-tuned from")
+    cam = _studied_camera(model, cfg, run)
     optics = cam.optics
     check_sweeps(spec, optics)
     has_doe = bool(optics.doe.enabled)
-    skipped: dict[str, str] = {}
-    if not has_doe:
-        why = ("the camera has no DOE (camera.doe.enabled: false): there is no element whose heights, "
-               "quantisation or position could be in error")
-        skipped = {"sigma_height_nm": why, "levels": why, "shift": why}
-        log.info("tolerance: the camera has no DOE (camera.doe.enabled: false): the DOE sweeps (height noise, "
-                 "quantisation levels, lateral shift) are skipped; the sensor distance sweep is run")
+    skipped = _skipped_doe_sweeps(has_doe)
     studied_run = None if run is None else run_identity(run)
     t0 = time.perf_counter()
     scenes, names = evaluation_scenes(cfg, cam.bands, spec.max_scenes, data)
@@ -354,8 +338,7 @@ def run_tolerance(model, cfg, spec: ToleranceSpec = ToleranceSpec(), data: str |
     nominal = evaluate_psf(model, nominal_psf.psf, scenes, names, spec.seed)
     log.info("tolerance: nominal PSNR %.2f dB on %d scene(s)", nominal["psnr"], len(names))
     rows: list[dict[str, Any]] = []
-    points = (len(spec.sigma_height_nm) + len(spec.levels) + 2 * len(spec.shift_cells) if has_doe else 0) + \
-        len(spec.sensor_distance_um)
+    points = _point_count(spec, has_doe)
     with Progress(points, "tolerance", "point", show=progress, every_s=0) as bar:  # closed on an error too
 
         def record(sweep: str, value: float, unit: str, metrics: list[dict[str, float]], energy: torch.Tensor, **extra) -> None:
@@ -488,6 +471,41 @@ def run_tolerance(model, cfg, spec: ToleranceSpec = ToleranceSpec(), data: str |
         "rows": rows,
         "elapsed_s": time.perf_counter() - t0,
     }
+
+
+def _studied_camera(model, cfg, run: str | Path | None):
+    """``model``'s camera, or the InputError of a model the study cannot perturb: not a DOE camera, or a
+    run fine-tuned on measured PSFs (:func:`refuse_finetuned_run`)."""
+    from hsicam.cameras import DOECamera
+    from hsicam.cameras.measured import FixedPSFCamera
+
+    cam = model.camera
+    if not isinstance(cam, DOECamera) or not hasattr(cam, "optics"):
+        raise InputError(f"{'' if run is None else f'{run}: '}tolerance analysis needs a DOE camera (camera.kind: doe), "
+                         f"got camera.kind: {cfg.camera.kind}")
+    if run is not None:
+        refuse_finetuned_run(run)
+    if isinstance(cam, FixedPSFCamera):  # a model imaging with measured PSFs (fine-tuned run)
+        raise InputError("the model images with measured PSFs (a run fine-tuned on them): a tolerance study perturbs "
+                         "the simulated design optics; study the design run it was fine-tuned from")
+    return cam
+
+
+def _skipped_doe_sweeps(has_doe: bool) -> dict[str, str]:
+    """tolerance.json's ``skipped``: for a camera without a DOE, the DOE sweeps and why (logged); else empty."""
+    if has_doe:
+        return {}
+    why = ("the camera has no DOE (camera.doe.enabled: false): there is no element whose heights, "
+           "quantisation or position could be in error")
+    log.info("tolerance: the camera has no DOE (camera.doe.enabled: false): the DOE sweeps (height noise, "
+             "quantisation levels, lateral shift) are skipped; the sensor distance sweep is run")
+    return {"sigma_height_nm": why, "levels": why, "shift": why}
+
+
+def _point_count(spec: ToleranceSpec, has_doe: bool) -> int:
+    """How many cases the study evaluates after the nominal one (the progress bar's total)."""
+    return (len(spec.sigma_height_nm) + len(spec.levels) + 2 * len(spec.shift_cells) if has_doe else 0) + \
+        len(spec.sensor_distance_um)
 
 
 # ------------------------------------------------------------------------------------------------
