@@ -320,7 +320,7 @@ def run_tolerance(model, cfg, spec: ToleranceSpec = ToleranceSpec(), data: str |
     weights file and its SHA-256) is recorded as ``"run"`` so that ``hsicam export-optics`` cites
     the study only for that run (None: not recorded). ``progress``: one line per sweep point, k/N
     with an ETA (:class:`hsicam.progress.Progress`; None: a bar on a terminal, lines otherwise; False: none)."""
-    from hsicam.export.doe import design_heights, level_grid_text, quantize_levels
+    from hsicam.export.doe import level_grid_text
     from hsicam.export.tolerance import TOLERANCE_FORMAT, run_identity
     from hsicam.progress import Progress
 
@@ -333,71 +333,33 @@ def run_tolerance(model, cfg, spec: ToleranceSpec = ToleranceSpec(), data: str |
     studied_run = None if run is None else run_identity(run)
     t0 = time.perf_counter()
     scenes, names = evaluation_scenes(cfg, cam.bands, spec.max_scenes, data)
+
+    def evaluate(psf: torch.Tensor) -> dict[str, float]:
+        """The fixed network's metrics on the study's scenes imaged with ``psf`` (:func:`evaluate_psf`)."""
+        return evaluate_psf(model, psf, scenes, names, spec.seed)
+
     h0 = nominal_heights(cam)
     nominal_psf = psf_for_heights(optics, h0)
-    nominal = evaluate_psf(model, nominal_psf.psf, scenes, names, spec.seed)
+    nominal = evaluate(nominal_psf.psf)
     log.info("tolerance: nominal PSNR %.2f dB on %d scene(s)", nominal["psnr"], len(names))
     rows: list[dict[str, Any]] = []
+    big_q = shift_subsamples_for(optics, spec.shift_subsamples)
+    shift_ref = None
     points = _point_count(spec, has_doe)
     with Progress(points, "tolerance", "point", show=progress, every_s=0) as bar:  # closed on an error too
 
-        def record(sweep: str, value: float, unit: str, metrics: list[dict[str, float]], energy: torch.Tensor, **extra) -> None:
-            ps = [m["psnr"] for m in metrics]
-            bar.update(note=f"{sweep} {value:g} {unit}: PSNR {float(np.mean(ps)):.2f} dB")
-            rows.append({"sweep": sweep, "value": value, "unit": unit, "psnr": float(np.mean(ps)),
-                         "psnr_std": float(np.std(ps)) if len(ps) > 1 else 0.0,
-                         "ssim": float(np.mean([m["ssim"] for m in metrics])),
-                         "sam": float(np.mean([m["sam"] for m in metrics])), "n": len(metrics),
-                         "energy_in_kernel_min": float(energy.min()), **extra})
+        def record(sweep: str, value: float, unit: str, metrics: list[dict[str, float]], energy: torch.Tensor,
+                   **extra) -> None:
+            """One evaluated case: its progress line and its row (:func:`_row`)."""
+            row = _row(sweep, value, unit, metrics, energy, **extra)
+            bar.update(note=f"{sweep} {value:g} {unit}: PSNR {row['psnr']:.2f} dB")
+            rows.append(row)
 
-        # height noise: one fixed error realisation per draw (a fabricated element)
-        for sigma in spec.sigma_height_nm if has_doe else ():
-            ms, en = [], []
-            for d in range(spec.height_draws if sigma > 0 else 1):
-                g = torch.Generator().manual_seed(spec.seed * TOLERANCE_DRAW_STRIDE + d)
-                noise = torch.randn(h0.shape, generator=g, dtype=torch.float64) * sigma * 1e-9
-                res = psf_for_heights(optics, h0 + noise)
-                ms.append(evaluate_psf(model, res.psf, scenes, names, spec.seed))
-                en.append(res.energy.min())
-            record("sigma_height_nm", sigma, "nm", ms, torch.stack(en))
-        # quantisation: the exported L-level heights
         if has_doe:
-            h_design, _, _ = design_heights(cam)
-        for lv in spec.levels if has_doe else ():
-            _, hq = quantize_levels(h_design, lv, *optics.doe.level_grid())
-            res = psf_for_heights(optics, torch.from_numpy(hq))
-            record("levels", lv, "levels", [evaluate_psf(model, res.psf, scenes, names, spec.seed)], res.energy)
-        # lateral misalignment along x and along the diagonal, on the Q-oversampled pupil; the
-        # reference is the same model without shift (its PSFs differ from the trained q-model's:
-        # higher orders of the cell grid leave the kernel instead of folding back in)
-        big_q = shift_subsamples_for(optics, spec.shift_subsamples)
-        shift_ref = None
-        if has_doe:
-            fine = oversampled_optics(optics, big_q)
-            for sweep, direction in (("shift_x_cells", (0.0, 1.0)), ("shift_diag_cells", (1.0, 1.0))):
-                for s in spec.shift_cells:
-                    if s == 0 and shift_ref is not None:
-                        psf, energy, applied, m0 = shift_ref
-                    else:
-                        psf, energy, applied = psf_shifted(fine, h0, s * direction[0], s * direction[1])
-                        m0 = evaluate_psf(model, psf, scenes, names, spec.seed)
-                        if s == 0:
-                            shift_ref = (psf, energy, applied, m0)
-                    record(sweep, s, "cells", [m0], energy, applied_cells=list(applied),
-                           shift_um=[a * optics.cell_m * 1e6 for a in applied], pupil_oversample=big_q)
-            if shift_ref is None:
-                psf, energy, _ = psf_shifted(fine, h0, 0.0, 0.0)
-                shift_ref = (psf, energy, (0.0, 0.0), evaluate_psf(model, psf, scenes, names, spec.seed))
-            del fine
-        # sensor distance error
-        lam0 = optics.doe.design_wavelength_nm * 1e-9
-        z = optics.sensor_distance_m
-        for dz_um in spec.sensor_distance_um:
-            dz = dz_um * 1e-6
-            res = psf_sensor_moved(optics, h0, dz)
-            waves = optics.aperture_radius_m**2 / 2 * (1 / (z + dz) - 1 / z) / lam0
-            record("sensor_distance_um", dz_um, "um", [evaluate_psf(model, res.psf, scenes, names, spec.seed)], res.energy,
-                   defocus_waves=float(waves), magnification_change=float(dz / z))
+            _sweep_height_noise(spec, optics, h0, evaluate, record)
+            _sweep_levels(spec, cam, evaluate, record)
+            shift_ref = _sweep_shift(spec, optics, h0, big_q, evaluate, record)
+        _sweep_sensor_distance(spec, optics, h0, evaluate, record)
 
     sweeps: dict[str, Any] = {}
     for r in rows:
@@ -506,6 +468,84 @@ def _point_count(spec: ToleranceSpec, has_doe: bool) -> int:
     """How many cases the study evaluates after the nominal one (the progress bar's total)."""
     return (len(spec.sigma_height_nm) + len(spec.levels) + 2 * len(spec.shift_cells) if has_doe else 0) + \
         len(spec.sensor_distance_um)
+
+
+def _row(sweep: str, value: float, unit: str, metrics: list[dict[str, float]], energy: torch.Tensor,
+         **extra) -> dict[str, Any]:
+    """One row of tolerance.json's ``rows`` and tolerance.csv: the mean (and, over several draws, the std) of
+    ``metrics``, and the least energy left in the kernel over the bands (and draws)."""
+    ps = [m["psnr"] for m in metrics]
+    return {"sweep": sweep, "value": value, "unit": unit, "psnr": float(np.mean(ps)),
+            "psnr_std": float(np.std(ps)) if len(ps) > 1 else 0.0,
+            "ssim": float(np.mean([m["ssim"] for m in metrics])),
+            "sam": float(np.mean([m["sam"] for m in metrics])), "n": len(metrics),
+            "energy_in_kernel_min": float(energy.min()), **extra}
+
+
+def _sweep_height_noise(spec: ToleranceSpec, optics, h0: torch.Tensor, evaluate, record) -> None:
+    """Records each σ_p of ``spec.sigma_height_nm`` over ``spec.height_draws`` draws (one draw for σ_p = 0)."""
+    # height noise: one fixed error realisation per draw (a fabricated element)
+    for sigma in spec.sigma_height_nm:
+        ms, en = [], []
+        for d in range(spec.height_draws if sigma > 0 else 1):
+            g = torch.Generator().manual_seed(spec.seed * TOLERANCE_DRAW_STRIDE + d)
+            noise = torch.randn(h0.shape, generator=g, dtype=torch.float64) * sigma * 1e-9
+            res = psf_for_heights(optics, h0 + noise)
+            ms.append(evaluate(res.psf))
+            en.append(res.energy.min())
+        record("sigma_height_nm", sigma, "nm", ms, torch.stack(en))
+
+
+def _sweep_levels(spec: ToleranceSpec, cam, evaluate, record) -> None:
+    """Records each level count of ``spec.levels``."""
+    from hsicam.export.doe import design_heights, quantize_levels
+
+    optics = cam.optics
+    # quantisation: the exported L-level heights
+    h_design, _, _ = design_heights(cam)
+    for lv in spec.levels:
+        _, hq = quantize_levels(h_design, lv, *optics.doe.level_grid())
+        res = psf_for_heights(optics, torch.from_numpy(hq))
+        record("levels", lv, "levels", [evaluate(res.psf)], res.energy)
+
+
+def _sweep_shift(spec: ToleranceSpec, optics, h0: torch.Tensor, big_q: int, evaluate,
+                 record) -> tuple[torch.Tensor, torch.Tensor, tuple[float, float], dict[str, float]]:
+    """Records each shift of ``spec.shift_cells`` along x, then along the diagonal, on the pupil oversampled to
+    ``big_q`` samples per cell; returns the reference (psf, energy, applied shift, metrics): the unshifted case."""
+    # lateral misalignment along x and along the diagonal, on the Q-oversampled pupil; the
+    # reference is the same model without shift (its PSFs differ from the trained q-model's:
+    # higher orders of the cell grid leave the kernel instead of folding back in)
+    shift_ref = None
+    fine = oversampled_optics(optics, big_q)
+    for sweep, direction in (("shift_x_cells", (0.0, 1.0)), ("shift_diag_cells", (1.0, 1.0))):
+        for s in spec.shift_cells:
+            if s == 0 and shift_ref is not None:
+                psf, energy, applied, m0 = shift_ref
+            else:
+                psf, energy, applied = psf_shifted(fine, h0, s * direction[0], s * direction[1])
+                m0 = evaluate(psf)
+                if s == 0:
+                    shift_ref = (psf, energy, applied, m0)
+            record(sweep, s, "cells", [m0], energy, applied_cells=list(applied),
+                   shift_um=[a * optics.cell_m * 1e6 for a in applied], pupil_oversample=big_q)
+    if shift_ref is None:
+        psf, energy, _ = psf_shifted(fine, h0, 0.0, 0.0)
+        shift_ref = (psf, energy, (0.0, 0.0), evaluate(psf))
+    return shift_ref
+
+
+def _sweep_sensor_distance(spec: ToleranceSpec, optics, h0: torch.Tensor, evaluate, record) -> None:
+    """Records each Δz of ``spec.sensor_distance_um``, with its peak residual defocus in waves at the design
+    wavelength and the (unapplied) magnification change."""
+    lam0 = optics.doe.design_wavelength_nm * 1e-9
+    z = optics.sensor_distance_m
+    for dz_um in spec.sensor_distance_um:
+        dz = dz_um * 1e-6
+        res = psf_sensor_moved(optics, h0, dz)
+        waves = optics.aperture_radius_m**2 / 2 * (1 / (z + dz) - 1 / z) / lam0
+        record("sensor_distance_um", dz_um, "um", [evaluate(res.psf)], res.energy,
+               defocus_waves=float(waves), magnification_change=float(dz / z))
 
 
 # ------------------------------------------------------------------------------------------------
