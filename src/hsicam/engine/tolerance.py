@@ -320,7 +320,6 @@ def run_tolerance(model, cfg, spec: ToleranceSpec = ToleranceSpec(), data: str |
     weights file and its SHA-256) is recorded as ``"run"`` so that ``hsicam export-optics`` cites
     the study only for that run (None: not recorded). ``progress``: one line per sweep point, k/N
     with an ETA (:class:`hsicam.progress.Progress`; None: a bar on a terminal, lines otherwise; False: none)."""
-    from hsicam.export.doe import level_grid_text
     from hsicam.export.tolerance import TOLERANCE_FORMAT, run_identity
     from hsicam.progress import Progress
 
@@ -361,47 +360,8 @@ def run_tolerance(model, cfg, spec: ToleranceSpec = ToleranceSpec(), data: str |
             shift_ref = _sweep_shift(spec, optics, h0, big_q, evaluate, record)
         _sweep_sensor_distance(spec, optics, h0, evaluate, record)
 
-    sweeps: dict[str, Any] = {}
-    for r in rows:
-        s = sweeps.setdefault(r["sweep"], {"unit": r["unit"], "values": [], "psnr": [], "psnr_std": [], "ssim": [], "sam": [],
-                                           "energy_in_kernel_min": []})
-        for k in ("psnr", "psnr_std", "ssim", "sam", "energy_in_kernel_min"):
-            s[k].append(r[k])
-        s["values"].append(r["value"])
-    summary = {}
-    # a null tolerance is either a sweep that never lost 1 dB or a side that holds no value but 0 (never swept):
-    # the second is named in "not_swept", so that neither reads as the other (:data:`NOT_SWEPT_KEY`)
-    not_swept: list[str] = []
-    if "sigma_height_nm" in sweeps:
-        sw = sweeps["sigma_height_nm"]
-        summary["sigma_height_nm_at_1db_loss"] = _tolerance_at(sw["values"], sw["psnr"], nominal["psnr"])
-        if not any(v != 0 for v in sw["values"]):
-            not_swept.append("sigma_height_nm_at_1db_loss")
-    shift_psnr0 = None if shift_ref is None else shift_ref[3]["psnr"]
-    for name in ("shift_x_cells", "shift_diag_cells"):
-        if name in sweeps and shift_psnr0 is not None:
-            sweeps[name]["reference_psnr"] = shift_psnr0
-            summary[f"{name}_at_1db_loss"] = _tolerance_at(sweeps[name]["values"], sweeps[name]["psnr"], shift_psnr0)
-            if not any(v != 0 for v in sweeps[name]["values"]):
-                not_swept.append(f"{name}_at_1db_loss")
-    if "sensor_distance_um" in sweeps:
-        sw = sweeps["sensor_distance_um"]
-        neg = [(v, p) for v, p in zip(sw["values"], sw["psnr"]) if v <= 0]
-        pos = [(v, p) for v, p in zip(sw["values"], sw["psnr"]) if v >= 0]
-        summary["sensor_distance_um_at_1db_loss"] = {
-            "minus": _tolerance_at([v for v, _ in neg], [p for _, p in neg], nominal["psnr"]),
-            "plus": _tolerance_at([v for v, _ in pos], [p for _, p in pos], nominal["psnr"]),
-        }
-        not_swept += [f"sensor_distance_um_at_1db_loss.{side}" for side, pts in (("minus", neg), ("plus", pos))
-                      if not any(v != 0 for v, _ in pts)]
-    if not_swept:
-        summary[NOT_SWEPT_KEY] = not_swept
-    if "levels" in sweeps:
-        req = levels_requirement(sweeps["levels"]["values"], sweeps["levels"]["psnr"], nominal["psnr"])
-        summary["min_levels_within_1db"] = req["min_levels_within_1db"]
-        summary["levels_bracketed"] = req["bracketed"]
-        if req["reason"]:
-            summary["levels_note"] = req["reason"]
+    sweeps = _sweeps_by_name(rows, None if shift_ref is None else shift_ref[3]["psnr"])
+    summary = _summary(sweeps, nominal["psnr"])
     return {
         "format": TOLERANCE_FORMAT,
         **({} if studied_run is None else {"run": studied_run}),
@@ -411,17 +371,7 @@ def run_tolerance(model, cfg, spec: ToleranceSpec = ToleranceSpec(), data: str |
         "spec": asdict(spec),
         "optics_studied": "design (the simulated optics of the run's config and weights)",
         "doe_enabled": has_doe,
-        "methods": {k: v for k, v in {
-            "sigma_height_nm": "i.i.d. Gaussian height error per cell; each draw = one fabricated DOE; mean ± std over draws",
-            "levels": f"exported L-level heights (piston removed; {level_grid_text(optics.doe)})",
-            "shift": (f"pupil oversampled to Q = {big_q} samples per cell, relief shifted by whole samples against the "
-                      "fixed aperture and lens; PSNR and its 1-dB tolerance relative to the same Q model without "
-                      "shift (reference_psnr)"),
-            "sensor_distance_um": ("optics rebuilt with the sensor dz farther: residual defocus and PSF scale "
-                                   "lambda*(z_lambda + dz)/d at every simulated wavelength, in the camera's kernel (the "
-                                   "scene's own magnification dz/z is not applied); values whose defocus would alias "
-                                   "on the pupil grid are refused"),
-        }.items() if k not in skipped},
+        "methods": _methods(optics, big_q, skipped),
         "sensor_distance_um_representable": [_um_toward_zero(v) if math.isfinite(v) else None
                                              for v in sensor_distance_limits_m(optics)],
         "skipped": skipped,
@@ -546,6 +496,78 @@ def _sweep_sensor_distance(spec: ToleranceSpec, optics, h0: torch.Tensor, evalua
         waves = optics.aperture_radius_m**2 / 2 * (1 / (z + dz) - 1 / z) / lam0
         record("sensor_distance_um", dz_um, "um", [evaluate(res.psf)], res.energy,
                defocus_waves=float(waves), magnification_change=float(dz / z))
+
+
+def _sweeps_by_name(rows: list[dict[str, Any]], shift_psnr0: float | None) -> dict[str, Any]:
+    """tolerance.json's ``sweeps``: the rows' columns per sweep; a shift sweep also holds its ``reference_psnr``
+    (``shift_psnr0``, the unshifted Q model's)."""
+    sweeps: dict[str, Any] = {}
+    for r in rows:
+        s = sweeps.setdefault(r["sweep"], {"unit": r["unit"], "values": [], "psnr": [], "psnr_std": [], "ssim": [], "sam": [],
+                                           "energy_in_kernel_min": []})
+        for k in ("psnr", "psnr_std", "ssim", "sam", "energy_in_kernel_min"):
+            s[k].append(r[k])
+        s["values"].append(r["value"])
+    for name in ("shift_x_cells", "shift_diag_cells"):
+        if name in sweeps and shift_psnr0 is not None:
+            sweeps[name]["reference_psnr"] = shift_psnr0
+    return sweeps
+
+
+def _summary(sweeps: dict[str, Any], nominal_psnr: float) -> dict[str, Any]:
+    """tolerance.json's ``summary``: each sweep's 1-dB tolerance (a shift's against its ``reference_psnr``, the
+    sensor distance's per side), those never swept (:data:`NOT_SWEPT_KEY`), and the level count required."""
+    summary = {}
+    # a null tolerance is either a sweep that never lost 1 dB or a side that holds no value but 0 (never swept):
+    # the second is named in "not_swept", so that neither reads as the other (:data:`NOT_SWEPT_KEY`)
+    not_swept: list[str] = []
+    if "sigma_height_nm" in sweeps:
+        sw = sweeps["sigma_height_nm"]
+        summary["sigma_height_nm_at_1db_loss"] = _tolerance_at(sw["values"], sw["psnr"], nominal_psnr)
+        if not any(v != 0 for v in sw["values"]):
+            not_swept.append("sigma_height_nm_at_1db_loss")
+    for name in ("shift_x_cells", "shift_diag_cells"):
+        if name in sweeps and "reference_psnr" in sweeps[name]:
+            summary[f"{name}_at_1db_loss"] = _tolerance_at(sweeps[name]["values"], sweeps[name]["psnr"],
+                                                           sweeps[name]["reference_psnr"])
+            if not any(v != 0 for v in sweeps[name]["values"]):
+                not_swept.append(f"{name}_at_1db_loss")
+    if "sensor_distance_um" in sweeps:
+        sw = sweeps["sensor_distance_um"]
+        neg = [(v, p) for v, p in zip(sw["values"], sw["psnr"]) if v <= 0]
+        pos = [(v, p) for v, p in zip(sw["values"], sw["psnr"]) if v >= 0]
+        summary["sensor_distance_um_at_1db_loss"] = {
+            "minus": _tolerance_at([v for v, _ in neg], [p for _, p in neg], nominal_psnr),
+            "plus": _tolerance_at([v for v, _ in pos], [p for _, p in pos], nominal_psnr),
+        }
+        not_swept += [f"sensor_distance_um_at_1db_loss.{side}" for side, pts in (("minus", neg), ("plus", pos))
+                      if not any(v != 0 for v, _ in pts)]
+    if not_swept:
+        summary[NOT_SWEPT_KEY] = not_swept
+    if "levels" in sweeps:
+        req = levels_requirement(sweeps["levels"]["values"], sweeps["levels"]["psnr"], nominal_psnr)
+        summary["min_levels_within_1db"] = req["min_levels_within_1db"]
+        summary["levels_bracketed"] = req["bracketed"]
+        if req["reason"]:
+            summary["levels_note"] = req["reason"]
+    return summary
+
+
+def _methods(optics, big_q: int, skipped: dict[str, str]) -> dict[str, str]:
+    """tolerance.json's ``methods``: how each sweep perturbs the camera, but those ``skipped``."""
+    from hsicam.export.doe import level_grid_text
+
+    return {k: v for k, v in {
+        "sigma_height_nm": "i.i.d. Gaussian height error per cell; each draw = one fabricated DOE; mean ± std over draws",
+        "levels": f"exported L-level heights (piston removed; {level_grid_text(optics.doe)})",
+        "shift": (f"pupil oversampled to Q = {big_q} samples per cell, relief shifted by whole samples against the "
+                  "fixed aperture and lens; PSNR and its 1-dB tolerance relative to the same Q model without "
+                  "shift (reference_psnr)"),
+        "sensor_distance_um": ("optics rebuilt with the sensor dz farther: residual defocus and PSF scale "
+                               "lambda*(z_lambda + dz)/d at every simulated wavelength, in the camera's kernel (the "
+                               "scene's own magnification dz/z is not applied); values whose defocus would alias "
+                               "on the pupil grid are refused"),
+    }.items() if k not in skipped}
 
 
 # ------------------------------------------------------------------------------------------------
