@@ -138,69 +138,115 @@ def check_out_apart_from_data(out: str | Path, data: str | Path) -> None:
 
 
 def cmd_evaluate(args: argparse.Namespace) -> int:
-    from hsicam.config import dump_yaml
-    from hsicam.data.datasets import displayable_name, list_scenes, scene_names, scene_path
-    from hsicam.data.formats import write_cube_h5
-    from hsicam.data.pipeline import scene_dataset
-    from hsicam.engine.evaluate import (HELDOUT_NOISE_SET, NOISE_DRAWS, TestNoise, check_room_for_cubes, check_scenes, check_test_noise, config_hash,
-                                        evaluate_method, format_table, heldout_sources_label, scored_region, summarize,
-                                        validation_data_label, write_results)
-    from hsicam.engine.experiments import heldout_scenes, validation_scenes
-    from hsicam.engine.methods import METHOD_ALIASES, build_method
-    from hsicam.engine.provenance import (generator_change_warning, heldout_sources_problem, read_data_record,
-                                          scene_roles, synthetic_scene_roles, training_scenes_warning)
+    """``hsicam evaluate``: every check before any scene is scored, then the scores, the result files and the means."""
+    from hsicam.engine.evaluate import TestNoise, evaluate_method
+    from hsicam.data.datasets import list_scenes
     from hsicam.cli import prepare_output
-    from hsicam.io import atomic_output
-    from hsicam.runs.folder import check_is_run
-    from hsicam.runs.pretrained import run_label
 
     check_tile(args.tile)
-
-    alias = args.method if args.method in METHOD_ALIASES else None
-    args.method = METHOD_ALIASES.get(args.method, args.method)  # results carry the method's current name
+    alias = _use_current_method_name(args)
     if args.data:
         check_out_apart_from_data(args.out, args.data)
     out = prepare_output(args.out, "dir", replace=True, command="evaluate", run=args.run)
     paths = list_scenes(args.data) if args.data else None  # before the method is built: a bad --data fails at once
-    if args.run:
-        run = Path(args.run)
-        if args.config:
-            raise InputError("--run uses the run's config.yaml; drop --config")
-        check_is_run(run)
-        check_run_overrides(args.overrides)
-        run_cfg = run_config_from_args(run)  # as the run trained (its data split and sources)
-        cfg = run_config_from_args(run, args.overrides)
-        if args.method == "dd-cassi-choi":  # a prior key given by --set, even at its default value
-            from hsicam.engine.methods import check_prior_overrides
+    run_cfg, cfg = _evaluation_configs(args)
+    method = _built_method(args, cfg, alias)
+    bands = method.camera.bands
+    noise = TestNoise(args.sigma_height_nm, args.sensor_sigma, tuple(range(args.seeds)))
+    _check_noise_and_sources(args, method, noise, run_cfg, cfg, paths)
+    scenes, names, rel, data_label, heldout = _scenes_to_score(args, cfg, paths, bands)
+    roles, warning = _training_roles(args, run_cfg, cfg, scenes, paths)
+    _check_scenes_before_scoring(args, method, scenes, names, heldout, out, len(bands))
+    show = lambda line: print(line, file=sys.stderr, flush=True)  # noqa: E731
+    results = evaluate_method(method, scenes, names, noise, args.device, keep_arrays=args.save, progress=show,
+                              paths=rel, tile_px=args.tile)
+    camera_sensor = {k: getattr(cfg.camera.sensor, k) for k in SENSOR_NOISE_KEYS}
+    summary = _summary(args, cfg, method, results, noise, data_label, camera_sensor, roles, warning)
+    if heldout is not None:
+        summary["heldout"] = _heldout_summary(args, cfg, method, heldout, noise, show)
+    _write_evaluation(out, args, summary, results, scenes, noise, camera_sensor, bands)
+    _print_means(args, summary, len(results), out)
+    return 0
 
-            check_prior_overrides(run, cfg, args.overrides)
-    else:
-        run_cfg, cfg = None, config_from_args(args.config, args.overrides)
+
+def _use_current_method_name(args: argparse.Namespace) -> str | None:
+    """Rename an old ``--method`` name in ``args`` to its current one; return the old name given, else None."""
+    from hsicam.engine.methods import METHOD_ALIASES
+
+    alias = args.method if args.method in METHOD_ALIASES else None
+    args.method = METHOD_ALIASES.get(args.method, args.method)  # results carry the method's current name
+    return alias
+
+
+def _evaluation_configs(args: argparse.Namespace):
+    """(the config the run trained with, or None without ``--run``; the config of this evaluation)."""
+    from hsicam.runs.folder import check_is_run
+
+    if not args.run:
+        return None, config_from_args(args.config, args.overrides)
+    run = Path(args.run)
+    if args.config:
+        raise InputError("--run uses the run's config.yaml; drop --config")
+    check_is_run(run)
+    check_run_overrides(args.overrides)
+    run_cfg = run_config_from_args(run)  # as the run trained (its data split and sources)
+    cfg = run_config_from_args(run, args.overrides)
+    if args.method == "dd-cassi-choi":  # a prior key given by --set, even at its default value
+        from hsicam.engine.methods import check_prior_overrides
+
+        check_prior_overrides(run, cfg, args.overrides)
+    return run_cfg, cfg
+
+
+def _built_method(args: argparse.Namespace, cfg, alias: str | None):
+    """The reconstruction method ``--method`` names, built for ``cfg`` (and the run's weights)."""
+    from hsicam.engine.methods import build_method
+
     try:
-        method = build_method(args.method, cfg, args.run, args.device)
+        return build_method(args.method, cfg, args.run, args.device)
     except InputError as exc:
         if alias is None:
             raise
         # the refusal names the method's current name: say it is the one the user asked for
         raise InputError(f"{exc} (--method {alias} is the old name of {args.method})") from None
-    bands = method.camera.bands
-    noise = TestNoise(args.sigma_height_nm, args.sensor_sigma, tuple(range(args.seeds)))
+
+
+def _check_noise_and_sources(args: argparse.Namespace, method, noise, run_cfg, cfg, paths) -> None:
+    """InputError for test noise the method's camera cannot take, or for a run's held-out sources that the
+    evaluation's config cannot regenerate."""
+    from hsicam.engine.evaluate import check_test_noise
+    from hsicam.engine.provenance import heldout_sources_problem
+
     # before the scenes are listed or generated: test noise the method's camera cannot take
     check_test_noise(method, noise, f"run {args.run}" if args.run else f"--config {args.config or 'default'}")
     problem = heldout_sources_problem(run_cfg.data, cfg.data) if run_cfg is not None and paths is None else None
     if problem:  # before any scene is generated
         raise InputError(f"{args.run}: {problem}")
+
+
+def _scenes_to_score(args: argparse.Namespace, cfg, paths, bands):
+    """(scenes, their names, their paths as rows show them, the data's label for results.json, the held-out
+    scenes and names or None): the ``--data`` files, else the validation split of the config's data."""
+    from hsicam.data.datasets import displayable_name, scene_names, scene_path
+    from hsicam.data.pipeline import scene_dataset
+    from hsicam.engine.evaluate import validation_data_label
+    from hsicam.engine.experiments import heldout_scenes, validation_scenes
+
     if paths is not None:
         scenes = scene_dataset(cfg.data, paths, bands)
         # unique names (stems; the scenes whose stems collide by their paths), each row with its path
         names, rel = scene_names(paths, args.data), [displayable_name(scene_path(p, args.data)) for p in paths]
-        data = str(Path(args.data).resolve())
-        heldout = None
-    else:
-        scenes, names = validation_scenes(cfg)
-        rel = _relative_to_common_folder(scenes.paths)
-        data = validation_data_label(cfg)
-        heldout = heldout_scenes(cfg)
+        return scenes, names, rel, str(Path(args.data).resolve()), None
+    scenes, names = validation_scenes(cfg)
+    return scenes, names, _relative_to_common_folder(scenes.paths), validation_data_label(cfg), heldout_scenes(cfg)
+
+
+def _training_roles(args: argparse.Namespace, run_cfg, cfg, scenes, paths):
+    """(each scene's role in the run's training, or None; the warning when the run trained on some, or None),
+    both warnings logged: that one, and a synthetic split regenerated by a changed generator."""
+    from hsicam.engine.provenance import (generator_change_warning, read_data_record, scene_roles,
+                                          synthetic_scene_roles, training_scenes_warning)
+
     # which scenes the run trained on (its data.json; none for the synthetic data or an older run)
     recorded = read_data_record(args.run) if args.run else None
     roles = scene_roles(recorded, scenes.paths) if recorded is not None else None
@@ -215,25 +261,39 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
         changed = generator_change_warning(args.run, run_cfg.data, "is scored")
         if changed:
             log.warning(changed)
+    return roles, warning
+
+
+def _check_scenes_before_scoring(args: argparse.Namespace, method, scenes, names, heldout, out: Path,
+                                 n_bands: int) -> None:
+    """InputError for a scene the method cannot score, or (``--save``) too little room for the cubes."""
+    from hsicam.engine.evaluate import check_room_for_cubes, check_scenes
+
     # every scene is read (or its header) before any is scored: a bad one fails now, not after hours of scoring
     check_scenes(method, scenes, names)
     if heldout is not None:
         check_scenes(method, *heldout)
     if args.save:
-        check_room_for_cubes(out, scenes, len(bands))
-    show = lambda line: print(line, file=sys.stderr, flush=True)  # noqa: E731
-    results = evaluate_method(method, scenes, names, noise, args.device, keep_arrays=args.save, progress=show,
-                              paths=rel, tile_px=args.tile)
-    camera_sensor = {k: getattr(cfg.camera.sensor, k) for k in SENSOR_NOISE_KEYS}
+        check_room_for_cubes(out, scenes, n_bands)
+
+
+def _summary(args: argparse.Namespace, cfg, method, results, noise, data_label: str, camera_sensor: dict, roles,
+             warning: str | None) -> dict:
+    """results.json's content for the scored scenes: the means and rows, each row's split, the run and its weights."""
+    from hsicam.config import dump_yaml
+    from hsicam.engine.evaluate import NOISE_DRAWS, config_hash, scored_region, summarize
+    from hsicam.runs.pretrained import run_label
+
     saved = {"saved_cubes": _saved_cubes_text(noise.seeds)} if args.save else {}
     # the run by its label (pretrained:NAME for a shipped camera: its package folder means nothing elsewhere),
     # and the folder it was read from as run_path (where `hsicam report` finds the camera)
     where = {"run": run_label(args.run), "run_path": str(Path(args.run).resolve())} if args.run else {"run": None}
-    summary = summarize(results, method=args.method, **where, data=data, config_hash=config_hash(dump_yaml(cfg)),
+    summary = summarize(results, method=args.method, **where, data=data_label, config_hash=config_hash(dump_yaml(cfg)),
                         noise={"sigma_height_nm": args.sigma_height_nm, "sensor_sigma": args.sensor_sigma, "seeds": args.seeds,
                                # the capture noise of the evaluation's config (the camera's own, or --set)
                                "camera_sensor": camera_sensor, "draws": NOISE_DRAWS},
-                        bands_nm=bands.centers_nm.tolist(), region=scored_region(method.camera, method.border_px), **saved)
+                        bands_nm=method.camera.bands.centers_nm.tolist(),
+                        region=scored_region(method.camera, method.border_px), **saved)
     if roles is not None:
         for row, role in zip(summary["scenes"], roles):
             row["split"] = role
@@ -248,13 +308,28 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
         kept = kept_checkpoint(args.run)
         if kept is not None:  # the last step's weights, or the best validation's (a selection on its scenes)
             summary["weights"] = kept
-    if heldout is not None:
-        held = evaluate_method(method, heldout[0], heldout[1], noise, args.device, keep_arrays=False, progress=show,
-                               paths=_relative_to_common_folder(heldout[0].paths), tile_px=args.tile,
-                               scene_set=HELDOUT_NOISE_SET)
-        summary["heldout"] = {"data": heldout_sources_label(cfg, "scenes whose reflectances and lights the "
-                                                                  "training scenes never contain"),
-                              **summarize(held)}
+    return summary
+
+
+def _heldout_summary(args: argparse.Namespace, cfg, method, heldout, noise, show) -> dict:
+    """results.json's ``heldout``: the scores of the scenes whose spectral sources training never saw."""
+    from hsicam.engine.evaluate import HELDOUT_NOISE_SET, evaluate_method, heldout_sources_label, summarize
+
+    held = evaluate_method(method, heldout[0], heldout[1], noise, args.device, keep_arrays=False, progress=show,
+                           paths=_relative_to_common_folder(heldout[0].paths), tile_px=args.tile,
+                           scene_set=HELDOUT_NOISE_SET)
+    return {"data": heldout_sources_label(cfg, "scenes whose reflectances and lights the "
+                                               "training scenes never contain"),
+            **summarize(held)}
+
+
+def _write_evaluation(out: Path, args: argparse.Namespace, summary: dict, results, scenes, noise,
+                      camera_sensor: dict, bands) -> None:
+    """The result files into ``out``, whole or not at all: results.json/csv/md and, with ``--save``, cubes/."""
+    from hsicam.data.formats import write_cube_h5
+    from hsicam.engine.evaluate import write_results
+    from hsicam.io import atomic_output
+
     # One result, several files: written into a temporary folder that gets the completion marker and
     # is renamed into place at the end (an interrupted evaluation leaves nothing `report` accepts).
     with atomic_output(out, overwrite=True, marker={"command": "evaluate", "method": args.method}) as tmp:
@@ -274,15 +349,20 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
                     if path.exists():  # scene names are unique (ignoring case): never overwrite a saved cube
                         raise RuntimeError(f"{path.name}: written twice (scene names must be unique)")
                     write_cube_h5(path, cube, bands, meta)
+
+
+def _print_means(args: argparse.Namespace, summary: dict, n_scenes: int, out: Path) -> None:
+    """The results' table and mean lines on stdout (the held-out scenes' too)."""
+    from hsicam.engine.evaluate import format_table
+
     print(format_table(summary))
     m = summary["mean"]
     print(f"{args.method}: mean PSNR {m['psnr']:.2f} dB, SSIM {m['ssim']:.4f}, SAM {m['sam']:.2f}° "
-          f"over {len(results)} scenes -> {out}")
+          f"over {n_scenes} scenes -> {out}")
     if "heldout" in summary:
         h = summary["heldout"]["mean"]
         print(f"{args.method}, held-out spectral sources: mean PSNR {h['psnr']:.2f} dB, SSIM {h['ssim']:.4f}, "
               f"SAM {h['sam']:.2f}° over {len(summary['heldout']['scenes'])} scenes")
-    return 0
 
 
 def _relative_to_common_folder(paths) -> list[str]:
