@@ -509,13 +509,44 @@ def tv_consistency(model, args: argparse.Namespace):
 
 
 def cmd_reconstruct(args: argparse.Namespace) -> int:
+    """``hsicam reconstruct``: every check of the options and output files, the run and capture read, the cube
+    reconstructed tile by tile, then the cube file and its preview written."""
     import torch  # here, not with the module: the parser is built without torch (hsicam.cli.camera)
 
-    from hsicam.config import MAX_CONSISTENCY_ITERATIONS
-    from hsicam.runs.folder import load_run
     from hsicam.data.images import read_capture
-    from hsicam.cli.args import check_tile
     from hsicam.engine.inference import reconstruct_tiled
+
+    _check_options(args)
+    out, inputs = _checked_output(args)
+    _check_step_options(args)
+    cfg, model = _loaded_model(args)
+    meta = _consistency_metadata(args, model)
+    if args.psf_dir:
+        _use_measured_psfs(args, model, meta)
+    corr = corrections_from_args(args, cfg.camera.cfa.period if cfg.camera.cfa.enabled else None)
+    img, report = read_capture(args.sensor, corr, args.scale)
+    meta["preprocessing"] = report
+    period = int(getattr(model.camera, "code_period", 1))
+    _check_capture_size(args, img.shape, period)
+    check_room_for_cube(out, len(model.bands), *img.shape)  # before the work, which takes minutes at full size
+    sensor = torch.from_numpy(img)[None, None].to(args.device)
+    offset = _capture_offset(args, cfg, model, sensor, period, meta)
+    if args.full_well_e is not None:  # after the offset: a flat field's gain map sits at the capture's first pixel
+        meta.update(capture_noise(model, report, args.full_well_e, args.read_noise_e or 0.0, corr, offset))
+    fn = _tiled_reconstructor(args, model, img.shape, offset)
+    cube = reconstruct_tiled(fn, sensor, args.tile, progress=None)[0]  # the halo fn declares
+    del sensor
+    # Radiance is non-negative: the network's small negative excursions are clipped at 0.
+    cube = cube.float().clamp_min_(0).cpu().numpy()
+    _write_outputs(out, inputs, cube, model.bands, meta)
+    print(f"reconstructed {cube.shape[0]} bands × {cube.shape[1]}×{cube.shape[2]} -> {out} "
+          f"(sRGB preview {output_files(out)[-1].name})")
+    return 0
+
+
+def _check_options(args: argparse.Namespace) -> None:
+    """Before any file is touched: one-line InputError for a bad --tile, --scale, level, noise or --psf-pitch-um."""
+    from hsicam.cli.args import check_tile
 
     check_tile(args.tile)
     if args.scale is not None and not (np.isfinite(args.scale) and args.scale > 0):
@@ -525,6 +556,10 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
     if args.psf_pitch_um is not None and not args.psf_dir:
         raise InputError("--psf-pitch-um is the pixel pitch of the measured PSFs of --psf-dir: give --psf-dir DIR "
                          "too, or drop --psf-pitch-um")
+
+
+def _checked_output(args: argparse.Namespace) -> tuple[Path, dict[str, str | None]]:
+    """(``--out``, the inputs by how they are named) once every file the output writes may be written."""
     from hsicam.cli import prepare_output
 
     out = Path(args.out)
@@ -534,15 +569,33 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
         prepare_output(f, "file")
     inputs = {"the capture SENSOR": args.sensor, "the --dark frame": args.dark, "the --flat frame": args.flat}
     check_outputs(out, inputs)
+    return out, inputs
+
+
+def _check_step_options(args: argparse.Namespace) -> None:
+    """One-line InputError for --consistency-steps, --tv-steps or --tv-weight out of range or at odds."""
+    from hsicam.config import MAX_CONSISTENCY_ITERATIONS
+
     if args.consistency_steps is not None and not 0 <= args.consistency_steps <= MAX_CONSISTENCY_ITERATIONS:
         raise InputError(f"--consistency-steps must be >= 0 and <= {MAX_CONSISTENCY_ITERATIONS} (each step widens "
                          "the tiles' halo; more than one rarely changes the estimate)")
     check_tv_args(args, MAX_CONSISTENCY_ITERATIONS)
+
+
+def _loaded_model(args: argparse.Namespace):
+    """(the run's config, its model) with the consistency steps that --consistency-steps and --tv-steps give."""
+    from hsicam.runs.folder import load_run
+
     cfg, model = load_run(args.run, args.device)
     if args.consistency_steps is not None:
         model.consistency = dataclasses.replace(cfg.model.consistency, iterations=args.consistency_steps)
     if args.tv_steps is not None:
         model.consistency = tv_consistency(model, args)
+    return cfg, model
+
+
+def _consistency_metadata(args: argparse.Namespace, model) -> dict:
+    """The cube's first metadata: the capture, the run and the consistency steps taken after its network."""
     from hsicam.runs.pretrained import run_label
 
     meta: dict = {"source": str(args.sensor), "run": run_label(args.run),
@@ -552,35 +605,43 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
         meta["consistency_spectral_prior"] = model.consistency.spectral_prior
     if model.consistency_on and model.consistency.tv_weight > 0:
         meta["consistency_tv_weight"] = model.consistency.tv_weight
-    if args.psf_dir:
-        from hsicam.data.measured_psf import import_for_camera
-        from hsicam.engine.calibration import run_psf_fingerprint
+    return meta
 
-        measured = import_for_camera(args.psf_dir, model.camera, pitch_um=args.psf_pitch_um)
-        tuned = run_psf_fingerprint(args.run)
-        meta["psf_dir"] = str(args.psf_dir)
-        meta["psf_fingerprint"] = measured.fingerprint
-        meta["network_tuned_to_psfs"] = tuned == measured.fingerprint
-        from hsicam.cameras.measured import FixedPSFCamera
 
-        # the consistency step explains the capture with the measured PSFs (what this camera does); the network
-        # still sees the camera it was trained with (load_run: a fine-tuned run's PSFs, else the design's).
-        # runs.folder.with_measured_psf would put the measured PSFs under an unrolled network's own data steps too:
-        # measured no better, and 2-4.5 dB worse for PSFs it was not tuned to (docs/hardware_log.md, session 63)
-        model.step_camera = FixedPSFCamera.from_camera(model.camera, torch.from_numpy(measured.psf))
-        if tuned != measured.fingerprint:
-            log.warning("%s", psf_mismatch_message(args, measured, tuned is not None))
-    cfa_period = cfg.camera.cfa.period if cfg.camera.cfa.enabled else None
-    corr = corrections_from_args(args, cfa_period)
-    img, report = read_capture(args.sensor, corr, args.scale)
-    meta["preprocessing"] = report
-    period = int(getattr(model.camera, "code_period", 1))
-    if min(img.shape) < max(period, 2):
-        raise InputError(f"{args.sensor}: the capture is {img.shape[0]}×{img.shape[1]} px, smaller than "
+def _use_measured_psfs(args: argparse.Namespace, model, meta: dict) -> None:
+    """``--psf-dir``: the consistency steps of ``model`` explain the capture with the measured PSFs; ``meta``
+    records them, and a warning says when the network was not fine-tuned on them."""
+    import torch
+
+    from hsicam.cameras.measured import FixedPSFCamera
+    from hsicam.data.measured_psf import import_for_camera
+    from hsicam.engine.calibration import run_psf_fingerprint
+
+    measured = import_for_camera(args.psf_dir, model.camera, pitch_um=args.psf_pitch_um)
+    tuned = run_psf_fingerprint(args.run)
+    meta["psf_dir"] = str(args.psf_dir)
+    meta["psf_fingerprint"] = measured.fingerprint
+    meta["network_tuned_to_psfs"] = tuned == measured.fingerprint
+    # the consistency step explains the capture with the measured PSFs (what this camera does); the network
+    # still sees the camera it was trained with (load_run: a fine-tuned run's PSFs, else the design's).
+    # runs.folder.with_measured_psf would put the measured PSFs under an unrolled network's own data steps too:
+    # measured no better, and 2-4.5 dB worse for PSFs it was not tuned to (docs/hardware_log.md, session 63)
+    model.step_camera = FixedPSFCamera.from_camera(model.camera, torch.from_numpy(measured.psf))
+    if tuned != measured.fingerprint:
+        log.warning("%s", psf_mismatch_message(args, measured, tuned is not None))
+
+
+def _check_capture_size(args: argparse.Namespace, shape: tuple[int, int], period: int) -> None:
+    """InputError for a capture smaller than one CFA period (or than 2×2 px)."""
+    if min(shape) < max(period, 2):
+        raise InputError(f"{args.sensor}: the capture is {shape[0]}×{shape[1]} px, smaller than "
                          f"{'one CFA period' if period > 1 else 'a 2×2 image'} ({max(period, 2)}×{max(period, 2)} px): "
                          "too small to reconstruct")
-    check_room_for_cube(out, len(model.bands), *img.shape)  # before the work, which takes minutes at full size
-    sensor = torch.from_numpy(img)[None, None].to(args.device)
+
+
+def _capture_offset(args: argparse.Namespace, cfg, model, sensor: torch.Tensor, period: int, meta: dict):
+    """The sensor row and column of the capture's first pixel (``--cfa-offset``, estimated for auto), recorded in
+    ``meta``; (0, 0) for a camera without a CFA."""
     offset = args.cfa_offset
     if period > 1:
         if offset == "auto":
@@ -595,28 +656,29 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
     elif offset != (0, 0):
         log.warning("--cfa-offset is ignored: the camera has no colour filter array")
         offset = (0, 0)
-    if args.full_well_e is not None:  # after the offset: a flat field's gain map sits at the capture's first pixel
-        meta.update(capture_noise(model, report, args.full_well_e, args.read_noise_e or 0.0, corr, offset))
+    return offset
+
+
+def _tiled_reconstructor(args: argparse.Namespace, model, shape: tuple[int, int], offset):
+    """The model's reconstructor shifted to the capture's ``offset``, once the memory it takes is checked (and a
+    tile smaller than its halo warned of)."""
     rec = model.reconstructor()
     # the halo of the tiles: what comes before the consistency steps, which then go over the whole image
     halo = rec.before_steps.context_px if hasattr(rec, "steps") else rec.context_px
     tile = args.tile  # None: reconstruct_tiled's default (default_tile_px), never below the halo
-    check_reconstruction_memory(rec, len(model.bands), img.shape, tile, args.sensor)  # before minutes of work
-    if tile is not None and tile < halo and max(img.shape) > tile:
+    check_reconstruction_memory(rec, len(model.bands), shape, tile, args.sensor)  # before minutes of work
+    if tile is not None and tile < halo and max(shape) > tile:
         log.warning("--tile %d is smaller than the reconstruction's context (%d px per side): each tile computes "
                     "about %.0f× its own pixels; a tile of %d px or more is faster", tile, halo,
                     ((tile + 2 * halo) / tile) ** 2, 2 * halo)
-    fn = offset_reconstructor(rec, offset)
-    cube = reconstruct_tiled(fn, sensor, tile, progress=None)[0]  # the halo fn declares
-    del sensor
-    # Radiance is non-negative: the network's small negative excursions are clipped at 0.
-    cube = cube.float().clamp_min_(0).cpu().numpy()
-    check_outputs(out, inputs)  # again: the reconstruction may have taken a while
-    check_room_for_cube(out, cube.shape[0], *cube.shape[1:])
+    return offset_reconstructor(rec, offset)
+
+
+def _write_outputs(out: Path, inputs: dict[str, str | None], cube: np.ndarray, bands, meta: dict) -> None:
+    """The cube file and its preview, once the output files are checked again (the work may have taken a while)."""
     from hsicam.memory import format_bytes
 
+    check_outputs(out, inputs)  # again: the reconstruction may have taken a while
+    check_room_for_cube(out, cube.shape[0], *cube.shape[1:])
     log.info("writing %s (%s) and its sRGB preview", out, format_bytes(cube.nbytes))  # a minute at 4096² px
-    write_cube_file(out, cube, model.bands, meta)
-    print(f"reconstructed {cube.shape[0]} bands × {cube.shape[1]}×{cube.shape[2]} -> {out} "
-          f"(sRGB preview {output_files(out)[-1].name})")
-    return 0
+    write_cube_file(out, cube, bands, meta)
