@@ -18,7 +18,7 @@ import functools
 import logging
 import re
 from dataclasses import dataclass, field, replace
-from typing import Any, Callable, Iterable
+from typing import Any, Callable, Iterable, Iterator
 
 import numpy as np
 
@@ -251,12 +251,6 @@ def _library_cached(centers: tuple[float, ...], fwhm: tuple[float, ...]) -> Spec
     import colour
 
     _check_colour_version(getattr(colour, "__version__", ""))
-    from colour.characterisation import read_training_data_rawtoaces_v1
-    from colour.colorimetry.datasets.light_sources import sds as light_sources
-    from colour.quality.cfi2017 import load_TCS_CIE2017
-    from colour.quality.datasets import SDS_TCS, SDS_VS
-    from colour.recovery import MSDS_BASIS_FUNCTIONS_sRGB_MALLETT2019, SDS_SMITS1999
-
     bands = Bands(np.array(centers), np.array(fwhm))
     fine = _fine_grid(bands)
     G = band_matrix(bands, fine)
@@ -300,26 +294,8 @@ def _library_cached(centers: tuple[float, ...], fwhm: tuple[float, ...]) -> Spec
         rnames.append(name)
         rsrc.append(source)
 
-    td = read_training_data_rawtoaces_v1()
-    for j, label in enumerate(td.labels):
-        add_refl("rawtoaces", f"rawtoaces:{label}", td.wavelengths, td.values[:, j])
-    for set_name in ("ColorChecker N Ohta", "BabelColor Average", "ISO 17321-1", "PMC"):
-        for patch, sd in colour.SDS_COLOURCHECKERS[set_name].items():
-            add_refl("pmc" if set_name == "PMC" else "colorchecker", f"{set_name}:{patch}", sd.wavelengths, sd.values)
-    for set_name, sds in SDS_TCS.items():
-        for patch, sd in sds.items():
-            add_refl("cie-tcs", f"TCS {set_name}:{patch}", sd.wavelengths, sd.values)
-    for set_name, sds in SDS_VS.items():
-        for patch, sd in sds.items():
-            add_refl("nist-cqs", f"CQS {set_name}:{patch}", sd.wavelengths, sd.values)
-    ces = load_TCS_CIE2017(colour.SpectralShape(380, 780, 5))
-    for j, label in enumerate(ces.labels):
-        add_refl("cie-ces", f"CES {j + 1:02d}", ces.wavelengths, ces.values[:, j])
-    mal = MSDS_BASIS_FUNCTIONS_sRGB_MALLETT2019
-    for j, label in enumerate(mal.labels):
-        add_refl("rgb-basis", f"Mallett 2019:{label}", mal.wavelengths, mal.values[:, j])
-    for label, sd in SDS_SMITS1999.items():
-        add_refl("rgb-basis", f"Smits 1999:{label}", sd.wavelengths, sd.values)
+    for source, name, wl, values in _measured_reflectances():
+        add_refl(source, name, wl, values)
 
     illum: list[np.ndarray] = []
     inames: list[str] = []
@@ -345,33 +321,8 @@ def _library_cached(centers: tuple[float, ...], fwhm: tuple[float, ...]) -> Spec
             inames.append(name)
             isrc.append(source)
 
-    for cct in range(4000, 20001, 1000):
-        sd = colour.sd_CIE_illuminant_D_series(colour.temperature.CCT_to_xy_CIE_D(float(cct)))
-        add_light("cie-daylight", f"CIE D {cct}K", sd.wavelengths, sd.values)
-    for name, sd in colour.SDS_ILLUMINANTS.items():
-        source = _cie_illuminant_source(name)
-        if source is None:
-            skipped.setdefault("cie (not used)", []).append(name)
-            continue
-        add_light(source, name, sd.wavelengths, sd.values)
-    shape = colour.SpectralShape(360, 780, 1)
-    for t in range(2000, 5001, 250):
-        sd = colour.sd_blackbody(float(t), shape)
-        add_light("blackbody", f"Planck {t}K", sd.wavelengths, sd.values)
-    for source, mapping in (("rit", light_sources.SDS_LIGHT_SOURCES_RIT),
-                            ("nist-traditional", light_sources.SDS_LIGHT_SOURCES_NIST_TRADITIONAL),
-                            ("nist-led", light_sources.SDS_LIGHT_SOURCES_NIST_LED),
-                            ("nist-philips", light_sources.SDS_LIGHT_SOURCES_NIST_PHILIPS),
-                            ("kinoton", light_sources.SDS_LIGHT_SOURCES_COMMON)):
-        for name, sd in mapping.items():
-            add_light(source, name, sd.wavelengths, sd.values, emitter=name == "LPS")
-    for peak in range(430, 711, 10):
-        for width in (15, 25, 35):
-            sd = colour.sd_single_led(float(peak), shape, half_spectral_width=float(width))
-            add_light("led-model", f"LED {peak} nm / {width} nm", sd.wavelengths, sd.values, emitter=True)
-    for display, msd in colour.MSDS_DISPLAY_PRIMARIES.items():
-        for j, label in enumerate(msd.labels):
-            add_light("displays", f"{display}:{label}", msd.wavelengths, msd.values[:, j], emitter=True)
+    for source, name, wl, values, emitter in _measured_lights(skipped):
+        add_light(source, name, wl, values, emitter=emitter)
 
     if not refl or not illum:
         # each band weighs wavelengths up to 3σ of its FWHM beyond its centre; a spectrum must reach that far
@@ -393,6 +344,72 @@ def _library_cached(centers: tuple[float, ...], fwhm: tuple[float, ...]) -> Spec
         split="all", holdout=(), basis=ReflectanceBasis.fit(refl_arr), zero_on_bands=zero)
     lib.sources = _describe(lib, skipped, colour.__version__)
     return lib
+
+
+def _measured_reflectances() -> Iterator[tuple[str, str, Any, Any]]:
+    """Every reflectance of the reflectance sources (:data:`SOURCES`) as (source id, name, wavelengths in nm,
+    values), in the library's order."""
+    import colour
+    from colour.characterisation import read_training_data_rawtoaces_v1
+    from colour.quality.cfi2017 import load_TCS_CIE2017
+    from colour.quality.datasets import SDS_TCS, SDS_VS
+    from colour.recovery import MSDS_BASIS_FUNCTIONS_sRGB_MALLETT2019, SDS_SMITS1999
+
+    td = read_training_data_rawtoaces_v1()
+    for j, label in enumerate(td.labels):
+        yield "rawtoaces", f"rawtoaces:{label}", td.wavelengths, td.values[:, j]
+    for set_name in ("ColorChecker N Ohta", "BabelColor Average", "ISO 17321-1", "PMC"):
+        for patch, sd in colour.SDS_COLOURCHECKERS[set_name].items():
+            yield "pmc" if set_name == "PMC" else "colorchecker", f"{set_name}:{patch}", sd.wavelengths, sd.values
+    for set_name, sds in SDS_TCS.items():
+        for patch, sd in sds.items():
+            yield "cie-tcs", f"TCS {set_name}:{patch}", sd.wavelengths, sd.values
+    for set_name, sds in SDS_VS.items():
+        for patch, sd in sds.items():
+            yield "nist-cqs", f"CQS {set_name}:{patch}", sd.wavelengths, sd.values
+    ces = load_TCS_CIE2017(colour.SpectralShape(380, 780, 5))
+    for j, label in enumerate(ces.labels):
+        yield "cie-ces", f"CES {j + 1:02d}", ces.wavelengths, ces.values[:, j]
+    mal = MSDS_BASIS_FUNCTIONS_sRGB_MALLETT2019
+    for j, label in enumerate(mal.labels):
+        yield "rgb-basis", f"Mallett 2019:{label}", mal.wavelengths, mal.values[:, j]
+    for label, sd in SDS_SMITS1999.items():
+        yield "rgb-basis", f"Smits 1999:{label}", sd.wavelengths, sd.values
+
+
+def _measured_lights(skipped: dict[str, list[str]]) -> Iterator[tuple[str, str, Any, Any, bool]]:
+    """Every spectrum of the illuminant and emitter sources as (source id, name, wavelengths in nm, values, emitter),
+    in the library's order; colour-science's CIE illuminants that are no light source go to ``skipped``."""
+    import colour
+    from colour.colorimetry.datasets.light_sources import sds as light_sources
+
+    for cct in range(4000, 20001, 1000):
+        sd = colour.sd_CIE_illuminant_D_series(colour.temperature.CCT_to_xy_CIE_D(float(cct)))
+        yield "cie-daylight", f"CIE D {cct}K", sd.wavelengths, sd.values, False
+    for name, sd in colour.SDS_ILLUMINANTS.items():
+        source = _cie_illuminant_source(name)
+        if source is None:
+            skipped.setdefault("cie (not used)", []).append(name)
+            continue
+        yield source, name, sd.wavelengths, sd.values, False
+    shape = colour.SpectralShape(360, 780, 1)
+    for t in range(2000, 5001, 250):
+        sd = colour.sd_blackbody(float(t), shape)
+        yield "blackbody", f"Planck {t}K", sd.wavelengths, sd.values, False
+    for source, mapping in (("rit", light_sources.SDS_LIGHT_SOURCES_RIT),
+                            ("nist-traditional", light_sources.SDS_LIGHT_SOURCES_NIST_TRADITIONAL),
+                            ("nist-led", light_sources.SDS_LIGHT_SOURCES_NIST_LED),
+                            ("nist-philips", light_sources.SDS_LIGHT_SOURCES_NIST_PHILIPS),
+                            ("kinoton", light_sources.SDS_LIGHT_SOURCES_COMMON)):
+        for name, sd in mapping.items():
+            yield source, name, sd.wavelengths, sd.values, name == "LPS"
+    for peak in range(430, 711, 10):
+        for width in (15, 25, 35):
+            sd = colour.sd_single_led(float(peak), shape, half_spectral_width=float(width))
+            yield "led-model", f"LED {peak} nm / {width} nm", sd.wavelengths, sd.values, True
+    for display, msd in colour.MSDS_DISPLAY_PRIMARIES.items():
+        for j, label in enumerate(msd.labels):
+            yield "displays", f"{display}:{label}", msd.wavelengths, msd.values[:, j], True
 
 
 #: Sets documented as used only on bands inside their shorter range (PMC 400-700 nm, Smits 380-720 nm): dropping
