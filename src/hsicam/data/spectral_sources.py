@@ -246,104 +246,43 @@ def _check_colour_version(version: str) -> None:
                          f"(pip install -U 'hsicam[synth]')")
 
 
+@dataclass
+class _Unused:
+    """The spectra of a library being built that are left out, and the counts behind the out-of-range WARNING."""
+
+    skipped: dict[str, list[str]] = field(default_factory=dict)  # per source: the manifest's not_used_out_of_range
+    # of those, the lights that span the grid but are 0 on every band
+    zero: dict[str, list[str]] = field(default_factory=dict)
+    # for the out-of-range warning: per role, spectra seen and spectra dropped by source
+    seen: dict[str, int] = field(default_factory=dict)
+    dropped: dict[str, dict[str, int]] = field(default_factory=dict)
+    # where the fine grid may lie for every spectrum outside the partial sets to be used; how many of those were not
+    reach_lo: float = -np.inf
+    reach_hi: float = np.inf
+    unexpected: int = 0
+
+
+#: Spectra of one role on the bands: their values, names and source ids, in the same order.
+_OnBands = tuple[list[np.ndarray], list[str], list[str]]
+
+
 @functools.lru_cache(maxsize=4)
 def _library_cached(centers: tuple[float, ...], fwhm: tuple[float, ...]) -> SpectralLibrary:
+    """The full library (split "all") on the bands of ``centers`` and ``fwhm`` (nm), built from colour-science's
+    datasets: once per band grid."""
     import colour
 
     _check_colour_version(getattr(colour, "__version__", ""))
     bands = Bands(np.array(centers), np.array(fwhm))
     fine = _fine_grid(bands)
     G = band_matrix(bands, fine)
-    skipped: dict[str, list[str]] = {}
-    zero: dict[str, list[str]] = {}  # of those, the lights that span the grid but are 0 on every band
-
-    def integrate(wl: np.ndarray, values: np.ndarray) -> np.ndarray:
-        # linear interpolation onto the fine grid (ends held constant), then band averaging
-        return G @ np.interp(fine, np.asarray(wl, dtype=np.float64), np.asarray(values, dtype=np.float64))
-
-    def covers(wl: np.ndarray) -> bool:
-        return wl[0] <= fine[0] + 10.0 and wl[-1] >= fine[-1] - 10.0
-
-    # for the out-of-range warning: per role, spectra seen and spectra dropped by source
-    seen: dict[str, int] = {}
-    dropped: dict[str, dict[str, int]] = {}
-    # where the fine grid may lie for every spectrum outside the partial sets to be used; how many of those were not
-    edge = {"lo": -np.inf, "hi": np.inf, "unexpected": 0}
-
-    def out_of_range(role: str, source: str, name: str, wl: np.ndarray) -> bool:
-        seen[role] = seen.get(role, 0) + 1
-        partial = name.startswith(_PARTIAL_SETS)
-        if not partial:
-            edge["lo"], edge["hi"] = max(edge["lo"], float(wl[0]) - 10.0), min(edge["hi"], float(wl[-1]) + 10.0)
-        if covers(wl):
-            return False
-        by_source = dropped.setdefault(role, {})
-        by_source[source] = by_source.get(source, 0) + 1
-        edge["unexpected"] += 0 if partial else 1
-        skipped.setdefault(source, []).append(name)
-        return True
-
-    refl: list[np.ndarray] = []
-    rnames: list[str] = []
-    rsrc: list[str] = []
-
-    def add_refl(source: str, name: str, wl: np.ndarray, values: np.ndarray) -> None:
-        if out_of_range("reflectance", source, name, np.asarray(wl)):
-            return
-        refl.append(np.clip(integrate(wl, np.clip(values, 0.0, 1.0)), 0.0, 1.0))
-        rnames.append(name)
-        rsrc.append(source)
-
-    for source, name, wl, values in _measured_reflectances():
-        add_refl(source, name, wl, values)
-
-    illum: list[np.ndarray] = []
-    inames: list[str] = []
-    isrc: list[str] = []
-    emit: list[np.ndarray] = []
-    enames: list[str] = []
-    esrc: list[str] = []
-
-    def add_light(source: str, name: str, wl: np.ndarray, values: np.ndarray, emitter: bool = False) -> None:
-        if out_of_range("emitter" if emitter else "illuminant", source, name, np.asarray(wl)):
-            return
-        e = integrate(wl, np.clip(values, 0.0, None))
-        if not e.max() > 0:
-            skipped.setdefault(source, []).append(name)
-            zero.setdefault(source, []).append(name)
-            return
-        if emitter:
-            emit.append(e / e.max())
-            enames.append(name)
-            esrc.append(source)
-        else:
-            illum.append(e / e.mean())
-            inames.append(name)
-            isrc.append(source)
-
-    for source, name, wl, values, emitter in _measured_lights(skipped):
-        add_light(source, name, wl, values, emitter=emitter)
-
-    if not refl or not illum:
-        # each band weighs wavelengths up to 3σ of its FWHM beyond its centre; a spectrum must reach that far
-        raise InputError(f"synthetic: bands {bands.min_nm:g}-{bands.max_nm:g} nm of FWHM up to "
-                         f"{float(bands.fwhm_nm.max()):g} nm weigh light from {fine[0]:g} to {fine[-1]:g} nm, and no "
-                         f"measured {'reflectance' if not refl else 'illuminant'} spectrum spans that range: the "
-                         "generator has nothing to draw scenes from; narrow the bands (bands.fwhm_nm, or a smaller "
-                         "bands.step_nm), keep them further inside 380-730 nm, or train on your own data (data.root)")
-    if edge["unexpected"]:
-        _warn_out_of_range(bands, fine, seen, dropped, (edge["lo"], edge["hi"]))
-    otsu = OtsuModel.build(bands, fine, G)
-    groups: dict[str, list[int]] = {}
-    for i, name in enumerate(inames):
-        groups.setdefault(_illuminant_group(name), []).append(i)
-    refl_arr = np.asarray(refl, dtype=np.float32)
-    lib = SpectralLibrary(
-        bands, refl_arr, rnames, np.asarray(illum, dtype=np.float32), inames, groups, otsu,
-        functools.partial(colour.sRGB_to_XYZ), {}, rsrc, isrc, np.asarray(emit, dtype=np.float32), enames, esrc,
-        split="all", holdout=(), basis=ReflectanceBasis.fit(refl_arr), zero_on_bands=zero)
-    lib.sources = _describe(lib, skipped, colour.__version__)
-    return lib
+    unused = _Unused()
+    refl = _reflectances_on_bands(_measured_reflectances(), fine, G, unused)
+    illum, emit = _lights_on_bands(_measured_lights(unused.skipped), fine, G, unused)
+    _check_something_to_draw(bands, fine, refl, illum)
+    if unused.unexpected:
+        _warn_out_of_range(bands, fine, unused.seen, unused.dropped, (unused.reach_lo, unused.reach_hi))
+    return _full_library(bands, fine, G, refl, illum, emit, unused)
 
 
 def _measured_reflectances() -> Iterator[tuple[str, str, Any, Any]]:
@@ -410,6 +349,98 @@ def _measured_lights(skipped: dict[str, list[str]]) -> Iterator[tuple[str, str, 
     for display, msd in colour.MSDS_DISPLAY_PRIMARIES.items():
         for j, label in enumerate(msd.labels):
             yield "displays", f"{display}:{label}", msd.wavelengths, msd.values[:, j], True
+
+
+def _integrate(fine: np.ndarray, G: np.ndarray, wl: np.ndarray, values: np.ndarray) -> np.ndarray:
+    """Band averages (C,) of a spectrum sampled at ``wl`` (nm), through the fine grid and its band matrix ``G``."""
+    # linear interpolation onto the fine grid (ends held constant), then band averaging
+    return G @ np.interp(fine, np.asarray(wl, dtype=np.float64), np.asarray(values, dtype=np.float64))
+
+
+def _out_of_range(unused: _Unused, fine: np.ndarray, role: str, source: str, name: str, wl: np.ndarray) -> bool:
+    """Whether a spectrum sampled at ``wl`` (nm) does not reach the fine grid's ends to within 10 nm (then noted in
+    ``unused``); counted in ``unused`` for the out-of-range WARNING either way."""
+    unused.seen[role] = unused.seen.get(role, 0) + 1
+    partial = name.startswith(_PARTIAL_SETS)
+    if not partial:
+        unused.reach_lo = max(unused.reach_lo, float(wl[0]) - 10.0)
+        unused.reach_hi = min(unused.reach_hi, float(wl[-1]) + 10.0)
+    if wl[0] <= fine[0] + 10.0 and wl[-1] >= fine[-1] - 10.0:
+        return False
+    by_source = unused.dropped.setdefault(role, {})
+    by_source[source] = by_source.get(source, 0) + 1
+    unused.unexpected += 0 if partial else 1
+    unused.skipped.setdefault(source, []).append(name)
+    return True
+
+
+def _reflectances_on_bands(spectra: Iterable[tuple[str, str, Any, Any]], fine: np.ndarray, G: np.ndarray,
+                           unused: _Unused) -> _OnBands:
+    """The reflectances of ``spectra`` that span the fine grid, clipped to [0, 1] and band-averaged."""
+    values: list[np.ndarray] = []
+    names: list[str] = []
+    sources: list[str] = []
+    for source, name, wl, v in spectra:
+        if _out_of_range(unused, fine, "reflectance", source, name, np.asarray(wl)):
+            continue
+        values.append(np.clip(_integrate(fine, G, wl, np.clip(v, 0.0, 1.0)), 0.0, 1.0))
+        names.append(name)
+        sources.append(source)
+    return values, names, sources
+
+
+def _lights_on_bands(spectra: Iterable[tuple[str, str, Any, Any, bool]], fine: np.ndarray, G: np.ndarray,
+                     unused: _Unused) -> tuple[_OnBands, _OnBands]:
+    """The illuminants (mean 1 over the bands) and emitters (maximum 1) of ``spectra`` that span the fine grid;
+    one that is 0 on every band is noted in ``unused`` (``skipped`` and ``zero``)."""
+    illum: _OnBands = ([], [], [])
+    emit: _OnBands = ([], [], [])
+    for source, name, wl, v, emitter in spectra:
+        if _out_of_range(unused, fine, "emitter" if emitter else "illuminant", source, name, np.asarray(wl)):
+            continue
+        e = _integrate(fine, G, wl, np.clip(v, 0.0, None))
+        if not e.max() > 0:
+            unused.skipped.setdefault(source, []).append(name)
+            unused.zero.setdefault(source, []).append(name)
+            continue
+        values, names, sources = emit if emitter else illum
+        values.append(e / e.max() if emitter else e / e.mean())
+        names.append(name)
+        sources.append(source)
+    return illum, emit
+
+
+def _check_something_to_draw(bands: Bands, fine: np.ndarray, refl: _OnBands, illum: _OnBands) -> None:
+    """InputError when no reflectance or no illuminant spans the fine grid ``fine`` of ``bands``."""
+    if not refl[0] or not illum[0]:
+        # each band weighs wavelengths up to 3σ of its FWHM beyond its centre; a spectrum must reach that far
+        raise InputError(f"synthetic: bands {bands.min_nm:g}-{bands.max_nm:g} nm of FWHM up to "
+                         f"{float(bands.fwhm_nm.max()):g} nm weigh light from {fine[0]:g} to {fine[-1]:g} nm, and no "
+                         f"measured {'reflectance' if not refl[0] else 'illuminant'} spectrum spans that range: the "
+                         "generator has nothing to draw scenes from; narrow the bands (bands.fwhm_nm, or a smaller "
+                         "bands.step_nm), keep them further inside 380-730 nm, or train on your own data (data.root)")
+
+
+def _full_library(bands: Bands, fine: np.ndarray, G: np.ndarray, refl: _OnBands, illum: _OnBands, emit: _OnBands,
+                  unused: _Unused) -> SpectralLibrary:
+    """The library of split "all" from the spectra on the bands, with the Otsu upsampling, the illuminant groups,
+    the basis draws and its manifest description (:func:`_describe`)."""
+    import colour
+
+    otsu = OtsuModel.build(bands, fine, G)
+    rvals, rnames, rsrc = refl
+    ivals, inames, isrc = illum
+    evals, enames, esrc = emit
+    groups: dict[str, list[int]] = {}
+    for i, name in enumerate(inames):
+        groups.setdefault(_illuminant_group(name), []).append(i)
+    refl_arr = np.asarray(rvals, dtype=np.float32)
+    lib = SpectralLibrary(
+        bands, refl_arr, rnames, np.asarray(ivals, dtype=np.float32), inames, groups, otsu,
+        functools.partial(colour.sRGB_to_XYZ), {}, rsrc, isrc, np.asarray(evals, dtype=np.float32), enames, esrc,
+        split="all", holdout=(), basis=ReflectanceBasis.fit(refl_arr), zero_on_bands=unused.zero)
+    lib.sources = _describe(lib, unused.skipped, colour.__version__)
+    return lib
 
 
 #: Sets documented as used only on bands inside their shorter range (PMC 400-700 nm, Smits 380-720 nm): dropping
