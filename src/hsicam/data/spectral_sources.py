@@ -18,7 +18,7 @@ import functools
 import logging
 import re
 from dataclasses import dataclass, field, replace
-from typing import Any, Callable, Iterable, Iterator
+from typing import Any, Callable, Iterable, Iterator, Sequence
 
 import numpy as np
 
@@ -220,6 +220,14 @@ def _illuminant_group(name: str) -> str:
     if name.startswith(("HP", "MHC", "H38", "SDW", "C100")) or name in ("Super HPS", "Mercury", "Metal Halide"):
         return "discharge"
     return "other"
+
+
+def _illuminant_groups(names: Sequence[str]) -> dict[str, list[int]]:
+    """The indices of ``names`` by lighting family (:func:`_illuminant_group`), in order of first appearance."""
+    groups: dict[str, list[int]] = {}
+    for i, name in enumerate(names):
+        groups.setdefault(_illuminant_group(name), []).append(i)
+    return groups
 
 
 def _cie_illuminant_source(name: str) -> str | None:
@@ -431,9 +439,7 @@ def _full_library(bands: Bands, fine: np.ndarray, G: np.ndarray, refl: _OnBands,
     rvals, rnames, rsrc = refl
     ivals, inames, isrc = illum
     evals, enames, esrc = emit
-    groups: dict[str, list[int]] = {}
-    for i, name in enumerate(inames):
-        groups.setdefault(_illuminant_group(name), []).append(i)
+    groups = _illuminant_groups(inames)
     refl_arr = np.asarray(rvals, dtype=np.float32)
     lib = SpectralLibrary(
         bands, refl_arr, rnames, np.asarray(ivals, dtype=np.float32), inames, groups, otsu,
@@ -596,9 +602,7 @@ def split_library(lib: SpectralLibrary, holdout_sources: str | Iterable[str] | N
     rr, rn, rs = parts["reflectances"]
     ir, in_, is_ = parts["illuminants"]
     er, en, es = parts["emitters"]
-    groups: dict[str, list[int]] = {}
-    for i, name in enumerate(in_):
-        groups.setdefault(_illuminant_group(name), []).append(i)
+    groups = _illuminant_groups(in_)
     if rr.shape[0] == 0:  # only photos (otsu2018) held out: paint with the Otsu clusters' mean spectra
         rr = np.clip(lib.otsu.means @ lib.otsu.to_bands.T, 0, 1).astype(np.float32)
         rn = [f"otsu2018:cluster {k}" for k in range(rr.shape[0])]
