@@ -420,30 +420,46 @@ def _list_band_images(d: Path, meta: dict[str, Any]) -> list[tuple[float, Path, 
     float image) for every PSF in the folder."""
     stack = d / "psf.npy"
     if stack.is_file() and "bands_nm" in meta:
-        bands = meta["bands_nm"]
-        if not (isinstance(bands, list) and all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in bands)):
-            raise InputError(f"{d / 'psf.json'}: bands_nm must be a list of numbers")
-        bad = [v for v in bands if not (math.isfinite(v if isinstance(v, float) else 1.0) and 0 < v < 1e6)]
-        if bad:
-            raise InputError(f"{d / 'psf.json'}: bands_nm must hold wavelengths in nm (finite, > 0), got {bad[0]!r}")
-        twice = sorted({float(v) for v in bands if bands.count(v) > 1})
-        if twice:
-            raise InputError(f"{d / 'psf.json'}: bands_nm names {twice[0]:g} nm more than once (one PSF per wavelength)")
-        try:
-            arr = np.load(stack, mmap_mode="r", allow_pickle=False)
-        except Exception as exc:  # noqa: BLE001
-            raise InputError(f"{stack}: not a readable .npy file ({str(exc).splitlines()[0] if str(exc) else type(exc).__name__})") from None
-        if arr.ndim != 3 or arr.shape[0] != len(bands):
-            raise InputError(f"{stack}: expected a (C, H, W) stack with C = {len(bands)} (bands_nm), got shape {arr.shape}")
-        if arr.dtype.kind not in "uif":
-            raise InputError(f"{stack}: unsupported data type {arr.dtype}")
-        if arr.shape[1] * arr.shape[2] > MAX_IMAGE_PIXELS or min(arr.shape) == 0:
-            raise InputError(f"{stack}: unusable PSF stack shape {arr.shape}")
-        data = np.array(arr, dtype=np.float64)
-        if not np.all(np.isfinite(data)):
-            raise InputError(f"{stack}: PSF stack contains NaN or Inf values")
-        type_max = float(np.iinfo(arr.dtype).max) if arr.dtype.kind in "ui" else None
-        return [(float(w), stack, data[i], type_max) for i, w in enumerate(bands)]
+        return _read_psf_stack(d, stack, meta["bands_nm"])
+    return _read_band_files(d)
+
+
+def _check_bands_nm(d: Path, bands: Any) -> None:
+    """Refuse a ``bands_nm`` in ``psf.json`` that is not a list of distinct wavelengths in nm."""
+    if not (isinstance(bands, list) and all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in bands)):
+        raise InputError(f"{d / 'psf.json'}: bands_nm must be a list of numbers")
+    bad = [v for v in bands if not (math.isfinite(v if isinstance(v, float) else 1.0) and 0 < v < 1e6)]
+    if bad:
+        raise InputError(f"{d / 'psf.json'}: bands_nm must hold wavelengths in nm (finite, > 0), got {bad[0]!r}")
+    twice = sorted({float(v) for v in bands if bands.count(v) > 1})
+    if twice:
+        raise InputError(f"{d / 'psf.json'}: bands_nm names {twice[0]:g} nm more than once (one PSF per wavelength)")
+
+
+def _read_psf_stack(d: Path, stack: Path, bands: Any) -> list[tuple[float, Path, np.ndarray, float | None]]:
+    """:func:`_list_band_images` of a ``psf.npy`` (C, H, W) stack whose wavelengths are ``bands_nm`` in
+    ``psf.json``: every band's entry names the stack's file."""
+    _check_bands_nm(d, bands)
+    try:
+        arr = np.load(stack, mmap_mode="r", allow_pickle=False)
+    except Exception as exc:  # noqa: BLE001
+        raise InputError(f"{stack}: not a readable .npy file ({str(exc).splitlines()[0] if str(exc) else type(exc).__name__})") from None
+    if arr.ndim != 3 or arr.shape[0] != len(bands):
+        raise InputError(f"{stack}: expected a (C, H, W) stack with C = {len(bands)} (bands_nm), got shape {arr.shape}")
+    if arr.dtype.kind not in "uif":
+        raise InputError(f"{stack}: unsupported data type {arr.dtype}")
+    if arr.shape[1] * arr.shape[2] > MAX_IMAGE_PIXELS or min(arr.shape) == 0:
+        raise InputError(f"{stack}: unusable PSF stack shape {arr.shape}")
+    data = np.array(arr, dtype=np.float64)
+    if not np.all(np.isfinite(data)):
+        raise InputError(f"{stack}: PSF stack contains NaN or Inf values")
+    type_max = float(np.iinfo(arr.dtype).max) if arr.dtype.kind in "ui" else None
+    return [(float(w), stack, data[i], type_max) for i, w in enumerate(bands)]
+
+
+def _read_band_files(d: Path) -> list[tuple[float, Path, np.ndarray, float | None]]:
+    """:func:`_list_band_images` of a folder of one image per band, each named with its wavelength (all
+    names are checked before any image is read)."""
     items = []
     for f in sorted(d.iterdir()):
         if f.name.startswith(".") or f.suffix.lower() not in _IMAGE_SUFFIXES or not f.is_file():
