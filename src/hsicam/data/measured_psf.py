@@ -528,15 +528,48 @@ def import_psf_dir(psf_dir: str | Path, bands: Bands, camera_pixel_m: float, ker
     and images clipped over more than :data:`MAX_CLIPPED_LIGHT_SHARE` of their light; warns (once per
     file) about :data:`SATURATED_MIN_PX` or more clipped pixels.
     """
+    d = _psf_folder(psf_dir)
+    meta = _read_manifest(d)
+    items = _list_band_images(d, meta)  # first: a folder without images needs no pitch to be refused
+    opts = options_from_manifest(meta, pitch_um, centre, background, folder=d)
+    chosen = _match_bands(d, items, bands, opts)
+    saturated = _check_saturation(items, chosen, opts)
+    pitch_from = "--psf-pitch-um" if pitch_um is not None else f"pixel_pitch_um in {d / 'psf.json'}"
+    common = _common_centre(d, items, chosen, opts)
+    stack, per_band, low, floors = [], [], [], []
+    for lam, j in zip(bands.centers_nm, chosen):
+        w, f, img, _ = items[j]
+        _check_unnormalised_sum(w, f, img, opts)
+        floor = _pedestal_note(w, f, img, opts)
+        if floor is not None:
+            floors.append(floor)
+        psf, rep = _band_psf(w, f, img, opts, camera_pixel_m, kernel_px, f_number, pitch_from, common)
+        e = rep["energy_in_kernel"]
+        if e < LOW_ENERGY_IN_KERNEL:
+            low.append(f"{f.name if f else '?'} ({w:g} nm): {100 * e:.0f} %")
+        stack.append(psf)
+        per_band.append({"band_nm": float(lam), "wavelength_nm": w, "file": f.name if f else None, **rep,
+                         "saturated_px": saturated[j]})
+    _warn_folder(d, kernel_px, floors, low)
+    _warn_coarse_pitch(opts, camera_pixel_m)
+    return _measured_psf(d, bands, opts, camera_pixel_m, kernel_px, stack, per_band)
+
+
+def _psf_folder(psf_dir: str | Path) -> Path:
+    """``psf_dir`` as a Path, refused when it is a file or does not exist."""
     d = Path(psf_dir)
     if d.exists() and not d.is_dir():
         raise InputError(f"{d}: is a file, not a folder: --psf-dir takes the folder that holds the measured PSF images "
                          "(one per band, named with their wavelength, e.g. psf_450nm.tif, or psf.npy + psf.json)")
     if not d.is_dir():
         raise InputError(f"{d}: no such PSF folder")
-    meta = _read_manifest(d)
-    items = _list_band_images(d, meta)  # first: a folder without images needs no pitch to be refused
-    opts = options_from_manifest(meta, pitch_um, centre, background, folder=d)
+    return d
+
+
+def _match_bands(d: Path, items: list[tuple[float, Path, np.ndarray, float | None]], bands: Bands,
+                 opts: PSFImportOptions) -> list[int]:
+    """Index into ``items`` of the nearest wavelength for each camera band; refuses the bands without one
+    within ``wavelength_tolerance_nm``."""
     waves = np.array([w for w, _, _, _ in items])
     chosen, missing = [], []
     for lam in bands.centers_nm:
@@ -547,56 +580,79 @@ def import_psf_dir(psf_dir: str | Path, bands: Bands, camera_pixel_m: float, ker
     if missing:
         raise InputError(f"{d}: no measured PSF for band(s) {', '.join(missing)} nm "
                          f"(found {', '.join(f'{w:g}' for w in sorted(waves))} nm; tolerance {opts.wavelength_tolerance_nm:g} nm)")
-    saturated = _check_saturation(items, chosen, opts)
-    pitch_from = "--psf-pitch-um" if pitch_um is not None else f"pixel_pitch_um in {d / 'psf.json'}"
-    common = None
-    if opts.centre in ("centroid", "peak"):  # one centre for all bands: keeps their relative positions
-        shapes = {items[j][2].shape for j in chosen}  # type: ignore[union-attr]
-        if len(shapes) != 1:
-            raise InputError(f"{d}: PSF images have different sizes {sorted(shapes)}; a common centre needs one frame "
-                             "(use centre: centroid_per_band or axis in psf.json)")
-        total = None
-        for j in chosen:
-            try:
-                img, _, _ = prepare_psf_image(items[j][2], opts)  # type: ignore[arg-type]
-            except InputError as exc:
-                raise InputError(f"{items[j][1]} ({items[j][0]:g} nm): {exc}") from None
-            img = img / img.sum()
-            total = img if total is None else total + img
-        common = find_centre(total, opts.centre)
-    stack, per_band, low, floors = [], [], [], []
-    for lam, j in zip(bands.centers_nm, chosen):
-        w, f, img, _ = items[j]
-        if opts.normalize == "none":  # counts read as energy fractions: a camera ×10⁵ too bright
-            try:
-                total = prepare_psf_image(img, opts)[2]
-            except InputError as exc:
-                raise InputError(f"{f} ({w:g} nm): {exc}") from None
-            if total > MAX_UNNORMALISED_SUM:
-                raise InputError(f"{f} ({w:g} nm): with normalize: none a PSF image holds fractions of the band's "
-                                 f"light, but this one sums to {total:.4g} (counts?): set normalize: sum in psf.json")
-        level = pedestal_level(img) if opts.background == "none" else None
-        if level is not None and level > PEDESTAL_FRACTION * float(np.max(img)):
-            floors.append(f"{f.name if f else '?'} ({w:g} nm): {100 * level / float(np.max(img)):.2g} %")
+    return chosen
+
+
+def _common_centre(d: Path, items: list[tuple[float, Path, np.ndarray, float | None]], chosen: list[int],
+                   opts: PSFImportOptions) -> tuple[float, float] | None:
+    """With ``centre: centroid`` or ``peak``, that centre of the sum of the bands' unit-sum images; else None
+    (each band finds its own)."""
+    if opts.centre not in ("centroid", "peak"):
+        return None
+    # one centre for all bands: keeps their relative positions
+    shapes = {items[j][2].shape for j in chosen}  # type: ignore[union-attr]
+    if len(shapes) != 1:
+        raise InputError(f"{d}: PSF images have different sizes {sorted(shapes)}; a common centre needs one frame "
+                         "(use centre: centroid_per_band or axis in psf.json)")
+    total = None
+    for j in chosen:
         try:
-            psf, rep = import_psf_image(img, opts.pitch_um * 1e-6, camera_pixel_m, kernel_px, opts, common)  # type: ignore[operator]
+            img, _, _ = prepare_psf_image(items[j][2], opts)  # type: ignore[arg-type]
         except InputError as exc:
-            raise InputError(f"{f} ({w:g} nm): {exc}") from None
-        bs = prepare_psf_image(img, opts)[0]
-        why = implausible_pitch(bs, opts.pitch_um, camera_pixel_m, w, f_number, psf, pitch_from)  # type: ignore[arg-type]
-        if why:
-            raise InputError(f"{f} ({w:g} nm): {why}")
-        e = rep["energy_in_kernel"]
-        if not e >= MIN_ENERGY_IN_KERNEL:
-            raise InputError(f"{f} ({w:g} nm): only {100 * e:.3g} % of the PSF's light falls in the camera's "
-                             f"{kernel_px}×{kernel_px} px kernel (centred on row {rep['centre_px'][0]:g}, col "
-                             f"{rep['centre_px'][1]:g} of the {img.shape[0]}×{img.shape[1]} px image, centre: "
-                             f"{opts.centre}); check axis_px / centre and pixel_pitch_um in psf.json (or --psf-pitch-um)")
-        if e < LOW_ENERGY_IN_KERNEL:
-            low.append(f"{f.name if f else '?'} ({w:g} nm): {100 * e:.0f} %")
-        stack.append(psf)
-        per_band.append({"band_nm": float(lam), "wavelength_nm": w, "file": f.name if f else None, **rep,
-                         "saturated_px": saturated[j]})
+            raise InputError(f"{items[j][1]} ({items[j][0]:g} nm): {exc}") from None
+        img = img / img.sum()
+        total = img if total is None else total + img
+    return find_centre(total, opts.centre)
+
+
+def _check_unnormalised_sum(w: float, f: Path, img: np.ndarray, opts: PSFImportOptions) -> None:
+    """With ``normalize: none``, refuse an image summing to more than :data:`MAX_UNNORMALISED_SUM`."""
+    if opts.normalize != "none":
+        return
+    # counts read as energy fractions: a camera ×10⁵ too bright
+    try:
+        total = prepare_psf_image(img, opts)[2]
+    except InputError as exc:
+        raise InputError(f"{f} ({w:g} nm): {exc}") from None
+    if total > MAX_UNNORMALISED_SUM:
+        raise InputError(f"{f} ({w:g} nm): with normalize: none a PSF image holds fractions of the band's "
+                         f"light, but this one sums to {total:.4g} (counts?): set normalize: sum in psf.json")
+
+
+def _pedestal_note(w: float, f: Path, img: np.ndarray, opts: PSFImportOptions) -> str | None:
+    """With ``background: none``, "file (λ nm): level %" for an image whose border looks like a black level above
+    :data:`PEDESTAL_FRACTION` of its peak; else None."""
+    level = pedestal_level(img) if opts.background == "none" else None
+    if level is not None and level > PEDESTAL_FRACTION * float(np.max(img)):
+        return f"{f.name if f else '?'} ({w:g} nm): {100 * level / float(np.max(img)):.2g} %"
+    return None
+
+
+def _band_psf(w: float, f: Path, img: np.ndarray, opts: PSFImportOptions, camera_pixel_m: float, kernel_px: int,
+              f_number: float | None, pitch_from: str,
+              common: tuple[float, float] | None) -> tuple[np.ndarray, dict[str, Any]]:
+    """One band's camera PSF and report (:func:`import_psf_image`), refused for an implausible pitch or less than
+    :data:`MIN_ENERGY_IN_KERNEL` of its light in the kernel; every refusal names the file."""
+    try:
+        psf, rep = import_psf_image(img, opts.pitch_um * 1e-6, camera_pixel_m, kernel_px, opts, common)  # type: ignore[operator]
+    except InputError as exc:
+        raise InputError(f"{f} ({w:g} nm): {exc}") from None
+    bs = prepare_psf_image(img, opts)[0]
+    why = implausible_pitch(bs, opts.pitch_um, camera_pixel_m, w, f_number, psf, pitch_from)  # type: ignore[arg-type]
+    if why:
+        raise InputError(f"{f} ({w:g} nm): {why}")
+    e = rep["energy_in_kernel"]
+    if not e >= MIN_ENERGY_IN_KERNEL:
+        raise InputError(f"{f} ({w:g} nm): only {100 * e:.3g} % of the PSF's light falls in the camera's "
+                         f"{kernel_px}×{kernel_px} px kernel (centred on row {rep['centre_px'][0]:g}, col "
+                         f"{rep['centre_px'][1]:g} of the {img.shape[0]}×{img.shape[1]} px image, centre: "
+                         f"{opts.centre}); check axis_px / centre and pixel_pitch_um in psf.json (or --psf-pitch-um)")
+    return psf, rep
+
+
+def _warn_folder(d: Path, kernel_px: int, floors: list[str], low: list[str]) -> None:
+    """One warning for the bands whose border looks like a black level (``floors``), one for those keeping less
+    than :data:`LOW_ENERGY_IN_KERNEL` of their light in the kernel (``low``)."""
     if floors:  # a black level read as light: each band loses another share of its PSF to it
         log.warning("%s: the images' borders sit above zero (border median, of the peak: %s) and background is none: "
                     "if that is a black level (pedestal, dark current), it is counted as PSF light, spread over the whole "
@@ -607,10 +663,19 @@ def import_psf_dir(psf_dir: str | Path, bands: Bands, camera_pixel_m: float, ker
                     "%s); the camera model loses it: %scheck axis_px / centre and pixel_pitch_um in psf.json "
                     "(or --psf-pitch-um), or use a larger camera.psf.kernel_px", d, kernel_px, kernel_px, ", ".join(low),
                     "subtract the black level first (above), " if floors else "")
+
+
+def _warn_coarse_pitch(opts: PSFImportOptions, camera_pixel_m: float) -> None:
+    """Warn when the measured pixels are coarser than the camera's."""
     ratio = opts.pitch_um * 1e-6 / camera_pixel_m  # type: ignore[operator]
     if ratio > 1.0 + 1e-9:
         log.warning("measured PSFs are sampled at %.3g µm, coarser than the camera's %.3g µm pixels: "
                     "they are spread uniformly over each measured pixel", opts.pitch_um, camera_pixel_m * 1e6)
+
+
+def _measured_psf(d: Path, bands: Bands, opts: PSFImportOptions, camera_pixel_m: float, kernel_px: int,
+                  stack: list[np.ndarray], per_band: list[dict[str, Any]]) -> MeasuredPSF:
+    """The bands' PSFs as one float32 (C, K, K) stack with the import report."""
     psf = np.stack(stack).astype(np.float32)
     report = {
         "psf_dir": str(Path(d).resolve()),  # absolute: compared with --psf-dir from any working folder
