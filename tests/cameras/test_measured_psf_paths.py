@@ -371,6 +371,9 @@ STACK = np.stack([_spot()] * 2)
      "{d}/psf_500nm.npy (500 nm): PSF background must be 'none', 'border' or a number, got 'median'"),
     ({"background": "border"}, {"psf_500nm.npy": _spot()[:3, :3]},
      "{d}/psf_500nm.npy (500 nm): PSF image of 3×3 px is too small for border background estimation"),
+    # a JSON boolean is no level either (float(True) subtracted 1)
+    ({"background": True}, {"psf_500nm.npy": _spot()},
+     "{d}/psf_500nm.npy (500 nm): PSF background must be 'none', 'border' or a number, got True"),
     ({"background": 5}, {"psf_500nm.npy": _spot()},
      "{d}/psf_500nm.npy (500 nm): PSF image has no positive signal (after background subtraction)"),
 ])
@@ -379,6 +382,15 @@ def test_psf_folder_refusals_name_the_problem(tmp_path, meta, files, text):
     with pytest.raises(InputError) as exc:
         import_psf_dir(d, ONE_BAND, 5e-6, 15, pitch_um=5.0)
     assert str(exc.value) == text.format(d=d)
+
+
+def test_a_json_boolean_pixel_pitch_is_refused_not_read_as_1_um(tmp_path):
+    """psf.json's `"pixel_pitch_um": true` was a pitch of 1 µm (Python counts a bool as an int), recorded as `true`
+    in the import report; the other numbers of psf.json already refused booleans."""
+    d = _psf_dir(tmp_path / "a", {"pixel_pitch_um": True}, {"psf_500nm.npy": _spot()})
+    with pytest.raises(InputError) as exc:
+        import_psf_dir(d, ONE_BAND, 5e-6, 15)
+    assert str(exc.value) == f"{d}: PSF pixel pitch must be a positive number of µm, got True"
 
 
 def test_psf_pitch_unknown_and_mixed_sizes_under_a_common_centre(tmp_path):

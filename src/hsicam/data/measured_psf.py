@@ -194,6 +194,8 @@ def subtract_background(image: np.ndarray, background: str | float) -> tuple[np.
         b = level
     else:
         try:
+            if isinstance(background, bool):  # psf.json's `true` is no level (float(True) read as 1)
+                raise TypeError
             b = float(background)
         except (TypeError, ValueError):
             raise InputError(f"PSF background must be 'none', 'border' or a number, got {background!r}") from None
@@ -216,7 +218,7 @@ class PSFImportOptions:
     def check(self) -> None:
         if self.pitch_um is None:
             raise InputError("the measured PSFs' pixel pitch is unknown: put pixel_pitch_um in psf.json or pass --psf-pitch-um")
-        if not (isinstance(self.pitch_um, (int, float)) and math.isfinite(self.pitch_um) and self.pitch_um > 0):
+        if not (_is_number(self.pitch_um) and math.isfinite(self.pitch_um) and self.pitch_um > 0):  # true is no pitch
             raise InputError(f"PSF pixel pitch must be a positive number of µm, got {self.pitch_um!r}")
         if self.centre not in CENTRE_MODES:
             raise InputError(f"PSF centre must be one of {', '.join(CENTRE_MODES)}, got {self.centre!r}")
