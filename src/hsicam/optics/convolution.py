@@ -166,12 +166,9 @@ def _irfft2_rows(spec: torch.Tensor, shape: tuple[int, int], row0: int, rows: in
 def _rfft2_rows(img: torch.Tensor, shape: tuple[int, int], row0: int, col0: int) -> torch.Tensor:
     """rfft2 of ``img`` (…, h, w) placed at (row0, col0) in a zero ``shape`` canvas (pruned:
     the row transforms run over the h non-zero rows only)."""
-    rows = torch.fft.rfft(_placed(img, (img.shape[-2], shape[1]), 0, col0), dim=-1)
-    # the column transforms on a transposed canvas (what fft(dim=-2) would copy a plain canvas into): the same
-    # spectrum, bit for bit, returned as the transposed view that fft(dim=-2) returns, one copy of the chunk fewer
-    canvas = rows.new_zeros(rows.shape[:-2] + (rows.shape[-1], shape[0]))
-    canvas[..., row0 : row0 + rows.shape[-2]].copy_(rows.transpose(-1, -2))
-    return torch.fft.fft(canvas, dim=-1).transpose(-1, -2)
+    # the column transforms on a transposed canvas (:func:`_rfft2_transposed`; what fft(dim=-2) would copy a plain
+    # canvas into): the same spectrum, bit for bit, as the transposed view that fft(dim=-2) returns
+    return _rfft2_transposed(_placed(img, (img.shape[-2], shape[1]), 0, col0), shape, row0).transpose(-1, -2)
 
 
 def same_spectra(psf: torch.Tensor, fft_shape: tuple[int, int]) -> torch.Tensor:
