@@ -70,6 +70,22 @@ def test_psf_images_without_signal_past_the_saturation_check_and_with_normalize_
     assert str(exc.value) == f"{zero}/psf_500nm.npy (500 nm): PSF image has no positive signal (after background subtraction)"
 
 
+def test_a_psf_clipped_over_its_frame_but_its_first_row_is_refused_as_clipped(tmp_path):
+    """The frame's median (what `background: border` subtracts) at 255 leaves nothing above it: refused as clipped,
+    whatever the first row holds (the check read the first row only, and this image was 'no positive signal')."""
+    d = tmp_path / "sat"
+    d.mkdir()
+    img = np.full((31, 31), 255, np.uint8)
+    img[0] = 0  # 31 of the frame's 232 pixels: its median stays 255
+    np.save(d / "psf_500nm.npy", img)
+    (d / "psf.json").write_text(json.dumps({"background": "border"}))
+    with pytest.raises(InputError) as exc:
+        import_psf_dir(d, ONE_BAND, 5e-6, 15, pitch_um=5.0)
+    assert str(exc.value) == (f"{d}/psf_500nm.npy (500 nm): a clipped (over-exposed) PSF image: 930 of its 961 pixels "
+                              "are at 255 (the file type's maximum), its border too, so nothing is left above the "
+                              "background: measure it again with a shorter exposure (brightest pixel below 255)")
+
+
 def test_measured_psf_helpers_refuse_what_the_import_never_passes():
     with pytest.raises(InputError, match=r"^PSF image has no positive signal \(after background subtraction\)$"):
         centroid(np.zeros((3, 3)))

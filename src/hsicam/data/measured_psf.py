@@ -35,8 +35,8 @@ Checks on each band image (one line naming the file and what to do):
   single pixel, and fine-tuning on it would remove the DOE's blur from the model.
 * **Saturation** (:func:`saturated_pixels`): pixels of an integer image at the type's maximum (255,
   65535; in a 16-bit file also 1023, 4095 or 16383, the maximum of a 10-, 12- or 14-bit sensor, when
-  that is the image's maximum) are clipped. :data:`SATURATED_MIN_PX` or more are a warning (once
-  per file; one or two pixels at full scale are what an image scaled to its own maximum has);
+  that is the image's maximum) are clipped. :data:`SATURATED_MIN_PX` or more are a warning (once per
+  image, a stack's band being one; one or two pixels at full scale are what an image scaled to its own maximum has);
   clipped pixels holding more than :data:`MAX_CLIPPED_LIGHT_SHARE` of the image's light (after the
   background) are an :class:`InputError`: the PSF's core is then mostly a flat plateau and, once
   normalised, its tails are over-weighted. Float images carry no clip level and are not checked.
@@ -488,10 +488,10 @@ def _read_band_files(d: Path) -> list[tuple[float, Path, np.ndarray, float | Non
 def _check_saturation(items: list[tuple[float, Path, np.ndarray, float | None]], chosen: list[int],
                       opts: PSFImportOptions) -> dict[int, int]:
     """{item index: clipped pixels} of the images the bands use (:func:`saturated_pixels`): a warning
-    per file with :data:`SATURATED_MIN_PX` or more, an :class:`InputError` when they hold more than
+    per image (file, or band of a stack) with :data:`SATURATED_MIN_PX` or more, an :class:`InputError` when they hold more than
     :data:`MAX_CLIPPED_LIGHT_SHARE` of its light (after the background)."""
     out: dict[int, int] = {}
-    for j in dict.fromkeys(chosen):  # once per file, in band order
+    for j in dict.fromkeys(chosen):  # once per image (a stack's band is one), in band order
         w, f, img, type_max = items[j]
         n, level, what = saturated_pixels(img, type_max)
         out[j] = n
@@ -500,8 +500,9 @@ def _check_saturation(items: list[tuple[float, Path, np.ndarray, float | None]],
         try:
             bs, _, total = prepare_psf_image(img, PSFImportOptions(pitch_um=opts.pitch_um, background=opts.background,
                                                                   normalize="none"))
-        except InputError:  # nothing above the background: clipped up to its border (an all-255 frame), else
-            if n == img.size or bool(np.all(img[0] == level)):  # refused without signal, with its name, below
+        except InputError:  # nothing above the background: clipped up to its border (the frame's median, which
+            # `background: border` subtracts, is the clipping level), else refused without signal, with its name, below
+            if n == img.size or border_level(img) == level:
                 raise InputError(f"{f} ({w:g} nm): a clipped (over-exposed) PSF image: {n} of its {img.size} pixels "
                                  f"are at {level:g} ({what}), its border too, so nothing is left above the background: "
                                  f"measure it again with a shorter exposure (brightest pixel below {level:g})") from None
@@ -528,7 +529,7 @@ def import_psf_dir(psf_dir: str | Path, bands: Bands, camera_pixel_m: float, ker
     wavelengths are ignored. Raises :class:`InputError` for anything unusable, including a pitch in
     the wrong unit (:func:`implausible_pitch`; the diffraction test needs the camera's ``f_number``)
     and images clipped over more than :data:`MAX_CLIPPED_LIGHT_SHARE` of their light; warns (once per
-    file) about :data:`SATURATED_MIN_PX` or more clipped pixels.
+    image: each band of a ``psf.npy`` stack is one, named by its wavelength) about :data:`SATURATED_MIN_PX` or more clipped pixels.
     """
     d = _psf_folder(psf_dir)
     meta = _read_manifest(d)
@@ -548,9 +549,9 @@ def import_psf_dir(psf_dir: str | Path, bands: Bands, camera_pixel_m: float, ker
         psf, rep = _band_psf(w, f, img, opts, camera_pixel_m, kernel_px, f_number, pitch_from, common)
         e = rep["energy_in_kernel"]
         if e < LOW_ENERGY_IN_KERNEL:
-            low.append(f"{f.name if f else '?'} ({w:g} nm): {100 * e:.0f} %")
+            low.append(f"{f.name} ({w:g} nm): {100 * e:.0f} %")
         stack.append(psf)
-        per_band.append({"band_nm": float(lam), "wavelength_nm": w, "file": f.name if f else None, **rep,
+        per_band.append({"band_nm": float(lam), "wavelength_nm": w, "file": f.name, **rep,
                          "saturated_px": saturated[j]})
     _warn_folder(d, kernel_px, floors, low)
     _warn_coarse_pitch(opts, camera_pixel_m)
@@ -626,7 +627,7 @@ def _pedestal_note(w: float, f: Path, img: np.ndarray, opts: PSFImportOptions) -
     :data:`PEDESTAL_FRACTION` of its peak; else None."""
     level = pedestal_level(img) if opts.background == "none" else None
     if level is not None and level > PEDESTAL_FRACTION * float(np.max(img)):
-        return f"{f.name if f else '?'} ({w:g} nm): {100 * level / float(np.max(img)):.2g} %"
+        return f"{f.name} ({w:g} nm): {100 * level / float(np.max(img)):.2g} %"
     return None
 
 
