@@ -11,7 +11,6 @@ The learned CASSI baseline is trained by the ordinary trainer:
 from __future__ import annotations
 
 import argparse
-from pathlib import Path
 
 from hsicam.cli import add_config_args
 

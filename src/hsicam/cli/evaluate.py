@@ -367,8 +367,6 @@ def _print_means(args: argparse.Namespace, summary: dict, n_scenes: int, out: Pa
 
 def _relative_to_common_folder(paths) -> list[str]:
     """Scene paths relative to the folder that holds them all (the synthetic dataset's)."""
-    import os
-
     from hsicam.data.datasets import displayable_name, scene_path
 
     root = os.path.commonpath([os.path.abspath(Path(p).parent) for p in paths]) if len(paths) else "."

@@ -161,7 +161,7 @@ def _fmt(v, unit: str, not_swept: bool = False) -> str:
 
 
 def cmd_finetune(args: argparse.Namespace) -> int:
-    from hsicam.cli import config_from_args, run_config_from_args
+    from hsicam.cli import run_config_from_args
     from hsicam.engine.calibration import finetune
     from hsicam.cli import prepare_output
     from hsicam.runs.folder import check_is_run

@@ -30,7 +30,6 @@ import math
 import os
 from contextlib import contextmanager
 from contextvars import ContextVar
-from pathlib import Path
 from typing import Any, Iterator, Sequence, Union
 
 import numpy as np

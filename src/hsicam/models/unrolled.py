@@ -33,7 +33,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from hsicam.config import MosaicConfig, UnrolledConfig
+from hsicam.config import UnrolledConfig
 from hsicam.errors import ConfigError
 from hsicam.models.registry import register_network
 from hsicam.models.mosaic import (MOSAIC_SIZES, MosaicNet, ResBlock, _odd_window, build_mosaic,

@@ -35,7 +35,6 @@ import math
 import time
 
 import torch
-import torch.nn.functional as F
 from torch import nn
 
 from hsicam.errors import InputError
