@@ -11,7 +11,7 @@ PYTEST_ARGS ?=
 # process). 2 suits the project's 2-core machines (16.5 -> 11.5 min there, session 28; 7 min since session 43, docs/architecture.md "Tests"); 0 runs serially.
 TEST_WORKERS ?= 2
 
-.PHONY: setup demo test test-slow bench clean FORCE
+.PHONY: setup demo test test-slow lint bench clean FORCE
 
 STAMP := $(VENV)/.installed
 # The TORCH_SPEC the venv was installed with, written by the install below.
@@ -50,6 +50,14 @@ test: setup
 
 test-slow: setup
 	$(BIN)/python -m pytest -q -m slow $(PYTEST_ARGS)
+
+# Static checks of src/ (the rules in pyproject.toml's [tool.ruff.lint]) with this ruff, installed into the venv
+# here only (not a dev extra); not part of `make test`.
+RUFF_VERSION ?= 0.17.6
+
+lint: setup
+	$(BIN)/ruff --version 2>/dev/null | grep -qx 'ruff $(RUFF_VERSION)' || $(BIN)/python -m pip install -q "ruff==$(RUFF_VERSION)"
+	$(BIN)/ruff check src
 
 bench: setup
 	$(BIN)/python benchmarks/bench_camera.py

@@ -9,6 +9,7 @@ import importlib.util
 import inspect
 import json
 import os
+import re
 import shutil
 import subprocess
 import sys
@@ -95,6 +96,30 @@ def test_make_installs_a_changed_torch_spec_into_an_existing_venv(make_dir):
     assert _make(make_dir, "-q", "setup", "TORCH_SPEC=torch").returncode == 0
     assert _make(make_dir, "-q", "setup").returncode == 1  # back to the pinned one: installed again
 
+
+
+def test_make_lint_installs_its_pinned_ruff_once_and_checks_src(make_dir):
+    """`make lint` puts the Makefile's RUFF_VERSION into the venv when the venv's ruff is missing or another version,
+    not when it is that one, and runs it on src/ (the rules are pyproject.toml's)."""
+    assert _make(make_dir, "setup").returncode == 0
+    _log(make_dir)
+    ruff = make_dir / ".venv" / "bin" / "ruff"
+
+    def fake_ruff(version: str) -> None:
+        ruff.write_text(f'#!/bin/sh\nif [ "$1" = --version ]; then echo "ruff {version}"; else echo "ruff $*" >> "$LOG"; fi\n')
+        ruff.chmod(0o755)
+
+    def calls() -> list[str]:  # (less the python start that tells whether the venv still runs)
+        return [c for c in _log(make_dir) if c != "venv -c "]
+
+    pinned = re.search(r"^RUFF_VERSION \?= (\S+)$", (make_dir / "Makefile").read_text(), re.M).group(1)
+    fake_ruff("0.0.1")
+    proc = _make(make_dir, "lint")
+    assert proc.returncode == 0, proc.stderr
+    assert calls() == [f"venv -m pip install -q ruff=={pinned}", "ruff check src"]
+    fake_ruff(pinned)
+    assert _make(make_dir, "lint").returncode == 0
+    assert calls() == ["ruff check src"]
 
 # --- bench_cli.py ----------------------------------------------------------------------------------------------------
 
