@@ -55,7 +55,7 @@ import math
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any, NamedTuple, Sequence
 
 import numpy as np
 import torch
@@ -312,10 +312,10 @@ def refuse_finetuned_run(run_dir: str | Path) -> None:
     )
 
 
-def run_tolerance(model, cfg, spec: ToleranceSpec = ToleranceSpec(), data: str | Path | None = None,
+def run_tolerance(model, cfg, spec: ToleranceSpec | None = None, data: str | Path | None = None,
                   progress: bool | None = None, run: str | Path | None = None) -> dict[str, Any]:
     """Evaluate the camera of ``model`` (a :class:`~hsicam.models.CameraSystem` with a DOE camera)
-    under every perturbation of ``spec``; returns the JSON-ready result. ``run``: the run folder
+    under every perturbation of ``spec`` (None: the default :class:`ToleranceSpec`); returns the JSON-ready result. ``run``: the run folder
     ``model`` was loaded from; its identity (:func:`hsicam.export.tolerance.run_identity`: folder,
     weights file and its SHA-256) is recorded as ``"run"`` so that ``hsicam export-optics`` cites
     the study only for that run (None: not recorded). ``progress``: one line per sweep point, k/N
@@ -323,6 +323,7 @@ def run_tolerance(model, cfg, spec: ToleranceSpec = ToleranceSpec(), data: str |
     from hsicam.export.tolerance import TOLERANCE_FORMAT, run_identity
     from hsicam.progress import Progress
 
+    spec = ToleranceSpec() if spec is None else spec
     spec.check()
     cam = _studied_camera(model, cfg, run)
     optics = cam.optics
@@ -360,7 +361,7 @@ def run_tolerance(model, cfg, spec: ToleranceSpec = ToleranceSpec(), data: str |
             shift_ref = _sweep_shift(spec, optics, h0, big_q, evaluate, record)
         _sweep_sensor_distance(spec, optics, h0, evaluate, record)
 
-    sweeps = _sweeps_by_name(rows, None if shift_ref is None else shift_ref[3]["psnr"])
+    sweeps = _sweeps_by_name(rows, None if shift_ref is None else shift_ref.metrics["psnr"])
     summary = _summary(sweeps, nominal["psnr"])
     return {
         "format": TOLERANCE_FORMAT,
@@ -377,7 +378,7 @@ def run_tolerance(model, cfg, spec: ToleranceSpec = ToleranceSpec(), data: str |
         "skipped": skipped,
         "nominal": {**nominal, "energy_in_kernel_min": float(nominal_psf.energy.min())},
         "shift_reference": None if shift_ref is None else {
-            **shift_ref[3], "pupil_oversample": big_q, "energy_in_kernel_min": float(shift_ref[1].min())},
+            **shift_ref.metrics, "pupil_oversample": big_q, "energy_in_kernel_min": float(shift_ref.energy.min())},
         "sweeps": sweeps,
         "summary": summary,
         "rows": rows,
@@ -459,8 +460,16 @@ def _sweep_levels(spec: ToleranceSpec, cam, evaluate, record) -> None:
         record("levels", lv, "levels", [evaluate(res.psf)], res.energy)
 
 
-def _sweep_shift(spec: ToleranceSpec, optics, h0: torch.Tensor, big_q: int, evaluate,
-                 record) -> tuple[torch.Tensor, torch.Tensor, tuple[float, float], dict[str, float]]:
+class _ShiftReference(NamedTuple):
+    """The unshifted case of the shift sweeps on the oversampled pupil."""
+
+    psf: torch.Tensor  # (C, K, K)
+    energy: torch.Tensor  # (C,) energy in the kernel
+    applied_cells: tuple[float, float]  # the shift applied (rows, columns), cells
+    metrics: dict[str, float]
+
+
+def _sweep_shift(spec: ToleranceSpec, optics, h0: torch.Tensor, big_q: int, evaluate, record) -> _ShiftReference:
     """Records each shift of ``spec.shift_cells`` along x, then along the diagonal, on the pupil oversampled to
     ``big_q`` samples per cell; returns the reference (psf, energy, applied shift, metrics): the unshifted case."""
     # lateral misalignment along x and along the diagonal, on the Q-oversampled pupil; the
@@ -476,12 +485,12 @@ def _sweep_shift(spec: ToleranceSpec, optics, h0: torch.Tensor, big_q: int, eval
                 psf, energy, applied = psf_shifted(fine, h0, s * direction[0], s * direction[1])
                 m0 = evaluate(psf)
                 if s == 0:
-                    shift_ref = (psf, energy, applied, m0)
+                    shift_ref = _ShiftReference(psf, energy, applied, m0)
             record(sweep, s, "cells", [m0], energy, applied_cells=list(applied),
                    shift_um=[a * optics.cell_m * 1e6 for a in applied], pupil_oversample=big_q)
     if shift_ref is None:
         psf, energy, _ = psf_shifted(fine, h0, 0.0, 0.0)
-        shift_ref = (psf, energy, (0.0, 0.0), evaluate(psf))
+        shift_ref = _ShiftReference(psf, energy, (0.0, 0.0), evaluate(psf))
     return shift_ref
 
 
