@@ -239,6 +239,14 @@ def test_huge_declared_sizes_are_refused_quickly(tmp_path):
     (tmp_path / "limit.tif").write_bytes(_tiff_with_size(side, side))
     with pytest.raises(InputError, match="limit"):
         read_image_2d(tmp_path / "limit.tif")
+    # the same for an NPY whose data are all there (a sparse file): img.npy above is refused by the mmap of its
+    # missing data, so without this one the NPY reader's own pixel limit was never reached
+    with open(tmp_path / "limit.npy", "wb") as fh:
+        np.lib.format.write_array_header_1_0(fh, {"descr": "<u2", "fortran_order": False, "shape": (side, side)})
+        fh.truncate(fh.tell() + 2 * side * side)
+    with pytest.raises(InputError, match=rf"limit.npy: image of shape \({side}, {side}\) is larger than the limit"), \
+            time_limit(5):
+        read_image_2d(tmp_path / "limit.npy")
 
 
 def test_huge_declared_hdf5_dataset(tmp_path):
