@@ -188,6 +188,12 @@ def test_budget_argument_on_real_files_of_every_format(tmp_path, no_budget_env):
     files["envi"], _ = write_envi(tmp_path / "c.hdr", data, bands)
     scipy.io.savemat(tmp_path / "c.mat", {"ref": np.moveaxis(data, 0, -1)})  # float32 → 'single'
     files["mat5"] = tmp_path / "c.mat"
+    with h5py.File(tmp_path / "c73.mat", "w", userblock_size=512) as f:  # ICVL: MAT v7.3, 'rad' H×W×C in MATLAB order
+        f["rad"] = np.swapaxes(data, 1, 2)  # as MATLAB stores H×W×C: axes reversed in HDF5
+        f["bands"] = bands.centers_nm[:, None]
+    with open(tmp_path / "c73.mat", "r+b") as fh:
+        fh.write(b"MATLAB 7.3 MAT-file".ljust(116, b" ") + b"\x00" * 8 + b"\x00\x02IM")
+    files["mat73"] = tmp_path / "c73.mat"
     for name, path in files.items():
         below, above = 0.999 * need / 2**20, 1.1 * need / 2**20
         with pytest.raises(InputError, match="memory budget") as exc:
@@ -204,6 +210,8 @@ def test_budget_argument_on_real_files_of_every_format(tmp_path, no_budget_env):
         read_envi(files["envi"], memory_budget_mb=0.1)
     with pytest.raises(InputError, match="memory budget"):
         read_harvard(files["mat5"], memory_budget_mb=0.1)
+    with pytest.raises(InputError, match="memory budget"):
+        read_icvl(files["mat73"], memory_budget_mb=0.1)
 
 
 def test_budget_on_cave_and_exr(tmp_path, no_budget_env):
