@@ -32,7 +32,7 @@ from hsicam.models import CameraSystem
 from hsicam.engine.methods import dd_cassi_camera
 from hsicam.models.priors import SpectralAutoencoder
 from hsicam.solvers.choi import admm_prior
-from hsicam.config import BaselinesConfig, ChoiConfig
+from hsicam.config import BaselinesConfig
 from hsicam.solvers.desci import desci, desci_settings
 from hsicam.solvers.gaptv import gap_tv
 from timing import median_time, positive_int, untrained_system_for_inference

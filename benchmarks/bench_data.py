@@ -61,7 +61,7 @@ def main() -> None:
     torch.set_num_threads(1)
     bands = Bands.paper()
     t0 = time.perf_counter()
-    lib = spectral_library(bands)
+    spectral_library(bands)
     library_s = time.perf_counter() - t0
     train = spectral_library(bands, DEFAULT_HOLDOUT, "train")
     held = spectral_library(bands, DEFAULT_HOLDOUT, "heldout")

@@ -3,7 +3,6 @@
 Found by a review that used hsicam from Python. Reference: the exact line a user sees, and the capture of the
 scene in its (B, C, H, W) layout, which the fix the message names gives back."""
 
-import numpy as np
 import pytest
 import torch
 

@@ -268,7 +268,7 @@ colour_filters = pytest.mark.filterwarnings("ignore:Aligning", "ignore:.*shape c
 def test_a_lamp_dark_on_every_band_is_left_out_of_the_library():
     """400-440 nm: the low-pressure sodium lamp (its light at 589 nm) gives nothing on these bands (colour-science's
     own spectrum is 0 from 370 to 470 nm), so it is not used as an emitter, and the library says so."""
-    colour = pytest.importorskip("colour")
+    pytest.importorskip("colour")
     from colour.colorimetry import SDS_LIGHT_SOURCES
 
     from hsicam.data.spectral_sources import spectral_library

@@ -473,7 +473,7 @@ def test_scenes_of_an_hsicam_before_the_record_are_reused_with_a_warning_that_th
     compare): they may come from other package versions. One line says so (once a process) and how to make them
     anew; a partial set with its record, and a complete set, say nothing."""
     folder = syn.synthetic_scenes([1], N, SIZE, 0, BANDS, cache_dir=tmp_path, progress=False)[0].parent
-    whole = syn.synthetic_dataset(N, SIZE, 0, BANDS, cache_dir=tmp_path / "whole", progress=False)
+    syn.synthetic_dataset(N, SIZE, 0, BANDS, cache_dir=tmp_path / "whole", progress=False)
     with caplog.at_level(logging.WARNING, logger="hsicam.data.synthetic"):
         syn.synthetic_scenes([1], N, SIZE, 0, BANDS, cache_dir=tmp_path, progress=False)
         syn.synthetic_scenes([1], N, SIZE, 0, BANDS, cache_dir=tmp_path / "whole", progress=False)

@@ -7,8 +7,6 @@ sees, a PNG read back), not against the code under test.
 
 from __future__ import annotations
 
-import json
-
 import numpy as np
 import pytest
 

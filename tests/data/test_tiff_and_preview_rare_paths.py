@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 import tifffile
 
-from hsicam.data.images import RawCorrection, read_image_2d
+from hsicam.data.images import read_image_2d
 from hsicam.errors import InputError
 from hsicam.spectral import Bands
 

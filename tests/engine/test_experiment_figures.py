@@ -8,7 +8,6 @@ back from experiment.json's own per-scene rows, the figures from the drawn figur
 from __future__ import annotations
 
 import json
-from types import SimpleNamespace
 
 import numpy as np
 import torch

@@ -567,7 +567,6 @@ def test_settings_are_plain_dataclasses_with_defaults():
 # --------------------------------------------------------------------------------------------
 # Through the registry: every model.kind builds from a config and keeps the system contract
 # --------------------------------------------------------------------------------------------
-from hsicam.config import load_config  # noqa: E402
 from hsicam.models import CameraSystem, network_kinds  # noqa: E402
 
 

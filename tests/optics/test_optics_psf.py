@@ -8,7 +8,6 @@ Sellmeier evaluation of Malitson's coefficients, grating and lens equations).
 from __future__ import annotations
 
 import math
-import os
 
 import numpy as np
 import pytest

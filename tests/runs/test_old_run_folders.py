@@ -245,7 +245,6 @@ def test_a_run_started_in_session_60_before_it_recorded_the_generator_is_told_by
     today's does, and drew seed 0's patches. Its session record's git_commit tells which of the changes it had
     (the records fabricated here are those that commit's hsicam writes, measured by training with it)."""
     import logging
-    import shutil
     import subprocess
 
     from hsicam.engine.train import train

@@ -10,7 +10,6 @@ from pathlib import Path
 
 import pytest
 import torch
-from safetensors import safe_open
 
 from hsicam.errors import InputError
 from hsicam.runs.checkpoint import MANIFEST, MANIFEST_FORMAT, CheckpointManager, load_optimizer, read_weights, \

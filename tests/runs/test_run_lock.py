@@ -180,7 +180,6 @@ def test_a_forked_child_does_not_keep_the_lock_of_its_killed_parent(tmp_path):
     import signal
     import subprocess
     import sys
-    import time
 
     from hsicam.io import held_elsewhere
 
