@@ -239,6 +239,12 @@ def test_huge_declared_sizes_are_refused_quickly(tmp_path):
     (tmp_path / "limit.tif").write_bytes(_tiff_with_size(side, side))
     with pytest.raises(InputError, match="limit"):
         read_image_2d(tmp_path / "limit.tif")
+    # a PNG too: big.png above is refused by Pillow's own decompression-bomb limit (2 × 89.5 Mpx), so without this
+    # one the PNG reader's check of the header against MAX_IMAGE_PIXELS was never reached
+    (tmp_path / "limit.png").write_bytes(_png_with_size(side, side))
+    with pytest.raises(InputError, match=rf"limit.png: image of shape \({side}, {side}\) is larger than the limit"), \
+            time_limit(5):
+        read_image_2d(tmp_path / "limit.png")
     # the same for an NPY whose data are all there (a sparse file): img.npy above is refused by the mmap of its
     # missing data, so without this one the NPY reader's own pixel limit was never reached
     with open(tmp_path / "limit.npy", "wb") as fh:
