@@ -1,6 +1,7 @@
 """Exception types. The CLI turns every :class:`HsicamError` into one line and exit code 2."""
 
 import re
+from pathlib import Path
 
 
 class HsicamError(Exception):
@@ -21,8 +22,8 @@ class TrainingDiverged(InputError):
     its last checkpoint, all of whose weights are finite; None when it has none yet), so the CLI can say how to go
     on with a lower rate."""
 
-    run_dir = None
-    checkpoint_step = None
+    run_dir: Path | None = None
+    checkpoint_step: int | None = None
 
 
 class PeerFailed(HsicamError):
