@@ -28,7 +28,7 @@ import time
 import traceback
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Callable, Iterator
+from typing import Any, Callable, Iterator, NoReturn
 
 import torch
 import torch.distributed as dist
@@ -1058,7 +1058,7 @@ class _Training:
         if asked is not None:
             self.stop_here(*asked, saved=saved)
 
-    def stop_here(self, why: str, code: int, saved: bool) -> None:
+    def stop_here(self, why: str, code: int, saved: bool) -> NoReturn:
         """Save the checkpoint of this step (unless ``saved``) and raise :class:`TrainingStopped`
         (the budget) or :class:`TrainingInterrupted` (a signal)."""
         if not saved:
