@@ -201,8 +201,10 @@ class PSFMemory:
 MAX_SUPERSAMPLE_FACTOR = 4
 
 
-def far_field_period_px(wavelength_m: float, sensor_distance_m: float, pupil_pitch_m: float, pixel_m: float) -> float:
-    """The period (in pixels) of the far field of a pupil sampled at ``pupil_pitch_m``: λz/(Δ·pixel)."""
+def far_field_period_px(wavelength_m: float | np.ndarray, sensor_distance_m: float | np.ndarray, pupil_pitch_m: float,
+                        pixel_m: float) -> float | np.ndarray:
+    """The period (in pixels) of the far field of a pupil sampled at ``pupil_pitch_m``: λz/(Δ·pixel); elementwise
+    for arrays of wavelengths and distances (one period per line of a spectrum, :class:`~hsicam.optics.psf.PSFModel`)."""
     return wavelength_m * sensor_distance_m / (pupil_pitch_m * pixel_m)
 
 
