@@ -63,7 +63,7 @@ def test_unknown_key_in_a_file(tmp_path):
     "camera.lens.material=3",
 ])
 def test_wrong_type_is_a_config_error(override):
-    with pytest.raises(ConfigError):
+    with pytest.raises(ConfigError, match=re.escape(override.split("=")[0])):  # refused for the key it names
         load_config(overrides=[override])
 
 
@@ -81,7 +81,7 @@ def test_wrong_type_is_a_config_error(override):
     "camera.aperture_radius_mm=.nan",
 ])
 def test_negative_or_zero_lengths_are_config_errors(override):
-    with pytest.raises(ConfigError):
+    with pytest.raises(ConfigError, match=re.escape(override.split("=")[0])):  # refused for the key it names
         load_config(overrides=[override])
 
 
@@ -145,7 +145,7 @@ def test_doe_cell_larger_than_aperture():
 @pytest.mark.parametrize("override", ["camera.psf.kernel_px=140", "camera.psf.kernel_px=0",
                                       "camera.psf.supersample=2", "camera.psf.pupil_oversample=0"])
 def test_even_or_non_positive_kernel_and_sampling(override):
-    with pytest.raises(ConfigError):
+    with pytest.raises(ConfigError, match=re.escape(override.split("=")[0])):  # refused for the key it names
         load_config(overrides=[override])
 
 
