@@ -129,7 +129,7 @@ def test_a_config_file_with_a_key_given_twice_is_refused(tmp_path, capsys):
     ("--sigma-height-nm", "0,10,-5", "every value must be a finite number in [0, 1000000] nm, got -5"),
     ("--sigma-height-nm", "nan", "every value must be a finite number in [0, 1000000] nm, got nan"),
     ("--sigma-height-nm", "0,1e300", "every value must be a finite number in [0, 1000000] nm, got 1e+300"),
-    ("--levels", "2,1", "every value must be >= 2 (height levels), got 1"),
+    ("--levels", "2,1", "every value must be a power of 2 in 2..65536 (height levels that export-optics exports), got 1"),
     ("--levels", "2.5", "expected comma-separated integers, got '2.5'"),
     ("--shift-cells", "0,inf", "every value must be finite, got inf"),
     ("--sensor-distance-um", "nan", "every value must be finite, got nan"),
@@ -390,3 +390,26 @@ def test_evaluate_and_experiment_choices_are_the_registries_names(capsys, monkey
     experiment_help = sub.choices["experiment"].format_help()
     assert f"the experiment ({', '.join(EXPERIMENTS)})" in experiment_help
     assert f"the preset of that name ({', '.join(SCALES)})" in experiment_help
+
+
+@pytest.mark.parametrize("value,bad", [("2,3", "3"), ("1", "1"), (str(2 * 2**16), str(2 * 2**16)), ("2,12,16", "12")])
+def test_tolerance_levels_that_export_optics_refuses_are_a_usage_error_before_the_run_is_loaded(
+        tmp_path, capsys, monkeypatch, value, bad):
+    """``tolerance --levels 2,3``: its help said "each >= 2", and 3 passed the option only to be refused after the
+    run was loaded (hsicam.engine.tolerance.check_levels: export-optics exports a power of 2 in 2..2^16 levels). The
+    option now takes what its help says, the counts export-optics exports, and refuses the others at once."""
+    import hsicam.runs.folder as folder
+    from hsicam.config import MAX_HEIGHT_LEVELS
+    from hsicam.engine.tolerance import check_levels
+
+    def no_load(*a, **k):
+        raise AssertionError("the run was loaded before the options were checked")
+
+    monkeypatch.setattr(folder, "load_run", no_load)
+    with pytest.raises(Exception, match=rf"--levels {bad}: hsicam export-optics exports only a power of 2"):
+        check_levels(int(bad))  # the refusal the study would give later: the option refuses the same counts
+    out = tmp_path / "out"
+    line = one_line_error(capsys, ["tolerance", "--run", "pretrained:standard", "--out", str(out), "--levels", value])
+    assert line == (f"hsicam: error: argument --levels: every value must be a power of 2 in 2..{MAX_HEIGHT_LEVELS} "
+                    f"(height levels that export-optics exports), got {bad}")
+    assert not out.exists()

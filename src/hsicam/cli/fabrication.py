@@ -35,7 +35,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="DOE height noise levels σ_p (nm), each in [0, 1000000], e.g. 0,10,20,40,60")
     p.add_argument("--draws", type=draws_arg, default=None,
                    help="fabricated DOEs drawn per height-noise level, 1 to 1000 (default 3)")
-    p.add_argument("--levels", type=levels_list_arg, default=None, metavar="LIST", help="height levels, each >= 2, e.g. 2,4,8,16,32")
+    p.add_argument("--levels", type=levels_list_arg, default=None, metavar="LIST",
+                   help=f"DOE height level counts, each a power of 2 in 2..{MAX_HEIGHT_LEVELS} as export-optics exports, "
+                        "e.g. 2,4,8,16,32")
     p.add_argument("--shift-cells", type=finite_numbers_arg, default=None, metavar="LIST", help="e.g. 0,0.25,0.5,1,2")
     p.add_argument("--shift-subsamples", type=count_arg, default=None,
                    help="pupil samples per cell Q for the misalignment study (shift resolution 1/Q cell), >= 1 (default 4)")
