@@ -119,7 +119,9 @@ def build_parser() -> argparse.ArgumentParser:
 
 def add_config_args(p: argparse.ArgumentParser) -> None:
     """The ``--config FILE`` and repeatable ``--set key=value`` options shared by commands."""
-    p.add_argument("--config", metavar="FILE", help="YAML config (default: built-in paper camera)")
+    p.add_argument("--config", metavar="FILE",
+                   help="YAML config or preset name (tiny, quick, paper, ...; default: the built-in config: the paper "
+                        "preset's camera and network, not its data and training scale)")
     p.add_argument("--set", dest="overrides", metavar="KEY=VALUE", action="append", default=[],
                    help="dotted override, e.g. camera.doe.enabled=false (repeatable)")
 

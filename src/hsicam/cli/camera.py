@@ -48,7 +48,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     from hsicam.cli.args import seed_arg
     p.add_argument("--seed", type=seed_arg(), default=0,
                    help="seed of torch's generator for DOE height noise and sensor noise, an integer in [0, 2^32 - 1] "
-                        "as every seed key (camera.doe.seed, train.seed, data synth --seed)")
+                        "as every seed key (camera.doe.seed, train.seed, data synth --seed) (default 0)")
     add_run_arg(p, "use the trained optics of this run (its config.yaml; --set still applies)", required=False)
     p.set_defaults(func=cmd_simulate)
 

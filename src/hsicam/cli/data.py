@@ -17,8 +17,8 @@ def register(sub: argparse._SubParsersAction) -> None:
 
     s = actions.add_parser("synth", help="generate the embedded synthetic dataset (our HDF5 + manifest.json)")
     s.add_argument("--n", type=int, default=None,
-                   help="number of scenes (default: data.synthetic_n; 8 for --split heldout)")
-    s.add_argument("--size", type=int, default=None, help="scene side in px (default: data.synthetic_size)")
+                   help="number of scenes, >= 1 (default: data.synthetic_n; 8 for --split heldout)")
+    s.add_argument("--size", type=int, default=None, help="scene side in px, >= 16 (default: data.synthetic_size)")
     from hsicam.cli.args import id_list_arg, seed_arg
     s.add_argument("--seed", type=seed_arg(0), default=None, help="random seed (default: data.synthetic_seed)")
     s.add_argument("--holdout-sources", metavar="IDS", default=None, type=id_list_arg,

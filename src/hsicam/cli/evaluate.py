@@ -9,7 +9,8 @@ import sys
 from pathlib import Path
 
 from hsicam.cli import add_config_args, add_run_arg, config_from_args, run_config_from_args
-from hsicam.cli.args import RegistryChoices, check_tile, device_arg, seeds_arg, sensor_sigma_arg, sigma_height_arg
+from hsicam.cli.args import (MIN_TILE_PX, RegistryChoices, check_tile, device_arg, seeds_arg, sensor_sigma_arg,
+                             sigma_height_arg)
 from hsicam.errors import InputError
 
 log = logging.getLogger(__name__)
@@ -57,8 +58,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "with --seeds N > 1 the estimate of seed 0, its metadata says so)")
     p.add_argument("--device", default="cpu", type=device_arg, help="torch device (default cpu)")
     p.add_argument("--tile", type=int, default=None, metavar="PX",
-                   help="tile side for a network's large scenes (default: 4× its context, within 512-1024 px; "
-                        "smaller tiles take less memory and more time)")
+                   help=f"tile side for a network's large scenes, >= {MIN_TILE_PX} (default: 4× its context, within "
+                        "512-1024 px; smaller tiles take less memory and more time)")
     p.set_defaults(func=cmd_evaluate)
 
     p = sub.add_parser("experiment", help="run one of the paper's experiments (resumable)")

@@ -31,22 +31,28 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--out", required=True, metavar="DIR", help="output folder (tolerance.json, .csv, .png)")
     p.add_argument("--data", metavar="PATH", help="scenes to evaluate on (default: the run's validation scenes)")
     p.add_argument("--max-scenes", type=count_arg, default=8, help="scenes scored at most, >= 1 (default 8)")
+    # the lists' defaults are hsicam.engine.tolerance.ToleranceSpec's (that module imports torch: said here, and
+    # tests/cli/test_cli_args.py holds them equal)
     p.add_argument("--sigma-height-nm", type=sigma_heights_arg, default=None, metavar="LIST",
-                   help="DOE height noise levels σ_p (nm), each in [0, 1000000], e.g. 0,10,20,40,60")
+                   help="DOE height noise levels σ_p (nm), each in [0, 1000000] (default: 0,10,20,40,60)")
     p.add_argument("--draws", type=draws_arg, default=None,
                    help="fabricated DOEs drawn per height-noise level, 1 to 1000 (default 3)")
     p.add_argument("--levels", type=levels_list_arg, default=None, metavar="LIST",
-                   help=f"DOE height level counts, each a power of 2 in 2..{MAX_HEIGHT_LEVELS} as export-optics exports, "
-                        "e.g. 2,4,8,16,32")
-    p.add_argument("--shift-cells", type=finite_numbers_arg, default=None, metavar="LIST", help="e.g. 0,0.25,0.5,1,2")
+                   help=f"DOE height level counts, each a power of 2 in 2..{MAX_HEIGHT_LEVELS} as export-optics exports "
+                        "(default: 2,4,8,16,32)")
+    p.add_argument("--shift-cells", type=finite_numbers_arg, default=None, metavar="LIST",
+                   help="lateral DOE shifts (cells), each swept along x and along the diagonal, multiples of 1/Q cell "
+                        "(--shift-subsamples) (default: 0,0.25,0.5,1,2)")
     p.add_argument("--shift-subsamples", type=count_arg, default=None,
-                   help="pupil samples per cell Q for the misalignment study (shift resolution 1/Q cell), >= 1 (default 4)")
+                   help="pupil samples per cell Q for the misalignment study (shift resolution 1/Q cell; rounded up to a "
+                        "multiple of the run's own pupil oversampling), >= 1 (default 4)")
     p.add_argument("--sensor-distance-um", type=finite_numbers_arg, default=None, metavar="LIST",
-                   help="e.g. --sensor-distance-um=-100,-50,0,50,100 (use '=' for lists starting with '-')")
+                   help="sensor distance errors Δz (µm; negative: toward the lens) (default: -100,-50,-20,0,20,50,100); "
+                        "a list starting with '-' needs '=', e.g. --sensor-distance-um=-100,0,100")
     # height-noise draw d (< 1000) takes the torch seed seed·1000 + d, which must stay below 2^32 (torch keeps a seed's
     # low 32 bits, so larger or negative seeds would repeat another --seed's draws)
     p.add_argument("--seed", type=seed_arg(0, TOLERANCE_SEED_MAX), default=0,
-                   help=f"seed for the height-noise draws and the sensor noise, in [0, {TOLERANCE_SEED_MAX}]")
+                   help=f"seed for the height-noise draws and the sensor noise, in [0, {TOLERANCE_SEED_MAX}] (default 0)")
     p.add_argument("--device", default="cpu", type=device_arg, help="torch device (default cpu)")
     p.set_defaults(func=cmd_tolerance)
 
@@ -58,9 +64,11 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="continue the interrupted fine-tuning in --out (or extend a finished one with --epochs), "
                         "made from the same --run and --psf-dir")
     p.add_argument("--psf-pitch-um", type=float, default=None, help="pixel pitch of the PSF images (else psf.json)")
-    p.add_argument("--epochs", type=int, default=None, help="fine-tuning epochs (default: the run's train.epochs)")
+    p.add_argument("--epochs", type=int, default=None,
+                   help=f"fine-tuning epochs, 1 to {MAX_EPOCHS} (default: the run's train.epochs)")
     p.add_argument("--lr", type=positive_number_arg, default=None,
-                   help="network learning rate, a finite number > 0 (default: 0.1 × the run's train.lr)")
+                   help=f"network learning rate, in (0, {MAX_LR:g}] as train.lr (default: 0.1 × the run's train.lr; with "
+                        "--resume, the rate the fine-tuning started with)")
     p.add_argument("--set", dest="overrides", metavar="KEY=VALUE", action="append", default=[],
                    help="dotted override of the run's config, e.g. data.patches_per_epoch=256 (repeatable)")
     p.set_defaults(func=cmd_finetune, trains=True, resume_hint="go on with the same hsicam finetune command and --resume",

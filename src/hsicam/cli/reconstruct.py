@@ -22,8 +22,8 @@ log = logging.getLogger(__name__)
 
 def register(sub: argparse._SubParsersAction) -> None:
     from hsicam.cli import add_run_arg
-    from hsicam.cli.args import device_arg, tv_weight_arg
-    from hsicam.config import RECOMMENDED_TV_WEIGHT
+    from hsicam.cli.args import MIN_TILE_PX, device_arg, tv_weight_arg
+    from hsicam.config import MAX_CONSISTENCY_ITERATIONS, MAX_TV_WEIGHT, MIN_TV_WEIGHT, RECOMMENDED_TV_WEIGHT
 
     p = sub.add_parser("reconstruct", help="reconstruct a hyperspectral cube from a sensor image or raw capture")
     p.add_argument("sensor", metavar="SENSOR", help="sensor image / raw capture: .npy, 8/16-bit PNG or TIFF")
@@ -32,11 +32,11 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="output cube: .h5 (ours) or .hdr (ENVI), plus its sRGB preview STEM_rgb.png; a folder holds "
                         "one cube per name (c.h5 and c.hdr would share c_rgb.png: the second is refused); existing "
                         "files are replaced only when they are an earlier reconstruct's output, never an input")
-    p.add_argument("--scale", type=float, default=None, help="multiply the image after normalising to [0, 1]")
+    p.add_argument("--scale", type=float, default=None, help="multiply the image after normalising to [0, 1], > 0")
     p.add_argument("--tile", type=int, default=None, metavar="PX",
-                   help="tile side for large images (default: 4× the context of the reconstruction up to its "
-                        "consistency steps, which then go over the whole image, within 512-1024 px, so that the tiles' "
-                        "halos cost at most 2.25× their own pixels where that fits)")
+                   help=f"tile side for large images, >= {MIN_TILE_PX} (default: 4× the context of the reconstruction "
+                        "up to its consistency steps, which then go over the whole image, within 512-1024 px, so that "
+                        "a tile's window, its halo included, holds at most 2.25× its own pixels where that fits)")
     p.add_argument("--cfa-offset", type=cfa_offset_arg, default=(0, 0), metavar="Y,X|auto",
                    help="the sensor row and column of the capture's first pixel (a crop or a region-of-interest "
                         "readout of the camera's sensor): the CFA phase of every pixel follows from it (default 0,0: "
@@ -46,32 +46,38 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "not for CASSI), logged and recorded in the cube's metadata")
     p.add_argument("--device", default="cpu", type=device_arg, help="torch device (default cpu)")
     p.add_argument("--consistency-steps", type=int, default=None, metavar="N",
-                   help="measurement-consistency steps after the network (default: the run's "
-                        "model.consistency.iterations; 0: the network alone)")
+                   help=f"measurement-consistency steps after the network, 0 to {MAX_CONSISTENCY_ITERATIONS} (default: "
+                        "the run's model.consistency.iterations; 0: the network alone)")
     p.add_argument("--tv-steps", type=int, default=None, metavar="N",
-                   help="N Landweber steps with a total-variation prior instead of the run's own (after its linear step; "
+                   help=f"N Landweber steps with a total-variation prior, 1 to {MAX_CONSISTENCY_ITERATIONS}, instead of "
+                        "the run's own (after its linear step; "
                         "the quick and standard presets take 12): fewer blotches on flat regions, edges kept; against "
                         "two plain steps, 12 steps +0.3 to +1.0 dB on the demo camera in and out of distribution (24: "
                         "+0.4 to +1.4 dB), about 0.11-0.15 s per step for a 512² image on a 2-core CPU (docs/results.md); fewer for "
                         "speed (docs/networks.md, 'A TV prior in the steps')")
     p.add_argument("--tv-weight", type=tv_weight_arg, default=None, metavar="W",
-                   help=f"weight of that prior, relative to the local brightness (default {RECOMMENDED_TV_WEIGHT}, chosen "
-                        "on the demo camera's training scenes)")
+                   help=f"weight of that prior, relative to the local brightness, in [{MIN_TV_WEIGHT:g}, "
+                        f"{MAX_TV_WEIGHT:g}]; needs --tv-steps (default {RECOMMENDED_TV_WEIGHT}, chosen on the demo "
+                        "camera's training scenes)")
     raw = p.add_argument_group("raw capture corrections (values in the file's digital numbers, DN)")
     raw.add_argument("--black-level", type=float, default=None, metavar="DN",
-                     help="sensor black level (default: the dark frame's median, else 0)")
+                     help="sensor black level, >= 0 (default: the dark frame's median, else 0)")
     raw.add_argument("--white-level", type=float, default=None, metavar="DN",
                      help="full-scale value (default: the file type's maximum, e.g. 65535; 1 for float files)")
     raw.add_argument("--dark", metavar="FILE", help="dark frame (same exposure and size), subtracted pixel by pixel")
     raw.add_argument("--flat", metavar="FILE", help="flat-field frame (same size), normalised to mean 1")
     raw.add_argument("--flat-mode", choices=("pixel", "cfa"), default="pixel",
-                     help="pixel: divide pixel by pixel (a flat of the bare sensor); cfa: average the flat over the "
-                          "CFA period first (a flat taken through the CFA: corrects vignetting, keeps the CFA pattern)")
-    raw.add_argument("--exposure-s", type=float, default=None, help="exposure time of the capture (s)")
+                     help="pixel (default): divide pixel by pixel (a flat of the bare sensor); cfa: average the flat "
+                          "over the CFA period first (a flat taken through the CFA: corrects vignetting, keeps the CFA "
+                          "pattern; needs --flat)")
+    raw.add_argument("--exposure-s", type=float, default=None,
+                     help="exposure time of the capture (s), > 0; needs --reference-exposure-s")
     raw.add_argument("--reference-exposure-s", type=float, default=None,
-                     help="exposure the network's scale corresponds to (s): the image is multiplied by reference/exposure")
+                     help="exposure the network's scale corresponds to (s), > 0: the image is multiplied by "
+                          "reference/exposure; needs --exposure-s")
     raw.add_argument("--auto-level", type=float, default=None, metavar="V",
-                     help="scale so the 99.9th percentile equals V (captures of unknown radiometric scale)")
+                     help="scale so the 99.9th percentile equals V, > 0 (captures of unknown radiometric scale); not "
+                          "with --scale, --exposure-s or --reference-exposure-s")
     noise = p.add_argument_group(
         "capture noise (the measurement-consistency steps weigh each residual against it; default: the run's "
         "camera.sensor model, noise-free for the presets)")
