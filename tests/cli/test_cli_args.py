@@ -5,6 +5,7 @@ what it takes, exit code 2, before any work and before an output folder exists. 
 from __future__ import annotations
 
 import argparse
+import re
 
 import pytest
 
@@ -413,3 +414,266 @@ def test_tolerance_levels_that_export_optics_refuses_are_a_usage_error_before_th
     assert line == (f"hsicam: error: argument --levels: every value must be a power of 2 in 2..{MAX_HEIGHT_LEVELS} "
                     f"(height levels that export-optics exports), got {bad}")
     assert not out.exists()
+
+
+# ------------------------------------------------------------------------------------------------
+# What `hsicam COMMAND --help` claims, held to what the commands do (the claims read from the parser)
+# ------------------------------------------------------------------------------------------------
+def _help_claims() -> list[tuple[tuple[str, ...], argparse.Action, str]]:
+    """(command words, action, its help as `--help` shows it, on one line) of every option and positional of every
+    command and sub-command (``-h``, ``--version`` and the sub-command lists aside)."""
+    from hsicam.cli import build_parser
+
+    def walk(parser, words):
+        formatter = parser._get_formatter()
+        for action in parser._actions:
+            if isinstance(action, argparse._SubParsersAction):
+                for name, child in action.choices.items():
+                    yield from walk(child, (*words, name))
+            elif not isinstance(action, (argparse._HelpAction, argparse._VersionAction)) and action.help:
+                yield words, action, " ".join(formatter._expand_help(action).split())
+
+    return list(walk(build_parser(), ()))
+
+
+def _name(words, action) -> str:
+    return f"hsicam {' '.join(words)} {'/'.join(action.option_strings) or action.metavar or action.dest}"
+
+
+#: "(default 16)", "(default: 0,10,20)", "; default 0)", "default runs/demo": the word or number list after "default";
+#: a number followed by " ×" ("0.1 × the run's train.lr") is a description, not a value.
+_DEFAULT_CLAIM = re.compile(r"\bdefault:? (-?[\w.][\w.-]*(?:[,/]-?[\w.][\w.-]*)*)(?=[;:),]|\s(?!×)|$)")
+#: "same (default): …", "quick (minutes on a 2-core CPU, the default)".
+_NAMED_DEFAULT = re.compile(r"([\w.-]+) \((?:[^()]*, )?(?:the )?default\)")
+_NUMBERS = re.compile(r"-?\d+(?:\.\d+)?(?:,-?\d+(?:\.\d+)?)*")
+
+
+def _fallbacks() -> dict[tuple[tuple[str, ...], str], object]:
+    """The value a command takes for an option whose argparse default is None (the command fills it in), by
+    (command words, dest): read from where the command takes it."""
+    from hsicam.config import RECOMMENDED_TV_WEIGHT
+    from hsicam.engine.tolerance import ToleranceSpec
+
+    spec = ToleranceSpec()
+    tolerance = {"draws": spec.height_draws, "shift_subsamples": spec.shift_subsamples,
+                 **{k: getattr(spec, k) for k in ("sigma_height_nm", "levels", "shift_cells", "sensor_distance_um")}}
+    return {**{(("tolerance",), k): v for k, v in tolerance.items()},
+            (("reconstruct",), "tv_weight"): RECOMMENDED_TV_WEIGHT,  # tv_consistency
+            (("reconstruct",), "read_noise_e"): 0.0}  # cmd_reconstruct: capture_noise(..., args.read_noise_e or 0.0)
+
+
+def _same_value(claim: str, value) -> bool:
+    values = value if isinstance(value, (tuple, list)) else (value,)
+    if _NUMBERS.fullmatch(claim):
+        try:
+            return [float(v) for v in claim.split(",")] == [float(v) for v in values]
+        except (TypeError, ValueError):
+            return False
+    return claim == ",".join(str(v) for v in values)
+
+
+def test_every_default_a_help_states_is_the_value_the_command_takes():
+    """A help's "(default X)" (or "X (default)") is the option's argparse default, and an option with a default of
+    its own says it; where the argparse default is None and the command fills in the value (tolerance's sweeps,
+    --tv-weight, --read-noise-e), a value the help states is the one the command takes. A help's default written
+    in words ("the run's train.epochs") is not checked here."""
+    fallbacks = _fallbacks()
+    wrong, unsaid, unknown = [], [], []
+    for words, action, text in _help_claims():
+        claims = _DEFAULT_CLAIM.findall(text) + _NAMED_DEFAULT.findall(text)
+        default = action.default
+        if not (default is None or isinstance(default, bool) or default == [] or default == argparse.SUPPRESS):
+            if not any(_same_value(c, default) for c in claims):
+                unsaid.append(f"{_name(words, action)}: default {default!r}, help {text!r}")
+            wrong += [f"{_name(words, action)}: help says default {c}, argparse's is {default!r}"
+                      for c in claims if _NUMBERS.fullmatch(c) and not _same_value(c, default)]
+            continue
+        for claim in claims:
+            if not _NUMBERS.fullmatch(claim):
+                continue  # in words
+            key = (words, action.dest)
+            if key not in fallbacks:
+                unknown.append(f"{_name(words, action)}: help says default {claim}; add where the command takes it")
+            elif not _same_value(claim, fallbacks[key]):
+                wrong.append(f"{_name(words, action)}: help says default {claim}, the command takes {fallbacks[key]!r}")
+    assert (wrong, unsaid, unknown) == ([], [], [])
+
+
+def test_the_default_claims_are_read_as_the_help_writes_them():
+    """The readers of the test above on the forms the helps use (so that it checks what it should)."""
+    assert _DEFAULT_CLAIM.findall("at most this many scenes, >= 1 (default 16)") == ["16"]
+    assert _DEFAULT_CLAIM.findall("σ_p (nm) (default: 0,10,20,40,60)") == ["0,10,20,40,60"]
+    assert _DEFAULT_CLAIM.findall("Δz (µm) (default: -100,-50,0); a list") == ["-100,-50,0"]
+    assert _DEFAULT_CLAIM.findall("(default 0,0: the capture starts)") == ["0,0"]
+    assert _DEFAULT_CLAIM.findall("read noise (needs --full-well-e; default 0)") == ["0"]
+    assert _DEFAULT_CLAIM.findall("demo folder (default runs/demo): the run") == ["runs/demo"]
+    assert _DEFAULT_CLAIM.findall("(default: 0.1 × the run's train.lr)") == []
+    assert _DEFAULT_CLAIM.findall("%(choices)s (default: doe-learned, the run's camera)") == ["doe-learned"]
+    assert _DEFAULT_CLAIM.findall("(default: 4× its context)") == []
+    assert _NAMED_DEFAULT.findall("same (default): sensor as large") == ["same"]
+    assert _NAMED_DEFAULT.findall("tiny (seconds), quick (minutes on a 2-core CPU, the default), paper") == ["quick"]
+    assert _same_value("0,10", (0.0, 10.0)) and _same_value("cpu", "cpu") and not _same_value("3", 4)
+
+
+def test_every_choice_of_an_option_is_named_in_its_help():
+    """An option with choices explains each (or lists them with %(choices)s): a choice added to the code and not
+    to the help, or one named in the help that the option no longer takes, fails."""
+    missing = []
+    for words, action, text in _help_claims():
+        if action.choices is None:
+            continue
+        missing += [f"{_name(words, action)}: {choice}" for choice in action.choices
+                    if not re.search(rf"(?<![\w-]){re.escape(choice)}(?![\w-])", text)]
+        named = set(re.findall(r"(?:^|; )([\w-]+)(?: \([^()]*\))?: ", text))  # "same (default): …; valid: …"
+        missing += [f"{_name(words, action)}: the help explains {n!r}, no choice" for n in named - set(action.choices)]
+    assert missing == []
+
+
+def _bound(text: str):
+    """A range's bound as a help writes it: an integer, a decimal number, or 2^N - K."""
+    m = re.fullmatch(r"(\d+)\^(\d+)(?: - (\d+))?", text.strip())
+    if m:
+        return int(m[1]) ** int(m[2]) - int(m[3] or 0)
+    return int(text) if re.fullmatch(r"-?\d+", text.strip()) else float(text)
+
+
+#: "in [0, 1]", "in (0, 1]", "1 to 1000", "in 2..65536", ">= 16", "> 0": (low, low included, high, high included).
+_RANGES = (
+    (re.compile(r"\bin ([\[(])([^,\]]+), ([^\]]+)\]"), lambda m: (_bound(m[2]), m[1] == "[", _bound(m[3]), True)),
+    (re.compile(r"(?<![\d.+])(\d+) to (\d+)\b"), lambda m: (int(m[1]), True, int(m[2]), True)),
+    (re.compile(r"\bin (\d+)\.\.(\d+)\b"), lambda m: (int(m[1]), True, int(m[2]), True)),
+    (re.compile(r"(?<![-\w])>= (-?\d+(?:\.\d+)?)\b"), lambda m: (_bound(m[1]), True, None, True)),
+    (re.compile(r"(?<![-\w=])> (-?\d+(?:\.\d+)?)\b"), lambda m: (_bound(m[1]), False, None, True)),
+)
+
+
+class _Reached(Exception):
+    """Raised where a command starts its work: every check of its options passed."""
+
+
+def _command_harness(words, tmp_path, monkeypatch):
+    """The arguments that take ``words``' command to its checks of the options, with its first step of work
+    replaced by :class:`_Reached` (None: the command's options are checked by their argparse types alone)."""
+    import hsicam.data.preview
+    import hsicam.data.synthetic
+    import hsicam.engine.calibration
+    import hsicam.engine.methods
+    import hsicam.export
+    import hsicam.runs.folder
+
+    def reached(*a, **k):
+        raise _Reached()
+
+    out = tmp_path / "out"
+    data = tmp_path / "data"
+    data.mkdir(exist_ok=True)
+    harness = {
+        ("data", "synth"): (hsicam.data.synthetic, "is_complete", ["--config", "tiny", "--out", str(out)]),
+        ("data", "show"): (hsicam.data.preview, "write_preview", [str(data), "--out", str(out)]),
+        ("reconstruct",): (hsicam.runs.folder, "load_run",
+                           [str(tmp_path / "capture.npy"), "--run", "pretrained:standard", "--out", str(out / "c.h5")]),
+        ("evaluate",): (hsicam.engine.methods, "build_method", ["--config", "tiny", "--out", str(out)]),
+        ("export-optics",): (hsicam.export, "export_optics", ["--run", "pretrained:standard", "--out", str(out)]),
+        ("finetune",): (hsicam.engine.calibration, "finetune",
+                        ["--run", "pretrained:standard", "--psf-dir", str(data), "--out", str(out)]),
+    }
+    if words not in harness:
+        return None
+    module, name, argv = harness[words]
+    monkeypatch.setattr(module, name, reached)
+    return [*words, *argv]
+
+
+def _needs(text: str) -> list[str]:
+    return re.findall(r"\bneeds (--[\w-]+)", text)
+
+
+def _outcome(capsys, argv) -> str:
+    """"reached" when the command passed every check, else its one error line."""
+    from hsicam.cli import main
+
+    try:
+        code = main(argv)
+    except _Reached:
+        return "reached"
+    except SystemExit as exc:
+        code = exc.code
+    err = capsys.readouterr().err
+    assert code == 2, (argv, err)
+    return err.strip()
+
+
+def _range_cases():
+    cases = []
+    for words, action, text in _help_claims():
+        if action.nargs == 0 or not action.option_strings:
+            continue
+        for pattern, bounds in _RANGES:
+            cases += [pytest.param(words, action.option_strings[0], bounds(m), id=f"{' '.join(words)} "
+                                   f"{action.option_strings[0]} {m[0]}") for m in pattern.finditer(text)]
+    return cases
+
+
+@pytest.mark.parametrize("words,option,bounds", _range_cases())
+def test_every_range_a_help_states_is_the_one_the_command_enforces(tmp_path, capsys, monkeypatch, words, option,
+                                                                   bounds):
+    """Each range a help states ("in [0, 1]", "1 to 1000", "in 2..65536", ">= 16", "> 0") is the one enforced:
+    its bounds are taken (by the option's type, and by the command's own checks up to its first step of work) and
+    the values just beyond them are refused in one line naming the option (``tolerance --levels`` said ">= 2" and
+    refused 3 once the run was loaded; ``finetune --lr`` said "> 0" and refused 2)."""
+    action, text = next((a, t) for w, a, t in _help_claims() if w == words and option in a.option_strings)
+    argv = _command_harness(words, tmp_path, monkeypatch)
+    companions = [f"{need}=2" for need in _needs(text)]
+
+    def typed(value) -> bool:
+        try:
+            action.type(str(value))
+        except (argparse.ArgumentTypeError, ValueError):
+            return False
+        return True
+
+    def takes(value) -> bool:  # by the option's type, then by the command's checks
+        return typed(value) and (argv is None or _outcome(capsys, [*argv, *companions, f"{option}={value}"]) == "reached")
+
+    def refuses(value) -> bool:  # by the option's type, else by the command's checks, naming the option
+        if not typed(value):
+            return True
+        line = "reached" if argv is None else _outcome(capsys, [*argv, *companions, f"{option}={value}"])
+        return line != "reached" and option in line
+
+    integer = not typed("1.5")
+    low, low_in, high, high_in = bounds
+    step = (lambda v: 1) if integer else (lambda v: max(abs(v) * 1e-6, 1e-12))
+    assert takes(low if low_in else low + step(low)) and refuses(low - step(low) if low_in else low), bounds
+    if high is not None:
+        assert takes(high) and refuses(high + step(high)), bounds
+
+
+def _companion_cases():
+    cases = []
+    for words, action, text in _help_claims():
+        for need in _needs(text):
+            cases.append(pytest.param(words, action.option_strings[0], need, "needs", id=f"{action.option_strings[0]} "
+                                      f"needs {need}"))
+        for clause in re.findall(r"\bnot with ((?:--[\w-]+(?:, | or )?)+)", text):
+            cases += [pytest.param(words, action.option_strings[0], other, "not with",
+                                   id=f"{action.option_strings[0]} not with {other}")
+                      for other in re.findall(r"--[\w-]+", clause)]
+    return cases
+
+
+@pytest.mark.parametrize("words,option,other,how", _companion_cases())
+def test_what_a_help_says_an_option_needs_or_excludes_is_refused_without_or_with_it(tmp_path, capsys, monkeypatch,
+                                                                                     words, option, other, how):
+    """"needs --Y": the option without --Y is refused in one line naming both; "not with --Y": the two together
+    are. (A choice-valued option: one of its choices is.)"""
+    claims = {a.option_strings[0]: (a, t) for w, a, t in _help_claims() if w == words and a.option_strings}
+    action, text = claims[option]
+    argv = _command_harness(words, tmp_path, monkeypatch)
+    assert argv is not None, f"{' '.join(words)}: add its command to _command_harness"
+    values = [c for c in action.choices if c != action.default] if action.choices else ["2"]
+    extra = []
+    if how == "not with":
+        extra = [f"{other}=2", *(f"{n}=2" for n in _needs(claims[other][1]))]
+    lines = [_outcome(capsys, [*argv, *extra, f"{option}={v}"]) for v in values]
+    assert any(line != "reached" and option in line and other in line for line in lines), lines

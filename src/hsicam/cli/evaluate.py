@@ -41,7 +41,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     add_config_args(p)
     add_run_arg(p, "trained run folder (needed by learned methods)", required=False)
     p.add_argument("--method", default="doe-learned", choices=RegistryChoices(_method_names), metavar="METHOD",
-                   help="reconstruction method: %(choices)s (default: the run's learned camera, doe-learned)")
+                   help="reconstruction method: %(choices)s (default: doe-learned, the run's learned camera)")
     p.add_argument("--data", metavar="DIR",
                    help="folder of supported cube files (default: the validation split of the run's data: data.root, "
                         "else the synthetic data); its sub-folders holding hsicam outputs are skipped; --out must not "
