@@ -615,7 +615,7 @@ class ConsistencyConfig:
     # Landweber steps: w of a total-variation prior, each step followed by one dual iteration towards b · prox_wTV(x / b),
     # the vectorial TV (every band's edges together) of the estimate divided by its local brightness b (in the spirit of
     # GAP-TV, started from the network's estimate); 0: none, else in [MIN_TV_WEIGHT, MAX_TV_WEIGHT]. Measured gains and
-    # cost (~0.85 s per step at 512²): docs/networks_log.md, "A TV prior in the steps"
+    # cost (0.11–0.15 s per step at 512² on a 2-core CPU since session 48; docs/results.md): docs/networks_log.md, "A TV prior in the steps"
     tv_weight: float = 0.0
 
     def __post_init__(self) -> None:
