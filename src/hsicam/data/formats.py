@@ -116,6 +116,7 @@ ENVI_CRC_KEY = "hsicam data crc32"
 #: ``metadata_json`` attribute; :func:`envi_metadata_value`), which :func:`read_envi` returns in the cube's meta.
 ENVI_METADATA_KEY = "hsicam metadata"
 _ENVI_DTYPES = {1: "u1", 2: "i2", 3: "i4", 4: "f4", 5: "f8", 12: "u2", 13: "u4", 14: "i8", 15: "u8"}
+_ENVI_INTERLEAVES = ("bsq", "bil", "bip")
 
 Cube = tuple[np.ndarray, Bands, dict[str, Any]]
 
@@ -966,7 +967,7 @@ def _envi_scale_factor(hdr: Path, h: dict[str, str]) -> float:
 
 def _envi_header_for(p: Path) -> Path | None:
     for cand in (p.with_name(p.name + ".hdr"), p.with_suffix(".hdr"), p.with_suffix(".HDR")):
-        if cand != p and cand.is_file() and _head(cand, 64).lstrip().startswith(b"ENVI"):
+        if cand != p and cand.is_file() and _is_envi_header(cand):
             return cand
     return None
 
@@ -999,8 +1000,42 @@ def read_envi(path: str | os.PathLike, *, allow_negative: bool = False, memory_b
     every value no-data: refused). Both are said in one log line and recorded in the metadata
     (``bad_bands_nm``; ``data_ignore_value``, ``ignored_pixels``).
     """
-    p = _as_path(path)
-    if _head(p, 64).lstrip().startswith(b"ENVI"):
+    hdr, data = _envi_pair(_as_path(path))
+    h = parse_envi_header(hdr)
+    layout = _envi_layout(hdr, h)
+    gains = _envi_per_band(hdr, h, "data gain values", layout.nbands)
+    offsets = _envi_per_band(hdr, h, "data offset values", layout.nbands)
+    raw = _envi_raw(hdr, data, h, layout, memory_budget_mb)
+    good = _envi_good_bands(hdr, h, layout.nbands)
+    stored = _envi_chw(raw, layout.interleave, good)  # the bad bands' values are never looked at
+    ignore = _envi_ignore_value(hdr, h)
+    nodata = _envi_nodata(stored, ignore) if ignore is not None else None
+    cube = stored.astype(np.float32)
+    notes: list[tuple[int, str]] = []
+    n_nodata = _envi_blank_nodata(hdr, data, cube, nodata, ignore, notes)
+    _envi_check_byte_order(hdr, data, raw, cube, layout, good, nodata)
+    scaling = _envi_apply_gain_offset(hdr, data, cube, gains, offsets, good, nodata, notes)
+    if "reflectance scale factor" in h:
+        cube /= np.float32(_envi_scale_factor(hdr, h))
+    waves, fwhm, note = _envi_wavelengths(hdr, h, layout.nbands)
+    waves, fwhm, dropped = _envi_drop_bad_bands(hdr, data, waves, fwhm, good, notes)
+    cube, waves, fwhm, scaling = _envi_ascending(cube, waves, fwhm, scaling)
+    bands = _bands_from(hdr, waves, fwhm)
+    meta = _envi_meta(hdr, data, h, layout, dropped, ignore, n_nodata, scaling)
+    if note:
+        notes.insert(0, (logging.WARNING, note))
+    return _finished_noting(notes, _finish(data, cube, bands, meta, allow_negative))
+
+
+def _is_envi_header(p: Path) -> bool:
+    """Whether the file ``p`` starts as an ENVI header does (``ENVI``, after any white space)."""
+    return _head(p, 64).lstrip().startswith(b"ENVI")
+
+
+def _envi_pair(p: Path) -> tuple[Path, Path]:
+    """(header, data file) of the ENVI pair that ``p`` (either of them) belongs to; InputError when the other
+    one is not there."""
+    if _is_envi_header(p):
         hdr, data = p, envi_data_file(p)
         if data is None:
             raise InputError(f"{p}: ENVI data file not found next to the header (tried {hdr.with_suffix('').name}"
@@ -1009,48 +1044,79 @@ def read_envi(path: str | os.PathLike, *, allow_negative: bool = False, memory_b
         hdr, data = _envi_header_for(p), p
         if hdr is None:
             raise InputError(f"{p}: no ENVI header (.hdr) next to this file")
-    h = parse_envi_header(hdr)
+    return hdr, data
 
-    def need_int(key: str) -> int:
-        if key not in h:
-            raise InputError(f"{hdr}: ENVI header is missing key '{key}'")
-        try:
-            return int(h[key].strip())
-        except ValueError:
-            raise InputError(f"{hdr}: ENVI header key '{key}' is not an integer: {h[key]!r}") from None
 
-    samples, lines, nbands, dtype_code = need_int("samples"), need_int("lines"), need_int("bands"), need_int("data type")
-    offset = need_int("header offset") if "header offset" in h else 0
+class _EnviLayout(NamedTuple):
+    """How an ENVI header says its data file is laid out (:func:`_envi_layout`)."""
+
+    samples: int  # width W, pixels
+    lines: int  # height H, pixels
+    nbands: int  # bands C
+    dtype_code: int  # ENVI data type (a key of _ENVI_DTYPES)
+    order: int  # byte order: 0 little-endian, 1 big-endian
+    dtype: np.dtype  # the stored values' type, in that byte order
+    offset: int  # header offset: bytes before the data
+    interleave: str  # bsq (C, H, W), bil (H, C, W) or bip (H, W, C) on disk
+
+    @property
+    def disk_shape(self) -> tuple[int, int, int]:
+        """The shape of the stored array, in the file's interleave order."""
+        c, h, w = self.nbands, self.lines, self.samples
+        return {"bsq": (c, h, w), "bil": (h, c, w), "bip": (h, w, c)}[self.interleave]
+
+
+def _envi_int(hdr: Path, h: dict[str, str], key: str) -> int:
+    """The header's integer ``key``; InputError when it is missing or not an integer."""
+    if key not in h:
+        raise InputError(f"{hdr}: ENVI header is missing key '{key}'")
+    try:
+        return int(h[key].strip())
+    except ValueError:
+        raise InputError(f"{hdr}: ENVI header key '{key}' is not an integer: {h[key]!r}") from None
+
+
+def _envi_layout(hdr: Path, h: dict[str, str]) -> _EnviLayout:
+    """The data layout the header ``h`` declares: its required keys, header offset, data type, byte order and
+    interleave checked, in that order (one InputError for the first that is wrong)."""
+    samples, lines = _envi_int(hdr, h, "samples"), _envi_int(hdr, h, "lines")
+    nbands, dtype_code = _envi_int(hdr, h, "bands"), _envi_int(hdr, h, "data type")
+    offset = _envi_int(hdr, h, "header offset") if "header offset" in h else 0
     if offset < 0:
         raise InputError(f"{hdr}: ENVI header offset must be >= 0 bytes, got {offset}")
     if dtype_code not in _ENVI_DTYPES:
         raise InputError(f"{hdr}: unsupported ENVI data type {dtype_code} (supported: {sorted(_ENVI_DTYPES)})")
-    order = need_int("byte order") if "byte order" in h else 0
+    order = _envi_int(hdr, h, "byte order") if "byte order" in h else 0
     if order not in (0, 1):
         raise InputError(f"{hdr}: ENVI byte order must be 0 or 1, got {order}")
     dtype = np.dtype(_ENVI_DTYPES[dtype_code]).newbyteorder(">" if order == 1 else "<")
     interleave = h.get("interleave", "bsq").strip().lower()
-    shapes = {"bsq": (nbands, lines, samples), "bil": (lines, nbands, samples), "bip": (lines, samples, nbands)}
-    if interleave not in shapes:
+    if interleave not in _ENVI_INTERLEAVES:
         raise InputError(f"{hdr}: unknown ENVI interleave {interleave!r} (expected bsq, bil or bip)")
     if min(samples, lines, nbands) <= 0:
         raise InputError(f"{hdr}: ENVI dimensions must be positive (samples={samples}, lines={lines}, bands={nbands})")
-    gains = _envi_per_band(hdr, h, "data gain values", nbands)
-    offsets = _envi_per_band(hdr, h, "data offset values", nbands)
-    check_memory_budget(hdr, (nbands, lines, samples), dtype, what="ENVI cube", budget_mb=memory_budget_mb)
-    count = samples * lines * nbands
-    expected = offset + count * dtype.itemsize
+    return _EnviLayout(samples, lines, nbands, dtype_code, order, dtype, offset, interleave)
+
+
+def _envi_raw(hdr: Path, data: Path, h: dict[str, str], layout: _EnviLayout, budget_mb: float | None) -> np.ndarray:
+    """The stored values of ``data`` (``layout.disk_shape``, the file's dtype and byte order), read after the
+    declared size was checked against the memory budget and the file's size, and checked against the CRC-32 that
+    the header of a pair hsicam wrote records."""
+    c, h_px, w = layout.nbands, layout.lines, layout.samples
+    check_memory_budget(hdr, (c, h_px, w), layout.dtype, what="ENVI cube", budget_mb=budget_mb)
+    count = w * h_px * c
+    expected = layout.offset + count * layout.dtype.itemsize
     size = data.stat().st_size
     if size < expected:
         raise InputError(f"{data}: truncated ENVI data: {size} bytes, the header needs {expected}")
     if size > expected:  # e.g. the data of another (larger) cube beside this header
-        text = (f"{data}: {size} bytes of ENVI data, but {hdr.name} describes {expected} ({lines}×{samples}×"
-                f"{nbands} {dtype.name})")
+        text = (f"{data}: {size} bytes of ENVI data, but {hdr.name} describes {expected} ({h_px}×{w}×"
+                f"{c} {layout.dtype.name})")
         if ENVI_CRC_KEY in h:  # a pair hsicam wrote: its data file is exactly what the header describes
             raise InputError(f"{text}: the header and the data do not belong together")
         log.warning("%s; reading the first %d (other software may pad its files)", text, expected)
     with _reading(data, "ENVI data"):
-        raw = np.fromfile(data, dtype=dtype, count=count, offset=offset).reshape(shapes[interleave])
+        raw = np.fromfile(data, dtype=layout.dtype, count=count, offset=layout.offset).reshape(layout.disk_shape)
     if ENVI_CRC_KEY in h:  # written by hsicam: the data must be the one the header was written for
         want, got = h[ENVI_CRC_KEY].strip().lower(), f"{zlib.crc32(memoryview(raw).cast('B')):08x}"
         if want != got:
@@ -1058,96 +1124,150 @@ def read_envi(path: str | os.PathLike, *, allow_negative: bool = False, memory_b
                              "an interrupted write left a new data file beside an old header (write the cube again), "
                              f"or the data were edited since (to keep them, remove the '{ENVI_CRC_KEY}' line from "
                              f"{hdr.name})")
+    return raw
+
+
+def _envi_chw(raw: np.ndarray, interleave: str, good: np.ndarray | None) -> np.ndarray:
+    """The stored array ``raw`` (in ``interleave`` order) as (C, H, W): a view, or a copy of the ``good`` bands
+    only (a mask of the file's C bands) when given."""
     cube = {"bsq": raw, "bil": raw.transpose(1, 0, 2), "bip": raw.transpose(2, 0, 1)}[interleave]
-    good = _envi_good_bands(hdr, h, nbands)
-    if good is not None:
-        cube = cube[good]  # the bad bands' values are never looked at
-    ignore = _envi_ignore_value(hdr, h)
-    nodata = _envi_nodata(cube, ignore) if ignore is not None else None
-    cube = cube.astype(np.float32)
-    notes: list[tuple[int, str]] = []
+    return cube[good] if good is not None else cube
+
+
+def _envi_blank_nodata(hdr: Path, data: Path, cube: np.ndarray, nodata: np.ndarray | None, ignore: float | None,
+                       notes: list[tuple[int, str]]) -> int | None:
+    """Set the no-data values of ``cube`` (float32 (C, H, W); ``nodata`` its mask of the values that hold the data
+    ignore value ``ignore``) to 0 in place, with a note; returns how many pixels hold at least one (None without
+    a data ignore value). InputError when every value is no-data."""
+    if nodata is None:
+        return None
+    n_values = int(np.count_nonzero(nodata))
+    n_nodata = int(np.count_nonzero(nodata.any(axis=0)))  # pixels with at least one no-data value
+    if n_values == nodata.size:
+        raise InputError(f"{data}: every value ({n_values}) is the data ignore value {ignore:g} of {hdr.name}: "
+                         "no data to read")
+    if n_values:
+        cube[nodata] = 0.0
+        notes.append((logging.INFO, f"{data}: {n_nodata} of {nodata[0].size} pixels hold the data ignore value "
+                                    f"{ignore:g} of {hdr.name} (no data; {n_values} values): those values set "
+                                    "to 0"))
+    return n_nodata
+
+
+def _envi_check_byte_order(hdr: Path, data: Path, raw: np.ndarray, cube: np.ndarray, layout: _EnviLayout,
+                           good: np.ndarray | None, nodata: np.ndarray | None) -> None:
+    """InputError when the float ``cube`` (C, H, W) holds NaN/Inf values (other than no-data) and the same
+    bytes ``raw`` read in the other byte order hold none: the header's byte order is wrong."""
+    if not (layout.dtype.kind == "f" and layout.dtype.itemsize > 1 and not np.isfinite(cube).all()):
+        return
+    other = raw.view(raw.dtype.newbyteorder())  # the same bytes read the other way round
+    other = _envi_chw(other, layout.interleave, good)
     if nodata is not None:
-        n_values = int(np.count_nonzero(nodata))
-        n_nodata = int(np.count_nonzero(nodata.any(axis=0)))  # pixels with at least one no-data value
-        if n_values == nodata.size:
-            raise InputError(f"{data}: every value ({n_values}) is the data ignore value {ignore:g} of {hdr.name}: "
-                             "no data to read")
-        if n_values:
-            cube[nodata] = 0.0
-            notes.append((logging.INFO, f"{data}: {n_nodata} of {nodata[0].size} pixels hold the data ignore value "
-                                        f"{ignore:g} of {hdr.name} (no data; {n_values} values): those values set "
-                                        "to 0"))
-    if dtype.kind == "f" and dtype.itemsize > 1 and not np.isfinite(cube).all():
-        other = raw.view(raw.dtype.newbyteorder())  # the same bytes read the other way round
-        other = {"bsq": other, "bil": other.transpose(1, 0, 2), "bip": other.transpose(2, 0, 1)}[interleave]
-        other = other[good] if good is not None else other
-        if nodata is not None:
-            other = other[~nodata]
-        if np.isfinite(other).all():  # the other byte order reads clean: the header's is wrong
-            raise InputError(f"{data}: {int((~np.isfinite(cube)).sum())} NaN/Inf value(s) with byte order {order}, "
-                             f"none with byte order {1 - order}: fix 'byte order' in {hdr.name}")
-    scaling = None
-    if gains is not None or offsets is not None:  # physical = gain · stored + offset, per band
-        gain = np.ones(nbands) if gains is None else gains
-        off = np.zeros(nbands) if offsets is None else offsets
-        if good is not None:
-            gain, off = gain[good], off[good]
-        cube *= gain.astype(np.float32)[:, None, None]
-        cube += off.astype(np.float32)[:, None, None]
-        if nodata is not None and n_values:  # flagged by their stored value: they stay 0 (no data)
-            cube[nodata] = 0.0
-        scaling = (gain, off)
-        keys = " and ".join(k for k, v in (("data gain values", gains), ("data offset values", offsets))
-                            if v is not None)
-        notes.append((logging.INFO, f"{data}: applied the {keys} of {hdr.name} (value = gain × stored value + offset, "
-                                    "per band)"))
-    if "reflectance scale factor" in h:
-        cube /= np.float32(_envi_scale_factor(hdr, h))
-    note = None
-    if "wavelength" in h:
-        waves = _envi_floats(hdr, h, "wavelength")
-        units = h.get("wavelength units", "").strip().lower()
-        scale = 1.0
-        if units in MICROMETRE_UNITS:
-            scale = 1000.0
-            if waves.size and waves.min() > MICROMETRE_BELOW:  # 420 "µm" is far infrared: the values are nanometres
-                raise InputError(f"{hdr}: wavelength units say {h['wavelength units'].strip()} but the values "
-                                 f"({waves.min():g}–{waves.max():g}) are nanometres; fix 'wavelength units'")
-        elif units in ("", "unknown"):
-            scale, note = _unitless_scale(hdr, waves, "wavelength")
-        elif units not in NANOMETRE_UNITS:
-            raise InputError(f"{hdr}: unsupported wavelength units {h['wavelength units']!r} (nm or µm)")
-        waves = _um_to_nm(waves, scale)
-        if waves.size != nbands:
-            raise InputError(f"{hdr}: {waves.size} wavelengths listed for {nbands} bands")
-        fwhm = None
-        if "fwhm" in h:
-            fwhm = _envi_floats(hdr, h, "fwhm")
-            if fwhm.size != nbands:
-                raise InputError(f"{hdr}: {fwhm.size} FWHM values listed for {nbands} bands")
-            fwhm = _um_to_nm(fwhm, scale)
-        if good is not None:
-            dropped = waves[~good]
-            waves = waves[good]
-            fwhm = fwhm[good] if fwhm is not None else None
-            notes.append((logging.INFO, f"{data}: dropped {dropped.size} band(s) that the bbl of {hdr.name} marks bad "
-                                        f"({', '.join(f'{w:g}' for w in np.sort(dropped))} nm); resampling "
-                                        "bridges them with the linear interpolant"))
-        order_idx = np.argsort(waves)
-        if np.any(order_idx != np.arange(waves.size)):  # store bands ascending
-            cube = cube[order_idx]
-            waves = waves[order_idx]
-            fwhm = fwhm[order_idx] if fwhm is not None else None
-            scaling = None if scaling is None else (scaling[0][order_idx], scaling[1][order_idx])
-        bands = _bands_from(hdr, waves, fwhm)
-    else:
+        other = other[~nodata]
+    if np.isfinite(other).all():  # the other byte order reads clean: the header's is wrong
+        raise InputError(f"{data}: {int((~np.isfinite(cube)).sum())} NaN/Inf value(s) with byte order {layout.order}, "
+                         f"none with byte order {1 - layout.order}: fix 'byte order' in {hdr.name}")
+
+
+def _envi_apply_gain_offset(hdr: Path, data: Path, cube: np.ndarray, gains: np.ndarray | None,
+                            offsets: np.ndarray | None, good: np.ndarray | None, nodata: np.ndarray | None,
+                            notes: list[tuple[int, str]]) -> tuple[np.ndarray, np.ndarray] | None:
+    """Apply the header's per-band ``data gain values`` and ``data offset values`` (either may be None; (C0,) for
+    the file's C0 bands) to ``cube`` (float32 (C, H, W), the ``good`` bands) in place, with a note; returns the
+    (gains, offsets) of the cube's bands, or None when the header has neither."""
+    if gains is None and offsets is None:
+        return None
+    # physical = gain · stored + offset, per band
+    gain = np.ones(offsets.size) if gains is None else gains  # (either list has one value per band of the file)
+    off = np.zeros(gain.size) if offsets is None else offsets
+    if good is not None:
+        gain, off = gain[good], off[good]
+    cube *= gain.astype(np.float32)[:, None, None]
+    cube += off.astype(np.float32)[:, None, None]
+    if nodata is not None:  # flagged by their stored value: they stay 0 (no data)
+        cube[nodata] = 0.0
+    keys = " and ".join(k for k, v in (("data gain values", gains), ("data offset values", offsets)) if v is not None)
+    notes.append((logging.INFO, f"{data}: applied the {keys} of {hdr.name} (value = gain × stored value + offset, "
+                                "per band)"))
+    return gain, off
+
+
+def _envi_wavelengths(hdr: Path, h: dict[str, str], nbands: int) -> tuple[np.ndarray, np.ndarray | None, str | None]:
+    """(centres (C,) nm, FWHM (C,) nm or None, a note to log when the unit was judged from the values) of the
+    file's ``nbands`` bands, in the file's order; InputError without a ``wavelength`` list or for a list of
+    another length."""
+    if "wavelength" not in h:
         raise InputError(f"{hdr}: ENVI header has no 'wavelength' list; cannot tell the bands")
-    meta = {"format": "envi", "interleave": interleave, "data_type": dtype_code, "byte_order": order,
-            "header": str(hdr), "data_file": str(data), "description": h.get("description", "").strip("{} ")}
+    waves = _envi_floats(hdr, h, "wavelength")
+    scale, note = _envi_wavelength_scale(hdr, h, waves)
+    waves = _um_to_nm(waves, scale)
+    if waves.size != nbands:
+        raise InputError(f"{hdr}: {waves.size} wavelengths listed for {nbands} bands")
+    fwhm = None
+    if "fwhm" in h:
+        fwhm = _envi_floats(hdr, h, "fwhm")
+        if fwhm.size != nbands:
+            raise InputError(f"{hdr}: {fwhm.size} FWHM values listed for {nbands} bands")
+        fwhm = _um_to_nm(fwhm, scale)
+    return waves, fwhm, note
+
+
+def _envi_wavelength_scale(hdr: Path, h: dict[str, str], waves: np.ndarray) -> tuple[float, str | None]:
+    """(factor to nm, note to log or None) of the header's ``wavelength`` values ``waves``, by its ``wavelength
+    units`` (none or "unknown": judged from the values, :func:`_unitless_scale`); InputError for another unit, or
+    micrometres whose values are nanometres."""
+    units = h.get("wavelength units", "").strip().lower()
+    if units in MICROMETRE_UNITS:
+        if waves.size and waves.min() > MICROMETRE_BELOW:  # 420 "µm" is far infrared: the values are nanometres
+            raise InputError(f"{hdr}: wavelength units say {h['wavelength units'].strip()} but the values "
+                             f"({waves.min():g}–{waves.max():g}) are nanometres; fix 'wavelength units'")
+        return 1000.0, None
+    if units in ("", "unknown"):
+        return _unitless_scale(hdr, waves, "wavelength")
+    if units not in NANOMETRE_UNITS:
+        raise InputError(f"{hdr}: unsupported wavelength units {h['wavelength units']!r} (nm or µm)")
+    return 1.0, None
+
+
+def _envi_drop_bad_bands(hdr: Path, data: Path, waves: np.ndarray, fwhm: np.ndarray | None,
+                         good: np.ndarray | None, notes: list[tuple[int, str]]
+                         ) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
+    """(centres, FWHM, dropped centres) without the bands that the bbl marks bad (``good``: mask of the good
+    ones, or None: all kept, nothing dropped), with a note."""
+    if good is None:
+        return waves, fwhm, None
+    dropped = waves[~good]
+    notes.append((logging.INFO, f"{data}: dropped {dropped.size} band(s) that the bbl of {hdr.name} marks bad "
+                                f"({', '.join(f'{w:g}' for w in np.sort(dropped))} nm); resampling "
+                                "bridges them with the linear interpolant"))
+    return waves[good], fwhm[good] if fwhm is not None else None, dropped
+
+
+def _envi_ascending(cube: np.ndarray, waves: np.ndarray, fwhm: np.ndarray | None,
+                    scaling: tuple[np.ndarray, np.ndarray] | None) -> tuple[Any, Any, Any, Any]:
+    """(cube (C, H, W), centres, FWHM, (gains, offsets)) with the bands sorted by wavelength: an ENVI file may
+    list them in any order, each band carrying its own wavelength."""
+    order_idx = np.argsort(waves)
+    if np.any(order_idx != np.arange(waves.size)):  # store bands ascending
+        cube = cube[order_idx]
+        waves = waves[order_idx]
+        fwhm = fwhm[order_idx] if fwhm is not None else None
+        scaling = None if scaling is None else (scaling[0][order_idx], scaling[1][order_idx])
+    return cube, waves, fwhm, scaling
+
+
+def _envi_meta(hdr: Path, data: Path, h: dict[str, str], layout: _EnviLayout, dropped: np.ndarray | None,
+               ignore: float | None, n_nodata: int | None, scaling: tuple[np.ndarray, np.ndarray] | None
+               ) -> dict[str, Any]:
+    """The metadata :func:`read_envi` returns: the file's facts, what :func:`write_envi` kept, and what was done to
+    the values (bad bands dropped, nm; no-data; gains and offsets per band of the cube returned)."""
+    meta = {"format": "envi", "interleave": layout.interleave, "data_type": layout.dtype_code,
+            "byte_order": layout.order, "header": str(hdr), "data_file": str(data),
+            "description": h.get("description", "").strip("{} ")}
     # what write_envi kept (e.g. reconstruct's source, run and cfa_offset), as read_hsicam_h5 returns its metadata;
     # the file's own facts above win over a key of the same name
     meta = {**_envi_metadata(hdr, h), **meta}
-    if good is not None:
+    if dropped is not None:
         meta["bad_bands_nm"] = [float(w) for w in np.sort(dropped)]
     if ignore is not None:
         meta["data_ignore_value"] = ignore
@@ -1156,9 +1276,7 @@ def read_envi(path: str | os.PathLike, *, allow_negative: bool = False, memory_b
         meta["data_gain_offset_applied"] = True
         meta["data_gain_values"] = [float(v) for v in scaling[0]]
         meta["data_offset_values"] = [float(v) for v in scaling[1]]
-    if note:
-        notes.insert(0, (logging.WARNING, note))
-    return _finished_noting(notes, _finish(data, cube, bands, meta, allow_negative))
+    return meta
 
 
 def _envi_good_bands(hdr: Path, h: dict[str, str], nbands: int) -> np.ndarray | None:
