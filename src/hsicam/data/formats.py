@@ -1363,17 +1363,37 @@ def write_envi(path: str | os.PathLike, cube: np.ndarray, bands: Bands, *, inter
     arr = check_cube(cube, p)
     if arr.shape[0] != len(bands):
         raise InputError(f"{p}: the cube has {arr.shape[0]} bands but {len(bands)} band centres were given")
+    dt, code = _envi_write_options(dtype, interleave, byte_order, description)
+    arr = _envi_stored_values(p, arr, dt, reflectance_scale)
+    raw = _envi_disk_bytes(arr, dt, interleave, byte_order)
+    header = _envi_header_text(arr.shape, bands, code, interleave, byte_order, description, reflectance_scale,
+                               metadata, raw)
+    _write_envi_pair(hdr, data, raw, header)
+    return hdr, data
+
+
+def _envi_write_options(dtype: str | np.dtype, interleave: str, byte_order: str, description: str
+                        ) -> tuple[np.dtype, int]:
+    """(numpy dtype, ENVI data type code) of :func:`write_envi`'s ``dtype``, after its options are checked:
+    InputError for a type ENVI has no code for, another interleave or byte order, or a description that is not
+    one line without braces."""
     codes = {np.dtype(v): k for k, v in _ENVI_DTYPES.items()}
     dt = np.dtype(dtype)
     if dt not in codes:
         raise InputError(f"write_envi: unsupported data type {dt}")
-    if interleave not in ("bsq", "bil", "bip"):
+    if interleave not in _ENVI_INTERLEAVES:
         raise InputError(f"write_envi: interleave must be bsq, bil or bip, got {interleave!r}")
     if byte_order not in ("little", "big"):
         raise InputError(f"write_envi: byte_order must be 'little' or 'big', got {byte_order!r}")
     if not isinstance(description, str) or any(ch in description for ch in "{}\r\n"):
         # a brace ends the header's braced value: what followed it was read as more header keys
         raise InputError(f"write_envi: description must be one line of text without braces, got {description!r}")
+    return dt, codes[dt]
+
+
+def _envi_stored_values(p: Path, arr: np.ndarray, dt: np.dtype, reflectance_scale: float | None) -> np.ndarray:
+    """The values to store of the cube ``arr`` (C, H, W): × ``reflectance_scale`` when given. InputError when an
+    integer type ``dt`` would store them as 0s and 1s (fractions, no scale) or clip them (above its maximum)."""
     if reflectance_scale is not None:
         if not (isinstance(reflectance_scale, (int, float)) and math.isfinite(reflectance_scale) and reflectance_scale > 0):
             raise InputError(f"write_envi: reflectance_scale must be a positive number, got {reflectance_scale!r}")
@@ -1389,20 +1409,32 @@ def write_envi(path: str | os.PathLike, cube: np.ndarray, bands: Bands, *, inter
         raise InputError(f"{p}: a cube of values up to {scaled}{peak:.6g} written as {dt} (at most {np.iinfo(dt).max}) "
                          f"would be clipped to {np.iinfo(dt).max}; pass a smaller reflectance_scale, or write a wider "
                          "integer type or float32")
+    return arr
+
+
+def _envi_disk_bytes(arr: np.ndarray, dt: np.dtype, interleave: str, byte_order: str) -> np.ndarray:
+    """The data file's bytes (uint8) of the values ``arr`` (C, H, W): in ``interleave`` order, as ``dt`` (integers
+    rounded) in ``byte_order``."""
     out = {"bsq": arr, "bil": arr.transpose(1, 0, 2), "bip": arr.transpose(1, 2, 0)}[interleave]
     if dt.kind in "iu":
         info = np.iinfo(dt)
         out = np.clip(np.round(out), info.min, info.max)
     out = np.ascontiguousarray(out, dtype=dt.newbyteorder("<" if byte_order == "little" else ">"))
-    raw = out.reshape(-1).view(np.uint8)  # the bytes, without a copy (tobytes() doubled a cube in memory)
-    c, h, w = arr.shape
+    return out.reshape(-1).view(np.uint8)  # the bytes, without a copy (tobytes() doubled a cube in memory)
+
+
+def _envi_header_text(shape: tuple[int, ...], bands: Bands, code: int, interleave: str, byte_order: str,
+                      description: str, reflectance_scale: float | None, metadata: dict[str, Any] | None,
+                      raw: np.ndarray) -> str:
+    """The ENVI header of a cube of ``shape`` (C, H, W) stored as the bytes ``raw`` (their CRC-32 recorded)."""
+    c, h, w = shape
     # to the NM_DECIMALS the readers keep (6 significant digits dropped the third decimal above 1000 nm)
     fmt = lambda v: ", ".join(f"{round(float(x), NM_DECIMALS):.12g}" for x in v)  # noqa: E731
-    header = (
+    return (
         "ENVI\n"
         f"description = {{{description}}}\n"
         f"samples = {w}\nlines = {h}\nbands = {c}\nheader offset = 0\nfile type = ENVI Standard\n"
-        f"data type = {codes[dt]}\ninterleave = {interleave}\nbyte order = {0 if byte_order == 'little' else 1}\n"
+        f"data type = {code}\ninterleave = {interleave}\nbyte order = {0 if byte_order == 'little' else 1}\n"
         "wavelength units = Nanometers\n"
         f"wavelength = {{{fmt(bands.centers_nm)}}}\n"
         f"fwhm = {{{fmt(bands.fwhm_nm)}}}\n"
@@ -1410,6 +1442,11 @@ def write_envi(path: str | os.PathLike, cube: np.ndarray, bands: Bands, *, inter
         + (f"{ENVI_METADATA_KEY} = {envi_metadata_value(metadata)}\n" if metadata is not None else "")
         + f"{ENVI_CRC_KEY} = {zlib.crc32(raw):08x}\n"
     )
+
+
+def _write_envi_pair(hdr: Path, data: Path, raw: np.ndarray, header: str) -> None:
+    """Write ``data`` (the bytes ``raw``), then ``hdr`` (the text ``header``), each atomically; on a failure or
+    interruption, remove those of the two that were not there before."""
     new = [f for f in (data, hdr) if not os.path.lexists(f)]
     try:
         with atomic_path(data) as tmp, open(tmp, "wb") as fh:
@@ -1423,7 +1460,6 @@ def write_envi(path: str | os.PathLike, cube: np.ndarray, bands: Bands, *, inter
         for f in new:
             f.unlink(missing_ok=True)
         raise
-    return hdr, data
 
 
 def envi_metadata_value(metadata: dict[str, Any]) -> str:
