@@ -440,6 +440,15 @@ def _read_attrs(attrs: Any) -> dict[str, Any]:
     return meta
 
 
+def _cube_of_bands(p: Path, cube: Any, bands: Bands) -> np.ndarray:
+    """``cube`` (C, H, W) checked (:func:`~hsicam.data.cube.check_cube`) for writing to ``p``, as float32; InputError
+    unless it has one band per centre of ``bands``."""
+    arr = check_cube(cube, p)
+    if arr.shape[0] != len(bands):
+        raise InputError(f"{p}: the cube has {arr.shape[0]} bands but {len(bands)} band centres were given")
+    return arr
+
+
 def write_cube_h5(path: str | os.PathLike, cube: np.ndarray, bands: Bands, metadata: dict[str, Any] | None = None) -> Path:
     """Write our HDF5 cube file atomically (byte-identical for identical inputs: no timestamps).
 
@@ -452,9 +461,7 @@ def write_cube_h5(path: str | os.PathLike, cube: np.ndarray, bands: Bands, metad
     import h5py
 
     p = Path(path)
-    arr = check_cube(cube, p)
-    if arr.shape[0] != len(bands):
-        raise InputError(f"{p}: the cube has {arr.shape[0]} bands but {len(bands)} band centres were given")
+    arr = _cube_of_bands(p, cube, bands)
     meta_json = json_text(metadata or {}, sort_keys=True)  # strict JSON: h5py + any JSON parser read it
     with atomic_path(p) as tmp, open(tmp, "w+b") as fh, h5py.File(fh, "w", libver=("earliest", "v110")) as f:
         f.create_dataset("cube", data=arr, track_times=False)
@@ -1360,9 +1367,7 @@ def write_envi(path: str | os.PathLike, cube: np.ndarray, bands: Bands, *, inter
     """
     p = Path(path)
     hdr, data = (p, p.with_suffix(".img")) if p.suffix.lower() == ".hdr" else (p.with_suffix(".hdr"), p)
-    arr = check_cube(cube, p)
-    if arr.shape[0] != len(bands):
-        raise InputError(f"{p}: the cube has {arr.shape[0]} bands but {len(bands)} band centres were given")
+    arr = _cube_of_bands(p, cube, bands)
     dt, code = _envi_write_options(dtype, interleave, byte_order, description)
     arr = _envi_stored_values(p, arr, dt, reflectance_scale)
     raw = _envi_disk_bytes(arr, dt, interleave, byte_order)
