@@ -18,7 +18,7 @@ import logging
 import math
 import os
 from collections import OrderedDict
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Iterator, Sequence
 
@@ -50,24 +50,49 @@ def list_scenes(root: str | os.PathLike) -> list[Path]:
     refused (:func:`check_not_an_output`). Raises :class:`InputError` when no scene is found.
     """
     root = Path(root)
-    if not root.exists():
-        raise InputError(f"{root}: no such dataset file or folder")
-    check_not_an_output(root)
-    if root.is_file():
-        return [root]
-    if _is_cave_dir(root):
-        return [root]
-    from hsicam.data.estimates import is_estimate
-    from hsicam.io import is_complete
-
+    alone = _scene_alone(root)
+    if alone is not None:
+        return alone
     listed = _manifest_scenes(root)
     if listed is not None:
         return listed
     _check_not_partial_synthetic(root)
-    scenes: list[Path] = []
-    skipped: list[Path] = []
-    estimates: list[Path] = []
-    aliases: list[tuple[Path, Path]] = []  # (a link to what was listed already, that)
+    found = _walk_dataset(root)
+    scenes = _one_path_per_scene(root, sorted(set(found.scenes)), found.aliases)
+    if found.skipped:
+        _log_skipped(root, found.skipped)
+    if found.estimates:
+        log.warning("%s: skipped %s", root, _estimates_text(root, found.estimates))
+    if not scenes:
+        raise _no_scenes_error(root, found)
+    return scenes
+
+
+def _scene_alone(root: Path) -> list[Path] | None:
+    """``[root]`` when the dataset ``root`` is one scene (a file or a CAVE folder), None for a folder of scenes;
+    InputError when it does not exist or is an hsicam output (:func:`check_not_an_output`)."""
+    if not root.exists():
+        raise InputError(f"{root}: no such dataset file or folder")
+    check_not_an_output(root)
+    if root.is_file() or _is_cave_dir(root):
+        return [root]
+    return None
+
+
+@dataclass
+class _Found:
+    """What :func:`_walk_dataset` found below a dataset folder."""
+
+    scenes: list[Path] = field(default_factory=list)  # scene files and CAVE folders, in walk order
+    skipped: list[Path] = field(default_factory=list)  # sub-folders that hold an hsicam output
+    estimates: list[Path] = field(default_factory=list)  # cube files that hsicam reconstruct wrote
+    aliases: list[tuple[Path, Path]] = field(default_factory=list)  # (a link to what was listed already, that)
+
+
+def _walk_dataset(root: Path) -> _Found:
+    """The scenes below the folder ``root`` (and what is not a scene): its real sub-folders first, then the linked
+    ones (each folder walked once, by its (st_dev, st_ino), so a link loop ends)."""
+    found = _Found()
     visited: dict[tuple[int, int], Path] = {}  # (st_dev, st_ino) of every folder walked
     links: list[Path] = []  # linked sub-folders, walked after the folders themselves
     starts = [root]
@@ -77,51 +102,66 @@ def list_scenes(root: str | os.PathLike) -> list[Path]:
         if key is None:
             continue
         if key in visited:  # a link to a folder listed already (or a link loop)
-            aliases.append((start, visited[key]))
+            found.aliases.append((start, visited[key]))
             continue
         visited[key] = start
         for dirpath, dirnames, filenames in os.walk(start):  # links are not followed here: queued below
             d = Path(dirpath)
-            kept = []
-            for n in sorted(dirnames):
-                if n.startswith("."):
-                    continue
-                if is_complete(d / n):  # an hsicam output, not scenes
-                    skipped.append(d / n)
-                    continue
-                if (d / n).is_symlink():
-                    links.append(d / n)
-                    continue
-                sub = _dir_key(d / n)
-                if sub is None or sub in visited:  # unreadable, or a folder mounted twice
-                    continue
-                visited[sub] = d / n
-                kept.append(n)
-            dirnames[:] = kept
+            dirnames[:] = _subfolders_to_walk(d, dirnames, visited, links, found)
             if d != root and _is_cave_dir(d):
-                scenes.append(_cave_scene_root(d, root))
+                found.scenes.append(_cave_scene_root(d, root))
                 dirnames[:] = []
                 continue
-            for name in filenames:
-                if name.startswith("."):  # hidden files, including atomic-write temporaries
-                    continue
-                if Path(name).suffix.lower() in SCENE_SUFFIXES:
-                    (estimates if is_estimate(d / name) else scenes).append(d / name)
+            _add_scene_files(d, filenames, found)
         if not starts:
             starts, links = links, []
-    scenes = sorted(set(scenes))
-    scenes = _one_path_per_scene(root, scenes, aliases)
-    if skipped:
-        _log_skipped(root, skipped)
-    if estimates:
-        log.warning("%s: skipped %s", root, _estimates_text(root, estimates))
-    if not scenes:
-        also = "; ".join(t for t in (_skipped_text(root, skipped) if skipped else "",
-                                      _estimates_text(root, estimates) if estimates else "") if t)
-        also = f" (skipped {also})" if also else ""
-        raise InputError(f"{root}: no hyperspectral scenes found (supported: {', '.join(SCENE_SUFFIXES)}, CAVE "
-                         f"folders){also}")
-    return scenes
+    return found
+
+
+def _subfolders_to_walk(d: Path, dirnames: list[str], visited: dict[tuple[int, int], Path], links: list[Path],
+                        found: _Found) -> list[str]:
+    """The names of the sub-folders of ``d`` (``dirnames``) to walk into, sorted: not hidden, not an hsicam
+    output (added to ``found.skipped``), not a link (queued on ``links``), not a folder walked already (each one
+    kept is added to ``visited``)."""
+    from hsicam.io import is_complete
+
+    kept = []
+    for n in sorted(dirnames):
+        if n.startswith("."):
+            continue
+        if is_complete(d / n):  # an hsicam output, not scenes
+            found.skipped.append(d / n)
+            continue
+        if (d / n).is_symlink():
+            links.append(d / n)
+            continue
+        sub = _dir_key(d / n)
+        if sub is None or sub in visited:  # unreadable, or a folder mounted twice
+            continue
+        visited[sub] = d / n
+        kept.append(n)
+    return kept
+
+
+def _add_scene_files(d: Path, filenames: list[str], found: _Found) -> None:
+    """Add the files of folder ``d`` (``filenames``) with a scene suffix to ``found.scenes``, or to
+    ``found.estimates`` when hsicam reconstruct wrote them."""
+    from hsicam.data.estimates import is_estimate
+
+    for name in filenames:
+        if name.startswith("."):  # hidden files, including atomic-write temporaries
+            continue
+        if Path(name).suffix.lower() in SCENE_SUFFIXES:
+            (found.estimates if is_estimate(d / name) else found.scenes).append(d / name)
+
+
+def _no_scenes_error(root: Path, found: _Found) -> InputError:
+    """The refusal of a dataset folder without scenes, saying what was skipped."""
+    also = "; ".join(t for t in (_skipped_text(root, found.skipped) if found.skipped else "",
+                                  _estimates_text(root, found.estimates) if found.estimates else "") if t)
+    also = f" (skipped {also})" if also else ""
+    return InputError(f"{root}: no hyperspectral scenes found (supported: {', '.join(SCENE_SUFFIXES)}, CAVE "
+                      f"folders){also}")
 
 
 def _dir_key(d: Path) -> tuple[int, int] | None:
