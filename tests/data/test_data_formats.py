@@ -321,6 +321,17 @@ def test_envi_writer_integer_types_keep_a_cube_of_fractions(tmp_path):
         write_envi(tmp_path / "bad.hdr", chw, bands, dtype="uint16", reflectance_scale=-1)
 
 
+def test_envi_writer_refuses_a_boolean_reflectance_scale(tmp_path):
+    """`reflectance_scale=True` passed the number check (a bool is an int) as a scale of 1, which also skipped the
+    refusal of a cube of fractions: the [0, 1] cube was written as uint16 0s and 1s without a word. Refused now,
+    before any file, as the other values that are not a positive number."""
+    chw = np.random.default_rng(11).random((4, H, W)).astype(np.float32)
+    bands = Bands.from_centers([410.0, 500.5, 600.0, 700.0])
+    with pytest.raises(InputError, match=r"^write_envi: reflectance_scale must be a positive number, got True$"):
+        write_envi(tmp_path / "flag.hdr", chw, bands, dtype="uint16", reflectance_scale=True)
+    assert not list(tmp_path.iterdir())
+
+
 def test_npy_roundtrip_with_and_without_bands(tmp_path):
     data = np.random.default_rng(9).random((31, H, W)).astype(np.float32)
     path = tmp_path / "cube.npy"

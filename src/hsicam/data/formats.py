@@ -1400,7 +1400,8 @@ def _envi_stored_values(p: Path, arr: np.ndarray, dt: np.dtype, reflectance_scal
     """The values to store of the cube ``arr`` (C, H, W): × ``reflectance_scale`` when given. InputError when an
     integer type ``dt`` would store them as 0s and 1s (fractions, no scale) or clip them (above its maximum)."""
     if reflectance_scale is not None:
-        if not (isinstance(reflectance_scale, (int, float)) and math.isfinite(reflectance_scale) and reflectance_scale > 0):
+        if (isinstance(reflectance_scale, bool) or not isinstance(reflectance_scale, (int, float))
+                or not (math.isfinite(reflectance_scale) and reflectance_scale > 0)):
             raise InputError(f"write_envi: reflectance_scale must be a positive number, got {reflectance_scale!r}")
         arr = arr * np.float64(reflectance_scale)
     elif dt.kind in "iu" and arr.size and float(np.nanmax(arr)) <= 1.0 and not np.array_equal(arr, np.round(arr)):
