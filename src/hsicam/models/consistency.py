@@ -77,13 +77,45 @@ def consistency_step(op, y: torch.Tensor, x0: torch.Tensor, origin: tuple[int, i
     capped there; 0: plain forward-backward steps).
 
     ``band_px`` (None: the whole window at once, differentiable): each step is computed band of rows by band of
-    rows, each band of at least this many rows read with :func:`step_reach_px` rows of halo, in place (not
+    rows, each band of at least this many rows read with :func:`_step_reach_px` rows of halo, in place (not
     differentiable: call it without gradients). The result is the whole window's (a step is local), but the
     working memory is a band's, not the window's: the steps of a 2048² capture then hold their state (the
     estimate, the previous estimate and the TV prior's dual field, a few whole cubes) plus one band's temporaries,
     where the whole-window steps held a dozen whole cubes. :func:`default_band_px` picks a band of about
     :data:`STEP_BAND_PIXELS` pixels. ``on_step``: called with no argument after each step (progress).
     """
+    mode, momentum = _step_settings(extend, iterations, damping, psf_energy, spectral_prior, tv_weight, tv_momentum,
+                                    band_px, x0, y)
+    if iterations == 0:
+        return x0
+    op, mode, py, px = _window_setup(op, y, mode, psf_energy)
+    lam = damping * _lipschitz(op)
+    h, w = y.shape[-2:]
+    y = y.to(x0.dtype)
+    x = F.pad(x0, (px, px, py, py), mode=mode) if (py or px) else x0
+    # the spectral prior's ŝ is the start's: in bands, whose steps overwrite x in place, each band's rows of x0
+    # extended as x was (no copy of x kept)
+    frame = _Frame(op, y, (origin[0] - py, origin[1] - px), py, px, noise_variance, spectral_prior,
+                   x if band_px is None else x0, None if band_px is None else (mode, py, px))
+    step_halo = _step_reach_px(op, noise_variance is not None, tv_weight > 0)
+    if band_px is not None and x is x0:
+        x = x0.clone()  # the bands write in place, never into the caller's tensor
+    state = {"x": x, "rows": _row_sums(frame, x, lam, band_px)}
+    # several bands: the kept heap's free pages go back after each step (one band's fragments are not kept into the
+    # next step); one band: kept, for the next step's tensors of the same size (a trim would fault them in again:
+    # 12 steps on a 512² image 4.0 → 6.3–8.5 s)
+    one_band = _band_rows(x.shape[-2], band_px, step_halo) is None
+    if tv_weight > 0:
+        x = _tv_steps(frame, state, iterations, tv_weight, momentum, band_px, step_halo, one_band, on_step)
+    else:
+        x = _landweber_steps(frame, state, iterations, band_px, step_halo, one_band, on_step)
+    return x[..., py : py + h, px : px + w]
+
+
+def _step_settings(extend, iterations, damping, psf_energy, spectral_prior, tv_weight, tv_momentum, band_px,
+                   x0: torch.Tensor, y: torch.Tensor) -> tuple[str | None, float]:
+    """(the extension mode, the cap on the TV steps' momentum) of :func:`consistency_step`'s settings; ValueError
+    for a setting out of its range, or for ``band_px`` with gradients."""
     mode = _extension_mode(extend)
     if iterations < 0 or not damping > 0 or not 0 < psf_energy <= 1 or not 0 <= spectral_prior < float("inf") \
             or not 0 <= tv_weight < float("inf"):
@@ -98,40 +130,49 @@ def consistency_step(op, y: torch.Tensor, x0: torch.Tensor, origin: tuple[int, i
     if band_px is not None and torch.is_grad_enabled() and (x0.requires_grad or y.requires_grad):
         raise ValueError("band_px computes the steps in place, without gradients: call it under torch.no_grad(), "
                          "or leave band_px None")
-    if iterations == 0:
-        return x0
-    op, mode, py, px = _window_setup(op, y, mode, psf_energy)
+    return mode, momentum
+
+
+def _lipschitz(op) -> float:
+    """The operator's bound L of ‖A‖² (``op.lipschitz``); InputError for an operator without one."""
     if getattr(op, "lipschitz", None) is None:
         raise InputError(f"measurement consistency needs an operator with a bound of ‖A‖² (lipschitz), "
                          f"not {type(op).__name__}")
-    h, w = y.shape[-2:]
-    lam = damping * float(op.lipschitz)
-    y = y.to(x0.dtype)
-    x = F.pad(x0, (px, px, py, py), mode=mode) if (py or px) else x0
-    # the spectral prior's ŝ is the start's: in bands, whose steps overwrite x in place, each band's rows of x0
-    # extended as x was (no copy of x kept)
-    frame = _Frame(op, y, (origin[0] - py, origin[1] - px), py, px, noise_variance, spectral_prior,
-                   x if band_px is None else x0, None if band_px is None else (mode, py, px))
-    tv = tv_weight > 0
+    return float(op.lipschitz)
+
+
+def _step_reach_px(op, noisy: bool, tv: bool) -> int:
+    """The rows (px) of the frame that reach one step's output rows: the halo a band of the steps is read with
+    (A's reach there and back; ``noisy``: the Wiener window's half width; ``tv``: :data:`TV_REACH_PX`)."""
     halo = _half_reach(op)[0]
-    step_halo = 2 * halo + (WIENER_WINDOW_PX // 2 if noise_variance is not None else 0) + (TV_REACH_PX if tv else 0)
-    if band_px is not None and x is x0:
-        x = x0.clone()  # the bands write in place, never into the caller's tensor
+    return 2 * halo + (WIENER_WINDOW_PX // 2 if noisy else 0) + (TV_REACH_PX if tv else 0)
+
+
+def _row_sums(frame: "_Frame", x: torch.Tensor, lam: float, band_px: int | None) -> torch.Tensor:
+    """D = A S Aᵀ 𝟙 + λ on the frame's rows, (B, 1, H, W) for the estimate x (B, C, H, W) on the frame with the
+    spectral prior, (1, 1, H, W) without; 1 outside the sensor's rows. Computed band by band as the steps are."""
     # D = A S Aᵀ 𝟙 + λ on the frame's rows (1 outside the sensor's): with the prior S follows each estimate
-    ones = {"rows": torch.ones_like(x[: (None if spectral_prior > 0 else 1), :1])}
-    rows = _in_bands(lambda ya, yb, win: {"rows": frame.row_sums(ya, yb, win, lam)}, ones, band_px,
-                     2 * halo + 1)["rows"]
-    state = {"x": x, "rows": rows}
-    # several bands: the kept heap's free pages go back after each step (one band's fragments are not kept into the
-    # next step); one band: kept, for the next step's tensors of the same size (a trim would fault them in again:
-    # 12 steps on a 512² image 4.0 → 6.3–8.5 s)
-    one_band = _band_rows(x.shape[-2], band_px, step_halo) is None
-    if not tv:
-        for _ in range(iterations):
-            state = _in_bands(lambda ya, yb, win: {"x": frame.stepped(ya, yb, win, win["x"])}, state, band_px,
-                              step_halo)
-            _after_step(not one_band, on_step)
-        return state["x"][..., py : py + h, px : px + w]
+    ones = {"rows": torch.ones_like(x[: (None if frame.spectral_prior > 0 else 1), :1])}
+    return _in_bands(lambda ya, yb, win: {"rows": frame.row_sums(ya, yb, win, lam)}, ones, band_px,
+                     2 * _half_reach(frame.op)[0] + 1)["rows"]
+
+
+def _landweber_steps(frame: "_Frame", state: dict, iterations: int, band_px: int | None, halo_px: int,
+                     one_band: bool, on_step) -> torch.Tensor:
+    """``iterations`` plain (or spectrally preconditioned) Landweber steps from ``state["x"]`` (B, C, H, W) on the
+    frame (``state["rows"]``: D) → the estimate on the frame."""
+    for _ in range(iterations):
+        state = _in_bands(lambda ya, yb, win: {"x": frame.stepped(ya, yb, win, win["x"])}, state, band_px, halo_px)
+        _after_step(not one_band, on_step)
+    return state["x"]
+
+
+def _tv_steps(frame: "_Frame", state: dict, iterations: int, tv_weight: float, momentum: float, band_px: int | None,
+              halo_px: int, one_band: bool, on_step) -> torch.Tensor:
+    """``iterations`` steps with the TV prior from ``state["x"]`` (B, C, H, W) on the frame (``state["rows"]``: D):
+    each a Landweber step from x + β (x − x_previous), β FISTA's capped at ``momentum``, then one step towards
+    b · prox_{w·TV}(x ⊘ b) (:func:`brightness_tv_prox`) → the estimate on the frame."""
+    x = state["x"]
     # the dual field's divergence is kept from one step to the next (one of the prox's two divergences) when the
     # frame is one band; in bands it would be one more whole cube of state (a 2048² capture: +0.5 GB), so each band
     # recomputes it
@@ -151,10 +192,10 @@ def consistency_step(op, y: torch.Tensor, x0: torch.Tensor, origin: tuple[int, i
             new = {"previous": out, "dual_y": dual[0], "dual_x": dual[1]}
             return {**new, "divergence": divergence} if one_band else new
 
-        state = _in_bands(tv_step, state, band_px, step_halo)
+        state = _in_bands(tv_step, state, band_px, halo_px)
         state["x"], state["previous"], t = state["previous"], state["x"], t_next
         _after_step(not one_band, on_step)
-    return state["x"][..., py : py + h, px : px + w]
+    return state["x"]
 
 
 #: The cap on the momentum of the steps with the TV prior. FISTA's β_k = (t_k − 1) / t_{k+1} climbs towards 1, and
