@@ -92,7 +92,7 @@ def consistency_step(op, y: torch.Tensor, x0: torch.Tensor, origin: tuple[int, i
     lam = damping * _lipschitz(op)
     h, w = y.shape[-2:]
     y = y.to(x0.dtype)
-    x = F.pad(x0, (px, px, py, py), mode=mode) if (py or px) else x0
+    x = _extended(x0, py, px, mode)
     # the spectral prior's ŝ is the start's: in bands, whose steps overwrite x in place, each band's rows of x0
     # extended as x was (no copy of x kept)
     frame = _Frame(op, y, (origin[0] - py, origin[1] - px), py, px, noise_variance, spectral_prior,
@@ -247,20 +247,29 @@ class _Frame:
         # x0's rows under the band and py + 1 more each side (what a mirrored border needs), extended, then E's rows
         lo = max(min(max(ya - py, 0), self.h) - py - 1, 0)
         hi = min(min(max(yb - py, 0), self.h) + py + 1, self.h)
-        return F.pad(self.start[..., lo:hi, :], (px, px, py, py), mode=mode)[..., ya - lo : yb - lo, :]
+        return _extended(self.start[..., lo:hi, :], py, px, mode)[..., ya - lo : yb - lo, :]
 
     def _sensor_rows(self, ya: int, yb: int) -> tuple[int, int]:
         return max(ya, self.py), min(yb, self.py + self.h)
 
+    def _sensor_part(self, ya: int, yb: int, t: torch.Tensor) -> torch.Tensor:
+        """The sensor's pixels (B, ·, ·, w) of ``t`` on the frame rows [ya, yb) (B, ·, yb − ya, W_E)."""
+        sa, sb = self._sensor_rows(ya, yb)
+        return t[..., sa - ya : sb - ya, self.px : self.px + self.w]
+
+    def _on_frame(self, ya: int, yb: int, v: torch.Tensor, value: float | None = None) -> torch.Tensor:
+        """The sensor's pixels ``v`` of the frame rows [ya, yb) put back on those rows (B, ·, yb − ya, W_E), ``value``
+        around them (None: 0)."""
+        sa, sb = self._sensor_rows(ya, yb)
+        return F.pad(v, (self.px, self.px, sa - ya, yb - sb), value=value)
+
     def a(self, ya: int, yb: int, x: torch.Tensor) -> torch.Tensor:
         """A of the frame rows [ya, yb) (B, C, yb − ya, W_E) → the sensor rows they hold (B, 1, ·, w)."""
-        sa, sb = self._sensor_rows(ya, yb)
-        return self.op.A(x, (self.origin[0] + ya, self.origin[1]))[..., sa - ya : sb - ya, self.px : self.px + self.w]
+        return self._sensor_part(ya, yb, self.op.A(x, (self.origin[0] + ya, self.origin[1])))
 
     def a_t(self, ya: int, yb: int, v: torch.Tensor) -> torch.Tensor:
         """Aᵀ of the sensor rows of frame rows [ya, yb) → those frame rows (zero light beyond the sensor)."""
-        sa, sb = self._sensor_rows(ya, yb)
-        return self.op.A_adjoint(F.pad(v, (self.px, self.px, sa - ya, yb - sb)), (self.origin[0] + ya, self.origin[1]))
+        return self.op.A_adjoint(self._on_frame(ya, yb, v), (self.origin[0] + ya, self.origin[1]))
 
     def precondition(self, ya: int, yb: int):
         """S on frame rows [ya, yb) (:func:`spectral_preconditioner` of the start's), None without the prior. The
@@ -273,11 +282,10 @@ class _Frame:
 
     def row_sums(self, ya: int, yb: int, win: dict, lam: float) -> torch.Tensor:
         """D = A S Aᵀ 𝟙 + λ on frame rows [ya, yb) (1 outside the sensor; S: :meth:`precondition`)."""
-        sa, sb = self._sensor_rows(ya, yb)
-        back = self.a_t(ya, yb, win["rows"][..., sa - ya : sb - ya, self.px : self.px + self.w])
+        back = self.a_t(ya, yb, self._sensor_part(ya, yb, win["rows"]))
         s = self.precondition(ya, yb)
         d = self.a(ya, yb, back if s is None else s(back)) + lam
-        return F.pad(d, (self.px, self.px, sa - ya, yb - sb), value=1.0)
+        return self._on_frame(ya, yb, d, value=1.0)
 
     def stepped(self, ya: int, yb: int, win: dict, z: torch.Tensor) -> torch.Tensor:
         """z + S Aᵀ (w(y − A z) ⊘ D) on frame rows [ya, yb): the Landweber step from z (w: :func:`wiener_residual`).
@@ -289,7 +297,7 @@ class _Frame:
         if var is not None and var.dim() >= 2 and var.shape[-2] > 1:
             var = var[..., ys, :]
         r = wiener_residual(self.y[..., ys, :] - self.a(ya, yb, z), var)
-        g = self.a_t(ya, yb, r / win["rows"][..., sa - ya : sb - ya, self.px : self.px + self.w])
+        g = self.a_t(ya, yb, r / self._sensor_part(ya, yb, win["rows"]))
         s = self.precondition(ya, yb)
         if torch.is_grad_enabled() and (g.requires_grad or z.requires_grad):
             return z + (g if s is None else s(g))
@@ -447,8 +455,7 @@ def linear_consistency_step(op, y: torch.Tensor, x0: torch.Tensor, weight: torch
     y = y.to(x0.dtype)
     x = x0
     for _ in range(iterations):
-        ext = F.pad(x, (px, px, py, py), mode=mode) if (py or px) else x
-        residual = y - op.A(ext, o)[..., py : py + h, px : px + w]
+        residual = y - op.A(_extended(x, py, px, mode), o)[..., py : py + h, px : px + w]
         x = x + gain * phase_linear(wiener_residual(residual, noise_variance), weight.to(x.device), origin)
     return x
 
@@ -476,6 +483,12 @@ def wiener_residual(r: torch.Tensor, noise_variance: torch.Tensor | None,
     power = (local_mean(r * r) - local_mean(v)).clamp_min(0)
     gain = torch.where(v > 0, power / (power + v).clamp_min(torch.finfo(r.dtype).tiny), torch.ones_like(v))
     return r * gain
+
+
+def _extended(x: torch.Tensor, py: int, px: int, mode: str | None) -> torch.Tensor:
+    """x (B, C, h, w) extended across its border by ``py`` rows and ``px`` columns a side (F.pad's ``mode``):
+    (B, C, h + 2 py, w + 2 px); x itself where there is no margin."""
+    return F.pad(x, (px, px, py, py), mode=mode) if (py or px) else x
 
 
 def _extension_mode(extend: bool | str) -> str | None:
