@@ -446,6 +446,30 @@ def preprocess_raw(raw: np.ndarray, full_scale: float, corr: RawCorrection, sour
             ``hsicam simulate``'s stretched image, above full scale by design).
         stored_dtype: the capture file's data type (for the messages about frames of other units).
     """
+    raw = _float32_capture(raw, source)
+    dark, flat_dn = _dark_and_flat(raw, corr, full_scale, stored_dtype, source)
+    black, white = _black_and_white(corr, dark, full_scale, stored_dtype, source)
+    report: dict[str, Any] = {"black_level_dn": black, "white_level_dn": white}
+    saturated = _count_saturated(raw, white, corr, full_scale, check_saturation)
+    report["saturated_px"] = saturated
+    notes = _check_saturated(raw, saturated, white, corr.white_level is not None, source)
+    img, signal_notes = _minus_dark(raw, dark, black, corr, source)
+    notes += signal_notes
+    img = _to_full_scale(img, white, black, source)
+    if flat_dn is not None:
+        img = _divide_by_flat(img, flat_dn, black, corr.flat_period, report)
+    factor = _gain_factor(img, corr, source, report)
+    img = _apply_gain(img, factor, corr, source)
+    report["gain"] = factor / (white - black)
+    notes += _level_notes(img, raw, full_scale, white, corr, source, check_level, check_bit_depth)
+    for note in notes:  # only once every check passed: an error stays the one line the user sees
+        log.warning("%s", note)
+    return img.astype(np.float32, copy=False), report
+
+
+def _float32_capture(raw: np.ndarray, source: str) -> np.ndarray:
+    """The capture (H, W, DN) as float32 (itself if it is float32 already); InputError for a float64 capture whose
+    values lie beyond float32's range."""
     stored = np.asarray(raw)
     with np.errstate(over="ignore"):  # a float64 capture beyond float32's range: said below, not as numpy's warning
         raw = stored.astype(np.float32, copy=False)
@@ -453,6 +477,13 @@ def preprocess_raw(raw: np.ndarray, full_scale: float, corr: RawCorrection, sour
         raise InputError(f"{source}: {int(np.count_nonzero(np.isinf(raw)))} value(s) beyond float32's range (largest "
                          f"{float(np.abs(stored).max()):.3g}); a capture is processed in float32: scale it, or check "
                          "the file")
+    return raw
+
+
+def _dark_and_flat(raw: np.ndarray, corr: RawCorrection, full_scale: float, stored_dtype: str | None,
+                   source: str) -> tuple[np.ndarray | None, np.ndarray | None]:
+    """The values (H, W, DN) of ``corr``'s dark frame and flat field, None where not given; InputError for a dark
+    frame stored in other units than the capture (:func:`_check_frame_type`) or a frame of another size."""
     h, w = raw.shape
     _check_frame_type("dark frame", corr.dark, stored_dtype, full_scale, source,
                       "it would be subtracted from the capture's DN as it is")
@@ -460,6 +491,14 @@ def preprocess_raw(raw: np.ndarray, full_scale: float, corr: RawCorrection, sour
     for name, frame in (("dark frame", dark), ("flat field", flat_dn)):
         if frame is not None and frame.shape != raw.shape:
             raise InputError(f"{name} is {frame.shape[0]}×{frame.shape[1]} px but the capture is {h}×{w}")
+    return dark, flat_dn
+
+
+def _black_and_white(corr: RawCorrection, dark: np.ndarray | None, full_scale: float, stored_dtype: str | None,
+                     source: str) -> tuple[float, float]:
+    """(black level, white level) in DN: ``corr``'s, else the dark frame's median (0 without one) and the file
+    type's full scale. InputError for a flat field stored in other units when a black level is subtracted from it,
+    or a white level not above the black level."""
     black = corr.black_level
     if black is None:
         black = float(np.median(dark)) if dark is not None else 0.0
@@ -469,25 +508,52 @@ def preprocess_raw(raw: np.ndarray, full_scale: float, corr: RawCorrection, sour
     white = float(full_scale if corr.white_level is None else corr.white_level)
     if not white > black:
         raise InputError(f"white level ({white:g} DN) must be above the black level ({black:g} DN)")
-    report: dict[str, Any] = {"black_level_dn": black, "white_level_dn": white}
+    return black, white
+
+
+def _count_saturated(raw: np.ndarray, white: float, corr: RawCorrection, full_scale: float, check: bool) -> int:
+    """The capture's pixels at or above the white level ``white`` (DN); 0 without the ``check``, and for a float
+    capture read at its own full scale (1)."""
     with np.errstate(over="ignore"):  # a white level beyond float32 (e.g. 1e39) compares as +inf: nothing saturates
-        saturated = int(np.count_nonzero(raw >= white)) if check_saturation and (corr.white_level is not None or full_scale > 1) else 0
-    report["saturated_px"] = saturated
-    notes = _check_saturated(raw, saturated, white, corr.white_level is not None, source)
+        return int(np.count_nonzero(raw >= white)) if check and (corr.white_level is not None or full_scale > 1) else 0
+
+
+def _minus_dark(raw: np.ndarray, dark: np.ndarray | None, black: float, corr: RawCorrection,
+                source: str) -> tuple[np.ndarray, list[str]]:
+    """(the capture minus its dark frame, or minus the black level: float32 (H, W, DN), the warnings of
+    :func:`_check_signal`); InputError from it for an image without signal."""
     img = raw - (dark.astype(np.float32) if dark is not None else np.float32(black))
     dark_median = (black if corr.black_level is None else float(np.median(dark))) if dark is not None else None
-    notes += _check_signal(img, raw, black, dark_median, source)
+    return img, _check_signal(img, raw, black, dark_median, source)
+
+
+def _to_full_scale(img: np.ndarray, white: float, black: float, source: str) -> np.ndarray:
+    """``img`` (H, W, DN above black) divided by white − black in place (1 = full scale); InputError when that takes
+    the image below float32's smallest numbers."""
     img *= np.float32(1.0 / (white - black))
     if np.count_nonzero(img > 0) <= MIN_SIGNAL_SHARE * img.size:  # it had signal (_check_signal): float32 underflow
         raise InputError(f"{source}: the white level {white:g} DN (--white-level) takes the image below float32's "
                          f"smallest numbers (its brightest pixel becomes {float(img.max()):g}): nothing would be left "
                          "to reconstruct; give the sensor's full scale as --white-level (4095 for 12 bit, 65535 for "
                          "16 bit)")
-    if flat_dn is not None:
-        flat = normalised_flat(flat_dn, black, corr.flat_period)
-        img /= flat.astype(np.float32)
-        report["flat_min_rel"] = float(flat.min())
-        report["flat_period_px"] = corr.flat_period
+    return img
+
+
+def _divide_by_flat(img: np.ndarray, flat_dn: np.ndarray, black: float, period: int | None,
+                    report: dict[str, Any]) -> np.ndarray:
+    """``img`` (H, W) divided in place by the flat field (H, W, DN) normalised by :func:`normalised_flat`; its
+    smallest relative value and ``period`` go into ``report``."""
+    flat = normalised_flat(flat_dn, black, period)
+    img /= flat.astype(np.float32)
+    report["flat_min_rel"] = float(flat.min())
+    report["flat_period_px"] = period
+    return img
+
+
+def _gain_factor(img: np.ndarray, corr: RawCorrection, source: str, report: dict[str, Any]) -> float:
+    """The factor the corrected image ``img`` (H, W, full scale 1) is multiplied by: the exposure ratio, or the one
+    that puts its 99.9th percentile at ``auto_level``, times ``scale``; the options applied go into ``report``.
+    InputError for ``auto_level`` on an image without signal."""
     factor = 1.0
     if corr.exposure_s is not None:
         factor = corr.reference_exposure_s / corr.exposure_s
@@ -501,10 +567,15 @@ def preprocess_raw(raw: np.ndarray, full_scale: float, corr: RawCorrection, sour
     if corr.scale != 1.0:
         report["scale"] = corr.scale
     factor *= corr.scale
+    return factor
+
+
+def _apply_gain(img: np.ndarray, factor: float, corr: RawCorrection, source: str) -> np.ndarray:
+    """``img`` (H, W) multiplied by ``factor`` in place; InputError when that leaves float32's range (naming the
+    options of ``corr`` to lower) or takes the image below its smallest numbers (the options to raise)."""
     peak = max(abs(float(img.max())), abs(float(img.min()))) if img.size else 0.0  # not finite: from before the gain
     with np.errstate(over="ignore", invalid="ignore"):  # an overflow is the one-line error below, no warning
         img *= np.float32(factor)
-    report["gain"] = factor / (white - black)
     if not np.all(np.isfinite(img)):
         if factor > float(np.finfo(np.float32).max):
             raise InputError(f"{source}: the exposure × auto-level × --scale factor {factor:g} exceeds float32; "
@@ -517,6 +588,16 @@ def preprocess_raw(raw: np.ndarray, full_scale: float, corr: RawCorrection, sour
         raise InputError(f"{source}: the exposure × auto-level × --scale factor {factor:g} takes the image below "
                          f"float32's smallest numbers (its brightest pixel becomes {float(img.max()):g}): nothing would "
                          f"be left to reconstruct; raise {_gain_option_names(corr)}")
+    return img
+
+
+def _level_notes(img: np.ndarray, raw: np.ndarray, full_scale: float, white: float, corr: RawCorrection, source: str,
+                 check_level: bool, check_bit_depth: bool) -> list[str]:
+    """The warnings about the level of the corrected image ``img`` (H, W, full scale 1) of the capture ``raw`` (DN),
+    InputError for those refused: a gain past full scale or far below it (:func:`_check_level`), a dim integer
+    capture (:func:`_check_dim`), a white level far above the data (:func:`_check_white_level`), a float capture
+    that holds DN."""
+    notes: list[str] = []
     if check_level:
         notes += _check_level(img, corr, source)
     if check_bit_depth and full_scale > 1 and corr.white_level is None and corr.auto_level is None:
@@ -527,9 +608,7 @@ def preprocess_raw(raw: np.ndarray, full_scale: float, corr: RawCorrection, sour
         notes.append(f"{source}: a float capture is read on the simulator's scale (0 = black, 1 = full scale), and this "
                      f"one reaches {float(raw.max()):g}: if it holds DN, pass the sensor's white level (--white-level DN) "
                      "or --auto-level; the network was trained on images within [0, 1]")
-    for note in notes:  # only once every check passed: an error stays the one line the user sees
-        log.warning("%s", note)
-    return img.astype(np.float32, copy=False), report
+    return notes
 
 
 def _same_phase_index(n: int, m: int) -> np.ndarray:
