@@ -531,12 +531,18 @@ def _to_full_scale(img: np.ndarray, white: float, black: float, source: str) -> 
     """``img`` (H, W, DN above black) divided by white − black in place (1 = full scale); InputError when that takes
     the image below float32's smallest numbers."""
     img *= np.float32(1.0 / (white - black))
-    if np.count_nonzero(img > 0) <= MIN_SIGNAL_SHARE * img.size:  # it had signal (_check_signal): float32 underflow
+    if _underflowed(img):
         raise InputError(f"{source}: the white level {white:g} DN (--white-level) takes the image below float32's "
                          f"smallest numbers (its brightest pixel becomes {float(img.max()):g}): nothing would be left "
                          "to reconstruct; give the sensor's full scale as --white-level (4095 for 12 bit, 65535 for "
                          "16 bit)")
     return img
+
+
+def _underflowed(img: np.ndarray) -> bool:
+    """Whether no more than :data:`MIN_SIGNAL_SHARE` of the pixels of ``img`` (H, W) are above 0 after a factor
+    applied to an image that had signal (:func:`_check_signal`): float32 underflow."""
+    return np.count_nonzero(img > 0) <= MIN_SIGNAL_SHARE * img.size
 
 
 def _divide_by_flat(img: np.ndarray, flat_dn: np.ndarray, black: float, period: int | None,
@@ -584,7 +590,7 @@ def _apply_gain(img: np.ndarray, factor: float, corr: RawCorrection, source: str
             raise InputError(f"{source}: the exposure × auto-level × --scale factor {factor:g} times the brightest "
                              f"corrected pixel {peak:g} exceeds float32; lower {_gain_option_names(corr)}")
         raise InputError(f"{source}: the corrections produced NaN or Inf values")
-    if np.count_nonzero(img > 0) <= MIN_SIGNAL_SHARE * img.size:  # it had signal (_check_signal): float32 underflow
+    if _underflowed(img):
         raise InputError(f"{source}: the exposure × auto-level × --scale factor {factor:g} takes the image below "
                          f"float32's smallest numbers (its brightest pixel becomes {float(img.max()):g}): nothing would "
                          f"be left to reconstruct; raise {_gain_option_names(corr)}")
