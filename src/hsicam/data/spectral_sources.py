@@ -201,6 +201,8 @@ class SpectralLibrary:
 
 
 def _fine_grid(bands: Bands) -> np.ndarray:
+    """The 1 nm grid (nm) the spectra are integrated on for ``bands``: the lowest centre − 3σ to the highest + 3σ
+    (σ of the widest band), rounded outwards to whole nm."""
     sigma_max = float(bands.fwhm_nm.max()) / 2.3548
     lo = np.floor(bands.min_nm - 3 * sigma_max)
     hi = np.ceil(bands.max_nm + 3 * sigma_max)
@@ -481,6 +483,9 @@ def _warn_out_of_range(bands: Bands, fine: np.ndarray, seen: dict[str, int], dro
 
 def _describe(lib: SpectralLibrary, skipped: dict[str, list[str]] | None = None,
               colour_version: str | None = None) -> dict[str, Any]:
+    """The manifest's description of ``lib`` (its ``sources``): split, held-out sources, counts, illuminant groups by
+    name, emitters, basis draws, and where there are any the training spectra removed as equal to held-out ones, the
+    spectra not used (``skipped``: names per source) and the colour-science version."""
     out: dict[str, Any] = {
         "split": lib.split,
         "holdout_sources": list(lib.holdout),
@@ -555,6 +560,38 @@ def split_library(lib: SpectralLibrary, holdout_sources: str | Iterable[str] | N
     appear only when an emitter source is held out; no basis draws (they would be derived from a
     fit); Otsu upsampling only when ``otsu2018`` is held out.
     """
+    holdout = _checked_holdout(lib, holdout_sources, split)
+    held = set(holdout)
+    parts, removed = _role_parts(lib, held, split)
+    # which roles hold held-out spectra (a held-out set's other roles fall back to the training spectra)
+    held_roles = {role: any(s in held for s in parts[role][2]) for role in parts}
+    otsu_ok = ("otsu2018" in held) == (split == "heldout")  # Otsu upsampling: where its photos belong
+    if split == "heldout" and "otsu2018" not in held and not any(held_roles.values()):
+        # every role would fall back to the training spectra: scenes scored as "held-out sources" that are not
+        raise _no_held_out_spectra(lib, holdout)
+    _check_parts(parts, holdout, split, otsu_ok)
+    rr, rn, rs = _reflectances_or_otsu_means(parts["reflectances"], lib.otsu)
+    ir, in_, is_ = parts["illuminants"]
+    er, en, es = parts["emitters"]
+    sub = replace(lib, reflectances=rr, reflectance_names=rn, reflectance_sources=rs, illuminants=ir,
+                  illuminant_names=in_, illuminant_sources=is_, illuminant_groups=_illuminant_groups(in_), emitters=er,
+                  emitter_names=en, emitter_sources=es, otsu=lib.otsu if otsu_ok else None,
+                  srgb_to_xyz=lib.srgb_to_xyz if otsu_ok else None, split=split, holdout=holdout,
+                  basis=ReflectanceBasis.fit(rr) if split == "train" and rr.shape[0] >= 3 else None,
+                  removed=removed if split == "train" else [])
+    sub.sources = _describe(sub, lib.sources.get("not_used_out_of_range"), lib.sources.get("colour_science_version"))
+    if split == "heldout":
+        sub.sources["held_out_roles"] = held_roles
+    return sub
+
+
+#: Spectra of one role of a library: (values (K, C), names, source ids), in the same order.
+_Part = tuple[np.ndarray, list[str], list[str]]
+
+
+def _checked_holdout(lib: SpectralLibrary, holdout_sources: str | Iterable[str] | None, split: str) -> tuple[str, ...]:
+    """The held-out source ids (:func:`parse_holdout`) for :func:`split_library`; InputError for a split other than
+    "train" or "heldout", a library that is split already, or a held-out set without held-out sources."""
     holdout = parse_holdout(holdout_sources)
     if split not in ("train", "heldout"):
         raise InputError(f"split must be 'train' or 'heldout', got {split!r}")
@@ -562,13 +599,19 @@ def split_library(lib: SpectralLibrary, holdout_sources: str | Iterable[str] | N
         raise InputError("split_library needs the full library (split='all')")
     if split == "heldout" and not holdout:
         raise InputError("a held-out set needs at least one held-out source (holdout_sources)")
-    held = set(holdout)
+    return holdout
+
+
+def _role_parts(lib: SpectralLibrary, held: set[str], split: str) -> tuple[dict[str, _Part], list[str]]:
+    """(per role, the spectra of ``split``: the training ones, or the held-out ones where the role has any (always
+    for emitters); the names of the training spectra dropped as equal to a held-out one of their role, within
+    :data:`SAME_SPECTRUM_ATOL`)."""
     roles = {
         "reflectances": (lib.reflectances, lib.reflectance_names, lib.reflectance_sources),
         "illuminants": (lib.illuminants, lib.illuminant_names, lib.illuminant_sources),
         "emitters": (lib.emitters, lib.emitter_names, lib.emitter_sources),
     }
-    parts: dict[str, tuple[np.ndarray, list[str], list[str]]] = {}
+    parts: dict[str, _Part] = {}
     removed: list[str] = []
     for role, (arr, names, srcs) in roles.items():
         is_held = np.array([s in held for s in srcs], dtype=bool)
@@ -584,39 +627,40 @@ def split_library(lib: SpectralLibrary, holdout_sources: str | Iterable[str] | N
         else:
             idx = train_idx
         parts[role] = (arr[idx], [names[i] for i in idx], [srcs[i] for i in idx])
-    otsu_ok = ("otsu2018" in held) == (split == "heldout")
-    if split == "heldout" and "otsu2018" not in held and not any(s in held for role in parts for s in parts[role][2]):
-        # every role would fall back to the training spectra: scenes scored as "held-out sources" that are not
-        skipped = lib.sources.get("not_used_out_of_range") or {}
-        why = "; ".join(f"{src}: {_why_unused(skipped[src], lib.zero_on_bands.get(src, []))}" for src in holdout
-                        if src in skipped)
-        fine = _fine_grid(lib.bands)
-        raise NoHeldOutSpectra(
-            f"the held-out sources {', '.join(holdout)} give no spectrum on bands {lib.bands.min_nm:g}-"
-            f"{lib.bands.max_nm:g} nm, whose widths need spectra spanning {fine[0]:g}-{fine[-1]:g} nm ({why or 'none of their spectra is in the library'}): a held-out set would be "
-            "the training spectra; hold out sources that cover these bands (`hsicam data sources`)")
+    return parts, removed
+
+
+def _no_held_out_spectra(lib: SpectralLibrary, holdout: tuple[str, ...]) -> NoHeldOutSpectra:
+    """The refusal of held-out sources ``holdout`` that give no spectrum on ``lib``'s bands, saying why for each
+    source the library left out (:func:`_why_unused`) and which range the bands' widths need."""
+    skipped = lib.sources.get("not_used_out_of_range") or {}
+    why = "; ".join(f"{src}: {_why_unused(skipped[src], lib.zero_on_bands.get(src, []))}" for src in holdout
+                    if src in skipped)
+    fine = _fine_grid(lib.bands)
+    return NoHeldOutSpectra(
+        f"the held-out sources {', '.join(holdout)} give no spectrum on bands {lib.bands.min_nm:g}-"
+        f"{lib.bands.max_nm:g} nm, whose widths need spectra spanning {fine[0]:g}-{fine[-1]:g} nm ({why or 'none of their spectra is in the library'}): a held-out set would be "
+        "the training spectra; hold out sources that cover these bands (`hsicam data sources`)")
+
+
+def _check_parts(parts: dict[str, _Part], holdout: tuple[str, ...], split: str, otsu_ok: bool) -> None:
+    """InputError when holding out ``holdout`` leaves the ``split`` scenes no reflectance (and no Otsu upsampling,
+    ``otsu_ok``) or no light source."""
     if parts["reflectances"][0].shape[0] == 0 and not otsu_ok:
         raise InputError(f"holding out {', '.join(holdout)} leaves no reflectance for the {split} scenes")
     if parts["illuminants"][0].shape[0] == 0:
         raise InputError(f"holding out {', '.join(holdout)} leaves no light source for the {split} scenes")
-    rr, rn, rs = parts["reflectances"]
-    ir, in_, is_ = parts["illuminants"]
-    er, en, es = parts["emitters"]
-    groups = _illuminant_groups(in_)
+
+
+def _reflectances_or_otsu_means(part: _Part, otsu: "OtsuModel | None") -> _Part:
+    """The reflectances of a split, (K, C) float32 with names and source ids; where it has none, the Otsu clusters'
+    mean spectra on the bands (clipped to [0, 1])."""
+    rr, rn, rs = part
     if rr.shape[0] == 0:  # only photos (otsu2018) held out: paint with the Otsu clusters' mean spectra
-        rr = np.clip(lib.otsu.means @ lib.otsu.to_bands.T, 0, 1).astype(np.float32)
+        rr = np.clip(otsu.means @ otsu.to_bands.T, 0, 1).astype(np.float32)
         rn = [f"otsu2018:cluster {k}" for k in range(rr.shape[0])]
         rs = ["otsu2018"] * rr.shape[0]
-    sub = replace(lib, reflectances=rr, reflectance_names=rn, reflectance_sources=rs, illuminants=ir,
-                  illuminant_names=in_, illuminant_sources=is_, illuminant_groups=groups, emitters=er,
-                  emitter_names=en, emitter_sources=es, otsu=lib.otsu if otsu_ok else None,
-                  srgb_to_xyz=lib.srgb_to_xyz if otsu_ok else None, split=split, holdout=holdout,
-                  basis=ReflectanceBasis.fit(rr) if split == "train" and rr.shape[0] >= 3 else None,
-                  removed=removed if split == "train" else [])
-    sub.sources = _describe(sub, lib.sources.get("not_used_out_of_range"), lib.sources.get("colour_science_version"))
-    if split == "heldout":
-        sub.sources["held_out_roles"] = {role: any(s in held for s in parts[role][2]) for role in parts}
-    return sub
+    return rr, rn, rs
 
 
 # ------------------------------------------------------------------------------------------------
