@@ -209,9 +209,13 @@ def _fine_grid(bands: Bands) -> np.ndarray:
     return np.arange(lo, hi + 0.5, 1.0)
 
 
+#: colour-science's CIE daylight illuminants (source cie-daylight): D series, indoor daylight ID, B and C.
+_CIE_DAYLIGHT = ("D50", "D55", "D60", "D65", "D75", "ID50", "ID65", "B", "C")
+
+
 def _illuminant_group(name: str) -> str:
     """Lighting family used to weight the draw (daylight, fluorescent, incandescent, led, discharge, other)."""
-    if name.startswith("CIE D ") or name in ("D50", "D55", "D60", "D65", "D75", "ID50", "ID65", "B", "C", "SC"):
+    if name.startswith("CIE D ") or name in _CIE_DAYLIGHT or name == "SC":
         return "daylight"
     if name in ("A", "SA", "Incandescent", "60 A/W (Soft White)", "Neodimium Incandescent") or name.startswith("Planck"):
         return "incandescent"
@@ -233,7 +237,7 @@ def _illuminant_groups(names: Sequence[str]) -> dict[str, list[int]]:
 
 
 def _cie_illuminant_source(name: str) -> str | None:
-    if name in ("D50", "D55", "D60", "D65", "D75", "ID50", "ID65", "B", "C"):
+    if name in _CIE_DAYLIGHT:
         return "cie-daylight"
     if name == "A":
         return "cie-a"
