@@ -237,6 +237,8 @@ def _illuminant_groups(names: Sequence[str]) -> dict[str, list[int]]:
 
 
 def _cie_illuminant_source(name: str) -> str | None:
+    """The source id of colour-science's CIE illuminant ``name`` (daylight, A, fluorescent, high-pressure, LED), or
+    None for one the library does not take."""
     if name in _CIE_DAYLIGHT:
         return "cie-daylight"
     if name == "A":
@@ -321,7 +323,7 @@ def _measured_reflectances() -> Iterator[tuple[str, str, Any, Any]]:
         for patch, sd in sds.items():
             yield "nist-cqs", f"CQS {set_name}:{patch}", sd.wavelengths, sd.values
     ces = load_TCS_CIE2017(colour.SpectralShape(380, 780, 5))
-    for j, label in enumerate(ces.labels):
+    for j in range(len(ces.labels)):
         yield "cie-ces", f"CES {j + 1:02d}", ces.wavelengths, ces.values[:, j]
     mal = MSDS_BASIS_FUNCTIONS_sRGB_MALLETT2019
     for j, label in enumerate(mal.labels):
@@ -441,7 +443,7 @@ def _full_library(bands: Bands, fine: np.ndarray, G: np.ndarray, refl: _OnBands,
     the basis draws and its manifest description (:func:`_describe`)."""
     import colour
 
-    otsu = OtsuModel.build(bands, fine, G)
+    otsu = OtsuModel.build(fine, G)
     rvals, rnames, rsrc = refl
     ivals, inames, isrc = illum
     evals, enames, esrc = emit
@@ -692,7 +694,9 @@ class OtsuModel:
     to_bands: np.ndarray  # (C, S): Otsu grid → band averages
 
     @classmethod
-    def build(cls, bands: Bands, fine: np.ndarray, G: np.ndarray) -> "OtsuModel":
+    def build(cls, fine: np.ndarray, G: np.ndarray) -> "OtsuModel":
+        """colour-science's Otsu et al. (2018) model, its spectra taken from its 10 nm grid to the bands by ``G``
+        (C, F) on the fine grid ``fine`` (F,) nm."""
         from colour import SpectralDistribution, sd_to_XYZ
         from colour.colorimetry import handle_spectral_arguments
         from colour.recovery import (

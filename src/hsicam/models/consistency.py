@@ -42,13 +42,13 @@ import torch.nn.functional as F
 from hsicam.devices import float64_device
 from hsicam.errors import InputError
 from hsicam.memory import release_freed_memory
-from hsicam.models.demosaic import brightness, phase_linear
+from hsicam.models.demosaic import phase_linear
 from hsicam.models.tv import band_inner, chambolle_update, dual_divergence
 
 
 def consistency_step(op, y: torch.Tensor, x0: torch.Tensor, origin: tuple[int, int] = (0, 0),
                      damping: float = 0.02, iterations: int = 1, psf_energy: float = 0.995,
-                     extend: bool | str = True, spectral_prior: float = 0.0,
+                     extend: bool | str | None = True, spectral_prior: float = 0.0,
                      noise_variance: torch.Tensor | None = None, tv_weight: float = 0.0,
                      tv_momentum: float | None = None, band_px: int | None = None, on_step=None) -> torch.Tensor:
     """x0 (B, C, h, w) moved towards A x = y for the sensor window y (B, 1, h, w) at ``origin``.
@@ -432,7 +432,7 @@ class BrightnessTV:
 
 def linear_consistency_step(op, y: torch.Tensor, x0: torch.Tensor, weight: torch.Tensor,
                             origin: tuple[int, int] = (0, 0), gain: float = 0.5, iterations: int = 1,
-                            psf_energy: float = 0.995, extend: bool | str = True,
+                            psf_energy: float = 0.995, extend: bool | str | None = True,
                             noise_variance: torch.Tensor | None = None) -> torch.Tensor:
     """x ← x + gain · W(y − A x), ``iterations`` times, from x0 (B, C, h, w): the measurement's
     residual mapped back to the cube by ``weight`` (m², C, K, K), the least-squares linear map from
@@ -491,7 +491,7 @@ def _extended(x: torch.Tensor, py: int, px: int, mode: str | None) -> torch.Tens
     return F.pad(x, (px, px, py, py), mode=mode) if (py or px) else x
 
 
-def _extension_mode(extend: bool | str) -> str | None:
+def _extension_mode(extend: bool | str | None) -> str | None:
     """How the estimate is extended across the window's border: "replicate", "reflect" or None."""
     mode = "replicate" if extend is True else (extend or None)
     if mode not in (None, "replicate", "reflect"):
