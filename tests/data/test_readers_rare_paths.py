@@ -261,6 +261,20 @@ def test_dark_frame_brighter_than_most_pixels_warns_naming_the_dark_frame(caplog
                for m in caplog.messages), caplog.messages
 
 
+@pytest.mark.parametrize("raw", [np.zeros((0, 0), np.uint16), np.zeros((4, 0), np.uint16), np.arange(5.0),
+                                 np.zeros((2, 3, 3), np.float32), np.array([["a", "b"]])],
+                         ids=["0x0", "4x0", "1-D", "3-D", "strings"])
+def test_preprocess_raw_refuses_what_is_no_capture_in_one_line(raw):
+    """From Python (the readers refuse these first): an empty image reached numpy's "zero-size array to reduction
+    operation maximum", a 1-D one an unpacking error."""
+    from hsicam.data.images import RawCorrection, preprocess_raw
+
+    with pytest.raises(InputError) as exc:
+        preprocess_raw(raw, 4095.0, RawCorrection(), "cap.npy")
+    assert _msg(exc) == (f"cap.npy: a capture is a non-empty (H, W) array of numbers, got shape {raw.shape} of "
+                         f"{raw.dtype}")
+
+
 # ---- data/estimates.py: files that are not reconstruct's ----------------------------------------------
 def test_is_reconstruct_h5_is_false_for_hdf5_that_reconstruct_did_not_write(tmp_path):
     from hsicam.data.estimates import is_reconstruct_h5

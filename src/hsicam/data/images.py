@@ -468,9 +468,13 @@ def preprocess_raw(raw: np.ndarray, full_scale: float, corr: RawCorrection, sour
 
 
 def _float32_capture(raw: np.ndarray, source: str) -> np.ndarray:
-    """The capture (H, W, DN) as float32 (itself if it is float32 already); InputError for a float64 capture whose
-    values lie beyond float32's range."""
+    """The capture (H, W, DN) as float32 (itself if it is float32 already); InputError for anything but a non-empty
+    (H, W) array of numbers, and for a float64 capture whose values lie beyond float32's range."""
     stored = np.asarray(raw)
+    if stored.ndim != 2 or stored.size == 0 or stored.dtype.kind not in "buif":
+        # (the readers refuse these first; from Python they reached numpy's "zero-size array to reduction" or an unpack)
+        raise InputError(f"{source}: a capture is a non-empty (H, W) array of numbers, got shape {stored.shape} "
+                         f"of {stored.dtype}")
     with np.errstate(over="ignore"):  # a float64 capture beyond float32's range: said below, not as numpy's warning
         raw = stored.astype(np.float32, copy=False)
     if stored.dtype.kind == "f" and stored.dtype.itemsize > 4 and np.isinf(raw).any() and not np.isinf(stored).any():
