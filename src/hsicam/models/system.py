@@ -208,7 +208,8 @@ class CameraSystem(nn.Module):
             raise InputError("model.consistency.kind=linear needs the run's linear_step.safetensors, fitted when "
                              "training ends; for a run without it: `hsicam train --out RUN --resume --set "
                              "model.consistency.kind=linear --set model.consistency.iterations=1` (a fine-tuned run: "
-                             "`hsicam finetune … --resume`), or use --set model.consistency.kind=landweber")
+                             "`hsicam finetune … --resume`); or go without it: reconstruct --consistency-steps 0 (the "
+                             "network alone), evaluate --set model.consistency.kind=landweber")
         return linear_consistency_step(op, sensor, x, self.linear_step, origin, gain=c.gain, iterations=c.iterations,
                                        psf_energy=energy, extend=self._extension(),
                                        noise_variance=self._noise_variance(sensor, origin))

@@ -129,7 +129,8 @@ def load_run(run_dir: str | Path, device: torch.device | str = "cpu", overrides:
                f"{refit_command(run_dir)}" if unfinished else
                f"fit it: {refit_command(run_dir, ('model.consistency.kind=linear', 'model.consistency.iterations=1'))}")
         model.linear_step_missing = (f"{run_dir}: model.consistency.kind=linear needs the run's {LINEAR_STEP_FILE}, "
-                                     f"which it does not have: {how}; or reconstruct without it: --set "
+                                     f"which it does not have: {how}; or go without it: reconstruct "
+                                     "--consistency-steps 0 (the network alone), evaluate --set "
                                      "model.consistency.kind=landweber")
     return cfg, model.to(device).eval()
 
