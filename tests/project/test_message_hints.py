@@ -72,7 +72,7 @@ MODULE_COMMANDS = {
     "export/tolerance.py": {"export-optics"},
     "models/system.py": {"reconstruct", "evaluate", "pretrained pack"},
     "runs/folder.py": {"train", "finetune", "reconstruct", "evaluate", "tolerance", "export-optics", "psf",
-                       "simulate", "pretrained pack", "demo", "experiment"},
+                       "simulate", "pretrained pack", "demo", "experiment", "baseline train-prior"},
     "runs/checkpoint.py": {"train", "finetune", "demo", "experiment", "baseline train-prior"},
     "runs/pretrained.py": {"pretrained show", "pretrained copy", "pretrained pack"},
 }
@@ -454,8 +454,14 @@ def option_problems(t: Text) -> list[str]:
     if commands is None:
         return [f"{t}\n    names {found[0].group(1)}: add {t.file} to MODULE_COMMANDS (the commands that print it)"]
     known = set(parser()._option_string_actions).union(*(options_of(c) for c in commands))
-    return [f"{t}\n    {m.group(1)}: an option of none of {', '.join(sorted(commands))}"
-            for m in found if m.group(1) not in known]
+    out = [f"{t}\n    {m.group(1)}: an option of none of {', '.join(sorted(commands))}"
+           for m in found if m.group(1) not in known]
+    # "give --resume the folder …": a value for an option that takes none in every command that prints it
+    for m in re.finditer(r"\b(?:give|pass) (--[a-z][a-z0-9-]*) (?:the|a|an|its|this) ", text):
+        actions = [options_of(c)[m.group(1)] for c in commands if m.group(1) in options_of(c)]
+        if actions and all(a.nargs == 0 for a in actions):
+            out.append(f"{t}\n    {m.group(1)} takes no value (a flag) in {', '.join(sorted(commands))}")
+    return out
 
 
 def config_problems(t: Text) -> list[str]:
@@ -595,6 +601,7 @@ def test_not_hints_are_still_in_the_source():
     ("engine/loop.py", "see docs/hardwares.md", "docs/hardwares.md: no such document"),
     ("cli/__init__.py", "lower HSICAM_MEMORY_BUDGET", "HSICAM_MEMORY_BUDGET: no environment variable"),
     ("runs/folder.py", "{run}: no configs.yaml", "configs.yaml: no file the code reads or writes"),
+    ("runs/folder.py", "give --restart the folder it was started in", "--restart takes no value (a flag)"),
 ])
 def test_a_wrong_hint_is_reported(file, text, fragment):
     """The checks fail for hints that went stale (an option, key, section or file renamed)."""
@@ -613,6 +620,7 @@ def test_a_wrong_hint_is_reported(file, text, fragment):
     ("cli/reconstruct.py", "speed (docs/networks.md, 'A TV prior in the steps')"),
     ("cli/data.py", "use --set data.npy_bands.start_nm=420"),
     ("engine/tolerance.py", "hsicam reconstruct wrote it; `hsicam psf` refuses such a sensor distance too"),
+    ("engine/evaluate.py", "choose another --out, or give --out a folder outside it"),
     ("runs/folder.py", "or without it: reconstruct --consistency-steps 0, evaluate --set model.consistency.kind=landweber"),
 ])
 def test_a_true_hint_passes(file, text):

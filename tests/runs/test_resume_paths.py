@@ -489,14 +489,15 @@ def test_a_resume_with_other_frozen_groups_names_them(cache_env, tmp_path):
 def test_resume_of_a_users_own_folder_says_it_is_not_a_run(tmp_path, capsys):
     """`hsicam train --out MYFOLDER --resume` on a folder of the user's own files said the run "was interrupted
     before it started" and offered `--restart`, which refuses such a folder; it now says it is not a run folder,
-    names what it holds, and changes nothing. An empty folder is named as one."""
+    names what it holds, and changes nothing. An empty folder is named as one. The way to resume is --out with
+    --resume (it said "give --resume the folder", but --resume takes no folder)."""
     mine = tmp_path / "mine"
     mine.mkdir()
     (mine / "notes.txt").write_text("mine")
     line = in_process_error_line(capsys, ["train", "--out", str(mine), "--resume"])
     assert line == (f"hsicam: error: {mine}: nothing to resume: not a run folder (no config.yaml, and it holds notes.txt, "
-                    "which no training writes); give --resume the folder the run was started in, or start a new run "
-                    "with another --out"), line
+                    "which no training writes); resume the folder the run was started in (--out RUN --resume), or "
+                    "start a new run with another --out"), line
     assert [p.name for p in mine.iterdir()] == ["notes.txt"] and (mine / "notes.txt").read_text() == "mine"
     empty = tmp_path / "empty"
     empty.mkdir()

@@ -351,8 +351,8 @@ def check_run_dir(run_dir: Path, resume: bool, not_empty_hint: str = TRAIN_NOT_E
             if foreign:  # a user's own folder: --restart would refuse it too
                 shown = ", ".join(foreign[:3]) + (f" and {len(foreign) - 3} more" if len(foreign) > 3 else "")
                 raise InputError(f"{run_dir}: nothing to resume: not a run folder (no config.yaml, and it holds "
-                                 f"{shown}, which no training writes); give --resume the folder the run was "
-                                 "started in, or start a new run with another --out")
+                                 f"{shown}, which no training writes); resume the folder the run was started "
+                                 "in (--out RUN --resume), or start a new run with another --out")
             if run_dir.is_dir() and not any(p for p in run_dir.iterdir() if not p.name.startswith(".")):
                 why = "an empty folder: no training was started in it"
             else:
