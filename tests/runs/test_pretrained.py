@@ -154,6 +154,29 @@ def test_pack_refuses_weights_over_the_limit(env, tmp_path, monkeypatch):
     assert (pack_pretrained(run, "big", tmp_path / "root") / "model.safetensors").is_file()  # at the limit: packed
 
 
+@pytest.mark.parametrize("fine_tuned", [False, True])
+def test_an_unfinished_run_is_told_what_to_do(tmp_path, fine_tuned):
+    """Packing an unfinished run said "finish it with `hsicam train --resume --out RUN`", also to a fine-tuned run,
+    which `hsicam train` refuses to continue and pack refuses once finished (measured PSFs are not shipped): a
+    fine-tuned run is now refused as such first, and an unfinished run is told the command with its own folder."""
+    from hsicam.engine.pretrained import pack_pretrained
+    from hsicam.runs.measured_psf import MEASURED_PSF_FILE
+
+    run = tmp_path / "r"
+    run.mkdir()
+    (run / "config.yaml").write_text("train: {epochs: 2}\n")
+    (run / "metrics.jsonl").write_text(json.dumps({"step": 1, "loss": 0.1}) + "\n")  # no final record
+    if fine_tuned:
+        (run / MEASURED_PSF_FILE).write_bytes(b"")  # only its presence marks a fine-tuned run here
+    with pytest.raises(InputError) as exc:
+        pack_pretrained(run, "x", tmp_path / "root")
+    assert str(exc.value) == (
+        f"{run}: a fine-tuned run (measured PSFs) cannot be shipped; pack the run trained on simulated optics"
+        if fine_tuned else f"{run}: the run has not finished (no final record in metrics.jsonl); finish it with "
+                           f"`hsicam train --resume --out {run}` before packing"), str(exc.value)
+    assert not (tmp_path / "root").exists()
+
+
 def test_pack_refuses_an_unfinished_run_and_an_existing_name(env, tmp_path):
     from hsicam.engine.pretrained import pack_pretrained
 

@@ -72,7 +72,7 @@ def final_record(run_dir: Path) -> dict[str, Any]:
     final = [r for r in _records(run_dir) if r.get("final")]
     if not final:
         raise InputError(f"{run_dir}: the run has not finished (no final record in metrics.jsonl); "
-                         "finish it with `hsicam train --resume --out RUN` before packing")
+                         f"finish it with `hsicam train --resume --out {run_dir}` before packing")
     return final[-1]
 
 
@@ -603,12 +603,12 @@ def pack_pretrained(run_dir: str | Path, name: str, dest_root: str | Path | None
     if shipped.is_spec(str(run_dir)):
         raise InputError(f"{run_dir}: already a pre-trained camera; pack a run folder")
     check_is_run(run_dir)
+    if (run_dir / MEASURED_PSF_FILE).is_file():  # first: finishing it (`hsicam finetune --resume`) would not help
+        raise InputError(f"{run_dir}: a fine-tuned run (measured PSFs) cannot be shipped; pack the run trained on "
+                         "simulated optics")
     final_record(run_dir)
     if not (run_dir / "model.safetensors").is_file():
         raise InputError(f"{run_dir}: the run has no final weights (model.safetensors is missing)")
-    if (run_dir / MEASURED_PSF_FILE).is_file():
-        raise InputError(f"{run_dir}: a fine-tuned run (measured PSFs) cannot be shipped; pack the run trained on "
-                         "simulated optics")
     weights = root_weights_path(run_dir)
     size, limit = weights.stat().st_size, shipped.MAX_WEIGHTS_BYTES
     if size > limit:
