@@ -90,8 +90,6 @@ NOT_HINTS = {
     ("export/gds.py", "HSICAM_DOE"): "the name of the GDS cell the export writes, no environment variable",
     ("config.py", "model.name (the older spelling of model.kind)"): "names the old key it reads as model.kind",
     ("engine/calibration.py", "camera.optics (DOE)"): "finetune.json's record of the frozen parameter groups",
-    ("engine/inference.py", "e.g. model.context_px"): "a Python caller's hint: CameraSystem.context_px, an "
-                                                        "attribute of the model object, not a config key",
 }
 
 CONFIG_SECTIONS = ("camera", "model", "train", "data", "bands", "baselines")

@@ -141,7 +141,7 @@ def reconstruct_tiled(reconstruct, sensor: torch.Tensor, tile_px: int | None = N
     if halo_px is None and (h > tile_px or w > tile_px):
         raise InputError(f"halo_px is needed: {type(reconstruct).__name__} declares no context_px, and the "
                          f"{h}×{w} px image is cut into {tile_px} px tiles (pass the reconstruction's context "
-                         "per side, e.g. model.context_px; a halo of 0 leaves seams)")
+                         "per side, e.g. a CameraSystem's context_px attribute; a halo of 0 leaves seams)")
     takes_origin = "origin" in inspect.signature(reconstruct).parameters
     if h <= tile_px and w <= tile_px:
         return reconstruct(sensor)
