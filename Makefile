@@ -65,4 +65,4 @@ bench: setup
 	$(BIN)/python benchmarks/bench_cli.py
 
 clean:
-	rm -rf $(VENV) runs .pytest_cache build src/*.egg-info
+	rm -rf $(VENV) runs .pytest_cache .ruff_cache build src/*.egg-info

@@ -63,8 +63,9 @@ def test_psf_images_without_signal_past_the_saturation_check_and_with_normalize_
     with pytest.raises(InputError) as exc:
         import_psf_dir(sat, ONE_BAND, 5e-6, 15, pitch_um=5.0)
     assert str(exc.value) == (f"{sat}/psf_500nm.npy (500 nm): a clipped (over-exposed) PSF image: 961 of its 961 pixels "
-                              "are at 255 (the file type's maximum), its border too, so nothing is left above the "
-                              "background: measure it again with a shorter exposure (brightest pixel below 255)")
+                              "are at 255 (the file type's maximum), the median of its border too, so nothing is left "
+                              "above the background: measure it again with a shorter exposure (brightest pixel below "
+                              "255)")
     with pytest.raises(InputError) as exc:
         import_psf_dir(zero, ONE_BAND, 5e-6, 15, pitch_um=5.0)
     assert str(exc.value) == f"{zero}/psf_500nm.npy (500 nm): PSF image has no positive signal (after background subtraction)"
@@ -82,8 +83,9 @@ def test_a_psf_clipped_over_its_frame_but_its_first_row_is_refused_as_clipped(tm
     with pytest.raises(InputError) as exc:
         import_psf_dir(d, ONE_BAND, 5e-6, 15, pitch_um=5.0)
     assert str(exc.value) == (f"{d}/psf_500nm.npy (500 nm): a clipped (over-exposed) PSF image: 930 of its 961 pixels "
-                              "are at 255 (the file type's maximum), its border too, so nothing is left above the "
-                              "background: measure it again with a shorter exposure (brightest pixel below 255)")
+                              "are at 255 (the file type's maximum), the median of its border too, so nothing is left "
+                              "above the background: measure it again with a shorter exposure (brightest pixel below "
+                              "255)")
 
 
 def test_measured_psf_helpers_refuse_what_the_import_never_passes():

@@ -97,7 +97,6 @@ def test_make_installs_a_changed_torch_spec_into_an_existing_venv(make_dir):
     assert _make(make_dir, "-q", "setup").returncode == 1  # back to the pinned one: installed again
 
 
-
 def test_make_lint_installs_its_pinned_ruff_once_and_checks_src(make_dir):
     """`make lint` puts the Makefile's RUFF_VERSION into the venv when the venv's ruff is missing or another version,
     not when it is that one, and runs it on src/ (the rules are pyproject.toml's)."""
@@ -105,8 +104,9 @@ def test_make_lint_installs_its_pinned_ruff_once_and_checks_src(make_dir):
     _log(make_dir)
     ruff = make_dir / ".venv" / "bin" / "ruff"
 
-    def fake_ruff(version: str) -> None:
-        ruff.write_text(f'#!/bin/sh\nif [ "$1" = --version ]; then echo "ruff {version}"; else echo "ruff $*" >> "$LOG"; fi\n')
+    def fake_ruff(version: str, findings: bool = False) -> None:
+        check = 'echo "ruff $*" >> "$LOG"' + ("; echo 'src/x.py:1:1: F401 unused'; exit 1" if findings else "")
+        ruff.write_text(f'#!/bin/sh\nif [ "$1" = --version ]; then echo "ruff {version}"; else {check}; fi\n')
         ruff.chmod(0o755)
 
     def calls() -> list[str]:  # (less the python start that tells whether the venv still runs)
@@ -120,6 +120,9 @@ def test_make_lint_installs_its_pinned_ruff_once_and_checks_src(make_dir):
     fake_ruff(pinned)
     assert _make(make_dir, "lint").returncode == 0
     assert calls() == ["ruff check src"]
+    fake_ruff(pinned, findings=True)  # a finding fails the target, with ruff's line shown
+    proc = _make(make_dir, "lint")
+    assert proc.returncode != 0 and "src/x.py:1:1: F401 unused" in proc.stdout, proc.stdout + proc.stderr
 
 # --- bench_cli.py ----------------------------------------------------------------------------------------------------
 

@@ -1191,7 +1191,7 @@ def _envi_apply_gain_offset(hdr: Path, data: Path, cube: np.ndarray, gains: np.n
         gain, off = gain[good], off[good]
     cube *= gain.astype(np.float32)[:, None, None]
     cube += off.astype(np.float32)[:, None, None]
-    if nodata is not None:  # flagged by their stored value: they stay 0 (no data)
+    if nodata is not None and nodata.any():  # flagged by their stored value: they stay 0 (no data)
         cube[nodata] = 0.0
     keys = " and ".join(k for k, v in (("data gain values", gains), ("data offset values", offsets)) if v is not None)
     notes.append((logging.INFO, f"{data}: applied the {keys} of {hdr.name} (value = gain × stored value + offset, "
@@ -1251,7 +1251,8 @@ def _envi_drop_bad_bands(hdr: Path, data: Path, waves: np.ndarray, fwhm: np.ndar
 
 
 def _envi_ascending(cube: np.ndarray, waves: np.ndarray, fwhm: np.ndarray | None,
-                    scaling: tuple[np.ndarray, np.ndarray] | None) -> tuple[Any, Any, Any, Any]:
+                    scaling: tuple[np.ndarray, np.ndarray] | None
+                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None, tuple[np.ndarray, np.ndarray] | None]:
     """(cube (C, H, W), centres, FWHM, (gains, offsets)) with the bands sorted by wavelength: an ENVI file may
     list them in any order, each band carrying its own wavelength."""
     order_idx = np.argsort(waves)

@@ -453,7 +453,7 @@ def preprocess_raw(raw: np.ndarray, full_scale: float, corr: RawCorrection, sour
     saturated = _count_saturated(raw, white, corr, full_scale, check_saturation)
     report["saturated_px"] = saturated
     notes = _check_saturated(raw, saturated, white, corr.white_level is not None, source)
-    img, signal_notes = _minus_dark(raw, dark, black, corr, source)
+    img, signal_notes = _minus_dark_or_black(raw, dark, black, corr, source)
     notes += signal_notes
     img = _to_full_scale(img, white, black, source)
     if flat_dn is not None:
@@ -522,7 +522,7 @@ def _count_saturated(raw: np.ndarray, white: float, corr: RawCorrection, full_sc
         return int(np.count_nonzero(raw >= white)) if check and (corr.white_level is not None or full_scale > 1) else 0
 
 
-def _minus_dark(raw: np.ndarray, dark: np.ndarray | None, black: float, corr: RawCorrection,
+def _minus_dark_or_black(raw: np.ndarray, dark: np.ndarray | None, black: float, corr: RawCorrection,
                 source: str) -> tuple[np.ndarray, list[str]]:
     """(the capture minus its dark frame, or minus the black level: float32 (H, W, DN), the warnings of
     :func:`_check_signal`); InputError from it for an image without signal."""

@@ -504,7 +504,7 @@ def _check_saturation(items: list[tuple[float, Path, np.ndarray, float | None]],
             # `background: border` subtracts, is the clipping level), else refused without signal, with its name, below
             if n == img.size or border_level(img) == level:
                 raise InputError(f"{f} ({w:g} nm): a clipped (over-exposed) PSF image: {n} of its {img.size} pixels "
-                                 f"are at {level:g} ({what}), its border too, so nothing is left above the background: "
+                                 f"are at {level:g} ({what}), the median of its border too, so nothing is left above the background: "
                                  f"measure it again with a shorter exposure (brightest pixel below {level:g})") from None
             continue
         share = float(bs[img == level].sum()) / total
