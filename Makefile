@@ -51,13 +51,16 @@ test: setup
 test-slow: setup
 	$(BIN)/python -m pytest -q -m slow $(PYTEST_ARGS)
 
-# Static checks of src/ (the rules in pyproject.toml's [tool.ruff.lint]) with this ruff, installed into the venv
-# here only (not a dev extra); not part of `make test`.
+# Static checks of src/ (the rules in pyproject.toml's [tool.ruff.lint]) and pyflakes on the tests, benchmarks and
+# scripts (unused imports and never-read values, a forgotten assertion's mark; F811 left out: a test module imports
+# its fixtures, which its tests then name as parameters) with this ruff, installed into the venv here only (not a dev
+# extra); not part of `make test`.
 RUFF_VERSION ?= 0.17.6
 
 lint: setup
 	$(BIN)/ruff --version 2>/dev/null | grep -qx 'ruff $(RUFF_VERSION)' || $(BIN)/python -m pip install -q "ruff==$(RUFF_VERSION)"
 	$(BIN)/ruff check src
+	$(BIN)/ruff check --select F --ignore F811 tests benchmarks scripts
 
 bench: setup
 	$(BIN)/python benchmarks/bench_camera.py

@@ -164,7 +164,7 @@ def test_tolerance_says_where_the_sensor_goes_and_refuses_unexportable_levels(ru
     with pytest.raises(InputError, match=rf"Δz = -{z:g} µm moves the sensor onto the lens \(the sensor sits {z:g} µm "
                                          rf"behind the lens\); Δz toward the lens must stay above -{z:g} µm"):
         check_sweeps(ToleranceSpec(sensor_distance_um=(-z,)), optics)
-    with pytest.raises(InputError, match=rf"moves the sensor past the lens, 1000 µm in front of it"):
+    with pytest.raises(InputError, match=r"moves the sensor past the lens, 1000 µm in front of it"):
         check_sweeps(ToleranceSpec(sensor_distance_um=(-z - 1000,)), optics)
     for lv in (3, 131072):  # the export's range is the config's: 2..2^16 (camera.doe.quantization_levels)
         with pytest.raises(InputError, match=rf"--levels {lv}: hsicam export-optics exports only a power of 2 in "

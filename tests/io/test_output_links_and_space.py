@@ -222,7 +222,7 @@ def test_a_cache_that_is_a_file_is_named(tmp_path, monkeypatch):
     cache.write_text("x")
     monkeypatch.setenv("HSICAM_CACHE", str(cache))
     res = run_cli_in_process("data", "synth", "--n", "1", "--size", "16", "--no-progress")
-    assert_clean_error(res, f"HSICAM_CACHE={cache} (the dataset cache):", f"which is a file; set HSICAM_CACHE to a "
+    assert_clean_error(res, f"HSICAM_CACHE={cache} (the dataset cache):", "which is a file; set HSICAM_CACHE to a "
                                                                           "writable folder")
     res = run_cli_in_process("data", "synth", "--n", "1", "--size", "16", "--no-progress", "--set",
                              f"data.cache_dir={cache}/sub")

@@ -116,10 +116,11 @@ def test_make_lint_installs_its_pinned_ruff_once_and_checks_src(make_dir):
     fake_ruff("0.0.1")
     proc = _make(make_dir, "lint")
     assert proc.returncode == 0, proc.stderr
-    assert calls() == [f"venv -m pip install -q ruff=={pinned}", "ruff check src"]
+    tests = "ruff check --select F --ignore F811 tests benchmarks scripts"
+    assert calls() == [f"venv -m pip install -q ruff=={pinned}", "ruff check src", tests]
     fake_ruff(pinned)
     assert _make(make_dir, "lint").returncode == 0
-    assert calls() == ["ruff check src"]
+    assert calls() == ["ruff check src", tests]
     fake_ruff(pinned, findings=True)  # a finding fails the target, with ruff's line shown
     proc = _make(make_dir, "lint")
     assert proc.returncode != 0 and "src/x.py:1:1: F401 unused" in proc.stdout, proc.stdout + proc.stderr
