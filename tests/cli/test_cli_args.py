@@ -551,13 +551,21 @@ class _Reached(Exception):
     """Raised where a command starts its work: every check of its options passed."""
 
 
+#: Runs loaded by the tolerance harness, by (run, device): its checks of the sweeps need the run's optics, and a
+#: probe stops before any work, so one load serves every probe.
+_LOADED_RUNS: dict = {}
+
+
 def _command_harness(words, tmp_path, monkeypatch):
     """The arguments that take ``words``' command to its checks of the options, with its first step of work
-    replaced by :class:`_Reached` (None: the command's options are checked by their argparse types alone)."""
+    replaced by :class:`_Reached` (None: the command's options are checked by their argparse types alone).
+    ``tolerance`` loads its run (once, :data:`_LOADED_RUNS`) and checks its sweeps against the optics before it
+    reads its scenes."""
     import hsicam.data.preview
     import hsicam.data.synthetic
     import hsicam.engine.calibration
     import hsicam.engine.methods
+    import hsicam.engine.tolerance
     import hsicam.export
     import hsicam.runs.folder
 
@@ -576,9 +584,22 @@ def _command_harness(words, tmp_path, monkeypatch):
         ("export-optics",): (hsicam.export, "export_optics", ["--run", "pretrained:standard", "--out", str(out)]),
         ("finetune",): (hsicam.engine.calibration, "finetune",
                         ["--run", "pretrained:standard", "--psf-dir", str(data), "--out", str(out)]),
+        # one shift of 0 cells: the default shifts (0.25 cell) take only a --shift-subsamples that is a multiple of 4
+        ("tolerance",): (hsicam.engine.tolerance, "evaluation_scenes",
+                         ["--run", "pretrained:standard", "--out", str(out), "--shift-cells=0"]),
     }
     if words not in harness:
         return None
+    if words == ("tolerance",):
+        load_run = hsicam.runs.folder.load_run
+
+        def load_once(run, device="cpu"):
+            key = (str(run), str(device))
+            if key not in _LOADED_RUNS:
+                _LOADED_RUNS[key] = load_run(run, device)
+            return _LOADED_RUNS[key]
+
+        monkeypatch.setattr(hsicam.runs.folder, "load_run", load_once)
     module, name, argv = harness[words]
     monkeypatch.setattr(module, name, reached)
     return [*words, *argv]
@@ -603,24 +624,51 @@ def _outcome(capsys, argv) -> str:
     return err.strip()
 
 
+#: Options whose help states a lower bound only, while the command also refuses values far above it for a reason no
+#: help can state as a number: the memory the machine has (data synth --size: the scene cube; tolerance
+#: --shift-subsamples: the misalignment study's pupil, hsicam.engine.tolerance.check_shift_sampling). Their values
+#: well above the bound are taken or refused by that memory budget (a refusal naming HSICAM_MEMORY_BUDGET_MB).
+_CAPPED_BY_MEMORY = {(("data", "synth"), "--size"), (("tolerance",), "--shift-subsamples")}
+
+
 def _range_cases():
     cases = []
     for words, action, text in _help_claims():
         if action.nargs == 0 or not action.option_strings:
             continue
         for pattern, bounds in _RANGES:
-            cases += [pytest.param(words, action.option_strings[0], bounds(m), id=f"{' '.join(words)} "
-                                   f"{action.option_strings[0]} {m[0]}") for m in pattern.finditer(text)]
+            cases += [pytest.param(words, action.option_strings[0], bounds(m),
+                                   text[:m.start()].endswith("power of 2 "),
+                                   id=f"{' '.join(words)} {action.option_strings[0]} {m[0]}")
+                      for m in pattern.finditer(text)]
     return cases
 
 
-@pytest.mark.parametrize("words,option,bounds", _range_cases())
+def _probes(low, low_in, high, integer: bool, powers_of_two: bool) -> tuple[list, list]:
+    """(values the range takes, values it refuses), the ends and just beyond them aside: inside a closed range a few
+    interior values; above a one-sided bound values well above it (low + 1, low + 2, low + 10 and
+    max(1000, 1000·|low|)), so that a cap the help does not state fails. A range of powers of 2 ("a power of 2 in
+    2..65536") takes its interior powers and refuses the integers between them."""
+    if powers_of_two:
+        inside = [2 * low, 2 ** ((low.bit_length() + high.bit_length()) // 2 - 1), high // 2]
+        return [v for v in inside if low < v < high], [v for v in (low + 1, 3 * low, high - 1) if v & (v - 1)]
+    if high is None:
+        return [low + 1, low + 2, low + 10, max(1000, 1000 * abs(low))], []
+    if integer:
+        return [v for v in (low + 1, (low + high) // 2, high - 1) if low < v < high], []
+    return [low + (high - low) * f for f in (1e-3, 0.5, 0.999)], []
+
+
+@pytest.mark.parametrize("words,option,bounds,powers_of_two", _range_cases())
 def test_every_range_a_help_states_is_the_one_the_command_enforces(tmp_path, capsys, monkeypatch, words, option,
-                                                                   bounds):
-    """Each range a help states ("in [0, 1]", "1 to 1000", "in 2..65536", ">= 16", "> 0") is the one enforced:
-    its bounds are taken (by the option's type, and by the command's own checks up to its first step of work) and
-    the values just beyond them are refused in one line naming the option (``tolerance --levels`` said ">= 2" and
-    refused 3 once the run was loaded; ``finetune --lr`` said "> 0" and refused 2)."""
+                                                                   bounds, powers_of_two):
+    """Each range a help states ("in [0, 1]", "1 to 1000", "a power of 2 in 2..65536", ">= 16", "> 0") is the one
+    enforced: taken (by the option's type, and by the command's own checks up to its first step of work) are its
+    included ends, a few values inside a closed range, and values well above a one-sided bound (up to
+    max(1000, 1000·|low|); not for the options in :data:`_CAPPED_BY_MEMORY`); refused, in one line naming the
+    option, are the values just beyond its ends (and the integers between the powers of a range of powers of 2).
+    ``tolerance --levels`` said ">= 2" and its study refused 3 once the run was loaded; ``finetune --lr`` said
+    "> 0" and refused 2."""
     action, text = next((a, t) for w, a, t in _help_claims() if w == words and option in a.option_strings)
     argv = _command_harness(words, tmp_path, monkeypatch)
     companions = [f"{need}=2" for need in _needs(text)]
@@ -635,18 +683,34 @@ def test_every_range_a_help_states_is_the_one_the_command_enforces(tmp_path, cap
     def takes(value) -> bool:  # by the option's type, then by the command's checks
         return typed(value) and (argv is None or _outcome(capsys, [*argv, *companions, f"{option}={value}"]) == "reached")
 
-    def refuses(value) -> bool:  # by the option's type, else by the command's checks, naming the option
+    def refuses(value, why: str = "") -> bool:  # by the option's type, else by the command's checks, naming the option
         if not typed(value):
-            return True
+            return not why
         line = "reached" if argv is None else _outcome(capsys, [*argv, *companions, f"{option}={value}"])
-        return line != "reached" and option in line
+        return line != "reached" and option in line and why in line
 
     integer = not typed("1.5")
     low, low_in, high, high_in = bounds
     step = (lambda v: 1) if integer else (lambda v: max(abs(v) * 1e-6, 1e-12))
-    assert takes(low if low_in else low + step(low)) and refuses(low - step(low) if low_in else low), bounds
+    taken = [low if low_in else low + step(low)]
+    refused = [low - step(low) if low_in else low]
     if high is not None:
-        assert takes(high) and refuses(high + step(high)), bounds
+        taken.append(high)
+        refused.append(high + step(high))
+    inside, between = _probes(low, low_in, high, integer, powers_of_two)
+    memory = high is None and (words, option) in _CAPPED_BY_MEMORY
+    taken += [] if memory else inside
+    refused += between
+    capped = [v for v in inside if memory and not (takes(v) or refuses(v, "HSICAM_MEMORY_BUDGET_MB"))]
+    assert ([v for v in taken if not takes(v)], [v for v in refused if not refuses(v)], capped) == ([], [], []), bounds
+
+
+def test_the_options_capped_by_memory_state_a_lower_bound_only():
+    """Every exemption of :data:`_CAPPED_BY_MEMORY` names an option whose help states a one-sided range (an
+    option renamed, or given an upper bound, leaves no stale exemption behind)."""
+    one_sided = {(words, option) for words, option, (_, _, high, _), _ in (p.values for p in _range_cases())
+                 if high is None}
+    assert _CAPPED_BY_MEMORY <= one_sided
 
 
 def _companion_cases():
