@@ -151,8 +151,31 @@ class BandsConfig:
 
 
 #: The most height levels ``camera.doe.quantization_levels`` takes (16 bits; binary-weighted lithography usually
-#: makes 2-256; ``hsicam export-optics`` writes the same range: hsicam.export.doe.LEVELS_RANGE).
+#: makes 2-256; ``hsicam export-optics`` writes the same range: :data:`LEVELS_RANGE`).
 MAX_HEIGHT_LEVELS = 2**16
+#: The level counts ``hsicam export-optics`` exports (``--levels``) and ``hsicam tolerance --levels`` sweeps: those
+#: training takes (``camera.doe.quantization_levels``; level indices in 16 bits, one GDS mask per bit), and of them
+#: the command line takes the powers of 2 alone (:func:`levels_problem`). Re-exported by :mod:`hsicam.export.doe`;
+#: here so that the parser's checks load no torch.
+LEVELS_RANGE = (2, MAX_HEIGHT_LEVELS)
+#: How :func:`levels_problem` says the level counts it takes (the helps and the list option's refusal say it so).
+LEVELS_RULE = f"a power of 2 in {LEVELS_RANGE[0]}..{LEVELS_RANGE[1]}"
+
+
+def is_power_of_two(n: int) -> bool:
+    """``n`` is 2^k with k >= 1 (a level count binary-weighted lithography makes: one mask per bit)."""
+    return n >= 2 and (n & (n - 1)) == 0
+
+
+def levels_problem(levels: Any) -> str | None:
+    """Why ``levels`` is not a height-level count ``hsicam export-optics`` exports ("must be a power of 2 in
+    2..65536 (binary-weighted lithography), got …"), or None when it is: the one rule of ``export-optics
+    --levels``, ``tolerance --levels`` (:mod:`hsicam.cli.args`) and the tolerance study
+    (:func:`hsicam.engine.tolerance.check_levels`)."""
+    if not isinstance(levels, bool) and isinstance(levels, int):
+        if LEVELS_RANGE[0] <= levels <= LEVELS_RANGE[1] and is_power_of_two(levels):
+            return None
+    return f"must be {LEVELS_RULE} (binary-weighted lithography), got {levels!r}"
 #: The largest DOE fabrication height noise σ_p (nm; ``camera.doe.sigma_height_nm``, ``train.sigma_height_nm``,
 #: ``evaluate`` / ``tolerance --sigma-height-nm``): 1 mm, thousands of times any element's relief (a few µm), where
 #: the phase is already uniformly random; far larger ones overflowed the float32 heights and ended in a

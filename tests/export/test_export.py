@@ -282,8 +282,60 @@ def test_a_run_trained_with_more_than_256_levels_is_exported_with_its_levels(fab
     assert spec["doe"]["quantized"]["levels"] == 512 and len(spec["doe"]["quantized"]["gds"]["layers"]) == 9
     # --levels takes the same range as the config; beyond it the refusal names the option and the value
     res = run_cli_in_process("export-optics", "--run", str(fab_run), "--out", str(tmp_path / "o"), "--levels", str(2 * MAX_HEIGHT_LEVELS))
-    assert_clean_error(res, f"--levels must be a power of 2 in 2..{MAX_HEIGHT_LEVELS}", f"got {2 * MAX_HEIGHT_LEVELS}")
+    assert_clean_error(res, f"--levels: must be a power of 2 in 2..{MAX_HEIGHT_LEVELS}", f"got {2 * MAX_HEIGHT_LEVELS}")
     assert not (tmp_path / "o").exists()
+
+
+@pytest.mark.parametrize("value,shown", [("3", "3"), ("1", "1"), ("0", "0"), ("-8", "-8"), ("131072", "131072"),
+                                         ("4.0", "'4.0'"), ("eight", "'eight'")])
+def test_export_levels_that_it_cannot_export_are_a_usage_error_before_any_work(tmp_path, capsys, monkeypatch, value,
+                                                                                shown):
+    """``export-optics --levels 3`` passed the parser (``type=int``) and was refused by the command after it had
+    prepared its output folder (and the rule, a power of 2 in 2..2^16, was written out again there); now the option's
+    type refuses it as a usage error of the option, before any work."""
+    import hsicam.cli
+    from hsicam.cli import main
+    from hsicam.config import MAX_HEIGHT_LEVELS
+
+    def no_work(*a, **k):
+        raise AssertionError("export-optics started its work before --levels was checked")
+
+    monkeypatch.setattr(hsicam.cli, "prepare_output", no_work)
+    out = tmp_path / "o"
+    with pytest.raises(SystemExit) as exc:
+        main(["export-optics", "--run", "pretrained:standard", "--out", str(out), f"--levels={value}"])
+    assert exc.value.code == 2
+    assert capsys.readouterr().err.strip().splitlines()[-1] == (
+        f"hsicam: error: argument --levels: must be a power of 2 in 2..{MAX_HEIGHT_LEVELS} (binary-weighted "
+        f"lithography), got {shown}")
+    assert not out.exists()
+
+
+def test_the_level_counts_export_optics_takes_are_those_tolerance_sweeps():
+    """One rule of the level counts (hsicam.config.levels_problem, re-exported by hsicam.export.doe): export-optics
+    --levels, tolerance --levels and the tolerance study's check take exactly the powers of 2 in 2..2^16."""
+    import argparse
+
+    from hsicam.cli.args import levels_arg, levels_list_arg
+    from hsicam.config import MAX_HEIGHT_LEVELS
+    from hsicam.engine.tolerance import check_levels
+    from hsicam.export import doe
+
+    powers = {2**k for k in range(1, 17)}
+    assert max(powers) == MAX_HEIGHT_LEVELS and doe.LEVELS_RANGE == (2, MAX_HEIGHT_LEVELS)
+    values = {*range(-3, 1100), *(p + d for p in powers for d in (-1, 0, 1)), 2**17, 3 * 2**15}
+
+    def takes(check, v) -> bool:
+        try:
+            check(v)
+        except (argparse.ArgumentTypeError, InputError):
+            return False
+        return True
+
+    for name, check in (("export-optics --levels", lambda v: levels_arg(str(v))),
+                        ("tolerance --levels", lambda v: levels_list_arg(f"2,{v}")), ("check_levels", check_levels)):
+        assert {v for v in values if takes(check, v)} == powers, name
+    assert {v for v in values if doe.levels_problem(v) is None} == powers
 
 
 def test_the_quantised_tiff_resolves_every_level_up_to_2_16(tiny_config, tmp_path):

@@ -13,8 +13,8 @@ import os
 from collections.abc import Sequence
 from typing import Any, Callable
 
-from hsicam.config import (MAX_HEIGHT_LEVELS, MAX_SENSOR_SIGMA, MAX_SIGMA_HEIGHT_NM, MAX_TV_WEIGHT, MIN_TV_WEIGHT,
-                           SEED_MAX, SEED_MIN, TOLERANCE_DRAW_STRIDE, empty_item_problem, seed_problem)
+from hsicam.config import (LEVELS_RULE, MAX_SENSOR_SIGMA, MAX_SIGMA_HEIGHT_NM, MAX_TV_WEIGHT, MIN_TV_WEIGHT, SEED_MAX,
+                           SEED_MIN, TOLERANCE_DRAW_STRIDE, empty_item_problem, levels_problem, seed_problem)
 from hsicam.errors import InputError
 
 #: The smallest ``--tile`` (px) of ``reconstruct`` and ``evaluate``.
@@ -213,11 +213,24 @@ finite_numbers_arg = list_arg(float, "numbers", math.isfinite, "finite")
 #: A list of DOE height noise levels σ_p (nm), each in [0, MAX_SIGMA_HEIGHT_NM] (``tolerance --sigma-height-nm``).
 sigma_heights_arg = list_arg(float, "numbers", lambda v: math.isfinite(v) and 0 <= v <= MAX_SIGMA_HEIGHT_NM,
                              f"a finite number in [0, {MAX_SIGMA_HEIGHT_NM:.0f}] nm")
-#: A list of DOE height level counts, each a power of 2 in [2, MAX_HEIGHT_LEVELS] (``tolerance --levels``): the counts
-#: ``export-optics`` exports (binary-weighted lithography; :func:`hsicam.engine.tolerance.check_levels` refused any other
-#: only once the run was loaded).
-levels_list_arg = list_arg(int, "integers", lambda v: 2 <= v <= MAX_HEIGHT_LEVELS and not v & (v - 1),
-                           f"a power of 2 in 2..{MAX_HEIGHT_LEVELS} (height levels that export-optics exports)")
+#: A list of DOE height level counts, each one ``export-optics`` exports (:func:`hsicam.config.levels_problem`: a power
+#: of 2 in 2..2^16) (``tolerance --levels``; :func:`hsicam.engine.tolerance.check_levels` refused any other only once
+#: the run was loaded).
+levels_list_arg = list_arg(int, "integers", lambda v: levels_problem(v) is None,
+                           f"{LEVELS_RULE} (height levels that export-optics exports)")
+
+
+def levels_arg(text: str) -> int:
+    """argparse ``type`` of ``export-optics --levels``: a level count it exports (:func:`hsicam.config.levels_problem`,
+    the rule of ``tolerance --levels``), else a usage error before any work."""
+    try:
+        value: object = int(text)
+    except ValueError:
+        value = text
+    problem = levels_problem(value)
+    if problem is not None:
+        raise argparse.ArgumentTypeError(problem)
+    return value
 
 
 def check_tile(tile: int | None) -> None:

@@ -11,16 +11,16 @@ from hsicam.errors import InputError
 
 def register(sub: argparse._SubParsersAction) -> None:
     from hsicam.cli import add_run_arg
-    from hsicam.cli.args import (count_arg, device_arg, draws_arg, finite_numbers_arg, levels_list_arg, sigma_heights_arg,
-                                 positive_number_arg, seed_arg)
+    from hsicam.cli.args import (count_arg, device_arg, draws_arg, finite_numbers_arg, levels_arg, levels_list_arg,
+                                 sigma_heights_arg, positive_number_arg, seed_arg)
 
-    from hsicam.config import MAX_HEIGHT_LEVELS  # export.doe.LEVELS_RANGE's top (that module imports the optics)
+    from hsicam.config import LEVELS_RULE  # export.doe's rule of the levels (that module imports the optics)
 
     p = sub.add_parser("export-optics", help="fabrication files: DOE heights (npy/tiff/csv/gds), CFA spectra and fits, spec.json")
     add_run_arg(p, "trained run folder")
     p.add_argument("--out", required=True, metavar="DIR", help="output folder")
-    p.add_argument("--levels", type=int, default=None, metavar="L",
-                   help=f"DOE height levels for lithography, a power of 2 in 2..{MAX_HEIGHT_LEVELS} "
+    p.add_argument("--levels", type=levels_arg, default=None, metavar="L",
+                   help=f"DOE height levels for lithography, {LEVELS_RULE} "
                         "(default: the run's camera.doe.quantization_levels, else 8)")
     p.add_argument("--tolerance", metavar="PATH", help="tolerance.json (or its folder) to cite in spec.json "
                                                        "(default: RUN/tolerance/ if present)")
@@ -38,7 +38,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--draws", type=draws_arg, default=None,
                    help="fabricated DOEs drawn per height-noise level, 1 to 1000 (default 3)")
     p.add_argument("--levels", type=levels_list_arg, default=None, metavar="LIST",
-                   help=f"DOE height level counts, each a power of 2 in 2..{MAX_HEIGHT_LEVELS} as export-optics exports "
+                   help=f"DOE height level counts, each {LEVELS_RULE} as export-optics exports "
                         "(default: 2,4,8,16,32)")
     p.add_argument("--shift-cells", type=finite_numbers_arg, default=None, metavar="LIST",
                    help="lateral DOE shifts (cells), each swept along x and along the diagonal, multiples of 1/Q cell "
@@ -78,13 +78,10 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 def cmd_export(args: argparse.Namespace) -> int:
     from hsicam.export import export_optics
-    from hsicam.export.doe import LEVELS_RANGE, is_power_of_two
     from hsicam.cli import prepare_output
 
+    # (--levels: checked by its type, levels_arg)
     prepare_output(args.out, "dir", replace=True, command="export-optics", run=args.run)
-    lo, hi = LEVELS_RANGE
-    if args.levels is not None and not (lo <= args.levels <= hi and is_power_of_two(args.levels)):
-        raise InputError(f"--levels must be a power of 2 in {lo}..{hi} (binary-weighted lithography), got {args.levels}")
     spec = export_optics(args.run, args.out, args.levels, args.tolerance)
     doe, cfa = spec["doe"], spec["cfa"]
     if doe["enabled"]:

@@ -35,7 +35,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from hsicam.config import MAX_HEIGHT_LEVELS
+from hsicam.config import LEVELS_RANGE, is_power_of_two, levels_problem  # noqa: F401 - the export's levels, here too
 from hsicam.errors import InputError
 from hsicam.io import atomic_open, atomic_path, save_figure, write_npy
 
@@ -63,15 +63,6 @@ def design_heights(camera) -> tuple[np.ndarray, np.ndarray, float]:
     piston = float(h[inside].min()) if inside.any() else 0.0
     h = np.where(inside, h - piston, 0.0)
     return h, aperture, piston
-
-
-#: The level counts the export writes (``hsicam export-optics --levels``): those training takes
-#: (``camera.doe.quantization_levels``): level indices in 16 bits, one GDS mask per bit.
-LEVELS_RANGE = (2, MAX_HEIGHT_LEVELS)
-
-
-def is_power_of_two(n: int) -> bool:
-    return n >= 2 and (n & (n - 1)) == 0
 
 
 def quantize_levels(height_m: np.ndarray, levels: int, top_m: float, wrap: bool = True) -> tuple[np.ndarray, np.ndarray]:
