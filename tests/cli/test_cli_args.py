@@ -631,17 +631,52 @@ def _outcome(capsys, argv) -> str:
 _CAPPED_BY_MEMORY = {(("data", "synth"), "--size"), (("tolerance",), "--shift-subsamples")}
 
 
+def _clauses(text: str) -> list[str]:
+    """A help's clauses: its text split at ';', each parenthesised group a clause of its own (an interval's
+    "(0, 1]" is no group)."""
+    groups: list[str] = []
+
+    def pull(m) -> str:
+        groups.append(m[1])
+        return ";"
+
+    outer = None
+    while outer != text:  # innermost groups first
+        outer, text = text, re.sub(r"(?<!\bin )\(([^()]*)\)", pull, text)
+    return [clause for part in (text, *groups) for clause in part.split(";")]
+
+
 def _range_cases():
+    """The ranges each valued option's help states, read in its clauses that name no other option (a clause about
+    another option, "with --seeds N > 1", states that option's range)."""
     cases = []
     for words, action, text in _help_claims():
         if action.nargs == 0 or not action.option_strings:
             continue
+        own = [c for c in _clauses(text) if set(re.findall(r"--[\w-]+", c)) <= set(action.option_strings)]
         for pattern, bounds in _RANGES:
             cases += [pytest.param(words, action.option_strings[0], bounds(m),
-                                   text[:m.start()].endswith("power of 2 "),
+                                   clause[:m.start()].endswith("power of 2 "),
                                    id=f"{' '.join(words)} {action.option_strings[0]} {m[0]}")
-                      for m in pattern.finditer(text)]
+                      for clause in own for m in pattern.finditer(clause)]
     return cases
+
+
+def test_a_range_in_a_clause_about_another_option_is_not_read_as_this_ones(monkeypatch):
+    """A valued option's help that states another option's range ("with --seeds N > 1", "12 to 24 steps of
+    --tv-steps") made a false case of this option's range; only the clauses of a help (split at ';' and out of its
+    parentheses, an interval's "(0, 1]" aside) that name no other option are read for ranges."""
+    import hsicam.cli
+
+    parser = argparse.ArgumentParser(prog="x")
+    parser.add_argument("--every", type=int, help="save every N steps, >= 1 (with --seeds N > 1: one file per seed); "
+                                                  "12 to 24 steps of --tv-steps are usual; --every in [1, 50] saves")
+    parser.add_argument("--weight", type=float, help="weight, in (0, 1] as train.lr (default: 0.1 × the run's "
+                                                     "train.lr; with --resume, the rate it started with)")
+    monkeypatch.setattr(hsicam.cli, "build_parser", lambda: parser)
+    assert [p.values[1:3] for p in _range_cases()] == [("--every", (1, True, 50, True)),
+                                                       ("--every", (1, True, None, True)),
+                                                       ("--weight", (0, False, 1, True))]
 
 
 def _probes(low, low_in, high, integer: bool, powers_of_two: bool) -> tuple[list, list]:
