@@ -448,18 +448,48 @@ _NAMED_DEFAULT = re.compile(r"([\w.-]+) \((?:[^()]*, )?(?:the )?default\)")
 _NUMBERS = re.compile(r"-?\d+(?:\.\d+)?(?:,-?\d+(?:\.\d+)?)*")
 
 
-def _fallbacks() -> dict[tuple[tuple[str, ...], str], object]:
+def _fallbacks(tmp_path, monkeypatch) -> dict[tuple[tuple[str, ...], str], object]:
     """The value a command takes for an option whose argparse default is None (the command fills it in), by
-    (command words, dest): read from where the command takes it."""
-    from hsicam.config import RECOMMENDED_TV_WEIGHT
+    (command words, dest): tolerance's sweeps from the ToleranceSpec it starts from; reconstruct's --tv-weight and
+    --read-noise-e as one reconstruct without them uses them (:func:`_reconstruct_fallbacks`)."""
     from hsicam.engine.tolerance import ToleranceSpec
 
     spec = ToleranceSpec()
     tolerance = {"draws": spec.height_draws, "shift_subsamples": spec.shift_subsamples,
                  **{k: getattr(spec, k) for k in ("sigma_height_nm", "levels", "shift_cells", "sensor_distance_um")}}
     return {**{(("tolerance",), k): v for k, v in tolerance.items()},
-            (("reconstruct",), "tv_weight"): RECOMMENDED_TV_WEIGHT,  # tv_consistency
-            (("reconstruct",), "read_noise_e"): 0.0}  # cmd_reconstruct: capture_noise(..., args.read_noise_e or 0.0)
+            **{(("reconstruct",), k): v for k, v in _reconstruct_fallbacks(tmp_path, monkeypatch).items()}}
+
+
+def _reconstruct_fallbacks(tmp_path, monkeypatch) -> dict[str, float]:
+    """``reconstruct --tv-steps 2 --full-well-e 1000`` without --tv-weight and --read-noise-e, stopped where its
+    work starts: the TV weight of the consistency steps it builds (``tv_consistency``) and the read noise it gives
+    the capture's noise model (``capture_noise``)."""
+    import numpy as np
+
+    import hsicam.cli.reconstruct as reconstruct
+
+    seen: dict[str, float] = {}
+    build = reconstruct.tv_consistency
+
+    def tv_consistency(model, args):
+        steps = build(model, args)
+        seen["tv_weight"] = steps.tv_weight
+        return steps
+
+    def capture_noise(model, report, full_well_e, read_noise_e, *args, **kwargs):
+        seen["read_noise_e"] = read_noise_e
+        raise _Reached()
+
+    monkeypatch.setattr(reconstruct, "tv_consistency", tv_consistency)
+    monkeypatch.setattr(reconstruct, "capture_noise", capture_noise)
+    capture = tmp_path / "capture.npy"
+    np.save(capture, np.full((64, 64), 0.25, np.float32))
+    with pytest.raises(_Reached):
+        main(["reconstruct", str(capture), "--run", "pretrained:standard", "--out", str(tmp_path / "cube.h5"),
+              "--tv-steps", "2", "--full-well-e", "1000"])
+    assert set(seen) == {"tv_weight", "read_noise_e"}, seen
+    return seen
 
 
 def _same_value(claim: str, value) -> bool:
@@ -472,12 +502,12 @@ def _same_value(claim: str, value) -> bool:
     return claim == ",".join(str(v) for v in values)
 
 
-def test_every_default_a_help_states_is_the_value_the_command_takes():
+def test_every_default_a_help_states_is_the_value_the_command_takes(tmp_path, monkeypatch):
     """A help's "(default X)" (or "X (default)") is the option's argparse default, and an option with a default of
     its own says it; where the argparse default is None and the command fills in the value (tolerance's sweeps,
-    --tv-weight, --read-noise-e), a value the help states is the one the command takes. A help's default written
-    in words ("the run's train.epochs") is not checked here."""
-    fallbacks = _fallbacks()
+    reconstruct's --tv-weight and --read-noise-e, captured where one reconstruct uses them), a value the help states
+    is the one the command takes. A help's default written in words ("the run's train.epochs") is not checked here."""
+    fallbacks = _fallbacks(tmp_path, monkeypatch)
     wrong, unsaid, unknown = [], [], []
     for words, action, text in _help_claims():
         claims = _DEFAULT_CLAIM.findall(text) + _NAMED_DEFAULT.findall(text)
