@@ -402,12 +402,13 @@ def test_tolerance_levels_that_export_optics_refuses_are_a_usage_error_before_th
     import hsicam.runs.folder as folder
     from hsicam.config import MAX_HEIGHT_LEVELS
     from hsicam.engine.tolerance import check_levels
+    from hsicam.errors import InputError
 
     def no_load(*a, **k):
         raise AssertionError("the run was loaded before the options were checked")
 
     monkeypatch.setattr(folder, "load_run", no_load)
-    with pytest.raises(Exception, match=rf"--levels {bad}: hsicam export-optics exports only a power of 2"):
+    with pytest.raises(InputError, match=rf"--levels {bad}: hsicam export-optics exports only a power of 2"):
         check_levels(int(bad))  # the refusal the study would give later: the option refuses the same counts
     out = tmp_path / "out"
     line = one_line_error(capsys, ["tolerance", "--run", "pretrained:standard", "--out", str(out), "--levels", value])
