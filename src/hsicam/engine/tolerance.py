@@ -237,10 +237,10 @@ def check_shift_sampling(spec: ToleranceSpec, optics, q: int) -> None:
 def check_levels(levels: int) -> None:
     """InputError for a level count ``hsicam export-optics`` refuses (not a power of 2 in
     :data:`hsicam.export.doe.LEVELS_RANGE`): a tolerance for it would be of a DOE that cannot be exported."""
-    from hsicam.export.doe import LEVELS_RANGE, is_power_of_two
+    from hsicam.config import LEVELS_RANGE, levels_problem
 
     lo, hi = LEVELS_RANGE
-    if not (lo <= levels <= hi and is_power_of_two(levels)):
+    if levels_problem(levels) is not None:
         raise InputError(f"--levels {levels}: hsicam export-optics exports only a power of 2 in {lo}..{hi} levels "
                          f"(binary-weighted lithography), so a DOE of {levels} levels cannot be made from this run; "
                          "sweep powers of 2, e.g. --levels 2,4,8,16,32")

@@ -77,7 +77,8 @@ def consistency_step(op, y: torch.Tensor, x0: torch.Tensor, origin: tuple[int, i
     capped there; 0: plain forward-backward steps).
 
     ``band_px`` (None: the whole window at once, differentiable): each step is computed band of rows by band of
-    rows, each band of at least this many rows read with :func:`_step_reach_px` rows of halo, in place (not
+    rows, each band of at least this many rows read with the rows one step reaches (A's reach there and back, plus
+    the Wiener window's and the TV prior's where they apply) as halo, in place (not
     differentiable: call it without gradients). The result is the whole window's (a step is local), but the
     working memory is a band's, not the window's: the steps of a 2048² capture then hold their state (the
     estimate, the previous estimate and the TV prior's dual field, a few whole cubes) plus one band's temporaries,
@@ -112,7 +113,8 @@ def consistency_step(op, y: torch.Tensor, x0: torch.Tensor, origin: tuple[int, i
     return x[..., py : py + h, px : px + w]
 
 
-def _step_settings(extend, iterations, damping, psf_energy, spectral_prior, tv_weight, tv_momentum, band_px,
+def _step_settings(extend: bool | str | None, iterations: int, damping: float, psf_energy: float,
+                   spectral_prior: float, tv_weight: float, tv_momentum: float | None, band_px: int | None,
                    x0: torch.Tensor, y: torch.Tensor) -> tuple[str | None, float]:
     """(the extension mode, the cap on the TV steps' momentum) of :func:`consistency_step`'s settings; ValueError
     for a setting out of its range, or for ``band_px`` with gradients."""
