@@ -48,24 +48,29 @@ def test_an_unsaturated_8_bit_psf_imports_without_a_clipping_warning(tmp_path, c
     np.testing.assert_allclose(kernel, expected, atol=1e-7)
 
 
+def _clipped_refusal(d, n: int) -> str:
+    """The one line that refuses ``d``'s psf_500nm.npy, 31×31 px of 8 bits, ``n`` of them clipped, border too."""
+    return (f"{d}/psf_500nm.npy (500 nm): a clipped (over-exposed) PSF image: {n} of its 961 pixels are at 255 (the "
+            "file type's maximum), the median of its border too, so nothing is left above the background: measure it "
+            "again with a shorter exposure (brightest pixel below 255)")
+
+
+def _psf_folder(d, img: np.ndarray, **meta):
+    d.mkdir()
+    np.save(d / "psf_500nm.npy", img)
+    (d / "psf.json").write_text(json.dumps(meta))
+    return d
+
+
 def test_psf_images_without_signal_past_the_saturation_check_and_with_normalize_none_name_the_file(tmp_path):
     """An all-255 frame: 961 clipped pixels, nothing left over its border level: refused as clipped (it was 'no
     positive signal', which sends the user looking for a dark frame); an empty image with normalize: none and the
     centre on a given axis: no signal."""
-    sat = tmp_path / "sat"
-    sat.mkdir()
-    np.save(sat / "psf_500nm.npy", np.full((31, 31), 255, np.uint8))
-    (sat / "psf.json").write_text(json.dumps({"background": "border"}))
-    zero = tmp_path / "zero"
-    zero.mkdir()
-    np.save(zero / "psf_500nm.npy", np.zeros((31, 31)))
-    (zero / "psf.json").write_text(json.dumps({"normalize": "none", "centre": "axis", "axis_px": [15, 15]}))
+    sat = _psf_folder(tmp_path / "sat", np.full((31, 31), 255, np.uint8), background="border")
+    zero = _psf_folder(tmp_path / "zero", np.zeros((31, 31)), normalize="none", centre="axis", axis_px=[15, 15])
     with pytest.raises(InputError) as exc:
         import_psf_dir(sat, ONE_BAND, 5e-6, 15, pitch_um=5.0)
-    assert str(exc.value) == (f"{sat}/psf_500nm.npy (500 nm): a clipped (over-exposed) PSF image: 961 of its 961 pixels "
-                              "are at 255 (the file type's maximum), the median of its border too, so nothing is left "
-                              "above the background: measure it again with a shorter exposure (brightest pixel below "
-                              "255)")
+    assert str(exc.value) == _clipped_refusal(sat, 961)
     with pytest.raises(InputError) as exc:
         import_psf_dir(zero, ONE_BAND, 5e-6, 15, pitch_um=5.0)
     assert str(exc.value) == f"{zero}/psf_500nm.npy (500 nm): PSF image has no positive signal (after background subtraction)"
@@ -74,18 +79,12 @@ def test_psf_images_without_signal_past_the_saturation_check_and_with_normalize_
 def test_a_psf_clipped_over_its_frame_but_its_first_row_is_refused_as_clipped(tmp_path):
     """The frame's median (what `background: border` subtracts) at 255 leaves nothing above it: refused as clipped,
     whatever the first row holds (the check read the first row only, and this image was 'no positive signal')."""
-    d = tmp_path / "sat"
-    d.mkdir()
     img = np.full((31, 31), 255, np.uint8)
     img[0] = 0  # 31 of the frame's 232 pixels: its median stays 255
-    np.save(d / "psf_500nm.npy", img)
-    (d / "psf.json").write_text(json.dumps({"background": "border"}))
+    d = _psf_folder(tmp_path / "sat", img, background="border")
     with pytest.raises(InputError) as exc:
         import_psf_dir(d, ONE_BAND, 5e-6, 15, pitch_um=5.0)
-    assert str(exc.value) == (f"{d}/psf_500nm.npy (500 nm): a clipped (over-exposed) PSF image: 930 of its 961 pixels "
-                              "are at 255 (the file type's maximum), the median of its border too, so nothing is left "
-                              "above the background: measure it again with a shorter exposure (brightest pixel below "
-                              "255)")
+    assert str(exc.value) == _clipped_refusal(d, 930)
 
 
 def test_measured_psf_helpers_refuse_what_the_import_never_passes():
