@@ -155,8 +155,8 @@ class BandsConfig:
 MAX_HEIGHT_LEVELS = 2**16
 #: The level counts ``hsicam export-optics`` exports (``--levels``) and ``hsicam tolerance --levels`` sweeps: those
 #: training takes (``camera.doe.quantization_levels``; level indices in 16 bits, one GDS mask per bit), and of them
-#: the command line takes the powers of 2 alone (:func:`levels_problem`). Re-exported by :mod:`hsicam.export.doe`;
-#: here so that the parser's checks load no torch.
+#: the command line takes the powers of 2 alone (:func:`levels_problem`). Here, not in :mod:`hsicam.export.doe`,
+#: so that the parser's checks load no torch.
 LEVELS_RANGE = (2, MAX_HEIGHT_LEVELS)
 #: How :func:`levels_problem` says the level counts it takes (the helps and the list option's refusal say it so).
 LEVELS_RULE = f"a power of 2 in {LEVELS_RANGE[0]}..{LEVELS_RANGE[1]}"
@@ -638,7 +638,8 @@ class ConsistencyConfig:
     # Landweber steps: w of a total-variation prior, each step followed by one dual iteration towards b · prox_wTV(x / b),
     # the vectorial TV (every band's edges together) of the estimate divided by its local brightness b (in the spirit of
     # GAP-TV, started from the network's estimate); 0: none, else in [MIN_TV_WEIGHT, MAX_TV_WEIGHT]. Measured gains and
-    # cost (0.11–0.15 s per step at 512² on a 2-core CPU since session 48; docs/results.md): docs/networks_log.md, "A TV prior in the steps"
+    # cost (0.11–0.15 s per step at 512² on a 2-core CPU since session 48; docs/results.md): docs/networks_log.md,
+    # "A TV prior in the steps"
     tv_weight: float = 0.0
 
     def __post_init__(self) -> None:

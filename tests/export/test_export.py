@@ -312,17 +312,16 @@ def test_export_levels_that_it_cannot_export_are_a_usage_error_before_any_work(t
 
 
 def test_the_level_counts_export_optics_takes_are_those_tolerance_sweeps():
-    """One rule of the level counts (hsicam.config.levels_problem, re-exported by hsicam.export.doe): export-optics
+    """One rule of the level counts (hsicam.config.levels_problem): export-optics
     --levels, tolerance --levels and the tolerance study's check take exactly the powers of 2 in 2..2^16."""
     import argparse
 
     from hsicam.cli.args import levels_arg, levels_list_arg
-    from hsicam.config import MAX_HEIGHT_LEVELS
+    from hsicam.config import LEVELS_RANGE, MAX_HEIGHT_LEVELS, levels_problem
     from hsicam.engine.tolerance import check_levels
-    from hsicam.export import doe
 
     powers = {2**k for k in range(1, 17)}
-    assert max(powers) == MAX_HEIGHT_LEVELS and doe.LEVELS_RANGE == (2, MAX_HEIGHT_LEVELS)
+    assert max(powers) == MAX_HEIGHT_LEVELS and LEVELS_RANGE == (2, MAX_HEIGHT_LEVELS)
     values = {*range(-3, 1100), *(p + d for p in powers for d in (-1, 0, 1)), 2**17, 3 * 2**15}
 
     def takes(check, v) -> bool:
@@ -335,7 +334,7 @@ def test_the_level_counts_export_optics_takes_are_those_tolerance_sweeps():
     for name, check in (("export-optics --levels", lambda v: levels_arg(str(v))),
                         ("tolerance --levels", lambda v: levels_list_arg(f"2,{v}")), ("check_levels", check_levels)):
         assert {v for v in values if takes(check, v)} == powers, name
-    assert {v for v in values if doe.levels_problem(v) is None} == powers
+    assert {v for v in values if levels_problem(v) is None} == powers
 
 
 def test_the_quantised_tiff_resolves_every_level_up_to_2_16(tiny_config, tmp_path):

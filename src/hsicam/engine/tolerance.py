@@ -236,7 +236,7 @@ def check_shift_sampling(spec: ToleranceSpec, optics, q: int) -> None:
 
 def check_levels(levels: int) -> None:
     """InputError for a level count ``hsicam export-optics`` refuses (not a power of 2 in
-    :data:`hsicam.export.doe.LEVELS_RANGE`): a tolerance for it would be of a DOE that cannot be exported."""
+    :data:`hsicam.config.LEVELS_RANGE`): a tolerance for it would be of a DOE that cannot be exported."""
     from hsicam.config import LEVELS_RANGE, levels_problem
 
     lo, hi = LEVELS_RANGE

@@ -40,7 +40,7 @@ from typing import Any
 import numpy as np
 
 from hsicam.errors import InputError
-from hsicam.export.doe import LEVELS_RANGE
+from hsicam.config import LEVELS_RANGE, is_power_of_two
 from hsicam.export.tolerance import finetuned_from, read_tolerance_study
 from hsicam.runs.pretrained import is_pretrained_path, run_label
 
@@ -51,8 +51,6 @@ SPEC_FORMAT = "hsicam-optics-spec-1"
 
 def default_levels(cfg) -> int:
     """The run's ``camera.doe.quantization_levels`` when it is a power of 2, else 8."""
-    from hsicam.export.doe import is_power_of_two
-
     lv = cfg.camera.doe.quantization_levels
     if lv is None:
         return 8

@@ -35,7 +35,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from hsicam.config import LEVELS_RANGE, is_power_of_two, levels_problem  # noqa: F401 - the export's levels, here too
+from hsicam.config import is_power_of_two
 from hsicam.errors import InputError
 from hsicam.io import atomic_open, atomic_path, save_figure, write_npy
 
