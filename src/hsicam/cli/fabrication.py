@@ -14,7 +14,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     from hsicam.cli.args import (count_arg, device_arg, draws_arg, finite_numbers_arg, levels_arg, levels_list_arg,
                                  sigma_heights_arg, positive_number_arg, seed_arg)
 
-    from hsicam.config import LEVELS_RULE  # export.doe's rule of the levels (that module imports the optics)
+    from hsicam.config import LEVELS_RULE  # the export's rule of the levels (from config: --help loads no torch)
 
     p = sub.add_parser("export-optics", help="fabrication files: DOE heights (npy/tiff/csv/gds), CFA spectra and fits, spec.json")
     add_run_arg(p, "trained run folder")
