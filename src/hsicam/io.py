@@ -741,10 +741,12 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
     The temporary file keeps ``path``'s suffix so that writers choosing a format by extension
     (imageio, matplotlib) still work. On error the temporary file (and any parent folder created
     for it) is removed; an ``OSError`` of the write names ``path``. A parent that cannot be
-    created or written is one :class:`InputError`. A symbolic link ``path`` is written through
-    (:func:`follow_link`).
+    created or written, or a ``path`` that is an existing folder, is one :class:`InputError` before anything is
+    written. A symbolic link ``path`` is written through (:func:`follow_link`).
     """
     path = follow_link(path)
+    if path.is_dir():  # os.replace would refuse it only after the whole file was written
+        raise InputError(f"{path}: is an existing folder; a file is needed here")
     try:
         created = _make_parents(path.parent)
         tmp_path, fd = _new_temp_file(path)

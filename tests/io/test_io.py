@@ -207,6 +207,25 @@ def test_atomic_path_success_and_failure(tmp_path):
     assert target.read_text() == "whole" and hidden(target.parent) == []
 
 
+def test_atomic_path_refuses_an_existing_folder_before_the_writer_runs(tmp_path):
+    """An output file named like an existing folder: os.replace raised IsADirectoryError only after the writer had
+    written the whole temporary file (Python's error, not one line naming the path). Refused now before the writer
+    runs; the folder and what it holds are untouched."""
+    folder = tmp_path / "cube.h5"
+    folder.mkdir()
+    (folder / "keep.txt").write_text("mine")
+    wrote = []
+    with pytest.raises(InputError, match=r"cube\.h5: is an existing folder; a file is needed here$"):
+        with atomic_path(folder) as tmp:
+            wrote.append(tmp)
+    assert wrote == [] and sorted(p.name for p in tmp_path.iterdir()) == ["cube.h5"]
+    assert [p.name for p in folder.iterdir()] == ["keep.txt"]
+    (tmp_path / "link.h5").symlink_to("cube.h5")  # a link is written through: to a folder, the same refusal
+    with pytest.raises(InputError, match="is an existing folder"):
+        with atomic_open(tmp_path / "link.h5") as fh:
+            fh.write("x")
+
+
 @pytest.mark.skipif(not Path("/proc/self/fd").is_dir(), reason="reads which file an fd is from /proc/self/fd")
 def test_atomic_files_are_fsynced_before_the_rename_and_their_folder_after_it(tmp_path, monkeypatch):
     """``atomic_path``'s promise, for the writers of checkpoints (safetensors weights) and of the run's
