@@ -332,6 +332,41 @@ def test_envi_writer_refuses_a_boolean_reflectance_scale(tmp_path):
     assert not list(tmp_path.iterdir())
 
 
+def test_envi_writer_takes_numpy_scalars_as_reflectance_scale(tmp_path):
+    """A scale read from a file or computed with numpy (np.float32, np.int64) was refused as "not a positive number"
+    while np.float64 (a float subclass) was taken. Every real numpy scalar is taken now, and writes what a Python
+    number of the same value writes; numpy's boolean is refused as Python's is."""
+    chw = np.random.default_rng(12).random((4, H, W)).astype(np.float32)
+    bands = Bands.from_centers([410.0, 500.5, 600.0, 700.0])
+    ref_hdr, ref_img = write_envi(tmp_path / "ref.hdr", chw, bands, dtype="uint16", reflectance_scale=10000)
+    for i, scale in enumerate((np.float32(10000), np.int64(10000), np.uint16(10000), np.float64(10000))):
+        hdr, img = write_envi(tmp_path / f"s{i}.hdr", chw, bands, dtype="uint16", reflectance_scale=scale)
+        assert img.read_bytes() == ref_img.read_bytes()
+        assert parse_envi_header(hdr)["reflectance scale factor"] == "10000"
+        np.testing.assert_array_equal(read_cube(hdr)[0], read_cube(ref_hdr)[0])
+    with pytest.raises(InputError, match=r"reflectance_scale must be a positive number, got np\.True_$"):
+        write_envi(tmp_path / "flag.hdr", chw, bands, dtype="uint16", reflectance_scale=np.True_)
+    with pytest.raises(InputError, match="reflectance_scale must be a positive number"):
+        write_envi(tmp_path / "neg.hdr", chw, bands, dtype="uint16", reflectance_scale=np.float32(-2))
+
+
+@pytest.mark.parametrize("folder_is", ["hdr", "img"])
+def test_envi_writer_refuses_a_folder_in_place_of_either_file_and_writes_neither(tmp_path, folder_is):
+    """write_envi to a name whose header or data file is an existing folder ended in Python's IsADirectoryError
+    (the data file written first, then removed). One line naming the folder now, before either file is written;
+    write_cube_h5 to a folder likewise (both write through hsicam.io.atomic_path)."""
+    chw = np.random.default_rng(13).random((4, H, W)).astype(np.float32)
+    bands = Bands.from_centers([410.0, 500.5, 600.0, 700.0])
+    (tmp_path / f"pair.{folder_is}").mkdir()
+    with pytest.raises(InputError, match=rf"pair\.{folder_is}: is an existing folder"):
+        write_envi(tmp_path / "pair.hdr", chw, bands)
+    assert [p.name for p in tmp_path.iterdir()] == [f"pair.{folder_is}"]
+    assert not list((tmp_path / f"pair.{folder_is}").iterdir())
+    (tmp_path / "cube.h5").mkdir()
+    with pytest.raises(InputError, match=r"cube\.h5: is an existing folder; a file is needed here$"):
+        write_cube_h5(tmp_path / "cube.h5", chw, bands)
+
+
 def test_npy_roundtrip_with_and_without_bands(tmp_path):
     data = np.random.default_rng(9).random((31, H, W)).astype(np.float32)
     path = tmp_path / "cube.npy"

@@ -76,6 +76,7 @@ import contextlib
 import json
 import logging
 import math
+import numbers
 import os
 import re
 import zlib
@@ -86,7 +87,7 @@ import numpy as np
 
 from hsicam.data.cube import check_cube, check_memory_budget
 from hsicam.errors import InputError
-from hsicam.io import atomic_path, json_text, nan_for_null
+from hsicam.io import atomic_path, follow_link, json_text, nan_for_null
 from hsicam.spectral import Bands
 
 log = logging.getLogger(__name__)
@@ -1401,9 +1402,10 @@ def _envi_stored_values(p: Path, arr: np.ndarray, dt: np.dtype, reflectance_scal
     """The values to store of the cube ``arr`` (C, H, W): × ``reflectance_scale`` when given. InputError when an
     integer type ``dt`` would store them as 0s and 1s (fractions, no scale) or clip them (above its maximum)."""
     if reflectance_scale is not None:
-        if (isinstance(reflectance_scale, bool) or not isinstance(reflectance_scale, (int, float))
-                or not (math.isfinite(reflectance_scale) and reflectance_scale > 0)):
+        if (isinstance(reflectance_scale, (bool, np.bool_)) or not isinstance(reflectance_scale, numbers.Real)
+                or not (math.isfinite(reflectance_scale) and reflectance_scale > 0)):  # numpy's scalars are Real
             raise InputError(f"write_envi: reflectance_scale must be a positive number, got {reflectance_scale!r}")
+        reflectance_scale = float(reflectance_scale)
         arr = arr * np.float64(reflectance_scale)
     elif dt.kind in "iu" and arr.size and float(np.nanmax(arr)) <= 1.0 and not np.array_equal(arr, np.round(arr)):
         raise InputError(f"{p}: a cube of values up to {float(np.nanmax(arr)):.3g} written as {dt} would be rounded to "
@@ -1454,6 +1456,9 @@ def _envi_header_text(shape: tuple[int, ...], bands: Bands, code: int, interleav
 def _write_envi_pair(hdr: Path, data: Path, raw: np.ndarray, header: str) -> None:
     """Write ``data`` (the bytes ``raw``), then ``hdr`` (the text ``header``), each atomically; on a failure or
     interruption, remove those of the two that were not there before."""
+    for f in (data, hdr):  # both before either is written (atomic_path would refuse the header after the data)
+        if follow_link(f).is_dir():
+            raise InputError(f"{f}: is an existing folder; the ENVI pair {hdr.name} + {data.name} needs a file here")
     new = [f for f in (data, hdr) if not os.path.lexists(f)]
     try:
         with atomic_path(data) as tmp, open(tmp, "wb") as fh:
