@@ -79,6 +79,26 @@ def test_the_path_without_links_is_kept_and_links_to_outside_stay(tmp_path):
     assert rel(list_scenes(d), d) == ["o.h5", "z_real/inner/f.h5", "z_real/s.h5"]
 
 
+@needs_links
+def test_a_scene_link_that_points_nowhere_is_refused_naming_its_target(tmp_path):
+    """A scene file that is a dangling link (its disk not mounted) was listed as a scene, and the dataset failed
+    later with "no such file or folder", which named the link but not what it pointed to. The listing refuses it
+    now, naming the target; a link round a loop likewise."""
+    d = tmp_path / "d"
+    scene(d / "a.h5", 0)
+    (d / "b.h5").symlink_to(tmp_path / "unmounted" / "b.h5")
+    with pytest.raises(InputError, match=r"b\.h5: is a symbolic link to .*unmounted/b\.h5, which does not exist "
+                                         r"\(remove the link, or restore what it points to\)$"):
+        list_scenes(d)
+    (d / "b.h5").unlink()
+    (d / "c.h5").symlink_to("c.h5")
+    with pytest.raises(InputError, match=r"c\.h5: is a symbolic link to c\.h5, which leads back to itself"):
+        list_scenes(d)
+    (d / "c.h5").unlink()
+    (d / "notes.txt").symlink_to(tmp_path / "gone.txt")  # not a scene's name: not read, not refused
+    assert rel(list_scenes(d), d) == ["a.h5"]
+
+
 def test_a_folder_without_links_lists_as_before(tmp_path):
     for name in ("b/x.h5", "a/y.h5", "a/c/z.h5", "top.h5", "B/q.h5"):
         scene(tmp_path / name, len(name))

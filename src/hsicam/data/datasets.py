@@ -40,7 +40,8 @@ def list_scenes(root: str | os.PathLike) -> list[Path]:
     ``root`` may also be a single file or a single CAVE folder. ENVI pairs are listed by their
     ``.hdr``. Linked sub-folders are followed (after the real ones; each folder is walked once, so a
     link loop ends), and a scene reached by several paths (a linked file or folder) is listed once,
-    by its path without links when it has one; the aliases dropped are said in one log line.
+    by its path without links when it has one; the aliases dropped are said in one log line. A scene file that
+    is a link pointing nowhere (or round a loop) is refused, naming its target.
     Hidden and temporary files are skipped, and so are sub-folders that hold another
     hsicam command's completed output (a completion marker, :func:`hsicam.io.is_complete`: an
     evaluation saved next to the data, a simulated sensor image …) and cube files that ``hsicam
@@ -145,13 +146,18 @@ def _subfolders_to_walk(d: Path, dirnames: list[str], visited: dict[tuple[int, i
 
 def _add_scene_files(d: Path, filenames: list[str], found: _Found) -> None:
     """Add the files of folder ``d`` (``filenames``) with a scene suffix to ``found.scenes``, or to
-    ``found.estimates`` when hsicam reconstruct wrote them."""
+    ``found.estimates`` when hsicam reconstruct wrote them. InputError for one that is a symbolic link that cannot
+    be followed (a scene file whose disk is not mounted, say)."""
     from hsicam.data.estimates import is_estimate
+    from hsicam.io import broken_link_problem
 
     for name in filenames:
         if name.startswith("."):  # hidden files, including atomic-write temporaries
             continue
         if Path(name).suffix.lower() in SCENE_SUFFIXES:
+            broken = broken_link_problem(d / name)
+            if broken is not None:  # else listed, then refused as "no such file" without its target
+                raise InputError(f"{d / name}: {broken} (remove the link, or restore what it points to)")
             (found.estimates if is_estimate(d / name) else found.scenes).append(d / name)
 
 
