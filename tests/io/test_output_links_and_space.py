@@ -226,7 +226,8 @@ def test_a_cache_that_is_a_file_is_named(tmp_path, monkeypatch):
                                                                           "writable folder")
     res = run_cli_in_process("data", "synth", "--n", "1", "--size", "16", "--no-progress", "--set",
                              f"data.cache_dir={cache}/sub")
-    assert_clean_error(res, f"data.cache_dir={cache}/sub (the dataset cache):", "set data.cache_dir")
+    assert_clean_error(res, f"data.cache_dir={cache}/sub (the dataset cache):", "point data.cache_dir to a writable folder "
+                      "(--set data.cache_dir=DIR, or cache_dir under data: in the config file; a run's is its config.yaml)")
     assert cache.read_text() == "x"
 
 

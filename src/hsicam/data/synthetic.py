@@ -125,7 +125,8 @@ def _check_cache(out: Path, cache_dir: str | os.PathLike | None = None) -> None:
         return
     fix = "set HSICAM_CACHE to a writable folder"
     if cache_dir:
-        setting, fix = f"data.cache_dir={cache_dir}", "set data.cache_dir (--set data.cache_dir=DIR) to a writable folder"
+        setting, fix = f"data.cache_dir={cache_dir}", ("point data.cache_dir to a writable folder (--set data.cache_dir=DIR, or "
+                                                    "cache_dir under data: in the config file; a run's is its config.yaml)")
     elif os.environ.get("HSICAM_CACHE"):
         setting, fix = f"HSICAM_CACHE={os.environ['HSICAM_CACHE']}", f"{fix}, or unset it"
     elif os.environ.get("XDG_CACHE_HOME"):
