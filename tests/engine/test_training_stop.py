@@ -41,7 +41,7 @@ def test_budget_counts_the_next_step():
     start = time.monotonic() - 59.5  # 59.5 s of a 1-minute budget spent
     stop = StopRequests(max_minutes=1.0, start=start, signals=False)
     assert stop.reason(next_step_s=0.1) is None
-    assert stop.reason(next_step_s=1.0) == "train.max_minutes=1 reached"
+    assert stop.reason(next_step_s=1.0) == "train.max_minutes=1 reached, the budget of each session"
     assert stop.exit_code() == BUDGET_EXIT_CODE == 75
     assert StopRequests(None, start=start - 1e6, signals=False).reason(1e6) is None  # no budget
 
@@ -163,7 +163,8 @@ def test_budget_stop_on_the_command_line(tmp_path, cache_env):
                   env={"HSICAM_CACHE": str(cache_env)})
     assert res.returncode == BUDGET_EXIT_CODE, res.stderr
     last = res.stderr.strip().splitlines()[-1]
-    assert last == (f"hsicam: {run}: training stopped at step 1 of 8 (train.max_minutes=1e-09 reached); the checkpoint "
+    assert last == (f"hsicam: {run}: training stopped at step 1 of 8 (train.max_minutes=1e-09 reached, the budget of each "
+                    "session); the checkpoint "
                     f"of step 1 is saved; go on with: hsicam train --out {run} --resume")
     assert "Traceback" not in res.stderr
 

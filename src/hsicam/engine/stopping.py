@@ -106,4 +106,4 @@ class StopRequests:
         """The reason for a stop of ``exit_code`` (another process's, in a DDP group)."""
         if exit_code > 128:
             return signal.Signals(exit_code - 128).name
-        return f"train.max_minutes={self.max_minutes:g} reached"
+        return f"train.max_minutes={self.max_minutes:g} reached, the budget of each session"
