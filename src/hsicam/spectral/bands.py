@@ -24,9 +24,10 @@ from __future__ import annotations
 import math
 import sys
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any, Sequence
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from hsicam.errors import InputError
 
@@ -95,8 +96,9 @@ class Bands:
         return cls(centers, np.full(n, step_nm if fwhm_nm is None else fwhm_nm))
 
     @classmethod
-    def from_centers(cls, centers_nm: Sequence[float], fwhm_nm: Sequence[float] | float | None = None) -> "Bands":
-        """Bands from centres; FWHM defaults to the local spacing (10 nm for a single band)."""
+    def from_centers(cls, centers_nm: ArrayLike, fwhm_nm: ArrayLike | None = None) -> "Bands":
+        """Bands from centres (nm; a sequence or array); FWHM (nm: one value or one per band) defaults to the local
+        spacing (10 nm for a single band)."""
         c = np.asarray(centers_nm, dtype=np.float64).reshape(-1)
         if fwhm_nm is None:
             fwhm = np.gradient(c) if c.size > 1 else np.array([10.0])
