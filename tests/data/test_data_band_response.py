@@ -284,10 +284,10 @@ def test_the_resampling_note_says_which_rule(caplog):
 def test_the_generator_band_model_is_unchanged():
     """The synthetic generator's band model (the cache must not change): its weights on its 1 nm grid
     are the Gaussian of each band's FWHM, cut at 3 σ, normalised."""
-    from hsicam.data.spectral_sources import _fine_grid, band_matrix
+    from hsicam.spectral import band_matrix, fine_grid
 
     for bands in (PAPER, Bands.uniform(420, 720, 50)):
-        fine = _fine_grid(bands)
+        fine = fine_grid(bands)
         g = band_matrix(bands, fine)
         sigma = bands.fwhm_nm[:, None] / (2.0 * math.sqrt(2.0 * math.log(2.0)))
         d = fine[None, :] - bands.centers_nm[:, None]

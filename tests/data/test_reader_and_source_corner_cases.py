@@ -123,7 +123,7 @@ def test_a_held_out_source_dark_on_every_band_is_refused_as_dark_not_as_out_of_r
     from colour.colorimetry.datasets.light_sources import sds as light_sources
 
     from hsicam.data import spectral_sources as ss
-    from hsicam.spectral import Bands
+    from hsicam.spectral import Bands, fine_grid
 
     wl = np.arange(380.0, 781.0, 5.0)
     dark = colour.SpectralDistribution(np.where(wl >= 560.0, 1.0, 0.0), wl)
@@ -132,7 +132,7 @@ def test_a_held_out_source_dark_on_every_band_is_refused_as_dark_not_as_out_of_r
     ss._library_cached.cache_clear()
     try:
         lib = ss.spectral_library(bands)
-        fine = ss._fine_grid(bands)
+        fine = fine_grid(bands)
         assert wl[0] <= fine[0] and wl[-1] >= fine[-1]  # the lamp spans the grid ...
         assert not (ss.band_matrix(bands, fine) @ np.interp(fine, wl, dark.values)).any()  # ... and is 0 on it
         assert lib.sources["not_used_out_of_range"]["kinoton"] == ["Dark lamp"]  # manifest field unchanged

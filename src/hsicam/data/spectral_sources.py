@@ -24,7 +24,7 @@ import numpy as np
 
 from hsicam.errors import InputError
 from hsicam.spectral import Bands
-from hsicam.spectral.bands import band_matrix  # the band model (re-exported)
+from hsicam.spectral.bands import band_matrix, fine_grid  # the band model (band_matrix re-exported)
 
 log = logging.getLogger(__name__)
 
@@ -200,15 +200,6 @@ class SpectralLibrary:
         return out
 
 
-def _fine_grid(bands: Bands) -> np.ndarray:
-    """The 1 nm grid (nm) the spectra are integrated on for ``bands``: the lowest centre − 3σ to the highest + 3σ
-    (σ of the widest band), rounded outwards to whole nm."""
-    sigma_max = float(bands.fwhm_nm.max()) / 2.3548
-    lo = np.floor(bands.min_nm - 3 * sigma_max)
-    hi = np.ceil(bands.max_nm + 3 * sigma_max)
-    return np.arange(lo, hi + 0.5, 1.0)
-
-
 #: colour-science's CIE daylight illuminants (source cie-daylight): D series, indoor daylight ID, B and C.
 _CIE_DAYLIGHT = ("D50", "D55", "D60", "D65", "D75", "ID50", "ID65", "B", "C")
 
@@ -290,7 +281,7 @@ def _library_cached(centers: tuple[float, ...], fwhm: tuple[float, ...]) -> Spec
 
     _check_colour_version(getattr(colour, "__version__", ""))
     bands = Bands(np.array(centers), np.array(fwhm))
-    fine = _fine_grid(bands)
+    fine = fine_grid(bands)
     G = band_matrix(bands, fine)
     unused = _Unused()
     refl = _reflectances_on_bands(_measured_reflectances(), fine, G, unused)
@@ -642,7 +633,7 @@ def _no_held_out_spectra(lib: SpectralLibrary, holdout: tuple[str, ...]) -> NoHe
     skipped = lib.sources.get("not_used_out_of_range") or {}
     why = "; ".join(f"{src}: {_why_unused(skipped[src], lib.zero_on_bands.get(src, []))}" for src in holdout
                     if src in skipped)
-    fine = _fine_grid(lib.bands)
+    fine = fine_grid(lib.bands)
     return NoHeldOutSpectra(
         f"the held-out sources {', '.join(holdout)} give no spectrum on bands {lib.bands.min_nm:g}-"
         f"{lib.bands.max_nm:g} nm, whose widths need spectra spanning {fine[0]:g}-{fine[-1]:g} nm ({why or 'none of their spectra is in the library'}): a held-out set would be "

@@ -3,6 +3,7 @@
 from hsicam.spectral.bands import (
     Bands,
     band_matrix,
+    fine_grid,
     interpolation_matrix,
     nm_text,
     resample_spectra,
@@ -19,6 +20,7 @@ from hsicam.spectral.materials import (
 __all__ = [
     "Bands",
     "band_matrix",
+    "fine_grid",
     "FusedSilica",
     "Material",
     "TabulatedMaterial",

@@ -169,6 +169,15 @@ class Bands:
             raise InputError(f"Bands: missing key {exc}") from None
 
 
+def fine_grid(bands: Bands) -> np.ndarray:
+    """The 1 nm grid (nm) that spectra are band-averaged on for ``bands`` (:func:`band_matrix`): the lowest centre
+    − 3σ to the highest + 3σ (σ of the widest band), rounded outwards to whole nm."""
+    sigma_max = float(bands.fwhm_nm.max()) / 2.3548
+    lo = np.floor(bands.min_nm - 3 * sigma_max)
+    hi = np.ceil(bands.max_nm + 3 * sigma_max)
+    return np.arange(lo, hi + 0.5, 1.0)
+
+
 def band_matrix(bands: Bands, fine_nm: np.ndarray) -> np.ndarray:
     """G (C, F): band-averaging weights of each band's Gaussian response (FWHM) on the ascending fine grid
     (nm), rows summing to 1. Each sample is weighed by the wavelength interval it stands for (half the
