@@ -217,6 +217,56 @@ def test_cfa_fit_recovers_gaussian_filters():
     assert f2["rms_error"] < 1e-3
 
 
+def test_the_model_filter_is_the_cameras_response_to_monochromatic_light(tiny_config, tmp_path):
+    """cfa_transmission_1nm_peak1.csv: each filter as the camera model applies it, continuous. The model weighs
+    band values x_c, each the spectrum averaged over band c's Gaussian response (FWHM, cut at 3σ, on the 1 nm grid),
+    so its sensor value for monochromatic light at λ is Σ_c κ_c x_c(λ): computed here from the Gaussians directly, at
+    every nm of the file, for a camera of 31 bands (the band table alone cannot say where within a band the light
+    passes: the shipped camera's filters hold most of their κ in one or two bands). The curve also integrates to
+    Σ κ = 1 (the model's convention) before its scaling to a peak of 1, and a lamp line between two band centres
+    gives the sensor value the camera model gives it."""
+    from hsicam.cameras import DOECamera
+    from hsicam.export.cfa import export_cfa, model_filter_curves
+
+    cam = DOECamera.from_config(tiny_config("bands.step_nm=10"))
+    with torch.no_grad():
+        tile = cam.cfa.tile().double().numpy()  # (31, m, m), each filter summing to 1 over the bands
+    c, m, _ = tile.shape
+    kappa = tile.reshape(c, m * m)
+    info = export_cfa(cam, tmp_path)
+    rows = _read_csv(tmp_path / "cfa_transmission_1nm_peak1.csv")
+    lam = np.array([float(r["wavelength_nm"]) for r in rows])
+    table = np.array([[float(r[f"r{i}c{j}"]) for i in range(m) for j in range(m)] for r in rows])
+    centres, fwhm = cam.bands.centers_nm, cam.bands.fwhm_nm
+    sigma = fwhm / (2 * math.sqrt(2 * math.log(2)))
+    assert np.all(np.diff(lam) == 1.0) and lam[0] <= centres[0] - 3 * sigma[0] and lam[-1] >= centres[-1] + 3 * sigma[-1]
+
+    def band_values(spectrum):  # x_c = Σ_λ w_c(λ) s(λ) / Σ_λ w_c(λ), w_c the band's Gaussian cut at 3σ, on lam
+        w = np.exp(-0.5 * ((lam[None, :] - centres[:, None]) / sigma[:, None]) ** 2)
+        w[np.abs(lam[None, :] - centres[:, None]) > 3 * sigma[:, None]] = 0.0
+        return (w @ spectrum) / w.sum(axis=1)
+
+    response = np.stack([kappa.T @ band_values(np.eye(lam.size)[k]) for k in range(lam.size)])  # (F, m·m)
+    np.testing.assert_allclose(table, (response / response.max(axis=0)).astype(np.float32), rtol=0, atol=1e-6)
+    grid, curves = model_filter_curves(tile, cam.bands)
+    np.testing.assert_array_equal(grid, lam)
+    np.testing.assert_allclose(curves, response, rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(curves.sum(axis=0), kappa.sum(axis=0), rtol=1e-9)  # ∫ T dλ (1 nm steps) = Σ κ = 1
+    line = np.exp(-0.5 * ((lam - 554.0) / 1.0) ** 2)  # a lamp line 2 nm wide between two band centres
+    np.testing.assert_allclose(line @ curves, kappa.T @ band_values(line), rtol=1e-9)
+    assert info["model_filter"].startswith("cfa_transmission_1nm_peak1.csv")
+    # cfa_fit.csv's Gaussians are fits of that filter, and their errors are measured against it on its 1 nm grid
+    for k, r in enumerate(_read_csv(tmp_path / "cfa_fit.csv")):
+        fit = float(r["offset"]) + sum(
+            float(r[f"amplitude_{g}"]) * np.exp(-0.5 * ((lam - float(r[f"centre_{g}_nm"]))
+                                                         / (float(r[f"fwhm_{g}_nm"]) / (2 * math.sqrt(2 * math.log(2))))) ** 2)
+            for g in (1, 2) if r[f"amplitude_{g}"])
+        err = fit - table[:, k]
+        assert float(r["rms_error"]) == pytest.approx(float(np.sqrt(np.mean(err**2))), rel=1e-3, abs=1e-6)
+        assert float(r["max_abs_error"]) == pytest.approx(float(np.abs(err).max()), rel=1e-3, abs=1e-6)
+        assert float(r["peak_kappa"]) == pytest.approx(float(kappa[:, k].max()), rel=1e-5)
+
+
 def test_export_without_gdstk(fab_run, tmp_path, monkeypatch):
     from hsicam.export import export_optics
 

@@ -49,11 +49,15 @@ def test_cfa_fit_figure_has_wavelength_axes_readable_text_and_whole_fits(tmp_pat
     bands = Bands.from_centers(np.arange(420.0, 721.0, 50.0))
     tile = np.random.default_rng(1).uniform(0, 1, (7, 3, 3))
     tile /= tile.sum(axis=0)
-    fits = export_cfa.fit_tile(tile, bands)
+    # fits of κ's band values as samples (fit_tile's before session 66: they overshoot between the bands), so that
+    # an overshooting fit is drawn; fit_tile's fits of the model filter are drawn by the same code
+    fits = [{"filter": name, **export_cfa.fit_filter(bands.centers_nm, curve)}
+            for name, curve in zip(export_cfa.filter_names(3, 3), tile.reshape(7, 9).T)]
     export_cfa.plot_fits(tile, bands, fits, tmp_path / "cfa_fit.png")
     (fig,) = figures
 
-    fine = np.linspace(420.0, 720.0, 2001)
+    grid, applied = export_cfa.model_filter_curves(tile, bands)
+    fine = np.linspace(grid[0], grid[-1], 4001)  # the fits are drawn over the model filters' grid
     def reference(f):  # the fit written to cfa_fit.csv: offset + amplitude · exp(-(λ - centre)² / (2 σ²))
         sigma = [c["fwhm_nm"] / (2 * np.sqrt(2 * np.log(2))) for c in f["components"]]
         return f["offset"] + sum(c["amplitude"] * np.exp(-0.5 * ((fine - c["centre_nm"]) / s) ** 2)
@@ -61,12 +65,16 @@ def test_cfa_fit_figure_has_wavelength_axes_readable_text_and_whole_fits(tmp_pat
 
     peaks = [float(reference(f).max()) for f in fits]
     assert max(peaks) > 1.3  # the case that was cut flat at 1.2
-    panels = [ax for ax in fig.axes if len(ax.get_lines()) == 2]
+    panels = [ax for ax in fig.axes if len(ax.get_lines()) == 3]
     assert len(panels) == 9
-    for ax, f, peak in zip(panels, fits, peaks):
-        fit_line = ax.get_lines()[1]
+    for k, (ax, f, peak) in enumerate(zip(panels, fits, peaks)):
+        fit_line, model_line = ax.get_lines()[1:]
         assert float(np.max(fit_line.get_ydata())) == pytest.approx(peak, rel=2e-3)
         assert ax.get_ylim()[1] > peak and ax.get_ylim()[0] < float(reference(f).min())
+        # the filter the model applies, whole: its 1 nm grid inside the panel, scaled to a peak of 1, under the fit
+        np.testing.assert_allclose(model_line.get_ydata(), applied[:, k] / applied[:, k].max())
+        assert ax.get_xlim()[0] < grid[0] and ax.get_xlim()[1] > grid[-1]
+        assert model_line.get_zorder() < fit_line.get_zorder()
         assert ax.axison
     bottom = panels[-1]
     ticks = [float(t.get_text().replace("\u2212", "-")) for t in bottom.get_xticklabels() if t.get_text()]

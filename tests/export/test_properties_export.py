@@ -149,7 +149,8 @@ def test_transmission_table_reads_back_and_every_filter_is_fitted(tmp_path_facto
 def test_cfa_export_of_a_one_band_camera(tiny_config, tmp_path):
     """A camera of one band (bands.start_nm = stop_nm) has a CFA of all ones: its export fitted the flat curve
     with a Gaussian whose width bounds were crossed (lower 4.2 > upper 0.85 nm: scipy's ValueError 'Each lower
-    bound must be strictly less than each upper bound'); now the curve (1 at the band) is fitted."""
+    bound must be strictly less than each upper bound'); now the filter is fitted: as the model applies it, the
+    band's own Gaussian response."""
     from hsicam.cameras import DOECamera
     from hsicam.export.cfa import export_cfa
 
@@ -158,4 +159,9 @@ def test_cfa_export_of_a_one_band_camera(tiny_config, tmp_path):
     lam, vals, _ = read_transmission_csv(tmp_path / "cfa_transmission.csv")
     np.testing.assert_array_equal(lam, [550.0])
     np.testing.assert_array_equal(vals, np.ones((1, cam.code_period**2), np.float32))
-    assert info["filters"] == cam.code_period**2 and info["fit_rms_error"]["max"] < 1e-6
+    assert info["filters"] == cam.code_period**2
+    fwhm = float(cam.bands.fwhm_nm[0])  # the band's own (50 nm: the tiny config's step)
+    for f in info["fits"]:  # the filter the model applies: the band's Gaussian response (cut at 3σ)
+        main = max(f["components"], key=lambda c: c["amplitude"])
+        assert main["centre_nm"] == pytest.approx(550.0, abs=0.05) and main["fwhm_nm"] == pytest.approx(fwhm, rel=0.03)
+        assert f["rms_error"] < 5e-3

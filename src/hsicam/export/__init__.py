@@ -13,6 +13,7 @@ colour filter array (transmission table, picture, parametric fits) and ``spec.js
 ``doe_L{L}.gds``                   GDSII etch masks (L = 2^k; needs the ``fab`` extra: gdstk)
 ``doe.png``                        continuous, quantised and difference maps
 ``cfa_tile.npy``, ``cfa_transmission.csv`` (band × filter), ``cfa_transmission_peak1.csv``,
+``cfa_transmission_1nm_peak1.csv`` (each filter as the model applies it, continuous, on 1 nm),
 ``cfa.png``, ``cfa_fit.csv``, ``cfa_fit.png``
 ``spec.json``                      focal length, aperture, DOE cell/material/heights, design wavelength,
                                    pixel pitch, bands, CFA, tolerances studied, conventions, files

@@ -4,14 +4,24 @@ The model's filters κ are relative: Σ_λ κ = 1 per filter (paper eq. 9). A ph
 only match a curve up to a gain, so the table also lists each filter's peak-normalised curve
 (maximum 1), and the fits describe that shape.
 
-Fit model per filter (peak-normalised curve t(λ)):
+κ weighs band values, each the spectrum averaged over its band's Gaussian response
+(:func:`hsicam.spectral.band_matrix` G), so the filter the camera was trained with is continuous:
+T(λ) = Σ_c κ_c G_c(λ) per nm, its response to monochromatic light, exact for every spectrum however
+fine its lines (:func:`model_filter_curves`; written on the 1 nm grid the spectra are averaged on). A
+filter that holds all of its κ in one band is a Gaussian of that band's FWHM there. The band table holds κ, the
+weights of the band values, which T spreads over each band's response.
+
+Fit model per filter (:func:`fit_tile`: the filter the model applies, T of :func:`model_filter_curves`, scaled to a
+peak of 1, t(λ) on its 1 nm grid; :func:`fit_filter` fits any sampled curve the same way):
 
     t(λ) ≈ b + Σ_g a_g · exp(−(λ − μ_g)² / (2 σ_g²)),   g = 1 (or 2)
 
-b, a_g ≥ 0 (a_g ≤ 1.5), centres μ within the band range ± half its span, FWHM = 2√(2 ln 2) σ
-between one band step (narrower is not resolved by the band grid) and twice the span. One Gaussian always; two when the bands are enough
-(C ≥ 9) and the small-sample Akaike criterion (AICc) prefers it. Fit error: RMS and maximum
-absolute difference on the band centres, in units of the peak (1).
+b, a_g ≥ 0 (a_g ≤ 1.5), centres μ within the curve's range ± half its span, FWHM = 2√(2 ln 2) σ
+between one sample step (narrower is not resolved) and twice the span. One Gaussian always; two when the samples
+are enough (≥ 9) and the small-sample Akaike criterion (AICc) prefers it. Fit error: RMS and maximum absolute
+difference on the samples, in units of the peak (1). Until session 66 the fits were of κ's band values, taken as
+samples of the filter: between band centres they overshot (peaks up to 1.5 on the shipped camera) and they differed
+from the filter the model applies by up to 0.87 of the peak, with an RMS error of 0.000 at the centres.
 """
 
 from __future__ import annotations
@@ -25,7 +35,7 @@ from typing import Any
 import numpy as np
 
 from hsicam.io import atomic_open, save_figure, write_npy
-from hsicam.spectral import Bands
+from hsicam.spectral import Bands, band_matrix, fine_grid
 
 FWHM_PER_SIGMA = 2.0 * math.sqrt(2.0 * math.log(2.0))
 
@@ -63,6 +73,38 @@ def read_transmission_csv(path: str | Path) -> tuple[np.ndarray, np.ndarray, lis
     lam = np.array([float(r[0]) for r in rows[1:]])
     vals = np.array([[np.float32(float(v)) for v in r[2:]] for r in rows[1:]], dtype=np.float32)
     return lam, vals, names
+
+
+def model_filter_curves(tile: np.ndarray, bands: Bands) -> tuple[np.ndarray, np.ndarray]:
+    """(wavelengths nm (F,), T (F, m_rows·m_cols)): each filter of a (C, m_rows, m_cols) tile as the camera model
+    applies it, a transmission per nm on the 1 nm grid of :func:`hsicam.spectral.fine_grid`, filters row-major.
+
+    The model images band values x_c = Σ_λ G_cλ s(λ) (:func:`hsicam.spectral.band_matrix`: the Gaussian response of
+    band c, rows summing to 1), so a filter of weights κ gives Σ_c κ_c x_c = Σ_λ T(λ) s(λ) Δλ with
+    T(λ) = Σ_c κ_c G_cλ / Δλ: its response to monochromatic light at λ, and ∫ T dλ = Σ_c κ_c (1 in the model's
+    convention)."""
+    t = np.asarray(tile, dtype=np.float64)
+    c = t.shape[0]
+    fine = fine_grid(bands)
+    g = band_matrix(bands, fine)  # (C, F)
+    dl = np.gradient(fine) if fine.size > 1 else np.ones(1)
+    return fine, (g.T @ t.reshape(c, -1)) / dl[:, None]
+
+
+def write_model_filter_csv(path: str | Path, tile: np.ndarray, bands: Bands) -> None:
+    """``wavelength_nm, r0c0, r0c1, …``: :func:`model_filter_curves` on its 1 nm grid, each filter scaled to a peak
+    of 1 (float32 values)."""
+    fine, curves = model_filter_curves(tile, bands)
+    peaks = curves.max(axis=0, keepdims=True)
+    curves = curves / np.where(peaks > 0, peaks, 1.0)
+    buf = io.StringIO()
+    w = csv.writer(buf, lineterminator="\n")
+    _, mr, mc = np.shape(tile)
+    w.writerow(["wavelength_nm", *filter_names(mr, mc)])
+    for lam, row in zip(fine, curves):
+        w.writerow([f"{lam:.12g}", *[_fmt(v) for v in row]])
+    with atomic_open(path, "w", encoding="utf-8", newline="") as fh:
+        fh.write(buf.getvalue())
 
 
 def _model(lam: np.ndarray, p: np.ndarray, n_g: int) -> np.ndarray:
@@ -130,13 +172,16 @@ def fit_filter(lam_nm: np.ndarray, curve: np.ndarray) -> dict[str, Any]:
 
 
 def fit_tile(tile: np.ndarray, bands: Bands) -> list[dict[str, Any]]:
-    """Fits of every filter of a (C, m, m) tile, row-major (see module docstring)."""
+    """Fits of every filter of a (C, m, m) tile, row-major: of the filter the model applies
+    (:func:`model_filter_curves`) on its 1 nm grid (see module docstring); ``peak_kappa``: the largest of the
+    filter's κ."""
     t = np.asarray(tile, dtype=np.float64)
     c, mr, mc = t.shape
+    grid, curves = model_filter_curves(t, bands)
     out = []
-    for name, curve in zip(filter_names(mr, mc), t.reshape(c, -1).T):
-        f = fit_filter(bands.centers_nm, curve)
-        out.append({"filter": name, **f})
+    for name, curve, kappa in zip(filter_names(mr, mc), curves.T, t.reshape(c, -1).T):
+        f = fit_filter(grid, curve)
+        out.append({"filter": name, **f, "peak_kappa": float(kappa.max())})
     return out
 
 
@@ -160,10 +205,11 @@ def write_fit_csv(path: str | Path, fits: list[dict[str, Any]]) -> None:
 
 
 def plot_fits(tile: np.ndarray, bands: Bands, fits: list[dict[str, Any]], path: str | Path) -> None:
-    """Small multiples laid out like the tile: each filter's peak-normalised curve (dots) and its fit (line)
-    against wavelength, one panel per filter, all on the same axes (wavelength in nm, transmission relative to the
-    filter's peak), the y range covering every curve and fit: a fit overshooting the peak (an offset plus
-    Gaussians between sparse bands) is drawn whole, not cut flat."""
+    """Small multiples laid out like the tile: each filter's peak-normalised κ (dots), the filter as the camera model
+    applies it (:func:`model_filter_curves`, peak 1, grey) and its fit (``fits``, black) against wavelength, one panel
+    per filter, all on the same axes (wavelength in nm, transmission relative to the filter's peak), the x range
+    covering the model filters' 1 nm grid and the y range every curve and fit: a fit overshooting the peak (an
+    offset plus Gaussians between sparse bands) is drawn whole, not cut flat."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -175,7 +221,9 @@ def plot_fits(tile: np.ndarray, bands: Bands, fits: list[dict[str, Any]], path: 
     c, mr, mc = t.shape
     rgb = cfa_tile_rgb(t, bands).reshape(-1, 3)
     lam = bands.centers_nm
-    fine = np.linspace(lam[0], lam[-1], 120)
+    grid, applied = model_filter_curves(t, bands)
+    applied = applied / np.where(applied.max(axis=0) > 0, applied.max(axis=0), 1.0)
+    fine = np.linspace(grid[0], grid[-1], 400)
     curves = t.reshape(c, -1).T
     peaks = np.where(curves.max(axis=1) > 0, curves.max(axis=1), 1.0)
     models = [_model(fine, f["_params"], f["n_gaussians"]) for f in fits]
@@ -184,12 +232,13 @@ def plot_fits(tile: np.ndarray, bands: Bands, fits: list[dict[str, Any]], path: 
     pad = 0.05 * (hi - lo)
     # the same limits set on every panel, not shared axes: 225 shared panels (a 15 × 15 tile) took 20 s to draw
     fig, axes = plt.subplots(mr, mc, figsize=(1.9 * mc + 0.8, 1.5 * mr + 0.8), squeeze=False)
-    margin = 0.03 * (float(lam[-1] - lam[0]) or 1.0)
+    margin = 0.03 * (float(grid[-1] - grid[0]) or 1.0)
     for idx, (ax, f) in enumerate(zip(axes.flat, fits)):
         ax.plot(lam, curves[idx] / peaks[idx], "o", ms=3, color=np.clip(rgb[idx], 0, 0.85))
         ax.plot(fine, models[idx], "-", lw=1, color="k")
+        ax.plot(grid, applied[:, idx], "-", lw=2.5, color="0.8", zorder=1)  # under the dots and the fit
         ax.set_title(f"{f['filter']}  rms {f['rms_error']:.3f}", fontsize=8)
-        ax.set_xlim(lam[0] - margin, lam[-1] + margin)
+        ax.set_xlim(grid[0] - margin, grid[-1] + margin)
         ax.set_ylim(lo - pad, hi + pad)
         ax.xaxis.set_major_locator(plt.MaxNLocator(3))
         ax.yaxis.set_major_locator(plt.MaxNLocator(4))
@@ -198,7 +247,8 @@ def plot_fits(tile: np.ndarray, bands: Bands, fits: list[dict[str, Any]], path: 
     fig.subplots_adjust(wspace=0.12, hspace=0.35)
     fig.supxlabel("wavelength (nm)", fontsize=9)
     fig.supylabel("transmission (each filter's peak = 1)", fontsize=9)
-    fig.suptitle("CFA filters: peak-normalised κ (dots) and Gaussian fits (lines)", fontsize=10)
+    fig.suptitle("CFA filters, each at a peak of 1\nκ (dots), model filter on 1 nm (grey), its Gaussian fit (black)",
+                 fontsize=10)
     save_figure(fig, path)
 
 
@@ -214,8 +264,10 @@ def export_cfa(camera, out: Path) -> dict[str, Any]:
     write_npy(out / "cfa_tile.npy", tile.astype(np.float32))
     write_transmission_csv(out / "cfa_transmission.csv", tile, bands)
     write_transmission_csv(out / "cfa_transmission_peak1.csv", tile, bands, peak_normalised=True)
+    write_model_filter_csv(out / "cfa_transmission_1nm_peak1.csv", tile, bands)
     plot_cfa(tile, bands, out / "cfa.png")
     fits = fit_tile(tile, bands)
+    grid = fine_grid(bands)
     write_fit_csv(out / "cfa_fit.csv", fits)
     plot_fits(tile, bands, fits, out / "cfa_fit.png")
     rms = [f["rms_error"] for f in fits]
@@ -224,11 +276,18 @@ def export_cfa(camera, out: Path) -> dict[str, Any]:
         "period": int(tile.shape[-1]),
         "filters": len(fits),
         "convention": "kappa sums to 1 over bands per filter (model); *_peak1.csv: each filter scaled to a peak of 1",
+        "model_filter": ("cfa_transmission_1nm_peak1.csv: each filter's transmission as the camera model applies it, on "
+                         "a 1 nm grid: sum over bands of kappa times the band's Gaussian response (the response to "
+                         "monochromatic light; exact for any spectrum, line spectra included); cfa_transmission.csv "
+                         f"holds kappa, the weights of the band values. Outside {grid[0]:g}-{grid[-1]:g} nm the model "
+                         "sees no light at all: a camera built to it blocks what its sensor would see there (an "
+                         "IR-cut filter, and UV)"),
         "placement": (f"filter r{{i}}c{{j}} covers the sensor pixels (row, column) with row mod {tile.shape[-2]} = i and "
                       f"column mod {tile.shape[-1]} = j, counted from the sensor image's pixel (0, 0) as read out; one "
                       "filter per pixel, at the sensor's pixel pitch; a tile mounted mirrored or rotated is another "
                       "CFA (reconstruct --cfa-offset finds shifts only)"),
-        "fit_model": "offset + 1 or 2 Gaussians on the peak-normalised curve (AICc choice)",
+        "fit_model": ("offset + 1 or 2 Gaussians (AICc choice) fitted to each filter as the model applies it "
+                      "(cfa_transmission_1nm_peak1.csv), errors on its 1 nm grid in units of its peak"),
         "fit_rms_error": {"mean": float(np.mean(rms)), "max": float(np.max(rms))},
         "fits": [{k: v for k, v in f.items() if not k.startswith("_")} for f in fits],
     }
