@@ -149,3 +149,59 @@ def test_errors():
         spectra_to_srgb(np.ones((2, 30)), Bands.paper())
     with pytest.raises(InputError, match="B, C, H, W"):
         cube_to_srgb(np.ones((31, 4)), Bands.paper())
+
+
+def test_srgb_encode_at_the_linear_segments_end_matches_colour_science_in_numpy_and_torch():
+    """IEC 61966-2-1: 12.92·L for L ≤ 0.0031308 (the threshold itself included), 1.055·L^(1/2.4) − 0.055 above
+    (the two differ by 2.9e-8 at the threshold), dense over the first 1 % of the range, where the two pieces
+    meet; numpy and torch alike, against colour-science's curve."""
+    x = np.concatenate([np.linspace(0.0, 0.01, 1001), [0.0031308, np.nextafter(0.0031308, 1.0)]])
+    ref = colour.cctf_encoding(x, function="sRGB")
+    np.testing.assert_allclose(srgb_encode(x), ref, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(srgb_encode(torch.from_numpy(x)).numpy(), ref, rtol=0, atol=1e-12)
+
+
+def reference_xyz_on_1nm_grid(centers: np.ndarray, spectrum: np.ndarray) -> np.ndarray:
+    """The module docstring's XYZ written out with numpy: the piecewise-linear spectrum between band centres times
+    x̄ȳz̄ and D65 (the shipped 5 nm table, linearly interpolated: checked against colour-science above), trapezoid
+    rule on the 1 nm grid over the part of the bands' range inside 380-780 nm (its ends included), scaled so that
+    the white reflector has Y = 1."""
+    table = cmf_d65_table()
+    lo, hi = max(centers[0], 380.0), min(centers[-1], 780.0)
+    lam = np.union1d([lo, hi], np.arange(np.ceil(lo), np.floor(hi) + 1.0))
+    kernel = np.stack([np.interp(lam, table[:, 0], table[:, k]) * np.interp(lam, table[:, 0], table[:, 4])
+                       for k in (1, 2, 3)])
+    xyz = np.trapezoid(kernel * np.interp(lam, centers, spectrum), lam, axis=1)
+    return xyz / np.trapezoid(kernel[1], lam)
+
+
+@pytest.mark.parametrize("centers", [Bands.paper().centers_nm, np.array([402.5, 447.3, 510.0, 598.7, 603.2]),
+                                     np.arange(300.0, 601.0, 15.0), np.arange(700.0, 901.0, 20.0)])
+def test_xyz_is_the_1nm_trapezoid_integral_of_the_interpolated_spectrum(centers):
+    """XYZ of a spectrum on a band grid (uniform, non-uniform with fractional ends, across 380 nm, across 780 nm)
+    = the 1 nm trapezoid integral of its interpolant that the module docstring describes, to rounding (a step of
+    2 nm instead of 1 at one end of the grid changes it by ~1e-6)."""
+    spectrum = np.random.default_rng(len(centers)).uniform(0.1, 1.0, len(centers))
+    bands = Bands.from_centers(centers)
+    np.testing.assert_allclose(spectra_to_xyz(spectrum, bands), reference_xyz_on_1nm_grid(centers, spectrum),
+                               rtol=1e-11, atol=1e-14)
+
+
+@pytest.mark.parametrize("centers, end", [(np.arange(300.0, 381.0, 20.0), 380), (np.arange(780.0, 901.0, 20.0), 780)])
+def test_a_grid_touching_the_table_at_one_end_renders_that_wavelength(centers, end):
+    """A grid that meets 380-780 nm at one end only has colour at that one wavelength: XYZ = the interpolant's value
+    there (the end band's value) × (x̄, ȳ, z̄)/ȳ at that wavelength (colour-science's CIE 1931 2° values)."""
+    bands = Bands.from_centers(centers)
+    spectrum = np.linspace(0.2, 0.9, len(centers))
+    at_end = spectrum[-1] if end == 380 else spectrum[0]
+    cmf = CMFS[end]
+    np.testing.assert_allclose(spectra_to_xyz(spectrum, bands), at_end * cmf / cmf[1], rtol=1e-5)
+
+
+def test_a_grid_just_beyond_780nm_renders_grey():
+    """A grid starting 1 nm past the table's end (781-901 nm, or a single band at 780.5 nm) has nothing to render in
+    colour: grey, the mean over its bands."""
+    for bands in (Bands.from_centers(np.arange(781.0, 902.0, 20.0)), Bands.from_centers([780.5])):
+        spectra = np.random.default_rng(1).uniform(0.0, 1.0, (4, len(bands)))
+        np.testing.assert_allclose(spectra_to_linear_srgb(spectra, bands),
+                                   np.repeat(spectra.mean(-1, keepdims=True), 3, -1), atol=1e-12)
