@@ -205,3 +205,19 @@ def test_a_grid_just_beyond_780nm_renders_grey():
         spectra = np.random.default_rng(1).uniform(0.0, 1.0, (4, len(bands)))
         np.testing.assert_allclose(spectra_to_linear_srgb(spectra, bands),
                                    np.repeat(spectra.mean(-1, keepdims=True), 3, -1), atol=1e-12)
+
+
+@pytest.mark.parametrize("chunk_px", [10, 23, None])
+def test_srgb_preview_rendered_in_bands_of_rows_puts_every_row_in_its_place(chunk_px):
+    """A grey ramp down the rows (reflectance k constant over the bands: linear sRGB (k, k, k), the white balance
+    maps white to (1, 1, 1)) previewed a few rows at a time (chunks of 2 and 4 rows for 5 px wide, the last one
+    short) or whole: each row holds round(255 · sRGB(k)) of its own k (colour-science's curve)."""
+    from hsicam.color import srgb_preview
+
+    bands = Bands.paper()
+    k = np.linspace(0.05, 0.95, 22)
+    cube = np.broadcast_to(k[None, :, None], (len(bands), 22, 5)).astype(np.float32)
+    got = srgb_preview(cube, bands, chunk_px=chunk_px)
+    want = 255.0 * colour.cctf_encoding(k.astype(np.float32).astype(np.float64), function="sRGB")
+    assert got.shape == (22, 5, 3) and got.dtype == np.uint8
+    assert np.abs(got.astype(np.float64) - want[:, None, None]).max() <= 0.5 + 1e-3  # rounding (float32 render)
