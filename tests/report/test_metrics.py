@@ -330,3 +330,46 @@ def test_sam_of_tiny_negative_spectra_is_their_true_angle():
     s = torch.tensor([1.0, 2.0, 0.5], dtype=torch.float64)[None, :, None, None]
     assert float(sam_map(-1e-200 * s, s)) == pytest.approx(180.0, abs=1e-6)
     assert float(sam_map(1e-200 * s, s)) == pytest.approx(0.0, abs=1e-5)
+
+
+@pytest.mark.parametrize("n", [1, 2, 7, 100, 577])
+def test_quantile_is_numpys_linear_quantile(n):
+    """``sam_breakdown``'s edge threshold: the linear-interpolation quantile (numpy's default method), at ranks that
+    fall on an element (q·(n − 1) whole) and between two, and at both ends."""
+    t = torch.from_numpy(np.random.default_rng(n).permutation(np.linspace(-1.0, 3.0, n) ** 3))
+    for q in (0.0, 0.1, 0.25, 0.5, 0.8, 0.95, 1.0):
+        assert metrics._quantile(t, q).item() == pytest.approx(np.quantile(t.numpy(), q), rel=1e-12, abs=1e-15), q
+
+
+def test_sam_breakdown_dark_is_strictly_below_dark_level():
+    """"Dark": a band mean *below* ``dark_level``; a pixel whose band mean equals it (0.25, exact in binary) is
+    bright."""
+    truth = torch.full((1, 2, 4, 4), 0.25, dtype=torch.float64)
+    truth[0, :, :, :1] = 0.125  # one column dark
+    got = metrics.sam_breakdown(truth.clone(), truth, dark_level=0.25)
+    assert got["dark_fraction"][0] == 0.25
+    assert got["bright"][0] == pytest.approx(0.0, abs=1e-6)
+
+
+def test_spectra_scaled_divides_each_spectrum_by_its_largest_magnitude():
+    """Each pixel's spectrum over its largest |value| (numpy): the scaled spectrum's peak magnitude is exactly 1;
+    an all-zero spectrum stays zero."""
+    rng = np.random.default_rng(2)
+    t = rng.normal(0.0, 1e-3, (2, 5, 3, 4))
+    t[0, :, 1, 2] = 0.0
+    peak = np.abs(t).max(axis=1, keepdims=True)
+    want = np.divide(t, peak, out=np.zeros_like(t), where=peak > 0)
+    got = metrics.spectra_scaled(torch.from_numpy(t)).numpy()
+    np.testing.assert_allclose(got, want, rtol=1e-15, atol=0)
+    got_peak, nonzero = np.abs(got).max(axis=1), peak[:, 0] > 0
+    assert np.all(got_peak[nonzero] == 1.0) and np.all(got_peak[~nonzero] == 0.0) and (~nonzero).sum() == 1
+
+
+def test_all_metrics_of_a_single_non_square_black_cube_has_sam_undefined():
+    """A (C, H, W) truth (one cube, no batch axis) that is zero at every one of its H·W pixels has no spectral angle:
+    SAM NaN (undefined), as for a (1, C, H, W) batch, on a non-square image (H ≠ W), not +inf (a broken
+    estimate's)."""
+    zero = torch.zeros(3, 12, 17, dtype=torch.float64)
+    for est, truth in ((zero, zero), (zero[None], zero[None]), (zero.transpose(1, 2), zero.transpose(1, 2))):
+        got = metrics.all_metrics(est, truth)
+        assert len(got["sam"]) == 1 and math.isnan(got["sam"][0]), tuple(truth.shape)
