@@ -111,6 +111,32 @@ def test_quantisation_of_a_wrapped_and_clamped_doe_uses_the_phase_levels():
     assert len(set(np.round(k).astype(int).ravel())) >= 3
 
 
+@pytest.mark.parametrize("init_range_m", [None, 0.7e-6])
+def test_a_smooth_init_spans_zero_to_its_range_exactly(init_range_m):
+    """``init="smooth"``: the low-passed random field is rescaled to span [0, range] exactly, the range being
+    ``init_range_m`` or by default h_2π = λ0/(n(λ0) − 1) at the design wavelength (Sellmeier written out here)."""
+    top = H2PI_587 if init_range_m is None else init_range_m
+    doe = DOE(31, FusedSilica(), 587.6, init="smooth", seed=4, init_range_m=init_range_m, init_correlation_cells=3.0)
+    h = doe.height_m.detach().double().numpy()
+    assert h.min() == pytest.approx(0.0, abs=1e-6 * top)
+    assert h.max() == pytest.approx(top, rel=1e-6)
+    assert np.unique(h).size > 100  # a structured field, not a few levels
+
+
+def test_the_default_grating_depth_puts_equal_light_into_the_0th_and_1st_orders():
+    """``init="grating"`` without a range: along a row through the centre the phase at λ0 is φ0 + m·sin(2πx/Λ),
+    whose orders carry J_p(m)² (Jacobi–Anger); the default depth is the one with J0(m) = J1(m) (scipy's Bessel
+    functions), about 30 % of the light in each of the 0th and ±1st orders per axis."""
+    from scipy.special import jv
+
+    n, period = 17, 8.0  # the centre row's cells at x = ±2 sit on the sine's extremes
+    h = DOE(n, FusedSilica(), 587.6, init="grating", init_grating_period_cells=period).height_m.detach().double()
+    phase = 2 * np.pi * (sellmeier_fused_silica(587.6) - 1.0) * h.numpy()[n // 2] / 587.6e-9
+    m = (phase.max() - phase.min()) / 2
+    assert jv(0, m) == pytest.approx(jv(1, m), abs=1e-5)
+    assert jv(0, m) ** 2 == pytest.approx(0.30, abs=0.005)
+
+
 # --------------------------------------------------------------------------------------------
 # sensor.py
 # --------------------------------------------------------------------------------------------
