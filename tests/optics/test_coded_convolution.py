@@ -30,6 +30,20 @@ def test_coded_conv_valid_gradcheck():
     np.testing.assert_allclose(_np(coded_conv_valid(x, psf, kappa)), direct, rtol=1e-10, atol=1e-12)
 
 
+@pytest.mark.parametrize("needs", ["psf", "kappa", "x", "psf,kappa", "x,psf"])
+@pytest.mark.parametrize("geometry", ["valid", "same"])
+def test_coded_convolutions_differentiate_any_subset_of_their_inputs(geometry, needs):
+    """Only some inputs with a gradient (a learned DOE behind a fixed CFA, a learned CFA behind a fixed DOE, a fixed
+    scene): the gradients of those are the finite-difference ones (torch's gradcheck), in both geometries."""
+    g = torch.Generator().manual_seed(8)
+    x = torch.rand(2, 3, 8, 9, generator=g, dtype=torch.float64)
+    psf = torch.rand(3, 5, 5, generator=g, dtype=torch.float64)
+    kappa = torch.rand(3, *((4, 5) if geometry == "valid" else (8, 9)), generator=g, dtype=torch.float64)
+    args = tuple(t.requires_grad_(name in needs.split(",")) for name, t in zip(("x", "psf", "kappa"), (x, psf, kappa)))
+    op = coded_conv_valid if geometry == "valid" else coded_conv_same
+    assert torch.autograd.gradcheck(op, args, eps=1e-6, atol=1e-8, rtol=1e-5)
+
+
 def test_coded_adjoint_is_the_transpose_of_the_coded_convolution(monkeypatch):
     """coded_conv_valid_adjoint against the dense transpose of coded_conv_valid's matrix, and against the
     plain correlation of κ ⊙ g, with the work split into many chunks (CHUNK_BYTES shrunk) and whole."""
