@@ -634,6 +634,19 @@ def test_singlet_sensor_distance_from_its_rear_principal_plane():
     assert "rear principal plane" in desc["sensor_distance_from"]
 
 
+def test_a_singlet_from_the_config_takes_its_radius_and_thickness_in_mm():
+    """``camera.lens`` (mm) → the lens model (m): f(λ) = R/(n(λ) − 1) and H' at −t/n(λ) from the rear vertex
+    (Sellmeier written out here), for a thickness other than the 2 mm default."""
+    from hsicam.config import LensConfig
+    from hsicam.optics.lens import lens_from_config
+
+    lens = lens_from_config(LensConfig(model="singlet", radius_of_curvature_mm=20.0, center_thickness_mm=3.5))
+    lams = np.array([420.0, 587.6, 720.0])
+    n = sellmeier_fused_silica(lams)
+    np.testing.assert_allclose(lens.focal_lengths_m(lams), 20e-3 / (n - 1.0), rtol=1e-12)
+    np.testing.assert_allclose(lens.rear_principal_plane_m(lams), -3.5e-3 / n, rtol=1e-12)
+
+
 def test_band_samples_average_sub_wavelengths_over_the_fwhm(tiny_config):
     """band_samples = 3: each band is the Gaussian-weighted mean of the PSFs at λ_c + (−1/3, 0, 1/3)·FWHM."""
     cam = DOECamera.from_config(tiny_config("camera.psf.band_samples=3")).double()
