@@ -647,16 +647,20 @@ def test_a_singlet_from_the_config_takes_its_radius_and_thickness_in_mm():
     np.testing.assert_allclose(lens.rear_principal_plane_m(lams), -3.5e-3 / n, rtol=1e-12)
 
 
-def test_band_samples_average_sub_wavelengths_over_the_fwhm(tiny_config):
-    """band_samples = 3: each band is the Gaussian-weighted mean of the PSFs at λ_c + (−1/3, 0, 1/3)·FWHM."""
-    cam = DOECamera.from_config(tiny_config("camera.psf.band_samples=3")).double()
+@pytest.mark.parametrize("m, offsets", [(2, (-1 / 4, 1 / 4)), (3, (-1 / 3, 0, 1 / 3))])
+def test_band_samples_average_sub_wavelengths_over_the_fwhm(tiny_config, m, offsets):
+    """band_samples = M: each band is the mean of the PSFs at the centres of M equal slices of its FWHM,
+    λ_c + (−1/4, 1/4)·FWHM for M = 2 and λ_c + (−1/3, 0, 1/3)·FWHM for M = 3, weighted by the band's Gaussian
+    exp(−4 ln 2 · (Δλ/FWHM)²). M = 2 too: an even count has no centre line (and only M = 1 skips the averaging)."""
+    cam = DOECamera.from_config(tiny_config(f"camera.psf.band_samples={m}")).double()
     with torch.no_grad():
         banded = cam.psf_result()
+    assert banded.psf.shape == (3, cam.kernel_px, cam.kernel_px)
     fwhm = cam.bands.fwhm_nm
-    w = np.exp(-4 * math.log(2) * np.array([1 / 9, 0, 1 / 9]))
+    w = np.exp(-4 * math.log(2) * np.array(offsets) ** 2)
     w = w / w.sum()
     expected = 0
-    for off, wi in zip((-1 / 3, 0, 1 / 3), w):
+    for off, wi in zip(offsets, w):
         shifted = [f"bands.start_nm={500 + off * fwhm[0]}", f"bands.stop_nm={600 + off * fwhm[0]}", "bands.step_nm=50"]
         single = DOECamera.from_config(tiny_config(*shifted, f"camera.psf.kernel_px={cam.kernel_px}")).double()
         single.load_state_dict(cam.state_dict())
