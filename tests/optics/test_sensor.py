@@ -171,6 +171,10 @@ def test_a_noise_free_sensor_config_with_a_gaussian_sigma_stays_noise_free(tiny_
         torch.testing.assert_close(cam(x, torch.Generator().manual_seed(0)), g, rtol=0, atol=0)
         cam.set_noise(sensor_sigma=0.01)
         assert float((cam(x, torch.Generator().manual_seed(0)) - g).std()) > 0.005
+    caplog.clear()  # σ_s = 0 on a noise-free sensor is consistent: nothing to warn about
+    with caplog.at_level(logging.WARNING, logger="hsicam.sensor"):
+        tiny_camera("camera.sensor.noise=none", "camera.sensor.sigma=0")
+    assert "not applied" not in caplog.text
 
 
 def test_no_noise_is_identity():
