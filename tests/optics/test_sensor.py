@@ -305,6 +305,16 @@ def test_the_variance_defaults_to_the_window_the_forward_noises():
     assert torch.equal(noise.gain_window(g), gain[:4, :n])
 
 
+@pytest.mark.parametrize("lead", [(), (1,), (2, 3, 1)])
+def test_the_gain_window_takes_the_last_two_dimensions_as_the_image(lead):
+    """gain_window's ``g`` is (..., H, W): the window is H×W whatever the leading dimensions (an (H, W) image,
+    a (B, T, 1, H, W) stack), the rows and columns of the map under it."""
+    gain = 0.5 + torch.arange(12 * 15, dtype=torch.float32).reshape(12, 15) / 100.0
+    noise = SensorNoise("poisson_gaussian", gain=gain, gain_origin=(1, 2))
+    g = torch.zeros(*lead, 5, 7)
+    assert torch.equal(noise.gain_window(g, origin=(4, 6)), gain[3:8, 4:11])
+
+
 # --------------------------------------------------------------------------------------------
 # DOE fabrication: quantization and height noise
 # --------------------------------------------------------------------------------------------
