@@ -13,7 +13,7 @@ from scipy import integrate
 
 from hsicam.data.cube import conform_bands
 from hsicam.errors import InputError
-from hsicam.spectral import (Bands, band_matrix, get_material, interpolation_matrix, resample_spectra,
+from hsicam.spectral import (Bands, band_matrix, fine_grid, get_material, interpolation_matrix, resample_spectra,
                              resampling_matrix, resolved_bands)
 from hsicam.spectral.bands import band_sample_wavelengths, kernel_fwhm
 
@@ -91,6 +91,23 @@ def test_band_matrix_averages_per_nm_on_a_non_uniform_grid():
     per_sample[np.abs(uniform[None, :] - bands.centers_nm[:, None]) > 3 * s] = 0.0
     per_sample /= per_sample.sum(axis=1, keepdims=True)
     np.testing.assert_allclose(band_matrix(bands, uniform), per_sample, rtol=0, atol=1e-12)
+
+
+def test_the_fine_grid_holds_every_band_response_out_to_three_sigma_on_both_sides():
+    """fine_grid spans the lowest centre − 3σ to the highest + 3σ (σ = FWHM / 2√(2 ln 2) of the widest band),
+    whole nm, 1 nm apart: so band_matrix on it keeps each band's whole response, and a band at either end of
+    the grid averages a symmetric window (its row's mean wavelength is its centre, as a Gaussian's is)."""
+    bands = Bands(np.array([420.0, 500.0, 613.0, 700.0]), np.array([10.0, 30.0, 12.0, 25.0]))
+    sigma_max = 30.0 / (2.0 * math.sqrt(2.0 * math.log(2.0)))  # 12.74 nm: 3σ = 38.2 nm
+    fine = fine_grid(bands)
+    assert fine[0] == math.floor(420.0 - 3 * sigma_max) and fine[-1] == math.ceil(700.0 + 3 * sigma_max)
+    np.testing.assert_array_equal(np.diff(fine), 1.0)
+    g = band_matrix(bands, fine)
+    np.testing.assert_allclose(g @ fine, bands.centers_nm, rtol=0, atol=1e-9)  # symmetric about each centre
+    for c, f in zip(bands.centers_nm, bands.fwhm_nm):  # every sample within 3σ of a centre is on the grid
+        s = f / (2.0 * math.sqrt(2.0 * math.log(2.0)))
+        inside = np.arange(math.ceil(c - 3 * s), math.floor(c + 3 * s) + 1.0)
+        assert np.isin(inside, fine).all()
 
 
 def test_equal_bands_hash_equal():
