@@ -372,3 +372,8 @@ def test_a_band_narrower_than_the_fine_grid_samples_its_centre():
     wide = np.exp(-0.5 * ((fine - 600.0) / (10.0 / 2.3548200450309493)) ** 2)
     wide[np.abs(fine - 600.0) > 3 * 10.0 / 2.3548200450309493] = 0.0
     np.testing.assert_allclose(g[2], wide / wide.sum(), rtol=1e-12)  # a band wider than the grid: unchanged
+    # the same in the first and the last interval of the grid (and of a short, non-uniform one)
+    for grid in (fine, np.array([400.0, 401.0, 403.0, 404.0, 406.0, 408.0, 409.0, 410.0])):
+        ends = Bands(np.array([400.5, grid[-1] - 0.6]), np.array([0.3, 0.3]))
+        h = grid / 9.0 + np.cos(grid / 3.0)
+        np.testing.assert_allclose(band_matrix(ends, grid) @ h, np.interp(ends.centers_nm, grid, h), rtol=1e-12)
