@@ -251,7 +251,7 @@ def test_variance_is_computed_in_float32_for_half_precision_images():
     g = torch.full((1, 1, 4, 4), 0.25, dtype=torch.float16)
     var = SensorNoise("poisson_gaussian", full_well_e=1e4, read_noise_e=2.0).variance(g)
     assert var.dtype == torch.float32
-    torch.testing.assert_close(var, torch.full((1, 1, 4, 4), 0.25 / 1e4 + (2 / 1e4) ** 2))
+    torch.testing.assert_close(var, torch.full((1, 1, 4, 4), 0.25 / 1e4 + (2 / 1e4) ** 2), rtol=1e-6, atol=0)
     assert SensorNoise("none", bit_depth=12).variance(g).min() > 0
 
 
@@ -275,9 +275,9 @@ def test_a_flat_field_gain_map_scales_the_variance_as_the_corrected_noise():
     image = torch.rand(1, 1, 20, 30, generator=rng)
     placed = SensorNoise("poisson_gaussian", full_well_e=200.0, read_noise_e=2.0, gain=gain, gain_origin=(2, 3))
     whole = placed.variance(image, origin=(2, 3))
-    torch.testing.assert_close(whole, (gain * image / 200.0 + (gain * 2.0 / 200.0) ** 2).float())
+    torch.testing.assert_close(whole, (gain * image / 200.0 + (gain * 2.0 / 200.0) ** 2).float(), rtol=1e-6, atol=0)
     window = image[..., 5:12, 7:19]
-    torch.testing.assert_close(placed.variance(window, origin=(7, 10)), whole[..., 5:12, 7:19])
+    torch.testing.assert_close(placed.variance(window, origin=(7, 10)), whole[..., 5:12, 7:19], rtol=0, atol=0)
     with pytest.raises(ValueError, match="not within the noise gain map"):
         placed.variance(window, origin=(0, 0))
     with pytest.raises(ValueError, match="finite and positive"):
