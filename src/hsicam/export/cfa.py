@@ -141,7 +141,10 @@ def fit_gaussians(lam_nm: np.ndarray, t: np.ndarray, n_gaussians: int) -> dict[s
     p0 = np.clip(p0, np.array(lo) + 1e-12, np.array(hi) - 1e-12)
     res = least_squares(lambda p: _model(lam, p, n_gaussians) - t, p0, bounds=(lo, hi), method="trf",
                         x_scale="jac", max_nfev=2000)
-    p = res.x
+    p = res.x.copy()
+    # an offset or amplitude at its bound 0 came back as a denormal (4.9e-324 in cfa_fit.csv): 0, as it is
+    amp = np.r_[0, 1 + 3 * np.arange(n_gaussians)]
+    p[amp] = np.where(p[amp] < 1e-12, 0.0, p[amp])
     err = _model(lam, p, n_gaussians) - t
     comps = sorted(({"amplitude": float(p[1 + 3 * g]), "centre_nm": float(p[2 + 3 * g]),
                      "fwhm_nm": float(p[3 + 3 * g] * FWHM_PER_SIGMA)} for g in range(n_gaussians)),
