@@ -87,7 +87,7 @@ import numpy as np
 
 from hsicam.data.cube import check_cube, check_memory_budget
 from hsicam.errors import InputError
-from hsicam.io import atomic_path, follow_link, json_text, nan_for_null
+from hsicam.io import atomic_path, check_output_path, json_text, nan_for_null
 from hsicam.spectral import Bands
 
 log = logging.getLogger(__name__)
@@ -1457,8 +1457,7 @@ def _write_envi_pair(hdr: Path, data: Path, raw: np.ndarray, header: str) -> Non
     """Write ``data`` (the bytes ``raw``), then ``hdr`` (the text ``header``), each atomically; on a failure or
     interruption, remove those of the two that were not there before."""
     for f in (data, hdr):  # both before either is written (atomic_path would refuse the header after the data)
-        if follow_link(f).is_dir():
-            raise InputError(f"{f}: is an existing folder; the ENVI pair {hdr.name} + {data.name} needs a file here")
+        check_output_path(f, "file")
     new = [f for f in (data, hdr) if not os.path.lexists(f)]
     try:
         with atomic_path(data) as tmp, open(tmp, "wb") as fh:
