@@ -91,12 +91,17 @@ def model_filter_curves(tile: np.ndarray, bands: Bands) -> tuple[np.ndarray, np.
     return fine, (g.T @ t.reshape(c, -1)) / dl[:, None]
 
 
+def _peak_one(curves: np.ndarray) -> np.ndarray:
+    """``curves`` (F, filters) each scaled to a maximum of 1 (an all-zero curve kept zero)."""
+    peaks = curves.max(axis=0, keepdims=True)
+    return curves / np.where(peaks > 0, peaks, 1.0)
+
+
 def write_model_filter_csv(path: str | Path, tile: np.ndarray, bands: Bands) -> None:
     """``wavelength_nm, r0c0, r0c1, …``: :func:`model_filter_curves` on its 1 nm grid, each filter scaled to a peak
     of 1 (float32 values)."""
     fine, curves = model_filter_curves(tile, bands)
-    peaks = curves.max(axis=0, keepdims=True)
-    curves = curves / np.where(peaks > 0, peaks, 1.0)
+    curves = _peak_one(curves)
     buf = io.StringIO()
     w = csv.writer(buf, lineterminator="\n")
     _, mr, mc = np.shape(tile)
@@ -225,7 +230,7 @@ def plot_fits(tile: np.ndarray, bands: Bands, fits: list[dict[str, Any]], path: 
     rgb = cfa_tile_rgb(t, bands).reshape(-1, 3)
     lam = bands.centers_nm
     grid, applied = model_filter_curves(t, bands)
-    applied = applied / np.where(applied.max(axis=0) > 0, applied.max(axis=0), 1.0)
+    applied = _peak_one(applied)
     fine = np.linspace(grid[0], grid[-1], 400)
     curves = t.reshape(c, -1).T
     peaks = np.where(curves.max(axis=1) > 0, curves.max(axis=1), 1.0)
