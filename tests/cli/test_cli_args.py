@@ -451,8 +451,8 @@ _NUMBERS = re.compile(r"-?\d+(?:\.\d+)?(?:,-?\d+(?:\.\d+)?)*")
 
 def _fallbacks(tmp_path, monkeypatch) -> dict[tuple[tuple[str, ...], str], object]:
     """The value a command takes for an option whose argparse default is None (the command fills it in), by
-    (command words, dest): tolerance's sweeps from the ToleranceSpec it starts from; reconstruct's --tv-weight and
-    --read-noise-e as one reconstruct without them uses them (:func:`_reconstruct_fallbacks`)."""
+    (command words, dest): tolerance's sweeps from the ToleranceSpec it starts from; reconstruct's --tv-weight,
+    --read-noise-e and --cfa-offset as one reconstruct without them uses them (:func:`_reconstruct_fallbacks`)."""
     from hsicam.engine.tolerance import ToleranceSpec
 
     spec = ToleranceSpec()
@@ -463,9 +463,9 @@ def _fallbacks(tmp_path, monkeypatch) -> dict[tuple[tuple[str, ...], str], objec
 
 
 def _reconstruct_fallbacks(tmp_path, monkeypatch) -> dict[str, float]:
-    """``reconstruct --tv-steps 2 --full-well-e 1000`` without --tv-weight and --read-noise-e, stopped where its
-    work starts: the TV weight of the consistency steps it builds (``tv_consistency``) and the read noise it gives
-    the capture's noise model (``capture_noise``)."""
+    """``reconstruct --tv-steps 2 --full-well-e 1000`` without --tv-weight, --read-noise-e and --cfa-offset, stopped
+    where its work starts: the TV weight of the consistency steps it builds (``tv_consistency``), the read noise it
+    gives the capture's noise model (``capture_noise``) and the capture's place on the sensor it passes there."""
     import numpy as np
 
     import hsicam.cli.reconstruct as reconstruct
@@ -478,8 +478,9 @@ def _reconstruct_fallbacks(tmp_path, monkeypatch) -> dict[str, float]:
         seen["tv_weight"] = steps.tv_weight
         return steps
 
-    def capture_noise(model, report, full_well_e, read_noise_e, *args, **kwargs):
+    def capture_noise(model, report, full_well_e, read_noise_e, corr=None, offset=None):
         seen["read_noise_e"] = read_noise_e
+        seen["cfa_offset"] = offset  # the capture's place, found before its noise (a flat field's gain map sits there)
         raise _Reached()
 
     monkeypatch.setattr(reconstruct, "tv_consistency", tv_consistency)
@@ -489,7 +490,7 @@ def _reconstruct_fallbacks(tmp_path, monkeypatch) -> dict[str, float]:
     with pytest.raises(_Reached):
         main(["reconstruct", str(capture), "--run", "pretrained:standard", "--out", str(tmp_path / "cube.h5"),
               "--tv-steps", "2", "--full-well-e", "1000"])
-    assert set(seen) == {"tv_weight", "read_noise_e"}, seen
+    assert set(seen) == {"tv_weight", "read_noise_e", "cfa_offset"}, seen
     return seen
 
 

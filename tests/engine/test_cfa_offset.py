@@ -191,3 +191,84 @@ def test_cfa_offset_contrast_runner_up_and_ambiguity_follow_the_median_of_the_re
     flat = estimate([1e-7, 2e-7, 3e-7, 4e-7, 5e-6, 6e-6, 7e-6, 8e-6, 9e-6])
     assert flat.contrast > MIN_CONTRAST and 5e-6 - 1e-7 < MIN_RESIDUAL_GAP
     assert flat.ambiguous
+
+
+# --- no --cfa-offset: the capture is taken at the sensor's first pixel, and checked ---
+def _meta(path):
+    with h5py.File(path, "r") as f:
+        return json.loads(f.attrs["metadata_json"])
+
+
+def test_a_crop_reconstructed_without_its_offset_is_warned_about_and_an_aligned_capture_is_not(capture, tmp_path, caplog):
+    """A crop off the CFA period reconstructed without --cfa-offset had wrong spectra and not a word said (a
+    held-out scene cropped at (3, 5): 99 % relative error). The phases are now scored as auto does: a crop at
+    (3, 5) is warned about, naming 3,1 (its phase modulo the 4×4 CFA) and the options; the whole capture is not;
+    --cfa-offset 0,0 given skips the check and reconstructs the same cube."""
+    _, sensor = capture
+    whole, crop = tmp_path / "whole.npy", tmp_path / "crop.npy"
+    np.save(whole, sensor[0, 0].numpy())
+    np.save(crop, sensor[0, 0, 3:, 5:].numpy())
+    with caplog.at_level(logging.INFO):
+        assert_ok(run_cli_in_process("reconstruct", str(crop), "--run", RUN, "--out", str(tmp_path / "crop.h5")))
+    [warning] = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
+    assert warning.startswith(f"{crop}: the capture does not look as if it started where the sensor does (CFA phase "
+                              "0,0, taken without --cfa-offset): the phase 3,1 explains it clearly better"), warning
+    assert "--cfa-offset Y,X, or --cfa-offset auto (3,1 here); --cfa-offset 0,0 takes it as given" in warning
+    check = _meta(tmp_path / "crop.h5")["cfa_offset_check"]
+    assert check["offset"] == [3, 1] and check["warned"] is True and not check["ambiguous"]
+    assert check["residuals"]["0,0"] > check["residuals"]["3,1"] == min(check["residuals"].values())
+    assert _meta(tmp_path / "crop.h5")["cfa_offset"] == [0, 0]  # warned, not changed: the user decides
+
+    caplog.clear()
+    with caplog.at_level(logging.INFO):
+        assert_ok(run_cli_in_process("reconstruct", str(whole), "--run", RUN, "--out", str(tmp_path / "whole.h5")))
+    assert not [r for r in caplog.records if r.levelno >= logging.WARNING], caplog.text
+    assert any(r.getMessage().startswith("CFA phase 0,0 (no --cfa-offset): no other phase explains the capture "
+                                         "clearly better (checked on its central") for r in caplog.records), caplog.text
+    check = _meta(tmp_path / "whole.h5")["cfa_offset_check"]
+    assert check["offset"] == [0, 0] and check["warned"] is False
+
+    caplog.clear()
+    with caplog.at_level(logging.INFO):
+        assert_ok(run_cli_in_process("reconstruct", str(whole), "--run", RUN, "--out", str(tmp_path / "given.h5"),
+                                     "--cfa-offset", "0,0"))
+    assert not any("CFA phase 0,0" in r.getMessage() for r in caplog.records), caplog.text
+    assert "cfa_offset_check" not in _meta(tmp_path / "given.h5")
+    read = lambda name: h5py.File(tmp_path / name, "r")["cube"][()]  # noqa: E731
+    np.testing.assert_array_equal(read("given.h5"), read("whole.h5"))  # the check changes nothing it reconstructs
+
+
+def test_a_featureless_or_small_capture_without_offset_is_not_warned_about(capture, tmp_path, caplog):
+    """Every phase explains uniform noise about equally (ambiguous): no warning, the check recorded. A capture too
+    small to score (30 px, under the PSF's reach) reconstructs at 0,0 as before, without a check or an error."""
+    _, sensor = capture
+    flat, small = tmp_path / "flat.npy", tmp_path / "small.npy"
+    np.save(flat, np.random.default_rng(2).uniform(0.3, 0.31, (120, 120)).astype(np.float32))
+    np.save(small, sensor[0, 0, 3:33, 5:35].numpy())
+    with caplog.at_level(logging.WARNING):
+        assert_ok(run_cli_in_process("reconstruct", str(flat), "--run", RUN, "--out", str(tmp_path / "f.h5")))
+        assert_ok(run_cli_in_process("reconstruct", str(small), "--run", RUN, "--out", str(tmp_path / "s.h5")))
+    assert not caplog.records, caplog.text
+    check = _meta(tmp_path / "f.h5")["cfa_offset_check"]
+    assert check["ambiguous"] is True and check["warned"] is False
+    assert "cfa_offset_check" not in _meta(tmp_path / "s.h5") and _meta(tmp_path / "s.h5")["cfa_offset"] == [0, 0]
+
+
+def test_only_a_clear_estimate_away_from_the_first_pixel_rules_it_out():
+    """rules_out_origin: another phase best by MIN_ORIGIN_RATIO over 0,0, and the estimate neither ambiguous nor
+    small."""
+    from hsicam.engine.cfa_offset import MIN_SCORED_PX, CfaOffsetEstimate
+
+    def estimate(best, side=200, level=0.003):
+        residuals = {f"{y},{x}": level for y in range(4) for x in range(4)}
+        residuals[best] = 0.001
+        return CfaOffsetEstimate(tuple(int(v) for v in best.split(",")), residuals, (0, 0, side, side), 20)
+
+    assert estimate("3,1").rules_out_origin
+    assert not estimate("0,0").rules_out_origin
+    near = estimate("3,1")
+    near.residuals["0,0"] = 0.0018  # 0,0 explains it nearly as well (1.8× the best, under MIN_ORIGIN_RATIO)
+    assert not near.ambiguous and near.offset == (3, 1) and not near.rules_out_origin
+    assert estimate("3,1", level=0.00101).ambiguous and not estimate("3,1", level=0.00101).rules_out_origin
+    small = estimate("3,1", side=40 + MIN_SCORED_PX - 1)
+    assert small.small and not small.ambiguous and not small.rules_out_origin

@@ -37,11 +37,13 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help=f"tile side for large images, >= {MIN_TILE_PX} (default: 4× the context of the reconstruction "
                         "up to its consistency steps, which then go over the whole image, within 512-1024 px, so that "
                         "a tile's window, its halo included, holds at most 2.25× its own pixels where that fits)")
-    p.add_argument("--cfa-offset", type=cfa_offset_arg, default=(0, 0), metavar="Y,X|auto",
+    p.add_argument("--cfa-offset", type=cfa_offset_arg, default=None, metavar="Y,X|auto",
                    help="the sensor row and column of the capture's first pixel (a crop or a region-of-interest "
-                        "readout of the camera's sensor): the CFA phase of every pixel follows from it (default 0,0: "
-                        "the capture starts where the sensor does; a crop off the CFA period otherwise reconstructs "
-                        "wrong spectra; a CASSI camera's coded aperture is placed the same way); auto: estimated "
+                        "readout of the camera's sensor): the CFA phase of every pixel follows from it (default: "
+                        "0,0, the capture starts where the sensor does, checked: a warning names the phase when "
+                        "another one clearly explains the capture better, since a crop off the CFA period "
+                        "reconstructs wrong spectra; give 0,0 to skip the check; a CASSI camera's coded aperture is "
+                        "placed the same way); auto: estimated "
                         "from the capture (the CFA phase whose reconstruction the camera images back closest to it; "
                         "not for CASSI), logged and recorded in the cube's metadata")
     p.add_argument("--device", default="cpu", type=device_arg, help="torch device (default cpu)")
@@ -137,6 +139,34 @@ def estimated_cfa_offset(model, sensor: torch.Tensor) -> tuple[tuple[int, int], 
                     "under the %d px a side on which it was reliable in tests: check the reconstruction's spectra, or "
                     "give the offset with --cfa-offset Y,X", oy, ox, *est.scored_px, MIN_SCORED_PX)
     return est.offset, est.as_dict()
+
+
+def checked_sensor_origin(model, sensor: torch.Tensor, source) -> dict | None:
+    """No ``--cfa-offset``: the capture is taken to start where the sensor does (CFA phase 0,0), and checked.
+    The phases are scored as ``auto`` does, on the central :data:`~hsicam.engine.cfa_offset.CHECK_WINDOW_PX` px;
+    when another phase clearly explains the capture better (:attr:`~hsicam.engine.cfa_offset.CfaOffsetEstimate.
+    rules_out_origin`) a warning names it (a crop reconstructed at the wrong phase has wrong spectra, without a
+    word before). Returns the check's record for the cube's metadata; None when the capture is too small or dark
+    to tell (nothing is said: 0,0 is taken, as before)."""
+    from hsicam.engine.cfa_offset import CHECK_WINDOW_PX, estimate_cfa_offset
+
+    try:
+        est = estimate_cfa_offset(model, sensor, CHECK_WINDOW_PX)
+    except InputError as e:  # too small or black to tell: the reconstruction goes on at 0,0
+        log.debug("CFA phase 0,0 not checked: %s", e)
+        return None
+    oy, ox = est.offset
+    if not est.rules_out_origin:
+        log.info("CFA phase 0,0 (no --cfa-offset): no other phase explains the capture clearly better (checked on its "
+                 "central %d×%d px; --cfa-offset 0,0 skips the check)", *est.scored_px)
+    else:
+        log.warning("%s: the capture does not look as if it started where the sensor does (CFA phase 0,0, taken "
+                    "without --cfa-offset): the phase %d,%d explains it clearly better (relative residual %.3g against "
+                    "%.3g), so its spectra are likely wrong; if it is a crop or a region-of-interest readout, give the "
+                    "sensor row and column of its first pixel with --cfa-offset Y,X, or --cfa-offset auto (%d,%d here); "
+                    "--cfa-offset 0,0 takes it as given", source, oy, ox, est.residuals[f"{oy},{ox}"],
+                    est.residuals["0,0"], oy, ox)
+    return {**est.as_dict(), "warned": est.rules_out_origin}
 
 
 def offset_reconstructor(fn, offset: tuple[int, int]):
@@ -536,10 +566,12 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
     _check_capture_size(args, img.shape, period)
     check_room_for_cube(out, len(model.bands), *img.shape)  # before the work, which takes minutes at full size
     sensor = torch.from_numpy(img)[None, None].to(args.device)
+    rec = _checked_reconstructor(args, model, img.shape)  # before any work: the memory it takes is checked
     offset = _capture_offset(args, cfg, model, sensor, period, meta)
     if args.full_well_e is not None:  # after the offset: a flat field's gain map sits at the capture's first pixel
+        # (the reconstructor reads the camera's noise model when it runs, so it may be built before)
         meta.update(capture_noise(model, report, args.full_well_e, args.read_noise_e or 0.0, corr, offset))
-    fn = _tiled_reconstructor(args, model, img.shape, offset)
+    fn = offset_reconstructor(rec, offset)
     cube = reconstruct_tiled(fn, sensor, args.tile, progress=None)[0]  # the halo fn declares
     del sensor
     # Radiance is non-negative: the network's small negative excursions are clipped at 0.
@@ -650,7 +682,11 @@ def _capture_offset(args: argparse.Namespace, cfg, model, sensor: torch.Tensor, 
     ``meta``; (0, 0) for a camera without a CFA."""
     offset = args.cfa_offset
     if period > 1:
-        if offset == "auto":
+        if offset is None:
+            offset, check = (0, 0), checked_sensor_origin(model, sensor, args.sensor)
+            if check is not None:
+                meta["cfa_offset_check"] = check
+        elif offset == "auto":
             offset, meta["cfa_offset_estimate"] = estimated_cfa_offset(model, sensor)
         meta["cfa_offset"] = list(offset)
     elif cfg.camera.kind != "doe":  # a CASSI camera's coded aperture is taken at the capture's place, as a CFA is
@@ -658,16 +694,17 @@ def _capture_offset(args: argparse.Namespace, cfg, model, sensor: torch.Tensor, 
             raise InputError("--cfa-offset auto estimates the phase of a periodic CFA; this CASSI camera's coded "
                              "aperture has no period: give the sensor row and column of the capture's first pixel, "
                              "--cfa-offset Y,X (0,0: where the sensor starts)")
+        offset = (0, 0) if offset is None else offset
         meta["cfa_offset"] = list(offset)
-    elif offset != (0, 0):
+    elif offset not in (None, (0, 0)):
         log.warning("--cfa-offset is ignored: the camera has no colour filter array")
         offset = (0, 0)
-    return offset
+    return offset or (0, 0)
 
 
-def _tiled_reconstructor(args: argparse.Namespace, model, shape: tuple[int, int], offset):
-    """The model's reconstructor shifted to the capture's ``offset``, once the memory it takes is checked (and a
-    tile smaller than its halo warned of)."""
+def _checked_reconstructor(args: argparse.Namespace, model, shape: tuple[int, int]):
+    """The model's reconstructor, once the memory it takes for an image of ``shape`` is checked (and a tile
+    smaller than its halo warned of); :func:`offset_reconstructor` shifts it to the capture's place."""
     rec = model.reconstructor()
     # the halo of the tiles: what comes before the consistency steps, which then go over the whole image
     halo = rec.before_steps.context_px if hasattr(rec, "steps") else rec.context_px
@@ -677,7 +714,7 @@ def _tiled_reconstructor(args: argparse.Namespace, model, shape: tuple[int, int]
         log.warning("--tile %d is smaller than the reconstruction's context (%d px per side): each tile computes "
                     "about %.0f× its own pixels; a tile of %d px or more is faster", tile, halo,
                     ((tile + 2 * halo) / tile) ** 2, 2 * halo)
-    return offset_reconstructor(rec, offset)
+    return rec
 
 
 def _write_outputs(out: Path, inputs: dict[str, str | None], cube: np.ndarray, bands, meta: dict) -> None:
