@@ -27,6 +27,7 @@ and device) and return the same kind.
 from __future__ import annotations
 
 import functools
+import math
 from importlib import resources
 from typing import Union
 
@@ -196,34 +197,74 @@ def cube_to_srgb(cube: Array, bands: Bands) -> Array:
 PREVIEW_CHUNK_PX = 1 << 18
 
 
-def srgb_preview(cube: np.ndarray, bands: Bands, chunk_px: int | None = None) -> np.ndarray:
-    """The 8-bit sRGB preview (H, W, 3) uint8 of a (C, H, W) float32 cube (``reconstruct``'s ``*_rgb.png``):
-    :func:`cube_to_srgb` quantised as :func:`hsicam.io.write_png8` does, rendered a band of rows (about
-    ``chunk_px`` pixels, default :data:`PREVIEW_CHUNK_PX`) at a time, so its temporaries stay that size
-    whatever the cube's (whole, they were half a cube; the same values: each pixel's colour is its own)."""
-    from hsicam.io import png8_values
+#: Where every exposed display preview puts the 99th percentile of its image (simulate's sensor preview,
+#: :func:`hsicam.data.images.sensor_preview`) or of its luminance (reconstruct's ``*_rgb.png``,
+#: :func:`preview_exposure`; ``data show``'s thumbnails).
+PREVIEW_LEVEL = 0.8
+#: The PNG text chunk in which an exposed preview records its exposure (the gain its values were multiplied by).
+PREVIEW_EXPOSURE_KEY = "hsicam-display-preview-exposure"
 
+
+def _checked_preview_cube(cube: np.ndarray, bands: Bands, what: str) -> None:
     if not isinstance(cube, np.ndarray):
         hint = ": cube.detach().cpu().numpy()" if isinstance(cube, torch.Tensor) else ""
-        raise InputError(f"srgb_preview: the cube must be a NumPy array (C, H, W), got {type(cube).__name__}{hint}")
+        raise InputError(f"{what}: the cube must be a NumPy array (C, H, W), got {type(cube).__name__}{hint}")
     if cube.ndim != 3:
-        raise InputError(f"srgb_preview: the cube must be (C, H, W), got shape {tuple(cube.shape)}")
-    _check_band_axis(cube, 0, bands, "srgb_preview")
+        raise InputError(f"{what}: the cube must be (C, H, W), got shape {tuple(cube.shape)}")
+    _check_band_axis(cube, 0, bands, what)
+
+
+def _row_chunks(cube: np.ndarray, chunk_px: int | None):
+    """Row slices of about ``chunk_px`` pixels (default :data:`PREVIEW_CHUNK_PX`) covering the (C, H, W) cube."""
     _, h, w = cube.shape
     rows = max(1, int(PREVIEW_CHUNK_PX if chunk_px is None else chunk_px) // w)
-    out = np.empty((h, w, 3), dtype=np.uint8)
-    for r0 in range(0, h, rows):
-        rgb = cube_to_srgb(torch.from_numpy(cube[:, r0 : r0 + rows]), bands).numpy()
-        out[r0 : r0 + rows] = png8_values(np.moveaxis(rgb, 0, -1))
+    return [slice(r0, r0 + rows) for r0 in range(0, h, rows)]
+
+
+def preview_exposure(cube: np.ndarray, bands: Bands, chunk_px: int | None = None) -> float:
+    """The gain that puts the 99th percentile of the luminance of a (C, H, W) cube (CIE 1931 Y, a white
+    reflector's Y = 1) at :data:`PREVIEW_LEVEL`: the exposure of a display preview, so that a dim cube is seen and a
+    tiny highlight does not set the scale; 1 when that percentile is not above 0. Y is computed a band of rows at
+    a time (float32: a 16th of the cube at most, with the percentile's copy)."""
+    _checked_preview_cube(cube, bands, "preview_exposure")
+    wy = xyz_weights(bands)[1].astype(np.float32)
+    y = np.empty(cube.shape[1:], dtype=np.float32)
+    for rows in _row_chunks(cube, chunk_px):
+        y[rows] = np.tensordot(wy, cube[:, rows].astype(np.float32, copy=False), axes=1)
+    p99 = float(np.percentile(y, 99))
+    return PREVIEW_LEVEL / p99 if math.isfinite(p99) and p99 > 0 else 1.0
+
+
+def srgb_preview(cube: np.ndarray, bands: Bands, chunk_px: int | None = None, exposure: float = 1.0) -> np.ndarray:
+    """The 8-bit sRGB preview (H, W, 3) uint8 of a (C, H, W) float32 cube: :func:`cube_to_srgb` of the cube times
+    ``exposure`` (default 1: the absolute render, as the experiments' comparison figures draw every method;
+    ``reconstruct``'s ``*_rgb.png`` takes :func:`preview_exposure`), quantised as :func:`hsicam.io.write_png8`
+    does, rendered a band of rows (about ``chunk_px`` pixels, default :data:`PREVIEW_CHUNK_PX`) at a time, so its
+    temporaries stay that size whatever the cube's (whole, they were half a cube; the same values: each pixel's
+    colour is its own)."""
+    from hsicam.io import png8_values
+
+    _checked_preview_cube(cube, bands, "srgb_preview")
+    if not (isinstance(exposure, (int, float, np.floating, np.integer)) and not isinstance(exposure, bool)
+            and math.isfinite(exposure) and exposure > 0):
+        raise InputError(f"srgb_preview: exposure must be a positive number, got {exposure!r}")
+    out = np.empty((*cube.shape[1:], 3), dtype=np.uint8)
+    for rows in _row_chunks(cube, chunk_px):
+        part = torch.from_numpy(cube[:, rows])
+        rgb = cube_to_srgb(part if exposure == 1 else part * float(exposure), bands).numpy()
+        out[rows] = png8_values(np.moveaxis(rgb, 0, -1))
     return out
 
 
 __all__ = [
     "PREVIEW_CHUNK_PX",
+    "PREVIEW_EXPOSURE_KEY",
+    "PREVIEW_LEVEL",
     "TABLE_RANGE_NM",
     "WHITE_BALANCE_RANGE",
     "cmf_d65_table",
     "cube_to_srgb",
+    "preview_exposure",
     "spectra_to_linear_srgb",
     "spectra_to_srgb",
     "spectra_to_xyz",

@@ -1,6 +1,6 @@
 """`hsicam data show`'s contact sheet says that each thumbnail is exposed to its own brightness. Found by looking
 at the PNGs (a review of the pictures): a held-out scene's thumbnail had a mean sRGB value of 0.30 where the
-absolute render of the same cube (reconstruct's *_rgb.png convention) has 0.095, and the title said only
+absolute render of the same cube (srgb_preview at exposure 1) has 0.095, and the title said only
 "sRGB renders (CIE 1931 2°, D65)"."""
 
 from __future__ import annotations

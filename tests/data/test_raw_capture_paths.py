@@ -112,7 +112,7 @@ def test_the_success_line_names_the_cube_and_its_preview(run, png16, tmp_path):
     res = _reconstruct(png16, run, tmp_path / "a.h5", "--black-level", "1000")
     _ok(res)
     out = res.stdout
-    assert f"-> {tmp_path / 'a.h5'} (sRGB preview a_rgb.png)" in out and (tmp_path / "a_rgb.png").is_file()
+    assert f"-> {tmp_path / 'a.h5'} (sRGB preview a_rgb.png, exposed ×" in out and (tmp_path / "a_rgb.png").is_file()
 
 
 def test_the_metadata_records_only_the_gains_applied(run, png16, tmp_path):

@@ -1,6 +1,6 @@
 """The comparison figures of `hsicam experiment compare|ablation` (review of the pictures, session 62): for our
-camera's worst and median scene, the truth and every method's reconstruction as the absolute sRGB render of
-reconstruct's ``*_rgb.png`` (:func:`hsicam.color.srgb_preview`, the reference), and each method's mean |error| over
+camera's worst and median scene, the truth and every method's reconstruction as the absolute sRGB render
+(:func:`hsicam.color.srgb_preview` at exposure 1, the reference), and each method's mean |error| over
 bands on one colour scale. Checked on a stand-in camera whose sensor image is the scene itself and methods that
 scale it by known gains, so that every estimate and error map is known in closed form; the scenes chosen are read
 back from experiment.json's own per-scene rows, the figures from the drawn figure objects."""

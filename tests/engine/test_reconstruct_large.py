@@ -76,15 +76,16 @@ def test_the_preview_is_rendered_in_parts_with_the_whole_cubes_values(monkeypatc
 def test_writing_a_cube_and_its_preview_holds_little_beyond_the_cube(tmp_path, monkeypatch, suffix):
     """numpy's and Python's allocations while the cube (31 × 512 × 512, 32.5 MB) and its preview are written:
     under a tenth of the cube (they were 0.45× for .h5: the preview's float64 copies and a whole-cube finiteness
-    mask; 1.2× for ENVI, whose data was copied into one bytes object); torch's (the preview's colour
-    conversion) are bounded by the part size, which the test above checks. The files read back as written."""
+    mask; 1.2× for ENVI, whose data was copied into one bytes object), the preview's exposure (the luminance of
+    every pixel, float32) included; torch's (the preview's colour conversion) are bounded by the part size, which the
+    test above checks. The files read back as written."""
     monkeypatch.setattr("hsicam.color.PREVIEW_CHUNK_PX", 1 << 14)
     cube = np.random.default_rng(1).uniform(0.0, 1.0, (31, 512, 512)).astype(np.float32)
     out = tmp_path / f"cube{suffix}"
     rc.write_cube_file(tmp_path / f"warm{suffix}", cube[:, :8, :8], BANDS, {})  # imports and caches: not counted
     tracemalloc.start()
     try:
-        rc.write_cube_file(out, cube, BANDS, {"source": "test"})
+        exposure = rc.write_cube_file(out, cube, BANDS, {"source": "test"})
         peak = tracemalloc.get_traced_memory()[1]
     finally:
         tracemalloc.stop()
@@ -93,7 +94,7 @@ def test_writing_a_cube_and_its_preview_holds_little_beyond_the_cube(tmp_path, m
     np.testing.assert_array_equal(back[0], cube)
     import imageio.v3 as iio
 
-    _same_preview(iio.imread(tmp_path / "cube_rgb.png"), _whole_preview(cube))
+    _same_preview(iio.imread(tmp_path / "cube_rgb.png"), _whole_preview(cube * np.float32(exposure)))  # exposed
 
 
 def test_the_room_needed_is_the_real_output():

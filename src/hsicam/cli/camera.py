@@ -197,8 +197,8 @@ def check_boundary_applies(camera, boundary: str) -> None:
 def cmd_simulate(args: argparse.Namespace) -> int:
     import torch
 
-    from hsicam.data.images import (SENSOR_PREVIEW, SENSOR_PREVIEW_KEY, SENSOR_PREVIEW_LEVEL, SENSOR_SCALE_KEY,
-                                    SIMULATE_JSON, sensor_preview)
+    from hsicam.color import PREVIEW_EXPOSURE_KEY, PREVIEW_LEVEL
+    from hsicam.data.images import SENSOR_PREVIEW, SENSOR_SCALE_KEY, SIMULATE_JSON, sensor_preview
     from hsicam.data.pipeline import npy_bands
     from hsicam.report.camera import write_optics_figures
 
@@ -227,7 +227,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
         # the scale travels inside the PNG too: a copy taken away from simulate.json keeps its level
         write_png16(tmp / "sensor.png", sensor / png_scale, text={SENSOR_SCALE_KEY: repr(png_scale)})
         preview, exposure = sensor_preview(sensor)  # to look at: the data file of a dim scene looks black
-        write_png8(tmp / SENSOR_PREVIEW, preview, text={SENSOR_PREVIEW_KEY: f"{exposure:.6g}"})
+        write_png8(tmp / SENSOR_PREVIEW, preview, text={PREVIEW_EXPOSURE_KEY: f"{exposure:.6g}"})
         if camera.kind == "doe":
             write_optics_figures(camera, tmp)
         write_json(tmp / SIMULATE_JSON, {
@@ -252,5 +252,5 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     # the preview on a line of its own: the first stays the line scripts read (its last word the output folder)
     print(f"sensor image {sensor.shape[0]}×{sensor.shape[1]} (min {sensor.min():.4g}, max {peak:.4g}) -> {out}\n"
           f"{SENSOR_PREVIEW}: a display preview (linear, ×{exposure:.3g}: its 99th percentile at "
-          f"{SENSOR_PREVIEW_LEVEL:g} of white), not data")
+          f"{PREVIEW_LEVEL:g} of white), not data")
     return 0

@@ -333,31 +333,38 @@ def check_room_for_cube(path: Path, n_bands: int, height: int, width: int) -> No
                          f"{free_space_text(need, free)}; free some space or choose an --out on a larger disk")
 
 
-def write_cube_file(path: Path, cube: np.ndarray, bands, metadata: dict) -> None:
+def write_cube_file(path: Path, cube: np.ndarray, bands, metadata: dict) -> float:
     """Our HDF5 (.h5) or ENVI (.hdr) by extension, plus an sRGB preview ``<stem>_rgb.png``; ``metadata``
     (with ``command``: reconstruct) goes into the HDF5's ``metadata_json`` or the ENVI header's
-    ``hsicam metadata`` line (:data:`hsicam.data.formats.ENVI_METADATA_KEY`)."""
-    from hsicam.color import srgb_preview
+    ``hsicam metadata`` line (:data:`hsicam.data.formats.ENVI_METADATA_KEY`). The preview is exposed as every
+    display preview is (its 99th-percentile luminance at :data:`hsicam.color.PREVIEW_LEVEL` of white,
+    :func:`hsicam.color.preview_exposure`; before session 67 it was the absolute render, nearly black for a dim
+    capture): the gain is recorded in its PNG text chunk :data:`hsicam.color.PREVIEW_EXPOSURE_KEY` and in
+    the metadata (``preview_exposure``), and returned."""
+    from hsicam.color import PREVIEW_EXPOSURE_KEY, preview_exposure, srgb_preview
     from hsicam.data.formats import write_cube_h5, write_envi
     from hsicam.io import write_png8
 
     suffix = path.suffix.lower()
     if suffix not in CUBE_SUFFIXES:
         raise InputError(f"{path}: output must end in .h5 (HDF5) or .hdr (ENVI)")
-    rgb = srgb_preview(cube, bands)  # before any file is written
+    exposure = preview_exposure(cube, bands)
+    rgb = srgb_preview(cube, bands, exposure=exposure)  # before any file is written
     preview = path.with_name(f"{path.stem}_rgb.png")
     preview.unlink(missing_ok=True)  # an earlier reconstruction's (checked): never beside a newer cube
-    metadata = {"command": "reconstruct", **metadata}  # ENVI's header keeps what the HDF5 keeps (write_envi)
+    # ENVI's header keeps what the HDF5 keeps (write_envi)
+    metadata = {"command": "reconstruct", **metadata, "preview_exposure": exposure}
     if suffix in (".h5", ".hdf5"):
         write_cube_h5(path, cube, bands, metadata)
     else:  # a stop between its two files removes the data file it put there (write_envi): none is left alone
         write_envi(path, cube, bands, description=ENVI_DESCRIPTIONS[0], metadata=metadata)
     try:
-        write_png8(preview, rgb)
+        write_png8(preview, rgb, text={PREVIEW_EXPOSURE_KEY: f"{exposure:.6g}"})
     except BaseException:  # Ctrl-C, SIGTERM, a full disk: the cube just written is not left without its preview
         for f in output_files(path)[:-1]:
             f.unlink(missing_ok=True)
         raise
+    return exposure
 
 
 def check_reconstruction_memory(rec, bands: int, shape: tuple[int, int], tile: int | None, source) -> None:
@@ -576,9 +583,9 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
     del sensor
     # Radiance is non-negative: the network's small negative excursions are clipped at 0.
     cube = cube.float().clamp_min_(0).cpu().numpy()
-    _write_outputs(out, inputs, cube, model.bands, meta)
+    exposure = _write_outputs(out, inputs, cube, model.bands, meta)
     print(f"reconstructed {cube.shape[0]} bands × {cube.shape[1]}×{cube.shape[2]} -> {out} "
-          f"(sRGB preview {output_files(out)[-1].name})")
+          f"(sRGB preview {output_files(out)[-1].name}, exposed ×{exposure:.3g} for display)")
     return 0
 
 
@@ -717,11 +724,12 @@ def _checked_reconstructor(args: argparse.Namespace, model, shape: tuple[int, in
     return rec
 
 
-def _write_outputs(out: Path, inputs: dict[str, str | None], cube: np.ndarray, bands, meta: dict) -> None:
-    """The cube file and its preview, once the output files are checked again (the work may have taken a while)."""
+def _write_outputs(out: Path, inputs: dict[str, str | None], cube: np.ndarray, bands, meta: dict) -> float:
+    """The cube file and its preview, once the output files are checked again (the work may have taken a while);
+    returns the preview's exposure."""
     from hsicam.memory import format_bytes
 
     check_outputs(out, inputs)  # again: the reconstruction may have taken a while
     check_room_for_cube(out, cube.shape[0], *cube.shape[1:])
     log.info("writing %s (%s) and its sRGB preview", out, format_bytes(cube.nbytes))  # a minute at 4096² px
-    write_cube_file(out, cube, bands, meta)
+    return write_cube_file(out, cube, bands, meta)

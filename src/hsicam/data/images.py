@@ -832,19 +832,19 @@ SENSOR_SCALE_KEY = "hsicam-sensor-scale"
 
 
 #: ``hsicam simulate``'s display image of its sensor image, beside the data file sensor.png: 8-bit, linear, exposed
-#: so that its 99th percentile is :data:`SENSOR_PREVIEW_LEVEL` of white (the data file of a dim scene, e.g. the tiny
+#: so that its 99th percentile is :data:`hsicam.color.PREVIEW_LEVEL` of white (the data file of a dim scene, e.g. the tiny
 #: camera's at 0.12 of full scale, looks black). Not sensor data: reconstruct refuses it (its text chunk
-#: :data:`SENSOR_PREVIEW_KEY` holds the exposure).
+#: :data:`hsicam.color.PREVIEW_EXPOSURE_KEY` holds the exposure).
 SENSOR_PREVIEW = "sensor_preview.png"
-SENSOR_PREVIEW_LEVEL = 0.8
-SENSOR_PREVIEW_KEY = "hsicam-display-preview-exposure"
 
 
 def sensor_preview(sensor: np.ndarray) -> tuple[np.ndarray, float]:
     """(image in [0, 1], exposure) of :data:`SENSOR_PREVIEW`: ``sensor`` times the exposure that puts its 99th
-    percentile at :data:`SENSOR_PREVIEW_LEVEL` (1 for an image whose 99th percentile is 0), clipped."""
+    percentile at :data:`hsicam.color.PREVIEW_LEVEL` (1 for an image whose 99th percentile is 0), clipped."""
+    from hsicam.color import PREVIEW_LEVEL
+
     p99 = float(np.percentile(sensor, 99)) if sensor.size else 0.0
-    exposure = SENSOR_PREVIEW_LEVEL / p99 if p99 > 0 else 1.0
+    exposure = PREVIEW_LEVEL / p99 if p99 > 0 else 1.0
     return np.clip(np.asarray(sensor, dtype=np.float64) * exposure, 0.0, 1.0), exposure
 
 
@@ -900,7 +900,9 @@ def read_capture(path: str | Path, corr: RawCorrection | None = None, scale: flo
     if path.suffix.lower() not in IMAGE_SUFFIXES:
         raise InputError(f"{path}: unsupported sensor image format (use .npy, .png, .tif)")
     image = read_image_2d(path, "sensor image")
-    preview_exposure = _png_text(path, SENSOR_PREVIEW_KEY) if image.format == "png" else None
+    from hsicam.color import PREVIEW_EXPOSURE_KEY
+
+    preview_exposure = _png_text(path, PREVIEW_EXPOSURE_KEY) if image.format == "png" else None
     if preview_exposure is not None:
         raise InputError(f"{path}: hsicam simulate's display preview (exposed x{preview_exposure}, 8 bit), not sensor "
                          "data: give its sensor.png or sensor.npy")

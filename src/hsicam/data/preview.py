@@ -20,7 +20,7 @@ from typing import Any
 
 import numpy as np
 
-from hsicam.color import TABLE_RANGE_NM, cube_to_srgb, spectra_to_xyz
+from hsicam.color import PREVIEW_LEVEL, TABLE_RANGE_NM, cube_to_srgb, preview_exposure
 from hsicam.data.cube import conform_bands, normalize_per_cube_max
 from hsicam.data.datasets import list_scenes
 from hsicam.data.formats import read_cube
@@ -58,7 +58,7 @@ def preview_grey(cube: np.ndarray, max_side: int = 192) -> np.ndarray:
     :func:`preview_rgb` (99th percentile at 0.8), for cubes with no visible bands to render."""
     m = _downsample(np.asarray(cube, dtype=np.float64), max_side).mean(axis=0)
     p99 = float(np.percentile(m, 99))
-    m = np.clip(m * (0.8 / p99 if p99 > 0 else 1.0), 0.0, 1.0)
+    m = np.clip(m * (PREVIEW_LEVEL / p99 if p99 > 0 else 1.0), 0.0, 1.0)
     return np.repeat(m[..., None], 3, axis=-1)
 
 
@@ -72,10 +72,7 @@ def preview_rgb(cube: np.ndarray, bands: Bands, max_side: int = 192) -> np.ndarr
     sub = Bands(bands.centers_nm[keep], bands.fwhm_nm[keep])
     c = _downsample(cube[keep], max_side)
     c, _ = normalize_per_cube_max(c)
-    y = spectra_to_xyz(np.moveaxis(c, 0, -1), sub)[..., 1]
-    p99 = float(np.percentile(y, 99))
-    exposure = 0.8 / p99 if p99 > 0 else 1.0
-    return np.moveaxis(cube_to_srgb(c * exposure, sub), 0, -1)
+    return np.moveaxis(cube_to_srgb(c * preview_exposure(c, sub), sub), 0, -1)
 
 
 def check_max_scenes(max_scenes: int) -> int:
@@ -146,9 +143,9 @@ def _scene_figures(path: Path, scenes: list[Path], npy_bands: Bands | None = Non
         ax.axis("off")
     lo, hi = TABLE_RANGE_NM
     # each thumbnail is exposed to its own brightness (preview_rgb): say so, or a dim scene looks as bright as
-    # any other, and 3x brighter than the absolute render of reconstruct's *_rgb.png
+    # any other, and 3x brighter than its absolute render (hsicam.color.srgb_preview at exposure 1)
     title = [f"{path.name}: sRGB renders (CIE 1931 2°, D65)", "each scene exposed to its own brightness "
-             "(99th-percentile luminance at 0.8)" + (
+             f"(99th-percentile luminance at {PREVIEW_LEVEL:g})" + (
                  f"; (grey): mean over bands, fewer than 2 bands in {lo:g}-{hi:g} nm" if grey else "")]
     width = 30 * cols + 4  # characters of 10 pt text across the sheet: a narrow sheet's title wraps, not widens it
     sheet.suptitle("\n".join(textwrap.fill(line, width) for line in title), fontsize=10)

@@ -328,7 +328,7 @@ def _experiment_sections(folder: Path, out: Path, exp: dict) -> list[str]:
             if (folder / f["file"]).is_file():
                 parts.append(_img(f"../{f['file']}", f"{f['scene']} ({f['role']} scene of {f['methods'][0]} by PSNR): "
                                   "ground truth and each method's reconstruction (absolute sRGB render, CIE 1931 / D65, "
-                                  "as reconstruct's *_rgb.png), titled with its PSNR / SSIM on this scene, and each "
+                                  "not exposed per image), titled with its PSNR / SSIM on this scene, and each "
                                   "method's mean |error| over bands on one colour scale"))
     parts.append(_conventions(exp["conventions"]))
     runs = sorted(p for p in (folder / "runs").iterdir() if (p / "model.safetensors").is_file()) if (folder / "runs").is_dir() else []

@@ -97,7 +97,7 @@ def comparison_panel(label: str, truth: np.ndarray, est: np.ndarray, bands: Band
 
 def plot_method_comparison(truth_rgb: np.ndarray, panels, path: str | Path, title: str = "") -> None:
     """One scene, every method: top row the truth and each method's reconstruction as the absolute sRGB render
-    (:func:`cube_rgb`, as reconstruct's ``*_rgb.png`` and the demo's reconstructions.png: not exposed per image, so
+    (:func:`cube_rgb`, as the demo's reconstructions.png: not exposed per image, unlike reconstruct's ``*_rgb.png``, so
     a method that is too dark looks too dark), titled with the method and its PSNR / SSIM; bottom row each
     method's mean |error| over bands on one colour scale (0 to the largest error of any method: nothing clipped)
     with one colour bar."""
