@@ -134,6 +134,10 @@ def estimated_cfa_offset(model, sensor: torch.Tensor) -> tuple[tuple[int, int], 
                     "candidate's is only %.0f%% higher): the capture may be too dark, noisy or featureless to tell; if "
                     "its spectra look wrong, measure the offset (e.g. on a capture of a textured, colourful target) and "
                     "give it with --cfa-offset Y,X", oy, ox, best, 100 * min(est.contrast, 99.0))
+    elif est.close_runner_up:  # two phases apart from the rest: the median does not see it
+        log.warning("--cfa-offset auto: %d,%d explains the capture barely better than %s (residual %.4g against "
+                    "%.4g): check the reconstruction's spectra, or measure the offset and give it with "
+                    "--cfa-offset Y,X", oy, ox, second, best, r2)
     if est.small:  # both when both (docs/hardware.md: a small capture "is warned about too")
         log.warning("--cfa-offset auto: %d,%d was scored on only %d×%d px (the capture less the camera's PSF reach), "
                     "under the %d px a side on which it was reliable in tests: check the reconstruction's spectra, or "
