@@ -224,15 +224,18 @@ def _row_chunks(cube: np.ndarray, chunk_px: int | None):
 def preview_exposure(cube: np.ndarray, bands: Bands, chunk_px: int | None = None) -> float:
     """The gain that puts the 99th percentile of the luminance of a (C, H, W) cube (CIE 1931 Y, a white
     reflector's Y = 1) at :data:`PREVIEW_LEVEL`: the exposure of a display preview, so that a dim cube is seen and a
-    tiny highlight does not set the scale; 1 when that percentile is not above 0. Y is computed a band of rows at
-    a time (float32: a 16th of the cube at most, with the percentile's copy)."""
+    tiny highlight does not set the scale; NaN pixels are left out; 1 when that percentile is not above 0 or the
+    gain would not be a finite float32. Y is computed a band of rows at a time (float32: with the percentile's
+    copy, 2/C of the cube)."""
     _checked_preview_cube(cube, bands, "preview_exposure")
     wy = xyz_weights(bands)[1].astype(np.float32)
     y = np.empty(cube.shape[1:], dtype=np.float32)
     for rows in _row_chunks(cube, chunk_px):
         y[rows] = np.tensordot(wy, cube[:, rows].astype(np.float32, copy=False), axes=1)
-    p99 = float(np.percentile(y, 99))
-    return PREVIEW_LEVEL / p99 if math.isfinite(p99) and p99 > 0 else 1.0
+    with np.errstate(all="ignore"):  # an all-NaN luminance: NaN, taken as none below
+        p99 = float(np.nanpercentile(y, 99)) if not np.isnan(y).all() else math.nan
+    gain = PREVIEW_LEVEL / p99 if math.isfinite(p99) and p99 > 0 else 1.0
+    return gain if gain < float(np.finfo(np.float32).max) else 1.0
 
 
 def srgb_preview(cube: np.ndarray, bands: Bands, chunk_px: int | None = None, exposure: float = 1.0) -> np.ndarray:

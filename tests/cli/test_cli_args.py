@@ -507,8 +507,9 @@ def _same_value(claim: str, value) -> bool:
 def test_every_default_a_help_states_is_the_value_the_command_takes(tmp_path, monkeypatch):
     """A help's "(default X)" (or "X (default)") is the option's argparse default, and an option with a default of
     its own says it; where the argparse default is None and the command fills in the value (tolerance's sweeps,
-    reconstruct's --tv-weight and --read-noise-e, captured where one reconstruct uses them), a value the help states
-    is the one the command takes. A help's default written in words ("the run's train.epochs") is not checked here."""
+    reconstruct's --tv-weight, --read-noise-e and --cfa-offset, captured where one reconstruct uses them), a value
+    the help states is the one the command takes. A help's default written in words ("the run's train.epochs") is not
+    checked here."""
     fallbacks = _fallbacks(tmp_path, monkeypatch)
     wrong, unsaid, unknown = [], [], []
     for words, action, text in _help_claims():

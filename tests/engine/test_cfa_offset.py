@@ -224,11 +224,13 @@ def test_a_crop_reconstructed_without_its_offset_is_warned_about_and_an_aligned_
     assert _meta(tmp_path / "crop.h5")["cfa_offset"] == [0, 0]  # warned, not changed: the user decides
 
     caplog.clear()
-    with caplog.at_level(logging.INFO):
+    with caplog.at_level(logging.DEBUG, logger="hsicam.cli.reconstruct"):
         assert_ok(run_cli_in_process("reconstruct", str(whole), "--run", RUN, "--out", str(tmp_path / "whole.h5")))
+    assert not [r for r in caplog.records if r.levelno >= logging.INFO and r.name == "hsicam.cli.reconstruct"
+                and "CFA phase" in r.getMessage()], "an aligned capture's check is quiet"
     assert not [r for r in caplog.records if r.levelno >= logging.WARNING], caplog.text
     assert any(r.getMessage().startswith("CFA phase 0,0 (no --cfa-offset): no other phase explains the capture "
-                                         "clearly better (checked on its central") for r in caplog.records), caplog.text
+                                         "clearly better (scored on the central") for r in caplog.records), caplog.text
     check = _meta(tmp_path / "whole.h5")["cfa_offset_check"]
     assert check["offset"] == [0, 0] and check["warned"] is False
 
@@ -306,3 +308,18 @@ def test_a_runner_up_close_to_the_best_is_warned_about_unless_the_estimate_is_am
             assert estimated_cfa_offset(None, None)[0] == (2, 1)
         warned = [r.getMessage() for r in caplog.records]
         assert len(warned) == len(expected) and all(e in w for e, w in zip(expected, warned)), warned
+
+
+def test_the_check_scores_at_least_min_scored_px_whatever_the_window(capture):
+    """A camera whose PSF reach leaves fewer than MIN_SCORED_PX of a small window to score would be checked on too
+    few pixels (and never warned about, `small`): the window widens to score min_scored_px a side, within the
+    capture."""
+    from hsicam.engine.cfa_offset import MIN_SCORED_PX
+
+    system, sensor = capture
+    narrow = estimate_cfa_offset(system, sensor, window_px=48)
+    assert narrow.small and min(narrow.scored_px) < MIN_SCORED_PX
+    wide = estimate_cfa_offset(system, sensor, window_px=48, min_scored_px=MIN_SCORED_PX)
+    assert wide.scored_px == (MIN_SCORED_PX, MIN_SCORED_PX) and not wide.small
+    whole = estimate_cfa_offset(system, sensor, window_px=48, min_scored_px=1000)  # never beyond the capture
+    assert whole.window[2:] == tuple(sensor.shape[-2:])

@@ -31,13 +31,18 @@ def _linear(srgb8: np.ndarray) -> np.ndarray:
 
 def test_the_exposure_puts_the_99th_percentile_of_a_grey_cubes_luminance_at_the_level():
     """Flat spectra of reflectance r have Y = r. 2 % of the pixels at 0.9, the rest at 0.1: the 99th percentile is
-    0.9, whatever the chunking; a black cube (or a NaN percentile) keeps the gain 1."""
+    0.9, whatever the chunking and with a NaN pixel; a black, all-NaN or denormal-dim cube keeps the gain 1."""
     cube = np.full((31, 50, 40), 0.1, np.float32)
     cube[:, :1, :] = 0.9  # 40 of 2000 px
     for chunk in (None, 40, 123):
         assert preview_exposure(cube, BANDS, chunk_px=chunk) == pytest.approx(PREVIEW_LEVEL / 0.9, rel=1e-5)
     assert preview_exposure(np.zeros((31, 8, 8), np.float32), BANDS) == 1.0
     assert preview_exposure(np.full((31, 8, 8), np.nan, np.float32), BANDS) == 1.0
+    holed = cube.copy()
+    holed[:, 10, 10] = np.nan  # one NaN pixel is left out, not a reason to leave the preview unexposed
+    assert preview_exposure(holed, BANDS) == pytest.approx(PREVIEW_LEVEL / 0.9, rel=1e-5)
+    # a luminance so small that its gain is no float32 (it became inf in the cube, a black preview): gain 1
+    assert preview_exposure(np.full((31, 8, 8), 1e-40, np.float32), BANDS) == 1.0
 
 
 def test_an_exposed_preview_is_the_render_of_the_cube_times_the_exposure():
@@ -50,9 +55,10 @@ def test_an_exposed_preview_is_the_render_of_the_cube_times_the_exposure():
 
 
 def test_reconstructs_preview_of_a_dim_capture_is_exposed_and_says_by_how_much(tmp_path):
-    """A dim capture (a 0.03 grey field with a brighter square, through the shipped camera): the preview's
-    luminance, decoded from the PNG's 8-bit values, has its 99th percentile at PREVIEW_LEVEL (to the 8-bit step),
-    where the absolute render's is about 20× lower; the cube is what it was."""
+    """A dim capture (a 0.03 grey field with a brighter square, through the shipped camera): the preview is the
+    render of the cube read back times the recorded gain (> 5), its luminance, decoded from the PNG's 8-bit values,
+    has its 99th percentile at PREVIEW_LEVEL (to the 8-bit step), where the absolute render's is below a fifth of
+    it."""
     rng = np.random.default_rng(1)
     cap = np.full((96, 96), 0.03, np.float32) + rng.uniform(0, 0.004, (96, 96)).astype(np.float32)
     cap[30:60, 30:60] *= 2.0

@@ -147,22 +147,24 @@ def estimated_cfa_offset(model, sensor: torch.Tensor) -> tuple[tuple[int, int], 
 
 def checked_sensor_origin(model, sensor: torch.Tensor, source) -> dict | None:
     """No ``--cfa-offset``: the capture is taken to start where the sensor does (CFA phase 0,0), and checked.
-    The phases are scored as ``auto`` does, on the central :data:`~hsicam.engine.cfa_offset.CHECK_WINDOW_PX` px;
+    The phases are scored as ``auto`` does, on the central :data:`~hsicam.engine.cfa_offset.CHECK_WINDOW_PX` px
+    (wider where the camera's PSF reach leaves fewer than ``MIN_SCORED_PX`` px to score);
     when another phase clearly explains the capture better (:attr:`~hsicam.engine.cfa_offset.CfaOffsetEstimate.
     rules_out_origin`) a warning names it (a crop reconstructed at the wrong phase has wrong spectra, without a
     word before). Returns the check's record for the cube's metadata; None when the capture is too small or dark
     to tell (nothing is said: 0,0 is taken, as before)."""
-    from hsicam.engine.cfa_offset import CHECK_WINDOW_PX, estimate_cfa_offset
+    from hsicam.engine.cfa_offset import CHECK_WINDOW_PX, MIN_SCORED_PX, estimate_cfa_offset
 
     try:
-        est = estimate_cfa_offset(model, sensor, CHECK_WINDOW_PX)
+        est = estimate_cfa_offset(model, sensor, CHECK_WINDOW_PX, min_scored_px=MIN_SCORED_PX)
     except InputError as e:  # too small or black to tell: the reconstruction goes on at 0,0
         log.debug("CFA phase 0,0 not checked: %s", e)
         return None
     oy, ox = est.offset
-    if not est.rules_out_origin:
-        log.info("CFA phase 0,0 (no --cfa-offset): no other phase explains the capture clearly better (checked on its "
-                 "central %d×%d px; --cfa-offset 0,0 skips the check)", *est.scored_px)
+    if not est.rules_out_origin:  # quiet: a line on every reconstruction would say nothing to act on
+        log.debug("CFA phase 0,0 (no --cfa-offset): %s (scored on the central %d×%d px)",
+                  "the capture was too featureless or small to tell" if est.ambiguous or est.small else
+                  "no other phase explains the capture clearly better", *est.scored_px)
     else:
         log.warning("%s: the capture does not look as if it started where the sensor does (CFA phase 0,0, taken "
                     "without --cfa-offset): the phase %d,%d explains it clearly better (relative residual %.3g against "
@@ -577,12 +579,12 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
     _check_capture_size(args, img.shape, period)
     check_room_for_cube(out, len(model.bands), *img.shape)  # before the work, which takes minutes at full size
     sensor = torch.from_numpy(img)[None, None].to(args.device)
-    rec = _checked_reconstructor(args, model, img.shape)  # before any work: the memory it takes is checked
+    # the offset first (a check or an estimate on a central window: about a second), then the noise model at it
     offset = _capture_offset(args, cfg, model, sensor, period, meta)
     if args.full_well_e is not None:  # after the offset: a flat field's gain map sits at the capture's first pixel
-        # (the reconstructor reads the camera's noise model when it runs, so it may be built before)
         meta.update(capture_noise(model, report, args.full_well_e, args.read_noise_e or 0.0, corr, offset))
-    fn = offset_reconstructor(rec, offset)
+    # after the noise model, which widens the steps' context (a noise-aware step's halo): the memory is checked here
+    fn = offset_reconstructor(_checked_reconstructor(args, model, img.shape), offset)
     cube = reconstruct_tiled(fn, sensor, args.tile, progress=None)[0]  # the halo fn declares
     del sensor
     # Radiance is non-negative: the network's small negative excursions are clipped at 0.
@@ -707,10 +709,11 @@ def _capture_offset(args: argparse.Namespace, cfg, model, sensor: torch.Tensor, 
                              "--cfa-offset Y,X (0,0: where the sensor starts)")
         offset = (0, 0) if offset is None else offset
         meta["cfa_offset"] = list(offset)
-    elif offset not in (None, (0, 0)):
-        log.warning("--cfa-offset is ignored: the camera has no colour filter array")
+    else:
+        if offset not in (None, (0, 0)):
+            log.warning("--cfa-offset is ignored: the camera has no colour filter array")
         offset = (0, 0)
-    return offset or (0, 0)
+    return offset
 
 
 def _checked_reconstructor(args: argparse.Namespace, model, shape: tuple[int, int]):

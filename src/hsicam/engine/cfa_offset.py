@@ -142,14 +142,16 @@ MIN_SCORED_PX = 64
 
 
 @torch.no_grad()
-def estimate_cfa_offset(system, sensor: torch.Tensor, window_px: int = DEFAULT_WINDOW_PX) -> CfaOffsetEstimate:
+def estimate_cfa_offset(system, sensor: torch.Tensor, window_px: int = DEFAULT_WINDOW_PX,
+                        min_scored_px: int = 0) -> CfaOffsetEstimate:
     """The CFA phase (Y, X) of the capture ``sensor`` (1, 1, H, W), values in [0, 1], for the trained
     :class:`~hsicam.models.system.CameraSystem` ``system`` (a camera with a CFA of period m > 1).
 
     Scores the m² candidates on the central ``window_px`` × ``window_px`` window (the whole capture
     when smaller): the network alone reconstructs it at each candidate phase, and the camera that
     explains captures (``system.step_camera``, e.g. measured PSFs, else ``system.camera``; PSFs cut
-    to ``model.consistency.psf_energy``) images it again. Costs m² network passes on the window
+    to ``model.consistency.psf_energy``) images it again; the window is widened (within the capture) so that at
+    least ``min_scored_px`` a side are scored inside the PSF's reach. Costs m² network passes on the window
     (the 4×4 CFA: 16; about 2.5 s for 256 px on one CPU core, `pretrained:standard`).
     InputError when the camera has no CFA, or the capture is too small or black."""
     from hsicam.models.consistency import cut_psf
@@ -172,7 +174,8 @@ def estimate_cfa_offset(system, sensor: torch.Tensor, window_px: int = DEFAULT_W
             raise InputError(f"the capture is {h}×{w} px: estimating its CFA offset needs at least {need}×{need} px "
                              f"(the camera's PSF reach of {margin} px on each side, plus 4 CFA periods); give the "
                              "offset with --cfa-offset Y,X")
-        wh, ww = min(h, max(window_px, need)), min(w, max(window_px, need))
+        side = max(window_px, need, 2 * margin + int(min_scored_px))
+        wh, ww = min(h, side), min(w, side)
         wy, wx = (h - wh) // 2, (w - ww) // 2
         y = sensor[..., wy : wy + wh, wx : wx + ww].float()
         inner = (..., slice(margin, wh - margin), slice(margin, ww - margin))
