@@ -205,6 +205,14 @@ PREVIEW_LEVEL = 0.8
 PREVIEW_EXPOSURE_KEY = "hsicam-display-preview-exposure"
 
 
+def display_gain(p99: float) -> float:
+    """The exposure of a display preview whose image (or luminance) has the 99th percentile ``p99``: the gain that
+    puts it at :data:`PREVIEW_LEVEL`; 1 when ``p99`` is not a positive finite number or the gain would not be a
+    finite float32 (a denormal-dim image)."""
+    gain = PREVIEW_LEVEL / p99 if math.isfinite(p99) and p99 > 0 else 1.0
+    return gain if gain < float(np.finfo(np.float32).max) else 1.0
+
+
 def _checked_preview_cube(cube: np.ndarray, bands: Bands, what: str) -> None:
     if not isinstance(cube, np.ndarray):
         hint = ": cube.detach().cpu().numpy()" if isinstance(cube, torch.Tensor) else ""
@@ -232,10 +240,7 @@ def preview_exposure(cube: np.ndarray, bands: Bands, chunk_px: int | None = None
     y = np.empty(cube.shape[1:], dtype=np.float32)
     for rows in _row_chunks(cube, chunk_px):
         y[rows] = np.tensordot(wy, cube[:, rows].astype(np.float32, copy=False), axes=1)
-    with np.errstate(all="ignore"):  # an all-NaN luminance: NaN, taken as none below
-        p99 = float(np.nanpercentile(y, 99)) if not np.isnan(y).all() else math.nan
-    gain = PREVIEW_LEVEL / p99 if math.isfinite(p99) and p99 > 0 else 1.0
-    return gain if gain < float(np.finfo(np.float32).max) else 1.0
+    return display_gain(float(np.nanpercentile(y, 99)) if not np.isnan(y).all() else math.nan)
 
 
 def srgb_preview(cube: np.ndarray, bands: Bands, chunk_px: int | None = None, exposure: float = 1.0) -> np.ndarray:
@@ -253,8 +258,7 @@ def srgb_preview(cube: np.ndarray, bands: Bands, chunk_px: int | None = None, ex
         raise InputError(f"srgb_preview: exposure must be a positive number, got {exposure!r}")
     out = np.empty((*cube.shape[1:], 3), dtype=np.uint8)
     for rows in _row_chunks(cube, chunk_px):
-        part = torch.from_numpy(cube[:, rows])
-        rgb = cube_to_srgb(part if exposure == 1 else part * float(exposure), bands).numpy()
+        rgb = cube_to_srgb(torch.from_numpy(cube[:, rows]) * float(exposure), bands).numpy()  # × 1: exact
         out[rows] = png8_values(np.moveaxis(rgb, 0, -1))
     return out
 
@@ -267,6 +271,7 @@ __all__ = [
     "WHITE_BALANCE_RANGE",
     "cmf_d65_table",
     "cube_to_srgb",
+    "display_gain",
     "preview_exposure",
     "spectra_to_linear_srgb",
     "spectra_to_srgb",

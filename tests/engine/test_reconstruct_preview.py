@@ -16,7 +16,7 @@ import pytest
 from PIL import Image
 
 from cli_helpers import assert_ok, run_cli_in_process
-from hsicam.color import PREVIEW_EXPOSURE_KEY, PREVIEW_LEVEL, preview_exposure, srgb_preview
+from hsicam.color import PREVIEW_EXPOSURE_KEY, PREVIEW_LEVEL, display_gain, preview_exposure, srgb_preview
 from hsicam.errors import InputError
 from hsicam.spectral import Bands
 
@@ -43,6 +43,8 @@ def test_the_exposure_puts_the_99th_percentile_of_a_grey_cubes_luminance_at_the_
     assert preview_exposure(holed, BANDS) == pytest.approx(PREVIEW_LEVEL / 0.9, rel=1e-5)
     # a luminance so small that its gain is no float32 (it became inf in the cube, a black preview): gain 1
     assert preview_exposure(np.full((31, 8, 8), 1e-40, np.float32), BANDS) == 1.0
+    # the one rule of every preview's gain (simulate's sensor preview and data show's grey thumbnails too)
+    assert [display_gain(v) for v in (0.4, 0.0, -1.0, float("nan"), float("inf"), 1e-40)] == [2.0, 1, 1, 1, 1, 1]
 
 
 def test_an_exposed_preview_is_the_render_of_the_cube_times_the_exposure():

@@ -840,11 +840,10 @@ SENSOR_PREVIEW = "sensor_preview.png"
 
 def sensor_preview(sensor: np.ndarray) -> tuple[np.ndarray, float]:
     """(image in [0, 1], exposure) of :data:`SENSOR_PREVIEW`: ``sensor`` times the exposure that puts its 99th
-    percentile at :data:`hsicam.color.PREVIEW_LEVEL` (1 for an image whose 99th percentile is 0), clipped."""
-    from hsicam.color import PREVIEW_LEVEL
+    percentile at :data:`hsicam.color.PREVIEW_LEVEL` (:func:`hsicam.color.display_gain`), clipped."""
+    from hsicam.color import display_gain
 
-    p99 = float(np.percentile(sensor, 99)) if sensor.size else 0.0
-    exposure = PREVIEW_LEVEL / p99 if p99 > 0 else 1.0
+    exposure = display_gain(float(np.percentile(sensor, 99)) if sensor.size else 0.0)
     return np.clip(np.asarray(sensor, dtype=np.float64) * exposure, 0.0, 1.0), exposure
 
 
@@ -894,14 +893,14 @@ def read_capture(path: str | Path, corr: RawCorrection | None = None, scale: flo
     Raises :class:`InputError` for a 32/64-bit integer capture without ``corr.white_level`` (or
     ``auto_level``, which makes the white level irrelevant): the type's maximum is no full scale.
     """
+    from hsicam.color import PREVIEW_EXPOSURE_KEY
+
     path = Path(path)
     if path.is_dir():
         raise InputError(f"{path}: a folder, not a sensor image (give one .npy, .png or .tif file)")
     if path.suffix.lower() not in IMAGE_SUFFIXES:
         raise InputError(f"{path}: unsupported sensor image format (use .npy, .png, .tif)")
     image = read_image_2d(path, "sensor image")
-    from hsicam.color import PREVIEW_EXPOSURE_KEY
-
     preview_exposure = _png_text(path, PREVIEW_EXPOSURE_KEY) if image.format == "png" else None
     if preview_exposure is not None:
         raise InputError(f"{path}: hsicam simulate's display preview (exposed x{preview_exposure}, 8 bit), not sensor "

@@ -20,7 +20,7 @@ from typing import Any
 
 import numpy as np
 
-from hsicam.color import PREVIEW_LEVEL, TABLE_RANGE_NM, cube_to_srgb, preview_exposure
+from hsicam.color import PREVIEW_LEVEL, TABLE_RANGE_NM, cube_to_srgb, display_gain, preview_exposure
 from hsicam.data.cube import conform_bands, normalize_per_cube_max
 from hsicam.data.datasets import list_scenes
 from hsicam.data.formats import read_cube
@@ -57,8 +57,7 @@ def preview_grey(cube: np.ndarray, max_side: int = 192) -> np.ndarray:
     """Grey display image (h, w, 3) in [0, 1] of a cube (C, H, W): its mean over bands, exposed like
     :func:`preview_rgb` (99th percentile at 0.8), for cubes with no visible bands to render."""
     m = _downsample(np.asarray(cube, dtype=np.float64), max_side).mean(axis=0)
-    p99 = float(np.percentile(m, 99))
-    m = np.clip(m * (PREVIEW_LEVEL / p99 if p99 > 0 else 1.0), 0.0, 1.0)
+    m = np.clip(m * display_gain(float(np.percentile(m, 99))), 0.0, 1.0)
     return np.repeat(m[..., None], 3, axis=-1)
 
 
