@@ -503,9 +503,10 @@ def test_shipped_camera_beats_the_box_demosaic_on_held_out_sources(name, monkeyp
     assert ours["psnr"] > box["psnr"] + 0.5, (ours, box)
     assert ours["ssim"] > box["ssim"], (ours, box)
     # and it scores what the shipped weights score through the correct network: measured with this test's code
-    # (PYTHONPATH=src, CPU, float32, OMP_NUM_THREADS=1; /tmp/rev53_tests/repro_shipped_margin.py) at commit df5585a:
-    # standard 43.483 dB PSNR, SSIM 0.94024 (box 39.28 dB). A network that lost a part of its forward pass still
-    # beats the box (the ResBlock without its residual: 43.11 dB), so the margin alone could not tell.
+    # (PYTHONPATH=src, CPU, float32, OMP_NUM_THREADS=1) for the camera retrained in session 68: standard 43.566 dB
+    # PSNR, SSIM 0.94157 (2 threads: the same to 1e-7). The camera shipped before (session 53's repro at df5585a:
+    # 43.483 dB, 0.94024, box 39.28 dB): a network that lost a part of its forward pass still beat the box (the
+    # ResBlock without its residual: 43.11 dB), so the margin alone could not tell.
     if name in SHIPPED_SCORES:
         psnr, ssim = SHIPPED_SCORES[name]
         assert ours["psnr"] == pytest.approx(psnr, abs=0.05), (name, ours)
@@ -513,7 +514,7 @@ def test_shipped_camera_beats_the_box_demosaic_on_held_out_sources(name, monkeyp
 
 
 #: PSNR (dB) and SSIM of the shipped cameras on the two held-out scenes of the test above (how measured: there).
-SHIPPED_SCORES = {"standard": (43.483, 0.94024)}
+SHIPPED_SCORES = {"standard": (43.566, 0.94157)}
 
 
 def test_box_demosaic_method_through_a_pretrained_cameras_optics(env):
