@@ -133,6 +133,10 @@ MIN_RUNNER_UP_RATIO = 1.2
 #: scene's phase 2,1 explains it nearly as well as 0,0, noise-free too; also at 256 px), at (0, 0)'s residual up to
 #: 1.42× the best. At 2× none of the 100 aligned captures is ruled out, and the crops are: noise-free 13 of 14
 #: (standard) and 9 of 15 (demo camera); at σ = 0.02 5 of 16 and 1 of 16 (at 1.5×: 13/14, 13/15, 8/16, 4/16).
+#: The same 96 estimates through the `standard` camera retrained in session 68: 1 of 50 aligned captures ruled out
+#: (a dark scene lit by narrow-band LEDs and display primaries, noise-free: its phase 0,2 explains it 6.6× better
+#: than 0,0, and `auto` picks 0,2 there without a close runner-up), crops noise-free 12 of 14, σ = 0.02 6 of 16,
+#: σ = 0.05 1 of 16.
 MIN_ORIGIN_RATIO = 2.0
 #: :attr:`CfaOffsetEstimate.small` below this scored side (px). Noise-free crops of held-out-sources scenes
 #: through `pretrained:standard` (session 59): every phase right when 66 px were scored (96 px windows), two of
