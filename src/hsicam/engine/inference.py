@@ -111,8 +111,9 @@ def reconstruct_tiled(reconstruct, sensor: torch.Tensor, tile_px: int | None = N
     ``reconstruct.steps``, as :meth:`CameraSystem.reconstructor` gives; ``halo_px`` not given) is tiled up to
     its steps, with ``before_steps.context_px`` of halo (and tiles of :func:`default_tile_px` of that), and its
     steps then go over the whole image (in bands of rows, the same cube as tiles with their halo: each step
-    reaches a few dozen px further: the shipped standard camera's 12 steps with a TV prior would need 490 px of
-    halo where its network and linear step need 182, and a 2048² capture's tiles 9.6 GB).
+    reaches a few dozen px further: the shipped standard camera's 12 steps with a TV prior would need 463 px of
+    halo where its network and linear step need 180; the camera shipped before session 68, 490 and 182 px, whose
+    2048² capture in tiles with the steps' halo took 9.6 GB).
     """
     for name, value, low in (("tile_px", 1 if tile_px is None else tile_px, 1),
                              ("halo_px", 0 if halo_px is None else halo_px, 0)):
