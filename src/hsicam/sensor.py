@@ -171,11 +171,17 @@ class SensorNoise(nn.Module):
     ``gain_origin`` is the sensor pixel (row, column) of the map's top-left corner; a window's
     ``origin`` selects its part of the map (default: ``gain_origin``, the window :meth:`forward` takes
     an image to be). None: a = 1 everywhere.
+
+    ``saturated`` (H, W) bool, optional: the pixels of one capture that the sensor clipped at its white level
+    (:func:`hsicam.data.images.read_capture` with ``return_saturated``), placed at ``gain_origin`` as the gain map
+    is (the same capture's); the measurement-consistency steps take the capture there as a lower bound only
+    (:func:`hsicam.models.consistency.clipped_residual`). It describes a capture, not what :meth:`forward`
+    simulates (which does not clip). None: no pixel clipped.
     """
 
     def __init__(self, model: str = "gaussian", sigma: float = 0.0, full_well_e: float = 1e4,
                  read_noise_e: float = 2.0, bit_depth: int | None = None, gain: torch.Tensor | None = None,
-                 gain_origin: tuple[int, int] = (0, 0)) -> None:
+                 gain_origin: tuple[int, int] = (0, 0), saturated: torch.Tensor | None = None) -> None:
         super().__init__()
         if model not in ("none", "gaussian", "poisson_gaussian"):
             raise ValueError(f"unknown noise model {model!r}")
@@ -186,20 +192,49 @@ class SensorNoise(nn.Module):
             if gain.dim() != 2 or not bool(torch.isfinite(gain).all()) or not bool((gain > 0).all()):
                 raise ValueError(f"the noise gain map must be (H, W), finite and positive, got {tuple(gain.shape)}")
         self.gain, self.gain_origin = gain, (int(gain_origin[0]), int(gain_origin[1]))
+        self.saturated = None
+        self.mark_saturated(saturated)
+
+    def mark_saturated(self, saturated: torch.Tensor | None, origin: tuple[int, int] | None = None) -> None:
+        """Set :attr:`saturated`, the clipped pixels of a capture ((H, W) bool, numpy or torch; None: none), at the
+        sensor pixel ``origin`` of its top-left corner (None: :attr:`gain_origin`; a gain map, of the same capture,
+        must be there already). ValueError for another shape or type, or a map that is not the gain map's size
+        and place."""
+        if saturated is not None:
+            saturated = torch.as_tensor(saturated)
+            if saturated.dim() != 2 or saturated.dtype != torch.bool:
+                raise ValueError(f"the saturated-pixel map must be (H, W) bool, got {tuple(saturated.shape)} of "
+                                 f"{saturated.dtype}")
+        origin = self.gain_origin if origin is None else (int(origin[0]), int(origin[1]))
+        if saturated is not None and self.gain is not None and (saturated.shape != self.gain.shape
+                                                                 or origin != self.gain_origin):
+            raise ValueError(f"the saturated-pixel map ({tuple(saturated.shape)} px at {origin}) and the gain map "
+                             f"({tuple(self.gain.shape)} px at {self.gain_origin}) are of one capture: give them its "
+                             "size and place")
+        self.saturated, self.gain_origin = saturated, origin
 
     def gain_window(self, g: torch.Tensor, origin: tuple[int, int] | None = None) -> torch.Tensor | None:
         """The part of :attr:`gain` under the window ``g`` (..., H, W) whose top-left sensor pixel is
         ``origin`` (None: :attr:`gain_origin`, as :meth:`forward`), as (H, W) on g's device; None without
         a gain map. ValueError for a window the map does not cover."""
-        if self.gain is None:
+        return self._window(self.gain, "noise gain map", g, origin)
+
+    def saturated_window(self, g: torch.Tensor, origin: tuple[int, int] | None = None) -> torch.Tensor | None:
+        """The part of :attr:`saturated` under the window ``g`` (..., H, W) at ``origin`` (as :meth:`gain_window`),
+        (H, W) bool on g's device; None without the map. ValueError for a window the map does not cover."""
+        return self._window(self.saturated, "saturated-pixel map", g, origin)
+
+    def _window(self, m: torch.Tensor | None, name: str, g: torch.Tensor,
+                origin: tuple[int, int] | None) -> torch.Tensor | None:
+        if m is None:
             return None
         origin = self.gain_origin if origin is None else origin
         y, x = origin[0] - self.gain_origin[0], origin[1] - self.gain_origin[1]
         h, w = g.shape[-2:]
-        if y < 0 or x < 0 or y + h > self.gain.shape[0] or x + w > self.gain.shape[1]:
-            raise ValueError(f"the {h}×{w} px window at sensor pixel {tuple(origin)} is not within the noise gain map "
-                             f"({self.gain.shape[0]}×{self.gain.shape[1]} px at {self.gain_origin})")
-        return self.gain[y : y + h, x : x + w].to(device=g.device)
+        if y < 0 or x < 0 or y + h > m.shape[0] or x + w > m.shape[1]:
+            raise ValueError(f"the {h}×{w} px window at sensor pixel {tuple(origin)} is not within the {name} "
+                             f"({m.shape[0]}×{m.shape[1]} px at {self.gain_origin})")
+        return m[y : y + h, x : x + w].to(device=g.device)
 
     @classmethod
     def from_config(cls, s) -> "SensorNoise":  # s: hsicam.config.SensorConfig (camera.sensor)
@@ -268,4 +303,6 @@ class SensorNoise(nn.Module):
 
     def extra_repr(self) -> str:
         gain = "" if self.gain is None else f", gain={tuple(self.gain.shape)} at {self.gain_origin}"
+        if self.saturated is not None:
+            gain += f", saturated={int(self.saturated.sum())} px at {self.gain_origin}"
         return f"model={self.model}, sigma={self.sigma}, bit_depth={self.bit_depth}{gain}"

@@ -28,6 +28,8 @@ SETTINGS = {
     "TV prior, spectral prior, noise": {"tv_weight": 0.05, "spectral_prior": 4.0, "noise": True},
     "TV prior without momentum, zero light beyond": {"tv_weight": 0.05, "tv_momentum": 0.0, "extend": False},
     "TV prior, spectral prior, mirrored border": {"tv_weight": 0.05, "spectral_prior": 4.0, "extend": "reflect"},
+    "TV prior, clipped pixels, noise": {"tv_weight": 0.05, "clipped": True, "noise": True},
+    "plain, clipped pixels": {"clipped": True},
 }
 
 
@@ -44,6 +46,9 @@ def test_steps_in_bands_equal_the_whole_window(tiny_config, name, band_px):
     x0 = torch.rand(2, snap.psf.shape[0], 61, 47, generator=g)
     if kw.pop("noise", False):
         kw["noise_variance"] = 1e-3 * torch.rand(2, 1, 61, 47, generator=g)
+    if kw.pop("clipped", False):  # the brightest fifth of the capture clipped (the map bands' rows, as the variance)
+        kw["clipped"] = y >= 0.74
+        y = y.clamp(max=0.74)
     with torch.no_grad():
         whole = consistency_step(snap, y, x0, (2, 3), iterations=6, psf_energy=1.0, **kw)
         bands = consistency_step(snap, y, x0, (2, 3), iterations=6, psf_energy=1.0, band_px=band_px, **kw)

@@ -142,3 +142,25 @@ def test_unseen_layouts_script_writes_readable_scenes_whole_or_not_at_all(tmp_pa
     assert again.returncode == 2 and "exists" in again.stderr
     bad = _run("unseen_layouts.py", str(tmp_path / "bad"), "--n", "0")
     assert bad.returncode == 2 and "--n must be >= 1" in bad.stderr and not (tmp_path / "bad").exists()
+
+
+def test_clipped_highlights_scores_the_map_against_the_plain_steps(tmp_path):
+    """docs/hardware.md's "Clipped highlights" figures come from this script: one validation scene of the shipped
+    camera (a small split, in a private cache), one JSON line for it and one per region. The map brightens what
+    the plain steps darken near the clipped pixels and leaves the rest to float rounding."""
+    import json
+
+    env = {**os.environ, "HSICAM_CACHE": str(tmp_path / "cache")}
+    args = ["clipped_highlights.py", "pretrained:standard", "--set", "data.synthetic_n=8", "--set",
+            "data.val_fraction=0.125", "--set", "data.synthetic_size=224"]
+    proc = subprocess.run([sys.executable, str(SCRIPTS / args[0]), *args[1:]], capture_output=True, text=True,
+                          timeout=300, env=env)
+    assert proc.returncode == 0, proc.stderr
+    lines = [json.loads(line) for line in proc.stdout.splitlines()]
+    scene, regions = lines[0], {r["region"]: r for r in lines[1:]}
+    assert len(lines) == 5 and set(regions) == {"all", "near", "clipped", "far"}
+    assert abs(scene["clipped_share"] - 0.03) < 0.005
+    assert regions["near"]["mean_gain_db"] > 0.05 and regions["all"]["mean_gain_db"] > 0.05
+    assert abs(regions["far"]["mean_gain_db"]) < 0.01
+    bad = _run("clipped_highlights.py", "pretrained:standard", "--share", "0.7")
+    assert bad.returncode == 2 and "--share must be in (0, 0.5)" in bad.stderr

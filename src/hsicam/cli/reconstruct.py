@@ -65,7 +65,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     raw.add_argument("--black-level", type=float, default=None, metavar="DN",
                      help="sensor black level, >= 0 (default: the dark frame's median, else 0)")
     raw.add_argument("--white-level", type=float, default=None, metavar="DN",
-                     help="full-scale value (default: the file type's maximum, e.g. 65535; 1 for float files)")
+                     help="full-scale value (default: the file type's maximum, e.g. 65535; 1 for float files); "
+                          "pixels at or above it were clipped: the consistency steps take them as lower bounds")
     raw.add_argument("--dark", metavar="FILE", help="dark frame (same exposure and size), subtracted pixel by pixel")
     raw.add_argument("--flat", metavar="FILE", help="flat-field frame (same size), normalised to mean 1")
     raw.add_argument("--flat-mode", choices=("pixel", "cfa"), default="pixel",
@@ -481,6 +482,24 @@ def capture_noise(model, report: dict, full_well_e: float, read_noise_e: float, 
             "noise_full_well_e_at_image_scale": full_well_e / factor, "noise_flat_field_gain": gain is not None}
 
 
+def capture_saturation(model, saturated: np.ndarray, offset: tuple[int, int] = (0, 0)) -> dict:
+    """Give ``model``'s camera the capture's clipped pixels (``saturated``, (H, W) bool from
+    :func:`~hsicam.data.images.read_capture`), placed at its first sensor pixel ``offset``: the
+    measurement-consistency steps then take the capture there as a lower bound of the light
+    (:func:`hsicam.models.consistency.clipped_residual`), not as its value. Returns the cube metadata that records
+    it ({} when no pixel is clipped)."""
+    import torch
+
+    count = int(np.count_nonzero(saturated))
+    if not count:
+        return {}
+    model.camera.noise.mark_saturated(torch.from_numpy(np.ascontiguousarray(saturated)), tuple(offset))
+    if not model.consistency_on:
+        log.info("%d clipped pixel(s) reach the network as they are: the measurement-consistency steps, which would "
+                 "take them as lower bounds, are off", count)
+    return {"clipped_px_as_lower_bounds": count if model.consistency_on else 0}
+
+
 def psf_mismatch_message(args: argparse.Namespace, measured, fine_tuned: bool) -> str:
     """The warning for ``--psf-dir`` PSFs other than those the network of ``--run`` was fine-tuned on:
     when the run was fine-tuned on the same folder, what differs (the pixel pitch, naming both, …)."""
@@ -573,7 +592,7 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
     if args.psf_dir:
         _use_measured_psfs(args, model, meta)
     corr = corrections_from_args(args, cfg.camera.cfa.period if cfg.camera.cfa.enabled else None)
-    img, report = read_capture(args.sensor, corr, args.scale)
+    img, report, saturated = read_capture(args.sensor, corr, args.scale, return_saturated=True)
     meta["preprocessing"] = report
     period = int(getattr(model.camera, "code_period", 1))
     _check_capture_size(args, img.shape, period)
@@ -583,6 +602,8 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
     offset = _capture_offset(args, cfg, model, sensor, period, meta)
     if args.full_well_e is not None:  # after the offset: a flat field's gain map sits at the capture's first pixel
         meta.update(capture_noise(model, report, args.full_well_e, args.read_noise_e or 0.0, corr, offset))
+    meta.update(capture_saturation(model, saturated, offset))  # after the noise model, which it joins
+    del saturated
     # after the noise model, which widens the steps' context (a noise-aware step's halo): the memory is checked here
     fn = offset_reconstructor(_checked_reconstructor(args, model, img.shape), offset)
     cube = reconstruct_tiled(fn, sensor, args.tile, progress=None)[0]  # the halo fn declares

@@ -430,8 +430,11 @@ class RawCorrection:
 
 def preprocess_raw(raw: np.ndarray, full_scale: float, corr: RawCorrection, source: str = "capture",
                    check_saturation: bool = True, check_bit_depth: bool = True,
-                   check_level: bool = True, stored_dtype: str | None = None) -> tuple[np.ndarray, dict]:
-    """Raw capture (H, W) in DN → float32 (H, W) on the simulator's scale, plus a report dict.
+                   check_level: bool = True, stored_dtype: str | None = None,
+                   return_saturated: bool = False) -> tuple[np.ndarray, dict] | tuple[np.ndarray, dict, np.ndarray]:
+    """Raw capture (H, W) in DN → float32 (H, W) on the simulator's scale, plus a report dict (and, with
+    ``return_saturated``, the (H, W) bool map of the pixels at or above the white level: clipped by the sensor; all
+    False where ``check_saturation`` is off or the capture has no white level, as ``saturated_px`` counts).
 
     Args:
         raw: the stored values (DN).
@@ -450,7 +453,8 @@ def preprocess_raw(raw: np.ndarray, full_scale: float, corr: RawCorrection, sour
     dark, flat_dn = _dark_and_flat(raw, corr, full_scale, stored_dtype, source)
     black, white = _black_and_white(corr, dark, full_scale, stored_dtype, source)
     report: dict[str, Any] = {"black_level_dn": black, "white_level_dn": white}
-    saturated = _count_saturated(raw, white, corr, full_scale, check_saturation)
+    saturated_map = _saturated(raw, white, corr, full_scale, check_saturation)
+    saturated = int(np.count_nonzero(saturated_map))
     report["saturated_px"] = saturated
     notes = _check_saturated(raw, saturated, white, corr.white_level is not None, source)
     img, signal_notes = _minus_dark_or_black(raw, dark, black, corr, source)
@@ -464,6 +468,8 @@ def preprocess_raw(raw: np.ndarray, full_scale: float, corr: RawCorrection, sour
     notes += _level_notes(img, raw, full_scale, white, corr, source, check_level, check_bit_depth)
     for note in notes:  # only once every check passed: an error stays the one line the user sees
         log.warning("%s", note)
+    if return_saturated:
+        return img.astype(np.float32, copy=False), report, saturated_map
     return img.astype(np.float32, copy=False), report
 
 
@@ -515,11 +521,13 @@ def _black_and_white(corr: RawCorrection, dark: np.ndarray | None, full_scale: f
     return black, white
 
 
-def _count_saturated(raw: np.ndarray, white: float, corr: RawCorrection, full_scale: float, check: bool) -> int:
-    """The capture's pixels at or above the white level ``white`` (DN); 0 without the ``check``, and for a float
-    capture read at its own full scale (1)."""
+def _saturated(raw: np.ndarray, white: float, corr: RawCorrection, full_scale: float, check: bool) -> np.ndarray:
+    """The capture's pixels at or above the white level ``white`` (DN), (H, W) bool; none without the ``check``, and
+    for a float capture read at its own full scale (1)."""
+    if not (check and (corr.white_level is not None or full_scale > 1)):
+        return np.zeros(raw.shape, dtype=bool)
     with np.errstate(over="ignore"):  # a white level beyond float32 (e.g. 1e39) compares as +inf: nothing saturates
-        return int(np.count_nonzero(raw >= white)) if check and (corr.white_level is not None or full_scale > 1) else 0
+        return raw >= white
 
 
 def _minus_dark_or_black(raw: np.ndarray, dark: np.ndarray | None, black: float, corr: RawCorrection,
@@ -882,8 +890,11 @@ def is_simulated_image(path: str | Path, fmt: str, png_scale: float | None = Non
     return fmt in ("png", "tiff") and (Path(path).parent / SIMULATE_JSON).is_file()
 
 
-def read_capture(path: str | Path, corr: RawCorrection | None = None, scale: float | None = None) -> tuple[np.ndarray, dict]:
-    """Read a capture and apply ``corr`` → (float32 (H, W) on the simulator scale, report).
+def read_capture(path: str | Path, corr: RawCorrection | None = None, scale: float | None = None,
+                 return_saturated: bool = False) -> tuple[np.ndarray, dict] | tuple[np.ndarray, dict, np.ndarray]:
+    """Read a capture and apply ``corr`` → (float32 (H, W) on the simulator scale, report); with
+    ``return_saturated`` also the (H, W) bool map of the pixels the sensor clipped (at or above the white level,
+    :func:`preprocess_raw`).
 
     ``scale`` (if given) overrides ``corr.scale``. The ``sensor.png`` of ``hsicam simulate`` is first brought
     back to its simulated level by the scale written inside it (:data:`SENSOR_SCALE_KEY`), and PNG/TIFF
@@ -938,8 +949,9 @@ def read_capture(path: str | Path, corr: RawCorrection | None = None, scale: flo
     if scale is not None:
         corr = RawCorrection(**{**corr.__dict__, "scale": float(scale)})
     # simulate's own image is written at the file's full bit depth: a dark one is a dark scene
-    img, report = preprocess_raw(image.data, image.full_scale, corr, str(path), check_saturation=not stretched,
-                                 check_bit_depth=not simulated, check_level=not stretched, stored_dtype=image.dtype)
+    img, report, saturated = preprocess_raw(image.data, image.full_scale, corr, str(path),
+                                            check_saturation=not stretched, check_bit_depth=not simulated,
+                                            check_level=not stretched, stored_dtype=image.dtype, return_saturated=True)
     if stretched and simulated_scale > FLOAT_OVER_SCALE:  # its brightest pixel: simulated_scale
         # the float capture's warning (preprocess_raw), for simulate's image of a scene far above full scale
         log.warning("%s: hsicam simulate's image of a scene far brighter than full scale: it is read back at its "
@@ -948,7 +960,7 @@ def read_capture(path: str | Path, corr: RawCorrection | None = None, scale: flo
                     SENSOR_SCALE_KEY if png_scale is not None else SIMULATE_JSON, simulated_scale)
     report.update({"source": str(path), "stored_dtype": image.dtype, "format": image.format,
                    "shape": [int(s) for s in img.shape]})
-    return img, report
+    return (img, report, saturated) if return_saturated else (img, report)
 
 
 def read_sensor_image(path: str | Path, scale: float | None = None) -> np.ndarray:

@@ -30,6 +30,10 @@ network's estimate instead of from Aᵀy; not the minimiser of one objective (th
 different metrics). The steps carry FISTA's momentum capped at :data:`TV_MOMENTUM_MAX`: with a prox solved one dual
 iteration at a time, larger momentum oscillates instead of converging; capped, 24 steps score what about 40 plain
 ones do (docs/networks_log.md, "A TV prior in the steps").
+
+A pixel the sensor clipped at full scale records only a lower bound of its light: there the residual is one-sided
+(:func:`clipped_residual`, ``clipped``), so a highlight the network reconstructs brighter than full scale is left as
+it is instead of being darkened, with the pixels around it that share its PSF, towards the clip.
 """
 
 from __future__ import annotations
@@ -50,7 +54,8 @@ def consistency_step(op, y: torch.Tensor, x0: torch.Tensor, origin: tuple[int, i
                      damping: float = 0.02, iterations: int = 1, psf_energy: float = 0.995,
                      extend: bool | str | None = True, spectral_prior: float = 0.0,
                      noise_variance: torch.Tensor | None = None, tv_weight: float = 0.0,
-                     tv_momentum: float | None = None, band_px: int | None = None, on_step=None) -> torch.Tensor:
+                     tv_momentum: float | None = None, band_px: int | None = None, on_step=None,
+                     clipped: torch.Tensor | None = None) -> torch.Tensor:
     """x0 (B, C, h, w) moved towards A x = y for the sensor window y (B, 1, h, w) at ``origin``.
 
     ``op`` is an operator snapshot in ``same`` geometry (``A(x, origin)``, ``A_adjoint(y, origin)``,
@@ -84,6 +89,8 @@ def consistency_step(op, y: torch.Tensor, x0: torch.Tensor, origin: tuple[int, i
     estimate, the previous estimate and the TV prior's dual field, a few whole cubes) plus one band's temporaries,
     where the whole-window steps held a dozen whole cubes. :func:`default_band_px` picks a band of about
     :data:`STEP_BAND_PIXELS` pixels. ``on_step``: called with no argument after each step (progress).
+    ``clipped`` (bool, broadcastable to y; None: no pixel): the pixels the sensor clipped at full scale, where y is
+    only a lower bound of A x (:func:`clipped_residual`: only an estimate darker than the capture is corrected there).
     """
     mode, momentum = _step_settings(extend, iterations, damping, psf_energy, spectral_prior, tv_weight, tv_momentum,
                                     band_px, x0, y)
@@ -97,7 +104,8 @@ def consistency_step(op, y: torch.Tensor, x0: torch.Tensor, origin: tuple[int, i
     # the spectral prior's ŝ is the start's: in bands, whose steps overwrite x in place, each band's rows of x0
     # extended as x was (no copy of x kept)
     frame = _Frame(op, y, (origin[0] - py, origin[1] - px), py, px, noise_variance, spectral_prior,
-                   x if band_px is None else x0, None if band_px is None else (mode, py, px))
+                   x if band_px is None else x0, None if band_px is None else (mode, py, px),
+                   _checked_clipped(clipped, y))
     step_halo = _step_reach_px(op, noise_variance is not None, tv_weight > 0)
     if band_px is not None and x is x0:
         x = x0.clone()  # the bands write in place, never into the caller's tensor
@@ -231,11 +239,12 @@ class _Frame:
     [ya, yb) of E are the sensor rows [max(ya, py) − py, min(yb, py + h) − py), and every column of the window.
     ``origin``: the sensor pixel of E's top-left corner. ``start``: the steps' start, whose spectra the spectral
     prior follows: on E, or (``extension`` = (mode, rows, columns)) the window's x0, extended by F.pad band by
-    band."""
+    band. ``clipped``: the window's clipped pixels (:func:`clipped_residual`), or None."""
 
-    def __init__(self, op, y, origin, py, px, noise_variance, spectral_prior, start, extension=None):
+    def __init__(self, op, y, origin, py, px, noise_variance, spectral_prior, start, extension=None, clipped=None):
         self.op, self.y, self.origin, self.py, self.px = op, y, origin, py, px
         self.var, self.spectral_prior, self.start, self.extension = noise_variance, spectral_prior, start, extension
+        self.clipped = clipped
         self.h, self.w = y.shape[-2:]
         self._precondition: tuple = (None, None)
 
@@ -295,15 +304,19 @@ class _Frame:
         step, the same values: the first image of a process faults fewer pages in)."""
         sa, sb = self._sensor_rows(ya, yb)
         ys = slice(sa - self.py, sb - self.py)
-        var = self.var
-        if var is not None and var.dim() >= 2 and var.shape[-2] > 1:
-            var = var[..., ys, :]
-        r = wiener_residual(self.y[..., ys, :] - self.a(ya, yb, z), var)
+        var, clipped = (_rows(t, ys) for t in (self.var, self.clipped))
+        r = wiener_residual(clipped_residual(self.y[..., ys, :] - self.a(ya, yb, z), clipped), var)
         g = self.a_t(ya, yb, r / self._sensor_part(ya, yb, win["rows"]))
         s = self.precondition(ya, yb)
         if torch.is_grad_enabled() and (g.requires_grad or z.requires_grad):
             return z + (g if s is None else s(g))
         return (g if s is None else s(g, inplace=True)).add_(z)
+
+
+def _rows(t: torch.Tensor | None, rows: slice) -> torch.Tensor | None:
+    """The ``rows`` of a map broadcastable to the window (a noise variance, the clipped pixels); itself when it has
+    no rows of its own (None, a scalar, one row)."""
+    return t[..., rows, :] if t is not None and t.dim() >= 2 and t.shape[-2] > 1 else t
 
 
 def _band_rows(height: int, band_px: int | None, halo_px: int) -> int | None:
@@ -435,7 +448,8 @@ class BrightnessTV:
 def linear_consistency_step(op, y: torch.Tensor, x0: torch.Tensor, weight: torch.Tensor,
                             origin: tuple[int, int] = (0, 0), gain: float = 0.5, iterations: int = 1,
                             psf_energy: float = 0.995, extend: bool | str | None = True,
-                            noise_variance: torch.Tensor | None = None) -> torch.Tensor:
+                            noise_variance: torch.Tensor | None = None,
+                            clipped: torch.Tensor | None = None) -> torch.Tensor:
     """x ← x + gain · W(y − A x), ``iterations`` times, from x0 (B, C, h, w): the measurement's
     residual mapped back to the cube by ``weight`` (m², C, K, K), the least-squares linear map from
     sensor image to cube of :func:`hsicam.models.demosaic.phase_linear` fitted on training scenes.
@@ -444,7 +458,8 @@ def linear_consistency_step(op, y: torch.Tensor, x0: torch.Tensor, weight: torch
     bands and pixels that made it (Aᵀ: a correction on the CFA lattice), W spreads it as the
     training scenes say a sensor image's detail spreads over pixels and bands. ``op``, ``origin``,
     ``psf_energy`` and ``extend`` as in :func:`consistency_step` (the estimate is extended across
-    the window's border for A); ``noise_variance`` as there (:func:`wiener_residual`). Differentiable."""
+    the window's border for A); ``noise_variance`` as there (:func:`wiener_residual`); ``clipped`` as there
+    (:func:`clipped_residual`). Differentiable."""
     mode = _extension_mode(extend)
     if iterations < 0 or not 0 < gain <= 1 or not 0 < psf_energy <= 1:
         raise ValueError(f"need iterations >= 0, gain in (0, 1] and psf_energy in (0, 1], got {iterations}, "
@@ -455,11 +470,41 @@ def linear_consistency_step(op, y: torch.Tensor, x0: torch.Tensor, weight: torch
     h, w = y.shape[-2:]
     o = (origin[0] - py, origin[1] - px)
     y = y.to(x0.dtype)
+    clipped = _checked_clipped(clipped, y)
     x = x0
     for _ in range(iterations):
-        residual = y - op.A(_extended(x, py, px, mode), o)[..., py : py + h, px : px + w]
+        residual = clipped_residual(y - op.A(_extended(x, py, px, mode), o)[..., py : py + h, px : px + w], clipped)
         x = x + gain * phase_linear(wiener_residual(residual, noise_variance), weight.to(x.device), origin)
     return x
+
+
+def clipped_residual(r: torch.Tensor, clipped: torch.Tensor | None) -> torch.Tensor:
+    """The residual r = y − A x (B, 1, h, w) with its clipped pixels one-sided: where the sensor clipped
+    (``clipped``, bool broadcastable to r), y is the full-scale value and the scene's light A x* is at least that,
+    so only a residual above 0 (an estimate darker than the capture) is kept; a brighter estimate agrees with the
+    capture there (residual 0) instead of being pulled down to the clip. r itself where ``clipped`` is None.
+    Pointwise: it adds no reach to a step. Differentiable."""
+    if clipped is None:
+        return r
+    return torch.where(clipped, r.clamp_min(0), r)
+
+
+def _checked_clipped(clipped: torch.Tensor | None, y: torch.Tensor) -> torch.Tensor | None:
+    """``clipped`` on y's device (None where it marks no pixel); ValueError unless it is a bool map broadcastable to
+    the sensor window ``y`` (B, 1, h, w)."""
+    if clipped is None:
+        return None
+    if not isinstance(clipped, torch.Tensor) or clipped.dtype != torch.bool:
+        raise ValueError(f"clipped must be a bool tensor, got {type(clipped).__name__}"
+                         + (f" of {clipped.dtype}" if isinstance(clipped, torch.Tensor) else ""))
+    try:
+        fits = torch.broadcast_shapes(clipped.shape, y.shape) == y.shape
+    except RuntimeError:
+        fits = False
+    if not fits:
+        raise ValueError(f"clipped {tuple(clipped.shape)} does not broadcast to the sensor window "
+                         f"{tuple(y.shape)}")
+    return clipped.to(y.device) if bool(clipped.any()) else None
 
 
 WIENER_WINDOW_PX = 5  # the local window over which wiener_residual measures the residual's power

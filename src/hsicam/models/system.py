@@ -145,6 +145,14 @@ class CameraSystem(nn.Module):
         unless :attr:`_weighs_noise`."""
         return self.camera.noise.variance(sensor, origin) if self._weighs_noise else None
 
+    def _clipped(self, sensor: torch.Tensor, origin: tuple[int, int] = (0, 0)) -> torch.Tensor | None:
+        """The pixels of the window ``sensor`` (B, 1, H, W) at ``origin`` that the capture clipped (the camera's noise
+        model's :meth:`~hsicam.sensor.SensorNoise.saturated_window`, (1, 1, H, W) bool), which the consistency steps
+        take as lower bounds; None without a saturated-pixel map."""
+        window = getattr(getattr(self.camera, "noise", None), "saturated_window", None)
+        m = window(sensor, origin) if window is not None else None
+        return None if m is None else m[None, None]
+
     @property
     def bands(self):
         return self.camera.bands
@@ -212,7 +220,8 @@ class CameraSystem(nn.Module):
                              "network alone), evaluate --set model.consistency.kind=landweber")
         return linear_consistency_step(op, sensor, x, self.linear_step, origin, gain=c.gain, iterations=c.iterations,
                                        psf_energy=energy, extend=self._extension(),
-                                       noise_variance=self._noise_variance(sensor, origin))
+                                       noise_variance=self._noise_variance(sensor, origin),
+                                       clipped=self._clipped(sensor, origin))
 
     def landweber_steps(self, sensor: torch.Tensor, x: torch.Tensor, origin: tuple[int, int] = (0, 0),
                         step_operator=None, on_step=None) -> torch.Tensor:
@@ -228,7 +237,7 @@ class CameraSystem(nn.Module):
         return consistency_step(op, sensor, x, origin, damping=c.damping, iterations=iterations,
                                 psf_energy=energy, extend=self._extension(), spectral_prior=c.spectral_prior,
                                 noise_variance=self._noise_variance(sensor, origin), tv_weight=c.tv_weight,
-                                band_px=band, on_step=on_step)
+                                band_px=band, on_step=on_step, clipped=self._clipped(sensor, origin))
 
     def check_input(self, sensor: torch.Tensor) -> None:
         """:class:`InputError` unless ``sensor`` is a finite floating (B, 1, H, W) image, B, H, W >= 1, on
