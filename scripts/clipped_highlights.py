@@ -4,9 +4,10 @@ the map of clipped pixels (hsicam.models.consistency.clipped_residual), scored a
 
     python scripts/clipped_highlights.py RUN [--share 0.03] [--heldout] [--set KEY=VALUE ...]
 
-RUN is a run folder or pretrained:NAME (its steps: model.consistency). Per-band PSNR (dB, peak: the exposed truth's
-maximum) over the whole scene, the pixels within 8 px of a clipped one ("near"), the clipped pixels themselves and
-the rest ("far"). Prints one JSON line per scene, then the mean, least and largest gain of the map per region.
+RUN is a run folder or pretrained:NAME (its steps: model.consistency). PSNR (dB, the mean of the bands' PSNRs, peak:
+the exposed truth's maximum) over the whole scene, the pixels within 8 px of a clipped one ("near"), the clipped
+pixels themselves and the rest ("far"). Prints one JSON line per scene, then the mean, least and largest gain of the
+map per region.
 """
 
 from __future__ import annotations
@@ -29,7 +30,12 @@ REGIONS = ("all", "near", "clipped", "far")
 
 
 def _psnr(err: torch.Tensor, where: torch.Tensor, peak: float) -> float:
-    return float(10 * np.log10(peak**2 / float(err[:, where].mean()))) if bool(where.any()) else float("nan")
+    """The mean over bands of each band's PSNR (dB, the project's convention, DESIGN.md §5) over the pixels
+    ``where`` (H, W) of the squared error ``err`` (C, H, W); NaN where no pixel is."""
+    if not bool(where.any()):
+        return float("nan")
+    mse = err[:, where].double().mean(dim=1).clamp_min(1e-30)
+    return float((10 * torch.log10(peak**2 / mse)).mean())
 
 
 def main(argv: list[str] | None = None) -> int:

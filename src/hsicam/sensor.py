@@ -196,18 +196,19 @@ class SensorNoise(nn.Module):
         self.mark_saturated(saturated)
 
     def mark_saturated(self, saturated: torch.Tensor | None, origin: tuple[int, int] | None = None) -> None:
-        """Set :attr:`saturated`, the clipped pixels of a capture ((H, W) bool, numpy or torch; None: none), at the
-        sensor pixel ``origin`` of its top-left corner (None: :attr:`gain_origin`; a gain map, of the same capture,
-        must be there already). ValueError for another shape or type, or a map that is not the gain map's size
-        and place."""
-        if saturated is not None:
-            saturated = torch.as_tensor(saturated)
-            if saturated.dim() != 2 or saturated.dtype != torch.bool:
-                raise ValueError(f"the saturated-pixel map must be (H, W) bool, got {tuple(saturated.shape)} of "
-                                 f"{saturated.dtype}")
+        """Set :attr:`saturated`, the clipped pixels of a capture ((H, W) bool, numpy or torch), at the sensor pixel
+        ``origin`` of its top-left corner (None: :attr:`gain_origin`; a gain map, of the same capture, must be there
+        already); None clears it (and leaves :attr:`gain_origin` where it is). ValueError for another shape or
+        type, or a map that is not the gain map's size and place."""
+        if saturated is None:
+            self.saturated = None
+            return
+        saturated = torch.as_tensor(saturated)
+        if saturated.dim() != 2 or saturated.dtype != torch.bool:
+            raise ValueError(f"the saturated-pixel map must be (H, W) bool, got {tuple(saturated.shape)} of "
+                             f"{saturated.dtype}")
         origin = self.gain_origin if origin is None else (int(origin[0]), int(origin[1]))
-        if saturated is not None and self.gain is not None and (saturated.shape != self.gain.shape
-                                                                 or origin != self.gain_origin):
+        if self.gain is not None and (saturated.shape != self.gain.shape or origin != self.gain_origin):
             raise ValueError(f"the saturated-pixel map ({tuple(saturated.shape)} px at {origin}) and the gain map "
                              f"({tuple(self.gain.shape)} px at {self.gain_origin}) are of one capture: give them its "
                              "size and place")
@@ -226,6 +227,9 @@ class SensorNoise(nn.Module):
 
     def _window(self, m: torch.Tensor | None, name: str, g: torch.Tensor,
                 origin: tuple[int, int] | None) -> torch.Tensor | None:
+        """The part (H, W) of the capture's map ``m`` (placed at :attr:`gain_origin`) under the window ``g``
+        (..., H, W) at the sensor pixel ``origin`` (None: :attr:`gain_origin`), on g's device; None for no map.
+        ValueError, naming the map (``name``), for a window it does not cover."""
         if m is None:
             return None
         origin = self.gain_origin if origin is None else origin

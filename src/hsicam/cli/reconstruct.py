@@ -66,7 +66,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                      help="sensor black level, >= 0 (default: the dark frame's median, else 0)")
     raw.add_argument("--white-level", type=float, default=None, metavar="DN",
                      help="full-scale value (default: the file type's maximum, e.g. 65535; 1 for float files); "
-                          "pixels at or above it were clipped: the consistency steps take them as lower bounds")
+                          "pixels at or above it (an integer file's, or any file's when given) were clipped: the "
+                          "consistency steps take them as lower bounds")
     raw.add_argument("--dark", metavar="FILE", help="dark frame (same exposure and size), subtracted pixel by pixel")
     raw.add_argument("--flat", metavar="FILE", help="flat-field frame (same size), normalised to mean 1")
     raw.add_argument("--flat-mode", choices=("pixel", "cfa"), default="pixel",
@@ -491,9 +492,11 @@ def capture_saturation(model, saturated: np.ndarray, offset: tuple[int, int] = (
     import torch
 
     count = int(np.count_nonzero(saturated))
+    # (none clipped: a map set before, e.g. of another capture through the same model, is cleared)
+    model.camera.noise.mark_saturated(torch.from_numpy(np.ascontiguousarray(saturated)) if count else None,
+                                      tuple(offset))
     if not count:
         return {}
-    model.camera.noise.mark_saturated(torch.from_numpy(np.ascontiguousarray(saturated)), tuple(offset))
     if not model.consistency_on:
         log.info("%d clipped pixel(s) reach the network as they are: the measurement-consistency steps, which would "
                  "take them as lower bounds, are off", count)

@@ -94,6 +94,7 @@ def consistency_step(op, y: torch.Tensor, x0: torch.Tensor, origin: tuple[int, i
     """
     mode, momentum = _step_settings(extend, iterations, damping, psf_energy, spectral_prior, tv_weight, tv_momentum,
                                     band_px, x0, y)
+    clipped = _checked_clipped(clipped, y)
     if iterations == 0:
         return x0
     op, mode, py, px = _window_setup(op, y, mode, psf_energy)
@@ -104,8 +105,7 @@ def consistency_step(op, y: torch.Tensor, x0: torch.Tensor, origin: tuple[int, i
     # the spectral prior's ŝ is the start's: in bands, whose steps overwrite x in place, each band's rows of x0
     # extended as x was (no copy of x kept)
     frame = _Frame(op, y, (origin[0] - py, origin[1] - px), py, px, noise_variance, spectral_prior,
-                   x if band_px is None else x0, None if band_px is None else (mode, py, px),
-                   _checked_clipped(clipped, y))
+                   x if band_px is None else x0, None if band_px is None else (mode, py, px), clipped)
     step_halo = _step_reach_px(op, noise_variance is not None, tv_weight > 0)
     if band_px is not None and x is x0:
         x = x0.clone()  # the bands write in place, never into the caller's tensor
@@ -464,13 +464,13 @@ def linear_consistency_step(op, y: torch.Tensor, x0: torch.Tensor, weight: torch
     if iterations < 0 or not 0 < gain <= 1 or not 0 < psf_energy <= 1:
         raise ValueError(f"need iterations >= 0, gain in (0, 1] and psf_energy in (0, 1], got {iterations}, "
                          f"{gain}, {psf_energy}")
+    clipped = _checked_clipped(clipped, y)
     if iterations == 0:
         return x0
     op, mode, py, px = _window_setup(op, y, mode, psf_energy)
     h, w = y.shape[-2:]
     o = (origin[0] - py, origin[1] - px)
     y = y.to(x0.dtype)
-    clipped = _checked_clipped(clipped, y)
     x = x0
     for _ in range(iterations):
         residual = clipped_residual(y - op.A(_extended(x, py, px, mode), o)[..., py : py + h, px : px + w], clipped)
