@@ -57,9 +57,7 @@ def main(argv: list[str] | None = None) -> int:
     model.eval()
     gains: dict[str, list[float]] = {r: [] for r in REGIONS}
     for i, name in enumerate(names):
-        item = scenes[i]
-        scene = item[0] if isinstance(item, (tuple, list)) else item
-        scene = scene[None] if scene.dim() == 3 else scene
+        scene = scenes[i][None]
         with torch.no_grad():
             clean = model.camera.A(scene)
         k = 1.0 / float(torch.quantile(clean.flatten(), 1 - args.share))

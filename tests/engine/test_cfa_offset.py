@@ -158,7 +158,7 @@ def test_a_small_capture_is_warned_about_even_when_its_phase_stands_apart(captur
     residuals.update({"0,2": 0.00118, "1,2": 0.00126})
     est = CfaOffsetEstimate((0, 2), residuals, (0, 0, side, side), big.margin_px)
     assert not est.ambiguous and est.small and est.scored_px == (MIN_SCORED_PX - 4,) * 2
-    monkeypatch.setattr(cfa_offset, "estimate_cfa_offset", lambda model, sensor: est)
+    monkeypatch.setattr(cfa_offset, "estimate_cfa_offset", lambda model, sensor, **kw: est)
     caplog.clear()
     with caplog.at_level(logging.WARNING):
         assert estimated_cfa_offset(None, None)[0] == (0, 2)
@@ -302,7 +302,7 @@ def test_a_runner_up_close_to_the_best_is_warned_about_unless_the_estimate_is_am
     for est, expected in ((close, ["explains the capture barely better than 0,0 (residual 0.001 against 0.00116)"]),
                           (apart, []),
                           (estimate(0.0010, 0.00101, 0.00102), ["is barely better than the other phases"])):
-        monkeypatch.setattr(cfa_offset, "estimate_cfa_offset", lambda model, sensor, est=est: est)
+        monkeypatch.setattr(cfa_offset, "estimate_cfa_offset", lambda model, sensor, est=est, **kw: est)
         caplog.clear()
         with caplog.at_level(logging.WARNING):
             assert estimated_cfa_offset(None, None)[0] == (2, 1)
@@ -323,3 +323,50 @@ def test_the_check_scores_at_least_min_scored_px_whatever_the_window(capture):
     assert wide.scored_px == (MIN_SCORED_PX, MIN_SCORED_PX) and not wide.small
     whole = estimate_cfa_offset(system, sensor, window_px=48, min_scored_px=1000)  # never beyond the capture
     assert whole.window[2:] == tuple(sensor.shape[-2:])
+
+
+def test_a_check_that_would_take_too_long_is_skipped_and_said(capture, tmp_path, caplog, monkeypatch):
+    """The check nobody asked for stops after its first phase when all of them would take longer than
+    CHECK_TIME_BUDGET_S (a `paper`-preset run's took 165 s of a 172 s reconstruction of a 256² capture): an INFO line
+    says so and what to give instead, the metadata records it, and the cube is the one given --cfa-offset 0,0. An
+    estimate asked for (auto) has no budget: the library's estimate with a huge budget is the one without."""
+    import hsicam.engine.cfa_offset as cfa
+    from hsicam.engine.cfa_offset import EstimateTooSlow
+
+    system, sensor = capture
+    with pytest.raises(EstimateTooSlow, match=r"scoring the 16 CFA phases would take about .* s each, on a 128×128 px"):
+        estimate_cfa_offset(system, sensor, 128, time_budget_s=0.0)
+    try:
+        estimate_cfa_offset(system, sensor, 128, time_budget_s=0.0)
+    except EstimateTooSlow as e:
+        assert e.projected_s > 0 and isinstance(e, InputError)
+    assert estimate_cfa_offset(system, sensor, 128, time_budget_s=1e9) == estimate_cfa_offset(system, sensor, 128)
+
+    whole = tmp_path / "whole.npy"
+    np.save(whole, sensor[0, 0].numpy())
+    monkeypatch.setattr(cfa, "CHECK_TIME_BUDGET_S", 0.0)
+    with caplog.at_level(logging.INFO):
+        assert_ok(run_cli_in_process("reconstruct", str(whole), "--run", RUN, "--out", str(tmp_path / "fast.h5")))
+    [line] = [r.getMessage() for r in caplog.records if "not checked" in r.getMessage()]
+    assert line.startswith("CFA phase 0,0 (no --cfa-offset) not checked: scoring the 16 CFA phases would take about")
+    assert "over the check's 0 s; give the sensor row and column" in line and "--cfa-offset auto" in line
+    assert not [r for r in caplog.records if r.levelno >= logging.WARNING], caplog.text
+    check = _meta(tmp_path / "fast.h5")["cfa_offset_check"]
+    assert check["checked"] is False and check["projected_s"] >= 0
+    assert_ok(run_cli_in_process("reconstruct", str(whole), "--run", RUN, "--out", str(tmp_path / "given.h5"),
+                                 "--cfa-offset", "0,0"))
+    read = lambda name: h5py.File(tmp_path / name, "r")["cube"][()]  # noqa: E731
+    np.testing.assert_array_equal(read("fast.h5"), read("given.h5"))
+
+
+def test_auto_counts_its_phases(capture, tmp_path, caplog):
+    """`--cfa-offset auto` (m² network passes, minutes for a `paper`-preset run) shows its progress: off a terminal,
+    k/N lines of the phases scored, the last one 16/16 for the 4×4 CFA."""
+    _, sensor = capture
+    crop = tmp_path / "crop.npy"
+    np.save(crop, sensor[0, 0, 1:, 2:].numpy())
+    with caplog.at_level(logging.INFO, logger="hsicam.progress"):
+        assert_ok(run_cli_in_process("reconstruct", str(crop), "--run", RUN, "--out", str(tmp_path / "c.h5"),
+                                     "--cfa-offset", "auto"))
+    lines = [r.getMessage() for r in caplog.records if r.getMessage().startswith("CFA offset: ")]
+    assert lines and lines[-1].startswith("CFA offset: 16/16 phases"), lines

@@ -16,7 +16,7 @@ def test_cfa_offset_auto_says_the_part_it_scored_on_not_the_window(caplog, monke
     residuals = {f"{y},{x}": 0.003 for y in range(3) for x in range(3)}
     residuals.update({"1,2": 0.001, "0,0": 0.002})
     est = CfaOffsetEstimate((1, 2), residuals, window, margin)
-    monkeypatch.setattr(cfa_offset, "estimate_cfa_offset", lambda model, sensor: est)
+    monkeypatch.setattr(cfa_offset, "estimate_cfa_offset", lambda model, sensor, **kw: est)
     with caplog.at_level(logging.INFO):
         assert estimated_cfa_offset(None, None)[0] == (1, 2)
     [line] = [r.getMessage() for r in caplog.records if r.levelno == logging.INFO]
@@ -35,7 +35,7 @@ def test_cfa_offset_auto_on_a_small_ambiguous_capture_warns_of_both(caplog, monk
     residuals = {f"{y},{x}": 0.003 for y in range(3) for x in range(3)}  # every phase explains it as well: ambiguous
     est = CfaOffsetEstimate((0, 0), residuals, window, margin)
     assert est.ambiguous and est.small and max(est.scored_px) < MIN_SCORED_PX
-    monkeypatch.setattr(cfa_offset, "estimate_cfa_offset", lambda model, sensor: est)
+    monkeypatch.setattr(cfa_offset, "estimate_cfa_offset", lambda model, sensor, **kw: est)
     with caplog.at_level(logging.INFO):
         estimated_cfa_offset(None, None)
     warned = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]

@@ -126,7 +126,7 @@ def estimated_cfa_offset(model, sensor: torch.Tensor) -> tuple[tuple[int, int], 
     and the estimate's record for the cube's metadata."""
     from hsicam.engine.cfa_offset import MIN_SCORED_PX, estimate_cfa_offset
 
-    est = estimate_cfa_offset(model, sensor)
+    est = estimate_cfa_offset(model, sensor, progress=None)  # asked for: however long it takes, counted
     (oy, ox), best = est.offset, est.residuals[f"{est.offset[0]},{est.offset[1]}"]
     second, r2 = est.runner_up
     log.info("--cfa-offset auto: %d,%d (relative residual %.3g; next best %s: %.3g; scored on the central %d×%d px)",
@@ -154,11 +154,20 @@ def checked_sensor_origin(model, sensor: torch.Tensor, source) -> dict | None:
     when another phase clearly explains the capture better (:attr:`~hsicam.engine.cfa_offset.CfaOffsetEstimate.
     rules_out_origin`) a warning names it (a crop reconstructed at the wrong phase has wrong spectra, without a
     word before). Returns the check's record for the cube's metadata; None when the capture is too small or dark
-    to tell (nothing is said: 0,0 is taken, as before)."""
-    from hsicam.engine.cfa_offset import CHECK_WINDOW_PX, MIN_SCORED_PX, estimate_cfa_offset
+    to tell (nothing is said: 0,0 is taken, as before); ``{"checked": False, "projected_s": …}`` when the check would
+    take longer than :data:`~hsicam.engine.cfa_offset.CHECK_TIME_BUDGET_S` (stopped after its first phase; an INFO
+    line says so and what to give instead)."""
+    from hsicam.engine.cfa_offset import (CHECK_TIME_BUDGET_S, CHECK_WINDOW_PX, MIN_SCORED_PX, EstimateTooSlow,
+                                          estimate_cfa_offset)
 
     try:
-        est = estimate_cfa_offset(model, sensor, CHECK_WINDOW_PX, min_scored_px=MIN_SCORED_PX)
+        est = estimate_cfa_offset(model, sensor, CHECK_WINDOW_PX, min_scored_px=MIN_SCORED_PX,
+                                  time_budget_s=CHECK_TIME_BUDGET_S)
+    except EstimateTooSlow as e:  # a check the user did not ask for must not cost minutes
+        log.info("CFA phase 0,0 (no --cfa-offset) not checked: %s, over the check's %.0f s; give the sensor row and "
+                 "column of the capture's first pixel with --cfa-offset Y,X (0,0 where the sensor starts), or "
+                 "--cfa-offset auto to estimate it", e, CHECK_TIME_BUDGET_S)
+        return {"checked": False, "projected_s": round(e.projected_s, 1)}
     except InputError as e:  # too small or black to tell: the reconstruction goes on at 0,0
         log.debug("CFA phase 0,0 not checked: %s", e)
         return None

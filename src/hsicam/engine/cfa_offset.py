@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import time
 
 import torch
 
@@ -41,6 +42,20 @@ DEFAULT_WINDOW_PX = 256
 #: the sensor does): smaller than :data:`DEFAULT_WINDOW_PX` since every such reconstruction pays it (about 0.6 s on
 #: this 2-core CPU for the shipped camera, against 1.7 s at 256 px).
 CHECK_WINDOW_PX = 128
+#: The most seconds the check (not ``auto``, which was asked for) may take, projected from its first candidate's
+#: time × the m² candidates; beyond it the check is skipped, and said so. The shipped camera's takes about 0.6 s; a
+#: `paper`-preset run's (81 phases of its RDN on a window widened to 222 px by its 141 px PSFs) took 165 s of a
+#: 172 s reconstruction of a 256² capture here (session 69), for a check the user had not asked for.
+CHECK_TIME_BUDGET_S = 15.0
+
+
+class EstimateTooSlow(InputError):
+    """:func:`estimate_cfa_offset` stopped after its first candidate: scoring them all would take longer than its
+    ``time_budget_s`` (``projected_s``: the projection)."""
+
+    def __init__(self, message: str, projected_s: float) -> None:
+        super().__init__(message)
+        self.projected_s = projected_s
 
 
 @dataclasses.dataclass(frozen=True)
@@ -147,7 +162,8 @@ MIN_SCORED_PX = 64
 
 @torch.no_grad()
 def estimate_cfa_offset(system, sensor: torch.Tensor, window_px: int = DEFAULT_WINDOW_PX,
-                        min_scored_px: int = 0) -> CfaOffsetEstimate:
+                        min_scored_px: int = 0, time_budget_s: float | None = None,
+                        progress: bool | None = False) -> CfaOffsetEstimate:
     """The CFA phase (Y, X) of the capture ``sensor`` (1, 1, H, W), values in [0, 1], for the trained
     :class:`~hsicam.models.system.CameraSystem` ``system`` (a camera with a CFA of period m > 1).
 
@@ -156,9 +172,12 @@ def estimate_cfa_offset(system, sensor: torch.Tensor, window_px: int = DEFAULT_W
     explains captures (``system.step_camera``, e.g. measured PSFs, else ``system.camera``; PSFs cut
     to ``model.consistency.psf_energy``) images it again; the window is widened (within the capture) so that at
     least ``min_scored_px`` a side are scored inside the PSF's reach. Costs m² network passes on the window
-    (the 4×4 CFA: 16; about 2.5 s for 256 px on one CPU core, `pretrained:standard`).
+    (the 4×4 CFA: 16; about 2.5 s for 256 px on one CPU core, `pretrained:standard`; a `paper`-preset run's 9×9 CFA:
+    81 passes of its RDN). ``time_budget_s``: :class:`EstimateTooSlow` after the first candidate when its time × m²
+    exceeds it (None: no limit). ``progress``: count the candidates (:class:`hsicam.progress.Progress`).
     InputError when the camera has no CFA, or the capture is too small or black."""
     from hsicam.models.consistency import cut_psf
+    from hsicam.progress import Progress
 
     period = int(getattr(system.camera, "code_period", 1))
     if period <= 1:
@@ -192,11 +211,20 @@ def estimate_cfa_offset(system, sensor: torch.Tensor, window_px: int = DEFAULT_W
             raise InputError("the capture is black where its CFA offset would be estimated (its central window): "
                              "give the offset with --cfa-offset Y,X")
         residuals = {}
-        for cy in range(period):
-            for cx in range(period):
-                origin = (cy + wy, cx + wx)  # the window's first pixel on the sensor, for this candidate
-                x = system.network(y, origin, operator=op)
-                residuals[f"{cy},{cx}"] = float((step.A(x, origin) - y)[inner].square().sum()) / norm
+        start = time.perf_counter()
+        with Progress(period * period, "CFA offset", "phase", show=progress) as bar:
+            for cy in range(period):
+                for cx in range(period):
+                    origin = (cy + wy, cx + wx)  # the window's first pixel on the sensor, for this candidate
+                    x = system.network(y, origin, operator=op)
+                    residuals[f"{cy},{cx}"] = float((step.A(x, origin) - y)[inner].square().sum()) / norm
+                    bar.update(1)
+                    if time_budget_s is not None and len(residuals) == 1:
+                        projected = (time.perf_counter() - start) * period * period
+                        if projected > time_budget_s:
+                            raise EstimateTooSlow(
+                                f"scoring the {period * period} CFA phases would take about {projected:.0f} s "
+                                f"({projected / (period * period):.1f} s each, on a {wh}×{ww} px window)", projected)
     finally:
         system.train(was_training)
     best = min(residuals, key=residuals.get)
