@@ -264,3 +264,67 @@ def test_reconstruct_takes_the_clipped_pixels_as_lower_bounds(clipped_capture):
     assert system.camera.noise.saturated is not None
     assert capture_saturation(system, np.zeros_like(clipped), (0, 0)) == {}
     assert system.camera.noise.saturated is None
+
+
+# ------------------------------------------------------------------------------------------------
+# The unrolled network's data steps read the measurement too
+# ------------------------------------------------------------------------------------------------
+@pytest.mark.parametrize("seed", [2, 7])
+def test_an_unrolled_data_step_keeps_the_truth_of_a_clipped_capture_and_follows_the_rule(seed):
+    """A gradient data step x − α Aᵀ r of the unrolled network, r = A x − y with, at a clipped pixel, only its
+    negative part (the rule written out in numpy): the truth of a clipped capture is its fixed point with the map and
+    is darkened without it; a map of no clipped pixel changes no bit."""
+    from hsicam.models.unrolled import UnrolledNet
+
+    snap, truth, y, clipped, _ = _clipped_problem(seed)
+    net = UnrolledNet(C, (4, 4), stages=1, init="backprojection", prior_features=4, prior_blocks=1,
+                      prior_scale=1).double()
+    alpha = torch.tensor(0.5 / float(snap.lipschitz), dtype=torch.float64)
+    rough = truth + 0.2 * torch.randn(truth.shape, generator=torch.Generator().manual_seed(seed), dtype=torch.float64)
+    with torch.no_grad():
+        torch.testing.assert_close(net.data_step(truth, y, snap, alpha, clipped=clipped), truth, rtol=0, atol=1e-12)
+        assert float((net.data_step(truth, y, snap, alpha) - truth).norm()) > 1e-2 * float(truth.norm())
+        got = net.data_step(rough, y, snap, alpha, clipped=clipped)
+        r = (snap.A(rough) - y).numpy()
+        r = np.where(clipped.numpy(), np.minimum(r, 0.0), r)
+        want = rough - alpha * snap.A_adjoint(torch.from_numpy(r))
+        torch.testing.assert_close(got, want, rtol=0, atol=1e-12)
+        plain = net.data_step(rough, y, snap, alpha)
+        assert (got - plain).abs().max() > 1e-4  # the rough estimate is brighter than some clipped pixels
+        assert torch.equal(net.data_step(rough, y, snap, alpha, clipped=torch.zeros_like(clipped)), plain)
+        assert torch.equal(net(y, snap, clipped=torch.zeros_like(clipped)), net(y, snap))
+    with pytest.raises(ValueError, match="clipped must be a bool tensor"):
+        net(y, snap, clipped=clipped.double())
+
+
+def test_the_unrolled_network_tiles_with_the_saturated_map_as_the_whole_image(tiny_config):
+    """A `model.kind=unrolled` system reads its camera's saturated-pixel map in its stages: 40 px tiles of a capture
+    at CFA offset (1, 2) give the whole image's cube, which the map changes (the network alone, no steps after it)."""
+    from hsicam.cli.reconstruct import offset_reconstructor
+    from hsicam.models.system import CameraSystem
+    from test_networks import randomise
+
+    torch.manual_seed(0)
+    system = CameraSystem.from_config(tiny_config(
+        "model.kind=unrolled", "model.unrolled.stages=2", "model.unrolled.prior_features=8",
+        "model.unrolled.prior_blocks=1", "model.unrolled.prior_scale=3", "model.unrolled.step_init=1.5",
+        "model.consistency.iterations=0", "camera.boundary=same")).eval()
+    assert system.net.takes_clipped
+    randomise(system.net, 0.2)  # priors that brighten the estimate above the clip at some clipped pixels (the
+    # demosaic start images darker than the capture there, where the map changes nothing)
+    h, w, tile = 130, 120, 40
+    sensor = 0.2 + 0.9 * torch.rand(1, 1, h, w, generator=torch.Generator().manual_seed(3))
+    saturated = sensor[0, 0] >= 0.5
+    sensor = sensor.clamp(max=0.5)
+
+    def cube(saturated_map, tile_px):
+        system.camera.noise = SensorNoise("none")
+        system.camera.noise.mark_saturated(saturated_map, (1, 2))
+        fn = offset_reconstructor(system.reconstructor(), (1, 2))
+        with torch.no_grad():
+            return reconstruct_tiled(fn, sensor, tile_px, None)
+
+    whole = cube(saturated, max(h, w))
+    assert tile + 2 * system.reconstructor().context_px < min(h, w)  # real tiles
+    torch.testing.assert_close(cube(saturated, tile), whole, rtol=0, atol=2e-5)
+    assert (cube(None, max(h, w)) - whole).abs().max() > 1e-3

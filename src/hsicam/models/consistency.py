@@ -94,7 +94,7 @@ def consistency_step(op, y: torch.Tensor, x0: torch.Tensor, origin: tuple[int, i
     """
     mode, momentum = _step_settings(extend, iterations, damping, psf_energy, spectral_prior, tv_weight, tv_momentum,
                                     band_px, x0, y)
-    clipped = _checked_clipped(clipped, y)
+    clipped = checked_clipped(clipped, y)
     if iterations == 0:
         return x0
     op, mode, py, px = _window_setup(op, y, mode, psf_energy)
@@ -464,7 +464,7 @@ def linear_consistency_step(op, y: torch.Tensor, x0: torch.Tensor, weight: torch
     if iterations < 0 or not 0 < gain <= 1 or not 0 < psf_energy <= 1:
         raise ValueError(f"need iterations >= 0, gain in (0, 1] and psf_energy in (0, 1], got {iterations}, "
                          f"{gain}, {psf_energy}")
-    clipped = _checked_clipped(clipped, y)
+    clipped = checked_clipped(clipped, y)
     if iterations == 0:
         return x0
     op, mode, py, px = _window_setup(op, y, mode, psf_energy)
@@ -489,7 +489,7 @@ def clipped_residual(r: torch.Tensor, clipped: torch.Tensor | None) -> torch.Ten
     return torch.where(clipped, r.clamp_min(0), r)
 
 
-def _checked_clipped(clipped: torch.Tensor | None, y: torch.Tensor) -> torch.Tensor | None:
+def checked_clipped(clipped: torch.Tensor | None, y: torch.Tensor) -> torch.Tensor | None:
     """``clipped`` on y's device (None where it marks no pixel); ValueError unless it is a bool map broadcastable to
     the sensor window ``y`` (B, 1, h, w)."""
     if clipped is None:

@@ -173,13 +173,16 @@ class CameraSystem(nn.Module):
 
         ``origin``: the sensor pixel of the window's top-left corner (the CFA phase of a tile).
         ``operator``: what the network sees of the camera (default the camera; a snapshot from
-        :meth:`Camera.measure` saves rebuilding it).
+        :meth:`Camera.measure` saves rebuilding it). A network with ``takes_clipped`` (the unrolled one) also gets
+        the window's clipped pixels (:meth:`_clipped`), lower bounds in its data steps.
         """
         op = self.camera if operator is None else operator
+        # a network whose data steps read the measurement (the unrolled one) takes the capture's clipped pixels too
+        kw = {"clipped": self._clipped(sensor, origin)} if getattr(self.net, "takes_clipped", False) else {}
         if self.autocast_dtype is not None and sensor.device.type != "cpu":
             with torch.autocast(sensor.device.type, dtype=self.autocast_dtype):
-                return self.net(sensor, op, origin).float()
-        return self.net(sensor, op, origin)
+                return self.net(sensor, op, origin, **kw).float()
+        return self.net(sensor, op, origin, **kw)
 
     def reconstruct(self, sensor: torch.Tensor, origin: tuple[int, int] = (0, 0), operator=None,
                     step_operator=None) -> torch.Tensor:

@@ -7,6 +7,10 @@
           or x + α_k Aᵀ((y − A x) ⊘ diag(AAᵀ))       GAP step (CASSI: ΦΦᵀ diagonal), α_k = softplus(θ_k)
         x = z + P_k(z)                              learned prior: residual CNN at 1/s resolution
 
+At a pixel the sensor clipped (``clipped``, a capture's saturated-pixel map; never in training) y is a lower
+bound of A x*: there the residual is one-sided (:func:`hsicam.models.consistency.clipped_residual`), as in the
+consistency steps after the network, so no stage pulls a highlight down to the clip.
+
 With ``brightness_window`` w > 0 each prior works on z/b and returns b·P(z/b), b = box_w(mean_c |z|) + ε,
 so a stage treats a scene and a darker copy alike (the gradient step is linear already).
 
@@ -38,6 +42,7 @@ from hsicam.errors import ConfigError
 from hsicam.models.registry import register_network
 from hsicam.models.mosaic import (MOSAIC_SIZES, MosaicNet, ResBlock, _odd_window, build_mosaic,
                                   mosaic_parameter_count, phase_pad)
+from hsicam.models.consistency import checked_clipped, clipped_residual
 from hsicam.models.demosaic import backprojection, brightness, camera_operator, demosaic
 
 INITS = UnrolledConfig.INITS
@@ -86,7 +91,12 @@ class UnrolledNet(nn.Module):
         op_reach: (rows, columns) a gradient step spreads a pixel (the operator's AᵀA reach, px).
         init: "demosaic", "backprojection" or "mosaic".
         front: the MosaicNet of init="mosaic".
+
+    Its data steps read the measurement, so ``forward`` takes a capture's clipped pixels (:attr:`takes_clipped`:
+    :class:`~hsicam.models.system.CameraSystem` passes the map of its camera's noise model).
     """
+
+    takes_clipped = True
 
     def __init__(self, bands: int, op_reach: tuple[int, int], stages: int = 2, init: str = "demosaic",
                  share_weights: bool = False, prior_features: int = 64, prior_blocks: int = 2, prior_scale: int = 4,
@@ -150,20 +160,24 @@ class UnrolledNet(nn.Module):
         return backprojection(op, sensor, origin)
 
     def data_step(self, x: torch.Tensor, sensor: torch.Tensor, op, alpha: torch.Tensor,
-                  origin: tuple[int, int] = (0, 0)) -> torch.Tensor:
-        """x − α Aᵀ(A x − y), or the GAP step x + α Aᵀ((y − A x) ⊘ diag(AAᵀ))."""
-        r = op.A(x, origin) - sensor
+                  origin: tuple[int, int] = (0, 0), clipped: torch.Tensor | None = None) -> torch.Tensor:
+        """x − α Aᵀ(A x − y), or the GAP step x + α Aᵀ((y − A x) ⊘ diag(AAᵀ)); at the ``clipped`` pixels (bool,
+        broadcastable to y; None: none) only an estimate darker than y is corrected (:func:`clipped_residual`)."""
+        r = -clipped_residual(sensor - op.A(x, origin), clipped)
         if self.step == "gap":
             d = op.gram_diagonal(sensor, origin)
             r = r / d.clamp_min(1e-6 * (getattr(op, "lipschitz", None) or 1.0))  # position-independent ε
         return x - alpha * op.A_adjoint(r, origin)
 
-    def forward(self, sensor: torch.Tensor, camera, origin: tuple[int, int] = (0, 0)) -> torch.Tensor:
-        """``sensor`` (B, 1, H, W) of the window at ``origin``; ``camera``: a Camera or its snapshot.
-        Returns (B, C, H', W') in the network's dtype (float32)."""
+    def forward(self, sensor: torch.Tensor, camera, origin: tuple[int, int] = (0, 0),
+                clipped: torch.Tensor | None = None) -> torch.Tensor:
+        """``sensor`` (B, 1, H, W) of the window at ``origin``; ``camera``: a Camera or its snapshot; ``clipped``:
+        the window's clipped pixels (bool, broadcastable to ``sensor``; None: none), lower bounds in every data
+        step. Returns (B, C, H', W') in the network's dtype (float32)."""
         if sensor.dim() != 4 or sensor.shape[1] != 1:
             raise ValueError(f"sensor image must be (B, 1, H, W), got shape {tuple(sensor.shape)}")
         sensor = sensor.to(self.step_logits.dtype)  # float32 unless the network was converted
+        clipped = checked_clipped(clipped, sensor)
         op = self.operator(camera)
         if len(op.bands) != self.bands:
             raise ValueError(f"the camera has {len(op.bands)} bands, the network {self.bands}")
@@ -171,7 +185,7 @@ class UnrolledNet(nn.Module):
         bound = getattr(op, "lipschitz_in_graph", None)  # L with its gradient to the optics, where they have one
         alphas = self.step_sizes(bound if bound is not None else getattr(op, "lipschitz", None))
         for k in range(self.stages):
-            x = self.data_step(x, sensor, op, alphas[k], origin)
+            x = self.data_step(x, sensor, op, alphas[k], origin, clipped)
             x = x + self._prior(k)(x, origin)
         return x
 
