@@ -297,10 +297,9 @@ def test_an_unrolled_data_step_keeps_the_truth_of_a_clipped_capture_and_follows_
         net(y, snap, clipped=clipped.double())
 
 
-def test_the_unrolled_network_tiles_with_the_saturated_map_as_the_whole_image(tiny_config):
-    """A `model.kind=unrolled` system reads its camera's saturated-pixel map in its stages: 40 px tiles of a capture
-    at CFA offset (1, 2) give the whole image's cube, which the map changes (the network alone, no steps after it)."""
-    from hsicam.cli.reconstruct import offset_reconstructor
+def _unrolled_system(tiny_config):
+    """A tiny `model.kind=unrolled` system whose priors brighten the estimate above the clip at some clipped pixels
+    (the demosaic start images darker than the capture there, where the map changes nothing)."""
     from hsicam.models.system import CameraSystem
     from test_networks import randomise
 
@@ -309,13 +308,24 @@ def test_the_unrolled_network_tiles_with_the_saturated_map_as_the_whole_image(ti
         "model.kind=unrolled", "model.unrolled.stages=2", "model.unrolled.prior_features=8",
         "model.unrolled.prior_blocks=1", "model.unrolled.prior_scale=3", "model.unrolled.step_init=1.5",
         "model.consistency.iterations=0", "camera.boundary=same")).eval()
-    assert system.net.takes_clipped
-    randomise(system.net, 0.2)  # priors that brighten the estimate above the clip at some clipped pixels (the
-    # demosaic start images darker than the capture there, where the map changes nothing)
-    h, w, tile = 130, 120, 40
+    randomise(system.net, 0.2)
+    return system
+
+
+def _clipped_capture(h: int, w: int, level: float = 0.5):
     sensor = 0.2 + 0.9 * torch.rand(1, 1, h, w, generator=torch.Generator().manual_seed(3))
-    saturated = sensor[0, 0] >= 0.5
-    sensor = sensor.clamp(max=0.5)
+    return sensor.clamp(max=level), sensor[0, 0] >= level
+
+
+def test_the_unrolled_network_tiles_with_the_saturated_map_as_the_whole_image(tiny_config):
+    """A `model.kind=unrolled` system reads its camera's saturated-pixel map in its stages: 40 px tiles of a capture
+    at CFA offset (1, 2) give the whole image's cube, which the map changes (the network alone, no steps after it)."""
+    from hsicam.cli.reconstruct import offset_reconstructor
+
+    system = _unrolled_system(tiny_config)
+    assert system.net.takes_clipped
+    h, w, tile = 130, 120, 40
+    sensor, saturated = _clipped_capture(h, w)
 
     def cube(saturated_map, tile_px):
         system.camera.noise = SensorNoise("none")
@@ -328,3 +338,20 @@ def test_the_unrolled_network_tiles_with_the_saturated_map_as_the_whole_image(ti
     assert tile + 2 * system.reconstructor().context_px < min(h, w)  # real tiles
     torch.testing.assert_close(cube(saturated, tile), whole, rtol=0, atol=2e-5)
     assert (cube(None, max(h, w)) - whole).abs().max() > 1e-3
+
+
+def test_the_cfa_phase_estimate_of_an_unrolled_camera_does_not_read_the_map_at_its_candidates(tiny_config):
+    """The candidates of the CFA-phase estimate are windows at phases the map was not placed by: the unrolled network
+    reconstructs them without the map (its window at a wrong phase would be the wrong pixels, or off the map), so a
+    capture's marked map leaves the estimate as it is without one."""
+    from hsicam.engine.cfa_offset import estimate_cfa_offset
+
+    system = _unrolled_system(tiny_config)
+    sensor, saturated = _clipped_capture(60, 60)
+    system.camera.noise = SensorNoise("none")
+    plain = estimate_cfa_offset(system, sensor)
+    system.camera.noise.mark_saturated(saturated, (1, 2))
+    marked = estimate_cfa_offset(system, sensor)
+    assert marked.offset == plain.offset and marked.residuals == plain.residuals
+    with torch.no_grad():  # (the network does read the map where it is asked to)
+        assert (system.network(sensor, (1, 2)) - system.network(sensor, (1, 2), read_clipped=False)).abs().max() > 1e-3

@@ -216,7 +216,8 @@ def estimate_cfa_offset(system, sensor: torch.Tensor, window_px: int = DEFAULT_W
             for cy in range(period):
                 for cx in range(period):
                     origin = (cy + wy, cx + wx)  # the window's first pixel on the sensor, for this candidate
-                    x = system.network(y, origin, operator=op)
+                    # (a capture's clipped pixels lie on the map at its real phase, which is what is sought here)
+                    x = system.network(y, origin, operator=op, read_clipped=False)
                     residuals[f"{cy},{cx}"] = float((step.A(x, origin) - y)[inner].square().sum()) / norm
                     bar.update(1)
                     if time_budget_s is not None and len(residuals) == 1:

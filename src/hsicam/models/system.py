@@ -168,17 +168,21 @@ class CameraSystem(nn.Module):
         h, w = scene.shape[-2] - 2 * r, scene.shape[-1] - 2 * r
         return scene[..., r : r + h, r : r + w]
 
-    def network(self, sensor: torch.Tensor, origin: tuple[int, int] = (0, 0), operator=None) -> torch.Tensor:
+    def network(self, sensor: torch.Tensor, origin: tuple[int, int] = (0, 0), operator=None, *,
+                read_clipped: bool = True) -> torch.Tensor:
         """The network alone: sensor image (B, 1, H, W) → cube (B, C, H, W) (float32).
 
         ``origin``: the sensor pixel of the window's top-left corner (the CFA phase of a tile).
         ``operator``: what the network sees of the camera (default the camera; a snapshot from
         :meth:`Camera.measure` saves rebuilding it). A network with ``takes_clipped`` (the unrolled one) also gets
-        the window's clipped pixels (:meth:`_clipped`), lower bounds in its data steps.
+        the window's clipped pixels (:meth:`_clipped`), lower bounds in its data steps, unless ``read_clipped`` is
+        False (a window whose place on the map is not known, e.g. a candidate CFA phase of
+        :func:`~hsicam.engine.cfa_offset.estimate_cfa_offset`).
         """
         op = self.camera if operator is None else operator
         # a network whose data steps read the measurement (the unrolled one) takes the capture's clipped pixels too
-        kw = {"clipped": self._clipped(sensor, origin)} if getattr(self.net, "takes_clipped", False) else {}
+        takes = read_clipped and getattr(self.net, "takes_clipped", False)
+        kw = {"clipped": self._clipped(sensor, origin)} if takes else {}
         if self.autocast_dtype is not None and sensor.device.type != "cpu":
             with torch.autocast(sensor.device.type, dtype=self.autocast_dtype):
                 return self.net(sensor, op, origin, **kw).float()
