@@ -81,6 +81,24 @@ _TEMP_PARTS = re.compile(r"^\.(?P<stem>.*)\.[A-Za-z0-9_]{8}\.(?:tmp(?P<suffix>\.
 
 
 # ------------------------------------------------------------------------------------------------
+# Reading .npy files
+# ------------------------------------------------------------------------------------------------
+#: The first bytes of every ``.npy`` file.
+NPY_MAGIC = b"\x93NUMPY"
+
+
+def npy_content_problem(path: str | os.PathLike) -> str | None:
+    """Why the file ``path`` is not a ``.npy`` file, judged by its first bytes ("an empty file", "a .npz archive",
+    "no NumPy header"), or None when it starts as one. Checked before ``np.load``, which opens a zip archive
+    and calls any other content "pickled data", advising ``allow_pickle``. An OSError reading it propagates."""
+    with open(path, "rb") as fh:
+        head = fh.read(len(NPY_MAGIC))
+    if head == NPY_MAGIC:
+        return None
+    return "an empty file" if not head else "a .npz archive" if head.startswith(b"PK") else "no NumPy header"
+
+
+# ------------------------------------------------------------------------------------------------
 # Output-path check
 # ------------------------------------------------------------------------------------------------
 def _nearest_existing(p: Path, broken_links: bool = True) -> Path:

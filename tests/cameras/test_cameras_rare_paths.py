@@ -172,7 +172,8 @@ def test_a_boolean_mask_file_is_a_binary_coded_aperture(tmp_path):
     np.testing.assert_array_equal(cam.aperture.pattern(12, 18).numpy(), mask[:, :18].astype(np.float64))
 
 
-@pytest.mark.parametrize("content, what", [(b"0 1 1 0\n1 0 0 1\n", "no NumPy header"), (None, "a .npz archive")])
+@pytest.mark.parametrize("content, what", [(b"0 1 1 0\n1 0 0 1\n", "no NumPy header"), (None, "a .npz archive"),
+                                           (b"", "an empty file")])
 def test_a_mask_file_that_is_not_npy_is_named_as_such_without_pickle_advice(tmp_path, content, what):
     path = tmp_path / "mask.npy"
     if content is None:  # np.savez to a file object keeps the .npy name
@@ -183,3 +184,20 @@ def test_a_mask_file_that_is_not_npy_is_named_as_such_without_pickle_advice(tmp_
     with pytest.raises(InputError) as err:
         _cassi(tmp_path, "mask.npy")
     assert str(err.value) == f"{path}: not a .npy file ({what}); save the coded aperture (H, W) with numpy.save"
+
+
+@pytest.mark.parametrize("shape", [(1, 1, 1), (1, 64), (3, 4, 5), (0, 6)])
+def test_a_mask_of_the_wrong_shape_is_refused_naming_the_shape_stored(tmp_path, shape):
+    """The message names the array's shape as the file stores it ((1, 64) was said to be (64,) once squeezed)."""
+    np.save(tmp_path / "mask.npy", np.ones(shape))
+    with pytest.raises(InputError) as err:
+        _cassi(tmp_path, "mask.npy")
+    assert str(err.value) == (f"{tmp_path / 'mask.npy'}: a coded aperture must be a 2-D (H, W) array of at least 1×1 "
+                              f"after dropping axes of length 1, got shape {shape}")
+
+
+def test_a_folder_given_as_the_mask_is_said_to_be_one(tmp_path):
+    (tmp_path / "masks.npy").mkdir()
+    with pytest.raises(InputError) as err:
+        _cassi(tmp_path, "masks.npy")
+    assert str(err.value) == f"{tmp_path / 'masks.npy'}: is a folder, not a coded-aperture file (a .npy array (H, W))"

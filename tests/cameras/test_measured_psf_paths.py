@@ -332,12 +332,15 @@ def _spot(size: int = 31) -> np.ndarray:
     return img
 
 
-def _psf_dir(d: Path, meta, files: dict[str, np.ndarray]) -> Path:
+def _psf_dir(d: Path, meta, files: dict[str, np.ndarray | bytes]) -> Path:
     d.mkdir()
     if meta is not None:
         (d / "psf.json").write_text(meta if isinstance(meta, str) else json.dumps(meta))
     for name, arr in files.items():
-        np.save(d / name, arr)
+        if isinstance(arr, bytes):  # a file of these bytes (not an array)
+            (d / name).write_bytes(arr)
+        else:
+            np.save(d / name, arr)
     return d
 
 
@@ -358,7 +361,17 @@ STACK = np.stack([_spot()] * 2)
      "{d}/psf.npy: expected a (C, H, W) stack with C = 3 (bands_nm), got shape (2, 31, 31)"),
     ({"bands_nm": [500, 510]}, {"psf.npy": STACK > 0}, "{d}/psf.npy: unsupported data type bool"),
     ({"bands_nm": [500, 510]}, {"psf.npy": np.zeros((2, 0, 5))}, "{d}/psf.npy: unusable PSF stack shape (2, 0, 5)"),
-    (None, {"psf.npy": STACK}, "{d}/psf.npy: a PSF stack needs its wavelengths: bands_nm in {d}/psf.json"),
+    (None, {"psf.npy": STACK}, "{d}/psf.npy: a PSF stack needs its wavelengths: bands_nm in {d}/psf.json, which is missing"),
+    # what `hsicam psf` writes beside the stack (files named with no wavelength) is not blamed for a missing psf.json
+    (None, {"psf.npy": STACK, "aperture.npy": _spot()},
+     "{d}/psf.npy: a PSF stack needs its wavelengths: bands_nm in {d}/psf.json, which is missing"),
+    ({}, {"psf.npy": STACK, "aperture.npy": _spot()},
+     "{d}/psf.npy: a PSF stack needs its wavelengths: bands_nm in {d}/psf.json"),
+    # a stack that is no .npy: said so, not numpy's "pickled data … allow_pickle" advice
+    ({"bands_nm": [500, 510]}, {"psf.npy": b"x\n"},
+     "{d}/psf.npy: not a .npy file (no NumPy header); save the PSF stack (C, H, W) with numpy.save"),
+    ({"bands_nm": [500, 510]}, {"psf.npy": b""},
+     "{d}/psf.npy: not a .npy file (an empty file); save the PSF stack (C, H, W) with numpy.save"),
     (None, {"psf_500nm.npy": _spot(), "b_500nm.npy": _spot()}, "{d}: two PSF images name the same wavelength"),
     ({"centre": "middle"}, {"psf_500nm.npy": _spot()},
      "{d}: PSF centre must be one of centroid, peak, axis, centroid_per_band, peak_per_band, got 'middle'"),

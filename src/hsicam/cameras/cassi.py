@@ -46,6 +46,7 @@ from hsicam.cameras.base import Camera
 from hsicam.cameras.registry import register_camera
 from hsicam.config import design_seed
 from hsicam.errors import ConfigError, InputError
+from hsicam.io import npy_content_problem
 from hsicam.memory import MEMORY_BUDGET_ENV, format_bytes, memory_budget_bytes
 from hsicam.sensor import SensorNoise
 from hsicam.spectral import Bands, get_material
@@ -101,21 +102,22 @@ def random_aperture(h: int, w: int, seed: int = 0, density: float = 0.5,
 def load_aperture(path: str | Path) -> np.ndarray:
     """Coded aperture (H, W) from a ``.npy`` file; values must be finite and in [0, 1] (a boolean mask: 1 = open)."""
     path = Path(path).expanduser()
+    if path.is_dir():
+        raise InputError(f"{path}: is a folder, not a coded-aperture file (a .npy array (H, W))")
     if not path.is_file():
         raise InputError(f"{path}: no such coded-aperture file")
     try:
-        with open(path, "rb") as fh:
-            head = fh.read(6)
-        # only a .npy: np.load would open a zip (.npz) or refuse "pickled data", advising allow_pickle
-        arr = np.load(path, allow_pickle=False) if head == b"\x93NUMPY" else None
+        problem = npy_content_problem(path)  # only a .npy is loaded
+        arr = np.load(path, allow_pickle=False) if problem is None else None
     except (OSError, ValueError) as exc:
         raise InputError(f"{path}: not a readable .npy array ({exc})") from None
     if arr is None:
-        raise InputError(f"{path}: not a .npy file ({'a .npz archive' if head.startswith(b'PK') else 'no NumPy header'}); "
-                         "save the coded aperture (H, W) with numpy.save")
+        raise InputError(f"{path}: not a .npy file ({problem}); save the coded aperture (H, W) with numpy.save")
+    stored = np.asarray(arr).shape
     arr = np.squeeze(np.asarray(arr))
     if arr.ndim != 2 or min(arr.shape) < 1:
-        raise InputError(f"{path}: a coded aperture must be a 2-D (H, W) array, got shape {arr.shape}")
+        raise InputError(f"{path}: a coded aperture must be a 2-D (H, W) array of at least 1×1 after dropping axes of "
+                         f"length 1, got shape {stored}")
     if arr.dtype != np.bool_ and (not np.issubdtype(arr.dtype, np.number) or np.issubdtype(arr.dtype, np.complexfloating)):
         raise InputError(f"{path}: a coded aperture must be real numbers, got dtype {arr.dtype}")
     arr = arr.astype(np.float64)

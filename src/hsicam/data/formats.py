@@ -87,7 +87,7 @@ import numpy as np
 
 from hsicam.data.cube import check_cube, check_memory_budget
 from hsicam.errors import InputError
-from hsicam.io import atomic_path, check_output_path, json_text, nan_for_null
+from hsicam.io import NPY_MAGIC, atomic_path, check_output_path, json_text, nan_for_null
 from hsicam.spectral import Bands
 
 log = logging.getLogger(__name__)
@@ -105,7 +105,6 @@ FORMATS = ("hsicam", "icvl", "arad", "kaist-mat", "harvard", "kaist-exr", "cave"
 SCENE_SUFFIXES = (".h5", ".hdf5", ".mat", ".npy", ".exr", ".hdr")
 
 _HDF5_MAGIC = b"\x89HDF\r\n\x1a\n"
-_NPY_MAGIC = b"\x93NUMPY"
 _EXR_MAGIC = b"v/1\x01"
 _PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 _CAVE_RE = re.compile(r"^(?P<prefix>.+)_ms_(?P<index>\d{2})\.png$", re.IGNORECASE)
@@ -186,7 +185,7 @@ def detect_format(path: str | os.PathLike) -> str:
         return _detect_hdf5(p, head)
     if head.startswith(b"MATLAB 5.0"):
         return _detect_mat5(p)
-    if head.startswith(_NPY_MAGIC):
+    if head.startswith(NPY_MAGIC):
         return "npy"
     if head.startswith(_EXR_MAGIC):
         return "kaist-exr"

@@ -62,6 +62,7 @@ from typing import Any
 import numpy as np
 
 from hsicam.errors import InputError
+from hsicam.io import NPY_MAGIC
 
 log = logging.getLogger(__name__)
 
@@ -69,7 +70,6 @@ log = logging.getLogger(__name__)
 MAX_IMAGE_PIXELS = 1 << 27
 
 _PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
-_NPY_MAGIC = b"\x93NUMPY"
 _TIFF_MAGICS = (b"II*\x00", b"MM\x00*", b"II+\x00", b"MM\x00+")
 IMAGE_SUFFIXES = (".npy", ".png", ".tif", ".tiff")
 
@@ -143,7 +143,7 @@ def _sniff(path: Path) -> str:
         raise InputError(f"{path}: empty file")
     if head.startswith(_PNG_MAGIC):
         return "png"
-    if head.startswith(_NPY_MAGIC):
+    if head.startswith(NPY_MAGIC):
         return "npy"
     if head[:4] in _TIFF_MAGICS:
         return "tiff"

@@ -68,6 +68,7 @@ import numpy as np
 
 from hsicam.data.images import MAX_IMAGE_PIXELS, read_image_2d
 from hsicam.errors import InputError
+from hsicam.io import npy_content_problem
 from hsicam.runs.measured_psf import MeasuredPSF, psf_fingerprint
 from hsicam.spectral import Bands
 
@@ -421,7 +422,10 @@ def _list_band_images(d: Path, meta: dict[str, Any]) -> list[tuple[float, Path, 
     """(wavelength nm, file, image as stored (float64), the integer type's maximum or None for a
     float image) for every PSF in the folder."""
     stack = d / "psf.npy"
-    if stack.is_file() and "bands_nm" in meta:
+    if stack.is_file():  # a stack (what `hsicam psf` writes, beside files of no wavelength), never band files
+        if "bands_nm" not in meta:
+            raise InputError(f"{stack}: a PSF stack needs its wavelengths: bands_nm in {d / 'psf.json'}"
+                             + ("" if (d / "psf.json").is_file() else ", which is missing"))
         return _read_psf_stack(d, stack, meta["bands_nm"])
     return _read_band_files(d)
 
@@ -443,7 +447,12 @@ def _read_psf_stack(d: Path, stack: Path, bands: Any) -> list[tuple[float, Path,
     ``psf.json``: every band's entry names the stack's file."""
     _check_bands_nm(d, bands)
     try:
+        problem = npy_content_problem(stack)  # np.load calls any other content "pickled data", advising allow_pickle
+        if problem is not None:
+            raise InputError(f"{stack}: not a .npy file ({problem}); save the PSF stack (C, H, W) with numpy.save")
         arr = np.load(stack, mmap_mode="r", allow_pickle=False)
+    except InputError:
+        raise
     except Exception as exc:  # noqa: BLE001
         raise InputError(f"{stack}: not a readable .npy file ({str(exc).splitlines()[0] if str(exc) else type(exc).__name__})") from None
     if arr.ndim != 3 or arr.shape[0] != len(bands):
@@ -467,8 +476,6 @@ def _read_band_files(d: Path) -> list[tuple[float, Path, np.ndarray, float | Non
         if f.name.startswith(".") or f.suffix.lower() not in _IMAGE_SUFFIXES or not f.is_file():
             continue
         w = wavelength_from_name(f.stem)
-        if w is None and f.name == "psf.npy":
-            raise InputError(f"{f}: a PSF stack needs its wavelengths: bands_nm in {d / 'psf.json'}")
         if w is None:
             raise InputError(f"{f}: cannot tell the wavelength from the file name (use e.g. psf_450nm{f.suffix})")
         items.append((w, f))
