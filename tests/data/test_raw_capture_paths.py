@@ -323,3 +323,32 @@ def test_the_psf_warning_names_a_shipped_camera_by_its_pretrained_name():
     assert "the network of pretrained:standard was not fine-tuned" in msg
     assert "`hsicam finetune --run pretrained:standard --psf-dir psfs --out RUN2`" in msg
     assert str(folder) not in msg
+
+
+@pytest.mark.parametrize("peak", [1e-6, 1e-30])
+def test_a_float_capture_far_below_full_scale_is_warned_about(tmp_path, caplog, peak):
+    """A float capture read on the simulator's scale whose 99.9th percentile is below one 8-bit step of full scale was
+    reconstructed silently (session 70's hunt: through the shipped camera a constant 1e-30 came back at about 4e-6, the
+    network's output being no longer proportional that far below its training levels); it is warned about, naming the level and the options
+    that bring it up. Given a gain, only the gain's own message speaks; a capture at 0.01 is not warned about."""
+    rng = np.random.default_rng(4)
+    values = rng.random((48, 48)).astype(np.float32)
+    path = tmp_path / "dim.npy"
+    np.save(path, values * np.float32(peak))
+    level = float(np.percentile(np.load(path), 99.9))
+    with caplog.at_level(logging.WARNING, logger="hsicam.data.images"):
+        read_capture(path)
+    [msg] = [r.getMessage() for r in caplog.records]
+    assert msg.startswith(f"{path}: very dark: the float capture's 99.9th percentile is {level:.3g} of the sensor's full "
+                          "scale (1; warned below 1/256)"), msg
+    assert "--auto-level 0.5" in msg, msg
+    caplog.clear()
+    with caplog.at_level(logging.WARNING, logger="hsicam.data.images"):
+        read_capture(path, RawCorrection(auto_level=0.5))  # brought up: no warning
+        np.save(tmp_path / "ok.npy", values * np.float32(0.01))
+        read_capture(tmp_path / "ok.npy")
+    assert not caplog.records, caplog.text
+    with caplog.at_level(logging.WARNING, logger="hsicam.data.images"):
+        read_capture(path, RawCorrection(scale=2.0))  # a gain that leaves it dark: the gain's message alone
+    [msg] = [r.getMessage() for r in caplog.records]
+    assert "--scale 2 leaves the image very dark" in msg, msg

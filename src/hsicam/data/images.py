@@ -613,7 +613,7 @@ def _level_notes(img: np.ndarray, raw: np.ndarray, full_scale: float, white: flo
                  check_level: bool, check_bit_depth: bool) -> list[str]:
     """The warnings about the level of the corrected image ``img`` (H, W, full scale 1) of the capture ``raw`` (DN),
     InputError for those refused: a gain past full scale or far below it (:func:`_check_level`), a dim integer
-    capture (:func:`_check_dim`), a white level far above the data (:func:`_check_white_level`), a float capture
+    capture (:func:`_check_dim`) or float capture (:func:`_check_dim_float`), a white level far above the data (:func:`_check_white_level`), a float capture
     that holds DN."""
     notes: list[str] = []
     if check_level:
@@ -622,6 +622,8 @@ def _level_notes(img: np.ndarray, raw: np.ndarray, full_scale: float, white: flo
         notes += _check_dim(img, raw, full_scale, source)
     if corr.white_level is not None and corr.auto_level is None:
         notes += _check_white_level(img, raw, full_scale, white, source)
+    if check_bit_depth and full_scale == 1 and corr.white_level is None and not _gain_options(corr):
+        notes += _check_dim_float(img, source)
     if full_scale == 1 and corr.white_level is None and corr.auto_level is None and raw.size and raw.max() > FLOAT_OVER_SCALE:
         notes.append(f"{source}: a float capture is read on the simulator's scale (0 = black, 1 = full scale), and this "
                      f"one reaches {float(raw.max()):g}: if it holds DN, pass the sensor's white level (--white-level DN) "
@@ -812,6 +814,20 @@ def _check_white_level(img: np.ndarray, raw: np.ndarray, full_scale: float, whit
             f"scale (brightest pixel {brightest:g}; warned below 1/{round(1 / DARK_WHITE_FRACTION)}): is {white:g} this "
             "sensor's full scale (4095 for 12 bit, 65535 for 16 bit)? if the capture is just dark, scale it "
             "(--exposure-s/--reference-exposure-s, --scale or --auto-level)"]
+
+
+def _check_dim_float(img: np.ndarray, source: str) -> list[str]:
+    """A warning (returned) when a float capture, read on the simulator's scale with no gain asked for, has its
+    99.9th percentile below :data:`DIM_AFTER_GAIN` of full scale (1): far darker than any training image (the
+    network's output is then no longer proportional to the capture: through the shipped camera a constant capture of
+    1e-4 comes back at 1.01× its level, one of 1e-6 at 4.4×, one of 1e-30 at about 4e-6, 4e24×; session 70)."""
+    level = float(np.percentile(img, 99.9)) if img.size else 0.0
+    if not 0 < level < DIM_AFTER_GAIN:  # (no signal at all is refused before)
+        return []
+    return [f"{source}: very dark: the float capture's 99.9th percentile is {level:.3g} of the sensor's full scale (1; "
+            f"warned below 1/{round(1 / DIM_AFTER_GAIN)}), far below the levels the network was trained on (about 0.1 "
+            "to 0.75): if its values are on another scale, pass --white-level, or bring it up with --auto-level 0.5 "
+            "(or --scale)"]
 
 
 def _check_dim(img: np.ndarray, raw: np.ndarray, full_scale: float, source: str) -> list[str]:
