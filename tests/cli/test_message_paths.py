@@ -347,3 +347,34 @@ def test_a_set_that_a_trained_run_cannot_take_is_named(runs, tmp_path, override,
                        f"--set {override}: changes what {runs / 'run'} was trained with, so its weights do not load",
                        cause, "fixed by its training")
     assert not out.exists()
+
+
+def test_simulate_names_only_the_users_set_that_a_trained_run_cannot_take(runs, tmp_path):
+    """simulate adds its own camera.boundary to the --set keys; the refusal named it beside the user's key (session
+    70's hunt: "--set camera.cfa.period=4 camera.boundary=same: changes what RUN was trained with")."""
+    scene = tmp_path / "scene.npy"
+    np.save(scene, np.random.default_rng(0).random((3, 32, 32)).astype(np.float32))
+    out = tmp_path / "s"
+    res = run_cli_in_process("simulate", "--run", str(runs / "run"), "--scene", str(scene), "--out", str(out),
+                             "--set", "camera.doe.enabled=false")
+    assert_clean_error(res, f"--set camera.doe.enabled=false: changes what {runs / 'run'} was trained with, so its "
+                            "weights do not load")
+    assert "camera.boundary" not in res.stderr, res.stderr
+    assert not out.exists()
+
+
+@pytest.mark.parametrize("command", ["psf", "simulate"])
+def test_an_unknown_network_kind_is_refused_by_the_commands_that_write_the_config(tmp_path, command):
+    """`psf --config tiny --set model.kind=foo` wrote `kind: foo` into its config.yaml, which only train refused
+    (session 70's hunt); every command that writes the config refuses it, naming the kinds, before any output."""
+    from hsicam.models import network_kinds
+
+    out = tmp_path / "o"
+    args = ["--config", "tiny", "--set", "model.kind=foo", "--out", str(out)]
+    if command == "simulate":
+        scene = tmp_path / "scene.npy"
+        np.save(scene, np.random.default_rng(0).random((3, 32, 32)).astype(np.float32))
+        args += ["--scene", str(scene)]
+    assert_clean_error(run_cli_in_process(command, *args),
+                       f"model.kind='foo' is unknown; choose one of {', '.join(network_kinds())}")
+    assert not out.exists()

@@ -101,11 +101,15 @@ def _output_run(folder: Path) -> tuple[str, str] | None:
 
 
 def camera_from_args(args: argparse.Namespace, extra_overrides: tuple[str, ...] = (), command: str = "psf"):
-    """(camera, config) of the command line's config file and --set overrides (any camera kind)."""
+    """(camera, config) of the command line's config file and --set overrides (any camera kind). An unknown
+    ``model.kind`` is refused here too, though no network is built: the command writes the config beside its
+    outputs, and a config naming no network would only be refused by the ``train`` it was meant for."""
     from hsicam.cameras import build_camera
+    from hsicam.models import check_network_kind
 
     check_not_run_config(args.config, command)
     cfg = config_from_args(args.config, [*args.overrides, *extra_overrides])
+    check_network_kind(cfg.model.kind)
     return build_camera(cfg), cfg
 
 

@@ -88,10 +88,12 @@ def load_run(run_dir: str | Path, device: torch.device | str = "cpu", overrides:
     try:
         load_weights(kept := root_weights_path(run_dir), model, cfg.bands.to_bands())
     except InputError as exc:
-        if not overrides or not _loads_without(run_dir, cfg_path):
+        if not overrides or not _weights_load_with(run_dir, cfg_path):
             raise  # a damaged file (weights, manifest) fails whatever the --set keys are: say that, not them
-        # the weights fitted the run's own config: the --set keys changed what it trained
-        raise InputError(f"--set {' '.join(map(str, overrides))}: changes what {run_dir} was trained with, so its "
+        # the weights fitted the run's own config: the --set keys changed what it trained; named are those that do
+        # alone (a command adds its own keys, e.g. simulate's camera.boundary, which leave the weights as they are)
+        culprits = [o for o in overrides if not _weights_load_with(run_dir, cfg_path, (o,))] or list(overrides)
+        raise InputError(f"--set {' '.join(map(str, culprits))}: changes what {run_dir} was trained with, so its "
                          f"weights do not load ({exc}); a trained run's camera, bands and network are fixed by its "
                          "training (another design: hsicam train)") from None
     check_finite_weights(model, kept)
@@ -135,13 +137,14 @@ def load_run(run_dir: str | Path, device: torch.device | str = "cpu", overrides:
     return cfg, model.to(device).eval()
 
 
-def _loads_without(run_dir: Path, cfg_path: Path) -> bool:
-    """Whether the run's weights load into the model of its own config.yaml (no ``--set``)."""
+def _weights_load_with(run_dir: Path, cfg_path: Path, overrides: tuple[str, ...] = ()) -> bool:
+    """Whether the run's weights load into the model of its own config.yaml (with ``overrides`` only: by default no
+    ``--set``)."""
     from hsicam.config import load_config
     from hsicam.models import CameraSystem
 
     try:
-        cfg = load_config(cfg_path, (), empty=EMPTY_RUN_CONFIG)
+        cfg = load_config(cfg_path, overrides, empty=EMPTY_RUN_CONFIG)
         load_weights(root_weights_path(run_dir), CameraSystem.from_config(cfg), cfg.bands.to_bands())
     except HsicamError:
         return False
