@@ -128,14 +128,29 @@ def free_space_margin(need_bytes: int, min_margin_bytes: int = 1 << 26) -> int:
     return max(need_bytes // 10, min_margin_bytes)
 
 
-def free_space_text(need_bytes: int, free_bytes: int, min_margin_bytes: int = 1 << 26) -> str:
+def free_space_text(need_bytes: int, free_bytes: int, min_margin_bytes: int = 1 << 26,
+                    path: str | os.PathLike | None = None) -> str:
     """How a refusal of :func:`free_space_short` states the numbers: what the output needs, the margin kept
-    free beyond it, and what the disk has (which may exceed the output alone: the margin is the difference)."""
+    free beyond it, and what the disk has (which may exceed the output alone: the margin is the difference). With
+    the output's ``path``, a file system of no size at all (a virtual one: /sys, /proc) is said to be one, not a
+    full disk."""
     from hsicam.memory import format_bytes
 
     margin = free_space_margin(need_bytes, min_margin_bytes)
-    return (f"about {format_bytes(need_bytes)}, and {format_bytes(margin)} more is kept free beyond it "
-            f"({format_bytes(need_bytes + margin)} in all), but that disk has {format_bytes(free_bytes)} free")
+    text = (f"about {format_bytes(need_bytes)}, and {format_bytes(margin)} more is kept free beyond it "
+            f"({format_bytes(need_bytes + margin)} in all), but ")
+    if path is not None and _file_system_size(path) == 0:
+        return text + "that file system stores no files (0 B in all: a virtual one, such as /sys or /proc)"
+    return text + f"that disk has {format_bytes(free_bytes)} free"
+
+
+def _file_system_size(path: str | os.PathLike) -> int | None:
+    """The size in bytes of the file system that ``path`` (or its nearest existing ancestor) is on; None when it
+    cannot be read."""
+    try:
+        return shutil.disk_usage(_nearest_existing(Path(path).absolute(), broken_links=False)).total
+    except OSError:
+        return None
 
 
 def _writable_dir(d: Path) -> bool:

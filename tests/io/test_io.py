@@ -542,6 +542,23 @@ def test_free_space_short_keeps_a_tenth_of_the_need_or_64_mib_free_beyond_it(mon
     assert f"and {format_bytes(margin)} more is kept free beyond it ({format_bytes(need + margin)} in all)" in text
 
 
+def test_a_file_system_of_no_size_is_said_to_be_virtual_not_a_full_disk(monkeypatch, tmp_path):
+    """An output under /sys (sysfs: 0 B in all, 0 B free) was refused as if its disk were full ("that disk has 0 B
+    free; free some space"; session 70's hunt); with the output's path the text says what it is. A real disk that is
+    full keeps its wording."""
+    from collections import namedtuple
+
+    from hsicam.io import free_space_text
+
+    usage = namedtuple("usage", "total used free")
+    monkeypatch.setattr(shutil, "disk_usage", lambda path: usage(0, 0, 0))
+    assert free_space_text(10**6, 0, path=tmp_path / "c.h5").endswith(
+        "but that file system stores no files (0 B in all: a virtual one, such as /sys or /proc)")
+    monkeypatch.setattr(shutil, "disk_usage", lambda path: usage(10**12, 10**12, 0))
+    assert free_space_text(10**6, 0, path=tmp_path / "c.h5").endswith("but that disk has 0 B free")
+    assert free_space_text(10**6, 0).endswith("but that disk has 0 B free")  # no path: as before
+
+
 def test_8_and_16_bit_pngs_round_to_the_nearest_level(tmp_path):
     """A value 0.6 of a level above level k is stored as k + 1 (rounded, not truncated), read back with imageio."""
     import imageio.v3 as iio

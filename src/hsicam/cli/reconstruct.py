@@ -347,7 +347,7 @@ def check_room_for_cube(path: Path, n_bands: int, height: int, width: int) -> No
     free = free_space_short(path, need)
     if free is not None:
         raise InputError(f"{path}: the cube of {n_bands} bands × {height}×{width} px and its preview need "
-                         f"{free_space_text(need, free)}; free some space or choose an --out on a larger disk")
+                         f"{free_space_text(need, free, path=path)}; free some space or choose an --out on a larger disk")
 
 
 def write_cube_file(path: Path, cube: np.ndarray, bands, metadata: dict) -> float:

@@ -371,7 +371,7 @@ def check_room_for_scenes(out: Path, n: int, size: int, n_bands: int, fix: str =
     free = free_space_short(out, need)
     if free is not None:
         raise InputError(f"the synthetic dataset of {n:,} scenes of {size}×{size} px and {n_bands} bands needs, in {out}, "
-                         f"{free_space_text(need, free)}; {fix}")
+                         f"{free_space_text(need, free, path=out)}; {fix}")
 
 
 def generate_dataset(out: str | os.PathLike, n: int, size: int, seed: int = 0, bands: Bands | None = None,

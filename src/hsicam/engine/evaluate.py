@@ -405,7 +405,7 @@ def check_room_for_cubes(out: Path, scenes, n_bands: int) -> None:
     need = sum(2 * (n_bands * info.height * info.width * 4 + H5_OVERHEAD_BYTES) for info in infos)
     free = free_space_short(out, need, min_margin_bytes=1 << 20)
     if free is not None:
-        raise InputError(f"{out}: --save writes cubes ({len(scenes)} scenes) of {free_space_text(need, free, 1 << 20)}; "
+        raise InputError(f"{out}: --save writes cubes ({len(scenes)} scenes) of {free_space_text(need, free, 1 << 20, path=out)}; "
                          "free some space, choose another --out, or drop --save")
 
 
