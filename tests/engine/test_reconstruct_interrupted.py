@@ -128,11 +128,11 @@ def test_a_stop_between_the_envi_data_and_its_header_leaves_no_data_file_and_the
 
     @contextlib.contextmanager
     def stopped_before_the_header(path):
-        if str(path).endswith(".hdr"):
-            assert (out / "c.img").is_file()  # the data file is in place: the stop falls between the two
-            raise Terminated() if how == "term" else KeyboardInterrupt()
         with real(path) as tmp:
             yield tmp
+            if str(path).endswith(".hdr"):  # before the header's temporary takes its place
+                assert (out / "c.img").is_file()  # the data file is in place: the stop falls between the two
+                raise Terminated() if how == "term" else KeyboardInterrupt()
 
     monkeypatch.setattr(formats, "atomic_path", stopped_before_the_header)
     assert main(argv) == (143 if how == "term" else 130)
@@ -142,3 +142,39 @@ def test_a_stop_between_the_envi_data_and_its_header_leaves_no_data_file_and_the
     monkeypatch.undo()
     assert main(argv) == 0, capsys.readouterr().err
     assert sorted(p.name for p in out.iterdir()) == ["c.hdr", "c.img", "c_rgb.png"]
+
+
+@pytest.mark.parametrize("name", ["c.h5", "c.hdr"])
+@pytest.mark.parametrize("stop_in", ["preview", "cube"])
+def test_a_stopped_overwrite_leaves_the_earlier_cube_and_preview_as_they_were(capture, tmp_path, monkeypatch, capsys,
+                                                                              name, stop_in):
+    """Reconstructing over an earlier cube deleted its preview first and, stopped while writing the new preview,
+    deleted the new cube too: both of the earlier result's files were lost (session 70's hunt). Stopped while the new
+    preview or the new cube is written, the earlier files are there, byte for byte, and no temporary is left."""
+    import hsicam.data.formats as formats
+    import hsicam.io
+    from hsicam.cli import main
+
+    out = tmp_path / "out"
+    out.mkdir()
+    earlier = np.random.default_rng(1).uniform(0.2, 0.8, (48, 48)).astype(np.float32)
+    np.save(tmp_path / "earlier.npy", earlier)
+    assert main(["reconstruct", str(tmp_path / "earlier.npy"), "--run", "pretrained:standard", "--out",
+                 str(out / name)]) == 0
+    before = {p.name: p.read_bytes() for p in out.iterdir()}
+    assert len(before) == (2 if name.endswith(".h5") else 3)
+
+    def stop(*args, **kwargs):
+        raise KeyboardInterrupt()
+
+    if stop_in == "preview":
+        monkeypatch.setattr(hsicam.io, "write_png8", stop)
+    else:
+        monkeypatch.setattr(formats, "write_cube_h5" if name.endswith(".h5") else "_write_envi_pair", stop)
+    assert main(["reconstruct", str(capture), "--run", "pretrained:standard", "--out", str(out / name)]) == 130
+    assert capsys.readouterr().err.strip().splitlines()[-1] == "hsicam: interrupted"
+    assert {p.name: p.read_bytes() for p in out.iterdir()} == before  # the same files, the same bytes, nothing else
+    monkeypatch.undo()
+    assert main(["reconstruct", str(capture), "--run", "pretrained:standard", "--out", str(out / name)]) == 0
+    after = {p.name: p.read_bytes() for p in out.iterdir()}
+    assert after.keys() == before.keys() and all(after[k] != before[k] for k in after)  # the new pair replaced it

@@ -360,7 +360,7 @@ def write_cube_file(path: Path, cube: np.ndarray, bands, metadata: dict) -> floa
     the metadata (``preview_exposure``), and returned."""
     from hsicam.color import PREVIEW_EXPOSURE_KEY, preview_exposure, srgb_preview
     from hsicam.data.formats import write_cube_h5, write_envi
-    from hsicam.io import write_png8
+    from hsicam.io import atomic_path, write_png8
 
     suffix = path.suffix.lower()
     if suffix not in CUBE_SUFFIXES:
@@ -368,19 +368,18 @@ def write_cube_file(path: Path, cube: np.ndarray, bands, metadata: dict) -> floa
     exposure = preview_exposure(cube, bands)
     rgb = srgb_preview(cube, bands, exposure=exposure)  # before any file is written
     preview = path.with_name(f"{path.stem}_rgb.png")
-    preview.unlink(missing_ok=True)  # an earlier reconstruction's (checked): never beside a newer cube
     # ENVI's header keeps what the HDF5 keeps (write_envi)
     metadata = {"command": "reconstruct", **metadata, "preview_exposure": exposure}
-    if suffix in (".h5", ".hdf5"):
-        write_cube_h5(path, cube, bands, metadata)
-    else:  # a stop between its two files removes the data file it put there (write_envi): none is left alone
-        write_envi(path, cube, bands, description=ENVI_DESCRIPTIONS[0], metadata=metadata)
-    try:
-        write_png8(preview, rgb, text={PREVIEW_EXPOSURE_KEY: f"{exposure:.6g}"})
-    except BaseException:  # Ctrl-C, SIGTERM, a full disk: the cube just written is not left without its preview
-        for f in output_files(path)[:-1]:
-            f.unlink(missing_ok=True)
-        raise
+    # The preview is written first, to a hidden temporary, and takes its place only after the cube has taken its own
+    # (each written whole beside the file it replaces): a stop (Ctrl-C, SIGTERM, a full disk) before the cube's
+    # rename leaves an earlier reconstruction's cube and preview as they were. (Before session 70 the earlier preview
+    # was deleted first, and the new cube deleted when its preview's write stopped: a stop lost the earlier pair.)
+    with atomic_path(preview) as preview_tmp:
+        write_png8(preview_tmp, rgb, text={PREVIEW_EXPOSURE_KEY: f"{exposure:.6g}"})  # written and synced
+        if suffix in (".h5", ".hdf5"):
+            write_cube_h5(path, cube, bands, metadata)
+        else:  # a stop between its two files removes the data file it put there (write_envi): none is left alone
+            write_envi(path, cube, bands, description=ENVI_DESCRIPTIONS[0], metadata=metadata)
     return exposure
 
 

@@ -1453,16 +1453,18 @@ def _envi_header_text(shape: tuple[int, ...], bands: Bands, code: int, interleav
 
 
 def _write_envi_pair(hdr: Path, data: Path, raw: np.ndarray, header: str) -> None:
-    """Write ``data`` (the bytes ``raw``), then ``hdr`` (the text ``header``), each atomically; on a failure or
-    interruption, remove those of the two that were not there before."""
-    for f in (data, hdr):  # both before either is written (atomic_path would refuse the header after the data)
+    """Write ``data`` (the bytes ``raw``) and ``hdr`` (the text ``header``), each to a hidden temporary first: the
+    header's is written, then the data's, which takes its place, then the header's takes its own (a stop while the
+    data is written leaves an earlier pair as it was); on a failure or interruption, remove those of the two that
+    were not there before."""
+    for f in (data, hdr):  # both before either is written
         check_output_path(f, "file")
     new = [f for f in (data, hdr) if not os.path.lexists(f)]
     try:
-        with atomic_path(data) as tmp, open(tmp, "wb") as fh:
-            fh.write(raw)
-        with atomic_path(hdr) as tmp:
-            tmp.write_text(header, encoding="utf-8")
+        with atomic_path(hdr) as hdr_tmp:
+            hdr_tmp.write_text(header, encoding="utf-8")
+            with atomic_path(data) as tmp, open(tmp, "wb") as fh:
+                fh.write(raw)
     except BaseException:
         # stopped between the two renames, a new data file stood alone: no reader takes it without its header, and
         # `hsicam reconstruct` run again refused it as a user's file. A file that was there before is kept (an old
