@@ -95,14 +95,18 @@ def test_reconstruct_repairs_a_half_replaced_pair_of_its_own(run, tmp_path):
 # ------------------------------------------------------------------------------------------------
 # 15. the preview never stands beside a newer cube
 # ------------------------------------------------------------------------------------------------
-def test_an_interrupted_reconstruction_leaves_no_older_preview(tmp_path, monkeypatch):
+def test_an_interrupted_reconstruction_leaves_the_earlier_cube_with_its_own_preview(tmp_path, monkeypatch):
+    """Stopped while the new cube is written, the earlier cube and the earlier preview stay as they were, a pair
+    (before session 70 the earlier preview was deleted first, so that it never stood beside a newer cube; the new
+    preview now waits in a hidden temporary until the new cube has taken its place)."""
     from hsicam.cli.reconstruct import write_cube_file
     from hsicam.data import formats
 
     path = tmp_path / "c.h5"
     write_cube_file(path, cube(16, 16, 0), BANDS, {"source": "x", "run": "y"})
     preview = tmp_path / "c_rgb.png"
-    assert preview.is_file()
+    before = {p.name: p.read_bytes() for p in tmp_path.iterdir()}
+    assert set(before) == {"c.h5", "c_rgb.png"}
 
     def killed(*args, **kwargs):
         raise KeyboardInterrupt
@@ -110,7 +114,10 @@ def test_an_interrupted_reconstruction_leaves_no_older_preview(tmp_path, monkeyp
     monkeypatch.setattr(formats, "write_cube_h5", killed)
     with pytest.raises(KeyboardInterrupt):
         write_cube_file(path, cube(16, 16, 1), BANDS, {"source": "x", "run": "y"})
-    assert not preview.exists() and path.is_file()
+    assert {p.name: p.read_bytes() for p in tmp_path.iterdir()} == before  # no temporary either
+    monkeypatch.undo()
+    write_cube_file(path, cube(16, 16, 1), BANDS, {"source": "x", "run": "y"})
+    assert preview.read_bytes() != before["c_rgb.png"] and path.read_bytes() != before["c.h5"]
 
 
 # ------------------------------------------------------------------------------------------------
