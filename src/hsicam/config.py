@@ -1086,6 +1086,9 @@ def load_config(path: str | Path | None = None, overrides: Sequence[str] = (), c
     ``empty``: a file without settings (empty, or only comments) is a :class:`ConfigError` saying
     ``"PATH: empty config (no settings); " + empty`` instead of the built-in defaults (e.g. a run's
     config.yaml, which training always writes in full)."""
+    if isinstance(overrides, (str, bytes)):  # iterated, a string was its characters: "override 't' must look like …"
+        raise ConfigError(f"overrides must be a sequence of 'key=value' strings (a list or tuple), got the string "
+                          f"{overrides!r}: pass [{overrides!r}]")
     data: dict[str, Any] = {}
     if path is not None:
         path = resolve_preset(path)

@@ -50,11 +50,14 @@ CONVENTIONS = {
 
 
 def _check_pair(x: torch.Tensor, y: torch.Tensor) -> None:
-    """:class:`InputError` unless ``x`` and ``y`` are torch tensors of one shape, (B, C, H, W) or (C, H, W)."""
+    """:class:`InputError` unless ``x`` and ``y`` are floating torch tensors of one shape, (B, C, H, W) or (C, H, W)."""
     for t, what in ((x, "estimate"), (y, "truth")):
         if not isinstance(t, torch.Tensor):
             hint = ": torch.from_numpy(a)" if type(t).__module__ == "numpy" else ""
             raise InputError(f"{what} must be a torch.Tensor (B, C, H, W) or (C, H, W), got {type(t).__name__}{hint}")
+        if not t.is_floating_point():  # 8- or 16-bit counts were scored on the peak-1 scale: PSNR −40 dB
+            raise InputError(f"{what} must be floating-point with values on the peak-1 scale (the metrics' peak is 1), "
+                             f"got {t.dtype}: divide counts by their full scale first (e.g. x.float() / 255)")
     if x.shape != y.shape:
         raise InputError(f"shapes differ: {tuple(x.shape)} vs {tuple(y.shape)}")
     if x.dim() not in (3, 4):

@@ -252,3 +252,125 @@ def test_min_scene_size_of_a_padded_camera_is_a_scene_it_captures(padding):
         cam.capture(torch.rand(1, len(cam.bands), h, w))
         with pytest.raises(InputError, match=rf"needs {h}×{w} px"):
             cam.capture(torch.rand(1, len(cam.bands), h - 1, w))
+
+
+# ------------------------------------------------------------------------------------------------
+# Session 70's hunt of the Python API (helper report): each of these was a deep error or a silent wrong result
+# ------------------------------------------------------------------------------------------------
+def test_target_refuses_a_scene_smaller_than_the_kernel_as_capture_does(system):
+    """`target` of a scene smaller than the valid kernel returned an empty (…, 0, 0) crop, scored later as "SSIM
+    needs images of at least 11×11 px, got 0×0"; it is the camera's own refusal now, word for word."""
+    cam = system.camera
+    small = torch.rand(1, len(system.bands), cam.margin, cam.margin + 5)
+    with pytest.raises(InputError) as captured:
+        cam(small)
+    with pytest.raises(InputError) as targeted:
+        system.target(small)
+    assert str(targeted.value) == str(captured.value)
+    ok = torch.rand(1, len(system.bands), cam.margin + 1, cam.margin + 1)
+    assert system.target(ok).shape[-2:] == (1, 1)
+
+
+@pytest.mark.parametrize("origin", [(1, 2, 3), None, 0, "00", (0.5, 0), (True, 0), [1]])
+def test_a_bad_origin_is_one_clear_error(system, origin):
+    """`reconstruct(y, origin=…)` took (1, 2, 3) as (1, 2) and failed deep in torch (roll, subscripts) for the rest."""
+    msg = re.escape(f"origin must be a pair of ints (row, column): the sensor pixel of the window's top-left "
+                    f"corner, got {origin!r}")
+    with torch.no_grad():
+        for call in (lambda: system.reconstruct(_sensor(), origin), lambda: system.network(_sensor(), origin),
+                     lambda: system.landweber_steps(_sensor(), torch.zeros(1, len(system.bands), 24, 24), origin),
+                     lambda: system.camera.sensor_code(6, 6, origin)):
+            with pytest.raises(InputError, match=f"^{msg}$"):
+                call()
+        a = system.reconstruct(_sensor(), (np.int64(1), 2))  # numpy integers are integers
+    torch.testing.assert_close(a, system.reconstruct(_sensor(), (1, 2)))
+    with pytest.raises(InputError, match=r"^sensor window must be at least 1×1 px \(two ints\), got -1×8$"):
+        system.camera.sensor_code(-1, 8)
+
+
+def test_metrics_refuse_integer_tensors():
+    """8-bit counts were scored on the peak-1 scale (PSNR −40 dB) without a word."""
+    from hsicam.metrics import all_metrics, psnr_per_band
+
+    counts = torch.full((1, 3, 16, 16), 200, dtype=torch.uint8)
+    with pytest.raises(InputError, match=r"^estimate must be floating-point with values on the peak-1 scale .* got "
+                                         r"torch.uint8: divide counts by their full scale first"):
+        all_metrics(counts, counts.float() / 255)
+    with pytest.raises(InputError, match=r"^truth must be floating-point .* got torch.bool"):
+        psnr_per_band(torch.rand(3, 8, 8), torch.rand(3, 8, 8) > 0.5)
+
+
+def test_a_string_of_overrides_is_refused_naming_it_not_its_first_character(tmp_path):
+    from hsicam.errors import ConfigError
+
+    with pytest.raises(ConfigError, match=r"^overrides must be a sequence of 'key=value' strings \(a list or tuple\), "
+                                          r"got the string 'train.epochs=2': pass \['train.epochs=2'\]$"):
+        load_config("tiny", "train.epochs=2")
+    assert load_config("tiny", ["train.epochs=2"]).train.epochs == 2
+
+
+def test_a_network_of_ones_own_that_returns_the_wrong_bands_is_named(caplog):
+    """A registered network returning the 1-band sensor was a "cube" of 1 band for a 7-band camera (scored, or
+    failing deep in the loss); a declared parameter count other than the built one went unnoticed (the memory
+    checks trust it)."""
+    import logging
+
+    from torch import nn
+
+    from hsicam.models.registry import NETWORKS, register_network
+
+    class Echo(nn.Module):
+        context_px = 0
+
+        def __init__(self):
+            super().__init__()
+            self.w = nn.Parameter(torch.ones(3))
+
+        def forward(self, sensor, camera, origin=(0, 0)):
+            return sensor * self.w[0]
+
+    try:
+        register_network("echo_s70", parameters=lambda cfg, camera: 5, sizes=("features",))(lambda cfg, camera: Echo())
+        with caplog.at_level(logging.WARNING, logger="hsicam.models.registry"):
+            model = CameraSystem.from_config(load_config("tiny", ["model.kind=echo_s70"])).eval()
+        [msg] = [r.getMessage() for r in caplog.records]
+        assert msg.startswith("model.kind=echo_s70 declares 5 parameters (its registered parameters function) but "
+                              "builds 3"), msg
+        with pytest.raises(InputError, match=re.escape(
+                "the network (Echo) returned shape (1, 1, 24, 24) of torch.float32 for a sensor image of shape "
+                f"(1, 1, 24, 24); a network returns a floating (B, C, H, W) cube of the camera's C = "
+                f"{len(model.bands)} bands")):
+            with torch.no_grad():
+                model.reconstruct(_sensor())
+    finally:
+        NETWORKS.pop("echo_s70", None)
+
+
+@pytest.mark.parametrize("bad", ["nan_y", "nan_weight", "negative_weight", "empty_weights"])
+def test_gap_tv_refuses_what_would_give_a_nan_cube_or_a_negative_weight(bad):
+    from hsicam.cameras import build_camera
+    from hsicam.solvers.gaptv import gap_tv
+
+    torch.manual_seed(0)
+    cam = build_camera(load_config("tiny", ["camera.kind=dd_cassi"])).double()
+    y = cam.A(torch.rand(1, len(cam.bands), 20, 20, dtype=torch.float64))
+    kw = {"iterations": 2}
+    if bad == "nan_y":
+        y[0, 0, 3, 3] = float("nan")
+        match = r"^sensor image contains 1 NaN or Inf value\(s\) of 400$"
+    else:
+        kw["tv_weight"] = {"nan_weight": float("nan"), "negative_weight": -1.0, "empty_weights": []}[bad]
+        match = r"^tv_weight must be a finite number >= 0 \(or a non-empty list of them\), got "
+    with pytest.raises(InputError, match=match):
+        gap_tv(cam, y, **kw)
+    assert torch.isfinite(gap_tv(cam, y if bad != "nan_y" else y.nan_to_num(), iterations=2)).all()
+
+
+def test_from_config_of_a_name_and_an_empty_cube_are_one_clear_error():
+    from hsicam.data.cube import normalize_per_cube_max
+
+    with pytest.raises(InputError, match=r"^CameraSystem.from_config takes a Config \(hsicam.config.load_config\('quick'\)\), "
+                                         r"got str 'tiny'$"):
+        CameraSystem.from_config("tiny")
+    with pytest.raises(InputError, match=r"^cube: the cube of shape \(31, 0, 16\) is empty; cannot normalise by its maximum$"):
+        normalize_per_cube_max(np.zeros((31, 0, 16)))

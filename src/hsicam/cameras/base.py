@@ -5,6 +5,7 @@ from __future__ import annotations
 import itertools
 import logging
 import math
+import numbers
 
 import torch
 from torch import nn
@@ -55,6 +56,24 @@ def check_sensor_image(y: torch.Tensor, what: str = "sensor image") -> None:
         raise InputError(f"{what} must be a floating-point tensor with values in [0, 1] (1 = full scale), got {y.dtype}")
     if min(y.shape[0], y.shape[2], y.shape[3]) < 1:
         raise InputError(f"{what} of shape {tuple(y.shape)} is empty: it needs B, H, W >= 1")
+
+
+def check_origin(origin, what: str = "origin") -> None:
+    """:class:`InputError` unless ``origin`` is a pair of integers (row, column): the sensor pixel of a window's
+    top-left corner (a CFA phase is taken from it modulo the period; a float, a None or a third item was read
+    wrongly or failed deep inside)."""
+    ok = isinstance(origin, (tuple, list)) and len(origin) == 2 and all(
+        isinstance(v, numbers.Integral) and not isinstance(v, bool) for v in origin)
+    if not ok:
+        raise InputError(f"{what} must be a pair of ints (row, column): the sensor pixel of the window's top-left "
+                         f"corner, got {origin!r}")
+
+
+def check_window_size(height, width, what: str = "sensor window") -> None:
+    """:class:`InputError` unless ``height`` and ``width`` are integers >= 1."""
+    for v in (height, width):
+        if isinstance(v, bool) or not isinstance(v, numbers.Integral) or v < 1:
+            raise InputError(f"{what} must be at least 1×1 px (two ints), got {height!r}×{width!r}")
 
 
 def _is_level(value) -> bool:
@@ -159,8 +178,10 @@ class Camera(nn.Module):
         return self.A_adjoint(self.A(x))
 
     def check_measurement(self, y: torch.Tensor) -> None:
-        """Raise :class:`InputError` unless ``y`` is a (B, 1, H, W) sensor image (:func:`check_sensor_image`)."""
+        """Raise :class:`InputError` unless ``y`` is a finite (B, 1, H, W) sensor image (:func:`check_sensor_image`;
+        a solver given NaN returned a NaN cube without a word)."""
         check_sensor_image(y)
+        check_finite(y, "sensor image")
 
     @torch.no_grad()
     def relative_residual(self, x: torch.Tensor, y: torch.Tensor) -> float:

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import torch
 
-from hsicam.cameras.base import Camera
+from hsicam.cameras.base import Camera, check_origin, check_window_size
 from hsicam.cameras.registry import register_camera
 from hsicam.errors import InputError
 from hsicam.optics.convolution import (
@@ -205,6 +205,8 @@ class DOECamera(Camera):
 
     def sensor_code(self, height: int, width: int, origin: tuple[int, int] = (0, 0)) -> torch.Tensor:
         """The CFA transmission κ (C, height, width) of the sensor window at ``origin``."""
+        check_window_size(height, width)
+        check_origin(origin)
         return self.cfa.pattern(height, width, origin)
 
     def forward(self, x: torch.Tensor, generator: torch.Generator | None = None, *,
@@ -329,6 +331,8 @@ class DOESnapshot:
 
     def sensor_code(self, height: int, width: int, origin: tuple[int, int] = (0, 0)) -> torch.Tensor:
         """κ (C, height, width) of the sensor window at ``origin``."""
+        check_window_size(height, width)
+        check_origin(origin)
         tile = self.tile
         shift = (-(origin[0] % tile.shape[-2]), -(origin[1] % tile.shape[-1]))
         if shift != (0, 0):

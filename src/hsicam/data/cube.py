@@ -195,6 +195,8 @@ def normalize_per_cube_max(cube: np.ndarray, source: PathLike | str = "cube") ->
     if not isinstance(cube, np.ndarray):
         hint = ": cube.numpy(), or divide the tensor by cube.max()" if type(cube).__module__.startswith("torch") else ""
         raise InputError(f"{source}: normalize_per_cube_max takes a NumPy array (C, H, W), got {type(cube).__name__}{hint}")
+    if cube.size == 0:  # (numpy's "zero-size array to reduction operation maximum" otherwise)
+        raise InputError(f"{source}: the cube of shape {cube.shape} is empty; cannot normalise by its maximum")
     peak = float(np.max(cube))
     if not math.isfinite(peak):
         bad = int(np.count_nonzero(~np.isfinite(cube)))

@@ -161,6 +161,8 @@ def _scored_hw(method: Method, n_bands: int, scene_hw: tuple[int, int]) -> tuple
     try:
         t = method.target(torch.empty((1, n_bands, *scene_hw), device="meta"))
         return int(t.shape[-2]) - b, int(t.shape[-1]) - b
+    except InputError:  # a scene smaller than the camera's valid kernel: nothing to score (said by the caller)
+        return 0, 0
     except (RuntimeError, NotImplementedError, TypeError):  # a target that needs data: the scene's own size
         return scene_hw[0] - b, scene_hw[1] - b
 

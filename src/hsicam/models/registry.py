@@ -26,6 +26,8 @@ Every network is an ``nn.Module`` with
 
 from __future__ import annotations
 
+import logging
+
 from dataclasses import dataclass
 from typing import Any, Callable, Sequence, Union
 
@@ -54,6 +56,8 @@ class NetworkKind:
     parameters: ParameterCount
     sizes: SizeKeys
 
+
+log = logging.getLogger(__name__)
 
 NETWORKS: dict[str, NetworkKind] = {}
 
@@ -145,4 +149,10 @@ def build_network(cfg, camera) -> nn.Module:
     memory budget is refused before it is built (:func:`check_network_memory`; training checks its
     own larger need)."""
     check_network_memory(cfg, camera, training=False)
-    return NETWORKS[cfg.model.kind].build(cfg, camera)
+    net = NETWORKS[cfg.model.kind].build(cfg, camera)
+    declared, built = network_parameters(cfg, camera), sum(p.numel() for p in net.parameters())
+    if declared != built:  # the memory checks before building trust the declared count
+        log.warning("model.kind=%s declares %d parameters (its registered parameters function) but builds %d: the "
+                    "memory checks made before building used %d; correct its parameters function",
+                    cfg.model.kind, declared, built, declared)
+    return net

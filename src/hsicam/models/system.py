@@ -8,7 +8,7 @@ import torch
 from torch import nn
 
 from hsicam.cameras import Camera, build_camera
-from hsicam.cameras.base import check_device, check_finite, check_sensor_image
+from hsicam.cameras.base import check_device, check_finite, check_origin, check_sensor_image
 from hsicam.errors import InputError
 from hsicam.models.consistency import (WIENER_WINDOW_PX, _half_reach, consistency_step, cut_psf, default_band_px,
                                        linear_consistency_step, linear_reach_px, reach_px)
@@ -64,6 +64,9 @@ class CameraSystem(nn.Module):
         """The untrained system a config describes: its camera (``cfg.camera``, on ``cfg.bands``), its network
         (``cfg.model.kind``) and its consistency settings (``cfg.model.consistency``). A trained run's system:
         :func:`hsicam.runs.folder.load_run`."""
+        if not hasattr(cfg, "camera") or not hasattr(cfg, "model"):  # e.g. a preset's name: AttributeError 'camera'
+            raise InputError(f"CameraSystem.from_config takes a Config (hsicam.config.load_config('quick')), got "
+                             f"{type(cfg).__name__} {cfg!r}"[:300])
         camera = build_camera(cfg)
         return cls(camera, build_network(cfg, camera), cfg.model.consistency)
 
@@ -166,6 +169,10 @@ class CameraSystem(nn.Module):
             return scene
         r = self.camera.margin // 2
         h, w = scene.shape[-2] - 2 * r, scene.shape[-1] - 2 * r
+        if h < 1 or w < 1:  # as capture refuses it (an empty crop was scored later as a 0×0 image)
+            raise InputError(f"scene of {scene.shape[-2]}×{scene.shape[-1]} px is too small for boundary='valid' with a "
+                             f"{self.camera.margin + 1}-px kernel: it needs at least {self.camera.margin + 1}×"
+                             f"{self.camera.margin + 1}")
         return scene[..., r : r + h, r : r + w]
 
     def network(self, sensor: torch.Tensor, origin: tuple[int, int] = (0, 0), operator=None, *,
@@ -179,14 +186,27 @@ class CameraSystem(nn.Module):
         False (a window whose place on the map is not known, e.g. a candidate CFA phase of
         :func:`~hsicam.engine.cfa_offset.estimate_cfa_offset`).
         """
+        check_origin(origin)
         op = self.camera if operator is None else operator
         # a network whose data steps read the measurement (the unrolled one) takes the capture's clipped pixels too
         takes = read_clipped and getattr(self.net, "takes_clipped", False)
         kw = {"clipped": self._clipped(sensor, origin)} if takes else {}
         if self.autocast_dtype is not None and sensor.device.type != "cpu":
             with torch.autocast(sensor.device.type, dtype=self.autocast_dtype):
-                return self.net(sensor, op, origin, **kw).float()
-        return self.net(sensor, op, origin, **kw)
+                return self._checked_output(self.net(sensor, op, origin, **kw), sensor).float()
+        return self._checked_output(self.net(sensor, op, origin, **kw), sensor)
+
+    def _checked_output(self, x, sensor: torch.Tensor) -> torch.Tensor:
+        """``x``, the network's output for ``sensor`` (B, 1, H, W), once it is a floating (B, C, H', W') tensor of the
+        camera's C bands; else one :class:`InputError` naming the network (a network of one's own that returned the
+        wrong bands was scored, or failed deep in a loss or a step)."""
+        b, c = sensor.shape[0], len(self.bands)
+        if not (isinstance(x, torch.Tensor) and x.is_floating_point() and x.dim() == 4 and x.shape[:2] == (b, c)):
+            got = f"shape {tuple(x.shape)} of {x.dtype}" if isinstance(x, torch.Tensor) else type(x).__name__
+            raise InputError(f"the network ({type(self.net).__name__}) returned {got} for a sensor image of shape "
+                             f"{tuple(sensor.shape)}; a network returns a floating (B, C, H, W) cube of the camera's "
+                             f"C = {c} bands")
+        return x
 
     def reconstruct(self, sensor: torch.Tensor, origin: tuple[int, int] = (0, 0), operator=None,
                     step_operator=None) -> torch.Tensor:
@@ -235,6 +255,7 @@ class CameraSystem(nn.Module):
         """The Landweber steps of ``consistency`` (kind landweber: its ``iterations``; linear: ``landweber_after``)
         from the estimate x (B, C, H, W) of ``sensor`` (B, 1, H, W) at ``origin``; x itself when there are none.
         ``step_operator`` as in :meth:`reconstruct`; ``on_step``: called after each step (progress)."""
+        check_origin(origin)
         c = self.consistency
         iterations = self._landweber_iterations
         if self.training or not self.consistency_on or iterations <= 0:  # as reconstruct: the steps are inference's

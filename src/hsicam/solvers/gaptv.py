@@ -14,6 +14,8 @@ solutions faster; plain GAP is more robust to measurement noise.
 from __future__ import annotations
 
 import logging
+import math
+import numbers
 import time
 from dataclasses import dataclass, field
 
@@ -62,11 +64,14 @@ def gap_tv(camera, y: torch.Tensor, iterations: int = GAPTVConfig.iterations,
     camera.check_measurement(y)
     if iterations < 0:
         raise InputError(f"iterations must be >= 0, got {iterations}")
+    weights = tv_weight if isinstance(tv_weight, (list, tuple)) else [tv_weight]
+    bad = [w for w in weights if isinstance(w, bool) or not isinstance(w, numbers.Real) or not 0 <= w < math.inf]
+    if bad or not weights:
+        raise InputError(f"tv_weight must be a finite number >= 0 (or a non-empty list of them), got {tv_weight!r}")
     t0 = time.perf_counter()
     info = SolverInfo()
     phi = camera.gram_diagonal(y)
     x = camera.A_adjoint(y / phi) if x0 is None else x0.clone()
-    weights = tv_weight if isinstance(tv_weight, (list, tuple)) else [tv_weight]
     y_acc = y.clone()
     for k in range(iterations):
         yb = camera.A(x)
