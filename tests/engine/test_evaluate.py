@@ -451,6 +451,9 @@ def test_report_shows_the_heldout_sources_results(run, env, tmp_path):
     assert f"<td>{held['mean']['psnr']:.2f}</td>" in tail
     assert f"<td>{res['mean']['psnr']:.2f}</td>" in head  # the validation mean stays in its own table
     assert f"scored area: {html.escape(res['region'])}" in head  # which pixels the scores cover, as results.json says
+    # an evaluation without --save has no cubes to render: the page says so (its section was silently missing)
+    assert ("<h2>Reconstructions</h2><p class='note'>None shown: the evaluation saved no cubes (run "
+            "<code>hsicam evaluate … --save</code>") in page
 
 
 def test_a_reconstruction_with_nan_is_refused_not_scored(run):

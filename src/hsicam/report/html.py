@@ -255,6 +255,9 @@ def _evaluation_sections(folder: Path, out: Path, res: dict) -> list[str]:
                                                     "its results.json"))
     bands = Bands.from_centers(res["bands_nm"]) if "bands_nm" in res else None
     cubes = folder / "cubes"
+    if not cubes.is_dir() and not (folder / "reconstructions.png").is_file():  # said, not silently left out
+        parts.append("<h2>Reconstructions</h2><p class='note'>None shown: the evaluation saved no cubes (run "
+                     "<code>hsicam evaluate … --save</code> for renders, spectra and per-band errors).</p>")
     if cubes.is_dir() and bands is not None:
         from hsicam.data import read_cube
 
