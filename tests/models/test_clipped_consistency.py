@@ -138,14 +138,25 @@ def test_a_bad_map_is_one_clear_error():
         consistency_step(snap, y, truth, clipped=clipped.double(), iterations=0)
 
 
+def _offset_cube(system, sensor, saturated_map, tile_px):
+    """The cube of the capture ``sensor`` (1, 1, H, W) taken at CFA offset (1, 2), whose clipped pixels are
+    ``saturated_map`` (H, W; None: none), reconstructed by ``system`` in ``tile_px`` tiles as `hsicam reconstruct`
+    does."""
+    from hsicam.cli.reconstruct import offset_reconstructor
+
+    system.camera.noise = SensorNoise("none")
+    system.camera.noise.mark_saturated(saturated_map, (1, 2))
+    fn = offset_reconstructor(system.reconstructor(), (1, 2))
+    with torch.no_grad():
+        return reconstruct_tiled(fn, sensor, tile_px, None)
+
+
 @pytest.mark.parametrize("kind", ["landweber", "linear"])
 def test_tiles_see_their_part_of_the_saturated_map_and_equal_the_whole_image(tiny_config, kind):
     """A capture at CFA offset (1, 2) with clipped pixels: the reconstructor tiles its network (and linear step)
     and takes its Landweber/TV steps on the whole image (bands of rows: tests/models/test_consistency_bands.py); each
     part reads the map's window under it, so 40 px tiles give the whole image's cube, and the map changes that cube
     (it reaches both kinds of step)."""
-    from hsicam.cli.reconstruct import offset_reconstructor
-
     if kind == "landweber":
         system = _system(tiny_config, "model.consistency.psf_energy=0.9", "camera.boundary=same")
         system.consistency = dataclasses.replace(system.consistency, iterations=2, tv_weight=0.05)
@@ -161,11 +172,7 @@ def test_tiles_see_their_part_of_the_saturated_map_and_equal_the_whole_image(tin
     sensor = sensor.clamp(max=0.4)
 
     def cube(saturated_map, tile_px):
-        system.camera.noise = SensorNoise("none")
-        system.camera.noise.mark_saturated(saturated_map, (1, 2))
-        fn = offset_reconstructor(system.reconstructor(), (1, 2))
-        with torch.no_grad():
-            return reconstruct_tiled(fn, sensor, tile_px, None)
+        return _offset_cube(system, sensor, saturated_map, tile_px)
 
     whole = cube(saturated, max(h, w))
     rec = system.reconstructor()
@@ -320,19 +327,13 @@ def _clipped_capture(h: int, w: int, level: float = 0.5):
 def test_the_unrolled_network_tiles_with_the_saturated_map_as_the_whole_image(tiny_config):
     """A `model.kind=unrolled` system reads its camera's saturated-pixel map in its stages: 40 px tiles of a capture
     at CFA offset (1, 2) give the whole image's cube, which the map changes (the network alone, no steps after it)."""
-    from hsicam.cli.reconstruct import offset_reconstructor
-
     system = _unrolled_system(tiny_config)
     assert system.net.takes_clipped
     h, w, tile = 130, 120, 40
     sensor, saturated = _clipped_capture(h, w)
 
     def cube(saturated_map, tile_px):
-        system.camera.noise = SensorNoise("none")
-        system.camera.noise.mark_saturated(saturated_map, (1, 2))
-        fn = offset_reconstructor(system.reconstructor(), (1, 2))
-        with torch.no_grad():
-            return reconstruct_tiled(fn, sensor, tile_px, None)
+        return _offset_cube(system, sensor, saturated_map, tile_px)
 
     whole = cube(saturated, max(h, w))
     assert tile + 2 * system.reconstructor().context_px < min(h, w)  # real tiles
