@@ -374,3 +374,29 @@ def test_from_config_of_a_name_and_an_empty_cube_are_one_clear_error():
         CameraSystem.from_config("tiny")
     with pytest.raises(InputError, match=r"^cube: the cube of shape \(31, 0, 16\) is empty; cannot normalise by its maximum$"):
         normalize_per_cube_max(np.zeros((31, 0, 16)))
+
+
+def test_dataset_generation_envi_types_and_residual_sizes_are_one_clear_error(tmp_path, system):
+    """Wrong types given to generate_dataset failed in Python's or numpy's words (a float size: "'float' object
+    cannot be interpreted as an integer"; bands as a string: "no attribute 'min_nm'"); an unknown ENVI data type was
+    numpy's "not understood"; a residual of mismatched windows was torch's size error."""
+    from hsicam.data.formats import write_envi
+    from hsicam.data.synthetic import generate_dataset
+    from hsicam.spectral import Bands
+
+    for kwargs, text in (({"size": 32.5}, "size must be an int, got 32.5"),
+                         ({"seed": -1}, "seed must be >= 0, got -1"),
+                         ({"n": "2"}, "n must be an int, got '2'"),
+                         ({"bands": "420-720"}, "bands must be a Bands")):
+        args = {"n": 1, "size": 32, "seed": 0, **kwargs}
+        with pytest.raises(InputError, match=f"^synthetic: {re.escape(text)}"):
+            generate_dataset(tmp_path / "d", progress=False, **args)
+    assert not (tmp_path / "d").exists()
+    bands = Bands.paper()
+    with pytest.raises(InputError, match=r"^write_envi: unknown data type 'int99' \(e.g. float32, int16, uint16\)$"):
+        write_envi(tmp_path / "c.hdr", np.zeros((len(bands), 4, 4), np.float32), bands, dtype="int99")
+    cam = system.camera
+    x = torch.rand(1, len(system.bands), 40, 40)
+    with pytest.raises(InputError, match=r"^the estimate images to \(1, 1, 20, 20\) px but the measurement is "
+                                         r"\(1, 1, 19, 20\): not the same window$"):
+        cam.relative_residual(x, torch.rand(1, 1, 19, 20))

@@ -185,8 +185,13 @@ class Camera(nn.Module):
 
     @torch.no_grad()
     def relative_residual(self, x: torch.Tensor, y: torch.Tensor) -> float:
-        """‖A x − y‖ / ‖y‖ (data consistency of an estimate ``x``)."""
-        return float((self.A(x) - y).norm() / y.norm().clamp_min(1e-30))
+        """‖A x − y‖ / ‖y‖ (data consistency of an estimate ``x``); InputError when A x is not the shape of ``y``."""
+        ax = self.A(x)
+        if not isinstance(y, torch.Tensor) or ax.shape != y.shape:
+            got = tuple(y.shape) if isinstance(y, torch.Tensor) else type(y).__name__
+            raise InputError(f"the estimate images to {tuple(ax.shape)} px but the measurement is {got}: not the same "
+                             "window")
+        return float((ax - y).norm() / y.norm().clamp_min(1e-30))
 
     @torch.no_grad()
     def adjointness_error(self, scene_hw: tuple[int, int], generator: torch.Generator | None = None,

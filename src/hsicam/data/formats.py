@@ -1384,7 +1384,10 @@ def _envi_write_options(dtype: str | np.dtype, interleave: str, byte_order: str,
     InputError for a type ENVI has no code for, another interleave or byte order, or a description that is not
     one line without braces."""
     codes = {np.dtype(v): k for k, v in _ENVI_DTYPES.items()}
-    dt = np.dtype(dtype)
+    try:
+        dt = np.dtype(dtype)
+    except TypeError:  # numpy's "data type 'int99' not understood"
+        raise InputError(f"write_envi: unknown data type {dtype!r} (e.g. float32, int16, uint16)") from None
     if dt not in codes:
         raise InputError(f"write_envi: unsupported data type {dt}")
     if interleave not in _ENVI_INTERLEAVES:

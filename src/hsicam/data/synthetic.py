@@ -47,6 +47,7 @@ import functools
 import hashlib
 import json
 import logging
+import numbers
 import os
 import re
 from pathlib import Path
@@ -404,6 +405,14 @@ def _checked_output(out: str | os.PathLike, n: int, size: int, seed: int, bands:
     """(out, the set's parameters) after the checks before any scene of the ``n``-scene set is written into
     ``out`` (all, or ``indices``): the split, the sizes, the bands, the folder's own dataset, memory, disk room."""
     _check_split(split)
+    for name, value in (("n", n), ("size", size), ("seed", seed)):  # ints, before their ranges are checked below
+        if isinstance(value, bool) or not isinstance(value, numbers.Integral):
+            raise InputError(f"synthetic: {name} must be an int, got {value!r}")
+    if seed < 0:  # (numpy's "expected non-negative integer" otherwise)
+        raise InputError(f"synthetic: seed must be >= 0, got {seed}")
+    if not isinstance(bands, Bands):
+        raise InputError(f"synthetic: bands must be a Bands (e.g. Bands.paper(), or a config's bands.to_bands()), got "
+                         f"{type(bands).__name__} {bands!r}"[:200])
     if n < 1:
         raise InputError(f"synthetic: need at least one scene, got n={n}")
     if size < 16:
