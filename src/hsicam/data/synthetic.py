@@ -411,7 +411,7 @@ def _checked_output(out: str | os.PathLike, n: int, size: int, seed: int, bands:
     if seed < 0:  # (numpy's "expected non-negative integer" otherwise)
         raise InputError(f"synthetic: seed must be >= 0, got {seed}")
     if not isinstance(bands, Bands):
-        raise InputError(f"synthetic: bands must be a Bands (e.g. Bands.paper(), or a config's bands.to_bands()), got "
+        raise InputError(f"synthetic: bands must be a Bands (e.g. Bands.paper(), or a config's band grid), got "
                          f"{type(bands).__name__} {bands!r}"[:200])
     if n < 1:
         raise InputError(f"synthetic: need at least one scene, got n={n}")
