@@ -352,10 +352,15 @@ class Camera(nn.Module):
                 f"scene of {x.shape[-2]}×{x.shape[-1]} px is too small for {self.padding} padding by "
                 f"{self.margin // 2} px: it needs at least {least} px per side"
             )
-        h, w = self.sensor_size(tuple(x.shape[-2:]))
+        self.check_sensor_area(tuple(x.shape[-2:]))
+
+    def check_sensor_area(self, scene_hw: tuple[int, int]) -> None:
+        """Raise :class:`InputError` unless a scene of ``scene_hw`` (H, W) leaves a sensor image of at least 1×1 px
+        (``valid`` boundary: the scene less the kernel's margin)."""
+        h, w = self.sensor_size(tuple(scene_hw))
         if h < 1 or w < 1:
             raise InputError(
-                f"scene of {x.shape[-2]}×{x.shape[-1]} px is too small for boundary='valid' with a "
+                f"scene of {scene_hw[0]}×{scene_hw[1]} px is too small for boundary='valid' with a "
                 f"{self.margin + 1}-px kernel: it needs at least {self.margin + 1}×{self.margin + 1}"
             )
 

@@ -613,8 +613,8 @@ def _level_notes(img: np.ndarray, raw: np.ndarray, full_scale: float, white: flo
                  check_level: bool, check_bit_depth: bool) -> list[str]:
     """The warnings about the level of the corrected image ``img`` (H, W, full scale 1) of the capture ``raw`` (DN),
     InputError for those refused: a gain past full scale or far below it (:func:`_check_level`), a dim integer
-    capture (:func:`_check_dim`) or float capture (:func:`_check_dim_float`), a white level far above the data (:func:`_check_white_level`), a float capture
-    that holds DN."""
+    capture (:func:`_check_dim`) or float capture (:func:`_check_dim_float`), a white level far above the data
+    (:func:`_check_white_level`), a float capture that holds DN."""
     notes: list[str] = []
     if check_level:
         notes += _check_level(img, corr, source)

@@ -101,15 +101,17 @@ def network_parameters(cfg, camera) -> int:
     return int(NETWORKS[cfg.model.kind].parameters(cfg, camera))
 
 
-def check_network_memory(cfg, camera, training: bool = True) -> None:
+def check_network_memory(cfg, camera, training: bool = True) -> int:
     """ConfigError, before anything is allocated, for a network whose training or, with ``training``
     false, whose weights alone (a trained run read for inference) need more than the memory budget
-    (:func:`check_parameter_memory`), naming the keys of ``model.<kind>`` that size it."""
+    (:func:`check_parameter_memory`), naming the keys of ``model.<kind>`` that size it. Returns the declared
+    parameter count it checked."""
     n = network_parameters(cfg, camera)
     kind = cfg.model.kind
     # a kind registered outside hsicam has no section in ModelConfig (its settings are its builder's): None
     check_parameter_memory(n, f"model.kind={kind}: model.{kind}", getattr(cfg.model, kind, None), NETWORKS[kind].sizes,
                            len(camera.bands), training)
+    return n
 
 
 def check_parameter_memory(n: int, section: str, settings: Any, sizes: SizeKeys, bands: int,
@@ -148,9 +150,9 @@ def build_network(cfg, camera) -> nn.Module:
     """The network ``cfg.model.kind`` describes, for ``camera``; one whose weights do not fit the
     memory budget is refused before it is built (:func:`check_network_memory`; training checks its
     own larger need)."""
-    check_network_memory(cfg, camera, training=False)
+    declared = check_network_memory(cfg, camera, training=False)
     net = NETWORKS[cfg.model.kind].build(cfg, camera)
-    declared, built = network_parameters(cfg, camera), sum(p.numel() for p in net.parameters())
+    built = sum(p.numel() for p in net.parameters())
     if declared != built:  # the memory checks before building trust the declared count
         log.warning("model.kind=%s declares %d parameters (its registered parameters function) but builds %d: the "
                     "memory checks made before building used %d; correct its parameters function",

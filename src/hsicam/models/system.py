@@ -167,12 +167,9 @@ class CameraSystem(nn.Module):
         self.camera.check_scene_layout(scene)
         if self.camera.boundary != "valid":
             return scene
+        self.camera.check_sensor_area(tuple(scene.shape[-2:]))  # as capture (an empty crop was scored as 0×0 px)
         r = self.camera.margin // 2
         h, w = scene.shape[-2] - 2 * r, scene.shape[-1] - 2 * r
-        if h < 1 or w < 1:  # as capture refuses it (an empty crop was scored later as a 0×0 image)
-            raise InputError(f"scene of {scene.shape[-2]}×{scene.shape[-1]} px is too small for boundary='valid' with a "
-                             f"{self.camera.margin + 1}-px kernel: it needs at least {self.camera.margin + 1}×"
-                             f"{self.camera.margin + 1}")
         return scene[..., r : r + h, r : r + w]
 
     def network(self, sensor: torch.Tensor, origin: tuple[int, int] = (0, 0), operator=None, *,
