@@ -291,3 +291,18 @@ def test_capture_warns_on_an_unnormalised_scene_and_refuses_an_overflowing_image
     with pytest.raises(InputError, match=r"^huge\.npy: the simulated sensor image is not finite .*peak value is 1e\+308.*\[0, 1\]"):
         cam.capture(ones * 1e308, source="huge.npy")  # float64: overflows in the sums of every shipped camera
     assert not caplog.records  # the error alone, no warning line before it
+
+
+@torch.no_grad()
+def test_capture_refuses_a_scene_with_negative_values(case):
+    """Camera.capture refuses negative radiance as ``hsicam simulate``'s cube check does for a file (a scene with
+    them imaged silently: the sensor image then dips below the light any real scene gives), naming the source, the
+    count and the minimum; the same scene clamped at 0 is imaged."""
+    _, _, cam = case
+    x = _scene(cam, seed=5)
+    x[0, 1, 2, 3] = -0.25
+    x[0, 0, 0, 0] = -1e-9
+    with pytest.raises(InputError, match=r"^neg\.npy: 2 negative radiance value\(s\) \(minimum -0\.25\)"):
+        cam.capture(x, source="neg.npy")
+    y = cam.capture(x.clamp_min(0), torch.Generator().manual_seed(1), source="neg.npy")
+    torch.testing.assert_close(y, cam(x.clamp_min(0), torch.Generator().manual_seed(1)))

@@ -36,6 +36,17 @@ def check_finite(t: torch.Tensor, what: str) -> None:
             raise InputError(f"{what} contains {bad} NaN or Inf value(s) of {t.numel()}")
 
 
+def check_non_negative(t: torch.Tensor, what: str) -> None:
+    """:class:`InputError` naming ``what``, the count and the minimum when ``t`` holds negative values (radiance and
+    reflectance are >= 0; as :func:`hsicam.data.cube.check_cube` says of a file)."""
+    if t.numel() and t.device.type != "meta":
+        lo = float(t.min())
+        if lo < 0:
+            neg = int((t < 0).sum())
+            raise InputError(f"{what}: {neg} negative radiance value(s) (minimum {lo:.4g}); radiance and reflectance "
+                             "must be >= 0 (dark noise after a background subtraction: x.clamp_min(0))")
+
+
 def check_device(t: torch.Tensor, module: nn.Module, what: str) -> None:
     """:class:`InputError` naming ``what`` when ``t`` is not on the device of ``module``'s first parameter
     or buffer (a module with neither takes any device)."""
@@ -130,13 +141,15 @@ class Camera(nn.Module):
         without autograd, with the checks that a training step leaves out. A scene whose peak is above
         :data:`SCENE_PEAK_WARN` is logged (WARNING, naming ``source``): its image goes far past the
         sensor's full scale of 1. A scene holding NaN/Inf values is an :class:`InputError` naming ``source``
-        and their count; so is a sensor image that is not finite (float overflow of a scene with huge
+        and their count; so is a scene with negative values (light is never negative: ``hsicam simulate``'s cube
+        check refuses them too), and a sensor image that is not finite (float overflow of a scene with huge
         values: naming the scene's peak; or a damaged camera, whose image of a uniform scene is not finite either), and a scene smaller than :meth:`min_scene_size`
         (:meth:`check_capture_size`). The layout is checked first (:meth:`check_scene`): a NumPy array, a cube
         without its batch axis or with its bands last is told as such, not as a scene of the wrong size."""
         self.check_scene_layout(x)
         self.check_capture_size(tuple(x.shape[-2:]), source)
         check_finite(x, source)
+        check_non_negative(x, source)
         peak = float(x.max()) if x.numel() else 0.0
         advice = ("normalise the scene first: reflectance-like values in [0, 1] (a white reference at 1; "
                   "divide raw counts or percent by their full scale, or the cube by its maximum)")
