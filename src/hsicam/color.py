@@ -249,7 +249,7 @@ def srgb_preview(cube: np.ndarray, bands: Bands, chunk_px: int | None = None, ex
     ``reconstruct``'s ``*_rgb.png`` takes :func:`preview_exposure`), quantised as :func:`hsicam.io.write_png8`
     does, rendered a band of rows (about ``chunk_px`` pixels, default :data:`PREVIEW_CHUNK_PX`) at a time, so its
     temporaries stay that size whatever the cube's (whole, they were half a cube; the same values: each pixel's
-    colour is its own)."""
+    colour is its own). A pixel with a NaN band is black."""
     from hsicam.io import png8_values
 
     _checked_preview_cube(cube, bands, "srgb_preview")

@@ -1128,8 +1128,11 @@ def _png_bytes(data: np.ndarray, text: dict[str, str] | None) -> bytes:
 
 def png8_values(rgb01: np.ndarray) -> np.ndarray:
     """The 8-bit values (uint8, same shape) that :func:`write_png8` stores for an image in [0, 1]:
-    clipped, times 255, rounded (float64 temporaries of the input's size: pass large images in parts)."""
-    return np.round(np.clip(np.asarray(rgb01, dtype=np.float64), 0.0, 1.0) * 255.0).astype(np.uint8)
+    clipped, times 255, rounded; NaN pixels 0 (black: casting NaN to uint8 is undefined and warned about by NumPy)
+    (float64 temporaries of the input's size: pass large images in parts)."""
+    v = np.clip(np.asarray(rgb01, dtype=np.float64), 0.0, 1.0)
+    np.nan_to_num(v, copy=False, nan=0.0)
+    return np.round(v * 255.0).astype(np.uint8)
 
 
 def write_png8(path: str | os.PathLike, rgb01: np.ndarray, text: dict[str, str] | None = None) -> None:

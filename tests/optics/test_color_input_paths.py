@@ -50,3 +50,21 @@ def test_cube_to_srgb_of_a_batch_stored_bands_last_names_the_move_in_its_own_sha
                             "shape (2, 12, 20, 31); its last axis has the bands: a cube stored bands last is "
                             "cube.movedim(-1, 1)")
     torch.testing.assert_close(cube_to_srgb(bhwc.movedim(-1, 1), BANDS), torch.ones((2, 3, 12, 20)))
+
+
+def test_srgb_preview_draws_nan_pixels_black_without_numpy_s_cast_warning():
+    """A cube with NaN pixels (a notebook's masked cube): those pixels black (0), the others as in the preview of the
+    cube without them (a white reflector: 255), and no 'invalid value encountered in cast' RuntimeWarning (casting
+    NaN to uint8 is undefined in NumPy); an all-NaN cube is black."""
+    import warnings
+
+    cube = np.ones((31, 4, 5), dtype=np.float32)
+    cube[7, 1, 2] = np.nan  # one band of one pixel: its colour is undefined
+    cube[:, 3, :] = np.nan
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        rgb = srgb_preview(cube, BANDS)
+        black = srgb_preview(np.full((31, 2, 3), np.nan, dtype=np.float32), BANDS)
+    nan_px = np.isnan(cube).any(axis=0)
+    assert (rgb[nan_px] == 0).all() and (rgb[~nan_px] == 255).all()
+    assert black.dtype == np.uint8 and (black == 0).all()
