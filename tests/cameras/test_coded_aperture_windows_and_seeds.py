@@ -158,3 +158,29 @@ def test_a_loaded_aperture_window_is_the_arrays_crop_and_one_outside_it_is_refus
             cassi.CASSISnapshot(cam, offset=(r0, c0)).A(x)
         assert str(err.value) == (f"coded aperture {tmp_path / 'mask.npy'} is 20×31 px but {need} px are needed "
                                   "(rows × columns, including the dispersion span)")
+
+
+@pytest.mark.parametrize("kind", ("dd_cassi", "sd_cassi"))
+def test_a_cassi_window_s_origin_is_a_pair_of_ints_and_a_file_aperture_s_window_starts_within_it(kind):
+    """The CASSI snapshot took ``int(origin[0]), int(origin[1])`` of whatever it was given: (0.5, 0) was the window at
+    (0, 0) and (1, 2, 3) the one at (1, 2), silently, where the DOE camera refuses both (Camera.check_origin). A
+    file aperture's window at a negative row sliced ``array[-1:…]``: a wrapped or empty crop; now one error naming
+    the window and the aperture's size. The window within the file is its crop."""
+    from hsicam.cameras.cassi import CASSISnapshot, CodedAperture
+
+    cam = _cassi(kind)
+    x = torch.rand(1, len(cam.bands), 6, 7, dtype=torch.float64)
+    snap = CASSISnapshot(cam)
+    y = snap.A(x)
+    for bad in ((0.5, 0), (1, 2, 3), None, "00", (True, 0)):
+        with pytest.raises(InputError, match=r"origin must be a pair of ints \(row, column\)"):
+            snap.A(x, bad)
+        with pytest.raises(InputError, match=r"origin must be a pair of ints"):
+            snap.A_adjoint(y, bad)
+    arr = np.random.default_rng(0).integers(0, 2, (20, 40)).astype(np.float64)
+    ap = CodedAperture(array=arr, source="mask.npy")
+    torch.testing.assert_close(ap.pattern(5, 6, dtype=torch.float64, origin=(3, 4)), torch.from_numpy(arr[3:8, 4:10]))
+    for origin in ((-1, 0), (0, -3)):
+        with pytest.raises(InputError, match=rf"^coded aperture mask\.npy: a window at row {origin[0]}, column "
+                                             rf"{origin[1]} starts outside its 20×40 px"):
+            ap.pattern(5, 6, origin=origin)

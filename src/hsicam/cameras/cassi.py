@@ -42,7 +42,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from hsicam.cameras.base import Camera
+from hsicam.cameras.base import Camera, check_origin
 from hsicam.cameras.registry import register_camera
 from hsicam.config import design_seed
 from hsicam.errors import ConfigError, InputError
@@ -171,6 +171,9 @@ class CodedAperture(nn.Module):
             p = random_aperture(h, w, self.seed, self.density, device, dtype, (r0, c0))
         else:
             ah, aw = self.array.shape
+            if min(r0, c0) < 0:  # a slice from a negative start wraps round or comes back empty
+                raise InputError(f"coded aperture {self.source or ''}: a window at row {r0}, column {c0} starts outside "
+                                 f"its {ah}×{aw} px (rows and columns from 0)")
             if ah < r0 + h or aw < c0 + w:
                 raise InputError(f"coded aperture {self.source or ''} is {ah}×{aw} px but {r0 + h}×{c0 + w} px are "
                                  f"needed (rows × columns, including the dispersion span)")
@@ -499,6 +502,7 @@ class CASSISnapshot:
         raise NotImplementedError(f"{type(self.camera).__name__} has no per-band sensor code")
 
     def _aperture(self, h: int, w: int, origin: tuple[int, int], ref: torch.Tensor) -> torch.Tensor:
+        check_origin(origin)  # a float, a None or a third item was taken as int(...) of the first two
         r0, c0 = self.offset[0] + int(origin[0]), self.offset[1] + int(origin[1])
         return self.camera.aperture.pattern(h, w, ref.device, ref.dtype, (r0, c0))
 
