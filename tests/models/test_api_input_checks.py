@@ -339,7 +339,7 @@ def test_a_network_of_ones_own_that_returns_the_wrong_bands_is_named(caplog):
         with pytest.raises(InputError, match=re.escape(
                 "the network (Echo) returned shape (1, 1, 24, 24) of torch.float32 for a sensor image of shape "
                 f"(1, 1, 24, 24); a network returns a floating (B, C, H, W) cube of the camera's C = "
-                f"{len(model.bands)} bands")):
+                f"{len(model.bands)} bands and 24×24 px")):
             with torch.no_grad():
                 model.reconstruct(_sensor())
     finally:
@@ -400,3 +400,41 @@ def test_dataset_generation_envi_types_and_residual_sizes_are_one_clear_error(tm
     with pytest.raises(InputError, match=r"^the estimate images to \(1, 1, 20, 20\) px but the measurement is "
                                          r"\(1, 1, 19, 20\): not the same window$"):
         cam.relative_residual(x, torch.rand(1, 1, 19, 20))
+
+
+@pytest.mark.parametrize("kind", ["doe", "sd_cassi"])
+def test_a_network_of_ones_own_that_returns_the_wrong_size_is_named(kind):
+    """A registered network returning a cube of the camera's bands at another size (here every other pixel) was scored
+    on a misaligned crop or failed deep in a loss or a tile; now one error naming the network and the size the
+    camera's window needs: the sensor's own (the DOE camera) or the scene behind SD-CASSI's dispersed measurement
+    (W − D, what its built-in networks return)."""
+    from torch import nn
+
+    from hsicam.models.registry import NETWORKS, register_network
+
+    class EveryOther(nn.Module):
+        context_px = 0
+
+        def __init__(self, bands):
+            super().__init__()
+            self.n = len(bands)
+            self.w = nn.Parameter(torch.ones(1))
+
+        def forward(self, sensor, camera, origin=(0, 0)):
+            return (sensor * self.w).expand(-1, self.n, -1, -1)[..., ::2, ::2].contiguous()
+
+    try:
+        register_network("every_other_s71", parameters=lambda cfg, camera: 1, sizes=("features",))(
+            lambda cfg, camera: EveryOther(camera.bands))
+        model = CameraSystem.from_config(load_config("tiny", ["model.kind=every_other_s71", f"camera.kind={kind}"])).eval()
+        y = torch.rand(1, 1, 24, 40)
+        hw = (24, 40) if kind == "doe" else (24, 40 - model.camera.span)
+        assert model.cube_size((24, 40)) == hw
+        with pytest.raises(InputError, match=re.escape(
+                f"the network (EveryOther) returned shape (1, {len(model.bands)}, 12, 20) of torch.float32 for a sensor "
+                f"image of shape (1, 1, 24, 40); a network returns a floating (B, C, H, W) cube of the camera's C = "
+                f"{len(model.bands)} bands and {hw[0]}×{hw[1]} px")):
+            with torch.no_grad():
+                model.network(y)
+    finally:
+        NETWORKS.pop("every_other_s71", None)

@@ -193,16 +193,26 @@ class CameraSystem(nn.Module):
                 return self._checked_output(self.net(sensor, op, origin, **kw), sensor).float()
         return self._checked_output(self.net(sensor, op, origin, **kw), sensor)
 
+    def cube_size(self, sensor_hw: tuple[int, int]) -> tuple[int, int]:
+        """The cube (H', W') a network returns for a sensor window of ``sensor_hw``: the scene behind it
+        (:meth:`~hsicam.cameras.Camera.scene_size`) without the PSF kernel's margin of a ``valid`` sensor, i.e. the
+        sensor's own size, and SD-CASSI's scene (W − D) behind its dispersed measurement."""
+        m = self.camera.margin if self.camera.boundary == "valid" else 0
+        h, w = self.camera.scene_size(tuple(sensor_hw))
+        return h - m, w - m
+
     def _checked_output(self, x, sensor: torch.Tensor) -> torch.Tensor:
         """``x``, the network's output for ``sensor`` (B, 1, H, W), once it is a floating (B, C, H', W') tensor of the
-        camera's C bands; else one :class:`InputError` naming the network (a network of one's own that returned the
-        wrong bands was scored, or failed deep in a loss or a step)."""
+        camera's C bands and of :meth:`cube_size`; else one :class:`InputError` naming the network (a network of
+        one's own that returned the wrong bands or size was scored, or failed deep in a loss, a step or a tile)."""
         b, c = sensor.shape[0], len(self.bands)
-        if not (isinstance(x, torch.Tensor) and x.is_floating_point() and x.dim() == 4 and x.shape[:2] == (b, c)):
+        hw = self.cube_size(tuple(sensor.shape[-2:]))
+        if not (isinstance(x, torch.Tensor) and x.is_floating_point() and x.dim() == 4 and x.shape[:2] == (b, c)
+                and tuple(x.shape[-2:]) == hw):
             got = f"shape {tuple(x.shape)} of {x.dtype}" if isinstance(x, torch.Tensor) else type(x).__name__
             raise InputError(f"the network ({type(self.net).__name__}) returned {got} for a sensor image of shape "
                              f"{tuple(sensor.shape)}; a network returns a floating (B, C, H, W) cube of the camera's "
-                             f"C = {c} bands")
+                             f"C = {c} bands and {hw[0]}×{hw[1]} px")
         return x
 
     def reconstruct(self, sensor: torch.Tensor, origin: tuple[int, int] = (0, 0), operator=None,
