@@ -799,3 +799,58 @@ def test_input_error_is_an_hsicam_error():
 
 def test_input_and_config_errors_are_hsicam_errors():
     assert issubclass(InputError, HsicamError) and issubclass(ConfigError, HsicamError)
+
+
+def _wrapped_stop(stop: BaseException, chained: bool):
+    """What a Ctrl-C inside a lazy import of torch looked like (Python 3.11): another error, the stop its cause (or only
+    its context)."""
+    def command(args):
+        try:
+            raise stop
+        except BaseException as exc:
+            if chained:
+                raise RuntimeError("Error calling __set_name__ on 'Field' instance 'freevar_name'") from exc
+            raise RuntimeError("Error calling __set_name__ on 'Field' instance 'freevar_name'")  # noqa: B904
+    return command
+
+
+@pytest.mark.parametrize("chained", [True, False])
+@pytest.mark.parametrize("how", ["int", "term"])
+def test_a_stop_that_an_import_wrapped_in_another_error_is_still_a_stop(monkeypatch, capsys, tmp_path, chained, how):
+    """A Ctrl-C that arrived while torch imported its inductor was raised as "RuntimeError: Error calling __set_name__
+    …" and printed a whole traceback, exit code 1 (a helper's interrupted `experiment compare`, session 71); now the
+    one line of any other stop and its exit code (130, or 143 for SIGTERM); a RuntimeError of its own stays an error."""
+    import hsicam.cli.camera as camera_cli
+    from hsicam.cli import interrupt_behind, main
+    from hsicam.errors import Terminated
+
+    stop = KeyboardInterrupt() if how == "int" else Terminated()
+    monkeypatch.setattr(camera_cli, "cmd_psf", _wrapped_stop(stop, chained))
+    code = main(["psf", "--out", str(tmp_path / "p")])
+    err = capsys.readouterr().err
+    if how == "int":
+        assert (code, err) == (130, "hsicam: interrupted\n")
+    else:
+        assert (code, err) == (143, "hsicam: terminated (SIGTERM); nothing half-written was left\n")
+    assert not (tmp_path / "p").exists()
+    assert interrupt_behind(RuntimeError("its own")) is None
+    loop = RuntimeError("a")
+    loop.__context__ = ValueError("b")
+    loop.__context__.__context__ = loop  # a cycle of contexts ends
+    assert interrupt_behind(loop) is None
+
+
+def test_a_wrapped_stop_while_the_options_are_read_is_one_line(monkeypatch, capsys, tmp_path):
+    """The same while `--run`'s type imports torch (before the command runs)."""
+    import hsicam.cli as cli
+
+    def wrapped(spec):
+        try:
+            raise KeyboardInterrupt
+        except KeyboardInterrupt as exc:
+            raise RuntimeError("Error calling __set_name__") from exc
+
+    monkeypatch.setattr(cli, "run_folder", wrapped)
+    assert cli.main(["reconstruct", str(tmp_path / "c.npy"), "--run", "pretrained:standard",
+                     "--out", str(tmp_path / "c.h5")]) == 130
+    assert capsys.readouterr().err == "hsicam: interrupted\n"

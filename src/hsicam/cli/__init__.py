@@ -271,6 +271,21 @@ def _refuse_run_folder(out: Path, command: str | None, run: str | Path | None) -
         raise InputError(f"{out}: holds {what}, which {writer} never replaces; choose another --out")
 
 
+def interrupt_behind(exc: BaseException) -> KeyboardInterrupt | None:
+    """The ``KeyboardInterrupt`` (Ctrl-C, or :class:`~hsicam.errors.Terminated` for SIGTERM) among the causes and
+    contexts of ``exc``, else None: a Ctrl-C that arrives while a module is imported can surface as another error
+    (Python 3.11: "RuntimeError: Error calling __set_name__ on 'Field' instance …" from torch's lazy imports), which
+    is still the user's stop, not a failure."""
+    seen: set[int] = set()
+    e: BaseException | None = exc
+    while e is not None and id(e) not in seen:
+        if isinstance(e, KeyboardInterrupt):
+            return e
+        seen.add(id(e))
+        e = e.__cause__ if e.__cause__ is not None else e.__context__
+    return None
+
+
 def error_line(exc: BaseException) -> str | None:
     """The one line a user sees for ``exc``, or None for an exception that is a bug (traceback). An
     error raised in a DataLoader worker process is told by its own message, not torch's wrapping."""
@@ -368,6 +383,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     except KeyboardInterrupt:
         print("hsicam: interrupted", file=sys.stderr)
         return 130
+    except Exception as exc:  # noqa: BLE001 - a Ctrl-C inside an import, wrapped (interrupt_behind)
+        if interrupt_behind(exc) is None:
+            raise
+        print("hsicam: interrupted", file=sys.stderr)
+        return 130
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     # -v: hsicam's own debug lines only (matplotlib's font search, PIL's and h5py's chatter stay out)
     logging.getLogger("hsicam").setLevel(logging.DEBUG if args.verbose else logging.NOTSET)
@@ -401,6 +421,15 @@ def main(argv: Sequence[str] | None = None) -> int:
         print("hsicam: interrupted", file=sys.stderr)
         return 130
     except Exception as exc:  # noqa: BLE001 - the one error boundary
+        stop = interrupt_behind(exc)
+        if stop is not None:  # Ctrl-C (or SIGTERM) that arrived inside an import, which wrapped it in another error
+            if args.verbose:
+                traceback.print_exc()
+            if isinstance(stop, Terminated):
+                print("hsicam: terminated (SIGTERM); nothing half-written was left", file=sys.stderr)
+                return 128 + signal.SIGTERM
+            print("hsicam: interrupted", file=sys.stderr)
+            return 130
         if isinstance(exc, BrokenPipeError) and stdout_closed():
             # what is left in Python's buffer would fail again at exit ("Exception ignored ... BrokenPipeError")
             os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
