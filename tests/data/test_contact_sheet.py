@@ -32,3 +32,32 @@ def test_a_dim_scene_and_a_bright_one_look_alike_and_the_title_says_why(tmp_path
     renderer = canvas.get_renderer()
     (ax,) = one.axes
     assert not one._suptitle.get_window_extent(renderer).overlaps(ax.title.get_window_extent(renderer))
+
+
+def test_a_one_band_cube_is_shown_with_its_spectrum_a_point_and_the_gamut_said_to_need_two_bands(tmp_path):
+    """`data show` of a one-band cube (an ENVI file of one band) failed with "IndexError: index 1 is out of bounds" in
+    the gamut's PCA (unit-norm spectra of one band are all 1: no second component), and its mean spectrum, a line
+    through one point, drew nothing. Now the three PNGs are written: the spectrum a marker at its wavelength, the
+    gamut panel a sentence saying why there is none; two bands still make a PCA panel."""
+    import imageio.v3 as iio
+
+    from hsicam.data.preview import _gamut_figure, _scene_figures, write_preview
+
+    one = Bands.from_centers([550.0])
+    cube = np.random.default_rng(0).uniform(0.1, 1.0, (1, 12, 14)).astype(np.float32)
+    write_cube_h5(tmp_path / "one.h5", cube, one)
+    written = write_preview(tmp_path / "one.h5", tmp_path / "show")
+    assert sorted(p.name for p in written) == ["contact_sheet.png", "mean_spectra.png", "spectral_gamut.png"]
+    assert all(iio.imread(p).ndim == 3 for p in written)  # real PNGs
+    _, plot = _scene_figures(tmp_path, [tmp_path / "one.h5"])
+    [line] = plot.axes[0].lines
+    assert line.get_marker() == "o" and list(line.get_xdata()) == [550.0]
+    np.testing.assert_allclose(line.get_ydata(), [cube.mean() / cube.max()], rtol=1e-5)
+    gamut = _gamut_figure(tmp_path / "one.h5", [tmp_path / "one.h5"], None, [])
+    [ax] = gamut.axes
+    assert [t.get_text() for t in ax.texts] == ["no spectral gamut: the data have one band (550 nm),\n"
+                                                "and a spectral shape needs two or more"]
+    two = Bands.from_centers([500.0, 600.0])
+    write_cube_h5(tmp_path / "two.h5", np.concatenate([cube, cube[:, ::-1]]), two)
+    [ax] = _gamut_figure(tmp_path / "two.h5", [tmp_path / "two.h5"], None, []).axes
+    assert ax.get_xlabel().startswith("PC1") and not ax.texts

@@ -152,7 +152,8 @@ def _scene_figures(path: Path, scenes: list[Path], npy_bands: Bands | None = Non
     plot = Figure(figsize=(7, 4.2))
     ax = plot.add_subplot(1, 1, 1)
     for name, bands, mean in spectra:
-        ax.plot(bands.centers_nm, mean, lw=1.2, label=name)
+        # a spectrum of one band is a point: a line through it draws nothing
+        ax.plot(bands.centers_nm, mean, lw=1.2, label=name, marker="o" if len(bands) == 1 else None)
     ax.set_xlabel("wavelength (nm)")
     ax.set_ylabel("mean value (per-cube max = 1)")
     ax.set_title(f"{path.name}: mean spectra")
@@ -310,7 +311,14 @@ def _gamut_figure(path: Path, scenes: list[Path], held_dir: Path | None, held_sc
             ("training: derived (mixtures, layers, basis draws)", derived, "tab:cyan", "."),
             ("training: measured", measured, "tab:blue", "o"),
             (f"held out ({label})", held, "tab:red", "x")]))
-    fig = Figure(figsize=(6.2 * len(panels), 5.0))
+    if len(bands) < 2:  # every unit-norm spectrum of one band is 1: no shape to tell apart
+        panels = [p for p in panels if p[0] != "scene pixel spectra"]
+    fig = Figure(figsize=(6.2 * max(len(panels), 1), 5.0))
+    if not panels:
+        ax = fig.add_subplot(1, 1, 1)
+        ax.text(0.5, 0.5, f"no spectral gamut: the data have one band ({bands.min_nm:g} nm),\n"
+                "and a spectral shape needs two or more", ha="center", va="center", fontsize=10)
+        ax.set_axis_off()
     for k, (title, data) in enumerate(panels):
         allx = np.concatenate([d for _, d, _, _ in data])
         mean = allx.mean(axis=0)
