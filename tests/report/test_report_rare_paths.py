@@ -134,3 +134,25 @@ def test_a_psf_band_without_light_makes_the_crop_the_whole_kernel():
     psf[0, 10, 10] = 1.0  # a point: 15 px (the minimum) holds it
     assert psf_crop_px(psf[:1]) == 15
     assert psf_crop_px(psf) == 21
+
+
+def test_report_of_an_evaluation_whose_run_has_a_damaged_config_says_so_on_the_page(tmp_path):
+    """A run whose config.yaml is broken YAML (a ConfigError) failed the whole report with "results.json: corrupt
+    results.json (a field holds a value of the wrong kind: …config.yaml: invalid YAML …)": the results file blamed
+    for the run's damage (an experiment's report the same, naming experiment.json). Now the camera section is a note
+    naming the run's config.yaml, and the results are drawn, as for a missing run or damaged weights."""
+    run = tmp_path / "run"
+    run.mkdir()
+    (run / "config.yaml").write_text("model: [unclosed\n", encoding="utf-8")
+    d = folder_with(tmp_path, "results.json", evaluation(run=str(run)))
+    page = build_report(d).read_text(encoding="utf-8")
+    assert f"<p class='note'>camera figures unavailable: {html.escape(str(run / 'config.yaml'))}: invalid YAML" in page
+    assert "<h2>Results" in page and "<h2>Camera" not in page
+
+
+@pytest.mark.parametrize("value, text", [(True, "true"), (False, "false"), (30.0, "30.00")])
+def test_report_cell_of_a_boolean_score_is_not_a_number(tmp_path, value, text):
+    """An edited results.json's "psnr": true was drawn as 1.00 dB (bool is an int to Python)."""
+    d = folder_with(tmp_path, "results.json", evaluation(scenes=[{"name": "a", **{**MEAN, "psnr": value}}]))
+    page = build_report(d).read_text(encoding="utf-8")
+    assert f"<tr><td>a</td><td>{text}</td>" in page

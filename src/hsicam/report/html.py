@@ -20,7 +20,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
-from hsicam.errors import InputError  # noqa: E402
+from hsicam.errors import ConfigError, InputError  # noqa: E402
 from hsicam.io import atomic_open, atomic_output, is_complete, json_number, nan_for_null, save_figure  # noqa: E402
 from hsicam.report.reconstruction import cube_rgb, plot_training_curves, spectra_exponent  # noqa: E402
 from hsicam.spectral import Bands  # noqa: E402
@@ -160,6 +160,10 @@ def _img(name: str, caption: str) -> str:
             f"<figcaption class='note'>{html.escape(caption)}</figcaption></figure>")
 
 
+#: The scenes whose reconstructions an evaluation's report draws (the first by name; a note says how many were saved).
+MAX_RECONSTRUCTIONS = 6
+
+
 def _cell(v, fmt: str) -> str:
     """A table cell's text: a number in ``fmt``; "n/a" for a score that has no value (null, NaN: e.g. the SAM of
     a scene whose truth is zero at every scored pixel); "inf" / "-inf" for an infinite one (the best or the worst
@@ -168,6 +172,8 @@ def _cell(v, fmt: str) -> str:
         return "n/a"
     if isinstance(v, float) and math.isinf(v):
         return "inf" if v > 0 else "-inf"
+    if isinstance(v, bool):  # an edited file's true/false: not a score of 1.00 / 0.00
+        return str(v).lower()
     return format(v, fmt) if isinstance(v, (int, float)) and fmt else str(v)
 
 
@@ -198,7 +204,7 @@ def _camera_section(run: Path, out: Path, prefix: str = "", label: str | None = 
     try:
         cfg, model = load_run(run)
         run = resolve_run(run)
-    except InputError as exc:
+    except (InputError, ConfigError) as exc:  # (a run's damaged config.yaml: the run's, not the results file's fault)
         return f"<p class='note'>camera figures unavailable: {html.escape(str(exc))}</p>"
     cam = model.camera
     parts = [f"<h2>Camera ({html.escape(label or run_label(run))})</h2>"]
@@ -253,20 +259,31 @@ def _evaluation_sections(folder: Path, out: Path, res: dict) -> list[str]:
     if (folder / "reconstructions.png").is_file():  # hsicam demo's own figure, beside its results.json
         parts.append(_img("../reconstructions.png", "the demo's reconstructions (hsicam demo), as written beside "
                                                     "its results.json"))
-    bands = Bands.from_centers(res["bands_nm"]) if "bands_nm" in res else None
     cubes = folder / "cubes"
     if not cubes.is_dir() and not (folder / "reconstructions.png").is_file():  # said, not silently left out
         parts.append("<h2>Reconstructions</h2><p class='note'>None shown: the evaluation saved no cubes (run "
                      "<code>hsicam evaluate … --save</code> for renders, spectra and per-band errors).</p>")
-    if cubes.is_dir() and bands is not None:
+    if cubes.is_dir():  # (each cube carries its own bands: results.json's bands_nm is not needed)
         from hsicam.data import read_cube
 
         parts.append("<h2>Reconstructions</h2>")
-        for est_path in sorted(cubes.glob("*_estimate.h5"))[:6]:
+        saved = sorted(cubes.glob("*_estimate.h5"))
+        paired = [p for p in saved if (cubes / f"{p.name[: -len('_estimate.h5')]}_truth.h5").is_file()]
+        unpaired = [p.name for p in saved if p not in paired]
+        shown = paired[:MAX_RECONSTRUCTIONS]
+        notes = []
+        if len(paired) > len(shown):
+            notes.append(f"the first {len(shown)} of the {len(paired)} saved scenes, by name (each scene's cubes are "
+                         "in cubes/)")
+        if unpaired:
+            notes.append(f"not shown, their ground truth missing from cubes/: {', '.join(unpaired)}")
+        if not saved:
+            notes.append("cubes/ holds no reconstruction (*_estimate.h5)")
+        if notes:
+            parts.append(f"<p class='note'>{html.escape('; '.join(notes))}</p>")
+        for est_path in shown:
             name = est_path.name[: -len("_estimate.h5")]
             truth_path = cubes / f"{name}_truth.h5"
-            if not truth_path.is_file():
-                continue
             est, b, _ = read_cube(est_path)
             truth, tb, _ = read_cube(truth_path)
             if truth.shape != est.shape or not tb.matches(b):
