@@ -377,3 +377,22 @@ def test_a_band_narrower_than_the_fine_grid_samples_its_centre():
         ends = Bands(np.array([400.5, grid[-1] - 0.6]), np.array([0.3, 0.3]))
         h = grid / 9.0 + np.cos(grid / 3.0)
         np.testing.assert_allclose(band_matrix(ends, grid) @ h, np.interp(ends.centers_nm, grid, h), rtol=1e-12)
+
+
+@pytest.mark.parametrize("data, flagged", [
+    (Bands.uniform(420, 720, 50), [c for c in range(420, 721, 10) if (c - 420) % 50]),  # 7 bands: 24 made up
+    (Bands.uniform(420, 720, 20), [c for c in range(420, 721, 10) if (c - 420) % 20]),  # 20 nm apart > 1.5 × 10
+    (Bands.uniform(415, 725, 10), []),  # the same step, shifted half a band: 10 nm gaps, not more than 15
+    (Bands.uniform(400, 730, 1), []),  # finer: integrated, never interpolated across a gap
+    (Bands.uniform(420, 720, 10), []),  # the camera's own
+    (Bands.from_centers([420.0, 430.0, 700.0, 720.0]), [*range(440, 700, 10), 710]),  # a hole; 700-720 is 20 nm
+])
+def test_interpolated_bands_are_the_camera_bands_between_data_bands_wider_apart_than_1_5_fwhm(data, flagged):
+    """interpolated_bands: the camera's bands whose resampled value is a linear interpolation across a gap they would
+    resolve, listed here by hand for the 31-band paper grid (FWHM 10 nm)."""
+    from hsicam.spectral import interpolated_bands
+
+    cam = Bands.uniform(420, 720, 10)
+    got = cam.centers_nm[interpolated_bands(data, cam)]
+    np.testing.assert_array_equal(got, np.asarray(flagged, dtype=np.float64))
+    assert not interpolated_bands(Bands.from_centers([550.0]), Bands.from_centers([550.0])).any()

@@ -239,3 +239,36 @@ def test_a_mat_scene_on_an_assumed_grid_says_so_when_refused(run, env, tmp_path)
     for fragment in ("not covered by the data's 400-700 nm", "the file lists no wavelengths, so its bands were assumed to "
                      "be 31 bands, 400-700 nm in 10 nm steps; add its band list as a variable 'bands'"):
         assert fragment in line, line
+
+
+def test_scenes_on_a_coarser_grid_than_the_camera_s_are_scored_with_a_warning_that_their_truth_is_interpolated(
+        run, env, tmp_path):
+    """A dataset whose files hold fewer, wider-spaced bands than the camera's (here 4 bands 100 nm apart under the tiny
+    camera's 7 of 50 nm) was scored silently: the truth of the 3 bands between the data's was a linear interpolation,
+    and a smooth estimate scored well against it (a helper's 7-band set under the 31-band camera: 24 bands made up).
+    Now a WARNING and results.json/md's ``truth_interpolated`` say it, naming the first such file and how many bands;
+    data on the camera's own grid (or finer) get neither. Reference: the bands counted here by hand."""
+    rng = np.random.default_rng(3)
+    coarse = Bands.uniform(420, 720, 100)  # 420, 520, 620, 720: 470, 570 and 670 nm lie 100 nm apart
+    data = tmp_path / "coarse"
+    for name in ("a", "b"):
+        cube = rng.uniform(0.2, 1.0, (len(coarse), 48, 52)).astype(np.float32)
+        write_cube_h5(data / f"{name}.h5", cube, coarse)
+    write_cube_h5(data / "c.h5", _scene(rng), BANDS)  # on the camera's grid: not counted
+    out = tmp_path / "ev"
+    res = run_cli_in_process("evaluate", "--run", str(run), "--data", str(data), "--out", str(out))
+    assert res.returncode == 0, res.stderr
+    want = (f"{data / 'a.h5'} and 1 other scene(s): the data's 4 bands (420-720 nm) are coarser than the camera's 7 "
+            "(420-720 nm): 3 of the camera's bands lie between data bands more than 1.5 of their FWHM apart, so their "
+            "ground truth is a linear interpolation of the data and the scores there are against it, not against a "
+            "measurement; score on data at least as fine as the camera's bands")
+    summary = json.loads((out / "results.json").read_text())
+    assert summary["truth_interpolated"] == want
+    assert want in res.stderr and f"- truth_interpolated: {want}" in (out / "results.md").read_text()
+    fine = tmp_path / "fine"
+    write_cube_h5(fine / "c.h5", _scene(rng), BANDS)
+    write_cube_h5(fine / "d.h5", rng.uniform(0.2, 1.0, (301, 48, 52)).astype(np.float32), Bands.uniform(420, 720, 1))
+    res = run_cli_in_process("evaluate", "--run", str(run), "--data", str(fine), "--out", str(tmp_path / "ev2"))
+    assert res.returncode == 0, res.stderr
+    assert "truth_interpolated" not in json.loads((tmp_path / "ev2" / "results.json").read_text())
+    assert "linear interpolation of the data" not in res.stderr

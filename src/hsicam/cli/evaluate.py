@@ -140,7 +140,7 @@ def check_out_apart_from_data(out: str | Path, data: str | Path) -> None:
 
 def cmd_evaluate(args: argparse.Namespace) -> int:
     """``hsicam evaluate``: every check before any scene is scored, then the scores, the result files and the means."""
-    from hsicam.engine.evaluate import TestNoise, evaluate_method
+    from hsicam.engine.evaluate import TestNoise, evaluate_method, interpolated_truth_warning
     from hsicam.data.datasets import list_scenes
     from hsicam.cli import prepare_output
 
@@ -158,11 +158,16 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     scenes, names, rel, data_label, heldout = _scenes_to_score(args, cfg, paths, bands)
     roles, warning = _training_roles(args, run_cfg, cfg, scenes, paths)
     _check_scenes_before_scoring(args, method, scenes, names, heldout, out, len(bands))
+    interpolated = interpolated_truth_warning(scenes, names, bands)  # (each file was read by the check)
+    if interpolated:
+        log.warning(interpolated)
     show = lambda line: print(line, file=sys.stderr, flush=True)  # noqa: E731
     results = evaluate_method(method, scenes, names, noise, args.device, keep_arrays=args.save, progress=show,
                               paths=rel, tile_px=args.tile)
     camera_sensor = {k: getattr(cfg.camera.sensor, k) for k in SENSOR_NOISE_KEYS}
     summary = _summary(args, cfg, method, results, noise, data_label, camera_sensor, roles, warning)
+    if interpolated:
+        summary["truth_interpolated"] = interpolated
     if heldout is not None:
         summary["heldout"] = _heldout_summary(args, cfg, method, heldout, noise, show)
     _write_evaluation(out, args, summary, results, scenes, noise, camera_sensor, bands)

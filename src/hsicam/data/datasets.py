@@ -665,6 +665,7 @@ class SceneDataset(Dataset):
         self.allow_negative = allow_negative
         self.cache_size = max(int(cache_size), 1)
         self._infos: list[SceneInfo | None] = [None] * len(self.paths)
+        self._source_grids: list[Bands | None] = [None] * len(self.paths)  # each file's own bands, once read
         self._cache: OrderedDict[int, np.ndarray] = OrderedDict()
         self._preloaded: list[np.ndarray] | None = None
         self._windowable = [False] * len(self.paths)  # hsicam HDF5 on our bands: read windows directly
@@ -700,12 +701,22 @@ class SceneDataset(Dataset):
         if info is None:
             info = probe_hsicam(self.paths[i], self.bands, allow_negative=self.allow_negative)
             self._windowable[i] = info is not None
+            if info is not None:  # an hsicam HDF5 file on these bands: nothing resampled
+                self._source_grids[i] = self.bands
             if info is None:
                 self.cube(i)  # loads the scene and records its info
                 info = self._infos[i]
             self._infos[i] = info
         assert info is not None
         return info
+
+    def source_grid(self, i: int) -> Bands:
+        """The band grid scene ``i``'s file holds (before it was resampled onto :attr:`bands`; reads it once)."""
+        if self._source_grids[i] is None:
+            self.info(i)
+        grid = self._source_grids[i]
+        assert grid is not None
+        return grid
 
     def window(self, i: int, y: int, x: int, h: int, w: int) -> np.ndarray:
         """Normalised window [y:y+h, x:x+w] (C, h, w) of scene ``i``, read without loading it all when possible."""
@@ -742,6 +753,7 @@ class SceneDataset(Dataset):
     def _load(self, i: int) -> np.ndarray:
         path = self.paths[i]
         cube, src_bands, meta = read_cube(path, bands=self.source_bands, allow_negative=self.allow_negative)
+        self._source_grids[i] = src_bands
         try:
             cube = resample_cube(cube, src_bands, self.bands, source=path)
         except InputError as exc:

@@ -202,6 +202,34 @@ def check_scenes(method: Method, scenes, names: Sequence[str]) -> None:
                            method.border_px)
 
 
+def interpolated_truth_warning(scenes, names: Sequence[str], bands) -> str | None:
+    """The warning for scenes of ``scenes`` whose files hold a coarser band grid than the camera's ``bands``
+    (:func:`hsicam.spectral.interpolated_bands`: a camera band between two data bands more than 1.5 of its FWHM
+    apart), else None: their ground truth there is a linear interpolation of the data, and a smooth reconstruction
+    scores well against it. Asks a :class:`~hsicam.data.datasets.SceneDataset` for each file's own grid (read once,
+    as :func:`check_scenes` does); other sequences hold cubes already on ``bands``: None."""
+    from hsicam.spectral import interpolated_bands
+
+    grid_of = getattr(scenes, "source_grid", None)
+    if grid_of is None:
+        return None
+    coarse = []
+    for i, name in enumerate(names):
+        grid = grid_of(i)
+        n = int(interpolated_bands(grid, bands).sum())
+        if n:
+            coarse.append((scene_label(scenes, i, name), grid, n))
+    if not coarse:
+        return None
+    label, grid, n = coarse[0]
+    others = f" and {len(coarse) - 1} other scene(s)" if len(coarse) > 1 else ""
+    return (f"{label}{others}: the data's {len(grid)} bands ({grid.min_nm:g}-{grid.max_nm:g} nm) are coarser than the "
+            f"camera's {len(bands)} ({bands.min_nm:g}-{bands.max_nm:g} nm): {n} of the camera's bands lie between data "
+            "bands more than 1.5 of their FWHM apart, so their ground truth is a linear interpolation of the data and "
+            "the scores there are against it, not against a measurement; score on data at least as fine as the camera's "
+            "bands")
+
+
 def no_doe_reason(camera) -> str | None:
     """Why test DOE height noise cannot reach ``camera`` (None when it can): a camera kind without a
     DOE (CASSI), a camera imaging with fixed (measured) PSFs, or a DOE camera whose DOE is disabled
@@ -428,7 +456,7 @@ def write_results(out: Path, summary: dict) -> None:
         fh.write(buf.getvalue())
     conv = summary["conventions"]
     head = [f"# Results: {summary.get('method', '')}", ""]
-    for k in ("run", "run_path", "data", "warning", "noise", "config_hash", "saved_cubes"):
+    for k in ("run", "run_path", "data", "warning", "truth_interpolated", "noise", "config_hash", "saved_cubes"):
         # run_path (the folder read) only where it differs from run: a shipped camera's package folder
         if k in summary and not (k == "run_path" and summary[k] == summary.get("run")):
             head.append(f"- {k}: {summary[k]}")

@@ -235,7 +235,9 @@ def _evaluation_sections(folder: Path, out: Path, res: dict) -> list[str]:
         ("data: ", str(res["data"]) if res.get("data") else None),
         ("noise: ", json.dumps(res["noise"]) if res.get("noise") is not None else None),
         ("config ", str(res["config_hash"]) if res.get("config_hash") else None),
-        ("scored area: ", str(res["region"]) if res.get("region") else None)) if text is not None]
+        ("scored area: ", str(res["region"]) if res.get("region") else None),
+        ("", str(res["warning"]) if res.get("warning") else None),  # scenes the run trained on
+        ("", str(res["truth_interpolated"]) if res.get("truth_interpolated") else None)) if text is not None]
     method = f": {html.escape(str(res['method']))}" if res.get("method") else ""
     parts = [f"<h2>Results{method}</h2>"] + ([f"<p class='note'>{'; '.join(facts)}</p>"] if facts else [])
     cols = [("name", "scene", ""), ("psnr", "PSNR (dB)", ".2f"), ("ssim", "SSIM", ".4f"), ("sam", "SAM (°)", ".2f"),

@@ -216,6 +216,26 @@ def resolved_bands(src: Bands, dst: Bands) -> np.ndarray:
     return kernel_fwhm(src, dst) > _TOL_NM
 
 
+#: A band of the camera whose data neighbours lie farther apart than this many times its FWHM is
+#: interpolated across a gap it resolves (:func:`interpolated_bands`): the 50 nm steps of a 7-band cube
+#: under 10 nm bands, not the 10 nm steps of data shifted by half a band.
+INTERPOLATION_GAP_FWHM = 1.5
+
+
+def interpolated_bands(src: Bands, dst: Bands) -> np.ndarray:
+    """Boolean (len(dst),): True where a band of ``dst`` lies strictly between two bands of ``src`` more than
+    :data:`INTERPOLATION_GAP_FWHM` times its own FWHM apart: its value resampled from ``src`` is a linear
+    interpolation across a gap the band would resolve, not a measurement (data on a coarser grid than the camera's:
+    ground truth made up between the data's samples). ``dst`` within ``src``'s range (as resampling requires)."""
+    c, d = src.centers_nm, dst.centers_nm
+    if len(c) < 2:
+        return np.zeros(len(d), dtype=bool)  # one data band: every camera band on it (the range check's)
+    j = np.clip(np.searchsorted(c, d), 1, len(c) - 1)  # c[j - 1] <= d <= c[j]
+    lo, hi = c[j - 1], c[j]
+    on_sample = (np.abs(d - lo) <= _TOL_NM) | (np.abs(d - hi) <= _TOL_NM)
+    return ~on_sample & (hi - lo > INTERPOLATION_GAP_FWHM * dst.fwhm_nm)
+
+
 #: Step (nm) of the quadrature over a band's response in :func:`resampling_matrix` (at most; finer for
 #: narrow kernels): the linear interpolant is integrated, so this only sets the Gaussian's accuracy.
 _QUADRATURE_STEP_NM = 0.05
