@@ -1,12 +1,18 @@
 """Torch devices by name: which ones this machine has (``--device``, ``train.device``,
-:func:`hsicam.runs.folder.load_run`'s ``device``); and this process's place in a ``torchrun`` group."""
+:func:`hsicam.runs.folder.load_run`'s ``device``); and this process's place in a ``torchrun`` group.
+
+Torch is imported by the functions that use it, not by the module: :func:`dist_env` is read by the command line's
+clean-up after a failed or interrupted command, and a Ctrl-C that lands inside torch's first import leaves a
+half-initialised torch, whose second import crashed the process (a double traceback, an abort or a segfault)."""
 
 from __future__ import annotations
 
 import os
 import warnings
+from typing import TYPE_CHECKING
 
-import torch
+if TYPE_CHECKING:
+    import torch
 
 
 def dist_env() -> tuple[int, int, int]:
@@ -19,6 +25,8 @@ def float64_device(device: torch.device | str) -> torch.device:
     """Where float64 work on the tensors of ``device`` runs (metrics, the PSF energy cut): on ``device`` itself, or
     on the CPU for a device without float64. Apple's MPS has none: a float64 tensor there is a TypeError ("Cannot
     convert a MPS Tensor to float64 dtype"), which stopped a training on ``mps`` at its first validation."""
+    import torch
+
     device = torch.device(device)
     return torch.device("cpu") if device.type == "mps" else device
 
@@ -29,6 +37,8 @@ def autocast_problem(device: torch.device | str, dtype: torch.dtype) -> str | No
     on ``mps`` autocasts there, which torch 2.4 cannot (an error at the first step, after the data and the run folder
     were made), torch 2.5 only in float16 (a warning, and the training ran in float32 while its config said bf16), later
     ones in bfloat16 from macOS 14 on; a CUDA device without bfloat16 is an error too."""
+    import torch
+
     device = torch.device(device)
     if device.type == "cpu":
         return None
@@ -47,6 +57,8 @@ def autocast_problem(device: torch.device | str, dtype: torch.dtype) -> str | No
 
 def device_problem(spec: str) -> str | None:
     """Why ``spec`` is not a torch device this machine has (cpu, cuda, cuda:N, mps), or None."""
+    import torch
+
     try:
         dev = torch.device(spec)
     except (RuntimeError, ValueError):

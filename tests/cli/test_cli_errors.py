@@ -854,3 +854,41 @@ def test_a_wrapped_stop_while_the_options_are_read_is_one_line(monkeypatch, caps
     assert cli.main(["reconstruct", str(tmp_path / "c.npy"), "--run", "pretrained:standard",
                      "--out", str(tmp_path / "c.h5")]) == 130
     assert capsys.readouterr().err == "hsicam: interrupted\n"
+
+
+def test_the_clean_up_after_a_stop_does_not_import_torch(tmp_path):
+    """A Ctrl-C in a command's first second lands inside torch's import; the clean-up then imported hsicam.devices,
+    hence torch again, half-initialised: a double traceback ("partially initialized module 'torch' has no attribute
+    'cuda'"), an abort (exit 134) or a segfault (139) instead of "hsicam: interrupted" (a helper's hunt, session 71).
+    The clean-up of a failed command (and the output checks before it, short of a run folder's) imports no torch (a
+    fresh process, looked at in sys.modules), and with torch unimportable a stopped command still ends as one."""
+    import subprocess
+    import sys
+
+    code = f"""
+import sys
+import hsicam.cli as cli
+out = cli.prepare_output({str(tmp_path / 'new' / 'out')!r}, "dir")
+cli._remove_unused_outputs()
+print(sorted({{'torch'}} & set(sys.modules)))
+"""
+    res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert res.returncode == 0, res.stderr
+    assert res.stdout.strip() == "[]"
+    assert not (tmp_path / "new").exists()  # the folder made for the output, removed again
+    stopped = f"""
+import sys
+sys.modules["torch"] = None  # any import of torch now fails, as a half-imported one does
+import hsicam.cli as cli
+import hsicam.cli.camera as camera_cli
+
+def cmd(args):
+    cli.prepare_output(args.out, "dir")
+    raise KeyboardInterrupt
+
+camera_cli.cmd_psf = cmd
+sys.exit(cli.main(["psf", "--out", {str(tmp_path / 'p')!r}]))
+"""
+    res = subprocess.run([sys.executable, "-c", stopped], capture_output=True, text=True)
+    assert (res.returncode, res.stderr) == (130, "hsicam: interrupted\n")
+    assert not (tmp_path / "p").exists()

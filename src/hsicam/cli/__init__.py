@@ -391,6 +391,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     # -v: hsicam's own debug lines only (matplotlib's font search, PIL's and h5py's chatter stay out)
     logging.getLogger("hsicam").setLevel(logging.DEBUG if args.verbose else logging.NOTSET)
+    # torch's INFO lines reach the root logger when a Ctrl-C stopped torch's import before its own logging set-up
+    # (then its exit hook printed "FakeTensor cache stats: …" under "hsicam: interrupted")
+    logging.getLogger("torch").setLevel(logging.WARNING)
     from hsicam.data.cube import trained_bands
 
     try:
