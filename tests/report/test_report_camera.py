@@ -150,3 +150,27 @@ def test_a_camera_without_a_cfa_gets_no_cfa_figure(tmp_path, tiny_camera):
     written = write_optics_figures(tiny_camera("camera.cfa.enabled=false"), tmp_path)
     assert "cfa.png" not in written and not (tmp_path / "cfa.png").exists() and "doe.png" in written
     assert "cfa.png" in write_optics_figures(tiny_camera(), tmp_path / "with")
+
+
+def test_psf_figure_of_a_one_pixel_kernel_draws_its_encircled_energy_as_points(tmp_path, monkeypatch):
+    """`hsicam psf` of a camera whose PSF kernel is 1×1 px (a 200 µm pixel pitch) ended in "ValueError: zero-size array
+    to reduction operation minimum" (the encircled energy's radii were [0] alone). Now the curve is one point per
+    band at radius 1 px (the whole pixel: its energy), drawn as a marker."""
+    import matplotlib.figure
+
+    bands = Bands.uniform(420, 720, 150, 10)
+    psf = np.array([0.9, 0.8, 0.7])[:, None, None]  # (3, 1, 1): each band's light kept in the pixel
+    axes = []
+    real = matplotlib.figure.Figure.add_subplot
+
+    def keep(self, *args, **kwargs):
+        axes.append(real(self, *args, **kwargs))
+        return axes[-1]
+
+    monkeypatch.setattr(matplotlib.figure.Figure, "add_subplot", keep)
+    assert plot_psf_montage(psf, bands, tmp_path / "psf.png") == 1
+    assert iio.imread(tmp_path / "psf.png").ndim == 3
+    curves = axes[-1].lines
+    assert [list(line.get_xdata()) for line in curves] == [[1.0]] * 3
+    np.testing.assert_allclose([line.get_ydata()[0] for line in curves], [0.9, 0.8, 0.7])
+    assert all(line.get_marker() == "o" for line in curves)

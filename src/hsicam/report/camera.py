@@ -114,12 +114,13 @@ def plot_psf_montage(psf: np.ndarray, bands: Bands, path: str | Path, decades: f
         tiles.append(ax)
     fig.colorbar(im, ax=tiles, shrink=0.6, label="log10(PSF / its band's peak)")  # one scale for every tile
     ax = fig.add_subplot(grid[rows, :])
-    radii = np.arange(0, k // 2 * math.sqrt(2) + 1.0)
+    radii = np.arange(0, max(k // 2 * math.sqrt(2) + 1.0, 2.0))  # (a 1×1 kernel: radii 0 and 1, not 0 alone)
     ee = encircled_energy(psf, radii)
     cmap = plt.get_cmap("turbo")
     lo, hi = float(np.min(bands.centers_nm)), float(np.max(bands.centers_nm))
     for i in range(c):
-        ax.plot(radii[1:], ee[i, 1:], color=cmap((bands.centers_nm[i] - lo) / max(hi - lo, 1e-9)), lw=1)
+        ax.plot(radii[1:], ee[i, 1:], color=cmap((bands.centers_nm[i] - lo) / max(hi - lo, 1e-9)), lw=1,
+                marker="o" if len(radii) == 2 else None)  # one radius: a point, which a line does not draw
     ax.set_xscale("log")
     ax.set_xlabel("radius (px)")
     ax.set_ylabel("encircled energy")
