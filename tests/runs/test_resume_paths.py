@@ -201,6 +201,30 @@ def test_finetune_resume_refuses_other_psfs_another_run_and_nothing_to_resume(fi
     assert not (tmp_path / "none").exists()
 
 
+def test_finetune_resume_of_a_finished_finetuning_changes_nothing_and_says_so(finetuned, run, tmp_path, capsys):
+    """`finetune --resume --epochs 1` (or fewer epochs than it ran) on a finished fine-tuning printed "fine-tuned N
+    steps … -> OUT" and rewrote finetune.json with the new --epochs beside the steps of the old ones (a helper's hunt,
+    session 71); now the words of `train --resume` on a finished run, exit 0, and the folder byte for byte as it was.
+    A --run of another camera (the shipped 31-band one) is named as the wrong run before its bands are read against
+    the PSFs (it was "no measured PSF for band(s) 430, 440, …")."""
+    ft, psf_dir = finetuned
+    capsys.readouterr()
+    before = tree_snapshot(ft)
+    for epochs in ("1",):
+        assert main(["finetune", "--resume", "--run", str(run), "--psf-dir", str(psf_dir), "--out", str(ft),
+                     "--epochs", epochs]) == 0
+        out = capsys.readouterr().out
+        assert out.startswith(f"{ft}: fine-tuning already finished at step ") and out.rstrip().endswith(
+            f"nothing changed. To fine-tune on, raise --epochs: hsicam finetune --run {run} --psf-dir {psf_dir} "
+            f"--out {ft} --resume --epochs N (N > 1)"), out
+        assert tree_snapshot(ft) == before
+    line = in_process_error_line(capsys, ["finetune", "--resume", "--run", "pretrained:standard", "--psf-dir",
+                                          str(psf_dir), "--out", str(ft)])
+    assert line == (f"hsicam: error: {ft}: was fine-tuned from {run}, not "
+                    f"pretrained:standard; resume it with --run {run}"), line
+    assert tree_snapshot(ft) == before
+
+
 # ------------------------------------------------------------------------------------------------
 # the spectral prior: an interrupted training warns when used, and --resume continues it
 # ------------------------------------------------------------------------------------------------

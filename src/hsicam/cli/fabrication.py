@@ -194,6 +194,12 @@ def cmd_finetune(args: argparse.Namespace) -> int:
         overrides.append(f"train.lr={lr:.6e}")
     s = finetune(run, args.psf_dir, args.out, overrides=tuple(overrides), pitch_um=args.psf_pitch_um,
                  resume=args.resume)
+    if s.get("already_finished"):  # as `hsicam train --resume` says it (finetune.json left as it was)
+        changed = ("; ".join(s["changed"]) + ", nothing else changed" if s.get("changed") else "nothing changed")
+        print(f"{args.out}: fine-tuning already finished at step {s['step']} ({s['epoch']} epochs); {changed}. To "
+              f"fine-tune on, raise --epochs: hsicam finetune --run {args.run} --psf-dir {args.psf_dir} --out "
+              f"{args.out} --resume --epochs N (N > {s['epoch']})")
+        return 0
     before = s["before"].get("psnr")
     after = s["best_val_psnr"]
     e = s["energy_in_kernel"]

@@ -86,15 +86,25 @@ def _same_run(recorded: str, run_dir: Path) -> bool:
         return False
 
 
+def check_finetune_source(out_dir: Path, run_dir: Path) -> None:
+    """InputError when the fine-tuning in ``out_dir`` was made from another run than ``run_dir`` (checked before the
+    run and the PSFs are read: a wrong ``--run`` was blamed on the PSFs, which did not fit its bands). Reads only."""
+    from hsicam.runs.folder import finetune_source
+
+    source, _ = finetune_source(out_dir)
+    if source is not None and not _same_run(source, run_dir):
+        raise InputError(f"{out_dir}: was fine-tuned from {source}, not {run_label(run_dir)}; resume it with --run "
+                         f"{source}")
+
+
 def check_same_finetune(out_dir: Path, run_dir: Path, psf_dir: str | Path, measured: MeasuredPSF) -> None:
     """InputError when the fine-tuning in ``out_dir`` was made from another run or other measured
     PSFs than ``run_dir`` and ``measured`` (imported from ``psf_dir``): continuing it would mix two
     calibrations. Reads only."""
     from hsicam.runs.folder import finetune_source
 
-    source, made_from = finetune_source(out_dir)
-    if source is not None and not _same_run(source, run_dir):
-        raise InputError(f"{out_dir}: was fine-tuned from {source}, not {run_dir}; resume it with --run {source}")
+    check_finetune_source(out_dir, run_dir)
+    _, made_from = finetune_source(out_dir)
     have = run_psf_fingerprint(out_dir)
     if have != measured.fingerprint:
         same = made_from is not None and Path(made_from).resolve() == Path(psf_dir).resolve()
@@ -135,7 +145,8 @@ def finetune(run_dir: str | Path, psf_dir: str | Path, out_dir: str | Path, *, o
     ``train.lr=1e-4``); the optics keys must not change. ``resume``: continue the interrupted (or
     extend the finished) fine-tuning in ``out_dir``, made from the same run and the same measured
     PSFs (both checked first). Returns the summary written to ``finetune.json``: validation
-    PSNR/SSIM/SAM with the measured PSFs before and after.
+    PSNR/SSIM/SAM with the measured PSFs before and after; a resume of a fine-tuning already finished at its
+    epochs returns the loop's record (``already_finished``, ``step``, ``epoch``) and writes nothing.
     """
     run_dir, out_dir = resolve_run(run_dir), Path(out_dir)  # run_dir may be pretrained:NAME
     if out_dir.resolve() == run_dir.resolve():
@@ -172,6 +183,7 @@ def _finetune(run_dir: Path, psf_dir, out_dir: Path, overrides, pitch_um, progre
     check_finetune_overrides(overrides)
     if resume:
         check_finetune_resume(out_dir)
+        check_finetune_source(out_dir, run_dir)
     else:
         again = (", or continue the fine-tuning there with --resume" if (out_dir / MEASURED_PSF_FILE).is_file() else "")
         check_run_dir(out_dir, False, f"fine-tuning writes a new run folder: choose another --out{again}")
@@ -194,6 +206,8 @@ def _finetune(run_dir: Path, psf_dir, out_dir: Path, overrides, pitch_um, progre
 
     fitted = fit(task, opts, out_dir, resume, then=then)
     if "stopped_at_step" in fitted:  # an interruption simulated by a test: no summary yet
+        return fitted
+    if fitted.get("already_finished"):  # nothing trained: finetune.json stays the record of what was (its epochs)
         return fitted
     records = MetricsLog(Path(out_dir) / "metrics.jsonl").read()
     vals = [r for r in records if "val_psnr" in r and not r.get("final")]
