@@ -1083,7 +1083,8 @@ class Config:
 def load_config(path: str | Path | None = None, overrides: Sequence[str] = (), cls: type = Config,
                 empty: str | None = None) -> Any:
     """Load ``path`` (YAML) over the defaults, apply dotted ``key=value`` overrides, validate.
-    ``empty``: a file without settings (empty, or only comments) is a :class:`ConfigError` saying
+    ``empty``: a file without settings (empty, only comments, ``{}``, or sections with nothing in them) is a
+    :class:`ConfigError` saying
     ``"PATH: empty config (no settings); " + empty`` instead of the built-in defaults (e.g. a run's
     config.yaml, which training always writes in full)."""
     if isinstance(overrides, (str, bytes)):  # iterated, a string was its characters: "override 't' must look like …"
@@ -1102,7 +1103,8 @@ def load_config(path: str | Path | None = None, overrides: Sequence[str] = (), c
             raise ConfigError(f"{path}: {exc}; YAML keeps only the last, so remove one") from None
         except yaml.YAMLError as exc:
             raise ConfigError(yaml_error_text(path, text, exc)) from None
-        if loaded is None:
+        # no settings: an empty file, only comments, "{}", or sections with nothing in them ("camera:" alone)
+        if loaded is None or (isinstance(loaded, dict) and all(v is None or v == {} for v in loaded.values())):
             if empty is not None:
                 raise ConfigError(f"{path}: empty config (no settings); {empty}")
             loaded = {}

@@ -156,6 +156,22 @@ def test_an_empty_run_config_is_refused_with_the_callers_words(tmp_path):
     assert load_config(path) == Config()  # without `empty`: the defaults
 
 
+@pytest.mark.parametrize("text", ["{}\n", "camera:\n", "camera:\ntrain: {}\n"])
+def test_a_config_of_empty_braces_or_empty_sections_is_an_empty_config(tmp_path, text):
+    """`--config FILE` holding `{}` or `camera:` alone (a section whose settings were not indented under it) was the
+    built-in paper camera, silently, where an empty or comment-only file is refused (a helper's hunt, session 71).
+    A section with settings beside an empty one is still read."""
+    from hsicam.cli import config_from_args
+
+    path = tmp_path / "c.yaml"
+    path.write_text(text)
+    with pytest.raises(ConfigError) as exc:
+        config_from_args(path)
+    assert str(exc.value).startswith(f"{path}: empty config (no settings); give a preset")
+    path.write_text(("" if text.startswith("{}") else text) + "data: {synthetic_n: 7}\n")
+    assert config_from_args(path).data.synthetic_n == 7
+
+
 # --------------------------------------------------------------------------------------------
 # config.py: what a resumed run may change (RUN_IDENTITY_KEYS) and what a training is (RUNTIME_ONLY_KEYS)
 # --------------------------------------------------------------------------------------------
