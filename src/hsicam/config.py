@@ -1041,8 +1041,11 @@ class Config:
             # the step's filters are fitted per CFA phase: a CASSI camera has no such code (found
             # only after training, as a traceback, before session 23); SD-CASSI skips the step anyway
             # (its scene grid is not the sensor's: CameraSystem.consistency_on)
+            # (the camera registry cannot be asked from here: hsicam.cameras imports this module)
+            builtin = self.camera.kind == "dd_cassi"
+            typo = "" if builtin else " (not one of the built-in camera kinds doe, dd_cassi, sd_cassi: a typo?)"
             raise ConfigError(f"model.consistency.kind=linear needs the DOE camera's per-band sensor code "
-                              f"(camera.kind=doe), not camera.kind={self.camera.kind}; use "
+                              f"(camera.kind=doe), not camera.kind={self.camera.kind}{typo}; use "
                               "model.consistency.kind=landweber, or model.consistency.iterations=0")
         if (c.kind == "linear" and c.iterations > 0 and self.camera.kind == "doe" and cfa.enabled
                 and c.window_px < cfa.period):
