@@ -114,8 +114,7 @@ def test_a_damaged_filter_file_is_refitted_by_the_resume_it_names(linear_run, tm
     run = shutil.copytree(linear_run, tmp_path / "run")
     path = run / LINEAR_STEP_FILE
     path.write_bytes(path.read_bytes()[:300])
-    with pytest.raises(InputError, match=rf"corrupt or unreadable .*; resume the run to fit it again: hsicam train "
-                                         rf"--out {run} --resume$"):
+    with pytest.raises(InputError, match=rf"corrupt or unreadable .*; refit it: hsicam train --out {run} --resume$"):
         load_run(run)
     _, model = load_run(run, overrides=("model.consistency.kind=landweber",))  # without the step: loads
     assert model.linear_step is None
@@ -274,3 +273,20 @@ def test_a_run_without_its_filters_is_named_with_what_to_do(cache_env, linear_ru
     assert_clean_error(run_cli_in_process("evaluate", "--run", str(finished), "--out", str(out)),
                        f"fit it: hsicam train --out {finished} --resume --set model.consistency.kind=linear")
     assert not out.exists()
+
+
+def test_a_damaged_filter_file_of_a_copied_camera_names_no_resume_it_cannot_do(tmp_path, capsys):
+    """A copied camera (`hsicam pretrained copy`: weights, no checkpoint) whose linear_step.safetensors was cut short
+    advised "hsicam train --out COPY --resume", which then failed with "no checkpoint to resume" (a helper's hunt,
+    session 71); it says to copy the camera again."""
+    from hsicam.runs.folder import load_run
+
+    copy = tmp_path / "copy"
+    assert main(["pretrained", "copy", "standard", str(copy)]) == 0
+    path = copy / LINEAR_STEP_FILE
+    path.write_bytes(path.read_bytes()[:1000])
+    with pytest.raises(InputError) as exc:
+        load_run(copy)
+    assert str(exc.value).startswith(f"{path}: corrupt or unreadable safetensors file")
+    assert str(exc.value).endswith("; the run has no checkpoint to refit the filters from: copy the run folder again "
+                                   "from its source, or train it again")

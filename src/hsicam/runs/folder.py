@@ -103,8 +103,8 @@ def load_run(run_dir: str | Path, device: torch.device | str = "cpu", overrides:
             model.linear_step = load_linear_step(run_dir / LINEAR_STEP_FILE, len(model.bands),
                                                  int(getattr(model.camera, "code_period", 1)))
         except InputError as exc:
-            if uses:  # a resume refits a damaged file (runs.linear_step.stale_reason)
-                raise InputError(f"{exc}; resume the run to fit it again: hsicam train --out {run_dir} --resume") from None
+            if uses:  # a resume refits a damaged file (runs.linear_step.stale_reason), where there is one to resume
+                raise InputError(f"{exc}; {_refit_damaged_step_advice(run_dir)}") from None
             # a run reconstructed without the step (e.g. --set model.consistency.kind=landweber) does not need it
             log.warning("%s; not used (model.consistency.kind %s)", exc, cfg.model.consistency.kind)
         if model.linear_step is not None:
@@ -218,6 +218,20 @@ def linear_step_problem(run_dir: Path, consistency) -> str | None:
     sets = [f"model.consistency.{k}={getattr(consistency, k)}" for k in ("kind", "iterations", "window_px")
             if own is None or getattr(own, k) != getattr(consistency, k)]
     return f"{why}; refit it: {refit_command(run_dir, sets)}"
+
+
+def _refit_damaged_step_advice(run_dir: Path) -> str:
+    """How to replace a run's damaged linear-step file: refit it by resuming the run (or its fine-tuning); a copied
+    camera (no checkpoint) or a shipped one has nothing to resume ("hsicam train --out RUN --resume" then failed with
+    "no checkpoint to resume")."""
+    from hsicam.runs.checkpoint import CheckpointManager
+    from hsicam.runs.pretrained import is_pretrained_path
+
+    if is_pretrained_path(run_dir):
+        return "a shipped camera's files are fixed: install hsicam again"
+    if CheckpointManager(run_dir).manifest() is None:
+        return "the run has no checkpoint to refit the filters from: copy the run folder again from its source, or train it again"
+    return f"refit it: {refit_command(run_dir)}"
 
 
 def refit_command(run_dir: Path, sets: list[str] | tuple[str, ...] = ()) -> str:
