@@ -397,6 +397,32 @@ def test_npy_without_bands_warns_once_per_file_of_the_grid_it_assumes(tmp_path, 
         f"{paths[1]}: the file carries no wavelengths and none were given for it; assuming one band at 550 nm"]
 
 
+def test_npy_stored_bands_last_is_named_with_the_move(tmp_path, caplog):
+    """A (height, width, bands) .npy was read as (bands, height, width) with only the assumed grid said (40 "bands"
+    for a 40×48×31 cube: a helper's hunt, session 71); the warning, and the refusal of a given grid that matches
+    its last axis, now say how to move the bands first. A cube whose last axis is not its shortest: not said."""
+    hwc = tmp_path / "hwc.npy"
+    np.save(hwc, np.random.default_rng(1).random((40, 48, 31)).astype(np.float32))
+    move = "np.save(path, np.moveaxis(cube, -1, 0))"
+    with caplog.at_level(logging.WARNING, logger="hsicam"):
+        read_cube(hwc)
+    [msg] = [r.getMessage() for r in caplog.records]
+    assert msg == (f"{hwc}: the file carries no wavelengths and none were given for it; assuming 40 bands evenly "
+                   f"spaced over 400-700 nm; its last axis, the shortest, has 31: a cube stored bands last (height, "
+                   f"width, bands) is {move}")
+    with pytest.raises(InputError) as exc:
+        read_npy(hwc, bands=Bands.paper())
+    assert str(exc.value) == (f"{hwc}: the cube has 40 bands (axis 0 of a (bands, height, width) array) but the band "
+                              f"grid given for it has 31; its last axis has 31: a cube stored bands last (height, "
+                              f"width, bands) is {move}")
+    chw = tmp_path / "chw.npy"
+    np.save(chw, np.random.default_rng(1).random((31, 20, 24)).astype(np.float32))
+    caplog.clear()
+    with caplog.at_level(logging.WARNING, logger="hsicam"):
+        read_cube(chw)
+    assert "moveaxis" not in caplog.records[0].getMessage()
+
+
 def test_hsicam_h5_layout_written_by_hand(tmp_path):
     data = np.random.default_rng(10).random((3, H, W)).astype(np.float32)
     path = tmp_path / "mine.h5"

@@ -1550,9 +1550,11 @@ def read_npy(path: str | os.PathLike, *, bands: Bands | None = None, allow_negat
         raise InputError(f"{p}: expected a 3-D array (bands, height, width), got {len(shape)} dimensions {shape}")
     if dtype.hasobject:
         raise InputError(f"{p}: the array holds Python objects ({dtype}); a cube holds numbers (pickles are never loaded)")
+    last = (f"; its last axis has {shape[-1]}: a cube stored bands last (height, width, bands) is "
+            "np.save(path, np.moveaxis(cube, -1, 0))")
     if bands is not None and len(bands) != shape[0]:
         raise InputError(f"{p}: the cube has {shape[0]} bands (axis 0 of a (bands, height, width) array) but "
-                         f"the band grid given for it has {len(bands)}")
+                         f"the band grid given for it has {len(bands)}" + (last if shape[-1] == len(bands) else ""))
     check_memory_budget(p, shape, dtype, what="NPY array", budget_mb=memory_budget_mb)
     with _reading(p, "NPY"):
         arr = np.load(p, mmap_mode="r", allow_pickle=False)
@@ -1566,6 +1568,8 @@ def read_npy(path: str | os.PathLike, *, bands: Bands | None = None, allow_negat
             "assumed_grid": describe_400_700(arr.shape[0]) if assumed else None}
     cube = _finish(p, arr, bands, meta, allow_negative)
     text = f"{p}: the file carries no wavelengths and none were given for it; assuming {meta['assumed_grid']}"
+    if shape[-1] < min(shape[0], shape[1]):  # the shortest axis last: more likely (height, width, bands)
+        text += last.replace("its last axis has", "its last axis, the shortest, has")
     if assumed and text not in _NOTED:  # once per file: a dataset reads its scenes again and again
         _NOTED.add(text)
         log.warning("%s", text)
