@@ -16,7 +16,7 @@ from hsicam.errors import InputError
 from hsicam.io import mark_complete
 from hsicam.report.html import build_report
 from hsicam.spectral import Bands
-from report_files import MEAN, evaluation, folder_with
+from report_files import MEAN, evaluation, experiment, folder_with
 
 B3 = [500.0, 550.0, 600.0]
 
@@ -156,3 +156,25 @@ def test_report_cell_of_a_boolean_score_is_not_a_number(tmp_path, value, text):
     d = folder_with(tmp_path, "results.json", evaluation(scenes=[{"name": "a", **{**MEAN, "psnr": value}}]))
     page = build_report(d).read_text(encoding="utf-8")
     assert f"<tr><td>a</td><td>{text}</td>" in page
+
+
+def test_an_experiment_report_orders_its_cameras_as_its_table_and_says_which_figures_are_missing(tmp_path,
+                                                                                                  monkeypatch):
+    """The camera sections of an experiment came in sorted-name order (period-12, period-15, period-3, …), each headed
+    by its absolute path, and a figure experiment.json lists but the folder lacks was left out without a word (a
+    helper's hunt, session 71). Now the table's order (then names with their numbers as numbers), each headed
+    runs/NAME, and a note names the missing figure."""
+    import hsicam.report.html as report
+
+    rows = [{"method": f"period-{p}", **MEAN} for p in (3, 6, 12)]
+    figures = [{"file": "comparison_a.png", "scene": "a", "role": "median", "methods": ["period-3"]}]
+    d = folder_with(tmp_path, "experiment.json", experiment(experiment="cfa-period", rows=rows, figures=figures))
+    for name in ("period-12", "period-3", "period-6", "extra-10", "extra-9"):
+        (d / "runs" / name).mkdir(parents=True)
+        (d / "runs" / name / "model.safetensors").write_bytes(b"")
+    seen = []
+    monkeypatch.setattr(report, "_camera_section", lambda run, out, prefix="", label=None: seen.append(label) or "")
+    page = build_report(d).read_text(encoding="utf-8")
+    assert seen == ["runs/period-3", "runs/period-6", "runs/period-12", "runs/extra-9", "runs/extra-10"]
+    assert ("<p class='note'>figures listed in experiment.json but missing from the folder: comparison_a.png</p>"
+            in page)

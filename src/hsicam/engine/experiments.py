@@ -202,7 +202,9 @@ def ensure_trained(run: Path, preset, overrides: tuple[str, ...] = ()) -> str:
         log.info("%s: resuming", run)
         train(cfg, run, resume=True)
         return "resumed"
-    log.info("%s: training (%s)", run, preset if isinstance(preset, str) else "given config")
+    what = (f"camera {cfg.camera.kind}, network {cfg.model.kind}, {cfg.train.epochs} epochs"
+            + ("" if isinstance(preset, Config) else f", from {preset}"))  # ("given config" said nothing)
+    log.info("%s: training (%s)", run, what)
     train(cfg, run)
     return "trained"
 

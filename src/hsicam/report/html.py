@@ -11,6 +11,7 @@ from __future__ import annotations
 import html
 import json
 import math
+import re
 import urllib.parse
 from pathlib import Path
 
@@ -346,6 +347,10 @@ def _experiment_sections(folder: Path, out: Path, exp: dict) -> list[str]:
         missing = [r["method"] for r in exp["rows"] if "missing" in r]
         if missing:
             parts.append(f"<p class='note'>not available in this installation: {html.escape(', '.join(missing))}</p>")
+        gone = [str(f["file"]) for f in exp.get("figures") or () if not (folder / f["file"]).is_file()]
+        if gone:  # listed, but not beside experiment.json (moved or deleted): said, not silently left out
+            parts.append(f"<p class='note'>figures listed in experiment.json but missing from the folder: "
+                         f"{html.escape(', '.join(gone))}</p>")
         for f in exp.get("figures") or ():  # drawn by the experiment beside its experiment.json (the arrays are not kept)
             if (folder / f["file"]).is_file():
                 parts.append(_img(f"../{f['file']}", f"{f['scene']} ({f['role']} scene of {f['methods'][0]} by PSNR): "
@@ -353,10 +358,18 @@ def _experiment_sections(folder: Path, out: Path, exp: dict) -> list[str]:
                                   "not exposed per image), titled with its PSNR / SSIM on this scene, and each "
                                   "method's mean |error| over bands on one colour scale"))
     parts.append(_conventions(exp["conventions"]))
-    runs = sorted(p for p in (folder / "runs").iterdir() if (p / "model.safetensors").is_file()) if (folder / "runs").is_dir() else []
+    runs = [p for p in (folder / "runs").iterdir() if (p / "model.safetensors").is_file()] if (folder / "runs").is_dir() else []
+    # in the table's order where a run is a row's, then by name with its numbers as numbers (period-3 before period-12)
+    order = {str(r.get("method")): i for i, r in enumerate(exp["rows"])}
+    runs.sort(key=lambda p: (order.get(p.name, len(order)), _natural_key(p.name)))
     for i, run in enumerate(runs):
-        parts.append(_camera_section(run, out, prefix=f"{i:02d}_"))
+        parts.append(_camera_section(run, out, prefix=f"{i:02d}_", label=f"runs/{run.name}"))
     return parts
+
+
+def _natural_key(name: str) -> list:
+    """A sort key that orders the numbers within ``name`` by value: period-3, period-12."""
+    return [(0, int(t), "") if t.isdigit() else (1, 0, t) for t in re.split(r"(\d+)", name) if t]
 
 
 # -- figures ------------------------------------------------------------------------------------
