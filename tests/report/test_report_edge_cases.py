@@ -252,6 +252,35 @@ def test_psf_files_read_back_hold_the_psf_its_energy_and_the_exact_heights(tmp_p
     np.testing.assert_array_equal(heights, cam.optics.doe.heights().detach().double().numpy())
 
 
+def test_psf_of_a_camera_with_height_noise_is_one_element_per_seed(tmp_path):
+    """`hsicam psf --set camera.doe.sigma_height_nm=50` drew the fabrication noise from torch's global generator:
+    two runs wrote different PSFs (and fingerprints for `finetune --psf-dir`), a helper's hunt, session 71. Now
+    --seed (default 0) draws it: the same seed, the same files; another, another element; doe_height_m.npy holds
+    the nominal heights plus σ times the seed's normal draws (recomputed here)."""
+    import torch
+
+    from hsicam.cameras import build_camera
+    from hsicam.cli import main
+    from hsicam.config import load_config
+
+    noise = ["--set", "camera.doe.sigma_height_nm=50"]
+    for name, seed in (("a", []), ("b", []), ("c", ["--seed", "3"])):
+        assert main(["psf", "--config", "tiny", *noise, "--out", str(tmp_path / name), *seed]) == 0
+    read = lambda name, f: np.load(tmp_path / name / f)  # noqa: E731
+    np.testing.assert_array_equal(read("a", "psf.npy"), read("b", "psf.npy"))
+    assert not np.array_equal(read("a", "psf.npy"), read("c", "psf.npy"))
+    doe = build_camera(load_config("tiny", ["camera.doe.sigma_height_nm=50"])).optics.doe
+    with torch.no_grad():
+        nominal = doe.height_m.double().numpy()  # (the tiny DOE: no wrap, clamp or levels)
+        draws = torch.randn(doe.height_m.shape, generator=torch.Generator().manual_seed(3), dtype=doe.height_m.dtype)
+    # (float32 heights: 1e-6 relative or 1e-13 m, where another draw moves them by ~5e-8 m)
+    np.testing.assert_allclose(read("c", "doe_height_m.npy"), nominal + 50e-9 * draws.double().numpy(), rtol=1e-6,
+                               atol=1e-13)
+    assert json.loads((tmp_path / "c" / "psf.json").read_text())["height_noise_seed"] == 3
+    assert main(["psf", "--config", "tiny", "--out", str(tmp_path / "d")]) == 0
+    assert "height_noise_seed" not in json.loads((tmp_path / "d" / "psf.json").read_text())  # no noise: no seed
+
+
 def test_the_camera_figures_draw_a_psf_only_when_asked(tmp_path, tiny_camera):
     from hsicam.report.camera import write_optics_figures
 

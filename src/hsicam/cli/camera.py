@@ -35,6 +35,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--out", required=True, metavar="DIR", help="output folder")
     add_run_arg(p, "the PSFs of this trained run's camera (its trained DOE; a fine-tuned run's measured PSFs) "
                    "instead of --config's untrained design", required=False)
+    from hsicam.cli.args import seed_arg
+    p.add_argument("--seed", type=seed_arg(), default=0,
+                   help="seed of torch's generator for the DOE height noise (camera.doe.sigma_height_nm > 0: one "
+                        "fabricated element per seed), an integer in [0, 2^32 - 1] (default 0)")
     p.set_defaults(func=cmd_psf)
 
     p = sub.add_parser("simulate", help="simulate the sensor image of a scene through the camera")
@@ -114,6 +118,8 @@ def camera_from_args(args: argparse.Namespace, extra_overrides: tuple[str, ...] 
 
 
 def cmd_psf(args: argparse.Namespace) -> int:
+    import torch
+
     from hsicam.report.camera import write_psf_outputs
     from hsicam.runs.pretrained import run_label
 
@@ -135,8 +141,9 @@ def cmd_psf(args: argparse.Namespace) -> int:
     if camera.kind not in ("doe", "measured_psf"):
         raise InputError(f"hsicam psf needs a DOE camera (camera.kind=doe), not camera.kind={camera.kind}")
     with atomic_output(out, overwrite=True, marker={"command": "psf"}) as tmp:
-        info = write_psf_outputs(camera, tmp)
-        write_json(tmp / "psf.json", {**info, "source": source})
+        info = write_psf_outputs(camera, tmp, torch.Generator().manual_seed(args.seed))  # (was the global RNG's draw)
+        noisy = camera.kind == "doe" and camera.optics.doe.sigma_height_m > 0
+        write_json(tmp / "psf.json", {**info, "source": source, **({"height_noise_seed": args.seed} if noisy else {})})
         with atomic_open(tmp / "config.yaml", encoding="utf-8") as fh:
             fh.write(dump_yaml(cfg))
     e = np.asarray(info["energy_in_kernel"])

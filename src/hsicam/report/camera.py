@@ -188,15 +188,15 @@ def plot_doe_heights(height_m: np.ndarray, aperture: np.ndarray, cell_um: float,
     save_figure(fig, path)
 
 
-def write_psf_outputs(camera, out: Path) -> dict:
+def write_psf_outputs(camera, out: Path, generator: torch.Generator | None = None) -> dict:
     """psf.npy (C, K, K float32), psf.json (geometry, model, energy per band), psf.png (montage),
     and what is needed to recompute the PSFs independently: doe_height_m.npy (heights per DOE
-    cell, m, (n, n) float64, exactly those used, fabrication noise included when enabled) and
-    aperture.npy (transmission per pupil cell, (n·q, n·q) float64, area fraction in the circle).
-    A measured-PSF camera writes the PSFs it images with."""
+    cell, m, (n, n) float64, exactly those used, fabrication noise included when enabled, drawn from
+    ``generator``: the same element for the same seed) and aperture.npy (transmission per pupil cell,
+    (n·q, n·q) float64, area fraction in the circle). A measured-PSF camera writes the PSFs it images with."""
     optics = camera.optics
     with torch.no_grad():
-        heights = optics.doe.heights()
+        heights = optics.doe.heights(generator)
         res = camera.psf_result() if camera.kind == "measured_psf" else optics.psf_from_pupil(optics.expand_cells(heights))
     psf = res.psf.float().cpu().numpy()
     desc = optics.describe()
