@@ -307,6 +307,31 @@ def test_export_does_not_cite_a_study_of_a_finetuned_run(fab_run, finetuned_run,
     assert tol["studied"] is None and "not cited" in tol["note"] and "fine-tuned on measured PSFs" in tol["note"]
 
 
+def test_export_of_a_finetuned_run_cites_a_study_of_its_design_run(fab_run, finetuned_run, tmp_path, monkeypatch):
+    """`export-optics --run FT --tolerance STUDY` where STUDY is the design run's own study (what the refusal and the
+    note recommend) was refused as "a tolerance study of it perturbed the simulated design optics … export the
+    design run … and cite its study" (a helper's hunt, session 71). Now it is cited, checked against the design
+    run's weights and said to be its; a study of the fine-tuned run itself is refused as before; the cited path is
+    absolute."""
+    import os
+
+    from hsicam.export.tolerance import TOLERANCE_FORMAT, run_identity
+
+    study = tmp_path / "design_study" / "tolerance.json"
+    study.parent.mkdir()
+    study.write_text(json.dumps({"format": TOLERANCE_FORMAT, "run": run_identity(fab_run), "nominal": {"psnr": 31.5},
+                                 "summary": {}}))
+    monkeypatch.chdir(tmp_path)
+    rel = os.path.relpath(study, tmp_path)
+    res = run_cli_in_process("export-optics", "--run", str(finetuned_run), "--out", str(tmp_path / "o"),
+                             "--tolerance", rel)
+    assert res.returncode == 0, res.stderr
+    tol = json.loads((tmp_path / "o" / "spec.json").read_text())["tolerances"]
+    assert tol["studied"]["run_checked"] is True and tol["studied"]["nominal_psnr_db"] == 31.5
+    assert tol["studied"]["source"] == str(study) and tol["studied"]["of_design_run"] == str(fab_run)
+    assert tol["note"].startswith(f"a study of the design run it was fine-tuned from ({fab_run}), whose optics")
+
+
 def test_export_of_a_finetuned_run_says_so_and_points_at_the_design_runs_study(fab_run, finetuned_run, tmp_path):
     """Probe 26 #2: the export of a fine-tuned run (no study) advised `hsicam tolerance --run RUN`,
     which tolerance refuses, and spec.json never said the run was fine-tuned."""

@@ -61,6 +61,25 @@ def default_levels(cfg) -> int:
     return int(lv)
 
 
+def _design_run_study(path: Path, source: str) -> dict[str, Any] | None:
+    """The ``studied`` entry for the tolerance study at ``path`` when it is a checked study of the design run
+    ``source`` (finetune.json's ``source_run``: a folder or ``pretrained:NAME``) that a fine-tuned run was made from,
+    else None (a study of another run, of the fine-tuned run itself, one that records no run, or a design run that
+    is no longer there)."""
+    from hsicam.runs.pretrained import resolve_run
+
+    try:
+        design = resolve_run(source)
+        if not (design / "model.safetensors").is_file():
+            return None
+        studied = read_tolerance_study(path, design)
+    except InputError:
+        return None
+    if not studied.get("run_checked"):
+        return None
+    return {**studied, "of_design_run": source}
+
+
 def _tolerances(run_dir: Path, cfg, tolerance: str | Path | None) -> dict[str, Any]:
     t = cfg.train
     out: dict[str, Any] = {
@@ -74,6 +93,13 @@ def _tolerances(run_dir: Path, cfg, tolerance: str | Path | None) -> dict[str, A
         cand = cand / "tolerance.json"
     source = finetuned_from(run_dir)
     design = f"the design run it was fine-tuned from ({source})" if source else "the design run it was fine-tuned from"
+    if source and cand.is_file():
+        design_study = _design_run_study(cand, source)  # the study the note below recommends: cited
+        if design_study is not None:
+            out["studied"] = design_study
+            out["note"] = (f"a study of {design}, whose optics these are (the network was fine-tuned on measured "
+                           "PSFs; the study perturbed the design optics)")
+            return out
     if source is not None and cand.is_file():
         # a study of a fine-tuned run perturbed the design optics, not the measured PSFs it images
         # with (`hsicam tolerance` refuses such a run now; an older study may exist)

@@ -83,7 +83,9 @@ def read_tolerance_study(path: str | Path, run_dir: str | Path) -> dict[str, Any
     psnr = nominal.get("psnr") if isinstance(nominal, dict) else None
     if isinstance(psnr, bool) or not isinstance(psnr, (int, float)) or not math.isfinite(psnr):
         raise InputError(f"{path}: not a complete hsicam tolerance study (no finite nominal PSNR); {hint}")
-    studied: dict[str, Any] = {"source": str(path), "nominal_psnr_db": float(psnr), "summary": data.get("summary")}
+    # the study's file as an absolute path: spec.json is read elsewhere (a relative one meant nothing once moved)
+    studied: dict[str, Any] = {"source": str(path.resolve()), "nominal_psnr_db": float(psnr),
+                               "summary": data.get("summary")}
     recorded = data.get("run")
     sha = recorded.get("weights_sha256") if isinstance(recorded, dict) else None
     if not isinstance(sha, str) or not sha:
