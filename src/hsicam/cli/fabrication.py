@@ -203,7 +203,10 @@ def cmd_finetune(args: argparse.Namespace) -> int:
     before = s["before"].get("psnr")
     after = s["best_val_psnr"]
     e = s["energy_in_kernel"]
-    print(f"fine-tuned {s['steps']} steps with the measured PSFs (energy in kernel {min(e):.3f}..{max(e):.3f}): "
+    # (the share of each measured image's light the kernel keeps: not `hsicam psf`'s "energy in kernel", the light
+    # of the simulated PSF within the kernel of all that enters the aperture)
+    print(f"fine-tuned {s['steps']} steps with the measured PSFs (kernel keeps {min(e):.3f}..{max(e):.3f} of each "
+          f"measured image's light): "
           f"val PSNR {before if before is None else f'{before:.2f}'} -> {after if after is None else f'{after:.2f}'} dB "
           f"(best epoch {s['best_epoch']}) -> {args.out}")
     return 0
