@@ -178,3 +178,13 @@ def test_an_experiment_report_orders_its_cameras_as_its_table_and_says_which_fig
     assert seen == ["runs/period-3", "runs/period-6", "runs/period-12", "runs/extra-9", "runs/extra-10"]
     assert ("<p class='note'>figures listed in experiment.json but missing from the folder: comparison_a.png</p>"
             in page)
+
+
+def test_report_reads_a_results_json_saved_with_a_byte_order_mark(tmp_path):
+    """A results.json edited and saved by an editor that writes a UTF-8 byte-order mark was refused with Python's
+    "Unexpected UTF-8 BOM (decode using utf-8-sig)", advice for a programmer (a helper's hunt, session 71); the
+    mark is skipped, as RFC 8259 lets a reader do."""
+    d = folder_with(tmp_path, "results.json", evaluation())
+    (d / "results.json").write_bytes(b"\xef\xbb\xbf" + (d / "results.json").read_bytes())
+    page = build_report(d).read_text(encoding="utf-8")
+    assert "<h2>Results" in page and "<tr><td>a</td><td>30.00</td>" in page

@@ -82,7 +82,7 @@ def build_report(folder: str | Path) -> Path:
 
 def _read_json(path: Path) -> dict:
     try:
-        data = json.loads(path.read_text(encoding="utf-8"))
+        data = json.loads(path.read_text(encoding="utf-8-sig"))  # (a byte-order mark, as some editors save: read)
     except UnicodeDecodeError:
         raise InputError(f"{path}: corrupt {path.name} (not UTF-8 text)") from None
     except json.JSONDecodeError as exc:
