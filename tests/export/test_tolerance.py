@@ -453,6 +453,12 @@ def test_sweep_limits_are_the_lens_and_the_aperture_diameter(tiny_camera):
     with pytest.raises(InputError, match=r"^--shift-cells 10.25: a DOE shift of 10.25 cells exceeds the aperture's "
                        r"diameter \(10 cells"):  # the option named (session 59: it was not)
         check_sweeps(ToleranceSpec(sensor_distance_um=(), shift_cells=(10.25,), levels=()), optics)
+    # a sensor distance whose metres round: 0.035 m − 35000 µm left 7e-18 m, and the sensor on the lens was refused
+    # as a defocus needing pupil_oversample >= 1e17 (a helper's hunt, session 71)
+    optics.sensor_distance_m = 0.035
+    assert optics.sensor_distance_m + (-35000.0) * 1e-6 > 0  # the rounding itself
+    with pytest.raises(InputError, match=r"Δz = -35000 µm moves the sensor onto the lens \(the sensor sits 35000 µm"):
+        check_sweeps(ToleranceSpec(sensor_distance_um=(-35000.0,), shift_cells=(), levels=()), optics)
 
 
 def test_height_draws_up_to_the_seed_stride_are_allowed():
