@@ -58,11 +58,22 @@ def test_report_table_shows_a_score_without_value_as_n_a(tmp_path):
     text = build_report(_evaluation(tmp_path, data)).read_text(encoding="utf-8")
     assert "NaN" in (tmp_path / "ev" / "results.json").read_text()  # as json.dump writes a float('nan')
     cells = PageParts(text).cells
-    cols = 7  # scene, PSNR, SSIM, SAM, ERGAS, PSNR MST, runtime
+    cols = 5  # scene, PSNR, SSIM, SAM, runtime: ERGAS and PSNR MST, which no row records, are left out
     rows = [cells[i : i + cols] for i in range(0, len(cells), cols)]
     assert [r[0] for r in rows] == ["a", "dark", "mean"]
     assert [r[3] for r in rows] == ["5.00", "n/a", "5.00"]  # SAM
-    assert [r[6] for r in rows] == ["1.500", "n/a", "1.500"]  # runtime (s)
+    assert [r[4] for r in rows] == ["1.500", "n/a", "1.500"]  # runtime (s)
+    assert "<th>ERGAS</th>" not in text and "<th>runtime (s)</th>" in text
+
+
+def test_report_table_shows_a_score_one_row_lacks_as_n_a(tmp_path):
+    """A results.json edited so that one scene has no "psnr" key drew an empty cell (a helper's hunt, session 71):
+    now "n/a", as a score without value; the column stays, since other rows have it."""
+    scenes = [{"name": "a", **MEAN}, {"name": "b", "ssim": 0.8, "sam": 4.0}]
+    data = {"method": "m", "scenes": scenes, "mean": MEAN, "conventions": {}}
+    cells = PageParts(build_report(_evaluation(tmp_path, data)).read_text(encoding="utf-8")).cells
+    rows = [cells[i : i + 4] for i in range(0, len(cells), 4)]  # scene, PSNR, SSIM, SAM
+    assert rows == [["a", "30.00", "0.9000", "5.00"], ["b", "n/a", "0.8000", "4.00"], ["mean", "30.00", "0.9000", "5.00"]]
 
 
 def test_report_writes_any_json_value_of_a_hand_edited_file_as_text(tmp_path):

@@ -179,13 +179,15 @@ def _cell(v, fmt: str) -> str:
 
 
 def _table(rows: list[dict], cols: list[tuple[str, str, str]]) -> str:
-    """cols: (key, header, format)."""
+    """cols: (key, header, format). A column that no row has is left out (results of an older hsicam record fewer
+    scores); a score one row lacks is "n/a" (an edited file), not an empty cell."""
+    cols = [c for i, c in enumerate(cols) if i == 0 or any(c[0] in r for r in rows)]
     head = "".join(f"<th>{html.escape(h)}</th>" for _, h, _ in cols)
     body = []
     for r in rows:
         cells = []
-        for key, _, fmt in cols:
-            cells.append(f"<td>{html.escape(_cell(r.get(key, ''), fmt))}</td>")
+        for i, (key, _, fmt) in enumerate(cols):
+            cells.append(f"<td>{html.escape(_cell(r.get(key, '' if i == 0 else None), fmt))}</td>")
         body.append("<tr>" + "".join(cells) + "</tr>")
     return f"<table><tr>{head}</tr>{''.join(body)}</table>"
 
