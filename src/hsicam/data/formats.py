@@ -1098,9 +1098,12 @@ def _envi_layout(hdr: Path, h: dict[str, str]) -> _EnviLayout:
         raise InputError(f"{hdr}: ENVI byte order must be 0 or 1, got {order}")
     dtype = np.dtype(_ENVI_DTYPES[dtype_code]).newbyteorder(">" if order == 1 else "<")
     interleave = h.get("interleave", "bsq").strip().lower()
-    if "interleave" not in h and nbands > 1 and min(samples, lines) > 1:  # (one band, row or column: any order is one)
-        log.warning("%s: the header has no 'interleave'; reading the data as bsq (band after band, ENVI's and GDAL's "
-                    "default): if the images look scrambled, add 'interleave = bil' or 'interleave = bip'", hdr)
+    if "interleave" not in h and nbands > 1 and samples * lines > 1:  # (one band or one pixel: every order is one)
+        text = (f"{hdr}: the header has no 'interleave'; reading the data as bsq (band after band, ENVI's and GDAL's "
+                "default): if the images look scrambled, add 'interleave = bil' or 'interleave = bip'")
+        if text not in _NOTED:  # once per file: a dataset reads its scenes again and again
+            _NOTED.add(text)
+            log.warning("%s", text)
     if interleave not in _ENVI_INTERLEAVES:
         raise InputError(f"{hdr}: unknown ENVI interleave {interleave!r} (expected bsq, bil or bip)")
     if min(samples, lines, nbands) <= 0:
