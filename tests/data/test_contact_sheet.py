@@ -61,3 +61,20 @@ def test_a_one_band_cube_is_shown_with_its_spectrum_a_point_and_the_gamut_said_t
     write_cube_h5(tmp_path / "two.h5", np.concatenate([cube, cube[:, ::-1]]), two)
     [ax] = _gamut_figure(tmp_path / "two.h5", [tmp_path / "two.h5"], None, []).axes
     assert ax.get_xlabel().startswith("PC1") and not ax.texts
+
+
+def test_a_one_band_synthetic_set_with_held_out_sources_draws_no_library_panel_either(tmp_path):
+    """The same for a synthetic set of one band whose manifest names held-out sources: the reflectance library's
+    panel, on the same one-band grid, failed with the IndexError after the scene panel was left out (a review,
+    session 71)."""
+    import pytest
+
+    pytest.importorskip("colour")
+    from hsicam.data.preview import _gamut_figure
+    from hsicam.data.synthetic import generate_dataset
+
+    one = Bands.from_centers([550.0])
+    generate_dataset(tmp_path / "set", n=1, size=32, bands=one, progress=False, holdout_sources=["cie-tcs"])
+    [ax] = _gamut_figure(tmp_path / "set", sorted((tmp_path / "set").glob("scene_*.h5")), None, []).axes
+    assert [t.get_text() for t in ax.texts] == ["no spectral gamut: the data have one band (550 nm),\n"
+                                                "and a spectral shape needs two or more"]

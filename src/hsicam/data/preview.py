@@ -311,8 +311,8 @@ def _gamut_figure(path: Path, scenes: list[Path], held_dir: Path | None, held_sc
             ("training: derived (mixtures, layers, basis draws)", derived, "tab:cyan", "."),
             ("training: measured", measured, "tab:blue", "o"),
             (f"held out ({label})", held, "tab:red", "x")]))
-    if len(bands) < 2:  # every unit-norm spectrum of one band is 1: no shape to tell apart
-        panels = [p for p in panels if p[0] != "scene pixel spectra"]
+    if len(bands) < 2:  # every unit-norm spectrum of one band is 1: no shape to tell apart (the library's panel is
+        panels = []      # drawn on the same grid)
     fig = Figure(figsize=(6.2 * max(len(panels), 1), 5.0))
     if not panels:
         ax = fig.add_subplot(1, 1, 1)
