@@ -207,17 +207,26 @@ def test_finetune_resume_of_a_finished_finetuning_changes_nothing_and_says_so(fi
     session 71); now the words of `train --resume` on a finished run, exit 0, and the folder byte for byte as it was.
     A --run of another camera (the shipped 31-band one) is named as the wrong run before its bands are read against
     the PSFs (it was "no measured PSF for band(s) 430, 440, …")."""
-    ft, psf_dir = finetuned
+    ft, psf_dir = shutil.copytree(finetuned[0], tmp_path / "ft"), finetuned[1]
     capsys.readouterr()
     before = tree_snapshot(ft)
-    for epochs in ("1",):
-        assert main(["finetune", "--resume", "--run", str(run), "--psf-dir", str(psf_dir), "--out", str(ft),
-                     "--epochs", epochs]) == 0
-        out = capsys.readouterr().out
-        assert out.startswith(f"{ft}: fine-tuning already finished at step ") and out.rstrip().endswith(
-            f"nothing changed. To fine-tune on, raise --epochs: hsicam finetune --run {run} --psf-dir {psf_dir} "
-            f"--out {ft} --resume --epochs N (N > 1)"), out
-        assert tree_snapshot(ft) == before
+    assert main(["finetune", "--resume", "--run", str(run), "--psf-dir", str(psf_dir), "--out", str(ft),
+                 "--epochs", "1"]) == 0
+    out = capsys.readouterr().out
+    how = (f"To fine-tune on, raise --epochs: hsicam finetune --run {run} --psf-dir {psf_dir} --out {ft} --resume "
+           "--epochs N (N > 1)")
+    assert out.startswith(f"{ft}: fine-tuning already finished at step ") and out.rstrip().endswith(
+        f"(1 epochs); nothing changed. {how}"), out
+    assert tree_snapshot(ft) == before
+    # an inference setting given to the resume is applied and said (it printed "nothing changed": a review)
+    iterations = load_config(ft / "config.yaml").model.consistency.iterations
+    assert main(["finetune", "--resume", "--run", str(run), "--psf-dir", str(psf_dir), "--out", str(ft),
+                 "--set", f"model.consistency.iterations={iterations + 1}"]) == 0
+    out = capsys.readouterr().out
+    assert (f"model.consistency in config.yaml (iterations {iterations} → {iterations + 1}), nothing else changed. "
+            f"{how}") in out, out
+    assert load_config(ft / "config.yaml").model.consistency.iterations == iterations + 1
+    before = tree_snapshot(ft)
     line = in_process_error_line(capsys, ["finetune", "--resume", "--run", "pretrained:standard", "--psf-dir",
                                           str(psf_dir), "--out", str(ft)])
     assert line == (f"hsicam: error: {ft}: was fine-tuned from {run}, not "

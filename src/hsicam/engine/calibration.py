@@ -201,8 +201,8 @@ def _finetune(run_dir: Path, psf_dir, out_dir: Path, overrides, pitch_um, progre
     def then(summary: dict[str, Any]) -> dict[str, Any]:
         # under the run's lock: the linear consistency step's filters through the measured PSFs
         # (those of the source run were fitted through its simulated optics)
-        refresh_linear_step(out_dir, cfg.model.consistency, cfg.train.keep_weights)
-        return summary
+        changed = refresh_linear_step(out_dir, cfg.model.consistency, cfg.train.keep_weights)
+        return {**summary, "changed": changed} if changed else summary  # (a finished one's resume says them)
 
     fitted = fit(task, opts, out_dir, resume, then=then)
     if "stopped_at_step" in fitted:  # an interruption simulated by a test: no summary yet
