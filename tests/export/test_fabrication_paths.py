@@ -330,6 +330,24 @@ def test_export_of_a_finetuned_run_cites_a_study_of_its_design_run(fab_run, fine
     assert tol["studied"]["run_checked"] is True and tol["studied"]["nominal_psnr_db"] == 31.5
     assert tol["studied"]["source"] == str(study) and tol["studied"]["of_design_run"] == str(fab_run)
     assert tol["note"].startswith(f"a study of the design run it was fine-tuned from ({fab_run}), whose optics")
+    # a design run trained on since the fine-tuning (its DOE moved): its study is not of these optics (a review)
+    from safetensors.torch import load_file, save_file
+
+    # (the copy without its checkpoints: the root weights are then the kept ones, as after a finished training)
+    design = shutil.copytree(fab_run, tmp_path / "design", ignore=shutil.ignore_patterns("checkpoints*"))
+    ft = shutil.copytree(finetuned_run, tmp_path / "ft")
+    weights = load_file(design / "model.safetensors")
+    weights["camera.optics.doe.height_m"] = weights["camera.optics.doe.height_m"] + 1e-9
+    save_file(weights, design / "model.safetensors")
+    info = json.loads((ft / "finetune.json").read_text())
+    (ft / "finetune.json").write_text(json.dumps({**info, "source_run": str(design)}))
+    study.write_text(json.dumps({"format": TOLERANCE_FORMAT, "run": run_identity(design), "nominal": {"psnr": 31.5},
+                                 "summary": {}}))
+    assert_clean_error(run_cli_in_process("export-optics", "--run", str(ft), "--out", str(tmp_path / "o2"),
+                                          "--tolerance", str(study)),
+                       f"{study}: a study of {design}, whose optics (DOE heights, CFA) are no longer those {ft} was "
+                       "fine-tuned with (the design run trained on since); export without --tolerance")
+    assert not (tmp_path / "o2").exists()
 
 
 def test_export_of_a_finetuned_run_says_so_and_points_at_the_design_runs_study(fab_run, finetuned_run, tmp_path):

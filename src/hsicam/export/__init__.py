@@ -61,23 +61,43 @@ def default_levels(cfg) -> int:
     return int(lv)
 
 
-def _design_run_study(path: Path, source: str) -> dict[str, Any] | None:
-    """The ``studied`` entry for the tolerance study at ``path`` when it is a checked study of the design run
-    ``source`` (finetune.json's ``source_run``: a folder or ``pretrained:NAME``) that a fine-tuned run was made from,
-    else None (a study of another run, of the fine-tuned run itself, one that records no run, or a design run that
-    is no longer there)."""
+def _design_run_study(path: Path, source: str, run_dir: Path) -> tuple[dict[str, Any] | None, str | None]:
+    """(the ``studied`` entry, None) for the tolerance study at ``path`` when it is a checked study of the design run
+    ``source`` (finetune.json's ``source_run``: a folder or ``pretrained:NAME``) that the fine-tuned ``run_dir`` was
+    made from, and that design run's optics (DOE heights, CFA) are still the ones ``run_dir`` froze; (None, why) for a
+    study of a design run whose optics changed since (it was trained on: the study is not of these optics); (None,
+    None) otherwise (a study of another run, of the fine-tuned run itself, one that records no run, or a design run
+    that is no longer there)."""
+    from hsicam.runs.checkpoint import root_weights_path
     from hsicam.runs.pretrained import resolve_run
 
     try:
         design = resolve_run(source)
         if not (design / "model.safetensors").is_file():
-            return None
+            return None, None
         studied = read_tolerance_study(path, design)
     except InputError:
-        return None
+        return None, None
     if not studied.get("run_checked"):
-        return None
-    return {**studied, "of_design_run": source}
+        return None, None
+    if not _same_optics(root_weights_path(run_dir), root_weights_path(design)):
+        return None, (f"a study of {source}, whose optics (DOE heights, CFA) are no longer those {run_dir} was "
+                      "fine-tuned with (the design run trained on since)")
+    return {**studied, "of_design_run": source}, None
+
+
+def _same_optics(a: Path, b: Path) -> bool:
+    """Whether the weights files ``a`` and ``b`` hold the same camera tensors (``camera.*``: DOE heights, CFA)."""
+    from safetensors import SafetensorError, safe_open
+
+    try:
+        with safe_open(str(a), "pt") as fa, safe_open(str(b), "pt") as fb:
+            keys = sorted(k for k in fa.keys() if k.startswith("camera."))
+            if keys != sorted(k for k in fb.keys() if k.startswith("camera.")):
+                return False
+            return all(fa.get_tensor(k).equal(fb.get_tensor(k)) for k in keys)
+    except (OSError, SafetensorError):
+        return False
 
 
 def _tolerances(run_dir: Path, cfg, tolerance: str | Path | None) -> dict[str, Any]:
@@ -94,11 +114,17 @@ def _tolerances(run_dir: Path, cfg, tolerance: str | Path | None) -> dict[str, A
     source = finetuned_from(run_dir)
     design = f"the design run it was fine-tuned from ({source})" if source else "the design run it was fine-tuned from"
     if source and cand.is_file():
-        design_study = _design_run_study(cand, source)  # the study the note below recommends: cited
+        design_study, changed = _design_run_study(cand, source, run_dir)  # the study the note below recommends: cited
         if design_study is not None:
             out["studied"] = design_study
             out["note"] = (f"a study of {design}, whose optics these are (the network was fine-tuned on measured "
                            "PSFs; the study perturbed the design optics)")
+            return out
+        if changed is not None:
+            if tolerance is not None:
+                raise InputError(f"{cand}: {changed}; export without --tolerance")
+            log.warning("%s: not cited: %s", cand, changed)
+            out["note"] = f"{cand} not cited: {changed}"
             return out
     if source is not None and cand.is_file():
         # a study of a fine-tuned run perturbed the design optics, not the measured PSFs it images
