@@ -64,6 +64,14 @@ class Terminated(KeyboardInterrupt):
     clean-up runs (temporaries removed, no output left half-written); the CLI exits with 143 (128 + 15)."""
 
 
+def negative_radiance_error(source: object, count: int, minimum: float, advice: str = "") -> InputError:
+    """The one refusal of a cube or scene holding ``count`` negative values (the most negative ``minimum``), naming
+    ``source``: file readers (:func:`hsicam.data.cube.check_cube`, the dataset's windowed check) and
+    :meth:`hsicam.cameras.Camera.capture` say it alike; ``advice`` (e.g. how to clip) is appended."""
+    return InputError(f"{source}: {count} negative radiance value(s) (minimum {minimum:.4g}); radiance and reflectance "
+                      f"must be >= 0{f' ({advice})' if advice else ''}")
+
+
 #: How torch's DataLoader re-raises in the main process an exception of a worker process: the same
 #: type, its message replaced by this line and the worker's whole traceback (``ExceptionWrapper``).
 _WORKER_WRAPPED = re.compile(r"Caught \w+ in DataLoader worker process \d+\.\nOriginal Traceback")

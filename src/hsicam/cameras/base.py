@@ -10,7 +10,7 @@ import numbers
 import torch
 from torch import nn
 
-from hsicam.errors import ConfigError, InputError
+from hsicam.errors import ConfigError, InputError, negative_radiance_error
 from hsicam.spectral import Bands
 
 log = logging.getLogger(__name__)
@@ -43,8 +43,7 @@ def check_non_negative(t: torch.Tensor, what: str) -> None:
         lo = float(t.min())
         if lo < 0:
             neg = int((t < 0).sum())
-            raise InputError(f"{what}: {neg} negative radiance value(s) (minimum {lo:.4g}); radiance and reflectance "
-                             "must be >= 0 (dark noise after a background subtraction: x.clamp_min(0))")
+            raise negative_radiance_error(what, neg, lo, "dark noise after a background subtraction: x.clamp_min(0)")
 
 
 def check_device(t: torch.Tensor, module: nn.Module, what: str) -> None:

@@ -34,7 +34,7 @@ from typing import Any, Iterator, Sequence, Union
 
 import numpy as np
 
-from hsicam.errors import InputError
+from hsicam.errors import InputError, negative_radiance_error
 from hsicam.memory import MEMORY_BUDGET_ENV, format_bytes, memory_budget_bytes
 from hsicam.spectral import Bands, nm_text, resample_spectra, resolved_bands
 
@@ -110,8 +110,7 @@ def check_cube(cube: Any, source: PathLike | str = "cube", *, bands: Bands | Non
     if lo < 0:
         if not allow_negative:
             neg = int(np.count_nonzero(out < 0))
-            raise InputError(f"{source}: {neg} negative radiance value(s) (minimum {lo:.4g}); "
-                             "radiance and reflectance must be >= 0")
+            raise negative_radiance_error(source, neg, lo)
         if out is arr:  # never clip the caller's array in place
             out = out.copy()
         np.maximum(out, 0.0, out=out)

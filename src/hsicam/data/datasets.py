@@ -28,7 +28,7 @@ from torch.utils.data import Dataset
 
 from hsicam.data.cube import normalize_per_cube_max, resample_cube
 from hsicam.data.formats import _CAVE_RE, SCENE_SUFFIXES, _reading, read_cube
-from hsicam.errors import InputError
+from hsicam.errors import InputError, negative_radiance_error
 from hsicam.spectral import Bands
 
 log = logging.getLogger(__name__)
@@ -544,8 +544,7 @@ def check_windowed_pixels(path: str | os.PathLike, *, allow_negative: bool = Fal
     if bad:
         raise InputError(f"{path}: {bad} NaN/Inf value(s) in the cube (after conversion to float32)")
     if neg and not allow_negative:
-        raise InputError(f"{path}: {neg} negative radiance value(s) (minimum {lo:.4g}); "
-                         "radiance and reflectance must be >= 0")
+        raise negative_radiance_error(path, neg, lo)
     if not hi > 0:
         raise InputError(f"{path}: the cube is all zeros; cannot normalise by its maximum")
     if not math.isclose(header, hi, rel_tol=2.0 ** -22):  # float32 rounding of a maximum written as float64
