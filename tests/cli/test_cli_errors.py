@@ -892,3 +892,23 @@ sys.exit(cli.main(["psf", "--out", {str(tmp_path / 'p')!r}]))
     res = subprocess.run([sys.executable, "-c", stopped], capture_output=True, text=True)
     assert (res.returncode, res.stderr) == (130, "hsicam: interrupted\n")
     assert not (tmp_path / "p").exists()
+
+
+@pytest.mark.parametrize("stop_kind", ["interrupted", "stopped"])
+def test_a_training_stop_behind_another_error_keeps_its_resume_line_and_exit_code(monkeypatch, capsys, tmp_path,
+                                                                                  stop_kind):
+    """A training stopped by a signal (or its time budget) whose stop surfaced as the context of another error (a
+    clean-up that failed while it was handled) would have been a plain "interrupted" / 130, losing the run's resume
+    line and exit code (a review, session 71): it is said as the stop itself is."""
+    import hsicam.cli.camera as camera_cli
+    from hsicam.cli import main
+    from hsicam.errors import TrainingInterrupted, TrainingStopped
+
+    run = tmp_path / "run"
+    stop = (TrainingInterrupted(run, 3, 10, "SIGTERM", 143) if stop_kind == "interrupted"
+            else TrainingStopped(run, 3, 10, "train.max_minutes", 75))
+    monkeypatch.setattr(camera_cli, "cmd_psf", _wrapped_stop(stop, chained=False))
+    code = main(["psf", "--out", str(tmp_path / "p")])
+    assert code == stop.exit_code
+    assert capsys.readouterr().err == (f"hsicam: {run}: training stopped at step 3 of 10 ({stop.reason}); the "
+                                       "checkpoint of step 3 is saved; run the same command with --resume to go on\n")

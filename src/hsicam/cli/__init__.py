@@ -271,19 +271,38 @@ def _refuse_run_folder(out: Path, command: str | None, run: str | Path | None) -
         raise InputError(f"{out}: holds {what}, which {writer} never replaces; choose another --out")
 
 
-def interrupt_behind(exc: BaseException) -> KeyboardInterrupt | None:
-    """The ``KeyboardInterrupt`` (Ctrl-C, or :class:`~hsicam.errors.Terminated` for SIGTERM) among the causes and
-    contexts of ``exc``, else None: a Ctrl-C that arrives while a module is imported can surface as another error
-    (Python 3.11: "RuntimeError: Error calling __set_name__ on 'Field' instance …" from torch's lazy imports), which
-    is still the user's stop, not a failure."""
+def interrupt_behind(exc: BaseException) -> BaseException | None:
+    """The stop among the causes and contexts of ``exc`` (a ``KeyboardInterrupt``: Ctrl-C, SIGTERM's
+    :class:`~hsicam.errors.Terminated`, a training's :class:`~hsicam.errors.TrainingInterrupted`; or a
+    :class:`~hsicam.errors.TrainingStopped`), else None: a Ctrl-C that arrives while a module is imported can surface
+    as another error (Python 3.11: "RuntimeError: Error calling __set_name__ on 'Field' instance …" from torch's lazy
+    imports), which is still the user's stop, not a failure."""
     seen: set[int] = set()
     e: BaseException | None = exc
     while e is not None and id(e) not in seen:
-        if isinstance(e, KeyboardInterrupt):
+        if isinstance(e, (KeyboardInterrupt, TrainingStopped)):
             return e
         seen.add(id(e))
         e = e.__cause__ if e.__cause__ is not None else e.__context__
     return None
+
+
+def _stopped(stop: BaseException, args: argparse.Namespace | None = None) -> int:
+    """The one line (stderr) and exit code of a command that ``stop`` ended: a training stopped by a signal or
+    ``train.max_minutes`` (saved at that step: how to go on, the command's own ``resume_hint``; under ``torchrun``
+    rank 0 alone says it), SIGTERM (143) or Ctrl-C (130)."""
+    if isinstance(stop, (TrainingStopped, TrainingInterrupted)):
+        from hsicam.devices import dist_env
+
+        if dist_env()[0] == 0:
+            hint = getattr(args, "resume_hint", None) or "run the same command with --resume to go on"
+            print(f"hsicam: {stop}" + ("" if stop.finished else f"; {hint.format(run=stop.run_dir)}"), file=sys.stderr)
+        return stop.exit_code
+    if isinstance(stop, Terminated):
+        print("hsicam: terminated (SIGTERM); nothing half-written was left", file=sys.stderr)
+        return 128 + signal.SIGTERM
+    print("hsicam: interrupted", file=sys.stderr)
+    return 130
 
 
 def error_line(exc: BaseException) -> str | None:
@@ -380,20 +399,20 @@ def main(argv: Sequence[str] | None = None) -> int:
         parser = build_parser()  # imports the commands' modules, not torch (hsicam.cli.args.RegistryChoices): ~0.2 s
         # the options' types run here: `--run` checks the run's weights, importing torch (~1 s to interrupt)
         args = parser.parse_args(argv)
-    except KeyboardInterrupt:
-        print("hsicam: interrupted", file=sys.stderr)
-        return 130
+    except KeyboardInterrupt as stop:
+        return _stopped(stop)
     except Exception as exc:  # noqa: BLE001 - a Ctrl-C inside an import, wrapped (interrupt_behind)
-        if interrupt_behind(exc) is None:
+        stop = interrupt_behind(exc)
+        if stop is None:
             raise
-        print("hsicam: interrupted", file=sys.stderr)
-        return 130
+        return _stopped(stop)
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     # -v: hsicam's own debug lines only (matplotlib's font search, PIL's and h5py's chatter stay out)
     logging.getLogger("hsicam").setLevel(logging.DEBUG if args.verbose else logging.NOTSET)
     # torch's INFO lines reach the root logger when a Ctrl-C stopped torch's import before its own logging set-up
-    # (then its exit hook printed "FakeTensor cache stats: …" under "hsicam: interrupted")
-    logging.getLogger("torch").setLevel(logging.WARNING)
+    # (then its exit hook printed "FakeTensor cache stats: …" under "hsicam: interrupted"); TORCH_LOGS: the user's
+    if not os.environ.get("TORCH_LOGS"):
+        logging.getLogger("torch").setLevel(logging.WARNING)
     from hsicam.data.cube import trained_bands
 
     try:
@@ -410,29 +429,14 @@ def main(argv: Sequence[str] | None = None) -> int:
                 raise
             finally:
                 _PREPARED.clear()
-    except (TrainingStopped, TrainingInterrupted) as exc:  # a signal or train.max_minutes: the run was saved at that step
-        from hsicam.devices import dist_env
-
-        if dist_env()[0] == 0:  # under torchrun: the line once, from rank 0
-            hint = getattr(args, "resume_hint", None) or "run the same command with --resume to go on"
-            print(f"hsicam: {exc}" + ("" if exc.finished else f"; {hint.format(run=exc.run_dir)}"), file=sys.stderr)
-        return exc.exit_code
-    except Terminated:
-        print("hsicam: terminated (SIGTERM); nothing half-written was left", file=sys.stderr)
-        return 128 + signal.SIGTERM
-    except KeyboardInterrupt:
-        print("hsicam: interrupted", file=sys.stderr)
-        return 130
+    except (TrainingStopped, KeyboardInterrupt) as stop:  # (TrainingInterrupted and Terminated are KeyboardInterrupts)
+        return _stopped(stop, args)
     except Exception as exc:  # noqa: BLE001 - the one error boundary
         stop = interrupt_behind(exc)
-        if stop is not None:  # Ctrl-C (or SIGTERM) that arrived inside an import, which wrapped it in another error
+        if stop is not None:  # a stop that arrived inside an import (or a clean-up), which wrapped it in another error
             if args.verbose:
                 traceback.print_exc()
-            if isinstance(stop, Terminated):
-                print("hsicam: terminated (SIGTERM); nothing half-written was left", file=sys.stderr)
-                return 128 + signal.SIGTERM
-            print("hsicam: interrupted", file=sys.stderr)
-            return 130
+            return _stopped(stop, args)
         if isinstance(exc, BrokenPipeError) and stdout_closed():
             # what is left in Python's buffer would fail again at exit ("Exception ignored ... BrokenPipeError")
             os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
