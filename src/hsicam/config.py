@@ -1043,7 +1043,7 @@ class Config:
             # (its scene grid is not the sensor's: CameraSystem.consistency_on)
             # (the camera registry cannot be asked from here: hsicam.cameras imports this module)
             builtin = self.camera.kind == "dd_cassi"
-            typo = "" if builtin else " (not one of the built-in camera kinds doe, dd_cassi, sd_cassi: a typo?)"
+            typo = "" if builtin else " (not a built-in camera kind: doe, dd_cassi, sd_cassi)"
             raise ConfigError(f"model.consistency.kind=linear needs the DOE camera's per-band sensor code "
                               f"(camera.kind=doe), not camera.kind={self.camera.kind}{typo}; use "
                               "model.consistency.kind=landweber, or model.consistency.iterations=0")

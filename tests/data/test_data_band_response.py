@@ -396,3 +396,5 @@ def test_interpolated_bands_are_the_camera_bands_between_data_bands_wider_apart_
     got = cam.centers_nm[interpolated_bands(data, cam)]
     np.testing.assert_array_equal(got, np.asarray(flagged, dtype=np.float64))
     assert not interpolated_bands(Bands.from_centers([550.0]), Bands.from_centers([550.0])).any()
+    # outside the data's range: not between two of its bands (resampling refuses it), whatever the edge gap
+    assert not interpolated_bands(Bands.from_centers([500.0, 600.0]), Bands.from_centers([400.0, 700.0])).any()

@@ -431,8 +431,8 @@ def test_an_evaluation_report_draws_the_first_six_scenes_of_its_cubes_and_says_w
     text = page.read_text()
     assert all(f"recon_{n}.png" in text for n in six)
     assert "recon_s7.png" not in text and "recon_s2.png" not in text
-    assert ("<p class='note'>the first 6 of the 7 saved scenes, by name (each scene&#x27;s cubes are in cubes/); not "
-            "shown, their ground truth missing from cubes/: s2_estimate.h5</p>") in text
+    assert ("<p class='note'>the first 6 by name of the 7 scenes saved with their ground truth (each scene&#x27;s "
+            "cubes are in cubes/); not shown, their ground truth missing from cubes/: s2_estimate.h5</p>") in text
 
 
 @pytest.mark.parametrize("n_bands, shown", [(31, 16), (10, 10)])

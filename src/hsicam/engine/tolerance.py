@@ -191,11 +191,12 @@ def check_sweeps(spec: ToleranceSpec, optics) -> None:
     the bare lens, not a misaligned DOE camera), and a level count export-optics refuses
     (:func:`check_levels`)."""
     z_um = optics.sensor_distance_m * 1e6
+    # in µm with a rounding tolerance: -35000 µm of a 0.035 m distance left 7e-18 m in metres, "in front of the
+    # lens" by rounding, and was refused as a defocus needing a pupil oversampling of 1e17
+    on_lens_um = 1e-6 * max(1.0, z_um)
     for dz_um in spec.sensor_distance_um:
-        # in µm with a rounding tolerance: -35000 µm of a 0.035 m distance left 7e-18 m in metres, "in front of the
-        # lens" by rounding, and was refused as a defocus needing a pupil oversampling of 1e17
-        if z_um + dz_um <= 1e-6 * max(1.0, z_um):
-            where = ("onto the lens" if math.isclose(z_um + dz_um, 0.0, abs_tol=1e-6 * max(1.0, z_um)) else
+        if z_um + dz_um <= on_lens_um:
+            where = ("onto the lens" if abs(z_um + dz_um) <= on_lens_um else
                      f"past the lens, {-(z_um + dz_um):.6g} µm in front of it")
             raise InputError(f"--sensor-distance-um: Δz = {dz_um:g} µm moves the sensor {where} (the sensor sits "
                              f"{z_um:.6g} µm behind the lens); Δz toward the lens must stay above -{z_um:.6g} µm")

@@ -278,8 +278,8 @@ def _evaluation_sections(folder: Path, out: Path, res: dict) -> list[str]:
         shown = paired[:MAX_RECONSTRUCTIONS]
         notes = []
         if len(paired) > len(shown):
-            notes.append(f"the first {len(shown)} of the {len(paired)} saved scenes, by name (each scene's cubes are "
-                         "in cubes/)")
+            notes.append(f"the first {len(shown)} by name of the {len(paired)} scenes saved with their ground truth "
+                         "(each scene's cubes are in cubes/)")
         if unpaired:
             notes.append(f"not shown, their ground truth missing from cubes/: {', '.join(unpaired)}")
         if not saved:

@@ -226,14 +226,16 @@ def interpolated_bands(src: Bands, dst: Bands) -> np.ndarray:
     """Boolean (len(dst),): True where a band of ``dst`` lies strictly between two bands of ``src`` more than
     :data:`INTERPOLATION_GAP_FWHM` times its own FWHM apart: its value resampled from ``src`` is a linear
     interpolation across a gap the band would resolve, not a measurement (data on a coarser grid than the camera's:
-    ground truth made up between the data's samples). ``dst`` within ``src``'s range (as resampling requires)."""
+    ground truth made up between the data's samples). A band outside ``src``'s range is not between two of its bands:
+    False (resampling refuses it)."""
     c, d = src.centers_nm, dst.centers_nm
     if len(c) < 2:
         return np.zeros(len(d), dtype=bool)  # one data band: every camera band on it (the range check's)
     j = np.clip(np.searchsorted(c, d), 1, len(c) - 1)  # c[j - 1] <= d <= c[j]
     lo, hi = c[j - 1], c[j]
     on_sample = (np.abs(d - lo) <= _TOL_NM) | (np.abs(d - hi) <= _TOL_NM)
-    return ~on_sample & (hi - lo > INTERPOLATION_GAP_FWHM * dst.fwhm_nm)
+    inside = (d > c[0]) & (d < c[-1])
+    return inside & ~on_sample & (hi - lo > INTERPOLATION_GAP_FWHM * dst.fwhm_nm)
 
 
 #: Step (nm) of the quadrature over a band's response in :func:`resampling_matrix` (at most; finer for
