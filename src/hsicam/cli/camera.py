@@ -37,8 +37,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                    "instead of --config's untrained design", required=False)
     from hsicam.cli.args import seed_arg
     p.add_argument("--seed", type=seed_arg(), default=0,
-                   help="seed of torch's generator for the DOE height noise (camera.doe.sigma_height_nm > 0: one "
-                        "fabricated element per seed), an integer in [0, 2^32 - 1] (default 0)")
+                   help="seed of torch's generator for the DOE height noise (a camera.doe.sigma_height_nm above 0 "
+                        "draws one fabricated element per seed), an integer in [0, 2^32 - 1] (default 0)")
     p.set_defaults(func=cmd_psf)
 
     p = sub.add_parser("simulate", help="simulate the sensor image of a scene through the camera")
