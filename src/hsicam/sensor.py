@@ -136,6 +136,11 @@ def gaussian_noise(g: torch.Tensor, sigma: float, generator: torch.Generator | N
     return g + sigma * torch.randn(g.shape, generator=generator, device=g.device, dtype=g.dtype)
 
 
+#: The largest mean count (e⁻) drawn from a Poisson law; larger ones are taken as they are (√1e15 = 3e7 e⁻ of shot
+#: noise is below float32's 6e7 e⁻ resolution of 1e15).
+POISSON_MAX_E = 1e15
+
+
 def poisson_gaussian_noise(
     g: torch.Tensor, full_well_e: float, read_noise_e: float, generator: torch.Generator | None = None
 ) -> torch.Tensor:
@@ -144,7 +149,11 @@ def poisson_gaussian_noise(
     counted in float32 at least (a half-precision image tops out at 65504: a full well of 10⁵ e⁻ gave −inf)."""
     signal = g.detach()
     signal = signal.float() if signal.element_size() < 4 else signal
-    electrons = torch.poisson(signal.clamp_min(0) * full_well_e, generator=generator)
+    rate = signal.clamp_min(0) * full_well_e
+    # torch.poisson overflows int64 above ~9e18 e⁻ (a count of −9.2e18); above POISSON_MAX_E the shot noise
+    # (√rate) is below the float's resolution of the rate, which is then the count
+    electrons = torch.poisson(rate.clamp_max(POISSON_MAX_E), generator=generator)
+    electrons = torch.where(rate > POISSON_MAX_E, rate, electrons)
     if read_noise_e > 0:
         electrons = electrons + read_noise_e * torch.randn(g.shape, generator=generator, device=g.device,
                                                            dtype=electrons.dtype)

@@ -126,6 +126,35 @@ def test_poisson_noise_has_a_straight_through_gradient():
     torch.testing.assert_close(g.grad, torch.ones_like(g))
 
 
+@pytest.mark.parametrize("peak", [1e7, 1e8, 1e9, 1e20, 3e38])
+def test_a_far_too_bright_image_saturates_the_adc_at_full_scale(peak):
+    """A sensor image far above full scale, through a 12-bit ADC, read 2 at 1e8 and 0 (black) from 1e9 on in float32:
+    the straight-through estimator's x + (y − x) lost the clipped value to rounding (a helper's hunt, session 71).
+    Now every pixel is the ADC's top code, 1, and the gradient still passes (1 per pixel)."""
+    g = torch.full((1, 1, 3, 4), peak, dtype=torch.float32, requires_grad=True)
+    out = SensorNoise("none", bit_depth=12)(g)
+    assert torch.equal(out.detach(), torch.ones_like(out))
+    out.sum().backward()
+    torch.testing.assert_close(g.grad, torch.ones_like(g))
+
+
+@pytest.mark.parametrize("peak", [1e16, 1e20, 3e34])
+def test_shot_noise_of_a_count_beyond_the_poisson_draw_is_the_count_itself(peak):
+    """torch.poisson overflows int64 above ~9e18 e⁻ (every count −9.2e18: a sensor image of −9e14 at 10 000 e⁻ full
+    well). Above POISSON_MAX_E the mean count is taken (its shot noise is below float32's resolution); below it the
+    draws are those of torch.poisson, unchanged."""
+    from hsicam.sensor import POISSON_MAX_E, poisson_gaussian_noise
+
+    g = torch.full((1, 1, 2, 3), peak / 1e4)
+    out = poisson_gaussian_noise(g, 1e4, 0.0, torch.Generator().manual_seed(0))
+    torch.testing.assert_close(out, g, rtol=1e-6, atol=0)
+    low = torch.full((1, 1, 2, 3), 0.37)
+    want = torch.poisson(low * 1e4, generator=torch.Generator().manual_seed(5)) / 1e4
+    torch.testing.assert_close(poisson_gaussian_noise(low, 1e4, 0.0, torch.Generator().manual_seed(5)), want,
+                               rtol=0, atol=0)
+    assert POISSON_MAX_E < 9.2e18
+
+
 @pytest.mark.parametrize("model", ["gaussian", "poisson_gaussian"])
 def test_noise_is_reproducible_from_a_seeded_generator(model):
     g = torch.rand(2, 1, 32, 32, generator=torch.Generator().manual_seed(0))

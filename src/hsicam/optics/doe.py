@@ -30,8 +30,10 @@ def phase_per_height(material: Material, wavelength_nm: np.ndarray) -> np.ndarra
 
 
 def straight_through(x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
-    """Value of ``y`` with the gradient of ``x`` (straight-through estimator)."""
-    return x + (y - x).detach()
+    """Value of ``y`` with the gradient of ``x`` (straight-through estimator): ``y + (x − x)`` with the second ``x``
+    detached, whose value is ``y`` exactly (``x + (y − x)`` lost ``y`` to rounding where ``x`` is large: a sensor
+    image of 1e9 clipped to 1 came out 0 in float32)."""
+    return y + (x - x.detach())
 
 
 def quantize_heights(h: torch.Tensor, levels: int, top_m: float, wrap: bool = True) -> torch.Tensor:
