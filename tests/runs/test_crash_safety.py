@@ -485,6 +485,24 @@ def test_resume_without_config_says_how_to_restart_and_restart_works(tmp_path, c
     assert (other / "thesis.tex").read_text() == "x"
 
 
+def test_restart_without_config_starts_the_run_again_with_its_own_config(tmp_path, cache_env, capsys):
+    """`train --out RUN --restart` without --config, on a tiny run killed before its first checkpoint, started the
+    built-in paper config in its place (a 100-epoch paper camera), without a word (a helper's hunt, session 71).
+    It starts again with the run's own config.yaml (and --set); with --config, that config, as before."""
+    from hsicam.cli import main
+    from hsicam.config import dump_yaml, load_config
+
+    run = tmp_path / "run"
+    run.mkdir()
+    own = load_config("tiny", ["train.epochs=1", "data.synthetic_n=6", "data.synthetic_size=64"])
+    (run / "config.yaml").write_text(dump_yaml(own))  # as a training killed before its first checkpoint left it
+    (run / "metrics.jsonl").write_text("")
+    assert main(["train", "--out", str(run), "--restart", "--set", "train.seed=3"]) == 0
+    kept = load_config(run / "config.yaml")
+    assert kept.camera == own.camera and kept.data == own.data and kept.train.epochs == 1 and kept.train.seed == 3
+    assert (run / "checkpoints.json").is_file()
+
+
 def test_simulate_resamples_a_scene_on_another_band_grid(trained, tmp_path, caplog):
     """One band-grid policy: a 31-band scene (420-720 nm, 10 nm) through the 7-band tiny camera."""
     import logging

@@ -19,7 +19,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     mode.add_argument("--resume", action="store_true", help="continue the run from its last checkpoint")
     mode.add_argument("--restart", action="store_true",
                       help="start again in a run folder that holds no finished checkpoint (e.g. a run killed before "
-                           "its first checkpoint): its files are removed first; a folder with a checkpoint is refused")
+                           "its first checkpoint): its files are removed first; a folder with a checkpoint is refused; "
+                           "without --config it starts with the folder's own config.yaml (and --set)")
     p.set_defaults(func=cmd_train, trains=True, resume_hint="go on with: hsicam train --out {run} --resume",
                    diverged_hint="continue with a lower rate: hsicam train --out {run} --resume --set train.lr=LR "
                                  "(or start over with --restart)")
@@ -70,6 +71,11 @@ def _train(args: argparse.Namespace, run, new_run) -> dict:
         cfg = run_config_from_args(run, args.overrides)
         if args.overrides:
             check_resume_keeps_the_run(run, cfg)
+    elif args.restart and not args.config and (run / "config.yaml").is_file():
+        # the run started again as it was started (it took the built-in paper config, silently), --set applied
+        cfg = run_config_from_args(run, args.overrides)  # read before anything is removed: a bad one wipes nothing
+        log.info("%s: starting again with its own config.yaml%s", run, " and --set" if args.overrides else "")
+        restart_run_dir(run)
     else:
         cfg = config_from_args(args.config, args.overrides)  # a bad config wipes nothing
         if args.restart:
