@@ -912,3 +912,18 @@ def test_a_training_stop_behind_another_error_keeps_its_resume_line_and_exit_cod
     assert code == stop.exit_code
     assert capsys.readouterr().err == (f"hsicam: {run}: training stopped at step 3 of 10 ({stop.reason}); the "
                                        "checkpoint of step 3 is saved; run the same command with --resume to go on\n")
+
+
+@pytest.mark.parametrize("setting", ["camera.boundary=valid", "camera={boundary: valid}"])
+def test_simulate_refuses_a_boundary_given_by_set_and_names_its_option(tmp_path, capsys, setting):
+    """`simulate --set camera.boundary=valid` was replaced by --boundary's default (same) without a word: a 48×48
+    sensor where 28×28 was asked (a helper's hunt, session 71). One line naming --boundary; nothing is written."""
+    from hsicam.cli import main
+
+    out = tmp_path / "sim"
+    assert main(["simulate", "--config", "tiny", "--scene", str(tmp_path / "s.npy"), "--set", setting,
+                 "--out", str(out)]) == 2
+    assert capsys.readouterr().err == ("hsicam: error: --set camera.boundary: simulate's sensor boundary is its option "
+                                       "--boundary (same by default, whatever the config says); give --boundary same "
+                                       "or --boundary valid\n")
+    assert not out.exists()

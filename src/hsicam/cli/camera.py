@@ -46,9 +46,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--scene", required=True, metavar="FILE", help="scene cube: .npy (bands, H, W) or a supported cube file")
     p.add_argument("--out", required=True, metavar="DIR", help="output folder")
     p.add_argument("--boundary", choices=("same", "valid"), default="same",
-                   help="same (default): sensor as large as the scene (padded); valid: sensor smaller by the kernel margin "
-                        "(what training sees: the presets' camera.boundary); a DOE camera's choice: a CASSI camera has "
-                        "no PSF kernel, so valid is refused for it")
+                   help="same (default, whatever the config's camera.boundary): sensor as large as the scene (padded); "
+                        "valid: sensor smaller by the kernel margin (what training sees: the presets' camera.boundary); "
+                        "a DOE camera's choice: a CASSI camera has no PSF kernel, so valid is refused for it")
     from hsicam.cli.args import seed_arg
     p.add_argument("--seed", type=seed_arg(), default=0,
                    help="seed of torch's generator for DOE height noise and sensor noise, an integer in [0, 2^32 - 1] "
@@ -213,6 +213,11 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     from hsicam.data.pipeline import npy_bands
     from hsicam.report.camera import write_optics_figures
 
+    from hsicam.config import override_keys
+
+    if "camera.boundary" in override_keys(args.overrides):  # (it was replaced by --boundary's default, silently)
+        raise InputError("--set camera.boundary: simulate's sensor boundary is its option --boundary (same by default, "
+                         "whatever the config says); give --boundary same or --boundary valid")
     out = prepare_output(args.out, "dir", replace=True, command="simulate", run=args.run)
     if args.run:
         from hsicam.runs.folder import load_run
