@@ -101,3 +101,16 @@ def test_the_demo_scores_on_the_test_noise_of_evaluate_whatever_the_training_see
     assert {k: demo["mean"][k] for k in keys} == {k: ev["mean"][k] for k in keys}
     if "heldout" in demo:
         assert {k: demo["heldout"]["mean"][k] for k in keys} == {k: ev["heldout"]["mean"][k] for k in keys}
+
+
+def test_a_reused_run_is_scored_on_as_many_held_out_scenes_as_the_demo_asks(finished, tmp_path):
+    """`demo --set data.heldout_n=3` on a finished demo reused its run (heldout_n is a runtime key) but scored the
+    run's own 8 held-out scenes, and a plain demo on a folder made with 3 scored 3 (a helper's hunt, session 71).
+    Now the count asked is scored, and said in results.json's held-out label."""
+    from hsicam.engine.demo import run_demo
+
+    out = shutil.copytree(finished, tmp_path / "demo")
+    for n in (3, 8):
+        summary = run_demo(load_config("tiny", ["train.epochs=1", f"data.heldout_n={n}"]), out)
+        assert len(summary["heldout"]["scenes"]) == n, n
+        assert len(json.loads((out / "results.json").read_text())["heldout"]["scenes"]) == n

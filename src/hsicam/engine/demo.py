@@ -4,6 +4,7 @@ the network alone where a consistency step follows it), and write tables and fig
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 from pathlib import Path
 from typing import Any
@@ -76,6 +77,7 @@ def _run_demo(cfg: Config, out: Path) -> dict[str, Any]:
         clear_complete(out)
         cleanup_stale_temporaries(out)  # a figure or table of a killed demo, half-written
     status = ensure_trained(run, cfg)
+    asked = cfg
     cfg, model = load_run(run)  # its model.consistency is the demo's (ensure_trained)
     scored_sha, kept = file_sha256(root_weights_path(run)), kept_checkpoint(run)  # what is scored below, recorded
     bands = cfg.bands.to_bands()
@@ -106,12 +108,14 @@ def _run_demo(cfg: Config, out: Path) -> dict[str, Any]:
          "mean": summarize(evaluate_method(ref, scenes, names, TestNoise(seeds=(seed,)), keep_arrays=False))["mean"]}
         for ref in references
     ]
-    held = heldout_scenes(cfg)
+    # as many held-out scenes as the demo asks (data.heldout_n, a runtime key: a reused run's own count was scored)
+    held_cfg = dataclasses.replace(cfg, data=dataclasses.replace(cfg.data, heldout_n=asked.data.heldout_n))
+    held = heldout_scenes(held_cfg)
     if held is not None:  # the same camera on scenes of spectral sources the training never saw
         h_results = evaluate_scenes(model, held[0], held[1], seed=seed, keep_arrays=False,
                                     scene_set=HELDOUT_NOISE_SET)
         summary["heldout"] = {
-            "data": heldout_sources_label(cfg),
+            "data": heldout_sources_label(held_cfg),
             **summarize(h_results),
             "references": [{"method": ref.name, "mean": summarize(evaluate_method(
                 ref, held[0], held[1], TestNoise(seeds=(seed,)), keep_arrays=False,
