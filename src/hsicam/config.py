@@ -856,8 +856,10 @@ class DataConfig:
                               f"{self.synthetic_size} px: " + (
                                   f"lower data.patch_px to <= {self.synthetic_size - margin_px} or raise "
                                   "data.synthetic_size" if self.synthetic_size - margin_px >= max(MIN_PATCH_PX, code_period)
-                                  else f"raise data.synthetic_size to >= {max(MIN_PATCH_PX, code_period) + margin_px} "
-                                       f"(a patch has at least {max(MIN_PATCH_PX, code_period)} px)"))
+                                  # (the size this patch needs: the smallest patch's size failed again at this patch)
+                                  else f"raise data.synthetic_size to >= {self.patch_px + margin_px} (or to >= "
+                                       f"{max(MIN_PATCH_PX, code_period) + margin_px} with data.patch_px="
+                                       f"{max(MIN_PATCH_PX, code_period)}, the smallest patch)"))
 
     def __post_init__(self) -> None:
         for name in ("synthetic_n", "patch_px", "patches_per_epoch", "val_patches"):
