@@ -24,6 +24,7 @@ class TrainingDiverged(InputError):
 
     run_dir: Path | None = None
     checkpoint_step: int | None = None
+    step: int | None = None  # the step that diverged (0: before any update, which no lower rate changes)
 
 
 class PeerFailed(HsicamError):

@@ -448,6 +448,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         if isinstance(exc, TrainingDiverged) and exc.run_dir is not None and hint:  # how to go on with a lower rate
             kept = ("holds no checkpoint yet" if exc.checkpoint_step is None else
                     f"keeps the checkpoint of step {exc.checkpoint_step}, from before the divergence")
+            if exc.step == 0:  # before any update: a lower rate changes nothing (following that hint failed again)
+                hint = ("it diverged before any update, so no lower rate changes it: go on with other settings, "
+                        "hsicam train --out {run} --resume --set KEY=VALUE (or start over with --restart)")
             line += f"; {exc.run_dir} {kept}; {hint.format(run=exc.run_dir)}"
         if args.verbose:
             traceback.print_exc()

@@ -556,7 +556,9 @@ def not_finite_error(what: str, step: int, loss: float, batch: torch.Tensor,
     values (naming up to 3 scene files, ``source(row)``), else a divergence (the learning rates)."""
     bad = ~torch.isfinite(batch.detach())
     if not bool(bad.any()):
-        return TrainingDiverged(f"{what} diverged at step {step} (loss {loss}); lower the learning rates")
+        exc = TrainingDiverged(f"{what} diverged at step {step} (loss {loss}); lower the learning rates")
+        exc.step = step
+        return exc
     rows = bad.reshape(bad.shape[0], -1).any(dim=1).nonzero().flatten().tolist() if bad.ndim > 1 else []
     files = sorted({str(f) for f in (source(j) for j in rows) if f is not None})
     more = f" and {len(files) - 3} more" if len(files) > 3 else ""
@@ -976,17 +978,21 @@ class _Training:
             first = self.state.step_in_epoch * t.batch_size + self.rank * (t.batch_size // self.world)  # this rank's first item
             raise not_finite_error(what, step, own_v, batch, lambda j: patch_source(self.train_ds, first + j))
         if not math.isfinite(loss_v):  # another rank's share: it names its patches; this one stops with it
-            raise TrainingDiverged(f"{what} diverged at step {step}: the loss of another process's share of "
+            exc = TrainingDiverged(f"{what} diverged at step {step}: the loss of another process's share of "
                                    f"the batch is {loss_v:.4g}; that process's error names its patches")
+            exc.step = step
+            raise exc
         if grad_norm is not None and not math.isfinite(norm_v := grad_norm.item()):
             # a finite loss whose gradient is not: clipping by an infinite norm zeroed every gradient, and the run
             # trained on, flat, without an error (e.g. train.ssim_loss=1e30)
             why = ("it overflows float32" if math.isinf(norm_v) else
                    "a NaN in the backward pass of a finite loss, e.g. a square root or division at 0")
-            raise TrainingDiverged(f"{what} diverged at step {step}: the loss is {loss_v:.4g} but its "
+            exc = TrainingDiverged(f"{what} diverged at step {step}: the loss is {loss_v:.4g} but its "
                                    f"gradient's norm is {norm_v} ({why}), so clipping would zero every gradient; "
                                    "lower the loss weights (train.ssim_loss, sam_loss, relative_l1, "
                                    "spectral_grad_loss, phase_loss) or the learning rates")
+            exc.step = step
+            raise exc
 
     def record_step(self, factor: float) -> None:
         """Rank 0's metrics record (every ``log_every_steps``) and checkpoint (every ``checkpoint_every_steps``)
