@@ -344,6 +344,22 @@ def test_training_on_one_scene_warns_that_nothing_is_validated(tmp_path, cache_e
     assert json.loads((run / "checkpoints.json").read_text())["best"] is None
 
 
+def test_one_synthetic_scene_is_told_to_raise_synthetic_n_not_to_point_data_root(tmp_path, cache_env, caplog):
+    """The same warning for the synthetic data of one scene told the user to point data.root to a folder of 2 or more
+    scenes, where the fix is data.synthetic_n (a helper's hunt, session 71)."""
+    import logging
+
+    from hsicam.config import load_config
+    from hsicam.data.pipeline import build_datasets
+
+    cfg = load_config("tiny", ["data.synthetic_n=1", "data.synthetic_size=64", f"data.cache_dir={tmp_path}"])
+    with caplog.at_level(logging.WARNING, logger="hsicam"):
+        build_datasets(cfg.data, cfg.bands.to_bands(), 20)
+    [line] = [r.getMessage() for r in caplog.records if "no validation scenes" in r.getMessage()]
+    assert line.endswith("raise data.synthetic_n to 2 or more (data.val_fraction=0.34 sets the share held out)"), line
+    assert "data.root" not in line
+
+
 def test_metrics_truncation_drops_records_the_checkpoint_never_saw(tmp_path):
     from hsicam.runs.folder import MetricsLog
 

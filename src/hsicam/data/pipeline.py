@@ -182,9 +182,10 @@ def build_datasets(cfg: DataConfig, bands: Bands, margin_px: int, *, progress: b
     log.info("data: %d training and %d validation scenes from %s (preload=%s)", len(train_scenes), len(val_scenes),
              root, preload)
     if not val_scenes:  # a warning unless asked for (val_fraction 0)
+        more = ("raise data.synthetic_n to 2 or more" if cfg.root is None else  # (the synthetic data: not data.root)
+                "point data.root to a folder of 2 or more scenes")
         fix = ("set data.val_fraction > 0 to hold scenes out" if cfg.val_fraction == 0 else
-               f"point data.root to a folder of 2 or more scenes "
-               f"(data.val_fraction={cfg.val_fraction:g} sets the share held out)")
+               f"{more} (data.val_fraction={cfg.val_fraction:g} sets the share held out)")
         log.log(logging.WARNING if cfg.val_fraction > 0 else logging.INFO,
                 "data: no validation scenes (%s): training runs without validation and the run keeps its last "
                 "checkpoint, not the best one; %s", no_validation_reason(cfg, len(scenes)), fix)
