@@ -439,6 +439,6 @@ def test_a_diverged_training_says_what_its_folder_keeps_and_the_advice_works(tmp
     first = tmp_path / "first"
     res = run_cli_in_process("train", "--config", "tiny", "--out", str(first), "--set", "train.ssim_loss=1e30", env=env)
     assert error_line(res).endswith(f"{first} holds no checkpoint yet; it diverged before any update, so no lower rate "
-                                    f"changes it: go on with other settings, hsicam train --out {first} --resume --set "
-                                    "KEY=VALUE (or start over with --restart)"), error_line(res)
+                                    f"changes it: resume it with other settings (hsicam train --out {first} --resume, "
+                                    "with --set of the keys named above) or start over with --restart"), error_line(res)
     assert "diverged at step 0" in error_line(res)

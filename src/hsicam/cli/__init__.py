@@ -449,8 +449,9 @@ def main(argv: Sequence[str] | None = None) -> int:
             kept = ("holds no checkpoint yet" if exc.checkpoint_step is None else
                     f"keeps the checkpoint of step {exc.checkpoint_step}, from before the divergence")
             if exc.step == 0:  # before any update: a lower rate changes nothing (following that hint failed again)
-                hint = ("it diverged before any update, so no lower rate changes it: go on with other settings, "
-                        "hsicam train --out {run} --resume --set KEY=VALUE (or start over with --restart)")
+                hint = ("it diverged before any update, so no lower rate changes it: resume it with other settings "
+                        "(hsicam train --out {run} --resume, with --set of the keys named above) or start over with "
+                        "--restart")
             line += f"; {exc.run_dir} {kept}; {hint.format(run=exc.run_dir)}"
         if args.verbose:
             traceback.print_exc()

@@ -46,7 +46,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--scene", required=True, metavar="FILE", help="scene cube: .npy (bands, H, W) or a supported cube file")
     p.add_argument("--out", required=True, metavar="DIR", help="output folder")
     p.add_argument("--boundary", choices=("same", "valid"), default="same",
-                   help="same (default, whatever the config's camera.boundary): sensor as large as the scene (padded); "
+                   help="same (default): sensor as large as the scene (padded), whatever the config's camera.boundary; "
                         "valid: sensor smaller by the kernel margin (what training sees: the presets' camera.boundary); "
                         "a DOE camera's choice: a CASSI camera has no PSF kernel, so valid is refused for it")
     from hsicam.cli.args import seed_arg
