@@ -188,3 +188,13 @@ def test_report_reads_a_results_json_saved_with_a_byte_order_mark(tmp_path):
     (d / "results.json").write_bytes(b"\xef\xbb\xbf" + (d / "results.json").read_bytes())
     page = build_report(d).read_text(encoding="utf-8")
     assert "<h2>Results" in page and "<tr><td>a</td><td>30.00</td>" in page
+
+
+def test_report_of_results_listing_no_scene_says_so(tmp_path):
+    """An edited results.json with "scenes": [] drew a table of its mean row alone, without a word (a helper's hunt,
+    session 71): a note says the file lists no scene."""
+    d = folder_with(tmp_path, "results.json", evaluation(scenes=[]))
+    page = build_report(d).read_text(encoding="utf-8")
+    assert "<p class='note'>results.json lists no scene: the mean above is the file's own" in page
+    page = build_report(folder_with(tmp_path / "b", "results.json", evaluation())).read_text(encoding="utf-8")
+    assert "lists no scene" not in page

@@ -246,6 +246,9 @@ def _evaluation_sections(folder: Path, out: Path, res: dict) -> list[str]:
     cols = [("name", "scene", ""), ("psnr", "PSNR (dB)", ".2f"), ("ssim", "SSIM", ".4f"), ("sam", "SAM (°)", ".2f"),
             ("ergas", "ERGAS", ".2f"), ("psnr_mst", "PSNR MST (dB)", ".2f"), ("runtime_s", "runtime (s)", ".3f")]
     parts.append(_table(res["scenes"] + [{"name": "mean", **res["mean"]}], cols))
+    if not res["scenes"]:  # (an edited file: an evaluation writes a row per scene it scored)
+        parts.append("<p class='note'>results.json lists no scene: the mean above is the file's own, over no row "
+                     "shown here</p>")
     if isinstance(res.get("weights"), dict):  # which checkpoint was scored (evaluate and demo record it)
         from hsicam.runs.checkpoint import weights_text
 
