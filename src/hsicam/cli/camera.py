@@ -49,7 +49,6 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="same (default): sensor as large as the scene (padded), whatever the config's camera.boundary; "
                         "valid: sensor smaller by the kernel margin (what training sees: the presets' camera.boundary); "
                         "a DOE camera's choice: a CASSI camera has no PSF kernel, so valid is refused for it")
-    from hsicam.cli.args import seed_arg
     p.add_argument("--seed", type=seed_arg(), default=0,
                    help="seed of torch's generator for DOE height noise and sensor noise, an integer in [0, 2^32 - 1] "
                         "as every seed key (camera.doe.seed, train.seed, data synth --seed) (default 0)")

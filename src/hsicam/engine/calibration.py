@@ -97,13 +97,12 @@ def check_finetune_source(out_dir: Path, run_dir: Path) -> None:
                          f"{source}")
 
 
-def check_same_finetune(out_dir: Path, run_dir: Path, psf_dir: str | Path, measured: MeasuredPSF) -> None:
-    """InputError when the fine-tuning in ``out_dir`` was made from another run or other measured
-    PSFs than ``run_dir`` and ``measured`` (imported from ``psf_dir``): continuing it would mix two
-    calibrations. Reads only."""
+def check_same_measured_psfs(out_dir: Path, psf_dir: str | Path, measured: MeasuredPSF) -> None:
+    """InputError when the fine-tuning in ``out_dir`` was made from other measured PSFs than ``measured`` (imported
+    from ``psf_dir``): continuing it would mix two calibrations (its source run: :func:`check_finetune_source`,
+    checked before the PSFs are read). Reads only."""
     from hsicam.runs.folder import finetune_source
 
-    check_finetune_source(out_dir, run_dir)
     _, made_from = finetune_source(out_dir)
     have = run_psf_fingerprint(out_dir)
     if have != measured.fingerprint:
@@ -192,7 +191,7 @@ def _finetune(run_dir: Path, psf_dir, out_dir: Path, overrides, pitch_um, progre
     cfg, base = load_run(run_dir, "cpu", tuple(overrides), linear_step=False)  # the fine-tuned run fits its own
     measured = import_for_camera(psf_dir, base.camera, pitch_um=pitch_um)
     if resume:
-        check_same_finetune(out_dir, run_dir, psf_dir, measured)
+        check_same_measured_psfs(out_dir, psf_dir, measured)
     torch.manual_seed(cfg.train.seed)
     task = FinetuneTask(cfg, with_measured_psf(base, measured), measured, run_dir, psf_dir)
     opts = FitOptions(cfg.train, cfg.data.num_workers, validate_at_start=True, progress=progress,

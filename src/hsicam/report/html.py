@@ -275,9 +275,9 @@ def _evaluation_sections(folder: Path, out: Path, res: dict) -> list[str]:
         from hsicam.data import read_cube
 
         parts.append("<h2>Reconstructions</h2>")
-        saved = sorted(cubes.glob("*_estimate.h5"))
-        paired = [p for p in saved if (cubes / f"{p.name[: -len('_estimate.h5')]}_truth.h5").is_file()]
-        unpaired = [p.name for p in saved if p not in paired]
+        saved = {p.name[: -len("_estimate.h5")]: p for p in sorted(cubes.glob("*_estimate.h5"))}  # scene → estimate
+        paired = [name for name in saved if (cubes / f"{name}_truth.h5").is_file()]
+        unpaired = [saved[name].name for name in saved if name not in paired]
         shown = paired[:MAX_RECONSTRUCTIONS]
         notes = []
         if len(paired) > len(shown):
@@ -289,9 +289,8 @@ def _evaluation_sections(folder: Path, out: Path, res: dict) -> list[str]:
             notes.append("cubes/ holds no reconstruction (*_estimate.h5)")
         if notes:
             parts.append(f"<p class='note'>{html.escape('; '.join(notes))}</p>")
-        for est_path in shown:
-            name = est_path.name[: -len("_estimate.h5")]
-            truth_path = cubes / f"{name}_truth.h5"
+        for name in shown:
+            est_path, truth_path = saved[name], cubes / f"{name}_truth.h5"
             est, b, _ = read_cube(est_path)
             truth, tb, _ = read_cube(truth_path)
             if truth.shape != est.shape or not tb.matches(b):

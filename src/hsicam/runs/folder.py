@@ -188,6 +188,11 @@ def check_is_run(path: str | Path) -> None:
         raise InputError(message)
 
 
+#: What a run without checkpoints (a copied camera) is told when its linear step's filters must be refitted.
+NO_CHECKPOINT_TO_REFIT = ("the run has no checkpoint to refit the filters from: copy the run folder again from its "
+                          "source, or train it again")
+
+
 def linear_step_problem(run_dir: Path, consistency) -> str | None:
     """Why ``consistency`` (a :class:`~hsicam.config.ConsistencyConfig`: the run's own, or an
     evaluation's) cannot use the run's ``linear_step.safetensors``: fitted through other weights,
@@ -213,8 +218,7 @@ def linear_step_problem(run_dir: Path, consistency) -> str | None:
     from hsicam.runs.checkpoint import CheckpointManager
 
     if CheckpointManager(run_dir).manifest() is None and stale_reason(path, root_weights_path(run_dir)):
-        return (f"{why}; the run has no checkpoint to refit the filters from: copy the run folder again from its "
-                "source, or train it again")
+        return f"{why}; {NO_CHECKPOINT_TO_REFIT}"
     sets = [f"model.consistency.{k}={getattr(consistency, k)}" for k in ("kind", "iterations", "window_px")
             if own is None or getattr(own, k) != getattr(consistency, k)]
     return f"{why}; refit it: {refit_command(run_dir, sets)}"
@@ -230,7 +234,7 @@ def _refit_damaged_step_advice(run_dir: Path) -> str:
     if is_pretrained_path(run_dir):
         return "a shipped camera's files are fixed: install hsicam again"
     if CheckpointManager(run_dir).manifest() is None:
-        return "the run has no checkpoint to refit the filters from: copy the run folder again from its source, or train it again"
+        return NO_CHECKPOINT_TO_REFIT
     return f"refit it: {refit_command(run_dir)}"
 
 
