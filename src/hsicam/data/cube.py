@@ -135,6 +135,36 @@ def trained_bands(active: bool = True) -> Iterator[None]:
         _TRAINED_BANDS.reset(token)
 
 
+def _range_text(bands: Bands) -> str:
+    return f"{nm_text(bands.min_nm)}-{nm_text(bands.max_nm)} nm"
+
+
+def mixed_ranges_refusal(source: PathLike | str, cube_bands: Bands, camera_bands: Bands,
+                         grids: Sequence[Bands]) -> InputError:
+    """The refusal of a file whose ``cube_bands`` do not cover ``camera_bands`` when the files of its dataset
+    (``grids``: each one's band grid) are on different band ranges: it names the ranges, how many files cover the
+    camera's bands and the range every file covers, since the range of one file (:func:`conform_bands`'s advice)
+    is refused by another's."""
+    counts: dict[tuple[float, float], int] = {}
+    for g in grids:
+        counts[(g.min_nm, g.max_nm)] = counts.get((g.min_nm, g.max_nm), 0) + 1
+    listed = ", ".join(f"{nm_text(a)}-{nm_text(b)} nm: {n}" for (a, b), n in sorted(counts.items()))
+    covering = sum(g.covers(camera_bands) for g in grids)
+    cam = _range_text(camera_bands)
+    trained = _TRAINED_BANDS.get()
+    text = (f"{source}: the {'run' if trained else 'camera'}'s bands {cam} are not covered by the data's "
+            f"{_range_text(cube_bands)} (no extrapolation), and the dataset's {len(grids)} files lie on {len(counts)} "
+            f"band ranges ({listed}), of which {covering} cover{'s' if covering == 1 else ''} {cam}")
+    if trained:
+        return InputError(f"{text}: a trained run's bands are fixed by its training, so use only files that cover {cam}")
+    lo, hi = max(g.min_nm for g in grids), min(g.max_nm for g in grids)
+    if lo <= hi:
+        return InputError(f"{text}: every file covers {nm_text(lo)}-{nm_text(hi)} nm, so use a camera band grid inside "
+                          "it (bands.start_nm, bands.stop_nm) or only files that cover the camera's range")
+    return InputError(f"{text}: no range is common to every file, so use only files that cover the camera's range "
+                      "(or a camera band grid inside the range of the files kept)")
+
+
 def conform_bands(cube: Any, cube_bands: Bands, camera_bands: Bands, source: PathLike | str = "cube", *,
                   axis: int = -3, note: bool = True) -> Any:
     """Bring ``cube`` (bands on ``axis``: -3 fits (C, H, W) and (B, C, H, W)) from ``cube_bands``
@@ -156,8 +186,7 @@ def conform_bands(cube: Any, cube_bands: Bands, camera_bands: Bands, source: Pat
     if cube_bands.matches(camera_bands) and not resolved_bands(cube_bands, camera_bands).any():
         return cube
     if not cube_bands.covers(camera_bands):
-        cam = f"{nm_text(camera_bands.min_nm)}-{nm_text(camera_bands.max_nm)} nm"
-        data = f"{nm_text(cube_bands.min_nm)}-{nm_text(cube_bands.max_nm)} nm"
+        cam, data = _range_text(camera_bands), _range_text(cube_bands)
         if _TRAINED_BANDS.get():
             raise InputError(f"{source}: the run's bands {cam} are not covered by the data's {data} (no extrapolation): "
                              f"a trained run's bands are fixed by its training, so use data that covers {cam} "

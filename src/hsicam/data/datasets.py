@@ -649,15 +649,17 @@ class SceneDataset(Dataset):
     ``preload=True`` reads every scene once (at construction) and keeps it in memory — DataLoader
     workers started by fork share it. Otherwise an LRU cache of ``cache_size`` scenes per process
     is used, and hsicam HDF5 files on the same band grid are read window by window.
-    ``source_bands`` gives the grid for files that carry none (``.npy``).
+    ``source_bands`` gives the grid for files that carry none (``.npy``). ``dataset``: every file of the dataset
+    ``scenes`` were drawn from (e.g. both splits; default ``scenes``), whose band ranges a refusal names.
     """
 
     def __init__(self, scenes: Sequence[str | os.PathLike], bands: Bands, *, preload: bool = False,
                  cache_size: int = 4, source_bands: Bands | None = None, allow_negative: bool = False,
-                 npy_bands_advice: str = NPY_BANDS_ADVICE) -> None:
+                 npy_bands_advice: str = NPY_BANDS_ADVICE, dataset: Sequence[str | os.PathLike] | None = None) -> None:
         if len(scenes) == 0:
             raise InputError("SceneDataset: no scenes")
         self.paths = [Path(s) for s in scenes]
+        self.dataset = self.paths if dataset is None else [Path(s) for s in dataset]
         self.bands = bands
         self.source_bands = source_bands
         self.npy_bands_advice = npy_bands_advice  # how the caller's user gives a .npy cube's grid
@@ -756,20 +758,43 @@ class SceneDataset(Dataset):
         try:
             cube = resample_cube(cube, src_bands, self.bands, source=path)
         except InputError as exc:
+            mixed = self._mixed_ranges_refusal(path, src_bands)
             if meta.get("bands_assumed"):  # a file without wavelengths (.npy): say how to give them
-                raise InputError(f"{exc} (the file carries no wavelengths, so its {cube.shape[0]} bands were taken "
-                                 f"as 400-700 nm: {self.npy_bands_advice})") from None
+                raise InputError(f"{mixed or exc} (the file carries no wavelengths, so its {cube.shape[0]} bands were "
+                                 f"taken as 400-700 nm: {self.npy_bands_advice})") from None
             from hsicam.data.formats import assumed_bands_note
 
             note = assumed_bands_note(meta)
             if note:  # a MAT/HDF5 file without a band list: its grid was assumed
-                raise InputError(f"{exc} ({note})") from None
+                raise InputError(f"{mixed or exc} ({note})") from None
+            if mixed is not None:
+                raise mixed from None
             raise
         cube, peak = normalize_per_cube_max(cube, source=path)
         p = near_black_percentile(cube)
         warn_if_near_black(path, None if p is None else p * peak, peak)
         self._infos[i] = SceneInfo(path, cube.shape[1], cube.shape[2], peak)
         return np.ascontiguousarray(cube)
+
+    def _mixed_ranges_refusal(self, path: Path, src_bands: Bands) -> InputError | None:
+        """When ``path`` (on ``src_bands``) does not cover :attr:`bands` and this dataset's files lie on different
+        band ranges (:attr:`dataset`), the refusal that names them (:func:`hsicam.data.cube.mixed_ranges_refusal`), else None. Each
+        file's grid is read from its header (:func:`hsicam.data.formats.read_bands`); a file that cannot be told is
+        left out, its own read says why."""
+        if src_bands.covers(self.bands) or len(self.dataset) < 2:
+            return None
+        from hsicam.data.cube import mixed_ranges_refusal
+        from hsicam.data.formats import read_bands
+
+        grids = []
+        for p in self.dataset:
+            try:
+                grids.append(read_bands(p, bands=self.source_bands))
+            except InputError:
+                continue
+        if len({(g.min_nm, g.max_nm) for g in grids}) < 2:
+            return None
+        return mixed_ranges_refusal(path, src_bands, self.bands, grids)
 
     def __getstate__(self) -> dict[str, Any]:
         state = self.__dict__.copy()

@@ -338,7 +338,9 @@ def _ascending(p: Path, cube: np.ndarray, centres: np.ndarray, fwhm: np.ndarray 
     if np.all(step > 0):
         return cube, centres, fwhm
     if np.all(step < 0):
-        flipped = np.ascontiguousarray(np.flip(cube, axis)) if cube.shape[axis] == centres.size else cube
+        flipped = np.flip(cube, axis) if cube.shape[axis] == centres.size else cube
+        if any(flipped.strides):  # (a shape-only cube, :func:`_shape_only`, stays a view of no data)
+            flipped = np.ascontiguousarray(flipped)
         return flipped, centres[::-1].copy(), None if fwhm is None else np.asarray(fwhm)[::-1].copy()
     if np.any(step == 0):
         same = centres[1:][step == 0][0]
@@ -541,9 +543,16 @@ def _is_matlab_h5(head: bytes, f: Any) -> bool:
     return head.startswith(b"MATLAB 7.3") or any("MATLAB_class" in f[k].attrs for k in f.keys())
 
 
-def _load_mat(p: Path, keys: Sequence[str], budget_mb: float | None) -> _MatFile:
+def _shape_only(shape: Sequence[int]) -> np.ndarray:
+    """A read-only array of ``shape`` that holds no data (zero strides): what the band-axis and band-order logic
+    reads of a cube whose values are not needed (:func:`read_bands`)."""
+    return np.lib.stride_tricks.as_strided(np.zeros(1, np.float32), shape=tuple(int(s) for s in shape),
+                                           strides=(0,) * len(shape), writeable=False)
+
+
+def _load_mat(p: Path, keys: Sequence[str], budget_mb: float | None, read_data: bool = True) -> _MatFile:
     """The cube variable (the first of ``keys`` present), the band lists and the vector lengths of a
-    MAT v5, MAT v7.3 or plain HDF5 file."""
+    MAT v5, MAT v7.3 or plain HDF5 file. ``read_data=False``: the cube's shape alone (:func:`_shape_only`)."""
     head = _head(p, 128)
     if head.startswith(_HDF5_MAGIC) or head.startswith(b"MATLAB 7.3"):
         import h5py
@@ -558,7 +567,7 @@ def _load_mat(p: Path, keys: Sequence[str], budget_mb: float | None) -> _MatFile
                 if not isinstance(f[key], h5py.Dataset):
                     raise InputError(f"{p}: '{key}' is not a numeric array")
                 matlab = _is_matlab_h5(head, f)
-                data = np.asarray(_checked_read(p, f[key], budget_mb))
+                data = np.asarray(_checked_read(p, f[key], budget_mb)) if read_data else _shape_only(f[key].shape)
                 if matlab:
                     data = data.T  # h5py returns MATLAB arrays with axes reversed
                 band_lists = {}
@@ -580,12 +589,13 @@ def _load_mat(p: Path, keys: Sequence[str], budget_mb: float | None) -> _MatFile
             if key is None:
                 raise InputError(f"{p}: missing key {' or '.join(repr(k) for k in keys)} (found: {', '.join(names) or 'none'})")
             lists = _band_list_names(names)
-            for name in [key] + lists:
+            read = [key] * read_data + lists
+            for name in read:
                 shape, cls = info[name]
                 check_memory_budget(p, shape, _MAT5_DTYPES.get(cls, "f8"), what=f"variable '{name}' ({cls})",
                                     budget_mb=budget_mb)
-            loaded = scipy.io.loadmat(p, variable_names=[key] + lists)
-            data = np.asarray(loaded[key])
+            loaded = scipy.io.loadmat(p, variable_names=read) if read else {}
+            data = np.asarray(loaded[key]) if read_data else _shape_only(info[key][0])
             band_lists = {n: np.asarray(loaded[n]) for n in lists if n in loaded}
             vectors = {n: _vector_length(info[n][0]) for n in names if n != key and n not in lists}
         return _MatFile(key, data, band_lists, {n: v for n, v in vectors.items() if v}, "5")
@@ -666,6 +676,19 @@ def _band_axis_first(p: Path, m: _MatFile, counts: Sequence[int], matched: str,
 def _read_mat_format(path: str | os.PathLike, fmt: str, allow_negative: bool, budget_mb: float | None) -> Cube:
     p = _as_path(path)
     m = _load_mat(p, _MAT_KEYS[fmt], budget_mb)
+    cube, bands, list_key, assumed, notes = _mat_cube_bands(p, fmt, m)
+    meta: dict[str, Any] = {"format": fmt, "key": m.key, "bands_key": list_key, "assumed_grid": assumed}
+    if m.version is None:
+        meta["container"] = "HDF5"
+    else:
+        meta["mat_version"] = m.version
+    return _finished_noting(notes, _finish(p, cube, bands, meta, allow_negative))
+
+
+def _mat_cube_bands(p: Path, fmt: str, m: _MatFile
+                    ) -> tuple[np.ndarray, Bands, str | None, str | None, list[tuple[int, str]]]:
+    """(cube (C, H, W) ascending, its Bands, the band list's variable or None, the assumed grid's description or
+    None, notes to log) of the MAT or HDF5 file ``p`` of format ``fmt`` that :func:`_load_mat` read as ``m``."""
     centres, list_key, um_note = _file_band_list(p, m.band_lists)
     notes: list[tuple[int, str]] = [(logging.WARNING, um_note)] if um_note else []
     assumed = None
@@ -692,12 +715,7 @@ def _read_mat_format(path: str | os.PathLike, fmt: str, allow_negative: bool, bu
         notes.append((level, text))
     if order:
         notes.append((logging.INFO, order))
-    meta: dict[str, Any] = {"format": fmt, "key": m.key, "bands_key": list_key, "assumed_grid": assumed}
-    if m.version is None:
-        meta["container"] = "HDF5"
-    else:
-        meta["mat_version"] = m.version
-    return _finished_noting(notes, _finish(p, cube, bands, meta, allow_negative))
+    return cube, bands, list_key, assumed, notes
 
 
 def assumed_bands_note(meta: dict[str, Any]) -> str | None:
@@ -812,22 +830,30 @@ def read_kaist_exr(path: str | os.PathLike, *, allow_negative: bool = False, mem
                             what="OpenEXR image", budget_mb=memory_budget_mb)
         with OpenEXR.File(str(p), separate_channels=True) as f:
             channels = {name: np.asarray(ch.pixels) for name, ch in f.channels().items()}
-    micrometres = exr_bare_micrometres(channels)
-    if micrometres:
-        log.info("%s: EXR channel names carry no unit and lie within 0.2-2.6; reading them as micrometres", p)
-    spectral = [(exr_channel_wavelength(n, micrometres), n) for n in channels]
-    spectral = sorted((w, n) for w, n in spectral if w is not None)
-    if not spectral:
-        raise InputError(f"{p}: no EXR channel name carries a wavelength (channels: {', '.join(sorted(channels))})")
+    spectral = _exr_spectral_channels(p, list(channels), note=True)
     waves = [w for w, _ in spectral]
-    if len(set(waves)) != len(waves):
-        raise InputError(f"{p}: two EXR channels name the same wavelength")
     shapes = {channels[n].shape for _, n in spectral}
     if len(shapes) != 1:
         raise InputError(f"{p}: EXR spectral channels have different sizes {sorted(shapes)}")
     cube = np.stack([channels[n].astype(np.float32) for _, n in spectral])
     meta = {"format": "kaist-exr", "channels": [n for _, n in spectral]}
     return _finish(p, cube, Bands.from_centers(waves), meta, allow_negative)
+
+
+def _exr_spectral_channels(p: Path, names: Sequence[str], note: bool = False) -> list[tuple[float, str]]:
+    """(wavelength nm, channel name) of the EXR channels ``names`` that carry a wavelength, ascending; InputError
+    when none does or two name the same one. ``note``: log that bare numbers were read as micrometres."""
+    micrometres = exr_bare_micrometres(names)
+    if micrometres and note:
+        log.info("%s: EXR channel names carry no unit and lie within 0.2-2.6; reading them as micrometres", p)
+    spectral = [(exr_channel_wavelength(n, micrometres), n) for n in names]
+    spectral = sorted((w, n) for w, n in spectral if w is not None)
+    if not spectral:
+        raise InputError(f"{p}: no EXR channel name carries a wavelength (channels: {', '.join(sorted(names))})")
+    waves = [w for w, _ in spectral]
+    if len(set(waves)) != len(waves):
+        raise InputError(f"{p}: two EXR channels name the same wavelength")
+    return spectral
 
 
 # ------------------------------------------------------------------------------------------------
@@ -1618,6 +1644,51 @@ def read_window(path: str | os.PathLike, y: int, x: int, h: int, w: int) -> tupl
     return cube, bands
 
 
+def read_bands(path: str | os.PathLike, *, bands: Bands | None = None) -> Bands:
+    """The band grid :func:`read_cube` returns for ``path``, read without loading the cube's values: from the
+    header, band list or channel names (an ENVI header's good bands, a MAT/HDF5 file's band list or, without one,
+    the grid assumed for its band count, an EXR file's channel names, CAVE's 400-700 nm, a ``.npy`` file's
+    ``bands`` or C bands over 400-700 nm). InputError as the reader would raise it for what this reads."""
+    p = _as_path(path)
+    fmt = detect_format(p)
+    if fmt == "cave":
+        return Bands.uniform(400.0, 700.0, 10.0)
+    if fmt == "npy":
+        shape, _ = npy_header(p)
+        if len(shape) != 3:
+            raise InputError(f"{p}: expected a 3-D array (bands, height, width), got {len(shape)} dimensions {shape}")
+        if bands is not None and len(bands) != shape[0]:
+            raise InputError(f"{p}: the cube has {shape[0]} bands but the band grid given for it has {len(bands)}")
+        return bands if bands is not None else bands_400_700(shape[0])
+    if fmt == "envi":
+        hdr, data = _envi_pair(p)
+        h = parse_envi_header(hdr)
+        n = _envi_layout(hdr, h).nbands
+        waves, fwhm, _ = _envi_wavelengths(hdr, h, n)
+        waves, fwhm, _ = _envi_drop_bad_bands(hdr, data, waves, fwhm, _envi_good_bands(hdr, h, n), [])
+        _, waves, fwhm, _ = _envi_ascending(_shape_only((waves.size, 1, 1)), waves, fwhm, None)
+        return _bands_from(hdr, waves, fwhm)
+    if fmt == "kaist-exr":
+        try:
+            import OpenEXR
+        except ImportError:
+            raise InputError(f"{p}: reading OpenEXR needs the 'openexr' package (pip install 'hsicam[exr]')") from None
+        with _reading(p, "OpenEXR"):
+            with OpenEXR.File(str(p), header_only=True) as f:
+                names = [c.name for c in f.header().get("channels", ())]
+        return Bands.from_centers([w for w, _ in _exr_spectral_channels(p, names)])
+    if fmt == "hsicam":
+        import h5py
+
+        with _reading(p, "HDF5"), h5py.File(p, "r") as f:
+            check_format_version(p, f.attrs)
+            if not isinstance(f["cube"], h5py.Dataset):
+                raise InputError(f"{p}: 'cube' is a {type(f['cube']).__name__.lower()}, not an array "
+                                 "(not an hsicam cube file)")
+            return _h5_bands(p, f, _shape_only(f["cube"].shape))[1]
+    return _mat_cube_bands(p, fmt, _load_mat(p, _MAT_KEYS[fmt], None, read_data=False))[1]
+
+
 __all__ = [
     "BAND_LIST_NAMES",
     "FORMATS",
@@ -1632,6 +1703,7 @@ __all__ = [
     "npy_header",
     "parse_envi_header",
     "read_arad",
+    "read_bands",
     "read_cave",
     "read_cube",
     "read_envi",
