@@ -62,6 +62,10 @@ def _check_pair(x: torch.Tensor, y: torch.Tensor) -> None:
         raise InputError(f"shapes differ: {tuple(x.shape)} vs {tuple(y.shape)}")
     if x.dim() not in (3, 4):
         raise InputError(f"expected (B, C, H, W) or (C, H, W), got {tuple(x.shape)}")
+    if min(x.shape[-3:]) < 1:  # an empty band axis or image: nothing to score (NaN or a reduction's IndexError)
+        raise InputError(f"nothing to score: shape {tuple(x.shape)} has no bands or no pixels (C, H, W >= 1)")
+    if x.device != y.device:
+        raise InputError(f"the estimate is on {x.device}, the truth on {y.device}: move one of them")
 
 
 def _batched(x: torch.Tensor, y: torch.Tensor, dtype: torch.dtype = torch.float64) -> tuple[torch.Tensor, torch.Tensor]:

@@ -132,10 +132,26 @@ def test_the_pattern_cache_keys_on_the_window_origin():
 
     ap = CodedAperture(seed=2)
     whole = ap.pattern(12, 13)
-    first = ap.pattern(4, 5, origin=(0, 0))
-    assert ap.pattern(4, 5, origin=(0, 0)) is first  # cached
+    first = ap.cached_pattern(4, 5, origin=(0, 0))
+    assert ap.cached_pattern(4, 5, origin=(0, 0)) is first  # cached
     for r0, c0 in ((1, 0), (0, 1), (8, 8), (0, 0)):
         assert torch.equal(ap.pattern(4, 5, origin=(r0, c0)), whole[r0:r0 + 4, c0:c0 + 5]), (r0, c0)
+        assert torch.equal(ap.cached_pattern(4, 5, origin=(r0, c0)), whole[r0:r0 + 4, c0:c0 + 5]), (r0, c0)
+
+
+def test_editing_a_pattern_leaves_the_camera_alone():
+    """pattern() hands out a copy (a Python API hunt found its cached window edited through it: A changed by 0.36)."""
+    from hsicam.cameras import DDCASSICamera
+    from hsicam.config import load_config
+
+    cam = DDCASSICamera.from_config(load_config("tiny", ["camera.kind=dd_cassi"]))
+    x = torch.rand(2, len(cam.bands), 8, 8, generator=torch.Generator().manual_seed(0))
+    y = torch.rand(2, 1, 8, 8 + cam.span, generator=torch.Generator().manual_seed(1))
+    before, before_t = cam.A(x), cam.A_adjoint(y)
+    mask = cam.aperture.pattern(8, 8 + cam.span)
+    mask[mask == 0] = 0.5
+    mask.mul_(3.0)
+    assert torch.equal(cam.A(x), before) and torch.equal(cam.A_adjoint(y), before_t)
 
 
 def test_a_loaded_aperture_window_is_the_arrays_crop_and_one_outside_it_is_refused(tmp_path):

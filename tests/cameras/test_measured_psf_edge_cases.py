@@ -46,7 +46,7 @@ def test_a_fixed_psf_stack_of_another_kernel_is_refused_and_the_given_one_is_a_c
     cam = tiny_camera()
     c, k = len(cam.bands), cam.kernel_px
     for shape in ((c, k - 2, k - 2), (c, k, k + 2), (c + 1, k, k)):
-        with pytest.raises(ValueError, match=rf"must be \({c}, {k}, {k}\)"):
+        with pytest.raises(InputError, match=rf"must be \({c}, {k}, {k}\)"):
             FixedPSFCamera.from_camera(cam, torch.zeros(shape))
     new = torch.full((c, k, k), 1.0 / (k * k))
     fixed = FixedPSFCamera.from_camera(cam, new)

@@ -438,3 +438,88 @@ def test_a_network_of_ones_own_that_returns_the_wrong_size_is_named(kind):
                 model.network(y)
     finally:
         NETWORKS.pop("every_other_s71", None)
+
+
+def test_the_adjoint_and_the_snapshot_refuse_what_A_refuses():
+    """A Python API hunt (session 72): the DOE camera's Aᵀ took a half-precision, other-device or (reflect/circular
+    padding) too small image to a deep torch error, its snapshot a NumPy array or an int tensor; each is now the
+    refusal ``A`` gives a scene, worded for a sensor image. Good input is unchanged (the adjoint identity holds)."""
+    from hsicam.cameras import DOECamera
+
+    cam = DOECamera.from_config(load_config("tiny", ["camera.boundary=same", "camera.padding=reflect"]))
+    g = torch.rand(1, 1, 30, 30, generator=torch.Generator().manual_seed(2))
+    cases = [
+        (g.half(), "sensor image is torch.float16 on the CPU: the DOECamera's FFT convolution needs float32 or float64 "
+                   "there (y.float())"),
+        (g.bfloat16(), "sensor image is torch.bfloat16 on the CPU: the DOECamera's FFT convolution needs float32 or "
+                       "float64 there (y.float())"),
+        (g.to("meta"), "sensor image is on meta, the DOECamera on cpu: move one of them (.to('cpu'))"),
+        (g[..., :9, :9], "sensor image of 9×9 px is too small for reflect padding by 10 px: it needs at least 11 px per "
+                         "side"),
+    ]
+    for y, said in cases:
+        with pytest.raises(InputError) as exc:
+            cam.A_adjoint(y)
+        assert str(exc.value) == said
+    with pytest.raises(InputError, match="too small for reflect padding by 10 px"):
+        cam.A(torch.rand(1, 7, 9, 9))  # what A says of the scene of that size
+    circular = DOECamera.from_config(load_config("tiny", ["camera.boundary=same", "camera.padding=circular"]))
+    with pytest.raises(InputError, match="too small for circular padding by 10 px: it needs at least 10 px"):
+        circular.A_adjoint(g[..., :9, :20])
+    assert circular.A_adjoint(g[..., :10, :10]).shape == (1, 7, 10, 10)
+    x = torch.rand(1, 7, 30, 30, generator=torch.Generator().manual_seed(3), dtype=torch.float64)
+    c64 = cam.double()
+    lhs, rhs = (c64.A(x) * g.double()).sum(), (x * c64.A_adjoint(g.double())).sum()
+    assert abs(float(lhs - rhs)) <= 1e-12 * abs(float(lhs))
+    snap = DOECamera.from_config(load_config("tiny")).snapshot()
+    for bad, what in ((np.zeros((1, 7, 16, 16)), "cube must be a torch.Tensor (B, 7, H, W), got ndarray"),
+                      (torch.zeros(1, 7, 16, 16, dtype=torch.int64), "cube is torch.int64"),
+                      (torch.zeros(1, 7, 16, 16).half(), "cube is torch.float16"),
+                      (torch.zeros(1, 6, 16, 16), "cube must be (B, 7, H, W), got shape (1, 6, 16, 16)"),
+                      (torch.zeros(1, 7, 16, 16, device="meta"), "cube is on meta, the camera's PSFs on cpu")):
+        with pytest.raises(InputError, match="^" + re.escape(what)):
+            snap.A(bad)
+    with pytest.raises(InputError, match=re.escape("sensor image is torch.float16")):
+        snap.A_adjoint(torch.zeros(1, 1, 16, 16).half())
+    with pytest.raises(InputError, match=re.escape("sensor image must be (B, 1, H, W), got shape (1, 2, 16, 16)")):
+        snap.A_adjoint(torch.zeros(1, 2, 16, 16))
+
+
+def test_a_fixed_psf_stack_is_an_intensity_kept_in_its_precision():
+    """``FixedPSFCamera.from_camera`` refused a wrong shape with a bare ValueError, took negative or NaN PSFs (a
+    negative sensor image followed) and cut float64 PSFs to float32 (a float64 camera then imaged 5e-8 off them)."""
+    import torch.nn.functional as F
+
+    from hsicam.cameras import DOECamera
+    from hsicam.cameras.measured import FixedPSFCamera
+
+    cam = DOECamera.from_config(load_config("tiny"))
+    c, k = len(cam.bands), cam.kernel_px
+    psf = torch.rand(c, k, k, dtype=torch.float64, generator=torch.Generator().manual_seed(4)) / (k * k)
+    fixed = FixedPSFCamera.from_camera(cam, psf).double()
+    assert torch.equal(fixed.psf(), psf)
+    x = torch.rand(1, c, 28, 28, dtype=torch.float64, generator=torch.Generator().manual_seed(5))
+    # the image of band b is the scene's band b correlated with the PSF flipped (a convolution), times the CFA
+    want = sum(F.conv2d(x[:, b:b + 1], psf[b].flip(-2, -1)[None, None]) * fixed.cfa.pattern(8, 8)[b].double()
+               for b in range(c))
+    torch.testing.assert_close(fixed.A(x), want, rtol=1e-12, atol=1e-15)
+    assert FixedPSFCamera.from_camera(cam, psf.float()).fixed_psf.dtype == torch.float32
+    for bad, said in ((psf - psf.mean(), "PSF stack must hold finite, non-negative numbers"),
+                      (psf.clone().fill_(float("nan")), "PSF stack must hold finite, non-negative numbers"),
+                      (torch.ones(c, k, k, dtype=torch.int64), "got torch.int64"),
+                      (psf[:-1], f"PSF stack must be ({c}, {k}, {k}) for this camera, got ({c - 1}, {k}, {k})")):
+        with pytest.raises(InputError, match=re.escape(said)):
+            FixedPSFCamera.from_camera(cam, bad)
+
+
+def test_metrics_refuse_an_empty_image_and_two_devices():
+    from hsicam.metrics import all_metrics, psnr_per_band, sam_degrees, ssim
+
+    x = torch.rand(1, 4, 16, 16)
+    for a in (x[..., :0, :], x[:, :0], x[..., :, :0]):
+        for metric in (psnr_per_band, sam_degrees, ssim, all_metrics):
+            with pytest.raises(InputError, match="nothing to score: shape .* has no bands or no pixels"):
+                metric(a, a.clone())
+    with pytest.raises(InputError, match=re.escape("the estimate is on cpu, the truth on meta: move one of them")):
+        psnr_per_band(x, x.to("meta"))
+    assert psnr_per_band(x[:0], x[:0]).shape == (0,)  # an empty batch: no scores, as before

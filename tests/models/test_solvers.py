@@ -547,8 +547,24 @@ def test_solver_setting_refusals(tiny_camera):
     with pytest.raises(InputError) as exc:
         desci_settings(patch=0)
     assert str(exc.value) == "DeSCI: patch, step, group, match_every and chunk must be >= 1, search >= 0"
-    cam = tiny_camera()
-    h, w = cam.sensor_size((32, 32))
+    cam = cassi("dd_cassi", 8, dtype=torch.float32)
+    y = torch.rand(1, 1, 8, 8)  # a DD-CASSI image is the scene's size
+    assert cam.scene_size((8, 8)) == (8, 8)
+    for kw, said in (({"iterations": -1}, "iterations must be an integer >= 0, got -1"),
+                     ({"iterations": 2.0}, "iterations must be an integer >= 0, got 2.0"),
+                     ({"tv_iterations": -1}, "tv_iterations must be an integer >= 0, got -1")):
+        with pytest.raises(InputError) as exc:
+            gap_tv(cam, y, **kw)
+        assert str(exc.value) == said
+    # a start of another size, or not a tensor, is named; a camera whose ΦΦᵀ is not diagonal too (was
+    # NotImplementedError, AttributeError)
+    with pytest.raises(InputError, match=r"GAP-TV: the start x0 is \(1, 8, 8, 9\) but the measurement's cube is "
+                                         r"\(1, 8, 8, 8\)"):
+        gap_tv(cam, y, x0=torch.zeros(1, 8, 8, 9))
+    with pytest.raises(InputError, match="scene must be a torch.Tensor"):
+        gap_tv(cam, y, x0=np.zeros((1, 8, 8, 8)))
+    doe = tiny_camera()
+    h, w = doe.sensor_size((32, 32))
     with pytest.raises(InputError) as exc:
-        gap_tv(cam, torch.zeros(1, 1, h, w), iterations=-1)
-    assert str(exc.value) == "iterations must be >= 0, got -1"
+        gap_tv(doe, torch.zeros(1, 1, h, w))
+    assert str(exc.value) == "GAP-TV needs a camera whose ΦΦᵀ is diagonal (a CASSI camera): DOECamera: A·Aᵀ is not diagonal"

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import re
+
 import numpy as np
 import pytest
 import torch
@@ -84,6 +86,40 @@ def test_bands_dict_round_trip_and_matching():
     b = Bands.uniform(450, 650, 25, fwhm_nm=12.0)
     assert Bands.from_dict(b.to_dict()) == b
     assert not b.matches(Bands.uniform(450, 650, 50))
+    # text where numbers belong is the Bands' own error (was numpy's ValueError); the constructor's own stays
+    with pytest.raises(InputError, match="^Bands: centers_nm and fwhm_nm must be lists of numbers"):
+        Bands.from_dict({"centers_nm": "abc", "fwhm_nm": 1})
+    with pytest.raises(InputError) as exc:
+        Bands.from_dict({"centers_nm": [500, 400], "fwhm_nm": [10, 10]})
+    assert "must be lists of numbers" not in str(exc.value)
+
+
+def test_uniform_grid_names_a_value_that_is_not_a_finite_number():
+    for args, said in (((float("nan"), 700, 10), "start_nm nan"), ((400, float("inf"), 10), "stop_nm inf"),
+                       ((400, 700, float("nan")), "step_nm nan"), ((400, "700", 10), "stop_nm '700'")):
+        with pytest.raises(InputError, match=r"^Bands.uniform: start, stop and step must be finite numbers \(nm\), got "
+                                             + re.escape(said) + "$"):
+            Bands.uniform(*args)
+
+
+def test_a_grid_of_more_decimals_than_a_file_keeps_is_still_that_grid_read_back(tmp_path):
+    """A file lists band centres to 1e-3 nm (ENVI headers, and every reader's rounding); a grid of more decimals
+    written and read back was refused at its end (720.0004 not covered by 720) or resampled. Grids within half of
+    that (BAND_TOL_NM) are one grid: the cube comes back as written."""
+    from hsicam.data import read_cube, write_envi
+    from hsicam.data.cube import conform_bands
+    from hsicam.spectral.bands import BAND_TOL_NM
+
+    assert BAND_TOL_NM == 5e-4
+    bands = Bands.from_centers(np.linspace(420.0, 720.0004, 31), 10.0)
+    cube = np.random.default_rng(0).random((31, 6, 5)).astype(np.float32)
+    hdr, _ = write_envi(tmp_path / "c.hdr", cube, bands)
+    back, back_bands, _ = read_cube(hdr)
+    assert back_bands.max_nm == 720.0 and back_bands.matches(bands) and back_bands.covers(bands)
+    assert conform_bands(back, back_bands, bands, hdr) is back
+    # 1e-3 nm apart is another grid (resampled), and 1e-3 nm beyond the data is refused
+    shifted = Bands.from_centers(bands.centers_nm + 1e-3, 10.0)
+    assert not back_bands.matches(shifted) and not back_bands.covers(shifted)
 
 
 # --------------------------------------------------------------------------------------------

@@ -191,9 +191,19 @@ class Camera(nn.Module):
 
     def check_measurement(self, y: torch.Tensor) -> None:
         """Raise :class:`InputError` unless ``y`` is a finite (B, 1, H, W) sensor image (:func:`check_sensor_image`;
-        a solver given NaN returned a NaN cube without a word)."""
+        a solver given NaN returned a NaN cube without a word) in a precision this camera's operator takes on its
+        device, on that device (as :meth:`check_scene` checks a scene)."""
         check_sensor_image(y)
+        self._check_precision(y, "sensor image", "y")
+        check_device(y, self, "sensor image")
         check_finite(y, "sensor image")
+
+    def _check_precision(self, t: torch.Tensor, what: str, name: str) -> None:
+        """:class:`InputError` for a half-precision ``t`` on the CPU when this camera's operator needs float32 or
+        float64 there (:attr:`half_precision_on_cpu`)."""
+        if t.device.type == "cpu" and t.dtype in (torch.float16, torch.bfloat16) and not self.half_precision_on_cpu:
+            raise InputError(f"{what} is {t.dtype} on the CPU: the {type(self).__name__}'s FFT convolution needs "
+                             f"float32 or float64 there ({name}.float())")
 
     @torch.no_grad()
     def relative_residual(self, x: torch.Tensor, y: torch.Tensor) -> float:
@@ -352,9 +362,7 @@ class Camera(nn.Module):
         if not torch.is_floating_point(x):
             raise InputError(f"scene must be a floating-point tensor with values in [0, 1] (reflectance-like), "
                              f"got {x.dtype}")
-        if x.device.type == "cpu" and x.dtype in (torch.float16, torch.bfloat16) and not self.half_precision_on_cpu:
-            raise InputError(f"scene is {x.dtype} on the CPU: the {type(self).__name__}'s FFT convolution needs float32 "
-                             "or float64 there (x.float())")
+        self._check_precision(x, "scene", "x")
         if x.shape[0] < 1:
             raise InputError(f"scene of shape {tuple(x.shape)} is an empty batch: it needs B >= 1")
         check_device(x, self, "scene")

@@ -158,9 +158,15 @@ class CodedAperture(nn.Module):
 
     def pattern(self, h: int, w: int, device: torch.device | str | None = None,
                 dtype: torch.dtype = torch.float32, origin: tuple[int, int] = (0, 0)) -> torch.Tensor:
-        """Aperture window (h, w) at ``origin`` (row, column) on ``device`` in ``dtype`` (cached for the last few
-        windows): the (h, w) crop at ``origin`` of the pattern ``pattern(r0 + h, c0 + w)``, of which only the window is
-        hashed."""
+        """Aperture window (h, w) at ``origin`` (row, column) on ``device`` in ``dtype``: the (h, w) crop at ``origin``
+        of the pattern ``pattern(r0 + h, c0 + w)``, of which only the window is hashed. A copy: editing it leaves the
+        camera's code alone (the cameras read :meth:`cached_pattern`)."""
+        return self.cached_pattern(h, w, device, dtype, origin).clone()
+
+    def cached_pattern(self, h: int, w: int, device: torch.device | str | None = None,
+                       dtype: torch.dtype = torch.float32, origin: tuple[int, int] = (0, 0)) -> torch.Tensor:
+        """:meth:`pattern`'s window itself, cached for the last few windows and shared by every call that asks for
+        it: never to be edited."""
         device = torch.device(device) if device is not None else torch.device("cpu")
         r0, c0 = int(origin[0]), int(origin[1])
         key = (h, w, r0, c0, str(device), dtype)
@@ -426,7 +432,7 @@ class DDCASSICamera(_CASSICamera):
     def band_masks(self, h: int, w: int, device: torch.device | str | None = None,
                    dtype: torch.dtype = torch.float32) -> torch.Tensor:
         """The code each band sees, (C, h, w)."""
-        return dd_band_masks(self.aperture.pattern(h, w + self.span, device, dtype), self.shifts, w)
+        return dd_band_masks(self.aperture.cached_pattern(h, w + self.span, device, dtype), self.shifts, w)
 
     def A(self, x: torch.Tensor) -> torch.Tensor:  # noqa: N802
         """Noiseless measurement (B, 1, H, W) of the scene ``x`` (B, C, H, W)."""
@@ -459,14 +465,14 @@ class SDCASSICamera(_CASSICamera):
     def A(self, x: torch.Tensor) -> torch.Tensor:  # noqa: N802
         """Noiseless measurement (B, 1, H, W + D) of the scene ``x`` (B, C, H, W)."""
         self.check_scene(x)
-        p = self.aperture.pattern(x.shape[-2], x.shape[-1], x.device, x.dtype)
+        p = self.aperture.cached_pattern(x.shape[-2], x.shape[-1], x.device, x.dtype)
         return sd_cassi_forward(x, p, self.shifts, self.scale)
 
     def A_adjoint(self, y: torch.Tensor) -> torch.Tensor:  # noqa: N802
         """Exact adjoint of :meth:`A`: (B, 1, H, W + D) → (B, C, H, W)."""
         self.check_measurement(y)
         self.check_measurement_width(y.shape[-1])
-        p = self.aperture.pattern(y.shape[-2], y.shape[-1] - self.span, y.device, y.dtype)
+        p = self.aperture.cached_pattern(y.shape[-2], y.shape[-1] - self.span, y.device, y.dtype)
         return sd_cassi_adjoint(y, p, self.shifts, self.scale)
 
 
@@ -504,7 +510,7 @@ class CASSISnapshot:
     def _aperture(self, h: int, w: int, origin: tuple[int, int], ref: torch.Tensor) -> torch.Tensor:
         check_origin(origin)  # a float, a None or a third item was taken as int(...) of the first two
         r0, c0 = self.offset[0] + int(origin[0]), self.offset[1] + int(origin[1])
-        return self.camera.aperture.pattern(h, w, ref.device, ref.dtype, (r0, c0))
+        return self.camera.aperture.cached_pattern(h, w, ref.device, ref.dtype, (r0, c0))
 
     def A(self, x: torch.Tensor, origin: tuple[int, int] = (0, 0)) -> torch.Tensor:  # noqa: N802
         self.camera.check_scene(x)

@@ -191,6 +191,10 @@ class DOECamera(Camera):
     def A_adjoint(self, g: torch.Tensor, psf: torch.Tensor | None = None) -> torch.Tensor:  # noqa: N802
         """Exact adjoint of :meth:`A`: sensor image (B, 1, H, W) → cube (B, C, H', W')."""
         self.check_measurement(g)
+        least = self.min_padded_px()  # a `same` image is the scene's size: as small a scene as A refuses
+        if min(g.shape[-2:]) < least:
+            raise InputError(f"sensor image of {g.shape[-2]}×{g.shape[-1]} px is too small for {self.padding} padding "
+                             f"by {self.margin // 2} px: it needs at least {least} px per side")
         psf = self.psf() if psf is None else psf
         kappa = self.cfa.pattern(g.shape[-2], g.shape[-1]).to(g.dtype)
         x = coded_conv_valid_adjoint(g, psf.to(g.dtype), kappa)
@@ -339,10 +343,23 @@ class DOESnapshot:
             tile = torch.roll(tile, shifts=shift, dims=(-2, -1))
         return tile_pattern(tile, height, width)
 
+    def _check_input(self, t: torch.Tensor, channels: int, what: str) -> None:
+        """:class:`InputError` unless ``t`` is a floating (B, ``channels``, H, W) tensor that the FFT convolution
+        takes: float32 or float64 on the CPU, on the PSFs' device (values are not scanned: the steps call A and Aᵀ
+        dozens of times)."""
+        if not isinstance(t, torch.Tensor):
+            raise InputError(f"{what} must be a torch.Tensor (B, {channels}, H, W), got {type(t).__name__}")
+        if t.dim() != 4 or t.shape[1] != channels:
+            raise InputError(f"{what} must be (B, {channels}, H, W), got shape {tuple(t.shape)}")
+        if not torch.is_floating_point(t) or (t.device.type == "cpu" and t.dtype in (torch.float16, torch.bfloat16)):
+            raise InputError(f"{what} is {t.dtype}: the DOE camera's FFT convolution takes float32 or float64 on the "
+                             "CPU (.float())")
+        if t.device != self.psf.device:
+            raise InputError(f"{what} is on {t.device}, the camera's PSFs on {self.psf.device}: move one of them")
+
     def A(self, x: torch.Tensor, origin: tuple[int, int] = (0, 0)) -> torch.Tensor:  # noqa: N802
         """Sensor window (B, 1, h, w) of the cube ``x`` (B, C, h, w)."""
-        if x.dim() != 4 or x.shape[1] != len(self.bands):
-            raise InputError(f"cube must be (B, {len(self.bands)}, H, W), got shape {tuple(x.shape)}")
+        self._check_input(x, len(self.bands), "cube")
         kappa = self._code(x.shape[-2], x.shape[-1], origin, x.dtype)
         k = self.kernel_px
         spectra = self._spectra((x.shape[-2] + k - 1, x.shape[-1] + k - 1), x.dtype)
@@ -350,8 +367,7 @@ class DOESnapshot:
 
     def A_adjoint(self, y: torch.Tensor, origin: tuple[int, int] = (0, 0)) -> torch.Tensor:  # noqa: N802
         """Exact adjoint of :meth:`A`: (B, 1, h, w) → (B, C, h, w)."""
-        if y.dim() != 4 or y.shape[1] != 1:
-            raise InputError(f"sensor image must be (B, 1, H, W), got shape {tuple(y.shape)}")
+        self._check_input(y, 1, "sensor image")
         kappa = self._code(y.shape[-2], y.shape[-1], origin, y.dtype)
         k = self.kernel_px
         spectra = self._spectra((y.shape[-2] + k - 1, y.shape[-1] + k - 1), y.dtype)

@@ -16,6 +16,7 @@ import torch
 
 from hsicam.cameras.base import Camera
 from hsicam.cameras.doe_camera import DOECamera
+from hsicam.errors import InputError
 from hsicam.optics.psf import PSFResult
 
 
@@ -31,13 +32,20 @@ class FixedPSFCamera(DOECamera):
 
     @classmethod
     def from_camera(cls, camera: DOECamera, psf: torch.Tensor) -> "FixedPSFCamera":
-        """A camera sharing ``camera``'s modules, imaging with ``psf`` (C, K, K)."""
+        """A camera sharing ``camera``'s modules, imaging with ``psf`` (C, K, K): finite and non-negative (a PSF is
+        an intensity); kept in float64 when given so (the camera's ``.double()`` then images with it exactly), else
+        float32. InputError for another shape or such values."""
         psf = torch.as_tensor(psf).detach()
         k = camera.kernel_px
         if psf.shape != (len(camera.bands), k, k):
-            raise ValueError(f"PSF stack must be ({len(camera.bands)}, {k}, {k}) for this camera, got {tuple(psf.shape)}")
+            raise InputError(f"PSF stack must be ({len(camera.bands)}, {k}, {k}) for this camera, got {tuple(psf.shape)}")
+        if not torch.is_floating_point(psf) or not bool(torch.isfinite(psf).all()) or bool((psf < 0).any()):
+            raise InputError("PSF stack must hold finite, non-negative numbers (an intensity per pixel): clip a "
+                             "background-subtracted measurement at 0 first" + ("" if torch.is_floating_point(psf) else
+                                                                               f"; got {psf.dtype}"))
+        dtype = torch.float64 if psf.dtype == torch.float64 else torch.float32
         obj = cls(camera.bands, camera.optics, camera.cfa, camera.noise, camera.boundary, camera.padding)
-        obj.register_buffer("fixed_psf", psf.to(camera.optics.amplitude.device, torch.float32).clone(), persistent=False)
+        obj.register_buffer("fixed_psf", psf.to(camera.optics.amplitude.device, dtype).clone(), persistent=False)
         return obj
 
     def noise_levels(self) -> dict[str, float]:

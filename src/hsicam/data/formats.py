@@ -317,7 +317,8 @@ def _band_numbers(p: Path, values: Any, key: str) -> np.ndarray:
 
 #: Decimals (of a nanometre) kept of the band centres (and widths) that a file lists: float32 0.7 µm is
 #: 699.99998 nm after the conversion, and an ENVI header that prints float32 centres lists 719.99997 nm;
-#: neither would cover a camera band at 700 or 720 nm (coverage is checked to 1e-6 nm).
+#: neither would cover a camera band at 700 or 720 nm. (Grids are compared to half of this,
+#: :data:`hsicam.spectral.bands.BAND_TOL_NM`, so a grid of more decimals read back is the grid written.)
 NM_DECIMALS = 3
 
 

@@ -6,9 +6,36 @@ steps, ``camera.gram_diagonal(y)`` (diag ΦΦᵀ, declared by cameras whose ΦΦ
 
 from __future__ import annotations
 
+import numbers
+
 import torch
 
+from hsicam.errors import InputError
 from hsicam.models.tv import chambolle_step, dual_divergence
+
+
+def check_solver_inputs(camera, y: torch.Tensor, x0: torch.Tensor | None, solver: str) -> torch.Tensor:
+    """diag ΦΦᵀ of ``camera`` for the measurement ``y`` (B, 1, H, W'), after checking ``y`` (the camera's
+    :meth:`check_measurement`), that ΦΦᵀ is diagonal (a CASSI camera; another is one :class:`InputError` naming
+    ``solver``) and that a start ``x0`` is a cube this camera takes, of the size ``y``'s scene has."""
+    camera.check_measurement(y)
+    try:
+        phi = camera.gram_diagonal(y)
+    except NotImplementedError as exc:
+        raise InputError(f"{solver} needs a camera whose ΦΦᵀ is diagonal (a CASSI camera): {exc}") from None
+    if x0 is not None:
+        camera.check_scene_layout(x0)
+        want = (y.shape[0], len(camera.bands), *camera.scene_size(tuple(y.shape[-2:])))
+        if tuple(x0.shape) != want:
+            raise InputError(f"{solver}: the start x0 is {tuple(x0.shape)} but the measurement's cube is {want}")
+        camera.check_scene(x0)
+    return phi
+
+
+def check_count(name: str, value, least: int = 0) -> None:
+    """:class:`InputError` unless ``value`` is an integer >= ``least`` (a solver's number of iterations)."""
+    if isinstance(value, bool) or not isinstance(value, numbers.Integral) or value < least:
+        raise InputError(f"{name} must be an integer >= {least}, got {value!r}")
 
 
 def gap_projection(camera, x: torch.Tensor, y: torch.Tensor, phi: torch.Tensor) -> torch.Tensor:

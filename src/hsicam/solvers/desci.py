@@ -41,6 +41,7 @@ import torch.nn.functional as F
 from hsicam.config import GAPTVConfig
 from hsicam.devices import float64_device
 from hsicam.errors import InputError
+from hsicam.solvers.common import check_solver_inputs
 from hsicam.solvers.gaptv import SolverInfo, gap_tv
 
 log = logging.getLogger(__name__)
@@ -233,7 +234,7 @@ def wnnm_denoise(x: torch.Tensor, sigma: float, settings: DeSCISettings, matches
 def desci(camera, y: torch.Tensor, settings: DeSCISettings | None = None, x0: torch.Tensor | None = None,
           return_info: bool = False):
     """DeSCI reconstruction of a measurement (B, 1, H, W') → cube (B, C, H, W) [, SolverInfo]."""
-    camera.check_measurement(y)
+    phi = check_solver_inputs(camera, y, x0, "DeSCI")
     s = settings or DeSCISettings()
     t0 = time.perf_counter()
     info = SolverInfo()
@@ -241,7 +242,6 @@ def desci(camera, y: torch.Tensor, settings: DeSCISettings | None = None, x0: to
         x = gap_tv(camera, y, s.init_iterations, s.init_tv_weight, accelerate=s.accelerate)
     else:
         x = x0.clone()
-    phi = camera.gram_diagonal(y)
     y_acc = y.clone()
     matches: list[torch.Tensor | None] = [None] * x.shape[0]
     it = 0

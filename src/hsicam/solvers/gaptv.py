@@ -23,7 +23,7 @@ import torch
 
 from hsicam.config import GAPTVConfig
 from hsicam.errors import InputError
-from hsicam.solvers.common import tv_denoise
+from hsicam.solvers.common import check_count, check_solver_inputs, tv_denoise
 
 log = logging.getLogger(__name__)
 
@@ -61,16 +61,15 @@ def gap_tv(camera, y: torch.Tensor, iterations: int = GAPTVConfig.iterations,
     Returns:
         cube (B, C, H, W) [, SolverInfo].
     """
-    camera.check_measurement(y)
-    if iterations < 0:
-        raise InputError(f"iterations must be >= 0, got {iterations}")
+    phi = check_solver_inputs(camera, y, x0, "GAP-TV")
+    check_count("iterations", iterations)
+    check_count("tv_iterations", tv_iterations)
     weights = tv_weight if isinstance(tv_weight, (list, tuple)) else [tv_weight]
     bad = [w for w in weights if isinstance(w, bool) or not isinstance(w, numbers.Real) or not 0 <= w < math.inf]
     if bad or not weights:
         raise InputError(f"tv_weight must be a finite number >= 0 (or a non-empty list of them), got {tv_weight!r}")
     t0 = time.perf_counter()
     info = SolverInfo()
-    phi = camera.gram_diagonal(y)
     x = camera.A_adjoint(y / phi) if x0 is None else x0.clone()
     y_acc = y.clone()
     for k in range(iterations):

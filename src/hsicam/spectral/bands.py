@@ -22,6 +22,7 @@ No rule extrapolates: a target centre outside the source's range is refused.
 from __future__ import annotations
 
 import math
+import numbers
 import sys
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
@@ -35,6 +36,10 @@ if TYPE_CHECKING:
     import torch
 
 _TOL_NM = 1e-6
+#: Two band centres closer than this (nm) are the same band for :meth:`Bands.matches` and :meth:`Bands.covers`: half
+#: the 1e-3 nm to which the file readers keep a listed centre (``hsicam.data.formats.NM_DECIMALS``), so a grid of more
+#: decimals (720.0004 nm) written to a file and read back is still the grid it was, not one 0.0004 nm short of it.
+BAND_TOL_NM = 5e-4
 #: Most bands a uniform grid may have (a hyperspectral camera has tens to hundreds; a mistyped step
 #: would otherwise build arrays of billions before any memory check could refuse it).
 MAX_UNIFORM_BANDS = 10_000
@@ -79,6 +84,10 @@ class Bands:
     @classmethod
     def uniform(cls, start_nm: float, stop_nm: float, step_nm: float, fwhm_nm: float | None = None) -> "Bands":
         """Evenly spaced bands from ``start_nm`` to ``stop_nm`` inclusive (FWHM defaults to the step)."""
+        bad = [f"{k} {v!r}" for k, v in (("start_nm", start_nm), ("stop_nm", stop_nm), ("step_nm", step_nm))
+               if isinstance(v, bool) or not isinstance(v, numbers.Real) or not math.isfinite(v)]
+        if bad:
+            raise InputError(f"Bands.uniform: start, stop and step must be finite numbers (nm), got {', '.join(bad)}")
         if step_nm <= 0 or stop_nm < start_nm:
             raise InputError(f"Bands.uniform: need step > 0 and stop >= start, got {start_nm}..{stop_nm} step {step_nm}")
         ratio = (stop_nm - start_nm) / step_nm  # inf for a subnormal step (1e-320 nm): no integer to round to
@@ -134,11 +143,11 @@ class Bands:
             return f"Bands({c.tolist()} nm)"
         return f"Bands({len(self)} bands, {c[0]:g}..{c[-1]:g} nm)"
 
-    def matches(self, other: "Bands", tol_nm: float = _TOL_NM) -> bool:
+    def matches(self, other: "Bands", tol_nm: float = BAND_TOL_NM) -> bool:
         """True when both grids have the same band centres (within ``tol_nm``)."""
         return len(self) == len(other) and bool(np.all(np.abs(self.centers_nm - other.centers_nm) <= tol_nm))
 
-    def covers(self, other: "Bands", tol_nm: float = _TOL_NM) -> bool:
+    def covers(self, other: "Bands", tol_nm: float = BAND_TOL_NM) -> bool:
         """True when ``other``'s centres lie inside this grid's range (so interpolation suffices)."""
         return bool(other.centers_nm[0] >= self.centers_nm[0] - tol_nm and other.centers_nm[-1] <= self.centers_nm[-1] + tol_nm)
 
@@ -167,6 +176,10 @@ class Bands:
             return cls(np.asarray(d["centers_nm"], dtype=np.float64), np.asarray(d["fwhm_nm"], dtype=np.float64))
         except KeyError as exc:
             raise InputError(f"Bands: missing key {exc}") from None
+        except InputError:
+            raise
+        except (TypeError, ValueError) as exc:  # text or nested lists where numbers belong
+            raise InputError(f"Bands: centers_nm and fwhm_nm must be lists of numbers (nm): {exc}") from None
 
 
 def fine_grid(bands: Bands) -> np.ndarray:
