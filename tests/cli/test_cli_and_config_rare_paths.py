@@ -189,7 +189,8 @@ def test_reconstruct_options_that_change_nothing_say_so_and_change_nothing(no_cf
         np.testing.assert_array_equal(a["cube"][()], b["cube"][()])
         assert "cfa_offset" not in json.loads(b.attrs["metadata_json"])
     res = run_cli_in_process("reconstruct", str(cap), "--run", str(no_cfa_run), "--out", str(tmp_path / "c.tif"))
-    assert error_line(res) == f"hsicam: error: {tmp_path / 'c.tif'}: output must end in .h5 (HDF5) or .hdr (ENVI)"
+    assert error_line(res) == (f"hsicam: error: {tmp_path / 'c.tif'}: output must end in .h5 or .hdf5 (HDF5), or .hdr, "
+                               ".img or .raw (ENVI)")
     assert not list(tmp_path.glob("c.*")) and not list(tmp_path.glob("c_*"))
 
 
@@ -209,3 +210,20 @@ def test_data_show_of_an_all_zero_cube_is_one_clear_error(tmp_path):
     assert res.returncode == 2 and "Traceback" not in res.stderr
     assert res.stderr.strip().splitlines()[-1] == (f"hsicam: error: {cube}: the cube is all zeros; cannot normalise by "
                                                   "its maximum")
+
+
+def test_reconstruct_output_names_a_dot_file_and_a_data_suffix_of_any_case_reads_back(no_cfa_run, tmp_path):
+    """(A reconstruct hunt, session 72.) `--out .h5` was refused as "must end in .h5"; `--out D.Raw` wrote D.hdr and
+    D.Raw, which read_cube could not pair (it tried .raw and .RAW only)."""
+    from hsicam.data.formats import read_cube
+
+    cap = tmp_path / "cap.npy"
+    np.save(cap, np.random.default_rng(0).uniform(0.1, 0.6, (40, 40)).astype(np.float32))
+    res = run_cli_in_process("reconstruct", str(cap), "--run", str(no_cfa_run), "--out", str(tmp_path / ".h5"))
+    assert error_line(res) == (f"hsicam: error: {tmp_path / '.h5'}: names no file before its suffix: give the cube a "
+                               "name, e.g. cube.h5")
+    assert_ok(run_cli_in_process("reconstruct", str(cap), "--run", str(no_cfa_run), "--out", str(tmp_path / "D.Raw")))
+    assert sorted(p.name for p in tmp_path.glob("D*")) == ["D.Raw", "D.hdr", "D_rgb.png"]
+    cube, _, meta = read_cube(tmp_path / "D.hdr")
+    assert meta["data_file"] == str(tmp_path / "D.Raw") and cube.shape[1:] == (40, 40)
+    np.testing.assert_array_equal(read_cube(tmp_path / "D.Raw")[0], cube)

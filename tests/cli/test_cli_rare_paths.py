@@ -71,8 +71,11 @@ def test_a_tile_smaller_than_the_context_warns_and_changes_nothing_but_the_time(
     with caplog.at_level(logging.WARNING):
         assert_ok(_reconstruct(capture, runs["deep"], tmp_path / "small.h5", "--tile", "16"))
     [msg] = [r.getMessage() for r in caplog.records if "--tile" in r.getMessage()]
-    assert msg == (f"--tile 16 is smaller than the reconstruction's context ({halo} px per side): each tile computes "
-                   f"about {((16 + 2 * halo) / 16) ** 2:.0f}× its own pixels; a tile of {2 * halo} px or more is faster")
+    # 3 × 3 tiles of 16 px on the 48 px capture, each computing its window cut to the image: 48 px a side (the
+    # context reaches past the capture), 9 × 48² pixels for 48² (the warning said (16 + 2·halo)²/16² before)
+    assert 2 * halo + 16 > 48
+    assert msg == (f"--tile 16 is smaller than the reconstruction's context ({halo} px per side): the tiles compute "
+                   f"about 9× the image's pixels; a tile of {min(2 * halo, 48)} px or more is faster")
     caplog.clear()
     with caplog.at_level(logging.WARNING):
         assert_ok(_reconstruct(capture, runs["deep"], tmp_path / "whole.h5", "--tile", "64"))

@@ -225,16 +225,20 @@ def test_envi_hsicam_metadata_not_in_braces_is_ignored_with_a_warning(tmp_path, 
 
 
 # ---- data/images.py -----------------------------------------------------------------------------------
-def test_tiff_capture_beside_an_unreadable_simulate_json_names_that_file(tmp_path):
+def test_an_older_simulations_png_beside_an_unreadable_simulate_json_names_that_file(tmp_path):
+    """(Only simulate's own sensor.png reads simulate.json: a TIFF beside it is a capture of its own, session 72.)"""
     import tifffile
+    from PIL import Image
 
     from hsicam.data.images import read_capture
 
+    Image.fromarray(np.full((8, 8), 30000, np.uint16)).save(tmp_path / "sensor.png")
     tifffile.imwrite(tmp_path / "sensor.tif", np.full((8, 8), 30000, np.uint16))
     (tmp_path / "simulate.json").write_text("{not json")
     with pytest.raises(InputError) as exc:
-        read_capture(tmp_path / "sensor.tif")
+        read_capture(tmp_path / "sensor.png")
     assert _msg(exc) == f"{tmp_path / 'simulate.json'}: unreadable simulate.json"
+    assert read_capture(tmp_path / "sensor.tif")[0] == pytest.approx(np.full((8, 8), 30000 / 65535))
 
 
 def test_raw_correction_flat_period_below_one_is_refused():

@@ -113,6 +113,26 @@ def test_show_prints_the_card_and_says_the_weights_are_not_its(root):
     assert good.returncode == 0 and good.stdout == (root / "camC" / "card.md").read_text()
 
 
+def test_show_of_a_camera_whose_card_md_is_lost_or_damaged_prints_the_card_from_card_json(root, tmp_path):
+    """card.md is made from card.json alone (card_markdown): a camera without it, or with a card.md that is not UTF-8
+    text, was usable by --run and copy while `show` failed ("card.md: No such file", or "unreadable input: not UTF-8
+    text" naming no file); it prints the card made again, under a line naming the file."""
+    from hsicam.engine.pretrained import card_markdown
+
+    want = card_markdown(shipped.parse_card(root / "camC")[0])
+    assert want == (root / "camC" / "card.md").read_text()  # what card.md holds when sound
+    for name, damage, why in (("camE", lambda f: f.unlink(), "no such file or directory"),
+                              ("camF", lambda f: f.write_bytes(b"\xff\xfe card"), "not UTF-8 text")):
+        shutil.copytree(root / "camC", root / name)
+        try:
+            damage(root / name / "card.md")
+            res = run_cli_in_process("pretrained", "show", name)
+            assert res.returncode == 0, res.stderr
+            assert res.stdout == f"({root / name / 'card.md'}: {why}; the card below is made from card.json)\n\n" + want
+        finally:
+            shutil.rmtree(root / name)
+
+
 def test_a_cameras_weights_are_hashed_once_per_file_version(root, tmp_path, monkeypatch):
     """Resolving a camera again (the CLI's --run, then load_run, then a method) does not hash its
     weights again; new weights in the same place are hashed anew."""

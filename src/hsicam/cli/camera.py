@@ -208,7 +208,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     import torch
 
     from hsicam.color import PREVIEW_EXPOSURE_KEY, PREVIEW_LEVEL
-    from hsicam.data.images import SENSOR_PREVIEW, SENSOR_SCALE_KEY, SIMULATE_JSON, sensor_preview
+    from hsicam.data.images import SENSOR_PREVIEW, SENSOR_SCALE_KEY, SIMULATE_JSON, SIMULATED_SENSOR_PNG, sensor_preview
     from hsicam.data.pipeline import npy_bands
     from hsicam.report.camera import write_optics_figures
 
@@ -240,7 +240,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     with atomic_output(out, overwrite=True, marker={"command": "simulate"}) as tmp:
         write_npy(tmp / "sensor.npy", sensor.astype(np.float32))
         # the scale travels inside the PNG too: a copy taken away from simulate.json keeps its level
-        write_png16(tmp / "sensor.png", sensor / png_scale, text={SENSOR_SCALE_KEY: repr(png_scale)})
+        write_png16(tmp / SIMULATED_SENSOR_PNG, sensor / png_scale, text={SENSOR_SCALE_KEY: repr(png_scale)})
         preview, exposure = sensor_preview(sensor)  # to look at: the data file of a dim scene looks black
         write_png8(tmp / SENSOR_PREVIEW, preview, text={PREVIEW_EXPOSURE_KEY: f"{exposure:.6g}"})
         if camera.kind == "doe":

@@ -118,16 +118,39 @@ def cmd_list(args: argparse.Namespace) -> int:
 
 def cmd_show(args: argparse.Namespace) -> int:
     """The camera's card.md; weights that are not the card's are said after it (the card is shown)."""
-    from hsicam.runs.pretrained import CARD_MD, pretrained_dir, weights_problem
+    from hsicam.runs.pretrained import pretrained_dir, weights_problem
 
     name = _bare(args.name)
     folder = pretrained_dir(name)
-    print((folder / CARD_MD).read_text(encoding="utf-8"), end="")
+    print(_card_text(folder), end="")
     problem = weights_problem(folder)
     if problem:
         print(f"\nWARNING: {problem}; until then `--run pretrained:{name}` and `hsicam pretrained copy "
               f"{name}` refuse this camera")
     return 0
+
+
+def _card_text(folder) -> str:
+    """The camera's card.md; when it is missing or unreadable, the card made again from its card.json (whence
+    card.md is made, :func:`hsicam.engine.pretrained.card_markdown`) under a line that says so, or one InputError
+    naming the file."""
+    from hsicam.errors import InputError
+    from hsicam.runs.pretrained import CARD_MD, parse_card
+
+    path = folder / CARD_MD
+    try:
+        return path.read_text(encoding="utf-8")
+    except (OSError, UnicodeDecodeError) as exc:
+        why = "not UTF-8 text" if isinstance(exc, UnicodeDecodeError) else (exc.strerror or str(exc)).lower()
+    card, _ = parse_card(folder)
+    if card is not None:
+        from hsicam.engine.pretrained import card_markdown
+
+        try:
+            return f"({path}: {why}; the card below is made from card.json)\n\n" + card_markdown(card)
+        except (KeyError, TypeError, ValueError, AttributeError):
+            pass  # a card.json of other fields than a packed camera's
+    raise InputError(f"{path}: {why}")
 
 
 def cmd_copy(args: argparse.Namespace) -> int:

@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import logging
+import math
 import os
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -647,7 +648,9 @@ def _checked_output(args: argparse.Namespace) -> tuple[Path, dict[str, str | Non
 
     out = Path(args.out)
     if out.suffix.lower() not in CUBE_SUFFIXES:
-        raise InputError(f"{out}: output must end in .h5 (HDF5) or .hdr (ENVI)")
+        if not out.suffix and out.name.lower() in CUBE_SUFFIXES:  # '.h5': a hidden name, no suffix (Path's reading)
+            raise InputError(f"{out}: names no file before its suffix: give the cube a name, e.g. cube{out.name}")
+        raise InputError(f"{out}: output must end in .h5 or .hdf5 (HDF5), or .hdr, .img or .raw (ENVI)")
     for f in output_files(out):  # before any work: an existing folder, a path inside a file, no permission
         prepare_output(f, "file")
     inputs = {"the capture SENSOR": args.sensor, "the --dark frame": args.dark, "the --flat frame": args.flat}
@@ -757,9 +760,11 @@ def _checked_reconstructor(args: argparse.Namespace, model, shape: tuple[int, in
     tile = args.tile  # None: reconstruct_tiled's default (default_tile_px), never below the halo
     check_reconstruction_memory(rec, len(model.bands), shape, tile, args.sensor)  # before minutes of work
     if tile is not None and tile < halo and max(shape) > tile:
-        log.warning("--tile %d is smaller than the reconstruction's context (%d px per side): each tile computes "
-                    "about %.0f× its own pixels; a tile of %d px or more is faster", tile, halo,
-                    ((tile + 2 * halo) / tile) ** 2, 2 * halo)
+        # each tile's window (the tile and its halo on every side) is cut to the image
+        windows = math.prod(math.ceil(n / tile) * min(tile + 2 * halo, n) for n in shape)
+        log.warning("--tile %d is smaller than the reconstruction's context (%d px per side): the tiles compute about "
+                    "%.0f× the image's pixels; a tile of %d px or more is faster", tile, halo,
+                    windows / math.prod(shape), min(2 * halo, max(shape)))
     return rec
 
 

@@ -73,6 +73,7 @@ Writers: :func:`write_cube_h5` (our HDF5) and :func:`write_envi`; both write ato
 from __future__ import annotations
 
 import contextlib
+import glob
 import json
 import logging
 import math
@@ -1014,6 +1015,11 @@ def envi_data_file(hdr: str | os.PathLike) -> Path | None:
     for suffix in _ENVI_DATA_SUFFIXES:
         cand = base.with_name(base.name + suffix)
         if cand != hdr and cand.is_file():
+            return cand
+    # the usual suffixes in any case (.Img, .Raw: what another tool, or a --out of that case, named the file)
+    wanted = {s.lower() for s in _ENVI_DATA_SUFFIXES if s}
+    for cand in sorted(hdr.parent.glob(glob.escape(base.name) + ".*")):
+        if cand != hdr and cand.stem == base.name and cand.suffix.lower() in wanted and cand.is_file():
             return cand
     return None
 

@@ -39,12 +39,12 @@ Checks on the result (:func:`preprocess_raw`, :func:`read_capture`):
 * A gain the user asked for (``scale``, ``auto_level``, the exposure ratio) that puts the image's
   99.9th percentile above :data:`MAX_LEVEL` × full scale is an :class:`InputError` naming the
   option(s) and the resulting level; one that puts more than :data:`CLIP_SHARE` of the pixels above
-  full scale is a warning (not for the scale restoring ``hsicam simulate``'s stretched image).
+  full scale is a warning (the scale restoring ``hsicam simulate``'s stretched image is no gain: a gain on top of it
+  is checked on the image at its simulated level).
 * An integer capture read with the container's full scale whose brightest pixel ends below
   :data:`DIM_FRACTION` of full scale gets a warning naming the likely cause: a sensor with fewer
   bits than the container (a 12-bit sensor in a 16-bit file reaches at most 1/16). Not for the
-  sensor image that ``hsicam simulate`` wrote (a PNG/TIFF with ``simulate.json`` beside it,
-  :func:`is_simulated_image`): it holds the simulated values at the file's full 16 bits, so a dark
+  sensor image that ``hsicam simulate`` wrote (its ``sensor.png``, :func:`is_simulated_image`): it holds the simulated values at the file's full 16 bits, so a dark
   one is a dark scene, never a sensor of fewer bits.
 """
 
@@ -266,6 +266,11 @@ def _read_tiff(path: Path, what: str) -> tuple[np.ndarray, np.dtype]:
                     raise InputError(_binary_image(path, what, "a 1-bit TIFF"))
                 if dtype.kind not in "uif":
                     raise InputError(f"{path}: unsupported TIFF data type {dtype}")
+                if 262 in page.tags and page.tags[262].value == 0:  # PhotometricInterpretation: WhiteIsZero
+                    # tifffile returns the stored values, Pillow (a compressed page) inverts them: refused, not read
+                    # one way or the other by the compression
+                    raise InputError(f"{path}: a WhiteIsZero (MINISWHITE) TIFF stores light inverted (0 = white), as no "
+                                     "sensor records it: save the capture as BlackIsZero (MINISBLACK, 0 = black)")
                 try:
                     arr = page.asarray()
                 except ValueError as exc:  # LZW, JPEG …: tifffile decodes them only with the optional imagecodecs
@@ -431,7 +436,8 @@ class RawCorrection:
 def preprocess_raw(raw: np.ndarray, full_scale: float, corr: RawCorrection, source: str = "capture",
                    check_saturation: bool = True, check_bit_depth: bool = True,
                    check_level: bool = True, stored_dtype: str | None = None,
-                   return_saturated: bool = False) -> tuple[np.ndarray, dict] | tuple[np.ndarray, dict, np.ndarray]:
+                   return_saturated: bool = False, restored_scale: float = 1.0
+                   ) -> tuple[np.ndarray, dict] | tuple[np.ndarray, dict, np.ndarray]:
     """Raw capture (H, W) in DN → float32 (H, W) on the simulator's scale, plus a report dict (and, with
     ``return_saturated``, the (H, W) bool map of the pixels at or above the white level: clipped by the sensor; all
     False where ``check_saturation`` is off or the capture has no white level, as ``saturated_px`` counts).
@@ -445,9 +451,11 @@ def preprocess_raw(raw: np.ndarray, full_scale: float, corr: RawCorrection, sour
         check_bit_depth: warn about a very dark integer capture, whose likely cause is a sensor of
             fewer bits than the file (off for ``hsicam simulate``'s own sensor image).
         check_level: refuse / warn about a gain (``scale``, ``auto_level``, exposure ratio) that
-            pushes the image past full scale (:func:`_check_level`; off for the scale that restores
-            ``hsicam simulate``'s stretched image, above full scale by design).
+            pushes the image past full scale (:func:`_check_level`).
         stored_dtype: the capture file's data type (for the messages about frames of other units).
+        restored_scale: a factor that is no gain of the user's: the scale that brings ``hsicam simulate``'s
+            stretched PNG back to its simulated level (above full scale by design); applied with the gains, never
+            checked as one (a gain on top of it is: the image at its simulated level times the gain).
     """
     raw = _float32_capture(raw, source)
     dark, flat_dn = _dark_and_flat(raw, corr, full_scale, stored_dtype, source)
@@ -462,7 +470,9 @@ def preprocess_raw(raw: np.ndarray, full_scale: float, corr: RawCorrection, sour
     img = _to_full_scale(img, white, black, source)
     if flat_dn is not None:
         img = _divide_by_flat(img, flat_dn, black, corr.flat_period, report)
-    factor = _gain_factor(img, corr, source, report)
+    factor = _gain_factor(img, corr, source, report) * restored_scale
+    if restored_scale != 1.0:
+        report["simulated_scale"] = restored_scale
     img = _apply_gain(img, factor, corr, source)
     report["gain"] = factor / (white - black)
     notes += _level_notes(img, raw, full_scale, white, corr, source, check_level, check_bit_depth)
@@ -897,13 +907,19 @@ def png_sensor_scale(path: str | Path) -> float | None:
     return scale
 
 
+#: The file name of the sensor image that ``hsicam simulate`` writes as a 16-bit PNG.
+SIMULATED_SENSOR_PNG = "sensor.png"
+
+
 def is_simulated_image(path: str | Path, fmt: str, png_scale: float | None = None) -> bool:
     """Whether ``path`` (read as format ``fmt``) is the sensor image that ``hsicam simulate`` wrote:
-    a PNG carrying its scale (``png_scale``, its :func:`png_sensor_scale`), or a PNG/TIFF with
-    ``simulate.json`` beside it (whose ``sensor_png_scale`` then applies)."""
+    a PNG carrying its scale (``png_scale``, its :func:`png_sensor_scale`), or (an older simulation's) a
+    :data:`SIMULATED_SENSOR_PNG` with ``simulate.json`` beside it (whose ``sensor_png_scale`` then applies). Another
+    image in that folder, a capture copied there (a float TIFF holds its level already), is not."""
     if png_scale is not None:
         return True
-    return fmt in ("png", "tiff") and (Path(path).parent / SIMULATE_JSON).is_file()
+    path = Path(path)
+    return fmt == "png" and path.name == SIMULATED_SENSOR_PNG and (path.parent / SIMULATE_JSON).is_file()
 
 
 def read_capture(path: str | Path, corr: RawCorrection | None = None, scale: float | None = None,
@@ -947,9 +963,8 @@ def read_capture(path: str | Path, corr: RawCorrection | None = None, scale: flo
                          f"{float(image.data.max()):g} DN), or leave --white-level out for the type's maximum")
     png_scale = png_sensor_scale(path) if image.format == "png" else None  # the PNG's own, wherever it was copied
     simulated = is_simulated_image(path, image.format, png_scale)
-    stretched = False  # simulate's PNG of an image brighter than full scale: its peak is full scale by design
-    simulated_scale = None
-    if simulated and corr.auto_level is None:  # (--auto-level sets the level itself)
+    simulated_scale = 1.0
+    if simulated:
         simulated_scale = png_scale
         if simulated_scale is None:
             meta = path.parent / SIMULATE_JSON
@@ -959,16 +974,19 @@ def read_capture(path: str | Path, corr: RawCorrection | None = None, scale: flo
                 raise InputError(f"{meta}: unreadable simulate.json") from None
             if not (math.isfinite(simulated_scale) and simulated_scale > 0):  # not a --scale the user gave
                 raise InputError(f"{meta}: its sensor_png_scale is {simulated_scale:g}, not a positive scale")
-        stretched = simulated_scale > 1.0
-        # a --scale multiplies the image at its simulated level, as it multiplies simulate's sensor.npy
-        scale = simulated_scale * (corr.scale if scale is None else scale)
+    # simulate's PNG of an image brighter than full scale: its peak is full scale by design, no sensor's clipping
+    # (whatever sets the level: with --auto-level too)
+    stretched = simulated_scale > 1.0
     if scale is not None:
         corr = RawCorrection(**{**corr.__dict__, "scale": float(scale)})
-    # simulate's own image is written at the file's full bit depth: a dark one is a dark scene
+    # simulate's own image is written at the file's full bit depth: a dark one is a dark scene. Its scale brings it
+    # back to its simulated level (--auto-level sets the level itself); a --scale multiplies that level, as it
+    # multiplies simulate's sensor.npy, and is checked as there
+    restored = simulated_scale if corr.auto_level is None else 1.0
     img, report, saturated = preprocess_raw(image.data, image.full_scale, corr, str(path),
                                             check_saturation=not stretched, check_bit_depth=not simulated,
-                                            check_level=not stretched, stored_dtype=image.dtype, return_saturated=True)
-    if stretched and simulated_scale > FLOAT_OVER_SCALE:  # its brightest pixel: simulated_scale
+                                            restored_scale=restored, stored_dtype=image.dtype, return_saturated=True)
+    if stretched and restored > FLOAT_OVER_SCALE:  # its brightest pixel: simulated_scale
         # the float capture's warning (preprocess_raw), for simulate's image of a scene far above full scale
         log.warning("%s: hsicam simulate's image of a scene far brighter than full scale: it is read back at its "
                     "simulated level (%s %g, its brightest pixel); a real sensor saturates at 1 and the network was "
