@@ -469,6 +469,9 @@ def test_reconstruct_raw_capture_cli_tiled_equals_whole(fab_run, tmp_path):
     with h5py.File(tmp_path / "whole.h5", "r") as f:
         meta = json.loads(f.attrs["metadata_json"])
     assert meta["preprocessing"]["black_level_dn"] == 100.0 and meta["preprocessing"]["exposure_s"] == 0.5
+    # which frames corrected it, by absolute path (a reconstruct hunt, session 72: only their statistics were kept)
+    assert meta["preprocessing"]["dark_frame"] == str((tmp_path / "dark.tif").resolve())
+    assert meta["preprocessing"]["flat_frame"] == str((tmp_path / "flat.tif").resolve())
     # the CLI preprocessing equals the library's
     from hsicam.data.images import read_image_2d
 

@@ -605,6 +605,8 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
         _use_measured_psfs(args, model, meta)
     corr = corrections_from_args(args, cfg.camera.cfa.period if cfg.camera.cfa.enabled else None)
     img, report, saturated = read_capture(args.sensor, corr, args.scale, return_saturated=True)
+    # which frames corrected it (their statistics alone did not say which files they were)
+    report.update({k: str(Path(v).resolve()) for k, v in (("dark_frame", args.dark), ("flat_frame", args.flat)) if v})
     meta["preprocessing"] = report
     period = int(getattr(model.camera, "code_period", 1))
     _check_capture_size(args, img.shape, period)
