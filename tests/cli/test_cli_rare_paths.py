@@ -23,13 +23,16 @@ from hsicam.data.formats import read_cube
 @pytest.fixture(scope="module")
 def runs(tmp_path_factory, cache_env) -> dict[str, Path]:
     """{"plain": the tiny run, "deep": its RDN with 7 blocks (a context of more than 16 px, the smallest
-    --tile), "sd": an SD-CASSI run}, each finished after one epoch."""
+    --tile), "sd": an SD-CASSI run, "sd_linear": one whose config asks for the linear consistency step}, each
+    finished after one epoch."""
     from hsicam.engine.train import train
 
     base = tmp_path_factory.mktemp("runs")
     data = write_homogeneous_scenes(base / "data", n=2, size=32)
     kinds = {"plain": [], "deep": ["model.rdn.blocks=7"],
-             "sd": ["camera.kind=sd_cassi", "model.rdn.backprojection_input=true"]}
+             "sd": ["camera.kind=sd_cassi", "model.rdn.backprojection_input=true"],
+             "sd_linear": ["camera.kind=sd_cassi", "model.rdn.backprojection_input=true", "model.consistency.iterations=1",
+                           "model.consistency.kind=linear"]}
     for name, extra in kinds.items():
         cfg = load_config("tiny", [*TINY_CAMERA_OVERRIDES, f"data.root={data}", "train.epochs=1", *extra])
         assert train(cfg, base / name, progress=False)["final"]
@@ -205,3 +208,39 @@ def test_a_refractive_index_table_that_cannot_be_interpolated_is_refused(wl, n, 
     with pytest.raises(InputError) as err:
         TabulatedMaterial(np.array(wl), np.array(n), name="glass")
     assert str(err.value) == f"material 'glass': {why}"
+
+
+def test_sd_cassi_is_reconstructed_whole_and_its_linear_step_is_skipped_as_reconstruct_skips_it(runs, tmp_path):
+    """(A config hunt, session 72.) An SD-CASSI cube is narrower than its sensor image, so it cannot be tiled: a 600 px
+    wide capture failed by default (512 px tiles) after its first window, and an explicit small --tile only then;
+    the image is now reconstructed whole by default and a small --tile refused before any work. A run whose config
+    asks for the linear step (accepted: SD-CASSI skips every step) trained without one and then could not be
+    evaluated, advising a refit that fitted nothing."""
+    import torch
+
+    from hsicam.engine.inference import reconstruct_tiled
+    from hsicam.errors import InputError
+    from hsicam.runs.folder import load_run
+
+    _, model = load_run(runs["sd"])
+    rec = model.reconstructor()
+    assert rec.tileable is False and model.tileable is False and load_run(runs["plain"])[1].tileable is True
+    sensor = torch.rand(1, 1, 8, 600, generator=torch.Generator().manual_seed(0))
+    with torch.no_grad():
+        whole = reconstruct_tiled(rec, sensor)
+        assert torch.equal(whole, rec(sensor)) and whole.shape == (1, len(model.bands), 8, 600 - model.camera.span)
+        with pytest.raises(InputError) as exc:
+            reconstruct_tiled(rec, sensor, tile_px=64)
+    assert str(exc.value) == ("a tile of 64 px: this reconstruction cannot be tiled (its camera's scene grid is not the "
+                              "sensor's, e.g. SD-CASSI), so the 8×600 px image is reconstructed whole: drop the tile size "
+                              "or give one of at least 600 px")
+    np.save(tmp_path / "wide.npy", sensor[0, 0].numpy())  # the command too: whole by default, refused in tiles
+    assert_ok(_reconstruct(tmp_path / "wide.npy", runs["sd"], tmp_path / "w.h5"))
+    np.testing.assert_allclose(read_cube(tmp_path / "w.h5")[0], whole[0].clamp_min(0).numpy(), rtol=0, atol=1e-6)
+    res = _reconstruct(tmp_path / "wide.npy", runs["sd"], tmp_path / "t.h5", "--tile", "64")
+    assert error_line(res).endswith("drop the tile size or give one of at least 600 px")
+    assert not (runs["sd_linear"] / "linear_step.safetensors").exists()
+    res = run_cli_in_process("evaluate", "--run", str(runs["sd_linear"]), "--method", "sd-cassi-rdn",
+                             "--out", str(tmp_path / "ev"))
+    assert_ok(res)
+    assert "model.consistency is skipped: SD-CASSI's scene grid is not the sensor's" in res.stderr

@@ -169,7 +169,8 @@ def test_test_height_noise_on_a_run_imaging_with_measured_psfs_is_refused(run, t
 def test_evaluate_of_a_config_without_validation_scenes_is_refused(run, tmp_path, capsys):
     line = in_process_error_line(capsys, ["evaluate", "--run", run, "--out", tmp_path / "ev", "--set",
                                           "data.val_fraction=0"])
-    assert line == "hsicam: error: the config has no validation scenes (data.val_fraction is 0)"
+    assert line == ("hsicam: error: the config has no validation scenes (data.val_fraction is 0): score a folder of "
+                    "scenes instead, --data DIR")
     assert not (tmp_path / "ev").exists()
 
 

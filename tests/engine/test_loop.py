@@ -73,6 +73,13 @@ def test_frozen_groups_stay_fixed_and_unknown_groups_are_errors(tmp_path, cache_
     cassi = load_config("tiny", ["camera.kind=dd_cassi", "train.freeze=[doe]"])
     with pytest.raises(ConfigError, match="unknown parameter group.*doe for the dd_cassi camera"):
         SystemTask(cassi, CameraSystem.from_config(cassi))  # a CASSI camera has no DOE to freeze
+    # a DOE camera whose DOE (or CFA) is switched off: the refusal says why there is none (a config hunt, session 72)
+    for group in ("doe", "cfa"):
+        off = load_config("tiny", [f"camera.{group}.enabled=false", f"train.freeze=[{group}]"])
+        with pytest.raises(ConfigError) as exc:
+            SystemTask(off, CameraSystem.from_config(off))
+        assert str(exc.value).startswith(f"train.freeze: unknown parameter group(s) {group} for the doe camera; it has ")
+        assert str(exc.value).endswith(f"; camera.{group}.enabled is false, so there is no {group.upper()} to freeze")
 
 
 def test_loop_state_round_trip_and_old_checkpoints():

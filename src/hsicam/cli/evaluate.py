@@ -243,7 +243,7 @@ def _scenes_to_score(args: argparse.Namespace, cfg, paths, bands):
         # unique names (stems; the scenes whose stems collide by their paths), each row with its path
         names, rel = scene_names(paths, args.data), [displayable_name(scene_path(p, args.data)) for p in paths]
         return scenes, names, rel, str(Path(args.data).resolve()), None
-    scenes, names = validation_scenes(cfg)
+    scenes, names = validation_scenes(cfg, no_scenes_hint=": score a folder of scenes instead, --data DIR")
     return scenes, names, _relative_to_common_folder(scenes.paths), validation_data_label(cfg), heldout_scenes(cfg)
 
 

@@ -198,6 +198,7 @@ def offset_reconstructor(fn, offset: tuple[int, int]):
         return fn(sensor, (origin[0] + oy, origin[1] + ox))
 
     shifted.context_px = fn.context_px
+    shifted.tileable = getattr(fn, "tileable", True)
     if hasattr(fn, "steps"):  # the stages reconstruct_tiled takes apart, shifted alike
         shifted.before_steps = offset_reconstructor(fn.before_steps, offset)
 

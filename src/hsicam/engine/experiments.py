@@ -209,14 +209,16 @@ def ensure_trained(run: Path, preset, overrides: tuple[str, ...] = ()) -> str:
     return "trained"
 
 
-def validation_scenes(cfg):
-    """The preset's validation scenes (SceneDataset) and their names."""
+def validation_scenes(cfg, no_scenes_hint: str = ""):
+    """The preset's validation scenes (SceneDataset) and their names; ``no_scenes_hint`` ends the refusal of a
+    config that has none (what the caller's user can do instead)."""
     from hsicam.data.pipeline import no_validation_reason, scene_dataset, validation_split
 
     bands = cfg.bands.to_bands()
     val, n_scenes = validation_split(cfg.data, bands)  # of the synthetic data, only these scenes are generated
     if not val:
-        raise InputError(f"the config has no validation scenes ({no_validation_reason(cfg.data, n_scenes)})")
+        raise InputError(f"the config has no validation scenes ({no_validation_reason(cfg.data, n_scenes)})"
+                         f"{no_scenes_hint}")
     return scene_dataset(cfg.data, val, bands), [p.stem for p in val]
 
 

@@ -88,6 +88,13 @@ def reconstruction_memory_bytes(reconstruct, bands: int, h: int, w: int, tile_px
     return RECONSTRUCT_BASE_BYTES + reconstruction_working_bytes(reconstruct, bands, h, w, tile_px)
 
 
+def _tileable(reconstruct) -> bool:
+    """Whether ``reconstruct`` (or the object of a bound method) declares that its windows' cubes are their size:
+    ``tileable`` (:attr:`hsicam.models.CameraSystem.tileable`); a function that declares nothing is taken as one."""
+    declared = (getattr(x, "tileable", None) for x in (reconstruct, getattr(reconstruct, "__self__", None)))
+    return next((bool(t) for t in declared if t is not None), True)
+
+
 @torch.no_grad()
 def reconstruct_tiled(reconstruct, sensor: torch.Tensor, tile_px: int | None = None, halo_px: int | None = None,
                       progress: bool | None = False) -> torch.Tensor:
@@ -114,6 +121,10 @@ def reconstruct_tiled(reconstruct, sensor: torch.Tensor, tile_px: int | None = N
     reaches a few dozen px further: the shipped standard camera's 12 steps with a TV prior would need 463 px of
     halo where its network and linear step need 180; the camera shipped before session 68, 490 and 182 px, whose
     2048² capture in tiles with the steps' halo took 9.6 GB).
+
+    A ``reconstruct`` that declares ``tileable`` False (a camera whose cube is not its sensor image's size: SD-CASSI)
+    takes the whole image in one window; a ``tile_px`` smaller than the image is then one :class:`InputError`, before
+    anything is computed.
     """
     for name, value, low in (("tile_px", 1 if tile_px is None else tile_px, 1),
                              ("halo_px", 0 if halo_px is None else halo_px, 0)):
@@ -134,6 +145,12 @@ def reconstruct_tiled(reconstruct, sensor: torch.Tensor, tile_px: int | None = N
 
         with Progress(int(getattr(steps, "count", 0)) or 1, "consistency steps", "step", show=progress) as bar:
             return steps(sensor, x, on_step=lambda: bar.update(1))
+    if not _tileable(reconstruct):  # (SD-CASSI: its cube is not the sensor image's size) one window, the whole image
+        if tile_px is not None and (h > tile_px or w > tile_px):
+            raise InputError(f"a tile of {tile_px} px: this reconstruction cannot be tiled (its camera's scene grid is "
+                             f"not the sensor's, e.g. SD-CASSI), so the {h}×{w} px image is reconstructed whole: drop the "
+                             f"tile size or give one of at least {max(h, w)} px")
+        return reconstruct(sensor)
     if halo_px is None:
         declared = (getattr(x, "context_px", None) for x in (reconstruct, getattr(reconstruct, "__self__", None)))
         halo_px = next((int(c) for c in declared if c is not None), None)

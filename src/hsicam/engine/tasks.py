@@ -206,8 +206,13 @@ class SystemTask(_ConfigDataTask):
         known = {"net", *model.camera.param_groups()}
         unknown = sorted(set(cfg.train.freeze) - known)  # e.g. `doe` on a CASSI camera: nothing to freeze
         if unknown:
+            # a group the camera kind has but this config switched off: say so (it read "unknown group doe for the
+            # doe camera")
+            off = [g for g in unknown if g in ("doe", "cfa") and model.camera.kind == "doe"
+                   and not getattr(getattr(cfg.camera, g, None), "enabled", True)]
+            why = "".join(f"; camera.{g}.enabled is false, so there is no {g.upper()} to freeze" for g in off)
             raise ConfigError(f"train.freeze: unknown parameter group(s) {', '.join(unknown)} for the "
-                              f"{model.camera.kind} camera; it has {', '.join(sorted(known))}")
+                              f"{model.camera.kind} camera; it has {', '.join(sorted(known))}{why}")
         self._check_something_trains()
         self._check_camera_rates()
         if "net" not in self.freeze:  # the network was built for its weights; its training needs 4× that

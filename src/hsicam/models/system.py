@@ -53,9 +53,13 @@ class CameraSystem(nn.Module):
 
     def missing_linear_step(self, consistency=None) -> str | None:
         """Why ``consistency`` (default: the model's own) asks for a linear step that the run has not got, naming
-        the run and what to do (:func:`hsicam.runs.folder.load_run` sets it), else None."""
+        the run and what to do (:func:`hsicam.runs.folder.load_run` sets it), else None. None too for a camera that
+        takes no step (:attr:`camera_takes_consistency`: SD-CASSI, whose training fits no linear step and whose
+        reconstructions skip it)."""
         c = self.consistency if consistency is None else consistency
         if c is None or c.kind != "linear" or c.iterations <= 0 or self.linear_step is not None:
+            return None
+        if not self.camera_takes_consistency:
             return None
         return self.linear_step_missing
 
@@ -96,6 +100,13 @@ class CameraSystem(nn.Module):
                 self._warned_grid = True
             return False
         return True
+
+    @property
+    def tileable(self) -> bool:
+        """Whether a reconstruction can be cut into tiles: a camera whose scene grid is the sensor's (each window's
+        cube is the window's size); SD-CASSI's cube is narrower than its sensor image, so it is reconstructed whole
+        (:func:`~hsicam.engine.inference.reconstruct_tiled`)."""
+        return self.camera_takes_consistency
 
     @property
     def context_px(self) -> int:
@@ -303,6 +314,7 @@ class CameraSystem(nn.Module):
             return self.reconstruct(sensor, origin, operator=op, step_operator=step_op)
 
         fn.context_px = int(self.net.context_px) if step_op is None else self._context_px(step_op, 1.0)
+        fn.tileable = self.tileable
         if step_op is not None and self._landweber_iterations > 0:
             def before_steps(sensor: torch.Tensor, origin: tuple[int, int] = (0, 0)) -> torch.Tensor:
                 return self.reconstruct_before_steps(sensor, origin, operator=op, step_operator=step_op)
