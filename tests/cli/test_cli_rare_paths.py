@@ -74,11 +74,23 @@ def test_a_tile_smaller_than_the_context_warns_and_changes_nothing_but_the_time(
     with caplog.at_level(logging.WARNING):
         assert_ok(_reconstruct(capture, runs["deep"], tmp_path / "small.h5", "--tile", "16"))
     [msg] = [r.getMessage() for r in caplog.records if "--tile" in r.getMessage()]
-    # 3 × 3 tiles of 16 px on the 48 px capture, each computing its window cut to the image: 48 px a side (the
-    # context reaches past the capture), 9 × 48² pixels for 48² (the warning said (16 + 2·halo)²/16² before)
-    assert 2 * halo + 16 > 48
+    # the pixels the windows really add up to: counted by a reconstruction that records each window it is given
+    # (the warning said (16 + 2·halo)²/16², whatever the image's size)
+    import torch
+
+    from hsicam.engine.inference import reconstruct_tiled
+
+    seen = []
+
+    def recording(window, origin=(0, 0)):
+        seen.append(window.shape[-2] * window.shape[-1])
+        return window.expand(1, 2, *window.shape[-2:])
+
+    reconstruct_tiled(recording, torch.zeros(1, 1, 48, 48), 16, halo)
+    assert len(seen) == 9
     assert msg == (f"--tile 16 is smaller than the reconstruction's context ({halo} px per side): the tiles compute "
-                   f"about 9× the image's pixels; a tile of {min(2 * halo, 48)} px or more is faster")
+                   f"about {sum(seen) / 48 ** 2:.0f}× the image's pixels; a tile of {min(2 * halo, 48)} px or more is "
+                   "faster")
     caplog.clear()
     with caplog.at_level(logging.WARNING):
         assert_ok(_reconstruct(capture, runs["deep"], tmp_path / "whole.h5", "--tile", "64"))
@@ -239,6 +251,12 @@ def test_sd_cassi_is_reconstructed_whole_and_its_linear_step_is_skipped_as_recon
     np.testing.assert_allclose(read_cube(tmp_path / "w.h5")[0], whole[0].clamp_min(0).numpy(), rtol=0, atol=1e-6)
     res = _reconstruct(tmp_path / "wide.npy", runs["sd"], tmp_path / "t.h5", "--tile", "64")
     assert error_line(res).endswith("drop the tile size or give one of at least 600 px")
+    # and the memory check prices the whole image, which it takes in one window (it priced one 512 px tile's)
+    from hsicam.engine.inference import reconstruction_working_bytes
+
+    plain_rec = load_run(runs["plain"])[1].reconstructor()
+    assert reconstruction_working_bytes(rec, 7, 2048, 2048) == reconstruction_working_bytes(rec, 7, 2048, 2048, 2048)
+    assert reconstruction_working_bytes(plain_rec, 7, 2048, 2048) < reconstruction_working_bytes(rec, 7, 2048, 2048)
     assert not (runs["sd_linear"] / "linear_step.safetensors").exists()
     res = run_cli_in_process("evaluate", "--run", str(runs["sd_linear"]), "--method", "sd-cassi-rdn",
                              "--out", str(tmp_path / "ev"))

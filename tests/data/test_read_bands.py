@@ -63,13 +63,22 @@ def _files(tmp: Path) -> dict[str, Path]:
     return out
 
 
+def _same_grid(path: Path, name: str) -> None:
+    got, want = read_bands(path), read_cube(path)[1]
+    np.testing.assert_array_equal(got.centers_nm, want.centers_nm, err_msg=name)
+    np.testing.assert_array_equal(got.fwhm_nm, want.fwhm_nm, err_msg=name)
+
+
+def test_read_bands_of_an_exr_file_is_its_readers_grid(tmp_path):
+    path = _exr(tmp_path / "s.exr", ["R", *(f"w{w}nm" for w in range(700, 399, -20))])  # (skipped without openexr)
+    _same_grid(path, "exr")
+    assert read_bands(path).centers_nm.tolist() == list(range(400, 701, 20))
+
+
 def test_read_bands_is_the_readers_grid_for_every_format(tmp_path):
     files = _files(tmp_path)
-    files["exr"] = _exr(tmp_path / "s.exr", ["R", *(f"w{w}nm" for w in range(700, 399, -20))])
     for name, path in files.items():
-        got, want = read_bands(path), read_cube(path)[1]
-        np.testing.assert_array_equal(got.centers_nm, want.centers_nm, err_msg=name)
-        np.testing.assert_array_equal(got.fwhm_nm, want.fwhm_nm, err_msg=name)
+        _same_grid(path, name)
     # the cases above are what they claim (not every file the same grid)
     assert read_bands(files["envi-um-bbl-unsorted"]).centers_nm.tolist() == [450.0, 500.0, 700.0]
     assert read_bands(files["mat73-kaist28-assumed"]).centers_nm.tolist() == list(MST_28_NM)
@@ -138,7 +147,7 @@ def test_a_mixed_dataset_is_refused_with_the_range_every_file_covers(tmp_path):
     with pytest.raises(InputError) as exc:
         SceneDataset(files, Bands.uniform(420, 720, 10)).cube(0)
     assert str(exc.value) == (f"{files[0]}: the camera's bands 420-720 nm are not covered by the data's 400-700 nm (no "
-                              "extrapolation), and the dataset's 3 files lie on 2 band ranges (400-700 nm: 1, 420-720 nm: "
+                              "extrapolation), and the 3 files of its set lie on 2 band ranges (400-700 nm: 1, 420-720 nm: "
                               "2), of which 2 cover 420-720 nm: every file covers 420-700 nm, so use a camera band grid "
                               "inside it (bands.start_nm, bands.stop_nm) or only files that cover the camera's range")
     # the advice holds: every file reads on a grid inside that range (one file's own range, 400-700, would not)
@@ -181,7 +190,7 @@ def test_a_training_split_names_the_whole_folder_and_npy_keeps_its_advice(tmp_pa
     with pytest.raises(InputError) as exc:
         build_datasets(cfg.data, Bands.uniform(420, 720, 10), margin_px=2)
     text = str(exc.value)
-    assert "the dataset's 6 files lie on 2 band ranges (400-700 nm: 4, 430-720 nm: 2), of which 0 cover 420-720 nm: " \
+    assert "the 6 files of its set lie on 2 band ranges (400-700 nm: 4, 430-720 nm: 2), of which 0 cover 420-720 nm: " \
            "every file covers 430-700 nm" in text
     from hsicam.data import SceneDataset  # a .npy file keeps its advice after the ranges
 
@@ -191,3 +200,19 @@ def test_a_training_split_names_the_whole_folder_and_npy_keeps_its_advice(tmp_pa
     assert str(exc.value).endswith("(the file carries no wavelengths, so its 31 bands were taken as 400-700 nm: give "
                                    "its grid with data.npy_bands, e.g. data.npy_bands={start_nm: ..., stop_nm: ..., "
                                    "step_nm: ...})")
+
+
+def test_ranges_a_band_grid_takes_as_one_are_one_range(tmp_path):
+    """Grids 4e-4 nm apart are one grid for Bands.covers (BAND_TOL_NM): the refusal counts them as one range, and a
+    dataset of only such files keeps the file's own refusal."""
+    from hsicam.data import SceneDataset
+
+    grid = np.arange(400.0, 701.0, 10.0)
+    a = write_cube_h5(tmp_path / "a.h5", scene(grid, 24, 24).astype(np.float32), Bands.from_centers(grid))
+    b = write_cube_h5(tmp_path / "b.h5", scene(grid, 24, 24).astype(np.float32), Bands.from_centers(grid + 4e-4))
+    with pytest.raises(InputError) as exc:
+        SceneDataset([a, b], Bands.uniform(420, 720, 10)).cube(0)
+    assert "band ranges" not in str(exc.value) and "use a camera band grid inside 400-700 nm" in str(exc.value)
+    c = _write(tmp_path / "c.h5", 420, 720)
+    with pytest.raises(InputError, match=r"lie on 2 band ranges \(400-700 nm: 2, 420-720 nm: 1\)"):
+        SceneDataset([a, b, c], Bands.uniform(420, 720, 10)).cube(0)

@@ -228,3 +228,19 @@ def test_unrolled_and_mosaic_tiles_are_seamless_in_float64_with_exactly_the_decl
         if name != "unrolled-2":
             short = reconstruct_tiled(run, y, tile_px=23, halo_px=ctx - 1)
             assert (short - whole).abs().max() > 1e-9, name  # the declared halo is the least that works
+
+
+def test_tiled_pixels_is_what_the_windows_add_up_to():
+    """:func:`tiled_pixels` (the tile warning's count) against the windows reconstruct_tiled hands a reconstruction."""
+    from hsicam.engine.inference import reconstruct_tiled, tiled_pixels
+
+    for shape, tile, halo in (((48, 48), 16, 18), ((1000, 700), 300, 400), ((37, 91), 10, 3), ((20, 20), 32, 5),
+                              ((64, 65), 64, 0)):
+        seen = []
+
+        def recording(window, origin=(0, 0)):
+            seen.append(window.shape[-2] * window.shape[-1])
+            return window.expand(1, 1, *window.shape[-2:])
+
+        reconstruct_tiled(recording, torch.zeros(1, 1, *shape), tile, halo)
+        assert tiled_pixels(shape, tile, halo) == sum(seen), (shape, tile, halo)

@@ -351,9 +351,12 @@ class DOESnapshot:
             raise InputError(f"{what} must be a torch.Tensor (B, {channels}, H, W), got {type(t).__name__}")
         if t.dim() != 4 or t.shape[1] != channels:
             raise InputError(f"{what} must be (B, {channels}, H, W), got shape {tuple(t.shape)}")
-        if not torch.is_floating_point(t) or (t.device.type == "cpu" and t.dtype in (torch.float16, torch.bfloat16)):
-            raise InputError(f"{what} is {t.dtype}: the DOE camera's FFT convolution takes float32 or float64 on the "
-                             "CPU (.float())")
+        if not torch.is_floating_point(t):
+            raise InputError(f"{what} is {t.dtype}: the DOE camera's FFT convolution takes floating-point tensors "
+                             "(.float())")
+        if t.device.type == "cpu" and t.dtype in (torch.float16, torch.bfloat16):
+            raise InputError(f"{what} is {t.dtype} on the CPU: the DOE camera's FFT convolution takes float32 or "
+                             "float64 there (.float())")
         if t.device != self.psf.device:
             raise InputError(f"{what} is on {t.device}, the camera's PSFs on {self.psf.device}: move one of them")
 

@@ -757,17 +757,17 @@ def _capture_offset(args: argparse.Namespace, cfg, model, sensor: torch.Tensor, 
 def _checked_reconstructor(args: argparse.Namespace, model, shape: tuple[int, int]):
     """The model's reconstructor, once the memory it takes for an image of ``shape`` is checked (and a tile
     smaller than its halo warned of); :func:`offset_reconstructor` shifts it to the capture's place."""
+    from hsicam.engine.inference import tiled_pixels
+
     rec = model.reconstructor()
     # the halo of the tiles: what comes before the consistency steps, which then go over the whole image
     halo = rec.before_steps.context_px if hasattr(rec, "steps") else rec.context_px
     tile = args.tile  # None: reconstruct_tiled's default (default_tile_px), never below the halo
     check_reconstruction_memory(rec, len(model.bands), shape, tile, args.sensor)  # before minutes of work
-    if tile is not None and tile < halo and max(shape) > tile:
-        # each tile's window (the tile and its halo on every side) is cut to the image
-        windows = math.prod(math.ceil(n / tile) * min(tile + 2 * halo, n) for n in shape)
+    if tile is not None and tile < halo and max(shape) > tile and getattr(rec, "tileable", True):
         log.warning("--tile %d is smaller than the reconstruction's context (%d px per side): the tiles compute about "
                     "%.0f× the image's pixels; a tile of %d px or more is faster", tile, halo,
-                    windows / math.prod(shape), min(2 * halo, max(shape)))
+                    tiled_pixels(shape, tile, halo) / math.prod(shape), min(2 * halo, max(shape)))
     return rec
 
 

@@ -146,14 +146,15 @@ def mixed_ranges_refusal(source: PathLike | str, cube_bands: Bands, camera_bands
     camera's bands and the range every file covers, since the range of one file (:func:`conform_bands`'s advice)
     is refused by another's."""
     counts: dict[tuple[float, float], int] = {}
-    for g in grids:
-        counts[(g.min_nm, g.max_nm)] = counts.get((g.min_nm, g.max_nm), 0) + 1
+    for g in grids:  # to the 1e-3 nm a file lists (ranges that Bands.covers takes as one are one)
+        key = (round(g.min_nm, 3), round(g.max_nm, 3))
+        counts[key] = counts.get(key, 0) + 1
     listed = ", ".join(f"{nm_text(a)}-{nm_text(b)} nm: {n}" for (a, b), n in sorted(counts.items()))
     covering = sum(g.covers(camera_bands) for g in grids)
     cam = _range_text(camera_bands)
     trained = _TRAINED_BANDS.get()
     text = (f"{source}: the {'run' if trained else 'camera'}'s bands {cam} are not covered by the data's "
-            f"{_range_text(cube_bands)} (no extrapolation), and the dataset's {len(grids)} files lie on {len(counts)} "
+            f"{_range_text(cube_bands)} (no extrapolation), and the {len(grids)} files of its set lie on {len(counts)} "
             f"band ranges ({listed}), of which {covering} cover{'s' if covering == 1 else ''} {cam}")
     if trained:
         return InputError(f"{text}: a trained run's bands are fixed by its training, so use only files that cover {cam}")

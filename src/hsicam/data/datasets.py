@@ -649,17 +649,17 @@ class SceneDataset(Dataset):
     ``preload=True`` reads every scene once (at construction) and keeps it in memory — DataLoader
     workers started by fork share it. Otherwise an LRU cache of ``cache_size`` scenes per process
     is used, and hsicam HDF5 files on the same band grid are read window by window.
-    ``source_bands`` gives the grid for files that carry none (``.npy``). ``dataset``: every file of the dataset
-    ``scenes`` were drawn from (e.g. both splits; default ``scenes``), whose band ranges a refusal names.
+    ``source_bands`` gives the grid for files that carry none (``.npy``). ``dataset_paths``: every file of the
+    dataset ``scenes`` were drawn from (e.g. both splits; default ``scenes``), whose band ranges a refusal names.
     """
 
     def __init__(self, scenes: Sequence[str | os.PathLike], bands: Bands, *, preload: bool = False,
                  cache_size: int = 4, source_bands: Bands | None = None, allow_negative: bool = False,
-                 npy_bands_advice: str = NPY_BANDS_ADVICE, dataset: Sequence[str | os.PathLike] | None = None) -> None:
+                 npy_bands_advice: str = NPY_BANDS_ADVICE, dataset_paths: Sequence[str | os.PathLike] | None = None) -> None:
         if len(scenes) == 0:
             raise InputError("SceneDataset: no scenes")
         self.paths = [Path(s) for s in scenes]
-        self.dataset = self.paths if dataset is None else [Path(s) for s in dataset]
+        self.dataset_paths = self.paths if dataset_paths is None else [Path(s) for s in dataset_paths]
         self.bands = bands
         self.source_bands = source_bands
         self.npy_bands_advice = npy_bands_advice  # how the caller's user gives a .npy cube's grid
@@ -777,22 +777,22 @@ class SceneDataset(Dataset):
         return np.ascontiguousarray(cube)
 
     def _mixed_ranges_refusal(self, path: Path, src_bands: Bands) -> InputError | None:
-        """When ``path`` (on ``src_bands``) does not cover :attr:`bands` and this dataset's files lie on different
-        band ranges (:attr:`dataset`), the refusal that names them (:func:`hsicam.data.cube.mixed_ranges_refusal`), else None. Each
-        file's grid is read from its header (:func:`hsicam.data.formats.read_bands`); a file that cannot be told is
-        left out, its own read says why."""
-        if src_bands.covers(self.bands) or len(self.dataset) < 2:
+        """When ``path`` (on ``src_bands``) does not cover :attr:`bands` and the files of :attr:`dataset_paths` lie
+        on different band ranges, the refusal that names them (:func:`hsicam.data.cube.mixed_ranges_refusal`), else
+        None. Each file's grid is read from its header (:func:`hsicam.data.formats.read_bands`); a file that cannot be
+        told is left out, its own read says why."""
+        if src_bands.covers(self.bands) or len(self.dataset_paths) < 2:
             return None
         from hsicam.data.cube import mixed_ranges_refusal
         from hsicam.data.formats import read_bands
 
         grids = []
-        for p in self.dataset:
+        for p in self.dataset_paths:
             try:
                 grids.append(read_bands(p, bands=self.source_bands))
             except InputError:
                 continue
-        if len({(g.min_nm, g.max_nm) for g in grids}) < 2:
+        if len({(round(g.min_nm, 3), round(g.max_nm, 3)) for g in grids}) < 2:  # (as mixed_ranges_refusal groups)
             return None
         return mixed_ranges_refusal(path, src_bands, self.bands, grids)
 

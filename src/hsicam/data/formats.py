@@ -1680,6 +1680,8 @@ def read_bands(path: str | os.PathLike, *, bands: Bands | None = None) -> Bands:
             import OpenEXR
         except ImportError:
             raise InputError(f"{p}: reading OpenEXR needs the 'openexr' package (pip install 'hsicam[exr]')") from None
+        if not hasattr(OpenEXR, "File"):
+            raise InputError(f"{p}: reading OpenEXR needs openexr >= 3.3 (the OpenEXR.File API)")
         with _reading(p, "OpenEXR"):
             with OpenEXR.File(str(p), header_only=True) as f:
                 names = [c.name for c in f.header().get("channels", ())]
@@ -1689,9 +1691,10 @@ def read_bands(path: str | os.PathLike, *, bands: Bands | None = None) -> Bands:
 
         with _reading(p, "HDF5"), h5py.File(p, "r") as f:
             check_format_version(p, f.attrs)
-            if not isinstance(f["cube"], h5py.Dataset):
-                raise InputError(f"{p}: 'cube' is a {type(f['cube']).__name__.lower()}, not an array "
-                                 "(not an hsicam cube file)")
+            for key in ("cube", "bands_nm"):  # as read_hsicam_h5 refuses a group of that name
+                if not isinstance(f[key], h5py.Dataset):
+                    raise InputError(f"{p}: '{key}' is a {type(f[key]).__name__.lower()}, not an array "
+                                     "(not an hsicam cube file)")
             return _h5_bands(p, f, _shape_only(f["cube"].shape))[1]
     return _mat_cube_bands(p, fmt, _load_mat(p, _MAT_KEYS[fmt], None, read_data=False))[1]
 

@@ -929,9 +929,9 @@ def read_capture(path: str | Path, corr: RawCorrection | None = None, scale: flo
     :func:`preprocess_raw`).
 
     ``scale`` (if given) overrides ``corr.scale``. The ``sensor.png`` of ``hsicam simulate`` is first brought
-    back to its simulated level by the scale written inside it (:data:`SENSOR_SCALE_KEY`), and PNG/TIFF
-    captures with a ``simulate.json`` beside them (older simulations) by its ``sensor_png_scale``; ``scale``
-    multiplies that level, as it would simulate's ``sensor.npy`` (``corr.auto_level`` sets the level instead).
+    back to its simulated level by the scale written inside it (:data:`SENSOR_SCALE_KEY`), an older simulation's
+    ``sensor.png`` by the ``sensor_png_scale`` of the ``simulate.json`` beside it (:func:`is_simulated_image`);
+    ``scale`` multiplies that level, as it would simulate's ``sensor.npy`` (``corr.auto_level`` sets the level instead).
 
     Raises :class:`InputError` for a 32/64-bit integer capture without ``corr.white_level`` (or
     ``auto_level``, which makes the white level irrelevant): the type's maximum is no full scale.
@@ -1002,8 +1002,8 @@ def read_sensor_image(path: str | Path, scale: float | None = None) -> np.ndarra
 
     ``.npy`` float arrays are used as is; integer images (PNG, TIFF, integer ``.npy``) are divided
     by the type's maximum (32/64-bit integers are refused: see :func:`read_capture`); ``hsicam simulate``'s
-    image is then brought back to its simulated level (the scale written into its PNG, or ``sensor_png_scale``
-    from a ``simulate.json`` beside a PNG/TIFF); then multiplied by ``scale`` (default 1).
+    image is then brought back to its simulated level (the scale written into its PNG, or an older simulation's
+    ``sensor_png_scale`` from the ``simulate.json`` beside its ``sensor.png``); then multiplied by ``scale`` (default 1).
     """
     img, _ = read_capture(path, None, scale)
     return img

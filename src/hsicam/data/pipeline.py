@@ -190,8 +190,8 @@ def build_datasets(cfg: DataConfig, bands: Bands, margin_px: int, *, progress: b
                 "data: no validation scenes (%s): training runs without validation and the run keeps its last "
                 "checkpoint, not the best one; %s", no_validation_reason(cfg, len(scenes)), fix)
     try:
-        train_set = scene_dataset(cfg, train_scenes, bands, preload=preload, dataset=scenes)
-        val_set = scene_dataset(cfg, val_scenes, bands, preload=preload, dataset=scenes) if val_scenes else None
+        train_set = scene_dataset(cfg, train_scenes, bands, preload=preload, dataset_paths=scenes)
+        val_set = scene_dataset(cfg, val_scenes, bands, preload=preload, dataset_paths=scenes) if val_scenes else None
     except InputError as exc:
         if cfg.root is None:  # a scene of the synthetic cache that cannot be read: say how the cache is repaired
             raise InputError(f"{exc}; it is a scene of the synthetic dataset cache {root}: `hsicam data synth` with "

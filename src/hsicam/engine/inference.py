@@ -64,8 +64,9 @@ def reconstruction_working_bytes(reconstruct, bands: int, h: int, w: int, tile_p
     before = getattr(reconstruct, "before_steps", reconstruct)
     halo = int(getattr(before, "context_px", 0) or 0)
     tile = default_tile_px(halo) if tile_px is None else int(tile_px)
-    # the largest window reconstruct_tiled cuts: a tile and a halo each side, within the image
-    window = min(tile + 2 * halo, h) * min(tile + 2 * halo, w)
+    # the largest window reconstruct_tiled cuts: a tile and a halo each side, within the image; the whole image for a
+    # reconstruction that cannot be tiled (SD-CASSI)
+    window = min(tile + 2 * halo, h) * min(tile + 2 * halo, w) if _tileable(before) else h * w
     network = WINDOW_CUBES * bands * window
     work = 0
     if steps is not None and int(getattr(steps, "count", 1) or 0) > 0:
@@ -86,6 +87,18 @@ def reconstruction_memory_bytes(reconstruct, bands: int, h: int, w: int, tile_px
     (:data:`RECONSTRUCT_BASE_BYTES`) and :func:`reconstruction_working_bytes`. An estimate for a refusal before the
     work, 1.05–1.4× the measured peaks of what the reconstruction adds (session 60)."""
     return RECONSTRUCT_BASE_BYTES + reconstruction_working_bytes(reconstruct, bands, h, w, tile_px)
+
+
+def tiled_pixels(shape: tuple[int, int], tile_px: int, halo_px: int) -> int:
+    """The pixels that :func:`reconstruct_tiled`'s windows of an image of ``shape`` (H, W) add up to, in tiles of
+    ``tile_px`` with ``halo_px`` around each (cut to the image; one window when the image fits a tile)."""
+    if max(shape) <= tile_px:
+        return math.prod(shape)
+
+    def along(n: int) -> int:  # the windows' extents along one axis
+        return sum(min(t + tile_px + halo_px, n) - max(t - halo_px, 0) for t in range(0, n, tile_px))
+
+    return along(shape[0]) * along(shape[1])
 
 
 def _tileable(reconstruct) -> bool:

@@ -38,7 +38,7 @@ import torch
 from torch import nn
 
 from hsicam.errors import InputError
-from hsicam.solvers.common import check_solver_inputs, total_variation, tv_denoise
+from hsicam.solvers.common import checked_gram_diagonal, total_variation, tv_denoise
 from hsicam.config import ChoiConfig, GAPTVConfig
 from hsicam.solvers.gaptv import SolverInfo, gap_tv
 
@@ -81,7 +81,7 @@ def admm_prior(camera, y: torch.Tensor, prior: nn.Module, settings: ChoiConfig |
     the z-iterate after each iteration (when ``return_info``); ``info.extra["primal_residual"]`` the
     ‖x − z‖ / ‖z‖ sequence.
     """
-    phi = check_solver_inputs(camera, y, x0, "Choi")
+    phi = checked_gram_diagonal(camera, y, x0, "Choi")
     h, w = camera.scene_size(tuple(y.shape[-2:]))
     if min(h, w) < 2:  # a reflect-padded 3×3 convolution needs 2 px a side (torch refused 1 px with a RuntimeError)
         raise InputError(f"Choi: the cube ({h}×{w} px) is smaller than 2×2 px, which the prior's reflect-padded "

@@ -14,10 +14,10 @@ from hsicam.errors import InputError
 from hsicam.models.tv import chambolle_step, dual_divergence
 
 
-def check_solver_inputs(camera, y: torch.Tensor, x0: torch.Tensor | None, solver: str) -> torch.Tensor:
-    """diag ΦΦᵀ of ``camera`` for the measurement ``y`` (B, 1, H, W'), after checking ``y`` (the camera's
-    :meth:`check_measurement`), that ΦΦᵀ is diagonal (a CASSI camera; another is one :class:`InputError` naming
-    ``solver``) and that a start ``x0`` is a cube this camera takes, of the size ``y``'s scene has."""
+def checked_gram_diagonal(camera, y: torch.Tensor, x0: torch.Tensor | None, solver: str) -> torch.Tensor:
+    """diag ΦΦᵀ of ``camera`` for the measurement ``y`` (B, 1, H, W'), a solver's inputs checked first: ``y`` (the
+    camera's :meth:`check_measurement`), that ΦΦᵀ is diagonal (a CASSI camera; another is one :class:`InputError`
+    naming ``solver``) and that a start ``x0`` is a cube this camera takes, of the size ``y``'s scene has."""
     camera.check_measurement(y)
     try:
         phi = camera.gram_diagonal(y)

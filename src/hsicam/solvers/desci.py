@@ -41,7 +41,7 @@ import torch.nn.functional as F
 from hsicam.config import GAPTVConfig
 from hsicam.devices import float64_device
 from hsicam.errors import InputError
-from hsicam.solvers.common import check_solver_inputs
+from hsicam.solvers.common import checked_gram_diagonal
 from hsicam.solvers.gaptv import SolverInfo, gap_tv
 
 log = logging.getLogger(__name__)
@@ -234,7 +234,7 @@ def wnnm_denoise(x: torch.Tensor, sigma: float, settings: DeSCISettings, matches
 def desci(camera, y: torch.Tensor, settings: DeSCISettings | None = None, x0: torch.Tensor | None = None,
           return_info: bool = False):
     """DeSCI reconstruction of a measurement (B, 1, H, W') → cube (B, C, H, W) [, SolverInfo]."""
-    phi = check_solver_inputs(camera, y, x0, "DeSCI")
+    phi = checked_gram_diagonal(camera, y, x0, "DeSCI")
     s = settings or DeSCISettings()
     t0 = time.perf_counter()
     info = SolverInfo()

@@ -23,7 +23,7 @@ import torch
 
 from hsicam.config import GAPTVConfig
 from hsicam.errors import InputError
-from hsicam.solvers.common import check_count, check_solver_inputs, tv_denoise
+from hsicam.solvers.common import check_count, checked_gram_diagonal, tv_denoise
 
 log = logging.getLogger(__name__)
 
@@ -61,7 +61,7 @@ def gap_tv(camera, y: torch.Tensor, iterations: int = GAPTVConfig.iterations,
     Returns:
         cube (B, C, H, W) [, SolverInfo].
     """
-    phi = check_solver_inputs(camera, y, x0, "GAP-TV")
+    phi = checked_gram_diagonal(camera, y, x0, "GAP-TV")
     check_count("iterations", iterations)
     check_count("tv_iterations", tv_iterations)
     weights = tv_weight if isinstance(tv_weight, (list, tuple)) else [tv_weight]

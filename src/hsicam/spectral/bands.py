@@ -133,7 +133,7 @@ class Bands:
         return self.matches(other)
 
     def __hash__(self) -> int:
-        # the band count only: equality allows 1e-6 nm per centre, and any two grids of one length are
+        # the band count only: equality allows BAND_TOL_NM per centre, and any two grids of one length are
         # linked by a chain of such steps, so no hash of the centres (rounded or not) agrees with ==
         return hash(len(self))
 
