@@ -813,15 +813,21 @@ def exr_bare_micrometres(names) -> bool:
     return bool(bare) and all(0.2 <= v <= 2.6 for v in bare)
 
 
-def read_kaist_exr(path: str | os.PathLike, *, allow_negative: bool = False, memory_budget_mb: float | None = None) -> Cube:
-    """KAIST OpenEXR: one channel per band, the wavelength in each channel's name."""
-    p = _as_path(path)
+def _openexr(p: Path) -> Any:
+    """The ``OpenEXR`` module (openexr >= 3.3, the optional ``exr`` extra); InputError naming ``p`` without it."""
     try:
         import OpenEXR
     except ImportError:
         raise InputError(f"{p}: reading OpenEXR needs the 'openexr' package (pip install 'hsicam[exr]')") from None
     if not hasattr(OpenEXR, "File"):
         raise InputError(f"{p}: reading OpenEXR needs openexr >= 3.3 (the OpenEXR.File API)")
+    return OpenEXR
+
+
+def read_kaist_exr(path: str | os.PathLike, *, allow_negative: bool = False, memory_budget_mb: float | None = None) -> Cube:
+    """KAIST OpenEXR: one channel per band, the wavelength in each channel's name."""
+    p = _as_path(path)
+    OpenEXR = _openexr(p)
     with _reading(p, "OpenEXR"):
         with OpenEXR.File(str(p), header_only=True) as f:  # the header dict is only valid while open
             header = f.header()
@@ -1676,12 +1682,7 @@ def read_bands(path: str | os.PathLike, *, bands: Bands | None = None) -> Bands:
         _, waves, fwhm, _ = _envi_ascending(_shape_only((waves.size, 1, 1)), waves, fwhm, None)
         return _bands_from(hdr, waves, fwhm)
     if fmt == "kaist-exr":
-        try:
-            import OpenEXR
-        except ImportError:
-            raise InputError(f"{p}: reading OpenEXR needs the 'openexr' package (pip install 'hsicam[exr]')") from None
-        if not hasattr(OpenEXR, "File"):
-            raise InputError(f"{p}: reading OpenEXR needs openexr >= 3.3 (the OpenEXR.File API)")
+        OpenEXR = _openexr(p)
         with _reading(p, "OpenEXR"):
             with OpenEXR.File(str(p), header_only=True) as f:
                 names = [c.name for c in f.header().get("channels", ())]
