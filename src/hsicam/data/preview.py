@@ -27,6 +27,7 @@ from hsicam.data.formats import read_cube
 from hsicam.errors import InputError
 from hsicam.io import atomic_path, save_figure
 from hsicam.spectral import Bands
+from hsicam.spectral.bands import BAND_TOL_NM
 
 log = logging.getLogger(__name__)
 
@@ -211,7 +212,7 @@ def common_grid(grids: list[Bands], min_bands: int = 3) -> Bands:
     first, best, score = grids[0], grids[0], (-1, -1)
     for lo in sorted({b.min_nm for b in grids}):
         for hi in sorted({b.max_nm for b in grids}):
-            keep = (first.centers_nm >= lo - 1e-6) & (first.centers_nm <= hi + 1e-6)
+            keep = (first.centers_nm >= lo - BAND_TOL_NM) & (first.centers_nm <= hi + BAND_TOL_NM)  # as covers()
             if keep.sum() < min_bands:
                 continue
             cand = Bands(first.centers_nm[keep], first.fwhm_nm[keep])
