@@ -43,9 +43,11 @@ class FixedPSFCamera(DOECamera):
             raise InputError("PSF stack must hold finite, non-negative numbers (an intensity per pixel): clip a "
                              "background-subtracted measurement at 0 first" + ("" if torch.is_floating_point(psf) else
                                                                                f"; got {psf.dtype}"))
-        dtype = torch.float64 if psf.dtype == torch.float64 else torch.float32
+        device = camera.optics.amplitude.device
+        # float64 where given and the device has it (MPS has none)
+        dtype = torch.float64 if psf.dtype == torch.float64 and device.type != "mps" else torch.float32
         obj = cls(camera.bands, camera.optics, camera.cfa, camera.noise, camera.boundary, camera.padding)
-        obj.register_buffer("fixed_psf", psf.to(camera.optics.amplitude.device, dtype).clone(), persistent=False)
+        obj.register_buffer("fixed_psf", psf.to(device, dtype).clone(), persistent=False)
         return obj
 
     def noise_levels(self) -> dict[str, float]:
