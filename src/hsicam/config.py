@@ -1356,14 +1356,22 @@ def override_keys(overrides: Sequence[str]) -> set[str]:
     return out
 
 
+#: Keys whose empty override (``--set data.root=``) is refused rather than read as null: the value of an unset shell
+#: variable (``data.root=$DATA``) would otherwise switch a training to the embedded synthetic data without a word.
+NO_EMPTY_OVERRIDE = {"data.root": "give the dataset's folder, or data.root=null for the embedded synthetic data"}
+
+
 def apply_override(data: dict[str, Any], item: str) -> None:
-    """Apply one ``a.b.c=value`` override to a nested dict (value parsed as YAML)."""
+    """Apply one ``a.b.c=value`` override to a nested dict (value parsed as YAML; an empty value is null, except for
+    the keys of :data:`NO_EMPTY_OVERRIDE`)."""
     if "=" not in item:
         raise ConfigError(f"override {item!r} must look like key.sub=value")
     key, _, raw = item.partition("=")
     parts = [p for p in key.strip().split(".")]
     if not all(parts):
         raise ConfigError(f"override {item!r}: empty key")
+    if not raw.strip() and key.strip() in NO_EMPTY_OVERRIDE:
+        raise ConfigError(f"override {item!r}: the value is empty (an unset variable?): {NO_EMPTY_OVERRIDE[key.strip()]}")
     try:
         value = strict_yaml(raw) if raw.strip() else None
     except DuplicateKeyError as exc:

@@ -262,3 +262,27 @@ def test_sd_cassi_is_reconstructed_whole_and_its_linear_step_is_skipped_as_recon
                              "--out", str(tmp_path / "ev"))
     assert_ok(res)
     assert "model.consistency is skipped: SD-CASSI's scene grid is not the sensor's" in res.stderr
+
+
+def test_a_data_folder_whose_name_is_not_utf8_is_evaluated_and_shown(tmp_path, cache_env):
+    """(A real-format dataset hunt, session 72.) A folder named in Latin-1 (Python holds its byte as a lone
+    surrogate): evaluate scored every scene, then failed writing results.md (UnicodeEncodeError, exit 1, nothing
+    kept), and `data show` failed in matplotlib; both write it with a \\xe9 escape, as scene names already were."""
+    import json
+    import os
+
+    from hsicam.engine.train import train
+
+    folder = tmp_path / os.fsdecode(b"d\xe9ta")
+    write_homogeneous_scenes(folder, n=3, size=32)
+    run = tmp_path / "run"
+    cfg = load_config("tiny", [*TINY_CAMERA_OVERRIDES, f"data.root={folder}", "train.epochs=1"])
+    assert train(cfg, run, progress=False)["final"]
+    for extra, label in (([], f"validation split of {tmp_path}/d\\xe9ta"), (["--data", str(folder)],
+                                                                          f"{tmp_path}/d\\xe9ta")):
+        out = tmp_path / f"ev{len(extra)}"
+        assert_ok(run_cli_in_process("evaluate", "--run", str(run), "--out", str(out), *extra))
+        assert json.loads((out / "results.json").read_text(encoding="utf-8"))["data"] == label
+        assert label in (out / "results.md").read_text(encoding="utf-8")
+    assert_ok(run_cli_in_process("data", "show", str(folder), "--out", str(tmp_path / "show")))
+    assert sorted(p.suffix for p in (tmp_path / "show").iterdir() if not p.name.startswith(".")) == [".png"] * 3

@@ -644,3 +644,15 @@ def test_the_linear_step_check_of_an_unknown_camera_kind_says_it_is_not_a_built_
     with pytest.raises(ConfigError) as exc:
         load_config("quick", ["camera.kind=dd_cassi"])
     assert "built-in" not in str(exc.value)
+
+
+def test_an_empty_data_root_override_is_refused_not_read_as_the_synthetic_data():
+    """`--set data.root=$DATA` with DATA unset trained on the embedded synthetic data without a word (a real-format
+    dataset hunt, session 72); null says so explicitly, and other keys keep `key=` as null."""
+    for item in ("data.root=", "data.root=  "):
+        with pytest.raises(ConfigError) as exc:
+            load_config("tiny", [item])
+        assert str(exc.value) == (f"override {item!r}: the value is empty (an unset variable?): give the dataset's "
+                                  "folder, or data.root=null for the embedded synthetic data")
+    assert load_config("tiny", ["data.root=null"]).data.root is None
+    assert load_config("tiny", ["data.cache_dir="]).data.cache_dir is None

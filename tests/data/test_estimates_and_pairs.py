@@ -221,3 +221,43 @@ def test_reconstruct_to_envi_records_the_metadata_its_hdf5_records(tmp_path, cap
     assert {k: meta.get(k) for k in recorded} == recorded
     assert meta["format"] == "envi" and meta["command"] == "reconstruct"
     assert main(argv[:-1] + [str(tmp_path / "c.hdr")]) == 0  # its own earlier output: replaced
+
+
+def test_evaluate_estimates_copied_into_a_data_folder_are_no_scenes(tmp_path, caplog):
+    """`hsicam evaluate --save` writes cubes/NAME_estimate.h5 and NAME_truth.h5; copied out of the evaluation (a
+    real-format dataset hunt, session 72) the estimates became training scenes. They are listed as estimates now,
+    by the command and role they carry (and, written before, by the keys only they hold); the truth cubes are scenes."""
+    from hsicam.data.estimates import is_estimate
+
+    data = tmp_path / "d"
+    data.mkdir()
+    scene = {"scene": "a", "scene_path": "a.h5", "source": "/x/a.h5", "normalization_peak": 1.0}
+    write_cube_h5(data / "a_estimate.h5", cube(16, 16, 0), BANDS, {"command": "evaluate", "role": "estimate",
+                                                                  "method": "doe-learned", **scene, "run": "r",
+                                                                  "seed": 0, "seeds_scored": 1, "noise": {}})
+    write_cube_h5(data / "b_estimate.h5", cube(16, 16, 1), BANDS, {"method": "doe-learned", **scene, "run": "r",
+                                                                  "seed": 0, "seeds_scored": 1})  # before session 72
+    write_cube_h5(data / "a_truth.h5", cube(16, 16, 2), BANDS, {"role": "ground truth", **scene})
+    write_cube_h5(data / "mine.h5", cube(16, 16, 3), BANDS, {"method": "my own", "run": "field day 2"})
+    assert [is_estimate(data / n) for n in ("a_estimate.h5", "b_estimate.h5", "a_truth.h5", "mine.h5")] == \
+        [True, True, False, False]
+    assert list_scenes(data) == [data / "a_truth.h5", data / "mine.h5"]
+
+
+def test_a_link_to_a_folder_that_is_gone_is_said_not_skipped_silently(tmp_path, caplog):
+    """A dataset spread over disks by links: with one disk unmounted, its linked folder's scenes were left out
+    without a word (os.walk lists a dangling link among the files; a real-format dataset hunt, session 72)."""
+    import os
+
+    data = tmp_path / "d"
+    data.mkdir()
+    write_cube_h5(data / "a.h5", cube(16, 16, 0), BANDS)
+    (tmp_path / "disk2").mkdir()
+    write_cube_h5(tmp_path / "disk2" / "b.h5", cube(16, 16, 1), BANDS)
+    os.symlink(tmp_path / "disk2", data / "linked")
+    assert list_scenes(data) == [data / "a.h5", data / "linked" / "b.h5"]
+    (tmp_path / "disk2").rename(tmp_path / "unmounted")
+    with caplog.at_level("WARNING"):
+        assert list_scenes(data) == [data / "a.h5"]
+    assert (f"{data / 'linked'}: is a symbolic link to {tmp_path / 'disk2'}, which does not exist: skipped (if it led "
+            "to scenes, restore what it points to)") in caplog.text

@@ -242,7 +242,7 @@ def _scenes_to_score(args: argparse.Namespace, cfg, paths, bands):
         scenes = scene_dataset(cfg.data, paths, bands)
         # unique names (stems; the scenes whose stems collide by their paths), each row with its path
         names, rel = scene_names(paths, args.data), [displayable_name(scene_path(p, args.data)) for p in paths]
-        return scenes, names, rel, str(Path(args.data).resolve()), None
+        return scenes, names, rel, displayable_name(str(Path(args.data).resolve())), None  # (a folder not UTF-8)
     scenes, names = validation_scenes(cfg, no_scenes_hint=": score a folder of scenes instead, --data DIR")
     return scenes, names, _relative_to_common_folder(scenes.paths), validation_data_label(cfg), heldout_scenes(cfg)
 
@@ -344,7 +344,10 @@ def _write_evaluation(out: Path, args: argparse.Namespace, summary: dict, result
             for i, r in enumerate(results):
                 scene = {"scene": r.name, "scene_path": r.path, "source": str(Path(scenes.paths[i]).resolve()),
                          "normalization_peak": scenes.info(i).peak}
-                estimate = {"method": args.method, **scene, "run": summary["run"], "seed": r.seed, "seeds_scored": len(noise.seeds),
+                # (command and role: a data folder that a copy of these cubes lands in lists the estimate as none
+                # of its scenes, hsicam.data.estimates.is_estimate)
+                estimate = {"command": "evaluate", "role": "estimate", "method": args.method, **scene,
+                            "run": summary["run"], "seed": r.seed, "seeds_scored": len(noise.seeds),
                             "noise": {**r.noise, "camera_sensor": camera_sensor}}
                 if len(noise.seeds) > 1:
                     estimate["note"] = (f"the estimate of seed {r.seed}, the first of the {len(noise.seeds)} seeds scored: "

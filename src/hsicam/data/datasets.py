@@ -159,6 +159,11 @@ def _add_scene_files(d: Path, filenames: list[str], found: _Found) -> None:
             if broken is not None:  # else listed, then refused as "no such file" without its target
                 raise InputError(f"{d / name}: {broken} (remove the link, or restore what it points to)")
             (found.estimates if is_estimate(d / name) else found.scenes).append(d / name)
+        elif (d / name).is_symlink() and not (d / name).exists():
+            # a link to a folder of scenes on a disk not mounted (os.walk lists it among the files): the folder's
+            # scenes would be left out without a word
+            log.warning("%s: %s: skipped (if it led to scenes, restore what it points to)", d / name,
+                        broken_link_problem(d / name) or "a symbolic link that leads nowhere")
 
 
 def _no_scenes_error(root: Path, found: _Found) -> InputError:
@@ -483,14 +488,23 @@ def probe_hsicam(path: Path, bands: Bands, *, allow_negative: bool = False) -> S
             if f.attrs.get("format") != HSICAM_FORMAT or "cube" not in f or "max_value" not in f.attrs:
                 return None
             check_format_version(path, f.attrs)  # a newer file: no windowed reads; the full reader refuses it
-            if not Bands.from_centers(f["bands_nm"][()]).matches(bands):
-                return None
             shape, kind = f["cube"].shape, f["cube"].dtype.kind
             peak = float(f.attrs["max_value"])
     except (OSError, KeyError, TypeError, ValueError, InputError):
         return None  # the full reader reports the problem properly
     if len(shape) != 3 or min(shape) == 0 or kind not in "fiub" or not peak > 0:
         return None  # likewise (a wrong shape or type, a header that says all zeros)
+    # only a file on the camera's bands as read_cube would leave it: the same centres and no camera band wider than
+    # the file's own (those a whole read integrates: a window read as stored was other ground truth, session 72)
+    from hsicam.data.formats import read_bands
+    from hsicam.spectral import resolved_bands
+
+    try:
+        file_bands = read_bands(path)
+    except InputError:
+        return None
+    if not file_bands.matches(bands) or resolved_bands(file_bands, bands).any():
+        return None
     peak = check_windowed_pixels(path, allow_negative=allow_negative)
     return SceneInfo(path, int(shape[1]), int(shape[2]), peak)
 

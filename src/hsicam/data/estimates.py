@@ -32,25 +32,45 @@ def preview_beside(cube: Path) -> bool:
     return cube.with_name(f"{cube.stem}_rgb.png").is_file()
 
 
-def is_reconstruct_h5(path: Path, legacy: bool = True) -> bool:
-    """True for our HDF5 cube file written by reconstruct (its metadata names the command; with
-    ``legacy``, also one from before it named itself: the capture and run, its preview beside it)."""
+def _h5_metadata(path: Path) -> dict | None:
+    """The metadata of our HDF5 cube file ``path``, else None (another file, or unreadable)."""
     import h5py
 
     from hsicam.data.formats import _HDF5_MAGIC, HSICAM_FORMAT
 
     if not head(path, 8).startswith(_HDF5_MAGIC):
-        return False
+        return None
     try:
         with h5py.File(path, "r") as f:
             if f.attrs.get("format") != HSICAM_FORMAT or "cube" not in f:
-                return False
+                return None
             meta = json.loads(f.attrs.get("metadata_json", "{}"))
     except (OSError, ValueError, TypeError, KeyError):
-        return False
-    if not isinstance(meta, dict):
+        return None
+    return meta if isinstance(meta, dict) else None
+
+
+def is_reconstruct_h5(path: Path, legacy: bool = True) -> bool:
+    """True for our HDF5 cube file written by reconstruct (its metadata names the command; with
+    ``legacy``, also one from before it named itself: the capture and run, its preview beside it)."""
+    meta = _h5_metadata(path)
+    if meta is None:
         return False
     return meta.get("command") == "reconstruct" or (legacy and {"source", "run"} <= meta.keys() and preview_beside(path))
+
+
+#: The metadata keys that only ``hsicam evaluate --save``'s estimate cubes hold (those written before they named the
+#: command and their role too).
+EVALUATE_ESTIMATE_KEYS = {"method", "run", "seed", "seeds_scored"}
+
+
+def is_evaluate_estimate_h5(path: Path) -> bool:
+    """True for an estimate cube that ``hsicam evaluate --save`` wrote (``cubes/NAME_estimate.h5``; its truth cube
+    beside it is a scene): its metadata names the command and role, or holds :data:`EVALUATE_ESTIMATE_KEYS`."""
+    meta = _h5_metadata(path)
+    if meta is None:
+        return False
+    return (meta.get("command") == "evaluate" and meta.get("role") == "estimate") or EVALUATE_ESTIMATE_KEYS <= meta.keys()
 
 
 def reconstruct_envi_header(path: Path) -> dict[str, str] | None:
@@ -73,10 +93,11 @@ def is_estimate(path: Path) -> bool:
     """True when the cube file ``path`` (an .h5, or an ENVI pair listed by its .hdr) is a
     reconstruction that hsicam reconstruct wrote, by what only reconstruct writes (its metadata's
     command, its header's description ``hsicam reconstruct``): the older forms, which a user's own
-    ``write_cube_h5``/``write_envi`` file with a quick-look beside it also has, count as scenes."""
+    ``write_cube_h5``/``write_envi`` file with a quick-look beside it also has, count as scenes. An estimate that
+    ``hsicam evaluate --save`` wrote is one too (:func:`is_evaluate_estimate_h5`; its truth cube is a scene)."""
     suffix = path.suffix.lower()
     if suffix in (".h5", ".hdf5"):
-        return is_reconstruct_h5(path, legacy=False)
+        return is_reconstruct_h5(path, legacy=False) or is_evaluate_estimate_h5(path)
     if suffix == ".hdr":
         h = reconstruct_envi_header(path)
         return h is not None and h.get("description", "").strip("{} ") == ENVI_DESCRIPTIONS[0]

@@ -22,7 +22,7 @@ import numpy as np
 
 from hsicam.color import PREVIEW_LEVEL, TABLE_RANGE_NM, cube_to_srgb, display_gain, preview_exposure
 from hsicam.data.cube import conform_bands, normalize_per_cube_max
-from hsicam.data.datasets import list_scenes
+from hsicam.data.datasets import displayable_name, list_scenes
 from hsicam.data.formats import read_cube
 from hsicam.errors import InputError
 from hsicam.io import atomic_path, save_figure
@@ -128,11 +128,11 @@ def _scene_figures(path: Path, scenes: list[Path], npy_bands: Bands | None = Non
         cube, bands, _ = read_cube(s, bands=npy_bands)
         norm, _ = normalize_per_cube_max(cube, s)  # first: an all-zero cube is refused naming its file
         if renderable(bands):
-            thumbs.append((s.name, preview_rgb(cube, bands)))
+            thumbs.append((displayable_name(s.name), preview_rgb(cube, bands)))
         else:  # e.g. a near-infrared cube: nothing to render in colour
-            thumbs.append((f"{s.name} (grey)", preview_grey(cube)))
+            thumbs.append((f"{displayable_name(s.name)} (grey)", preview_grey(cube)))
             grey += 1
-        spectra.append((s.name, bands, norm.mean(axis=(1, 2))))
+        spectra.append((displayable_name(s.name), bands, norm.mean(axis=(1, 2))))
     cols = min(len(thumbs), 4)
     rows = int(math.ceil(len(thumbs) / cols))
     sheet = Figure(figsize=(2.6 * cols, 2.8 * rows), layout="constrained")  # the two-line title clear of the thumbnails
@@ -144,7 +144,7 @@ def _scene_figures(path: Path, scenes: list[Path], npy_bands: Bands | None = Non
     lo, hi = TABLE_RANGE_NM
     # each thumbnail is exposed to its own brightness (preview_rgb): say so, or a dim scene looks as bright as
     # any other, and 3x brighter than its absolute render (hsicam.color.srgb_preview at exposure 1)
-    title = [f"{path.name}: sRGB renders (CIE 1931 2°, D65)", "each scene exposed to its own brightness "
+    title = [f"{displayable_name(path.name)}: sRGB renders (CIE 1931 2°, D65)", "each scene exposed to its own brightness "
              f"(99th-percentile luminance at {PREVIEW_LEVEL:g})" + (
                  f"; (grey): mean over bands, fewer than 2 bands in {lo:g}-{hi:g} nm" if grey else "")]
     width = 30 * cols + 4  # characters of 10 pt text across the sheet: a narrow sheet's title wraps, not widens it
@@ -157,7 +157,7 @@ def _scene_figures(path: Path, scenes: list[Path], npy_bands: Bands | None = Non
         ax.plot(bands.centers_nm, mean, lw=1.2, label=name, marker="o" if len(bands) == 1 else None)
     ax.set_xlabel("wavelength (nm)")
     ax.set_ylabel("mean value (per-cube max = 1)")
-    ax.set_title(f"{path.name}: mean spectra")
+    ax.set_title(f"{displayable_name(path.name)}: mean spectra")
     ax.grid(alpha=0.3)
     if len(spectra) <= 16:
         ax.legend(fontsize=6, ncol=2)
@@ -227,7 +227,7 @@ def _grid_text(b: Bands) -> str:
 
 
 def _left_text(left: list[tuple[Path, Bands]]) -> str:
-    shown = ", ".join(f"{s.name}: {_grid_text(b)}" for s, b in left[:5])
+    shown = ", ".join(f"{displayable_name(s.name)}: {_grid_text(b)}" for s, b in left[:5])
     return shown + (f" and {len(left) - 5} more" if len(left) > 5 else "")
 
 
@@ -303,7 +303,7 @@ def _gamut_figure(path: Path, scenes: list[Path], held_dir: Path | None, held_sc
     groups = [("dataset pixels", _shapes(pix), "tab:blue", "o")]
     if held_dir is not None:
         hpix, _ = pixel_spectra(held_scenes, bands, seed=1, source=held_dir, npy_bands=npy_bands)
-        groups.append((f"held-out pixels ({held_dir.name})", _shapes(hpix), "tab:red", "x"))
+        groups.append((f"held-out pixels ({displayable_name(held_dir.name)})", _shapes(hpix), "tab:red", "x"))
     lib = _library_shapes(path) if path.is_dir() else None
     panels = [("scene pixel spectra", groups)]
     if lib is not None:
@@ -335,7 +335,7 @@ def _gamut_figure(path: Path, scenes: list[Path], held_dir: Path | None, held_sc
         ax.set_title(f"{title}: spectral shapes", fontsize=10)
         ax.grid(alpha=0.3)
         ax.legend(fontsize=7, loc="best", markerscale=2)
-    fig.suptitle(f"{path.name}: spectral gamut (PCA of unit-norm spectra, {bands.min_nm:g}-{bands.max_nm:g} nm)",
+    fig.suptitle(f"{displayable_name(path.name)}: spectral gamut (PCA of unit-norm spectra, {bands.min_nm:g}-{bands.max_nm:g} nm)",
                  fontsize=10)
     return fig
 

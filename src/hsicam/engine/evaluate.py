@@ -87,7 +87,11 @@ def validation_data_label(cfg) -> str:
     ``--data``, ``hsicam demo``)."""
     from hsicam.data.pipeline import absolute_data_paths
 
-    return SYNTHETIC_VALIDATION if cfg.data.root is None else f"{VALIDATION_OF}{absolute_data_paths(cfg).data.root}"
+    from hsicam.data.datasets import displayable_name
+
+    if cfg.data.root is None:
+        return SYNTHETIC_VALIDATION
+    return f"{VALIDATION_OF}{displayable_name(str(absolute_data_paths(cfg).data.root))}"  # (a folder not UTF-8)
 
 
 HELDOUT_SOURCES = "held-out spectral sources"
