@@ -1013,3 +1013,19 @@ def test_read_sensor_errors(tmp_path):
         read_sensor_image(tmp_path / "x.jpg")
     with pytest.raises(InputError, match="no such"):
         read_sensor_image(tmp_path / "missing.npy")
+
+
+def test_a_files_warning_is_logged_once_however_often_it_is_read(tmp_path, caplog):
+    """A dataset reads its scenes again and again: a tolerance study logged one ENVI file's "reading them as
+    micrometres" warning 38 times (a real-format dataset hunt, session 72). Each text, which names its file, is
+    logged once per process; another file's is its own."""
+    waves = "wavelength = {0.40, 0.55, 0.70}\n"  # no unit, values below 30: micrometres, with a warning
+    for name in ("a", "b"):
+        (tmp_path / f"{name}.hdr").write_text(envi_header(W, H, 3, 4, "bsq", 0, 0, waves))
+        np.ones((3, H, W), np.float32).tofile(tmp_path / f"{name}.img")
+    with caplog.at_level(logging.INFO, logger="hsicam.data.formats"):
+        for _ in range(3):
+            read_cube(tmp_path / "a.hdr")
+        read_cube(tmp_path / "b.hdr")
+    said = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING and "micrometres" in r.getMessage()]
+    assert len(said) == 2 and str(tmp_path / "a.hdr") in said[0] and str(tmp_path / "b.hdr") in said[1], said

@@ -737,13 +737,13 @@ _NOTED: set[str] = set()
 
 
 def _finished_noting(notes: str | None | Sequence[tuple[int, str]], result: Cube) -> Cube:
-    """``result``, after logging ``notes`` (a warning, or (level, text) pairs; an INFO text once per
-    process) once the file was read without error: an error stays the one line the user sees."""
+    """``result``, after logging ``notes`` (a warning, or (level, text) pairs; each text, which names its file, once
+    per process: a dataset reads its scenes again and again, and a tolerance study printed one file's warning 38
+    times) once the file was read without error: an error stays the one line the user sees."""
     for level, text in ([(logging.WARNING, notes)] if isinstance(notes, str) else notes or ()):
-        if level <= logging.INFO:
-            if text in _NOTED:
-                continue
-            _NOTED.add(text)
+        if text in _NOTED:
+            continue
+        _NOTED.add(text)
         log.log(level, "%s", text)
     return result
 
