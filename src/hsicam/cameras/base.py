@@ -366,13 +366,16 @@ class Camera(nn.Module):
         if x.shape[0] < 1:
             raise InputError(f"scene of shape {tuple(x.shape)} is an empty batch: it needs B >= 1")
         check_device(x, self, "scene")
-        least = self.min_padded_px()
-        if min(x.shape[-2:]) < least:
-            raise InputError(
-                f"scene of {x.shape[-2]}×{x.shape[-1]} px is too small for {self.padding} padding by "
-                f"{self.margin // 2} px: it needs at least {least} px per side"
-            )
+        self.check_padded_size(tuple(x.shape[-2:]), "scene")
         self.check_sensor_area(tuple(x.shape[-2:]))
+
+    def check_padded_size(self, hw: tuple[int, int], what: str) -> None:
+        """Raise :class:`InputError` unless an image of ``hw`` (H, W), a scene or (``same`` boundary: of the scene's
+        size) a sensor image, is as large as the padding takes (:meth:`min_padded_px`)."""
+        least = self.min_padded_px()
+        if min(hw) < least:
+            raise InputError(f"{what} of {hw[0]}×{hw[1]} px is too small for {self.padding} padding by "
+                             f"{self.margin // 2} px: it needs at least {least} px per side")
 
     def check_sensor_area(self, scene_hw: tuple[int, int]) -> None:
         """Raise :class:`InputError` unless a scene of ``scene_hw`` (H, W) leaves a sensor image of at least 1×1 px

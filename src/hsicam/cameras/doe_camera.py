@@ -191,10 +191,7 @@ class DOECamera(Camera):
     def A_adjoint(self, g: torch.Tensor, psf: torch.Tensor | None = None) -> torch.Tensor:  # noqa: N802
         """Exact adjoint of :meth:`A`: sensor image (B, 1, H, W) → cube (B, C, H', W')."""
         self.check_measurement(g)
-        least = self.min_padded_px()  # a `same` image is the scene's size: as small a scene as A refuses
-        if min(g.shape[-2:]) < least:
-            raise InputError(f"sensor image of {g.shape[-2]}×{g.shape[-1]} px is too small for {self.padding} padding "
-                             f"by {self.margin // 2} px: it needs at least {least} px per side")
+        self.check_padded_size(tuple(g.shape[-2:]), "sensor image")  # a `same` image is the scene's size
         psf = self.psf() if psf is None else psf
         kappa = self.cfa.pattern(g.shape[-2], g.shape[-1]).to(g.dtype)
         x = coded_conv_valid_adjoint(g, psf.to(g.dtype), kappa)

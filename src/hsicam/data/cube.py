@@ -140,15 +140,17 @@ def _range_text(bands: Bands) -> str:
 
 
 def mixed_ranges_refusal(source: PathLike | str, cube_bands: Bands, camera_bands: Bands,
-                         grids: Sequence[Bands]) -> InputError:
+                         grids: Sequence[Bands]) -> InputError | None:
     """The refusal of a file whose ``cube_bands`` do not cover ``camera_bands`` when the files of its dataset
     (``grids``: each one's band grid) are on different band ranges: it names the ranges, how many files cover the
     camera's bands and the range every file covers, since the range of one file (:func:`conform_bands`'s advice)
-    is refused by another's."""
+    is refused by another's. None when they lie on one range (the file's own refusal says it all)."""
     counts: dict[tuple[float, float], int] = {}
     for g in grids:  # to the 1e-3 nm a file lists (ranges that Bands.covers takes as one are one)
         key = (round(g.min_nm, 3), round(g.max_nm, 3))
         counts[key] = counts.get(key, 0) + 1
+    if len(counts) < 2:
+        return None
     listed = ", ".join(f"{nm_text(a)}-{nm_text(b)} nm: {n}" for (a, b), n in sorted(counts.items()))
     covering = sum(g.covers(camera_bands) for g in grids)
     cam = _range_text(camera_bands)

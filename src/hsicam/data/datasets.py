@@ -806,8 +806,6 @@ class SceneDataset(Dataset):
                 grids.append(read_bands(p, bands=self.source_bands))
             except InputError:
                 continue
-        if len({(round(g.min_nm, 3), round(g.max_nm, 3)) for g in grids}) < 2:  # (as mixed_ranges_refusal groups)
-            return None
         return mixed_ranges_refusal(path, src_bands, self.bands, grids)
 
     def __getstate__(self) -> dict[str, Any]:

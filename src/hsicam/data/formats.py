@@ -1581,12 +1581,9 @@ def npy_header(path: str | os.PathLike) -> tuple[tuple[int, ...], np.dtype]:
     return tuple(int(s) for s in shape), np.dtype(dtype)
 
 
-def read_npy(path: str | os.PathLike, *, bands: Bands | None = None, allow_negative: bool = False,
-             memory_budget_mb: float | None = None) -> Cube:
-    """``.npy`` array (C, H, W). Bands: ``bands`` if given, else C bands evenly over 400-700 nm, said in a warning
-    once per file and process (the file carries no wavelengths: a cube of 420-720 nm read so is resampled from the
-    wrong wavelengths)."""
-    p = _as_path(path)
+def _checked_npy_header(p: Path, bands: Bands | None) -> tuple[tuple[int, ...], np.dtype, str]:
+    """(shape, dtype, the hint for a cube stored bands last) of the ``.npy`` file ``p``, from its header; InputError
+    unless a 3-D array of numbers whose axis 0 has the bands of ``bands`` (when given)."""
     shape, dtype = npy_header(p)
     if len(shape) != 3:
         raise InputError(f"{p}: expected a 3-D array (bands, height, width), got {len(shape)} dimensions {shape}")
@@ -1597,6 +1594,16 @@ def read_npy(path: str | os.PathLike, *, bands: Bands | None = None, allow_negat
     if bands is not None and len(bands) != shape[0]:
         raise InputError(f"{p}: the cube has {shape[0]} bands (axis 0 of a (bands, height, width) array) but "
                          f"the band grid given for it has {len(bands)}" + (last if shape[-1] == len(bands) else ""))
+    return shape, dtype, last
+
+
+def read_npy(path: str | os.PathLike, *, bands: Bands | None = None, allow_negative: bool = False,
+             memory_budget_mb: float | None = None) -> Cube:
+    """``.npy`` array (C, H, W). Bands: ``bands`` if given, else C bands evenly over 400-700 nm, said in a warning
+    once per file and process (the file carries no wavelengths: a cube of 420-720 nm read so is resampled from the
+    wrong wavelengths)."""
+    p = _as_path(path)
+    shape, dtype, last = _checked_npy_header(p, bands)
     check_memory_budget(p, shape, dtype, what="NPY array", budget_mb=memory_budget_mb)
     with _reading(p, "NPY"):
         arr = np.load(p, mmap_mode="r", allow_pickle=False)
@@ -1667,11 +1674,7 @@ def read_bands(path: str | os.PathLike, *, bands: Bands | None = None) -> Bands:
     if fmt == "cave":
         return Bands.uniform(400.0, 700.0, 10.0)
     if fmt == "npy":
-        shape, _ = npy_header(p)
-        if len(shape) != 3:
-            raise InputError(f"{p}: expected a 3-D array (bands, height, width), got {len(shape)} dimensions {shape}")
-        if bands is not None and len(bands) != shape[0]:
-            raise InputError(f"{p}: the cube has {shape[0]} bands but the band grid given for it has {len(bands)}")
+        shape = _checked_npy_header(p, bands)[0]
         return bands if bands is not None else bands_400_700(shape[0])
     if fmt == "envi":
         hdr, data = _envi_pair(p)

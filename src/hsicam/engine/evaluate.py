@@ -85,9 +85,8 @@ VALIDATION_OF = "validation split of "
 def validation_data_label(cfg) -> str:
     """What results.json's ``data`` says of the config ``cfg``'s own validation split (``hsicam evaluate`` without
     ``--data``, ``hsicam demo``)."""
-    from hsicam.data.pipeline import absolute_data_paths
-
     from hsicam.data.datasets import displayable_name
+    from hsicam.data.pipeline import absolute_data_paths
 
     if cfg.data.root is None:
         return SYNTHETIC_VALIDATION

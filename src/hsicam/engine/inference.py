@@ -101,11 +101,18 @@ def tiled_pixels(shape: tuple[int, int], tile_px: int, halo_px: int) -> int:
     return along(shape[0]) * along(shape[1])
 
 
+def _declared(reconstruct, name: str):
+    """The attribute ``name`` that ``reconstruct`` (or the object of a bound method, e.g. a :class:`CameraSystem`)
+    declares, else None: ``context_px``, ``tileable``."""
+    values = (getattr(x, name, None) for x in (reconstruct, getattr(reconstruct, "__self__", None)))
+    return next((v for v in values if v is not None), None)
+
+
 def _tileable(reconstruct) -> bool:
-    """Whether ``reconstruct`` (or the object of a bound method) declares that its windows' cubes are their size:
-    ``tileable`` (:attr:`hsicam.models.CameraSystem.tileable`); a function that declares nothing is taken as one."""
-    declared = (getattr(x, "tileable", None) for x in (reconstruct, getattr(reconstruct, "__self__", None)))
-    return next((bool(t) for t in declared if t is not None), True)
+    """Whether ``reconstruct`` declares that its windows' cubes are their size: ``tileable``
+    (:attr:`hsicam.models.CameraSystem.tileable`); one that declares nothing is taken as one."""
+    declared = _declared(reconstruct, "tileable")
+    return True if declared is None else bool(declared)
 
 
 @torch.no_grad()
@@ -165,8 +172,8 @@ def reconstruct_tiled(reconstruct, sensor: torch.Tensor, tile_px: int | None = N
                              f"tile size or give one of at least {max(h, w)} px")
         return reconstruct(sensor)
     if halo_px is None:
-        declared = (getattr(x, "context_px", None) for x in (reconstruct, getattr(reconstruct, "__self__", None)))
-        halo_px = next((int(c) for c in declared if c is not None), None)
+        declared = _declared(reconstruct, "context_px")
+        halo_px = None if declared is None else int(declared)
     if tile_px is None:
         tile_px = default_tile_px(halo_px or 0)
     if halo_px is None and (h > tile_px or w > tile_px):
