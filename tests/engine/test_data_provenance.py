@@ -141,6 +141,41 @@ def test_evaluate_on_the_training_folder_flags_training_scenes(proj, tmp_path, c
     assert {r["split"] for r in res2["scenes"]} == {"unseen"} and "warning" not in res2
 
 
+def test_evaluate_and_tolerance_score_the_recorded_validation_scenes_of_a_folder_that_changed(proj, tmp_path, caplog):
+    """Scenes added to the run's folder after training split it otherwise (here two of the new split are training
+    scenes of the run): `evaluate --run` and the tolerance study score the scenes the run validated on, by its
+    data.json; a validation scene gone is refused by name; another split asked for (--set) is the config's own."""
+    from hsicam.engine.tolerance import evaluation_scenes
+    from hsicam.runs.folder import load_run
+
+    run, data = _copy(proj, tmp_path)
+    text = (run / "config.yaml").read_text()
+    (run / "config.yaml").write_text(text.replace(f"root: {proj / 'projA' / 'data'}", f"root: {data}"))
+    rec = json.loads((run / "data.json").read_text())
+    for i in range(3):
+        write_cube_h5(data / f"a{i}.h5", _cube(60 + i), BANDS)
+    cfg = load_config("tiny", [*TINY_CAMERA_OVERRIDES, f"data.root={data}"])
+    _, now = split_dataset(cfg.data, BANDS)
+    assert sorted(p.relative_to(data).as_posix() for p in now) != sorted(rec["validation"])  # the old code scored these
+    with caplog.at_level(logging.INFO, logger="hsicam"):
+        assert_ok(run_cli_in_process("evaluate", "--run", str(run), "--out", str(tmp_path / "ev")))
+    res = json.loads((tmp_path / "ev" / "results.json").read_text())
+    assert sorted(r["path"] for r in res["scenes"]) == sorted(rec["validation"])
+    assert {r["split"] for r in res["scenes"]} == {"validation"} and "warning" not in res
+    assert "would split otherwise" in caplog.text
+    cfg_run, _ = load_run(run)
+    scenes, names = evaluation_scenes(cfg_run, BANDS, 8, run=run)
+    assert sorted(scene_roles(rec, scenes.paths)) == ["validation"] * len(rec["validation"])
+    assert_ok(run_cli_in_process("evaluate", "--run", str(run), "--set", "data.val_fraction=0.5",
+                                 "--out", str(tmp_path / "ev_half")))  # another split: the config's own, 4 of 9
+    assert len(json.loads((tmp_path / "ev_half" / "results.json").read_text())["scenes"]) == 4
+    gone = rec["validation"][0]
+    (data / gone).unlink()
+    assert_clean_error(run_cli_in_process("evaluate", "--run", str(run), "--out", str(tmp_path / "ev2")),
+                       f"1 of the 2 scenes the run validated on (its data.json) are not in {data}: {gone}",
+                       "--data DIR")
+
+
 @pytest.mark.parametrize("change, named", [
     ("add", "added: a_new.h5"), ("remove", "removed: s1.h5"),
     ("split", "not its bands, camera, network, scenes or split: data.val_fraction")])

@@ -237,13 +237,18 @@ def _scenes_to_score(args: argparse.Namespace, cfg, paths, bands):
     from hsicam.data.pipeline import scene_dataset
     from hsicam.engine.evaluate import validation_data_label
     from hsicam.engine.experiments import heldout_scenes, validation_scenes
+    from hsicam.engine.provenance import recorded_validation
 
     if paths is not None:
         scenes = scene_dataset(cfg.data, paths, bands)
         # unique names (stems; the scenes whose stems collide by their paths), each row with its path
         names, rel = scene_names(paths, args.data), [displayable_name(scene_path(p, args.data)) for p in paths]
         return scenes, names, rel, displayable_name(str(Path(args.data).resolve())), None  # (a folder not UTF-8)
-    scenes, names = validation_scenes(cfg, no_scenes_hint=": score a folder of scenes instead, --data DIR")
+    recorded = recorded_validation(args.run, cfg.data, bands) if args.run else None  # the run's own, exactly
+    if recorded:
+        scenes, names = scene_dataset(cfg.data, recorded, bands), [p.stem for p in recorded]
+    else:
+        scenes, names = validation_scenes(cfg, no_scenes_hint=": score a folder of scenes instead, --data DIR")
     return scenes, names, _relative_to_common_folder(scenes.paths), validation_data_label(cfg), heldout_scenes(cfg)
 
 

@@ -131,6 +131,35 @@ def check_same_data(run_dir: str | Path, recorded: dict[str, Any] | None, curren
         log.info("data: the run's scenes, now in %s (they were in %s)", current["root"], recorded["root"])
 
 
+def recorded_validation(run_dir: str | Path, cfg: DataConfig, bands: Bands) -> list[Path] | None:
+    """The scenes a run on a ``data.root`` folder validated on, by its data.json, in the folder ``cfg.root``
+    names now (a folder moved whole is found there); None when the run has no record (the synthetic data, an
+    older run) or ``cfg`` asks for another split than the run's (``val_fraction``, ``split_seed``, ``val_pool``):
+    then ``cfg``'s own split is scored. A folder that gained or lost scenes since the training splits them
+    otherwise: the run's own validation scenes are scored all the same (said in the log), and
+    :class:`InputError` names those that are gone."""
+    if cfg.root is None:
+        return None
+    recorded = read_data_record(run_dir)
+    if recorded is None:
+        return None
+    split = recorded.get("split") or {}
+    if (split.get("val_fraction"), split.get("split_seed"), split.get("val_pool")) != (
+            cfg.val_fraction, cfg.split_seed, cfg.val_pool):
+        return None
+    root = dataset_root(cfg, bands)
+    paths = [root / p for p in recorded["validation"]]
+    gone = [p for p, full in zip(recorded["validation"], paths) if not full.exists()]
+    if gone:
+        raise InputError(f"{run_dir}: {len(gone)} of the {len(paths)} scenes the run validated on (its {DATA_RECORD}) "
+                         f"are not in {root}: {shown(gone)}; restore them, or score other scenes with --data DIR")
+    _, now = split_dataset(cfg, bands)
+    if sorted(os.path.abspath(p) for p in now) != sorted(os.path.abspath(p) for p in paths):
+        log.info("data: scoring the %d scenes %s validated on (its %s); the scenes of %s now would split otherwise",
+                 len(paths), run_dir, DATA_RECORD, root)
+    return paths
+
+
 def scene_roles(recorded: dict[str, Any], paths: Sequence[str | os.PathLike]) -> list[str]:
     """``"train"``, ``"validation"`` or ``"unseen"`` for each scene of ``paths`` by the run's record:
     a scene under the recorded root by its relative path; one elsewhere (a copy of the folder) when

@@ -118,14 +118,18 @@ NPY_BANDS_ADVICE = ("tolerance reads the wavelengths from the file only, so save
                     "(hsicam.data.formats.write_cube_h5) and pass that to --data")
 
 
-def evaluation_scenes(cfg, bands, max_scenes: int, data: str | Path | None = None):
-    """(SceneDataset, names): the run's validation scenes (all scenes when it has none), or ``data``."""
+def evaluation_scenes(cfg, bands, max_scenes: int, data: str | Path | None = None, run: str | Path | None = None):
+    """(SceneDataset, names): the run's validation scenes (those of ``run``'s data.json when it has one:
+    :func:`~hsicam.engine.provenance.recorded_validation`; all scenes when it has none), or ``data``."""
     from hsicam.data import dataset_root, list_scenes
     from hsicam.data.datasets import scene_names
     from hsicam.data.pipeline import scene_dataset, validation_split
+    from hsicam.engine.provenance import recorded_validation
 
     if data is not None:
         scenes = list_scenes(data)
+    elif run is not None and (recorded := recorded_validation(run, cfg.data, bands)):
+        scenes = recorded
     else:
         val, _ = validation_split(cfg.data, bands)  # of the synthetic data, only these scenes are generated
         scenes = val or list_scenes(dataset_root(cfg.data, bands))
@@ -334,7 +338,7 @@ def run_tolerance(model, cfg, spec: ToleranceSpec | None = None, data: str | Pat
     skipped = _skipped_doe_sweeps(has_doe)
     studied_run = None if run is None else run_identity(run)
     t0 = time.perf_counter()
-    scenes, names = evaluation_scenes(cfg, cam.bands, spec.max_scenes, data)
+    scenes, names = evaluation_scenes(cfg, cam.bands, spec.max_scenes, data, run)
 
     def evaluate(psf: torch.Tensor) -> dict[str, float]:
         """The fixed network's metrics on the study's scenes imaged with ``psf`` (:func:`evaluate_psf`)."""
