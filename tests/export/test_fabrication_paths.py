@@ -405,3 +405,22 @@ def test_export_refusals_name_the_run_and_what_is_missing_of_a_tolerance_folder(
         assert str(exc.value) == (f"{given}: {why} (--tolerance takes the folder `hsicam tolerance --run "
                                   f"{run.resolve()} --out DIR` wrote, or its tolerance.json)")
     assert not (tmp_path / "fab").exists()  # nothing half-written
+
+
+def test_tolerance_refuses_scenes_too_small_for_its_camera_up_front_without_advice_it_cannot_take(fab_run, tmp_path):
+    """A scene whose scored area (the scene minus the kernel margin) is below SSIM's window is refused before the
+    first point, naming it and the size needed; `tolerance` has no --set, so the `camera.boundary=same` that
+    evaluate offers is not offered (it used to be)."""
+    from hsicam.data.formats import write_cube_h5
+    from hsicam.runs.folder import load_run
+
+    _, model = load_run(fab_run)
+    bands, margin = model.camera.bands, model.camera.margin
+    small = tmp_path / "small"
+    write_cube_h5(small / "a.h5", np.full((len(bands), margin + 4, margin + 4), 0.5, np.float32), bands)
+    out = tmp_path / "tol"
+    res = run_cli_in_process("tolerance", "--run", str(fab_run), "--data", str(small), "--out", str(out))
+    assert_clean_error(res, "a.h5: scene of", "SSIM needs at least 11×11", f"scenes of at least {margin + 11} px")
+    assert "boundary=same" not in res.stderr and not out.exists()
+    ev = run_cli_in_process("evaluate", "--run", str(fab_run), "--data", str(small), "--out", str(tmp_path / "ev"))
+    assert_clean_error(ev, "or camera.boundary=same")  # evaluate takes --set: its advice stays

@@ -135,10 +135,11 @@ def scored_region(camera, border_px: int = 0) -> str:
 
 
 def _check_scored_area(name: str, scene_hw: tuple[int, int], truth_hw: tuple[int, int], camera,
-                       border_px: int = 0) -> None:
+                       border_px: int = 0, boundary_advice: bool = True) -> None:
     """InputError unless the scored area ``truth_hw`` (empty when a ``valid`` camera's margin, or the
     ``border_px`` a method leaves out, exceeds the scene) holds SSIM's window; the message names the
-    scene by ``name`` (its path when it has one) and gives the minimum scene size."""
+    scene by ``name`` (its path when it has one) and gives the minimum scene size, and (``boundary_advice``,
+    for a command that takes ``--set``) the ``camera.boundary=same`` that scores whole scenes."""
     if min(truth_hw) >= SSIM_WINDOW_PX:
         return
     if border_px:
@@ -146,7 +147,8 @@ def _check_scored_area(name: str, scene_hw: tuple[int, int], truth_hw: tuple[int
             f"{name}: scene of {scene_hw[0]}×{scene_hw[1]} px leaves {max(truth_hw[0], 0)}×{max(truth_hw[1], 0)} px "
             f"to score on the sensor area of the DOE camera it is compared with ({border_px} px a side left out); "
             f"SSIM needs at least {SSIM_WINDOW_PX}×{SSIM_WINDOW_PX}: scenes of at least "
-            f"{2 * border_px + SSIM_WINDOW_PX} px on each side, or camera.boundary=same (whole scenes scored)")
+            f"{2 * border_px + SSIM_WINDOW_PX} px on each side"
+            + (", or camera.boundary=same (whole scenes scored)" if boundary_advice else ""))
     crop = camera.boundary == "valid"
     margin = camera.margin if crop else 0
     raise InputError(
@@ -154,7 +156,7 @@ def _check_scored_area(name: str, scene_hw: tuple[int, int], truth_hw: tuple[int
         + (f" (camera boundary 'valid' crops its {margin}-px kernel margin)" if crop else "")
         + f"; SSIM needs at least {SSIM_WINDOW_PX}×{SSIM_WINDOW_PX}: scenes of at least {margin + SSIM_WINDOW_PX} px "
         "on each side" + (", or camera.boundary=same (the whole scene, border pixels included, is then scored)"
-                          if crop else ""))
+                          if crop and boundary_advice else ""))
 
 
 def _scored_hw(method: Method, n_bands: int, scene_hw: tuple[int, int]) -> tuple[int, int]:
@@ -183,10 +185,11 @@ def scene_label(scenes, i: int, name: str) -> str:
     return str(paths[i]) if paths is not None and i < len(paths) else name
 
 
-def check_scenes(method: Method, scenes, names: Sequence[str]) -> None:
+def check_scenes(method: Method, scenes, names: Sequence[str], boundary_advice: bool = True) -> None:
     """Before any scoring: InputError for the first scene of ``scenes`` that cannot be scored, with
     the one-line message its scoring would end with: a file that cannot be read, whose bands do not
-    cover the camera's, or whose scored area is too small for SSIM's window (named by its path).
+    cover the camera's, or whose scored area is too small for SSIM's window (named by its path; without
+    ``boundary_advice`` the message does not offer ``camera.boundary=same``: a command without ``--set``).
 
     A :class:`~hsicam.data.datasets.SceneDataset` is asked for each scene's size
     (:meth:`~hsicam.data.datasets.SceneDataset.info`): an hsicam HDF5 file on the camera's bands by
@@ -202,7 +205,7 @@ def check_scenes(method: Method, scenes, names: Sequence[str]) -> None:
         else:
             hw = tuple(int(v) for v in scenes[i].shape[-2:])
         _check_scored_area(scene_label(scenes, i, name), hw, _scored_hw(method, n_bands, hw), method.camera,
-                           method.border_px)
+                           method.border_px, boundary_advice)
 
 
 def interpolated_truth_warning(scenes, names: Sequence[str], bands) -> str | None:

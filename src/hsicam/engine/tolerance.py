@@ -326,6 +326,8 @@ def run_tolerance(model, cfg, spec: ToleranceSpec | None = None, data: str | Pat
     weights file and its SHA-256) is recorded as ``"run"`` so that ``hsicam export-optics`` cites
     the study only for that run (None: not recorded). ``progress``: one line per sweep point, k/N
     with an ETA (:class:`hsicam.progress.Progress`; None: a bar on a terminal, lines otherwise; False: none)."""
+    from hsicam.engine.evaluate import check_scenes
+    from hsicam.engine.methods import Method
     from hsicam.export.tolerance import TOLERANCE_FORMAT, run_identity
     from hsicam.progress import Progress
 
@@ -339,6 +341,8 @@ def run_tolerance(model, cfg, spec: ToleranceSpec | None = None, data: str | Pat
     studied_run = None if run is None else run_identity(run)
     t0 = time.perf_counter()
     scenes, names = evaluation_scenes(cfg, cam.bands, spec.max_scenes, data, run)
+    check_scenes(Method("doe-learned", model.camera, model.reconstructor(), model.target, model=model), scenes, names,
+                 boundary_advice=False)  # every scene before the first point; no --set to change the boundary
 
     def evaluate(psf: torch.Tensor) -> dict[str, float]:
         """The fixed network's metrics on the study's scenes imaged with ``psf`` (:func:`evaluate_psf`)."""
