@@ -292,3 +292,35 @@ def test_a_hot_pixel_scene_is_warned_about_once(tmp_path, caplog):
     assert len(said) == 2, said  # once per scene, both loading paths
     assert any("hot.h5" in s for s in said) and any("hot.npy" in s for s in said)
     assert all("99.9th percentile" in s and "maximum 500" in s and "\n" not in s for s in said)
+
+
+def test_cube_files_of_a_format_not_read_as_scenes_are_said_not_skipped_silently(tmp_path, caplog):
+    """A multi-page TIFF or .npz cube beside the folder's .h5 scenes was left out of the training set without a
+    word (a folder of only such files was refused, naming the formats read): one warning names them and how to
+    convert one; the refusal of a folder of only such files names them too. Other files (notes, RGB previews) and
+    an ENVI pair's data file are not named."""
+    data = tmp_path / "data"
+    for i in range(2):
+        write_cube_h5(data / f"s{i}.h5", np.full((7, 16, 16), 0.5, np.float32), B7)
+    import tifffile
+
+    tifffile.imwrite(data / "c.tif", np.zeros((7, 16, 16), np.float32))
+    (data / "sub").mkdir()
+    np.savez(data / "sub" / "d.npz", cube=np.zeros((7, 16, 16)))
+    from hsicam.data.formats import write_envi
+
+    write_envi(data / "e.hdr", np.full((7, 16, 16), 0.5, np.float32), B7)
+    (data / "notes.txt").write_text("x")
+    (data / "preview.png").write_bytes(b"\x89PNG")
+    with caplog.at_level(logging.WARNING, logger="hsicam"):
+        got = list_scenes(data)
+    assert [p.name for p in got] == ["e.hdr", "s0.h5", "s1.h5"]
+    said = [r.getMessage() for r in caplog.records if "not read as scenes" in r.getMessage()]
+    assert said == [f"data: {data}: skipped 2 file(s) of a format not read as scenes (c.tif, sub/d.npz; a cube in one: "
+                    "save it as .h5 with its band list, hsicam.data.formats.write_cube_h5)"]
+    only = tmp_path / "only"
+    only.mkdir()
+    (data / "c.tif").rename(only / "c.TIFF")
+    with pytest.raises(InputError, match=r"no hyperspectral scenes found .*\(skipped 1 file\(s\) of a format not read "
+                                         r"as scenes \(c\.TIFF;"):
+        list_scenes(only)

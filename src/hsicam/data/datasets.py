@@ -64,6 +64,8 @@ def list_scenes(root: str | os.PathLike) -> list[Path]:
         _log_skipped(root, found.skipped)
     if found.estimates:
         log.warning("%s: skipped %s", root, _estimates_text(root, found.estimates))
+    if found.unread and scenes:  # (none: the refusal below says them)
+        _log_unread(root, found.unread)
     if not scenes:
         raise _no_scenes_error(root, found)
     return scenes
@@ -88,6 +90,7 @@ class _Found:
     skipped: list[Path] = field(default_factory=list)  # sub-folders that hold an hsicam output
     estimates: list[Path] = field(default_factory=list)  # cube files that hsicam reconstruct wrote
     aliases: list[tuple[Path, Path]] = field(default_factory=list)  # (a link to what was listed already, that)
+    unread: list[Path] = field(default_factory=list)  # files of a cube format hsicam does not read (UNREAD_CUBE_SUFFIXES)
 
 
 def _walk_dataset(root: Path) -> _Found:
@@ -159,6 +162,8 @@ def _add_scene_files(d: Path, filenames: list[str], found: _Found) -> None:
             if broken is not None:  # else listed, then refused as "no such file" without its target
                 raise InputError(f"{d / name}: {broken} (remove the link, or restore what it points to)")
             (found.estimates if is_estimate(d / name) else found.scenes).append(d / name)
+        elif Path(name).suffix.lower() in UNREAD_CUBE_SUFFIXES:
+            found.unread.append(d / name)
         elif (d / name).is_symlink() and not (d / name).exists():
             # a link to a folder of scenes on a disk not mounted (os.walk lists it among the files): the folder's
             # scenes would be left out without a word
@@ -166,10 +171,33 @@ def _add_scene_files(d: Path, filenames: list[str], found: _Found) -> None:
                         broken_link_problem(d / name) or "a symbolic link that leads nowhere")
 
 
+#: Suffixes of files that may hold a cube but that a dataset folder does not read as scenes (a multi-page TIFF, a
+#: NumPy archive): the scan says it skipped them, as a folder of only such files is refused saying so.
+UNREAD_CUBE_SUFFIXES = (".tif", ".tiff", ".npz")
+#: (root, files) already logged by :func:`_log_unread` in this process.
+_UNREAD_LOGGED: set[tuple[str, tuple[str, ...]]] = set()
+
+
+def _unread_text(root: Path, unread: list[Path]) -> str:
+    names = sorted(displayable_name(scene_path(p, root)) for p in unread)
+    shown = ", ".join(names[:3]) + (f" and {len(names) - 3} more" if len(names) > 3 else "")
+    return (f"{len(names)} file(s) of a format not read as scenes ({shown}; a cube in one: save it as .h5 with its band "
+            "list, hsicam.data.formats.write_cube_h5)")
+
+
+def _log_unread(root: Path, unread: list[Path]) -> None:
+    key = (os.path.abspath(root), tuple(str(p) for p in unread))
+    if key in _UNREAD_LOGGED:
+        return
+    _UNREAD_LOGGED.add(key)
+    log.warning("data: %s: skipped %s", root, _unread_text(root, unread))
+
+
 def _no_scenes_error(root: Path, found: _Found) -> InputError:
     """The refusal of a dataset folder without scenes, saying what was skipped."""
     also = "; ".join(t for t in (_skipped_text(root, found.skipped) if found.skipped else "",
-                                  _estimates_text(root, found.estimates) if found.estimates else "") if t)
+                                  _estimates_text(root, found.estimates) if found.estimates else "",
+                                  _unread_text(root, found.unread) if found.unread else "") if t)
     also = f" (skipped {also})" if also else ""
     return InputError(f"{root}: no hyperspectral scenes found (supported: {', '.join(SCENE_SUFFIXES)}, CAVE "
                       f"folders){also}")
