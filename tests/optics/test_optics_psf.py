@@ -774,3 +774,45 @@ def test_fast_fft_length_is_the_smallest_7_smooth_length(n):
     from hsicam.optics.sampling import fast_fft_length
 
     assert guarded(fast_fft_length, n) == smooth7_reference(n)
+
+
+def _bare_lens_psf(object_m: float, q: int) -> tuple[np.ndarray, np.ndarray]:
+    """The tiny optics without a DOE, an object at ``object_m``, pupil oversampling ``q``: (PSF (C, K, K) float64,
+    the defocus phase step per band in π)."""
+    cfg = load_config("tiny", ["camera.doe.enabled=false", f"camera.object_distance_m={object_m}",
+                               f"camera.psf.pupil_oversample={q}"])
+    cam = DOECamera.from_config(cfg).double()
+    m = cam.optics
+    step = defocus_aliasing(m.defocus_per_m2.double().numpy(), m.aperture_radius_m, m.cell_m / m.pupil_oversample)
+    with torch.no_grad():
+        return cam.psf().numpy(), step
+
+
+def test_a_defocus_below_aliasing_but_coarsely_sampled_is_warned_about_with_its_error_and_fix(caplog):
+    """An object at 0.1 m before the tiny optics' bare lens: the defocus steps 0.86π between pupil samples at the
+    aperture edge (420 nm), accepted (below aliasing's 1) though its PSF is a third off (it used to be accepted
+    without a word; hunt of session 73). The warning's error estimate is checked against the PSF of a 6× finer pupil
+    grid, and its advice (pupil_oversample 2) brings the step to ≤ 0.45π; at 0.4 m (0.21π) nothing is said."""
+    import logging
+
+    from hsicam.optics import psf as psf_mod
+
+    psf_mod._COARSE_DEFOCUS_WARNED.clear()
+    with caplog.at_level(logging.WARNING, logger="hsicam.optics.psf"):
+        coarse, step = _bare_lens_psf(0.1, 1)
+    fine, _ = _bare_lens_psf(0.1, 6)
+    k = min(coarse.shape[-1], fine.shape[-1])
+    crop = lambda p: p[..., (p.shape[-1] - k) // 2:(p.shape[-1] + k) // 2, (p.shape[-1] - k) // 2:(p.shape[-1] + k) // 2]  # noqa: E731
+    l1 = np.abs(crop(coarse) - crop(fine)).sum((-1, -2)) / crop(fine).sum((-1, -2))
+    assert step[0] == pytest.approx(0.86, abs=0.01) and l1[0] > 0.25
+    said = [r.getMessage() for r in caplog.records]
+    est = 100 * psf_mod.DEFOCUS_L1_PER_STEP2 * step[0] ** 2
+    assert len(said) == 1 and "camera.object_distance_m=0.1" in said[0] and "0.86π" in said[0], said
+    assert f"about {est:.0f} % off" in said[0] and "pupil_oversample to 2" in said[0]
+    assert est == pytest.approx(100 * l1[0], rel=0.15)  # the estimate is the measured error
+    _, step2 = _bare_lens_psf(0.1, 2)
+    assert step2.max() <= psf_mod.DEFOCUS_STEP_GOOD
+    caplog.clear()
+    with caplog.at_level(logging.WARNING, logger="hsicam.optics.psf"):
+        _, step_far = _bare_lens_psf(0.4, 1)
+    assert step_far.max() < psf_mod.DEFOCUS_STEP_WARN and not caplog.records

@@ -16,6 +16,7 @@ Band integration (optional): each band's PSF is the weighted mean over M sub-wav
 
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass
 
 import numpy as np
@@ -39,6 +40,16 @@ from hsicam.optics.sampling import (
 from hsicam.spectral import Bands
 from hsicam.spectral.bands import band_sample_wavelengths
 
+log = logging.getLogger(__name__)
+
+#: A residual defocus whose phase steps more than this (in π) between pupil samples at the aperture edge, below
+#: the aliasing limit of 1, is warned about (:meth:`PSFModel._warn_coarse_defocus`): its PSF is ≳ 11 % off.
+DEFOCUS_STEP_WARN = 0.5
+#: The step the warning's advice aims at (the paper singlet's, 0.43π at 420 nm: 8.9 % L1, documented).
+DEFOCUS_STEP_GOOD = 0.45
+#: The PSF's relative L1 error per squared step (in π), measured against a 6× finer pupil grid (docs/optics.md).
+DEFOCUS_L1_PER_STEP2 = 0.45
+_COARSE_DEFOCUS_WARNED: set[tuple[str, int, float]] = set()
 
 @dataclass
 class PSFResult:
@@ -207,6 +218,8 @@ class PSFModel(nn.Module):
         ratio = defocus_aliasing(defocus_per_m2, self.aperture_radius_m, cell / q)
         i = int(np.argmax(ratio))
         if not ratio[i] > 1.0:
+            if ratio[i] > DEFOCUS_STEP_WARN:
+                self._warn_coarse_defocus(float(ratio[i]), float(self.line_wavelengths_nm[i]), sensor_distance_set)
             return
         lam_m, z = float(self.line_wavelengths_nm[i]) * 1e-9, float(z_line[i])
         blur_mm = 2.0 * self.aperture_radius_m * z * abs(float(defocus_per_m2[i])) * lam_m / np.pi * 1e3
@@ -249,6 +262,30 @@ class PSFModel(nn.Module):
                  if zo is not None and not sensor_distance_set else "")
         raise ConfigError(f"{what} defocuses the lens more than the pupil sampling can represent ({lens_facts}): "
                           f"{blur}; {focus}{deliberate}")
+
+    def _warn_coarse_defocus(self, step_pi: float, lam_nm: float, sensor_distance_set: bool) -> None:
+        """Warn (once per setting and process) that a residual defocus below the aliasing limit is still too coarse
+        on the pupil grid for an accurate PSF: the defocus is constant over each pupil sample, and the PSF's error
+        grows as the square of the phase step between samples at the aperture edge (``step_pi``, in π), about
+        0.45·step² of relative L1 against a fine grid (tiny optics, no DOE, object at 0.1–0.4 m: steps 0.86 / 0.43
+        / 0.21 → 33 / 9 / 2.5 %; the paper singlet's 17.7 waves at 420 nm are a step of 0.43: 8.9 %, documented)."""
+        q = self.pupil_oversample
+        q_need = int(np.ceil(q * step_pi / DEFOCUS_STEP_GOOD - 1e-9))
+        if sensor_distance_set:
+            what = f"camera.sensor_distance_mm={self.sensor_distance_m * 1e3:g}"
+        elif self.object_distance_m is not None:
+            what = f"camera.object_distance_m={self.object_distance_m:g}"
+        else:
+            what = f"the {self.lens.model} lens's focus shift"
+        key = (what, q, round(step_pi, 2))
+        if key in _COARSE_DEFOCUS_WARNED:
+            return
+        _COARSE_DEFOCUS_WARNED.add(key)
+        log.warning("optics: %s leaves a residual defocus the pupil grid samples coarsely (a phase step of %.2fπ "
+                    "between samples at the aperture edge at %.0f nm): its PSF is about %.0f %% off (relative L1, "
+                    "light lost from the kernel), against 9 %% at 0.43π; raise camera.psf.pupil_oversample to %d "
+                    "(memory and time grow as its square)", what, step_pi, lam_nm, 100 * DEFOCUS_L1_PER_STEP2 * step_pi ** 2,
+                    q_need)
 
     @property
     def kernel_px(self) -> int:
