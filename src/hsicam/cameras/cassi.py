@@ -24,7 +24,8 @@ of it). Noise-free scores do not depend on s (the solvers divide by ΦΦᵀ):
 Both are linear with exact adjoints, and ΦΦᵀ is diagonal (each scene voxel reaches one sensor
 pixel), which GAP and ADMM use. Dispersion is linear (``d_c = ⌊shift_px · c + ½⌋``, halves up; MST: 2 px per
 band) or from a thin prism (``d_c`` from the prism glass's n(λ), rounded to whole pixels so that
-ΦΦᵀ stays diagonal). CASSI has no blur kernel: ``margin`` is 0, so ``valid`` and ``same`` give the
+ΦΦᵀ stays diagonal; the thin-prism deviation (n − 1)·α underestimates a 30° apex's: fused silica, f = 50 mm, 6 µm
+pixels, 420–720 nm: 57.8 px against the exact minimum-deviation 61.7 px, 6.8 % less dispersion, session 73's audit). CASSI has no blur kernel: ``margin`` is 0, so ``valid`` and ``same`` give the
 same measurement (the scene is the reconstruction target in both).
 
 The random aperture is a hash of (seed, row, column): the same seed gives the same aperture at
