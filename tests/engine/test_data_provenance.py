@@ -401,3 +401,26 @@ def test_the_session_records_commit_is_the_checkouts_and_dirty_only_for_changed_
     assert copy._source_commit() == head + "+dirty"
     git("-c", "user.name=t", "-c", "user.email=t@t", "commit", "-q", "-am", "edit")
     assert copy._source_commit() == git("rev-parse", "HEAD") != head
+
+
+def test_a_hidden_file_in_a_cave_folder_is_not_part_of_its_scene(tmp_path):
+    """A file manager's .DS_Store (or ._ AppleDouble files) appearing in a CAVE folder changed the scene's recorded
+    size: a resume warned the scene had changed, and a copy of the folder without it was not recognised as the
+    run's training scene (scene_roles matched it by size and time). Its band images (and any visible file) count."""
+    from PIL import Image
+
+    from hsicam.data.pipeline import scene_files, scene_stat
+
+    cave = tmp_path / "balloons_ms" / "balloons_ms"
+    cave.mkdir(parents=True)
+    for i in range(1, 4):
+        Image.fromarray(np.full((8, 8), i, np.uint16)).save(cave / f"balloons_ms_{i:02d}.png")
+    (cave / "balloons_RGB.bmp").write_bytes(b"BM" + bytes(30))
+    scene = tmp_path / "balloons_ms"
+    before = scene_stat(scene)
+    (scene / ".DS_Store").write_bytes(bytes(6148))
+    (cave / "._balloons_ms_01.png").write_bytes(bytes(4096))
+    (scene / ".thumbs").mkdir()
+    (scene / ".thumbs" / "a.png").write_bytes(bytes(100))
+    assert scene_stat(scene)[0] == before[0]
+    assert [f.name for f in scene_files(scene)] == ["balloons_RGB.bmp", *(f"balloons_ms_{i:02d}.png" for i in range(1, 4))]

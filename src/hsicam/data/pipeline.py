@@ -49,10 +49,13 @@ def absolute_data_paths(cfg):
 
 def scene_files(scene: str | os.PathLike) -> list[Path]:
     """The files a scene of :func:`~hsicam.data.datasets.list_scenes` is read from: the file; an
-    ENVI header and its data file; every file of a CAVE folder."""
+    ENVI header and its data file; every file of a CAVE folder but hidden ones (a file manager's ``.DS_Store``
+    appearing in it changed the scene's size: a resume warned it had changed, and a copy of the folder without it
+    was no longer recognised as the run's training scene)."""
     p = Path(scene)
     if p.is_dir():
-        return sorted(f for f in p.rglob("*") if f.is_file())
+        return sorted(f for f in p.rglob("*")
+                      if f.is_file() and not any(part.startswith(".") for part in f.relative_to(p).parts))
     if p.suffix.lower() == ".hdr":
         from hsicam.data.formats import envi_data_file
 
