@@ -78,3 +78,33 @@ def test_a_one_band_synthetic_set_with_held_out_sources_draws_no_library_panel_e
     [ax] = _gamut_figure(tmp_path / "set", sorted((tmp_path / "set").glob("scene_*.h5")), None, []).axes
     assert [t.get_text() for t in ax.texts] == ["no spectral gamut: the data have one band (550 nm),\n"
                                                 "and a spectral shape needs two or more"]
+
+
+def test_scenes_are_labelled_by_their_path_and_a_capped_sheet_says_how_many_it_shows(tmp_path, caplog, monkeypatch):
+    """Two files named a.h5 in two sub-folders had the same label on the sheet and in the spectra's legend; a folder
+    of 5 scenes shown with --max-scenes 3 read as the whole set. Now each is labelled by its path below the folder,
+    and both figures' titles (and the log) say "the first 3 of 5 scenes"."""
+    import logging
+
+    from hsicam.data.preview import write_preview
+    import hsicam.data.preview as preview
+
+    bands = Bands.uniform(420.0, 720.0, 30.0)
+    rng = np.random.default_rng(0)
+    for name in ("day1/a.h5", "day2/a.h5", "b.h5", "c.h5", "d.h5"):
+        write_cube_h5(tmp_path / "data" / name, rng.uniform(0.1, 1, (len(bands), 12, 12)).astype(np.float32), bands)
+    made = {}
+    real = preview._scene_figures
+    monkeypatch.setattr(preview, "_scene_figures", lambda *a, **k: made.setdefault("figs", real(*a, **k)))
+    with caplog.at_level(logging.INFO, logger="hsicam"):
+        write_preview(tmp_path / "data", tmp_path / "show", max_scenes=3)
+    sheet, plot = made["figs"]
+    assert [ax.get_title() for ax in sheet.axes] == ["b.h5", "c.h5", "d.h5"]  # sorted: the sub-folders' come after
+    everything = real(tmp_path / "data", [tmp_path / "data" / "day1" / "a.h5", tmp_path / "data" / "day2" / "a.h5"])
+    assert [ax.get_title() for ax in everything[0].axes] == ["day1/a.h5", "day2/a.h5"]
+    assert [line.get_label() for line in everything[1].axes[0].lines] == ["day1/a.h5", "day2/a.h5"]
+    assert "(the first 3 of 5 scenes)" in " ".join(sheet.get_suptitle().split())
+    assert plot.axes[0].get_title().endswith("(the first 3 of 5 scenes)")
+    assert f"the first 3 of the 5 scenes of {tmp_path / 'data'}" in caplog.text
+    whole, whole_plot = real(tmp_path / "data", [tmp_path / "data" / "b.h5"], of=1)
+    assert "first" not in whole.get_suptitle() and "first" not in whole_plot.axes[0].get_title()

@@ -108,31 +108,40 @@ def write_preview(path: str | os.PathLike, out_dir: str | os.PathLike, max_scene
     """
     path = Path(path)
     n = check_max_scenes(max_scenes)
-    scenes = list_scenes(path)[:n]
+    every = list_scenes(path)
+    scenes = every[:n]
+    if len(every) > n:  # said in the log and on the figures: a sheet of 16 scenes reads as the whole set otherwise
+        log.info("data show: the first %d of the %d scenes of %s (--max-scenes)", n, len(every), path)
     held_dir = Path(heldout) if heldout is not None else _find_heldout(path)
     held_scenes = list_scenes(held_dir)[:n] if held_dir is not None else []  # a bad held-out set fails before any work
     out = Path(out_dir)
-    sheet, plot = _scene_figures(path, scenes, npy_bands)
+    sheet, plot = _scene_figures(path, scenes, npy_bands, of=len(every))
     gamut = _gamut_figure(path, scenes, held_dir, held_scenes, npy_bands)
     written = save_figures({CONTACT_SHEET: sheet, MEAN_SPECTRA: plot, SPECTRAL_GAMUT: gamut}, out)
     log.info("wrote %s", ", ".join(str(p) for p in written))
     return written
 
 
-def _scene_figures(path: Path, scenes: list[Path], npy_bands: Bands | None = None):
-    """(contact sheet, mean spectra) figures of ``scenes`` (``.npy`` cubes on ``npy_bands``)."""
+def _scene_figures(path: Path, scenes: list[Path], npy_bands: Bands | None = None, of: int | None = None):
+    """(contact sheet, mean spectra) figures of ``scenes`` (``.npy`` cubes on ``npy_bands``), the first of the ``of``
+    scenes of ``path`` (their titles say so when there are more). Each scene is labelled by its path below ``path``
+    (``day1/a.h5``): two files of one name in two sub-folders had the same label."""
     from matplotlib.figure import Figure
+
+    from hsicam.data.datasets import scene_path
 
     thumbs, spectra, grey = [], [], 0
     for s in scenes:
         cube, bands, _ = read_cube(s, bands=npy_bands)
         norm, _ = normalize_per_cube_max(cube, s)  # first: an all-zero cube is refused naming its file
+        label = displayable_name(scene_path(s, path))
         if renderable(bands):
-            thumbs.append((displayable_name(s.name), preview_rgb(cube, bands)))
+            thumbs.append((label, preview_rgb(cube, bands)))
         else:  # e.g. a near-infrared cube: nothing to render in colour
-            thumbs.append((f"{displayable_name(s.name)} (grey)", preview_grey(cube)))
+            thumbs.append((f"{label} (grey)", preview_grey(cube)))
             grey += 1
-        spectra.append((displayable_name(s.name), bands, norm.mean(axis=(1, 2))))
+        spectra.append((label, bands, norm.mean(axis=(1, 2))))
+    first = f" (the first {len(scenes)} of {of} scenes)" if of is not None and of > len(scenes) else ""
     cols = min(len(thumbs), 4)
     rows = int(math.ceil(len(thumbs) / cols))
     sheet = Figure(figsize=(2.6 * cols, 2.8 * rows), layout="constrained")  # the two-line title clear of the thumbnails
@@ -144,7 +153,7 @@ def _scene_figures(path: Path, scenes: list[Path], npy_bands: Bands | None = Non
     lo, hi = TABLE_RANGE_NM
     # each thumbnail is exposed to its own brightness (preview_rgb): say so, or a dim scene looks as bright as
     # any other, and 3x brighter than its absolute render (hsicam.color.srgb_preview at exposure 1)
-    title = [f"{displayable_name(path.name)}: sRGB renders (CIE 1931 2°, D65)", "each scene exposed to its own brightness "
+    title = [f"{displayable_name(path.name)}: sRGB renders (CIE 1931 2°, D65){first}", "each scene exposed to its own brightness "
              f"(99th-percentile luminance at {PREVIEW_LEVEL:g})" + (
                  f"; (grey): mean over bands, fewer than 2 bands in {lo:g}-{hi:g} nm" if grey else "")]
     width = 30 * cols + 4  # characters of 10 pt text across the sheet: a narrow sheet's title wraps, not widens it
@@ -157,7 +166,7 @@ def _scene_figures(path: Path, scenes: list[Path], npy_bands: Bands | None = Non
         ax.plot(bands.centers_nm, mean, lw=1.2, label=name, marker="o" if len(bands) == 1 else None)
     ax.set_xlabel("wavelength (nm)")
     ax.set_ylabel("mean value (per-cube max = 1)")
-    ax.set_title(f"{displayable_name(path.name)}: mean spectra")
+    ax.set_title(f"{displayable_name(path.name)}: mean spectra{first}")
     ax.grid(alpha=0.3)
     if len(spectra) <= 16:
         ax.legend(fontsize=6, ncol=2)
