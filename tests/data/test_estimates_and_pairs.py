@@ -151,9 +151,10 @@ def test_a_generated_dataset_lists_the_scenes_of_its_manifest(tmp_path, caplog):
     generate_dataset(ds, n=3, size=32, seed=5, progress=False)
     listed = [ds / s["file"] for s in json.loads((ds / "manifest.json").read_text())["scenes"]]
     write_cube_h5(ds / "scene_0099.h5", cube(32, 32, 0), BANDS)  # a file put there by hand
+    write_cube_h5(ds / "mine" / "a.h5", cube(32, 32, 1), BANDS)  # a folder of one's own scenes put inside it
     with caplog.at_level("WARNING"):
         assert list_scenes(ds) == sorted(listed)
-    assert "its 3 scenes are those its manifest.json lists; not scene_0099.h5" in caplog.text
+    assert "its 3 scenes are those its manifest.json lists; not mine/a.h5, scene_0099.h5" in caplog.text
     listed[1].unlink()
     with pytest.raises(InputError, match=rf"{ds}: 1 scene\(s\) its manifest.json lists are missing \({listed[1].name}\)"):
         list_scenes(ds)

@@ -356,8 +356,10 @@ def _manifest_scenes(root: Path) -> list[Path] | None:
         raise InputError(f"{root}: {len(missing)} scene(s) its manifest.json lists are missing ({', '.join(missing[:5])}"
                          f"{' …' if len(missing) > 5 else ''}); generate the dataset again (delete the folder, or "
                          "`hsicam data synth` with its parameters)")
-    extra = sorted(p.name for p in root.iterdir() if p.suffix.lower() in SCENE_SUFFIXES and p not in set(scenes)
-                   and not p.name.startswith("."))
+    listed = {os.path.realpath(p) for p in scenes}
+    # every scene file or CAVE folder below it, sub-folders too (a folder of one's own scenes put inside a generated
+    # set was left out without a word)
+    extra = sorted(scene_path(p, root) for p in _walk_dataset(root).scenes if os.path.realpath(p) not in listed)
     if extra:
         log.warning("%s: a generated dataset: its %d scenes are those its manifest.json lists; not %s",
                     root, len(scenes), ", ".join(extra[:5]) + (" …" if len(extra) > 5 else ""))
