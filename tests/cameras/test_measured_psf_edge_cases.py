@@ -128,7 +128,7 @@ def test_border_background_is_the_median_of_a_frame_of_max_2_px_or_5_percent(sha
     assert border_level(img) == pytest.approx(ref, rel=1e-12)
     out, b = subtract_background(img, "border")
     assert b == pytest.approx(ref, rel=1e-12)
-    np.testing.assert_allclose(out, np.maximum(img - ref, 0.0), rtol=1e-12)
+    np.testing.assert_allclose(out, img - ref, rtol=1e-12)  # signed: the kernel alone is clipped, at the end
 
 
 def test_axis_px_anywhere_on_the_image_is_accepted_up_to_its_outer_pixel_edges():
@@ -255,3 +255,57 @@ def test_psf_difference_names_the_pitch_then_the_kernel_then_the_options(tmp_pat
     assert psf_difference(tuned, now(kernel_px=7, centre="peak"), tmp_path)[0] == "kernel_px"
     assert psf_difference(tuned, now(centre="peak"), tmp_path)[0] == "options"
     assert psf_difference(tuned, now(), tmp_path)[0] == "images"
+
+
+def test_zero_mean_noise_in_a_large_frame_is_neither_light_nor_a_pull_on_the_centre(tmp_path, caplog):
+    """A measured PSF off-centre in a 301² px frame, a 100 DN pedestal and 2 DN of read noise under a 30 000 DN
+    peak, `background: border`, `centre: centroid`: the background was clipped at 0 before the normalisation and
+    the centroid, so the noise's positive half became a floor over the whole frame, counted as light (kernels
+    summing to ~0.6 of the band's light) and pulling the centroid toward the frame's centre (tens of pixels off;
+    session 73's hunt). Now the centre is the PSF's (within 0.2 px), the kernel holds its light up to the noise the
+    clip at its end adds (reported as noise_clipped and warned about above 2 %), and a noise-free frame is exact."""
+    import json
+    import logging
+
+    from hsicam.data.measured_psf import import_psf_dir
+    from hsicam.spectral import Bands
+
+    bands = Bands.from_centers([500.0, 600.0])
+    k, size, at = 41, 301, (90, 200)
+    yy, xx = np.mgrid[0:size, 0:size]
+    clean = {}
+    for i, (w, sigma) in enumerate(((500, 2.0), (600, 2.6))):
+        g = np.exp(-((yy - at[0]) ** 2 + (xx - at[1]) ** 2) / (2 * sigma ** 2))
+        clean[w] = 30000 * g / g.max()
+
+    def folder(name: str, noise: float):
+        d = tmp_path / name
+        d.mkdir()
+        rng = np.random.default_rng(3)
+        for w, img in clean.items():
+            np.save(d / f"psf_{w}nm.npy", (img + 100 + rng.normal(0, noise, img.shape)).astype(np.float32))
+        (d / "psf.json").write_text(json.dumps({"pixel_pitch_um": 6.0, "background": "border"}))
+        return d
+
+    exact = import_psf_dir(folder("clean", 0.0), bands, 6e-6, k)
+    with caplog.at_level(logging.WARNING, logger="hsicam.data.measured_psf"):
+        noisy = import_psf_dir(folder("noisy", 2.0), bands, 6e-6, k)
+    for m in (exact, noisy):
+        rep = m.report["bands"]
+        for b in rep:
+            assert b["centre_px"] == pytest.approx(list(at), abs=0.2)
+    np.testing.assert_allclose(exact.psf.sum(axis=(1, 2)), 1.0, atol=1e-5)
+    sums = noisy.psf.sum(axis=(1, 2))
+    clipped = np.array([b["noise_clipped"] for b in noisy.report["bands"]])
+    assert np.all(sums > 0.98) and np.all(sums < 1.1)  # the clip's floor in 41² px: a few per cent (it was ~0.6)
+    np.testing.assert_allclose(sums, 1.0 + clipped, atol=0.01)  # the floor is what the report says
+    assert np.abs(noisy.psf - exact.psf).sum(axis=(1, 2)).max() < 0.1
+    assert "measured PSFs are noisy" not in caplog.text  # a floor of 0.1 %
+    with caplog.at_level(logging.WARNING, logger="hsicam.data.measured_psf"):
+        loud = import_psf_dir(folder("loud", 40.0), bands, 6e-6, k)  # 40 DN: a floor of a few per cent
+    clipped = np.array([b["noise_clipped"] for b in loud.report["bands"]])
+    assert clipped.max() > 0.02
+    # (the frame's noise and the border median's own error, over 301² px, move the light by a few per cent more)
+    np.testing.assert_allclose(loud.psf.sum(axis=(1, 2)), 1.0 + clipped, atol=0.05)
+    said = [r.getMessage() for r in caplog.records if "measured PSFs are noisy" in r.getMessage()]
+    assert len(said) == 1 and "average more frames" in said[0], said

@@ -13,12 +13,16 @@ the images, pixel centres at integers; for ``axis``),
 ``psf.json`` has ``kernel_px``) is read with ``centre: axis`` at the kernel centre and
 ``normalize: none`` (its values are already energy fractions) by default.
 
-Each band image is (1) background-subtracted and clipped at 0, (2) normalised so it sums to 1
+Each band image is (1) background-subtracted, (2) normalised so it sums to 1
 (``normalize: sum``: the image holds all the light of that band; the simulator's PSFs are also
 normalised to 1 over the whole FFT plane), (3) centred: the centre point becomes the centre of
 the kernel's centre pixel, and (4) resampled onto
 the camera's K×K pixel grid by **exact area integration**: each source pixel spreads its energy
-uniformly over its square and every camera pixel collects the overlap. Centring and resampling
+uniformly over its square and every camera pixel collects the overlap; (5) the kernel's negative pixels
+(the measurement noise left by the background subtraction, where the PSF is dark) are set to 0. Steps 1–4 keep
+the noise's sign: clipped at 0 before them, zero-mean noise became a positive floor over the whole frame, which
+the normalisation counted as PSF light and the centroid as light at the frame's centre (a 401² px frame with 2 DN
+of noise under a 30 000 DN peak: kernels summing to 0.55–0.68 of their light and centred ~40 px off; session 73). Centring and resampling
 are one linear map (two 1-D overlap matrices, any pitch ratio, sub-pixel shifts included), so
 energy is preserved; light falling outside the K×K kernel is reported (``energy_in_kernel``),
 never renormalised away. A band keeping less than :data:`MIN_ENERGY_IN_KERNEL` of its image's
@@ -62,7 +66,7 @@ import math
 import re
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Sequence
 
 import numpy as np
 
@@ -178,13 +182,18 @@ def pedestal_level(image: np.ndarray) -> float | None:
 #: 40 000 DN peak is 0.16 %, and already distorts the PSF by 0.67 of its peak on a 128 px frame).
 PEDESTAL_FRACTION = 1e-3
 
+#: A kernel whose clipped noise (its negative pixels set to 0) adds more than this share of the band's light is
+#: warned about (:func:`_warn_folder`): the measured PSFs need more frames averaged.
+NOISE_FLOOR_WARN = 0.02
+
 #: With ``normalize: none`` an image is energy fractions of the band's light: a sum above this is refused.
 MAX_UNNORMALISED_SUM = 1.05
 
 
 def subtract_background(image: np.ndarray, background: str | float) -> tuple[np.ndarray, float]:
-    """``image − b`` clipped at 0, with b = 0 (``none``), the median of the outer frame (``border``:
-    a frame of max(2, 5 %) of the smaller side, :func:`border_level`), or the given number. Returns (image, b)."""
+    """``image − b`` (float64, its noise keeping its sign: not clipped), with b = 0 (``none``), the median of the
+    outer frame (``border``: a frame of max(2, 5 %) of the smaller side, :func:`border_level`), or the given
+    number. Returns (image, b)."""
     img = np.asarray(image, dtype=np.float64)
     if background == "none":
         b = 0.0
@@ -202,7 +211,7 @@ def subtract_background(image: np.ndarray, background: str | float) -> tuple[np.
             raise InputError(f"PSF background must be 'none', 'border' or a number, got {background!r}") from None
         if not math.isfinite(b):
             raise InputError(f"PSF background must be finite, got {background!r}")
-    return np.clip(img - b, 0.0, None), b
+    return img - b, b
 
 
 @dataclass
@@ -244,8 +253,8 @@ def snap_centre(c: float, pitch_in: float, pitch_out: float) -> float:
 
 
 def prepare_psf_image(image: np.ndarray, opts: PSFImportOptions) -> tuple[np.ndarray, float, float]:
-    """Background-subtracted (clipped at 0) and, with ``normalize: sum``, unit-sum image; returns
-    (image float64, background, total signal before normalising)."""
+    """Background-subtracted (not clipped: its noise is zero-mean) and, with ``normalize: sum``, unit-sum image;
+    returns (image float64, background, total signal before normalising)."""
     img, b = subtract_background(image, opts.background)
     total = float(img.sum())
     if not total > 0:
@@ -337,7 +346,9 @@ def import_psf_image(image: np.ndarray, pitch_m: float, camera_pixel_m: float, k
     img, b, _ = prepare_psf_image(image, opts)
     c = centre if centre is not None else find_centre(img, opts.centre, opts.axis_px)
     c = (snap_centre(c[0], pitch_m, camera_pixel_m), snap_centre(c[1], pitch_m, camera_pixel_m))
-    psf = resample_area(img, pitch_m, camera_pixel_m, c, kernel_px)
+    signed = resample_area(img, pitch_m, camera_pixel_m, c, kernel_px)
+    psf = np.clip(signed, 0.0, None)  # a PSF has no negative light: the kernel's dark pixels' noise
+    clipped = float(psf.sum() - signed.sum())
     energy_in = float(img.sum())
     report = {
         "source_shape": [int(s) for s in image.shape],
@@ -346,6 +357,9 @@ def import_psf_image(image: np.ndarray, pitch_m: float, camera_pixel_m: float, k
         "centre_offset_px": [c[0] - (image.shape[0] - 1) / 2, c[1] - (image.shape[1] - 1) / 2],
         "energy_in_kernel": float(psf.sum() / energy_in) if energy_in > 0 else 0.0,  # of the image's light
         "kernel_sum": float(psf.sum()),  # the PSF's total (1 for all the light with normalize: sum)
+        # the light the kernel's negative pixels set to 0 added (of the image's light): a noise floor (kernel_sum
+        # is that much above the light measured in the kernel)
+        "noise_clipped": clipped / energy_in if energy_in > 0 else 0.0,
     }
     return psf, report
 
@@ -546,7 +560,7 @@ def import_psf_dir(psf_dir: str | Path, bands: Bands, camera_pixel_m: float, ker
     saturated = _check_saturation(items, chosen, opts)
     pitch_from = "--psf-pitch-um" if pitch_um is not None else f"pixel_pitch_um in {d / 'psf.json'}"
     common = _common_centre(d, items, chosen, opts)
-    stack, per_band, low, floors = [], [], [], []
+    stack, per_band, low, floors, noisy = [], [], [], [], []
     for lam, j in zip(bands.centers_nm, chosen):
         w, f, img, _ = items[j]
         _check_unnormalised_sum(w, f, img, opts)
@@ -557,10 +571,12 @@ def import_psf_dir(psf_dir: str | Path, bands: Bands, camera_pixel_m: float, ker
         e = rep["energy_in_kernel"]
         if e < LOW_ENERGY_IN_KERNEL:
             low.append(f"{f.name} ({w:g} nm): {100 * e:.0f} %")
+        if rep["noise_clipped"] > NOISE_FLOOR_WARN:
+            noisy.append((f"{f.name} ({w:g} nm)", rep["noise_clipped"]))
         stack.append(psf)
         per_band.append({"band_nm": float(lam), "wavelength_nm": w, "file": f.name, **rep,
                          "saturated_px": saturated[j]})
-    _warn_folder(d, kernel_px, floors, low)
+    _warn_folder(d, kernel_px, floors, low, noisy, len(chosen))
     _warn_coarse_pitch(opts, camera_pixel_m)
     return _measured_psf(d, bands, opts, camera_pixel_m, kernel_px, stack, per_band)
 
@@ -660,14 +676,24 @@ def _band_psf(w: float, f: Path, img: np.ndarray, opts: PSFImportOptions, camera
     return psf, rep
 
 
-def _warn_folder(d: Path, kernel_px: int, floors: list[str], low: list[str]) -> None:
+def _warn_folder(d: Path, kernel_px: int, floors: list[str], low: list[str],
+                 noisy: Sequence[tuple[str, float]] = (), n_bands: int = 0) -> None:
     """One warning for the bands whose border looks like a black level (``floors``), one for those keeping less
-    than :data:`LOW_ENERGY_IN_KERNEL` of their light in the kernel (``low``)."""
+    than :data:`LOW_ENERGY_IN_KERNEL` of their light in the kernel (``low``), one for those whose kernel's noise
+    floor holds more than :data:`NOISE_FLOOR_WARN` of their light (``noisy``: (band, share), of ``n_bands``)."""
     if floors:  # a black level read as light: each band loses another share of its PSF to it
         log.warning("%s: the images' borders sit above zero (border median, of the peak: %s) and background is none: "
                     "if that is a black level (pedestal, dark current), it is counted as PSF light, spread over the whole "
                     "frame; set background: border (or the black level in the files' units) in psf.json", d,
                     ", ".join(floors))
+    if noisy:
+        shares = [v for _, v in noisy]
+        worst = max(noisy, key=lambda t: t[1])
+        log.warning("%s: the measured PSFs are noisy: in the camera's %d×%d px kernel their negative noise set to 0 "
+                    "adds a floor of %.2g–%.2g %% of the band's light in %d of the %d bands (most: %s); the PSF's own "
+                    "light is kept, its dark pixels read as a faint glow: average more frames of each PSF (and of the "
+                    "dark frame subtracted)", d, kernel_px, kernel_px, 100 * min(shares), 100 * max(shares), len(noisy),
+                    n_bands, worst[0])
     if low:
         log.warning("%s: most of the measured PSF light falls outside the camera's %d×%d px kernel (energy in kernel: "
                     "%s); the camera model loses it: %scheck axis_px / centre and pixel_pitch_um in psf.json "

@@ -111,7 +111,7 @@ def write_preview(path: str | os.PathLike, out_dir: str | os.PathLike, max_scene
     every = list_scenes(path)
     scenes = every[:n]
     if len(every) > n:  # said in the log and on the figures: a sheet of 16 scenes reads as the whole set otherwise
-        log.info("data show: the first %d of the %d scenes of %s (--max-scenes)", n, len(every), path)
+        log.info("data show: the first %d of the %d scenes of %s", n, len(every), path)
     held_dir = Path(heldout) if heldout is not None else _find_heldout(path)
     held_scenes = list_scenes(held_dir)[:n] if held_dir is not None else []  # a bad held-out set fails before any work
     out = Path(out_dir)
