@@ -543,6 +543,25 @@ def test_integer_capture_white_level(tmp_path, caplog):
         img, _ = read_capture(tmp_path / "c12.npy", RawCorrection(white_level=4095.0))
     assert not [r for r in caplog.records if "dark" in r.getMessage()], [r.getMessage() for r in caplog.records]
     np.testing.assert_allclose(img, dn / 4095.0, rtol=1e-6)
+    # 14 bit in uint16 (at most 1/4 of full scale: not "very dark"): read at a quarter of its level without a word,
+    # its clipped pixels uncounted; its pixels at 16383 DN, a 14-bit sensor's white level, say so (session 73)
+    dn14 = np.minimum(np.round(sensor * 1.3 * 16383), 16383)
+    assert np.count_nonzero(dn14 == 16383) >= 3
+    np.save(tmp_path / "c14.npy", dn14.astype(np.uint16))
+    caplog.clear()
+    with caplog.at_level("WARNING", logger="hsicam.data.images"):
+        img, rep = read_capture(tmp_path / "c14.npy")
+    np.testing.assert_allclose(img, dn14 / 65535.0, rtol=1e-6)
+    msgs = [r.getMessage() for r in caplog.records if "c14.npy" in r.getMessage()]
+    assert len(msgs) == 1 and f"{np.count_nonzero(dn14 == 16383)} pixels sit at 16383 DN, a 14-bit sensor's white " \
+        "level" in msgs[0] and "--white-level 16383" in msgs[0], msgs
+    img, rep = read_capture(tmp_path / "c14.npy", RawCorrection(white_level=16383.0))
+    assert rep["saturated_px"] == np.count_nonzero(dn14 == 16383)
+    caplog.clear()
+    np.save(tmp_path / "c14_unclipped.npy", np.round(sensor * 16383).astype(np.uint16))  # no pixel at 16383
+    with caplog.at_level("WARNING", logger="hsicam.data.images"):
+        read_capture(tmp_path / "c14_unclipped.npy")
+    assert not caplog.records
 
 
 def test_reconstruct_int64_capture_needs_white_level(fab_run, tmp_path):

@@ -83,7 +83,7 @@ MAX_NEGATIVE_SHARE = 0.10
 #: corrections) stays below this fraction of the simulator's full scale is warned about. An n-bit
 #: sensor in a 16-bit container reaches at most 2^(n−16): 1/16 for 12 bit (the commonest raw depth),
 #: 1/64 for 10 bit, 1/256 for 8 bit — 1/8 catches all of them (not 14 bit, 1/4, which looks like an
-#: ordinary exposure). A correct 16-bit capture trips it only when its brightest pixel is three stops
+#: ordinary exposure: its pixels clipped at 16383 DN are, :data:`SENSOR_CLIP_MIN_PX`). A correct 16-bit capture trips it only when its brightest pixel is three stops
 #: below full scale, far darker than the simulated training images (scenes normalised to max 1 give
 #: sensor maxima of about 0.3–0.75), so the warning is worth reading then too.
 DIM_FRACTION = 1.0 / 8.0
@@ -840,14 +840,28 @@ def _check_dim_float(img: np.ndarray, source: str) -> list[str]:
             "(or --scale)"]
 
 
+#: This many pixels (or more) at exactly 2^b − 1 DN (b = 10, 12, 14) in a 16-bit capture read without a white level
+#: are the clipped pixels of a b-bit sensor: warned about (:func:`_check_dim`), whatever the level.
+SENSOR_CLIP_MIN_PX = 3
+
+
 def _check_dim(img: np.ndarray, raw: np.ndarray, full_scale: float, source: str) -> list[str]:
     """A warning (returned) when an integer capture normalised with its container's full scale stays below
-    :data:`DIM_FRACTION` of full scale at its brightest pixel (see the module docstring)."""
+    :data:`DIM_FRACTION` of full scale at its brightest pixel (see the module docstring), or when
+    :data:`SENSOR_CLIP_MIN_PX` or more of its pixels sit at a 10-, 12- or 14-bit sensor's white level in a 16-bit file:
+    a 14-bit capture (at most 1/4 of full scale, which :data:`DIM_FRACTION` leaves alone) was read at a quarter of
+    its level without a word, its clipped pixels not counted as saturated (session 73)."""
     peak = float(img.max())
-    if not peak < DIM_FRACTION:
-        return []
     raw_max = float(raw.max())
     container = max(1, math.ceil(math.log2(full_scale + 1)))
+    depth = next((b for b in (10, 12, 14) if raw_max == 2 ** b - 1 and b < container), None)
+    at_white = int(np.count_nonzero(raw == raw_max)) if depth is not None else 0
+    if at_white >= SENSOR_CLIP_MIN_PX and not peak < DIM_FRACTION:
+        return [f"{source}: {at_white} pixels sit at {raw_max:g} DN, a {depth}-bit sensor's white level, in a "
+                f"{container}-bit file: if the sensor has {depth} bits, the capture is read at {raw_max / full_scale:.3g} "
+                f"of its level and those pixels are not counted as clipped: pass --white-level {raw_max:g}"]
+    if not peak < DIM_FRACTION:
+        return []
     used = math.ceil(math.log2(raw_max + 1)) if raw_max > 0 else 1  # bits the brightest pixel needs
     bits = next((b for b in (8, 10, 12, 14) if used <= b < container), None)  # the common raw depths
     hint = (f"if the sensor has {bits} bits (stored in a {container}-bit file), pass --white-level {2 ** bits - 1}"
