@@ -420,7 +420,7 @@ def corrections_from_args(args: argparse.Namespace, cfa_period: int | None) -> "
     if args.flat_mode == "cfa":  # with a --flat: check_level_options
         period = cfa_period or 1
     return RawCorrection(black_level=args.black_level, white_level=args.white_level, dark=dark, flat=flat,
-                         flat_period=period, exposure_s=args.exposure_s, reference_exposure_s=args.reference_exposure_s,
+                         flat_period=period, cfa_period=cfa_period, exposure_s=args.exposure_s, reference_exposure_s=args.reference_exposure_s,
                          auto_level=args.auto_level, scale=1.0)
 
 
