@@ -258,6 +258,12 @@ def test_a_featureless_or_small_capture_without_offset_is_not_warned_about(captu
     check = _meta(tmp_path / "f.h5")["cfa_offset_check"]
     assert check["ambiguous"] is True and check["warned"] is False
     assert "cfa_offset_check" not in _meta(tmp_path / "s.h5") and _meta(tmp_path / "s.h5")["cfa_offset"] == [0, 0]
+    caplog.clear()
+    with caplog.at_level(logging.INFO, logger="hsicam.cli.reconstruct"):  # the unchecked phase is said (a debug line)
+        assert_ok(run_cli_in_process("reconstruct", str(small), "--run", RUN, "--out", str(tmp_path / "s2.h5")))
+    said = [r.getMessage() for r in caplog.records if "not checked" in r.getMessage()]
+    assert len(said) == 1 and said[0].startswith("CFA phase 0,0 (no --cfa-offset) not checked: ") \
+        and "--cfa-offset Y,X" in said[0], caplog.text
 
 
 def test_only_a_clear_estimate_away_from_the_first_pixel_rules_it_out():

@@ -155,7 +155,7 @@ def checked_sensor_origin(model, sensor: torch.Tensor, source) -> dict | None:
     when another phase clearly explains the capture better (:attr:`~hsicam.engine.cfa_offset.CfaOffsetEstimate.
     rules_out_origin`) a warning names it (a crop reconstructed at the wrong phase has wrong spectra, without a
     word before). Returns the check's record for the cube's metadata; None when the capture is too small or dark
-    to tell (nothing is said: 0,0 is taken, as before); ``{"checked": False, "projected_s": …}`` when the check would
+    to tell (an INFO line says so: 0,0 is taken, as before); ``{"checked": False, "projected_s": …}`` when the check would
     take longer than :data:`~hsicam.engine.cfa_offset.CHECK_TIME_BUDGET_S` (stopped after its first phase; an INFO
     line says so and what to give instead)."""
     from hsicam.engine.cfa_offset import (CHECK_TIME_BUDGET_S, CHECK_WINDOW_PX, MIN_SCORED_PX, EstimateTooSlow,
@@ -169,8 +169,9 @@ def checked_sensor_origin(model, sensor: torch.Tensor, source) -> dict | None:
                  "column of the capture's first pixel with --cfa-offset Y,X (0,0 where the sensor starts), or "
                  "--cfa-offset auto to estimate it", e, CHECK_TIME_BUDGET_S)
         return {"checked": False, "projected_s": round(e.projected_s, 1)}
-    except InputError as e:  # too small or black to tell: the reconstruction goes on at 0,0
-        log.debug("CFA phase 0,0 not checked: %s", e)
+    except InputError as e:  # too small or black to tell: the reconstruction goes on at 0,0, said (it was a debug line)
+        log.info("CFA phase 0,0 (no --cfa-offset) not checked: %s; if the capture is a crop or a region-of-interest "
+                 "readout, give the sensor row and column of its first pixel with --cfa-offset Y,X", e)
         return None
     oy, ox = est.offset
     if not est.rules_out_origin:  # quiet: a line on every reconstruction would say nothing to act on
