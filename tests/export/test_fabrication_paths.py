@@ -21,6 +21,7 @@ import shutil
 import numpy as np
 import pytest
 import torch
+import yaml
 
 from cli_helpers import assert_clean_error, run_cli_in_process
 from fab_runs import FAB_OVERRIDES, fab_run, write_psf_dir  # noqa: F401 - shared fixture
@@ -424,3 +425,58 @@ def test_tolerance_refuses_scenes_too_small_for_its_camera_up_front_without_advi
     assert "boundary=same" not in res.stderr and not out.exists()
     ev = run_cli_in_process("evaluate", "--run", str(fab_run), "--data", str(small), "--out", str(tmp_path / "ev"))
     assert_clean_error(ev, "or camera.boundary=same")  # evaluate takes --set: its advice stays
+
+
+def test_spec_says_where_the_sensor_distance_is_measured_from_and_the_lens_orientation(tiny_config, tmp_path):
+    """A singlet run's spec.json gave sensor_distance_mm (from the rear principal plane H') without saying so: a fab
+    measuring it from the flat back face puts the sensor t/n = 1.37 mm too far for the paper singlet (~23 waves of
+    defocus at f/3.5; session 73's hunt). The lens block names the reference plane, H' from the rear vertex, the back
+    focal distance (rear vertex to sensor) and which face points at the object; for the plano-convex singlet H' lies
+    −t/n(λ0) from the flat rear vertex (the independent reference here, with fused silica's n at 587.6 nm)."""
+    from hsicam.cameras import DOECamera
+    from hsicam.export import _export_into
+    from hsicam.spectral import FusedSilica
+
+    cfg = tiny_config("camera.lens.model=singlet", "camera.doe.enabled=false", "camera.cfa.enabled=false")
+    cam = DOECamera.from_config(cfg)
+    out = tmp_path / "fab"
+    out.mkdir()
+    spec = _export_into(out, {"run": "test"}, cfg, cam, None, {})
+    lens = spec["lens"]
+    t_mm = cfg.camera.lens.center_thickness_mm
+    n0 = float(FusedSilica().n(np.array([587.6]))[0])
+    assert lens["model"] == "singlet" and lens["orientation"] == "plano-convex, the convex face towards the object"
+    assert lens["sensor_distance_from"].startswith("rear principal plane H'")
+    assert lens["rear_principal_plane_mm"] == pytest.approx(-t_mm / n0, rel=1e-6)
+    assert lens["back_focal_distance_mm"] == pytest.approx(spec["sensor_distance_mm"] - t_mm / n0, rel=1e-9)
+    assert json.loads((out / "spec.json").read_text())["lens"] == lens
+
+
+def test_spec_records_the_weights_it_was_made_from_and_an_unfinished_training(fab_run, tmp_path):
+    """spec.json named the run's folder only: a package made from a half-trained run looked like a final one, and a
+    run resumed later could not be tied to the files sent to the fab (session 73's hunt). It records the weights
+    file's SHA-256, the last checkpoint's step and epoch, and whether the training finished (the note when not)."""
+    import hashlib
+
+    from hsicam.export import export_optics
+
+    spec = export_optics(fab_run, tmp_path / "fab")
+    w = spec["weights"]
+    assert w["file"] == "model.safetensors" and w["training_finished"] is True and "unfinished" not in w
+    assert w["sha256"] == hashlib.sha256((fab_run / "model.safetensors").read_bytes()).hexdigest()
+    assert isinstance(w["step"], int) and w["step"] > 0 and isinstance(w["epoch"], int)
+    half = tmp_path / "half"
+    shutil.copytree(fab_run, half)
+    # as if killed halfway through a training twice as long: no final record, twice the epochs and steps planned
+    lines = (half / "metrics.jsonl").read_text().splitlines()
+    assert json.loads(lines[-1]).get("final")
+    (half / "metrics.jsonl").write_text("\n".join(lines[:-1]) + "\n")
+    cfg_text = (half / "config.yaml").read_text()
+    epochs = yaml.safe_load(cfg_text)["train"]["epochs"]
+    (half / "config.yaml").write_text(cfg_text.replace(f"  epochs: {epochs}\n", f"  epochs: {2 * epochs}\n", 1))
+    manifest = json.loads((half / "checkpoints.json").read_text())
+    manifest["state"]["total_steps"] *= 2
+    (half / "checkpoints.json").write_text(json.dumps(manifest))
+    spec = export_optics(half, tmp_path / "fab_half")
+    assert spec["weights"]["training_finished"] is False
+    assert "its training did not finish" in spec["weights"]["unfinished"]

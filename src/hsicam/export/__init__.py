@@ -196,7 +196,8 @@ def export_optics(run_dir: str | Path, out_dir: str | Path, levels: int | None =
                              f"camera.doe.quantization_levels), got {levels}")
     tolerances = _tolerances(run_dir, cfg, tolerance)  # a bad tolerance file: refused before any file is written
     source = finetuned_from(run_dir)
-    facts: dict[str, Any] = {"run": run_label(run_dir)}  # pretrained:NAME for a shipped camera, else the folder
+    facts: dict[str, Any] = {"run": run_label(run_dir),  # pretrained:NAME for a shipped camera, else the folder
+                             "weights": _weights_facts(run_dir, cfg)}
     if source is not None:
         facts["finetuned"] = {"on_measured_psfs": True, "from_run": source or None,
                               "note": "fine-tuning on measured PSFs changed only the network: the DOE and CFA "
@@ -204,6 +205,24 @@ def export_optics(run_dir: str | Path, out_dir: str | Path, levels: int | None =
     with atomic_output(out, overwrite=True, marker={"command": "export-optics"}) as tmp:
         spec = _export_into(tmp, facts, cfg, camera, levels, tolerances)
     return spec
+
+
+def _weights_facts(run_dir: Path, cfg) -> dict[str, Any]:
+    """Which weights the files are made from: the weights file, its SHA-256, the training's last checkpoint (step,
+    epoch) and whether the training finished (``unfinished``: the note :func:`~hsicam.runs.folder.unfinished_training`
+    logs; a package made from a half-trained run looked like a final one, and a run resumed later could no longer be
+    tied to the files sent to the fab)."""
+    from hsicam.export.tolerance import run_identity
+    from hsicam.runs.checkpoint import CheckpointManager
+    from hsicam.runs.folder import unfinished_training
+
+    ident = run_identity(run_dir)
+    state = CheckpointManager(run_dir).state()
+    note = unfinished_training(run_dir, cfg)
+    return {"file": ident["weights"], "sha256": ident["weights_sha256"],
+            "step": None if state is None else int(state.get("global_step", 0)),
+            "epoch": None if state is None else int(state.get("epoch", 0)),
+            "training_finished": note is None, **({"unfinished": note} if note else {})}
 
 
 def _export_into(out: Path, facts: dict[str, Any], cfg, camera, levels: int | None, tolerances: dict[str, Any]) -> dict[str, Any]:
@@ -240,7 +259,16 @@ def _export_into(out: Path, facts: dict[str, Any], cfg, camera, levels: int | No
             "design_wavelength_nm": lens.design_wavelength_nm,
             "focal_length_per_band_mm": desc["lens"]["focal_length_mm"],
             **({"radius_of_curvature_mm": lens.radius_of_curvature_mm, "center_thickness_mm": lens.center_thickness_mm,
-                "material": lens.material} if lens.model == "singlet" else {}),
+                "material": lens.material, "orientation": "plano-convex, the convex face towards the object"}
+               if lens.model == "singlet" else {}),
+            # where sensor_distance_mm is measured from (a fab measuring it from the flat back face of the singlet
+            # placed the sensor 1.37 mm too far, ~23 waves of defocus at f/3.5; session 73's hunt)
+            "sensor_distance_from": desc["lens"]["sensor_distance_from"],
+            "rear_principal_plane_mm": desc["lens"]["rear_principal_plane_mm"],
+            "rear_principal_plane_from": desc["lens"]["rear_principal_plane_from"],
+            "back_focal_distance_mm": optics.sensor_distance_m * 1e3 + desc["lens"]["rear_principal_plane_mm"],
+            "back_focal_distance_from": "the lens's rear vertex to the sensor (sensor_distance_mm + "
+                                        "rear_principal_plane_mm)",
         },
         "sensor_distance_mm": optics.sensor_distance_m * 1e3,
         "object_distance_m": optics.object_distance_m,
