@@ -480,3 +480,39 @@ def test_spec_records_the_weights_it_was_made_from_and_an_unfinished_training(fa
     spec = export_optics(half, tmp_path / "fab_half")
     assert spec["weights"]["training_finished"] is False
     assert "its training did not finish" in spec["weights"]["unfinished"]
+
+
+def test_a_run_trained_with_three_levels_exports_its_element_and_other_levels_are_warned_about(fab_run, tmp_path,
+                                                                                             caplog):
+    """docs/hardware.md: a run trained with L levels not a power of 2 is exported with its own L, without GDS masks.
+    A 3-level run was refused instead, with advice (--levels) that takes powers of 2 only, and --levels 4 exported
+    another element without a word (session 73's hunt). Now the default exports the trained element cell for cell
+    (no GDS), and a --levels other than the run's is warned about."""
+    import logging
+
+    from hsicam.export.doe import design_heights
+    from hsicam.runs.folder import load_run
+
+    run = tmp_path / "run3"
+    shutil.copytree(fab_run, run, ignore=shutil.ignore_patterns("checkpoints*"))
+    text = (run / "config.yaml").read_text()
+    assert text.count("quantization_levels: null") == 1
+    (run / "config.yaml").write_text(text.replace("quantization_levels: null", "quantization_levels: 3"))
+    res = run_cli_in_process("export-optics", "--run", str(run), "--out", str(tmp_path / "fab"))
+    assert res.returncode == 0, res.stderr
+    spec = json.loads((tmp_path / "fab" / "spec.json").read_text())
+    q = spec["doe"]["quantized"]
+    assert q["levels"] == 3 and q["gds"]["file"] is None and "power of 2" in q["gds"]["skipped"]
+    _, model = load_run(run)
+    h_m, aperture, piston = design_heights(model.camera)
+    with torch.no_grad():
+        trained_nm = model.camera.optics.doe.heights().double().numpy() * 1e9
+    inside = aperture > 0
+    exported = np.load(tmp_path / "fab" / "doe_height_L3_nm.npy").astype(np.float64)
+    np.testing.assert_allclose(exported[inside], (trained_nm - piston * 1e9)[inside], atol=1e-3)  # as trained
+    assert q["phase_error_design_wavelength_rad"]["max"] < 1e-5
+    with caplog.at_level(logging.WARNING, logger="hsicam.export"):
+        res = run_cli_in_process("export-optics", "--run", str(run), "--out", str(tmp_path / "fab4"), "--levels", "4")
+    assert res.returncode == 0, res.stderr
+    said = [r.getMessage() for r in caplog.records if "trained with 3 DOE levels" in r.getMessage()]
+    assert len(said) == 1 and "another element than the one trained" in said[0], caplog.text

@@ -41,7 +41,7 @@ from typing import Any
 import numpy as np
 
 from hsicam.errors import InputError
-from hsicam.config import LEVELS_RANGE, is_power_of_two
+from hsicam.config import LEVELS_RANGE
 from hsicam.export.tolerance import finetuned_from, read_tolerance_study
 from hsicam.runs.pretrained import is_pretrained_path, run_label
 
@@ -51,14 +51,21 @@ SPEC_FORMAT = "hsicam-optics-spec-1"
 
 
 def default_levels(cfg) -> int:
-    """The run's ``camera.doe.quantization_levels`` when it is a power of 2, else 8."""
+    """The run's ``camera.doe.quantization_levels`` (the element it trained; one of another value than a power of 2
+    is exported without GDS masks, which binary-weighted lithography builds), else 8. (A run of 3 levels was refused
+    with "pass --levels explicitly", which takes powers of 2 only: no command exported the element it trained.)"""
     lv = cfg.camera.doe.quantization_levels
-    if lv is None:
-        return 8
-    if not is_power_of_two(lv):
-        raise InputError(f"the run was trained with {lv} DOE levels, not a power of 2: binary-weighted lithography "
-                         "needs L = 2^k; pass --levels explicitly")
-    return int(lv)
+    return 8 if lv is None else int(lv)
+
+
+def _warn_other_levels(cfg, levels: int) -> None:
+    """Warn when ``--levels`` is not the level count the run trained with: its heights are re-quantised onto another
+    grid, an element other than the one trained (the tolerance study's ``levels`` sweep says what that costs)."""
+    trained = cfg.camera.doe.quantization_levels
+    if trained is not None and int(trained) != levels:
+        log.warning("export-optics --levels %d: the run was trained with %d DOE levels, so its heights are quantised "
+                    "again onto %d levels: another element than the one trained (leave out --levels to export that "
+                    "one; `hsicam tolerance --levels %d` measures the cost)", levels, int(trained), levels, levels)
 
 
 def _design_run_study(path: Path, source: str, run_dir: Path) -> tuple[dict[str, Any] | None, str | None]:
@@ -194,6 +201,8 @@ def export_optics(run_dir: str | Path, out_dir: str | Path, levels: int | None =
         elif not LEVELS_RANGE[0] <= levels <= LEVELS_RANGE[1]:
             raise InputError(f"--levels must be in {LEVELS_RANGE[0]}..{LEVELS_RANGE[1]} (the range of "
                              f"camera.doe.quantization_levels), got {levels}")
+        else:
+            _warn_other_levels(cfg, levels)
     tolerances = _tolerances(run_dir, cfg, tolerance)  # a bad tolerance file: refused before any file is written
     source = finetuned_from(run_dir)
     facts: dict[str, Any] = {"run": run_label(run_dir),  # pretrained:NAME for a shipped camera, else the folder
