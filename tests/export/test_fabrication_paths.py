@@ -380,9 +380,9 @@ def test_export_of_a_shipped_camera_names_it_not_its_package_folder(tmp_path):
 
 
 def test_export_refusals_name_the_run_and_what_is_missing_of_a_tolerance_folder(tmp_path):
-    """An untrained camera with 6 DOE levels: exporting it without --levels names the run (the message said only "the
-    run was trained with 6 DOE levels"); --tolerance given a folder without tolerance.json, or a path that does not
-    exist, says which (it said "DIR: no tolerance.json" for both)."""
+    """An untrained camera with 6 DOE levels (exported with them since session 73: no refusal to name the run for);
+    --tolerance given a folder without tolerance.json, or a path that does not exist, says which (it said "DIR: no
+    tolerance.json" for both)."""
     from hsicam.config import dump_yaml
     from hsicam.export import export_optics
     from hsicam.models import CameraSystem
@@ -394,10 +394,7 @@ def test_export_refusals_name_the_run_and_what_is_missing_of_a_tolerance_folder(
     (run / "config.yaml").write_text(dump_yaml(cfg), encoding="utf-8")
     model = CameraSystem.from_config(cfg)
     save_weights(run / "model.safetensors", model, model.bands)
-    with pytest.raises(InputError) as exc:
-        export_optics(run, tmp_path / "fab")
-    assert str(exc.value) == (f"{run.resolve()}: the run was trained with 6 DOE levels, not a power of 2: "
-                              "binary-weighted lithography needs L = 2^k; pass --levels explicitly")
+    assert export_optics(run, tmp_path / "six")["doe"]["quantized"]["levels"] == 6
     empty = tmp_path / "study"
     empty.mkdir()
     for given, why in ((empty, "no tolerance.json in this folder"), (tmp_path / "nowhere", "no such file or folder")):
