@@ -513,3 +513,27 @@ def test_a_run_trained_with_three_levels_exports_its_element_and_other_levels_ar
     assert res.returncode == 0, res.stderr
     said = [r.getMessage() for r in caplog.records if "trained with 3 DOE levels" in r.getMessage()]
     assert len(said) == 1 and "another element than the one trained" in said[0], caplog.text
+
+
+def test_the_cameras_own_height_noise_is_recorded_where_it_is_applied_and_where_it_is_left_out(fab_run, tmp_path):
+    """A run whose camera.doe.sigma_height_nm is 40: evaluate draws it (its results recorded sigma_height_nm: null,
+    read as none), the tolerance study's nominal leaves it out (design heights: its nominal was evaluate's figure
+    without the noise, unsaid). Each record says which (session 73's hunt)."""
+    run = tmp_path / "run40"
+    shutil.copytree(fab_run, run, ignore=shutil.ignore_patterns("checkpoints*"))
+    text = (run / "config.yaml").read_text()
+    assert text.count("sigma_height_nm: 0.0\n") == 1
+    (run / "config.yaml").write_text(text.replace("sigma_height_nm: 0.0\n", "sigma_height_nm: 40.0\n"))
+    for extra, applied in (((), 40.0), (("--sigma-height-nm", "0"), 0.0)):
+        out = tmp_path / f"ev{applied:g}"
+        res = run_cli_in_process("evaluate", "--run", str(run), "--out", str(out), *extra)
+        assert res.returncode == 0, res.stderr
+        noise = json.loads((out / "results.json").read_text())["noise"]
+        assert noise["sigma_height_nm_applied"] == applied, noise
+    res = run_cli_in_process("tolerance", "--run", str(run), "--out", str(tmp_path / "tol"), "--max-scenes", "1",
+                             "--sensor-distance-um=0", "--levels", "2", "--sigma-height-nm", "0", "--draws", "1",
+                             "--shift-cells", "0")
+    assert res.returncode == 0, res.stderr
+    nominal = json.loads((tmp_path / "tol" / "tolerance.json").read_text())["nominal"]
+    assert nominal["camera_sigma_height_nm_left_out"] == pytest.approx(40.0)
+    assert nominal["heights"] == "design, without fabrication noise"

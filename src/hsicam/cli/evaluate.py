@@ -175,6 +175,18 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     return 0
 
 
+def _applied_sigma_height_nm(args: argparse.Namespace, method) -> float | None:
+    """The DOE height noise σ_p (nm) the scoring draws: ``--sigma-height-nm``, else the camera's own; None for a
+    camera without a DOE (:func:`~hsicam.engine.evaluate.no_doe_reason`)."""
+    from hsicam.engine.evaluate import no_doe_reason
+
+    if no_doe_reason(method.camera) is not None:
+        return None
+    if args.sigma_height_nm is not None:
+        return float(args.sigma_height_nm)
+    return method.camera.noise_levels().get("sigma_height_nm")
+
+
 def _use_current_method_name(args: argparse.Namespace) -> str | None:
     """Rename an old ``--method`` name in ``args`` to its current one; return the old name given, else None."""
     from hsicam.engine.methods import METHOD_ALIASES
@@ -301,6 +313,9 @@ def _summary(args: argparse.Namespace, cfg, method, results, noise, data_label: 
     where = {"run": run_label(args.run), "run_path": str(Path(args.run).resolve())} if args.run else {"run": None}
     summary = summarize(results, method=args.method, **where, data=data_label, config_hash=config_hash(dump_yaml(cfg)),
                         noise={"sigma_height_nm": args.sigma_height_nm, "sensor_sigma": args.sensor_sigma, "seeds": args.seeds,
+                               # the DOE height noise the scoring drew (--sigma-height-nm, else the camera's own
+                               # camera.doe.sigma_height_nm: recorded as null, it read as none; session 73)
+                               "sigma_height_nm_applied": _applied_sigma_height_nm(args, method),
                                # the capture noise of the evaluation's config (the camera's own, or --set)
                                "camera_sensor": camera_sensor, "draws": NOISE_DRAWS},
                         bands_nm=method.camera.bands.centers_nm.tolist(),

@@ -386,7 +386,11 @@ def run_tolerance(model, cfg, spec: ToleranceSpec | None = None, data: str | Pat
         "sensor_distance_um_representable": [_um_toward_zero(v) if math.isfinite(v) else None
                                              for v in sensor_distance_limits_m(optics)],
         "skipped": skipped,
-        "nominal": {**nominal, "energy_in_kernel_min": float(nominal_psf.energy.min())},
+        # the design heights without fabrication noise: a camera.doe.sigma_height_nm, which evaluate applies (its
+        # figure is then the sigma_height_nm sweep's point at that σ_p), is left out of the nominal, said here
+        "nominal": {**nominal, "energy_in_kernel_min": float(nominal_psf.energy.min()),
+                    "heights": "design, without fabrication noise",
+                    "camera_sigma_height_nm_left_out": float(optics.doe.sigma_height_m * 1e9)},
         "shift_reference": None if shift_ref is None else {
             **shift_ref.metrics, "pupil_oversample": big_q, "energy_in_kernel_min": float(shift_ref.energy.min())},
         "sweeps": sweeps,

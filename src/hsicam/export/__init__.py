@@ -110,8 +110,10 @@ def _same_optics(a: Path, b: Path) -> bool:
 def _tolerances(run_dir: Path, cfg, tolerance: str | Path | None) -> dict[str, Any]:
     t = cfg.train
     out: dict[str, Any] = {
-        "trained_with": {"sigma_height_nm": list(t.sigma_height_nm), "sensor_sigma": list(t.sensor_sigma),
-                         "camera_sigma_height_nm": cfg.camera.doe.sigma_height_nm},
+        # the noise the network trained with (train.*, drawn per step); the camera's own σ_p (camera.doe.*) is
+        # applied at validation and evaluation only, not in training (it was listed here as trained with)
+        "trained_with": {"sigma_height_nm": list(t.sigma_height_nm), "sensor_sigma": list(t.sensor_sigma)},
+        "validated_with": {"camera_sigma_height_nm": cfg.camera.doe.sigma_height_nm},
         "studied": None,
     }
     shipped = is_pretrained_path(run_dir)
