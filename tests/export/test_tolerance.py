@@ -196,14 +196,15 @@ def check_sweep_rows(r, run, model, scenes, names, export):
         want = score(psf_for_heights(o, torch.from_numpy(hq)).psf)
         assert row("levels", lv)["psnr"] == pytest.approx(want["psnr"], rel=1e-6), lv
     assert abs(row("levels", 2)["psnr"] - row("levels", 16)["psnr"]) > 0.01
-    # the diagonal shift by ½ cell: the relief repeated 4×4 per cell (the study's Q = 4) and moved by 2
-    # samples down and right in numpy (zeros entering), imaged by the camera built with pupil_oversample 4
+    # the diagonal shift by ½ cell: the exported relief (design: 0 outside the aperture, not the DOE parameters'
+    # untrained values there) repeated 4×4 per cell (the study's Q = 4) and moved by 2 samples down and right in
+    # numpy (zeros entering), imaged by the camera built with pupil_oversample 4
     q = r["shift_reference"]["pupil_oversample"]
     assert q == 4
     fine_cam = DOECamera.from_config(load_config(run / "config.yaml", [f"camera.psf.pupil_oversample={q}",
                                                                        f"camera.psf.kernel_px={k}"]))
     fine_cam.load_state_dict(cam.state_dict())
-    fine = np.kron(h, np.ones((q, q)))
+    fine = np.kron(design, np.ones((q, q)))
     shifted = np.zeros_like(fine)
     shifted[2:, 2:] = fine[:-2, :-2]
     with torch.no_grad():
@@ -568,3 +569,36 @@ def test_a_perturbed_camera_images_the_scenes_and_the_run_reconstructs_with_its_
             known.append(all_metrics(told(sensor).clamp(0, 1), truth)["psnr"][0])
     assert got["psnr"] == pytest.approx(float(np.mean(ref)), rel=1e-5)
     assert abs(float(np.mean(known)) - float(np.mean(ref))) > 1e-3  # the routing matters (0.015 dB untrained)
+
+
+def test_a_shift_brings_in_the_exported_surround_not_the_untrained_parameters(tiny_config):
+    """The DOE's parameter grid holds untrained initial heights outside the aperture; a lateral shift of the study
+    brought them inside it, where the fabricated element holds the exported files' height (0 after the piston: the
+    lowest height inside). fabricated_surround fills them so: unchanged at zero shift (the aperture blocks them), and
+    a shifted element's PSF is the same whatever the parameters outside the aperture held (session 73's hunt)."""
+    from hsicam.engine.tolerance import fabricated_surround
+    from hsicam.export.doe import design_heights
+
+    cam = DOECamera.from_config(tiny_config())
+    o = cam.optics
+    inside = torch.from_numpy(o.aperture_per_cell() > 0)
+    h0 = nominal_heights(cam)
+    assert bool((~inside).any())
+    filled = fabricated_surround(o, h0)
+    h_exp, _, piston = design_heights(cam)
+    np.testing.assert_allclose(filled.numpy(), h_exp, rtol=0, atol=1e-15)  # the exported heights, cell for cell
+    torch.testing.assert_close(filled[inside], h0[inside] - piston, rtol=0, atol=1e-15)
+    other = h0.clone()
+    other[~inside] = torch.rand(int((~inside).sum()), dtype=h0.dtype) * 1.3e-6  # another untrained surround
+    fine = oversampled_optics(o, 2)
+    a, _, _ = psf_shifted(fine, fabricated_surround(o, h0), 0.0, 2.0)
+    b, _, _ = psf_shifted(fine, fabricated_surround(o, other), 0.0, 2.0)
+    torch.testing.assert_close(a, b, rtol=0, atol=1e-7)
+    raw_a, _, _ = psf_shifted(fine, h0, 0.0, 2.0)
+    raw_b, _, _ = psf_shifted(fine, other, 0.0, 2.0)
+    assert (raw_a - raw_b).abs().sum() > 1e-3  # the raw parameters outside did move the shifted PSF
+    # unshifted, only the aperture's edge cells that the oversampled pupil sees (0.4 % of a cell each; untrained
+    # parameters, 0 in the files) move the PSF, and a little
+    zero, _, _ = psf_shifted(fine, filled, 0.0, 0.0)
+    raw_zero = psf_shifted(fine, h0, 0.0, 0.0)[0]
+    assert float((zero - raw_zero).abs().sum() / raw_zero.sum()) < 0.01
