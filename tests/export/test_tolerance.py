@@ -602,3 +602,34 @@ def test_a_shift_brings_in_the_exported_surround_not_the_untrained_parameters(ti
     zero, _, _ = psf_shifted(fine, filled, 0.0, 0.0)
     raw_zero = psf_shifted(fine, h0, 0.0, 0.0)[0]
     assert float((zero - raw_zero).abs().sum() / raw_zero.sum()) < 0.01
+
+
+def test_sensor_distance_rows_sampled_coarsely_are_flagged_in_the_studys_terms(fab_run, tmp_path, caplog):
+    """A Δz whose residual defocus the pupil grid samples coarsely (a phase step above 0.5π, below aliasing's 1) was
+    studied with the camera's warning naming camera.sensor_distance_mm=… (a key the user never set) and advice
+    `tolerance` cannot take, and tolerance.json called it representable, unflagged (session 73's hunt). Each row
+    records its step (defocus_step_pi, checked against defocus_aliasing of the moved sensor's defocus computed here)
+    and coarse_defocus; one tolerance warning names the rows."""
+    from hsicam.optics.sampling import defocus_aliasing
+    from hsicam.runs.folder import load_run
+
+    _, model = load_run(fab_run)
+    o = model.camera.optics
+    with caplog.at_level(logging.WARNING):
+        res = run_cli_in_process("tolerance", "--run", str(fab_run), "--out", str(tmp_path / "tol"), "--max-scenes",
+                                 "1", "--sensor-distance-um=0,100,500", "--levels", "2", "--sigma-height-nm", "0",
+                                 "--draws", "1", "--shift-cells", "0")
+    assert res.returncode == 0, res.stderr
+    rows = {r["value"]: r for r in json.loads((tmp_path / "tol" / "tolerance.json").read_text())["rows"]
+            if r["sweep"] == "sensor_distance_um"}
+    lam = o.line_wavelengths_nm * 1e-9
+    for dz_um, row in rows.items():
+        z = o.line_sensor_distances_m + dz_um * 1e-6
+        c = np.pi / lam * (1 / z - 1 / o.lens.focal_lengths_m(o.line_wavelengths_nm))
+        want = float(np.max(defocus_aliasing(c, o.aperture_radius_m, o.cell_m / o.pupil_oversample)))
+        assert row["defocus_step_pi"] == pytest.approx(want, rel=1e-9, abs=1e-12)
+        assert row["coarse_defocus"] is (want > 0.5)
+    assert [v for v, r in rows.items() if r["coarse_defocus"]] == [500.0]
+    said = [r.getMessage() for r in caplog.records if r.levelno >= logging.WARNING]
+    assert not any("camera.sensor_distance_mm" in m for m in said), said
+    assert sum("tolerance: at 1 sensor distance error(s) (+500 µm)" in m for m in said) == 1, said

@@ -523,14 +523,31 @@ def _sweep_shift(spec: ToleranceSpec, optics, h0: torch.Tensor, big_q: int, eval
 def _sweep_sensor_distance(spec: ToleranceSpec, optics, h0: torch.Tensor, evaluate, record) -> None:
     """Records each Δz of ``spec.sensor_distance_um``, with its peak residual defocus in waves at the design
     wavelength and the (unapplied) magnification change."""
+    from hsicam.optics.perturb import defocus_step_pi
+    from hsicam.optics.psf import DEFOCUS_L1_PER_STEP2, DEFOCUS_STEP_WARN
+
     lam0 = optics.doe.design_wavelength_nm * 1e-9
     z = optics.sensor_distance_m
+    coarse = []
     for dz_um in spec.sensor_distance_um:
         dz = dz_um * 1e-6
         res = psf_sensor_moved(optics, h0, dz)
         waves = optics.aperture_radius_m**2 / 2 * (1 / (z + dz) - 1 / z) / lam0
+        step = defocus_step_pi(optics, dz)
+        if step > DEFOCUS_STEP_WARN:
+            coarse.append((dz_um, step))
+        # coarse_defocus: the PSF's defocus sampled coarsely on the pupil grid, the row's PSF ≳ 11 % off
         record("sensor_distance_um", dz_um, "um", [evaluate(res.psf)], res.energy,
-               defocus_waves=float(waves), magnification_change=float(dz / z))
+               defocus_waves=float(waves), magnification_change=float(dz / z), defocus_step_pi=step,
+               coarse_defocus=step > DEFOCUS_STEP_WARN)
+    if coarse:
+        worst = max(coarse, key=lambda t: t[1])
+        log.warning("tolerance: at %d sensor distance error(s) (%s µm) the moved sensor's residual defocus is sampled "
+                    "coarsely on the pupil grid (a phase step up to %.2fπ between samples at the aperture edge): those "
+                    "rows' PSFs are up to about %.0f %% off (coarse_defocus in tolerance.json); the run's "
+                    "camera.psf.pupil_oversample (%d) sets the grid", len(coarse),
+                    ", ".join(f"{v:+g}" for v, _ in coarse), worst[1], 100 * DEFOCUS_L1_PER_STEP2 * worst[1] ** 2,
+                    optics.pupil_oversample)
 
 
 def _sweeps_by_name(rows: list[dict[str, Any]], shift_psnr0: float | None) -> dict[str, Any]:

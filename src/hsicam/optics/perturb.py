@@ -98,8 +98,22 @@ def rebuilt_optics(optics, **changes) -> PSFModel:
     if unknown:
         raise TypeError(f"rebuilt_optics: unknown changes {sorted(unknown)}")
     kwargs.update(changes)
+    # a study of perturbed optics records how coarsely each samples its defocus (defocus_step_pi), in its own terms:
+    # the camera's warning would name a config key the user never set
     return PSFModel(optics.bands, optics.lens, optics.doe, optics.aperture_radius_m, optics.cell_m, optics.pixel_m,
-                    **kwargs).to(device=optics.amplitude.device, dtype=optics.amplitude.dtype)
+                    warn_coarse_defocus=False, **kwargs).to(device=optics.amplitude.device, dtype=optics.amplitude.dtype)
+
+
+def defocus_step_pi(optics, dz_m: float = 0.0) -> float:
+    """The largest residual-defocus phase step (in π) between neighbouring pupil samples at the aperture edge, over
+    the simulated wavelengths, of ``optics`` with its sensor ``dz_m`` farther from the lens
+    (:func:`~hsicam.optics.sampling.defocus_aliasing`): above :data:`~hsicam.optics.psf.DEFOCUS_STEP_WARN` the PSF
+    is ≳ 11 % off (relative L1 ≈ 0.45·step²; docs/optics.md), above 1 it aliases."""
+    lam_m = np.asarray(optics.line_wavelengths_nm, dtype=np.float64) * 1e-9
+    z = np.asarray(optics.line_sensor_distances_m, dtype=np.float64) + float(dz_m)
+    inv_zo = 0.0 if optics.object_distance_m is None else 1.0 / optics.object_distance_m
+    c = np.pi / lam_m * (inv_zo + 1.0 / z - 1.0 / optics.lens.focal_lengths_m(optics.line_wavelengths_nm))
+    return float(np.max(defocus_aliasing(c, optics.aperture_radius_m, optics.cell_m / optics.pupil_oversample)))
 
 
 def oversampled_optics(optics, q: int) -> PSFModel:

@@ -161,8 +161,10 @@ class PSFModel(nn.Module):
         supersample: int | None = None,
         pupil_oversample: int = 1,
         band_samples: int = 1,
+        warn_coarse_defocus: bool = True,
     ) -> None:
         super().__init__()
+        self.warn_coarse_defocus = bool(warn_coarse_defocus)  # False: a study that records the step itself
         n_cells = cells_across(aperture_radius_m, cell_m)
         if doe.n_cells != n_cells:
             raise ValueError(f"DOE has {doe.n_cells} cells across but the aperture needs {n_cells}")
@@ -218,7 +220,7 @@ class PSFModel(nn.Module):
         ratio = defocus_aliasing(defocus_per_m2, self.aperture_radius_m, cell / q)
         i = int(np.argmax(ratio))
         if not ratio[i] > 1.0:
-            if ratio[i] > DEFOCUS_STEP_WARN:
+            if ratio[i] > DEFOCUS_STEP_WARN and self.warn_coarse_defocus:
                 self._warn_coarse_defocus(float(ratio[i]), float(self.line_wavelengths_nm[i]), sensor_distance_set)
             return
         lam_m, z = float(self.line_wavelengths_nm[i]) * 1e-9, float(z_line[i])
