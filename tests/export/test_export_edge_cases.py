@@ -104,7 +104,8 @@ def test_a_study_without_a_recorded_weights_hash_is_cited_unchecked(run, tmp_pat
     path.write_text(json.dumps(data))
     with caplog.at_level(logging.WARNING, logger="hsicam.export.tolerance"):
         got = read_tolerance_study(path, tmp_path / "no-such-run")
-    assert got == {"source": str(path), "nominal_psnr_db": 31.25, "summary": {"x": 1}, "run_checked": False}
+    assert got == {"source": str(path), "nominal_psnr_db": 31.25, "summary": {"x": 1}, "swept": None,
+                   "run_checked": False}
     assert any("does not record which run it studied" in r.getMessage() for r in caplog.records)
 
 

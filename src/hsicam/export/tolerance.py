@@ -58,6 +58,21 @@ def finetuned_from(run_dir: str | Path) -> str | None:
     return source if isinstance(source, str) else ""
 
 
+def _swept_ranges(data: dict[str, Any]) -> dict[str, list[float]] | None:
+    """{sweep: [smallest, largest value]} of a study's ``sweeps``: what a null 1-dB tolerance of its ``summary``
+    ("beyond the swept range") means; None when the study has none readable."""
+    sweeps = data.get("sweeps")
+    if not isinstance(sweeps, dict):
+        return None
+    out = {}
+    for name, sweep in sweeps.items():
+        values = sweep.get("values") if isinstance(sweep, dict) else None
+        nums = [float(v) for v in values or [] if isinstance(v, (int, float)) and not isinstance(v, bool)]
+        if nums:
+            out[name] = [min(nums), max(nums)]
+    return out or None
+
+
 def read_tolerance_study(path: str | Path, run_dir: str | Path) -> dict[str, Any]:
     """The ``studied`` entry of ``spec.json`` for the tolerance.json at ``path``, cited for the run
     ``run_dir``.
@@ -71,7 +86,8 @@ def read_tolerance_study(path: str | Path, run_dir: str | Path) -> dict[str, Any
     try:
         data = json.loads(path.read_text(encoding="utf-8"))
     except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
-        raise InputError(f"{path}: unreadable tolerance.json ({getattr(exc, 'msg', None) or exc})") from None
+        what = "" if path.name == "tolerance.json" else " (a tolerance study is its tolerance.json)"
+        raise InputError(f"{path}: unreadable as JSON ({getattr(exc, 'msg', None) or exc}){what}") from None
     hint = "pass the tolerance.json that `hsicam tolerance --run RUN --out DIR` writes"
     if not isinstance(data, dict):
         raise InputError(f"{path}: not an hsicam tolerance study (a JSON {type(data).__name__}, not an object); {hint}")
@@ -85,7 +101,7 @@ def read_tolerance_study(path: str | Path, run_dir: str | Path) -> dict[str, Any
         raise InputError(f"{path}: not a complete hsicam tolerance study (no finite nominal PSNR); {hint}")
     # the study's file as an absolute path: spec.json is read elsewhere (a relative one meant nothing once moved)
     studied: dict[str, Any] = {"source": str(path.resolve()), "nominal_psnr_db": float(psnr),
-                               "summary": data.get("summary")}
+                               "summary": data.get("summary"), "swept": _swept_ranges(data)}
     recorded = data.get("run")
     sha = recorded.get("weights_sha256") if isinstance(recorded, dict) else None
     if not isinstance(sha, str) or not sha:
@@ -94,6 +110,11 @@ def read_tolerance_study(path: str | Path, run_dir: str | Path) -> dict[str, Any
         studied["run_checked"] = False
         return studied
     this = run_identity(run_dir)
+    if sha != this["weights_sha256"] and recorded.get("path") == this["path"]:  # the same folder, trained on since
+        raise InputError(
+            f"{path}: a tolerance study of {run_dir}'s earlier weights (sha256 {sha[:12]}…; the run was trained on "
+            f"since: now {this['weights_sha256'][:12]}…); run `hsicam tolerance --run {run_dir} --out DIR` again and "
+            "pass that study")
     if sha != this["weights_sha256"]:
         raise InputError(
             f"{path}: a tolerance study of another run ({recorded.get('path', '?')}, weights sha256 {sha[:12]}…), "
