@@ -537,3 +537,25 @@ def test_resume_of_a_users_own_folder_says_it_is_not_a_run(tmp_path, capsys):
     line = in_process_error_line(capsys, ["train", "--out", str(empty), "--resume"])
     assert line.startswith(f"hsicam: error: {empty}: nothing to resume (an empty folder: no training was started in "
                            "it); start it again with `hsicam train --restart"), line
+
+
+def test_optics_steps_on_a_camera_without_trainable_optics_is_said_to_do_nothing(cache_env, tmp_path, caplog):
+    """train.optics_steps with a camera whose optics do not train (no DOE and no CFA here; a CASSI camera's fixed
+    aperture) was accepted without a word though it changes nothing; now a warning says so. With optics that train,
+    nothing is said."""
+    import logging
+
+    from hsicam.engine.tasks import SystemTask
+    from hsicam.models import CameraSystem
+
+    cfg = load_config("tiny", ["train.optics_steps=4", "camera.doe.enabled=false", "camera.cfa.enabled=false"])
+    with caplog.at_level(logging.WARNING, logger="hsicam.engine.tasks"):
+        SystemTask(cfg, CameraSystem.from_config(cfg))
+    said = [r.getMessage() for r in caplog.records if "optics_steps" in r.getMessage()]
+    assert said == ["train.optics_steps=4 does nothing: this doe camera has no optics that train (the network alone "
+                    "trains from the first step)"], said
+    caplog.clear()
+    cfg = load_config("tiny", ["train.optics_steps=4"])
+    with caplog.at_level(logging.WARNING, logger="hsicam.engine.tasks"):
+        SystemTask(cfg, CameraSystem.from_config(cfg))
+    assert "optics_steps" not in caplog.text

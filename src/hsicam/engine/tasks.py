@@ -5,6 +5,7 @@ the Choi et al. spectral prior (:class:`PriorTask`)."""
 from __future__ import annotations
 
 import dataclasses
+import logging
 import math
 from pathlib import Path
 from typing import Any, Callable
@@ -24,6 +25,9 @@ from hsicam.models import CameraSystem
 from hsicam.models.demosaic import box_mean
 from hsicam.models.priors import SpectralAutoencoder, build_prior
 from hsicam.models.registry import check_network_memory
+
+log = logging.getLogger(__name__)
+
 
 @dataclasses.dataclass(frozen=True)
 class GroupRate:
@@ -247,6 +251,10 @@ class SystemTask(_ConfigDataTask):
         if t.optics_steps is not None and "net" in self.freeze:
             raise ConfigError(f"{frozen} with train.optics_steps={t.optics_steps}: after step {t.optics_steps} only the "
                               "network trains, and it is frozen; drop one of the two")
+        if t.optics_steps is not None and trained == ["net"]:  # no optics train: the option changes nothing
+            log.warning("train.optics_steps=%d does nothing: this %s camera has no optics that train%s (the network "
+                        "alone trains from the first step)", t.optics_steps, self.model.camera.kind,
+                        f" ({frozen})" if self.freeze else "")
 
     def module(self) -> CameraSystem:
         return self.model
