@@ -559,3 +559,22 @@ def test_optics_steps_on_a_camera_without_trainable_optics_is_said_to_do_nothing
     with caplog.at_level(logging.WARNING, logger="hsicam.engine.tasks"):
         SystemTask(cfg, CameraSystem.from_config(cfg))
     assert "optics_steps" not in caplog.text
+
+
+def test_spectral_terms_on_a_one_band_camera_are_said_to_do_nothing(cache_env, caplog):
+    """A one-band camera trained with the spectral-gradient or spectral-angle loss terms, or relit patches: each is
+    a no-op on one band (nothing to difference, an angle always 0, a relighting over one band only scales it,
+    and the peak is kept), accepted without a word before."""
+    import logging
+
+    from hsicam.engine.tasks import SystemTask
+    from hsicam.models import CameraSystem
+
+    cfg = load_config("tiny", ["bands.start_nm=550", "bands.stop_nm=550", "train.spectral_grad_loss=0.1",
+                               "train.sam_loss=0.05", "data.augment_relight=0.2"])
+    assert len(cfg.bands.to_bands()) == 1
+    with caplog.at_level(logging.WARNING, logger="hsicam.engine.tasks"):
+        SystemTask(cfg, CameraSystem.from_config(cfg))
+    said = [r.getMessage() for r in caplog.records if "one band" in r.getMessage()]
+    assert said == ["train.spectral_grad_loss=0.1, train.sam_loss=0.05, data.augment_relight=0.2 does nothing with one "
+                    "band (a spectrum of one band has no shape: no band-to-band difference, angle or relighting)"], said

@@ -251,6 +251,13 @@ class SystemTask(_ConfigDataTask):
         if t.optics_steps is not None and "net" in self.freeze:
             raise ConfigError(f"{frozen} with train.optics_steps={t.optics_steps}: after step {t.optics_steps} only the "
                               "network trains, and it is frozen; drop one of the two")
+        if len(self.model.camera.bands) == 1:  # terms over the band axis: nothing to compare across one band
+            idle = [f"{k}={v:g}" for k, v in (("train.spectral_grad_loss", t.spectral_grad_loss),
+                                              ("train.sam_loss", t.sam_loss),
+                                              ("data.augment_relight", self.cfg.data.augment_relight)) if v]
+            if idle:
+                log.warning("%s does nothing with one band (a spectrum of one band has no shape: no band-to-band "
+                            "difference, angle or relighting)", ", ".join(idle))
         if t.optics_steps is not None and trained == ["net"]:  # no optics train: the option changes nothing
             log.warning("train.optics_steps=%d does nothing: this %s camera has no optics that train%s (the network "
                         "alone trains from the first step)", t.optics_steps, self.model.camera.kind,
