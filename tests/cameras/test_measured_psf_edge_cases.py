@@ -255,15 +255,22 @@ def test_psf_difference_names_the_pitch_then_the_kernel_then_the_options(tmp_pat
     assert psf_difference(tuned, now(kernel_px=7, centre="peak"), tmp_path)[0] == "kernel_px"
     assert psf_difference(tuned, now(centre="peak"), tmp_path)[0] == "options"
     assert psf_difference(tuned, now(), tmp_path)[0] == "images"
+    # a fine-tuning imported before session 73 (no import_version: 1) against today's import of the same folder: the
+    # import changed, not the files (it read "the PSF images … changed since")
+    what, why = psf_difference(tuned, now(import_version=2), tmp_path)
+    assert what == "import" and "version 1 then, 2 now" in why and "not because the files changed" in why
+    assert psf_difference(MeasuredPSF(tuned.psf, bands, {**base, "import_version": 2}), now(import_version=2),
+                          tmp_path)[0] == "images"
 
 
 def test_zero_mean_noise_in_a_large_frame_is_neither_light_nor_a_pull_on_the_centre(tmp_path, caplog):
     """A measured PSF off-centre in a 301² px frame, a 100 DN pedestal and 2 DN of read noise under a 30 000 DN
     peak, `background: border`, `centre: centroid`: the background was clipped at 0 before the normalisation and
-    the centroid, so the noise's positive half became a floor over the whole frame, counted as light (kernels
-    summing to ~0.6 of the band's light) and pulling the centroid toward the frame's centre (tens of pixels off;
-    session 73's hunt). Now the centre is the PSF's (within 0.2 px), the kernel holds its light up to the noise the
-    clip at its end adds (reported as noise_clipped and warned about above 2 %), and a noise-free frame is exact."""
+    the centroid, so the noise's positive half became a floor over the whole frame, counted as light and pulling the
+    centroid toward the frame's centre (here: kernels of 0.92 and 0.95 of the band's light, the centre 4 px off;
+    the hunt's 401² frame with a sharper PSF: 0.55–0.68 and ~40 px; session 73). Now the centre is the PSF's (within
+    0.2 px), the kernel holds its light up to the noise the clip at its end adds (reported as noise_clipped and
+    warned about above 2 %), and a noise-free frame is exact."""
     import json
     import logging
 
@@ -290,6 +297,7 @@ def test_zero_mean_noise_in_a_large_frame_is_neither_light_nor_a_pull_on_the_cen
     exact = import_psf_dir(folder("clean", 0.0), bands, 6e-6, k)
     with caplog.at_level(logging.WARNING, logger="hsicam.data.measured_psf"):
         noisy = import_psf_dir(folder("noisy", 2.0), bands, 6e-6, k)
+    assert exact.report["import_version"] == 2
     for m in (exact, noisy):
         rep = m.report["bands"]
         for b in rep:
@@ -305,6 +313,9 @@ def test_zero_mean_noise_in_a_large_frame_is_neither_light_nor_a_pull_on_the_cen
         loud = import_psf_dir(folder("loud", 40.0), bands, 6e-6, k)  # 40 DN: a floor of a few per cent
     clipped = np.array([b["noise_clipped"] for b in loud.report["bands"]])
     assert clipped.max() > 0.02
+    for b in loud.report["bands"]:  # the light measured in the kernel, and the floor the clip adds on top
+        assert b["kernel_sum"] == pytest.approx(b["energy_in_kernel"] + b["noise_clipped"], rel=1e-9)
+        assert b["energy_in_kernel"] < 1.0 + b["noise_clipped"]
     # (the frame's noise and the border median's own error, over 301² px, move the light by a few per cent more)
     np.testing.assert_allclose(loud.psf.sum(axis=(1, 2)), 1.0 + clipped, atol=0.05)
     said = [r.getMessage() for r in caplog.records if "measured PSFs are noisy" in r.getMessage()]

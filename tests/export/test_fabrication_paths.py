@@ -452,7 +452,8 @@ def test_spec_says_where_the_sensor_distance_is_measured_from_and_the_lens_orien
 def test_spec_records_the_weights_it_was_made_from_and_an_unfinished_training(fab_run, tmp_path):
     """spec.json named the run's folder only: a package made from a half-trained run looked like a final one, and a
     run resumed later could not be tied to the files sent to the fab (session 73's hunt). It records the weights
-    file's SHA-256, the last checkpoint's step and epoch, and whether the training finished (the note when not)."""
+    file's SHA-256, the checkpoint they are (best or last, its step; the run's last step), and whether the training
+    finished (the note when not)."""
     import hashlib
 
     from hsicam.export import export_optics
@@ -461,7 +462,10 @@ def test_spec_records_the_weights_it_was_made_from_and_an_unfinished_training(fa
     w = spec["weights"]
     assert w["file"] == "model.safetensors" and w["training_finished"] is True and "unfinished" not in w
     assert w["sha256"] == hashlib.sha256((fab_run / "model.safetensors").read_bytes()).hexdigest()
-    assert isinstance(w["step"], int) and w["step"] > 0 and isinstance(w["epoch"], int)
+    manifest = json.loads((fab_run / "checkpoints.json").read_text())  # the checkpoint the weights are (best here)
+    kept = manifest["weights"]["from"]
+    assert w["checkpoint"]["checkpoint"] == kept and w["checkpoint"]["step"] == manifest[kept]["step"]
+    assert w["checkpoint"]["last_step"] == manifest["last"]["step"]
     half = tmp_path / "half"
     shutil.copytree(fab_run, half)
     # as if killed halfway through a training twice as long: no final record, twice the epochs and steps planned

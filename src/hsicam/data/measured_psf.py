@@ -182,6 +182,11 @@ def pedestal_level(image: np.ndarray) -> float | None:
 #: 40 000 DN peak is 0.16 %, and already distorts the PSF by 0.67 of its peak on a 128 px frame).
 PEDESTAL_FRACTION = 1e-3
 
+#: How the images become PSFs, by version: 2 (session 73) keeps the background-subtracted noise's sign until the
+#: kernel (1, unrecorded: clipped at 0 first). The same folder imported by another version gives other PSFs: a
+#: fine-tuning made from it says so (:func:`hsicam.runs.measured_psf.psf_difference`), not that its files changed.
+PSF_IMPORT_VERSION = 2
+
 #: A kernel whose clipped noise (its negative pixels set to 0) adds more than this share of the band's light is
 #: warned about (:func:`_warn_folder`): the measured PSFs need more frames averaged.
 NOISE_FLOOR_WARN = 0.02
@@ -355,7 +360,8 @@ def import_psf_image(image: np.ndarray, pitch_m: float, camera_pixel_m: float, k
         "background": b,
         "centre_px": [c[0], c[1]],
         "centre_offset_px": [c[0] - (image.shape[0] - 1) / 2, c[1] - (image.shape[1] - 1) / 2],
-        "energy_in_kernel": float(psf.sum() / energy_in) if energy_in > 0 else 0.0,  # of the image's light
+        # of the image's light, as measured (its noise zero-mean): without the floor the clip below adds
+        "energy_in_kernel": float(signed.sum() / energy_in) if energy_in > 0 else 0.0,
         "kernel_sum": float(psf.sum()),  # the PSF's total (1 for all the light with normalize: sum)
         # the light the kernel's negative pixels set to 0 added (of the image's light): a noise floor (kernel_sum
         # is that much above the light measured in the kernel)
@@ -689,11 +695,12 @@ def _warn_folder(d: Path, kernel_px: int, floors: list[str], low: list[str],
     if noisy:
         shares = [v for _, v in noisy]
         worst = max(noisy, key=lambda t: t[1])
+        span = (f"{100 * min(shares):.2g}–{100 * max(shares):.2g} %" if len(shares) > 1
+                else f"{100 * shares[0]:.2g} %")
         log.warning("%s: the measured PSFs are noisy: in the camera's %d×%d px kernel their negative noise set to 0 "
-                    "adds a floor of %.2g–%.2g %% of the band's light in %d of the %d bands (most: %s); the PSF's own "
-                    "light is kept, its dark pixels read as a faint glow: average more frames of each PSF (and of the "
-                    "dark frame subtracted)", d, kernel_px, kernel_px, 100 * min(shares), 100 * max(shares), len(noisy),
-                    n_bands, worst[0])
+                    "adds a floor of %s of the band's light in %d of the %d bands (most: %s); the PSF's own light is "
+                    "kept, its dark pixels read as a faint glow: average more frames of each PSF (and of the dark frame "
+                    "subtracted)", d, kernel_px, kernel_px, span, len(noisy), n_bands, worst[0])
     if low:
         log.warning("%s: most of the measured PSF light falls outside the camera's %d×%d px kernel (energy in kernel: "
                     "%s); the camera model loses it: %scheck axis_px / centre and pixel_pitch_um in psf.json "
@@ -714,6 +721,7 @@ def _measured_psf(d: Path, bands: Bands, opts: PSFImportOptions, camera_pixel_m:
     """The bands' PSFs as one float32 (C, K, K) stack with the import report."""
     psf = np.stack(stack).astype(np.float32)
     report = {
+        "import_version": PSF_IMPORT_VERSION,
         "psf_dir": str(Path(d).resolve()),  # absolute: compared with --psf-dir from any working folder
         "pixel_pitch_um": opts.pitch_um,
         "camera_pixel_pitch_um": camera_pixel_m * 1e6,

@@ -103,12 +103,15 @@ def check_same_measured_psfs(out_dir: Path, psf_dir: str | Path, measured: Measu
     checked before the PSFs are read). Reads only."""
     from hsicam.runs.folder import finetune_source
 
+    from hsicam.runs.measured_psf import psf_difference
+
     _, made_from = finetune_source(out_dir)
     have = run_psf_fingerprint(out_dir)
     if have != measured.fingerprint:
         same = made_from is not None and Path(made_from).resolve() == Path(psf_dir).resolve()
-        what = (f"the PSFs of {psf_dir} as imported now differ from those it was fine-tuned on (another "
-                "--psf-pitch-um, or files changed since)" if same else
+        diff = psf_difference(load_measured_psf(Path(out_dir) / MEASURED_PSF_FILE), measured, psf_dir) if same else None
+        why = diff[1] if diff is not None else "another --psf-pitch-um, or files changed since"
+        what = (f"the PSFs of {psf_dir} as imported now differ from those it was fine-tuned on ({why})" if same else
                 f"was fine-tuned on other measured PSFs{f' (those of {made_from})' if made_from else ''} than {psf_dir}")
         raise InputError(f"{out_dir}: {what} (fingerprint {str(have)[:12]} against {measured.fingerprint[:12]}); "
                          "resume it with the PSFs and pitch it started with, or fine-tune on these into a new folder "

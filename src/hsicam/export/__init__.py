@@ -219,20 +219,18 @@ def export_optics(run_dir: str | Path, out_dir: str | Path, levels: int | None =
 
 
 def _weights_facts(run_dir: Path, cfg) -> dict[str, Any]:
-    """Which weights the files are made from: the weights file, its SHA-256, the training's last checkpoint (step,
-    epoch) and whether the training finished (``unfinished``: the note :func:`~hsicam.runs.folder.unfinished_training`
-    logs; a package made from a half-trained run looked like a final one, and a run resumed later could no longer be
-    tied to the files sent to the fab)."""
+    """Which weights the files are made from: the weights file, its SHA-256, the checkpoint they are
+    (:func:`~hsicam.runs.checkpoint.kept_checkpoint`: best or last, its step and the run's last step; None for a
+    folder without checkpoints, a shipped camera) and whether the training finished (``unfinished``: the note
+    :func:`~hsicam.runs.folder.unfinished_training` logs). A package made from a half-trained run looked like a final
+    one, and a run resumed later could no longer be tied to the files sent to the fab."""
     from hsicam.export.tolerance import run_identity
-    from hsicam.runs.checkpoint import CheckpointManager
+    from hsicam.runs.checkpoint import kept_checkpoint
     from hsicam.runs.folder import unfinished_training
 
     ident = run_identity(run_dir)
-    state = CheckpointManager(run_dir).state()
     note = unfinished_training(run_dir, cfg)
-    return {"file": ident["weights"], "sha256": ident["weights_sha256"],
-            "step": None if state is None else int(state.get("global_step", 0)),
-            "epoch": None if state is None else int(state.get("epoch", 0)),
+    return {"file": ident["weights"], "sha256": ident["weights_sha256"], "checkpoint": kept_checkpoint(run_dir),
             "training_finished": note is None, **({"unfinished": note} if note else {})}
 
 

@@ -83,7 +83,8 @@ def psf_difference(tuned: MeasuredPSF, measured: MeasuredPSF, psf_dir: str | Pat
     """Why the PSFs ``measured`` (imported from ``psf_dir``) differ from ``tuned`` (those a run was
     fine-tuned on, with their import report) when both come from the same folder: the pixel pitch
     they were imported at, the kernel, the other import options, else the images (or ``psf.json``)
-    changed since: (what differs: "pixel_pitch_um", "kernel_px", "options" or "images", the reason in
+    changed since: (what differs: "pixel_pitch_um", "kernel_px", "options", "import" (another version of the
+    import: :data:`~hsicam.data.measured_psf.PSF_IMPORT_VERSION`) or "images", the reason in
     words). None when ``tuned`` came from another folder (or does not say which) or they are the same
     PSFs."""
     if tuned.fingerprint == measured.fingerprint:
@@ -100,4 +101,9 @@ def psf_difference(tuned: MeasuredPSF, measured: MeasuredPSF, psf_dir: str | Pat
     changed = [k for k in ("centre", "axis_px", "background", "normalize") if before.get(k) != now.get(k)]
     if changed:
         return "options", "the import options differ: " + ", ".join(f"{k} {now.get(k)!r} now, {before.get(k)!r} then" for k in changed)
+    v0, v1 = before.get("import_version", 1), now.get("import_version", 1)
+    if v0 != v1:
+        return "import", (f"it was imported by an hsicam whose import differs (version {v0} then, {v1} now: since "
+                          "session 73 the images' noise keeps its sign until the kernel, not clipped at 0 first), not "
+                          "because the files changed")
     return "images", "the PSF images (or psf.json) of the folder changed since it was fine-tuned"
