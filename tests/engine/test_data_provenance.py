@@ -424,3 +424,18 @@ def test_a_hidden_file_in_a_cave_folder_is_not_part_of_its_scene(tmp_path):
     (scene / ".thumbs" / "a.png").write_bytes(bytes(100))
     assert scene_stat(scene)[0] == before[0]
     assert [f.name for f in scene_files(scene)] == ["balloons_RGB.bmp", *(f"balloons_ms_{i:02d}.png" for i in range(1, 4))]
+
+
+def test_validation_scenes_of_one_name_in_two_folders_get_two_names(tmp_path):
+    """A data.root folder whose validation scenes are day1/a.h5 and day2/a.h5 named both rows "a" (by stem), and
+    evaluate --save then stopped after all its scoring ("a_estimate.h5: written twice"); they are named apart, by
+    their folders (the review of session 73)."""
+    from hsicam.engine.experiments import validation_scenes
+
+    data = tmp_path / "data"
+    for day in range(1, 5):
+        write_cube_h5(data / f"day{day}" / "a.h5", _cube(day), BANDS)
+    cfg = load_config("tiny", [*TINY_CAMERA_OVERRIDES, f"data.root={data}", "data.val_fraction=0.5"])
+    scenes, names = validation_scenes(cfg)
+    assert len(names) == 2 and len(set(names)) == 2, names
+    assert all(n.endswith("__a") and n.startswith("day") for n in names), names

@@ -258,7 +258,7 @@ def _scenes_to_score(args: argparse.Namespace, cfg, paths, bands):
         return scenes, names, rel, displayable_name(str(Path(args.data).resolve())), None  # (a folder not UTF-8)
     recorded = recorded_validation(args.run, cfg.data, bands) if args.run else None  # the run's own, exactly
     if recorded:
-        scenes, names = scene_dataset(cfg.data, recorded, bands), [p.stem for p in recorded]
+        scenes, names = scene_dataset(cfg.data, recorded, bands), scene_names(recorded)  # day1/a.h5, day2/a.h5 apart
     else:
         scenes, names = validation_scenes(cfg, no_scenes_hint=": score a folder of scenes instead, --data DIR")
     return scenes, names, _relative_to_common_folder(scenes.paths), validation_data_label(cfg), heldout_scenes(cfg)

@@ -219,7 +219,10 @@ def validation_scenes(cfg, no_scenes_hint: str = ""):
     if not val:
         raise InputError(f"the config has no validation scenes ({no_validation_reason(cfg.data, n_scenes)})"
                          f"{no_scenes_hint}")
-    return scene_dataset(cfg.data, val, bands), [p.stem for p in val]
+    from hsicam.data.datasets import scene_names
+
+    # unique names (day1/a.h5 and day2/a.h5 were both "a": evaluate --save then failed writing a_estimate.h5 twice)
+    return scene_dataset(cfg.data, val, bands), scene_names(val)
 
 
 def scored_scenes(cfg, heldout: bool = False):
