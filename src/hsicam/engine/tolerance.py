@@ -328,6 +328,7 @@ def run_tolerance(model, cfg, spec: ToleranceSpec | None = None, data: str | Pat
     with an ETA (:class:`hsicam.progress.Progress`; None: a bar on a terminal, lines otherwise; False: none)."""
     from hsicam.engine.evaluate import check_scenes
     from hsicam.engine.methods import Method
+    from hsicam.export.doe import design_heights
     from hsicam.export.tolerance import TOLERANCE_FORMAT, run_identity
     from hsicam.progress import Progress
 
@@ -368,7 +369,10 @@ def run_tolerance(model, cfg, spec: ToleranceSpec | None = None, data: str | Pat
         if has_doe:
             _sweep_height_noise(spec, optics, h0, evaluate, record)
             _sweep_levels(spec, cam, evaluate, record)
-            shift_ref = _sweep_shift(spec, optics, fabricated_surround(optics, h0), big_q, evaluate, record)
+            # the exported relief (piston removed, 0 outside the aperture), not the DOE parameters, whose untrained
+            # values outside the aperture a shift brought into it (1.8 % L1 of the demo camera's PSF at 2 cells)
+            exported = torch.from_numpy(design_heights(cam)[0]).to(h0)
+            shift_ref = _sweep_shift(spec, optics, exported, big_q, evaluate, record)
         _sweep_sensor_distance(spec, optics, h0, evaluate, record)
 
     sweeps = _sweeps_by_name(rows, None if shift_ref is None else shift_ref.metrics["psnr"])
@@ -481,18 +485,6 @@ class _ShiftReference(NamedTuple):
     energy: torch.Tensor  # (C,) energy in the kernel
     applied_cells: tuple[float, float]  # the shift applied (rows, columns), cells
     metrics: dict[str, float]
-
-
-def fabricated_surround(optics, h: torch.Tensor) -> torch.Tensor:
-    """Heights ``h`` (n, n; m) as the exported files hold them (:func:`hsicam.export.doe.design_heights`): the
-    piston (the lowest height inside the aperture) removed, which changes no PSF, and 0 in the cells outside the
-    aperture, as in the relief entering from beyond the grid (:func:`~hsicam.optics.perturb.shift_fill`). The DOE
-    parameters hold untrained initial values there (0–1280 nm on a tiny run), which a lateral shift brought into the
-    aperture (session 73: 1.8 % L1 of the PSF at a 2-cell shift on the demo camera, more than the shift itself)."""
-    inside = torch.from_numpy(optics.aperture_per_cell() > 0).to(h.device)
-    if not bool(inside.any()):
-        return h
-    return torch.where(inside, h - h[inside].min(), torch.zeros((), dtype=h.dtype, device=h.device))
 
 
 def _sweep_shift(spec: ToleranceSpec, optics, h0: torch.Tensor, big_q: int, evaluate, record) -> _ShiftReference:
@@ -612,9 +604,10 @@ def _methods(optics, big_q: int, skipped: dict[str, str]) -> dict[str, str]:
     return {k: v for k, v in {
         "sigma_height_nm": "i.i.d. Gaussian height error per cell; each draw = one fabricated DOE; mean ± std over draws",
         "levels": f"exported L-level heights (piston removed; {level_grid_text(optics.doe)})",
-        "shift": (f"pupil oversampled to Q = {big_q} samples per cell, relief shifted by whole samples against the "
-                  "fixed aperture and lens; PSNR and its 1-dB tolerance relative to the same Q model without "
-                  "shift (reference_psnr)"),
+        "shift": (f"pupil oversampled to Q = {big_q} samples per cell, the exported relief (doe_height_nm: piston "
+                  "removed, 0 outside the aperture) shifted by whole samples against the fixed aperture and lens, "
+                  "height 0 entering (the GDS masks leave the surround unetched, at the top level: another surround); "
+                  "PSNR and its 1-dB tolerance relative to the same Q model without shift (reference_psnr)"),
         "sensor_distance_um": ("optics rebuilt with the sensor dz farther: residual defocus and PSF scale "
                                "lambda*(z_lambda + dz)/d at every simulated wavelength, in the camera's kernel (the "
                                "scene's own magnification dz/z is not applied); values whose defocus would alias "
