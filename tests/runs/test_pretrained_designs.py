@@ -83,3 +83,26 @@ def test_a_trained_sd_cassi_run_is_scored_by_its_own_method(tmp_path, cache_env,
     assert all(0 < r["psnr"] < 100 for r in res["scenes"])
     assert main(["evaluate", "--run", str(run), "--method", "dd-cassi-unrolled", "--out", str(tmp_path / "no")]) == 2
     assert "needs a run trained with camera.kind=dd_cassi" in capsys.readouterr().err
+
+
+def test_a_cassi_captures_pixel_wise_flat_is_not_taken_for_a_cfa(cassi_run, tmp_path, caplog):
+    """A CASSI config keeps the defaults' cfa section (enabled) though the camera has no CFA: reconstruct checked a
+    CASSI run's pixel-wise flat against "the CFA's m×m phases" and could advise --flat-mode cfa (the review of
+    session 73). A flat with an m-periodic pattern is not warned about on a CASSI run."""
+    import logging
+
+    import numpy as np
+
+    cfg = load_config(str(cassi_run / "config.yaml"))
+    m = cfg.camera.cfa.period
+    assert cfg.camera.kind == "dd_cassi" and cfg.camera.cfa.enabled and m > 1
+    rng = np.random.default_rng(0)
+    h = w = 36
+    flat = 1000.0 * np.tile(rng.uniform(0.5, 1.5, (m, m)), (h // m + 1, w // m + 1))[:h, :w]
+    np.save(tmp_path / "flat.npy", flat.astype(np.float32))
+    np.save(tmp_path / "cap.npy", rng.uniform(300, 900, (h, w)).astype(np.float32))
+    with caplog.at_level(logging.WARNING):
+        code = main(["reconstruct", str(tmp_path / "cap.npy"), "--run", str(cassi_run), "--out",
+                     str(tmp_path / "c.h5"), "--flat", str(tmp_path / "flat.npy"), "--white-level", "4095"])
+    assert code == 0
+    assert "CFA's" not in caplog.text, caplog.text

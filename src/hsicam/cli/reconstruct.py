@@ -605,7 +605,9 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
     meta = _consistency_metadata(args, model)
     if args.psf_dir:
         _use_measured_psfs(args, model, meta)
-    corr = corrections_from_args(args, cfg.camera.cfa.period if cfg.camera.cfa.enabled else None)
+    # a CFA only on a DOE camera: a CASSI config keeps the (unused) cfa section of the defaults, enabled
+    cfa_period = cfg.camera.cfa.period if cfg.camera.kind == "doe" and cfg.camera.cfa.enabled else None
+    corr = corrections_from_args(args, cfa_period)
     img, report, saturated = read_capture(args.sensor, corr, args.scale, return_saturated=True)
     # which frames corrected it (their statistics alone did not say which files they were)
     report.update({k: str(Path(v).resolve()) for k, v in (("dark_frame", args.dark), ("flat_frame", args.flat)) if v})
