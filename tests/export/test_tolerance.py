@@ -517,7 +517,7 @@ def test_a_tolerance_study_is_cited_only_for_the_run_whose_weights_it_hashed(tmp
     # the same folder, trained on since: not "another run (RUN), not of RUN" (session 73's hunt)
     with pytest.raises(InputError) as err:
         read_tolerance_study(study("earlier.json", run={"path": str(run), "weights_sha256": "0" * 64}), run)
-    assert f"a tolerance study of {run}'s earlier weights (sha256 000000000000…; the run was trained on since" \
+    assert f"a tolerance study of {run}'s earlier weights (sha256 000000000000…; its weights changed since" \
         in str(err.value) and "another run" not in str(err.value)
     # a file that is not JSON (the study's CSV, say) is named as it is, not as "tolerance.json"
     csv_file = tmp_path / "tolerance.csv"
@@ -528,7 +528,8 @@ def test_a_tolerance_study_is_cited_only_for_the_run_whose_weights_it_hashed(tmp
     # the swept ranges go with the summary: a null 1-dB tolerance is "beyond" them
     swept = read_tolerance_study(study("swept.json", run={"path": str(run), "weights_sha256": sha}, sweeps={
         "sensor_distance_um": {"values": [-100.0, 0.0, 50.0]}, "levels": {"values": [2, 8, 4]}}), run)["swept"]
-    assert swept == {"sensor_distance_um": [-100.0, 50.0], "levels": [2.0, 8.0]}
+    assert swept == {"sensor_distance_um": [-100.0, 50.0], "levels": [2, 8]}
+    assert all(isinstance(v, int) for v in swept["levels"])  # as tolerance.json holds them
     with pytest.raises(InputError, match="format 'hsicam-tolerance-0'"):
         read_tolerance_study(study("fmt.json", format="hsicam-tolerance-0"), run)
     for bad in (True, float("nan"), "30"):

@@ -186,11 +186,7 @@ def _unread_text(root: Path, unread: list[Path]) -> str:
 
 
 def _log_unread(root: Path, unread: list[Path]) -> None:
-    key = (os.path.abspath(root), tuple(str(p) for p in unread))
-    if key in _UNREAD_LOGGED:
-        return
-    _UNREAD_LOGGED.add(key)
-    log.warning("data: %s: skipped %s", root, _unread_text(root, unread))
+    _log_once(_UNREAD_LOGGED, root, unread, logging.WARNING, _unread_text)
 
 
 def _no_scenes_error(root: Path, found: _Found) -> InputError:
@@ -399,11 +395,17 @@ _SKIPPED_LOGGED: set[tuple[str, tuple[str, ...]]] = set()
 
 
 def _log_skipped(root: Path, skipped: list[Path]) -> None:
-    key = (os.path.abspath(root), tuple(str(p) for p in skipped))
-    if key in _SKIPPED_LOGGED:
+    _log_once(_SKIPPED_LOGGED, root, skipped, logging.INFO, _skipped_text)
+
+
+def _log_once(logged: set[tuple[str, tuple[str, ...]]], root: Path, files: list[Path], level: int, text) -> None:
+    """Log "data: ROOT: skipped TEXT" (``text(root, files)``) at ``level`` once per process for these ``files`` of
+    ``root`` (``logged``: the registry of one kind of skipped file)."""
+    key = (os.path.abspath(root), tuple(str(p) for p in files))
+    if key in logged:
         return
-    _SKIPPED_LOGGED.add(key)
-    log.info("data: %s: skipped %s", root, _skipped_text(root, skipped))
+    logged.add(key)
+    log.log(level, "data: %s: skipped %s", root, text(root, files))
 
 
 def check_not_an_output(root: str | os.PathLike) -> None:

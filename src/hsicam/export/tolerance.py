@@ -67,7 +67,7 @@ def _swept_ranges(data: dict[str, Any]) -> dict[str, list[float]] | None:
     out = {}
     for name, sweep in sweeps.items():
         values = sweep.get("values") if isinstance(sweep, dict) else None
-        nums = [float(v) for v in values or [] if isinstance(v, (int, float)) and not isinstance(v, bool)]
+        nums = [v for v in values or [] if isinstance(v, (int, float)) and not isinstance(v, bool)]  # ints stay ints
         if nums:
             out[name] = [min(nums), max(nums)]
     return out or None
@@ -112,9 +112,9 @@ def read_tolerance_study(path: str | Path, run_dir: str | Path) -> dict[str, Any
     this = run_identity(run_dir)
     if sha != this["weights_sha256"] and recorded.get("path") == this["path"]:  # the same folder, trained on since
         raise InputError(
-            f"{path}: a tolerance study of {run_dir}'s earlier weights (sha256 {sha[:12]}…; the run was trained on "
-            f"since: now {this['weights_sha256'][:12]}…); run `hsicam tolerance --run {run_dir} --out DIR` again and "
-            "pass that study")
+            f"{path}: a tolerance study of {run_dir}'s earlier weights (sha256 {sha[:12]}…; its weights changed "
+            f"since, trained on or replaced: now {this['weights_sha256'][:12]}…); run `hsicam tolerance --run "
+            f"{run_dir} --out DIR` again and pass that study")
     if sha != this["weights_sha256"]:
         raise InputError(
             f"{path}: a tolerance study of another run ({recorded.get('path', '?')}, weights sha256 {sha[:12]}…), "
