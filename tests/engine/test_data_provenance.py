@@ -439,3 +439,38 @@ def test_validation_scenes_of_one_name_in_two_folders_get_two_names(tmp_path):
     scenes, names = validation_scenes(cfg)
     assert len(names) == 2 and len(set(names)) == 2, names
     assert all(n.endswith("__a") and n.startswith("day") for n in names), names
+
+
+def test_evaluate_records_the_weights_it_read_and_refuses_weights_changing_under_it(proj, tmp_path, monkeypatch):
+    """results.json's weights_sha256 was taken after the scoring: a training writing the run meanwhile recorded a later
+    step's hash beside an earlier step's scores (session 73's hunt). It is taken when the weights are read, and
+    weights that change while they are read are refused in one line."""
+    import hashlib
+
+    import hsicam.cli.evaluate as ev
+
+    run, _ = _copy(proj, tmp_path)
+    text = (run / "config.yaml").read_text()
+    (run / "config.yaml").write_text(text.replace(f"root: {proj / 'projA' / 'data'}", f"root: {tmp_path / 'data'}"))
+    sha = hashlib.sha256((run / "model.safetensors").read_bytes()).hexdigest()
+    real = ev._built_method
+    calls = []
+
+    def built_then_rewritten(args, cfg, alias):  # a training committing a new checkpoint once the weights are read
+        method = real(args, cfg, alias)
+        calls.append(1)
+        if len(calls) == 2:  # other kept weights, in the root file and the checkpoint the manifest names (a commit)
+            new = (run / "model.safetensors").read_bytes() + b" "
+            manifest = json.loads((run / "checkpoints.json").read_text())
+            entry = manifest[manifest["weights"]["from"]]
+            for path in (run / "model.safetensors", run / entry["dir"] / "model.safetensors"):
+                path.write_bytes(new)
+            entry["weights_sha256"] = manifest["weights"]["sha256"] = hashlib.sha256(new).hexdigest()
+            (run / "checkpoints.json").write_text(json.dumps(manifest))
+        return method
+
+    monkeypatch.setattr(ev, "_built_method", built_then_rewritten)
+    assert_ok(run_cli_in_process("evaluate", "--run", str(run), "--out", str(tmp_path / "ev")))
+    assert json.loads((tmp_path / "ev" / "results.json").read_text())["weights_sha256"] == sha
+    assert_clean_error(run_cli_in_process("evaluate", "--run", str(run), "--out", str(tmp_path / "ev2")),
+                       "its weights changed while they were read")

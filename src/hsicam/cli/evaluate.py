@@ -151,7 +151,12 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     out = prepare_output(args.out, "dir", replace=True, command="evaluate", run=args.run)
     paths = list_scenes(args.data) if args.data else None  # before the method is built: a bad --data fails at once
     run_cfg, cfg = _evaluation_configs(args)
+    before = _weights_identity(args.run)
     method = _built_method(args, cfg, alias)
+    weights = _weights_identity(args.run)  # the weights read: what results.json records (not after the scoring)
+    if weights != before:
+        raise InputError(f"{args.run}: its weights changed while they were read (a training writing the run now?); "
+                         "evaluate it when that training has stopped, or evaluate a copy of the run")
     bands = method.camera.bands
     noise = TestNoise(args.sigma_height_nm, args.sensor_sigma, tuple(range(args.seeds)))
     _check_noise_and_sources(args, method, noise, run_cfg, cfg, paths)
@@ -165,7 +170,7 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     results = evaluate_method(method, scenes, names, noise, args.device, keep_arrays=args.save, progress=show,
                               paths=rel, tile_px=args.tile)
     camera_sensor = {k: getattr(cfg.camera.sensor, k) for k in SENSOR_NOISE_KEYS}
-    summary = _summary(args, cfg, method, results, noise, data_label, camera_sensor, roles, warning)
+    summary = _summary(args, cfg, method, results, noise, data_label, camera_sensor, roles, warning, weights)
     if interpolated:
         summary["truth_interpolated"] = interpolated
     if heldout is not None:
@@ -300,9 +305,28 @@ def _check_scenes_before_scoring(args: argparse.Namespace, method, scenes, names
         check_room_for_cubes(out, scenes, n_bands)
 
 
+def _weights_identity(run: str | None) -> dict:
+    """What results.json records of a run's weights (``weights_sha256``, ``weights``: the checkpoint they are), taken
+    when they are read: taken after the scoring, a training writing the run meanwhile recorded a later step's sha
+    beside the scores of an earlier one (session 73's hunt). {} without a run."""
+    if not run:
+        return {}
+    from hsicam.runs.checkpoint import file_sha256, kept_checkpoint, root_weights_path
+
+    out: dict = {}
+    weights = root_weights_path(run)
+    if weights.is_file():
+        out["weights_sha256"] = file_sha256(weights)
+    kept = kept_checkpoint(run)
+    if kept is not None:  # the last step's weights, or the best validation's (a selection on its scenes)
+        out["weights"] = kept
+    return out
+
+
 def _summary(args: argparse.Namespace, cfg, method, results, noise, data_label: str, camera_sensor: dict, roles,
-             warning: str | None) -> dict:
-    """results.json's content for the scored scenes: the means and rows, each row's split, the run and its weights."""
+             warning: str | None, weights: dict | None = None) -> dict:
+    """results.json's content for the scored scenes: the means and rows, each row's split, the run and its weights
+    (``weights``: :func:`_weights_identity` when they were read)."""
     from hsicam.config import dump_yaml
     from hsicam.engine.evaluate import NOISE_DRAWS, config_hash, scored_region, summarize
     from hsicam.runs.pretrained import run_label
@@ -326,14 +350,7 @@ def _summary(args: argparse.Namespace, cfg, method, results, noise, data_label: 
         if warning:
             summary["warning"] = warning
     if args.run:  # which weights were scored (hsicam pretrained pack checks its --results by it)
-        from hsicam.runs.checkpoint import file_sha256, kept_checkpoint, root_weights_path
-
-        weights = root_weights_path(args.run)
-        if weights.is_file():
-            summary["weights_sha256"] = file_sha256(weights)
-        kept = kept_checkpoint(args.run)
-        if kept is not None:  # the last step's weights, or the best validation's (a selection on its scenes)
-            summary["weights"] = kept
+        summary.update(weights if weights is not None else _weights_identity(args.run))
     return summary
 
 
