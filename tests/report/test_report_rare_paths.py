@@ -198,3 +198,22 @@ def test_report_of_results_listing_no_scene_says_so(tmp_path):
     assert "<p class='note'>results.json lists no scene: the mean above is the file's own" in page
     page = build_report(folder_with(tmp_path / "b", "results.json", evaluation())).read_text(encoding="utf-8")
     assert "lists no scene" not in page
+
+
+def test_an_evaluation_of_other_weights_than_the_runs_now_gets_no_camera_figures(tmp_path):
+    """The report drew the run's camera as it is now beside scores of the weights evaluate read (results.json's
+    weights_sha256): a run trained on (or replaced) since showed another DOE, CFA and PSFs than those scored, without
+    a word (session 73's hunt). With the scored weights the figures are drawn; with others a note says why not."""
+    from hsicam.runs.checkpoint import file_sha256, root_weights_path
+    from hsicam.runs.pretrained import resolve_run
+
+    sha = file_sha256(root_weights_path(resolve_run("pretrained:standard")))
+    same = folder_with(tmp_path / "same", "results.json", evaluation(run="pretrained:standard", weights_sha256=sha))
+    page = build_report(same).read_text(encoding="utf-8")
+    assert "<h2>Camera (pretrained:standard)</h2>" in page and "left out" not in page
+    other = folder_with(tmp_path / "other", "results.json",
+                        evaluation(run="pretrained:standard", weights_sha256="0" * 64))
+    page = build_report(other).read_text(encoding="utf-8")
+    assert "<h2>Camera" not in page
+    assert ("camera figures left out: the weights of pretrained:standard changed since these results were scored "
+            f"(sha256 000000000000… then, {sha[:12]}… now") in html.unescape(page)

@@ -196,10 +196,14 @@ def _conventions(conv: dict) -> str:
     return "<p class='note'>" + "; ".join(f"{html.escape(k)}: {html.escape(str(v))}" for k, v in conv.items()) + "</p>"
 
 
-def _camera_section(run: Path, out: Path, prefix: str = "", label: str | None = None) -> str:
+def _camera_section(run: Path, out: Path, prefix: str = "", label: str | None = None,
+                    scored_sha256: str | None = None) -> str:
     """The camera figures of the run folder ``run`` (or ``pretrained:NAME``), headed by ``label``, by
     default its :func:`hsicam.runs.pretrained.run_label` (a shipped camera by its name, not its
-    package folder)."""
+    package folder). ``scored_sha256``: the weights the results were scored with (results.json's
+    ``weights_sha256``): when the run's weights are others now (trained on, or replaced), its camera is
+    not the one scored, and a note says so instead of figures (they were drawn beside the old scores)."""
+    from hsicam.runs.checkpoint import file_sha256, root_weights_path
     from hsicam.runs.folder import load_run
     from hsicam.runs.pretrained import resolve_run, run_label
     from hsicam.report.camera import write_optics_figures
@@ -207,8 +211,14 @@ def _camera_section(run: Path, out: Path, prefix: str = "", label: str | None = 
     try:
         cfg, model = load_run(run)
         run = resolve_run(run)
+        now = file_sha256(root_weights_path(run)) if scored_sha256 else None
     except (InputError, ConfigError) as exc:  # (a run's damaged config.yaml: the run's, not the results file's fault)
         return f"<p class='note'>camera figures unavailable: {html.escape(str(exc))}</p>"
+    if scored_sha256 and now != scored_sha256:
+        return (f"<p class='note'>camera figures left out: the weights of {html.escape(label or run_label(run))} "
+                f"changed since these results were scored (sha256 {html.escape(scored_sha256[:12])}… then, "
+                f"{html.escape(str(now)[:12])}… now: trained on, or replaced), so its camera now is not the one "
+                "scored; evaluate it again for its current camera</p>")
     cam = model.camera
     parts = [f"<h2>Camera ({html.escape(label or run_label(run))})</h2>"]
     try:
@@ -301,7 +311,9 @@ def _evaluation_sections(folder: Path, out: Path, res: dict) -> list[str]:
             parts.append(_img(f"recon_{name}.png", f"{name}: ground truth vs reconstruction (sRGB, CIE 1931 / D65) with zoomed crops and spectra at marked pixels"))
             parts.append(_img(f"errors_{name}.png", f"{name}: absolute error per band"))
     if res.get("run"):
-        parts.append(_camera_section(_evaluated_run(res), out, label=str(res["run"])))
+        sha = res.get("weights_sha256")
+        parts.append(_camera_section(_evaluated_run(res), out, label=str(res["run"]),
+                                     scored_sha256=sha if isinstance(sha, str) else None))
     return parts
 
 
