@@ -412,3 +412,26 @@ def test_a_demo_under_a_new_parent_holds_its_folder(tmp_path, monkeypatch):
         demo.run_demo(load_config("tiny"), out)
     assert seen and seen[0].startswith(f"{out}: being written by another process (hsicam demo, pid {os.getpid()}"), seen
     assert hidden(out.parent) == []
+
+
+def test_a_report_is_refused_while_another_process_rewrites_its_evaluation_folder(start, tmp_path):
+    """`hsicam report DIR` while `evaluate --out DIR` replaced DIR took no lock: its report was lost with the old
+    folder, failed naming its own PNG, or showed the old scores beside the new results.json, by the moment it ran
+    (session 73's hunt). It takes DIR's output lock: refused in one line naming the writer while one holds it, and
+    it goes on once it has let go."""
+    from report_files import evaluation, folder_with
+
+    ev = folder_with(tmp_path, "results.json", evaluation())
+    writer = start("""
+from hsicam.io import OutputLock
+
+with OutputLock(sys.argv[3], "evaluate") as lock:
+    lock.acquire()
+    pause(sys.argv[3])
+""", ev)
+    res = run_cli_in_process("report", str(ev))
+    assert res.returncode == 2 and f"pid {writer.pid}" in error_line(res), res.stderr
+    assert not (ev / "report").exists()
+    assert_ok(writer.go())
+    assert_ok(run_cli_in_process("report", str(ev)))
+    assert (ev / "report" / "index.html").is_file()

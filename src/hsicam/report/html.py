@@ -22,7 +22,9 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
 from hsicam.errors import ConfigError, InputError  # noqa: E402
-from hsicam.io import atomic_open, atomic_output, is_complete, json_number, nan_for_null, save_figure  # noqa: E402
+from hsicam.io import (  # noqa: E402
+    OutputLock, atomic_open, atomic_output, is_complete, json_number, nan_for_null, save_figure,
+)
 from hsicam.report.reconstruction import cube_rgb, plot_training_curves, spectra_exponent  # noqa: E402
 from hsicam.spectral import Bands  # noqa: E402
 
@@ -44,13 +46,23 @@ window.addEventListener('load', function () {
 
 
 def build_report(folder: str | Path) -> Path:
-    """Write ``folder/report/index.html`` and its PNGs; returns the index path."""
+    """Write ``folder/report/index.html`` and its PNGs; returns the index path. Holds ``folder``'s output lock
+    (:class:`~hsicam.io.OutputLock`) while it reads and writes: an ``evaluate``/``experiment`` rewriting the folder
+    is refused in one line naming its pid, either way round (a report built meanwhile was lost with the old folder,
+    failed naming its own PNG, or showed the old scores beside the new results.json; session 73's hunt)."""
     folder = Path(folder)
     if not folder.is_dir():
         if folder.exists():
             raise InputError(f"{folder}: a file, not a folder: give the folder of an evaluation or an experiment (the "
                              f"one holding results.json or experiment.json{', e.g. ' + str(folder.parent) if folder.name in ('results.json', 'experiment.json') else ''})")
         raise InputError(f"{folder}: no such folder")
+    with OutputLock(folder, command="report") as lock:
+        lock.acquire()
+        return _build_report(folder)
+
+
+def _build_report(folder: Path) -> Path:
+    """:func:`build_report` of an existing folder, its lock held."""
     if (folder / "experiment.json").is_file():
         source, kind = folder / "experiment.json", "experiment"
     elif (folder / "results.json").is_file():
