@@ -635,7 +635,8 @@ def cleanup_stale_temporaries(folder: str | os.PathLike, *, recursive: bool = Fa
 
 def remove_stale_siblings(path: str | os.PathLike, kind: str = "dir") -> list[Path]:
     """Before a command writes the output ``path`` (``kind`` "file" or "dir"): remove the hidden
-    temporaries a killed process left next to it (for a file, every ``.STEM.*`` one).
+    temporaries a killed process left next to it (for a file, every ``.STEM.*`` one, and ``..STEM.*``: a
+    temporary's own).
 
     One-line :class:`InputError` (:func:`lock_refusal`) when another process is writing the folder
     ``path`` now (its :class:`OutputLock`); a folder's temporaries are removed under that lock. A
@@ -653,7 +654,10 @@ def remove_stale_siblings(path: str | os.PathLike, kind: str = "dir") -> list[Pa
     stem = path.stem if kind == "file" else path.name
     removed = []
     try:
-        for p in sorted(path.parent.glob(f".{glob.escape(stem)}.*")):
+        # a temporary's own temporary too (a file written atomically into a temporary name: "..STEM.x.tmp.y.tmp.png",
+        # which a rerun never removed)
+        found = {*path.parent.glob(f".{glob.escape(stem)}.*"), *path.parent.glob(f"..{glob.escape(stem)}.*")}
+        for p in sorted(found):
             if not is_temporary(p.name) or p == lock:
                 continue
             parts = _TEMP_PARTS.match(p.name)

@@ -683,3 +683,26 @@ def test_replacing_a_folder_with_seven_unlisted_files_names_five_and_counts_the_
         check_replaceable(out, True, "evaluate")
     assert str(exc.value) == (f"{out}: holds {', '.join(names[:5])} and 2 more, which hsicam evaluate did not write; "
                               "choose another folder or move them")
+
+
+def test_a_temporarys_own_temporary_left_by_a_kill_is_removed_by_the_rerun(tmp_path):
+    """A file written atomically into a temporary name (reconstruct's preview) has a temporary of its own,
+    "..c_rgb.X.tmp.Y.tmp.png": a SIGKILL left it, and remove_stale_siblings, which globbed ".c_rgb.*" only, never
+    removed it (session 73's hunt). A real writer killed there; the rerun's cleanup removes both."""
+    from hsicam.io import remove_stale_siblings
+
+    res = python("""
+        import os, signal, sys
+        from pathlib import Path
+        from hsicam.io import atomic_open, atomic_path
+        out = Path(sys.argv[1]) / "c_rgb.png"
+        with atomic_path(out) as tmp:
+            with atomic_open(tmp, "wb") as fh:
+                fh.write(b"half a png")
+                os.kill(os.getpid(), signal.SIGKILL)
+    """, str(tmp_path))
+    assert res.returncode == -9
+    left = hidden(tmp_path)
+    assert any(n.startswith("..c_rgb.") for n in left), left
+    removed = remove_stale_siblings(tmp_path / "c_rgb.png", "file")
+    assert sorted(p.name for p in removed) == sorted(left) and hidden(tmp_path) == []
