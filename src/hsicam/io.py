@@ -444,10 +444,9 @@ def unlock_file(fd: int, path: str | os.PathLike | None) -> None:
         os.close(fd)
 
 
-def lock_refusal(what: str | os.PathLike, path: str | os.PathLike, command: str | None = None) -> InputError:
-    """The one line for ``what``, whose lock file ``path`` another process holds: "being trained by
-    another process (pid N, since T)" when the holder trains (its file or ``command`` says "train"),
-    else "being written by another process (hsicam CMD, pid N, since T)"; "wait for it or stop it"."""
+def lock_holder_text(path: str | os.PathLike, command: str | None = None) -> str:
+    """Who holds the lock file ``path``: "being trained by another process (pid N, since T)" when the holder trains
+    (its file or ``command`` says "train"), else "being written by another process (hsicam CMD, pid N, since T)"."""
     info = _lock_info(path)
     try:
         holder = f"pid {int(info['pid'])}, since {info['since']}"
@@ -455,9 +454,15 @@ def lock_refusal(what: str | os.PathLike, path: str | os.PathLike, command: str 
         holder = "pid unknown"
     command = info.get("command") if isinstance(info.get("command"), str) else command
     if command == "train":
-        return InputError(f"{what}: being trained by another process ({holder}); wait for it or stop it")
+        return f"being trained by another process ({holder})"
     by = f"hsicam {command}, " if command else ""
-    return InputError(f"{what}: being written by another process ({by}{holder}); wait for it or stop it")
+    return f"being written by another process ({by}{holder})"
+
+
+def lock_refusal(what: str | os.PathLike, path: str | os.PathLike, command: str | None = None) -> InputError:
+    """The one line for ``what``, whose lock file ``path`` another process holds (:func:`lock_holder_text`);
+    "wait for it or stop it"."""
+    return InputError(f"{what}: {lock_holder_text(path, command)}; wait for it or stop it")
 
 
 def output_lock_path(path: str | os.PathLike) -> Path:

@@ -541,3 +541,44 @@ def test_the_cameras_own_height_noise_is_recorded_where_it_is_applied_and_where_
     nominal = json.loads((tmp_path / "tol" / "tolerance.json").read_text())["nominal"]
     assert nominal["camera_sigma_height_nm_left_out"] == pytest.approx(40.0)
     assert nominal["heights"] == "design, without fabrication noise"
+
+
+def test_an_unfinished_run_that_another_process_is_training_is_said_to_be_in_training(fab_run, tmp_path):
+    """Reading a run that another process is training warned "its training did not finish … continue it with
+    `hsicam train --resume`", advice that run's lock then refused (session 73's hunt): the note says it is being
+    trained now, by whom, and where its last checkpoint stands."""
+    import subprocess
+    import sys
+
+    from cli_helpers import cli_env
+    from hsicam.config import load_config as load
+    from hsicam.runs.folder import unfinished_training
+    from hsicam.runs.lock import LOCK_FILE
+
+    half = tmp_path / "half"
+    shutil.copytree(fab_run, half)
+    lines = (half / "metrics.jsonl").read_text().splitlines()
+    (half / "metrics.jsonl").write_text("\n".join(lines[:-1]) + "\n")
+    epochs = yaml.safe_load((half / "config.yaml").read_text())["train"]["epochs"]
+    text = (half / "config.yaml").read_text()
+    (half / "config.yaml").write_text(text.replace(f"  epochs: {epochs}\n", f"  epochs: {2 * epochs}\n", 1))
+    manifest = json.loads((half / "checkpoints.json").read_text())
+    manifest["state"]["total_steps"] *= 2
+    (half / "checkpoints.json").write_text(json.dumps(manifest))
+    cfg = load(str(half / "config.yaml"))
+    assert "continue it with `hsicam train --resume" in unfinished_training(half, cfg)
+    go = tmp_path / "go"
+    holder = subprocess.Popen([sys.executable, "-c", (
+        "import sys, time\nfrom pathlib import Path\nfrom hsicam.runs.lock import RunLock\n"
+        "lock = RunLock(sys.argv[1]); lock.acquire(); print('held', flush=True)\n"
+        "while not Path(sys.argv[2]).exists(): time.sleep(0.01)\n"), str(half), str(go)],
+        env=cli_env(), stdout=subprocess.PIPE, text=True)
+    try:
+        assert holder.stdout.readline().strip() == "held"
+        assert (half / LOCK_FILE).exists()
+        note = unfinished_training(half, cfg)
+        assert f"being trained by another process (pid {holder.pid}" in note and "--resume" not in note, note
+        assert f"the last checkpoint is at step {manifest['state']['global_step']}" in note
+    finally:
+        go.write_text("")
+        holder.communicate(timeout=60)

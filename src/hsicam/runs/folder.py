@@ -28,8 +28,8 @@ from typing import Any
 import torch
 
 from hsicam.errors import HsicamError, InputError
-from hsicam.io import (OS_ERROR_HINTS, atomic_open, cleanup_stale_temporaries, held_here, is_temporary, json_text,
-                       nan_for_null, output_lock_path, remove_if_stale, restore_set_aside)
+from hsicam.io import (OS_ERROR_HINTS, atomic_open, cleanup_stale_temporaries, held_elsewhere, held_here, is_temporary,
+                       json_text, lock_holder_text, nan_for_null, output_lock_path, remove_if_stale, restore_set_aside)
 from hsicam.runs.checkpoint import LEGACY_POINTERS, MANIFEST, CheckpointManager, load_weights, root_weights_path
 from hsicam.runs.linear_step import LINEAR_STEP_FILE, load_linear_step, stale_reason
 from hsicam.runs.lock import LOCK_FILE
@@ -324,6 +324,9 @@ def unfinished_training(run_dir: Path, cfg) -> str | None:
     if epoch >= epochs or (total and step >= total):
         return None
     of_total = f" of {total}" if total else ""
+    if held_elsewhere(run_dir / LOCK_FILE):  # not stopped: "continue it with --resume" would be refused
+        return (f"{run_dir}: {lock_holder_text(run_dir / LOCK_FILE, 'train')}: the last checkpoint is at step {step}{of_total} ({epoch} of {epochs} epochs "
+                "done); the weights read are of a partly trained network, as of that checkpoint")
     again = f"continue it with `hsicam train --resume --out {run_dir}`"
     if (run_dir / MEASURED_PSF_FILE).is_file():
         source, psf_dir = finetune_source(run_dir)
