@@ -105,6 +105,6 @@ def test_scenes_are_labelled_by_their_path_and_a_capped_sheet_says_how_many_it_s
     assert [line.get_label() for line in everything[1].axes[0].lines] == ["day1/a.h5", "day2/a.h5"]
     assert "(the first 3 of 5 scenes)" in " ".join(sheet.get_suptitle().split())
     assert plot.axes[0].get_title().endswith("(the first 3 of 5 scenes)")
-    assert f"the first 3 of the 5 scenes of {tmp_path / 'data'}" in caplog.text
+    assert f"(the first 3 of the 5 scenes of {tmp_path / 'data'})" in caplog.text
     whole, whole_plot = real(tmp_path / "data", [tmp_path / "data" / "b.h5"], of=1)
     assert "first" not in whole.get_suptitle() and "first" not in whole_plot.axes[0].get_title()

@@ -187,7 +187,7 @@ def test_finetune_resume_refuses_other_psfs_another_run_and_nothing_to_resume(fi
     line = in_process_error_line(capsys, ["finetune", "--resume", "--run", str(run), "--psf-dir", str(psf_dir), "--out", str(ft),
                                "--psf-pitch-um", "5"])
     assert line.startswith(f"hsicam: error: {ft}: the PSFs of {psf_dir} as imported now differ from those it was "
-                           "fine-tuned on (another --psf-pitch-um, or files changed since)"), line
+                           "fine-tuned on (the pixel pitch differs: 5 µm now, 6 µm when it was fine-tuned)"), line
     elsewhere = shutil.copytree(run, tmp_path / "elsewhere")
     line = in_process_error_line(capsys, ["finetune", "--resume", "--run", str(elsewhere), "--psf-dir", str(psf_dir),
                                "--out", str(ft)])

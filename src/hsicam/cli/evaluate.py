@@ -314,7 +314,10 @@ def _weights_identity(run: str | None) -> dict:
     from hsicam.runs.checkpoint import file_sha256, kept_checkpoint, root_weights_path
 
     out: dict = {}
-    weights = root_weights_path(run)
+    try:
+        weights = root_weights_path(run)
+    except InputError:  # damaged weights: the run's loading says it, in its own line
+        return out
     if weights.is_file():
         out["weights_sha256"] = file_sha256(weights)
     kept = kept_checkpoint(run)

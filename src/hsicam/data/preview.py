@@ -110,15 +110,15 @@ def write_preview(path: str | os.PathLike, out_dir: str | os.PathLike, max_scene
     n = check_max_scenes(max_scenes)
     every = list_scenes(path)
     scenes = every[:n]
-    if len(every) > n:  # said in the log and on the figures: a sheet of 16 scenes reads as the whole set otherwise
-        log.info("data show: the first %d of the %d scenes of %s", n, len(every), path)
     held_dir = Path(heldout) if heldout is not None else _find_heldout(path)
     held_scenes = list_scenes(held_dir)[:n] if held_dir is not None else []  # a bad held-out set fails before any work
     out = Path(out_dir)
     sheet, plot = _scene_figures(path, scenes, npy_bands, of=len(every))
     gamut = _gamut_figure(path, scenes, held_dir, held_scenes, npy_bands)
     written = save_figures({CONTACT_SHEET: sheet, MEAN_SPECTRA: plot, SPECTRAL_GAMUT: gamut}, out)
-    log.info("wrote %s", ", ".join(str(p) for p in written))
+    # the cap said in the log and on the figures: a sheet of 16 scenes reads as the whole set otherwise
+    log.info("wrote %s%s", ", ".join(str(p) for p in written),
+             f" (the first {n} of the {len(every)} scenes of {path})" if len(every) > n else "")
     return written
 
 
