@@ -466,8 +466,9 @@ def lock_refusal(what: str | os.PathLike, path: str | os.PathLike, command: str 
 
 
 def output_lock_path(path: str | os.PathLike) -> Path:
-    """The lock file ``.NAME.hsicam-lock`` of the folder output ``path``, next to it."""
-    p = Path(path)
+    """The lock file ``.NAME.hsicam-lock`` of the folder output ``path``, next to it (``path`` made absolute first:
+    ``.`` or ``ev/..`` named a lock file inside the folder, which another command writing it did not see)."""
+    p = Path(os.path.abspath(path))
     return p.parent / f".{p.name}{OUTPUT_LOCK_SUFFIX}"
 
 
@@ -663,7 +664,7 @@ def remove_stale_siblings(path: str | os.PathLike, kind: str = "dir") -> list[Pa
         # which a rerun never removed)
         found = {*path.parent.glob(f".{glob.escape(stem)}.*"), *path.parent.glob(f"..{glob.escape(stem)}.*")}
         for p in sorted(found):
-            if not is_temporary(p.name) or p == lock:
+            if not is_temporary(p.name) or Path(os.path.abspath(p)) == lock:
                 continue
             parts = _TEMP_PARTS.match(p.name)
             if fd is not None and parts is not None and parts["folder"] and parts["stem"] == path.name:

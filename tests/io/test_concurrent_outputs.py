@@ -435,3 +435,37 @@ with OutputLock(sys.argv[3], "evaluate") as lock:
     assert_ok(writer.go())
     assert_ok(run_cli_in_process("report", str(ev)))
     assert (ev / "report" / "index.html").is_file()
+
+
+def test_an_evaluate_is_refused_at_its_start_while_a_report_reads_its_folder_and_dot_is_the_folder(start, tmp_path,
+                                                                                                    monkeypatch):
+    """evaluate took its --out folder's lock only for its last write: a report holding it then (since it locks the
+    folder it reads) made the evaluation fail after all its scoring (the review of session 73). evaluate holds it from
+    its start, so it is refused at once. And `report .` from inside the folder locked ".", a lock file inside the
+    folder that an evaluate did not see: the lock is the folder's, whatever path names it."""
+    from report_files import evaluation, folder_with
+
+    ev = folder_with(tmp_path, "results.json", evaluation())
+    reporter = start("""
+from hsicam.io import OutputLock
+
+with OutputLock(sys.argv[3], "report") as lock:
+    lock.acquire()
+    pause(sys.argv[3])
+""", ev)
+    res = run_cli_in_process("evaluate", "--config", "tiny", "--method", "dd-cassi-gaptv", "--out", str(ev))
+    assert res.returncode == 2 and f"hsicam report, pid {reporter.pid}" in error_line(res), res.stderr
+    assert "[1/" not in res.stdout + res.stderr  # refused before any scene was scored
+    assert_ok(reporter.go())
+    writer = start("""
+from hsicam.io import OutputLock
+
+with OutputLock(sys.argv[3], "evaluate") as lock:
+    lock.acquire()
+    pause(sys.argv[3])
+""", ev)
+    monkeypatch.chdir(ev)
+    res = run_cli_in_process("report", ".")
+    assert res.returncode == 2 and f"pid {writer.pid}" in error_line(res), res.stderr
+    assert not list(ev.glob("*hsicam-lock"))  # no lock file of its own inside the folder
+    assert_ok(writer.go())

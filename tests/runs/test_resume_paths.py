@@ -540,9 +540,9 @@ def test_resume_of_a_users_own_folder_says_it_is_not_a_run(tmp_path, capsys):
 
 
 def test_optics_steps_on_a_camera_without_trainable_optics_is_said_to_do_nothing(cache_env, tmp_path, caplog):
-    """train.optics_steps with a camera whose optics do not train (no DOE and no CFA here; a CASSI camera's fixed
-    aperture) was accepted without a word though it changes nothing; now a warning says so. With optics that train,
-    nothing is said."""
+    """train.optics_steps with a camera without optics parameters (no DOE and no CFA here; a CASSI camera's fixed
+    aperture) was accepted without a word though it changes nothing; now a warning says so. With optics, trained or
+    frozen (their PSFs are then fixed from step N: faster), nothing is said."""
     import logging
 
     from hsicam.engine.tasks import SystemTask
@@ -552,13 +552,14 @@ def test_optics_steps_on_a_camera_without_trainable_optics_is_said_to_do_nothing
     with caplog.at_level(logging.WARNING, logger="hsicam.engine.tasks"):
         SystemTask(cfg, CameraSystem.from_config(cfg))
     said = [r.getMessage() for r in caplog.records if "optics_steps" in r.getMessage()]
-    assert said == ["train.optics_steps=4 does nothing: this doe camera has no optics that train (the network alone "
-                    "trains from the first step)"], said
+    assert said == ["train.optics_steps=4 does nothing: this doe camera has no optics parameters (the network alone "
+                    "trains, from the first step as after it)"], said
     caplog.clear()
-    cfg = load_config("tiny", ["train.optics_steps=4"])
-    with caplog.at_level(logging.WARNING, logger="hsicam.engine.tasks"):
-        SystemTask(cfg, CameraSystem.from_config(cfg))
-    assert "optics_steps" not in caplog.text
+    for sets in (["train.optics_steps=4"], ["train.optics_steps=4", "train.freeze=[doe,cfa]"]):
+        cfg = load_config("tiny", sets)  # frozen optics: their PSFs are fixed from step 4 on (faster), not a no-op
+        with caplog.at_level(logging.WARNING, logger="hsicam.engine.tasks"):
+            SystemTask(cfg, CameraSystem.from_config(cfg))
+        assert "optics_steps" not in caplog.text, sets
 
 
 def test_spectral_terms_on_a_one_band_camera_are_said_to_do_nothing(cache_env, caplog):

@@ -139,7 +139,19 @@ def check_out_apart_from_data(out: str | Path, data: str | Path) -> None:
 
 
 def cmd_evaluate(args: argparse.Namespace) -> int:
-    """``hsicam evaluate``: every check before any scene is scored, then the scores, the result files and the means."""
+    """``hsicam evaluate``: every check before any scene is scored, then the scores, the result files and the means.
+    Holds ``--out``'s :class:`~hsicam.io.OutputLock` from its start (where its parent exists) to its last file: a
+    ``report`` of the folder running meanwhile is refused, and one running before refuses this command at its start
+    (taken at the end only, a report running then made the evaluation fail after all its scoring)."""
+    from hsicam.io import OutputLock
+
+    with OutputLock(args.out, "evaluate") as lock:
+        lock.acquire()
+        return _evaluate(args)
+
+
+def _evaluate(args: argparse.Namespace) -> int:
+    """:func:`cmd_evaluate`, its lock held."""
     from hsicam.engine.evaluate import TestNoise, evaluate_method, interpolated_truth_warning
     from hsicam.data.datasets import list_scenes
     from hsicam.cli import prepare_output

@@ -10,6 +10,7 @@ from pathlib import Path
 from typing import Any
 
 from hsicam.config import Config, check_list_keys, dump_yaml, load_config
+from hsicam.data.datasets import scene_names
 from hsicam.data.pipeline import scene_dataset, split_dataset
 from hsicam.engine.evaluate import (HELDOUT_NOISE_SET, TestNoise, config_hash, demosaic_reference, evaluate_method, evaluate_scenes,
                                     format_table, grey_reference, heldout_sources_label, scored_region,
@@ -82,7 +83,7 @@ def _run_demo(cfg: Config, out: Path) -> dict[str, Any]:
     scored_sha, kept = file_sha256(root_weights_path(run)), kept_checkpoint(run)  # what is scored below, recorded
     bands = cfg.bands.to_bands()
     train_list, val = split_dataset(cfg.data, bands)
-    scenes, names = scene_dataset(cfg.data, val, bands), [p.stem for p in val]
+    scenes, names = scene_dataset(cfg.data, val, bands), scene_names(val)  # as evaluate names them (unique)
     # the test noise of `hsicam evaluate`'s first seed (0), whatever train.seed: runs of other seeds are scored on the
     # same draws, and the demo's figures are `hsicam evaluate --run RUN`'s (train.seed chose them before session 60)
     seed = TestNoise().seeds[0]

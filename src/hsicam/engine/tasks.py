@@ -258,10 +258,10 @@ class SystemTask(_ConfigDataTask):
             if idle:
                 log.warning("%s does nothing with one band (a spectrum of one band has no shape: no band-to-band "
                             "difference, angle or relighting)", ", ".join(idle))
-        if t.optics_steps is not None and trained == ["net"]:  # no optics train: the option changes nothing
-            log.warning("train.optics_steps=%d does nothing: this %s camera has no optics that train%s (the network "
-                        "alone trains from the first step)", t.optics_steps, self.model.camera.kind,
-                        f" ({frozen})" if self.freeze else "")
+        optics = [n for n, params in self.model.camera.param_groups().items() if len(list(params)) > 0]
+        if t.optics_steps is not None and not optics:  # (frozen optics still gain: their PSFs are fixed from step N)
+            log.warning("train.optics_steps=%d does nothing: this %s camera has no optics parameters (the network alone "
+                        "trains, from the first step as after it)", t.optics_steps, self.model.camera.kind)
 
     def module(self) -> CameraSystem:
         return self.model

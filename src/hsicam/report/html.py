@@ -47,9 +47,10 @@ window.addEventListener('load', function () {
 
 def build_report(folder: str | Path) -> Path:
     """Write ``folder/report/index.html`` and its PNGs; returns the index path. Holds ``folder``'s output lock
-    (:class:`~hsicam.io.OutputLock`) while it reads and writes: an ``evaluate``/``experiment`` rewriting the folder
-    is refused in one line naming its pid, either way round (a report built meanwhile was lost with the old folder,
-    failed naming its own PNG, or showed the old scores beside the new results.json; session 73's hunt)."""
+    (:class:`~hsicam.io.OutputLock`) while it reads and writes: an ``evaluate``/``experiment`` rewriting the folder,
+    which hold it from their start, is refused in one line naming its pid, either way round (a report built
+    meanwhile was lost with the old folder, failed naming its own PNG, or showed the old scores beside the new
+    results.json; session 73's hunt)."""
     folder = Path(folder)
     if not folder.is_dir():
         if folder.exists():

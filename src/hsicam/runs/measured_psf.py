@@ -104,6 +104,6 @@ def psf_difference(tuned: MeasuredPSF, measured: MeasuredPSF, psf_dir: str | Pat
     v0, v1 = before.get("import_version", 1), now.get("import_version", 1)
     if v0 != v1:
         return "import", (f"it was imported by an hsicam whose import differs (version {v0} then, {v1} now: since "
-                          "session 73 the images' noise keeps its sign until the kernel, not clipped at 0 first), not "
-                          "because the files changed")
+                          "session 73 the images' noise keeps its sign until the kernel, not clipped at 0 first; the "
+                          "files may have changed too)")
     return "images", "the PSF images (or psf.json) of the folder changed since it was fine-tuned"
