@@ -326,6 +326,8 @@ def _weights_identity(run: str | None) -> dict:
     from hsicam.runs.checkpoint import file_sha256, kept_checkpoint, root_weights_path
 
     out: dict = {}
+    if not (Path(run) / "model.safetensors").is_file():  # no weights: the run's loading refuses it, in its own line
+        return out
     try:
         weights = root_weights_path(run)
     except InputError:  # damaged weights: the run's loading says it, in its own line
