@@ -642,3 +642,26 @@ def test_sensor_distance_rows_sampled_coarsely_are_flagged_in_the_studys_terms(f
     said = [r.getMessage() for r in caplog.records if r.levelno >= logging.WARNING]
     assert not any("camera.sensor_distance_mm" in m for m in said), said
     assert sum("tolerance: at 1 sensor distance error(s) (+500 µm)" in m for m in said) == 1, said
+
+
+def test_a_study_of_a_run_without_validation_scenes_says_it_scores_training_scenes(tmp_path, caplog):
+    """With data.val_fraction 0 the study scores the run's training scenes (there are no others) without a word; it
+    says so, and how to give other scenes."""
+    from hsicam.config import load_config
+    from hsicam.data.formats import write_cube_h5
+    from hsicam.engine.tolerance import evaluation_scenes
+    from hsicam.spectral import Bands
+
+    bands = Bands.uniform(420, 720, 50)
+    for i in range(3):
+        write_cube_h5(tmp_path / "data" / f"s{i}.h5", np.full((len(bands), 24, 24), 0.5, np.float32), bands)
+    cfg = load_config("tiny", [f"data.root={tmp_path / 'data'}", "data.val_fraction=0"])
+    with caplog.at_level(logging.WARNING, logger="hsicam.engine.tolerance"):
+        _, names = evaluation_scenes(cfg, bands, 8)
+    assert names == ["s0", "s1", "s2"]
+    assert "holds out no validation scenes (data.val_fraction 0), so the study scores its training scenes" in caplog.text
+    caplog.clear()
+    cfg = load_config("tiny", [f"data.root={tmp_path / 'data'}", "data.val_fraction=0.34"])
+    with caplog.at_level(logging.WARNING, logger="hsicam.engine.tolerance"):
+        evaluation_scenes(cfg, bands, 8)
+    assert "training scenes" not in caplog.text

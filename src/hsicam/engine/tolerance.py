@@ -133,6 +133,9 @@ def evaluation_scenes(cfg, bands, max_scenes: int, data: str | Path | None = Non
     else:
         val, _ = validation_split(cfg.data, bands)  # of the synthetic data, only these scenes are generated
         scenes = val or list_scenes(dataset_root(cfg.data, bands))
+        if not val:  # said: the study's figures are then of scenes the network trained on
+            log.warning("tolerance: the run holds out no validation scenes (data.val_fraction 0), so the study scores "
+                        "its training scenes; give other scenes with --data DIR")
     scenes = scenes[:max_scenes]
     advice = {} if data is None else {"npy_bands_advice": NPY_BANDS_ADVICE}  # its own data: no --set to give a grid
     return scene_dataset(cfg.data, scenes, bands, **advice), scene_names(scenes, data)
