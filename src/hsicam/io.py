@@ -306,6 +306,9 @@ _HELD_FDS: set[int] = set()
 #: How long a writer waits for a cleanup that holds its lock file while it removes a killed
 #: process's temporaries (they may be large); another writer is a refusal at once.
 _CLEANUP_WAIT_S = 60.0
+#: The temporary folders this process is writing now (:func:`atomic_output`), absolute: under a folder lock this
+#: process holds, a cleanup removes the folder's other temporaries (a killed run's) but never these.
+_WRITING: set[str] = set()
 
 
 def _forget_locks_in_child() -> None:
@@ -667,8 +670,11 @@ def remove_stale_siblings(path: str | os.PathLike, kind: str = "dir") -> list[Pa
             if not is_temporary(p.name) or Path(os.path.abspath(p)) == lock:
                 continue
             parts = _TEMP_PARTS.match(p.name)
-            if fd is not None and parts is not None and parts["folder"] and parts["stem"] == path.name:
-                if not restore_set_aside(p):  # the folder's own: its lock is held here
+            # the folder's own temporaries, its lock held here: taken for this cleanup, or by this command from its
+            # start (evaluate, experiment), when this process is not writing them
+            ours = fd is not None or (kind == "dir" and held_here(lock) and os.path.abspath(p) not in _WRITING)
+            if ours and parts is not None and parts["folder"] and parts["stem"] == path.name:
+                if not restore_set_aside(p):
                     _remove(p)
             elif not remove_if_stale(p):
                 continue
@@ -855,6 +861,7 @@ def atomic_output(path: str | os.PathLike, kind: str = "dir", *, overwrite: bool
     try:
         lock.acquire()  # another process writing this folder: refused, before any temporary
         tmp = _new_temp_dir(path)
+        _WRITING.add(os.path.abspath(tmp))
     except BaseException as exc:
         lock.release()
         _remove_created(created)
@@ -868,6 +875,7 @@ def atomic_output(path: str | os.PathLike, kind: str = "dir", *, overwrite: bool
         check_replaceable(path, overwrite, command)  # the block may have run for hours
         _swap_in(tmp, path)
     except BaseException as exc:
+        _WRITING.discard(os.path.abspath(tmp))
         _remove(tmp)
         lock.release()
         _remove_created(created)
@@ -875,6 +883,7 @@ def atomic_output(path: str | os.PathLike, kind: str = "dir", *, overwrite: bool
         if named is not exc:
             raise named from exc
         raise
+    _WRITING.discard(os.path.abspath(tmp))
     lock.release()
     _fsync_dir(path.parent)
 
