@@ -163,9 +163,13 @@ def _evaluate(args: argparse.Namespace) -> int:
     out = prepare_output(args.out, "dir", replace=True, command="evaluate", run=args.run)
     paths = list_scenes(args.data) if args.data else None  # before the method is built: a bad --data fails at once
     run_cfg, cfg = _evaluation_configs(args)
-    before = _weights_identity(args.run)
+    from hsicam.runs.checkpoint import weights_identity
+
+    # the weights read, what results.json records: taken after the scoring, a training writing the run meanwhile
+    # recorded a later step's hash beside the scores of an earlier one (session 73's hunt)
+    before = weights_identity(args.run) if args.run else {}
     method = _built_method(args, cfg, alias)
-    weights = _weights_identity(args.run)  # the weights read: what results.json records (not after the scoring)
+    weights = weights_identity(args.run) if args.run else {}
     if weights != before:
         raise InputError(f"{args.run}: its weights changed while they were read (a training writing the run now?); "
                          "evaluate it when that training has stopped, or evaluate a copy of the run")
@@ -317,33 +321,10 @@ def _check_scenes_before_scoring(args: argparse.Namespace, method, scenes, names
         check_room_for_cubes(out, scenes, n_bands)
 
 
-def _weights_identity(run: str | None) -> dict:
-    """What results.json records of a run's weights (``weights_sha256``, ``weights``: the checkpoint they are), taken
-    when they are read: taken after the scoring, a training writing the run meanwhile recorded a later step's sha
-    beside the scores of an earlier one (session 73's hunt). {} without a run."""
-    if not run:
-        return {}
-    from hsicam.runs.checkpoint import file_sha256, kept_checkpoint, root_weights_path
-
-    out: dict = {}
-    if not (Path(run) / "model.safetensors").is_file():  # no weights: the run's loading refuses it, in its own line
-        return out
-    try:
-        weights = root_weights_path(run)
-    except InputError:  # damaged weights: the run's loading says it, in its own line
-        return out
-    if weights.is_file():
-        out["weights_sha256"] = file_sha256(weights)
-    kept = kept_checkpoint(run)
-    if kept is not None:  # the last step's weights, or the best validation's (a selection on its scenes)
-        out["weights"] = kept
-    return out
-
-
 def _summary(args: argparse.Namespace, cfg, method, results, noise, data_label: str, camera_sensor: dict, roles,
-             warning: str | None, weights: dict | None = None) -> dict:
+             warning: str | None, weights: dict) -> dict:
     """results.json's content for the scored scenes: the means and rows, each row's split, the run and its weights
-    (``weights``: :func:`_weights_identity` when they were read)."""
+    (``weights``: :func:`~hsicam.runs.checkpoint.weights_identity` when they were read)."""
     from hsicam.config import dump_yaml
     from hsicam.engine.evaluate import NOISE_DRAWS, config_hash, scored_region, summarize
     from hsicam.runs.pretrained import run_label
@@ -367,7 +348,7 @@ def _summary(args: argparse.Namespace, cfg, method, results, noise, data_label: 
         if warning:
             summary["warning"] = warning
     if args.run:  # which weights were scored (hsicam pretrained pack checks its --results by it)
-        summary.update(weights if weights is not None else _weights_identity(args.run))
+        summary.update(weights)
     return summary
 
 

@@ -83,7 +83,8 @@ MAX_NEGATIVE_SHARE = 0.10
 #: corrections) stays below this fraction of the simulator's full scale is warned about. An n-bit
 #: sensor in a 16-bit container reaches at most 2^(n−16): 1/16 for 12 bit (the commonest raw depth),
 #: 1/64 for 10 bit, 1/256 for 8 bit — 1/8 catches all of them (not 14 bit, 1/4, which looks like an
-#: ordinary exposure: its pixels clipped at 16383 DN are, :data:`SENSOR_CLIP_MIN_PX`). A correct 16-bit capture trips it only when its brightest pixel is three stops
+#: ordinary exposure: its pixels clipped at 16383 DN are, :data:`SENSOR_CLIP_MIN_PX`). A correct 16-bit
+#: capture trips it only when its brightest pixel is three stops
 #: below full scale, far darker than the simulated training images (scenes normalised to max 1 give
 #: sensor maxima of about 0.3–0.75), so the warning is worth reading then too.
 DIM_FRACTION = 1.0 / 8.0

@@ -102,7 +102,6 @@ def check_same_measured_psfs(out_dir: Path, psf_dir: str | Path, measured: Measu
     from ``psf_dir``): continuing it would mix two calibrations (its source run: :func:`check_finetune_source`,
     checked before the PSFs are read). Reads only."""
     from hsicam.runs.folder import finetune_source
-
     from hsicam.runs.measured_psf import psf_difference
 
     _, made_from = finetune_source(out_dir)

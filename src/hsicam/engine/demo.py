@@ -23,7 +23,7 @@ from hsicam.io import (OutputLock, atomic_open, clear_complete, clear_derived, c
                        is_temporary, mark_complete, output_description, read_marker, write_json)
 from hsicam.report.camera import write_optics_figures, write_psf_outputs
 from hsicam.report.reconstruction import plot_reconstructions, plot_training_curves
-from hsicam.runs.checkpoint import file_sha256, kept_checkpoint, root_weights_path, weights_text
+from hsicam.runs.checkpoint import weights_identity, weights_text
 from hsicam.runs.folder import load_run
 
 log = logging.getLogger(__name__)
@@ -80,7 +80,7 @@ def _run_demo(cfg: Config, out: Path) -> dict[str, Any]:
     status = ensure_trained(run, cfg)
     asked = cfg
     cfg, model = load_run(run)  # its model.consistency is the demo's (ensure_trained)
-    scored_sha, kept = file_sha256(root_weights_path(run)), kept_checkpoint(run)  # what is scored below, recorded
+    scored = weights_identity(run)  # what is scored below, recorded
     bands = cfg.bands.to_bands()
     train_list, val = split_dataset(cfg.data, bands)
     scenes, names = scene_dataset(cfg.data, val, bands), scene_names(val)  # as evaluate names them (unique)
@@ -130,10 +130,9 @@ def _run_demo(cfg: Config, out: Path) -> dict[str, Any]:
                    data=validation_data_label(cfg))
     # which weights and config were scored, as `hsicam evaluate` records them (`hsicam pretrained pack --results`
     # checks them: a run trained on since, or another demo's run of the same relative path, is not these)
-    summary["weights_sha256"] = scored_sha
+    summary.update(scored)  # weights_sha256, and the last step's or the best validation's checkpoint (a selection)
     summary["config_hash"] = config_hash(dump_yaml(cfg))
-    if kept is not None:  # which weights were scored: the last step's, or the best validation's (a selection)
-        summary["weights"] = kept
+    kept = scored.get("weights")
     summary["region"] = scored_region(model.camera)  # as `hsicam evaluate` says it (a `--set camera.boundary=same` demo: the whole scene)
     write_json(out / "results.json", summary)
     table = format_table(summary)

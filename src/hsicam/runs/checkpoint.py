@@ -588,6 +588,22 @@ def kept_checkpoint(run_dir: str | Path, weights_file: str = "model.safetensors"
     return out
 
 
+def weights_identity(run_dir: str | Path, weights_file: str = "model.safetensors") -> dict[str, Any]:
+    """What a results file records of the weights a run keeps, taken when they are read (``hsicam evaluate``,
+    ``hsicam demo``): ``weights_sha256`` (of :func:`root_weights_path`) and ``weights`` (:func:`kept_checkpoint`),
+    each when there is one; {} for a folder without its root weights file or with damaged weights (the run's loading
+    refuses those in its own line)."""
+    if not (Path(run_dir) / weights_file).is_file():
+        return {}
+    try:
+        path = root_weights_path(run_dir, weights_file)
+    except InputError:
+        return {}
+    kept = kept_checkpoint(run_dir, weights_file)
+    return {**({"weights_sha256": file_sha256(path)} if path.is_file() else {}),
+            **({"weights": kept} if kept is not None else {})}
+
+
 def weights_text(kept: dict | None) -> str:
     """The sentence saying which checkpoint was scored (:func:`kept_checkpoint`), or "" when unknown."""
     if kept is None:

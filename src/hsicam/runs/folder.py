@@ -325,8 +325,9 @@ def unfinished_training(run_dir: Path, cfg) -> str | None:
         return None
     of_total = f" of {total}" if total else ""
     if held_elsewhere(run_dir / LOCK_FILE):  # not stopped: "continue it with --resume" would be refused
-        return (f"{run_dir}: {lock_holder_text(run_dir / LOCK_FILE, 'train')}: the last checkpoint is at step {step}{of_total} ({epoch} of {epochs} epochs "
-                "done); the weights read are of a partly trained network, as of that checkpoint")
+        return (f"{run_dir}: {lock_holder_text(run_dir / LOCK_FILE, 'train')}: the last checkpoint is at step "
+                f"{step}{of_total} ({epoch} of {epochs} epochs done); the weights read are of a partly trained network, "
+                "as of that checkpoint")
     again = f"continue it with `hsicam train --resume --out {run_dir}`"
     if (run_dir / MEASURED_PSF_FILE).is_file():
         source, psf_dir = finetune_source(run_dir)
