@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import csv
 import html
+import hashlib
 import json
 import re
 import os
@@ -269,6 +270,10 @@ def test_experiment_ablation_tiny_is_resumable(env, tmp_path, monkeypatch):
         for k in ("psnr", "ssim", "sam"):
             assert r[k] == pytest.approx(mean[k], rel=1e-6), (r["method"], k)
         assert r["run"] == str(run)
+        # the weights scored, as evaluate records them (the report draws a run's camera only while they are these)
+        assert r["weights_sha256"] == json.loads((tmp_path / f"ev-{r['method']}" / "results.json").read_text())[
+            "weights_sha256"] == hashlib.sha256((run / "model.safetensors").read_bytes()).hexdigest()
+        assert r["weights"]["checkpoint"] in ("best", "last")
     assert len({round(r["psnr"], 6) for r in exp["rows"]}) == 3  # three different cameras
     assert "| no-doe |" in (out / "table.md").read_text()
     from hsicam.config import load_config

@@ -173,7 +173,7 @@ def test_an_experiment_report_orders_its_cameras_as_its_table_and_says_which_fig
         (d / "runs" / name).mkdir(parents=True)
         (d / "runs" / name / "model.safetensors").write_bytes(b"")
     seen = []
-    monkeypatch.setattr(report, "_camera_section", lambda run, out, prefix="", label=None: seen.append(label) or "")
+    monkeypatch.setattr(report, "_camera_section", lambda run, out, prefix="", label=None, **kw: seen.append(label) or "")
     page = build_report(d).read_text(encoding="utf-8")
     assert seen == ["runs/period-3", "runs/period-6", "runs/period-12", "runs/extra-9", "runs/extra-10"]
     assert ("<p class='note'>figures listed in experiment.json but missing from the folder: comparison_a.png</p>"
@@ -217,3 +217,29 @@ def test_an_evaluation_of_other_weights_than_the_runs_now_gets_no_camera_figures
     assert "<h2>Camera" not in page
     assert ("camera figures left out: the weights of pretrained:standard changed since these results were scored "
             f"(sha256 000000000000… then, {sha[:12]}… now") in html.unescape(page)
+
+
+def test_an_experiment_report_draws_a_runs_camera_only_while_its_weights_are_the_ones_scored(tmp_path):
+    """An experiment's report drew each run's camera as it is now: a run trained on or replaced since the experiment
+    showed other optics beside its row (session 73, noticed). experiment.json's rows record the weights scored
+    (``weights_sha256``); a run whose weights are others now gets a note instead of figures, a row recording none (an
+    older experiment.json) its camera now."""
+    import shutil
+
+    from hsicam.runs.checkpoint import file_sha256, root_weights_path
+    from hsicam.runs.pretrained import resolve_run
+
+    src = resolve_run("pretrained:standard")
+    sha = file_sha256(root_weights_path(src))
+    rows = [{"method": "doe+cfa", **MEAN, "weights_sha256": sha}, {"method": "no-doe", **MEAN, "weights_sha256": "0" * 64},
+            {"method": "no-cfa", **MEAN}]
+    d = folder_with(tmp_path, "experiment.json", experiment(experiment="ablation", rows=rows))
+    for name in ("doe+cfa", "no-doe", "no-cfa"):
+        shutil.copytree(src, d / "runs" / name)
+    page = html.unescape(build_report(d).read_text(encoding="utf-8"))
+    assert "<h2>Camera (runs/doe+cfa)</h2>" in page and "<h2>Camera (runs/no-cfa)</h2>" in page
+    assert "<h2>Camera (runs/no-doe)</h2>" not in page
+    assert ("camera figures left out: the weights of runs/no-doe changed since these results were scored (sha256 "
+            f"000000000000… then, {sha[:12]}… now: trained on, or replaced), so its camera now is not the one scored; "
+            "run `hsicam experiment ablation` into this folder again for its current camera") in page
+    assert page.count("camera figures left out") == 1

@@ -163,16 +163,13 @@ def _evaluate(args: argparse.Namespace) -> int:
     out = prepare_output(args.out, "dir", replace=True, command="evaluate", run=args.run)
     paths = list_scenes(args.data) if args.data else None  # before the method is built: a bad --data fails at once
     run_cfg, cfg = _evaluation_configs(args)
-    from hsicam.runs.checkpoint import weights_identity
+    from hsicam.runs.checkpoint import read_with_weights_identity
 
-    # the weights read, what results.json records: taken after the scoring, a training writing the run meanwhile
-    # recorded a later step's hash beside the scores of an earlier one (session 73's hunt)
-    before = weights_identity(args.run) if args.run else {}
-    method = _built_method(args, cfg, alias)
-    weights = weights_identity(args.run) if args.run else {}
-    if weights != before:
-        raise InputError(f"{args.run}: its weights changed while they were read (a training writing the run now?); "
-                         "evaluate it when that training has stopped, or evaluate a copy of the run")
+    # the weights read, what results.json records (taken when read, not after the scoring)
+    if args.run:
+        method, weights = read_with_weights_identity(args.run, _built_method, args, cfg, alias)
+    else:
+        method, weights = _built_method(args, cfg, alias), {}
     bands = method.camera.bands
     noise = TestNoise(args.sigma_height_nm, args.sensor_sigma, tuple(range(args.seeds)))
     _check_noise_and_sources(args, method, noise, run_cfg, cfg, paths)

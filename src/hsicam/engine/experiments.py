@@ -32,7 +32,7 @@ from hsicam.engine.prior import check_choi_prior, ensure_choi_prior
 from hsicam.engine.train import train
 from hsicam.errors import InputError
 from hsicam.io import OutputLock, atomic_open, clear_complete, clear_derived, write_json
-from hsicam.runs.checkpoint import kept_checkpoint
+from hsicam.runs.checkpoint import read_with_weights_identity
 
 log = logging.getLogger(__name__)
 
@@ -320,7 +320,7 @@ def _run_experiment(experiment: str, scale: str, out: Path, cfg: Config, seeds: 
     for spec in specs:
         run = out / "runs" / spec.name
         # evaluated as it was trained (the preset plus the spec's overrides, e.g. the sweep's wider linear step)
-        method = build_method("doe-learned", run_cfgs[spec.name], run)
+        method, weights = read_with_weights_identity(run, build_method, "doe-learned", run_cfgs[spec.name], run)
         if region is None:
             region, doe_camera = scored_region(method.camera), method.camera
         if experiment == "noise":
@@ -346,9 +346,9 @@ def _run_experiment(experiment: str, scale: str, out: Path, cfg: Config, seeds: 
                 figures.keep(spec.name, res)
             s = summarize(res)
             rows.append(_row(spec.name, s, run=str(run), scenes=s["scenes"]))
-        kept = kept_checkpoint(run)
-        if kept is not None:  # which weights were scored (the best validation's is a selection on these scenes)
-            rows[-1]["weights"] = kept
+        # which weights were scored (the best validation's is a selection on these scenes), and their hash: the
+        # report draws a run's camera only while its weights are still these
+        rows[-1].update(weights)
         if spec.note:
             rows[-1]["overrides"], rows[-1]["note"] = list(spec.overrides), spec.note
     if experiment == "compare":
@@ -560,17 +560,18 @@ def _baseline_rows(cfg, scale, out, scenes, names, seeds, baselines, border_px: 
             run = ensure_choi_prior(out / "runs" / name, scale)
         # a learned CASSI method is evaluated with its own overrides (e.g. without the consistency step)
         method_cfg = load_config(scale, list(LEARNED_CASSI[name])) if name in LEARNED_CASSI else cfg
-        method = dataclasses.replace(build_method(name, method_cfg, run), border_px=border_px)
+        if name in LEARNED_CASSI:  # a trained run: its weights recorded as read
+            built, weights = read_with_weights_identity(run, build_method, name, method_cfg, run)
+        else:
+            built, weights = build_method(name, method_cfg, run), {}
+        method = dataclasses.replace(built, border_px=border_px)
         res = evaluate_method(method, scenes, names, TestNoise(seeds=seeds),
                               keep_arrays=figures.chosen_names() if figures is not None else False,
                               progress=_scene_lines(name))
         if figures is not None:
             figures.keep(name, res)
         s = summarize(res)
-        rows.append(_row(name, s, scenes=s["scenes"]))
-        kept = kept_checkpoint(run) if name in LEARNED_CASSI else None
-        if kept is not None:
-            rows[-1]["weights"] = kept
+        rows.append(_row(name, s, scenes=s["scenes"], **weights))
     return rows
 
 

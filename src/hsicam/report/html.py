@@ -210,12 +210,13 @@ def _conventions(conv: dict) -> str:
 
 
 def _camera_section(run: Path, out: Path, prefix: str = "", label: str | None = None,
-                    scored_sha256: str | None = None) -> str:
+                    scored_sha256: str | None = None, rescore: str = "evaluate it again") -> str:
     """The camera figures of the run folder ``run`` (or ``pretrained:NAME``), headed by ``label``, by
     default its :func:`hsicam.runs.pretrained.run_label` (a shipped camera by its name, not its
     package folder). ``scored_sha256``: the weights the results were scored with (results.json's
     ``weights_sha256``): when the run's weights are others now (trained on, or replaced), its camera is
-    not the one scored, and a note says so instead of figures (they were drawn beside the old scores)."""
+    not the one scored, and a note says so instead of figures (they were drawn beside the old scores), with
+    ``rescore``, what scores it again."""
     from hsicam.runs.checkpoint import file_sha256, root_weights_path
     from hsicam.runs.folder import load_run
     from hsicam.runs.pretrained import resolve_run, run_label
@@ -231,7 +232,7 @@ def _camera_section(run: Path, out: Path, prefix: str = "", label: str | None = 
         return (f"<p class='note'>camera figures left out: the weights of {html.escape(label or run_label(run))} "
                 f"changed since these results were scored (sha256 {html.escape(scored_sha256[:12])}… then, "
                 f"{html.escape(str(now)[:12])}… now: trained on, or replaced), so its camera now is not the one "
-                "scored; evaluate it again for its current camera</p>")
+                f"scored; {html.escape(rescore)} for its current camera</p>")
     cam = model.camera
     parts = [f"<h2>Camera ({html.escape(label or run_label(run))})</h2>"]
     try:
@@ -391,8 +392,13 @@ def _experiment_sections(folder: Path, out: Path, exp: dict) -> list[str]:
     # in the table's order where a run is a row's, then by name with its numbers as numbers (period-3 before period-12)
     order = {str(r.get("method")): i for i, r in enumerate(exp["rows"])}
     runs.sort(key=lambda p: (order.get(p.name, len(order)), _natural_key(p.name)))
+    # the weights each run's row was scored with (experiment.json from session 74 on): a run trained on or replaced
+    # since is not drawn beside the old row (an older experiment.json records none: the camera now is drawn)
+    scored = {str(r.get("method")): r["weights_sha256"] for r in exp["rows"] if isinstance(r.get("weights_sha256"), str)}
     for i, run in enumerate(runs):
-        parts.append(_camera_section(run, out, prefix=f"{i:02d}_", label=f"runs/{run.name}"))
+        parts.append(_camera_section(run, out, prefix=f"{i:02d}_", label=f"runs/{run.name}",
+                                     scored_sha256=scored.get(run.name),
+                                     rescore=f"run `hsicam experiment {exp['experiment']}` into this folder again"))
     return parts
 
 

@@ -604,6 +604,20 @@ def weights_identity(run_dir: str | Path, weights_file: str = "model.safetensors
             **({"weights": kept} if kept is not None else {})}
 
 
+def read_with_weights_identity(run_dir: str | Path, read, *args, weights_file: str = "model.safetensors"):
+    """``read(*args)`` (what loads ``run_dir``'s weights: a method or model built from the run) and the
+    :func:`weights_identity` of the weights it read: taken before and after the read, and one :class:`InputError` when
+    they differ (a training writing the run meanwhile), so a results file never records another step's hash beside
+    its scores (session 73's hunt). Returns ``(read(*args), identity)``."""
+    before = weights_identity(run_dir, weights_file)
+    value = read(*args)
+    after = weights_identity(run_dir, weights_file)
+    if after != before:
+        raise InputError(f"{run_dir}: its weights changed while they were read (a training writing the run now?); "
+                         "use it when that training has stopped, or a copy of the run")
+    return value, after
+
+
 def weights_text(kept: dict | None) -> str:
     """The sentence saying which checkpoint was scored (:func:`kept_checkpoint`), or "" when unknown."""
     if kept is None:
