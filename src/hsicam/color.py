@@ -20,8 +20,9 @@ Band grids beyond the table (a VIS-NIR camera, 500-900 nm) are rendered from the
 range inside 380-780 nm: the other bands carry no colour. A grid with nothing inside (800-1000 nm)
 renders grey, the mean over its bands, so a preview never stops a simulation or a reconstruction.
 
-All functions accept numpy arrays or torch tensors (differentiable; computed in the input's dtype
-and device) and return the same kind.
+The conversions accept numpy arrays or torch tensors (differentiable; computed in the input's dtype
+and device) and return the same kind; the display previews (:func:`srgb_preview`, :func:`preview_exposure`)
+take NumPy cubes only.
 """
 
 from __future__ import annotations
@@ -158,7 +159,8 @@ def spectra_to_xyz(spectra: Array, bands: Bands) -> Array:
 
 
 def spectra_to_linear_srgb(spectra: Array, bands: Bands) -> Array:
-    """Linear sRGB (..., 3), unclipped, of reflectance spectra (..., C) under D65; white → (1, 1, 1)."""
+    """Linear sRGB (..., 3), unclipped, of reflectance spectra (..., C) under D65; white → (1, 1, 1) on a grid
+    covering every primary's spectrum, tinted on one that misses part of it (:func:`srgb_weights`)."""
     return _apply(spectra, srgb_weights(bands), "spectra_to_linear_srgb", len(bands))
 
 

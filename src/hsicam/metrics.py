@@ -1,7 +1,8 @@
 """Image-quality metrics for hyperspectral cubes, with named conventions (DESIGN.md §5).
 
 All functions take (B, C, H, W) tensors (or (C, H, W), treated as B = 1) with values on a
-[0, 1] scale (peak 1 after per-cube max normalisation) and return one value per cube, shape (B,).
+[0, 1] scale (peak 1 after per-cube max normalisation) and return one value per cube, shape (B,), except where
+their own docstring says otherwise (``sam_map``: (B, H, W); ``sam_breakdown``, ``all_metrics``: dicts).
 
 - ``psnr_per_band``: PSNR of each band with peak 1, then averaged over bands ("psnr_band_mean").
 - ``psnr_cube``: PSNR over the whole cube with peak 1 ("psnr_cube").

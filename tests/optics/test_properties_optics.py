@@ -649,3 +649,17 @@ def test_the_coded_convolution_keeps_nothing_for_a_backward_under_no_grad(monkey
     recorded = cv.coded_conv_valid(x, psf, kappa)  # a training batch: every chunk's spectrum kept for the backward
     assert alive == list(range(1, b * c + 1))
     torch.testing.assert_close(evaluated, recorded.detach(), rtol=0, atol=0)
+
+
+@pytest.mark.parametrize("m", [1, 3])
+def test_a_stepped_band_slice_is_refused_not_read_as_a_contiguous_one(m):
+    """psf_from_pupil(bands=slice(0, 6, 2)) dropped the step: with one sample a band it returned bands 0-5 (six, not
+    0, 2, 4), with three a torch shape error (session 74's docstring hunt). A contiguous slice is band for band the
+    stack's, a stepped one one clear error."""
+    optics = _optics([450.0, 480.0, 510.0, 540.0, 570.0, 600.0], band_samples=m)
+    h = optics.pupil_heights()
+    whole = optics.psf_from_pupil(h)
+    part = optics.psf_from_pupil(h, bands=slice(1, 4))
+    torch.testing.assert_close(part.psf, whole.psf[1:4], rtol=1e-5, atol=1e-7)
+    with pytest.raises(ValueError, match=r"contiguous slice \(step 1\)"):
+        optics.psf_from_pupil(h, bands=slice(0, 6, 2))

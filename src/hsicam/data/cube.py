@@ -18,7 +18,7 @@ cube; :mod:`hsicam.memory` says how the budget is set.
 
 **Normalisation policy**: :func:`normalize_per_cube_max` divides a cube — after it has been
 resampled onto the camera's bands — by its own maximum over all bands and pixels, so values lie in
-[0, 1] and the brightest sample of each scene is 1. Training patches are cut from the normalised
+[0, 1] (the readers refuse or clip negative values first) and the brightest sample of each scene is 1. Training patches are cut from the normalised
 cube (they are *not* re-normalised per patch), so dark regions stay dark. PSNR "peak 1" metrics
 assume this policy.
 """
@@ -217,7 +217,8 @@ def resample_cube(cube: np.ndarray, bands: Bands, target: Bands, source: PathLik
 
 
 def normalize_per_cube_max(cube: np.ndarray, source: PathLike | str = "cube") -> tuple[np.ndarray, float]:
-    """The normalisation policy: divide by the cube's maximum → values in [0, 1]. Returns (cube, max).
+    """The normalisation policy: divide by the cube's maximum → values at most 1, in [0, 1] for a non-negative cube
+    (what the readers hand on: :func:`check_cube`; negative values are divided as they are). Returns (cube, max).
 
     ``cube``: a NumPy array (C, H, W), any scale (raw counts, radiance). Raises :class:`InputError` for an
     all-zero cube (nothing to learn from, and no scale), one without a positive value, one holding NaN/Inf

@@ -264,7 +264,9 @@ def read_cube(path: str | os.PathLike, *, bands: Bands | None = None, allow_nega
               memory_budget_mb: float | None = None) -> Cube:
     """Read any supported cube: returns (cube float32 (C, H, W), Bands, metadata dict).
 
-    ``bands`` is used only for formats that do not carry wavelengths (``.npy``). With
+    ``bands`` is the band grid of a ``.npy`` file (it carries no wavelengths; the config's ``data.npy_bands``), and
+    is not applied to any other format: those are read on their own band list, or, a MAT/HDF5 file without one, on
+    the grid assumed for its format and band count (metadata ``assumed_grid``, said in a log line). With
     ``allow_negative=True`` negative values are clipped to 0 instead of being an error.
     ``memory_budget_mb`` overrides the memory budget (see the module docstring).
     """

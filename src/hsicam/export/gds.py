@@ -1,7 +1,8 @@
 """GDSII layout of an L-level DOE for binary-weighted multi-level lithography (needs ``gdstk``).
 
 L = 2^k levels are made with k masks and k etches: mask j (GDS layer j + 1, datatype 0) opens the
-cells etched by d_j = 2^j · step (step = h_2π / L). A cell at level q (height q·step) is etched by
+cells etched by d_j = 2^j · step (step = h_2π / L for a wrapped element; top / L for one of a clamped height range,
+top its maximum height: the ``step_nm`` :mod:`hsicam.export.doe` passes). A cell at level q (height q·step) is etched by
 (L − 1 − q)·step in total, so mask j opens exactly the cells whose etch count L − 1 − q has bit j
 set; the unetched top surface is level L − 1. Cells are squares of the design's cell size,
 centred as in :mod:`hsicam.export.doe` (row 0 at the top, y up), merged along rows into

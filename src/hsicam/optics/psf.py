@@ -309,7 +309,11 @@ class PSFModel(nn.Module):
                        bands: slice | None = None) -> PSFResult:
         """PSF stack for given pupil heights (P, P) (m), optionally with an extra defocus per simulated
         wavelength (rad/m², (C·M,) for M = ``band_samples``, in ``line_wavelengths_nm`` order) and
-        only for ``bands`` (a slice of band indices)."""
+        only for ``bands`` (a contiguous slice of band indices: a step is refused, since each band's
+        ``band_samples`` wavelengths are selected as one run)."""
+        if bands is not None and bands.step not in (None, 1):
+            raise ValueError(f"psf_from_pupil: bands must be a contiguous slice (step 1), got {bands}: compute the "
+                             "contiguous range and index its bands")
         m = self.band_samples
         sel = slice(None) if bands is None else slice(
             None if bands.start is None else bands.start * m, None if bands.stop is None else bands.stop * m)
