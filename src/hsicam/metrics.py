@@ -165,7 +165,8 @@ SSIM_WINDOW_PX = 11
 
 def ssim(x: torch.Tensor, y: torch.Tensor, window: int = SSIM_WINDOW_PX, sigma: float = 1.5, k1: float = 0.01,
          k2: float = 0.03, data_range: float = 1.0, dtype: torch.dtype = torch.float64) -> torch.Tensor:
-    """Mean SSIM over bands (each band a grey image), Gaussian window, (B,). ``x`` is the estimate.
+    """Mean SSIM over bands (each band a grey image), Gaussian window, (B,). ``x`` is the estimate; ``window`` and
+    the Gaussian's ``sigma`` in pixels, ``data_range`` on the cubes' scale.
 
     The window is separable: two 1-D passes (as band matrices at patch sizes: fast enough to train
     with, ``train.ssim_loss``, which computes in ``dtype`` float32); the 'valid' area, i.e.

@@ -130,7 +130,8 @@ class ColorFilterArray(nn.Module):
 
 
 def gaussian_noise(g: torch.Tensor, sigma: float, generator: torch.Generator | None = None) -> torch.Tensor:
-    """g + σ·N(0, 1), i.i.d. per pixel."""
+    """g + σ·N(0, 1), i.i.d. per pixel; σ on the sensor image's own scale (a fraction of full scale for the
+    [0, 1] images the cameras give)."""
     if sigma <= 0:
         return g
     return g + sigma * torch.randn(g.shape, generator=generator, device=g.device, dtype=g.dtype)
