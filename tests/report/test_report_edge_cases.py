@@ -383,6 +383,37 @@ def test_the_doe_figure_shows_the_whole_centred_aperture_of_an_oversampled_pupil
     assert h.shape == aperture.shape == (n, n)
     assert aperture[n // 2, n // 2] > 0
     assert [aperture[0, 0], aperture[0, -1], aperture[-1, 0], aperture[-1, -1]] == [0, 0, 0, 0]
+    # the open area fraction per cell, symmetric as the disc is (each cell's top-left sample lost its top and left
+    # rim: 44 of 1329 cells at q = 2, session 74's figure hunt)
+    np.testing.assert_array_equal(aperture, cam.optics.aperture_per_cell())
+    np.testing.assert_array_equal(aperture > 0, (aperture > 0)[::-1, ::-1])
+    assert float(h[aperture > 0].min()) == 0.0  # above its lowest cell, as exported (no negative "heights")
+
+
+def test_camera_figures_draw_the_designed_doe_not_a_draw_of_its_fabrication_noise(tmp_path, tiny_camera, monkeypatch):
+    """With σ_p > 0 the DOE and PSF figures drew an unseeded noise draw each (another element at every call, neither
+    the one simulated nor the one scored, and the two figures of one report showing two elements: session 74's figure
+    hunt). They draw the design (the exported heights, the PSFs of those) and their captions say σ_p is left out."""
+    from hsicam.export.doe import design_heights
+    from hsicam.optics.perturb import nominal_heights, psf_for_heights
+    from hsicam.report import camera as figures
+
+    drawn = {"h": [], "psf": []}
+    monkeypatch.setattr(figures, "plot_doe_heights", lambda h, aperture, cell_um, path: drawn["h"].append(h))
+    monkeypatch.setattr(figures, "plot_psf_montage", lambda psf, bands, path: drawn["psf"].append(psf) or 5)
+    cam = tiny_camera("camera.doe.sigma_height_nm=40")
+    captions = [figures.write_optics_figures(cam, tmp_path, psf=True) for _ in range(2)]
+    np.testing.assert_array_equal(drawn["h"][0], drawn["h"][1])
+    np.testing.assert_array_equal(drawn["h"][0], design_heights(cam)[0])
+    np.testing.assert_array_equal(drawn["psf"][0], drawn["psf"][1])
+    design_psf = psf_for_heights(cam.optics, nominal_heights(cam)).psf.float().numpy()
+    np.testing.assert_allclose(drawn["psf"][0], design_psf, rtol=0, atol=1e-7)
+    noisy = cam.psf_result().psf.detach().float().numpy()
+    assert np.abs(noisy - design_psf).max() > 100 * 1e-7  # (the noise does move the PSF: the test can fail)
+    assert "without the fabrication noise σ_p = 40 nm" in captions[0]["psf.png"]
+    assert "without the fabrication noise σ_p = 40 nm" in captions[0]["doe.png"]
+    clean = figures.write_optics_figures(tiny_camera(), tmp_path, psf=True)
+    assert "fabrication noise" not in clean["psf.png"] + clean["doe.png"]
 
 
 def test_an_experiment_report_draws_cameras_only_of_runs_with_weights(tmp_path):

@@ -33,7 +33,6 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import torch
 
 from hsicam.config import is_power_of_two
 from hsicam.errors import InputError
@@ -49,16 +48,10 @@ def design_heights(camera) -> tuple[np.ndarray, np.ndarray, float]:
     The heights are the DOE's effective design heights (its wrap/clamp/quantisation options
     applied) without fabrication noise.
     """
-    optics = camera.optics
-    doe = optics.doe
-    aperture = optics.aperture_per_cell()
-    saved = doe.sigma_height_m
-    try:
-        doe.sigma_height_m = 0.0
-        with torch.no_grad():
-            h = doe.heights().detach().cpu().double().numpy()
-    finally:
-        doe.sigma_height_m = saved
+    from hsicam.optics.perturb import nominal_heights
+
+    aperture = camera.optics.aperture_per_cell()
+    h = nominal_heights(camera).numpy()
     inside = aperture > 0
     piston = float(h[inside].min()) if inside.any() else 0.0
     h = np.where(inside, h - piston, 0.0)

@@ -155,8 +155,9 @@ class DOE(nn.Module):
         else:
             self.register_buffer("height_m", torch.zeros(self.n_cells, self.n_cells), persistent=False)
 
-    def heights(self, generator: torch.Generator | None = None) -> torch.Tensor:
-        """Effective heights (m), (n_cells, n_cells): constraints, quantization and noise applied."""
+    def heights(self, generator: torch.Generator | None = None, *, noise: bool = True) -> torch.Tensor:
+        """Effective heights (m), (n_cells, n_cells): constraints, quantization and (``noise``) the fabrication
+        noise σ_p applied, drawn from ``generator``; ``noise=False``: the design, as exported and drawn."""
         h = self.height_m
         if not self.enabled:
             return h
@@ -167,9 +168,8 @@ class DOE(nn.Module):
         if self.quantization_levels is not None:
             top, wrap = self.level_grid()
             h = quantize_heights(h, self.quantization_levels, top, wrap=wrap)
-        if self.sigma_height_m > 0:
-            noise = torch.randn(h.shape, generator=generator, device=h.device, dtype=h.dtype)
-            h = h + self.sigma_height_m * noise
+        if noise and self.sigma_height_m > 0:
+            h = h + self.sigma_height_m * torch.randn(h.shape, generator=generator, device=h.device, dtype=h.dtype)
         return h
 
     def level_grid(self) -> tuple[float, bool]:

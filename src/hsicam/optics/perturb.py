@@ -22,14 +22,8 @@ def psf_for_heights(optics, h_cells_m: torch.Tensor, defocus_delta: torch.Tensor
 
 def nominal_heights(camera) -> torch.Tensor:
     """The trained design heights (m) per cell (n, n) float64, without fabrication noise."""
-    doe = camera.optics.doe
-    saved = doe.sigma_height_m
-    try:
-        doe.sigma_height_m = 0.0
-        with torch.no_grad():
-            return doe.heights().detach().cpu().double()
-    finally:
-        doe.sigma_height_m = saved
+    with torch.no_grad():
+        return camera.optics.doe.heights(noise=False).detach().cpu().double()
 
 
 def defocus_delta_per_m2(optics, dz_m: float) -> torch.Tensor:

@@ -174,7 +174,8 @@ def plot_cfa(tile: np.ndarray, bands: Bands, path: str | Path) -> None:
 
 
 def plot_doe_heights(height_m: np.ndarray, aperture: np.ndarray, cell_um: float, path: str | Path) -> None:
-    """DOE height map in nm over the aperture (outside shown blank)."""
+    """DOE height map in nm over the aperture (outside shown blank): ``height_m`` (n, n) above the lowest cell (the
+    piston removed, :func:`hsicam.export.doe.design_heights`), ``aperture`` (n, n) the open area fraction per cell."""
     h = np.asarray(height_m, dtype=np.float64) * 1e9
     shown = np.where(np.asarray(aperture) > 0, h, np.nan)
     n = h.shape[0]
@@ -184,7 +185,7 @@ def plot_doe_heights(height_m: np.ndarray, aperture: np.ndarray, cell_um: float,
     ax.set_xlabel("x (mm)")
     ax.set_ylabel("y (mm)")
     ax.set_title(f"DOE height map ({n}×{n} cells of {cell_um:g} µm)", fontsize=9)
-    fig.colorbar(im, ax=ax, label="height (nm)")
+    fig.colorbar(im, ax=ax, label="height above the lowest cell (nm)")
     save_figure(fig, path)
 
 
@@ -229,11 +230,24 @@ def write_psf_outputs(camera, out: Path, generator: torch.Generator | None = Non
 def write_optics_figures(camera, out: Path, prefix: str = "", psf: bool = False) -> dict[str, str]:
     """The camera's figures in ``out``: ``{prefix}psf.png`` (with ``psf``), ``{prefix}doe.png``
     (height map and aperture), ``{prefix}cfa.png`` (tile and transmission curves) — those the
-    camera has. Returns {file name: caption}. The one place camera figures are drawn."""
+    camera has. Returns {file name: caption}. The one place camera figures are drawn.
+
+    A DOE is drawn as designed (:func:`hsicam.export.doe.design_heights`: piston removed, as exported) and its PSFs
+    of those heights: a camera with fabrication noise σ_p draws another element at every capture, and a figure of
+    one unseeded draw was neither the element simulated nor the one scored (session 74's figure hunt)."""
+    from hsicam.export.doe import design_heights
+    from hsicam.optics.perturb import nominal_heights, psf_for_heights
+
     out, written = Path(out), {}
+    optics = getattr(camera, "optics", None)
+    doe_on = optics is not None and optics.doe.enabled  # no DOE (h = 0): no height map to draw (export-optics: none)
+    sigma_nm = optics.doe.sigma_height_m * 1e9 if doe_on else 0.0
+    design = (f"; the design, without the fabrication noise σ_p = {sigma_nm:g} nm each capture draws"
+              if sigma_nm > 0 else "")
     with torch.no_grad():
         if psf and hasattr(camera, "psf_result"):
-            res = camera.psf_result()
+            res = (psf_for_heights(optics, nominal_heights(camera)) if sigma_nm > 0 and camera.kind != "measured_psf"
+                   else camera.psf_result())
             if not bool(torch.isfinite(res.psf).all()):  # a damaged camera (e.g. DOE heights of 1e38 m), not a figure
                 raise InputError(f"its PSF holds {int((~torch.isfinite(res.psf)).sum())} NaN/Inf value(s) (DOE heights "
                                  f"up to {float(camera.optics.doe.heights().abs().max()):.3g} m)"
@@ -241,13 +255,13 @@ def write_optics_figures(camera, out: Path, prefix: str = "", psf: bool = False)
             crop = plot_psf_montage(res.psf.float().cpu().numpy(), camera.bands, out / f"{prefix}psf.png")
             written[f"{prefix}psf.png"] = (f"PSF per band (log scale, central {crop}×{crop} px) and encircled energy; "
                                            f"energy in kernel "
-                                           f"{res.energy.min().item():.4f}–{res.energy.max().item():.4f}")
-        optics = getattr(camera, "optics", None)
-        if optics is not None and optics.doe.enabled:  # no DOE (h = 0): no height map to draw (export-optics: none)
-            q = optics.pupil_oversample
-            plot_doe_heights(optics.doe.heights().detach().cpu().numpy(), optics.amplitude[::q, ::q].cpu().numpy(),
-                             optics.cell_m * 1e6, out / f"{prefix}doe.png")
-            written[f"{prefix}doe.png"] = "DOE height map"
+                                           f"{res.energy.min().item():.4f}–{res.energy.max().item():.4f}{design}")
+        if doe_on:
+            # the aperture per cell as its area fraction (a q-oversampled pupil's top-left sample per cell lost the
+            # disc's top and left rim)
+            heights, aperture, _ = design_heights(camera)
+            plot_doe_heights(heights, aperture, optics.cell_m * 1e6, out / f"{prefix}doe.png")
+            written[f"{prefix}doe.png"] = f"DOE height map (above its lowest cell, as exported{design})"
         cfa = getattr(camera, "cfa", None)
         if cfa is not None and cfa.enabled:  # no CFA (κ = 1): no tile to draw (a figure said "Σ over bands = 1" of κ = 1)
             plot_cfa(cfa.tile().detach().cpu().numpy(), camera.bands, out / f"{prefix}cfa.png")
