@@ -2,16 +2,19 @@
 
     python scripts/psf_compare_figure.py OUT.png LABEL=DIR/psf.npy [LABEL=DIR/psf.npy ...] [--bands 420,570,720]
 
-Each `psf.npy` is a (bands, K, K) stack as `hsicam psf` and `hsicam demo` write it, on the
-420–720 nm / 10 nm grid. One row per camera, one column per chosen band: the central 9×9 px on a
-linear scale (each panel normalised to its own peak), titled with the light on the central pixel,
-within 3×3 px and the RMS radius (hsicam.report.camera.rms_radius_px).
+Each `psf.npy` is a (bands, K, K) stack as `hsicam psf` and `hsicam demo` write it; its band centres are read
+from the `psf.json` beside it (`bands_nm`), else, for a stack without one, taken as 420 nm on in 10 nm steps
+(said). One row per camera, one column per chosen band (a wavelength that is not a band of a stack is refused):
+the central 9×9 px on a linear scale (each panel normalised to its own peak), titled with the share of the
+kernel's light on the central pixel and within 3×3 px, and the RMS radius (hsicam.report.camera.rms_radius_px).
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import sys
+from pathlib import Path
 
 import matplotlib
 
@@ -42,6 +45,23 @@ def _stack(path: str) -> np.ndarray:
     return stack
 
 
+def _band_centres(path: str, n: int) -> tuple[np.ndarray, str]:
+    """The ``n`` band centres (nm) of the stack ``path``: its psf.json's ``bands_nm``, else 420 nm on in 10 nm steps;
+    and where they come from, for a message."""
+    meta = Path(path).with_name("psf.json")
+    if not meta.is_file():
+        print(f"{path}: no psf.json beside it: its {n} bands taken as {START_NM:g} nm on in {STEP_NM:g} nm steps",
+              file=sys.stderr)
+        return START_NM + STEP_NM * np.arange(n), f"{START_NM:g} nm on in {STEP_NM:g} nm steps (assumed)"
+    try:
+        centres = np.asarray(json.loads(meta.read_text(encoding="utf-8"))["bands_nm"], dtype=np.float64)
+    except (OSError, ValueError, KeyError, TypeError) as exc:
+        raise ValueError(f"{meta}: no band list 'bands_nm' ({exc})") from None
+    if centres.shape != (n,):
+        raise ValueError(f"{meta}: lists {centres.size} band centres, but {path} holds {n} bands")
+    return centres, f"{', '.join(f'{c:g}' for c in centres)} nm ({meta.name})"
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("out")
@@ -55,18 +75,19 @@ def main(argv: list[str] | None = None) -> int:
         if not sep:
             p.error(f"expected LABEL=path/to/psf.npy, got {item!r}")
         try:  # a missing or unreadable file, or no PSF stack: one line, before anything is drawn
-            rows.append((label, _stack(path)))
+            stack = _stack(path)
+            rows.append((label, stack, *_band_centres(path, stack.shape[0])))
         except (OSError, ValueError) as exc:
             p.error(str(exc))
     fig, axes = plt.subplots(len(rows), len(waves), figsize=(2.4 * len(waves), 2.5 * len(rows)), squeeze=False)
-    for r, (label, stack) in enumerate(rows):
+    for r, (label, stack, centres, grid) in enumerate(rows):
         k = stack.shape[1]
         c, h = k // 2, CROP // 2
         radii = rms_radius_px(stack)
         for j, w in enumerate(waves):
-            b = int(round((w - START_NM) / STEP_NM))
-            if not 0 <= b < stack.shape[0]:
-                p.error(f"{w:g} nm is not a band of {label} ({stack.shape[0]} bands from {START_NM:g} nm)")
+            b = int(np.argmin(np.abs(centres - w)))
+            if abs(centres[b] - w) > 0.5:
+                p.error(f"{w:g} nm is not a band of {label} (its bands: {grid})")
             psf = stack[b] / stack[b].sum()
             ax = axes[r, j]
             ax.imshow(psf[c - h:c + h + 1, c - h:c + h + 1], cmap="inferno", vmin=0)
@@ -76,7 +97,8 @@ def main(argv: list[str] | None = None) -> int:
             ax.set_yticks([])
             if j == 0:
                 ax.set_ylabel(label, fontsize=9)
-    fig.suptitle(f"PSF, central {CROP}×{CROP} px, linear, each panel to its peak", fontsize=9)
+    fig.suptitle(f"PSF, central {CROP}×{CROP} px, linear, each panel to its peak; shares of the kernel's light",
+                 fontsize=9)
     fig.tight_layout()
     try:
         fig.savefig(args.out, dpi=110)

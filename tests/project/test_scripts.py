@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import os
 import subprocess
 import sys
@@ -34,6 +35,17 @@ def test_psf_compare_figure_draws_one_row_per_camera_and_rejects_bad_stacks(tmp_
     assert h2 > 1.7 * h1  # a second row of panels
     bad = _run("psf_compare_figure.py", str(tmp_path / "x.png"), f"flat={tmp_path / 'a.npy'}", "--bands", "800")
     assert bad.returncode != 0 and "800 nm is not a band" in bad.stderr and not (tmp_path / "x.png").exists()
+    # the bands of a stack are its psf.json's: 430 nm was drawn as the 420/10 grid's band 1 of any stack (the tiny
+    # preset's 470 nm), and its label claimed a band the stack does not have (session 74's figure hunt)
+    (tmp_path / "t").mkdir()
+    np.save(tmp_path / "t" / "psf.npy", sharp[:7])
+    (tmp_path / "t" / "psf.json").write_text(json.dumps({"bands_nm": [420.0 + 50 * i for i in range(7)]}))
+    odd = _run("psf_compare_figure.py", str(tmp_path / "z.png"), f"tiny={tmp_path / 't' / 'psf.npy'}", "--bands", "430")
+    assert odd.returncode != 0 and "430 nm is not a band of tiny (its bands: 420, 470, 520" in odd.stderr
+    ok = _run("psf_compare_figure.py", str(tmp_path / "z.png"), f"tiny={tmp_path / 't' / 'psf.npy'}", "--bands",
+              "470,720")
+    assert ok.returncode == 0 and "no psf.json" not in ok.stderr, ok.stderr
+    assert "no psf.json beside it: its 31 bands taken as 420 nm on" in proc.stderr
     np.save(tmp_path / "c.npy", sharp[0])
     wrong = _run("psf_compare_figure.py", str(tmp_path / "y.png"), f"2d={tmp_path / 'c.npy'}")
     assert wrong.returncode != 0 and "expected a (bands, K, K)" in wrong.stderr
