@@ -140,6 +140,22 @@ def test_tolerance_figure_draws_the_one_db_line_below_each_panels_reference(monk
     assert _hline(ax[2], "no shift, 3 samples/cell") == 31.5
 
 
+def test_tolerance_figure_draws_a_diagonal_shift_at_its_distance(monkeypatch, tmp_path):
+    """A diagonal shift of s cells per axis (tolerance.json's value, applied_cells [s, s]) moves the DOE s·√2 cells; it
+    was drawn at s beside the x shifts on one "lateral shift" axis, √2 times more tolerant-looking than it is (session
+    74's figure hunt)."""
+    result = {"metric": "PSNR", "nominal": {"psnr": 30.0},
+              "sweeps": {"shift_x_cells": _sweep([0, 1, 2], [30.0, 29.5, 28.0]),
+                         "shift_diag_cells": _sweep([0, 1, 2], [30.0, 29.0, 27.0])}}
+    ax = _tolerance_figure(monkeypatch, tmp_path, result)[2]
+    curves = {c.get_label(): c.lines[0] for c in ax.containers}  # (errorbar containers: their data line first)
+    x_line = curves["along x"]
+    d_line = next(line for label, line in curves.items() if label.startswith("along the diagonal"))
+    np.testing.assert_allclose(np.asarray(x_line.get_xdata(), dtype=float), [0, 1, 2])
+    np.testing.assert_allclose(np.asarray(d_line.get_xdata(), dtype=float), [0, np.hypot(1, 1), np.hypot(2, 2)])
+    assert "distance" in ax.get_xlabel()
+
+
 def test_tolerance_figure_says_why_a_skipped_shift_sweep_was_not_studied(monkeypatch, tmp_path):
     """tolerance.json records a camera without a DOE under ``skipped`` by sweep family (``shift`` for both shift
     sweeps): the panel says "not studied:" and the reason, and plots nothing."""
