@@ -55,6 +55,12 @@ def test_mean_spectra_legend_names_up_to_sixteen_scenes(tmp_path, n, legend):
     assert (got is not None) is legend
     if legend:
         assert [t.get_text() for t in got.get_texts()] == [p.name for p in paths]
+        # each legend entry names one curve: no two drawn alike (matplotlib's 10 colours named two curves each for
+        # 6 of 16 entries: session 74's figure hunt)
+        from matplotlib.colors import to_hex
+
+        styles = [(to_hex(ln.get_color()), ln.get_linestyle()) for ln in plot.axes[0].get_lines()]
+        assert len(styles) == n and len(set(styles)) == n, styles
 
 
 def test_mean_spectra_are_divided_by_each_cubes_maximum(tmp_path):

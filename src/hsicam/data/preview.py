@@ -161,9 +161,11 @@ def _scene_figures(path: Path, scenes: list[Path], npy_bands: Bands | None = Non
 
     plot = Figure(figsize=(7, 4.2))
     ax = plot.add_subplot(1, 1, 1)
-    for name, bands, mean in spectra:
-        # a spectrum of one band is a point: a line through it draws nothing
-        ax.plot(bands.centers_nm, mean, lw=1.2, label=name, marker="o" if len(bands) == 1 else None)
+    for i, (name, bands, mean) in enumerate(spectra):
+        # a spectrum of one band is a point: a line through it draws nothing; the 11th spectrum on takes the first ten's
+        # colours again, so it gets another line style (16 legend entries named two curves each by colour alone)
+        ax.plot(bands.centers_nm, mean, lw=1.2, label=name, marker="o" if len(bands) == 1 else None,
+                color=f"C{i % 10}", ls=("-", "--", ":", "-.")[(i // 10) % 4])
     ax.set_xlabel("wavelength (nm)")
     ax.set_ylabel("mean value (per-cube max = 1)")
     ax.set_title(f"{displayable_name(path.name)}: mean spectra{first}")
