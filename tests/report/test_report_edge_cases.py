@@ -10,6 +10,7 @@ back, brute-force sums over a PSF's pixels, the exact line a user sees.
 
 from __future__ import annotations
 
+import html
 import json
 from types import SimpleNamespace
 
@@ -233,8 +234,33 @@ def test_a_run_path_no_longer_there_falls_back_to_the_run_label(tmp_path):
 
     from hsicam.report.html import _evaluated_run
 
-    assert _evaluated_run({"run_path": str(tmp_path / "gone"), "run": "pretrained:x"}) == Path("pretrained:x")
-    assert _evaluated_run({"run_path": str(tmp_path), "run": "pretrained:x"}) == tmp_path
+    assert _evaluated_run({"run_path": str(tmp_path / "gone"), "run": "pretrained:x"}, tmp_path) == Path("pretrained:x")
+    assert _evaluated_run({"run_path": str(tmp_path), "run": "pretrained:x"}, tmp_path) == tmp_path
+
+
+def test_a_moved_demo_folders_report_draws_the_camera_of_the_run_beside_its_results(tmp_path, monkeypatch):
+    """The demo's results.json names its run relative to where it ran (runs/demo/run) and by its absolute run_path: a
+    demo folder copied or moved elsewhere lost every camera figure ("runs/demo/run: no such run folder") with the run
+    beside results.json (session 74's figure hunt). The results folder's own run/ is read, its weights' hash checked."""
+    import shutil
+
+    from hsicam.report.html import build_report
+    from hsicam.runs.checkpoint import file_sha256, root_weights_path
+    from hsicam.runs.pretrained import resolve_run
+
+    src = resolve_run("pretrained:standard")
+    sha = file_sha256(root_weights_path(src))
+    monkeypatch.chdir(tmp_path)
+    pages = {}
+    for name, recorded in (("same", sha), ("other", "0" * 64)):
+        (tmp_path / name).mkdir()
+        d = _complete_folder(tmp_path / name, "results.json", {
+            "method": "doe-learned", "run": "runs/demo/run", "run_path": "/nowhere/runs/demo/run",
+            "weights_sha256": recorded, "scenes": [{"name": "a", **MEAN}], "mean": MEAN, "conventions": {}})
+        shutil.copytree(src, d / "run")
+        pages[name] = html.unescape(build_report(d).read_text(encoding="utf-8"))
+    assert "<h2>Camera (runs/demo/run)</h2>" in pages["same"] and "unavailable" not in pages["same"]
+    assert "<h2>Camera" not in pages["other"] and "changed since these results were scored" in pages["other"]
 
 
 # ------------------------------------------------------------------------------------------------

@@ -326,7 +326,7 @@ def _evaluation_sections(folder: Path, out: Path, res: dict) -> list[str]:
             parts.append(_img(f"errors_{name}.png", f"{name}: absolute error per band"))
     if res.get("run"):
         sha = res.get("weights_sha256")
-        parts.append(_camera_section(_evaluated_run(res), out, label=str(res["run"]),
+        parts.append(_camera_section(_evaluated_run(res, folder), out, label=str(res["run"]),
                                      scored_sha256=sha if isinstance(sha, str) else None))
     return parts
 
@@ -346,15 +346,22 @@ def _references(res: dict) -> list[str]:
             _table([{"name": str(r.get("method", "")), **r["mean"]} for r in refs], cols)]
 
 
-def _evaluated_run(res: dict) -> Path:
+def _evaluated_run(res: dict, folder: Path) -> Path:
     """Where the run an evaluation scored is read from: ``run_path``, the folder ``hsicam evaluate``
     read (``run`` is its label: ``pretrained:NAME`` for a shipped camera), when it is still there; else
     ``run`` (a results.json from before run_path, or from another machine: a run folder, or
-    ``pretrained:NAME``, which :func:`hsicam.runs.folder.load_run` finds among this installation's cameras)."""
+    ``pretrained:NAME``, which :func:`hsicam.runs.folder.load_run` finds among this installation's cameras); else,
+    a relative ``run`` found from neither, the results ``folder``'s own sub-folder of its name (the demo's layout,
+    DIR/results.json beside DIR/run, copied or moved elsewhere: its camera figures were all left out). The weights'
+    hash the results record still decides whether that run's camera is drawn (:func:`_camera_section`)."""
     path = res.get("run_path")
     if isinstance(path, str) and path and Path(path).is_dir():
         return Path(path)
-    return Path(str(res["run"]))
+    run = Path(str(res["run"]))
+    beside = folder / run.name
+    if not run.is_absolute() and not run.exists() and not str(run).startswith("pretrained:") and beside.is_dir():
+        return beside
+    return run
 
 
 def _experiment_sections(folder: Path, out: Path, exp: dict) -> list[str]:
