@@ -527,3 +527,23 @@ def test_the_band_error_figure_spreads_its_bands_from_the_first_to_the_last(tmp_
     assert np.all(np.diff(nm) > 0) and np.max(np.diff(nm)) <= 2 * (nm[-1] - nm[0]) / (shown - 1)
     for wl, img in panels:
         np.testing.assert_allclose(np.asarray(img), (wl - 420) / 10 / 100, rtol=1e-5)
+
+
+@pytest.mark.parametrize("m", [4, 15])
+def test_the_cfa_figures_tile_title_keeps_clear_of_the_curves_axis_label(tmp_path, monkeypatch, m):
+    """cfa.png's tile title ran into the transmission panel's y label (a 15×15 tile; just touching at 4×4: session 74's
+    figure hunt): their boxes, as drawn, do not overlap."""
+    import hsicam.report.camera as figures
+    from hsicam.spectral import Bands
+
+    figs = []
+    monkeypatch.setattr(figures, "save_figure", lambda fig, path: figs.append(fig))
+    bands = Bands.uniform(420, 720, 50)  # (the tiny preset's 7 bands, whose figure it was)
+    tile = np.random.default_rng(0).random((len(bands), m, m))
+    figures.plot_cfa(tile / tile.sum(axis=0), bands, tmp_path / "cfa.png")
+    fig = figs[0]
+    fig.canvas.draw()
+    renderer = fig.canvas.get_renderer()
+    a0, a1 = fig.axes[:2]
+    title, label = a0.title.get_window_extent(renderer), a1.yaxis.label.get_window_extent(renderer)
+    assert title.x1 < label.x0, (title, label)  # the title stays over its own panel, left of the label's column

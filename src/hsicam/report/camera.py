@@ -158,9 +158,10 @@ def plot_cfa(tile: np.ndarray, bands: Bands, path: str | Path) -> None:
     t = np.asarray(tile, dtype=np.float64)
     rgb = cfa_tile_rgb(t, bands)
     m = t.shape[-1]
-    fig, (a0, a1) = plt.subplots(1, 2, figsize=(9, 3.6), gridspec_kw={"width_ratios": [1, 1.6]})
+    # constrained: the tile's title ran into the curves' y label (session 74's figure hunt)
+    fig, (a0, a1) = plt.subplots(1, 2, figsize=(9, 3.6), gridspec_kw={"width_ratios": [1, 1.6]}, layout="constrained")
     a0.imshow(rgb, interpolation="nearest")
-    a0.set_title(f"CFA tile {m}×{m} (sRGB, each filter peak-normalised)", fontsize=9)
+    a0.set_title(f"CFA tile {m}×{m}\n(sRGB, each filter peak-normalised)", fontsize=9)
     a0.set_xticks([])
     a0.set_yticks([])
     curves = t.reshape(t.shape[0], -1).T
