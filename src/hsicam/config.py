@@ -1235,9 +1235,14 @@ def resolve_preset(path: str | Path) -> Path:
     """A config path, or the name of a shipped preset (:func:`preset_names`); ConfigError listing the
     presets when ``path`` is neither an existing file nor a preset's name."""
     p = Path(path)
-    # a bare name only: `--config myexp/quick` is that file or an error, never the shipped `quick`
-    if not p.exists() and p.suffix == "" and len(p.parts) == 1 and (PRESETS_DIR / f"{p.name}.yaml").is_file():
+    # a bare name only: `--config myexp/quick` is that file or an error, never the shipped `quick`; a folder of the
+    # preset's name in the working folder (e.g. a run trained with --out tiny) is no config: the preset (session 74)
+    if (not p.exists() or p.is_dir()) and p.suffix == "" and len(p.parts) == 1 and \
+            (PRESETS_DIR / f"{p.name}.yaml").is_file():
         return PRESETS_DIR / f"{p.name}.yaml"
+    if p.is_dir():
+        hint = f": a run's config is {p / 'config.yaml'}" if (p / "config.yaml").is_file() else ""
+        raise ConfigError(f"{p}: a folder, not a config file{hint} (presets: {', '.join(preset_names())})")
     if not p.exists() and not p.is_symlink():
         raise ConfigError(f"{p}: no such config file, nor a shipped preset (presets: {', '.join(preset_names())})")
     return p

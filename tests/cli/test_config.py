@@ -656,3 +656,22 @@ def test_an_empty_data_root_override_is_refused_not_read_as_the_synthetic_data()
                                   "folder, or data.root=null for the embedded synthetic data")
     assert load_config("tiny", ["data.root=null"]).data.root is None
     assert load_config("tiny", ["data.cache_dir="]).data.cache_dir is None
+
+
+def test_a_folder_named_like_a_preset_does_not_hide_the_preset(tmp_path, monkeypatch):
+    """`--config tiny` run where a folder `tiny` sits (a run trained with --out tiny) failed with "tiny: cannot read
+    config (Is a directory)" (session 74's figure hunt): a folder is no config file, so the bare name is the preset;
+    another folder given as --config is refused naming the run's config.yaml when it has one."""
+    from hsicam.config import dump_yaml
+
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "tiny").mkdir()
+    (tmp_path / "tiny" / "config.yaml").write_text("train: {epochs: 2}\n", encoding="utf-8")
+    assert dump_yaml(load_config("tiny")) == dump_yaml(load_config(PRESETS_DIR / "tiny.yaml"))
+    (tmp_path / "myrun").mkdir()
+    (tmp_path / "myrun" / "config.yaml").write_text("train: {epochs: 2}\n", encoding="utf-8")
+    with pytest.raises(ConfigError, match=r"^myrun: a folder, not a config file: a run's config is myrun/config\.yaml "):
+        load_config("myrun")
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(ConfigError, match=r"^empty: a folder, not a config file \(presets: "):
+        load_config("empty")
