@@ -35,7 +35,7 @@ CONVENTIONS = {
     "psnr_cube": "whole cube, peak 1 (MSE floored at 1e-30: an exact cube counts 300 dB)",
     "psnr_mst": ("MST's torch_psnr: x*256 rounded, per band, peak 255, mean over bands; a band equal after the "
                  "rounding counts 348 dB (MSE floored at 1e-30), where MST's code gives inf"),
-    "ssim": "per band, Gaussian 11x11 sigma 1.5, K=(0.01,0.03), data range 1, mean",
+    "ssim": "per band, Gaussian 11x11 sigma 1.5, K=(0.01,0.03), population covariance, data range 1, mean",
     "sam": ("mean spectral angle over pixels, degrees; pixels whose truth spectrum is all zero have no angle "
             "and are left out (sam_excluded_px counts them); an all-zero estimate spectrum where the truth is "
             "not counts as 90 degrees; undefined when the truth is zero at every pixel: NaN (null in the JSON "

@@ -64,6 +64,9 @@ def test_evaluating_a_run_of_another_generator_version_says_so(demo, tmp_path, c
     with caplog.at_level(logging.WARNING):
         assert main(["evaluate", "--run", str(run), "--out", str(tmp_path / "other")]) == 0
     assert _warning(run, "is scored") in [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
+    # in the results too, not on stderr alone (session 74's records hunt)
+    assert _warning(run, "is scored") in json.loads((tmp_path / "other" / "results.json").read_text())["warning"]
+    assert "warning" not in json.loads((tmp_path / "same" / "results.json").read_text())
     _as_of_version(run, None)  # an hsicam before session 60 recorded none: nothing to tell
     caplog.clear()
     with caplog.at_level(logging.WARNING):

@@ -336,6 +336,27 @@ def test_evaluate_flags_training_scenes_of_a_synthetic_run_scored_on_another_spl
     assert_ok(run_cli_in_process("evaluate", "--run", str(run), "--out", str(tmp_path / "ev0")))
     res0 = json.loads((tmp_path / "ev0" / "results.json").read_text())
     assert "warning" not in res0 and all("split" not in r for r in res0["scenes"])
+    # what scored is recorded (session 74's records hunt): the --set overrides (config_hash named none of them) and
+    # the software; results.md says both
+    assert res["overrides"] == ["data.val_fraction=0.5", "data.synthetic_n=8"] and "overrides" not in res0
+    assert res0["software"]["threads"] >= 1 and res0["software"]["device"] == "cpu"
+    assert {"hsicam", "git_commit", "torch", "numpy", "started_utc"} <= res0["software"].keys()
+    md = (tmp_path / "ev" / "results.md").read_text()
+    assert "- overrides: ['data.val_fraction=0.5', 'data.synthetic_n=8']" in md and "- software: hsicam " in md
+
+
+def test_evaluate_says_when_a_data_override_scores_scenes_the_run_never_saw(synthetic_run, tmp_path):
+    """``evaluate --run RUN --set data.synthetic_seed=5`` scores another synthetic set (none of it the run's) under the
+    label "synthetic validation split" of that run, its rows without a split (session 74's records hunt): the label
+    names the keys and says none of the scenes is the run's, each row is "unseen"."""
+    from hsicam.engine.evaluate import is_validation_data_label
+
+    assert_ok(run_cli_in_process("evaluate", "--run", str(synthetic_run), "--set", "data.synthetic_seed=5",
+                                 "--out", str(tmp_path / "ev")))
+    res = json.loads((tmp_path / "ev" / "results.json").read_text())
+    assert res["data"] == "synthetic scenes of data.synthetic_seed=5, none of them the run's"
+    assert not is_validation_data_label(res["data"])
+    assert {r["split"] for r in res["scenes"]} == {"unseen"}
 
 
 def test_evaluate_refuses_a_heldout_set_of_sources_the_run_trained_on(synthetic_run, tmp_path):
@@ -474,3 +495,26 @@ def test_evaluate_records_the_weights_it_read_and_refuses_weights_changing_under
     assert json.loads((tmp_path / "ev" / "results.json").read_text())["weights_sha256"] == sha
     assert_clean_error(run_cli_in_process("evaluate", "--run", str(run), "--out", str(tmp_path / "ev2")),
                        "its weights changed while they were read")
+
+
+def test_evaluate_says_which_scored_scenes_changed_since_the_run_trained(proj, tmp_path):
+    """A validation scene of a data.root run edited in place after training was scored (25.72 → 27.02 dB in the
+    hunt) as the run's validation split, without a word, though data.json records each scene's size and time
+    (session 74's records hunt): results.json's warning names it."""
+    import os
+
+    run, data = _copy(proj, tmp_path)
+    record = json.loads((run / "data.json").read_text())
+    record["root"] = str(data)
+    (run / "data.json").write_text(json.dumps(record))
+    text = (run / "config.yaml").read_text()
+    (run / "config.yaml").write_text(text.replace(f"root: {proj / 'projA' / 'data'}", f"root: {data}"))
+    assert_ok(run_cli_in_process("evaluate", "--run", str(run), "--out", str(tmp_path / "same")))
+    assert "warning" not in json.loads((tmp_path / "same" / "results.json").read_text())
+    edited = record["validation"][0]
+    st = (data / edited).stat()
+    os.utime(data / edited, ns=(st.st_atime_ns, st.st_mtime_ns + 10**9))  # rewritten a second later
+    assert_ok(run_cli_in_process("evaluate", "--run", str(run), "--out", str(tmp_path / "ev")))
+    warning = json.loads((tmp_path / "ev" / "results.json").read_text())["warning"]
+    assert f"1 scored scene(s) changed since {run} trained (size or modification time not its data.json's): " \
+           f"{edited};" in warning

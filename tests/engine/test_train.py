@@ -107,6 +107,20 @@ def test_resume_matches_uninterrupted_run(tmp_path, cache_env):
     assert [(r["step"], r["epoch"]) for r in sessions] == [(0, 0), (5, 1)]
     for r in sessions:
         _assert_is_this_software(r["session"])
+        assert "config_changed" not in r["session"]  # (resumed as it began)
+
+
+def test_a_resume_that_changes_the_config_records_what_it_changed(tmp_path, cache_env):
+    """A resume with --set rewrites config.yaml to the config it goes on with, so config.yaml alone no longer said how
+    the steps before it trained (session 74's records hunt): the resume's session record lists what it changed."""
+    train(tiny_cfg("train.epochs=2"), tmp_path / "r", progress=False, stop_after_steps=3)
+    train(tiny_cfg("train.epochs=3", "train.lr=0.002"), tmp_path / "r", resume=True, progress=False,
+          stop_after_steps=5)
+    sessions = [json.loads(x)["session"] for x in (tmp_path / "r" / "metrics.jsonl").read_text().splitlines()
+                if "session" in json.loads(x)]
+    before_lr = tiny_cfg().train.lr
+    assert "config_changed" not in sessions[0]
+    assert sessions[1]["config_changed"] == ["train.epochs: 2 → 3", f"train.lr: {before_lr!r} → 0.002"]
 
 
 def _assert_is_this_software(session: dict) -> None:
@@ -125,6 +139,7 @@ def _assert_is_this_software(session: dict) -> None:
     except PackageNotFoundError:  # a source tree never installed
         assert session["hsicam"] is None
     assert session["device"] == "cpu" and session["world_size"] == 1
+    assert session["threads"] == torch.get_num_threads()  # (other thread counts: other last bits of the weights)
     started = datetime.datetime.fromisoformat(session["started_utc"])
     assert abs((datetime.datetime.now(datetime.timezone.utc) - started).total_seconds()) < 3600
     checkout = Path(hsicam.__file__).resolve().parents[2]

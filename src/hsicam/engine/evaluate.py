@@ -462,10 +462,16 @@ def write_results(out: Path, summary: dict) -> None:
         fh.write(buf.getvalue())
     conv = summary["conventions"]
     head = [f"# Results: {summary.get('method', '')}", ""]
-    for k in ("run", "run_path", "data", "warning", "truth_interpolated", "noise", "config_hash", "saved_cubes"):
+    for k in ("run", "run_path", "data", "warning", "truth_interpolated", "noise", "overrides", "config_hash",
+              "weights_sha256", "saved_cubes"):
         # run_path (the folder read) only where it differs from run: a shipped camera's package folder
         if k in summary and not (k == "run_path" and summary[k] == summary.get("run")):
             head.append(f"- {k}: {summary[k]}")
+    sw = summary.get("software")
+    if isinstance(sw, dict):
+        head.append(f"- software: hsicam {sw.get('hsicam') or 'source'} (commit {sw.get('git_commit')}), torch "
+                    f"{sw.get('torch')}, numpy {sw.get('numpy')}, {sw.get('device')}, {sw.get('threads')} thread(s), "
+                    f"{sw.get('started_utc')}")
     head.append(f"- PSNR: {conv['psnr']}; SSIM: {conv['ssim']}; SAM: {conv['sam']}")
     if summary.get("sam_undefined"):
         head.append(f"- SAM undefined (the truth is zero at every scored pixel) for {', '.join(summary['sam_undefined'])}; "

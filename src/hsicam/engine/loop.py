@@ -38,8 +38,9 @@ from torch.utils.data import Sampler
 from hsicam.config import TrainConfig
 from hsicam.data.pipeline import make_loader, patch_source
 from hsicam.devices import autocast_problem, device_problem, dist_env
-from hsicam.engine.provenance import (check_same_data, read_data_record, session_60_changes_had, software_record,
-                                      started_before_session_60, write_data_record)
+from hsicam.engine.provenance import (check_same_data, read_data_record, resumed_config_changes,
+                                      session_60_changes_had, software_record, started_before_session_60,
+                                      write_data_record)
 from hsicam.engine.stopping import BUDGET_EXIT_CODE, StopRequests
 from hsicam.errors import ConfigError, InputError, PeerFailed, TrainingDiverged, TrainingInterrupted, TrainingStopped
 from hsicam.io import OutputLock, atomic_output, is_complete, output_description
@@ -769,10 +770,11 @@ class _Training:
         """Rank 0 makes the run folder in place, whole and locked (a new run), or brings a resumed run's files to its
         checkpoint (:meth:`note_resume`); then records this session's software in the metrics log. Every rank
         agrees afterwards."""
+        changed: list[str] = []
         with self.solo.work():
             if resume:
                 if self.is_main:
-                    self.note_resume()
+                    changed = self.note_resume()
             elif self.is_main:
                 # The run folder appears at once with all its files (config.yaml, ...) or not at all.
                 with atomic_output(self.run_dir, marker=False) as tmp:
@@ -783,21 +785,27 @@ class _Training:
                 lock.moved()
                 new_run.release()  # in place: the run's own lock keeps it
             if self.is_main:  # which software this session trains with (a resume adds its own record)
+                # and what a resume's --set changed: config.yaml is rewritten to the config it goes on with, so it
+                # alone no longer says how the steps before trained (session 74's records hunt)
                 self.metrics.write({"step": self.state.global_step, "epoch": self.state.epoch,
-                                    "session": software_record(str(self.device), self.world)})
+                                    "session": {**software_record(str(self.device), self.world),
+                                                **({"config_changed": changed} if changed else {})}})
         state = self.state
         state.total_steps = self.total_steps  # saved with each checkpoint: what a half-trained run is measured against
         state.steps_per_epoch, state.batch_size = self.steps_per_epoch, self.t.batch_size
         self.solo.agree(f"before the {self.task.what} started")
 
-    def note_resume(self) -> None:
+    def note_resume(self) -> list[str]:
         """Rank 0, on resume: the root weights and the metrics log brought back to the last checkpoint, the last
         validation kept for the final record, the config it goes on with written, and what the resume changes
-        said (the task's data, an older hsicam's training)."""
+        said (the task's data, an older hsicam's training). Returns the settings the config it goes on with changes
+        (``"key: before → now"``, :func:`~hsicam.config.config_changes`), for the session record."""
         task, run_dir, state = self.task, self.run_dir, self.state
         self.ckpt.sync_root()  # a kill between the manifest's commit and the root weights' rewrite
         self.metrics.truncate_after(state.global_step, state.epoch)
         self.summary = last_validation(self.metrics.read())  # kept when no epoch is left to validate
+        cfg = getattr(task, "cfg", None)  # (a task's config.yaml is its Config)
+        changed = resumed_config_changes(run_dir, cfg) if cfg is not None else []
         task.write_run_files(run_dir)  # the config it goes on with (e.g. `--set train.epochs=…`)
         log.info("resuming %s at epoch %d, step %d", run_dir, state.epoch, state.global_step)
         warning = task.resume_warning(run_dir)
@@ -813,6 +821,7 @@ class _Training:
                         "run with another --out", run_dir,
                         f"hsicam {commit[:7]} (session 60, before c1ab911)" if commit
                         else "an hsicam before session 60", "; ".join(changes))
+        return changed
 
     def start(self) -> None:
         """What the steps need: rank 0's validation loader, the module ready on its device (DDP-wrapped as

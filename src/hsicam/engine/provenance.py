@@ -36,7 +36,7 @@ from hsicam.config import DataConfig
 from hsicam.data.datasets import scene_path
 from hsicam.data.pipeline import dataset_root, scene_stat, split_dataset
 from hsicam.data.synthetic import GENERATOR_VERSION
-from hsicam.errors import InputError
+from hsicam.errors import ConfigError, InputError
 from hsicam.io import write_json
 from hsicam.runs.folder import DATA_RECORD, MetricsLog
 from hsicam.spectral import Bands
@@ -187,6 +187,20 @@ def scene_roles(recorded: dict[str, Any], paths: Sequence[str | os.PathLike]) ->
     return out
 
 
+def changed_since_recorded(recorded: dict[str, Any], paths: Sequence[str | os.PathLike]) -> list[str]:
+    """The scenes of ``paths`` under the recorded root (by their relative path) whose size or modification time is
+    not the record's: files edited or replaced since the run trained (its data.json), scored as they are now."""
+    stats = {e["path"]: (e.get("size"), e.get("mtime_ns")) for e in recorded["scenes"]}
+    root = Path(os.path.abspath(recorded["root"]))
+    out = []
+    for p in paths:
+        a = Path(os.path.abspath(p))
+        rel = scene_path(a, root) if root in a.parents else None
+        if rel in stats and tuple(scene_stat(p)) != stats[rel]:
+            out.append(rel)
+    return out
+
+
 def synthetic_scene_roles(trained: DataConfig, scored: DataConfig, paths: Sequence[str | os.PathLike]) -> list[str] | None:
     """``"train"``, ``"validation"`` or ``"unseen"`` for each scene of ``paths``, scenes of the synthetic
     training-set cache of the config ``scored`` (e.g. the validation split of an evaluation's
@@ -271,17 +285,32 @@ def _source_commit() -> str | None:
 
 
 def software_record(device: str, world_size: int = 1) -> dict[str, Any]:
-    """What a training session runs on, for its run's ``metrics.jsonl``: UTC start time, versions (hsicam,
-    torch, numpy, Python), platform, ``device`` (e.g. "cpu", "cuda:0"), ``world_size`` (processes), and the
-    hsicam git commit when run from a checkout (None otherwise)."""
+    """What a training session (its run's ``metrics.jsonl``) or a scoring (results.json's ``software``) runs on: UTC
+    start time, versions (hsicam, torch, numpy, Python), platform, ``device`` (e.g. "cpu", "cuda:0"), ``threads``
+    (torch's CPU threads: weights trained on other thread counts differ in their last bits), ``world_size``
+    (processes), and the hsicam git commit when run from a checkout (None otherwise)."""
     import numpy
     import torch
 
     return {"started_utc": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
             "hsicam": installed_version(), "git_commit": _source_commit(), "torch": torch.__version__,
             "numpy": numpy.__version__, "python": platform.python_version(), "platform": platform.platform(),
-            "executable": sys.executable, "device": str(device), "world_size": int(world_size),
+            "executable": sys.executable, "device": str(device), "threads": torch.get_num_threads(),
+            "world_size": int(world_size),
             "synthetic_generator": GENERATOR_VERSION}
+
+
+def resumed_config_changes(run_dir: str | Path, cfg) -> list[str]:
+    """The settings (``"key: before → now"``, runtime-only keys left out: :func:`hsicam.config.training_differences`)
+    in which ``cfg``, the config a resume goes on with, differs from the run's config.yaml before the resume rewrites
+    it; [] when the same or unreadable (the resume's own checks refuse a damaged one)."""
+    from hsicam.config import load_config, training_differences
+
+    try:
+        before = load_config(Path(run_dir) / "config.yaml")
+    except (ConfigError, InputError, OSError):
+        return []
+    return training_differences(before, cfg, limit=1_000_000)
 
 
 def _records(run_dir: str | Path) -> list[dict[str, Any]]:
