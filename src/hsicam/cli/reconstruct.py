@@ -128,6 +128,12 @@ def estimated_cfa_offset(model, sensor: torch.Tensor) -> tuple[tuple[int, int], 
     from hsicam.engine.cfa_offset import MIN_SCORED_PX, estimate_cfa_offset
 
     est = estimate_cfa_offset(model, sensor, progress=None)  # asked for: however long it takes, counted
+    if est.narrow_band:  # its phase scores are meaningless: the best one made 660 nm light read as 420 nm
+        raise InputError(f"--cfa-offset auto cannot read the CFA phase of this capture: it is narrow-band (its darkest "
+                         f"CFA phase holds {100 * est.phase_ratio:.2g} % of the brightest's light: a monochromatic, laser or "
+                         "single-LED scene, whose spectra the network never learned, so every phase explains it "
+                         "badly); give the sensor row and column of its first pixel with --cfa-offset Y,X (0,0 where "
+                         "the sensor starts), e.g. measured on a capture of a broadband, textured target")
     (oy, ox), best = est.offset, est.residuals[f"{est.offset[0]},{est.offset[1]}"]
     second, r2 = est.runner_up
     log.info("--cfa-offset auto: %d,%d (relative residual %.3g; next best %s: %.3g; scored on the central %d×%d px)",
@@ -174,7 +180,12 @@ def checked_sensor_origin(model, sensor: torch.Tensor, source) -> dict | None:
                  "readout, give the sensor row and column of its first pixel with --cfa-offset Y,X", e)
         return None
     oy, ox = est.offset
-    if not est.rules_out_origin:  # quiet: a line on every reconstruction would say nothing to act on
+    if est.narrow_band:  # no phase score means anything there (every aligned monochromatic field was "clearly" off)
+        log.info("CFA phase 0,0 (no --cfa-offset) not checked: the capture is narrow-band (its darkest CFA phase holds "
+                 "%.2g %% of the brightest's light), whose phase cannot be read from it; if it is a crop or a "
+                 "region-of-interest readout, give the sensor row and column of its first pixel with --cfa-offset Y,X",
+                 100 * est.phase_ratio)
+    elif not est.rules_out_origin:  # quiet: a line on every reconstruction would say nothing to act on
         log.debug("CFA phase 0,0 (no --cfa-offset): %s (scored on the central %d×%d px)",
                   "the capture was too featureless or small to tell" if est.ambiguous or est.small else
                   "no other phase explains the capture clearly better", *est.scored_px)

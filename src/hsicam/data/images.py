@@ -79,6 +79,10 @@ IMAGE_SUFFIXES = (".npy", ".png", ".tif", ".tiff")
 MIN_SIGNAL_SHARE = 1e-3
 #: More pixels than this share below 0 after the dark/black subtraction: warn (offset too high?).
 MAX_NEGATIVE_SHARE = 0.10
+#: ... counting only pixels below −this × the image's largest magnitude: a float capture simulated through FFT
+#: convolutions holds round-off negatives of ~1e-7 of its peak on its dark pixels (`hsicam simulate` of a point or a
+#: narrow-band ramp: "35 % below 0 ... a signed or mean-subtracted image?", session 74's hunt), which are no offset.
+NEGATIVE_ROUNDOFF = 1e-6
 #: An integer capture read with its container's full scale whose brightest pixel (after all the
 #: corrections) stays below this fraction of the simulator's full scale is warned about. An n-bit
 #: sensor in a 16-bit container reaches at most 2^(n−16): 1/16 for 12 bit (the commonest raw depth),
@@ -470,6 +474,8 @@ def preprocess_raw(raw: np.ndarray, full_scale: float, corr: RawCorrection, sour
     saturated = int(np.count_nonzero(saturated_map))
     report["saturated_px"] = saturated
     notes = _check_saturated(raw, saturated, white, corr.white_level is not None, source)
+    if check_saturation and full_scale == 1 and corr.white_level is None:
+        notes += _check_float_clip(raw, source)
     img, signal_notes = _minus_dark_or_black(raw, dark, black, corr, source)
     notes += signal_notes
     img = _to_full_scale(img, white, black, source)
@@ -800,7 +806,7 @@ def _check_signal(img: np.ndarray, raw: np.ndarray, black: float, dark_median: f
     :data:`MIN_SIGNAL_SHARE`); a warning (returned) if more than :data:`MAX_NEGATIVE_SHARE` are below 0."""
     n = img.size
     positive = int(np.count_nonzero(img > 0))
-    negative = int(np.count_nonzero(img < 0))
+    negative = int(np.count_nonzero(img < -NEGATIVE_ROUNDOFF * float(np.max(np.abs(img)))))
     brightest = float(raw.max())
     if positive <= MIN_SIGNAL_SHARE * n:
         if dark_median is not None:
@@ -839,6 +845,22 @@ def _check_saturated(raw: np.ndarray, saturated: int, white: float, explicit: bo
                          f"but a flat white image to reconstruct: {fix}")
     return [f"{source}: {saturated} pixel(s) at or above the white level {white:g} DN (saturated; {100 * share:.2g} % of "
             f"the pixels, refused above {100 * MAX_SATURATED_SHARE:.0f} %)"]
+
+
+def _check_float_clip(raw: np.ndarray, source: str) -> list[str]:
+    """A warning (returned) for a float capture read at its own scale (no ``--white-level``) with at least
+    :data:`SENSOR_CLIP_MIN_PX` pixels at exactly 1.0, its brightest value: clipped at full scale (a conversion or the
+    sensor), but read as measured light, where a white level reads them as lower bounds (session 74's hunt: 28 % of a
+    capture at 1.0 reconstructed without a word, its clipped pixels' error 7× the rest's)."""
+    if not raw.size or float(raw.max()) != 1.0:
+        return []
+    clipped = int(np.count_nonzero(raw == 1.0))
+    if clipped < SENSOR_CLIP_MIN_PX:
+        return []
+    return [f"{source}: {clipped} pixel(s) ({100 * clipped / raw.size:.2g} %) sit at exactly 1.0, the capture's brightest "
+            "value: clipped at full scale? They are read as measured light; give --white-level 1 to read them as "
+            "clipped (lower bounds of their light; refused above "
+            f"{100 * MAX_SATURATED_SHARE:.0f} % of the pixels)"]
 
 
 def _check_white_level(img: np.ndarray, raw: np.ndarray, full_scale: float, white: float, source: str) -> list[str]:

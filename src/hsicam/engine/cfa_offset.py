@@ -72,6 +72,17 @@ class CfaOffsetEstimate:
     residuals: dict[str, float]
     window: tuple[int, int, int, int]
     margin_px: int
+    #: The darkest CFA phase's mean over the scored pixels relative to the brightest's (:attr:`narrow_band`).
+    phase_ratio: float = 1.0
+
+    @property
+    def narrow_band(self) -> bool:
+        """True when some filters see (almost) none of the capture's light (:attr:`phase_ratio` below
+        :data:`NARROW_BAND_PHASE_RATIO`): a monochromatic, laser or single-LED capture. Its spectra are far from any
+        the network learned, which then explains the capture worse at its true phase than at others: every phase
+        score is meaningless there (session 74's hunt: 9 of 11 aligned monochromatic fields were "clearly" at
+        another phase, and --cfa-offset auto made their spectra wrong, 660 nm read as 420)."""
+        return self.phase_ratio < NARROW_BAND_PHASE_RATIO
 
     @property
     def runner_up(self) -> tuple[str, float]:
@@ -108,7 +119,7 @@ class CfaOffsetEstimate:
         estimate is neither :attr:`ambiguous` nor :attr:`small`. What ``reconstruct`` warns of when no
         ``--cfa-offset`` was given."""
         best = self.residuals[f"{self.offset[0]},{self.offset[1]}"]
-        return (self.offset != (0, 0) and not self.ambiguous and not self.small
+        return (self.offset != (0, 0) and not self.ambiguous and not self.small and not self.narrow_band
                 and self.residuals["0,0"] >= MIN_ORIGIN_RATIO * best)
 
     @property
@@ -125,7 +136,8 @@ class CfaOffsetEstimate:
     def as_dict(self) -> dict:
         return {"offset": list(self.offset), "residuals": dict(self.residuals), "window": list(self.window),
                 "margin_px": self.margin_px, "contrast": self.contrast, "ambiguous": self.ambiguous,
-                "close_runner_up": self.close_runner_up, "small": self.small}
+                "close_runner_up": self.close_runner_up, "small": self.small, "phase_ratio": self.phase_ratio,
+                "narrow_band": self.narrow_band}
 
 
 #: :attr:`CfaOffsetEstimate.ambiguous` below this contrast. On the 8 held-out-sources scenes the right
@@ -158,6 +170,11 @@ MIN_ORIGIN_RATIO = 2.0
 #: four wrong when 34 px were (64 px windows), by a residual only 7 % above the winner's and a contrast of 1.9,
 #: so not flagged as ambiguous.
 MIN_SCORED_PX = 64
+#: :attr:`CfaOffsetEstimate.narrow_band` below this ratio of the darkest CFA phase's mean to the brightest's. Measured
+#: (session 74, the quick demo camera, central 128 px): its 16 validation and held-out-sources scenes 1/79 to 1/3
+#: (a diagonal grating the most); monochromatic fields, 20-40 nm LEDs and an RGB-LED white ~1e-11 (band-pass filters
+#: that pass none of the light); a flat grey 0.99, a tungsten-like ramp 0.2.
+NARROW_BAND_PHASE_RATIO = 1e-3
 
 
 @torch.no_grad()
@@ -230,7 +247,10 @@ def estimate_cfa_offset(system, sensor: torch.Tensor, window_px: int = DEFAULT_W
         system.train(was_training)
     best = min(residuals, key=residuals.get)
     oy, ox = (int(v) for v in best.split(","))
-    return CfaOffsetEstimate((oy, ox), residuals, (wy, wx, wh, ww), margin)
+    scored = y[inner][0, 0]
+    means = torch.stack([scored[i::period, j::period].mean() for i in range(period) for j in range(period)])
+    ratio = float(means.min() / means.max()) if float(means.max()) > 0 else 1.0
+    return CfaOffsetEstimate((oy, ox), residuals, (wy, wx, wh, ww), margin, phase_ratio=ratio)
 
 
 def _nominal(camera):
