@@ -114,3 +114,21 @@ def test_a_reused_run_is_scored_on_as_many_held_out_scenes_as_the_demo_asks(fini
         summary = run_demo(load_config("tiny", ["train.epochs=1", f"data.heldout_n={n}"]), out)
         assert len(summary["heldout"]["scenes"]) == n, n
         assert len(json.loads((out / "results.json").read_text())["heldout"]["scenes"]) == n
+
+
+def test_the_demos_results_say_how_they_were_made(finished):
+    """The demo's results.md could not reproduce its own table (no run, config or weights, scenes, seed or software)
+    and its results.json named no software (session 74's records hunt)."""
+    import hashlib
+
+    res = json.loads((finished / "results.json").read_text())
+    assert {"hsicam", "git_commit", "torch", "numpy", "threads"} <= res["software"].keys()
+    md = (finished / "results.md").read_text()
+    sha = hashlib.sha256((finished / "run" / "model.safetensors").read_bytes()).hexdigest()
+    cfg = load_config(finished / "run" / "config.yaml")
+    assert res["weights_sha256"] == sha
+    line = next(x for x in md.splitlines() if x.startswith("Made by `hsicam demo`: the run "))
+    assert f"config hash {res['config_hash']}; weights sha256 {sha[:12]}…, train.seed 0" in line
+    assert (f"data.synthetic_seed {cfg.data.synthetic_seed}, {cfg.data.synthetic_n} scenes of "
+            f"{cfg.data.synthetic_size} px, split seed {cfg.data.split_seed}") in line
+    assert f"test-noise seed 0; hsicam " in line and f"`hsicam evaluate --run {finished / 'run'} --out DIR`" in line

@@ -18,6 +18,7 @@ from hsicam.engine.evaluate import (HELDOUT_NOISE_SET, TestNoise, config_hash, d
 from hsicam.engine.experiments import check_same_training, ensure_trained, heldout_scenes
 from hsicam.engine.methods import (LINEAR_REFERENCE_WINDOW, linear_demosaic_reference, network_alone_reference,
                                    network_skip)
+from hsicam.engine.provenance import software_record
 from hsicam.errors import InputError
 from hsicam.io import (OutputLock, atomic_open, clear_complete, clear_derived, cleanup_stale_temporaries, is_complete,
                        is_temporary, mark_complete, output_description, read_marker, write_json)
@@ -49,6 +50,20 @@ def check_demo_folder(out: str | Path) -> None:
     if not (out / "run").is_dir():
         raise InputError(f"{out}: folder exists and is not empty, and is not a demo folder (no run/ in it); "
                          "choose another --out")
+
+
+def _made_by(cfg: Config, run: Path, summary: dict) -> str:
+    """results.md's line on how its table was made and is made again: the run, its config and weights, the scenes and
+    the test noise's seed, the software (session 74's records hunt: the demo's results.md said none of it)."""
+    d = cfg.data
+    data = (f"the synthetic set (data.synthetic_seed {d.synthetic_seed}, {d.synthetic_n} scenes of {d.synthetic_size} px, "
+            f"split seed {d.split_seed})" if d.root is None else f"the scenes of {d.root}")
+    sw = summary.get("software") or {}
+    return (f"Made by `hsicam demo`: the run {run} (its config.yaml, config hash {summary.get('config_hash')}; weights "
+            f"sha256 {str(summary.get('weights_sha256'))[:12]}…, train.seed {cfg.train.seed}), scored on the validation "
+            f"split of {data}, test-noise seed {TestNoise().seeds[0]}; hsicam {sw.get('hsicam') or 'source'} (commit "
+            f"{sw.get('git_commit')}), torch {sw.get('torch')}, {sw.get('threads')} thread(s). The same table: "
+            f"`hsicam evaluate --run {run} --out DIR`.")
 
 
 def run_demo(cfg: Config, out: str | Path) -> dict[str, Any]:
@@ -134,11 +149,13 @@ def _run_demo(cfg: Config, out: Path) -> dict[str, Any]:
     summary["config_hash"] = config_hash(dump_yaml(cfg))
     kept = scored.get("weights")
     summary["region"] = scored_region(model.camera)  # as `hsicam evaluate` says it (a `--set camera.boundary=same` demo: the whole scene)
+    summary["software"] = software_record("cpu")  # what scored (session 74's records hunt: the demo's said none)
     write_json(out / "results.json", summary)
     table = format_table(summary)
     with atomic_open(out / "results.md", "w", encoding="utf-8") as fh:
         fh.write(f"Validation scenes, {summary['conventions']['psnr']}; SSIM {summary['conventions']['ssim']}; "
-                 f"SAM in degrees.{' ' + weights_text(kept) if kept else ''}\n\n{table}\n\nReferences:\n\n"
+                 f"SAM in degrees.{' ' + weights_text(kept) if kept else ''}\n\n{_made_by(cfg, run, summary)}\n\n"
+                 f"{table}\n\nReferences:\n\n"
                  + "".join(f"- {r['method']}: {means_line(r['mean'])}\n" for r in summary["references"])
                  + (f"\nOn {summary['heldout']['data']}:\n\n{format_table(summary['heldout'])}\n\n"
                     "References on these scenes:\n\n"
