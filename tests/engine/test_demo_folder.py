@@ -131,4 +131,4 @@ def test_the_demos_results_say_how_they_were_made(finished):
     assert f"config hash {res['config_hash']}; weights sha256 {sha[:12]}…, train.seed 0" in line
     assert (f"data.synthetic_seed {cfg.data.synthetic_seed}, {cfg.data.synthetic_n} scenes of "
             f"{cfg.data.synthetic_size} px, split seed {cfg.data.split_seed}") in line
-    assert f"test-noise seed 0; hsicam " in line and f"`hsicam evaluate --run {finished / 'run'} --out DIR`" in line
+    assert "test-noise seed 0; hsicam " in line and f"`hsicam evaluate --run {finished / 'run'} --out DIR`" in line
