@@ -341,6 +341,12 @@ def test_evaluate_flags_training_scenes_of_a_synthetic_run_scored_on_another_spl
     assert res["overrides"] == ["data.val_fraction=0.5", "data.synthetic_n=8"] and "overrides" not in res0
     assert res0["software"]["threads"] >= 1 and res0["software"]["device"] == "cpu"
     assert {"hsicam", "git_commit", "torch", "numpy", "started_utc"} <= res0["software"].keys()
+    # which cached synthetic set was read: its folder and its manifest's hash (config.yaml names neither)
+    import hashlib
+
+    folder = Path(res0["synthetic_set"]["folder"])
+    assert res0["synthetic_set"]["manifest_sha256"] == hashlib.sha256((folder / "manifest.json").read_bytes()).hexdigest()
+    assert all(Path(r["path"]).name in {p.name for p in folder.glob("*.h5")} for r in res0["scenes"])
     md = (tmp_path / "ev" / "results.md").read_text()
     assert "- overrides: ['data.val_fraction=0.5', 'data.synthetic_n=8']" in md and "- software: hsicam " in md
 

@@ -108,6 +108,9 @@ def test_resume_matches_uninterrupted_run(tmp_path, cache_env):
     for r in sessions:
         _assert_is_this_software(r["session"])
         assert "config_changed" not in r["session"]  # (resumed as it began)
+        # the cached synthetic set it read (which $HSICAM_CACHE chose: config.yaml does not say)
+        folder = Path(r["session"]["synthetic_set"]["folder"])
+        assert (folder / "manifest.json").is_file() and str(folder).startswith(os.environ["HSICAM_CACHE"])
 
 
 def test_a_resume_that_changes_the_config_records_what_it_changed(tmp_path, cache_env):

@@ -342,6 +342,10 @@ def _summary(args: argparse.Namespace, cfg, method, results, noise, data_label: 
         keys = ", ".join(o for o in args.overrides if o.startswith("data.")) or "the evaluation's data keys"
         data_label = f"synthetic scenes of {keys}, none of them the run's"
     extra = {"overrides": list(args.overrides)} if args.overrides else {}
+    if not args.data and cfg.data.root is None:  # which cached synthetic set was read (config.yaml does not say)
+        from hsicam.engine.provenance import synthetic_set_record
+
+        extra["synthetic_set"] = synthetic_set_record(cfg.data, method.camera.bands)
     summary = summarize(results, method=args.method, **where, data=data_label, config_hash=config_hash(dump_yaml(cfg)),
                         noise={"sigma_height_nm": args.sigma_height_nm, "sensor_sigma": args.sensor_sigma, "seeds": args.seeds,
                                # the DOE height noise the scoring drew (--sigma-height-nm, else the camera's own

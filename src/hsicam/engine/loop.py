@@ -214,6 +214,11 @@ class Task:
         None: nothing (e.g. the synthetic data)."""
         return None
 
+    def synthetic_set(self) -> dict[str, Any] | None:
+        """Which cached synthetic set the task reads, for each session record
+        (:func:`hsicam.engine.provenance.synthetic_set_record`); None: none (e.g. a ``data.root`` folder)."""
+        return None
+
     def resume_warning(self, run_dir: Path) -> str | None:
         """What a resume of ``run_dir`` should be warned of about the task's data (e.g. synthetic scenes of another
         generator version than the run started on: :func:`hsicam.engine.provenance.generator_change_warning`)."""
@@ -789,7 +794,8 @@ class _Training:
                 # alone no longer says how the steps before trained (session 74's records hunt)
                 self.metrics.write({"step": self.state.global_step, "epoch": self.state.epoch,
                                     "session": {**software_record(str(self.device), self.world),
-                                                **({"config_changed": changed} if changed else {})}})
+                                                **({"config_changed": changed} if changed else {}),
+                                                **({"synthetic_set": s} if (s := self.task.synthetic_set()) else {})}})
         state = self.state
         state.total_steps = self.total_steps  # saved with each checkpoint: what a half-trained run is measured against
         state.steps_per_epoch, state.batch_size = self.steps_per_epoch, self.t.batch_size

@@ -47,6 +47,26 @@ log = logging.getLogger(__name__)
 SHOWN = 3
 
 
+def synthetic_set_record(cfg: DataConfig, bands: Bands) -> dict[str, Any] | None:
+    """Which cached synthetic set ``cfg`` reads (None for a ``data.root`` run, which data.json records): its folder
+    (chosen by ``data.cache_dir``, else ``$HSICAM_CACHE`` ..., which config.yaml does not record) and the SHA-256 of
+    its manifest, which lists every scene's own SHA-256 and the software that made them: two scorings of one
+    ``manifest_sha256`` read the same generated scenes, as long as the files were not edited since (``hsicam data
+    synth`` checks them against the manifest; training and evaluate do not read every byte twice). Recorded in each
+    training session and in evaluate's results.json (session 74's records hunt: a cache of other scenes left every
+    record alike)."""
+    import hashlib
+
+    if cfg.root is not None:
+        return None
+    root = Path(os.path.abspath(dataset_root(cfg, bands)))
+    try:
+        digest = hashlib.sha256((root / "manifest.json").read_bytes()).hexdigest()
+    except OSError:
+        digest = None
+    return {"folder": str(root), "manifest_sha256": digest}
+
+
 def data_record(cfg: DataConfig, bands: Bands) -> dict[str, Any] | None:
     """The record of the scenes ``cfg`` trains and validates on now; None for the synthetic data."""
     if cfg.root is None:

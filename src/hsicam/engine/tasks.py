@@ -17,7 +17,7 @@ import yaml
 from hsicam.config import ChoiConfig, Config, TrainConfig, dump_yaml
 from hsicam.data.pipeline import absolute_data_paths, build_datasets, dataset_root
 from hsicam.engine.loop import Task, draw_uniform, step_generator
-from hsicam.engine.provenance import data_record, generator_change_warning
+from hsicam.engine.provenance import data_record, generator_change_warning, synthetic_set_record
 from hsicam.errors import ConfigError
 from hsicam.io import atomic_open, write_json
 from hsicam.metrics import psnr_per_band, sam_degrees, ssim
@@ -181,6 +181,9 @@ class _ConfigDataTask(Task):
 
     def data_record(self) -> dict[str, Any] | None:
         return data_record(self.cfg.data, self.bands)
+
+    def synthetic_set(self) -> dict[str, Any] | None:
+        return synthetic_set_record(self.cfg.data, self.bands)
 
     def resume_warning(self, run_dir: Path) -> str | None:
         return generator_change_warning(run_dir, self.cfg.data, "goes on")
