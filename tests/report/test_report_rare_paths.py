@@ -243,3 +243,27 @@ def test_an_experiment_report_draws_a_runs_camera_only_while_its_weights_are_the
             f"000000000000… then, {sha[:12]}… now: trained on, or replaced), so its camera now is not the one scored; "
             "run `hsicam experiment ablation` into this folder again for its current camera") in page
     assert page.count("camera figures left out") == 1
+
+
+def test_a_cfa_period_sweeps_report_draws_the_scores_against_the_period(tmp_path, monkeypatch):
+    """The paper's CFA period sweep is a figure (DESIGN.md §5); the report gave the sweep a table only (session 74's
+    figure hunt). A figure of PSNR, SSIM and SAM against the period, its points the rows' (in period order, whatever
+    the rows' order), and none for an experiment of other rows."""
+    import hsicam.report.html as report
+
+    figs = []
+    monkeypatch.setattr(report, "save_figure", lambda fig, path: figs.append((fig, path)))
+    rows = [{"method": f"period-{p}", "psnr": 30.0 + p / 10, "ssim": 0.8 + p / 100, "sam": 10.0 - p / 3}
+            for p in (12, 3, 6)]
+    d = folder_with(tmp_path, "experiment.json", experiment(experiment="cfa-period", rows=rows))
+    page = build_report(d).read_text(encoding="utf-8")
+    assert "period_sweep.png" in page
+    (fig, path), = [(f, p) for f, p in figs if p.name == "period_sweep.png"]
+    for ax, key in zip(fig.axes, ("psnr", "ssim", "sam")):
+        (line,) = ax.get_lines()
+        assert list(line.get_xdata()) == [3, 6, 12]
+        np.testing.assert_allclose(line.get_ydata(), [next(r[key] for r in rows if r["method"] == f"period-{p}")
+                                                      for p in (3, 6, 12)])
+    figs.clear()
+    d2 = folder_with(tmp_path / "b", "experiment.json", experiment(experiment="ablation", rows=[{"method": "doe+cfa", **MEAN}]))
+    assert "period_sweep.png" not in build_report(d2).read_text(encoding="utf-8")
