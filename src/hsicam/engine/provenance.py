@@ -54,17 +54,21 @@ def synthetic_set_record(cfg: DataConfig, bands: Bands) -> dict[str, Any] | None
     ``manifest_sha256`` read the same generated scenes, as long as the files were not edited since (``hsicam data
     synth`` checks them against the manifest; training and evaluate do not read every byte twice). Recorded in each
     training session and in evaluate's results.json (session 74's records hunt: a cache of other scenes left every
-    record alike)."""
+    record alike). Nothing is generated: a set an evaluation generated only the scored scenes of has no manifest
+    yet (``manifest_sha256`` null, ``complete`` false)."""
     import hashlib
+
+    from hsicam.data.synthetic import DEFAULT_HOLDOUT, MANIFEST, dataset_dir, parse_holdout
 
     if cfg.root is not None:
         return None
-    root = Path(os.path.abspath(dataset_root(cfg, bands)))
+    root = dataset_dir(cfg.synthetic_n, cfg.synthetic_size, cfg.synthetic_seed, bands, cache_dir=cfg.cache_dir,
+                       holdout_sources=parse_holdout(getattr(cfg, "holdout_sources", DEFAULT_HOLDOUT)))
     try:
-        digest = hashlib.sha256((root / "manifest.json").read_bytes()).hexdigest()
+        digest = hashlib.sha256((root / MANIFEST).read_bytes()).hexdigest()
     except OSError:
         digest = None
-    return {"folder": str(root), "manifest_sha256": digest}
+    return {"folder": os.path.abspath(root), "manifest_sha256": digest, "complete": digest is not None}
 
 
 def data_record(cfg: DataConfig, bands: Bands) -> dict[str, Any] | None:
