@@ -127,13 +127,14 @@ def estimated_cfa_offset(model, sensor: torch.Tensor) -> tuple[tuple[int, int], 
     and the estimate's record for the cube's metadata."""
     from hsicam.engine.cfa_offset import MIN_SCORED_PX, estimate_cfa_offset
 
-    est = estimate_cfa_offset(model, sensor, progress=None)  # asked for: however long it takes, counted
-    if est.narrow_band:  # its phase scores are meaningless: the best one made 660 nm light read as 420 nm
-        raise InputError(f"--cfa-offset auto cannot read the CFA phase of this capture: it is narrow-band (its darkest "
-                         f"CFA phase holds {100 * est.phase_ratio:.2g} % of the brightest's light: a monochromatic, laser or "
-                         "single-LED scene, whose spectra the network never learned, so every phase explains it "
-                         "badly); give the sensor row and column of its first pixel with --cfa-offset Y,X (0,0 where "
-                         "the sensor starts), e.g. measured on a capture of a broadband, textured target")
+    from hsicam.engine.cfa_offset import NarrowBandCapture
+
+    try:
+        est = estimate_cfa_offset(model, sensor, progress=None)  # asked for: however long it takes, counted
+    except NarrowBandCapture as e:  # its phase scores are meaningless: the best one made 660 nm light read as 420 nm
+        raise InputError(f"--cfa-offset auto: {e}; give the sensor row and column of the capture's first pixel with "
+                         "--cfa-offset Y,X (0,0 where the sensor starts), e.g. measured on a capture of a broadband, "
+                         "textured target") from None
     (oy, ox), best = est.offset, est.residuals[f"{est.offset[0]},{est.offset[1]}"]
     second, r2 = est.runner_up
     log.info("--cfa-offset auto: %d,%d (relative residual %.3g; next best %s: %.3g; scored on the central %d×%d px)",
@@ -165,7 +166,7 @@ def checked_sensor_origin(model, sensor: torch.Tensor, source) -> dict | None:
     take longer than :data:`~hsicam.engine.cfa_offset.CHECK_TIME_BUDGET_S` (stopped after its first phase; an INFO
     line says so and what to give instead)."""
     from hsicam.engine.cfa_offset import (CHECK_TIME_BUDGET_S, CHECK_WINDOW_PX, MIN_SCORED_PX, EstimateTooSlow,
-                                          estimate_cfa_offset)
+                                          NarrowBandCapture, estimate_cfa_offset)
 
     try:
         est = estimate_cfa_offset(model, sensor, CHECK_WINDOW_PX, min_scored_px=MIN_SCORED_PX,
@@ -175,17 +176,16 @@ def checked_sensor_origin(model, sensor: torch.Tensor, source) -> dict | None:
                  "column of the capture's first pixel with --cfa-offset Y,X (0,0 where the sensor starts), or "
                  "--cfa-offset auto to estimate it", e, CHECK_TIME_BUDGET_S)
         return {"checked": False, "projected_s": round(e.projected_s, 1)}
+    except NarrowBandCapture as e:  # no phase score means anything there (aligned monochromatic fields were "clearly" off)
+        log.info("CFA phase 0,0 (no --cfa-offset) not checked: %s; if the capture is a crop or a region-of-interest "
+                 "readout, give the sensor row and column of its first pixel with --cfa-offset Y,X", e)
+        return {"checked": False, "narrow_band": True, "phase_ratio": e.phase_ratio}
     except InputError as e:  # too small or black to tell: the reconstruction goes on at 0,0, said (it was a debug line)
         log.info("CFA phase 0,0 (no --cfa-offset) not checked: %s; if the capture is a crop or a region-of-interest "
                  "readout, give the sensor row and column of its first pixel with --cfa-offset Y,X", e)
         return None
     oy, ox = est.offset
-    if est.narrow_band:  # no phase score means anything there (every aligned monochromatic field was "clearly" off)
-        log.info("CFA phase 0,0 (no --cfa-offset) not checked: the capture is narrow-band (its darkest CFA phase holds "
-                 "%.2g %% of the brightest's light), whose phase cannot be read from it; if it is a crop or a "
-                 "region-of-interest readout, give the sensor row and column of its first pixel with --cfa-offset Y,X",
-                 100 * est.phase_ratio)
-    elif not est.rules_out_origin:  # quiet: a line on every reconstruction would say nothing to act on
+    if not est.rules_out_origin:  # quiet: a line on every reconstruction would say nothing to act on
         log.debug("CFA phase 0,0 (no --cfa-offset): %s (scored on the central %d×%d px)",
                   "the capture was too featureless or small to tell" if est.ambiguous or est.small else
                   "no other phase explains the capture clearly better", *est.scored_px)

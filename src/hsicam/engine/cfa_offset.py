@@ -72,17 +72,9 @@ class CfaOffsetEstimate:
     residuals: dict[str, float]
     window: tuple[int, int, int, int]
     margin_px: int
-    #: The darkest CFA phase's mean over the scored pixels relative to the brightest's (:attr:`narrow_band`).
+    #: :func:`cfa_phase_ratio` of the scored pixels (at least :data:`NARROW_BAND_PHASE_RATIO`: a capture below it is
+    #: refused before any phase is scored, :class:`NarrowBandCapture`).
     phase_ratio: float = 1.0
-
-    @property
-    def narrow_band(self) -> bool:
-        """True when some filters see (almost) none of the capture's light (:attr:`phase_ratio` below
-        :data:`NARROW_BAND_PHASE_RATIO`): a monochromatic, laser or single-LED capture. Its spectra are far from any
-        the network learned, which then explains the capture worse at its true phase than at others: every phase
-        score is meaningless there (session 74's hunt: 9 of 11 aligned monochromatic fields were "clearly" at
-        another phase, and --cfa-offset auto made their spectra wrong, 660 nm read as 420)."""
-        return self.phase_ratio < NARROW_BAND_PHASE_RATIO
 
     @property
     def runner_up(self) -> tuple[str, float]:
@@ -119,7 +111,7 @@ class CfaOffsetEstimate:
         estimate is neither :attr:`ambiguous` nor :attr:`small`. What ``reconstruct`` warns of when no
         ``--cfa-offset`` was given."""
         best = self.residuals[f"{self.offset[0]},{self.offset[1]}"]
-        return (self.offset != (0, 0) and not self.ambiguous and not self.small and not self.narrow_band
+        return (self.offset != (0, 0) and not self.ambiguous and not self.small
                 and self.residuals["0,0"] >= MIN_ORIGIN_RATIO * best)
 
     @property
@@ -136,8 +128,7 @@ class CfaOffsetEstimate:
     def as_dict(self) -> dict:
         return {"offset": list(self.offset), "residuals": dict(self.residuals), "window": list(self.window),
                 "margin_px": self.margin_px, "contrast": self.contrast, "ambiguous": self.ambiguous,
-                "close_runner_up": self.close_runner_up, "small": self.small, "phase_ratio": self.phase_ratio,
-                "narrow_band": self.narrow_band}
+                "close_runner_up": self.close_runner_up, "small": self.small, "phase_ratio": self.phase_ratio}
 
 
 #: :attr:`CfaOffsetEstimate.ambiguous` below this contrast. On the 8 held-out-sources scenes the right
@@ -170,11 +161,36 @@ MIN_ORIGIN_RATIO = 2.0
 #: four wrong when 34 px were (64 px windows), by a residual only 7 % above the winner's and a contrast of 1.9,
 #: so not flagged as ambiguous.
 MIN_SCORED_PX = 64
-#: :attr:`CfaOffsetEstimate.narrow_band` below this ratio of the darkest CFA phase's mean to the brightest's. Measured
-#: (session 74, the quick demo camera, central 128 px): its 16 validation and held-out-sources scenes 1/79 to 1/3
-#: (a diagonal grating the most); monochromatic fields, 20-40 nm LEDs and an RGB-LED white ~1e-11 (band-pass filters
-#: that pass none of the light); a flat grey 0.99, a tungsten-like ramp 0.2.
+#: :class:`NarrowBandCapture` below this :func:`cfa_phase_ratio`. Measured (session 74, the quick demo camera, central
+#: 128 px, Gaussian sensor noise σ = 0, 0.001, 0.005 and 0.02 of full scale, clipped at 0): monochromatic fields,
+#: textured scenes under 20-40 nm LEDs and an RGB-LED white 0 at every σ (band-pass filters that pass none of the
+#: light: their phases' medians are the clipped noise's, 0); the 16 validation and held-out-sources scenes 0.010 to
+#: 0.42 up to σ = 0.005 (a diagonal grating the least), at σ = 0.02 two of them 0 (the darkest scene, under noise ten
+#: times its light, and a dim held-out one: their phase cannot be read either); a flat grey 0.98.
 NARROW_BAND_PHASE_RATIO = 1e-3
+
+
+class NarrowBandCapture(InputError):
+    """:func:`estimate_cfa_offset` refused a capture whose :func:`cfa_phase_ratio` (``phase_ratio``) is below
+    :data:`NARROW_BAND_PHASE_RATIO`: some filters see (almost) none of its light. Such spectra (a monochromator, a
+    laser, one LED) are far from any the network learned, which then explains the capture worse at its true phase
+    than at others: every phase score is meaningless (session 74's hunt: 9 of 11 aligned monochromatic fields were
+    "clearly" at another phase, and --cfa-offset auto read 660 nm light as 420 nm); so are those of a capture whose
+    noise drowns its darker filters' light. Raised before any phase is scored."""
+
+    def __init__(self, message: str, phase_ratio: float) -> None:
+        super().__init__(message)
+        self.phase_ratio = phase_ratio
+
+
+def cfa_phase_ratio(window: torch.Tensor, period: int) -> float:
+    """The darkest CFA phase's median over the pixels of ``window`` (H, W) relative to the brightest phase's (0 when
+    negative; 1 when no phase's median is above 0). Medians, not means: a phase that sees no light holds the sensor's
+    noise, whose mean clipped at 0 is ~0.4 σ but whose median is 0 (with means, 0.1 % noise hid a 660 nm LED:
+    session 74's review). Phase (i, j) is the pixels (i + k·period, j + l·period) of the window."""
+    meds = torch.stack([window[i::period, j::period].median() for i in range(period) for j in range(period)]).double()
+    top = float(meds.max())
+    return max(float(meds.min()), 0.0) / top if top > 0 else 1.0
 
 
 @torch.no_grad()
@@ -227,6 +243,13 @@ def estimate_cfa_offset(system, sensor: torch.Tensor, window_px: int = DEFAULT_W
         if not norm > 0:
             raise InputError("the capture is black where its CFA offset would be estimated (its central window): "
                              "give the offset with --cfa-offset Y,X")
+        ratio = cfa_phase_ratio(y[inner][0, 0], period)
+        if ratio < NARROW_BAND_PHASE_RATIO:
+            raise NarrowBandCapture(
+                f"its CFA phase cannot be read from it: its darkest CFA phase's median is {ratio:.2g} of the "
+                f"brightest's (below {NARROW_BAND_PHASE_RATIO:g}: filters that see almost none of its light), a "
+                "narrow-band capture (a monochromator, a laser, one LED: spectra the network never learned, which "
+                "it explains badly at every phase) or one whose noise drowns its darker filters' light", ratio)
         residuals = {}
         start = time.perf_counter()
         with Progress(period * period, "CFA offset", "phase", show=progress) as bar:
@@ -247,9 +270,6 @@ def estimate_cfa_offset(system, sensor: torch.Tensor, window_px: int = DEFAULT_W
         system.train(was_training)
     best = min(residuals, key=residuals.get)
     oy, ox = (int(v) for v in best.split(","))
-    scored = y[inner][0, 0]
-    means = torch.stack([scored[i::period, j::period].mean() for i in range(period) for j in range(period)])
-    ratio = float(means.min() / means.max()) if float(means.max()) > 0 else 1.0
     return CfaOffsetEstimate((oy, ox), residuals, (wy, wx, wh, ww), margin, phase_ratio=ratio)
 
 
