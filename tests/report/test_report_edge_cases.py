@@ -456,6 +456,16 @@ def test_camera_figures_draw_the_designed_doe_not_a_draw_of_its_fabrication_nois
     assert "without the fabrication noise σ_p = 40 nm" in captions[0]["doe.png"]
     clean = figures.write_optics_figures(tiny_camera(), tmp_path, psf=True)
     assert "fabrication noise" not in clean["psf.png"] + clean["doe.png"]
+    # the demo's psf.npy / doe_height_m.npy beside them: the same design (a fresh draw each before; the review)
+    for k in (1, 2):
+        (tmp_path / str(k)).mkdir()
+        info = figures.write_psf_outputs(cam, tmp_path / str(k), design=True)
+    assert info["heights"] == "the design, without the fabrication noise σ_p = 40 nm"
+    np.testing.assert_array_equal(np.load(tmp_path / "1" / "psf.npy"), np.load(tmp_path / "2" / "psf.npy"))
+    np.testing.assert_array_equal(np.load(tmp_path / "1" / "doe_height_m.npy"), nominal_heights(cam).numpy())
+    np.testing.assert_allclose(np.load(tmp_path / "1" / "psf.npy"), design_psf, rtol=0, atol=1e-7)
+    drawn_once = figures.write_psf_outputs(cam, tmp_path / "1", torch.Generator().manual_seed(0))
+    assert drawn_once["heights"] == "one draw of the fabrication noise σ_p = 40 nm"
 
 
 def test_an_experiment_report_draws_cameras_only_of_runs_with_weights(tmp_path):

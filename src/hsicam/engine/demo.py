@@ -162,7 +162,7 @@ def _run_demo(cfg: Config, out: Path) -> dict[str, Any]:
                     + "".join(f"- {r['method']}: {means_line(r['mean'])}\n" for r in summary["heldout"]["references"])
                     if "heldout" in summary else ""))
     if model.camera.kind == "doe":
-        write_psf_outputs(model.camera, out)
+        write_psf_outputs(model.camera, out, design=True)  # the element doe.png draws (σ_p left out, said)
         write_optics_figures(model.camera, out)
     plot_reconstructions(results, bands, out / "reconstructions.png")
     plot_training_curves(run / "metrics.jsonl", out / "training.png", cfg.train.loss_formula())

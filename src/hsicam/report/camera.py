@@ -190,15 +190,17 @@ def plot_doe_heights(height_m: np.ndarray, aperture: np.ndarray, cell_um: float,
     save_figure(fig, path)
 
 
-def write_psf_outputs(camera, out: Path, generator: torch.Generator | None = None) -> dict:
+def write_psf_outputs(camera, out: Path, generator: torch.Generator | None = None, design: bool = False) -> dict:
     """psf.npy (C, K, K float32), psf.json (geometry, model, energy per band), psf.png (montage),
     and what is needed to recompute the PSFs independently: doe_height_m.npy (heights per DOE
     cell, m, (n, n) float64, exactly those used, fabrication noise included when enabled, drawn from
-    ``generator``: the same element for the same seed) and aperture.npy (transmission per pupil cell,
+    ``generator``: the same element for the same seed; ``design``: the heights without it, as the camera figures
+    draw them, psf.json's ``heights`` says which) and aperture.npy (transmission per pupil cell,
     (n·q, n·q) float64, area fraction in the circle). A measured-PSF camera writes the PSFs it images with."""
     optics = camera.optics
+    sigma_nm = optics.doe.sigma_height_m * 1e9 if optics.doe.enabled else 0.0
     with torch.no_grad():
-        heights = optics.doe.heights(generator)
+        heights = optics.doe.heights(generator, noise=not design)
         res = camera.psf_result() if camera.kind == "measured_psf" else optics.psf_from_pupil(optics.expand_cells(heights))
     psf = res.psf.float().cpu().numpy()
     desc = optics.describe()
@@ -213,6 +215,9 @@ def write_psf_outputs(camera, out: Path, generator: torch.Generator | None = Non
         "aperture_radius_mm": desc["aperture_radius_mm"],
         "sampling": desc["sampling"],
         "model": desc["model"] if camera.kind != "measured_psf" else "measured PSFs (imported, fixed)",
+        **({"heights": (f"the design, without the fabrication noise σ_p = {sigma_nm:g} nm" if design else
+                        f"one draw of the fabrication noise σ_p = {sigma_nm:g} nm")}
+           if sigma_nm > 0 and camera.kind != "measured_psf" else {}),
         "files": {
             "doe_height_m.npy": f"DOE heights (m) per {optics.cell_m * 1e6:g} µm cell, {optics.doe.n_cells}x{optics.doe.n_cells}, "
                                 "row = y, column = x, centre cell on the optical axis",
@@ -242,7 +247,8 @@ def write_optics_figures(camera, out: Path, prefix: str = "", psf: bool = False)
     out, written = Path(out), {}
     optics = getattr(camera, "optics", None)
     doe_on = optics is not None and optics.doe.enabled  # no DOE (h = 0): no height map to draw (export-optics: none)
-    sigma_nm = optics.doe.sigma_height_m * 1e9 if doe_on else 0.0
+    # (a measured-PSF camera images with its measured PSFs, no σ_p: nothing left out to say)
+    sigma_nm = optics.doe.sigma_height_m * 1e9 if doe_on and getattr(camera, "kind", "") != "measured_psf" else 0.0
     design = (f"; the design, without the fabrication noise σ_p = {sigma_nm:g} nm each capture draws"
               if sigma_nm > 0 else "")
     with torch.no_grad():
@@ -251,7 +257,7 @@ def write_optics_figures(camera, out: Path, prefix: str = "", psf: bool = False)
                    else camera.psf_result())
             if not bool(torch.isfinite(res.psf).all()):  # a damaged camera (e.g. DOE heights of 1e38 m), not a figure
                 raise InputError(f"its PSF holds {int((~torch.isfinite(res.psf)).sum())} NaN/Inf value(s) (DOE heights "
-                                 f"up to {float(camera.optics.doe.heights().abs().max()):.3g} m)"
+                                 f"up to {float(camera.optics.doe.heights(noise=False).abs().max()):.3g} m)"
                                  if getattr(camera, "optics", None) is not None else "its PSF holds NaN/Inf values")
             crop = plot_psf_montage(res.psf.float().cpu().numpy(), camera.bands, out / f"{prefix}psf.png")
             written[f"{prefix}psf.png"] = (f"PSF per band (log scale, central {crop}×{crop} px) and encircled energy; "
