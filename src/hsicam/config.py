@@ -912,7 +912,9 @@ def _check_at_least(section: str, low: int, **values) -> None:
 class GAPTVConfig:
     """GAP-TV (hsicam.solvers.gaptv): accelerated GAP + spatial TV denoising. The defaults were tuned
     on training scenes, never the scored ones (``scripts/tune_gaptv.py``, docs/training_log.md): on the
-    quick data's DD-CASSI camera 80 iterations stop ~2 dB short of convergence, 400 are within ~0.2 dB."""
+    quick data's DD-CASSI camera 80 iterations score ~2 dB below 400 on the mean over those scenes, and more add
+    ~0.2 dB. Per scene the accelerated GAP is not monotone: a textured scene can lose 2 dB from 40 to 400 iterations
+    while a smooth one gains 14 (session 74's audit), so 400 is the mean's best, not every scene's."""
 
     iterations: int = 400
     tv_weight: float = 0.01  # λ of ½‖u − x‖² + λ·TV(u), cube values in [0, 1] (0.01–0.03 and 0.1→0.01: ties)

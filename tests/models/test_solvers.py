@@ -568,3 +568,33 @@ def test_solver_setting_refusals(tiny_camera):
     with pytest.raises(InputError) as exc:
         gap_tv(doe, torch.zeros(1, 1, h, w))
     assert str(exc.value) == "GAP-TV needs a camera whose ΦΦᵀ is diagonal (a CASSI camera): DOECamera: A·Aᵀ is not diagonal"
+
+
+def test_admm_carries_its_multiplier_over_when_rho_grows():
+    """The scaled dual u = λ/ρ must be divided by ρ's growth when ρ grows, so the multiplier λ carries over (Boyd et
+    al. 2011, §3.4.1); it was left as it was (session 74's audit of the baselines: ~0.01 dB). Checked against a
+    textbook ADMM with varying ρ written here in the unscaled dual λ (the same x- and z-updates)."""
+    from hsicam.solvers.choi import _prior_grad
+
+    cam = cassi("dd_cassi", 6)
+    prior = _tiny_prior(6)
+    truth = piecewise_constant_cube(6, 16, 16, seed=4)
+    y = cam.A(truth)
+    s = ChoiConfig(iterations=6, rho=0.5, rho_growth=1.3, prior_weight=0.5, tv_weight=0.002, inner_steps=2,
+                   init_iterations=0)
+    x0 = cam.A_adjoint(y / cam.gram_diagonal(y))
+    got = admm_prior(cam, y, prior, s, x0=x0)
+    phi = cam.gram_diagonal(y)
+    m = float(phi.mean())
+    z, lam, rho = x0.clone(), torch.zeros_like(x0), s.rho
+    with torch.no_grad():
+        for _ in range(s.iterations):
+            v = z - lam / rho  # argmin ½‖ỹ − Φ̃x‖² + λᵀ(x − z) + ρ/2‖x − z‖²
+            x = v + cam.A_adjoint((y - cam.A(v)) / m / (phi / m + rho))
+            w = x + lam / rho
+            step = 1.0 / (rho + 4.0 * s.prior_weight)
+            for _ in range(s.inner_steps):
+                z = tv_denoise(z - step * (s.prior_weight * _prior_grad(prior, z) + rho * (z - w)), step * s.tv_weight, 5)
+            lam = lam + rho * (x - z)
+            rho *= s.rho_growth
+    torch.testing.assert_close(got, z, rtol=1e-10, atol=1e-12)

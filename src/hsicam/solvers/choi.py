@@ -121,6 +121,9 @@ def admm_prior(camera, y: torch.Tensor, prior: nn.Module, settings: ChoiConfig |
         if return_info:
             info.objective.append(choi_objective(camera, run_prior, z, y, scale, s.prior_weight, s.tv_weight))
             info.residual.append(camera.relative_residual(z, y))
+        # u is the scaled dual (the multiplier over ρ): when ρ grows it shrinks by the same factor, so the multiplier
+        # carries over (Boyd et al. 2011, §3.4.1; session 74's audit: ~0.01 dB, correct either way)
+        u = u / s.rho_growth
         rho *= s.rho_growth
     info.iterations = s.iterations
     info.runtime_s = time.perf_counter() - t0
