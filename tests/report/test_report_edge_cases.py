@@ -189,7 +189,6 @@ def _complete_folder(tmp_path, name: str, data: dict):
 
 def _cells(page: str) -> list[list[str]]:
     """The table rows of a report page, as lists of cell texts (an independent read of the HTML)."""
-    import re
 
     return [re.findall(r"<t[dh]>(.*?)</t[dh]>", row) for row in re.findall(r"<tr>(.*?)</tr>", page)]
 
@@ -251,6 +250,14 @@ def test_a_moved_demo_folders_report_draws_the_camera_of_the_run_beside_its_resu
     src = resolve_run("pretrained:standard")
     sha = file_sha256(root_weights_path(src))
     monkeypatch.chdir(tmp_path)
+    # and a new demo's run at the old place, other weights: the scored one beside results.json is read (the review)
+    from safetensors.torch import load_file, save_file
+
+    new = shutil.copytree(src, tmp_path / "runs" / "demo" / "run")
+    tensors = load_file(new / "model.safetensors")
+    key = next(iter(tensors))
+    tensors[key] = tensors[key] + 1e-3
+    save_file(tensors, new / "model.safetensors")
     pages = {}
     for name, recorded in (("same", sha), ("other", "0" * 64)):
         (tmp_path / name).mkdir()
@@ -260,7 +267,11 @@ def test_a_moved_demo_folders_report_draws_the_camera_of_the_run_beside_its_resu
         shutil.copytree(src, d / "run")
         pages[name] = html.unescape(build_report(d).read_text(encoding="utf-8"))
     assert "<h2>Camera (runs/demo/run)</h2>" in pages["same"] and "unavailable" not in pages["same"]
-    assert "<h2>Camera" not in pages["other"] and "changed since these results were scored" in pages["other"]
+    # no run with the recorded weights: none drawn (the new run at the old place, whose weights are others and whose
+    # linear step was fitted through the old ones, is said to be unavailable)
+    assert "<h2>Camera" not in pages["other"]
+    assert "camera figures unavailable: runs/demo/run/linear_step.safetensors was fitted through other weights" \
+        in pages["other"]
 
 
 # ------------------------------------------------------------------------------------------------

@@ -241,7 +241,9 @@ def test_an_experiment_report_draws_a_runs_camera_only_while_its_weights_are_the
     assert "<h2>Camera (runs/no-doe)</h2>" not in page
     assert ("camera figures left out: the weights of runs/no-doe changed since these results were scored (sha256 "
             f"000000000000… then, {sha[:12]}… now: trained on, or replaced), so its camera now is not the one scored; "
-            "run `hsicam experiment ablation` into this folder again for its current camera") in page
+            f"score it as it is now with `hsicam evaluate --run {d / 'runs' / 'no-doe'}`, or delete it and run `hsicam "
+            "experiment ablation` into this folder again (a run trained on since is not the experiment's and is "
+            "refused) for its current camera") in page
     assert page.count("camera figures left out") == 1
 
 

@@ -351,17 +351,28 @@ def _evaluated_run(res: dict, folder: Path) -> Path:
     read (``run`` is its label: ``pretrained:NAME`` for a shipped camera), when it is still there; else
     ``run`` (a results.json from before run_path, or from another machine: a run folder, or
     ``pretrained:NAME``, which :func:`hsicam.runs.folder.load_run` finds among this installation's cameras); else,
-    a relative ``run`` found from neither, the results ``folder``'s own sub-folder of its name (the demo's layout,
-    DIR/results.json beside DIR/run, copied or moved elsewhere: its camera figures were all left out). The weights'
-    hash the results record still decides whether that run's camera is drawn (:func:`_camera_section`)."""
-    path = res.get("run_path")
-    if isinstance(path, str) and path and Path(path).is_dir():
-        return Path(path)
+    a relative ``run``, the results ``folder``'s own sub-folder of its name (the demo's layout, DIR/results.json
+    beside DIR/run, copied or moved elsewhere: its camera figures were all left out). Of those that exist, the first
+    whose weights are the ones the results record (``weights_sha256``): an archived demo's report read the new run
+    at the old place before the scored one beside it (session 74's review); else the first, whose camera
+    :func:`_camera_section` then leaves out, saying why."""
+    from hsicam.runs.checkpoint import file_sha256, root_weights_path
+
     run = Path(str(res["run"]))
-    beside = folder / run.name
-    if not run.is_absolute() and not run.exists() and not str(run).startswith("pretrained:") and beside.is_dir():
-        return beside
-    return run
+    path = res.get("run_path")
+    candidates = [Path(path)] if isinstance(path, str) and path else []
+    candidates.append(run)
+    if not run.is_absolute() and not str(run).startswith("pretrained:"):
+        candidates.append(folder / run.name)
+    found = [c for c in candidates if c.is_dir()]
+    sha = res.get("weights_sha256")
+    for c in found if isinstance(sha, str) else ():
+        try:
+            if file_sha256(root_weights_path(c)) == sha:
+                return c
+        except (InputError, OSError):  # not a run folder with weights: another candidate may be
+            continue
+    return found[0] if found else run
 
 
 def _experiment_sections(folder: Path, out: Path, exp: dict) -> list[str]:
@@ -408,7 +419,9 @@ def _experiment_sections(folder: Path, out: Path, exp: dict) -> list[str]:
     for i, run in enumerate(runs):
         parts.append(_camera_section(run, out, prefix=f"{i:02d}_", label=f"runs/{run.name}",
                                      scored_sha256=scored.get(run.name),
-                                     rescore=f"run `hsicam experiment {exp['experiment']}` into this folder again"))
+                                     rescore=f"score it as it is now with `hsicam evaluate --run {run}`, or delete it and "
+                                             f"run `hsicam experiment {exp['experiment']}` into this folder again (a "
+                                             "run trained on since is not the experiment's and is refused)"))
     return parts
 
 
