@@ -189,6 +189,7 @@ def _complete_folder(tmp_path, name: str, data: dict):
 
 def _cells(page: str) -> list[list[str]]:
     """The table rows of a report page, as lists of cell texts (an independent read of the HTML)."""
+    import re
 
     return [re.findall(r"<t[dh]>(.*?)</t[dh]>", row) for row in re.findall(r"<tr>(.*?)</tr>", page)]
 
