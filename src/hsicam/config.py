@@ -1433,13 +1433,13 @@ RUNTIME_ONLY_KEYS = (
 )
 
 
-def training_differences(have: Config, want: Config, limit: int = 3) -> list[str]:
+def training_differences(have: Config, want: Config, limit: int = 3, runtime: bool = False) -> list[str]:
     """The first ``limit`` settings (``"key: have → want"``) in which two configs train different
-    cameras; keys in :data:`RUNTIME_ONLY_KEYS` (and below them) are ignored. Empty: the same."""
+    cameras; keys in :data:`RUNTIME_ONLY_KEYS` (and below them) are ignored unless ``runtime``. Empty: the same."""
     out: list[str] = []
 
     def walk(a: Any, b: Any, where: str) -> None:
-        if any(where == k or where.startswith(k + ".") for k in RUNTIME_ONLY_KEYS):
+        if not runtime and any(where == k or where.startswith(k + ".") for k in RUNTIME_ONLY_KEYS):
             return
         if isinstance(a, dict) and isinstance(b, dict):
             for key in sorted(a.keys() | b.keys()):

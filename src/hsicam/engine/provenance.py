@@ -325,16 +325,17 @@ def software_record(device: str, world_size: int = 1) -> dict[str, Any]:
 
 
 def resumed_config_changes(run_dir: str | Path, cfg) -> list[str]:
-    """The settings (``"key: before → now"``, runtime-only keys left out: :func:`hsicam.config.training_differences`)
-    in which ``cfg``, the config a resume goes on with, differs from the run's config.yaml before the resume rewrites
-    it; [] when the same or unreadable (the resume's own checks refuse a damaged one)."""
+    """The settings (``"key: before → now"``, runtime keys too: ``train.deterministic`` moves the weights' last bits;
+    :func:`hsicam.config.training_differences`) in which ``cfg``, the config a resume goes on with, differs from the
+    run's config.yaml before the resume rewrites it; [] when the same or unreadable (the resume's own checks refuse a
+    damaged one)."""
     from hsicam.config import load_config, training_differences
 
     try:
         before = load_config(Path(run_dir) / "config.yaml")
     except (ConfigError, InputError, OSError):
         return []
-    return training_differences(before, cfg, limit=1_000_000)
+    return training_differences(before, cfg, limit=1_000_000, runtime=True)
 
 
 def _records(run_dir: str | Path) -> list[dict[str, Any]]:
