@@ -8,6 +8,8 @@ constant complex transmission u_c, contributes its analytic transform
 summed over all cells (every diffraction order kept), |·|² / (λ z)², and each sensor pixel is
 integrated by the midpoint rule on ``sub``×``sub`` points. Normalised by the pupil power
 Σ|u_c|² Δ² (the light through the pupil), so pixel values are energy fractions.
+
+Also the band rule's Gaussian width by brute force (:func:`interpolant_gaussian_sigma`).
 """
 
 from __future__ import annotations
@@ -108,3 +110,40 @@ def reference_measurement(x: np.ndarray, psf: np.ndarray, weights: np.ndarray | 
         m = t.shape[-1]
         kappa = np.tile(t, (1, -(-h // m), -(-w // m)))[:, :h, :w]
     return (out * kappa[None]).sum(axis=1, keepdims=True)
+
+
+def interpolant_gaussian_sigma(source_nm, centre: float, kernel_sigma: float) -> float:
+    """σ' (nm) of the Gaussian whose average of the linear interpolant of samples at ``source_nm`` spreads a line at
+    ``centre`` by ``kernel_sigma``² (session 74's band rule, :func:`hsicam.spectral.bands.resampling_matrix`): the
+    σ' with σ'² + h²·E[t(1 − t)] = kernel_sigma², t the place within its step h (the step around ``centre``) of
+    x ~ N(centre, σ'²); 0 when the interpolation at ``centre`` alone, t(1 − t)h², spreads it more. Brute force:
+    bisection on a trapezoid expectation over ±8σ' (40 001 nodes), written here independently of the module's
+    Fourier series."""
+    import math
+
+    import numpy as np
+
+    s = np.asarray(source_nm, dtype=np.float64)
+    j = min(max(int(np.searchsorted(s, centre, side="right")) - 1, 0), len(s) - 2)
+    h = s[j + 1] - s[j]
+    target = kernel_sigma * kernel_sigma
+
+    def spread(sig: float) -> float:
+        if sig == 0:
+            t = (centre - s[j]) / h
+            return h * h * t * (1 - t)
+        x = np.linspace(centre - 8 * sig, centre + 8 * sig, 40_001)
+        g = np.exp(-0.5 * ((x - centre) / sig) ** 2)
+        t = np.mod((x - s[j]) / h, 1.0)
+        return sig * sig + h * h * float(np.trapezoid(g * t * (1 - t), x) / np.trapezoid(g, x))
+
+    if spread(0.0) >= target:
+        return 0.0
+    lo, hi = 0.0, math.sqrt(target)
+    for _ in range(50):
+        mid = (lo + hi) / 2
+        if spread(mid) < target:
+            lo = mid
+        else:
+            hi = mid
+    return (lo + hi) / 2

@@ -147,9 +147,16 @@ def test_envi_without_gains_is_read_as_before(tmp_path):
 def band_reference(source_nm: np.ndarray, values: np.ndarray, centre: float, fwhm: float,
                    source_fwhm: float) -> float:
     """The reference, written out here: the source's linear interpolant (``np.interp``) integrated
-    (trapezoid, 40 001 nodes) over a Gaussian of FWHM √(fwhm² − source_fwhm²), the width the source's
-    own bands lack, cut at 3 σ or at the centre's distance to the nearer end of the data (symmetric)."""
-    sigma = math.sqrt(fwhm**2 - source_fwhm**2) / (2.0 * math.sqrt(2.0 * math.log(2.0)))
+    (trapezoid, 40 001 nodes) over a Gaussian whose average of the interpolant spreads a line by the width the
+    source's own bands lack, √(fwhm² − source_fwhm²) (tests/optics_reference.py; session 74: the Gaussian itself
+    had that width, and the bands came out wider than declared), cut at 3 σ or at the centre's distance to the
+    nearer end of the data (symmetric); the point sample where no Gaussian is left."""
+    from optics_reference import interpolant_gaussian_sigma
+
+    sigma = interpolant_gaussian_sigma(source_nm, centre,
+                                       math.sqrt(fwhm**2 - source_fwhm**2) / (2.0 * math.sqrt(2.0 * math.log(2.0))))
+    if sigma < 1e-6:
+        return float(np.interp(centre, source_nm, values))
     r = min(3.0 * sigma, centre - source_nm[0], source_nm[-1] - centre)
     x = np.linspace(centre - r, centre + r, 40001)
     g = np.exp(-0.5 * ((x - centre) / sigma) ** 2)
@@ -186,8 +193,8 @@ def test_fine_resampling_is_the_integrated_interpolant_on_every_band():
 
 
 def test_bands_wider_than_the_data_integrate_them_with_the_width_the_data_lack():
-    """10 nm data onto 20 nm bands (the default FWHM: the step) integrate over √(20² − 10²) nm; the same
-    samples declared 2 nm wide integrate over √(20² − 2²) nm: the source's own FWHM counts."""
+    """10 nm data onto 20 nm bands (the default FWHM: the step) add √(20² − 10²) nm of width; the same
+    samples declared 2 nm wide add √(20² − 2²) nm: the source's own FWHM counts."""
     values = np.random.default_rng(4).random(33)
     dst = Bands.uniform(420.0, 700.0, 20.0)
     for source_fwhm in (10.0, 2.0):

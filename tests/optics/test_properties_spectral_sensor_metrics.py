@@ -228,8 +228,11 @@ def test_poisson_gaussian_statistics(seed, level, full_well, read, dtype):
 @given(seed=seeds, n=st.integers(2, 25), step=st.floats(0.2, 20.0), fwhm_factor=st.floats(1.2, 8.0),
        pos=st.floats(0.0, 1.0))
 def test_wide_band_is_the_gaussian_integral_of_the_interpolant(seed, n, step, fwhm_factor, pos):
-    """A band wider than the source's: ∫ interp(s, v)(x) G_f(x − c) dx / ∫ G_f over the symmetric reach
-    min(3σ, distance to the nearer end), f = √(f_dst² − f_src²) (brute force: 200001 nodes, np.interp, trapz).
+    """A band wider than the source's: ∫ interp(s, v)(x) G_σ'(x − c) dx / ∫ G_σ' over the symmetric reach
+    min(3σ', distance to the nearer end) (brute force: 200001 nodes, np.interp, trapz), σ' the Gaussian whose
+    spread σ'² + h²·E[t(1 − t)] (the interpolant's second moment about c; t the place of x ~ N(c, σ'²) within the
+    data's step h around c) is the kernel's σ² = (f_dst² − f_src²)/(8 ln 2) (session 74): tests/optics_reference.py's
+    brute-force bisection.
     Tolerance 1e-4 of the values' scale: the module's trapezoid on 0.05 nm nodes does not put a node on the
     interpolant's kinks (source centres), an error of up to ~2e-5 (measured: 0.353070 vs 0.353065 on 3 bands)."""
     rng = np.random.default_rng(seed)
@@ -238,8 +241,9 @@ def test_wide_band_is_the_gaussian_integral_of_the_interpolant(seed, n, step, fw
     c = s[0] + pos * (s[-1] - s[0])
     dst = Bands([c], [fwhm_factor * step])
     v = rng.random(n)
-    f = math.sqrt((fwhm_factor * step) ** 2 - step**2)
-    sigma = f / (2 * math.sqrt(2 * math.log(2)))
+    from optics_reference import interpolant_gaussian_sigma
+
+    sigma = interpolant_gaussian_sigma(s, c, math.sqrt(((fwhm_factor * step) ** 2 - step**2) / (8 * math.log(2))))
     reach = max(min(3 * sigma, c - s[0], s[-1] - c), 0.0)
     got = float((resampling_matrix(src, dst) @ v)[0])
     if reach == 0.0:
@@ -344,3 +348,24 @@ def test_poisson_gaussian_noise_of_a_half_precision_image_counts_beyond_65504_el
     assert float(out.float().mean()) == pytest.approx(0.9, abs=5 * math.sqrt(var / out.numel()) + step)
     if var > 10 * step**2:  # the shot noise spans several half-precision steps: its variance is measurable
         assert float(out.float().var()) == pytest.approx(var, rel=0.15)
+
+
+@pytest.mark.parametrize("step, f_src, f_dst", [(5.0, 5.0, 10.0), (10.0, 10.0, 20.0), (1.0, 1.0, 10.0), (5.0, 5.0, 25.0)])
+def test_resampled_bands_are_as_wide_as_declared(step, f_src, f_dst):
+    """Data of Gaussian bands f_src every ``step`` nm resampled onto bands of FWHM f_dst: the composite response of a
+    resampled band to a line at λ (Σ_j W_ij · the source band j's normalised response at λ) has the band's width,
+    its second moment's FWHM within 2 % of f_dst (session 74's audit: 5 → 10 nm gave 11.0 nm, 10 → 20 nm 22.0: the
+    interpolant's own blur was added on top), its centroid on the band's centre and unit area."""
+    s = np.arange(400.0, 800.0 + step / 2, step)
+    src, dst = Bands(s, np.full(len(s), f_src)), Bands([587.0, 600.0], [f_dst, f_dst])
+    w = resampling_matrix(src, dst)
+    lam = np.arange(450.0, 750.0, 0.01)
+    sig_src = f_src / (2 * math.sqrt(2 * math.log(2)))
+    r = np.exp(-0.5 * ((lam[None, :] - s[:, None]) / sig_src) ** 2) / (sig_src * math.sqrt(2 * math.pi))
+    for i, c in enumerate(dst.centers_nm):
+        resp = w[i] @ r
+        area = np.trapezoid(resp, lam)
+        mean = np.trapezoid(lam * resp, lam) / area
+        fwhm = 2 * math.sqrt(2 * math.log(2)) * math.sqrt(np.trapezoid((lam - mean) ** 2 * resp, lam) / area)
+        assert area == pytest.approx(1.0, abs=1e-6) and mean == pytest.approx(c, abs=1e-3)
+        assert fwhm == pytest.approx(f_dst, rel=0.02), (c, fwhm)
