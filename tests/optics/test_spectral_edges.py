@@ -9,7 +9,6 @@ import math
 import numpy as np
 import pytest
 import torch
-from scipy import integrate
 
 from hsicam.data.cube import conform_bands
 from hsicam.errors import InputError
