@@ -1060,7 +1060,7 @@ class Config:
 
     def _check_material_ranges(self) -> None:
         """Each material the camera uses has a refractive index at the wavelengths it is evaluated at
-        (the PSF's: the band centres, or ``camera.psf.band_samples`` points within each FWHM; the
+        (the PSF's: the band centres, or ``camera.psf.band_samples`` Gauss–Hermite points of each band's Gaussian; the
         prism's: the centres) and at its design wavelength; a wavelength outside the formula's range
         used to fail as the camera was built, naming no key."""
         from hsicam.spectral.bands import band_sample_wavelengths

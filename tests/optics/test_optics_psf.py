@@ -647,18 +647,22 @@ def test_a_singlet_from_the_config_takes_its_radius_and_thickness_in_mm():
     np.testing.assert_allclose(lens.rear_principal_plane_m(lams), -3.5e-3 / n, rtol=1e-12)
 
 
-@pytest.mark.parametrize("m, offsets", [(2, (-1 / 4, 1 / 4)), (3, (-1 / 3, 0, 1 / 3))])
-def test_band_samples_average_sub_wavelengths_over_the_fwhm(tiny_config, m, offsets):
-    """band_samples = M: each band is the mean of the PSFs at the centres of M equal slices of its FWHM,
-    λ_c + (−1/4, 1/4)·FWHM for M = 2 and λ_c + (−1/3, 0, 1/3)·FWHM for M = 3, weighted by the band's Gaussian
-    exp(−4 ln 2 · (Δλ/FWHM)²). M = 2 too: an even count has no centre line (and only M = 1 skips the averaging)."""
+_S = 1.0 / (2.0 * math.sqrt(2.0 * math.log(2.0)))  # σ of a Gaussian per unit FWHM
+
+
+@pytest.mark.parametrize("m, offsets, weights", [(2, (-_S, _S), (0.5, 0.5)),
+                                                 (3, (-math.sqrt(3) * _S, 0, math.sqrt(3) * _S), (1 / 6, 2 / 3, 1 / 6))])
+def test_band_samples_average_sub_wavelengths_over_the_fwhm(tiny_config, m, offsets, weights):
+    """band_samples = M: each band is the weighted mean of the PSFs at the M Gauss–Hermite nodes of its Gaussian of
+    its FWHM (σ = FWHM / 2√(2 ln 2)): λ_c ± σ, weights ½, for M = 2; λ_c and λ_c ± √3·σ, weights 2/3 and 1/6, for
+    M = 3 (the closed forms). M = 2 too: an even count has no centre line (and only M = 1 skips the averaging).
+    Session 74: the band the data's resampling and the generator use, where M slices of ±FWHM/2 never reached it."""
     cam = DOECamera.from_config(tiny_config(f"camera.psf.band_samples={m}")).double()
     with torch.no_grad():
         banded = cam.psf_result()
     assert banded.psf.shape == (3, cam.kernel_px, cam.kernel_px)
     fwhm = cam.bands.fwhm_nm
-    w = np.exp(-4 * math.log(2) * np.array(offsets) ** 2)
-    w = w / w.sum()
+    w = np.array(weights)
     expected = 0
     for off, wi in zip(offsets, w):
         shifted = [f"bands.start_nm={500 + off * fwhm[0]}", f"bands.stop_nm={600 + off * fwhm[0]}", "bands.step_nm=50"]

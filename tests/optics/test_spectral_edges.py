@@ -136,16 +136,19 @@ def test_material_csv_with_a_byte_order_mark(tmp_path):
 FWHM_TO_SIGMA = 1.0 / (2.0 * math.sqrt(2.0 * math.log(2.0)))
 
 
-def test_band_sub_wavelengths_are_the_slice_midpoints_weighted_by_the_gaussian_of_the_fwhm():
-    """M sub-wavelengths at the midpoints of M equal slices of [c − f/2, c + f/2], weighted by the band's Gaussian
-    of FWHM f: the weight at an offset x is 2^(−(2x/f)²) of the centre's (half at ±f/2)."""
-    c, f, m = np.array([450.0, 600.0]), np.array([10.0, 24.0]), 4
-    lam, w = band_sample_wavelengths(c, f, m)
-    for i in range(len(c)):
-        edges = np.linspace(c[i] - f[i] / 2, c[i] + f[i] / 2, m + 1)
-        np.testing.assert_allclose(lam[i], 0.5 * (edges[:-1] + edges[1:]), rtol=0, atol=1e-9)
-        ref = 2.0 ** (-((2.0 * (lam[i] - c[i]) / f[i]) ** 2))
-        np.testing.assert_allclose(w[i], ref / ref.sum(), rtol=1e-12)
+def test_band_sub_wavelengths_are_the_gauss_hermite_nodes_of_the_bands_gaussian():
+    """M sub-wavelengths and weights of the band's Gaussian of FWHM f (σ = f·FWHM_TO_SIGMA): for M = 2 the nodes
+    c ± σ, weights ½; for M = 3 c and c ± √3·σ, weights 2/3 and 1/6 (the closed forms of Gauss–Hermite quadrature);
+    they average a line's response as the band that resampling and the generator use (session 74: the midpoints of
+    M slices of ±f/2 never reached it)."""
+    c, f = np.array([450.0, 600.0]), np.array([10.0, 24.0])
+    s = f * FWHM_TO_SIGMA
+    lam, w = band_sample_wavelengths(c, f, 2)
+    np.testing.assert_allclose(lam, np.stack([c - s, c + s], axis=1), rtol=0, atol=1e-9)
+    np.testing.assert_allclose(w, 0.5, rtol=1e-12)
+    lam, w = band_sample_wavelengths(c, f, 3)
+    np.testing.assert_allclose(lam, np.stack([c - math.sqrt(3) * s, c, c + math.sqrt(3) * s], axis=1), atol=1e-9)
+    np.testing.assert_allclose(w, np.tile([1 / 6, 2 / 3, 1 / 6], (2, 1)), rtol=1e-12)
 
 
 def test_a_target_band_beyond_the_source_by_a_fraction_of_a_nm_is_refused():

@@ -310,10 +310,13 @@ def resampling_matrix(src: Bands, dst: Bands) -> np.ndarray:
         n = int(np.ceil(reach / min(_QUADRATURE_STEP_NM, sigma[i] / 10.0)))
         if n == 0:  # the band sits on the data's end: nothing to average symmetrically
             continue
-        x = c + reach * np.arange(-n, n + 1) / n  # symmetric nodes (trapezoid: end weights halved)
-        g = np.exp(-0.5 * ((x - c) / sigma[i]) ** 2)
-        g[0] *= 0.5
-        g[-1] *= 0.5
+        # trapezoid nodes: uniform, plus the interpolant's kinks (the data's samples) and their mirrors about c, so
+        # the node set stays symmetric (a spectrum linear in wavelength is kept exactly) and every piece between
+        # nodes is linear (a kink between uniform nodes cost up to 3e-4 of the value: session 74)
+        kinks = s[(s > c - reach) & (s < c + reach)]
+        x = np.unique(np.concatenate([c + reach * np.arange(-n, n + 1) / n, kinks, 2 * c - kinks]))
+        dx = np.diff(x)
+        g = np.exp(-0.5 * ((x - c) / sigma[i]) ** 2) * (np.concatenate([dx, [0.0]]) + np.concatenate([[0.0], dx]))
         w[i] = (g / g.sum()) @ _interpolation_rows(s, x)
     return w
 
@@ -372,17 +375,20 @@ def resample_spectra(values: np.ndarray | torch.Tensor, src: Bands, dst: Bands, 
 
 
 def band_sample_wavelengths(centers_nm: np.ndarray, fwhm_nm: np.ndarray, samples: int) -> tuple[np.ndarray, np.ndarray]:
-    """Sub-wavelengths (nm) and weights, both (C, M), that average each band over its FWHM.
+    """Sub-wavelengths (nm) and weights, both (C, M), that average each band over its Gaussian response.
 
-    M = ``samples`` points at the centres of M equal slices of [λ_c − FWHM/2, λ_c + FWHM/2],
-    weighted by a Gaussian band shape of that FWHM (weights sum to 1 per band). M = 1: the centre.
+    M = ``samples`` Gauss–Hermite nodes of the band's Gaussian of its FWHM (σ = FWHM / 2√(2 ln 2)) and their
+    weights (summing to 1 per band): the average of a quantity polynomial in λ up to degree 2M − 1 over the band is
+    exact, and M → ∞ averages over the whole Gaussian, the band that resampling (:func:`resampling_matrix`) and the
+    generator (:func:`band_matrix`) use. M = 1: the centre. (Before session 74: M equal slices of ±FWHM/2, a band
+    of RMS width 2.6 nm for a declared 10 nm FWHM, which no M brought closer.)
     """
     c = np.asarray(centers_nm, dtype=np.float64).reshape(-1, 1)
     f = np.asarray(fwhm_nm, dtype=np.float64).reshape(-1, 1)
     m = int(samples)
     if m < 1:
         raise ValueError("band samples must be >= 1")
-    off = ((np.arange(m) + 0.5) / m - 0.5)[None, :]  # in FWHM units
-    lam = c + off * f
-    w = np.exp(-4.0 * math.log(2.0) * off**2) * np.ones_like(lam)
+    x, w = np.polynomial.hermite_e.hermegauss(m)  # probabilists' Hermite: weight e^{-x²/2}
+    lam = c + (f / (2.0 * math.sqrt(2.0 * math.log(2.0)))) * x[None, :]
+    w = w[None, :] * np.ones_like(lam)
     return lam, w / w.sum(axis=1, keepdims=True)
