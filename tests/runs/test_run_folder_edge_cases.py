@@ -400,3 +400,18 @@ def test_a_metrics_log_saved_on_windows_reads_the_same(tmp_path):
     path.write_bytes(b"\xef\xbb\xbf" + "".join(json.dumps(r) + "\r\n" for r in records).encode("utf-8"))
     assert MetricsLog(path, enabled=False).read() == records
     assert trained_generator_version(tmp_path) == 3
+
+
+def test_a_set_of_the_bands_widths_does_not_load_a_trained_run():
+    """The weights record the band centres only: `simulate --run RUN --set bands.fwhm_nm=40` on a run trained with
+    10 nm bands loaded, and resampled its scene over 40 nm bands (the sensor image 2.9 % off the run's own), where
+    `evaluate` refused the key (session 74's spectral audit). The run's own widths, or a --set naming them, load."""
+    from hsicam.errors import InputError
+    from hsicam.runs.folder import load_run
+
+    cfg, _ = load_run("pretrained:standard")
+    own = float(cfg.bands.to_bands().fwhm_nm[0])
+    with pytest.raises(InputError, match=r"^--set bands\.fwhm_nm=40: changes the FWHM of the bands .* was trained with "
+                                         rf"\({own:g}-{own:g} nm to 40-40 nm\)"):
+        load_run("pretrained:standard", overrides=("bands.fwhm_nm=40", "camera.boundary=same"))
+    load_run("pretrained:standard", overrides=(f"bands.fwhm_nm={own}", "camera.boundary=same"))

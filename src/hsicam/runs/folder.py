@@ -25,6 +25,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import torch
 
 from hsicam.errors import HsicamError, InputError
@@ -57,6 +58,20 @@ EMPTY_RUN_CONFIG = ("the run's config.yaml is damaged (training writes it in ful
                     "and network it describes): restore it from a copy of the run")
 
 
+def _check_same_band_widths(run_dir: Path, own, cfg, overrides: tuple[str, ...]) -> None:
+    """InputError when the ``--set`` keys ``overrides`` give the run's bands (same centres) other widths than its
+    config.yaml's: the FWHM sets how scenes are resampled onto the bands (and with ``camera.psf.band_samples`` the
+    PSFs), which the run was trained with; ``simulate --set bands.fwhm_nm=40`` was taken, its sensor image 2.9 % off
+    the run's own (session 74's spectral audit), where ``evaluate`` refused it."""
+    a, b = own.bands.to_bands(), cfg.bands.to_bands()
+    if len(a) == len(b) and a.matches(b) and not np.allclose(a.fwhm_nm, b.fwhm_nm, rtol=0, atol=1e-6):
+        keys = [o for o in overrides if str(o).split("=", 1)[0].strip().startswith("bands.")] or list(overrides)
+        raise InputError(f"--set {' '.join(map(str, keys))}: changes the FWHM of the bands {run_dir} was trained with "
+                         f"({a.fwhm_nm.min():g}-{a.fwhm_nm.max():g} nm to {b.fwhm_nm.min():g}-{b.fwhm_nm.max():g} nm); a "
+                         "trained run's camera, bands and network are fixed by its training (another design: hsicam "
+                         "train)")
+
+
 def load_run(run_dir: str | Path, device: torch.device | str = "cpu", overrides: tuple[str, ...] = (),
              linear_step: bool = True):
     """(config, CameraSystem) of a trained run, weights from ``RUN/model.safetensors``; a run
@@ -79,6 +94,8 @@ def load_run(run_dir: str | Path, device: torch.device | str = "cpu", overrides:
     check_is_run(run_dir)
     cfg_path = run_dir / "config.yaml"
     cfg = load_config(cfg_path, overrides, empty=EMPTY_RUN_CONFIG)
+    if overrides:  # the weights file records the band centres only: a --set of the bands' widths loaded silently
+        _check_same_band_widths(run_dir, load_config(cfg_path, (), empty=EMPTY_RUN_CONFIG), cfg, overrides)
     weights = run_dir / "model.safetensors"
     if not weights.is_file():
         damaged = damaged_weights_message(run_dir)  # a kept checkpoint to read them from, but damaged
