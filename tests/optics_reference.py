@@ -115,32 +115,38 @@ def reference_measurement(x: np.ndarray, psf: np.ndarray, weights: np.ndarray | 
 def interpolant_gaussian_sigma(source_nm, centre: float, kernel_sigma: float) -> float:
     """σ' (nm) of the Gaussian whose average of the linear interpolant of samples at ``source_nm`` spreads a line at
     ``centre`` by ``kernel_sigma``² (session 74's band rule, :func:`hsicam.spectral.bands.resampling_matrix`): the
-    σ' with σ'² + h²·E[t(1 − t)] = kernel_sigma², t the place within its step h (the step around ``centre``) of
-    x ~ N(centre, σ'²); 0 when the interpolation at ``centre`` alone, t(1 − t)h², spreads it more. Brute force:
-    bisection on a trapezoid expectation over ±8σ' (40 001 nodes), written here independently of the module's
-    Fourier series."""
+    σ' with E[(x − c)² + t(1 − t)h²] = kernel_sigma², x ~ N(centre, σ'²) cut at 3σ' or symmetrically at the nearer
+    end of the data, h the data's step around x and t the place of x within it; 0 when the point sample at ``centre``,
+    t(1 − t)h², spreads it more. Brute force, written here: bisection on a trapezoid expectation over 10 001
+    uniform nodes of the cut Gaussian (the module's quadrature puts nodes at the data's samples instead)."""
     import math
 
     import numpy as np
 
     s = np.asarray(source_nm, dtype=np.float64)
-    j = min(max(int(np.searchsorted(s, centre, side="right")) - 1, 0), len(s) - 2)
-    h = s[j + 1] - s[j]
     target = kernel_sigma * kernel_sigma
 
-    def spread(sig: float) -> float:
-        if sig == 0:
-            t = (centre - s[j]) / h
-            return h * h * t * (1 - t)
-        x = np.linspace(centre - 8 * sig, centre + 8 * sig, 40_001)
-        g = np.exp(-0.5 * ((x - centre) / sig) ** 2)
-        t = np.mod((x - s[j]) / h, 1.0)
-        return sig * sig + h * h * float(np.trapezoid(g * t * (1 - t), x) / np.trapezoid(g, x))
+    def spread_at(x, w):
+        j = np.clip(np.searchsorted(s, x, side="right") - 1, 0, len(s) - 2)
+        h = s[j + 1] - s[j]
+        t = np.clip((x - s[j]) / h, 0.0, 1.0)
+        return float(np.trapezoid(w * ((x - centre) ** 2 + t * (1 - t) * h * h), x) / np.trapezoid(w, x))
+
+    def spread(sig):
+        reach = max(min(3 * sig, centre - s[0], s[-1] - centre), 0.0)
+        if sig == 0:  # the point sample at the centre
+            j = min(max(int(np.searchsorted(s, centre, side="right")) - 1, 0), len(s) - 2)
+            t = (centre - s[j]) / (s[j + 1] - s[j])
+            return t * (1 - t) * (s[j + 1] - s[j]) ** 2
+        if reach == 0:
+            return 0.0
+        x = np.linspace(centre - reach, centre + reach, 10_001)
+        return spread_at(x, np.exp(-0.5 * ((x - centre) / sig) ** 2))
 
     if spread(0.0) >= target:
         return 0.0
     lo, hi = 0.0, math.sqrt(target)
-    for _ in range(50):
+    for _ in range(30):
         mid = (lo + hi) / 2
         if spread(mid) < target:
             lo = mid

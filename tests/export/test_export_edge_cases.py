@@ -29,7 +29,7 @@ def test_exported_aperture_is_each_cells_area_fraction_on_the_psfs_sub_points(ti
     exported per-cell aperture (module docstring) is the fraction of the cell's 16×16 sub-points inside the
     circle, by brute force here. The largest sample per cell instead of their mean exported grazed cells as fully
     open."""
-    from hsicam.export.doe import design_heights
+    from hsicam.optics.perturb import design_heights
 
     cam = tiny_camera("camera.psf.pupil_oversample=2")
     n, cell, radius = cam.optics.doe.n_cells, cam.optics.cell_m, cam.optics.aperture_radius_m

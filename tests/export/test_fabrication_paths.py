@@ -491,7 +491,7 @@ def test_a_run_trained_with_three_levels_exports_its_element_and_other_levels_ar
     (no GDS), and a --levels other than the run's is warned about."""
     import logging
 
-    from hsicam.export.doe import design_heights
+    from hsicam.optics.perturb import design_heights
     from hsicam.runs.folder import load_run
 
     run = tmp_path / "run3"

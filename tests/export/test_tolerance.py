@@ -592,7 +592,7 @@ def test_a_shift_brings_in_the_exported_surround_not_the_untrained_parameters(ti
     brought them inside it. It shifts the exported relief (design_heights: piston removed, 0 outside the aperture,
     the doe_height_nm file): a shifted element's PSF is the same whatever the parameters outside the aperture held,
     and unshifted it is the camera's up to the aperture's edge cells the oversampled pupil sees (session 73's hunt)."""
-    from hsicam.export.doe import design_heights
+    from hsicam.optics.perturb import design_heights
 
     cam = DOECamera.from_config(tiny_config())
     o = cam.optics

@@ -448,7 +448,7 @@ def test_camera_figures_draw_the_designed_doe_not_a_draw_of_its_fabrication_nois
     """With σ_p > 0 the DOE and PSF figures drew an unseeded noise draw each (another element at every call, neither
     the one simulated nor the one scored, and the two figures of one report showing two elements: session 74's figure
     hunt). They draw the design (the exported heights, the PSFs of those) and their captions say σ_p is left out."""
-    from hsicam.export.doe import design_heights
+    from hsicam.optics.perturb import design_heights
     from hsicam.optics.perturb import nominal_heights, psf_for_heights
     from hsicam.report import camera as figures
 

@@ -331,7 +331,7 @@ def run_tolerance(model, cfg, spec: ToleranceSpec | None = None, data: str | Pat
     with an ETA (:class:`hsicam.progress.Progress`; None: a bar on a terminal, lines otherwise; False: none)."""
     from hsicam.engine.evaluate import check_scenes
     from hsicam.engine.methods import Method
-    from hsicam.export.doe import design_heights
+    from hsicam.optics.perturb import design_heights
     from hsicam.export.tolerance import TOLERANCE_FORMAT, run_identity
     from hsicam.progress import Progress
 
@@ -470,7 +470,8 @@ def _sweep_height_noise(spec: ToleranceSpec, optics, h0: torch.Tensor, evaluate,
 
 def _sweep_levels(spec: ToleranceSpec, cam, evaluate, record) -> None:
     """Records each level count of ``spec.levels``."""
-    from hsicam.export.doe import design_heights, quantize_levels
+    from hsicam.export.doe import quantize_levels
+    from hsicam.optics.perturb import design_heights
 
     optics = cam.optics
     # quantisation: the exported L-level heights

@@ -35,27 +35,11 @@ from typing import Any
 import numpy as np
 
 from hsicam.config import is_power_of_two
+from hsicam.optics.perturb import design_heights
 from hsicam.errors import InputError
 from hsicam.io import atomic_open, atomic_path, save_figure, write_npy
 
 log = logging.getLogger(__name__)
-
-
-def design_heights(camera) -> tuple[np.ndarray, np.ndarray, float]:
-    """(heights m (n, n) float64 with the piston removed and 0 outside the aperture,
-    aperture fraction (n, n) float64, removed piston m) of a :class:`~hsicam.cameras.DOECamera`.
-
-    The heights are the DOE's effective design heights (its wrap/clamp/quantisation options
-    applied) without fabrication noise.
-    """
-    from hsicam.optics.perturb import nominal_heights
-
-    aperture = camera.optics.aperture_per_cell()
-    h = nominal_heights(camera).numpy()
-    inside = aperture > 0
-    piston = float(h[inside].min()) if inside.any() else 0.0
-    h = np.where(inside, h - piston, 0.0)
-    return h, aperture, piston
 
 
 def quantize_levels(height_m: np.ndarray, levels: int, top_m: float, wrap: bool = True) -> tuple[np.ndarray, np.ndarray]:

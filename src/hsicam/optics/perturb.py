@@ -26,6 +26,21 @@ def nominal_heights(camera) -> torch.Tensor:
         return camera.optics.doe.heights(noise=False).detach().cpu().double()
 
 
+def design_heights(camera) -> tuple[np.ndarray, np.ndarray, float]:
+    """(heights m (n, n) float64 with the piston removed and 0 outside the aperture,
+    aperture fraction (n, n) float64, removed piston m) of a :class:`~hsicam.cameras.DOECamera`.
+
+    The heights are the DOE's effective design heights (its wrap/clamp/quantisation options
+    applied) without fabrication noise.
+    """
+    aperture = camera.optics.aperture_per_cell()
+    h = nominal_heights(camera).numpy()
+    inside = aperture > 0
+    piston = float(h[inside].min()) if inside.any() else 0.0
+    h = np.where(inside, h - piston, 0.0)
+    return h, aperture, piston
+
+
 def defocus_delta_per_m2(optics, dz_m: float) -> torch.Tensor:
     """(π/λ)(1/(z_λ + Δz) − 1/z_λ) per simulated wavelength λ (rad/m²), float64 (C·M,): the band
     centres, or with ``band_samples`` M > 1 the M wavelengths over each band's FWHM at which the

@@ -176,7 +176,7 @@ def plot_cfa(tile: np.ndarray, bands: Bands, path: str | Path) -> None:
 
 def plot_doe_heights(height_m: np.ndarray, aperture: np.ndarray, cell_um: float, path: str | Path) -> None:
     """DOE height map in nm over the aperture (outside shown blank): ``height_m`` (n, n) above the lowest cell (the
-    piston removed, :func:`hsicam.export.doe.design_heights`), ``aperture`` (n, n) the open area fraction per cell."""
+    piston removed, :func:`hsicam.optics.perturb.design_heights`), ``aperture`` (n, n) the open area fraction per cell."""
     h = np.asarray(height_m, dtype=np.float64) * 1e9
     shown = np.where(np.asarray(aperture) > 0, h, np.nan)
     n = h.shape[0]
@@ -238,10 +238,10 @@ def write_optics_figures(camera, out: Path, prefix: str = "", psf: bool = False)
     (height map and aperture), ``{prefix}cfa.png`` (tile and transmission curves) — those the
     camera has. Returns {file name: caption}. The one place camera figures are drawn.
 
-    A DOE is drawn as designed (:func:`hsicam.export.doe.design_heights`: piston removed, as exported) and its PSFs
+    A DOE is drawn as designed (:func:`hsicam.optics.perturb.design_heights`: piston removed, as exported) and its PSFs
     of those heights: a camera with fabrication noise σ_p draws another element at every capture, and a figure of
     one unseeded draw was neither the element simulated nor the one scored (session 74's figure hunt)."""
-    from hsicam.export.doe import design_heights
+    from hsicam.optics.perturb import design_heights
     from hsicam.optics.perturb import nominal_heights, psf_for_heights
 
     out, written = Path(out), {}
