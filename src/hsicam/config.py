@@ -51,8 +51,10 @@ TOLERANCE_SEED_MAX = (SEED_MAX - TOLERANCE_DRAW_STRIDE + 1) // TOLERANCE_DRAW_ST
 
 
 #: The most wavelengths ``camera.psf.band_samples`` averages per band (a huge count ended in numpy's "Maximum allowed
-#: size exceeded", the key unnamed; within the bound the PSF sampling plan's memory check applies).
-MAX_BAND_SAMPLES = 1000
+#: size exceeded", the key unnamed; within the bound the PSF sampling plan's memory check applies). 100 since session
+#: 74: the Gauss–Hermite nodes of 371 or more overflow numpy's hermegauss (NaN PSFs, said by no check), and 15 already
+#: averages the paper diffuser's band within 0.3 % (docs/optics.md).
+MAX_BAND_SAMPLES = 100
 
 
 #: The most epochs ``train.epochs`` (and ``hsicam finetune --epochs``) takes: 10^4 times the paper's 100. A count far
@@ -297,7 +299,7 @@ class PSFConfig:
     kernel_px: Optional[int] = None  # odd; at least λ_max·z/Δ in pixels (141 for the paper optics); None: that minimum
     supersample: Optional[int] = None  # None: exact pixel integration; odd s: s×s midpoint rule (1: point values)
     pupil_oversample: int = 1  # q sub-cells per DOE cell: finer aperture edge and defocus (q² cost)
-    band_samples: int = 1  # wavelengths per band averaged over its FWHM (1: band centre; 3: ~3× cost)
+    band_samples: int = 1  # Gauss–Hermite wavelengths per band, over its Gaussian (1: band centre; 3: ~3× cost)
 
     def __post_init__(self) -> None:
         if self.kernel_px is not None and (self.kernel_px < 1 or self.kernel_px % 2 == 0):

@@ -410,10 +410,17 @@ def test_a_narrow_band_capture_is_not_read_for_its_phase(capture, narrow_band_ca
     assert err.value.phase_ratio < NARROW_BAND_PHASE_RATIO
     broad = estimate_cfa_offset(capture[0], capture[1], CHECK_WINDOW_PX, min_scored_px=MIN_SCORED_PX)
     assert broad.phase_ratio > 10 * NARROW_BAND_PHASE_RATIO and not broad.ambiguous
-    # the ratio, independently: medians of the 16 phases of the whole capture
-    whole = sensor[0, 0].numpy()
-    meds = [np.median(whole[i::4, j::4]) for i in range(4) for j in range(4)]
-    assert cfa_phase_ratio(sensor[0, 0], 4) == pytest.approx(max(min(meds), 0) / max(meds), abs=1e-12)
+    # the ratio, independently, on a capture whose bright phases matter: the capture's lit 4×4 cells (a tenth of the
+    # 99th percentile of the cells' brightest), the 16 phases' medians over them
+    rng = np.random.default_rng(1)
+    img = rng.uniform(0.2, 0.6, (64, 64))
+    img[::4, 1::4] *= 0.01  # one phase sees 1 % of the light
+    img[:32] = 0.0  # the top half black
+    cells = img.reshape(16, 4, 16, 4).transpose(0, 2, 1, 3).reshape(-1, 16)
+    lit = cells[cells.max(axis=1) > 0.1 * np.quantile(cells.max(axis=1), 0.99)]
+    meds = np.sort(lit, axis=0)[(len(lit) - 1) // 2]  # the lower median of an even count, as torch takes it
+    assert cfa_phase_ratio(torch.from_numpy(img), 4) == pytest.approx(meds.min() / meds.max(), rel=1e-12)
+    assert 0.005 < meds.min() / meds.max() < 0.05  # (the black half would have made every median 0)
     path = tmp_path / "led.npy"
     np.save(path, sensor[0, 0].numpy())
     with caplog.at_level(logging.INFO, logger="hsicam"):
@@ -428,3 +435,27 @@ def test_a_narrow_band_capture_is_not_read_for_its_phase(capture, narrow_band_ca
     assert res.returncode != 0 and "hsicam: error: --cfa-offset auto: its CFA phase cannot be read from it" in res.stderr
     assert "CFA offset: 1/16" not in res.stderr  # refused before any phase was scored
     assert not (tmp_path / "auto.h5").exists()
+
+
+def test_a_narrow_band_spot_on_black_is_told_and_a_broadband_one_is_not(capture):
+    """A 660 nm spot on black, quantised to 8 bits: more than half of every phase's pixels are 0, so the phase medians
+    over the whole window were all 0 and the capture was taken for a broadband one (ratio 1): the check warned of
+    "clearly another phase" and auto picked 3,0 (session 74's second review). The ratio is taken over the lit cells: a
+    narrow-band spot is told, the same spot under a broadband light is not (the ratio jumped 1.0 → 0 → 0.97 as a
+    broadband disc grew from 48 to 52 % of the window)."""
+    from hsicam.engine.cfa_offset import NARROW_BAND_PHASE_RATIO, cfa_phase_ratio
+
+    system, _ = capture
+    wl = system.camera.bands.centers_nm
+    yy, xx = np.mgrid[:200, :200]
+    texture = procedural_scene(wl).mean(axis=0)
+    for radius in (12, 60, 80):
+        disc = ((yy - 100) ** 2 + (xx - 100) ** 2 <= radius**2) * texture
+        for spectrum, narrow in ((np.exp(-0.5 * ((wl - 660.0) / (20.0 / 2.355)) ** 2), True),
+                                 (np.ones_like(wl), False)):
+            scene = torch.from_numpy((spectrum[:, None, None] * disc[None]).astype(np.float32))[None]
+            with torch.no_grad():
+                y = system.camera(scene)
+            y = torch.round(y / y.max() * 255) / 255  # 8 bits
+            ratio = cfa_phase_ratio(y[0, 0, 36:164, 36:164], 4)
+            assert (ratio < NARROW_BAND_PHASE_RATIO) is narrow, (radius, narrow, ratio)

@@ -415,3 +415,32 @@ def test_a_set_of_the_bands_widths_does_not_load_a_trained_run():
                                          rf"\({own:g}-{own:g} nm to 40-40 nm\)"):
         load_run("pretrained:standard", overrides=("bands.fwhm_nm=40", "camera.boundary=same"))
     load_run("pretrained:standard", overrides=(f"bands.fwhm_nm={own}", "camera.boundary=same"))
+
+
+def test_a_run_with_band_samples_from_before_the_gauss_hermite_rule_is_warned_about(tmp_path, caplog):
+    """Session 74 changed camera.psf.band_samples from ±FWHM/2 slices to the Gauss–Hermite wavelengths of each band's
+    Gaussian: a run trained before it with M > 1 was imaged with 2-3 % other PSFs, without a word (the second review).
+    Its first session record names no band_rules: warned about, once; a run recording them, or with M = 1, is not."""
+    import json
+    import logging
+    import shutil
+
+    from hsicam.runs import folder
+    from hsicam.runs.folder import load_run
+    from hsicam.runs.pretrained import resolve_run
+    from hsicam.spectral.bands import BAND_RULES_VERSION
+
+    for name, session, m in (("old", {"torch": "x"}, 3), ("new", {"torch": "x", "band_rules": BAND_RULES_VERSION}, 3),
+                             ("old1", {"torch": "x"}, 1)):
+        run = shutil.copytree(resolve_run("pretrained:standard"), tmp_path / name)
+        (run / "metrics.jsonl").write_text(json.dumps({"step": 0, "epoch": 0, "session": session}) + "\n")
+        text = (run / "config.yaml").read_text()
+        assert "band_samples: 1" in text
+        (run / "config.yaml").write_text(text.replace("band_samples: 1", f"band_samples: {m}"))
+    folder._BAND_RULES_WARNED.clear()
+    with caplog.at_level(logging.WARNING, logger="hsicam.runs.folder"):
+        for name in ("old", "old", "new"):
+            load_run(tmp_path / name)
+        load_run(tmp_path / "old1", overrides=("camera.psf.band_samples=3",))  # trained with M = 1: nothing to say
+    said = [r.getMessage() for r in caplog.records if "band_samples" in r.getMessage()]
+    assert len(said) == 1 and said[0].startswith(f"{tmp_path / 'old'}: trained with camera.psf.band_samples 3 over slices")

@@ -184,13 +184,22 @@ class NarrowBandCapture(InputError):
 
 
 def cfa_phase_ratio(window: torch.Tensor, period: int) -> float:
-    """The darkest CFA phase's median over the pixels of ``window`` (H, W) relative to the brightest phase's (0 when
-    negative; 1 when no phase's median is above 0). Medians, not means: a phase that sees no light holds the sensor's
-    noise, whose mean clipped at 0 is ~0.4 σ but whose median is 0 (with means, 0.1 % noise hid a 660 nm LED:
-    session 74's review). Phase (i, j) is the pixels (i + k·period, j + l·period) of the window."""
-    meds = torch.stack([window[i::period, j::period].median() for i in range(period) for j in range(period)]).double()
+    """The darkest CFA phase's median relative to the brightest phase's, over the lit CFA cells of ``window`` (H, W):
+    the period × period cells whose brightest pixel reaches a tenth of the 99th percentile of the cells' brightest
+    (a spot on black is judged on the spot, not on the black, whose every phase's median is 0). Medians, not means: a
+    phase that sees no light holds the sensor's noise, whose mean clipped at 0 is ~0.4 σ but whose median is 0 (with
+    means, 0.1 % noise hid a 660 nm LED: session 74's review). In [0, 1]; 0 when no phase's median in the lit cells
+    is above 0. Phase (i, j) is the pixels (i + k·period, j + l·period) of the window."""
+    h, w = (window.shape[-2] // period) * period, (window.shape[-1] // period) * period
+    cells = (window[:h, :w].double().reshape(h // period, period, w // period, period).permute(0, 2, 1, 3)
+             .reshape(-1, period * period))  # (cells, phases)
+    brightest = cells.amax(dim=1)
+    lit = cells[brightest > max(0.1 * float(torch.quantile(brightest, 0.99)), 0.0)]
+    if not len(lit):
+        return 1.0  # (a black window: estimate_cfa_offset refuses it before)
+    meds = lit.median(dim=0).values
     top = float(meds.max())
-    return max(float(meds.min()), 0.0) / top if top > 0 else 1.0
+    return max(float(meds.min()), 0.0) / top + 0.0 if top > 0 else 0.0  # (+ 0.0: never -0.0 from a rounded capture)
 
 
 @torch.no_grad()

@@ -36,6 +36,7 @@ from hsicam.config import DataConfig
 from hsicam.data.datasets import scene_path
 from hsicam.data.pipeline import dataset_root, scene_stat, split_dataset
 from hsicam.data.synthetic import GENERATOR_VERSION
+from hsicam.spectral.bands import BAND_RULES_VERSION
 from hsicam.errors import ConfigError, InputError
 from hsicam.io import write_json
 from hsicam.runs.folder import DATA_RECORD, MetricsLog
@@ -321,7 +322,7 @@ def software_record(device: str, world_size: int = 1) -> dict[str, Any]:
             "numpy": numpy.__version__, "python": platform.python_version(), "platform": platform.platform(),
             "executable": sys.executable, "device": str(device), "threads": torch.get_num_threads(),
             "world_size": int(world_size),
-            "synthetic_generator": GENERATOR_VERSION}
+            "synthetic_generator": GENERATOR_VERSION, "band_rules": BAND_RULES_VERSION}
 
 
 def resumed_config_changes(run_dir: str | Path, cfg) -> list[str]:

@@ -143,7 +143,7 @@ class PSFModel(nn.Module):
     plane H' at its design wavelength and defaults to the focal length there; the sensor plane is
     fixed, so a singlet whose H' moves with λ sees a slightly different distance per band.
     ``object_distance_m=None`` puts the object at infinity. ``supersample=None`` integrates each
-    pixel exactly; ``band_samples`` M > 1 averages each band over M wavelengths within its FWHM.
+    pixel exactly; ``band_samples`` M > 1 averages each band over M Gauss–Hermite wavelengths of its Gaussian.
     """
 
     def __init__(
@@ -374,7 +374,7 @@ class PSFModel(nn.Module):
                 "pixel_integration": "exact" if exact else f"midpoint {smp.supersample}x{smp.supersample}",
                 "band_samples": self.band_samples,
                 "band_integration": "band centre only" if self.band_samples == 1 else
-                    f"{self.band_samples} wavelengths over the FWHM, Gaussian weights",
+                    f"{self.band_samples} Gauss–Hermite wavelengths of each band's Gaussian (its FWHM), their weights",
                 "approximations": [
                     "aperture: each pupil cell transmits uniformly the fraction of its area inside the circle",
                     "residual defocus phase sampled at each pupil cell's centre (constant over the cell)",

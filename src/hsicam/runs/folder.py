@@ -58,6 +58,32 @@ EMPTY_RUN_CONFIG = ("the run's config.yaml is damaged (training writes it in ful
                     "and network it describes): restore it from a copy of the run")
 
 
+_BAND_RULES_WARNED: set[str] = set()
+
+
+def _warn_of_older_band_samples(run_dir: Path, cfg) -> None:
+    """Warn (once per run and process) when a run trained (``cfg``: its config.yaml's) with ``camera.psf.band_samples``
+    > 1 began before the band rules of
+    session 74 (its first session record names no ``band_rules``): it trained with PSFs averaged over ±FWHM/2 slices,
+    and this hsicam images it with Gauss–Hermite wavelengths of each band's Gaussian, 2-3 % other PSFs (the tiny
+    preset at M = 3: its kernel 21 → 23 px; session 74's second review). A shipped camera or a run without
+    metrics.jsonl says nothing (none used M > 1)."""
+    psf = getattr(getattr(cfg.camera, "psf", None), "band_samples", 1)
+    if psf <= 1 or str(run_dir) in _BAND_RULES_WARNED or not (run_dir / "metrics.jsonl").is_file():
+        return
+    try:
+        records = MetricsLog(run_dir / "metrics.jsonl", enabled=False).read()
+    except (InputError, OSError):
+        return
+    first = records[0].get("session") if records else None
+    if isinstance(first, dict) and "band_rules" not in first:
+        _BAND_RULES_WARNED.add(str(run_dir))
+        log.warning("%s: trained with camera.psf.band_samples %d over slices of ±FWHM/2 (an hsicam before session 74); "
+                    "this one averages each band over its whole Gaussian (Gauss–Hermite wavelengths), so the camera it "
+                    "images with differs from the trained one by a few %% of each PSF (docs/optics.md); train it again "
+                    "to score it as it is imaged now", run_dir, psf)
+
+
 def _check_same_band_widths(run_dir: Path, own, cfg, overrides: tuple[str, ...]) -> None:
     """InputError when the ``--set`` keys ``overrides`` give the run's bands (same centres) other widths than its
     config.yaml's: the FWHM sets how scenes are resampled onto the bands (and with ``camera.psf.band_samples`` the
@@ -94,8 +120,9 @@ def load_run(run_dir: str | Path, device: torch.device | str = "cpu", overrides:
     check_is_run(run_dir)
     cfg_path = run_dir / "config.yaml"
     cfg = load_config(cfg_path, overrides, empty=EMPTY_RUN_CONFIG)
+    own = load_config(cfg_path, (), empty=EMPTY_RUN_CONFIG) if overrides else cfg  # what it trained with
     if overrides:  # the weights file records the band centres only: a --set of the bands' widths loaded silently
-        _check_same_band_widths(run_dir, load_config(cfg_path, (), empty=EMPTY_RUN_CONFIG), cfg, overrides)
+        _check_same_band_widths(run_dir, own, cfg, overrides)
     weights = run_dir / "model.safetensors"
     if not weights.is_file():
         damaged = damaged_weights_message(run_dir)  # a kept checkpoint to read them from, but damaged
@@ -114,6 +141,7 @@ def load_run(run_dir: str | Path, device: torch.device | str = "cpu", overrides:
                          f"weights do not load ({exc}); a trained run's camera, bands and network are fixed by its "
                          "training (another design: hsicam train)") from None
     check_finite_weights(model, kept)
+    _warn_of_older_band_samples(run_dir, own)
     if linear_step and (run_dir / LINEAR_STEP_FILE).is_file():  # the linear step's filters (fitted after training)
         uses = cfg.model.consistency.kind == "linear" and cfg.model.consistency.iterations > 0
         try:

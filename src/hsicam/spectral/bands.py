@@ -400,13 +400,22 @@ def resample_spectra(values: np.ndarray | torch.Tensor, src: Bands, dst: Bands, 
     return np.moveaxis(moved @ w.T, -1, axis)
 
 
+#: The version of the band rules a run trains with, recorded in each training session (``band_rules``): 2 since
+#: session 74 (:func:`band_sample_wavelengths` by Gauss–Hermite nodes of the band's Gaussian, :func:`resampling_matrix`
+#: bands of their declared width); a run without it trained with ``camera.psf.band_samples`` over ±FWHM/2 slices.
+BAND_RULES_VERSION = 2
+
+#: :func:`band_sample_wavelengths` takes no wavelength farther than this many σ from a band's centre.
+BAND_SAMPLE_REACH_SIGMA = 4.0
+
+
 def band_sample_wavelengths(centers_nm: np.ndarray, fwhm_nm: np.ndarray, samples: int) -> tuple[np.ndarray, np.ndarray]:
     """Sub-wavelengths (nm) and weights, both (C, M), that average each band over its Gaussian response.
 
     M = ``samples`` Gauss–Hermite nodes of the band's Gaussian of its FWHM (σ = FWHM / 2√(2 ln 2)) and their
     weights (summing to 1 per band): the average of a quantity polynomial in λ up to degree 2M − 1 over the band is
-    exact, and M → ∞ averages over the whole Gaussian, the band that resampling (:func:`resampling_matrix`) and the
-    generator (:func:`band_matrix`) use. M = 1: the centre. (Before session 74: M equal slices of ±FWHM/2, a band
+    exact, and M → ∞ averages over the whole Gaussian (cut at :data:`BAND_SAMPLE_REACH_SIGMA`), the band that
+    resampling (:func:`resampling_matrix`) and the generator (:func:`band_matrix`) use. M = 1: the centre. (Before session 74: M equal slices of ±FWHM/2, a band
     of RMS width 2.6 nm for a declared 10 nm FWHM, which no M brought closer.)
     """
     c = np.asarray(centers_nm, dtype=np.float64).reshape(-1, 1)
@@ -415,6 +424,9 @@ def band_sample_wavelengths(centers_nm: np.ndarray, fwhm_nm: np.ndarray, samples
     if m < 1:
         raise ValueError("band samples must be >= 1")
     x, w = np.polynomial.hermite_e.hermegauss(m)  # probabilists' Hermite: weight e^{-x²/2}
+    # the nodes beyond 4σ (from M = 8; their weights sum to < 3e-4) are brought in to 4σ: 15 nodes reach 6.4σ, wider
+    # than any band's light worth a PSF, and a material's formula range (the tiny preset's 50 nm bands, M = 50)
+    x = np.clip(x, -BAND_SAMPLE_REACH_SIGMA, BAND_SAMPLE_REACH_SIGMA)
     lam = c + (f / (2.0 * math.sqrt(2.0 * math.log(2.0)))) * x[None, :]
     w = w[None, :] * np.ones_like(lam)
     return lam, w / w.sum(axis=1, keepdims=True)
