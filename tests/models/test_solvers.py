@@ -411,14 +411,18 @@ def test_trained_prior_denoises_better_than_the_untrained_one():
     assert err_clean < err_untrained
 
 
+def _admm_problem(size: int, seed: int):
+    """(a 6-band DD-CASSI camera, a tiny trained prior, a piecewise-constant truth of ``size``² px, its capture)."""
+    cam = cassi("dd_cassi", 6)
+    truth = piecewise_constant_cube(6, size, size, seed=seed)
+    return cam, _tiny_prior(6), truth, cam.A(truth)
+
+
 def test_admm_decreases_the_residual_and_the_objective():
     """On a small fixed DD-CASSI camera: from x = 0 the ADMM lowers ‖Φx − y‖ and the objective, the
     objective decreases from the first iterations on (up to 1 %), the splitting closes; from the
     minimum-norm start (which fits y exactly) the objective decreases and the cube improves."""
-    cam = cassi("dd_cassi", 6)
-    prior = _tiny_prior(6)
-    truth = piecewise_constant_cube(6, 24, 24, seed=11)
-    y = cam.A(truth)
+    cam, prior, truth, y = _admm_problem(24, 11)
     s = ChoiConfig(iterations=40, rho=1.0, rho_growth=1.05, prior_weight=0.5, tv_weight=0.002, inner_steps=2,
                    init_iterations=0)
     _, info = admm_prior(cam, y, prior, s, x0=torch.zeros_like(truth), return_info=True)
@@ -576,10 +580,7 @@ def test_admm_carries_its_multiplier_over_when_rho_grows():
     textbook ADMM with varying ρ written here in the unscaled dual λ (the same x- and z-updates)."""
     from hsicam.solvers.choi import _prior_grad
 
-    cam = cassi("dd_cassi", 6)
-    prior = _tiny_prior(6)
-    truth = piecewise_constant_cube(6, 16, 16, seed=4)
-    y = cam.A(truth)
+    cam, prior, truth, y = _admm_problem(16, 4)
     s = ChoiConfig(iterations=6, rho=0.5, rho_growth=1.3, prior_weight=0.5, tv_weight=0.002, inner_steps=2,
                    init_iterations=0)
     x0 = cam.A_adjoint(y / cam.gram_diagonal(y))
