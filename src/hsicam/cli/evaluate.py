@@ -330,7 +330,7 @@ def _summary(args: argparse.Namespace, cfg, method, results, noise, data_label: 
     scoring took (``config_hash`` covers them, but names none of them) and the software that scored."""
     from hsicam.config import dump_yaml
     from hsicam.engine.evaluate import NOISE_DRAWS, SYNTHETIC_VALIDATION, config_hash, scored_region, summarize
-    from hsicam.engine.provenance import software_record
+    from hsicam.engine.provenance import software_record, synthetic_set_record
     from hsicam.runs.pretrained import run_label
 
     saved = {"saved_cubes": _saved_cubes_text(noise.seeds)} if args.save else {}
@@ -343,8 +343,6 @@ def _summary(args: argparse.Namespace, cfg, method, results, noise, data_label: 
         data_label = f"synthetic scenes of {keys}, none of them the run's"
     extra = {"overrides": list(args.overrides)} if args.overrides else {}
     if not args.data and cfg.data.root is None:  # which cached synthetic set was read (config.yaml does not say)
-        from hsicam.engine.provenance import synthetic_set_record
-
         extra["synthetic_set"] = synthetic_set_record(cfg.data, method.camera.bands)
     summary = summarize(results, method=args.method, **where, data=data_label, config_hash=config_hash(dump_yaml(cfg)),
                         noise={"sigma_height_nm": args.sigma_height_nm, "sensor_sigma": args.sensor_sigma, "seeds": args.seeds,

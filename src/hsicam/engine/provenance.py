@@ -36,11 +36,12 @@ from hsicam.config import DataConfig
 from hsicam.data.datasets import scene_path
 from hsicam.data.pipeline import dataset_root, scene_stat, split_dataset
 from hsicam.data.synthetic import GENERATOR_VERSION
-from hsicam.spectral.bands import BAND_RULES_VERSION
 from hsicam.errors import ConfigError, InputError
 from hsicam.io import write_json
-from hsicam.runs.folder import DATA_RECORD, MetricsLog
+from hsicam.runs.folder import DATA_RECORD, MetricsLog, starting_session
+from hsicam.runs.folder import run_records as _records
 from hsicam.spectral import Bands
+from hsicam.spectral.bands import BAND_RULES_VERSION
 
 log = logging.getLogger(__name__)
 
@@ -337,22 +338,6 @@ def resumed_config_changes(run_dir: str | Path, cfg) -> list[str]:
     except (ConfigError, InputError, OSError):
         return []
     return training_differences(before, cfg, limit=1_000_000, runtime=True)
-
-
-def _records(run_dir: str | Path) -> list[dict[str, Any]]:
-    """The run's metrics.jsonl records; [] when it has none or they cannot be read."""
-    try:
-        return MetricsLog(Path(run_dir) / "metrics.jsonl", enabled=False).read()
-    except (InputError, OSError):
-        return []
-
-
-def starting_session(records: list[dict[str, Any]]) -> dict[str, Any] | None:
-    """The session record a run began with: the first of its metrics.jsonl ``records`` (:func:`software_record`,
-    written before any other since db9c133); None for a run of an hsicam before session records, whose first record
-    is another (the session records of the resumes that came later are not its start), or no record."""
-    first = records[0].get("session") if records else None
-    return first if isinstance(first, dict) else None
 
 
 def trained_generator_version(run_dir: str | Path) -> int | None:

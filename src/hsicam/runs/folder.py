@@ -69,14 +69,10 @@ def _warn_of_older_band_samples(run_dir: Path, cfg) -> None:
     preset at M = 3: its kernel 21 → 23 px; session 74's second review). A shipped camera or a run without
     metrics.jsonl says nothing (none used M > 1)."""
     psf = getattr(getattr(cfg.camera, "psf", None), "band_samples", 1)
-    if psf <= 1 or str(run_dir) in _BAND_RULES_WARNED or not (run_dir / "metrics.jsonl").is_file():
+    if psf <= 1 or str(run_dir) in _BAND_RULES_WARNED:
         return
-    try:
-        records = MetricsLog(run_dir / "metrics.jsonl", enabled=False).read()
-    except (InputError, OSError):
-        return
-    first = records[0].get("session") if records else None
-    if isinstance(first, dict) and "band_rules" not in first:
+    first = starting_session(run_records(run_dir))
+    if first is not None and "band_rules" not in first:
         _BAND_RULES_WARNED.add(str(run_dir))
         log.warning("%s: trained with camera.psf.band_samples %d over slices of ±FWHM/2 (an hsicam before session 74); "
                     "this one averages each band over its whole Gaussian (Gauss–Hermite wavelengths), so the camera it "
@@ -651,7 +647,7 @@ class MetricsLog:
 
     def first_line_whole(self) -> bool:
         """Whether the file's first line is a whole record: False when it is torn (a kill or a crash mid-write) or
-        blank, which loses the run's starting session record (:func:`hsicam.engine.provenance.starting_session`);
+        blank, which loses the run's starting session record (:func:`starting_session`);
         True when the file does not exist or is empty."""
         lines = self._lines()
         return not lines or _record(lines[0]) is not None
@@ -678,3 +674,19 @@ class MetricsLog:
         torn = [] if self.first_line_whole() else [self._lines()[0]]
         with atomic_open(self.path, "w", encoding="utf-8") as fh:
             fh.write("".join(line + "\n" for line in torn) + "".join(json_text(r) + "\n" for r in kept))
+
+
+def run_records(run_dir: str | Path) -> list[dict[str, Any]]:
+    """The run's metrics.jsonl records; [] when it has none or they cannot be read."""
+    try:
+        return MetricsLog(Path(run_dir) / "metrics.jsonl", enabled=False).read()
+    except (InputError, OSError):
+        return []
+
+
+def starting_session(records: list[dict[str, Any]]) -> dict[str, Any] | None:
+    """The session record a run began with: the first of its metrics.jsonl ``records`` (the software record written
+    before any other since db9c133); None for a run of an hsicam before session records, whose first record is
+    another (the session records of the resumes that came later are not its start), or no record."""
+    first = records[0].get("session") if records else None
+    return first if isinstance(first, dict) else None
