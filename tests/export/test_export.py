@@ -79,8 +79,9 @@ def test_export_round_trip(fab_run, tmp_path):
     layers = spec["doe"]["quantized"]["gds"]["layers"]
     assert [la["etch_depth_nm"] for la in layers] == pytest.approx([step, 2 * step, 4 * step])
     etch = _rasterise_gds(out / "doe_L8.gds", n, cell_um, 3)
-    np.testing.assert_array_equal(np.where(inside, 7 - etch, 0), level)
-    assert not etch[~inside].any()
+    np.testing.assert_array_equal(7 - etch, level)  # the surround too: level 0 (etched by every mask), as the files
+    assert (etch[~inside] == 7).all() and (~inside).any()
+    assert spec["doe"]["quantized"]["gds"]["surround"]["level"] == 0
     lib = gdstk.read_gds(str(out / "doe_L8.gds"))
     assert lib.unit == pytest.approx(1e-6)
     # CSVs read back exactly
@@ -159,16 +160,19 @@ def test_quantisation_and_phase_error_reference():
 
 
 def test_gds_masks_are_binary_weighted(tmp_path):
+    from hsicam.export.gds import SURROUND_FRAME_CELLS
+
     level = np.arange(16).reshape(4, 4) % 8
     aperture = np.ones((4, 4))
-    aperture[0, 0] = 0.0  # outside: never etched
+    aperture[0, 0] = 0.0  # outside: level 0, etched by every mask (whatever level the array holds there)
     write_gds(tmp_path / "m.gds", level, 8, 30.0, aperture, 100.0, 60.0)
     lib = gdstk.read_gds(str(tmp_path / "m.gds"))
     (cell,) = lib.cells
-    etch = (7 - level) * (aperture > 0)
+    etch = np.where(aperture > 0, 7 - level, 7)
+    frame_cells = (4 + 2 * SURROUND_FRAME_CELLS) ** 2 - 4**2  # the ring around the 4 × 4 grid, in cells
     for j in range(3):
         area = sum(p.area() for p in cell.polygons if p.layer == j + 1)
-        assert area == pytest.approx(np.count_nonzero((etch >> j) & 1) * 30.0**2)
+        assert area == pytest.approx((np.count_nonzero((etch >> j) & 1) + frame_cells) * 30.0**2)
     assert any(p.layer == 100 for p in cell.polygons)  # the aperture circle
     # identical designs give identical files (fixed timestamp)
     write_gds(tmp_path / "m2.gds", level, 8, 30.0, aperture, 100.0, 60.0)
@@ -189,8 +193,10 @@ def test_gds_rows_and_runs_share_their_edges_on_the_1nm_grid(tmp_path, cell_um, 
     write_gds(tmp_path / "g.gds", level, 8, cell_um, np.ones((n, n)), 100.0, n * cell_um / 2)
     lib = gdstk.read_gds(str(tmp_path / "g.gds"))
     assert lib.unit == pytest.approx(1e-6) and lib.precision == pytest.approx(1e-9)
-    polys = [p for p in lib.cells[0].polygons if p.layer == 1]
-    assert len(polys) == 2 * n
+    layer1 = [p for p in lib.cells[0].polygons if p.layer == 1]
+    grid_edge = n * cell_um / 2 + 1e-3  # the frame's 4 rectangles (level 0 around the grid) reach beyond it
+    polys = [p for p in layer1 if np.abs(p.points).max() <= grid_edge]
+    assert len(polys) == 2 * n and len(layer1) == 2 * n + 4
     nm = np.round(np.concatenate([p.points for p in polys]) * 1000).astype(np.int64)
     edges = np.round((np.arange(n + 1) - n / 2) * cell_um * 1000).astype(np.int64)  # independent of the writer
     assert set(nm[:, 0]) <= set(edges) and set(-nm[:, 1]) <= set(edges)
@@ -538,14 +544,49 @@ def test_gds_levels_round_trip(tmp_path):
     level = rng.integers(0, levels, (n, n))
     aperture = aperture_amplitude(n, 30e-6, 170e-6)
     inside = aperture > 0
+    level[~inside] = levels - 1  # what the array holds outside does not matter: the surround is level 0
     write_gds(tmp_path / "d.gds", level, levels, 30.0, aperture, 150.0, 170.0)
-    back = read_gds_levels(tmp_path / "d.gds", n, 30.0, levels, aperture)
+    back = read_gds_levels(tmp_path / "d.gds", n, 30.0, levels)
     np.testing.assert_array_equal(back, np.where(inside, level, 0))
     lib = gdstk.Library()
     lib.new_cell("OTHER")
     lib.write_gds(str(tmp_path / "other.gds"))
     with pytest.raises(InputError, match="no 'DOE' cell"):
-        read_gds_levels(tmp_path / "other.gds", n, 30.0, levels, aperture)
+        read_gds_levels(tmp_path / "other.gds", n, 30.0, levels)
+
+
+def test_gds_surround_is_level_0_as_the_height_files_and_the_shift_study_assume(tmp_path):
+    """Outside the aperture the height files hold 0 and the tolerance study's shifted relief reads height 0: the GDS
+    etches the grid's outer cells and a frame of SURROUND_FRAME_CELLS cells around the grid by every mask (level 0),
+    so a DOE shifted against its stop by up to the frame shows the fabricated element the study scored. Points are
+    tested against the written polygons, cell by cell, beyond the grid's edge."""
+    from hsicam.export.gds import SURROUND_FRAME_CELLS
+
+    n, levels, cell_um = 9, 4, 30.0
+    level = np.full((n, n), levels - 1)  # the aperture's cells unetched (top level)
+    aperture = aperture_amplitude(n, cell_um * 1e-6, 100e-6)
+    write_gds(tmp_path / "s.gds", level, levels, cell_um, aperture, 150.0, 100.0)
+    (cell,) = gdstk.read_gds(str(tmp_path / "s.gds")).cells
+    # cell centres from 3 cells beyond the frame on one side to the other: along the middle row, and along the
+    # diagonal (through the frame's corners)
+    m = n // 2 + SURROUND_FRAME_CELLS + 3
+    k = np.arange(-m, m + 1)
+    r = np.abs(k)
+    in_grid = r <= n // 2
+    in_frame = (r > n // 2) & (r <= n // 2 + SURROUND_FRAME_CELLS)
+    idx = n // 2 + np.clip(k, -(n // 2), n // 2)  # the grid cell of each point (meaningful in the grid only)
+    lines = {"row": (np.stack([k * cell_um, 0 * k], axis=1), aperture[n // 2, idx] > 0),
+             "diagonal": (np.stack([k * cell_um, -k * cell_um], axis=1), aperture[idx, idx] > 0)}
+    for j in range(2):
+        polys = [p for p in cell.polygons if p.layer == j + 1]
+        for pts, lit in lines.values():
+            hit = np.asarray(gdstk.inside(pts, polys), dtype=bool)
+            inside_ap = in_grid & lit
+            assert inside_ap.any() and (in_grid & ~lit).any()
+            np.testing.assert_array_equal(hit[inside_ap], False)  # top level: no mask opens it
+            np.testing.assert_array_equal(hit[in_grid & ~inside_ap], True)  # the grid's surround: every mask
+            np.testing.assert_array_equal(hit[in_frame], True)  # the frame: every mask
+            np.testing.assert_array_equal(hit[r > n // 2 + SURROUND_FRAME_CELLS], False)  # beyond: untouched
 
 
 def _doe_camera(tiny_config, *overrides):

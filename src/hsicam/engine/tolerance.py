@@ -604,13 +604,15 @@ def _summary(sweeps: dict[str, Any], nominal_psnr: float) -> dict[str, Any]:
 def _methods(optics, big_q: int, skipped: dict[str, str]) -> dict[str, str]:
     """tolerance.json's ``methods``: how each sweep perturbs the camera, but those ``skipped``."""
     from hsicam.export.doe import level_grid_text
+    from hsicam.export.gds import SURROUND_FRAME_CELLS
 
     return {k: v for k, v in {
         "sigma_height_nm": "i.i.d. Gaussian height error per cell; each draw = one fabricated DOE; mean ± std over draws",
         "levels": f"exported L-level heights (piston removed; {level_grid_text(optics.doe)})",
         "shift": (f"pupil oversampled to Q = {big_q} samples per cell, the exported relief (doe_height_nm: piston "
                   "removed, 0 outside the aperture) shifted by whole samples against the fixed aperture and lens, "
-                  "height 0 entering (the GDS masks leave the surround unetched, at the top level: another surround); "
+                  f"height 0 entering (the GDS etches the surround to level 0 out to {SURROUND_FRAME_CELLS} cells beyond "
+                  "the grid, unetched substrate beyond); "
                   "PSNR and its 1-dB tolerance relative to the same Q model without shift (reference_psnr)"),
         "sensor_distance_um": ("optics rebuilt with the sensor dz farther: residual defocus and PSF scale "
                                "lambda*(z_lambda + dz)/d at every simulated wavelength, in the camera's kernel (the "

@@ -259,9 +259,10 @@ def export_doe(camera, out: Path, levels: int, bands_nm: np.ndarray) -> dict[str
     gds_info: dict[str, Any]
     if is_power_of_two(levels):
         try:
-            write_gds(out / f"doe_L{levels}.gds", level, levels, cell_um, aperture, top * 1e9 / levels,
-                      optics.aperture_radius_m * 1e6)
-            gds_info = {"file": f"doe_L{levels}.gds", "layers": gds_layers(levels, top * 1e9 / levels)}
+            written = write_gds(out / f"doe_L{levels}.gds", level, levels, cell_um, aperture, top * 1e9 / levels,
+                                optics.aperture_radius_m * 1e6)
+            gds_info = {"file": f"doe_L{levels}.gds", "layers": gds_layers(levels, top * 1e9 / levels),
+                        "surround": written["surround"]}
         except ImportError as exc:
             log.warning("no GDSII written: %s", exc)
             gds_info = {"file": None, "skipped": str(exc)}
