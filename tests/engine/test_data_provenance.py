@@ -391,10 +391,12 @@ def test_evaluate_refuses_a_heldout_set_of_sources_the_run_trained_on(synthetic_
     assert heldout_sources_problem(run_cfg.data, run_cfg.data) is None
 
 
-def test_the_session_records_commit_is_the_checkouts_and_dirty_only_for_changed_tracked_sources(tmp_path):
-    """``_source_commit`` names the checkout hsicam runs from: its HEAD, with ``+dirty`` exactly when a tracked file
-    under src/ differs from it (not for untracked files, nor for tracked files elsewhere), and None without git.
-    The module is run from a copy inside a throwaway git checkout, whose state the test sets."""
+def test_the_session_records_commit_is_the_checkouts_with_a_hash_of_its_local_changes(tmp_path):
+    """``source_state`` names the checkout hsicam runs from: its HEAD, with ``+dirty`` exactly when a file under src/
+    differs from it (a tracked file edited, or an untracked file not ignored: a new module runs too; not a tracked
+    file elsewhere nor an ignored one), and ``source_diff_sha256``, the hash of those changes: two "+dirty" states of
+    one commit with other edits hash apart, the same edits alike; both None without git. The module is run from a
+    copy inside a throwaway git checkout, whose state the test sets."""
     import importlib.util
     import subprocess
 
@@ -407,10 +409,11 @@ def test_the_session_records_commit_is_the_checkouts_and_dirty_only_for_changed_
     module.parent.mkdir(parents=True)
     shutil.copyfile(real.__file__, module)
     (root / "README.md").write_text("readme\n")
+    (root / ".gitignore").write_text("__pycache__/\n")
     spec = importlib.util.spec_from_file_location("provenance_copy", module)
     copy = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(copy)
-    assert copy._source_commit() is None  # no .git: an installed package
+    assert copy.source_state() == {"git_commit": None, "source_diff_sha256": None}  # no .git: an installed package
 
     git = lambda *a: subprocess.run(["git", "-C", str(root), *a], capture_output=True, text=True,  # noqa: E731
                                     check=True).stdout.strip()
@@ -419,15 +422,30 @@ def test_the_session_records_commit_is_the_checkouts_and_dirty_only_for_changed_
     git("-c", "user.name=t", "-c", "user.email=t@t", "commit", "-q", "-m", "start")
     head = git("rev-parse", "HEAD")
     assert len(head) == 40
-    assert copy._source_commit() == head
-    (root / "src" / "hsicam" / "new.py").write_text("x = 1\n")  # untracked
+    clean = {"git_commit": head, "source_diff_sha256": None}
+    assert copy.source_state() == clean
     (root / "README.md").write_text("edited\n")  # tracked, outside src/
-    assert copy._source_commit() == head
-    with open(module, "a") as f:  # a tracked source edited
-        f.write("\n# edited\n")
-    assert copy._source_commit() == head + "+dirty"
+    (root / "src" / "hsicam" / "__pycache__").mkdir()
+    (root / "src" / "hsicam" / "__pycache__" / "x.pyc").write_bytes(b"\0")  # ignored
+    assert copy.source_state() == clean
+    new = root / "src" / "hsicam" / "new.py"
+    new.write_text("x = 1\n")  # untracked, not ignored: imported code
+    untracked = copy.source_state()
+    assert untracked["git_commit"] == head + "+dirty" and len(untracked["source_diff_sha256"]) == 64
+    new.write_text("x = 2\n")
+    other = copy.source_state()["source_diff_sha256"]
+    assert other != untracked["source_diff_sha256"]
+    new.unlink()
+    original = module.read_text()
+    module.write_text(original + "\n# edited\n")  # a tracked source edited
+    edited = copy.source_state()
+    assert edited["git_commit"] == head + "+dirty"
+    module.write_text(original + "\n# edited otherwise\n")
+    assert copy.source_state()["source_diff_sha256"] not in (edited["source_diff_sha256"], other, None)
+    module.write_text(original + "\n# edited\n")
+    assert copy.source_state() == edited  # the same edit, the same hash
     git("-c", "user.name=t", "-c", "user.email=t@t", "commit", "-q", "-am", "edit")
-    assert copy._source_commit() == git("rev-parse", "HEAD") != head
+    assert copy.source_state() == {"git_commit": git("rev-parse", "HEAD"), "source_diff_sha256": None} != clean
 
 
 def test_a_hidden_file_in_a_cave_folder_is_not_part_of_its_scene(tmp_path):

@@ -84,8 +84,9 @@ GENERIC_OPTIONS = {
 
 #: Strings that hold such a name but are no hint, (file, a fragment of the string) → why.
 NOT_HINTS = {
-    ("engine/provenance.py", "--porcelain"): "an argument of the git command that records the source's state",
-    ("engine/provenance.py", "--untracked-files=no"): "an argument of the git command that records the source's state",
+    ("engine/provenance.py", "--binary"): "an argument of the git command that records the source's state",
+    ("engine/provenance.py", "--others"): "an argument of the git command that lists the untracked sources",
+    ("engine/provenance.py", "--exclude-standard"): "an argument of the git command that lists the untracked sources",
     ("report/html.py", "--s"): "a CSS custom property (var(--s)) of the report's page",
     ("export/gds.py", "HSICAM_DOE"): "the name of the GDS cell the export writes, no environment variable",
     ("config.py", "model.name (the older spelling of model.kind)"): "names the old key it reads as model.kind",

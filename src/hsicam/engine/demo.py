@@ -18,7 +18,7 @@ from hsicam.engine.evaluate import (HELDOUT_NOISE_SET, TestNoise, config_hash, d
 from hsicam.engine.experiments import check_same_training, ensure_trained, heldout_scenes
 from hsicam.engine.methods import (LINEAR_REFERENCE_WINDOW, linear_demosaic_reference, network_alone_reference,
                                    network_skip)
-from hsicam.engine.provenance import software_record
+from hsicam.engine.provenance import commit_label, software_record
 from hsicam.errors import InputError
 from hsicam.io import (OutputLock, atomic_open, clear_complete, clear_derived, cleanup_stale_temporaries, is_complete,
                        is_temporary, mark_complete, output_description, read_marker, write_json)
@@ -61,8 +61,8 @@ def _made_by(cfg: Config, run: Path, summary: dict) -> str:
     sw = summary.get("software") or {}
     return (f"Made by `hsicam demo`: the run {run} (its config.yaml, config hash {summary.get('config_hash')}; weights "
             f"sha256 {str(summary.get('weights_sha256'))[:12]}…, train.seed {cfg.train.seed}), scored on the validation "
-            f"split of {data}, test-noise seed {TestNoise().seeds[0]}; hsicam {sw.get('hsicam') or 'source'} (commit "
-            f"{sw.get('git_commit')}), torch {sw.get('torch')}, {sw.get('threads')} thread(s). The same table: "
+            f"split of {data}, test-noise seed {TestNoise().seeds[0]}; hsicam {sw.get('hsicam') or 'source'} "
+            f"({commit_label(sw)}), torch {sw.get('torch')}, {sw.get('threads')} thread(s). The same table: "
             f"`hsicam evaluate --run {run} --out DIR`.")
 
 

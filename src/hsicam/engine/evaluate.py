@@ -25,6 +25,7 @@ import torch
 
 from hsicam.engine.inference import reconstruct_tiled
 from hsicam.engine.methods import Method, demosaic_reference  # noqa: F401  (re-exported)
+from hsicam.engine.provenance import commit_label
 from hsicam.errors import InputError
 from hsicam.io import atomic_open, free_space_short, free_space_text, write_json
 from hsicam.metrics import CONVENTIONS, SSIM_WINDOW_PX, all_metrics, sam_undefined_pixels
@@ -478,7 +479,7 @@ def write_results(out: Path, summary: dict) -> None:
             head.append(f"- {k}: {summary[k]}")
     sw = summary.get("software")
     if isinstance(sw, dict):
-        head.append(f"- software: hsicam {sw.get('hsicam') or 'source'} (commit {sw.get('git_commit')}), torch "
+        head.append(f"- software: hsicam {sw.get('hsicam') or 'source'} ({commit_label(sw)}), torch "
                     f"{sw.get('torch')}, numpy {sw.get('numpy')}, {sw.get('device')}, {sw.get('threads')} thread(s), "
                     f"{sw.get('started_utc')}")
     head.append(f"- PSNR: {conv['psnr']}; SSIM: {conv['ssim']}; SAM: {conv['sam']}")

@@ -17,12 +17,14 @@ apart by its config's split instead (:func:`synthetic_scene_roles`).
 Which software trained it: each training session (a new run, or a resume) begins its ``metrics.jsonl`` records
 with one ``{"step": S, "epoch": E, "session": {...}}`` (:func:`software_record`): the UTC time, the hsicam,
 torch, numpy and Python versions, the platform, the device and the process count, and the hsicam git commit
-when hsicam runs from a git checkout (``"+dirty"`` when its tracked files differ from it).
+when hsicam runs from a git checkout (``"+dirty"`` when its sources differ from it, with ``source_diff_sha256``,
+the hash of the difference).
 """
 
 from __future__ import annotations
 
 import datetime
+import hashlib
 import json
 import logging
 import os
@@ -294,32 +296,50 @@ def installed_version() -> str | None:
         return None
 
 
-def _source_commit() -> str | None:
-    """The git commit of the checkout hsicam runs from (``+dirty`` when a tracked file differs), or None (an
-    installed wheel, no git, a git that fails)."""
+def source_state() -> dict[str, str | None]:
+    """The checkout hsicam runs from: ``git_commit`` (its HEAD, ``+dirty`` when a tracked file under src/ differs from
+    it or an untracked, not ignored file sits there) and ``source_diff_sha256`` (SHA-256 of ``git diff HEAD`` of src/
+    and of each such untracked file's path and bytes: two "+dirty" runs of one commit ran the same code when these
+    agree); both None for an installed wheel, no git or a git that fails, the hash None for a clean checkout."""
+    none: dict[str, str | None] = {"git_commit": None, "source_diff_sha256": None}
     root = Path(__file__).resolve().parents[3]  # src/hsicam/engine/provenance.py → the checkout
     if not (root / ".git").exists() or not (root / "src" / "hsicam").is_dir():
-        return None
+        return none
     try:
-        run = lambda *args: subprocess.run(["git", "-C", str(root), *args], capture_output=True, text=True,  # noqa: E731
-                                           timeout=10, check=True).stdout.strip()
-        commit = run("rev-parse", "HEAD")
-        dirty = run("status", "--porcelain", "--untracked-files=no", "--", "src")
-    except (OSError, subprocess.SubprocessError):
-        return None
-    return commit + ("+dirty" if dirty else "") if commit else None
+        run = lambda *args: subprocess.run(["git", "-C", str(root), *args], capture_output=True,  # noqa: E731
+                                           timeout=10, check=True).stdout
+        commit = run("rev-parse", "HEAD").decode().strip()
+        diff = run("diff", "HEAD", "--binary", "--", "src")
+        untracked = sorted(run("ls-files", "-z", "--others", "--exclude-standard", "--", "src").split(b"\0"))
+        h = hashlib.sha256(diff)
+        for name in filter(None, untracked):
+            h.update(b"\0untracked\0" + name + b"\0" + (root / name.decode()).read_bytes())
+    except (OSError, subprocess.SubprocessError, UnicodeDecodeError):
+        return none
+    if not commit:
+        return none
+    dirty = bool(diff) or any(untracked)
+    return {"git_commit": commit + ("+dirty" if dirty else ""), "source_diff_sha256": h.hexdigest() if dirty else None}
+
+
+def commit_label(software: dict[str, Any]) -> str:
+    """"commit C" of a :func:`software_record` (results.md's lines), with the first 12 hex digits of its local changes'
+    hash when it is "+dirty" (two such records of one commit ran the same code when these agree)."""
+    diff = software.get("source_diff_sha256")
+    return f"commit {software.get('git_commit')}" + (f", local changes sha256 {str(diff)[:12]}…" if diff else "")
 
 
 def software_record(device: str, world_size: int = 1) -> dict[str, Any]:
     """What a training session (its run's ``metrics.jsonl``) or a scoring (results.json's ``software``) runs on: UTC
     start time, versions (hsicam, torch, numpy, Python), platform, ``device`` (e.g. "cpu", "cuda:0"), ``threads``
     (torch's CPU threads: weights trained on other thread counts differ in their last bits), ``world_size``
-    (processes), and the hsicam git commit when run from a checkout (None otherwise)."""
+    (processes), and the hsicam git commit when run from a checkout (None otherwise) with the hash of its local changes
+    (:func:`source_state`)."""
     import numpy
     import torch
 
     return {"started_utc": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
-            "hsicam": installed_version(), "git_commit": _source_commit(), "torch": torch.__version__,
+            "hsicam": installed_version(), **source_state(), "torch": torch.__version__,
             "numpy": numpy.__version__, "python": platform.python_version(), "platform": platform.platform(),
             "executable": sys.executable, "device": str(device), "threads": torch.get_num_threads(),
             "world_size": int(world_size),
@@ -446,6 +466,6 @@ def generator_change_warning(run_dir: str | Path, data: DataConfig, doing: str) 
 
 __all__ = ["check_same_data", "data_changes", "data_record", "generator_change_warning", "installed_version",
            "read_data_record", "scene_roles", "heldout_sources_problem", "SESSION_60_COMMITS", "SESSION_60_GENERATOR",
-           "session_60_changes_had", "software_record", "started_before_session_60",
+           "session_60_changes_had", "software_record", "started_before_session_60", "commit_label", "source_state",
            "starting_session", "synthetic_scene_roles", "trained_generator_version", "training_scenes_warning",
            "write_data_record"]
