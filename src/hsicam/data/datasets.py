@@ -27,7 +27,7 @@ import torch
 from torch.utils.data import Dataset
 
 from hsicam.data.cube import normalize_per_cube_max, resample_cube
-from hsicam.data.formats import _CAVE_RE, SCENE_SUFFIXES, _reading, read_cube
+from hsicam.data.formats import _CAVE_RE, CUBE_NAMES, SCENE_SUFFIXES, _reading, holds_no_cube, read_cube
 from hsicam.errors import InputError, negative_radiance_error
 from hsicam.spectral import Bands
 
@@ -45,8 +45,10 @@ def list_scenes(root: str | os.PathLike) -> list[Path]:
     Hidden and temporary files are skipped, and so are sub-folders that hold another
     hsicam command's completed output (a completion marker, :func:`hsicam.io.is_complete`: an
     evaluation saved next to the data, a simulated sensor image …) and cube files that ``hsicam
-    reconstruct`` wrote (estimates, :func:`hsicam.data.estimates.is_estimate`), said once in the log.
-    A dataset hsicam generated (its ``manifest.json``) lists exactly the scenes of its manifest. A
+    reconstruct`` wrote (estimates, :func:`hsicam.data.estimates.is_estimate`), said once in the log; so are MAT and
+    HDF5 files that hold no cube (:func:`hsicam.data.formats.holds_no_cube`: a download's ``meta.mat``, a calibration
+    ``.h5`` of 2-D frames), counted in one warning, while one that may hold a cube under another name, two, or that
+    cannot be read is listed and refused when read. A dataset hsicam generated (its ``manifest.json``) lists exactly the scenes of its manifest. A
     root that is (or lies inside) an ``evaluate`` output, or is any other command's output, is
     refused (:func:`check_not_an_output`). Raises :class:`InputError` when no scene is found.
     """
@@ -60,12 +62,16 @@ def list_scenes(root: str | os.PathLike) -> list[Path]:
     _check_not_partial_synthetic(root)
     found = _walk_dataset(root)
     scenes = _one_path_per_scene(root, sorted(set(found.scenes)), found.aliases)
+    found.no_cube = [p for p in scenes if holds_no_cube(p)]
+    scenes = [p for p in scenes if p not in found.no_cube]
     if found.skipped:
         _log_skipped(root, found.skipped)
     if found.estimates:
         log.warning("%s: skipped %s", root, _estimates_text(root, found.estimates))
     if found.unread and scenes:  # (none: the refusal below says them)
         _log_unread(root, found.unread)
+    if found.no_cube and scenes:
+        _log_once(_NO_CUBE_LOGGED, root, found.no_cube, logging.WARNING, _no_cube_text)
     if not scenes:
         raise _no_scenes_error(root, found)
     return scenes
@@ -91,6 +97,7 @@ class _Found:
     estimates: list[Path] = field(default_factory=list)  # cube files that hsicam reconstruct wrote
     aliases: list[tuple[Path, Path]] = field(default_factory=list)  # (a link to what was listed already, that)
     unread: list[Path] = field(default_factory=list)  # files of a cube format hsicam does not read (UNREAD_CUBE_SUFFIXES)
+    no_cube: list[Path] = field(default_factory=list)  # MAT/HDF5 files that hold no cube (formats.holds_no_cube)
 
 
 def _walk_dataset(root: Path) -> _Found:
@@ -189,11 +196,25 @@ def _log_unread(root: Path, unread: list[Path]) -> None:
     _log_once(_UNREAD_LOGGED, root, unread, logging.WARNING, _unread_text)
 
 
+#: (root, files) already logged as holding no cube by :func:`list_scenes` in this process.
+_NO_CUBE_LOGGED: set[tuple[str, tuple[str, ...]]] = set()
+
+
+def _no_cube_text(root: Path, files: list[Path]) -> str:
+    """What :func:`list_scenes` says of the MAT/HDF5 files of ``root`` that hold no cube (a dataset's ``meta.mat``,
+    a calibration ``.h5``): how many, and the first few by name."""
+    names = sorted(displayable_name(scene_path(p, root)) for p in files)
+    shown = ", ".join(names[:3]) + (f" and {len(names) - 3} more" if len(names) > 3 else "")
+    return (f"{len(names)} MAT/HDF5 file(s) that hold no hyperspectral cube ({shown}: no variable of a cube's name "
+            f"({', '.join(CUBE_NAMES)}) and no numeric array with 3 or more axes longer than 1)")
+
+
 def _no_scenes_error(root: Path, found: _Found) -> InputError:
     """The refusal of a dataset folder without scenes, saying what was skipped."""
     also = "; ".join(t for t in (_skipped_text(root, found.skipped) if found.skipped else "",
                                   _estimates_text(root, found.estimates) if found.estimates else "",
-                                  _unread_text(root, found.unread) if found.unread else "") if t)
+                                  _unread_text(root, found.unread) if found.unread else "",
+                                  _no_cube_text(root, found.no_cube) if found.no_cube else "") if t)
     also = f" (skipped {also})" if also else ""
     return InputError(f"{root}: no hyperspectral scenes found (supported: {', '.join(SCENE_SUFFIXES)}, CAVE "
                       f"folders){also}")
@@ -355,7 +376,8 @@ def _manifest_scenes(root: Path) -> list[Path] | None:
     listed = {os.path.realpath(p) for p in scenes}
     # every scene file or CAVE folder below it, sub-folders too (a folder of one's own scenes put inside a generated
     # set was left out without a word)
-    extra = sorted(scene_path(p, root) for p in _walk_dataset(root).scenes if os.path.realpath(p) not in listed)
+    extra = sorted(scene_path(p, root) for p in _walk_dataset(root).scenes
+                   if os.path.realpath(p) not in listed and not holds_no_cube(p))
     if extra:
         log.warning("%s: a generated dataset: its %d scenes are those its manifest.json lists; not %s",
                     root, len(scenes), ", ".join(extra[:5]) + (" …" if len(extra) > 5 else ""))

@@ -232,7 +232,7 @@ def _detect_hdf5(p: Path, head: bytes) -> str:
             if "cube" in keys:
                 raise InputError(f"{p}: HDF5 file with 'cube' but missing key 'bands_nm' (our format) or a band list "
                                  f"'bands' (ARAD; also read under the names {', '.join(BAND_LIST_NAMES[1:])})")
-    raise _no_known_variable(p, "HDF5/MAT", ("cube", *(k for k, _ in _HDF5_KEYS)), sorted(keys))
+    raise _no_known_variable(p, "HDF5/MAT", ("cube", *(k for k, _ in _HDF5_KEYS)), sorted(keys), _cube_like_arrays(p))
 
 
 _MAT5_KEYS = (("rad", "icvl"), ("cube", "arad"), ("img", "kaist-mat"), ("img_expand", "kaist-mat"), ("HSI", "kaist-mat"),
@@ -247,14 +247,138 @@ def _detect_mat5(p: Path) -> str:
     for key, fmt in _MAT5_KEYS:
         if key in names:
             return fmt
-    raise _no_known_variable(p, "MAT", tuple(k for k, _ in _MAT5_KEYS), names)
+    raise _no_known_variable(p, "MAT", tuple(k for k, _ in _MAT5_KEYS), names, _cube_like_arrays(p))
 
 
-def _no_known_variable(p: Path, kind: str, known: Sequence[str], found: Sequence[str]) -> InputError:
-    """The refusal of a MAT/HDF5 file whose variables hold no cube under a name we know, saying what to do."""
+def _no_known_variable(p: Path, kind: str, known: Sequence[str], found: Sequence[str],
+                       arrays: Sequence[tuple[str, tuple[int, ...]]] | None = None) -> InputError:
+    """The refusal of a MAT/HDF5 file whose variables hold no cube under a name we know, saying what to do; ``arrays``:
+    its arrays that may be the cube (:func:`_cube_like_arrays`), named in it."""
+    shapes = ", ".join(f"'{name}' {'×'.join(map(str, shape))}" for name, shape in (arrays or ())[:SHOWN_ARRAYS])
+    more = f" and {len(arrays) - SHOWN_ARRAYS} more" if arrays and len(arrays) > SHOWN_ARRAYS else ""
+    may = "" if not arrays else (f"; {shapes} may be the cube" if len(arrays) == 1 else
+                                 f"; {len(arrays)} arrays may be the cube, which is ambiguous: {shapes}{more}")
     return InputError(f"{p}: {kind} file with no known hyperspectral variable (expected one of {', '.join(known)}; "
-                      f"found {', '.join(found) or 'none'}): rename the cube's variable to one of these (with its band "
-                      "list as 'bands', in nm), or rewrite it with hsicam.data.formats.write_cube_h5")
+                      f"found {', '.join(found) or 'none'}{may}): rename the cube's variable to one of these (with its "
+                      "band list as 'bands', in nm), or rewrite it with hsicam.data.formats.write_cube_h5")
+
+
+#: How many of a file's arrays that may be its cube a refusal names (:func:`_no_known_variable`).
+SHOWN_ARRAYS = 3
+
+
+# ------------------------------------------------------------------------------------------------
+# MAT and HDF5 files that hold no cube (a dataset's meta.mat, a calibration .h5 of 2-D frames)
+# ------------------------------------------------------------------------------------------------
+#: MATLAB classes (scipy.io.whosmat) of arrays of numbers (not text, true/false values, sparse matrices).
+_MAT5_NUMERIC = frozenset(("double", "single", "int8", "uint8", "int16", "uint16", "int32", "uint32", "int64",
+                           "uint64"))
+#: MATLAB classes whose contents a MAT v5 header does not show: loaded to be looked into.
+_MAT5_CONTAINERS = ("struct", "cell", "object")
+#: A MAT v5 file larger than this (bytes) whose structs or cell arrays would have to be loaded to be looked into is
+#: taken to hold a cube: listing a dataset folder never loads a large file (its reader says what it holds).
+PEEK_MAX_BYTES = 64 * 2**20
+
+
+def cube_like(shape: Sequence[int] | None, dtype: Any) -> bool:
+    """True for an array that may be a hyperspectral cube: real numbers (integers or floats; not text, true/false
+    values or complex numbers) of 3 or more axes, at least 3 of them longer than 1 (two image axes and a band axis of
+    2 or more bands: an image stored with a trailing axis of 1 is none)."""
+    if shape is None or np.dtype(dtype).kind not in "iuf":
+        return False
+    return len(shape) >= 3 and sum(int(s) > 1 for s in shape) >= 3
+
+
+def _cube_like_arrays(p: Path) -> list[tuple[str, tuple[int, ...]]] | None:
+    """The arrays of the MAT (v5, v7.3) or HDF5 file ``p`` that may be a cube (:func:`cube_like`), as (name, shape as
+    stored), told from its headers (inside MATLAB structs and cell arrays, HDF5 groups too: ``a/b``); None when that
+    cannot be told: another format, a file that cannot be read (its reader says why), a MAT v5 file over
+    :data:`PEEK_MAX_BYTES` whose structs would have to be loaded."""
+    found = _variables(p)
+    return None if found is None else found[1]
+
+
+def _variables(p: Path) -> tuple[list[str], list[tuple[str, tuple[int, ...]]]] | None:
+    """(the top-level variable names, the arrays that may be a cube) of the MAT or HDF5 file ``p``, or None
+    (:func:`_cube_like_arrays`)."""
+    try:
+        head = _head(p, 128)
+        if head.startswith(_HDF5_MAGIC) or head.startswith(b"MATLAB 7.3"):
+            return _h5_variables(p)
+        if head.startswith(b"MATLAB 5.0"):
+            return _mat5_variables(p)
+    except Exception:  # noqa: BLE001 - h5py and scipy raise many types; a file not told is its reader's to refuse
+        return None
+    return None
+
+
+def _h5_variables(p: Path) -> tuple[list[str], list[tuple[str, tuple[int, ...]]]]:
+    import h5py
+
+    found: list[tuple[str, tuple[int, ...]]] = []
+
+    def visit(name: str, obj: Any) -> None:
+        matlab_class = obj.attrs.get("MATLAB_class") if isinstance(obj, h5py.Dataset) else None
+        if isinstance(matlab_class, bytes):
+            matlab_class = matlab_class.decode("ascii", "replace")
+        if isinstance(obj, h5py.Dataset) and matlab_class not in ("char", "logical") and cube_like(obj.shape, obj.dtype):
+            found.append((name, tuple(int(s) for s in obj.shape)))
+
+    with h5py.File(p, "r") as f:
+        names = sorted(f.keys())
+        f.visititems(visit)  # every dataset, in groups (MATLAB structs) and #refs# (cell arrays) too
+    return names, found
+
+
+def _mat5_variables(p: Path) -> tuple[list[str], list[tuple[str, tuple[int, ...]]]] | None:
+    import scipy.io
+
+    info = scipy.io.whosmat(p)
+    found = [(n, tuple(int(s) for s in shape)) for n, shape, cls in info
+             if cls in _MAT5_NUMERIC and cube_like(shape, np.float64)]
+    containers = [n for n, _, cls in info if cls in _MAT5_CONTAINERS]
+    if containers and not found:
+        if p.stat().st_size > PEEK_MAX_BYTES:
+            return None
+        loaded = scipy.io.loadmat(p, variable_names=containers)
+        for n in containers:
+            found += _arrays_inside(n, loaded[n])
+    return [n for n, _, _ in info], found
+
+
+def _arrays_inside(name: str, value: Any) -> list[tuple[str, tuple[int, ...]]]:
+    """The arrays that may be a cube inside a MATLAB struct or cell array as scipy.io.loadmat returns it (``name``:
+    ``s.field``, ``c{i}``)."""
+    arr = np.asarray(value)
+    if arr.dtype.names:  # a struct (array): its fields
+        return [x for f in arr.dtype.names for item in arr[f].reshape(-1) for x in _arrays_inside(f"{name}.{f}", item)]
+    if arr.dtype.kind == "O":  # a cell array (or an object's contents)
+        return [x for i, item in enumerate(arr.reshape(-1)) for x in _arrays_inside(f"{name}{{{i + 1}}}", item)]
+    return [(name, tuple(arr.shape))] if cube_like(arr.shape, arr.dtype) else []
+
+
+#: Variable names under which the readers find a cube (MAT and HDF5; :func:`detect_format`).
+CUBE_NAMES = tuple(dict.fromkeys(("cube", *(k for k, _ in (*_HDF5_KEYS, *_MAT5_KEYS)))))
+#: (real path, size, mtime) -> :func:`holds_no_cube` of the files it has looked into in this process.
+_NO_CUBE: dict[tuple[str, int, int], bool] = {}
+
+
+def holds_no_cube(path: str | os.PathLike) -> bool:
+    """True for a MAT (v5, v7.3) or HDF5 file that is not a cube file: no variable under a name the readers take a
+    cube from (:data:`CUBE_NAMES`) and no array that may be a cube (:func:`cube_like`, looked for in its headers,
+    structs and groups): a dataset's ``meta.mat`` of text and numbers, a calibration ``.h5`` of 2-D frames, a ``.mat``
+    of labels. False for every other file, and for one that cannot be read or told (its reader then says why), so a
+    dataset folder skips the first and refuses the others (:func:`hsicam.data.datasets.list_scenes`)."""
+    p = Path(path)
+    try:
+        st = p.stat()
+    except OSError:
+        return False
+    key = (os.path.realpath(p), st.st_size, st.st_mtime_ns)
+    if key not in _NO_CUBE:
+        found = _variables(p) if p.is_file() else None
+        _NO_CUBE[key] = found is not None and not found[1] and not set(CUBE_NAMES) & set(found[0])
+    return _NO_CUBE[key]
 
 
 # ------------------------------------------------------------------------------------------------
