@@ -838,6 +838,9 @@ class DataConfig:
     # step_nm: 10}); null: C bands evenly over 400-700 nm (docs/data.md). Never a relabelling:
     # the cube is resampled from this grid onto the camera's.
     npy_bands: Optional[NpyBandsConfig] = None
+    # Negative values in a cube file (dark noise after a background subtraction) are clipped to 0 instead of
+    # refused: for every command that reads scenes (train, evaluate, simulate, data show ...; docs/data.md)
+    allow_negative: bool = False
 
     def check_patches(self, margin_px: int = 0, code_period: int = 1) -> None:
         """ConfigError unless the patches can be scored and, for the synthetic data (``root`` null), fit

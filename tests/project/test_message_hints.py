@@ -50,6 +50,7 @@ MODULE_COMMANDS = {
     "data/images.py": {"reconstruct"},
     "data/measured_psf.py": {"reconstruct", "finetune"},
     "data/datasets.py": {"evaluate", "tolerance", "data show", "train", "finetune", "demo", "experiment"},
+    "data/cube.py": {"simulate", "evaluate", "tolerance", "data show", "train", "finetune", "demo", "experiment"},
     "data/pipeline.py": {"train", "finetune", "demo", "experiment", "baseline train-prior", "evaluate"},
     "data/synthetic.py": {"data synth", "train", "finetune", "demo", "experiment", "baseline train-prior",
                           "evaluate", "tolerance"},

@@ -153,14 +153,15 @@ def cmd_psf(args: argparse.Namespace) -> int:
     return 0
 
 
-def load_scene(path: str | Path, bands: Bands, npy_bands: Bands | None = None) -> np.ndarray:
+def load_scene(path: str | Path, bands: Bands, npy_bands: Bands | None = None, allow_negative: bool = False) -> np.ndarray:
     """A scene cube (C, H, W) float32 on the camera's band grid ``bands``.
 
     Every format goes through the one cube check (finite, real, non-negative, non-empty, band grid
     known) and the one band-grid policy (:func:`hsicam.data.cube.conform_bands`: a cube on another
     grid is resampled onto the camera's with a logged note; only extrapolation is refused). A ``.npy``
     file carries no wavelengths: its grid is ``npy_bands`` (the config's ``data.npy_bands``) when
-    given, else it must have the camera's band count (its grid is then the camera's).
+    given, else it must have the camera's band count (its grid is then the camera's). ``allow_negative`` (the
+    config's ``data.allow_negative``): negative values are clipped to 0 instead of refused.
     """
     from hsicam.data import read_cube
     from hsicam.data.cube import conform_bands
@@ -179,11 +180,12 @@ def load_scene(path: str | Path, bands: Bands, npy_bands: Bands | None = None) -
                                  f"camera's {len(bands)} ({bands!r}); save it as .h5 with its band list "
                                  "(hsicam.data.formats.write_cube_h5) or give its grid with data.npy_bands to have "
                                  "it resampled")
-        cube, scene_bands, _ = read_cube(path, bands=bands if npy_bands is None else npy_bands)
+        cube, scene_bands, _ = read_cube(path, bands=bands if npy_bands is None else npy_bands,
+                                         allow_negative=allow_negative)
     else:
         from hsicam.data.formats import assumed_bands_note
 
-        cube, scene_bands, meta = read_cube(path)
+        cube, scene_bands, meta = read_cube(path, allow_negative=allow_negative)
         try:
             return conform_bands(cube, scene_bands, bands, path, axis=0)
         except InputError as exc:
@@ -232,7 +234,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
         camera, cfg = camera_from_args(args, (f"camera.boundary={args.boundary}",), command="simulate")
         source = {"config": str(args.config) if args.config else "paper (default)"}
     check_boundary_applies(camera, args.boundary)
-    scene = load_scene(args.scene, camera.bands, npy_bands(cfg.data))
+    scene = load_scene(args.scene, camera.bands, npy_bands(cfg.data), cfg.data.allow_negative)
     gen = torch.Generator().manual_seed(args.seed)
     sensor = camera.capture(torch.from_numpy(scene)[None], gen, source=str(args.scene))[0, 0].numpy()
     peak = float(sensor.max()) if sensor.size else 0.0

@@ -41,7 +41,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     v = actions.add_parser("show", help="contact sheet, mean spectra and spectral gamut of a dataset or cube",
                            epilog="A .npy cube carries no wavelengths: give its grid as the other commands take it, "
                                   "e.g. --set 'data.npy_bands={start_nm: 420, stop_nm: 720, step_nm: 10}' (default: "
-                                  "its bands evenly over 400-700 nm). Other config keys are not used here.")
+                                  "its bands evenly over 400-700 nm); --set data.allow_negative=true clips negative "
+                                  "values (dark noise after a background subtraction) to 0 instead of refusing them. "
+                                  "Other config keys are not used here.")
     v.add_argument("path", metavar="DIR", help="dataset folder, or one cube file / CAVE folder")
     v.add_argument("--out", metavar="OUT", required=True,
                    help="a new or empty folder for the PNGs (or an earlier data show output, refreshed); never the "
@@ -50,7 +52,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     v.add_argument("--heldout", metavar="DIR", default=None,
                    help="held-out dataset to compare in the gamut plot (default: the cached companion of a "
                         "synthetic set, when present)")
-    add_config_args(v)  # for data.npy_bands: the band grid of .npy cubes, as train and evaluate take it
+    add_config_args(v)  # for data.npy_bands (the band grid of .npy cubes) and data.allow_negative, as train takes them
     v.set_defaults(func=_show)
 
 
@@ -165,14 +167,15 @@ def _show(args: argparse.Namespace) -> int:
     from hsicam.data.preview import write_preview
     from hsicam.errors import InputError
 
-    grid = npy_bands(config_from_args(args.config, args.overrides).data)  # before any work: a bad --set fails first
+    data = config_from_args(args.config, args.overrides).data  # before any work: a bad --set fails first
+    grid = npy_bands(data)
     if args.max_scenes < 1:
         raise InputError(f"--max-scenes must be at least 1, got {args.max_scenes}")
     src = Path(args.path)
     if not src.exists():
         raise InputError(f"{src}: no such dataset folder or cube file")
     preview = lambda out: write_preview(args.path, out, max_scenes=args.max_scenes,  # noqa: E731
-                                        heldout=args.heldout, npy_bands=grid)
+                                        heldout=args.heldout, npy_bands=grid, allow_negative=data.allow_negative)
     written = _show_into(Path(args.out), preview)
     for path in written:
         print(path)

@@ -69,8 +69,14 @@ def check_memory_budget(source: PathLike | str, shape: Sequence[int], dtype: Any
 # ------------------------------------------------------------------------------------------------
 # The cube check
 # ------------------------------------------------------------------------------------------------
+#: How a reader's refusal of negative values (:func:`check_cube`, the dataset's windowed check) says to clip them:
+#: the config key that every command reading scenes takes, and the argument of the Python readers.
+NEGATIVE_READ_ADVICE = ("dark noise after a background subtraction? --set data.allow_negative=true clips them to 0; "
+                        "in Python, read_cube(..., allow_negative=True)")
+
+
 def check_cube(cube: Any, source: PathLike | str = "cube", *, bands: Bands | None = None,
-               allow_negative: bool = False) -> np.ndarray:
+               allow_negative: bool = False, negative_advice: str = "") -> np.ndarray:
     """Validate a (C, H, W) cube and return it as float32 (C-contiguous): the one cube check.
 
     Raises one-line :class:`InputError` naming ``source`` for: a wrong number of dimensions, an
@@ -78,7 +84,8 @@ def check_cube(cube: Any, source: PathLike | str = "cube", *, bands: Bands | Non
     given) a band count that differs from the band grid. Entry points pass the cube's ``bands``;
     a cube whose grid is unknown must be given one (or refused) before it is checked. With
     ``allow_negative=True`` negative values (e.g. dark noise after background subtraction) are
-    clipped to 0 instead. A torch tensor is accepted and returned as a numpy array.
+    clipped to 0 instead; ``negative_advice`` ends their refusal (a reader's: :data:`NEGATIVE_READ_ADVICE`). A torch
+    tensor is accepted and returned as a numpy array.
     """
     if hasattr(cube, "detach") and hasattr(cube, "cpu"):  # torch.Tensor, without importing torch
         cube = cube.detach().cpu()
@@ -110,7 +117,7 @@ def check_cube(cube: Any, source: PathLike | str = "cube", *, bands: Bands | Non
     if lo < 0:
         if not allow_negative:
             neg = int(np.count_nonzero(out < 0))
-            raise negative_radiance_error(source, neg, lo)
+            raise negative_radiance_error(source, neg, lo, negative_advice)
         if out is arr:  # never clip the caller's array in place
             out = out.copy()
         np.maximum(out, 0.0, out=out)

@@ -26,7 +26,7 @@ import numpy as np
 import torch
 from torch.utils.data import Dataset
 
-from hsicam.data.cube import normalize_per_cube_max, resample_cube
+from hsicam.data.cube import NEGATIVE_READ_ADVICE, normalize_per_cube_max, resample_cube
 from hsicam.data.formats import _CAVE_RE, CUBE_NAMES, SCENE_SUFFIXES, _reading, holds_no_cube, read_cube
 from hsicam.errors import InputError, negative_radiance_error
 from hsicam.spectral import Bands
@@ -612,7 +612,7 @@ def check_windowed_pixels(path: str | os.PathLike, *, allow_negative: bool = Fal
     if bad:
         raise InputError(f"{path}: {bad} NaN/Inf value(s) in the cube (after conversion to float32)")
     if neg and not allow_negative:
-        raise negative_radiance_error(path, neg, lo)
+        raise negative_radiance_error(path, neg, lo, NEGATIVE_READ_ADVICE)
     if not hi > 0:
         raise InputError(f"{path}: the cube is all zeros; cannot normalise by its maximum")
     if not math.isclose(header, hi, rel_tol=2.0 ** -22):  # float32 rounding of a maximum written as float64

@@ -86,7 +86,7 @@ from typing import Any, Callable, Iterator, NamedTuple, Sequence
 
 import numpy as np
 
-from hsicam.data.cube import check_cube, check_memory_budget
+from hsicam.data.cube import NEGATIVE_READ_ADVICE, check_cube, check_memory_budget
 from hsicam.errors import InputError
 from hsicam.io import NPY_MAGIC, atomic_path, check_output_path, json_text, nan_for_null
 from hsicam.spectral import Bands
@@ -406,7 +406,7 @@ def _finish(p: Path, cube: np.ndarray, bands: Bands, meta: dict[str, Any], allow
         hint = (f" (its last axis has {np.shape(cube)[-1]}: the band axis must come first, (bands, height, width); "
                 "transpose the array)") if np.shape(cube)[-1] == len(bands) else ""
         raise InputError(f"{p}: the cube has {np.shape(cube)[0]} bands but the file lists {len(bands)} wavelengths{hint}")
-    cube = check_cube(cube, p, bands=bands, allow_negative=allow_negative)
+    cube = check_cube(cube, p, bands=bands, allow_negative=allow_negative, negative_advice=NEGATIVE_READ_ADVICE)
     meta.setdefault("source", str(p))
     return cube, bands, meta
 

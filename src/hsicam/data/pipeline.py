@@ -124,9 +124,9 @@ def npy_bands(cfg: DataConfig) -> Bands | None:
 
 
 def scene_dataset(cfg: DataConfig, paths, bands: Bands, **kwargs) -> SceneDataset:
-    """:class:`SceneDataset` of ``paths`` on ``bands`` with the config's grid for ``.npy`` cubes;
-    ``kwargs`` go to it (e.g. ``preload``). Every dataset built from a config goes through here."""
-    return SceneDataset(paths, bands, source_bands=npy_bands(cfg), **kwargs)
+    """:class:`SceneDataset` of ``paths`` on ``bands`` with the config's grid for ``.npy`` cubes and its
+    ``allow_negative``; ``kwargs`` go to it (e.g. ``preload``). Every dataset built from a config goes through here."""
+    return SceneDataset(paths, bands, source_bands=npy_bands(cfg), allow_negative=cfg.allow_negative, **kwargs)
 
 
 def split_dataset(cfg: DataConfig, bands: Bands, *, progress: bool | None = None) -> tuple[list[Path], list[Path]]:

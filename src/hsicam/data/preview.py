@@ -94,7 +94,8 @@ def save_figures(figures: dict[str, Any], out_dir: Path, dpi: int = 120) -> list
 
 
 def write_preview(path: str | os.PathLike, out_dir: str | os.PathLike, max_scenes: int = 16,
-                  heldout: str | os.PathLike | None = None, npy_bands: Bands | None = None) -> list[Path]:
+                  heldout: str | os.PathLike | None = None, npy_bands: Bands | None = None,
+                  allow_negative: bool = False) -> list[Path]:
     """Write ``contact_sheet.png``, ``mean_spectra.png`` and ``spectral_gamut.png`` for a dataset.
 
     ``path`` is a dataset folder or one cube file; ``out_dir``, the folder written into, has no
@@ -104,7 +105,8 @@ def write_preview(path: str | os.PathLike, out_dir: str | os.PathLike, max_scene
     ``max_scenes`` (≥ 1) caps the scenes of each set. Every input is read and every figure drawn
     before the first PNG is written: on an error none is written. ``npy_bands``: the band grid of
     ``.npy`` cubes, which carry none (the config's ``data.npy_bands``,
-    :func:`hsicam.data.pipeline.npy_bands`; None: C bands evenly over 400-700 nm). Returns their paths.
+    :func:`hsicam.data.pipeline.npy_bands`; None: C bands evenly over 400-700 nm). ``allow_negative`` (the config's
+    ``data.allow_negative``): negative values are clipped to 0 instead of refused. Returns their paths.
     """
     path = Path(path)
     n = check_max_scenes(max_scenes)
@@ -113,8 +115,8 @@ def write_preview(path: str | os.PathLike, out_dir: str | os.PathLike, max_scene
     held_dir = Path(heldout) if heldout is not None else _find_heldout(path)
     held_scenes = list_scenes(held_dir)[:n] if held_dir is not None else []  # a bad held-out set fails before any work
     out = Path(out_dir)
-    sheet, plot = _scene_figures(path, scenes, npy_bands, of=len(every))
-    gamut = _gamut_figure(path, scenes, held_dir, held_scenes, npy_bands)
+    sheet, plot = _scene_figures(path, scenes, npy_bands, of=len(every), allow_negative=allow_negative)
+    gamut = _gamut_figure(path, scenes, held_dir, held_scenes, npy_bands, allow_negative)
     written = save_figures({CONTACT_SHEET: sheet, MEAN_SPECTRA: plot, SPECTRAL_GAMUT: gamut}, out)
     # the cap said in the log and on the figures: a sheet of 16 scenes reads as the whole set otherwise
     log.info("wrote %s%s", ", ".join(str(p) for p in written),
@@ -122,7 +124,8 @@ def write_preview(path: str | os.PathLike, out_dir: str | os.PathLike, max_scene
     return written
 
 
-def _scene_figures(path: Path, scenes: list[Path], npy_bands: Bands | None = None, of: int | None = None):
+def _scene_figures(path: Path, scenes: list[Path], npy_bands: Bands | None = None, of: int | None = None,
+                   allow_negative: bool = False):
     """(contact sheet, mean spectra) figures of ``scenes`` (``.npy`` cubes on ``npy_bands``), the first of the ``of``
     scenes of ``path`` (their titles say so when there are more). Each scene is labelled by its path below ``path``
     (``day1/a.h5``): two files of one name in two sub-folders had the same label."""
@@ -132,7 +135,7 @@ def _scene_figures(path: Path, scenes: list[Path], npy_bands: Bands | None = Non
 
     thumbs, spectra, grey = [], [], 0
     for s in scenes:
-        cube, bands, _ = read_cube(s, bands=npy_bands)
+        cube, bands, _ = read_cube(s, bands=npy_bands, allow_negative=allow_negative)
         norm, _ = normalize_per_cube_max(cube, s)  # first: an all-zero cube is refused naming its file
         label = displayable_name(scene_path(s, path))
         if renderable(bands):
@@ -187,16 +190,17 @@ def _shapes(spectra: np.ndarray) -> np.ndarray:
 
 
 def pixel_spectra(scenes: list[Path], bands: Bands | None = None, per_scene: int = 400, seed: int = 0,
-                  source: str | os.PathLike | None = None, npy_bands: Bands | None = None) -> tuple[np.ndarray, Bands]:
+                  source: str | os.PathLike | None = None, npy_bands: Bands | None = None,
+                  allow_negative: bool = False) -> tuple[np.ndarray, Bands]:
     """Up to ``per_scene`` random pixel spectra (N, C) from each scene, all on one band grid: ``bands``,
     or :func:`common_grid` of the scenes'. A scene on another grid is resampled onto it as training
     data are (:func:`hsicam.data.cube.conform_bands`); one whose bands do not cover it is left out,
     said in one log line. ``source`` (the folder) names the set in messages; InputError when no
-    scene is left. ``npy_bands``: the grid of ``.npy`` cubes (see :func:`write_preview`)."""
+    scene is left. ``npy_bands``, ``allow_negative``: as :func:`write_preview` reads the files."""
     rng = np.random.default_rng(seed)
     samples = []
     for s in scenes:
-        cube, b, _ = read_cube(s, bands=npy_bands)
+        cube, b, _ = read_cube(s, bands=npy_bands, allow_negative=allow_negative)
         pix = cube.reshape(cube.shape[0], -1).T
         idx = rng.choice(pix.shape[0], size=min(per_scene, pix.shape[0]), replace=False)
         samples.append((s, b, pix[np.sort(idx)]))
@@ -290,7 +294,7 @@ def _library_shapes(path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray, str
 
 
 def write_spectral_gamut(path: str | os.PathLike, out_png: str | os.PathLike, heldout: str | os.PathLike | None = None,
-                         max_scenes: int = 16, npy_bands: Bands | None = None) -> Path:
+                         max_scenes: int = 16, npy_bands: Bands | None = None, allow_negative: bool = False) -> Path:
     """Scatter of the first two principal components of spectral shapes (unit-norm spectra).
 
     Left (synthetic sets with held-out sources, colour-science installed): the reflectance library
@@ -301,19 +305,20 @@ def write_spectral_gamut(path: str | os.PathLike, out_png: str | os.PathLike, he
     n = check_max_scenes(max_scenes)
     held_dir = Path(heldout) if heldout is not None else _find_heldout(path)
     held_scenes = list_scenes(held_dir)[:n] if held_dir is not None else []
-    save_figure(_gamut_figure(path, list_scenes(path)[:n], held_dir, held_scenes, npy_bands), out_png)
+    save_figure(_gamut_figure(path, list_scenes(path)[:n], held_dir, held_scenes, npy_bands, allow_negative), out_png)
     return out_png
 
 
 def _gamut_figure(path: Path, scenes: list[Path], held_dir: Path | None, held_scenes: list[Path],
-                  npy_bands: Bands | None = None):
+                  npy_bands: Bands | None = None, allow_negative: bool = False):
     """The figure of :func:`write_spectral_gamut` for the dataset's ``scenes`` (and the held-out set's)."""
     from matplotlib.figure import Figure
 
-    pix, bands = pixel_spectra(scenes, source=path, npy_bands=npy_bands)
+    pix, bands = pixel_spectra(scenes, source=path, npy_bands=npy_bands, allow_negative=allow_negative)
     groups = [("dataset pixels", _shapes(pix), "tab:blue", "o")]
     if held_dir is not None:
-        hpix, _ = pixel_spectra(held_scenes, bands, seed=1, source=held_dir, npy_bands=npy_bands)
+        hpix, _ = pixel_spectra(held_scenes, bands, seed=1, source=held_dir, npy_bands=npy_bands,
+                                allow_negative=allow_negative)
         groups.append((f"held-out pixels ({displayable_name(held_dir.name)})", _shapes(hpix), "tab:red", "x"))
     lib = _library_shapes(path) if path.is_dir() else None
     panels = [("scene pixel spectra", groups)]
