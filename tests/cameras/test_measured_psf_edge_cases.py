@@ -255,6 +255,11 @@ def test_psf_difference_names_the_pitch_then_the_kernel_then_the_options(tmp_pat
     assert psf_difference(tuned, now(kernel_px=7, centre="peak"), tmp_path)[0] == "kernel_px"
     assert psf_difference(tuned, now(centre="peak"), tmp_path)[0] == "options"
     assert psf_difference(tuned, now(), tmp_path)[0] == "images"
+    # the images' bandwidth (fwhm_nm, session 75) is an option when both reports have it; one made before has none
+    assert psf_difference(tuned, now(fwhm_nm=[10.0, 10.0, 10.0]), tmp_path)[0] == "images"
+    banded = MeasuredPSF(tuned.psf, bands, {**base, "fwhm_nm": 2.0})
+    what, why = psf_difference(banded, now(fwhm_nm=1.0), tmp_path)
+    assert what == "options" and why.endswith("fwhm_nm 1.0 now, 2.0 then")
     # a fine-tuning imported before session 73 (no import_version: 1) against today's import of the same folder: the
     # import changed, not the files (it read "the PSF images … changed since")
     what, why = psf_difference(tuned, now(import_version=2), tmp_path)
@@ -297,7 +302,7 @@ def test_zero_mean_noise_in_a_large_frame_is_neither_light_nor_a_pull_on_the_cen
     exact = import_psf_dir(folder("clean", 0.0), bands, 6e-6, k)
     with caplog.at_level(logging.WARNING, logger="hsicam.data.measured_psf"):
         noisy = import_psf_dir(folder("noisy", 2.0), bands, 6e-6, k)
-    assert exact.report["import_version"] == 2
+    assert exact.report["import_version"] == 3
     for m in (exact, noisy):
         rep = m.report["bands"]
         for b in rep:

@@ -2,14 +2,16 @@
 
 Measured PSFs (``--psf-dir DIR``)
 ---------------------------------
-``DIR`` holds one image per camera band (``.npy``, 8/16-bit PNG, integer or float TIFF), its
+``DIR`` holds one image per wavelength (``.npy``, 8/16-bit PNG, integer or float TIFF), its
 wavelength in the file name (``psf_450nm.tif``, ``450.png``, ``band-450.5nm.npy``), or one stack
-``psf.npy`` (C, H, W) with ``bands_nm`` in ``psf.json`` (what ``hsicam psf`` writes). The pixel
+``psf.npy`` (C, H, W) with ``bands_nm`` in ``psf.json`` (what ``hsicam psf`` writes): one per camera band, or a
+monochromator sweep finer than the bands. The pixel
 pitch of the images is ``pixel_pitch_um`` in ``DIR/psf.json`` (or the ``pitch_um`` argument).
 Optional ``psf.json`` keys: ``centre`` (below), ``axis_px`` ([row, col] of the optical axis in
 the images, pixel centres at integers; for ``axis``),
 ``background`` (``none`` | ``border`` | a number in the file's units), ``normalize`` (``sum`` |
-``none``), ``wavelength_tolerance_nm`` (1 nm). A folder written by ``hsicam psf`` (its
+``none``), ``wavelength_tolerance_nm`` (1 nm), ``fwhm_nm`` (the images' own bandwidth, a monochromator's: one number
+or one per image; default the sweep's step). A folder written by ``hsicam psf`` (its
 ``psf.json`` has ``kernel_px``) is read with ``centre: axis`` at the kernel centre and
 ``normalize: none`` (its values are already energy fractions) by default.
 
@@ -54,6 +56,20 @@ sizes or frames). When the camera pitch is an integer multiple n of the measurem
 (n = 1: PSFs measured with the camera's own sensor), the centre snaps to the nearest position
 whose output pixels cover whole measured pixels, since a fractional shift would only blur.
 
+A band's PSF (:func:`band_sources`, session 75). A band is a Gaussian of its FWHM, not a line (DESIGN §1): where the
+sweep is finer than the band (the images' FWHM, by default the step, narrower than the band's by more than twice
+``wavelength_tolerance_nm``) the band's PSF is the weighted average of the images within its reach, with the weights
+:func:`~hsicam.spectral.bands.resampling_matrix` gives that band from the sweep's grid, the weights a scene's band
+integrates its spectrum with; each image is imported as above (background, normalisation, centre, area resampling),
+their kernels averaged, and only then the negative pixels set to 0. With ``normalize: none`` the average is of energy
+fractions (the band's throughput is the weighted mean of the images'); a common centre (``centroid``, ``peak``) is found
+on the sum over the bands of each band's weighted average, so every image a band uses counts; ``*_per_band`` centres a
+band on its weighted average (its images in one frame, keeping their shifts within the band). A sweep as coarse as the
+bands (one image per band centre, within the tolerance) gives each band its nearest image, bit for bit the import before
+session 75. Every band still needs an image within ``wavelength_tolerance_nm`` of its centre (else refused); a band
+whose ±3σ passes the sweep's end is averaged symmetrically over what the sweep covers (the resampling rule at the
+edge of data) and warned about. The report lists each band's ``sources`` (wavelength, file, weight).
+
 The stack is a :class:`~hsicam.runs.measured_psf.MeasuredPSF`; a fine-tuned run stores it
 (:mod:`hsicam.runs.measured_psf`).
 """
@@ -75,6 +91,7 @@ from hsicam.errors import InputError
 from hsicam.io import npy_content_problem
 from hsicam.runs.measured_psf import MeasuredPSF, psf_fingerprint
 from hsicam.spectral import Bands
+from hsicam.spectral.bands import BAND_TOL_NM, resampling_matrix, resolved_bands
 
 log = logging.getLogger(__name__)
 
@@ -182,10 +199,12 @@ def pedestal_level(image: np.ndarray) -> float | None:
 #: 40 000 DN peak is 0.16 %, and already distorts the PSF by 0.67 of its peak on a 128 px frame).
 PEDESTAL_FRACTION = 1e-3
 
-#: How the images become PSFs, by version: 2 (session 73) keeps the background-subtracted noise's sign until the
-#: kernel (1, unrecorded: clipped at 0 first). The same folder imported by another version gives other PSFs: a
-#: fine-tuning made from it says so (:func:`hsicam.runs.measured_psf.psf_difference`), not that its files changed.
-PSF_IMPORT_VERSION = 2
+#: How the images become PSFs, by version: 3 (session 75) gives a band of a sweep finer than the bands the weighted
+#: average of its images (:func:`band_sources`; 2 took the nearest image); 2 (session 73) keeps the
+#: background-subtracted noise's sign until the kernel (1, unrecorded: clipped at 0 first). The same folder imported by
+#: another version may give other PSFs (a sweep as coarse as the bands gives the same ones): a fine-tuning made from it
+#: says so (:func:`hsicam.runs.measured_psf.psf_difference`), not that its files changed.
+PSF_IMPORT_VERSION = 3
 
 #: A kernel whose clipped noise (its negative pixels set to 0) adds more than this share of the band's light is
 #: warned about (:func:`_warn_folder`): the measured PSFs need more frames averaged.
@@ -229,6 +248,9 @@ class PSFImportOptions:
     background: str | float = "none"
     normalize: str = "sum"
     wavelength_tolerance_nm: float = 1.0
+    #: FWHM (nm) of each image's light (a monochromator's bandwidth): one number or one per image; None: the sweep's
+    #: local step (:func:`sweep_bands`)
+    fwhm_nm: float | list[float] | None = None
 
     def check(self) -> None:
         if self.pitch_um is None:
@@ -243,6 +265,9 @@ class PSFImportOptions:
             raise InputError(f"PSF normalize must be 'sum' or 'none', got {self.normalize!r}")
         if not self.wavelength_tolerance_nm > 0:
             raise InputError("wavelength_tolerance_nm must be positive")
+        f = self.fwhm_nm
+        if f is not None and not all(_is_number(v) and math.isfinite(v) and v > 0 for v in (f if isinstance(f, list) else [f])):
+            raise InputError(f"fwhm_nm (the images' bandwidth) must be a positive number of nm or a list of them, got {f!r}")
 
 
 def snap_centre(c: float, pitch_in: float, pitch_out: float) -> float:
@@ -348,6 +373,14 @@ def import_psf_image(image: np.ndarray, pitch_m: float, camera_pixel_m: float, k
 
     ``centre`` (row, col; e.g. a centre shared by all bands) overrides ``opts.centre``.
     """
+    psf, report, _, _ = _image_kernel(image, pitch_m, camera_pixel_m, kernel_px, opts, centre)
+    return psf, report
+
+
+def _image_kernel(image: np.ndarray, pitch_m: float, camera_pixel_m: float, kernel_px: int, opts: PSFImportOptions,
+                  centre: tuple[float, float] | None) -> tuple[np.ndarray, dict[str, Any], np.ndarray, float]:
+    """:func:`import_psf_image`'s (PSF, report) and also the kernel before its negative pixels are set to 0 (K, K)
+    and the image's light (its sum after the background and normalisation: 1 with ``normalize: sum``)."""
     img, b, _ = prepare_psf_image(image, opts)
     c = centre if centre is not None else find_centre(img, opts.centre, opts.axis_px)
     c = (snap_centre(c[0], pitch_m, camera_pixel_m), snap_centre(c[1], pitch_m, camera_pixel_m))
@@ -367,7 +400,7 @@ def import_psf_image(image: np.ndarray, pitch_m: float, camera_pixel_m: float, k
         # is that much above the light measured in the kernel)
         "noise_clipped": clipped / energy_in if energy_in > 0 else 0.0,
     }
-    return psf, report
+    return psf, report, signed, energy_in
 
 
 # ------------------------------------------------------------------------------------------------
@@ -428,6 +461,7 @@ def options_from_manifest(meta: dict[str, Any], pitch_um: float | None = None, c
         background=background if background is not None else meta.get("background", "none"),
         normalize=meta.get("normalize", "sum"),
         wavelength_tolerance_nm=float(tol),
+        fwhm_nm=meta.get("fwhm_nm"),
     )
     try:
         opts.check()
@@ -553,8 +587,9 @@ def import_psf_dir(psf_dir: str | Path, bands: Bands, camera_pixel_m: float, ker
     """Measured PSFs of ``psf_dir`` on the camera's bands, pixel pitch and K×K kernel.
 
     Every camera band needs a PSF whose wavelength is within ``wavelength_tolerance_nm``; extra
-    wavelengths are ignored. Raises :class:`InputError` for anything unusable, including a pitch in
-    the wrong unit (:func:`implausible_pitch`; the diffraction test needs the camera's ``f_number``)
+    wavelengths are ignored, except in a sweep finer than the bands, whose images within a band's reach are averaged
+    with the band's weights (:func:`band_sources`). Raises :class:`InputError` for anything unusable, including a
+    pitch in the wrong unit (:func:`implausible_pitch`; the diffraction test needs the camera's ``f_number``)
     and images clipped over more than :data:`MAX_CLIPPED_LIGHT_SHARE` of their light; warns (once per
     image: each band of a ``psf.npy`` stack is one, named by its wavelength) about :data:`SATURATED_MIN_PX` or more clipped pixels.
     """
@@ -562,28 +597,40 @@ def import_psf_dir(psf_dir: str | Path, bands: Bands, camera_pixel_m: float, ker
     meta = _read_manifest(d)
     items = _list_band_images(d, meta)  # first: a folder without images needs no pitch to be refused
     opts = options_from_manifest(meta, pitch_um, centre, background, folder=d)
-    chosen = _match_bands(d, items, bands, opts)
-    saturated = _check_saturation(items, chosen, opts)
+    sources = band_sources(d, [w for w, _, _, _ in items], bands, opts)
+    used = list(dict.fromkeys(j for src in sources for j, _ in src))  # every image a band uses, in band order
+    saturated = _check_saturation(items, used, opts)
     pitch_from = "--psf-pitch-um" if pitch_um is not None else f"pixel_pitch_um in {d / 'psf.json'}"
-    common = _common_centre(d, items, chosen, opts)
-    stack, per_band, low, floors, noisy = [], [], [], [], []
-    for lam, j in zip(bands.centers_nm, chosen):
+    common = _common_centre(d, items, sources, opts)
+    floors = []
+    for j in used:
         w, f, img, _ = items[j]
         _check_unnormalised_sum(w, f, img, opts)
         floor = _pedestal_note(w, f, img, opts)
         if floor is not None:
             floors.append(floor)
-        psf, rep = _band_psf(w, f, img, opts, camera_pixel_m, kernel_px, f_number, pitch_from, common)
-        e = rep["energy_in_kernel"]
+    stack, per_band, low, noisy = [], [], [], []
+    for lam, src in zip(bands.centers_nm, sources):
+        if len(src) == 1:  # one image (a sweep as coarse as the bands): that image's PSF
+            w, f, img, _ = items[src[0][0]]
+            psf, rep, _, _ = _band_psf(w, f, img, opts, camera_pixel_m, kernel_px, f_number, pitch_from, common)
+            entry = {"band_nm": float(lam), "wavelength_nm": w, "file": f.name, **rep,
+                     "saturated_px": saturated[src[0][0]], "sources": [{"wavelength_nm": w, "file": f.name, "weight": 1.0}]}
+            name = f"{f.name} ({w:g} nm)"
+        else:
+            psf, entry = _averaged_band_psf(d, float(lam), src, items, opts, camera_pixel_m, kernel_px, f_number,
+                                            pitch_from, common, saturated)
+            name = entry["name"]
+        e = entry["energy_in_kernel"]
         if e < LOW_ENERGY_IN_KERNEL:
-            low.append(f"{f.name} ({w:g} nm): {100 * e:.0f} %")
-        if rep["noise_clipped"] > NOISE_FLOOR_WARN:
-            noisy.append((f"{f.name} ({w:g} nm)", rep["noise_clipped"]))
+            low.append(f"{name}: {100 * e:.0f} %")
+        if entry["noise_clipped"] > NOISE_FLOOR_WARN:
+            noisy.append((name, entry["noise_clipped"]))
         stack.append(psf)
-        per_band.append({"band_nm": float(lam), "wavelength_nm": w, "file": f.name, **rep,
-                         "saturated_px": saturated[j]})
-    _warn_folder(d, kernel_px, floors, low, noisy, len(chosen))
+        per_band.append(entry)
+    _warn_folder(d, kernel_px, floors, low, noisy, len(sources))
     _warn_coarse_pitch(opts, camera_pixel_m)
+    _warn_cut_bands(d, [w for w, _, _, _ in items], bands, sources, opts)
     return _measured_psf(d, bands, opts, camera_pixel_m, kernel_px, stack, per_band)
 
 
@@ -598,11 +645,10 @@ def _psf_folder(psf_dir: str | Path) -> Path:
     return d
 
 
-def _match_bands(d: Path, items: list[tuple[float, Path, np.ndarray, float | None]], bands: Bands,
-                 opts: PSFImportOptions) -> list[int]:
-    """Index into ``items`` of the nearest wavelength for each camera band; refuses the bands without one
-    within ``wavelength_tolerance_nm``."""
-    waves = np.array([w for w, _, _, _ in items])
+def _match_bands(d: Path, waves: Sequence[float], bands: Bands, opts: PSFImportOptions) -> list[int]:
+    """Index into ``waves`` (the images' wavelengths, nm) of the nearest wavelength for each camera band; refuses the
+    bands without one within ``wavelength_tolerance_nm``."""
+    waves = np.asarray(waves, dtype=np.float64)
     chosen, missing = [], []
     for lam in bands.centers_nm:
         j = int(np.argmin(np.abs(waves - lam)))
@@ -615,24 +661,102 @@ def _match_bands(d: Path, items: list[tuple[float, Path, np.ndarray, float | Non
     return chosen
 
 
-def _common_centre(d: Path, items: list[tuple[float, Path, np.ndarray, float | None]], chosen: list[int],
-                   opts: PSFImportOptions) -> tuple[float, float] | None:
-    """With ``centre: centroid`` or ``peak``, that centre of the sum of the bands' unit-sum images; else None
-    (each band finds its own)."""
-    if opts.centre not in ("centroid", "peak"):
-        return None
-    # one centre for all bands: keeps their relative positions
-    shapes = {items[j][2].shape for j in chosen}  # type: ignore[union-attr]
+def sweep_bands(d: Path, waves: Sequence[float], opts: PSFImportOptions) -> tuple[Bands, np.ndarray]:
+    """The images' wavelengths as a band grid, and the order (indices into ``waves``) that sorts them: each image
+    stands for a band of ``opts.fwhm_nm`` (the monochromator's bandwidth: one number, or one per image in the order
+    of ``bands_nm`` / of ascending wavelength for files) or, not given, of the sweep's local step
+    (:meth:`Bands.from_centers`, the rule of a cube whose file lists no FWHM)."""
+    order = np.argsort(np.asarray(waves, dtype=np.float64), kind="stable")
+    centres = np.asarray(waves, dtype=np.float64)[order]
+    fwhm = opts.fwhm_nm
+    if isinstance(fwhm, list):
+        if len(fwhm) != len(centres):
+            raise InputError(f"{d / 'psf.json'}: fwhm_nm lists {len(fwhm)} values for {len(centres)} PSF images "
+                             "(one number for all, or one per image)")
+        fwhm = [fwhm[int(k)] for k in order] if (d / "psf.npy").is_file() else fwhm  # a stack's in bands_nm order
+    return Bands.from_centers(centres, fwhm), order
+
+
+def finer_than_bands(sweep: Bands, bands: Bands, opts: PSFImportOptions) -> np.ndarray:
+    """Boolean (len(bands),): True where the sweep (:func:`sweep_bands`) is finer than the band, so its images are
+    averaged: its images' FWHM (``fwhm_nm``, else the local step) narrower than the band's
+    (:func:`~hsicam.spectral.bands.resolved_bands`) and, for the step, by more than twice
+    ``wavelength_tolerance_nm``: images within the tolerance of a grid as coarse as the bands (10 nm bands measured at
+    440.4, 449.6, 460.3 nm) are each band's nearest image, not 0.7 % of a neighbour mixed in by a step 0.4 nm short."""
+    finer = resolved_bands(sweep, bands)
+    if opts.fwhm_nm is None:
+        step = np.interp(bands.centers_nm, sweep.centers_nm, sweep.fwhm_nm)
+        finer &= step < bands.fwhm_nm - 2.0 * opts.wavelength_tolerance_nm
+    return finer
+
+
+def band_sources(d: Path, waves: Sequence[float], bands: Bands, opts: PSFImportOptions) -> list[list[tuple[int, float]]]:
+    """For each camera band, the images (indices into ``waves``, the images' wavelengths in nm) whose PSFs it averages
+    and their weights (summing to 1).
+
+    Every band needs an image within ``wavelength_tolerance_nm`` of its centre (:func:`_match_bands`, else refused).
+    Where the sweep is finer than the band (:func:`finer_than_bands`) the band's PSF is its band average: the weights are the
+    band's row of :func:`~hsicam.spectral.bands.resampling_matrix` from the sweep onto the camera's bands, the weights
+    a scene's band integrates its spectrum with. Elsewhere, and for a band whose centre lies outside the sweep's
+    range (by less than the tolerance), the nearest image with weight 1: a sweep as coarse as the bands gives each
+    band its nearest image, as before session 75."""
+    chosen = _match_bands(d, waves, bands, opts)
+    out = [[(j, 1.0)] for j in chosen]
+    if len(waves) < 2:
+        return out
+    sweep, order = sweep_bands(d, waves, opts)
+    inside = (bands.centers_nm >= sweep.min_nm - BAND_TOL_NM) & (bands.centers_nm <= sweep.max_nm + BAND_TOL_NM)
+    k = np.flatnonzero(inside)
+    if not len(k):
+        return out
+    dst = Bands(bands.centers_nm[k], bands.fwhm_nm[k])
+    finer = finer_than_bands(sweep, dst, opts)
+    rows = resampling_matrix(sweep, dst)
+    for i, row in zip(k[finer], rows[finer]):
+        nz = np.flatnonzero(row > 0.0)
+        if len(nz) > 1:
+            out[i] = [(int(order[m]), float(row[m])) for m in nz]
+    return out
+
+
+def _one_frame(d: Path, items: list[tuple[float, Path, np.ndarray, float | None]], used: Sequence[int]) -> None:
+    """Refuse images (indices into ``items``) of different sizes: one centre for them needs one frame."""
+    shapes = {items[j][2].shape for j in used}  # type: ignore[union-attr]
     if len(shapes) != 1:
         raise InputError(f"{d}: PSF images have different sizes {sorted(shapes)}; a common centre needs one frame "
                          "(use centre: centroid_per_band or axis in psf.json)")
+
+
+def _unit_sum_average(d: Path, items: list[tuple[float, Path, np.ndarray, float | None]],
+                      src: list[tuple[int, float]], opts: PSFImportOptions) -> np.ndarray:
+    """Σ weight · image / Σ image over a band's images (``src``: (index into ``items``, weight)), each prepared
+    (:func:`prepare_psf_image`); refuses images of different sizes (one centre needs one frame)."""
+    _one_frame(d, items, [j for j, _ in src])
     total = None
-    for j in chosen:
+    for j, wt in src:
         try:
             img, _, _ = prepare_psf_image(items[j][2], opts)  # type: ignore[arg-type]
         except InputError as exc:
             raise InputError(f"{items[j][1]} ({items[j][0]:g} nm): {exc}") from None
         img = img / img.sum()
+        if wt != 1.0:
+            img = wt * img
+        total = img if total is None else total + img
+    return total  # type: ignore[return-value]
+
+
+def _common_centre(d: Path, items: list[tuple[float, Path, np.ndarray, float | None]],
+                   sources: list[list[tuple[int, float]]], opts: PSFImportOptions) -> tuple[float, float] | None:
+    """With ``centre: centroid`` or ``peak``, that centre of the sum over the bands of each band's unit-sum image
+    (a band averaging several images: their weighted average, :func:`_unit_sum_average`, so every image a band uses
+    counts); else None (each band finds its own)."""
+    if opts.centre not in ("centroid", "peak"):
+        return None
+    # one centre for all bands: keeps their relative positions
+    _one_frame(d, items, [j for src in sources for j, _ in src])
+    total = None
+    for src in sources:
+        img = _unit_sum_average(d, items, src, opts)
         total = img if total is None else total + img
     return find_centre(total, opts.centre)
 
@@ -662,11 +786,12 @@ def _pedestal_note(w: float, f: Path, img: np.ndarray, opts: PSFImportOptions) -
 
 def _band_psf(w: float, f: Path, img: np.ndarray, opts: PSFImportOptions, camera_pixel_m: float, kernel_px: int,
               f_number: float | None, pitch_from: str,
-              common: tuple[float, float] | None) -> tuple[np.ndarray, dict[str, Any]]:
-    """One band's camera PSF and report (:func:`import_psf_image`), refused for an implausible pitch or less than
-    :data:`MIN_ENERGY_IN_KERNEL` of its light in the kernel; every refusal names the file."""
+              common: tuple[float, float] | None) -> tuple[np.ndarray, dict[str, Any], np.ndarray, float]:
+    """One image's camera PSF and report (:func:`import_psf_image`), with its kernel before the clip and its light
+    (:func:`_image_kernel`), refused for an implausible pitch or less than :data:`MIN_ENERGY_IN_KERNEL` of its light
+    in the kernel; every refusal names the file."""
     try:
-        psf, rep = import_psf_image(img, opts.pitch_um * 1e-6, camera_pixel_m, kernel_px, opts, common)  # type: ignore[operator]
+        psf, rep, signed, light = _image_kernel(img, opts.pitch_um * 1e-6, camera_pixel_m, kernel_px, opts, common)  # type: ignore[operator]
     except InputError as exc:
         raise InputError(f"{f} ({w:g} nm): {exc}") from None
     bs = prepare_psf_image(img, opts)[0]
@@ -679,7 +804,61 @@ def _band_psf(w: float, f: Path, img: np.ndarray, opts: PSFImportOptions, camera
                          f"{kernel_px}×{kernel_px} px kernel (centred on row {rep['centre_px'][0]:g}, col "
                          f"{rep['centre_px'][1]:g} of the {img.shape[0]}×{img.shape[1]} px image, centre: "
                          f"{opts.centre}); check axis_px / centre and pixel_pitch_um in psf.json (or --psf-pitch-um)")
-    return psf, rep
+    return psf, rep, signed, light
+
+
+def _averaged_band_psf(d: Path, lam: float, src: list[tuple[int, float]],
+                       items: list[tuple[float, Path, np.ndarray, float | None]], opts: PSFImportOptions,
+                       camera_pixel_m: float, kernel_px: int, f_number: float | None, pitch_from: str,
+                       common: tuple[float, float] | None, saturated: dict[int, int]) -> tuple[np.ndarray, dict[str, Any]]:
+    """The PSF (K, K) of a band that averages several images (``src``: (index into ``items``, weight)) and its report
+    entry. Each image is imported as one band's (:func:`_band_psf`, same checks) on the common centre, or with a
+    ``*_per_band`` centre on the centre of the band's weighted average (:func:`_unit_sum_average`: the images keep
+    their shifts within the band), or ``axis``; their kernels are averaged before the negative pixels are set to 0
+    (the noise averages down first). ``energy_in_kernel`` and ``noise_clipped`` are of the band's light, the weighted
+    sum of the images' (1 with ``normalize: sum``)."""
+    centre = common
+    if centre is None and opts.centre in ("centroid_per_band", "peak_per_band"):
+        centre = find_centre(_unit_sum_average(d, items, src, opts), opts.centre)
+    signed = np.zeros((kernel_px, kernel_px))
+    light = 0.0
+    parts = []
+    for j, wt in src:
+        w, f, img, _ = items[j]
+        _, rep, s_j, light_j = _band_psf(w, f, img, opts, camera_pixel_m, kernel_px, f_number, pitch_from, centre)
+        signed += wt * s_j
+        light += wt * light_j
+        parts.append({"wavelength_nm": w, "file": f.name, "weight": wt, "saturated_px": saturated[j],
+                      **{k: rep[k] for k in ("source_shape", "background", "centre_px", "energy_in_kernel")}})
+    psf = np.clip(signed, 0.0, None)
+    lo, hi = min(p["wavelength_nm"] for p in parts), max(p["wavelength_nm"] for p in parts)
+    entry = {"band_nm": lam, "name": f"band {lam:g} nm ({len(parts)} images, {lo:g}–{hi:g} nm)",
+             "centre_px": parts[0]["centre_px"] if all(p["centre_px"] == parts[0]["centre_px"] for p in parts) else None,
+             "energy_in_kernel": float(signed.sum() / light),
+             "kernel_sum": float(psf.sum()),
+             "noise_clipped": float((psf.sum() - signed.sum()) / light),
+             "saturated_px": sum(p["saturated_px"] for p in parts),
+             "sources": parts}
+    return psf, entry
+
+
+def _warn_cut_bands(d: Path, waves: Sequence[float], bands: Bands, sources: list[list[tuple[int, float]]],
+                    opts: PSFImportOptions) -> None:
+    """Warn about the bands that average a sweep (more than one image) or would (the sweep finer than the band) but
+    whose reach, ±3σ of their Gaussian (:func:`~hsicam.spectral.bands.band_matrix`'s cut), passes the sweep's end: the
+    average is cut symmetrically there (the band at the very end is its nearest image), naming the range to measure."""
+    if len(waves) < 2:
+        return
+    sweep, _ = sweep_bands(d, waves, opts)
+    sigma = bands.fwhm_nm / (2.0 * math.sqrt(2.0 * math.log(2.0)))
+    lo, hi = bands.centers_nm - 3 * sigma, bands.centers_nm + 3 * sigma
+    finer = finer_than_bands(sweep, bands, opts)
+    cut = [i for i in range(len(bands)) if (len(sources[i]) > 1 or finer[i]) and (lo[i] < sweep.min_nm or hi[i] > sweep.max_nm)]
+    if cut:
+        log.warning("%s: the PSF sweep (%g–%g nm) ends within the reach (±3σ) of band(s) %s nm: their PSF averages "
+                    "only the images up to the sweep's end, symmetrically about the centre (a band on the end is its "
+                    "nearest image); to average the whole bands measure %g–%g nm", d, sweep.min_nm, sweep.max_nm,
+                    ", ".join(f"{bands.centers_nm[i]:g}" for i in cut), math.floor(min(lo[cut])), math.ceil(max(hi[cut])))
 
 
 def _warn_folder(d: Path, kernel_px: int, floors: list[str], low: list[str],
@@ -730,6 +909,10 @@ def _measured_psf(d: Path, bands: Bands, opts: PSFImportOptions, camera_pixel_m:
         "axis_px": list(opts.axis_px) if opts.axis_px else None,
         "background": opts.background,
         "normalize": opts.normalize,
+        "fwhm_nm": opts.fwhm_nm,
+        "band_average": ("a band is the weighted average of the images within its reach when the sweep is finer than "
+                         "the band (the weights resampling gives a scene's band: hsicam.spectral.resampling_matrix), "
+                         "else its nearest image; each band's sources and weights are in bands[].sources"),
         "resampling": "exact area integration (piecewise-constant source pixels), energy preserving",
         "bands": per_band,
         "energy_in_kernel": [b["energy_in_kernel"] for b in per_band],

@@ -98,12 +98,14 @@ def psf_difference(tuned: MeasuredPSF, measured: MeasuredPSF, psf_dir: str | Pat
         return "pixel_pitch_um", f"the pixel pitch differs: {p1:g} µm now, {p0:g} µm when it was fine-tuned"
     if before.get("kernel_px") != now.get("kernel_px"):
         return "kernel_px", f"the kernel differs: {now.get('kernel_px')} px now, {before.get('kernel_px')} px when it was fine-tuned"
-    changed = [k for k in ("centre", "axis_px", "background", "normalize") if before.get(k) != now.get(k)]
+    keys = ("centre", "axis_px", "background", "normalize", *(("fwhm_nm",) if "fwhm_nm" in before else ()))  # since v3
+    changed = [k for k in keys if before.get(k) != now.get(k)]
     if changed:
         return "options", "the import options differ: " + ", ".join(f"{k} {now.get(k)!r} now, {before.get(k)!r} then" for k in changed)
     v0, v1 = before.get("import_version", 1), now.get("import_version", 1)
     if v0 != v1:
         return "import", (f"it was imported by an hsicam whose import differs (version {v0} then, {v1} now: since "
-                          "session 73 the images' noise keeps its sign until the kernel, not clipped at 0 first; the "
-                          "files may have changed too)")
+                          "session 73 the images' noise keeps its sign until the kernel, not clipped at 0 first; since "
+                          "session 75 a band of a sweep finer than the bands averages its images, not the nearest one; "
+                          "the files may have changed too)")
     return "images", "the PSF images (or psf.json) of the folder changed since it was fine-tuned"
