@@ -43,13 +43,17 @@ class Progress:
         unit: what an item is (``"scene"``, ``"tile"``).
         show: None: a bar on a terminal, lines otherwise; True: the bar; False: nothing.
         every_s: least seconds between two lines (the first and the last item always get one).
+        initial: items done before this count began (a resumed job): counted in k/N, left out of the ETA's rate.
     """
 
-    def __init__(self, total: int, desc: str, unit: str = "item", show: bool | None = None, every_s: float = 10.0):
+    def __init__(self, total: int, desc: str, unit: str = "item", show: bool | None = None, every_s: float = 10.0,
+                 initial: int = 0):
         self.total, self.desc, self.unit, self.every_s = int(total), desc, unit, float(every_s)
         if self.total < 0:
             raise ValueError(f"total must be >= 0 (the number of items), got {total}")
-        self.done = 0
+        if not 0 <= initial <= self.total:
+            raise ValueError(f"initial must be in [0, total={self.total}] (the items done before), got {initial}")
+        self.done = self.initial = int(initial)
         self.t0 = self._last = time.perf_counter()
         self._lines = show is None and not sys.stderr.isatty()
         self._bar = None
@@ -61,7 +65,7 @@ class Progress:
         if show is not False and not self._lines:
             from tqdm.auto import tqdm
 
-            self._bar = tqdm(total=self.total, desc=desc, unit=unit, dynamic_ncols=True)
+            self._bar = tqdm(total=self.total, desc=desc, unit=unit, dynamic_ncols=True, initial=self.initial)
 
     def update(self, n: int = 1, note: str = "") -> None:
         """``n`` more items done; ``note`` (e.g. the item's name and time) ends its line."""
@@ -72,12 +76,12 @@ class Progress:
         if not self._lines:
             return
         now = time.perf_counter()
-        if self.done not in (1, self.total) and self.done < self.total and now - self._last < self.every_s:
+        if self.done not in (self.initial + 1, self.total) and self.done < self.total and now - self._last < self.every_s:
             return
         self._last = now
         elapsed = now - self.t0
-        left = self.total - self.done
-        eta = f", eta {format_seconds(elapsed / self.done * left)}" if 0 < left and self.done else ""
+        left, new = self.total - self.done, self.done - self.initial  # the rate: of the items done in this count
+        eta = f", eta {format_seconds(elapsed / new * left)}" if 0 < left and new > 0 else ""
         log.info("%s: %d/%d %s%s (%s elapsed%s)", self.desc, self.done, self.total, self.unit + ("" if self.total == 1 else "s"),
                  f" {note}" if note else "", format_seconds(elapsed), eta)
 

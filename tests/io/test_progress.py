@@ -39,6 +39,27 @@ def test_lines_off_a_terminal_first_last_and_throttled(caplog, monkeypatch):
     assert "eta" in text and "s1" in text and "quiet" not in text
 
 
+def test_a_resumed_count_starts_at_the_items_done_and_its_eta_is_the_rate_of_this_counts_items(caplog, monkeypatch):
+    """A resumed job (``initial``: 3 of 5 done before): its lines count 4/5, 5/5, and the ETA is the time of the items
+    done in this count: 10 s for its one item so far, 1 left -> 10 s (over the 4 items counted, 2.5 s: too soon)."""
+    import hsicam.progress as progress
+
+    monkeypatch.setattr("sys.stderr.isatty", lambda: False, raising=False)
+    now = [100.0]
+    monkeypatch.setattr(progress.time, "perf_counter", lambda: now[0])
+    with caplog.at_level(logging.INFO, logger="hsicam.progress"):
+        with Progress(5, "again", "point", every_s=0, initial=3) as p:
+            now[0] = 110.0
+            p.update()
+            now[0] = 120.0
+            p.update()
+    text = "\n".join(r.getMessage() for r in caplog.records)
+    assert counts(text, "again") == [(4, 5), (5, 5)], text
+    assert "again: 4/5 points (10 s elapsed, eta 10 s)" in text, text
+    with pytest.raises(ValueError, match="initial must be in"):
+        Progress(2, "x", initial=3)
+
+
 def test_data_synth_logs_scene_counts_off_a_terminal(env, tmp_path):
     res = run_cli("data", "synth", "--n", "3", "--size", "64", "--out", str(tmp_path / "d"), env=env)
     assert_ok(res)
