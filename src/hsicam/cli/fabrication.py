@@ -28,7 +28,12 @@ def register(sub: argparse._SubParsersAction) -> None:
 
     p = sub.add_parser("tolerance", help="PSNR of the trained camera under fabrication and assembly errors")
     add_run_arg(p, "trained run folder")
-    p.add_argument("--out", required=True, metavar="DIR", help="output folder (tolerance.json, .csv, .png)")
+    p.add_argument("--out", required=True, metavar="DIR",
+                   help="output folder (tolerance.json, .csv, .png); a study interrupted there is resumed by the same "
+                        "command (its finished rows are kept in DIR/tolerance.partial.jsonl)")
+    p.add_argument("--restart", action="store_true",
+                   help="discard the finished rows of a study interrupted in --out and start it over (a resume whose "
+                        "run, scenes or settings differ is refused without it)")
     p.add_argument("--data", metavar="PATH", help="scenes to evaluate on (default: the run's validation scenes)")
     p.add_argument("--max-scenes", type=count_arg, default=8, help="scenes scored at most, >= 1 (default 8)")
     # the lists' defaults are hsicam.engine.tolerance.ToleranceSpec's (that module imports torch: said here, and
@@ -100,12 +105,27 @@ def cmd_export(args: argparse.Namespace) -> int:
 
 
 def cmd_tolerance(args: argparse.Namespace) -> int:
-    from hsicam.runs.folder import load_run
-    from hsicam.engine.tolerance import ToleranceSpec, refuse_finetuned_run, run_tolerance, write_tolerance
+    from hsicam.engine.tolerance import study_folder_state
     from hsicam.cli import prepare_output
-    from hsicam.io import atomic_output
+    from hsicam.io import OutputLock, cleanup_stale_temporaries
 
-    out = prepare_output(args.out, "dir", replace=True, command="tolerance", run=args.run)
+    # an interrupted study (its progress file) is resumed in place; anything else is replaced as a whole
+    interrupted = study_folder_state(args.out) == "interrupted"
+    out = prepare_output(args.out, "dir", replace=not interrupted, command="tolerance", run=args.run)
+    out.parent.mkdir(parents=True, exist_ok=True)  # the lock file lies beside the folder
+    # the folder is this process's from here to its marker: a second study started meanwhile is refused naming it
+    with OutputLock(out, "tolerance") as lock:
+        lock.acquire()
+        if interrupted:  # a kill while its progress file was rewritten left a temporary in it
+            cleanup_stale_temporaries(out)
+        return _tolerance(args, out)
+
+
+def _tolerance(args: argparse.Namespace, out: Path) -> int:
+    """:func:`cmd_tolerance` under the output folder's lock."""
+    from hsicam.runs.folder import load_run
+    from hsicam.engine.tolerance import PARTIAL_FILE, ToleranceSpec, finish_study, refuse_finetuned_run, run_tolerance
+
     refuse_finetuned_run(args.run)  # before loading: its measured PSFs are not what the study perturbs
     defaults = ToleranceSpec()
     spec = ToleranceSpec(height_draws=defaults.height_draws if args.draws is None else args.draws,
@@ -127,9 +147,8 @@ def cmd_tolerance(args: argparse.Namespace) -> int:
             raise InputError(f"{' '.join(given)}: {args.run} has no DOE (camera.doe.enabled: false), so there is no "
                              "element whose heights, levels or position could be in error; leave out "
                              f"{', '.join(given)} (the study then sweeps the sensor distance only)")
-    result = run_tolerance(model, cfg, spec, args.data, run=args.run)
-    with atomic_output(out, overwrite=True, marker={"command": "tolerance"}) as tmp:
-        write_tolerance(tmp, result)
+    result = run_tolerance(model, cfg, spec, args.data, run=args.run, partial=out / PARTIAL_FILE, restart=args.restart)
+    finish_study(out, result)
     from hsicam.engine.tolerance import NOT_SWEPT_KEY
 
     s = result["summary"]

@@ -44,6 +44,12 @@ simulated design optics; its design run is the one to study. tolerance.json reco
 Outputs (:func:`write_tolerance`): ``tolerance.json`` (the studied run: folder, weights file and
 its SHA-256; every value, the nominal result, the 1-dB tolerances), ``tolerance.csv`` (one row
 per evaluated case) and ``tolerance.png``.
+
+Resume (:class:`StudyProgress`): a study run into a folder keeps each finished case, as it finishes, in
+``PARTIAL_FILE`` there (JSON lines: first what is studied, then one line per case, each appended whole);
+the same study started again in that folder skips them, and one whose run weights, run config, scenes or
+settings differ is refused naming them (``--restart`` discards the finished cases). The final files are
+written only when every case is done (:func:`finish_study`).
 """
 
 from __future__ import annotations
@@ -62,6 +68,7 @@ import torch
 
 from hsicam.config import MAX_SIGMA_HEIGHT_NM, TOLERANCE_DRAW_STRIDE, TOLERANCE_SEED_MAX, seed_problem
 from hsicam.errors import InputError
+from hsicam.io import json_text
 from hsicam.optics.perturb import (
     nominal_heights, oversampled_optics, psf_for_heights, psf_sensor_moved, psf_shifted, sensor_distance_aliasing,
     sensor_distance_limits_m, shift_subsamples_for,
@@ -322,13 +329,17 @@ def refuse_finetuned_run(run_dir: str | Path) -> None:
 
 
 def run_tolerance(model, cfg, spec: ToleranceSpec | None = None, data: str | Path | None = None,
-                  progress: bool | None = None, run: str | Path | None = None) -> dict[str, Any]:
+                  progress: bool | None = None, run: str | Path | None = None, partial: str | Path | None = None,
+                  restart: bool = False) -> dict[str, Any]:
     """Evaluate the camera of ``model`` (a :class:`~hsicam.models.CameraSystem` with a DOE camera)
     under every perturbation of ``spec`` (None: the default :class:`ToleranceSpec`); returns the JSON-ready result. ``run``: the run folder
     ``model`` was loaded from; its identity (:func:`hsicam.export.tolerance.run_identity`: folder,
     weights file and its SHA-256) is recorded as ``"run"`` so that ``hsicam export-optics`` cites
     the study only for that run (None: not recorded). ``progress``: one line per sweep point, k/N
-    with an ETA (:class:`hsicam.progress.Progress`; None: a bar on a terminal, lines otherwise; False: none)."""
+    with an ETA (:class:`hsicam.progress.Progress`; None: a bar on a terminal, lines otherwise; False: none).
+    ``partial``: the progress file (:class:`StudyProgress`; None: nothing kept) that every finished case is appended
+    to, and whose cases, from an interrupted run of the same study, are not evaluated again (``restart``: they are
+    discarded); InputError naming what differs when it is of another study, before any evaluation."""
     from hsicam.engine.evaluate import check_scenes
     from hsicam.engine.methods import Method
     from hsicam.optics.perturb import design_heights
@@ -347,37 +358,38 @@ def run_tolerance(model, cfg, spec: ToleranceSpec | None = None, data: str | Pat
     scenes, names = evaluation_scenes(cfg, cam.bands, spec.max_scenes, data, run)
     check_scenes(Method("doe-learned", model.camera, model.reconstructor(), model.target, model=model), scenes, names,
                  boundary_advice=False)  # every scene before the first point; no --set to change the boundary
+    points = _point_count(spec, has_doe)
+    kept = StudyProgress(partial, study_identity(cfg, spec, names, data, studied_run), points, restart)
 
     def evaluate(psf: torch.Tensor) -> dict[str, float]:
         """The fixed network's metrics on the study's scenes imaged with ``psf`` (:func:`evaluate_psf`)."""
         return evaluate_psf(model, psf, scenes, names, spec.seed)
 
     h0 = nominal_heights(cam)
-    nominal_psf = psf_for_heights(optics, h0)
-    nominal = evaluate(nominal_psf.psf)
+    nominal = kept.part("nominal")
+    if nominal is None:
+        nominal_psf = psf_for_heights(optics, h0)
+        nominal = {**evaluate(nominal_psf.psf), "energy_in_kernel_min": float(nominal_psf.energy.min())}
+        kept.save_part("nominal", nominal)
     log.info("tolerance: nominal PSNR %.2f dB on %d scene(s)", nominal["psnr"], len(names))
-    rows: list[dict[str, Any]] = []
     big_q = shift_subsamples_for(optics, spec.shift_subsamples)
     shift_ref = None
-    points = _point_count(spec, has_doe)
-    with Progress(points, "tolerance", "point", show=progress, every_s=0) as bar:  # closed on an error too
-
-        def record(sweep: str, value: float, unit: str, metrics: list[dict[str, float]], energy: torch.Tensor,
-                   **extra) -> None:
-            """One evaluated case: its progress line and its row (:func:`_row`)."""
-            row = _row(sweep, value, unit, metrics, energy, **extra)
-            bar.update(note=f"{sweep} {value:g} {unit}: PSNR {row['psnr']:.2f} dB")
-            rows.append(row)
-
-        if has_doe:
-            _sweep_height_noise(spec, optics, h0, evaluate, record)
-            _sweep_levels(spec, cam, evaluate, record)
-            # the exported relief (piston removed, 0 outside the aperture), not the DOE parameters, whose untrained
-            # values outside the aperture a shift brought into it (1.8 % L1 of the demo camera's PSF at 2 cells)
-            exported = torch.from_numpy(design_heights(cam)[0]).to(h0)
-            shift_ref = _sweep_shift(spec, optics, exported, big_q, evaluate, record)
-        _sweep_sensor_distance(spec, optics, h0, evaluate, record)
-
+    with Progress(points, "tolerance", "point", show=progress, every_s=0, initial=kept.done_count) as bar:
+        study = _Study(kept, evaluate, bar)  # the bar is closed on an error too
+        try:
+            if has_doe:
+                _sweep_height_noise(spec, optics, h0, study)
+                _sweep_levels(spec, cam, study)
+                # the exported relief (piston removed, 0 outside the aperture), not the DOE parameters, whose
+                # untrained values outside the aperture a shift brought into it (1.8 % L1 of the demo camera's PSF at
+                # 2 cells)
+                exported = torch.from_numpy(design_heights(cam)[0]).to(h0)
+                shift_ref = _sweep_shift(spec, optics, exported, big_q, study)
+            _sweep_sensor_distance(spec, optics, h0, study)
+        except BaseException:
+            kept.said_kept()
+            raise
+    rows = study.rows
     sweeps = _sweeps_by_name(rows, None if shift_ref is None else shift_ref.metrics["psnr"])
     summary = _summary(sweeps, nominal["psnr"])
     return {
@@ -395,7 +407,7 @@ def run_tolerance(model, cfg, spec: ToleranceSpec | None = None, data: str | Pat
         "skipped": skipped,
         # the design heights without fabrication noise: a camera.doe.sigma_height_nm, which evaluate applies (its
         # figure is then the sigma_height_nm sweep's point at that σ_p), is left out of the nominal, said here
-        "nominal": {**nominal, "energy_in_kernel_min": float(nominal_psf.energy.min()),
+        "nominal": {**{k: nominal[k] for k in ("psnr", "ssim", "sam", "energy_in_kernel_min")},
                     "heights": "design, without fabrication noise",
                     "camera_sigma_height_nm_left_out": float(optics.doe.sigma_height_m * 1e9)},
         "shift_reference": None if shift_ref is None else {
@@ -403,7 +415,8 @@ def run_tolerance(model, cfg, spec: ToleranceSpec | None = None, data: str | Pat
         "sweeps": sweeps,
         "summary": summary,
         "rows": rows,
-        "elapsed_s": time.perf_counter() - t0,
+        "rows_resumed": kept.done_count,  # read from an interrupted run's progress file, not evaluated again
+        "elapsed_s": time.perf_counter() - t0,  # of this run (a resumed study's earlier runs not counted)
     }
 
 
@@ -442,6 +455,230 @@ def _point_count(spec: ToleranceSpec, has_doe: bool) -> int:
         len(spec.sensor_distance_um)
 
 
+# ------------------------------------------------------------------------------------------------
+# Resume: the progress file of a study run into a folder
+# ------------------------------------------------------------------------------------------------
+#: The progress file in a study's folder while it runs (:class:`StudyProgress`): removed when the study completes.
+PARTIAL_FILE = "tolerance.partial.jsonl"
+#: ``format`` of its first line.
+PARTIAL_FORMAT = "hsicam-tolerance-partial-1"
+#: The files of a completed study (:func:`write_tolerance`), written only when every case is done.
+TOLERANCE_FILES = ("tolerance.csv", "tolerance.json", "tolerance.png")
+#: The ``hsicam tolerance`` option of each :class:`ToleranceSpec` field, named when a resume's settings differ.
+SPEC_OPTIONS = {"sigma_height_nm": "--sigma-height-nm", "height_draws": "--draws", "levels": "--levels",
+                "shift_cells": "--shift-cells", "shift_subsamples": "--shift-subsamples",
+                "sensor_distance_um": "--sensor-distance-um", "max_scenes": "--max-scenes", "seed": "--seed"}
+
+
+def study_identity(cfg, spec: ToleranceSpec, names: Sequence[str], data: str | Path | None,
+                   studied_run: dict[str, str] | None) -> dict[str, Any]:
+    """What a study's cases depend on, the first line of its progress file: the run (its weights' SHA-256,
+    :func:`~hsicam.export.tolerance.run_identity`; None: not a run folder), its config's hash, the scenes (``data``
+    resolved, or None: the run's validation scenes, and their names) and the settings (``spec``), as JSON reads
+    them back."""
+    import json
+
+    from hsicam.config import dump_yaml
+    from hsicam.engine.evaluate import config_hash
+
+    return json.loads(json_text({
+        "format": PARTIAL_FORMAT, "run": studied_run, "config_hash": config_hash(dump_yaml(cfg)),
+        "data": None if data is None else str(Path(data).resolve()), "scenes": list(names), "spec": asdict(spec)}))
+
+
+def _listed(value: Any, most: int = 4) -> str:
+    """A recorded setting as its option takes it (a list comma-separated, at most ``most`` items shown)."""
+    if isinstance(value, list):
+        shown = ",".join(_listed(v) for v in value[:most])
+        return shown + (f",… ({len(value)} in all)" if len(value) > most else "")
+    if isinstance(value, float):
+        return f"{value:g}"
+    return str(value)
+
+
+def identity_differences(then: dict[str, Any], now: dict[str, Any]) -> list[str]:
+    """What differs between two :func:`study_identity` records, each as "WHAT (X then, Y now)"; [] when none."""
+    out = []
+    sha = [r.get("weights_sha256") if isinstance(r, dict) else None for r in (then.get("run"), now.get("run"))]
+    if sha[0] != sha[1]:
+        a, b = (f"{x[:12]}…" if isinstance(x, str) else "not recorded" for x in sha)
+        out.append(f"the run's weights (sha256 {a} then, {b} now)")
+    if then.get("config_hash") != now.get("config_hash"):
+        out.append(f"the run's config.yaml (config hash {then.get('config_hash')} then, {now.get('config_hash')} now)")
+    if then.get("data") != now.get("data"):
+        a, b = (x if x is not None else "the run's validation scenes" for x in (then.get("data"), now.get("data")))
+        out.append(f"--data ({a} then, {b} now)")
+    elif then.get("scenes") != now.get("scenes"):
+        out.append(f"the scenes ({_listed(then.get('scenes'))} then, {_listed(now.get('scenes'))} now)")
+    was = then.get("spec") if isinstance(then.get("spec"), dict) else {}
+    for field, option in SPEC_OPTIONS.items():
+        if was.get(field) != now["spec"].get(field):
+            out.append(f"{option} ({_listed(was.get(field))} then, {_listed(now['spec'].get(field))} now)")
+    return out
+
+
+class StudyProgress:
+    """The finished cases of a study, kept in its progress file ``path`` (:data:`PARTIAL_FILE`; None: nothing kept).
+
+    The file is JSON lines: first the study's identity (:func:`study_identity`), written atomically; then one line
+    per finished case, appended whole (one ``write``) as it finishes: ``{"point": k, "row": ROW}`` for the k-th
+    case of the study's fixed order (its ``sweep`` and ``value`` checked against that order when read back), and
+    ``{"part": NAME, "data": ...}`` for the evaluations that are no row (the nominal, the shift reference).
+    Opened on an existing file (and not ``restart``): the file must be of the same study (else one InputError
+    naming what differs, with the ways on: the same command as then, or ``--restart``), its cases are taken, and a
+    line cut short by a kill is dropped (its case evaluated again); the file is then rewritten atomically with the
+    whole lines alone, so that the next line appended starts a line of its own."""
+
+    def __init__(self, path: str | Path | None, identity: dict[str, Any], points: int, restart: bool = False):
+        from hsicam.runs.folder import MetricsLog
+
+        self.path = None if path is None else Path(path)
+        self.rows: dict[int, dict[str, Any]] = {}
+        self.parts: dict[str, dict[str, Any]] = {}
+        self.points, self._next, self.done_count = points, 0, 0
+        self._log = MetricsLog(self.path if self.path is not None else Path(PARTIAL_FILE), enabled=path is not None)
+        if self.path is None:
+            return
+        records: list[dict[str, Any]] = []
+        torn = 0
+        if self.path.is_file():
+            if restart:
+                log.info("tolerance: --restart: the interrupted study's progress in %s is discarded", self.path)
+            else:
+                records, torn = self._read(identity)
+        for rec in records:
+            if isinstance(rec.get("part"), str) and isinstance(rec.get("data"), dict):
+                self.parts[rec["part"]] = rec["data"]
+            elif isinstance(rec.get("point"), int) and 0 <= rec["point"] < points and _is_row(rec.get("row")):
+                self.rows[rec["point"]] = rec["row"]
+            else:
+                torn += 1
+        from hsicam.io import atomic_open
+
+        with atomic_open(self.path, "w", encoding="utf-8") as fh:  # the whole lines alone: the next one starts anew
+            fh.write("".join(json_text(r) + "\n" for r in [identity, *records]))
+        if self.rows or self.parts:
+            log.info("tolerance: resuming: %d of %d rows done%s (kept in %s)", len(self.rows), points,
+                     f"; {torn} line(s) cut short by the interruption dropped, evaluated again" if torn else "",
+                     self.path)
+        self.done_count = len(self.rows)
+
+    def _read(self, identity: dict[str, Any]) -> tuple[list[dict[str, Any]], int]:
+        """The records after the first line, and the count of lines that are none (cut short), of the same study."""
+        start_over = "add --restart to discard it and start over, or choose another --out"
+        if not self._log.first_line_whole():
+            raise InputError(f"{self.path}: its first line, which names the study, is damaged: the study cannot be "
+                             f"resumed; {start_over}")
+        lines = [x for x in self.path.read_text(encoding="utf-8-sig", errors="replace").splitlines() if x.strip()]
+        records = self._log.read()
+        head = records[0] if records else {}
+        if head.get("format") != PARTIAL_FORMAT:
+            raise InputError(f"{self.path}: not the progress file of an hsicam tolerance study (no format "
+                             f"{PARTIAL_FORMAT!r}); {start_over}")
+        changed = identity_differences(head, identity)
+        if changed:
+            raise InputError(f"{self.path.parent}: holds an interrupted tolerance study that differs from this one "
+                             f"({'; '.join(changed)}): run the command it was started with to resume it, or add "
+                             "--restart to discard its finished rows and start over (or choose another --out)")
+        return records[1:], len(lines) - len(records)
+
+    def part(self, name: str) -> dict[str, Any] | None:
+        """The kept evaluation ``name`` (e.g. "nominal"), or None."""
+        return self.parts.get(name)
+
+    def save_part(self, name: str, data: dict[str, Any]) -> None:
+        self.parts[name] = data
+        self._log.write({"part": name, "data": data})
+
+    def take(self, sweep: str, value: float) -> dict[str, Any] | None:
+        """The kept row of the study's next case (``sweep`` at ``value``), or None: that case is to be evaluated."""
+        row = self.rows.get(self._next)
+        if row is not None and (row.get("sweep"), row.get("value")) != (sweep, value):
+            log.warning("tolerance: %s: case %d is %s %s there, not %s %g: evaluated again", self.path, self._next + 1,
+                        row.get("sweep"), row.get("value"), sweep, value)
+            self.done_count -= 1
+            row = None
+        if row is not None:
+            self._next += 1
+        return row
+
+    def add(self, row: dict[str, Any]) -> None:
+        """Keep the next case's ``row`` (appended whole to the file)."""
+        self.rows[self._next] = row
+        self._log.write({"point": self._next, "row": row})
+        self._next += 1
+
+    def said_kept(self) -> None:
+        """Log where the finished cases are kept, for a study that stopped (interrupted, failed)."""
+        if self.path is not None and self.path.is_file():
+            log.info("tolerance: stopped with %d of %d rows done, kept in %s: the same command resumes the study",
+                     len(self.rows), self.points, self.path)
+
+
+#: The keys of a row of tolerance.json (:func:`_row`) that the study's tables and summary read.
+ROW_KEYS = ("sweep", "value", "unit", "psnr", "psnr_std", "ssim", "sam", "n", "energy_in_kernel_min")
+
+
+def _is_row(row: Any) -> bool:
+    """Whether ``row`` (read from a progress file) holds every :data:`ROW_KEYS`."""
+    return isinstance(row, dict) and all(k in row for k in ROW_KEYS)
+
+
+class _Study:
+    """The cases of one run of a study, in order: ``done`` takes a kept case's row, ``record`` adds an evaluated
+    one (its progress line, its row, kept in the progress file)."""
+
+    def __init__(self, kept: StudyProgress, evaluate, bar):
+        self.kept, self.evaluate, self.bar = kept, evaluate, bar
+        self.rows: list[dict[str, Any]] = []
+
+    def done(self, sweep: str, value: float) -> bool:
+        """Whether the next case (``sweep`` at ``value``) was finished by an earlier run (then its row is taken)."""
+        row = self.kept.take(sweep, value)
+        if row is not None:
+            self.rows.append(row)
+        return row is not None
+
+    def record(self, sweep: str, value: float, unit: str, metrics: list[dict[str, float]], energy: torch.Tensor,
+               **extra) -> None:
+        """One evaluated case: its row (:func:`_row`), kept, and its progress line."""
+        row = _row(sweep, value, unit, metrics, energy, **extra)
+        self.kept.add(row)
+        self.rows.append(row)
+        self.bar.update(note=f"{sweep} {value:g} {unit}: PSNR {row['psnr']:.2f} dB")
+
+
+def study_folder_state(out: str | Path) -> str:
+    """What the folder ``out`` holds for ``hsicam tolerance``: "interrupted" (a study's progress file, with nothing
+    but a completed study's files beside it; InputError naming anything else), else "other" (absent, empty, a
+    completed study or anything else: for :func:`hsicam.cli.prepare_output` to judge)."""
+    from hsicam.io import COMPLETE_MARKER, OS_METADATA, is_temporary
+
+    out = Path(out)
+    if not (out / PARTIAL_FILE).is_file():
+        return "other"
+    extra = sorted(p.name for p in out.iterdir() if p.name not in (PARTIAL_FILE, COMPLETE_MARKER, *TOLERANCE_FILES)
+                   and not is_temporary(p.name) and p.name not in OS_METADATA and not p.name.startswith("._"))
+    if extra:
+        raise InputError(f"{out}: holds an interrupted tolerance study ({PARTIAL_FILE}) and {', '.join(extra[:5])}, "
+                         "which hsicam tolerance did not write; move them, or choose another --out")
+    return "interrupted"
+
+
+def finish_study(out: str | Path, result: dict[str, Any]) -> None:
+    """Write the completed study into its folder ``out``: the marker taken off, ``tolerance.json``, ``.csv`` and
+    ``.png`` (:func:`write_tolerance`, each atomically), the marker put on naming them, the progress file removed.
+    A kill at any step leaves the progress file, from which the same command finishes the study."""
+    from hsicam.io import clear_complete, clear_derived, mark_complete
+
+    out = Path(out)
+    clear_derived(out)
+    clear_complete(out)
+    write_tolerance(out, result)
+    mark_complete(out, {"command": "tolerance", "files": list(TOLERANCE_FILES)})
+    (out / PARTIAL_FILE).unlink(missing_ok=True)
+
+
 def _row(sweep: str, value: float, unit: str, metrics: list[dict[str, float]], energy: torch.Tensor,
          **extra) -> dict[str, Any]:
     """One row of tolerance.json's ``rows`` and tolerance.csv: the mean (and, over several draws, the std) of
@@ -454,21 +691,23 @@ def _row(sweep: str, value: float, unit: str, metrics: list[dict[str, float]], e
             "energy_in_kernel_min": float(energy.min()), **extra}
 
 
-def _sweep_height_noise(spec: ToleranceSpec, optics, h0: torch.Tensor, evaluate, record) -> None:
+def _sweep_height_noise(spec: ToleranceSpec, optics, h0: torch.Tensor, study: _Study) -> None:
     """Records each σ_p of ``spec.sigma_height_nm`` over ``spec.height_draws`` draws (one draw for σ_p = 0)."""
     # height noise: one fixed error realisation per draw (a fabricated element)
     for sigma in spec.sigma_height_nm:
+        if study.done("sigma_height_nm", sigma):
+            continue
         ms, en = [], []
         for d in range(spec.height_draws if sigma > 0 else 1):
             g = torch.Generator().manual_seed(spec.seed * TOLERANCE_DRAW_STRIDE + d)
             noise = torch.randn(h0.shape, generator=g, dtype=torch.float64) * sigma * 1e-9
             res = psf_for_heights(optics, h0 + noise)
-            ms.append(evaluate(res.psf))
+            ms.append(study.evaluate(res.psf))
             en.append(res.energy.min())
-        record("sigma_height_nm", sigma, "nm", ms, torch.stack(en))
+        study.record("sigma_height_nm", sigma, "nm", ms, torch.stack(en))
 
 
-def _sweep_levels(spec: ToleranceSpec, cam, evaluate, record) -> None:
+def _sweep_levels(spec: ToleranceSpec, cam, study: _Study) -> None:
     """Records each level count of ``spec.levels``."""
     from hsicam.export.doe import quantize_levels
     from hsicam.optics.perturb import design_heights
@@ -477,46 +716,62 @@ def _sweep_levels(spec: ToleranceSpec, cam, evaluate, record) -> None:
     # quantisation: the exported L-level heights
     h_design, _, _ = design_heights(cam)
     for lv in spec.levels:
+        if study.done("levels", lv):
+            continue
         _, hq = quantize_levels(h_design, lv, *optics.doe.level_grid())
         res = psf_for_heights(optics, torch.from_numpy(hq))
-        record("levels", lv, "levels", [evaluate(res.psf)], res.energy)
+        study.record("levels", lv, "levels", [study.evaluate(res.psf)], res.energy)
 
 
 class _ShiftReference(NamedTuple):
     """The unshifted case of the shift sweeps on the oversampled pupil."""
 
-    psf: torch.Tensor  # (C, K, K)
-    energy: torch.Tensor  # (C,) energy in the kernel
+    energy: torch.Tensor  # (C,) energy in the kernel (or its least value alone, as a progress file keeps it)
     applied_cells: tuple[float, float]  # the shift applied (rows, columns), cells
     metrics: dict[str, float]
 
 
-def _sweep_shift(spec: ToleranceSpec, optics, h0: torch.Tensor, big_q: int, evaluate, record) -> _ShiftReference:
+def _sweep_shift(spec: ToleranceSpec, optics, h0: torch.Tensor, big_q: int, study: _Study) -> _ShiftReference:
     """Records each shift of ``spec.shift_cells`` along x, then along the diagonal, on the pupil oversampled to
-    ``big_q`` samples per cell; returns the reference (psf, energy, applied shift, metrics): the unshifted case."""
+    ``big_q`` samples per cell; returns the reference (energy, applied shift, metrics): the unshifted case, evaluated
+    once (kept in the progress file as the part ``shift_reference``)."""
     # lateral misalignment along x and along the diagonal, on the Q-oversampled pupil; the
     # reference is the same model without shift (its PSFs differ from the trained q-model's:
     # higher orders of the cell grid leave the kernel instead of folding back in)
-    shift_ref = None
+    kept = study.kept.part("shift_reference")
+    shift_ref = None if kept is None else _ShiftReference(
+        torch.tensor([kept["energy_in_kernel_min"]], dtype=torch.float64), tuple(kept["applied_cells"]),
+        {k: kept[k] for k in ("psnr", "ssim", "sam")})
     fine = oversampled_optics(optics, big_q)
+
+    def reference(psf: torch.Tensor, energy: torch.Tensor, applied) -> _ShiftReference:
+        ref = _ShiftReference(energy, tuple(applied), study.evaluate(psf))
+        study.kept.save_part("shift_reference", {**ref.metrics, "energy_in_kernel_min": float(energy.min()),
+                                                 "applied_cells": list(ref.applied_cells)})
+        return ref
+
     for sweep, direction in (("shift_x_cells", (0.0, 1.0)), ("shift_diag_cells", (1.0, 1.0))):
         for s in spec.shift_cells:
+            if study.done(sweep, s):
+                continue
             if s == 0 and shift_ref is not None:
-                psf, energy, applied, m0 = shift_ref
+                energy, applied, m0 = shift_ref
             else:
                 psf, energy, applied = psf_shifted(fine, h0, s * direction[0], s * direction[1])
-                m0 = evaluate(psf)
                 if s == 0:
-                    shift_ref = _ShiftReference(psf, energy, applied, m0)
-            record(sweep, s, "cells", [m0], energy, applied_cells=list(applied),
-                   shift_um=[a * optics.cell_m * 1e6 for a in applied], pupil_oversample=big_q)
+                    shift_ref = reference(psf, energy, applied)
+                    m0 = shift_ref.metrics
+                else:
+                    m0 = study.evaluate(psf)
+            study.record(sweep, s, "cells", [m0], energy, applied_cells=list(applied),
+                         shift_um=[a * optics.cell_m * 1e6 for a in applied], pupil_oversample=big_q)
     if shift_ref is None:
-        psf, energy, _ = psf_shifted(fine, h0, 0.0, 0.0)
-        shift_ref = _ShiftReference(psf, energy, (0.0, 0.0), evaluate(psf))
+        psf, energy, applied = psf_shifted(fine, h0, 0.0, 0.0)
+        shift_ref = reference(psf, energy, applied)
     return shift_ref
 
 
-def _sweep_sensor_distance(spec: ToleranceSpec, optics, h0: torch.Tensor, evaluate, record) -> None:
+def _sweep_sensor_distance(spec: ToleranceSpec, optics, h0: torch.Tensor, study: _Study) -> None:
     """Records each Δz of ``spec.sensor_distance_um``, with its peak residual defocus in waves at the design
     wavelength and the (unapplied) magnification change."""
     from hsicam.optics.perturb import defocus_step_pi
@@ -527,13 +782,15 @@ def _sweep_sensor_distance(spec: ToleranceSpec, optics, h0: torch.Tensor, evalua
     coarse = []
     for dz_um in spec.sensor_distance_um:
         dz = dz_um * 1e-6
+        step = defocus_step_pi(optics, dz)
+        if step > DEFOCUS_STEP_WARN:  # (said for a resumed row too: the study's rows are flagged as a whole)
+            coarse.append((dz_um, step))
+        if study.done("sensor_distance_um", dz_um):
+            continue
         res = psf_sensor_moved(optics, h0, dz)
         waves = optics.aperture_radius_m**2 / 2 * (1 / (z + dz) - 1 / z) / lam0
-        step = defocus_step_pi(optics, dz)
-        if step > DEFOCUS_STEP_WARN:
-            coarse.append((dz_um, step))
         # coarse_defocus: the PSF's defocus sampled coarsely on the pupil grid, the row's PSF ≳ 11 % off
-        record("sensor_distance_um", dz_um, "um", [evaluate(res.psf)], res.energy,
+        study.record("sensor_distance_um", dz_um, "um", [study.evaluate(res.psf)], res.energy,
                defocus_waves=float(waves), magnification_change=float(dz / z), defocus_step_pi=step,
                coarse_defocus=step > DEFOCUS_STEP_WARN)
     if coarse:
