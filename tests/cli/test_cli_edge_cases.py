@@ -310,8 +310,36 @@ def test_finetune_rate_is_a_tenth_of_the_runs_unless_resumed(tmp_path, monkeypat
 def test_a_tolerance_never_swept_is_said_so():
     from hsicam.cli.fabrication import _fmt
 
-    assert (_fmt(None, "nm", not_swept=True), _fmt(None, "nm"), _fmt(12.34, "nm")) == (
-        "not swept", "beyond the swept range", "12.3 nm")
+    # a null the sweep never reached is said with the range measured: a lower bound, not "beyond the swept range"
+    assert (_fmt(None, "nm", not_swept=True), _fmt(None, "nm"), _fmt(12.34, "nm"), _fmt(None, "nm", swept_to=60.0)) == (
+        "not swept", "not reached within the swept range", "12.3 nm", "not reached up to 60 nm")
+
+
+def test_the_tolerance_line_names_the_range_swept_and_the_rows_that_scored_above_their_reference():
+    """Every perturbation of a study on 2 scenes raised PSNR a little (levels 8: +0.14 dB) and the line said each
+    tolerance was "beyond the swept range": it says what was measured now (not reached up to the largest value
+    swept, per side of the sensor distance) and notes the rows above their reference (a shift's: the unshifted
+    reference), whose size is the scatter of the scores."""
+    from hsicam.cli.fabrication import _swept_to
+    from hsicam.report.tolerance import above_reference_text
+
+    result = {"scenes": ["a", "b"], "nominal": {"psnr": 30.0}, "shift_reference": {"psnr": 29.0},
+              "sweeps": {"sensor_distance_um": {"values": [-50.0, -20.0, 0.0, 100.0]},
+                         "sigma_height_nm": {"values": [0.0, 10.0, 40.0]}},
+              "rows": [{"sweep": "sigma_height_nm", "value": 0.0, "psnr": 30.5},  # unperturbed: no gain counted
+                       {"sweep": "sigma_height_nm", "value": 40.0, "psnr": 30.1},
+                       {"sweep": "levels", "value": 8, "psnr": 30.14},
+                       {"sweep": "levels", "value": 2, "psnr": 28.0},
+                       {"sweep": "shift_x_cells", "value": 0.5, "psnr": 29.2},  # +0.2 over the shift reference
+                       {"sweep": "sensor_distance_um", "value": 100.0, "psnr": 29.9}]}
+    assert (_swept_to(result, "sensor_distance_um", "minus"), _swept_to(result, "sensor_distance_um", "plus"),
+            _swept_to(result, "sigma_height_nm"), _swept_to(result, "levels")) == (50.0, 100.0, 40.0, None)
+    assert above_reference_text(result) == (
+        "3 of 5 perturbed rows scored above their reference (up to +0.20 dB, shift_x_cells 0.5): the scores of 2 "
+        "scene(s) move by that much, so the 1-dB tolerances are uncertain by as much (--max-scenes scores more)")
+    for r in result["rows"]:
+        r["psnr"] = 20.0
+    assert above_reference_text(result) == ""
 
 
 def test_tolerance_refuses_an_empty_list_of_values(tmp_path, monkeypatch):

@@ -362,7 +362,7 @@ def test_shift_subsamples_beyond_the_memory_budget_are_refused_naming_the_option
 
 def test_a_side_never_swept_is_said_so_not_beyond_the_swept_range(fab_run, tmp_path):
     """--sensor-distance-um=0,50 holds no negative value, and σ_p and the shift only 0: their 1-dB tolerances were
-    null, said as "beyond the swept range" (and read so in tolerance.json and the spec.json that export-optics copies
+    null, said as "beyond the swept range" (now "not reached up to X") (and read so in tolerance.json and the spec.json that export-optics copies
     it to). They are "not swept" now, and the summary names them under not_swept (session 54 review)."""
     out = tmp_path / "tol"
     res = run_cli_in_process("tolerance", "--run", str(fab_run), "--out", str(out), "--max-scenes", "1",
@@ -377,7 +377,7 @@ def test_a_side_never_swept_is_said_so_not_beyond_the_swept_range(fab_run, tmp_p
     assert "σ_p not swept, shift not swept (x), Δz toward the lens not swept, away " in line, line
     away = re.search(r"away (.+?)(?:, levels|\s->)", line).group(1)
     plus = s["sensor_distance_um_at_1db_loss"]["plus"]
-    assert away == ("beyond the swept range" if plus is None else f"{plus:.3g} µm"), line
+    assert away == ("not reached up to 50 µm" if plus is None else f"{plus:.3g} µm"), line
 
 
 # --------------------------------------------------------------------------------------------

@@ -158,9 +158,10 @@ def _tolerance(args: argparse.Namespace, out: Path) -> int:
         """The summary's KEY (or KEY.SIDE of the sensor distance's) as the line says it."""
         name, _, side = key.partition(".")
         value = (s.get(name) or {}).get(side) if side else s.get(name)
-        # null for a sweep (or side) that held no value but 0, or none at all (then absent), is not "beyond the
-        # swept range": it was never swept
-        return _fmt(value, unit, not_swept=key in not_swept or name not in s)
+        # null for a sweep (or side) that held no value but 0, or none at all (then absent), is not "not reached up
+        # to …": it was never swept
+        return _fmt(value, unit, not_swept=key in not_swept or name not in s,
+                    swept_to=_swept_to(result, name.removesuffix("_at_1db_loss"), side))
 
     if result.get("skipped"):
         doe = "no DOE (camera.doe.enabled: false): DOE sweeps skipped; 1-dB tolerances: "
@@ -168,22 +169,36 @@ def _tolerance(args: argparse.Namespace, out: Path) -> int:
     else:
         doe = "1-dB tolerances: "
         doe_tol = f"σ_p {tol('sigma_height_nm_at_1db_loss', 'nm')}, shift {tol('shift_x_cells_at_1db_loss', 'cells')} (x), "
-    from hsicam.report.tolerance import levels_text
+    from hsicam.report.tolerance import above_reference_text, levels_text
 
     lv = "" if result.get("skipped") else levels_text(result)  # "levels ≥ L" only when the sweep brackets L
     levels = f", {lv}" if lv else ""
+    above = above_reference_text(result)
+    if above:  # before the summary line, which stays the last
+        print(f"note: {above}")
     print(f"nominal PSNR {result['nominal']['psnr']:.2f} dB on {len(result['scenes'])} scene(s); {doe}{doe_tol}"
           f"Δz toward the lens {tol('sensor_distance_um_at_1db_loss.minus', 'µm')}, "
           f"away {tol('sensor_distance_um_at_1db_loss.plus', 'µm')}{levels} -> {args.out}")
     return 0
 
 
-def _fmt(v, unit: str, not_swept: bool = False) -> str:
-    """A 1-dB tolerance with its unit, or the words for one the sweep never reached, or (``not_swept``: its
+def _swept_to(result: dict, sweep: str, side: str = "") -> float | None:
+    """The largest |value| the study swept of ``sweep`` (``side`` "minus" / "plus": of the values ≤ 0 / ≥ 0), or
+    None when it holds none."""
+    values = ((result.get("sweeps") or {}).get(sweep) or {}).get("values") or []
+    values = [v for v in values if (v <= 0 if side == "minus" else v >= 0 if side == "plus" else True)]
+    return max((abs(v) for v in values), default=None)
+
+
+def _fmt(v, unit: str, not_swept: bool = False, swept_to: float | None = None) -> str:
+    """A 1-dB tolerance with its unit, or the words for one the sweep never reached (``swept_to``: its largest
+    |value|, a lower bound on the tolerance and no more: nothing beyond it was measured), or (``not_swept``: its
     sweep, or side, held no value but 0) for one never swept."""
     if v is not None:
         return f"{v:.3g} {unit}"
-    return "not swept" if not_swept else "beyond the swept range"
+    if not_swept:
+        return "not swept"
+    return "not reached within the swept range" if swept_to is None else f"not reached up to {swept_to:g} {unit}"
 
 
 def cmd_finetune(args: argparse.Namespace) -> int:

@@ -179,7 +179,7 @@ def evaluate_psf(model, psf: torch.Tensor, scenes, names: Sequence[str], seed: i
 
 #: The key of tolerance.json's ``summary`` that lists the 1-dB tolerances left null because their sweep (or, for
 #: the sensor distance, its side: ``sensor_distance_um_at_1db_loss.minus``, ``.plus``) held no value but 0: never
-#: swept, not "beyond the swept range" (absent when every sweep run reached out from 0).
+#: swept, not "not reached up to X" (absent when every sweep run reached out from 0).
 NOT_SWEPT_KEY = "not_swept"
 
 

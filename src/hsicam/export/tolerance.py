@@ -60,7 +60,7 @@ def finetuned_from(run_dir: str | Path) -> str | None:
 
 def _swept_ranges(data: dict[str, Any]) -> dict[str, list[float]] | None:
     """{sweep: [smallest, largest value]} of a study's ``sweeps``: what a null 1-dB tolerance of its ``summary``
-    ("beyond the swept range") means; None when the study has none readable."""
+    (not reached within that range: a lower bound) means; None when the study has none readable."""
     sweeps = data.get("sweeps")
     if not isinstance(sweeps, dict):
         return None

@@ -21,6 +21,26 @@ def levels_text(result: dict[str, Any]) -> str:
     return f"levels: {lv} within 1 dB, {s.get('levels_note') or 'not bracketed'}"
 
 
+def above_reference_text(result: dict[str, Any]) -> str:
+    """The one-line summary's note on the perturbed rows (value ≠ 0) that scored above their reference (the
+    nominal; a shift's: the unshifted reference): how many and the largest gain, which is the size of the scatter of
+    the study's scores on its scenes, so its 1-dB tolerances are uncertain by as much. "" when none did."""
+    nominal = result["nominal"]["psnr"]
+    shift_ref = (result.get("shift_reference") or {}).get("psnr")
+    perturbed = [r for r in result.get("rows") or [] if r["value"] != 0]
+    gains = []
+    for r in perturbed:
+        ref = shift_ref if r["sweep"].startswith("shift") and shift_ref is not None else nominal
+        if r["psnr"] > ref:
+            gains.append((r["psnr"] - ref, r))
+    if not gains:
+        return ""
+    gain, row = max(gains, key=lambda t: t[0])
+    return (f"{len(gains)} of {len(perturbed)} perturbed rows scored above their reference (up to +{gain:.2f} dB, "
+            f"{row['sweep']} {row['value']:g}): the scores of {len(result['scenes'])} scene(s) move by that much, so "
+            "the 1-dB tolerances are uncertain by as much (--max-scenes scores more)")
+
+
 #: The distance a diagonal shift of 1 cell per axis moves the DOE (cells).
 DIAGONAL_DISTANCE = 2 ** 0.5
 
