@@ -478,7 +478,7 @@ def _reconstruct_fallbacks(tmp_path, monkeypatch) -> dict[str, float]:
         seen["tv_weight"] = steps.tv_weight
         return steps
 
-    def capture_noise(model, report, full_well_e, read_noise_e, corr=None, offset=None):
+    def capture_noise(model, report, full_well_e, read_noise_e, corr=None, offset=None, orientation="as-read"):
         seen["read_noise_e"] = read_noise_e
         seen["cfa_offset"] = offset  # the capture's place, found before its noise (a flat field's gain map sits there)
         raise _Reached()

@@ -47,6 +47,14 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "placed the same way); auto: estimated "
                         "from the capture (the CFA phase whose reconstruction the camera images back closest to it; "
                         "not for CASSI), logged and recorded in the cube's metadata")
+    p.add_argument("--orientation", type=orientation_arg, default=None, metavar="NAME|auto",
+                   help="how the capture as stored relates to the sensor's readout: as-read, flip-lr, flip-ud, rot90 "
+                        "(turned 90° counter-clockwise), rot180, rot270, transpose, antitranspose; undone before "
+                        "anything else (a --cfa-offset is then the sensor's), and the cube is turned back into the "
+                        "capture's frame; dark and flat frames are stored as the capture is (default: as-read, "
+                        "checked when no --cfa-offset is given: a warning names an orientation that clearly explains "
+                        "the capture better); auto: the orientation (and CFA phase) whose reconstruction the camera "
+                        "images back closest to the capture, 8× the cost of --cfa-offset auto")
     p.add_argument("--device", default="cpu", type=device_arg, help="torch device (default cpu)")
     p.add_argument("--consistency-steps", type=int, default=None, metavar="N",
                    help=f"measurement-consistency steps after the network, 0 to {MAX_CONSISTENCY_ITERATIONS} (default: "
@@ -122,15 +130,28 @@ def cfa_offset_arg(text: str) -> tuple[int, int] | str:
     return y, x
 
 
-def estimated_cfa_offset(model, sensor: torch.Tensor) -> tuple[tuple[int, int], dict]:
+def orientation_arg(text: str) -> str:
+    """argparse ``type`` of ``--orientation``: one of :data:`hsicam.engine.orientation.ORIENTATIONS`, or ``"auto"``."""
+    from hsicam.engine.orientation import ORIENTATIONS
+
+    name = text.strip().lower()
+    if name != "auto" and name not in ORIENTATIONS:
+        raise argparse.ArgumentTypeError(f"expected one of {', '.join(ORIENTATIONS)} (how the capture as stored "
+                                         f"relates to the sensor's readout) or auto, got {text!r}")
+    return name
+
+
+def estimated_cfa_offset(model, sensor: torch.Tensor, est=None) -> tuple[tuple[int, int], dict]:
     """``--cfa-offset auto``: (Y, X) estimated from the capture, logged (a warning when ambiguous),
-    and the estimate's record for the cube's metadata."""
+    and the estimate's record for the cube's metadata. ``est``: the estimate when already made (``--orientation
+    auto`` scores the phases of each orientation)."""
     from hsicam.engine.cfa_offset import MIN_SCORED_PX, estimate_cfa_offset
 
     from hsicam.engine.cfa_offset import NarrowBandCapture
 
     try:
-        est = estimate_cfa_offset(model, sensor, progress=None)  # asked for: however long it takes, counted
+        # asked for: however long it takes, counted
+        est = estimate_cfa_offset(model, sensor, progress=None) if est is None else est
     except NarrowBandCapture as e:  # its phase scores are meaningless: the best one made 660 nm light read as 420 nm
         raise InputError(f"--cfa-offset auto: {e}; give the sensor row and column of the capture's first pixel with "
                          "--cfa-offset Y,X (0,0 where the sensor starts), e.g. measured on a capture of a broadband, "
@@ -155,7 +176,7 @@ def estimated_cfa_offset(model, sensor: torch.Tensor) -> tuple[tuple[int, int], 
     return est.offset, est.as_dict()
 
 
-def checked_sensor_origin(model, sensor: torch.Tensor, source) -> dict | None:
+def checked_sensor_origin(model, sensor: torch.Tensor, source, check_orientation: bool = False) -> dict | None:
     """No ``--cfa-offset``: the capture is taken to start where the sensor does (CFA phase 0,0), and checked.
     The phases are scored as ``auto`` does, on the central :data:`~hsicam.engine.cfa_offset.CHECK_WINDOW_PX` px
     (wider where the camera's PSF reach leaves fewer than ``MIN_SCORED_PX`` px to score);
@@ -164,7 +185,10 @@ def checked_sensor_origin(model, sensor: torch.Tensor, source) -> dict | None:
     word before). Returns the check's record for the cube's metadata; None when the capture is too small or dark
     to tell (an INFO line says so: 0,0 is taken, as before); ``{"checked": False, "projected_s": …}`` when the check would
     take longer than :data:`~hsicam.engine.cfa_offset.CHECK_TIME_BUDGET_S` (stopped after its first phase; an INFO
-    line says so and what to give instead)."""
+    line says so and what to give instead). ``check_orientation`` (no ``--orientation`` given): the capture's
+    orientation is checked too, when its best phase is not 0,0
+    (:func:`~hsicam.engine.orientation.check_orientation_at_origin`): a warning names an orientation that explains it
+    clearly better (``orientation_check`` in the record)."""
     from hsicam.engine.cfa_offset import (CHECK_TIME_BUDGET_S, CHECK_WINDOW_PX, MIN_SCORED_PX, EstimateTooSlow,
                                           NarrowBandCapture, estimate_cfa_offset)
 
@@ -185,6 +209,9 @@ def checked_sensor_origin(model, sensor: torch.Tensor, source) -> dict | None:
                  "readout, give the sensor row and column of its first pixel with --cfa-offset Y,X", e)
         return None
     oy, ox = est.offset
+    turned = checked_orientation(model, sensor, source, est) if check_orientation else None
+    if turned is not None and turned["warned"]:  # said by that warning (the phase alone would not fix it)
+        return {**est.as_dict(), "warned": est.rules_out_origin, "orientation_check": turned}
     if not est.rules_out_origin:  # quiet: a line on every reconstruction would say nothing to act on
         log.debug("CFA phase 0,0 (no --cfa-offset): %s (scored on the central %d×%d px)",
                   "the capture was too featureless or small to tell" if est.ambiguous or est.small else
@@ -196,7 +223,31 @@ def checked_sensor_origin(model, sensor: torch.Tensor, source) -> dict | None:
                     "sensor row and column of its first pixel with --cfa-offset Y,X, or --cfa-offset auto (%d,%d here); "
                     "--cfa-offset 0,0 takes it as given", source, oy, ox, est.residuals[f"{oy},{ox}"],
                     est.residuals["0,0"], oy, ox)
-    return {**est.as_dict(), "warned": est.rules_out_origin}
+    record = {**est.as_dict(), "warned": est.rules_out_origin}
+    return record if turned is None else {**record, "orientation_check": turned}
+
+
+def checked_orientation(model, sensor: torch.Tensor, source, est) -> dict | None:
+    """The orientation check of a capture reconstructed without ``--orientation`` (after its CFA check ``est``):
+    :func:`~hsicam.engine.orientation.check_orientation_at_origin`, and a warning naming another orientation when it
+    explains the capture at least :data:`~hsicam.engine.orientation.MIN_ORIENTATION_RATIO` times better than the
+    capture as read at its best phase. The record for the cube's metadata (``warned``), None when not scored."""
+    from hsicam.engine.orientation import MIN_ORIENTATION_RATIO, check_orientation_at_origin
+
+    if est.ambiguous or est.small:  # a featureless or small capture tells no orientation either
+        return None
+    found = check_orientation_at_origin(model, sensor, est, est.window[2])
+    if found is None:
+        return None
+    warned = found["residual"] * MIN_ORIENTATION_RATIO <= found["as_read_best"]
+    if warned:
+        log.warning("%s: the capture does not look as if it were stored as the sensor reads it out: read as %s (a "
+                    "mirrored or rotated readout, e.g. flipped by the camera's software or saved rotated) it is "
+                    "explained clearly better (relative residual %.3g against %.3g at its best CFA phase as read), so "
+                    "its spectra are likely wrong; give --orientation %s, or --orientation auto to score all "
+                    "orientations and phases; --orientation as-read takes it as given", source, found["orientation"],
+                    found["residual"], found["as_read_best"], found["orientation"])
+    return {**found, "warned": warned}
 
 
 def offset_reconstructor(fn, offset: tuple[int, int]):
@@ -473,7 +524,7 @@ def check_noise_args(args: argparse.Namespace) -> None:
 
 
 def capture_noise(model, report: dict, full_well_e: float, read_noise_e: float, corr=None,
-                  offset: tuple[int, int] = (0, 0)) -> dict:
+                  offset: tuple[int, int] = (0, 0), orientation: str = "as-read") -> dict:
     """Give ``model``'s camera the Poisson–Gaussian noise of a capture with ``full_well_e`` electrons at the
     white level and ``read_noise_e`` of read noise, on the image as :func:`~hsicam.data.images.read_capture`
     returned it (``report``): the gain it applied after normalising to [0, 1] (exposure ratio ×
@@ -481,8 +532,9 @@ def capture_noise(model, report: dict, full_well_e: float, read_noise_e: float, 
     A flat field of ``corr`` (the :class:`~hsicam.data.images.RawCorrection` the image was read with)
     divided each pixel by its flat value F, so there f = 1/F per pixel: the camera's noise gets that gain
     map, placed at the capture's first sensor pixel ``offset`` (its CFA offset). The
-    measurement-consistency steps weigh their residuals by that variance. Returns the cube metadata that
-    records it."""
+    measurement-consistency steps weigh their residuals by that variance; the flat, stored as the capture is, is
+    turned as the capture was (``orientation``, :func:`hsicam.engine.orientation.to_sensor`). Returns the cube
+    metadata that records it."""
     import torch
 
     from hsicam.data.images import frame_data, normalised_flat
@@ -492,7 +544,9 @@ def capture_noise(model, report: dict, full_well_e: float, read_noise_e: float, 
     gain = None
     if corr is not None and corr.flat is not None:
         flat = normalised_flat(frame_data(corr.flat), float(report["black_level_dn"]), corr.flat_period)
-        gain = torch.from_numpy(1.0 / flat)
+        from hsicam.engine.orientation import to_sensor
+
+        gain = torch.from_numpy(np.ascontiguousarray(to_sensor(1.0 / flat, orientation)))
     # quantisation is not modelled: a DN step's Δ²/12 is far below the read noise of a 12-bit or deeper capture
     model.camera.noise = SensorNoise("poisson_gaussian", full_well_e=full_well_e / factor, read_noise_e=read_noise_e,
                                      gain=gain, gain_origin=tuple(offset))
@@ -627,10 +681,13 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
     _check_capture_size(args, img.shape, period)
     check_room_for_cube(out, len(model.bands), *img.shape)  # before the work, which takes minutes at full size
     sensor = torch.from_numpy(img)[None, None].to(args.device)
-    # the offset first (a check or an estimate on a central window: about a second), then the noise model at it
-    offset = _capture_offset(args, cfg, model, sensor, period, meta)
+    # the sensor's readout first (the capture, its clipped pixels and its flat's gain turned alike), then the offset
+    # (a check or an estimate on a central window: about a second), then the noise model at it
+    orientation, sensor, saturated, estimate = _capture_orientation(args, model, sensor, saturated, period, meta)
+    offset = _capture_offset(args, cfg, model, sensor, period, meta, estimate)
     if args.full_well_e is not None:  # after the offset: a flat field's gain map sits at the capture's first pixel
-        meta.update(capture_noise(model, report, args.full_well_e, args.read_noise_e or 0.0, corr, offset))
+        meta.update(capture_noise(model, report, args.full_well_e, args.read_noise_e or 0.0, corr, offset,
+                                  orientation))
     meta.update(capture_saturation(model, saturated, offset))  # after the noise model, which it joins
     del saturated
     # after the noise model, which widens the steps' context (a noise-aware step's halo): the memory is checked here
@@ -639,6 +696,10 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
     del sensor
     # Radiance is non-negative: the network's small negative excursions are clipped at 0.
     cube = cube.float().clamp_min_(0).cpu().numpy()
+    if orientation != "as-read":  # back into the capture's frame: the cube lies over the file as stored
+        from hsicam.engine.orientation import to_capture
+
+        cube = np.ascontiguousarray(to_capture(cube, orientation))
     exposure = _write_outputs(out, inputs, cube, model.bands, meta)
     print(f"reconstructed {cube.shape[0]} bands × {cube.shape[1]}×{cube.shape[2]} -> {out} "
           f"(sRGB preview {output_files(out)[-1].name}, exposed ×{exposure:.3g} for display)")
@@ -742,17 +803,65 @@ def _check_capture_size(args: argparse.Namespace, shape: tuple[int, int], period
                          "too small to reconstruct")
 
 
-def _capture_offset(args: argparse.Namespace, cfg, model, sensor: torch.Tensor, period: int, meta: dict):
+def _capture_orientation(args: argparse.Namespace, model, sensor: torch.Tensor, saturated: np.ndarray, period: int,
+                         meta: dict):
+    """(orientation, the capture and its clipped pixels brought back to the sensor's readout, the CFA estimate of
+    that orientation when ``--orientation auto`` made one) from ``--orientation``, recorded in ``meta``."""
+    from hsicam.engine.cfa_offset import NarrowBandCapture
+    from hsicam.engine.orientation import estimate_orientation, to_sensor
+
+    name, estimate = args.orientation, None
+    if name is None:
+        meta["orientation"] = "as-read"
+        return "as-read", sensor, saturated, None  # checked with the CFA phase (checked_sensor_origin)
+    if name == "auto":
+        if period <= 1:
+            raise InputError("--orientation auto reads the orientation from the colour filter array, which this "
+                             "camera has not: give --orientation NAME (as-read where the capture is the sensor's "
+                             "readout)")
+        phases = [args.cfa_offset] if isinstance(args.cfa_offset, tuple) else None  # the phase given: that one only
+        try:
+            est = estimate_orientation(model, sensor, phases=phases, progress=None)
+        except NarrowBandCapture as e:
+            raise InputError(f"--orientation auto: {e}; give the orientation with --orientation NAME") from None
+        name, estimate = est.orientation, est.estimates[est.orientation]
+        second, r2 = est.runner_up
+        log.info("--orientation auto: %s (relative residual %.3g at CFA phase %d,%d; next best %s: %.3g)", name,
+                 est.residuals[name], *estimate.offset, second, r2)
+        if est.close_runner_up:
+            log.warning("--orientation auto: %s explains the capture barely better than %s (residual %.4g against "
+                        "%.4g): the CFA does not tell them apart here; check the reconstruction's spectra, or give "
+                        "the orientation the camera stores its captures in with --orientation NAME", name, second,
+                        est.residuals[name], r2)
+        meta["orientation_estimate"] = est.as_dict()
+    meta["orientation"] = name
+    if name != "as-read":
+        sensor = to_sensor(sensor, name).contiguous()
+        saturated = np.ascontiguousarray(to_sensor(saturated, name))
+    return name, sensor, saturated, estimate
+
+
+def _capture_offset(args: argparse.Namespace, cfg, model, sensor: torch.Tensor, period: int, meta: dict,
+                    estimate=None):
     """The sensor row and column of the capture's first pixel (``--cfa-offset``, estimated for auto), recorded in
-    ``meta``; (0, 0) for a camera without a CFA."""
+    ``meta``; (0, 0) for a camera without a CFA. ``estimate``: the CFA phases already scored (``--orientation
+    auto``), else scored here."""
     offset = args.cfa_offset
     if period > 1:
-        if offset is None:
-            offset, check = (0, 0), checked_sensor_origin(model, sensor, args.sensor)
+        if offset is None and estimate is not None:  # the phases of the orientation chosen, checked at 0,0
+            offset = (0, 0)
+            if estimate.rules_out_origin:
+                oy, ox = estimate.offset
+                log.warning("%s: read as %s, the capture does not look as if it started where the sensor does: the "
+                            "CFA phase %d,%d explains it clearly better; if it is a crop, give --cfa-offset Y,X, or "
+                            "--cfa-offset auto", args.sensor, meta["orientation"], oy, ox)
+            meta["cfa_offset_check"] = {**estimate.as_dict(), "warned": estimate.rules_out_origin}
+        elif offset is None:
+            offset, check = (0, 0), checked_sensor_origin(model, sensor, args.sensor, args.orientation is None)
             if check is not None:
                 meta["cfa_offset_check"] = check
         elif offset == "auto":
-            offset, meta["cfa_offset_estimate"] = estimated_cfa_offset(model, sensor)
+            offset, meta["cfa_offset_estimate"] = estimated_cfa_offset(model, sensor, estimate)
         meta["cfa_offset"] = list(offset)
     elif cfg.camera.kind != "doe":  # a CASSI camera's coded aperture is taken at the capture's place, as a CFA is
         if offset == "auto":

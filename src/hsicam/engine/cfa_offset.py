@@ -205,7 +205,7 @@ def cfa_phase_ratio(window: torch.Tensor, period: int) -> float:
 @torch.no_grad()
 def estimate_cfa_offset(system, sensor: torch.Tensor, window_px: int = DEFAULT_WINDOW_PX,
                         min_scored_px: int = 0, time_budget_s: float | None = None,
-                        progress: bool | None = False) -> CfaOffsetEstimate:
+                        progress: bool | None = False, phases=None, operators=None) -> CfaOffsetEstimate:
     """The CFA phase (Y, X) of the capture ``sensor`` (1, 1, H, W), values in [0, 1], for the trained
     :class:`~hsicam.models.system.CameraSystem` ``system`` (a camera with a CFA of period m > 1).
 
@@ -216,9 +216,10 @@ def estimate_cfa_offset(system, sensor: torch.Tensor, window_px: int = DEFAULT_W
     least ``min_scored_px`` a side are scored inside the PSF's reach. Costs m² network passes on the window
     (the 4×4 CFA: 16; about 2.5 s for 256 px on one CPU core, `pretrained:standard`; a `paper`-preset run's 9×9 CFA:
     81 passes of its RDN). ``time_budget_s``: :class:`EstimateTooSlow` after the first candidate when its time × m²
-    exceeds it (None: no limit). ``progress``: count the candidates (:class:`hsicam.progress.Progress`).
-    InputError when the camera has no CFA, or the capture is too small or black."""
-    from hsicam.models.consistency import cut_psf
+    exceeds it (None: no limit). ``progress``: count the candidates (:class:`hsicam.progress.Progress`). ``phases``:
+    the (Y, X) candidates to score (default all m²; e.g. only (0, 0) where the phase is known: the orientation check,
+    :mod:`hsicam.engine.orientation`). ``operators``: :func:`scoring_operators` of ``system`` when already built (a
+    second of PSFs for the shipped camera: the orientations score the same camera 8 times). InputError when the camera has no CFA, or the capture is too small or black."""
     from hsicam.progress import Progress
 
     period = int(getattr(system.camera, "code_period", 1))
@@ -229,9 +230,7 @@ def estimate_cfa_offset(system, sensor: torch.Tensor, window_px: int = DEFAULT_W
     was_training = system.training
     system.eval()
     try:
-        op = _nominal(system.camera)
-        explain = system.step_camera if system.step_camera is not None else system.camera
-        step = cut_psf(_nominal(explain), system.consistency.psf_energy)
+        op, step = scoring_operators(system) if operators is None else operators
         margin = int(getattr(step, "kernel_px", 1)) // 2 + period
         h, w = sensor.shape[-2:]
         need = 2 * margin + 4 * period
@@ -261,25 +260,36 @@ def estimate_cfa_offset(system, sensor: torch.Tensor, window_px: int = DEFAULT_W
                 "it explains badly at every phase) or one whose noise drowns its darker filters' light", ratio)
         residuals = {}
         start = time.perf_counter()
-        with Progress(period * period, "CFA offset", "phase", show=progress) as bar:
-            for cy in range(period):
-                for cx in range(period):
-                    origin = (cy + wy, cx + wx)  # the window's first pixel on the sensor, for this candidate
-                    # (a capture's clipped pixels lie on the map at its real phase, which is what is sought here)
-                    x = system.network(y, origin, operator=op, read_clipped=False)
-                    residuals[f"{cy},{cx}"] = float((step.A(x, origin) - y)[inner].square().sum()) / norm
-                    bar.update(1)
-                    if time_budget_s is not None and len(residuals) == 1:
-                        projected = (time.perf_counter() - start) * period * period
-                        if projected > time_budget_s:
-                            raise EstimateTooSlow(
-                                f"scoring the {period * period} CFA phases would take about {projected:.0f} s "
-                                f"({projected / (period * period):.1f} s each, on a {wh}×{ww} px window)", projected)
+        todo = [(cy, cx) for cy in range(period) for cx in range(period)] if phases is None else \
+            [(int(cy) % period, int(cx) % period) for cy, cx in phases]
+        with Progress(len(todo), "CFA offset", "phase", show=progress) as bar:
+            for cy, cx in todo:
+                origin = (cy + wy, cx + wx)  # the window's first pixel on the sensor, for this candidate
+                # (a capture's clipped pixels lie on the map at its real phase, which is what is sought here)
+                x = system.network(y, origin, operator=op, read_clipped=False)
+                residuals[f"{cy},{cx}"] = float((step.A(x, origin) - y)[inner].square().sum()) / norm
+                bar.update(1)
+                if time_budget_s is not None and len(residuals) == 1:
+                    projected = (time.perf_counter() - start) * len(todo)
+                    if projected > time_budget_s:
+                        raise EstimateTooSlow(
+                            f"scoring the {len(todo)} CFA phases would take about {projected:.0f} s "
+                            f"({projected / len(todo):.1f} s each, on a {wh}×{ww} px window)", projected)
     finally:
         system.train(was_training)
     best = min(residuals, key=residuals.get)
     oy, ox = (int(v) for v in best.split(","))
     return CfaOffsetEstimate((oy, ox), residuals, (wy, wx, wh, ww), margin, phase_ratio=ratio)
+
+
+def scoring_operators(system) -> tuple:
+    """(the network's operator, the camera that re-images its estimate) that :func:`estimate_cfa_offset` scores with:
+    the nominal snapshots of ``system.camera`` and of ``system.step_camera`` (else the camera), PSFs cut to
+    ``model.consistency.psf_energy``."""
+    from hsicam.models.consistency import cut_psf
+
+    explain = system.step_camera if system.step_camera is not None else system.camera
+    return _nominal(system.camera), cut_psf(_nominal(explain), system.consistency.psf_energy)
 
 
 def _nominal(camera):
