@@ -496,6 +496,12 @@ def test_scored_region_names_a_crop_only_where_the_camera_has_a_kernel_margin():
 
     doe = build_camera(load_config("tiny", ["camera.boundary=valid"]))
     assert doe.margin > 0 and scored_region(doe).startswith("sensor area")
+    # in pixels: the sensor image of a 40×48 scene is (40 − K + 1)×(48 − K + 1), K the kernel (odd: K//2 a side)
+    k = doe.kernel_px
+    with torch.no_grad():
+        g = doe(torch.rand(1, len(doe.bands), 40, 48))
+    assert tuple(g.shape[-2:]) == (40 - k + 1, 48 - k + 1)
+    assert f"{k // 2} px a side" in scored_region(doe) and f"(H − {k - 1})×(W − {k - 1}) px" in scored_region(doe)
     cassi = build_camera(load_config("dd_cassi_rdn", ["data.synthetic_size=32"]))
     assert cassi.boundary == "valid" and cassi.margin == 0
     with torch.no_grad():
@@ -550,3 +556,30 @@ def test_each_scene_gets_its_own_capture_noise_and_every_method_the_same(run):
     finally:
         cam.set_noise(**levels)
     assert (other_element - captures[(b, "s0")]).abs().max() > 0  # σ_p was drawn (another seed, another element)
+
+
+def test_each_scored_scene_records_the_size_of_its_scored_area():
+    """results.json rows carry ``scored_px``, [H, W] of the area the metrics cover: a DOE camera's sensor area (the
+    scene less K − 1 px per axis, the sensor image's own size) and, for a method leaving ``border_px`` out, less
+    that a side."""
+    import dataclasses
+
+    from hsicam.cameras.registry import build_camera
+    from hsicam.config import load_config
+    from hsicam.engine.evaluate import evaluate_method, summarize
+    from hsicam.engine.methods import Method
+
+    cam = build_camera(load_config("tiny", ["camera.boundary=valid"]))
+    k = cam.kernel_px
+    scene = torch.rand(len(cam.bands), 40 + k - 1, 44 + k - 1)
+
+    def flat(y):  # a sensor-sized estimate: the sensor image in every band
+        return y.expand(-1, len(cam.bands), -1, -1).clamp(0, 1)
+
+    r = (k - 1) // 2
+    method = Method("flat", cam, flat, lambda x: x[..., r:-r, r:-r])  # the sensor-aligned crop, written out here
+    rows = summarize(evaluate_method(method, [scene], ["s0"]))["scenes"]
+    assert rows[0]["scored_px"] == [40, 44]
+    bordered = dataclasses.replace(method, border_px=3)
+    rows = summarize(evaluate_method(bordered, [scene], ["s0"]))["scenes"]
+    assert rows[0]["scored_px"] == [34, 38]

@@ -47,6 +47,7 @@ class SceneResult:
     metrics_per_seed: list[dict[str, float]] = field(default_factory=list)  # one dict per seed, with its "seed"
     noise: dict[str, float] = field(default_factory=dict)  # the camera's noise levels while it was scored
     sam_excluded_px: int = 0  # scored pixels whose truth spectrum is all zero (no spectral angle)
+    scored_px: tuple[int, int] | None = None  # (H, W) of the scored area (the region results.json names)
 
 
 @dataclass(frozen=True)
@@ -128,8 +129,12 @@ def scored_region(camera, border_px: int = 0) -> str:
     if border_px:
         return (f"the sensor area of the DOE camera it is compared with: the scene less {border_px} px a side "
                 "(the reconstruction covers the whole scene)")
-    if camera.boundary == "valid" and getattr(camera, "margin", 0) > 0:
-        return "sensor area (scene minus the camera's kernel margin)"
+    margin = getattr(camera, "margin", 0)
+    if camera.boundary == "valid" and margin > 0:
+        a, b = margin // 2, margin - margin // 2
+        side = f"{a} px a side" if a == b else f"{margin} px per axis"
+        return (f"sensor area (scene minus the camera's kernel margin: {side}, an H×W scene scores "
+                f"(H − {margin})×(W − {margin}) px; each scene's scored_px)")
     if camera.boundary == "valid":  # a CASSI camera: no PSF kernel, so 'valid' crops nothing
         return "whole scene (no kernel margin to crop: the camera images without a PSF)"
     return f"whole scene (boundary 'same', {getattr(camera, 'padding', 'zeros')} padding: border pixels included)"
@@ -332,7 +337,8 @@ def evaluate_method(method: Method, scenes, names: Sequence[str], noise: TestNoi
                                    est0[0].cpu().numpy() if kept else None, float(np.mean(times)), std,
                                    path=None if paths is None else str(paths[i]), seed=int(noise.seeds[0]),
                                    metrics_per_seed=[{"seed": int(s), **m} for s, m in zip(noise.seeds, per_seed)],
-                                   noise=dict(applied), sam_excluded_px=int(sam_undefined_pixels(truth)[0])))
+                                   noise=dict(applied), sam_excluded_px=int(sam_undefined_pixels(truth)[0]),
+                                   scored_px=(int(est0.shape[-2]), int(est0.shape[-1]))))
             if progress is not None:
                 left = len(names) - i - 1  # the scenes still to do, at the mean time per scene so far (all seeds)
                 eta = f", eta {format_seconds((time.perf_counter() - t_start) / (i + 1) * left)}" if left else ""
@@ -383,12 +389,14 @@ def summarize(results: list[SceneResult], **facts) -> dict:
     """Per-scene rows, means and the metric conventions, as a JSON-ready dict.
 
     A row has the scene's ``path`` (when known), its metrics (means over the seeds), ``std`` and
-    ``per_seed`` (several seeds), and ``sam_excluded_px``. A scene whose SAM is undefined (NaN:
+    ``per_seed`` (several seeds), ``sam_excluded_px`` and ``scored_px`` ([H, W] of the scored area, when known).
+    A scene whose SAM is undefined (NaN:
     its truth is zero at every scored pixel) is listed in ``sam_undefined``, and the mean SAM is
     over the other scenes; likewise a scene whose ERGAS is undefined (NaN: a band's truth mean over the
     scored area is 0) in ``ergas_undefined``."""
     rows = [{"name": r.name, **({"path": r.path} if r.path is not None else {}), **r.metrics,
              "runtime_s": r.runtime_s, "sam_excluded_px": r.sam_excluded_px,
+             **({"scored_px": list(r.scored_px)} if r.scored_px is not None else {}),
              **({"std": r.metrics_std} if r.metrics_std else {}),
              **({"per_seed": r.metrics_per_seed} if len(r.metrics_per_seed) > 1 else {})} for r in results]
     keys = [k for k in METRIC_KEYS if results and k in results[0].metrics] + ["runtime_s"]
