@@ -444,6 +444,10 @@ def test_the_session_records_commit_is_the_checkouts_with_a_hash_of_its_local_ch
     assert copy.source_state()["source_diff_sha256"] not in (edited["source_diff_sha256"], other, None)
     module.write_text(original + "\n# edited\n")
     assert copy.source_state() == edited  # the same edit, the same hash
+    for key, value in (("diff.noprefix", "true"), ("color.ui", "always"), ("diff.context", "1"),
+                       ("diff.external", "/bin/false"), ("diff.relative", "true")):  # the user's git settings: no change
+        git("config", key, value)
+        assert copy.source_state() == edited, key
     git("-c", "user.name=t", "-c", "user.email=t@t", "commit", "-q", "-am", "edit")
     assert copy.source_state() == {"git_commit": git("rev-parse", "HEAD"), "source_diff_sha256": None} != clean
 

@@ -68,6 +68,7 @@ MODULE_COMMANDS = {
     "engine/prior.py": {"baseline train-prior", "evaluate"},
     "engine/provenance.py": {"train", "finetune", "demo", "experiment", "evaluate", "pretrained pack"},
     "engine/tolerance.py": {"tolerance"},
+    "report/tolerance.py": {"tolerance"},
     "engine/train.py": {"train", "demo", "experiment"},
     "export/__init__.py": {"export-optics"},
     "export/tolerance.py": {"export-optics"},
@@ -85,7 +86,10 @@ GENERIC_OPTIONS = {
 
 #: Strings that hold such a name but are no hint, (file, a fragment of the string) → why.
 NOT_HINTS = {
-    ("engine/provenance.py", "--binary"): "an argument of the git command that records the source's state",
+    ("engine/provenance.py", "--name-only"): "an argument of the git command that lists the changed sources",
+    ("engine/provenance.py", "--no-renames"): "an argument of the git command that lists the changed sources",
+    ("engine/provenance.py", "--no-relative"): "an argument of the git command that lists the changed sources",
+    ("engine/provenance.py", "--no-ext-diff"): "an argument of the git command that lists the changed sources",
     ("engine/provenance.py", "--others"): "an argument of the git command that lists the untracked sources",
     ("engine/provenance.py", "--exclude-standard"): "an argument of the git command that lists the untracked sources",
     ("report/html.py", "--s"): "a CSS custom property (var(--s)) of the report's page",

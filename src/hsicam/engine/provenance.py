@@ -298,9 +298,10 @@ def installed_version() -> str | None:
 
 def source_state() -> dict[str, str | None]:
     """The checkout hsicam runs from: ``git_commit`` (its HEAD, ``+dirty`` when a tracked file under src/ differs from
-    it or an untracked, not ignored file sits there) and ``source_diff_sha256`` (SHA-256 of ``git diff HEAD`` of src/
-    and of each such untracked file's path and bytes: two "+dirty" runs of one commit ran the same code when these
-    agree); both None for an installed wheel, no git or a git that fails, the hash None for a clean checkout."""
+    it or an untracked, not ignored file sits there) and ``source_diff_sha256`` (SHA-256 over those files, in path
+    order, of each one's path and bytes, or a mark for one deleted: a function of the files alone, whatever the
+    user's git settings, so two "+dirty" runs of one commit ran the same code exactly when these agree); both None for
+    an installed wheel, no git or a git that fails, the hash None for a clean checkout."""
     none: dict[str, str | None] = {"git_commit": None, "source_diff_sha256": None}
     root = Path(__file__).resolve().parents[3]  # src/hsicam/engine/provenance.py → the checkout
     if not (root / ".git").exists() or not (root / "src" / "hsicam").is_dir():
@@ -309,17 +310,19 @@ def source_state() -> dict[str, str | None]:
         run = lambda *args: subprocess.run(["git", "-C", str(root), *args], capture_output=True,  # noqa: E731
                                            timeout=10, check=True).stdout
         commit = run("rev-parse", "HEAD").decode().strip()
-        diff = run("diff", "HEAD", "--binary", "--", "src")
-        untracked = sorted(run("ls-files", "-z", "--others", "--exclude-standard", "--", "src").split(b"\0"))
-        h = hashlib.sha256(diff)
-        for name in filter(None, untracked):
-            h.update(b"\0untracked\0" + name + b"\0" + (root / name.decode()).read_bytes())
+        # names only (-z: unquoted): no patch text, which diff.* settings, colour or an external diff tool would change
+        changed = run("diff", "--name-only", "-z", "--no-renames", "--no-relative", "--no-ext-diff", "HEAD", "--", "src")
+        untracked = run("ls-files", "-z", "--others", "--exclude-standard", "--", "src")
+        names = sorted(set(filter(None, (changed + untracked).split(b"\0"))))
+        h = hashlib.sha256()
+        for name in names:
+            path = root / os.fsdecode(name)
+            h.update(b"\0file\0" + name + b"\0" + (path.read_bytes() if path.is_file() else b"\0deleted\0"))
     except (OSError, subprocess.SubprocessError, UnicodeDecodeError):
         return none
     if not commit:
         return none
-    dirty = bool(diff) or any(untracked)
-    return {"git_commit": commit + ("+dirty" if dirty else ""), "source_diff_sha256": h.hexdigest() if dirty else None}
+    return {"git_commit": commit + ("+dirty" if names else ""), "source_diff_sha256": h.hexdigest() if names else None}
 
 
 def commit_label(software: dict[str, Any]) -> str:
