@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 import scipy.io
 
+from fab_runs import fab_run  # noqa: F401 - the shared fixture
 from cli_helpers import assert_clean_error, assert_ok, run_cli_in_process
 from conftest import TINY_CAMERA_OVERRIDES
 from hsicam.data.formats import HSICAM_FORMAT, write_cube_h5
@@ -88,3 +89,17 @@ def test_simulate_with_the_option_images_the_scene_clipped_at_zero(tmp_path, suf
     assert_ok(run_cli_in_process(*sim, "--scene", str(clipped), "--out", str(tmp_path / "ref")))
     got, want = (np.load(tmp_path / d / "sensor.npy") for d in ("sim", "ref"))
     assert got.shape == want.shape and np.array_equal(got, want)
+
+
+def test_tolerance_refuses_negative_scenes_naming_its_own_flag_and_clips_with_it(fab_run, tmp_path):  # noqa: F811
+    """`hsicam tolerance` takes no --set: the refusal names its --allow-negative, which clips them (the study's
+    identity then differs: its config hash holds the setting)."""
+    data = tmp_path / "neg"
+    write_hsicam_h5(data / "a.h5", _cube(0, size=64))
+    study = ("tolerance", "--run", str(fab_run), "--data", str(data), "--max-scenes", "1", "--draws", "1",
+             "--sigma-height-nm", "0", "--levels", "2", "--shift-cells", "0", "--sensor-distance-um=0")
+    res = run_cli_in_process(*study, "--out", str(tmp_path / "t1"))
+    assert_clean_error(res, f"{data / 'a.h5'}: 5 negative radiance value(s)", "(hsicam tolerance: --allow-negative)")
+    res = run_cli_in_process(*study, "--out", str(tmp_path / "t2"), "--allow-negative")
+    assert res.returncode == 0, res.stderr
+    assert (tmp_path / "t2" / "tolerance.json").is_file()

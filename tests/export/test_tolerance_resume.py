@@ -138,6 +138,14 @@ def test_a_resume_of_another_study_is_refused_naming_what_differs_and_restart_st
     assert f"the run's weights (sha256 000000000000… then, {sha[:12]}… now); the scenes (elsewhere then, " \
            f"{want['scenes'][0]} now)" in line, line
     assert not calls
+    # begun on another device, or by other software (another torch): rows of two computations are not mixed
+    head["run"]["weights_sha256"], head["scenes"] = sha, want["scenes"]
+    torch_now = head["software"]["torch"]
+    head["device"], head["software"]["torch"] = "cuda:0", "1.0.0"
+    path.write_text("\n".join([json.dumps(head), *kept.splitlines()[1:]]) + "\n", encoding="utf-8")
+    line = final_error_line(_study(fab_run, out))
+    assert f"--device (cuda:0 then, cpu now); the software (torch 1.0.0 then, {torch_now} now)" in line, line
+    assert not calls
     # --restart discards them: every case evaluated, the result the uninterrupted study's
     res = _study(fab_run, out, "--restart")
     assert res.returncode == 0, res.stderr

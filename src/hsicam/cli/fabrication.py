@@ -36,6 +36,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "run, scenes or settings differ is refused without it)")
     p.add_argument("--data", metavar="PATH", help="scenes to evaluate on (default: the run's validation scenes)")
     p.add_argument("--max-scenes", type=count_arg, default=8, help="scenes scored at most, >= 1 (default 8)")
+    p.add_argument("--allow-negative", action="store_true",
+                   help="clip negative values of the scenes (dark noise after a background subtraction) to 0 instead "
+                        "of refusing them (data.allow_negative; default: the run's own setting)")
     # the lists' defaults are hsicam.engine.tolerance.ToleranceSpec's (that module imports torch: said here, and
     # tests/cli/test_cli_args.py holds them equal)
     p.add_argument("--sigma-height-nm", type=sigma_heights_arg, default=None, metavar="LIST",
@@ -138,6 +141,8 @@ def _tolerance(args: argparse.Namespace, out: Path) -> int:
                 raise InputError(f"--{name.replace('_', '-')} needs at least one value")
             setattr(spec, name, v)
     cfg, model = load_run(args.run, args.device)
+    if args.allow_negative:  # the study's identity hashes the config: a resume without it is refused, and said why
+        cfg.data.allow_negative = True
     if not cfg.camera.doe.enabled:
         # without a DOE the DOE sweeps are skipped (noted in tolerance.json); asking for them is refused
         given = [opt for opt, v in (("--sigma-height-nm", args.sigma_height_nm), ("--draws", args.draws),

@@ -71,8 +71,8 @@ def check_memory_budget(source: PathLike | str, shape: Sequence[int], dtype: Any
 # ------------------------------------------------------------------------------------------------
 #: How a reader's refusal of negative values (:func:`check_cube`, the dataset's windowed check) says to clip them:
 #: the config key that every command reading scenes takes, and the argument of the Python readers.
-NEGATIVE_READ_ADVICE = ("dark noise after a background subtraction? --set data.allow_negative=true clips them to 0; "
-                        "in Python, read_cube(..., allow_negative=True)")
+NEGATIVE_READ_ADVICE = ("dark noise after a background subtraction? --set data.allow_negative=true clips them to 0 "
+                        "(hsicam tolerance: --allow-negative); in Python, read_cube(..., allow_negative=True)")
 
 
 def check_cube(cube: Any, source: PathLike | str = "cube", *, bands: Bands | None = None,

@@ -359,7 +359,8 @@ def run_tolerance(model, cfg, spec: ToleranceSpec | None = None, data: str | Pat
     check_scenes(Method("doe-learned", model.camera, model.reconstructor(), model.target, model=model), scenes, names,
                  boundary_advice=False)  # every scene before the first point; no --set to change the boundary
     points = _point_count(spec, has_doe)
-    kept = StudyProgress(partial, study_identity(cfg, spec, names, data, studied_run), points, restart)
+    device = str(next(model.parameters()).device) if any(True for _ in model.parameters()) else "cpu"
+    kept = StudyProgress(partial, study_identity(cfg, spec, names, data, studied_run, device), points, restart)
 
     def evaluate(psf: torch.Tensor) -> dict[str, float]:
         """The fixed network's metrics on the study's scenes imaged with ``psf`` (:func:`evaluate_psf`)."""
@@ -470,20 +471,29 @@ SPEC_OPTIONS = {"sigma_height_nm": "--sigma-height-nm", "height_draws": "--draws
                 "sensor_distance_um": "--sensor-distance-um", "max_scenes": "--max-scenes", "seed": "--seed"}
 
 
+#: The parts of :func:`~hsicam.engine.provenance.software_record` a study's cases depend on: rows computed by another
+#: hsicam, torch or numpy (or local changes) are not mixed into one study (session 75's review).
+STUDY_SOFTWARE_KEYS = ("hsicam", "git_commit", "source_diff_sha256", "torch", "numpy")
+
+
 def study_identity(cfg, spec: ToleranceSpec, names: Sequence[str], data: str | Path | None,
-                   studied_run: dict[str, str] | None) -> dict[str, Any]:
+                   studied_run: dict[str, str] | None, device: str = "cpu") -> dict[str, Any]:
     """What a study's cases depend on, the first line of its progress file: the run (its weights' SHA-256,
-    :func:`~hsicam.export.tolerance.run_identity`; None: not a run folder), its config's hash, the scenes (``data``
-    resolved, or None: the run's validation scenes, and their names) and the settings (``spec``), as JSON reads
-    them back."""
+    :func:`~hsicam.export.tolerance.run_identity`; None: not a run folder), its config's hash (with ``tolerance
+    --allow-negative``'s data.allow_negative), the scenes (``data`` resolved, or None: the run's validation scenes,
+    and their names), the settings (``spec``), the torch ``device`` and the software (:data:`STUDY_SOFTWARE_KEYS`),
+    as JSON reads them back."""
     import json
 
     from hsicam.config import dump_yaml
     from hsicam.engine.evaluate import config_hash
+    from hsicam.engine.provenance import software_record
 
+    sw = software_record(device)
     return json.loads(json_text({
         "format": PARTIAL_FORMAT, "run": studied_run, "config_hash": config_hash(dump_yaml(cfg)),
-        "data": None if data is None else str(Path(data).resolve()), "scenes": list(names), "spec": asdict(spec)}))
+        "data": None if data is None else str(Path(data).resolve()), "scenes": list(names), "spec": asdict(spec),
+        "device": device, "software": {k: sw.get(k) for k in STUDY_SOFTWARE_KEYS}}))
 
 
 def _listed(value: Any, most: int = 4) -> str:
@@ -514,6 +524,12 @@ def identity_differences(then: dict[str, Any], now: dict[str, Any]) -> list[str]
     for field, option in SPEC_OPTIONS.items():
         if was.get(field) != now["spec"].get(field):
             out.append(f"{option} ({_listed(was.get(field))} then, {_listed(now['spec'].get(field))} now)")
+    if then.get("device") != now.get("device"):
+        out.append(f"--device ({then.get('device') or 'not recorded'} then, {now.get('device')} now)")
+    sw = [r if isinstance(r, dict) else {} for r in (then.get("software"), now.get("software"))]
+    changed = [k for k in STUDY_SOFTWARE_KEYS if sw[0].get(k) != sw[1].get(k)]
+    if changed:
+        out.append("the software (" + ", ".join(f"{k} {sw[0].get(k)} then, {sw[1].get(k)} now" for k in changed) + ")")
     return out
 
 
