@@ -261,6 +261,9 @@ def test_the_model_filter_is_the_cameras_response_to_monochromatic_light(tiny_co
     line = np.exp(-0.5 * ((lam - 554.0) / 1.0) ** 2)  # a lamp line 2 nm wide between two band centres
     np.testing.assert_allclose(line @ curves, kappa.T @ band_values(line), rtol=1e-9)
     assert info["model_filter"].startswith("cfa_transmission_1nm_peak1.csv")
+    # the blocking filters a camera built to the model needs, at the ends of T's grid (not "an IR-cut filter" for any
+    # range: a near-infrared camera's would block its own band)
+    assert f"long-pass filter at {lam[0]:g} nm and a short-pass at {lam[-1]:g} nm" in info["model_filter"]
     # cfa_fit.csv's Gaussians are fits of that filter, and their errors are measured against it on its 1 nm grid
     for k, r in enumerate(_read_csv(tmp_path / "cfa_fit.csv")):
         fit = float(r["offset"]) + sum(

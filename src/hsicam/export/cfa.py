@@ -288,12 +288,14 @@ def export_cfa(camera, out: Path) -> dict[str, Any]:
                          "a 1 nm grid: sum over bands of kappa times the band's Gaussian response (the response to "
                          "monochromatic light; exact for any spectrum, line spectra included); cfa_transmission.csv "
                          f"holds kappa, the weights of the band values. Outside {grid[0]:g}-{grid[-1]:g} nm the model "
-                         "sees no light at all: a camera built to it blocks what its sensor would see there (an "
-                         "IR-cut filter, and UV)"),
+                         "sees no light at all: a camera built to it blocks what its sensor would see there, with a "
+                         f"long-pass filter at {grid[0]:g} nm and a short-pass at {grid[-1]:g} nm (a visible camera's "
+                         "UV and IR-cut filters)"),
         "placement": (f"filter r{{i}}c{{j}} covers the sensor pixels (row, column) with row mod {tile.shape[-2]} = i and "
                       f"column mod {tile.shape[-1]} = j, counted from the sensor image's pixel (0, 0) as read out; one "
                       "filter per pixel, at the sensor's pixel pitch; a tile mounted mirrored or rotated is another "
-                      "CFA (reconstruct --cfa-offset finds shifts only)"),
+                      "CFA (reconstruct --cfa-offset finds shifts, --orientation undoes a capture stored flipped or "
+                      "turned, not a tile mounted so)"),
         "fit_model": ("offset + 1 or 2 Gaussians (AICc choice) fitted to each filter as the model applies it "
                       "(cfa_transmission_1nm_peak1.csv), errors on its 1 nm grid in units of its peak"),
         "fit_rms_error": {"mean": float(np.mean(rms)), "max": float(np.max(rms))},
