@@ -13,7 +13,9 @@ maps exactly to (1, 1, 1) (a camera's white balance: it absorbs the white-point 
 coarse grid, e.g. 420-720 nm) when each channel's white is within :data:`WHITE_BALANCE_RANGE`, i.e.
 the grid covers part of every primary's spectrum. A grid that misses a primary's (550-700 nm, say,
 where blue's white is negative) is rendered without that balance, so its hues stay right and its white
-is tinted: balancing there divided by near-zero or negative sums and turned a 620 nm line white.
+is tinted: balancing there divided by near-zero or negative sums and turned a 620 nm line white. Its
+channels are scaled together so that the white's brightest is 1, and previews expose it by that channel
+(with Y = 1 a 650-950 nm grid's white had R = 7.2, and every preview was one flat red).
 Values outside [0, 1] are clipped before gamma encoding.
 
 Band grids beyond the table (a VIS-NIR camera, 500-900 nm) are rendered from the part of their
@@ -121,14 +123,25 @@ def xyz_weights(bands: Bands) -> np.ndarray:
     return _xyz_weights_cached(tuple(float(v) for v in bands.centers_nm))
 
 
+def white_balanced(bands: Bands) -> bool:
+    """Whether :func:`srgb_weights` balances ``bands``' white to (1, 1, 1): each channel's white (Y = 1) within
+    :data:`WHITE_BALANCE_RANGE`, a grid covering every primary's spectrum."""
+    white = (xyz_to_linear_srgb_matrix() @ xyz_weights(bands)).sum(axis=1)
+    lo, hi = WHITE_BALANCE_RANGE
+    return bool(np.all((white >= lo) & (white <= hi)))
+
+
 def srgb_weights(bands: Bands) -> np.ndarray:
-    """Weights W (3, C) with linear sRGB = W @ reflectance. All-ones maps exactly to (1, 1, 1) when each
-    channel's white is within :data:`WHITE_BALANCE_RANGE` (a grid covering every primary's spectrum);
-    otherwise the channels are left unbalanced, so hues stay right (module docstring)."""
+    """Weights W (3, C) with linear sRGB = W @ reflectance. All-ones maps exactly to (1, 1, 1) when the grid is
+    :func:`white_balanced`; otherwise the channels are left unbalanced, so hues stay right, and scaled together so
+    that the white's brightest channel is 1 (with Y = 1, a red or near-infrared grid's white had R = 5.6 at 600-900 nm
+    and 7.2 at 650-950 nm: every pixel brighter than a fifth of white rendered as one flat red; session 75's hunt)."""
     w = xyz_to_linear_srgb_matrix() @ xyz_weights(bands)
     white = w.sum(axis=1, keepdims=True)
-    lo, hi = WHITE_BALANCE_RANGE
-    return w / white if np.all((white >= lo) & (white <= hi)) else w
+    if white_balanced(bands):
+        return w / white
+    top = float(white.max())
+    return w / top if top > 0 else w
 
 
 def srgb_encode(linear: Array) -> Array:
@@ -235,13 +248,16 @@ def preview_exposure(cube: np.ndarray, bands: Bands, chunk_px: int | None = None
     """The gain that puts the 99th percentile of the luminance of a (C, H, W) cube (CIE 1931 Y, a white
     reflector's Y = 1) at :data:`PREVIEW_LEVEL`: the exposure of a display preview, so that a dim cube is seen and a
     tiny highlight does not set the scale; NaN pixels are left out; 1 when that percentile is not above 0 or the
-    gain would not be a finite float32. Y is computed a band of rows at a time (float32: with the percentile's
+    gain would not be a finite float32. A grid that is not :func:`white_balanced` (it misses a primary: a red or
+    near-infrared camera) takes the brightest linear sRGB channel instead of Y: its white is far from grey, and Y at
+    0.8 put every pixel's red past full scale. Computed a band of rows at a time (float32: with the percentile's
     copy, 2/C of the cube)."""
     _checked_preview_cube(cube, bands, "preview_exposure")
-    wy = xyz_weights(bands)[1].astype(np.float32)
+    balanced = white_balanced(bands)
+    w = (xyz_weights(bands)[1:2] if balanced else srgb_weights(bands)).astype(np.float32)
     y = np.empty(cube.shape[1:], dtype=np.float32)
     for rows in _row_chunks(cube, chunk_px):
-        y[rows] = np.tensordot(wy, cube[:, rows].astype(np.float32, copy=False), axes=1)
+        y[rows] = np.tensordot(w, cube[:, rows].astype(np.float32, copy=False), axes=1).max(axis=0)
     return display_gain(float(np.nanpercentile(y, 99)) if not np.isnan(y).all() else math.nan)
 
 
@@ -271,6 +287,7 @@ __all__ = [
     "PREVIEW_LEVEL",
     "TABLE_RANGE_NM",
     "WHITE_BALANCE_RANGE",
+    "white_balanced",
     "cmf_d65_table",
     "cube_to_srgb",
     "display_gain",
