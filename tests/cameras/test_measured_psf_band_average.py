@@ -115,6 +115,12 @@ def test_a_sweep_as_coarse_as_the_bands_gives_each_band_its_image_bit_for_bit(tm
     m2 = import_psf_dir(off, Bands.uniform(520.0, 580.0, 10.0), 6e-6, 61)
     np.testing.assert_array_equal(m2.psf, m.psf)
     assert [len(b["sources"]) for b in m2.report["bands"]] == [1] * 7
+    # the monochromator's bandwidth recorded (2 nm, narrower than the bands): still one image per band, not the image
+    # and ghosts of its neighbours 10 nm away (the review: 8.7 % of each neighbour with fwhm_nm given)
+    narrow = sweep_folder(tmp_path / "narrow", images, {"fwhm_nm": 2.0})
+    m3 = import_psf_dir(narrow, Bands.uniform(520.0, 580.0, 10.0), 6e-6, 61)
+    np.testing.assert_array_equal(m3.psf, m.psf)
+    assert [len(b["sources"]) for b in m3.report["bands"]] == [1] * 7
 
 
 def spot_moving_quadratically(lam: float, size: int = 81) -> np.ndarray:

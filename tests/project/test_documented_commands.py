@@ -358,7 +358,7 @@ def _dummy(action: argparse.Action) -> str:
     """A value ``action`` takes, for a placeholder."""
     if action.choices:
         return str(next(iter(action.choices)))
-    for value in ("dummy", "1", "2", "0.5", "0,0", "cpu"):  # ("2": a level count, a power of 2)
+    for value in ("dummy", "1", "2", "0.5", "0,0", "cpu", "auto"):  # ("2": a level count, a power of 2; "auto": --orientation)
         try:
             if action.type is not None:
                 action.type(value)

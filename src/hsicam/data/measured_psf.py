@@ -680,14 +680,14 @@ def sweep_bands(d: Path, waves: Sequence[float], opts: PSFImportOptions) -> tupl
 def finer_than_bands(sweep: Bands, bands: Bands, opts: PSFImportOptions) -> np.ndarray:
     """Boolean (len(bands),): True where the sweep (:func:`sweep_bands`) is finer than the band, so its images are
     averaged: its images' FWHM (``fwhm_nm``, else the local step) narrower than the band's
-    (:func:`~hsicam.spectral.bands.resolved_bands`) and, for the step, by more than twice
-    ``wavelength_tolerance_nm``: images within the tolerance of a grid as coarse as the bands (10 nm bands measured at
-    440.4, 449.6, 460.3 nm) are each band's nearest image, not 0.7 % of a neighbour mixed in by a step 0.4 nm short."""
+    (:func:`~hsicam.spectral.bands.resolved_bands`) and its local step narrower than the band's FWHM by more than
+    twice ``wavelength_tolerance_nm``: images within the tolerance of a grid as coarse as the bands (10 nm bands
+    measured at 440.4, 449.6, 460.3 nm) are each band's nearest image, not 0.7 % of a neighbour mixed in by a step
+    0.4 nm short; and a coarse sweep of a narrow monochromator (``fwhm_nm`` 2 nm every 10 nm under 10 nm bands) is
+    not averaged into ghost copies of the PSF 10 nm away (session 75's review: it was, with ``fwhm_nm`` given)."""
     finer = resolved_bands(sweep, bands)
-    if opts.fwhm_nm is None:
-        step = np.interp(bands.centers_nm, sweep.centers_nm, sweep.fwhm_nm)
-        finer &= step < bands.fwhm_nm - 2.0 * opts.wavelength_tolerance_nm
-    return finer
+    step = np.interp(bands.centers_nm, sweep.centers_nm, Bands.from_centers(sweep.centers_nm).fwhm_nm)
+    return finer & (step < bands.fwhm_nm - 2.0 * opts.wavelength_tolerance_nm)
 
 
 def band_sources(d: Path, waves: Sequence[float], bands: Bands, opts: PSFImportOptions) -> list[list[tuple[int, float]]]:

@@ -294,8 +294,8 @@ def export_cfa(camera, out: Path) -> dict[str, Any]:
         "placement": (f"filter r{{i}}c{{j}} covers the sensor pixels (row, column) with row mod {tile.shape[-2]} = i and "
                       f"column mod {tile.shape[-1]} = j, counted from the sensor image's pixel (0, 0) as read out; one "
                       "filter per pixel, at the sensor's pixel pitch; a tile mounted mirrored or rotated is another "
-                      "CFA (reconstruct --cfa-offset finds shifts, --orientation undoes a capture stored flipped or "
-                      "turned, not a tile mounted so)"),
+                      "CFA (reconstruct --cfa-offset finds shifts, and reconstruct --orientation undoes a capture stored "
+                      "flipped or turned, not a tile mounted so)"),
         "fit_model": ("offset + 1 or 2 Gaussians (AICc choice) fitted to each filter as the model applies it "
                       "(cfa_transmission_1nm_peak1.csv), errors on its 1 nm grid in units of its peak"),
         "fit_rms_error": {"mean": float(np.mean(rms)), "max": float(np.max(rms))},
