@@ -18,6 +18,7 @@ import pytest
 import torch
 
 from cli_helpers import assert_ok, error_line, run_cli_in_process
+from fab_runs import fab_run  # noqa: F401 - the shared fixture
 from procedural_scenes import procedural_scene
 from hsicam.engine.cfa_offset import estimate_cfa_offset
 from hsicam.errors import InputError
@@ -459,3 +460,49 @@ def test_a_narrow_band_spot_on_black_is_told_and_a_broadband_one_is_not(capture)
             y = torch.round(y / y.max() * 255) / 255  # 8 bits
             ratio = cfa_phase_ratio(y[0, 0, 36:164, 36:164], 4)
             assert (ratio < NARROW_BAND_PHASE_RATIO) is narrow, (radius, narrow, ratio)
+
+
+@pytest.mark.parametrize("overrides, blind", [((), True),  # the paper's RDN on the sensor alone, no steps
+                                              (("model.rdn.demosaic_input=true",), False),  # x̃ at the phase
+                                              (("model.consistency.iterations=2",
+                                                "model.consistency.kind=landweber"), False)])  # steps at the phase
+def test_a_reconstruction_that_ignores_the_phase_is_told_and_its_offset_said_to_change_nothing(overrides, blind):
+    """``phase_blind``: the reconstruction at the offset equals the one at 0,0 bit for bit exactly when nothing in it
+    takes the CFA phase: a network reading the sensor alone with no consistency step (the tiny and paper presets'
+    RDN; session 75's hunt: `reconstruct --cfa-offset 1,2` of a crop gave the cube of 0,0, recorded as 1,2), not with
+    a demosaicked input or Landweber steps (both at the phase)."""
+    from conftest import TINY_CAMERA_OVERRIDES
+    from hsicam.cameras import build_camera
+    from hsicam.config import load_config
+    from hsicam.engine.cfa_offset import phase_blind
+    from hsicam.models import CameraSystem
+    from hsicam.models.registry import build_network
+
+    cfg = load_config("tiny", [*TINY_CAMERA_OVERRIDES, *overrides])
+    torch.manual_seed(0)
+    cam = build_camera(cfg)
+    system = CameraSystem(cam, build_network(cfg, cam), cfg.model.consistency)
+    sensor = torch.rand(1, 1, 48, 40, generator=torch.Generator().manual_seed(2))
+    assert cam.code_period > 2
+    assert phase_blind(system, sensor, (1, 2)) is blind
+    assert phase_blind(system, sensor, (0, 0)) is True  # trivially
+
+
+def test_reconstruct_says_an_offset_changes_nothing_for_a_phase_blind_run(fab_run, tmp_path):  # noqa: F811
+    """The shared tiny run (the RDN on the sensor alone, no steps): `--cfa-offset 1,2` is said to change nothing, with
+    the rows and columns to drop to put the capture on the CFA period, and recorded as not used; 0,0 says nothing."""
+    period = 3  # the tiny camera's CFA (TINY_CAMERA_OVERRIDES)
+    cap = tmp_path / "cap.npy"
+    np.save(cap, np.random.default_rng(0).random((40, 44)).astype(np.float32))
+    res = run_cli_in_process("reconstruct", str(cap), "--run", str(fab_run), "--out", str(tmp_path / "a.h5"),
+                             "--cfa-offset", "1,2")
+    assert_ok(res)
+    assert ("CFA offset 1,2: this run's reconstruction does not depend on the CFA phase" in res.stderr
+            and f"drop its first {period - 1} row(s) and {period - 2} column(s)" in res.stderr), res.stderr
+    with h5py.File(tmp_path / "a.h5", "r") as f:
+        meta = json.loads(f.attrs["metadata_json"])
+    res0 = run_cli_in_process("reconstruct", str(cap), "--run", str(fab_run), "--out", str(tmp_path / "b.h5"),
+                              "--cfa-offset", "0,0")
+    assert_ok(res0)
+    assert "does not depend on the CFA phase" not in res0.stderr
+    assert meta["cfa_offset"] == [1, 2] and meta["cfa_offset_used"] is False

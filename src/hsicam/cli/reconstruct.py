@@ -863,6 +863,17 @@ def _capture_offset(args: argparse.Namespace, cfg, model, sensor: torch.Tensor, 
         elif offset == "auto":
             offset, meta["cfa_offset_estimate"] = estimated_cfa_offset(model, sensor, estimate)
         meta["cfa_offset"] = list(offset)
+        if tuple(offset) != (0, 0):
+            from hsicam.engine.cfa_offset import phase_blind
+
+            if phase_blind(model, sensor, tuple(offset)):
+                meta["cfa_offset_used"] = False
+                log.warning("%s: CFA offset %d,%d: this run's reconstruction does not depend on the CFA phase (a "
+                            "network that reads the sensor image alone, e.g. the paper's RDN, and no consistency "
+                            "steps), so the offset changes nothing and the capture is reconstructed as if it started "
+                            "on the CFA period; crop it there instead: drop its first %d row(s) and %d column(s)",
+                            args.sensor, offset[0], offset[1], (period - offset[0]) % period,
+                            (period - offset[1]) % period)
     elif cfg.camera.kind != "doe":  # a CASSI camera's coded aperture is taken at the capture's place, as a CFA is
         if offset == "auto":
             raise InputError("--cfa-offset auto estimates the phase of a periodic CFA; this CASSI camera's coded "

@@ -282,6 +282,33 @@ def estimate_cfa_offset(system, sensor: torch.Tensor, window_px: int = DEFAULT_W
     return CfaOffsetEstimate((oy, ox), residuals, (wy, wx, wh, ww), margin, phase_ratio=ratio)
 
 
+#: Side (px) of the window :func:`phase_blind` reconstructs twice.
+PHASE_BLIND_WINDOW_PX = 64
+
+
+def phase_blind(system, sensor: torch.Tensor, offset: tuple[int, int]) -> bool:
+    """Whether ``system``'s reconstruction of ``sensor`` (1, 1, H, W) is the same at the CFA phase ``offset`` as at
+    (0, 0), bit for bit, on a central window of :data:`PHASE_BLIND_WINDOW_PX` (two passes): a network that reads the
+    sensor image alone (the paper's RDN, ``model.rdn.demosaic_input: false``) with no consistency steps cannot take
+    a phase, so ``--cfa-offset`` changes nothing and a capture off the CFA period is reconstructed as if it were on it
+    (session 75's hunt: a crop at 1,2 through the tiny preset gave the same cube with and without its offset)."""
+    h, w = sensor.shape[-2:]
+    side = min(h, w, PHASE_BLIND_WINDOW_PX)
+    wy, wx = (h - side) // 2, (w - side) // 2
+    y = sensor[..., wy : wy + side, wx : wx + side].float()
+    was_training = system.training
+    system.eval()
+    try:
+        with torch.no_grad():
+            at_origin = system.reconstruct(y, (wy, wx))
+            at_offset = system.reconstruct(y, (offset[0] + wy, offset[1] + wx))
+    except InputError:  # what stops it (a missing linear step) stops the reconstruction itself, which says it
+        return False
+    finally:
+        system.train(was_training)
+    return bool(torch.equal(at_origin, at_offset))
+
+
 def scoring_operators(system) -> tuple:
     """(the network's operator, the camera that re-images its estimate) that :func:`estimate_cfa_offset` scores with:
     the nominal snapshots of ``system.camera`` and of ``system.step_camera`` (else the camera), PSFs cut to
