@@ -1090,6 +1090,80 @@ class Config:
 
 
 # --------------------------------------------------------------------------------------------
+# The files a config names
+# --------------------------------------------------------------------------------------------
+#: The camera keys whose value names a file the camera is built from: a ``wavelength_nm,n`` material table (.csv; or
+#: the built-in ``fused_silica``, no file) or a coded aperture (.npy; or null, a random one).
+CAMERA_FILE_KEYS = ("camera.doe.material", "camera.lens.material", "camera.cassi.prism_material",
+                    "camera.cassi.mask_file")
+#: The record of the SHA-256 of each file a run's camera is built from (:mod:`hsicam.runs.camera_files`). A run
+#: folder's config.yaml beside one names those files absolute (training writes them so) or relative to its own folder
+#: (a packed camera carries copies of its tables): :func:`load_config` reads them so.
+CAMERA_FILES_RECORD = "camera_files.json"
+
+
+def config_value(cfg: Any, key: str) -> Any:
+    """The value of the dotted ``key`` (e.g. ``camera.doe.material``) of a config dataclass."""
+    for part in key.split("."):
+        cfg = getattr(cfg, part)
+    return cfg
+
+
+def _names_file(value: Any) -> bool:
+    return isinstance(value, str) and value != "fused_silica"
+
+
+def camera_files(cfg: Config) -> dict[str, str]:
+    """``{key: path}`` of the files (:data:`CAMERA_FILE_KEYS`) the camera of ``cfg`` reads as it is built: the DOE
+    camera its DOE's material table (read even with the DOE off) and a singlet's; a CASSI camera its mask file and a
+    prism's table; a camera of another kind every file its config names. Built-in materials name none."""
+    cam = cfg.camera
+    if cam.kind == "doe":
+        keys = ["camera.doe.material"] + (["camera.lens.material"] if cam.lens.model == "singlet" else [])
+    elif cam.kind in ("dd_cassi", "sd_cassi"):
+        keys = ["camera.cassi.mask_file"] + (["camera.cassi.prism_material"] if cam.cassi.dispersion == "prism" else [])
+    else:
+        keys = list(CAMERA_FILE_KEYS)
+    return {k: v for k in keys if _names_file(v := config_value(cfg, k))}
+
+
+def with_values(cfg: Any, values: dict[str, Any]) -> Any:
+    """``cfg`` with the dotted keys of ``values`` replaced (new dataclasses; ``cfg`` is left as it is)."""
+    for key, value in values.items():
+        head, _, rest = key.partition(".")
+        cfg = dataclasses.replace(cfg, **{head: with_values(getattr(cfg, head), {rest: value}) if rest else value})
+    return cfg
+
+
+def absolute_paths(cfg: Config) -> Config:
+    """``cfg`` with every path it names made absolute (a leading ``~`` expanded first, then against the current
+    folder): ``data.root``, ``data.cache_dir`` and the camera's files (:data:`CAMERA_FILE_KEYS`), so that a run's
+    config.yaml names the same folders and files from wherever it is read; ``cfg`` itself when there is nothing to
+    change (no path, or all absolute: a preset's built-in materials and synthetic data keep its config and hash)."""
+    import os
+
+    keys = ("data.root", "data.cache_dir", *CAMERA_FILE_KEYS)
+    values = {k: config_value(cfg, k) for k in keys}
+    new = {k: os.path.abspath(os.path.expanduser(v)) for k, v in values.items()
+           if v is not None and (k.startswith("data.") or _names_file(v))}
+    changed = {k: v for k, v in new.items() if v != values[k]}
+    return with_values(cfg, changed) if changed else cfg
+
+
+def _run_relative_files(data: dict[str, Any], folder: Path) -> None:
+    """In the settings ``data`` of a run folder's config.yaml beside a :data:`CAMERA_FILES_RECORD`: each camera file
+    named relative (a packed camera's copy of its table) made absolute against ``folder``, in place."""
+    for key in CAMERA_FILE_KEYS:
+        section, _, name = key.rpartition(".")
+        node: Any = data
+        for part in section.split("."):
+            node = node.get(part) if isinstance(node, dict) else None
+        value = node.get(name) if isinstance(node, dict) else None
+        if _names_file(value) and not Path(value).expanduser().is_absolute():
+            node[name] = str(folder.absolute() / value)
+
+
+# --------------------------------------------------------------------------------------------
 # Loading, overrides, dumping
 # --------------------------------------------------------------------------------------------
 def load_config(path: str | Path | None = None, overrides: Sequence[str] = (), cls: type = Config,
@@ -1123,6 +1197,8 @@ def load_config(path: str | Path | None = None, overrides: Sequence[str] = (), c
         if not isinstance(loaded, dict):
             raise ConfigError(f"{path}: the top level must be a mapping of sections")
         data = loaded
+        if path.name == "config.yaml" and (path.parent / CAMERA_FILES_RECORD).is_file():
+            _run_relative_files(data, path.parent)  # a packed camera's tables, beside its config.yaml
     file_alone = copy.deepcopy(data) if path is not None and overrides else None
     for item in overrides:
         apply_override(data, item)

@@ -19,9 +19,9 @@ import yaml
 
 from cli_helpers import assert_clean_error, assert_ok, run_cli_in_process
 from conftest import TINY_CAMERA_OVERRIDES
-from hsicam.config import dump_yaml, load_config
+from hsicam.config import absolute_paths, dump_yaml, load_config
 from hsicam.data.formats import write_cube_h5, write_envi
-from hsicam.data.pipeline import absolute_data_paths, split_dataset
+from hsicam.data.pipeline import split_dataset
 from hsicam.engine.evaluate import config_hash
 from hsicam.engine.provenance import data_record, scene_roles
 from hsicam.errors import InputError
@@ -91,12 +91,12 @@ def test_a_new_run_stores_absolute_paths_and_its_scenes(proj):
 def test_synthetic_default_keeps_its_config_and_hash(tmp_path, monkeypatch):
     """data.root and data.cache_dir null (the demo): nothing changes, nothing is recorded; `~` expands."""
     cfg = load_config("quick")
-    assert absolute_data_paths(cfg) is cfg
-    assert config_hash(dump_yaml(absolute_data_paths(cfg))) == config_hash(dump_yaml(cfg))
+    assert absolute_paths(cfg) is cfg
+    assert config_hash(dump_yaml(absolute_paths(cfg))) == config_hash(dump_yaml(cfg))
     assert data_record(cfg.data, BANDS) is None
     monkeypatch.setenv("HOME", str(tmp_path))
     monkeypatch.chdir(tmp_path)
-    got = absolute_data_paths(load_config("tiny", ["data.root=~/scenes", "data.cache_dir=c"])).data
+    got = absolute_paths(load_config("tiny", ["data.root=~/scenes", "data.cache_dir=c"])).data
     assert (got.root, got.cache_dir) == (str(tmp_path / "scenes"), str(tmp_path / "c"))
 
 

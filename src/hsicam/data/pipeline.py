@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import dataclasses
 import logging
 import os
 import signal
@@ -33,18 +32,6 @@ def dataset_root(cfg: DataConfig, bands: Bands, progress: bool | None = None) ->
     return synthetic_dataset(cfg.synthetic_n, cfg.synthetic_size, cfg.synthetic_seed, bands,
                              cache_dir=cfg.cache_dir, progress=progress,
                              holdout_sources=getattr(cfg, "holdout_sources", DEFAULT_HOLDOUT))
-
-
-def absolute_data_paths(cfg):
-    """``cfg`` (a :class:`~hsicam.config.Config`) with ``data.root`` and ``data.cache_dir`` made absolute
-    (a leading ``~`` expanded first, then against the current folder), so that a run's config.yaml
-    names the same folder from wherever it is read; ``cfg`` itself when there is nothing to change
-    (both null: the synthetic default keeps its config and its hash)."""
-    d = cfg.data
-    root, cache = (None if v is None else os.path.abspath(os.path.expanduser(v)) for v in (d.root, d.cache_dir))
-    if (root, cache) == (d.root, d.cache_dir):
-        return cfg
-    return dataclasses.replace(cfg, data=dataclasses.replace(d, root=root, cache_dir=cache))
 
 
 def scene_files(scene: str | os.PathLike) -> list[Path]:
@@ -293,5 +280,5 @@ def make_loader(dataset: Dataset, batch_size: int, num_workers: int = 2, shuffle
                            pin_memory=False, worker_init_fn=leave_stop_signals_to_main if num_workers > 0 else None)
 
 
-__all__ = ["absolute_data_paths", "build_datasets", "dataset_root", "heldout_root", "make_loader",
+__all__ = ["build_datasets", "dataset_root", "heldout_root", "make_loader",
            "no_validation_reason", "patch_source", "scene_files", "scene_stat", "split_dataset"]

@@ -88,11 +88,11 @@ def validation_data_label(cfg) -> str:
     """What results.json's ``data`` says of the config ``cfg``'s own validation split (``hsicam evaluate`` without
     ``--data``, ``hsicam demo``)."""
     from hsicam.data.datasets import displayable_name
-    from hsicam.data.pipeline import absolute_data_paths
+    from hsicam.config import absolute_paths
 
     if cfg.data.root is None:
         return SYNTHETIC_VALIDATION
-    return f"{VALIDATION_OF}{displayable_name(str(absolute_data_paths(cfg).data.root))}"  # (a folder not UTF-8)
+    return f"{VALIDATION_OF}{displayable_name(str(absolute_paths(cfg).data.root))}"  # (a folder not UTF-8)
 
 
 HELDOUT_SOURCES = "held-out spectral sources"

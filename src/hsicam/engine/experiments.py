@@ -22,8 +22,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from hsicam.config import Config, load_config, training_differences
-from hsicam.data.pipeline import absolute_data_paths
+from hsicam.config import Config, absolute_paths, load_config, training_differences
 from hsicam.engine.evaluate import TestNoise, evaluate_method, scored_region, summarize
 from hsicam.engine.linear_step import refresh_linear_step
 from hsicam.engine.methods import baseline_names, build_method, sensor_border_px
@@ -169,11 +168,11 @@ def check_same_training(run: Path, cfg: Config) -> None:
     """InputError naming the first differences when the run folder ``run`` exists and was started
     with another config than ``cfg``, up to how it runs (:func:`~hsicam.config.training_differences`)."""
     if (run / "config.yaml").is_file():
-        # a data.root as given here against the run's, recorded absolute (a relative one as read from here)
+        # a data.root or camera file as given here against the run's, recorded absolute (a relative one as read from here)
         from hsicam.runs.folder import EMPTY_RUN_CONFIG
 
         have = load_config(run / "config.yaml", empty=EMPTY_RUN_CONFIG)
-        changed = training_differences(absolute_data_paths(have), absolute_data_paths(cfg))
+        changed = training_differences(absolute_paths(have), absolute_paths(cfg))
         if changed:
             raise InputError(f"{run} was trained with another config ({'; '.join(changed)}): "
                              "delete it to train it again, or choose another output folder")

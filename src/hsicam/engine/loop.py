@@ -44,6 +44,7 @@ from hsicam.engine.provenance import (check_same_data, read_data_record, resumed
 from hsicam.engine.stopping import BUDGET_EXIT_CODE, StopRequests
 from hsicam.errors import ConfigError, InputError, PeerFailed, TrainingDiverged, TrainingInterrupted, TrainingStopped
 from hsicam.io import OutputLock, atomic_output, is_complete, output_description
+from hsicam.runs.camera_files import write_camera_files
 from hsicam.runs.checkpoint import CheckpointManager, save_weights
 from hsicam.runs.folder import MetricsLog, check_run_dir
 from hsicam.runs.lock import RunLock, check_not_locked
@@ -212,6 +213,11 @@ class Task:
     def data_record(self) -> dict[str, Any] | None:
         """What ``RUN/data.json`` records of the task's scenes (:mod:`hsicam.engine.provenance`);
         None: nothing (e.g. the synthetic data)."""
+        return None
+
+    def camera_record(self) -> dict[str, Any] | None:
+        """What ``RUN/camera_files.json`` records of the files the task's camera is built from
+        (:mod:`hsicam.runs.camera_files`); None: nothing (none, or no camera)."""
         return None
 
     def synthetic_set(self) -> dict[str, Any] | None:
@@ -782,11 +788,14 @@ class _Training:
                     changed = self.note_resume()
             elif self.is_main:
                 # The run folder appears at once with all its files (config.yaml, ...) or not at all.
+                camera = self.task.camera_record()  # the files its camera is built from, hashed before any is made
                 with atomic_output(self.run_dir, marker=False) as tmp:
                     lock.acquire(tmp)  # held across the rename: the run is never in place unlocked
                     self.task.write_run_files(tmp)
                     if record is not None:
                         write_data_record(tmp, record)
+                    if camera is not None:  # its material tables, coded aperture
+                        write_camera_files(tmp, camera)
                 lock.moved()
                 new_run.release()  # in place: the run's own lock keeps it
             if self.is_main:  # which software this session trains with (a resume adds its own record)

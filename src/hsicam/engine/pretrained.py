@@ -21,13 +21,15 @@ import logging
 from pathlib import Path
 from typing import Any
 
+from hsicam.config import camera_files, dump_yaml, load_config, with_values
 from hsicam.engine.provenance import installed_version
 from hsicam.errors import InputError
 from hsicam.io import (COMPLETE_MARKER, atomic_open, atomic_output, copy_file, is_complete, json_number, mark_complete,
                        nan_for_null, same_path, write_json)
 from hsicam.runs import pretrained as shipped
+from hsicam.runs.camera_files import check_camera_files, copy_name, write_camera_files
 from hsicam.runs.checkpoint import file_sha256, root_weights_path
-from hsicam.runs.folder import MetricsLog, check_is_run, load_run
+from hsicam.runs.folder import EMPTY_RUN_CONFIG, MetricsLog, check_is_run, load_run
 from hsicam.runs.linear_step import LINEAR_STEP_FILE
 from hsicam.runs.measured_psf import MEASURED_PSF_FILE
 
@@ -596,8 +598,10 @@ def pack_pretrained(run_dir: str | Path, name: str, dest_root: str | Path | None
     (:func:`check_results_of_run`), a ``preset`` that is not a shipped preset, weights over
     :data:`hsicam.runs.pretrained.MAX_WEIGHTS_BYTES`, an existing camera unless ``overwrite``, a
     ``dest_root/name`` inside the run or holding it (:func:`check_pack_apart`), and a
-    ``dest_root/name`` that is not a packed camera (:func:`check_pack_target`).
-    The folder is written under a temporary name and renamed into place."""
+    ``dest_root/name`` that is not a packed camera (:func:`check_pack_target`), and a run whose camera files are gone
+    or changed since training (:func:`hsicam.runs.camera_files.check_camera_files`). A camera built from files
+    carries a copy of each (:func:`hsicam.runs.camera_files.copy_name`), which its config.yaml names relative to its
+    folder, and their record. The folder is written under a temporary name and renamed into place."""
     run_dir = Path(run_dir)
     shipped.check_name(name)
     if shipped.is_spec(str(run_dir)):
@@ -624,8 +628,19 @@ def pack_pretrained(run_dir: str | Path, name: str, dest_root: str | Path | None
         # A camera from a git checkout has no completion marker (.gitignore'd): it is still ours to
         # replace. A folder holding anything else keeps the marker rule (a user's folder is never deleted).
         mark_complete(target, {"command": "pretrained pack"})
+    cfg = load_config(run_dir / "config.yaml", empty=EMPTY_RUN_CONFIG)
+    check_camera_files(run_dir, cfg)  # the tables it was trained with (card_fields loaded it: said again, cheaply)
+    files = camera_files(cfg)
     with atomic_output(target, "dir", overwrite=True, marker={"command": "pretrained pack"}) as tmp:
-        copy_file(run_dir / "config.yaml", tmp / "config.yaml")
+        if files:  # a shipped camera is self-contained: a copy of each file, named relative to its folder
+            names = {k: copy_name(k, p) for k, p in files.items()}
+            for key, path in files.items():
+                copy_file(path, tmp / names[key])
+            with atomic_open(tmp / "config.yaml", "w", encoding="utf-8") as fh:
+                fh.write(dump_yaml(with_values(cfg, names)))
+            write_camera_files(tmp, {"files": {k: {"path": n, "sha256": file_sha256(tmp / n)} for k, n in names.items()}})
+        else:
+            copy_file(run_dir / "config.yaml", tmp / "config.yaml")
         copy_file(weights, tmp / "model.safetensors")
         if (run_dir / LINEAR_STEP_FILE).is_file():  # the linear consistency step's filters travel with the camera
             copy_file(run_dir / LINEAR_STEP_FILE, tmp / LINEAR_STEP_FILE)

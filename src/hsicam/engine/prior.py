@@ -22,8 +22,8 @@ from pathlib import Path
 import torch
 import yaml
 
-from hsicam.config import ChoiConfig, Config, from_dict, load_config, training_differences, yaml_error_text
-from hsicam.data.pipeline import absolute_data_paths
+from hsicam.config import (ChoiConfig, Config, absolute_paths, from_dict, load_config, training_differences,
+                           yaml_error_text)
 from hsicam.engine.loop import FitOptions, fit
 from hsicam.engine.tasks import PriorTask
 from hsicam.errors import HsicamError, InputError
@@ -185,7 +185,7 @@ def prior_differences(run: str | Path, cfg: Config, settings: ChoiConfig, limit:
     trained otherwise than ``settings`` on the bands and data of ``cfg``. Empty: the same prior."""
     run = Path(run)
     have_cfg, have = load_config(run / "config.yaml"), load_prior_settings(run)
-    out = [d for d in training_differences(absolute_data_paths(have_cfg), absolute_data_paths(cfg), limit=10**6)
+    out = [d for d in training_differences(absolute_paths(have_cfg), absolute_paths(cfg), limit=10**6)
            if d.split(".")[0] in ("bands", "data") and d.split(":")[0] not in PRIOR_UNREAD_DATA_KEYS]
     out += [f"baselines.choi.{k}: {getattr(have, k)!r} → {getattr(settings, k)!r}"
             for k in PRIOR_TRAINING_KEYS if getattr(have, k) != getattr(settings, k)]

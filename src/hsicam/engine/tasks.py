@@ -14,8 +14,8 @@ import torch
 import torch.nn.functional as F
 import yaml
 
-from hsicam.config import ChoiConfig, Config, TrainConfig, dump_yaml
-from hsicam.data.pipeline import absolute_data_paths, build_datasets, dataset_root
+from hsicam.config import ChoiConfig, Config, TrainConfig, absolute_paths, dump_yaml
+from hsicam.data.pipeline import build_datasets, dataset_root
 from hsicam.engine.loop import Task, draw_uniform, step_generator
 from hsicam.engine.provenance import data_record, generator_change_warning, synthetic_set_record
 from hsicam.errors import ConfigError
@@ -25,6 +25,7 @@ from hsicam.models import CameraSystem
 from hsicam.models.demosaic import box_mean
 from hsicam.models.priors import SpectralAutoencoder, build_prior
 from hsicam.models.registry import check_network_memory
+from hsicam.runs.camera_files import camera_files_record
 
 log = logging.getLogger(__name__)
 
@@ -204,7 +205,7 @@ class SystemTask(_ConfigDataTask):
     """
 
     def __init__(self, cfg: Config, model: CameraSystem, extra_freeze: tuple[str, ...] = ()) -> None:
-        self.cfg, self.model = absolute_data_paths(cfg), model  # config.yaml names the data from anywhere
+        self.cfg, self.model = absolute_paths(cfg), model  # config.yaml names the data and camera files from anywhere
         self.bands = model.bands
         self.eval_noise = model.camera.noise_levels()
         self.freeze = set(cfg.train.freeze) | set(extra_freeze)
@@ -289,6 +290,9 @@ class SystemTask(_ConfigDataTask):
         with atomic_open(run_dir / "config.yaml", encoding="utf-8") as fh:
             fh.write(dump_yaml(self.cfg))
 
+    def camera_record(self) -> dict[str, Any] | None:
+        return camera_files_record(self.cfg)
+
     def on_device(self, device: torch.device) -> None:
         t = self.cfg.train
         if t.bf16:
@@ -339,7 +343,7 @@ class PriorTask(_ConfigDataTask):
     seed_key = "baselines.choi.seed"
 
     def __init__(self, cfg: Config, settings: ChoiConfig) -> None:
-        self.cfg, self.settings = absolute_data_paths(cfg), settings  # config.yaml names the data from anywhere
+        self.cfg, self.settings = absolute_paths(cfg), settings  # config.yaml names the data from anywhere
         self.bands = cfg.bands.to_bands()
         self.model = build_prior(settings, len(self.bands), training=True)  # refused when it cannot train
 

@@ -42,6 +42,10 @@ def train(cfg: Config, run_dir: str | Path, resume: bool = False, progress: bool
         from hsicam.runs.folder import check_train_can_resume
 
         check_train_can_resume(Path(run_dir))
+        if (Path(run_dir) / "config.yaml").is_file():  # before its camera is built: trained on with the files it began with
+            from hsicam.runs.camera_files import check_camera_files
+
+            check_camera_files(run_dir, cfg)
     warn_camera_noise_not_trained(cfg)
     torch.manual_seed(cfg.train.seed)
     task = SystemTask(cfg, CameraSystem.from_config(cfg))

@@ -9,6 +9,7 @@ Layout (written by :func:`hsicam.engine.loop.fit` and its tasks)::
     RUN/checkpoints.json       the manifest naming last and best (see :mod:`hsicam.runs.checkpoint`)
     RUN/measured_psf.safetensors  (fine-tuned runs) the measured PSFs the run images with
     RUN/data.json              (runs on a data.root folder) the scenes, their sizes and times, the split
+    RUN/camera_files.json      (cameras built from files: material tables, a coded aperture) their SHA-256
 
 A run is rebuilt from its config through the registries (camera kind, network kind), so
 :func:`load_run` works for every camera and network. ``load_run("pretrained:NAME")`` loads a
@@ -28,6 +29,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from hsicam.config import CAMERA_FILES_RECORD
 from hsicam.errors import HsicamError, InputError
 from hsicam.io import (OS_ERROR_HINTS, atomic_open, cleanup_stale_temporaries, held_elsewhere, held_here, is_temporary,
                        json_text, lock_holder_text, nan_for_null, output_lock_path, remove_if_stale, restore_set_aside)
@@ -103,11 +105,13 @@ def load_run(run_dir: str | Path, device: torch.device | str = "cpu", overrides:
     ``device``: cpu, cuda, cuda:N or mps, one this machine has (:func:`hsicam.devices.device_problem`,
     as ``--device``). ``linear_step=False``: without the linear step's filters (fine-tuning and the
     refit itself, which make their own: no stale-filter check). Raises :class:`InputError` for another device, a missing folder,
-    missing/corrupt weights or another band grid.
+    missing/corrupt weights, another band grid, or a file its camera is built from gone or changed since training
+    (:func:`hsicam.runs.camera_files.check_camera_files`).
     """
-    from hsicam.config import load_config
+    from hsicam.config import load_config, override_keys
     from hsicam.devices import device_problem
     from hsicam.models import CameraSystem
+    from hsicam.runs.camera_files import check_camera_files
 
     problem = device_problem(str(device))
     if problem is not None:
@@ -119,6 +123,8 @@ def load_run(run_dir: str | Path, device: torch.device | str = "cpu", overrides:
     own = load_config(cfg_path, (), empty=EMPTY_RUN_CONFIG) if overrides else cfg  # what it trained with
     if overrides:  # the weights file records the band centres only: a --set of the bands' widths loaded silently
         _check_same_band_widths(run_dir, own, cfg, overrides)
+    # the files its camera is built from, as it was trained: one edited since changed the camera silently
+    check_camera_files(run_dir, cfg, override_keys(overrides))
     weights = run_dir / "model.safetensors"
     if not weights.is_file():
         damaged = damaged_weights_message(run_dir)  # a kept checkpoint to read them from, but damaged
@@ -543,7 +549,7 @@ DATA_RECORD = "data.json"
 #: What a run folder may hold (anything else means it is not only a run folder: never wiped).
 RUN_ENTRIES = frozenset({"config.yaml", "metrics.jsonl", "checkpoints", "tensorboard", MANIFEST, *LEGACY_POINTERS,
                          "model.safetensors", "prior.safetensors", "summary.json", "prior.yaml", MEASURED_PSF_FILE, LINEAR_STEP_FILE,
-                         "measured_psf.json", DATA_RECORD, LOCK_FILE})
+                         "measured_psf.json", DATA_RECORD, CAMERA_FILES_RECORD, LOCK_FILE})
 
 
 def foreign_entries(run_dir: Path) -> list[str]:

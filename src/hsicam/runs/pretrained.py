@@ -7,6 +7,8 @@ Each shipped camera is a folder ``hsicam/resources/pretrained/NAME/`` holding wh
     NAME/model.safetensors    its weights (network + optics), at most MAX_WEIGHTS_BYTES
     NAME/card.json            machine-readable card (summary, bands, training, metrics, noise, limits)
     NAME/card.md              the same card for people
+    NAME/camera_files.json    (a camera built from files) their SHA-256, and NAME/camera.doe.material.csv … their
+                              copies, which its config.yaml names relative to NAME/ (:mod:`hsicam.runs.camera_files`)
 
 Everywhere a run folder is accepted (``load_run``, every ``--run`` of the CLI), ``pretrained:NAME``
 names a shipped camera (:func:`resolve_run`). The folders may sit in site-packages: they are
@@ -33,6 +35,7 @@ from typing import Any
 
 from hsicam.errors import InputError
 from hsicam.io import nan_for_null
+from hsicam.runs.camera_files import CAMERA_FILES, COPY_NAMES
 
 #: Environment variable: another root folder of pre-trained cameras (instead of the package's).
 ENV_VAR = "HSICAM_PRETRAINED_DIR"
@@ -41,8 +44,9 @@ PREFIX = "pretrained:"
 CARD_JSON = "card.json"
 CARD_MD = "card.md"
 #: The files of a shipped camera (what pack writes and copy copies; the linear consistency step's
-#: filters, ``linear_step.safetensors``, when the camera has them).
-FILES = ("config.yaml", "model.safetensors", "linear_step.safetensors", CARD_JSON, CARD_MD)
+#: filters, ``linear_step.safetensors``, when the camera has them; its material tables or coded aperture, with their
+#: record, when its camera is built from files: :mod:`hsicam.runs.camera_files`).
+FILES = ("config.yaml", "model.safetensors", "linear_step.safetensors", CARD_JSON, CARD_MD, CAMERA_FILES, *COPY_NAMES)
 #: The files a folder must hold to be a camera.
 REQUIRED = ("config.yaml", "model.safetensors", CARD_JSON)
 #: Largest weights file a shipped camera may have (bytes; 20 MB).

@@ -1,0 +1,129 @@
+"""The files a run's camera is built from: ``RUN/camera_files.json``.
+
+A camera's config may name files (:data:`hsicam.config.CAMERA_FILE_KEYS`): a DOE, singlet or prism material table
+(``wavelength_nm,n`` CSV) and a CASSI coded aperture (.npy). They are read again each time the run is loaded, so a
+table edited after training changed the trained camera silently (its evaluation, its exported etch depths) under the
+same config hash and weights. A new run records each one's SHA-256, written once, atomically, with its other first
+files (:func:`hsicam.engine.loop.fit`; a fine-tuned run, whose camera is its source run's, records the same files)::
+
+    {"files": {"camera.doe.material": {"path": "/abs/pmma.csv", "sha256": "9f86d0…"}}}
+
+:func:`check_camera_files` (:func:`hsicam.runs.folder.load_run`, a resume) refuses a run whose file is gone or holds
+other bytes, naming the key, the run and the path. A run without the record (older runs; built-in materials and
+random masks, which name no file) is read as before. A packed camera (``hsicam pretrained pack``) carries a copy of
+each file beside its config.yaml, which names it relative to the camera's folder (:func:`copy_name`).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+from pathlib import Path
+from typing import Any, Iterable
+
+from hsicam.config import CAMERA_FILES_RECORD, camera_files, config_value
+from hsicam.errors import InputError
+from hsicam.io import write_json
+from hsicam.runs.checkpoint import file_sha256
+
+log = logging.getLogger(__name__)
+
+#: The record's file name in a run folder.
+CAMERA_FILES = CAMERA_FILES_RECORD
+
+
+def copy_name(key: str, path: str) -> str:
+    """The name a packed camera gives its copy of the file ``path`` of ``key``: the key, then the file's suffix
+    (``camera.doe.material.csv``)."""
+    return key + Path(path).suffix.lower()
+
+
+#: The names a packed camera's copies of its files may have (:func:`copy_name`).
+COPY_NAMES = ("camera.doe.material.csv", "camera.lens.material.csv", "camera.cassi.prism_material.csv",
+              "camera.cassi.mask_file.npy")
+
+
+def _sha256(where: str, path: str) -> str:
+    """SHA-256 of the file ``path``; one-line InputError beginning with ``where`` (the key) when it cannot be read."""
+    try:
+        return file_sha256(path)
+    except OSError as exc:
+        what = "no such file" if isinstance(exc, FileNotFoundError) else f"cannot be read ({exc.strerror or exc})"
+        raise InputError(f"{where}: {what}") from None
+
+
+def camera_files_record(cfg) -> dict[str, Any] | None:
+    """The record of the files the camera of ``cfg`` (a :class:`~hsicam.config.Config`) is built from, as they are
+    now; None when it names none."""
+    files = camera_files(cfg)
+    if not files:
+        return None
+    return {"files": {k: {"path": p, "sha256": _sha256(f"{k}: {p}", p)} for k, p in files.items()}}
+
+
+def write_camera_files(run_dir: str | Path, record: dict[str, Any]) -> None:
+    """``RUN/camera_files.json``, atomically."""
+    write_json(Path(run_dir) / CAMERA_FILES, record)
+
+
+def read_camera_files(run_dir: str | Path) -> dict[str, Any] | None:
+    """The run's record; None when it has none (an older run, or a camera of built-in materials); one-line
+    :class:`InputError` when it cannot be read."""
+    path = Path(run_dir) / CAMERA_FILES
+    if not path.is_file():
+        return None
+    try:
+        record = json.loads(path.read_text(encoding="utf-8"))
+        files = record.get("files") if isinstance(record, dict) else None
+        if not (isinstance(files, dict) and all(isinstance(e, dict) and isinstance(e.get("sha256"), str)
+                                                for e in files.values())):
+            raise ValueError("not a record of camera files")
+    except (OSError, UnicodeDecodeError, ValueError) as exc:
+        raise InputError(f"{path}: unreadable ({getattr(exc, 'msg', None) or exc}); restore it from a copy of the "
+                         "run") from None
+    return record
+
+
+def check_camera_files(run_dir: str | Path, cfg, overridden: Iterable[str] = ()) -> None:
+    """One-line :class:`InputError` unless each file the run's record names holds the bytes its camera was trained
+    with, at the path ``cfg`` (the config the run is loaded with) names for its key: gone (naming the key, the run and
+    the path), or other bytes (edited or replaced since training). A key of ``overridden`` (``--set`` on the command
+    line: a what-if asked for by name) may name another file: a warning says it is not the trained camera's. Nothing
+    to check without a record."""
+    record = read_camera_files(run_dir)
+    if record is None:
+        return
+    overridden = set(overridden)
+    for key, entry in sorted(record["files"].items()):
+        try:
+            path = config_value(cfg, key)
+        except AttributeError:  # a key this hsicam does not know: nothing reads it
+            continue
+        if not isinstance(path, str) or path == "fused_silica":
+            continue  # the config no longer names a file there (a --set of a built-in material, a random mask)
+        asked = key in overridden
+        now = _sha256(f"--set {key}={path}", path) if asked else _recorded_file(run_dir, key, path, entry)
+        if now == entry["sha256"]:
+            continue
+        if asked:
+            log.warning("--set %s=%s: not the file %s's camera was trained with (its %s: sha256 %s…, this one %s…); "
+                        "the camera is not the trained one", key, path, run_dir, CAMERA_FILES, entry["sha256"][:12],
+                        now[:12])
+            continue
+        raise InputError(f"{run_dir}: {key}: {path} has changed since the run's camera was trained with it (sha256 "
+                         f"{now[:12]}… now, {entry['sha256'][:12]}… in its {CAMERA_FILES}): the trained camera is the "
+                         "one of the file as it was; restore it, or train again")
+
+
+def _recorded_file(run_dir: str | Path, key: str, path: str, entry: dict[str, Any]) -> str:
+    """SHA-256 of the run's recorded file ``path``; InputError naming the key, the run and the path when it is gone."""
+    try:
+        return file_sha256(path)
+    except OSError as exc:
+        what = "no such file" if isinstance(exc, FileNotFoundError) else f"cannot be read ({exc.strerror or exc})"
+        raise InputError(f"{run_dir}: {key}: {path}: {what}; the run's camera was built from it (sha256 "
+                         f"{entry['sha256'][:12]}… in its {CAMERA_FILES}): restore it there, or train again") from None
+
+
+__all__ = ["CAMERA_FILES", "COPY_NAMES", "camera_files_record", "check_camera_files", "copy_name",
+           "read_camera_files", "write_camera_files"]
