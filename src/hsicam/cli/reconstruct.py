@@ -209,7 +209,7 @@ def checked_sensor_origin(model, sensor: torch.Tensor, source, check_orientation
                  "readout, give the sensor row and column of its first pixel with --cfa-offset Y,X", e)
         return None
     oy, ox = est.offset
-    turned = checked_orientation(model, sensor, source, est) if check_orientation else None
+    turned = misorientation_check(model, sensor, source, est) if check_orientation else None
     if turned is not None and turned["warned"]:  # said by that warning (the phase alone would not fix it)
         return {**est.as_dict(), "warned": est.rules_out_origin, "orientation_check": turned}
     if not est.rules_out_origin:  # quiet: a line on every reconstruction would say nothing to act on
@@ -227,7 +227,7 @@ def checked_sensor_origin(model, sensor: torch.Tensor, source, check_orientation
     return record if turned is None else {**record, "orientation_check": turned}
 
 
-def checked_orientation(model, sensor: torch.Tensor, source, est) -> dict | None:
+def misorientation_check(model, sensor: torch.Tensor, source, est) -> dict | None:
     """The orientation check of a capture reconstructed without ``--orientation`` (after its CFA check ``est``):
     :func:`~hsicam.engine.orientation.check_orientation_at_origin`, and a warning naming another orientation when it
     explains the capture at least :data:`~hsicam.engine.orientation.MIN_ORIENTATION_RATIO` times better than the

@@ -44,7 +44,7 @@ ORIENTATIONS = ("as-read", "flip-lr", "flip-ud", "rot90", "rot180", "rot270", "t
 MIN_ORIENTATION_RATIO = 1.5
 
 
-def check_orientation(name: str) -> str:
+def known_orientation(name: str) -> str:
     """``name`` when it is one of :data:`ORIENTATIONS`, else one InputError naming them."""
     if name not in ORIENTATIONS:
         raise InputError(f"unknown orientation {name!r}: use one of {', '.join(ORIENTATIONS)}")
@@ -72,13 +72,13 @@ _TO_CAPTURE = {"as-read": lambda a: a, "flip-lr": lambda a: _flip(a, -1), "flip-
 def to_capture(image, name: str):
     """The sensor-frame ``image`` (a tensor or an array, the last two axes rows and columns) as the capture stored in
     orientation ``name`` holds it (a view for an array, a tensor as torch gives it)."""
-    return _TO_CAPTURE[check_orientation(name)](image)
+    return _TO_CAPTURE[known_orientation(name)](image)
 
 
 def to_sensor(image, name: str):
     """The capture ``image`` stored in orientation ``name`` brought back to the sensor's readout (the inverse of
     :func:`to_capture`: rot90 and rot270 undo each other, the others undo themselves)."""
-    return to_capture(image, {"rot90": "rot270", "rot270": "rot90"}.get(check_orientation(name), name))
+    return to_capture(image, {"rot90": "rot270", "rot270": "rot90"}.get(known_orientation(name), name))
 
 
 @dataclasses.dataclass(frozen=True)
