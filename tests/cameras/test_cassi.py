@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import logging
 import math
 
 import numpy as np
@@ -570,3 +571,33 @@ def test_phi_phi_t_is_diagonal_and_phi_diagonal_is_its_diagonal(kind, convention
     expected = torch.diag(gram)
     expected = torch.where(expected > 1e-12, expected, torch.ones_like(expected))
     torch.testing.assert_close(d, expected)
+
+@pytest.mark.parametrize("kind", ["sd_cassi", "dd_cassi"])
+@pytest.mark.parametrize("convention", CONVENTIONS)
+def test_white_peak_bounds_a_white_scenes_sensor_image(kind, convention):
+    """``white_peak`` (what `reconstruct` takes as the range of the images a network of the camera trained on): no
+    pixel of a white scene's image exceeds it, and it is reached where every band's code is open: 1 with ``mean``,
+    the band count with ``sum`` (session 75's hunt: a sum-convention capture of peak 22.7 was called DN, and following the
+    advice, --auto-level 1, took its reconstruction from 16.7 to 7.6 dB)."""
+    cam = camera(kind, f"camera.cassi.convention={convention}")
+    c = len(cam.bands)
+    white = torch.ones(1, c, 40, 40, dtype=torch.float64)
+    with torch.no_grad():
+        image = cam.A(white)
+    assert float(image.max()) <= cam.white_peak * (1 + 1e-9)
+    assert float(image.max()) > 0.5 * cam.white_peak  # a random code: some pixel sees most bands open
+    assert cam.white_peak == pytest.approx(1.0 if convention == "mean" else float(c))
+
+
+def test_a_float_capture_within_a_sum_cameras_range_is_not_taken_for_dn(caplog):
+    """The float capture's "holds DN?" warning compares with the range the network trained on (``trained_peak``)."""
+    from hsicam.data.images import FLOAT_OVER_SCALE, RawCorrection, preprocess_raw
+
+    raw = np.full((16, 16), 22.7, dtype=np.float32)
+    with caplog.at_level(logging.WARNING):
+        preprocess_raw(raw, 1.0, RawCorrection(), "cap", trained_peak=28.0)
+    assert not [r for r in caplog.records if "holds DN" in r.getMessage()]
+    with caplog.at_level(logging.WARNING):
+        preprocess_raw(raw, 1.0, RawCorrection(), "cap")  # a DOE camera's range, [0, 1]
+    said = [r.getMessage() for r in caplog.records if "holds DN" in r.getMessage()]
+    assert len(said) == 1 and "within [0, 1]" in said[0] and 22.7 > FLOAT_OVER_SCALE

@@ -399,6 +399,12 @@ class _CASSICamera(Camera):
     def scale(self) -> float:
         return 1.0 / len(self.bands) if self.convention == "mean" else 1.0
 
+    @property
+    def white_peak(self) -> float:
+        """The most a white scene (all ones) can give a sensor pixel: C·scale, every band's code open there (1 with
+        ``convention: mean``, the band count C with ``sum``): the range of the images a network of it trains on."""
+        return self.scale * len(self.bands)
+
     def extra_repr(self) -> str:
         return f"bands={len(self.bands)}, shifts={self.shifts[0]}..{self.span} px, convention={self.convention}"
 

@@ -673,7 +673,9 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
     # a CFA only on a DOE camera: a CASSI config keeps the (unused) cfa section of the defaults, enabled
     cfa_period = cfg.camera.cfa.period if cfg.camera.kind == "doe" and cfg.camera.cfa.enabled else None
     corr = corrections_from_args(args, cfa_period)
-    img, report, saturated = read_capture(args.sensor, corr, args.scale, return_saturated=True)
+    # a CASSI camera of convention 'sum' adds its bands on the sensor: trained on images up to its band count
+    peak = float(getattr(model.camera, "white_peak", 1.0))
+    img, report, saturated = read_capture(args.sensor, corr, args.scale, return_saturated=True, trained_peak=peak)
     # which frames corrected it (their statistics alone did not say which files they were)
     report.update({k: str(Path(v).resolve()) for k, v in (("dark_frame", args.dark), ("flat_frame", args.flat)) if v})
     meta["preprocessing"] = report

@@ -445,7 +445,7 @@ class RawCorrection:
 def preprocess_raw(raw: np.ndarray, full_scale: float, corr: RawCorrection, source: str = "capture",
                    check_saturation: bool = True, check_bit_depth: bool = True,
                    check_level: bool = True, stored_dtype: str | None = None,
-                   return_saturated: bool = False, restored_scale: float = 1.0
+                   return_saturated: bool = False, restored_scale: float = 1.0, trained_peak: float = 1.0
                    ) -> tuple[np.ndarray, dict] | tuple[np.ndarray, dict, np.ndarray]:
     """Raw capture (H, W) in DN → float32 (H, W) on the simulator's scale, plus a report dict (and, with
     ``return_saturated``, the (H, W) bool map of the pixels at or above the white level: clipped by the sensor; all
@@ -465,6 +465,9 @@ def preprocess_raw(raw: np.ndarray, full_scale: float, corr: RawCorrection, sour
         restored_scale: a factor that is no gain of the user's: the scale that brings ``hsicam simulate``'s
             stretched PNG back to its simulated level (above full scale by design); applied with the gains, never
             checked as one (a gain on top of it is: the image at its simulated level times the gain).
+        trained_peak: the most a white scene gives the run's camera on the sensor (1, but for a CASSI camera of
+            ``convention: sum``, whose images reach up to its band count: ``reconstruct`` passes it): a float capture is
+            taken to hold DN only far above it.
     """
     raw = _float32_capture(raw, source)
     dark, flat_dn = _dark_and_flat(raw, corr, full_scale, stored_dtype, source)
@@ -487,7 +490,7 @@ def preprocess_raw(raw: np.ndarray, full_scale: float, corr: RawCorrection, sour
         report["simulated_scale"] = restored_scale
     img = _apply_gain(img, factor, corr, source)
     report["gain"] = factor / (white - black)
-    notes += _level_notes(img, raw, full_scale, white, corr, source, check_level, check_bit_depth)
+    notes += _level_notes(img, raw, full_scale, white, corr, source, check_level, check_bit_depth, trained_peak)
     for note in notes:  # only once every check passed: an error stays the one line the user sees
         log.warning("%s", note)
     if return_saturated:
@@ -664,7 +667,7 @@ def _apply_gain(img: np.ndarray, factor: float, corr: RawCorrection, source: str
 
 
 def _level_notes(img: np.ndarray, raw: np.ndarray, full_scale: float, white: float, corr: RawCorrection, source: str,
-                 check_level: bool, check_bit_depth: bool) -> list[str]:
+                 check_level: bool, check_bit_depth: bool, trained_peak: float = 1.0) -> list[str]:
     """The warnings about the level of the corrected image ``img`` (H, W, full scale 1) of the capture ``raw`` (DN),
     InputError for those refused: a gain past full scale or far below it (:func:`_check_level`), a dim integer
     capture (:func:`_check_dim`) or float capture (:func:`_check_dim_float`), a white level far above the data
@@ -678,10 +681,11 @@ def _level_notes(img: np.ndarray, raw: np.ndarray, full_scale: float, white: flo
         notes += _check_white_level(img, raw, full_scale, white, source)
     if check_bit_depth and full_scale == 1 and corr.white_level is None and not _gain_options(corr):
         notes += _check_dim_float(img, source)
-    if full_scale == 1 and corr.white_level is None and corr.auto_level is None and raw.size and raw.max() > FLOAT_OVER_SCALE:
+    if full_scale == 1 and corr.white_level is None and corr.auto_level is None and raw.size \
+            and raw.max() > FLOAT_OVER_SCALE * trained_peak:
         notes.append(f"{source}: a float capture is read on the simulator's scale (0 = black, 1 = full scale), and this "
                      f"one reaches {float(raw.max()):g}: if it holds DN, pass the sensor's white level (--white-level DN) "
-                     "or --auto-level; the network was trained on images within [0, 1]")
+                     f"or --auto-level; the network was trained on images within [0, {trained_peak:g}]")
     return notes
 
 
@@ -997,7 +1001,8 @@ def is_simulated_image(path: str | Path, fmt: str, png_scale: float | None = Non
 
 
 def read_capture(path: str | Path, corr: RawCorrection | None = None, scale: float | None = None,
-                 return_saturated: bool = False) -> tuple[np.ndarray, dict] | tuple[np.ndarray, dict, np.ndarray]:
+                 return_saturated: bool = False, trained_peak: float = 1.0
+                 ) -> tuple[np.ndarray, dict] | tuple[np.ndarray, dict, np.ndarray]:
     """Read a capture and apply ``corr`` → (float32 (H, W) on the simulator scale, report); with
     ``return_saturated`` also the (H, W) bool map of the pixels the sensor clipped (at or above the white level,
     :func:`preprocess_raw`).
@@ -1006,6 +1011,7 @@ def read_capture(path: str | Path, corr: RawCorrection | None = None, scale: flo
     back to its simulated level by the scale written inside it (:data:`SENSOR_SCALE_KEY`), an older simulation's
     ``sensor.png`` by the ``sensor_png_scale`` of the ``simulate.json`` beside it (:func:`is_simulated_image`);
     ``scale`` multiplies that level, as it would simulate's ``sensor.npy`` (``corr.auto_level`` sets the level instead).
+    ``trained_peak``: as :func:`preprocess_raw` takes it.
 
     Raises :class:`InputError` for a 32/64-bit integer capture without ``corr.white_level`` (or
     ``auto_level``, which makes the white level irrelevant): the type's maximum is no full scale.
@@ -1059,13 +1065,14 @@ def read_capture(path: str | Path, corr: RawCorrection | None = None, scale: flo
     restored = simulated_scale if corr.auto_level is None else 1.0
     img, report, saturated = preprocess_raw(image.data, image.full_scale, corr, str(path),
                                             check_saturation=not stretched, check_bit_depth=not simulated,
-                                            restored_scale=restored, stored_dtype=image.dtype, return_saturated=True)
-    if stretched and restored > FLOAT_OVER_SCALE:  # its brightest pixel: simulated_scale
+                                            restored_scale=restored, stored_dtype=image.dtype, return_saturated=True,
+                                            trained_peak=trained_peak)
+    if stretched and restored > FLOAT_OVER_SCALE * trained_peak:  # its brightest pixel: simulated_scale
         # the float capture's warning (preprocess_raw), for simulate's image of a scene far above full scale
         log.warning("%s: hsicam simulate's image of a scene far brighter than full scale: it is read back at its "
                     "simulated level (%s %g, its brightest pixel); a real sensor saturates at 1 and the network was "
-                    "trained on images within [0, 1]: simulate the scene normalised to [0, 1]", path,
-                    SENSOR_SCALE_KEY if png_scale is not None else SIMULATE_JSON, simulated_scale)
+                    "trained on images within [0, %g]: simulate the scene normalised to [0, 1]", path,
+                    SENSOR_SCALE_KEY if png_scale is not None else SIMULATE_JSON, simulated_scale, trained_peak)
     report.update({"source": str(path), "stored_dtype": image.dtype, "format": image.format,
                    "shape": [int(s) for s in img.shape]})
     return (img, report, saturated) if return_saturated else (img, report)
