@@ -33,6 +33,7 @@ from hsicam.engine.methods import dd_cassi_camera
 from hsicam.models.priors import SpectralAutoencoder
 from hsicam.solvers.choi import admm_prior
 from hsicam.config import BaselinesConfig
+from hsicam.devices import device_problem
 from hsicam.solvers.desci import desci, desci_settings
 from hsicam.solvers.gaptv import gap_tv
 from timing import median_time, positive_int, untrained_system_for_inference
@@ -50,11 +51,14 @@ def main() -> None:
     ap.add_argument("--size", type=positive_int, default=256)
     ap.add_argument("--repeats", type=positive_int, default=3)
     ap.add_argument("--full", action="store_true", help="also time DeSCI's full preset (slow)")
-    ap.add_argument("--device", default="cpu")
+    ap.add_argument("--device", default="cpu", help="cpu (default), cuda, cuda:N or mps")
     ap.add_argument("--out", help="also write the JSON here")
     args = ap.parse_args()
     if args.size < 16:  # the smooth scene is drawn on a size/16 grid
         ap.error(f"--size must be >= 16, got {args.size}")
+    problem = device_problem(args.device)  # a device this machine lacks: one line, not torch's traceback
+    if problem is not None:
+        ap.error(f"--device {args.device}: {problem}")
     dev = torch.device(args.device)
     torch.manual_seed(0)
     cfg = load_config("quick")

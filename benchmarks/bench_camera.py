@@ -30,7 +30,7 @@ def main() -> None:
     ap.add_argument("--repeats", type=positive_int, default=5)
     ap.add_argument("--batch", type=positive_int, default=4)
     ap.add_argument("--size", type=positive_int, default=256)
-    ap.add_argument("--threads", type=int, default=None, help="torch CPU threads (default: torch's choice)")
+    ap.add_argument("--threads", type=positive_int, default=None, help="torch CPU threads (default: torch's choice)")
     args = ap.parse_args()
     if args.threads:
         torch.set_num_threads(args.threads)

@@ -3,8 +3,11 @@
 Builds a run folder with the paper camera and the default RDN (31 bands; untrained weights — time
 and memory do not depend on the weight values), writes a 12-bit-in-16-bit TIFF capture with a
 dark frame and a flat field, and runs ``hsicam reconstruct`` (black level, dark, flat averaged
-over the CFA period, exposure normalisation, tiles) in a child process. Reports the wall time and
-the child's peak resident memory (``ru_maxrss`` from ``os.wait4``) against the 4 GiB target.
+over the CFA period, exposure normalisation, tiles) in a child process (the console script beside this Python, else
+``python -m hsicam``: ``timing.hsicam_command``). Reports the wall time and
+the child's peak resident memory (``ru_maxrss`` from ``os.wait4``) against the 4 GiB target, and ``threads``, the
+torch thread count a child with the same environment runs (an int: ``--threads``, else ``OMP_NUM_THREADS`` or
+torch's default).
 Prints one JSON object. A reconstruct that fails measured nothing: ``wall_s``, ``megapixels_per_s`` and
 ``within_target`` are then null, ``exit_code`` and ``error_tail`` (its output's tail) say why, and the benchmark
 exits 1.
@@ -26,15 +29,18 @@ from pathlib import Path
 
 import numpy as np
 
+from timing import hsicam_command, positive_int
+
 TARGET_BYTES = 4 * 2**30
 
 
-def make_run(run: Path, overrides: list[str]) -> dict:
-    from hsicam.config import dump_yaml, load_config
+def make_run(run: Path, cfg) -> dict:
+    """A run folder at ``run`` (made here) of the config ``cfg`` with its untrained weights; the facts the JSON
+    reports of it (bands, network size, halo)."""
+    from hsicam.config import dump_yaml
     from hsicam.runs.checkpoint import save_weights
     from hsicam.models import CameraSystem
 
-    cfg = load_config(None, overrides)
     run.mkdir(parents=True)
     (run / "config.yaml").write_text(dump_yaml(cfg), encoding="utf-8")
     model = CameraSystem.from_config(cfg)
@@ -83,29 +89,46 @@ def run_child(cmd: list[str], env: dict) -> tuple[float, int, int, str]:
     return wall, rss, proc.returncode, tail
 
 
+def child_threads(tail: str) -> int | None:
+    """The torch thread count the imports-only child printed on its last line (None if it printed none)."""
+    lines = tail.strip().splitlines()
+    return int(lines[-1]) if lines and lines[-1].strip().isdigit() else None
+
+
 def main() -> None:
     ap = argparse.ArgumentParser()
-    ap.add_argument("--size", type=int, default=2048, help="capture side (px)")
+    ap.add_argument("--size", type=positive_int, default=2048, help="capture side (px)")
     ap.add_argument("--tile", type=int, default=None, help="tile side (px; default: reconstruct's own default)")
-    ap.add_argument("--threads", type=int, default=None, help="OMP/torch threads of the child (default: inherited)")
+    ap.add_argument("--threads", type=positive_int, default=None,
+                    help="OMP/torch threads of the child (default: inherited)")
     ap.add_argument("--set", dest="overrides", action="append", default=[], help="config override for the run")
     args = ap.parse_args()
+    from hsicam.config import load_config
+    from hsicam.errors import HsicamError
+
+    try:  # a bad --set is one usage line, as the hsicam command says it, not a ConfigError traceback
+        cfg = load_config(None, args.overrides)
+    except (HsicamError, OSError) as exc:
+        ap.error(str(exc))
     with tempfile.TemporaryDirectory(prefix="hsicam-bench-capture-") as tmp:
         d = Path(tmp)
-        facts = make_run(d / "run", args.overrides)
+        try:  # a config that loads but builds no model (--set model.kind=nosuch): one usage line, before any work
+            facts = make_run(d / "run", cfg)
+        except HsicamError as exc:
+            ap.error(str(exc))
         make_capture(d, args.size)
         env = dict(os.environ)
         if args.threads:
             env["OMP_NUM_THREADS"] = str(args.threads)
-        hsicam = Path(sys.executable).parent / "hsicam"
-        cmd = [str(hsicam), "reconstruct", str(d / "capture.tif"), "--run", str(d / "run"), "--out", str(d / "cube.h5"),
+        cmd = [*hsicam_command(), "reconstruct", str(d / "capture.tif"), "--run", str(d / "run"), "--out", str(d / "cube.h5"),
                "--black-level", "64", "--white-level", "4095", "--dark", str(d / "dark.tif"), "--flat", str(d / "flat.tif"),
                "--flat-mode", "cfa", "--exposure-s", "0.02", "--reference-exposure-s", "0.02",
                *(["--tile", str(args.tile)] if args.tile else [])]
         wall, rss, rc, tail = run_child(cmd, env)
-        # the same child doing nothing but start up and load the run: the fixed part of the memory
+        # the same child doing nothing but start up and load the run: the fixed part of the memory; it prints the
+        # torch threads a child with this environment runs (hsicam sets none of its own)
         base_wall, base_rss, base_rc, base_tail = run_child(
-            [sys.executable, "-c", "import torch, hsicam.cli, hsicam.models"], env)
+            [sys.executable, "-c", "import torch, hsicam.cli, hsicam.models; print(torch.get_num_threads())"], env)
         out_bytes = (d / "cube.h5").stat().st_size if (d / "cube.h5").exists() else None
     ok = rc == 0  # a reconstruct that failed measured nothing: its time, rate and verdict are null, the exit non-zero
     result = {
@@ -122,7 +145,7 @@ def main() -> None:
         "within_target": rss < TARGET_BYTES if ok else None,
         "interpreter_and_imports_rss_gib": round(base_rss / 2**30, 3) if base_rc == 0 else None,
         "output_h5_bytes": out_bytes,
-        "threads": args.threads or os.environ.get("OMP_NUM_THREADS", "default"),
+        "threads": child_threads(base_tail) if base_rc == 0 else None,
         "cpu_count": os.cpu_count(),
         "machine": platform.machine(),
         "python": platform.python_version(),

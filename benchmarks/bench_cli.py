@@ -17,9 +17,8 @@ import json
 import platform
 import subprocess
 import sys
-from pathlib import Path
 
-from timing import median_time, positive_int
+from timing import hsicam_command, median_time, positive_int
 
 #: JSON key -> (the ``hsicam`` arguments timed, the exit code they must end with: 2 for the usage error).
 CASES = {
@@ -35,8 +34,7 @@ def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--repeats", type=positive_int, default=5, help="timed runs of each command (>= 1)")
     args = parser.parse_args()
-    script = Path(sys.executable).with_name("hsicam")
-    command = [str(script)] if script.is_file() else [sys.executable, "-m", "hsicam"]
+    command = hsicam_command()
     result: dict[str, object] = {"python": platform.python_version(), "repeats": args.repeats,
                                  "command": " ".join(command)}
     cases = {key: ([*command, *argv], code) for key, (argv, code) in CASES.items()}

@@ -7,10 +7,10 @@
 - With CUDA: the same for the ``paper`` preset (256 px patches, bf16 autocast, channels_last). Each step's model is
   set up as training sets it up (``timing.as_trained``: ``SystemTask.on_device``).
 - Inference time of one 512×512 reconstruction (network only; all the preset's bands) for the quick and paper networks.
-- The measurement-consistency steps after the network (``model.consistency``, one iteration, the
-  Landweber step and the linear step of the quick preset) on
-  512×512, through the shipped ``standard`` camera's trained PSFs (the untrained quick camera's
-  lens PSFs need a wider kernel than any trained camera measured here).
+- The measurement-consistency steps after the network on 512×512, through the shipped ``standard`` camera's trained
+  PSFs (the untrained quick camera's lens PSFs need a wider kernel than any trained camera measured here): its
+  Landweber steps as it takes them (``landweber_steps_cpu``: the 12 steps with the spectral and TV priors, all and
+  per step) and its linear step (``linear_step_cpu``).
 
 Run: `.venv/bin/python benchmarks/bench_train.py [--steps N]`. Timings are medians.
 """
@@ -27,7 +27,7 @@ from pathlib import Path
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from timing import allocator_option, apply_allocator, as_trained, positive_int  # noqa: E402
+from timing import allocator_option, apply_allocator, as_trained, median_time, positive_int  # noqa: E402
 
 from hsicam.config import load_config  # noqa: E402
 from hsicam.engine.tasks import system_loss  # noqa: E402
@@ -105,7 +105,7 @@ def fixed_optics_steps(preset: str, device: torch.device, steps: int) -> dict:
 def inference(preset: str, device: torch.device, repeats: int = 3) -> dict:
     cfg = load_config(preset)
     model = CameraSystem.from_config(cfg).to(device).eval()
-    model.consistency = None  # the network alone (the step: consistency_step_time)
+    model.consistency = None  # the network alone (the steps: landweber_steps_time, linear_step_time)
     if device.type == "cuda" and cfg.train.bf16:
         model.autocast_dtype = torch.bfloat16
     g = torch.rand(1, 1, 512, 512, device=device)
@@ -122,22 +122,29 @@ def inference(preset: str, device: torch.device, repeats: int = 3) -> dict:
 
 
 @torch.no_grad()
-def consistency_step_time(run: str = "pretrained:standard", repeats: int = 3) -> dict:
-    from hsicam.models.consistency import consistency_step, cut_psf
+def landweber_steps_time(run: str = "pretrained:standard", repeats: int = 3, size: int = 512) -> dict:
+    """The Landweber steps of ``run`` as its reconstruction takes them (``reconstructor().steps``: kind linear's
+    ``landweber_after`` after the linear step, else ``iterations``; with the run's spectral prior, TV prior and noise
+    weighting, through its PSFs cut to ``psf_energy``) from a random estimate of a random ``size``² image: the
+    median of ``repeats`` calls after one warm-up, all the steps (``seconds``) and per step. Until session 75 this
+    entry (``consistency_step_cpu``) timed one plain Landweber step, no prior, labelled with the linear step's
+    ``iterations``."""
+    from hsicam.models.consistency import cut_psf
     from hsicam.runs.folder import load_run
 
     cfg, model = load_run(run)
-    c = cfg.model.consistency if cfg.model.consistency.iterations else type(cfg.model.consistency)(iterations=1)
-    snap = model.camera.snapshot(nominal=True)
-    g = torch.rand(1, 1, 512, 512)
-    x = torch.rand(1, len(model.bands), 512, 512)
-    times = []
-    for _ in range(repeats + 1):
-        t0 = time.perf_counter()
-        consistency_step(snap, g, x, damping=c.damping, iterations=c.iterations, psf_energy=c.psf_energy)
-        times.append(time.perf_counter() - t0)
-    return {"camera": run, "iterations": c.iterations, "kernel_px": cut_psf(snap, c.psf_energy).kernel_px,
-            "size": list(x.shape[1:]), "seconds": statistics.median(times[1:])}
+    c = cfg.model.consistency
+    fn = model.eval().reconstructor()
+    steps = getattr(fn, "steps", None)
+    out = {"camera": run, "steps": steps.count if steps else 0, "spectral_prior": c.spectral_prior,
+           "tv_weight": c.tv_weight, "kernel_px": cut_psf(model.camera.snapshot(nominal=True), c.psf_energy).kernel_px,
+           "size": [len(model.bands), size, size]}
+    if steps is None:  # a run without Landweber steps: nothing to time
+        return {**out, "seconds": None, "seconds_per_step": None}
+    g = torch.rand(1, 1, size, size)
+    x = torch.rand(1, len(model.bands), size, size)
+    seconds = median_time(lambda: steps(g, x), repeats, warmup=1)
+    return {**out, "seconds": seconds, "seconds_per_step": seconds / steps.count}
 
 
 @torch.no_grad()
@@ -164,7 +171,7 @@ def linear_step_time(run: str = "pretrained:standard", window: int = 11, repeats
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--steps", type=positive_int, default=5)
-    ap.add_argument("--threads", type=int, default=None, help="torch CPU threads (default: torch's choice)")
+    ap.add_argument("--threads", type=positive_int, default=None, help="torch CPU threads (default: torch's choice)")
     allocator_option(ap)
     args = ap.parse_args()
     kept = apply_allocator(args)
@@ -175,7 +182,7 @@ def main() -> None:
            "train_quick_cpu": train_steps("quick", cpu, args.steps, []),
            "train_quick_cpu_fixed_optics": fixed_optics_steps("quick", cpu, args.steps),
            "inference_cpu": [inference("quick", cpu), inference("paper", cpu, repeats=1)],
-           "consistency_step_cpu": consistency_step_time(),
+           "landweber_steps_cpu": landweber_steps_time(),
            "linear_step_cpu": linear_step_time()}
     if torch.cuda.is_available():
         gpu = torch.device("cuda")

@@ -2,7 +2,8 @@
 
 Builds a camera from a config (default: the paper preset, random diffuser DOE), computes its PSF
 stack and compares chosen bands with the reference (every order, 11×11 points per pixel):
-relative L1 of the kernel and light inside the kernel. Prints JSON. Works with any version of
+relative L1 of the kernel and light inside the kernel. ``--bands-nm``: each is compared in the band nearest it
+(``nm``, next to the ``asked_nm``); a wavelength outside the bands' span is refused. Prints JSON. Works with any version of
 the package that has ``DOECamera.from_config`` (used for before/after tables).
 
 Run: `PYTHONPATH=src .venv/bin/python benchmarks/psf_accuracy.py [--set key=value ...]`.
@@ -39,6 +40,13 @@ def main() -> None:
         cam = DOECamera.from_config(cfg).double()
     except (HsicamError, OSError) as exc:
         ap.error(str(exc))
+    # each wavelength is compared in the band nearest it: one outside the bands' span (their half widths included)
+    # would silently be the edge band's, so it is refused
+    lo = float(cam.bands.centers_nm[0] - cam.bands.fwhm_nm[0] / 2)
+    hi = float(cam.bands.centers_nm[-1] + cam.bands.fwhm_nm[-1] / 2)
+    outside = [lam for lam in args.bands_nm if not lo <= lam <= hi]
+    if outside:
+        ap.error(f"--bands-nm {outside[0]:g}: outside the camera's bands ({lo:g}–{hi:g} nm)")
     o = cam.optics
     with torch.no_grad():
         res = cam.psf_result()
@@ -54,7 +62,7 @@ def main() -> None:
         u = doe_field(h, amp, lam_b, q)
         ref = square_cell_psf(u, o.cell_m / q, lam_b * 1e-9, o.sensor_distance_m, o.pixel_m, pixels, args.sub)
         psf = res.psf[b].numpy()
-        out["bands"].append({"nm": lam_b, "l1": relative_l1(psf, ref), "energy_model": float(res.energy[b]),
+        out["bands"].append({"asked_nm": lam, "nm": lam_b, "l1": relative_l1(psf, ref), "energy_model": float(res.energy[b]),
                              "energy_reference": float(ref.sum())})
     print(json.dumps(out, indent=1))
 

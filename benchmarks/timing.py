@@ -4,15 +4,18 @@ from __future__ import annotations
 
 import argparse
 import statistics
+import sys
 import time
+from pathlib import Path
 
 from hsicam.memory import keep_freed_memory
 
 
 def positive_int(text: str) -> int:
-    """argparse ``type`` of a count that needs at least one (``--repeats``, ``--steps``): 0 ended in a
-    StatisticsError traceback of the median of no times, after the set-up. The CLI's ``count_arg`` is not imported:
-    ``bench_cli`` must run, and report, when the ``hsicam.cli`` package itself is broken."""
+    """argparse ``type`` of a count that needs at least one (``--repeats``, ``--steps``, ``--threads``, ``--size``):
+    0 ended in a StatisticsError traceback of the median of no times, after the set-up, and ``--threads -1`` in
+    torch's RuntimeError. The CLI's ``count_arg`` is not imported: ``bench_cli`` must run, and report, when the
+    ``hsicam.cli`` package itself is broken."""
     try:
         value = int(text)
     except ValueError:
@@ -44,19 +47,36 @@ def synchronize(device=None) -> None:
         torch.cuda.synchronize(device)
 
 
-def median_time(fn, repeats: int = 1, warmup: int = 0, device=None) -> float:
-    """Median wall time (s) of ``repeats`` calls of ``fn`` after ``warmup`` untimed calls; on a CUDA ``device``
-    each call's queued work is waited for before its time is read."""
+def clock_times(fn, repeats: int = 1, warmup: int = 0, device=None) -> tuple[list[float], list[float]]:
+    """(wall times, CPU times) in s of ``repeats`` calls of ``fn`` after ``warmup`` untimed calls, one of each per
+    call: the wall clock and this process's CPU time (all its threads: up to the thread count times the wall time).
+    On a shared machine the wall time swells with the load, the CPU time much less. On a CUDA ``device`` each call's
+    queued work is waited for before its times are read."""
     for _ in range(warmup):
         fn()
     synchronize(device)
-    times = []
+    wall, cpu = [], []
     for _ in range(repeats):
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
         fn()
         synchronize(device)
-        times.append(time.perf_counter() - t0)
-    return statistics.median(times)
+        wall.append(time.perf_counter() - t0)
+        cpu.append(time.process_time() - c0)
+    return wall, cpu
+
+
+def median_time(fn, repeats: int = 1, warmup: int = 0, device=None) -> float:
+    """Median wall time (s) of ``repeats`` calls of ``fn`` after ``warmup`` untimed calls (:func:`clock_times`)."""
+    return statistics.median(clock_times(fn, repeats, warmup, device)[0])
+
+
+def hsicam_command(python: str | None = None) -> list[str]:
+    """The command that runs ``hsicam`` with ``python`` (default: this one): the console script beside it where it is
+    installed, else ``python -m hsicam`` (a Python without the script, e.g. a source tree on ``PYTHONPATH``: the
+    script's path alone was a FileNotFoundError traceback after the work was built)."""
+    python = python or sys.executable
+    script = Path(python).with_name("hsicam")
+    return [str(script)] if script.is_file() else [python, "-m", "hsicam"]
 
 
 def untrained_system_for_inference(system, cfg):

@@ -68,11 +68,16 @@ def test_bench_networks_times_a_trained_run_whole(tmp_path):
     assert printed["kinds"] == {}
     trained = printed["trained"]
     assert (trained["run"], trained["size_px"], trained["network_kind"]) == ("pretrained:standard", 64, "mosaic")
+    assert (trained["bands"], trained["threads"]) == (31, 1)  # OMP_NUM_THREADS=1, no --threads
     assert trained["consistency"] == {"kind": "linear", "iterations": 1, "landweber_after": 12, "tv_weight": 0.03,
                                       "psf_kernel_px": _kernel_keeping("pretrained:standard", 0.995)}
     assert trained["whole_min_s"] <= trained["whole_s"] <= trained["whole_max_s"]
     assert 0 < trained["network_s"] < trained["whole_s"]
-    assert "target_s" not in trained  # the 2 s bound is for 512² images
+    # CPU times beside the wall times (the load swells the wall time): the network alone is part of the whole
+    assert 0 < trained["network_cpu_s"] < trained["whole_cpu_s"] and trained["whole_first_cpu_s"] > 0
+    # the 2 s bound is for 512² images at 2 threads: no verdict here, and the reason names both
+    assert trained["target_s"] == 2.0 and trained["within_target"] is None
+    assert "a 64² image" in trained["within_target_reason"] and "1 torch thread" in trained["within_target_reason"]
     # the kinds (minutes by default) are not timed for a run that is not there: the error comes first
     proc = subprocess.run([sys.executable, script, "--kinds", "rdn,mosaic,unrolled", "--run", "/nonexistent/run"],
                           capture_output=True, text=True, timeout=60, env=env)
@@ -84,6 +89,53 @@ def test_bench_networks_times_a_trained_run_whole(tmp_path):
     proc = subprocess.run([sys.executable, script, "--kinds", "none", "--run", str(damaged)], capture_output=True,
                           text=True, timeout=120, env=env)
     assert proc.returncode == 2 and f"--run {damaged}" in proc.stderr and "Traceback" not in proc.stderr
+
+
+def test_bench_networks_gives_no_verdict_on_another_workload(tmp_path):
+    """A 512² image at 2 threads through a run that is not issue 17's workload (the tiny preset: 7 bands, no
+    consistency steps; untrained weights) gets no verdict on the 2 s bound (it was ``within_target: true``), and the
+    reason names both; the JSON reports the run's bands and the threads."""
+    from hsicam.config import load_config
+
+    run = tmp_path / "tiny"
+    _bench_module("bench_capture").make_run(run, load_config("tiny"))
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    proc = subprocess.run([sys.executable, str(BENCHMARKS / "bench_networks.py"), "--kinds", "none", "--run", str(run),
+                           "--threads", "2", "--repeats", "1"], capture_output=True, text=True, timeout=120, env=env)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    trained = json.loads(proc.stdout)["trained"]
+    assert trained["within_target"] is None
+    assert (trained["size_px"], trained["bands"], trained["threads"]) == (512, 7, 2)
+    assert "7 bands, the bound is for 31" in trained["within_target_reason"]
+    assert "no consistency steps" in trained["within_target_reason"]
+
+
+def _workload(whole_s: float, **changes) -> dict:
+    """A ``trained`` entry of issue 17's workload (512², 31 bands, the shipped steps, 2 threads), with ``changes``."""
+    entry = {"size_px": 512, "bands": 31, "threads": 2, "whole_s": whole_s,
+             "consistency": {"kind": "linear", "iterations": 1, "landweber_after": 12}}
+    return {**entry, **changes}
+
+
+def test_bench_networks_target_verdict_only_for_the_workload_on_an_unloaded_machine():
+    """``target_verdict``: the median against 2 s for the workload the bound names on a machine whose load average at
+    start is at most its cores; None with the reason otherwise (hand-made entries)."""
+    verdict = _bench_module("bench_networks").target_verdict
+    assert verdict(_workload(1.69), "cpu", 1.9, 2) == {"target_s": 2.0, "within_target": True}
+    assert verdict(_workload(2.01), "cpu", 2.0, 2) == {"target_s": 2.0, "within_target": False}
+    loaded = verdict(_workload(1.69), "cpu", 5.23, 2)
+    assert loaded["within_target"] is None
+    assert loaded["within_target_reason"] == ("load average 5.23 at start above the machine's 2 cores: the wall time "
+                                              "swells with the load")
+    assert verdict(_workload(1.69), "cpu", 5.23, 16)["within_target"] is True  # the load of 16 cores
+    for changes, said in (({"threads": 1}, "1 torch thread(s), the bound is for 2"),
+                          ({"size_px": 1024}, "a 1024² image, the bound is for 512²"),
+                          ({"bands": 7}, "7 bands, the bound is for 31"),
+                          ({"consistency": {"iterations": 0}}, "the run takes no consistency steps")):
+        out = verdict(_workload(0.5, **changes), "cpu", 0.0, 2)
+        assert out["within_target"] is None and said in out["within_target_reason"], changes
+    out = verdict(_workload(0.5), "cuda:0", 0.0, 2)
+    assert out["within_target"] is None and out["within_target_reason"] == "timed on cuda:0, the bound is for the CPU"
 
 
 def _run(script: str, *args: str, timeout: float = 300) -> dict:
@@ -114,6 +166,7 @@ def test_bench_data_runs_small():
 def test_bench_capture_reconstructs_a_small_capture():
     out = _run("bench_capture.py", "--size", "256")
     assert out["exit_code"] == 0 and out["capture_px"] == [256, 256] and out["bands"] == 31
+    assert out["threads"] == 1  # the child's torch threads (OMP_NUM_THREADS=1), an int (was the string "1")
     assert out["wall_s"] > 0 and out["peak_rss_bytes"] > 0 and out["output_h5_bytes"] > 256 * 256 * 31 * 2 // 2
 
 
@@ -127,7 +180,7 @@ def test_bench_cli_times_the_commands():
 def test_bench_train_runs_one_step():
     out = _run("bench_train.py", "--steps", "1", timeout=900)
     assert out["linear_step_cpu"]["size"] == [31, 512, 512] and out["linear_step_cpu"]["seconds"] > 0
-    assert out["consistency_step_cpu"]["seconds"] > 0
+    assert out["landweber_steps_cpu"]["steps"] == 12 and out["landweber_steps_cpu"]["seconds"] > 0
 
 
 def _bench_module(name: str):
@@ -184,6 +237,47 @@ def test_bench_networks_times_the_training_step_as_training_sets_it_up():
         assert recon.__self__.autocast_dtype == torch.bfloat16 and conv_channels_last(net), kind
     _, net, recon = bn.build("quick", cfg, cpu)
     assert recon.__self__.autocast_dtype is None and not conv_channels_last(net)
+
+
+def test_bench_train_times_the_shipped_landweber_steps():
+    """``landweber_steps_time`` times the shipped camera's steps as its reconstruction takes them: its 12 steps with
+    the spectral prior (4) and the TV prior (0.03), per step too (it timed one plain step, no prior, labelled with the
+    linear step's ``iterations``: 1); here on a 64² image."""
+    out = _bench_module("bench_train").landweber_steps_time("pretrained:standard", repeats=1, size=64)
+    assert (out["steps"], out["spectral_prior"], out["tv_weight"], out["size"]) == (12, 4.0, 0.03, [31, 64, 64])
+    assert out["kernel_px"] == _kernel_keeping("pretrained:standard", 0.995)
+    assert out["seconds"] > 0 and out["seconds_per_step"] == pytest.approx(out["seconds"] / 12)
+
+
+def test_hsicam_command_is_the_script_beside_python_else_the_module(tmp_path):
+    """``timing.hsicam_command``: the ``hsicam`` console script beside the given Python where it is, else
+    ``python -m hsicam`` (bench_capture ran the missing script: a FileNotFoundError traceback)."""
+    hsicam_command = _bench_module("timing").hsicam_command
+    python = tmp_path / "bin" / "python"
+    python.parent.mkdir()
+    python.write_text("")
+    assert hsicam_command(str(python)) == [str(python), "-m", "hsicam"]
+    (tmp_path / "bin" / "hsicam").write_text("")
+    assert hsicam_command(str(python)) == [str(tmp_path / "bin" / "hsicam")]
+
+
+def test_bench_capture_runs_with_a_python_without_the_console_script(tmp_path):
+    """bench_capture under a Python with no ``hsicam`` script beside it (this interpreter through a link in an empty
+    folder, the packages on PYTHONPATH) reconstructs through ``python -m hsicam``; it ended in FileNotFoundError after
+    building the run. ``--threads 2``: the child's thread count, an int."""
+    import site
+
+    python = tmp_path / "bin" / "python"
+    python.parent.mkdir()
+    python.symlink_to(os.path.realpath(sys.executable))
+    src = Path(__file__).resolve().parents[2] / "src"
+    env = {**os.environ, "OMP_NUM_THREADS": "1",
+           "PYTHONPATH": os.pathsep.join([str(src), *site.getsitepackages(), os.environ.get("PYTHONPATH", "")])}
+    proc = subprocess.run([str(python), str(BENCHMARKS / "bench_capture.py"), "--size", "64", "--threads", "2"],
+                          capture_output=True, text=True, timeout=300, env=env)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    out = json.loads(proc.stdout)
+    assert out["exit_code"] == 0 and out["wall_s"] > 0 and out["output_h5_bytes"] > 0 and out["threads"] == 2
 
 
 def test_bench_train_inference_names_the_preset_bands():

@@ -233,6 +233,19 @@ def test_tune_gaptv_bad_arguments(capsys, monkeypatch, argv, said):
     ("bench_train.py", ("--steps", "0"), "argument --steps: must be >= 1, got 0"),
     ("bench_baselines.py", ("--repeats", "0"), "argument --repeats: must be >= 1, got 0"),
     ("bench_data.py", ("--scenes", "0"), "argument --scenes: must be >= 1, got 0"),  # a ZeroDivisionError
+    # torch's RuntimeError traceback for a negative thread count (bench_capture's child ran with OMP_NUM_THREADS=-1)
+    ("bench_networks.py", ("--threads", "-1", "--kinds", "none", "--run", "none"), "argument --threads: must be >= 1"),
+    ("bench_camera.py", ("--threads", "-1"), "argument --threads: must be >= 1, got -1"),
+    ("bench_train.py", ("--threads", "-1"), "argument --threads: must be >= 1, got -1"),
+    ("bench_capture.py", ("--threads", "-1", "--size", "64"), "argument --threads: must be >= 1, got -1"),
+    # a device torch cannot make, or one this machine lacks: torch's traceback, after the set-up
+    ("bench_baselines.py", ("--device", "foo", "--size", "16"), "--device foo: unknown device"),
+    ("bench_baselines.py", ("--device", "cuda:99", "--size", "16"), "--device cuda:99: "),
+    # a ConfigError traceback once the model was built; a run built, then the dark frame's error, not --size's
+    ("bench_capture.py", ("--size", "64", "--set", "model.kind=nosuch"), "model.kind='nosuch' is unknown"),
+    ("bench_capture.py", ("--size", "0"), "argument --size: must be >= 1, got 0"),
+    # the nearest band (720 nm) was compared, silently
+    ("psf_accuracy.py", ("--bands-nm", "550", "5000"), "--bands-nm 5000: outside the camera's bands (415–725 nm)"),
 ])
 def test_benchmarks_bad_arguments(capsys, monkeypatch, script, argv, said):
     assert said in _usage_error(capsys, monkeypatch, BENCHMARKS / script, *argv)
