@@ -229,7 +229,7 @@ def test_resume_goes_on_with_the_same_scenes_and_older_runs_as_before(proj, tmp_
 
 
 def test_finetune_resume_refuses_a_changed_folder(proj, tmp_path):
-    from hsicam.io import write_json, write_npy
+    from fab_runs import write_psf_dir
     from hsicam.runs.folder import load_run
 
     run, data = _copy(proj, tmp_path)
@@ -239,11 +239,7 @@ def test_finetune_resume_refuses_a_changed_folder(proj, tmp_path):
     with torch.no_grad():
         psf = base.camera.psf().double().numpy()
     k = psf.shape[-1]
-    d = tmp_path / "psf"
-    d.mkdir()
-    write_npy(d / "psf.npy", psf.astype(np.float32))
-    write_json(d / "psf.json", {"pixel_pitch_um": 10.0, "bands_nm": BANDS.centers_nm.tolist(), "centre": "axis",
-                                "axis_px": [k // 2, k // 2], "normalize": "none"})
+    d = write_psf_dir(tmp_path / "psf", psf, BANDS, 10.0, centre="axis", axis_px=[k // 2, k // 2], normalize="none")
     ft = tmp_path / "ft"
     args = ("--run", str(run), "--psf-dir", str(d), "--out", str(ft))
     assert_ok(run_cli_in_process("finetune", *args, "--epochs", "1"))

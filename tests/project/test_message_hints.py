@@ -69,6 +69,7 @@ MODULE_COMMANDS = {
     "engine/provenance.py": {"train", "finetune", "demo", "experiment", "evaluate", "pretrained pack"},
     "engine/tolerance.py": {"tolerance"},
     "report/tolerance.py": {"tolerance"},
+    "runs/camera_files.py": {"simulate", "psf"},
     "engine/train.py": {"train", "demo", "experiment"},
     "export/__init__.py": {"export-optics"},
     "export/tolerance.py": {"export-optics"},
@@ -88,7 +89,6 @@ GENERIC_OPTIONS = {
 NOT_HINTS = {
     ("engine/provenance.py", "--name-only"): "an argument of the git command that lists the changed sources",
     ("engine/provenance.py", "--no-renames"): "an argument of the git command that lists the changed sources",
-    ("engine/provenance.py", "--no-relative"): "an argument of the git command that lists the changed sources",
     ("engine/provenance.py", "--no-ext-diff"): "an argument of the git command that lists the changed sources",
     ("engine/provenance.py", "--others"): "an argument of the git command that lists the untracked sources",
     ("engine/provenance.py", "--exclude-standard"): "an argument of the git command that lists the untracked sources",

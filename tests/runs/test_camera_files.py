@@ -116,7 +116,8 @@ def test_a_deleted_table_is_refused_naming_key_and_run(proj, tmp_path):
     run, table = _own_copy(proj, tmp_path)
     table.unlink()
     assert_clean_error(run_cli_in_process("evaluate", "--run", str(run), "--out", str(tmp_path / "ev")),
-                       f"{run}: camera.doe.material: {table}: no such file")
+                       f"{run}: camera.doe.material: {table}: no such file",
+                       f"give camera.doe.material its new place in {run / 'config.yaml'} (its SHA-256 is checked)")
 
 
 def test_an_older_run_without_the_record_loads_as_before(proj, tmp_path):
@@ -172,18 +173,14 @@ def test_a_packed_camera_carries_its_table(proj, tmp_path, monkeypatch):
 
 
 def test_a_finetuned_run_records_its_source_runs_table(proj, tmp_path):
-    from hsicam.io import write_json, write_npy
+    from fab_runs import write_psf_dir
 
     run, table = _own_copy(proj, tmp_path)
     _, base = load_run(run)
     with torch.no_grad():
         psf = base.camera.psf().double().numpy()
     k = psf.shape[-1]
-    d = tmp_path / "psf"
-    d.mkdir()
-    write_npy(d / "psf.npy", psf.astype(np.float32))
-    write_json(d / "psf.json", {"pixel_pitch_um": 10.0, "bands_nm": BANDS.centers_nm.tolist(), "centre": "axis",
-                                "axis_px": [k // 2, k // 2], "normalize": "none"})
+    d = write_psf_dir(tmp_path / "psf", psf, BANDS, 10.0, centre="axis", axis_px=[k // 2, k // 2], normalize="none")
     ft = tmp_path / "ft"
     assert_ok(run_cli_in_process("finetune", "--run", str(run), "--psf-dir", str(d), "--out", str(ft), "--epochs", "1"))
     assert json.loads((ft / CAMERA_FILES).read_text()) == {
@@ -216,3 +213,16 @@ def test_absolute_paths_covers_data_and_camera_files(tmp_path, monkeypatch):
     assert cfg.camera.cassi.prism_material == "fused_silica"
     # the DOE camera reads its DOE's table; the achromatic lens and the CASSI keys are not read
     assert camera_files(cfg) == {"camera.doe.material": str(tmp_path / "t.csv")}
+
+
+def test_a_windows_path_read_elsewhere_is_named_as_recorded_with_the_way_to_its_new_place(tmp_path):
+    """A run trained on Windows names `C:\\...` in its config.yaml: read on Linux it is not joined to the run folder
+    (a path nobody wrote: the review), and the refusal says how to give the table its new place."""
+    from hsicam.config import _run_relative_files
+
+    data = {"camera": {"doe": {"material": "C:\\Users\\me\\proj\\pmma.csv"}, "lens": {"material": "/abs/pmma.csv"},
+                       "cassi": {"prism_material": "fused_silica", "mask_file": "camera.cassi.mask_file.npy"}}}
+    _run_relative_files(data, tmp_path)
+    assert data["camera"]["doe"]["material"] == "C:\\Users\\me\\proj\\pmma.csv"
+    assert data["camera"]["lens"]["material"] == "/abs/pmma.csv"
+    assert data["camera"]["cassi"]["mask_file"] == str(tmp_path.absolute() / "camera.cassi.mask_file.npy")

@@ -639,7 +639,8 @@ def test_a_cassi_cameras_card_names_its_aperture_and_dispersion_not_doe_noise_or
     prism = load_config("dd_cassi_rdn", ["camera.kind=sd_cassi", "camera.cassi.dispersion=prism",
                                          "camera.cassi.mask_file=mask.npy"])
     text = " ".join(_limits(prism, "c", prism.bands.to_bands(), None, data))
-    assert "simulated sd_cassi one" in text and "the mask mask.npy" in text
+    # the mask by the name of the copy the camera ships, not the packer's path (session 75's review)
+    assert "simulated sd_cassi one" in text and "the mask camera.cassi.mask_file.npy" in text
     assert "fused_silica prism of 30° before a 50 mm lens" in text
     # the card's markdown: a DOE camera names its height noise, a CASSI camera has none to name
     from hsicam.engine.pretrained import card_markdown

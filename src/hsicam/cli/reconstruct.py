@@ -53,7 +53,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "anything else (a --cfa-offset is then the sensor's), and the cube is turned back into the "
                         "capture's frame; dark and flat frames are stored as the capture is (default: as-read, "
                         "checked when no --cfa-offset is given: a warning names an orientation that clearly explains "
-                        "the capture better); auto: the orientation (and CFA phase) whose reconstruction the camera "
+                        "the capture better, which catches some misorientations only: docs/hardware.md); auto: the orientation (and CFA phase) whose reconstruction the camera "
                         "images back closest to the capture, 8× the cost of --cfa-offset auto")
     p.add_argument("--device", default="cpu", type=device_arg, help="torch device (default cpu)")
     p.add_argument("--consistency-steps", type=int, default=None, metavar="N",
@@ -868,14 +868,12 @@ def _capture_offset(args: argparse.Namespace, cfg, model, sensor: torch.Tensor, 
         if tuple(offset) != (0, 0):
             from hsicam.engine.cfa_offset import phase_blind
 
-            if phase_blind(model, sensor, tuple(offset)):
+            if phase_blind(model, tuple(sensor.shape[-2:]), tuple(offset)):
                 meta["cfa_offset_used"] = False
-                log.warning("%s: CFA offset %d,%d: this run's reconstruction does not depend on the CFA phase (a "
-                            "network that reads the sensor image alone, e.g. the paper's RDN, and no consistency "
-                            "steps), so the offset changes nothing and the capture is reconstructed as if it started "
-                            "on the CFA period; crop it there instead: drop its first %d row(s) and %d column(s)",
-                            args.sensor, offset[0], offset[1], (period - offset[0]) % period,
-                            (period - offset[1]) % period)
+                log.info("%s: CFA offset %d,%d changes nothing: this run's reconstruction takes no CFA phase (a "
+                         "network that reads the sensor image alone, e.g. the paper's RDN, and no consistency "
+                         "steps), so a crop reconstructs as the whole capture does away from its borders",
+                         args.sensor, offset[0], offset[1])
     elif cfg.camera.kind != "doe":  # a CASSI camera's coded aperture is taken at the capture's place, as a CFA is
         if offset == "auto":
             raise InputError("--cfa-offset auto estimates the phase of a periodic CFA; this CASSI camera's coded "

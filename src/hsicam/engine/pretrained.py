@@ -452,10 +452,16 @@ def _limits(cfg, name: str, bands, cfa: int | None, data: dict[str, Any]) -> lis
                    f"`hsicam finetune --run pretrained:{name} --psf-dir PSFS --out RUN2` before reconstructing real "
                    "captures")
     else:  # measured-PSF fine-tuning needs a DOE camera (hsicam finetune refuses others)
+        from hsicam.runs.camera_files import copy_name
+
         c = cfg.camera.cassi
-        mask = f"the mask {c.mask_file}" if c.mask_file else f"the random mask of seed {c.mask_seed}"
+        # files by the name of the copy the camera ships (the packer's own paths mean nothing to its users)
+        mask = (f"the mask {copy_name('camera.cassi.mask_file', c.mask_file)}" if c.mask_file
+                else f"the random mask of seed {c.mask_seed}")
+        prism = (c.prism_material if c.prism_material == "fused_silica"
+                 else copy_name("camera.cassi.prism_material", c.prism_material))
         shear = (f"{c.shift_px:g} px per band" if c.dispersion == "linear" else
-                 f"a {c.prism_material} prism of {c.prism_apex_deg:g}° before a {c.prism_focal_length_mm:g} mm lens")
+                 f"a {prism} prism of {c.prism_apex_deg:g}° before a {c.prism_focal_length_mm:g} mm lens")
         out.append(f"a built camera must match the simulated {cfg.camera.kind} one, its coded aperture ({mask}) and "
                    f"its dispersion ({shear}); measured-PSF fine-tuning (`hsicam finetune`) needs a DOE camera")
     return out

@@ -311,7 +311,9 @@ def source_state() -> dict[str, str | None]:
                                            timeout=10, check=True).stdout
         commit = run("rev-parse", "HEAD").decode().strip()
         # names only (-z: unquoted): no patch text, which diff.* settings, colour or an external diff tool would change
-        changed = run("diff", "--name-only", "-z", "--no-renames", "--no-relative", "--no-ext-diff", "HEAD", "--", "src")
+        # (diff.relative off by -c, not --no-relative: a git before 2.28 has no such option)
+        changed = run("-c", "diff.relative=false", "diff", "--name-only", "-z", "--no-renames", "--no-ext-diff", "HEAD",
+                      "--", "src")
         untracked = run("ls-files", "-z", "--others", "--exclude-standard", "--", "src")
         names = sorted(set(filter(None, (changed + untracked).split(b"\0"))))
         h = hashlib.sha256()

@@ -122,7 +122,8 @@ def _recorded_file(run_dir: str | Path, key: str, path: str, entry: dict[str, An
     except OSError as exc:
         what = "no such file" if isinstance(exc, FileNotFoundError) else f"cannot be read ({exc.strerror or exc})"
         raise InputError(f"{run_dir}: {key}: {path}: {what}; the run's camera was built from it (sha256 "
-                         f"{entry['sha256'][:12]}… in its {CAMERA_FILES}): restore it there, or train again") from None
+                         f"{entry['sha256'][:12]}… in its {CAMERA_FILES}): restore it there, or give {key} its new "
+                         f"place in {Path(run_dir) / 'config.yaml'} (its SHA-256 is checked), or train again") from None
 
 
 __all__ = ["CAMERA_FILES", "COPY_NAMES", "camera_files_record", "check_camera_files", "copy_name",
