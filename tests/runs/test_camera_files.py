@@ -226,3 +226,25 @@ def test_a_windows_path_read_elsewhere_is_named_as_recorded_with_the_way_to_its_
     assert data["camera"]["doe"]["material"] == "C:\\Users\\me\\proj\\pmma.csv"
     assert data["camera"]["lens"]["material"] == "/abs/pmma.csv"
     assert data["camera"]["cassi"]["mask_file"] == str(tmp_path.absolute() / "camera.cassi.mask_file.npy")
+
+
+def test_the_config_hash_names_camera_files_by_their_bytes_not_their_place(tmp_path):
+    """One camera hashes alike wherever its table sits (a packed camera's copy in another install folder: three
+    hashes for one camera before, the review), and apart when the table's bytes differ; a config naming no file
+    hashes as its YAML."""
+    from hsicam.engine.evaluate import config_hash_of
+
+    for d in "abc":
+        (tmp_path / d).mkdir()
+    a = _table(tmp_path / "a" / "pmma.csv", 1.50, 1.48)
+    b = tmp_path / "b" / "copy.csv"
+    shutil.copyfile(a, b)
+    c = _table(tmp_path / "c" / "pmma.csv", 1.60, 1.58)
+    of = lambda t: config_hash_of(load_config("tiny", [*TINY_CAMERA_OVERRIDES, f"camera.doe.material={t}"]))  # noqa: E731
+    assert of(a) == of(b) != of(c)
+    plain = load_config("tiny", list(TINY_CAMERA_OVERRIDES))
+    assert config_hash_of(plain) == config_hash(dump_yaml(plain))
+    # the hash of the bytes, written out: the YAML with the path replaced by "sha256:<hex>"
+    data = yaml.safe_load(dump_yaml(load_config("tiny", [*TINY_CAMERA_OVERRIDES, f"camera.doe.material={a}"])))
+    data["camera"]["doe"]["material"] = f"sha256:{_sha(a)}"
+    assert of(a) == hashlib.sha256(yaml.safe_dump(data, sort_keys=False).encode()).hexdigest()[:12]

@@ -328,8 +328,7 @@ def _summary(args: argparse.Namespace, cfg, method, results, noise, data_label: 
     """results.json's content for the scored scenes: the means and rows, each row's split, the run and its weights
     (``weights``: :func:`~hsicam.runs.checkpoint.weights_identity` when they were read), the ``--set`` overrides the
     scoring took (``config_hash`` covers them, but names none of them) and the software that scored."""
-    from hsicam.config import dump_yaml
-    from hsicam.engine.evaluate import NOISE_DRAWS, SYNTHETIC_VALIDATION, config_hash, scored_region, summarize
+    from hsicam.engine.evaluate import NOISE_DRAWS, SYNTHETIC_VALIDATION, config_hash_of, scored_region, summarize
     from hsicam.engine.provenance import software_record, synthetic_set_record
     from hsicam.runs.pretrained import run_label
 
@@ -344,7 +343,7 @@ def _summary(args: argparse.Namespace, cfg, method, results, noise, data_label: 
     extra = {"overrides": list(args.overrides)} if args.overrides else {}
     if not args.data and cfg.data.root is None:  # which cached synthetic set was read (config.yaml does not say)
         extra["synthetic_set"] = synthetic_set_record(cfg.data, method.camera.bands)
-    summary = summarize(results, method=args.method, **where, data=data_label, config_hash=config_hash(dump_yaml(cfg)),
+    summary = summarize(results, method=args.method, **where, data=data_label, config_hash=config_hash_of(cfg),
                         noise={"sigma_height_nm": args.sigma_height_nm, "sensor_sigma": args.sensor_sigma, "seeds": args.seeds,
                                # the DOE height noise the scoring drew (--sigma-height-nm, else the camera's own
                                # camera.doe.sigma_height_nm: recorded as null, it read as none; session 73)

@@ -9,10 +9,10 @@ import logging
 from pathlib import Path
 from typing import Any
 
-from hsicam.config import Config, check_list_keys, dump_yaml, load_config
+from hsicam.config import Config, check_list_keys, load_config
 from hsicam.data.datasets import scene_names
 from hsicam.data.pipeline import scene_dataset, split_dataset
-from hsicam.engine.evaluate import (HELDOUT_NOISE_SET, TestNoise, config_hash, demosaic_reference, evaluate_method, evaluate_scenes,
+from hsicam.engine.evaluate import (HELDOUT_NOISE_SET, TestNoise, config_hash_of, demosaic_reference, evaluate_method, evaluate_scenes,
                                     format_table, grey_reference, heldout_sources_label, scored_region,
                                     summarize, validation_data_label)
 from hsicam.engine.experiments import check_same_training, ensure_trained, heldout_scenes
@@ -146,7 +146,7 @@ def _run_demo(cfg: Config, out: Path) -> dict[str, Any]:
     # which weights and config were scored, as `hsicam evaluate` records them (`hsicam pretrained pack --results`
     # checks them: a run trained on since, or another demo's run of the same relative path, is not these)
     summary.update(scored)  # weights_sha256, and the last step's or the best validation's checkpoint (a selection)
-    summary["config_hash"] = config_hash(dump_yaml(cfg))
+    summary["config_hash"] = config_hash_of(cfg)
     kept = scored.get("weights")
     summary["region"] = scored_region(model.camera)  # as `hsicam evaluate` says it (a `--set camera.boundary=same` demo: the whole scene)
     summary["software"] = software_record("cpu")  # what scored (session 74's records hunt: the demo's said none)

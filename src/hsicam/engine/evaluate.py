@@ -121,6 +121,33 @@ def config_hash(yaml_text: str) -> str:
     return hashlib.sha256(yaml_text.encode()).hexdigest()[:12]
 
 
+def config_hash_of(cfg) -> str:
+    """:func:`config_hash` of the config ``cfg`` with each file its camera is built from
+    (:func:`hsicam.config.camera_files`) named by its SHA-256 instead of its path, so that one camera hashes alike
+    wherever its tables sit (a packed camera's copies moved with the package: three hashes for one camera before,
+    session 75's review) and an edited table hashes apart; a file that cannot be read keeps its path. A config that
+    names no file hashes as its YAML does (the presets' hashes unchanged)."""
+    import yaml
+
+    from hsicam.config import camera_files, dump_yaml, to_dict
+    from hsicam.runs.checkpoint import file_sha256
+
+    files = camera_files(cfg)
+    if not files:
+        return config_hash(dump_yaml(cfg))
+    data = to_dict(cfg)
+    for key, path in files.items():
+        *parts, name = key.split(".")
+        node = data
+        for part in parts:
+            node = node[part]
+        try:
+            node[name] = f"sha256:{file_sha256(path)}"
+        except OSError:
+            pass
+    return config_hash(yaml.safe_dump(data, sort_keys=False))
+
+
 def scored_region(camera, border_px: int = 0) -> str:
     """What a result's scores cover, for ``results.json``: the sensor area of a ``valid`` camera, or
     the whole scene (``same``, its border imaged with the camera's padding); with ``border_px``

@@ -171,10 +171,10 @@ def results_metrics(results: str | Path | None, heldout: str | Path | None = Non
 
 def run_config_hash(run_dir: Path) -> str:
     """The config hash ``hsicam evaluate --run RUN`` records for ``run_dir`` (its config.yaml, no --set)."""
-    from hsicam.config import dump_yaml, load_config
-    from hsicam.engine.evaluate import config_hash
+    from hsicam.config import load_config
+    from hsicam.engine.evaluate import config_hash_of
 
-    return config_hash(dump_yaml(load_config(Path(run_dir) / "config.yaml")))
+    return config_hash_of(load_config(Path(run_dir) / "config.yaml"))
 
 
 def _evaluated_folder(recorded: str, source: Path) -> Path | None:

@@ -485,13 +485,12 @@ def study_identity(cfg, spec: ToleranceSpec, names: Sequence[str], data: str | P
     as JSON reads them back."""
     import json
 
-    from hsicam.config import dump_yaml
-    from hsicam.engine.evaluate import config_hash
+    from hsicam.engine.evaluate import config_hash_of
     from hsicam.engine.provenance import software_record
 
     sw = software_record(device)
     return json.loads(json_text({
-        "format": PARTIAL_FORMAT, "run": studied_run, "config_hash": config_hash(dump_yaml(cfg)),
+        "format": PARTIAL_FORMAT, "run": studied_run, "config_hash": config_hash_of(cfg),
         "data": None if data is None else str(Path(data).resolve()), "scenes": list(names), "spec": asdict(spec),
         "device": device, "software": {k: sw.get(k) for k in STUDY_SOFTWARE_KEYS}}))
 
