@@ -1159,11 +1159,11 @@ def _run_relative_files(data: dict[str, Any], folder: Path) -> None:
         for part in section.split("."):
             node = node.get(part) if isinstance(node, dict) else None
         value = node.get(name) if isinstance(node, dict) else None
-        if _names_file(value) and not _absolute_anywhere(value):
+        if _names_file(value) and not is_absolute_anywhere(value):
             node[name] = str(folder.absolute() / value)
 
 
-def _absolute_anywhere(value: str) -> bool:
+def is_absolute_anywhere(value: str) -> bool:
     """Whether ``value`` is an absolute path here or on another system (a run trained on Windows read on Linux names
     ``C:\\…``: joined to the run folder it was a path nobody wrote; session 75's review)."""
     from pathlib import PurePosixPath, PureWindowsPath

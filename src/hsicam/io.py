@@ -44,6 +44,7 @@ from __future__ import annotations
 import contextlib
 import errno
 import glob
+import hashlib
 import json
 import logging
 import math
@@ -1269,3 +1270,23 @@ def json_number(value: Any, finite: bool = True) -> bool:
         return not finite or math.isfinite(value)
     except OverflowError:  # an integer of hundreds of digits
         return False
+
+
+#: SHA-256 of the files already hashed in this process, by (path, inode, size, mtime, ctime) in ns.
+_HASHES: dict[tuple[str, int, int, int, int], str] = {}
+
+
+def file_sha256(path: str | Path) -> str:
+    """SHA-256 of a file's bytes (hex), read once per process while the file's path, inode, size and
+    modification and change times (ns) stay the same (e.g. a shipped camera's weights, checked and then
+    recorded). The change time moves on any write and cannot be set back (``os.utime`` sets the modification
+    time only): a byte changed in place, its mtime restored, is hashed again."""
+    st = os.stat(path)
+    key = (str(Path(path).resolve()), st.st_ino, st.st_size, st.st_mtime_ns, st.st_ctime_ns)
+    if key not in _HASHES:
+        h = hashlib.sha256()
+        with open(path, "rb") as fh:
+            for chunk in iter(lambda: fh.read(1 << 20), b""):
+                h.update(chunk)
+        _HASHES[key] = h.hexdigest()
+    return _HASHES[key]

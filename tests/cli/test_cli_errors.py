@@ -228,7 +228,7 @@ def test_export_refuses_nan_weights_naming_the_file(inputs, tmp_path, capsys):
         t[key] = torch.full_like(t[key], float("nan"))
         save_file(t, str(w), metadata=meta)
     man = json.loads((run / "checkpoints.json").read_text())
-    from hsicam.runs.checkpoint import file_sha256
+    from hsicam.io import file_sha256
 
     for tag in ("last", "best"):  # keep the manifest consistent with the edited files
         if man[tag]:

@@ -80,7 +80,8 @@ def test_pack_refuses_results_of_another_run_known_by_its_folder_only(run, tmp_p
     (tmp_path / "r.json").write_text(json.dumps(results))
     argv = ["pretrained", "pack", run, "--name", "a", "--dest", tmp_path / "root", "--results", tmp_path / "r.json"]
     line = in_process_error_line(capsys, argv)
-    from hsicam.runs.checkpoint import file_sha256, root_weights_path
+    from hsicam.runs.checkpoint import root_weights_path
+    from hsicam.io import file_sha256
 
     sha = file_sha256(root_weights_path(run))
     assert line == (f"hsicam: error: {tmp_path / 'r.json'}: results of another run ({other}, weights sha256 missing), "

@@ -12,6 +12,7 @@ import torch
 
 from cli_helpers import module_cache, run_cli_in_process
 from damage import flip_byte_in_place
+from hsicam.io import _HASHES as hashes_read  # the file hashes read in this process
 
 
 @pytest.fixture(scope="module")
@@ -100,7 +101,7 @@ def test_file_sha256_hashes_again_a_file_changed_in_place_with_its_mtime_set_bac
     import hashlib
     import os
 
-    from hsicam.runs.checkpoint import file_sha256
+    from hsicam.io import file_sha256
 
     path = tmp_path / "w.safetensors"
     path.write_bytes(bytes(range(256)) * 16)
@@ -119,7 +120,6 @@ def test_root_sync_does_not_copy_a_damaged_checkpoint_and_says_so(tmp_path, capl
     file to the run root without a word (readers then refused both). It now leaves the root alone, with one warning."""
     import logging
 
-    from hsicam.runs import checkpoint as ck
     from hsicam.runs.checkpoint import MANIFEST, RECOPY_HINT, CheckpointManager
     from hsicam.spectral import Bands
 
@@ -132,7 +132,7 @@ def test_root_sync_does_not_copy_a_damaged_checkpoint_and_says_so(tmp_path, capl
     assert root.read_bytes() == kept.read_bytes()  # an undamaged checkpoint is copied
     root.unlink()
     flip_byte_in_place(kept, kept.stat().st_size - 3)  # in the tensors' bytes
-    ck._HASHES.clear()  # as a new process (a resume) would see it
+    hashes_read.clear()  # as a new process (a resume) would see it
     with caplog.at_level(logging.WARNING, logger="hsicam.runs.checkpoint"):
         assert mgr.sync_root() is False
         assert mgr.sync_root() is False  # the next save's sync (a resumed run: one per epoch) says it no more

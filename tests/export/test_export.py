@@ -435,7 +435,8 @@ def test_export_cites_only_a_tolerance_study_of_this_run(fab_run, tmp_path):
     study written before the run was recorded with a warning that it cannot be checked."""
     import shutil
 
-    from hsicam.runs.checkpoint import file_sha256, root_weights_path, save_weights
+    from hsicam.runs.checkpoint import root_weights_path, save_weights
+    from hsicam.io import file_sha256
     from hsicam.runs.folder import load_run
 
     tol = tmp_path / "tol"

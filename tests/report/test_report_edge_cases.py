@@ -245,7 +245,8 @@ def test_a_moved_demo_folders_report_draws_the_camera_of_the_run_beside_its_resu
     import shutil
 
     from hsicam.report.html import build_report
-    from hsicam.runs.checkpoint import file_sha256, root_weights_path
+    from hsicam.runs.checkpoint import root_weights_path
+    from hsicam.io import file_sha256
     from hsicam.runs.pretrained import resolve_run
 
     src = resolve_run("pretrained:standard")

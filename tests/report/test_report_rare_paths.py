@@ -204,7 +204,8 @@ def test_an_evaluation_of_other_weights_than_the_runs_now_gets_no_camera_figures
     """The report drew the run's camera as it is now beside scores of the weights evaluate read (results.json's
     weights_sha256): a run trained on (or replaced) since showed another DOE, CFA and PSFs than those scored, without
     a word (session 73's hunt). With the scored weights the figures are drawn; with others a note says why not."""
-    from hsicam.runs.checkpoint import file_sha256, root_weights_path
+    from hsicam.runs.checkpoint import root_weights_path
+    from hsicam.io import file_sha256
     from hsicam.runs.pretrained import resolve_run
 
     sha = file_sha256(root_weights_path(resolve_run("pretrained:standard")))
@@ -226,7 +227,8 @@ def test_an_experiment_report_draws_a_runs_camera_only_while_its_weights_are_the
     older experiment.json) its camera now."""
     import shutil
 
-    from hsicam.runs.checkpoint import file_sha256, root_weights_path
+    from hsicam.runs.checkpoint import root_weights_path
+    from hsicam.io import file_sha256
     from hsicam.runs.pretrained import resolve_run
 
     src = resolve_run("pretrained:standard")

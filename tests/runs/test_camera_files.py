@@ -129,6 +129,25 @@ def test_an_older_run_without_the_record_loads_as_before(proj, tmp_path):
     assert _n(model) == pytest.approx(1.59, abs=1e-12)
 
 
+def test_an_older_run_naming_a_table_relative_says_which_file_it_reads(proj, tmp_path, caplog, monkeypatch):
+    """An older run whose config.yaml names `pmma.csv` relative reads the table of the folder a command runs in (as
+    before): said once, with the path it was read from (a resume writes that path into config.yaml; the review)."""
+    run, table = _own_copy(proj, tmp_path)
+    (run / CAMERA_FILES).unlink()
+    text = (run / "config.yaml").read_text()
+    (run / "config.yaml").write_text(text.replace(f"material: {table}", "material: pmma.csv"))
+    here = tmp_path / "elsewhere"
+    here.mkdir()
+    _table(here / "pmma.csv", 1.60, 1.58)
+    monkeypatch.chdir(here)
+    with caplog.at_level(logging.WARNING, logger="hsicam"):
+        _, model = load_run(run)
+        load_run(run)
+    assert _n(model) == pytest.approx(1.59, abs=1e-12)  # this folder's table
+    said = [r.getMessage() for r in caplog.records if "relative to where a command runs" in r.getMessage()]
+    assert len(said) == 1 and "camera.doe.material=pmma.csv" in said[0] and str(here / "pmma.csv") in said[0], said
+
+
 def test_a_set_of_another_table_is_a_warning_not_a_refusal(proj, caplog):
     """``--set camera.doe.material=…`` asks for another table by name (a what-if): said, then done."""
     other = proj / "projB" / "pmma.csv"

@@ -31,6 +31,7 @@ from hsicam.runs import checkpoint as ck
 from hsicam.runs.checkpoint import MANIFEST, CheckpointManager, read_weights, root_weights_path
 from hsicam.runs.lock import LOCK_FILE, RunLock
 from hsicam.spectral import Bands
+from hsicam.io import _HASHES as hashes_read  # the file hashes read in this process
 
 BANDS = Bands.uniform(500, 600, 50)
 FILES = ("model.safetensors", "optimizer.safetensors", "state.json")
@@ -240,7 +241,7 @@ class RunFolderMachine(RuleBasedStateMachine):
     @rule()
     def resume(self):
         """A new process: the cached hashes are gone; the loop's resume (lock, cleanup, root sync)."""
-        ck._HASHES.clear()
+        hashes_read.clear()
         self.mgr = CheckpointManager(self.run, keep=self.keep)
         with RunLock(self.run) as lock:
             lock.acquire()

@@ -26,10 +26,10 @@ from cli_helpers import error_line, run_cli_in_process
 from damage import flip_byte_in_place
 from hsicam.config import dump_yaml, load_config
 from hsicam.errors import InputError
-from hsicam.runs import checkpoint as ck
 from hsicam.runs.checkpoint import MANIFEST, RECOPY_HINT, CheckpointManager, root_weights_path
 from hsicam.runs.folder import load_run
 from hsicam.spectral import Bands
+from hsicam.io import _HASHES as hashes_read  # the file hashes read in this process
 
 BANDS = Bands.uniform(500, 600, 50)
 
@@ -49,7 +49,7 @@ def _two_checkpoints(tmp_path):
     root, best = run / "model.safetensors", run / man["best"]["dir"] / "model.safetensors"
     root.unlink()
     flip_byte_in_place(best, best.stat().st_size - 3)
-    ck._HASHES.clear()
+    hashes_read.clear()
     return run, root, best, man
 
 
@@ -76,7 +76,7 @@ def test_with_the_last_damaged_too_only_a_new_copy_is_offered(tmp_path):
     run, root, best, man = _two_checkpoints(tmp_path)
     last = run / man["last"]["dir"] / "model.safetensors"
     flip_byte_in_place(last, last.stat().st_size - 3)
-    ck._HASHES.clear()
+    hashes_read.clear()
     with pytest.raises(InputError) as err:
         check_kept_weights(run)
     assert str(err.value) == _refusal(run, root, best, man["best"]["weights_sha256"], RECOPY_HINT)
@@ -105,7 +105,7 @@ def _stopped_run_with_its_best_damaged(tmp_path):
     root, best, sha = run / "model.safetensors", run / man["best"]["dir"] / "model.safetensors", man["best"]["weights_sha256"]
     root.unlink()
     flip_byte_in_place(best, best.stat().st_size - 3)
-    ck._HASHES.clear()
+    hashes_read.clear()
     return cfg, run, root, best, sha
 
 
@@ -146,7 +146,7 @@ def test_a_finished_run_resumed_without_its_root_weights_gets_them_back(cache_en
     man = json.loads((run / MANIFEST).read_text())
     root = run / "model.safetensors"
     root.unlink()
-    ck._HASHES.clear()
+    hashes_read.clear()
     kept = man["weights"]["from"]
     with pytest.raises(InputError) as err:
         load_run(run)
@@ -178,7 +178,7 @@ def test_root_weights_path_says_the_root_is_missing_not_that_it_differs(tmp_path
     sha = json.loads((run / MANIFEST).read_text())["weights"]["sha256"]
     root.unlink()
     flip_byte_in_place(kept, kept.stat().st_size - 3)
-    ck._HASHES.clear()
+    hashes_read.clear()
     with pytest.raises(InputError) as err:
         root_weights_path(run)
     assert str(err.value) == (f"{root} is missing, and {kept}, which should hold the weights {run / MANIFEST} records "
@@ -227,7 +227,7 @@ def test_apply_keep_refuses_a_damaged_checkpoint_before_committing_it(tmp_path):
     root, last = run / "model.safetensors", run / "checkpoints" / "step-00000002" / "model.safetensors"
     sha = json.loads((run / MANIFEST).read_text())["last"]["weights_sha256"]
     flip_byte_in_place(last, last.stat().st_size - 3)
-    ck._HASHES.clear()
+    hashes_read.clear()
     assert hashlib.sha256(last.read_bytes()).hexdigest() != sha
     before = {p: p.read_bytes() for p in (run / MANIFEST, root)}
     with pytest.raises(InputError) as err:
@@ -256,7 +256,7 @@ def _reader_run(tmp_path, damage_last: bool = False):
     root.unlink()
     for f in (best, last) if damage_last else (best,):
         flip_byte_in_place(f, f.stat().st_size - 3)
-    ck._HASHES.clear()
+    hashes_read.clear()
     return run, (f"{run}: the run has no readable weights: {root} is missing, and {best}, which should hold the "
                  f"weights {run / MANIFEST} records (sha256 {man['best']['weights_sha256'][:12]}…), differs from them: "
                  f"the run's weights are damaged (a copy cut short, a disk error, an edit); ")

@@ -226,7 +226,8 @@ def test_pack_refuses_a_demos_results_once_its_run_trained_on(env, tmp_path):
     from hsicam.config import load_config
     from hsicam.engine.pretrained import pack_pretrained, run_config_hash
     from hsicam.engine.train import train
-    from hsicam.runs.checkpoint import file_sha256, root_weights_path
+    from hsicam.runs.checkpoint import root_weights_path
+    from hsicam.io import file_sha256
 
     run, results, _ = env
     recorded = json.loads(results.read_text())
@@ -655,7 +656,7 @@ def test_a_tolerance_study_names_a_shipped_camera_by_its_label(monkeypatch):
     """tolerance.json's run (copied into export-optics' spec.json) is pretrained:NAME for a shipped camera, as
     every other output names it: it recorded the folder inside the installed package."""
     from hsicam.export.tolerance import run_identity
-    from hsicam.runs.checkpoint import file_sha256
+    from hsicam.io import file_sha256
 
     monkeypatch.delenv(shipped.ENV_VAR, raising=False)
     ident = run_identity("pretrained:standard")

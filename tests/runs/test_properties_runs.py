@@ -35,7 +35,7 @@ def test_linear_step_file_round_trip(tmp_path_factory, m, c, k, layout, window, 
               "channels_last": ref.contiguous(memory_format=torch.channels_last)}[layout]
     weights = d / "model.safetensors"
     weights.write_bytes(bytes([seed]))
-    from hsicam.runs.checkpoint import file_sha256
+    from hsicam.io import file_sha256
 
     info = {"window_px": k, "training_scenes": np.int64(seed), "ridge": np.float32(1e-6),
             "weights_sha256": file_sha256(weights)}

@@ -130,7 +130,7 @@ def config_hash_of(cfg) -> str:
     import yaml
 
     from hsicam.config import camera_files, dump_yaml, to_dict
-    from hsicam.runs.checkpoint import file_sha256
+    from hsicam.io import file_sha256
 
     files = camera_files(cfg)
     if not files:

@@ -123,7 +123,8 @@ def _fit_linear_step(run_dir: Path, cfg, model, window_px: int) -> None:
     """Fit the linear step's filters on the run's training scenes through ``model`` (the run's
     weights, loaded), write them with the weights' sha256 and set ``model.linear_step``."""
     from hsicam.data.pipeline import scene_dataset, split_dataset
-    from hsicam.runs.checkpoint import file_sha256, root_weights_path
+    from hsicam.runs.checkpoint import root_weights_path
+    from hsicam.io import file_sha256
 
     bands = cfg.bands.to_bands()
     train, _ = split_dataset(cfg.data, bands)

@@ -28,7 +28,8 @@ from hsicam.io import (COMPLETE_MARKER, atomic_open, atomic_output, copy_file, i
                        nan_for_null, same_path, write_json)
 from hsicam.runs import pretrained as shipped
 from hsicam.runs.camera_files import check_camera_files, copy_name, write_camera_files
-from hsicam.runs.checkpoint import file_sha256, root_weights_path
+from hsicam.runs.checkpoint import root_weights_path
+from hsicam.io import file_sha256
 from hsicam.runs.folder import EMPTY_RUN_CONFIG, MetricsLog, check_is_run, load_run
 from hsicam.runs.linear_step import LINEAR_STEP_FILE
 from hsicam.runs.measured_psf import MEASURED_PSF_FILE

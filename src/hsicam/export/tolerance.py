@@ -28,7 +28,8 @@ def run_identity(run_dir: str | Path) -> dict[str, str]:
     """``{"path", "weights", "weights_sha256"}`` of a run: its folder (``pretrained:NAME`` resolved),
     the weights file its kept weights are read from, relative to the folder, and that
     file's SHA-256 (hex)."""
-    from hsicam.runs.checkpoint import file_sha256, root_weights_path
+    from hsicam.runs.checkpoint import root_weights_path
+    from hsicam.io import file_sha256
     from hsicam.runs.pretrained import resolve_run, run_label
 
     run = resolve_run(run_dir)

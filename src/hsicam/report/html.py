@@ -217,7 +217,8 @@ def _camera_section(run: Path, out: Path, prefix: str = "", label: str | None = 
     ``weights_sha256``): when the run's weights are others now (trained on, or replaced), its camera is
     not the one scored, and a note says so instead of figures (they were drawn beside the old scores), with
     ``rescore``, what scores it again."""
-    from hsicam.runs.checkpoint import file_sha256, root_weights_path
+    from hsicam.runs.checkpoint import root_weights_path
+    from hsicam.io import file_sha256
     from hsicam.runs.folder import load_run
     from hsicam.runs.pretrained import resolve_run, run_label
     from hsicam.report.camera import write_optics_figures
@@ -356,7 +357,8 @@ def _evaluated_run(res: dict, folder: Path) -> Path:
     whose weights are the ones the results record (``weights_sha256``): an archived demo's report read the new run
     at the old place before the scored one beside it (session 74's review); else the first, whose camera
     :func:`_camera_section` then leaves out, saying why."""
-    from hsicam.runs.checkpoint import file_sha256, root_weights_path
+    from hsicam.runs.checkpoint import root_weights_path
+    from hsicam.io import file_sha256
 
     run = Path(str(res["run"]))
     path = res.get("run_path")

@@ -23,8 +23,8 @@ from typing import Any, Iterable
 
 from hsicam.config import CAMERA_FILES_RECORD, camera_files, config_value
 from hsicam.errors import InputError
-from hsicam.io import write_json
-from hsicam.runs.checkpoint import file_sha256
+from hsicam.io import file_sha256, write_json
+
 
 log = logging.getLogger(__name__)
 
@@ -88,10 +88,12 @@ def check_camera_files(run_dir: str | Path, cfg, overridden: Iterable[str] = ())
     """One-line :class:`InputError` unless each file the run's record names holds the bytes its camera was trained
     with, at the path ``cfg`` (the config the run is loaded with) names for its key: gone (naming the key, the run and
     the path), or other bytes (edited or replaced since training). A key of ``overridden`` (``--set`` on the command
-    line: a what-if asked for by name) may name another file: a warning says it is not the trained camera's. Nothing
-    to check without a record."""
+    line: a what-if asked for by name) may name another file: a warning says it is not the trained camera's. Without a
+    record (a run from before session 75) nothing is checked; a file it names relative is read against the current
+    folder, which is said (once per run and process: a resume then writes that folder's file into config.yaml)."""
     record = read_camera_files(run_dir)
     if record is None:
+        _warn_of_relative_files(run_dir, cfg)
         return
     overridden = set(overridden)
     for key, entry in sorted(record["files"].items()):
@@ -113,6 +115,24 @@ def check_camera_files(run_dir: str | Path, cfg, overridden: Iterable[str] = ())
         raise InputError(f"{run_dir}: {key}: {path} has changed since the run's camera was trained with it (sha256 "
                          f"{now[:12]}… now, {entry['sha256'][:12]}… in its {CAMERA_FILES}): the trained camera is the "
                          "one of the file as it was; restore it, or train again")
+
+
+_RELATIVE_WARNED: set[str] = set()
+
+
+def _warn_of_relative_files(run_dir: str | Path, cfg) -> None:
+    """Warn (once per run and process) of the camera files an older run's config names relative: read against the
+    current folder, they may not be the ones it was trained with (nothing recorded their bytes)."""
+    from hsicam.config import camera_files, is_absolute_anywhere
+
+    relative = {k: p for k, p in camera_files(cfg).items() if not is_absolute_anywhere(p)}
+    if not relative or str(run_dir) in _RELATIVE_WARNED:
+        return
+    _RELATIVE_WARNED.add(str(run_dir))
+    log.warning("%s: its config.yaml names %s relative to where a command runs, read here as %s; the run (from "
+                "before session 75) records no checksum of them: if they are not the files it was trained with, give "
+                "their absolute paths in its config.yaml", run_dir, ", ".join(f"{k}={p}" for k, p in relative.items()),
+                ", ".join(str(Path(p).absolute()) for p in relative.values()))
 
 
 def _recorded_file(run_dir: str | Path, key: str, path: str, entry: dict[str, Any]) -> str:

@@ -34,7 +34,6 @@ on the validation scenes, whose metrics are then those of an unselected model). 
 
 from __future__ import annotations
 
-import hashlib
 import json
 import logging
 import os
@@ -48,7 +47,7 @@ from safetensors.torch import load_file, save
 from torch import nn
 
 from hsicam.errors import InputError
-from hsicam.io import NO_SPACE_ERRNOS, atomic_path, cleanup_stale_temporaries, write_json
+from hsicam.io import NO_SPACE_ERRNOS, atomic_path, cleanup_stale_temporaries, file_sha256, write_json
 from hsicam.spectral import Bands
 
 FORMAT = "hsicam-checkpoint-1"
@@ -61,26 +60,6 @@ RECOPY_HINT = "copy the run folder again from its source, or train it again"
 KEEP_WEIGHTS = ("best", "last")
 
 log = logging.getLogger(__name__)
-
-
-#: SHA-256 of the files already hashed in this process, by (path, inode, size, mtime, ctime) in ns.
-_HASHES: dict[tuple[str, int, int, int, int], str] = {}
-
-
-def file_sha256(path: str | Path) -> str:
-    """SHA-256 of a file's bytes (hex), read once per process while the file's path, inode, size and
-    modification and change times (ns) stay the same (e.g. a shipped camera's weights, checked and then
-    recorded). The change time moves on any write and cannot be set back (``os.utime`` sets the modification
-    time only): a byte changed in place, its mtime restored, is hashed again."""
-    st = os.stat(path)
-    key = (str(Path(path).resolve()), st.st_ino, st.st_size, st.st_mtime_ns, st.st_ctime_ns)
-    if key not in _HASHES:
-        h = hashlib.sha256()
-        with open(path, "rb") as fh:
-            for chunk in iter(lambda: fh.read(1 << 20), b""):
-                h.update(chunk)
-        _HASHES[key] = h.hexdigest()
-    return _HASHES[key]
 
 
 def _reason(exc: OSError) -> str:

@@ -327,7 +327,8 @@ def damaged_weights_message(run_dir: Path) -> str | None:
     kept checkpoint, ``train.keep_weights``, damaged and the root weights not those the manifest records), with the
     way out: the run's last checkpoint when it is another one and intact (:func:`refit_command` with
     ``train.keep_weights=last``), else copying the run again; None when they can be read."""
-    from hsicam.runs.checkpoint import RECOPY_HINT, file_sha256, kept_entry
+    from hsicam.runs.checkpoint import RECOPY_HINT, kept_entry
+    from hsicam.io import file_sha256
 
     src = CheckpointManager(run_dir).root_source()
     if src is None or (src[0].is_file() and src[1] in (None, file_sha256(src[0]))):

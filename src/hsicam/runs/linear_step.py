@@ -63,7 +63,7 @@ def stale_reason(path: str | Path, weights: str | Path, window_px: int | None = 
     ``weights`` (the run trained on after the fit; files written before the sha256 was recorded are
     not checked), or (``window_px`` given) of another filter width than the config asks for. None
     when they fit."""
-    from hsicam.runs.checkpoint import file_sha256
+    from hsicam.io import file_sha256
 
     info = linear_step_info(path)
     if not info and Path(path).is_file():  # a file cut short or overwritten: refitted like a stale one

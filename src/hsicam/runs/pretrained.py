@@ -214,7 +214,7 @@ def weights_problem(folder: Path) -> str | None:
         card = load_card(folder)
     except InputError as exc:
         return f"{exc}; {_remedy(folder)}"
-    from hsicam.runs.checkpoint import file_sha256
+    from hsicam.io import file_sha256
 
     for key, name, required in (("weights", "model.safetensors", True), ("linear_step", "linear_step.safetensors", False)):
         recorded = card.get(key)
