@@ -67,6 +67,18 @@ def fab_run(tmp_path_factory):
     return make_fab_run(tmp_path_factory)
 
 
+def design_psf_dir(run: Path, d: Path, bands: Bands, pitch_um: float = 10.0) -> Path:
+    """A measured-PSF folder (:func:`write_psf_dir`) holding ``run``'s own design PSFs, axis-centred energy fractions:
+    a fine-tuning from it changes nothing optical."""
+    from hsicam.runs.folder import load_run
+
+    _, base = load_run(run)
+    with torch.no_grad():
+        psf = base.camera.psf().double().numpy()
+    k = psf.shape[-1]
+    return write_psf_dir(d, psf, bands, pitch_um, centre="axis", axis_px=[k // 2, k // 2], normalize="none")
+
+
 def write_psf_dir(d: Path, psf: np.ndarray, bands: Bands, pitch_um: float, **meta) -> Path:
     """A measured-PSF folder holding the stack as psf.npy + psf.json (what `hsicam psf` writes)."""
     shutil.rmtree(d, ignore_errors=True)

@@ -229,17 +229,12 @@ def test_resume_goes_on_with_the_same_scenes_and_older_runs_as_before(proj, tmp_
 
 
 def test_finetune_resume_refuses_a_changed_folder(proj, tmp_path):
-    from fab_runs import write_psf_dir
-    from hsicam.runs.folder import load_run
+    from fab_runs import design_psf_dir
 
     run, data = _copy(proj, tmp_path)
     text = (run / "config.yaml").read_text()
     (run / "config.yaml").write_text(text.replace(f"root: {proj / 'projA' / 'data'}", f"root: {data}"))
-    _, base = load_run(run)
-    with torch.no_grad():
-        psf = base.camera.psf().double().numpy()
-    k = psf.shape[-1]
-    d = write_psf_dir(tmp_path / "psf", psf, BANDS, 10.0, centre="axis", axis_px=[k // 2, k // 2], normalize="none")
+    d = design_psf_dir(run, tmp_path / "psf", BANDS)
     ft = tmp_path / "ft"
     args = ("--run", str(run), "--psf-dir", str(d), "--out", str(ft))
     assert_ok(run_cli_in_process("finetune", *args, "--epochs", "1"))

@@ -14,7 +14,6 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-import torch
 import yaml
 
 from cli_helpers import assert_clean_error, assert_ok, run_cli_in_process
@@ -192,14 +191,10 @@ def test_a_packed_camera_carries_its_table(proj, tmp_path, monkeypatch):
 
 
 def test_a_finetuned_run_records_its_source_runs_table(proj, tmp_path):
-    from fab_runs import write_psf_dir
+    from fab_runs import design_psf_dir
 
     run, table = _own_copy(proj, tmp_path)
-    _, base = load_run(run)
-    with torch.no_grad():
-        psf = base.camera.psf().double().numpy()
-    k = psf.shape[-1]
-    d = write_psf_dir(tmp_path / "psf", psf, BANDS, 10.0, centre="axis", axis_px=[k // 2, k // 2], normalize="none")
+    d = design_psf_dir(run, tmp_path / "psf", BANDS)
     ft = tmp_path / "ft"
     assert_ok(run_cli_in_process("finetune", "--run", str(run), "--psf-dir", str(d), "--out", str(ft), "--epochs", "1"))
     assert json.loads((ft / CAMERA_FILES).read_text()) == {
