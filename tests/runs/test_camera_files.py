@@ -18,9 +18,9 @@ import yaml
 
 from cli_helpers import assert_clean_error, assert_ok, run_cli_in_process
 from conftest import TINY_CAMERA_OVERRIDES
-from hsicam.config import absolute_paths, camera_files, dump_yaml, load_config, preset_names
+from hsicam.config import CAMERA_FILES_RECORD, absolute_paths, camera_files, dump_yaml, load_config, preset_names
 from hsicam.engine.evaluate import config_hash
-from hsicam.runs.camera_files import CAMERA_FILES, camera_files_record
+from hsicam.runs.camera_files import camera_files_record
 from hsicam.runs.folder import load_run
 from hsicam.spectral import Bands
 
@@ -82,11 +82,11 @@ def test_config_names_the_files_absolute_and_the_run_records_their_bytes(proj):
     cfg = yaml.safe_load((proj / "run" / "config.yaml").read_text())
     table = proj / "projA" / "pmma.csv"
     assert cfg["camera"]["doe"]["material"] == str(table)
-    assert json.loads((proj / "run" / CAMERA_FILES).read_text()) == {
+    assert json.loads((proj / "run" / CAMERA_FILES_RECORD).read_text()) == {
         "files": {"camera.doe.material": {"path": str(table), "sha256": _sha(table)}}}
     mask = proj / "projA" / "mask.npy"
     assert yaml.safe_load((proj / "cassi" / "config.yaml").read_text())["camera"]["cassi"]["mask_file"] == str(mask)
-    assert json.loads((proj / "cassi" / CAMERA_FILES).read_text()) == {
+    assert json.loads((proj / "cassi" / CAMERA_FILES_RECORD).read_text()) == {
         "files": {"camera.cassi.mask_file": {"path": str(mask), "sha256": _sha(mask)}}}
 
 
@@ -122,7 +122,7 @@ def test_a_deleted_table_is_refused_naming_key_and_run(proj, tmp_path):
 def test_an_older_run_without_the_record_loads_as_before(proj, tmp_path):
     """No camera_files.json (a run of an hsicam before it): the table is read as it is now, without a word."""
     run, table = _own_copy(proj, tmp_path)
-    (run / CAMERA_FILES).unlink()
+    (run / CAMERA_FILES_RECORD).unlink()
     _table(table, 1.60, 1.58)
     _, model = load_run(run)
     assert _n(model) == pytest.approx(1.59, abs=1e-12)
@@ -132,7 +132,7 @@ def test_an_older_run_naming_a_table_relative_says_which_file_it_reads(proj, tmp
     """An older run whose config.yaml names `pmma.csv` relative reads the table of the folder a command runs in (as
     before): said once, with the path it was read from (a resume writes that path into config.yaml; the review)."""
     run, table = _own_copy(proj, tmp_path)
-    (run / CAMERA_FILES).unlink()
+    (run / CAMERA_FILES_RECORD).unlink()
     text = (run / "config.yaml").read_text()
     (run / "config.yaml").write_text(text.replace(f"material: {table}", "material: pmma.csv"))
     here = tmp_path / "elsewhere"
@@ -154,6 +154,10 @@ def test_a_set_of_another_table_is_a_warning_not_a_refusal(proj, caplog):
         _, model = load_run(proj / "run", overrides=(f"camera.doe.material={other}",))
     assert _n(model) == pytest.approx(1.59, abs=1e-12)
     assert any(f"--set camera.doe.material={other}: not the file" in r.getMessage() for r in caplog.records)
+    caplog.clear()
+    with caplog.at_level(logging.WARNING, logger="hsicam"):  # a built-in material asked for: no file, said too
+        load_run(proj / "run", overrides=("camera.doe.material=fused_silica",))
+    assert any("--set camera.doe.material=fused_silica: not the file" in r.getMessage() for r in caplog.records)
 
 
 def test_a_cassi_mask_file_is_kept_the_same_way(proj, tmp_path):
@@ -177,7 +181,7 @@ def test_a_packed_camera_carries_its_table(proj, tmp_path, monkeypatch):
     cam = pack_pretrained(run, "mat", tmp_path / "cams")
     copied = yaml.safe_load((cam / "config.yaml").read_text())["camera"]["doe"]["material"]
     assert copied == "camera.doe.material.csv" and (cam / copied).read_bytes() == table.read_bytes()
-    assert json.loads((cam / CAMERA_FILES).read_text())["files"]["camera.doe.material"]["sha256"] == _sha(table)
+    assert json.loads((cam / CAMERA_FILES_RECORD).read_text())["files"]["camera.doe.material"]["sha256"] == _sha(table)
     table.unlink()
     monkeypatch.chdir(proj / "projB")
     monkeypatch.setenv("HSICAM_PRETRAINED_DIR", str(tmp_path / "cams"))
@@ -197,9 +201,9 @@ def test_a_finetuned_run_records_its_source_runs_table(proj, tmp_path):
     d = design_psf_dir(run, tmp_path / "psf", BANDS)
     ft = tmp_path / "ft"
     assert_ok(run_cli_in_process("finetune", "--run", str(run), "--psf-dir", str(d), "--out", str(ft), "--epochs", "1"))
-    assert json.loads((ft / CAMERA_FILES).read_text()) == {
+    assert json.loads((ft / CAMERA_FILES_RECORD).read_text()) == {
         "files": {"camera.doe.material": {"path": str(table), "sha256": _sha(table)}}}
-    assert _sha(table) == json.loads((run / CAMERA_FILES).read_text())["files"]["camera.doe.material"]["sha256"]
+    assert _sha(table) == json.loads((run / CAMERA_FILES_RECORD).read_text())["files"]["camera.doe.material"]["sha256"]
     table.write_text("wavelength_nm,n\n400,1.6\n700,1.58\n")
     assert_clean_error(run_cli_in_process("export-optics", "--run", str(ft), "--out", str(tmp_path / "ex")),
                        f"{ft}: camera.doe.material: {table} has changed")

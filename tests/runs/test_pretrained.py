@@ -22,7 +22,8 @@ import torch
 from cli_helpers import assert_clean_error, run_cli_in_process
 from hsicam.errors import InputError
 from hsicam.runs import pretrained as shipped
-from hsicam.runs.camera_files import CAMERA_FILES, COPY_NAMES
+from hsicam.config import CAMERA_FILES_RECORD
+from hsicam.runs.camera_files import COPY_NAMES
 from hsicam.runs.folder import load_run
 from hsicam.runs.linear_step import LINEAR_STEP_FILE
 
@@ -316,7 +317,7 @@ def test_pack_force_replaces_a_camera_from_a_checkout_but_never_a_foreign_folder
     assert json.loads((dest / NAME / "card.json").read_text())["name"] == NAME
     packed = sorted(p.name for p in (dest / NAME).iterdir() if p.name != COMPLETE_MARKER)
     # this run's step is Landweber's, its camera of built-in materials (no camera_files.json, no tables)
-    optional = {LINEAR_STEP_FILE, CAMERA_FILES, *COPY_NAMES}
+    optional = {LINEAR_STEP_FILE, CAMERA_FILES_RECORD, *COPY_NAMES}
     assert packed == sorted(f for f in shipped.FILES if f not in optional)
 
     foreign = tmp_path / "foreign"

@@ -21,16 +21,12 @@ import logging
 from pathlib import Path
 from typing import Any, Iterable
 
-from hsicam.config import CAMERA_FILES_RECORD, camera_files, config_value
+from hsicam.config import CAMERA_FILE_KEYS, CAMERA_FILES_RECORD, camera_files, config_value
 from hsicam.errors import InputError
 from hsicam.io import file_sha256, write_json
 
 
 log = logging.getLogger(__name__)
-
-#: The record's file name in a run folder.
-CAMERA_FILES = CAMERA_FILES_RECORD
-
 
 def copy_name(key: str, path: str) -> str:
     """The name a packed camera gives its copy of the file ``path`` of ``key``: the key, then the file's suffix
@@ -38,9 +34,13 @@ def copy_name(key: str, path: str) -> str:
     return key + Path(path).suffix.lower()
 
 
-#: The names a packed camera's copies of its files may have (:func:`copy_name`).
-COPY_NAMES = ("camera.doe.material.csv", "camera.lens.material.csv", "camera.cassi.prism_material.csv",
-              "camera.cassi.mask_file.npy")
+#: The names a packed camera's copies of its files may have (:func:`copy_name`: a mask is a .npy, a table a .csv).
+COPY_NAMES = tuple(copy_name(k, "file.npy" if k.endswith("mask_file") else "file.csv") for k in CAMERA_FILE_KEYS)
+
+
+def _unreadable(exc: OSError) -> str:
+    """Why a camera file could not be hashed, in words."""
+    return "no such file" if isinstance(exc, FileNotFoundError) else f"cannot be read ({exc.strerror or exc})"
 
 
 def _sha256(where: str, path: str) -> str:
@@ -48,8 +48,7 @@ def _sha256(where: str, path: str) -> str:
     try:
         return file_sha256(path)
     except OSError as exc:
-        what = "no such file" if isinstance(exc, FileNotFoundError) else f"cannot be read ({exc.strerror or exc})"
-        raise InputError(f"{where}: {what}") from None
+        raise InputError(f"{where}: {_unreadable(exc)}") from None
 
 
 def camera_files_record(cfg) -> dict[str, Any] | None:
@@ -63,13 +62,13 @@ def camera_files_record(cfg) -> dict[str, Any] | None:
 
 def write_camera_files(run_dir: str | Path, record: dict[str, Any]) -> None:
     """``RUN/camera_files.json``, atomically."""
-    write_json(Path(run_dir) / CAMERA_FILES, record)
+    write_json(Path(run_dir) / CAMERA_FILES_RECORD, record)
 
 
 def read_camera_files(run_dir: str | Path) -> dict[str, Any] | None:
     """The run's record; None when it has none (an older run, or a camera of built-in materials); one-line
     :class:`InputError` when it cannot be read."""
-    path = Path(run_dir) / CAMERA_FILES
+    path = Path(run_dir) / CAMERA_FILES_RECORD
     if not path.is_file():
         return None
     try:
@@ -101,19 +100,23 @@ def check_camera_files(run_dir: str | Path, cfg, overridden: Iterable[str] = ())
             path = config_value(cfg, key)
         except AttributeError:  # a key this hsicam does not know: nothing reads it
             continue
-        if not isinstance(path, str) or path == "fused_silica":
-            continue  # the config no longer names a file there (a --set of a built-in material, a random mask)
         asked = key in overridden
+        if not isinstance(path, str) or path == "fused_silica":  # no file there: a built-in material, a random mask
+            if asked:
+                log.warning("--set %s=%s: not the file %s's camera was trained with (%s in its %s); the camera is not "
+                            "the trained one", key, path, run_dir, Path(entry.get("path", "?")).name,
+                            CAMERA_FILES_RECORD)
+            continue
         now = _sha256(f"--set {key}={path}", path) if asked else _recorded_file(run_dir, key, path, entry)
         if now == entry["sha256"]:
             continue
         if asked:
             log.warning("--set %s=%s: not the file %s's camera was trained with (its %s: sha256 %s…, this one %s…); "
-                        "the camera is not the trained one", key, path, run_dir, CAMERA_FILES, entry["sha256"][:12],
+                        "the camera is not the trained one", key, path, run_dir, CAMERA_FILES_RECORD, entry["sha256"][:12],
                         now[:12])
             continue
         raise InputError(f"{run_dir}: {key}: {path} has changed since the run's camera was trained with it (sha256 "
-                         f"{now[:12]}… now, {entry['sha256'][:12]}… in its {CAMERA_FILES}): the trained camera is the "
+                         f"{now[:12]}… now, {entry['sha256'][:12]}… in its {CAMERA_FILES_RECORD}): the trained camera is the "
                          "one of the file as it was; restore it, or train again")
 
 
@@ -140,11 +143,10 @@ def _recorded_file(run_dir: str | Path, key: str, path: str, entry: dict[str, An
     try:
         return file_sha256(path)
     except OSError as exc:
-        what = "no such file" if isinstance(exc, FileNotFoundError) else f"cannot be read ({exc.strerror or exc})"
-        raise InputError(f"{run_dir}: {key}: {path}: {what}; the run's camera was built from it (sha256 "
-                         f"{entry['sha256'][:12]}… in its {CAMERA_FILES}): restore it there, or give {key} its new "
+        raise InputError(f"{run_dir}: {key}: {path}: {_unreadable(exc)}; the run's camera was built from it (sha256 "
+                         f"{entry['sha256'][:12]}… in its {CAMERA_FILES_RECORD}): restore it there, or give {key} its new "
                          f"place in {Path(run_dir) / 'config.yaml'} (its SHA-256 is checked), or train again") from None
 
 
-__all__ = ["CAMERA_FILES", "COPY_NAMES", "camera_files_record", "check_camera_files", "copy_name",
+__all__ = ["COPY_NAMES", "camera_files_record", "check_camera_files", "copy_name",
            "read_camera_files", "write_camera_files"]

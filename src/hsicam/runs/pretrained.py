@@ -35,7 +35,8 @@ from typing import Any
 
 from hsicam.errors import InputError
 from hsicam.io import nan_for_null
-from hsicam.runs.camera_files import CAMERA_FILES, COPY_NAMES
+from hsicam.config import CAMERA_FILES_RECORD
+from hsicam.runs.camera_files import COPY_NAMES
 
 #: Environment variable: another root folder of pre-trained cameras (instead of the package's).
 ENV_VAR = "HSICAM_PRETRAINED_DIR"
@@ -46,7 +47,7 @@ CARD_MD = "card.md"
 #: The files of a shipped camera (what pack writes and copy copies; the linear consistency step's
 #: filters, ``linear_step.safetensors``, when the camera has them; its material tables or coded aperture, with their
 #: record, when its camera is built from files: :mod:`hsicam.runs.camera_files`).
-FILES = ("config.yaml", "model.safetensors", "linear_step.safetensors", CARD_JSON, CARD_MD, CAMERA_FILES, *COPY_NAMES)
+FILES = ("config.yaml", "model.safetensors", "linear_step.safetensors", CARD_JSON, CARD_MD, CAMERA_FILES_RECORD, *COPY_NAMES)
 #: The files a folder must hold to be a camera.
 REQUIRED = ("config.yaml", "model.safetensors", CARD_JSON)
 #: Largest weights file a shipped camera may have (bytes; 20 MB).
