@@ -54,7 +54,7 @@ import secrets
 import shutil
 import time
 from pathlib import Path
-from typing import IO, Any, Iterator
+from typing import IO, Any, Callable, Iterator
 
 import numpy as np
 
@@ -1092,6 +1092,22 @@ def clear_complete(folder: str | os.PathLike) -> None:
 # ------------------------------------------------------------------------------------------------
 # Writers
 # ------------------------------------------------------------------------------------------------
+def read_record(path: str | os.PathLike, valid: Callable[[Any], bool], advice: str) -> dict[str, Any] | None:
+    """A JSON record a command wrote (a run's data.json, camera_files.json): None when ``path`` is no file; one-line
+    :class:`InputError` ``"PATH: unreadable (why); " + advice`` when it cannot be read, is no JSON, or ``valid``
+    (the record's expected shape) says no."""
+    path = Path(path)
+    if not path.is_file():
+        return None
+    try:
+        record = json.loads(path.read_text(encoding="utf-8"))
+        if not valid(record):
+            raise ValueError(f"not a {path.name} record")
+    except (OSError, UnicodeDecodeError, ValueError) as exc:
+        raise InputError(f"{path}: unreadable ({getattr(exc, 'msg', None) or exc}); {advice}") from None
+    return record
+
+
 def write_json(path: str | os.PathLike, obj: Any) -> None:
     """Write ``obj`` as indented, strict JSON (:func:`json_text`), atomically."""
     text = json_text(obj, indent=2)  # before the file is opened: a value JSON cannot hold leaves no file

@@ -25,7 +25,6 @@ from __future__ import annotations
 
 import datetime
 import hashlib
-import json
 import logging
 import os
 import platform
@@ -39,7 +38,7 @@ from hsicam.data.datasets import scene_path
 from hsicam.data.pipeline import dataset_root, scene_stat, split_dataset
 from hsicam.data.synthetic import GENERATOR_VERSION
 from hsicam.errors import ConfigError, InputError
-from hsicam.io import write_json
+from hsicam.io import read_record, write_json
 from hsicam.runs.folder import DATA_RECORD, MetricsLog, starting_session
 from hsicam.runs.folder import run_records as _records
 from hsicam.spectral import Bands
@@ -99,18 +98,12 @@ def write_data_record(run_dir: str | Path, record: dict[str, Any]) -> None:
 def read_data_record(run_dir: str | Path) -> dict[str, Any] | None:
     """The run's data record; None when it has none (synthetic data, or a run from before it);
     :class:`InputError` when it cannot be read."""
-    path = Path(run_dir) / DATA_RECORD
-    if not path.is_file():
-        return None
-    try:
-        record = json.loads(path.read_text(encoding="utf-8"))
-        if not (isinstance(record, dict) and isinstance(record.get("root"), str)
-                and all(isinstance(record.get(k), list) for k in ("scenes", "train", "validation"))):
-            raise ValueError("not a data record")
-    except (OSError, UnicodeDecodeError, ValueError) as exc:
-        raise InputError(f"{path}: unreadable ({getattr(exc, 'msg', None) or exc}); restore it from a copy of the "
-                         "run, or delete it to go on without checking the data") from None
-    return record
+    def valid(record: Any) -> bool:
+        return (isinstance(record, dict) and isinstance(record.get("root"), str)
+                and all(isinstance(record.get(k), list) for k in ("scenes", "train", "validation")))
+
+    return read_record(Path(run_dir) / DATA_RECORD, valid,
+                       "restore it from a copy of the run, or delete it to go on without checking the data")
 
 
 def data_changes(recorded: dict[str, Any], current: dict[str, Any]) -> dict[str, list[str]]:

@@ -16,14 +16,13 @@ each file beside its config.yaml, which names it relative to the camera's folder
 
 from __future__ import annotations
 
-import json
 import logging
 from pathlib import Path
 from typing import Any, Iterable
 
 from hsicam.config import CAMERA_FILE_KEYS, CAMERA_FILES_RECORD, camera_files, config_value
 from hsicam.errors import InputError
-from hsicam.io import file_sha256, write_json
+from hsicam.io import file_sha256, read_record, write_json
 
 
 log = logging.getLogger(__name__)
@@ -68,19 +67,12 @@ def write_camera_files(run_dir: str | Path, record: dict[str, Any]) -> None:
 def read_camera_files(run_dir: str | Path) -> dict[str, Any] | None:
     """The run's record; None when it has none (an older run, or a camera of built-in materials); one-line
     :class:`InputError` when it cannot be read."""
-    path = Path(run_dir) / CAMERA_FILES_RECORD
-    if not path.is_file():
-        return None
-    try:
-        record = json.loads(path.read_text(encoding="utf-8"))
+    def valid(record: Any) -> bool:
         files = record.get("files") if isinstance(record, dict) else None
-        if not (isinstance(files, dict) and all(isinstance(e, dict) and isinstance(e.get("sha256"), str)
-                                                for e in files.values())):
-            raise ValueError("not a record of camera files")
-    except (OSError, UnicodeDecodeError, ValueError) as exc:
-        raise InputError(f"{path}: unreadable ({getattr(exc, 'msg', None) or exc}); restore it from a copy of the "
-                         "run") from None
-    return record
+        return isinstance(files, dict) and all(isinstance(e, dict) and isinstance(e.get("sha256"), str)
+                                               for e in files.values())
+
+    return read_record(Path(run_dir) / CAMERA_FILES_RECORD, valid, "restore it from a copy of the run")
 
 
 def check_camera_files(run_dir: str | Path, cfg, overridden: Iterable[str] = ()) -> None:
