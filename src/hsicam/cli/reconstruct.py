@@ -208,7 +208,6 @@ def checked_sensor_origin(model, sensor: torch.Tensor, source, check_orientation
         log.info("CFA phase 0,0 (no --cfa-offset) not checked: %s; if the capture is a crop or a region-of-interest "
                  "readout, give the sensor row and column of its first pixel with --cfa-offset Y,X", e)
         return None
-    oy, ox = est.offset
     turned = misorientation_check(model, sensor, source, est) if check_orientation else None
     if turned is not None and turned["warned"]:  # said by that warning (the phase alone would not fix it)
         return {**est.as_dict(), "warned": est.rules_out_origin, "orientation_check": turned}
@@ -217,14 +216,21 @@ def checked_sensor_origin(model, sensor: torch.Tensor, source, check_orientation
                   "the capture was too featureless or small to tell" if est.ambiguous or est.small else
                   "no other phase explains the capture clearly better", *est.scored_px)
     else:
-        log.warning("%s: the capture does not look as if it started where the sensor does (CFA phase 0,0, taken "
-                    "without --cfa-offset): the phase %d,%d explains it clearly better (relative residual %.3g against "
-                    "%.3g), so its spectra are likely wrong; if it is a crop or a region-of-interest readout, give the "
-                    "sensor row and column of its first pixel with --cfa-offset Y,X, or --cfa-offset auto (%d,%d here); "
-                    "--cfa-offset 0,0 takes it as given", source, oy, ox, est.residuals[f"{oy},{ox}"],
-                    est.residuals["0,0"], oy, ox)
+        warn_phase_off_origin(source, est)
     record = {**est.as_dict(), "warned": est.rules_out_origin}
     return record if turned is None else {**record, "orientation_check": turned}
+
+
+def warn_phase_off_origin(source, est, read_as: str | None = None) -> None:
+    """The warning of a capture taken at CFA phase 0,0 (no ``--cfa-offset``) whose check ``est`` found another phase
+    explaining it clearly better; ``read_as``: the orientation it was read in (``--orientation``)."""
+    oy, ox = est.offset
+    log.warning("%s: %sthe capture does not look as if it started where the sensor does (CFA phase 0,0, taken without "
+                "--cfa-offset): the phase %d,%d explains it clearly better (relative residual %.3g against %.3g), so "
+                "its spectra are likely wrong; if it is a crop or a region-of-interest readout, give the sensor row and "
+                "column of its first pixel with --cfa-offset Y,X, or --cfa-offset auto (%d,%d here); --cfa-offset 0,0 "
+                "takes it as given", source, f"read as {read_as}, " if read_as else "", oy, ox,
+                est.residuals[f"{oy},{ox}"], est.residuals["0,0"], oy, ox)
 
 
 def misorientation_check(model, sensor: torch.Tensor, source, est) -> dict | None:
@@ -853,10 +859,7 @@ def _capture_offset(args: argparse.Namespace, cfg, model, sensor: torch.Tensor, 
         if offset is None and estimate is not None:  # the phases of the orientation chosen, checked at 0,0
             offset = (0, 0)
             if estimate.rules_out_origin:
-                oy, ox = estimate.offset
-                log.warning("%s: read as %s, the capture does not look as if it started where the sensor does: the "
-                            "CFA phase %d,%d explains it clearly better; if it is a crop, give --cfa-offset Y,X, or "
-                            "--cfa-offset auto", args.sensor, meta["orientation"], oy, ox)
+                warn_phase_off_origin(args.sensor, estimate, meta["orientation"])
             meta["cfa_offset_check"] = {**estimate.as_dict(), "warned": estimate.rules_out_origin}
         elif offset is None:
             offset, check = (0, 0), checked_sensor_origin(model, sensor, args.sensor, args.orientation is None)
