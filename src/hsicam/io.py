@@ -1102,7 +1102,7 @@ def read_record(path: str | os.PathLike, valid: Callable[[Any], bool], advice: s
     try:
         record = json.loads(path.read_text(encoding="utf-8"))
         if not valid(record):
-            raise ValueError(f"not a {path.name} record")
+            raise ValueError(f"not a {path.stem.replace('_', ' ')} record")
     except (OSError, UnicodeDecodeError, ValueError) as exc:
         raise InputError(f"{path}: unreadable ({getattr(exc, 'msg', None) or exc}); {advice}") from None
     return record
