@@ -16,6 +16,7 @@ from torch import nn
 
 from hsicam.config import design_seed
 from hsicam.optics.doe import straight_through
+from hsicam.spectral import FWHM_PER_SIGMA
 
 log = logging.getLogger(__name__)
 
@@ -81,7 +82,7 @@ def bandpass_weights(centers_nm: torch.Tensor, period: int, fwhm_nm: float, seed
         order = dispersed_order(period).reshape(-1)
     else:
         raise ValueError(f"unknown CFA layout {layout!r}; use one of {CFA_LAYOUTS}")
-    sigma = fwhm_nm / (2.0 * math.sqrt(2.0 * math.log(2.0)))
+    sigma = fwhm_nm / FWHM_PER_SIGMA
     w = torch.exp(-0.5 * ((lam[:, None] - centres[order][None, :]) / sigma) ** 2)  # (C, m²)
     return (w + 0.01).float().reshape(len(lam), period, period)
 

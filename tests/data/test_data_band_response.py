@@ -405,3 +405,21 @@ def test_interpolated_bands_are_the_camera_bands_between_data_bands_wider_apart_
     assert not interpolated_bands(Bands.from_centers([550.0]), Bands.from_centers([550.0])).any()
     # outside the data's range: not between two of its bands (resampling refuses it), whatever the edge gap
     assert not interpolated_bands(Bands.from_centers([500.0, 600.0]), Bands.from_centers([400.0, 700.0])).any()
+
+
+def test_the_band_model_constants_are_a_gaussian_s_half_maximum_and_its_three_sigma_cut():
+    """FWHM_PER_SIGMA against the half-maximum found numerically (scipy's root finder on the unit Gaussian), and
+    band_matrix's support: a 10 nm band's nonzero weights on a 0.01 nm grid end within one step of ±3σ."""
+    from scipy.optimize import brentq
+
+    from hsicam.spectral import BAND_REACH_SIGMA, FWHM_PER_SIGMA, band_matrix
+
+    half = brentq(lambda x: math.exp(-0.5 * x * x) - 0.5, 0.0, 5.0, xtol=1e-14)
+    assert FWHM_PER_SIGMA == pytest.approx(2.0 * half, rel=1e-12)
+    assert BAND_REACH_SIGMA == 3.0
+    fine = np.round(np.arange(530.0, 570.0 + 1e-9, 0.01), 2)
+    g = band_matrix(Bands([550.0], [10.0]), fine)[0]
+    support = fine[g > 0]
+    three_sigma = 3.0 * 10.0 / (2.0 * half)  # 12.74 nm
+    assert support.min() == pytest.approx(550.0 - three_sigma, abs=0.011)
+    assert support.max() == pytest.approx(550.0 + three_sigma, abs=0.011)

@@ -91,7 +91,7 @@ from hsicam.errors import InputError
 from hsicam.io import npy_content_problem
 from hsicam.runs.measured_psf import MeasuredPSF, psf_fingerprint
 from hsicam.spectral import Bands
-from hsicam.spectral.bands import BAND_TOL_NM, resampling_matrix, resolved_bands
+from hsicam.spectral.bands import BAND_REACH_SIGMA, BAND_TOL_NM, FWHM_PER_SIGMA, resampling_matrix, resolved_bands
 
 log = logging.getLogger(__name__)
 
@@ -850,8 +850,8 @@ def _warn_cut_bands(d: Path, waves: Sequence[float], bands: Bands, sources: list
     if len(waves) < 2:
         return
     sweep, _ = sweep_bands(d, waves, opts)
-    sigma = bands.fwhm_nm / (2.0 * math.sqrt(2.0 * math.log(2.0)))
-    lo, hi = bands.centers_nm - 3 * sigma, bands.centers_nm + 3 * sigma
+    reach = BAND_REACH_SIGMA * bands.fwhm_nm / FWHM_PER_SIGMA
+    lo, hi = bands.centers_nm - reach, bands.centers_nm + reach
     finer = finer_than_bands(sweep, bands, opts)
     cut = [i for i in range(len(bands)) if (len(sources[i]) > 1 or finer[i]) and (lo[i] < sweep.min_nm or hi[i] > sweep.max_nm)]
     if cut:

@@ -24,7 +24,7 @@ import numpy as np
 
 from hsicam.errors import InputError
 from hsicam.spectral import Bands
-from hsicam.spectral.bands import band_matrix, fine_grid  # the band model (band_matrix re-exported)
+from hsicam.spectral.bands import BAND_REACH_SIGMA, FWHM_PER_SIGMA, band_matrix, fine_grid  # the band model (band_matrix re-exported)
 
 log = logging.getLogger(__name__)
 
@@ -465,8 +465,8 @@ def _warn_out_of_range(bands: Bands, fine: np.ndarray, seen: dict[str, int], dro
             by_source[s] = by_source.get(s, 0) + k
     top = sorted(by_source.items(), key=lambda kv: -kv[1])
     names = ", ".join(f"{s} {k}" for s, k in top[:3]) + (", …" if len(top) > 3 else "")
-    three_sigma = 3.0 * float(bands.fwhm_nm.max()) / 2.3548
-    lo, hi = round(reach[0] + three_sigma, 1), round(reach[1] - three_sigma, 1)
+    band_reach = BAND_REACH_SIGMA * float(bands.fwhm_nm.max()) / FWHM_PER_SIGMA
+    lo, hi = round(reach[0] + band_reach, 1), round(reach[1] - band_reach, 1)
     log.warning("synthetic: %d of %d spectra (%s) do not span %g-%g nm, which bands of FWHM up to %g nm weigh: not "
                 "used (by source: hsicam -v); band centres within %g-%g nm would use all but PMC and Smits",
                 sum(by_source.values()), sum(seen.values()), names, fine[0], fine[-1], float(bands.fwhm_nm.max()),

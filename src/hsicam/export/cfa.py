@@ -35,9 +35,7 @@ from typing import Any
 import numpy as np
 
 from hsicam.io import atomic_open, save_figure, write_npy
-from hsicam.spectral import Bands, band_matrix, fine_grid
-
-FWHM_PER_SIGMA = 2.0 * math.sqrt(2.0 * math.log(2.0))
+from hsicam.spectral import FWHM_PER_SIGMA, Bands, band_matrix, fine_grid
 
 
 def filter_names(m_rows: int, m_cols: int) -> list[str]:

@@ -1,6 +1,8 @@
 """Spectral grids and optical materials."""
 
 from hsicam.spectral.bands import (
+    BAND_REACH_SIGMA,
+    FWHM_PER_SIGMA,
     Bands,
     band_matrix,
     fine_grid,
@@ -19,6 +21,8 @@ from hsicam.spectral.materials import (
 )
 
 __all__ = [
+    "BAND_REACH_SIGMA",
+    "FWHM_PER_SIGMA",
     "Bands",
     "band_matrix",
     "fine_grid",

@@ -38,6 +38,12 @@ if TYPE_CHECKING:
     import torch
 
 _TOL_NM = 1e-6
+
+#: A Gaussian band response's FWHM over its standard deviation σ: 2√(2 ln 2) ≈ 2.3548.
+FWHM_PER_SIGMA = 2.0 * math.sqrt(2.0 * math.log(2.0))
+#: The band model's reach: :func:`band_matrix`, :func:`fine_grid` and resampling (:func:`resampling_matrix`) weigh
+#: wavelengths up to this many σ from a band's centre (± 1.27 FWHM).
+BAND_REACH_SIGMA = 3.0
 #: Two band centres closer than this (nm) are the same band for :meth:`Bands.matches` and :meth:`Bands.covers`: half
 #: the 1e-3 nm to which the file readers keep a listed centre (``hsicam.data.formats.NM_DECIMALS``), so a grid of more
 #: decimals (720.0004 nm) written to a file and read back is still the grid it was, not one 0.0004 nm short of it.
@@ -187,9 +193,9 @@ class Bands:
 def fine_grid(bands: Bands) -> np.ndarray:
     """The 1 nm grid (nm) that spectra are band-averaged on for ``bands`` (:func:`band_matrix`): the lowest centre
     − 3σ to the highest + 3σ (σ of the widest band), rounded outwards to whole nm."""
-    sigma_max = float(bands.fwhm_nm.max()) / 2.3548
-    lo = np.floor(bands.min_nm - 3 * sigma_max)
-    hi = np.ceil(bands.max_nm + 3 * sigma_max)
+    reach = BAND_REACH_SIGMA * float(bands.fwhm_nm.max()) / FWHM_PER_SIGMA
+    lo = np.floor(bands.min_nm - reach)
+    hi = np.ceil(bands.max_nm + reach)
     return np.arange(lo, hi + 0.5, 1.0)
 
 
@@ -201,9 +207,9 @@ def band_matrix(bands: Bands, fine_nm: np.ndarray) -> np.ndarray:
     lies within its ±3σ (e.g. 0.3 nm wide at 420.5 nm on a 1 nm grid) samples the spectrum at its centre by
     linear interpolation (its rows were 0/0, NaN spectra)."""
     fine_nm = np.asarray(fine_nm, dtype=np.float64)
-    sigma = bands.fwhm_nm / (2.0 * np.sqrt(2.0 * np.log(2.0)))
+    sigma = bands.fwhm_nm / FWHM_PER_SIGMA
     g = np.exp(-0.5 * ((fine_nm[None, :] - bands.centers_nm[:, None]) / sigma[:, None]) ** 2)
-    g[np.abs(fine_nm[None, :] - bands.centers_nm[:, None]) > 3.0 * sigma[:, None]] = 0.0
+    g[np.abs(fine_nm[None, :] - bands.centers_nm[:, None]) > BAND_REACH_SIGMA * sigma[:, None]] = 0.0
     if len(fine_nm) > 1:  # per-sample weights were biased towards the dense side of a non-uniform grid
         g *= np.gradient(fine_nm)[None, :]
     for c in np.flatnonzero(g.sum(axis=1) == 0.0):  # narrower than the grid: a point sample
@@ -265,7 +271,7 @@ def _band_quadrature(s: np.ndarray, c: float, sigma: float) -> tuple[np.ndarray,
     samples) and their mirrors about c, so the set stays symmetric (a spectrum linear in wavelength is kept exactly) and
     every piece between nodes is linear (a kink between uniform nodes cost up to 3e-4 of the value: session 74).
     Empty arrays when the band sits on the data's end (nothing to average symmetrically)."""
-    reach = max(min(3.0 * sigma, c - s[0], s[-1] - c), 0.0)
+    reach = max(min(BAND_REACH_SIGMA * sigma, c - s[0], s[-1] - c), 0.0)
     n = int(np.ceil(reach / min(_QUADRATURE_STEP_NM, sigma / 10.0))) if sigma > 0 else 0
     if n == 0:
         return np.zeros(0), np.zeros(0)
@@ -340,7 +346,7 @@ def _resampling_matrix(src: Bands, dst: Bands) -> np.ndarray:
         c = float(dst.centers_nm[i])
         # the linear interpolant spreads a sample over its neighbours too: the Gaussian is narrowed so that the
         # band's response has the band's own width (session 74's audit)
-        sigma = _interpolant_gaussian_sigma(s, c, float(f[i]) / (2.0 * np.sqrt(2.0 * np.log(2.0))))
+        sigma = _interpolant_gaussian_sigma(s, c, float(f[i]) / FWHM_PER_SIGMA)
         x, g = _band_quadrature(s, c, sigma)
         if len(x):
             w[i] = g @ _interpolation_rows(s, x)
@@ -427,6 +433,6 @@ def band_sample_wavelengths(centers_nm: np.ndarray, fwhm_nm: np.ndarray, samples
     # the nodes beyond 4σ (from M = 8; their weights sum to < 3e-4) are brought in to 4σ: 15 nodes reach 6.4σ, wider
     # than any band's light worth a PSF, and a material's formula range (the tiny preset's 50 nm bands, M = 50)
     x = np.clip(x, -BAND_SAMPLE_REACH_SIGMA, BAND_SAMPLE_REACH_SIGMA)
-    lam = c + (f / (2.0 * math.sqrt(2.0 * math.log(2.0)))) * x[None, :]
+    lam = c + (f / FWHM_PER_SIGMA) * x[None, :]
     w = w[None, :] * np.ones_like(lam)
     return lam, w / w.sum(axis=1, keepdims=True)
