@@ -1102,11 +1102,25 @@ CAMERA_FILE_KEYS = ("camera.doe.material", "camera.lens.material", "camera.cassi
 CAMERA_FILES_RECORD = "camera_files.json"
 
 
-def config_value(cfg: Any, key: str) -> Any:
-    """The value of the dotted ``key`` (e.g. ``camera.doe.material``) of a config dataclass."""
+_REQUIRED = object()
+
+
+def config_value(cfg: Any, key: str, default: Any = _REQUIRED) -> Any:
+    """The value of the dotted ``key`` (e.g. ``camera.doe.material``) of a config dataclass; ``default`` where a part
+    of it is missing (an AttributeError without one)."""
     for part in key.split("."):
-        cfg = getattr(cfg, part)
+        cfg = getattr(cfg, part) if default is _REQUIRED else getattr(cfg, part, default)
     return cfg
+
+
+def mapping_section(data: Any, key: str) -> tuple[dict[str, Any] | None, str]:
+    """``(section, name)`` of the dotted ``key`` in the nested mapping ``data`` (settings as read from YAML):
+    ``section[name]`` is the key's place, ``section`` None where a part of the way is missing or not a mapping."""
+    *parts, name = key.split(".")
+    node: Any = data
+    for part in parts:
+        node = node.get(part) if isinstance(node, dict) else None
+    return (node if isinstance(node, dict) else None), name
 
 
 def _names_file(value: Any) -> bool:
@@ -1154,11 +1168,8 @@ def _run_relative_files(data: dict[str, Any], folder: Path) -> None:
     """In the settings ``data`` of a run folder's config.yaml beside a :data:`CAMERA_FILES_RECORD`: each camera file
     named relative (a packed camera's copy of its table) made absolute against ``folder``, in place."""
     for key in CAMERA_FILE_KEYS:
-        section, _, name = key.rpartition(".")
-        node: Any = data
-        for part in section.split("."):
-            node = node.get(part) if isinstance(node, dict) else None
-        value = node.get(name) if isinstance(node, dict) else None
+        node, name = mapping_section(data, key)
+        value = node.get(name) if node is not None else None
         if _names_file(value) and not is_absolute_anywhere(value):
             node[name] = str(folder.absolute() / value)
 
@@ -1260,9 +1271,7 @@ def check_list_keys(cfg: Config, path: str | Path | None) -> None:
     if path is None:
         return
     for key in LIST_KEYS:
-        node: Any = cfg
-        for part in key.split("."):
-            node = getattr(node, part, None)
+        node = config_value(cfg, key, None)
         if not isinstance(node, str) or node.strip().lower() in ("", "none"):
             continue
         problem = empty_item_problem(node)
@@ -1280,9 +1289,8 @@ def _check_list_overrides(data: dict[str, Any], overrides: Sequence[str]) -> Non
     for key in LIST_KEYS:
         if not any(key == k or key.startswith(k + ".") for k in given):  # set itself, or in a section's mapping
             continue
-        node: Any = data
-        for part in key.split("."):
-            node = node.get(part) if isinstance(node, dict) else None
+        section, name = mapping_section(data, key)
+        node = section.get(name) if section is not None else None
         if not isinstance(node, str) or node.strip().lower() in ("", "none"):
             continue  # a wrong type is from_dict's error; "none": no item
         problem = empty_item_problem(node)

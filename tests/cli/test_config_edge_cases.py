@@ -198,3 +198,23 @@ def test_a_resume_may_change_how_the_run_goes_on(override):
                                       "model.consistency.iterations=2"])
 def test_runtime_only_keys_train_the_same_camera(override):
     assert training_differences(Config(), load_config(None, [override])) == []
+
+
+def test_dotted_keys_are_walked_the_same_way_in_a_config_and_in_its_mapping():
+    """config_value reads a dotted key of the dataclasses (a default where a part is missing) and mapping_section finds
+    its place in the same settings as a nested mapping (None where a section is missing or not a mapping)."""
+    from hsicam.config import Config, config_value, mapping_section, to_dict
+
+    cfg = Config()
+    assert config_value(cfg, "camera.doe.material") == cfg.camera.doe.material
+    assert config_value(cfg, "camera.doe.no_such_key", None) is None
+    with pytest.raises(AttributeError):
+        config_value(cfg, "camera.no_such_section.material")
+    data = to_dict(cfg)
+    section, name = mapping_section(data, "camera.doe.material")
+    assert section is data["camera"]["doe"] and name == "material"
+    section[name] = "table.csv"
+    assert data["camera"]["doe"]["material"] == "table.csv"
+    assert mapping_section(data, "camera.no_such_section.material") == (None, "material")
+    assert mapping_section({"camera": None}, "camera.doe.material") == (None, "material")
+    assert mapping_section({"camera": {"doe": "text"}}, "camera.doe.material") == (None, "material")

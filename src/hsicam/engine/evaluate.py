@@ -129,7 +129,7 @@ def config_hash_of(cfg) -> str:
     names no file hashes as its YAML does (the presets' hashes unchanged)."""
     import yaml
 
-    from hsicam.config import camera_files, dump_yaml, to_dict
+    from hsicam.config import camera_files, dump_yaml, mapping_section, to_dict
     from hsicam.io import file_sha256
 
     files = camera_files(cfg)
@@ -137,10 +137,7 @@ def config_hash_of(cfg) -> str:
         return config_hash(dump_yaml(cfg))
     data = to_dict(cfg)
     for key, path in files.items():
-        *parts, name = key.split(".")
-        node = data
-        for part in parts:
-            node = node[part]
+        node, name = mapping_section(data, key)
         try:
             node[name] = f"sha256:{file_sha256(path)}"
         except OSError:

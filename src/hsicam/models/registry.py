@@ -33,6 +33,7 @@ from typing import Any, Callable, Sequence, Union
 
 from torch import nn
 
+from hsicam.config import config_value
 from hsicam.errors import ConfigError
 from hsicam.memory import MEMORY_BUDGET_ENV, format_bytes, memory_budget_bytes
 
@@ -141,8 +142,7 @@ def check_parameter_memory(n: int, section: str, settings: Any, sizes: SizeKeys,
 
 def _setting(settings: Any, key: str) -> str:
     """The value of ``key`` (dotted, below ``settings``) as the config writes it."""
-    for part in key.split("."):
-        settings = getattr(settings, part)
+    settings = config_value(settings, key)
     return str(settings).lower() if isinstance(settings, bool) else str(settings)
 
 
