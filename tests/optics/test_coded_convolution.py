@@ -255,3 +255,55 @@ def test_coded_convolution_for_training_fills_one_canvas_and_copies_no_spectrum_
     torch.testing.assert_close(out, ref, rtol=1e-12, atol=1e-12)
     for got, want in zip(grads, torch.autograd.grad((ref * weight).sum(), (psf, kappa))):
         torch.testing.assert_close(got, want, rtol=1e-12, atol=1e-12)
+
+
+def _direct_coded(x: torch.Tensor, psf: torch.Tensor, kappa: torch.Tensor) -> torch.Tensor:
+    """Σ_c κ_c ⊙ (x_c ⊛ psf_c), valid, as a sum of shifted copies (differentiable to any order by torch alone)."""
+    k = psf.shape[-1]
+    r, h, w = k // 2, x.shape[-2] - k + 1, x.shape[-1] - k + 1
+    direct = sum(psf[None, :, r + dy, r + dx, None, None] * x[:, :, r - dy : r - dy + h, r - dx : r - dx + w]
+                 for dy in range(-r, r + 1) for dx in range(-r, r + 1))
+    return (direct * kappa).sum(1, keepdim=True)
+
+
+@pytest.mark.parametrize("op", ["valid", "same", "valid_adjoint", "same_adjoint"])
+def test_coded_convolutions_differentiate_twice(op):
+    """Second-order gradients (backward with create_graph=True: a gradient penalty, a Hessian-vector product) of the
+    coded convolutions and their adjoints in both geometries are the finite differences of their first-order ones
+    (torch's gradgradcheck, float64). The fused op's backward was once-differentiable: gradgradcheck raised."""
+    g = torch.Generator().manual_seed(76)
+    c, k, h, w = 2, 3, 4, 5
+    same = op.startswith("same")
+    kappa = torch.rand(c, h, w, generator=g, dtype=torch.float64, requires_grad=True)
+    psf = torch.rand(c, k, k, generator=g, dtype=torch.float64, requires_grad=True)
+    if op.endswith("adjoint"):
+        first = torch.rand(1, 1, h, w, generator=g, dtype=torch.float64, requires_grad=True)
+        fn = coded_conv_same_adjoint if same else coded_conv_valid_adjoint
+    else:
+        first = torch.rand(1, c, *((h, w) if same else (h + k - 1, w + k - 1)), generator=g, dtype=torch.float64,
+                           requires_grad=True)
+        fn = coded_conv_same if same else coded_conv_valid
+    assert torch.autograd.gradgradcheck(fn, (first, psf, kappa), eps=1e-6, atol=1e-8, rtol=1e-5)
+
+
+@pytest.mark.parametrize("needs", ["psf", "psf,kappa", "kappa"])
+def test_a_gradient_penalty_through_the_coded_convolution_reaches_the_optics(needs):
+    """A penalty on the scene gradient, ‖∂⟨A x, w⟩/∂x‖², differentiated with respect to the PSFs and the CFA: the
+    gradients of the same penalty through the direct shift-and-add convolution (session 76's hunt: the fused op's
+    once-differentiable backward gave a constant ∂/∂x, so the penalty's gradient was silently 0 against 454.3)."""
+    g = torch.Generator().manual_seed(0)
+    x0 = torch.rand(2, 3, 10, 11, generator=g, dtype=torch.float64)
+    psf0 = torch.rand(3, 5, 5, generator=g, dtype=torch.float64)
+    kappa0 = torch.rand(3, 6, 7, generator=g, dtype=torch.float64)
+    weight = torch.rand(2, 1, 6, 7, generator=g, dtype=torch.float64)
+    grads = []
+    for op in (coded_conv_valid, _direct_coded):
+        x = x0.clone().requires_grad_(True)
+        psf = psf0.clone().requires_grad_("psf" in needs)
+        kappa = kappa0.clone().requires_grad_("kappa" in needs)
+        (gx,) = torch.autograd.grad((op(x, psf, kappa) * weight).sum(), x, create_graph=True)
+        wrt = [t for t in (psf, kappa) if t.requires_grad]
+        grads.append(torch.autograd.grad(gx.square().sum() + 0.0 * sum(t.sum() for t in wrt), wrt))
+    for got, want in zip(*grads):
+        assert want.abs().max() > 1.0
+        torch.testing.assert_close(got, want, rtol=1e-10, atol=1e-10)

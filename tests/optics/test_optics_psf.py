@@ -570,6 +570,49 @@ def test_psf_stack_gradcheck(p, period_px, k, s, banded):
     assert torch.autograd.gradcheck(fn, tensors, eps=1e-6, atol=1e-7, rtol=1e-4)
 
 
+@pytest.mark.parametrize("banded", [False, True])
+def test_psf_stack_differentiates_twice(banded):
+    """Second-order gradients of the PSF stack (backward with create_graph=True: a penalty on the DOE's gradient,
+    a Hessian-vector product) are the finite differences of its first-order ones (torch's gradgradcheck, float64).
+    The PSF batch's backward was once-differentiable: gradgradcheck failed."""
+    inputs = _psf_inputs(4)
+    names = list(inputs)
+    tensors = tuple(t.clone().requires_grad_(True) for t in inputs.values())
+    w = _weights(2.0, 3, 4, lines=2)
+    line_w = torch.tensor([[0.3, 0.7]], dtype=torch.float64) if banded else None
+
+    def fn(*args):
+        res = psf_stack(**dict(zip(names, args)), weights=w, line_weights=line_w)
+        return res.psf, res.energy
+
+    assert torch.autograd.gradgradcheck(fn, tensors, eps=1e-6, atol=1e-7, rtol=1e-4)
+
+
+def test_a_penalty_on_the_doe_gradient_reaches_heights_and_aperture():
+    """‖∂⟨p, c⟩/∂h‖² (a smoothness or robustness penalty on the DOE's gradient) differentiated with respect to the
+    heights and the aperture: the gradients of the same penalty through W·|FFT_N×N(A·e^{iφ})|²·Wᵀ written out here
+    with torch's FFTs (session 76's hunt: both were silently 0 through the once-differentiable backward)."""
+    inputs = _psf_inputs(5)
+    w = _weights(2.5, 5, 5, lines=2)
+    n = w.shape[-1]
+    c = torch.rand(2, 5, 5, generator=torch.Generator().manual_seed(76), dtype=torch.float64)
+
+    def written_out(height_m, amplitude, r2_m2, doe_phase_per_m, defocus_per_m2):
+        phase = doe_phase_per_m[:, None, None] * height_m + defocus_per_m2[:, None, None] * r2_m2
+        spec = torch.fft.fft(torch.fft.fft(torch.polar(amplitude.expand_as(phase), phase), n=n, dim=-1), n=n, dim=-2)
+        return w @ (spec.real.square() + spec.imag.square()) @ w.transpose(-1, -2) / amplitude.square().sum()
+
+    grads = []
+    for op in (lambda **kw: psf_stack(**kw, weights=w).psf, written_out):
+        args = {k: v.clone().requires_grad_(k in ("height_m", "amplitude")) for k, v in inputs.items()}
+        (gh,) = torch.autograd.grad((op(**args) * c).sum(), args["height_m"], create_graph=True)
+        penalty = gh.square().sum() + 0.0 * (args["height_m"].sum() + args["amplitude"].sum())
+        grads.append(torch.autograd.grad(penalty, (args["height_m"], args["amplitude"])))
+    for got, want in zip(*grads):
+        assert want.abs().max() > 1e-6
+        torch.testing.assert_close(got, want, rtol=1e-9, atol=1e-9 * want.abs().max().item())
+
+
 def test_psf_batch_copies_no_full_spectrum_and_is_the_padded_fft():
     """The PSF batch's FFT stages copy no (L, N, N) array (review 64: two such copies per batch, 14 in a quick
     training step, ~10 % of the PSF's time on 2 CPU cores): the forward's column transforms run on a transposed

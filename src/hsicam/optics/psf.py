@@ -63,7 +63,8 @@ class _PSFBatch(torch.autograd.Function):
     The FFT is pruned over the zero-padded rows. W (L, K, N) holds envelope, tiling of the periodic
     far field over the kernel and pixel integration. The backward is the exact adjoint written
     out, down to the pupil: for u = A·e^{iφ}, ∂L/∂φ = Im(conj(u)·∂L/∂u) and
-    ∂L/∂A = Re(e^{−iφ}·∂L/∂u) (summed over the wavelengths, A being shared).
+    ∂L/∂A = Re(e^{−iφ}·∂L/∂u) (summed over the wavelengths, A being shared). A backward with
+    ``create_graph=True`` (second-order gradients) takes autograd's through :func:`psf_batch_reference` instead.
     """
 
     @staticmethod
@@ -80,13 +81,14 @@ class _PSFBatch(torch.autograd.Function):
         spec = torch.fft.fft(canvas, dim=-1).transpose(-1, -2)
         inten = spec.real.square() + spec.imag.square()
         pooled = weights @ inten @ weights.transpose(-1, -2)
-        ctx.save_for_backward(phase, field, spec, weights)
+        ctx.save_for_backward(phase, amplitude, field, spec, weights)
         return pooled
 
     @staticmethod
-    @torch.autograd.function.once_differentiable
     def backward(ctx, grad: torch.Tensor):  # type: ignore[override]
-        phase, field, spec, weights = ctx.saved_tensors
+        phase, amplitude, field, spec, weights = ctx.saved_tensors
+        if torch.is_grad_enabled():  # create_graph=True: the gradient is differentiated again
+            return _psf_batch_gradients_differentiable(ctx, grad, phase, amplitude, weights)
         n, p = weights.shape[-1], phase.shape[-1]
         g = weights.transpose(-1, -2) @ grad @ weights  # (L, N, N): adjoint of W·I·Wᵀ
         # ∂L/∂u = 2·(adjoint of the zero-padded FFT)(g·U) = 2n²·ifft(g·U), first p rows/columns
@@ -100,6 +102,30 @@ class _PSFBatch(torch.autograd.Function):
         if ctx.needs_input_grad[1]:
             grad_amplitude = (torch.polar(torch.ones_like(phase), -phase) * gf).real.sum(0)
         return grad_phase, grad_amplitude, None
+
+
+def psf_batch_reference(phase: torch.Tensor, amplitude: torch.Tensor, weights: torch.Tensor) -> torch.Tensor:
+    """What :class:`_PSFBatch` computes, composed of differentiable torch operations (no pruning, no written-out
+    backward): W·|FFT_N×N(A·e^{iφ} zero-padded)|²·Wᵀ, (L, K, K) for phases (L, P, P), amplitude (P, P) and W
+    (L, K, N). Equal to the batch's forward (its test compares them bit for bit)."""
+    n = weights.shape[-1]
+    field = torch.polar(amplitude.expand_as(phase), phase)
+    spec = torch.fft.fft(torch.fft.fft(field, n=n, dim=-1), n=n, dim=-2)
+    return weights @ (spec.real.square() + spec.imag.square()) @ weights.transpose(-1, -2)
+
+
+def _psf_batch_gradients_differentiable(ctx, grad: torch.Tensor, phase: torch.Tensor, amplitude: torch.Tensor,
+                                        weights: torch.Tensor) -> tuple:
+    """:class:`_PSFBatch`'s gradients (phase, amplitude) as a differentiable function of its inputs and of ``grad``
+    (backward with ``create_graph=True``): autograd's through :func:`psf_batch_reference`, re-run here. The written-out
+    backward runs without autograd; marked once-differentiable, it returned constants whenever ``grad`` needed no
+    gradient, so a penalty on the DOE's gradient had a silent zero gradient."""
+    needs = ctx.needs_input_grad[:2]
+    inputs = [t for t, need in zip((phase, amplitude), needs) if need]
+    with torch.enable_grad():
+        grads = iter(torch.autograd.grad(psf_batch_reference(phase, amplitude, weights), inputs, grad,
+                                         create_graph=True))
+    return tuple(next(grads) if need else None for need in needs) + (None,)
 
 
 def psf_stack(
