@@ -261,9 +261,14 @@ def test_without_the_flat_field_constraint_the_fit_is_the_unconstrained_least_sq
         assert _residual(cam, target, scenes, free.double() + step) > e_free
     uniform = torch.full((1, len(cam.bands), cam.margin + 18, cam.margin + 18), 0.5, dtype=torch.float64)
     with torch.no_grad():
-        est = phase_linear(cam.A(uniform, cam.snapshot(nominal=True).psf), flat.double())
+        sensor = cam.A(uniform, cam.snapshot(nominal=True).psf)
+        est = phase_linear(sensor, flat.double())
+        # the filters are float32: each tap off by at most half an ulp, 2⁻²⁴ relative, so an output pixel by at most
+        # Σ|w|·|g|·2⁻²⁴ (~4e-6 of the estimate here; the constraint's own error in float64 is far below)
+        rounding = phase_linear(sensor.abs(), flat.double().abs()) * 2.0 ** -24
     inner = est[..., 4:-4, 4:-4]  # away from the replicated border
-    assert float((inner - inner.mean(dim=(-2, -1), keepdim=True)).abs().max()) < 1e-6 * float(inner.abs().max())
+    spread = float((inner - inner.mean(dim=(-2, -1), keepdim=True)).abs().max())
+    assert spread <= 2.0 * float(rounding[..., 4:-4, 4:-4].max()) < 1e-4 * float(inner.abs().max())
 
 
 @pytest.mark.slow

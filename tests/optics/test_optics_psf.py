@@ -613,6 +613,46 @@ def test_a_penalty_on_the_doe_gradient_reaches_heights_and_aperture():
         torch.testing.assert_close(got, want, rtol=1e-9, atol=1e-9 * want.abs().max().item())
 
 
+def test_a_float64_camera_computes_its_psfs_from_float64_optics_constants(tiny_camera):
+    """A float64 camera (``.double()``) images with the optics constants in float64: its PSFs are psf_stack's of the
+    pupil, DOE phase, defocus (π/λ·(1/z − 1/f), written out here), pixel-integration and band-weight arrays computed
+    here in float64, to ~1e-15 (they were float32-rounded constants cast up: ~5e-8 relative off). A float32 camera
+    keeps the float32 rounding of the same arrays, bit for bit, also after a round trip through float64."""
+    from hsicam.optics.doe import phase_per_height
+    from hsicam.optics.sampling import far_field_period_px
+    from hsicam.spectral.bands import band_sample_wavelengths
+
+    cam = tiny_camera("camera.lens.model=singlet", "camera.psf.band_samples=2")
+    o = cam.optics
+    smp, n, q = o.sampling, o.doe.n_cells, o.pupil_oversample
+    lam_nm, line_w = band_sample_wavelengths(o.bands.centers_nm, o.bands.fwhm_nm, 2)
+    lam_nm = lam_nm.reshape(-1)
+    z = o.line_sensor_distances_m
+    x = sample_coordinates_m(n, o.cell_m, q)
+    period = far_field_period_px(lam_nm * 1e-9, z, smp.pupil_pitch_m, o.pixel_m)
+    exact = {"amplitude": aperture_amplitude(n, o.cell_m, o.aperture_radius_m, q),
+             "r2_m2": x[:, None] ** 2 + x[None, :] ** 2,
+             "doe_phase_per_m": phase_per_height(o.doe.material, lam_nm),
+             "defocus_per_m2": np.pi / (lam_nm * 1e-9) * (1.0 / z - 1.0 / o.lens.focal_lengths_m(lam_nm)),
+             "pixel_weights": np.stack([pixel_weights(p, smp.kernel_px, smp.fft_size, smp.supersample) for p in period]),
+             "line_weights": line_w}
+    assert np.abs(exact["defocus_per_m2"]).max() > 1e3  # the singlet's focus shift: a defocus to get right
+    for name, value in exact.items():
+        assert torch.equal(getattr(o, name), torch.from_numpy(value).float()), name
+    heights = o.pupil_heights().detach().double()
+    cam.double()
+    for name, value in exact.items():
+        torch.testing.assert_close(getattr(o, name), torch.from_numpy(value), rtol=1e-15, atol=0.0, msg=name)
+    ref = psf_stack(heights, *(torch.from_numpy(exact[k]) for k in ("amplitude", "r2_m2", "doe_phase_per_m",
+                                                                     "defocus_per_m2", "pixel_weights", "line_weights")))
+    with torch.no_grad():
+        got = o.psf_from_pupil(heights).psf
+    assert float((got - ref.psf).abs().max() / ref.psf.abs().max()) < 1e-14
+    cam.float()
+    for name, value in exact.items():
+        assert torch.equal(getattr(o, name), torch.from_numpy(value).float()), name
+
+
 def test_psf_batch_copies_no_full_spectrum_and_is_the_padded_fft():
     """The PSF batch's FFT stages copy no (L, N, N) array (review 64: two such copies per batch, 14 in a quick
     training step, ~10 % of the PSF's time on 2 CPU cores): the forward's column transforms run on a transposed

@@ -50,6 +50,9 @@ DEFOCUS_STEP_GOOD = 0.45
 #: The PSF's relative L1 error per squared step (in π), measured against a 6× finer pupil grid (docs/optics.md).
 DEFOCUS_L1_PER_STEP2 = 0.45
 _COARSE_DEFOCUS_WARNED: set[tuple[str, int, float]] = set()
+#: :class:`PSFModel`'s constant buffers (derived from the config, not saved): float32, or float64 exactly in a float64
+#: module (:meth:`PSFModel._apply`).
+OPTICS_CONSTANTS = ("amplitude", "r2_m2", "doe_phase_per_m", "defocus_per_m2", "pixel_weights", "line_weights")
 
 @dataclass
 class PSFResult:
@@ -220,18 +223,45 @@ class PSFModel(nn.Module):
             self.line_wavelengths_nm * 1e-9, float(z_line.max()), pixel_m, cell_m, n_cells, pupil_oversample,
             supersample, kernel_px, aperture_radius_m,
         )
-        smp = self.sampling
-        period_px = far_field_period_px(lam_m, z_line, smp.pupil_pitch_m, pixel_m)
-        weights = np.stack([pixel_weights(per, smp.kernel_px, smp.fft_size, smp.supersample) for per in period_px])
-        x = sample_coordinates_m(n_cells, cell_m, self.pupil_oversample)
-        amp = aperture_amplitude(n_cells, cell_m, aperture_radius_m, self.pupil_oversample)
-        # Derived from the config, so not saved in checkpoints (persistent=False).
-        self.register_buffer("amplitude", torch.from_numpy(amp).float(), persistent=False)
-        self.register_buffer("r2_m2", torch.from_numpy(x[:, None] ** 2 + x[None, :] ** 2).float(), persistent=False)
-        self.register_buffer("doe_phase_per_m", torch.from_numpy(phase_per_height(doe.material, self.line_wavelengths_nm)).float(), persistent=False)
-        self.register_buffer("defocus_per_m2", torch.from_numpy(defocus).float(), persistent=False)
-        self.register_buffer("pixel_weights", torch.from_numpy(weights).float(), persistent=False)
-        self.register_buffer("line_weights", torch.from_numpy(line_w).float(), persistent=False)
+        self._period_px = far_field_period_px(lam_m, z_line, self.sampling.pupil_pitch_m, pixel_m)  # (L,)
+        self._defocus_per_m2, self._line_weights = defocus, line_w
+        # Derived from the config, so not saved in checkpoints (persistent=False); float32 until the module's dtype
+        # changes (_apply)
+        for name, value in self._constants().items():
+            self.register_buffer(name, torch.from_numpy(value).float(), persistent=False)
+
+    def _constants(self) -> dict[str, np.ndarray]:
+        """The optics' constant arrays in float64, by buffer name (:data:`OPTICS_CONSTANTS`): the pupil's amplitude
+        and squared radius (P, P) (m²), the DOE phase per metre of height (L,) (rad/m), the residual defocus (L,)
+        (rad/m²), the pixel-integration matrices W (L, K, N) and the band weights (C, M)."""
+        smp, n_cells, q = self.sampling, self.doe.n_cells, self.pupil_oversample
+        x = sample_coordinates_m(n_cells, self.cell_m, q)
+        return {
+            "amplitude": aperture_amplitude(n_cells, self.cell_m, self.aperture_radius_m, q),
+            "r2_m2": x[:, None] ** 2 + x[None, :] ** 2,
+            "doe_phase_per_m": phase_per_height(self.doe.material, self.line_wavelengths_nm),
+            "defocus_per_m2": self._defocus_per_m2,
+            "pixel_weights": np.stack([pixel_weights(per, smp.kernel_px, smp.fft_size, smp.supersample)
+                                       for per in self._period_px]),
+            "line_weights": self._line_weights,
+        }
+
+    def _apply(self, fn, recurse: bool = True):
+        """``nn.Module``'s (``.double()``, ``.to(dtype, device)``, …), then each optics constant whose dtype changed
+        rebuilt from its float64 value: a float64 module holds the float64 constants, not float32 ones cast up (a
+        float64 camera's PSFs were float32-accurate, ~5e-8 relative); another dtype is rounded from float32 as the
+        float32 buffers always were (float32 itself needs nothing: the float64 constants round to the same bits)."""
+        before = {name: getattr(self, name).dtype for name in OPTICS_CONSTANTS}
+        super()._apply(fn, recurse)
+        stale = [name for name in OPTICS_CONSTANTS if getattr(self, name).dtype not in (before[name], torch.float32)
+                 and getattr(self, name).dtype.is_floating_point]
+        if stale:
+            exact = self._constants()
+            for name in stale:
+                t = getattr(self, name)
+                value = torch.from_numpy(exact[name])
+                self._buffers[name] = (value if t.dtype == torch.float64 else value.float()).to(t.device, t.dtype)
+        return self
 
     def _check_defocus(self, defocus_per_m2: np.ndarray, z_line: np.ndarray, sensor_distance_set: bool,
                        n_cells: int) -> None:
