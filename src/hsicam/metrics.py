@@ -18,6 +18,8 @@ their own docstring says otherwise (``sam_map``: (B, H, W); ``sam_breakdown``, `
   reward returning zeros); NaN for a cube whose truth is zero at every pixel.
 - ``ergas``: NaN for a cube in which a band's truth mean is 0 (a band dark in the truth has no relative
   error; :func:`ergas_undefined`). ``rmse``.
+- ``exact_zero_bands``: per cube, the bands zero in the truth that the estimate reproduces exactly (300 dB each in
+  ``psnr_per_band``, which then outweighs the other bands).
 """
 
 from __future__ import annotations
@@ -308,6 +310,13 @@ def ergas_undefined(y: torch.Tensor) -> torch.Tensor:
     undefined (:func:`ergas` gives NaN)."""
     y = y[None] if y.dim() == 3 else y
     return (_as(y, torch.float64).mean(dim=(-2, -1)) == 0).any(dim=1)
+
+
+def exact_zero_bands(x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
+    """(B,) the number of bands of each cube whose truth ``y`` is zero at every pixel and whose estimate ``x`` is
+    exactly zero there too: each scores 300 dB in :func:`psnr_per_band` (MSE 0, CONVENTIONS["psnr"])."""
+    x, y = _batched(x, y)
+    return ((y == 0).all(dim=-1).all(dim=-1) & (x == 0).all(dim=-1).all(dim=-1)).sum(dim=1)
 
 
 def all_metrics(estimate: torch.Tensor, truth: torch.Tensor) -> dict[str, list[float]]:

@@ -197,6 +197,48 @@ def test_pixels_whose_truth_is_all_zero_are_counted_as_left_out_of_sam():
     assert r.sam_excluded_px == int(np.count_nonzero(np.all(r.truth == 0, axis=0))) == 7
 
 
+def test_the_300_db_note_is_given_only_where_a_band_dark_in_the_truth_is_estimated_exactly_zero(tmp_path, caplog):
+    """A scene whose band 1 is zero at every pixel has no ERGAS, whatever the estimate. Estimated exactly 0 there,
+    that band scores 300 dB (the mean PSNR over 3 bands is then above 100 dB) and the scene is listed in
+    exact_zero_bands, with the note in results.md and on the console; estimated 0.01 there (a finite PSNR, 40 dB),
+    no band is exact and no note tells of one (session 76's hunt: the note came with every undefined ERGAS, beside a
+    mean PSNR of 9.14 dB), while the ERGAS line stays."""
+    import argparse
+    import logging
+
+    from hsicam.cli.evaluate import _print_means
+    from hsicam.engine.evaluate import evaluate_method, summarize, write_results
+
+    dark = _toy_scenes(1, (16, 16))[0]
+    dark[1] = 0.0
+    lit = _toy_scenes(1, (16, 16), seed=1)[0]
+    for name, in_band in (("exact", 0.0), ("close", 0.01)):
+        def offset(seed, scene, in_band=in_band):  # +0.02 on bands 0 and 2; band 1 (zero in the truth) set to in_band
+            out = torch.full_like(scene, 0.02)
+            out[:, 1] = in_band - scene[:, 1]
+            return out
+
+        results = evaluate_method(_toy_method(_ToyCamera(3), offset), [dark, lit], ["dark", "lit"])
+        want = [int(np.sum(np.all(r.truth == 0, axis=(1, 2)) & np.all(r.estimate == 0, axis=(1, 2)))) for r in results]
+        assert [r.exact_zero_bands for r in results] == want == ([1, 0] if name == "exact" else [0, 0])
+        psnr_dark = results[0].metrics["psnr"]
+        assert psnr_dark > 100.0 if name == "exact" else psnr_dark < 100.0
+        summary = summarize(results, method=name)
+        assert summary["ergas_undefined"] == ["dark"]
+        assert summary.get("exact_zero_bands") == (["dark"] if name == "exact" else None)
+        out = tmp_path / name
+        out.mkdir()
+        write_results(out, summary)
+        md = (out / "results.md").read_text(encoding="utf-8")
+        caplog.clear()
+        with caplog.at_level(logging.WARNING):
+            _print_means(argparse.Namespace(method=name), summary, 2, out)
+        note = "- PSNR of dark: a band whose truth is zero at every scored pixel scores 300 dB"
+        assert "- ERGAS undefined (a band of the truth is zero at every scored pixel) for dark;" in md
+        assert (note in md) == (name == "exact")
+        assert ("scores 300 dB" in caplog.text) == (name == "exact")
+
+
 # --------------------------------------------------------------------------------------------
 # engine/linear_step.py
 # --------------------------------------------------------------------------------------------

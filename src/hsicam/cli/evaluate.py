@@ -414,10 +414,10 @@ def _print_means(args: argparse.Namespace, summary: dict, n_scenes: int, out: Pa
     m = summary["mean"]
     print(f"{args.method}: mean PSNR {m['psnr']:.2f} dB, SSIM {m['ssim']:.4f}, SAM {m['sam']:.2f}° "
           f"over {n_scenes} scenes -> {out}")
-    if summary.get("ergas_undefined"):  # said where the mean is read, not only in results.md
+    if summary.get("exact_zero_bands"):  # said where the mean is read, not only in results.md
         from hsicam.engine.evaluate import exact_band_note
 
-        log.warning("evaluate: %s", exact_band_note(summary["ergas_undefined"]))
+        log.warning("evaluate: %s", exact_band_note(summary["exact_zero_bands"]))
     if "heldout" in summary:
         h = summary["heldout"]["mean"]
         print(f"{args.method}, held-out spectral sources: mean PSNR {h['psnr']:.2f} dB, SSIM {h['ssim']:.4f}, "

@@ -28,7 +28,7 @@ from hsicam.engine.methods import Method, demosaic_reference  # noqa: F401  (re-
 from hsicam.engine.provenance import commit_label
 from hsicam.errors import InputError
 from hsicam.io import atomic_open, free_space_short, free_space_text, write_json
-from hsicam.metrics import CONVENTIONS, SSIM_WINDOW_PX, all_metrics, sam_undefined_pixels
+from hsicam.metrics import CONVENTIONS, SSIM_WINDOW_PX, all_metrics, exact_zero_bands, sam_undefined_pixels
 from hsicam.progress import format_seconds
 
 METRIC_KEYS = ("psnr", "ssim", "sam", "ergas", "psnr_cube", "psnr_mst", "rmse")
@@ -48,6 +48,7 @@ class SceneResult:
     noise: dict[str, float] = field(default_factory=dict)  # the camera's noise levels while it was scored
     sam_excluded_px: int = 0  # scored pixels whose truth spectrum is all zero (no spectral angle)
     scored_px: tuple[int, int] | None = None  # (H, W) of the scored area (the region results.json names)
+    exact_zero_bands: int = 0  # bands zero in the truth and exactly 0 in an estimate (300 dB each), most of any seed
 
 
 @dataclass(frozen=True)
@@ -334,7 +335,7 @@ def evaluate_method(method: Method, scenes, names: Sequence[str], noise: TestNoi
             scene = scenes[i][None].to(device)
             truth = _without_border(method.target(scene), method.border_px)
             _check_scored_area(scene_label(scenes, i, name), scene.shape[-2:], truth.shape[-2:], cam, method.border_px)
-            per_seed, times, est0 = [], [], None
+            per_seed, times, est0, exact = [], [], None, 0
             for seed in noise.seeds:
                 g = torch.Generator(device=device).manual_seed(int(seed))
                 sensor = cam(scene, g, sensor_generator=torch.Generator(device=device).manual_seed(
@@ -352,6 +353,7 @@ def evaluate_method(method: Method, scenes, names: Sequence[str], noise: TestNoi
                                      "non-finite values (NaN or inf): a broken reconstruction is not scored")
                 est = _without_border(est, method.border_px).float().clamp(0, 1)
                 per_seed.append({k: v[0] for k, v in all_metrics(est, truth).items()})
+                exact = max(exact, int(exact_zero_bands(est, truth)[0]))
                 if est0 is None:
                     est0 = est
             mean = {k: float(np.mean([m[k] for m in per_seed])) for k in per_seed[0]}
@@ -362,7 +364,7 @@ def evaluate_method(method: Method, scenes, names: Sequence[str], noise: TestNoi
                                    path=None if paths is None else str(paths[i]), seed=int(noise.seeds[0]),
                                    metrics_per_seed=[{"seed": int(s), **m} for s, m in zip(noise.seeds, per_seed)],
                                    noise=dict(applied), sam_excluded_px=int(sam_undefined_pixels(truth)[0]),
-                                   scored_px=(int(est0.shape[-2]), int(est0.shape[-1]))))
+                                   scored_px=(int(est0.shape[-2]), int(est0.shape[-1])), exact_zero_bands=exact))
             if progress is not None:
                 left = len(names) - i - 1  # the scenes still to do, at the mean time per scene so far (all seeds)
                 eta = f", eta {format_seconds((time.perf_counter() - t_start) / (i + 1) * left)}" if left else ""
@@ -417,7 +419,8 @@ def summarize(results: list[SceneResult], **facts) -> dict:
     A scene whose SAM is undefined (NaN:
     its truth is zero at every scored pixel) is listed in ``sam_undefined``, and the mean SAM is
     over the other scenes; likewise a scene whose ERGAS is undefined (NaN: a band's truth mean over the
-    scored area is 0) in ``ergas_undefined``."""
+    scored area is 0) in ``ergas_undefined``. A scene with a band zero in the truth that an estimate reproduces
+    exactly (:attr:`SceneResult.exact_zero_bands`: 300 dB each) is listed in ``exact_zero_bands``."""
     rows = [{"name": r.name, **({"path": r.path} if r.path is not None else {}), **r.metrics,
              "runtime_s": r.runtime_s, "sam_excluded_px": r.sam_excluded_px,
              **({"scored_px": list(r.scored_px)} if r.scored_px is not None else {}),
@@ -427,13 +430,16 @@ def summarize(results: list[SceneResult], **facts) -> dict:
     means = {k: _mean([row[k] for row in rows]) for k in keys} if rows else {}
     undefined = {f"{k}_undefined": names for k in ("sam", "ergas")
                  if (names := [row["name"] for row in rows if k in row and np.isnan(row[k])])}
-    return {**facts, "scenes": rows, "mean": means, **undefined, "conventions": CONVENTIONS}
+    exact = [r.name for r in results if r.exact_zero_bands]
+    return {**facts, "scenes": rows, "mean": means, **undefined, **({"exact_zero_bands": exact} if exact else {}),
+            "conventions": CONVENTIONS}
 
 
 def exact_band_note(names: list[str]) -> str:
-    """Why the PSNR of scenes with an all-zero band (``ergas_undefined``) compares methods badly: a band estimated
-    exactly 0 there scores 300 dB, which dominates a mean over bands (session 74's hunt: a box demosaic 173.99 dB
-    against the network's 42.29 on one narrow-band scene, with the worse SAM)."""
+    """Why the PSNR of scenes ``names`` (a summary's ``exact_zero_bands``: a band zero in the truth, estimated exactly
+    0) compares methods badly: such a band scores 300 dB, which dominates a mean over bands (session 74's hunt: a box
+    demosaic 173.99 dB against the network's 42.29 on one narrow-band scene, with the worse SAM). Only for those
+    scenes: said of every scene without an ERGAS, it told of 300 dB bands where none was (a mean PSNR of 9.14 dB)."""
     return (f"PSNR of {', '.join(names)}: a band whose truth is zero at every scored pixel scores 300 dB where the "
             "estimate is exactly 0 there too (the convention for an exact band), which outweighs the other bands in "
             "the mean over bands and the mean over scenes: compare methods there by SAM, SSIM or psnr_cube")
@@ -521,7 +527,8 @@ def write_results(out: Path, summary: dict) -> None:
     if summary.get("ergas_undefined"):
         head.append(f"- ERGAS undefined (a band of the truth is zero at every scored pixel) for "
                     f"{', '.join(summary['ergas_undefined'])}; the mean ERGAS is over the other scenes")
-        head.append("- " + exact_band_note(summary["ergas_undefined"]))
+    if summary.get("exact_zero_bands"):
+        head.append("- " + exact_band_note(summary["exact_zero_bands"]))
     excluded = [f"{row['name']} ({row['sam_excluded_px']} px)" for row in summary["scenes"] if row.get("sam_excluded_px")]
     if excluded:
         head.append(f"- pixels without a spectral angle (truth all zero), left out of SAM: {', '.join(excluded)}")
