@@ -82,9 +82,10 @@ def _resource_files() -> set[str]:
     return out
 
 
-def _package_data_matches() -> set[str]:
+def _package_data_matches(package: Path = SRC) -> set[str]:
+    """The files under the package folder ``package`` that pyproject.toml's package-data globs ship, relative."""
     globs = _pyproject()["tool"]["setuptools"]["package-data"]["hsicam"]
-    return {p.relative_to(SRC).as_posix() for g in globs for p in SRC.glob(g) if p.is_file()}
+    return {p.relative_to(package).as_posix() for g in globs for p in package.glob(g) if p.is_file()}
 
 
 def _loaded_at_run_time() -> set[str]:
@@ -111,6 +112,36 @@ def test_every_resource_file_is_matched_by_package_data():
     assert loaded <= files, sorted(loaded - files)
     unmatched = files - _package_data_matches()
     assert not unmatched, f"add a [tool.setuptools.package-data] glob for {sorted(unmatched)}"
+
+
+def test_package_data_ships_every_file_a_packed_camera_may_hold(tmp_path, cache_env):
+    """A camera built from a material table carries a copy of it (camera.doe.material.csv; a coded aperture's is a
+    .npy), which the package-data globs (.safetensors, .yaml, .md, .json) left out of the wheel: installed, the
+    camera was listed as usable and failed at `--run pretrained:NAME` (session 76's packaging hunt). A camera packed
+    from a run trained on a table into a package-shaped folder: every file pack writes is one a camera may hold
+    (hsicam.runs.pretrained.FILES) and shipped, and so is every name of FILES."""
+    from hsicam.config import load_config
+    from hsicam.engine.pretrained import pack_pretrained
+    from hsicam.engine.train import train
+    from hsicam.runs import pretrained
+    from conftest import TINY_CAMERA_OVERRIDES
+
+    table = tmp_path / "pmma.csv"
+    table.write_text("wavelength_nm,n\n400,1.50\n700,1.48\n")
+    train(load_config("tiny", [*TINY_CAMERA_OVERRIDES, "train.epochs=1", f"camera.doe.material={table}"]),
+          tmp_path / "run", progress=False)
+    package = tmp_path / "hsicam"
+    cam = pack_pretrained(tmp_path / "run", "tbl", package / "resources" / "pretrained")
+    written = {p.name for p in cam.iterdir() if not p.name.startswith(".")}  # its .complete marker is not read
+    assert {"camera.doe.material.csv", "camera_files.json", "config.yaml", "model.safetensors"} <= written
+    assert written <= set(pretrained.FILES)
+    every = package / "resources" / "pretrained" / "every"
+    every.mkdir()
+    for name in pretrained.FILES:
+        (every / name).write_bytes(b"")
+    shipped = _package_data_matches(package)
+    assert not {f"resources/pretrained/tbl/{n}" for n in written} - shipped
+    assert not {f"resources/pretrained/every/{n}" for n in pretrained.FILES} - shipped
 
 
 @pytest.mark.slow

@@ -194,6 +194,42 @@ def test_a_packed_camera_carries_its_table(proj, tmp_path, monkeypatch):
                        f"camera.doe.material: {tmp_path / 'mine' / copied} has changed")
 
 
+def test_a_packed_camera_whose_table_is_missing_or_changed_is_listed_as_not_usable(proj, tmp_path, monkeypatch):
+    """A wheel that shipped a camera without its copied table (package-data without *.csv: session 76's packaging
+    hunt): `hsicam pretrained list` showed it healthy, and `--run pretrained:NAME` then told the user to edit a
+    config.yaml in site-packages. Now list, show and --run name the missing or changed copy in one line (and say
+    to re-pack it, the camera being outside the package)."""
+    from hsicam.engine.pretrained import pack_pretrained
+
+    run, _ = _own_copy(proj, tmp_path)
+    cams = tmp_path / "cams"
+    cam = pack_pretrained(run, "mat", cams)
+    monkeypatch.setenv("HSICAM_PRETRAINED_DIR", str(cams))
+    copy = cam / "camera.doe.material.csv"
+    good = copy.read_bytes()
+    remedy = (f"re-pack it (`hsicam pretrained pack RUN --name mat --dest {cams} --force`) or re-install it from "
+              "where it came")
+    assert run_cli_in_process("pretrained", "list").stdout.startswith("mat: DOE camera with a 3×3 CFA")
+    for damage, why in ((copy.unlink, f"{copy}: missing (the camera's camera.doe.material: its camera_files.json "
+                                      "records it)"),
+                        (lambda: copy.write_text("wavelength_nm,n\n400,1.6\n700,1.58\n"),
+                         f"{copy}: does not match its camera_files.json (sha256 ")):
+        damage()
+        listed = run_cli_in_process("pretrained", "list")
+        assert_ok(listed)
+        line, *rest = listed.stdout.splitlines()
+        assert not rest, rest  # no "use one with --run pretrained:NAME": no usable camera
+        assert line.startswith(f"mat: {why}") and line.endswith(f"{remedy}: not usable"), line
+        shown = run_cli_in_process("pretrained", "show", "mat")
+        assert_ok(shown)
+        assert shown.stdout.splitlines()[-1].startswith(f"WARNING: {why}"), shown.stdout
+        assert_clean_error(run_cli_in_process("export-optics", "--run", "pretrained:mat", "--out",
+                                              str(tmp_path / "ex")), why, remedy)
+        assert_clean_error(run_cli_in_process("pretrained", "copy", "mat", str(tmp_path / "mine")), why)
+    copy.write_bytes(good)
+    assert run_cli_in_process("pretrained", "list").stdout.startswith("mat: DOE camera with a 3×3 CFA")
+
+
 def test_a_finetuned_run_records_its_source_runs_table(proj, tmp_path):
     from fab_runs import design_psf_dir
 

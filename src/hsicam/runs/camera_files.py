@@ -64,15 +64,15 @@ def write_camera_files(run_dir: str | Path, record: dict[str, Any]) -> None:
     write_json(Path(run_dir) / CAMERA_FILES_RECORD, record)
 
 
-def read_camera_files(run_dir: str | Path) -> dict[str, Any] | None:
+def read_camera_files(run_dir: str | Path, advice: str = "restore it from a copy of the run") -> dict[str, Any] | None:
     """The run's record; None when it has none (an older run, or a camera of built-in materials); one-line
-    :class:`InputError` when it cannot be read."""
+    :class:`InputError` when it cannot be read, ending with ``advice``."""
     def valid(record: Any) -> bool:
         files = record.get("files") if isinstance(record, dict) else None
         return isinstance(files, dict) and all(isinstance(e, dict) and isinstance(e.get("sha256"), str)
                                                for e in files.values())
 
-    return read_record(Path(run_dir) / CAMERA_FILES_RECORD, valid, "restore it from a copy of the run")
+    return read_record(Path(run_dir) / CAMERA_FILES_RECORD, valid, advice)
 
 
 def check_camera_files(run_dir: str | Path, cfg, overridden: Iterable[str] = ()) -> None:

@@ -19,9 +19,10 @@ read-only, and :func:`check_not_pretrained` refuses them as outputs. Maintainers
 or a site's own collection).
 
 A camera is used (:func:`resolve_run`) or copied (:func:`copy_pretrained`) only when its weights'
-sha256 is the one its card records (:func:`check_weights`): the card's numbers are those of these
-weights. A folder missing a camera's files, or whose card.json does not parse, is not available
-(:func:`folder_problem`); ``hsicam pretrained list`` reports it on its own line.
+sha256 is the one its card records and the copies of its material tables or coded aperture hold the bytes its
+camera_files.json records (:func:`check_weights`): the card's numbers are those of these files. A folder missing a
+camera's files, or whose card.json does not parse, is not available (:func:`folder_problem`); ``hsicam pretrained
+list`` reports it on its own line.
 """
 
 from __future__ import annotations
@@ -36,7 +37,7 @@ from typing import Any
 from hsicam.errors import InputError
 from hsicam.io import nan_for_null
 from hsicam.config import CAMERA_FILES_RECORD
-from hsicam.runs.camera_files import COPY_NAMES
+from hsicam.runs.camera_files import COPY_NAMES, read_camera_files
 
 #: Environment variable: another root folder of pre-trained cameras (instead of the package's).
 ENV_VAR = "HSICAM_PRETRAINED_DIR"
@@ -209,8 +210,8 @@ def _remedy(folder: Path) -> str:
 def weights_problem(folder: Path) -> str | None:
     """Why the weights of the camera ``folder`` cannot be used with its card: the card does not
     parse or records no sha256 of model.safetensors, or a file the card records (model.safetensors,
-    and linear_step.safetensors when the card names it) is missing or has another sha256; None when
-    they match."""
+    and linear_step.safetensors when the card names it) is missing or has another sha256, or a file its
+    camera was built from is (:func:`camera_files_problem`); None when they match."""
     try:
         card = load_card(folder)
     except InputError as exc:
@@ -231,12 +232,34 @@ def weights_problem(folder: Path) -> str | None:
         if got != want:
             return (f"{path}: does not match its card (sha256 {got[:12]}…, {CARD_JSON} records {want[:12]}…): the "
                     f"card describes other weights; {_remedy(folder)}")
+    return camera_files_problem(folder)
+
+
+def camera_files_problem(folder: Path) -> str | None:
+    """Why the copies of the files the camera ``folder`` is built from (material tables, a coded aperture: its
+    camera_files.json, :mod:`hsicam.runs.camera_files`) are not those it was packed with: the record does not
+    parse, or a file it names (relative to ``folder``) is missing or has another sha256; None when they match or the
+    camera names no file."""
+    from hsicam.io import file_sha256
+
+    try:
+        record = read_camera_files(folder, _remedy(folder))
+    except InputError as exc:
+        return str(exc)
+    for key, entry in sorted((record or {}).get("files", {}).items()):
+        path = folder / str(entry.get("path") or "")
+        if not path.is_file():
+            return f"{path}: missing (the camera's {key}: its {CAMERA_FILES_RECORD} records it); {_remedy(folder)}"
+        got, want = file_sha256(path), entry["sha256"]
+        if got != want:
+            return (f"{path}: does not match its {CAMERA_FILES_RECORD} (sha256 {got[:12]}…, recorded "
+                    f"{want[:12]}…): not the {key} the camera was trained with; {_remedy(folder)}")
     return None
 
 
 def check_weights(folder: Path) -> Path:
-    """``folder`` when its weights are the ones its card records (:func:`weights_problem`), else a
-    one-line :class:`InputError`."""
+    """``folder`` when its weights are the ones its card records and its camera's files the ones its
+    camera_files.json records (:func:`weights_problem`), else a one-line :class:`InputError`."""
     problem = weights_problem(folder)
     if problem:
         raise InputError(problem)
