@@ -382,6 +382,34 @@ def test_evaluate_refuses_a_heldout_set_of_sources_the_run_trained_on(synthetic_
     assert heldout_sources_problem(run_cfg.data, run_cfg.data) is None
 
 
+def test_the_source_checkout_is_told_from_an_installed_package(tmp_path):
+    """``source_checkout`` (where `pretrained pack` may write into the package without --dest): the checkout when
+    the module lies in its src/hsicam beside a .git (a source tree or an editable install), None for the same module
+    in site-packages or in a src/ tree without git. The module is run from copies."""
+    import importlib.util
+
+    import hsicam.engine.provenance as real
+
+    def copy_in(folder: Path):
+        module = folder / "hsicam" / "engine" / "provenance.py"
+        module.parent.mkdir(parents=True)
+        shutil.copyfile(real.__file__, module)
+        spec = importlib.util.spec_from_file_location(f"provenance_{folder.parent.name}", module)
+        mod = importlib.util.module_from_spec(spec)
+        spec.loader.exec_module(mod)
+        return mod
+
+    checkout = tmp_path / "checkout"
+    (checkout / ".git").mkdir(parents=True)
+    assert copy_in(checkout / "src").source_checkout() == checkout.resolve()
+    assert copy_in(tmp_path / "tree" / "src").source_checkout() is None  # no .git
+    wheel = tmp_path / "venv" / "lib" / "python3.11" / "site-packages"
+    (tmp_path / "venv" / "lib" / "python3.11" / ".git").mkdir(parents=True)  # a .git where parents[3] would look
+    assert copy_in(wheel).source_checkout() is None
+    here = Path(__file__).resolve().parents[2]  # the suite runs from its tree's src/ (PYTHONPATH or editable)
+    assert real.source_checkout() == (here if (here / ".git").exists() else None)
+
+
 def test_the_session_records_commit_is_the_checkouts_with_a_hash_of_its_local_changes(tmp_path):
     """``source_state`` names the checkout hsicam runs from: its HEAD, with ``+dirty`` exactly when a file under src/
     differs from it (a tracked file edited, or an untracked file not ignored: a new module runs too; not a tracked

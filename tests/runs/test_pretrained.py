@@ -341,6 +341,38 @@ def test_pack_command(env, tmp_path):
                        "no such run folder")
 
 
+def test_pack_without_dest_writes_into_the_package_only_from_a_source_checkout(env, tmp_path, monkeypatch):
+    """From a wheel install, `pack` without --dest wrote the camera into site-packages (where the docs said no
+    command writes, and where `pip uninstall hsicam` left it: session 76's packaging hunt). Now it packs into
+    $HSICAM_PRETRAINED_DIR when set, else into the package's folder from a source checkout only; an installed
+    package is refused in one line, nothing written."""
+    import hsicam.engine.provenance as provenance
+
+    run, _, _ = env
+    package = tmp_path / "site-packages" / "hsicam" / "resources" / "pretrained"
+    package.mkdir(parents=True)
+    monkeypatch.setattr(shipped, "package_root", lambda: package)
+    monkeypatch.delenv(shipped.ENV_VAR)
+    monkeypatch.setattr(provenance, "source_checkout", lambda: None, raising=False)  # an installed package
+    assert_clean_error(run_cli_in_process("pretrained", "pack", str(run), "--name", "mine"),
+                       f"no --dest: hsicam runs from an installed package, whose cameras ({package}) are read-only; "
+                       f"give --dest DIR (a folder of cameras: use them with {shipped.ENV_VAR}=DIR), or set "
+                       f"{shipped.ENV_VAR}")
+    assert list(package.iterdir()) == []
+    res = run_cli_in_process("pretrained", "pack", str(run), "--name", "mine", "--dest", str(tmp_path / "cams"))
+    assert res.returncode == 0, res.stderr
+    assert shipped.available(tmp_path / "cams") == ["mine"]
+    (tmp_path / "env").mkdir()
+    res = run_cli_in_process("pretrained", "pack", str(run), "--name", "mine",
+                             env={shipped.ENV_VAR: str(tmp_path / "env")})
+    assert res.returncode == 0, res.stderr
+    assert shipped.available(tmp_path / "env") == ["mine"] and list(package.iterdir()) == []
+    monkeypatch.setattr(provenance, "source_checkout", lambda: tmp_path)  # a source checkout: the package's folder
+    res = run_cli_in_process("pretrained", "pack", str(run), "--name", "mine")
+    assert res.returncode == 0, res.stderr
+    assert res.stdout.strip().endswith(f"-> {package / 'mine'}") and shipped.available(package) == ["mine"]
+
+
 # ------------------------------------------------------------------------------------------------
 # The command line
 # ------------------------------------------------------------------------------------------------

@@ -3,7 +3,7 @@
     hsicam pretrained                          one line per shipped camera
     hsicam pretrained show NAME                its model card (card.md)
     hsicam pretrained copy NAME DIR            a writable run folder holding it
-    hsicam pretrained pack RUN --name NAME [--results results.json] [--heldout results.json] [--force]
+    hsicam pretrained pack RUN --name NAME [--dest DIR] [--results results.json] [--heldout results.json] [--force]
 
 Every ``--run`` accepts ``pretrained:NAME``. ``HSICAM_PRETRAINED_DIR`` replaces the package's folder.
 """
@@ -38,8 +38,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     q.add_argument("--summary", type=text_arg, help="one-line summary (default: made from the run)")
     q.add_argument("--preset", type=text_arg, help="shipped preset the run was trained from (default: the preset its config equals, "
                                     "if any; a camera that differs from it is warned about)")
-    q.add_argument("--dest", metavar="DIR", help="root of the shipped cameras (default: $HSICAM_PRETRAINED_DIR, "
-                                                 "else the package's resources/pretrained)")
+    q.add_argument("--dest", metavar="DIR", help="folder of cameras to pack into (default: $HSICAM_PRETRAINED_DIR, "
+                                                 "else, from a source checkout only, the package's "
+                                                 "resources/pretrained; an installed package needs --dest)")
     q.add_argument("--force", action="store_true", help="replace an existing camera of that name")
     q.set_defaults(func=cmd_pack)
 

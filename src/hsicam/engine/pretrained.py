@@ -594,11 +594,29 @@ def check_pack_apart(run_dir: Path, target: Path) -> None:
                          "replace; choose another --name or --dest")
 
 
+def default_pack_root() -> Path:
+    """Where ``pack`` writes without ``--dest``: ``$HSICAM_PRETRAINED_DIR`` when set, else the package's own
+    folder of cameras when hsicam runs from a source checkout (:func:`hsicam.engine.provenance.source_checkout`:
+    a maintainer adding a camera to the repository). An installed package's folder (site-packages) is never
+    written: one-line :class:`InputError` asking for ``--dest`` (pip would not remove a camera it did not install)."""
+    import os
+
+    from hsicam.engine.provenance import source_checkout
+
+    if os.environ.get(shipped.ENV_VAR):
+        return shipped.root()
+    if source_checkout() is not None:
+        return shipped.package_root()
+    raise InputError(f"no --dest: hsicam runs from an installed package, whose cameras ({shipped.package_root()}) "
+                     f"are read-only; give --dest DIR (a folder of cameras: use them with {shipped.ENV_VAR}=DIR), or "
+                     f"set {shipped.ENV_VAR}")
+
+
 def pack_pretrained(run_dir: str | Path, name: str, dest_root: str | Path | None = None,
                     results: str | Path | None = None, heldout: str | Path | None = None, *,
                     summary: str | None = None, preset: str | None = None, overwrite: bool = False) -> Path:
     """Pack the finished run ``run_dir`` as the pre-trained camera ``name`` under ``dest_root``
-    (default: :func:`hsicam.runs.pretrained.root`); returns its folder.
+    (default: :func:`default_pack_root`, refused from an installed package); returns its folder.
 
     Refuses (one-line :class:`InputError`, nothing written) a run that has not finished, a
     fine-tuned run (its measured PSFs are not shipped), results of another run
@@ -611,6 +629,7 @@ def pack_pretrained(run_dir: str | Path, name: str, dest_root: str | Path | None
     folder, and their record. The folder is written under a temporary name and renamed into place."""
     run_dir = Path(run_dir)
     shipped.check_name(name)
+    dest = Path(dest_root) if dest_root is not None else default_pack_root()
     if shipped.is_spec(str(run_dir)):
         raise InputError(f"{run_dir}: already a pre-trained camera; pack a run folder")
     check_is_run(run_dir)
@@ -625,7 +644,6 @@ def pack_pretrained(run_dir: str | Path, name: str, dest_root: str | Path | None
     if size > limit:
         raise InputError(f"{weights}: {size / 1e6:.1f} MB of weights, more than the {limit / 1e6:g} MB a shipped "
                          "camera may have; train a smaller network")
-    dest = Path(dest_root) if dest_root is not None else shipped.root()
     target = dest / name
     check_pack_apart(run_dir, target)
     check_pack_target(target, name, overwrite)

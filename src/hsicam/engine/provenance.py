@@ -289,6 +289,14 @@ def installed_version() -> str | None:
         return None
 
 
+def source_checkout() -> Path | None:
+    """The git checkout hsicam runs from (``PYTHONPATH=src``, or an editable install: this module lies in its
+    ``src/hsicam/``, beside its ``.git``), or None: an installed package (a wheel in site-packages)."""
+    here = Path(__file__).resolve()
+    root = here.parents[3]  # src/hsicam/engine/provenance.py → the checkout
+    return root if here.parents[2].name == "src" and (root / ".git").exists() else None
+
+
 def source_state() -> dict[str, str | None]:
     """The checkout hsicam runs from: ``git_commit`` (its HEAD, ``+dirty`` when a tracked file under src/ differs from
     it or an untracked, not ignored file sits there) and ``source_diff_sha256`` (SHA-256 over those files, in path
@@ -296,8 +304,8 @@ def source_state() -> dict[str, str | None]:
     user's git settings, so two "+dirty" runs of one commit ran the same code exactly when these agree); both None for
     an installed wheel, no git or a git that fails, the hash None for a clean checkout."""
     none: dict[str, str | None] = {"git_commit": None, "source_diff_sha256": None}
-    root = Path(__file__).resolve().parents[3]  # src/hsicam/engine/provenance.py → the checkout
-    if not (root / ".git").exists() or not (root / "src" / "hsicam").is_dir():
+    root = source_checkout()
+    if root is None:
         return none
     try:
         run = lambda *args: subprocess.run(["git", "-C", str(root), *args], capture_output=True,  # noqa: E731
@@ -464,6 +472,6 @@ def generator_change_warning(run_dir: str | Path, data: DataConfig, doing: str) 
 
 __all__ = ["check_same_data", "data_changes", "data_record", "generator_change_warning", "installed_version",
            "read_data_record", "scene_roles", "heldout_sources_problem", "SESSION_60_COMMITS", "SESSION_60_GENERATOR",
-           "session_60_changes_had", "software_record", "started_before_session_60", "commit_label", "source_state",
-           "starting_session", "synthetic_scene_roles", "trained_generator_version", "training_scenes_warning",
-           "write_data_record"]
+           "session_60_changes_had", "software_record", "started_before_session_60", "commit_label", "source_checkout",
+           "source_state", "starting_session", "synthetic_scene_roles", "trained_generator_version",
+           "training_scenes_warning", "write_data_record"]

@@ -13,7 +13,8 @@ Each shipped camera is a folder ``hsicam/resources/pretrained/NAME/`` holding wh
 Everywhere a run folder is accepted (``load_run``, every ``--run`` of the CLI), ``pretrained:NAME``
 names a shipped camera (:func:`resolve_run`). The folders may sit in site-packages: they are
 read-only, and :func:`check_not_pretrained` refuses them as outputs. Maintainers add a camera with
-``hsicam pretrained pack`` (:mod:`hsicam.engine.pretrained`).
+``hsicam pretrained pack`` (:mod:`hsicam.engine.pretrained`), which writes into the package's folder only from a
+source checkout (an installed package needs its ``--dest``).
 
 ``HSICAM_PRETRAINED_DIR`` replaces the package's folder as the root of the shipped cameras (tests,
 or a site's own collection).
@@ -200,9 +201,10 @@ def read_card(name: str) -> dict[str, Any]:
 
 def _remedy(folder: Path) -> str:
     """What to do about a damaged camera ``folder``: re-install it (hsicam, for the package's own
-    cameras) or re-pack it in place."""
+    cameras, which only a source checkout re-packs in place) or re-pack it in place."""
     if folder.parent.resolve() == package_root().resolve():
-        return f"re-install hsicam, or re-pack it (`hsicam pretrained pack RUN --name {folder.name} --force`)"
+        return (f"re-install hsicam, or in a source checkout re-pack it (`hsicam pretrained pack RUN --name "
+                f"{folder.name} --force`)")
     return (f"re-pack it (`hsicam pretrained pack RUN --name {folder.name} --dest {folder.parent} --force`) or "
             "re-install it from where it came")
 
