@@ -141,6 +141,37 @@ def test_card_numbers_come_from_the_run_and_results(env):
     assert f"{final['step']} steps" in md and "## Limits" in md
 
 
+def test_the_card_names_the_hsicam_and_the_commit_that_packed_it(env, tmp_path, monkeypatch):
+    """Packed from a source checkout never installed (PYTHONPATH=src: no package metadata), the card said "packed …
+    with hsicam None" and recorded no commit (session 76's packaging hunt). Now it records the running package's
+    ``hsicam.__version__`` and the checkout's commit (``+dirty`` with the hash of its local changes), as a training
+    session's record does; card.md's last line says them."""
+    import importlib.metadata
+    import subprocess
+
+    import hsicam
+    from hsicam.engine.pretrained import pack_pretrained
+
+    def not_installed(name):
+        raise importlib.metadata.PackageNotFoundError(name)
+
+    monkeypatch.setattr(importlib.metadata, "version", not_installed)
+    run, _, _ = env
+    cam = pack_pretrained(run, "ver", tmp_path / "r")
+    c = json.loads((cam / "card.json").read_text())
+    assert c["hsicam_version"] == hsicam.__version__ and re.fullmatch(r"\d+\.\d+\.\d+.*", c["hsicam_version"])
+    last = (cam / "card.md").read_text().strip().splitlines()[-1]
+    assert last.endswith(f"packed {c['packed_utc']} with hsicam {hsicam.__version__} (commit {c['git_commit']}"
+                         + (f", local changes sha256 {c['source_diff_sha256'][:12]}…)." if c["source_diff_sha256"]
+                            else ")."))
+    checkout = Path(hsicam.__file__).resolve().parents[2]
+    if shutil.which("git") and (checkout / ".git").exists():  # the suite runs from a checkout (PYTHONPATH or -e)
+        head = subprocess.run(["git", "-C", str(checkout), "rev-parse", "HEAD"], capture_output=True, text=True,
+                              check=True).stdout.strip()
+        assert c["git_commit"] in (head, head + "+dirty")
+        assert (c["source_diff_sha256"] is None) == (c["git_commit"] == head)
+
+
 # ------------------------------------------------------------------------------------------------
 # Packing refusals
 # ------------------------------------------------------------------------------------------------
