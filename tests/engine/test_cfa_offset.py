@@ -510,3 +510,35 @@ def test_reconstruct_says_an_offset_changes_nothing_for_a_phase_blind_run(fab_ru
         meta = json.loads(a.attrs["metadata_json"])
         np.testing.assert_array_equal(a["cube"][()], b["cube"][()])
     assert meta["cfa_offset"] == [1, 2] and meta["cfa_offset_used"] is False
+
+
+def test_the_origin_warning_names_no_phase_to_take_when_two_explain_the_capture_about_equally(caplog):
+    """The check without --cfa-offset rules out 0,0; when a second phase explains the capture within
+    MIN_RUNNER_UP_RATIO of the best (the demo camera's crop at 2,2: 0,1 0.0121, 3,1 0.0131, the true 2,2 fourth),
+    the warning named the best as the answer and advised --cfa-offset auto, which took 34.8 dB to 28.8 dB: it now
+    names both, says the camera cannot read the phase here and asks for the offset. One clear winner: as before."""
+    from hsicam.cli.reconstruct import warn_phase_off_origin
+    from hsicam.engine.cfa_offset import CfaOffsetEstimate
+
+    def estimate(best, second):
+        residuals = {f"{y},{x}": 0.03 for y in range(4) for x in range(4)}
+        residuals.update({"0,1": best, "3,1": second, "0,0": 0.0318})
+        est = CfaOffsetEstimate((0, 1), residuals, (0, 0, 128, 128), 14)
+        assert est.rules_out_origin
+        return est
+
+    for est, says, not_says in (
+            (estimate(0.0121, 0.0131), ["the phases 0,1 and 3,1 explain it clearly better than 0,0 but about equally "
+                                        "(relative residual 0.0121 and 0.0131 against 0.0318)",
+                                        "this camera cannot read its phase from it (--cfa-offset auto would take 0,1, "
+                                        "which may be wrong too)", "with --cfa-offset Y,X; --cfa-offset 0,0 takes it"],
+             "or --cfa-offset auto (0,1 here)"),
+            (estimate(0.0121, 0.0200), ["the phase 0,1 explains it clearly better (relative residual 0.0121 against "
+                                        "0.0318)", "or --cfa-offset auto (0,1 here)"], "about equally")):
+        caplog.clear()
+        with caplog.at_level(logging.WARNING):
+            warn_phase_off_origin("crop.npy", est, "rot90")
+        [line] = [r.getMessage() for r in caplog.records]
+        assert line.startswith("crop.npy: read as rot90, the capture does not look as if it started where the sensor "
+                               "does (CFA phase 0,0, taken without --cfa-offset): "), line
+        assert all(s in line for s in says) and not_says not in line, line
