@@ -7,8 +7,7 @@ Tensors are (B, C, H, W) with C = spectral bands in ascending wavelength order.
 from typing import Any
 
 from hsicam.errors import ConfigError, HsicamError, InputError
-
-__version__ = "0.1.0"
+from hsicam.version import __version__
 
 __all__ = ["Bands", "ConfigError", "HsicamError", "InputError", "__version__"]
 

@@ -471,6 +471,35 @@ def test_the_session_records_commit_is_the_checkouts_with_a_hash_of_its_local_ch
     assert copy.source_state() == {"git_commit": git("rev-parse", "HEAD"), "source_diff_sha256": None} != clean
 
 
+def test_records_name_the_version_of_the_code_running_not_of_an_installed_distribution(tmp_path):
+    """A checkout run over another installed hsicam (``PYTHONPATH=src`` in a venv holding a wheel) records its own
+    ``hsicam.__version__`` in the session / results ``software`` (and the card's ``hsicam_version``, which reads the
+    same helper) and in a synthetic set's manifest, not the installed distribution's (session 76's hunt: a 0.1.0
+    checkout recorded 0.2.0). The other distribution is a bare .dist-info ahead of src/ on the path."""
+    import os
+    import subprocess
+    import sys
+
+    import hsicam
+
+    other = tmp_path / "site" / "hsicam-9.9.9.dist-info"
+    other.mkdir(parents=True)
+    (other / "METADATA").write_text("Metadata-Version: 2.1\nName: hsicam\nVersion: 9.9.9\n")
+    src = Path(hsicam.__file__).resolve().parents[1]
+    code = ("import importlib.metadata as m, hsicam\n"
+            "from hsicam.engine.provenance import running_version, software_record\n"
+            "from hsicam.data.synthetic import _versions\n"
+            "print(m.version('hsicam'), hsicam.__file__, hsicam.__version__, software_record('cpu')['hsicam'],"
+            " running_version(), _versions()['hsicam'])")
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(tmp_path / "site"), str(src)]), "OMP_NUM_THREADS": "1"}
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, timeout=300)
+    assert out.returncode == 0, out.stderr
+    installed, where, running, session, card, manifest = out.stdout.split()
+    assert installed == "9.9.9" and Path(where).resolve() == src / "hsicam" / "__init__.py"  # the set-up holds
+    assert running == hsicam.__version__ != "9.9.9"
+    assert session == card == manifest == running
+
+
 def test_a_hidden_file_in_a_cave_folder_is_not_part_of_its_scene(tmp_path):
     """A file manager's .DS_Store (or ._ AppleDouble files) appearing in a CAVE folder changed the scene's recorded
     size: a resume warned the scene had changed, and a copy of the folder without it was not recognised as the

@@ -12,7 +12,7 @@ SRC = Path(__file__).resolve().parents[2] / "src" / "hsicam"
 
 # Lowest first. A module may import from its own layer or any layer below it.
 LAYERS: list[set[str]] = [
-    {"errors", "io", "memory", "devices", "progress", "spectral", "config", "resources", "configs"},
+    {"errors", "io", "memory", "devices", "progress", "spectral", "config", "resources", "configs", "version"},
     {"optics", "sensor", "color", "metrics"},
     {"cameras"},
     {"models"},

@@ -614,10 +614,14 @@ def _round(v: np.ndarray) -> list[float]:
 
 
 def _versions() -> dict[str, str]:
+    """The manifest's ``software``: hsicam's version is the running code's (``hsicam.__version__``, not the metadata
+    of whichever hsicam distribution is installed), the others' their installed distributions'."""
     from importlib import metadata
 
-    out = {}
-    for dist in ("hsicam", "colour-science", "numpy", "scikit-image", "h5py"):
+    from hsicam.version import __version__
+
+    out = {"hsicam": __version__}
+    for dist in ("colour-science", "numpy", "scikit-image", "h5py"):
         try:
             out[dist] = metadata.version(dist)
         except metadata.PackageNotFoundError:

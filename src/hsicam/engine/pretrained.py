@@ -22,7 +22,7 @@ from pathlib import Path
 from typing import Any
 
 from hsicam.config import camera_files, dump_yaml, load_config, with_values
-from hsicam.engine.provenance import commit_label, source_state
+from hsicam.engine.provenance import commit_label, running_version, source_state
 from hsicam.errors import InputError
 from hsicam.io import (COMPLETE_MARKER, atomic_open, atomic_output, copy_file, is_complete, json_number, mark_complete,
                        nan_for_null, same_path, write_json)
@@ -368,8 +368,6 @@ def card_fields(run_dir: str | Path, name: str, results: str | Path | None = Non
     """The machine-readable model card (``card.json``) of the finished run ``run_dir`` packed as ``name``."""
     import torch
 
-    from hsicam import __version__
-
     run_dir = Path(run_dir)
     final = final_record(run_dir)
     cfg, model = load_run(run_dir)
@@ -400,7 +398,7 @@ def card_fields(run_dir: str | Path, name: str, results: str | Path | None = Non
         "summary": " ".join(str(summary).split()),
         "preset": preset,
         "packed_utc": datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ"),
-        "hsicam_version": __version__,  # the running code's (a source checkout has no installed metadata)
+        "hsicam_version": running_version(),  # the running code's (a source checkout has no installed metadata)
         **source_state(),  # git_commit (+dirty) and source_diff_sha256, as a training session records them
         "source_run": str(run_dir.resolve()),
         "camera": {"kind": cam.kind, "cfa_period": cfa, "pixel_pitch_um": cam.sensor.pixel_pitch_um,

@@ -278,15 +278,13 @@ def training_scenes_warning(roles: Sequence[str], run: str | Path) -> str | None
     return f"{n} of {len(roles)} scenes were training scenes of {run}: their scores are not a validation"
 
 
-def installed_version() -> str | None:
-    """hsicam's version as installed (its package metadata), or None for a source tree never installed
-    (``PYTHONPATH=src``; the engine does not import the package root for ``__version__``)."""
-    from importlib.metadata import PackageNotFoundError, version
+def running_version() -> str:
+    """The version of the hsicam code running (``hsicam.__version__``, which the built wheel's metadata takes too):
+    not ``importlib.metadata``'s, which names whatever hsicam distribution is installed, e.g. another one than a
+    ``PYTHONPATH=src`` checkout's (session 76's packaging hunt: a 0.1.0 checkout recorded as an installed 0.2.0)."""
+    from hsicam.version import __version__
 
-    try:
-        return version("hsicam")
-    except PackageNotFoundError:
-        return None
+    return __version__
 
 
 def source_checkout() -> Path | None:
@@ -345,7 +343,7 @@ def software_record(device: str, world_size: int = 1) -> dict[str, Any]:
     import torch
 
     return {"started_utc": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
-            "hsicam": installed_version(), **source_state(), "torch": torch.__version__,
+            "hsicam": running_version(), **source_state(), "torch": torch.__version__,
             "numpy": numpy.__version__, "python": platform.python_version(), "platform": platform.platform(),
             "executable": sys.executable, "device": str(device), "threads": torch.get_num_threads(),
             "world_size": int(world_size),
@@ -470,8 +468,8 @@ def generator_change_warning(run_dir: str | Path, data: DataConfig, doing: str) 
             f"not comparable with those the run's version gave")
 
 
-__all__ = ["check_same_data", "data_changes", "data_record", "generator_change_warning", "installed_version",
-           "read_data_record", "scene_roles", "heldout_sources_problem", "SESSION_60_COMMITS", "SESSION_60_GENERATOR",
-           "session_60_changes_had", "software_record", "started_before_session_60", "commit_label", "source_checkout",
-           "source_state", "starting_session", "synthetic_scene_roles", "trained_generator_version",
-           "training_scenes_warning", "write_data_record"]
+__all__ = ["check_same_data", "data_changes", "data_record", "generator_change_warning",
+           "read_data_record", "running_version", "scene_roles", "heldout_sources_problem", "SESSION_60_COMMITS",
+           "SESSION_60_GENERATOR", "session_60_changes_had", "software_record", "started_before_session_60",
+           "commit_label", "source_checkout", "source_state", "starting_session", "synthetic_scene_roles",
+           "trained_generator_version", "training_scenes_warning", "write_data_record"]
