@@ -12,16 +12,13 @@ import argparse
 import tempfile
 from pathlib import Path
 
-import matplotlib
+import numpy as np
+import torch
+from matplotlib.figure import Figure  # a figure for a file: no pyplot, your matplotlib backend left as it is
 
-matplotlib.use("Agg")  # files only, no display
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
-import torch  # noqa: E402
-
-from hsicam.cameras import DOECamera  # noqa: E402
-from hsicam.config import load_config  # noqa: E402
-from hsicam.report.camera import rms_radius_px  # noqa: E402
+from hsicam.cameras import DOECamera
+from hsicam.config import load_config
+from hsicam.report.camera import rms_radius_px
 
 parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
 parser.add_argument("--out", type=Path, default=None, help="folder for the figure (default: a new temporary folder)")
@@ -49,14 +46,14 @@ print(f"energy in kernel: min {energy.min():.4f}, max {energy.max():.4f}")
 np.save(out / "psf.npy", psf)
 
 # 3. A figure of the PSFs at three wavelengths (log scale: the DOE spreads light far from the centre).
-fig, axes = plt.subplots(1, 3, figsize=(10, 3.6))
+fig = Figure(figsize=(10, 3.6))
+axes = fig.subplots(1, 3)
 for ax, i in zip(axes, (0, len(bands) // 2, len(bands) - 1)):
     im = ax.imshow(np.log10(psf[i] + 1e-8), cmap="magma", vmin=-8, vmax=float(np.log10(psf.max())))
     ax.set_title(f"{bands.centers_nm[i]:.0f} nm, RMS {rms[i]:.1f} px")
     ax.axis("off")
 fig.colorbar(im, ax=axes, label="log10 energy per pixel")
 fig.savefig(out / "psf_3_bands.png", dpi=100)
-plt.close(fig)
 
 # 4. The adjoint identity <A x, y> = <x, Aᵀ y> on random tensors, in float64.
 #    A: scene (1, C, H+K-1, W+K-1) -> sensor (1, 1, H, W) (boundary "valid"); Aᵀ back to the scene's shape.

@@ -52,6 +52,7 @@ import os
 import re
 import secrets
 import shutil
+import sys
 import time
 from pathlib import Path
 from typing import IO, Any, Callable, Iterator
@@ -1180,12 +1181,14 @@ def write_png8(path: str | os.PathLike, rgb01: np.ndarray, text: dict[str, str] 
 
 
 def save_figure(fig: Any, path: str | os.PathLike, dpi: int = 120) -> None:
-    """Save a matplotlib figure atomically and close it."""
-    import matplotlib.pyplot as plt
-
+    """Save a matplotlib figure atomically and close it. hsicam draws on ``matplotlib.figure.Figure`` objects, which
+    need neither pyplot nor a backend (the user's backend is left as it is, headless or not); a figure of the
+    user's own pyplot is closed there too, without importing pyplot."""
     with atomic_path(path) as tmp:
         fig.savefig(tmp, dpi=dpi, bbox_inches="tight")
-    plt.close(fig)
+    pyplot = sys.modules.get("matplotlib.pyplot")
+    if pyplot is not None:
+        pyplot.close(fig)
 
 
 def json_default(obj: Any) -> Any:

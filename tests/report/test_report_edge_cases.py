@@ -564,9 +564,12 @@ def test_the_cfa_figures_tile_title_keeps_clear_of_the_curves_axis_label(tmp_pat
     bands = Bands.uniform(420, 720, 50)  # (the tiny preset's 7 bands, whose figure it was)
     tile = np.random.default_rng(0).random((len(bands), m, m))
     figures.plot_cfa(tile / tile.sum(axis=0), bands, tmp_path / "cfa.png")
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+
+    canvas = FigureCanvasAgg(figs[0])  # drawn as savefig draws it (hsicam's figures carry no pyplot canvas)
+    canvas.draw()
+    renderer = canvas.get_renderer()
     fig = figs[0]
-    fig.canvas.draw()
-    renderer = fig.canvas.get_renderer()
     a0, a1 = fig.axes[:2]
     title, label = a0.title.get_window_extent(renderer), a1.yaxis.label.get_window_extent(renderer)
     assert title.x1 < label.x0, (title, label)  # the title stays over its own panel, left of the label's column

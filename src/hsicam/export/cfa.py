@@ -216,10 +216,8 @@ def plot_fits(tile: np.ndarray, bands: Bands, fits: list[dict[str, Any]], path: 
     per filter, all on the same axes (wavelength in nm, transmission relative to the filter's peak), the x range
     covering the model filters' 1 nm grid and the y range every curve and fit: a fit overshooting the peak (an
     offset plus Gaussians between sparse bands) is drawn whole, not cut flat."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    from matplotlib.figure import Figure
+    from matplotlib.ticker import MaxNLocator
 
     from hsicam.report.camera import cfa_tile_rgb
 
@@ -237,7 +235,8 @@ def plot_fits(tile: np.ndarray, bands: Bands, fits: list[dict[str, Any]], path: 
     hi = max(1.0, *(float(m.max()) for m in models))
     pad = 0.05 * (hi - lo)
     # the same limits set on every panel, not shared axes: 225 shared panels (a 15 × 15 tile) took 20 s to draw
-    fig, axes = plt.subplots(mr, mc, figsize=(1.9 * mc + 0.8, 1.5 * mr + 0.8), squeeze=False)
+    fig = Figure(figsize=(1.9 * mc + 0.8, 1.5 * mr + 0.8))
+    axes = fig.subplots(mr, mc, squeeze=False)
     margin = 0.03 * (float(grid[-1] - grid[0]) or 1.0)
     for idx, (ax, f) in enumerate(zip(axes.flat, fits)):
         ax.plot(lam, curves[idx] / peaks[idx], "o", ms=3, color=np.clip(rgb[idx], 0, 0.85))
@@ -246,8 +245,8 @@ def plot_fits(tile: np.ndarray, bands: Bands, fits: list[dict[str, Any]], path: 
         ax.set_title(f"{f['filter']}  rms {f['rms_error']:.3f}", fontsize=8)
         ax.set_xlim(grid[0] - margin, grid[-1] + margin)
         ax.set_ylim(lo - pad, hi + pad)
-        ax.xaxis.set_major_locator(plt.MaxNLocator(3))
-        ax.yaxis.set_major_locator(plt.MaxNLocator(4))
+        ax.xaxis.set_major_locator(MaxNLocator(3))
+        ax.yaxis.set_major_locator(MaxNLocator(4))
         i, j = divmod(idx, mc)
         ax.tick_params(labelsize=7, labelbottom=i == mr - 1, labelleft=j == 0)
     fig.subplots_adjust(wspace=0.12, hspace=0.35)

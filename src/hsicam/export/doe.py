@@ -177,16 +177,14 @@ def plot_doe_export(height_nm: np.ndarray, quantized_nm: np.ndarray, aperture: n
     """Continuous heights, L-level heights and their difference over the aperture (nm), the
     difference wrapped to ±h_2π/2 (a wrap by h_2π is no error at the design wavelength). The two
     height maps share one colour scale (a colour is the same height in both)."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    from matplotlib.figure import Figure
 
     inside = np.asarray(aperture) > 0
     n = height_nm.shape[0]
     half = n * cell_um * 1e-3 / 2
     ext = (-half, half, -half, half)
-    fig, axes = plt.subplots(1, 3, figsize=(13, 3.8), layout="constrained")  # colour bars clear of the next panel
+    fig = Figure(figsize=(13, 3.8), layout="constrained")  # constrained: colour bars clear of the next panel
+    axes = fig.subplots(1, 3)
     heights = np.concatenate([height_nm[inside], quantized_nm[inside]])
     height_range = {"vmin": float(heights.min()), "vmax": float(heights.max())} if heights.size else {}
     panels = [(height_nm, "continuous height (nm)", "viridis"), (quantized_nm, f"{levels}-level height (nm)", "viridis"),

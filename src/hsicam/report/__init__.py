@@ -1,1 +1,2 @@
-"""Figures and reports. Plotting uses matplotlib's non-interactive Agg backend."""
+"""Figures and reports, drawn on `matplotlib.figure.Figure` objects saved to files: no pyplot, and the user's matplotlib
+backend is left as it is."""

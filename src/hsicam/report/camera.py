@@ -6,15 +6,15 @@ import math
 from pathlib import Path
 
 import matplotlib
+import numpy as np
+import torch
+from matplotlib.cm import ScalarMappable
+from matplotlib.colors import Normalize
+from matplotlib.figure import Figure
 
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
-import torch  # noqa: E402
-
-from hsicam.errors import InputError  # noqa: E402
-from hsicam.io import save_figure, write_json, write_npy  # noqa: E402
-from hsicam.spectral import Bands  # noqa: E402
+from hsicam.errors import InputError
+from hsicam.io import save_figure, write_json, write_npy
+from hsicam.spectral import Bands
 
 
 def encircled_energy(psf: np.ndarray, radii_px: np.ndarray) -> np.ndarray:
@@ -101,7 +101,7 @@ def plot_psf_montage(psf: np.ndarray, bands: Bands, path: str | Path, decades: f
     shown = psf[:, a : a + crop, a : a + crop]
     cols = min(8, c)
     rows = math.ceil(c / cols)
-    fig = plt.figure(figsize=(1.6 * cols, 1.75 * rows + 3.2), layout="constrained")
+    fig = Figure(figsize=(1.6 * cols, 1.75 * rows + 3.2), layout="constrained")
     grid = fig.add_gridspec(rows + 1, cols, height_ratios=[1.0] * rows + [1.8])
     tiles = []
     for i in range(c):
@@ -116,7 +116,7 @@ def plot_psf_montage(psf: np.ndarray, bands: Bands, path: str | Path, decades: f
     ax = fig.add_subplot(grid[rows, :])
     radii = np.arange(0, max(k // 2 * math.sqrt(2) + 1.0, 2.0))  # (a 1×1 kernel: radii 0 and 1, not 0 alone)
     ee = encircled_energy(psf, radii)
-    cmap = plt.get_cmap("turbo")
+    cmap = matplotlib.colormaps["turbo"]
     lo, hi = float(np.min(bands.centers_nm)), float(np.max(bands.centers_nm))
     for i in range(c):
         ax.plot(radii[1:], ee[i, 1:], color=cmap((bands.centers_nm[i] - lo) / max(hi - lo, 1e-9)), lw=1,
@@ -127,7 +127,7 @@ def plot_psf_montage(psf: np.ndarray, bands: Bands, path: str | Path, decades: f
     # the lowest curve's start, rounded down to a tenth: a sharp camera's curves (0.85-1) are not squeezed flat
     ax.set_ylim(max(0.0, math.floor(float(ee[:, 1:].min()) * 10) / 10 - 0.1), 1.02)
     ax.grid(True, alpha=0.3)
-    sm = plt.cm.ScalarMappable(cmap=cmap, norm=plt.Normalize(lo, hi))
+    sm = ScalarMappable(cmap=cmap, norm=Normalize(lo, hi))
     fig.colorbar(sm, ax=ax, label="band (nm)", pad=0.01)
     held = math.floor(float(encircled_fraction_in_square(psf, crop).min()) * 100) / 100  # "≥": rounded down
     fig.suptitle(f"PSF per band: central {crop}×{crop} of {k}×{k} px (≥ {held:.0%} of each band's light in the "
@@ -159,7 +159,8 @@ def plot_cfa(tile: np.ndarray, bands: Bands, path: str | Path) -> None:
     rgb = cfa_tile_rgb(t, bands)
     m = t.shape[-1]
     # constrained: the tile's title ran into the curves' y label (session 74's figure hunt)
-    fig, (a0, a1) = plt.subplots(1, 2, figsize=(9, 3.6), gridspec_kw={"width_ratios": [1, 1.6]}, layout="constrained")
+    fig = Figure(figsize=(9, 3.6), layout="constrained")
+    a0, a1 = fig.subplots(1, 2, gridspec_kw={"width_ratios": [1, 1.6]})
     a0.imshow(rgb, interpolation="nearest")
     a0.set_title(f"CFA tile {m}×{m}\n(sRGB, each filter peak-normalised)", fontsize=9)
     a0.set_xticks([])
@@ -181,7 +182,8 @@ def plot_doe_heights(height_m: np.ndarray, aperture: np.ndarray, cell_um: float,
     shown = np.where(np.asarray(aperture) > 0, h, np.nan)
     n = h.shape[0]
     half = n * cell_um * 1e-3 / 2
-    fig, ax = plt.subplots(figsize=(4.6, 3.8))
+    fig = Figure(figsize=(4.6, 3.8))
+    ax = fig.subplots()
     im = ax.imshow(shown, cmap="viridis", extent=(-half, half, -half, half), interpolation="nearest")
     ax.set_xlabel("x (mm)")
     ax.set_ylabel("y (mm)")

@@ -16,17 +16,16 @@ import urllib.parse
 from pathlib import Path
 
 import matplotlib
+import numpy as np
+from matplotlib.figure import Figure
+from matplotlib.patches import Rectangle
 
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
-
-from hsicam.errors import ConfigError, InputError  # noqa: E402
-from hsicam.io import (  # noqa: E402
+from hsicam.errors import ConfigError, InputError
+from hsicam.io import (
     OutputLock, atomic_open, atomic_output, is_complete, json_number, nan_for_null, save_figure,
 )
-from hsicam.report.reconstruction import cube_rgb, plot_training_curves, spectra_exponent  # noqa: E402
-from hsicam.spectral import Bands  # noqa: E402
+from hsicam.report.reconstruction import cube_rgb, plot_training_curves, spectra_exponent
+from hsicam.spectral import Bands
 
 CSS = """body{font-family:system-ui,sans-serif;max-width:1200px;margin:2em auto;padding:0 1em;color:#222}
 table{border-collapse:collapse;margin:1em 0}td,th{border:1px solid #ccc;padding:4px 8px;text-align:right}
@@ -440,14 +439,14 @@ def plot_scene_comparison(truth: np.ndarray, est: np.ndarray, bands: Bands, path
     s = max(min(h, w) // 4, 4)
     crops = [((h - s) // 2, (w - s) // 2, "tab:cyan"), (h // 8, w // 8, "tab:pink")]
     pts = [(h // 4, 3 * w // 4, "tab:red"), (h // 2, w // 2, "tab:green"), (3 * h // 4, w // 4, "tab:blue")]
-    fig = plt.figure(figsize=(13, 6))
+    fig = Figure(figsize=(13, 6))
     gs = fig.add_gridspec(2, 5)
     for col, (img, name) in enumerate(((gt_rgb, "ground truth"), (est_rgb, "reconstruction"))):
         ax = fig.add_subplot(gs[:, col])
         ax.imshow(img)
         ax.set_title(f"{title} {name}", fontsize=9)
         for y, x, c in crops:
-            ax.add_patch(plt.Rectangle((x, y), s, s, fill=False, ec=c, lw=1.5))
+            ax.add_patch(Rectangle((x, y), s, s, fill=False, ec=c, lw=1.5))
         for y, x, c in pts:
             ax.plot(x, y, "o", mfc="none", mec=c, ms=7)
         ax.set_xticks([])
@@ -482,7 +481,8 @@ def plot_band_errors(truth: np.ndarray, est: np.ndarray, bands: Bands, path: Pat
     top = float(err[idx].max())
     cols = min(8, idx.size)
     rows = int(np.ceil(idx.size / cols))
-    fig, axes = plt.subplots(rows, cols, figsize=(1.7 * cols, 1.9 * rows), squeeze=False)
+    fig = Figure(figsize=(1.7 * cols, 1.9 * rows))
+    axes = fig.subplots(rows, cols, squeeze=False)
     for ax in axes.flat:
         ax.axis("off")
     for ax, i in zip(axes.flat, idx):
@@ -503,7 +503,8 @@ def plot_period_sweep(rows: list[dict], path: Path) -> bool:
     if len(pts) < 2:
         return False
     periods = [p for p, _ in pts]
-    fig, axes = plt.subplots(1, 3, figsize=(11, 3.4), layout="constrained")
+    fig = Figure(figsize=(11, 3.4), layout="constrained")
+    axes = fig.subplots(1, 3)
     for ax, (key, label) in zip(axes, (("psnr", "PSNR (dB)"), ("ssim", "SSIM"), ("sam", "SAM (°), lower is better"))):
         ax.plot(periods, [float(r[key]) if isinstance(r.get(key), (int, float)) else np.nan for _, r in pts], "-o")
         ax.set_xticks(periods)
@@ -519,9 +520,10 @@ def plot_noise_grid(grid: dict, path: Path) -> None:
     """Fig. 7 style: PSNR (solid, left axis) and SSIM (dashed, right axis) versus σ_s per σ_p, one panel per
     camera, every panel on the same PSNR and the same SSIM scale (the cameras are compared across panels)."""
     names = list(grid["results"])
-    fig, axes = plt.subplots(1, len(names), figsize=(5.5 * len(names), 4), squeeze=False, sharey=True,
-                             layout="constrained")  # constrained: a panel's SSIM axis is clear of the next one's PSNR axis
-    colors = plt.cm.viridis(np.linspace(0, 0.9, len(grid["sigma_height_nm"])))
+    # constrained: a panel's SSIM axis is clear of the next one's PSNR axis
+    fig = Figure(figsize=(5.5 * len(names), 4), layout="constrained")
+    axes = fig.subplots(1, len(names), squeeze=False, sharey=True)
+    colors = matplotlib.colormaps["viridis"](np.linspace(0, 0.9, len(grid["sigma_height_nm"])))
     first_ssim = None
     for ax, name in zip(axes[0], names):
         ax2 = ax.twinx()

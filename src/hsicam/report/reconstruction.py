@@ -6,15 +6,12 @@ import json
 from dataclasses import dataclass
 from pathlib import Path
 
-import matplotlib
+import numpy as np
+import torch
+from matplotlib.figure import Figure
 
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
-import torch  # noqa: E402
-
-from hsicam.io import nan_for_null, save_figure  # noqa: E402
-from hsicam.spectral import Bands  # noqa: E402
+from hsicam.io import nan_for_null, save_figure
+from hsicam.spectral import Bands
 
 
 def cube_rgb(cube: np.ndarray, bands: Bands) -> np.ndarray:
@@ -36,8 +33,8 @@ def plot_reconstructions(results, bands: Bands, path: str | Path, max_rows: int 
     ``max_rows`` scenes (the figure's title says so when there are more)."""
     results = list(results)
     total, results = len(results), results[:max_rows]
-    fig, axes = plt.subplots(len(results), 4, figsize=(14, 3.2 * len(results)), squeeze=False,
-                             gridspec_kw={"wspace": 0.55, "hspace": 0.45})
+    fig = Figure(figsize=(14, 3.2 * len(results)))
+    axes = fig.subplots(len(results), 4, squeeze=False, gridspec_kw={"wspace": 0.55, "hspace": 0.45})
     for row, r in zip(axes, results):
         gt, est = r.truth, r.estimate
         row[0].imshow(np.clip(cube_rgb(gt, bands), 0, 1))
@@ -104,7 +101,8 @@ def plot_method_comparison(truth_rgb: np.ndarray, panels, path: str | Path, titl
     panels = list(panels)
     n = len(panels) + 1
     vmax = max(max((float(p.error.max()) for p in panels), default=0.0), 1e-6)
-    fig, axes = plt.subplots(2, n, figsize=(2.3 * n, 5.2), squeeze=False, layout="constrained")
+    fig = Figure(figsize=(2.3 * n, 5.2), layout="constrained")
+    axes = fig.subplots(2, n, squeeze=False)
     for ax in axes.flat:
         ax.set_xticks([])
         ax.set_yticks([])
@@ -137,7 +135,8 @@ def plot_training_curves(metrics_jsonl: str | Path, path: str | Path, loss_formu
     va = [(r["step"], r["val_psnr"], r["val_ssim"]) for r in recs if "val_psnr" in r and not r.get("final")]
     # PSNR and SSIM each on its own panel, with markers: on two autoscaled axes of one panel, two validation points
     # drew the two lines exactly over each other (each axis spans its own two values), under the legend
-    fig, (a0, a1, a2) = plt.subplots(1, 3, figsize=(13, 3.5), layout="constrained")
+    fig = Figure(figsize=(13, 3.5), layout="constrained")
+    a0, a1, a2 = fig.subplots(1, 3)
     if tr:
         a0.plot(*zip(*tr), lw=1)
     a0.set_xlabel("step")

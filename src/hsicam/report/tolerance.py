@@ -48,16 +48,14 @@ DIAGONAL_DISTANCE = 2 ** 0.5
 def plot_tolerance(result: dict[str, Any], path: str | Path) -> None:
     """PSNR versus each perturbation (2×2 panels), nominal as a dashed line; a sweep recorded in
     ``result["skipped"]`` (e.g. the DOE sweeps of a camera without a DOE) gets its reason instead."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    from matplotlib.figure import Figure
 
     from hsicam.io import save_figure
 
     sw = result["sweeps"]
     nom = result["nominal"]["psnr"]
-    fig, axes = plt.subplots(2, 2, figsize=(9, 6.5))
+    fig = Figure(figsize=(9, 6.5))
+    axes = fig.subplots(2, 2)
     panels = [
         (axes[0, 0], ["sigma_height_nm"], "height noise σ$_p$ (nm)", False),
         (axes[0, 1], ["levels"], "quantisation levels L", True),
