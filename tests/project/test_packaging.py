@@ -84,6 +84,18 @@ def test_the_built_version_is_the_packages_own_version(tmp_path):
     assert config.read_configuration(tmp_path / "pyproject.toml", expand=True)["project"]["version"] == "7.5.3"
 
 
+def test_the_mit_license_text_ships_beside_its_expression():
+    """``License-Expression: MIT`` came with no license text (session 76's hunt): LICENSE holds the MIT terms, and
+    ``license-files`` names it (the wheel's .dist-info/licenses/ and the sdist carry it: the slow tests build both)."""
+    project = _pyproject()["project"]
+    assert project["license"] == "MIT"
+    assert project["license-files"] == ["LICENSE"]
+    text = (ROOT / "LICENSE").read_text(encoding="utf-8")
+    assert text.startswith("MIT License\n\nCopyright (c) ") and "the hsicam developers" in text.splitlines()[2]
+    assert "Permission is hereby granted, free of charge, to any person obtaining a copy" in text
+    assert 'THE SOFTWARE IS PROVIDED "AS IS", WITHOUT WARRANTY OF ANY KIND' in text
+
+
 # ---- what the wheel ships ---------------------------------------------------------------------------------
 def _pyproject() -> dict:
     return tomllib.loads((ROOT / "pyproject.toml").read_text(encoding="utf-8"))
@@ -172,15 +184,20 @@ def _local_setuptools_major() -> int:
         return 0
 
 
-@pytest.mark.slow
-def test_built_wheel_holds_the_configs_cameras_and_resources(tmp_path):
-    # a copy of what the build reads, so that pip's in-tree build leaves no build/ or egg-info in the checkout
+def _build_tree(tmp_path: Path) -> Path:
+    """A copy of what a build reads, so that an in-tree build leaves no build/ or egg-info in the checkout."""
     src = tmp_path / "src_tree"
     src.mkdir()
-    for f in ("pyproject.toml", "README.md"):
+    for f in ("pyproject.toml", "README.md", "LICENSE"):
         shutil.copy2(ROOT / f, src / f)
     shutil.copytree(ROOT / "src", src / "src", symlinks=False,
                     ignore=shutil.ignore_patterns("__pycache__", "*.egg-info", "*.pyc"))
+    return src
+
+
+@pytest.mark.slow
+def test_built_wheel_holds_the_configs_cameras_and_resources(tmp_path):
+    src = _build_tree(tmp_path)
     wheel_cmd = [sys.executable, "-m", "pip", "wheel", "--no-deps", "-q", "-w", str(tmp_path / "dist"), str(src)]
     run = subprocess.run(wheel_cmd, capture_output=True, text=True, timeout=600)
     if run.returncode != 0 and re.search(r"(No matching distribution found for setuptools|Could not find a version "
@@ -199,10 +216,35 @@ def test_built_wheel_holds_the_configs_cameras_and_resources(tmp_path):
     names = set(archive.namelist())
     metadata = archive.read(f"hsicam-{hsicam.__version__}.dist-info/METADATA").decode()
     assert f"\nVersion: {hsicam.__version__}\n" in metadata
+    assert "\nLicense-Expression: MIT\n" in metadata and "\nLicense-File: LICENSE\n" in metadata
+    licence = archive.read(f"hsicam-{hsicam.__version__}.dist-info/licenses/LICENSE")
+    assert licence == (ROOT / "LICENSE").read_bytes()
     want = {f"hsicam/{f}" for f in _resource_files()}
     assert want <= names, sorted(want - names)
     assert {f"hsicam/{f}" for f in _loaded_at_run_time()} <= names
     assert "hsicam/cli/__init__.py" in names and "hsicam/runs/pretrained.py" in names
+
+
+@pytest.mark.slow
+def test_built_sdist_holds_the_license_and_the_packages_version(tmp_path):
+    """The sdist (setuptools' own build_sdist, with the setuptools here) carries LICENSE and names the version of
+    src/hsicam/__init__.py."""
+    import tarfile
+
+    import hsicam
+
+    if _local_setuptools_major() < 77:
+        pytest.skip("the setuptools here predates the license string (PEP 639) of pyproject.toml")
+    src = _build_tree(tmp_path)
+    run = subprocess.run([sys.executable, "-c", "from setuptools import build_meta as b; print(b.build_sdist('dist'))"],
+                         cwd=src, capture_output=True, text=True, timeout=600)
+    assert run.returncode == 0, run.stderr
+    name = f"hsicam-{hsicam.__version__}"
+    assert run.stdout.split()[-1] == f"{name}.tar.gz"
+    with tarfile.open(src / "dist" / f"{name}.tar.gz") as tar:
+        assert tar.extractfile(f"{name}/LICENSE").read() == (ROOT / "LICENSE").read_bytes()
+        info = tar.extractfile(f"{name}/PKG-INFO").read().decode()
+    assert f"\nVersion: {hsicam.__version__}\n" in info and "\nLicense-File: LICENSE\n" in info
 
 
 # ---- optional packages: one line naming the extra --------------------------------------------------------
