@@ -411,7 +411,7 @@ def test_tensorboard_without_the_package_warns_once_and_trains(cache_env, tmp_pa
         assert train(load_config("tiny", ["train.epochs=1", "train.tensorboard=true"]), tmp_path / "r",
                      progress=False)["step"] == 4
     warned = [r.getMessage() for r in caplog.records if "tensorboard" in r.getMessage()]
-    assert warned == ["train.tensorboard=true but tensorboard is not installed; continuing without it"]
+    assert warned == ["train.tensorboard=true but tensorboard is not installed (pip install tensorboard); continuing without it"]
     assert not (tmp_path / "r" / "tensorboard").exists()
 
 

@@ -1134,6 +1134,6 @@ def _tensorboard(run_dir: Path):
     try:
         from torch.utils.tensorboard import SummaryWriter
     except ImportError:
-        log.warning("train.tensorboard=true but tensorboard is not installed; continuing without it")
+        log.warning("train.tensorboard=true but tensorboard is not installed (pip install tensorboard); continuing without it")
         return None
     return SummaryWriter(str(run_dir / "tensorboard"))
