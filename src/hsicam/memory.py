@@ -159,17 +159,29 @@ def memory_budget_bytes(budget_mb: float | None = None) -> int:
     return budget
 
 
+def process_memory_limit() -> tuple[int | None, str]:
+    """(bytes, which limit they are) of the memory one process may take in all: ``HSICAM_MEMORY_BUDGET_MB`` when set,
+    else the lowest of the machine's physical RAM, its cgroup (container) limit and the address space left under a
+    ``ulimit -v``; (None, "") when none of them can be read. The words name the limit that bites, for a refusal's
+    "more than ...": under ``ulimit -v`` reconstruct said "this machine's memory (2.95 GiB)" on a 23 GB machine."""
+    env = os.environ.get(MEMORY_BUDGET_ENV, "").strip()
+    if env:
+        return int(_parse_budget_mb(env, MEMORY_BUDGET_ENV) * 2**20), f"the limit {MEMORY_BUDGET_ENV} sets"
+    known = [(n, what) for n, what in ((_physical_memory_bytes(), "this machine's memory"),
+                                       (_cgroup_memory_limit_bytes(), "the memory limit of this process's cgroup "
+                                                                      "(its container or job)"),
+                                       (_address_space_left_bytes(), "the address space this process has left under "
+                                                                     "its ulimit -v"))
+             if n is not None]
+    return min(known, key=lambda k: k[0]) if known else (None, "")
+
+
 def machine_memory_bytes() -> int | None:
     """The memory one process may take in all (bytes): ``HSICAM_MEMORY_BUDGET_MB`` when set, else the machine's
     (physical RAM, or the cgroup limit when lower, and the address space left under a ``ulimit -v``); None
-    when none of them can be read. For a whole command's peak, where :func:`memory_budget_bytes` (a
-    quarter of it) bounds one allocation."""
-    env = os.environ.get(MEMORY_BUDGET_ENV, "").strip()
-    if env:
-        return int(_parse_budget_mb(env, MEMORY_BUDGET_ENV) * 2**20)
-    known = [n for n in (_physical_memory_bytes(), _cgroup_memory_limit_bytes(), _address_space_left_bytes())
-             if n is not None]
-    return min(known) if known else None
+    when none of them can be read (:func:`process_memory_limit`, which also says which limit it is). For a whole
+    command's peak, where :func:`memory_budget_bytes` (a quarter of it) bounds one allocation."""
+    return process_memory_limit()[0]
 
 
 def format_bytes(nbytes: float) -> str:
@@ -231,4 +243,5 @@ def release_freed_memory() -> None:
 
 
 __all__ = ["DEFAULT_MEMORY_FRACTION", "KEEP_FREED_MEMORY_ENV", "KEEP_FREED_TOP_BYTES", "MEMORY_BUDGET_ENV",
-           "format_bytes", "keep_freed_memory", "memory_budget_bytes", "release_freed_memory"]
+           "format_bytes", "keep_freed_memory", "machine_memory_bytes", "memory_budget_bytes",
+           "process_memory_limit", "release_freed_memory"]

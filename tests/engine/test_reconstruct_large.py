@@ -162,6 +162,27 @@ def test_reconstruct_refuses_an_image_whose_whole_image_steps_would_not_fit_in_m
     assert not out.exists()
 
 
+def test_reconstructs_refusal_names_the_address_space_limit_not_the_machines_memory(tmp_path, monkeypatch):
+    """Under ``ulimit -v 4000000`` (2.95 GiB left) on a 23 GB machine, reconstruct said "more than this machine's
+    memory (2.95 GiB)": the limit that bites is the process's address space, and the line now says so."""
+    import hsicam.memory as mem
+
+    monkeypatch.delenv(mem.MEMORY_BUDGET_ENV, raising=False)
+    monkeypatch.setattr(mem, "_physical_memory_bytes", lambda: 23 * 2**30)
+    monkeypatch.setattr(mem, "_cgroup_memory_limit_bytes", lambda: None)
+    # the PSF plan (one allocation: half of what is left) fits, the 512² reconstruction (1.4 GiB) does not
+    monkeypatch.setattr(mem, "_address_space_left_bytes", lambda: 2**30)
+    monkeypatch.setattr("hsicam.io.free_space_short", lambda *args, **kwargs: None)
+    sensor = tmp_path / "capture.npy"
+    np.save(sensor, np.random.default_rng(0).uniform(0.2, 0.8, (512, 512)).astype(np.float32))
+    out = tmp_path / "cube.h5"
+    line = error_line(run_cli_in_process("reconstruct", str(sensor), "--run", "pretrained:standard", "--out", str(out)))
+    assert re.fullmatch(rf"hsicam: error: {re.escape(str(sensor))}: reconstructing 512×512 px into 31 bands takes about "
+                        r"[\d.]+ GiB of memory .*, more than the address space this process has left under its "
+                        r"ulimit -v \(1 GiB\); reconstruct it in parts .*", line), line
+    assert not out.exists()
+
+
 def test_torch_out_of_memory_is_one_line():
     from hsicam.cli import error_line as line_of
 

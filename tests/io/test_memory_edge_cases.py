@@ -93,6 +93,24 @@ def test_a_whole_commands_memory_is_the_lowest_of_ram_cgroup_and_address_space(m
     assert machine_memory_bytes() == 512 * 2**20
 
 
+def test_the_process_limit_names_the_limit_that_bites(machine, monkeypatch):
+    """Under ``ulimit -v`` reconstruct refused with "more than this machine's memory (2.95 GiB)" on a 23 GB machine:
+    the words now name the lowest limit, the one that bites."""
+    from hsicam.memory import MEMORY_BUDGET_ENV, process_memory_limit
+
+    assert process_memory_limit() == (16 * 2**30, "this machine's memory")
+    machine["left"] = 3 * 2**30
+    assert process_memory_limit() == (3 * 2**30, "the address space this process has left under its ulimit -v")
+    machine["cgroup"] = 2 * 2**30
+    n, what = process_memory_limit()
+    assert n == 2 * 2**30 and "cgroup" in what
+    monkeypatch.setenv(MEMORY_BUDGET_ENV, "512")
+    assert process_memory_limit() == (512 * 2**20, f"the limit {MEMORY_BUDGET_ENV} sets")
+    monkeypatch.delenv(MEMORY_BUDGET_ENV)
+    machine.update(phys=None, cgroup=None, left=None)
+    assert process_memory_limit() == (None, "")
+
+
 def test_the_budget_falls_back_to_8_gib_when_no_memory_can_be_read(machine):
     from hsicam.memory import machine_memory_bytes, memory_budget_bytes
 

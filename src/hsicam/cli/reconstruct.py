@@ -6,7 +6,6 @@ import argparse
 import dataclasses
 import logging
 import math
-import os
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -469,12 +468,12 @@ def write_cube_file(path: Path, cube: np.ndarray, bands, metadata: dict) -> floa
 
 def check_reconstruction_memory(rec, bands: int, shape: tuple[int, int], tile: int | None, source) -> None:
     """One-line :class:`InputError` when reconstructing an image of ``shape`` would need more memory than the
-    process may take (:func:`hsicam.memory.machine_memory_bytes`): the steps go over the whole image, so its
+    process may take (:func:`hsicam.memory.process_memory_limit`, named): the steps go over the whole image, so its
     peak grows with the image, whatever the tile (it was killed, or ended in torch's allocator traceback)."""
     from hsicam.engine.inference import reconstruction_memory_bytes
-    from hsicam.memory import MEMORY_BUDGET_ENV, format_bytes, machine_memory_bytes
+    from hsicam.memory import format_bytes, process_memory_limit
 
-    need, have = reconstruction_memory_bytes(rec, bands, *shape, tile), machine_memory_bytes()
+    (have, where), need = process_memory_limit(), reconstruction_memory_bytes(rec, bands, *shape, tile)
     if have is None or need <= have:
         return
     h, w = shape
@@ -482,8 +481,6 @@ def check_reconstruction_memory(rec, bands: int, shape: tuple[int, int], tile: i
     while hi - lo > 1:
         mid = (lo + hi) // 2
         lo, hi = (mid, hi) if reconstruction_memory_bytes(rec, bands, mid, mid, tile) <= have else (lo, mid)
-    where = ("the limit HSICAM_MEMORY_BUDGET_MB sets" if os.environ.get(MEMORY_BUDGET_ENV, "").strip() else
-             "this machine's memory")
     todo = (f"reconstruct it in parts of at most about {lo}×{lo} px (crop the capture; --cfa-offset gives each part's "
             "CFA phase)" if lo >= 64 else "even a small part would not fit: run it where more memory is free")
     raise InputError(f"{source}: reconstructing {h}×{w} px into {bands} bands takes about {format_bytes(need)} of memory "
