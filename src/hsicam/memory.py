@@ -185,11 +185,13 @@ def machine_memory_bytes() -> int | None:
 
 
 def format_bytes(nbytes: float) -> str:
-    """``nbytes`` in B, KiB, MiB, GiB, TiB or PiB (3 significant digits)."""
+    """``nbytes`` in B, KiB, MiB, GiB, TiB or PiB (3 significant digits; 1000–1023 of a unit as an integer, not
+    ``1e+03``)."""
     for unit, size in (("PiB", 2**50), ("TiB", 2**40), ("GiB", 2**30), ("MiB", 2**20), ("KiB", 2**10)):
         if nbytes >= size:
             try:
-                return f"{nbytes / size:.3g} {unit}"
+                value = nbytes / size
+                return f"{value:.0f} {unit}" if 999.5 <= value < 1024 else f"{value:.3g} {unit}"
             except OverflowError:  # an int beyond float (a memory estimate from absurd optics, e.g. a 1e300 mm lens)
                 return f"{decimal.Decimal(int(nbytes)) / size:.3g} {unit}"
     return f"{int(nbytes)} B"

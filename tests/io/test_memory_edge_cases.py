@@ -121,7 +121,8 @@ def test_the_budget_falls_back_to_8_gib_when_no_memory_can_be_read(machine):
     assert memory_budget_bytes() == 2**30  # half of what the address space has left
 
 
-@pytest.mark.parametrize("nbytes, text", [(1023, "1023 B"), (1024, "1 KiB"), (2**20, "1 MiB"), (1536 * 2**30, "1.5 TiB")])
+@pytest.mark.parametrize("nbytes, text", [(1023, "1023 B"), (1024, "1 KiB"), (2**20, "1 MiB"), (1536 * 2**30, "1.5 TiB"),
+                                         (1000 * 2**20, "1000 MiB"), (1023 * 2**30, "1023 GiB"), (999 * 2**20, "999 MiB")])
 def test_format_bytes_switches_unit_at_each_power_of_1024(nbytes, text):
     from hsicam.memory import format_bytes
 

@@ -323,6 +323,10 @@ def error_line(exc: BaseException) -> str | None:
                                           or "can't allocate memory" in str(exc)):
         # torch's allocators (CPU: a RuntimeError; CUDA: torch.OutOfMemoryError), not Python's MemoryError
         what = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        if _raised_in_consistency_steps(exc):  # whole-image work: a smaller tile cannot help (session 76)
+            return (f"out of memory ({what}) in the consistency steps, which go over the whole image whatever the "
+                    "tile size: work on a smaller image or in parts, or with fewer steps (hsicam reconstruct "
+                    "--consistency-steps 0; hsicam evaluate --set model.consistency.iterations=0)")
         return (f"out of memory ({what}): work on a smaller image or in parts, or lower the tile size or the batch "
                 "size")
     try:
@@ -333,6 +337,18 @@ def error_line(exc: BaseException) -> str | None:
     except ImportError:  # pragma: no cover
         pass
     return None
+
+
+def _raised_in_consistency_steps(exc: BaseException) -> bool:
+    """Whether ``exc`` was raised in the measurement-consistency steps that go over the whole image after the tiles
+    (:meth:`hsicam.models.CameraSystem.landweber_steps`): a frame of that method in ``exc``'s traceback."""
+    module = sys.modules.get("hsicam.models.system")
+    where = getattr(module, "__file__", None)
+    if where is None:
+        return False
+    where = os.path.abspath(where)
+    return any(frame.name == "landweber_steps" and os.path.abspath(frame.filename) == where
+               for frame in traceback.extract_tb(exc.__traceback__))
 
 
 #: numpy's message for a file write cut short (no errno): a full disk, most often.

@@ -59,7 +59,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--device", default="cpu", type=device_arg, help="torch device (default cpu)")
     p.add_argument("--tile", type=int, default=None, metavar="PX",
                    help=f"tile side for a network's large scenes, >= {MIN_TILE_PX} (default: 4× its context, within "
-                        "512-1024 px; smaller tiles take less memory and more time)")
+                        "512-1024 px); smaller tiles take more time and less memory in the network only: its consistency "
+                        "steps go over the whole scene whatever the tile (off: --set model.consistency.iterations=0)")
     p.set_defaults(func=cmd_evaluate)
 
     p = sub.add_parser("experiment", help="run one of the paper's experiments (resumable)")
@@ -316,9 +317,9 @@ def _check_scenes_before_scoring(args: argparse.Namespace, method, scenes, names
     from hsicam.engine.evaluate import check_room_for_cubes, check_scenes
 
     # every scene is read (or its header) before any is scored: a bad one fails now, not after hours of scoring
-    check_scenes(method, scenes, names)
+    check_scenes(method, scenes, names, tile_px=args.tile)
     if heldout is not None:
-        check_scenes(method, *heldout)
+        check_scenes(method, *heldout, tile_px=args.tile)
     if args.save:
         check_room_for_cubes(out, scenes, n_bands)
 

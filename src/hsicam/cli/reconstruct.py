@@ -468,24 +468,22 @@ def write_cube_file(path: Path, cube: np.ndarray, bands, metadata: dict) -> floa
 
 def check_reconstruction_memory(rec, bands: int, shape: tuple[int, int], tile: int | None, source) -> None:
     """One-line :class:`InputError` when reconstructing an image of ``shape`` would need more memory than the
-    process may take (:func:`hsicam.memory.process_memory_limit`, named): the steps go over the whole image, so its
-    peak grows with the image, whatever the tile (it was killed, or ended in torch's allocator traceback)."""
-    from hsicam.engine.inference import reconstruction_memory_bytes
-    from hsicam.memory import format_bytes, process_memory_limit
+    process may take (:func:`hsicam.engine.inference.memory_shortfall`, the limit named): the steps go over the
+    whole image, so its peak grows with the image, whatever the tile (it was killed, or ended in torch's allocator
+    traceback)."""
+    from hsicam.engine.inference import memory_shortfall, reconstruction_memory_bytes
+    from hsicam.memory import format_bytes
 
-    (have, where), need = process_memory_limit(), reconstruction_memory_bytes(rec, bands, *shape, tile)
-    if have is None or need <= have:
+    short = memory_shortfall(lambda h, w: reconstruction_memory_bytes(rec, bands, h, w, tile), shape)
+    if short is None:
         return
     h, w = shape
-    lo, hi = 0, max(h, w)  # the largest square part that fits: lo fits (0: none), hi does not
-    while hi - lo > 1:
-        mid = (lo + hi) // 2
-        lo, hi = (mid, hi) if reconstruction_memory_bytes(rec, bands, mid, mid, tile) <= have else (lo, mid)
+    lo = short.fits_px
     todo = (f"reconstruct it in parts of at most about {lo}×{lo} px (crop the capture; --cfa-offset gives each part's "
             "CFA phase)" if lo >= 64 else "even a small part would not fit: run it where more memory is free")
-    raise InputError(f"{source}: reconstructing {h}×{w} px into {bands} bands takes about {format_bytes(need)} of memory "
-                     f"(whole-image cubes for the consistency steps, and one tile's window), more than {where} "
-                     f"({format_bytes(have)}); {todo}, or with fewer steps (--consistency-steps 0)")
+    raise InputError(f"{source}: reconstructing {h}×{w} px into {bands} bands takes about {format_bytes(short.need)} of "
+                     f"memory (whole-image cubes for the consistency steps, and one tile's window), more than "
+                     f"{short.limit} ({format_bytes(short.have)}); {todo}, or with fewer steps (--consistency-steps 0)")
 
 
 def corrections_from_args(args: argparse.Namespace, cfa_period: int | None) -> "object":

@@ -16,14 +16,14 @@ import io
 import re
 import time
 import zlib
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Callable, Collection, Sequence
 
 import numpy as np
 import torch
 
-from hsicam.engine.inference import reconstruct_tiled
+from hsicam.engine.inference import memory_shortfall, reconstruct_tiled, reconstruction_memory_bytes
 from hsicam.engine.methods import Method, demosaic_reference  # noqa: F401  (re-exported)
 from hsicam.engine.provenance import commit_label
 from hsicam.errors import InputError
@@ -216,11 +216,39 @@ def scene_label(scenes, i: int, name: str) -> str:
     return str(paths[i]) if paths is not None and i < len(paths) else name
 
 
-def check_scenes(method: Method, scenes, names: Sequence[str], boundary_advice: bool = True) -> None:
+#: What scoring a scene adds to its reconstruction's peak (:func:`evaluation_memory_bytes`): a fixed part (the
+#: data readers, the metrics' code) and float32 cubes of the scene's size (the scene, its truth, the clipped estimate,
+#: the metrics' float64 copies of both and of their difference). Fitted to ``hsicam evaluate``'s peak resident memory
+#: (session 76, the quick demo camera, one 512² or 1024² scene, with and without its 12 consistency steps: 1.03–2.99
+#: GiB measured, the estimate 1.09–1.26× of it).
+EVALUATE_EXTRA_BYTES = 256 * 2**20
+EVALUATE_SCENE_CUBES = 8
+
+
+def evaluation_memory_bytes(method: Method, n_bands: int, scene_hw: tuple[int, int], tile_px: int | None = None,
+                            held_bytes: int = 0) -> int | None:
+    """About the peak memory (bytes) of scoring one scene of ``scene_hw`` (H, W) into ``n_bands`` bands with a
+    learned ``method`` (its network tiled in ``tile_px``): the reconstruction of its target's size
+    (:func:`~hsicam.engine.inference.reconstruction_memory_bytes`: its consistency steps go over the whole image,
+    whatever the tile), :data:`EVALUATE_EXTRA_BYTES`, :data:`EVALUATE_SCENE_CUBES` of the scene, and ``held_bytes``
+    (other scenes' cubes a dataset keeps). None for a method without a network (a baseline's memory is its own)."""
+    if method.model is None:
+        return None
+    b = method.border_px
+    h, w = _scored_hw(method, n_bands, scene_hw)
+    rec = reconstruction_memory_bytes(method.reconstruct, n_bands, max(h + 2 * b, 1), max(w + 2 * b, 1), tile_px)
+    return int(rec + EVALUATE_EXTRA_BYTES + EVALUATE_SCENE_CUBES * 4 * n_bands * scene_hw[0] * scene_hw[1]
+               + held_bytes)
+
+
+def check_scenes(method: Method, scenes, names: Sequence[str], boundary_advice: bool = True,
+                 tile_px: int | None = None) -> None:
     """Before any scoring: InputError for the first scene of ``scenes`` that cannot be scored, with
     the one-line message its scoring would end with: a file that cannot be read, whose bands do not
     cover the camera's, or whose scored area is too small for SSIM's window (named by its path; without
-    ``boundary_advice`` the message does not offer ``camera.boundary=same``: a command without ``--set``).
+    ``boundary_advice`` the message does not offer ``camera.boundary=same``: a command without ``--set``);
+    then for the first scene whose scoring would need more memory than the process may take
+    (:func:`check_scene_memory`).
 
     A :class:`~hsicam.data.datasets.SceneDataset` is asked for each scene's size
     (:meth:`~hsicam.data.datasets.SceneDataset.info`): an hsicam HDF5 file on the camera's bands by
@@ -229,6 +257,7 @@ def check_scenes(method: Method, scenes, names: Sequence[str], boundary_advice: 
     their tensors' shapes."""
     info = getattr(scenes, "info", None)
     n_bands = len(method.camera.bands)
+    sizes = []
     for i, name in enumerate(names):
         if info is not None:
             got = info(i)
@@ -237,6 +266,40 @@ def check_scenes(method: Method, scenes, names: Sequence[str], boundary_advice: 
             hw = tuple(int(v) for v in scenes[i].shape[-2:])
         _check_scored_area(scene_label(scenes, i, name), hw, _scored_hw(method, n_bands, hw), method.camera,
                            method.border_px, boundary_advice)
+        sizes.append(hw)
+    check_scene_memory(method, sizes, [scene_label(scenes, i, name) for i, name in enumerate(names)], tile_px,
+                       int(getattr(scenes, "cache_size", 1) or 1))
+
+
+def check_scene_memory(method: Method, sizes: Sequence[tuple[int, int]], labels: Sequence[str],
+                       tile_px: int | None = None, cached: int = 1) -> None:
+    """InputError, before any scoring, for the first scene (of ``sizes``, (H, W) each, named by ``labels``) whose
+    scoring (:func:`evaluation_memory_bytes`, beside the ``cached`` − 1 largest other scenes a dataset keeps) would
+    need more memory than the process may take (:func:`~hsicam.engine.inference.memory_shortfall`). A 2048² scene
+    under ``ulimit -v 4000000`` was scored for 38 s, then ended in an out-of-memory error that advised a smaller tile,
+    which failed again after 2 min: the consistency steps go over the whole image, whatever the tile."""
+    from hsicam.memory import format_bytes
+
+    if method.model is None:  # no estimate (evaluation_memory_bytes)
+        return
+    n_bands = len(method.camera.bands)
+    cubes = [4 * n_bands * h * w for h, w in sizes]
+    for i, (hw, label) in enumerate(zip(sizes, labels)):
+        held = sum(sorted(cubes[:i] + cubes[i + 1 :], reverse=True)[: max(cached - 1, 0)])
+        short = memory_shortfall(lambda h, w, b=held: evaluation_memory_bytes(method, n_bands, (h, w), tile_px, b), hw)
+        if short is None:
+            continue
+        lo = short.fits_px
+        todo = [f"crop the scenes to at most about {lo}×{lo} px" if lo >= 64 else
+                "even a small scene would not fit: score where more memory is free"]
+        before = getattr(method.reconstruct, "before_steps", None)  # the tiled part, the linear step included
+        alone = None if before is None else replace(method, reconstruct=before)
+        if alone is not None and evaluation_memory_bytes(alone, n_bands, hw, tile_px, held) <= short.have:
+            todo.append("score without the consistency steps (--set model.consistency.iterations=0)")
+        steps = ", whose consistency steps go over the whole image whatever the tile" if before is not None else ""
+        raise InputError(f"{label}: scoring this {hw[0]}×{hw[1]} px scene ({n_bands} bands) with {method.name} takes "
+                         f"about {format_bytes(short.need)} of memory (the scene, its scores and its reconstruction"
+                         f"{steps}), more than {short.limit} ({format_bytes(short.have)}); {', or '.join(todo)}")
 
 
 def interpolated_truth_warning(scenes, names: Sequence[str], bands) -> str | None:
@@ -314,7 +377,7 @@ def evaluate_method(method: Method, scenes, names: Sequence[str], noise: TestNoi
         raise ValueError(f"{len(scenes)} scenes, {len(names)} names" + (f", {len(paths)} paths" if paths is not None else ""))
     cam = method.camera
     check_test_noise(method, noise)
-    check_scenes(method, scenes, names)
+    check_scenes(method, scenes, names, tile_px=tile_px)
     if method.prepare is not None:  # e.g. a fit: not part of the first scene's reconstruction time
         method.prepare()
     saved = cam.noise_levels()

@@ -13,6 +13,8 @@ from __future__ import annotations
 import inspect
 import math
 import numbers
+from dataclasses import dataclass
+from typing import Callable
 
 import torch
 
@@ -87,6 +89,36 @@ def reconstruction_memory_bytes(reconstruct, bands: int, h: int, w: int, tile_px
     (:data:`RECONSTRUCT_BASE_BYTES`) and :func:`reconstruction_working_bytes`. An estimate for a refusal before the
     work, 1.05–1.4× the measured peaks of what the reconstruction adds (session 60)."""
     return RECONSTRUCT_BASE_BYTES + reconstruction_working_bytes(reconstruct, bands, h, w, tile_px)
+
+
+@dataclass(frozen=True)
+class MemoryShortfall:
+    """What a refusal for memory says (:func:`memory_shortfall`): the work's ``need`` and the ``have`` the process may
+    take (bytes), which limit that is (``limit``: :func:`hsicam.memory.process_memory_limit`'s words), and the side
+    (px) of the largest square image whose work fits (``fits_px``; 0: none)."""
+
+    need: int
+    have: int
+    limit: str
+    fits_px: int
+
+
+def memory_shortfall(need_of: Callable[[int, int], int], shape: tuple[int, int]) -> MemoryShortfall | None:
+    """None when the work on an image of ``shape`` (H, W) fits the memory the process may take, else its
+    :class:`MemoryShortfall`. ``need_of(h, w)``: the peak (bytes) of the work on an (h, w) image, growing with it
+    (:func:`reconstruction_memory_bytes` for ``reconstruct``, :func:`hsicam.engine.evaluate.evaluation_memory_bytes`
+    for ``evaluate``): the one check both commands make before minutes of work."""
+    from hsicam.memory import process_memory_limit
+
+    have, limit = process_memory_limit()
+    need = need_of(*shape)
+    if have is None or need <= have:
+        return None
+    lo, hi = 0, max(shape)  # the largest square part that fits: lo fits (0: none), hi does not
+    while hi - lo > 1:
+        mid = (lo + hi) // 2
+        lo, hi = (mid, hi) if need_of(mid, mid) <= have else (lo, mid)
+    return MemoryShortfall(int(need), int(have), limit, lo)
 
 
 def tiled_pixels(shape: tuple[int, int], tile_px: int, halo_px: int) -> int:
