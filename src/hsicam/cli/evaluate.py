@@ -153,9 +153,10 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
 
 def _evaluate(args: argparse.Namespace) -> int:
     """:func:`cmd_evaluate`, its lock held."""
-    from hsicam.engine.evaluate import TestNoise, evaluate_method, interpolated_truth_warning
+    from hsicam.engine.evaluate import TestNoise, evaluate_method, interpolated_truth_warning, write_results
     from hsicam.data.datasets import list_scenes
     from hsicam.cli import prepare_output
+    from hsicam.io import atomic_output
 
     check_tile(args.tile)
     alias = _use_current_method_name(args)
@@ -181,15 +182,25 @@ def _evaluate(args: argparse.Namespace) -> int:
     if interpolated:
         log.warning(interpolated)
     show = lambda line: print(line, file=sys.stderr, flush=True)  # noqa: E731
-    results = evaluate_method(method, scenes, names, noise, args.device, keep_arrays=args.save, progress=show,
-                              paths=rel, tile_px=args.tile)
     camera_sensor = {k: getattr(cfg.camera.sensor, k) for k in SENSOR_NOISE_KEYS}
-    summary = _summary(args, cfg, method, results, noise, data_label, camera_sensor, roles, warning, weights)
-    if interpolated:
-        summary["truth_interpolated"] = interpolated
-    if heldout is not None:
-        summary["heldout"] = _heldout_summary(args, cfg, method, heldout, noise, show)
-    _write_evaluation(out, args, summary, results, scenes, noise, camera_sensor, bands)
+    # One result, several files: written into a temporary folder that gets the completion marker and is renamed
+    # into place at the end (an interrupted evaluation leaves nothing `report` accepts); with --save each scene's
+    # cubes go there as soon as it is scored, and leave memory (all of them were held until the end: 136 MB a
+    # 1001×777 scene, about 22 GB for ten KAIST-size scenes)
+    with atomic_output(out, overwrite=True, marker={"command": "evaluate", "method": args.method}) as tmp:
+        save = None
+        if args.save:
+            def save(i: int, result) -> None:
+                _save_scene_cubes(tmp, args, result, scenes, i, noise, camera_sensor, bands)
+
+        results = evaluate_method(method, scenes, names, noise, args.device, keep_arrays=args.save, progress=show,
+                                  paths=rel, tile_px=args.tile, on_scene=save)
+        summary = _summary(args, cfg, method, results, noise, data_label, camera_sensor, roles, warning, weights)
+        if interpolated:
+            summary["truth_interpolated"] = interpolated
+        if heldout is not None:
+            summary["heldout"] = _heldout_summary(args, cfg, method, heldout, noise, show)
+        write_results(tmp, summary)
     _print_means(args, summary, len(results), out)
     return 0
 
@@ -376,35 +387,31 @@ def _heldout_summary(args: argparse.Namespace, cfg, method, heldout, noise, show
             **summarize(held)}
 
 
-def _write_evaluation(out: Path, args: argparse.Namespace, summary: dict, results, scenes, noise,
-                      camera_sensor: dict, bands) -> None:
-    """The result files into ``out``, whole or not at all: results.json/csv/md and, with ``--save``, cubes/."""
+def _save_scene_cubes(tmp: Path, args: argparse.Namespace, result, scenes, i: int, noise, camera_sensor: dict,
+                      bands) -> None:
+    """``--save``: scene ``i``'s estimate and ground truth (``result``'s arrays) as ``tmp/cubes/NAME_estimate.h5``
+    and ``NAME_truth.h5``, then the arrays dropped from ``result``: one scene's cubes in memory at a time."""
     from hsicam.data.formats import write_cube_h5
-    from hsicam.engine.evaluate import write_results
-    from hsicam.io import atomic_output
+    from hsicam.runs.pretrained import run_label
 
-    # One result, several files: written into a temporary folder that gets the completion marker and
-    # is renamed into place at the end (an interrupted evaluation leaves nothing `report` accepts).
-    with atomic_output(out, overwrite=True, marker={"command": "evaluate", "method": args.method}) as tmp:
-        write_results(tmp, summary)
-        if args.save:
-            for i, r in enumerate(results):
-                scene = {"scene": r.name, "scene_path": r.path, "source": str(Path(scenes.paths[i]).resolve()),
-                         "normalization_peak": scenes.info(i).peak}
-                # (command and role: a data folder that a copy of these cubes lands in lists the estimate as none
-                # of its scenes, hsicam.data.estimates.is_estimate)
-                estimate = {"command": "evaluate", "role": "estimate", "method": args.method, **scene,
-                            "run": summary["run"], "seed": r.seed, "seeds_scored": len(noise.seeds),
-                            "noise": {**r.noise, "camera_sensor": camera_sensor}}
-                if len(noise.seeds) > 1:
-                    estimate["note"] = (f"the estimate of seed {r.seed}, the first of the {len(noise.seeds)} seeds scored: "
-                                        "results.json holds means over the seeds, this scene's per_seed the metrics "
-                                        "of each (this cube's first)")
-                for role, cube, meta in (("estimate", r.estimate, estimate), ("truth", r.truth, {"role": "ground truth", **scene})):
-                    path = tmp / "cubes" / f"{r.name}_{role}.h5"
-                    if path.exists():  # scene names are unique (ignoring case): never overwrite a saved cube
-                        raise RuntimeError(f"{path.name}: written twice (scene names must be unique)")
-                    write_cube_h5(path, cube, bands, meta)
+    scene = {"scene": result.name, "scene_path": result.path, "source": str(Path(scenes.paths[i]).resolve()),
+             "normalization_peak": scenes.info(i).peak}
+    # (command and role: a data folder that a copy of these cubes lands in lists the estimate as none
+    # of its scenes, hsicam.data.estimates.is_estimate)
+    estimate = {"command": "evaluate", "role": "estimate", "method": args.method, **scene,
+                "run": run_label(args.run) if args.run else None, "seed": result.seed,
+                "seeds_scored": len(noise.seeds), "noise": {**result.noise, "camera_sensor": camera_sensor}}
+    if len(noise.seeds) > 1:
+        estimate["note"] = (f"the estimate of seed {result.seed}, the first of the {len(noise.seeds)} seeds scored: "
+                            "results.json holds means over the seeds, this scene's per_seed the metrics "
+                            "of each (this cube's first)")
+    for role, cube, meta in (("estimate", result.estimate, estimate),
+                             ("truth", result.truth, {"role": "ground truth", **scene})):
+        path = tmp / "cubes" / f"{result.name}_{role}.h5"
+        if path.exists():  # scene names are unique (ignoring case): never overwrite a saved cube
+            raise RuntimeError(f"{path.name}: written twice (scene names must be unique)")
+        write_cube_h5(path, cube, bands, meta)
+    result.truth = result.estimate = None
 
 
 def _print_means(args: argparse.Namespace, summary: dict, n_scenes: int, out: Path) -> None:

@@ -361,7 +361,8 @@ def check_test_noise(method: Method, noise: TestNoise, source: str | None = None
 def evaluate_method(method: Method, scenes, names: Sequence[str], noise: TestNoise = TestNoise(),
                     device: str | torch.device = "cpu", keep_arrays: bool | Collection[str] = True,
                     tile_px: int | None = None, progress: Callable[[str], None] | None = None, paths: Sequence[str] | None = None,
-                    scene_set: str | None = None) -> list[SceneResult]:
+                    scene_set: str | None = None, on_scene: Callable[[int, SceneResult], None] | None = None
+                    ) -> list[SceneResult]:
     """Simulate, reconstruct and score every scene of ``scenes`` (items: (C, H, W) tensors).
 
     Every scene is checked first (:func:`check_scenes`): a scene that cannot be scored fails before
@@ -372,6 +373,10 @@ def evaluate_method(method: Method, scenes, names: Sequence[str], noise: TestNoi
     for a network's large images (default :func:`~hsicam.engine.inference.default_tile_px` of its context).
     ``scene_set``: the scenes' set, mixed into their capture noise seeds (:func:`capture_noise_seed`; e.g.
     :data:`HELDOUT_NOISE_SET`); None for the validation split or a folder of scenes.
+    ``on_scene``: called with each scene's index and result as soon as it is scored, before the next scene: e.g.
+    ``evaluate --save`` writes its arrays there and drops them (:attr:`SceneResult.truth` and ``estimate`` set to
+    None), so that one scene's cubes at a time are held, not every scene's until the end (a 1001×777 scene's two
+    cubes are 136 MB).
     """
     if len(names) != len(scenes) or (paths is not None and len(paths) != len(names)):
         raise ValueError(f"{len(scenes)} scenes, {len(names)} names" + (f", {len(paths)} paths" if paths is not None else ""))
@@ -428,6 +433,9 @@ def evaluate_method(method: Method, scenes, names: Sequence[str], noise: TestNoi
                                    metrics_per_seed=[{"seed": int(s), **m} for s, m in zip(noise.seeds, per_seed)],
                                    noise=dict(applied), sam_excluded_px=int(sam_undefined_pixels(truth)[0]),
                                    scored_px=(int(est0.shape[-2]), int(est0.shape[-1])), exact_zero_bands=exact))
+            del scene, truth, sensor, est, est0  # not alive through the next scene's capture
+            if on_scene is not None:
+                on_scene(i, out[-1])
             if progress is not None:
                 left = len(names) - i - 1  # the scenes still to do, at the mean time per scene so far (all seeds)
                 eta = f", eta {format_seconds((time.perf_counter() - t_start) / (i + 1) * left)}" if left else ""
