@@ -1,6 +1,6 @@
-"""The memory of ``hsicam evaluate`` (session 76's hunt): the need of every scene checked before any is scored, as
-``reconstruct`` checks its capture's; an out-of-memory error in the whole-image consistency steps does not advise
-a smaller tile."""
+"""The memory and progress of ``hsicam evaluate`` (session 76's hunt): the need of every scene checked before any is
+scored, as ``reconstruct`` checks its capture's; an out-of-memory error in the whole-image consistency steps does not
+advise a smaller tile; ``--save`` writes each scene's cubes as it is scored; a large scene's tiles and steps counted."""
 
 from __future__ import annotations
 
@@ -201,3 +201,37 @@ def test_an_evaluation_that_fails_after_saving_some_scenes_leaves_no_folder(tmp_
                              "--save")
     assert res.returncode == 2 and "out of memory" in res.stderr, res.stderr
     assert sorted(p.name for p in tmp_path.iterdir()) == ["data"]  # no folder, no temporary left
+
+
+def test_evaluate_counts_a_large_scenes_tiles_and_steps_and_not_a_small_ones(monkeypatch, standard):
+    """A 2048² scene was scored for 2 min without a line, even with -v, where reconstruct counts its tiles and steps.
+    Now a scene of SCENE_PROGRESS_PX or more shows the same counts (hsicam.progress) before its own line; a smaller
+    one, or a caller that asked for no progress, shows none."""
+    import logging
+
+    import hsicam.engine.evaluate as ev
+
+    # a 60² sensor image stands for a large one here (raising=False: the old code, which had no threshold, runs)
+    monkeypatch.setattr(ev, "SCENE_PROGRESS_PX", 60 * 60, raising=False)
+    method = _method(standard)
+    count = method.reconstruct.steps.count
+    events = []
+
+    class Record(logging.Handler):
+        def emit(self, record):
+            events.append(record.getMessage())
+
+    handler, logger = Record(level=logging.INFO), logging.getLogger("hsicam.progress")
+    logger.addHandler(handler)
+    monkeypatch.setattr(logger, "level", logging.INFO)
+    try:
+        scenes = [torch.full((31, 200, 200), 0.5), torch.full((31, 190, 190), 0.5)]  # sensor images 60² and 50²
+        ev.evaluate_method(method, scenes, ["big", "small"], progress=events.append)
+        big, small = (next(k for k, e in enumerate(events) if e.startswith(f"[{i}/2]")) for i in (1, 2))
+        assert any(e.startswith(f"consistency steps: {count}/{count} steps") for e in events[:big]), events
+        assert events[big + 1 : small] == [], events  # the small scene: its own line alone
+        events.clear()
+        ev.evaluate_method(method, scenes[:1], ["big"])  # no progress asked: none
+        assert events == []
+    finally:
+        logger.removeHandler(handler)

@@ -357,6 +357,13 @@ def check_test_noise(method: Method, noise: TestNoise, source: str | None = None
                          "applied; drop --sigma-height-nm (it applies only to a camera with a DOE)")
 
 
+#: A scene whose sensor image has at least this many pixels shows its reconstruction's progress (tiles, consistency
+#: steps: :class:`hsicam.progress.Progress`, as ``reconstruct`` does) when :func:`evaluate_method` is given
+#: ``progress``: with the demo camera on this project's 2-core CPU such a scene takes 15 s or more (a 2048² scene,
+#: 2 min in silence before session 76); smaller ones would add lines for seconds of work.
+SCENE_PROGRESS_PX = 512 * 512
+
+
 @torch.no_grad()
 def evaluate_method(method: Method, scenes, names: Sequence[str], noise: TestNoise = TestNoise(),
                     device: str | torch.device = "cpu", keep_arrays: bool | Collection[str] = True,
@@ -366,7 +373,9 @@ def evaluate_method(method: Method, scenes, names: Sequence[str], noise: TestNoi
     """Simulate, reconstruct and score every scene of ``scenes`` (items: (C, H, W) tensors).
 
     Every scene is checked first (:func:`check_scenes`): a scene that cannot be scored fails before
-    any work. ``progress``: called with one line per finished scene (e.g. ``print`` to stderr).
+    any work. ``progress``: called with one line per finished scene (e.g. ``print`` to stderr); given, a scene of
+    :data:`SCENE_PROGRESS_PX` or more also counts its reconstruction's tiles and steps on the way (a bar on a
+    terminal, else ``hsicam.progress`` log lines).
     ``paths``: each scene's file as the results name it (:attr:`SceneResult.path`). The arrays kept
     (``keep_arrays``: every scene's, none, or those of the scenes it names) are those of the first seed,
     :attr:`SceneResult.seed`. ``tile_px``: the tile side
@@ -411,7 +420,9 @@ def evaluate_method(method: Method, scenes, names: Sequence[str], noise: TestNoi
                 t0 = time.perf_counter()
                 if halo is not None:  # the halo the reconstructor declares (tiles up to its steps, if it has any)
                     declared = getattr(method.reconstruct, "context_px", None) is not None
-                    est = reconstruct_tiled(method.reconstruct, sensor, tile_px, None if declared else halo)
+                    large = sensor.shape[-2] * sensor.shape[-1] >= SCENE_PROGRESS_PX
+                    est = reconstruct_tiled(method.reconstruct, sensor, tile_px, None if declared else halo,
+                                            progress=None if progress is not None and large else False)
                 else:
                     est = method.reconstruct(sensor)
                 times.append(time.perf_counter() - t0)
