@@ -14,6 +14,16 @@ limit when lower), and at most half of the address space left under a ``ulimit -
 :func:`hsicam.models.registry.check_parameter_memory`) all use :func:`memory_budget_bytes`, so
 ``HSICAM_MEMORY_BUDGET_MB`` governs them all.
 
+What ``HSICAM_MEMORY_BUDGET_MB`` bounds: one number, the memory this process may take (MiB), checked two ways.
+Every allocation the layers above check (a cube read, a PSF plan, the DOE's cells, the CFA's weights, a CASSI
+sensor's width, a network's weights or training, a synthetic scene) must fit in it alone
+(:func:`memory_budget_bytes`; unset: a quarter of the machine's memory). A whole command's estimated peak must fit
+in it where the command estimates one: ``reconstruct`` (the capture's reconstruction) and ``evaluate`` (each scene
+of a learned method) (:func:`process_memory_limit`; unset: the machine's memory, its cgroup limit or the address
+space left under ``ulimit -v``, the lowest). The other commands (``simulate``, ``train``, ``tolerance``, …) estimate
+no whole peak: their process can take more than the budget (``simulate`` of a 1024² scene under a budget of 400 MiB
+peaked at 0.87 GB; of a 2048² scene under 1000 MiB, at 2.17 GB; session 76), never one allocation beyond it.
+
 Also here: :func:`keep_freed_memory`, which the ``hsicam`` command calls first so that glibc reuses the memory of
 freed tensors instead of handing it back to the system and faulting it in again.
 """
@@ -29,7 +39,8 @@ from typing import Any
 
 from hsicam.errors import ConfigError
 
-#: Environment variable overriding the memory budget of the readers, in MiB.
+#: Environment variable: the memory this process may take (MiB), which each checked allocation and, in
+#: ``reconstruct`` and ``evaluate``, the whole command's estimated peak must fit (the module docstring).
 MEMORY_BUDGET_ENV = "HSICAM_MEMORY_BUDGET_MB"
 #: Fraction of the machine's memory that one cube may take by default.
 DEFAULT_MEMORY_FRACTION = 0.25
@@ -141,7 +152,9 @@ def _parse_budget_mb(value: Any, what: str) -> float:
 
 def memory_budget_bytes(budget_mb: float | None = None) -> int:
     """The memory one allocation of the program (a cube, a PSF plan, a network's training…) may take, in
-    bytes (see the module docstring for the precedence and its users).
+    bytes: ``budget_mb``, else ``HSICAM_MEMORY_BUDGET_MB`` (the whole process's limit: no one allocation may exceed
+    it; this bounds no command's total, :func:`process_memory_limit` does where a command estimates it), else a
+    quarter of the machine's memory (see the module docstring for the precedence and its users).
 
     Raises :class:`ConfigError` for a budget (argument or ``HSICAM_MEMORY_BUDGET_MB``) that is not
     a positive number.
