@@ -40,7 +40,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                                     "if any; a camera that differs from it is warned about)")
     q.add_argument("--dest", metavar="DIR", help="folder of cameras to pack into (default: $HSICAM_PRETRAINED_DIR, "
                                                  "else, from a source checkout only, the package's "
-                                                 "resources/pretrained; an installed package needs --dest)")
+                                                 "resources/pretrained; from an installed package, give it)")
     q.add_argument("--force", action="store_true", help="replace an existing camera of that name")
     q.set_defaults(func=cmd_pack)
 
