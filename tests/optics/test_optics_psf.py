@@ -651,6 +651,10 @@ def test_a_float64_camera_computes_its_psfs_from_float64_optics_constants(tiny_c
     cam.float()
     for name, value in exact.items():
         assert torch.equal(getattr(o, name), torch.from_numpy(value).float()), name
+    for low in (torch.bfloat16, torch.float16):  # back from a low precision: the fresh float32 constants again (a
+        cam.to(low).float()  # .half().float() camera kept inf DOE phases and imaged NaN PSFs; session 76's review)
+        for name, value in exact.items():
+            assert torch.equal(getattr(o, name), torch.from_numpy(value).float()), (low, name)
 
 
 def test_psf_batch_copies_no_full_spectrum_and_is_the_padded_fft():

@@ -250,10 +250,11 @@ class PSFModel(nn.Module):
         """``nn.Module``'s (``.double()``, ``.to(dtype, device)``, …), then each optics constant whose dtype changed
         rebuilt from its float64 value: a float64 module holds the float64 constants, not float32 ones cast up (a
         float64 camera's PSFs were float32-accurate, ~5e-8 relative); another dtype is rounded from float32 as the
-        float32 buffers always were (float32 itself needs nothing: the float64 constants round to the same bits)."""
+        float32 buffers always were; back to float32 too (a ``.half().float()`` camera kept the half constants cast up:
+        inf phases, NaN PSFs; session 76's review), the float64 constants rounding to the fresh float32 bits."""
         before = {name: getattr(self, name).dtype for name in OPTICS_CONSTANTS}
         super()._apply(fn, recurse)
-        stale = [name for name in OPTICS_CONSTANTS if getattr(self, name).dtype not in (before[name], torch.float32)
+        stale = [name for name in OPTICS_CONSTANTS if getattr(self, name).dtype != before[name]
                  and getattr(self, name).dtype.is_floating_point]
         if stale:
             exact = self._constants()
