@@ -189,14 +189,6 @@ def process_memory_limit() -> tuple[int | None, str]:
     return min(known, key=lambda k: k[0]) if known else (None, "")
 
 
-def machine_memory_bytes() -> int | None:
-    """The memory one process may take in all (bytes): ``HSICAM_MEMORY_BUDGET_MB`` when set, else the machine's
-    (physical RAM, or the cgroup limit when lower, and the address space left under a ``ulimit -v``); None
-    when none of them can be read (:func:`process_memory_limit`, which also says which limit it is). For a whole
-    command's peak, where :func:`memory_budget_bytes` (a quarter of it) bounds one allocation."""
-    return process_memory_limit()[0]
-
-
 def format_bytes(nbytes: float) -> str:
     """``nbytes`` in B, KiB, MiB, GiB, TiB or PiB (3 significant digits; 1000–1023 of a unit as an integer, not
     ``1e+03``)."""
@@ -258,5 +250,5 @@ def release_freed_memory() -> None:
 
 
 __all__ = ["DEFAULT_MEMORY_FRACTION", "KEEP_FREED_MEMORY_ENV", "KEEP_FREED_TOP_BYTES", "MEMORY_BUDGET_ENV",
-           "format_bytes", "keep_freed_memory", "machine_memory_bytes", "memory_budget_bytes",
+           "format_bytes", "keep_freed_memory", "memory_budget_bytes",
            "process_memory_limit", "release_freed_memory"]

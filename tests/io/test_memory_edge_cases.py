@@ -82,15 +82,15 @@ def machine(monkeypatch):
 
 
 def test_a_whole_commands_memory_is_the_lowest_of_ram_cgroup_and_address_space(machine, monkeypatch):
-    from hsicam.memory import MEMORY_BUDGET_ENV, machine_memory_bytes
+    from hsicam.memory import MEMORY_BUDGET_ENV, process_memory_limit
 
-    assert machine_memory_bytes() == 16 * 2**30
+    assert process_memory_limit()[0] == 16 * 2**30
     machine["cgroup"] = 6 * 2**30
-    assert machine_memory_bytes() == 6 * 2**30
+    assert process_memory_limit()[0] == 6 * 2**30
     machine["left"] = 3 * 2**30
-    assert machine_memory_bytes() == 3 * 2**30
+    assert process_memory_limit()[0] == 3 * 2**30
     monkeypatch.setenv(MEMORY_BUDGET_ENV, "512")
-    assert machine_memory_bytes() == 512 * 2**20
+    assert process_memory_limit()[0] == 512 * 2**20
 
 
 def test_the_process_limit_names_the_limit_that_bites(machine, monkeypatch):
@@ -112,11 +112,11 @@ def test_the_process_limit_names_the_limit_that_bites(machine, monkeypatch):
 
 
 def test_the_budget_falls_back_to_8_gib_when_no_memory_can_be_read(machine):
-    from hsicam.memory import machine_memory_bytes, memory_budget_bytes
+    from hsicam.memory import memory_budget_bytes, process_memory_limit
 
     machine["phys"] = None
     assert memory_budget_bytes() == 8 * 2**30
-    assert machine_memory_bytes() is None
+    assert process_memory_limit()[0] is None
     machine["left"] = 2 * 2**30
     assert memory_budget_bytes() == 2**30  # half of what the address space has left
 
@@ -163,7 +163,7 @@ def test_windows_reads_its_ram_by_global_memory_status_ex(monkeypatch):
     assert mem._physical_memory_bytes() == 12 * 2**30
     assert calls == [64]  # dwLength set before the call, as the API requires
     assert mem.memory_budget_bytes() == 3 * 2**30  # a quarter of the RAM
-    assert mem.machine_memory_bytes() == 12 * 2**30
+    assert mem.process_memory_limit()[0] == 12 * 2**30
     kernel32.GlobalMemoryStatusEx = lambda ref: 0  # the call failed
     assert mem._physical_memory_bytes() is None
     assert mem.memory_budget_bytes() == 8 * 2**30
